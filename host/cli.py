@@ -1,0 +1,55 @@
+"""The ``capsheet`` command line. Each subcommand lives in its own module, which exposes
+``register(subparsers)``; this file only collects them, so a module that fails to import does not
+take the others down with it (its error is shown when its subcommand is asked for)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: modules that provide subcommands, in the order `capsheet --help` lists them
+SUBCOMMAND_MODULES = [
+    "host.demo",            # capsheet demo
+    "host.hostcli",         # capsheet host
+    "virtual_sheet.cli",    # capsheet virtual
+    "host.paper",           # capsheet paper {solvability,gaussian,noise}
+    "host.tactile_cli",     # capsheet tactile
+    "host.conformance",     # capsheet conformance
+    "protocol.cli",         # capsheet protocol (spec helpers: vectors, dbc, capacity)
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="capsheet",
+        description="capsheet: 3D capture sheet toolkit — talk to sensor chips over serial or CAN, "
+                    "run a virtual sheet, estimate the sheet's shape and its contacts.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in SUBCOMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:
+                continue  # not built yet
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
