@@ -285,9 +285,13 @@ def _seed_line(height: HeightFunction, start: np.ndarray, direction: np.ndarray,
 
 
 def _compass(height: HeightFunction, A: np.ndarray, B: np.ndarray, C: np.ndarray, L: float,
-             where: str) -> np.ndarray:
+             ii: np.ndarray, jj: np.ndarray) -> np.ndarray:
     """New joints ``P`` (shape ``(m, 3)``) on the surface with ``|P−A| = |P−B| = L``, the root on
     the far side from ``C`` (Newton from the parallelogram point ``A + B − C``)."""
+    def where(bad: np.ndarray) -> str:
+        k = int(np.flatnonzero(bad)[0]) if np.any(bad) else 0
+        return f"joint ({int(ii[k])}, {int(jj[k])}) and {int(np.count_nonzero(bad)) - 1} more"
+
     start = A + B - C
     q = start[:, :2].copy()
     step = 1e-6 * L
@@ -299,7 +303,8 @@ def _compass(height: HeightFunction, A: np.ndarray, B: np.ndarray, C: np.ndarray
         dA, dB = P - A, P - B
         F = np.column_stack([np.sum(dA * dA, 1) - L2, np.sum(dB * dB, 1) - L2])
         if not np.all(np.isfinite(F)):
-            raise ValueError(f"Chebyshev net: height field undefined (NaN/inf) near the {where} "
+            bad = ~np.all(np.isfinite(F), axis=1)
+            raise ValueError(f"Chebyshev net: height field undefined (NaN/inf) at {where(bad)} "
                              "joints; the sheet leaves the shape's domain.")
         if np.max(np.abs(F)) <= 1e-13 * L2:  # lengths to ~5e-14 relative
             converged = True
@@ -313,7 +318,8 @@ def _compass(height: HeightFunction, A: np.ndarray, B: np.ndarray, C: np.ndarray
         J[:, 1, 1] = 2 * (dB[:, 1] + dB[:, 2] * hy)
         det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
         if np.any(np.abs(det) <= 1e-12 * L2):
-            raise ValueError(f"Chebyshev net: construction fails at the {where} joints (two links "
+            bad = np.abs(det) <= 1e-12 * L2
+            raise ValueError(f"Chebyshev net: construction fails at {where(bad)} (two links "
                              "nearly collinear: the net folds or squashes; shape too steep?).")
         dx = (J[:, 1, 1] * F[:, 0] - J[:, 0, 1] * F[:, 1]) / det
         dy = (-J[:, 1, 0] * F[:, 0] + J[:, 0, 0] * F[:, 1]) / det
@@ -323,13 +329,15 @@ def _compass(height: HeightFunction, A: np.ndarray, B: np.ndarray, C: np.ndarray
         q[:, 0] -= scale * dx
         q[:, 1] -= scale * dy
     if not converged:
-        raise ValueError(f"Chebyshev net: Newton did not converge at the {where} joints "
+        bad = np.max(np.abs(F), axis=1) > 1e-13 * L2
+        raise ValueError(f"Chebyshev net: Newton did not converge at {where(bad)} "
                          "(the two compass circles do not meet on the surface; shape too steep?).")
     # The near root is C itself; reject it and any folded cell (orientation flips).
     n_old = np.cross(A - C, B - C)
     n_new = np.cross(P - B, P - A)
-    if np.any(np.sum(n_old * n_new, 1) <= 0.0) or np.any(np.linalg.norm(P - C, axis=1) < 0.2 * L):
-        raise ValueError(f"Chebyshev net: the lattice folds at the {where} joints "
+    bad = (np.sum(n_old * n_new, 1) <= 0.0) | (np.linalg.norm(P - C, axis=1) < 0.2 * L)
+    if np.any(bad):
+        raise ValueError(f"Chebyshev net: the lattice folds at {where(bad)} "
                          "(shape too steep or too curved for this sheet).")
     return P
 
@@ -403,20 +411,25 @@ def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: flo
     if jc:
         P[ic, jc - 1::-1] = _seed_line(height, P[ic, jc], -v, jc, L)
 
-    for si, n_a in ((1, rows - 1 - ic), (-1, ic)):
-        for sj, n_b in ((1, cols - 1 - jc), (-1, jc)):
-            if n_a == 0 or n_b == 0:
-                continue
-            for k in range(2, n_a + n_b + 1):  # anti-diagonal a + b = k, a, b >= 1
-                a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
-                b = k - a
-                ii, jj = ic + si * a, jc + sj * b
-                A = P[ii - si, jj]
-                B = P[ii, jj - sj]
-                C = P[ii - si, jj - sj]
-                P[ii, jj] = _compass(height, A, B, C, L,
-                                     where=f"({int(ii[0])}, {int(jj[0])})..({int(ii[-1])}, "
-                                           f"{int(jj[-1])})")
+    # Anti-diagonal k = a + b (a, b >= 1 steps from the anchor) of all four quadrants at once:
+    # each joint needs only joints of diagonal k - 1 and k - 2.
+    quadrants = [(si, n_a, sj, n_b) for si, n_a in ((1, rows - 1 - ic), (-1, ic))
+                 for sj, n_b in ((1, cols - 1 - jc), (-1, jc)) if n_a and n_b]
+    k_max = max((n_a + n_b for _, n_a, _, n_b in quadrants), default=1)
+    for k in range(2, k_max + 1):
+        ii_l, jj_l, si_l, sj_l = [], [], [], []
+        for si, n_a, sj, n_b in quadrants:
+            a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
+            ii_l.append(ic + si * a)
+            jj_l.append(jc + sj * (k - a))
+            si_l.append(np.full(a.shape, si))
+            sj_l.append(np.full(a.shape, sj))
+        ii, jj = np.concatenate(ii_l), np.concatenate(jj_l)
+        if ii.size == 0:
+            continue
+        si, sj = np.concatenate(si_l), np.concatenate(sj_l)
+        P[ii, jj] = _compass(height, P[ii - si, jj], P[ii, jj - sj], P[ii - si, jj - sj], L,
+                             ii, jj)
     err = np.max(np.abs(link_lengths(P) / L - 1.0))
     if not err <= _LENGTH_RTOL:
         raise ValueError(f"Chebyshev net: link lengths off by {err:.3g} relative (tolerance "
