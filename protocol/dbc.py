@@ -1,0 +1,81 @@
+"""The CAN database (DBC) of protocol v1, generated from the message definitions (docs §7.3).
+
+Every capsheet message has one DBC entry whose frame id is the message's identifier for node 0.
+The node id sits in the low 16 bits of every identifier, so a tool looks a frame up with
+``arbitration_id & DBC_ID_MASK`` — the same trick J1939 databases use for the source address.
+
+``protocol/capsheet.dbc`` is this module's output, checked in for tools that want a file; a test
+keeps the two identical (`capsheet protocol dbc --write` regenerates it).
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from pathlib import Path
+
+from .can import CAN_CLASSIC_MTU, CAN_FD_MTU, MAX_FD_SNAPSHOT_SAMPLES, make_id
+from .messages import MESSAGE_TYPES, Direction, MsgType, Sample, Snapshot
+
+__all__ = ["DBC_PATH", "DBC_ID_MASK", "build_database", "dbc_text", "dbc_frame_id"]
+
+DBC_PATH = Path(__file__).with_name("capsheet.dbc")
+DBC_ID_MASK = 0x1FFF0000  #: keep priority, type and version; drop the node
+
+_FORMAT_BITS = {"B": (8, False, False), "H": (16, False, False), "I": (32, False, False),
+                "Q": (64, False, False), "h": (16, True, False), "f": (32, True, True)}
+
+
+def dbc_frame_id(arbitration_id: int) -> int:
+    """The DBC frame id to look up for a received identifier."""
+    return arbitration_id & DBC_ID_MASK
+
+
+def _sample_signals(prefix: str, start: int):
+    from cantools.database import Signal
+    out = []
+    for name, off, length, signed in (("x", 0, 12, True), ("y", 12, 12, True), ("z", 24, 12, True),
+                                      ("status", 36, 4, False)):
+        out.append(Signal(f"{name}{prefix}", start + off, length, byte_order="little_endian",
+                          is_signed=signed, unit="counts" if name != "status" else None))
+    return out
+
+
+def _signals(cls):
+    from cantools.database import Signal
+    from cantools.database.conversion import BaseConversion
+    if cls is Sample:
+        return [Signal("counter", 0, 16, byte_order="little_endian")] + _sample_signals("", 16)
+    if cls is Snapshot:
+        sigs = [Signal("counter", 0, 16, byte_order="little_endian"),
+                Signal("first_link", 16, 16, byte_order="little_endian"),
+                Signal("count", 32, 8, byte_order="little_endian")]
+        for k in range(MAX_FD_SNAPSHOT_SAMPLES):
+            sigs += _sample_signals(f"_{k}", 40 + 40 * k)
+        return sigs
+    sigs, bit = [], 0
+    for f, ch in zip(fields(cls)[1:], cls._FMT.format.lstrip("<")):
+        length, signed, is_float = _FORMAT_BITS[ch]
+        sigs.append(Signal(f.name, bit, length, byte_order="little_endian", is_signed=signed,
+                           conversion=BaseConversion.factory(is_float=is_float)))
+        bit += length
+    return sigs
+
+
+def build_database():
+    """A ``cantools.database.can.Database`` with one message per MsgType."""
+    from cantools.database import Database, Message, Node
+    messages = []
+    for code in MsgType:
+        cls = MESSAGE_TYPES[code]
+        sender = "HOST" if cls.DIRECTION == Direction.HOST_TO_CHIP else ("GATEWAY" if cls is Snapshot else "CHIP")
+        fd = cls is Snapshot
+        size = CAN_FD_MTU if fd else (cls._FMT.size if cls._FMT is not None else Sample.SIZE)
+        assert size <= (CAN_FD_MTU if fd else CAN_CLASSIC_MTU)
+        messages.append(Message(frame_id=make_id(code, 0), name=code.name, length=size,
+                                signals=_signals(cls), is_extended_frame=True, is_fd=fd,
+                                senders=[sender], comment=(cls.__doc__ or "").strip().splitlines()[0]))
+    return Database(messages=messages, nodes=[Node("HOST"), Node("CHIP"), Node("GATEWAY")], version="1")
+
+
+def dbc_text() -> str:
+    return build_database().as_dbc_string()

@@ -1,0 +1,302 @@
+"""Serial framing (docs/protocol.md §6): header + payload + CRC, COBS-encoded, 0x00-delimited.
+
+Sans-I/O: `encode` turns a message into wire bytes, `StreamDecoder.feed` turns wire bytes into
+events. Wire input never raises: damage becomes a `DecodeError` event, counted in
+`StreamDecoder.stats`, and every valid frame around it is still delivered.
+
+Frame before COBS (little-endian fields, CRC big-endian so that the CRC over the whole is 0)::
+
+    offset  size  field
+    0       1     version   (PROTOCOL_VERSION = 1)
+    1       1     type      (MsgType)
+    2       2     node      (u16 LE)
+    4       n     payload   (docs §4)
+    4+n     2     CRC-16/CCITT-FALSE over bytes 0 .. 3+n, most significant byte first
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import Counter
+from dataclasses import dataclass, field
+from enum import Enum
+
+import numpy as np
+from cobs import cobs
+
+from .crc import crc16_ccitt_false, crc16_rows
+from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SAMPLE_WORD_SIZE,
+                       decode_payload)
+
+__all__ = ["HEADER", "HEADER_SIZE", "CRC_SIZE", "MAX_FRAME_SIZE", "MAX_PAYLOAD_SIZE", "MAX_ENCODED_SIZE",
+           "SAMPLE_WIRE_SIZE", "ErrorReason", "DecodeError", "SampleBatch", "DecoderStats",
+           "encode", "encode_frame", "decode_frame", "StreamDecoder", "cobs_encoded_size"]
+
+HEADER = struct.Struct("<BBH")
+assert HEADER.size == 4
+HEADER_SIZE = HEADER.size
+CRC_SIZE = 2
+MAX_FRAME_SIZE = 1024  #: header + payload + CRC, before COBS (docs §6.3)
+MAX_PAYLOAD_SIZE = MAX_FRAME_SIZE - HEADER_SIZE - CRC_SIZE  #: 1018
+
+
+def cobs_encoded_size(n: int) -> int:
+    """Size of ``n`` bytes after COBS, without the delimiter: ``n + 1 + n // 254``."""
+    return n + 1 + n // 254
+
+
+MAX_ENCODED_SIZE = cobs_encoded_size(MAX_FRAME_SIZE)  #: 1029: longer runs without 0x00 are OVERSIZE
+#: A SAMPLE on the wire: COBS(4 + 7 + 2 = 13 bytes) = 14 bytes, plus the 0x00 delimiter.
+SAMPLE_WIRE_SIZE = cobs_encoded_size(HEADER_SIZE + Sample.SIZE + CRC_SIZE) + 1
+assert SAMPLE_WIRE_SIZE == 15
+
+
+class ErrorReason(Enum):
+    """Why a frame was dropped (docs §6.4). Every one is counted in `DecoderStats.errors`."""
+
+    BAD_COBS = "bad_cobs"  #: the bytes between two delimiters are not valid COBS
+    SHORT = "short"  #: shorter than header + CRC (6 bytes)
+    BAD_CRC = "bad_crc"  #: CRC mismatch
+    OVERSIZE = "oversize"  #: more than MAX_ENCODED_SIZE bytes without a delimiter
+    BAD_VERSION = "bad_version"  #: version byte is not PROTOCOL_VERSION (an incompatible peer)
+    UNKNOWN_TYPE = "unknown_type"  #: type code not defined
+    BAD_LENGTH = "bad_length"  #: payload length does not match the type
+    BAD_FIELD = "bad_field"  #: a field value out of range
+
+
+@dataclass(frozen=True, slots=True)
+class DecodeError:
+    """A dropped frame. ``excerpt`` is up to the first 16 bytes of what was dropped (as received);
+    ``version`` is the peer's version byte for BAD_VERSION."""
+
+    reason: ErrorReason
+    detail: str
+    excerpt: bytes = b""
+    version: int | None = None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SampleBatch:
+    """Consecutive SAMPLE frames, decoded at once (batch mode of `StreamDecoder`).
+
+    Attributes are arrays of equal length n: ``node`` uint16, ``counter`` uint16,
+    ``counts`` int16 (n, 3) ADC counts, ``status`` uint8 SampleStatus bits.
+    """
+
+    node: np.ndarray
+    counter: np.ndarray
+    counts: np.ndarray
+    status: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.node.shape[0])
+
+    def messages(self) -> list[Sample]:
+        """The batch as `Sample` messages (slow; for tests and display)."""
+        return [Sample(int(n), int(c), int(x), int(y), int(z), int(s))
+                for n, c, (x, y, z), s in zip(self.node, self.counter, self.counts, self.status)]
+
+
+@dataclass
+class DecoderStats:
+    """Counters of a `StreamDecoder`: bytes in, frames out, errors by reason."""
+
+    bytes_in: int = 0
+    frames: int = 0
+    errors: Counter = field(default_factory=Counter)
+
+    @property
+    def error_count(self) -> int:
+        return sum(self.errors.values())
+
+
+def encode_frame(type_code: int, node: int, payload: bytes, version: int = PROTOCOL_VERSION) -> bytes:
+    """Low level: one frame on the wire (COBS + trailing 0x00) from its parts, unvalidated
+    except for size. Tests use it to build frames a conforming sender never would."""
+    body = HEADER.pack(version, type_code, node) + payload
+    if len(body) + CRC_SIZE > MAX_FRAME_SIZE:
+        raise ValueError(f"Frame of {len(body) + CRC_SIZE} bytes exceeds MAX_FRAME_SIZE {MAX_FRAME_SIZE}")
+    body += crc16_ccitt_false(body).to_bytes(2, "big")
+    return cobs.encode(body) + b"\x00"
+
+
+def encode(msg: Message) -> bytes:
+    """A message as serial wire bytes: COBS(header + payload + CRC) + b'\\x00'."""
+    return encode_frame(msg.TYPE, msg.node, msg.payload())
+
+
+def decode_frame(encoded: bytes) -> Message | DecodeError:
+    """Decode the bytes between two delimiters (without the 0x00). Never raises."""
+    excerpt = bytes(encoded[:16])
+    if len(encoded) > MAX_ENCODED_SIZE:
+        return DecodeError(ErrorReason.OVERSIZE, f"frame exceeds {MAX_ENCODED_SIZE} bytes without a delimiter", excerpt)
+    try:
+        body = cobs.decode(encoded)
+    except cobs.DecodeError as exc:
+        return DecodeError(ErrorReason.BAD_COBS, str(exc), excerpt)
+    if len(body) < HEADER_SIZE + CRC_SIZE:
+        return DecodeError(ErrorReason.SHORT, f"{len(body)} bytes, need at least {HEADER_SIZE + CRC_SIZE}", excerpt)
+    if crc16_ccitt_false(body) != 0:
+        return DecodeError(ErrorReason.BAD_CRC, f"CRC mismatch over {len(body)} bytes", excerpt)
+    version, type_code, node = HEADER.unpack_from(body)
+    if version != PROTOCOL_VERSION:
+        return DecodeError(ErrorReason.BAD_VERSION,
+                           f"peer speaks protocol version {version}, this is version {PROTOCOL_VERSION}",
+                           excerpt, version)
+    try:
+        return decode_payload(type_code, node, body[HEADER_SIZE:-CRC_SIZE])
+    except PayloadError as exc:
+        return DecodeError(ErrorReason[exc.reason], exc.detail, excerpt)
+
+
+_SAMPLE_ENC = SAMPLE_WIRE_SIZE - 1  # 14 encoded bytes between delimiters
+_SAMPLE_DEC = _SAMPLE_ENC - 1  # 13 decoded bytes
+
+
+def _fast_samples(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """COBS-decode and check ``(n, 14)`` candidate SAMPLE frames at once.
+
+    Returns ``(ok mask (n,), decoded (n, 13))``. Rows not ok go to the exact slow path, which
+    reports the precise reason; rows ok are exactly those `decode_frame` would accept as SAMPLE.
+    """
+    n = rows.shape[0]
+    r = rows.astype(np.int64)
+    dec = np.empty((n, _SAMPLE_DEC), dtype=np.int64)
+    nxt = r[:, 0].copy()  # position of the next code byte
+    for p in range(1, _SAMPLE_ENC):
+        is_code = nxt == p
+        dec[:, p - 1] = np.where(is_code, 0, r[:, p])
+        nxt = np.where(is_code, p + r[:, p], nxt)
+    ok = nxt == _SAMPLE_ENC
+    ok &= crc16_rows(dec) == 0
+    ok &= dec[:, 0] == PROTOCOL_VERSION
+    ok &= dec[:, 1] == MsgType.SAMPLE
+    ok &= (dec[:, 3] << 8 | dec[:, 2]) != 0xFFFF
+    return ok, dec
+
+
+class StreamDecoder:
+    """Feed serial bytes, get messages and `DecodeError` events, in wire order.
+
+    Parameters
+    ----------
+    batch_samples : bool
+        If true, runs of SAMPLE frames come out as one `SampleBatch` each instead of `Sample`
+        messages (the host's fast path: millions of samples per second).
+
+    The decoder holds at most ``MAX_ENCODED_SIZE`` bytes of an incomplete frame: a longer run
+    without a delimiter is reported once as OVERSIZE and skipped up to the next 0x00.
+    Whole input, byte by byte, or any chunking give the same events.
+    """
+
+    def __init__(self, *, batch_samples: bool = False) -> None:
+        self.batch_samples = batch_samples
+        self.stats = DecoderStats()
+        self._partial = bytearray()
+        self._discarding = False
+
+    def reset(self) -> None:
+        """Forget any partial frame (e.g. after the port was reopened)."""
+        self._partial.clear()
+        self._discarding = False
+
+    def feed(self, data: bytes) -> list:
+        """Consume ``data``; return the events of every frame it completes."""
+        self.stats.bytes_in += len(data)
+        events: list = []
+        last = data.rfind(b"\x00")
+        if last < 0:
+            self._grow(data, events)
+            return events
+        if self._discarding:
+            first = data.find(b"\x00")
+            self._discarding = False
+            self._partial.clear()
+            chunk = bytes(data[first + 1:last + 1])
+        elif self._partial:
+            first = data.find(b"\x00")
+            self._partial += data[:first]
+            head = bytes(self._partial)
+            self._partial.clear()
+            self._decode_chunk(head + b"\x00", events)
+            chunk = bytes(data[first + 1:last + 1])
+        else:
+            chunk = bytes(data[:last + 1])
+        self._decode_chunk(chunk, events)
+        self._grow(data[last + 1:], events)
+        return events
+
+    def _grow(self, tail: bytes, events: list) -> None:
+        if self._discarding or not tail:
+            return
+        self._partial += tail
+        if len(self._partial) > MAX_ENCODED_SIZE:
+            events.append(self._error(DecodeError(
+                ErrorReason.OVERSIZE, f"frame exceeds {MAX_ENCODED_SIZE} bytes without a delimiter",
+                bytes(self._partial[:16]))))
+            self._partial.clear()
+            self._discarding = True
+
+    def _error(self, err: DecodeError) -> DecodeError:
+        self.stats.errors[err.reason] += 1
+        return err
+
+    def _slow(self, seg: bytes, events: list) -> None:
+        ev = decode_frame(seg)
+        if isinstance(ev, DecodeError):
+            events.append(self._error(ev))
+        else:
+            self.stats.frames += 1
+            events.append(ev)
+
+    def _decode_chunk(self, chunk: bytes, events: list) -> None:
+        """Decode ``chunk``, which ends with 0x00, frame by frame in order."""
+        if not chunk:
+            return
+        buf = np.frombuffer(chunk, dtype=np.uint8)
+        ends = np.flatnonzero(buf == 0)
+        starts = np.empty_like(ends)
+        starts[0] = 0
+        starts[1:] = ends[:-1] + 1
+        lengths = ends - starts
+        keep = lengths > 0  # empty frames (repeated delimiters) are idle fill, not errors
+        starts, lengths = starts[keep], lengths[keep]
+        if starts.size == 0:
+            return
+        cand = np.flatnonzero(lengths == _SAMPLE_ENC)
+        fast = np.zeros(starts.size, dtype=bool)
+        if cand.size:
+            rows = buf[starts[cand, None] + np.arange(_SAMPLE_ENC)]
+            ok, dec = _fast_samples(rows)
+            fast[cand[ok]] = True
+            dec = dec[ok]
+        if not fast.any():
+            for s, n in zip(starts.tolist(), lengths.tolist()):
+                self._slow(chunk[s:s + n], events)
+            return
+        # map each fast segment to its decoded row
+        row_of = np.cumsum(fast) - 1
+        edges = np.flatnonzero(np.diff(fast.astype(np.int8))) + 1
+        bounds = np.concatenate([[0], edges, [starts.size]])
+        for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
+            if fast[a]:
+                self._emit_samples(dec[row_of[a]:row_of[b - 1] + 1], events)
+            else:
+                for s, n in zip(starts[a:b].tolist(), lengths[a:b].tolist()):
+                    self._slow(chunk[s:s + n], events)
+
+    def _emit_samples(self, d: np.ndarray, events: list) -> None:
+        self.stats.frames += d.shape[0]
+        node = (d[:, 2] | (d[:, 3] << 8)).astype(np.uint16)
+        counter = (d[:, 4] | (d[:, 5] << 8)).astype(np.uint16)
+        w = d[:, 6] | (d[:, 7] << 8) | (d[:, 8] << 16) | (d[:, 9] << 24) | (d[:, 10] << 32)
+        axes = np.stack([(w >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
+        counts = (axes - ((axes & 0x800) << 1)).astype(np.int16)
+        status = ((w >> 36) & 0xF).astype(np.uint8)
+        if self.batch_samples:
+            events.append(SampleBatch(node, counter, counts, status))
+        else:
+            events.extend(SampleBatch(node, counter, counts, status).messages())
+
+
+assert SAMPLE_WORD_SIZE == 5

@@ -1,0 +1,680 @@
+"""Message set of the capsheet wire protocol v1 (docs/protocol.md §4).
+
+Every message is a frozen, slotted dataclass that validates itself when built. The *payload* layout
+of a message is the same on every transport; serial wraps it in a header + CRC + COBS
+(`protocol.framing`), CAN carries it as the frame data with type and node in the identifier
+(`protocol.can`). All multi-byte fields are little-endian.
+
+``node`` is the chip a frame comes from (chip -> host) or is addressed to (host -> chip);
+``node == 0`` from the host means every chip (broadcast). See docs/protocol.md §3.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, fields
+from enum import IntEnum, IntFlag
+from typing import ClassVar
+
+import numpy as np
+
+from .constants import ADC_MAX, ADC_MIN
+
+__all__ = [
+    "PROTOCOL_VERSION", "MsgType", "Direction", "ChipState", "Capability", "StatusFlag", "NackReason",
+    "NODE_BROADCAST", "NODE_MAX_ASSIGNED", "NODE_PROVISIONAL_MIN", "NODE_PROVISIONAL_MAX",
+    "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
+    "Message", "Announce", "Info", "Sample", "Status", "Ack", "Nack", "CalData", "Snapshot",
+    "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
+    "MESSAGE_TYPES", "pack_sample_words", "unpack_sample_words", "PayloadError", "decode_payload",
+    "provisional_node",
+]
+
+#: Protocol version carried in every serial frame (byte 0) and every CAN identifier (bits 19..16).
+PROTOCOL_VERSION = 1
+
+NODE_BROADCAST = 0x0000  #: host -> every chip
+NODE_MAX_ASSIGNED = 0x7FFF  #: assigned node ids are 1..0x7FFF
+NODE_PROVISIONAL_MIN = 0x8000  #: an unassigned chip speaks from 0x8000..0xFFFE (docs §3.2)
+NODE_PROVISIONAL_MAX = 0xFFFE  #: 0xFFFF is reserved and never valid
+
+SAMPLE_WORD_SIZE = 5  #: one packed sample: 3 x 12-bit axes + 4 status bits = 40 bits
+MAX_SNAPSHOT_SAMPLES = 255  #: SNAPSHOT's count field is u8; transports cap it lower (§6, §7)
+
+
+class MsgType(IntEnum):
+    """Message type codes (docs/protocol.md §4). 6 bits: the CAN identifier has room for 0..63."""
+
+    # chip -> host
+    ANNOUNCE = 0x01  #: §4.1 a chip is here: its 64-bit unique id
+    INFO = 0x02  #: §4.2 firmware version, protocol version, capabilities, state
+    SAMPLE = 0x03  #: §4.3 one sample for one SYNC counter
+    STATUS = 0x04  #: §4.4 heartbeat: state, error counters, uptime
+    ACK = 0x05  #: §4.5 a command was carried out
+    NACK = 0x06  #: §4.6 a command was refused, with a reason
+    CAL_DATA = 0x07  #: §4.7 one axis of stored calibration
+    SNAPSHOT = 0x08  #: §4.8 a gateway's packed samples of many links for one counter
+    # host -> chip
+    SYNC = 0x10  #: §4.9 sample now; broadcast, carries the counter
+    ASSIGN = 0x11  #: §4.10 give a chip its node id and lattice address
+    CONFIG = 0x12  #: §4.11 rate, range, filter, heartbeat period
+    START = 0x13  #: §4.12 start answering SYNC
+    STOP = 0x14  #: §4.12 stop answering SYNC
+    GET_INFO = 0x15  #: §4.13 ask for ANNOUNCE + INFO
+    RESET = 0x16  #: §4.14 forget the assignment, reboot, announce again
+    CAL_WRITE = 0x17  #: §4.15 write one axis of calibration
+    CAL_READ = 0x18  #: §4.15 read one axis of calibration (answered by CAL_DATA)
+
+
+class Direction(IntEnum):
+    CHIP_TO_HOST = 0
+    HOST_TO_CHIP = 1
+
+
+class ChipState(IntEnum):
+    """Chip states (docs/protocol.md §8; the tables are protocol/state.py)."""
+
+    BOOT = 0  #: unassigned: speaks from a provisional node id, announces
+    IDLE = 1  #: assigned, configured, not streaming
+    STREAMING = 2  #: answers every SYNC with a SAMPLE
+    FAULT = 3  #: sensor fault: answers SYNC with INVALID samples, reports in STATUS
+
+
+class Capability(IntFlag):
+    """INFO capability bits (docs/protocol.md §4.2)."""
+
+    NONE = 0
+    CAN_FD = 0x0001  #: can send and receive CAN FD frames
+    SNAPSHOT = 0x0002  #: is a gateway that sends SNAPSHOT
+    SELF_TEST = 0x0004  #: has accelerometer self-test
+    CAL_STORAGE = 0x0008  #: keeps calibration in non-volatile memory
+    MULTI_RANGE = 0x0010  #: supports range codes other than ±2 g
+    FILTER = 0x0020  #: supports CONFIG filter codes other than 0
+
+
+class StatusFlag(IntFlag):
+    """STATUS flag bits (docs/protocol.md §4.4)."""
+
+    NONE = 0
+    CAL_VALID = 0x01  #: calibration was loaded from storage (else nominal values)
+    SELF_TEST_ON = 0x02  #: self-test excitation is on
+    ADC_FAULT = 0x04  #: the sensor did not answer
+    CONFIGURED = 0x08  #: a CONFIG was accepted since the last reset
+
+
+class NackReason(IntEnum):
+    """NACK reason codes (docs/protocol.md §4.6)."""
+
+    UNKNOWN_COMMAND = 1  #: the type is not a host -> chip command this chip knows
+    BAD_LENGTH = 2  #: the payload length does not match the type
+    BAD_VALUE = 3  #: a field is out of range (e.g. range code 7)
+    BAD_STATE = 4  #: not allowed in the current state (e.g. START before ASSIGN)
+    UNSUPPORTED = 5  #: valid but this chip lacks the capability
+    BAD_VERSION = 6  #: the frame's protocol version is not this chip's
+    STORAGE_FAILED = 7  #: calibration could not be written
+
+
+class PayloadError(ValueError):
+    """A payload that does not decode: ``reason`` is an ErrorReason name (see protocol.framing)."""
+
+    def __init__(self, reason: str, detail: str):
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+def _check_uint(name: str, value: int, bits: int) -> None:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not 0 <= value < (1 << bits):
+        raise ValueError(f"Invalid {name}: {value!r} (need an integer in 0..{(1 << bits) - 1})")
+
+
+def _check_int(name: str, value: int, lo: int, hi: int) -> None:
+    if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not lo <= value <= hi:
+        raise ValueError(f"Invalid {name}: {value!r} (need an integer in {lo}..{hi})")
+
+
+def provisional_node(uid: int, salt: int = 0) -> int:
+    """The recommended provisional node id of an unassigned chip (docs §3.2), in 32-bit
+    arithmetic a small MCU does cheaply::
+
+        h  = (uint32)(uid ^ (uid >> 32)) ^ (uint32)(salt * 0x9E3779B9)
+        h ^= h >> 16
+        node = 0x8000 | (h % 0x7FFF)
+
+    A chip takes a new ``salt`` (e.g. the number of unanswered ANNOUNCEs) when its ANNOUNCE goes
+    unanswered, so two chips that collided once do not collide again.
+
+    >>> hex(provisional_node(0x0123456789ABCDEF))
+    '0x9112'
+    """
+    _check_uint("uid", uid, 64)
+    h = ((uid ^ (uid >> 32)) & 0xFFFFFFFF) ^ ((salt * 0x9E3779B9) & 0xFFFFFFFF)
+    h ^= h >> 16
+    return NODE_PROVISIONAL_MIN | (h % 0x7FFF)
+
+
+# --------------------------------------------------------------------------------------------
+# Base class
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """Base of every message. Subclasses set TYPE, DIRECTION, PRIORITY and their payload codec."""
+
+    TYPE: ClassVar[MsgType]
+    DIRECTION: ClassVar[Direction]
+    PRIORITY: ClassVar[int]  #: CAN identifier bits 28..26 (0 = most urgent), docs §7.1
+    _FMT: ClassVar[struct.Struct | None] = None  #: fixed payload layout, if any
+
+    node: int
+
+    def __post_init__(self) -> None:
+        _check_uint("node", self.node, 16)
+        if self.node == 0xFFFF:
+            raise ValueError("Invalid node: 65535 (0xFFFF is reserved)")
+        self._validate()
+
+    def _validate(self) -> None:  # pragma: no cover - overridden where there are fields
+        pass
+
+    # Fixed-layout messages: the payload is the struct of the fields after `node`, in order.
+    def payload(self) -> bytes:
+        """The payload bytes (docs §4), without header, CRC or CAN identifier."""
+        fmt = self._FMT
+        assert fmt is not None, type(self).__name__
+        return fmt.pack(*(getattr(self, f.name) for f in fields(self)[1:]))
+
+    @classmethod
+    def from_payload(cls, node: int, payload: bytes) -> "Message":
+        """Build from payload bytes; raises `PayloadError` (BAD_LENGTH or BAD_FIELD)."""
+        fmt = cls._FMT
+        assert fmt is not None, cls.__name__
+        if len(payload) != fmt.size:
+            raise PayloadError("BAD_LENGTH", f"{cls.TYPE.name} payload is {fmt.size} bytes, got {len(payload)}")
+        try:
+            return cls(node, *fmt.unpack(payload))
+        except ValueError as exc:
+            raise PayloadError("BAD_FIELD", str(exc)) from exc
+
+
+# --------------------------------------------------------------------------------------------
+# Packed samples: the 40-bit sample word (docs §5.2)
+# --------------------------------------------------------------------------------------------
+
+def pack_sample_words(counts: np.ndarray, status: np.ndarray) -> bytes:
+    """Pack samples into 5-byte little-endian words.
+
+    Parameters
+    ----------
+    counts : ndarray, shape (n, 3), int
+        ADC counts, each in -2048..2047 (12-bit two's complement on the wire).
+    status : ndarray, shape (n,), int
+        SampleStatus bits, each in 0..15.
+
+    Returns
+    -------
+    bytes, length 5 * n. Word bits: x 0..11, y 12..23, z 24..35, status 36..39.
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    status = np.asarray(status, dtype=np.int64)
+    if counts.ndim != 2 or counts.shape[1] != 3:
+        raise ValueError(f"Expected `counts` to have shape (n, 3), got {counts.shape}.")
+    if status.shape != (counts.shape[0],):
+        raise ValueError(f"Expected `status` to have shape ({counts.shape[0]},), got {status.shape}.")
+    if counts.size and (counts.min() < ADC_MIN or counts.max() > ADC_MAX):
+        raise ValueError(f"Invalid counts: outside {ADC_MIN}..{ADC_MAX}")
+    if status.size and (status.min() < 0 or status.max() > 15):
+        raise ValueError("Invalid status: outside 0..15")
+    u = counts & 0xFFF
+    word = u[:, 0] | (u[:, 1] << 12) | (u[:, 2] << 24) | (status << 36)
+    return word.astype("<u8").view(np.uint8).reshape(-1, 8)[:, :SAMPLE_WORD_SIZE].tobytes()
+
+
+def unpack_sample_words(data: bytes | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of `pack_sample_words`: ``(counts int16 (n, 3), status uint8 (n,))``."""
+    b = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    if b.size % SAMPLE_WORD_SIZE:
+        raise ValueError(f"Packed samples are a multiple of {SAMPLE_WORD_SIZE} bytes, got {b.size}")
+    b = b.reshape(-1, SAMPLE_WORD_SIZE).astype(np.int64)
+    word = b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16) | (b[:, 3] << 24) | (b[:, 4] << 32)
+    axes = np.stack([(word >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
+    counts = (axes - ((axes & 0x800) << 1)).astype(np.int16)
+    status = ((word >> 36) & 0xF).astype(np.uint8)
+    return counts, status
+
+
+# --------------------------------------------------------------------------------------------
+# chip -> host
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class Announce(Message):
+    """§4.1 ANNOUNCE: ``uid`` u64. Sent at boot, after RESET, and in answer to GET_INFO; an
+    unassigned chip sends it from its provisional node id."""
+
+    TYPE = MsgType.ANNOUNCE
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 5
+    _FMT = struct.Struct("<Q")
+    uid: int = 0
+
+    def _validate(self) -> None:
+        _check_uint("uid", self.uid, 64)
+
+
+assert Announce._FMT.size == 8
+
+
+@dataclass(frozen=True, slots=True)
+class Info(Message):
+    """§4.2 INFO: firmware version, protocol version, capabilities, ADC bits, state. Follows every
+    ANNOUNCE (split from it so both fit one classic CAN frame)."""
+
+    TYPE = MsgType.INFO
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 5
+    _FMT = struct.Struct("<BBBBHBB")
+    fw_major: int = 0
+    fw_minor: int = 0
+    fw_patch: int = 0
+    protocol_version: int = PROTOCOL_VERSION
+    capabilities: int = 0
+    adc_bits: int = 12
+    state: int = ChipState.BOOT
+
+    def _validate(self) -> None:
+        for name in ("fw_major", "fw_minor", "fw_patch", "protocol_version", "adc_bits"):
+            _check_uint(name, getattr(self, name), 8)
+        _check_uint("capabilities", self.capabilities, 16)
+        if self.state not in ChipState._value2member_map_:
+            raise ValueError(f"Invalid state: {self.state!r}")
+        object.__setattr__(self, "state", ChipState(self.state))
+        object.__setattr__(self, "capabilities", Capability(self.capabilities))
+
+
+assert Info._FMT.size == 8
+
+
+@dataclass(frozen=True, slots=True)
+class Sample(Message):
+    """§4.3 SAMPLE: ``counter`` u16 of the SYNC it answers, then one 40-bit sample word
+    (x, y, z ADC counts, 12-bit signed; 4 status bits). 7 bytes."""
+
+    TYPE = MsgType.SAMPLE
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    counter: int = 0
+    x: int = 0
+    y: int = 0
+    z: int = 0
+    status: int = 0
+
+    SIZE: ClassVar[int] = 2 + SAMPLE_WORD_SIZE
+
+    def _validate(self) -> None:
+        _check_uint("counter", self.counter, 16)
+        for name in ("x", "y", "z"):
+            _check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
+        _check_uint("status", self.status, 4)
+
+    def payload(self) -> bytes:
+        word = ((self.x & 0xFFF) | ((self.y & 0xFFF) << 12) | ((self.z & 0xFFF) << 24)
+                | (self.status << 36))
+        return self.counter.to_bytes(2, "little") + word.to_bytes(5, "little")
+
+    @classmethod
+    def from_payload(cls, node: int, payload: bytes) -> "Sample":
+        if len(payload) != cls.SIZE:
+            raise PayloadError("BAD_LENGTH", f"SAMPLE payload is {cls.SIZE} bytes, got {len(payload)}")
+        counter = payload[0] | (payload[1] << 8)
+        w = int.from_bytes(payload[2:7], "little")
+        x, y, z = ((w >> s) & 0xFFF for s in (0, 12, 24))
+        return cls(node, counter, x - ((x & 0x800) << 1), y - ((y & 0x800) << 1),
+                   z - ((z & 0x800) << 1), (w >> 36) & 0xF)
+
+
+@dataclass(frozen=True, slots=True)
+class Status(Message):
+    """§4.4 STATUS (heartbeat): state u8, flags u8, rx_errors u8, missed_syncs u8 (both
+    saturating at 255), uptime_s u32."""
+
+    TYPE = MsgType.STATUS
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 6
+    _FMT = struct.Struct("<BBBBI")
+    state: int = ChipState.BOOT
+    flags: int = 0
+    rx_errors: int = 0
+    missed_syncs: int = 0
+    uptime_s: int = 0
+
+    def _validate(self) -> None:
+        if self.state not in ChipState._value2member_map_:
+            raise ValueError(f"Invalid state: {self.state!r}")
+        object.__setattr__(self, "state", ChipState(self.state))
+        for name in ("flags", "rx_errors", "missed_syncs"):
+            _check_uint(name, getattr(self, name), 8)
+        _check_uint("uptime_s", self.uptime_s, 32)
+        object.__setattr__(self, "flags", StatusFlag(self.flags))
+
+
+assert Status._FMT.size == 8
+
+
+def _check_command(value: int) -> None:
+    _check_uint("command", value, 8)
+
+
+@dataclass(frozen=True, slots=True)
+class Ack(Message):
+    """§4.5 ACK: ``command`` u8 (the type acknowledged), ``detail`` u8 (0 unless stated)."""
+
+    TYPE = MsgType.ACK
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 3
+    _FMT = struct.Struct("<BB")
+    command: int = 0
+    detail: int = 0
+
+    def _validate(self) -> None:
+        _check_command(self.command)
+        _check_uint("detail", self.detail, 8)
+
+
+@dataclass(frozen=True, slots=True)
+class Nack(Message):
+    """§4.6 NACK: ``command`` u8 (the type refused), ``reason`` u8 (NackReason)."""
+
+    TYPE = MsgType.NACK
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 3
+    _FMT = struct.Struct("<BB")
+    command: int = 0
+    reason: int = NackReason.UNKNOWN_COMMAND
+
+    def _validate(self) -> None:
+        _check_command(self.command)
+        if self.reason not in NackReason._value2member_map_:
+            raise ValueError(f"Invalid reason: {self.reason!r}")
+        object.__setattr__(self, "reason", NackReason(self.reason))
+
+
+_CAL_FMT = struct.Struct("<BBhf")
+assert _CAL_FMT.size == 8
+
+
+def _validate_cal(msg) -> None:
+    _check_uint("axis", msg.axis, 8)
+    if msg.axis > 2:
+        raise ValueError(f"Invalid axis: {msg.axis!r} (0 = x, 1 = y, 2 = z)")
+    _check_uint("flags", msg.flags, 8)
+    _check_int("offset_q4", msg.offset_q4, -32768, 32767)
+    s = float(msg.sensitivity)
+    if not (np.isfinite(s) and s > 0):
+        raise ValueError(f"Invalid sensitivity: {msg.sensitivity!r} (need a finite value > 0)")
+    # Store as the float32 the wire carries, so that decode(encode(m)) == m.
+    object.__setattr__(msg, "sensitivity", float(np.float32(s)))
+
+
+@dataclass(frozen=True, slots=True)
+class CalData(Message):
+    """§4.7 CAL_DATA: ``axis`` u8, ``flags`` u8 (bit 0: stored in non-volatile memory),
+    ``offset_q4`` i16 (zero-g offset in 1/16 count), ``sensitivity`` f32 (counts per g)."""
+
+    TYPE = MsgType.CAL_DATA
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 5
+    _FMT = _CAL_FMT
+    axis: int = 0
+    flags: int = 0
+    offset_q4: int = 0
+    sensitivity: float = 1024.0
+
+    def _validate(self) -> None:
+        _validate_cal(self)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Snapshot(Message):
+    """§4.8 SNAPSHOT (gateway): ``counter`` u16, ``first_link`` u16, ``count`` u8, then ``count``
+    40-bit sample words for links ``first_link .. first_link + count - 1``.
+
+    The samples are kept packed (``words``, 5 bytes each); `counts` and `status` unpack them.
+    Build from arrays with `Snapshot.from_arrays`.
+    """
+
+    TYPE = MsgType.SNAPSHOT
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    counter: int = 0
+    first_link: int = 0
+    words: bytes = b""
+
+    HEADER_SIZE: ClassVar[int] = 5
+
+    def _validate(self) -> None:
+        _check_uint("counter", self.counter, 16)
+        _check_uint("first_link", self.first_link, 16)
+        if not isinstance(self.words, (bytes, bytearray, memoryview)):
+            raise ValueError(f"Invalid words: {type(self.words).__name__} (need bytes)")
+        object.__setattr__(self, "words", bytes(self.words))
+        n, rem = divmod(len(self.words), SAMPLE_WORD_SIZE)
+        if rem:
+            raise ValueError(f"Invalid words: length {len(self.words)} is not a multiple of {SAMPLE_WORD_SIZE}")
+        if not 1 <= n <= MAX_SNAPSHOT_SAMPLES:
+            raise ValueError(f"Invalid count: {n} (need 1..{MAX_SNAPSHOT_SAMPLES})")
+        if self.first_link + n > 0x10000:
+            raise ValueError(f"Invalid first_link: {self.first_link} + count {n} exceeds 65536")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Snapshot):
+            return NotImplemented
+        return (self.node, self.counter, self.first_link, self.words) == (
+            other.node, other.counter, other.first_link, other.words)
+
+    def __hash__(self) -> int:
+        return hash((self.node, self.counter, self.first_link, self.words))
+
+    @classmethod
+    def from_arrays(cls, node: int, counter: int, first_link: int, counts, status) -> "Snapshot":
+        return cls(node, counter, first_link, pack_sample_words(counts, status))
+
+    @property
+    def count(self) -> int:
+        return len(self.words) // SAMPLE_WORD_SIZE
+
+    @property
+    def counts(self) -> np.ndarray:
+        """ADC counts, int16, shape (count, 3)."""
+        return unpack_sample_words(self.words)[0]
+
+    @property
+    def status(self) -> np.ndarray:
+        """SampleStatus bits, uint8, shape (count,)."""
+        return unpack_sample_words(self.words)[1]
+
+    def payload(self) -> bytes:
+        return struct.pack("<HHB", self.counter, self.first_link, self.count) + self.words
+
+    @classmethod
+    def from_payload(cls, node: int, payload: bytes) -> "Snapshot":
+        if len(payload) < cls.HEADER_SIZE + SAMPLE_WORD_SIZE:
+            raise PayloadError("BAD_LENGTH", f"SNAPSHOT payload is at least 10 bytes, got {len(payload)}")
+        counter, first, count = struct.unpack_from("<HHB", payload)
+        if len(payload) != cls.HEADER_SIZE + SAMPLE_WORD_SIZE * count:
+            raise PayloadError("BAD_LENGTH", f"SNAPSHOT with count {count} is "
+                                             f"{cls.HEADER_SIZE + SAMPLE_WORD_SIZE * count} bytes, got {len(payload)}")
+        try:
+            return cls(node, counter, first, bytes(payload[5:]))
+        except ValueError as exc:
+            raise PayloadError("BAD_FIELD", str(exc)) from exc
+
+
+# --------------------------------------------------------------------------------------------
+# host -> chip
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class Sync(Message):
+    """§4.9 SYNC: ``counter`` u16. Always broadcast (node 0). Every streaming chip samples and
+    answers with a SAMPLE carrying this counter."""
+
+    TYPE = MsgType.SYNC
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 0
+    _FMT = struct.Struct("<H")
+    node: int = NODE_BROADCAST
+    counter: int = 0
+
+    def _validate(self) -> None:
+        if self.node != NODE_BROADCAST:
+            raise ValueError(f"Invalid node: {self.node} (SYNC is always broadcast, node 0)")
+        _check_uint("counter", self.counter, 16)
+
+
+@dataclass(frozen=True, slots=True)
+class Assign(Message):
+    """§4.10 ASSIGN, sent to the chip's current (provisional or assigned) node id: ``new_node``
+    u16 (1..0x7FFF), ``link`` u16 (lattice address), ``uid_low`` u32 (low 32 bits of the chip's
+    uid: a chip whose uid does not match ignores the frame)."""
+
+    TYPE = MsgType.ASSIGN
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+    _FMT = struct.Struct("<HHI")
+    new_node: int = 1
+    link: int = 0
+    uid_low: int = 0
+
+    def _validate(self) -> None:
+        if self.node == NODE_BROADCAST:
+            raise ValueError("Invalid node: 0 (ASSIGN is addressed to one chip)")
+        _check_int("new_node", self.new_node, 1, NODE_MAX_ASSIGNED)
+        _check_uint("link", self.link, 16)
+        _check_uint("uid_low", self.uid_low, 32)
+
+
+@dataclass(frozen=True, slots=True)
+class Config(Message):
+    """§4.11 CONFIG: ``rate_hz`` u16 (expected SYNC rate, sizes the chip's filter; 1..4000),
+    ``range`` u8 (Range code), ``filter`` u8 (0 = chip default, 1 = 50 Hz, 2 = 100 Hz,
+    3 = 200 Hz low-pass), ``heartbeat_ms`` u16 (STATUS period; 0 = off)."""
+
+    TYPE = MsgType.CONFIG
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+    _FMT = struct.Struct("<HBBH")
+    rate_hz: int = 145
+    range: int = 0
+    filter: int = 0
+    heartbeat_ms: int = 1000
+
+    def _validate(self) -> None:
+        _check_uint("rate_hz", self.rate_hz, 16)
+        _check_uint("range", self.range, 8)
+        _check_uint("filter", self.filter, 8)
+        _check_uint("heartbeat_ms", self.heartbeat_ms, 16)
+
+
+assert Config._FMT.size == 6
+
+
+@dataclass(frozen=True, slots=True)
+class _Empty(Message):
+    _FMT = struct.Struct("")
+
+    def payload(self) -> bytes:
+        return b""
+
+
+@dataclass(frozen=True, slots=True)
+class Start(_Empty):
+    """§4.12 START: empty. Begin answering SYNC. Node 0 starts every assigned chip."""
+
+    TYPE = MsgType.START
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+
+
+@dataclass(frozen=True, slots=True)
+class Stop(_Empty):
+    """§4.12 STOP: empty. Stop answering SYNC."""
+
+    TYPE = MsgType.STOP
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 1
+
+
+@dataclass(frozen=True, slots=True)
+class GetInfo(_Empty):
+    """§4.13 GET_INFO: empty. The chip answers ANNOUNCE then INFO. Node 0: every chip (discovery)."""
+
+    TYPE = MsgType.GET_INFO
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+
+
+@dataclass(frozen=True, slots=True)
+class Reset(_Empty):
+    """§4.14 RESET: empty. The chip answers ACK, forgets its assignment and boots (ANNOUNCE, INFO)."""
+
+    TYPE = MsgType.RESET
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 1
+
+
+@dataclass(frozen=True, slots=True)
+class CalWrite(Message):
+    """§4.15 CAL_WRITE: same layout as CAL_DATA; ``flags`` bit 0 asks the chip to store it in
+    non-volatile memory (NACK UNSUPPORTED without CAL_STORAGE)."""
+
+    TYPE = MsgType.CAL_WRITE
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+    _FMT = _CAL_FMT
+    axis: int = 0
+    flags: int = 0
+    offset_q4: int = 0
+    sensitivity: float = 1024.0
+
+    def _validate(self) -> None:
+        if self.node == NODE_BROADCAST:
+            raise ValueError("Invalid node: 0 (CAL_WRITE is addressed to one chip)")
+        _validate_cal(self)
+
+
+@dataclass(frozen=True, slots=True)
+class CalRead(Message):
+    """§4.15 CAL_READ: ``axis`` u8. Answered by CAL_DATA."""
+
+    TYPE = MsgType.CAL_READ
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+    _FMT = struct.Struct("<B")
+    axis: int = 0
+
+    def _validate(self) -> None:
+        if self.node == NODE_BROADCAST:
+            raise ValueError("Invalid node: 0 (CAL_READ is addressed to one chip)")
+        _check_uint("axis", self.axis, 8)
+        if self.axis > 2:
+            raise ValueError(f"Invalid axis: {self.axis!r} (0 = x, 1 = y, 2 = z)")
+
+
+#: type code -> message class
+MESSAGE_TYPES: dict[int, type[Message]] = {
+    cls.TYPE: cls for cls in (Announce, Info, Sample, Status, Ack, Nack, CalData, Snapshot,
+                              Sync, Assign, Config, Start, Stop, GetInfo, Reset, CalWrite, CalRead)
+}
+assert set(MESSAGE_TYPES) == set(MsgType)
+
+
+def decode_payload(type_code: int, node: int, payload: bytes) -> Message:
+    """Payload -> message. Raises `PayloadError` with reason UNKNOWN_TYPE, BAD_LENGTH or BAD_FIELD."""
+    cls = MESSAGE_TYPES.get(type_code)
+    if cls is None:
+        raise PayloadError("UNKNOWN_TYPE", f"type 0x{type_code:02X} is not defined in protocol v{PROTOCOL_VERSION}")
+    if node == 0xFFFF:
+        raise PayloadError("BAD_FIELD", "node 0xFFFF is reserved")
+    return cls.from_payload(node, payload)
+
