@@ -1,0 +1,106 @@
+"""How many chips fit one bus, from the frame sizes of this protocol (docs/protocol.md §10).
+
+Bit counts follow ISO 11898-1: a classic extended data frame is 64 + 8·n bits before stuffing
+(SOF 1, id 11, SRR 1, IDE 1, id 18, RTR 1, r1 r0 2, DLC 4, data 8n, CRC 15, CRC-del 1, ACK 2,
+EOF 7) + 3 bits interframe space = 67 + 8·n; worst-case stuffing adds one bit per four after the first
+over the 54 + 8n stuffed bits (SOF..CRC). CAN FD: the arbitration phase runs at the nominal rate,
+the data phase (ESI, DLC, data, stuff count, CRC-17/21 with fixed stuff bits) at the data rate.
+UART 8N1: 10 bits per byte.
+
+>>> classic_can_frame_bits(8)
+(131, 159)
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from .can import FD_LENGTHS, MAX_FD_SNAPSHOT_SAMPLES, fd_length
+from .framing import CRC_SIZE, HEADER_SIZE, MAX_PAYLOAD_SIZE, SAMPLE_WIRE_SIZE, cobs_encoded_size
+from .messages import SAMPLE_WORD_SIZE, Sample, Snapshot
+
+__all__ = ["classic_can_frame_bits", "fd_can_frame_time_s", "serial_snapshot_bytes", "Capacity",
+           "capacity_table", "MAX_SERIAL_SNAPSHOT_SAMPLES"]
+
+#: SNAPSHOT samples per serial frame: (1018 - 5) // 5
+MAX_SERIAL_SNAPSHOT_SAMPLES = (MAX_PAYLOAD_SIZE - Snapshot.HEADER_SIZE) // SAMPLE_WORD_SIZE
+assert MAX_SERIAL_SNAPSHOT_SAMPLES == 202
+
+
+def classic_can_frame_bits(n_data: int) -> tuple[int, int]:
+    """(best, worst) bits on the bus of one classic extended frame with ``n_data`` bytes, incl. IFS."""
+    if not 0 <= n_data <= 8:
+        raise ValueError(f"Invalid classic CAN length: {n_data}")
+    base = 67 + 8 * n_data  # 64 + 8n frame bits + 3 bits IFS
+    stuffed = 54 + 8 * n_data
+    return base, base + (stuffed - 1) // 4
+
+
+def fd_can_frame_time_s(n_data: int, nominal_bps: float = 1e6, data_bps: float = 8e6) -> tuple[float, float]:
+    """(best, worst) seconds of one CAN FD extended frame with bit-rate switch, incl. IFS."""
+    n = fd_length(n_data)
+    arb = 1 + 11 + 1 + 1 + 18 + 1 + 1 + 1  # SOF, base id, SRR, IDE, ext id, RRS, FDF, res
+    arb_tail = 1 + 2 + 7 + 3  # CRC delimiter (nominal after switch back), ACK, EOF, IFS
+    crc = 17 if n <= 16 else 21
+    fixed_stuff = math.ceil((4 + crc) / 4)  # fixed stuff bits in stuff count + CRC field
+    data = 1 + 1 + 4 + 8 * n + 4 + crc + fixed_stuff  # BRS, ESI, DLC, data, stuff count, CRC
+    arb_worst = arb + (arb - 1) // 4
+    data_worst = data + (1 + 1 + 4 + 8 * n) // 4
+    best = (arb + arb_tail) / nominal_bps + data / data_bps
+    worst = (arb_worst + arb_tail) / nominal_bps + data_worst / data_bps
+    return best, worst
+
+
+def serial_snapshot_bytes(n_links: int) -> int:
+    """Bytes on the wire (COBS + delimiters) of one whole snapshot of ``n_links`` samples."""
+    total, left = 0, n_links
+    while left > 0:
+        k = min(left, MAX_SERIAL_SNAPSHOT_SAMPLES)
+        total += cobs_encoded_size(HEADER_SIZE + Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * k + CRC_SIZE) + 1
+        left -= k
+    return total
+
+
+@dataclass(frozen=True)
+class Capacity:
+    link: str
+    carries: str
+    frame: str
+    frames_per_s: tuple[float, float]  #: (worst, best)
+    chips_at_rate: tuple[int, int]  #: (worst, best) chips per bus at `rate_hz`
+
+
+def capacity_table(rate_hz: float = 145.0) -> list[Capacity]:
+    """Chips per bus at ``rate_hz`` for each transport and message (the table of docs §10)."""
+    rows = []
+    best, worst = classic_can_frame_bits(Sample.SIZE)
+    f = (1e6 / worst, 1e6 / best)
+    rows.append(Capacity("classic CAN 1 Mbit/s, 29-bit id", "SAMPLE (7 B)", f"{best}-{worst} bits",
+                         f, (int(f[0] / rate_hz), int(f[1] / rate_hz))))
+    n = Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * MAX_FD_SNAPSHOT_SAMPLES
+    tb, tw = fd_can_frame_time_s(n)
+    f = (1 / tw, 1 / tb)
+    rows.append(Capacity("CAN FD 1/8 Mbit/s", f"SNAPSHOT, {MAX_FD_SNAPSHOT_SAMPLES} samples ({fd_length(n)} B)",
+                         f"{tb * 1e6:.0f}-{tw * 1e6:.0f} µs", f,
+                         (int(f[0] * MAX_FD_SNAPSHOT_SAMPLES / rate_hz), int(f[1] * MAX_FD_SNAPSHOT_SAMPLES / rate_hz))))
+    tb, tw = fd_can_frame_time_s(Sample.SIZE)
+    f = (1 / tw, 1 / tb)
+    rows.append(Capacity("CAN FD 1/8 Mbit/s", "SAMPLE (7 B)", f"{tb * 1e6:.0f}-{tw * 1e6:.0f} µs", f,
+                         (int(f[0] / rate_hz), int(f[1] / rate_hz))))
+    for baud in (3_000_000, 12_000_000):
+        fps = baud / 10 / SAMPLE_WIRE_SIZE
+        rows.append(Capacity(f"UART 8N1 {baud // 1_000_000} Mbaud", "SAMPLE per chip", f"{SAMPLE_WIRE_SIZE} B",
+                             (fps, fps), (int(fps / rate_hz),) * 2))
+        # packed: largest n whose snapshot fits the byte budget at rate_hz (SYNC from the gateway, no host SYNC bytes)
+        budget = baud / 10 / rate_hz
+        lo, hi = 1, 100_000
+        while lo < hi:
+            mid = (lo + hi + 1) // 2
+            lo, hi = (mid, hi) if serial_snapshot_bytes(mid) <= budget else (lo, mid - 1)
+        rows.append(Capacity(f"UART 8N1 {baud // 1_000_000} Mbaud", "SNAPSHOT (packed)",
+                             f"{serial_snapshot_bytes(lo)} B per snapshot", (rate_hz, rate_hz), (lo, lo)))
+    return rows
+
+
+assert FD_LENGTHS[-1] == 64
