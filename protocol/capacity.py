@@ -8,7 +8,7 @@ the data phase (ESI, DLC, data, stuff count, CRC-17/21 with fixed stuff bits) at
 UART 8N1: 10 bits per byte.
 
 >>> classic_can_frame_bits(8)
-(131, 159)
+(131, 160)
 """
 
 from __future__ import annotations
