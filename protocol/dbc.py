@@ -16,7 +16,7 @@ from pathlib import Path
 from .can import CAN_CLASSIC_MTU, CAN_FD_MTU, MAX_FD_SNAPSHOT_SAMPLES, make_id
 from .messages import MESSAGE_TYPES, Direction, MsgType, Sample, Snapshot
 
-__all__ = ["DBC_PATH", "DBC_ID_MASK", "build_database", "dbc_text", "dbc_frame_id"]
+__all__ = ["DBC_PATH", "DBC_ID_MASK", "build_database", "dbc_text", "dbc_frame_id", "load_database", "write_dbc"]
 
 DBC_PATH = Path(__file__).with_name("capsheet.dbc")
 DBC_ID_MASK = 0x1FFF0000  #: keep priority, type and version; drop the node
@@ -64,6 +64,9 @@ def _signals(cls):
 def build_database():
     """A ``cantools.database.can.Database`` with one message per MsgType."""
     from cantools.database import Database, Message, Node
+    from cantools.database.can.formats.dbc import DbcSpecifics
+    from cantools.database.can.formats.dbc.dbc_attribute import DbcAttribute as Attribute
+    from cantools.database.can.formats.dbc.dbc_attribute_definition import DbcAttributeDefinition as AttributeDefinition
     messages = []
     for code in MsgType:
         cls = MESSAGE_TYPES[code]
@@ -74,8 +77,25 @@ def build_database():
         messages.append(Message(frame_id=make_id(code, 0), name=code.name, length=size,
                                 signals=_signals(cls), is_extended_frame=True, is_fd=fd,
                                 senders=[sender], comment=(cls.__doc__ or "").strip().splitlines()[0]))
-    return Database(messages=messages, nodes=[Node("HOST"), Node("CHIP"), Node("GATEWAY")], version="1")
+    # BusType "CAN FD" makes cantools write VFrameFormat, so tools see SNAPSHOT as an FD frame.
+    bus_type = AttributeDefinition("BusType", default_value="CAN", kind=None, type_name="STRING")
+    specifics = DbcSpecifics(attributes={"BusType": Attribute("CAN FD", bus_type)},
+                             attribute_definitions={"BusType": bus_type})
+    return Database(messages=messages, nodes=[Node("HOST"), Node("CHIP"), Node("GATEWAY")], version="1",
+                    dbc_specifics=specifics, frame_id_mask=DBC_ID_MASK)
 
 
 def dbc_text() -> str:
+    """The DBC file's text (cantools writes CRLF line ends; keep them)."""
     return build_database().as_dbc_string()
+
+
+def load_database():
+    """The checked-in DBC loaded with cantools, node bits masked: look frames up by their raw id."""
+    import cantools
+    return cantools.database.load_file(str(DBC_PATH), frame_id_mask=DBC_ID_MASK)
+
+
+def write_dbc(path: Path = DBC_PATH) -> Path:
+    path.write_bytes(dbc_text().encode())
+    return path
