@@ -145,8 +145,10 @@ def link_frames(joints: np.ndarray) -> np.ndarray:
     Definition of the link normal: the unit normals of the (one or two) lattice cells that share
     the link (each the normalised cross product of the cell's diagonals, see ``_cell_normals``) are
     averaged; that average, minus its component along x (Gram-Schmidt), normalised, is z. This is
-    the surface normal at the link's midpoint to first order, and it keeps the paper's normal
-    assumption (eq. 6) approximate, as on a real sheet. A flat sheet with i along +x and j along
+    the surface normal at the link's midpoint to first order (exactly so inside a sheet bent
+    round a cylinder; a link on the sheet's edge has one cell only, so its normal leans by half
+    that cell's bend), and it keeps the paper's normal assumption (eq. 6) approximate, as on a
+    real sheet. A flat sheet with i along +x and j along
     +y has z = +z on every link.
 
     Parameters
