@@ -26,7 +26,7 @@ __all__ = [
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
     "Message", "Announce", "Info", "Sample", "Status", "Ack", "Nack", "CalData", "Snapshot",
     "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
-    "MESSAGE_TYPES", "pack_sample_words", "unpack_sample_words", "PayloadError", "decode_payload",
+    "MESSAGE_TYPES", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
 ]
 
@@ -235,12 +235,35 @@ def unpack_sample_words(data: bytes | np.ndarray) -> tuple[np.ndarray, np.ndarra
     b = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
     if b.size % SAMPLE_WORD_SIZE:
         raise ValueError(f"Packed samples are a multiple of {SAMPLE_WORD_SIZE} bytes, got {b.size}")
-    b = b.reshape(-1, SAMPLE_WORD_SIZE).astype(np.int64)
-    word = b[:, 0] | (b[:, 1] << 8) | (b[:, 2] << 16) | (b[:, 3] << 24) | (b[:, 4] << 32)
-    axes = np.stack([(word >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
-    counts = (axes - ((axes & 0x800) << 1)).astype(np.int16)
-    status = ((word >> 36) & 0xF).astype(np.uint8)
+    n = b.size // SAMPLE_WORD_SIZE
+    w = np.zeros((n, 8), dtype=np.uint8)
+    w[:, :SAMPLE_WORD_SIZE] = b.reshape(n, SAMPLE_WORD_SIZE)
+    word = w.view("<u8")  # (n, 1)
+    axes = ((word >> _AXIS_SHIFTS) & np.uint64(0xFFF)).astype(np.int16)
+    counts = (axes << 4) >> 4  # sign-extend 12 -> 16 bits (arithmetic shift)
+    status = (word[:, 0] >> np.uint64(36)).astype(np.uint8)
     return counts, status
+
+
+_AXIS_SHIFTS = np.array([0, 12, 24], dtype=np.uint64)
+
+
+def unpack_snapshots(snapshots) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Unpack many SNAPSHOT messages at once (one numpy pass instead of one per frame).
+
+    Returns ``(counter uint16 (n,), link uint32 (n,), counts int16 (n, 3), status uint8 (n,))``
+    over all their samples, in order: the host's fast path for packed gateways.
+    """
+    snapshots = list(snapshots)
+    if not snapshots:
+        return (np.zeros(0, np.uint16), np.zeros(0, np.uint32), np.zeros((0, 3), np.int16), np.zeros(0, np.uint8))
+    sizes = np.fromiter((len(s.words) // SAMPLE_WORD_SIZE for s in snapshots), dtype=np.int64, count=len(snapshots))
+    counter = np.repeat(np.fromiter((s.counter for s in snapshots), dtype=np.uint16, count=len(snapshots)), sizes)
+    firsts = np.fromiter((s.first_link for s in snapshots), dtype=np.int64, count=len(snapshots))
+    offsets = np.arange(sizes.sum()) - np.repeat(np.cumsum(sizes) - sizes, sizes)
+    link = (np.repeat(firsts, sizes) + offsets).astype(np.uint32)
+    counts, status = unpack_sample_words(b"".join(s.words for s in snapshots))
+    return counter, link, counts, status
 
 
 # --------------------------------------------------------------------------------------------

@@ -204,3 +204,19 @@ def test_batch_mode_gives_the_same_samples_as_the_exact_path(msgs, seed):
     # and the exact per-frame path (decode_frame) agrees frame by frame
     assert [decode_frame(seg) for seg in wire.split(b"\x00")[:-1]] == mixed
     assert all(isinstance(e, SampleBatch) or not isinstance(e, Sample) for e in events)
+
+
+@given(st.lists(st.integers(0, 2**32 - 1), min_size=1, max_size=6))
+def test_unpack_snapshots_equals_unpacking_each(seeds):
+    from protocol.messages import unpack_snapshots
+    snaps = []
+    for seed in seeds:
+        rng = np.random.Generator(np.random.MT19937(seed))
+        n = int(rng.integers(1, 40))
+        snaps.append(Snapshot.from_arrays(0, int(rng.integers(0, 65536)), int(rng.integers(0, 1000)),
+                                          rng.integers(-2048, 2048, (n, 3)), rng.integers(0, 16, n)))
+    counter, link, counts, status = unpack_snapshots(snaps)
+    assert counter.tolist() == [s.counter for s in snaps for _ in range(s.count)]
+    assert link.tolist() == [s.first_link + k for s in snaps for k in range(s.count)]
+    assert counts.tolist() == [row for s in snaps for row in s.counts.tolist()]
+    assert status.tolist() == [v for s in snaps for v in s.status.tolist()]
