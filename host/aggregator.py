@@ -1,0 +1,555 @@
+"""The snapshot aggregator: SAMPLE and SNAPSHOT frames grouped by SYNC counter into lattice snapshots.
+
+Every streaming chip answers SYNC ``counter`` with a SAMPLE carrying that counter (docs/protocol.md
+§5.1); a gateway may instead send SNAPSHOT frames carrying many links at once. The aggregator keeps
+a bounded set of *open* counters, scatters incoming samples into per-counter buffers (numpy,
+vectorised: a batch of node ids becomes link indices through one lookup array), and emits a
+`LatticeSnapshot` when a counter is complete, or at its deadline with the missing links masked.
+
+Rules (all counted in `AggregatorStats`, none raises):
+
+* Counters compare in serial arithmetic mod 2^16 (RFC 1982 style): ``a`` is newer than ``b`` if
+  ``(a - b) mod 65536`` is in 1..32767, so 0x0000 follows 0xFFFF.
+* Snapshots are emitted in counter order. An incomplete counter holds the newer ones back until it
+  completes or its deadline passes.
+* A frame for a counter not newer than the last emitted one is *late*; one older than ``max_age`` counters behind the
+  newest is *late* too; a second frame for the same (counter, link) is a *duplicate* (the first is
+  kept); a frame from a node the layout does not know is *unknown* (counted per node, bounded).
+* At most ``max_open`` counters are open; opening one more emits the oldest (masked): memory is
+  bounded whatever the input.
+* The output queue holds ``queue_size`` snapshots; when the consumer is slower than the sheet the
+  oldest are dropped (newest wins) and counted in ``dropped``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from enum import IntFlag
+from typing import Callable, Iterable
+
+import numpy as np
+
+from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
+from protocol.framing import SampleBatch
+from protocol.messages import Sample, Snapshot, unpack_sample_words
+
+__all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "serial_diff"]
+
+_MOD = 1 << 16
+_HALF = 1 << 15
+
+
+def serial_diff(a, b):
+    """``a - b`` in serial arithmetic mod 2^16, in -32768..32767 (works on arrays).
+
+    >>> serial_diff(0, 0xFFFF), serial_diff(0xFFFF, 0), serial_diff(5, 3)
+    (1, -1, 2)
+    """
+    return ((np.asarray(a, dtype=np.int64) - b + _HALF) % _MOD) - _HALF if isinstance(a, np.ndarray) \
+        else ((int(a) - int(b) + _HALF) % _MOD) - _HALF
+
+
+class LinkFlag(IntFlag):
+    """Per-link status of a `LatticeSnapshot`: the 4 SampleStatus bits from the wire (bits 0..3)
+    plus what the host knows (bits 4..7)."""
+
+    OK = 0
+    SATURATED = SampleStatus.SATURATED  #: 0x01 wire: an axis hit the ADC limit
+    SELF_TEST = SampleStatus.SELF_TEST  #: 0x02 wire: self-test excitation on
+    STALE = SampleStatus.STALE  #: 0x04 wire: repeated previous value
+    INVALID = SampleStatus.INVALID  #: 0x08 wire: the chip (or gateway) says no data
+    MISSING = 0x10  #: host: no frame for this link arrived by the deadline
+    SILENT = 0x20  #: host: the watchdog marks this link's chip as fallen silent
+    UNASSIGNED = 0x40  #: host: no chip is assigned to this link
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LatticeSnapshot:
+    """All links' readings for one SYNC counter.
+
+    Attributes
+    ----------
+    counter : int
+        The SYNC counter (u16) the samples answer.
+    timestamp : float
+        Host ``time.monotonic()`` seconds when the counter opened: when the host sent (or saw) its
+        SYNC, else when its first frame arrived.
+    wall_time : float
+        ``time.time()`` at the same instant (for recordings).
+    readings : ndarray, shape (n_links, 3), float64
+        Specific force in m/s², sensor frame (DESIGN.md), after per-chip calibration
+        (`protocol.constants.counts_to_si`); NaN where not ``valid``.
+    valid : ndarray, shape (n_links,), bool
+        A frame arrived for the link and its status is not INVALID.
+    status : ndarray, shape (n_links,), uint8
+        `LinkFlag` bits per link.
+    complete : bool
+        Every expected link arrived (emitted on completion, not at the deadline).
+    latency_s : float
+        ``emitted - timestamp``: from SYNC (or first frame) to emission.
+    first_frame_s, last_frame_s : float
+        Arrival of the first / last frame after ``timestamp`` (seconds; NaN if none).
+    """
+
+    counter: int
+    timestamp: float
+    wall_time: float
+    readings: np.ndarray
+    valid: np.ndarray
+    status: np.ndarray
+    complete: bool
+    latency_s: float
+    first_frame_s: float = float("nan")
+    last_frame_s: float = float("nan")
+
+    @property
+    def n_links(self) -> int:
+        return int(self.valid.shape[0])
+
+    @property
+    def n_valid(self) -> int:
+        return int(np.count_nonzero(self.valid))
+
+    @property
+    def completeness(self) -> float:
+        return self.n_valid / max(1, self.n_links)
+
+
+@dataclass
+class AggregatorStats:
+    """Counters of an `Aggregator`. Arrays are per link (index = lattice address) or per bus."""
+
+    n_links: int
+    n_buses: int = 1
+    samples: int = 0  #: samples accepted into an open counter
+    emitted: int = 0
+    complete: int = 0  #: emitted complete
+    incomplete: int = 0  #: emitted at the deadline (or evicted) with links missing
+    evicted: int = 0  #: emitted early because ``max_open`` counters were open
+    dropped: int = 0  #: emitted but dropped from the output queue (consumer too slow)
+    late: int = 0  #: frames for a counter already emitted or too old
+    duplicates: int = 0
+    unknown: int = 0  #: frames from nodes the layout does not know
+    out_of_range: int = 0  #: SNAPSHOT samples beyond the lattice
+    unknown_nodes: dict = field(default_factory=dict)  #: node -> frames (at most 256 nodes kept)
+    link_frames: np.ndarray = None  # type: ignore[assignment]
+    link_late: np.ndarray = None  # type: ignore[assignment]
+    link_duplicates: np.ndarray = None  # type: ignore[assignment]
+    link_missing: np.ndarray = None  # type: ignore[assignment]  #: snapshots emitted without the link
+    link_latency_s: np.ndarray = None  # type: ignore[assignment]  #: EWMA of frame arrival - SYNC
+    link_last_seen: np.ndarray = None  # type: ignore[assignment]  #: monotonic time of the last frame
+    bus_frames: np.ndarray = None  # type: ignore[assignment]
+    bus_late: np.ndarray = None  # type: ignore[assignment]
+    bus_duplicates: np.ndarray = None  # type: ignore[assignment]
+    bus_unknown: np.ndarray = None  # type: ignore[assignment]
+
+    def __post_init__(self) -> None:
+        n, b = self.n_links, self.n_buses
+        for name in ("link_frames", "link_late", "link_duplicates", "link_missing"):
+            setattr(self, name, np.zeros(n, dtype=np.int64))
+        self.link_latency_s = np.full(n, np.nan)
+        self.link_last_seen = np.full(n, -np.inf)
+        for name in ("bus_frames", "bus_late", "bus_duplicates", "bus_unknown"):
+            setattr(self, name, np.zeros(b, dtype=np.int64))
+
+    def summary(self) -> dict:
+        return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
+                                              "dropped", "late", "duplicates", "unknown", "out_of_range")}
+
+
+class Aggregator:
+    """Group samples by SYNC counter into `LatticeSnapshot` s.
+
+    Parameters
+    ----------
+    n_links : int
+        Links in the lattice (`protocol.lattice.Lattice.n_links`).
+    node_to_link : mapping or ndarray, optional
+        Node id -> link index for per-chip SAMPLE frames (a dict, or an int array of 65536 with -1
+        for unknown). Default: node ``k`` is link ``k - 1`` (the host's assignment rule).
+    offset : ndarray, shape (n_links, 3), optional
+        Zero-g offset in ADC counts per link and axis (CAL_DATA ``offset_q4 / 16``). Default 0.
+    sensitivity : ndarray, shape (n_links, 3), optional
+        Counts per g per link and axis. Default: nominal for ±2 g (1024).
+    deadline_s : float
+        An incomplete counter is emitted (masked) this long after it opened.
+    max_open : int
+        At most this many counters are open at once.
+    max_age : int
+        Frames more than this many counters behind the newest open one are late.
+    queue_size : int
+        Output queue length (newest wins).
+    n_buses : int
+        Number of buses feeding this aggregator (for per-bus statistics).
+    on_snapshot : callable, optional
+        Called with each emitted snapshot (in the thread that caused the emission), in addition to
+        the queue.
+    clock : callable
+        Monotonic clock in seconds (tests pass a fake one).
+    """
+
+    def __init__(self, n_links: int, node_to_link=None, *, offset=None, sensitivity=None,
+                 deadline_s: float = 0.05, max_open: int = 32, max_age: int = 256, queue_size: int = 64,
+                 n_buses: int = 1, on_snapshot: Callable[[LatticeSnapshot], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not isinstance(n_links, (int, np.integer)) or n_links < 1:
+            raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 1)")
+        if max_open < 1:
+            raise ValueError(f"Invalid max_open: {max_open!r} (need >= 1)")
+        self.n_links = int(n_links)
+        self.deadline_s = float(deadline_s)
+        self.max_open = int(max_open)
+        self.max_age = int(max_age)
+        self.clock = clock
+        self.on_snapshot = on_snapshot
+        self.stats = AggregatorStats(self.n_links, n_buses)
+        self._lock = threading.RLock()
+        self._cond = threading.Condition(self._lock)
+        self._out: deque[LatticeSnapshot] = deque()
+        self.queue_size = int(queue_size)
+        self.set_node_map(node_to_link)
+        self.set_calibration(offset, sensitivity)
+        #: links expected in every snapshot (a snapshot is complete when all of these arrived)
+        self.expected = np.ones(self.n_links, dtype=bool)
+        #: links with no chip assigned (flagged UNASSIGNED, never expected)
+        self.unassigned = np.zeros(self.n_links, dtype=bool)
+        self.silent = np.zeros(self.n_links, dtype=bool)
+        # per-slot buffers
+        S, L = self.max_open, self.n_links
+        self._counts = np.zeros((S, L, 3), dtype=np.int16)
+        self._status = np.zeros((S, L), dtype=np.uint8)
+        self._got = np.zeros((S, L), dtype=bool)
+        self._n_got = np.zeros(S, dtype=np.int64)
+        self._slot_counter = np.full(S, -1, dtype=np.int64)
+        self._slot_t0 = np.zeros(S)
+        self._slot_wall = np.zeros(S)
+        self._slot_first = np.full(S, np.nan)
+        self._slot_last = np.full(S, np.nan)
+        self._free = list(range(S - 1, -1, -1))
+        self._open: list[int] = []  # slots, in counter order (oldest first)
+        self._slot_of = np.full(_MOD, -1, dtype=np.int64)  # counter -> slot
+        self._newest: int | None = None  # newest counter opened
+        self._last_emitted: int | None = None
+        self._stamp = np.zeros(S * L, dtype=np.int64)  # scratch for in-batch duplicates
+
+    # -- configuration ---------------------------------------------------------------------
+    def set_node_map(self, node_to_link=None) -> None:
+        """Node id -> link index (dict or array of 65536, -1 = unknown). None: node k -> link k-1."""
+        lut = np.full(_MOD, -1, dtype=np.int64)
+        if node_to_link is None:
+            n = min(self.n_links, _MOD - 1)
+            lut[1:n + 1] = np.arange(n)
+        elif isinstance(node_to_link, dict):
+            for node, link in node_to_link.items():
+                if not 0 <= link < self.n_links:
+                    raise ValueError(f"Invalid link {link} for node {node} ({self.n_links} links)")
+                lut[int(node)] = int(link)
+        else:
+            arr = np.asarray(node_to_link, dtype=np.int64)
+            if arr.shape != (_MOD,):
+                raise ValueError(f"Expected `node_to_link` to have shape (65536,), got {arr.shape}.")
+            lut[:] = arr
+        with self._lock:
+            self._lut = lut
+
+    def set_calibration(self, offset=None, sensitivity=None) -> None:
+        """Per-link calibration: ``offset`` counts and ``sensitivity`` counts/g, each (n_links, 3)."""
+        L = self.n_links
+        off = np.zeros((L, 3)) if offset is None else np.asarray(offset, dtype=float)
+        sens = np.full((L, 3), nominal_sensitivity()) if sensitivity is None else np.asarray(sensitivity, dtype=float)
+        for name, a in (("offset", off), ("sensitivity", sens)):
+            if a.shape != (L, 3):
+                raise ValueError(f"Expected `{name}` to have shape ({L}, 3), got {a.shape}.")
+        if not np.all(np.isfinite(sens) & (sens > 0)):
+            raise ValueError("Invalid sensitivity: every value must be finite and > 0")
+        with self._lock:
+            self._offset, self._sens = off, sens
+
+    def set_expected(self, expected: np.ndarray) -> None:
+        """Links that must arrive for a snapshot to be complete."""
+        expected = np.asarray(expected, dtype=bool)
+        if expected.shape != (self.n_links,):
+            raise ValueError(f"Expected `expected` to have shape ({self.n_links},), got {expected.shape}.")
+        with self._lock:
+            self.expected = expected.copy()
+            self._pump(self.clock())
+
+    def mark_silent(self, link: int, silent: bool = True) -> None:
+        """Watchdog: a silent link is not waited for (and flagged SILENT) until it speaks again."""
+        with self._lock:
+            self.silent[link] = silent
+            self.expected[link] = not silent and not self.unassigned[link]
+            self._pump(self.clock())
+
+    def set_unassigned(self, unassigned: np.ndarray) -> None:
+        with self._lock:
+            self.unassigned = np.asarray(unassigned, dtype=bool).copy()
+            self.expected = ~self.unassigned & ~self.silent
+            self._pump(self.clock())
+
+    # -- counters --------------------------------------------------------------------------
+    def open_counter(self, counter: int, t: float | None = None, *, restart: bool = False) -> bool:
+        """The host sent (or saw) SYNC ``counter`` at ``t``: open it now so its timestamp and
+        deadline start at the SYNC. Returns False if it is late (not newer than the last emitted
+        counter). ``restart=True`` starts a new counter sequence: every open counter is emitted and
+        the ordering history is forgotten (the host does this when it (re)starts streaming)."""
+        with self._lock:
+            now = self.clock() if t is None else t
+            if restart:
+                while self._open:
+                    self._emit(self._open[0], now)
+                self._last_emitted = None
+                self._newest = None
+            slot = self._slot_for(int(counter) & 0xFFFF, now)
+            self._pump(self.clock())
+            return slot >= 0
+
+    def _slot_for(self, c: int, now: float) -> int:
+        """Slot of counter ``c``, opening it if allowed; -1 if late."""
+        s = int(self._slot_of[c])
+        if s >= 0:
+            return s
+        # snapshots leave in counter order, so anything not newer than the last emitted is late
+        if self._last_emitted is not None and serial_diff(c, self._last_emitted) <= 0:
+            return -1
+        if self._newest is not None and serial_diff(c, self._newest) < -self.max_age:
+            return -1
+        if not self._free:
+            self._emit(self._open[0], now, evicted=True)
+            if self._last_emitted is not None and serial_diff(c, self._last_emitted) <= 0:
+                return -1
+        s = self._free.pop()
+        self._slot_of[c] = s
+        self._slot_counter[s] = c
+        self._slot_t0[s] = now
+        self._slot_wall[s] = time.time() - (self.clock() - now)
+        self._slot_first[s] = np.nan
+        self._slot_last[s] = np.nan
+        self._got[s] = False
+        self._n_got[s] = 0
+        # insert in counter order
+        if self._newest is None or serial_diff(c, self._newest) > 0:
+            self._newest = c
+            self._open.append(s)
+        else:
+            k = len(self._open)
+            while k > 0 and serial_diff(int(self._slot_counter[self._open[k - 1]]), c) > 0:
+                k -= 1
+            self._open.insert(k, s)
+        return s
+
+    # -- ingest ----------------------------------------------------------------------------
+    def ingest(self, events: Iterable, bus: int = 0) -> None:
+        """Feed decoder/transport events; anything but SAMPLE/SampleBatch/SNAPSHOT is ignored."""
+        for ev in events:
+            if isinstance(ev, SampleBatch):
+                self.ingest_batch(ev.node, ev.counter, ev.counts, ev.status, bus)
+            elif isinstance(ev, Snapshot):
+                self.ingest_snapshot(ev, bus)
+            elif isinstance(ev, Sample):
+                self.ingest_batch(np.array([ev.node], dtype=np.uint16), np.array([ev.counter], dtype=np.uint16),
+                                  np.array([[ev.x, ev.y, ev.z]], dtype=np.int16),
+                                  np.array([ev.status], dtype=np.uint8), bus)
+
+    def ingest_batch(self, node: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
+                     bus: int = 0) -> None:
+        """Per-chip samples: arrays of equal length n (node u16, counter u16, counts (n, 3), status)."""
+        with self._lock:
+            links = self._lut[node]
+            known = links >= 0
+            if not known.all():
+                self._count_unknown(node[~known], bus)
+                links, counter, counts, status = links[known], counter[known], counts[known], status[known]
+            self._scatter(links, counter, counts, status, bus)
+
+    def ingest_snapshot(self, snap: Snapshot, bus: int = 0) -> None:
+        """A gateway's SNAPSHOT: links ``first_link ..`` of one counter."""
+        counts, status = unpack_sample_words(snap.words)
+        with self._lock:
+            links = snap.first_link + np.arange(counts.shape[0], dtype=np.int64)
+            inside = links < self.n_links
+            if not inside.all():
+                self.stats.out_of_range += int(np.count_nonzero(~inside))
+                links, counts, status = links[inside], counts[inside], status[inside]
+            counter = np.full(links.shape[0], snap.counter, dtype=np.uint16)
+            self._scatter(links, counter, counts, status, bus)
+
+    def _count_unknown(self, nodes: np.ndarray, bus: int) -> None:
+        st = self.stats
+        st.unknown += int(nodes.shape[0])
+        st.bus_unknown[bus] += int(nodes.shape[0])
+        u, c = np.unique(nodes, return_counts=True)
+        for n, k in zip(u.tolist(), c.tolist()):
+            if n in st.unknown_nodes or len(st.unknown_nodes) < 256:
+                st.unknown_nodes[n] = st.unknown_nodes.get(n, 0) + k
+
+    def _scatter(self, links: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
+                 bus: int) -> None:
+        n = links.shape[0]
+        if n == 0:
+            return
+        now = self.clock()
+        st = self.stats
+        st.bus_frames[bus] += n
+        slots = self._slot_of[counter]
+        if (slots < 0).any():
+            missing = np.unique(counter[slots < 0])
+            # open in counter order relative to the newest, oldest first
+            if missing.shape[0] > 1 and self._newest is not None:
+                missing = missing[np.argsort(serial_diff(missing.astype(np.int64), self._newest), kind="stable")]
+            elif missing.shape[0] > 1:
+                missing = missing[np.argsort(serial_diff(missing.astype(np.int64), int(missing[-1])), kind="stable")]
+            for c in missing.tolist():
+                self._slot_for(c, now)
+            slots = self._slot_of[counter]
+            late = slots < 0
+            if late.any():
+                nl = int(np.count_nonzero(late))
+                st.late += nl
+                st.bus_late[bus] += nl
+                st.link_late += np.bincount(links[late], minlength=self.n_links)
+                ok = ~late
+                links, counter, counts, status, slots = links[ok], counter[ok], counts[ok], status[ok], slots[ok]
+                n = links.shape[0]
+                if n == 0:
+                    return
+        L = self.n_links
+        flat = slots * L + links
+        got_flat = self._got.reshape(-1)
+        fresh = ~got_flat[flat]
+        # first occurrence within the batch wins
+        idx = np.arange(n)
+        stamp = self._stamp
+        stamp[flat[::-1]] = idx[::-1]
+        fresh &= stamp[flat] == idx
+        n_fresh = int(np.count_nonzero(fresh))
+        if n_fresh != n:
+            dup = ~fresh
+            nd = n - n_fresh
+            st.duplicates += nd
+            st.bus_duplicates[bus] += nd
+            st.link_duplicates += np.bincount(links[dup], minlength=L)
+            flat, links, counts, status, slots = flat[fresh], links[fresh], counts[fresh], status[fresh], slots[fresh]
+        self._counts.reshape(-1, 3)[flat] = counts
+        self._status.reshape(-1)[flat] = status
+        got_flat[flat] = True
+        st.samples += n_fresh
+        st.link_frames += np.bincount(links, minlength=L)
+        st.link_last_seen[links] = now
+        lat = now - self._slot_t0[slots]
+        prev = st.link_latency_s[links]
+        st.link_latency_s[links] = np.where(np.isnan(prev), lat, prev + 0.1 * (lat - prev))
+        touched = np.bincount(slots, minlength=self.max_open)
+        self._n_got += touched
+        for s in np.flatnonzero(touched).tolist():
+            t_rel = now - self._slot_t0[s]
+            if np.isnan(self._slot_first[s]):
+                self._slot_first[s] = t_rel
+            self._slot_last[s] = t_rel
+        # links that were silent and speak again
+        if self.silent.any():
+            back = self.silent[links]
+            if back.any():
+                for link in np.unique(links[back]).tolist():
+                    self.silent[link] = False
+                    self.expected[link] = not self.unassigned[link]
+        self._pump(now)
+
+    # -- emission --------------------------------------------------------------------------
+    def _is_complete(self, s: int) -> bool:
+        n_exp = int(np.count_nonzero(self.expected))
+        if self._n_got[s] < n_exp:
+            return False
+        return bool(np.all(self._got[s] | ~self.expected))
+
+    def poll(self, now: float | None = None) -> None:
+        """Emit counters whose deadline has passed. Call periodically (the host's threads do)."""
+        with self._lock:
+            self._pump(self.clock() if now is None else now)
+
+    def _pump(self, now: float) -> None:
+        while self._open:
+            s = self._open[0]
+            if self._is_complete(s) or now - self._slot_t0[s] >= self.deadline_s:
+                self._emit(s, now)
+            else:
+                break
+
+    def flush(self) -> None:
+        """Emit every open counter now (masked where incomplete), oldest first."""
+        with self._lock:
+            now = self.clock()
+            while self._open:
+                self._emit(self._open[0], now)
+
+    def _emit(self, s: int, now: float, evicted: bool = False) -> None:
+        st = self.stats
+        c = int(self._slot_counter[s])
+        self._open.remove(s)
+        got = self._got[s].copy()
+        status = self._status[s].copy()
+        status[~got] = 0
+        valid = got & ((status & SampleStatus.INVALID) == 0)
+        complete = bool(np.all(got | ~self.expected))
+        readings = counts_to_si(self._counts[s].astype(np.float64), self._offset, self._sens)
+        readings[~valid] = np.nan
+        status |= np.where(got, 0, LinkFlag.MISSING).astype(np.uint8)
+        status |= np.where(self.silent, LinkFlag.SILENT, 0).astype(np.uint8)
+        status |= np.where(self.unassigned, LinkFlag.UNASSIGNED, 0).astype(np.uint8)
+        readings.setflags(write=False)
+        valid.setflags(write=False)
+        status.setflags(write=False)
+        snap = LatticeSnapshot(c, float(self._slot_t0[s]), float(self._slot_wall[s]), readings, valid, status,
+                               complete, float(now - self._slot_t0[s]), float(self._slot_first[s]),
+                               float(self._slot_last[s]))
+        st.emitted += 1
+        if complete:
+            st.complete += 1
+        else:
+            st.incomplete += 1
+            st.link_missing += (~got & self.expected)
+        if evicted:
+            st.evicted += 1
+        self._slot_of[c] = -1
+        self._slot_counter[s] = -1
+        self._last_emitted = c
+        self._free.append(s)
+        if len(self._out) >= self.queue_size:
+            self._out.popleft()
+            st.dropped += 1
+        self._out.append(snap)
+        self._cond.notify_all()
+        if self.on_snapshot is not None:
+            self.on_snapshot(snap)
+
+    # -- output ----------------------------------------------------------------------------
+    def get(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
+        """The oldest queued snapshot, waiting up to ``timeout_s`` (None: forever); None on timeout."""
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        with self._cond:
+            while not self._out:
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0:
+                    return None
+                self._cond.wait(remaining if remaining is None else min(remaining, 0.05))
+                if not self._out:
+                    self._pump(self.clock())
+            return self._out.popleft()
+
+    def drain(self) -> list[LatticeSnapshot]:
+        """Every queued snapshot, oldest first, without waiting."""
+        with self._lock:
+            out = list(self._out)
+            self._out.clear()
+            return out
+
+    @property
+    def n_open(self) -> int:
+        return len(self._open)
+
+    @property
+    def pending(self) -> int:
+        return len(self._out)

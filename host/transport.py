@@ -1,0 +1,592 @@
+"""Host transports: pluggable back ends that move capsheet frames between the host and a sheet.
+
+A transport turns wire input into protocol events and messages into wire output. Three back ends,
+chosen by name (`open_transport`) and imported lazily, so a host without python-can still talks
+serial:
+
+* ``serial`` — `SerialTransport`: pyserial, any URL or device path (a pty, ``loop://``,
+  ``/dev/ttyUSB0``, ``socket://host:port``); reconnects when the port goes away and comes back.
+* ``can`` — `CanTransport`: python-can, any interface it knows, given as ``interface:channel``
+  (``virtual:bus0``, ``slcan:/dev/pts/5``, ``socketcan:can0``); classic CAN or CAN FD.
+* ``memory`` — `MemoryTransport`: one end of ``virtual_sheet.memlink.memory_link()`` (no OS).
+
+The python-can pattern: the public `Transport.recv` runs the timeout loop and the bookkeeping;
+a back end implements only ``_recv_internal`` (and ``_send_internal``, ``_close_internal``).
+Only override the hooks, never `recv` / `send` directly.
+
+Events returned by `Transport.recv` are what the protocol decoders produce, in wire order:
+`protocol.Message` instances, `protocol.SampleBatch` (runs of SAMPLE, the fast path) and
+`protocol.DecodeError` (damage, counted in `TransportStats.errors`). Wire input never raises.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, decode_can, to_can
+from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
+from protocol.messages import Message, Sample
+
+__all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
+           "TransportCapabilities", "TransportStats", "Transport", "SerialTransport", "MemoryTransport",
+           "CanTransport", "BACKENDS", "open_transport", "parse_can_spec"]
+
+log = logging.getLogger("capsheet.host.transport")
+
+
+# --------------------------------------------------------------------------------------------
+# Errors by stage (python-can: CanError > CanInitializationError / CanOperationError / ...)
+# --------------------------------------------------------------------------------------------
+
+class TransportError(Exception):
+    """Base of every transport error. ``port`` names the port or bus the error is about."""
+
+    def __init__(self, message: str, port: str | None = None) -> None:
+        super().__init__(message)
+        self.port = port
+
+
+class TransportInitError(TransportError):
+    """The back end could not be imported, or the port/bus could not be opened or configured."""
+
+
+class TransportOperationError(TransportError):
+    """A send or receive failed on an open port (and reconnecting, if enabled, has not helped)."""
+
+
+class TransportTimeoutError(TransportError):
+    """An operation did not finish within its timeout (e.g. a write that blocked)."""
+
+
+# --------------------------------------------------------------------------------------------
+# Capabilities and statistics
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True)
+class TransportCapabilities:
+    """What a transport can carry. Frozen: a transport's capabilities do not change while it is open.
+
+    Attributes
+    ----------
+    kind : str
+        ``"serial"``, ``"can"`` or ``"memory"``. Example: ``"can"`` for ``virtual:bus0``.
+    mtu : int
+        Largest message payload (docs/protocol.md §4) one frame carries, in bytes.
+        Examples: 8 on classic CAN, 64 on CAN FD, 1018 on serial (MAX_FRAME_SIZE 1024 minus header
+        and CRC), so a serial SNAPSHOT carries up to 202 samples and a CAN FD one 11.
+    fd : bool
+        True if CAN FD frames can be sent and received (always False for serial/memory).
+        Example: ``CanTransport("virtual:bus0", fd=True).capabilities.fd is True``.
+    bitrate : int or None
+        Line rate in bit/s if known: the baud rate of a serial port (e.g. 3_000_000), the nominal
+        CAN bit rate (e.g. 1_000_000); None for a virtual bus or an in-memory link.
+    data_bitrate : int or None
+        CAN FD data-phase bit rate (e.g. 8_000_000), else None.
+    name : str
+        The port or bus as the user gave it, e.g. ``"/dev/pts/5"`` or ``"slcan:/dev/pts/6"``.
+    """
+
+    kind: str
+    mtu: int
+    fd: bool = False
+    bitrate: int | None = None
+    data_bitrate: int | None = None
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("serial", "can", "memory"):
+            raise ValueError(f"Invalid kind: {self.kind!r} (need 'serial', 'can' or 'memory')")
+        if not isinstance(self.mtu, int) or self.mtu < 1:
+            raise ValueError(f"Invalid mtu: {self.mtu!r} (need an integer >= 1)")
+
+
+@dataclass
+class TransportStats:
+    """Counters of one transport (one bus). Updated by the transport's receive thread; read freely."""
+
+    bytes_in: int = 0
+    bytes_out: int = 0
+    frames_in: int = 0  #: frames decoded (every SAMPLE of a batch counts)
+    frames_out: int = 0
+    errors: Counter = field(default_factory=Counter)  #: DecodeError reason name -> count
+    disconnects: int = 0  #: times the port went away
+    reconnects: int = 0  #: times it came back and was reopened
+    send_failures: int = 0
+
+    @property
+    def error_count(self) -> int:
+        return sum(self.errors.values())
+
+    def as_dict(self) -> dict:
+        return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "frames_in": self.frames_in,
+                "frames_out": self.frames_out, "errors": dict(self.errors), "disconnects": self.disconnects,
+                "reconnects": self.reconnects, "send_failures": self.send_failures}
+
+
+# --------------------------------------------------------------------------------------------
+# Base class
+# --------------------------------------------------------------------------------------------
+
+class Transport(ABC):
+    """Base of every transport. Thread model: one thread receives, any thread may send (sends are
+    serialised by a lock).
+
+    Subclasses implement ``_recv_internal(timeout_s) -> list`` (events, possibly empty; may return
+    early), ``_send_internal(msg)`` and ``_close_internal()``, and set ``capabilities``.
+    """
+
+    capabilities: TransportCapabilities
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.stats = TransportStats()
+        self._send_lock = threading.Lock()
+        self._closed = False
+
+    # -- public API ------------------------------------------------------------------------
+    def recv(self, timeout_s: float | None = 0.1) -> list:
+        """Events received within ``timeout_s`` (None: wait until there is at least one).
+
+        Returns as soon as at least one event is available; an empty list on timeout.
+        Raises `TransportOperationError` only if the transport is closed.
+        """
+        if self._closed:
+            raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            events = self._recv_internal(remaining)
+            if events:
+                for ev in events:
+                    if isinstance(ev, DecodeError):
+                        self.stats.errors[ev.reason.name] += 1
+                    elif isinstance(ev, SampleBatch):
+                        self.stats.frames_in += len(ev)
+                    else:
+                        self.stats.frames_in += 1
+                return events
+            if self._closed:
+                raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+            if deadline is not None and time.monotonic() >= deadline:
+                return []
+
+    def send(self, msg: Message) -> None:
+        """Send one message. Raises `TransportOperationError` (or `TransportTimeoutError`) naming
+        the port if the back end fails; the cause is chained."""
+        if self._closed:
+            raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+        with self._send_lock:
+            try:
+                self._send_internal(msg)
+            except TransportError:
+                self.stats.send_failures += 1
+                raise
+            except Exception as exc:  # noqa: BLE001 - back ends raise many kinds; re-raise by stage
+                self.stats.send_failures += 1
+                raise TransportOperationError(
+                    f"Cannot send {msg.TYPE.name} on {self.name!r}: {exc}", self.name) from exc
+            self.stats.frames_out += 1
+
+    def close(self) -> None:
+        """Close the port. Idempotent."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._close_internal()
+        except Exception as exc:  # noqa: BLE001
+            log.debug("closing %s: %s", self.name, exc)
+
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
+    def __enter__(self) -> "Transport":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r})"
+
+    # -- hooks -----------------------------------------------------------------------------
+    @abstractmethod
+    def _recv_internal(self, timeout_s: float | None) -> list:
+        """Events available within ``timeout_s``; [] if none. Never raises on wire input."""
+
+    @abstractmethod
+    def _send_internal(self, msg: Message) -> None:
+        """Put one message on the wire."""
+
+    def _close_internal(self) -> None:
+        pass
+
+
+# --------------------------------------------------------------------------------------------
+# Serial (pyserial) and in-memory
+# --------------------------------------------------------------------------------------------
+
+def _import(module: str, what: str, port: str):
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise TransportInitError(f"Cannot import module {module} for {what} {port!r}: {exc}", port) from exc
+
+
+class SerialTransport(Transport):
+    """The serial back end: COBS frames (docs §6) over anything with pyserial's API.
+
+    Parameters
+    ----------
+    port : str or file-like
+        A pyserial URL or device path (``/dev/pts/5``, ``loop://``, ``/dev/ttyUSB0``), opened with
+        ``serial.serial_for_url``; or an already open object with pyserial's ``read``/``write``/
+        ``timeout``/``in_waiting``/``close`` (e.g. a ``memory_link`` end).
+    baudrate : int
+        Line rate for real UARTs (ignored by ptys and ``loop://``).
+    reconnect : bool
+        When the port goes away (read/write raises), keep trying to reopen it every
+        ``reconnect_interval_s`` and resume; `TransportStats.disconnects`/``reconnects`` count it.
+        Only for ports given by name (an object cannot be reopened unless ``reopen`` is given).
+    reopen : callable, optional
+        Returns a fresh port object; used instead of reopening by name.
+    read_size : int
+        Largest read per call; large reads keep the batch decoder on its fast path.
+    """
+
+    def __init__(self, port: Any, baudrate: int = 3_000_000, *, reconnect: bool = True,
+                 reconnect_interval_s: float = 0.2, reopen: Callable[[], Any] | None = None,
+                 read_size: int = 1 << 16, kind: str = "serial") -> None:
+        self._url = port if isinstance(port, str) else None
+        name = self._url if self._url is not None else str(getattr(port, "name", None) or getattr(port, "port", None) or port)
+        super().__init__(name)
+        self.baudrate = baudrate
+        self.reconnect = reconnect
+        self.reconnect_interval_s = reconnect_interval_s
+        self._reopen = reopen
+        self._read_size = read_size
+        self.decoder = StreamDecoder(batch_samples=True)
+        self._last_attempt = 0.0
+        if self._url is not None:
+            self._serial_mod = _import("serial", "serial port", self._url)
+            self._port = self._open()
+        else:
+            self._serial_mod = None
+            self._port = port
+        self.capabilities = TransportCapabilities(
+            kind=kind, mtu=MAX_PAYLOAD_SIZE, fd=False,
+            bitrate=baudrate if (self._url is not None and kind == "serial") else None, name=name)
+
+    def _open(self):
+        serial = self._serial_mod
+        try:
+            return serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=0.05,
+                                         write_timeout=1.0, exclusive=None)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TransportInitError(f"Cannot open serial port {self._url!r}: {exc}", self._url) from exc
+
+    # reconnect ---------------------------------------------------------------------------
+    def _lost(self, exc: BaseException) -> None:
+        if self._port is not None:
+            log.warning("serial port %r went away: %s", self.name, exc)
+            self.stats.disconnects += 1
+            try:
+                self._port.close()
+            except Exception:  # noqa: BLE001
+                pass
+        self._port = None
+        self.decoder.reset()
+
+    def _try_reopen(self) -> bool:
+        now = time.monotonic()
+        if now - self._last_attempt < self.reconnect_interval_s:
+            return False
+        self._last_attempt = now
+        try:
+            if self._reopen is not None:
+                self._port = self._reopen()
+            elif self._url is not None:
+                self._port = self._open()
+            else:
+                return False
+        except Exception as exc:  # noqa: BLE001 - still away; try again later
+            log.debug("reopen %r failed: %s", self.name, exc)
+            return False
+        self.stats.reconnects += 1
+        log.warning("serial port %r is back (reconnect #%d)", self.name, self.stats.reconnects)
+        return True
+
+    @property
+    def connected(self) -> bool:
+        return self._port is not None
+
+    # hooks -------------------------------------------------------------------------------
+    def _recv_internal(self, timeout_s: float | None) -> list:
+        port = self._port
+        if port is None:
+            can_reopen = self.reconnect and (self._url is not None or self._reopen is not None)
+            if not (can_reopen and self._try_reopen()):
+                time.sleep(min(0.05, timeout_s if timeout_s is not None else 0.05))
+                return []
+            port = self._port
+        try:
+            if timeout_s is not None:
+                port.timeout = min(timeout_s, 0.1) if timeout_s > 0 else 0
+            else:
+                port.timeout = 0.1
+            waiting = port.in_waiting
+            data = port.read(min(max(1, waiting), self._read_size))
+            if data and waiting == 0:
+                more = port.in_waiting
+                if more:
+                    data += port.read(min(more, self._read_size))
+        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, memlink's OSError
+            self._lost(exc)
+            return []
+        if not data:
+            return []
+        self.stats.bytes_in += len(data)
+        return self.decoder.feed(data)
+
+    def _send_internal(self, msg: Message) -> None:
+        self.send_bytes(encode(msg))
+
+    def send_bytes(self, data: bytes) -> None:
+        """Raw wire bytes (already framed); for tests and bridges."""
+        port = self._port
+        if port is None:
+            raise TransportOperationError(f"Serial port {self.name!r} is not connected", self.name)
+        try:
+            port.write(data)
+        except Exception as exc:  # noqa: BLE001
+            if type(exc).__name__ == "SerialTimeoutException":
+                raise TransportTimeoutError(f"Write to serial port {self.name!r} timed out: {exc}",
+                                            self.name) from exc
+            self._lost(exc)
+            raise TransportOperationError(f"Cannot write to serial port {self.name!r}: {exc}", self.name) from exc
+        self.stats.bytes_out += len(data)
+
+    def _close_internal(self) -> None:
+        if self._port is not None:
+            self._port.close()
+            self._port = None
+
+
+class MemoryTransport(SerialTransport):
+    """The serial framing over one end of ``virtual_sheet.memlink.memory_link()`` (fast unit tests).
+
+    ``reopen`` (optional) returns a new end after the link was closed, to exercise reconnection.
+    """
+
+    def __init__(self, end: Any, *, reopen: Callable[[], Any] | None = None) -> None:
+        super().__init__(end, reconnect=reopen is not None, reopen=reopen, kind="memory",
+                         reconnect_interval_s=0.02)
+
+
+# --------------------------------------------------------------------------------------------
+# CAN (python-can)
+# --------------------------------------------------------------------------------------------
+
+def parse_can_spec(spec: str) -> tuple[str, str]:
+    """``"interface:channel"`` -> ``(interface, channel)``; the channel may contain ':'.
+
+    >>> parse_can_spec("slcan:/dev/pts/5")
+    ('slcan', '/dev/pts/5')
+    >>> parse_can_spec("virtual:bus0")
+    ('virtual', 'bus0')
+    """
+    interface, sep, channel = spec.partition(":")
+    if not sep or not interface or not channel:
+        raise ValueError(f"Invalid CAN bus {spec!r}: expected INTERFACE:CHANNEL, e.g. virtual:bus0, "
+                         f"slcan:/dev/pts/5 or socketcan:can0")
+    return interface, channel
+
+
+class CanTransport(Transport):
+    """The CAN back end: one python-can bus, 29-bit identifiers (docs §7).
+
+    Parameters
+    ----------
+    spec : str
+        ``interface:channel`` as python-can names them (``virtual:bus0``, ``slcan:/dev/pts/5``,
+        ``socketcan:can0``, ``pcan:PCAN_USBBUS1``, ...).
+    fd : bool
+        Open the bus for CAN FD (needed to receive SNAPSHOT frames from a concentrator).
+    bitrate, data_bitrate : int, optional
+        Nominal and FD data-phase bit rates, passed to python-can.
+    reconnect : bool
+        Reopen the bus after an operation error (an SLCAN adapter that was unplugged).
+    max_batch : int
+        At most this many frames drained per receive call; consecutive SAMPLE frames come out
+        as one `SampleBatch`.
+    **bus_kwargs
+        Passed to ``can.Bus`` (e.g. ``sleep_after_open=0`` for slcan on a pty).
+    """
+
+    def __init__(self, spec: str, *, fd: bool = False, bitrate: int | None = None,
+                 data_bitrate: int | None = None, reconnect: bool = True, reconnect_interval_s: float = 0.5,
+                 max_batch: int = 4096, **bus_kwargs: Any) -> None:
+        super().__init__(spec)
+        try:
+            self.interface, self.channel = parse_can_spec(spec)
+        except ValueError as exc:
+            raise TransportInitError(str(exc), spec) from exc
+        self._can = _import("can", f"CAN interface '{self.interface}' on", spec)
+        self.fd = fd
+        self._bus_kwargs = dict(bus_kwargs)
+        if bitrate is not None:
+            self._bus_kwargs["bitrate"] = bitrate
+        if data_bitrate is not None:
+            self._bus_kwargs["data_bitrate"] = data_bitrate
+        self.reconnect = reconnect
+        self.reconnect_interval_s = reconnect_interval_s
+        self._last_attempt = 0.0
+        self._max_batch = max_batch
+        self._bus = self._open()
+        self.capabilities = TransportCapabilities(
+            kind="can", mtu=CAN_FD_MTU if fd else CAN_CLASSIC_MTU, fd=fd, bitrate=bitrate,
+            data_bitrate=data_bitrate if fd else None, name=spec)
+
+    def _open(self):
+        can = self._can
+        try:
+            return can.Bus(interface=self.interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
+        except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError
+            raise TransportInitError(f"Cannot open CAN bus {self.name!r}: {exc}", self.name) from exc
+
+    @property
+    def connected(self) -> bool:
+        return self._bus is not None
+
+    def _lost(self, exc: BaseException) -> None:
+        if self._bus is not None:
+            log.warning("CAN bus %r failed: %s", self.name, exc)
+            self.stats.disconnects += 1
+            try:
+                self._bus.shutdown()
+            except Exception:  # noqa: BLE001
+                pass
+        self._bus = None
+
+    def _recv_internal(self, timeout_s: float | None) -> list:
+        bus = self._bus
+        if bus is None:
+            now = time.monotonic()
+            if self.reconnect and now - self._last_attempt >= self.reconnect_interval_s:
+                self._last_attempt = now
+                try:
+                    self._bus = self._open()
+                    self.stats.reconnects += 1
+                    log.warning("CAN bus %r is back (reconnect #%d)", self.name, self.stats.reconnects)
+                except TransportInitError:
+                    pass
+            time.sleep(min(0.05, timeout_s if timeout_s is not None else 0.05))
+            return []
+        try:
+            first = bus.recv(min(timeout_s, 0.1) if timeout_s is not None else 0.1)
+            if first is None:
+                return []
+            frames = [first]
+            while len(frames) < self._max_batch:
+                m = bus.recv(0)
+                if m is None:
+                    break
+                frames.append(m)
+        except Exception as exc:  # noqa: BLE001 - CanOperationError etc.
+            self._lost(exc)
+            return []
+        return self._decode(frames)
+
+    def _decode(self, frames: list) -> list:
+        events: list = []
+        samples: list[Sample] = []
+        for f in frames:
+            if f.is_error_frame or f.is_remote_frame:
+                continue
+            self.stats.bytes_in += len(f.data)
+            ev = decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id, is_fd=f.is_fd)
+            if isinstance(ev, Sample):
+                samples.append(ev)
+                continue
+            if samples:
+                events.append(_batch(samples))
+                samples = []
+            events.append(ev)
+        if samples:
+            events.append(_batch(samples))
+        return events
+
+    def _send_internal(self, msg: Message) -> None:
+        bus = self._bus
+        if bus is None:
+            raise TransportOperationError(f"CAN bus {self.name!r} is not connected", self.name)
+        frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
+        m = self._can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True,
+                              is_fd=frame.is_fd)
+        try:
+            bus.send(m, timeout=1.0)
+        except Exception as exc:  # noqa: BLE001
+            if type(exc).__name__ == "CanTimeoutError":
+                raise TransportTimeoutError(f"Send on CAN bus {self.name!r} timed out: {exc}", self.name) from exc
+            self._lost(exc)
+            raise TransportOperationError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc
+        self.stats.bytes_out += len(frame.data)
+
+    def _close_internal(self) -> None:
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+
+
+def _batch(samples: list[Sample]) -> SampleBatch:
+    n = len(samples)
+    node = np.fromiter((s.node for s in samples), dtype=np.uint16, count=n)
+    counter = np.fromiter((s.counter for s in samples), dtype=np.uint16, count=n)
+    counts = np.array([(s.x, s.y, s.z) for s in samples], dtype=np.int16).reshape(n, 3)
+    status = np.fromiter((s.status for s in samples), dtype=np.uint8, count=n)
+    return SampleBatch(node, counter, counts, status)
+
+
+# --------------------------------------------------------------------------------------------
+# Back ends by name
+# --------------------------------------------------------------------------------------------
+
+#: back-end name -> (module, class); imported when first asked for
+BACKENDS: dict[str, tuple[str, str]] = {
+    "serial": ("host.transport", "SerialTransport"),
+    "can": ("host.transport", "CanTransport"),
+    "memory": ("host.transport", "MemoryTransport"),
+}
+
+
+def open_transport(backend: str, *args: Any, **kwargs: Any) -> Transport:
+    """Open a transport by back-end name.
+
+    >>> t = open_transport("serial", "loop://")
+    >>> t.capabilities.kind, t.capabilities.mtu
+    ('serial', 1018)
+    >>> t.close()
+
+    ``open_transport("can", "virtual:bus0", fd=True)``; ``open_transport("memory", end)``.
+    """
+    try:
+        module_name, cls_name = BACKENDS[backend]
+    except KeyError:
+        raise TransportInitError(f"Unknown transport back end {backend!r} (known: {', '.join(BACKENDS)})",
+                                 None) from None
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as exc:
+        raise TransportInitError(f"Cannot import module {module_name} for transport '{backend}': {exc}",
+                                 None) from exc
+    return getattr(module, cls_name)(*args, **kwargs)
