@@ -1,0 +1,122 @@
+"""``capsheet protocol``: spec helpers for chip vendors — decode/encode frames by hand, regenerate
+the golden vectors and the DBC, print the capacity table. No port I/O here."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _parse_value(text: str):
+    text = text.strip()
+    try:
+        return int(text, 0)
+    except ValueError:
+        return float(text)
+
+
+def cmd_decode(args) -> int:
+    from .can import decode_can
+    from .framing import DecodeError, StreamDecoder
+    if args.can_id is not None:
+        ev = decode_can(int(args.can_id, 16), bytes.fromhex(args.hex), is_fd=args.fd)
+        print(ev)
+        return 1 if isinstance(ev, DecodeError) else 0
+    data = sys.stdin.buffer.read() if args.hex == "-" else bytes.fromhex(args.hex.replace(" ", ""))
+    dec = StreamDecoder()
+    events = dec.feed(data)
+    for ev in events:
+        print(ev)
+    if dec._partial:
+        print(f"(incomplete frame pending: {len(dec._partial)} bytes without a 0x00 delimiter)")
+    print(f"frames={dec.stats.frames} errors={dict((k.name, v) for k, v in dec.stats.errors.items())}",
+          file=sys.stderr)
+    return 1 if dec.stats.error_count else 0
+
+
+def cmd_encode(args) -> int:
+    from .can import to_can
+    from .framing import encode
+    from .messages import MESSAGE_TYPES, MsgType
+    try:
+        cls = MESSAGE_TYPES[MsgType[args.type.upper()]]
+    except KeyError:
+        print(f"unknown type {args.type!r}; one of: {', '.join(t.name for t in MsgType)}", file=sys.stderr)
+        return 2
+    try:
+        fields = dict(kv.split("=", 1) for kv in args.fields)
+    except ValueError:
+        print(f"fields are name=value pairs, got {args.fields}", file=sys.stderr)
+        return 2
+    try:
+        msg = cls(**{k: _parse_value(v) for k, v in fields.items()})
+    except (TypeError, ValueError) as exc:
+        print(f"cannot build {cls.TYPE.name}: {exc}", file=sys.stderr)
+        return 2
+    print(f"message: {msg}")
+    print(f"serial : {encode(msg).hex(' ')}")
+    try:
+        f = to_can(msg)
+        print(f"can    : {f.arbitration_id:08X}#{f.data.hex().upper()}{'  (FD)' if f.is_fd else ''}")
+    except ValueError as exc:
+        print(f"can    : {exc}")
+    return 0
+
+
+def cmd_vectors(args) -> int:
+    from .vectors import build_vectors, write_vectors
+    if args.write:
+        for p in write_vectors():
+            print(f"wrote {p}")
+    else:
+        print(json.dumps(build_vectors(), indent=1))
+    return 0
+
+
+def cmd_dbc(args) -> int:
+    from .dbc import dbc_text, write_dbc
+    if args.write:
+        print(f"wrote {write_dbc()}")
+    else:
+        sys.stdout.write(dbc_text())
+    return 0
+
+
+def cmd_capacity(args) -> int:
+    from .capacity import capacity_table
+    rows = capacity_table(args.rate)
+    print(f"| link | carries | one frame | frames/s | chips at {args.rate:g} Hz |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        f = r.frames_per_s
+        fps = f"{f[0]:,.0f}" if round(f[0]) == round(f[1]) else f"{f[0]:,.0f}–{f[1]:,.0f}"
+        chips = f"{r.chips_at_rate[0]:,}" if r.chips_at_rate[0] == r.chips_at_rate[1] else \
+            f"{r.chips_at_rate[0]:,}–{r.chips_at_rate[1]:,}"
+        print(f"| {r.link} | {r.carries} | {r.frame} | {fps} | {chips} |")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("protocol", help="wire protocol helpers: decode/encode frames, vectors, DBC, capacity",
+                       description="Wire protocol v1 helpers (docs/protocol.md). No port is opened.")
+    ps = p.add_subparsers(dest="protocol_command", metavar="ACTION", required=True)
+    d = ps.add_parser("decode", help="decode serial wire bytes (hex, or - for raw stdin) or one CAN frame")
+    d.add_argument("hex", help="hex bytes, e.g. '04 01 03 01 01 01 01 01 01 01 04 04 16 2e 00', or - for stdin")
+    d.add_argument("--can-id", help="decode as one CAN frame with this identifier (hex)")
+    d.add_argument("--fd", action="store_true", help="the CAN frame is CAN FD")
+    d.set_defaults(func=cmd_decode)
+    e = ps.add_parser("encode", help="build one message and print its serial and CAN bytes",
+                      description="Example: capsheet protocol encode SAMPLE node=1 counter=0 x=0 y=0 z=1024")
+    e.add_argument("type", help="message type name, e.g. SAMPLE, SYNC, ASSIGN")
+    e.add_argument("fields", nargs="*", help="field=value pairs incl. node= (ints accept 0x..)")
+    e.set_defaults(func=cmd_encode)
+    v = ps.add_parser("vectors", help="print (or --write) the golden vectors of tests/vectors/")
+    v.add_argument("--write", action="store_true")
+    v.set_defaults(func=cmd_vectors)
+    b = ps.add_parser("dbc", help="print (or --write) protocol/capsheet.dbc")
+    b.add_argument("--write", action="store_true")
+    b.set_defaults(func=cmd_dbc)
+    c = ps.add_parser("capacity", help="chips per bus at a sample rate, from the frame sizes")
+    c.add_argument("--rate", type=float, default=145.0, help="samples per second per chip (default 145)")
+    c.set_defaults(func=cmd_capacity)
