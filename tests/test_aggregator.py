@@ -1,0 +1,297 @@
+"""The snapshot aggregator on crafted frame sequences (protocol.encode / to_can -> decoder -> aggregator):
+counter wraparound, reordering, duplicates, late and unknown frames, deadlines, bounded memory and
+newest-wins output."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from host.aggregator import Aggregator, LinkFlag, serial_diff
+from protocol import SampleStatus, Snapshot, StreamDecoder, decode_can, encode, to_can
+from protocol.constants import G0
+from protocol.messages import Sample
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def rng(seed=7):
+    return np.random.Generator(np.random.MT19937(seed))
+
+
+def sample(node, counter, x=0, y=0, z=1024, status=0):
+    return Sample(node, counter, x, y, z, status)
+
+
+def wire(msgs) -> bytes:
+    return b"".join(encode(m) for m in msgs)
+
+
+def feed(agg, data: bytes, chunk: int | None = None):
+    dec = StreamDecoder(batch_samples=True)
+    if chunk is None:
+        agg.ingest(dec.feed(data))
+    else:
+        for i in range(0, len(data), chunk):
+            agg.ingest(dec.feed(data[i:i + chunk]))
+    return dec
+
+
+def full_counter(n_links, counter, value=None):
+    return [sample(k + 1, counter, x=(k if value is None else value) % 2000, z=1024) for k in range(n_links)]
+
+
+def make(n_links=6, **kw):
+    clock = FakeClock()
+    kw.setdefault("deadline_s", 0.05)
+    agg = Aggregator(n_links, clock=clock, **kw)
+    return agg, clock
+
+
+# ---------------------------------------------------------------------------------------------
+
+def test_serial_diff_follows_rfc1982():
+    assert serial_diff(0, 0xFFFF) == 1
+    assert serial_diff(0xFFFF, 0) == -1
+    assert serial_diff(0x8000, 0) == -0x8000
+    assert list(serial_diff(np.array([1, 0xFFFE]), 0xFFFF)) == [2, -1]
+
+
+def test_complete_counter_is_emitted_at_once_with_calibrated_readings():
+    agg, _ = make(4)
+    off = np.zeros((4, 3))
+    off[2] = [16, -8, 0]
+    sens = np.full((4, 3), 1024.0)
+    sens[3, 2] = 512.0
+    agg.set_calibration(off, sens)
+    msgs = [sample(1, 7, 0, 0, 1024), sample(2, 7, 512, 0, 1024), sample(3, 7, 16, -8, 1024), sample(4, 7, 0, 0, 512)]
+    feed(agg, wire(msgs))
+    [snap] = agg.drain()
+    assert snap.counter == 7 and snap.complete and snap.valid.all()
+    assert snap.readings.shape == (4, 3)
+    np.testing.assert_allclose(snap.readings[0], [0, 0, G0])
+    np.testing.assert_allclose(snap.readings[1], [G0 / 2, 0, G0])
+    np.testing.assert_allclose(snap.readings[2], [0, 0, G0])  # offset removed
+    np.testing.assert_allclose(snap.readings[3], [0, 0, G0])  # per-chip sensitivity
+    assert (snap.status == 0).all()
+    assert not snap.readings.flags.writeable
+
+
+@pytest.mark.parametrize("chunk", [None, 1, 7, 15, 64])
+def test_counter_wraparound_keeps_order_and_loses_nothing(chunk):
+    n = 5
+    counters = [(0xFFFC + i) & 0xFFFF for i in range(9)]  # ... FFFE FFFF 0000 0001 ...
+    agg, _ = make(n, queue_size=100)
+    feed(agg, wire(m for c in counters for m in full_counter(n, c)), chunk)
+    snaps = agg.drain()
+    assert [s.counter for s in snaps] == counters
+    assert all(s.complete for s in snaps)
+    assert agg.stats.late == agg.stats.duplicates == agg.stats.unknown == 0
+    assert agg.stats.samples == n * len(counters)
+
+
+def test_reordered_frames_across_counters_are_grouped_and_emitted_in_counter_order():
+    n = 6
+    counters = [0xFFFE, 0xFFFF, 0, 1, 2]
+    msgs = [m for c in counters for m in full_counter(n, c)]
+    order = rng().permutation(len(msgs))
+    agg, _ = make(n, queue_size=100)
+    feed(agg, wire(msgs[i] for i in order))
+    snaps = agg.drain()
+    assert sorted(s.counter for s in snaps) == sorted(counters)
+    # emitted oldest first once the older counters are complete: serial order is preserved
+    assert [serial_diff(b.counter, a.counter) for a, b in zip(snaps, snaps[1:])] == [1] * (len(snaps) - 1)
+    assert all(s.complete for s in snaps)
+    assert agg.stats.late == 0 and agg.stats.duplicates == 0
+
+
+def test_duplicates_are_counted_and_the_first_copy_kept():
+    n = 3
+    agg, _ = make(n)
+    msgs = [sample(1, 10, x=5), sample(1, 10, x=5), sample(2, 10, x=6)]
+    feed(agg, wire(msgs))
+    assert agg.stats.duplicates == 1 and agg.n_open == 1
+    # a duplicate in a later batch, then the last link
+    feed(agg, wire([sample(2, 10, x=99), sample(3, 10, x=7)]))
+    [snap] = agg.drain()
+    assert snap.complete
+    assert agg.stats.duplicates == 2
+    assert agg.stats.link_duplicates.tolist() == [1, 1, 0]
+    np.testing.assert_allclose(snap.readings[:, 0], np.array([5, 6, 7]) / 1024 * G0)
+
+
+def test_late_frame_after_emission_is_counted_not_reopened():
+    n = 2
+    agg, clock = make(n)
+    feed(agg, wire(full_counter(n, 1)))
+    feed(agg, wire([sample(1, 2)]))
+    clock.t += 1.0
+    agg.poll()
+    snaps = agg.drain()
+    assert [(s.counter, s.complete) for s in snaps] == [(1, True), (2, False)]
+    feed(agg, wire([sample(2, 2), sample(1, 1)]))  # both counters already emitted
+    assert agg.stats.late == 2 and agg.n_open == 0
+    assert agg.stats.link_late.tolist() == [1, 1]
+    assert agg.drain() == []
+
+
+def test_deadline_emits_with_missing_links_masked():
+    n = 4
+    agg, clock = make(n, deadline_s=0.05)
+    feed(agg, wire([sample(1, 3), sample(2, 3, status=SampleStatus.INVALID), sample(4, 3, status=SampleStatus.SATURATED)]))
+    clock.t += 0.04
+    agg.poll()
+    assert agg.drain() == []
+    clock.t += 0.02
+    agg.poll()
+    [snap] = agg.drain()
+    assert not snap.complete
+    assert snap.valid.tolist() == [True, False, False, True]
+    assert np.isnan(snap.readings[1]).all() and np.isnan(snap.readings[2]).all()
+    assert snap.status[1] & LinkFlag.INVALID and snap.status[2] & LinkFlag.MISSING
+    assert snap.status[3] == LinkFlag.SATURATED
+    assert agg.stats.incomplete == 1 and agg.stats.link_missing.tolist() == [0, 0, 1, 0]
+
+
+def test_incomplete_counter_holds_back_newer_until_its_deadline():
+    n = 2
+    agg, clock = make(n)
+    feed(agg, wire([sample(1, 5)] + full_counter(n, 6)))
+    assert agg.drain() == []  # 6 is complete but 5 is not
+    clock.t += 0.1
+    agg.poll()
+    assert [(s.counter, s.complete) for s in agg.drain()] == [(5, False), (6, True)]
+
+
+def test_frames_from_unknown_nodes_are_counted_per_node_and_ignored():
+    n = 3
+    agg, _ = make(n)
+    feed(agg, wire(full_counter(n, 1) + [sample(0x0100, 1), sample(0x8123, 1), sample(0x8123, 2)]))
+    assert agg.stats.unknown == 3
+    assert agg.stats.unknown_nodes == {0x0100: 1, 0x8123: 2}
+    [snap] = agg.drain()
+    assert snap.complete
+
+
+def test_silent_link_is_not_waited_for():
+    n = 3
+    agg, _ = make(n)
+    agg.mark_silent(2)
+    feed(agg, wire([sample(1, 1), sample(2, 1)]))
+    [snap] = agg.drain()
+    assert snap.complete and snap.valid.tolist() == [True, True, False]
+    assert snap.status[2] & LinkFlag.SILENT and snap.status[2] & LinkFlag.MISSING
+    # it speaks again: waited for again
+    feed(agg, wire([sample(3, 2), sample(1, 2)]))
+    assert agg.drain() == [] and not agg.silent[2]
+
+
+def test_memory_is_bounded_whatever_the_counters():
+    n = 4
+    agg, _ = make(n, max_open=8, queue_size=16)
+    r = rng(3)
+    msgs = [sample(int(r.integers(1, n + 1)), int(r.integers(0, 1 << 16))) for _ in range(3000)]
+    feed(agg, wire(msgs), chunk=997)
+    assert agg.n_open <= 8 and agg.pending <= 16
+    st = agg.stats
+    assert st.samples + st.late + st.duplicates + st.unknown == 3000
+    assert st.evicted > 0 and st.dropped > 0
+
+
+def test_newest_wins_when_the_consumer_is_slow():
+    n = 2
+    agg, _ = make(n, queue_size=4)
+    feed(agg, wire(m for c in range(10) for m in full_counter(n, c)))
+    snaps = agg.drain()
+    assert [s.counter for s in snaps] == [6, 7, 8, 9]
+    assert agg.stats.dropped == 6 and agg.stats.emitted == 10
+
+
+def test_snapshot_frames_fill_links_directly_and_merge_with_per_chip_frames():
+    n = 10
+    agg, _ = make(n)
+    counts = np.tile([0, 0, 1024], (6, 1))
+    snap_msg = Snapshot.from_arrays(0, 42, 0, counts, np.zeros(6, dtype=int))
+    out_of_range = Snapshot.from_arrays(0, 42, 8, np.tile([0, 0, 1024], (4, 1)), np.zeros(4, dtype=int))
+    feed(agg, wire([snap_msg, sample(7, 42), sample(8, 42), out_of_range]))
+    [snap] = agg.drain()
+    assert snap.complete and snap.valid.all()
+    assert agg.stats.out_of_range == 2  # links 10, 11 do not exist
+    assert agg.stats.duplicates == 0
+
+
+def test_can_frames_crafted_with_to_can_aggregate_like_serial():
+    n = 4
+    agg, _ = make(n)
+    agg.open_counter(0xFFFF)  # the host sent both SYNCs: their order is known
+    agg.open_counter(0)
+    frames = [to_can(m) for c in (0xFFFF, 0) for m in full_counter(n, c)]
+    frames.reverse()  # every frame of counter 0 before any of 0xFFFF
+    events = [decode_can(f.arbitration_id, f.data, is_fd=f.is_fd) for f in frames]
+    agg.ingest(events, bus=0)
+    snaps = agg.drain()
+    assert [s.counter for s in snaps] == [0xFFFF, 0] and all(s.complete for s in snaps)
+
+
+def test_without_sync_a_counter_seen_only_after_a_newer_one_completed_is_late():
+    # documented limit of data-opened counters: emission on completion cannot wait for a counter
+    # nobody announced; the host avoids it by opening counters at SYNC
+    n = 2
+    agg, _ = make(n)
+    feed(agg, wire(full_counter(n, 0)))
+    feed(agg, wire(full_counter(n, 0xFFFF)))
+    assert [s.counter for s in agg.drain()] == [0]
+    assert agg.stats.late == n
+
+
+def test_sync_opened_counter_times_from_the_sync_and_rejects_stale_counters():
+    n = 2
+    agg, clock = make(n)
+    assert agg.open_counter(100, clock.t)
+    clock.t += 0.01
+    feed(agg, wire(full_counter(n, 100)))
+    [snap] = agg.drain()
+    assert snap.timestamp == 100.0 and snap.latency_s == pytest.approx(0.01)
+    assert not agg.open_counter(99)  # older than emitted
+    assert agg.open_counter(5, restart=True)  # the host restarted its sequence
+
+
+def test_per_bus_statistics():
+    n = 4
+    agg, _ = make(n)
+    agg.stats.__init__(n, 2)
+    dec = StreamDecoder(batch_samples=True)
+    agg.ingest(dec.feed(wire(full_counter(2, 1))), bus=0)
+    agg.ingest(dec.feed(wire([sample(3, 1), sample(4, 1), sample(4, 1), sample(99, 1)])), bus=1)
+    assert agg.stats.bus_frames.tolist() == [2, 3]
+    assert agg.stats.bus_duplicates.tolist() == [0, 1]
+    assert agg.stats.bus_unknown.tolist() == [0, 1]
+    assert agg.drain()[0].complete
+
+
+def test_any_counter_sequence_never_raises_and_accounts_for_every_frame():
+    r = rng(11)
+    n = 7
+    for _trial in range(20):
+        agg, clock = make(n, max_open=4, queue_size=8, deadline_s=0.01)
+        total = 0
+        for _ in range(30):
+            k = int(r.integers(1, 40))
+            node = r.integers(0, 12, size=k).astype(np.uint16)
+            base = int(r.integers(0, 1 << 16))
+            counter = ((base + r.integers(-3, 4, size=k)) & 0xFFFF).astype(np.uint16)
+            counts = r.integers(-2048, 2048, size=(k, 3)).astype(np.int16)
+            status = r.integers(0, 16, size=k).astype(np.uint8)
+            agg.ingest_batch(node, counter, counts, status)
+            total += k
+            clock.t += float(r.random() * 0.02)
+            agg.poll()
+        st = agg.stats
+        assert st.samples + st.late + st.duplicates + st.unknown == total
+        assert agg.n_open <= 4 and agg.pending <= 8
