@@ -70,7 +70,10 @@ class Layout:
           0x0123456789ABCDEF,0
           0x0123456789ABCDF0,1
 
-    * JSON (``.json``): ``{"lattice": "14x14", "links": {"0x0123456789ABCDEF": 0, ...}}``.
+    * JSON (``.json``), the format `virtual_sheet.sheet.VirtualSheet.write_layout` writes::
+
+          {"format": "capsheet-layout", "version": 1, "rows": 14, "cols": 14,
+           "chips": [{"uid": "0x0123456789ABCDEF", "link": 0}, ...]}
     """
 
     links: dict  # uid -> link
@@ -94,7 +97,17 @@ class Layout:
         text = path.read_text()
         if path.suffix.lower() == ".json":
             doc = json.loads(text)
-            return cls({int(str(k), 16): int(v) for k, v in doc["links"].items()}, doc.get("lattice"))
+            lattice = f"{doc['rows']}x{doc['cols']}" if "rows" in doc and "cols" in doc else None
+            links = {}
+            for i, chip in enumerate(doc.get("chips", [])):
+                try:
+                    uid, link = int(str(chip["uid"]), 16), int(chip["link"])
+                except (KeyError, ValueError, TypeError) as exc:
+                    raise ValueError(f"{path}: chips[{i}]: expected {{'uid': '0x..', 'link': N}}, got {chip!r}") from exc
+                if uid in links:
+                    raise ValueError(f"{path}: uid 0x{uid:016X} appears twice")
+                links[uid] = link
+            return cls(links, lattice)
         links: dict[int, int] = {}
         rows = [ln.split("#", 1)[0].strip() for ln in text.splitlines()]
         for lineno, row in enumerate(csv.reader(r for r in rows), start=1):
@@ -114,8 +127,13 @@ class Layout:
     def save(self, path) -> None:
         path = Path(path)
         if path.suffix.lower() == ".json":
-            path.write_text(json.dumps({"lattice": self.lattice, "links": {
-                f"0x{u:016X}": k for u, k in sorted(self.links.items(), key=lambda kv: kv[1])}}, indent=1))
+            doc: dict = {"format": "capsheet-layout", "version": 1}
+            if self.lattice:
+                r, c = self.lattice.lower().split("x")
+                doc.update(rows=int(r), cols=int(c))
+            doc["chips"] = [{"uid": f"0x{u:016X}", "link": k}
+                            for u, k in sorted(self.links.items(), key=lambda kv: kv[1])]
+            path.write_text(json.dumps(doc, indent=1))
         else:
             lines = ["uid,link"] + [f"0x{u:016X},{k}" for u, k in sorted(self.links.items(), key=lambda kv: kv[1])]
             path.write_text("\n".join(lines) + "\n")

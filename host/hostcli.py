@@ -1,0 +1,135 @@
+"""``capsheet host``: connect to a sheet, discover and assign its chips, stream, show a live status
+line and record snapshots (docs/host.md).
+
+    capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record out.cap
+    capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
+    capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
+
+The Python API is `host.nodes.Host` (re-exported here).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+
+from .nodes import Host, Layout
+from .record import RecordWriter
+from .transport import CanTransport, SerialTransport, TransportError
+
+__all__ = ["register", "run", "Host", "Layout", "open_transports"]
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("host", help="talk to a sheet: discover, assign, stream, record",
+                              description=__doc__.split("\n\n")[0],
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = p.add_argument_group("transports (one --port, or one or more --can)")
+    src.add_argument("--port", help="serial port: device path or pyserial URL (/dev/pts/5, loop://)")
+    src.add_argument("--baud", type=int, default=3_000_000, help="serial baud rate (default 3000000)")
+    src.add_argument("--can", action="append", default=[], metavar="IFACE:CHANNEL",
+                     help="CAN bus as python-can names it (virtual:bus0, slcan:/dev/pts/6, socketcan:can0); "
+                          "repeat for several buses merged into one lattice")
+    src.add_argument("--fd", action="store_true", help="open the CAN buses for CAN FD")
+    src.add_argument("--bitrate", type=int, default=None, help="CAN bit rate (e.g. 1000000)")
+    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
+    p.add_argument("--auto-assign", action="store_true",
+                   help="without --layout: place chips on links in uid order (positions arbitrary)")
+    p.add_argument("--rate", type=float, default=100.0, help="SYNC rate in Hz (default 100)")
+    p.add_argument("--sync", choices=("drive", "follow"), default="drive",
+                   help="drive SYNC from the host (default) or follow a gateway's SYNC")
+    p.add_argument("--deadline-ms", type=float, default=None, help="wait this long for missing links")
+    p.add_argument("--record", metavar="FILE", help="write snapshots to FILE (.npy format; FILE.json metadata)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
+    p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
+    p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
+    p.set_defaults(func=run)
+
+
+def open_transports(args) -> list:
+    if bool(args.port) == bool(args.can):
+        raise SystemExit("capsheet host: give either --port or at least one --can")
+    if args.port:
+        return [SerialTransport(args.port, baudrate=args.baud)]
+    out = []
+    try:
+        for spec in args.can:
+            kw = {"sleep_after_open": 0.1} if spec.startswith("slcan:") else {}
+            out.append(CanTransport(spec, fd=args.fd, bitrate=args.bitrate, **kw))
+    except TransportError:
+        for t in out:
+            t.close()
+        raise
+    return out
+
+
+def _status_line(host: Host, t0: float, n0: int) -> str:
+    st = host.aggregator.stats
+    dt = max(1e-9, time.monotonic() - t0)
+    rate = (st.emitted - n0) / dt
+    done = st.complete / max(1, st.emitted)
+    errors = sum(t.stats.error_count for t in host.transports)
+    return (f"\r{st.emitted:7d} snapshots {rate:7.1f}/s  complete {100 * done:5.1f}%  "
+            f"late {st.late}  dup {st.duplicates}  unknown {st.unknown}  dropped {st.dropped}  "
+            f"errors {errors}  silent {len(host.silent_links)}   ")
+
+
+def run(args) -> int:
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    layout = Layout.load(args.layout) if args.layout else None
+    if layout is None and not args.auto_assign:
+        print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
+              "Pass --auto-assign to silence this.", file=sys.stderr)
+    try:
+        transports = open_transports(args)
+    except TransportError as exc:
+        print(f"capsheet host: {exc}", file=sys.stderr)
+        return 1
+    host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
+                deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000)
+    writer = None
+    stats: dict | None = None
+    try:
+        with host:
+            summary = host.bring_up(args.discover_s)
+            print(f"capsheet host: {summary['discovered']} chips found, {summary['assigned']} assigned, "
+                  f"{summary['configured']} configured, {summary['calibrated']} calibrated, "
+                  f"{summary['started']} started on {', '.join(t.name for t in transports)}", file=sys.stderr)
+            if args.record:
+                writer = RecordWriter(args.record, host.lattice.n_links, {
+                    "rows": host.lattice.rows, "cols": host.lattice.cols, "rate_hz": args.rate,
+                    "transports": [t.name for t in transports],
+                    "layout": {f"0x{u:016X}": k for u, k in (host.layout.links.items() if host.layout else [])}})
+            t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, 0.0
+            end = None if args.duration is None else t0 + args.duration
+            while end is None or time.monotonic() < end:
+                snap = host.get(0.1)
+                if snap is not None and writer is not None:
+                    writer.write(snap)
+                now = time.monotonic()
+                if not args.quiet and now - last >= 0.5:
+                    print(_status_line(host, t0, n0), end="", file=sys.stderr, flush=True)
+                    last = now
+            host.stop()
+            for snap in host.aggregator.drain():
+                if writer is not None:
+                    writer.write(snap)
+            if not args.quiet:
+                print(_status_line(host, t0, n0), file=sys.stderr)
+            stats = host.stats
+    except KeyboardInterrupt:
+        stats = host.stats
+        print("", file=sys.stderr)
+    finally:
+        if writer is not None:
+            writer.close(stats=stats)
+    if writer is not None:
+        print(f"capsheet host: recorded {writer.count} snapshots to {args.record}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(stats, default=str, indent=1))
+    return 0
