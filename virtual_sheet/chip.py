@@ -1,0 +1,374 @@
+"""The chip model: one accelerometer chip's protocol behaviour, sans-I/O (docs/protocol.md §8).
+
+A `ChipModel` takes the frames it hears and returns the frames it sends; time is passed in, never
+read (as libcanard's ``canard_us_t``), so the same chip runs behind a pty, a CAN bus, a test at
+simulated time or a benchmark. What it does with each command is `protocol.state.RULES`; this
+file only adds what the table leaves to the implementation:
+
+* Boot (power-on and after RESET): the chip speaks from ``provisional_node(uid, salt)`` with
+  ``salt`` = the number of ANNOUNCE rounds already left unanswered (0 at boot), sends ANNOUNCE
+  then INFO at once and every `ANNOUNCE_PERIOD_S` until it is assigned.
+* ASSIGN is for this chip only if addressed to its current node **and** ``uid_low`` matches its
+  uid; otherwise it is ignored silently (another chip that shares the provisional id). The ACK
+  comes from the new node id.
+* SYNC: a STREAMING chip answers with SAMPLE carrying the counter; a FAULT chip that has had a
+  START answers with an INVALID sample (counts 0). ``missed_syncs`` adds the counter gap
+  ``(counter - last - 1) mod 2**16`` while answering SYNC (a repeated counter or a gap of 0x8000
+  or more — an older SYNC — adds nothing; START forgets the last counter), saturating at 255.
+* STATUS heartbeat every ``heartbeat_ms`` (CONFIG; 1000 until configured, 0 = off) while
+  assigned, from `poll`.
+* ``rx_errors`` (saturating at 255) counts every frame heard that did not decode (any
+  `ErrorReason`), including those answered with a NACK.
+* Chip -> host types heard (another chip's frames on a shared CAN bus) are ignored silently.
+* NACK, from the chip's current node, with ``command`` = the frame's type code:
+
+  ================ ================================================================================
+  UNKNOWN_COMMAND  an undefined type code addressed to this chip
+  BAD_LENGTH       a host -> chip type with the wrong payload length, addressed to this chip
+  BAD_VALUE        a field out of range: addressed frames the decoder rejects (e.g. CAL_READ
+                   axis 3); CONFIG range > 3, filter > 3, rate_hz 0 or > 4000 (also broadcast)
+  UNSUPPORTED      CONFIG range != 0 without MULTI_RANGE; CAL_WRITE flags bit 0 without
+                   CAL_STORAGE
+  BAD_STATE        a (state, type) pair not in RULES, addressed to this chip (broadcast: silent)
+  BAD_VERSION      a frame of another protocol version addressed to this chip or broadcast
+  ================ ================================================================================
+
+  Order of checks: decode (version, type, length, fields) -> RULES -> field checks of the rule.
+* CONFIG ``range`` r scales the sensor's ±2 g counts by an arithmetic shift ``counts >> r``
+  (the sensor source always reports ±2 g counts); ``filter`` and ``rate_hz`` are stored only.
+* A sample the sensor flags INVALID (the ADC did not answer) puts an assigned chip in FAULT.
+
+The interface is shared with the C firmware (`firmware_ref.chip.CFirmwareChip`), so a virtual
+sheet runs on either through its ``chip_factory``.
+"""
+
+from __future__ import annotations
+
+import binascii
+import struct
+from typing import Callable, Union
+
+from cobs import cobs
+
+from protocol.can import CanFrame, decode_can, make_id, split_id, to_can
+from protocol.constants import SampleStatus
+from protocol.framing import HEADER, DecodeError, ErrorReason, decode_frame, encode
+from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, CalData,
+                               CalRead, CalWrite, Capability, ChipState, Config, Direction, Info,
+                               Message, MsgType, Nack, NackReason, Status, StatusFlag, Sync,
+                               MESSAGE_TYPES, provisional_node)
+from protocol.state import ANNOUNCE_PERIOD_S, Reply, rule_for
+
+__all__ = ["Out", "SensorSource", "ChipModel", "ChipFactory", "DEFAULT_CAPABILITIES",
+           "FIRMWARE_VERSION", "DEFAULT_HEARTBEAT_MS", "frame_header"]
+
+#: One serial frame including its 0x00 delimiter, or one CAN frame.
+Out = Union[bytes, CanFrame]
+#: ``now_s -> ((x, y, z) ADC counts at ±2 g, SampleStatus bits)``
+SensorSource = Callable[[float], tuple[tuple[int, int, int], int]]
+#: What a virtual sheet calls to make each chip (ChipModel, or CFirmwareChip for SIL).
+ChipFactory = Callable[..., "ChipModel"]
+
+FIRMWARE_VERSION = (0, 1, 0)  #: INFO fw_major, fw_minor, fw_patch of the model
+DEFAULT_CAPABILITIES = (Capability.SELF_TEST | Capability.CAL_STORAGE | Capability.MULTI_RANGE
+                        | Capability.FILTER)
+DEFAULT_HEARTBEAT_MS = 1000  #: STATUS period until a CONFIG sets another
+_SAT = 255
+_HOST_TYPES = frozenset(t for t, c in MESSAGE_TYPES.items() if c.DIRECTION == Direction.HOST_TO_CHIP)
+_STREAM_STATES = (ChipState.STREAMING, ChipState.FAULT)
+_SAMPLE_HDR = struct.Struct("<BBHH")  # version, type, node, counter
+
+
+def frame_header(frame: Out) -> tuple[int, int, int] | None:
+    """``(version, type, node)`` of a frame whose bytes are intact (CRC good), else None."""
+    if isinstance(frame, CanFrame):
+        _p, t, v, n = split_id(frame.arbitration_id)
+        return v, t, n
+    try:
+        body = cobs.decode(bytes(frame).rstrip(b"\x00"))
+    except cobs.DecodeError:
+        return None
+    if len(body) < 6 or binascii.crc_hqx(body, 0xFFFF) != 0:
+        return None
+    return HEADER.unpack_from(body)
+
+
+class ChipModel:
+    """One chip. See the module docstring for the behaviour.
+
+    Parameters
+    ----------
+    uid : int
+        64-bit unique id.
+    sensor : SensorSource
+        ``now_s -> ((x, y, z), status)``: ±2 g ADC counts and SampleStatus bits, read at SYNC.
+    transport : {"serial", "can"}
+        What `handle` takes and the frames return: serial frames (bytes with the 0x00) or
+        `protocol.can.CanFrame`.
+    fd : bool
+        CAN FD capable (sets Capability.CAN_FD; FD frames are accepted).
+    capabilities : int
+        INFO capability bits (CAN_FD is added when ``fd``).
+    calibration : ((offset_q4, sensitivity),) * 3
+        Factory calibration per axis (stored in non-volatile memory if CAL_STORAGE).
+    seed : int
+        Unused by the model (it has no randomness); kept for chip classes that do.
+    """
+
+    def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
+                 capabilities: int = DEFAULT_CAPABILITIES,
+                 calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0) -> None:
+        if transport not in ("serial", "can"):
+            raise ValueError(f"Invalid transport: {transport!r} (expected 'serial' or 'can')")
+        if not (isinstance(uid, int) and 0 <= uid < 1 << 64):
+            raise ValueError(f"Invalid uid: {uid!r} (need a 64-bit unsigned integer)")
+        if len(calibration) != 3:
+            raise ValueError(f"Invalid calibration: {calibration!r} (need 3 axes of (offset_q4, sensitivity))")
+        self.uid = uid
+        self.sensor = sensor
+        self.transport = transport
+        self.fd = fd
+        self.capabilities = Capability(int(capabilities) | (Capability.CAN_FD if fd else 0))
+        self.seed = seed
+        self._can = transport == "can"
+        self._factory_cal = [(int(o), float(s), 1 if self.capabilities & Capability.CAL_STORAGE else 0)
+                             for o, s in calibration]
+        self._stored_cal = list(self._factory_cal)
+        self.powered = False
+        self._boot_vars(0.0)
+
+    # ------------------------------------------------------------------ state
+    def _boot_vars(self, now_s: float) -> None:
+        self.state = ChipState.BOOT
+        self.salt = 0
+        self.node = provisional_node(self.uid, 0)
+        self.link: int | None = None
+        self.rate_hz = 145
+        self.range = 0
+        self.filter = 0
+        self.heartbeat_ms = DEFAULT_HEARTBEAT_MS
+        self.configured = False
+        self.streaming = False  # START received (FAULT answers SYNC only then)
+        self.rx_errors = 0
+        self.missed_syncs = 0
+        self.last_counter: int | None = None
+        self.cal = list(self._stored_cal)
+        self.boot_s = now_s
+        self.next_announce_s = now_s + ANNOUNCE_PERIOD_S
+        self.next_heartbeat_s: float | None = None
+        self._set_node(self.node)
+
+    def _set_node(self, node: int) -> None:
+        self.node = node
+        if self._can:
+            self._sample_id = make_id(MsgType.SAMPLE, node)
+        else:
+            self._sample_hdr = node
+
+    def _boot(self, now_s: float) -> list[Out]:
+        self._boot_vars(now_s)
+        return self._announce_info()
+
+    def fault(self) -> None:
+        """Put the chip in FAULT (its sensor stopped answering), as an INVALID sample does."""
+        if self.state != ChipState.BOOT:
+            self.state = ChipState.FAULT
+
+    @property
+    def status_flags(self) -> StatusFlag:
+        f = StatusFlag.NONE
+        if any(c[2] for c in self.cal):
+            f |= StatusFlag.CAL_VALID
+        if self.state == ChipState.FAULT:
+            f |= StatusFlag.ADC_FAULT
+        if self.configured:
+            f |= StatusFlag.CONFIGURED
+        return f
+
+    # ------------------------------------------------------------------ output
+    def _out(self, msg: Message) -> Out:
+        return to_can(msg) if self._can else encode(msg)
+
+    def _announce_info(self) -> list[Out]:
+        return [self._out(Announce(self.node, self.uid)),
+                self._out(Info(self.node, *FIRMWARE_VERSION, PROTOCOL_VERSION, int(self.capabilities), 12,
+                               self.state))]
+
+    def _nack(self, command: int, reason: NackReason) -> list[Out]:
+        return [self._out(Nack(self.node, command & 0xFF, reason))]
+
+    def _status(self, now_s: float) -> Out:
+        return self._out(Status(self.node, self.state, int(self.status_flags), self.rx_errors,
+                                self.missed_syncs, int(max(0.0, now_s - self.boot_s)) & 0xFFFFFFFF))
+
+    def _sample(self, counter: int, now_s: float) -> Out:
+        if self.state == ChipState.FAULT:
+            x = y = z = 0
+            st = SampleStatus.INVALID
+        else:
+            (x, y, z), st = self.sensor(now_s)
+            if st & SampleStatus.INVALID:
+                self.state = ChipState.FAULT
+                x = y = z = 0
+            elif self.range:
+                r = self.range
+                x, y, z = x >> r, y >> r, z >> r
+        word = (x & 0xFFF) | ((y & 0xFFF) << 12) | ((z & 0xFFF) << 24) | ((int(st) & 0xF) << 36)
+        if self._can:
+            return CanFrame(self._sample_id, counter.to_bytes(2, "little") + word.to_bytes(5, "little"), False)
+        body = _SAMPLE_HDR.pack(PROTOCOL_VERSION, MsgType.SAMPLE, self._sample_hdr, counter) + word.to_bytes(5, "little")
+        return cobs.encode(body + binascii.crc_hqx(body, 0xFFFF).to_bytes(2, "big")) + b"\x00"
+
+    # ------------------------------------------------------------------ public API
+    def power_on(self, now_s: float) -> list[Out]:
+        """Boot: ANNOUNCE then INFO from the provisional node id."""
+        self.powered = True
+        return self._boot(now_s)
+
+    def poll(self, now_s: float) -> list[Out]:
+        """Time-driven output: re-ANNOUNCE (BOOT), STATUS heartbeat (assigned)."""
+        if not self.powered:
+            return []
+        if self.state == ChipState.BOOT:
+            if now_s >= self.next_announce_s:
+                self.salt += 1
+                self._set_node(provisional_node(self.uid, self.salt))
+                self.next_announce_s = max(self.next_announce_s + ANNOUNCE_PERIOD_S, now_s)
+                return self._announce_info()
+            return []
+        if self.heartbeat_ms and self.next_heartbeat_s is not None and now_s >= self.next_heartbeat_s:
+            period = self.heartbeat_ms / 1000.0
+            self.next_heartbeat_s = max(self.next_heartbeat_s + period, now_s)
+            return [self._status(now_s)]
+        return []
+
+    def decode(self, frame: Out) -> Message | DecodeError:
+        """Decode one frame as this chip's transport carries it."""
+        if isinstance(frame, CanFrame):
+            if frame.is_fd and not self.fd:
+                return DecodeError(ErrorReason.BAD_LENGTH, "CAN FD frame on a classic CAN chip")
+            return decode_can(frame.arbitration_id, frame.data, is_fd=frame.is_fd)
+        return decode_frame(bytes(frame).rstrip(b"\x00"))
+
+    def handle(self, frame: Out, now_s: float, decoded: Message | DecodeError | None = None) -> list[Out]:
+        """React to one frame heard on the bus; returns the frames sent in answer.
+
+        ``decoded`` is the bus's decode of this very frame (saves decoding it once per chip).
+        """
+        if not self.powered:
+            return []
+        msg = self.decode(frame) if decoded is None else decoded
+        cls = type(msg)
+        if cls is Sync:  # the hot path
+            if self.streaming and self.state in _STREAM_STATES:
+                c = msg.counter
+                last = self.last_counter
+                if last is not None:
+                    gap = (c - last - 1) & 0xFFFF
+                    if gap < 0x7FFF and self.missed_syncs < _SAT:
+                        self.missed_syncs = min(_SAT, self.missed_syncs + gap)
+                self.last_counter = c
+                return [self._sample(c, now_s)]
+            return []
+        if cls is DecodeError:
+            return self._on_error(frame, msg)
+        if msg.DIRECTION != Direction.HOST_TO_CHIP:
+            return []
+        node = msg.node
+        if node != NODE_BROADCAST and node != self.node:
+            return []
+        t = msg.TYPE
+        if t == MsgType.ASSIGN and msg.uid_low != (self.uid & 0xFFFFFFFF):
+            return []
+        rule = rule_for(self.state, t)
+        if rule is None:
+            return self._nack(t, NackReason.BAD_STATE) if node != NODE_BROADCAST else []
+        if rule.validate:
+            reason = self._check(msg)
+            if reason is not None:
+                return self._nack(t, reason)
+        return self._apply(msg, rule, now_s)
+
+    # ------------------------------------------------------------------ internals
+    def _on_error(self, frame: Out, err: DecodeError) -> list[Out]:
+        if self.rx_errors < _SAT:
+            self.rx_errors += 1
+        if err.reason in (ErrorReason.BAD_COBS, ErrorReason.SHORT, ErrorReason.BAD_CRC, ErrorReason.OVERSIZE):
+            return []
+        hdr = frame_header(frame)
+        if hdr is None:
+            return []
+        _v, t, node = hdr
+        if err.reason == ErrorReason.BAD_VERSION:
+            return self._nack(t, NackReason.BAD_VERSION) if node in (NODE_BROADCAST, self.node) else []
+        if node != self.node:
+            return []  # broadcast or someone else's: silent
+        if err.reason == ErrorReason.UNKNOWN_TYPE:
+            return self._nack(t, NackReason.UNKNOWN_COMMAND)
+        if t not in _HOST_TYPES:
+            return []  # a damaged chip -> host frame from another chip
+        if err.reason == ErrorReason.BAD_LENGTH:
+            return self._nack(t, NackReason.BAD_LENGTH)
+        return self._nack(t, NackReason.BAD_VALUE)  # BAD_FIELD
+
+    def _check(self, msg: Message) -> NackReason | None:
+        if isinstance(msg, Config):
+            if msg.range > 3 or msg.filter > 3 or not 1 <= msg.rate_hz <= 4000:
+                return NackReason.BAD_VALUE
+            if msg.range != 0 and not self.capabilities & Capability.MULTI_RANGE:
+                return NackReason.UNSUPPORTED
+        elif isinstance(msg, CalWrite):
+            if msg.axis > 2:
+                return NackReason.BAD_VALUE
+            if msg.flags & 1 and not self.capabilities & Capability.CAL_STORAGE:
+                return NackReason.UNSUPPORTED
+        return None
+
+    def _apply(self, msg: Message, rule, now_s: float) -> list[Out]:
+        reply = rule.reply
+        t = msg.TYPE
+        if reply is Reply.ACK_THEN_BOOT:
+            ack = self._out(Ack(self.node, t, 0))
+            return [ack] + self._boot(now_s)
+        out: list[Out] = []
+        if t == MsgType.ASSIGN:
+            assert isinstance(msg, Assign)
+            first = self.state == ChipState.BOOT
+            self._set_node(msg.new_node)
+            self.link = msg.link
+            if first or self.next_heartbeat_s is None:
+                self.next_heartbeat_s = now_s + self.heartbeat_ms / 1000.0
+        elif t == MsgType.CONFIG:
+            assert isinstance(msg, Config)
+            self.rate_hz, self.range, self.filter = msg.rate_hz, msg.range, msg.filter
+            self.heartbeat_ms = msg.heartbeat_ms
+            self.configured = True
+            self.next_heartbeat_s = now_s + msg.heartbeat_ms / 1000.0 if msg.heartbeat_ms else None
+        elif t == MsgType.START:
+            self.streaming = True
+            self.last_counter = None
+        elif t == MsgType.STOP:
+            self.streaming = False
+        elif t == MsgType.CAL_WRITE:
+            assert isinstance(msg, CalWrite)
+            entry = (msg.offset_q4, msg.sensitivity, msg.flags & 1)
+            self.cal[msg.axis] = entry
+            if msg.flags & 1:
+                self._stored_cal[msg.axis] = entry
+        if rule.next_state is not None:
+            self.state = rule.next_state
+        if reply is Reply.ACK:
+            out.append(self._out(Ack(self.node, t, 0)))
+        elif reply is Reply.ANNOUNCE_INFO:
+            out.extend(self._announce_info())
+        elif reply is Reply.CAL_DATA:
+            assert isinstance(msg, CalRead)
+            o, s, stored = self.cal[msg.axis]
+            out.append(self._out(CalData(self.node, msg.axis, stored, o, s)))
+        elif reply is Reply.SAMPLE:  # pragma: no cover - SYNC takes the fast path
+            pass
+        return out
+
+    def __repr__(self) -> str:
+        return (f"ChipModel(uid=0x{self.uid:016X}, node=0x{self.node:04X}, state={self.state.name}, "
+                f"link={self.link})")

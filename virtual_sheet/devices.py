@@ -1,0 +1,462 @@
+"""Virtual devices: a `VirtualSheet` reachable exactly as hardware is, each in a background thread.
+
+=================== ========================================================================
+`MemoryDevice`      in-memory byte link (`memlink`): ``device.port`` is the host's pyserial-like end
+`PtyDevice`         a pseudo-terminal: ``device.path`` is a stable symlink to the slave
+                    (``device.tty`` the slave itself); open it with ``serial.Serial(path)``
+`CanDevice`         python-can buses (``virtual`` by default, any interface python-can knows):
+                    ``device.channels`` are the channel names to open, one per bus
+`SlcanDevice`       an SLCAN (Lawicel) adapter on a pty (`virtual_sheet.slcan`): open it with
+                    ``can.Bus(interface="slcan", channel=device.path)``
+=================== ========================================================================
+
+Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thread and stops it
+(joined, ports closed) on exit; `start` / `stop` do the same by hand. The clock is
+``time.monotonic()`` from `start` (``device.now()``); the chips are powered on at start.
+
+**A bus that goes away** (faults ``outage_at_s``/``outage_s``/``outage_every_s``): a pty slave
+path cannot be reused once its master is closed, so the pty devices publish a stable symlink
+(``device.path``, in a private temporary directory unless ``link_path`` is given). At an
+outage the device closes the pty (the host's reads fail as on an unplugged USB adapter) and
+removes the symlink; when the bus comes back it opens a new pty and re-points the symlink
+atomically, so a host that reopens the same path reconnects. On CAN the device stops answering
+for the outage (frames sent to it are lost), after signalling an error frame.
+"""
+
+from __future__ import annotations
+
+import os
+import select
+import tempfile
+import threading
+import time
+import tty
+from pathlib import Path
+from typing import Any
+
+from .faults import ERROR_FRAME
+from .gateway import Gateway
+from .memlink import memory_link
+
+__all__ = ["Device", "MemoryDevice", "PtyDevice", "CanDevice", "open_pty"]
+
+_IDLE_WAIT_S = 0.005
+
+
+class Device:
+    """Base of every virtual device: a thread running `_run` between `start` and `stop`.
+
+    Subclasses implement ``_open()``, ``_serve(timeout_s)`` (wait at most ``timeout_s`` for host
+    input, handle it) and ``_close()``; `_outage` hooks the bus-away fault.
+    """
+
+    name = "device"
+
+    def __init__(self, sheet, *, packed: bool = False, sync_rate_hz: float | None = None,
+                 verbose: Any = None) -> None:
+        self.sheet = sheet
+        self.packed = packed
+        self.sync_rate_hz = sync_rate_hz
+        self.verbose = verbose  # callable(direction, frame) or None
+        self.fault_stats = sheet.fault_stats
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._t0 = 0.0
+        self.error: BaseException | None = None
+        self.down = False
+        self._outages = sheet.faults.outage_windows()
+        self._next_outage = next(self._outages, None)
+
+    # ------------------------------------------------------------------ life cycle
+    def now(self) -> float:
+        """Seconds since `start` (the chips' clock)."""
+        return time.monotonic() - self._t0
+
+    def start(self) -> "Device":
+        if self._thread is not None:
+            raise RuntimeError(f"{self.name} already started")
+        self._stop.clear()
+        self._open()
+        self._t0 = time.monotonic()
+        for gw in self.gateways:
+            gw.power_on(0.0)
+        self._thread = threading.Thread(target=self._run_guarded, name=f"capsheet-{self.name}", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 5.0) -> None:
+        """Stop the thread and close the ports (idempotent)."""
+        self._stop.set()
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout_s)
+            if t.is_alive():
+                raise RuntimeError(f"{self.name}: thread did not stop within {timeout_s} s")
+        self._thread = None
+        self._close()
+
+    close = stop
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    # ------------------------------------------------------------------ loop
+    def _run_guarded(self) -> None:
+        try:
+            self._run()
+        except BaseException as exc:  # surfaced by `error` and re-raised nowhere: a thread
+            self.error = exc
+            raise
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            now = self.now()
+            if self._next_outage is not None and now >= self._next_outage[0]:
+                start, end = self._next_outage
+                self._next_outage = next(self._outages, None)
+                self.fault_stats.outages += 1
+                self.down = True
+                self._go_down()
+                while not self._stop.is_set() and self.now() < end:
+                    self._drain_while_down(min(0.01, max(0.0, end - self.now())))
+                if self._stop.is_set():
+                    return
+                self._come_back()
+                self.down = False
+                continue
+            deadline = min(gw.next_deadline() for gw in self.gateways)
+            self._serve(min(max(0.0, deadline - now), 0.02))
+            now = self.now()
+            for gw in self.gateways:
+                gw.poll(now)
+            self._flush(now)
+
+    def _flush(self, now: float) -> None:
+        for i, gw in enumerate(self.gateways):
+            out = gw.pop_output(now)
+            if out:
+                if self.verbose is not None:
+                    for f in out:
+                        self.verbose("tx", f)
+                self._send(i, out)
+
+    # hooks --------------------------------------------------------------
+    gateways: list[Gateway]
+
+    def _open(self) -> None: ...
+    def _close(self) -> None: ...
+    def _serve(self, timeout_s: float) -> None: ...
+    def _send(self, bus: int, frames: list) -> None: ...
+
+    def _go_down(self) -> None:
+        pass
+
+    def _drain_while_down(self, timeout_s: float) -> None:
+        time.sleep(timeout_s)
+
+    def _come_back(self) -> None:
+        pass
+
+    def describe(self) -> str:
+        return self.name
+
+
+# ---------------------------------------------------------------------------------------------
+# serial: memory link and pty
+# ---------------------------------------------------------------------------------------------
+
+class _SerialDevice(Device):
+    def __init__(self, sheet, **kw) -> None:
+        if sheet.transport != "serial":
+            raise ValueError(f"{type(self).__name__} needs a sheet with transport='serial', "
+                             f"got {sheet.transport!r}")
+        super().__init__(sheet, **kw)
+        self.gateway = Gateway(sheet, packed=self.packed, sync_rate_hz=self.sync_rate_hz)
+        self.gateways = [self.gateway]
+
+    def _handle_input(self, data: bytes) -> None:
+        if self.verbose is not None:
+            self.verbose("rx", data)
+        self.gateway.feed(data, self.now())
+
+
+class MemoryDevice(_SerialDevice):
+    """The sheet behind an in-memory link. ``device.port`` is the host's end (pyserial subset:
+    ``read``, ``write``, ``in_waiting``, ``timeout``, ``close``)."""
+
+    name = "memory"
+
+    def __init__(self, sheet, **kw) -> None:
+        super().__init__(sheet, **kw)
+        self.port, self._end = memory_link("capsheet", timeout=0.1)
+
+    def _serve(self, timeout_s: float) -> None:
+        self._end.timeout = timeout_s
+        try:
+            data = self._end.read(65536)
+        except OSError:  # the host closed its end: nothing more to do but wait for stop
+            self._stop.wait(0.05)
+            return
+        if data:
+            self._handle_input(data)
+
+    def _send(self, bus: int, frames: list) -> None:
+        try:
+            self._end.write(b"".join(frames))
+        except OSError:
+            pass
+
+    def _close(self) -> None:
+        self._end.close()
+
+    def describe(self) -> str:
+        return "in-memory link (use device.port)"
+
+
+def open_pty() -> tuple[int, int, str]:
+    """A raw pseudo-terminal: ``(master_fd, slave_fd, slave_path)``, master non-blocking."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    return master, slave, os.ttyname(slave)
+
+
+class _PtyMixin:
+    """A pty with a stable symlink, re-created after an outage (module docstring)."""
+
+    def _pty_init(self, link_path: str | os.PathLike | None) -> None:
+        self._tmpdir = None
+        if link_path is None:
+            self._tmpdir = tempfile.mkdtemp(prefix="capsheet-")
+            link_path = os.path.join(self._tmpdir, self.name)
+        self.path = str(link_path)
+        self.tty: str | None = None
+        self._master = self._slave = -1
+        self._pending = bytearray()
+        self.tx_overflow_bytes = 0
+        self.max_pending = 1 << 20
+
+    def _pty_open(self) -> None:
+        self._master, self._slave, self.tty = open_pty()
+        tmp = self.path + ".new"
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        os.symlink(self.tty, tmp)
+        os.replace(tmp, self.path)
+
+    def _pty_close(self, remove_link: bool = True) -> None:
+        for fd in (self._master, self._slave):
+            if fd >= 0:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+        self._master = self._slave = -1
+        self._pending.clear()
+        if remove_link:
+            try:
+                os.unlink(self.path)
+            except FileNotFoundError:
+                pass
+
+    def _pty_read(self, timeout_s: float) -> bytes:
+        if self._master < 0:
+            time.sleep(timeout_s)
+            return b""
+        wl = [self._master] if self._pending else []
+        r, w, _ = select.select([self._master], wl, [], timeout_s)
+        if w:
+            self._pty_write(b"")
+        if not r:
+            return b""
+        try:
+            return os.read(self._master, 65536)
+        except (BlockingIOError, InterruptedError):
+            return b""
+        except OSError:  # EIO: no slave open right now
+            time.sleep(min(timeout_s, 0.005))
+            return b""
+
+    def _pty_write(self, data: bytes) -> None:
+        if self._master < 0:
+            return
+        if data:
+            if len(self._pending) + len(data) > self.max_pending:
+                self.tx_overflow_bytes += len(data)  # nobody reads: the bytes fall on the floor
+                return
+            self._pending += data
+        while self._pending:
+            try:
+                n = os.write(self._master, self._pending)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:
+                self.tx_overflow_bytes += len(self._pending)
+                self._pending.clear()
+                return
+            del self._pending[:n]
+
+    def _pty_cleanup(self) -> None:
+        self._pty_close()
+        if self._tmpdir is not None:
+            try:
+                os.rmdir(self._tmpdir)
+            except OSError:
+                pass
+
+
+class PtyDevice(_PtyMixin, _SerialDevice):
+    """The sheet's gateway on a pseudo-terminal serial port.
+
+    ``device.path``: stable symlink to open (``serial.Serial(device.path)``); ``device.tty``:
+    the current ``/dev/pts/N``. Baud rate settings are accepted and ignored (a pty has none).
+    """
+
+    name = "pty"
+
+    def __init__(self, sheet, *, link_path: str | os.PathLike | None = None, **kw) -> None:
+        super().__init__(sheet, **kw)
+        self._pty_init(link_path)
+
+    def _open(self) -> None:
+        self._pty_open()
+
+    def _close(self) -> None:
+        self._pty_cleanup()
+
+    def _serve(self, timeout_s: float) -> None:
+        data = self._pty_read(timeout_s)
+        if data:
+            self._handle_input(data)
+
+    def _send(self, bus: int, frames: list) -> None:
+        self._pty_write(b"".join(frames))
+
+    def _go_down(self) -> None:
+        self._pty_close()
+
+    def _come_back(self) -> None:
+        self._pty_open()
+
+    def describe(self) -> str:
+        return f"serial port {self.path} (-> {self.tty})"
+
+
+# ---------------------------------------------------------------------------------------------
+# python-can
+# ---------------------------------------------------------------------------------------------
+
+class CanDevice(Device):
+    """The sheet's chips on one or several python-can buses.
+
+    Parameters
+    ----------
+    sheet : VirtualSheet
+        With ``transport="can"``.
+    n_buses : int
+        Chips are split in contiguous link blocks, one per bus (`VirtualSheet.split`).
+    interface : str
+        python-can interface (``virtual``: in this process only; ``udp_multicast``,
+        ``socketcan`` ... to reach another process).
+    channels : list of str, optional
+        One channel per bus; default ``capsheet0``, ``capsheet1``, ... (``virtual``).
+    bus_kwargs : dict
+        Passed to ``can.Bus`` for every bus.
+    """
+
+    name = "can"
+
+    def __init__(self, sheet, *, n_buses: int = 1, interface: str = "virtual",
+                 channels: list[str] | None = None, bus_kwargs: dict | None = None, **kw) -> None:
+        if sheet.transport != "can":
+            raise ValueError(f"CanDevice needs a sheet with transport='can', got {sheet.transport!r}")
+        super().__init__(sheet, **kw)
+        self.interface = interface
+        self.channels = channels or [f"capsheet{b}" for b in range(n_buses)]
+        if len(self.channels) != n_buses and channels is not None:
+            n_buses = len(self.channels)
+        self.blocks = sheet.split(n_buses)
+        self.gateways = [Gateway(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b)
+                         for b, blk in enumerate(self.blocks)]
+        self.bus_kwargs = dict(bus_kwargs or {})
+        self.buses: list = []
+        self.foreign_frames = 0
+
+    def _open(self) -> None:
+        import can
+        self._can = can
+        try:
+            for ch in self.channels:
+                self.buses.append(can.Bus(interface=self.interface, channel=ch, fd=self.sheet.fd,
+                                          receive_own_messages=False, **self.bus_kwargs))
+        except Exception as exc:
+            self._close()
+            raise can.CanInitializationError(
+                f"Cannot open python-can interface {self.interface!r} channel {ch!r}: {exc}") from exc
+
+    def _close(self) -> None:
+        for b in self.buses:
+            try:
+                b.shutdown()
+            except Exception:
+                pass
+        self.buses = []
+
+    def _serve(self, timeout_s: float) -> None:
+        # one thread serves every bus: wait on the first, then drain them all
+        got = False
+        per = timeout_s / max(1, len(self.buses))
+        for i, bus in enumerate(self.buses):
+            msg = bus.recv(per if not got else 0.0)
+            while msg is not None:
+                got = True
+                self._on_msg(i, msg)
+                msg = bus.recv(0.0)
+
+    def _on_msg(self, i: int, msg) -> None:
+        from protocol.can import CanFrame
+        if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
+            self.foreign_frames += 1  # not capsheet traffic (capsheet uses 29-bit data frames)
+            return
+        frame = CanFrame(msg.arbitration_id, bytes(msg.data), msg.is_fd)
+        if self.verbose is not None:
+            self.verbose("rx", frame)
+        self.gateways[i].receive(frame, self.now())
+
+    def _send(self, bus: int, frames: list) -> None:
+        can = self._can
+        b = self.buses[bus]
+        for f in frames:
+            if f is ERROR_FRAME:
+                m = can.Message(is_error_frame=True, is_extended_id=True, arbitration_id=0, dlc=0,
+                                channel=self.channels[bus])
+            else:
+                m = can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True,
+                                is_fd=f.is_fd, bitrate_switch=f.is_fd, check=False)
+            try:
+                b.send(m)
+            except can.CanError:
+                pass
+
+    def _go_down(self) -> None:
+        for i in range(len(self.buses)):
+            self._send(i, [ERROR_FRAME])
+
+    def _drain_while_down(self, timeout_s: float) -> None:
+        for bus in self.buses:
+            while bus.recv(0.0) is not None:
+                pass
+        time.sleep(timeout_s)
+
+    def describe(self) -> str:
+        return (f"python-can interface {self.interface!r}, channels {', '.join(self.channels)}"
+                f"{' (CAN FD)' if self.sheet.fd else ''}")

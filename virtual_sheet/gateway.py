@@ -1,0 +1,335 @@
+"""Gateways: the sans-I/O middle of every virtual device, between a host and a sheet's chips.
+
+A `Gateway` takes what the host sends (`feed` serial bytes, or `receive` CAN frames), decodes
+every frame **once** and hands it with its decode to the chips it concerns (SYNC and other
+broadcasts: every chip; an addressed frame: the chips with that node id; a frame that does not
+decode: every chip, which counts it), and queues what the chips answer for the host, after the
+stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
+
+* **Per-chip mode**: every chip's frames go to the host as they are (SAMPLE per chip).
+* **Packed mode** (``packed=True``): the gateway answers a SYNC with SNAPSHOT frames that pack
+  the samples of every link it covers for that counter (at most 202 samples per serial frame,
+  11 per CAN FD frame; links whose chip did not answer are sent as INVALID with counts 0). The
+  SNAPSHOT comes from node 0 (the gateway). Every other chip frame is forwarded unchanged.
+* **SYNC source** (``sync_rate_hz``): the gateway itself broadcasts SYNC at that rate to its
+  chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC").
+
+Time is passed in (``now_s``); nothing here reads a clock or touches a port.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from protocol.can import MAX_FD_SNAPSHOT_SAMPLES, CanFrame, decode_can, to_can
+from protocol.capacity import MAX_SERIAL_SNAPSHOT_SAMPLES
+from protocol.constants import SampleStatus
+from protocol.framing import MAX_ENCODED_SIZE, SAMPLE_WIRE_SIZE, DecodeError, StreamDecoder, decode_frame, encode
+from protocol.messages import NODE_BROADCAST, Message, Snapshot, Sync, pack_sample_words
+
+from .faults import ERROR_FRAME, FaultSpec, FaultStats, FrameFaults
+
+__all__ = ["Gateway", "GatewayStats", "CHIP_POLL_PERIOD_S"]
+
+CHIP_POLL_PERIOD_S = 0.01  #: how often the chips' timers (heartbeat, re-announce) are served
+
+
+class GatewayStats:
+    """Counters of one gateway."""
+
+    __slots__ = ("host_frames", "host_errors", "host_bytes", "syncs", "syncs_generated", "chip_frames",
+                 "snapshots", "frames_to_host")
+
+    def __init__(self) -> None:
+        for s in self.__slots__:
+            setattr(self, s, 0)
+
+    def as_dict(self) -> dict[str, int]:
+        return {s: getattr(self, s) for s in self.__slots__}
+
+
+class Gateway:
+    """Frames between a host and some chips of a `VirtualSheet` (module docstring).
+
+    Parameters
+    ----------
+    sheet : VirtualSheet
+        Owns the chips, the readings and the truth record.
+    links : sequence of int, optional
+        The links whose chips sit behind this gateway (default: all). On CAN, one gateway per bus.
+    packed : bool
+        Answer SYNC with SNAPSHOT frames.
+    sync_rate_hz : float, optional
+        Generate SYNC at this rate.
+    faults : FaultSpec, optional
+        Stream faults on the frames to the host (default: the sheet's).
+    stream : int
+        Distinguishes the fault random streams of several gateways of one sheet.
+    """
+
+    def __init__(self, sheet, links: Sequence[int] | None = None, *, packed: bool = False,
+                 sync_rate_hz: float | None = None, faults: FaultSpec | None = None,
+                 fault_stats: FaultStats | None = None, stream: int = 0) -> None:
+        self.sheet = sheet
+        self.can = sheet.transport == "can"
+        self.fd = sheet.fd
+        self.links = list(range(sheet.n_links) if links is None else links)
+        self.chips = [sheet.chips[k] for k in self.links]
+        self.delays = [sheet.reply_delay_s[k] for k in self.links]
+        self._late = any(self.delays)
+        self.packed = packed
+        if packed and self.can and not self.fd:
+            raise ValueError("Packed mode on CAN needs CAN FD (a SNAPSHOT does not fit 8 bytes)")
+        self.max_per_frame = MAX_FD_SNAPSHOT_SAMPLES if self.can else MAX_SERIAL_SNAPSHOT_SAMPLES
+        self.sync_rate_hz = sync_rate_hz
+        self.spec = faults if faults is not None else sheet.faults
+        self.fault_stats = fault_stats if fault_stats is not None else sheet.fault_stats
+        self.faults = FrameFaults(self.spec, self.fault_stats, can=self.can, stream=stream) \
+            if self.spec.any_stream else None
+        self.stats = GatewayStats()
+        self._rx = bytearray()
+        self._rx_discard = False
+        self._queue: list[tuple[float, Any]] = []
+        self._next_poll = 0.0
+        self._next_sync: float | None = None
+        self._sync_counter = 0
+        self._covered = np.asarray(self.links, dtype=np.int64)
+        self._snap_decoder = StreamDecoder(batch_samples=True)
+        self.powered = False
+
+    # ------------------------------------------------------------------ chips
+    def power_on(self, now_s: float) -> None:
+        """Power every chip: their boot frames (ANNOUNCE, INFO) are queued."""
+        self.powered = True
+        out: list = []
+        for c in self.chips:
+            out += c.power_on(now_s)
+        self._emit(out, now_s)
+        self._next_poll = now_s + CHIP_POLL_PERIOD_S
+        if self.sync_rate_hz:
+            self._next_sync = now_s
+
+    def poll(self, now_s: float) -> None:
+        """Serve the chips' timers and the gateway's own SYNC."""
+        if self._next_sync is not None and now_s >= self._next_sync:
+            period = 1.0 / self.sync_rate_hz
+            self._next_sync += period
+            if self._next_sync < now_s - 10 * period:  # fell far behind: do not burst
+                self._next_sync = now_s + period
+            sync = Sync(counter=self._sync_counter)
+            self._sync_counter = (self._sync_counter + 1) & 0xFFFF
+            self.stats.syncs_generated += 1
+            frame = to_can(sync) if self.can else encode(sync)
+            self._emit([frame], now_s)  # the host hears the SYNC too
+            self._dispatch(frame, sync, now_s)
+        if now_s >= self._next_poll:
+            self._next_poll = max(self._next_poll + CHIP_POLL_PERIOD_S, now_s)
+            out: list = []
+            for c in self.chips:
+                r = c.poll(now_s)
+                if r:
+                    out += r
+            if out:
+                self._emit(out, now_s)
+        if self.faults is not None:
+            held = self.faults.flush(now_s)
+            if held:
+                self._queue.extend(held)
+
+    def next_deadline(self) -> float:
+        """When `poll` / `pop_output` next has something to do."""
+        t = self._next_poll
+        if self._next_sync is not None:
+            t = min(t, self._next_sync)
+        if self._queue:
+            t = min(t, self._queue[0][0])
+        return t
+
+    # ------------------------------------------------------------------ host -> chips
+    def feed(self, data: bytes, now_s: float) -> None:
+        """Serial bytes from the host."""
+        self.stats.host_bytes += len(data)
+        buf = self._rx
+        buf += data
+        while True:
+            i = buf.find(b"\x00")
+            if i < 0:
+                if len(buf) > MAX_ENCODED_SIZE:
+                    buf.clear()
+                    self._rx_discard = True
+                    self.stats.host_errors += 1
+                return
+            seg = bytes(buf[:i])
+            del buf[:i + 1]
+            if self._rx_discard:
+                self._rx_discard = False
+                continue
+            if not seg:
+                continue
+            decoded = decode_frame(seg)
+            self.stats.host_frames += 1
+            if isinstance(decoded, DecodeError):
+                self.stats.host_errors += 1
+            self._dispatch(seg + b"\x00", decoded, now_s)
+
+    def receive(self, frame: CanFrame, now_s: float) -> None:
+        """One CAN frame from the host (or another node on the bus)."""
+        decoded = decode_can(frame.arbitration_id, frame.data, is_fd=frame.is_fd)
+        self.stats.host_frames += 1
+        if isinstance(decoded, DecodeError):
+            self.stats.host_errors += 1
+        self._dispatch(frame, decoded, now_s)
+
+    def _dispatch(self, frame, decoded, now_s: float) -> None:
+        if type(decoded) is Sync:
+            self.stats.syncs += 1
+            self.sheet.record_sync(decoded.counter, now_s)
+            if self.packed:
+                self._sync_packed(frame, decoded, now_s)
+                return
+            if self._late:
+                for c, d in zip(self.chips, self.delays):
+                    r = c.handle(frame, now_s, decoded)
+                    if r:
+                        self._emit(r, now_s + d)
+                        if d:
+                            self.fault_stats.late_replies += len(r)
+                return
+            out: list = []
+            for c in self.chips:
+                r = c.handle(frame, now_s, decoded)
+                if r:
+                    out += r
+            self._emit(out, now_s)
+            return
+        out = []
+        if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
+            node = decoded.node
+            for c in self.chips:
+                if c.node == node:
+                    out += c.handle(frame, now_s, decoded)
+        else:
+            for c in self.chips:
+                r = c.handle(frame, now_s, decoded)
+                if r:
+                    out += r
+        if out:
+            self._emit(out, now_s)
+
+    def _sync_packed(self, frame, sync: Sync, now_s: float) -> None:
+        samples: list = []
+        links: list[int] = []
+        other: list = []
+        n_links = self.sheet.n_links
+        for c in self.chips:
+            r = c.handle(frame, now_s, sync)
+            if not r:
+                continue
+            link = c.link
+            if (len(r) == 1 and link is not None and 0 <= link < n_links
+                    and (isinstance(r[0], CanFrame) and len(r[0].data) == 7 and (r[0].arbitration_id >> 20) & 0x3F == 3
+                         or isinstance(r[0], bytes) and len(r[0]) == SAMPLE_WIRE_SIZE)):
+                samples.append(r[0])
+                links.append(link)
+            else:
+                other += r
+        if samples:
+            counts = np.zeros((n_links, 3), dtype=np.int64)
+            status = np.full(n_links, int(SampleStatus.INVALID), dtype=np.int64)
+            got_c, got_s, got_l = self._decode_samples(samples, links, sync.counter)
+            counts[got_l] = got_c
+            status[got_l] = got_s
+            cov = self._covered
+            frames = []
+            # contiguous runs of covered links, chunked
+            breaks = np.flatnonzero(np.diff(cov) != 1) + 1
+            for run in np.split(cov, breaks):
+                for i in range(0, run.size, self.max_per_frame):
+                    part = run[i:i + self.max_per_frame]
+                    words = pack_sample_words(counts[part], status[part])
+                    snap = Snapshot(0, sync.counter, int(part[0]), words)
+                    frames.append(to_can(snap, fd=True) if self.can else encode(snap))
+            self.stats.snapshots += len(frames)
+            other = frames + other
+        if other:
+            self._emit(other, now_s)
+
+    def _decode_samples(self, samples: list, links: list[int], counter: int):
+        links_a = np.asarray(links, dtype=np.int64)
+        if self.can:
+            data = np.frombuffer(b"".join(f.data for f in samples), dtype=np.uint8).reshape(-1, 7)
+            ctr = data[:, 0].astype(np.int64) | (data[:, 1].astype(np.int64) << 8)
+            from protocol.messages import unpack_sample_words
+            counts, status = unpack_sample_words(np.ascontiguousarray(data[:, 2:]).ravel())
+        else:
+            ev = self._snap_decoder.feed(b"".join(samples))
+            if len(ev) != 1 or len(ev[0]) != len(samples):  # something did not decode: slow path
+                keep = []
+                for i, f in enumerate(samples):
+                    m = decode_frame(f[:-1])
+                    if not isinstance(m, DecodeError):
+                        keep.append((i, m))
+                idx = np.asarray([i for i, _ in keep], dtype=np.int64)
+                ms = [m for _, m in keep]
+                ctr = np.asarray([m.counter for m in ms], dtype=np.int64)
+                counts = np.asarray([(m.x, m.y, m.z) for m in ms], dtype=np.int64).reshape(-1, 3)
+                status = np.asarray([m.status for m in ms], dtype=np.int64)
+                links_a = links_a[idx]
+            else:
+                b = ev[0]
+                ctr, counts, status = b.counter.astype(np.int64), b.counts, b.status
+        ok = ctr == counter
+        return counts[ok], status[ok].astype(np.int64), links_a[ok]
+
+    # ------------------------------------------------------------------ chips -> host
+    def _emit(self, frames: list, due_s: float) -> None:
+        self.stats.chip_frames += len(frames)
+        if self.faults is not None:
+            self._queue.extend(self.faults.process(frames, due_s))
+        else:
+            self._queue.extend((due_s, f) for f in frames)
+        if self._late or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
+            self._queue.sort(key=lambda p: p[0])  # stable: FIFO among equal times
+
+    def pop_output(self, now_s: float) -> list:
+        """Frames due by ``now_s``, in wire order: serial bytes, `CanFrame`, or `ERROR_FRAME`."""
+        q = self._queue
+        if not q:
+            return []
+        if q[-1][0] <= now_s:
+            self._queue = []
+            out = [f for _, f in q]
+        else:
+            n = 0
+            while n < len(q) and q[n][0] <= now_s:
+                n += 1
+            out = [f for _, f in q[:n]]
+            del q[:n]
+        self.stats.frames_to_host += len(out)
+        return out
+
+    def commission(self, now_s: float, *, start: bool = True, first_node: int = 1) -> None:
+        """Assign every chip behind this gateway node ``first_node + link`` and its physical link
+        (the sheet's layout), and START them, through real frames; the chips' answers are
+        discarded. A shortcut for tests and benchmarks: a host normally does this."""
+        from protocol.messages import Assign, Start
+        saved, self._queue = self._queue, []
+        for k, c in zip(self.links, self.chips):
+            msg = Assign(c.node, new_node=first_node + k, link=k, uid_low=c.uid & 0xFFFFFFFF)
+            self._inject(msg, now_s)
+        if start:
+            self._inject(Start(0), now_s)
+        self._queue = saved
+
+    def _inject(self, msg: Message, now_s: float) -> None:
+        frame = to_can(msg) if self.can else encode(msg)
+        self._dispatch(frame, msg, now_s)
+
+    def pop_bytes(self, now_s: float) -> bytes:
+        """Serial: the due frames as one byte string."""
+        return b"".join(self.pop_output(now_s))
+
+
+assert ERROR_FRAME  # re-exported for CAN devices

@@ -1,0 +1,256 @@
+"""The virtual sheet: a scene, a sensor model and one chip per link, with ground truth.
+
+`VirtualSheet` is sans-I/O: it owns the chips and answers "what does chip k read at time t"; the
+gateways (`virtual_sheet.gateway`) move frames between the chips and a host, and the devices
+(`virtual_sheet.devices`) put a gateway behind a pty, a python-can bus or an SLCAN adapter.
+
+* **Chips.** Link ``k`` carries the chip with uid ``uids[k]`` (64-bit, unique, drawn from
+  ``seed`` by MT19937). The chip does not know its link until the host assigns it one; the host
+  learns ``uid -> link`` from the layout file (`write_layout`) or works it out.
+* **Readings.** At every SYNC the sheet evaluates the scene at the SYNC's time (time-varying
+  scenes are re-solved at most ``scene_rate_hz`` times a second, the readings held in between),
+  takes the ideal specific force of every link (`geometry.ideal_readings`) and turns it into ADC
+  counts with the sensor model (`sensor.SensorModel`: noise, per-chip bias, scale, misalignment,
+  saturation). One evaluation serves every chip that answers that SYNC.
+* **Ground truth.** `truth(counter)` gives the joints the readings of that SYNC counter came from
+  (the last 65536 counters are kept: the counter is 16 bits); `link_of_uid` the physical layout.
+
+Layout file (written by `write_layout`, read by the host to assign link addresses). CSV, one chip
+per line after a header, uid in hex with ``0x``, link the lattice address (DESIGN.md link order)::
+
+    uid,link
+    0x3A9F0C12D4E5B601,0
+    0x91B2C3D4E5F60718,1
+
+If the path ends in ``.json`` it is JSON instead::
+
+    {"format": "capsheet-layout", "version": 1, "rows": 14, "cols": 14,
+     "chips": [{"uid": "0x3A9F0C12D4E5B601", "link": 0}, ...]}
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from protocol.lattice import Lattice
+from .chip import ChipModel
+from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
+from .geometry import ideal_readings
+from .sensor import SensorModel
+from .shapes import StaticScene, make_scene
+
+__all__ = ["VirtualSheet", "make_uids", "read_layout"]
+
+
+def make_uids(n: int, seed: int) -> list[int]:
+    """``n`` distinct non-zero 64-bit uids, deterministic from ``seed`` (MT19937)."""
+    g = np.random.Generator(np.random.MT19937([seed, 0x0D1D]))
+    out: list[int] = []
+    seen: set[int] = set()
+    while len(out) < n:
+        for u in g.integers(1, 1 << 63, size=n, dtype=np.int64).tolist():
+            u = (u << 1) | (len(out) & 1)  # use the top bit too
+            if u and u not in seen:
+                seen.add(u)
+                out.append(u)
+                if len(out) == n:
+                    break
+    return out
+
+
+def read_layout(path: str | Path) -> dict[int, int]:
+    """``{uid: link}`` from a layout file written by `VirtualSheet.write_layout` (CSV or JSON)."""
+    path = Path(path)
+    text = path.read_text()
+    if path.suffix == ".json":
+        data = json.loads(text)
+        return {int(c["uid"], 0): int(c["link"]) for c in data["chips"]}
+    out = {}
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#") or line.lower().startswith("uid"):
+            continue
+        uid, link = line.split(",")
+        out[int(uid, 0)] = int(link)
+    return out
+
+
+class VirtualSheet:
+    """A simulated capture sheet (module docstring).
+
+    Parameters
+    ----------
+    shape : str
+        A scene (`shapes.SCENES`: grow, tilt, press) or a static shape (`shapes.SHAPES`).
+    lattice : str or (rows, cols) or Lattice
+        Joints, e.g. ``"14x14"``.
+    link_length : float
+        Metres.
+    shape_params : dict, optional
+        Passed to `shapes.make_scene`.
+    scene : Scene, optional
+        Use this scene instead of ``shape`` (anything with ``joints(t_s)``).
+    noise : float
+        Sensor noise, % of g per axis (ignored when ``sensor`` is given).
+    sensor : SensorModel, optional
+        The full sensor model (bias, scale, misalignment, range ...).
+    seed : int
+        Seeds uids, per-chip errors and noise.
+    transport : {"serial", "can"}
+        Frame type the chips speak.
+    fd : bool
+        CAN FD chips.
+    chip_factory : callable, optional
+        ``factory(uid, sensor, transport=, fd=, calibration=, seed=)`` -> chip; default
+        `ChipModel` (the C firmware: ``firmware_ref.chip.CFirmwareChip``).
+    faults : FaultSpec or str, optional
+        Chip faults (dead, babbling, drifting) are applied here; stream faults by the gateway.
+    scene_rate_hz : float
+        How often a time-varying scene is re-solved.
+    """
+
+    def __init__(self, shape: str = "gaussian", lattice: Any = "14x14", *, link_length: float = 0.01,
+                 shape_params: dict | None = None, scene=None, noise: float = 0.0,
+                 sensor: SensorModel | None = None, seed: int = 0, transport: str = "serial",
+                 fd: bool = False, chip_factory: Callable[..., Any] | None = None,
+                 faults: FaultSpec | str | None = None, scene_rate_hz: float = 50.0) -> None:
+        if isinstance(lattice, Lattice):
+            self.lattice = lattice
+        elif isinstance(lattice, str):
+            self.lattice = Lattice.parse(lattice)
+        else:
+            self.lattice = Lattice(*lattice)
+        rows, cols = self.lattice.rows, self.lattice.cols
+        self.shape = shape
+        self.scene = scene if scene is not None else make_scene(shape, rows, cols, link_length,
+                                                                **(shape_params or {}))
+        self.static = isinstance(self.scene, StaticScene)
+        self.seed = seed
+        self.transport = transport
+        self.fd = fd
+        self.scene_rate_hz = float(scene_rate_hz)
+        self.sensor_model = sensor if sensor is not None else SensorModel(noise_pct_g=noise, chip_seed=seed)
+        self.faults = FaultSpec.parse(faults) if isinstance(faults, str) or faults is None else faults
+        self.fault_stats = FaultStats()
+        n = self.n_links = self.lattice.n_links
+        self.uids = make_uids(n, seed)
+        self.link_of_uid = {u: k for k, u in enumerate(self.uids)}
+        self._noise_rng = np.random.Generator(np.random.MT19937([seed, 0x401CE]))
+        self._lock = threading.Lock()
+        self._joint_cache: tuple[float, np.ndarray, np.ndarray] | None = None  # (t_q, joints, readings)
+        self._cache: tuple[float | None, list, list] = (None, [], [])
+        self.sync_times: dict[int, float] = {}
+        offset, sens = self.sensor_model.true_calibration(n)
+        q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
+        cal = [tuple(zip(q4[k], sens[k].tolist())) for k in range(n)]
+        self.chip_factory = chip_factory or ChipModel
+        self.reply_delay_s = [0.0] * n
+        self.chips = []
+        for k, uid in enumerate(self.uids):
+            src: Callable = self._source(k)
+            if k in self.faults.drift_chip:
+                src = DriftingSensor(src, self.faults.drift, self.fault_stats)
+                self.reply_delay_s[k] = self.faults.drift_late_ms / 1e3
+            chip = self.chip_factory(uid, src, transport=transport, fd=fd, calibration=cal[k], seed=seed + k)
+            self.chips.append(wrap_chip(chip, k, self.faults, self.fault_stats, can=transport == "can"))
+
+    # ------------------------------------------------------------------ readings
+    def _source(self, k: int) -> Callable[[float], tuple]:
+        def source(now_s: float, _k=k):
+            c = self._cache
+            if c[0] != now_s:
+                c = self._refresh(now_s)
+            return c[1][_k], c[2][_k]
+        return source
+
+    def _scene_time(self, t_s: float) -> float:
+        if self.static:
+            return 0.0
+        return float(np.floor(t_s * self.scene_rate_hz) / self.scene_rate_hz)
+
+    def _geometry(self, t_s: float) -> tuple[float, np.ndarray, np.ndarray]:
+        tq = self._scene_time(t_s)
+        jc = self._joint_cache
+        if jc is None or jc[0] != tq:
+            joints = np.asarray(self.scene.joints(tq), dtype=float)
+            jc = self._joint_cache = (tq, joints, ideal_readings(joints))
+        return jc
+
+    def _refresh(self, now_s: float):
+        with self._lock:
+            c = self._cache
+            if c[0] == now_s:
+                return c
+            _tq, _joints, readings = self._geometry(now_s)
+            m = self.sensor_model
+            counts, status = m.sample(readings, self._noise_rng if m.noise_pct_g > 0 else None)
+            c = self._cache = (now_s, [tuple(r) for r in counts.tolist()], status.tolist())
+            return c
+
+    def counts_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """One fresh draw of every link's ``(counts (n, 3), status (n,))`` at ``t_s`` (tests)."""
+        _tq, _j, readings = self._geometry(t_s)
+        m = self.sensor_model
+        return m.sample(readings, self._noise_rng if m.noise_pct_g > 0 else None)
+
+    # ------------------------------------------------------------------ truth
+    def record_sync(self, counter: int, now_s: float) -> None:
+        """Called by the gateways when a SYNC reaches the chips."""
+        self.sync_times[counter & 0xFFFF] = now_s
+
+    def truth_time(self, counter: int) -> float:
+        """Scene time of the readings answering SYNC ``counter`` (KeyError if never seen)."""
+        return self._scene_time(self.sync_times[counter & 0xFFFF])
+
+    def truth(self, counter: int) -> np.ndarray:
+        """Joints ``(rows, cols, 3)``, metres, that the SYNC ``counter``'s readings came from."""
+        tq = self.truth_time(counter)
+        jc = self._joint_cache
+        if jc is not None and jc[0] == tq:
+            return jc[1].copy()
+        return np.asarray(self.scene.joints(tq), dtype=float)
+
+    def joints(self, t_s: float = 0.0) -> np.ndarray:
+        """Joints at scene time ``t_s`` (as the chips see them)."""
+        return np.asarray(self.scene.joints(self._scene_time(t_s)), dtype=float)
+
+    # ------------------------------------------------------------------ layout
+    @property
+    def layout(self) -> dict[int, int]:
+        """``{uid: link}``: which chip sits on which link."""
+        return dict(self.link_of_uid)
+
+    def chip_of_link(self, link: int):
+        return self.chips[link]
+
+    def calibration(self) -> tuple[np.ndarray, np.ndarray]:
+        """True per-chip ``(offset_counts (n, 3), sensitivity (n, 3))`` (what CAL_DATA reports)."""
+        return self.sensor_model.true_calibration(self.n_links)
+
+    def write_layout(self, path: str | Path) -> Path:
+        """Write the ``uid -> link`` layout (module docstring for the format)."""
+        path = Path(path)
+        if path.suffix == ".json":
+            data = {"format": "capsheet-layout", "version": 1, "rows": self.lattice.rows,
+                    "cols": self.lattice.cols,
+                    "chips": [{"uid": f"0x{u:016X}", "link": k} for k, u in enumerate(self.uids)]}
+            path.write_text(json.dumps(data, indent=1) + "\n")
+        else:
+            path.write_text("uid,link\n" + "".join(f"0x{u:016X},{k}\n" for k, u in enumerate(self.uids)))
+        return path
+
+    def split(self, n_buses: int) -> list[range]:
+        """Contiguous link blocks, one per bus (links ``b*n/N .. (b+1)*n/N - 1`` on bus b)."""
+        if not 1 <= n_buses <= self.n_links:
+            raise ValueError(f"Invalid bus count {n_buses} (need 1..{self.n_links})")
+        edges = [round(b * self.n_links / n_buses) for b in range(n_buses + 1)]
+        return [range(edges[b], edges[b + 1]) for b in range(n_buses)]
+
+    def __repr__(self) -> str:
+        return (f"VirtualSheet({self.shape!r}, {self.lattice.rows}x{self.lattice.cols}, "
+                f"{self.n_links} chips, transport={self.transport!r})")
