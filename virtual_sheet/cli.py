@@ -1,0 +1,180 @@
+"""``capsheet virtual``: run a virtual sheet behind a pty, SLCAN adapter, python-can bus or
+in-memory link, until interrupted."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+__all__ = ["register", "run", "make_device", "load_chip_factory"]
+
+_EPILOG = """\
+transports:
+  pty     a serial gateway on a pseudo-terminal; connect: capsheet host --port PATH
+  slcan   SLCAN (Lawicel) USB-CAN adapter(s) on ptys; connect: capsheet host --can slcan:PATH
+  can     python-can buses (--can-interface, default 'virtual': reachable only from this
+          process; use e.g. udp_multicast or socketcan to reach another process)
+  memory  in-memory link (only useful inside one process; printed for completeness)
+
+fault spec (--faults), comma-separated key=value, e.g.
+  bitflip=1e-4,drop_frame=0.01,dead_chip=5,seed=3
+  keys: bitflip drop_byte drop_frame dup_frame reorder delay_ms jitter_ms
+        dead_chip=L[:L..] dead_after_s babble_chip=L[:L..] babble_rate babble_mode=garbage|flood
+        drift_chip=L[:L..] drift drift_late_ms outage_at_s outage_s outage_every_s seed
+  (see virtual_sheet/faults.py for the meaning of each)
+
+examples:
+  capsheet virtual --shape gaussian --lattice 14x14 --transport pty --layout-out sheet.csv
+  capsheet virtual --transport slcan --bus-count 2 --fd --packed
+  capsheet virtual --transport pty --rate 100 --faults bitflip=1e-5,outage_at_s=10,outage_s=2
+"""
+
+
+def load_chip_factory(firmware: str):
+    """``python`` -> ChipModel; ``c`` -> firmware_ref.chip.CFirmwareChip (imported lazily)."""
+    if firmware == "python":
+        from .chip import ChipModel
+        return ChipModel
+    if firmware == "c":
+        try:
+            from firmware_ref.chip import CFirmwareChip
+        except Exception as exc:  # ImportError, or the cffi build failing
+            raise RuntimeError(f"Cannot import firmware_ref.chip.CFirmwareChip for --firmware c: {exc} "
+                               "(is the C firmware built? try `pip install -e .` or use --firmware python)"
+                               ) from exc
+        return CFirmwareChip
+    raise ValueError(f"Unknown firmware {firmware!r} (expected python or c)")
+
+
+def register(subparsers) -> argparse.ArgumentParser:
+    from .shapes import SCENES, SHAPES
+    p = subparsers.add_parser(
+        "virtual", help="run a virtual sheet on a pty, SLCAN adapter or python-can bus",
+        description="Run a simulated capture sheet that a host reaches exactly as hardware: the chips "
+                    "announce themselves, take ASSIGN/CONFIG/START and answer SYNC. Prints the port "
+                    "(or bus) to connect to, then a summary line per second; Ctrl-C stops.",
+        epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--shape", default="gaussian",
+                   help=f"static shape ({', '.join(SHAPES)}) or moving scene ({', '.join(SCENES)}); "
+                        "default gaussian")
+    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--link-length", type=float, default=0.01, help="link length, m (default 0.01)")
+    p.add_argument("--transport", choices=("pty", "slcan", "can", "memory"), default="pty",
+                   help="how the host reaches the sheet (default pty)")
+    p.add_argument("--bus-count", type=int, default=1, help="CAN buses (slcan/can); chips split in link "
+                                                           "blocks across them (default 1)")
+    p.add_argument("--can-interface", default="virtual",
+                   help="python-can interface for --transport can (default virtual)")
+    p.add_argument("--channel", action="append",
+                   help="python-can channel per bus (repeat); default capsheet0, capsheet1, ...")
+    p.add_argument("--fd", action="store_true", help="CAN FD chips and buses")
+    p.add_argument("--packed", action="store_true",
+                   help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD)")
+    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+                   help="the gateway generates SYNC at this rate (the host then follows it)")
+    p.add_argument("--noise", type=float, default=0.02, help="sensor noise, %% of g per axis (default 0.02)")
+    p.add_argument("--faults", default="", help="fault spec (see below)")
+    p.add_argument("--seed", type=int, default=0, help="seed of uids, chip errors and noise (default 0)")
+    p.add_argument("--layout-out", metavar="FILE", help="write the uid,link layout (CSV, or JSON if .json)")
+    p.add_argument("--link", metavar="PATH", help="pty/slcan: the stable symlink path to publish")
+    p.add_argument("--firmware", choices=("python", "c"), default="python",
+                   help="chip implementation: the Python model or the C reference firmware (SIL)")
+    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("-v", "--verbose", action="store_true", help="print every frame sent and received")
+    p.set_defaults(func=run)
+    return p
+
+
+def _fmt_frame(frame) -> str:
+    from protocol.can import CanFrame, decode_can
+    from protocol.framing import decode_frame
+    from .faults import ERROR_FRAME
+    if frame is ERROR_FRAME:
+        return "<error frame>"
+    if isinstance(frame, CanFrame):
+        return f"{frame.arbitration_id:08X}#{frame.data.hex()}  {decode_can(frame.arbitration_id, frame.data, is_fd=frame.is_fd)}"
+    return str(decode_frame(bytes(frame).rstrip(b"\x00")))
+
+
+def make_device(args, verbose=None):
+    """The sheet and its device from parsed arguments."""
+    from .faults import FaultSpec
+    from .sheet import VirtualSheet
+    transport = "can" if args.transport in ("can", "slcan") else "serial"
+    spec = FaultSpec.parse(args.faults)
+    sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
+                         seed=args.seed, transport=transport, fd=args.fd,
+                         chip_factory=load_chip_factory(args.firmware), faults=spec)
+    kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
+    if args.transport == "pty":
+        from .devices import PtyDevice
+        dev = PtyDevice(sheet, link_path=args.link, **kw)
+    elif args.transport == "memory":
+        from .devices import MemoryDevice
+        dev = MemoryDevice(sheet, **kw)
+    elif args.transport == "slcan":
+        from .slcan import SlcanDevice
+        paths = None
+        if args.link:
+            paths = [args.link] if args.bus_count == 1 else [f"{args.link}{b}" for b in range(args.bus_count)]
+        dev = SlcanDevice(sheet, n_buses=args.bus_count, link_paths=paths, **kw)
+    else:
+        from .devices import CanDevice
+        dev = CanDevice(sheet, n_buses=args.bus_count, interface=args.can_interface, channels=args.channel, **kw)
+    return sheet, dev
+
+
+def run(args) -> int:
+    out = sys.stdout
+
+    def verbose(direction, frame):
+        if direction == "rx" and isinstance(frame, (bytes, bytearray)):
+            print(f"rx {bytes(frame).hex()}", file=out)
+        else:
+            print(f"{direction} {_fmt_frame(frame)}", file=out)
+
+    try:
+        sheet, dev = make_device(args, verbose if args.verbose else None)
+    except (ValueError, RuntimeError) as exc:
+        print(f"capsheet virtual: {exc}", file=sys.stderr)
+        return 2
+    if args.layout_out:
+        sheet.write_layout(args.layout_out)
+    dev.start()
+    try:
+        print(f"capsheet virtual: {sheet!r}", file=out)
+        print(f"connect to: {dev.describe()}", file=out)
+        if args.transport == "pty":
+            print(f"  capsheet host --port {dev.path} --lattice {args.lattice}"
+                  + (f" --layout {args.layout_out}" if args.layout_out else ""), file=out)
+        elif args.transport == "slcan":
+            for pth in dev.paths:
+                print(f"  --can slcan:{pth}", file=out)
+        if args.layout_out:
+            print(f"layout written to {args.layout_out}", file=out)
+        out.flush()
+        t_end = None if args.duration is None else time.monotonic() + args.duration
+        last = {}
+        while t_end is None or time.monotonic() < t_end:
+            time.sleep(1.0 if t_end is None else max(0.0, min(1.0, t_end - time.monotonic())))
+            if dev.error is not None:
+                print(f"capsheet virtual: device thread failed: {dev.error!r}", file=sys.stderr)
+                return 1
+            st = {k: sum(g.stats.as_dict()[k] for g in dev.gateways)
+                  for k in ("host_frames", "syncs", "frames_to_host", "snapshots")}
+            d = {k: st[k] - last.get(k, 0) for k in st}
+            last = st
+            streaming = sum(1 for c in sheet.chips if int(getattr(c, "state", 0)) == 2)
+            faults = sheet.fault_stats.nonzero()
+            line = (f"t={dev.now():7.1f}s  sync {d['syncs']}/s  sent {d['frames_to_host']} frames/s"
+                    + (f" ({d['snapshots']} snapshots)" if args.packed else "")
+                    + f"  host frames {d['host_frames']}/s  streaming {streaming}/{sheet.n_links}"
+                    + ("  [bus down]" if dev.down else "")
+                    + (f"  faults {faults}" if faults else ""))
+            print(line, file=out, flush=True)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        dev.stop()
+    return 0
