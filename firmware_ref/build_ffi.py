@@ -1,0 +1,178 @@
+"""cffi build of the reference firmware as ``firmware_ref._capsheet_fw`` (out-of-line API mode).
+
+Built at install time through ``setup.py``'s ``cffi_modules`` (``pip install -e .``), or by hand
+for development::
+
+    .venv/bin/python firmware_ref/build_ffi.py      # writes firmware_ref/_capsheet_fw*.so
+
+The C sources are compiled as they are (firmware_ref/src/*.c); the HAL callbacks are Python
+functions (``extern "Python"``) that `firmware_ref.chip.CFirmwareChip` routes to its instance.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import shlex
+import sysconfig
+from pathlib import Path
+
+from cffi import FFI
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+SOURCES = ["src/codec.c", "src/chip.c"]
+
+
+def _check_compiler() -> None:
+    """Fail early, and say what to do, when there is no C compiler."""
+    cc = os.environ.get("CC") or sysconfig.get_config_var("CC") or "cc"
+    exe = shlex.split(cc)[0] if cc.strip() else "cc"
+    if shutil.which(exe) is None:
+        raise RuntimeError(
+            f"capsheet: building the C reference firmware (firmware_ref/) needs a C compiler, and "
+            f"'{exe}' was not found. Install one (Debian/Ubuntu: apt-get install gcc; macOS: "
+            f"xcode-select --install) or point CC at it, then reinstall.")
+
+
+CDEF = r"""
+typedef struct {
+    uint8_t axis; uint8_t flags; int16_t offset_q4; float sensitivity;
+} capsheet_cal_t;
+
+typedef struct {
+    uint8_t type;
+    uint16_t node;
+    union {
+        struct { uint64_t uid; } announce;
+        struct { uint8_t fw_major, fw_minor, fw_patch, protocol_version; uint16_t capabilities;
+                 uint8_t adc_bits, state; } info;
+        struct { uint16_t counter; int16_t x, y, z; uint8_t status; } sample;
+        struct { uint8_t state, flags, rx_errors, missed_syncs; uint32_t uptime_s; } status;
+        struct { uint8_t command, detail; } ack;
+        struct { uint8_t command, reason; } nack;
+        capsheet_cal_t cal;
+        struct { uint16_t counter, first_link; uint8_t count; const uint8_t *words; } snapshot;
+        struct { uint16_t counter; } sync;
+        struct { uint16_t new_node, link; uint32_t uid_low; } assign;
+        struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
+        struct { uint8_t axis; } cal_read;
+    } u;
+} capsheet_msg_t;
+
+typedef struct {
+    uint8_t *buf; size_t cap; size_t len; bool discarding; uint8_t version;
+    uint32_t frames; uint32_t errors;
+} capsheet_stream_t;
+
+typedef struct { uint8_t reply; uint8_t next_state; uint8_t validate; } capsheet_rule_t;
+
+typedef enum { CAPSHEET_CAN_AUTO = 0, CAPSHEET_CAN_CLASSIC = 1, CAPSHEET_CAN_FD = 2 } capsheet_can_mode_t;
+typedef enum { CAPSHEET_TRANSPORT_SERIAL = 0, CAPSHEET_TRANSPORT_CAN = 1 } capsheet_transport_t;
+
+typedef struct {
+    void *user;
+    int32_t (*read_axes)(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status);
+    int32_t (*send_bytes)(void *user, const uint8_t *data, size_t len);
+    int32_t (*send_can)(void *user, uint32_t id, const uint8_t *data, uint8_t len, bool is_fd);
+    uint64_t (*read_uid)(void *user);
+    int32_t (*cal_load)(void *user, uint8_t axis, capsheet_cal_t *cal);
+    int32_t (*cal_store)(void *user, uint8_t axis, const capsheet_cal_t *cal);
+} capsheet_hal_t;
+
+typedef struct { capsheet_transport_t transport; bool can_fd; uint16_t capabilities; } capsheet_chip_config_t;
+
+typedef struct {
+    uint64_t uid;
+    uint16_t node;
+    uint16_t link;
+    bool has_link;
+    uint8_t state;
+    bool started;
+    bool powered;
+    uint8_t rx_errors;
+    uint8_t missed_syncs;
+    uint32_t salt;
+    uint8_t range_code;
+    uint16_t heartbeat_ms;
+    capsheet_cal_t cal[3];
+    capsheet_stream_t rx;
+    ...;
+} capsheet_chip_t;
+
+#define CAPSHEET_PROTOCOL_VERSION ...
+#define CAPSHEET_MAX_FRAME_SIZE ...
+#define CAPSHEET_MAX_ENCODED_SIZE ...
+#define CAPSHEET_MAX_WIRE_SIZE ...
+#define CAPSHEET_MIN_RX_BUFFER_SIZE ...
+#define CAPSHEET_RX_BUFFER_SIZE ...
+#define CAPSHEET_CHIP_TX_WIRE_SIZE ...
+#define CAPSHEET_FW_VERSION_MAJOR ...
+#define CAPSHEET_FW_VERSION_MINOR ...
+#define CAPSHEET_FW_VERSION_PATCH ...
+#define CAPSHEET_CRC_INIT ...
+#define CAPSHEET_STAY ...
+
+uint16_t capsheet_crc16(const uint8_t *data, size_t len, uint16_t crc);
+int32_t capsheet_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
+int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
+uint8_t capsheet_priority(uint8_t type);
+bool capsheet_type_known(uint8_t type);
+uint16_t capsheet_provisional_node(uint64_t uid, uint32_t salt);
+int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t cap);
+int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *payload, size_t len,
+                                capsheet_msg_t *out);
+int32_t capsheet_serial_encode(const capsheet_msg_t *msg, uint8_t *out, size_t cap);
+int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node, const uint8_t *payload,
+                                   size_t len, uint8_t *out, size_t cap);
+int32_t capsheet_serial_decode_frame(uint8_t *frame, size_t len, capsheet_msg_t *out, uint8_t *version);
+int32_t capsheet_stream_init(capsheet_stream_t *s, uint8_t *buf, size_t cap);
+int32_t capsheet_stream_feed(capsheet_stream_t *s, uint8_t byte, capsheet_msg_t *out);
+uint32_t capsheet_can_make_id(uint8_t priority, uint8_t type, uint8_t version, uint16_t node);
+int32_t capsheet_can_encode(const capsheet_msg_t *msg, capsheet_can_mode_t mode, uint32_t *id,
+                            uint8_t *data, size_t cap, bool *is_fd);
+int32_t capsheet_can_fd_length(size_t n);
+int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uint8_t *data, size_t len,
+                            capsheet_msg_t *out, uint8_t *version);
+int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule);
+
+int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *config,
+                           const capsheet_hal_t *hal, uint8_t *rx_buf, size_t rx_cap);
+int32_t capsheet_chip_power_on(capsheet_chip_t *chip, uint64_t now_us);
+int32_t capsheet_chip_rx_bytes(capsheet_chip_t *chip, const uint8_t *data, size_t len, uint64_t now_us);
+int32_t capsheet_chip_rx_can(capsheet_chip_t *chip, uint32_t id, bool is_extended, bool is_fd,
+                             const uint8_t *data, size_t len, uint64_t now_us);
+int32_t capsheet_chip_poll(capsheet_chip_t *chip, uint64_t now_us);
+void capsheet_chip_sensor_fault(capsheet_chip_t *chip);
+
+extern "Python" int32_t capsheet_py_read_axes(void *, uint64_t, int16_t *, uint8_t *);
+extern "Python" int32_t capsheet_py_send_bytes(void *, const uint8_t *, size_t);
+extern "Python" int32_t capsheet_py_send_can(void *, uint32_t, const uint8_t *, uint8_t, bool);
+extern "Python" uint64_t capsheet_py_read_uid(void *);
+extern "Python" int32_t capsheet_py_cal_load(void *, uint8_t, capsheet_cal_t *);
+extern "Python" int32_t capsheet_py_cal_store(void *, uint8_t, const capsheet_cal_t *);
+"""
+
+
+def _rel(path: Path) -> str:
+    # setuptools wants sources relative to the project root (the cwd of a build).
+    try:
+        return os.path.relpath(path, os.getcwd())
+    except ValueError:  # another drive (Windows)
+        return str(path)
+
+
+_check_compiler()
+
+ffibuilder = FFI()
+ffibuilder.cdef(CDEF)
+ffibuilder.set_source(
+    "firmware_ref._capsheet_fw",
+    '#include "capsheet_fw.h"\n',
+    sources=[_rel(HERE / s) for s in SOURCES],
+    include_dirs=[_rel(HERE / "include")],
+    extra_compile_args=["-O2"] if os.name != "nt" else [],
+)
+
+if __name__ == "__main__":
+    ffibuilder.compile(tmpdir=str(ROOT), verbose=False)

@@ -1,0 +1,223 @@
+"""`CFirmwareChip`: the C reference firmware behind the chip-model interface of virtual_sheet/chip.py.
+
+Same constructor and methods as `virtual_sheet.chip.ChipModel`, so a virtual sheet runs every chip
+on the C firmware (software in the loop, ``capsheet virtual --firmware c``). The HAL is Python:
+the sensor source is read at SYNC, sent frames are collected and returned, calibration storage is
+a per-chip list that survives RESET (like flash) but not a new instance.
+
+Time: ``now_s`` (float seconds) is passed to C as integer microseconds, ``round(now_s * 1e6)``.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Union
+
+from protocol.can import CanFrame
+from protocol.messages import Capability, ChipState
+
+from ._ffi import ffi, lib
+
+__all__ = ["CFirmwareChip", "Out", "SensorSource", "DEFAULT_CAPABILITIES", "FIRMWARE_VERSION", "FirmwareError"]
+
+Out = Union[bytes, CanFrame]
+SensorSource = Callable[[float], tuple[tuple[int, int, int], int]]
+
+#: The same default as the Python chip model (virtual_sheet.chip.DEFAULT_CAPABILITIES).
+DEFAULT_CAPABILITIES = Capability.SELF_TEST | Capability.CAL_STORAGE | Capability.MULTI_RANGE | Capability.FILTER
+FIRMWARE_VERSION = (lib.CAPSHEET_FW_VERSION_MAJOR, lib.CAPSHEET_FW_VERSION_MINOR, lib.CAPSHEET_FW_VERSION_PATCH)
+
+
+class FirmwareError(RuntimeError):
+    """The C firmware returned an error code (a HAL failure or a broken invariant)."""
+
+
+def _us(now_s: float) -> int:
+    return max(0, int(round(now_s * 1e6)))
+
+
+class CFirmwareChip:
+    """One chip running firmware_ref/src/chip.c.
+
+    Parameters are those of `virtual_sheet.chip.ChipModel`: ``uid`` (64-bit), ``sensor``
+    (``now_s -> ((x, y, z) ±2 g ADC counts, SampleStatus bits)``), ``transport`` ("serial" or
+    "can"), ``fd`` (CAN FD capable), ``capabilities`` (INFO bits; CAN_FD is added when ``fd``),
+    ``calibration`` (factory ``(offset_q4, sensitivity)`` per axis, in the calibration store when
+    the chip has CAL_STORAGE) and ``seed`` (unused: the firmware is deterministic).
+    ``rx_buffer`` is the serial receive buffer (default CAPSHEET_RX_BUFFER_SIZE, 1029).
+    """
+
+    def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
+                 capabilities: int = DEFAULT_CAPABILITIES,
+                 calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0,
+                 rx_buffer: int | None = None) -> None:
+        if transport not in ("serial", "can"):
+            raise ValueError(f"Invalid transport: {transport!r} (expected 'serial' or 'can')")
+        if not (isinstance(uid, int) and 0 <= uid < 1 << 64):
+            raise ValueError(f"Invalid uid: {uid!r} (need a 64-bit unsigned integer)")
+        if len(calibration) != 3:
+            raise ValueError(f"Invalid calibration: {calibration!r} (need 3 axes of (offset_q4, sensitivity))")
+        self.uid = uid
+        self.sensor = sensor
+        self.transport = transport
+        self.fd = bool(fd)
+        self.seed = seed
+        self.capabilities = Capability(int(capabilities) | (Capability.CAN_FD if fd else 0))
+        stored = 1 if self.capabilities & Capability.CAL_STORAGE else 0
+        #: the chip's non-volatile calibration: (offset_q4, sensitivity, stored flag) per axis
+        self.cal_store = [(int(o), float(s), stored) for o, s in calibration]
+        self._out: list[Out] = []
+        self._exc: BaseException | None = None
+        self._handle = ffi.new_handle(self)
+        self._hal = ffi.new("capsheet_hal_t *")
+        self._hal.user = self._handle
+        self._hal.read_axes = lib.capsheet_py_read_axes
+        self._hal.send_bytes = lib.capsheet_py_send_bytes
+        self._hal.send_can = lib.capsheet_py_send_can
+        self._hal.read_uid = lib.capsheet_py_read_uid
+        self._hal.cal_load = lib.capsheet_py_cal_load
+        self._hal.cal_store = lib.capsheet_py_cal_store
+        cfg = ffi.new("capsheet_chip_config_t *")
+        cfg.transport = lib.CAPSHEET_TRANSPORT_CAN if transport == "can" else lib.CAPSHEET_TRANSPORT_SERIAL
+        cfg.can_fd = self.fd
+        cfg.capabilities = int(capabilities) & 0xFFFF
+        self._cfg = cfg
+        self._rx_cap = rx_buffer or lib.CAPSHEET_RX_BUFFER_SIZE
+        self._rx = ffi.new("uint8_t[]", self._rx_cap)
+        self._chip = ffi.new("capsheet_chip_t *")
+        rc = lib.capsheet_chip_init(self._chip, cfg, self._hal, self._rx if transport == "serial" else ffi.NULL,
+                                    self._rx_cap if transport == "serial" else 0)
+        if rc < 0:
+            raise FirmwareError(f"capsheet_chip_init failed: {rc}")
+
+    # ------------------------------------------------------------------ state, read from C
+    @property
+    def node(self) -> int:
+        return int(self._chip.node)
+
+    @property
+    def state(self) -> ChipState:
+        return ChipState(self._chip.state)
+
+    @property
+    def link(self) -> int | None:
+        return int(self._chip.link) if self._chip.has_link else None
+
+    @property
+    def rx_errors(self) -> int:
+        return int(self._chip.rx_errors)
+
+    @property
+    def missed_syncs(self) -> int:
+        return int(self._chip.missed_syncs)
+
+    @property
+    def salt(self) -> int:
+        return int(self._chip.salt)
+
+    @property
+    def powered(self) -> bool:
+        return bool(self._chip.powered)
+
+    # ------------------------------------------------------------------ the interface
+    def _run(self, rc: int) -> list[Out]:
+        out, self._out = self._out, []
+        exc, self._exc = self._exc, None
+        if exc is not None:
+            raise exc
+        if rc < 0:
+            raise FirmwareError(f"C firmware returned {rc}")
+        return out
+
+    def power_on(self, now_s: float) -> list[Out]:
+        """Boot: ANNOUNCE then INFO from the provisional node id."""
+        return self._run(lib.capsheet_chip_power_on(self._chip, _us(now_s)))
+
+    def handle(self, frame: Out, now_s: float, decoded=None) -> list[Out]:
+        """React to one frame heard on the bus (``decoded`` is ignored: the C firmware decodes)."""
+        if isinstance(frame, CanFrame):
+            if self.transport != "can":
+                return []
+            data = bytes(frame.data)
+            rc = lib.capsheet_chip_rx_can(self._chip, frame.arbitration_id & 0xFFFFFFFF, True, bool(frame.is_fd),
+                                          data, len(data), _us(now_s))
+        else:
+            if self.transport != "serial":
+                return []
+            data = bytes(frame)
+            rc = lib.capsheet_chip_rx_bytes(self._chip, data, len(data), _us(now_s))
+        return self._run(rc)
+
+    def feed(self, data: bytes, now_s: float) -> list[Out]:
+        """Serial only: any chunk of received bytes (frames may span calls)."""
+        return self._run(lib.capsheet_chip_rx_bytes(self._chip, bytes(data), len(data), _us(now_s)))
+
+    def poll(self, now_s: float) -> list[Out]:
+        """Time-driven output: re-ANNOUNCE (BOOT), STATUS heartbeat (assigned)."""
+        return self._run(lib.capsheet_chip_poll(self._chip, _us(now_s)))
+
+    def fault(self) -> None:
+        """The sensor stopped answering: an assigned chip enters FAULT now (as ChipModel.fault)."""
+        lib.capsheet_chip_sensor_fault(self._chip)
+
+    def __repr__(self) -> str:
+        return (f"CFirmwareChip(uid=0x{self.uid:016X}, node=0x{self.node:04X}, state={self.state.name}, "
+                f"link={self.link})")
+
+
+# ---------------------------------------------------------------------------------------------
+# HAL callbacks: C -> Python. An exception is kept and re-raised when the C call returns.
+# ---------------------------------------------------------------------------------------------
+
+def _chip(user) -> CFirmwareChip:
+    return ffi.from_handle(user)
+
+
+def _onerror(exception, exc_value, traceback):
+    # cffi calls this with no access to the chip; the callbacks catch their own exceptions.
+    return None
+
+
+@ffi.def_extern()
+def capsheet_py_read_axes(user, now_us, xyz, status):
+    chip = _chip(user)
+    try:
+        (x, y, z), st = chip.sensor(now_us / 1e6)
+        xyz[0], xyz[1], xyz[2] = int(x), int(y), int(z)
+        status[0] = int(st) & 0xF
+        return 0
+    except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
+        chip._exc = exc
+        return -1
+
+
+@ffi.def_extern()
+def capsheet_py_send_bytes(user, data, length):
+    _chip(user)._out.append(bytes(ffi.buffer(data, length)))
+    return 0
+
+
+@ffi.def_extern()
+def capsheet_py_send_can(user, can_id, data, length, is_fd):
+    _chip(user)._out.append(CanFrame(int(can_id), bytes(ffi.buffer(data, length)), bool(is_fd)))
+    return 0
+
+
+@ffi.def_extern()
+def capsheet_py_read_uid(user):
+    return _chip(user).uid
+
+
+@ffi.def_extern()
+def capsheet_py_cal_load(user, axis, cal):
+    offset, sens, stored = _chip(user).cal_store[axis]
+    cal.axis = axis
+    cal.flags = stored
+    cal.offset_q4 = offset
+    cal.sensitivity = sens
+    return 0
+
+
+@ffi.def_extern()
+def capsheet_py_cal_store(user, axis, cal):
+    _chip(user).cal_store[axis] = (int(cal.offset_q4), float(cal.sensitivity), 1)
+    return 0

@@ -1,0 +1,720 @@
+/*
+ * codec.c — the pure part of capsheet_fw: CRC, COBS, payloads, serial frames, CAN frames and the
+ * serial stream decoder. No state, no HAL. Layouts: protocol/messages.py, framing.py, can.py.
+ */
+#include "capsheet_fw.h"
+
+#include <string.h>
+
+/* ------------------------------------------------------------------------------------------ */
+/* little-endian helpers (no unaligned access, no host-endianness assumption)                  */
+/* ------------------------------------------------------------------------------------------ */
+
+static uint16_t get_u16(const uint8_t *p) { return (uint16_t)(p[0] | (uint16_t)(p[1] << 8)); }
+
+static uint32_t get_u32(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) | ((uint32_t)p[3] << 24);
+}
+
+static void put_u16(uint8_t *p, uint16_t v)
+{
+    p[0] = (uint8_t)(v & 0xFFu);
+    p[1] = (uint8_t)(v >> 8);
+}
+
+static void put_u32(uint8_t *p, uint32_t v)
+{
+    p[0] = (uint8_t)(v & 0xFFu);
+    p[1] = (uint8_t)((v >> 8) & 0xFFu);
+    p[2] = (uint8_t)((v >> 16) & 0xFFu);
+    p[3] = (uint8_t)(v >> 24);
+}
+
+static uint32_t float_bits(float f)
+{
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    return u;
+}
+
+static float bits_float(uint32_t u)
+{
+    float f;
+    memcpy(&f, &u, sizeof f);
+    return f;
+}
+
+typedef char capsheet_float_is_32_bits[(sizeof(float) == 4) ? 1 : -1];
+
+/* sign-extend a 12-bit field */
+static int16_t sext12(uint32_t v)
+{
+    v &= 0xFFFu;
+    return (int16_t)((int32_t)v - (int32_t)((v & 0x800u) << 1));
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* CRC-16/CCITT-FALSE                                                                          */
+/* ------------------------------------------------------------------------------------------ */
+
+uint16_t capsheet_crc16(const uint8_t *data, size_t len, uint16_t crc)
+{
+    size_t i;
+    CAPSHEET_ASSERT(data != NULL || len == 0);
+    /* Bitwise, no table: 512 bytes of flash saved on a small part; a SAMPLE frame is 11 bytes. */
+    for (i = 0; i < len; i++) {
+        unsigned b;
+        crc = (uint16_t)(crc ^ (uint16_t)((uint16_t)data[i] << 8));
+        for (b = 0; b < 8u; b++) {
+            const bool top = (crc & 0x8000u) != 0u;
+            crc = (uint16_t)((unsigned)crc << 1);
+            if (top) {
+                crc = (uint16_t)(crc ^ 0x1021u);
+            }
+        }
+    }
+    return crc;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* COBS over a list of byte spans (so a frame is encoded without assembling it first)          */
+/* ------------------------------------------------------------------------------------------ */
+
+typedef struct {
+    const uint8_t *p;
+    size_t n;
+} span_t;
+
+static int32_t cobs_encode_spans(const span_t *spans, size_t nspans, uint8_t *out, size_t cap)
+{
+    size_t total = 0, done = 0, s, i;
+    size_t code_pos = 0, dst = 1;
+    uint8_t code = 1;
+    for (s = 0; s < nspans; s++) {
+        total += spans[s].n;
+    }
+    if (cap < 1u) {
+        return CAPSHEET_ERR_CAPACITY;
+    }
+    for (s = 0; s < nspans; s++) {
+        for (i = 0; i < spans[s].n; i++) {
+            const uint8_t byte = spans[s].p[i];
+            done++;
+            if (byte == 0u) {
+                out[code_pos] = code;
+                if (dst >= cap) {
+                    return CAPSHEET_ERR_CAPACITY;
+                }
+                code_pos = dst++;
+                code = 1;
+            } else {
+                if (dst >= cap) {
+                    return CAPSHEET_ERR_CAPACITY;
+                }
+                out[dst++] = byte;
+                code++;
+                if (code == 0xFFu && done < total) {
+                    out[code_pos] = code;
+                    if (dst >= cap) {
+                        return CAPSHEET_ERR_CAPACITY;
+                    }
+                    code_pos = dst++;
+                    code = 1;
+                }
+            }
+        }
+    }
+    out[code_pos] = code;
+    return (int32_t)dst;
+}
+
+int32_t capsheet_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap)
+{
+    span_t sp;
+    CAPSHEET_ASSERT((in != NULL || len == 0) && out != NULL);
+    if (len > 0x7FFFFF00u) {
+        return CAPSHEET_ERR_ARGUMENT;
+    }
+    sp.p = in;
+    sp.n = len;
+    return cobs_encode_spans(&sp, 1, out, cap);
+}
+
+int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap)
+{
+    size_t idx = 0, dst = 0;
+    CAPSHEET_ASSERT((in != NULL || len == 0) && (out != NULL || cap == 0));
+    if (len > 0x7FFFFF00u) {
+        return CAPSHEET_ERR_ARGUMENT;
+    }
+    /* Same rules as the `cobs` package that protocol.framing uses: a code byte n copies n-1 bytes
+     * and, unless n is 0xFF or the input ends, adds a 0x00. In place is safe: dst < idx always. */
+    while (idx < len) {
+        const uint8_t code = in[idx];
+        size_t k, end;
+        if (code == 0u) {
+            return CAPSHEET_ERR_BAD_COBS;
+        }
+        idx++;
+        end = idx + (size_t)code - 1u;
+        if (end > len) {
+            return CAPSHEET_ERR_BAD_COBS;
+        }
+        for (k = idx; k < end; k++) {
+            if (in[k] == 0u) {
+                return CAPSHEET_ERR_BAD_COBS;
+            }
+            if (dst >= cap) {
+                return CAPSHEET_ERR_CAPACITY;
+            }
+            out[dst++] = in[k];
+        }
+        idx = end;
+        if (idx < len && code != 0xFFu) {
+            if (dst >= cap) {
+                return CAPSHEET_ERR_CAPACITY;
+            }
+            out[dst++] = 0u;
+        }
+    }
+    return (int32_t)dst;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Types                                                                                       */
+/* ------------------------------------------------------------------------------------------ */
+
+/* Fixed payload size per type (0x01..0x18); 0xFF = not defined; 0xFE = variable (SNAPSHOT). */
+#define VAR 0xFEu
+#define UND 0xFFu
+static const uint8_t k_size[0x19] = {
+    UND, 8, 8, 7, 8, 2, 2, 8, VAR,        /* 0x00..0x08 */
+    UND, UND, UND, UND, UND, UND, UND,     /* 0x09..0x0F */
+    2, 8, 6, 0, 0, 0, 0, 8, 1             /* 0x10..0x18 */
+};
+/* priority per type (docs §7.1) */
+static const uint8_t k_priority[0x19] = {
+    7, 5, 5, 2, 6, 3, 3, 5, 2,
+    7, 7, 7, 7, 7, 7, 7,
+    0, 4, 4, 4, 1, 4, 1, 4, 4
+};
+
+bool capsheet_type_known(uint8_t type) { return type < 0x19u && k_size[type] != UND; }
+
+uint8_t capsheet_priority(uint8_t type) { return capsheet_type_known(type) ? k_priority[type] : 7u; }
+
+uint16_t capsheet_provisional_node(uint64_t uid, uint32_t salt)
+{
+    uint32_t h = (uint32_t)((uid ^ (uid >> 32)) & 0xFFFFFFFFu) ^ (uint32_t)(salt * 0x9E3779B9u);
+    uint32_t m;
+    h ^= h >> 16;
+    /* h % 0x7FFF without a divide (Cortex-M0+ has none): 2^15 == 1 (mod 2^15 - 1), so sum the
+     * 15-bit digits and fold. */
+    m = (h & 0x7FFFu) + ((h >> 15) & 0x7FFFu) + (h >> 30);
+    while (m >= 0x7FFFu) {
+        m -= 0x7FFFu;
+    }
+    return (uint16_t)(CAPSHEET_NODE_PROVISIONAL_MIN | m);
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Payloads                                                                                    */
+/* ------------------------------------------------------------------------------------------ */
+
+static void put_sample_word(uint8_t *p, int16_t x, int16_t y, int16_t z, uint8_t status)
+{
+    const uint32_t ux = (uint32_t)(uint16_t)x & 0xFFFu;
+    const uint32_t uy = (uint32_t)(uint16_t)y & 0xFFFu;
+    const uint32_t uz = (uint32_t)(uint16_t)z & 0xFFFu;
+    p[0] = (uint8_t)(ux & 0xFFu);
+    p[1] = (uint8_t)((ux >> 8) | ((uy & 0xFu) << 4));
+    p[2] = (uint8_t)(uy >> 4);
+    p[3] = (uint8_t)(uz & 0xFFu);
+    p[4] = (uint8_t)((uz >> 8) | ((uint32_t)(status & 0xFu) << 4));
+}
+
+static void put_cal(uint8_t *p, const capsheet_cal_t *c)
+{
+    p[0] = c->axis;
+    p[1] = c->flags;
+    put_u16(p + 2, (uint16_t)c->offset_q4);
+    put_u32(p + 4, float_bits(c->sensitivity));
+}
+
+/* Encode the fixed part of a payload into `p` (>= 8 bytes): everything but SNAPSHOT's words.
+ * Returns the number of bytes written, or an error. */
+static int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
+{
+    switch (m->type) {
+    case CAPSHEET_ANNOUNCE:
+        put_u32(p, (uint32_t)(m->u.announce.uid & 0xFFFFFFFFu));
+        put_u32(p + 4, (uint32_t)(m->u.announce.uid >> 32));
+        return 8;
+    case CAPSHEET_INFO:
+        p[0] = m->u.info.fw_major;
+        p[1] = m->u.info.fw_minor;
+        p[2] = m->u.info.fw_patch;
+        p[3] = m->u.info.protocol_version;
+        put_u16(p + 4, m->u.info.capabilities);
+        p[6] = m->u.info.adc_bits;
+        p[7] = m->u.info.state;
+        return 8;
+    case CAPSHEET_SAMPLE:
+        put_u16(p, m->u.sample.counter);
+        put_sample_word(p + 2, m->u.sample.x, m->u.sample.y, m->u.sample.z, m->u.sample.status);
+        return 7;
+    case CAPSHEET_STATUS:
+        p[0] = m->u.status.state;
+        p[1] = m->u.status.flags;
+        p[2] = m->u.status.rx_errors;
+        p[3] = m->u.status.missed_syncs;
+        put_u32(p + 4, m->u.status.uptime_s);
+        return 8;
+    case CAPSHEET_ACK:
+        p[0] = m->u.ack.command;
+        p[1] = m->u.ack.detail;
+        return 2;
+    case CAPSHEET_NACK:
+        p[0] = m->u.nack.command;
+        p[1] = m->u.nack.reason;
+        return 2;
+    case CAPSHEET_CAL_DATA:
+    case CAPSHEET_CAL_WRITE:
+        put_cal(p, &m->u.cal);
+        return 8;
+    case CAPSHEET_SNAPSHOT:
+        if (m->u.snapshot.count == 0u || m->u.snapshot.words == NULL) {
+            return CAPSHEET_ERR_ARGUMENT;
+        }
+        put_u16(p, m->u.snapshot.counter);
+        put_u16(p + 2, m->u.snapshot.first_link);
+        p[4] = m->u.snapshot.count;
+        return 5;
+    case CAPSHEET_SYNC:
+        put_u16(p, m->u.sync.counter);
+        return 2;
+    case CAPSHEET_ASSIGN:
+        put_u16(p, m->u.assign.new_node);
+        put_u16(p + 2, m->u.assign.link);
+        put_u32(p + 4, m->u.assign.uid_low);
+        return 8;
+    case CAPSHEET_CONFIG:
+        put_u16(p, m->u.config.rate_hz);
+        p[2] = m->u.config.range;
+        p[3] = m->u.config.filter;
+        put_u16(p + 4, m->u.config.heartbeat_ms);
+        return 6;
+    case CAPSHEET_START:
+    case CAPSHEET_STOP:
+    case CAPSHEET_GET_INFO:
+    case CAPSHEET_RESET:
+        return 0;
+    case CAPSHEET_CAL_READ:
+        p[0] = m->u.cal_read.axis;
+        return 1;
+    default:
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+}
+
+/* The payload as (fixed part in `tmp`, SNAPSHOT words) spans; returns the payload length. */
+static int32_t payload_spans(const capsheet_msg_t *m, uint8_t tmp[8], span_t sp[2])
+{
+    const int32_t n = encode_fixed(m, tmp);
+    if (n < 0) {
+        return n;
+    }
+    sp[0].p = tmp;
+    sp[0].n = (size_t)n;
+    sp[1].p = NULL;
+    sp[1].n = 0;
+    if (m->type == CAPSHEET_SNAPSHOT) {
+        sp[1].p = m->u.snapshot.words;
+        sp[1].n = (size_t)m->u.snapshot.count * CAPSHEET_SAMPLE_WORD_SIZE;
+    }
+    return (int32_t)(sp[0].n + sp[1].n);
+}
+
+int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t cap)
+{
+    uint8_t tmp[8];
+    span_t sp[2];
+    int32_t n;
+    CAPSHEET_ASSERT(msg != NULL && (buf != NULL || cap == 0));
+    n = payload_spans(msg, tmp, sp);
+    if (n < 0) {
+        return n;
+    }
+    if ((size_t)n > cap) {
+        return CAPSHEET_ERR_CAPACITY;
+    }
+    if (sp[0].n) {
+        memcpy(buf, sp[0].p, sp[0].n);
+    }
+    if (sp[1].n) {
+        memcpy(buf + sp[0].n, sp[1].p, sp[1].n);
+    }
+    return n;
+}
+
+static bool sensitivity_ok(uint32_t bits)
+{
+    /* finite and > 0: sign clear, exponent not all ones, not +0 (no float arithmetic needed) */
+    return bits != 0u && bits < 0x7F800000u;
+}
+
+static void get_cal(const uint8_t *p, capsheet_cal_t *c)
+{
+    c->axis = p[0];
+    c->flags = p[1];
+    c->offset_q4 = (int16_t)get_u16(p + 2);
+    c->sensitivity = bits_float(get_u32(p + 4));
+}
+
+int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, size_t len, capsheet_msg_t *out)
+{
+    uint8_t size;
+    CAPSHEET_ASSERT(out != NULL && (p != NULL || len == 0));
+    out->type = type;
+    out->node = node;
+    if (!capsheet_type_known(type)) {
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+    if (node == CAPSHEET_NODE_RESERVED) {
+        return CAPSHEET_ERR_BAD_FIELD;
+    }
+    size = k_size[type];
+    if (size == VAR) {  /* SNAPSHOT */
+        size_t count;
+        if (len < CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE) {
+            return CAPSHEET_ERR_BAD_LENGTH;
+        }
+        count = p[4];
+        if (len != CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE * count) {
+            return CAPSHEET_ERR_BAD_LENGTH;
+        }
+        out->u.snapshot.counter = get_u16(p);
+        out->u.snapshot.first_link = get_u16(p + 2);
+        out->u.snapshot.count = p[4];
+        out->u.snapshot.words = p + CAPSHEET_SNAPSHOT_HEADER_SIZE;
+        /* count >= 1 here (len >= 10); first_link + count must not pass 65536 */
+        return ((uint32_t)out->u.snapshot.first_link + count > 0x10000u) ? CAPSHEET_ERR_BAD_FIELD : 0;
+    }
+    if (len != size) {
+        return CAPSHEET_ERR_BAD_LENGTH;
+    }
+    switch (type) {
+    case CAPSHEET_ANNOUNCE:
+        out->u.announce.uid = (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);
+        return 0;
+    case CAPSHEET_INFO:
+        out->u.info.fw_major = p[0];
+        out->u.info.fw_minor = p[1];
+        out->u.info.fw_patch = p[2];
+        out->u.info.protocol_version = p[3];
+        out->u.info.capabilities = get_u16(p + 4);
+        out->u.info.adc_bits = p[6];
+        out->u.info.state = p[7];
+        return (p[7] < CAPSHEET_STATE_COUNT) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_SAMPLE: {
+        const uint32_t w = get_u32(p + 2);
+        out->u.sample.counter = get_u16(p);
+        out->u.sample.x = sext12(w);
+        out->u.sample.y = sext12(w >> 12);
+        out->u.sample.z = sext12((w >> 24) | ((uint32_t)p[6] << 8));
+        out->u.sample.status = (uint8_t)(p[6] >> 4);
+        return 0;
+    }
+    case CAPSHEET_STATUS:
+        out->u.status.state = p[0];
+        out->u.status.flags = p[1];
+        out->u.status.rx_errors = p[2];
+        out->u.status.missed_syncs = p[3];
+        out->u.status.uptime_s = get_u32(p + 4);
+        return (p[0] < CAPSHEET_STATE_COUNT) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_ACK:
+        out->u.ack.command = p[0];
+        out->u.ack.detail = p[1];
+        return 0;
+    case CAPSHEET_NACK:
+        out->u.nack.command = p[0];
+        out->u.nack.reason = p[1];
+        return (p[1] >= CAPSHEET_NACK_UNKNOWN_COMMAND && p[1] <= CAPSHEET_NACK_STORAGE_FAILED)
+                   ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_CAL_DATA:
+    case CAPSHEET_CAL_WRITE:
+        get_cal(p, &out->u.cal);
+        if (type == CAPSHEET_CAL_WRITE && node == CAPSHEET_NODE_BROADCAST) {
+            return CAPSHEET_ERR_BAD_FIELD;
+        }
+        return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_SYNC:
+        out->u.sync.counter = get_u16(p);
+        return (node == CAPSHEET_NODE_BROADCAST) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_ASSIGN:
+        out->u.assign.new_node = get_u16(p);
+        out->u.assign.link = get_u16(p + 2);
+        out->u.assign.uid_low = get_u32(p + 4);
+        return (node != CAPSHEET_NODE_BROADCAST && out->u.assign.new_node >= 1u
+                && out->u.assign.new_node <= CAPSHEET_NODE_MAX_ASSIGNED) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_CONFIG:
+        out->u.config.rate_hz = get_u16(p);
+        out->u.config.range = p[2];
+        out->u.config.filter = p[3];
+        out->u.config.heartbeat_ms = get_u16(p + 4);
+        return 0;
+    case CAPSHEET_CAL_READ:
+        out->u.cal_read.axis = p[0];
+        return (node != CAPSHEET_NODE_BROADCAST && p[0] <= 2u) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    default:  /* START, STOP, GET_INFO, RESET: empty */
+        return 0;
+    }
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* Serial frames                                                                               */
+/* ------------------------------------------------------------------------------------------ */
+
+static int32_t serial_encode_spans(uint8_t version, uint8_t type, uint16_t node, const span_t *payload,
+                                   size_t npayload, uint8_t *out, size_t cap)
+{
+    uint8_t header[CAPSHEET_HEADER_SIZE], crc_be[CAPSHEET_CRC_SIZE];
+    span_t sp[4];
+    size_t i, n = 0, plen = 0;
+    uint16_t crc;
+    int32_t len;
+    header[0] = version;
+    header[1] = type;
+    put_u16(header + 2, node);
+    sp[n].p = header;
+    sp[n++].n = sizeof header;
+    crc = capsheet_crc16(header, sizeof header, CAPSHEET_CRC_INIT);
+    for (i = 0; i < npayload; i++) {
+        plen += payload[i].n;
+        crc = capsheet_crc16(payload[i].p, payload[i].n, crc);
+        sp[n++] = payload[i];
+    }
+    if (plen > CAPSHEET_MAX_PAYLOAD_SIZE) {
+        return CAPSHEET_ERR_ARGUMENT;
+    }
+    crc_be[0] = (uint8_t)(crc >> 8);
+    crc_be[1] = (uint8_t)(crc & 0xFFu);
+    sp[n].p = crc_be;
+    sp[n++].n = sizeof crc_be;
+    len = cobs_encode_spans(sp, n, out, cap);
+    if (len < 0) {
+        return len;
+    }
+    if ((size_t)len >= cap) {
+        return CAPSHEET_ERR_CAPACITY;
+    }
+    out[len] = 0u;
+    return len + 1;
+}
+
+int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node, const uint8_t *payload,
+                                   size_t len, uint8_t *out, size_t cap)
+{
+    span_t sp;
+    CAPSHEET_ASSERT((payload != NULL || len == 0) && out != NULL);
+    sp.p = payload;
+    sp.n = len;
+    return serial_encode_spans(version, type, node, &sp, 1, out, cap);
+}
+
+int32_t capsheet_serial_encode(const capsheet_msg_t *msg, uint8_t *out, size_t cap)
+{
+    uint8_t tmp[8];
+    span_t sp[2];
+    int32_t n;
+    CAPSHEET_ASSERT(msg != NULL && out != NULL);
+    n = payload_spans(msg, tmp, sp);
+    if (n < 0) {
+        return n;
+    }
+    return serial_encode_spans((uint8_t)CAPSHEET_PROTOCOL_VERSION, msg->type, msg->node, sp, 2, out, cap);
+}
+
+int32_t capsheet_serial_decode_frame(uint8_t *frame, size_t len, capsheet_msg_t *out, uint8_t *version)
+{
+    int32_t n;
+    CAPSHEET_ASSERT(out != NULL && (frame != NULL || len == 0));
+    if (len > CAPSHEET_MAX_ENCODED_SIZE) {
+        return CAPSHEET_ERR_OVERSIZE;
+    }
+    n = capsheet_cobs_decode(frame, len, frame, len);
+    if (n < 0) {
+        return CAPSHEET_ERR_BAD_COBS;
+    }
+    if ((size_t)n < CAPSHEET_HEADER_SIZE + CAPSHEET_CRC_SIZE) {
+        return CAPSHEET_ERR_SHORT;
+    }
+    if (capsheet_crc16(frame, (size_t)n, CAPSHEET_CRC_INIT) != 0u) {
+        return CAPSHEET_ERR_BAD_CRC;
+    }
+    if (version != NULL) {
+        *version = frame[0];
+    }
+    if (frame[0] != CAPSHEET_PROTOCOL_VERSION) {
+        out->type = frame[1];
+        out->node = get_u16(frame + 2);
+        return CAPSHEET_ERR_BAD_VERSION;
+    }
+    return capsheet_payload_decode(frame[1], get_u16(frame + 2), frame + CAPSHEET_HEADER_SIZE,
+                                   (size_t)n - CAPSHEET_HEADER_SIZE - CAPSHEET_CRC_SIZE, out);
+}
+
+int32_t capsheet_stream_init(capsheet_stream_t *s, uint8_t *buf, size_t cap)
+{
+    CAPSHEET_ASSERT(s != NULL);
+    if (buf == NULL || cap == 0u) {
+        return CAPSHEET_ERR_ARGUMENT;
+    }
+    s->buf = buf;
+    s->cap = cap;
+    s->len = 0;
+    s->discarding = false;
+    s->version = 0;
+    s->frames = 0;
+    s->errors = 0;
+    return 0;
+}
+
+int32_t capsheet_stream_feed(capsheet_stream_t *s, uint8_t byte, capsheet_msg_t *out)
+{
+    int32_t rc;
+    size_t len;
+    CAPSHEET_ASSERT(s != NULL && out != NULL && s->buf != NULL && s->len <= s->cap);
+    if (byte != 0u) {
+        if (s->discarding) {
+            return 0;
+        }
+        if (s->len >= s->cap || s->len >= CAPSHEET_MAX_ENCODED_SIZE) {
+            s->len = 0;
+            s->discarding = true;
+            s->errors++;
+            return CAPSHEET_ERR_OVERSIZE;
+        }
+        s->buf[s->len++] = byte;
+        return 0;
+    }
+    len = s->len;
+    s->len = 0;
+    if (s->discarding) {
+        s->discarding = false;
+        return 0;
+    }
+    if (len == 0u) {
+        return 0;  /* idle fill */
+    }
+    rc = capsheet_serial_decode_frame(s->buf, len, out, &s->version);
+    if (rc < 0) {
+        s->errors++;
+        return rc;
+    }
+    s->frames++;
+    return 1;
+}
+
+/* ------------------------------------------------------------------------------------------ */
+/* CAN                                                                                         */
+/* ------------------------------------------------------------------------------------------ */
+
+uint32_t capsheet_can_make_id(uint8_t priority, uint8_t type, uint8_t version, uint16_t node)
+{
+    return ((uint32_t)(priority & 0x7u) << 26) | ((uint32_t)(type & 0x3Fu) << 20)
+           | ((uint32_t)(version & 0xFu) << 16) | (uint32_t)node;
+}
+
+int32_t capsheet_can_fd_length(size_t n)
+{
+    static const uint8_t k_fd[7] = {12, 16, 20, 24, 32, 48, 64};
+    unsigned i;
+    if (n <= 8u) {
+        return (int32_t)n;
+    }
+    for (i = 0; i < sizeof k_fd; i++) {
+        if (k_fd[i] >= n) {
+            return (int32_t)k_fd[i];
+        }
+    }
+    return CAPSHEET_ERR_ARGUMENT;
+}
+
+int32_t capsheet_can_encode(const capsheet_msg_t *msg, capsheet_can_mode_t mode, uint32_t *id,
+                            uint8_t *data, size_t cap, bool *is_fd)
+{
+    uint8_t tmp[8];
+    span_t sp[2];
+    int32_t n, padded;
+    bool fd;
+    CAPSHEET_ASSERT(msg != NULL && id != NULL && data != NULL && is_fd != NULL);
+    n = payload_spans(msg, tmp, sp);
+    if (n < 0) {
+        return n;
+    }
+    fd = (mode == CAPSHEET_CAN_FD) || (mode == CAPSHEET_CAN_AUTO && n > (int32_t)CAPSHEET_CAN_CLASSIC_MTU);
+    if (!fd && n > (int32_t)CAPSHEET_CAN_CLASSIC_MTU) {
+        return CAPSHEET_ERR_NEEDS_FD;
+    }
+    padded = fd ? capsheet_can_fd_length((size_t)n) : n;
+    if (padded < 0) {
+        return CAPSHEET_ERR_NEEDS_FD;  /* over 64 bytes: does not fit any CAN frame */
+    }
+    if ((size_t)padded > cap) {
+        return CAPSHEET_ERR_CAPACITY;
+    }
+    if (sp[0].n) {
+        memcpy(data, sp[0].p, sp[0].n);
+    }
+    if (sp[1].n) {
+        memcpy(data + sp[0].n, sp[1].p, sp[1].n);
+    }
+    memset(data + n, 0, (size_t)(padded - n));
+    *id = capsheet_can_make_id(capsheet_priority(msg->type), msg->type, (uint8_t)CAPSHEET_PROTOCOL_VERSION,
+                               msg->node);
+    *is_fd = fd;
+    return padded;
+}
+
+int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uint8_t *data, size_t len,
+                            capsheet_msg_t *out, uint8_t *version)
+{
+    uint8_t type, ver;
+    uint16_t node;
+    CAPSHEET_ASSERT(out != NULL && (data != NULL || len == 0));
+    if (!is_extended || id >= (1ul << 29)) {
+        return CAPSHEET_ERR_BAD_FIELD;
+    }
+    type = (uint8_t)((id >> 20) & 0x3Fu);
+    ver = (uint8_t)((id >> 16) & 0xFu);
+    node = (uint16_t)(id & 0xFFFFu);
+    out->type = type;
+    out->node = node;
+    if (version != NULL) {
+        *version = ver;
+    }
+    if (ver != CAPSHEET_PROTOCOL_VERSION) {
+        return CAPSHEET_ERR_BAD_VERSION;
+    }
+    if (len > (is_fd ? CAPSHEET_CAN_FD_MTU : CAPSHEET_CAN_CLASSIC_MTU)
+        || (is_fd && capsheet_can_fd_length(len) != (int32_t)len)) {
+        return CAPSHEET_ERR_BAD_LENGTH;
+    }
+    if (type == CAPSHEET_SNAPSHOT && len >= CAPSHEET_SNAPSHOT_HEADER_SIZE) {
+        const size_t need = CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE * (size_t)data[4];
+        const size_t expected = (is_fd && need <= CAPSHEET_CAN_FD_MTU) ? (size_t)capsheet_can_fd_length(need) : need;
+        size_t i;
+        if (len != expected) {
+            return CAPSHEET_ERR_BAD_LENGTH;
+        }
+        for (i = need; i < len; i++) {
+            if (data[i] != 0u) {
+                return CAPSHEET_ERR_BAD_FIELD;
+            }
+        }
+        len = need;
+    }
+    return capsheet_payload_decode(type, node, data, len, out);
+}
