@@ -316,12 +316,13 @@ class Gateway:
         discarded. A shortcut for tests and benchmarks: a host normally does this."""
         from protocol.messages import Assign, Start
         saved, self._queue = self._queue, []
+        faults, self.faults = self.faults, None  # discarded answers: no fault is injected or counted
         for k, c in zip(self.links, self.chips):
             msg = Assign(c.node, new_node=first_node + k, link=k, uid_low=c.uid & 0xFFFFFFFF)
             self._inject(msg, now_s)
         if start:
             self._inject(Start(0), now_s)
-        self._queue = saved
+        self._queue, self.faults = saved, faults
 
     def _inject(self, msg: Message, now_s: float) -> None:
         frame = to_can(msg) if self.can else encode(msg)

@@ -1,0 +1,245 @@
+"""The virtual devices, reached as hardware: a real pty opened with pyserial, python-can's own
+``virtual`` and ``slcan`` interfaces, the in-memory link. Frames decode with the protocol decoder
+and, on CAN, with cantools and the DBC. Every device thread is stopped by its fixture."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import can
+import cantools
+import numpy as np
+import pytest
+import serial
+
+from protocol.can import decode_can, to_can
+from protocol.dbc import DBC_PATH, dbc_frame_id
+from protocol.framing import StreamDecoder, encode
+from protocol.messages import Ack, Announce, Assign, GetInfo, Info, MsgType, Sample, Snapshot, Start, Sync
+from virtual_sheet.chip import ChipModel
+from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
+from virtual_sheet.sheet import VirtualSheet, read_layout
+from virtual_sheet.slcan import SlcanAdapter, SlcanDevice
+
+TIMEOUT_S = 3.0
+
+
+@pytest.fixture(scope="module")
+def db():
+    return cantools.database.load_file(str(DBC_PATH))
+
+
+def read_until(read, pred, timeout_s=TIMEOUT_S):
+    """Call ``read()`` (returns a list of events) until ``pred(all_events)``; returns them."""
+    got = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        got += read()
+        if pred(got):
+            return got
+    raise AssertionError(f"timed out; got {len(got)} events: {got[:5]}")
+
+
+# ------------------------------------------------------------------ serial
+
+def serial_session(port, sheet, dec):
+    """Discover, assign by the layout, start; return the events seen."""
+    def read():
+        return dec.feed(port.read(65536))
+    port.write(encode(GetInfo(0)))
+    ev = read_until(read, lambda e: len({m.uid for m in e if isinstance(m, Announce)}) >= sheet.n_links)
+    nodes = {m.uid: m.node for m in ev if isinstance(m, Announce)}
+    layout = sheet.layout
+    for uid, node in nodes.items():
+        k = layout[uid]
+        port.write(encode(Assign(node, new_node=k + 1, link=k, uid_low=uid & 0xFFFFFFFF)))
+    port.write(encode(Start(0)))
+    acks = read_until(read, lambda e: sum(isinstance(m, Ack) for m in e) >= 2 * sheet.n_links)
+    assert {m.node for m in acks if isinstance(m, Ack)} == set(range(1, sheet.n_links + 1))
+
+
+@pytest.fixture
+def pty_device():
+    sheet = VirtualSheet("tilted", "3x4", seed=11, noise=0.1)
+    with PtyDevice(sheet) as dev:
+        yield dev
+
+
+def test_pty_serial_port_by_path(pty_device):
+    dev, sheet = pty_device, pty_device.sheet
+    assert os.path.islink(dev.path) and os.readlink(dev.path) == dev.tty
+    with serial.Serial(dev.path, baudrate=3_000_000, timeout=0.05) as port:
+        dec = StreamDecoder()
+        serial_session(port, sheet, dec)
+        for c in range(20):
+            port.write(encode(Sync(counter=c)))
+        ev = read_until(lambda: dec.feed(port.read(65536)),
+                        lambda e: sum(isinstance(m, Sample) for m in e) >= 20 * sheet.n_links)
+    samples = [m for m in ev if isinstance(m, Sample)]
+    assert dec.stats.error_count == 0
+    assert {(s.node, s.counter) for s in samples} == {(k + 1, c) for k in range(sheet.n_links) for c in range(20)}
+    for c in (0, 19):
+        assert sheet.truth(c).shape == (3, 4, 3)
+
+
+def test_pty_outage_relinks_the_same_path():
+    sheet = VirtualSheet("flat", "2x2", seed=1, faults="outage_at_s=0.3,outage_s=0.3")
+    with PtyDevice(sheet) as dev:
+        first_tty = dev.tty
+        port = serial.Serial(dev.path, timeout=0.05)
+        with pytest.raises(serial.SerialException):
+            deadline = time.monotonic() + TIMEOUT_S
+            while time.monotonic() < deadline:
+                port.read(1000)
+        port.close()
+        assert sheet.fault_stats.outages == 1
+        deadline = time.monotonic() + TIMEOUT_S
+        while not (dev.running and not dev.down and os.path.exists(dev.path)):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        assert dev.tty != first_tty or os.readlink(dev.path) == dev.tty
+        with serial.Serial(dev.path, timeout=0.05) as port:
+            port.write(encode(GetInfo(0)))
+            dec = StreamDecoder()
+            ev = read_until(lambda: dec.feed(port.read(1000)),
+                            lambda e: sum(isinstance(m, Announce) for m in e) >= 4)
+        assert len({m.uid for m in ev if isinstance(m, Announce)}) == 4
+
+
+def test_memory_device_packed_snapshots_and_own_sync(tmp_path):
+    sheet = VirtualSheet("gaussian", "4x4", seed=2, noise=0.0)
+    with MemoryDevice(sheet, packed=True, sync_rate_hz=200) as dev:
+        dec = StreamDecoder()
+        serial_session(dev.port, sheet, dec)
+        ev = read_until(lambda: dec.feed(dev.port.read(65536)),
+                        lambda e: sum(isinstance(m, Snapshot) for m in e) >= 10)
+    syncs = [m for m in ev if isinstance(m, Sync)]
+    snaps = [m for m in ev if isinstance(m, Snapshot)]
+    assert syncs and all(s.count == sheet.n_links and s.first_link == 0 for s in snaps)
+    last = snaps[-1]
+    assert last.counter in {s.counter for s in syncs}
+    expect, _st = sheet.counts_at(sheet.sync_times[last.counter])
+    np.testing.assert_array_equal(last.counts, expect)
+    assert not last.status.any()
+    path = sheet.write_layout(tmp_path / "layout.csv")
+    assert read_layout(path) == sheet.layout
+    assert read_layout(sheet.write_layout(tmp_path / "layout.json")) == sheet.layout
+
+
+def test_chip_factory_hook():
+    made = []
+
+    class Counted(ChipModel):
+        def __init__(self, *a, **kw):
+            super().__init__(*a, **kw)
+            made.append(self)
+
+    sheet = VirtualSheet("flat", "3x3", chip_factory=Counted)
+    assert len(made) == sheet.n_links and sheet.chips == made
+
+
+# ------------------------------------------------------------------ CAN: python-can virtual
+
+def can_session(buses, sheet, *, timeout_s=TIMEOUT_S):
+    """Discover and assign over several python-can buses; return every message received."""
+    received = []
+
+    def read():
+        out = []
+        for b in buses:
+            m = b.recv(0.01)
+            while m is not None:
+                out.append(m)
+                m = b.recv(0)
+        received.extend(out)
+        return [decode_can(m.arbitration_id, m.data, is_fd=m.is_fd) for m in out]
+
+    def send(bus, msg):
+        f = to_can(msg)
+        bus.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True, is_fd=f.is_fd))
+
+    for b in buses:
+        send(b, GetInfo(0))
+    ev = read_until(read, lambda e: len({m.uid for m in e if isinstance(m, Announce)}) >= sheet.n_links)
+    layout = sheet.layout
+    blocks = sheet.split(len(buses))
+    for m in ev:
+        if isinstance(m, Announce):
+            k = layout[m.uid]
+            bus = buses[next(i for i, blk in enumerate(blocks) if k in blk)]
+            send(bus, Assign(m.node, new_node=k + 1, link=k, uid_low=m.uid & 0xFFFFFFFF))
+    for b in buses:
+        send(b, Start(0))
+    read_until(read, lambda e: sum(isinstance(m, Ack) for m in e) >= 2 * sheet.n_links)
+    return read, send, received
+
+
+@pytest.mark.parametrize("fd", [False, True])
+def test_python_can_virtual_two_buses_decode_with_cantools(fd, db):
+    sheet = VirtualSheet("tilted", "3x4", seed=5, transport="can", fd=fd)
+    with CanDevice(sheet, n_buses=2, channels=[f"t-{fd}-a", f"t-{fd}-b"], packed=fd) as dev:
+        buses = [can.Bus(interface="virtual", channel=ch, fd=fd) for ch in dev.channels]
+        try:
+            read, send, received = can_session(buses, sheet)
+            for c in range(5):
+                for b in buses:
+                    send(b, Sync(counter=c))
+            want = (lambda e: sum(isinstance(m, Snapshot) for m in e) >= 5 * 2) if fd else \
+                (lambda e: sum(isinstance(m, Sample) for m in e) >= 5 * sheet.n_links)
+            read_until(read, want)
+        finally:
+            for b in buses:
+                b.shutdown()
+    for m in received:
+        ours = decode_can(m.arbitration_id, m.data, is_fd=m.is_fd)
+        assert not hasattr(ours, "reason"), ours
+        dbm = db.get_message_by_frame_id(dbc_frame_id(m.arbitration_id))
+        assert dbm.name == MsgType(ours.TYPE).name
+        sig = dbm.decode(bytes(m.data), decode_choices=False, allow_truncated=True)
+        if isinstance(ours, Sample):
+            assert (sig["counter"], sig["x"], sig["y"], sig["z"], sig["status"]) == (
+                ours.counter, ours.x, ours.y, ours.z, ours.status)
+        elif isinstance(ours, Snapshot):
+            assert m.is_fd and sig["count"] == ours.count
+            assert [sig[f"z_{k}"] for k in range(ours.count)] == ours.counts[:, 2].tolist()
+        elif isinstance(ours, Announce):
+            assert sig["uid"] == ours.uid
+
+
+# ------------------------------------------------------------------ SLCAN on a pty
+
+def test_slcan_adapter_with_python_can_slcan_interface():
+    sheet = VirtualSheet("tilted", "3x3", seed=8, transport="can")
+    with SlcanDevice(sheet) as dev:
+        bus = can.Bus(interface="slcan", channel=dev.path, bitrate=1_000_000, sleep_after_open=0)
+        try:
+            assert bus.get_version(1.0) == (10, 13)
+            assert bus.get_serial_number(1.0) == "CS01"
+            read, send, received = can_session([bus], sheet)
+            for c in range(5):
+                send(bus, Sync(counter=c))
+            ev = read_until(read, lambda e: sum(isinstance(m, Sample) for m in e) >= 5 * sheet.n_links)
+        finally:
+            bus.shutdown()
+    assert {(m.node, m.counter) for m in ev if isinstance(m, Sample)} == {
+        (k + 1, c) for k in range(sheet.n_links) for c in range(5)}
+    assert dev.adapters[0].bad_commands <= 2  # python-can's repeated O on open
+
+
+def test_slcan_codec_lines():
+    sent = []
+    a = SlcanAdapter(lambda f, r, e: sent.append((f, r, e)), fd=True)
+    assert a.feed(b"T0101000020000\r") == b"\a"  # closed: refused
+    assert a.feed(b"S8\rO\r") == b"\r\r"
+    assert a.feed(b"S6\r") == b"\a"  # bit rate only while closed
+    assert a.feed(b"T0101000023412\r") == b"Z\r"
+    assert sent[-1][0] == to_can(Sync(counter=0x1234)) and sent[-1][2]
+    assert a.feed(b"D14100001" + b"9" + b"00" * 12 + b"\r") == b"Z\r" and len(sent[-1][0].data) == 12
+    assert a.feed(b"T01010000") == b"" and a.feed(b"23412\r") == b"Z\r"  # split across reads
+    assert a.feed(b"Tzz\r") == b"\a"
+    line = a.frames_to_host([to_can(Info(3, 0, 1, 0))], 0.0)
+    assert line.startswith(b"T14210003") and line.endswith(b"\r")
+    a.feed(b"Z1\r")
+    assert len(a.frames_to_host([to_can(Sync(counter=1))], 1.5)) == len(b"T010100002") + 4 + 4 + 1
+    assert a.feed(b"F\r") == b"F00\r"
