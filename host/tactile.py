@@ -89,6 +89,13 @@ class Foam:
         e_oed = self.youngs_modulus_pa * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
         return e_oed / self.thickness_m
 
+    @property
+    def shear_length_m(self) -> float:
+        """Spreading length ``λ = h sqrt((1 − 2ν) / (6 (1 − ν)))`` of the layer, metres: a dent's
+        tail decays about as ``exp(−r / λ)``."""
+        nu = self.poisson
+        return self.thickness_m * np.sqrt((1 - 2 * nu) / (6 * (1 - nu)))
+
 
 # ---------------------------------------------------------------------------------------------
 # Rest shape
@@ -535,6 +542,7 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
         grown = new
     k = foam.k_pa_per_m
     out = []
+    geo = []
     for r in ids:
         region = labels == r
         depth = float(d[region].max())
@@ -563,13 +571,55 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
             ang += np.pi
         elif ang > np.pi / 2:
             ang -= np.pi
-        force = float(k * np.sum(d[grown == r] * rest.areas[grown == r]))
+        geo.append((pos, float(np.sqrt(rest.areas[core].sum() / np.pi))))
         out.append(Contact(id=-1, index=np.array([fi, fj]), position=pos, normal=nrm,
-                           depth_m=depth, force_n=force, area_m2=float(rest.areas[core].sum()),
+                           depth_m=depth, force_n=0.0, area_m2=float(rest.areas[core].sum()),
                            axes_m=axes, angle_rad=ang, peak=(int(pk[0]), int(pk[1])),
                            region=region))
+    share = _force_shares(d, rest, grown, ids, geo, foam.shear_length_m)
+    out = [replace(c, force_n=float(k * np.sum(d * rest.areas * f)))
+           for c, f in zip(out, share)]
     out.sort(key=lambda c: -c.depth_m)
     return out
+
+
+def _force_shares(d, rest, grown, ids, geo, lam):
+    """Each contact's share of every joint's displacement, shape ``(n_contacts, rows, cols)``.
+
+    A joint in one contact's region or skirt belongs to it; where the skirts of several
+    contacts cover the same neighbourhood, the joints of all their regions and skirts are
+    shared in proportion to fitted templates: contact ``c`` has ``t_c(r) = exp(−max(r − a_c, 0)
+    / λ)`` (flat over its half-depth radius ``a_c``, the foam's tail beyond), amplitudes by
+    non-negative least squares on those joints. The shares add up to 1 on the support, so the
+    total force is the plain Winkler integral; only its split is modelled.
+    """
+    from scipy.optimize import nnls
+
+    n = len(ids)
+    share = np.zeros((n,) + d.shape)
+    for c, r in enumerate(ids):
+        share[c] = grown == r
+    if n < 2 or lam <= 0:
+        return share
+    support = grown >= 0
+    P = rest.joints[support]
+    T = np.empty((P.shape[0], n))
+    for c, (pos, a) in enumerate(geo):
+        rr = np.linalg.norm(P - pos, axis=1)
+        T[:, c] = np.exp(-np.maximum(rr - a, 0.0) / lam)
+    amp, _ = nnls(T, np.maximum(d[support], 0.0))
+    fit = T * amp[None, :]
+    tot = fit.sum(axis=1)
+    ok = tot > 1e-12
+    frac = np.where(ok[:, None], fit / np.where(ok, tot, 1.0)[:, None], 0.0)
+    # keep hard ownership where only one contact's template is non-negligible or fit failed
+    for c in range(n):
+        s = share[c][support]
+        share_c = np.where(ok, frac[:, c], s)
+        out = np.zeros(d.shape)
+        out[support] = share_c
+        share[c] = out
+    return share
 
 
 # ---------------------------------------------------------------------------------------------
