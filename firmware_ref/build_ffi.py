@@ -92,6 +92,8 @@ typedef struct {
     bool powered;
     uint8_t rx_errors;
     uint8_t missed_syncs;
+    bool have_sync;
+    uint16_t last_sync;
     uint32_t salt;
     uint8_t range_code;
     uint16_t heartbeat_ms;

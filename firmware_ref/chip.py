@@ -111,6 +111,11 @@ class CFirmwareChip:
         return int(self._chip.missed_syncs)
 
     @property
+    def last_counter(self) -> int | None:
+        """The last SYNC counter answered in this stream (None after START)."""
+        return int(self._chip.last_sync) if self._chip.have_sync else None
+
+    @property
     def salt(self) -> int:
         return int(self._chip.salt)
 
