@@ -1,0 +1,162 @@
+"""``capsheet tactile``: contacts and forces live, from the virtual foam sheet or a real sheet.
+
+By default it runs in-process on the virtual foam block (`virtual_sheet.foam`): a 14x14 sheet,
+L = 1 cm, 1 % g reading noise, a scripted press and release of two indenters (a sphere that slides
+slowly, then a flat punch). It first learns the rest shape from an untouched period, then prints
+one status line per snapshot (count, positions in lattice indices, forces, track ids) and writes
+a PNG heat map of the normal displacement with the contacts outlined (the snapshot with the
+largest total force).
+
+With ``--port`` or ``--can`` it runs on a real sheet through `host.nodes.Host` (the same
+transports as ``capsheet host``): the first ``--learn-s`` seconds must be untouched (rest shape),
+then contacts are shown live for ``--duration`` seconds (one line every 0.5 s).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from .tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor, lattice_index,
+                      plot_frame)
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "tactile", help="contacts and forces on the sheet wrapped on foam (virtual by default)",
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    src = p.add_argument_group("source (default: the virtual foam block in-process)")
+    src.add_argument("--port", help="serial port of a real sheet (as capsheet host)")
+    src.add_argument("--baud", type=int, default=3_000_000, help="serial baud rate (default 3000000)")
+    src.add_argument("--can", action="append", default=[], metavar="IFACE:CHANNEL",
+                     help="CAN bus of a real sheet, repeatable (as capsheet host)")
+    src.add_argument("--fd", action="store_true", help="open the CAN buses for CAN FD")
+    src.add_argument("--bitrate", type=int, default=None, help="CAN bit rate")
+    src.add_argument("--layout", help="uid -> link file (real sheet)")
+    src.add_argument("--rate", type=float, default=50.0, help="real sheet: SYNC rate, Hz (default 50)")
+    src.add_argument("--learn-s", type=float, default=2.0,
+                     help="real sheet: untouched period to learn the rest shape, s (default 2)")
+    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--link-length", type=float, default=0.01, help="L, metres (default 0.01)")
+    foam = p.add_argument_group("foam (the host's force model: F = k sum w A, k = E_oed / h)")
+    foam.add_argument("--thickness", type=float, default=0.02, help="h, metres (default 0.02)")
+    foam.add_argument("--youngs", type=float, default=20e3, help="E, Pa (default 20000)")
+    foam.add_argument("--poisson", type=float, default=0.25, help="nu (default 0.25)")
+    virt = p.add_argument_group("virtual sheet")
+    virt.add_argument("--body", choices=("block", "cylinder", "sphere"), default="block",
+                      help="foam body (default block: a level top face, the paper's Case 1 at rest)")
+    virt.add_argument("--noise", type=float, default=1.0, help="reading noise, %% g (default 1)")
+    virt.add_argument("--snapshot-rate", type=float, default=8.0,
+                      help="snapshots per simulated second (default 8)")
+    virt.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
+    p.add_argument("--duration", type=float, default=4.0, help="seconds to run (default 4)")
+    p.add_argument("--threshold", type=float, default=5.0,
+                   help="detection threshold in noise sigmas (default 5)")
+    p.add_argument("--out", default="out/tactile.png", help="heat map PNG (default out/tactile.png)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no status lines")
+    p.set_defaults(func=run)
+
+
+def _status(fr: TactileFrame, L: float) -> str:
+    t = "" if fr.t_s is None else f"t={fr.t_s:5.2f}s "
+    parts = [f"#{c.id} ({c.index[0]:.1f},{c.index[1]:.1f}) {c.force_n:.2f}N "
+             f"{c.depth_m * 1e3:.1f}mm" for c in fr.contacts]
+    return (f"{t}{len(fr.contacts)} contact(s) total {fr.total_force_n:5.2f} N"
+            + (": " + "; ".join(parts) if parts else ""))
+
+
+def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+    from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamCylinder, FoamLayer, FoamScene,
+                                    FoamSphere, Press, SphereIndenter)
+    from virtual_sheet.geometry import ideal_readings
+    from virtual_sheet.sensor import noisy_readings
+
+    L = args.link_length
+    layer = FoamLayer(foam.thickness_m, foam.youngs_modulus_pa, foam.poisson)
+    body = {"block": lambda: FoamBlock(layer), "cylinder": lambda: FoamCylinder(0.08, layer),
+            "sphere": lambda: FoamSphere(0.1, layer)}[args.body]()
+    T = args.duration
+    presses = [Press(SphereIndenter(0.015), (-0.03, -0.02), 2.0, t_on_s=0.05 * T,
+                     t_off_s=0.65 * T, ramp_s=0.1 * T, velocity_mps=(0.01 / T, 0.01 / T)),
+               Press(FlatPunch(0.0075), (0.025, 0.02), 1.5, t_on_s=0.25 * T, t_off_s=0.85 * T,
+                     ramp_s=0.1 * T)]
+    scene = FoamScene(body, presses, rows, cols, L)
+    rng = np.random.Generator(np.random.MT19937(args.seed))
+    r0 = ideal_readings(scene.rest_joints)
+    rest = TactileSensor.learn_rest([noisy_readings(r0, args.noise, rng) for _ in range(32)],
+                                    rows, cols, L)
+    if not args.quiet:
+        print(f"capsheet tactile: virtual {args.body}, {rows}x{cols}, L={L * 100:g} cm, noise "
+              f"{args.noise:g} % g; rest learned from 32 untouched snapshots (noise "
+              f"{np.median(rest.noise_m) * 1e3:.3f} mm median)", file=sys.stderr)
+    sensor = TactileSensor(rest, foam, settings)
+    n = max(1, int(round(T * args.snapshot_rate)))
+    for k in range(n + 1):
+        t = k / args.snapshot_rate
+        fr = sensor.process(noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng),
+                            t_s=t)
+        yield fr, [(c.force_n, lattice_index(scene.rest_joints, c.position))
+                   for c in scene.contacts(t)]
+
+
+def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+    from .hostcli import open_transports
+    from .nodes import Host, Layout
+
+    transports = open_transports(args)
+    host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate,
+                layout=Layout.load(args.layout) if args.layout else None)
+    with host:
+        host.bring_up()
+        learn = [s for s in host.snapshots(duration_s=args.learn_s) if s.complete]
+        if len(learn) < 2:
+            raise SystemExit("capsheet tactile: fewer than 2 complete snapshots while learning "
+                             "the rest shape")
+        rest = TactileSensor.learn_rest([s.readings for s in learn], rows, cols,
+                                        args.link_length)
+        sensor = TactileSensor(rest, foam, settings)
+        t0 = time.monotonic()
+        for s in host.snapshots(duration_s=args.duration):
+            if s.valid.sum() < 0.9 * s.valid.size:
+                continue
+            yield sensor.process(s.readings, valid=s.valid, t_s=s.timestamp - t0), None
+        host.stop()
+
+
+def run(args) -> int:
+    try:
+        rows, cols = (int(x) for x in args.lattice.lower().split("x"))
+        foam = Foam(args.thickness, args.youngs, args.poisson)
+    except ValueError as exc:
+        print(f"capsheet tactile: {exc}", file=sys.stderr)
+        return 2
+    settings = DetectorSettings(k_detect=args.threshold)
+    real = bool(args.port or args.can)
+    source = (_real if real else _virtual)(args, foam, settings, rows, cols)
+    best, best_truth, last_print = None, None, -1e9
+    for fr, truth in source:
+        if best is None or fr.total_force_n > best.total_force_n:
+            best, best_truth = fr, truth
+        if args.quiet:
+            continue
+        now = time.monotonic()
+        if not real or now - last_print >= 0.5:
+            line = _status(fr, args.link_length)
+            if truth:
+                line += "   | true: " + "; ".join(f"({i[0]:.1f},{i[1]:.1f}) {F:.2f}N"
+                                                  for F, i in truth)
+            print(line)
+            last_print = now
+    if best is None:
+        print("capsheet tactile: no snapshot received", file=sys.stderr)
+        return 1
+    plot_frame(best, args.out,
+               truth=[i for _, i in best_truth] if best_truth else None,
+               title=(f"t = {best.t_s:.2f} s: {len(best.contacts)} contact(s), "
+                      f"{best.total_force_n:.2f} N" if best.t_s is not None else None))
+    if not args.quiet:
+        print(f"capsheet tactile: heat map written to {args.out}", file=sys.stderr)
+    return 0
