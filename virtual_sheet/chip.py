@@ -77,6 +77,8 @@ _SAT = 255
 _HOST_TYPES = frozenset(t for t, c in MESSAGE_TYPES.items() if c.DIRECTION == Direction.HOST_TO_CHIP)
 _STREAM_STATES = (ChipState.STREAMING, ChipState.FAULT)
 _SAMPLE_HDR = struct.Struct("<BBHH")  # version, type, node, counter
+_INVALID = int(SampleStatus.INVALID)
+_FAULT = ChipState.FAULT
 
 
 def frame_header(frame: Out) -> tuple[int, int, int] | None:
@@ -202,18 +204,19 @@ class ChipModel:
                                 self.missed_syncs, int(max(0.0, now_s - self.boot_s)) & 0xFFFFFFFF))
 
     def _sample(self, counter: int, now_s: float) -> Out:
-        if self.state == ChipState.FAULT:
+        if self.state is _FAULT:
             x = y = z = 0
-            st = SampleStatus.INVALID
+            st = _INVALID
         else:
             (x, y, z), st = self.sensor(now_s)
-            if st & SampleStatus.INVALID:
-                self.state = ChipState.FAULT
+            st = int(st)
+            if st & _INVALID:
+                self.state = _FAULT
                 x = y = z = 0
             elif self.range:
                 r = self.range
                 x, y, z = x >> r, y >> r, z >> r
-        word = (x & 0xFFF) | ((y & 0xFFF) << 12) | ((z & 0xFFF) << 24) | ((int(st) & 0xF) << 36)
+        word = (x & 0xFFF) | ((y & 0xFFF) << 12) | ((z & 0xFFF) << 24) | ((st & 0xF) << 36)
         if self._can:
             return CanFrame(self._sample_id, counter.to_bytes(2, "little") + word.to_bytes(5, "little"), False)
         body = _SAMPLE_HDR.pack(PROTOCOL_VERSION, MsgType.SAMPLE, self._sample_hdr, counter) + word.to_bytes(5, "little")

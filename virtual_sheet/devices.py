@@ -64,6 +64,8 @@ class Device:
         self._t0 = 0.0
         self.error: BaseException | None = None
         self.down = False
+        self._calls: list = []  # (fn, done Event, result box) run in the device thread
+        self._calls_lock = threading.Lock()
         self._outages = sheet.faults.outage_windows()
         self._next_outage = next(self._outages, None)
 
@@ -107,6 +109,38 @@ class Device:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    def call(self, fn, timeout_s: float = 5.0):
+        """Run ``fn(now_s)`` in the device thread (the chips are not thread-safe) and return its
+        result; called directly when the device is not running."""
+        if not self.running:
+            return fn(self.now())
+        done, box = threading.Event(), []
+        with self._calls_lock:
+            self._calls.append((fn, done, box))
+        if not done.wait(timeout_s):
+            raise TimeoutError(f"{self.name}: the device thread did not run the call within {timeout_s} s")
+        if box and isinstance(box[0], BaseException):
+            raise box[0]
+        return box[0] if box else None
+
+    def commission(self, *, start: bool = True) -> None:
+        """Assign every chip its physical link (node = link + 1) and START them, through frames,
+        as a host would (`Gateway.commission`): a shortcut for demos and benchmarks."""
+        def do(now_s):
+            for gw in self.gateways:
+                gw.commission(now_s, start=start)
+        self.call(do)
+
+    def _run_calls(self) -> None:
+        with self._calls_lock:
+            calls, self._calls = self._calls, []
+        for fn, done, box in calls:
+            try:
+                box.append(fn(self.now()))
+            except BaseException as exc:  # handed to the caller
+                box.append(exc)
+            done.set()
+
     # ------------------------------------------------------------------ loop
     def _run_guarded(self) -> None:
         try:
@@ -117,6 +151,8 @@ class Device:
 
     def _run(self) -> None:
         while not self._stop.is_set():
+            if self._calls:
+                self._run_calls()
             now = self.now()
             if self._next_outage is not None and now >= self._next_outage[0]:
                 start, end = self._next_outage
