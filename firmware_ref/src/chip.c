@@ -138,10 +138,20 @@ static int32_t send_announce_info(capsheet_chip_t *c)
 
 static uint32_t uptime_s(const capsheet_chip_t *c, uint64_t now_us)
 {
+    /* floor((now - boot) / 1e6) by shift-and-subtract: Cortex-M0+ has no divider, and libgcc's
+     * 64-bit division alone would cost ~700 bytes of flash. Bounded: 64 steps. */
     const uint64_t d = (now_us > c->boot_us) ? now_us - c->boot_us : 0u;
-    /* d / 1e6 without a 64-bit divide on the usual path: (d >> 6) / 15625 == d / 1000000. */
-    const uint64_t q = d >> 6;
-    return (q >> 32) ? (uint32_t)(q / 15625u) : (uint32_t)((uint32_t)q / 15625u);
+    uint64_t rem = 0, q = 0;
+    int bit;
+    for (bit = 63; bit >= 0; bit--) {
+        rem = (rem << 1) | ((d >> bit) & 1u);
+        q <<= 1;
+        if (rem >= 1000000u) {
+            rem -= 1000000u;
+            q |= 1u;
+        }
+    }
+    return (uint32_t)q;  /* u32 on the wire (136 years) */
 }
 
 static uint8_t status_flags(const capsheet_chip_t *c)
@@ -289,7 +299,7 @@ int32_t capsheet_chip_poll(capsheet_chip_t *c, uint64_t now_us)
         return send_announce_info(c);
     }
     if (c->heartbeat_ms != 0u && c->heartbeat_on && now_us >= c->next_heartbeat_us) {
-        schedule(&c->next_heartbeat_us, (uint64_t)c->heartbeat_ms * 1000u, now_us);
+        schedule(&c->next_heartbeat_us, (uint64_t)((uint32_t)c->heartbeat_ms * 1000u), now_us);
         rc = send_status(c, now_us);
         return rc;
     }
@@ -443,7 +453,7 @@ static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m,
     switch (m->type) {
     case CAPSHEET_ASSIGN:
         if (c->state == CAPSHEET_BOOT || !c->heartbeat_on) {
-            c->next_heartbeat_us = now_us + (uint64_t)c->heartbeat_ms * 1000u;
+            c->next_heartbeat_us = now_us + (uint64_t)((uint32_t)c->heartbeat_ms * 1000u);
             c->heartbeat_on = true;
         }
         c->node = m->u.assign.new_node;
@@ -455,7 +465,7 @@ static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m,
         c->range_code = m->u.config.range;
         c->filter = m->u.config.filter;
         c->heartbeat_ms = m->u.config.heartbeat_ms;
-        c->next_heartbeat_us = now_us + (uint64_t)c->heartbeat_ms * 1000u;
+        c->next_heartbeat_us = now_us + (uint64_t)((uint32_t)c->heartbeat_ms * 1000u);
         c->heartbeat_on = c->heartbeat_ms != 0u;
         c->flags = (uint8_t)(c->flags | CAPSHEET_FLAG_CONFIGURED);
         break;

@@ -1,0 +1,72 @@
+/*
+ * size_app.c — the smallest application around the protocol core, for `make size`: one chip with
+ * its RX buffer of CAPSHEET_RX_BUFFER_SIZE bytes (a build-time option), stub HAL callbacks, and a
+ * main loop calling every entry point. Linked with --gc-sections, so the image holds exactly what
+ * a chip uses (the SNAPSHOT encoder and the decoders a chip never calls drop out).
+ */
+#include "capsheet_fw.h"
+
+static int32_t read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status)
+{
+    (void)user;
+    xyz[0] = (int16_t)(now_us & 0x7FFu);
+    xyz[1] = 0;
+    xyz[2] = 1024;
+    *status = 0;
+    return 0;
+}
+
+static volatile uint8_t sink;
+
+static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
+{
+    (void)user;
+    sink = data[len - 1u];
+    return 0;
+}
+
+static int32_t send_can(void *user, uint32_t id, const uint8_t *data, uint8_t len, bool is_fd)
+{
+    (void)user;
+    (void)is_fd;
+    sink = (uint8_t)(id ^ (len ? data[0] : 0u));
+    return 0;
+}
+
+static uint64_t read_uid(void *user)
+{
+    (void)user;
+    return 0x0123456789ABCDEFull;
+}
+
+static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0};
+static capsheet_chip_t chip;
+static uint8_t rx_buf[CAPSHEET_RX_BUFFER_SIZE];
+
+extern volatile uint8_t rx_byte;
+extern volatile uint64_t clock_us;
+volatile uint8_t rx_byte;
+volatile uint64_t clock_us;
+
+void app_main(void);
+void app_main(void)
+{
+    static const capsheet_chip_config_t cfg = {
+#ifdef SIZE_CAN
+        CAPSHEET_TRANSPORT_CAN,
+#else
+        CAPSHEET_TRANSPORT_SERIAL,
+#endif
+        false, 0};
+    (void)capsheet_chip_init(&chip, &cfg, &hal, rx_buf, sizeof rx_buf);
+    (void)capsheet_chip_power_on(&chip, clock_us);
+    for (;;) {
+        const uint8_t b = rx_byte;
+#ifdef SIZE_CAN
+        (void)capsheet_chip_rx_can(&chip, clock_us & 0x1FFFFFFFu, true, false, &b, 1, clock_us);
+#else
+        (void)capsheet_chip_rx_bytes(&chip, &b, 1, clock_us);
+#endif
+        (void)capsheet_chip_poll(&chip, clock_us);
+    }
+}
