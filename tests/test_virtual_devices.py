@@ -243,3 +243,27 @@ def test_slcan_codec_lines():
     a.feed(b"Z1\r")
     assert len(a.frames_to_host([to_can(Sync(counter=1))], 1.5)) == len(b"T010100002") + 4 + 4 + 1
     assert a.feed(b"F\r") == b"F00\r"
+
+
+# ------------------------------------------------------------------ CLI
+
+def test_cli_prints_the_port_and_runs_for_a_duration(capsys, tmp_path):
+    from host.cli import main
+    layout = tmp_path / "sheet.csv"
+    rc = main(["virtual", "--lattice", "3x3", "--transport", "pty", "--rate", "20", "--duration", "1.1",
+               "--layout-out", str(layout), "--faults", "drop_frame=0.5,seed=1"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "connect to: serial port" in out and "sync 2" in out and "frames_dropped" in out
+    assert len(read_layout(layout)) == 12
+
+
+def test_cli_firmware_c_fails_clearly_when_missing(capsys):
+    pytest.importorskip("firmware_ref")
+    try:
+        import firmware_ref.chip  # noqa: F401
+        pytest.skip("the C firmware is available")
+    except Exception:
+        pass
+    from host.cli import main
+    assert main(["virtual", "--lattice", "2x2", "--firmware", "c", "--duration", "0.1"]) == 2
+    assert "firmware_ref.chip.CFirmwareChip" in capsys.readouterr().err

@@ -129,10 +129,13 @@ def run(args) -> int:
     out = sys.stdout
 
     def verbose(direction, frame):
-        if direction == "rx" and isinstance(frame, (bytes, bytearray)):
-            print(f"rx {bytes(frame).hex()}", file=out)
-        else:
-            print(f"{direction} {_fmt_frame(frame)}", file=out)
+        try:
+            if direction == "rx" and isinstance(frame, (bytes, bytearray)):
+                print(f"rx {bytes(frame).hex()}", file=out)
+            else:
+                print(f"{direction} {_fmt_frame(frame)}", file=out)
+        except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
+            pass
 
     try:
         sheet, dev = make_device(args, verbose if args.verbose else None)
@@ -151,6 +154,10 @@ def run(args) -> int:
         elif args.transport == "slcan":
             for pth in dev.paths:
                 print(f"  --can slcan:{pth}", file=out)
+        elif args.transport == "can" and args.can_interface == "virtual":
+            print("  note: python-can's 'virtual' interface reaches only this process; use --transport "
+                  "slcan, or --can-interface udp_multicast / socketcan, for a host in another process",
+                  file=out)
         if args.layout_out:
             print(f"layout written to {args.layout_out}", file=out)
         out.flush()
