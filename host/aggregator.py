@@ -394,6 +394,13 @@ class Aggregator:
         now = self.clock()
         st = self.stats
         st.bus_frames[bus] += n
+        st.link_last_seen[links] = now  # the chip is alive, even if its frame turns out late
+        if self.silent.any():  # links that were silent and speak again are waited for again
+            back = self.silent[links]
+            if back.any():
+                for link in np.unique(links[back]).tolist():
+                    self.silent[link] = False
+                    self.expected[link] = not self.unassigned[link]
         slots = self._slot_of[counter]
         if (slots < 0).any():
             missing = np.unique(counter[slots < 0])
@@ -438,7 +445,6 @@ class Aggregator:
         got_flat[flat] = True
         st.samples += n_fresh
         st.link_frames += np.bincount(links, minlength=L)
-        st.link_last_seen[links] = now
         lat = now - self._slot_t0[slots]
         prev = st.link_latency_s[links]
         st.link_latency_s[links] = np.where(np.isnan(prev), lat, prev + 0.1 * (lat - prev))
@@ -449,19 +455,12 @@ class Aggregator:
             if np.isnan(self._slot_first[s]):
                 self._slot_first[s] = t_rel
             self._slot_last[s] = t_rel
-        # links that were silent and speak again
-        if self.silent.any():
-            back = self.silent[links]
-            if back.any():
-                for link in np.unique(links[back]).tolist():
-                    self.silent[link] = False
-                    self.expected[link] = not self.unassigned[link]
         self._pump(now)
 
     # -- emission --------------------------------------------------------------------------
     def _is_complete(self, s: int) -> bool:
         n_exp = int(np.count_nonzero(self.expected))
-        if self._n_got[s] < n_exp:
+        if n_exp == 0 or self._n_got[s] < n_exp:  # nothing expected: wait for the deadline
             return False
         return bool(np.all(self._got[s] | ~self.expected))
 
@@ -493,7 +492,7 @@ class Aggregator:
         status = self._status[s].copy()
         status[~got] = 0
         valid = got & ((status & SampleStatus.INVALID) == 0)
-        complete = bool(np.all(got | ~self.expected))
+        complete = bool(self.expected.any() and np.all(got | ~self.expected))
         readings = counts_to_si(self._counts[s].astype(np.float64), self._offset, self._sens)
         readings[~valid] = np.nan
         status |= np.where(got, 0, LinkFlag.MISSING).astype(np.uint8)

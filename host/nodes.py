@@ -208,7 +208,7 @@ class Host:
         ``drive``: the host sends SYNC on every bus. ``follow``: a gateway drives SYNC; the host
         opens a counter when it sees that SYNC (or, without SYNC in the stream, on the first frame).
     deadline_s : float, optional
-        How long a counter waits for missing links; default ``max(2 / rate_hz, 0.02)``.
+        How long a counter waits for missing links; default ``max(2 / rate_hz, 0.05)``.
     watchdog_s : float, optional
         A link silent this long is reported and marked missing; default ``max(0.5, 20 / rate_hz)``.
     range_code, filter_code, heartbeat_ms : int
@@ -248,7 +248,7 @@ class Host:
         self.watchdog_s = watchdog_s if watchdog_s is not None else max(0.5, 20.0 / self.rate_hz)
         n = self.lattice.n_links
         self.aggregator = Aggregator(n, node_to_link=None, n_buses=len(self.transports),
-                                     deadline_s=deadline_s if deadline_s is not None else max(2.0 / self.rate_hz, 0.02),
+                                     deadline_s=deadline_s if deadline_s is not None else max(2.0 / self.rate_hz, 0.05),
                                      queue_size=queue_size, on_snapshot=on_snapshot)
         self.chips: dict[int, ChipRecord] = {}  # uid -> record
         self._node_uid: dict[tuple[int, int], int] = {}  # (bus, node) -> uid
@@ -267,6 +267,7 @@ class Host:
         self._silent_reported = np.zeros(n, dtype=bool)
         self._rx_errors: list[str] = []
         self.unknown_chips: set[int] = set()
+        self._send_failing: set[int] = set()
 
     # -- lifetime ----------------------------------------------------------------------------
     def open(self) -> "Host":
@@ -394,8 +395,11 @@ class Host:
         for bus in range(len(self.transports)):
             try:
                 self._send(bus, msg)
+                self._send_failing.discard(bus)
             except TransportError as exc:
-                log.warning("%s", exc)
+                if bus not in self._send_failing:  # once per failure spell, not once per SYNC
+                    self._send_failing.add(bus)
+                    log.warning("%s", exc)
 
     def _round(self, requests: dict, build: Callable[[object, int], list[tuple[int, Message]]],
                match: Callable[[int, Message], object | None], what: str) -> tuple[dict, list]:
@@ -601,13 +605,17 @@ class Host:
     def stop(self) -> None:
         """Stop driving SYNC, STOP every chip (broadcast, best effort), emit what is open."""
         self._streaming.clear()
-        time.sleep(0.01)
+        # let the counters in flight complete (up to their deadline) before masking them
+        end = time.monotonic() + self.aggregator.deadline_s + 0.02
+        while self.aggregator.n_open and time.monotonic() < end:
+            time.sleep(0.005)
+            self.aggregator.poll()
         self._broadcast(Stop(0))
         self.aggregator.flush()
 
-    def bring_up(self, discover_timeout_s: float = 0.5) -> dict:
+    def bring_up(self, discover_timeout_s: float = 0.5, discover_rounds: int = 3) -> dict:
         """discover + assign + configure + read_calibration + start; returns a summary dict."""
-        found = self.discover(discover_timeout_s)
+        found = self.discover(discover_timeout_s, discover_rounds)
         self.assign()
         n_cfg = self.configure()
         n_cal = self.read_calibration()

@@ -511,7 +511,10 @@ class CanTransport(Transport):
         events: list = []
         samples: list[Sample] = []
         for f in frames:
-            if f.is_error_frame or f.is_remote_frame:
+            if f.is_error_frame:
+                self.stats.errors["CAN_ERROR_FRAME"] += 1  # the bus signalled an error (then retransmits)
+                continue
+            if f.is_remote_frame:
                 continue
             self.stats.bytes_in += len(f.data)
             ev = decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id, is_fd=f.is_fd)
