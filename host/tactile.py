@@ -10,8 +10,10 @@ Pipeline for one snapshot (`TactileSensor.process`):
    snapshot (not the previous snapshot: a flat level sheet is the paper's unsolvable Case 1 for
    yaw, and chaining priors would let its horizontal layout drift; heights need no yaw).
 2. Deformation (`deformation`): the estimate overlaid on the rest shape by a trimmed rigid fit
-   (rotation + translation over the joints that did not move, so contacts do not tilt the fit),
-   then the displacement of every joint along the rest normal, **positive into the foam**, metres.
+   (rotation + translation over the joints that did not move, so contacts do not tilt the fit;
+   when contacts are found, the fit is redone without their regions grown by one joint, and the
+   contacts found again), then the displacement of every joint along the rest normal, **positive into
+   the foam**, metres.
 3. Contacts (`find_contacts`): joints above a threshold ``τ_i = max(k_detect σ_i, floor)`` (``σ_i``
    the joint's displacement noise, learned from an untouched period or, failing that, a robust
    spread of the current frame), grown from local maxima in descending order (a watershed):
@@ -222,7 +224,7 @@ class RestShape:
 
     @classmethod
     def learn(cls, snapshots: Sequence[ShapeEstimate | np.ndarray],
-              link_length: float | None = None, noise_floor_fraction: float = 0.5
+              link_length: float | None = None, noise_floor_fraction: float = 1.0
               ) -> "RestShape":
         """Learn the rest shape from an untouched period.
 
@@ -270,8 +272,8 @@ class RestShape:
 # Deformation
 # ---------------------------------------------------------------------------------------------
 
-def deformation(joints: np.ndarray, rest: RestShape, *, trim_sigma: float = 3.0,
-                trim_floor_m: float | None = None, iterations: int = 4
+def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | None = None,
+                trim_sigma: float = 3.0, trim_floor_m: float | None = None, iterations: int = 4
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Normal displacement of every joint against the rest shape.
 
@@ -285,6 +287,9 @@ def deformation(joints: np.ndarray, rest: RestShape, *, trim_sigma: float = 3.0,
     joints : ndarray, shape (rows, cols, 3)
         Estimated joints, metres, any rigid placement (the estimator's gauge).
     rest : RestShape
+    exclude : ndarray of bool, shape (rows, cols), optional
+        Joints known to be moved (e.g. contacts found in a first pass with their skirts): left
+        out of the fit, so the dents' shallow tails do not bias it.
 
     Returns
     -------
@@ -299,14 +304,17 @@ def deformation(joints: np.ndarray, rest: RestShape, *, trim_sigma: float = 3.0,
     src, dst = P.reshape(-1, 3), rest.joints.reshape(-1, 3)
     n = rest.normals.reshape(-1, 3)
     floor = 0.01 * rest.link_length if trim_floor_m is None else float(trim_floor_m)
-    moved = src - np.median(src - dst, axis=0)  # robust start: translation only
+    allowed = np.ones(len(src), bool) if exclude is None else ~np.asarray(exclude, bool).ravel()
+    if allowed.sum() < 4:
+        allowed = np.ones(len(src), bool)
+    moved = src - np.median((src - dst)[allowed], axis=0)  # robust start: translation only
     for _ in range(iterations):
         d = np.sum((dst - moved) * n, axis=1)
-        r = d - np.median(d)
-        s = 1.4826 * np.median(np.abs(r))
-        keep = np.abs(r) <= max(trim_sigma * s, floor)
+        r = d - np.median(d[allowed])
+        s = 1.4826 * np.median(np.abs(r[allowed]))
+        keep = allowed & (np.abs(r) <= max(trim_sigma * s, floor))
         if keep.sum() < 4:
-            keep = np.ones_like(keep)
+            keep = allowed
         moved = rigid_fit(src, dst, keep.astype(float))
     d = np.sum((dst - moved) * n, axis=1)
     return d.reshape(P.shape[:2]), moved.reshape(P.shape)
@@ -332,7 +340,7 @@ class DetectorSettings:
         show, e.g. the normal assumption).
     k_prominence, prominence_fraction : float
         A local maximum is a contact of its own only if it rises above the point where it meets
-        a higher one by ``max(k_prominence σ, prominence_fraction · its depth)`` (defaults 4, 0.15).
+        a higher one by ``max(k_prominence σ, prominence_fraction · its depth)`` (defaults 4, 0.3).
     min_separation : float
         Maxima closer than this, in link lengths, are one contact (default 1.5: adjacent and
         diagonal joints never make two contacts).
@@ -345,7 +353,7 @@ class DetectorSettings:
     k_region: float = 3.0
     floor_m: float = 1e-4
     k_prominence: float = 4.0
-    prominence_fraction: float = 0.15
+    prominence_fraction: float = 0.3
     min_separation: float = 1.5
     skirt: int = 2
 
@@ -748,7 +756,15 @@ class TactileSensor:
         est = estimate(readings, self.rest.rows, self.rest.cols, self.rest.link_length,
                        valid=valid, previous=self.rest.prior)
         d, _ = deformation(est.joints, self.rest)
-        contacts = self.tracker.update(find_contacts(d, self.rest, self.foam, self.settings))
+        found = find_contacts(d, self.rest, self.foam, self.settings)
+        if found:  # second pass: fit the rigid overlay without the dents and their tails
+            moved = np.zeros(d.shape, bool)
+            for c in found:
+                moved |= c.region
+            moved = _dilate(moved)
+            d, _ = deformation(est.joints, self.rest, exclude=moved)
+            found = find_contacts(d, self.rest, self.foam, self.settings)
+        contacts = self.tracker.update(found)
         return TactileFrame(t_s=t_s, estimate=est, displacement=d, contacts=contacts,
                             total_force_n=float(sum(c.force_n for c in contacts)))
 
