@@ -467,7 +467,8 @@ class _YawProblem:
         cost = 0.5 * (np.vdot(r, r).real + self.lam * np.dot(e, e))
         # gradient Re(conj(i t_m) r) = Im(conj(t_m) r), summed over the two equations
         gu = (t.conj() * r[:, :, None]).imag.sum(axis=1)
-        grad = np.bincount(st.ent_var, weights=gu.ravel(), minlength=st.n_var + 1)[:st.n_var]
+        # float64 even when no unit is active (bincount of nothing is int64)
+        grad = np.bincount(st.ent_var, weights=gu.ravel(), minlength=st.n_var + 1)[:st.n_var].astype(float)
         grad += self.lam * e
         return cost, grad, t
 
@@ -476,7 +477,7 @@ class _YawProblem:
         st = self.st
         # H_mn = Re(conj(i t_m) i t_n) = Re(conj(t_m) t_n), per unit a 4x4 block
         Hd = np.einsum("uem,uen->umn", t.conj(), t).real
-        data = np.bincount(st.blk_slot, weights=Hd.ravel(), minlength=st.nnz + 1)[:st.nnz]
+        data = np.bincount(st.blk_slot, weights=Hd.ravel(), minlength=st.nnz + 1)[:st.nnz].astype(float)
         data[st.diag_slot] += self.lam + mu
         A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
         return splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
