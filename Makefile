@@ -23,3 +23,14 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) build *.egg-info out
+
+# --- firmware_ref (see firmware_ref/Makefile) -------------------------------------------------
+.PHONY: firmware-check firmware-asan firmware-fuzz firmware-size
+firmware-check:   ## strict C99 builds, 64- and 32-bit, and the unit driver
+	$(MAKE) -C firmware_ref check
+firmware-asan:    ## decoder fuzz/replay driver under ASan+UBSan
+	$(MAKE) -C firmware_ref asan
+firmware-fuzz:    ## libFuzzer target (needs clang)
+	$(MAKE) -C firmware_ref fuzz
+firmware-size:    ## Cortex-M0+ flash/RAM (needs gcc-arm-none-eabi; installs nothing)
+	$(MAKE) -C firmware_ref size
