@@ -307,6 +307,16 @@ class Aggregator:
             self._pump(self.clock())
             return slot >= 0
 
+    def restart(self) -> None:
+        """A new counter sequence begins (the host (re)starts streaming): emit what is open and
+        forget the ordering history, so the new counters are not taken for late ones."""
+        with self._lock:
+            now = self.clock()
+            while self._open:
+                self._emit(self._open[0], now)
+            self._last_emitted = None
+            self._newest = None
+
     def _slot_for(self, c: int, now: float) -> int:
         """Slot of counter ``c``, opening it if allowed; -1 if late."""
         s = int(self._slot_of[c])

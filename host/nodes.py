@@ -373,7 +373,7 @@ class Host:
                 self.chips[uid].last_status = msg
         elif isinstance(msg, Sync):
             self.syncs_seen += 1
-            if self.sync_mode == "follow":
+            if self.sync_mode == "follow" and self._streaming.is_set():
                 self.aggregator.open_counter(msg.counter)
         elif isinstance(msg, (Ack, Nack, CalData)):
             if isinstance(msg, Nack):
@@ -596,7 +596,8 @@ class Host:
         self.aggregator.stats.link_last_seen[:] = now
         self._silent_reported[:] = False
         self._streaming.set()
-        self.aggregator.open_counter(self.counter, now, restart=True) if self.sync_mode == "follow" else None
+        if self.sync_mode == "follow":
+            self.aggregator.restart()
         if self._sync_thread is None:
             self._sync_thread = threading.Thread(target=self._sync_loop, name="capsheet-sync", daemon=True)
             self._sync_thread.start()

@@ -36,15 +36,15 @@ class Rig:
     """A virtual sheet behind a device, and a Host connected to it."""
 
     def __init__(self, kind: str, *, shape="flat", lattice="4x4", faults=None, sensor=None, packed=False,
-                 rate_hz=100.0, watchdog_s=None, layout=True, seed=1) -> None:
+                 rate_hz=100.0, watchdog_s=None, layout=True, seed=1, gateway_sync_hz=None) -> None:
         can_kind = kind in ("can-virtual", "slcan")
         self.kind = kind
         self.sheet = VirtualSheet(shape, lattice, seed=seed, transport="can" if can_kind else "serial",
                                   faults=faults, sensor=sensor, fd=packed and can_kind)
         if kind == "memory":
-            self.device = MemoryDevice(self.sheet, packed=packed)
+            self.device = MemoryDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz)
         elif kind == "pty":
-            self.device = PtyDevice(self.sheet, packed=packed)
+            self.device = PtyDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz)
         elif kind == "can-virtual":
             n = next(_channel)
             self.device = CanDevice(self.sheet, n_buses=2, channels=[f"b2b_{n}_a", f"b2b_{n}_b"], packed=packed)
@@ -72,6 +72,7 @@ class Rig:
             rate_hz = min(rate_hz, 50.0)
         self.host = Host(ts, lattice, layout=Layout(dict(self.sheet.layout)) if layout else None,
                          rate_hz=rate_hz, watchdog_s=watchdog_s, timeout_s=0.15, retries=5,
+                         sync="follow" if gateway_sync_hz else "drive",
                          deadline_s=0.2)  # generous: a loaded 2-core CI box; latency is not under test
         self.host.open()
 
@@ -286,3 +287,14 @@ def test_bus_outage_is_survived(rig_factory, kind):
     assert any(e.kind == "recovered" for e in rig.host.events), [(round(e.t - rig.host.events[0].t, 3), e.kind, e.link) for e in rig.host.events if e.link in (None, 0)] + [rig.host.stats["buses"], rig.host.aggregator.stats.summary()]
     # streaming resumed: the last snapshots are complete again
     assert snaps[-3].complete and snaps[-2].complete
+
+
+@pytest.mark.parametrize("kind", ["memory", "pty"])
+def test_follow_a_gateways_sync(rig_factory, kind):
+    rig = rig_factory(kind, gateway_sync_hz=100.0)
+    rig.host.bring_up(0.2)
+    snaps = rig.stream(0.5)
+    check_accounting(rig, snaps)
+    assert rig.host.syncs_sent == 0 and rig.host.syncs_seen >= 30
+    assert len(snaps) >= 30 and sum(not s.complete for s in snaps) <= 1  # the last may be cut by STOP
+    assert all(not np.isnan(s.timestamp) for s in snaps)
