@@ -209,6 +209,11 @@ def _solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
                       np.sin(beta[..., 1:]))
     a = cb * np.array([-1.0, 1.0, 1.0])
     b = (sb * ca - 1j * sa) * np.array([1.0, -1.0, 1.0])
+    return _sigma_ratio(a, b)
+
+
+def _sigma_ratio(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``σ2/σ1`` of the complex 2x3 matrices with rows ``a`` (real, (..., 3)) and ``b`` (complex)."""
     A = np.sum(a * a, axis=-1)
     B = np.sum(b.real ** 2 + b.imag ** 2, axis=-1)
     C = np.sum(a * b, axis=-1)  # a real: a * conj(b) has the same modulus
@@ -501,7 +506,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
     prob = _YawProblem(st, alpha, beta, gamma_prior)
     if st.n_var == 0:
         _, _, t = prob.evaluate(gamma)
-        return gamma, 0, 0, None, _xy_residual(t)
+        return gamma, 0, 0, None, _xy_residual(t), prob
     vl = st.var_links
     cost, grad, t = prob.evaluate(gamma)
     mu = 0.0
@@ -540,7 +545,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
             lu = None
         prev_smax = smax
         fresh = False
-    return gamma, it, n_fact, lu, _xy_residual(t)
+    return gamma, it, n_fact, lu, _xy_residual(t), prob
 
 
 def _xy_residual(t) -> float:
@@ -756,12 +761,13 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         pstate = getattr(previous, "_state", None)
         if pstate is not None and pstate[0] is st:
             lu = pstate[1]
-        gamma, iters, n_fact, lu, res_xy = _solve_global(st, alpha, beta, prior.copy(), prior, lu)
+        gamma, iters, n_fact, lu, res_xy, prob = _solve_global(st, alpha, beta, prior.copy(),
+                                                               prior, lu)
         residual = res_xy + _z_residual(st.units, alpha, beta)
         state = (st, lu)
         t2 = time.perf_counter()
         d, nrm = _directions_normals(alpha, beta, gamma)
-        rhs_links = L * d[st.valid_links]
+        rhs_links = L * (d if st.all_valid else d[st.valid_links])
         if previous is not None:
             pprior = np.asarray(previous.joints, float).reshape(-1, 3)
         else:
@@ -789,7 +795,12 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         n_fact = 0
         state = None
     t3 = time.perf_counter()
-    solv = solvability(alpha, beta, rows, cols)
+    if method == "global" and mask is None:
+        # eq. (7)'s complex rows are the solver's coefficients of links 1..3 (up to a common sign)
+        solv = _sigma_ratio(prob.c[:, 0, 1:].real, prob.c[:, 1, 1:] / NORMAL_WEIGHT
+                            ).reshape(rows - 1, cols - 1)
+    else:
+        solv = solvability(alpha, beta, rows, cols)
     t4 = time.perf_counter()
     return ShapeEstimate(joints=joints, directions=d, residual=residual, solvability=solv,
                          normals=nrm, yaws=gamma, alpha=alpha, beta=beta, valid=vmask,
