@@ -23,8 +23,11 @@ Two methods, same input, same output (`ShapeEstimate`):
     ``z_k = exp(iγ_k)`` (DESIGN.md), ``Σ_m s_m c_{u,m} z_{u,m} = 0`` with ``c = cos β`` for (4) and
     ``c = sin β cos α − i sin α`` for (6). One sparse nonlinear least-squares problem in the yaws
     (Gauss-Newton with Levenberg-Marquardt damping): one yaw fixed as gauge; a weak prior
-    ``λ Σ wrap(γ − γ_prior)²`` towards the previous estimate (or the rest layout, i-links yaw 0,
-    j-links yaw π/2) keeps flat regions (the paper's Case 1) defined; warm start from ``previous``.
+    ``λ Σ wrap(γ − γ_prior)²`` keeps flat regions (the paper's Case 1) defined; its target is the
+    rest layout (i-links yaw 0, j-links yaw π/2), or with ``previous`` a blend of mostly the
+    previous yaws and a little of the rest layout (`PRIOR_MEMORY`: pure memory would let the
+    unobservable modes random-walk over a long run); warm start from ``previous``, whose
+    factorisation of the Gauss-Newton matrix is reused while it still contracts well.
     The normal matrix has a fixed sparsity pattern per lattice and mask; pattern, fill-reducing
     ordering and index maps are computed once and cached. Then joints by least squares over all
     valid links, ``min Σ ‖p_b − p_a − L d‖²`` (heights follow from the pitches alone), with the
@@ -58,6 +61,9 @@ METHODS = ("global", "paper")
 
 #: Prior weight λ on ``wrap(γ − γ_prior)²`` relative to the unit-scale eq. (4)/(6) residuals.
 PRIOR_WEIGHT = 1e-2
+#: Share of the previous estimate in the prior's target (the rest is the rest layout): 1 would let
+#: unobservable (Case 1) modes random-walk over a long run of snapshots, 0 forgets the past.
+PRIOR_MEMORY = 0.5
 #: Weight of the normal-assumption residuals (eq. 6) relative to the loop closure (eq. 4).
 NORMAL_WEIGHT = 0.2
 #: Gauss-Newton stops when the largest yaw step is below this, radians.
@@ -691,8 +697,9 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     valid : ndarray of bool, shape (n_links,), optional
         False marks a missing link (no constraint from it). Default: all valid.
     previous : ShapeEstimate, optional
-        An earlier estimate of the same lattice: ``method="global"`` starts from its yaws and
-        uses them as the weak prior (default: the rest layout). ``method="paper"`` ignores it.
+        An earlier estimate of the same lattice: ``method="global"`` starts from its yaws (and
+        its factorisation), and blends them into the weak prior's target (`PRIOR_MEMORY`;
+        default target: the rest layout). ``method="paper"`` ignores it.
     method : {"global", "paper"}
         See the module docstring.
 
@@ -752,16 +759,19 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     if method == "global":
         st = _structure(rows, cols, mask)
         if previous is not None:
-            prior = np.asarray(previous.yaws, dtype=float)
-            if prior.shape != (n,):
-                raise ValueError(f"Expected `previous.yaws` to have shape ({n},), got {prior.shape}.")
+            start = np.asarray(previous.yaws, dtype=float)
+            if start.shape != (n,):
+                raise ValueError(f"Expected `previous.yaws` to have shape ({n},), got {start.shape}.")
+            # prior target: mostly the previous yaws, partly the rest layout, so that what the
+            # data cannot see (flat regions) does not random-walk from snapshot to snapshot
+            prior = st.rest_yaw + PRIOR_MEMORY * _wrap(start - st.rest_yaw)
         else:
-            prior = st.rest_yaw
+            start = prior = st.rest_yaw
         lu = None
         pstate = getattr(previous, "_state", None)
         if pstate is not None and pstate[0] is st:
             lu = pstate[1]
-        gamma, iters, n_fact, lu, res_xy, prob = _solve_global(st, alpha, beta, prior.copy(),
+        gamma, iters, n_fact, lu, res_xy, prob = _solve_global(st, alpha, beta, start.copy(),
                                                                prior, lu)
         residual = res_xy + _z_residual(st.units, alpha, beta)
         state = (st, lu)
