@@ -22,7 +22,7 @@ bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
 
 clean:
-	rm -rf $(VENV) build *.egg-info out
+	rm -rf $(VENV) build *.egg-info out firmware_ref/build firmware_ref/_capsheet_fw*
 
 # --- firmware_ref (see firmware_ref/Makefile) -------------------------------------------------
 .PHONY: firmware-check firmware-asan firmware-fuzz firmware-size
