@@ -173,6 +173,19 @@ def test_warm_start_keeps_accuracy_and_reuses_the_factorisation():
     assert sum(facts) <= 3  # static shape: the first snapshot's factorisation keeps serving
 
 
+def test_long_warm_started_run_on_a_flat_sheet_does_not_drift():
+    # Case 1 everywhere: nothing in the data fixes the horizontal layout; the prior's target must
+    # not be the previous estimate alone, or the layout random-walks (0.05 -> 0.22 % in 3000)
+    P = make_sheet("flat", ROWS, COLS, L)
+    r0 = ideal_readings(P)
+    g = rng(13)
+    est, errs = None, []
+    for _ in range(400):
+        est = estimate(noisy_readings(r0, 1.0, g), ROWS, COLS, L, previous=est)
+        errs.append(error_percent_of_side(est.joints, P, L).mean())
+    assert np.mean(errs[-100:]) <= 0.1  # measured 0.045, as in the first 100
+
+
 # --- missing links -----------------------------------------------------------------------------
 
 def test_missing_links_still_give_a_shape_within_bound():
@@ -180,7 +193,7 @@ def test_missing_links_still_give_a_shape_within_bound():
     valid = np.ones(n, bool)
     valid[rng(5).choice(n, size=n // 20, replace=False)] = False  # 5 % of the links missing
     err = mean_error("gaussian", 1.0, valid=valid)
-    assert err <= 0.5  # measured 0.2 with these 18 links missing
+    assert err <= 0.5  # measured 0.28 with these 18 links missing (0.11 with none), 1 % g
     est = estimate(ideal_readings(make_sheet("gaussian", ROWS, COLS, L)), ROWS, COLS, L,
                    valid=valid)
     assert np.all(np.isfinite(est.joints))
