@@ -183,7 +183,6 @@ def run(args) -> int:
                     last_print = now
             elapsed = time.monotonic() - t0
             host.stop()
-            stats = host.stats
     finally:
         if proc.is_alive():
             parent.send("stop")

@@ -78,7 +78,7 @@ class Layout:
 
     links: dict  # uid -> link
     lattice: str | None = None
-    auto: bool = False  #: made by `Layout.auto`: positions are arbitrary
+    is_auto: bool = False  #: made by `Layout.auto`: positions are arbitrary
 
     def __post_init__(self) -> None:
         seen: dict[int, int] = {}
@@ -148,7 +148,7 @@ class Layout:
                         lattice.n_links)
         log.warning("auto-assign: %d chips placed on links in uid order; positions are arbitrary "
                     "(give a layout file for a meaningful shape)", min(len(uids), lattice.n_links))
-        return cls({u: k for k, u in enumerate(uids[:lattice.n_links])}, f"{lattice.rows}x{lattice.cols}", auto=True)
+        return cls({u: k for k, u in enumerate(uids[:lattice.n_links])}, f"{lattice.rows}x{lattice.cols}", is_auto=True)
 
 
 # --------------------------------------------------------------------------------------------

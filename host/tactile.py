@@ -47,6 +47,8 @@ from typing import Sequence
 
 import numpy as np
 
+from protocol.lattice import joint_normals
+
 from .estimator import ShapeEstimate, estimate
 
 __all__ = ["Foam", "RestShape", "Contact", "DetectorSettings", "TactileFrame", "deformation",
@@ -103,16 +105,6 @@ class Foam:
 # Rest shape
 # ---------------------------------------------------------------------------------------------
 
-def _joint_normals(P: np.ndarray) -> np.ndarray:
-    """Unit normals at the joints (top face), the average of the adjacent cells' normals."""
-    n = np.cross(P[1:, 1:] - P[:-1, :-1], P[:-1, 1:] - P[1:, :-1])
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
-    out = np.zeros_like(P)
-    out[:-1, :-1] += n
-    out[1:, 1:] += n
-    out[:-1, 1:] += n
-    out[1:, :-1] += n
-    return out / np.maximum(np.linalg.norm(out, axis=-1, keepdims=True), 1e-300)
 
 
 def _joint_areas(P: np.ndarray) -> np.ndarray:
@@ -200,7 +192,7 @@ class RestShape:
                              f"{np.shape(self.noise_m)}.")
         yaws = _yaws_of(P) if self.yaws is None else np.asarray(self.yaws, float)
         object.__setattr__(self, "yaws", yaws)
-        object.__setattr__(self, "normals", _joint_normals(P))
+        object.__setattr__(self, "normals", joint_normals(P))
         object.__setattr__(self, "areas", _joint_areas(P))
 
     @property
@@ -257,7 +249,7 @@ class RestShape:
         mean = al.mean(axis=0)
         al = np.array([rigid_fit(a, mean) for a in al])
         mean = al.mean(axis=0).reshape(shape)
-        n = _joint_normals(mean)
+        n = joint_normals(mean)
         d = np.einsum("sjk,jk->sj", al - mean.reshape(-1, 3), n.reshape(-1, 3))
         noise = d.std(axis=0, ddof=1).reshape(shape[:2])
         noise = np.maximum(noise, noise_floor_fraction * np.median(noise))

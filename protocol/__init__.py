@@ -15,8 +15,9 @@ from .can import CanFrame, decode_can, from_can, to_can
 from .constants import G0, Range, SampleStatus
 from .framing import DecodeError, ErrorReason, SampleBatch, StreamDecoder, decode_frame, encode
 from .lattice import Lattice
+from . import messages as _messages
 from .messages import *  # noqa: F401,F403
-from .messages import __all__ as _messages_all
 
 __all__ = ["CanFrame", "decode_can", "from_can", "to_can", "G0", "Range", "SampleStatus", "DecodeError",
-           "ErrorReason", "SampleBatch", "StreamDecoder", "decode_frame", "encode", "Lattice", *_messages_all]
+           "ErrorReason", "SampleBatch", "StreamDecoder", "decode_frame", "encode", "Lattice"]
+__all__ += _messages.__all__

@@ -24,7 +24,7 @@ from functools import cached_property
 
 import numpy as np
 
-__all__ = ["Lattice", "Link", "AXIS_I", "AXIS_J"]
+__all__ = ["Lattice", "Link", "AXIS_I", "AXIS_J", "joint_normals"]
 
 AXIS_I = 0  #: link (i, j) -> (i+1, j)
 AXIS_J = 1  #: link (i, j) -> (i, j+1)
@@ -165,3 +165,24 @@ class Lattice:
         flat = joints.reshape(-1, 3)
         e = self.endpoints
         return flat[e[:, 1]] - flat[e[:, 0]]
+
+
+def joint_normals(joints: np.ndarray) -> np.ndarray:
+    """Unit normals at the joints, top face: the average of the adjacent cells' unit normals, each
+    the cross product of the cell's diagonals. Shape ``(rows, cols, 3)`` in, the same out.
+
+    >>> i, j = np.meshgrid(np.arange(3.0), np.arange(4.0), indexing="ij")
+    >>> joint_normals(np.stack([i, j, 0 * i], axis=-1))[1, 2].tolist()
+    [0.0, 0.0, 1.0]
+    """
+    P = np.asarray(joints, dtype=float)
+    if P.ndim != 3 or P.shape[-1] != 3 or P.shape[0] < 2 or P.shape[1] < 2:
+        raise ValueError(f"Expected `joints` to have shape (rows, cols, 3), got {P.shape}.")
+    n = np.cross(P[1:, 1:] - P[:-1, :-1], P[:-1, 1:] - P[1:, :-1])
+    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
+    out = np.zeros_like(P)
+    out[:-1, :-1] += n
+    out[1:, 1:] += n
+    out[:-1, 1:] += n
+    out[1:, :-1] += n
+    return out / np.maximum(np.linalg.norm(out, axis=-1, keepdims=True), 1e-300)

@@ -151,7 +151,7 @@ def test_auto_assign_without_layout_places_chips_in_uid_order(rig_factory, kind)
     rig.host.bring_up(0.2)
     uids = sorted(rig.sheet.layout)
     assert [rig.host.chips[u].link for u in uids] == list(range(len(uids)))
-    assert rig.host.layout.auto
+    assert rig.host.layout.is_auto
     snaps = rig.stream(0.2)
     assert snaps and all(s.complete for s in snaps)
 

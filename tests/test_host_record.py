@@ -71,7 +71,7 @@ def test_layout_csv_and_json_round_trip_and_match_the_virtual_sheet(tmp_path):
     with pytest.raises(ValueError, match="Link 0 is given to two chips"):
         Layout.load(tmp_path / "bad.csv")
     auto = Layout.auto([5, 3, 9], Lattice(2, 3))
-    assert auto.links == {3: 0, 5: 1, 9: 2} and auto.auto
+    assert auto.links == {3: 0, 5: 1, 9: 2} and auto.is_auto
 
 
 def test_capsheet_host_command_discovers_streams_and_records(tmp_path, capsys):
@@ -99,3 +99,12 @@ def test_capsheet_host_names_the_port_it_cannot_open(tmp_path, capsys):
     missing = str(tmp_path / "nope")
     assert main(["host", "--port", missing, "--duration", "0.1"]) == 1
     assert f"Cannot open serial port {missing!r}" in capsys.readouterr().err
+
+
+def test_a_loaded_layout_is_not_marked_auto_assigned(tmp_path):
+    from host.nodes import Layout
+    path = tmp_path / "layout.csv"
+    Layout({0x0123456789ABCDEF: 0, 0x42: 1}).save(path)
+    loaded = Layout.load(path)
+    assert loaded.links == {0x0123456789ABCDEF: 0, 0x42: 1}
+    assert loaded.is_auto is False

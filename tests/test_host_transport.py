@@ -43,7 +43,8 @@ def test_loop_url_round_trip_and_capabilities():
     try:
         caps = t.capabilities
         assert caps == TransportCapabilities("serial", 1018, False, 115200, None, "loop://")
-        with pytest.raises(Exception):
+        import dataclasses
+        with pytest.raises(dataclasses.FrozenInstanceError):
             caps.mtu = 8  # frozen
         t.send(Sync(counter=0xFFFF))
         t.send(Sample(3, 0xFFFF, 1, 2, 3, 0))

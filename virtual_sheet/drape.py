@@ -26,7 +26,7 @@ from typing import Callable, Protocol, runtime_checkable
 
 import numpy as np
 
-from protocol.lattice import Lattice
+from protocol.lattice import Lattice, joint_normals
 
 __all__ = ["Surface", "Sphere", "Cylinder", "HeightField", "DrapeInfo", "drape"]
 
@@ -220,17 +220,6 @@ def _sweep(P: np.ndarray, L: float) -> None:
         P[:, s:s + 2 * m:2], P[:, s + 1:s + 2 * m:2] = _fix_links(a[:, :m], b[:, :m], L)
 
 
-def _joint_normals(P: np.ndarray) -> np.ndarray:
-    """Unit normals at the joints from the net itself: the average of the adjacent cells' normals
-    (cross product of the cell diagonals), shape ``(rows, cols, 3)``."""
-    n = np.cross(P[1:, 1:] - P[:-1, :-1], P[:-1, 1:] - P[1:, :-1])
-    n /= np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-300)
-    out = np.zeros_like(P)
-    out[:-1, :-1] += n
-    out[1:, 1:] += n
-    out[:-1, 1:] += n
-    out[1:, :-1] += n
-    return out / np.maximum(np.linalg.norm(out, axis=-1, keepdims=True), 1e-300)
 
 
 def _newton_step(surface: Surface, P: np.ndarray, lat: Lattice, L: float) -> np.ndarray:
@@ -241,7 +230,7 @@ def _newton_step(surface: Surface, P: np.ndarray, lat: Lattice, L: float) -> np.
 
     rows, cols = P.shape[:2]
     flat = P.reshape(-1, 3)
-    nrm = _joint_normals(P).reshape(-1, 3)
+    nrm = joint_normals(P).reshape(-1, 3)
     e1 = np.cross(nrm, np.array([1.0, 0.0, 0.0]))
     alt = np.cross(nrm, np.array([0.0, 1.0, 0.0]))
     pick = np.linalg.norm(alt, axis=1) > np.linalg.norm(e1, axis=1)
