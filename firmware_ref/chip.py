@@ -15,6 +15,8 @@ from typing import Callable, Union
 from protocol.can import CanFrame
 from protocol.messages import Capability, ChipState
 
+from virtual_sheet.chip import DEFAULT_CAPABILITIES, check_chip_args
+
 from ._ffi import ffi, lib
 
 __all__ = ["CFirmwareChip", "Out", "SensorSource", "DEFAULT_CAPABILITIES", "FIRMWARE_VERSION", "FirmwareError"]
@@ -23,7 +25,6 @@ Out = Union[bytes, CanFrame]
 SensorSource = Callable[[float], tuple[tuple[int, int, int], int]]
 
 #: The same default as the Python chip model (virtual_sheet.chip.DEFAULT_CAPABILITIES).
-DEFAULT_CAPABILITIES = Capability.SELF_TEST | Capability.CAL_STORAGE | Capability.MULTI_RANGE | Capability.FILTER
 FIRMWARE_VERSION = (lib.CAPSHEET_FW_VERSION_MAJOR, lib.CAPSHEET_FW_VERSION_MINOR, lib.CAPSHEET_FW_VERSION_PATCH)
 
 
@@ -50,12 +51,7 @@ class CFirmwareChip:
                  capabilities: int = DEFAULT_CAPABILITIES,
                  calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0,
                  rx_buffer: int | None = None) -> None:
-        if transport not in ("serial", "can"):
-            raise ValueError(f"Invalid transport: {transport!r} (expected 'serial' or 'can')")
-        if not (isinstance(uid, int) and 0 <= uid < 1 << 64):
-            raise ValueError(f"Invalid uid: {uid!r} (need a 64-bit unsigned integer)")
-        if len(calibration) != 3:
-            raise ValueError(f"Invalid calibration: {calibration!r} (need 3 axes of (offset_q4, sensitivity))")
+        check_chip_args(uid, transport, calibration)
         self.uid = uid
         self.sensor = sensor
         self.transport = transport

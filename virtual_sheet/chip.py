@@ -95,6 +95,17 @@ def frame_header(frame: Out) -> tuple[int, int, int] | None:
     return HEADER.unpack_from(body)
 
 
+
+def check_chip_args(uid: int, transport: str, calibration) -> None:
+    """The constructor checks every chip class of the fixed interface shares (this model and
+    ``firmware_ref.chip.CFirmwareChip``)."""
+    if transport not in ("serial", "can"):
+        raise ValueError(f"Invalid transport: {transport!r} (expected 'serial' or 'can')")
+    if not (isinstance(uid, int) and 0 <= uid < 1 << 64):
+        raise ValueError(f"Invalid uid: {uid!r} (need a 64-bit unsigned integer)")
+    if len(calibration) != 3:
+        raise ValueError(f"Invalid calibration: {calibration!r} (need 3 axes of (offset_q4, sensitivity))")
+
 class ChipModel:
     """One chip. See the module docstring for the behaviour.
 
@@ -120,12 +131,7 @@ class ChipModel:
     def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
                  capabilities: int = DEFAULT_CAPABILITIES,
                  calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0) -> None:
-        if transport not in ("serial", "can"):
-            raise ValueError(f"Invalid transport: {transport!r} (expected 'serial' or 'can')")
-        if not (isinstance(uid, int) and 0 <= uid < 1 << 64):
-            raise ValueError(f"Invalid uid: {uid!r} (need a 64-bit unsigned integer)")
-        if len(calibration) != 3:
-            raise ValueError(f"Invalid calibration: {calibration!r} (need 3 axes of (offset_q4, sensitivity))")
+        check_chip_args(uid, transport, calibration)
         self.uid = uid
         self.sensor = sensor
         self.transport = transport
