@@ -30,7 +30,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from host.tactile import Foam, TactileSensor, lattice_index  # noqa: E402
+from host.analysis.tactile import Foam, TactileSensor, lattice_index  # noqa: E402
 from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamLayer, FoamScene, Press,  # noqa: E402
                                 SphereIndenter)
 from virtual_sheet.geometry import ideal_readings  # noqa: E402

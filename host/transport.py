@@ -8,7 +8,7 @@ serial:
   ``/dev/ttyUSB0``, ``socket://host:port``); reconnects when the port goes away and comes back.
 * ``can`` — `CanTransport`: python-can, any interface it knows, given as ``interface:channel``
   (``virtual:bus0``, ``slcan:/dev/pts/5``, ``socketcan:can0``); classic CAN or CAN FD.
-* ``memory`` — `MemoryTransport`: one end of ``virtual_sheet.memlink.memory_link()`` (no OS).
+* ``memory`` — `MemoryTransport`: one end of ``virtual_sheet.memport.memory_link()`` (no OS).
 
 The python-can pattern: the public `Transport.recv` runs the timeout loop and the bookkeeping;
 a back end implements only ``_recv_internal`` (and ``_send_internal``, ``_close_internal``).
@@ -350,7 +350,7 @@ class SerialTransport(Transport):
                 more = port.in_waiting
                 if more:
                     data += port.read(min(more, self._read_size))
-        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, memlink's OSError
+        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, memport's OSError
             self._lost(exc)
             return []
         if not data:
@@ -383,7 +383,7 @@ class SerialTransport(Transport):
 
 
 class MemoryTransport(SerialTransport):
-    """The serial framing over one end of ``virtual_sheet.memlink.memory_link()`` (fast unit tests).
+    """The serial framing over one end of ``virtual_sheet.memport.memory_link()`` (fast unit tests).
 
     ``reopen`` (optional) returns a new end after the link was closed, to exercise reconnection.
     """

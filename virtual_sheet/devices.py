@@ -1,7 +1,7 @@
 """Virtual devices: a `VirtualSheet` reachable exactly as hardware is, each in a background thread.
 
 =================== ========================================================================
-`MemoryDevice`      in-memory byte link (`memlink`): ``device.port`` is the host's pyserial-like end
+`MemoryDevice`      in-memory byte link (`memport`): ``device.port`` is the host's pyserial-like end
 `PtyDevice`         a pseudo-terminal: ``device.path`` is a stable symlink to the slave
                     (``device.tty`` the slave itself); open it with ``serial.Serial(path)``
 `CanDevice`         python-can buses (``virtual`` by default, any interface python-can knows):
@@ -36,7 +36,7 @@ from typing import Any
 
 from .faults import ERROR_FRAME
 from .gateway import Gateway
-from .memlink import memory_link
+from .memport import memory_link
 
 __all__ = ["Device", "MemoryDevice", "PtyDevice", "CanDevice", "open_pty"]
 

@@ -26,7 +26,7 @@ from tests.strategies import messages
 
 codec = pytest.importorskip("firmware_ref.codec", reason="C firmware extension not built")
 
-VECTORS = Path(__file__).parent / "vectors"
+VECTORS = Path(__file__).resolve().parents[1] / "vectors"
 SERIAL = json.loads((VECTORS / "serial.json").read_text())["vectors"]
 CAN = json.loads((VECTORS / "can.json").read_text())["vectors"]
 SERIAL_ERRORS = json.loads((VECTORS / "serial_errors.json").read_text())["vectors"]

@@ -11,7 +11,7 @@ from protocol import (DecodeError, ErrorReason, Sample, SampleBatch, Snapshot, S
 from protocol.can import CAN_CLASSIC_MTU, FD_LENGTHS, MAX_FD_SNAPSHOT_SAMPLES, make_id, split_id
 from protocol.framing import MAX_ENCODED_SIZE, encode_frame
 from protocol.messages import MsgType, PROTOCOL_VERSION, Sync
-from strategies import messages
+from tests.strategies import messages
 
 lists_of_messages = st.lists(messages(), min_size=1, max_size=12)
 

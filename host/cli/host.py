@@ -5,7 +5,7 @@ line and record snapshots (docs/host.md).
     capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
     capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
 
-The Python API is `host.nodes.Host` (re-exported here).
+The Python API is `host.session.Host` (re-exported here).
 """
 
 from __future__ import annotations
@@ -16,9 +16,9 @@ import logging
 import sys
 import time
 
-from .nodes import Host, Layout
-from .record import RecordWriter
-from .transport import CanTransport, SerialTransport, TransportError
+from host.session import Host, Layout
+from host.record import RecordWriter
+from host.transport import CanTransport, SerialTransport, TransportError
 
 __all__ = ["register", "run", "Host", "Layout", "open_transports"]
 

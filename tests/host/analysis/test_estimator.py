@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host import estimator as E
+from host.analysis import estimator as E
 from host.estimator import error_percent_of_side, estimate, overlay_error
 from protocol.constants import G0
 from protocol.lattice import Lattice
@@ -95,9 +95,9 @@ def test_flat_sheet_is_unsolvable_everywhere():
                                                (2.5, 2.0, np.pi / 2), (1.0, 0.7, 1.49)])
 def test_fully_squashed_unit_is_unsolvable(fold, roll, pitch):
     # Case 2: corner angle 0 (all four links parallel), lying flat or pitched up towards vertical
-    # (where the Fig. 8 grid finds it). Built by host.paper's Fig. 8 unit construction;
+    # (where the Fig. 8 grid finds it). Built by host.cli.paper's Fig. 8 unit construction;
     # readings -> estimate -> solvability.
-    from host.paper import unit_angles
+    from host.cli.paper import unit_angles
     alpha, beta = unit_angles(0.0, fold, roll, pitch)
     reading = G0 * np.stack([-np.sin(beta), np.cos(beta) * np.sin(alpha),
                              np.cos(beta) * np.cos(alpha)], -1)
@@ -112,8 +112,8 @@ def test_fully_squashed_unit_is_unsolvable(fold, roll, pitch):
 def test_squashed_unit_tilted_is_not_flagged_by_the_eq7_ratio():
     # Finding, not a wish: at a generic tilt eq. (7)'s 4x6 matrix keeps rank 4 for a squashed unit
     # (its yaws are still underdetermined: z1 = z2 = any unit complex number solves (4) and (6)),
-    # so lambda3/lambda1 misses Case 2 away from theta_p in {0, pi/2}. See host.paper / README.
-    from host.paper import unit_angles
+    # so lambda3/lambda1 misses Case 2 away from theta_p in {0, pi/2}. See host.cli.paper / README.
+    from host.cli.paper import unit_angles
     alpha, beta = unit_angles(0.0, 0.0, 0.3, 0.4)
     assert E._solvability_units(alpha, beta) > 0.1
 

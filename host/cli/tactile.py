@@ -7,7 +7,7 @@ one status line per snapshot (count, positions in lattice indices, forces, track
 a PNG heat map of the normal displacement with the contacts outlined (the snapshot with the
 largest total force).
 
-With ``--port`` or ``--can`` it runs on a real sheet through `host.nodes.Host` (the same
+With ``--port`` or ``--can`` it runs on a real sheet through `host.session.Host` (the same
 transports as ``capsheet host``): the first ``--learn-s`` seconds must be untouched (rest shape),
 then contacts are shown live for ``--duration`` seconds (one line every 0.5 s).
 """
@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from .tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor, lattice_index,
+from host.analysis.tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor, lattice_index,
                       plot_frame)
 
 
@@ -103,8 +103,8 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
 
 
 def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
-    from .hostcli import open_transports
-    from .nodes import Host, Layout
+    from host.cli.host import open_transports
+    from host.session import Host, Layout
 
     transports = open_transports(args)
     host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate,

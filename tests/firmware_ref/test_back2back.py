@@ -11,8 +11,8 @@ import pytest
 pytest.importorskip("firmware_ref._capsheet_fw", reason="C firmware extension not built")
 from firmware_ref.chip import CFirmwareChip  # noqa: E402
 
-import tests.test_host_back2back as base  # noqa: E402
-from tests.test_host_back2back import rig_factory  # noqa: E402,F401  (the suite's fixture)
+import tests.host.test_back2back as base  # noqa: E402
+from tests.host.test_back2back import rig_factory  # noqa: E402,F401  (the suite's fixture)
 from virtual_sheet.sheet import VirtualSheet  # noqa: E402
 
 

@@ -23,7 +23,7 @@ pytest.importorskip("firmware_ref._capsheet_fw", reason="C firmware extension no
 from firmware_ref.chip import CFirmwareChip  # noqa: E402
 from virtual_sheet.chip import ChipModel  # noqa: E402
 
-import tests.test_virtual_chip as base  # noqa: E402
+import tests.virtual_sheet.test_chip as base  # noqa: E402
 
 UID = base.UID
 NODE = base.NODE

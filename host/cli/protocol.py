@@ -17,8 +17,8 @@ def _parse_value(text: str):
 
 
 def cmd_decode(args) -> int:
-    from .can import decode_can
-    from .framing import DecodeError, StreamDecoder
+    from protocol.can import decode_can
+    from protocol.framing import DecodeError, StreamDecoder
     if args.can_id is not None:
         ev = decode_can(int(args.can_id, 16), bytes.fromhex(args.hex), is_fd=args.fd)
         print(ev)
@@ -36,9 +36,9 @@ def cmd_decode(args) -> int:
 
 
 def cmd_encode(args) -> int:
-    from .can import to_can
-    from .framing import encode
-    from .messages import MESSAGE_TYPES, MsgType
+    from protocol.can import to_can
+    from protocol.framing import encode
+    from protocol.messages import MESSAGE_TYPES, MsgType
     try:
         cls = MESSAGE_TYPES[MsgType[args.type.upper()]]
     except KeyError:
@@ -65,7 +65,7 @@ def cmd_encode(args) -> int:
 
 
 def cmd_vectors(args) -> int:
-    from .vectors import build_vectors, write_vectors
+    from protocol.vectors import build_vectors, write_vectors
     if args.write:
         for p in write_vectors():
             print(f"wrote {p}")
@@ -75,7 +75,7 @@ def cmd_vectors(args) -> int:
 
 
 def cmd_dbc(args) -> int:
-    from .dbc import dbc_text, write_dbc
+    from protocol.dbc import dbc_text, write_dbc
     if args.write:
         print(f"wrote {write_dbc()}")
     else:
@@ -84,7 +84,7 @@ def cmd_dbc(args) -> int:
 
 
 def cmd_capacity(args) -> int:
-    from .capacity import capacity_table
+    from protocol.capacity import capacity_table
     rows = capacity_table(args.rate)
     print(f"| link | carries | one frame | frames/s | chips at {args.rate:g} Hz |")
     print("|---|---|---|---|---|")

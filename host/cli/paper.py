@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from host import estimator as E
+from host.analysis import estimator as E
 from protocol.constants import G0
 
 __all__ = ["register", "unit_angles", "solvability_grid", "noise_study"]

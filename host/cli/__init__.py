@@ -10,13 +10,13 @@ import sys
 
 #: modules that provide subcommands, in the order `capsheet --help` lists them
 SUBCOMMAND_MODULES = [
-    "host.demo",            # capsheet demo
-    "host.hostcli",         # capsheet host
-    "virtual_sheet.cli",    # capsheet virtual
-    "host.paper",           # capsheet paper {solvability,gaussian,noise}
-    "host.tactile_cli",     # capsheet tactile
-    "host.conformance",     # capsheet conformance
-    "protocol.cli",         # capsheet protocol (spec helpers: vectors, dbc, capacity)
+    "host.cli.demo",         # capsheet demo
+    "host.cli.host",         # capsheet host
+    "host.cli.virtual",      # capsheet virtual
+    "host.cli.paper",        # capsheet paper {solvability,gaussian,noise}
+    "host.cli.tactile",      # capsheet tactile
+    "host.cli.conformance",  # capsheet conformance
+    "host.cli.protocol",     # capsheet protocol (spec helpers: vectors, dbc, capacity)
 ]
 
 

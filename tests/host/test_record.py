@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from host.aggregator import LatticeSnapshot
-from host.nodes import Layout
+from host.session import Layout
 from host.record import RecordWriter, read_recording
 from protocol.lattice import Lattice
 
@@ -102,7 +102,7 @@ def test_capsheet_host_names_the_port_it_cannot_open(tmp_path, capsys):
 
 
 def test_a_loaded_layout_is_not_marked_auto_assigned(tmp_path):
-    from host.nodes import Layout
+    from host.session import Layout
     path = tmp_path / "layout.csv"
     Layout({0x0123456789ABCDEF: 0, 0x42: 1}).save(path)
     loaded = Layout.load(path)

@@ -98,7 +98,7 @@ def run(args) -> int:
     import multiprocessing as mp
 
     from host.estimator import error_percent_of_side, estimate
-    from host.nodes import Host, Layout
+    from host.session import Host, Layout
     from host.transport import open_transport
     from virtual_sheet.sheet import VirtualSheet
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from host.cli import main as cli_main
-from host.tactile import (ContactTracker, Foam, RestShape, TactileSensor, deformation,
+from host.analysis.tactile import (ContactTracker, Foam, RestShape, TactileSensor, deformation,
                           find_contacts, lattice_index)
 from virtual_sheet.foam import (CapsuleIndenter, FlatPunch, FoamBlock, FoamLayer, FoamScene,
                                 Press, SphereIndenter)
@@ -117,7 +117,7 @@ def test_tracking_keeps_id_while_contact_moves_slowly(rest):
 
 
 def test_tracker_gives_new_ids_to_new_contacts_and_gates():
-    from host.tactile import Contact
+    from host.analysis.tactile import Contact
 
     def c(x):
         return Contact(id=-1, index=np.zeros(2), position=np.array([x, 0.0, 0.0]),

@@ -34,7 +34,7 @@ examples:
 def load_chip_factory(firmware: str):
     """``python`` -> ChipModel; ``c`` -> firmware_ref.chip.CFirmwareChip (imported lazily)."""
     if firmware == "python":
-        from .chip import ChipModel
+        from virtual_sheet.chip import ChipModel
         return ChipModel
     if firmware == "c":
         try:
@@ -48,7 +48,7 @@ def load_chip_factory(firmware: str):
 
 
 def register(subparsers) -> argparse.ArgumentParser:
-    from .shapes import SCENES, SHAPES
+    from virtual_sheet.shapes import SCENES, SHAPES
     p = subparsers.add_parser(
         "virtual", help="run a virtual sheet on a pty, SLCAN adapter or python-can bus",
         description="Run a simulated capture sheet that a host reaches exactly as hardware: the chips "
@@ -89,7 +89,7 @@ def register(subparsers) -> argparse.ArgumentParser:
 def _fmt_frame(frame) -> str:
     from protocol.can import CanFrame, decode_can
     from protocol.framing import decode_frame
-    from .faults import ERROR_FRAME
+    from virtual_sheet.faults import ERROR_FRAME
     if frame is ERROR_FRAME:
         return "<error frame>"
     if isinstance(frame, CanFrame):
@@ -99,8 +99,8 @@ def _fmt_frame(frame) -> str:
 
 def make_device(args, verbose=None):
     """The sheet and its device from parsed arguments."""
-    from .faults import FaultSpec
-    from .sheet import VirtualSheet
+    from virtual_sheet.faults import FaultSpec
+    from virtual_sheet.sheet import VirtualSheet
     transport = "can" if args.transport in ("can", "slcan") else "serial"
     spec = FaultSpec.parse(args.faults)
     sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
@@ -108,19 +108,19 @@ def make_device(args, verbose=None):
                          chip_factory=load_chip_factory(args.firmware), faults=spec)
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
     if args.transport == "pty":
-        from .devices import PtyDevice
+        from virtual_sheet.devices import PtyDevice
         dev = PtyDevice(sheet, link_path=args.link, **kw)
     elif args.transport == "memory":
-        from .devices import MemoryDevice
+        from virtual_sheet.devices import MemoryDevice
         dev = MemoryDevice(sheet, **kw)
     elif args.transport == "slcan":
-        from .slcan import SlcanDevice
+        from virtual_sheet.slcan import SlcanDevice
         paths = None
         if args.link:
             paths = [args.link] if args.bus_count == 1 else [f"{args.link}{b}" for b in range(args.bus_count)]
         dev = SlcanDevice(sheet, n_buses=args.bus_count, link_paths=paths, **kw)
     else:
-        from .devices import CanDevice
+        from virtual_sheet.devices import CanDevice
         dev = CanDevice(sheet, n_buses=args.bus_count, interface=args.can_interface, channels=args.channel, **kw)
     return sheet, dev
 

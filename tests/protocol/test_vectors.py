@@ -14,7 +14,7 @@ from protocol.framing import ErrorReason
 from protocol.messages import MsgType, Snapshot
 from protocol.vectors import build_vectors, message_from_fields, message_to_fields
 
-VECTORS = Path(__file__).parent / "vectors"
+VECTORS = Path(__file__).resolve().parents[1] / "vectors"
 SERIAL = json.loads((VECTORS / "serial.json").read_text())["vectors"]
 CAN = json.loads((VECTORS / "can.json").read_text())["vectors"]
 ERRORS = json.loads((VECTORS / "serial_errors.json").read_text())["vectors"]

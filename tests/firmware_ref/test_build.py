@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-FW = Path(__file__).resolve().parent.parent / "firmware_ref"
+FW = Path(__file__).resolve().parents[2] / "firmware_ref"
 
 pytestmark = pytest.mark.skipif(shutil.which("make") is None or shutil.which("cc") is None,
                                 reason="needs make and a C compiler (cc)")

@@ -4,7 +4,7 @@ exact link lengths on the indented bodies. Tolerances are stated per test."""
 import numpy as np
 import pytest
 
-from host.tactile import Foam
+from host.analysis.tactile import Foam
 from virtual_sheet.foam import (CapsuleIndenter, FlatPunch, FoamBlock, FoamCylinder, FoamLayer,
                                 FoamScene, FoamSphere, Press, RectPunch, SphereIndenter)
 from virtual_sheet.geometry import link_lengths

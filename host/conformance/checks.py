@@ -20,7 +20,6 @@ SYNC->SAMPLE check passes when the median is within the 2 ms deadline plus ``--s
 
 from __future__ import annotations
 
-import argparse
 import queue
 import statistics
 import sys
@@ -40,7 +39,7 @@ from protocol.messages import (MESSAGE_TYPES, NODE_PROVISIONAL_MAX, NODE_PROVISI
                                StatusFlag, Stop, Sync, provisional_node)
 from protocol.state import ANNOUNCE_PERIOD_S, SYNC_REPLY_DEADLINE_S
 
-__all__ = ["register", "run", "run_checks", "CheckResult", "CHECKS", "SerialLink", "CanLink", "Link"]
+__all__ = ["run_checks", "summary", "CheckResult", "CHECKS", "SerialLink", "CanLink", "Link"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -688,47 +687,3 @@ def run_checks(link: Link, *, timeout_s: float = 0.5, node: int = 42, slack_ms: 
 def summary(results: list[CheckResult]) -> str:
     n = {k: sum(r.outcome == k for r in results) for k in ("PASS", "FAIL", "SKIP")}
     return f"conformance: {n['PASS']} checks passed, {n['FAIL']} failed, {n['SKIP']} skipped"
-
-
-def run(args: argparse.Namespace) -> int:
-    if args.list:
-        for c in CHECKS:
-            print(f"{c.number:2d}  {c.clause:10} {c.title}" + (f"  ({c.transport} only)" if c.transport else ""))
-        return 0
-    if bool(args.port) == bool(args.can):
-        print("capsheet conformance: give exactly one of --port PATH or --can IFACE:CHANNEL", file=sys.stderr)
-        return 2
-    try:
-        link = SerialLink(args.port, args.baud) if args.port else CanLink(args.can, fd=args.fd, bitrate=args.bitrate)
-    except ConnectionError as exc:
-        print(f"capsheet conformance: {exc}", file=sys.stderr)
-        return 2
-    link.start()
-    try:
-        only = [o.strip() for o in args.only.split(",")] if args.only else None
-        print(f"capsheet conformance: {args.port or args.can} ({link.transport})", flush=True)
-        results = run_checks(link, timeout_s=args.timeout, node=args.node, slack_ms=args.slack_ms, only=only,
-                             out=sys.stdout)
-    finally:
-        link.close()
-    print(summary(results))
-    return 1 if any(r.outcome == "FAIL" for r in results) else 0
-
-
-def register(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        "conformance", help="hold a chip (or gateway) to the protocol spec, clause by clause",
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--port", help="serial port (pyserial URL or device path)")
-    p.add_argument("--baud", type=int, default=3_000_000, help="serial baud rate (default 3000000)")
-    p.add_argument("--can", metavar="IFACE:CHANNEL", help="python-can interface and channel, e.g. socketcan:can0")
-    p.add_argument("--fd", action="store_true", help="open the CAN bus in FD mode")
-    p.add_argument("--bitrate", type=int, default=None, help="CAN bitrate, where the interface needs one")
-    p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for each answer (default 0.5)")
-    p.add_argument("--node", type=lambda v: int(v, 0), default=42, help="node id to assign for the run (default 42)")
-    p.add_argument("--slack-ms", type=float, default=10.0,
-                   help="host-side latency allowed on top of the 2 ms SYNC deadline (default 10)")
-    p.add_argument("--only", help="comma-separated check numbers or clause prefixes, e.g. 4.6,5")
-    p.add_argument("--list", action="store_true", help="list the checks and exit")
-    p.set_defaults(func=run)
-    return p

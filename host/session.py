@@ -2,7 +2,7 @@
 
 `Host` is the Python API a program (the demo, the CLI) uses to run a sheet::
 
-    from host.nodes import Host, Layout
+    from host.session import Host, Layout
     from host.transport import open_transport
     with Host([open_transport("serial", "/dev/pts/5")], "14x14", layout=Layout.load("sheet.csv"),
               rate_hz=100) as host:

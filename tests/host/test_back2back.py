@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from host.aggregator import LinkFlag
-from host.nodes import Host, Layout
+from host.session import Host, Layout
 from host.transport import CanTransport, MemoryTransport, SerialTransport
 from protocol.constants import G0
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice

@@ -17,7 +17,7 @@ from host.transport import (CanTransport, MemoryTransport, SerialTransport, Tran
                             parse_can_spec)
 from protocol import DecodeError, SampleBatch, Snapshot, encode, to_can
 from protocol.messages import Ack, Announce, MsgType, Sample, Sync
-from virtual_sheet.memlink import memory_link
+from virtual_sheet.memport import memory_link
 
 can = pytest.importorskip("can")
 
