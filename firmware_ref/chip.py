@@ -1,4 +1,4 @@
-"""`CFirmwareChip`: the C reference firmware behind the chip-model interface of virtual_sheet/chip.py.
+"""`CFirmwareChip`: the C reference firmware behind the chip interface of protocol/chip_interface.py.
 
 Same constructor and methods as `virtual_sheet.chip.ChipModel`, so a virtual sheet runs every chip
 on the C firmware (software in the loop, ``capsheet virtual --firmware c``). The HAL is Python:
@@ -10,21 +10,14 @@ Time: ``now_s`` (float seconds) is passed to C as integer microseconds, ``round(
 
 from __future__ import annotations
 
-from typing import Callable, Union
-
 from protocol.can import CanFrame
+from protocol.chip_interface import DEFAULT_CAPABILITIES, Out, SensorSource, check_chip_args
 from protocol.messages import Capability, ChipState
-
-from virtual_sheet.chip import DEFAULT_CAPABILITIES, check_chip_args
 
 from ._ffi import ffi, lib
 
 __all__ = ["CFirmwareChip", "Out", "SensorSource", "DEFAULT_CAPABILITIES", "FIRMWARE_VERSION", "FirmwareError"]
 
-Out = Union[bytes, CanFrame]
-SensorSource = Callable[[float], tuple[tuple[int, int, int], int]]
-
-#: The same default as the Python chip model (virtual_sheet.chip.DEFAULT_CAPABILITIES).
 FIRMWARE_VERSION = (lib.CAPSHEET_FW_VERSION_MAJOR, lib.CAPSHEET_FW_VERSION_MINOR, lib.CAPSHEET_FW_VERSION_PATCH)
 
 

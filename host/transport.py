@@ -22,6 +22,7 @@ Events returned by `Transport.recv` are what the protocol decoders produce, in w
 from __future__ import annotations
 
 import importlib
+import sys
 import logging
 import threading
 import time
@@ -63,8 +64,11 @@ class TransportOperationError(TransportError):
     """A send or receive failed on an open port (and reconnecting, if enabled, has not helped)."""
 
 
-class TransportTimeoutError(TransportError):
-    """An operation did not finish within its timeout (e.g. a write that blocked)."""
+class TransportTimeoutError(TransportError, TimeoutError):
+    """An operation did not finish within its timeout (e.g. a write that blocked).
+
+    Also a `TimeoutError`, so ``except TimeoutError`` catches it as it catches the standard library's.
+    """
 
 
 # --------------------------------------------------------------------------------------------
@@ -369,7 +373,9 @@ class SerialTransport(Transport):
         try:
             port.write(data)
         except Exception as exc:  # noqa: BLE001
-            if type(exc).__name__ == "SerialTimeoutException":
+            # pyserial's class, if pyserial is loaded at all (a port object may come from elsewhere)
+            serial_timeout = getattr(sys.modules.get("serial"), "SerialTimeoutException", None)
+            if serial_timeout is not None and isinstance(exc, serial_timeout):
                 raise TransportTimeoutError(f"Write to serial port {self.name!r} timed out: {exc}",
                                             self.name) from exc
             self._lost(exc)
@@ -539,7 +545,7 @@ class CanTransport(Transport):
         try:
             bus.send(m, timeout=1.0)
         except Exception as exc:  # noqa: BLE001
-            if type(exc).__name__ == "CanTimeoutError":
+            if isinstance(exc, self._can.CanTimeoutError):
                 raise TransportTimeoutError(f"Send on CAN bus {self.name!r} timed out: {exc}", self.name) from exc
             self._lost(exc)
             raise TransportOperationError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc

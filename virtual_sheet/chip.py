@@ -38,19 +38,19 @@ file only adds what the table leaves to the implementation:
   (the sensor source always reports ±2 g counts); ``filter`` and ``rate_hz`` are stored only.
 * A sample the sensor flags INVALID (the ADC did not answer) puts an assigned chip in FAULT.
 
-The interface is shared with the C firmware (`firmware_ref.chip.CFirmwareChip`), so a virtual
-sheet runs on either through its ``chip_factory``.
+The interface (protocol/chip_interface.py) is shared with the C firmware
+(`firmware_ref.chip.CFirmwareChip`), so a virtual sheet runs on either through its ``chip_factory``.
 """
 
 from __future__ import annotations
 
 import binascii
 import struct
-from typing import Callable, Union
 
 from cobs import cobs
 
 from protocol.can import CanFrame, decode_can, make_id, split_id, to_can
+from protocol.chip_interface import DEFAULT_CAPABILITIES, ChipFactory, Out, SensorSource, check_chip_args
 from protocol.constants import SampleStatus
 from protocol.framing import HEADER, DecodeError, ErrorReason, decode_frame, encode
 from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, CalData,
@@ -60,18 +60,9 @@ from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, 
 from protocol.state import ANNOUNCE_PERIOD_S, Reply, rule_for
 
 __all__ = ["Out", "SensorSource", "ChipModel", "ChipFactory", "DEFAULT_CAPABILITIES",
-           "FIRMWARE_VERSION", "DEFAULT_HEARTBEAT_MS", "frame_header"]
-
-#: One serial frame including its 0x00 delimiter, or one CAN frame.
-Out = Union[bytes, CanFrame]
-#: ``now_s -> ((x, y, z) ADC counts at ±2 g, SampleStatus bits)``
-SensorSource = Callable[[float], tuple[tuple[int, int, int], int]]
-#: What a virtual sheet calls to make each chip (ChipModel, or CFirmwareChip for SIL).
-ChipFactory = Callable[..., "ChipModel"]
+           "FIRMWARE_VERSION", "DEFAULT_HEARTBEAT_MS", "frame_header", "check_chip_args"]
 
 FIRMWARE_VERSION = (0, 1, 0)  #: INFO fw_major, fw_minor, fw_patch of the model
-DEFAULT_CAPABILITIES = (Capability.SELF_TEST | Capability.CAL_STORAGE | Capability.MULTI_RANGE
-                        | Capability.FILTER)
 DEFAULT_HEARTBEAT_MS = 1000  #: STATUS period until a CONFIG sets another
 _SAT = 255
 _HOST_TYPES = frozenset(t for t, c in MESSAGE_TYPES.items() if c.DIRECTION == Direction.HOST_TO_CHIP)
@@ -95,16 +86,6 @@ def frame_header(frame: Out) -> tuple[int, int, int] | None:
     return HEADER.unpack_from(body)
 
 
-
-def check_chip_args(uid: int, transport: str, calibration) -> None:
-    """The constructor checks every chip class of the fixed interface shares (this model and
-    ``firmware_ref.chip.CFirmwareChip``)."""
-    if transport not in ("serial", "can"):
-        raise ValueError(f"Invalid transport: {transport!r} (expected 'serial' or 'can')")
-    if not (isinstance(uid, int) and 0 <= uid < 1 << 64):
-        raise ValueError(f"Invalid uid: {uid!r} (need a 64-bit unsigned integer)")
-    if len(calibration) != 3:
-        raise ValueError(f"Invalid calibration: {calibration!r} (need 3 axes of (offset_q4, sensitivity))")
 
 class ChipModel:
     """One chip. See the module docstring for the behaviour.

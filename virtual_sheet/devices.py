@@ -16,7 +16,7 @@ Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thre
 
 **A bus that goes away** (faults ``outage_at_s``/``outage_s``/``outage_every_s``): a pty slave
 path cannot be reused once its master is closed, so the pty devices publish a stable symlink
-(``device.path``, in a private temporary directory unless ``link_path`` is given). At an
+(``device.path``, in a private temporary directory unless ``symlink_path`` is given). At an
 outage the device closes the pty (the host's reads fail as on an unplugged USB adapter) and
 removes the symlink; when the bus comes back it opens a new pty and re-points the symlink
 atomically, so a host that reopens the same path reconnects. On CAN the device stops answering
@@ -267,12 +267,12 @@ def open_pty() -> tuple[int, int, str]:
 class _PtyMixin:
     """A pty with a stable symlink, re-created after an outage (module docstring)."""
 
-    def _pty_init(self, link_path: str | os.PathLike | None) -> None:
+    def _pty_init(self, symlink_path: str | os.PathLike | None) -> None:
         self._tmpdir = None
-        if link_path is None:
+        if symlink_path is None:
             self._tmpdir = tempfile.mkdtemp(prefix="capsheet-")
-            link_path = os.path.join(self._tmpdir, self.name)
-        self.path = str(link_path)
+            symlink_path = os.path.join(self._tmpdir, self.name)
+        self.path = str(symlink_path)
         self.tty: str | None = None
         self._master = self._slave = -1
         self._pending = bytearray()
@@ -359,9 +359,9 @@ class PtyDevice(_PtyMixin, _SerialDevice):
 
     name = "pty"
 
-    def __init__(self, sheet, *, link_path: str | os.PathLike | None = None, **kw) -> None:
+    def __init__(self, sheet, *, symlink_path: str | os.PathLike | None = None, **kw) -> None:
         super().__init__(sheet, **kw)
-        self._pty_init(link_path)
+        self._pty_init(symlink_path)
 
     def _open(self) -> None:
         self._pty_open()

@@ -56,12 +56,12 @@ cylinder and sphere by the paper's spring-mass relaxation (`drape.drape`, warm-s
 rest drape). The sheet's own bending stiffness is neglected against the foam's.
 
 >>> layer = FoamLayer(thickness_m=0.02, youngs_modulus_pa=30e3, poisson=0.25)
->>> round(layer.k_pa_per_m), round(layer.shear_length_m * 1000, 2)
+>>> round(layer.k_pa_per_m), round(float(layer.shear_length_m) * 1000, 2)
 (1800000, 6.67)
 >>> ind = SphereIndenter(0.015)
 >>> d = ind.depth_from_force(layer.k_pa_per_m, 1.0)
->>> round(d * 1000, 3), round(ind.force_from_depth(layer.k_pa_per_m, d), 9)
-(3.432, 1.0)
+>>> round(float(d) * 1000, 3), round(float(ind.force_from_depth(layer.k_pa_per_m, d)), 9)
+(3.434, 1.0)
 """
 
 from __future__ import annotations

@@ -208,7 +208,7 @@ class SlcanDevice(Device):
 
     name = "slcan"
 
-    def __init__(self, sheet, *, n_buses: int = 1, link_paths: list[str] | None = None, **kw) -> None:
+    def __init__(self, sheet, *, n_buses: int = 1, symlink_paths: list[str] | None = None, **kw) -> None:
         if sheet.transport != "can":
             raise ValueError(f"SlcanDevice needs a sheet with transport='can', got {sheet.transport!r}")
         super().__init__(sheet, **kw)
@@ -220,7 +220,7 @@ class SlcanDevice(Device):
         for b in range(n_buses):
             port = _SlcanPort()
             port.name = f"slcan{b}"
-            port._pty_init(link_paths[b] if link_paths else None)
+            port._pty_init(symlink_paths[b] if symlink_paths else None)
             self.ports.append(port)
             self.adapters.append(SlcanAdapter(self._sender(b), fd=sheet.fd))
         self.paths = [p.path for p in self.ports]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from host.cli.transport_args import add_transport_args
 from host.conformance import checks as _checks
 from host.conformance.checks import CHECKS, CanLink, SerialLink, run_checks, summary
 
@@ -40,11 +41,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "conformance", help="hold a chip (or gateway) to the protocol spec, clause by clause",
         description=_checks.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--port", help="serial port (pyserial URL or device path)")
-    p.add_argument("--baud", type=int, default=3_000_000, help="serial baud rate (default 3000000)")
-    p.add_argument("--can", metavar="IFACE:CHANNEL", help="python-can interface and channel, e.g. socketcan:can0")
-    p.add_argument("--fd", action="store_true", help="open the CAN bus in FD mode")
-    p.add_argument("--bitrate", type=int, default=None, help="CAN bitrate, where the interface needs one")
+    add_transport_args(p, title="the port the chip is on (exactly one)", several_buses=False)
     p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for each answer (default 0.5)")
     p.add_argument("--node", type=lambda v: int(v, 0), default=42, help="node id to assign for the run (default 42)")
     p.add_argument("--slack-ms", type=float, default=10.0,

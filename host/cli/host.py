@@ -18,7 +18,8 @@ import time
 
 from host.session import Host, Layout
 from host.record import RecordWriter
-from host.transport import CanTransport, SerialTransport, TransportError
+from host.cli.transport_args import add_transport_args, open_transports
+from host.transport import TransportError
 
 __all__ = ["register", "run", "Host", "Layout", "open_transports"]
 
@@ -27,14 +28,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("host", help="talk to a sheet: discover, assign, stream, record",
                               description=__doc__.split("\n\n")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    src = p.add_argument_group("transports (one --port, or one or more --can)")
-    src.add_argument("--port", help="serial port: device path or pyserial URL (/dev/pts/5, loop://)")
-    src.add_argument("--baud", type=int, default=3_000_000, help="serial baud rate (default 3000000)")
-    src.add_argument("--can", action="append", default=[], metavar="IFACE:CHANNEL",
-                     help="CAN bus as python-can names it (virtual:bus0, slcan:/dev/pts/6, socketcan:can0); "
-                          "repeat for several buses merged into one lattice")
-    src.add_argument("--fd", action="store_true", help="open the CAN buses for CAN FD")
-    src.add_argument("--bitrate", type=int, default=None, help="CAN bit rate (e.g. 1000000)")
+    add_transport_args(p, title="transports (one --port, or one or more --can)")
     p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
     p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
     p.add_argument("--auto-assign", action="store_true",
@@ -49,23 +43,6 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
     p.set_defaults(func=run)
-
-
-def open_transports(args) -> list:
-    if bool(args.port) == bool(args.can):
-        raise SystemExit("capsheet host: give either --port or at least one --can")
-    if args.port:
-        return [SerialTransport(args.port, baudrate=args.baud)]
-    out = []
-    try:
-        for spec in args.can:
-            kw = {"sleep_after_open": 0.1} if spec.startswith("slcan:") else {}
-            out.append(CanTransport(spec, fd=args.fd, bitrate=args.bitrate, **kw))
-    except TransportError:
-        for t in out:
-            t.close()
-        raise
-    return out
 
 
 def _status_line(host: Host, t0: float, n0: int) -> str:

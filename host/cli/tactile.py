@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from host.cli.transport_args import add_transport_args, open_transports
 from host.analysis.tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor, lattice_index,
                       plot_frame)
 
@@ -28,13 +29,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "tactile", help="contacts and forces on the sheet wrapped on foam (virtual by default)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    src = p.add_argument_group("source (default: the virtual foam block in-process)")
-    src.add_argument("--port", help="serial port of a real sheet (as capsheet host)")
-    src.add_argument("--baud", type=int, default=3_000_000, help="serial baud rate (default 3000000)")
-    src.add_argument("--can", action="append", default=[], metavar="IFACE:CHANNEL",
-                     help="CAN bus of a real sheet, repeatable (as capsheet host)")
-    src.add_argument("--fd", action="store_true", help="open the CAN buses for CAN FD")
-    src.add_argument("--bitrate", type=int, default=None, help="CAN bit rate")
+    src = add_transport_args(p, title="source (default: the virtual foam block in-process)")
     src.add_argument("--layout", help="uid -> link file (real sheet)")
     src.add_argument("--rate", type=float, default=50.0, help="real sheet: SYNC rate, Hz (default 50)")
     src.add_argument("--learn-s", type=float, default=2.0,
@@ -103,7 +98,6 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
 
 
 def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
-    from host.cli.host import open_transports
     from host.session import Host, Layout
 
     transports = open_transports(args)

@@ -77,7 +77,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--faults", default="", help="fault spec (see below)")
     p.add_argument("--seed", type=int, default=0, help="seed of uids, chip errors and noise (default 0)")
     p.add_argument("--layout-out", metavar="FILE", help="write the uid,link layout (CSV, or JSON if .json)")
-    p.add_argument("--link", metavar="PATH", help="pty/slcan: the stable symlink path to publish")
+    p.add_argument("--symlink", metavar="PATH", help="pty/slcan: publish the port under this stable path (a symlink; with --bus-count N, PATH0..PATHN-1)")
     p.add_argument("--firmware", choices=("python", "c"), default="python",
                    help="chip implementation: the Python model or the C reference firmware (SIL)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
@@ -109,16 +109,16 @@ def make_device(args, verbose=None):
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
     if args.transport == "pty":
         from virtual_sheet.devices import PtyDevice
-        dev = PtyDevice(sheet, link_path=args.link, **kw)
+        dev = PtyDevice(sheet, symlink_path=args.symlink, **kw)
     elif args.transport == "memory":
         from virtual_sheet.devices import MemoryDevice
         dev = MemoryDevice(sheet, **kw)
     elif args.transport == "slcan":
         from virtual_sheet.slcan import SlcanDevice
         paths = None
-        if args.link:
-            paths = [args.link] if args.bus_count == 1 else [f"{args.link}{b}" for b in range(args.bus_count)]
-        dev = SlcanDevice(sheet, n_buses=args.bus_count, link_paths=paths, **kw)
+        if args.symlink:
+            paths = [args.symlink] if args.bus_count == 1 else [f"{args.symlink}{b}" for b in range(args.bus_count)]
+        dev = SlcanDevice(sheet, n_buses=args.bus_count, symlink_paths=paths, **kw)
     else:
         from virtual_sheet.devices import CanDevice
         dev = CanDevice(sheet, n_buses=args.bus_count, interface=args.can_interface, channels=args.channel, **kw)

@@ -1,9 +1,9 @@
 """The C firmware's chip (firmware_ref/src/chip.c via `CFirmwareChip`) against the state table.
 
 Two ways:
-* the Python chip model's own suite (tests/test_virtual_chip.py: every (state, type) pair of
-  protocol/state.py RULES on both transports, NACK reasons, timers, counters) re-run with
-  `CFirmwareChip` in place of `ChipModel` — one suite, two back ends;
+* the chip suite (tests/virtual_sheet/test_chip.py: every (state, type) pair of protocol/state.py
+  RULES on both transports, NACK reasons, timers, counters) runs with ``chip_class`` = `CFirmwareChip`
+  as one of its fixture parameters — one suite, two back ends;
 * hypothesis drives the C chip and the Python chip with the same random frame sequences (valid
   commands, damaged frames, time steps) and requires the same answers, frame for frame.
 """
@@ -29,28 +29,11 @@ UID = base.UID
 NODE = base.NODE
 
 
-@pytest.fixture(autouse=True)
-def _c_firmware(monkeypatch):
-    monkeypatch.setattr(base, "ChipModel", CFirmwareChip)
+def test_the_chip_suite_runs_the_c_chip_too():
+    from tests.conftest import _chip_class_params
 
-
-# The Python model's suite, collected again here with the C chip patched in.
-test_every_state_and_type_follows_the_rules = base.test_every_state_and_type_follows_the_rules
-test_chip_to_host_frames_are_ignored = base.test_chip_to_host_frames_are_ignored
-test_nack_reasons = base.test_nack_reasons
-test_rx_errors_count_every_undecodable_frame_and_saturate = base.test_rx_errors_count_every_undecodable_frame_and_saturate
-test_unsupported_without_capabilities = base.test_unsupported_without_capabilities
-test_range_scales_the_counts = base.test_range_scales_the_counts
-test_boot_announces_then_reannounces_with_a_new_salt_until_assigned = \
-    base.test_boot_announces_then_reannounces_with_a_new_salt_until_assigned
-test_heartbeat_period_follows_config_and_reports_counters = base.test_heartbeat_period_follows_config_and_reports_counters
-test_missed_syncs_counts_gaps_and_saturates = base.test_missed_syncs_counts_gaps_and_saturates
-test_invalid_sensor_sample_puts_the_chip_in_fault = base.test_invalid_sensor_sample_puts_the_chip_in_fault
-
-
-def test_the_suite_really_runs_the_c_chip():
-    d = base.Driver()
-    assert isinstance(d.chip, CFirmwareChip)
+    assert [p.values[0] for p in _chip_class_params()] == [ChipModel, CFirmwareChip]
+    assert isinstance(base.Driver(CFirmwareChip).chip, CFirmwareChip)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -266,3 +266,24 @@ def test_send_on_a_closed_memory_link_is_an_operation_error():
         t.send(Sync(counter=1))
     assert t.stats.send_failures == 1
     t.close()
+
+
+def test_a_write_timeout_is_a_transport_timeout_and_a_timeout_error():
+    import serial
+
+    from host.transport import TransportError, TransportTimeoutError
+
+    class BlockedPort:  # a port whose writes time out, as pyserial reports it
+        name = "blocked"
+
+        def write(self, data):
+            raise serial.SerialTimeoutException("Write timeout")
+
+        def close(self):
+            pass
+
+    t = SerialTransport(BlockedPort(), reconnect=False)
+    with pytest.raises(TimeoutError) as info:
+        t.send_bytes(b"\x01\x00")
+    assert isinstance(info.value, TransportTimeoutError) and isinstance(info.value, TransportError)
+    assert t.connected  # a timeout is not a lost port

@@ -1,4 +1,8 @@
-"""The chip model against the state table (protocol/state.py RULES), NACK reasons, timers."""
+"""A chip against the state table (protocol/state.py RULES), NACK reasons, timers.
+
+Every test that takes the ``chip_class`` fixture (tests/conftest.py) runs once per chip
+implementation: the Python model (`virtual_sheet.chip.ChipModel`) and the C reference firmware
+through cffi (`firmware_ref.chip.CFirmwareChip`)."""
 
 from __future__ import annotations
 
@@ -39,9 +43,9 @@ def decode_all(frames, transport="serial"):
 class Driver:
     """Talks to one chip in messages, on either transport."""
 
-    def __init__(self, transport="serial", **kw):
+    def __init__(self, chip_class=ChipModel, transport="serial", **kw):
         self.transport = transport
-        self.chip = ChipModel(UID, sensor, transport=transport, **kw)
+        self.chip = chip_class(UID, sensor, transport=transport, **kw)
         self.t = 0.0
 
     def wire(self, msg):
@@ -95,8 +99,8 @@ _ADDRESSINGS = [(t, b) for t in HOST_TYPES for b in (False, True)
 @pytest.mark.parametrize("transport", ["serial", "can"])
 @pytest.mark.parametrize("state", list(ChipState))
 @pytest.mark.parametrize("msg_type,broadcast", _ADDRESSINGS)
-def test_every_state_and_type_follows_the_rules(transport, state, msg_type, broadcast):
-    d = Driver(transport)
+def test_every_state_and_type_follows_the_rules(chip_class, transport, state, msg_type, broadcast):
+    d = Driver(chip_class, transport)
     d.to_state(state)
     node = d.chip.node
     msg = valid_message(msg_type, 0 if broadcast else node)
@@ -134,16 +138,17 @@ def test_every_state_and_type_follows_the_rules(transport, state, msg_type, broa
 
 @pytest.mark.parametrize("state", list(ChipState))
 @pytest.mark.parametrize("msg_type", CHIP_TYPES)
-def test_chip_to_host_frames_are_ignored(state, msg_type):
-    d = Driver()
+def test_chip_to_host_frames_are_ignored(chip_class, state, msg_type):
+    d = Driver(chip_class)
     d.to_state(state)
     msg = next(m for _n, m in canonical_messages() if m.TYPE == msg_type)
     assert d.send(dataclasses.replace(msg, node=d.chip.node)) == []
     assert d.send(dataclasses.replace(msg, node=0)) == []
 
 
-def test_decoded_argument_gives_the_same_answers():
-    a, b = Driver(), Driver()
+def test_decoded_argument_gives_the_same_answers():  # a Python-model fast path only
+    chip_class = ChipModel
+    a, b = Driver(chip_class), Driver(chip_class)
     for d in (a, b):
         d.to_state(ChipState.STREAMING)
     for msg in (Sync(counter=1), GetInfo(0), Config(NODE), CalRead(NODE, axis=0), Stop(NODE)):
@@ -153,8 +158,8 @@ def test_decoded_argument_gives_the_same_answers():
 # ------------------------------------------------------------------ NACK reasons
 
 @pytest.mark.parametrize("transport", ["serial", "can"])
-def test_nack_reasons(transport):
-    d = Driver(transport)
+def test_nack_reasons(chip_class, transport):
+    d = Driver(chip_class, transport)
     d.to_state(ChipState.IDLE)
     c = d.chip
 
@@ -180,16 +185,16 @@ def test_nack_reasons(transport):
     assert d.send(Assign(NODE, new_node=3, link=0, uid_low=0xDEADBEEF)) == []  # uid mismatch: silent
 
 
-def test_rx_errors_count_every_undecodable_frame_and_saturate():
-    d = Driver()
+def test_rx_errors_count_every_undecodable_frame_and_saturate(chip_class):
+    d = Driver(chip_class)
     d.to_state(ChipState.IDLE)
     for _ in range(300):
         assert d.send_raw(b"\x05\x01\x02\x03\x00") == []
     assert d.chip.rx_errors == 255
 
 
-def test_unsupported_without_capabilities():
-    d = Driver(capabilities=Capability.NONE)
+def test_unsupported_without_capabilities(chip_class):
+    d = Driver(chip_class, capabilities=Capability.NONE)
     d.to_state(ChipState.IDLE)
     assert d.send(Config(NODE, range=1)) == [Nack(NODE, MsgType.CONFIG, NackReason.UNSUPPORTED)]
     assert d.send(CalWrite(NODE, axis=0, flags=1)) == [Nack(NODE, MsgType.CAL_WRITE, NackReason.UNSUPPORTED)]
@@ -197,8 +202,8 @@ def test_unsupported_without_capabilities():
     assert d.send(CalRead(NODE, axis=0)) == [CalData(NODE, 0, 0, 5, 900.0)]
 
 
-def test_range_scales_the_counts():
-    d = Driver()
+def test_range_scales_the_counts(chip_class):
+    d = Driver(chip_class)
     d.to_state(ChipState.STREAMING)
     assert d.send(Stop(NODE)) == [Ack(NODE, MsgType.STOP, 0)]
     d.send(Config(NODE, range=2))
@@ -208,8 +213,8 @@ def test_range_scales_the_counts():
 
 # ------------------------------------------------------------------ timers and counters
 
-def test_boot_announces_then_reannounces_with_a_new_salt_until_assigned():
-    d = Driver()
+def test_boot_announces_then_reannounces_with_a_new_salt_until_assigned(chip_class):
+    d = Driver(chip_class)
     boot = d.boot()
     assert boot[0] == Announce(provisional_node(UID, 0), UID) and isinstance(boot[1], Info)
     assert d.chip.poll(ANNOUNCE_PERIOD_S * 0.5) == []
@@ -222,8 +227,8 @@ def test_boot_announces_then_reannounces_with_a_new_salt_until_assigned():
     assert len(hb) == 1 and isinstance(hb[0], Status) and hb[0].state == ChipState.IDLE
 
 
-def test_heartbeat_period_follows_config_and_reports_counters():
-    d = Driver()
+def test_heartbeat_period_follows_config_and_reports_counters(chip_class):
+    d = Driver(chip_class)
     d.to_state(ChipState.STREAMING)
     d.send(Config(0, heartbeat_ms=0))
     assert d.chip.state == ChipState.STREAMING  # CONFIG is not allowed while streaming
@@ -243,8 +248,8 @@ def test_heartbeat_period_follows_config_and_reports_counters():
     assert d.chip.state == ChipState.STREAMING
 
 
-def test_missed_syncs_counts_gaps_and_saturates():
-    d = Driver()
+def test_missed_syncs_counts_gaps_and_saturates(chip_class):
+    d = Driver(chip_class)
     d.to_state(ChipState.STREAMING)
     for c in (10, 11, 14, 14, 15):
         d.send(Sync(counter=c))
@@ -256,8 +261,8 @@ def test_missed_syncs_counts_gaps_and_saturates():
     assert d.chip.last_counter is None
 
 
-def test_invalid_sensor_sample_puts_the_chip_in_fault():
-    chip = ChipModel(UID, lambda t: ((0, 0, 0), SampleStatus.INVALID))
+def test_invalid_sensor_sample_puts_the_chip_in_fault(chip_class):
+    chip = chip_class(UID, lambda t: ((0, 0, 0), SampleStatus.INVALID))
     chip.power_on(0.0)
     chip.handle(encode(Assign(chip.node, new_node=NODE, link=1, uid_low=UID & 0xFFFFFFFF)), 0.0)
     chip.handle(encode(Start(NODE)), 0.0)
