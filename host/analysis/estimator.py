@@ -54,6 +54,8 @@ from scipy.sparse.linalg import splu
 
 from protocol.lattice import Lattice
 
+from .metrics import error_percent_of_side, overlay, overlay_error
+
 __all__ = ["ShapeEstimate", "estimate", "roll_pitch", "solvability", "overlay",
            "overlay_error", "error_percent_of_side", "METHODS"]
 
@@ -259,71 +261,6 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
 # ---------------------------------------------------------------------------------------------
 # Overlay and error, as the paper measures it (section 3.3)
 # ---------------------------------------------------------------------------------------------
-
-def _check_pair(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    a = np.asarray(a, dtype=float)
-    b = np.asarray(b, dtype=float)
-    if a.shape != b.shape or a.shape[-1] != 3:
-        raise ValueError(f"Expected `estimate_joints` and `true_joints` to have the same shape "
-                         f"(..., 3), got {a.shape} and {b.shape}.")
-    return a, b
-
-
-def overlay(estimate_joints: np.ndarray, true_joints: np.ndarray) -> np.ndarray:
-    """Estimate moved onto truth by the least-squares rigid motion (rotation + translation, Kabsch).
-
-    Parameters
-    ----------
-    estimate_joints, true_joints : ndarray, shape (rows, cols, 3) (or (n, 3))
-        Joints, metres.
-
-    Returns
-    -------
-    ndarray, same shape
-        ``R p + t`` for every estimated joint, with ``R`` a proper rotation (no reflection) and
-        ``(R, t)`` minimising ``Σ ‖R p + t − q‖²``.
-    """
-    a, b = _check_pair(estimate_joints, true_joints)
-    p, q = a.reshape(-1, 3), b.reshape(-1, 3)
-    pc, qc = p.mean(axis=0), q.mean(axis=0)
-    H = (p - pc).T @ (q - qc)
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    return ((p - pc) @ R.T + qc).reshape(a.shape)
-
-
-def overlay_error(estimate_joints: np.ndarray, true_joints: np.ndarray) -> np.ndarray:
-    """Per-joint distance between estimate and truth after the least-squares rigid overlay.
-
-    Returns
-    -------
-    ndarray, shape (rows, cols) (the input's shape without the last axis)
-        Distances, metres.
-    """
-    a, b = _check_pair(estimate_joints, true_joints)
-    return np.linalg.norm(overlay(a, b) - b, axis=-1)
-
-
-def error_percent_of_side(estimate_joints: np.ndarray, true_joints: np.ndarray,
-                          link_length: float) -> np.ndarray:
-    """Per-joint error as the paper reports it: `overlay_error` in % of the sheet's side length.
-
-    The side length is ``(cols − 1) · L`` (the j side; the paper's sheets are square, 13 units of
-    ``L``). The paper's Fig. 10 plots the mean and standard deviation of this over all joints and
-    trials.
-
-    Returns
-    -------
-    ndarray, shape (rows, cols)
-        Percent.
-    """
-    a, b = _check_pair(estimate_joints, true_joints)
-    if a.ndim != 3:
-        raise ValueError(f"Expected joints of shape (rows, cols, 3), got {a.shape}.")
-    side = (a.shape[1] - 1) * float(link_length)
-    return 100.0 * overlay_error(a, b) / side
-
 
 # ---------------------------------------------------------------------------------------------
 # Per-lattice structure (cached by rows, cols, mask)

@@ -50,6 +50,7 @@ import numpy as np
 from protocol.lattice import joint_normals
 
 from .estimator import ShapeEstimate, estimate
+from .metrics import rigid_fit
 
 __all__ = ["Foam", "RestShape", "Contact", "DetectorSettings", "TactileFrame", "deformation",
            "find_contacts", "ContactTracker", "TactileSensor", "plot_frame", "rigid_fit",
@@ -135,29 +136,6 @@ class _Prior:
 
     joints: np.ndarray
     yaws: np.ndarray
-
-
-def rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
-    """``src`` moved by the weighted least-squares rotation + translation onto ``dst`` (Kabsch).
-
-    Parameters
-    ----------
-    src, dst : ndarray, shape (n, 3)
-    weights : ndarray, shape (n,), optional
-
-    Returns
-    -------
-    ndarray, shape (n, 3)
-        ``src`` moved.
-    """
-    w = np.ones(len(src)) if weights is None else np.asarray(weights, float)
-    w = w / w.sum()
-    cs, cd = w @ src, w @ dst
-    H = (src - cs).T @ ((dst - cd) * w[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    return (src - cs) @ R.T + cd
 
 
 @dataclass(frozen=True, eq=False)
