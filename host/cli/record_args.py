@@ -139,13 +139,16 @@ class SessionOutputs:
             if not cans:
                 print(f"{self.prog}: --can-log needs a CAN bus (--can); nothing is logged", file=sys.stderr)
             for t in cans:
-                tap_transport(t, lambda kind, frames, name=t.name: self._log_can(name, frames))
+                bus = host.transports.index(t)
+                tap_transport(t, lambda kind, frames, bus=bus: self._log_can(bus, frames))
+                print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
 
-    def _log_can(self, name: str, frames) -> None:
+    def _log_can(self, bus: int, frames) -> None:
+        """Frames of bus index ``bus`` into the log; the channel is the bus index (ASC and BLF
+        number channels; candump's .log shows it as ``can<index>``)."""
         with self._can_lock:
             for m in frames:
-                if m.channel is None:
-                    m.channel = name
+                m.channel = bus
                 self.can_log.on_message_received(m)
                 self.can_frames_logged += 1
 
