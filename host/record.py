@@ -242,6 +242,8 @@ class Recorder:
                          for name, s in SCHEMAS.items()}
         self._channels: dict[str, Any] = {}
         self.scene = SceneChannels(self.context, lattice, colour_by=colour_by)
+        for topic, schema in ((TOPIC_SNAPSHOT, "capsheet.Snapshot"), (TOPIC_ESTIMATE, "capsheet.Estimate")):
+            self._channel(topic, schema)  # advertised from the start (a live client sees them at once)
         self.session = {"format": FORMAT, "rows": lattice.rows, "cols": lattice.cols, "n_links": lattice.n_links,
                         "link_length_m": self.link_length, "started_unix_s": time.time(),
                         "versions": versions(), **(session or {})}
@@ -255,7 +257,8 @@ class Recorder:
         self.live = None
         if live_port is not None:
             from host.live import LiveServer
-            self.live = LiveServer(self.context, port=live_port, host=live_host, name=f"capsheet {lattice}")
+            self.live = LiveServer(self.context, port=live_port, host=live_host,
+                                   name=f"capsheet {lattice.rows}x{lattice.cols}")
         self.scene.log_transform(time.time_ns())
 
     # -- channels ------------------------------------------------------------------------------
