@@ -122,6 +122,8 @@ class SceneChannels:
             return
         spheres, texts = [], []
         for c in contacts:
+            if c.get("position") is None:  # e.g. a true contact known only by its lattice index
+                continue
             x, y, z = (float(v) for v in c["position"])
             d = max(0.005, 2 * float(c.get("radius_m", 0.0)))
             pose = Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=0, y=0, z=0, w=1))

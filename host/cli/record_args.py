@@ -76,6 +76,13 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
     return g
 
 
+def contact_dicts(contacts) -> list[dict]:
+    """`host.analysis.tactile.Contact` s as the plain dicts a recording stores."""
+    return [{"id": int(c.id), "index": [float(v) for v in c.index], "position": [float(v) for v in c.position],
+             "force_n": float(c.force_n), "depth_m": float(c.depth_m), "area_m2": float(c.area_m2),
+             "radius_m": float(np.max(c.axes_m))} for c in contacts]
+
+
 class SessionOutputs:
     """What ``--record``/``--live``/``--can-log`` ask of one session.
 
@@ -189,6 +196,20 @@ class SessionOutputs:
         self.recorder.estimate(est, snap.counter, snap.timestamp, snap.wall_time, error_joint=err,
                                error_pct_side=err_mean, displacement=displacement)
 
+    def tactile(self, k: int, frame, truth=None) -> None:
+        """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by
+        displacement, and its contacts (with the true contacts, ``(force, index)``, if known)."""
+        rec = self.recorder
+        if rec is None:
+            return
+        t = float(frame.t_s) if frame.t_s is not None else float(k)
+        rec.estimate(frame.estimate, k, t, None, displacement=frame.displacement)
+        cs = contact_dicts(frame.contacts)
+        if truth:
+            cs += [{"id": "truth", "true": True, "index": [float(v) for v in i], "force_n": float(F),
+                    "position": None} for F, i in truth]
+        rec.contacts(k, t, cs)
+
     def flush(self) -> None:
         if self.recorder is not None:
             self.recorder.flush()
@@ -197,8 +218,12 @@ class SessionOutputs:
         if self.recorder is not None:
             self.recorder.close(stats)
             if self.recorder.path is not None:
-                n = self.recorder.counts.get("/capsheet/snapshot", 0)
-                print(f"{self.prog}: recorded {n} snapshots to {self.recorder.path}", file=sys.stderr)
+                c = self.recorder.counts
+                what = [f"{c.get(t, 0)} {name}" for t, name in (("/capsheet/snapshot", "snapshots"),
+                                                                ("/capsheet/estimate", "estimates"),
+                                                                ("/capsheet/contacts", "contact frames"))
+                        if c.get(t, 0) or name == "snapshots"]
+                print(f"{self.prog}: recorded {', '.join(what)} to {self.recorder.path}", file=sys.stderr)
         if self.can_log is not None:
             self.can_log.stop()
             print(f"{self.prog}: logged {self.can_frames_logged} CAN frames to {self.can_log_path}", file=sys.stderr)

@@ -342,3 +342,18 @@ def test_version_and_pure_json(capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert out.startswith("capsheet ") and out.split()[1][0].isdigit()
+
+
+def test_capsheet_tactile_records_estimates_and_contacts_with_the_true_ones(tmp_path, capsys):
+    from host.cli import main
+    out = tmp_path / "tactile.mcap"
+    assert main(["tactile", "--duration", "1", "--snapshot-rate", "8", "--record", str(out),
+                 "--out", str(tmp_path / "t.png"), "-q"]) == 0
+    assert "recorded 0 snapshots, 9 estimates, 9 contact frames" in capsys.readouterr().err
+    rec = read(out)
+    assert rec.session["mode"] == "tactile" and len(rec.contacts) == len(rec.estimates["counter"]) == 9
+    detected = [c for _, _, cs in rec.contacts for c in cs if not c.get("true")]
+    true = [c for _, _, cs in rec.contacts for c in cs if c.get("true")]
+    assert detected and true
+    assert all(c["force_n"] > 0 and len(c["position"]) == 3 for c in detected)
+    assert rec.message_counts["/sheet/scene"] == 18  # lattice + contacts, per frame
