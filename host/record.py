@@ -13,7 +13,8 @@ arrays are base64 of little-endian arrays, dtype and shape given in the message)
 ==========================  ===================  =================================================
 topic                       schema               content
 ==========================  ===================  =================================================
-``/capsheet/raw/bus{N}``    capsheet.RawSerial   wire bytes of bus N as read (serial, pty, memory)
+``/capsheet/raw/bus{N}``    capsheet.RawSerial   wire bytes of bus N as read (serial, pty, memory);
+                                                 ``t`` when ingested, ``t_rx`` when read
                             capsheet.RawCan      CAN frames of bus N as received (one batch)
 ``/capsheet/sync``          capsheet.Sync        the host opened SYNC ``counter`` at ``t``
 ``/capsheet/snapshot``      capsheet.Snapshot    counter, readings (n_links, 3) m/s², valid, status
@@ -99,7 +100,8 @@ def _schema(title: str, props: dict, description: str) -> dict:
 SCHEMAS: dict[str, dict] = {
     "capsheet.RawSerial": _schema("capsheet.RawSerial", {
         "bus": {"type": "integer"}, "port": {"type": "string"},
-        "t": {"type": "number", "description": "host monotonic s at receipt"},
+        "t": {"type": "number", "description": "host monotonic s when ingested (replay order)"},
+        "t_rx": {"type": "number", "description": "host monotonic s when read"},
         "data": {"type": "string", "contentEncoding": "base64", "description": "wire bytes as read (COBS frames)"}},
         "Serial wire input of one bus, as read (docs/protocol.md section 6)"),
     "capsheet.RawCan": _schema("capsheet.RawCan", {
@@ -284,22 +286,57 @@ class Recorder:
             self.flush()
 
     # -- what a session publishes ------------------------------------------------------------------
-    def tap(self, transports) -> None:
-        """Record every transport's raw input (`tap_transport`), bus index = position in the list."""
+    def tap(self, transports, aggregator=None) -> None:
+        """Record every transport's raw input (`tap_transport`), bus index = position in the list.
+
+        With ``aggregator`` (the one the transports feed, by ``ingest(events, bus)``), a chunk is
+        written when its events are ingested, stamped ``t`` = the aggregator's clock read under its
+        lock: the order of ingests and of the snapshots the host emits is then the recorded order,
+        so a replay makes the same snapshots however late the host's threads ran. (``t_rx`` keeps
+        the time the bytes were read.) A chunk without a complete frame waits for the next ingest.
+        """
+        self._pending = {bus: [] for bus in range(len(transports))}
+        self._ports = {bus: t.name for bus, t in enumerate(transports)}
         for bus, t in enumerate(transports):
-            tap_transport(t, lambda kind, payload, bus=bus, name=t.name: self.raw(bus, kind, payload, name))
+            if aggregator is None:
+                tap_transport(t, lambda kind, payload, bus=bus, name=t.name: self.raw(bus, kind, payload, name))
+            else:
+                tap_transport(t, lambda kind, payload, bus=bus: self._pending[bus].append(
+                    (time.monotonic(), time.time_ns(), kind, payload)))
+        if aggregator is None:
+            return
+        ingest = aggregator.ingest
+
+        def tapped(events, bus=0, _ingest=ingest):
+            pending = self._pending.get(bus)
+            if pending:
+                with aggregator._lock:
+                    t = aggregator.clock()
+                    self._write_pending(bus, t)
+                    return _ingest(events, bus)
+            return _ingest(events, bus)
+        aggregator.ingest = tapped
+
+    def _write_pending(self, bus: int, t: float | None) -> None:
+        pending = self._pending[bus]
+        while pending:
+            t_rx, wall_ns, kind, payload = pending.pop(0)
+            self.raw(bus, kind, payload, self._ports.get(bus, ""), t=t_rx if t is None else t,
+                     log_time_ns=wall_ns, t_rx=t_rx)
 
     def raw(self, bus: int, kind: str, payload, port: str = "", t: float | None = None,
-            log_time_ns: int | None = None) -> None:
-        """Wire input of ``bus``: ``kind="serial"`` with bytes, or ``"can"`` with a list of can.Message."""
+            log_time_ns: int | None = None, t_rx: float | None = None) -> None:
+        """Wire input of ``bus``: ``kind="serial"`` with bytes, or ``"can"`` with a list of can.Message.
+        ``t`` host monotonic s when it was taken in (default now); ``t_rx`` when it was read."""
         t = time.monotonic() if t is None else t
         topic = TOPIC_RAW.format(bus)
+        head = {"bus": bus, "port": port, "t": t, "t_rx": t if t_rx is None else t_rx}
         if kind == "can":
-            self._log(topic, "capsheet.RawCan", {"bus": bus, "port": port, "t": t,
-                                                 "frames": [_can_frame_dict(m) for m in payload]}, log_time_ns)
+            self._log(topic, "capsheet.RawCan", {**head, "frames": [_can_frame_dict(m) for m in payload]},
+                      log_time_ns)
         elif kind == "serial":
-            self._log(topic, "capsheet.RawSerial", {"bus": bus, "port": port, "t": t,
-                                                    "data": base64.b64encode(payload).decode()}, log_time_ns)
+            self._log(topic, "capsheet.RawSerial", {**head, "data": base64.b64encode(payload).decode()},
+                      log_time_ns)
         else:
             raise ValueError(f"Invalid raw kind: {kind!r} (need 'serial' or 'can')")
 
@@ -381,6 +418,8 @@ class Recorder:
         """Attach ``stats.json`` (if given), write the summary, stop the live server. Idempotent."""
         if self._closed:
             return
+        for bus in list(getattr(self, "_pending", {})):
+            self._write_pending(bus, None)  # read but never ingested (the session ended)
         if self._writer is not None:
             if stats is not None:
                 now = time.time_ns()

@@ -10,7 +10,9 @@ step, so events come out exactly as the live transports produce them.
 simulated clock (the recorded host clock): the counters open where the host opened them (the
 recorded ``/capsheet/sync``; a CAN log has none, so a counter opens at its first frame), deadlines
 pass in recorded time, and the node map and calibration are the recording's (``calibration.json``;
-a CAN log gets node ``k`` -> link ``k - 1`` and nominal sensitivity). The snapshots are then those
+a CAN log gets node ``k`` -> link ``k - 1``, nominal sensitivity and a `CAN_LOG_DEADLINE_S` deadline). Counters whose deadline
+passed are emitted when the host emitted them (the recorded ``timestamp + latency_s``: a loaded
+host's threads poll late, and frames that came in meanwhile made it into the snapshot). The snapshots are then those
 the host made, whatever the speed: ``speed=None`` as fast as possible, ``speed=1.0`` real time.
 
     from host.replay import Replay
@@ -41,6 +43,8 @@ from .transport import CanTransport, Transport, TransportCapabilities
 __all__ = ["ReplayTransport", "Replay", "CAN_LOG_SUFFIXES", "load_can_log"]
 
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
+#: a CAN log carries no deadlines: a counter waits this long (log time) for its links
+CAN_LOG_DEADLINE_S = 0.25
 
 
 class ReplayTransport(Transport):
@@ -199,7 +203,12 @@ class Replay:
                 raise ValueError(f"{str(self.path)!r} holds no received CAN frame")
         self.link_length = float(link_length if link_length is not None else session.get("link_length_m", 0.01))
         rate = float(session.get("rate_hz", 100.0))
-        dl = deadline_s if deadline_s is not None else session.get("deadline_s", max(2.0 / rate, 0.05))
+        if deadline_s is not None:
+            dl = deadline_s
+        elif self.recording is not None:
+            dl = session.get("deadline_s", max(2.0 / rate, 0.05))
+        else:
+            dl = CAN_LOG_DEADLINE_S
         self.transports = [ReplayTransport(chunks, name) for name, chunks in buses.items()]
         self._now = min((t.next_time for t in self.transports if t.next_time is not None), default=0.0)
         n = self.lattice.n_links
@@ -255,6 +264,10 @@ class Replay:
             if tr.next_time is not None:
                 heapq.heappush(heap, (tr.next_time, 1, bus))
         si = 0
+        ei = 0
+        emits = None
+        if self.recording is not None and len(self.recording):
+            emits = np.sort(self.recording.timestamp + self.recording.latency_s).tolist()
         first_sync = True
         wall0 = time.monotonic()
         t_first = min([h[0] for h in heap] + [s[0] for s in syncs[:1]], default=0.0)
@@ -271,8 +284,15 @@ class Replay:
                 wait = due - time.monotonic()
                 if wait > 0:
                     time.sleep(wait)
+            if emits is None:
+                agg.poll(max(self._now, t))  # no recorded emissions (a CAN log): deadlines as they fall
+            else:
+                # the host emitted a counter at its deadline *when its threads got to it*: poll when
+                # it did, so the frames that made it in live make it in here
+                while ei < len(emits) and emits[ei] <= t:
+                    agg.poll(max(self._now, emits[ei]))
+                    ei += 1
             self._now = max(self._now, t)
-            agg.poll(self._now)
             if kind == 0:
                 agg.open_counter(who, t, restart=first_sync)
                 first_sync = False

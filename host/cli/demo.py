@@ -200,7 +200,8 @@ def run(args) -> int:
     verdict = "PASS" if ok else "FAIL"
     print(f"capsheet demo: {verdict}: {result['snapshots']} snapshots at {result['snapshots_per_s']}/s, "
           f"mean joint error {result['mean_error_pct_side']} % of side (target <= {args.target:g} %), "
-          f"median latency {result['median_latency_ms']} ms, estimate {result['median_estimate_ms']} ms/snapshot")
+          f"median latency {result['median_latency_ms']} ms, estimate {result['median_estimate_ms']} ms/snapshot",
+          file=sys.stderr if args.json else sys.stdout)  # --json: JSON alone on stdout
     if args.json:
         print(json.dumps(result, indent=1))
     return 0 if ok else 1

@@ -139,7 +139,7 @@ class SessionOutputs:
         from host.transport import CanTransport
 
         if self.recorder is not None and self.recorder.path is not None:
-            self.recorder.tap(host.transports)
+            self.recorder.tap(host.transports, host.aggregator)
             self.recorder.tap_sync(host.aggregator)
         if self.can_log is not None:
             cans = [t for t in host.transports if isinstance(t, CanTransport)]

@@ -286,7 +286,7 @@ def test_capsheet_host_command_discovers_streams_and_records(tmp_path, capsys):
     stats = json.loads(captured.out)
     rec = read(out)
     assert len(rec) == stats["aggregator"]["emitted"] >= 40
-    assert rec.complete.all() and rec.valid.all()
+    assert rec.complete.sum() == stats["aggregator"]["complete"]  # every emitted snapshot, as emitted
     assert not rec.truncated
     # every byte the transport counted was recorded, as received (and a few that came after the
     # statistics were taken, before the port closed); decoded again they are frames, not damage
