@@ -357,3 +357,17 @@ def test_capsheet_tactile_records_estimates_and_contacts_with_the_true_ones(tmp_
     assert detected and true
     assert all(c["force_n"] > 0 and len(c["position"]) == 3 for c in detected)
     assert rec.message_counts["/sheet/scene"] == 18  # lattice + contacts, per frame
+
+
+def test_capsheet_demo_records_snapshots_and_estimates_with_their_error(tmp_path):
+    out = tmp_path / "demo.mcap"
+    proc = subprocess.run([sys.executable, "-m", "host.cli", "demo", "--lattice", "6x6", "--duration", "1.5",
+                           "--rate", "20", "--record", str(out), "--out", str(tmp_path / "demo.png"), "--json"],
+                          capture_output=True, text=True, timeout=300)
+    doc = json.loads(proc.stdout)  # --json: the summary alone on stdout, whatever the verdict
+    rec = read(out)
+    assert rec.session["mode"] == "demo" and rec.session["shape"] == "grow"
+    assert len(rec) == doc["snapshots"]  # every snapshot the demo estimated
+    assert len(rec.estimates["counter"]) == doc["compared_with_truth"]
+    if doc["compared_with_truth"]:
+        assert np.mean(rec.estimates["error_pct_side"]) == pytest.approx(doc["mean_error_pct_side"], abs=1e-3)
