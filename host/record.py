@@ -48,7 +48,11 @@ from importlib import metadata as _md
 from pathlib import Path
 from typing import Any, Callable
 
+import logging
+
 import numpy as np
+
+log = logging.getLogger("capsheet.host.record")
 
 __all__ = ["Recorder", "Recording", "read", "read_recording", "tap_transport", "versions",
            "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "FORMAT"]
@@ -536,7 +540,9 @@ class Recording:
 
 def _iter_records(f):
     """MCAP records of a file in order, stopping cleanly where a killed writer left off.
-    Yields records; returns True (via StopIteration.value) if the file was cut short."""
+    Yields records; returns True (as ``StopIteration.value``) if the file was cut short."""
+    import struct
+
     from mcap.exceptions import McapError
     from mcap.stream_reader import StreamReader
 
@@ -544,9 +550,8 @@ def _iter_records(f):
     try:
         for rec in reader.records:
             yield rec
-    except (McapError, EOFError, ValueError, OSError, Exception) as exc:  # noqa: BLE001 - a cut file ends anyhow
-        if type(exc).__name__ in ("KeyboardInterrupt",):
-            raise
+    except (McapError, EOFError, struct.error) as exc:  # a record or chunk cut in the middle
+        log.info("%s: cut short (%s); read up to the last whole chunk", getattr(f, "name", "?"), exc)
         return True
     return False
 
@@ -622,6 +627,8 @@ def read(path, *, raw: bool = True) -> Recording:
             elif isinstance(rec, Schema):
                 pass
     if "capsheet.session" not in meta:
+        if truncated:
+            raise ValueError(f"{str(path)!r} was cut short before its 'capsheet.session' metadata: nothing to read")
         raise ValueError(f"{str(path)!r} is not a capsheet recording (no 'capsheet.session' metadata)")
     session = {**meta["capsheet.session"], **meta.get("capsheet.host", {})}
     n_links = int(session["n_links"])

@@ -371,3 +371,24 @@ def test_capsheet_demo_records_snapshots_and_estimates_with_their_error(tmp_path
     assert len(rec.estimates["counter"]) == doc["compared_with_truth"]
     if doc["compared_with_truth"]:
         assert np.mean(rec.estimates["error_pct_side"]) == pytest.approx(doc["mean_error_pct_side"], abs=1e-3)
+
+
+def test_a_file_cut_anywhere_reads_what_it_holds_or_says_why_not(tmp_path):
+    rng = np.random.Generator(np.random.MT19937(4))
+    path = tmp_path / "run.mcap"
+    with Recorder(path, Lattice(3, 4), 0.01, flush_interval_s=0.0) as rec:  # a chunk per message
+        for c in range(20):
+            rec.snapshot(snap(c, 17, rng))
+    data = path.read_bytes()
+    counts = []
+    for cut in (60, len(data) // 3, len(data) // 2, len(data) - 5):
+        (tmp_path / "cut.mcap").write_bytes(data[:cut])
+        try:
+            r = read(tmp_path / "cut.mcap")
+        except ValueError as exc:
+            assert "cut short before its 'capsheet.session' metadata" in str(exc)
+            counts.append(None)
+            continue
+        assert r.truncated and r.counter.tolist() == list(range(len(r)))
+        counts.append(len(r))
+    assert counts[0] is None and 0 < counts[1] < counts[2] <= 20 and counts[3] == 20
