@@ -40,14 +40,15 @@ def _out_path(text: str) -> str:
 
 
 def register(subparsers) -> None:
+    from host.cli.record_args import lattice_arg, positive
     p = subparsers.add_parser("estimate", help="estimate a recording offline (batched, all cores) to .npz or .mcap",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recording", help="capsheet .mcap, or a CAN log (.log, .asc, .blf)")
     p.add_argument("--out", required=True, type=_out_path, help="joints.npz or shapes.mcap")
     p.add_argument("--png", nargs="?", const="", default=None, metavar="FILE",
                    help="also draw the run (default: --out with .png)")
-    p.add_argument("--lattice", default=None, help="joints ROWSxCOLS (needed for a CAN log)")
-    p.add_argument("--link-length", type=float, default=None, help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--lattice", type=lattice_arg, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
+    p.add_argument("--link-length", type=positive, default=None, help="L, metres (default: the recording's, or 0.01)")
     p.add_argument("--from-raw", action="store_true", help="replay the raw input instead of the recorded snapshots")
     p.add_argument("--method", choices=("global", "paper"), default="global", help="estimator (default global)")
     p.add_argument("--jobs", type=_positive_int, default=min(2, os.cpu_count() or 1),

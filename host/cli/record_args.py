@@ -54,6 +54,19 @@ def _positive(text: str) -> float:
     return v
 
 
+def lattice_arg(text: str) -> str:
+    """argparse type: ``ROWSxCOLS`` joints, checked by `protocol.lattice.Lattice.parse`."""
+    from protocol.lattice import Lattice
+    try:
+        Lattice.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+positive = _positive
+
+
 def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                     link_length: bool = False) -> argparse._ArgumentGroup:
     """Add ``--record``, ``--live``, ``--live-rate`` (and ``--can-log``, ``--link-length``)."""

@@ -34,15 +34,15 @@ def _speed(text: str):
 
 
 def register(subparsers) -> None:
-    from host.cli.record_args import add_record_args
+    from host.cli.record_args import add_record_args, lattice_arg, positive
 
     p = subparsers.add_parser("replay", help="replay a recording (MCAP or CAN log) through decoder, aggregator, estimator",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("recording", help="capsheet .mcap, or a CAN log (.log candump, .asc, .blf)")
     p.add_argument("--speed", type=_speed, default=None, metavar="1|max",
                    help="'max' (default) as fast as possible, or a factor of real time (1 = as recorded)")
-    p.add_argument("--lattice", default=None, help="joints ROWSxCOLS (needed for a CAN log)")
-    p.add_argument("--link-length", type=float, default=None, help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--lattice", type=lattice_arg, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
+    p.add_argument("--link-length", type=positive, default=None, help="L, metres (default: the recording's, or 0.01)")
     p.add_argument("--no-estimate", action="store_true", help="only decode and aggregate")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")

@@ -169,6 +169,10 @@ def test_capsheet_replay_command_json_is_pure_and_compares(pty_recording, capsys
     (["replay", "x.log"], 2, "give the lattice"),
     (["replay", "run.mcap", "--speed", "0"], 2, "invalid speed '0'"),
     (["replay", "run.mcap", "--speed", "fast"], 2, "invalid speed 'fast'"),
+    (["replay", "bad.mcap"], 1, "is not an MCAP file"),
+    (["estimate", "bad.mcap", "--out", "x.npz"], 1, "is not an MCAP file"),
+    (["replay", "x.log", "--lattice", "3"], 2, "Invalid lattice size '3'"),
+    (["estimate", "run.mcap", "--out", "x.npz", "--link-length", "-2"], 2, "need a number > 0"),
     (["estimate", "run.mcap", "--out", "x.csv"], 2, "--out is a .npz (numpy) or .mcap"),
     (["estimate", "run.mcap", "--out", "x.npz", "--jobs", "0"], 2, "need an integer >= 1"),
 ])
@@ -176,6 +180,7 @@ def test_bad_replay_and_estimate_arguments_get_one_line(argv, code, message, tmp
     from host.cli import main
     monkeypatch.chdir(tmp_path)
     (tmp_path / "x.log").write_text("(1.0) can0 00000001#00 R\n")
+    (tmp_path / "bad.mcap").write_bytes(b"\x00garbage" * 10)
     try:
         rc = main(argv)
     except SystemExit as exc:
