@@ -323,8 +323,11 @@ class Recorder:
 
     def _write_pending(self, bus: int, t: float | None) -> None:
         pending = self._pending[bus]
-        while pending:
-            t_rx, wall_ns, kind, payload = pending.pop(0)
+        while True:
+            try:
+                t_rx, wall_ns, kind, payload = pending.pop(0)
+            except IndexError:
+                return
             self.raw(bus, kind, payload, self._ports.get(bus, ""), t=t_rx if t is None else t,
                      log_time_ns=wall_ns, t_rx=t_rx)
 

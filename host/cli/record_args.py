@@ -129,16 +129,23 @@ class SessionOutputs:
         record, live = getattr(args, "record", None), getattr(args, "live", None)
         if record or live is not None:
             from host.record import Recorder
-            self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},
-                                     live_port=live, colour_by=colour_by)
+            try:
+                self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},
+                                         live_port=live, colour_by=colour_by)
+            except OSError as exc:  # an unwritable --record path, a --live port in use
+                what = "" if "live view" in str(exc) else f"cannot write {record}: "
+                raise SystemExit(f"{prog}: {what}{exc}") from None
             if self.recorder.live is not None:
                 print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
                       f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
         path = getattr(args, "can_log", None)
         if path:
             import can
-            Path(path).parent.mkdir(parents=True, exist_ok=True)
-            self.can_log = can.Logger(path)
+            try:
+                Path(path).parent.mkdir(parents=True, exist_ok=True)
+                self.can_log = can.Logger(path)
+            except OSError as exc:
+                raise SystemExit(f"{prog}: cannot write {path}: {exc}") from None
             self.can_log_path = path
 
     @property
@@ -189,7 +196,7 @@ class SessionOutputs:
         if not (force or now - self._last_est >= self._period) or not snap.valid.any():
             return None
         self._last_est = now
-        from host.analysis.estimator import error_percent_of_side, estimate
+        from host.analysis.estimator import estimate
 
         est = estimate(snap.readings, self.lattice.rows, self.lattice.cols, self.link_length, valid=snap.valid,
                        previous=self._previous)

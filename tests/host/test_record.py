@@ -392,3 +392,11 @@ def test_a_file_cut_anywhere_reads_what_it_holds_or_says_why_not(tmp_path):
         assert r.truncated and r.counter.tolist() == list(range(len(r)))
         counts.append(len(r))
     assert counts[0] is None and 0 < counts[1] < counts[2] <= 20 and counts[3] == 20
+
+
+def test_an_unwritable_recording_is_one_line_not_a_traceback(tmp_path, capsys):
+    from host.cli import main
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SystemExit) as exc:
+        main(["host", "--port", "loop://", "--record", str(tmp_path / "file" / "run.mcap"), "--duration", "0"])
+    assert str(exc.value).startswith("capsheet host: cannot write ") and "run.mcap" in str(exc.value)
