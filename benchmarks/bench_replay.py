@@ -100,6 +100,7 @@ def main() -> int:
         t = time.perf_counter()
         n = synthetic_recording(path, seconds=seconds)
         t_write = time.perf_counter() - t
+        size = path.stat().st_size
         recorded_s = (n - 1) / RATE_HZ
         est_best, rep_best = np.inf, np.inf
         est_json = rep_json = None
@@ -110,7 +111,7 @@ def main() -> int:
             dt, rep_json = _timed(["replay", str(path), "--speed", "max", "--json", "-q"])
             rep_best = min(rep_best, dt)
     out = {"benchmark": "replay/estimate offline", "lattice": "14x14", "links": 364, "rate_hz": RATE_HZ,
-           "snapshots": n, "recorded_s": round(recorded_s, 3), "mcap_bytes_per_s": None,
+           "snapshots": n, "recorded_s": round(recorded_s, 3), "mcap_bytes_per_recorded_s": round(size / recorded_s),
            "write_recording_s": round(t_write, 3),
            "estimate": {"jobs": args.jobs, "wall_s_best": round(est_best, 3),
                         "x_real_time": round(recorded_s / est_best, 2),
