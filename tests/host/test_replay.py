@@ -48,7 +48,9 @@ def can_recording(tmp_path_factory):
     n = next(_can_channel)
     chans = [f"rp_{n}_a", f"rp_{n}_b"]
     with CanDevice(sheet, n_buses=2, channels=chans) as dev:  # noqa: F841
-        argv = ["host", "--lattice", "4x4", "--layout", str(layout), "--rate", "50", "--duration", "0.6", "-q",
+        # a long deadline: counters complete even on a loaded machine (the test compares complete ones)
+        argv = ["host", "--lattice", "4x4", "--layout", str(layout), "--rate", "50", "--duration", "0.8", "-q",
+                "--deadline-ms", "300",
                 "--record", str(d / "run.mcap"), "--can-log", str(d / "run.log")]
         for c in chans:
             argv += ["--can", f"virtual:{c}"]
@@ -129,7 +131,8 @@ def test_a_can_session_is_logged_for_cantools_every_frame_decoded(can_recording)
 def test_replay_of_a_can_log_makes_the_snapshots_the_host_made(can_recording, suffix):
     rec = read(can_recording / "run.mcap")
     assert len(rec) >= 10 and len(rec.raw) == 2
-    snaps = _by_counter(Replay(can_recording / f"run{suffix}", lattice="4x4").snapshots())
+    # the log's frames of a counter lie within the live deadline (300 ms): wait longer than that
+    snaps = _by_counter(Replay(can_recording / f"run{suffix}", lattice="4x4", deadline_s=0.5).snapshots())
     matched = 0
     for k, c in enumerate(rec.counter.tolist()):
         if not rec.complete[k]:
