@@ -335,7 +335,7 @@ def test_a_loaded_layout_is_not_marked_auto_assigned(tmp_path):
     assert loaded.is_auto is False
 
 
-def test_version_and_pure_json(capsys):
+def test_version(capsys):
     from host.cli import main
     with pytest.raises(SystemExit) as exc:
         main(["--version"])

@@ -25,8 +25,12 @@ def pty_recording(tmp_path_factory):
     from virtual_sheet.devices import PtyDevice
     from virtual_sheet.sheet import VirtualSheet
 
+    from virtual_sheet.sensor import SensorModel
+
     d = tmp_path_factory.mktemp("pty")
-    sheet = VirtualSheet("gaussian", "5x5", seed=5)
+    # chips with their own offsets and sensitivities: the replay must use the recorded calibration
+    sheet = VirtualSheet("gaussian", "5x5", seed=5,
+                         sensor=SensorModel(noise_pct_g=0.5, bias_counts=6.0, scale_error=0.02, chip_seed=3))
     layout = sheet.write_layout(d / "sheet.csv")
     out = d / "run.mcap"
     with PtyDevice(sheet) as dev:
@@ -74,6 +78,8 @@ def _by_counter(snaps):
 def test_replay_of_a_serial_recording_makes_the_recorded_snapshots(pty_recording):
     rec = read(pty_recording)
     assert len(rec) >= 40  # complete or not (a loaded machine misses deadlines): replayed alike
+    cal = rec.attachments["calibration.json"]["links"]
+    assert np.ptp([c["offset"] for c in cal]) > 1 and np.ptp([c["sensitivity"] for c in cal]) > 1
     rp = Replay(pty_recording)
     snaps = list(rp.snapshots())
     assert [s.counter for s in snaps] == rec.counter.tolist()
