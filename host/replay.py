@@ -130,6 +130,15 @@ def _frame(f):
                            is_fd=f["fd"], is_error_frame=f["err"], is_remote_frame=f["rtr"])
 
 
+def _frame_message(f):
+    """A recorded frame (dict or can.Message) as the attributes `host.record` stores."""
+    if not isinstance(f, dict):
+        return f
+    return SimpleNamespace(arbitration_id=f["id"], data=base64.b64decode(f["data"]), is_extended_id=f["ext"],
+                           is_fd=f["fd"], is_error_frame=f["err"], is_remote_frame=f["rtr"],
+                           bitrate_switch=f.get("brs", False), timestamp=f.get("ts", 0.0))
+
+
 def load_can_log(path) -> dict[str, list]:
     """A python-can log (.log, .asc, .blf) as ``{channel: [(t, "can", [can.Message]), ...]}``.
 
@@ -250,10 +259,12 @@ class Replay:
     def n_chunks(self) -> int:
         return sum(len(t) for t in self.transports)
 
-    def snapshots(self, progress=None) -> Iterator[LatticeSnapshot]:
+    def snapshots(self, progress=None, recorder=None) -> Iterator[LatticeSnapshot]:
         """Every snapshot the recorded input makes, in counter order.
 
         ``progress``: called with the number of raw chunks consumed so far (e.g. a tqdm update).
+        ``recorder``: a `host.record.Recorder` that gets the raw input and SYNCs again, with their
+        recorded times (so a re-recording replays too).
         """
         agg = self.aggregator
         out: list[LatticeSnapshot] = []
@@ -289,15 +300,22 @@ class Replay:
             else:
                 # the host emitted a counter at its deadline *when its threads got to it*: poll when
                 # it did, so the frames that made it in live make it in here
-                while ei < len(emits) and emits[ei] <= t:
+                while ei < len(emits) and emits[ei] < t:  # an emission at t came with the ingest at t
                     agg.poll(max(self._now, emits[ei]))
                     ei += 1
             self._now = max(self._now, t)
             if kind == 0:
+                if recorder is not None:
+                    recorder.sync(who, t)
                 agg.open_counter(who, t, restart=first_sync)
                 first_sync = False
             else:
                 tr = self.transports[who]
+                if recorder is not None:
+                    _, rkind, payload = tr._chunks[tr._pos]
+                    if rkind == "can":
+                        payload = [_frame_message(f) for f in payload]
+                    recorder.raw(who, rkind, payload, tr.name, t=t)
                 events = tr.recv(0)
                 agg.ingest(events, who)
                 if tr.next_time is not None:

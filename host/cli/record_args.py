@@ -115,7 +115,8 @@ class SessionOutputs:
     """
 
     def __init__(self, args, lattice, link_length: float, *, mode: str, colour_by: str = "links",
-                 session: dict | None = None, prog: str = "capsheet") -> None:
+                 session: dict | None = None, layout: dict | None = None, calibration: dict | None = None,
+                 prog: str = "capsheet") -> None:
         self.prog = prog
         self.lattice = lattice
         self.link_length = float(link_length)
@@ -131,7 +132,8 @@ class SessionOutputs:
             from host.record import Recorder
             try:
                 self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},
-                                         live_port=live, colour_by=colour_by)
+                                         live_port=live, colour_by=colour_by, layout=layout,
+                                         calibration=calibration)
             except OSError as exc:  # an unwritable --record path, a --live port in use
                 what = "" if "live view" in str(exc) else f"cannot write {record}: "
                 raise SystemExit(f"{prog}: {what}{exc}") from None

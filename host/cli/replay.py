@@ -66,8 +66,12 @@ def run(args) -> int:
     rec = rp.recording
     recorded = {int(c): k for k, c in enumerate(rec.counter)} if rec is not None else {}
     rec_est = ({int(c): k for k, c in enumerate(rec.estimates["counter"])} if rec is not None else {})
-    out = SessionOutputs(args, lat, L, mode="replay", session={"replay_of": str(args.recording)},
-                         prog="capsheet replay")
+    att = rec.attachments if rec is not None else {}
+    out = SessionOutputs(args, lat, L, mode="replay", prog="capsheet replay",
+                         session={"replay_of": str(args.recording),
+                                  **{k: v for k, v in (rec.session.items() if rec is not None else ())
+                                     if k in ("rate_hz", "sync", "deadline_s", "transports")}},
+                         layout=att.get("layout.json"), calibration=att.get("calibration.json"))
     n = identical = compared = est_n = 0
     changes: list[float] = []
     previous = None
@@ -81,7 +85,8 @@ def run(args) -> int:
             bar.update(done - last[0])
             last[0] = done
     try:
-        for snap in rp.snapshots(progress=progress):
+        rerecord = out.recorder if out.recorder is not None and out.recorder.path is not None else None
+        for snap in rp.snapshots(progress=progress, recorder=rerecord):
             n += 1
             k = recorded.get(snap.counter)
             if k is not None:

@@ -239,3 +239,15 @@ def test_capsheet_estimate_of_a_can_log_replays_it_first(can_recording, tmp_path
     doc = json.loads(capsys.readouterr().out)
     replayed = list(Replay(can_recording / "run.log", lattice="4x4").snapshots())
     assert doc["snapshots"] == len(replayed) >= 10 and np.load(npz)["joints"].shape[1:] == (4, 4, 3)
+
+
+def test_a_replay_recorded_again_replays_to_the_same_snapshots(can_recording, tmp_path, capsys):
+    from host.cli import main
+    again = tmp_path / "again.mcap"
+    assert main(["replay", str(can_recording / "run.mcap"), "--record", str(again), "-q"]) == 0
+    first, second = read(can_recording / "run.mcap"), read(again)
+    assert second.attachments["calibration.json"] == first.attachments["calibration.json"]
+    assert [len(v) for v in second.raw.values()] == [len(v) for v in first.raw.values()]
+    assert main(["replay", str(again), "--json", "-q"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["snapshots"] == doc["snapshots_identical"] == len(first)
