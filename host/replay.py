@@ -22,14 +22,13 @@ the host made, whatever the speed: ``speed=None`` as fast as possible, ``speed=1
 
 from __future__ import annotations
 
+import base64
 import heapq
 import time
 from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterator
-
-import base64
 
 import numpy as np
 
@@ -124,14 +123,8 @@ class ReplayTransport(Transport):
 
 
 def _frame(f):
-    if not isinstance(f, dict):
-        return f  # a can.Message from a log
-    return SimpleNamespace(arbitration_id=f["id"], data=base64.b64decode(f["data"]), is_extended_id=f["ext"],
-                           is_fd=f["fd"], is_error_frame=f["err"], is_remote_frame=f["rtr"])
-
-
-def _frame_message(f):
-    """A recorded frame (dict or can.Message) as the attributes `host.record` stores."""
+    """A recorded CAN frame (a `host.record` dict, or a can.Message from a log) with can.Message's
+    attributes."""
     if not isinstance(f, dict):
         return f
     return SimpleNamespace(arbitration_id=f["id"], data=base64.b64decode(f["data"]), is_extended_id=f["ext"],
@@ -314,7 +307,7 @@ class Replay:
                 if recorder is not None:
                     _, rkind, payload = tr._chunks[tr._pos]
                     if rkind == "can":
-                        payload = [_frame_message(f) for f in payload]
+                        payload = [_frame(f) for f in payload]
                     recorder.raw(who, rkind, payload, tr.name, t=t)
                 events = tr.recv(0)
                 agg.ingest(events, who)
