@@ -17,7 +17,18 @@ SUBCOMMAND_MODULES = [
     "host.cli.tactile",      # capsheet tactile
     "host.cli.conformance",  # capsheet conformance
     "host.cli.protocol",     # capsheet protocol (spec helpers: vectors, dbc, capacity)
+    "host.cli.replay",       # capsheet replay (a recording through decoder, aggregator, estimator)
+    "host.cli.estimate",     # capsheet estimate (a recording offline, batched)
 ]
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("capture-sheet")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,6 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="capsheet: 3D capture sheet toolkit — talk to sensor chips over serial or CAN, "
                     "run a virtual sheet, estimate the sheet's shape and its contacts.",
     )
+    parser.add_argument("--version", action="version", version=f"capsheet {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in SUBCOMMAND_MODULES:
         try:

@@ -36,34 +36,9 @@ def register(sub) -> None:
     p.add_argument("--out", default="out/demo.png", help="PNG of estimated vs true shape (default out/demo.png)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON at the end")
     p.add_argument("--seed", type=int, default=1)
+    from host.cli.record_args import add_record_args
+    add_record_args(p)  # --record FILE.mcap, --live [PORT]
     p.set_defaults(func=run)
-
-
-def _plot(path: Path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, title: str) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from host.estimator import overlay
-
-    aligned = overlay(est, truth)
-    fig = plt.figure(figsize=(12, 4.6))
-    for k, (P, name) in enumerate(((truth, "virtual truth"), (aligned, "estimate (overlaid)"))):
-        ax = fig.add_subplot(1, 3, k + 1, projection="3d")
-        ax.plot_wireframe(P[..., 0] * 100, P[..., 1] * 100, P[..., 2] * 100, color="C0" if k == 0 else "C3", lw=0.8)
-        ax.set_title(name)
-        ax.set_xlabel("x [cm]"), ax.set_ylabel("y [cm]"), ax.set_zlabel("z [cm]")
-        span = np.ptp(truth[..., :2]) * 100 / 2
-        ax.set_zlim(truth[..., 2].mean() * 100 - span, truth[..., 2].mean() * 100 + span)
-    ax = fig.add_subplot(1, 3, 3)
-    im = ax.imshow(err_pct, origin="lower", cmap="viridis")
-    ax.set_title("joint error, % of side")
-    ax.set_xlabel("j"), ax.set_ylabel("i")
-    fig.colorbar(im, ax=ax, shrink=0.8)
-    fig.suptitle(title)
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _sheet_kwargs(args) -> dict:
@@ -142,12 +117,17 @@ def run(args) -> int:
 
         transport = open_transport("serial", path)
         host = Host(transport, lat, layout=Layout.load(layout_path), rate_hz=args.rate)
+        from host.cli.record_args import SessionOutputs
+        outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
+                                 session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
+        outputs.attach(host)
         with host:
             t_up = time.monotonic()
             summary = host.bring_up()
             print(f"capsheet demo: {summary['discovered']} chips discovered, {summary['assigned']} assigned, "
                   f"{summary['calibrated']} calibrated, {summary['started']} streaming "
                   f"({time.monotonic() - t_up:.1f} s)", file=sys.stderr)
+            outputs.describe(host)
             if summary["started"] < lat.n_links:
                 print(f"capsheet demo: only {summary['started']} of {lat.n_links} chips started", file=sys.stderr)
             previous = None
@@ -165,6 +145,8 @@ def run(args) -> int:
                 previous = est
                 n_est += 1
                 latencies.append(time.monotonic() - snap.timestamp)
+                if outputs.recorder is not None and outputs.recorder.path is not None:
+                    outputs.recorder.snapshot(snap)
                 # the truth is a re-solved scene (~25 ms): compare at most 10 snapshots/s
                 if time.monotonic() - last_eval >= 0.1:
                     last_eval = time.monotonic()
@@ -172,6 +154,7 @@ def run(args) -> int:
                     err = error_percent_of_side(est.joints, truth, L)
                     errors.append(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
+                    outputs.publish(est, snap, truth=truth)
                 now = time.monotonic()
                 if now - last_print >= 0.25:
                     el = now - t0
@@ -183,6 +166,7 @@ def run(args) -> int:
                     last_print = now
             elapsed = time.monotonic() - t0
             host.stop()
+            outputs.close(host.stats)
     finally:
         if proc.is_alive():
             parent.send("stop")
@@ -206,15 +190,18 @@ def run(args) -> int:
     if last is not None:
         truth, est_joints, err, counter = last
         out = Path(args.out)
-        _plot(out, truth, est_joints, err,
-              f"capsheet demo: {rows}x{cols} '{args.shape}', {args.noise:g} % g noise, counter {counter}: "
-              f"mean error {err.mean():.2f} % of side")
+        from host.cli.figures import demo_figure
+        import matplotlib.pyplot as plt
+        plt.close(demo_figure(out, truth, est_joints, err, shape=args.shape, noise_pct_g=args.noise,
+                              rate_hz=args.rate, run_mean_error_pct=float(np.mean(errors)), counter=counter,
+                              link_length=L))
         result["png"] = str(out)
         print(f"capsheet demo: wrote {out}", file=sys.stderr)
     verdict = "PASS" if ok else "FAIL"
     print(f"capsheet demo: {verdict}: {result['snapshots']} snapshots at {result['snapshots_per_s']}/s, "
           f"mean joint error {result['mean_error_pct_side']} % of side (target <= {args.target:g} %), "
-          f"median latency {result['median_latency_ms']} ms, estimate {result['median_estimate_ms']} ms/snapshot")
+          f"median latency {result['median_latency_ms']} ms, estimate {result['median_estimate_ms']} ms/snapshot",
+          file=sys.stderr if args.json else sys.stdout)  # --json: JSON alone on stdout
     if args.json:
         print(json.dumps(result, indent=1))
     return 0 if ok else 1

@@ -1,7 +1,7 @@
 """``capsheet host``: connect to a sheet, discover and assign its chips, stream, show a live status
 line and record snapshots (docs/host.md).
 
-    capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record out.cap
+    capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record run.mcap --live
     capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
     capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
 
@@ -17,7 +17,7 @@ import sys
 import time
 
 from host.session import Host, Layout
-from host.record import RecordWriter
+from host.cli.record_args import SessionOutputs, add_record_args
 from host.cli.transport_args import add_transport_args, open_transports
 from host.transport import TransportError
 
@@ -37,11 +37,11 @@ def register(subparsers) -> None:
     p.add_argument("--sync", choices=("drive", "follow"), default="drive",
                    help="drive SYNC from the host (default) or follow a gateway's SYNC")
     p.add_argument("--deadline-ms", type=float, default=None, help="wait this long for missing links")
-    p.add_argument("--record", metavar="FILE", help="write snapshots to FILE (.npy format; FILE.json metadata)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
+    add_record_args(p, can_log=True, link_length=True)  # --record --live --live-rate --can-log --link-length
     p.set_defaults(func=run)
 
 
@@ -69,7 +69,10 @@ def run(args) -> int:
         return 1
     host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
                 deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000)
-    writer = None
+    out = SessionOutputs(args, host.lattice, args.link_length, mode="host", colour_by="links",
+                         prog="capsheet host")
+    out.attach(host)
+    writer = out if out.active else None
     stats: dict | None = None
     try:
         with host:
@@ -77,17 +80,13 @@ def run(args) -> int:
             print(f"capsheet host: {summary['discovered']} chips found, {summary['assigned']} assigned, "
                   f"{summary['configured']} configured, {summary['calibrated']} calibrated, "
                   f"{summary['started']} started on {', '.join(t.name for t in transports)}", file=sys.stderr)
-            if args.record:
-                writer = RecordWriter(args.record, host.lattice.n_links, {
-                    "rows": host.lattice.rows, "cols": host.lattice.cols, "rate_hz": args.rate,
-                    "transports": [t.name for t in transports],
-                    "layout": {f"0x{u:016X}": k for u, k in (host.layout.links.items() if host.layout else [])}})
+            out.describe(host)
             t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, 0.0
             end = None if args.duration is None else t0 + args.duration
             while end is None or time.monotonic() < end:
                 snap = host.get(0.1)
                 if snap is not None and writer is not None:
-                    writer.write(snap)
+                    writer.snapshot(snap)
                 now = time.monotonic()
                 if not args.quiet and now - last >= 0.5:
                     print(_status_line(host, t0, n0), end="", file=sys.stderr, flush=True)
@@ -95,7 +94,7 @@ def run(args) -> int:
             host.stop()
             for snap in host.aggregator.drain():
                 if writer is not None:
-                    writer.write(snap)
+                    writer.snapshot(snap)
             if not args.quiet:
                 print(_status_line(host, t0, n0), file=sys.stderr)
             stats = host.stats
@@ -105,8 +104,6 @@ def run(args) -> int:
     finally:
         if writer is not None:
             writer.close(stats=stats)
-    if writer is not None:
-        print(f"capsheet host: recorded {writer.count} snapshots to {args.record}", file=sys.stderr)
     if args.json:
         print(json.dumps(stats, default=str, indent=1))
     return 0

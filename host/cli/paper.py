@@ -203,22 +203,10 @@ def cmd_gaussian(args) -> int:
     _emit(out / "gaussian", "\n".join(md), {"shape": args.shape, "noise_pct_g": args.noise,
                                             "seed": args.seed, "methods": res})
 
-    fig = plt.figure(figsize=(15, 5))
-    panels = [("model (truth)", P)] + [(f"{m} estimate ({res[m]['mean_pct']:.2f} % of side)",
-                                        E.overlay(ests[m].joints, P)) for m in E.METHODS]
-    for k, (title, J) in enumerate(panels):
-        ax = fig.add_subplot(1, 3, k + 1, projection="3d")
-        ax.plot_wireframe(J[..., 0], J[..., 1], J[..., 2], color="C0" if k == 0 else "C1")
-        if k:
-            ax.plot_wireframe(P[..., 0], P[..., 1], P[..., 2], color="0.7", linewidth=0.5)
-        ax.set_title(title)
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
-        lo, hi = P.reshape(-1, 3).min(0), P.reshape(-1, 3).max(0)
-        ax.set_box_aspect(np.maximum(hi - lo, 1e-3 * (hi - lo).max()))
-    fig.tight_layout()
-    fig.savefig(out / "gaussian.png", dpi=110)
+    from host.cli.figures import gaussian_figure
+    fig = gaussian_figure(out / "gaussian.png", P, {m: ests[m].joints for m in E.METHODS},
+                          {m: res[m]["mean_pct"] for m in E.METHODS}, shape=args.shape, noise_pct_g=args.noise,
+                          seed=args.seed, link_length=LINK_LENGTH)
     plt.close(fig)
     print(f"wrote {out / 'gaussian.png'}")
     return 0
@@ -236,6 +224,9 @@ def noise_study(levels, trials: int, seed: int, shape: str = "gaussian", progres
     n = SIDE_JOINTS
     rng = np.random.Generator(np.random.MT19937(seed))
     rows = []
+    from tqdm import tqdm
+    bar = tqdm(total=len(levels) * trials, unit="trial", desc="noise study", file=sys.stderr,
+               disable=False, dynamic_ncols=True)
     for level in levels:
         errs = {m: [] for m in E.METHODS}
         times = {m: [] for m in E.METHODS}
@@ -246,14 +237,18 @@ def noise_study(levels, trials: int, seed: int, shape: str = "gaussian", progres
                 est = E.estimate(r, n, n, LINK_LENGTH, method=m)
                 times[m].append(time.perf_counter() - t0)
                 errs[m].append(E.error_percent_of_side(est.joints, P, LINK_LENGTH).ravel())
+            bar.update(1)
         row = {"noise_pct_g": level, "samples": n * n * trials}
         for m in E.METHODS:
             e = np.concatenate(errs[m])
-            row[m] = {"mean_pct": float(e.mean()), "std_pct": float(e.std()),
+            p05, p50, p95 = np.percentile(e, [5, 50, 95])
+            row[m] = {"mean_pct": float(e.mean()), "std_pct": float(e.std()), "p05_pct": float(p05),
+                      "p50_pct": float(p50), "p95_pct": float(p95),
                       "time_ms": 1e3 * float(np.median(times[m]))}
         rows.append(row)
         if progress:
             progress(row)
+    bar.close()
     return rows
 
 
@@ -285,19 +280,9 @@ def cmd_noise(args) -> int:
     _emit(out / "noise", "\n".join(md), {"shape": args.shape, "trials": trials, "seed": args.seed,
                                          "rows": rows})
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    x = np.array([r["noise_pct_g"] for r in rows])
-    for k, m in enumerate(E.METHODS):
-        ax.errorbar(x + (k - 0.5) * 0.08, [r[m]["mean_pct"] for r in rows],
-                    yerr=[r[m]["std_pct"] for r in rows], fmt="o", capsize=3, label=m)
-    ax.axhline(5.0, color="0.6", linestyle="--", linewidth=0.8, label="paper's failure line (5 %)")
-    ax.set_yscale("symlog", linthresh=0.1)
-    ax.set_xlabel("noise [% g]")
-    ax.set_ylabel("joint error [% of side]")
-    ax.set_title(f"Fig. 10: {args.shape}, {SIDE_JOINTS}x{SIDE_JOINTS}, {trials} trials")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "noise.png", dpi=110)
+    from host.cli.figures import noise_figure
+    fig = noise_figure(out / "noise.png", rows, E.METHODS, shape=args.shape, side_joints=SIDE_JOINTS,
+                       trials=trials, seed=args.seed)
     plt.close(fig)
     print(f"wrote {out / 'noise.png'}")
     return 0

@@ -52,6 +52,8 @@ def register(subparsers) -> None:
                    help="detection threshold in noise sigmas (default 5)")
     p.add_argument("--out", default="out/tactile.png", help="heat map PNG (default out/tactile.png)")
     p.add_argument("-q", "--quiet", action="store_true", help="no status lines")
+    from host.cli.record_args import add_record_args
+    add_record_args(p)  # --record FILE.mcap (estimates, contacts), --live [PORT]
     p.set_defaults(func=run)
 
 
@@ -131,7 +133,12 @@ def run(args) -> int:
     real = bool(args.port or args.can)
     source = (_real if real else _virtual)(args, foam, settings, rows, cols)
     best, best_truth, last_print = None, None, -1e9
-    for fr, truth in source:
+    from host.cli.record_args import SessionOutputs, contact_dicts
+    from protocol.lattice import Lattice
+    outputs = SessionOutputs(args, Lattice(rows, cols), args.link_length, mode="tactile", colour_by="displacement",
+                             prog="capsheet tactile")
+    for k, (fr, truth) in enumerate(source):
+        outputs.tactile(k, fr, truth)
         if best is None or fr.total_force_n > best.total_force_n:
             best, best_truth = fr, truth
         if args.quiet:
@@ -144,6 +151,7 @@ def run(args) -> int:
                                                   for F, i in truth)
             print(line)
             last_print = now
+    outputs.close()
     if best is None:
         print("capsheet tactile: no snapshot received", file=sys.stderr)
         return 1

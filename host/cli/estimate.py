@@ -1,0 +1,239 @@
+"""``capsheet estimate``: estimate every snapshot of a recording offline, in batches, on all cores.
+
+    capsheet estimate run.mcap --out joints.npz            # numpy arrays
+    capsheet estimate run.mcap --out shapes.mcap --png     # MCAP (Foxglove 3D) and a figure
+    capsheet estimate run.log --lattice 14x14 --out joints.npz   # a CAN log: replayed first
+
+The recorded snapshots are estimated (a CAN log, or ``--from-raw``, is first replayed through the
+decoder and aggregator, `host.replay`). Snapshots are cut into batches of ``--batch`` (each warm-
+starts from its own first snapshot, as a live run does from its previous one) spread over
+``--jobs`` processes. ``joints.npz`` holds ``counter`` (n,), ``timestamp`` (n,) s, ``joints``
+(n, rows, cols, 3) m, ``residual`` (n,), ``valid`` (n, n_links), ``link_length_m``, ``lattice``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need an integer >= 1)") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"invalid value {v} (need an integer >= 1)")
+    return v
+
+
+def _out_path(text: str) -> str:
+    if Path(text).suffix.lower() not in (".npz", ".mcap"):
+        raise argparse.ArgumentTypeError(f"{text!r}: --out is a .npz (numpy) or .mcap (Foxglove) file")
+    return text
+
+
+def register(subparsers) -> None:
+    from host.cli.record_args import lattice_arg, positive
+    p = subparsers.add_parser("estimate", help="estimate a recording offline (batched, all cores) to .npz or .mcap",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recording", help="capsheet .mcap, or a CAN log (.log, .asc, .blf)")
+    p.add_argument("--out", required=True, type=_out_path, help="joints.npz or shapes.mcap")
+    p.add_argument("--png", nargs="?", const="", default=None, metavar="FILE",
+                   help="also draw the run (default: --out with .png)")
+    p.add_argument("--lattice", type=lattice_arg, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
+    p.add_argument("--link-length", type=positive, default=None, help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--from-raw", action="store_true", help="replay the raw input instead of the recorded snapshots")
+    p.add_argument("--method", choices=("global", "paper"), default="global", help="estimator (default global)")
+    p.add_argument("--jobs", type=_positive_int, default=min(2, os.cpu_count() or 1),
+                   help="worker processes (default: min(2, cores))")
+    p.add_argument("--batch", type=_positive_int, default=256, help="snapshots per batch (default 256)")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=run)
+
+
+def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int, L: float,
+                   method: str = "global") -> tuple[np.ndarray, np.ndarray, dict]:
+    """Estimate a batch, warm-starting each snapshot from the previous one.
+
+    Parameters
+    ----------
+    readings : ndarray, shape (n, n_links, 3), m/s²
+    valid : ndarray of bool, shape (n, n_links)
+
+    Returns
+    -------
+    joints : ndarray, shape (n, rows, cols, 3), float64, metres (NaN for a snapshot with no valid link)
+    residual : ndarray, shape (n,)
+    extra : dict
+        ``yaw_std`` / ``joint_std`` stacked, when the estimator provides them; ``cpu_s`` the
+        process CPU time the batch took (what a shared machine does not inflate as much as wall time).
+    """
+    from host.analysis.estimator import estimate
+
+    cpu0 = time.process_time()
+    n = readings.shape[0]
+    joints = np.full((n, rows, cols, 3), np.nan)
+    residual = np.full(n, np.nan)
+    extra: dict[str, list] = {}
+    prev = None
+    for k in range(n):
+        v = np.asarray(valid[k], dtype=bool)
+        if not v.any():
+            continue
+        est = estimate(np.asarray(readings[k], dtype=float), rows, cols, L, valid=v, previous=prev, method=method)
+        prev = est if method == "global" else None
+        joints[k] = est.joints
+        residual[k] = est.residual
+        for name in ("yaw_std", "joint_std"):
+            val = getattr(est, name, None)
+            if val is not None:
+                extra.setdefault(name, [None] * n)[k] = np.asarray(val)
+    out_extra: dict = {}
+    for name, vals in extra.items():
+        if all(v is not None for v in vals):
+            out_extra[name] = np.stack(vals)
+    out_extra["cpu_s"] = time.process_time() - cpu0
+    return joints, residual, out_extra
+
+
+def _load(args):
+    """(lattice, L, counter, timestamp, wall, readings, valid, status, session)."""
+    from host.record import read
+    from host.replay import Replay
+
+    path = Path(args.recording)
+    if path.suffix.lower() == ".mcap" and not args.from_raw:
+        rec = read(path, raw=False)
+        if len(rec) == 0:
+            raise ValueError(f"{str(path)!r} holds no snapshot (try --from-raw)")
+        L = float(args.link_length or rec.session.get("link_length_m", 0.01))
+        return (rec.lattice, L, rec.counter, rec.timestamp, rec.wall_time, rec.readings, rec.valid, rec.status,
+                rec.session)
+    rp = Replay(path, lattice=args.lattice, link_length=args.link_length)
+    snaps = list(rp.snapshots())
+    if not snaps:
+        raise ValueError(f"{str(path)!r}: the replay made no snapshot")
+    return (rp.lattice, rp.link_length, np.array([s.counter for s in snaps], dtype=np.uint16),
+            np.array([s.timestamp for s in snaps]), np.array([s.wall_time for s in snaps]),
+            np.stack([s.readings for s in snaps]).astype(np.float32), np.stack([s.valid for s in snaps]),
+            np.stack([s.status for s in snaps]), rp.recording.session if rp.recording else {})
+
+
+def run(args) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
+    from tqdm import tqdm
+
+    t_start = time.monotonic()
+    try:
+        lat, L, counter, ts, wall, readings, valid, status, session = _load(args)
+    except (ValueError, OSError) as exc:
+        print(f"capsheet estimate: {exc}", file=sys.stderr)
+        return 1
+    n = readings.shape[0]
+    rows, cols = lat.rows, lat.cols
+    t_est = time.monotonic()
+    starts = list(range(0, n, args.batch))
+    joints = np.full((n, rows, cols, 3), np.nan)
+    residual = np.full(n, np.nan)
+    extras: dict[str, list] = {}
+    cpu_s = 0.0
+    bar = tqdm(total=n, unit="snapshot", desc="estimate", disable=args.quiet, file=sys.stderr, dynamic_ncols=True)
+    jobs = min(args.jobs, len(starts))
+    try:
+        if jobs <= 1:
+            results = ((s, estimate_batch(readings[s:s + args.batch], valid[s:s + args.batch], rows, cols, L,
+                                          args.method)) for s in starts)
+            for s, (j, r, ex) in results:
+                cpu_s += ex.pop("cpu_s")
+                joints[s:s + j.shape[0]], residual[s:s + j.shape[0]] = j, r
+                for name, v in ex.items():
+                    extras.setdefault(name, []).append((s, v))
+                bar.update(j.shape[0])
+        else:
+            import multiprocessing as mp
+            with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("fork")) as pool:
+                futs = {pool.submit(estimate_batch, readings[s:s + args.batch], valid[s:s + args.batch], rows, cols,
+                                    L, args.method): s for s in starts}
+                from concurrent.futures import as_completed
+                for f in as_completed(futs):
+                    s = futs[f]
+                    j, r, ex = f.result()
+                    cpu_s += ex.pop("cpu_s")
+                    joints[s:s + j.shape[0]], residual[s:s + j.shape[0]] = j, r
+                    for name, v in ex.items():
+                        extras.setdefault(name, []).append((s, v))
+                    bar.update(j.shape[0])
+    except KeyboardInterrupt:
+        bar.close()
+        print("capsheet estimate: interrupted; nothing written", file=sys.stderr)
+        return 130
+    bar.close()
+    t_done = time.monotonic()
+    extra_arrays = {}
+    for name, parts in extras.items():
+        if sum(v.shape[0] for _, v in parts) == n:
+            extra_arrays[name] = np.concatenate([v for _, v in sorted(parts, key=lambda p: p[0])])
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix.lower() == ".npz":
+        np.savez_compressed(out, counter=counter, timestamp=ts, joints=joints, residual=residual, valid=valid,
+                            link_length_m=L, lattice=np.array([rows, cols]), **extra_arrays)
+    else:
+        _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status, joints, residual,
+                    extra_arrays, quiet=args.quiet)
+    result = {"recording": str(args.recording), "out": str(out), "lattice": f"{rows}x{cols}", "link_length_m": L,
+              "snapshots": n, "estimated": int(np.count_nonzero(np.isfinite(residual))), "jobs": jobs,
+              "batch": args.batch, "method": args.method,
+              "recorded_duration_s": round(float(ts[-1] - ts[0]), 3) if n > 1 else 0.0,
+              "estimate_s": round(t_done - t_est, 3), "total_s": round(time.monotonic() - t_start, 3),
+              "snapshots_per_s": round(n / max(t_done - t_est, 1e-9), 1),
+              "estimator_cpu_s": round(cpu_s, 3),
+              "snapshots_per_cpu_s": round(n / max(cpu_s, 1e-9), 1)}
+    if n > 1 and ts[-1] > ts[0]:
+        result["faster_than_real_time"] = round(float(ts[-1] - ts[0]) / max(t_done - t_est, 1e-9), 2)
+    if args.png is not None:
+        from host.cli.figures import estimate_run_figure
+        png = Path(args.png) if args.png else out.with_suffix(".png")
+        estimate_run_figure(png, ts - ts[0], residual, valid, joints, lat, L,
+                            title=f"capsheet estimate: {Path(args.recording).name}, {rows}x{cols}, "
+                                  f"L = {100 * L:g} cm, {n} snapshots")
+        result["png"] = str(png)
+        print(f"capsheet estimate: wrote {png}", file=sys.stderr)
+    print(f"capsheet estimate: {result['estimated']} of {n} snapshots estimated in {result['estimate_s']} s "
+          f"({result['snapshots_per_s']}/s, {jobs} jobs) -> {out}", file=sys.stderr)
+    if args.json:
+        print(json.dumps(result, indent=1))
+    return 0
+
+
+def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status, joints, residual, extra,
+                quiet: bool) -> None:
+    from types import SimpleNamespace
+
+    from tqdm import tqdm
+
+    from host.aggregator import LatticeSnapshot
+    from host.record import Recorder
+
+    rec = Recorder(out, lat, L, session={"mode": "estimate", "estimated_from": session.get("format", "?"),
+                                         **{k: v for k, v in session.items() if k in ("rate_hz", "sync", "mode")}})
+    try:
+        for k in tqdm(range(counter.shape[0]), unit="snapshot", desc="write", disable=quiet, file=sys.stderr):
+            snap = LatticeSnapshot(int(counter[k]), float(ts[k]), float(wall[k]), readings[k], valid[k], status[k],
+                                   bool(valid[k].all()), 0.0)
+            rec.snapshot(snap)
+            if np.isfinite(residual[k]):
+                est = SimpleNamespace(joints=joints[k], valid=valid[k], residual=float(residual[k]), method="global",
+                                      iterations=0, **{name: v[k] for name, v in extra.items()})
+                rec.estimate(est, int(counter[k]), float(ts[k]), float(wall[k]))
+    finally:
+        rec.close()

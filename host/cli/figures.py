@@ -1,0 +1,216 @@
+"""Figures fit for a paper: the demo's, the paper's Fig. 9 (Gaussian) and Fig. 10 (noise), and an
+offline run's (``capsheet estimate --png``).
+
+Conventions: lengths in cm (a 1 cm-link sheet; the unit is in every axis label); errors in % of the
+side length ``(cols - 1) L`` after the rigid overlay (`host.analysis.metrics`), on log axes with
+percentile bars (5th-95th) around the median; the run's parameters (shape, lattice, noise, rate,
+seed) in the title; a legend entry for every mark. Each function draws, saves ``path`` (PNG) and
+returns the `matplotlib.figure.Figure` (close it with ``plt.close(fig)``), so a test can check
+what is drawn.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "estimate_run_figure", "ERROR_FLOOR_PCT"]
+
+#: errors below this (% of side) are drawn at it on log axes (a noise-free estimate is exact to
+#: ~1e-12 %); the caption says so
+ERROR_FLOOR_PCT = 1e-6
+CM = 100.0
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig, path) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+
+
+def _equal_box(ax, P_cm: np.ndarray) -> None:
+    """Equal scales on x, y, z (a flat sheet keeps a visible z range: at least 1/4 of the widest),
+    zoomed out so the axis labels stay inside the panel; at most 5 ticks per axis."""
+    from matplotlib.ticker import MaxNLocator
+
+    lo, hi = P_cm.reshape(-1, 3).min(0), P_cm.reshape(-1, 3).max(0)
+    ext = np.maximum(hi - lo, 1e-9)
+    need = 0.25 * ext.max()
+    if ext[2] < need:
+        mid = 0.5 * (lo[2] + hi[2])
+        ax.set_zlim(mid - need / 2, mid + need / 2)
+        ext = np.array([ext[0], ext[1], need])
+    ax.set_box_aspect(ext, zoom=0.82)
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(5))
+
+
+def _wire(ax, P_cm, **kw):
+    return ax.plot_wireframe(P_cm[..., 0], P_cm[..., 1], P_cm[..., 2], **kw)
+
+
+def _labels_cm(ax) -> None:
+    ax.set_xlabel("x [cm]", labelpad=2)
+    ax.set_ylabel("y [cm]", labelpad=2)
+    ax.set_zlabel("z [cm]", labelpad=2)
+
+
+def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *, shape: str, noise_pct_g: float,
+                rate_hz: float, run_mean_error_pct: float, counter: int, link_length: float):
+    """The demo's figure: truth; estimate (overlaid) drawn over the truth; per-joint error map.
+
+    Parameters
+    ----------
+    truth, est : ndarray, shape (rows, cols, 3), metres
+        The virtual truth and the estimate (not yet overlaid) of snapshot ``counter``.
+    err_pct : ndarray, shape (rows, cols)
+        That snapshot's joint error, % of side.
+    run_mean_error_pct : float
+        The run's summary figure (mean over the compared snapshots), shown in the title.
+    """
+    plt = _plt()
+    from host.analysis.metrics import overlay
+
+    rows, cols = truth.shape[:2]
+    T, A = truth * CM, overlay(est, truth) * CM
+    fig = plt.figure(figsize=(16, 5.4))
+    gs = fig.add_gridspec(1, 3, width_ratios=(1.0, 1.0, 0.85), left=0.01, right=0.96, bottom=0.1, top=0.86,
+                          wspace=0.28)
+    ax = fig.add_subplot(gs[0], projection="3d")
+    _wire(ax, T, color="C0", lw=0.8, label="virtual truth")
+    ax.set_title("virtual truth")
+    _labels_cm(ax)
+    _equal_box(ax, T)
+    ax.legend(loc="upper left", fontsize=8)
+    ax = fig.add_subplot(gs[1], projection="3d")
+    _wire(ax, T, color="0.65", lw=0.6, label="virtual truth")
+    _wire(ax, A, color="C3", lw=0.9, label="estimate (overlaid)")
+    ax.set_title("estimate (overlaid) over the truth")
+    _labels_cm(ax)
+    _equal_box(ax, T)
+    ax.legend(loc="upper left", fontsize=8)
+    ax = fig.add_subplot(gs[2])
+    im = ax.imshow(err_pct, origin="lower", cmap="viridis", extent=(-0.5, cols - 0.5, -0.5, rows - 0.5))
+    step = max(1, int(np.ceil(max(rows, cols) / 7)))
+    ax.set_xticks(np.arange(0, cols, step))
+    ax.set_yticks(np.arange(0, rows, step))
+    ax.set_xlabel("joint j")
+    ax.set_ylabel("joint i")
+    ax.set_title(f"joint error, counter {counter} (mean {float(np.mean(err_pct)):.2f} %)")
+    fig.colorbar(im, ax=ax, shrink=0.85, label="error [% of side]")
+    fig.suptitle(f"capsheet demo: {rows}x{cols} joints, L = {link_length * CM:g} cm, '{shape}', "
+                 f"{noise_pct_g:g} % g noise, {rate_hz:g} Hz: run mean error {run_mean_error_pct:.2f} % of side")
+    _save(fig, path)
+    return fig
+
+
+def gaussian_figure(path, truth: np.ndarray, estimates: dict, errors_pct: dict, *, shape: str,
+                    noise_pct_g: float, seed: int, link_length: float):
+    """Fig. 9: the model and each method's estimate, overlaid on the model, in cm.
+
+    ``estimates``: method -> joints (rows, cols, 3) m (not yet overlaid); ``errors_pct``: method ->
+    mean joint error, % of side.
+    """
+    plt = _plt()
+    from host.analysis.metrics import overlay
+
+    rows, cols = truth.shape[:2]
+    T = truth * CM
+    fig = plt.figure(figsize=(5.2 * (1 + len(estimates)), 5.2))
+    fig.subplots_adjust(left=0.01, right=0.97, bottom=0.05, top=0.86, wspace=0.12)
+    ax = fig.add_subplot(1, 1 + len(estimates), 1, projection="3d")
+    _wire(ax, T, color="C0", lw=0.8, label="model (truth)")
+    ax.set_title("model (truth)")
+    _labels_cm(ax)
+    _equal_box(ax, T)
+    ax.legend(loc="upper left", fontsize=8)
+    for k, (m, J) in enumerate(estimates.items()):
+        ax = fig.add_subplot(1, 1 + len(estimates), k + 2, projection="3d")
+        _wire(ax, T, color="0.7", lw=0.5, label="model (truth)")
+        _wire(ax, overlay(J, truth) * CM, color=f"C{k + 1}", lw=0.8, label=f"{m} estimate (overlaid)")
+        ax.set_title(f"{m}: mean error {errors_pct[m]:.2f} % of side")
+        _labels_cm(ax)
+        _equal_box(ax, T)
+        ax.legend(loc="upper left", fontsize=8)
+    fig.suptitle(f"Fig. 9: '{shape}', {rows}x{cols} joints, L = {link_length * CM:g} cm, "
+                 f"{noise_pct_g:g} % g noise, seed {seed}")
+    _save(fig, path)
+    return fig
+
+
+def noise_figure(path, rows: list, methods, *, shape: str, side_joints: int, trials: int, seed: int):
+    """Fig. 10: joint error vs noise (log; median, 5th-95th percentile bars) and time per snapshot.
+
+    ``rows``: `host.cli.paper.noise_study` output; each method entry needs ``p05_pct``, ``p50_pct``,
+    ``p95_pct``, ``mean_pct`` and ``time_ms``.
+    """
+    plt = _plt()
+    fig, (ax, axt) = plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
+    x = np.array([r["noise_pct_g"] for r in rows], dtype=float)
+    dx = 0.08 * max(1.0, float(np.ptp(x)) / 10)
+    for k, m in enumerate(methods):
+        med = np.maximum([r[m]["p50_pct"] for r in rows], ERROR_FLOOR_PCT)
+        lo = np.maximum([r[m]["p05_pct"] for r in rows], ERROR_FLOOR_PCT)
+        hi = np.maximum([r[m]["p95_pct"] for r in rows], ERROR_FLOOR_PCT)
+        mean = np.maximum([r[m]["mean_pct"] for r in rows], ERROR_FLOOR_PCT)
+        xs = x + (k - (len(methods) - 1) / 2) * dx
+        ax.errorbar(xs, med, yerr=[med - lo, hi - med], fmt="o", capsize=3, color=f"C{k}",
+                    label=f"{m}: median, 5-95 % bar")
+        ax.plot(xs, mean, "x", color=f"C{k}", label=f"{m}: mean")
+        axt.plot(x, [r[m]["time_ms"] for r in rows], "o-", color=f"C{k}", label=f"{m}: median time")
+    ax.axhline(5.0, color="0.5", linestyle="--", linewidth=0.8, label="paper's failure line (5 %)")
+    ax.set_yscale("log")
+    ax.set_xlabel("noise [% g]")
+    ax.set_ylabel("joint error [% of side]")
+    ax.set_title(f"joint error ({side_joints ** 2} joints x {trials} trials per level)")
+    ax.legend(fontsize=8)
+    axt.set_yscale("log")
+    axt.set_xlabel("noise [% g]")
+    axt.set_ylabel("time per snapshot [ms]")
+    axt.set_title("run time per snapshot (one core)")
+    axt.legend(fontsize=8)
+    fig.suptitle(f"Fig. 10: '{shape}', {side_joints}x{side_joints} joints, {trials} trials, seed {seed}; "
+                 f"errors < {ERROR_FLOOR_PCT:g} % drawn at {ERROR_FLOOR_PCT:g} %")
+    _save(fig, path)
+    return fig
+
+
+def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.ndarray, joints: np.ndarray,
+                        lattice, link_length: float, *, title: str):
+    """An offline run: residual and completeness over time, and the last estimated shape (cm)."""
+    plt = _plt()
+    fig = plt.figure(figsize=(13, 4.6), layout="constrained")
+    ax = fig.add_subplot(1, 2, 1)
+    ok = np.isfinite(residual)
+    ax.plot(t_s[ok], np.maximum(residual[ok], 1e-16), ".", ms=2, color="C0", label="eq. (8) residual")
+    ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("residual (dimensionless)")
+    ax2 = ax.twinx()
+    ax2.plot(t_s, 100 * np.asarray(valid).mean(axis=1), "-", lw=0.8, color="C1", label="links valid")
+    ax2.set_ylabel("links valid [%]")
+    ax2.set_ylim(0, 105)
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="lower left")
+    ax.set_title("per snapshot")
+    ax = fig.add_subplot(1, 2, 2, projection="3d")
+    last = np.flatnonzero(ok)
+    if last.size:
+        P = joints[last[-1]] * CM
+        _wire(ax, P, color="C3", lw=0.8, label=f"estimate, snapshot {int(last[-1])}")
+        _equal_box(ax, P)
+        ax.legend(loc="upper left", fontsize=8)
+    _labels_cm(ax)
+    ax.set_title("last estimated shape")
+    fig.suptitle(title)
+    _save(fig, path)
+    return fig

@@ -1,0 +1,251 @@
+"""The recording options the commands that run a sheet share (``capsheet host``, ``demo``,
+``tactile``): ``--record FILE.mcap``, ``--live [PORT]`` and, on CAN, ``--can-log FILE``.
+
+One definition, so the three commands spell and explain them alike; `SessionOutputs` does the
+wiring (raw taps, SYNC taps, session facts, live estimates) so each command adds one block.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["add_record_args", "SessionOutputs", "CAN_LOG_SUFFIXES"]
+
+#: the python-can log formats ``--can-log`` writes (and ``capsheet replay`` reads)
+CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
+
+
+def _mcap_path(text: str) -> str:
+    if not text.lower().endswith(".mcap"):
+        raise argparse.ArgumentTypeError(f"{text!r}: a recording is an MCAP file, name it *.mcap")
+    return text
+
+
+def _can_log_path(text: str) -> str:
+    if Path(text).suffix.lower() not in CAN_LOG_SUFFIXES:
+        raise argparse.ArgumentTypeError(f"{text!r}: a CAN log is {', '.join(CAN_LOG_SUFFIXES)} "
+                                         f"(candump, Vector ASC, Vector BLF)")
+    return text
+
+
+def _port(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid port {text!r} (need an integer 0..65535)") from None
+    if not 0 <= v <= 65535:
+        raise argparse.ArgumentTypeError(f"invalid port {v} (need 0..65535)")
+    return v
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need a number > 0)") from None
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need a number > 0)")
+    return v
+
+
+def lattice_arg(text: str) -> str:
+    """argparse type: ``ROWSxCOLS`` joints, checked by `protocol.lattice.Lattice.parse`."""
+    from protocol.lattice import Lattice
+    try:
+        Lattice.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
+positive = _positive
+
+
+def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
+                    link_length: bool = False) -> argparse._ArgumentGroup:
+    """Add ``--record``, ``--live``, ``--live-rate`` (and ``--can-log``, ``--link-length``)."""
+    g = parser.add_argument_group("recording and live view (docs/recording.md)")
+    g.add_argument("--record", metavar="FILE.mcap", type=_mcap_path,
+                   help="record raw input, snapshots, estimates and the 3D scene to an MCAP file "
+                        "(Foxglove opens it; host.record.read loads it)")
+    g.add_argument("--live", metavar="PORT", type=_port, nargs="?", const=8765, default=None,
+                   help="serve the live 3D view over the Foxglove WebSocket protocol on localhost "
+                        "(default port 8765; open ws://localhost:8765 in Foxglove)")
+    g.add_argument("--live-rate", type=_positive, default=20.0,
+                   help="estimates per second for the live view and the recording (default 20)")
+    if can_log:
+        g.add_argument("--can-log", metavar="FILE", type=_can_log_path,
+                       help="also log every received CAN frame with python-can's logger "
+                            "(.log candump, .asc, .blf; cantools and capsheet replay read it)")
+    if link_length:
+        g.add_argument("--link-length", type=_positive, default=0.01,
+                       help="L, metres, for estimates and the 3D view (default 0.01)")
+    return g
+
+
+def contact_dicts(contacts) -> list[dict]:
+    """`host.analysis.tactile.Contact` s as the plain dicts a recording stores."""
+    return [{"id": int(c.id), "index": [float(v) for v in c.index], "position": [float(v) for v in c.position],
+             "force_n": float(c.force_n), "depth_m": float(c.depth_m), "area_m2": float(c.area_m2),
+             "radius_m": float(np.max(c.axes_m))} for c in contacts]
+
+
+class SessionOutputs:
+    """What ``--record``/``--live``/``--can-log`` ask of one session.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        With ``record``, ``live``, ``live_rate`` and optionally ``can_log``.
+    lattice : protocol.lattice.Lattice
+    link_length : float
+        Metres.
+    mode : str
+        ``"host"``, ``"demo"`` or ``"tactile"`` (stored in the session metadata).
+    colour_by : str
+        `host.live.COLOUR_MODES`.
+    prog : str
+        For messages.
+    """
+
+    def __init__(self, args, lattice, link_length: float, *, mode: str, colour_by: str = "links",
+                 session: dict | None = None, layout: dict | None = None, calibration: dict | None = None,
+                 prog: str = "capsheet") -> None:
+        self.prog = prog
+        self.lattice = lattice
+        self.link_length = float(link_length)
+        self.recorder = None
+        self.can_log = None
+        self._can_lock = threading.Lock()
+        self.can_frames_logged = 0
+        self._period = 1.0 / float(getattr(args, "live_rate", 20.0) or 20.0)
+        self._last_est = -np.inf
+        self._previous = None
+        record, live = getattr(args, "record", None), getattr(args, "live", None)
+        if record or live is not None:
+            from host.record import Recorder
+            try:
+                self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},
+                                         live_port=live, colour_by=colour_by, layout=layout,
+                                         calibration=calibration)
+            except OSError as exc:  # an unwritable --record path, a --live port in use
+                what = "" if "live view" in str(exc) else f"cannot write {record}: "
+                raise SystemExit(f"{prog}: {what}{exc}") from None
+            if self.recorder.live is not None:
+                print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
+                      f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
+        path = getattr(args, "can_log", None)
+        if path:
+            import can
+            try:
+                Path(path).parent.mkdir(parents=True, exist_ok=True)
+                self.can_log = can.Logger(path)
+            except OSError as exc:
+                raise SystemExit(f"{prog}: cannot write {path}: {exc}") from None
+            self.can_log_path = path
+
+    @property
+    def active(self) -> bool:
+        return self.recorder is not None or self.can_log is not None
+
+    # -- wiring --------------------------------------------------------------------------------
+    def attach(self, host) -> None:
+        """Before bring-up: record the raw input of every transport and every SYNC the host opens."""
+        from host.record import tap_transport
+        from host.transport import CanTransport
+
+        if self.recorder is not None and self.recorder.path is not None:
+            self.recorder.tap(host.transports, host.aggregator)
+            self.recorder.tap_sync(host.aggregator)
+        if self.can_log is not None:
+            cans = [t for t in host.transports if isinstance(t, CanTransport)]
+            if not cans:
+                print(f"{self.prog}: --can-log needs a CAN bus (--can); nothing is logged", file=sys.stderr)
+            for t in cans:
+                bus = host.transports.index(t)
+                tap_transport(t, lambda kind, frames, bus=bus: self._log_can(bus, frames))
+                print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
+
+    def _log_can(self, bus: int, frames) -> None:
+        """Frames of bus index ``bus`` into the log; the channel is the bus index (ASC and BLF
+        number channels; candump's .log shows it as ``can<index>``)."""
+        with self._can_lock:
+            for m in frames:
+                m.channel = bus
+                self.can_log.on_message_received(m)
+                self.can_frames_logged += 1
+
+    def describe(self, host) -> None:
+        """After bring-up: the session's facts (layout, calibration, rate) into the recording."""
+        if self.recorder is not None:
+            self.recorder.add_host_facts(host)
+
+    def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False):
+        """Record ``snap``; estimate it (at most ``--live-rate`` per second, or when ``force``) for the
+        recording and the live view. Returns the estimate made, or None."""
+        rec = self.recorder
+        if rec is None:
+            return None
+        if rec.path is not None:
+            rec.snapshot(snap)
+        now = time.monotonic()
+        if not (force or now - self._last_est >= self._period) or not snap.valid.any():
+            return None
+        self._last_est = now
+        from host.analysis.estimator import estimate
+
+        est = estimate(snap.readings, self.lattice.rows, self.lattice.cols, self.link_length, valid=snap.valid,
+                       previous=self._previous)
+        self._previous = est
+        self.publish(est, snap, truth=truth, displacement=displacement)
+        return est
+
+    def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None) -> None:
+        """Record and show an estimate made elsewhere (the demo's own)."""
+        if self.recorder is None:
+            return
+        err = err_mean = None
+        if truth is not None:
+            from host.analysis.estimator import error_percent_of_side
+            err = error_percent_of_side(est.joints, truth, self.link_length)
+            err_mean = float(np.mean(err))
+        self.recorder.estimate(est, snap.counter, snap.timestamp, snap.wall_time, error_joint=err,
+                               error_pct_side=err_mean, displacement=displacement)
+
+    def tactile(self, k: int, frame, truth=None) -> None:
+        """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by
+        displacement, and its contacts (with the true contacts, ``(force, index)``, if known)."""
+        rec = self.recorder
+        if rec is None:
+            return
+        t = float(frame.t_s) if frame.t_s is not None else float(k)
+        rec.estimate(frame.estimate, k, t, None, displacement=frame.displacement)
+        cs = contact_dicts(frame.contacts)
+        if truth:
+            cs += [{"id": "truth", "true": True, "index": [float(v) for v in i], "force_n": float(F),
+                    "position": None} for F, i in truth]
+        rec.contacts(k, t, cs)
+
+    def flush(self) -> None:
+        if self.recorder is not None:
+            self.recorder.flush()
+
+    def close(self, stats: dict | None = None) -> None:
+        if self.recorder is not None:
+            self.recorder.close(stats)
+            if self.recorder.path is not None:
+                c = self.recorder.counts
+                what = [f"{c.get(t, 0)} {name}" for t, name in (("/capsheet/snapshot", "snapshots"),
+                                                                ("/capsheet/estimate", "estimates"),
+                                                                ("/capsheet/contacts", "contact frames"))
+                        if c.get(t, 0) or name == "snapshots"]
+                print(f"{self.prog}: recorded {', '.join(what)} to {self.recorder.path}", file=sys.stderr)
+        if self.can_log is not None:
+            self.can_log.stop()
+            print(f"{self.prog}: logged {self.can_frames_logged} CAN frames to {self.can_log_path}", file=sys.stderr)

@@ -1,0 +1,133 @@
+"""``capsheet replay``: play a recording back through the same decoder, aggregator and estimator.
+
+    capsheet replay run.mcap                      # as fast as possible, estimate every snapshot
+    capsheet replay run.mcap --speed 1 --live     # real time, into the live 3D view (Foxglove)
+    capsheet replay run.log --lattice 14x14       # a candump log (also .asc, .blf)
+    capsheet replay run.mcap --record again.mcap  # re-estimated by today's estimator
+
+The recorded raw input (not the recorded snapshots) is decoded again; for a capsheet MCAP the
+replayed snapshots are compared with the recorded ones (``snapshots_identical``) and the new
+estimates with the recorded ones (``estimate_change_pct_side``: mean joint distance after the rigid
+overlay, % of side), so a newer estimator can be judged on old data.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+
+def _speed(text: str):
+    if text == "max":
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid speed {text!r} (need 'max' or a number > 0, e.g. 1)") from None
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"invalid speed {text!r} (need 'max' or a number > 0)")
+    return v
+
+
+def register(subparsers) -> None:
+    from host.cli.record_args import add_record_args, lattice_arg, positive
+
+    p = subparsers.add_parser("replay", help="replay a recording (MCAP or CAN log) through decoder, aggregator, estimator",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("recording", help="capsheet .mcap, or a CAN log (.log candump, .asc, .blf)")
+    p.add_argument("--speed", type=_speed, default=None, metavar="1|max",
+                   help="'max' (default) as fast as possible, or a factor of real time (1 = as recorded)")
+    p.add_argument("--lattice", type=lattice_arg, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
+    p.add_argument("--link-length", type=positive, default=None, help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--no-estimate", action="store_true", help="only decode and aggregate")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_record_args(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from tqdm import tqdm
+
+    from host.analysis.estimator import estimate, overlay_error
+    from host.cli.record_args import SessionOutputs
+    from host.replay import Replay
+
+    try:
+        rp = Replay(args.recording, speed=args.speed, lattice=args.lattice, link_length=args.link_length)
+    except (ValueError, OSError) as exc:
+        print(f"capsheet replay: {exc}", file=sys.stderr)
+        return 2 if isinstance(exc, ValueError) and "give the lattice" in str(exc) else 1
+    lat, L = rp.lattice, rp.link_length
+    rec = rp.recording
+    recorded = {int(c): k for k, c in enumerate(rec.counter)} if rec is not None else {}
+    rec_est = ({int(c): k for k, c in enumerate(rec.estimates["counter"])} if rec is not None else {})
+    att = rec.attachments if rec is not None else {}
+    out = SessionOutputs(args, lat, L, mode="replay", prog="capsheet replay",
+                         session={"replay_of": str(args.recording),
+                                  **{k: v for k, v in (rec.session.items() if rec is not None else ())
+                                     if k in ("rate_hz", "sync", "deadline_s", "transports")}},
+                         layout=att.get("layout.json"), calibration=att.get("calibration.json"))
+    n = identical = compared = est_n = 0
+    changes: list[float] = []
+    previous = None
+    t0 = time.monotonic()
+    bar = tqdm(total=rp.n_chunks, unit="chunk", desc="replay", disable=args.quiet, file=sys.stderr,
+               dynamic_ncols=True)
+    last = [0]
+
+    def progress(done: int) -> None:
+        if done - last[0] >= 64:
+            bar.update(done - last[0])
+            last[0] = done
+    try:
+        rerecord = out.recorder if out.recorder is not None and out.recorder.path is not None else None
+        for snap in rp.snapshots(progress=progress, recorder=rerecord):
+            n += 1
+            k = recorded.get(snap.counter)
+            if k is not None:
+                compared += 1
+                same = (np.array_equal(snap.valid, rec.valid[k]) and np.array_equal(snap.status, rec.status[k])
+                        and np.array_equal(np.nan_to_num(snap.readings.astype(np.float32), nan=1e30),
+                                           np.nan_to_num(rec.readings[k], nan=1e30)))
+                identical += same
+            if out.recorder is not None and out.recorder.path is not None:
+                out.recorder.snapshot(snap)
+            if args.no_estimate or not snap.valid.any():
+                continue
+            est = estimate(snap.readings, lat.rows, lat.cols, L, valid=snap.valid, previous=previous)
+            previous = est
+            est_n += 1
+            j = rec_est.get(snap.counter)
+            if j is not None:
+                d = overlay_error(est.joints, rec.estimates["joints"][j].astype(float))
+                changes.append(100.0 * float(np.mean(d)) / (L * (max(lat.rows, lat.cols) - 1)))
+            if out.recorder is not None:
+                out.publish(est, snap)
+    except KeyboardInterrupt:
+        print("", file=sys.stderr)
+    finally:
+        bar.update(rp.n_chunks - last[0] if rp.transports and all(t.exhausted for t in rp.transports) else 0)
+        bar.close()
+        out.close(rp.stats)
+    elapsed = time.monotonic() - t0
+    result = {"recording": str(args.recording), "lattice": f"{lat.rows}x{lat.cols}", "link_length_m": L,
+              "speed": "max" if args.speed is None else args.speed, "snapshots": n,
+              "recorded_snapshots": len(rec) if rec is not None else None,
+              "snapshots_compared": compared, "snapshots_identical": identical,
+              "estimates": est_n, "estimates_compared": len(changes),
+              "estimate_change_pct_side_mean": round(float(np.mean(changes)), 5) if changes else None,
+              "estimate_change_pct_side_max": round(float(np.max(changes)), 5) if changes else None,
+              "recorded_duration_s": round(rp.duration_s, 3), "elapsed_s": round(elapsed, 3),
+              "aggregator": rp.aggregator.stats.summary(),
+              "decode_errors": {t.name: dict(t.stats.errors) for t in rp.transports}}
+    print(f"capsheet replay: {n} snapshots from {rp.n_chunks} raw chunks ({rp.duration_s:.2f} s recorded) in "
+          f"{elapsed:.2f} s; {identical} of {compared} identical to the recorded ones; {est_n} estimated",
+          file=sys.stderr)
+    if args.json:
+        print(json.dumps(result, indent=1))
+    return 0

@@ -1,0 +1,336 @@
+"""Replay as a transport: recorded wire input fed through the same decoder, aggregator and estimator.
+
+A recording's raw input (``/capsheet/raw/bus{N}`` of a capsheet MCAP, `host.record`) or a CAN log
+that python-can reads (candump ``.log``, Vector ``.asc``/``.blf``; ``capsheet host --can-log``)
+is played back one bus per `ReplayTransport`: serial bytes go through the serial transport's
+`protocol.framing.StreamDecoder`, CAN frames through `host.transport.CanTransport`'s own decode
+step, so events come out exactly as the live transports produce them.
+
+`Replay` merges the buses in recorded time order and drives an `host.aggregator.Aggregator` on a
+simulated clock (the recorded host clock): the counters open where the host opened them (the
+recorded ``/capsheet/sync``; a CAN log has none, so a counter opens at its first frame), deadlines
+pass in recorded time, and the node map and calibration are the recording's (``calibration.json``;
+a CAN log gets node ``k`` -> link ``k - 1``, nominal sensitivity and a `CAN_LOG_DEADLINE_S` deadline). Counters whose deadline
+passed are emitted when the host emitted them (the recorded ``timestamp + latency_s``: a loaded
+host's threads poll late, and frames that came in meanwhile made it into the snapshot). The snapshots are then those
+the host made, whatever the speed: ``speed=None`` as fast as possible, ``speed=1.0`` real time.
+
+    from host.replay import Replay
+    for snap in Replay("run.mcap").snapshots():
+        ...
+"""
+
+from __future__ import annotations
+
+import base64
+import heapq
+import time
+from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Iterator
+
+import numpy as np
+
+from protocol.constants import nominal_sensitivity
+from protocol.framing import StreamDecoder
+from protocol.lattice import Lattice
+
+from .aggregator import Aggregator, LatticeSnapshot
+from .transport import CanTransport, Transport, TransportCapabilities
+
+__all__ = ["ReplayTransport", "Replay", "CAN_LOG_SUFFIXES", "load_can_log"]
+
+CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
+#: a CAN log carries no deadlines: a counter waits this long (log time) for its links
+CAN_LOG_DEADLINE_S = 0.25
+
+
+class ReplayTransport(Transport):
+    """One recorded bus as a transport (read-only: what is sent is counted in ``sent`` and dropped).
+
+    Parameters
+    ----------
+    chunks : list of (t, kind, payload)
+        In recorded order: ``t`` host monotonic seconds; ``kind`` ``"serial"`` (payload: bytes) or
+        ``"can"`` (payload: list of frame dicts as `host.record` stores them, or can.Message).
+    name : str
+        The recorded port or bus name.
+    speed : float or None
+        None: every `recv` returns the next chunk at once. A number: chunks are due at
+        ``(t - t_first) / speed`` after the first `recv` (1.0 real time); `recv` waits for them.
+    """
+
+    def __init__(self, chunks: list, name: str = "replay", *, speed: float | None = None) -> None:
+        super().__init__(name)
+        if speed is not None and not (np.isfinite(speed) and speed > 0):
+            raise ValueError(f"Invalid speed: {speed!r} (need a number > 0, or None for as fast as possible)")
+        kinds = {k for _, k, _ in chunks}
+        if len(kinds) > 1:
+            raise ValueError(f"Replay bus {name!r} mixes {sorted(kinds)} input")
+        self.kind = kinds.pop() if kinds else "serial"
+        if self.kind not in ("serial", "can"):
+            raise ValueError(f"Invalid raw kind {self.kind!r} in bus {name!r}")
+        self._chunks = chunks
+        self._pos = 0
+        self.speed = speed
+        self._t_first = chunks[0][0] if chunks else 0.0
+        self._wall0: float | None = None
+        self.decoder = StreamDecoder(batch_samples=True)
+        self.sent: list = []
+        self.capabilities = TransportCapabilities(kind=self.kind, mtu=1018 if self.kind == "serial" else 64,
+                                                  fd=self.kind == "can", name=name)
+
+    # CanTransport's decode step, unchanged: frames -> events (SampleBatch runs), errors counted
+    _decode = CanTransport._decode
+
+    @property
+    def exhausted(self) -> bool:
+        return self._pos >= len(self._chunks)
+
+    @property
+    def next_time(self) -> float | None:
+        """Recorded time of the next chunk (None when exhausted)."""
+        return None if self.exhausted else float(self._chunks[self._pos][0])
+
+    def __len__(self) -> int:
+        return len(self._chunks)
+
+    def _recv_internal(self, timeout_s: float | None) -> list:
+        if self.exhausted:
+            if timeout_s:
+                time.sleep(min(timeout_s, 0.05))
+            return []
+        t, kind, payload = self._chunks[self._pos]
+        if self.speed is not None:
+            now = time.monotonic()
+            if self._wall0 is None:
+                self._wall0 = now
+            due = self._wall0 + (t - self._t_first) / self.speed
+            if due > now:
+                wait = due - now if timeout_s is None else min(due - now, timeout_s)
+                time.sleep(wait)
+                if time.monotonic() < due:
+                    return []
+        self._pos += 1
+        if kind == "serial":
+            self.stats.bytes_in += len(payload)
+            return self.decoder.feed(payload)
+        return self._decode([_frame(f) for f in payload])
+
+    def _send_internal(self, msg) -> None:
+        self.sent.append(msg)
+
+
+def _frame(f):
+    """A recorded CAN frame (a `host.record` dict, or a can.Message from a log) with can.Message's
+    attributes."""
+    if not isinstance(f, dict):
+        return f
+    return SimpleNamespace(arbitration_id=f["id"], data=base64.b64decode(f["data"]), is_extended_id=f["ext"],
+                           is_fd=f["fd"], is_error_frame=f["err"], is_remote_frame=f["rtr"],
+                           bitrate_switch=f.get("brs", False), timestamp=f.get("ts", 0.0))
+
+
+def load_can_log(path) -> dict[str, list]:
+    """A python-can log (.log, .asc, .blf) as ``{channel: [(t, "can", [can.Message]), ...]}``.
+
+    Received frames only (``is_rx``); one chunk per frame, ``t`` the log's timestamp.
+    """
+    import can
+
+    path = Path(path)
+    if path.suffix.lower() not in CAN_LOG_SUFFIXES:
+        raise ValueError(f"{str(path)!r}: not a CAN log python-can reads here (need {', '.join(CAN_LOG_SUFFIXES)})")
+    buses: dict[str, list] = {}
+    try:
+        for m in can.LogReader(str(path)):
+            if not getattr(m, "is_rx", True):
+                continue
+            buses.setdefault(str(m.channel), []).append((float(m.timestamp), "can", [m]))
+    except (ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"{str(path)!r}: cannot read as a CAN log: {exc}") from exc
+    return buses
+
+
+class Replay:
+    """A recording (capsheet MCAP or CAN log) replayed into snapshots.
+
+    Parameters
+    ----------
+    path : str or Path
+        ``*.mcap`` written by capsheet, or a CAN log (``.log``, ``.asc``, ``.blf``).
+    speed : float or None
+        None as fast as possible; 1.0 real time (the recorded pace); 2.0 twice as fast.
+    lattice : str or Lattice, optional
+        Needed for a CAN log (it has no session facts); ignored for MCAP.
+    link_length : float, optional
+        Metres; default the recording's (CAN log: 0.01).
+    deadline_s : float, optional
+        Default the recording's (CAN log: ``max(2 / rate_hz, 0.05)`` with ``rate_hz`` 100).
+
+    Attributes
+    ----------
+    recording : host.record.Recording or None
+    transports : list of ReplayTransport
+    aggregator : Aggregator
+    """
+
+    def __init__(self, path, *, speed: float | None = None, lattice: str | Lattice | None = None,
+                 link_length: float | None = None, deadline_s: float | None = None) -> None:
+        from . import record
+
+        self.path = Path(path)
+        self.speed = speed
+        self.recording = None
+        self._syncs = np.zeros((0, 2))
+        calibration = None
+        session: dict = {}
+        if self.path.suffix.lower() == ".mcap":
+            self.recording = rec = record.read(self.path)
+            session = rec.session
+            self.lattice = rec.lattice
+            names = {i: t.get("name", f"bus{i}") for i, t in enumerate(session.get("transports", []))}
+            buses = {names.get(b, f"bus{b}"): rec.raw[b] for b in sorted(rec.raw)}
+            self._syncs = rec.sync
+            calibration = rec.attachments.get("calibration.json")
+            if not buses:
+                raise ValueError(f"{str(self.path)!r} holds no raw input (/capsheet/raw/bus*): nothing to replay")
+        else:
+            if lattice is None:
+                raise ValueError(f"{str(self.path)!r} is a CAN log: give the lattice (e.g. --lattice 14x14)")
+            self.lattice = Lattice.parse(lattice) if isinstance(lattice, str) else lattice
+            buses = load_can_log(self.path)
+            if not buses:
+                raise ValueError(f"{str(self.path)!r} holds no received CAN frame")
+        self.link_length = float(link_length if link_length is not None else session.get("link_length_m", 0.01))
+        rate = float(session.get("rate_hz", 100.0))
+        if deadline_s is not None:
+            dl = deadline_s
+        elif self.recording is not None:
+            dl = session.get("deadline_s", max(2.0 / rate, 0.05))
+        else:
+            dl = CAN_LOG_DEADLINE_S
+        self.transports = [ReplayTransport(chunks, name) for name, chunks in buses.items()]
+        self._now = min((t.next_time for t in self.transports if t.next_time is not None), default=0.0)
+        n = self.lattice.n_links
+        self.aggregator = Aggregator(n, n_buses=len(self.transports), deadline_s=float(dl),
+                                     queue_size=1 << 30, clock=lambda: self._now)
+        if calibration is not None:
+            self._apply_calibration(calibration)
+        # wall clock of the recording: LatticeSnapshot.wall_time = timestamp + offset
+        self._wall_offset = None
+        if self.recording is not None and len(self.recording):
+            self._wall_offset = float(self.recording.wall_time[0] - self.recording.timestamp[0])
+
+    def _apply_calibration(self, cal: dict) -> None:
+        """The node map, offsets and sensitivities exactly as `host.session.Host` set them."""
+        n = self.lattice.n_links
+        lut = np.full(1 << 16, -1, dtype=np.int64)
+        unassigned = np.ones(n, dtype=bool)
+        scale_nominal = nominal_sensitivity(int(cal.get("range_code", 0)))
+        off = np.zeros((n, 3))
+        sens = np.full((n, 3), scale_nominal)
+        for c in cal.get("links", []):
+            k = int(c["link"])
+            lut[int(c["node"])] = k
+            unassigned[k] = False
+            off[k] = c["offset"]
+            sens[k] = c["sensitivity"]
+        if cal.get("links"):
+            self.aggregator.set_node_map(lut)
+            self.aggregator.set_unassigned(unassigned)
+        self.aggregator.set_calibration(off, sens)
+
+    @property
+    def duration_s(self) -> float:
+        """Recorded time from the first to the last raw chunk, seconds."""
+        ts = [c[0] for t in self.transports for c in t._chunks]
+        return float(max(ts) - min(ts)) if ts else 0.0
+
+    @property
+    def n_chunks(self) -> int:
+        return sum(len(t) for t in self.transports)
+
+    def snapshots(self, progress=None, recorder=None) -> Iterator[LatticeSnapshot]:
+        """Every snapshot the recorded input makes, in counter order.
+
+        ``progress``: called with the number of raw chunks consumed so far (e.g. a tqdm update).
+        ``recorder``: a `host.record.Recorder` that gets the raw input and SYNCs again, with their
+        recorded times (so a re-recording replays too).
+        """
+        agg = self.aggregator
+        out: list[LatticeSnapshot] = []
+        agg.on_snapshot = out.append
+        syncs = [(float(t), 0, int(c)) for c, t in self._syncs.tolist()]
+        heap: list = []
+        for bus, tr in enumerate(self.transports):
+            if tr.next_time is not None:
+                heapq.heappush(heap, (tr.next_time, 1, bus))
+        si = 0
+        ei = 0
+        emits = None
+        if self.recording is not None and len(self.recording):
+            emits = np.sort(self.recording.timestamp + self.recording.latency_s).tolist()
+        first_sync = True
+        wall0 = time.monotonic()
+        t_first = min([h[0] for h in heap] + [s[0] for s in syncs[:1]], default=0.0)
+        done = 0
+        while heap or si < len(syncs):
+            # the next thing in recorded time: a SYNC the host opened, or a raw chunk
+            if si < len(syncs) and (not heap or syncs[si][0] <= heap[0][0]):
+                t, kind, who = syncs[si]
+                si += 1
+            else:
+                t, kind, who = heapq.heappop(heap)
+            if self.speed is not None:
+                due = wall0 + (t - t_first) / self.speed
+                wait = due - time.monotonic()
+                if wait > 0:
+                    time.sleep(wait)
+            if emits is None:
+                agg.poll(max(self._now, t))  # no recorded emissions (a CAN log): deadlines as they fall
+            else:
+                # the host emitted a counter at its deadline *when its threads got to it*: poll when
+                # it did, so the frames that made it in live make it in here
+                while ei < len(emits) and emits[ei] < t:  # an emission at t came with the ingest at t
+                    agg.poll(max(self._now, emits[ei]))
+                    ei += 1
+            self._now = max(self._now, t)
+            if kind == 0:
+                if recorder is not None:
+                    recorder.sync(who, t)
+                agg.open_counter(who, t, restart=first_sync)
+                first_sync = False
+            else:
+                tr = self.transports[who]
+                if recorder is not None:
+                    _, rkind, payload = tr._chunks[tr._pos]
+                    if rkind == "can":
+                        payload = [_frame(f) for f in payload]
+                    recorder.raw(who, rkind, payload, tr.name, t=t)
+                events = tr.recv(0)
+                agg.ingest(events, who)
+                if tr.next_time is not None:
+                    heapq.heappush(heap, (tr.next_time, 1, who))
+                done += 1
+                if progress is not None:
+                    progress(done)
+            if out:
+                yield from self._fix(out)
+                out.clear()
+        self._now += agg.deadline_s
+        agg.poll(self._now)
+        agg.flush()
+        yield from self._fix(out)
+        out.clear()
+
+    def _fix(self, snaps):
+        for s in snaps:
+            yield s if self._wall_offset is None else replace(s, wall_time=s.timestamp + self._wall_offset)
+
+    @property
+    def stats(self) -> dict:
+        return {"aggregator": self.aggregator.stats.summary(),
+                "buses": [{"name": t.name, "kind": t.kind, "chunks": len(t), **t.stats.as_dict()}
+                          for t in self.transports]}

@@ -1,0 +1,180 @@
+"""The live 3D view (host/live.py): a headless Foxglove WebSocket client (``websockets``, subprotocol
+``foxglove.sdk.v1``) connects to the server foxglove-sdk runs on localhost, subscribes, and decodes
+the estimates and the scene it is sent; colours by error, displacement and link state."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import base64
+import json
+import struct
+
+import numpy as np
+import pytest
+
+websockets = pytest.importorskip("websockets")
+
+from host.live import ERROR_FULL_SCALE_PCT, SceneChannels, colours  # noqa: E402
+from protocol.lattice import Lattice  # noqa: E402
+
+SUBPROTOCOL = "foxglove.sdk.v1"
+
+
+class Est:
+    def __init__(self, joints, valid):
+        self.joints, self.valid, self.method, self.residual, self.iterations = joints, valid, "global", 0.0, 1
+
+
+class Snap:
+    def __init__(self, counter, valid):
+        self.counter, self.timestamp, self.wall_time, self.valid = counter, float(counter), 1.7e9 + counter, valid
+
+
+async def _client(url: str, topics: list[str], publish, want: int, max_rounds: int = 200):
+    """Connect, subscribe to ``topics``, call ``publish(k)`` until ``want`` messages per topic came.
+    Returns (advertised channels by topic, {topic: [payload bytes]})."""
+    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
+        assert ws.subprotocol == SUBPROTOCOL
+        info = json.loads(await asyncio.wait_for(ws.recv(), 10))
+        assert info["op"] == "serverInfo"
+        channels: dict[str, dict] = {}
+        for k in range(max_rounds):  # a channel made on first use is advertised when first used
+            if all(t in channels for t in topics):
+                break
+            try:
+                msg = json.loads(await asyncio.wait_for(ws.recv(), 0.5))
+            except asyncio.TimeoutError:
+                await asyncio.to_thread(publish, 1000 + k)
+                continue
+            if msg["op"] == "advertise":
+                channels.update({c["topic"]: c for c in msg["channels"]})
+        assert all(t in channels for t in topics), sorted(channels)
+        sub_of = {k + 1: t for k, t in enumerate(topics)}
+        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": sid, "channelId": channels[t]["id"]} for sid, t in sub_of.items()]}))
+        got: dict[str, list] = {t: [] for t in topics}
+        for k in range(max_rounds):  # bounded: a round publishes once and waits for what comes
+            await asyncio.to_thread(publish, k)
+            try:
+                while True:
+                    m = await asyncio.wait_for(ws.recv(), 0.5)
+                    if isinstance(m, bytes) and m[0] == 0x01:
+                        sid, _ts = struct.unpack_from("<IQ", m, 1)
+                        got[sub_of[sid]].append(m[13:])
+            except asyncio.TimeoutError:
+                pass
+            if all(len(v) >= want for v in got.values()):
+                break
+        return channels, got
+
+
+def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints():
+    from host.record import Recorder
+
+    lat = Lattice(4, 5)
+    rng = np.random.Generator(np.random.MT19937(7))
+    sent: dict[int, np.ndarray] = {}
+    rec = Recorder(None, lat, 0.01, live_port=0, colour_by="links")
+    try:
+        valid = np.ones(lat.n_links, bool)
+        valid[3] = False
+
+        def publish(k):
+            J = rng.normal(size=(4, 5, 3))
+            sent[k] = J
+            rec.estimate(Est(J, valid), k, float(k), 1.7e9 + k)
+
+        channels, got = asyncio.run(_client(rec.live.url, ["/capsheet/estimate", "/sheet/scene", "/sheet/joints"],
+                                            publish, want=2))
+    finally:
+        rec.close()
+    assert channels["/sheet/scene"]["schemaName"] == "foxglove.SceneUpdate"
+    assert channels["/sheet/scene"]["encoding"] == "protobuf"
+    assert channels["/sheet/joints"]["schemaName"] == "foxglove.PointCloud"
+    assert channels["/capsheet/estimate"]["encoding"] == "json"
+    for payload in got["/capsheet/estimate"]:
+        doc = json.loads(payload)
+        J = np.frombuffer(base64.b64decode(doc["joints"]["data"]), dtype="<f4").reshape(doc["joints"]["shape"])
+        np.testing.assert_array_equal(J, sent[doc["counter"]].astype(np.float32))
+    # the point cloud carries the joints as packed float32 x, y, z: find them in the protobuf bytes
+    pc = got["/sheet/joints"][0]
+    assert any(sent[k].astype("<f4").tobytes() in pc for k in sent)
+    assert all(len(p) > 20 * 2 * 12 for p in got["/sheet/scene"])  # 2 points per link, 3 floats each
+
+
+def test_link_colours_by_state_error_and_displacement():
+    lat = Lattice(3, 3)
+    import foxglove
+    sc = SceneChannels(foxglove.Context(), lat, colour_by="links")
+    valid = np.ones(lat.n_links, bool)
+    valid[[2, 5]] = False
+    c = sc.link_colours(valid)
+    assert c.shape == (2 * lat.n_links, 4)
+    red = np.array([0.9, 0.1, 0.1, 1.0])
+    missing = np.flatnonzero(np.all(np.isclose(c.reshape(lat.n_links, 2, 4), red), axis=(1, 2)))
+    assert missing.tolist() == [2, 5]  # missing links shown, in red
+    sc_e = SceneChannels(foxglove.Context(), lat, colour_by="error")
+    err = np.zeros((3, 3))
+    err[2, 2] = 2 * ERROR_FULL_SCALE_PCT  # one joint far off: its links' far end is full red
+    ce = sc_e.link_colours(np.ones(lat.n_links, bool), error=err)
+    ends = np.asarray(lat.endpoints)
+    far = np.flatnonzero(ends[:, 1] == 8)
+    np.testing.assert_allclose(ce[2 * far + 1, :3], [[0.9, 0.15, 0.1]] * len(far))  # full scale: red
+    np.testing.assert_allclose(ce[2 * far, :3], [[0.1, 0.2, 0.9]] * len(far))  # no error: blue
+    np.testing.assert_allclose(colours(np.array([np.nan]), 1.0)[0], [0.5, 0.5, 0.5, 1.0])
+    sc_d = SceneChannels(foxglove.Context(), lat, colour_by="displacement")
+    disp = np.zeros((3, 3))
+    disp[1, 1] = -0.004  # a press: displacement magnitude is what is coloured
+    cd = sc_d.link_colours(np.ones(lat.n_links, bool), displacement=disp)
+    touching = np.flatnonzero((ends == 4).any(axis=1))
+    assert not np.allclose(cd[2 * touching].sum(), cd[2 * np.setdiff1d(np.arange(lat.n_links), touching)].sum())
+    with pytest.raises(ValueError, match="Invalid colour_by: 'rainbow'"):
+        SceneChannels(foxglove.Context(), lat, colour_by="rainbow")
+
+
+def test_contacts_are_sent_as_markers_with_their_force():
+    from host.record import Recorder
+
+    lat = Lattice(3, 3)
+    rec = Recorder(None, lat, 0.01, live_port=0)
+    try:
+        def publish(k):
+            rec.contacts(k, float(k), [{"id": 4, "index": [1.0, 1.0], "position": [0.01, 0.01, -0.002],
+                                        "force_n": 2.5 + k, "radius_m": 0.006}])
+
+        _, got = asyncio.run(_client(rec.live.url, ["/sheet/scene", "/capsheet/contacts"], publish, want=1))
+    finally:
+        rec.close()
+    doc = json.loads(got["/capsheet/contacts"][0])
+    k = doc["counter"]
+    assert doc["contacts"][0]["force_n"] == 2.5 + k
+    scene = b"".join(got["/sheet/scene"])
+    assert b"contacts" in scene and f"#4 {2.5 + k:.2f} N".encode() in scene
+
+
+def test_the_live_flag_wires_a_server_into_a_session(capsys):
+    from host.cli.record_args import SessionOutputs
+
+    args = argparse.Namespace(record=None, live=0, live_rate=1000.0)
+    out = SessionOutputs(args, Lattice(3, 3), 0.01, mode="host")
+    try:
+        assert out.recorder.live is not None and out.recorder.path is None
+        assert f"live 3D view on {out.recorder.live.url}" in capsys.readouterr().err
+    finally:
+        out.close()
+
+
+def test_a_port_in_use_is_one_clear_error():
+    import socket
+    import foxglove
+    from host.live import LiveServer
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    s.listen(1)
+    try:
+        with pytest.raises(OSError, match=f"Cannot start the live view on 127.0.0.1:{s.getsockname()[1]}"):
+            LiveServer(foxglove.Context(), port=s.getsockname()[1])
+    finally:
+        s.close()

@@ -1,0 +1,253 @@
+"""Replay as a transport (host/replay.py), ``capsheet replay`` / ``capsheet estimate``, and CAN logs
+written through python-can's loggers, read by the ``cantools decode`` command line and replayed."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from host.record import read
+from host.replay import Replay, ReplayTransport
+from protocol.dbc import DBC_ID_MASK, DBC_PATH
+
+_can_channel = iter(range(10_000))
+
+
+@pytest.fixture(scope="module")
+def pty_recording(tmp_path_factory):
+    """A real session: the virtual 5x5 sheet on a pty, ``capsheet host --record``."""
+    from host.cli import main
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+
+    from virtual_sheet.sensor import SensorModel
+
+    d = tmp_path_factory.mktemp("pty")
+    # chips with their own offsets and sensitivities: the replay must use the recorded calibration
+    sheet = VirtualSheet("gaussian", "5x5", seed=5,
+                         sensor=SensorModel(noise_pct_g=0.5, bias_counts=6.0, scale_error=0.02, chip_seed=3))
+    layout = sheet.write_layout(d / "sheet.csv")
+    out = d / "run.mcap"
+    with PtyDevice(sheet) as dev:
+        assert main(["host", "--port", dev.path, "--lattice", "5x5", "--layout", str(layout), "--rate", "100",
+                     "--record", str(out), "--duration", "0.6", "-q"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def can_recording(tmp_path_factory):
+    """A real session on two python-can virtual buses, recorded to MCAP and to three CAN logs."""
+    from host.cli import main
+    from virtual_sheet.devices import CanDevice
+    from virtual_sheet.sheet import VirtualSheet
+
+    d = tmp_path_factory.mktemp("can")
+    sheet = VirtualSheet("gaussian", "4x4", seed=6, transport="can")
+    layout = sheet.write_layout(d / "sheet.csv")
+    n = next(_can_channel)
+    chans = [f"rp_{n}_a", f"rp_{n}_b"]
+    with CanDevice(sheet, n_buses=2, channels=chans) as dev:  # noqa: F841
+        # a long deadline: counters complete even on a loaded machine (the test compares complete ones)
+        argv = ["host", "--lattice", "4x4", "--layout", str(layout), "--rate", "50", "--duration", "0.8", "-q",
+                "--deadline-ms", "300",
+                "--record", str(d / "run.mcap"), "--can-log", str(d / "run.log")]
+        for c in chans:
+            argv += ["--can", f"virtual:{c}"]
+        assert main(argv) == 0
+    # the same frames through python-can's ASC and BLF writers
+    import can
+    frames = list(can.LogReader(str(d / "run.log")))
+    for suffix in (".asc", ".blf"):
+        with can.Logger(str(d / f"run{suffix}")) as w:
+            for m in frames:
+                w.on_message_received(can.Message(timestamp=m.timestamp, arbitration_id=m.arbitration_id,
+                                                  is_extended_id=m.is_extended_id, data=m.data, is_fd=m.is_fd,
+                                                  channel=int(m.channel.removeprefix("can"))))
+    return d
+
+
+def _by_counter(snaps):
+    return {int(s.counter): s for s in snaps}
+
+
+def test_replay_of_a_serial_recording_makes_the_recorded_snapshots(pty_recording):
+    rec = read(pty_recording)
+    assert len(rec) >= 40  # complete or not (a loaded machine misses deadlines): replayed alike
+    cal = rec.attachments["calibration.json"]["links"]
+    assert np.ptp([c["offset"] for c in cal]) > 1 and np.ptp([c["sensitivity"] for c in cal]) > 1
+    rp = Replay(pty_recording)
+    snaps = list(rp.snapshots())
+    assert [s.counter for s in snaps] == rec.counter.tolist()
+    for k, s in enumerate(snaps):
+        np.testing.assert_array_equal(s.readings.astype(np.float32), rec.readings[k])
+        np.testing.assert_array_equal(s.valid, rec.valid[k])
+        np.testing.assert_array_equal(s.status, rec.status[k])
+        assert s.timestamp == rec.timestamp[k]  # the counter opened where the host opened it
+    live = rec.attachments["stats.json"]["aggregator"]
+    assert rp.stats["aggregator"]["late"] >= live["late"], (rp.stats, live)  # late frames are late again
+    assert rp.stats["aggregator"]["duplicates"] == live["duplicates"] and not rp.transports[0].stats.errors
+
+
+def test_replay_at_real_speed_makes_the_same_snapshots(pty_recording):
+    fast = [s.counter for s in Replay(pty_recording).snapshots()]
+    real = [s.counter for s in Replay(pty_recording, speed=4.0).snapshots()]
+    assert real == fast
+
+
+def test_damaged_raw_input_is_counted_not_raised():
+    # a serial chunk with a corrupt frame in the middle: the decoder's DecodeError, counted
+    from protocol.framing import encode
+    from protocol.messages import Sample
+    good = encode(Sample(1, 7, 1, 2, 3, 0))
+    bad = bytearray(good)
+    bad[3] ^= 0xFF
+    t = ReplayTransport([(0.0, "serial", good + bytes(bad) + good)], "damaged")
+    events = t.recv(0)
+    assert sum(1 for e in events if type(e).__name__ == "SampleBatch" or type(e).__name__ == "Sample") >= 1
+    assert t.stats.error_count == 1
+
+
+def test_replay_transport_refuses_a_bad_speed_and_mixed_input():
+    with pytest.raises(ValueError, match="Invalid speed: 0"):
+        ReplayTransport([], speed=0)
+    with pytest.raises(ValueError, match="mixes"):
+        ReplayTransport([(0.0, "serial", b""), (0.1, "can", [])], "x")
+
+
+def test_a_can_session_is_logged_for_cantools_every_frame_decoded(can_recording):
+    log = can_recording / "run.log"
+    lines = [ln for ln in log.read_text().splitlines() if ln.strip()]
+    assert len(lines) > 100
+    proc = subprocess.run([sys.executable, "-m", "cantools", "decode", "--single-line",
+                           "-m", hex(DBC_ID_MASK), str(DBC_PATH)],
+                          input=log.read_text(), capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    out = [ln for ln in proc.stdout.splitlines() if ln.strip()]
+    assert len(out) == len(lines)
+    assert not [ln for ln in out if "Unknown frame" in ln or "::" not in ln]
+    assert sum(" SAMPLE(" in ln for ln in out) > 50
+
+
+@pytest.mark.parametrize("suffix", [".log", ".asc", ".blf"])
+def test_replay_of_a_can_log_makes_the_snapshots_the_host_made(can_recording, suffix):
+    rec = read(can_recording / "run.mcap")
+    assert len(rec) >= 10 and len(rec.raw) == 2
+    # the log's frames of a counter lie within the live deadline (300 ms): wait longer than that
+    snaps = _by_counter(Replay(can_recording / f"run{suffix}", lattice="4x4", deadline_s=0.5).snapshots())
+    matched = 0
+    for k, c in enumerate(rec.counter.tolist()):
+        if not rec.complete[k]:
+            continue
+        s = snaps[c]  # a log has the frames, not the deadlines: what was complete live is complete here
+        assert s.complete
+        np.testing.assert_array_equal(s.valid, rec.valid[k])
+        # the log's replay uses nominal calibration; the virtual chips' calibration is within 2 mm/s²
+        np.testing.assert_allclose(s.readings.astype(np.float32), rec.readings[k], rtol=0, atol=2e-3)
+        matched += 1
+    assert matched >= 1
+
+
+def test_replay_of_the_can_mcap_is_identical(can_recording):
+    rec = read(can_recording / "run.mcap")
+    snaps = list(Replay(can_recording / "run.mcap").snapshots())
+    assert [s.counter for s in snaps] == rec.counter.tolist()
+    for k, s in enumerate(snaps):
+        np.testing.assert_array_equal(s.readings.astype(np.float32), rec.readings[k])
+
+
+def test_capsheet_replay_command_json_is_pure_and_compares(pty_recording, capsys):
+    from host.cli import main
+    assert main(["replay", str(pty_recording), "--json"]) == 0
+    cap = capsys.readouterr()
+    doc = json.loads(cap.out)
+    rec = read(pty_recording)
+    assert doc["snapshots"] == doc["snapshots_compared"] == doc["snapshots_identical"] == len(rec)
+    assert doc["estimates"] == int(rec.valid.any(axis=1).sum())
+    assert doc["estimates_compared"] == len(rec.estimates["counter"]) >= 1
+    assert doc["estimate_change_pct_side_max"] < 0.5  # today's estimator on the same data
+    assert "replay" in cap.err  # the progress bar goes to stderr
+
+
+@pytest.mark.parametrize("argv, code, message", [
+    (["replay", "nope.mcap"], 1, "No such file"),
+    (["replay", "x.log"], 2, "give the lattice"),
+    (["replay", "run.mcap", "--speed", "0"], 2, "invalid speed '0'"),
+    (["replay", "run.mcap", "--speed", "fast"], 2, "invalid speed 'fast'"),
+    (["replay", "bad.mcap"], 1, "is not an MCAP file"),
+    (["estimate", "bad.mcap", "--out", "x.npz"], 1, "is not an MCAP file"),
+    (["replay", "x.log", "--lattice", "3"], 2, "Invalid lattice size '3'"),
+    (["estimate", "run.mcap", "--out", "x.npz", "--link-length", "-2"], 2, "need a number > 0"),
+    (["estimate", "run.mcap", "--out", "x.csv"], 2, "--out is a .npz (numpy) or .mcap"),
+    (["estimate", "run.mcap", "--out", "x.npz", "--jobs", "0"], 2, "need an integer >= 1"),
+])
+def test_bad_replay_and_estimate_arguments_get_one_line(argv, code, message, tmp_path, capsys, monkeypatch):
+    from host.cli import main
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "x.log").write_text("(1.0) can0 00000001#00 R\n")
+    (tmp_path / "bad.mcap").write_bytes(b"\x00garbage" * 10)
+    try:
+        rc = main(argv)
+    except SystemExit as exc:
+        rc = exc.code
+    assert rc == code
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_capsheet_estimate_writes_npz_and_mcap_with_the_estimators_joints(pty_recording, tmp_path, capsys):
+    from host.analysis.estimator import estimate
+    from host.cli import main
+
+    rec = read(pty_recording, raw=False)
+    npz = tmp_path / "joints.npz"
+    assert main(["estimate", str(pty_recording), "--out", str(npz), "--jobs", "2", "--batch", "16",
+                 "--json", "-q"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["snapshots"] == len(rec) and doc["estimated"] == int(rec.valid.any(axis=1).sum())
+    z = np.load(npz)
+    assert z["joints"].shape == (len(rec), 5, 5, 3)
+    assert z["counter"].tolist() == rec.counter.tolist()
+    # each batch of 16 warm-starts from its own first snapshot, exactly as estimate() is called here
+    prev = None
+    for k in range(len(rec)):
+        if k % 16 == 0:
+            prev = None
+        if not rec.valid[k].any():  # nothing to estimate: NaN, and the warm start goes on
+            assert np.isnan(z["joints"][k]).all()
+            continue
+        prev = estimate(rec.readings[k].astype(float), 5, 5, 0.01, valid=rec.valid[k], previous=prev)
+        np.testing.assert_allclose(z["joints"][k], prev.joints, rtol=0, atol=1e-12)
+    out = tmp_path / "shapes.mcap"
+    assert main(["estimate", str(pty_recording), "--out", str(out), "--png", "-q", "--batch", "16"]) == 0
+    again = read(out)
+    ok = np.isfinite(z["residual"])
+    assert len(again) == len(rec) and len(again.estimates["counter"]) == int(ok.sum())
+    np.testing.assert_allclose(again.estimates["joints"], z["joints"][ok].astype(np.float32), atol=1e-6)
+    assert Path(out.with_suffix(".png")).stat().st_size > 10_000
+
+
+def test_capsheet_estimate_of_a_can_log_replays_it_first(can_recording, tmp_path, capsys):
+    from host.cli import main
+    npz = tmp_path / "j.npz"
+    assert main(["estimate", str(can_recording / "run.log"), "--lattice", "4x4", "--out", str(npz),
+                 "--jobs", "1", "-q", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    replayed = list(Replay(can_recording / "run.log", lattice="4x4").snapshots())
+    assert doc["snapshots"] == len(replayed) >= 10 and np.load(npz)["joints"].shape[1:] == (4, 4, 3)
+
+
+def test_a_replay_recorded_again_replays_to_the_same_snapshots(can_recording, tmp_path, capsys):
+    from host.cli import main
+    again = tmp_path / "again.mcap"
+    assert main(["replay", str(can_recording / "run.mcap"), "--record", str(again), "-q"]) == 0
+    first, second = read(can_recording / "run.mcap"), read(again)
+    assert second.attachments["calibration.json"] == first.attachments["calibration.json"]
+    assert [len(v) for v in second.raw.values()] == [len(v) for v in first.raw.values()]
+    assert main(["replay", str(again), "--json", "-q"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["snapshots"] == doc["snapshots_identical"] == len(first)
