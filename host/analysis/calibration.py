@@ -384,13 +384,13 @@ def _per_chip_jacobian(v: np.ndarray) -> np.ndarray:
 def _check_separable(u: np.ndarray) -> None:
     """Poses too alike: bias and scale of an axis, or a misalignment, cannot be told apart."""
     names = "xyz"
-    for a in range(3):
-        span = float(u[:, a].max() - u[:, a].min())
-        if span < 1.0:
-            raise ValueError(
-                f"Poses too alike to separate bias from scale on the board's {names[a]} axis: gravity's "
-                f"{names[a]} component spans only {span:.2f} g over the poses (need >= 1 g; turn the board "
-                f"so its {names[a]} axis points up in some poses and down in others)")
+    spans = u.max(axis=0) - u.min(axis=0)
+    a = int(np.argmin(spans))  # name the weakest axis
+    if spans[a] < 1.0:
+        raise ValueError(
+            f"Poses too alike to separate bias from scale on the board's {names[a]} axis: gravity's "
+            f"{names[a]} component spans only {spans[a]:.2f} g over the poses (need >= 1 g; turn the board "
+            f"so its {names[a]} axis points up in some poses and down in others)")
     sv = np.linalg.svd(_per_chip_jacobian(u * G0), compute_uv=False) / G0
     if sv[-1] < 1e-2 * sv[0]:
         raise ValueError(f"Poses too alike: the per-chip problem is near-singular (singular values "
