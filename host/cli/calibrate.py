@@ -83,15 +83,20 @@ def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | 
     with a one-line message (unreadable, malformed, or another lattice's file)."""
     if not path:
         return None
+    def usage(text: str):
+        print(f"{prog}: {text}", file=sys.stderr)
+        return SystemExit(2)
     try:
         cal = Calibration.load(path)
     except (OSError, ValueError) as exc:
-        raise SystemExit(f"{prog}: --calibration: {exc}") from None
-    rows, cols = ((lattice.rows, lattice.cols) if hasattr(lattice, "rows")
-                  else tuple(int(x) for x in str(lattice).lower().split("x")))
+        raise usage(f"--calibration: {exc}") from None
+    try:
+        rows, cols = ((lattice.rows, lattice.cols) if hasattr(lattice, "rows")
+                      else tuple(int(x) for x in str(lattice).lower().split("x")))
+    except ValueError:
+        raise usage(f"--lattice {lattice!r}: expected ROWSxCOLS") from None
     if (cal.rows, cal.cols) != (rows, cols):
-        raise SystemExit(f"{prog}: --calibration {path} is for a {cal.rows}x{cal.cols} lattice, "
-                         f"not {rows}x{cols}")
+        raise usage(f"--calibration {path} is for a {cal.rows}x{cal.cols} lattice, not {rows}x{cols}")
     return cal
 
 
