@@ -402,7 +402,7 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
                     reference_offset_counts: np.ndarray | None = None,
                     reference_sensitivity: np.ndarray | None = None,
                     outlier_factor: float = 4.0, outlier_floor_mps2: float = 0.005,
-                    max_nfev: int = 50) -> Calibration:
+                    gravity_mps2: float = G0, max_nfev: int = 50) -> Calibration:
     """Fit every chip's bias, scale and misalignment from static poses of the sheet on a flat board.
 
     Parameters
@@ -419,6 +419,10 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
     outlier_factor, outlier_floor_mps2 : float
         A link is an outlier when its residual RMS exceeds both ``outlier_factor`` times the median
         chip's and ``outlier_floor_mps2`` (docs/calibration.md).
+    gravity_mps2 : float
+        Local gravity, m/s² (default standard gravity). It sets the common scale: across the Earth
+        g varies by ±0.27 %, a common scale error that leaves shapes unchanged but counts against
+        |reading| = g checks.
     max_nfev : int
         Iteration cap of the solver.
 
@@ -440,6 +444,8 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
         raise ValueError(f"Invalid outlier_factor: {outlier_factor!r} (need > 1)")
     if not (np.isfinite(outlier_floor_mps2) and outlier_floor_mps2 >= 0):
         raise ValueError(f"Invalid outlier_floor_mps2: {outlier_floor_mps2!r} (need >= 0)")
+    if not (np.isfinite(gravity_mps2) and 9.7 < gravity_mps2 < 9.9):
+        raise ValueError(f"Invalid gravity_mps2: {gravity_mps2!r} (need Earth's, 9.7 .. 9.9 m/s²)")
     P, n = r.shape[0], lat.n_links
     R0 = link_frames_on_board(lat.rows, lat.cols)
     u0 = pose_directions(r, lat.rows, lat.cols)
@@ -470,7 +476,7 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
 
     def model(b, s, m, u):
         M = _rotvec_to_matrix(m)
-        v = np.einsum("kji,pj->pki", R0, u * G0)  # R0ᵀ g
+        v = np.einsum("kji,pj->pki", R0, u * gravity_mps2)  # R0ᵀ g
         return s * np.einsum("kji,pkj->pki", M, v) + b  # s ⊙ Mᵀ v + b
 
     def residual(x):

@@ -67,6 +67,8 @@ def register(subparsers) -> None:
     p.add_argument("--still-threshold", type=float, default=0.098, metavar="M/S2",
                    help="a chip is still when its readings' standard deviation over the window is below "
                         "this (default 0.098 m/s^2 = 1 %% g)")
+    p.add_argument("--gravity", type=float, default=9.80665, metavar="M/S2",
+                   help="local gravity (default standard gravity 9.80665); sets the common scale")
     p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)")
     p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout (messages on stderr)")
@@ -340,7 +342,7 @@ def run(args) -> int:
             return 1
         try:
             cal = fit_board_poses(np.array(cap.poses), rows, cols, reference_offset_counts=ref_off,
-                                  reference_sensitivity=ref_sens)
+                                  reference_sensitivity=ref_sens, gravity_mps2=args.gravity)
         except ValueError as exc:
             _say(args, f"fit refused: {exc}")
             return 1
