@@ -492,7 +492,7 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
     x0 = np.zeros(n_par)
     x0[:n_chip].reshape(n, 9)[:, 3:6] = 1.0
     sol = least_squares(residual, x0, jac_sparsity=sparsity.tocsr(), method="trf", x_scale=1.0,
-                        tr_solver="lsmr", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12, gtol=1e-12)
+                        tr_solver="lsmr", max_nfev=max_nfev, xtol=1e-10, ftol=1e-8, gtol=1e-10)
     b, s, m, u = unpack(sol.x)
     if np.any(s <= 0.5) or np.any(s >= 2.0):
         raise ValueError("The fit did not converge to plausible scales (0.5 .. 2); are the readings "

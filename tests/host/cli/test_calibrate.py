@@ -95,3 +95,35 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path):
     assert res.returncode == 2 and "--out" in res.stderr
     res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--lattice", "3by3")
     assert res.returncode == 2 and "Traceback" not in res.stderr
+
+
+def capsheet(*argv, timeout=120):
+    return subprocess.run([sys.executable, "-m", "host.cli", *argv], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_calibration_flag_of_host_demo_tactile_refuses_bad_files(tmp_path):
+    Calibration.identity(3, 3).save(tmp_path / "3x3.json")
+    (tmp_path / "junk.json").write_text("{not json")
+    for cmd in (["host", "--port", "/dev/null", "--lattice", "4x4"], ["demo", "--lattice", "4x4"],
+                ["tactile", "--lattice", "4x4"]):
+        res = capsheet(*cmd, "--calibration", str(tmp_path / "3x3.json"))
+        assert res.returncode == 2, (cmd, res.stderr)
+        assert "is for a 3x3 lattice, not 4x4" in res.stderr and "Traceback" not in res.stderr
+    res = capsheet("host", "--port", "/dev/null", "--lattice", "4x4", "--calibration", str(tmp_path / "junk.json"))
+    assert res.returncode == 2 and "not JSON" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_tactile_applies_a_calibration_file(tmp_path):
+    # the identity file gives exactly the output of no file; a file with a bias changes it
+    ident = Calibration.identity(6, 6).save(tmp_path / "id.json")
+    base = ["tactile", "--lattice", "6x6", "--duration", "1", "--snapshot-rate", "4",
+            "--out", str(tmp_path / "t.png")]
+    plain = capsheet(*base)
+    with_id = capsheet(*base, "--calibration", str(ident))
+    assert plain.returncode == 0 and with_id.returncode == 0, with_id.stderr
+    assert plain.stdout == with_id.stdout
+    c = Calibration.identity(6, 6)
+    biased = Calibration(6, 6, bias=np.full((c.n_links, 3), 0.5), scale=c.scale, misalignment=c.misalignment)
+    other = capsheet(*base, "--calibration", str(biased.save(tmp_path / "b.json")))
+    assert other.returncode == 0 and other.stdout != plain.stdout
