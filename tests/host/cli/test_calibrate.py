@@ -127,3 +127,19 @@ def test_tactile_applies_a_calibration_file(tmp_path):
     biased = Calibration(6, 6, bias=np.full((c.n_links, 3), 0.5), scale=c.scale, misalignment=c.misalignment)
     other = capsheet(*base, "--calibration", str(biased.save(tmp_path / "b.json")))
     assert other.returncode == 0 and other.stdout != plain.stdout
+
+
+def test_capsheet_virtual_chip_errors_and_board_scene():
+    from host.cli import build_parser
+    from host.cli.virtual import make_device
+
+    args = build_parser().parse_args(["virtual", "--shape", "board", "--chip-errors", "realistic", "--lattice",
+                                      "3x3", "--transport", "memory", "--seed", "4", "--noise", "0.3"])
+    sheet, _dev = make_device(args)
+    assert sheet.sensor_model == chip_error_model("realistic", noise_pct_g=0.3, chip_seed=4)
+    assert isinstance(sheet.scene, BoardPoseScene)
+    assert all(chip.cal == [(0, 1024.0, 1)] * 3 for chip in sheet.chips)  # uncalibrated chips
+    default, _dev = make_device(build_parser().parse_args(["virtual", "--transport", "memory", "--lattice", "3x3"]))
+    assert default.sensor_model.bias_mps2 == 0 and default.sensor_model.factory_calibrated
+    res = capsheet("virtual", "--chip-errors", "typical", "--duration", "0")
+    assert res.returncode == 2 and "invalid choice: 'typical'" in res.stderr
