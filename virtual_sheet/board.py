@@ -81,7 +81,7 @@ class BoardPoseScene:
     cols: int
     link_length: float = 0.01
     directions: tuple = DEFAULT_DIRECTIONS
-    hold_s: float = 3.0
+    hold_s: float = 6.0
     move_s: float = 1.0
     jitter_rad: float = 0.03
     seed: int = 0

@@ -41,7 +41,7 @@ def test_held_poses_read_gravity_in_the_board_frame():
 
 
 def test_turning_changes_the_readings_and_jitter_is_seeded():
-    s = BoardPoseScene(3, 3, jitter_rad=0.03, seed=5)
+    s = BoardPoseScene(3, 3, hold_s=3.0, move_s=1.0, jitter_rad=0.03, seed=5)
     a, b = ideal_readings(s.joints(3.2)), ideal_readings(s.joints(3.8))
     assert np.abs(a - b).max() > 1.0  # m/s²: a turn is plainly not still
     same = BoardPoseScene(3, 3, jitter_rad=0.03, seed=5)

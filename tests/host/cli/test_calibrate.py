@@ -143,3 +143,32 @@ def test_capsheet_virtual_chip_errors_and_board_scene():
     assert default.sensor_model.bias_mps2 == 0 and default.sensor_model.factory_calibrated
     res = capsheet("virtual", "--chip-errors", "typical", "--duration", "0")
     assert res.returncode == 2 and "invalid choice: 'typical'" in res.stderr
+
+
+def test_pose_capture_counts_still_snapshots_and_rejects_repeated_poses():
+    from host.cli.calibrate import PoseCapture
+    from virtual_sheet.geometry import ideal_readings
+
+    scene = BoardPoseScene(3, 3, 0.01, hold_s=1.0, move_s=1.0, jitter_rad=0.0)
+    g = np.random.Generator(np.random.MT19937(3))
+
+    def frame(t):
+        return ideal_readings(scene.joints(t)) + g.normal(0, 0.01, (12, 3))
+
+    cap = PoseCapture(3, 3, samples=10, window=5)
+    states = [cap.update(frame(0.5)) for _ in range(14)]
+    # 4 snapshots fill the stillness window, then 10 averaged: captured on the 14th
+    assert states == ["moving"] * 4 + ["holding"] * 9 + ["captured"]
+    assert len(cap.poses) == 1 and np.allclose(cap.directions[0], [0, 0, 1], atol=0.01)
+    assert cap.update(frame(0.5)) == "duplicate"  # the same pose again: not captured twice
+    assert cap.next_pose()[0] == "top down"
+    # a missing link is skipped, motion restarts the average
+    r = frame(2.5)
+    r[3] = np.nan
+    assert cap.update(r) == "incomplete"
+    assert [cap.update(frame(1.2 + 0.1 * k)) for k in range(5)] == ["moving"] * 5  # turning
+    states = [cap.update(frame(2.5)) for _ in range(14)]
+    assert states[-1] == "captured" and states.count("holding") == 9
+    assert np.allclose(cap.directions[1], [0, 0, -1], atol=0.01)
+    with pytest.raises(ValueError, match="samples"):
+        PoseCapture(3, 3, samples=0)
