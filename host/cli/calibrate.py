@@ -4,7 +4,8 @@ clamped flat on a rigid board (docs/calibration.md).
 Clamp the sheet flat on a board (i-links along the board's x, j-links along its y, top face up),
 then turn the board through the poses it asks for, holding each still until it says "captured".
 Static intervals are found automatically (a variance threshold); a pose too close to one already
-captured is ignored. When enough poses are in, it fits every chip's bias, scale and mounting
+captured is ignored; each chip is averaged over the still snapshots it is in (lost frames do not
+stop a capture). When enough poses are in, it fits every chip's bias, scale and mounting
 misalignment jointly, prints each chip's residual and the outliers, and writes the calibration
 (JSON). With --write-chips it also writes each chip's offset and sensitivity into the chip with
 CAL_WRITE (stored in non-volatile memory where the chip has CAL_STORAGE), reads them back with
@@ -180,7 +181,9 @@ class PoseCapture:
     `update` takes one snapshot's readings (m/s², (n_links, 3); NaN or ``valid`` False for a
     missing link) and returns what happened: ``"moving"``, ``"holding"`` (static, averaging),
     ``"duplicate"`` (static, but within `MIN_POSE_SEPARATION_DEG` of a captured pose),
-    ``"captured"`` or ``"incomplete"`` (a link missing: not used).
+    ``"captured"`` (every link has ``samples`` still samples averaged) or ``"incomplete"`` (no
+    link in the snapshot). A link missing from some snapshots (a lost frame) is averaged over the
+    snapshots it is in, and judged still on the windows it is in.
     """
 
     def __init__(self, rows: int, cols: int, *, samples: int = 200, window: int = 25,
@@ -193,34 +196,44 @@ class PoseCapture:
         self.samples = int(samples)
         self.poses: list[np.ndarray] = []  #: averaged readings of each captured pose, (n_links, 3)
         self.directions: list[np.ndarray] = []  #: each captured pose's gravity direction, board frame
-        self._acc: list[np.ndarray] = []
+        self._sum = np.zeros((n, 3))
+        self._count = np.zeros(n, dtype=int)
 
     @property
     def progress(self) -> float:
-        return len(self._acc) / self.samples
+        """Fraction of the samples the least-sampled link has."""
+        return float(self._count.min()) / self.samples
+
+    def _restart(self) -> None:
+        self._sum[:] = 0.0
+        self._count[:] = 0
 
     def _direction(self, readings: np.ndarray) -> np.ndarray:
-        m = board_frame_readings(readings, self.rows, self.cols).mean(axis=0)
+        m = np.nanmean(board_frame_readings(readings, self.rows, self.cols), axis=0)
         return m / np.linalg.norm(m)
 
     def update(self, readings: np.ndarray, valid: np.ndarray | None = None) -> str:
         r = np.asarray(readings, dtype=float)
-        ok = np.isfinite(r).all(axis=1) if valid is None else np.asarray(valid, bool) & np.isfinite(r).all(axis=1)
-        if not ok.all():  # skipped; stillness and the average carry on over it
+        ok = np.isfinite(r).all(axis=1)
+        if valid is not None:
+            ok &= np.asarray(valid, dtype=bool)
+        if not ok.any():
             return "incomplete"
+        r = np.where(ok[:, None], r, np.nan)
         if not self.detector.update(r):
-            self._acc = []
+            self._restart()
             return "moving"
-        if not self._acc:
+        if not self._count.any():
             u = self._direction(r)
             cos_min = np.cos(np.radians(MIN_POSE_SEPARATION_DEG))
             if any(float(u @ d) > cos_min for d in self.directions):
                 return "duplicate"
-        self._acc.append(r)
-        if len(self._acc) < self.samples:
+        self._sum[ok] += r[ok]
+        self._count[ok] += 1
+        if self._count.min() < self.samples:
             return "holding"
-        mean = np.mean(self._acc, axis=0)
-        self._acc = []
+        mean = self._sum / self._count[:, None]
+        self._restart()
         self.poses.append(mean)
         self.directions.append(self._direction(mean))
         return "captured"
@@ -278,7 +291,7 @@ def _capture(host, args, cap: PoseCapture) -> bool:
             shown = {"moving": "moving ... set the board down and hold still",
                      "holding": f"HOLD STILL [{_bar(cap.progress)}] {100 * cap.progress:3.0f} %",
                      "duplicate": "still, but this pose is already captured: turn the board",
-                     "incomplete": "waiting for every chip"}[what]
+                     "incomplete": "waiting for the chips"}[what]
             print(f"\rpose {len(cap.poses) + 1}/{args.poses} next: {name} ({instruction}) | {shown}    ",
                   end="", file=sys.stderr, flush=True)
             last_line, state = now, what

@@ -162,13 +162,23 @@ def test_pose_capture_counts_still_snapshots_and_rejects_repeated_poses():
     assert len(cap.poses) == 1 and np.allclose(cap.directions[0], [0, 0, 1], atol=0.01)
     assert cap.update(frame(0.5)) == "duplicate"  # the same pose again: not captured twice
     assert cap.next_pose()[0] == "top down"
-    # a missing link is skipped, motion restarts the average
-    r = frame(2.5)
-    r[3] = np.nan
-    assert cap.update(r) == "incomplete"
+    # a snapshot without any link is skipped; motion restarts the average
+    assert cap.update(np.full((12, 3), np.nan)) == "incomplete"
     assert [cap.update(frame(1.2 + 0.1 * k)) for k in range(5)] == ["moving"] * 5  # turning
     states = [cap.update(frame(2.5)) for _ in range(14)]
     assert states[-1] == "captured" and states.count("holding") == 9
     assert np.allclose(cap.directions[1], [0, 0, -1], atol=0.01)
+    # a link missing from some snapshots is averaged over those it is in: it needs more snapshots
+    cap2 = PoseCapture(3, 3, samples=10, window=5)
+    states = []
+    for k in range(30):
+        valid = np.ones(12, dtype=bool)
+        valid[7] = k % 2 == 0  # link 7 loses every other frame
+        states.append(cap2.update(frame(0.5), valid))
+        if states[-1] == "captured":
+            break
+    # 4 to fill the window; then link 7 gets 10 samples in 19 snapshots (the 5th snapshot is odd)
+    assert states[:4] == ["moving"] * 4 and states[-1] == "captured" and len(states) == 4 + 19
+    assert np.isfinite(cap2.poses[0]).all()
     with pytest.raises(ValueError, match="samples"):
         PoseCapture(3, 3, samples=0)
