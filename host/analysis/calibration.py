@@ -126,6 +126,15 @@ def _rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
+def _lower(t: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` non-orthogonality ``(yx, zx, zy)`` -> ``(..., 3, 3)`` unit lower-triangular T."""
+    t = np.asarray(t, dtype=float)
+    T = np.zeros(t.shape[:-1] + (3, 3))
+    T[..., 0, 0] = T[..., 1, 1] = T[..., 2, 2] = 1.0
+    T[..., 1, 0], T[..., 2, 0], T[..., 2, 1] = t[..., 0], t[..., 1], t[..., 2]
+    return T
+
+
 def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
     R = np.asarray(R, dtype=float)
@@ -182,6 +191,10 @@ class Calibration:
         re-expresses them for another one (e.g. after CAL_WRITE).
     pose_directions : ndarray, shape (n_poses, 3)
         Fitted gravity direction of each pose, board frame (unit vectors).
+    non_orthogonality : ndarray, shape (n_links, 3)
+        Radians ``(yx, zx, zy)``: the chip's y axis leaning towards x, z towards x, z towards y
+        (``T = [[1, 0, 0], [yx, 1, 0], [zx, zy, 1]]``, the chip reads ``s ⊙ T R(m)ᵀ f + b``);
+        zeros unless fitted (``fit_board_poses(..., non_orthogonality=True)``).
     """
 
     rows: int
@@ -195,6 +208,7 @@ class Calibration:
     reference_offset_counts: np.ndarray | None = None
     reference_sensitivity: np.ndarray | None = None
     pose_directions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    non_orthogonality: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         lat = Lattice(int(self.rows), int(self.cols))
@@ -224,7 +238,12 @@ class Calibration:
         object.__setattr__(self, "outliers", out)
         pd = np.asarray(self.pose_directions, dtype=float).reshape(-1, 3)
         object.__setattr__(self, "pose_directions", pd)
+        no = np.zeros((n, 3)) if self.non_orthogonality is None else self.non_orthogonality
+        object.__setattr__(self, "non_orthogonality", _check_array("non_orthogonality", no, (n, 3)))
+        # the correction R(m) T⁻¹, one matrix per chip
+        A = _rotvec_to_matrix(self.misalignment) @ np.linalg.inv(_lower(self.non_orthogonality))
         object.__setattr__(self, "_M", _rotvec_to_matrix(self.misalignment))
+        object.__setattr__(self, "_A", A)
 
     @property
     def n_links(self) -> int:
@@ -242,7 +261,7 @@ class Calibration:
         return cls(rows, cols, np.zeros((n, 3)), np.ones((n, 3)), np.zeros((n, 3)))
 
     def apply(self, readings: np.ndarray) -> np.ndarray:
-        """Corrected readings: ``R(m) ((r − b) / s)`` per chip.
+        """Corrected readings: ``R(m) T⁻¹ ((r − b) / s)`` per chip (``T = I`` without non-orthogonality).
 
         Parameters
         ----------
@@ -257,7 +276,7 @@ class Calibration:
         r = np.asarray(readings, dtype=float)
         if r.ndim < 2 or r.shape[-2:] != (self.n_links, 3):
             raise ValueError(f"Expected `readings` to have shape (..., {self.n_links}, 3), got {r.shape}.")
-        return np.einsum("kij,...kj->...ki", self._M, (r - self.bias) / self.scale)
+        return np.einsum("kij,...kj->...ki", self._A, (r - self.bias) / self.scale)
 
     def chip_calibration(self) -> tuple[np.ndarray, np.ndarray]:
         """The absolute chip calibration this fit found, ±2 g counts (what CAL_WRITE carries).
@@ -288,7 +307,8 @@ class Calibration:
         return Calibration(self.rows, self.cols, bias=(true_off - off) * G0 / sens, scale=true_sens / sens,
                            misalignment=self.misalignment, residual_rms=self.residual_rms,
                            chip_rms=self.chip_rms, outliers=self.outliers, reference_offset_counts=off,
-                           reference_sensitivity=sens, pose_directions=self.pose_directions)
+                           reference_sensitivity=sens, pose_directions=self.pose_directions,
+                           non_orthogonality=self.non_orthogonality)
 
     # -- files ------------------------------------------------------------------------------
     def to_dict(self) -> dict:
@@ -299,6 +319,7 @@ class Calibration:
                 "pose_directions": self.pose_directions.tolist(),
                 "chips": [{"link": k, "bias": self.bias[k].tolist(), "scale": self.scale[k].tolist(),
                            "misalignment": self.misalignment[k].tolist(),
+                           "non_orthogonality": self.non_orthogonality[k].tolist(),
                            "rms_mps2": float(self.chip_rms[k]),
                            "reference_offset_counts": self.reference_offset_counts[k].tolist(),
                            "reference_sensitivity": self.reference_sensitivity[k].tolist()}
@@ -323,7 +344,9 @@ class Calibration:
             if [int(c["link"]) for c in chips] != list(range(n)):
                 raise ValueError(f"chips must list links 0..{n - 1} once each")
 
-            def col(key):
+            def col(key, default=None):
+                if default is not None and not all(key in c for c in chips):
+                    return default
                 return np.array([c[key] for c in chips], dtype=float)
 
             return cls(rows, cols, bias=col("bias"), scale=col("scale"), misalignment=col("misalignment"),
@@ -331,7 +354,8 @@ class Calibration:
                        outliers=tuple(doc.get("outliers", ())),
                        reference_offset_counts=col("reference_offset_counts"),
                        reference_sensitivity=col("reference_sensitivity"),
-                       pose_directions=np.array(doc.get("pose_directions", []), dtype=float).reshape(-1, 3))
+                       pose_directions=np.array(doc.get("pose_directions", []), dtype=float).reshape(-1, 3),
+                       non_orthogonality=col("non_orthogonality", np.zeros((n, 3))))
         except (KeyError, TypeError) as exc:
             raise ValueError(f"{source}: missing or malformed field: {exc}") from exc
         except ValueError as exc:
@@ -367,10 +391,11 @@ def _check_poses(pose_readings, rows: int, cols: int) -> tuple[np.ndarray, Latti
     return r, lat
 
 
-def _per_chip_jacobian(v: np.ndarray) -> np.ndarray:
-    """d r / d (b, s, m) at b = 0, s = 1, m = 0 for one chip seeing ``v (K, 3)``: ``(3K, 9)``."""
+def _per_chip_jacobian(v: np.ndarray, non_orthogonality: bool = False) -> np.ndarray:
+    """d r / d (b, s, m[, t]) at b = 0, s = 1, m = 0, t = 0 for one chip seeing ``v (K, 3)``:
+    ``(3K, 9)`` (``(3K, 12)`` with the non-orthogonality terms)."""
     K = v.shape[0]
-    J = np.zeros((K, 3, 9))
+    J = np.zeros((K, 3, 12 if non_orthogonality else 9))
     J[:, :, 0:3] = np.eye(3)
     J[:, np.arange(3), 3 + np.arange(3)] = v
     # R(m)ᵀ v ≈ v − m × v = v + [v]× m
@@ -378,10 +403,12 @@ def _per_chip_jacobian(v: np.ndarray) -> np.ndarray:
     vx[:, 0, 1], vx[:, 0, 2], vx[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
     vx[:, 1, 0], vx[:, 2, 0], vx[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
     J[:, :, 6:9] = vx
-    return J.reshape(3 * K, 9)
+    if non_orthogonality:
+        J[:, 1, 9], J[:, 2, 10], J[:, 2, 11] = v[:, 0], v[:, 0], v[:, 1]
+    return J.reshape(3 * K, J.shape[2])
 
 
-def _check_separable(u: np.ndarray) -> None:
+def _check_separable(u: np.ndarray, non_orthogonality: bool = False) -> None:
     """Poses too alike: bias and scale of an axis, or a misalignment, cannot be told apart."""
     names = "xyz"
     spans = u.max(axis=0) - u.min(axis=0)
@@ -391,7 +418,7 @@ def _check_separable(u: np.ndarray) -> None:
             f"Poses too alike to separate bias from scale on the board's {names[a]} axis: gravity's "
             f"{names[a]} component spans only {spans[a]:.2f} g over the poses (need >= 1 g; turn the board "
             f"so its {names[a]} axis points up in some poses and down in others)")
-    sv = np.linalg.svd(_per_chip_jacobian(u * G0), compute_uv=False) / G0
+    sv = np.linalg.svd(_per_chip_jacobian(u * G0, non_orthogonality), compute_uv=False) / G0
     if sv[-1] < 1e-2 * sv[0]:
         raise ValueError(f"Poses too alike: the per-chip problem is near-singular (singular values "
                          f"{sv[-1]:.2g} vs {sv[0]:.2g}); use poses with gravity along each of "
@@ -402,7 +429,8 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
                     reference_offset_counts: np.ndarray | None = None,
                     reference_sensitivity: np.ndarray | None = None,
                     outlier_factor: float = 4.0, outlier_floor_mps2: float = 0.005,
-                    gravity_mps2: float = G0, max_nfev: int = 50) -> Calibration:
+                    gravity_mps2: float = G0, non_orthogonality: bool = False,
+                    max_nfev: int = 50) -> Calibration:
     """Fit every chip's bias, scale and misalignment from static poses of the sheet on a flat board.
 
     Parameters
@@ -423,6 +451,9 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
         Local gravity, m/s² (default standard gravity). It sets the common scale: across the Earth
         g varies by ±0.27 %, a common scale error that leaves shapes unchanged but counts against
         |reading| = g checks.
+    non_orthogonality : bool
+        Also fit 3 non-orthogonality terms per chip (`Calibration.non_orthogonality`; 12 unknowns
+        per chip instead of 9).
     max_nfev : int
         Iteration cap of the solver.
 
@@ -449,7 +480,7 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
     P, n = r.shape[0], lat.n_links
     R0 = link_frames_on_board(lat.rows, lat.cols)
     u0 = pose_directions(r, lat.rows, lat.cols)
-    _check_separable(u0)
+    _check_separable(u0, bool(non_orthogonality))
     dots = np.abs(u0 @ u0[0])
     # gauge: pose 0 fixed; pose j1 (most orthogonal to pose 0) keeps its component about u0[0]
     j1 = int(np.argmin(dots))
@@ -462,42 +493,46 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
     # t2 = u × t1 moves u along t1 = u0[0] × u0[j1], which is what a rotation about u0[0] does:
     # holding (j1, 1) removes the last gauge freedom
     free = [(p, c) for p in range(P) for c in range(2) if p != 0 and not (p == j1 and c == 1)]
-    n_chip = 9 * n
+    npc = 12 if non_orthogonality else 9  # parameters per chip
+    n_chip = npc * n
     n_par = n_chip + len(free)
 
     def unpack(x):
-        c = x[:n_chip].reshape(n, 9)
+        c = x[:n_chip].reshape(n, npc)
         a = np.zeros((P, 2))
         for i, (p, ci) in enumerate(free):
             a[p, ci] = x[n_chip + i]
         w = np.einsum("pc,pci->pi", a, bases)
         u = np.einsum("pij,pj->pi", _rotvec_to_matrix(w), u0)
-        return c[:, 0:3], c[:, 3:6], c[:, 6:9], u
+        t = c[:, 9:12] if non_orthogonality else np.zeros((n, 3))
+        return c[:, 0:3], c[:, 3:6], c[:, 6:9], t, u
 
-    def model(b, s, m, u):
+    def model(b, s, m, t, u):
         M = _rotvec_to_matrix(m)
         v = np.einsum("kji,pj->pki", R0, u * gravity_mps2)  # R0ᵀ g
-        return s * np.einsum("kji,pkj->pki", M, v) + b  # s ⊙ Mᵀ v + b
+        w = np.einsum("kji,pkj->pki", M, v)  # Mᵀ v
+        if non_orthogonality:
+            w = np.einsum("kij,pkj->pki", _lower(t), w)  # T Mᵀ v
+        return s * w + b
 
     def residual(x):
-        b, s, m, u = unpack(x)
-        return (model(b, s, m, u) - r).ravel()
+        return (model(*unpack(x)) - r).ravel()
 
     sparsity = lil_matrix((P * n * 3, n_par), dtype=np.int8)
     rows_idx = np.arange(P * n * 3).reshape(P, n, 3)
     for k in range(n):
-        sparsity[rows_idx[:, k, :].ravel()[:, None], np.arange(9 * k, 9 * k + 9)[None, :]] = 1
+        sparsity[rows_idx[:, k, :].ravel()[:, None], np.arange(npc * k, npc * k + npc)[None, :]] = 1
     for i, (p, _c) in enumerate(free):
         sparsity[rows_idx[p].ravel(), n_chip + i] = 1
     x0 = np.zeros(n_par)
-    x0[:n_chip].reshape(n, 9)[:, 3:6] = 1.0
+    x0[:n_chip].reshape(n, npc)[:, 3:6] = 1.0
     sol = least_squares(residual, x0, jac_sparsity=sparsity.tocsr(), method="trf", x_scale=1.0,
                         tr_solver="lsmr", max_nfev=max_nfev, xtol=1e-10, ftol=1e-8, gtol=1e-10)
-    b, s, m, u = unpack(sol.x)
+    b, s, m, t, u = unpack(sol.x)
     if np.any(s <= 0.5) or np.any(s >= 2.0):
         raise ValueError("The fit did not converge to plausible scales (0.5 .. 2); are the readings "
                          "in m/s² and the sheet flat on the board in every pose?")
-    res = (model(b, s, m, u) - r)
+    res = (model(b, s, m, t, u) - r)
     # fix the common rotation: the chips' mean board-frame misalignment becomes the identity
     B = np.einsum("kij,kjl,kml->kim", R0, _rotvec_to_matrix(m), R0)  # R0 M R0ᵀ
     Q = _project_so3(B.mean(axis=0))
@@ -509,7 +544,8 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
     return Calibration(lat.rows, lat.cols, bias=b, scale=s, misalignment=m,
                        residual_rms=float(np.sqrt(np.mean(res ** 2))), chip_rms=chip_rms, outliers=outliers,
                        reference_offset_counts=reference_offset_counts,
-                       reference_sensitivity=reference_sensitivity, pose_directions=u)
+                       reference_sensitivity=reference_sensitivity, pose_directions=u,
+                       non_orthogonality=t if non_orthogonality else None)
 
 
 # --------------------------------------------------------------------------------------------

@@ -68,6 +68,8 @@ def register(subparsers) -> None:
     p.add_argument("--still-threshold", type=float, default=0.098, metavar="M/S2",
                    help="a chip is still when its readings' standard deviation over the window is below "
                         "this (default 0.098 m/s^2 = 1 %% g)")
+    p.add_argument("--non-orthogonality", action="store_true",
+                   help="also fit 3 axis non-orthogonality terms per chip (kept in the file, like the misalignment)")
     p.add_argument("--gravity", type=float, default=9.80665, metavar="M/S2",
                    help="local gravity (default standard gravity 9.80665); sets the common scale")
     p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)")
@@ -355,7 +357,8 @@ def run(args) -> int:
             return 1
         try:
             cal = fit_board_poses(np.array(cap.poses), rows, cols, reference_offset_counts=ref_off,
-                                  reference_sensitivity=ref_sens, gravity_mps2=args.gravity)
+                                  reference_sensitivity=ref_sens, gravity_mps2=args.gravity,
+                                  non_orthogonality=args.non_orthogonality)
         except ValueError as exc:
             _say(args, f"fit refused: {exc}")
             return 1
