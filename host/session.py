@@ -177,7 +177,8 @@ class ChipRecord:
 @dataclass(frozen=True, slots=True)
 class HostEvent:
     """Something the host reports: ``kind`` in {"silent", "recovered", "nack", "no_ack", "unknown_chip",
-    "announce", "reconnect"}; ``link``/``node``/``uid`` where known; ``detail`` text."""
+    "announce", "reconnect", and `host.health`'s "health_magnitude", "health_magnitude_ok",
+    "health_bias_shift"}; ``link``/``node``/``uid`` where known; ``detail`` text."""
 
     t: float
     kind: str
@@ -268,6 +269,10 @@ class Host:
         self._rx_errors: list[str] = []
         self.unknown_chips: set[int] = set()
         self._send_failing: set[int] = set()
+        #: callable ``snapshot -> snapshot`` that `get` applies first (``capsheet host --calibration``)
+        self.snapshot_filter: Callable[[LatticeSnapshot], LatticeSnapshot] | None = None
+        #: a `host.health.HealthChecker` fed every snapshot `get` returns; its findings are host events
+        self.health = None
 
     # -- lifetime ----------------------------------------------------------------------------
     def open(self) -> "Host":
@@ -308,7 +313,8 @@ class Host:
             self.events.append(ev)
             if len(self.events) > 10_000:
                 del self.events[:5_000]
-        (log.warning if kind in ("silent", "nack", "no_ack") else log.info)("%s: %s", kind, detail)
+        (log.warning if kind in ("silent", "nack", "no_ack", "health_magnitude", "health_bias_shift")
+         else log.info)("%s: %s", kind, detail)
 
     # -- receive path ------------------------------------------------------------------------
     def _rx_loop(self, bus: int, t: Transport) -> None:
@@ -675,7 +681,13 @@ class Host:
     # -- output -------------------------------------------------------------------------------
     def get(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
         """The next snapshot (oldest queued), or None after ``timeout_s``."""
-        return self.aggregator.get(timeout_s)
+        snap = self.aggregator.get(timeout_s)
+        if snap is not None and self.snapshot_filter is not None:
+            snap = self.snapshot_filter(snap)
+        if snap is not None and self.health is not None:
+            for ev in self.health.update(snap.readings, snap.valid, snap.timestamp):
+                self._report(ev.kind, ev.detail, link=ev.link)
+        return snap
 
     def snapshots(self, duration_s: float | None = None, count: int | None = None,
                   timeout_s: float = 1.0) -> Iterator[LatticeSnapshot]:
@@ -687,7 +699,7 @@ class Host:
             wait = timeout_s if end is None else min(timeout_s, end - time.monotonic())
             if wait <= 0:
                 return
-            snap = self.aggregator.get(wait)
+            snap = self.get(wait)
             if snap is None:
                 if end is not None and time.monotonic() < end:
                     continue

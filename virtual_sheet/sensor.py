@@ -16,7 +16,20 @@ breaks the paper's Assumption 1 on purpose.
 
 A chip can report its true calibration (`SensorModel.true_calibration`); then
 ``protocol.constants.counts_to_si(counts, offset, sensitivity)`` undoes everything but the
-misalignment, the noise and the quantisation.
+misalignment, the noise and the quantisation. With ``factory_calibrated=False`` it reports the
+nominal calibration instead (offset 0, nominal sensitivity), as a real chip fresh from the reel:
+its bias and scale errors then reach the host, until the sheet is calibrated (docs/calibration.md)
+and CAL_WRITE stores the result in the chip.
+
+Named chip-error presets (`CHIP_ERRORS`, `chip_error_model`; ``capsheet virtual --chip-errors``):
+
+============ ===================================================================================
+none         ideal chips (bias, scale and misalignment 0), factory calibrated (the default)
+realistic    a MEMS part glued by hand, uncalibrated: bias 30 mg, scale 1.5 %, misalignment
+             1.5° per axis (standard deviations; scale draws clipped at 3 sigma). Of the order of
+             MEMS datasheets (e.g. ADXL345: 0 g offset tens of mg, sensitivity tolerance a few %,
+             cross-axis sensitivity ±1 % ≈ 0.6°) plus the mounting of a chip on a textile link
+============ ===================================================================================
 
 >>> import numpy as np
 >>> counts, status = SensorModel().sample(np.array([[0.0, 0.0, G0]]))
@@ -32,7 +45,7 @@ import numpy as np
 
 from protocol.constants import ADC_MAX, ADC_MIN, G0, Range, SampleStatus, nominal_sensitivity
 
-__all__ = ["SensorModel", "ChipErrors", "noisy_readings", "make_rng"]
+__all__ = ["SensorModel", "ChipErrors", "noisy_readings", "make_rng", "CHIP_ERRORS", "chip_error_model"]
 
 
 def make_rng(rng: np.random.Generator | int) -> np.random.Generator:
@@ -121,6 +134,9 @@ class SensorModel:
         then needs the link frames.
     chip_seed : int
         Seed of the per-chip errors (the same chips every run).
+    factory_calibrated : bool
+        The chips report their true offset and sensitivity in CAL_DATA (default); False: the
+        nominal ones (`stored_calibration`).
     """
 
     noise_pct_g: float = 0.0
@@ -131,6 +147,7 @@ class SensorModel:
     range: Range = Range.G2
     motion_accel_mps2: tuple[float, float, float] | None = None
     chip_seed: int = 0
+    factory_calibrated: bool = True
 
     def __post_init__(self) -> None:
         for name in ("noise_pct_g", "bias_mps2", "bias_counts", "scale_error", "misalignment_rad"):
@@ -150,6 +167,8 @@ class SensorModel:
                 raise ValueError(f"Invalid motion_accel_mps2: {self.motion_accel_mps2!r} "
                                  "(expected 3 finite numbers, m/s², world frame)")
             object.__setattr__(self, "motion_accel_mps2", tuple(float(x) for x in a))
+        if not isinstance(self.factory_calibrated, (bool, np.bool_)):
+            raise ValueError(f"Invalid factory_calibrated: {self.factory_calibrated!r} (need True or False)")
         if not (isinstance(self.chip_seed, (int, np.integer)) and self.chip_seed >= 0):
             raise ValueError(f"Invalid chip_seed: {self.chip_seed!r} (need an integer >= 0)")
 
@@ -199,6 +218,16 @@ class SensorModel:
         """
         e = self.chip_errors(n_links)
         return e.offset_counts, e.sensitivity
+
+    def stored_calibration(self, n_links: int) -> tuple[np.ndarray, np.ndarray]:
+        """What the chips hold and report in CAL_DATA before any CAL_WRITE: `true_calibration` if
+        ``factory_calibrated``, else offset 0 and the nominal ±2 g sensitivity.
+
+        Returns ``(offset_counts (n_links, 3), sensitivity (n_links, 3))``, ±2 g counts.
+        """
+        if self.factory_calibrated:
+            return self.true_calibration(n_links)
+        return np.zeros((n_links, 3)), np.full((n_links, 3), nominal_sensitivity(Range.G2))
 
     def chip_readings(self, readings: np.ndarray, rng: np.random.Generator | int | None = None,
                       *, frames: np.ndarray | None = None) -> np.ndarray:
@@ -252,3 +281,24 @@ class SensorModel:
         status = np.where(saturated, np.uint8(SampleStatus.SATURATED),
                           np.uint8(SampleStatus.OK)).astype(np.uint8)
         return counts, status
+
+
+#: Named chip-error presets (module docstring): SensorModel fields, standard deviations.
+CHIP_ERRORS: dict[str, dict] = {
+    "none": {},
+    "realistic": {"bias_mps2": 0.030 * G0, "scale_error": 0.015,
+                  "misalignment_rad": float(np.radians(1.5)), "factory_calibrated": False},
+}
+
+
+def chip_error_model(name: str, *, noise_pct_g: float = 0.0, chip_seed: int = 0,
+                     **overrides) -> SensorModel:
+    """The `SensorModel` of a named chip-error preset (`CHIP_ERRORS`), seeded by ``chip_seed``.
+
+    >>> m = chip_error_model("realistic", noise_pct_g=0.3, chip_seed=4)
+    >>> round(m.bias_mps2 / G0 * 1000), m.scale_error, m.factory_calibrated
+    (30, 0.015, False)
+    """
+    if name not in CHIP_ERRORS:
+        raise ValueError(f"Unknown chip errors {name!r} (expected one of {', '.join(CHIP_ERRORS)})")
+    return SensorModel(noise_pct_g=noise_pct_g, chip_seed=chip_seed, **{**CHIP_ERRORS[name], **overrides})

@@ -413,7 +413,14 @@ SCENES: dict[str, SceneSpec] = {s.name: s for s in [
     SceneSpec("tilt", "a flat sheet rocking about x and y (max_tilt rad; period_s)", TiltScene),
     SceneSpec("press", "an indenter pressing a dent into a level sheet (depth, sigma, centre; "
               "period_s)", PressScene),
+    SceneSpec("board", "the sheet flat on a board turned through held calibration poses "
+              "(hold_s, move_s, jitter_rad; virtual_sheet/board.py)", lambda *a, **k: _board_scene(*a, **k)),
 ]}
+
+
+def _board_scene(*args: Any, **kwargs: Any) -> Scene:
+    from .board import BoardPoseScene  # board.py builds on flat_net: imported late, no cycle
+    return BoardPoseScene(*args, **kwargs)
 
 
 def make_scene(name: str, rows: int, cols: int, link_length: float = 0.01,

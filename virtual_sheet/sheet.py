@@ -145,7 +145,7 @@ class VirtualSheet:
         self._joint_cache: tuple[float, np.ndarray, np.ndarray] | None = None  # (t_q, joints, readings)
         self._cache: tuple[float | None, list, list] = (None, [], [])
         self.sync_times: dict[int, float] = {}
-        offset, sens = self.sensor_model.true_calibration(n)
+        offset, sens = self.sensor_model.stored_calibration(n)  # what the chips hold before CAL_WRITE
         q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
         cal = [tuple(zip(q4[k], sens[k].tolist())) for k in range(n)]
         self.chip_factory = chip_factory or ChipModel

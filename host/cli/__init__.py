@@ -15,6 +15,7 @@ SUBCOMMAND_MODULES = [
     "host.cli.virtual",      # capsheet virtual
     "host.cli.paper",        # capsheet paper {solvability,gaussian,noise}
     "host.cli.tactile",      # capsheet tactile
+    "host.cli.calibrate",    # capsheet calibrate (per-chip bias, scale, misalignment)
     "host.cli.conformance",  # capsheet conformance
     "host.cli.protocol",     # capsheet protocol (spec helpers: vectors, dbc, capacity)
     "host.cli.replay",       # capsheet replay (a recording through decoder, aggregator, estimator)

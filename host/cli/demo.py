@@ -34,6 +34,7 @@ def register(sub) -> None:
     p.add_argument("--packed", action="store_true", help="the gateway packs SNAPSHOT frames instead of per-chip SAMPLEs")
     p.add_argument("--target", type=float, default=1.0, help="max mean joint error, %% of side (default 1)")
     p.add_argument("--out", default="out/demo.png", help="PNG of estimated vs true shape (default out/demo.png)")
+    p.add_argument("--calibration", metavar="CAL_JSON", help="apply this calibration (capsheet calibrate) to every snapshot")
     p.add_argument("--json", action="store_true", help="print the summary as JSON at the end")
     p.add_argument("--seed", type=int, default=1)
     from host.cli.record_args import add_record_args
@@ -77,6 +78,8 @@ def run(args) -> int:
     from host.transport import open_transport
     from virtual_sheet.sheet import VirtualSheet
 
+    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    cal = load_calibration_arg(args.calibration, args.lattice, "capsheet demo")
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
     kw = _sheet_kwargs(args)
     truth_sheet = VirtualSheet(kw.pop("shape"), kw.pop("lattice"), **kw)
@@ -124,6 +127,8 @@ def run(args) -> int:
         with host:
             t_up = time.monotonic()
             summary = host.bring_up()
+            if cal is not None:
+                host.snapshot_filter = snapshot_corrector(host, cal)
             print(f"capsheet demo: {summary['discovered']} chips discovered, {summary['assigned']} assigned, "
                   f"{summary['calibrated']} calibrated, {summary['started']} streaming "
                   f"({time.monotonic() - t_up:.1f} s)", file=sys.stderr)

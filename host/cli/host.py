@@ -37,6 +37,9 @@ def register(subparsers) -> None:
     p.add_argument("--sync", choices=("drive", "follow"), default="drive",
                    help="drive SYNC from the host (default) or follow a gateway's SYNC")
     p.add_argument("--deadline-ms", type=float, default=None, help="wait this long for missing links")
+    p.add_argument("--calibration", metavar="CAL_JSON",
+                   help="apply this calibration (capsheet calibrate) to every snapshot, and check chip "
+                        "health on still stretches (docs/calibration.md)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
     p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
     p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
@@ -59,6 +62,8 @@ def _status_line(host: Host, t0: float, n0: int) -> str:
 def run(args) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     layout = Layout.load(args.layout) if args.layout else None
+    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    cal = load_calibration_arg(args.calibration, args.lattice, "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
               "Pass --auto-assign to silence this.", file=sys.stderr)
@@ -80,6 +85,10 @@ def run(args) -> int:
             print(f"capsheet host: {summary['discovered']} chips found, {summary['assigned']} assigned, "
                   f"{summary['configured']} configured, {summary['calibrated']} calibrated, "
                   f"{summary['started']} started on {', '.join(t.name for t in transports)}", file=sys.stderr)
+            if cal is not None:
+                from host.health import HealthChecker
+                host.snapshot_filter = snapshot_corrector(host, cal)
+                host.health = HealthChecker(host.lattice.rows, host.lattice.cols)
             out.describe(host)
             t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, 0.0
             end = None if args.duration is None else t0 + args.duration

@@ -34,6 +34,7 @@ def register(subparsers) -> None:
     src.add_argument("--rate", type=float, default=50.0, help="real sheet: SYNC rate, Hz (default 50)")
     src.add_argument("--learn-s", type=float, default=2.0,
                      help="real sheet: untouched period to learn the rest shape, s (default 2)")
+    p.add_argument("--calibration", metavar="CAL_JSON", help="apply this calibration (capsheet calibrate) to the readings")
     p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
     p.add_argument("--link-length", type=float, default=0.01, help="L, metres (default 0.01)")
     foam = p.add_argument_group("foam (the host's force model: F = k sum w A, k = E_oed / h)")
@@ -82,6 +83,10 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
                      ramp_s=0.1 * T)]
     scene = FoamScene(body, presses, rows, cols, L)
     rng = np.random.Generator(np.random.MT19937(args.seed))
+    if args.cal is not None:  # the virtual chips read with the nominal calibration
+        n = args.cal.n_links
+        _fix = args.cal.rebased(np.zeros((n, 3)), np.full((n, 3), 1024.0)).apply
+        noisy_readings = lambda r, *a, _n=noisy_readings: _fix(_n(r, *a))  # noqa: E731
     r0 = ideal_readings(scene.rest_joints)
     rest = TactileSensor.learn_rest([noisy_readings(r0, args.noise, rng) for _ in range(32)],
                                     rows, cols, L)
@@ -107,6 +112,9 @@ def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
                 layout=Layout.load(args.layout) if args.layout else None)
     with host:
         host.bring_up()
+        if args.cal is not None:
+            from host.cli.calibrate import snapshot_corrector
+            host.snapshot_filter = snapshot_corrector(host, args.cal)
         learn = [s for s in host.snapshots(duration_s=args.learn_s) if s.complete]
         if len(learn) < 2:
             raise SystemExit("capsheet tactile: fewer than 2 complete snapshots while learning "
@@ -129,6 +137,8 @@ def run(args) -> int:
     except ValueError as exc:
         print(f"capsheet tactile: {exc}", file=sys.stderr)
         return 2
+    from host.cli.calibrate import load_calibration_arg
+    args.cal = load_calibration_arg(getattr(args, "calibration", None), args.lattice, "capsheet tactile")
     settings = DetectorSettings(k_detect=args.threshold)
     real = bool(args.port or args.can)
     source = (_real if real else _virtual)(args, foam, settings, rows, cols)

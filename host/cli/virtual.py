@@ -74,6 +74,10 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=None, metavar="HZ",
                    help="the gateway generates SYNC at this rate (the host then follows it)")
     p.add_argument("--noise", type=float, default=0.02, help="sensor noise, %% of g per axis (default 0.02)")
+    p.add_argument("--chip-errors", choices=("none", "realistic"), default="none",
+                   help="per-chip bias, scale and misalignment: none (ideal, factory calibrated; default) or "
+                        "realistic (30 mg, 1.5 %%, 1.5° per axis, uncalibrated; seeded by --seed; "
+                        "docs/calibration.md). Use --shape board for the calibration poses")
     p.add_argument("--faults", default="", help="fault spec (see below)")
     p.add_argument("--seed", type=int, default=0, help="seed of uids, chip errors and noise (default 0)")
     p.add_argument("--layout-out", metavar="FILE", help="write the uid,link layout (CSV, or JSON if .json)")
@@ -103,8 +107,10 @@ def make_device(args, verbose=None):
     from virtual_sheet.sheet import VirtualSheet
     transport = "can" if args.transport in ("can", "slcan") else "serial"
     spec = FaultSpec.parse(args.faults)
+    from virtual_sheet.sensor import chip_error_model
+    sensor = chip_error_model(getattr(args, "chip_errors", "none"), noise_pct_g=args.noise, chip_seed=args.seed)
     sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
-                         seed=args.seed, transport=transport, fd=args.fd,
+                         sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
                          chip_factory=load_chip_factory(args.firmware), faults=spec)
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
     if args.transport == "pty":

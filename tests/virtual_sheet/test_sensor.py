@@ -143,3 +143,33 @@ def test_noise_needs_a_seed_and_readings_need_the_right_shape():
         SensorModel(noise_pct_g=1.0).sample(np.zeros((2, 3)))
     with pytest.raises(ValueError, match=r"shape \(n_links, 3\), got \(2, 2\)"):
         SensorModel().sample(np.zeros((2, 2)))
+
+
+# ------------------------------------------------------------------ chip-error presets (issue 14)
+
+def test_realistic_chip_errors_have_the_documented_spreads_and_no_factory_calibration():
+    from protocol.constants import G0 as _G0
+    from virtual_sheet.sensor import CHIP_ERRORS, chip_error_model
+    from virtual_sheet.sheet import VirtualSheet
+
+    m = chip_error_model("realistic", noise_pct_g=0.3, chip_seed=2)
+    e = m.chip_errors(4000)
+    bias_mg = e.offset_counts / m.nominal_sensitivity * 1000
+    assert np.std(bias_mg) == pytest.approx(30, rel=0.05)
+    assert np.std(e.sensitivity / m.nominal_sensitivity - 1) == pytest.approx(0.015, rel=0.05)
+    from scipy.spatial.transform import Rotation
+    assert np.degrees(np.std(Rotation.from_matrix(e.misalignment).as_rotvec())) == pytest.approx(1.5, rel=0.05)
+    # the chips report the nominal calibration, the truth is still available
+    off, sens = m.stored_calibration(5)
+    assert np.array_equal(off, np.zeros((5, 3))) and np.array_equal(sens, np.full((5, 3), 1024.0))
+    assert not np.allclose(m.true_calibration(5)[0], 0)
+    sheet = VirtualSheet("flat", "3x3", sensor=m)
+    assert all(c.cal == [(0, 1024.0, 1)] * 3 for c in sheet.chips)
+    # "none" is the default model: ideal chips, factory calibrated
+    assert chip_error_model("none", noise_pct_g=0.3, chip_seed=2) == SensorModel(noise_pct_g=0.3, chip_seed=2)
+    assert set(CHIP_ERRORS) == {"none", "realistic"}
+    assert m.bias_mps2 == pytest.approx(0.030 * _G0)
+    with pytest.raises(ValueError, match="Unknown chip errors 'typical'"):
+        chip_error_model("typical")
+    with pytest.raises(ValueError, match="factory_calibrated"):
+        SensorModel(factory_calibrated="no")

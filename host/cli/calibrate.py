@@ -1,0 +1,399 @@
+"""``capsheet calibrate``: calibrate every chip of a sheet in place, from a few poses of the sheet
+clamped flat on a rigid board (docs/calibration.md).
+
+Clamp the sheet flat on a board (i-links along the board's x, j-links along its y, top face up),
+then turn the board through the poses it asks for, holding each still until it says "captured".
+Static intervals are found automatically (a variance threshold); a pose too close to one already
+captured is ignored; each chip is averaged over the still snapshots it is in (lost frames do not
+stop a capture). When enough poses are in, it fits every chip's bias, scale and mounting
+misalignment jointly, prints each chip's residual and the outliers, and writes the calibration
+(JSON). With --write-chips it also writes each chip's offset and sensitivity into the chip with
+CAL_WRITE (stored in non-volatile memory where the chip has CAL_STORAGE), reads them back with
+CAL_READ and checks them. The misalignment stays in the file: give it to capsheet host / demo /
+tactile with --calibration.
+
+    capsheet calibrate --port /dev/ttyUSB0 --lattice 14x14 --layout sheet.csv --out cal.json
+    capsheet calibrate --can slcan:/dev/ttyACM0 --bitrate 1000000 --out cal.json --write-chips
+
+Without hardware:
+
+    capsheet virtual --shape board --chip-errors realistic --noise 0.3 --layout-out sheet.csv \\
+        --symlink /tmp/sheet &
+    capsheet calibrate --port /tmp/sheet --layout sheet.csv --out cal.json --write-chips
+
+Exit status: 0 calibrated (outliers are reported, not fatal); 1 not enough poses before --timeout,
+the fit refused the poses, or a chip's read-back differs from what was written; 2 usage errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import sys
+import time
+from typing import Callable
+
+import numpy as np
+
+from host.analysis.calibration import (BOARD_POSES, MIN_POSES, NOMINAL_SENSITIVITY, Calibration,
+                                       StaticDetector, board_frame_readings, fit_board_poses)
+from host.cli.transport_args import add_transport_args, open_transports
+from host.transport import TransportError
+
+__all__ = ["register", "run", "load_calibration_arg", "snapshot_corrector", "write_chip_calibration",
+           "PoseCapture"]
+
+#: a new pose must differ from every captured one by at least this angle, degrees
+MIN_POSE_SEPARATION_DEG = 20.0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("calibrate", help="calibrate every chip in place from poses of the sheet on a board",
+                              description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_transport_args(p, title="transports (one --port, or one or more --can)")
+    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
+    p.add_argument("--out", required=True, metavar="FILE", help="calibration file to write (JSON)")
+    p.add_argument("--write-chips", action="store_true",
+                   help="CAL_WRITE each chip's offset and sensitivity, CAL_READ them back and verify")
+    p.add_argument("--poses", type=int, default=len(BOARD_POSES),
+                   help=f"poses to capture, >= {MIN_POSES} (default {len(BOARD_POSES)}: docs/calibration.md)")
+    p.add_argument("--samples", type=int, default=200,
+                   help="snapshots averaged per pose (default 200: 2 s at 100 Hz)")
+    p.add_argument("--rate", type=float, default=100.0, help="SYNC rate, Hz (default 100)")
+    p.add_argument("--window", type=int, default=25,
+                   help="snapshots in the stillness window (default 25)")
+    p.add_argument("--still-threshold", type=float, default=0.098, metavar="M/S2",
+                   help="a chip is still when its readings' standard deviation over the window is below "
+                        "this (default 0.098 m/s^2 = 1 %% g)")
+    p.add_argument("--non-orthogonality", action="store_true",
+                   help="also fit 3 axis non-orthogonality terms per chip (kept in the file, like the misalignment)")
+    p.add_argument("--gravity", type=float, default=9.80665, metavar="M/S2",
+                   help="local gravity (default standard gravity 9.80665); sets the common scale")
+    p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)")
+    p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON on stdout (messages on stderr)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no live indicator")
+    p.set_defaults(func=run)
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers other commands use (--calibration)
+# --------------------------------------------------------------------------------------------
+
+def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | None:
+    """``--calibration FILE`` -> `Calibration` for ``lattice`` (``Lattice`` or "RxC"), or exit 2
+    with a one-line message (unreadable, malformed, or another lattice's file)."""
+    if not path:
+        return None
+    def usage(text: str):
+        print(f"{prog}: {text}", file=sys.stderr)
+        return SystemExit(2)
+    try:
+        cal = Calibration.load(path)
+    except (OSError, ValueError) as exc:
+        raise usage(f"--calibration: {exc}") from None
+    try:
+        rows, cols = ((lattice.rows, lattice.cols) if hasattr(lattice, "rows")
+                      else tuple(int(x) for x in str(lattice).lower().split("x")))
+    except ValueError:
+        raise usage(f"--lattice {lattice!r}: expected ROWSxCOLS") from None
+    if (cal.rows, cal.cols) != (rows, cols):
+        raise usage(f"--calibration {path} is for a {cal.rows}x{cal.cols} lattice, not {rows}x{cols}")
+    return cal
+
+
+def _chip_calibration_of(host) -> tuple[np.ndarray, np.ndarray]:
+    """Offset and sensitivity (±2 g counts) the host converts each link's counts with (CAL_DATA)."""
+    n = host.lattice.n_links
+    off, sens = np.zeros((n, 3)), np.full((n, 3), NOMINAL_SENSITIVITY)
+    scale = float(1 << int(host.range_code))
+    for rec in host._assigned():
+        off[rec.link] = np.asarray(rec.offset) * scale
+        sens[rec.link] = np.asarray(rec.sensitivity) * scale
+    return off, sens
+
+
+def snapshot_corrector(host, cal: Calibration) -> Callable:
+    """A function ``snapshot -> snapshot`` with calibrated readings, for the chip calibration the
+    host read (call after ``read_calibration``): `Calibration.rebased` to it, so a file works
+    whether or not its offsets and sensitivities were written to the chips."""
+    live = cal.rebased(*_chip_calibration_of(host))
+
+    def correct(snap):
+        return dataclasses.replace(snap, readings=live.apply(snap.readings))
+    return correct
+
+
+def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndarray) -> dict:
+    """CAL_WRITE every assigned chip's three axes (chips must be IDLE), then CAL_READ them back.
+
+    ``offset_counts`` and ``sensitivity`` are ±2 g counts, (n_links, 3). The store flag is set for
+    chips whose INFO announces CAL_STORAGE. Returns ``{"written", "verified", "refused", "mismatch"}``
+    (link lists; mismatch entries name link, axis, written and read values).
+    """
+    from protocol.messages import Ack, CalWrite, Capability, MsgType, Nack
+
+    q4 = np.clip(np.rint(np.asarray(offset_counts) * 16.0), -32768, 32767).astype(int)
+    sens = np.asarray(sensitivity, dtype=np.float32)
+    chips = host._by_node()
+    refused: set[int] = set()
+    for axis in range(3):
+        def build(key, _attempt, axis=axis):
+            rec = chips[key]
+            store = 1 if rec.info is not None and rec.info.capabilities & Capability.CAL_STORAGE else 0
+            return [(key[0], CalWrite(key[1], axis=axis, flags=store, offset_q4=int(q4[rec.link, axis]),
+                                      sensitivity=float(sens[rec.link, axis])))]
+
+        def match(bus, msg):
+            if isinstance(msg, (Ack, Nack)) and msg.command == MsgType.CAL_WRITE:
+                return (bus, msg.node)
+            return None
+        answers, missing = host._round(chips, build, match, f"CAL_WRITE axis {axis}")
+        refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
+        refused |= {chips[k].link for k in missing}
+    host.read_calibration()
+    scale = float(1 << int(host.range_code))
+    verified, mismatch = [], []
+    for rec in chips.values():
+        k = rec.link
+        bad = False
+        for axis in range(3):
+            got_q4 = int(round(float(rec.offset[axis]) * 16.0 * scale))
+            got_s = np.float32(float(rec.sensitivity[axis]) * scale)
+            if got_q4 != q4[k, axis] or got_s != sens[k, axis]:
+                bad = True
+                mismatch.append({"link": k, "axis": "xyz"[axis], "written": [int(q4[k, axis]), float(sens[k, axis])],
+                                 "read": [got_q4, float(got_s)]})
+        if not bad and rec.calibrated:
+            verified.append(k)
+    return {"written": sorted(rec.link for rec in chips.values() if rec.link not in refused),
+            "verified": sorted(verified), "refused": sorted(refused), "mismatch": mismatch}
+
+
+# --------------------------------------------------------------------------------------------
+# Capturing poses (sans-I/O: snapshots in, progress out)
+# --------------------------------------------------------------------------------------------
+
+class PoseCapture:
+    """Collects static poses from a stream of snapshots.
+
+    `update` takes one snapshot's readings (m/s², (n_links, 3); NaN or ``valid`` False for a
+    missing link) and returns what happened: ``"moving"``, ``"holding"`` (static, averaging),
+    ``"duplicate"`` (static, but within `MIN_POSE_SEPARATION_DEG` of a captured pose),
+    ``"captured"`` (every link has ``samples`` still samples averaged) or ``"incomplete"`` (no
+    link in the snapshot). A link missing from some snapshots (a lost frame) is averaged over the
+    snapshots it is in, and judged still on the windows it is in.
+    """
+
+    def __init__(self, rows: int, cols: int, *, samples: int = 200, window: int = 25,
+                 threshold_mps2: float = 0.098) -> None:
+        if samples < 1:
+            raise ValueError(f"Invalid samples: {samples!r} (need >= 1)")
+        self.rows, self.cols = rows, cols
+        n = (rows - 1) * cols + rows * (cols - 1)
+        self.detector = StaticDetector(n, window=window, threshold_mps2=threshold_mps2, quantile=1.0)
+        self.samples = int(samples)
+        self.poses: list[np.ndarray] = []  #: averaged readings of each captured pose, (n_links, 3)
+        self.directions: list[np.ndarray] = []  #: each captured pose's gravity direction, board frame
+        self._sum = np.zeros((n, 3))
+        self._count = np.zeros(n, dtype=int)
+
+    @property
+    def progress(self) -> float:
+        """Fraction of the samples the least-sampled link has."""
+        return float(self._count.min()) / self.samples
+
+    def _restart(self) -> None:
+        self._sum[:] = 0.0
+        self._count[:] = 0
+
+    def _direction(self, readings: np.ndarray) -> np.ndarray:
+        m = np.nanmean(board_frame_readings(readings, self.rows, self.cols), axis=0)
+        return m / np.linalg.norm(m)
+
+    def update(self, readings: np.ndarray, valid: np.ndarray | None = None) -> str:
+        r = np.asarray(readings, dtype=float)
+        ok = np.isfinite(r).all(axis=1)
+        if valid is not None:
+            ok &= np.asarray(valid, dtype=bool)
+        if not ok.any():
+            return "incomplete"
+        r = np.where(ok[:, None], r, np.nan)
+        if not self.detector.update(r):
+            self._restart()
+            return "moving"
+        if not self._count.any():
+            u = self._direction(r)
+            cos_min = np.cos(np.radians(MIN_POSE_SEPARATION_DEG))
+            if any(float(u @ d) > cos_min for d in self.directions):
+                return "duplicate"
+        self._sum[ok] += r[ok]
+        self._count[ok] += 1
+        if self._count.min() < self.samples:
+            return "holding"
+        mean = self._sum / self._count[:, None]
+        self._restart()
+        self.poses.append(mean)
+        self.directions.append(self._direction(mean))
+        return "captured"
+
+    def next_pose(self) -> tuple[str, str]:
+        """(name, instruction) of the first suggested pose not yet covered."""
+        cos_min = np.cos(np.radians(MIN_POSE_SEPARATION_DEG))
+        for name, what, u in BOARD_POSES:
+            if not any(float(np.asarray(u) @ d) > cos_min for d in self.directions):
+                return name, what
+        return "any other", "any orientation not yet captured"
+
+    def nearest_name(self, u: np.ndarray) -> str:
+        return max(BOARD_POSES, key=lambda p: float(np.asarray(p[2]) @ u))[0]
+
+
+# --------------------------------------------------------------------------------------------
+# The command
+# --------------------------------------------------------------------------------------------
+
+def _say(args, text: str) -> None:
+    print(f"capsheet calibrate: {text}", file=sys.stderr, flush=True)
+
+
+def _bar(frac: float, width: int = 20) -> str:
+    k = int(round(max(0.0, min(1.0, frac)) * width))
+    return "#" * k + "." * (width - k)
+
+
+def _capture(host, args, cap: PoseCapture) -> bool:
+    live = not args.quiet
+    t_end = time.monotonic() + args.timeout
+    last_line, state = 0.0, ""
+    while len(cap.poses) < args.poses:
+        if time.monotonic() > t_end:
+            if live:
+                print(file=sys.stderr)
+            _say(args, f"timed out after {args.timeout:g} s with {len(cap.poses)} of {args.poses} poses")
+            return False
+        snap = host.get(0.5)
+        if snap is None:
+            continue
+        what = cap.update(snap.readings, snap.valid)
+        if what == "captured":
+            u = cap.directions[-1]
+            if live:
+                print(file=sys.stderr)
+            _say(args, f"captured pose {len(cap.poses)}/{args.poses} (nearest: {cap.nearest_name(u)}; "
+                       f"gravity in the board frame {np.round(u, 3).tolist()})")
+            state = ""
+            continue
+        now = time.monotonic()
+        if live and (what != state or now - last_line > 0.25):
+            name, instruction = cap.next_pose()
+            shown = {"moving": "moving ... set the board down and hold still",
+                     "holding": f"HOLD STILL [{_bar(cap.progress)}] {100 * cap.progress:3.0f} %",
+                     "duplicate": "still, but this pose is already captured: turn the board",
+                     "incomplete": "waiting for the chips"}[what]
+            print(f"\rpose {len(cap.poses) + 1}/{args.poses} next: {name} ({instruction}) | {shown}    ",
+                  end="", file=sys.stderr, flush=True)
+            last_line, state = now, what
+    return True
+
+
+def _chip_table(cal: Calibration) -> list[dict]:
+    return [{"link": k, "rms_mg": round(float(cal.chip_rms[k]) / 9.80665 * 1e3, 3),
+             "bias_mg": np.round(cal.bias[k] / 9.80665 * 1e3, 2).tolist(),
+             "scale_pct": np.round((cal.scale[k] - 1) * 100, 3).tolist(),
+             "misalignment_deg": np.round(np.degrees(cal.misalignment[k]), 3).tolist(),
+             "outlier": k in cal.outliers} for k in range(cal.n_links)]
+
+
+def run(args) -> int:
+    from host.session import Host, Layout
+
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        rows, cols = (int(x) for x in args.lattice.lower().split("x"))
+        cap = PoseCapture(rows, cols, samples=args.samples, window=args.window,
+                          threshold_mps2=args.still_threshold)
+    except ValueError as exc:
+        print(f"capsheet calibrate: {exc}", file=sys.stderr)
+        return 2
+    if args.poses < MIN_POSES:
+        print(f"capsheet calibrate: --poses {args.poses}: need at least {MIN_POSES}", file=sys.stderr)
+        return 2
+    if not (args.timeout > 0 and args.rate > 0):
+        print("capsheet calibrate: --timeout and --rate must be > 0", file=sys.stderr)
+        return 2
+    try:
+        layout = Layout.load(args.layout) if args.layout else None
+    except (OSError, ValueError) as exc:
+        print(f"capsheet calibrate: --layout: {exc}", file=sys.stderr)
+        return 2
+    try:
+        transports = open_transports(args, prog="capsheet calibrate")
+    except TransportError as exc:
+        print(f"capsheet calibrate: {exc}", file=sys.stderr)
+        return 1
+    host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+    result: dict = {}
+    with host:
+        summary = host.bring_up(args.discover_s)
+        _say(args, f"{summary['discovered']} chips found, {summary['assigned']} assigned, "
+                   f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses")
+        if summary["assigned"] < host.lattice.n_links:
+            _say(args, f"only {summary['assigned']} of {host.lattice.n_links} links have a chip: "
+                       "every link is needed")
+            return 1
+        ref_off, ref_sens = _chip_calibration_of(host)
+        try:
+            done = _capture(host, args, cap)
+        except KeyboardInterrupt:
+            print(file=sys.stderr)
+            _say(args, "interrupted")
+            return 130
+        host.stop()
+        if not done:
+            return 1
+        try:
+            cal = fit_board_poses(np.array(cap.poses), rows, cols, reference_offset_counts=ref_off,
+                                  reference_sensitivity=ref_sens, gravity_mps2=args.gravity,
+                                  non_orthogonality=args.non_orthogonality)
+        except ValueError as exc:
+            _say(args, f"fit refused: {exc}")
+            return 1
+        table = _chip_table(cal)
+        result = {"poses": len(cap.poses), "samples_per_pose": args.samples,
+                  "residual_rms_mg": round(cal.residual_rms / 9.80665 * 1e3, 4),
+                  "outliers": list(cal.outliers), "out": args.out, "chips": table}
+        out = sys.stderr if args.json else sys.stdout
+        if not args.json:
+            print("link  rms[mg]  bias x/y/z [mg]          scale-1 x/y/z [%]        misalignment x/y/z [deg]", file=out)
+            for row in table:
+                print(f"{row['link']:4d}  {row['rms_mg']:7.3f}  "
+                      + " ".join(f"{v:7.2f}" for v in row["bias_mg"]) + "  "
+                      + " ".join(f"{v:7.3f}" for v in row["scale_pct"]) + "  "
+                      + " ".join(f"{v:7.3f}" for v in row["misalignment_deg"])
+                      + ("  OUTLIER" if row["outlier"] else ""), file=out)
+        _say(args, f"fit of {cal.n_links} chips over {len(cap.poses)} poses: residual RMS "
+                   f"{result['residual_rms_mg']:.3f} mg; outliers: "
+                   f"{', '.join(map(str, cal.outliers)) if cal.outliers else 'none'}")
+        status = 0
+        if args.write_chips:
+            off, sens = cal.chip_calibration()
+            w = write_chip_calibration(host, off, sens)
+            result["write_chips"] = w
+            _say(args, f"CAL_WRITE: {len(w['written'])} chips written, {len(w['verified'])} read back "
+                       f"and verified, {len(w['refused'])} refused, {len(w['mismatch'])} axis mismatches")
+            if w["refused"] or w["mismatch"] or len(w["verified"]) < cal.n_links:
+                status = 1
+            cal = cal.rebased(*_chip_calibration_of(host))  # the file now describes the written chips
+        try:
+            cal.save(args.out)
+        except OSError as exc:
+            _say(args, f"cannot write {args.out}: {exc}")
+            return 1
+        _say(args, f"wrote {args.out}")
+    if args.json:
+        print(json.dumps(result, indent=1))
+    return status

@@ -1,0 +1,184 @@
+"""`capsheet calibrate` end to end: a virtual sheet with realistic, uncalibrated chips on the
+board-pose scene, behind a real pty; the command (its own process, pyserial) captures the poses,
+fits, writes every chip with CAL_WRITE and verifies with CAL_READ. The test then looks inside the
+virtual chips: what they store must be each chip's true offset and sensitivity."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from host.analysis.calibration import Calibration
+from protocol.constants import G0
+from virtual_sheet.board import DEFAULT_DIRECTIONS, BoardPoseScene
+from virtual_sheet.devices import PtyDevice
+from virtual_sheet.sensor import chip_error_model
+from virtual_sheet.sheet import VirtualSheet
+
+MG_COUNTS = 1024 / 1000  # 1 mg in ±2 g counts
+
+
+def calibrate(*argv, timeout=240):
+    return subprocess.run([sys.executable, "-m", "host.cli", "calibrate", *argv], capture_output=True,
+                          text=True, timeout=timeout)
+
+
+@pytest.fixture
+def board_sheet(tmp_path):
+    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=3.0, move_s=0.6, seed=2)
+    sheet = VirtualSheet(lattice="3x3", scene=scene, seed=7,
+                         sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+    layout = sheet.write_layout(tmp_path / "layout.csv")
+    with PtyDevice(sheet) as dev:
+        yield sheet, dev, layout
+
+
+def test_calibrate_writes_every_chip_its_true_calibration(tmp_path, board_sheet):
+    sheet, dev, layout = board_sheet
+    n = sheet.n_links
+    truth = sheet.sensor_model.chip_errors(n)
+    before = [list(c.cal) for c in sheet.chips]
+    assert all(o == 0 and s == 1024.0 for cal in before for (o, s, _st) in cal)  # uncalibrated
+    out = tmp_path / "cal.json"
+    res = calibrate("--port", str(dev.path), "--lattice", "3x3", "--layout", str(layout), "--out", str(out),
+                    "--write-chips", "--poses", "6", "--samples", "40", "--rate", "50", "--timeout", "150")
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    assert "12 chips written, 12 read back and verified, 0 refused, 0 axis mismatches" in res.stderr
+    assert "outliers: none" in res.stderr
+    assert "HOLD STILL" in res.stderr and res.stderr.count("captured pose") == 6
+    table = [ln for ln in res.stdout.splitlines() if ln[:4].strip().isdigit()]
+    assert [int(ln.split()[0]) for ln in table] == list(range(n))  # one residual line per chip
+    # what the chips now hold: offset_q4 (1/16 count), sensitivity, stored in non-volatile memory
+    q4 = np.array([[c[0] for c in chip.cal] for chip in sheet.chips])
+    sens = np.array([[c[1] for c in chip.cal] for chip in sheet.chips])
+    stored = np.array([[c[2] for c in chip.cal] for chip in sheet.chips])
+    assert np.all(stored == 1)
+    assert np.abs(q4 / 16.0 - truth.offset_counts).max() < 2 * MG_COUNTS  # bias within 2 mg
+    assert np.abs(sens / truth.sensitivity - 1).max() < 1e-3  # scale within 0.1 %
+    assert np.abs(truth.offset_counts).max() > 2 * MG_COUNTS  # (there was something to find)
+    # the file: rebased to what the chips hold (bias ~0, scale ~1), misalignment the truth's
+    cal = Calibration.load(out)
+    assert np.abs(cal.bias).max() < 0.1e-3 * G0 and np.abs(cal.scale - 1).max() < 1e-6
+    assert np.array_equal(cal.reference_offset_counts, q4 / 16.0)
+    R0 = np.tile(np.eye(3), (n, 1, 1))
+    R0[6:] = Rotation.from_euler("z", 90, degrees=True).as_matrix()
+    B = R0 @ truth.misalignment @ np.transpose(R0, (0, 2, 1))
+    U, _s, Vt = np.linalg.svd(B.mean(axis=0))
+    mis = Rotation.from_matrix(np.transpose(R0, (0, 2, 1)) @ (U @ Vt).T @ B @ R0).as_rotvec()
+    assert np.abs(cal.misalignment - mis).max() < np.radians(0.1)
+
+
+def test_without_write_chips_the_chips_are_untouched_and_json_is_alone(tmp_path, board_sheet):
+    sheet, dev, layout = board_sheet
+    out = tmp_path / "cal.json"
+    res = calibrate("--port", str(dev.path), "--lattice", "3x3", "--layout", str(layout), "--out", str(out),
+                    "--poses", "6", "--samples", "20", "--rate", "50", "--timeout", "150", "--json", "-q")
+    assert res.returncode == 0, res.stderr[-4000:]
+    doc = json.loads(res.stdout)
+    assert doc["poses"] == 6 and len(doc["chips"]) == 12 and "write_chips" not in doc
+    assert all(o == 0 and s == 1024.0 for chip in sheet.chips for (o, s, _st) in chip.cal)
+    cal = Calibration.load(out)
+    e = sheet.sensor_model.chip_errors(12)
+    assert np.abs(cal.bias - e.offset_counts * G0 / 1024).max() < 2e-3 * G0  # relative to nominal
+
+
+def test_bad_arguments_exit_2_with_one_line(tmp_path):
+    res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--poses", "3")
+    assert res.returncode == 2 and "--poses 3: need at least 6" in res.stderr
+    assert "Traceback" not in res.stderr
+    res = calibrate("--port", "/dev/null")
+    assert res.returncode == 2 and "--out" in res.stderr
+    res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--lattice", "3by3")
+    assert res.returncode == 2 and "Traceback" not in res.stderr
+
+
+def capsheet(*argv, timeout=120):
+    return subprocess.run([sys.executable, "-m", "host.cli", *argv], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_calibration_flag_of_host_demo_tactile_refuses_bad_files(tmp_path):
+    Calibration.identity(3, 3).save(tmp_path / "3x3.json")
+    (tmp_path / "junk.json").write_text("{not json")
+    for cmd in (["host", "--port", "/dev/null", "--lattice", "4x4"], ["demo", "--lattice", "4x4"],
+                ["tactile", "--lattice", "4x4"]):
+        res = capsheet(*cmd, "--calibration", str(tmp_path / "3x3.json"))
+        assert res.returncode == 2, (cmd, res.stderr)
+        assert "is for a 3x3 lattice, not 4x4" in res.stderr and "Traceback" not in res.stderr
+    res = capsheet("host", "--port", "/dev/null", "--lattice", "4x4", "--calibration", str(tmp_path / "junk.json"))
+    assert res.returncode == 2 and "not JSON" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_tactile_applies_a_calibration_file(tmp_path):
+    # the identity file gives exactly the output of no file; a file with a bias changes it
+    ident = Calibration.identity(6, 6).save(tmp_path / "id.json")
+    base = ["tactile", "--lattice", "6x6", "--duration", "1", "--snapshot-rate", "4",
+            "--out", str(tmp_path / "t.png")]
+    plain = capsheet(*base)
+    with_id = capsheet(*base, "--calibration", str(ident))
+    assert plain.returncode == 0 and with_id.returncode == 0, with_id.stderr
+    assert plain.stdout == with_id.stdout
+    c = Calibration.identity(6, 6)
+    biased = Calibration(6, 6, bias=np.full((c.n_links, 3), 0.5), scale=c.scale, misalignment=c.misalignment)
+    other = capsheet(*base, "--calibration", str(biased.save(tmp_path / "b.json")))
+    assert other.returncode == 0 and other.stdout != plain.stdout
+
+
+def test_capsheet_virtual_chip_errors_and_board_scene():
+    from host.cli import build_parser
+    from host.cli.virtual import make_device
+
+    args = build_parser().parse_args(["virtual", "--shape", "board", "--chip-errors", "realistic", "--lattice",
+                                      "3x3", "--transport", "memory", "--seed", "4", "--noise", "0.3"])
+    sheet, _dev = make_device(args)
+    assert sheet.sensor_model == chip_error_model("realistic", noise_pct_g=0.3, chip_seed=4)
+    assert isinstance(sheet.scene, BoardPoseScene)
+    assert all(chip.cal == [(0, 1024.0, 1)] * 3 for chip in sheet.chips)  # uncalibrated chips
+    default, _dev = make_device(build_parser().parse_args(["virtual", "--transport", "memory", "--lattice", "3x3"]))
+    assert default.sensor_model.bias_mps2 == 0 and default.sensor_model.factory_calibrated
+    res = capsheet("virtual", "--chip-errors", "typical", "--duration", "0")
+    assert res.returncode == 2 and "invalid choice: 'typical'" in res.stderr
+
+
+def test_pose_capture_counts_still_snapshots_and_rejects_repeated_poses():
+    from host.cli.calibrate import PoseCapture
+    from virtual_sheet.geometry import ideal_readings
+
+    scene = BoardPoseScene(3, 3, 0.01, hold_s=1.0, move_s=1.0, jitter_rad=0.0)
+    g = np.random.Generator(np.random.MT19937(3))
+
+    def frame(t):
+        return ideal_readings(scene.joints(t)) + g.normal(0, 0.01, (12, 3))
+
+    cap = PoseCapture(3, 3, samples=10, window=5)
+    states = [cap.update(frame(0.5)) for _ in range(14)]
+    # 4 snapshots fill the stillness window, then 10 averaged: captured on the 14th
+    assert states == ["moving"] * 4 + ["holding"] * 9 + ["captured"]
+    assert len(cap.poses) == 1 and np.allclose(cap.directions[0], [0, 0, 1], atol=0.01)
+    assert cap.update(frame(0.5)) == "duplicate"  # the same pose again: not captured twice
+    assert cap.next_pose()[0] == "top down"
+    # a snapshot without any link is skipped; motion restarts the average
+    assert cap.update(np.full((12, 3), np.nan)) == "incomplete"
+    assert [cap.update(frame(1.2 + 0.1 * k)) for k in range(5)] == ["moving"] * 5  # turning
+    states = [cap.update(frame(2.5)) for _ in range(14)]
+    assert states[-1] == "captured" and states.count("holding") == 9
+    assert np.allclose(cap.directions[1], [0, 0, -1], atol=0.01)
+    # a link missing from some snapshots is averaged over those it is in: it needs more snapshots
+    cap2 = PoseCapture(3, 3, samples=10, window=5)
+    states = []
+    for k in range(30):
+        valid = np.ones(12, dtype=bool)
+        valid[7] = k % 2 == 0  # link 7 loses every other frame
+        states.append(cap2.update(frame(0.5), valid))
+        if states[-1] == "captured":
+            break
+    # 4 to fill the window; then link 7 gets 10 samples in 19 snapshots (the 5th snapshot is odd)
+    assert states[:4] == ["moving"] * 4 and states[-1] == "captured" and len(states) == 4 + 19
+    assert np.isfinite(cap2.poses[0]).all()
+    with pytest.raises(ValueError, match="samples"):
+        PoseCapture(3, 3, samples=0)
