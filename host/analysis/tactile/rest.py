@@ -1,0 +1,193 @@
+"""The rest shape (joints, normals, areas, noise) and the deformation against it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from protocol.lattice import joint_normals
+
+from ..estimator import ShapeEstimate
+from ..metrics import rigid_fit
+
+__all__ = ["RestShape", "deformation"]
+
+
+def _joint_areas(P: np.ndarray) -> np.ndarray:
+    """Rest area of every joint: a quarter of each adjacent cell (trapezoid rule), m²."""
+    d1 = P[1:, 1:] - P[:-1, :-1]
+    d2 = P[:-1, 1:] - P[1:, :-1]
+    cell = 0.5 * np.linalg.norm(np.cross(d1, d2), axis=-1)
+    out = np.zeros(P.shape[:2])
+    out[:-1, :-1] += cell / 4
+    out[1:, 1:] += cell / 4
+    out[:-1, 1:] += cell / 4
+    out[1:, :-1] += cell / 4
+    return out
+
+
+def _yaws_of(P: np.ndarray) -> np.ndarray:
+    """Yaw of every link (DESIGN.md link order) from joints: sensor x is ``Rz(γ) Ry(β) e_x``, so
+    ``γ = atan2(d_y, d_x)`` of the link vector."""
+    di = (P[1:, :] - P[:-1, :]).reshape(-1, 3)
+    dj = (P[:, 1:] - P[:, :-1]).reshape(-1, 3)
+    d = np.concatenate([di, dj])
+    return np.arctan2(d[:, 1], d[:, 0])
+
+
+@dataclass(frozen=True, eq=False)
+class _Prior:
+    """What `estimate` reads from ``previous``: joints and yaws."""
+
+    joints: np.ndarray
+    yaws: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class RestShape:
+    """The sheet untouched: joints, normals, joint areas and displacement noise.
+
+    Attributes
+    ----------
+    joints : ndarray, shape (rows, cols, 3)
+        Metres, the frame the deformation is reported in.
+    link_length : float
+        ``L``, metres.
+    noise_m : ndarray, shape (rows, cols), optional
+        Standard deviation of every joint's normal displacement while untouched, metres (None:
+        unknown; `find_contacts` then uses a robust spread of each frame).
+    yaws : ndarray, shape (n_links,), optional
+        Link yaws for the estimator's prior (default: from the joints).
+    """
+
+    joints: np.ndarray
+    link_length: float
+    noise_m: np.ndarray | None = None
+    yaws: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        P = np.array(self.joints, dtype=float)
+        if P.ndim != 3 or P.shape[2] != 3 or min(P.shape[:2]) < 2:
+            raise ValueError(f"Expected `joints` to have shape (rows, cols, 3), got {P.shape}.")
+        object.__setattr__(self, "joints", P)
+        if self.noise_m is not None and np.shape(self.noise_m) != P.shape[:2]:
+            raise ValueError(f"Expected `noise_m` to have shape {P.shape[:2]}, got "
+                             f"{np.shape(self.noise_m)}.")
+        yaws = _yaws_of(P) if self.yaws is None else np.asarray(self.yaws, float)
+        object.__setattr__(self, "yaws", yaws)
+        object.__setattr__(self, "normals", joint_normals(P))
+        object.__setattr__(self, "areas", _joint_areas(P))
+
+    @property
+    def rows(self) -> int:
+        return self.joints.shape[0]
+
+    @property
+    def cols(self) -> int:
+        return self.joints.shape[1]
+
+    @property
+    def prior(self) -> _Prior:
+        """The estimator's ``previous=``: the rest joints and yaws."""
+        return _Prior(self.joints, self.yaws)
+
+    @classmethod
+    def from_joints(cls, joints: np.ndarray, link_length: float,
+                    noise_m: np.ndarray | None = None) -> "RestShape":
+        """A known rest shape (e.g. the body's design), joints ``(rows, cols, 3)`` in metres."""
+        return cls(joints=joints, link_length=float(link_length), noise_m=noise_m)
+
+    @classmethod
+    def learn(cls, snapshots: Sequence[ShapeEstimate | np.ndarray],
+              link_length: float | None = None, noise_floor_fraction: float = 1.0
+              ) -> "RestShape":
+        """Learn the rest shape from an untouched period.
+
+        Every snapshot's joints are overlaid on the first (rigid least squares), averaged; the
+        noise of every joint is the standard deviation of its normal displacement from the mean,
+        floored at ``noise_floor_fraction`` × the median over joints (few snapshots make single
+        joints look quieter than they are).
+
+        Parameters
+        ----------
+        snapshots : sequence of ShapeEstimate or ndarray, shape (rows, cols, 3)
+            At least 2 (better 20+) shapes of the untouched sheet.
+        link_length : float, optional
+            ``L``, metres (default: from the estimates).
+        """
+        snaps = list(snapshots)
+        if len(snaps) < 2:
+            raise ValueError(f"RestShape.learn needs at least 2 snapshots, got {len(snaps)}.")
+        if link_length is None:
+            if not isinstance(snaps[0], ShapeEstimate):
+                raise ValueError("RestShape.learn: give link_length with plain joint arrays.")
+            link_length = snaps[0].link_length
+        P = [np.asarray(s.joints if isinstance(s, ShapeEstimate) else s, float) for s in snaps]
+        shape = P[0].shape
+        if any(p.shape != shape for p in P):
+            raise ValueError(f"RestShape.learn: snapshots of different shapes "
+                             f"{sorted({p.shape for p in P})}.")
+        ref = P[0].reshape(-1, 3)
+        al = np.array([rigid_fit(p.reshape(-1, 3), ref) for p in P])
+        mean = al.mean(axis=0)
+        al = np.array([rigid_fit(a, mean) for a in al])
+        mean = al.mean(axis=0).reshape(shape)
+        n = joint_normals(mean)
+        d = np.einsum("sjk,jk->sj", al - mean.reshape(-1, 3), n.reshape(-1, 3))
+        noise = d.std(axis=0, ddof=1).reshape(shape[:2])
+        noise = np.maximum(noise, noise_floor_fraction * np.median(noise))
+        yaws = None
+        if all(isinstance(s, ShapeEstimate) for s in snaps):
+            y = np.array([s.yaws for s in snaps])
+            yaws = np.angle(np.exp(1j * y).mean(axis=0))
+        return cls(joints=mean, link_length=float(link_length), noise_m=noise, yaws=yaws)
+
+
+def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | None = None,
+                trim_sigma: float = 3.0, trim_floor_m: float | None = None, iterations: int = 4
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Normal displacement of every joint against the rest shape.
+
+    The joints are overlaid on the rest joints by a rigid fit that ignores moved joints
+    (iterated: weight 0 for ``|d| > max(trim_sigma · σ, trim_floor_m)``, ``σ`` a robust spread
+    of ``d``), then ``d_i = (rest_i − joints_i) · n_i`` with ``n_i`` the rest normal (top face,
+    pointing out of the foam).
+
+    Parameters
+    ----------
+    joints : ndarray, shape (rows, cols, 3)
+        Estimated joints, metres, any rigid placement (the estimator's gauge).
+    rest : RestShape
+    exclude : ndarray of bool, shape (rows, cols), optional
+        Joints known to be moved (e.g. contacts found in a first pass with their skirts): left
+        out of the fit, so the dents' shallow tails do not bias it.
+
+    Returns
+    -------
+    displacement : ndarray, shape (rows, cols)
+        Metres, positive into the foam.
+    aligned : ndarray, shape (rows, cols, 3)
+        The joints overlaid on the rest shape, metres, rest frame.
+    """
+    P = np.asarray(joints, float)
+    if P.shape != rest.joints.shape:
+        raise ValueError(f"Expected `joints` to have shape {rest.joints.shape}, got {P.shape}.")
+    src, dst = P.reshape(-1, 3), rest.joints.reshape(-1, 3)
+    n = rest.normals.reshape(-1, 3)
+    floor = 0.01 * rest.link_length if trim_floor_m is None else float(trim_floor_m)
+    allowed = np.ones(len(src), bool) if exclude is None else ~np.asarray(exclude, bool).ravel()
+    if allowed.sum() < 4:
+        allowed = np.ones(len(src), bool)
+    moved = src - np.median((src - dst)[allowed], axis=0)  # robust start: translation only
+    for _ in range(iterations):
+        d = np.sum((dst - moved) * n, axis=1)
+        r = d - np.median(d[allowed])
+        s = 1.4826 * np.median(np.abs(r[allowed]))
+        keep = allowed & (np.abs(r) <= max(trim_sigma * s, floor))
+        if keep.sum() < 4:
+            keep = allowed
+        moved = rigid_fit(src, dst, keep.astype(float))
+    d = np.sum((dst - moved) * n, axis=1)
+    return d.reshape(P.shape[:2]), moved.reshape(P.shape)
