@@ -12,7 +12,7 @@ from protocol.lattice import joint_normals
 from ..estimator import ShapeEstimate
 from ..metrics import rigid_fit
 
-__all__ = ["RestShape", "deformation"]
+__all__ = ["RestShape", "deformation", "normal_fit"]
 
 
 def _joint_areas(P: np.ndarray) -> np.ndarray:
@@ -145,15 +145,83 @@ class RestShape:
         return cls(joints=mean, link_length=float(link_length), noise_m=noise, yaws=yaws)
 
 
+#: Weight of the tangential (point-to-point) residuals against the normal ones in `normal_fit`:
+#: just enough to fix the motions the normals cannot see (sliding along a plane, rotation about a
+#: sphere's centre or a cylinder's axis), small enough that the sheet's sliding does not tilt the fit.
+TANGENTIAL_WEIGHT = 1e-2
+
+
+def _rotation(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the rotation vector ``w`` (Rodrigues), radians."""
+    th = float(np.linalg.norm(w))
+    if th < 1e-300:
+        return np.eye(3)
+    a = w / th
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    return np.eye(3) + np.sin(th) * K + (1.0 - np.cos(th)) * (K @ K)
+
+
+def normal_fit(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, weights: np.ndarray,
+               tangential_weight: float = TANGENTIAL_WEIGHT, iterations: int = 6) -> np.ndarray:
+    """``src`` moved rigidly onto ``dst`` by the normal distances (point-to-plane least squares).
+
+    Starts from `host.analysis.metrics.rigid_fit` (point-to-point, weighted), then minimises
+    ``Σ w_i [((q_i − p_i') · n_i)² + ε ‖q_i − p_i'‖²]`` over small rotations and translations
+    (Gauss-Newton, ``ε = tangential_weight``). Why: the sheet lies on the foam without being
+    glued to it; its links keep their length, so a dent pulls the sheet in sideways (the joints
+    slide along the surface by up to ~0.2 mm at 2 N). On a curved body a point-to-point overlay
+    turns that sliding into a rotation or translation with a normal component, reading every
+    joint too shallow (−15 to −25 % of the force on the cylinder and the sphere, with the moved
+    joints already excluded). The normal distances are blind to sliding; ``ε`` only fixes the
+    motions that move no joint off the rest surface (those are the body's symmetries).
+
+    Parameters
+    ----------
+    src, dst : ndarray, shape (n, 3)
+        Points, metres (``dst`` the rest joints).
+    normals : ndarray, shape (n, 3)
+        Unit rest normals at ``dst``.
+    weights : ndarray, shape (n,)
+        Non-negative weight of every point (0: not in the fit).
+
+    Returns
+    -------
+    ndarray, shape (n, 3)
+        ``src`` after the rigid motion, metres, ``dst``'s frame.
+    """
+    w = np.asarray(weights, float)
+    p = rigid_fit(src, dst, w)
+    n = np.asarray(normals, float)
+    eps = float(tangential_weight)
+    eye = np.eye(3)
+    for _ in range(iterations):
+        c = (w @ p) / w.sum()
+        x = p - c
+        A = np.hstack([np.cross(x, n), n])              # d(normal residual)/d(rotation, shift)
+        r = np.sum((dst - p) * n, axis=1)
+        M = (A * w[:, None]).T @ A
+        b = (A * w[:, None]).T @ r
+        for k in range(3):                               # ε × point-to-point
+            J = np.hstack([np.cross(x, eye[k]), np.broadcast_to(eye[k], x.shape)])
+            M += eps * (J * w[:, None]).T @ J
+            b += eps * (J * w[:, None]).T @ (dst - p)[:, k]
+        step = np.linalg.solve(M, b)
+        p = x @ _rotation(step[:3]).T + c + step[3:]
+        if np.max(np.abs(step)) < 1e-12:
+            break
+    return p
+
+
 def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | None = None,
                 trim_sigma: float = 3.0, trim_floor_m: float | None = None, iterations: int = 4
                 ) -> tuple[np.ndarray, np.ndarray]:
     """Normal displacement of every joint against the rest shape.
 
-    The joints are overlaid on the rest joints by a rigid fit that ignores moved joints
-    (iterated: weight 0 for ``|d| > max(trim_sigma · σ, trim_floor_m)``, ``σ`` a robust spread
-    of ``d``), then ``d_i = (rest_i − joints_i) · n_i`` with ``n_i`` the rest normal (top face,
-    pointing out of the foam).
+    The joints are overlaid on the rest joints by a rigid fit of the normal distances
+    (`normal_fit`: the sheet's sliding along the surface does not tilt it) that ignores moved
+    joints (iterated: weight 0 for ``|d| > max(trim_sigma · σ, trim_floor_m)``, ``σ`` a robust
+    spread of ``d``), then ``d_i = (rest_i − joints_i) · n_i`` with ``n_i`` the rest normal (top
+    face, pointing out of the foam).
 
     Parameters
     ----------
@@ -180,14 +248,14 @@ def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | No
     allowed = np.ones(len(src), bool) if exclude is None else ~np.asarray(exclude, bool).ravel()
     if allowed.sum() < 4:
         allowed = np.ones(len(src), bool)
-    moved = src - np.median((src - dst)[allowed], axis=0)  # robust start: translation only
+    moved = rigid_fit(src, dst, allowed.astype(float))
     for _ in range(iterations):
         d = np.sum((dst - moved) * n, axis=1)
         r = d - np.median(d[allowed])
         s = 1.4826 * np.median(np.abs(r[allowed]))
         keep = allowed & (np.abs(r) <= max(trim_sigma * s, floor))
-        if keep.sum() < 4:
+        if keep.sum() < 6:
             keep = allowed
-        moved = rigid_fit(src, dst, keep.astype(float))
+        moved = normal_fit(src, dst, n, keep.astype(float))
     d = np.sum((dst - moved) * n, axis=1)
     return d.reshape(P.shape[:2]), moved.reshape(P.shape)
