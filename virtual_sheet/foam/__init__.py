@@ -69,10 +69,11 @@ from __future__ import annotations
 from .bodies import FoamBlock, FoamBody, FoamCylinder, FoamSphere
 from .indenters import (CapsuleIndenter, FlatPunch, Indenter, Press, RectPunch, SphereIndenter,
                         TrueContact)
-from .material import FoamLayer, oedometric_modulus
+from .material import FoamLayer, column_compliance, oedometric_modulus
 from .scene import FoamScene
 from .solver import Deflection, solve_contact
 
 __all__ = ["FoamLayer", "oedometric_modulus", "Indenter", "SphereIndenter", "FlatPunch",
            "CapsuleIndenter", "RectPunch", "Press", "TrueContact", "FoamBody", "FoamBlock",
-           "FoamCylinder", "FoamSphere", "FoamScene", "Deflection", "solve_contact"]
+           "FoamCylinder", "FoamSphere", "FoamScene", "Deflection", "solve_contact",
+           "column_compliance"]

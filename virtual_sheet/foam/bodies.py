@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,6 +24,11 @@ class FoamBody:
     """
 
     layer: FoamLayer
+
+    @property
+    def contact_layer(self) -> FoamLayer:
+        """The layer as the contact solver sees it: `layer` with this body's curvature."""
+        return self.layer
 
     def surface_point(self, uv: np.ndarray) -> np.ndarray:
         raise NotImplementedError
@@ -96,6 +101,13 @@ class FoamCylinder(FoamBody):
 
     def __post_init__(self) -> None:
         _positive(self.radius_m, "cylinder radius_m", "m")
+        if not self.layer.thickness_m < self.radius_m:
+            raise ValueError(f"Invalid cylinder radius_m: {self.radius_m!r} m (need more than the "
+                             f"foam's thickness {self.layer.thickness_m!r} m)")
+
+    @property
+    def contact_layer(self) -> FoamLayer:
+        return replace(self.layer, curvature_m_inv=(1.0 / self.radius_m, 0.0))
 
     @property
     def centre(self) -> np.ndarray:
@@ -156,6 +168,13 @@ class FoamSphere(FoamBody):
 
     def __post_init__(self) -> None:
         _positive(self.radius_m, "sphere radius_m", "m")
+        if not self.layer.thickness_m < self.radius_m:
+            raise ValueError(f"Invalid sphere radius_m: {self.radius_m!r} m (need more than the "
+                             f"foam's thickness {self.layer.thickness_m!r} m)")
+
+    @property
+    def contact_layer(self) -> FoamLayer:
+        return replace(self.layer, curvature_m_inv=(1.0 / self.radius_m, 1.0 / self.radius_m))
 
     @property
     def centre(self) -> np.ndarray:

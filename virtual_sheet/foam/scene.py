@@ -60,7 +60,8 @@ class FoamScene:
 
     @property
     def layer(self) -> FoamLayer:
-        return self.body.layer
+        """The body's foam with its curvature (`FoamBody.contact_layer`)."""
+        return self.body.contact_layer
 
     @cached_property
     def _grid(self) -> tuple[np.ndarray, float]:

@@ -237,7 +237,7 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
                         best, best_d = grown[a, b], d[a, b]
             new[i, j] = best
         grown = new
-    k = foam.k_pa_per_m
+    k = foam.k_at(rest.curvatures)  # per joint: the layer is softer where the core is convex
     out = []
     geo = []
     for r in ids:
@@ -274,7 +274,7 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
                            axes_m=axes, angle_rad=ang, peak=(int(pk[0]), int(pk[1])),
                            region=region))
     share = _force_shares(d, rest, grown, ids, geo, foam.shear_length_m)
-    out = [replace(c, force_n=float(k * np.sum(d * rest.areas * f)))
+    out = [replace(c, force_n=float(np.sum(k * d * rest.areas * f)))
            for c, f in zip(out, share)]
     out.sort(key=lambda c: -c.depth_m)
     return out

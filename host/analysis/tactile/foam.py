@@ -6,7 +6,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Foam"]
+__all__ = ["Foam", "column_compliance"]
+
+
+def column_compliance(thickness_m: float, k1=0.0, k2=0.0):
+    """``∫_0^h ds / ((1 − κ1 s)(1 − κ2 s))``, metres (``virtual_sheet.foam.column_compliance``'s
+    model, here for arrays): a foam column under the outer area ``dA`` of a core with principal
+    curvatures ``κ1, κ2`` (1/m, positive where convex) has the area ``(1 − κ1 s)(1 − κ2 s) dA``
+    at depth ``s``, so ``k = E_oed / this``; ``h`` on a flat core. Curvatures are clipped to
+    ``0.9 / h`` (a noisy rest shape must not make the layer vanish).
+
+    >>> round(float(column_compliance(0.02, 10.0, 0.0)) / 0.02, 4)   # cylinder R = 0.1 m
+    1.1157
+    """
+    h = float(thickness_m)
+    k1 = np.minimum(np.asarray(k1, float), 0.9 / h)[..., None]
+    k2 = np.minimum(np.asarray(k2, float), 0.9 / h)[..., None]
+    x, wts = np.polynomial.legendre.leggauss(16)
+    s = 0.5 * h * (x + 1.0)
+    return 0.5 * h * np.sum(wts / ((1.0 - k1 * s) * (1.0 - k2 * s)), axis=-1)
 
 
 @dataclass(frozen=True)
@@ -41,6 +59,14 @@ class Foam:
         nu = self.poisson
         e_oed = self.youngs_modulus_pa * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
         return e_oed / self.thickness_m
+
+    def k_at(self, curvatures_m_inv: np.ndarray) -> np.ndarray:
+        """``k`` where the rest surface has principal curvatures ``curvatures_m_inv`` (shape
+        ``(..., 2)``, 1/m, positive where convex; `RestShape.curvatures`), Pa/m, shape ``(...)``."""
+        c = np.asarray(curvatures_m_inv, float)
+        nu = self.poisson
+        e_oed = self.youngs_modulus_pa * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+        return e_oed / column_compliance(self.thickness_m, c[..., 0], c[..., 1])
 
     @property
     def shear_length_m(self) -> float:

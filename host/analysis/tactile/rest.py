@@ -28,6 +28,33 @@ def _joint_areas(P: np.ndarray) -> np.ndarray:
     return out
 
 
+def _curvatures(P: np.ndarray, normals: np.ndarray, half: int = 2) -> np.ndarray:
+    """Principal curvatures of the surface through the joints, shape ``(rows, cols, 2)``, 1/m,
+    positive where the surface curves away from its normal (convex, as a foam ball's top).
+
+    At every joint, the joints within ``half`` lattice steps (a 5 x 5 window at the default,
+    clipped at the edges) are written in the joint's tangent frame and a quadric
+    ``z = a x²/2 + b x y + c y²/2 + p x + q y + r`` is fitted by least squares; the curvatures
+    are the eigenvalues of ``−[[a, b], [b, c]]``, larger first. The window smooths a learned
+    rest's noise (curvature is a second difference).
+    """
+    rows, cols = P.shape[:2]
+    out = np.zeros((rows, cols, 2))
+    for i in range(rows):
+        for j in range(cols):
+            n = normals[i, j]
+            e1 = np.cross([0.0, 1.0, 0.0] if abs(n[0]) > 0.9 else [1.0, 0.0, 0.0], n)
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(n, e1)
+            X = P[max(i - half, 0):i + half + 1, max(j - half, 0):j + half + 1].reshape(-1, 3)
+            X = X - P[i, j]
+            x, y, z = X @ e1, X @ e2, X @ n
+            A = np.stack([0.5 * x * x, x * y, 0.5 * y * y, x, y, np.ones_like(x)], axis=1)
+            a, b, c = np.linalg.lstsq(A, z, rcond=None)[0][:3]
+            out[i, j] = np.linalg.eigvalsh(-np.array([[a, b], [b, c]]))[::-1]
+    return out
+
+
 def _yaws_of(P: np.ndarray) -> np.ndarray:
     """Yaw of every link (DESIGN.md link order) from joints: sensor x is ``Rz(γ) Ry(β) e_x``, so
     ``γ = atan2(d_y, d_x)`` of the link vector."""
@@ -60,6 +87,10 @@ class RestShape:
         unknown; `find_contacts` then uses a robust spread of each frame).
     yaws : ndarray, shape (n_links,), optional
         Link yaws for the estimator's prior (default: from the joints).
+
+    Derived: ``normals`` (rows, cols, 3), out of the foam; ``areas`` (rows, cols), m², a quarter
+    of every adjacent cell; ``curvatures`` (rows, cols, 2), the principal curvatures, 1/m,
+    positive where convex (`Foam.k_at` makes the layer softer there).
     """
 
     joints: np.ndarray
@@ -79,6 +110,7 @@ class RestShape:
         object.__setattr__(self, "yaws", yaws)
         object.__setattr__(self, "normals", joint_normals(P))
         object.__setattr__(self, "areas", _joint_areas(P))
+        object.__setattr__(self, "curvatures", _curvatures(P, self.normals))
 
     @property
     def rows(self) -> int:
