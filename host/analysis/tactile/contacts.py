@@ -36,6 +36,11 @@ class DetectorSettings:
     skirt : int
         Joints beyond the region (dilation steps, 8-neighbours) added to each contact's force
         integral for the dent's shallow tail (default 2).
+    merge_flag_ratio : float
+        A contact whose half-depth footprint is this elongated (major / minor half-axis) is
+        flagged ``merged`` (default 1.6: a round contact reads 1.0-1.5, two 2 N contacts 2 L
+        apart that merged 1.8-2.8; a finger, 3.7-5, is flagged too: one elongated contact and two
+        merged round ones look alike at one joint per link length).
     """
 
     k_detect: float = 5.0
@@ -45,6 +50,7 @@ class DetectorSettings:
     prominence_fraction: float = 0.3
     min_separation: float = 1.5
     skirt: int = 2
+    merge_flag_ratio: float = 1.6
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,6 +82,10 @@ class Contact:
         Joint ``(i, j)`` of the largest displacement.
     region : ndarray of bool, shape (rows, cols)
         The joints of the contact (without the skirt).
+    merged : bool
+        The region may hold more than one contact: a second maximum above the detection
+        threshold was merged into it (closer than ``min_separation`` or not prominent enough),
+        or its footprint is elongated (``merge_flag_ratio``). Its force is then the sum.
     """
 
     id: int
@@ -89,6 +99,7 @@ class Contact:
     angle_rad: float
     peak: tuple[int, int]
     region: np.ndarray = field(repr=False)
+    merged: bool = False
 
 
 _NB8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
@@ -146,6 +157,42 @@ def lattice_index(joints: np.ndarray, point: np.ndarray, iterations: int = 20) -
     return f
 
 
+#: Subsamples per link length for the footprint (bilinear interpolation of the displacement).
+FOOTPRINT_SUBSAMPLES = 4
+
+
+def _footprint(d, region, rest, level, pos, e1, e2):
+    """The contact's footprint above ``level``: points ``(n, 2)`` in the tangent frame ``(e1,
+    e2)`` at ``pos`` (metres) and its area (m²), from the displacement interpolated bilinearly
+    at `FOOTPRINT_SUBSAMPLES` per link inside the region (a punch's round flat bottom spans a few
+    joints only: their moments alone would make it a line)."""
+    rows, cols = d.shape
+    ii, jj = np.nonzero(region)
+    f = FOOTPRINT_SUBSAMPLES
+    si = np.arange(max(ii.min() - 1, 0) * f, min(ii.max() + 1, rows - 1) * f + 1) / f
+    sj = np.arange(max(jj.min() - 1, 0) * f, min(jj.max() + 1, cols - 1) * f + 1) / f
+    SI, SJ = (a.ravel() for a in np.meshgrid(si, sj, indexing="ij"))
+    dv = _bilinear_many(d[..., None], SI, SJ)[:, 0]
+    inr = region[np.floor(SI + 0.5).astype(int), np.floor(SJ + 0.5).astype(int)]  # nearest joint
+    keep = inr & (dv >= level)
+    if keep.sum() < 1:
+        keep = np.zeros(len(SI), bool)
+        keep[np.argmax(np.where(inr, dv, -np.inf))] = True
+    X = _bilinear_many(rest.joints, SI[keep], SJ[keep]) - pos
+    cell = _bilinear_many(rest.areas[..., None], SI[keep], SJ[keep])[:, 0] / (f * f)
+    return np.stack([X @ e1, X @ e2], axis=1), float(cell.sum())
+
+
+def _bilinear_many(P: np.ndarray, fi: np.ndarray, fj: np.ndarray) -> np.ndarray:
+    """`_bilinear` at many fractional indices: ``P (rows, cols, m)`` -> ``(n, m)``."""
+    rows, cols = P.shape[:2]
+    i0 = np.clip(np.floor(fi).astype(int), 0, rows - 2)
+    j0 = np.clip(np.floor(fj).astype(int), 0, cols - 2)
+    a, b = (fi - i0)[:, None], (fj - j0)[:, None]
+    return ((1 - a) * (1 - b) * P[i0, j0] + a * (1 - b) * P[i0 + 1, j0]
+            + (1 - a) * b * P[i0, j0 + 1] + a * b * P[i0 + 1, j0 + 1])
+
+
 def _noise_map(displacement: np.ndarray, rest: RestShape) -> np.ndarray:
     if rest.noise_m is not None:
         return np.asarray(rest.noise_m, float)
@@ -154,13 +201,16 @@ def _noise_map(displacement: np.ndarray, rest: RestShape) -> np.ndarray:
     return np.full(displacement.shape, s)
 
 
-def _segment(d: np.ndarray, sigma: np.ndarray, s: DetectorSettings) -> np.ndarray:
-    """Watershed with merging by prominence and separation; labels ``(rows, cols)``, -1 none."""
+def _segment(d: np.ndarray, sigma: np.ndarray, s: DetectorSettings
+             ) -> tuple[np.ndarray, set[int]]:
+    """Watershed with merging by prominence and separation: labels ``(rows, cols)`` (-1 none)
+    and the labels that absorbed a second maximum above the detection threshold."""
     rows, cols = d.shape
     region_thr = np.maximum(s.k_region * sigma, s.floor_m)
     inside = d > region_thr
     label = -np.ones(d.shape, int)
     parent: list[int] = []
+    absorbed: list[int] = []
     peak_of: list[tuple[int, int]] = []
 
     def find(a: int) -> int:
@@ -181,6 +231,12 @@ def _segment(d: np.ndarray, sigma: np.ndarray, s: DetectorSettings) -> np.ndarra
             peak_of.append((i, j))
             label[i, j] = len(parent) - 1
             continue
+        # the joint joins its steepest-ascent neighbour's region (a saddle joint next to one peak
+        # and the flank of another goes to the peak it is next to)
+        nbrs = [(d[i + di, j + dj], i + di, j + dj) for di, dj in _NB8
+                if 0 <= i + di < rows and 0 <= j + dj < cols and label[i + di, j + dj] >= 0]
+        _, si_, sj_ = max(nbrs)
+        steep = find(label[si_, sj_])
         roots = sorted(roots, key=lambda r: -d[peak_of[r]])
         top = roots[0]
         for r in roots[1:]:
@@ -191,11 +247,13 @@ def _segment(d: np.ndarray, sigma: np.ndarray, s: DetectorSettings) -> np.ndarra
             sep = np.hypot(pi - ti, pj - tj)
             if prom < need or sep < s.min_separation:
                 parent[r] = top
-        label[i, j] = top
+                if sep >= s.min_separation and prom >= s.k_prominence * sigma[pi, pj]:
+                    absorbed.append(top)  # a real second maximum, merged as not prominent enough
+        label[i, j] = find(steep)
     out = -np.ones(d.shape, int)
     m = label >= 0
     out[m] = [find(int(x)) for x in label[m]]
-    return out
+    return out, {find(a) for a in absorbed}
 
 
 def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
@@ -220,7 +278,7 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
         raise ValueError(f"Expected `displacement` to have shape {rest.joints.shape[:2]}, "
                          f"got {d.shape}.")
     sigma = _noise_map(d, rest)
-    labels = _segment(d, sigma, settings)
+    labels, absorbed = _segment(d, sigma, settings)
     detect_thr = np.maximum(settings.k_detect * sigma, settings.floor_m)
     ids = [int(x) for x in np.unique(labels) if x >= 0]
     ids = [r for r in ids if np.any((labels == r) & (d > detect_thr))]
@@ -256,10 +314,9 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
         e1 -= (e1 @ nrm) * nrm
         e1 /= np.linalg.norm(e1)
         e2 = np.cross(nrm, e1)
-        X = rest.joints[core] - pos
-        xy = np.stack([X @ e1, X @ e2], axis=1)
-        mu = w @ xy / w.sum()
-        C = ((xy - mu) * w[:, None]).T @ (xy - mu) / w.sum()
+        xy, sub_area = _footprint(d, region, rest, 0.5 * depth, pos, e1, e2)
+        mu = xy.mean(axis=0)
+        C = (xy - mu).T @ (xy - mu) / len(xy)
         ev, evec = np.linalg.eigh(C)
         axes = 2.0 * np.sqrt(np.maximum(ev[::-1], 0.0))
         major = evec[:, 1]
@@ -268,11 +325,12 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
             ang += np.pi
         elif ang > np.pi / 2:
             ang -= np.pi
-        geo.append((pos, float(np.sqrt(rest.areas[core].sum() / np.pi))))
+        geo.append((pos, float(np.sqrt(sub_area / np.pi))))
+        merged = r in absorbed or axes[0] >= settings.merge_flag_ratio * max(axes[1], 1e-12)
         out.append(Contact(id=-1, index=np.array([fi, fj]), position=pos, normal=nrm,
-                           depth_m=depth, force_n=0.0, area_m2=float(rest.areas[core].sum()),
-                           axes_m=axes, angle_rad=ang, peak=(int(pk[0]), int(pk[1])),
-                           region=region))
+                           depth_m=depth, force_n=0.0, area_m2=sub_area, axes_m=axes,
+                           angle_rad=ang, peak=(int(pk[0]), int(pk[1])), region=region,
+                           merged=bool(merged)))
     share = _force_shares(d, rest, grown, ids, geo, foam.shear_length_m)
     out = [replace(c, force_n=float(np.sum(k * d * rest.areas * f)))
            for c, f in zip(out, share)]
