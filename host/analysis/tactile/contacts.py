@@ -284,18 +284,19 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
     ids = [r for r in ids if np.any((labels == r) & (d > detect_thr))]
     # skirts: grow every region by dilation into unlabelled joints, deepest neighbour wins
     grown = np.where(np.isin(labels, ids), labels, -1)
+    rows, cols = d.shape
     for _ in range(settings.skirt):
-        new = grown.copy()
-        for i, j in zip(*np.nonzero(grown < 0)):
-            best, best_d = -1, -np.inf
-            for di, dj in _NB8:
-                a, b = i + di, j + dj
-                if 0 <= a < d.shape[0] and 0 <= b < d.shape[1] and grown[a, b] >= 0:
-                    if d[a, b] > best_d:
-                        best, best_d = grown[a, b], d[a, b]
-            new[i, j] = best
-        grown = new
-    k = foam.k_at(rest.curvatures)  # per joint: the layer is softer where the core is convex
+        lab = np.pad(grown, 1, constant_values=-1)
+        dep = np.pad(d, 1, constant_values=-np.inf)
+        best, best_d = np.full(d.shape, -1), np.full(d.shape, -np.inf)
+        for di, dj in _NB8:
+            nl = lab[1 + di:1 + di + rows, 1 + dj:1 + dj + cols]
+            nd = np.where(nl >= 0, dep[1 + di:1 + di + rows, 1 + dj:1 + dj + cols], -np.inf)
+            better = nd > best_d
+            best = np.where(better, nl, best)
+            best_d = np.where(better, nd, best_d)
+        grown = np.where(grown >= 0, grown, best)
+    k = rest.k_map(foam)  # per joint: the layer is softer where the core is convex
     out = []
     geo = []
     for r in ids:

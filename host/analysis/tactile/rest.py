@@ -120,6 +120,13 @@ class RestShape:
     def cols(self) -> int:
         return self.joints.shape[1]
 
+    def k_map(self, foam) -> np.ndarray:
+        """``foam.k_at(self.curvatures)``, Pa/m, shape (rows, cols), cached per foam."""
+        cache = self.__dict__.setdefault("_k_cache", {})
+        if foam not in cache:
+            cache[foam] = foam.k_at(self.curvatures)
+        return cache[foam]
+
     @property
     def prior(self) -> _Prior:
         """The estimator's ``previous=``: the rest joints and yaws."""
@@ -194,7 +201,8 @@ def _rotation(w: np.ndarray) -> np.ndarray:
 
 
 def normal_fit(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, weights: np.ndarray,
-               tangential_weight: float = TANGENTIAL_WEIGHT, iterations: int = 6) -> np.ndarray:
+               tangential_weight: float = TANGENTIAL_WEIGHT, iterations: int = 6,
+               start: np.ndarray | None = None) -> np.ndarray:
     """``src`` moved rigidly onto ``dst`` by the normal distances (point-to-plane least squares).
 
     Starts from `host.analysis.metrics.rigid_fit` (point-to-point, weighted), then minimises
@@ -215,6 +223,9 @@ def normal_fit(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, weights: n
         Unit rest normals at ``dst``.
     weights : ndarray, shape (n,)
         Non-negative weight of every point (0: not in the fit).
+    start : ndarray, shape (n, 3), optional
+        ``src`` already moved close (a previous fit): the Gauss-Newton steps start there
+        instead of at the point-to-point overlay.
 
     Returns
     -------
@@ -222,26 +233,37 @@ def normal_fit(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, weights: n
         ``src`` after the rigid motion, metres, ``dst``'s frame.
     """
     w = np.asarray(weights, float)
-    p = rigid_fit(src, dst, w)
+    p = rigid_fit(src, dst, w) if start is None else np.asarray(start, float)
     n = np.asarray(normals, float)
     eps = float(tangential_weight)
-    eye = np.eye(3)
+    W = w.sum()
     for _ in range(iterations):
-        c = (w @ p) / w.sum()
+        c = (w @ p) / W
         x = p - c
-        A = np.hstack([np.cross(x, n), n])              # d(normal residual)/d(rotation, shift)
-        r = np.sum((dst - p) * n, axis=1)
-        M = (A * w[:, None]).T @ A
-        b = (A * w[:, None]).T @ r
-        for k in range(3):                               # ε × point-to-point
-            J = np.hstack([np.cross(x, eye[k]), np.broadcast_to(eye[k], x.shape)])
-            M += eps * (J * w[:, None]).T @ J
-            b += eps * (J * w[:, None]).T @ (dst - p)[:, k]
+        A = np.concatenate([_cross(x, n), n], axis=1)   # d(normal residual)/d(rotation, shift)
+        e = dst - p
+        r = np.sum(e * n, axis=1)
+        Aw = A * w[:, None]
+        M = Aw.T @ A
+        b = Aw.T @ r
+        # ε × point-to-point, in closed form (x is centred, so rotation and shift decouple):
+        # Σ w (|x|² I − x xᵀ) for the rotation, W I for the shift; right side Σ w x × e, Σ w e
+        xw = x * w[:, None]
+        M[:3, :3] += eps * (np.sum(xw * x) * np.eye(3) - xw.T @ x)
+        M[3:, 3:] += eps * W * np.eye(3)
+        b[:3] += eps * np.sum(_cross(xw, e), axis=0)
+        b[3:] += eps * (w @ e)
         step = np.linalg.solve(M, b)
         p = x @ _rotation(step[:3]).T + c + step[3:]
-        if np.max(np.abs(step)) < 1e-12:
+        if np.max(np.abs(step)) < 1e-10:
             break
     return p
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross product of two ``(n, 3)`` arrays (np.cross without its axis handling)."""
+    return np.stack([a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1], a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2],
+                     a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]], axis=1)
 
 
 def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | None = None,
@@ -288,6 +310,6 @@ def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | No
         keep = allowed & (np.abs(r) <= max(trim_sigma * s, floor))
         if keep.sum() < 6:
             keep = allowed
-        moved = normal_fit(src, dst, n, keep.astype(float))
+        moved = normal_fit(src, dst, n, keep.astype(float), start=moved)
     d = np.sum((dst - moved) * n, axis=1)
     return d.reshape(P.shape[:2]), moved.reshape(P.shape)
