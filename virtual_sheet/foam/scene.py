@@ -15,7 +15,45 @@ from .indenters import Press, TrueContact
 from .material import FoamLayer, _positive
 from .solver import Deflection, solve_contact
 
-__all__ = ["FoamScene"]
+__all__ = ["FoamScene", "Creep"]
+
+
+@dataclass(frozen=True)
+class Creep:
+    """Slow change of the untouched surface: foam creep, settling, temperature (docs/tactile.md,
+    "Drift"). A broad sag into the foam, Gaussian of width ``width_m`` about ``centre_m``
+    (surface coordinates), deepening as ``depth_m (1 − exp(−t / tau_s))``, plus a uniform
+    settling of ``uniform_m`` with the same time course. Superposed on the indentation (the layer
+    is linear); it carries no force of its own (the scene's true contacts are the presses).
+
+    Attributes
+    ----------
+    depth_m, width_m, uniform_m : float
+        Metres (final sag depth at the centre, Gaussian standard deviation, uniform part).
+    tau_s : float
+        Time constant, seconds.
+    centre_m : tuple of float
+        ``(u, v)``, metres.
+    """
+
+    depth_m: float = 1e-3
+    width_m: float = 0.03
+    tau_s: float = 600.0
+    uniform_m: float = 0.0
+    centre_m: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        _positive(self.width_m, "creep width_m", "m")
+        _positive(self.tau_s, "creep tau_s", "s")
+        if not (np.isfinite(self.depth_m) and np.isfinite(self.uniform_m)):
+            raise ValueError(f"Invalid creep depth_m/uniform_m: {self.depth_m!r}, "
+                             f"{self.uniform_m!r} (need finite metres)")
+
+    def at(self, U: np.ndarray, V: np.ndarray, t_s: float) -> np.ndarray:
+        """Sag into the foam at surface coordinates ``U, V`` and time ``t_s``, metres."""
+        g = 1.0 - np.exp(-max(float(t_s), 0.0) / self.tau_s)
+        r2 = (U - self.centre_m[0]) ** 2 + (V - self.centre_m[1]) ** 2
+        return g * (self.depth_m * np.exp(-0.5 * r2 / self.width_m ** 2) + self.uniform_m)
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,6 +79,8 @@ class FoamScene:
         ``e^{-6}``, and the FFT's periodic images do not touch).
     min_force_n : float
         Contacts below this force are not reported as active (default 1 mN).
+    creep : Creep, optional
+        Slow change of the untouched surface (default none).
     """
 
     body: FoamBody
@@ -51,6 +91,7 @@ class FoamScene:
     grid_step_m: float | None = None
     margin_m: float | None = None
     min_force_n: float = 1e-3
+    creep: Creep | None = None
 
     def __post_init__(self) -> None:
         Lattice(self.rows, self.cols)
@@ -89,12 +130,17 @@ class FoamScene:
             return self._cache[key]
         active = [(i, p.force_at(t_s), p.position_at(t_s)) for i, p in enumerate(self.presses)]
         active = [a for a in active if a[1] > 0]
-        if not active:
+        if not active and self.creep is None:
             return None
         u, step = self._grid
         U, V = np.meshgrid(u, u, indexing="ij")
-        profiles = [self.presses[i].indenter.profile(U - c[0], V - c[1]) for i, _, c in active]
-        p, depths, w = solve_contact(self.layer, profiles, [F for _, F, _ in active], step)
+        if active:
+            profiles = [self.presses[i].indenter.profile(U - c[0], V - c[1]) for i, _, c in active]
+            p, depths, w = solve_contact(self.layer, profiles, [F for _, F, _ in active], step)
+        else:
+            p, depths, w = np.zeros(U.shape), [], np.zeros(U.shape)
+        if self.creep is not None:  # the indenters rest on the sagged surface: superposed
+            w = w + self.creep.at(U, V, t_s)
         out = Deflection(u=u, v=u.copy(), w=w, pressure=p, step_m=step,
                          depths_m={i: d for (i, _, _), d in zip(active, depths)})
         if len(self._cache) > 256:
