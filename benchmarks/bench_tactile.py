@@ -22,6 +22,9 @@ noise):
   the sum of the true contacts it holds;
 * ``false_positives_per_1000``: detected contacts matched to no true one, per 1000 snapshots; on
   untouched rows (indenter ``none``, 1000 snapshots) every contact is one;
+* ``force_held_err_p95_pct`` / ``force_held_bias_pct``: the same for ``Contact.force_n_held``,
+  the tracked contact's mean over its last 4 snapshots (the first snapshots of a layout have
+  fewer);
 * capsule rows: ``axes_err_pct`` (major, minor) against the true dent's half-depth footprint
   (from the virtual deflection, same moment definition) and ``angle_err_deg_mean`` / ``_p95``.
 
@@ -147,7 +150,7 @@ class Bench:
         rest = self.rest(body, noise)
         rng = rng_of(self.seed, 3, int(noise * 100), 0 if sep is None else int(sep * 10))
         n_snap = exact = silent = extra = 0
-        pos_err, f_err, axes_err, ang_err = [], [], [], []
+        pos_err, f_err, fh_err, axes_err, ang_err = [], [], [], [], []
         for k in range(layouts):
             r, truth, idx, shape = self.scene(body, kind, sep, k)
             sensor = TactileSensor(rest, self.foam)
@@ -166,6 +169,7 @@ class Bench:
                     if c.merged and len(cs) < len(truth):
                         f_true = sum(t.force_n for t in truth)  # one contact holding both
                     f_err.append((c.force_n - f_true) / f_true * 100)
+                    fh_err.append((c.force_n_held - f_true) / f_true * 100)
                     if shape is not None:
                         axes_err.append((c.axes_m / shape[0] - 1) * 100)
                         ang_err.append(np.degrees(_angle_diff(c.angle_rad, shape[1])))
@@ -180,7 +184,10 @@ class Bench:
                "force_err_mean_pct": float(np.mean(np.abs(f))),
                "force_err_p95_pct": float(np.percentile(np.abs(f), 95)),
                "force_bias_pct": float(np.mean(f)),
-               "false_positives_per_1000": 1000 * extra / n_snap}
+               "false_positives_per_1000": 1000 * extra / n_snap,
+               "force_held_err_p95_pct": float(np.percentile(np.abs(fh_err), 95))
+               if fh_err else None,
+               "force_held_bias_pct": float(np.mean(fh_err)) if fh_err else None}
         if axes_err:
             a = np.array(axes_err)
             row["axes_err_pct"] = [float(x) for x in np.mean(a, axis=0)]
@@ -203,7 +210,8 @@ class Bench:
                 "silent_wrong_count_pct": 100 * hits / snapshots,
                 "position_err_l_mean": None, "position_err_l_p95": None,
                 "force_err_mean_pct": None, "force_err_p95_pct": None, "force_bias_pct": None,
-                "false_positives_per_1000": 1000 * contacts / snapshots}
+                "false_positives_per_1000": 1000 * contacts / snapshots,
+                "force_held_err_p95_pct": None, "force_held_bias_pct": None}
 
 
 def plan(quick: bool, bodies) -> list[tuple]:
@@ -228,7 +236,8 @@ def _fmt(x, spec=".1f"):
 def table(rows: list[dict]) -> str:
     out = ["| body | indenter | separation | noise (% g) | count exact | silent wrong count | "
            "position error (L) mean / p95 | force error (%) mean / p95 | force bias (%) | "
-           "false contacts / 1000 |", "|---|---|---|---|---|---|---|---|---|---|"]
+           "false contacts / 1000 | held force (4 snapshots) p95 (%) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         sep = "single" if r["separation_l"] is None else f"{r['separation_l']:g} L"
         if r["indenter"] == "none":
@@ -237,7 +246,8 @@ def table(rows: list[dict]) -> str:
                    f"{r['count_exact_pct']:.1f} % | {r['silent_wrong_count_pct']:.1f} % | "
                    f"{_fmt(r['position_err_l_mean'], '.2f')} / {_fmt(r['position_err_l_p95'], '.2f')} | "
                    f"{_fmt(r['force_err_mean_pct'])} / {_fmt(r['force_err_p95_pct'])} | "
-                   f"{_fmt(r['force_bias_pct'], '+.1f')} | {r['false_positives_per_1000']:.1f} |")
+                   f"{_fmt(r['force_bias_pct'], '+.1f')} | {r['false_positives_per_1000']:.1f} | "
+                   f"{_fmt(r['force_held_err_p95_pct'])} |")
     caps = [r for r in rows if "axes_err_pct" in r]
     if caps:
         out += ["", "| body | capsule (finger) at 1 % g | major / minor half-axis error (%) | "

@@ -82,6 +82,9 @@ class Contact:
         Joint ``(i, j)`` of the largest displacement.
     region : ndarray of bool, shape (rows, cols)
         The joints of the contact (without the skirt).
+    force_n_held : float or None
+        Mean force of its track over the last few snapshots, N (`ContactTracker`'s
+        ``force_window``; None untracked): for a held contact, about half the noise.
     merged : bool
         The region may hold more than one contact: a second maximum above the detection
         threshold was merged into it (closer than ``min_separation`` or not prominent enough),
@@ -100,6 +103,7 @@ class Contact:
     peak: tuple[int, int]
     region: np.ndarray = field(repr=False)
     merged: bool = False
+    force_n_held: float | None = None
 
 
 _NB8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
