@@ -267,7 +267,7 @@ def main(argv=None) -> int:
                     help="bodies to run (repeatable; default all)")
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args(argv)
-    layouts, snaps, fp_n = (2, 4, 100) if args.quick else (6, 10, 1000)
+    layouts, snaps, fp_n = (2, 4, 100) if args.quick else (5, 8, 1000)
     bodies = args.body or list(BODIES)
     b = Bench(seed=args.seed)
     t0 = time.perf_counter()
