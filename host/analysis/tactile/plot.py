@@ -97,8 +97,8 @@ def frame_figure(frame: TactileFrame, title: str | None = None, truth=None,
                                  angle=90 - np.degrees(t.angle_rad), fill=False,
                                  color="limegreen", ls=":", lw=1.5))
         if np.isfinite(t.force_n):
-            ax.annotate(f"{t.force_n:.2f} N", (t.index[1], t.index[0]), xytext=(6, -12),
-                        textcoords="offset points", color="darkgreen", fontsize=8)
+            ax.annotate(f"{t.force_n:.2f} N", (t.index[1], t.index[0]), xytext=(-6, -14),
+                        textcoords="offset points", color="darkgreen", fontsize=8, ha="right")
     if marks:
         handles.append(Line2D([], [], color="limegreen", marker="x", ls="", ms=8, mew=2,
                               label="true contact (force)"))
