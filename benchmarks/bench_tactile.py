@@ -1,21 +1,34 @@
-"""Tactile benchmark: contacts and forces on the virtual foam block (docs/tactile.md).
+"""Tactile benchmark: contacts and forces on every virtual foam body (docs/tactile.md).
 
-Setup: a 14x14-joint sheet, L = 1 cm, on a foam block (h = 20 mm, E = 20 kPa, ν = 0.25; the
-defaults of `virtual_sheet.foam.FoamLayer`), white reading noise of the given % g per axis. The
-rest shape is learned from 32 untouched snapshots at the same noise (`TactileSensor.learn_rest`);
-every snapshot is then estimated with the rest shape as the prior and its contacts found.
+Setup: a 14x14-joint sheet, L = 1 cm, on a foam block, a cylinder (R = 8 cm) and a sphere
+(R = 10 cm), foam h = 20 mm, E = 20 kPa, ν = 0.25 (`virtual_sheet.foam.FoamLayer`'s defaults;
+on the curved bodies the layer is softer, `FoamBody.contact_layer`), white reading noise of the
+given % g per axis. The rest shape is learned from 32 untouched snapshots at the same noise
+(`TactileSensor.learn_rest`); every snapshot is then estimated with the rest shape as the prior and
+its contacts found.
 
-Two indenters of the same kind (sphere R = 15 mm, or flat punch a = 7.5 mm), 2 N each, their
-centres ``sep`` link lengths apart in a random direction about a random point near the sheet's
-centre (``layouts`` placements, ``snapshots`` noisy snapshots of each). Metrics:
+Indenters of one kind (sphere R = 15 mm, flat punch a = 7.5 mm, 2 N each; a capsule "finger"
+R = 10 mm, half-length 20 mm, 3 N, at a random angle), one, or two ``separation_l`` link lengths
+apart in a random direction about a random point within L/2 of the sheet's middle (``layouts``
+placements, ``snapshots`` noisy snapshots of each). One JSON row per (body, indenter, separation,
+noise):
 
-* count: fraction of snapshots whose contact count is exactly right;
-* position error: distance, in link lengths, between matched detected and true centres, both in
-  lattice indices (Hungarian matching, gate 2 L);
-* force error: |F_est − F_true| / F_true of matched contacts, %;
-* false positives: fraction of untouched snapshots reporting any contact.
+* ``count_exact_pct``: snapshots whose contact count is right; ``silent_wrong_count_pct``: wrong
+  count and no contact flagged ``merged`` (the issue's "never a wrong count without saying so");
+* ``position_err_l_mean`` / ``_p95``: matched detected vs true centres, link lengths (lattice
+  indices; Hungarian, gate 2 L);
+* ``force_err_mean_pct`` / ``force_err_p95_pct``: |F_est − F_true| / F_true per matched contact and
+  snapshot; ``force_bias_pct``: mean of (F_est − F_true) / F_true. A merged contact is compared with
+  the sum of the true contacts it holds;
+* ``false_positives_per_1000``: detected contacts matched to no true one, per 1000 snapshots; on
+  untouched rows (indenter ``none``, 1000 snapshots) every contact is one;
+* ``force_held_err_p95_pct`` / ``force_held_bias_pct``: the same for ``Contact.force_n_held``,
+  the tracked contact's mean over its last 4 snapshots (the first snapshots of a layout have
+  fewer);
+* capsule rows: ``axes_err_pct`` (major, minor) against the true dent's half-depth footprint
+  (from the virtual deflection, same moment definition) and ``angle_err_deg_mean`` / ``_p95``.
 
-Prints JSON (``--json`` only JSON) and markdown tables. ``--quick`` for a smoke run.
+``--quick`` for a smoke run; ``--json`` prints only JSON. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -31,30 +44,37 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from host.analysis.tactile import Foam, TactileSensor, lattice_index  # noqa: E402
-from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamLayer, FoamScene, Press,  # noqa: E402
-                                SphereIndenter)
+from virtual_sheet.foam import (CapsuleIndenter, FlatPunch, FoamBlock, FoamCylinder,  # noqa: E402
+                                FoamLayer, FoamScene, FoamSphere, Press, SphereIndenter)
 from virtual_sheet.geometry import ideal_readings  # noqa: E402
 from virtual_sheet.sensor import noisy_readings  # noqa: E402
 
 ROWS = COLS = 14
 L = 0.01
-FORCE_N = 2.0
-INDENTERS = {"sphere": SphereIndenter(0.015), "punch": FlatPunch(0.0075)}
+LAYER = FoamLayer()
+BODIES = {"block": FoamBlock(LAYER), "cylinder": FoamCylinder(0.08, LAYER),
+          "sphere": FoamSphere(0.1, LAYER)}
+FORCE_N = {"sphere": 2.0, "punch": 2.0, "capsule": 3.0}
+NOISES = (0.3, 1.0, 2.0, 5.0)
 
 
-def rng_of(seed: int) -> np.random.Generator:
-    return np.random.Generator(np.random.MT19937(seed))
+def rng_of(*seed: int) -> np.random.Generator:
+    return np.random.Generator(np.random.MT19937(list(seed)))
 
 
-def host_foam(layer: FoamLayer) -> Foam:
-    return Foam(layer.thickness_m, layer.youngs_modulus_pa, layer.poisson)
+def indenter(kind: str, rng: np.random.Generator):
+    if kind == "sphere":
+        return SphereIndenter(0.015)
+    if kind == "punch":
+        return FlatPunch(0.0075)
+    return CapsuleIndenter(0.01, 0.02, angle_rad=float(rng.uniform(-np.pi / 2, np.pi / 2)))
 
 
-def layout(rng: np.random.Generator, sep: float | None, n: int = 2) -> list[tuple[float, float]]:
-    """Centres (x, y) in metres: a random point within ±L/2 of the sheet's middle and, for
+def layout(rng: np.random.Generator, sep: float | None) -> list[tuple[float, float]]:
+    """Centres ``(u, v)``, metres: a random point within ±L/2 of the sheet's middle and, for
     ``sep``, two points ``sep`` L apart in a random direction about it."""
     mid = np.array([-0.5 * L, -0.5 * L]) + rng.uniform(-0.5, 0.5, 2) * L
-    if sep is None or n == 1:
+    if sep is None:
         return [tuple(mid)]
     a = rng.uniform(0, np.pi)
     d = 0.5 * sep * L * np.array([np.cos(a), np.sin(a)])
@@ -72,139 +92,208 @@ def match(det, truth_idx, gate=2.0):
     return [(a, b, D[a, b]) for a, b in zip(r, c) if D[a, b] <= gate]
 
 
+def true_footprint(scene: FoamScene, centre) -> tuple[np.ndarray, float]:
+    """Half-axes (major, minor), metres, and the major axis's angle from +u of the true dent's
+    half-depth footprint (the virtual deflection on its fine grid, uniform weights)."""
+    d = scene.deflection(0.0)
+    U, V = np.meshgrid(d.u, d.v, indexing="ij")
+    near = np.hypot(U - centre[0], V - centre[1]) < 0.05
+    m = near & (d.w >= 0.5 * d.w[near].max())
+    xy = np.stack([U[m], V[m]], axis=1)
+    C = np.cov(xy.T, bias=True)
+    ev, evec = np.linalg.eigh(C)
+    return 2.0 * np.sqrt(ev[::-1]), float(np.arctan2(evec[1, 1], evec[0, 1]))
+
+
+def _angle_diff(a: float, b: float) -> float:
+    return float(abs((a - b + np.pi / 2) % np.pi - np.pi / 2))
+
+
 class Bench:
-    """Caches scenes (noise-independent) and learned rest shapes (per noise level)."""
+    """Caches learned rest shapes (per body and noise) and scenes (noise-independent)."""
 
-    def __init__(self, layer: FoamLayer = FoamLayer(), seed: int = 7):
-        self.layer = layer
-        self.foam = host_foam(layer)
+    def __init__(self, seed: int = 7):
         self.seed = seed
-        self.rest_scene = FoamScene(FoamBlock(layer), [], ROWS, COLS, L)
-        self.r0 = ideal_readings(self.rest_scene.rest_joints)
-        self._rest: dict[float, object] = {}
-        self._scenes: dict[tuple, tuple] = {}
+        self.foam = Foam(LAYER.thickness_m, LAYER.youngs_modulus_pa, LAYER.poisson)
+        self._rest: dict = {}
+        self._r0: dict = {}
+        self._scenes: dict = {}
 
-    def rest(self, noise: float):
-        if noise not in self._rest:
-            rng = rng_of(self.seed * 1000 + int(noise * 100))
-            snaps = [noisy_readings(self.r0, noise, rng) for _ in range(32)]
-            self._rest[noise] = TactileSensor.learn_rest(snaps, ROWS, COLS, L)
-        return self._rest[noise]
+    def r0(self, body: str) -> np.ndarray:
+        if body not in self._r0:
+            self._r0[body] = ideal_readings(FoamScene(BODIES[body], [], ROWS, COLS, L).rest_joints)
+        return self._r0[body]
 
-    def scene(self, kind: str, sep: float | None, k: int, n: int = 2):
-        key = (kind, sep, k, n)
+    def rest(self, body: str, noise: float):
+        key = (body, noise)
+        if key not in self._rest:
+            rng = rng_of(self.seed, 1, int(noise * 100))
+            snaps = [noisy_readings(self.r0(body), noise, rng) for _ in range(32)]
+            self._rest[key] = TactileSensor.learn_rest(snaps, ROWS, COLS, L)
+        return self._rest[key]
+
+    def scene(self, body: str, kind: str, sep: float | None, k: int):
+        key = (body, kind, sep, k)
         if key not in self._scenes:
-            rng = rng_of(self.seed * 7919 + k)
-            pos = layout(rng, sep, n)
-            sc = FoamScene(FoamBlock(self.layer), [Press(INDENTERS[kind], p, FORCE_N) for p in pos],
-                           ROWS, COLS, L)
+            rng = rng_of(self.seed, 2, k, 0 if sep is None else int(sep * 10))
+            ind = indenter(kind, rng)
+            presses = [Press(ind, p, FORCE_N[kind]) for p in layout(rng, sep)]
+            sc = FoamScene(BODIES[body], presses, ROWS, COLS, L)
             truth = sc.contacts(0.0)
-            P = sc.joints(0.0)
             idx = [lattice_index(sc.rest_joints, t.position) for t in truth]
-            self._scenes[key] = (ideal_readings(P), truth, idx)
+            shape = true_footprint(sc, truth[0].position_uv) if kind == "capsule" else None
+            self._scenes[key] = (ideal_readings(sc.joints(0.0)), truth, idx, shape)
         return self._scenes[key]
 
-    def run(self, kind: str, sep: float | None, noise: float, layouts: int, snapshots: int,
-            n: int = 2) -> dict:
-        rest = self.rest(noise)
-        rng = rng_of(self.seed * 31 + int(noise * 100) + (0 if sep is None else int(sep * 10)))
-        counts, pos_err, force_err, depth_err = [], [], [], []
+    def run(self, body: str, kind: str, sep: float | None, noise: float, layouts: int,
+            snapshots: int) -> dict:
+        rest = self.rest(body, noise)
+        rng = rng_of(self.seed, 3, int(noise * 100), 0 if sep is None else int(sep * 10))
+        n_snap = exact = silent = extra = 0
+        pos_err, f_err, fh_err, axes_err, ang_err = [], [], [], [], []
         for k in range(layouts):
-            r, truth, idx = self.scene(kind, sep, k, n)
+            r, truth, idx, shape = self.scene(body, kind, sep, k)
             sensor = TactileSensor(rest, self.foam)
             for _ in range(snapshots):
                 fr = sensor.process(noisy_readings(r, noise, rng))
-                counts.append(len(fr.contacts) == len(truth))
-                for a, b, dist in match(fr.contacts, idx):
+                n_snap += 1
+                cs = fr.contacts
+                exact += len(cs) == len(truth)
+                silent += len(cs) != len(truth) and not any(c.merged for c in cs)
+                pairs = match(cs, idx)
+                extra += len(cs) - len(pairs)
+                for a, b, dist in pairs:
+                    c = cs[a]
                     pos_err.append(dist)
-                    force_err.append(abs(fr.contacts[a].force_n - truth[b].force_n)
-                                     / truth[b].force_n * 100)
-                    depth_err.append(abs(fr.contacts[a].depth_m - truth[b].max_deflection_m)
-                                     / truth[b].max_deflection_m * 100)
-        f = np.array(force_err) if force_err else np.array([np.nan])
+                    f_true = truth[b].force_n
+                    if c.merged and len(cs) < len(truth):
+                        f_true = sum(t.force_n for t in truth)  # one contact holding both
+                    f_err.append((c.force_n - f_true) / f_true * 100)
+                    fh_err.append((c.force_n_held - f_true) / f_true * 100)
+                    if shape is not None:
+                        axes_err.append((c.axes_m / shape[0] - 1) * 100)
+                        ang_err.append(np.degrees(_angle_diff(c.angle_rad, shape[1])))
+        f = np.array(f_err) if f_err else np.array([np.nan])
         p = np.array(pos_err) if pos_err else np.array([np.nan])
-        return {"kind": kind, "sep_L": sep, "noise_pct_g": noise, "contacts": n,
-                "snapshots": len(counts), "count_exact": float(np.mean(counts)),
-                "pos_err_L_mean": float(np.mean(p)), "pos_err_L_p95": float(np.percentile(p, 95)),
-                "force_err_pct_mean": float(np.mean(f)),
-                "force_err_pct_p95": float(np.percentile(f, 95)),
-                "depth_err_pct_mean": float(np.mean(depth_err)) if depth_err else float("nan")}
+        row = {"body": body, "indenter": kind, "separation_l": sep, "noise_pct_g": noise,
+               "force_n": FORCE_N[kind], "snapshots": n_snap,
+               "count_exact_pct": 100 * exact / n_snap,
+               "silent_wrong_count_pct": 100 * silent / n_snap,
+               "position_err_l_mean": float(np.mean(p)),
+               "position_err_l_p95": float(np.percentile(p, 95)),
+               "force_err_mean_pct": float(np.mean(np.abs(f))),
+               "force_err_p95_pct": float(np.percentile(np.abs(f), 95)),
+               "force_bias_pct": float(np.mean(f)),
+               "false_positives_per_1000": 1000 * extra / n_snap,
+               "force_held_err_p95_pct": float(np.percentile(np.abs(fh_err), 95))
+               if fh_err else None,
+               "force_held_bias_pct": float(np.mean(fh_err)) if fh_err else None}
+        if axes_err:
+            a = np.array(axes_err)
+            row["axes_err_pct"] = [float(x) for x in np.mean(a, axis=0)]
+            row["angle_err_deg_mean"] = float(np.mean(ang_err))
+            row["angle_err_deg_p95"] = float(np.percentile(ang_err, 95))
+        return row
 
-    def false_positives(self, noise: float, snapshots: int) -> dict:
-        rest = self.rest(noise)
-        rng = rng_of(self.seed * 17 + int(noise * 100))
+    def untouched(self, body: str, noise: float, snapshots: int) -> dict:
+        rest = self.rest(body, noise)
+        rng = rng_of(self.seed, 4, int(noise * 100))
         sensor = TactileSensor(rest, self.foam)
         hits = contacts = 0
         for _ in range(snapshots):
-            fr = sensor.process(noisy_readings(self.r0, noise, rng))
+            fr = sensor.process(noisy_readings(self.r0(body), noise, rng))
             hits += bool(fr.contacts)
             contacts += len(fr.contacts)
-        return {"noise_pct_g": noise, "snapshots": snapshots,
-                "fp_rate": hits / snapshots, "fp_contacts": contacts}
+        return {"body": body, "indenter": "none", "separation_l": None, "noise_pct_g": noise,
+                "force_n": 0.0, "snapshots": snapshots,
+                "count_exact_pct": 100 * (snapshots - hits) / snapshots,
+                "silent_wrong_count_pct": 100 * hits / snapshots,
+                "position_err_l_mean": None, "position_err_l_p95": None,
+                "force_err_mean_pct": None, "force_err_p95_pct": None, "force_bias_pct": None,
+                "false_positives_per_1000": 1000 * contacts / snapshots,
+                "force_held_err_p95_pct": None, "force_held_bias_pct": None}
 
 
-def _row(r: dict) -> str:
-    sep = "single" if r["sep_L"] is None else f"{r['sep_L']:g} L"
-    return (f"| {r['kind']} | {sep} | {r['noise_pct_g']:g} | {r['snapshots']} | "
-            f"{100 * r['count_exact']:.1f} % | {r['pos_err_L_mean']:.2f} / {r['pos_err_L_p95']:.2f} | "
-            f"{r['force_err_pct_mean']:.1f} / {r['force_err_pct_p95']:.1f} | "
-            f"{r['depth_err_pct_mean']:.1f} |")
+def plan(quick: bool, bodies) -> list[tuple]:
+    """(what, body, indenter, separation, noise) of every row."""
+    rows = []
+    for body in bodies:
+        for kind in ("sphere", "punch"):
+            for sep in (None, 2.0, 3.0, 4.0):
+                rows.append(("run", body, kind, sep, 1.0))
+            for noise in (0.3, 2.0, 5.0):
+                rows.append(("run", body, kind, None, noise))
+        rows.append(("run", body, "capsule", None, 1.0))
+        for noise in NOISES:
+            rows.append(("untouched", body, "none", None, noise))
+    return rows
 
 
-HEADER = ("| indenter | separation | noise (% g) | snapshots | count exact | "
-          "position error (L) mean / p95 | force error (%) mean / p95 | depth error (%) |\n"
-          "|---|---|---|---|---|---|---|---|")
+def _fmt(x, spec=".1f"):
+    return "—" if x is None or (isinstance(x, float) and np.isnan(x)) else format(x, spec)
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| body | indenter | separation | noise (% g) | count exact | silent wrong count | "
+           "position error (L) mean / p95 | force error (%) mean / p95 | force bias (%) | "
+           "false contacts / 1000 | held force (4 snapshots) p95 (%) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        sep = "single" if r["separation_l"] is None else f"{r['separation_l']:g} L"
+        if r["indenter"] == "none":
+            sep = "untouched"
+        out.append(f"| {r['body']} | {r['indenter']} | {sep} | {r['noise_pct_g']:g} | "
+                   f"{r['count_exact_pct']:.1f} % | {r['silent_wrong_count_pct']:.1f} % | "
+                   f"{_fmt(r['position_err_l_mean'], '.2f')} / {_fmt(r['position_err_l_p95'], '.2f')} | "
+                   f"{_fmt(r['force_err_mean_pct'])} / {_fmt(r['force_err_p95_pct'])} | "
+                   f"{_fmt(r['force_bias_pct'], '+.1f')} | {r['false_positives_per_1000']:.1f} | "
+                   f"{_fmt(r['force_held_err_p95_pct'])} |")
+    caps = [r for r in rows if "axes_err_pct" in r]
+    if caps:
+        out += ["", "| body | capsule (finger) at 1 % g | major / minor half-axis error (%) | "
+                    "angle error (°) mean / p95 |", "|---|---|---|---|"]
+        for r in caps:
+            out.append(f"| {r['body']} | {r['snapshots']} snapshots | {r['axes_err_pct'][0]:+.0f} / "
+                       f"{r['axes_err_pct'][1]:+.0f} | {r['angle_err_deg_mean']:.1f} / "
+                       f"{r['angle_err_deg_p95']:.1f} |")
+    return "\n".join(out)
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="few snapshots (smoke run)")
     ap.add_argument("--json", action="store_true", help="print only JSON")
+    ap.add_argument("--body", action="append", choices=sorted(BODIES),
+                    help="bodies to run (repeatable; default all)")
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args(argv)
-    layouts, snaps, fp_n = (2, 4, 100) if args.quick else (6, 10, 1000)
+    layouts, snaps, fp_n = (2, 4, 100) if args.quick else (5, 8, 1000)
+    bodies = args.body or list(BODIES)
     b = Bench(seed=args.seed)
     t0 = time.perf_counter()
-    res = {"config": {"rows": ROWS, "cols": COLS, "link_length_m": L, "force_n": FORCE_N,
-                      "foam": {"thickness_m": b.layer.thickness_m,
-                               "youngs_modulus_pa": b.layer.youngs_modulus_pa,
-                               "poisson": b.layer.poisson},
-                      "layouts": layouts, "snapshots_per_layout": snaps}}
-    res["main"] = [b.run(kind, sep, 1.0, layouts, snaps) for kind in INDENTERS
-                   for sep in (None, 3, 4, 6)]
-    for r in res["main"]:
-        if r["sep_L"] is None:
-            r["contacts"] = 1
-    res["noise"] = [b.run(kind, 4, noise, layouts, snaps) for kind in INDENTERS
-                    for noise in (0.3, 1.0, 2.0, 5.0)]
-    res["separation"] = [b.run(kind, sep, 1.0, layouts, snaps) for kind in INDENTERS
-                         for sep in (2, 3, 4, 6)]
-    res["false_positives"] = [b.false_positives(noise, fp_n) for noise in (0.3, 1.0, 2.0, 5.0)]
-    res["wall_s"] = time.perf_counter() - t0
-    if args.json:
-        print(json.dumps(res, indent=1))
-        return 0
+    todo = plan(args.quick, bodies)
+    rows = []
+    for n, (what, body, kind, sep, noise) in enumerate(todo):
+        if what == "run":
+            rows.append(b.run(body, kind, sep, noise, layouts, snaps))
+        else:
+            rows.append(b.untouched(body, noise, fp_n))
+        el = time.perf_counter() - t0
+        print(f"bench_tactile: {n + 1}/{len(todo)} rows, {el:.0f} s, ETA "
+              f"{el / (n + 1) * (len(todo) - n - 1):.0f} s", file=sys.stderr)
+    res = {"config": {"rows": ROWS, "cols": COLS, "link_length_m": L,
+                      "foam": {"thickness_m": LAYER.thickness_m,
+                               "youngs_modulus_pa": LAYER.youngs_modulus_pa,
+                               "poisson": LAYER.poisson},
+                      "bodies": {"block": "top face", "cylinder": "R 0.08 m", "sphere": "R 0.1 m"},
+                      "layouts": layouts, "snapshots_per_layout": snaps,
+                      "untouched_snapshots": fp_n},
+           "rows": rows, "wall_s": time.perf_counter() - t0}
     print(json.dumps(res))
-    print()
-    print(f"Virtual foam block 14x14, L = 1 cm, 2 N per indenter (sphere R 15 mm, punch a 7.5 mm), "
-          f"foam h 20 mm, E 20 kPa, nu 0.25; {layouts} layouts x {snaps} snapshots per row.\n")
-    print("**At 1 % g** (single contact; two contacts >= 3 L apart)\n")
-    print(HEADER)
-    for r in res["main"]:
-        print(_row(r))
-    print("\n**Noise** (two contacts 4 L apart)\n")
-    print(HEADER)
-    for r in res["noise"]:
-        print(_row(r))
-    print("\n**Separation** (1 % g)\n")
-    print(HEADER)
-    for r in res["separation"]:
-        print(_row(r))
-    print("\n**False positives** (untouched sheet)\n")
-    print("| noise (% g) | snapshots | snapshots with a contact |\n|---|---|---|")
-    for r in res["false_positives"]:
-        print(f"| {r['noise_pct_g']:g} | {r['snapshots']} | {100 * r['fp_rate']:.2f} % |")
-    print(f"\n({res['wall_s']:.0f} s)")
+    if not args.json:
+        print()
+        print(table(rows))
+        print(f"\n({res['wall_s']:.0f} s)")
     return 0
 
 

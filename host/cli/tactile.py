@@ -21,8 +21,9 @@ import time
 import numpy as np
 
 from host.cli.transport_args import add_transport_args, open_transports
-from host.analysis.tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor, lattice_index,
-                      plot_frame)
+from host.analysis.tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor,
+                                   lattice_index, plot_frame)
+from host.analysis.tactile.plot import TrueMark
 
 
 def register(subparsers) -> None:
@@ -100,8 +101,15 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
         t = k / args.snapshot_rate
         fr = sensor.process(noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng),
                             t_s=t)
-        yield fr, [(c.force_n, lattice_index(scene.rest_joints, c.position))
-                   for c in scene.contacts(t)]
+        yield fr, [_true_mark(scene, c, L) for c in scene.contacts(t)]
+
+
+def _true_mark(scene, c, L: float) -> TrueMark:
+    """A true contact in lattice indices; its footprint's angle from the lattice's i direction
+    (the surface's +u is the i direction on every virtual body)."""
+    idx = lattice_index(scene.rest_joints, c.position)
+    return TrueMark((float(idx[0]), float(idx[1])), c.force_n,
+                    (c.footprint_m[0] / L, c.footprint_m[1] / L), c.angle_rad)
 
 
 def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
@@ -157,18 +165,21 @@ def run(args) -> int:
         if not real or now - last_print >= 0.5:
             line = _status(fr, args.link_length)
             if truth:
-                line += "   | true: " + "; ".join(f"({i[0]:.1f},{i[1]:.1f}) {F:.2f}N"
-                                                  for F, i in truth)
+                line += "   | true: " + "; ".join(f"({m.index[0]:.1f},{m.index[1]:.1f}) "
+                                                  f"{m.force_n:.2f}N" for m in truth)
             print(line)
             last_print = now
     outputs.close()
     if best is None:
         print("capsheet tactile: no snapshot received", file=sys.stderr)
         return 1
-    plot_frame(best, args.out,
-               truth=[i for _, i in best_truth] if best_truth else None,
-               title=(f"t = {best.t_s:.2f} s: {len(best.contacts)} contact(s), "
-                      f"{best.total_force_n:.2f} N" if best.t_s is not None else None))
+    source_name = "real sheet" if real else f"virtual foam {args.body}"
+    params = (f"{source_name}, {rows}x{cols}, L = {args.link_length * 100:g} cm"
+              + ("" if real else f", noise {args.noise:g} % g")
+              + f"; foam h {args.thickness * 1e3:g} mm, E {args.youngs / 1e3:g} kPa, "
+                f"nu {args.poisson:g}"
+              + (f"; t = {best.t_s:.2f} s" if best.t_s is not None else ""))
+    plot_frame(best, args.out, truth=best_truth or None, title=params)
     if not args.quiet:
         print(f"capsheet tactile: heat map written to {args.out}", file=sys.stderr)
     return 0

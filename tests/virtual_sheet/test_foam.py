@@ -91,3 +91,39 @@ def test_host_and_virtual_foam_agree_on_the_model():
     assert foam.k_pa_per_m == pytest.approx(layer.k_pa_per_m, rel=1e-12)
     assert foam.shear_length_m == pytest.approx(layer.shear_length_m, rel=1e-12)
     assert FoamLayer(poisson=0.0).k_pa_per_m == pytest.approx(20e3 / 0.02)  # E_oed = E at ν = 0
+
+
+def test_curved_layer_is_softer_by_the_columns_taper():
+    """A foam column on a curved core narrows towards it: k = E_oed / ∫ ds / ((1-κ1 s)(1-κ2 s)),
+    closed forms R h / (R - h) (sphere) and R ln(R / (R - h)) (cylinder)."""
+    from virtual_sheet.foam import column_compliance, oedometric_modulus
+    h, R = 0.02, 0.08
+    assert column_compliance(h) == pytest.approx(h, rel=1e-14)
+    assert column_compliance(h, 1 / R, 1 / R) == pytest.approx(R * h / (R - h), rel=1e-12)
+    assert column_compliance(h, 1 / R, 0.0) == pytest.approx(R * np.log(R / (R - h)), rel=1e-12)
+    e_oed = oedometric_modulus(20e3, 0.25)
+    assert FoamSphere(R).contact_layer.k_pa_per_m == pytest.approx(e_oed * (R - h) / (R * h))
+    assert FoamBlock().contact_layer.k_pa_per_m == pytest.approx(e_oed / h)
+    with pytest.raises(ValueError, match="curvature"):
+        FoamLayer(curvature_m_inv=(60.0, 0.0))  # 1/κ = 1.7 cm < h
+    with pytest.raises(ValueError, match="radius_m"):
+        FoamSphere(0.015)
+
+
+@pytest.mark.parametrize("body", [FoamCylinder(0.08), FoamSphere(0.1)], ids=["cylinder", "sphere"])
+def test_force_balance_on_a_curved_body_uses_its_softer_layer(body):
+    sc = FoamScene(body, [Press(SphereIndenter(0.015), (0.0, 0.0), 2.0)], 10, 10, L)
+    d = sc.deflection(0.0)
+    assert d.force_n(sc.layer.k_pa_per_m) == pytest.approx(2.0, rel=1e-9)
+    assert d.force_n(body.layer.k_pa_per_m) > 2.2  # the flat layer's k would read 14-25 % high
+
+
+def test_host_reads_the_curvature_the_virtual_body_has():
+    from host.analysis.tactile import RestShape
+    for body, want in [(FoamBlock(), (0.0, 0.0)), (FoamCylinder(0.08), (12.5, 0.0)),
+                       (FoamSphere(0.1), (10.0, 10.0))]:
+        rest = RestShape.from_joints(FoamScene(body, [], 12, 12, L).rest_joints, L)
+        got = np.median(rest.curvatures.reshape(-1, 2), axis=0)
+        assert got == pytest.approx(want, abs=0.03 * max(want[0], 1.0))
+        k_host = np.median(Foam().k_at(rest.curvatures))
+        assert k_host == pytest.approx(body.contact_layer.k_pa_per_m, rel=0.01)

@@ -169,3 +169,19 @@ def test_cli_runs_and_writes_heat_map(tmp_path, capsys):
     assert cli_main(["tactile", "--duration", "1", "--snapshot-rate", "4", "--out", str(out)]) == 0
     assert out.stat().st_size > 1000
     assert "contact(s)" in capsys.readouterr().out
+
+
+def test_tracker_holds_the_mean_force_and_restarts_it_on_a_jump():
+    from host.analysis.tactile import Contact
+
+    def c(f):
+        return Contact(id=-1, index=np.zeros(2), position=np.zeros(3), normal=np.array([0, 0, 1.0]),
+                       depth_m=1e-3, force_n=f, area_m2=1e-4, axes_m=np.ones(2), angle_rad=0.0,
+                       peak=(0, 0), region=np.zeros((2, 2), bool))
+
+    tr = ContactTracker(gate_m=0.02, force_window=3)
+    held = [tr.update([c(f)])[0].force_n_held for f in (1.0, 1.2, 0.8, 1.25, 2.0, 2.1)]
+    assert held == pytest.approx([1.0, 1.1, 1.0, 3.25 / 3, 2.0, 2.05])  # window 3; 2.0 is a jump
+    assert ContactTracker(0.02).update([c(1.5)])[0].force_n_held == 1.5
+    with pytest.raises(ValueError, match="force_window"):
+        ContactTracker(0.02, force_window=0)
