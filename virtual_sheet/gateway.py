@@ -338,13 +338,15 @@ class Gateway:
         other = [f for _, r in items for f in r]
         if have:
             cov = self._covered
+            words = pack_sample_words(counts[cov], status[cov])  # every covered link at once
             frames = []
+            pos = 0
             breaks = np.flatnonzero(np.diff(cov) != 1) + 1
             for run in np.split(cov, breaks):
                 for i in range(0, run.size, self.max_per_frame):
-                    part = run[i:i + self.max_per_frame]
-                    words = pack_sample_words(counts[part], status[part])
-                    snap = Snapshot(0, sync.counter, int(part[0]), words)
+                    m = min(self.max_per_frame, run.size - i)
+                    snap = Snapshot(0, sync.counter, int(run[i]), words[5 * pos:5 * (pos + m)])
+                    pos += m
                     frames.append(to_can(snap, fd=True) if self.can else encode(snap))
             self.stats.snapshots += len(frames)
             other = frames + other
