@@ -347,6 +347,7 @@ class Host:
         self._send_failing: set[int] = set()
         # SYNC schedule, loop lag and the lag-free watchdog clock (see _sync_step / _watchdog)
         self.sync_schedule: SyncSchedule | None = None
+        self._syncs_missed_before = 0  #: SYNC slots missed by earlier schedules (earlier starts)
         self.loop_lag_s = 0.0  #: EWMA of how late the SYNC loop woke (s)
         self.max_loop_lag_s = 0.0
         self._service_s = 0.0  #: host time with its own stalls removed (the watchdog's clock)
@@ -770,6 +771,8 @@ class Host:
         self._seen_service[:] = self._service_s
         self._silent_reported[:] = False
         self.aggregator.reset_miss_runs()
+        if self.sync_schedule is not None:
+            self._syncs_missed_before += self.sync_schedule.missed
         self.sync_schedule = None
         self._streaming.set()
         if self.sync_mode == "follow":
@@ -1190,7 +1193,9 @@ class Host:
         # the watchdog's clock: host time with the host's own stalls cut to two periods
         self._service_s += min(max(step, 0.0), max(2.0 / self.rate_hz, 0.02))
         if not self._streaming.is_set():
-            self.sync_schedule = None
+            if self.sync_schedule is not None:
+                self._syncs_missed_before += self.sync_schedule.missed
+                self.sync_schedule = None
             return
         if self.sync_mode == "drive":
             sched = self.sync_schedule
@@ -1355,7 +1360,7 @@ class Host:
                         "rx_errors": rec.last_status.rx_errors if rec.last_status else None}
         sched = self.sync_schedule
         live = {"loop_lag_s": round(self.loop_lag_s, 6), "max_loop_lag_s": round(self.max_loop_lag_s, 6),
-                "syncs_missed": sched.missed if sched else 0,
+                "syncs_missed": self._syncs_missed_before + (sched.missed if sched else 0),
                 "sync_late_s": round(sched.max_late_s, 6) if sched else 0.0,
                 "deadline_s": round(self.aggregator.deadline_s, 6), **self.aggregator.completeness()}
         return {"aggregator": agg.summary(), "live": live, "buses": buses, "chips": chips,
