@@ -218,6 +218,11 @@ def run(args) -> int:
         except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
             pass
 
+    if args.transport == "can" and args.can_interface == "udp_multicast" and args.bus_count > 1:
+        print("capsheet virtual: udp_multicast buses share one UDP port, so on Linux their traffic crosses "
+              "(every bus hears every other): use --bus-count 1, or --transport slcan for several buses",
+              file=sys.stderr)
+        return 2
     try:
         sheet, dev = make_device(args, verbose if args.verbose else None)
     except (ValueError, RuntimeError) as exc:

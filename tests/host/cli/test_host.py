@@ -387,3 +387,52 @@ def test_log_lines_never_glue_onto_the_status_line(virtuals, tmp_path):
     assert "silent" in text and "\r" in text
     for k in [i for i in range(len(text)) if text.startswith("WARNING", i)]:
         assert k == 0 or text[k - 1] == "\n", repr(text[max(0, k - 80):k + 20])
+
+
+def _udp_or_skip():
+    try:
+        import can
+        b = can.Bus(interface="udp_multicast", channel="239.74.163.2")
+        b.shutdown()
+    except Exception as exc:  # noqa: BLE001 - no multicast route on this machine
+        pytest.skip(f"udp_multicast not available here: {exc}")
+
+
+@pytest.mark.parametrize("what", ["reset", "stray"])
+def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp_path, what):
+    """udp_multicast lets a third process speak on the sheet's bus: a RESET broadcast mid-stream is
+    recovered (>= 99 % complete after the report); a SAMPLE with a counter the host never sent costs
+    nothing but itself (counted as stray)."""
+    _udp_or_skip()
+    import can
+    from protocol.can import to_can
+    from protocol.messages import Reset, Sample
+    from host.record import read_recording
+    rec = tmp_path / "run.cap"
+    v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
+                 "--layout-out", str(tmp_path / "sheet.csv"))
+    p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q", "--record", str(rec))
+    err: list = []
+    wait_line(p, "started on", 60, err)
+    drain(p, err)
+    time.sleep(1.5)
+    msg = Reset(0) if what == "reset" else Sample(2, 40000, 0, 0, 1024, 0)
+    f = to_can(msg)
+    bus = can.Bus(interface="udp_multicast", channel="239.74.163.2")
+    try:
+        bus.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True))
+    finally:
+        bus.shutdown()
+    out, _ = p.communicate(timeout=60)
+    s = json.loads(out)["summary"]
+    assert p.returncode == 0, "".join(err)
+    r = read_recording(rec)
+    ts, complete = np.asarray(r.data["timestamp"]), np.asarray(r.data["complete"])
+    if what == "reset":
+        assert s["recoveries"] == 1 and s["recovered_chips"] == 12, s
+        [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery"]
+        after = complete[ts > t_rec]
+        assert after.size >= 50 and after.mean() >= 0.99, (after.size, after.mean())
+    else:
+        assert s["stray_frames"] == 1 and s["recoveries"] == 0, s
+        assert complete.size >= 100 and int((~complete).sum()) <= 1 + 2  # its own, and at most the two cut by STOP
