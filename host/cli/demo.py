@@ -104,7 +104,11 @@ def run(args) -> int:
 
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
     kw = _sheet_kwargs(args)
-    truth_sheet = VirtualSheet(kw.pop("shape"), kw.pop("lattice"), **kw)
+    try:
+        truth_sheet = VirtualSheet(kw.pop("shape"), kw.pop("lattice"), **kw)
+    except ValueError as exc:  # a shape that needs options the demo has not, a bad lattice: one line
+        print(f"capsheet demo: {exc}", file=sys.stderr)
+        return 2
     lat = truth_sheet.lattice
     rows, cols, L = lat.rows, lat.cols, args.link_length
     tmp = Path(tempfile.mkdtemp(prefix="capsheet-demo-"))

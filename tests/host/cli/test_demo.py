@@ -18,3 +18,10 @@ def test_demo_streams_estimates_and_meets_its_error_target(tmp_path):
     assert result["mean_error_pct_side"] <= 1.0
     assert "364 chips discovered, 364 assigned" in out.stderr
     assert png.stat().st_size > 10_000
+
+
+def test_a_shape_the_demo_cannot_build_is_one_line_and_exit_2():
+    """`demo --shape heightmap` needs a .npy path the demo has no option for (was a traceback)."""
+    out = subprocess.run([sys.executable, "-m", "host.cli", "demo", "--shape", "heightmap", "--duration", "1"],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2 and "heightmap needs" in out.stderr and "Traceback" not in out.stderr
