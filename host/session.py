@@ -408,7 +408,8 @@ class Host:
             self.events.append(ev)
             if len(self.events) > 10_000:
                 del self.events[:5_000]
-        (log.warning if kind in ("silent", "nack", "no_ack") else log.info)("%s: %s", kind, detail)
+        (log.warning if kind in ("silent", "nack", "no_ack", "recovery", "reconnect", "not_a_sheet", "sync",
+                                  "resync", "mismatch", "stray") else log.info)("%s: %s", kind, detail)
 
     # -- receive path ------------------------------------------------------------------------
     def _rx_loop(self, bus: int, t: Transport) -> None:
