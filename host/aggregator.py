@@ -400,7 +400,8 @@ class Aggregator:
           not open and newer than the newest sent is *stray* (dropped, counted), so a stray or foreign
           frame never moves the sequence and costs at most its own sample.
         * ``"follow"`` (a gateway drives SYNC): SYNCs and frames open counters within
-          ``-max_age .. +max_jump`` of the newest; one outside is stray, unless ``resync_after``
+          ``-max_age .. +max_jump`` of the newest (a SYNC only when newer: a SYNC source never goes
+          back); one outside is stray, unless ``resync_after``
           consecutive counters (each 1..2 after the previous) continue it: then the sequence has
           restarted or jumped (a gateway reset) and is followed — what is open is emitted, the history
           forgotten, ``resyncs`` counted and ``resync_events`` records ``(old newest, new counter)``.
@@ -434,8 +435,9 @@ class Aggregator:
             if not from_frame:
                 return 0
             return -1 if -self.max_age <= d <= 0 else -2  # sent recently and gone: late; else never sent
-        # follow
-        if -self.max_age <= d <= self.max_jump:
+        # follow. A SYNC (not a frame) for a counter not newer than the newest is out of sequence
+        # too: a SYNC source never goes back, unless it restarted (frames may just be late).
+        if (-self.max_age <= d <= self.max_jump) and (from_frame or d > 0):
             if d > 0:
                 self._cand, self._cand_run = None, 0
             return 0

@@ -76,3 +76,21 @@ def test_follow_mode_a_single_stray_frame_is_not_a_resync():
 def test_invalid_trust_is_refused():
     with pytest.raises(ValueError, match="trust"):
         Aggregator(N, trust="maybe")
+
+
+def test_follow_mode_a_sync_reset_to_a_recent_counter_is_followed_at_once():
+    """The gateway restarts at 0 while the newest counter was 149: its SYNCs are within max_age behind
+    (they looked like late frames: ~150 snapshots lost). A SYNC source never goes back: resync."""
+    agg, clock = make("follow")
+    run_counters(agg, clock, range(0, 150), sync=True)
+    after = run_counters(agg, clock, range(0, 100), sync=True)
+    assert agg.stats.resyncs == 1 and list(agg.resync_events) == [(149, 2)]
+    assert [s.counter for s in after] == list(range(2, 100)) and all(s.complete for s in after)
+
+
+def test_follow_mode_late_frames_of_a_slow_chip_are_not_a_resync():
+    """Frames (not SYNCs) for counters already emitted are late, however many in a row."""
+    agg, clock = make("follow")
+    run_counters(agg, clock, range(0, 50), sync=True)
+    feed(agg, wire([sample(1, c) for c in range(40, 50)]))
+    assert agg.stats.resyncs == 0 and agg.stats.late == 10 and agg.stats.stray == 0
