@@ -241,3 +241,16 @@ def test_a_nack_storm_keeps_one_log_line_and_bounded_histories(rigs, caplog):
 def test_link_ranges_compacts_incidents():
     assert link_ranges(range(364)) == "0–363"
     assert link_ranges([5, 1, 2, 3, 9]) == "1–3, 5, 9"
+
+
+def test_chips_falling_silent_together_are_one_log_line(rigs, caplog):
+    rig = rigs("memory", faults="dead_chip=1:2:3:7,dead_after_s=0.4,seed=2", watchdog_s=0.2)
+    rig.host.bring_up(0.2)
+    with caplog.at_level(logging.WARNING, logger="capsheet.host"):
+        rig.stream(1.5)
+    silent_lines = [r.getMessage() for r in caplog.records if "silent" in r.getMessage()]
+    assert silent_lines == [silent_lines[0]] and "links 1–3, 7 marked missing" in silent_lines[0]
+    assert sorted(e.link for e in rig.host.events if e.kind == "silent") == [1, 2, 3, 7]  # events stay per link
+    s = rig.host.summary()
+    assert [d["link"] for d in s["missing_links"]] == [1, 2, 3, 7]
+    assert s["missing_links"][0]["uid"] == f"0x{rig.sheet.uids[1]:016X}"
