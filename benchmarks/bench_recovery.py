@@ -10,7 +10,8 @@ this script's observations compare directly):
 * ``recovered_s``: from the moment the new sheet's port exists to the host's "recovery" report
   (every chip streaming again). Goal: < 2 s.
 * ``first_complete_s``: from the same moment to the first complete snapshot in the host's recording.
-* ``complete_after_pct``: complete snapshots after the recovery report, of all after it.
+* ``complete_after_pct``: complete snapshots after the recovery report, of all after it;
+  ``complete_before_pct`` the same before the sheet was stopped (what this machine sustains at all).
 
 Prints JSON. ``--quick`` runs one repetition of the small configurations.
 
@@ -79,6 +80,7 @@ def one_run(transport: str, lattice: str, sync: str, rate: float) -> dict:
     if not started.wait(120):
         raise RuntimeError("the host did not start: " + "".join(lines))
     time.sleep(2.0)
+    t_kill = time.monotonic()
     a.send_signal(signal.SIGTERM)
     a.wait(30)
     time.sleep(1.0)  # the sheet is away for a second
@@ -102,6 +104,8 @@ def one_run(transport: str, lattice: str, sync: str, rate: float) -> dict:
     out = {"recovered_s": round(recs[-1] - t_back, 3) if recs else None,
            "first_complete_s": round(float(first[0]) - t_back, 3) if first.size else None,
            "recovered_chips": s["recovered_chips"], "reconnects": s["reconnects"], "resyncs": s["resyncs"]}
+    before = ts < t_kill
+    out["complete_before_pct"] = round(100 * float(complete[before].mean()), 2) if before.any() else None
     if recs:
         after = ts > recs[-1]
         out["complete_after_pct"] = round(100 * float(complete[after].mean()), 2) if after.any() else None
