@@ -21,8 +21,13 @@ def test_demo_streams_estimates_and_reports_honestly(tmp_path):
     assert out.returncode in (0, 1), out.stderr
     result = json.loads(out.stdout)  # JSON alone on stdout: every message went to stderr
     assert "364 chips discovered, 364 assigned" in out.stderr
-    assert result["estimates"] >= 1 and result["compared_with_truth"] >= 1
-    assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
+    assert result["estimates"] >= 1
+    # complete snapshots are scored against the truth of their own counter: within the target
+    # (how many were complete depends on the machine's load; none -> no score, and a FAIL)
+    if result["compared_with_truth"]:
+        assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
+    else:
+        assert result["mean_error_pct_side"] is None and result["error_ok"] is False
     sent, complete = result["syncs_sent"], result["complete"]
     assert sent > 0 and 0 <= complete <= result["snapshots"]
     assert result["complete_pct_of_syncs"] == round(100 * complete / sent, 2)
