@@ -53,6 +53,7 @@ def load_chip_factory(firmware: str):
 
 
 def register(subparsers) -> argparse.ArgumentParser:
+    from host.cli.transport_args import positive_int
     from virtual_sheet.shapes import SCENES, SHAPES
     p = subparsers.add_parser(
         "virtual", help="run a virtual sheet on a pty, SLCAN adapter or python-can bus",
@@ -78,10 +79,10 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD)")
     p.add_argument("--rate", type=_rate, default=None, metavar="HZ",
                    help="the gateway generates SYNC at this rate (the host then follows it)")
-    p.add_argument("--baud", type=int, default=12_000_000,
+    p.add_argument("--baud", type=positive_int, default=12_000_000,
                    help="pty: the UART rate the virtual gateway stands for (a pty has none), used for the "
                         "capacity check and printed in the host command (default 12000000)")
-    p.add_argument("--bitrate", type=int, default=1_000_000,
+    p.add_argument("--bitrate", type=positive_int, default=1_000_000,
                    help="CAN: the nominal bit rate the virtual bus stands for (default 1000000; CAN FD data 8x)")
     p.add_argument("--noise", type=float, default=0.02, help="sensor noise, %% of g per axis (default 0.02)")
     p.add_argument("--faults", default="", help="fault spec (see below)")

@@ -143,7 +143,9 @@ def test_every_bad_value_is_one_line_and_exit_2(tmp_path):
              ("--rate", "0"): "invalid rate '0'", ("--rate", "nan"): "invalid rate 'nan'",
              ("--rate", "-3"): "invalid rate '-3'", ("--rate", "inf"): "invalid rate 'inf'",
              ("--duration", "0"): "need > 0", ("--min-complete", "101"): "need 0..100",
-             ("--sync", "sometimes"): "invalid choice", ("--discover-s", "x"): "not a number"}
+             ("--sync", "sometimes"): "invalid choice", ("--discover-s", "x"): "not a number",
+             ("--baud", "-1"): "invalid value '-1': need > 0", ("--bitrate", "abc"): "need an integer",
+             ("--lattice", "300x300"): "node ids cover at most 32767"}
     cases.update(_bad_layouts(tmp_path))
     for args, needle in cases.items():
         out = host("--port", str(tmp_path / "no-such-port"), *args)

@@ -56,7 +56,8 @@ def test_its_own_traffic_over_capacity_is_refused(tmp_path):
 
 
 @pytest.mark.parametrize("args,needle", [(("--rate", "0"), "invalid rate '0'"), (("--rate", "nan"), "invalid rate"),
-                                         (("--lattice", "14by14"), "Invalid lattice size")])
+                                         (("--lattice", "14by14"), "Invalid lattice size"),
+                                         (("--baud", "0"), "need > 0")])
 def test_bad_values_are_one_line_errors(args, needle):
     out = subprocess.run(CLI + ["virtual", "--transport", "memory", "--duration", "0.1", *args],
                          capture_output=True, text=True, timeout=60, env=ENV)
