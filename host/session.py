@@ -519,7 +519,8 @@ class Host:
                 first = key not in self._nack_logged
                 self._nack_logged.add(key)
                 self._report("nack", f"node {msg.node} refused {name}: {msg.reason.name}"
-                             + ("" if first else ""), quiet=not first, node=msg.node, uid=uid)
+                             + (" (further NACKs of this kind in this round are counted, not logged)" if first else ""),
+                             quiet=not first, node=msg.node, uid=uid)
             try:
                 self._inbox.put_nowait((bus, msg))
             except queue.Full:
@@ -1087,10 +1088,10 @@ class Host:
             ev = self.aggregator.resync_events[-1] if self.aggregator.resync_events else None
             self._report("resync", f"the SYNC counter restarted or jumped ({ev[0]} -> {ev[1]}): resynchronised "
                                    f"(resync #{st.resyncs})" if ev else f"resync #{st.resyncs}")
-        if st.stray and st.stray >= 2 * self._stray_reported + 1:  # 1, 3, 7, ...: bounded log lines
+        if st.stray and st.stray >= 2 * self._stray_reported + 1:  # at 1, 3, 7, 15, ...: log lines grow as log2
             self._stray_reported = st.stray
             self._report("stray", f"{st.stray} frame(s) for counters this host did not expect dropped "
-                                  f"(each costs at most its own sample)", quiet=st.stray > 1 and st.stray < 8)
+                                  f"(each costs at most its own sample)")
 
     def recover(self) -> int:
         """Bring the queued chips back into the stream: ASSIGN, CONFIG, CAL_READ, START (only those;
