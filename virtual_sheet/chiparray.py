@@ -9,7 +9,8 @@ last counter, missed SYNCs, range, timers) in arrays of length N. Its two hot pa
   table over the batch, COBS over the batch), or — packed mode (`ChipArray.sync_samples`) — the
   counts handed to the gateway as arrays with nothing encoded.
 * **Timers** (`ChipArray.poll`): the due re-ANNOUNCEs and STATUS heartbeats are found by one
-  comparison; only the due chips run their (scalar) timer code.
+  comparison; the heartbeats are advanced and their STATUS frames encoded in one batch; a due
+  re-ANNOUNCE (rare: unassigned chips) runs the scalar timer code.
 
 Everything else — every command but SYNC, the rare timer events, and every chip with an injected
 fault (dead, babbling: `faults.wrap_chip`) — runs the reference model's own code: each chip has a
@@ -30,7 +31,7 @@ import numpy as np
 from protocol.can import CanFrame, make_id
 from protocol.chip_interface import DEFAULT_CAPABILITIES, Out, check_chip_args
 from protocol.constants import SampleStatus
-from protocol.messages import NODE_BROADCAST, PROTOCOL_VERSION, ChipState, MsgType, Sync
+from protocol.messages import NODE_BROADCAST, PROTOCOL_VERSION, ChipState, MsgType, Status, StatusFlag, Sync
 
 from .chip import ChipModel
 from .faults import FaultSpec, FaultStats, wrap_chip
@@ -165,6 +166,9 @@ class ArrayChip(ChipModel):
     heartbeat_ms = _F(int)
     next_heartbeat_s = _F(float, none="nan")
     next_announce_s = _F(float)
+    rx_errors = _F(int)
+    configured = _F(bool)
+    boot_s = _F(float)
 
     def __init__(self, arr: "ChipArray", k: int, uid: int, sensor, *, transport: str, fd: bool,
                  capabilities: int, calibration) -> None:
@@ -228,6 +232,9 @@ class ChipArray:
         self.heartbeat_ms = np.zeros(n, dtype=np.int64)
         self.next_heartbeat_s = np.full(n, np.nan)
         self.next_announce_s = np.zeros(n)
+        self.rx_errors = np.zeros(n, dtype=np.int64)
+        self.configured = np.zeros(n, dtype=bool)
+        self.boot_s = np.zeros(n)
         sensors = dict(sensors or {})
         self._scalar = np.zeros(n, dtype=bool)  # read a scalar sensor source
         self.views: list[ArrayChip] = []
@@ -268,17 +275,63 @@ class ChipArray:
     def poll(self, now_s: float, sel: np.ndarray | None = None) -> list[Out]:
         """Timers of every chip (of ``sel``), in chip order (as N `ChipModel.poll` calls)."""
         boot = self.state == _BOOT
-        due = self.powered & self._plain & self._sel(sel) & np.where(
-            boot, now_s >= self.next_announce_s,
-            (self.heartbeat_ms != 0) & (now_s >= np.nan_to_num(self.next_heartbeat_s, nan=np.inf)))
-        idx = np.flatnonzero(due | (self._wrapped & self._sel(sel)))
-        out: list[Out] = []
+        live = self.powered & self._plain & self._sel(sel)
+        announce = live & boot & (now_s >= self.next_announce_s)
+        hb = np.flatnonzero(live & ~boot & (self.heartbeat_ms != 0)
+                            & (now_s >= np.nan_to_num(self.next_heartbeat_s, nan=np.inf)))
+        scalar = np.flatnonzero(announce | (self._wrapped & self._sel(sel)))
+        if not scalar.size and not hb.size:
+            return []
+        items: list[tuple[int, list]] = []
         chips = self.chips
-        for k in idx.tolist():
+        for k in scalar.tolist():
             r = chips[k].poll(now_s)
             if r:
-                out += r
-        return out
+                items.append((k, r))
+        if hb.size:
+            period = self.heartbeat_ms[hb] / 1000.0
+            self.next_heartbeat_s[hb] = np.maximum(self.next_heartbeat_s[hb] + period, now_s)
+            frames = self._status_frames(hb, now_s)
+            if not items:
+                return frames
+            items += [(k, [f]) for k, f in zip(hb.tolist(), frames)]
+        items.sort(key=lambda t: t[0])
+        return [f for _, r in items for f in r]
+
+    def _status_frames(self, idx: np.ndarray, now_s: float) -> list[Out]:
+        """The STATUS heartbeat of chips ``idx``, batch-encoded (`ChipModel._status`, byte for byte)."""
+        views = self.views
+        cal_valid = np.array([any(c[2] for c in views[k].cal) for k in idx.tolist()], dtype=bool)
+        st = self.state[idx]
+        flags = ((cal_valid * int(StatusFlag.CAL_VALID)) | ((st == _FAULT) * int(StatusFlag.ADC_FAULT))
+                 | (self.configured[idx] * int(StatusFlag.CONFIGURED))).astype(np.int64)
+        up = np.maximum(0.0, now_s - self.boot_s[idx]).astype(np.int64) & 0xFFFFFFFF
+        m = idx.size
+        pay = np.empty((m, 8), dtype=np.uint8)
+        pay[:, 0] = st
+        pay[:, 1] = flags
+        pay[:, 2] = self.rx_errors[idx]
+        pay[:, 3] = self.missed_syncs[idx]
+        for b in range(4):
+            pay[:, 4 + b] = (up >> (8 * b)) & 0xFF
+        node = self.node[idx]
+        if self.can:
+            pb = pay.tobytes()
+            return [CanFrame(make_id(MsgType.STATUS, nd, Status.PRIORITY), pb[8 * i:8 * i + 8], False)
+                    for i, nd in enumerate(node.tolist())]
+        body = np.empty((m, 14), dtype=np.uint8)
+        body[:, 0] = PROTOCOL_VERSION
+        body[:, 1] = int(MsgType.STATUS)
+        body[:, 2] = node & 0xFF
+        body[:, 3] = node >> 8
+        body[:, 4:12] = pay
+        crc = crc16_ccitt_batch(body[:, :12])
+        body[:, 12] = crc >> np.uint16(8)
+        body[:, 13] = crc & np.uint16(0xFF)
+        out = np.zeros((m, 16), dtype=np.uint8)
+        out[:, :15] = cobs_encode_batch(body)
+        b = out.tobytes()
+        return [b[i:i + 16] for i in range(0, len(b), 16)]
 
     # ------------------------------------------------------------------ frames
     def handle(self, frame: Out, now_s: float, decoded, sel: np.ndarray | None = None) -> list[Out]:

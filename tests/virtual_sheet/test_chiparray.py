@@ -131,8 +131,10 @@ def test_array_answers_exactly_as_n_chip_models(n, transport, seed, dead, dead_a
     assert got_arr == got_ref
     counter = 0
     for op in ops:
-        if op[0] == "wait":
+        if op[0] == "wait":  # time passes, then the timers are served (re-ANNOUNCE, heartbeats)
             now += op[1]
+            want = [f for c in refs for f in c.poll(now)]
+            assert arr.poll(now) == want
             continue
         now += 0.001
         if op[0] == "poll":
