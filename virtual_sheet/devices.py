@@ -339,7 +339,10 @@ class _PtyMixin:
         self._master = self._slave = -1
         self._pending = bytearray()
         self.tx_overflow_bytes = 0
-        self.max_pending = 1 << 20
+        self.tx_overflow_frames = 0  #: frames dropped whole because the host did not read (counted)
+        # what a gateway holds for a host that does not read: a real adapter's buffer is small, and
+        # a bounded one lets a host that fell behind see fresh frames again (newest wins)
+        self.max_pending = 256 << 10
 
     def _pty_open(self) -> None:
         self._master, self._slave, self.tty = open_pty()
@@ -384,12 +387,13 @@ class _PtyMixin:
             time.sleep(min(timeout_s, 0.005))
             return b""
 
-    def _pty_write(self, data: bytes) -> None:
+    def _pty_write(self, data: bytes, n_frames: int = 0) -> None:
         if self._master < 0:
             return
         if data:
             if len(self._pending) + len(data) > self.max_pending:
-                self.tx_overflow_bytes += len(data)  # nobody reads: the bytes fall on the floor
+                self.tx_overflow_bytes += len(data)  # nobody reads: the frames fall on the floor whole
+                self.tx_overflow_frames += n_frames
                 return
             self._pending += data
         while self._pending:
@@ -437,7 +441,7 @@ class PtyDevice(_PtyMixin, _SerialDevice):
             self._handle_input(data)
 
     def _send(self, bus: int, frames: list) -> None:
-        self._pty_write(b"".join(frames))
+        self._pty_write(b"".join(frames), len(frames))
 
     def _go_down(self) -> None:
         self._pty_close()
