@@ -450,11 +450,21 @@ class Host:
             if not isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):
                 control = True
                 break
-        agg.ingest(events, bus)
-        if control:
-            for ev in events:
-                if not isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):
-                    self._on_control(bus, ev)
+        if not control:
+            agg.ingest(events, bus)
+            return True
+        # in wire order: a SYNC opens its counter before the samples that answer it are ingested
+        data: list = []
+        for ev in events:
+            if isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):
+                data.append(ev)
+                continue
+            if data:
+                agg.ingest(data, bus)
+                data = []
+            self._on_control(bus, ev)
+        if data:
+            agg.ingest(data, bus)
         return True
 
     def _on_control(self, bus: int, msg: Message) -> None:
