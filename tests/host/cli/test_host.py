@@ -217,7 +217,7 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     extra = ["--rate", "50"] if sync == "follow" else []
     a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay), *extra)
     cmd = list(a.host_cmd)
-    p = popen_host(*cmd, "--duration", "12", "--json", "-q", "--record", str(rec))
+    p = popen_host(*cmd, "--duration", "300", "--json", "-q", "--record", str(rec))
     err: list = []
     wait_line(p, "started on", 60, err)
     time.sleep(1.5)
@@ -225,6 +225,9 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     assert not port.exists()  # the symlink went with the sheet
     time.sleep(0.5)
     b = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay), *extra)
+    wait_line(p, "streaming again", 120, err)  # the host reports the recovery (a WARNING line)
+    time.sleep(3.0)
+    p.send_signal(signal.SIGTERM)  # ends as on Ctrl-C: summary and JSON still printed
     t = drain(p, err)
     out, _ = p.communicate(timeout=60)
     t.join(5)
@@ -238,7 +241,7 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     r = read_recording(rec)
     after = np.asarray(r.data["timestamp"]) > t_rec
     complete = np.asarray(r.data["complete"])[after]
-    assert complete.size >= 100 and complete.mean() >= 0.99, (complete.size, complete.mean())
+    assert complete.size >= 10 and complete.mean() >= 0.99, (complete.size, complete.mean())
     assert b.p.poll() is None
 
 
