@@ -18,7 +18,15 @@ Rules (all counted in `AggregatorStats`, none raises):
 * At most ``max_open`` counters are open; opening one more emits the oldest (masked): memory is
   bounded whatever the input.
 * The output queue holds ``queue_size`` snapshots; when the consumer is slower than the sheet the
-  oldest are dropped (newest wins) and counted in ``dropped``.
+  oldest are dropped (newest wins) and counted in ``dropped``; `latest` hands a slow consumer the
+  newest snapshot and counts the ones it skips in ``dropped`` too.
+* **Adaptive deadline** (``min_deadline_s`` and ``max_deadline_s`` given): the deadline follows
+  the measured SYNC -> last-frame latency — every 32 measurements it becomes 1.5 x their 95th
+  percentile + 2 ms, bounded to ``[min_deadline_s, max_deadline_s]``. Frames that came after
+  their counter was emitted are measured too, so a deadline that is too short grows.
+* **Who is missing** (``miss_run``): per link, how many snapshots in a row were emitted without it
+  while at least half of the other expected links arrived — the host's watchdog blames a chip
+  only on this evidence (its neighbours' frames for the same counters came, its did not).
 """
 
 from __future__ import annotations
@@ -134,6 +142,11 @@ class AggregatorStats:
     duplicates: int = 0
     unknown: int = 0  #: frames from nodes the layout does not know
     out_of_range: int = 0  #: SNAPSHOT samples beyond the lattice
+    assigned_links: int = 0  #: sum over emitted snapshots of the links with a chip assigned
+    valid_links: int = 0  #: sum over emitted snapshots of the assigned links with a valid sample
+    deadline_changes: int = 0  #: times the adaptive deadline moved
+    stray: int = 0  #: frames for a counter nobody sent (drive) or out of the sequence (follow): dropped
+    resyncs: int = 0  #: follow mode: the counter sequence restarted or jumped and was followed
     unknown_nodes: dict = field(default_factory=dict)  #: node -> frames (at most 256 nodes kept)
     link_frames: np.ndarray = None  # type: ignore[assignment]
     link_late: np.ndarray = None  # type: ignore[assignment]
@@ -157,7 +170,9 @@ class AggregatorStats:
 
     def summary(self) -> dict:
         return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
-                                              "dropped", "late", "duplicates", "unknown", "out_of_range")}
+                                              "dropped", "late", "duplicates", "unknown", "out_of_range",
+                                              "assigned_links", "valid_links", "deadline_changes", "stray",
+                                              "resyncs")}
 
 
 class Aggregator:
@@ -175,7 +190,11 @@ class Aggregator:
     sensitivity : ndarray, shape (n_links, 3), optional
         Counts per g per link and axis. Default: nominal for ±2 g (1024).
     deadline_s : float
-        An incomplete counter is emitted (masked) this long after it opened.
+        An incomplete counter is emitted (masked) this long after it opened (the starting value
+        when adaptive).
+    min_deadline_s, max_deadline_s : float, optional
+        Both given: the deadline adapts to the measured latency within these bounds (module
+        docstring). Otherwise it stays ``deadline_s``.
     max_open : int
         At most this many counters are open at once.
     max_age : int
@@ -194,13 +213,26 @@ class Aggregator:
     def __init__(self, n_links: int, node_to_link=None, *, offset=None, sensitivity=None,
                  deadline_s: float = 0.05, max_open: int = 32, max_age: int = 256, queue_size: int = 64,
                  n_buses: int = 1, on_snapshot: Callable[[LatticeSnapshot], None] | None = None,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic, min_deadline_s: float | None = None,
+                 max_deadline_s: float | None = None, trust: str = "frames", max_jump: int = 64,
+                 resync_after: int = 3) -> None:
         if not isinstance(n_links, (int, np.integer)) or n_links < 1:
             raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 1)")
         if max_open < 1:
             raise ValueError(f"Invalid max_open: {max_open!r} (need >= 1)")
         self.n_links = int(n_links)
         self.deadline_s = float(deadline_s)
+        if not (np.isfinite(self.deadline_s) and self.deadline_s > 0):
+            raise ValueError(f"Invalid deadline_s: {deadline_s!r} (need a finite value > 0 s)")
+        self.adaptive = min_deadline_s is not None and max_deadline_s is not None
+        if self.adaptive:
+            if not (0 < min_deadline_s <= max_deadline_s and np.isfinite(max_deadline_s)):
+                raise ValueError(f"Invalid deadline bounds: min_deadline_s={min_deadline_s!r}, "
+                                 f"max_deadline_s={max_deadline_s!r} (need 0 < min <= max, finite)")
+            self.deadline_s = float(np.clip(self.deadline_s, min_deadline_s, max_deadline_s))
+        self.min_deadline_s = float(min_deadline_s) if self.adaptive else self.deadline_s
+        self.max_deadline_s = float(max_deadline_s) if self.adaptive else self.deadline_s
+        self._lat: list[float] = []  # latencies measured since the last adaptation
         self.max_open = int(max_open)
         self.max_age = int(max_age)
         self.clock = clock
@@ -234,6 +266,10 @@ class Aggregator:
         self._newest: int | None = None  # newest counter opened
         self._last_emitted: int | None = None
         self._stamp = np.zeros(S * L, dtype=np.int64)  # scratch for in-batch duplicates
+        self._t0_of = np.full(_MOD, np.nan)  # counter -> when it opened (latency of late frames)
+        #: per link: snapshots in a row emitted without it while most expected links arrived
+        self.miss_run = np.zeros(L, dtype=np.int64)
+        self._init_trust(trust, max_jump, resync_after)
 
     # -- configuration ---------------------------------------------------------------------
     def set_node_map(self, node_to_link=None) -> None:
@@ -317,11 +353,14 @@ class Aggregator:
             self._last_emitted = None
             self._newest = None
 
-    def _slot_for(self, c: int, now: float) -> int:
-        """Slot of counter ``c``, opening it if allowed; -1 if late."""
+    def _slot_for(self, c: int, now: float, from_frame: bool = False) -> int:
+        """Slot of counter ``c``, opening it if allowed; -1 if late, -2 if stray (counter trust)."""
         s = int(self._slot_of[c])
         if s >= 0:
             return s
+        verdict = self._trust_verdict(c, now, from_frame)
+        if verdict < 0:
+            return verdict
         # snapshots leave in counter order, so anything not newer than the last emitted is late
         if self._last_emitted is not None and serial_diff(c, self._last_emitted) <= 0:
             return -1
@@ -335,6 +374,7 @@ class Aggregator:
         self._slot_of[c] = s
         self._slot_counter[s] = c
         self._slot_t0[s] = now
+        self._t0_of[c] = now
         self._slot_wall[s] = time.time() - (self.clock() - now)
         self._slot_first[s] = np.nan
         self._slot_last[s] = np.nan
@@ -350,6 +390,72 @@ class Aggregator:
                 k -= 1
             self._open.insert(k, s)
         return s
+
+    # -- counter trust (issue 12; a separate piece: only `_slot_for` and `_scatter` call it) --
+    def _init_trust(self, trust: str, max_jump: int, resync_after: int) -> None:
+        """Which counters may open a snapshot.
+
+        * ``"frames"`` (default, standalone use): any frame opens its counter (the old rule).
+        * ``"sent"`` (a host driving SYNC): only `open_counter` opens counters; a frame for a counter
+          not open and newer than the newest sent is *stray* (dropped, counted), so a stray or foreign
+          frame never moves the sequence and costs at most its own sample.
+        * ``"follow"`` (a gateway drives SYNC): SYNCs and frames open counters within
+          ``-max_age .. +max_jump`` of the newest (a SYNC only when newer: a SYNC source never goes
+          back); one outside is stray, unless ``resync_after``
+          consecutive counters (each 1..2 after the previous) continue it: then the sequence has
+          restarted or jumped (a gateway reset) and is followed — what is open is emitted, the history
+          forgotten, ``resyncs`` counted and ``resync_events`` records ``(old newest, new counter)``.
+        """
+        if trust not in ("frames", "sent", "follow"):
+            raise ValueError(f"Invalid trust: {trust!r} (need 'frames', 'sent' or 'follow')")
+        if not (isinstance(max_jump, int) and 1 <= max_jump < _HALF):
+            raise ValueError(f"Invalid max_jump: {max_jump!r} (need 1..32767)")
+        if not (isinstance(resync_after, int) and resync_after >= 1):
+            raise ValueError(f"Invalid resync_after: {resync_after!r} (need >= 1)")
+        self.trust = trust
+        self.max_jump = max_jump
+        self.resync_after = resync_after
+        self.resync_events: deque = deque(maxlen=64)  #: (previous newest, counter followed)
+        self._cand: int | None = None  # follow: newest counter of a candidate new sequence
+        self._cand_run = 0
+
+    def set_trust(self, trust: str) -> None:
+        """Switch the rule (the host does when it changes between driving and following SYNC)."""
+        with self._lock:
+            self._init_trust(trust, self.max_jump, self.resync_after)
+
+    def _trust_verdict(self, c: int, now: float, from_frame: bool) -> int:
+        """0: ``c`` may be opened; -1: late; -2: stray. May resync (follow)."""
+        if self.trust == "frames" or self._newest is None:
+            if self.trust == "sent" and from_frame:
+                return -2 if self._last_emitted is None or serial_diff(c, self._last_emitted) > 0 else -1
+            return 0
+        d = serial_diff(c, self._newest)
+        if self.trust == "sent":
+            if not from_frame:
+                return 0
+            return -1 if -self.max_age <= d <= 0 else -2  # sent recently and gone: late; else never sent
+        # follow. A SYNC (not a frame) for a counter not newer than the newest is out of sequence
+        # too: a SYNC source never goes back, unless it restarted (frames may just be late).
+        if (-self.max_age <= d <= self.max_jump) and (from_frame or d > 0):
+            if d > 0:
+                self._cand, self._cand_run = None, 0
+            return 0
+        if self._cand is not None and 1 <= serial_diff(c, self._cand) <= 2:
+            self._cand, self._cand_run = c, self._cand_run + 1
+        elif self._cand is None or c != self._cand:
+            self._cand, self._cand_run = c, 1
+        if self._cand_run < self.resync_after:
+            return -2
+        old = self._newest
+        while self._open:
+            self._emit(self._open[0], now)
+        self._last_emitted = None
+        self._newest = None
+        self._cand, self._cand_run = None, 0
+        self.stats.resyncs += 1
+        self.resync_events.append((old, c))
+        return 0
 
     # -- ingest ----------------------------------------------------------------------------
     def ingest(self, events: Iterable, bus: int = 0) -> None:
@@ -411,6 +517,7 @@ class Aggregator:
                 for link in np.unique(links[back]).tolist():
                     self.silent[link] = False
                     self.expected[link] = not self.unassigned[link]
+                    self.miss_run[link] = 0
         slots = self._slot_of[counter]
         if (slots < 0).any():
             missing = np.unique(counter[slots < 0])
@@ -419,12 +526,26 @@ class Aggregator:
                 missing = missing[np.argsort(serial_diff(missing.astype(np.int64), self._newest), kind="stable")]
             elif missing.shape[0] > 1:
                 missing = missing[np.argsort(serial_diff(missing.astype(np.int64), int(missing[-1])), kind="stable")]
-            for c in missing.tolist():
-                self._slot_for(c, now)
+            stray_c = [c for c in missing.tolist() if self._slot_for(c, now, from_frame=True) == -2]
             slots = self._slot_of[counter]
             late = slots < 0
+            if stray_c:  # counter trust: dropped, counted apart from late frames
+                stray = late & np.isin(counter, np.asarray(stray_c, dtype=counter.dtype))
+                st.stray += int(np.count_nonzero(stray))
+                late &= ~stray
+                ok = slots >= 0
+                links, counter, counts, status, slots = links[ok], counter[ok], counts[ok], status[ok], slots[ok]
+                late = late[ok]
+                n = links.shape[0]
+                if n == 0:
+                    return
             if late.any():
                 nl = int(np.count_nonzero(late))
+                if self.adaptive:  # how late they were: a deadline too short must grow
+                    t0 = self._t0_of[counter[late].astype(np.int64)]
+                    t0 = t0[np.isfinite(t0) & (now - t0 < 4 * self.max_deadline_s)]
+                    if t0.size:
+                        self._measure(float(now - t0.min()))
                 st.late += nl
                 st.bus_late[bus] += nl
                 st.link_late += np.bincount(links[late], minlength=self.n_links)
@@ -515,6 +636,16 @@ class Aggregator:
                                complete, float(now - self._slot_t0[s]), float(self._slot_first[s]),
                                float(self._slot_last[s]))
         st.emitted += 1
+        assigned = ~self.unassigned
+        st.assigned_links += int(np.count_nonzero(assigned))
+        st.valid_links += int(np.count_nonzero(valid & assigned))
+        exp = self.expected
+        n_exp = int(np.count_nonzero(exp))
+        if n_exp and 2 * int(np.count_nonzero(got & exp)) >= n_exp:
+            self.miss_run[exp & ~got] += 1  # its neighbours came for this counter, it did not
+        self.miss_run[got] = 0
+        if self.adaptive and not np.isnan(self._slot_last[s]) and (complete or got.any()):
+            self._measure(float(self._slot_last[s]))
         if complete:
             st.complete += 1
         else:
@@ -534,6 +665,28 @@ class Aggregator:
         if self.on_snapshot is not None:
             self.on_snapshot(snap)
 
+    def _measure(self, latency_s: float) -> None:
+        lat = self._lat
+        lat.append(latency_s)
+        if len(lat) >= 32:
+            new = float(np.clip(1.5 * np.percentile(lat, 95) + 0.002, self.min_deadline_s, self.max_deadline_s))
+            lat.clear()
+            if abs(new - self.deadline_s) > 1e-4:
+                self.deadline_s = new
+                self.stats.deadline_changes += 1
+
+    def reset_miss_runs(self) -> None:
+        """Forget who was missing (the host (re)starts streaming)."""
+        with self._lock:
+            self.miss_run[:] = 0
+
+    def completeness(self) -> dict:
+        """Completeness so far: by snapshot (complete / emitted) and by valid link (valid samples of
+        assigned links / assigned links, over every emitted snapshot), in %; None before any."""
+        st = self.stats
+        return {"complete_snapshots_pct": round(100.0 * st.complete / st.emitted, 3) if st.emitted else None,
+                "valid_links_pct": round(100.0 * st.valid_links / st.assigned_links, 3) if st.assigned_links else None}
+
     # -- output ----------------------------------------------------------------------------
     def get(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
         """The oldest queued snapshot, waiting up to ``timeout_s`` (None: forever); None on timeout."""
@@ -547,6 +700,19 @@ class Aggregator:
                 if not self._out:
                     self._pump(self.clock())
             return self._out.popleft()
+
+    def latest(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
+        """Newest wins: the newest queued snapshot (waiting up to ``timeout_s`` for one); the older
+        ones queued are skipped and counted in ``stats.dropped``. None on timeout."""
+        snap = self.get(timeout_s)
+        if snap is None:
+            return None
+        with self._lock:
+            if self._out:  # `snap` and all but the newest queued are skipped
+                self.stats.dropped += len(self._out)
+                snap = self._out.pop()
+                self._out.clear()
+        return snap
 
     def drain(self) -> list[LatticeSnapshot]:
         """Every queued snapshot, oldest first, without waiting."""

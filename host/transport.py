@@ -33,7 +33,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, decode_can, to_can
+from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, decode_can, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
 from protocol.messages import Message, Sample
 
@@ -149,12 +149,65 @@ class Transport(ABC):
     """
 
     capabilities: TransportCapabilities
+    #: what a log line calls this transport ("serial port", "CAN bus")
+    label = "port"
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, *, reconnect: bool = False, reconnect_interval_s: float = 0.2) -> None:
         self.name = name
         self.stats = TransportStats()
         self._send_lock = threading.Lock()
         self._closed = False
+        self.reconnect = reconnect
+        self.reconnect_interval_s = reconnect_interval_s
+        self._last_attempt = float("-inf")
+
+    # -- reconnect, written once for every back end ----------------------------------------------
+    def _lost(self, exc: BaseException) -> None:
+        """The port or bus failed: count it (once per loss), release it, and let `_try_reopen` bring
+        it back later (if ``reconnect``)."""
+        if self.connected:
+            log.warning("%s %r went away: %s", self.label, self.name, exc)
+            self.stats.disconnects += 1
+            try:
+                self._release_internal()
+            except Exception:  # noqa: BLE001 - it is gone already
+                pass
+        self._forget_internal()
+
+    def _try_reopen(self) -> bool:
+        """Reopen a lost port, at most once per ``reconnect_interval_s``; True if it is back."""
+        if not (self.reconnect and self._can_reopen()):
+            return False
+        now = time.monotonic()
+        if now - self._last_attempt < self.reconnect_interval_s:
+            return False
+        self._last_attempt = now
+        try:
+            self._reopen_internal()
+        except Exception as exc:  # noqa: BLE001 - still away; try again later
+            log.debug("reopen %r failed: %s", self.name, exc)
+            return False
+        self.stats.reconnects += 1
+        log.warning("%s %r is back (reconnect #%d)", self.label, self.name, self.stats.reconnects)
+        return True
+
+    @property
+    def connected(self) -> bool:
+        """True while the port or bus is open (False after a loss, until reopened)."""
+        return True
+
+    def _can_reopen(self) -> bool:
+        return True
+
+    def _release_internal(self) -> None:
+        """Close the lost port's handle (errors ignored)."""
+
+    def _forget_internal(self) -> None:
+        """Drop the handle and any partial input."""
+
+    def _reopen_internal(self) -> None:
+        """Open the port again; raise if it is still away."""
+        raise TransportInitError(f"{self.name!r} cannot be reopened", self.name)
 
     # -- public API ------------------------------------------------------------------------
     def recv(self, timeout_s: float | None = 0.1) -> list:
@@ -273,14 +326,11 @@ class SerialTransport(Transport):
                  read_size: int = 1 << 16, kind: str = "serial") -> None:
         self._url = port if isinstance(port, str) else None
         name = self._url if self._url is not None else str(getattr(port, "name", None) or getattr(port, "port", None) or port)
-        super().__init__(name)
+        super().__init__(name, reconnect=reconnect, reconnect_interval_s=reconnect_interval_s)
         self.baudrate = baudrate
-        self.reconnect = reconnect
-        self.reconnect_interval_s = reconnect_interval_s
         self._reopen = reopen
         self._read_size = read_size
         self.decoder = StreamDecoder(batch_samples=True)
-        self._last_attempt = 0.0
         if self._url is not None:
             self._serial_mod = _import("serial", "serial port", self._url)
             self._port = self._open()
@@ -299,47 +349,31 @@ class SerialTransport(Transport):
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportInitError(f"Cannot open serial port {self._url!r}: {exc}", self._url) from exc
 
-    # reconnect ---------------------------------------------------------------------------
-    def _lost(self, exc: BaseException) -> None:
-        if self._port is not None:
-            log.warning("serial port %r went away: %s", self.name, exc)
-            self.stats.disconnects += 1
-            try:
-                self._port.close()
-            except Exception:  # noqa: BLE001
-                pass
-        self._port = None
-        self.decoder.reset()
-
-    def _try_reopen(self) -> bool:
-        now = time.monotonic()
-        if now - self._last_attempt < self.reconnect_interval_s:
-            return False
-        self._last_attempt = now
-        try:
-            if self._reopen is not None:
-                self._port = self._reopen()
-            elif self._url is not None:
-                self._port = self._open()
-            else:
-                return False
-        except Exception as exc:  # noqa: BLE001 - still away; try again later
-            log.debug("reopen %r failed: %s", self.name, exc)
-            return False
-        self.stats.reconnects += 1
-        log.warning("serial port %r is back (reconnect #%d)", self.name, self.stats.reconnects)
-        return True
+    # reconnect (the logic is `Transport._lost` / `_try_reopen`) ------------------------------
+    label = "serial port"
 
     @property
     def connected(self) -> bool:
         return self._port is not None
 
+    def _can_reopen(self) -> bool:
+        return self._url is not None or self._reopen is not None
+
+    def _release_internal(self) -> None:
+        self._port.close()
+
+    def _forget_internal(self) -> None:
+        self._port = None
+        self.decoder.reset()
+
+    def _reopen_internal(self) -> None:
+        self._port = self._reopen() if self._reopen is not None else self._open()
+
     # hooks -------------------------------------------------------------------------------
     def _recv_internal(self, timeout_s: float | None) -> list:
         port = self._port
         if port is None:
-            can_reopen = self.reconnect and (self._url is not None or self._reopen is not None)
-            if not (can_reopen and self._try_reopen()):
+            if not self._try_reopen():
                 time.sleep(min(0.05, timeout_s if timeout_s is not None else 0.05))
                 return []
             port = self._port
@@ -442,7 +476,7 @@ class CanTransport(Transport):
     def __init__(self, spec: str, *, fd: bool = False, bitrate: int | None = None,
                  data_bitrate: int | None = None, reconnect: bool = True, reconnect_interval_s: float = 0.5,
                  max_batch: int = 4096, **bus_kwargs: Any) -> None:
-        super().__init__(spec)
+        super().__init__(spec, reconnect=reconnect, reconnect_interval_s=reconnect_interval_s)
         try:
             self.interface, self.channel = parse_can_spec(spec)
         except ValueError as exc:
@@ -454,10 +488,9 @@ class CanTransport(Transport):
             self._bus_kwargs["bitrate"] = bitrate
         if data_bitrate is not None:
             self._bus_kwargs["data_bitrate"] = data_bitrate
-        self.reconnect = reconnect
-        self.reconnect_interval_s = reconnect_interval_s
-        self._last_attempt = 0.0
         self._max_batch = max_batch
+        #: our own frames handed back (udp_multicast does): dropped, counted in ``echo.echoes``
+        self.echo = EchoFilter()
         self._bus = self._open()
         self.capabilities = TransportCapabilities(
             kind="can", mtu=CAN_FD_MTU if fd else CAN_CLASSIC_MTU, fd=fd, bitrate=bitrate,
@@ -470,32 +503,25 @@ class CanTransport(Transport):
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError
             raise TransportInitError(f"Cannot open CAN bus {self.name!r}: {exc}", self.name) from exc
 
+    label = "CAN bus"
+
     @property
     def connected(self) -> bool:
         return self._bus is not None
 
-    def _lost(self, exc: BaseException) -> None:
-        if self._bus is not None:
-            log.warning("CAN bus %r failed: %s", self.name, exc)
-            self.stats.disconnects += 1
-            try:
-                self._bus.shutdown()
-            except Exception:  # noqa: BLE001
-                pass
+    def _release_internal(self) -> None:
+        self._bus.shutdown()
+
+    def _forget_internal(self) -> None:
         self._bus = None
+
+    def _reopen_internal(self) -> None:
+        self._bus = self._open()
 
     def _recv_internal(self, timeout_s: float | None) -> list:
         bus = self._bus
         if bus is None:
-            now = time.monotonic()
-            if self.reconnect and now - self._last_attempt >= self.reconnect_interval_s:
-                self._last_attempt = now
-                try:
-                    self._bus = self._open()
-                    self.stats.reconnects += 1
-                    log.warning("CAN bus %r is back (reconnect #%d)", self.name, self.stats.reconnects)
-                except TransportInitError:
-                    pass
+            self._try_reopen()
             time.sleep(min(0.05, timeout_s if timeout_s is not None else 0.05))
             return []
         try:
@@ -523,6 +549,11 @@ class CanTransport(Transport):
             if f.is_remote_frame:
                 continue
             self.stats.bytes_in += len(f.data)
+            if self.echo.is_echo(f.arbitration_id, f.data):
+                continue
+            if f.is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
+                self.stats.errors["FD_ON_CLASSIC"] += 1
+                continue
             ev = decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id, is_fd=f.is_fd)
             if isinstance(ev, Sample):
                 samples.append(ev)
@@ -542,6 +573,7 @@ class CanTransport(Transport):
         frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
         m = self._can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True,
                               is_fd=frame.is_fd)
+        self.echo.sent(frame.arbitration_id, frame.data)
         try:
             bus.send(m, timeout=1.0)
         except Exception as exc:  # noqa: BLE001

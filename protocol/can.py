@@ -23,7 +23,7 @@ from .framing import DecodeError, ErrorReason
 from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Snapshot, Sync,  # noqa: F401 (doctest)
                        decode_payload, SAMPLE_WORD_SIZE)
 
-__all__ = ["CanFrame", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
+__all__ = ["EchoFilter", "CanFrame", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
            "make_id", "split_id", "to_can", "from_can", "decode_can", "fd_length"]
 
 CAN_CLASSIC_MTU = 8
@@ -126,3 +126,52 @@ def from_can(arbitration_id: int, data: bytes, *, is_extended_id: bool = True, i
     if isinstance(out, DecodeError):
         raise ValueError(f"{out.reason.name}: {out.detail}")
     return out
+
+
+class EchoFilter:
+    """Recognise the echo of frames this node sent, on interfaces that hand a sender its own frames
+    back (python-can's ``udp_multicast`` does, whatever ``receive_own_messages`` says).
+
+    `sent` records each frame put on the bus (the last ``size``); `is_echo` answers True once per
+    recorded frame whose identifier and data match, and forgets it. Sans-I/O.
+
+    >>> f = EchoFilter()
+    >>> f.sent(0x100, b"\\x01"); f.is_echo(0x100, b"\\x01"), f.is_echo(0x100, b"\\x01"), f.echoes
+    (True, False, 1)
+    """
+
+    __slots__ = ("size", "echoes", "_q", "_n")
+
+    def __init__(self, size: int = 512) -> None:
+        from collections import deque
+        if not (isinstance(size, int) and size >= 1):
+            raise ValueError(f"Invalid size: {size!r} (need an integer >= 1)")
+        self.size = size
+        self.echoes = 0
+        self._q: deque = deque()
+        self._n: dict = {}
+
+    def sent(self, can_id: int, data: bytes) -> None:
+        key = (can_id, bytes(data))
+        self._q.append(key)
+        self._n[key] = self._n.get(key, 0) + 1
+        if len(self._q) > self.size:
+            old = self._q.popleft()
+            k = self._n[old] - 1
+            if k:
+                self._n[old] = k
+            else:
+                del self._n[old]
+
+    def is_echo(self, can_id: int, data: bytes) -> bool:
+        key = (can_id, bytes(data))
+        k = self._n.get(key, 0)
+        if not k:
+            return False
+        if k > 1:
+            self._n[key] = k - 1
+        else:
+            del self._n[key]
+        self._q.remove(key)
+        self.echoes += 1
+        return True

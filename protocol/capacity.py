@@ -21,7 +21,7 @@ from .framing import CRC_SIZE, HEADER_SIZE, MAX_PAYLOAD_SIZE, SAMPLE_WIRE_SIZE, 
 from .messages import SAMPLE_WORD_SIZE, Sample, Snapshot
 
 __all__ = ["classic_can_frame_bits", "fd_can_frame_time_s", "serial_snapshot_bytes", "Capacity",
-           "capacity_table", "MAX_SERIAL_SNAPSHOT_SAMPLES"]
+           "capacity_table", "MAX_SERIAL_SNAPSHOT_SAMPLES", "bus_load", "buses_needed"]
 
 #: SNAPSHOT samples per serial frame: (1018 - 5) // 5
 MAX_SERIAL_SNAPSHOT_SAMPLES = (MAX_PAYLOAD_SIZE - Snapshot.HEADER_SIZE) // SAMPLE_WORD_SIZE
@@ -73,6 +73,8 @@ class Capacity:
 
 def capacity_table(rate_hz: float = 145.0) -> list[Capacity]:
     """Chips per bus at ``rate_hz`` for each transport and message (the table of docs §10)."""
+    if not (isinstance(rate_hz, (int, float)) and math.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"Invalid rate_hz: {rate_hz!r} (need a finite value > 0)")
     rows = []
     best, worst = classic_can_frame_bits(Sample.SIZE)
     f = (1e6 / worst, 1e6 / best)
@@ -101,6 +103,64 @@ def capacity_table(rate_hz: float = 145.0) -> list[Capacity]:
         rows.append(Capacity(f"UART 8N1 {baud // 1_000_000} Mbaud", "SNAPSHOT (packed)",
                              f"{serial_snapshot_bytes(lo)} B per snapshot", (rate_hz, rate_hz), (lo, lo)))
     return rows
+
+
+def bus_load(n_chips: int, rate_hz: float, *, kind: str, bitrate: float, fd: bool = False,
+             data_bitrate: float | None = None, packed: bool = False) -> float:
+    """Worst-case fraction of a bus's time that ``n_chips`` sampled at ``rate_hz`` take (1.0 = full).
+
+    ``kind="serial"``: a UART at ``bitrate`` baud, 8N1 (the chip-to-host direction; SYNC goes the
+    other way). ``kind="can"``: classic CAN at ``bitrate`` (or CAN FD with ``data_bitrate``), one
+    SYNC per period included. ``packed``: the gateway sends SNAPSHOT frames (serial, or CAN FD);
+    classic CAN cannot pack, so per-chip SAMPLE is counted there.
+
+    >>> round(bus_load(364, 100, kind="can", bitrate=1e6), 2)  # 364 x 100 x 150 bits + 100 x 100 (SYNC)
+    5.47
+    >>> round(bus_load(50, 145, kind="can", bitrate=1e6), 2)   # (50 x 150 + 100) x 145 / 1e6
+    1.1
+    >>> round(bus_load(364, 145, kind="serial", bitrate=12e6), 2)      # per-chip on 12 Mbaud
+    0.66
+    """
+    if not (isinstance(n_chips, int) and n_chips >= 0):
+        raise ValueError(f"Invalid n_chips: {n_chips!r} (need an integer >= 0)")
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise ValueError(f"Invalid rate_hz: {rate_hz!r} (need a finite value > 0)")
+    if not (math.isfinite(bitrate) and bitrate > 0):
+        raise ValueError(f"Invalid bitrate: {bitrate!r} (need a finite value > 0)")
+    if kind == "serial":
+        per_period = serial_snapshot_bytes(n_chips) if packed else n_chips * SAMPLE_WIRE_SIZE
+        return rate_hz * per_period * 10 / bitrate
+    if kind != "can":
+        raise ValueError(f"Invalid kind: {kind!r} (need 'serial' or 'can')")
+    sync_bits = classic_can_frame_bits(2)[1]
+    if not fd:
+        return rate_hz * (n_chips * classic_can_frame_bits(Sample.SIZE)[1] + sync_bits) / bitrate
+    data_bps = data_bitrate if data_bitrate is not None else 8 * bitrate
+    if packed:
+        full, rest = divmod(n_chips, MAX_FD_SNAPSHOT_SAMPLES)
+        t = full * fd_can_frame_time_s(Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * MAX_FD_SNAPSHOT_SAMPLES,
+                                       bitrate, data_bps)[1]
+        if rest:
+            t += fd_can_frame_time_s(Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * rest, bitrate, data_bps)[1]
+    else:
+        t = n_chips * fd_can_frame_time_s(Sample.SIZE, bitrate, data_bps)[1]
+    return rate_hz * (t + sync_bits / bitrate)
+
+
+def buses_needed(n_links: int, rate_hz: float = 145.0) -> list[tuple[Capacity, int]]:
+    """For each row of `capacity_table`: how many such buses a sheet of ``n_links`` chips needs
+    (from the worst-case chips per bus; 0 chips per bus at this rate -> no number of buses helps: -1).
+
+    >>> [(c.link, c.carries, k) for c, k in buses_needed(364, 145.0)][0]   # 45 chips per bus: ceil(364 / 45)
+    ('classic CAN 1 Mbit/s, 29-bit id', 'SAMPLE (7 B)', 9)
+    """
+    if not (isinstance(n_links, int) and n_links >= 1):
+        raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 1)")
+    out = []
+    for row in capacity_table(rate_hz):
+        per = row.chips_at_rate[0]
+        out.append((row, math.ceil(n_links / per) if per > 0 else -1))
+    return out
 
 
 assert FD_LENGTHS[-1] == 64

@@ -14,6 +14,10 @@ Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thre
 (joined, ports closed) on exit; `start` / `stop` do the same by hand. The clock is
 ``time.monotonic()`` from `start` (``device.now()``); the chips are powered on at start.
 
+**Manual mode** (``clock=`` a callable): no thread; the caller runs the device with
+``device.step()`` at the clock's time (a simulated clock: the in-process back-to-back tests run
+host and sheet in one thread, deterministically, whatever the machine's load).
+
 **A bus that goes away** (faults ``outage_at_s``/``outage_s``/``outage_every_s``): a pty slave
 path cannot be reused once its master is closed, so the pty devices publish a stable symlink
 (``device.path``, in a private temporary directory unless ``symlink_path`` is given). At an
@@ -53,7 +57,9 @@ class Device:
     name = "device"
 
     def __init__(self, sheet, *, packed: bool = False, sync_rate_hz: float | None = None,
-                 verbose: Any = None) -> None:
+                 verbose: Any = None, clock=None) -> None:
+        self.clock = clock  # manual mode when given: seconds, the device's `now`
+        self._outage_end: float | None = None
         self.sheet = sheet
         self.packed = packed
         self.sync_rate_hz = sync_rate_hz
@@ -71,17 +77,25 @@ class Device:
 
     # ------------------------------------------------------------------ life cycle
     def now(self) -> float:
-        """Seconds since `start` (the chips' clock)."""
+        """Seconds since `start` (the chips' clock); in manual mode the clock's time."""
+        if self.clock is not None:
+            return self.clock()
         return time.monotonic() - self._t0
 
-    def start(self) -> "Device":
+    def start(self, *, power_on: bool = True) -> "Device":
+        """Open the ports and start the thread (manual mode: no thread). ``power_on=False`` leaves
+        the chips off until `power_on` (a sheet plugged in after the host opened its port)."""
         if self._thread is not None:
             raise RuntimeError(f"{self.name} already started")
         self._stop.clear()
         self._open()
         self._t0 = time.monotonic()
-        for gw in self.gateways:
-            gw.power_on(0.0)
+        if power_on:
+            for gw in self.gateways:
+                gw.power_on(self.now() if self.clock is not None else 0.0)
+        if self.clock is not None:
+            self._started = True
+            return self
         self._thread = threading.Thread(target=self._run_guarded, name=f"capsheet-{self.name}", daemon=True)
         self._thread.start()
         return self
@@ -89,6 +103,7 @@ class Device:
     def stop(self, timeout_s: float = 5.0) -> None:
         """Stop the thread and close the ports (idempotent)."""
         self._stop.set()
+        self._started = False
         t = self._thread
         if t is not None and t is not threading.current_thread():
             t.join(timeout_s)
@@ -109,6 +124,34 @@ class Device:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
+    def step(self) -> None:
+        """Manual mode: one pass of the device loop at ``clock()`` — the bus-away fault, host
+        input, the chips' timers, output due. Never waits."""
+        if self.clock is None:
+            raise RuntimeError(f"{self.name}: step() is for manual mode (a device built with clock=)")
+        if not getattr(self, "_started", False):
+            return
+        now = self.now()
+        if self._calls:
+            self._run_calls()
+        if self.down:
+            if now < self._outage_end:
+                self._drain_while_down(0.0)
+                return
+            self._come_back()
+            self.down = False
+        if self._next_outage is not None and now >= self._next_outage[0]:
+            _start, self._outage_end = self._next_outage
+            self._next_outage = next(self._outages, None)
+            self.fault_stats.outages += 1
+            self.down = True
+            self._go_down()
+            return
+        self._serve(0.0)
+        for gw in self.gateways:
+            gw.poll(now)
+        self._flush(now)
+
     def call(self, fn, timeout_s: float = 5.0):
         """Run ``fn(now_s)`` in the device thread (the chips are not thread-safe) and return its
         result; called directly when the device is not running."""
@@ -122,6 +165,13 @@ class Device:
         if box and isinstance(box[0], BaseException):
             raise box[0]
         return box[0] if box else None
+
+    def power_on(self) -> None:
+        """Power every chip now (after ``start(power_on=False)``)."""
+        def do(now_s):
+            for gw in self.gateways:
+                gw.power_on(now_s)
+        self.call(do)
 
     def commission(self, *, start: bool = True) -> None:
         """Assign every chip its physical link (node = link + 1) and START them, through frames,
@@ -195,7 +245,8 @@ class Device:
         pass
 
     def _drain_while_down(self, timeout_s: float) -> None:
-        time.sleep(timeout_s)
+        if timeout_s > 0:
+            time.sleep(timeout_s)
 
     def _come_back(self) -> None:
         pass
@@ -252,6 +303,17 @@ class MemoryDevice(_SerialDevice):
     def _close(self) -> None:
         self._end.close()
 
+    def _drain_while_down(self, timeout_s: float) -> None:
+        """The link is gone: what the host sends meanwhile is lost (not served after the outage)."""
+        self._end.timeout = 0
+        try:
+            while self._end.read(65536):
+                pass
+        except OSError:
+            pass
+        if timeout_s > 0:
+            time.sleep(timeout_s)
+
     def describe(self) -> str:
         return "in-memory link (use device.port)"
 
@@ -277,7 +339,10 @@ class _PtyMixin:
         self._master = self._slave = -1
         self._pending = bytearray()
         self.tx_overflow_bytes = 0
-        self.max_pending = 1 << 20
+        self.tx_overflow_frames = 0  #: frames dropped whole because the host did not read (counted)
+        # what a gateway holds for a host that does not read: a real adapter's buffer is small, and
+        # a bounded one lets a host that fell behind see fresh frames again (newest wins)
+        self.max_pending = 256 << 10
 
     def _pty_open(self) -> None:
         self._master, self._slave, self.tty = open_pty()
@@ -322,12 +387,13 @@ class _PtyMixin:
             time.sleep(min(timeout_s, 0.005))
             return b""
 
-    def _pty_write(self, data: bytes) -> None:
+    def _pty_write(self, data: bytes, n_frames: int = 0) -> None:
         if self._master < 0:
             return
         if data:
             if len(self._pending) + len(data) > self.max_pending:
-                self.tx_overflow_bytes += len(data)  # nobody reads: the bytes fall on the floor
+                self.tx_overflow_bytes += len(data)  # nobody reads: the frames fall on the floor whole
+                self.tx_overflow_frames += n_frames
                 return
             self._pending += data
         while self._pending:
@@ -375,7 +441,7 @@ class PtyDevice(_PtyMixin, _SerialDevice):
             self._handle_input(data)
 
     def _send(self, bus: int, frames: list) -> None:
-        self._pty_write(b"".join(frames))
+        self._pty_write(b"".join(frames), len(frames))
 
     def _go_down(self) -> None:
         self._pty_close()
@@ -426,6 +492,9 @@ class CanDevice(Device):
         self.bus_kwargs = dict(bus_kwargs or {})
         self.buses: list = []
         self.foreign_frames = 0
+        # udp_multicast hands a sender its own frames back: recognise and drop them (issue 12)
+        from protocol.can import EchoFilter
+        self._echo = [EchoFilter(4096) for _ in self.channels] if interface == "udp_multicast" else None
 
     def _open(self) -> None:
         import can
@@ -463,6 +532,8 @@ class CanDevice(Device):
         if msg.is_error_frame or msg.is_remote_frame or not msg.is_extended_id:
             self.foreign_frames += 1  # not capsheet traffic (capsheet uses 29-bit data frames)
             return
+        if self._echo is not None and self._echo[i].is_echo(msg.arbitration_id, msg.data):
+            return
         frame = CanFrame(msg.arbitration_id, bytes(msg.data), msg.is_fd)
         if self.verbose is not None:
             self.verbose("rx", frame)
@@ -478,6 +549,8 @@ class CanDevice(Device):
             else:
                 m = can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True,
                                 is_fd=f.is_fd, bitrate_switch=f.is_fd, check=False)
+                if self._echo is not None:
+                    self._echo[bus].sent(f.arbitration_id, f.data)
             try:
                 b.send(m)
             except can.CanError:
@@ -491,7 +564,8 @@ class CanDevice(Device):
         for bus in self.buses:
             while bus.recv(0.0) is not None:
                 pass
-        time.sleep(timeout_s)
+        if timeout_s > 0:
+            time.sleep(timeout_s)
 
     def describe(self) -> str:
         return (f"python-can interface {self.interface!r}, channels {', '.join(self.channels)}"

@@ -14,6 +14,11 @@ stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
 * **SYNC source** (``sync_rate_hz``): the gateway itself broadcasts SYNC at that rate to its
   chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC").
 
+A sheet with the array engine (`chiparray.ChipArray`) is served in batch: a SYNC is one numpy
+step for every chip behind the gateway, and in packed mode the samples go into the SNAPSHOT
+straight from the arrays (nothing encoded, nothing decoded again). The frames are the same as
+with one chip object each (tests/virtual_sheet/test_chiparray.py).
+
 Time is passed in (``now_s``); nothing here reads a clock or touches a port.
 """
 
@@ -98,6 +103,12 @@ class Gateway:
         self._covered = np.asarray(self.links, dtype=np.int64)
         self._snap_decoder = StreamDecoder(batch_samples=True)
         self.powered = False
+        arr = getattr(sheet, "array", None)
+        self.engine = arr if arr is not None and self.links == sorted(set(self.links)) else None
+        if self.engine is not None:
+            self._sel = np.zeros(arr.n, dtype=bool)
+            self._sel[self.links] = True
+            self._delay_of = np.asarray(sheet.reply_delay_s, dtype=float)
 
     # ------------------------------------------------------------------ chips
     def power_on(self, now_s: float) -> None:
@@ -126,11 +137,14 @@ class Gateway:
             self._dispatch(frame, sync, now_s)
         if now_s >= self._next_poll:
             self._next_poll = max(self._next_poll + CHIP_POLL_PERIOD_S, now_s)
-            out: list = []
-            for c in self.chips:
-                r = c.poll(now_s)
-                if r:
-                    out += r
+            if self.engine is not None:
+                out = self.engine.poll(now_s, self._sel)
+            else:
+                out = []
+                for c in self.chips:
+                    r = c.poll(now_s)
+                    if r:
+                        out += r
             if out:
                 self._emit(out, now_s)
         if self.faults is not None:
@@ -187,7 +201,29 @@ class Gateway:
             self.stats.syncs += 1
             self.sheet.record_sync(decoded.counter, now_s)
             if self.packed:
-                self._sync_packed(frame, decoded, now_s)
+                if self.engine is not None:
+                    self._sync_packed_array(frame, decoded, now_s)
+                else:
+                    self._sync_packed(frame, decoded, now_s)
+                return
+            if self.engine is not None:
+                if self._late:
+                    frames, owners = self.engine.sync(frame, decoded, now_s, self._sel, owners=True)
+                    delays = self._delay_of[owners]
+                    i = 0
+                    while i < len(frames):  # runs of equal delay, in chip order
+                        j = i + 1
+                        while j < len(frames) and delays[j] == delays[i]:
+                            j += 1
+                        d = float(delays[i])
+                        self._emit(frames[i:j], now_s + d)
+                        if d:
+                            self.fault_stats.late_replies += j - i
+                        i = j
+                else:
+                    out = self.engine.sync(frame, decoded, now_s, self._sel)
+                    if out:
+                        self._emit(out, now_s)
                 return
             if self._late:
                 for c, d in zip(self.chips, self.delays):
@@ -205,6 +241,14 @@ class Gateway:
             self._emit(out, now_s)
             return
         out = []
+        if self.engine is not None:
+            if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
+                out = self.engine.handle_node(decoded.node, frame, now_s, decoded, self._sel)
+            else:
+                out = self.engine.handle(frame, now_s, decoded, self._sel)
+            if out:
+                self._emit(out, now_s)
+            return
         if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
             node = decoded.node
             for c in self.chips:
@@ -250,6 +294,59 @@ class Gateway:
                     part = run[i:i + self.max_per_frame]
                     words = pack_sample_words(counts[part], status[part])
                     snap = Snapshot(0, sync.counter, int(part[0]), words)
+                    frames.append(to_can(snap, fd=True) if self.can else encode(snap))
+            self.stats.snapshots += len(frames)
+            other = frames + other
+        if other:
+            self._emit(other, now_s)
+
+    def _sync_packed_array(self, frame, sync: Sync, now_s: float) -> None:
+        """Packed mode from the chip array: the same frames as `_sync_packed`, from arrays."""
+        eng = self.engine
+        n_links = self.sheet.n_links
+        idx, word, cnt, sts, extra = eng.sync_samples(frame, sync, now_s, self._sel)
+        link = eng.link[idx]
+        ok = (link >= 0) & (link < n_links)
+        counts = np.zeros((n_links, 3), dtype=np.int64)
+        status = np.full(n_links, int(SampleStatus.INVALID), dtype=np.int64)
+        have = bool(ok.any())
+        if have:
+            counts[link[ok]] = cnt[ok]
+            status[link[ok]] = sts[ok]
+        # what does not go into the SNAPSHOT, in chip order: samples of chips without a valid
+        # link, and the wrapped (faulty) chips' frames unless it is one sample of a valid link
+        items: list[tuple[int, list]] = []
+        if not ok.all():
+            bad = idx[~ok]
+            for k, f in zip(bad.tolist(), eng.encode(bad, sync.counter, word[~ok])):
+                items.append((k, [f]))
+        for k, r in extra:
+            if not r:
+                continue
+            lk = eng.views[k].link
+            if (len(r) == 1 and lk is not None and 0 <= lk < n_links
+                    and (isinstance(r[0], CanFrame) and len(r[0].data) == 7 and (r[0].arbitration_id >> 20) & 0x3F == 3
+                         or isinstance(r[0], bytes) and len(r[0]) == SAMPLE_WIRE_SIZE)):
+                got_c, got_s, got_l = self._decode_samples(r, [lk], sync.counter)
+                if got_l.size:
+                    counts[got_l] = got_c
+                    status[got_l] = got_s
+                    have = True
+                continue
+            items.append((k, r))
+        items.sort(key=lambda t: t[0])
+        other = [f for _, r in items for f in r]
+        if have:
+            cov = self._covered
+            words = pack_sample_words(counts[cov], status[cov])  # every covered link at once
+            frames = []
+            pos = 0
+            breaks = np.flatnonzero(np.diff(cov) != 1) + 1
+            for run in np.split(cov, breaks):
+                for i in range(0, run.size, self.max_per_frame):
+                    m = min(self.max_per_frame, run.size - i)
+                    snap = Snapshot(0, sync.counter, int(run[i]), words[5 * pos:5 * (pos + m)])
+                    pos += m
                     frames.append(to_can(snap, fd=True) if self.can else encode(snap))
             self.stats.snapshots += len(frames)
             other = frames + other

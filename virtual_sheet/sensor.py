@@ -110,6 +110,9 @@ class ChipErrors:
     misalignment: np.ndarray
 
 
+_CHIP_ERRORS: dict = {}  # (SensorModel, n_links) -> ChipErrors, read-only arrays
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """How the chips turn specific force into counts (module docstring). Validated when built.
@@ -190,6 +193,10 @@ class SensorModel:
         """
         if not (isinstance(n_links, (int, np.integer)) and n_links >= 0):
             raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 0)")
+        key = (self, int(n_links))
+        hit = _CHIP_ERRORS.get(key)  # the same model and size: the same draws (sample() per SYNC)
+        if hit is not None:
+            return hit
         from scipy.spatial.transform import Rotation
 
         g = np.random.Generator(np.random.MT19937(int(self.chip_seed)))
@@ -203,8 +210,13 @@ class SensorModel:
             M = Rotation.from_rotvec(z_rot * self.misalignment_rad).as_matrix()
         else:
             M = np.zeros((0, 3, 3))
-        return ChipErrors(offset_counts=offset, sensitivity=sensitivity,
-                          misalignment=M.reshape(n_links, 3, 3))
+        e = ChipErrors(offset_counts=offset, sensitivity=sensitivity, misalignment=M.reshape(n_links, 3, 3))
+        for a in (e.offset_counts, e.sensitivity, e.misalignment):
+            a.setflags(write=False)
+        if len(_CHIP_ERRORS) >= 16:
+            _CHIP_ERRORS.clear()
+        _CHIP_ERRORS[key] = e
+        return e
 
     def true_calibration(self, n_links: int) -> tuple[np.ndarray, np.ndarray]:
         """What an ideal calibration of each chip finds (for CAL_DATA).

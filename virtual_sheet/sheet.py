@@ -7,8 +7,13 @@ gateways (`virtual_sheet.gateway`) move frames between the chips and a host, and
 * **Chips.** Link ``k`` carries the chip with uid ``uids[k]`` (64-bit, unique, drawn from
   ``seed`` by MT19937). The chip does not know its link until the host assigns it one; the host
   learns ``uid -> link`` from the layout file (`write_layout`) or works it out.
+* **Chips.** ``engine="array"`` (default for the Python model): every chip's state in one
+  `chiparray.ChipArray`, SYNC answered in one numpy step; ``engine="chips"``: one object per chip
+  (``chip_factory``, e.g. the C firmware; what the array is checked against, frame for frame).
 * **Readings.** At every SYNC the sheet evaluates the scene at the SYNC's time (time-varying
-  scenes are re-solved at most ``scene_rate_hz`` times a second, the readings held in between),
+  scenes are solved at ``scene_rate_hz`` steps, the readings held in between; each step is solved
+  once and kept — a periodic scene's ``period_s * scene_rate_hz`` steps, `precompute` does them
+  all before streaming — so a moving scene costs nothing per SYNC once seen),
   takes the ideal specific force of every link (`geometry.ideal_readings`) and turns it into ADC
   counts with the sensor model (`sensor.SensorModel`: noise, per-chip bias, scale, misalignment,
   saturation). One evaluation serves every chip that answers that SYNC.
@@ -30,7 +35,6 @@ If the path ends in ``.json`` it is JSON instead::
 
 from __future__ import annotations
 
-import json
 import threading
 from pathlib import Path
 from typing import Any, Callable
@@ -38,7 +42,9 @@ from typing import Any, Callable
 import numpy as np
 
 from protocol.lattice import Lattice
+from protocol.layout import load_layout, save_layout
 from .chip import ChipModel
+from .chiparray import ChipArray
 from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from .geometry import ideal_readings
 from .sensor import SensorModel
@@ -64,20 +70,8 @@ def make_uids(n: int, seed: int) -> list[int]:
 
 
 def read_layout(path: str | Path) -> dict[int, int]:
-    """``{uid: link}`` from a layout file written by `VirtualSheet.write_layout` (CSV or JSON)."""
-    path = Path(path)
-    text = path.read_text()
-    if path.suffix == ".json":
-        data = json.loads(text)
-        return {int(c["uid"], 0): int(c["link"]) for c in data["chips"]}
-    out = {}
-    for line in text.splitlines():
-        line = line.strip()
-        if not line or line.startswith("#") or line.lower().startswith("uid"):
-            continue
-        uid, link = line.split(",")
-        out[int(uid, 0)] = int(link)
-    return out
+    """``{uid: link}`` from a layout file (`protocol.layout`: the one format the host reads too)."""
+    return dict(load_layout(path).links)
 
 
 class VirtualSheet:
@@ -112,13 +106,17 @@ class VirtualSheet:
         Chip faults (dead, babbling, drifting) are applied here; stream faults by the gateway.
     scene_rate_hz : float
         How often a time-varying scene is re-solved.
+    engine : {"array", "chips"}, optional
+        Chips as one vectorised `ChipArray` or one object each; default "array" for the Python
+        model, "chips" when ``chip_factory`` is given.
     """
 
     def __init__(self, shape: str = "gaussian", lattice: Any = "14x14", *, link_length: float = 0.01,
                  shape_params: dict | None = None, scene=None, noise: float = 0.0,
                  sensor: SensorModel | None = None, seed: int = 0, transport: str = "serial",
                  fd: bool = False, chip_factory: Callable[..., Any] | None = None,
-                 faults: FaultSpec | str | None = None, scene_rate_hz: float = 50.0) -> None:
+                 faults: FaultSpec | str | None = None, scene_rate_hz: float = 50.0,
+                 engine: str | None = None) -> None:
         if isinstance(lattice, Lattice):
             self.lattice = lattice
         elif isinstance(lattice, str):
@@ -143,14 +141,35 @@ class VirtualSheet:
         self._noise_rng = np.random.Generator(np.random.MT19937([seed, 0x401CE]))
         self._lock = threading.Lock()
         self._joint_cache: tuple[float, np.ndarray, np.ndarray] | None = None  # (t_q, joints, readings)
-        self._cache: tuple[float | None, list, list] = (None, [], [])
+        self._scenes: dict[int, tuple[float, np.ndarray, np.ndarray]] = {}  # scene step -> (t_q, joints, readings)
+        self._period_steps = self._scene_period_steps()
+        # (now_s, counts (n, 3) int64, status (n,) int64, counts as tuples or None, status list or None)
+        self._cache: tuple = (None, None, None, None, None)
         self.sync_times: dict[int, float] = {}
         offset, sens = self.sensor_model.stored_calibration(n)  # what the chips hold before CAL_WRITE
         q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
         cal = [tuple(zip(q4[k], sens[k].tolist())) for k in range(n)]
+        if engine is None:
+            engine = "chips" if chip_factory is not None and chip_factory is not ChipModel else "array"
+        if engine not in ("array", "chips"):
+            raise ValueError(f"Invalid engine: {engine!r} (expected 'array' or 'chips')")
+        if engine == "array" and chip_factory not in (None, ChipModel):
+            raise ValueError("engine='array' runs the Python chip model; give engine='chips' for chip_factory")
+        self.engine = engine
         self.chip_factory = chip_factory or ChipModel
         self.reply_delay_s = [0.0] * n
         self.chips = []
+        self.array: ChipArray | None = None
+        if engine == "array":
+            drift = {}
+            for k in self.faults.drift_chip:
+                if 0 <= k < n:
+                    drift[k] = DriftingSensor(self._source(k), self.faults.drift, self.fault_stats)
+                    self.reply_delay_s[k] = self.faults.drift_late_ms / 1e3
+            self.array = ChipArray(self.uids, self._batch_source, transport=transport, fd=fd, calibrations=cal,
+                                   sensors=drift, faults=self.faults, fault_stats=self.fault_stats)
+            self.chips = self.array.chips
+            return
         for k, uid in enumerate(self.uids):
             src: Callable = self._source(k)
             if k in self.faults.drift_chip:
@@ -165,20 +184,73 @@ class VirtualSheet:
             c = self._cache
             if c[0] != now_s:
                 c = self._refresh(now_s)
-            return c[1][_k], c[2][_k]
+            if c[3] is None:
+                c = self._lists()
+            return c[3][_k], c[4][_k]
         return source
+
+    def _batch_source(self, now_s: float, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The `chiparray.BatchSensor`: counts and status of chips ``idx`` at ``now_s``."""
+        c = self._cache
+        if c[0] != now_s:
+            c = self._refresh(now_s)
+        return c[1][idx], c[2][idx]
+
+    def _lists(self):
+        with self._lock:
+            c = self._cache
+            if c[3] is None:
+                c = self._cache = (c[0], c[1], c[2], [tuple(r) for r in c[1].tolist()], c[2].tolist())
+            return c
+
+    def _scene_period_steps(self) -> int | None:
+        if self.static:
+            return None
+        period = getattr(self.scene, "period_s", None)
+        if period is None:
+            return None
+        steps = period * self.scene_rate_hz
+        return int(round(steps)) if abs(steps - round(steps)) < 1e-9 and round(steps) >= 1 else None
+
+    def precompute(self) -> int:
+        """Solve every step of a periodic scene now (before streaming); returns how many. A
+        non-periodic scene is solved as it goes (each step once)."""
+        if self._period_steps is None:
+            return 0
+        for i in range(self._period_steps):
+            self._scene_step(i / self.scene_rate_hz)
+        return self._period_steps
 
     def _scene_time(self, t_s: float) -> float:
         if self.static:
             return 0.0
         return float(np.floor(t_s * self.scene_rate_hz) / self.scene_rate_hz)
 
+    def _scene_step(self, tq: float) -> tuple[float, np.ndarray, np.ndarray]:
+        """``(tq, joints, ideal readings)`` of scene time ``tq`` (a step), solved once and kept."""
+        if self.static:
+            key = 0
+        else:
+            key = int(round(tq * self.scene_rate_hz))
+            if self._period_steps is not None:
+                key %= self._period_steps
+        e = self._scenes.get(key)
+        if e is None:
+            t_solve = key / self.scene_rate_hz if not self.static else 0.0
+            joints = np.asarray(self.scene.joints(t_solve), dtype=float)
+            joints.setflags(write=False)
+            e = (t_solve, joints, ideal_readings(joints))
+            if len(self._scenes) >= 4096 and self._period_steps is None:
+                self._scenes.clear()  # bounded: a long non-periodic run re-solves old steps
+            self._scenes[key] = e
+        return e
+
     def _geometry(self, t_s: float) -> tuple[float, np.ndarray, np.ndarray]:
         tq = self._scene_time(t_s)
         jc = self._joint_cache
         if jc is None or jc[0] != tq:
-            joints = np.asarray(self.scene.joints(tq), dtype=float)
-            jc = self._joint_cache = (tq, joints, ideal_readings(joints))
+            _t, joints, readings = self._scene_step(tq)
+            jc = self._joint_cache = (tq, joints, readings)
         return jc
 
     def _refresh(self, now_s: float):
@@ -189,7 +261,8 @@ class VirtualSheet:
             _tq, _joints, readings = self._geometry(now_s)
             m = self.sensor_model
             counts, status = m.sample(readings, self._noise_rng if m.noise_pct_g > 0 else None)
-            c = self._cache = (now_s, [tuple(r) for r in counts.tolist()], status.tolist())
+            c = self._cache = (now_s, np.asarray(counts, dtype=np.int64), np.asarray(status, dtype=np.int64),
+                               None, None)
             return c
 
     def counts_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -209,15 +282,16 @@ class VirtualSheet:
 
     def truth(self, counter: int) -> np.ndarray:
         """Joints ``(rows, cols, 3)``, metres, that the SYNC ``counter``'s readings came from."""
-        tq = self.truth_time(counter)
-        jc = self._joint_cache
-        if jc is not None and jc[0] == tq:
-            return jc[1].copy()
-        return np.asarray(self.scene.joints(tq), dtype=float)
+        return self.joints_at_scene_time(self.truth_time(counter))
+
+    def joints_at_scene_time(self, tq: float) -> np.ndarray:
+        """Joints ``(rows, cols, 3)`` of scene step ``tq`` (a `truth_time`), exactly as the chips'
+        readings were made from them (the same solved step)."""
+        return self._scene_step(tq)[1].copy()
 
     def joints(self, t_s: float = 0.0) -> np.ndarray:
         """Joints at scene time ``t_s`` (as the chips see them)."""
-        return np.asarray(self.scene.joints(self._scene_time(t_s)), dtype=float)
+        return self.joints_at_scene_time(self._scene_time(t_s))
 
     # ------------------------------------------------------------------ layout
     @property
@@ -234,15 +308,7 @@ class VirtualSheet:
 
     def write_layout(self, path: str | Path) -> Path:
         """Write the ``uid -> link`` layout (module docstring for the format)."""
-        path = Path(path)
-        if path.suffix == ".json":
-            data = {"format": "capsheet-layout", "version": 1, "rows": self.lattice.rows,
-                    "cols": self.lattice.cols,
-                    "chips": [{"uid": f"0x{u:016X}", "link": k} for k, u in enumerate(self.uids)]}
-            path.write_text(json.dumps(data, indent=1) + "\n")
-        else:
-            path.write_text("uid,link\n" + "".join(f"0x{u:016X},{k}\n" for k, u in enumerate(self.uids)))
-        return path
+        return save_layout(path, {u: k for k, u in enumerate(self.uids)}, self.lattice.rows, self.lattice.cols)
 
     def split(self, n_buses: int) -> list[range]:
         """Contiguous link blocks, one per bus (links ``b*n/N .. (b+1)*n/N - 1`` on bus b)."""

@@ -267,7 +267,7 @@ class SlcanDevice(Device):
     def _send(self, bus: int, frames: list) -> None:
         data = self.adapters[bus].frames_to_host(frames, self.now())
         if data:
-            self.ports[bus]._pty_write(data)
+            self.ports[bus]._pty_write(data, len(frames))
 
     def _go_down(self) -> None:
         for p, a in zip(self.ports, self.adapters):

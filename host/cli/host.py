@@ -1,9 +1,15 @@
-"""``capsheet host``: connect to a sheet, discover and assign its chips, stream, show a live status
-line and record snapshots (docs/host.md).
+"""``capsheet host``: connect to a sheet, bring it up from whatever state it is in, stream, show a
+live status line, record snapshots and end with a summary whose exit status tells the truth
+(docs/host.md).
 
     capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record run.mcap --live
     capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
     capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
+
+Exit status: 0 the run met ``--min-complete``; 1 no chip found, none streamed, completeness below
+``--min-complete``, the port failed, or another SYNC source stopped a driving host; 2 a usage error
+or a mismatch found before streaming (bad value, malformed layout, layout vs lattice, CAN FD frames
+on a classic bus, layout chips that never answer, over capacity).
 
 The Python API is `host.session.Host` (re-exported here).
 """
@@ -13,106 +19,331 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
+import signal
 import sys
 import time
 
-from host.session import Host, Layout
+from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
 from host.cli.record_args import SessionOutputs, add_record_args
 from host.cli.transport_args import add_transport_args, open_transports
 from host.transport import TransportError
+from protocol.lattice import Lattice
+from protocol.layout import LayoutError
+from protocol.messages import NODE_MAX_ASSIGNED
 
-__all__ = ["register", "run", "Host", "Layout", "open_transports"]
+__all__ = ["register", "run", "Host", "Layout", "open_transports", "StatusLine"]
+
+EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
+
+
+# ---------------------------------------------------------------------------------------------
+# argument types: every bad value is one line from argparse (exit 2), never a traceback
+# ---------------------------------------------------------------------------------------------
+
+def lattice_arg(text: str) -> Lattice:
+    try:
+        lat = Lattice.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    if lat.n_links > NODE_MAX_ASSIGNED:
+        raise argparse.ArgumentTypeError(f"lattice {text} has {lat.n_links} links; node ids cover at most "
+                                         f"{NODE_MAX_ASSIGNED}")
+    return lat
+
+
+def _finite(text: str, what: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: need a finite number")
+    return v
+
+
+def rate_arg(text: str) -> float:
+    v = _finite(text, "rate")
+    if not 0 < v <= 4000:
+        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: need 0 < rate <= 4000 Hz")
+    return v
+
+
+def positive_arg(text: str) -> float:
+    v = _finite(text, "value")
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: need > 0")
+    return v
+
+
+def percent_arg(text: str) -> float:
+    v = _finite(text, "percentage")
+    if not 0 <= v <= 100:
+        raise argparse.ArgumentTypeError(f"invalid percentage {text!r}: need 0..100")
+    return v
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("host", help="talk to a sheet: discover, assign, stream, record",
                               description=__doc__.split("\n\n")[0],
+                              epilog=__doc__.split("\n\n", 2)[2].split("\n\nThe Python API")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one --port, or one or more --can)")
-    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
-    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
+    # -- the session's arguments (issue 12): one block ------------------------------------------
+    p.add_argument("--lattice", type=lattice_arg, default=None,
+                   help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
+    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; uids in hex; docs/host.md)")
     p.add_argument("--auto-assign", action="store_true",
                    help="without --layout: place chips on links in uid order (positions arbitrary)")
-    p.add_argument("--rate", type=float, default=100.0, help="SYNC rate in Hz (default 100)")
-    p.add_argument("--sync", choices=("drive", "follow"), default="drive",
-                   help="drive SYNC from the host (default) or follow a gateway's SYNC")
-    p.add_argument("--deadline-ms", type=float, default=None, help="wait this long for missing links")
+    p.add_argument("--allow-missing", action="store_true",
+                   help="stream even if layout chips never answer or chips not in the layout announce "
+                        "(default: a mismatch, exit 2)")
+    p.add_argument("--rate", type=rate_arg, default=100.0, help="SYNC rate in Hz, 0 < rate <= 4000 (default 100)")
+    p.add_argument("--sync", choices=("drive", "follow", "auto"), default="drive",
+                   help="drive SYNC from the host (default; another SYNC source is an error), follow a "
+                        "gateway's SYNC, or auto: drive unless another source is heard, then follow it")
+    p.add_argument("--packed", action="store_true",
+                   help="the gateway packs SNAPSHOT frames: check the bus capacity for those")
+    p.add_argument("--ignore-capacity", action="store_true",
+                   help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2)")
+    p.add_argument("--deadline-ms", type=positive_arg, default=None, help="wait this long for missing links")
+    p.add_argument("--duration", type=positive_arg, default=None, help="stop after this many seconds")
+    p.add_argument("--discover-s", type=positive_arg, default=0.5, help="discovery window per round (s)")
+    p.add_argument("--no-reset", action="store_true",
+                   help="bring-up without RESET (STOP and drain only): chips keep their state")
+    p.add_argument("--min-complete", type=percent_arg, default=90.0, metavar="PCT",
+                   help="exit 1 if fewer than PCT %% of the lattice's link samples arrived valid (default 90)")
+    p.add_argument("--status-every", type=positive_arg, default=None, metavar="S",
+                   help="status period (default 0.5 s on a terminal as one updated line, 5 s as plain lines otherwise)")
+    p.add_argument("--json", action="store_true",
+                   help="print the final statistics (with the summary under 'summary') as JSON on stdout")
     p.add_argument("--calibration", metavar="CAL_JSON",
                    help="apply this calibration (capsheet calibrate) to every snapshot, and check chip "
                         "health on still stretches (docs/calibration.md)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
-    p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
-    p.add_argument("--json", action="store_true", help="print the final statistics as JSON")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
     add_record_args(p, can_log=True, link_length=True)  # --record --live --live-rate --can-log --link-length
     p.set_defaults(func=run)
 
 
-def _status_line(host: Host, t0: float, n0: int) -> str:
+# ---------------------------------------------------------------------------------------------
+# status line: log lines never glue onto it
+# ---------------------------------------------------------------------------------------------
+
+class StatusLine:
+    """The live status on ``stream``: on a TTY one line rewritten with ``\\r``; a log record first
+    ends that line so the two never glue; elsewhere (a pipe, a file) plain lines."""
+
+    def __init__(self, stream, tty: bool | None = None) -> None:
+        self.stream = stream
+        self.tty = bool(getattr(stream, "isatty", lambda: False)()) if tty is None else tty
+        self.open = False  # a \r line is on screen without its newline
+
+    def show(self, text: str) -> None:
+        if self.tty:
+            self.stream.write("\r" + text + "\x1b[K")
+            self.open = True
+        else:
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def end(self) -> None:
+        if self.open:
+            self.stream.write("\n")
+            self.stream.flush()
+            self.open = False
+
+
+class _StatusAwareHandler(logging.StreamHandler):
+    def __init__(self, status: StatusLine) -> None:
+        super().__init__(status.stream)
+        self.status = status
+
+    def emit(self, record) -> None:
+        self.status.end()
+        super().emit(record)
+
+
+def _status_text(host: Host, t0: float, n0: int) -> str:
     st = host.aggregator.stats
     dt = max(1e-9, time.monotonic() - t0)
     rate = (st.emitted - n0) / dt
     done = st.complete / max(1, st.emitted)
     errors = sum(t.stats.error_count for t in host.transports)
-    return (f"\r{st.emitted:7d} snapshots {rate:7.1f}/s  complete {100 * done:5.1f}%  "
-            f"late {st.late}  dup {st.duplicates}  unknown {st.unknown}  dropped {st.dropped}  "
-            f"errors {errors}  silent {len(host.silent_links)}   ")
+    return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {100 * done:5.1f}%  "
+            f"late {st.late}  stray {st.stray}  dup {st.duplicates}  unknown {st.unknown}  "
+            f"dropped {st.dropped}  errors {errors}  silent {len(host.silent_links)}  "
+            f"recoveries {host.recoveries}")
+
+
+def _summary_lines(s: dict, min_pct: float) -> list[str]:
+    out = [f"summary: {s['snapshots']} snapshots, {s['complete_snapshots']} complete; "
+           f"{s['valid_links_pct']:.1f} % of the {s['links']} links' samples valid (need {min_pct:g} %)"]
+    if s["unassigned_links"]:
+        out.append(f"  links without a chip: {len(s['unassigned_links'])} "
+                   f"({link_ranges(d['link'] for d in s['unassigned_links'])})")
+    if s["missing_links"]:
+        names = ", ".join(f"{d['link']}" + (f" (uid {d['uid']})" if d["uid"] else "") for d in s["missing_links"][:8])
+        more = f" and {len(s['missing_links']) - 8} more" if len(s["missing_links"]) > 8 else ""
+        out.append(f"  missing links (silent or absent from most snapshots): {names}{more}")
+    if s["errors"]:
+        out.append("  errors: " + ", ".join(f"{k} {v}" for k, v in sorted(s["errors"].items())))
+    out.append(f"  reconnects {s['reconnects']}, recoveries {s['recoveries']} ({s['recovered_chips']} chips), "
+               f"stray frames {s['stray_frames']}, resyncs {s['resyncs']}, late {s['late']}, "
+               f"foreign SYNC {s['foreign_syncs']} (sync {s['sync_mode']})")
+    for why in s["not_a_sheet"]:
+        out.append(f"  {why}")
+    if s["sync_conflict"]:
+        out.append(f"  {s['sync_conflict']}")
+    return out
+
+
+def _fail(msg: str, code: int) -> int:
+    print(f"capsheet host: {msg}", file=sys.stderr)
+    return code
 
 
 def run(args) -> int:
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    layout = Layout.load(args.layout) if args.layout else None
+    status = StatusLine(sys.stderr)
+    if args.status_every is None:
+        args.status_every = 0.5 if status.tty else 5.0
+    root = logging.getLogger()
+    if not any(isinstance(h, _StatusAwareHandler) for h in root.handlers):
+        h = _StatusAwareHandler(status)
+        h.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        root.addHandler(h)
+        root.setLevel(logging.WARNING)
+
+    # -- everything checkable before a port is opened: one line, exit 2 --------------------------
+    layout = None
+    if args.layout:
+        try:
+            layout = Layout.load(args.layout)
+        except (LayoutError, ValueError) as exc:
+            return _fail(f"bad --layout: {exc}", EXIT_USAGE)
+    lattice = args.lattice
+    if layout is not None and layout.lattice is not None:
+        from_layout = Lattice.parse(layout.lattice)
+        if lattice is None:
+            lattice = from_layout
+        elif (lattice.rows, lattice.cols) != (from_layout.rows, from_layout.cols):
+            return _fail(f"--lattice {lattice.rows}x{lattice.cols} but the layout {args.layout} is for "
+                         f"{layout.lattice}: give the matching lattice (or leave --lattice out)", EXIT_USAGE)
+    if lattice is None:
+        lattice = Lattice.parse("14x14")
+    if layout is not None:
+        far = sorted((k, u) for u, k in layout.links.items() if k >= lattice.n_links)
+        if far:
+            k, u = far[0]
+            return _fail(f"the layout {args.layout} puts {len(far)} chip(s) beyond lattice {lattice.rows}x"
+                         f"{lattice.cols} ({lattice.n_links} links), e.g. uid 0x{u:016X} on link {k}", EXIT_USAGE)
+        if len(layout.links) < lattice.n_links:
+            print(f"capsheet host: the layout names {len(layout.links)} chips for {lattice.n_links} links; "
+                  f"{lattice.n_links - len(layout.links)} links have no chip (counted as missing)", file=sys.stderr)
     from host.cli.calibrate import load_calibration_arg, snapshot_corrector
-    cal = load_calibration_arg(args.calibration, args.lattice, "capsheet host")
+    cal = load_calibration_arg(args.calibration, f"{lattice.rows}x{lattice.cols}", "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
               "Pass --auto-assign to silence this.", file=sys.stderr)
     try:
-        transports = open_transports(args)
+        transports = open_transports(args, prog="capsheet host")
     except TransportError as exc:
-        print(f"capsheet host: {exc}", file=sys.stderr)
-        return 1
-    host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
-                deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000)
+        return _fail(str(exc), EXIT_FAIL)
+    try:
+        host = Host(transports, lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
+                    deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000)
+    except (MismatchError, ValueError) as exc:
+        for t in transports:
+            t.close()
+        return _fail(str(exc), EXIT_USAGE)
+
+    def on_term(signum, frame):  # SIGTERM: stop the sheet as Ctrl-C does
+        raise KeyboardInterrupt
+    try:
+        signal.signal(signal.SIGTERM, on_term)
+    except ValueError:  # not the main thread (an embedding program): leave its handler alone
+        pass
+
     out = SessionOutputs(args, host.lattice, args.link_length, mode="host", colour_by="links",
                          prog="capsheet host")
     out.attach(host)
     writer = out if out.active else None
     stats: dict | None = None
+    code = EXIT_OK
+    summary: dict | None = None
     try:
         with host:
-            summary = host.bring_up(args.discover_s)
-            print(f"capsheet host: {summary['discovered']} chips found, {summary['assigned']} assigned, "
-                  f"{summary['configured']} configured, {summary['calibrated']} calibrated, "
-                  f"{summary['started']} started on {', '.join(t.name for t in transports)}", file=sys.stderr)
+            try:
+                up = host.bring_up(args.discover_s, reset=not args.no_reset, strict=not args.allow_missing,
+                                   capacity="warn" if args.ignore_capacity else "refuse", packed=args.packed)
+            except (MismatchError, SyncConflictError) as exc:
+                return _fail(str(exc), EXIT_USAGE)
+            print(f"capsheet host: {up['discovered']} chips found, {up['assigned']} assigned, "
+                  f"{up['configured']} configured, {up['calibrated']} calibrated, "
+                  f"{up['started']} started on {', '.join(t.name for t in transports)}", file=sys.stderr)
+            if up["discovered"] == 0:
+                return _fail(f"no chip answered on {', '.join(t.name for t in transports)} "
+                             f"(is the sheet powered and the port right?)", EXIT_FAIL)
+            if up["started"] == 0:
+                return _fail("no chip started streaming", EXIT_FAIL)
             if cal is not None:
                 from host.health import HealthChecker
                 host.snapshot_filter = snapshot_corrector(host, cal)
                 host.health = HealthChecker(host.lattice.rows, host.lattice.cols)
             out.describe(host)
-            t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, 0.0
+            t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, time.monotonic()
             end = None if args.duration is None else t0 + args.duration
             while end is None or time.monotonic() < end:
                 snap = host.get(0.1)
                 if snap is not None and writer is not None:
                     writer.snapshot(snap)
+                if host.sync_conflict:
+                    code = EXIT_FAIL
+                    break
+                if host.mismatch:
+                    code = EXIT_USAGE
+                    break
                 now = time.monotonic()
-                if not args.quiet and now - last >= 0.5:
-                    print(_status_line(host, t0, n0), end="", file=sys.stderr, flush=True)
+                if not args.quiet and now - last >= args.status_every:
+                    status.show(_status_text(host, t0, n0))
                     last = now
             host.stop()
             for snap in host.aggregator.drain():
                 if writer is not None:
                     writer.snapshot(snap)
             if not args.quiet:
-                print(_status_line(host, t0, n0), file=sys.stderr)
+                status.show(_status_text(host, t0, n0))
+                status.end()
             stats = host.stats
+            summary = host.summary()
     except KeyboardInterrupt:
+        status.end()
         stats = host.stats
-        print("", file=sys.stderr)
+        summary = host.summary()
+    except SessionError as exc:
+        status.end()
+        return _fail(str(exc), EXIT_FAIL)
     finally:
         if writer is not None:
             writer.close(stats=stats)
+    if summary is not None:
+        for line in _summary_lines(summary, args.min_complete):
+            print(line, file=sys.stderr)
+        if summary["snapshots"] == 0 or summary["valid_links_pct"] == 0:
+            print("capsheet host: no chip streamed", file=sys.stderr)
+            code = EXIT_FAIL
+        elif summary["valid_links_pct"] < args.min_complete:
+            print(f"capsheet host: completeness {summary['valid_links_pct']:.1f} % is below --min-complete "
+                  f"{args.min_complete:g} %", file=sys.stderr)
+            code = EXIT_FAIL
+        if summary["sync_conflict"] or summary["not_a_sheet"]:
+            code = EXIT_FAIL
+        if summary["mismatch"]:
+            print(f"capsheet host: {summary['mismatch']}", file=sys.stderr)
+            code = EXIT_USAGE
     if args.json:
-        print(json.dumps(stats, default=str, indent=1))
-    return 0
+        try:
+            print(json.dumps({**(stats or {}), "summary": summary, "exit": code}, default=str, indent=1))
+            sys.stdout.flush()
+        except BrokenPipeError:
+            pass
+    return code

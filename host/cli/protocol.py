@@ -16,14 +16,38 @@ def _parse_value(text: str):
         return float(text)
 
 
+def _hex_arg(text: str) -> bytes | None:
+    try:
+        return bytes.fromhex(text.replace(" ", ""))
+    except ValueError:
+        print(f"capsheet protocol decode: invalid hex {text!r} (need pairs of hex digits, e.g. '04 01 03')",
+              file=sys.stderr)
+        return None
+
+
 def cmd_decode(args) -> int:
     from protocol.can import decode_can
     from protocol.framing import DecodeError, StreamDecoder
     if args.can_id is not None:
-        ev = decode_can(int(args.can_id, 16), bytes.fromhex(args.hex), is_fd=args.fd)
+        try:
+            can_id = int(args.can_id, 16)
+        except ValueError:
+            print(f"capsheet protocol decode: invalid --can-id {args.can_id!r} (need hex, e.g. 0A400001)",
+                  file=sys.stderr)
+            return 2
+        if not 0 <= can_id < (1 << 29):
+            print(f"capsheet protocol decode: invalid --can-id {args.can_id!r} (need a 29-bit identifier)",
+                  file=sys.stderr)
+            return 2
+        data = _hex_arg(args.hex)
+        if data is None:
+            return 2
+        ev = decode_can(can_id, data, is_fd=args.fd)
         print(ev)
         return 1 if isinstance(ev, DecodeError) else 0
-    data = sys.stdin.buffer.read() if args.hex == "-" else bytes.fromhex(args.hex.replace(" ", ""))
+    data = sys.stdin.buffer.read() if args.hex == "-" else _hex_arg(args.hex)
+    if data is None:
+        return 2
     dec = StreamDecoder()
     events = dec.feed(data)
     for ev in events:
@@ -83,9 +107,38 @@ def cmd_dbc(args) -> int:
     return 0
 
 
+def _rate(text: str) -> float:
+    import math
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: not a number") from None
+    if not (math.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: need a finite value > 0 Hz")
+    return v
+
+
+def _lattice(text: str):
+    from protocol.lattice import Lattice
+    try:
+        return Lattice.parse(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def cmd_capacity(args) -> int:
-    from protocol.capacity import capacity_table
+    from protocol.capacity import buses_needed, capacity_table
     rows = capacity_table(args.rate)
+    if args.lattice is not None:
+        lat = args.lattice
+        n = lat.n_links
+        print(f"A {lat.rows}x{lat.cols} sheet ({n} chips) at {args.rate:g} Hz needs (worst case per bus):")
+        print("| link | carries | chips per bus | buses needed |")
+        print("|---|---|---|---|")
+        for r, k in buses_needed(n, args.rate):
+            need = "none fits at this rate" if k < 0 else f"{k}"
+            print(f"| {r.link} | {r.carries} | {r.chips_at_rate[0]:,} | {need} |")
+        return 0
     print(f"| link | carries | one frame | frames/s | chips at {args.rate:g} Hz |")
     print("|---|---|---|---|---|")
     for r in rows:
@@ -118,5 +171,7 @@ def register(sub) -> None:
     b.add_argument("--write", action="store_true")
     b.set_defaults(func=cmd_dbc)
     c = ps.add_parser("capacity", help="chips per bus at a sample rate, from the frame sizes")
-    c.add_argument("--rate", type=float, default=145.0, help="samples per second per chip (default 145)")
+    c.add_argument("--rate", type=_rate, default=145.0, help="samples per second per chip (default 145)")
+    c.add_argument("--lattice", type=_lattice, default=None, metavar="ROWSxCOLS",
+                   help="say how many buses of each kind a sheet of this size needs")
     c.set_defaults(func=cmd_capacity)

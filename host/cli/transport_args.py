@@ -17,6 +17,17 @@ __all__ = ["add_transport_args", "open_transports", "DEFAULT_BAUD"]
 DEFAULT_BAUD = 3_000_000
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an integer > 0 (bit and baud rates), else a one-line usage error."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: need an integer") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"invalid value {text!r}: need > 0")
+    return v
+
+
 def add_transport_args(parser: argparse.ArgumentParser, *, title: str, several_buses: bool = True,
                        ) -> argparse._ArgumentGroup:
     """Add ``--port --baud --can --fd --bitrate`` to ``parser`` in a group called ``title``.
@@ -26,7 +37,7 @@ def add_transport_args(parser: argparse.ArgumentParser, *, title: str, several_b
     """
     g = parser.add_argument_group(title)
     g.add_argument("--port", help="serial port: device path or pyserial URL (/dev/ttyUSB0, /dev/pts/5, loop://)")
-    g.add_argument("--baud", type=int, default=DEFAULT_BAUD, help=f"serial baud rate (default {DEFAULT_BAUD})")
+    g.add_argument("--baud", type=positive_int, default=DEFAULT_BAUD, help=f"serial baud rate (default {DEFAULT_BAUD})")
     if several_buses:
         g.add_argument("--can", action="append", default=[], metavar="IFACE:CHANNEL",
                        help="CAN bus as python-can names it (virtual:bus0, slcan:/dev/pts/6, socketcan:can0); "
@@ -35,7 +46,7 @@ def add_transport_args(parser: argparse.ArgumentParser, *, title: str, several_b
         g.add_argument("--can", metavar="IFACE:CHANNEL",
                        help="CAN bus as python-can names it (virtual:bus0, slcan:/dev/pts/6, socketcan:can0)")
     g.add_argument("--fd", action="store_true", help="open the CAN bus(es) for CAN FD")
-    g.add_argument("--bitrate", type=int, default=None, help="CAN bit rate, where the interface needs one (e.g. 1000000)")
+    g.add_argument("--bitrate", type=positive_int, default=None, help="CAN bit rate, where the interface needs one (e.g. 1000000)")
     return g
 
 

@@ -4,6 +4,9 @@ in-memory link, until interrupted."""
 from __future__ import annotations
 
 import argparse
+import math
+import shlex
+import signal
 import sys
 import time
 
@@ -14,7 +17,8 @@ transports:
   pty     a serial gateway on a pseudo-terminal; connect: capsheet host --port PATH
   slcan   SLCAN (Lawicel) USB-CAN adapter(s) on ptys; connect: capsheet host --can slcan:PATH
   can     python-can buses (--can-interface, default 'virtual': reachable only from this
-          process; use e.g. udp_multicast or socketcan to reach another process)
+          process; udp_multicast reaches another process on this machine: connect with
+          capsheet host --can udp_multicast:239.74.163.2)
   memory  in-memory link (only useful inside one process; printed for completeness)
 
 fault spec (--faults), comma-separated key=value, e.g.
@@ -26,6 +30,7 @@ fault spec (--faults), comma-separated key=value, e.g.
 
 examples:
   capsheet virtual --shape gaussian --lattice 14x14 --transport pty --layout-out sheet.csv
+  capsheet virtual --transport can --can-interface udp_multicast --lattice 6x6 --layout-out sheet.csv
   capsheet virtual --transport slcan --bus-count 2 --fd --packed
   capsheet virtual --transport pty --rate 100 --faults bitflip=1e-5,outage_at_s=10,outage_s=2
 """
@@ -48,6 +53,7 @@ def load_chip_factory(firmware: str):
 
 
 def register(subparsers) -> argparse.ArgumentParser:
+    from host.cli.transport_args import positive_int
     from virtual_sheet.shapes import SCENES, SHAPES
     p = subparsers.add_parser(
         "virtual", help="run a virtual sheet on a pty, SLCAN adapter or python-can bus",
@@ -71,8 +77,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--fd", action="store_true", help="CAN FD chips and buses")
     p.add_argument("--packed", action="store_true",
                    help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD)")
-    p.add_argument("--rate", type=float, default=None, metavar="HZ",
+    p.add_argument("--rate", type=_rate, default=None, metavar="HZ",
                    help="the gateway generates SYNC at this rate (the host then follows it)")
+    p.add_argument("--baud", type=positive_int, default=12_000_000,
+                   help="pty: the UART rate the virtual gateway stands for (a pty has none), used for the "
+                        "capacity check and printed in the host command (default 12000000)")
+    p.add_argument("--bitrate", type=positive_int, default=1_000_000,
+                   help="CAN: the nominal bit rate the virtual bus stands for (default 1000000; CAN FD data 8x)")
     p.add_argument("--noise", type=float, default=0.02, help="sensor noise, %% of g per axis (default 0.02)")
     p.add_argument("--chip-errors", choices=("none", "realistic"), default="none",
                    help="per-chip bias, scale and misalignment: none (ideal, factory calibrated; default) or "
@@ -88,6 +99,77 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="store_true", help="print every frame sent and received")
     p.set_defaults(func=run)
     return p
+
+
+def _rate(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: not a number") from None
+    if not (math.isfinite(v) and 0 < v <= 4000):
+        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: need 0 < rate <= 4000 Hz")
+    return v
+
+
+def _channels(args) -> list[str] | None:
+    if args.channel:
+        return list(args.channel)
+    if args.transport == "can" and args.can_interface == "udp_multicast":
+        return [f"239.74.163.{2 + b}" for b in range(args.bus_count)]
+    return None
+
+
+def _capacity(args, sheet, dev) -> tuple[list[str], list[str], float | None]:
+    """(errors, warnings, highest rate the busiest bus carries) for this sheet's own traffic."""
+    from protocol.capacity import bus_load
+    kind = "serial" if args.transport in ("pty", "memory") else "can"
+    if args.transport == "memory" or (args.transport == "can" and args.can_interface == "virtual"):
+        return [], [], None
+    bitrate = args.baud if kind == "serial" else args.bitrate
+    per_bus = [len(b) for b in getattr(dev, "blocks", [range(sheet.n_links)])]
+    n = max(per_bus)
+    load1 = bus_load(n, 1.0, kind=kind, bitrate=bitrate, fd=args.fd, packed=args.packed)
+    max_rate = 1.0 / load1
+    errors, warnings = [], []
+    if args.rate is not None:
+        load = bus_load(n, args.rate, kind=kind, bitrate=bitrate, fd=args.fd, packed=args.packed)
+        what = (f"{n} chips per bus at {args.rate:g} Hz need {100 * load:.0f} % of a "
+                f"{bitrate / 1e6:g} Mbit/s {'UART' if kind == 'serial' else 'CAN FD' if args.fd else 'CAN'} bus")
+        if load > 1.0:
+            remedy = ("--packed, a faster --baud, or a lower --rate" if kind == "serial"
+                      else "more buses (--bus-count), --fd --packed, or a lower --rate")
+            errors.append(f"over capacity: {what} (at most {max_rate:.0f} Hz); use {remedy}")
+        elif load > 0.8:
+            warnings.append(f"near capacity: {what}")
+    return errors, warnings, max_rate
+
+
+def host_command(args, dev) -> str:
+    """The exact ``capsheet host`` command that reaches this sheet (printed at start)."""
+    cmd = ["capsheet", "host"]
+    if args.transport == "pty":
+        cmd += ["--port", dev.path, "--baud", str(args.baud)]
+    elif args.transport == "slcan":
+        for pth in dev.paths:
+            cmd += ["--can", f"slcan:{pth}"]
+        cmd += ["--bitrate", str(args.bitrate)]
+    elif args.transport == "can":
+        for ch in dev.channels:
+            cmd += ["--can", f"{args.can_interface}:{ch}"]
+    else:
+        return ""
+    if args.fd:
+        cmd.append("--fd")
+    cmd += ["--lattice", args.lattice]
+    if args.layout_out:
+        cmd += ["--layout", args.layout_out]
+    else:
+        cmd.append("--auto-assign")
+    if args.rate is not None:
+        cmd += ["--sync", "follow", "--rate", f"{args.rate:g}"]
+    if args.packed:
+        cmd.append("--packed")
+    return shlex.join(cmd)
 
 
 def _fmt_frame(frame) -> str:
@@ -127,7 +209,7 @@ def make_device(args, verbose=None):
         dev = SlcanDevice(sheet, n_buses=args.bus_count, symlink_paths=paths, **kw)
     else:
         from virtual_sheet.devices import CanDevice
-        dev = CanDevice(sheet, n_buses=args.bus_count, interface=args.can_interface, channels=args.channel, **kw)
+        dev = CanDevice(sheet, n_buses=args.bus_count, interface=args.can_interface, channels=_channels(args), **kw)
     return sheet, dev
 
 
@@ -143,27 +225,53 @@ def run(args) -> int:
         except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
             pass
 
+    if args.transport == "can" and args.can_interface == "udp_multicast" and args.bus_count > 1:
+        print("capsheet virtual: udp_multicast buses share one UDP port, so on Linux their traffic crosses "
+              "(every bus hears every other): use --bus-count 1, or --transport slcan for several buses",
+              file=sys.stderr)
+        return 2
     try:
         sheet, dev = make_device(args, verbose if args.verbose else None)
     except (ValueError, RuntimeError) as exc:
         print(f"capsheet virtual: {exc}", file=sys.stderr)
         return 2
+    errors, warnings, max_rate = _capacity(args, sheet, dev)
+    if errors:
+        for e in errors:
+            print(f"capsheet virtual: {e}", file=sys.stderr)
+        return 2
+    for w in warnings:
+        print(f"capsheet virtual: {w}", file=sys.stderr)
+
+    def on_signal(signum, frame):  # SIGTERM/SIGHUP: leave through `finally` (symlinks removed)
+        raise KeyboardInterrupt
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        try:
+            signal.signal(sig, on_signal)
+        except (ValueError, OSError):  # not the main thread
+            pass
     if args.layout_out:
         sheet.write_layout(args.layout_out)
-    dev.start()
+    try:
+        dev.start()
+    except Exception as exc:  # noqa: BLE001 - a port or bus that cannot be opened: one line
+        print(f"capsheet virtual: cannot start the {args.transport} device: {exc}", file=sys.stderr)
+        dev.stop()
+        return 1
     try:
         print(f"capsheet virtual: {sheet!r}", file=out)
         print(f"connect to: {dev.describe()}", file=out)
-        if args.transport == "pty":
-            print(f"  capsheet host --port {dev.path} --lattice {args.lattice}"
-                  + (f" --layout {args.layout_out}" if args.layout_out else ""), file=out)
-        elif args.transport == "slcan":
-            for pth in dev.paths:
-                print(f"  --can slcan:{pth}", file=out)
+        cmd = host_command(args, dev)
+        if cmd:
+            print(f"  {cmd}", file=out)
         elif args.transport == "can" and args.can_interface == "virtual":
+            pass
+        if args.transport == "can" and args.can_interface == "virtual":
             print("  note: python-can's 'virtual' interface reaches only this process; use --transport "
                   "slcan, or --can-interface udp_multicast / socketcan, for a host in another process",
                   file=out)
+        if max_rate is not None:
+            print(f"capacity: this link carries this sheet's traffic up to {max_rate:.0f} Hz", file=out)
         if args.layout_out:
             print(f"layout written to {args.layout_out}", file=out)
         out.flush()

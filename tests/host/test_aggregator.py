@@ -295,3 +295,120 @@ def test_any_counter_sequence_never_raises_and_accounts_for_every_frame():
         st = agg.stats
         assert st.samples + st.late + st.duplicates + st.unknown == total
         assert agg.n_open <= 4 and agg.pending <= 8
+
+
+# --------------------------------------------------------------------------- live path (issue 11)
+
+def _ingest_at(agg, clock, counter, nodes, t):
+    clock.t = t
+    agg.ingest_batch(np.asarray(nodes, dtype=np.uint16), np.full(len(nodes), counter, dtype=np.uint16),
+                     np.tile(np.array([[0, 0, 1024]], dtype=np.int16), (len(nodes), 1)),
+                     np.zeros(len(nodes), dtype=np.uint8))
+
+
+def _timeline(agg, clock, counters, latency_s, period_s=0.01, t0=100.0):
+    """SYNC every ``period_s``; every link's frame ``latency_s`` after its SYNC; time in order,
+    the aggregator polled at every event (as the host's threads do)."""
+    events = []
+    for c in counters:
+        events.append((t0 + period_s * c, 0, c))
+        events.append((t0 + period_s * c + latency_s, 1, c))
+    for t, kind, c in sorted(events):
+        clock.t = t
+        agg.poll(t)
+        if kind == 0:
+            agg.open_counter(c, t)
+        else:
+            _ingest_at(agg, clock, c, [1, 2, 3, 4], t)
+
+
+def test_adaptive_deadline_grows_to_the_measured_latency_within_its_bounds():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock, queue_size=1000)
+    _timeline(agg, clock, range(40), 0.03)
+    st = agg.stats
+    # the first counters went out at the 10 ms deadline, their frames came late; 32 of them
+    # measured 30 ms: the deadline became 1.5 x 30 ms + 2 ms
+    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.047)
+    assert st.late > 0
+    late_before = st.late
+    _timeline(agg, clock, range(40, 80), 0.03)
+    assert st.late == late_before  # now the frames are waited for
+    agg.flush()
+    assert st.complete >= 40
+
+
+def test_fixed_deadline_stays_put_and_keeps_dropping_late_frames():
+    """The broken input for the test above: without bounds the deadline does not adapt."""
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.01, clock=clock, queue_size=1000)
+    _timeline(agg, clock, range(80), 0.03)
+    assert agg.deadline_s == 0.01 and agg.stats.deadline_changes == 0
+    assert agg.stats.complete == 0 and agg.stats.late >= 4 * 70
+
+
+def test_adaptive_deadline_shrinks_but_not_below_its_minimum():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    for c in range(32):
+        t = 100.0 + 0.01 * c
+        agg.open_counter(c, t)
+        _ingest_at(agg, clock, c, [1, 2, 3, 4], t + 0.001)
+    assert agg.deadline_s == 0.005  # 1.5 x 1 ms + 2 ms = 3.5 ms, bounded below
+
+
+def test_miss_run_blames_only_a_link_whose_neighbours_arrived():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.01, clock=clock)
+    for c in range(5):  # link 2 (node 3) never answers, the others do
+        t = 100.0 + 0.02 * c
+        agg.open_counter(c, t)
+        _ingest_at(agg, clock, c, [1, 2, 4], t + 0.001)
+        clock.t = t + 0.015
+        agg.poll(clock.t)
+    assert agg.miss_run.tolist() == [0, 0, 5, 0]
+    for c in range(5, 9):  # nothing arrives at all (a host stall, a dead bus): nobody is blamed more
+        t = 100.0 + 0.02 * c
+        agg.open_counter(c, t)
+        clock.t = t + 0.015
+        agg.poll(clock.t)
+    assert agg.miss_run.tolist() == [0, 0, 5, 0]
+    _ingest_at(agg, clock, 9, [1, 2, 3, 4], clock.t)
+    agg.open_counter(9, clock.t)
+    agg.flush()
+    assert agg.miss_run.tolist() == [0, 0, 0, 0]
+
+
+def test_completeness_by_snapshot_and_by_valid_link_counts_empty_snapshots():
+    """Empty snapshots count as incomplete and as 0 valid links (the demo once showed -600 %)."""
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.01, clock=clock)
+    assert agg.completeness() == {"complete_snapshots_pct": None, "valid_links_pct": None}
+    agg.open_counter(0, clock.t)
+    _ingest_at(agg, clock, 0, [1, 2, 3, 4], clock.t)  # complete
+    for c in (1, 2, 3):  # empty
+        agg.open_counter(c, clock.t)
+    agg.open_counter(4, clock.t)
+    _ingest_at(agg, clock, 4, [1, 2], clock.t)  # half
+    clock.t += 1.0
+    agg.poll(clock.t)
+    assert agg.stats.emitted == 5 and agg.stats.complete == 1
+    assert agg.completeness() == {"complete_snapshots_pct": 20.0, "valid_links_pct": 30.0}  # 6 of 20 links
+
+
+def test_latest_hands_the_newest_snapshot_and_counts_the_skipped():
+    clock = FakeClock()
+    agg = Aggregator(2, deadline_s=0.01, clock=clock)
+    for c in range(5):
+        agg.open_counter(c, clock.t)
+        _ingest_at(agg, clock, c, [1, 2], clock.t)
+    snap = agg.latest(0.0)
+    assert snap.counter == 4 and agg.stats.dropped == 4 and agg.pending == 0
+    assert agg.latest(0.0) is None
+
+
+def test_invalid_deadline_bounds_are_refused():
+    with pytest.raises(ValueError, match="min_deadline_s"):
+        Aggregator(4, min_deadline_s=0.2, max_deadline_s=0.1)
+    with pytest.raises(ValueError, match="deadline_s"):
+        Aggregator(4, deadline_s=float("nan"))

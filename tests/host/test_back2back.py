@@ -2,7 +2,14 @@
 (in-memory link, pty serial, python-can virtual with two buses, SLCAN adapters on ptys through
 python-can's own slcan interface), then under every injected fault.
 
+The in-process rigs (memory link, python-can ``virtual``) run on a **simulated clock**: host and
+sheet in one thread (`Host(driver=...)`, `Device(clock=...)`), time advanced 1 ms per step, so
+their counts are exact and do not depend on how busy the machine is. The pty and SLCAN rigs run on
+the real clock in threads and assert correctness only — every frame delivered or counted, nothing
+valid lost, snapshots right — never a rate or a latency.
+
 Every rig is torn down in its fixture: host threads stopped and joined, device thread stopped.
+The chips are the Python model and the C firmware in turn (the ``chip_class`` fixture).
 """
 
 from __future__ import annotations
@@ -28,31 +35,47 @@ except ImportError:  # pragma: no cover
     SlcanDevice = None
 
 KINDS = ["memory", "pty", "can-virtual", "slcan"]
+SIMULATED = ("memory", "can-virtual")  #: rigs on the simulated clock (exact counts)
 _channel = itertools.count()
 COUNT = G0 / 1024  # one ADC count at ±2 g, m/s²
+
+
+class SimClock:
+    """A clock that moves only when told: ``clock()`` -> seconds."""
+
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
 
 
 class Rig:
     """A virtual sheet behind a device, and a Host connected to it."""
 
     def __init__(self, kind: str, *, shape="flat", lattice="4x4", faults=None, sensor=None, packed=False,
-                 rate_hz=100.0, watchdog_s=None, layout=True, seed=1, gateway_sync_hz=None) -> None:
+                 rate_hz=100.0, watchdog_s=None, layout=True, seed=1, gateway_sync_hz=None,
+                 chip_class=None) -> None:
         can_kind = kind in ("can-virtual", "slcan")
         self.kind = kind
+        self.sim = kind in SIMULATED
+        self.clock = SimClock() if self.sim else None
         self.sheet = VirtualSheet(shape, lattice, seed=seed, transport="can" if can_kind else "serial",
-                                  faults=faults, sensor=sensor, fd=packed and can_kind)
+                                  faults=faults, sensor=sensor, fd=packed and can_kind, chip_factory=chip_class)
         if kind == "memory":
-            self.device = MemoryDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz)
+            self.device = MemoryDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz, clock=self.clock)
         elif kind == "pty":
             self.device = PtyDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz)
         elif kind == "can-virtual":
             n = next(_channel)
-            self.device = CanDevice(self.sheet, n_buses=2, channels=[f"b2b_{n}_a", f"b2b_{n}_b"], packed=packed)
+            self.device = CanDevice(self.sheet, n_buses=2, channels=[f"b2b_{n}_a", f"b2b_{n}_b"], packed=packed,
+                                    clock=self.clock)
         else:
             if SlcanDevice is None:
                 pytest.skip("virtual_sheet.slcan.SlcanDevice has not landed")
             self.device = SlcanDevice(self.sheet, n_buses=2, packed=packed)
-        self.device.start()
+        # real clock: the chips are powered once the host has its port open (nothing sent unheard)
+        self.device.start(power_on=self.sim)
         try:
             if kind == "memory":
                 ts = [MemoryTransport(self.device.port)]
@@ -70,10 +93,18 @@ class Rig:
             # python-can's slcan reads one byte per call: two adapters plus the emulator in one
             # process on a small box keep up with 50 Hz x 24 chips, not always with 100 Hz
             rate_hz = min(rate_hz, 50.0)
+        if not self.sim:
+            self.device.power_on()
+        if self.sim:
+            def driver(dt: float) -> None:  # the world runs dt seconds: the sheet steps once
+                self.clock.t += dt
+                self.device.step()
+            timing = dict(clock=self.clock, driver=driver, deadline_s=0.02)
+        else:
+            timing = dict(deadline_s=0.2)  # generous: a loaded 2-core CI box; latency is not under test
         self.host = Host(ts, lattice, layout=Layout(dict(self.sheet.layout)) if layout else None,
                          rate_hz=rate_hz, watchdog_s=watchdog_s, timeout_s=0.15, retries=5,
-                         sync="follow" if gateway_sync_hz else "drive",
-                         deadline_s=0.2)  # generous: a loaded 2-core CI box; latency is not under test
+                         sync="follow" if gateway_sync_hz else "drive", **timing)
         self.host.open()
 
     def close(self) -> None:
@@ -91,11 +122,11 @@ class Rig:
 
 
 @pytest.fixture
-def rig_factory():
+def rig_factory(chip_class):
     rigs: list[Rig] = []
 
     def make(kind, **kw) -> Rig:
-        r = Rig(kind, **kw)
+        r = Rig(kind, chip_class=chip_class, **kw)
         rigs.append(r)
         return r
 
@@ -114,6 +145,34 @@ def check_accounting(rig: Rig, snaps: list) -> None:
     assert received == st.samples
     counters = [s.counter for s in snaps]
     assert all(((b - a) & 0xFFFF) < 0x8000 and a != b for a, b in zip(counters, counters[1:])), "counter order"
+    if rig.sim:  # one thread, simulated time: every counter sent is a snapshot, and none is late
+        assert rig.host.syncs_sent in (0, len(snaps))
+        assert st.late == 0
+        n_exp = int(np.count_nonzero(~rig.host.aggregator.unassigned))
+        silent = sum(int(np.count_nonzero(s.status & LinkFlag.SILENT)) for s in snaps)
+        assert st.samples + int(st.link_missing.sum()) + silent == len(snaps) * n_exp  # each link: here or missing
+
+
+def check_readings(rig: Rig, snaps: list, tol_counts: float = 2.5) -> None:
+    """Every valid reading is the truth of its own counter (to ADC quantisation + the model's bias)."""
+    for s in snaps:
+        ideal = ideal_readings(rig.sheet.truth(s.counter))
+        assert np.all(np.abs(s.readings[s.valid] - ideal[s.valid]) < tol_counts * COUNT), s.counter
+
+
+def check_delivered(rig: Rig, timeout_s: float = 20.0) -> None:
+    """Real-clock rigs: every frame the sheet put on the wire reached the host and was decoded or
+    counted (waits for the wire to drain; asserts no loss, never how fast)."""
+    ports = getattr(rig.device, "ports", [rig.device])
+    # frames the device dropped whole because the host did not read (a bounded gateway buffer) are
+    # counted there; every other frame must arrive
+    sent = lambda: (sum(gw.stats.frames_to_host for gw in rig.device.gateways)  # noqa: E731
+                    - sum(p.tx_overflow_frames for p in ports))
+    got = lambda: sum(t.stats.frames_in + t.stats.error_count for t in rig.host.transports)  # noqa: E731
+    end = time.monotonic() + timeout_s
+    while got() != sent() and time.monotonic() < end:
+        time.sleep(0.02)
+    assert got() == sent(), (got(), sent())
 
 
 # --------------------------------------------------------------------------------------------- clean
@@ -128,19 +187,23 @@ def test_bring_up_and_stream_complete_calibrated_snapshots(rig_factory, kind):
     assert {r.link for r in rig.host.chips.values()} == set(range(n))
     snaps = rig.stream(0.6)
     check_accounting(rig, snaps)
-    assert len(snaps) >= 25
-    assert all(s.complete and s.valid.all() for s in snaps), (
-        [(s.counter, s.n_valid, round(s.latency_s, 3)) for s in snaps if not s.complete], rig.host.stats["aggregator"],
-        rig.host.stats["buses"])
-    assert [((b.counter - a.counter) & 0xFFFF) for a, b in zip(snaps, snaps[1:])] == [1] * (len(snaps) - 1)
     # readings after per-chip calibration match the truth to ADC quantisation (bias is 15 counts)
-    for s in snaps[5:8]:
-        ideal = ideal_readings(rig.sheet.truth(s.counter))
-        assert np.max(np.abs(s.readings - ideal)) < 2.5 * COUNT
+    check_readings(rig, snaps)
     stats = rig.host.stats
     assert sum(b["errors"] and sum(b["errors"].values()) or 0 for b in stats["buses"]) == 0
-    assert stats["aggregator"]["late"] == stats["aggregator"]["duplicates"] == stats["aggregator"]["unknown"] == 0
-    assert all(c["frames"] >= len(snaps) for c in stats["chips"].values())
+    assert stats["aggregator"]["duplicates"] == stats["aggregator"]["unknown"] == 0
+    if rig.sim:
+        rate = rig.host.rate_hz
+        assert rig.host.syncs_sent == len(snaps) == round(0.6 * rate)  # one SYNC per slot, none missed
+        assert stats["live"]["syncs_missed"] == 0
+        assert all(s.complete and s.valid.all() for s in snaps)
+        assert [((b.counter - a.counter) & 0xFFFF) for a, b in zip(snaps, snaps[1:])] == [1] * (len(snaps) - 1)
+        assert stats["aggregator"]["samples"] == n * len(snaps) and stats["aggregator"]["late"] == 0
+        assert stats["live"]["complete_snapshots_pct"] == stats["live"]["valid_links_pct"] == 100.0
+        assert all(c["frames"] == len(snaps) for c in stats["chips"].values())
+    else:
+        check_delivered(rig)
+        assert snaps and np.any([s.valid for s in snaps], axis=0).all()  # every chip was heard
     if kind in ("can-virtual", "slcan"):
         assert len(stats["buses"]) == 2 and all(b["samples"] > 0 for b in stats["buses"])  # merged
 
@@ -153,16 +216,25 @@ def test_auto_assign_without_layout_places_chips_in_uid_order(rig_factory, kind)
     assert [rig.host.chips[u].link for u in uids] == list(range(len(uids)))
     assert rig.host.layout.is_auto
     snaps = rig.stream(0.2)
-    assert snaps and all(s.complete for s in snaps)
+    check_accounting(rig, snaps)
+    assert len(snaps) == 20 and all(s.complete for s in snaps)
 
 
-def test_packed_gateway_snapshots_fill_the_lattice(rig_factory):
-    rig = rig_factory("pty", lattice="8x8", packed=True)
+@pytest.mark.parametrize("kind", ["memory", "pty"])
+def test_packed_gateway_snapshots_fill_the_lattice(rig_factory, kind):
+    rig = rig_factory(kind, lattice="8x8", packed=True)
     rig.host.bring_up(0.3)
     snaps = rig.stream(0.4)
     check_accounting(rig, snaps)
-    assert len(snaps) >= 20 and all(s.complete for s in snaps)
-    np.testing.assert_allclose(snaps[-1].readings, np.tile([0, 0, G0], (rig.sheet.n_links, 1)), atol=1.5 * COUNT)
+    check_readings(rig, snaps, tol_counts=1.5)
+    if rig.sim:
+        assert len(snaps) == 40 and all(s.complete for s in snaps)
+        assert rig.device.gateway.stats.snapshots == 40  # 112 links: one SNAPSHOT frame per counter
+    else:
+        check_delivered(rig)
+        assert any(s.complete for s in snaps)
+    np.testing.assert_allclose(snaps[-1].readings[snaps[-1].valid],
+                               np.tile([0, 0, G0], (snaps[-1].n_valid, 1)), atol=1.5 * COUNT)
 
 
 def test_counter_wraps_while_streaming(rig_factory):
@@ -172,7 +244,7 @@ def test_counter_wraps_while_streaming(rig_factory):
     snaps = rig.stream(0.4)
     check_accounting(rig, snaps)
     counters = [s.counter for s in snaps]
-    assert 0xFFFF in counters and 0 in counters
+    assert counters == [(0xFFF0 + k) & 0xFFFF for k in range(40)]
     assert all(s.complete for s in snaps)
 
 
@@ -188,15 +260,16 @@ def test_bit_flips_and_dropped_bytes_are_counted_as_framing_errors(rig_factory, 
     rig = rig_factory(kind, faults="bitflip=2e-4,drop_byte=5e-4,seed=3")
     snaps = _stream_faulty(rig)
     check_accounting(rig, snaps)
+    check_readings(rig, snaps)  # what does arrive is right: the CRC lets no damaged frame through
     errors = rig.host.transports[0].stats.errors
     assert sum(errors.values()) > 0 and set(errors) <= {"BAD_CRC", "BAD_COBS", "SHORT", "BAD_LENGTH", "OVERSIZE",
                                                           "UNKNOWN_TYPE", "BAD_VERSION", "BAD_FIELD"}
     fs = rig.sheet.fault_stats
     assert fs.frames_corrupted > 0
     # every damaged frame is lost and counted, never delivered wrong: each missing link is one
-    # corrupted frame (the CRC lets none through), and complete snapshots still come
+    # corrupted frame, or (real clock only) one that came after its deadline
     st = rig.host.aggregator.stats
-    assert 0 < st.link_missing.sum() <= fs.frames_corrupted + st.late  # late: a slow test machine
+    assert 0 < st.link_missing.sum() <= fs.frames_corrupted + st.late
     assert st.unknown == 0 and st.complete > 0
 
 
@@ -205,8 +278,8 @@ def test_can_bit_errors_become_error_frames_and_retransmissions(rig_factory):
     snaps = _stream_faulty(rig, 0.6)
     check_accounting(rig, snaps)
     n_err = sum(t.stats.errors["CAN_ERROR_FRAME"] for t in rig.host.transports)
-    assert 0 < n_err <= rig.sheet.fault_stats.error_frames  # the device keeps going after the host stops
-    assert all(s.complete for s in snaps)  # the bus retransmits: nothing is lost
+    assert n_err == rig.sheet.fault_stats.error_frames > 0  # one thread: every error frame was read
+    assert len(snaps) == 60 and all(s.complete for s in snaps)  # the bus retransmits: nothing is lost
 
 
 @pytest.mark.parametrize("kind", ["memory", "can-virtual"])
@@ -216,9 +289,12 @@ def test_dropped_frames_give_masked_snapshots_at_the_deadline(rig_factory, kind)
     check_accounting(rig, snaps)
     st = rig.host.aggregator.stats
     assert st.incomplete > 0 and st.link_missing.sum() > 0
+    assert st.link_missing.sum() <= rig.sheet.fault_stats.frames_dropped
     inc = [s for s in snaps if not s.complete]
     assert all((~s.valid).any() and np.isnan(s.readings[~s.valid]).all() for s in inc)
+    assert all(s.latency_s >= rig.host.aggregator.min_deadline_s - 1e-9 for s in inc)  # waited its deadline
     assert st.complete > 0
+    assert rig.host.silent_links == []  # a few lost frames are not a silent chip
 
 
 @pytest.mark.parametrize("kind", ["memory", "can-virtual"])
@@ -227,7 +303,7 @@ def test_duplicated_frames_are_counted_and_ignored(rig_factory, kind):
     snaps = _stream_faulty(rig, 0.6)
     check_accounting(rig, snaps)
     assert rig.host.aggregator.stats.duplicates > 0
-    assert all(s.complete for s in snaps)
+    assert len(snaps) == 60 and all(s.complete for s in snaps)
 
 
 @pytest.mark.parametrize("kind", ["memory", "pty"])
@@ -235,10 +311,13 @@ def test_reordered_and_jittered_frames_still_complete(rig_factory, kind):
     rig = rig_factory(kind, faults="reorder=0.05,jitter_ms=3,seed=7")
     snaps = _stream_faulty(rig, 0.6)
     check_accounting(rig, snaps)
+    check_readings(rig, snaps)
     assert rig.sheet.fault_stats.frames_reordered > 0
     st = rig.host.aggregator.stats
-    assert st.late == 0
-    assert st.complete >= len(snaps) - 1
+    if rig.sim:
+        assert st.late == 0 and st.complete == len(snaps) == 60
+    else:
+        assert st.duplicates == st.unknown == 0
 
 
 def test_dead_chip_is_reported_marked_missing_and_streaming_goes_on(rig_factory):
@@ -247,11 +326,43 @@ def test_dead_chip_is_reported_marked_missing_and_streaming_goes_on(rig_factory)
     check_accounting(rig, snaps)
     silent = [e for e in rig.host.events if e.kind == "silent"]
     assert [e.link for e in silent] == [5]
-    assert rig.host.silent_links == [] or rig.host.silent_links == [5]
+    assert rig.host.silent_links == [5]
     after = [s for s in snaps if s.status[5] & LinkFlag.SILENT]
     assert len(after) > 10
     assert all(s.complete and s.valid.sum() == rig.sheet.n_links - 1 for s in after)  # not waited for
     assert not snaps[0].status[5] & LinkFlag.SILENT and snaps[0].valid[5]
+
+
+def test_a_stalled_host_blames_no_chip(rig_factory):
+    """The host's own loop stops for 1 s (5x the watchdog) while the sheet keeps going: no link is
+    reported silent, no SYNC burst follows (the missed slots are counted), streaming resumes."""
+    rig = rig_factory("memory", watchdog_s=0.2)
+    rig.host.bring_up(0.2)
+    snaps = list(rig.host.snapshots(duration_s=0.3))
+    for _ in range(1000):  # 1 s of the world without a single host service
+        rig.clock.t += 0.001
+        rig.device.step()
+    sent_before = rig.host.syncs_sent
+    snaps += list(rig.host.snapshots(duration_s=0.3))
+    rig.host.stop()
+    snaps += rig.host.aggregator.drain()
+    check_accounting(rig, snaps)
+    assert [e for e in rig.host.events if e.kind == "silent"] == []
+    assert rig.host.stats["live"]["syncs_missed"] == 100  # 1 s at 100 Hz skipped, not caught up
+    # after the stall: one SYNC for the slot the host woke in, then one per 10 ms for 0.3 s — no burst
+    assert rig.host.syncs_sent - sent_before == 1 + 30
+    assert all(s.complete for s in snaps)
+
+
+def test_a_chip_that_answers_late_is_blamed_but_not_its_neighbours(rig_factory):
+    """A drifting chip whose replies always leave after the deadline: only it is reported silent."""
+    rig = rig_factory("memory", faults="drift_chip=7,drift=0.0,drift_late_ms=40,seed=12", watchdog_s=0.1)
+    rig.host.aggregator.adaptive = False  # a fixed 20 ms deadline: the chip's 40 ms are beyond it
+    snaps = _stream_faulty(rig, 0.6)
+    silent = {e.link for e in rig.host.events if e.kind == "silent"}
+    assert silent == {7}
+    assert rig.host.aggregator.stats.link_late[7] > 0 and rig.host.aggregator.stats.link_late.sum() == \
+        rig.host.aggregator.stats.link_late[7]
 
 
 @pytest.mark.parametrize("kind", ["memory", "can-virtual"])
@@ -262,7 +373,7 @@ def test_babbling_chip_is_counted_and_the_lattice_unharmed(rig_factory, kind):
     assert rig.sheet.fault_stats.babble_frames > 0
     errs = sum(t.stats.error_count for t in rig.host.transports)
     assert errs > 0
-    assert sum(s.complete for s in snaps) >= len(snaps) - 2
+    assert len(snaps) == 60 and all(s.complete for s in snaps)
 
 
 def test_drifting_chip_sends_stale_samples_flagged_but_valid(rig_factory):
@@ -270,7 +381,8 @@ def test_drifting_chip_sends_stale_samples_flagged_but_valid(rig_factory):
     snaps = _stream_faulty(rig, 0.6)
     check_accounting(rig, snaps)
     stale = sum(bool(s.status[2] & LinkFlag.STALE) for s in snaps)
-    assert stale > 0 and all(s.valid[2] for s in snaps if s.complete)
+    assert stale == rig.sheet.fault_stats.stale_samples > 0
+    assert all(s.valid[2] for s in snaps) and all(s.complete for s in snaps)
     assert rig.host.aggregator.stats.late == 0
 
 
@@ -284,9 +396,12 @@ def test_bus_outage_is_survived(rig_factory, kind):
         assert t.stats.disconnects >= 1 and t.stats.reconnects >= 1
         assert any(e.kind == "reconnect" for e in rig.host.events)
     assert any(e.kind == "silent" for e in rig.host.events)
-    assert any(e.kind == "recovered" for e in rig.host.events), [(round(e.t - rig.host.events[0].t, 3), e.kind, e.link) for e in rig.host.events if e.link in (None, 0)] + [rig.host.stats["buses"], rig.host.aggregator.stats.summary()]
-    # streaming resumed: the last snapshots are complete again
-    assert snaps[-3].complete and snaps[-2].complete
+    assert any(e.kind == "recovered" for e in rig.host.events)
+    if rig.sim:  # streaming resumed: the snapshots after the outage are complete again
+        assert snaps[-3].complete and snaps[-2].complete
+    else:  # every chip was heard after the outage
+        after = [s for s in snaps if s.timestamp > rig.host.events[-1].t]
+        assert after and np.any([s.valid for s in after], axis=0).all()
 
 
 @pytest.mark.parametrize("kind", ["memory", "pty"])
@@ -295,6 +410,18 @@ def test_follow_a_gateways_sync(rig_factory, kind):
     rig.host.bring_up(0.2)
     snaps = rig.stream(0.5)
     check_accounting(rig, snaps)
-    assert rig.host.syncs_sent == 0 and rig.host.syncs_seen >= 30
-    assert len(snaps) >= 30 and sum(not s.complete for s in snaps) <= 1  # the last may be cut by STOP
+    check_readings(rig, snaps)
+    assert rig.host.syncs_sent == 0 and rig.host.syncs_seen > 0
+    if rig.sim:
+        assert len(snaps) >= 50 and sum(not s.complete for s in snaps) <= 1  # the last may be cut by STOP
+    else:
+        assert snaps
     assert all(not np.isnan(s.timestamp) for s in snaps)
+
+
+def test_the_suite_runs_the_chip_implementation_under_test(rig_factory, chip_class):
+    """Every test here runs once with the Python model (the vectorised array of it) and once with
+    the C reference firmware behind cffi (the ``chip_class`` fixture; no monkeypatching)."""
+    rig = rig_factory("memory")
+    assert all(isinstance(c, chip_class) for c in rig.sheet.chips)
+    assert rig.sheet.engine == ("array" if chip_class.__name__ == "ChipModel" else "chips")

@@ -267,3 +267,31 @@ def test_cli_firmware_c_fails_clearly_when_missing(capsys):
     from host.cli import main
     assert main(["virtual", "--lattice", "2x2", "--firmware", "c", "--duration", "0.1"]) == 2
     assert "firmware_ref.chip.CFirmwareChip" in capsys.readouterr().err
+
+
+def test_a_pty_nobody_reads_drops_whole_frames_counted_and_stays_bounded():
+    """A host that stops reading: the gateway's buffer is bounded, what does not fit is dropped
+    whole and counted, and what the host reads later is still whole frames (no framing error)."""
+    import serial
+
+    from protocol.framing import DecodeError, StreamDecoder
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+    sheet = VirtualSheet("flat", "4x4", seed=2)
+    dev = PtyDevice(sheet, sync_rate_hz=400.0)
+    dev.max_pending = 4096
+    with dev:
+        dev.commission()
+        end = time.monotonic() + 60
+        while dev.tx_overflow_frames == 0 and time.monotonic() < end:
+            time.sleep(0.05)
+        assert dev.tx_overflow_frames > 0 and dev.tx_overflow_bytes > 0
+        assert dev.call(lambda now: len(dev._pending)) <= dev.max_pending
+        port = serial.Serial(dev.path, timeout=0.2)
+        try:
+            dec = StreamDecoder()
+            data = port.read(8192)
+        finally:
+            port.close()
+    events = dec.feed(data)
+    assert data and not any(isinstance(e, DecodeError) for e in events[1:])  # the first may be cut by open

@@ -1,20 +1,49 @@
 """`capsheet demo` end to end: virtual sheet on a real pty in its own process, host via pyserial,
-live estimation against the virtual truth. Short run; the same code path as `make demo`."""
+live estimation against the virtual truth. Short run; the same code path as `make demo`.
+
+Real clock, so only correctness is asserted — the output is pure JSON, the numbers add up, the
+estimates compared with the truth are within the target, the verdict follows the stated rule —
+never a rate: whether 99 % of SYNCs completed depends on how busy the machine is."""
 
 import json
 import subprocess
 import sys
 
 
-def test_demo_streams_estimates_and_meets_its_error_target(tmp_path):
+def _demo(*args, timeout=240):
+    return subprocess.run([sys.executable, "-m", "host.cli", "demo", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_demo_streams_estimates_and_reports_honestly(tmp_path):
     png = tmp_path / "demo.png"
-    out = subprocess.run([sys.executable, "-m", "host.cli", "demo", "--duration", "2.5", "--out", str(png), "--json"],
-                         capture_output=True, text=True, timeout=180)
-    assert out.returncode == 0, out.stdout + out.stderr
-    result = json.loads(out.stdout[out.stdout.index("{"):])
-    assert result["pass"] is True
-    assert result["snapshots"] >= 0.5 * result["rate_hz"] * 2.5
-    assert result["compared_with_truth"] >= 5
-    assert result["mean_error_pct_side"] <= 1.0
+    out = _demo("--duration", "3", "--rate", "30", "--out", str(png), "--json")
+    assert out.returncode in (0, 1), out.stderr
+    result = json.loads(out.stdout)  # JSON alone on stdout: every message went to stderr
     assert "364 chips discovered, 364 assigned" in out.stderr
+    assert result["estimates"] >= 1
+    # complete snapshots are scored against the truth of their own counter: within the target
+    # (how many were complete depends on the machine's load; none -> no score, and a FAIL)
+    if result["compared_with_truth"]:
+        assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
+    else:
+        assert result["mean_error_pct_side"] is None and result["error_ok"] is False
+    sent, complete = result["syncs_sent"], result["complete"]
+    assert sent > 0 and 0 <= complete <= result["snapshots"]
+    assert result["complete_pct_of_syncs"] == round(100 * complete / sent, 2)
+    assert 0 <= result["complete_snapshots_pct"] <= 100 and 0 <= result["valid_links_pct"] <= 100
+    # the pass rule is the one it states: error within target AND >= 99 % of SYNCs complete
+    assert result["complete_ok"] == (result["complete_pct_of_syncs"] >= 99.0)
+    assert result["pass"] == (result["error_ok"] and result["complete_ok"])
+    assert out.returncode == (0 if result["pass"] else 1)
+    verdict = [ln for ln in out.stderr.splitlines() if ln.startswith("capsheet demo: PASS") or
+               ln.startswith("capsheet demo: FAIL")]
+    assert len(verdict) == 1 and "None" not in verdict[0]
     assert png.stat().st_size > 10_000
+
+
+def test_demo_refuses_bad_options_with_one_line_and_status_2():
+    for args in (["--rate", "0"], ["--rate", "nan"], ["--duration", "-1"], ["--min-complete", "120"]):
+        out = _demo(*args, timeout=60)
+        assert out.returncode == 2, (args, out.stderr)
+        assert "Traceback" not in out.stderr and out.stderr.strip().count("\n") == 0, out.stderr

@@ -36,3 +36,37 @@ def test_capacity_table_matches_the_spec():
     spec = open("docs/protocol.md", encoding="utf-8").read()
     assert "| UART 8N1 3 Mbaud | SAMPLE per chip | 15 B | 20,000 | 137 |" in spec
     assert "| UART 8N1 3 Mbaud | SAMPLE per chip | 15 B | 20,000 | 137 |" in out.stdout
+
+
+def test_capacity_for_a_lattice_says_how_many_buses_of_each_kind():
+    out = run("capacity", "--lattice", "14x14", "--rate", "145")
+    assert out.returncode == 0, out.stderr
+    assert "A 14x14 sheet (364 chips) at 145 Hz" in out.stdout
+    # 45 chips per classic bus at 145 Hz (the spec's table): ceil(364 / 45) = 9 buses
+    assert "| classic CAN 1 Mbit/s, 29-bit id | SAMPLE (7 B) | 45 | 9 |" in out.stdout
+    # 137 chips per 3 Mbaud UART, per chip: 3 UARTs; one 12 Mbaud UART (551 chips) suffices
+    assert "| UART 8N1 3 Mbaud | SAMPLE per chip | 137 | 3 |" in out.stdout
+    assert "| UART 8N1 12 Mbaud | SAMPLE per chip | 551 | 1 |" in out.stdout
+
+
+def test_bad_values_are_one_line_errors_with_exit_2():
+    for args, needle in ((("decode", "zz"), "invalid hex 'zz'"),
+                         (("decode", "00", "--can-id", "xyz"), "invalid --can-id 'xyz'"),
+                         (("capacity", "--rate", "0"), "invalid rate '0'"),
+                         (("capacity", "--rate", "nan"), "invalid rate 'nan'"),
+                         (("capacity", "--rate", "-5"), "invalid rate '-5'"),
+                         (("capacity", "--lattice", "14by14"), "Invalid lattice size '14by14'")):
+        out = run(*args)
+        assert out.returncode == 2, (args, out.stderr)
+        assert needle in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)
+
+
+def test_a_closed_pipe_is_not_a_traceback():
+    """`capsheet protocol vectors | head -1`: the reader goes away after one line."""
+    p = subprocess.Popen([sys.executable, "-m", "host.cli", "protocol", "vectors"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE)
+    p.stdout.readline()
+    p.stdout.close()  # as head does
+    err = p.stderr.read().decode()
+    assert p.wait(timeout=60) in (0, 141)
+    assert "Traceback" not in err and "BrokenPipe" not in err, err

@@ -1,0 +1,198 @@
+"""The live path, measured: the virtual sheet in its own process on a real pty (or SLCAN adapters on
+ptys, one per classic CAN bus), the host in this process, both on this machine. For each
+configuration: the highest SYNC rate at which >= 99 % of the SYNCs sent gave a complete snapshot,
+and at 145 Hz the median SYNC -> estimate latency (the estimator run on the newest snapshot).
+
+    .venv/bin/python benchmarks/bench_live.py            # full sweep, JSON on stdout (minutes)
+    .venv/bin/python benchmarks/bench_live.py --quick    # a short sweep (about 2 minutes)
+    .venv/bin/python benchmarks/bench_live.py --only 14x14-packed --rates 145,300
+
+Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed (a gateway declared as a
+24 Mbaud link: 1,984 links exceed one 12 Mbaud UART at 145 Hz), 14x14 over as many classic CAN
+buses as the capacity table says for 145 Hz (SLCAN on ptys), 14x14 with the C firmware, and 14x14
+per-chip again with one core kept busy. A pty has no baud rate: the gateway declares the link it
+stands for and the host's capacity check uses that figure (a rate over it counts as not held).
+Figures depend on the machine's load: the JSON carries ``os.getloadavg()`` at start and end.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+import time
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+
+CONFIGS = {
+    "14x14-per-chip": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000),
+    "14x14-packed": dict(lattice="14x14", packed=True, transport="serial", baud=12_000_000),
+    "32x32-packed": dict(lattice="32x32", packed=True, transport="serial", baud=24_000_000),
+    "14x14-can": dict(lattice="14x14", packed=False, transport="slcan", bitrate=1_000_000),
+    "14x14-firmware-c": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, firmware="c"),
+    "14x14-per-chip-busy-core": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, busy=1),
+}
+RATES = [30, 60, 100, 145, 200, 300, 450, 640]
+QUICK_RATES = [60, 145, 300]
+
+
+def _serve(cfg: dict, conn) -> None:
+    """Child process: the virtual sheet on its device until told to stop."""
+    from virtual_sheet.sheet import VirtualSheet
+    kw = {}
+    if cfg.get("firmware") == "c":
+        from firmware_ref.chip import CFirmwareChip
+        kw["chip_factory"] = CFirmwareChip
+    can = cfg["transport"] == "slcan"
+    sheet = VirtualSheet("grow", cfg["lattice"], seed=1, noise=1.0, scene_rate_hz=10.0,
+                         transport="can" if can else "serial", **kw)
+    sheet.precompute()
+    layout = cfg["layout_path"]
+    sheet.write_layout(layout)
+    if can:
+        from virtual_sheet.slcan import SlcanDevice
+        dev = SlcanDevice(sheet, n_buses=cfg["n_buses"])
+        paths = dev.paths
+    else:
+        from virtual_sheet.devices import PtyDevice
+        dev = PtyDevice(sheet, packed=cfg["packed"])
+        paths = None
+    with dev:
+        conn.send(("ready", paths or [dev.path]))
+        while conn.recv() != "stop":
+            pass
+    conn.send("stopped")
+
+
+def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estimate_latency: bool) -> dict:
+    from host.estimator import estimate
+    from host.session import Host, Layout
+    from host.transport import CanTransport, open_transport
+
+    lat = cfg["lattice"]
+    rows, cols = (int(v) for v in lat.split("x"))
+    if cfg["transport"] == "slcan":
+        ts = [CanTransport(f"slcan:{p}", bitrate=cfg["bitrate"], sleep_after_open=0) for p in paths]
+    else:
+        ts = [open_transport("serial", paths[0], baudrate=cfg["baud"])]
+    host = Host(ts, lat, layout=Layout.load(cfg["layout_path"]), rate_hz=rate)
+    row: dict = {"rate_hz": rate}
+    try:
+        with host:
+            try:
+                host.bring_up(packed=cfg["packed"])
+            except Exception as exc:  # noqa: BLE001 - e.g. CapacityError: this rate is not held
+                row.update(held=False, error=f"{type(exc).__name__}: {exc}")
+                return row
+            time.sleep(0.5)  # settle
+            agg = host.aggregator
+            agg.drain()
+            c0, e0, s0 = agg.stats.complete, agg.stats.emitted, host.syncs_sent
+            lat_ms: list[float] = []
+            previous = None
+            t_end = time.monotonic() + duration_s
+            while time.monotonic() < t_end:
+                if estimate_latency:
+                    snap = agg.latest(0.2)
+                    if snap is None or not snap.valid.any():
+                        continue
+                    previous = estimate(snap.readings, rows, cols, 0.01, valid=snap.valid, previous=previous)
+                    lat_ms.append(1e3 * (time.monotonic() - snap.timestamp))
+                else:
+                    time.sleep(0.05)
+                    agg.drain()
+            sent = host.syncs_sent - s0
+            host.stop()
+            complete = agg.stats.complete - c0
+            row.update(syncs_sent=sent, snapshots=agg.stats.emitted - e0, complete=complete,
+                       complete_pct=round(100.0 * complete / max(1, sent), 2),
+                       achieved_sync_hz=round(sent / duration_s, 1),
+                       syncs_missed=host.stats["live"]["syncs_missed"],
+                       deadline_ms=round(1e3 * agg.deadline_s, 1),
+                       late=agg.stats.late)
+            row["held"] = row["complete_pct"] >= 99.0
+            if lat_ms:
+                row["median_sync_to_estimate_ms"] = round(float(sorted(lat_ms)[len(lat_ms) // 2]), 2)
+                row["estimates"] = len(lat_ms)
+    finally:
+        for t in ts:
+            t.close()
+    return row
+
+
+def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp: str) -> dict:
+    cfg = dict(cfg, layout_path=os.path.join(tmp, f"{name}.json"))
+    if cfg["transport"] == "slcan":
+        from protocol.capacity import buses_needed
+        rows, cols = (int(v) for v in cfg["lattice"].split("x"))
+        n_links = rows * (cols - 1) + cols * (rows - 1)
+        cfg["n_buses"] = next(k for c, k in buses_needed(n_links, 145.0) if "classic" in c.link)
+    if cfg.get("firmware") == "c":
+        try:
+            import firmware_ref.chip  # noqa: F401
+        except ImportError as exc:
+            return {"config": name, "skipped": f"C firmware not built: {exc}"}
+    busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(cfg.get("busy", 0))]
+    ctx = mp.get_context("spawn")
+    parent, child = ctx.Pipe()
+    proc = ctx.Process(target=_serve, args=(cfg, child), daemon=True)
+    proc.start()
+    out: dict = {"config": name, **{k: v for k, v in cfg.items() if k != "layout_path"}, "sweep": []}
+    try:
+        if not parent.poll(180):
+            raise RuntimeError("virtual sheet did not start")
+        _, paths = parent.recv()
+        fails = 0
+        for r in rates:
+            row = _run_rate(cfg, paths, float(r), duration_s, estimate_latency=(r == 145))
+            out["sweep"].append(row)
+            print(json.dumps({"config": name, **row}), file=sys.stderr, flush=True)
+            fails = 0 if row.get("held") else fails + 1
+            if fails >= 2:
+                break
+        held = [row["rate_hz"] for row in out["sweep"] if row.get("held")]
+        out["highest_rate_99pct_hz"] = max(held) if held else None
+        at145 = [row for row in out["sweep"] if row["rate_hz"] == 145]
+        out["median_sync_to_estimate_ms_at_145"] = at145[0].get("median_sync_to_estimate_ms") if at145 else None
+    finally:
+        if proc.is_alive():
+            parent.send("stop")
+            proc.join(15)
+            if proc.is_alive():
+                proc.terminate()
+        for b in busy:
+            b.kill()
+            b.wait()
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help=f"rates {QUICK_RATES}, 2 s each")
+    ap.add_argument("--only", action="append", choices=sorted(CONFIGS), help="run only this configuration (repeatable)")
+    ap.add_argument("--rates", help="comma-separated SYNC rates, Hz (default: the sweep)")
+    ap.add_argument("--duration", type=float, help="seconds streamed per rate (default 5, --quick 2)")
+    args = ap.parse_args(argv)
+    try:
+        rates = [float(r) for r in args.rates.split(",")] if args.rates else (QUICK_RATES if args.quick else RATES)
+        if any(not r > 0 for r in rates):
+            raise ValueError
+    except ValueError:
+        ap.error(f"invalid --rates {args.rates!r} (need comma-separated rates > 0)")
+    duration = args.duration or (2.0 if args.quick else 5.0)
+    import tempfile
+    tmp = tempfile.mkdtemp(prefix="capsheet-bench-live-")
+    load0 = os.getloadavg()
+    results = [run_config(n, CONFIGS[n], rates, duration, tmp) for n in (args.only or CONFIGS)]
+    print(json.dumps({"benchmark": "bench_live", "quick": args.quick, "duration_s": duration, "rates": rates,
+                      "loadavg_start": [round(x, 2) for x in load0],
+                      "loadavg_end": [round(x, 2) for x in os.getloadavg()], "cpus": os.cpu_count(),
+                      "results": results}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,72 @@
+"""``capsheet virtual`` through the real CLI (issue 12): it removes its symlinks on every exit it can
+catch, prints the exact host command that works, and checks its own traffic against the link's
+capacity."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+
+import pytest
+
+from tests.host.cli.test_host import CLI, ENV, Virtual
+
+
+@pytest.mark.parametrize("transport,sig", [("pty", signal.SIGTERM), ("pty", signal.SIGHUP),
+                                           ("pty", signal.SIGINT), ("slcan", signal.SIGTERM)])
+def test_the_symlink_goes_with_the_sheet(tmp_path, transport, sig):
+    link = tmp_path / "port"
+    v = Virtual("--lattice", "3x3", "--transport", transport, "--symlink", str(link))
+    try:
+        assert link.is_symlink()
+        assert v.stop(sig) == 0
+        assert not link.exists() and not link.is_symlink()
+    finally:
+        v.stop(signal.SIGKILL)
+
+
+def test_the_printed_host_command_carries_what_the_sheet_needs(tmp_path):
+    v = Virtual("--lattice", "4x4", "--transport", "slcan", "--bus-count", "2", "--fd", "--packed",
+                "--rate", "50", "--symlink", str(tmp_path / "can"), "--layout-out", str(tmp_path / "s.json"))
+    try:
+        cmd = v.host_cmd
+        assert cmd.count("--can") == 2 and f"slcan:{tmp_path / 'can'}0" in cmd and f"slcan:{tmp_path / 'can'}1" in cmd
+        for flag in ("--fd", "--packed"):
+            assert flag in cmd
+        assert cmd[cmd.index("--sync") + 1] == "follow" and cmd[cmd.index("--layout") + 1] == str(tmp_path / "s.json")
+        assert cmd[cmd.index("--lattice") + 1] == "4x4" and cmd[cmd.index("--bitrate") + 1] == "1000000"
+    finally:
+        v.stop()
+
+
+def test_its_own_traffic_over_capacity_is_refused(tmp_path):
+    # 364 chips on one classic 1 Mbit/s bus at 100 Hz: 547 % (364 x 150 bits + SYNC, x 100 / 1e6)
+    out = subprocess.run(CLI + ["virtual", "--transport", "slcan", "--lattice", "14x14", "--rate", "100",
+                                "--symlink", str(tmp_path / "can"), "--duration", "1"],
+                         capture_output=True, text=True, timeout=120, env=ENV)
+    assert out.returncode == 2, out.stderr
+    assert "over capacity" in out.stderr and "547 %" in out.stderr and "--bus-count" in out.stderr
+    assert not (tmp_path / "can").exists()
+    # split over 8 buses: at most 46 chips per bus, 46 x 150 + 100 bits per SYNC: 70 % at 100 Hz, full at 143 Hz
+    out = subprocess.run(CLI + ["virtual", "--transport", "slcan", "--lattice", "14x14", "--rate", "100",
+                                "--bus-count", "8", "--symlink", str(tmp_path / "can"), "--duration", "0.5"],
+                         capture_output=True, text=True, timeout=120, env=ENV)
+    assert out.returncode == 0, out.stderr
+    assert "capacity: this link carries this sheet's traffic up to 143 Hz" in out.stdout
+
+
+@pytest.mark.parametrize("args,needle", [(("--rate", "0"), "invalid rate '0'"), (("--rate", "nan"), "invalid rate"),
+                                         (("--lattice", "14by14"), "Invalid lattice size"),
+                                         (("--baud", "0"), "need > 0")])
+def test_bad_values_are_one_line_errors(args, needle):
+    out = subprocess.run(CLI + ["virtual", "--transport", "memory", "--duration", "0.1", *args],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_several_udp_multicast_buses_are_refused():
+    """Measured: two python-can udp_multicast groups on one port hear each other on Linux."""
+    out = subprocess.run(CLI + ["virtual", "--transport", "can", "--can-interface", "udp_multicast",
+                                "--bus-count", "2", "--duration", "0.1"],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 2 and "traffic crosses" in out.stderr and "--transport slcan" in out.stderr

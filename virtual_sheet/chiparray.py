@@ -1,0 +1,483 @@
+"""All the chips of a sheet as arrays: one SYNC answered by every chip in one numpy step.
+
+`ChipArray` holds the per-chip state the hot paths need (power, state, node id, link, START seen,
+last counter, missed SYNCs, range, timers) in arrays of length N. Its two hot paths are vectorised:
+
+* **SYNC** (`ChipArray.sync`): which chips answer, the missed-SYNC bookkeeping, one batch read of
+  the sensors, the FAULT transition of an INVALID sample, the range shift, the 40-bit sample
+  words, and — per-chip mode — every SAMPLE frame encoded at once (header, CRC-16/CCITT-FALSE by
+  table over the batch, COBS over the batch), or — packed mode (`ChipArray.sync_samples`) — the
+  counts handed to the gateway as arrays with nothing encoded.
+* **Timers** (`ChipArray.poll`): the due re-ANNOUNCEs and STATUS heartbeats are found by one
+  comparison; the heartbeats are advanced and their STATUS frames encoded in one batch; a due
+  re-ANNOUNCE (rare: unassigned chips) runs the scalar timer code.
+
+Everything else — every command but SYNC, the rare timer events, and every chip with an injected
+fault (dead, babbling: `faults.wrap_chip`) — runs the reference model's own code: each chip has a
+*view* (`ArrayChip`, a `chip.ChipModel` whose state lives in the arrays), so the array answers
+exactly as N `ChipModel` s would. tests/virtual_sheet/test_chiparray.py drives both with the same
+random command sequences, faults and timers and compares every frame, byte for byte.
+
+Sans-I/O and time as an argument, as `chip.ChipModel`.
+"""
+
+from __future__ import annotations
+
+import binascii
+from typing import Callable, Sequence
+
+import numpy as np
+
+from protocol.can import CanFrame, make_id
+from protocol.chip_interface import DEFAULT_CAPABILITIES, Out, check_chip_args
+from protocol.constants import SampleStatus
+from protocol.messages import NODE_BROADCAST, PROTOCOL_VERSION, ChipState, MsgType, Status, StatusFlag, Sync
+
+from .chip import ChipModel
+from .faults import FaultSpec, FaultStats, wrap_chip
+
+__all__ = ["ChipArray", "ArrayChip", "BatchSensor", "encode_samples_serial", "crc16_ccitt_batch",
+           "cobs_encode_batch"]
+
+#: ``(now_s, idx) -> (counts (m, 3) int64 ±2 g ADC counts, status (m,) int64 SampleStatus bits)``
+BatchSensor = Callable[[float, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+_BOOT, _IDLE, _STREAMING, _FAULT = (int(ChipState.BOOT), int(ChipState.IDLE), int(ChipState.STREAMING),
+                                    int(ChipState.FAULT))
+_INVALID = int(SampleStatus.INVALID)
+_SAT = 255
+
+
+# ---------------------------------------------------------------------------------------------
+# batch encoding
+# ---------------------------------------------------------------------------------------------
+
+def _crc_table() -> np.ndarray:
+    t = np.zeros(256, dtype=np.uint16)
+    for b in range(256):
+        c = b << 8
+        for _ in range(8):
+            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
+        t[b] = c & 0xFFFF
+    return t
+
+
+_CRC_TABLE = _crc_table()
+
+
+def crc16_ccitt_batch(rows: np.ndarray) -> np.ndarray:
+    """CRC-16/CCITT-FALSE (``binascii.crc_hqx(row, 0xFFFF)``) of every row of ``rows`` (m, k) uint8.
+
+    >>> import binascii
+    >>> rows = np.frombuffer(b"123456789" * 2, np.uint8).reshape(2, 9)
+    >>> [hex(int(c)) for c in crc16_ccitt_batch(rows)], hex(binascii.crc_hqx(b"123456789", 0xFFFF))
+    (['0x29b1', '0x29b1'], '0x29b1')
+    """
+    crc = np.full(rows.shape[0], 0xFFFF, dtype=np.uint16)
+    for j in range(rows.shape[1]):
+        crc = (crc << np.uint16(8)) ^ _CRC_TABLE[(crc >> np.uint16(8)) ^ rows[:, j]]
+    return crc
+
+
+def cobs_encode_batch(rows: np.ndarray) -> np.ndarray:
+    """COBS (``cobs.cobs.encode``) of every row of ``rows`` (m, k) uint8, k < 254: (m, k + 1).
+
+    >>> from cobs import cobs
+    >>> rows = np.array([[0, 1, 0, 2], [3, 4, 5, 6]], np.uint8)
+    >>> [bytes(r) for r in cobs_encode_batch(rows)] == [cobs.encode(bytes(r)) for r in rows]
+    True
+    """
+    m, k = rows.shape
+    if k >= 254:
+        raise ValueError(f"Invalid row length {k} (COBS batch needs < 254)")
+    zero = np.concatenate([rows == 0, np.ones((m, 1), dtype=bool)], axis=1)  # a virtual zero at k
+    pos = np.where(zero, np.arange(k + 1), k + 1)
+    nxt = np.minimum.accumulate(pos[:, ::-1], axis=1)[:, ::-1]  # index of the next zero at or after j
+    out = np.empty((m, k + 1), dtype=np.uint8)
+    out[:, 0] = nxt[:, 0] + 1
+    after = nxt[:, 1:] - np.arange(k)  # for a zero at i: distance to the next zero after it
+    out[:, 1:] = np.where(zero[:, :k], after, rows)
+    return out
+
+
+def encode_samples_serial(node: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
+    """Every SAMPLE frame (version, SAMPLE, node, counter, 5-byte word, CRC, COBS, 0x00) as rows
+    of a (m, 15) uint8 array: the bytes `protocol.framing.encode` gives for each."""
+    m = node.shape[0]
+    body = np.empty((m, 13), dtype=np.uint8)
+    body[:, 0] = PROTOCOL_VERSION
+    body[:, 1] = int(MsgType.SAMPLE)
+    body[:, 2] = node & 0xFF
+    body[:, 3] = node >> 8
+    body[:, 4] = counter & 0xFF
+    body[:, 5] = (counter >> 8) & 0xFF
+    w = word.astype(np.uint64)
+    for b in range(5):
+        body[:, 6 + b] = (w >> np.uint64(8 * b)) & np.uint64(0xFF)
+    crc = crc16_ccitt_batch(body[:, :11])
+    body[:, 11] = crc >> np.uint16(8)
+    body[:, 12] = crc & np.uint16(0xFF)
+    out = np.zeros((m, 15), dtype=np.uint8)
+    out[:, :14] = cobs_encode_batch(body)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the per-chip view: a ChipModel whose state lives in the arrays
+# ---------------------------------------------------------------------------------------------
+
+class _F:
+    """A ChipModel attribute stored at ``arr.<name>[k]``; ``none`` is the stored value of None."""
+
+    def __init__(self, conv, none=None) -> None:
+        self.conv, self.none = conv, none
+
+    def __set_name__(self, owner, name) -> None:
+        self.name = name
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        v = getattr(obj._arr, self.name)[obj._k]
+        if self.none is not None and (v == self.none or (self.none == "nan" and np.isnan(v))):
+            return None
+        return self.conv(v)
+
+    def __set__(self, obj, value) -> None:
+        a = getattr(obj._arr, self.name)
+        if value is None:
+            a[obj._k] = np.nan if self.none == "nan" else self.none
+        else:
+            a[obj._k] = value
+
+
+class ArrayChip(ChipModel):
+    """Chip ``k`` of a `ChipArray`: the reference model's code on the array's state (every
+    frame but the vectorised SYNC goes through here)."""
+
+    state = _F(ChipState)
+    node = _F(int)
+    link = _F(int, none=-1)
+    streaming = _F(bool)
+    last_counter = _F(int, none=-1)
+    missed_syncs = _F(int)
+    range = _F(int)
+    powered = _F(bool)
+    heartbeat_ms = _F(int)
+    next_heartbeat_s = _F(float, none="nan")
+    next_announce_s = _F(float)
+    rx_errors = _F(int)
+    configured = _F(bool)
+    boot_s = _F(float)
+
+    def __init__(self, arr: "ChipArray", k: int, uid: int, sensor, *, transport: str, fd: bool,
+                 capabilities: int, calibration) -> None:
+        self._arr, self._k = arr, k
+        super().__init__(uid, sensor, transport=transport, fd=fd, capabilities=capabilities,
+                         calibration=calibration)
+
+    def __repr__(self) -> str:
+        return "Array" + super().__repr__()
+
+
+# ---------------------------------------------------------------------------------------------
+# the array
+# ---------------------------------------------------------------------------------------------
+
+class ChipArray:
+    """N chips (module docstring).
+
+    Parameters
+    ----------
+    uids : sequence of int
+        64-bit uid of chip k (its index in every array).
+    sensor : BatchSensor
+        Batch sensor read: ``sensor(now_s, idx) -> (counts (m, 3), status (m,))``.
+    transport : {"serial", "can"}
+    fd : bool
+        CAN FD chips.
+    capabilities : int
+        INFO capability bits, every chip.
+    calibrations : sequence of ((offset_q4, sensitivity),) * 3, optional
+        Factory calibration per chip (default: 0 and 1024 on every axis).
+    sensors : dict {k: SensorSource}, optional
+        Chip k reads this scalar source instead of the batch (e.g. a `faults.DriftingSensor`).
+    faults : FaultSpec, optional
+        Chip faults (dead, babbling) for chip index = link, applied with `faults.wrap_chip`.
+    fault_stats : FaultStats, optional
+    """
+
+    def __init__(self, uids: Sequence[int], sensor: BatchSensor, *, transport: str = "serial", fd: bool = False,
+                 capabilities: int = DEFAULT_CAPABILITIES, calibrations=None, sensors: dict | None = None,
+                 faults: FaultSpec | None = None, fault_stats: FaultStats | None = None) -> None:
+        n = self.n = len(uids)
+        cal0 = ((0, 1024.0),) * 3
+        calibrations = [cal0] * n if calibrations is None else list(calibrations)
+        if len(calibrations) != n:
+            raise ValueError(f"Expected {n} calibrations (one per uid), got {len(calibrations)}")
+        for u, c in zip(uids, calibrations):
+            check_chip_args(u, transport, c)
+        self.transport = transport
+        self.can = transport == "can"
+        self.sensor = sensor
+        self.uid = np.array(uids, dtype=np.uint64)
+        self.state = np.full(n, _BOOT, dtype=np.int64)
+        self.node = np.zeros(n, dtype=np.int64)
+        self.link = np.full(n, -1, dtype=np.int64)
+        self.streaming = np.zeros(n, dtype=bool)
+        self.last_counter = np.full(n, -1, dtype=np.int64)
+        self.missed_syncs = np.zeros(n, dtype=np.int64)
+        self.range = np.zeros(n, dtype=np.int64)
+        self.powered = np.zeros(n, dtype=bool)
+        self.heartbeat_ms = np.zeros(n, dtype=np.int64)
+        self.next_heartbeat_s = np.full(n, np.nan)
+        self.next_announce_s = np.zeros(n)
+        self.rx_errors = np.zeros(n, dtype=np.int64)
+        self.configured = np.zeros(n, dtype=bool)
+        self.boot_s = np.zeros(n)
+        sensors = dict(sensors or {})
+        self._scalar = np.zeros(n, dtype=bool)  # read a scalar sensor source
+        self.views: list[ArrayChip] = []
+        for k, u in enumerate(uids):
+            src = sensors.get(k) or self._scalar_source(k)
+            if k in sensors:
+                self._scalar[k] = True
+            self.views.append(ArrayChip(self, k, int(u), src, transport=transport, fd=fd,
+                                        capabilities=capabilities, calibration=calibrations[k]))
+        self.faults = faults if faults is not None else FaultSpec()
+        self.fault_stats = fault_stats if fault_stats is not None else FaultStats()
+        #: what the gateway talks to, per chip: the view, or the view inside its fault wrapper
+        self.chips = [wrap_chip(v, k, self.faults, self.fault_stats, can=self.can) for k, v in enumerate(self.views)]
+        self._wrapped = np.array([c is not v for c, v in zip(self.chips, self.views)], dtype=bool)
+        self._wrapped_idx = np.flatnonzero(self._wrapped).tolist()
+        self._plain = ~self._wrapped
+        self._all = np.ones(n, dtype=bool)
+        self._no_scalar = not self._scalar.any()
+
+    def _scalar_source(self, k: int):
+        idx = np.array([k])
+
+        def source(now_s: float):
+            c, s = self.sensor(now_s, idx)
+            return (int(c[0, 0]), int(c[0, 1]), int(c[0, 2])), int(s[0])
+        return source
+
+    # ------------------------------------------------------------------ life cycle and timers
+    def _sel(self, sel) -> np.ndarray:
+        return self._all if sel is None else sel
+
+    def power_on(self, now_s: float, sel: np.ndarray | None = None) -> list[Out]:
+        """Power the chips (all, or those of the boolean mask ``sel``): their boot frames."""
+        out: list[Out] = []
+        for k in np.flatnonzero(self._sel(sel)).tolist():
+            out += self.chips[k].power_on(now_s)
+        return out
+
+    def poll(self, now_s: float, sel: np.ndarray | None = None) -> list[Out]:
+        """Timers of every chip (of ``sel``), in chip order (as N `ChipModel.poll` calls)."""
+        boot = self.state == _BOOT
+        live = self.powered & self._plain & self._sel(sel)
+        announce = live & boot & (now_s >= self.next_announce_s)
+        hb = np.flatnonzero(live & ~boot & (self.heartbeat_ms != 0)
+                            & (now_s >= np.nan_to_num(self.next_heartbeat_s, nan=np.inf)))
+        scalar = np.flatnonzero(announce | (self._wrapped & self._sel(sel)))
+        if not scalar.size and not hb.size:
+            return []
+        items: list[tuple[int, list]] = []
+        chips = self.chips
+        for k in scalar.tolist():
+            r = chips[k].poll(now_s)
+            if r:
+                items.append((k, r))
+        if hb.size:
+            period = self.heartbeat_ms[hb] / 1000.0
+            self.next_heartbeat_s[hb] = np.maximum(self.next_heartbeat_s[hb] + period, now_s)
+            frames = self._status_frames(hb, now_s)
+            if not items:
+                return frames
+            items += [(k, [f]) for k, f in zip(hb.tolist(), frames)]
+        items.sort(key=lambda t: t[0])
+        return [f for _, r in items for f in r]
+
+    def _status_frames(self, idx: np.ndarray, now_s: float) -> list[Out]:
+        """The STATUS heartbeat of chips ``idx``, batch-encoded (`ChipModel._status`, byte for byte)."""
+        views = self.views
+        cal_valid = np.array([any(c[2] for c in views[k].cal) for k in idx.tolist()], dtype=bool)
+        st = self.state[idx]
+        flags = ((cal_valid * int(StatusFlag.CAL_VALID)) | ((st == _FAULT) * int(StatusFlag.ADC_FAULT))
+                 | (self.configured[idx] * int(StatusFlag.CONFIGURED))).astype(np.int64)
+        up = np.maximum(0.0, now_s - self.boot_s[idx]).astype(np.int64) & 0xFFFFFFFF
+        m = idx.size
+        pay = np.empty((m, 8), dtype=np.uint8)
+        pay[:, 0] = st
+        pay[:, 1] = flags
+        pay[:, 2] = self.rx_errors[idx]
+        pay[:, 3] = self.missed_syncs[idx]
+        for b in range(4):
+            pay[:, 4 + b] = (up >> (8 * b)) & 0xFF
+        node = self.node[idx]
+        if self.can:
+            pb = pay.tobytes()
+            return [CanFrame(make_id(MsgType.STATUS, nd, Status.PRIORITY), pb[8 * i:8 * i + 8], False)
+                    for i, nd in enumerate(node.tolist())]
+        body = np.empty((m, 14), dtype=np.uint8)
+        body[:, 0] = PROTOCOL_VERSION
+        body[:, 1] = int(MsgType.STATUS)
+        body[:, 2] = node & 0xFF
+        body[:, 3] = node >> 8
+        body[:, 4:12] = pay
+        crc = crc16_ccitt_batch(body[:, :12])
+        body[:, 12] = crc >> np.uint16(8)
+        body[:, 13] = crc & np.uint16(0xFF)
+        out = np.zeros((m, 16), dtype=np.uint8)
+        out[:, :15] = cobs_encode_batch(body)
+        b = out.tobytes()
+        return [b[i:i + 16] for i in range(0, len(b), 16)]
+
+    # ------------------------------------------------------------------ frames
+    def handle(self, frame: Out, now_s: float, decoded, sel: np.ndarray | None = None) -> list[Out]:
+        """A frame every chip (of ``sel``) hears (broadcast, or undecodable): the answers in chip order."""
+        if type(decoded) is Sync:
+            return self.sync(frame, decoded, now_s, sel)
+        out: list[Out] = []
+        chips = self.chips
+        for k in np.flatnonzero(self._sel(sel)).tolist():
+            r = chips[k].handle(frame, now_s, decoded)
+            if r:
+                out += r
+        return out
+
+    def handle_node(self, node: int, frame: Out, now_s: float, decoded, sel: np.ndarray | None = None) -> list[Out]:
+        """A frame addressed to ``node``: only the chips speaking from that node hear it."""
+        out: list[Out] = []
+        for k in np.flatnonzero((self.node == node) & self._sel(sel)).tolist():
+            out += self.chips[k].handle(frame, now_s, decoded)
+        return out
+
+    def _answer(self, counter: int, now_s: float, sel):
+        """The vectorised SYNC for the plain chips: updates the state, returns ``(idx, word)``."""
+        st = self.state
+        ans = np.flatnonzero(self._plain & self._sel(sel) & self.powered & self.streaming
+                             & ((st == _STREAMING) | (st == _FAULT)))
+        if ans.size == 0:
+            return ans, np.zeros(0, dtype=np.int64)
+        if ans.size == self.n and self._no_scalar and not (st == _FAULT).any():
+            return ans, self._answer_all(counter, now_s, ans)
+        last = self.last_counter[ans]
+        miss = self.missed_syncs[ans]
+        gap = (counter - last - 1) & 0xFFFF
+        add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
+        self.missed_syncs[ans] = np.where(add, np.minimum(_SAT, miss + gap), miss)
+        self.last_counter[ans] = counter
+        n = ans.size
+        xyz = np.zeros((n, 3), dtype=np.int64)
+        sts = np.full(n, _INVALID, dtype=np.int64)
+        live = st[ans] != _FAULT
+        if live.any():
+            li = ans[live]
+            scal = self._scalar[li]
+            c = np.zeros((li.size, 3), dtype=np.int64)
+            s = np.zeros(li.size, dtype=np.int64)
+            if not scal.all():
+                bi = li[~scal]
+                cb, sb = self.sensor(now_s, bi)
+                c[~scal] = cb
+                s[~scal] = sb
+            for j in np.flatnonzero(scal).tolist():  # scalar sources, in chip order among themselves
+                (x, y, z), sj = self.views[int(li[j])].sensor(now_s)
+                c[j] = (x, y, z)
+                s[j] = int(sj)
+            bad = (s & _INVALID) != 0
+            if bad.any():
+                self.state[li[bad]] = _FAULT
+                c[bad] = 0
+            r = self.range[li]
+            c = np.where(bad[:, None], c, c >> r[:, None])
+            xyz[live] = c
+            sts[live] = s
+        word = ((xyz[:, 0] & 0xFFF) | ((xyz[:, 1] & 0xFFF) << 12) | ((xyz[:, 2] & 0xFFF) << 24)
+                | ((sts & 0xF) << 36))
+        return ans, word
+
+    def _answer_all(self, counter: int, now_s: float, ans: np.ndarray) -> np.ndarray:
+        """`_answer` when every chip answers with a fresh sample (the streaming steady state):
+        the same arithmetic on whole arrays, no gathers."""
+        last, miss = self.last_counter, self.missed_syncs
+        gap = (counter - last - 1) & 0xFFFF
+        add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
+        if add.any():
+            np.copyto(miss, np.minimum(_SAT, miss + gap), where=add)
+        last.fill(counter)
+        c, s = self.sensor(now_s, ans)
+        c = np.asarray(c, dtype=np.int64)
+        s = np.asarray(s, dtype=np.int64)
+        bad = (s & _INVALID) != 0
+        if bad.any():
+            self.state[bad] = _FAULT
+            c = c.copy()
+            c[bad] = 0
+        if self.range.any():
+            c = np.where(bad[:, None], c, c >> self.range[:, None])
+        c = c & 0xFFF
+        return c[:, 0] | (c[:, 1] << 12) | (c[:, 2] << 24) | ((s & 0xF) << 36)
+
+    def _wrapped_in(self, sel) -> list[int]:
+        if sel is None:
+            return self._wrapped_idx
+        return [k for k in self._wrapped_idx if sel[k]]
+
+    def encode(self, idx: np.ndarray, counter: int, word: np.ndarray) -> list[Out]:
+        """The SAMPLE frames of chips ``idx`` (their node ids) for ``counter``, batch-encoded."""
+        if self.can:
+            nodes = self.node[idx].tolist()
+            cb = counter.to_bytes(2, "little")
+            return [CanFrame(make_id(MsgType.SAMPLE, nd), cb + w.to_bytes(5, "little"), False)
+                    for nd, w in zip(nodes, word.tolist())]
+        if not idx.size:
+            return []
+        b = encode_samples_serial(self.node[idx], counter, word).tobytes()
+        return [b[i:i + 15] for i in range(0, len(b), 15)]
+
+    def sync(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None, *,
+             owners: bool = False):
+        """Every chip's (of ``sel``) answer to SYNC ``msg`` in chip order (per-chip mode). With
+        ``owners`` also the chip index of each frame (an int array)."""
+        c = msg.counter
+        wrapped = self._wrapped_in(sel)
+        if wrapped:
+            extra = {k: self.chips[k].handle(frame, now_s, msg) for k in wrapped}
+        ans, word = self._answer(c, now_s, sel)
+        frames = self.encode(ans, c, word)
+        own = ans
+        if wrapped:
+            frames, own = self._merge(frames, ans, extra)
+        return (frames, own) if owners else frames
+
+    def _merge(self, frames: list, ans: np.ndarray, extra: dict):
+        """Insert the wrapped chips' outputs among the vectorised ones, in chip order."""
+        keys = ans.tolist()
+        items = [(k, 0, f) for k, f in zip(keys, frames)]
+        for k, r in extra.items():
+            items += [(k, 1 + i, f) for i, f in enumerate(r)]
+        items.sort(key=lambda t: (t[0], t[1]))
+        return [f for _, _, f in items], np.array([k for k, _, _ in items], dtype=np.int64)
+
+    def sync_samples(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
+        """SYNC for a packing gateway: ``(idx, word, counts (m, 3), status (m,), other)`` — the
+        plain chips' sample words and their fields as arrays (counts as the wire carries them:
+        12-bit two's complement), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
+        extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
+        ans, word = self._answer(msg.counter, now_s, sel)
+        u = np.stack([(word >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
+        counts = ((u ^ 0x800) - 0x800).astype(np.int64)
+        status = (word >> 36) & 0xF
+        return ans, word, counts, status, extra
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __repr__(self) -> str:
+        return f"ChipArray({self.n} chips, transport={self.transport!r})"
+
+
+assert NODE_BROADCAST == 0
