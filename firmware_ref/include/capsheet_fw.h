@@ -71,10 +71,13 @@ extern "C" {
 #define CAPSHEET_DEFAULT_HEARTBEAT_MS 1000u      /* STATUS period until a CONFIG says otherwise */
 
 /* Serial RX buffer of the chip: a build-time option (bytes between two 0x00 delimiters).
- * CAPSHEET_MAX_ENCODED_SIZE (1029) accepts every frame the spec allows; a chip only ever needs
- * CAPSHEET_MIN_RX_BUFFER_SIZE (15): longer frames are then dropped as CAPSHEET_ERR_OVERSIZE. */
+ * A chip only ever needs CAPSHEET_MIN_RX_BUFFER_SIZE (15): every host -> chip frame fits, longer
+ * runs (other chips' frames, damage) are dropped as CAPSHEET_ERR_OVERSIZE and counted in
+ * rx_errors. The default, 64, leaves room and keeps a serial chip within the 1 KiB RAM budget
+ * (capsheet_chip_t + 64 B: see README.md "Size"). CAPSHEET_MAX_ENCODED_SIZE (1029) accepts every
+ * frame the spec allows (a gateway or a sniffer), at 1 KiB of RAM. */
 #ifndef CAPSHEET_RX_BUFFER_SIZE
-#define CAPSHEET_RX_BUFFER_SIZE CAPSHEET_MAX_ENCODED_SIZE
+#define CAPSHEET_RX_BUFFER_SIZE 64u
 #endif
 
 /* ------------------------------------------------------------------------------------------ */
