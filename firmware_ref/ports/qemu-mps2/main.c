@@ -36,6 +36,7 @@ static int32_t read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *s
     (void)user;
     (void)now_us;
 #ifdef MUTANT_DEAD_SENSOR
+    (void)noise;
     xyz[0] = 0;
     xyz[1] = 0;
     xyz[2] = 0;
