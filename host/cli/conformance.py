@@ -13,6 +13,7 @@ import sys
 import host.conformance as _conf
 from host.cli.transport_args import add_transport_args
 from host.conformance import CHECKS, AuditedCanTransport, Port, exit_code, run_checks, select, summary, table
+from host.conformance.session import RunAborted
 from host.transport import SerialTransport, TransportError
 
 __all__ = ["register", "run"]
@@ -59,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
     except TransportError as exc:
         print(f"capsheet conformance: {exc}", file=sys.stderr)
         return 3
+    except RunAborted as exc:
+        print(f"capsheet conformance: {exc}", file=sys.stderr)
+        return 2
     finally:
         port.close()
         transport.close()

@@ -6,7 +6,8 @@ frames during the check on every attempt: inconclusive, *not* a chip violation).
 
 A check that fails while the port damaged frames (`Port.lossy`) is run again, up to ``attempts``
 times; it is reported PASS if a later attempt passes (the detail says so), LOST if none does.
-Transport errors (`host.transport.TransportError`: the port went away) end the run: they propagate.
+Transport errors (`host.transport.TransportError`: the port went away) end the run: they propagate,
+as does `RunAborted` (``node`` is another chip's).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from dataclasses import dataclass
 from host.transport import TransportError
 
 from .checks import CHECKS, Check
-from .session import CheckFailed, Port, PortLost, Session, Skip
+from .session import CheckFailed, Port, PortLost, RunAborted, Session, Skip
 
 __all__ = ["CheckResult", "select", "run_checks", "summary", "exit_code"]
 
@@ -71,7 +72,7 @@ def _run_one(c: Check, s: Session, attempts: int) -> CheckResult:
             outcome = "PASS"
         except Skip as exc:
             return CheckResult(c.number, c.clause, c.title, "SKIP", str(exc), attempt)
-        except TransportError:
+        except (TransportError, RunAborted):
             raise
         except PortLost as exc:
             outcome, detail = "LOST", str(exc)

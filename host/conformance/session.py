@@ -40,9 +40,9 @@ from host.transport import CanTransport, SerialTransport, Transport, TransportEr
 from protocol.can import decode_can, split_id
 from protocol.framing import DecodeError, SampleBatch, StreamDecoder
 from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, ChipState, Config, Direction, GetInfo,
-                               Info, Message, MsgType, Reset, Start, Status)
+                               Info, Message, MsgType, Reset, Start, Status, Stop)
 
-__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "require", "AuditedCanTransport", "RecordingDecoder",
+__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport", "RecordingDecoder",
            "HEARTBEAT_MS"]
 
 #: STATUS period the run configures (CONFIG heartbeat_ms), ms
@@ -55,6 +55,15 @@ class CheckFailed(AssertionError):
 
 class Skip(Exception):
     """The check cannot run (no chip found, or a broadcast check without --allow-broadcast)."""
+
+
+def acked(ans: list, node: int, command: int) -> bool:
+    """``ans`` is exactly one ACK of ``command`` from ``node`` (its ``detail`` is check 31's business)."""
+    return len(ans) == 1 and isinstance(ans[0], Ack) and ans[0].node == node and ans[0].command == command
+
+
+class RunAborted(Exception):
+    """The run cannot go on for a reason that is not the chip's (e.g. ``--node`` is another chip's)."""
 
 
 class PortLost(Exception):
@@ -294,6 +303,7 @@ class Session:
     nodes_seen: dict = field(default_factory=dict)  #: node id -> uid (or None) of every chip heard
     boot_t: float = 0.0  #: when the chip last entered BOOT (its ANNOUNCE arrived)
     my_nodes: set = field(default_factory=set)  #: every node id the chip under test spoke from
+    acks: list = field(default_factory=list)  #: every ACK the chip under test sent (§4.5 detail)
 
     # ---- receiving
     def mine(self, m) -> bool:
@@ -321,6 +331,10 @@ class Session:
                 self.cur = m.node  # a re-announce comes from a new provisional id
                 self.boot_t = t
             self.my_nodes.add(m.node)
+            if isinstance(m, Ack):
+                self.acks.append(m)
+                if m.command == MsgType.ASSIGN:
+                    self.cur = m.node  # assigned (even by an ASSIGN it should have ignored)
             out.append((t, m))
             if stop is not None and stop([x for _, x in out]):
                 return out
@@ -382,18 +396,35 @@ class Session:
         """RESET: ACK, ANNOUNCE, INFO. The chip then stays at this provisional id for 1 s."""
         self.need_chip()
         ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
-        require(len(ans) >= 3 and ans[0] == Ack(ans[0].node, MsgType.RESET, 0) and isinstance(ans[1], Announce)
+        require(len(ans) >= 3 and isinstance(ans[0], Ack) and ans[0].command == MsgType.RESET and isinstance(ans[1], Announce)
                 and isinstance(ans[2], Info), f"RESET not answered ACK, ANNOUNCE, INFO: {ans}")
         self.cur = ans[1].node
+
+    def assign_without_reset(self, heartbeat_ms: int = HEARTBEAT_MS) -> None:
+        """ASSIGN (and CONFIG) the chip where it is, without a RESET: IDLE at ``self.node``."""
+        self.need_chip()
+        ans = self.request_info(self.cur)  # where it is now (an unassigned chip moves every second)
+        if len(ans) < 2:
+            self.port.drain()
+            self.port.send(GetInfo(0))
+            self.collect(self.timeout_s, lambda ms: any(isinstance(m, Info) for m in ms))
+            ans = self.request_info(self.cur)
+        if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING:
+            self.request(Stop(self.cur))
+        ans = self.request(Assign(self.cur, new_node=self.node, link=0, uid_low=self.uid & 0xFFFFFFFF))
+        require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
+        self.cur = self.node
+        ans = self.request(Config(self.node, rate_hz=145, range=0, filter=0, heartbeat_ms=heartbeat_ms))
+        require(acked(ans, self.node, MsgType.CONFIG), f"CONFIG answered {ans}")
 
     def to_idle(self, heartbeat_ms: int = HEARTBEAT_MS) -> None:
         """Fresh boot, ASSIGN to the run's node id, CONFIG: the chip is IDLE at ``self.node``."""
         self.fresh_boot()
         ans = self.request(Assign(self.cur, new_node=self.node, link=0, uid_low=self.uid & 0xFFFFFFFF))
-        require(ans == [Ack(self.node, MsgType.ASSIGN, 0)], f"ASSIGN answered {ans}")
+        require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
         self.cur = self.node
         ans = self.request(Config(self.node, rate_hz=145, range=0, filter=0, heartbeat_ms=heartbeat_ms))
-        require(ans == [Ack(self.node, MsgType.CONFIG, 0)], f"CONFIG answered {ans}")
+        require(acked(ans, self.node, MsgType.CONFIG), f"CONFIG answered {ans}")
 
     def ensure_idle(self) -> None:
         """IDLE at the run's node (without a RESET when it already is)."""
@@ -402,12 +433,15 @@ class Session:
             ans = self.request_info(self.node)
             if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.IDLE:
                 return
+            if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING:
+                if acked(self.request(Stop(self.node)), self.node, MsgType.STOP):
+                    return
         self.to_idle()
 
     def to_streaming(self) -> None:
         self.ensure_idle()
         ans = self.request(Start(self.node))
-        require(ans == [Ack(self.node, MsgType.START, 0)], f"START answered {ans}")
+        require(acked(ans, self.node, MsgType.START), f"START answered {ans}")
 
     def pick_node(self) -> int:
         """The highest assigned node id no chip was heard from (so a full sheet is not disturbed)."""
