@@ -118,7 +118,7 @@ def c_discover(s: Session):
     s.uid, s.cur = ann.uid, ann.node
     infos = [m for _, m in got if isinstance(m, Info) and m.node == ann.node]
     if not infos:
-        infos = [m for _, m in s.collect(s.timeout_s, lambda ms: any(isinstance(m, Info) for m in ms))
+        infos = [m for _, m in s.collect(s.answer_s, lambda ms: any(isinstance(m, Info) for m in ms))
                  if isinstance(m, Info)]
     require(bool(infos), f"ANNOUNCE from node 0x{ann.node:04X} not followed by INFO")
     s.info = s.first_info = infos[0]
@@ -409,7 +409,7 @@ def c_sync(s: Session):
     for c in range(100, 130):
         s.port.drain()
         t0 = s.port.send(Sync(counter=c))
-        got = s.collect(s.timeout_s, lambda ms: any(isinstance(m, Sample) for m in ms))
+        got = s.collect(s.answer_s, lambda ms: any(isinstance(m, Sample) for m in ms))
         smp = [(t, m) for t, m in got if isinstance(m, Sample)]
         require(len(smp) == 1, f"SYNC {c}: {len(smp)} SAMPLE")
         require(smp[0][1].counter == c, f"SYNC 0x{c:04X} answered with counter 0x{smp[0][1].counter:04X}")
@@ -429,7 +429,7 @@ def _samples(s: Session, counters) -> list[Sample]:
     for c in counters:
         s.port.drain()
         s.port.send(Sync(counter=c))
-        got = s.collect(s.timeout_s, lambda ms, c=c: any(isinstance(m, Sample) and m.counter == c for m in ms))
+        got = s.collect(s.answer_s, lambda ms, c=c: any(isinstance(m, Sample) and m.counter == c for m in ms))
         smp = [m for _, m in got if isinstance(m, Sample)]
         match = [m for m in smp if m.counter == c]
         require(bool(match), f"SYNC 0x{c:04X} answered with {smp or 'nothing'}")

@@ -17,8 +17,9 @@ Tolerated, never taken as an answer: STATUS heartbeats, and ANNOUNCE/INFO when t
 ask for them (an unassigned chip re-announces every second; a gateway may forward other chips').
 Frames from other nodes are ignored.
 
-Timeouts (all from ``timeout_s``, the ``--timeout`` option, default 0.5 s): an answer
-``timeout_s``; a heartbeat ``max(1.5 s, 3 timeout_s)``; a re-announce 2.5 s.
+Timeouts (from ``timeout_s``, the ``--timeout`` option, default 0.5 s): an expected answer
+``max(1 s, 3 timeout_s)`` (`Session.answer_s`; the wait ends when it arrives); a window in which
+the chip must stay silent ``timeout_s``; a heartbeat ``max(1.5 s, 3 timeout_s)``; a re-announce 2.6 s.
 
 The port's own losses are kept apart from the chip's faults: every `DecodeError` the transport
 delivers (a damaged frame) and every CAN error frame counts in `Port.damaged`. A check during which
@@ -305,6 +306,13 @@ class Session:
     my_nodes: set = field(default_factory=set)  #: every node id the chip under test spoke from
     acks: list = field(default_factory=list)  #: every ACK the chip under test sent (§4.5 detail)
 
+    @property
+    def answer_s(self) -> float:
+        """How long to wait for an expected answer: ``max(1 s, 3 timeout_s)``. The wait ends as soon as
+        the answer is there, so this costs time only when the chip does not answer; the windows in
+        which a chip must stay silent are ``timeout_s``."""
+        return max(1.0, 3 * self.timeout_s)
+
     # ---- receiving
     def mine(self, m) -> bool:
         if not isinstance(m, Message) or m.DIRECTION != Direction.CHIP_TO_HOST:
@@ -348,7 +356,7 @@ class Session:
         """Send ``msg`` and return this chip's first ``n`` answers (fewer on timeout)."""
         self.port.drain()
         self.port.send(msg)
-        got = self.collect(timeout_s or self.timeout_s, lambda ms: len(self._ans(ms, keep)) >= n)
+        got = self.collect(timeout_s or self.answer_s, lambda ms: len(self._ans(ms, keep)) >= n)
         return self.answers(got, keep)
 
     def _ans(self, ms: list, keep: tuple) -> list:
@@ -362,7 +370,7 @@ class Session:
             timeout_s: float | None = None) -> list[Message]:
         self.port.drain()
         self.port.send_raw(type_code, node, payload, version=version)
-        got = self.collect(timeout_s or self.timeout_s, lambda ms: len(self._ans(ms, ())) >= n)
+        got = self.collect(timeout_s or self.answer_s, lambda ms: len(self._ans(ms, ())) >= n)
         return self.answers(got)
 
     def silent(self, send: Message | Callable[[], object], duration_s: float | None = None) -> list[Message]:
