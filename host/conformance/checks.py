@@ -263,7 +263,7 @@ def c_heartbeat(s: Session):
     return f"mean period {period:.1f} ms over {len(st) - 1} intervals, rx_errors {m.rx_errors}"
 
 
-@check("4.6, 4.11", "CONFIG with a field out of range: NACK BAD_VALUE, state unchanged",
+@check("4.6, 4.11", "CONFIG with a field out of range: NACK BAD_VALUE",
        "the chip accepts a configuration it cannot honour",
        "validate CONFIG before applying it: range > 3, filter > 3, rate_hz 0 or > 4000 -> NACK 3 BAD_VALUE")
 def c_config_bad_value(s: Session):
@@ -650,7 +650,8 @@ def table() -> str:
     for c in CHECKS:
         only = f" *({c.transport} only)*" if c.transport else ""
         bc = " *(--allow-broadcast)*" if c.broadcast else ""
-        lines.append(f"| {c.number} | {c.clause} | {c.title}{only}{bc} | {c.meaning} | {c.fix} |")
+        cells = [str(c.number), c.clause, c.title + only + bc, c.meaning, c.fix]
+        lines.append("| " + " | ".join(x.replace("|", "\\|") for x in cells) + " |")
     lines += ["", "Clauses without a check (informative):", ""]
     lines += [f"- §{k}: {v}" for k, v in INFORMATIVE.items()]
     return "\n".join(lines) + "\n"

@@ -400,10 +400,19 @@ class Session:
         if self.info is None or self.cur is None:
             raise Skip("no chip found")
 
+    def relocate(self) -> None:
+        """Broadcast GET_INFO (read-only) and take the chip's node id from its ANNOUNCE."""
+        self.port.drain()
+        self.port.send(GetInfo(0))
+        self.collect(self.answer_s, lambda ms: any(isinstance(m, Announce) for m in ms))
+
     def fresh_boot(self) -> None:
         """RESET: ACK, ANNOUNCE, INFO. The chip then stays at this provisional id for 1 s."""
         self.need_chip()
         ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
+        if not ans:  # it moved (a re-announce we did not hear: lost on the port): find it, once
+            self.relocate()
+            ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
         require(len(ans) >= 3 and isinstance(ans[0], Ack) and ans[0].command == MsgType.RESET and isinstance(ans[1], Announce)
                 and isinstance(ans[2], Info), f"RESET not answered ACK, ANNOUNCE, INFO: {ans}")
         self.cur = ans[1].node
@@ -413,9 +422,7 @@ class Session:
         self.need_chip()
         ans = self.request_info(self.cur)  # where it is now (an unassigned chip moves every second)
         if len(ans) < 2:
-            self.port.drain()
-            self.port.send(GetInfo(0))
-            self.collect(self.timeout_s, lambda ms: any(isinstance(m, Info) for m in ms))
+            self.relocate()
             ans = self.request_info(self.cur)
         if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING:
             self.request(Stop(self.cur))

@@ -278,6 +278,19 @@ class ClaimsNoMultiRange(ChipModel):
         return None if (reason == R.UNSUPPORTED and isinstance(msg, Config)) else reason
 
 
+class RefusesRepeatedConfig(ChipModel):
+    """NACKs (BAD_STATE) a CONFIG identical to the configuration it already has."""
+
+    def handle(self, frame, now_s, decoded=None):
+        from protocol.messages import Config
+        msg = self.decode(frame) if decoded is None else decoded
+        if isinstance(msg, Config) and msg.node == self.node and self.configured and \
+                (msg.rate_hz, msg.range, msg.filter, msg.heartbeat_ms) == \
+                (self.rate_hz, self.range, self.filter, self.heartbeat_ms):
+            return [self._out(Nack(self.node, MsgType.CONFIG, NackReason.BAD_STATE))]
+        return super().handle(frame, now_s, msg)
+
+
 class StartNotIdempotent(ChipModel):
     """NACKs START while already STREAMING."""
 
@@ -332,6 +345,7 @@ MUTANTS = {
     "cal_read_nominal": (CalReadNominal, "serial", False),
     "accepts_bad_config": (AcceptsBadConfig, "serial", False),
     "claims_no_multi_range": (ClaimsNoMultiRange, "serial", False),
+    "refuses_repeated_config": (RefusesRepeatedConfig, "serial", False),
     "start_not_idempotent": (StartNotIdempotent, "serial", False),
     "streams_after_stop": (StreamsAfterStop, "serial", False),
     "wrong_priority": (WrongPriority, "can", False),
