@@ -49,19 +49,21 @@ def missing_tools() -> str | None:
     return None
 
 
-def elf_path(mutant: str | None = None) -> Path:
-    return HERE / "build" / "qemu" / (f"capsheet_mps2_{mutant}.elf" if mutant else "capsheet_mps2.elf")
+def elf_path(mutant: str | None = None, out: Path | None = None) -> Path:
+    base = Path(out) if out is not None else HERE / "build"
+    return base / "qemu" / (f"capsheet_mps2_{mutant}.elf" if mutant else "capsheet_mps2.elf")
 
 
-def build(mutant: str | None = None, *, quiet: bool = True) -> Path:
-    """``make -C firmware_ref qemu [MUTANT=...]``; returns the ELF. Raises RuntimeError on failure."""
+def build(mutant: str | None = None, *, out: Path | None = None, quiet: bool = True) -> Path:
+    """``make -C firmware_ref qemu [MUTANT=...] [OUT=...]``; returns the ELF. RuntimeError on failure."""
     if mutant is not None and mutant not in MUTANTS:
         raise ValueError(f"Invalid mutant {mutant!r} (known: {', '.join(MUTANTS)})")
-    cmd = ["make", "-s", "-C", str(HERE), "qemu"] + ([f"MUTANT={mutant}"] if mutant else [])
+    cmd = ["make", "-s", "-C", str(HERE), "qemu"] + ([f"MUTANT={mutant}"] if mutant else []) + \
+        ([f"OUT={Path(out).resolve()}"] if out is not None else [])
     r = subprocess.run(cmd, capture_output=quiet, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {(r.stderr or r.stdout or '').strip()[-2000:]}")
-    return elf_path(mutant)
+    return elf_path(mutant, out)
 
 
 def _symbol(elf: Path, name: str) -> int:
@@ -175,6 +177,8 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--runs", type=int, default=1, help="consecutive runs, each on a fresh QEMU (default 1)")
     c.add_argument("--mutant", choices=MUTANTS, help="a deliberately broken build (the suite must fail it)")
     c.add_argument("--json", action="store_true", help="print one JSON summary on stdout (run logs to stderr)")
+    for q in (b, c):
+        q.add_argument("--out", type=Path, default=None, help="build directory (default firmware_ref/build)")
     c.add_argument("extra", nargs=argparse.REMAINDER, help="passed to capsheet conformance (after --)")
     args = p.parse_args(argv)
     why = missing_tools()
@@ -182,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"firmware_ref.qemu: SKIPPED: {why}", file=sys.stderr)
         return 2
     try:
-        elf = build(args.mutant)
+        elf = build(args.mutant, out=args.out)
     except RuntimeError as exc:
         print(f"firmware_ref.qemu: {exc}", file=sys.stderr)
         return 2
@@ -211,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
                      "summary": last,
                      "failed": [ln for ln in r.stdout.splitlines() if ln.startswith(("FAIL", "LOST"))]})
     if args.json:
-        print(json.dumps({"elf": str(elf.relative_to(ROOT)), "mutant": args.mutant, "runs": len(runs),
+        print(json.dumps({"elf": str(elf), "mutant": args.mutant, "runs": len(runs),
                           "passed": sum(x["exit"] == 0 for x in runs),
                           "stack_high_water_bytes_max": max(x["stack_high_water_bytes"] for x in runs),
                           "seconds_max": max(x["seconds"] for x in runs), "per_run": runs}))
