@@ -73,9 +73,12 @@ class Check:
 
 CHECKS: list[Check] = []
 
-#: clauses of docs/protocol.md with no behaviour a chip can be checked for, and why
+#: clauses of docs/protocol.md with no behaviour a chip can be checked for on its own, and why
 INFORMATIVE: dict[str, str] = {
     "1": "overview; every requirement it mentions is restated, normatively, in a later clause",
+    "1.1": "the lattice's link order and the sensor frame are the host's conventions: a chip stores the "
+           "link index ASSIGN gives it (check 7) and reports its axes as mounted; its orientation needs a "
+           "fixture (check 23 holds the magnitude, |a| = 1 g at rest)",
     "10": "capacity figures derived from the frame sizes (`capsheet protocol capacity`), no chip behaviour",
     "11": "this suite itself",
 }
@@ -652,6 +655,6 @@ def table() -> str:
         bc = " *(--allow-broadcast)*" if c.broadcast else ""
         cells = [str(c.number), c.clause, c.title + only + bc, c.meaning, c.fix]
         lines.append("| " + " | ".join(x.replace("|", "\\|") for x in cells) + " |")
-    lines += ["", "Clauses without a check (informative):", ""]
+    lines += ["", "Clauses without a check of their own, and why:", ""]
     lines += [f"- §{k}: {v}" for k, v in INFORMATIVE.items()]
     return "\n".join(lines) + "\n"
