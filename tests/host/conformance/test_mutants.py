@@ -77,3 +77,53 @@ def test_every_check_is_failed_by_some_mutant():
     assert set(EXPECTED) == set(MUTANTS)
     failed = set().union(*EXPECTED.values())
     assert {c.number for c in CHECKS} - failed == set(NOT_SHOWN)
+
+
+def test_check_20_fails_a_chip_that_answers_foreign_frames():
+    """The virtual CanDevice filters standard-identifier frames, so this mutant sits on the bus itself:
+    a chip model behind a python-can virtual bus that NACKs every standard frame it hears."""
+    import threading
+    import time
+
+    import can
+
+    from protocol.can import CanFrame, to_can
+    from protocol.messages import Nack, NackReason
+    from virtual_sheet.chip import ChipModel
+
+    channel = f"conformance-foreign-{id(object())}"
+    chip = ChipModel(0x1122334455667788, lambda now: ((0, 0, 1024), 0), transport="can")
+    bus = can.Bus(interface="virtual", channel=channel)
+    stop = threading.Event()
+    t0 = time.monotonic()
+
+    def send(frames):
+        for f in frames:
+            bus.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True, is_fd=f.is_fd))
+
+    def serve():
+        send(chip.power_on(0.0))
+        while not stop.is_set():
+            m = bus.recv(0.005)
+            now = time.monotonic() - t0
+            if m is not None and not m.is_extended_id:
+                send([to_can(Nack(chip.node, 0x3F, NackReason.UNKNOWN_COMMAND))])
+            elif m is not None:
+                send(chip.handle(CanFrame(m.arbitration_id, bytes(m.data), m.is_fd), now))
+            send(chip.poll(now))
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    t = AuditedCanTransport(f"virtual:{channel}", reconnect=False)
+    port = Port(t)
+    try:
+        results = run_checks(port, timeout_s=0.3, only=["20"])
+    finally:
+        port.close()
+        t.close()
+        stop.set()
+        th.join(timeout=2)
+        bus.shutdown()
+    report = "\n".join(r.line() for r in results)
+    assert [(r.number, r.outcome) for r in results] == [(1, "PASS"), (20, "FAIL")], report
+    assert "standard-identifier frame" in results[1].detail
