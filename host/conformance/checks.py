@@ -30,7 +30,7 @@ from protocol.state import ANNOUNCE_PERIOD_S, SYNC_REPLY_DEADLINE_S
 
 from .session import HEARTBEAT_MS, acked, AuditedCanTransport, CheckFailed, PortLost, RecordingDecoder, RunAborted, Session, Skip, require
 
-__all__ = ["Check", "CHECKS", "INFORMATIVE", "table", "clauses_covered"]
+__all__ = ["Check", "CHECKS", "INFORMATIVE", "SHOULD_NOT_MET", "table", "clauses_covered"]
 
 
 @dataclass(frozen=True)
@@ -73,6 +73,9 @@ class Check:
 
 CHECKS: list[Check] = []
 
+#: detail prefix of a PASS whose SHOULD (not MUST) was not met
+SHOULD_NOT_MET = "SHOULD not met:"
+
 #: clauses of docs/protocol.md with no behaviour a chip can be checked for on its own, and why
 INFORMATIVE: dict[str, str] = {
     "1": "overview; every requirement it mentions is restated, normatively, in a later clause",
@@ -106,7 +109,7 @@ def clauses_covered(transport: str | None = None) -> set[str]:
        "answer GET_INFO addressed to node 0 or to the chip, in every state, with ANNOUNCE then INFO "
        "(two frames, in that order, from the current node id)")
 def c_discover(s: Session):
-    s.port.drain()
+    s.drain()
     s.port.send(GetInfo(0))
     window = max(1.0, 2 * s.timeout_s)  # every chip on the port answers; note every node id heard
     got = s.collect(window, lambda ms: any(isinstance(m, Info) for m in ms) and
@@ -220,10 +223,10 @@ def c_reannounce(s: Session):
     times = [t_boot] + [t for t, m in got if isinstance(m, Announce)]
     require(len(times) >= 3, f"{len(times) - 1} re-ANNOUNCE within {ANNOUNCE_PERIOD_S * 2.6:.1f} s of a RESET")
     periods = [b - a for a, b in zip(times, times[1:])]
+    mean = (times[-1] - times[0]) / (len(times) - 1)  # one late arrival lengthens one period, shortens the next
     tol = 0.05 * ANNOUNCE_PERIOD_S + s.slack_ms / 1000
-    bad = [p for p in periods if abs(p - ANNOUNCE_PERIOD_S) > tol]
-    require(not bad, f"re-announce periods {', '.join(f'{p:.3f}' for p in periods)} s "
-                     f"(1 s ± {tol * 1000:.0f} ms)")
+    require(abs(mean - ANNOUNCE_PERIOD_S) <= tol, f"re-announce period {mean:.3f} s (1 s ± {tol * 1000:.0f} ms; "
+                                                  f"periods {', '.join(f'{p:.3f}' for p in periods)} s)")
     ms = [m for _, m in got]
     pairs = [(a, b) for a, b in zip(ms, ms[1:]) if isinstance(a, Announce)]
     require(all(isinstance(b, Info) and b.node == a.node for a, b in pairs), f"re-ANNOUNCE not followed by INFO: {ms}")
@@ -242,20 +245,23 @@ def c_config(s: Session):
     require(acked(ans, s.node, MsgType.CONFIG), f"answered {ans}")
 
 
-@check("4.4, 8.1", f"STATUS heartbeat every heartbeat_ms ({HEARTBEAT_MS} ms ± 5 %), IDLE, CONFIGURED",
+@check("4.4, 8.1", f"STATUS heartbeat every heartbeat_ms ({HEARTBEAT_MS} ms ± 5 % + slack/2), IDLE, CONFIGURED",
        "the host's liveness monitoring misjudges the chip (its clock or scheduler is off)",
        "send STATUS every heartbeat_ms from a free-running time base (a hardware counter, not a count of "
        "timer interrupts); next deadline = max(previous + period, now); set CONFIGURED after CONFIG")
 def c_heartbeat(s: Session):
     s.ensure_idle()
-    s.port.drain()
+    s.drain()
     n = 9
     st = s.statuses(n, timeout_s=n * HEARTBEAT_MS / 1000 * 1.5 + s.timeout_s)
     require(len(st) >= 3, f"{len(st)} STATUS in {n * HEARTBEAT_MS * 1.5 / 1000 + s.timeout_s:.2f} s at "
                           f"heartbeat_ms={HEARTBEAT_MS}")
-    period = (st[-1][0] - st[0][0]) / (len(st) - 1) * 1000
-    tol = 0.05 * HEARTBEAT_MS + 2 * s.slack_ms / (len(st) - 1)
-    require(abs(period - HEARTBEAT_MS) <= tol, f"mean period {period:.1f} ms over {len(st) - 1} intervals "
+    # Theil-Sen: the median of the slopes between every pair of heartbeats, so one heartbeat held up
+    # by the host (or the port) does not move the estimate; a chip's own clock error does
+    period = statistics.median((st[j][0] - st[i][0]) / (j - i) for i in range(len(st))
+                               for j in range(i + 1, len(st))) * 1000
+    tol = 0.05 * HEARTBEAT_MS + s.slack_ms / 2
+    require(abs(period - HEARTBEAT_MS) <= tol, f"period {period:.1f} ms over {len(st)} heartbeats "
                                                f"({HEARTBEAT_MS} ± {tol:.1f} ms)")
     m = st[-1][1]
     require(m.state == ChipState.IDLE, f"state {ChipState(m.state).name}")
@@ -263,7 +269,7 @@ def c_heartbeat(s: Session):
     require(m.flags & ~0x0F == 0, f"reserved STATUS flag bits set: 0x{m.flags:02X}")
     up = [x.uptime_s for _, x in st]
     require(up == sorted(up), f"uptime_s goes backwards: {up}")
-    return f"mean period {period:.1f} ms over {len(st) - 1} intervals, rx_errors {m.rx_errors}"
+    return f"period {period:.1f} ms over {len(st)} heartbeats, rx_errors {m.rx_errors}"
 
 
 @check("4.6, 4.11", "CONFIG with a field out of range: NACK BAD_VALUE",
@@ -403,14 +409,14 @@ def c_start(s: Session):
     require(len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING, f"GET_INFO: {ans}")
 
 
-@check("5.1, 4.3, 4.9", "SYNC -> exactly one SAMPLE with the SYNC's counter, within the deadline",
-       "the host cannot group samples into snapshots (wrong counter, missing or duplicate answers, late)",
+@check("5.1, 4.3, 4.9", "SYNC -> exactly one SAMPLE with the SYNC's counter (within 2 ms: a SHOULD, reported)",
+       "the host cannot group samples into snapshots (wrong counter, missing or duplicate answers)",
        "answer each SYNC with one SAMPLE carrying its counter (u16 little-endian), within 2 ms")
 def c_sync(s: Session):
     s.to_streaming()
     lat, samples = [], []
     for c in range(100, 130):
-        s.port.drain()
+        s.drain()
         t0 = s.port.send(Sync(counter=c))
         got = s.collect(s.answer_s, lambda ms: any(isinstance(m, Sample) for m in ms))
         smp = [(t, m) for t, m in got if isinstance(m, Sample)]
@@ -422,15 +428,17 @@ def c_sync(s: Session):
     require(not extra, f"SYNCs answered twice: {len(extra)} extra SAMPLE (counters {[m.counter for m in extra][:5]})")
     med = statistics.median(lat) * 1000
     limit = SYNC_REPLY_DEADLINE_S * 1000 + s.slack_ms
-    require(med <= limit, f"median SYNC->SAMPLE {med:.2f} ms > {limit:.1f} ms")
-    return f"median {med:.2f} ms, max {max(lat) * 1000:.2f} ms (host-measured, includes the port)"
+    timing = f"median {med:.2f} ms, max {max(lat) * 1000:.2f} ms (host-measured, includes the port)"
+    if med > limit:  # §5.1: the chip SHOULD answer within 2 ms: reported, not a FAIL
+        return f"{SHOULD_NOT_MET} the median SYNC->SAMPLE is over 2 ms + {s.slack_ms:g} ms slack: {timing}"
+    return timing
 
 
 def _samples(s: Session, counters) -> list[Sample]:
     """One SYNC per counter; the SAMPLE answering each (a late duplicate of an earlier one is skipped)."""
     out = []
     for c in counters:
-        s.port.drain()
+        s.drain()
         s.port.send(Sync(counter=c))
         got = s.collect(s.answer_s, lambda ms, c=c: any(isinstance(m, Sample) and m.counter == c for m in ms))
         smp = [m for _, m in got if isinstance(m, Sample)]

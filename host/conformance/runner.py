@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from host.transport import TransportError
 
-from .checks import CHECKS, Check
+from .checks import CHECKS, SHOULD_NOT_MET, Check
 from .session import CheckFailed, Port, PortLost, RunAborted, Session, Skip
 
 __all__ = ["CheckResult", "select", "run_checks", "summary", "exit_code"]
@@ -152,7 +152,9 @@ def run_checks(port: Port, *, timeout_s: float = 0.5, node: int | None = None, u
 def summary(results: list[CheckResult]) -> str:
     n = {k: sum(r.outcome == k for r in results) for k in ("PASS", "FAIL", "SKIP", "LOST")}
     lost = f", {n['LOST']} inconclusive (port lost frames)" if n["LOST"] else ""
-    return f"conformance: {n['PASS']} checks passed, {n['FAIL']} failed, {n['SKIP']} skipped{lost}"
+    should = sum(r.outcome == "PASS" and r.detail.startswith(SHOULD_NOT_MET) for r in results)
+    should = f" ({should} with a SHOULD not met)" if should else ""
+    return f"conformance: {n['PASS']} checks passed{should}, {n['FAIL']} failed, {n['SKIP']} skipped{lost}"
 
 
 def exit_code(results: list[CheckResult]) -> int:

@@ -347,6 +347,10 @@ class Session:
             if stop is not None and stop([x for _, x in out]):
                 return out
 
+    def drain(self) -> None:
+        """Consume what has arrived (keeping track of the chip's node id), before a new request."""
+        self.collect(0.0)
+
     @staticmethod
     def answers(got: list, keep: tuple = ()) -> list[Message]:
         """Drop what is tolerated (heartbeats, re-announces) unless its type is in ``keep``."""
@@ -354,7 +358,7 @@ class Session:
 
     def request(self, msg: Message, n: int = 1, timeout_s: float | None = None, keep: tuple = ()) -> list[Message]:
         """Send ``msg`` and return this chip's first ``n`` answers (fewer on timeout)."""
-        self.port.drain()
+        self.drain()
         self.port.send(msg)
         got = self.collect(timeout_s or self.answer_s, lambda ms: len(self._ans(ms, keep)) >= n)
         return self.answers(got, keep)
@@ -368,14 +372,14 @@ class Session:
 
     def raw(self, type_code: int, node: int, payload: bytes, version: int | None = None, n: int = 1,
             timeout_s: float | None = None) -> list[Message]:
-        self.port.drain()
+        self.drain()
         self.port.send_raw(type_code, node, payload, version=version)
         got = self.collect(timeout_s or self.answer_s, lambda ms: len(self._ans(ms, ())) >= n)
         return self.answers(got)
 
     def silent(self, send: Message | Callable[[], object], duration_s: float | None = None) -> list[Message]:
         """Send and return everything this chip answered within the timeout (should be nothing)."""
-        self.port.drain()
+        self.drain()
         if isinstance(send, Message):
             self.port.send(send)
         else:
@@ -390,7 +394,7 @@ class Session:
 
     def status(self) -> Status:
         """The next STATUS heartbeat."""
-        self.port.drain()
+        self.drain()
         st = self.statuses(1)
         require(bool(st), f"no STATUS heartbeat within {max(1.5, 3 * self.timeout_s):.1f} s")
         return st[-1][1]
@@ -402,7 +406,7 @@ class Session:
 
     def relocate(self) -> None:
         """Broadcast GET_INFO (read-only) and take the chip's node id from its ANNOUNCE."""
-        self.port.drain()
+        self.drain()
         self.port.send(GetInfo(0))
         self.collect(self.answer_s, lambda ms: any(isinstance(m, Announce) for m in ms))
 

@@ -51,12 +51,11 @@
 #define UART_RX_RING_SIZE 256u
 
 void uart_init(void);
-/* Copy up to `cap` received bytes out of the RX ring; returns how many (0 if none). */
+/* Copy up to `cap` received bytes out of the RX ring; returns how many (0 if none). A full ring
+ * holds input back in the UART (no byte is dropped) until this makes room. */
 size_t uart_read(uint8_t *out, size_t cap);
 /* Blocking write: returns once every byte is in the UART (so `data` may be reused at once). */
 void uart_write(const uint8_t *data, size_t len);
-/* Bytes the ISR had to drop because the ring was full (never expected: the ring holds 17 frames). */
-uint32_t uart_rx_dropped(void);
 void uart0_rx_irq(void);
 
 void clock_init(void);

