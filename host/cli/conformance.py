@@ -78,13 +78,15 @@ def register(subparsers) -> argparse.ArgumentParser:
           " --only 4.6,5\n    capsheet conformance --list\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="the port the chip is on (exactly one)", several_buses=False)
-    p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for each answer (default 0.5)")
+    p.add_argument("--timeout", type=float, default=0.5, help="seconds the chip must stay silent where it should not answer; an expected answer is "
+                        "awaited max(1 s, 3 x this) and ends as soon as it arrives (default 0.5)")
     p.add_argument("--node", type=_int, default=None,
                    help="node id to assign for the run (default: the highest id no chip was heard from)")
     p.add_argument("--uid", type=_int, default=None,
                    help="the chip under test, by uid (default: the first to answer a broadcast GET_INFO)")
     p.add_argument("--slack-ms", type=float, default=10.0,
-                   help="host-side latency allowed on top of the 2 ms SYNC deadline and the periods (default 10)")
+                   help="host-side latency allowed on top of the 2 ms SYNC deadline (a SHOULD) and the "
+                        "heartbeat/re-announce periods, ms (default 10)")
     p.add_argument("--only", help=f"comma-separated check numbers (1..{len(CHECKS)}) or clause prefixes, e.g. 4.6,5")
     p.add_argument("--allow-broadcast", action="store_true",
                    help="also run the checks that broadcast START/STOP (they address every chip on the port)")

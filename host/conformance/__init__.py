@@ -14,8 +14,9 @@ Safe on a full sheet: the chip under test is the first to answer a broadcast GET
 except SYNC (always broadcast: other *streaming* chips answer it and count the gaps) and the
 broadcast checks, which run only with ``allow_broadcast``. The chip under test is left in BOOT.
 
-Timing is measured on the host, so it includes the host's and the port's latency: the SYNC ->
-SAMPLE median must be within 2 ms plus ``slack_ms``; periods within 5 % plus ``slack_ms``.
+Timing is measured on the host, so it includes the host's and the port's latency: the heartbeat
+period (Theil-Sen over 9 heartbeats) within 5 % + ``slack_ms``/2, the re-announce period within
+5 % + ``slack_ms``; the SYNC -> SAMPLE median over 2 ms + ``slack_ms`` (a SHOULD) is reported, not failed.
 The chip under test must lie still during the run (the sample check expects |a| = 1 g).
 """
 
