@@ -373,10 +373,10 @@ def c_bad_input_serial(s: Session):
     junk = [b"\x05\x01\x02\x03\x00", bad_crc, b"\x01" * 1100 + b"\x00", b"\x03\x01\x02\x00"]
     ans = s.silent(lambda: [s.port.send_bytes(j) for j in junk])
     require(ans == [], f"answered damaged input with {ans}")
-    after = s.status().rx_errors
-    require(after - before == len(junk) or after == 255, f"rx_errors {before} -> {after}, expected +{len(junk)}")
-    ans = s.request_info(s.node)
+    ans = s.request_info(s.node)  # answered only once every byte before it was processed
     require(len(ans) == 2, f"no answer to GET_INFO after the damage: {ans}")
+    after = s.status().rx_errors  # a heartbeat sent after that answer
+    require(after - before == len(junk) or after == 255, f"rx_errors {before} -> {after}, expected +{len(junk)}")
     return f"rx_errors {before} -> {after}"
 
 
