@@ -25,12 +25,16 @@ clean:
 	rm -rf $(VENV) build *.egg-info out firmware_ref/build firmware_ref/_capsheet_fw*
 
 # --- firmware_ref (see firmware_ref/Makefile) -------------------------------------------------
-.PHONY: firmware-check firmware-asan firmware-fuzz firmware-size
+.PHONY: firmware-check firmware-asan firmware-fuzz firmware-size firmware-qemu firmware-qemu-conformance
 firmware-check:   ## strict C99 builds, 64- and 32-bit, and the unit driver
 	$(MAKE) -C firmware_ref check
 firmware-asan:    ## decoder fuzz/replay driver under ASan+UBSan
 	$(MAKE) -C firmware_ref asan
 firmware-fuzz:    ## libFuzzer target (needs clang)
 	$(MAKE) -C firmware_ref fuzz
-firmware-size:    ## Cortex-M0+ flash/RAM (needs gcc-arm-none-eabi; installs nothing)
+firmware-size:    ## Cortex-M0+ flash/RAM (needs gcc-arm-none-eabi; installs nothing); also written to firmware_ref/build/size.md
 	$(MAKE) -C firmware_ref size
+firmware-qemu:    ## the firmware for QEMU mps2-an385 (needs gcc-arm-none-eabi, libnewlib-arm-none-eabi)
+	$(MAKE) -C firmware_ref qemu
+firmware-qemu-conformance: $(STAMP) firmware-qemu  ## boot it in QEMU, run the whole conformance suite, non-zero on failure
+	$(PY) -m firmware_ref.qemu conformance --runs $(or $(RUNS),1)

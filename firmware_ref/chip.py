@@ -37,7 +37,9 @@ class CFirmwareChip:
     "can"), ``fd`` (CAN FD capable), ``capabilities`` (INFO bits; CAN_FD is added when ``fd``),
     ``calibration`` (factory ``(offset_q4, sensitivity)`` per axis, in the calibration store when
     the chip has CAL_STORAGE) and ``seed`` (unused: the firmware is deterministic).
-    ``rx_buffer`` is the serial receive buffer (default CAPSHEET_RX_BUFFER_SIZE, 1029).
+    ``rx_buffer`` is the serial receive buffer in bytes (default CAPSHEET_MAX_ENCODED_SIZE, 1029:
+    every frame the spec allows, so the chip's ``rx_errors`` count the same frames as the Python
+    model's; the C build's own default, CAPSHEET_RX_BUFFER_SIZE, is 64).
     """
 
     def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
@@ -70,7 +72,7 @@ class CFirmwareChip:
         cfg.can_fd = self.fd
         cfg.capabilities = int(capabilities) & 0xFFFF
         self._cfg = cfg
-        self._rx_cap = rx_buffer or lib.CAPSHEET_RX_BUFFER_SIZE
+        self._rx_cap = rx_buffer or lib.CAPSHEET_MAX_ENCODED_SIZE
         self._rx = ffi.new("uint8_t[]", self._rx_cap)
         self._chip = ffi.new("capsheet_chip_t *")
         rc = lib.capsheet_chip_init(self._chip, cfg, self._hal, self._rx if transport == "serial" else ffi.NULL,

@@ -71,10 +71,13 @@ extern "C" {
 #define CAPSHEET_DEFAULT_HEARTBEAT_MS 1000u      /* STATUS period until a CONFIG says otherwise */
 
 /* Serial RX buffer of the chip: a build-time option (bytes between two 0x00 delimiters).
- * CAPSHEET_MAX_ENCODED_SIZE (1029) accepts every frame the spec allows; a chip only ever needs
- * CAPSHEET_MIN_RX_BUFFER_SIZE (15): longer frames are then dropped as CAPSHEET_ERR_OVERSIZE. */
+ * A chip only ever needs CAPSHEET_MIN_RX_BUFFER_SIZE (15): every host -> chip frame fits, longer
+ * runs (other chips' frames, damage) are dropped as CAPSHEET_ERR_OVERSIZE and counted in
+ * rx_errors. The default, 64, leaves room and keeps a serial chip within the 1 KiB RAM budget
+ * (capsheet_chip_t + 64 B: see README.md "Size"). CAPSHEET_MAX_ENCODED_SIZE (1029) accepts every
+ * frame the spec allows (a gateway or a sniffer), at 1 KiB of RAM. */
 #ifndef CAPSHEET_RX_BUFFER_SIZE
-#define CAPSHEET_RX_BUFFER_SIZE CAPSHEET_MAX_ENCODED_SIZE
+#define CAPSHEET_RX_BUFFER_SIZE 64u
 #endif
 
 /* ------------------------------------------------------------------------------------------ */
@@ -193,13 +196,15 @@ uint16_t capsheet_crc16(const uint8_t *data, size_t len, uint16_t crc);
 
 /* COBS-encode `len` bytes into `out` (no delimiter is added). `out` must not overlap `in`.
  * Returns the encoded length (at most CAPSHEET_COBS_ENCODED_SIZE(len)).
- * CAPSHEET_ERR_CAPACITY: `cap` is too small (nothing beyond `out[cap-1]` is written). */
+ * CAPSHEET_ERR_CAPACITY: `cap` is too small (nothing beyond `out[cap-1]` is written).
+ * CAPSHEET_ERR_ARGUMENT: `len` > 0x7FFFFF00 (the length would not fit the int32_t result). */
 int32_t capsheet_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
 
 /* COBS-decode `len` bytes (without the delimiter) into `out`; `out == in` is allowed (in-place).
  * Returns the decoded length (< len for len > 0).
  * CAPSHEET_ERR_BAD_COBS: a 0x00 byte inside, or a code byte that points past the end.
- * CAPSHEET_ERR_CAPACITY: the decoded bytes do not fit `cap`. */
+ * CAPSHEET_ERR_CAPACITY: the decoded bytes do not fit `cap`.
+ * CAPSHEET_ERR_ARGUMENT: `len` > 0x7FFFFF00. */
 int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
 
 /* The CAN priority of a type (docs §7.1); 7 for an unknown type. */
@@ -264,7 +269,7 @@ typedef struct {
 } capsheet_stream_t;
 
 /* `cap` must be >= 1; CAPSHEET_MAX_ENCODED_SIZE (1029) accepts every frame the spec allows.
- * CAPSHEET_ERR_ARGUMENT: cap == 0. */
+ * Returns 0. CAPSHEET_ERR_ARGUMENT: `buf` is NULL or `cap` == 0. */
 int32_t capsheet_stream_init(capsheet_stream_t *s, uint8_t *buf, size_t cap);
 
 /* Feed one byte. Returns 0: nothing complete; 1: a frame was decoded into `*out` (a SNAPSHOT's
@@ -327,7 +332,20 @@ int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule);
 
 typedef enum { CAPSHEET_TRANSPORT_SERIAL = 0, CAPSHEET_TRANSPORT_CAN = 1 } capsheet_transport_t;
 
-/* The hardware. `user` is passed back to every callback. Callbacks return 0 or negative. */
+/* The hardware. `user` is passed back to every callback. Callbacks return 0 or negative (the chip
+ * then returns CAPSHEET_ERR_HAL from the call that invoked it).
+ *
+ * Lifetime: the `data` given to send_bytes / send_can is the chip's own TX buffer (capsheet_chip_t
+ * `tx`, 17 bytes, on both transports) and is reused by the very next send: it is valid only until
+ * the callback returns. A HAL that sends later (DMA, an interrupt-driven FIFO) must copy it first.
+ *
+ * Concurrency: the library is not reentrant and takes no locks. Call every capsheet_chip_* function
+ * for one chip from one context (the main loop, or one RTOS task), never from an interrupt
+ * handler; an ISR should only move received bytes/frames into a queue that the main loop drains
+ * into capsheet_chip_rx_bytes / capsheet_chip_rx_can (firmware_ref/ports/qemu-mps2/uart.c does so
+ * with a single-producer ring). The callbacks are called from inside those functions, in the same
+ * context; they must not call back into the chip. Different chips (capsheet_chip_t) are independent.
+ * The codec functions are pure and may be called from any context. */
 typedef struct {
     void *user;
     /* Convert and read the three axes (ADC counts, clamped to -2048..2047 by the chip) and the
@@ -396,10 +414,11 @@ int32_t capsheet_chip_power_on(capsheet_chip_t *chip, uint64_t now_us);
 
 /* Serial: consume received bytes (any chunking), reacting to every complete frame.
  * Returns the number of frames sent, or CAPSHEET_ERR_HAL if a send failed (the remaining input
- * is still consumed). */
+ * is still consumed). CAPSHEET_ERR_ARGUMENT: the chip was initialised for CAN. */
 int32_t capsheet_chip_rx_bytes(capsheet_chip_t *chip, const uint8_t *data, size_t len, uint64_t now_us);
 
-/* CAN: react to one received frame. Returns the number of frames sent, or CAPSHEET_ERR_HAL. */
+/* CAN: react to one received frame. Returns the number of frames sent, or CAPSHEET_ERR_HAL.
+ * CAPSHEET_ERR_ARGUMENT: the chip was initialised for serial. */
 int32_t capsheet_chip_rx_can(capsheet_chip_t *chip, uint32_t id, bool is_extended, bool is_fd,
                              const uint8_t *data, size_t len, uint64_t now_us);
 

@@ -10,7 +10,9 @@
 /* little-endian helpers (no unaligned access, no host-endianness assumption)                  */
 /* ------------------------------------------------------------------------------------------ */
 
-static uint16_t get_u16(const uint8_t *p) { return (uint16_t)(p[0] | (uint16_t)(p[1] << 8)); }
+/* Portable promotion: a uint16_t operand is promoted to int (32-bit int) or unsigned int (16-bit int),
+ * so the shift never overflows a signed int, whatever the target's int width. */
+static uint16_t get_u16(const uint8_t *p) { return (uint16_t)((uint16_t)p[0] | ((uint16_t)p[1] << 8)); }
 
 static uint32_t get_u32(const uint8_t *p)
 {

@@ -269,7 +269,9 @@ static void check_can(const uint8_t *data, size_t len)
         int32_t k = capsheet_can_encode(&m, (flags & 2u) ? CAPSHEET_CAN_FD : CAPSHEET_CAN_CLASSIC, &id2, out, 64, &fd2);
         CHECK(out[64] == 0xAA);
         CHECK(k == (int32_t)n && memcmp(out, payload, n) == 0);
-        CHECK((id2 & 0x3FFFFFu) == (id & 0x3FFFFFu));  /* priority bits may differ: receivers accept any */
+        /* every bit below the priority: type[25:20], version[19:16], node[15:0] (priority bits may
+         * differ: receivers accept any, the encoder uses the table's) */
+        CHECK((id2 & 0x03FFFFFFu) == (id & 0x03FFFFFFu));
         free(out);
     }
     free(payload);

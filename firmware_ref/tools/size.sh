@@ -14,10 +14,14 @@ echo
 echo "== 1. the whole library, every function (object files: text+data = flash, data+bss = RAM)"
 for f in codec chip; do $ARM_CC $FLAGS -c src/$f.c -o "$OUT/$f.o"; done
 $ARM_SIZE -t "$OUT/codec.o" "$OUT/chip.o"
+LIB=$($ARM_SIZE -t "$OUT/codec.o" "$OUT/chip.o" | awk '/TOTALS/ {print $1 + $2, $2 + $3}')
 
+MD=${OUT%/size}/size.md   # the README table, regenerated (paste it; never type the figures)
+: > "$MD.rows"
 report() {  # $1 label, $2 elf
     set -- "$1" "$2" $($ARM_SIZE "$2" | awk 'NR==2 {print $1, $2, $3}')
     echo "$1: flash $(( $3 + $4 )) B (text $3 + data $4), RAM $(( $4 + $5 )) B (data $4 + bss $5)"
+    echo "| $1 | $(( $3 + $4 )) B | $(( $4 + $5 )) B |" >> "$MD.rows"
 }
 
 echo
@@ -29,4 +33,28 @@ done
 $ARM_CC $FLAGS -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_can.elf"
 report "CAN chip (no RX buffer)" "$OUT/chip_can.elf"
 echo
-echo "RAM of a serial chip = sizeof(capsheet_chip_t) + the RX buffer; budget: flash <= 6144 B, RAM <= 1024 B."
+echo "== 3. stack: static worst case per entry point (-fcallgraph-info=su; HAL callbacks: the size app's stubs)"
+mkdir -p "$OUT/stack"
+(cd "$OUT/stack" && for f in codec chip; do $ARM_CC $FLAGS -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/src/$f.c" -o $f.o; done \
+  && $ARM_CC $FLAGS -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/tools/size_app.c" -o size_app.o)
+STACK=$(python3 tools/stack.py "$OUT"/stack/*.ci --root capsheet_chip_rx_bytes --root capsheet_chip_rx_can \
+        --root capsheet_chip_poll --root capsheet_chip_power_on --indirect read_axes --indirect send_bytes \
+        --indirect send_can --indirect read_uid)
+echo "$STACK"
+echo
+echo "RAM of a serial chip = sizeof(capsheet_chip_t) + the RX buffer (+ the stack); budget: flash <= 6144 B, RAM <= 1024 B."
+{
+  echo "Size on a Cortex-M0+ (\`make firmware-size\`, $($ARM_CC --version | head -1 | sed 's/.*) //'), \`-Os -ffunction-sections -fdata-sections\`, \`--gc-sections\`):"
+  echo
+  echo "| image | flash (text+data) | RAM (data+bss) |"
+  echo "|---|---|---|"
+  set -- $LIB
+  echo "| whole library, every function (object files) | $1 B | $2 B |"
+  sed 's/RX buffer \([0-9]*\) B/RX buffer \1 B/' "$MD.rows"
+  echo
+  echo "Stack, static worst case (\`-fcallgraph-info=su\`, \`firmware_ref/tools/stack.py\`; HAL callbacks as in tools/size_app.c):"
+  echo
+  echo "$STACK" | sed 's/^/    /'
+} > "$MD"
+rm -f "$MD.rows"
+echo "== wrote $MD"

@@ -1,52 +1,97 @@
-"""``capsheet conformance``: the command line over `host.conformance` (see its docstring)."""
+"""``capsheet conformance``: the command line over `host.conformance` (see its docstring).
+
+Exit status: 0 every check run passed (or was skipped), 1 the chip failed a check, 2 usage error or
+the port cannot be opened, 3 no check failed but some were inconclusive (the port lost frames) or
+the port went away during the run.
+"""
 
 from __future__ import annotations
 
 import argparse
 import sys
 
+import host.conformance as _conf
 from host.cli.transport_args import add_transport_args
-from host.conformance import checks as _checks
-from host.conformance.checks import CHECKS, CanLink, SerialLink, run_checks, summary
+from host.conformance import CHECKS, AuditedCanTransport, Port, exit_code, run_checks, select, summary, table
+from host.conformance.session import RunAborted
+from host.transport import SerialTransport, TransportError
 
 __all__ = ["register", "run"]
 
 
+def _int(v: str) -> int:
+    return int(v, 0)
+
+
 def run(args: argparse.Namespace) -> int:
     if args.list:
-        for c in CHECKS:
-            print(f"{c.number:2d}  {c.clause:10} {c.title}" + (f"  ({c.transport} only)" if c.transport else ""))
+        print(table(), end="")
         return 0
     if bool(args.port) == bool(args.can):
         print("capsheet conformance: give exactly one of --port PATH or --can IFACE:CHANNEL", file=sys.stderr)
         return 2
+    only = [o.strip() for o in args.only.split(",")] if args.only else None
     try:
-        link = SerialLink(args.port, args.baud) if args.port else CanLink(args.can, fd=args.fd, bitrate=args.bitrate)
-    except ConnectionError as exc:
+        select(only)
+    except ValueError as exc:
         print(f"capsheet conformance: {exc}", file=sys.stderr)
         return 2
-    link.start()
+    if args.node is not None and not 1 <= args.node <= 0x7FFF:
+        print(f"capsheet conformance: Invalid --node {args.node:#x} (an assigned node id is 1..0x7FFF)",
+              file=sys.stderr)
+        return 2
+    if args.timeout <= 0:
+        print(f"capsheet conformance: Invalid --timeout {args.timeout} (need > 0 s)", file=sys.stderr)
+        return 2
     try:
-        only = [o.strip() for o in args.only.split(",")] if args.only else None
-        print(f"capsheet conformance: {args.port or args.can} ({link.transport})", flush=True)
-        results = run_checks(link, timeout_s=args.timeout, node=args.node, slack_ms=args.slack_ms, only=only,
+        if args.port:
+            transport = SerialTransport(args.port, baudrate=args.baud, reconnect=False)
+        else:
+            transport = AuditedCanTransport(args.can, fd=args.fd, bitrate=args.bitrate, reconnect=False)
+    except TransportError as exc:
+        print(f"capsheet conformance: {exc}", file=sys.stderr)
+        return 2
+    port = Port(transport)
+    try:
+        print(f"capsheet conformance: {args.port or args.can} ({port.kind})", flush=True)
+        results = run_checks(port, timeout_s=args.timeout, node=args.node, uid=args.uid, slack_ms=args.slack_ms,
+                             only=only, allow_broadcast=args.allow_broadcast, attempts=args.attempts,
                              out=sys.stdout)
+    except TransportError as exc:
+        print(f"capsheet conformance: {exc}", file=sys.stderr)
+        return 3
+    except RunAborted as exc:
+        print(f"capsheet conformance: {exc}", file=sys.stderr)
+        return 2
     finally:
-        link.close()
+        port.close()
+        transport.close()
     print(summary(results))
-    return 1 if any(r.outcome == "FAIL" for r in results) else 0
+    return exit_code(results)
 
 
 def register(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "conformance", help="hold a chip (or gateway) to the protocol spec, clause by clause",
-        description=_checks.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+        description=(_conf.__doc__ or "") + "\n" + (__doc__.split("\n\n", 1)[1] if __doc__ else "")
+        + "\nExamples:\n    capsheet conformance --port /dev/ttyUSB0\n    capsheet conformance --can socketcan:can0"
+          " --only 4.6,5\n    capsheet conformance --list\n",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="the port the chip is on (exactly one)", several_buses=False)
-    p.add_argument("--timeout", type=float, default=0.5, help="seconds to wait for each answer (default 0.5)")
-    p.add_argument("--node", type=lambda v: int(v, 0), default=42, help="node id to assign for the run (default 42)")
+    p.add_argument("--timeout", type=float, default=0.5, help="seconds the chip must stay silent where it should not answer; an expected answer is "
+                        "awaited max(1 s, 3 x this) and ends as soon as it arrives (default 0.5)")
+    p.add_argument("--node", type=_int, default=None,
+                   help="node id to assign for the run (default: the highest id no chip was heard from)")
+    p.add_argument("--uid", type=_int, default=None,
+                   help="the chip under test, by uid (default: the first to answer a broadcast GET_INFO)")
     p.add_argument("--slack-ms", type=float, default=10.0,
-                   help="host-side latency allowed on top of the 2 ms SYNC deadline (default 10)")
-    p.add_argument("--only", help="comma-separated check numbers or clause prefixes, e.g. 4.6,5")
-    p.add_argument("--list", action="store_true", help="list the checks and exit")
+                   help="host-side latency allowed on top of the 2 ms SYNC deadline (a SHOULD) and the "
+                        "heartbeat/re-announce periods, ms (default 10)")
+    p.add_argument("--only", help=f"comma-separated check numbers (1..{len(CHECKS)}) or clause prefixes, e.g. 4.6,5")
+    p.add_argument("--allow-broadcast", action="store_true",
+                   help="also run the checks that broadcast START/STOP (they address every chip on the port)")
+    p.add_argument("--attempts", type=int, default=3, choices=range(1, 10), metavar="N",
+                   help="tries per check when the port lost frames (default 3)")
+    p.add_argument("--list", action="store_true", help="print the clause table (docs/conformance.md) and exit")
     p.set_defaults(func=run)
     return p

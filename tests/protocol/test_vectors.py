@@ -109,3 +109,97 @@ def test_cantools_decodes_our_frames_field_by_field(vec):
             assert (decoded[f"x_{k}"], decoded[f"y_{k}"], decoded[f"z_{k}"], decoded[f"status_{k}"]) == (x, y, z, s)
     else:
         assert decoded == pytest.approx(vec["fields"])
+
+
+# ---- the vectors re-derived independently: the spec's byte tables, `cobs`, binascii.crc_hqx, cantools --
+
+import binascii
+import re
+import struct
+
+SPEC = (Path(__file__).resolve().parents[2] / "docs/protocol.md").read_text()
+_FMT = {"u8": "B", "u16": "H", "u32": "I", "u64": "Q", "i16": "h", "f32": "f"}
+
+
+def spec_types() -> dict[str, tuple[int, int]]:
+    """name -> (type code, CAN priority), from the message table of docs/protocol.md §4."""
+    return {name: (int(code, 16), int(prio)) for code, name, prio in
+            re.findall(r"^\| (0x[0-9A-F]{2}) \| ([A-Z_]+) \| [^|]+\| [^|]+\| (\d) \|", SPEC, re.M)}
+
+
+def spec_layouts() -> dict[str, list[tuple[str, str]]]:
+    """name -> [(wire type, field)] from the §4.x tables (CAL_WRITE: "the CAL_DATA layout")."""
+    out: dict[str, list] = {}
+    for sec in re.split(r"^### ", SPEC, flags=re.M)[1:]:
+        head, _, body = sec.partition("\n")
+        if not head.startswith("4."):
+            continue
+        names = re.findall(r"([A-Z][A-Z_]+) \(0x", head)
+        rows = re.findall(r"^\| \d+ \| ([a-z0-9·+ ]+?) \| ([a-z_0-9]+)", body, re.M)
+        for n in names:
+            out.setdefault(n, rows if (rows or "empty" in head) else None)
+    return {n: v for n, v in out.items() if v is not None}
+
+
+def reference_payload(name: str, f: dict) -> bytes:
+    """A payload packed by the spec alone: its field tables, §2 (little-endian) and §5.2 (the word)."""
+    def word(x, y, z, s):
+        return ((x & 0xFFF) | (y & 0xFFF) << 12 | (z & 0xFFF) << 24 | s << 36).to_bytes(5, "little")
+    out = b""
+    for typ, field in spec_layouts()[name]:
+        if typ in _FMT:
+            value = len(f["counts"]) if field == "count" else f[field]  # SNAPSHOT's count: n samples
+            out += struct.pack("<" + _FMT[typ], value)
+        elif field == "sample":  # SAMPLE: "40 bits | sample word"
+            out += word(f["x"], f["y"], f["z"], f["status"])
+        elif field == "samples":  # SNAPSHOT: "5·n | samples"
+            out += b"".join(word(*c, s) for c, s in zip(f["counts"], f["status"]))
+        else:
+            raise AssertionError(f"{name}: no rule for {typ} {field}")
+    return out
+
+
+def reference_wire(vec) -> bytes:
+    code, _prio = spec_types()[vec["type"]]
+    frame = bytes([1, code]) + vec["node"].to_bytes(2, "little") + reference_payload(vec["type"], vec["fields"])
+    return cobs.encode(frame + binascii.crc_hqx(frame, 0xFFFF).to_bytes(2, "big")) + b"\x00"
+
+
+from cobs import cobs  # noqa: E402
+
+
+def test_the_spec_tables_cover_every_message_type():
+    assert set(spec_types()) == {t.name for t in MsgType}
+    assert set(spec_layouts()) == {t.name for t in MsgType}
+    assert spec_layouts()["CAL_WRITE"] == spec_layouts()["CAL_DATA"]
+    assert spec_layouts()["START"] == []
+
+
+@pytest.mark.parametrize("vec", SERIAL, ids=lambda v: v["name"])
+def test_serial_vector_rederived_from_the_spec(vec):
+    assert reference_wire(vec).hex() == vec["hex"]
+
+
+def test_the_reference_sees_a_wrong_vector():
+    vec = dict(next(v for v in SERIAL if v["type"] == "CONFIG"))
+    vec["fields"] = dict(vec["fields"], heartbeat_ms=vec["fields"]["heartbeat_ms"] + 1)
+    assert reference_wire(vec).hex() != next(v for v in SERIAL if v["type"] == "CONFIG")["hex"]
+
+
+@pytest.mark.parametrize("vec", CAN, ids=lambda v: v["name"])
+def test_can_vector_rederived_by_cantools_and_the_spec(vec):
+    code, prio = spec_types()[vec["type"]]
+    assert int(vec["id"], 16) == prio << 26 | code << 20 | 1 << 16 | vec["node"]  # §7.1
+    db = cantools.database.load_file(str(DBC_PATH))
+    entry = db.get_message_by_frame_id(int(vec["id"], 16) & 0x1FFF0000)
+    f = dict(vec["fields"])
+    if vec["type"] == "SNAPSHOT":
+        counts, status = f.pop("counts"), f.pop("status")
+        f["count"] = len(counts)
+        for k, ((x, y, z), s) in enumerate(zip(counts, status)):
+            f.update({f"x_{k}": x, f"y_{k}": y, f"z_{k}": z, f"status_{k}": s})
+        for k in range(len(counts), 11):
+            f.update({f"x_{k}": 0, f"y_{k}": 0, f"z_{k}": 0, f"status_{k}": 0})
+    data = entry.encode(f, scaling=False, padding=False, strict=False) if f or entry.signals else b""
+    want = bytes.fromhex(vec["data"])
+    assert data[:len(want)] == want and not any(data[len(want):])

@@ -1,0 +1,144 @@
+/*
+ * main.c — the reference firmware (firmware_ref/src, unmodified) as a serial chip on QEMU
+ * mps2-an385: HAL callbacks over the port's UART, clock and a stub ADC, and the main loop.
+ *
+ * The stub ADC is a chip lying flat, top face up: (0, 0, +1 g) = (0, 0, 1024) counts at ±2 g,
+ * plus ±2 counts of deterministic noise per axis (xorshift32), status 0.
+ *
+ * Mutant builds (conformance must fail them; `make -C firmware_ref qemu MUTANT=...`):
+ *   -DMUTANT_DEAD_SENSOR   the ADC reads (0, 0, 0) with status OK
+ *   -DMUTANT_WRONG_CRC     frames are sent with CRC-16/XMODEM (init 0x0000) instead of CCITT-FALSE
+ *   -DCLOCK_DIVIDER=2      the clock runs at half speed: heartbeat and re-announce at twice their period
+ */
+#include <string.h>
+
+#include "board.h"
+#include "capsheet_fw.h"
+
+#ifndef CAPSHEET_QEMU_UID
+#define CAPSHEET_QEMU_UID 0x0123456789ABCDEFull
+#endif
+
+static uint32_t noise_state = 0x12345678u;
+
+static int16_t noise(void)
+{
+    uint32_t x = noise_state;
+    x ^= x << 13;
+    x ^= x >> 17;
+    x ^= x << 5;
+    noise_state = x;
+    return (int16_t)((int32_t)(x % 5u) - 2);
+}
+
+static int32_t read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status)
+{
+    (void)user;
+    (void)now_us;
+#ifdef MUTANT_DEAD_SENSOR
+    (void)noise;
+    xyz[0] = 0;
+    xyz[1] = 0;
+    xyz[2] = 0;
+#else
+    xyz[0] = noise();
+    xyz[1] = noise();
+    xyz[2] = (int16_t)(1024 + noise());
+#endif
+    *status = 0u;
+    return 0;
+}
+
+#ifdef MUTANT_WRONG_CRC
+static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
+{
+    uint8_t raw[CAPSHEET_CHIP_TX_WIRE_SIZE];
+    uint8_t wire[CAPSHEET_CHIP_TX_WIRE_SIZE];
+    int32_t n, k;
+    uint16_t crc;
+    (void)user;
+    n = capsheet_cobs_decode(data, len - 1u, raw, sizeof raw);
+    if (n < 2) {
+        return CAPSHEET_ERR_HAL;
+    }
+    crc = capsheet_crc16(raw, (size_t)n - 2u, 0x0000u);
+    raw[n - 2] = (uint8_t)(crc >> 8);
+    raw[n - 1] = (uint8_t)(crc & 0xFFu);
+    k = capsheet_cobs_encode(raw, (size_t)n, wire, sizeof wire - 1u);
+    if (k < 0) {
+        return CAPSHEET_ERR_HAL;
+    }
+    wire[k] = 0u;
+    uart_write(wire, (size_t)k + 1u);
+    return 0;
+}
+#else
+/* `data` is the chip's TX buffer, reused by the next send: uart_write returns once every byte
+ * is in the UART, so nothing needs copying (a DMA HAL would copy, see README.md). */
+static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
+{
+    (void)user;
+    uart_write(data, len);
+    return 0;
+}
+#endif
+
+static uint64_t read_uid(void *user)
+{
+    (void)user;
+    return CAPSHEET_QEMU_UID;
+}
+
+/* "Non-volatile" calibration: RAM that survives a protocol RESET (not a power cycle). */
+static capsheet_cal_t nv_cal[3];
+static uint8_t nv_valid[3];
+
+static int32_t cal_load(void *user, uint8_t axis, capsheet_cal_t *cal)
+{
+    (void)user;
+    if (axis > 2u || !nv_valid[axis]) {
+        return -1;
+    }
+    *cal = nv_cal[axis];
+    return 0;
+}
+
+static int32_t cal_store(void *user, uint8_t axis, const capsheet_cal_t *cal)
+{
+    (void)user;
+    if (axis > 2u) {
+        return -1;
+    }
+    nv_cal[axis] = *cal;
+    nv_valid[axis] = 1u;
+    return 0;
+}
+
+static const capsheet_hal_t hal = {0, read_axes, send_bytes, 0, read_uid, cal_load, cal_store};
+static const capsheet_chip_config_t config = {CAPSHEET_TRANSPORT_SERIAL, false,
+                                              CAPSHEET_CAP_CAL_STORAGE | CAPSHEET_CAP_MULTI_RANGE};
+static capsheet_chip_t chip;
+static uint8_t rx_buf[CAPSHEET_RX_BUFFER_SIZE];
+
+int main(void)
+{
+    uint8_t buf[32];
+    clock_init();
+    uart_init();
+    if (capsheet_chip_init(&chip, &config, &hal, rx_buf, sizeof rx_buf) != 0) {
+        for (;;) {
+        }
+    }
+    (void)capsheet_chip_power_on(&chip, clock_us());
+    for (;;) {
+        const size_t n = uart_read(buf, sizeof buf);
+        const uint64_t now = clock_us();
+        if (n > 0u) {
+            (void)capsheet_chip_rx_bytes(&chip, buf, n, now);
+        }
+        (void)capsheet_chip_poll(&chip, now);
+        if (n == 0u) {
+            __asm volatile("wfi"); /* woken by the UART RX interrupt or the 1 kHz SysTick */
+        }
+    }
+}

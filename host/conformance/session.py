@@ -1,0 +1,470 @@
+"""The conformance session: one chip under test, reached through a host transport.
+
+`Port` runs one reader thread over a `host.transport.Transport` (`SerialTransport` or
+`CanTransport`) and timestamps what arrives; every wait is event-driven (a condition variable,
+woken by each arrival) with an explicit timeout. `Session` tracks the chip under test (its uid,
+its current node id, its state as last seen) and gives the checks their few verbs:
+
+============== ====================================================================================
+``request``    send, then wait for this chip's answers: until ``n`` arrived or ``timeout_s``
+``silent``     send, then everything this chip answered within ``timeout_s`` (should be nothing)
+``statuses``   STATUS heartbeats of this chip, until ``n`` arrived or a timeout
+``fresh_boot`` RESET and its ACK + ANNOUNCE + INFO: the chip is in BOOT for the next 1 s
+``to_idle``    fresh boot, ASSIGN to the run's node id, CONFIG (heartbeat 100 ms)
+============== ====================================================================================
+
+Tolerated, never taken as an answer: STATUS heartbeats, and ANNOUNCE/INFO when the request does not
+ask for them (an unassigned chip re-announces every second; a gateway may forward other chips').
+Frames from other nodes are ignored.
+
+Timeouts (from ``timeout_s``, the ``--timeout`` option, default 0.5 s): an expected answer
+``max(1 s, 3 timeout_s)`` (`Session.answer_s`; the wait ends when it arrives); a window in which
+the chip must stay silent ``timeout_s``; a heartbeat ``max(1.5 s, 3 timeout_s)``; a re-announce 2.6 s.
+
+The port's own losses are kept apart from the chip's faults: every `DecodeError` the transport
+delivers (a damaged frame) and every CAN error frame counts in `Port.damaged`. A check during which
+the port lost frames and that failed is retried (`runner`); see `Port.lossy`.
+
+Transport errors (the port went away, a send failed) are raised as the transport raises them
+(`host.transport.TransportError`): they end the run.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Callable
+
+from host.transport import CanTransport, SerialTransport, Transport, TransportError, TransportOperationError
+from protocol.can import decode_can, split_id
+from protocol.framing import DecodeError, SampleBatch, StreamDecoder
+from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, ChipState, Config, Direction, GetInfo,
+                               Info, Message, MsgType, Reset, Start, Status, Stop)
+
+__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport", "RecordingDecoder",
+           "HEARTBEAT_MS"]
+
+#: STATUS period the run configures (CONFIG heartbeat_ms), ms
+HEARTBEAT_MS = 100
+
+
+class CheckFailed(AssertionError):
+    """The chip under test violated the clause; the message says how."""
+
+
+class Skip(Exception):
+    """The check cannot run (no chip found, or a broadcast check without --allow-broadcast)."""
+
+
+def acked(ans: list, node: int, command: int) -> bool:
+    """``ans`` is exactly one ACK of ``command`` from ``node`` (its ``detail`` is check 31's business)."""
+    return len(ans) == 1 and isinstance(ans[0], Ack) and ans[0].node == node and ans[0].command == command
+
+
+class RunAborted(Exception):
+    """The run cannot go on for a reason that is not the chip's (e.g. ``--node`` is another chip's)."""
+
+
+class PortLost(Exception):
+    """The port lost frames during the check: inconclusive, not a chip violation."""
+
+
+def require(cond: bool, what: str) -> None:
+    if not cond:
+        raise CheckFailed(what)
+
+
+# ---------------------------------------------------------------------------------------------
+# Raw-frame audits on top of the host transports (public API plus one decoder hook each)
+# ---------------------------------------------------------------------------------------------
+
+class RecordingDecoder(StreamDecoder):
+    """A `StreamDecoder` that also keeps the raw bytes of every run between delimiters.
+
+    Installed as a `SerialTransport`'s ``decoder``, so the §2/§9 check can compare each frame the
+    chip sent with the reference encoding of its content. ``raw`` holds ``(bytes,)`` runs, newest
+    last, at most ``keep``.
+    """
+
+    def __init__(self, *args, keep: int = 4096, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.raw: deque[bytes] = deque(maxlen=keep)
+        self._rec_partial = bytearray()
+
+    def feed(self, data: bytes) -> list:
+        parts = bytes(data).split(b"\x00")
+        for p in parts[:-1]:
+            run = bytes(self._rec_partial) + p
+            self._rec_partial.clear()
+            if run:
+                self.raw.append(run + b"\x00")
+        self._rec_partial += parts[-1]
+        if len(self._rec_partial) > 2048:
+            self._rec_partial.clear()
+        return super().feed(data)
+
+    def reset(self) -> None:  # the transport's reconnect calls it
+        self._rec_partial.clear()
+        super().reset()
+
+
+class AuditedCanTransport(CanTransport):
+    """`CanTransport` that audits each received identifier (§7.1: priority, no FD when it fits
+    classic CAN) and can send raw frames (undefined types, another version, standard ids).
+
+    Note: it relies on `CanTransport`'s ``_decode`` hook and its open ``_bus``; host/transport.py
+    offers no public raw-frame API yet (see docs/conformance.md).
+    """
+
+    def __init__(self, *args, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.bad_ids: list[str] = []
+        self.raw: deque = deque(maxlen=4096)  # (arbitration_id, data, is_fd)
+
+    def _decode(self, frames: list) -> list:
+        for f in frames:
+            if f.is_error_frame or f.is_remote_frame or not f.is_extended_id:
+                continue
+            self.raw.append((f.arbitration_id, bytes(f.data), bool(f.is_fd)))
+            ev = decode_can(f.arbitration_id, f.data, is_extended_id=True, is_fd=f.is_fd)
+            if isinstance(ev, Message) and ev.DIRECTION == Direction.CHIP_TO_HOST:
+                prio = split_id(f.arbitration_id)[0]
+                if prio != ev.PRIORITY:
+                    self.bad_ids.append(f"{ev.TYPE.name} sent with priority {prio}, the table says {ev.PRIORITY}")
+                if f.is_fd and len(ev.payload()) <= 8:
+                    self.bad_ids.append(f"{ev.TYPE.name} sent as CAN FD though it fits classic CAN")
+        return super()._decode(frames)
+
+    def send_frame(self, arbitration_id: int, data: bytes, *, extended: bool = True, fd: bool = False) -> None:
+        bus = self._bus
+        if bus is None:
+            raise TransportError(f"CAN bus {self.name!r} is not connected", self.name)
+        m = self._can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended, is_fd=fd)
+        with self._send_lock:
+            try:
+                bus.send(m, timeout=1.0)
+            except Exception as exc:  # noqa: BLE001 - python-can raises many kinds
+                raise TransportError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# The port: a reader thread, arrival times, event-driven waits
+# ---------------------------------------------------------------------------------------------
+
+class Port:
+    """The transport to the device, read by one thread; ``next(deadline)`` blocks on arrivals.
+
+    Parameters
+    ----------
+    transport : Transport
+        An open `SerialTransport` (any pyserial URL: a pty, ``socket://`` to QEMU, a USB adapter)
+        or `CanTransport` (best: `AuditedCanTransport`, which also audits identifiers).
+    """
+
+    def __init__(self, transport: Transport) -> None:
+        self.transport = transport
+        kind = transport.capabilities.kind
+        self.kind = "can" if kind == "can" else "serial"
+        if isinstance(transport, SerialTransport) and not isinstance(transport.decoder, RecordingDecoder):
+            transport.decoder = RecordingDecoder(batch_samples=True)
+        self._q: deque = deque()
+        self._cond = threading.Condition()
+        self._stop = threading.Event()
+        self.error: BaseException | None = None
+        self.frames = 0  #: messages decoded
+        self.damaged = 0  #: frames that arrived damaged (DecodeError) plus CAN error frames
+        self.damage: Counter = Counter()  #: reason -> count
+        self._err_base = transport.stats.errors.get("CAN_ERROR_FRAME", 0)
+        self._disc_base = transport.stats.disconnects
+        self._thread = threading.Thread(target=self._reader, name="conformance-port", daemon=True)
+        self._thread.start()
+
+    # -- the reader
+    def _reader(self) -> None:
+        while not self._stop.is_set():
+            try:
+                events = self.transport.recv(0.05)
+            except TransportError as exc:
+                if not self._stop.is_set():
+                    self.error = exc
+                with self._cond:
+                    self._cond.notify_all()
+                return
+            if self.transport.stats.disconnects > self._disc_base:
+                self.error = TransportOperationError(f"The port {self.transport.name!r} went away during the run",
+                                                     self.transport.name)
+                with self._cond:
+                    self._cond.notify_all()
+                return
+            if not events:
+                continue
+            t = time.monotonic()
+            with self._cond:
+                for ev in events:
+                    if isinstance(ev, SampleBatch):
+                        for m in ev.messages():
+                            self.frames += 1
+                            self._q.append((t, m))
+                    elif isinstance(ev, DecodeError):
+                        self.damaged += 1
+                        self.damage[ev.reason.name] += 1
+                        self._q.append((t, ev))
+                    else:
+                        self.frames += 1
+                        self._q.append((t, ev))
+                self._cond.notify_all()
+
+    def _error_frames(self) -> int:
+        return self.transport.stats.errors.get("CAN_ERROR_FRAME", 0) - self._err_base
+
+    @property
+    def lost(self) -> int:
+        """Frames damaged on the port so far (decode errors and CAN error frames)."""
+        return self.damaged + self._error_frames()
+
+    @property
+    def lossy(self) -> bool:
+        """The port damages some frames but delivers most intact (a noisy port, not a broken chip:
+        a chip whose every frame is damaged, e.g. a wrong CRC, is the chip's fault, §6.2)."""
+        return self.lost > 0 and self.frames >= 2 * self.lost
+
+    def next(self, deadline: float):
+        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline`` (monotonic).
+
+        Raises the transport's error if the port went away."""
+        with self._cond:
+            while not self._q:
+                if self.error is not None:
+                    raise self.error
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self._cond.wait(left)
+            return self._q.popleft()
+
+    def drain(self) -> None:
+        with self._cond:
+            self._q.clear()
+
+    # -- sending (TransportError propagates)
+    def send(self, msg: Message) -> float:
+        if self.error is not None:
+            raise self.error
+        self.transport.send(msg)
+        return time.monotonic()
+
+    def send_raw(self, type_code: int, node: int, payload: bytes, *, version: int | None = None) -> float:
+        """A frame a conforming host never sends (undefined type, wrong length or version)."""
+        from protocol.can import make_id
+        from protocol.framing import encode_frame
+        from protocol.messages import PROTOCOL_VERSION
+        v = PROTOCOL_VERSION if version is None else version
+        if self.kind == "serial":
+            self.transport.send_bytes(encode_frame(type_code, node, payload, version=v))
+        else:
+            self._can_raw(make_id(type_code, node, priority=4, version=v), payload)
+        return time.monotonic()
+
+    def send_bytes(self, data: bytes) -> float:
+        self.transport.send_bytes(data)
+        return time.monotonic()
+
+    def _can_raw(self, arbitration_id: int, data: bytes, extended: bool = True) -> None:
+        if not isinstance(self.transport, AuditedCanTransport):
+            raise Skip("raw CAN frames need AuditedCanTransport")
+        self.transport.send_frame(arbitration_id, data, extended=extended)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The session: one chip, tracked through its node id
+# ---------------------------------------------------------------------------------------------
+
+_TOLERATED = (Status, Announce, Info)
+
+
+@dataclass
+class Session:
+    """The chip under test and the run's settings. See the module docstring."""
+
+    port: Port
+    timeout_s: float = 0.5
+    node: int | None = None  #: the node id assigned for the run (None: pick a free one)
+    slack_ms: float = 10.0
+    uid: int | None = None  #: the chip under test (None: the first to answer)
+    allow_broadcast: bool = False
+    cur: int | None = None  #: the chip's current node id
+    info: Info | None = None
+    first_info: Info | None = None  #: INFO as found at discovery
+    nodes_seen: dict = field(default_factory=dict)  #: node id -> uid (or None) of every chip heard
+    boot_t: float = 0.0  #: when the chip last entered BOOT (its ANNOUNCE arrived)
+    my_nodes: set = field(default_factory=set)  #: every node id the chip under test spoke from
+    acks: list = field(default_factory=list)  #: every ACK the chip under test sent (§4.5 detail)
+
+    @property
+    def answer_s(self) -> float:
+        """How long to wait for an expected answer: ``max(1 s, 3 timeout_s)``. The wait ends as soon as
+        the answer is there, so this costs time only when the chip does not answer; the windows in
+        which a chip must stay silent are ``timeout_s``."""
+        return max(1.0, 3 * self.timeout_s)
+
+    # ---- receiving
+    def mine(self, m) -> bool:
+        if not isinstance(m, Message) or m.DIRECTION != Direction.CHIP_TO_HOST:
+            return False
+        if isinstance(m, Announce):
+            return self.uid is None or m.uid == self.uid
+        # its current node, or the node this run assigns (the ACK to ASSIGN comes from the new id)
+        return m.node == self.cur or (self.node is not None and m.node == self.node)
+
+    def collect(self, duration_s: float, stop: Callable[[list], bool] | None = None) -> list:
+        """This chip's messages, ``[(arrival_time, msg)]``, for ``duration_s`` or until ``stop(msgs)``."""
+        out: list = []
+        deadline = time.monotonic() + duration_s
+        while True:
+            item = self.port.next(deadline)
+            if item is None:
+                return out
+            t, m = item
+            if isinstance(m, Message) and m.DIRECTION == Direction.CHIP_TO_HOST:
+                self.nodes_seen.setdefault(m.node, m.uid if isinstance(m, Announce) else None)
+            if not self.mine(m):
+                continue
+            if isinstance(m, Announce):
+                self.cur = m.node  # a re-announce comes from a new provisional id
+                self.boot_t = t
+            self.my_nodes.add(m.node)
+            if isinstance(m, Ack):
+                self.acks.append(m)
+                if m.command == MsgType.ASSIGN:
+                    self.cur = m.node  # assigned (even by an ASSIGN it should have ignored)
+            out.append((t, m))
+            if stop is not None and stop([x for _, x in out]):
+                return out
+
+    def drain(self) -> None:
+        """Consume what has arrived (keeping track of the chip's node id), before a new request."""
+        self.collect(0.0)
+
+    @staticmethod
+    def answers(got: list, keep: tuple = ()) -> list[Message]:
+        """Drop what is tolerated (heartbeats, re-announces) unless its type is in ``keep``."""
+        return [m for _, m in got if not isinstance(m, _TOLERATED) or isinstance(m, keep)]
+
+    def request(self, msg: Message, n: int = 1, timeout_s: float | None = None, keep: tuple = ()) -> list[Message]:
+        """Send ``msg`` and return this chip's first ``n`` answers (fewer on timeout)."""
+        self.drain()
+        self.port.send(msg)
+        got = self.collect(timeout_s or self.answer_s, lambda ms: len(self._ans(ms, keep)) >= n)
+        return self.answers(got, keep)
+
+    def _ans(self, ms: list, keep: tuple) -> list:
+        return [m for m in ms if not isinstance(m, _TOLERATED) or isinstance(m, keep)]
+
+    def request_info(self, node: int) -> list[Message]:
+        """GET_INFO to ``node``: the ANNOUNCE + INFO answer."""
+        return self.request(GetInfo(node), 2, keep=(Announce, Info))
+
+    def raw(self, type_code: int, node: int, payload: bytes, version: int | None = None, n: int = 1,
+            timeout_s: float | None = None) -> list[Message]:
+        self.drain()
+        self.port.send_raw(type_code, node, payload, version=version)
+        got = self.collect(timeout_s or self.answer_s, lambda ms: len(self._ans(ms, ())) >= n)
+        return self.answers(got)
+
+    def silent(self, send: Message | Callable[[], object], duration_s: float | None = None) -> list[Message]:
+        """Send and return everything this chip answered within the timeout (should be nothing)."""
+        self.drain()
+        if isinstance(send, Message):
+            self.port.send(send)
+        else:
+            send()
+        return self.answers(self.collect(duration_s or self.timeout_s))
+
+    def statuses(self, n: int, timeout_s: float | None = None) -> list:
+        """``[(arrival_time, Status)]``: this chip's next ``n`` heartbeats (fewer on timeout)."""
+        got = self.collect(timeout_s or max(1.5, 3 * self.timeout_s),
+                           lambda ms: sum(isinstance(m, Status) for m in ms) >= n)
+        return [(t, m) for t, m in got if isinstance(m, Status)]
+
+    def status(self) -> Status:
+        """The next STATUS heartbeat."""
+        self.drain()
+        st = self.statuses(1)
+        require(bool(st), f"no STATUS heartbeat within {max(1.5, 3 * self.timeout_s):.1f} s")
+        return st[-1][1]
+
+    # ---- getting the chip to a known state
+    def need_chip(self) -> None:
+        if self.info is None or self.cur is None:
+            raise Skip("no chip found")
+
+    def relocate(self) -> None:
+        """Broadcast GET_INFO (read-only) and take the chip's node id from its ANNOUNCE."""
+        self.drain()
+        self.port.send(GetInfo(0))
+        self.collect(self.answer_s, lambda ms: any(isinstance(m, Announce) for m in ms))
+
+    def fresh_boot(self) -> None:
+        """RESET: ACK, ANNOUNCE, INFO. The chip then stays at this provisional id for 1 s."""
+        self.need_chip()
+        ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
+        if not ans:  # it moved (a re-announce we did not hear: lost on the port): find it, once
+            self.relocate()
+            ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
+        require(len(ans) >= 3 and isinstance(ans[0], Ack) and ans[0].command == MsgType.RESET and isinstance(ans[1], Announce)
+                and isinstance(ans[2], Info), f"RESET not answered ACK, ANNOUNCE, INFO: {ans}")
+        self.cur = ans[1].node
+
+    def assign_without_reset(self, heartbeat_ms: int = HEARTBEAT_MS) -> None:
+        """ASSIGN (and CONFIG) the chip where it is, without a RESET: IDLE at ``self.node``."""
+        self.need_chip()
+        ans = self.request_info(self.cur)  # where it is now (an unassigned chip moves every second)
+        if len(ans) < 2:
+            self.relocate()
+            ans = self.request_info(self.cur)
+        if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING:
+            self.request(Stop(self.cur))
+        ans = self.request(Assign(self.cur, new_node=self.node, link=0, uid_low=self.uid & 0xFFFFFFFF))
+        require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
+        self.cur = self.node
+        ans = self.request(Config(self.node, rate_hz=145, range=0, filter=0, heartbeat_ms=heartbeat_ms))
+        require(acked(ans, self.node, MsgType.CONFIG), f"CONFIG answered {ans}")
+
+    def to_idle(self, heartbeat_ms: int = HEARTBEAT_MS) -> None:
+        """Fresh boot, ASSIGN to the run's node id, CONFIG: the chip is IDLE at ``self.node``."""
+        self.fresh_boot()
+        ans = self.request(Assign(self.cur, new_node=self.node, link=0, uid_low=self.uid & 0xFFFFFFFF))
+        require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
+        self.cur = self.node
+        ans = self.request(Config(self.node, rate_hz=145, range=0, filter=0, heartbeat_ms=heartbeat_ms))
+        require(acked(ans, self.node, MsgType.CONFIG), f"CONFIG answered {ans}")
+
+    def ensure_idle(self) -> None:
+        """IDLE at the run's node (without a RESET when it already is)."""
+        self.need_chip()
+        if self.cur == self.node:
+            ans = self.request_info(self.node)
+            if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.IDLE:
+                return
+            if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING:
+                if acked(self.request(Stop(self.node)), self.node, MsgType.STOP):
+                    return
+        self.to_idle()
+
+    def to_streaming(self) -> None:
+        self.ensure_idle()
+        ans = self.request(Start(self.node))
+        require(acked(ans, self.node, MsgType.START), f"START answered {ans}")
+
+    def pick_node(self) -> int:
+        """The highest assigned node id no chip was heard from (so a full sheet is not disturbed)."""
+        for n in range(NODE_MAX_ASSIGNED, 0, -1):
+            if n not in self.nodes_seen:
+                return n
+        raise Skip("no free node id")  # pragma: no cover - 32767 chips on one port
