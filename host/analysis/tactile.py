@@ -6,7 +6,7 @@ are also estimated from the surface deformation and Young's modulus of the mater
 
 Pipeline for one snapshot (`TactileSensor.process`):
 
-1. Shape: `host.estimator.estimate` with the **rest shape as the prior** (``previous=``), every
+1. Shape: `host.estimator.estimate` with the **rest shape as the prior** (``rest=``), every
    snapshot (not the previous snapshot: a flat level sheet is the paper's unsolvable Case 1 for
    yaw, and chaining priors would let its horizontal layout drift; heights need no yaw).
 2. Deformation (`deformation`): the estimate overlaid on the rest shape by a trimmed rigid fit
@@ -715,8 +715,8 @@ class TactileSensor:
                    ) -> RestShape:
         """Learn the rest shape from snapshots of an untouched sheet, shape ``(n_links, 3)``
         each, m/s² (the estimator with ``prior`` or its own rest layout as prior)."""
-        prev = None if prior is None else prior.prior
-        ests = [estimate(r, rows, cols, link_length, valid=valid, previous=prev)
+        rest = None if prior is None else prior.yaws
+        ests = [estimate(r, rows, cols, link_length, valid=valid, rest=rest)
                 for r in readings]
         return RestShape.learn(ests)
 
@@ -724,7 +724,7 @@ class TactileSensor:
                 t_s: float | None = None) -> TactileFrame:
         """One snapshot: readings ``(n_links, 3)`` m/s², sensor frames, DESIGN.md link order."""
         est = estimate(readings, self.rest.rows, self.rest.cols, self.rest.link_length,
-                       valid=valid, previous=self.rest.prior)
+                       valid=valid, rest=self.rest.yaws)
         d, _ = deformation(est.joints, self.rest)
         found = find_contacts(d, self.rest, self.foam, self.settings)
         if found:  # second pass: fit the rigid overlay without the dents and their tails
