@@ -62,6 +62,7 @@ from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.ndimage import uniform_filter
 from scipy.sparse.linalg import splu
 
 from protocol.lattice import Lattice
@@ -98,8 +99,12 @@ BEND_STD_RAD = 0.1
 #: Weight of the shear prior (a cell's corner angle towards the rest's) on a flat cell; a cell
 #: of tilt θ gets ``SHEAR_WEIGHT · exp(−(θ / (FLAT_TILT_NOISE · σ))²)``.
 SHEAR_WEIGHT = 1e-3
+#: ... when the rest shape is given (``rest=``): then it is known, not guessed, and holds harder.
+SHEAR_WEIGHT_REST = 1e-2
 #: A cell counts as flat (locally unobservable, Case 1) while its tilt is below ~this many σ.
 FLAT_TILT_NOISE = 3.0
+#: ... averaged over (2 FLAT_RADIUS + 1)² cells around it.
+FLAT_RADIUS = 3
 #: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
 PRIOR_WEIGHT_MIN = 1e-8
 #: Gauss-Newton stops when the largest yaw step is below this, radians.
@@ -902,19 +907,26 @@ def _check_previous(previous, n: int, rows: int, cols: int) -> None:
                          "estimate cannot seed the next one; pass previous=None)")
 
 
-def _flatness(st, r, norm_g, noise, units):
-    """Per unit, ``h = exp(−(θ/θ0)²)`` in [0, 1]: 1 where the unit is level within the noise
-    (Case 1, locally unobservable), 0 where it is clearly tilted. θ² is twice the mean of
-    ``1 − cos`` of its links' sensor-z tilts (cos from the reading: ``s_z/|s|``);
+def _flatness(st, r, norm_g, noise):
+    """Per unit (all units, row-major), ``h = exp(−(θ/θ0)²)`` in [0, 1]: 1 where the region
+    around the unit is level within the noise (Case 1, unobservable), 0 where it is clearly
+    tilted. θ² is twice the mean of ``1 − cos`` of the links' sensor-z tilts (cos from the
+    reading: ``s_z/|s|``), averaged over the (2 `FLAT_RADIUS` + 1)² units around;
     θ0 = `FLAT_TILT_NOISE` · σ. Noise-free readings (σ = 0) give 0 everywhere."""
+    units = st.lattice.units.reshape(-1, 4)
     if noise <= 0.0:
         return np.zeros(units.shape[0])
     cz = r[:, 2] / np.maximum(norm_g * G0, 1e-300)
     th2 = 2.0 * (1.0 - cz[units]).mean(axis=1)
+    if FLAT_RADIUS > 0:
+        # regional: a level strip between tilted cells (a cylinder's crest) is held by its
+        # tilted neighbours through the lattice; only wide level regions need the prior
+        th2 = uniform_filter(th2.reshape(st.rows - 1, st.cols - 1), size=2 * FLAT_RADIUS + 1,
+                             mode="nearest").ravel()
     return np.exp(-np.maximum(th2, 0.0) / (FLAT_TILT_NOISE * noise) ** 2)
 
 
-def _prior_weights(prior, st, r, norm_g, noise):
+def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
 
     "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
@@ -926,14 +938,14 @@ def _prior_weights(prior, st, r, norm_g, noise):
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
     if prior == "adaptive":
         w[:st.n_bend] = max((noise / BEND_STD_RAD) ** 2, PRIOR_WEIGHT_MIN)
-        units = st.lattice.units.reshape(-1, 4)[st.shear_unit]
-        w[st.n_bend:] = np.maximum(SHEAR_WEIGHT * _flatness(st, r, norm_g, noise, units),
-                                   PRIOR_WEIGHT_MIN)
+        h = _flatness(st, r, norm_g, noise)[st.shear_unit]
+        sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
+        w[st.n_bend:] = np.maximum(sw * h, PRIOR_WEIGHT_MIN)
     elif prior == "fixed":
         lam[:] = FIXED_PRIOR_WEIGHT
     elif prior == "local":
         units = st.lattice.units.reshape(-1, 4)
-        h = _flatness(st, r, norm_g, noise, units)
+        h = _flatness(st, r, norm_g, noise)
         acc = np.bincount(units.ravel(), weights=np.repeat(h, 4), minlength=st.n_links)
         cnt = np.bincount(units.ravel(), minlength=st.n_links)
         hl = acc / np.maximum(cnt, 1)
@@ -1094,7 +1106,8 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         if pstate is not None and pstate[0] is st:
             lu = pstate[1]
         noise_est = _noise_from_norms(norm, vmask)
-        prior_w, bend_w = _prior_weights(prior, st, rr, np.where(vmask, norm, 1.0), noise_est)
+        prior_w, bend_w = _prior_weights(prior, st, rr, np.where(vmask, norm, 1.0), noise_est,
+                                         rest_yaw is not None)
         # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
         tol = max(YAW_TOL_RAD, YAW_TOL_NOISE * noise_est)
         gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
