@@ -107,6 +107,10 @@ FLAT_TILT_NOISE = 3.0
 FLAT_RADIUS = 3
 #: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
 PRIOR_WEIGHT_MIN = 1e-8
+#: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there), "cholmod"
+#: (scikit-sparse, optional: ``pip install 'capture-sheet[fast]'``, needs libsuitesparse-dev)
+#: or "auto" (CHOLMOD when installed). benchmarks/bench_estimator.py measures both.
+LINEAR_SOLVER = "auto"
 #: Gauss-Newton stops when the largest yaw step is below this, radians.
 YAW_TOL_RAD = 1e-4
 #: ... or below this fraction of the readings' noise σ (rad ≈ fraction of g): noise moves yaws by ~σ.
@@ -680,12 +684,45 @@ class _YawProblem:
         data = data[:st.nnz]
         data[st.diag_slot] += self.lam + mu
         A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
-        return splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                    options=dict(SymmetricMode=True))
+        return _factorise(st, A)
 
     def step(self, lu, grad):
         st = self.st
-        return lu.solve(-grad[st.perm_inv])[st.perm_of_var]
+        return _solve(lu, -grad[st.perm_inv])[st.perm_of_var]
+
+
+def _cholmod():
+    """scikit-sparse's CHOLMOD module, or None when not installed (it is optional)."""
+    try:
+        from sksparse import cholmod
+    except ImportError:  # pragma: no cover - depends on the installation
+        return None
+    return cholmod
+
+
+def _backend() -> str:
+    if LINEAR_SOLVER == "auto":
+        return "cholmod" if _cholmod() is not None else "splu"
+    return LINEAR_SOLVER
+
+
+def _factorise(st: "_Structure", A):
+    """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
+    the fixed ordering, or CHOLMOD with its symbolic analysis (AMD) cached per structure."""
+    if _backend() == "cholmod":
+        cm = _cholmod()
+        sym = getattr(st, "_cholmod_sym", None)
+        if sym is None:
+            sym = cm.analyze(A, mode="supernodal", ordering_method="amd")
+            st._cholmod_sym = sym
+        return ("cholmod", sym.cholesky(A))
+    return ("splu", splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                         options=dict(SymmetricMode=True)))
+
+
+def _solve(fac, b):
+    kind, f = fac
+    return f(b) if kind == "cholmod" else f.solve(b)
 
 
 def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
@@ -1224,7 +1261,7 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     data = data[:st.nnz]
     data[st.diag_slot] += eps
     A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(nv, nv))
-    lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    lu = _factorise(st, A)
     S = UNCERTAINTY_SAMPLES
     dg = np.zeros((S, n))
     for s_ in range(S):
@@ -1236,7 +1273,7 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
                              weights=(Jr * g.standard_normal(Jr.shape[0])[:, None]).ravel(),
                              minlength=nv + 1)
         b = b[:nv] + np.sqrt(eps) * g.standard_normal(nv)
-        dg[s_, st.var_links] = lu.solve(b[st.perm_inv])[st.perm_of_var]
+        dg[s_, st.var_links] = _solve(lu, b[st.perm_inv])[st.perm_of_var]
     dg[:, st.valid] -= dg[:, st.valid].mean(axis=1, keepdims=True)
     ys = np.sqrt(np.mean(dg * dg, axis=0))
     ys[~st.valid] = np.nan
