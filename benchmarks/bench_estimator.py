@@ -173,11 +173,25 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer snapshots, no 128x128")
     ap.add_argument("--repeats", type=int, default=5, help="timed passes of global per size")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--sizes", default=None,
+                    help="comma-separated lattice sizes to run (default 14,32,64,128)")
     args = ap.parse_args(argv)
     plan = {14: (400, 3), 32: (100, 1), 64: (30, 0), 128: (10, 0)}
     if args.quick:
         plan = {14: (50, 1), 32: (20, 0), 64: (5, 0)}
-    results = [run(n, g, p, 2 if args.quick else args.repeats, args.seed)
+    if args.sizes:
+        try:
+            sizes = [int(v) for v in args.sizes.split(",")]
+        except ValueError:
+            ap.error(f"--sizes: expected integers like 14,64, got {args.sizes!r}")
+        bad = [v for v in sizes if v not in plan and v not in (14, 32, 64, 128)]
+        if bad:
+            ap.error(f"--sizes: choose among 14, 32, 64, 128 (got {bad})")
+        full = {14: (400, 3), 32: (100, 1), 64: (30, 0), 128: (10, 0)}
+        plan = {v: plan.get(v, full[v]) for v in sizes}
+    if args.repeats < 1:
+        ap.error("--repeats must be >= 1")
+    results = [run(n, g, p, min(2, args.repeats) if args.quick else args.repeats, args.seed)
                for n, (g, p) in plan.items()]
     links = np.array([r["links"] for r in results], float)
     ms = np.array([min(r[k]["ms_per_snapshot_best"] for k in ("global", "global_cholmod")
