@@ -199,7 +199,8 @@ def main(argv=None) -> int:
     slope = float(np.polyfit(np.log(links), np.log(ms), 1)[0]) if len(links) > 1 else None
     print(json.dumps({"benchmark": "estimator", "noise_pct_g": NOISE_PCT_G, "threads": 1,
                       "warm_start": "global: previous snapshot; paper: none (as published)",
-                      "scaling": {"ms_per_snapshot_vs_links_exponent": round(slope, 3),
+                      "scaling": {"ms_per_snapshot_vs_links_exponent":
+                                  None if slope is None else round(slope, 3),
                                   "us_per_link": [round(1e3 * m / k, 3)
                                                   for m, k in zip(ms, links)]},
                       "results": results}, indent=2))

@@ -107,10 +107,11 @@ FLAT_TILT_NOISE = 3.0
 FLAT_RADIUS = 3
 #: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
 PRIOR_WEIGHT_MIN = 1e-8
-#: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there), "cholmod"
-#: (scikit-sparse, optional: ``pip install 'capture-sheet[fast]'``, needs libsuitesparse-dev)
-#: or "auto" (CHOLMOD when installed). benchmarks/bench_estimator.py measures both.
-LINEAR_SOLVER = "auto"
+#: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there; the default:
+#: benchmarks/bench_estimator.py found no consistent gain from CHOLMOD on warm runs, -17 % to
+#: +29 % snapshots/s by size), "cholmod" (scikit-sparse, optional: ``pip install
+#: 'capture-sheet[fast]'``, needs libsuitesparse-dev) or "auto" (CHOLMOD when installed).
+LINEAR_SOLVER = "splu"
 #: Gauss-Newton stops when the largest yaw step is below this, radians.
 YAW_TOL_RAD = 1e-4
 #: ... or below this fraction of the readings' noise σ (rad ≈ fraction of g): noise moves yaws by ~σ.
@@ -708,12 +709,12 @@ def _backend() -> str:
 
 def _factorise(st: "_Structure", A):
     """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
-    the fixed ordering, or CHOLMOD with its symbolic analysis (AMD) cached per structure."""
+    the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
     if _backend() == "cholmod":
         cm = _cholmod()
         sym = getattr(st, "_cholmod_sym", None)
         if sym is None:
-            sym = cm.analyze(A, mode="supernodal", ordering_method="amd")
+            sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
             st._cholmod_sym = sym
         return ("cholmod", sym.cholesky(A))
     return ("splu", splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
