@@ -2,7 +2,8 @@
 
 * only the command line (host/cli/) imports the simulator (virtual_sheet);
 * protocol/ imports neither pyserial nor python-can, nor any other capsheet package;
-* the science (host/analysis/) imports only protocol.lattice, numpy/scipy/matplotlib and itself;
+* the science (host/analysis/) imports only protocol.lattice, numpy/scipy/matplotlib (and the
+  optional sksparse) and itself;
 * firmware_ref and virtual_sheet do not import each other's chip modules in a cycle.
 """
 
@@ -70,7 +71,9 @@ def test_protocol_does_no_io_and_depends_on_nothing_of_ours(lib):
 
 
 def test_the_science_imports_only_the_lattice_and_itself():
-    allowed = ("protocol.lattice", "host.analysis", "numpy", "scipy", "matplotlib", "__future__")
+    # sksparse: the estimator's optional CHOLMOD backend (scipy's splu when absent)
+    allowed = ("protocol.lattice", "host.analysis", "numpy", "scipy", "sksparse", "matplotlib",
+               "__future__")
     stdlib = sys.stdlib_module_names
 
     def forbidden(m: str) -> bool:

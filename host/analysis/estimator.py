@@ -1,6 +1,6 @@
 """Shape estimator: from one snapshot of link readings to the 3D shape of the whole sheet.
 
-Conventions are DESIGN.md's and are not restated differently here: joints ``P[i, j]`` of shape
+Conventions are docs/design.md's and are not restated differently here: joints ``P[i, j]`` of shape
 ``(rows, cols, 3)`` in metres, world frame z up; link order and the 4-link units come from
 `protocol.lattice.Lattice` only (``endpoints``, ``units``: ``d0 + d1 = d3 + d2``,
 ``n0 + n2 = n1 + n3``); sensor frame x along the link, z the sheet normal (top face); readings are
@@ -19,21 +19,33 @@ Two methods, same input, same output (`ShapeEstimate`):
     estimated unit shapes"). Missing links are not supported (the paper has none).
 
 ``method="global"`` (default)
-    Roll and pitch as above. All yaws at once: every unit's eq. (4) and (6), xy parts, are linear in
-    ``z_k = exp(iγ_k)`` (DESIGN.md), ``Σ_m s_m c_{u,m} z_{u,m} = 0`` with ``c = cos β`` for (4) and
-    ``c = sin β cos α − i sin α`` for (6). One sparse nonlinear least-squares problem in the yaws
-    (Gauss-Newton with Levenberg-Marquardt damping): one yaw fixed as gauge; a weak prior
-    ``λ Σ wrap(γ − γ_prior)²`` keeps flat regions (the paper's Case 1) defined; its target is the
-    rest layout (i-links yaw 0, j-links yaw π/2), or with ``previous`` a blend of mostly the
-    previous yaws and a little of the rest layout (`PRIOR_MEMORY`: pure memory would let the
-    unobservable modes random-walk over a long run); warm start from ``previous``, whose
-    factorisation of the Gauss-Newton matrix is reused while it still contracts well.
-    The normal matrix has a fixed sparsity pattern per lattice and mask; pattern, fill-reducing
-    ordering and index maps are computed once and cached. Then joints by least squares over all
-    valid links, ``min Σ ‖p_b − p_a − L d‖²`` (heights follow from the pitches alone), with the
-    graph Laplacian factorised once per lattice and mask. A link marked invalid contributes no
-    constraint: its two units are dropped from the yaw problem and the link from the joint problem;
-    its reported direction is the chord between its estimated joints.
+    Roll and pitch as above. All yaws at once, one sparse nonlinear least-squares problem
+    (Gauss-Newton with Levenberg-Marquardt damping, one yaw fixed as gauge), warm-started from
+    ``previous`` (its yaws and its factorisation, reused while it still contracts well). Terms,
+    all in ``z_k = exp(iγ_k)`` (docs/estimator.md has the derivation and the measurements):
+
+    * loop closure, eq. (4), xy part, per unit: ``Σ_m s_m cos β_m z_m = 0`` (exact);
+    * the normal model (``model="cells"``, default): per link, its sensor y (known up to yaw)
+      is perpendicular to the mean normal of its (one or two) cells, each cell's normal being
+      ``A × C`` with ``A``, ``C`` the sums of its two i- and two j-link directions. This is the
+      sheet normal a chip on the cloth sees, and it is exact on a Chebyshev net, where eq. (6)
+      is not (``model="eq6"`` keeps the paper's assumption, weighted `NORMAL_WEIGHT`);
+    * the prior (``prior="adaptive"``, default): what the data cannot determine is held by
+      pairs of yaw differences, never by absolute yaws — the bending of the lattice (parallel
+      neighbours) and the corner angle of cells that are level within the noise (the paper's
+      Case 1) — towards the rest shape's (``rest=``; default square cells). Their weights scale
+      with the readings' noise, estimated per snapshot from the spread of ``|s|`` about g, so
+      that noise-free readings meet only a floor and the prior never pulls where the data
+      decide; the target is never the previous estimate, so long runs do not drift.
+
+    The normal matrix has a fixed sparsity pattern per lattice, mask and model; pattern,
+    fill-reducing ordering and index maps are computed once and cached. Then joints by least
+    squares over all valid links, ``min Σ ‖p_b − p_a − L d‖²`` (heights follow from the pitches
+    alone), with the graph Laplacian factorised once per lattice and mask. A link marked
+    invalid contributes no constraint: its two units are dropped from the yaw problem and the
+    link from the joint problem; its reported direction is the chord between its estimated
+    joints. `ShapeEstimate.yaw_std` and ``joint_std`` state the data's uncertainty (computed on
+    first access).
 
 In both, joint ``(0, 0)`` is placed at the origin. The estimate is defined up to a rotation about
 world z (yaw gauge); `overlay_error` and `error_percent_of_side` compare shapes as the paper does,
@@ -46,10 +58,11 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.ndimage import uniform_filter
 from scipy.sparse.linalg import splu
 
 from protocol.lattice import Lattice
@@ -57,19 +70,52 @@ from protocol.lattice import Lattice
 from .metrics import error_percent_of_side, overlay, overlay_error
 
 __all__ = ["ShapeEstimate", "estimate", "roll_pitch", "solvability", "overlay",
-           "overlay_error", "error_percent_of_side", "METHODS"]
+           "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]
 
 METHODS = ("global", "paper")
+#: Standard gravity, m/s² (protocol.constants.G0; host/analysis imports only protocol.lattice).
+G0 = 9.80665
+MODELS = ("cells", "eq6")
+#: Plausible |reading| range, in g: outside it a link is a dead, stuck or saturated chip.
+READING_NORM_RANGE = (0.5, 1.5)
 
-#: Prior weight λ on ``wrap(γ − γ_prior)²`` relative to the unit-scale eq. (4)/(6) residuals.
-PRIOR_WEIGHT = 1e-2
-#: Share of the previous estimate in the prior's target (the rest is the rest layout): 1 would let
-#: unobservable (Case 1) modes random-walk over a long run of snapshots, 0 forgets the past.
-PRIOR_MEMORY = 0.5
+#: The priors `estimate` offers (docs/estimator.md compares them): "adaptive" (default) —
+#: bending + flat-cell shear, both scaled by the readings' noise; "off" — only the floors that
+#: keep the problem regular (the data alone); "fixed" — the former prior, ``FIXED_PRIOR_WEIGHT``
+#: on every yaw towards the rest; "local" — that yaw prior weighted by the cell's flatness.
+PRIORS = ("adaptive", "off", "fixed", "local")
+#: Weight of the "fixed"/"local" priors on ``wrap(γ − γ_rest)²`` (the estimator's former prior).
+FIXED_PRIOR_WEIGHT = 1e-2
+#: Least weight of the yaw prior towards the rest yaws (keeps a link without constraints defined).
+ABS_PRIOR_FLOOR = 1e-10
 #: Weight of the normal-assumption residuals (eq. 6) relative to the loop closure (eq. 4).
 NORMAL_WEIGHT = 0.2
+#: Weight of the roll residuals (model "cells") relative to the loop closure (eq. 4); measured
+#: best at 5 % g among 0.03-3 (docs/estimator.md).
+ROLL_WEIGHT = 0.3
+#: Prior std of the bending (yaw difference of parallel neighbours beyond the rest's), rad: the
+#: bending prior's weight is ``(σ/BEND_STD_RAD)²`` for readings of noise σ (fraction of g).
+BEND_STD_RAD = 0.1
+#: Weight of the shear prior (a cell's corner angle towards the rest's) on a flat cell; a cell
+#: of tilt θ gets ``SHEAR_WEIGHT · exp(−(θ / (FLAT_TILT_NOISE · σ))²)``.
+SHEAR_WEIGHT = 1e-3
+#: ... when the rest shape is given (``rest=``): then it is known, not guessed, and holds harder.
+SHEAR_WEIGHT_REST = 1e-2
+#: A cell counts as flat (locally unobservable, Case 1) while its tilt is below ~this many σ.
+FLAT_TILT_NOISE = 3.0
+#: ... averaged over (2 FLAT_RADIUS + 1)² cells around it.
+FLAT_RADIUS = 3
+#: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
+PRIOR_WEIGHT_MIN = 1e-8
+#: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there; the default:
+#: benchmarks/bench_estimator.py found no consistent gain from CHOLMOD on warm runs, -17 % to
+#: +29 % snapshots/s by size), "cholmod" (scikit-sparse, optional: ``pip install
+#: 'capture-sheet[fast]'``, needs libsuitesparse-dev) or "auto" (CHOLMOD when installed).
+LINEAR_SOLVER = "splu"
 #: Gauss-Newton stops when the largest yaw step is below this, radians.
 YAW_TOL_RAD = 1e-4
+#: ... or below this fraction of the readings' noise σ (rad ≈ fraction of g): noise moves yaws by ~σ.
+YAW_TOL_NOISE = 0.01
 #: Gauss-Newton iteration cap (warm starts need 2-3; cold starts from the rest layout ~10).
 MAX_ITER = 50
 #: A chord step (reused factorisation) that shrinks by less than this factor triggers a new one.
@@ -141,8 +187,27 @@ class ShapeEstimate:
     iterations: int
     factorisations: int
     timings: dict = field(default_factory=dict)
+    #: the reading noise (per axis, % of g) `yaw_std` and `joint_std` are stated for
+    noise_pct_g: float = 1.0
     #: solver state a later snapshot may warm-start from (structure, factorisation); private
     _state: tuple | None = field(default=None, repr=False)
+
+    @cached_property
+    def yaw_std(self) -> np.ndarray:
+        """Per link, the standard deviation of its yaw, radians, shape (n_links,), for readings of
+        `noise_pct_g` per axis: from the global problem's normal matrix at the estimate
+        (docs/estimator.md), relative to the sheet's mean yaw. Where the data do not determine a
+        yaw (Case 1, a squashed unit) it is large (the prior's floor: ≫ 1 rad). NaN for
+        ``method="paper"`` and for missing links."""
+        return _uncertainty(self)[0]
+
+    @cached_property
+    def joint_std(self) -> np.ndarray:
+        """Per joint, the standard deviation of its position (3-D RMS), metres, shape
+        (rows, cols), for readings of `noise_pct_g` per axis, from the yaws' uncertainty
+        (`yaw_std`) carried through the joint least squares, after removing the mean
+        translation. NaN for ``method="paper"``."""
+        return _uncertainty(self)[1]
 
     @property
     def rows(self) -> int:
@@ -259,27 +324,40 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
 
 
 # ---------------------------------------------------------------------------------------------
-# Overlay and error, as the paper measures it (section 3.3)
+# Per-lattice structure (cached by rows, cols, mask, model)
 # ---------------------------------------------------------------------------------------------
 
-# ---------------------------------------------------------------------------------------------
-# Per-lattice structure (cached by rows, cols, mask)
-# ---------------------------------------------------------------------------------------------
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a × b`` over the last axis (3), without np.cross's overhead."""
+    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
+    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
+
 
 class _Structure:
-    """Everything about a lattice and mask that does not depend on the readings."""
+    """Everything about a lattice, mask and model that does not depend on the readings.
 
-    def __init__(self, rows: int, cols: int, valid: np.ndarray):
+    The yaw problem's residuals come in blocks with a fixed set of variables per row: the loop
+    closure (eq. 4, and eq. 6 for ``model="eq6"``) per active unit on its 4 links, and for
+    ``model="cells"`` one roll residual per link on the link and the other links of its (one or
+    two) cells, 7 variables. The Gauss-Newton matrix ``JᵀJ + diag`` therefore has a fixed pattern;
+    its fill-reducing ordering and the CSC slot of every block product are computed here once.
+    """
+
+    def __init__(self, rows: int, cols: int, valid: np.ndarray, model: str):
         lat = Lattice(rows, cols)
         self.lattice = lat
         self.rows, self.cols = rows, cols
+        self.model = model
         n = lat.n_links
+        self.n_links = n
         self.valid = valid
         self.all_valid = bool(valid.all())
         units = lat.units.reshape(-1, 4)
         self.unit_ok = valid[units].all(axis=1)  # (n_units,)
         self.units = units[self.unit_ok]  # active units (U, 4)
         U = self.units.shape[0]
+        self.n_units = U
 
         # rest yaws: i-links along +x (0), j-links along +y (pi/2)
         self.rest_yaw = np.zeros(n)
@@ -293,26 +371,89 @@ class _Structure:
         mid_j = 0.5 * (jj[ep[:, 0]] + jj[ep[:, 1]]) - (cols - 1) / 2
         in_unit = np.zeros(n, bool)
         in_unit[self.units.ravel()] = True
+        self.in_unit = in_unit
         cand = np.flatnonzero(in_unit) if U else np.flatnonzero(valid)
         self.gauge = int(cand[np.argmin(mid_i[cand] ** 2 + mid_j[cand] ** 2 + 1e-3 * cand)])
 
-        # variables: valid links except the gauge
+        # variables: valid links except the gauge; nv is the dummy variable (gauge, padding)
         var = np.full(n, -1)
         var_links = np.flatnonzero(valid & (np.arange(n) != self.gauge))
         var[var_links] = np.arange(var_links.size)
         self.var_links = var_links
         nv = var_links.size
         self.n_var = nv
+        var_d = np.where(var >= 0, var, nv)
+        self.unit_var = var_d[self.units]  # (U, 4)
 
-        # pattern of the normal matrix: unit 4x4 blocks + diagonal (prior)
-        uv = var[self.units]  # (U, 4), -1 for the gauge
-        bi = np.repeat(uv, 4, axis=1).ravel()  # row var of block entry (U*16)
-        bj = np.tile(uv, (1, 4)).ravel()
-        keep = (bi >= 0) & (bj >= 0)
-        rr = np.concatenate([bi[keep], np.arange(nv)])
-        cc = np.concatenate([bj[keep], np.arange(nv)])
+        blocks = [self.unit_var]
+        if model == "cells":
+            # every link's active cells (at most 2), and its position in each
+            flat = self.units.ravel()
+            order = np.argsort(flat, kind="stable")
+            fl = flat[order]
+            uid, pos = order // 4, order % 4
+            first = np.r_[True, fl[1:] != fl[:-1]]
+            slot = np.zeros(fl.size, int)
+            slot[~first] = 1
+            cell = np.full((n, 2), U)
+            cpos = np.zeros((n, 2), int)
+            cell[fl, slot] = uid
+            cpos[fl, slot] = pos
+            ncell = np.bincount(fl, minlength=n)
+            k = np.flatnonzero(ncell > 0)
+            self.roll_links = k
+            self.roll_cells = cell[k]  # (K, 2), U = no cell
+            self.roll_pos = cpos[k]  # (K, 2)
+            self.roll_inv_ncell = 1.0 / ncell[k]
+            others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+            self.roll_others = others[self.roll_pos]  # (K, 2, 3) positions of the other links
+            uv_ext = np.vstack([self.unit_var, np.full((1, 4), nv)])
+            cols_o = uv_ext[self.roll_cells[:, :, None], self.roll_others]  # (K, 2, 3)
+            self.roll_var = np.concatenate([var_d[k][:, None], cols_o.reshape(-1, 6)], axis=1)
+            # fast gathers: a missing second cell points at the first, with weight 0
+            K = k.size
+            self.roll_c0 = self.roll_cells[:, 0]
+            has1 = self.roll_cells[:, 1] < U
+            self.roll_c1 = np.where(has1, self.roll_cells[:, 1], self.roll_c0)
+            self.roll_ws1 = has1.astype(float)
+            base = (np.arange(K) * 8)[:, None]
+            self.roll_idx_self = base + np.array([0, 4]) + self.roll_pos  # into (K, 2, 4) flat
+            self.roll_idx_oth = (base[:, :, None] + np.array([0, 4])[None, :, None]
+                                 + self.roll_others).reshape(K, 6)
+            blocks.append(self.roll_var)
 
-        # fill-reducing ordering, computed once: SuperLU's MMD on A^T + A
+        # bending prior: pairs of parallel neighbours (i-links (i,j)-(i+1,j) and (i,j)-(i,j+1),
+        # j-links likewise), both valid
+        ni = lat.n_i_links
+        iid = np.arange(ni).reshape(rows - 1, cols)
+        jidx = ni + np.arange(rows * (cols - 1)).reshape(rows, cols - 1)
+        pairs = np.concatenate([
+            np.stack([iid[:-1].ravel(), iid[1:].ravel()], 1),
+            np.stack([iid[:, :-1].ravel(), iid[:, 1:].ravel()], 1),
+            np.stack([jidx[:, :-1].ravel(), jidx[:, 1:].ravel()], 1),
+            np.stack([jidx[:-1].ravel(), jidx[1:].ravel()], 1)]).reshape(-1, 2)
+        pairs = pairs[valid[pairs].all(axis=1)]
+        self.n_bend = pairs.shape[0]
+        # shear prior: per unit, its j-link 0 against its i-link 3 (the cell's corner angle)
+        shear = units[:, [0, 3]]
+        ok = valid[shear].all(axis=1)
+        self.shear_unit = np.flatnonzero(ok)  # unit (all units' numbering) of every shear pair
+        pairs = np.concatenate([pairs, shear[ok]])
+        self.pairs = pairs
+        self.pair_var = var_d[pairs]
+        blocks.append(self.pair_var)
+
+        # pattern of the normal matrix: every block's outer products + the diagonal
+        ents = []
+        for cols_b in blocks:
+            p = cols_b.shape[1]
+            bi = np.repeat(cols_b, p, axis=1).ravel()
+            bj = np.tile(cols_b, (1, p)).ravel()
+            ents.append((bi, bj))
+        allr = np.concatenate([e[0] for e in ents] + [np.arange(nv)])
+        allc = np.concatenate([e[1] for e in ents] + [np.arange(nv)])
+        keep = (allr < nv) & (allc < nv)
+        rr, cc = allr[keep], allc[keep]
         if nv:
             pat = sp.csc_matrix((np.ones(rr.size), (rr, cc)), shape=(nv, nv))
             pat.sum_duplicates()
@@ -320,25 +461,23 @@ class _Structure:
             perm = splu(pat.tocsc(), permc_spec="MMD_AT_PLUS_A").perm_c
         else:
             perm = np.arange(0)
-        # the matrix is factorised as A[q][:, q] with q = argsort(perm): variable v sits at perm[v]
-        pos = np.asarray(perm, dtype=np.int64)
-        pr, pc = pos[rr], pos[cc]
-        # CSC slots of the permuted matrix, one per (row, col) pair
-        key = pc.astype(np.int64) * max(nv, 1) + pr
-        ukey, slot = np.unique(key, return_inverse=True)
+        pos_v = np.asarray(perm, dtype=np.int64)
+        key = pos_v[cc] * max(nv, 1) + pos_v[rr]
+        ukey, inv = np.unique(key, return_inverse=True)
         self.nnz = ukey.size
         self.csc_indices = (ukey % max(nv, 1)).astype(np.int32)
         col = ukey // max(nv, 1)
         self.csc_indptr = np.searchsorted(col, np.arange(nv + 1)).astype(np.int32)
-        n_blk = int(keep.sum())
-        # block entry -> slot (dropped gauge entries go to a dummy slot nnz)
-        self.blk_slot = np.full(bi.size, self.nnz, dtype=np.int64)
-        self.blk_slot[np.flatnonzero(keep)] = slot[:n_blk]
-        self.diag_slot = slot[n_blk:]  # for variable v (original order) its diagonal slot
-        self.perm_of_var = pos  # permuted position of every variable
-        self.perm_inv = np.argsort(pos)  # variable at every permuted position
-        # gradient scatter: unit entry -> variable (dummy nv for the gauge)
-        self.ent_var = np.where(uv >= 0, uv, nv).ravel()
+        slot_all = np.full(allr.size, self.nnz, dtype=np.int64)
+        slot_all[np.flatnonzero(keep)] = inv
+        self.block_slots = []
+        at = 0
+        for bi, _ in ents:
+            self.block_slots.append(slot_all[at:at + bi.size])
+            at += bi.size
+        self.diag_slot = slot_all[at:at + nv]
+        self.perm_of_var = pos_v
+        self.perm_inv = np.argsort(pos_v)
 
         # joints: Laplacian of the valid links + a weak prior, factorised once
         vl = np.flatnonzero(valid)
@@ -348,6 +487,7 @@ class _Structure:
         B = sp.csr_matrix((np.concatenate([-np.ones(vl.size), np.ones(vl.size)]),
                            (np.concatenate([np.arange(vl.size)] * 2), np.concatenate([a, b]))),
                           shape=(vl.size, nj))
+        self.incidence = B.tocsr()
         self.incidence_T = B.T.tocsr()
         lap = (B.T @ B + JOINT_PRIOR_WEIGHT * sp.identity(nj)).tocsc()
         self.lap_lu = splu(lap, permc_spec="MMD_AT_PLUS_A")
@@ -364,16 +504,16 @@ def _lattice(rows: int, cols: int) -> Lattice:
 
 
 @lru_cache(maxsize=16)
-def _structure_cached(rows: int, cols: int, mask_bytes: bytes | None) -> _Structure:
+def _structure_cached(rows: int, cols: int, mask_bytes: bytes | None, model: str) -> _Structure:
     n = Lattice(rows, cols).n_links
     valid = np.ones(n, bool) if mask_bytes is None else np.frombuffer(mask_bytes, dtype=bool).copy()
-    return _Structure(rows, cols, valid)
+    return _Structure(rows, cols, valid, model)
 
 
-def _structure(rows: int, cols: int, valid: np.ndarray | None) -> _Structure:
+def _structure(rows: int, cols: int, valid: np.ndarray | None, model: str = "cells") -> _Structure:
     if valid is None or valid.all():
-        return _structure_cached(rows, cols, None)
-    return _structure_cached(rows, cols, valid.tobytes())
+        return _structure_cached(rows, cols, None, model)
+    return _structure_cached(rows, cols, valid.tobytes(), model)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -384,61 +524,213 @@ def _wrap(x: np.ndarray) -> np.ndarray:
     return (x + np.pi) % (2 * np.pi) - np.pi
 
 
-def _unit_coeffs(st: _Structure, alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
-    """Complex coefficients of eq. (4) and (6), xy parts, per active unit: shape (U, 2, 4);
-    ``[:, 0]`` is eq. (4) (``± cos β``), ``[:, 1]`` eq. (6) (``± (sin β cos α − i sin α)``) times
-    `NORMAL_WEIGHT`."""
-    a = alpha[st.units]
-    b = beta[st.units]
-    c = np.empty((a.shape[0], 2, 4), complex)
-    c[:, 0] = np.cos(b) * _S_D
-    c[:, 1] = (np.sin(b) * np.cos(a) - 1j * np.sin(a)) * (_S_N * NORMAL_WEIGHT)
-    return c
+def _sumsq(x: np.ndarray) -> float:
+    """``Σ |x|²`` without BLAS (a threaded BLAS dot on a busy machine costs milliseconds)."""
+    if np.iscomplexobj(x):
+        return float(np.add.reduce(x.real * x.real) + np.add.reduce(x.imag * x.imag))
+    return float(np.add.reduce(x * x))
+
+
+def _wrap_fast(x: np.ndarray) -> np.ndarray:
+    """``x`` wrapped to [−π, π] (rounding, cheaper than a float modulo)."""
+    return x - _TWO_PI * np.rint(x * (1.0 / _TWO_PI))
+
+
+_TWO_PI = 2.0 * np.pi
+#: eq. (4) signs turn the loop terms t = ±cos β e^{iγ} back into the links' xy directions
+_SIGN_D = _S_D
 
 
 class _YawProblem:
-    """The global yaw least-squares problem for one snapshot (see the module docstring)."""
+    """The global yaw least-squares problem for one snapshot (see the module docstring).
 
-    def __init__(self, st: _Structure, alpha, beta, gamma_prior):
+    Cost ``½ Σ |loop|² (+ ½ Σ |eq6|²) + ½ Σ roll² + ½ Σ_pairs λ_p (wrap(γ_k − γ_l) − δ_kl)²
+    (+ ½ Σ λ wrap(γ − τ)²)``; the complex form of every term is in docs/estimator.md.
+    """
+
+    def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w):
         self.st = st
-        self.c = _unit_coeffs(st, alpha, beta)
-        self.prior = gamma_prior[st.var_links]
-        self.lam = PRIOR_WEIGHT
+        ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+        u = st.units
+        cbu = cb[u]
+        self.c_loop = cbu * _S_D  # (U, 4) real
+        if st.model == "eq6":
+            self.c_n = (sb[u] * ca[u] - 1j * sa[u]) * (_S_N * NORMAL_WEIGHT)  # (U, 4)
+        else:
+            k = st.roll_links
+            sbu = sb[u]
+            self.Az = -(sbu[:, 1] + sbu[:, 3])  # z of the cell's i-link sum A (yaw-free)
+            self.Cz = -(sbu[:, 0] + sbu[:, 2])  # z of its j-link sum C
+            self.y_c = (sb[k] * sa[k] + 1j * ca[k])  # sensor y, xy part before the yaw
+            self.y_z = cb[k] * sa[k]
+            self.w = ROLL_WEIGHT * st.roll_inv_ncell
+        self.target = target[st.var_links]
+        self.lam = prior_w  # (nv,) prior weight per variable
+        self.abs_prior = bool(np.any(prior_w > ABS_PRIOR_FLOOR))
+        self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
+        self.lam_b = bend_w  # (n_pairs,)
 
     def evaluate(self, gamma):
-        """Cost (½ Σ r² + ½ λ Σ wrap(γ − γ_prior)²), gradient over the variables, and the terms
-        ``t = c e^{iγ}`` (U, 2, 4) whose sums are the residuals (``∂r/∂γ_m = i t_m``)."""
+        """Cost, gradient over the variables, and the Jacobian blocks (for `factor`)."""
         st = self.st
-        t = self.c * np.exp(1j * gamma)[st.units][:, None, :]
-        r = t.sum(axis=2)
-        e = _wrap(gamma[st.var_links] - self.prior)
-        cost = 0.5 * (np.vdot(r, r).real + self.lam * np.dot(e, e))
-        # gradient Re(conj(i t_m) r) = Im(conj(t_m) r), summed over the two equations
-        gu = (t.conj() * r[:, :, None]).imag.sum(axis=1)
-        # float64 even when no unit is active (bincount of nothing is int64)
-        grad = np.bincount(st.ent_var, weights=gu.ravel(), minlength=st.n_var + 1)[:st.n_var].astype(float)
-        grad += self.lam * e
-        return cost, grad, t
+        nv1 = st.n_var + 1
+        z = np.exp(1j * gamma)
+        zu = z[st.units]
+        t = self.c_loop * zu  # (U, 4) complex; ∂r/∂γ_m = i t_m
+        r = t.sum(axis=1)
+        cost2 = _sumsq(r)
+        gu = (t.conj() * r[:, None]).imag  # (U, 4)
+        blocks = [t]
+        if st.model == "eq6":
+            tn = self.c_n * zu
+            rn = tn.sum(axis=1)
+            cost2 += _sumsq(rn)
+            gu += (tn.conj() * rn[:, None]).imag
+            blocks = [np.stack([t, tn], axis=1)]
+        grad = np.bincount(st.unit_var.ravel(), weights=gu.ravel(), minlength=nv1)
+        if st.model == "cells":
+            Jr, rr = self._roll(z, t)
+            cost2 += _sumsq(rr)
+            grad += np.bincount(st.roll_var.ravel(), weights=(Jr * rr[:, None]).ravel(),
+                                minlength=nv1)
+            blocks.append(Jr)
+        pr = st.pairs
+        eb = _wrap_fast(gamma[pr[:, 0]] - gamma[pr[:, 1]] - self.pair_t)
+        wb = self.lam_b * eb
+        cost2 += float(np.add.reduce(wb * eb))
+        grad += np.bincount(st.pair_var[:, 0], weights=wb, minlength=nv1)
+        grad -= np.bincount(st.pair_var[:, 1], weights=wb, minlength=nv1)
+        grad = grad[:st.n_var]
+        if self.abs_prior:  # otherwise the floor only sits on the diagonal (`factor`)
+            e = _wrap_fast(gamma[st.var_links] - self.target)
+            cost2 += float(np.add.reduce(self.lam * e * e))
+            grad += self.lam * e
+        return 0.5 * cost2, grad, blocks
 
-    def factor(self, t, mu):
-        """Factorise the Gauss-Newton matrix ``JᵀJ + (λ + μ) I`` (permuted, fixed pattern)."""
+    def rows(self, gamma) -> np.ndarray:
+        """The data residuals as real rows: loop (and eq. 6) real parts, imaginary parts, then
+        the roll residuals (the order `_uncertainty` weights them in)."""
         st = self.st
-        # H_mn = Re(conj(i t_m) i t_n) = Re(conj(t_m) t_n), per unit a 4x4 block
-        Hd = np.einsum("uem,uen->umn", t.conj(), t).real
-        data = np.bincount(st.blk_slot, weights=Hd.ravel(), minlength=st.nnz + 1)[:st.nnz].astype(float)
+        z = np.exp(1j * gamma)
+        zu = z[st.units]
+        t = self.c_loop * zu
+        r = t.sum(axis=1)
+        if st.model == "eq6":
+            r = np.concatenate([r, (self.c_n * zu).sum(axis=1)])
+            return np.concatenate([r.real, r.imag])
+        return np.concatenate([r.real, r.imag, self._roll(z, t)[1]])
+
+    def _roll(self, z, t):
+        """Roll residuals ``w · y_k · N_k`` and their Jacobian rows (K, 7).
+
+        Per cell: ``A``, ``C`` the sums of its i- and j-link directions (xy complex, z real),
+        ``m = A × C``, ``n = m/|m|``; a link's ``N`` is the mean of its cells' ``n``.
+        ``∂m/∂γ`` for an i-link ``a``: ``(C_z a, −Re(ā C))``; for a j-link ``c``:
+        ``(−A_z c, Re(Ā c))`` (xy, z), with ``a``, ``c`` the links' xy directions.
+        """
+        st = self.st
+        D = t * _SIGN_D  # links' xy directions per unit (U, 4), cos β e^{iγ}
+        Axy = D[:, 1] + D[:, 3]
+        Cxy = D[:, 0] + D[:, 2]
+        Az, Cz = self.Az, self.Cz
+        mxy = 1j * (Az * Cxy - Cz * Axy)
+        mz = (Axy.conj() * Cxy).imag
+        mm = np.sqrt(mxy.real ** 2 + mxy.imag ** 2 + mz * mz)
+        # a squashed cell (A ∥ C) has no normal: its roll terms drop out (weight 0)
+        inv = np.where(mm > 1e-9, 1.0 / np.maximum(mm, 1e-300), 0.0)
+        nxy = mxy * inv
+        nz = mz * inv
+        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=1)
+        X = np.stack([Axy, Cxy, Axy, Cxy], axis=1)
+        dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
+        nd = (nxy.conj()[:, None] * dmxy).real + nz[:, None] * dmz  # n · ∂m  (U, 4)
+        c0, c1, ws1 = st.roll_c0, st.roll_c1, self.st.roll_ws1
+        yxy = self.y_c * z[st.roll_links]
+        yz = self.y_z
+        Nxy = nxy[c0] + ws1 * nxy[c1]
+        Nz = nz[c0] + ws1 * nz[c1]
+        yc = yxy.conj()
+        w = self.w
+        res = w * ((yc * Nxy).real + yz * Nz)
+        K = yxy.size
+        Jraw = np.empty((K, 2, 4))
+        for s_, c, ws in ((0, c0, None), (1, c1, ws1)):
+            ynu = (yc * nxy[c]).real + yz * nz[c]  # y · n_c  (K,)
+            ydm = (yc[:, None] * dmxy[c]).real + yz[:, None] * dmz[c]  # y · ∂m  (K, 4)
+            sc = inv[c] if ws is None else inv[c] * ws
+            Jraw[:, s_] = (ydm - ynu[:, None] * nd[c]) * sc[:, None]
+        flat = Jraw.reshape(-1)
+        J = np.empty((K, 7))
+        sidx = st.roll_idx_self
+        J[:, 0] = w * ((yc * Nxy).imag + flat[sidx[:, 0]] + flat[sidx[:, 1]])
+        J[:, 1:] = w[:, None] * flat[st.roll_idx_oth]
+        return J, res
+
+    def factor(self, blocks, mu):
+        """Factorise the Gauss-Newton matrix ``JᵀJ + diag(λ) + μ I`` (permuted, fixed pattern)."""
+        st = self.st
+        t = blocks[0]
+        if t.ndim == 3:  # eq6: (U, 2, 4)
+            Hd = np.einsum("uem,uen->umn", t.conj(), t).real
+        else:
+            Hd = (t.conj()[:, :, None] * t[:, None, :]).real
+        w = [Hd.ravel()]
+        if st.model == "cells":
+            Jr = blocks[1]
+            w.append((Jr[:, :, None] * Jr[:, None, :]).ravel())
+        w.append((self.lam_b[:, None] * np.array([1.0, -1.0, -1.0, 1.0])).ravel())
+        data = np.zeros(st.nnz + 1)
+        for sl, wt in zip(st.block_slots, w):
+            data += np.bincount(sl, weights=wt, minlength=st.nnz + 1)
+        data = data[:st.nnz]
         data[st.diag_slot] += self.lam + mu
         A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
-        return splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                    options=dict(SymmetricMode=True))
+        return _factorise(st, A)
 
     def step(self, lu, grad):
         st = self.st
-        return lu.solve(-grad[st.perm_inv])[st.perm_of_var]
+        return _solve(lu, -grad[st.perm_inv])[st.perm_of_var]
 
 
-def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
+def _cholmod():
+    """scikit-sparse's CHOLMOD module, or None when not installed (it is optional)."""
+    try:
+        from sksparse import cholmod
+    except ImportError:  # pragma: no cover - depends on the installation
+        return None
+    return cholmod
+
+
+def _backend() -> str:
+    if LINEAR_SOLVER == "auto":
+        return "cholmod" if _cholmod() is not None else "splu"
+    return LINEAR_SOLVER
+
+
+def _factorise(st: "_Structure", A):
+    """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
+    the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
+    if _backend() == "cholmod":
+        cm = _cholmod()
+        sym = getattr(st, "_cholmod_sym", None)
+        if sym is None:
+            sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
+            st._cholmod_sym = sym
+        return ("cholmod", sym.cholesky(A))
+    return ("splu", splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                         options=dict(SymmetricMode=True)))
+
+
+def _solve(fac, b):
+    kind, f = fac
+    return f(b) if kind == "cholmod" else f.solve(b)
+
+
+def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
+                  tol=YAW_TOL_RAD):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
-    Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations, lu).
+    Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
+    lu, problem).
 
     ``lu`` may be the factorisation left by the previous snapshot (same structure): the normal
     matrix changes little between snapshots, so its chord iterations usually converge without a
@@ -446,12 +738,11 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
     `_REFACTOR_RATIO`.
     """
     gamma = gamma0.copy()
-    prob = _YawProblem(st, alpha, beta, gamma_prior)
+    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w)
     if st.n_var == 0:
-        _, _, t = prob.evaluate(gamma)
-        return gamma, 0, 0, None, _xy_residual(t), prob
+        return gamma, 0, 0, None, prob
     vl = st.var_links
-    cost, grad, t = prob.evaluate(gamma)
+    cost, grad, blocks = prob.evaluate(gamma)
     mu = 0.0
     fresh = False
     n_fact = 0
@@ -460,13 +751,13 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
     while it < MAX_ITER:
         it += 1
         if lu is None:
-            lu = prob.factor(t, mu)
+            lu = prob.factor(blocks, mu)
             fresh = True
             n_fact += 1
         step = prob.step(lu, grad)
         g_new = gamma.copy()
         g_new[vl] += step
-        cost_new, grad_new, t_new = prob.evaluate(g_new)
+        cost_new, grad_new, blocks_new = prob.evaluate(g_new)
         if not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
             lu = None  # refactorise here; damp if even a fresh Gauss-Newton step failed
             if fresh:
@@ -475,11 +766,11 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
                     break
             fresh = False
             continue
-        gamma, cost, grad, t = g_new, cost_new, grad_new, t_new
+        gamma, cost, grad, blocks = g_new, cost_new, grad_new, blocks_new
         smax = float(np.max(np.abs(step)))
         # converged: this step, or the next one predicted from the contraction so far, is tiny
-        if smax < YAW_TOL_RAD or (mu == 0.0 and smax < prev_smax < np.inf
-                                  and smax * smax < YAW_TOL_RAD * prev_smax):
+        if smax < tol or (mu == 0.0 and smax < prev_smax < np.inf
+                          and smax * smax < tol * prev_smax):
             break
         if mu > 0.0:
             mu = mu / 10.0 if mu > 1e-6 else 0.0
@@ -488,22 +779,8 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, gamma_prior, lu=None):
             lu = None
         prev_smax = smax
         fresh = False
-    return gamma, it, n_fact, lu, _xy_residual(t), prob
-
-
-def _xy_residual(t) -> float:
-    """Eq. (8)'s x and y terms summed over the units, from the solver's terms (U, 2, 4)."""
-    rd = t[:, 0].sum(axis=1)
-    rn = t[:, 1].sum(axis=1) / NORMAL_WEIGHT
-    return float(np.vdot(rd, rd).real + np.vdot(rn, rn).real)
-
-
-def _z_residual(units, alpha, beta) -> float:
-    """Eq. (8)'s z terms (independent of yaw) summed over the units (U, 4)."""
-    a, b = alpha[units], beta[units]
-    rz = np.sin(b) @ -_S_D
-    nz = (np.cos(b) * np.cos(a)) @ _S_N
-    return float(np.dot(rz, rz) + np.dot(nz, nz))
+    prob.final_blocks = blocks
+    return gamma, it, n_fact, lu, prob
 
 
 # ---------------------------------------------------------------------------------------------
@@ -617,15 +894,121 @@ def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray) -> float:
     return float(np.sum(rd * rd) + np.sum(rn * rn))
 
 
+def _check_int(name: str, v, lo: int) -> int:
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ValueError(f"Invalid {name}: {v!r} (need an integer >= {lo})")
+    return int(v)
+
+
+def _as_real(name: str, x, shape: tuple) -> np.ndarray:
+    """``x`` as a float array of ``shape``; complex, string, object or bool input is an error."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"Invalid {name}: dtype {a.dtype} (need real numbers, m/s²)")
+    a = a.astype(float, copy=False)
+    if a.shape != shape:
+        raise ValueError(f"Expected `{name}` to have shape {shape}, got {a.shape}.")
+    return a
+
+
+def _rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
+    if isinstance(rest, ShapeEstimate):
+        if rest.joints.shape != (rows, cols, 3):
+            raise ValueError(f"Expected `rest` of a {rows}x{cols} lattice, joints shape "
+                             f"({rows}, {cols}, 3), got {rest.joints.shape}.")
+        y = np.asarray(rest.yaws, float)
+    else:
+        y = np.asarray(rest)
+        if y.dtype.kind not in "iuf":
+            raise ValueError(f"Invalid rest: {type(rest).__name__} of dtype {y.dtype} (need a "
+                             f"ShapeEstimate or rest yaws, shape ({n},), radians)")
+        y = y.astype(float)
+        if y.shape != (n,):
+            raise ValueError(f"Expected `rest` yaws to have shape ({n},) for a {rows}x{cols} "
+                             f"lattice, got {y.shape}.")
+    return y
+
+
+def _check_previous(previous, n: int, rows: int, cols: int) -> None:
+    if not isinstance(previous, ShapeEstimate):
+        raise ValueError(f"Invalid previous: {type(previous).__name__} (need a ShapeEstimate from "
+                         "an earlier estimate() of the same lattice, or None)")
+    pj = np.shape(previous.joints)
+    if pj != (rows, cols, 3):
+        raise ValueError(f"Expected `previous` of a {rows}x{cols} lattice, joints shape "
+                         f"({rows}, {cols}, 3), got {pj}.")
+    if np.shape(previous.yaws) != (n,):
+        raise ValueError(f"Expected `previous.yaws` to have shape ({n},), got "
+                         f"{np.shape(previous.yaws)}.")
+    if not (np.all(np.isfinite(previous.yaws)) and np.all(np.isfinite(previous.joints))):
+        raise ValueError("Invalid previous: its yaws or joints contain NaN or inf (a failed "
+                         "estimate cannot seed the next one; pass previous=None)")
+
+
+def _flatness(st, r, norm_g, noise):
+    """Per unit (all units, row-major), ``h = exp(−(θ/θ0)²)`` in [0, 1]: 1 where the region
+    around the unit is level within the noise (Case 1, unobservable), 0 where it is clearly
+    tilted. θ² is twice the mean of ``1 − cos`` of the links' sensor-z tilts (cos from the
+    reading: ``s_z/|s|``), averaged over the (2 `FLAT_RADIUS` + 1)² units around;
+    θ0 = `FLAT_TILT_NOISE` · σ. Noise-free readings (σ = 0) give 0 everywhere."""
+    units = st.lattice.units.reshape(-1, 4)
+    if noise <= 0.0:
+        return np.zeros(units.shape[0])
+    cz = r[:, 2] / np.maximum(norm_g * G0, 1e-300)
+    th2 = 2.0 * (1.0 - cz[units]).mean(axis=1)
+    if FLAT_RADIUS > 0:
+        # regional: a level strip between tilted cells (a cylinder's crest) is held by its
+        # tilted neighbours through the lattice; only wide level regions need the prior
+        th2 = uniform_filter(th2.reshape(st.rows - 1, st.cols - 1), size=2 * FLAT_RADIUS + 1,
+                             mode="nearest").ravel()
+    return np.exp(-np.maximum(th2, 0.0) / (FLAT_TILT_NOISE * noise) ** 2)
+
+
+def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
+    """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
+
+    "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
+    unit's `_flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "off": floors only; "fixed":
+    `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
+    units. Pairs never go below `PRIOR_WEIGHT_MIN`.
+    """
+    w = np.full(st.pairs.shape[0], PRIOR_WEIGHT_MIN)
+    lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
+    if prior == "adaptive":
+        w[:st.n_bend] = max((noise / BEND_STD_RAD) ** 2, PRIOR_WEIGHT_MIN)
+        h = _flatness(st, r, norm_g, noise)[st.shear_unit]
+        sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
+        w[st.n_bend:] = np.maximum(sw * h, PRIOR_WEIGHT_MIN)
+    elif prior == "fixed":
+        lam[:] = FIXED_PRIOR_WEIGHT
+    elif prior == "local":
+        units = st.lattice.units.reshape(-1, 4)
+        h = _flatness(st, r, norm_g, noise)
+        acc = np.bincount(units.ravel(), weights=np.repeat(h, 4), minlength=st.n_links)
+        cnt = np.bincount(units.ravel(), minlength=st.n_links)
+        hl = acc / np.maximum(cnt, 1)
+        lam = np.maximum(FIXED_PRIOR_WEIGHT * hl[st.var_links], ABS_PRIOR_FLOOR)
+    return lam, w
+
+
+def _noise_from_norms(norm_g: np.ndarray, valid: np.ndarray) -> float:
+    """The readings' noise, per axis, as a fraction of g: the RMS of ``|s|/g − 1`` over the valid
+    links (white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g)."""
+    e = norm_g[valid] - 1.0
+    return float(np.sqrt(_sumsq(e) / max(e.size, 1)))
+
+
 def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
              valid: np.ndarray | None = None, previous: ShapeEstimate | None = None,
-             method: str = "global") -> ShapeEstimate:
+             method: str = "global", *, rest=None, model: str = "cells",
+             prior: str = "adaptive", noise_pct_g: float = 1.0,
+             bad_readings: str = "raise") -> ShapeEstimate:
     """Estimate the sheet's shape from one snapshot of readings.
 
     Parameters
     ----------
     readings : ndarray, shape (n_links, 3)
-        Specific force of every link, m/s², sensor frame, links in DESIGN.md order
+        Specific force of every link, m/s², sensor frame, links in docs/design.md order
         (``n_links = (rows-1)*cols + rows*(cols-1)``). Entries of invalid links are ignored.
     rows, cols : int
         Joints along i and j, each >= 2.
@@ -635,10 +1018,32 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         False marks a missing link (no constraint from it). Default: all valid.
     previous : ShapeEstimate, optional
         An earlier estimate of the same lattice: ``method="global"`` starts from its yaws (and
-        its factorisation), and blends them into the weak prior's target (`PRIOR_MEMORY`;
-        default target: the rest layout). ``method="paper"`` ignores it.
+        its factorisation). It is not the prior's target (that would let what the data cannot
+        see random-walk over a long run). ``method="paper"`` ignores it.
     method : {"global", "paper"}
         See the module docstring.
+    rest : ShapeEstimate or ndarray, shape (n_links,), optional
+        The sheet's rest shape (an estimate, or its link yaws in radians): the prior's target,
+        i.e. what fills in what the data cannot determine (a level sheet's layout, a sheet whose
+        cells are not square at rest, a tactile sensor's learned rest shape). Default: square
+        cells, i-links along +x.
+    model : {"cells", "eq6"}
+        The normal model (global method): ``"cells"`` (default) — every link's sensor z is the
+        mean normal of its cells, each ``A × C`` of the cell's mean i- and j-link (exact on a
+        Chebyshev net, docs/estimator.md); ``"eq6"`` — the paper's normal assumption (eq. 6).
+    prior : {"adaptive", "off", "fixed", "local"}
+        What fills in what the data cannot determine (`PRIORS`; docs/estimator.md measures
+        them): "adaptive" (default) holds the bending of the lattice and the shear of level
+        cells, with weights that scale with the readings' noise (noise-free readings: only a
+        floor), so that it does not pull where the data decide; "off" keeps only the floors
+        (the data alone); "fixed" and "local" are the alternatives it was measured against.
+    noise_pct_g : float
+        The reading noise (per axis, % of g) that `ShapeEstimate.yaw_std` and ``joint_std`` are
+        stated for. Does not change the estimate.
+    bad_readings : {"raise", "mask"}
+        What to do with a valid link whose reading is far from one g (``|s|`` outside
+        `READING_NORM_RANGE` · g: a dead, stuck or saturated chip): raise a ValueError naming
+        the links (default), or mask them out as missing.
 
     Returns
     -------
@@ -647,44 +1052,77 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     Raises
     ------
     ValueError
-        Wrong shapes (the message names the shape expected and got), non-finite readings on valid
-        links, no valid link, an unknown method, or missing links with ``method="paper"``.
+        Wrong shapes or dtypes (the message names the shape expected and got), non-finite or
+        implausible readings on valid links (naming them), a non-boolean mask, no valid link, a
+        non-numeric or non-positive ``link_length``, a ``previous`` that is not a finite
+        ShapeEstimate of this lattice, an unknown method or model, or missing links with
+        ``method="paper"``.
     """
     t0 = time.perf_counter()
     if method not in METHODS:
         raise ValueError(f"Invalid method: {method!r} (expected one of {METHODS})")
-    lat = _lattice(int(rows), int(cols))
+    if model not in MODELS:
+        raise ValueError(f"Invalid model: {model!r} (expected one of {MODELS})")
+    if prior not in PRIORS:
+        raise ValueError(f"Invalid prior: {prior!r} (expected one of {PRIORS})")
+    if bad_readings not in ("raise", "mask"):
+        raise ValueError(f"Invalid bad_readings: {bad_readings!r} (expected 'raise' or 'mask')")
+    rows = _check_int("rows", rows, 2)
+    cols = _check_int("cols", cols, 2)
+    lat = _lattice(rows, cols)
     n = lat.n_links
+    if isinstance(link_length, (bool, np.bool_)) or not isinstance(link_length,
+                                                                    (int, float, np.number)):
+        raise ValueError(f"Invalid link_length: {link_length!r} (need a number of metres > 0)")
     L = float(link_length)
     if not (np.isfinite(L) and L > 0):
         raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
-    r = np.asarray(readings, dtype=float)
+    if isinstance(noise_pct_g, (bool, np.bool_)) or not isinstance(noise_pct_g,
+                                                                    (int, float, np.number)) \
+            or not (np.isfinite(noise_pct_g) and noise_pct_g >= 0):
+        raise ValueError(f"Invalid noise_pct_g: {noise_pct_g!r} (need a finite value >= 0)")
+    r = np.asarray(readings)
+    if r.dtype.kind not in "iuf":
+        raise ValueError(f"Invalid readings: dtype {r.dtype} (need real numbers, m/s²)")
+    r = r.astype(float, copy=False)
     if r.shape != (n, 3):
         raise ValueError(f"Expected `readings` to have shape ({n}, 3) for a {rows}x{cols} "
                          f"lattice, got {r.shape}.")
     if valid is None:
-        mask = None
         vmask = np.ones(n, bool)
     else:
         vmask = np.asarray(valid)
+        if vmask.dtype != bool:
+            raise ValueError(f"Invalid valid: dtype {vmask.dtype} (need a boolean mask, True = "
+                             "link present)")
         if vmask.shape != (n,):
             raise ValueError(f"Expected `valid` to have shape ({n},) for a {rows}x{cols} lattice, "
                              f"got {vmask.shape}.")
-        vmask = vmask.astype(bool)
         if not vmask.any():
             raise ValueError(f"No valid link: all {n} links are masked out by `valid`; "
                              "cannot estimate a shape.")
-        mask = None if vmask.all() else vmask
-    if mask is None:
-        if not np.all(np.isfinite(r)):
-            raise ValueError("Non-finite readings on valid links; mask them out with `valid`.")
-    elif not np.all(np.isfinite(r[vmask])):
-        raise ValueError("Non-finite readings on valid links; mask them out with `valid`.")
+    bad = ~np.all(np.isfinite(r), axis=1) & vmask
+    if bad.any():
+        raise ValueError(f"Non-finite readings on valid links {_few(np.flatnonzero(bad))}; mask "
+                         "them out with `valid`.")
+    norm = np.sqrt(np.einsum("ij,ij->i", r, r)) / G0
+    lo, hi = READING_NORM_RANGE
+    far = vmask & ~((norm >= lo) & (norm <= hi))
+    if far.any():
+        if bad_readings == "raise":
+            k = np.flatnonzero(far)
+            raise ValueError(f"Implausible readings on links {_few(k)}: |s| = "
+                             f"{_few(np.round(norm[k], 3))} g, outside [{lo}, {hi}] g (dead or "
+                             "stuck chips?); mask them with `valid` or bad_readings='mask'.")
+        vmask = vmask & ~far
+        if not vmask.any():
+            raise ValueError("No valid link left after masking the implausible readings.")
+    mask = None if vmask.all() else vmask
     if previous is not None:
-        pj = np.shape(previous.joints)
-        if pj != (rows, cols, 3):
-            raise ValueError(f"Expected `previous` of a {rows}x{cols} lattice, joints shape "
-                             f"({rows}, {cols}, 3), got {pj}.")
+        _check_previous(previous, n, rows, cols)
+    rest_yaw = None if rest is None else _rest_yaws(rest, n, rows, cols)
+    if rest_yaw is not None and not np.all(np.isfinite(rest_yaw)):
+        raise ValueError("Invalid rest: its yaws contain NaN or inf.")
     if method == "paper" and mask is not None:
         raise ValueError("method='paper' does not support missing links (the paper has none); "
                          "use method='global'.")
@@ -693,44 +1131,48 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     alpha, beta = roll_pitch(rr)
     t1 = time.perf_counter()
 
+    state = None
     if method == "global":
-        st = _structure(rows, cols, mask)
+        st = _structure(rows, cols, mask, model)
+        target = st.rest_yaw if rest_yaw is None else rest_yaw
         if previous is not None:
             start = np.asarray(previous.yaws, dtype=float)
-            if start.shape != (n,):
-                raise ValueError(f"Expected `previous.yaws` to have shape ({n},), got {start.shape}.")
-            # prior target: mostly the previous yaws, partly the rest layout, so that what the
-            # data cannot see (flat regions) does not random-walk from snapshot to snapshot
-            prior = st.rest_yaw + PRIOR_MEMORY * _wrap(start - st.rest_yaw)
         else:
-            start = prior = st.rest_yaw
+            start = target
         lu = None
         pstate = getattr(previous, "_state", None)
         if pstate is not None and pstate[0] is st:
             lu = pstate[1]
-        gamma, iters, n_fact, lu, res_xy, prob = _solve_global(st, alpha, beta, start.copy(),
-                                                               prior, lu)
-        residual = res_xy + _z_residual(st.units, alpha, beta)
-        state = (st, lu)
+        noise_est = _noise_from_norms(norm, vmask)
+        prior_w, bend_w = _prior_weights(prior, st, rr, np.where(vmask, norm, 1.0), noise_est,
+                                         rest_yaw is not None)
+        # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
+        tol = max(YAW_TOL_RAD, YAW_TOL_NOISE * noise_est)
+        gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
+                                                       prior_w, bend_w, lu, tol)
+        state = (st, lu, prob, gamma)
         t2 = time.perf_counter()
         d, nrm = _directions_normals(alpha, beta, gamma)
         rhs_links = L * (d if st.all_valid else d[st.valid_links])
         if previous is not None:
             pprior = np.asarray(previous.joints, float).reshape(-1, 3)
+        elif isinstance(rest, ShapeEstimate):
+            pprior = np.asarray(rest.joints, float).reshape(-1, 3)
         else:
             pprior = L * st.rest_joints_unit
         rhs = st.incidence_T @ rhs_links + JOINT_PRIOR_WEIGHT * pprior
         P = st.lap_lu.solve(rhs)
         P -= P[0]
         joints = P.reshape(rows, cols, 3)
+        residual = _eq8_residual(st.units, d, nrm)
         if mask is not None:
             ep = lat.endpoints
-            bad = ~vmask
-            chord = P[ep[bad, 1]] - P[ep[bad, 0]]
+            miss = ~vmask
+            chord = P[ep[miss, 1]] - P[ep[miss, 0]]
             nc = np.linalg.norm(chord, axis=1, keepdims=True)
-            d[bad] = chord / np.where(nc > 0, nc, 1.0)
-            nrm[bad] = np.nan
-            gamma[bad] = prior[bad]
+            d[miss] = chord / np.where(nc > 0, nc, 1.0)
+            nrm[miss] = np.nan
+            gamma[miss] = target[miss]
             alpha = np.where(vmask, alpha, np.nan)
             beta = np.where(vmask, beta, np.nan)
     else:
@@ -740,18 +1182,116 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         joints = _paper_joints(rows, cols, L * d)
         residual = _eq8_residual(lat.units.reshape(-1, 4), d, nrm)
         n_fact = 0
-        state = None
     t3 = time.perf_counter()
-    if method == "global" and mask is None:
-        # eq. (7)'s complex rows are the solver's coefficients of links 1..3 (up to a common sign)
-        solv = _sigma_ratio(prob.c[:, 0, 1:].real, prob.c[:, 1, 1:] / NORMAL_WEIGHT
-                            ).reshape(rows - 1, cols - 1)
-    else:
-        solv = solvability(alpha, beta, rows, cols)
+    solv = solvability(alpha, beta, rows, cols)
     t4 = time.perf_counter()
     return ShapeEstimate(joints=joints, directions=d, residual=residual, solvability=solv,
                          normals=nrm, yaws=gamma, alpha=alpha, beta=beta, valid=vmask,
                          link_length=L, method=method, iterations=int(iters),
                          factorisations=int(n_fact),
                          timings={"angles": t1 - t0, "yaw": t2 - t1, "joints": t3 - t2,
-                                  "total": t4 - t0}, _state=state)
+                                  "total": t4 - t0}, noise_pct_g=float(noise_pct_g),
+                         _state=state)
+
+
+#: Samples drawn to estimate `ShapeEstimate.yaw_std` / ``joint_std`` (seeded, deterministic).
+UNCERTAINTY_SAMPLES = 200
+
+
+def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
+    """(yaw_std, joint_std) of an estimate, from the data's Fisher information (no prior).
+
+    Linearised at the estimate: ``F = Jᵀ W J`` with ``W`` the inverse variance of every
+    residual row for readings of noise σ = `noise_pct_g` per axis (the variance measured by
+    perturbing the readings, `UNCERTAINTY_SAMPLES` // 4 draws, so that second-order terms such as
+    cos β near β = 0 count). The yaws' covariance is ``(F + ε I)⁻¹`` with ``ε = 1/π²``: a yaw the
+    data do not determine (Case 1, a squashed unit) gets a standard deviation near π rad instead
+    of infinity. Its diagonal is sampled as ``δγ = (F + ε)⁻¹ (Jᵀ W^½ ξ + ε^½ η)`` (one solve per
+    sample; covariance exactly ``(F + ε)⁻¹`` in expectation), the sheet's mean yaw removed
+    (the yaw gauge). Each sample is carried to the joints through the joint least squares.
+    """
+    n = est.directions.shape[0]
+    nanj = np.full(est.joints.shape[:2], np.nan)
+    state = est._state
+    if state is None:
+        return np.full(n, np.nan), nanj
+    st, _, prob, gamma = state
+    nv = st.n_var
+    if nv == 0 or est.noise_pct_g == 0.0:
+        return np.where(est.valid, 0.0, np.nan), np.zeros(est.joints.shape[:2])
+    g = np.random.Generator(np.random.MT19937(20260))
+    sigma = est.noise_pct_g / 100.0 * G0
+    # residual variances by perturbing the readings (reconstructed from the angles)
+    ca, sa, cb, sb = (np.cos(est.alpha), np.sin(est.alpha), np.cos(est.beta), np.sin(est.beta))
+    r0 = G0 * np.stack([-sb, cb * sa, cb * ca], axis=1)
+    r0[~st.valid] = (0.0, 0.0, G0)
+    base = prob.rows(gamma)
+    K = max(UNCERTAINTY_SAMPLES // 4, 8)
+    var = np.zeros_like(base)
+    for _ in range(K):
+        a1, b1 = roll_pitch(r0 + g.normal(0.0, sigma, r0.shape))
+        pk = _YawProblem(st, a1, b1, gamma, prob.lam, prob.lam_b)
+        dr = pk.rows(gamma) - base
+        var += dr * dr
+    var = np.maximum(var / K, (1e-6 * sigma / G0) ** 2)
+    _, _, blocks = prob.evaluate(gamma)
+    eps = 1.0 / np.pi ** 2
+    U = st.units.shape[0]
+    t = blocks[0]
+    if t.ndim == 3:  # eq6: (U, 2, 4) complex -> (2U, 4) rows, each complex row = 2 real rows
+        t = t.transpose(1, 0, 2).reshape(2 * U, 4)
+        uv = np.vstack([st.unit_var, st.unit_var])
+    else:
+        uv = st.unit_var
+    m = t.shape[0]
+    w_re = 1.0 / np.sqrt(var[:m])
+    w_im = 1.0 / np.sqrt(var[m:2 * m])
+    jre, jim = -t.imag * w_re[:, None], t.real * w_im[:, None]
+    Hd = jre[:, :, None] * jre[:, None, :] + jim[:, :, None] * jim[:, None, :]
+    data = np.zeros(st.nnz + 1)
+    if t is blocks[0] or blocks[0].ndim != 3:
+        data += np.bincount(st.block_slots[0], weights=Hd.ravel(), minlength=st.nnz + 1)
+    else:  # eq6: two rows per unit share the unit's slots
+        data += np.bincount(st.block_slots[0], weights=(Hd[:U] + Hd[U:]).ravel(),
+                            minlength=st.nnz + 1)
+    Jr = None
+    if st.model == "cells":
+        Jr = blocks[1] / np.sqrt(var[2 * m:])[:, None]
+        data += np.bincount(st.block_slots[1], weights=(Jr[:, :, None] * Jr[:, None, :]).ravel(),
+                            minlength=st.nnz + 1)
+    data = data[:st.nnz]
+    data[st.diag_slot] += eps
+    A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(nv, nv))
+    lu = _factorise(st, A)
+    S = UNCERTAINTY_SAMPLES
+    dg = np.zeros((S, n))
+    for s_ in range(S):
+        b = np.bincount(uv.ravel(), weights=(jre * g.standard_normal(m)[:, None]
+                                             + jim * g.standard_normal(m)[:, None]).ravel(),
+                        minlength=nv + 1)
+        if Jr is not None:
+            b += np.bincount(st.roll_var.ravel(),
+                             weights=(Jr * g.standard_normal(Jr.shape[0])[:, None]).ravel(),
+                             minlength=nv + 1)
+        b = b[:nv] + np.sqrt(eps) * g.standard_normal(nv)
+        dg[s_, st.var_links] = _solve(lu, b[st.perm_inv])[st.perm_of_var]
+    dg[:, st.valid] -= dg[:, st.valid].mean(axis=1, keepdims=True)
+    ys = np.sqrt(np.mean(dg * dg, axis=0))
+    ys[~st.valid] = np.nan
+    # joints: δd = (e_z × d) δγ, δP = Lap⁻¹ Bᵀ (L δd), mean translation removed
+    d = est.directions
+    dp = np.stack([-d[:, 1], d[:, 0], np.zeros(n)], axis=1)
+    vl = st.valid_links
+    rhs = st.incidence_T @ (est.link_length * (dg[:, vl, None] * dp[None, vl])
+                            ).transpose(1, 0, 2).reshape(vl.size, S * 3)
+    dP = st.lap_lu.solve(rhs).reshape(-1, S, 3)
+    dP -= dP.mean(axis=0, keepdims=True)
+    js = np.sqrt(np.mean(np.sum(dP * dP, axis=2), axis=1)).reshape(est.joints.shape[:2])
+    return ys, js
+
+
+def _few(idx, limit: int = 8) -> str:
+    """A short list for error messages: the first ``limit`` items and how many more."""
+    items = [str(v) for v in np.asarray(idx).tolist()[:limit]]
+    more = len(idx) - len(items)
+    return "[" + ", ".join(items) + (f", … {more} more" if more > 0 else "") + "]"

@@ -1,8 +1,10 @@
 """``capsheet paper``: reproduce the paper's figures 8, 9 and 10, and compare both estimators.
 
 * ``capsheet paper solvability`` — Fig. 8: the (θc, θf, θr, θp) grid, 20 steps each, where a
-  single unit's eq. (7) has ``λ3/λ1 < 0.1``, and how many of those fall in the paper's Case 1
-  (horizontal) and Case 2 (squashed / fully folded).
+  single unit's eq. (7) has ``λ3/λ1 < 0.1``, and where the estimator's yaw standard deviation
+  (its Gauss-Newton normal matrix) exceeds `YAW_STD_GAIN_LIMIT` times the noise; how many of
+  each fall in the paper's Case 1 (horizontal) and Case 2 (squashed / fully folded), points
+  coloured by case.
 * ``capsheet paper gaussian`` — Fig. 9: a 13x13-unit (14x14-joint) sheet on the Gaussian, model and
   estimate (both methods) side by side in 3D.
 * ``capsheet paper noise`` — Fig. 10: mean and standard deviation of the joint error (% of the side
@@ -31,7 +33,8 @@ import numpy as np
 from host.analysis import estimator as E
 from protocol.constants import G0
 
-__all__ = ["register", "unit_angles", "solvability_grid", "noise_study"]
+__all__ = ["register", "unit_angles", "unit_state", "yaw_std_gain", "solvability_grid",
+           "noise_study"]
 
 SIDE_JOINTS = 14  #: the paper's 13x13-unit sheet
 LINK_LENGTH = 0.01  #: metres (the error is relative to the side, so L does not matter)
@@ -50,6 +53,13 @@ def _rotate(v: np.ndarray, axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
 
 
 def unit_angles(tc, tf, tr, tp) -> tuple[np.ndarray, np.ndarray]:
+    """Roll and pitch of the four links of a unit in state (θc, θf, θr, θp): `unit_state`'s
+    first two."""
+    alpha, beta, _ = unit_state(tc, tf, tr, tp)
+    return alpha, beta
+
+
+def unit_state(tc, tf, tr, tp) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Roll and pitch of the four links of a unit in state (θc, θf, θr, θp) (module docstring).
 
     Parameters
@@ -59,8 +69,8 @@ def unit_angles(tc, tf, tr, tp) -> tuple[np.ndarray, np.ndarray]:
 
     Returns
     -------
-    alpha, beta : ndarray, shape (..., 4)
-        Per link in the paper's numbering (`Lattice.units`), radians.
+    alpha, beta, gamma : ndarray, shape (..., 4)
+        Roll, pitch and yaw per link in the paper's numbering (`Lattice.units`), radians.
     """
     tc, tf, tr, tp = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (tc, tf, tr, tp)))
     sh = tc.shape
@@ -78,7 +88,7 @@ def unit_angles(tc, tf, tr, tp) -> tuple[np.ndarray, np.ndarray]:
     links = [(B - A, nz), (C - B, nz), (C - Df, nf), (Df - A, nf)]  # paper numbering 0..3
     ex = np.broadcast_to([1.0, 0.0, 0.0], sh + (3,))
     ey = np.broadcast_to([0.0, 1.0, 0.0], sh + (3,))
-    alpha, beta = [], []
+    alpha, beta, gamma = [], [], []
     for v, n in links:
         x = _rotate(_rotate(v, ex, tr), ey, tp)
         z = _rotate(_rotate(n, ex, tr), ey, tp)
@@ -90,33 +100,93 @@ def unit_angles(tc, tf, tr, tp) -> tuple[np.ndarray, np.ndarray]:
         a, b = E.roll_pitch(reading.reshape(-1, 3))
         alpha.append(a.reshape(sh))
         beta.append(b.reshape(sh))
-    return np.stack(alpha, -1), np.stack(beta, -1)
+        gamma.append(np.arctan2(x[..., 1], x[..., 0]))
+    return np.stack(alpha, -1), np.stack(beta, -1), np.stack(gamma, -1)
 
 
-def solvability_grid(steps: int = 20) -> dict:
-    """λ3/λ1 of eq. (7) over the (θc, θf, θr, θp) grid, and the unsolvable points (< 0.1)."""
-    g = np.linspace(0.0, np.pi, steps)
-    gp = np.linspace(0.0, np.pi / 2, steps)
-    tc, tf, tr, tp = np.meshgrid(g, g, g, gp, indexing="ij")
-    a, b = unit_angles(tc, tf, tr, tp)
-    ratio = E._solvability_units(a, b)
-    bad = ratio < 0.1
-    pts = np.stack([tc[bad], tf[bad], tr[bad], tp[bad]], -1)
+#: The yaw criterion's threshold: a unit is poorly determined where a yaw's standard deviation
+#: exceeds this many times the residuals' noise.
+YAW_STD_GAIN_LIMIT = 10.0
+
+
+def _unit_residuals(alpha, beta, gamma):
+    """The estimator's residuals for one unit (``model="cells"``), shape (..., 6): loop closure
+    (eq. 4, xy, real and imaginary) and every link's roll term ``w y_k · n`` with the cell's
+    normal ``n = A × C / |A × C|`` (0 for a squashed cell)."""
+    ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+    cg, sg = np.cos(gamma), np.sin(gamma)
+    d = np.stack([cb * cg, cb * sg, -sb], -1)
+    y = np.stack([cg * sb * sa - sg * ca, sg * sb * sa + cg * ca, cb * sa], -1)
+    loop = d[..., 0, :] + d[..., 1, :] - d[..., 2, :] - d[..., 3, :]
+    m = np.cross(d[..., 1, :] + d[..., 3, :], d[..., 0, :] + d[..., 2, :])
+    mm = np.linalg.norm(m, axis=-1, keepdims=True)
+    n = np.where(mm > 1e-6, m / np.where(mm > 1e-6, mm, 1.0), 0.0)
+    roll = E.ROLL_WEIGHT * np.sum(y * n[..., None, :], -1)
+    return np.concatenate([loop[..., :2], roll], -1)
+
+
+def yaw_std_gain(alpha, beta, gamma, eps: float = 1e-6) -> np.ndarray:
+    """Per unit, the largest yaw standard deviation per unit residual noise, from the
+    estimator's Gauss-Newton normal matrix ``JᵀJ + ε I`` (yaw 0 as gauge; J by central
+    differences over yaws 1-3): ``sqrt(max diag((JᵀJ + ε)⁻¹))``. Rank-deficient units (Case 1,
+    squashed) reach ``1/sqrt(ε)`` = 1000."""
+    h = 1e-6
+    cols = []
+    for k in (1, 2, 3):
+        dg = np.zeros(gamma.shape)
+        dg[..., k] = h
+        cols.append((_unit_residuals(alpha, beta, gamma + dg)
+                     - _unit_residuals(alpha, beta, gamma - dg)) / (2 * h))
+    J = np.nan_to_num(np.stack(cols, -1), nan=0.0, posinf=0.0, neginf=0.0)  # (..., 6, 3)
+    w, v = np.linalg.eigh(np.einsum("...ri,...rj->...ij", J, J))
+    diag = np.sum(v * v / (np.maximum(w, 0.0) + eps)[..., None, :], -1)
+    return np.sqrt(np.max(diag, -1))
+
+
+def _cases(pts: np.ndarray, steps: int) -> dict:
+    """Case masks of grid points ``(θc, θf, θr, θp)`` (N, 4): exactly on Case 1 / Case 2, within
+    one grid step of Case 1, links vertical (θp = π/2)."""
     tol = 1e-9
     on = lambda v, t: np.abs(v - t) < tol  # noqa: E731
+    near = lambda v, t: np.abs(v - t) <= (np.pi / (steps - 1)) + tol  # noqa: E731
     case1 = ((on(pts[:, 1], 0) | on(pts[:, 1], np.pi)) & (on(pts[:, 2], 0) | on(pts[:, 2], np.pi))
              & on(pts[:, 3], 0))
     case2 = on(pts[:, 0], 0) | on(pts[:, 0], np.pi) | on(pts[:, 1], np.pi)
-    near = lambda v, t: np.abs(v - t) <= (np.pi / (steps - 1)) + tol  # noqa: E731
     case1_near = ((near(pts[:, 1], 0) | near(pts[:, 1], np.pi))
                   & (near(pts[:, 2], 0) | near(pts[:, 2], np.pi)) & near(pts[:, 3], 0))
     vertical = on(pts[:, 3], np.pi / 2)
-    return {"steps": steps, "points": pts, "ratio": ratio, "n_total": int(ratio.size),
-            "n_unsolvable": int(bad.sum()), "case1": int(case1.sum()), "case2": int(case2.sum()),
-            "case1_or_2": int((case1 | case2).sum()),
-            "case1_within_one_step": int((case1_near & ~case2).sum()),
-            "vertical_theta_p": int((vertical & ~case1_near & ~case2).sum()),
-            "other": int((~case1_near & ~case2 & ~vertical).sum())}
+    return {"case1": case1, "case2": case2, "case1_near": case1_near & ~case2,
+            "vertical": vertical & ~case1_near & ~case2,
+            "other": ~case1_near & ~case2 & ~vertical}
+
+
+def _counts(pts: np.ndarray, steps: int) -> dict:
+    c = _cases(pts, steps)
+    return {"n_unsolvable": int(len(pts)), "case1": int(c["case1"].sum()),
+            "case2": int(c["case2"].sum()), "case1_or_2": int((c["case1"] | c["case2"]).sum()),
+            "case1_within_one_step": int(c["case1_near"].sum()),
+            "vertical_theta_p": int(c["vertical"].sum()), "other": int(c["other"].sum())}
+
+
+def solvability_grid(steps: int = 20) -> dict:
+    """Both criteria over the (θc, θf, θr, θp) grid: λ3/λ1 of eq. (7) (< 0.1: unsolvable in the
+    paper's sense) and the estimator's yaw standard deviation gain (`yaw_std_gain` >
+    `YAW_STD_GAIN_LIMIT`), with the points each flags and how they split over the cases."""
+    g = np.linspace(0.0, np.pi, steps)
+    gp = np.linspace(0.0, np.pi / 2, steps)
+    tc, tf, tr, tp = np.meshgrid(g, g, g, gp, indexing="ij")
+    a, b, c = unit_state(tc, tf, tr, tp)
+    ratio = E._solvability_units(a, b)
+    gain = yaw_std_gain(a, b, c)
+    grid = np.stack([tc, tf, tr, tp], -1)
+    bad = ratio < 0.1
+    bad_yaw = gain > YAW_STD_GAIN_LIMIT
+    pts, pts_yaw = grid[bad], grid[bad_yaw]
+    res = {"steps": steps, "points": pts, "points_yaw": pts_yaw, "ratio": ratio, "gain": gain,
+           "n_total": int(ratio.size), **_counts(pts, steps),
+           "yaw_std": _counts(pts_yaw, steps),
+           "yaw_only": int((bad_yaw & ~bad).sum()), "eq7_only": int((bad & ~bad_yaw).sum())}
+    return res
 
 
 def cmd_solvability(args) -> int:
@@ -126,37 +196,59 @@ def cmd_solvability(args) -> int:
 
     out = _outdir(args)
     steps = 8 if args.quick else args.steps
+    if steps < 2:
+        print(f"capsheet paper solvability: error: --steps must be >= 2, got {steps}",
+              file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     res = solvability_grid(steps)
     dt = time.perf_counter() - t0
-    pts = res["points"]
-    rows = [("grid points", res["n_total"]), ("λ3/λ1 < 0.1", res["n_unsolvable"]),
-            ("… in Case 1 (horizontal: θf, θr ∈ {0, π}, θp = 0)", res["case1"]),
-            ("… in Case 2 (squashed θc ∈ {0, π}, or folded θf = π)", res["case2"]),
-            ("… in Case 1 or 2", res["case1_or_2"]),
-            ("… not Case 2, within one grid step of Case 1", res["case1_within_one_step"]),
-            ("… not Case 1/2, links vertical (θp = π/2)", res["vertical_theta_p"]),
-            ("… elsewhere", res["other"])]
-    md = ["# Fig. 8 — unsolvable unit states (λ3/λ1 < 0.1 of eq. 7)", "",
-          f"Grid: θc, θf, θr ∈ [0, π], θp ∈ [0, π/2], {steps} values each "
-          f"({dt:.1f} s). Paper: all unsolvable states roughly in Case 1 or Case 2.", "",
-          "| | count |", "|---|---:|"] + [f"| {k} | {v} |" for k, v in rows]
+    y = res["yaw_std"]
+    rows = [("grid points", res["n_total"], res["n_total"]),
+            ("flagged", res["n_unsolvable"], y["n_unsolvable"]),
+            ("… in Case 1 (horizontal: θf, θr ∈ {0, π}, θp = 0)", res["case1"], y["case1"]),
+            ("… in Case 2 (squashed θc ∈ {0, π}, or folded θf = π)", res["case2"], y["case2"]),
+            ("… in Case 1 or 2", res["case1_or_2"], y["case1_or_2"]),
+            ("… not Case 2, within one grid step of Case 1", res["case1_within_one_step"],
+             y["case1_within_one_step"]),
+            ("… not Case 1/2, links vertical (θp = π/2)", res["vertical_theta_p"],
+             y["vertical_theta_p"]),
+            ("… elsewhere", res["other"], y["other"])]
+    md = ["# Fig. 8 — unsolvable unit states, two criteria", "",
+          f"Grid: θc, θf, θr ∈ [0, π], θp ∈ [0, π/2], {steps} values each ({dt:.1f} s). "
+          "Paper: all unsolvable states roughly in Case 1 or Case 2. λ3/λ1 < 0.1 of eq. (7) "
+          "against the estimator's yaw standard deviation (Gauss-Newton normal matrix of the "
+          f"cells model, per unit residual noise) > {YAW_STD_GAIN_LIMIT:g}.", "",
+          "| | λ3/λ1 < 0.1 | yaw std > limit |", "|---|---:|---:|"]
+    md += [f"| {k} | {v} | {w} |" for k, v, w in rows]
+    md += ["", f"Flagged by the yaw std only: {res['yaw_only']}; by λ3/λ1 only: "
+           f"{res['eq7_only']}."]
     _emit(out / "solvability", "\n".join(md),
-          {k: v for k, v in res.items() if k not in ("points", "ratio")})
+          {k: v for k, v in res.items() if k not in ("points", "points_yaw", "ratio", "gain")})
 
-    fig = plt.figure(figsize=(11, 5))
-    ax = fig.add_subplot(1, 2, 1, projection="3d")
-    sc = ax.scatter(pts[:, 1], pts[:, 2], pts[:, 3], c=pts[:, 0], cmap="viridis", s=6)
-    ax.set_xlabel("θf [rad]")
-    ax.set_ylabel("θr [rad]")
-    ax.set_zlabel("θp [rad]")
-    fig.colorbar(sc, ax=ax, shrink=0.6, label="θc [rad]")
-    ax.set_title("λ3/λ1 < 0.1 (Fig. 8)")
-    ax2 = fig.add_subplot(1, 2, 2)
-    ax2.scatter(pts[:, 0], pts[:, 3], s=8, alpha=0.3)
-    ax2.set_xlabel("θc [rad]")
-    ax2.set_ylabel("θp [rad]")
-    ax2.set_title("projection on (θc, θp)")
+    fig = plt.figure(figsize=(12, 5.5))
+    colours = (("case1", "Case 1", "C0"), ("case1_near", "near Case 1", "C9"),
+               ("case2", "Case 2", "C3"), ("vertical", "θp = π/2", "C2"),
+               ("other", "elsewhere", "C1"))
+    for k, (pts, title) in enumerate(((res["points"], "λ3/λ1 < 0.1 (eq. 7, Fig. 8)"),
+                                      (res["points_yaw"], f"yaw std > {YAW_STD_GAIN_LIMIT:g}×"
+                                       " noise (normal matrix)"))):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        cases = _cases(pts, steps) if len(pts) else {}
+        for key, label, colour in colours:
+            sel = cases.get(key, np.zeros(0, bool))
+            if key == "case2":
+                sel = cases.get("case2", sel)
+            elif key == "case1":
+                sel = cases.get("case1", sel) & ~cases.get("case2", sel)
+            if np.any(sel):
+                ax.scatter(pts[sel, 1], pts[sel, 2], pts[sel, 3], s=6, color=colour,
+                           label=f"{label} ({int(sel.sum())})")
+        ax.set_xlabel("θf [rad]")
+        ax.set_ylabel("θr [rad]")
+        ax.set_zlabel("θp [rad]")
+        ax.set_title(title)
+        ax.legend(loc="upper left", fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "solvability.png", dpi=110)
     plt.close(fig)
@@ -317,7 +409,8 @@ def register(subparsers) -> None:
         if seed:
             sp.add_argument("--seed", type=int, default=2008, help="MT19937 seed")
 
-    s = sub.add_parser("solvability", help="Fig. 8: unsolvable unit states (λ3/λ1 < 0.1)")
+    s = sub.add_parser("solvability", help="Fig. 8: unsolvable unit states (λ3/λ1 < 0.1, and "
+                                           "the estimator's yaw standard deviation)")
     common(s, seed=False)
     s.add_argument("--steps", type=int, default=20, help="grid values per angle (default 20)")
     s.set_defaults(func=cmd_solvability)

@@ -123,8 +123,8 @@ class TactileSensor:
                    ) -> RestShape:
         """Learn the rest shape from snapshots of an untouched sheet, shape ``(n_links, 3)``
         each, m/s² (the estimator with ``prior`` or its own rest layout as prior)."""
-        prev = None if prior is None else prior.prior
-        ests = [estimate(r, rows, cols, link_length, valid=valid, previous=prev)
+        rest = None if prior is None else prior.yaws
+        ests = [estimate(r, rows, cols, link_length, valid=valid, rest=rest)
                 for r in readings]
         return RestShape.learn(ests)
 
@@ -133,7 +133,7 @@ class TactileSensor:
         """One snapshot: readings ``(n_links, 3)`` m/s², sensor frames, docs/design.md link
         order; ``t_s`` its time, seconds (the baseline needs it)."""
         est = estimate(readings, self.rest.rows, self.rest.cols, self.rest.link_length,
-                       valid=valid, previous=self.rest.prior)
+                       valid=valid, rest=self.rest.yaws)
         base = self._baseline_at(t_s) if self.baseline_tau_s is not None else None
         d, _ = deformation(est.joints, self.rest, baseline_m=base)
         found = find_contacts(d, self.rest, self.foam, self.settings)
