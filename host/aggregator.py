@@ -88,7 +88,7 @@ class LatticeSnapshot:
     wall_time : float
         ``time.time()`` at the same instant (for recordings).
     readings : ndarray, shape (n_links, 3), float64
-        Specific force in m/s², sensor frame (DESIGN.md), after per-chip calibration
+        Specific force in m/s², sensor frame (docs/design.md), after per-chip calibration
         (`protocol.constants.counts_to_si`); NaN where not ``valid``.
     valid : ndarray, shape (n_links,), bool
         A frame arrived for the link and its status is not INVALID.

@@ -7,7 +7,7 @@ Bytes in, events out: nothing here opens a port or imports pyserial or python-ca
 * `protocol.can`      — CAN identifiers and payloads: `to_can`, `from_can`, `decode_can` (§7)
 * `protocol.dbc`      — the DBC, generated from the messages (§7.3)
 * `protocol.state`    — the chip state machine tables (§8)
-* `protocol.lattice`  — link addressing (DESIGN.md link order)
+* `protocol.lattice`  — link addressing (docs/design.md link order)
 * `protocol.capacity` — chips per bus from the frame sizes (§10)
 """
 

@@ -1,4 +1,4 @@
-"""Lattice addressing: which link a chip's link index names (DESIGN.md, "Link order").
+"""Lattice addressing: which link a chip's link index names (docs/design.md, "Link order").
 
 A sheet of ``rows x cols`` joints ``P[i, j]`` has two kinds of link:
 

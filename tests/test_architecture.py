@@ -88,3 +88,19 @@ def test_the_two_chip_implementations_share_a_neutral_interface_not_each_other()
     assert offenders("virtual_sheet", lambda m: m.startswith("firmware_ref")) == []
     assert "protocol.chip_interface" in imports_of(ROOT / "firmware_ref/chip.py")
     assert "protocol.chip_interface" in imports_of(ROOT / "virtual_sheet/chip.py")
+
+
+def test_conventions_are_cited_from_the_repo_not_from_outside_it():
+    # docs/design.md holds the conventions; a clone has no ../shared/DESIGN.md
+    assert (ROOT / "docs/design.md").is_file()
+    bad = []
+    for pattern in ("*.py", "*.md", "*.c", "*.h"):
+        for path in ROOT.rglob(pattern):
+            rel = path.relative_to(ROOT).as_posix()
+            if rel.startswith((".venv/", "build/")) or "/." in "/" + rel:
+                continue
+            text = path.read_text(errors="replace")
+            if "DESIGN.md" in text.replace("docs/design.md", ""):
+                bad.append(rel)
+    bad = [b for b in bad if b != "tests/test_architecture.py"]
+    assert bad == []

@@ -1,12 +1,12 @@
 """Exact sheet geometry: Chebyshev nets on height fields, link frames, ideal readings, angles.
 
-Conventions are DESIGN.md's ("Conventions every module shares") and are not restated differently
+Conventions are docs/design.md's ("Conventions every module shares") and are not restated differently
 here: joints ``P[i, j]`` of shape ``(rows, cols, 3)`` in metres, world frame z up; link order and
 link endpoints come from `protocol.lattice.Lattice` only; sensor frame x along the link towards the
 higher-index joint, z the sheet normal on the top face, y = z × x; readings are specific force
 (a flat sheet, top face up, reads ``(0, 0, +G0)``); ``R = Rz(γ) Ry(β) Rx(α)`` maps sensor to world.
 
-Exact ground truth (DESIGN.md "Exact ground truth"): a lattice of equal links with free joint
+Exact ground truth (docs/design.md "Exact ground truth"): a lattice of equal links with free joint
 angles is a *Chebyshev net*. On a height field ``z = f(x, y)`` `chebyshev_net` places one by the
 compass construction: two seed lines through an anchor joint, then every further joint at distance
 ``L`` from its two already placed neighbours, on the surface.
@@ -54,7 +54,7 @@ def roll_pitch(readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     With ``R = Rz(γ) Ry(β) Rx(α)`` (sensor -> world) the reading is the specific force
     ``Rᵀ (0, 0, +g) = g (−sin β, cos β sin α, cos β cos α)`` — the paper's ``s`` with the sign of
-    DESIGN.md (reading = −s). Hence ``α = atan2(r_y, r_z)`` and ``β = atan2(−r_x, hypot(r_y, r_z))``.
+    docs/design.md (reading = −s). Hence ``α = atan2(r_y, r_z)`` and ``β = atan2(−r_x, hypot(r_y, r_z))``.
     The magnitude of the reading does not matter (scale errors common to the three axes cancel).
 
     Parameters
@@ -231,7 +231,7 @@ def ideal_readings(joints: np.ndarray) -> np.ndarray:
 
 
 def link_angles(joints: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Roll, pitch and yaw of every link's frame: ``R = Rz(γ) Ry(β) Rx(α)`` (DESIGN.md).
+    """Roll, pitch and yaw of every link's frame: ``R = Rz(γ) Ry(β) Rx(α)`` (docs/design.md).
 
     Returns
     -------
@@ -349,7 +349,7 @@ def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: flo
                   shear: float = 0.0, anchor: str = "centre") -> np.ndarray:
     """Place an exact Chebyshev net (all links of length ``L``) on the height field ``z = height(x, y)``.
 
-    Compass construction (DESIGN.md "Exact ground truth"): the two seed lines through the anchor
+    Compass construction (docs/design.md "Exact ground truth"): the two seed lines through the anchor
     joint — along i (horizontal direction ``angle`` from +x) and along j (direction
     ``angle + π/2 + shear``) — are curves on the surface over straight lines in the xy plane, each
     step of 3D length exactly ``L``. Every other joint is then placed, anti-diagonal by

@@ -4,7 +4,7 @@ Per chip (link), fixed for the chip's life and drawn once from ``chip_seed``:
 
 * offset (bias), counts, per axis;
 * sensitivity, counts/g per axis: the range's nominal value times ``1 + scale error``;
-* axis misalignment: the chip's axes are the link's sensor axes (DESIGN.md) turned by a small
+* axis misalignment: the chip's axes are the link's sensor axes (docs/design.md) turned by a small
   rotation ``M`` (rotation vector with ``misalignment_rad`` standard deviation per component);
   the chip measures ``Mᵀ f``.
 

@@ -21,7 +21,7 @@ gateways (`virtual_sheet.gateway`) move frames between the chips and a host, and
   (the last 65536 counters are kept: the counter is 16 bits); `link_of_uid` the physical layout.
 
 Layout file (written by `write_layout`, read by the host to assign link addresses). CSV, one chip
-per line after a header, uid in hex with ``0x``, link the lattice address (DESIGN.md link order)::
+per line after a header, uid in hex with ``0x``, link the lattice address (docs/design.md link order)::
 
     uid,link
     0x3A9F0C12D4E5B601,0

@@ -1,4 +1,4 @@
-"""Exact geometry: Chebyshev nets keep every link at L, frames follow DESIGN.md, and roll/pitch
+"""Exact geometry: Chebyshev nets keep every link at L, frames follow docs/design.md, and roll/pitch
 from noise-free readings equal the geometry's."""
 
 import numpy as np

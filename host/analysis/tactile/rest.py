@@ -56,7 +56,7 @@ def _curvatures(P: np.ndarray, normals: np.ndarray, half: int = 2) -> np.ndarray
 
 
 def _yaws_of(P: np.ndarray) -> np.ndarray:
-    """Yaw of every link (DESIGN.md link order) from joints: sensor x is ``Rz(γ) Ry(β) e_x``, so
+    """Yaw of every link (docs/design.md link order) from joints: sensor x is ``Rz(γ) Ry(β) e_x``, so
     ``γ = atan2(d_y, d_x)`` of the link vector."""
     di = (P[1:, :] - P[:-1, :]).reshape(-1, 3)
     dj = (P[:, 1:] - P[:, :-1]).reshape(-1, 3)
