@@ -77,6 +77,10 @@ class ReplayTransport(Transport):
         self._t_first = chunks[0][0] if chunks else 0.0
         self._wall0: float | None = None
         self.decoder = StreamDecoder(batch_samples=True)
+        # CanTransport's decode step drops a bus's echoes of our own frames; a recording holds
+        # only frames the host received, so the filter sees no frame of ours and drops nothing
+        from protocol.can import EchoFilter
+        self.echo = EchoFilter()
         self.sent: list = []
         self.capabilities = TransportCapabilities(kind=self.kind, mtu=1018 if self.kind == "serial" else 64,
                                                   fd=self.kind == "can", name=name)

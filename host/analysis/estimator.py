@@ -392,7 +392,7 @@ class _Structure:
             order = np.argsort(flat, kind="stable")
             fl = flat[order]
             uid, pos = order // 4, order % 4
-            first = np.r_[True, fl[1:] != fl[:-1]]
+            first = np.r_[True, fl[1:] != fl[:-1]][:fl.size]  # fl is empty when no cell is whole
             slot = np.zeros(fl.size, int)
             slot[~first] = 1
             cell = np.full((n, 2), U)
@@ -587,7 +587,7 @@ class _YawProblem:
             cost2 += _sumsq(rn)
             gu += (tn.conj() * rn[:, None]).imag
             blocks = [np.stack([t, tn], axis=1)]
-        grad = np.bincount(st.unit_var.ravel(), weights=gu.ravel(), minlength=nv1)
+        grad = np.bincount(st.unit_var.ravel(), weights=gu.ravel(), minlength=nv1).astype(float)  # int if no cell
         if st.model == "cells":
             Jr, rr = self._roll(z, t)
             cost2 += _sumsq(rr)

@@ -194,6 +194,9 @@ def run(args) -> int:
                     last_print = now
             elapsed = time.monotonic() - t0
             host.stop()
+            for snap in agg.drain():  # emitted while stopping: recorded too, so the file holds them all
+                if outputs.recorder is not None and outputs.recorder.path is not None:
+                    outputs.recorder.snapshot(snap)
             sent = host.syncs_sent - sent0
             st = agg.stats
             stats = {"syncs_sent": sent, "snapshots": st.emitted, "complete": st.complete,

@@ -228,8 +228,9 @@ class SessionOutputs:
         rec.estimate(frame.estimate, k, t, None, displacement=frame.displacement)
         cs = contact_dicts(frame.contacts)
         if truth:
+            marks = [(m.force_n, m.index) if hasattr(m, "force_n") else m for m in truth]  # TrueMark or (F, i)
             cs += [{"id": "truth", "true": True, "index": [float(v) for v in i], "force_n": float(F),
-                    "position": None} for F, i in truth]
+                    "position": None} for F, i in marks]
         rec.contacts(k, t, cs)
 
     def flush(self) -> None:

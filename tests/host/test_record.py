@@ -367,7 +367,8 @@ def test_capsheet_demo_records_snapshots_and_estimates_with_their_error(tmp_path
     doc = json.loads(proc.stdout)  # --json: the summary alone on stdout, whatever the verdict
     rec = read(out)
     assert rec.session["mode"] == "demo" and rec.session["shape"] == "grow"
-    assert len(rec) == doc["snapshots"]  # every snapshot the demo estimated
+    # every snapshot the demo took (newest wins: the ones it skipped while busy are counted, not taken)
+    assert len(rec) == doc["snapshots"] - doc["skipped_newest_wins"]
     assert len(rec.estimates["counter"]) == doc["compared_with_truth"]
     if doc["compared_with_truth"]:
         assert np.mean(rec.estimates["error_pct_side"]) == pytest.approx(doc["mean_error_pct_side"], abs=1e-3)
@@ -398,5 +399,5 @@ def test_an_unwritable_recording_is_one_line_not_a_traceback(tmp_path, capsys):
     from host.cli import main
     (tmp_path / "file").write_text("")
     with pytest.raises(SystemExit) as exc:
-        main(["host", "--port", "loop://", "--record", str(tmp_path / "file" / "run.mcap"), "--duration", "0"])
+        main(["host", "--port", "loop://", "--record", str(tmp_path / "file" / "run.mcap"), "--duration", "0.1"])
     assert str(exc.value).startswith("capsheet host: cannot write ") and "run.mcap" in str(exc.value)

@@ -341,6 +341,20 @@ def test_all_invalid_mask_is_a_clear_error():
         estimate(np.zeros((364, 3)), ROWS, COLS, L, valid=np.zeros(364, bool))
 
 
+def test_valid_links_that_close_no_cell_still_give_each_its_elevation():
+    """Only i-links reported (a j-bus down): no cell is whole, so no yaw is observed, but every
+    reported link's tilt is (gravity alone) - the estimate has it; it does not crash."""
+    lat = Lattice(ROWS, COLS)
+    truth = make_sheet("cylinder", ROWS, COLS, L)
+    valid = np.arange(lat.n_links) < lat.n_i_links
+    est = estimate(ideal_readings(truth), ROWS, COLS, L, valid=valid)
+    ep = lat.endpoints[valid]
+    dz = lambda j: j.reshape(-1, 3)[ep[:, 1], 2] - j.reshape(-1, 3)[ep[:, 0], 2]
+    assert np.all(np.isfinite(est.joints))
+    np.testing.assert_allclose(dz(est.joints), dz(truth), atol=1e-9)
+    assert np.all(np.isfinite(est.yaw_std[valid]))  # from the prior alone, but stated
+
+
 def test_previous_of_another_lattice_is_rejected():
     prev = estimate(ideal_readings(make_sheet("flat", 4, 4, L)), 4, 4, L)
     with pytest.raises(ValueError, match=r"\(14, 14, 3\).*\(4, 4, 3\)"):

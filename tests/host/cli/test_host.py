@@ -213,7 +213,7 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     """The sheet power-cycled under the same port: the host reconnects, re-assigns, re-configures,
     re-reads calibration and restarts every chip; after it reports the recovery >= 99 % of the
     snapshots are complete. In follow mode the gateway's counter restarts from 0: resynchronised."""
-    lay, port, rec = tmp_path / "sheet.csv", tmp_path / "sheet", tmp_path / "run.cap"
+    lay, port, rec = tmp_path / "sheet.csv", tmp_path / "sheet", tmp_path / "run.mcap"
     extra = ["--rate", "50"] if sync == "follow" else []
     a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay), *extra)
     cmd = list(a.host_cmd)
@@ -239,8 +239,8 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery" and "24 of 24" in i["detail"]][-1:]
     from host.record import read_recording
     r = read_recording(rec)
-    after = np.asarray(r.data["timestamp"]) > t_rec
-    complete = np.asarray(r.data["complete"])[after]
+    after = np.asarray(r.timestamp) > t_rec
+    complete = np.asarray(r.complete)[after]
     assert complete.size >= 10 and complete.mean() >= 0.99, (complete.size, complete.mean())
     assert b.p.poll() is None
 
@@ -417,7 +417,7 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp
     from protocol.can import to_can
     from protocol.messages import Reset, Sample
     from host.record import read_recording
-    rec = tmp_path / "run.cap"
+    rec = tmp_path / "run.mcap"
     v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
                  "--layout-out", str(tmp_path / "sheet.csv"))
     p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q", "--record", str(rec))
@@ -436,7 +436,7 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp
     s = json.loads(out)["summary"]
     assert p.returncode == 0, "".join(err)
     r = read_recording(rec)
-    ts, complete = np.asarray(r.data["timestamp"]), np.asarray(r.data["complete"])
+    ts, complete = np.asarray(r.timestamp), np.asarray(r.complete)
     if what == "reset":
         assert s["recoveries"] == 1 and s["recovered_chips"] == 12, s
         [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery"]
