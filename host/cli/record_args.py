@@ -127,6 +127,7 @@ class SessionOutputs:
         self._period = 1.0 / float(getattr(args, "live_rate", 20.0) or 20.0)
         self._last_est = -np.inf
         self._previous = None
+        self.estimates_skipped, self._skip_reason = 0, ""
         record, live = getattr(args, "record", None), getattr(args, "live", None)
         if record or live is not None:
             from host.record import Recorder
@@ -200,8 +201,13 @@ class SessionOutputs:
         self._last_est = now
         from host.analysis.estimator import estimate
 
-        est = estimate(snap.readings, self.lattice.rows, self.lattice.cols, self.link_length, valid=snap.valid,
-                       previous=self._previous)
+        try:  # a dead or saturated chip is masked out, not fatal to the session
+            est = estimate(snap.readings, self.lattice.rows, self.lattice.cols, self.link_length, valid=snap.valid,
+                           previous=self._previous, bad_readings="mask")
+        except ValueError as exc:  # e.g. every valid link's reading is bad: counted, reported at close
+            self.estimates_skipped += 1
+            self._skip_reason = str(exc)
+            return None
         self._previous = est
         self.publish(est, snap, truth=truth, displacement=displacement)
         return est
@@ -247,6 +253,9 @@ class SessionOutputs:
                                                                 ("/capsheet/contacts", "contact frames"))
                         if c.get(t, 0) or name == "snapshots"]
                 print(f"{self.prog}: recorded {', '.join(what)} to {self.recorder.path}", file=sys.stderr)
+            if self.estimates_skipped:
+                print(f"{self.prog}: {self.estimates_skipped} snapshots could not be estimated "
+                      f"(last: {self._skip_reason})", file=sys.stderr)
         if self.can_log is not None:
             self.can_log.stop()
             print(f"{self.prog}: logged {self.can_frames_logged} CAN frames to {self.can_log_path}", file=sys.stderr)

@@ -178,3 +178,33 @@ def test_a_port_in_use_is_one_clear_error():
             LiveServer(foxglove.Context(), port=s.getsockname()[1])
     finally:
         s.close()
+
+
+def test_a_session_estimates_past_a_dead_chip_and_counts_what_it_cannot(tmp_path, capsys):
+    """A chip reading (0, 0, 0) with status OK must not end a recording session: it is masked out of
+    the estimate; a snapshot with nothing estimable is counted and reported, not raised."""
+    from host.aggregator import LatticeSnapshot
+    from host.cli.record_args import SessionOutputs
+    from host.record import read_recording
+    from virtual_sheet.geometry import ideal_readings
+    from virtual_sheet.shapes import make_sheet
+
+    lat = Lattice(4, 4)
+    r = ideal_readings(make_sheet("cylinder", 4, 4, 0.01))
+    r[3] = 0.0  # the dead chip
+
+    def snap(k, readings, valid):
+        return LatticeSnapshot(k, float(k), float(k), readings, valid, np.zeros(lat.n_links, np.uint8),
+                               bool(valid.all()), 0.0)
+
+    args = argparse.Namespace(record=str(tmp_path / "run.mcap"), live=None, live_rate=1e9)
+    out = SessionOutputs(args, lat, 0.01, mode="host")
+    est = out.snapshot(snap(0, r, np.ones(lat.n_links, bool)), force=True)
+    assert est is not None and np.all(np.isfinite(est.joints))
+    only_dead = np.zeros(lat.n_links, bool)
+    only_dead[3] = True
+    assert out.snapshot(snap(1, r, only_dead), force=True) is None
+    out.close()
+    assert "1 snapshots could not be estimated" in capsys.readouterr().err
+    rec = read_recording(tmp_path / "run.mcap")
+    assert len(rec) == 2
