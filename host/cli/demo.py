@@ -171,8 +171,6 @@ def run(args) -> int:
                 previous = est
                 n_est += 1
                 latencies.append(time.monotonic() - snap.timestamp)
-                if outputs.recorder is not None and outputs.recorder.path is not None:
-                    outputs.recorder.snapshot(snap)
                 # the truth: compare at most 10 complete snapshots/s (the error target is for a
                 # complete sheet; an incomplete one is estimated and shown, not scored)
                 if snap.complete and time.monotonic() - last_eval >= 0.1:
@@ -194,9 +192,6 @@ def run(args) -> int:
                     last_print = now
             elapsed = time.monotonic() - t0
             host.stop()
-            for snap in agg.drain():  # emitted while stopping: recorded too, so the file holds them all
-                if outputs.recorder is not None and outputs.recorder.path is not None:
-                    outputs.recorder.snapshot(snap)
             sent = host.syncs_sent - sent0
             st = agg.stats
             stats = {"syncs_sent": sent, "snapshots": st.emitted, "complete": st.complete,

@@ -128,6 +128,7 @@ class SessionOutputs:
         self._last_est = -np.inf
         self._previous = None
         self.estimates_skipped, self._skip_reason = 0, ""
+        self.records_at_emission = False  #: `attach` records every emitted snapshot itself
         record, live = getattr(args, "record", None), getattr(args, "live", None)
         if record or live is not None:
             from host.record import Recorder
@@ -164,6 +165,7 @@ class SessionOutputs:
         if self.recorder is not None and self.recorder.path is not None:
             self.recorder.tap(host.transports, host.aggregator)
             self.recorder.tap_sync(host.aggregator)
+            self._record_at_emission(host)
         if self.can_log is not None:
             cans = [t for t in host.transports if isinstance(t, CanTransport)]
             if not cans:
@@ -172,6 +174,21 @@ class SessionOutputs:
                 bus = host.transports.index(t)
                 tap_transport(t, lambda kind, frames, bus=bus: self._log_can(bus, frames))
                 print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
+
+    def _record_at_emission(self, host) -> None:
+        """Every snapshot the aggregator emits is recorded as it is emitted (in the aggregator's
+        thread, under its lock: in order with the raw frames), with the host's calibration applied:
+        a consumer that falls behind drops from its queue (newest wins), never from the file."""
+        agg, rec = host.aggregator, self.recorder
+        chained = agg.on_snapshot
+
+        def on_snapshot(snap):
+            f = getattr(host, "snapshot_filter", None)
+            rec.snapshot(snap if f is None else f(snap))
+            if chained is not None:
+                chained(snap)
+        agg.on_snapshot = on_snapshot
+        self.records_at_emission = True
 
     def _log_can(self, bus: int, frames) -> None:
         """Frames of bus index ``bus`` into the log; the channel is the bus index (ASC and BLF
@@ -193,7 +210,7 @@ class SessionOutputs:
         rec = self.recorder
         if rec is None:
             return None
-        if rec.path is not None:
+        if rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
         now = time.monotonic()
         if not (force or now - self._last_est >= self._period) or not snap.valid.any():

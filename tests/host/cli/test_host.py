@@ -116,6 +116,18 @@ def drain(p: subprocess.Popen, sink: list) -> threading.Thread:
     return t
 
 
+def finish(p: subprocess.Popen, drainer: threading.Thread, timeout_s: float = 60) -> str:
+    """The host's stdout once it has exited, while ``drainer`` (not ``communicate``, which would
+    race it for stderr) reads stderr to its end."""
+    box: list = []
+    reader = threading.Thread(target=lambda: box.append(p.stdout.read()), daemon=True)
+    reader.start()
+    p.wait(timeout_s)
+    reader.join(timeout_s)
+    drainer.join(timeout_s)
+    return box[0]
+
+
 # -- bad values: one line, exit 2, no traceback (no sheet needed: checked before any port opens) --
 
 def _bad_layouts(tmp: Path) -> dict:
@@ -228,9 +240,7 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     wait_line(p, "streaming again", 120, err)  # the host reports the recovery (a WARNING line)
     time.sleep(3.0)
     p.send_signal(signal.SIGTERM)  # ends as on Ctrl-C: summary and JSON still printed
-    t = drain(p, err)
-    out, _ = p.communicate(timeout=60)
-    t.join(5)
+    out = finish(p, drain(p, err))
     doc = json.loads(out)
     s = doc["summary"]
     assert s["reconnects"] >= 1 and s["recoveries"] >= 1 and s["recovered_chips"] == 24, (s, "".join(err))
@@ -239,6 +249,7 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery" and "24 of 24" in i["detail"]][-1:]
     from host.record import read_recording
     r = read_recording(rec)
+    assert len(r) == s["snapshots"]  # every snapshot made is recorded, also those queued at SIGTERM
     after = np.asarray(r.timestamp) > t_rec
     complete = np.asarray(r.complete)[after]
     assert complete.size >= 10 and complete.mean() >= 0.99, (complete.size, complete.mean())
@@ -271,8 +282,7 @@ def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_
     os.symlink(os.ttyname(slave), tmp)
     os.replace(tmp, port)
     try:
-        drain(p, err)
-        out, _ = p.communicate(timeout=60)
+        out = finish(p, drain(p, err))
     finally:
         stop.set()
         th.join(2)
@@ -338,6 +348,13 @@ def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
 
 # -- cross-process CAN without hardware -------------------------------------------------------------
 
+# python-can's udp_multicast buses share one UDP port, and on Linux a socket on that port hears every
+# group joined on the machine: two of these tests at once would hear each other's chips (a RESET
+# broadcast by one resets the other's sheet). One xdist worker runs them all (`--dist loadgroup`).
+ONE_MULTICAST_BUS = pytest.mark.xdist_group("udp_multicast")
+
+
+@ONE_MULTICAST_BUS
 def test_udp_multicast_between_two_processes(virtuals, tmp_path):
     try:
         import can
@@ -407,6 +424,7 @@ def _udp_or_skip():
         pytest.skip(f"udp_multicast not available here: {exc}")
 
 
+@ONE_MULTICAST_BUS
 @pytest.mark.parametrize("what", ["reset", "stray"])
 def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp_path, what):
     """udp_multicast lets a third process speak on the sheet's bus: a RESET broadcast mid-stream is
@@ -423,7 +441,7 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp
     p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q", "--record", str(rec))
     err: list = []
     wait_line(p, "started on", 60, err)
-    drain(p, err)
+    drainer = drain(p, err)
     time.sleep(1.5)
     msg = Reset(0) if what == "reset" else Sample(2, 40000, 0, 0, 1024, 0)
     f = to_can(msg)
@@ -432,7 +450,7 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp
         bus.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True))
     finally:
         bus.shutdown()
-    out, _ = p.communicate(timeout=60)
+    out = finish(p, drainer)
     s = json.loads(out)["summary"]
     assert p.returncode == 0, "".join(err)
     r = read_recording(rec)
