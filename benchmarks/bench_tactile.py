@@ -28,7 +28,9 @@ noise):
 * capsule rows: ``axes_err_pct`` (major, minor) against the true dent's half-depth footprint
   (from the virtual deflection, same moment definition) and ``angle_err_deg_mean`` / ``_p95``.
 
-``--quick`` for a smoke run; ``--json`` prints only JSON. Progress goes to stderr.
+Forces are read with the fitted dent template (`DetectorSettings.force_model` ``"fit"``);
+``--force-model sum`` gives the sampled Winkler integral for comparison. ``--quick`` for a smoke
+run; ``--json`` prints only JSON; ``--body`` and ``--noise`` select rows. Progress goes to stderr.
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from host.analysis.tactile import Foam, TactileSensor, lattice_index  # noqa: E402
+from host.analysis.tactile import DetectorSettings, Foam, TactileSensor, lattice_index  # noqa: E402
 from virtual_sheet.foam import (CapsuleIndenter, FlatPunch, FoamBlock, FoamCylinder,  # noqa: E402
                                 FoamLayer, FoamScene, FoamSphere, Press, SphereIndenter)
 from virtual_sheet.geometry import ideal_readings  # noqa: E402
@@ -112,8 +114,9 @@ def _angle_diff(a: float, b: float) -> float:
 class Bench:
     """Caches learned rest shapes (per body and noise) and scenes (noise-independent)."""
 
-    def __init__(self, seed: int = 7):
+    def __init__(self, seed: int = 7, force_model: str = "fit"):
         self.seed = seed
+        self.settings = DetectorSettings(force_model=force_model)
         self.foam = Foam(LAYER.thickness_m, LAYER.youngs_modulus_pa, LAYER.poisson)
         self._rest: dict = {}
         self._r0: dict = {}
@@ -153,7 +156,7 @@ class Bench:
         pos_err, f_err, fh_err, axes_err, ang_err = [], [], [], [], []
         for k in range(layouts):
             r, truth, idx, shape = self.scene(body, kind, sep, k)
-            sensor = TactileSensor(rest, self.foam)
+            sensor = TactileSensor(rest, self.foam, settings=self.settings)
             for _ in range(snapshots):
                 fr = sensor.process(noisy_readings(r, noise, rng))
                 n_snap += 1
@@ -198,7 +201,7 @@ class Bench:
     def untouched(self, body: str, noise: float, snapshots: int) -> dict:
         rest = self.rest(body, noise)
         rng = rng_of(self.seed, 4, int(noise * 100))
-        sensor = TactileSensor(rest, self.foam)
+        sensor = TactileSensor(rest, self.foam, settings=self.settings)
         hits = contacts = 0
         for _ in range(snapshots):
             fr = sensor.process(noisy_readings(self.r0(body), noise, rng))
@@ -266,12 +269,19 @@ def main(argv=None) -> int:
     ap.add_argument("--body", action="append", choices=sorted(BODIES),
                     help="bodies to run (repeatable; default all)")
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--force-model", choices=("fit", "sum"), default="fit",
+                    help="DetectorSettings.force_model (default fit; sum: the sampled Winkler "
+                         "integral, the model before issue 17's per-snapshot work)")
+    ap.add_argument("--noise", type=float, action="append",
+                    help="only the rows at these noise levels, %% g (repeatable; default all)")
     args = ap.parse_args(argv)
     layouts, snaps, fp_n = (2, 4, 100) if args.quick else (5, 8, 1000)
     bodies = args.body or list(BODIES)
-    b = Bench(seed=args.seed)
+    b = Bench(seed=args.seed, force_model=args.force_model)
     t0 = time.perf_counter()
     todo = plan(args.quick, bodies)
+    if args.noise:
+        todo = [t for t in todo if t[4] in args.noise]
     rows = []
     for n, (what, body, kind, sep, noise) in enumerate(todo):
         if what == "run":
@@ -287,7 +297,7 @@ def main(argv=None) -> int:
                                "poisson": LAYER.poisson},
                       "bodies": {"block": "top face", "cylinder": "R 0.08 m", "sphere": "R 0.1 m"},
                       "layouts": layouts, "snapshots_per_layout": snaps,
-                      "untouched_snapshots": fp_n},
+                      "untouched_snapshots": fp_n, "force_model": args.force_model},
            "rows": rows, "wall_s": time.perf_counter() - t0}
     print(json.dumps(res))
     if not args.json:

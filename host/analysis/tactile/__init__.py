@@ -28,8 +28,12 @@ Pipeline for one snapshot (`TactileSensor.process`):
    principal half-axes ``2 sqrt(eigenvalues)`` of its second moments in the rest tangent plane,
    so a uniform disc of radius ``a`` gives ``a``; orientation of the major axis from the
    lattice's i direction), ``merged`` when the region may hold two contacts, and force by the
-   foam model (`Foam`): ``F = Σ k_i w_i A_i`` over the region and skirt, ``A_i`` the joint's
-   rest area, ``k_i`` the layer's stiffness at the rest curvature. The total force is the sum.
+   foam model (`Foam`): the layer's dent template (`contacts.dent_template`: the unloaded
+   layer's ``K0(r/λ)`` tail around a cap between a punch's flat bottom and a sphere's
+   paraboloid) fitted to the region and skirt, at the joints' foot points on the rest surface and
+   with a local offset, ``F = k α ∫ t dA`` with ``k`` the layer's stiffness at the rest
+   curvature; a ``merged`` contact (no round template fits it) reads the sampled integral
+   ``Σ k_i w_i A_i`` instead (`DetectorSettings.force_model`). The total force is the sum.
 5. Tracking (`ContactTracker`): contacts matched to the previous snapshot's by minimum total
    distance (Hungarian) within a gate; unmatched contacts get new ids; a track survives
    ``max_missed`` snapshots without a match; ``force_n_held`` the track's recent mean force.
@@ -38,7 +42,8 @@ Pipeline for one snapshot (`TactileSensor.process`):
 
 The force model is the virtual foam's (`virtual_sheet.foam`): a thin layer as a Vlasov
 two-parameter foundation, ``p = k w − G_p ∇²w`` with ``k = E_oed / h``; the shear term integrates
-to zero, so ``F = k ∫ w dA`` exactly — the integral, sampled at the joints, is what is read here.
+to zero, so ``F = k ∫ w dA`` exactly — the integral of the dent fitted to the joints is what is read
+here.
 
 Modules: `foam` (the force model), `rest` (rest shape, curvature, normal fit, deformation), `contacts` (detection and
 per-contact figures), `tracking`, `sensor` (`TactileSensor`), `plot`. This package needs numpy and

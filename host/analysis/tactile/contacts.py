@@ -36,6 +36,14 @@ class DetectorSettings:
     skirt : int
         Joints beyond the region (dilation steps, 8-neighbours) added to each contact's force
         integral for the dent's shallow tail (default 2).
+    force_model : {"fit", "sum"}
+        How a contact's force is read (docs/tactile.md, "Force"): ``"fit"`` (default) fits the
+        layer's dent template (`dent_template`: amplitude, contact radius, cap shape, centre, a
+        local offset) to the region and skirt at the joints' surface positions and integrates
+        the template, ``F = k α ∫ t dA``; ``"sum"`` is the sampled Winkler integral
+        ``Σ k_i w_i A_i`` over the region and skirt. A contact flagged ``merged`` (two contacts
+        or an elongated one: no round template fits it) always uses the sum, and so does a
+        contact whose fit fails.
     merge_flag_ratio : float
         A contact whose half-depth footprint is this elongated (major / minor half-axis) is
         flagged ``merged`` (default 1.6: a round contact reads 1.0-1.5, two 2 N contacts 2 L
@@ -51,6 +59,11 @@ class DetectorSettings:
     min_separation: float = 1.5
     skirt: int = 2
     merge_flag_ratio: float = 1.6
+    force_model: str = "fit"
+
+    def __post_init__(self) -> None:
+        if self.force_model not in ("fit", "sum"):
+            raise ValueError(f"Invalid force_model: {self.force_model!r} (need 'fit' or 'sum')")
 
 
 @dataclass(frozen=True, eq=False)
@@ -70,7 +83,9 @@ class Contact:
     depth_m : float
         Largest displacement into the foam, metres.
     force_n : float
-        ``k Σ w_i A_i`` over the region and skirt, N.
+        N: the fitted dent template's integral ``k α ∫ t dA`` (`DetectorSettings.force_model`
+        ``"fit"``, the default, for a contact not flagged ``merged``), else ``k Σ w_i A_i`` over
+        the region and skirt.
     area_m2 : float
         Rest area of the joints displaced by at least half the depth, m².
     axes_m : ndarray, shape (2,)
@@ -261,7 +276,8 @@ def _segment(d: np.ndarray, sigma: np.ndarray, s: DetectorSettings
 
 
 def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
-                  settings: DetectorSettings = DetectorSettings()) -> list[Contact]:
+                  settings: DetectorSettings = DetectorSettings(),
+                  aligned: np.ndarray | None = None) -> list[Contact]:
     """Contacts in a displacement field (module docstring, steps 3-4).
 
     Parameters
@@ -271,6 +287,10 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
     rest : RestShape
     foam : Foam
     settings : DetectorSettings
+    aligned : ndarray, shape (rows, cols, 3), optional
+        The joints overlaid on the rest shape (`deformation`'s second result), metres: the
+        force fit samples the dent where the joints are (the sheet slides towards a dent), at
+        their foot points on the rest surface (``aligned + d n``). Default: the rest joints.
 
     Returns
     -------
@@ -337,8 +357,15 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
                            angle_rad=ang, peak=(int(pk[0]), int(pk[1])), region=region,
                            merged=bool(merged)))
     share = _force_shares(d, rest, grown, ids, geo, foam.shear_length_m)
-    out = [replace(c, force_n=float(np.sum(k * d * rest.areas * f)))
-           for c, f in zip(out, share)]
+    forces = [float(np.sum(k * d * rest.areas * f)) for f in share]
+    if settings.force_model == "fit" and out:
+        surf = rest.joints if aligned is None else (
+            np.asarray(aligned, float) + d[..., None] * rest.normals)
+        fitted = _fit_forces(d, rest, k, surf, out, [grown == r for r in ids],
+                             foam.shear_length_m)
+        forces = [f if (ft is None or c.merged) else ft
+                  for f, ft, c in zip(forces, fitted, out)]
+    out = [replace(c, force_n=f) for c, f in zip(out, forces)]
     out.sort(key=lambda c: -c.depth_m)
     return out
 
@@ -380,3 +407,126 @@ def _force_shares(d, rest, grown, ids, geo, lam):
         out[support] = share_c
         share[c] = out
     return share
+
+
+def _k0_ratio(x: np.ndarray, a: float) -> np.ndarray:
+    """``K0(x) / K0(a)`` for ``x >= a > 0`` (scaled Bessel functions: no underflow)."""
+    from scipy.special import k0e
+    return k0e(x) / k0e(a) * np.exp(a - x)
+
+
+def dent_template(r: np.ndarray, a: float, s: float, lam: float) -> np.ndarray:
+    """The layer's dent around a round contact of radius ``a``, normalised to 1 at ``r = a``.
+
+    Outside the contact the Vlasov layer carries no load, ``k w − G_p ∇²w = 0``, whose decaying
+    axisymmetric solution is ``K0(r / λ)`` (modified Bessel function; ``λ`` the spreading length,
+    `Foam.shear_length_m`): ``t = K0(r/λ) / K0(a/λ)``. Inside, a cap
+    ``1 + s (a² − r²) / (2 a λ) · K1(a/λ) / K0(a/λ)``: ``s = 0`` a flat punch's bottom (slope
+    discontinuous at the rim), ``s = 1`` the paraboloid that meets the tail with a continuous
+    slope (a sphere's). ``r``, ``a``, ``λ`` in metres.
+
+    >>> from scipy.special import k0
+    >>> t = float(dent_template(np.array(0.01), 0.005, 0.0, 0.0067))
+    >>> round(t, 6) == round(float(k0(0.01 / 0.0067) / k0(0.005 / 0.0067)), 6)
+    True
+    """
+    from scipy.special import k0e, k1e
+    r = np.asarray(r, float)
+    x, xa = r / lam, a / lam
+    q = k1e(xa) / k0e(xa)
+    cap = 1.0 + s * (a * a - r * r) / (2.0 * a * lam) * q
+    return np.where(r < a, cap, _k0_ratio(np.maximum(x, xa), xa))
+
+
+def dent_template_integral(a: float, s: float, lam: float) -> float:
+    """``∫ t dA`` over the plane of `dent_template`, m²: ``π a²`` (the cap's base)
+    ``+ s π a³ K1 / (4 λ K0)`` (the cap above it) ``+ 2 π λ a K1 / K0`` (the tail,
+    ``∫_a^∞ 2π r K0(r/λ) dr = 2π λ a K1(a/λ)``), Bessel functions at ``a / λ``.
+
+    >>> round(dent_template_integral(0.005, 0.0, 1e-9) / (np.pi * 0.005 ** 2), 6)   # no spreading
+    1.0
+    """
+    from scipy.special import k0e, k1e
+    xa = a / lam
+    q = k1e(xa) / k0e(xa)
+    return float(np.pi * a * a + s * np.pi * a ** 3 * q / (4.0 * lam) + 2.0 * np.pi * lam * a * q)
+
+
+#: Weight of the cap-shape prior in `_fit_forces` (residuals in units of the contact's depth).
+CAP_SHAPE_PULL = 0.05
+
+
+def _fit_forces(d, rest, k, surf, contacts, supports, lam):
+    """Every contact's force from a fit of `dent_template` to the displacement (docs/tactile.md,
+    "Force"): one joint least-squares fit over the union of the contacts' supports (region and
+    skirt), per contact an amplitude ``α``, radius ``a``, cap shape ``s`` in [0, 1], centre (in its
+    rest tangent plane) and an offset over its own support (the noise's local level: the joints'
+    heights come from integrated slopes, their error is smooth). The joints are placed at
+    ``surf`` (their foot points on the rest surface). ``F = k α ∫ t dA``, ``k`` at the centre.
+    A contact's entry is None where the fit failed."""
+    from scipy.optimize import least_squares
+
+    n = len(contacts)
+    if n == 0 or lam <= 0:
+        return [None] * n
+    union = np.zeros(d.shape, bool)
+    for sup in supports:
+        union |= sup
+    if union.sum() < 6 * n + 1:
+        return [None] * n
+    owner = np.full(d.shape, -1)
+    for c, sup in enumerate(supports):
+        owner[sup] = c
+    own = owner[union]
+    dv = d[union]
+    P = surf[union]
+    frames, x0, lo, hi, scale = [], [], [], [], []
+    L = rest.link_length
+    for c in contacts:
+        nrm = c.normal
+        e1 = np.cross([0.0, 1.0, 0.0] if abs(nrm[0]) > 0.9 else [1.0, 0.0, 0.0], nrm)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(nrm, e1)
+        X = P - c.position
+        frames.append(np.stack([X @ e1, X @ e2], axis=1))
+        rh = max(float(np.sqrt(c.area_m2 / np.pi)), 0.25 * L)
+        dep = max(c.depth_m, 1e-4)
+        # parameters in units of the depth and the link length (the fit's tolerances are
+        # relative: in metres the residuals, ~1e-4, stopped it at the start)
+        scale += [dep, L, 1.0, L, L, dep]
+        x0 += [1.0, 0.6 * rh / L, 0.5, 0.0, 0.0, 0.0]
+        lo += [0.0, 0.02, 0.0, -1.0, -1.0, -0.5]
+        hi += [10.0, (2.0 * rh + L) / L, 1.0, 1.0, 1.0, 0.5]
+    scale = np.array(scale)
+    dscale = max(max(c.depth_m for c in contacts), 1e-4)
+
+    def model(q):
+        p = q * scale
+        m = np.zeros(len(dv))
+        for c in range(n):
+            al, a, s, u0, v0, off = p[6 * c:6 * c + 6]
+            xy = frames[c]
+            m += al * dent_template(np.hypot(xy[:, 0] - u0, xy[:, 1] - v0), a, s, lam)
+            m[own == c] += off
+        return m
+
+    def residual(q):
+        # a weak pull of the cap shape towards 1/2: at one joint per link the data barely tell
+        # a flat bottom from a paraboloid (a valley of near-equal cost along which the force
+        # changes by several per cent); the pull makes the minimum unique and continuous
+        return np.concatenate([(model(q) - dv) / dscale, CAP_SHAPE_PULL * (q[2::6] - 0.5)])
+
+    try:
+        best = least_squares(residual, np.array(x0), bounds=(np.array(lo), np.array(hi)),
+                             ftol=1e-12, xtol=1e-10, gtol=1e-12, max_nfev=400)
+    except (ValueError, np.linalg.LinAlgError):
+        return [None] * n
+    if not best.success or not np.all(np.isfinite(best.x)):
+        return [None] * n
+    sol_x = best.x * scale
+    out = []
+    for c, con in enumerate(contacts):
+        al, a, s = sol_x[6 * c:6 * c + 3]
+        kc = float(_bilinear(k[..., None], *con.index)[0])
+        out.append(kc * al * dent_template_integral(a, s, lam))
+    return out

@@ -135,15 +135,15 @@ class TactileSensor:
         est = estimate(readings, self.rest.rows, self.rest.cols, self.rest.link_length,
                        valid=valid, rest=self.rest.yaws)
         base = self._baseline_at(t_s) if self.baseline_tau_s is not None else None
-        d, _ = deformation(est.joints, self.rest, baseline_m=base)
-        found = find_contacts(d, self.rest, self.foam, self.settings)
+        d, aligned = deformation(est.joints, self.rest, baseline_m=base)
+        found = find_contacts(d, self.rest, self.foam, self.settings, aligned=aligned)
         if found:  # second pass: fit the rigid overlay without the dents and their tails
             moved = np.zeros(d.shape, bool)
             for c in found:
                 moved |= c.region
             moved = _dilate(moved)
-            d, _ = deformation(est.joints, self.rest, exclude=moved, baseline_m=base)
-            found = find_contacts(d, self.rest, self.foam, self.settings)
+            d, aligned = deformation(est.joints, self.rest, exclude=moved, baseline_m=base)
+            found = find_contacts(d, self.rest, self.foam, self.settings, aligned=aligned)
         self._follow(d, bool(found), t_s)
         contacts = self.tracker.update(found)
         return TactileFrame(t_s=t_s, estimate=est, displacement=d, contacts=contacts,

@@ -1,15 +1,16 @@
 """Per-snapshot accuracy and false contacts on every body (issue 17), on smaller sweeps than
 benchmarks/bench_tactile.py (which measures the full ones: the README table).
 
-Targets asserted here: |mean force bias| <= 5 % for the sphere and the punch on the block, the
-cylinder and the sphere at 1 % g; the held force (a tracked contact's mean over 4 snapshots)
-within 15 % at the 95th percentile; no false contact on an untouched sheet of any body at 0.3 and
+Targets asserted here: |mean force bias| <= 5 % and the 95th percentile of the single-snapshot
+force error <= 15 % for the sphere and the punch on the block, the cylinder and the sphere at 1 % g
+(the fitted dent template, `DetectorSettings.force_model` "fit"); the held force (a tracked
+contact's mean over 4 snapshots) within 15 % at the 95th percentile; no false contact on an untouched sheet of any body at 0.3 and
 5 % g; a finger's orientation on the curved bodies."""
 
 import numpy as np
 import pytest
 
-from host.analysis.tactile import Foam, TactileSensor, lattice_index
+from host.analysis.tactile import DetectorSettings, Foam, TactileSensor, lattice_index
 from virtual_sheet.foam import (CapsuleIndenter, FlatPunch, FoamBlock, FoamCylinder, FoamScene,
                                 FoamSphere, Press, SphereIndenter)
 from virtual_sheet.geometry import ideal_readings
@@ -39,11 +40,12 @@ def rest_of(body, noise):
 _runs = {}
 
 
-def force_errors(body, kind):
+def force_errors(body, kind, force_model="fit"):
     """Relative force errors of single snapshots and of held forces (the track's 4-snapshot
     mean), 4 placements x 8 snapshots at 1 % g; count and position checked on the way."""
-    if (body, kind) in _runs:
-        return _runs[body, kind]
+    if (body, kind, force_model) in _runs:
+        return _runs[body, kind, force_model]
+    settings = DetectorSettings(force_model=force_model)
     _, rest = rest_of(body, 1.0)
     g = rng(42, len(body), len(kind))
     err, held = [], []
@@ -53,7 +55,7 @@ def force_errors(body, kind):
         sc = FoamScene(BODIES[body], [Press(ind, tuple(c), 2.0)], 14, 14, L)
         r = ideal_readings(sc.joints(0.0))
         ti = lattice_index(sc.rest_joints, sc.contacts(0.0)[0].position)
-        sensor = TactileSensor(rest, FOAM)
+        sensor = TactileSensor(rest, FOAM, settings=settings)
         for s in range(8):
             fr = sensor.process(noisy_readings(r, 1.0, g))
             assert len(fr.contacts) == 1
@@ -61,8 +63,8 @@ def force_errors(body, kind):
             err.append(fr.contacts[0].force_n / 2.0 - 1)
             if s >= 3:  # the track has its 4 snapshots
                 held.append(fr.contacts[0].force_n_held / 2.0 - 1)
-    _runs[body, kind] = np.array(err), np.array(held)
-    return _runs[body, kind]
+    _runs[body, kind, force_model] = np.array(err), np.array(held)
+    return _runs[body, kind, force_model]
 
 
 @pytest.mark.parametrize("body", list(BODIES))
@@ -73,17 +75,21 @@ def test_held_force_within_15_percent_and_bias_within_8(body, kind):
     assert abs(np.mean(err)) <= 0.08
 
 
-PUNCH_ON_SPHERE_SHORT = pytest.mark.xfail(strict=True, reason="the punch on the sphere body "
-                                          "(R 10 cm) reads ~6 % low at 1 % g; issue 17's 5 % "
-                                          "target is not met there (docs/tactile.md)")
-
-
-@pytest.mark.parametrize("body,kind", [
-    (b, k) if (b, k) != ("sphere", "punch") else pytest.param(b, k, marks=PUNCH_ON_SPHERE_SHORT)
-    for b in ("block", "cylinder", "sphere") for k in ("sphere", "punch")])
+@pytest.mark.parametrize("body", list(BODIES))
+@pytest.mark.parametrize("kind", ["sphere", "punch"])
 def test_force_bias_within_5_percent(body, kind):
     err, _ = force_errors(body, kind)
     assert abs(np.mean(err)) <= 0.05
+
+
+@pytest.mark.parametrize("body", list(BODIES))
+@pytest.mark.parametrize("kind", ["sphere", "punch"])
+def test_single_snapshot_force_p95_within_15_percent(body, kind):
+    """Issue 17 point 2: every snapshot on its own (not the held force), 32 per body and
+    indenter. (The sampled Winkler sum, force_model "sum", misses it on the block and the
+    cylinder: 17-19 %.)"""
+    err, _ = force_errors(body, kind)
+    assert np.percentile(np.abs(err), 95) <= 0.15
 
 
 @pytest.mark.parametrize("body", list(BODIES))
