@@ -41,7 +41,7 @@ def ms_per_sync(lattice: str, packed: bool, engine: str, n_sync: int, chip_facto
     for f in frames[:5]:  # warm-up
         t += 1 / 145
         gw.feed(f, t)
-        gw.pop_output(t)
+        gw.pop_wire(t)
     best = float("inf")
     for rep in range(3):
         t0 = time.process_time()
@@ -49,7 +49,7 @@ def ms_per_sync(lattice: str, packed: bool, engine: str, n_sync: int, chip_facto
             t += 1 / 145
             gw.feed(f, t)
             gw.poll(t)
-            gw.pop_output(t)
+            gw.pop_wire(t)
         best = min(best, (time.process_time() - t0) / n_sync)
     return 1e3 * best
 

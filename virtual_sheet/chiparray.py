@@ -100,26 +100,135 @@ def cobs_encode_batch(rows: np.ndarray) -> np.ndarray:
     return out
 
 
+def _crc_position_tables(length: int) -> tuple[np.ndarray, int]:
+    """CRC-16/CCITT-FALSE of a ``length``-byte message as a sum of per-byte terms.
+
+    The CRC register update is linear over GF(2), so for messages of one length
+    ``crc(m) = c0 ^ t[0][m[0]] ^ t[1][m[1]] ^ ... ^ t[length-1][m[length-1]]``, with ``t[j][b]`` the
+    CRC (init 0) of byte ``b`` at position ``j`` and zeros elsewhere, and ``c0`` the CRC (init
+    0xFFFF) of ``length`` zero bytes. Returns ``(t (length, 256) uint16, c0)``.
+    """
+    t = np.zeros((length, 256), dtype=np.uint16)
+    for j in range(length):
+        c = _CRC_TABLE.copy()  # byte b at position j, init 0: the state after it is TABLE[b]
+        for _ in range(length - 1 - j):  # then the zero bytes after it
+            c = (c << np.uint16(8)) ^ _CRC_TABLE[c >> np.uint16(8)]
+        t[j] = c
+    return t, binascii.crc_hqx(bytes(length), 0xFFFF)
+
+
+def _pair(t: np.ndarray, j: int) -> np.ndarray:
+    """``t[j][v & 0xFF] ^ t[j + 1][v >> 8]`` for every 16-bit little-endian value v (65536,)."""
+    return (t[j + 1][:, None] ^ t[j][None, :]).ravel()
+
+
+def _cobs_table(k: int) -> np.ndarray:
+    """COBS of a ``k``-byte row, by where its zeros are: row ``z`` (bit i set: byte i is 0) holds
+    the code bytes of the encoding at their places and 0 at the copied bytes, so that
+    ``COBS(row) = table[z] | (0, *row)`` — the code bytes sit exactly where the row's zeros are."""
+    z = np.arange(1 << k, dtype=np.int64)
+    zero = ((z[:, None] >> np.arange(k)) & 1).astype(bool)
+    enc = cobs_encode_batch(np.where(zero, 0, 1).astype(np.uint8))
+    enc[:, 1:][~zero] = 0
+    return enc
+
+
+class _SampleCodec:
+    """SAMPLE frames as two little-endian 64-bit lanes per frame, with whole-column arithmetic.
+
+    One SAMPLE on the wire, as a 16-byte row (the last byte is padding)::
+
+        0 COBS code | 1 version | 2 type | 3-4 node | 5-6 counter | 7-11 word | 12-13 CRC | 14 0x00
+
+    * CRC: linear over GF(2) (`_crc_position_tables`): a term for the node (kept per chip), one
+      for the counter (per SYNC) and three for the word (by its bytes 0-1, 2-3 and 4), each stored
+      already at the CRC's place in lane 1 (bits 32-47, high byte first), so they are only XORed.
+    * COBS: the same table entries carry, at bit 48 + i, whether body byte i (0-12, before COBS)
+      is 0; the CRC's two bytes add theirs by one more lookup; the 13-bit zero pattern then looks
+      up every code byte of the frame at once (`_cobs_table`). The code bytes sit exactly where
+      the zeros are (and at byte 0), so they are ORed into the lanes.
+
+    int64 throughout (bit 63 wraps as in uint64; only values below 2**61 are shifted right).
+    """
+
+    def __init__(self) -> None:
+        t, c0 = _crc_position_tables(11)  # body bytes 0-10: version, type, node, counter, word
+        t = t.astype(np.int64)
+
+        def term(lo: int, hi: int | None, pos: int) -> np.ndarray:
+            """Lane-1 entries by the value of body bytes ``pos`` (and ``pos + 1``): CRC term and
+            zero flags."""
+            v = np.arange(256 if hi is None else 65536, dtype=np.int64)
+            b0, b1 = v & 0xFF, v >> 8
+            crc = t[lo][b0] ^ (t[hi][b1] if hi is not None else 0)
+            e = ((crc >> 8) << 32) | ((crc & 0xFF) << 40) | ((b0 == 0).astype(np.int64) << (48 + pos))
+            if hi is not None:
+                e |= (b1 == 0).astype(np.int64) << (48 + pos + 1)
+            return e
+        const = c0 ^ int(t[0][PROTOCOL_VERSION]) ^ int(t[1][int(MsgType.SAMPLE)])
+        self.node = term(2, 3, 2) ^ ((const >> 8) << 32 | (const & 0xFF) << 40)
+        self.counter = term(4, 5, 4)
+        self.w01, self.w23, self.w4 = term(6, 7, 6), term(8, 9, 8), term(10, None, 10)
+        v = np.arange(65536, dtype=np.int64)  # CRC bytes as they sit in lane 1: high | low << 8
+        self.crc_zero = (((v & 0xFF) == 0).astype(np.int64) << 11) | (((v >> 8) == 0).astype(np.int64) << 12)
+        self.lane0 = PROTOCOL_VERSION << 8 | int(MsgType.SAMPLE) << 16
+        cobs16 = np.zeros((1 << 13, 16), dtype=np.uint8)
+        cobs16[:, :14] = _cobs_table(13)
+        self.cobs = cobs16.view("V16")[:, 0]  # (8192,) 16-byte rows, gathered whole
+        self.m16, self.m8, self.s8, self.s16, self.s32, self.s48, self.s56 = (
+            np.int64(0xFFFF), np.int64(0xFF), np.int64(8), np.int64(16), np.int64(32), np.int64(48), np.int64(56))
+        self.crc_bits = np.int64(0xFFFF << 32)
+
+    def node_terms(self, node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What depends on the node alone: ``(lane-0 bytes 1-4, the node's lane-1 entry)``."""
+        nd = np.asarray(node).astype(np.int64)
+        return self.lane0 | (nd << 24), self.node[nd]
+
+    def encode(self, base0: np.ndarray, node1: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
+        """(m, 2) int64 lanes of the frames; ``base0``, ``node1`` from `node_terms`."""
+        w = word if word.dtype == np.int64 else word.astype(np.int64)
+        c = counter & 0xFFFF
+        s = node1 ^ self.counter[c]
+        s ^= self.w01[w & self.m16]
+        s ^= self.w23[(w >> self.s16) & self.m16]
+        s ^= self.w4[w >> self.s32]
+        zeros = (s >> self.s48) | self.crc_zero[(s >> self.s32) & self.m16]
+        out = self.cobs[zeros].view("<i8").reshape(-1, 2)  # the code bytes (a fresh array)
+        out[:, 0] |= base0 | (c << 40)
+        out[:, 0] |= w << self.s56
+        out[:, 1] |= w >> self.s8
+        out[:, 1] |= s & self.crc_bits
+        return out
+
+
+_CODEC: _SampleCodec | None = None
+
+
+def _codec() -> _SampleCodec:
+    global _CODEC
+    if _CODEC is None:
+        _CODEC = _SampleCodec()
+    return _CODEC
+
+
 def encode_samples_serial(node: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
     """Every SAMPLE frame (version, SAMPLE, node, counter, 5-byte word, CRC, COBS, 0x00) as rows
-    of a (m, 15) uint8 array: the bytes `protocol.framing.encode` gives for each."""
-    m = node.shape[0]
-    body = np.empty((m, 13), dtype=np.uint8)
-    body[:, 0] = PROTOCOL_VERSION
-    body[:, 1] = int(MsgType.SAMPLE)
-    body[:, 2] = node & 0xFF
-    body[:, 3] = node >> 8
-    body[:, 4] = counter & 0xFF
-    body[:, 5] = (counter >> 8) & 0xFF
-    w = word.astype(np.uint64)
-    for b in range(5):
-        body[:, 6 + b] = (w >> np.uint64(8 * b)) & np.uint64(0xFF)
-    crc = crc16_ccitt_batch(body[:, :11])
-    body[:, 11] = crc >> np.uint16(8)
-    body[:, 12] = crc & np.uint16(0xFF)
-    out = np.zeros((m, 15), dtype=np.uint8)
-    out[:, :14] = cobs_encode_batch(body)
-    return out
+    of a (m, 15) uint8 array: the bytes `protocol.framing.encode` gives for each.
+
+    ``node`` (m,) ints < 65536, ``word`` (m,) 40-bit sample words (int64 or uint64)."""
+    tb = _codec()
+    base0, node1 = tb.node_terms(node)
+    return samples_rows(tb.encode(base0, node1, counter, np.asarray(word)))
+
+
+def samples_rows(lanes: np.ndarray) -> np.ndarray:
+    """The (m, 2) lanes of `_SampleCodec.encode` as (m, 15) uint8 frames (a view)."""
+    return lanes.astype("<i8", copy=False).view(np.uint8).reshape(-1, 16)[:, :15]
+
+
+def samples_wire(lanes: np.ndarray) -> bytes:
+    """The (m, 2) lanes of `_SampleCodec.encode`: the m frames back to back, as the wire has them."""
+    return samples_rows(lanes).tobytes()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -145,6 +254,8 @@ class _F:
 
     def __set__(self, obj, value) -> None:
         a = getattr(obj._arr, self.name)
+        if self.name == "node":
+            obj._arr._node_terms = None  # the SAMPLE encoder's per-node part is recomputed
         if value is None:
             a[obj._k] = np.nan if self.none == "nan" else self.none
         else:
@@ -235,6 +346,7 @@ class ChipArray:
         self.rx_errors = np.zeros(n, dtype=np.int64)
         self.configured = np.zeros(n, dtype=bool)
         self.boot_s = np.zeros(n)
+        self._node_terms: tuple[np.ndarray, np.ndarray] | None = None  # `_SampleCodec.node_terms` of `node`
         sensors = dict(sensors or {})
         self._scalar = np.zeros(n, dtype=bool)  # read a scalar sensor source
         self.views: list[ArrayChip] = []
@@ -435,8 +547,30 @@ class ChipArray:
                     for nd, w in zip(nodes, word.tolist())]
         if not idx.size:
             return []
-        b = encode_samples_serial(self.node[idx], counter, word).tobytes()
+        b = self._wire(idx, counter, word)
         return [b[i:i + 15] for i in range(0, len(b), 15)]
+
+    def _wire(self, idx: np.ndarray, counter: int, word: np.ndarray) -> bytes:
+        """Serial: the SAMPLE frames of chips ``idx``, back to back."""
+        tb = _codec()
+        terms = self._node_terms
+        if terms is None:
+            terms = self._node_terms = tb.node_terms(self.node)
+        base0, node1 = terms
+        if idx.size != self.n:
+            base0, node1 = base0[idx], node1[idx]
+        return samples_wire(tb.encode(base0, node1, counter, word))
+
+    def sync_wire(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
+        """Serial SYNC without a Python object per frame: ``(bytes, n_frames)`` — every answer
+        of `sync`, back to back — or None when `sync` must be used (CAN, or a chip with a fault
+        wrapper among ``sel``, whose frames go in between)."""
+        if self.can or self._wrapped_in(sel):
+            return None
+        ans, word = self._answer(msg.counter, now_s, sel)
+        if not ans.size:
+            return b"", 0
+        return self._wire(ans, msg.counter, word), int(ans.size)
 
     def sync(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None, *,
              owners: bool = False):

@@ -41,6 +41,20 @@ __all__ = ["Gateway", "GatewayStats", "CHIP_POLL_PERIOD_S"]
 CHIP_POLL_PERIOD_S = 0.01  #: how often the chips' timers (heartbeat, re-announce) are served
 
 
+class _Run:
+    """A queue entry of ``n`` frames of ``size`` bytes each, back to back in ``data`` (a serial
+    SYNC's SAMPLE frames from the chip array: no Python object per frame until one is asked for)."""
+
+    __slots__ = ("data", "n", "size")
+
+    def __init__(self, data: bytes, n: int, size: int) -> None:
+        self.data, self.n, self.size = data, n, size
+
+    def frames(self) -> list[bytes]:
+        d, z = self.data, self.size
+        return [d[i:i + z] for i in range(0, len(d), z)]
+
+
 class GatewayStats:
     """Counters of one gateway."""
 
@@ -96,7 +110,8 @@ class Gateway:
         self.stats = GatewayStats()
         self._rx = bytearray()
         self._rx_discard = False
-        self._queue: list[tuple[float, Any]] = []
+        self._queue: list[tuple[float, Any]] = []  # (due, frame or _Run), in due order
+        self._runs = 0  # _Run entries in the queue
         self._next_poll = 0.0
         self._next_sync: float | None = None
         self._sync_counter = 0
@@ -221,6 +236,12 @@ class Gateway:
                             self.fault_stats.late_replies += j - i
                         i = j
                 else:
+                    if self.faults is None:  # serial: the frames stay one byte string
+                        wire = self.engine.sync_wire(frame, decoded, now_s, self._sel)
+                        if wire is not None:
+                            if wire[1]:
+                                self._emit_run(wire[0], wire[1], SAMPLE_WIRE_SIZE, now_s)
+                            return
                     out = self.engine.sync(frame, decoded, now_s, self._sel)
                     if out:
                         self._emit(out, now_s)
@@ -390,22 +411,65 @@ class Gateway:
         if self._late or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
             self._queue.sort(key=lambda p: p[0])  # stable: FIFO among equal times
 
-    def pop_output(self, now_s: float) -> list:
-        """Frames due by ``now_s``, in wire order: serial bytes, `CanFrame`, or `ERROR_FRAME`."""
+    def _emit_run(self, data: bytes, n: int, size: int, due_s: float) -> None:
+        """``n`` frames of ``size`` bytes back to back (no stream faults: those act per frame)."""
+        self.stats.chip_frames += n
+        self._queue.append((due_s, _Run(data, n, size)))
+        self._runs += 1
+        if self._late:
+            self._queue.sort(key=lambda p: p[0])
+
+    def _take(self, now_s: float) -> list:
+        """The queue entries due by ``now_s``, removed from the queue."""
         q = self._queue
         if not q:
             return []
         if q[-1][0] <= now_s:
             self._queue = []
-            out = [f for _, f in q]
+            return q
+        n = 0
+        while n < len(q) and q[n][0] <= now_s:
+            n += 1
+        out = q[:n]
+        del q[:n]
+        return out
+
+    def pop_output(self, now_s: float) -> list:
+        """Frames due by ``now_s``, in wire order: serial bytes, `CanFrame`, or `ERROR_FRAME`."""
+        items = self._take(now_s)
+        if not items:
+            return []
+        if self._runs:
+            out: list = []
+            for _, f in items:
+                if type(f) is _Run:
+                    out += f.frames()
+                    self._runs -= 1
+                else:
+                    out.append(f)
         else:
-            n = 0
-            while n < len(q) and q[n][0] <= now_s:
-                n += 1
-            out = [f for _, f in q[:n]]
-            del q[:n]
+            out = [f for _, f in items]
         self.stats.frames_to_host += len(out)
         return out
+
+    def pop_wire(self, now_s: float) -> tuple[bytes, int]:
+        """Serial: the frames due by ``now_s`` back to back, and how many (`pop_output` joined,
+        without a Python object per frame)."""
+        items = self._take(now_s)
+        if not items:
+            return b"", 0
+        parts = []
+        n = 0
+        for _, f in items:
+            if type(f) is _Run:
+                parts.append(f.data)
+                n += f.n
+                self._runs -= 1
+            else:
+                parts.append(f)
+                n += 1
+        self.stats.frames_to_host += n
+        return b"".join(parts), n
 
     def commission(self, now_s: float, *, start: bool = True, first_node: int = 1) -> None:
         """Assign every chip behind this gateway node ``first_node + link`` and its physical link
@@ -413,13 +477,14 @@ class Gateway:
         discarded. A shortcut for tests and benchmarks: a host normally does this."""
         from protocol.messages import Assign, Start
         saved, self._queue = self._queue, []
+        saved_runs, self._runs = self._runs, 0
         faults, self.faults = self.faults, None  # discarded answers: no fault is injected or counted
         for k, c in zip(self.links, self.chips):
             msg = Assign(c.node, new_node=first_node + k, link=k, uid_low=c.uid & 0xFFFFFFFF)
             self._inject(msg, now_s)
         if start:
             self._inject(Start(0), now_s)
-        self._queue, self.faults = saved, faults
+        self._queue, self._runs, self.faults = saved, saved_runs, faults
 
     def _inject(self, msg: Message, now_s: float) -> None:
         frame = to_can(msg) if self.can else encode(msg)
@@ -427,7 +492,7 @@ class Gateway:
 
     def pop_bytes(self, now_s: float) -> bytes:
         """Serial: the due frames as one byte string."""
-        return b"".join(self.pop_output(now_s))
+        return self.pop_wire(now_s)[0]
 
 
 assert ERROR_FRAME  # re-exported for CAN devices

@@ -204,6 +204,26 @@ def test_a_broken_batch_encoder_is_caught_by_the_equivalence_discipline():
     assert bytes(broken[0]) != bytes(rows[0])
 
 
+def _byte_heavy(bits: int):
+    """Integers of ``bits`` bits built byte by byte, each byte often 0x00 or 0xFF (COBS and CRC edges)."""
+    return st.lists(st.one_of(st.just(0), st.just(0xFF), st.integers(0, 255)), min_size=bits // 8,
+                    max_size=bits // 8).map(lambda bs: int.from_bytes(bytes(bs), "little"))
+
+
+@given(st.lists(st.tuples(_byte_heavy(16).filter(lambda v: v != 0xFFFF), _byte_heavy(40)), min_size=1, max_size=40),
+       _byte_heavy(16))
+def test_batch_sample_frames_are_the_frames_the_protocol_encodes(chips, counter):
+    """The table-driven SAMPLE encoder against `protocol.framing.encode`, frame by frame."""
+    from protocol.messages import Sample
+    node = np.array([nd for nd, _ in chips], dtype=np.int64)
+    word = np.array([w for _, w in chips], dtype=np.int64)
+    rows = encode_samples_serial(node, counter, word)
+    for r, (nd, w) in zip(rows, chips):
+        x, y, z = [((w >> s & 0xFFF) ^ 0x800) - 0x800 for s in (0, 12, 24)]
+        assert bytes(r) == encode(Sample(nd, counter, x, y, z, w >> 36 & 0xF))
+    assert rows.shape == (len(chips), 15)
+
+
 @given(st.lists(st.binary(min_size=13, max_size=13), min_size=1, max_size=20))
 def test_batch_cobs_and_crc_match_the_libraries(blocks):
     import binascii
