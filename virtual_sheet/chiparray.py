@@ -46,6 +46,7 @@ _BOOT, _IDLE, _STREAMING, _FAULT = (int(ChipState.BOOT), int(ChipState.IDLE), in
                                     int(ChipState.FAULT))
 _INVALID = int(SampleStatus.INVALID)
 _SAT = 255
+_FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into the sample word
 
 
 # ---------------------------------------------------------------------------------------------
@@ -228,12 +229,28 @@ def samples_rows(lanes: np.ndarray) -> np.ndarray:
 
 def samples_wire(lanes: np.ndarray) -> bytes:
     """The (m, 2) lanes of `_SampleCodec.encode`: the m frames back to back, as the wire has them."""
-    return samples_rows(lanes).tobytes()
+    lanes = np.ascontiguousarray(lanes, dtype="<i8")
+    # one 15-byte item per 16-byte row: a single copy loop (a (m, 15) uint8 slice copies row by row)
+    return np.ndarray((lanes.shape[0],), dtype="V15", buffer=lanes, strides=(16,)).tobytes()
 
 
 # ---------------------------------------------------------------------------------------------
 # the per-chip view: a ChipModel whose state lives in the arrays
 # ---------------------------------------------------------------------------------------------
+
+#: the array's derived values (None: derive again) that a field written through a view invalidates
+_STALE_ON_SET = {
+    "node": ("_node_terms",),
+    "last_counter": ("_all_last",),
+    "state": ("_steady", "_next_due"),
+    "powered": ("_steady", "_next_due"),
+    "streaming": ("_steady",),
+    "range": ("_range_any",),
+    "heartbeat_ms": ("_next_due",),
+    "next_heartbeat_s": ("_next_due",),
+    "next_announce_s": ("_next_due",),
+}
+
 
 class _F:
     """A ChipModel attribute stored at ``arr.<name>[k]``; ``none`` is the stored value of None."""
@@ -243,6 +260,7 @@ class _F:
 
     def __set_name__(self, owner, name) -> None:
         self.name = name
+        self.stale = _STALE_ON_SET.get(name, ())
 
     def __get__(self, obj, owner=None):
         if obj is None:
@@ -253,9 +271,10 @@ class _F:
         return self.conv(v)
 
     def __set__(self, obj, value) -> None:
-        a = getattr(obj._arr, self.name)
-        if self.name == "node":
-            obj._arr._node_terms = None  # the SAMPLE encoder's per-node part is recomputed
+        arr = obj._arr
+        a = getattr(arr, self.name)
+        for c in self.stale:  # what the array derived from this field is derived again
+            setattr(arr, c, None)
         if value is None:
             a[obj._k] = np.nan if self.none == "nan" else self.none
         else:
@@ -346,7 +365,12 @@ class ChipArray:
         self.rx_errors = np.zeros(n, dtype=np.int64)
         self.configured = np.zeros(n, dtype=bool)
         self.boot_s = np.zeros(n)
+        # derived values, None until needed (and again after a view writes what they come from)
         self._node_terms: tuple[np.ndarray, np.ndarray] | None = None  # `_SampleCodec.node_terms` of `node`
+        self._all_last: int | None = None  # every chip's last_counter, when they are all this one
+        self._steady: bool | None = None  # every chip powered, started, STREAMING, no fault wrapper
+        self._range_any: bool | None = None  # some chip has CONFIG range != 0
+        self._next_due: float | None = None  # no chip timer is due before this time
         sensors = dict(sensors or {})
         self._scalar = np.zeros(n, dtype=bool)  # read a scalar sensor source
         self.views: list[ArrayChip] = []
@@ -364,6 +388,7 @@ class ChipArray:
         self._wrapped_idx = np.flatnonzero(self._wrapped).tolist()
         self._plain = ~self._wrapped
         self._all = np.ones(n, dtype=bool)
+        self._every = np.arange(n)
         self._no_scalar = not self._scalar.any()
 
     def _scalar_source(self, k: int):
@@ -387,6 +412,12 @@ class ChipArray:
 
     def poll(self, now_s: float, sel: np.ndarray | None = None) -> list[Out]:
         """Timers of every chip (of ``sel``), in chip order (as N `ChipModel.poll` calls)."""
+        due = self._next_due
+        if due is None:
+            due = self._next_due = self._first_due()
+        if now_s < due:
+            return []
+        self._next_due = None  # heartbeats move on below
         boot = self.state == _BOOT
         live = self.powered & self._plain & self._sel(sel)
         announce = live & boot & (now_s >= self.next_announce_s)
@@ -410,6 +441,17 @@ class ChipArray:
             items += [(k, [f]) for k, f in zip(hb.tolist(), frames)]
         items.sort(key=lambda t: t[0])
         return [f for _, r in items for f in r]
+
+    def _first_due(self) -> float:
+        """The earliest time any plain chip's timer is due (-inf with fault wrappers: they poll
+        every time)."""
+        if self._wrapped_idx:
+            return -np.inf
+        boot = self.state == _BOOT
+        a = self.next_announce_s[self.powered & boot]
+        h = self.next_heartbeat_s[self.powered & ~boot & (self.heartbeat_ms != 0)]
+        h = h[~np.isnan(h)]
+        return float(min(a.min() if a.size else np.inf, h.min() if h.size else np.inf))
 
     def _status_frames(self, idx: np.ndarray, now_s: float) -> list[Out]:
         """The STATUS heartbeat of chips ``idx``, batch-encoded (`ChipModel._status`, byte for byte)."""
@@ -468,6 +510,13 @@ class ChipArray:
 
     def _answer(self, counter: int, now_s: float, sel):
         """The vectorised SYNC for the plain chips: updates the state, returns ``(idx, word)``."""
+        if sel is None and self._no_scalar:
+            steady = self._steady
+            if steady is None:
+                steady = self._steady = bool((self._plain & self.powered & self.streaming
+                                              & (self.state == _STREAMING)).all())
+            if steady:
+                return self._every, self._answer_all(counter, now_s, self._every)
         st = self.state
         ans = np.flatnonzero(self._plain & self._sel(sel) & self.powered & self.streaming
                              & ((st == _STREAMING) | (st == _FAULT)))
@@ -475,6 +524,7 @@ class ChipArray:
             return ans, np.zeros(0, dtype=np.int64)
         if ans.size == self.n and self._no_scalar and not (st == _FAULT).any():
             return ans, self._answer_all(counter, now_s, ans)
+        self._all_last = None
         last = self.last_counter[ans]
         miss = self.missed_syncs[ans]
         gap = (counter - last - 1) & 0xFFFF
@@ -502,6 +552,7 @@ class ChipArray:
             bad = (s & _INVALID) != 0
             if bad.any():
                 self.state[li[bad]] = _FAULT
+                self._steady = None
                 c[bad] = 0
             r = self.range[li]
             c = np.where(bad[:, None], c, c >> r[:, None])
@@ -513,25 +564,35 @@ class ChipArray:
 
     def _answer_all(self, counter: int, now_s: float, ans: np.ndarray) -> np.ndarray:
         """`_answer` when every chip answers with a fresh sample (the streaming steady state):
-        the same arithmetic on whole arrays, no gathers."""
-        last, miss = self.last_counter, self.missed_syncs
-        gap = (counter - last - 1) & 0xFFFF
-        add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
-        if add.any():
-            np.copyto(miss, np.minimum(_SAT, miss + gap), where=add)
-        last.fill(counter)
+        the same arithmetic on whole arrays, no gathers; when every chip last answered the
+        previous counter (the usual next SYNC) there is no gap to count."""
+        last = self._all_last
+        if last is None or (counter - last - 1) & 0xFFFF:
+            last, miss = self.last_counter, self.missed_syncs
+            gap = (counter - last - 1) & 0xFFFF
+            add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
+            if add.any():
+                np.copyto(miss, np.minimum(_SAT, miss + gap), where=add)
+        self.last_counter.fill(counter)
+        self._all_last = counter
         c, s = self.sensor(now_s, ans)
         c = np.asarray(c, dtype=np.int64)
         s = np.asarray(s, dtype=np.int64)
-        bad = (s & _INVALID) != 0
-        if bad.any():
+        if (s & _INVALID).any():
+            bad = (s & _INVALID) != 0
             self.state[bad] = _FAULT
+            self._steady = None
             c = c.copy()
             c[bad] = 0
-        if self.range.any():
-            c = np.where(bad[:, None], c, c >> self.range[:, None])
-        c = c & 0xFFF
-        return c[:, 0] | (c[:, 1] << 12) | (c[:, 2] << 24) | ((s & 0xF) << 36)
+        else:
+            bad = None
+        rng = self._range_any
+        if rng is None:
+            rng = self._range_any = bool(self.range.any())
+        if rng:
+            sh = c >> self.range[:, None]
+            c = sh if bad is None else np.where(bad[:, None], c, sh)
+        return ((c & 0xFFF) @ _FIELD_SHIFT) | ((s & 0xF) << 36)
 
     def _wrapped_in(self, sel) -> list[int]:
         if sel is None:
@@ -596,12 +657,18 @@ class ChipArray:
         items.sort(key=lambda t: (t[0], t[1]))
         return [f for _, _, f in items], np.array([k for k, _, _ in items], dtype=np.int64)
 
+    def sync_words(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
+        """SYNC for a packing gateway: ``(idx, word, other)`` — the plain chips that answered and
+        their 40-bit sample words (int64), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
+        extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
+        ans, word = self._answer(msg.counter, now_s, sel)
+        return ans, word, extra
+
     def sync_samples(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
         """SYNC for a packing gateway: ``(idx, word, counts (m, 3), status (m,), other)`` — the
         plain chips' sample words and their fields as arrays (counts as the wire carries them:
         12-bit two's complement), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
-        extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
-        ans, word = self._answer(msg.counter, now_s, sel)
+        ans, word, extra = self.sync_words(frame, msg, now_s, sel)
         u = np.stack([(word >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
         counts = ((u ^ 0x800) - 0x800).astype(np.int64)
         status = (word >> 36) & 0xF
