@@ -35,6 +35,7 @@ If the path ends in ``.json`` it is JSON instead::
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any, Callable
@@ -148,6 +149,8 @@ class VirtualSheet:
         # (now_s, counts (n, 3) int64, status (n,) int64, counts as tuples or None, status list or None)
         self._cache: tuple = (None, None, None, None, None)
         self._fast: tuple | None = None  # `_sample`: (model, chip errors, buffer, {step: (readings, Mᵀ f)})
+        self._no_status = np.zeros(n, dtype=np.int64)  # every link OK (shared, read-only)
+        self._no_status.setflags(write=False)
         self.sync_times: dict[int, float] = {}
         offset, sens = self.sensor_model.stored_calibration(n)  # what the chips hold before CAL_WRITE
         q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
@@ -230,7 +233,7 @@ class VirtualSheet:
     def _scene_time(self, t_s: float) -> float:
         if self.static:
             return 0.0
-        return float(np.floor(t_s * self.scene_rate_hz) / self.scene_rate_hz)
+        return math.floor(t_s * self.scene_rate_hz) / self.scene_rate_hz
 
     def _step_key(self, tq: float) -> int:
         if self.static:
@@ -275,7 +278,8 @@ class VirtualSheet:
                 counts, status = m.sample(readings, self._noise_rng if m.noise_pct_g > 0 else None)
             counts, status = np.asarray(counts, dtype=np.int64), np.asarray(status, dtype=np.int64)
             counts.setflags(write=False)
-            status.setflags(write=False)
+            if status.flags.writeable:
+                status.setflags(write=False)
             c = self._cache = (now_s, counts, status, None, None)
             return c
 
@@ -305,6 +309,8 @@ class VirtualSheet:
         buf *= e.sensitivity
         buf += e.offset_counts
         np.rint(buf, out=buf)
+        if buf.max() < ADC_MAX and buf.min() > ADC_MIN:  # nothing at a limit: nothing to clip
+            return buf.astype(np.int64), self._no_status
         np.minimum(buf, ADC_MAX, out=buf)  # np.clip, without its per-call overhead
         np.maximum(buf, ADC_MIN, out=buf)
         counts = buf.astype(np.int64)
