@@ -15,9 +15,11 @@ stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
   chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC").
 
 A sheet with the array engine (`chiparray.ChipArray`) is served in batch: a SYNC is one numpy
-step for every chip behind the gateway, and in packed mode the samples go into the SNAPSHOT
-straight from the arrays (nothing encoded, nothing decoded again). The frames are the same as
-with one chip object each (tests/virtual_sheet/test_chiparray.py).
+step for every chip behind the gateway; per-chip serial frames stay one byte string in the
+queue until `pop_output` is asked for them one by one (`pop_wire`, what a serial device sends,
+never splits them), and in packed mode the sample words go into the SNAPSHOT straight from the
+arrays (nothing encoded, nothing decoded again). The frames are the same as with one chip
+object each (tests/virtual_sheet/test_chiparray.py).
 
 Time is passed in (``now_s``); nothing here reads a clock or touches a port.
 """

@@ -354,3 +354,33 @@ def test_timers_fire_at_exactly_their_due_time():
     got = arr.poll(hb)
     assert got == [f for c in refs for f in c.poll(hb)]
     assert [(type(m), m.node) for m in (decode_frame(f[:-1]) for f in got)] == [(Status, 1 + k) for k in range(n)]
+
+
+@pytest.mark.parametrize("engine", ["array", "chips"])
+@pytest.mark.parametrize("packed", [False, True])
+@pytest.mark.parametrize("faults", [None, "drop_frame=0.05,dup_frame=0.05,seed=3", "drift_chip=2,drift_late_ms=3"])
+def test_pop_wire_is_pop_output_joined(engine, packed, faults):
+    """What a serial device writes (`pop_wire`, frames kept as one byte string) is what
+    `pop_output` hands out frame by frame, and both count the same frames."""
+    runs = []
+    for wire in (False, True):
+        sheet = VirtualSheet("grow", "5x4", seed=4, noise=1.0, faults=faults, engine=engine, scene_rate_hz=20.0)
+        gw = Gateway(sheet, packed=packed)
+        gw.power_on(0.0)
+        gw.commission(0.001)
+        data, frames = b"", 0
+        t = 0.002
+        for c in range(30):
+            t += 1 / 145
+            gw.feed(encode(Sync(counter=c)), t)
+            gw.poll(t)
+            if wire:
+                d, n = gw.pop_wire(t + 0.002)
+            else:
+                out = gw.pop_output(t + 0.002)
+                d, n = b"".join(out), len(out)
+            data += d
+            frames += n
+        runs.append((data, frames, gw.stats.frames_to_host))
+    assert runs[0] == runs[1]
+    assert runs[0][1] == runs[0][2] > 30
