@@ -401,6 +401,8 @@ class ChipArray:
         self._all = np.ones(n, dtype=bool)
         self._every = np.arange(n)
         self._no_scalar = not self._scalar.any()
+        if not self.can:
+            _codec()  # the SAMPLE tables now, not in the first SYNC's answer time
 
     def _scalar_source(self, k: int):
         idx = np.array([k])
