@@ -5,9 +5,12 @@ last counter, missed SYNCs, range, timers) in arrays of length N. Its two hot pa
 
 * **SYNC** (`ChipArray.sync`): which chips answer, the missed-SYNC bookkeeping, one batch read of
   the sensors, the FAULT transition of an INVALID sample, the range shift, the 40-bit sample
-  words, and — per-chip mode — every SAMPLE frame encoded at once (header, CRC-16/CCITT-FALSE by
-  table over the batch, COBS over the batch), or — packed mode (`ChipArray.sync_samples`) — the
-  counts handed to the gateway as arrays with nothing encoded.
+  words, and — per-chip mode — every SAMPLE frame encoded at once (`_SampleCodec`: the CRC as a
+  sum of per-byte table terms, COBS by a table keyed on where the zeros are, two 64-bit lanes a
+  frame; `ChipArray.sync_wire` gives the frames as one byte string), or — packed mode
+  (`ChipArray.sync_words`) — the sample words handed to the gateway with nothing encoded.
+  In the streaming steady state nothing is re-derived per SYNC: which chips answer, the gap to
+  count, the range and the first due timer are kept and invalidated by any write through a view.
 * **Timers** (`ChipArray.poll`): the due re-ANNOUNCEs and STATUS heartbeats are found by one
   comparison; the heartbeats are advanced and their STATUS frames encoded in one batch; a due
   re-ANNOUNCE (rare: unassigned chips) runs the scalar timer code.
@@ -46,6 +49,7 @@ _BOOT, _IDLE, _STREAMING, _FAULT = (int(ChipState.BOOT), int(ChipState.IDLE), in
                                     int(ChipState.FAULT))
 _INVALID = int(SampleStatus.INVALID)
 _SAT = 255
+_FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into the sample word
 
 
 # ---------------------------------------------------------------------------------------------
@@ -100,31 +104,164 @@ def cobs_encode_batch(rows: np.ndarray) -> np.ndarray:
     return out
 
 
+def _crc_position_tables(length: int) -> tuple[np.ndarray, int]:
+    """CRC-16/CCITT-FALSE of a ``length``-byte message as a sum of per-byte terms.
+
+    The CRC register update is linear over GF(2), so for messages of one length
+    ``crc(m) = c0 ^ t[0][m[0]] ^ t[1][m[1]] ^ ... ^ t[length-1][m[length-1]]``, with ``t[j][b]`` the
+    CRC (init 0) of byte ``b`` at position ``j`` and zeros elsewhere, and ``c0`` the CRC (init
+    0xFFFF) of ``length`` zero bytes. Returns ``(t (length, 256) uint16, c0)``.
+    """
+    t = np.zeros((length, 256), dtype=np.uint16)
+    for j in range(length):
+        c = _CRC_TABLE.copy()  # byte b at position j, init 0: the state after it is TABLE[b]
+        for _ in range(length - 1 - j):  # then the zero bytes after it
+            c = (c << np.uint16(8)) ^ _CRC_TABLE[c >> np.uint16(8)]
+        t[j] = c
+    return t, binascii.crc_hqx(bytes(length), 0xFFFF)
+
+
+def _pair(t: np.ndarray, j: int) -> np.ndarray:
+    """``t[j][v & 0xFF] ^ t[j + 1][v >> 8]`` for every 16-bit little-endian value v (65536,)."""
+    return (t[j + 1][:, None] ^ t[j][None, :]).ravel()
+
+
+def _cobs_table(k: int) -> np.ndarray:
+    """COBS of a ``k``-byte row, by where its zeros are: row ``z`` (bit i set: byte i is 0) holds
+    the code bytes of the encoding at their places and 0 at the copied bytes, so that
+    ``COBS(row) = table[z] | (0, *row)`` — the code bytes sit exactly where the row's zeros are."""
+    z = np.arange(1 << k, dtype=np.int64)
+    zero = ((z[:, None] >> np.arange(k)) & 1).astype(bool)
+    enc = cobs_encode_batch(np.where(zero, 0, 1).astype(np.uint8))
+    enc[:, 1:][~zero] = 0
+    return enc
+
+
+class _SampleCodec:
+    """SAMPLE frames as two little-endian 64-bit lanes per frame, with whole-column arithmetic.
+
+    One SAMPLE on the wire, as a 16-byte row (the last byte is padding)::
+
+        0 COBS code | 1 version | 2 type | 3-4 node | 5-6 counter | 7-11 word | 12-13 CRC | 14 0x00
+
+    * CRC: linear over GF(2) (`_crc_position_tables`): a term for the node (kept per chip), one
+      for the counter (per SYNC) and one per byte of the word, each stored
+      already at the CRC's place in lane 1 (bits 32-47, high byte first), so they are only XORed.
+    * COBS: the same table entries carry, at bit 48 + i, whether body byte i (0-12, before COBS)
+      is 0; the CRC's two bytes add theirs by a lookup each; the 13-bit zero pattern then looks
+      up every code byte of the frame at once (`_cobs_table`). The code bytes sit exactly where
+      the zeros are (and at byte 0), so they are ORed into the lanes.
+
+    int64 throughout (bit 63 wraps as in uint64; only values below 2**61 are shifted right).
+    """
+
+    def __init__(self) -> None:
+        t, c0 = _crc_position_tables(11)  # body bytes 0-10: version, type, node, counter, word
+        t = t.astype(np.int64)
+
+        def term(lo: int, hi: int | None, pos: int) -> np.ndarray:
+            """Lane-1 entries by the value of body bytes ``pos`` (and ``pos + 1``): CRC term and
+            zero flags."""
+            v = np.arange(256 if hi is None else 65536, dtype=np.int64)
+            b0, b1 = v & 0xFF, v >> 8
+            crc = t[lo][b0] ^ (t[hi][b1] if hi is not None else 0)
+            e = ((crc >> 8) << 32) | ((crc & 0xFF) << 40) | ((b0 == 0).astype(np.int64) << (48 + pos))
+            if hi is not None:
+                e |= (b1 == 0).astype(np.int64) << (48 + pos + 1)
+            return e
+        const = c0 ^ int(t[0][PROTOCOL_VERSION]) ^ int(t[1][int(MsgType.SAMPLE)])
+        self.node = term(2, 3, 2) ^ ((const >> 8) << 32 | (const & 0xFF) << 40)
+        self.counter = term(4, 5, 4)
+        # the word's five bytes: a 256-entry table each (2 kB, in the L1 cache; 16-bit tables of
+        # 512 kB each missed the cache on nearly every lookup of a SYNC)
+        self.w0, self.w1, self.w2, self.w3, self.w4 = (term(6 + b, None, 6 + b) for b in range(5))
+        b = np.arange(256, dtype=np.int64)  # CRC bytes: high at lane-1 bits 32-39, low at 40-47
+        self.crc_hi_zero = (b == 0).astype(np.int64) << 11
+        self.crc_lo_zero = (b == 0).astype(np.int64) << 12
+        self.lane0 = PROTOCOL_VERSION << 8 | int(MsgType.SAMPLE) << 16
+        cobs16 = np.zeros((1 << 13, 16), dtype=np.uint8)
+        cobs16[:, :14] = _cobs_table(13)
+        self.cobs = cobs16.view("V16")[:, 0]  # (8192,) 16-byte rows, gathered whole
+        self.m8, self.s8, self.s16, self.s24, self.s32, self.s40, self.s48, self.s56 = (
+            np.int64(0xFF), np.int64(8), np.int64(16), np.int64(24), np.int64(32), np.int64(40), np.int64(48),
+            np.int64(56))
+        self.crc_bits = np.int64(0xFFFF << 32)
+
+    def node_terms(self, node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What depends on the node alone: ``(lane-0 bytes 1-4, the node's lane-1 entry)``."""
+        nd = np.asarray(node).astype(np.int64)
+        return self.lane0 | (nd << 24), self.node[nd]
+
+    def encode(self, base0: np.ndarray, node1: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
+        """(m, 2) int64 lanes of the frames; ``base0``, ``node1`` from `node_terms`."""
+        w = word if word.dtype == np.int64 else word.astype(np.int64)
+        c = counter & 0xFFFF
+        m8 = self.m8
+        s = node1 ^ self.counter[c]
+        s ^= self.w0[w & m8]
+        s ^= self.w1[(w >> self.s8) & m8]
+        s ^= self.w2[(w >> self.s16) & m8]
+        s ^= self.w3[(w >> self.s24) & m8]
+        s ^= self.w4[w >> self.s32]
+        zeros = (s >> self.s48) | self.crc_hi_zero[(s >> self.s32) & m8]
+        zeros |= self.crc_lo_zero[(s >> self.s40) & m8]
+        out = self.cobs[zeros].view("<i8").reshape(-1, 2)  # the code bytes (a fresh array)
+        out[:, 0] |= base0 | (c << 40)
+        out[:, 0] |= w << self.s56
+        out[:, 1] |= w >> self.s8
+        out[:, 1] |= s & self.crc_bits
+        return out
+
+
+_CODEC: _SampleCodec | None = None
+
+
+def _codec() -> _SampleCodec:
+    global _CODEC
+    if _CODEC is None:
+        _CODEC = _SampleCodec()
+    return _CODEC
+
+
 def encode_samples_serial(node: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
     """Every SAMPLE frame (version, SAMPLE, node, counter, 5-byte word, CRC, COBS, 0x00) as rows
-    of a (m, 15) uint8 array: the bytes `protocol.framing.encode` gives for each."""
-    m = node.shape[0]
-    body = np.empty((m, 13), dtype=np.uint8)
-    body[:, 0] = PROTOCOL_VERSION
-    body[:, 1] = int(MsgType.SAMPLE)
-    body[:, 2] = node & 0xFF
-    body[:, 3] = node >> 8
-    body[:, 4] = counter & 0xFF
-    body[:, 5] = (counter >> 8) & 0xFF
-    w = word.astype(np.uint64)
-    for b in range(5):
-        body[:, 6 + b] = (w >> np.uint64(8 * b)) & np.uint64(0xFF)
-    crc = crc16_ccitt_batch(body[:, :11])
-    body[:, 11] = crc >> np.uint16(8)
-    body[:, 12] = crc & np.uint16(0xFF)
-    out = np.zeros((m, 15), dtype=np.uint8)
-    out[:, :14] = cobs_encode_batch(body)
-    return out
+    of a (m, 15) uint8 array: the bytes `protocol.framing.encode` gives for each.
+
+    ``node`` (m,) ints < 65536, ``word`` (m,) 40-bit sample words (int64 or uint64)."""
+    tb = _codec()
+    base0, node1 = tb.node_terms(node)
+    return samples_rows(tb.encode(base0, node1, counter, np.asarray(word)))
+
+
+def samples_rows(lanes: np.ndarray) -> np.ndarray:
+    """The (m, 2) lanes of `_SampleCodec.encode` as (m, 15) uint8 frames (a view)."""
+    return lanes.astype("<i8", copy=False).view(np.uint8).reshape(-1, 16)[:, :15]
+
+
+def samples_wire(lanes: np.ndarray) -> bytes:
+    """The (m, 2) lanes of `_SampleCodec.encode`: the m frames back to back, as the wire has them."""
+    lanes = np.ascontiguousarray(lanes, dtype="<i8")
+    # one 15-byte item per 16-byte row: a single copy loop (a (m, 15) uint8 slice copies row by row)
+    return np.ndarray((lanes.shape[0],), dtype="V15", buffer=lanes, strides=(16,)).tobytes()
 
 
 # ---------------------------------------------------------------------------------------------
 # the per-chip view: a ChipModel whose state lives in the arrays
 # ---------------------------------------------------------------------------------------------
+
+#: the array's derived values (None: derive again) that a field written through a view invalidates
+_STALE_ON_SET = {
+    "node": ("_node_terms",),
+    "last_counter": ("_all_last",),
+    "state": ("_steady", "_next_due"),
+    "powered": ("_steady", "_next_due"),
+    "streaming": ("_steady",),
+    "range": ("_range_any",),
+    "heartbeat_ms": ("_next_due",),
+    "next_heartbeat_s": ("_next_due",),
+    "next_announce_s": ("_next_due",),
+}
+
 
 class _F:
     """A ChipModel attribute stored at ``arr.<name>[k]``; ``none`` is the stored value of None."""
@@ -134,6 +271,7 @@ class _F:
 
     def __set_name__(self, owner, name) -> None:
         self.name = name
+        self.stale = _STALE_ON_SET.get(name, ())
 
     def __get__(self, obj, owner=None):
         if obj is None:
@@ -144,7 +282,10 @@ class _F:
         return self.conv(v)
 
     def __set__(self, obj, value) -> None:
-        a = getattr(obj._arr, self.name)
+        arr = obj._arr
+        a = getattr(arr, self.name)
+        for c in self.stale:  # what the array derived from this field is derived again
+            setattr(arr, c, None)
         if value is None:
             a[obj._k] = np.nan if self.none == "nan" else self.none
         else:
@@ -235,6 +376,12 @@ class ChipArray:
         self.rx_errors = np.zeros(n, dtype=np.int64)
         self.configured = np.zeros(n, dtype=bool)
         self.boot_s = np.zeros(n)
+        # derived values, None until needed (and again after a view writes what they come from)
+        self._node_terms: tuple[np.ndarray, np.ndarray] | None = None  # `_SampleCodec.node_terms` of `node`
+        self._all_last: int | None = None  # every chip's last_counter, when they are all this one
+        self._steady: bool | None = None  # every chip powered, started, STREAMING, no fault wrapper
+        self._range_any: bool | None = None  # some chip has CONFIG range != 0
+        self._next_due: float | None = None  # no chip timer is due before this time
         sensors = dict(sensors or {})
         self._scalar = np.zeros(n, dtype=bool)  # read a scalar sensor source
         self.views: list[ArrayChip] = []
@@ -252,7 +399,10 @@ class ChipArray:
         self._wrapped_idx = np.flatnonzero(self._wrapped).tolist()
         self._plain = ~self._wrapped
         self._all = np.ones(n, dtype=bool)
+        self._every = np.arange(n)
         self._no_scalar = not self._scalar.any()
+        if not self.can:
+            _codec()  # the SAMPLE tables now, not in the first SYNC's answer time
 
     def _scalar_source(self, k: int):
         idx = np.array([k])
@@ -275,6 +425,12 @@ class ChipArray:
 
     def poll(self, now_s: float, sel: np.ndarray | None = None) -> list[Out]:
         """Timers of every chip (of ``sel``), in chip order (as N `ChipModel.poll` calls)."""
+        due = self._next_due
+        if due is None:
+            due = self._next_due = self._first_due()
+        if now_s < due:
+            return []
+        self._next_due = None  # heartbeats move on below
         boot = self.state == _BOOT
         live = self.powered & self._plain & self._sel(sel)
         announce = live & boot & (now_s >= self.next_announce_s)
@@ -298,6 +454,17 @@ class ChipArray:
             items += [(k, [f]) for k, f in zip(hb.tolist(), frames)]
         items.sort(key=lambda t: t[0])
         return [f for _, r in items for f in r]
+
+    def _first_due(self) -> float:
+        """The earliest time any plain chip's timer is due (-inf with fault wrappers: they poll
+        every time)."""
+        if self._wrapped_idx:
+            return -np.inf
+        boot = self.state == _BOOT
+        a = self.next_announce_s[self.powered & boot]
+        h = self.next_heartbeat_s[self.powered & ~boot & (self.heartbeat_ms != 0)]
+        h = h[~np.isnan(h)]
+        return float(min(a.min() if a.size else np.inf, h.min() if h.size else np.inf))
 
     def _status_frames(self, idx: np.ndarray, now_s: float) -> list[Out]:
         """The STATUS heartbeat of chips ``idx``, batch-encoded (`ChipModel._status`, byte for byte)."""
@@ -356,6 +523,13 @@ class ChipArray:
 
     def _answer(self, counter: int, now_s: float, sel):
         """The vectorised SYNC for the plain chips: updates the state, returns ``(idx, word)``."""
+        if sel is None and self._no_scalar:
+            steady = self._steady
+            if steady is None:
+                steady = self._steady = bool((self._plain & self.powered & self.streaming
+                                              & (self.state == _STREAMING)).all())
+            if steady:
+                return self._every, self._answer_all(counter, now_s, self._every)
         st = self.state
         ans = np.flatnonzero(self._plain & self._sel(sel) & self.powered & self.streaming
                              & ((st == _STREAMING) | (st == _FAULT)))
@@ -363,6 +537,7 @@ class ChipArray:
             return ans, np.zeros(0, dtype=np.int64)
         if ans.size == self.n and self._no_scalar and not (st == _FAULT).any():
             return ans, self._answer_all(counter, now_s, ans)
+        self._all_last = None
         last = self.last_counter[ans]
         miss = self.missed_syncs[ans]
         gap = (counter - last - 1) & 0xFFFF
@@ -390,6 +565,7 @@ class ChipArray:
             bad = (s & _INVALID) != 0
             if bad.any():
                 self.state[li[bad]] = _FAULT
+                self._steady = None
                 c[bad] = 0
             r = self.range[li]
             c = np.where(bad[:, None], c, c >> r[:, None])
@@ -401,25 +577,42 @@ class ChipArray:
 
     def _answer_all(self, counter: int, now_s: float, ans: np.ndarray) -> np.ndarray:
         """`_answer` when every chip answers with a fresh sample (the streaming steady state):
-        the same arithmetic on whole arrays, no gathers."""
-        last, miss = self.last_counter, self.missed_syncs
-        gap = (counter - last - 1) & 0xFFFF
-        add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
-        if add.any():
-            np.copyto(miss, np.minimum(_SAT, miss + gap), where=add)
-        last.fill(counter)
+        the same arithmetic on whole arrays, no gathers; when every chip last answered the
+        previous counter (the usual next SYNC) there is no gap to count."""
+        last = self._all_last
+        if last is None or (counter - last - 1) & 0xFFFF:
+            last, miss = self.last_counter, self.missed_syncs
+            gap = (counter - last - 1) & 0xFFFF
+            add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
+            if add.any():
+                np.copyto(miss, np.minimum(_SAT, miss + gap), where=add)
+        self.last_counter.fill(counter)
+        self._all_last = counter
         c, s = self.sensor(now_s, ans)
         c = np.asarray(c, dtype=np.int64)
         s = np.asarray(s, dtype=np.int64)
-        bad = (s & _INVALID) != 0
-        if bad.any():
+        if not s.any():  # every sample OK: no fault, no status bits
+            rng = self._range_any
+            if rng is None:
+                rng = self._range_any = bool(self.range.any())
+            if rng:
+                c = c >> self.range[:, None]
+            return (c & 0xFFF) @ _FIELD_SHIFT
+        if (s & _INVALID).any():
+            bad = (s & _INVALID) != 0
             self.state[bad] = _FAULT
+            self._steady = None
             c = c.copy()
             c[bad] = 0
-        if self.range.any():
-            c = np.where(bad[:, None], c, c >> self.range[:, None])
-        c = c & 0xFFF
-        return c[:, 0] | (c[:, 1] << 12) | (c[:, 2] << 24) | ((s & 0xF) << 36)
+        else:
+            bad = None
+        rng = self._range_any
+        if rng is None:
+            rng = self._range_any = bool(self.range.any())
+        if rng:
+            sh = c >> self.range[:, None]
+            c = sh if bad is None else np.where(bad[:, None], c, sh)
+        return ((c & 0xFFF) @ _FIELD_SHIFT) | ((s & 0xF) << 36)
 
     def _wrapped_in(self, sel) -> list[int]:
         if sel is None:
@@ -435,8 +628,30 @@ class ChipArray:
                     for nd, w in zip(nodes, word.tolist())]
         if not idx.size:
             return []
-        b = encode_samples_serial(self.node[idx], counter, word).tobytes()
+        b = self._wire(idx, counter, word)
         return [b[i:i + 15] for i in range(0, len(b), 15)]
+
+    def _wire(self, idx: np.ndarray, counter: int, word: np.ndarray) -> bytes:
+        """Serial: the SAMPLE frames of chips ``idx``, back to back."""
+        tb = _codec()
+        terms = self._node_terms
+        if terms is None:
+            terms = self._node_terms = tb.node_terms(self.node)
+        base0, node1 = terms
+        if idx.size != self.n:
+            base0, node1 = base0[idx], node1[idx]
+        return samples_wire(tb.encode(base0, node1, counter, word))
+
+    def sync_wire(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
+        """Serial SYNC without a Python object per frame: ``(bytes, n_frames)`` — every answer
+        of `sync`, back to back — or None when `sync` must be used (CAN, or a chip with a fault
+        wrapper among ``sel``, whose frames go in between)."""
+        if self.can or self._wrapped_in(sel):
+            return None
+        ans, word = self._answer(msg.counter, now_s, sel)
+        if not ans.size:
+            return b"", 0
+        return self._wire(ans, msg.counter, word), int(ans.size)
 
     def sync(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None, *,
              owners: bool = False):
@@ -462,12 +677,18 @@ class ChipArray:
         items.sort(key=lambda t: (t[0], t[1]))
         return [f for _, _, f in items], np.array([k for k, _, _ in items], dtype=np.int64)
 
+    def sync_words(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
+        """SYNC for a packing gateway: ``(idx, word, other)`` — the plain chips that answered and
+        their 40-bit sample words (int64), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
+        extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
+        ans, word = self._answer(msg.counter, now_s, sel)
+        return ans, word, extra
+
     def sync_samples(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
         """SYNC for a packing gateway: ``(idx, word, counts (m, 3), status (m,), other)`` — the
         plain chips' sample words and their fields as arrays (counts as the wire carries them:
         12-bit two's complement), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
-        extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
-        ans, word = self._answer(msg.counter, now_s, sel)
+        ans, word, extra = self.sync_words(frame, msg, now_s, sel)
         u = np.stack([(word >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
         counts = ((u ^ 0x800) - 0x800).astype(np.int64)
         status = (word >> 36) & 0xF

@@ -225,7 +225,13 @@ class Device:
             self._flush(now)
 
     def _flush(self, now: float) -> None:
+        wire = getattr(self, "_send_wire", None)
         for i, gw in enumerate(self.gateways):
+            if wire is not None and self.verbose is None:  # serial: the due frames as one write
+                data, n = gw.pop_wire(now)
+                if n:
+                    wire(i, data, n)
+                continue
             out = gw.pop_output(now)
             if out:
                 if self.verbose is not None:
@@ -293,6 +299,9 @@ class MemoryDevice(_SerialDevice):
             return
         if data:
             self._handle_input(data)
+
+    def _send_wire(self, bus: int, data: bytes, n_frames: int) -> None:
+        self._send(bus, [data])
 
     def _send(self, bus: int, frames: list) -> None:
         try:
@@ -442,6 +451,9 @@ class PtyDevice(_PtyMixin, _SerialDevice):
 
     def _send(self, bus: int, frames: list) -> None:
         self._pty_write(b"".join(frames), len(frames))
+
+    def _send_wire(self, bus: int, data: bytes, n_frames: int) -> None:
+        self._pty_write(data, n_frames)
 
     def _go_down(self) -> None:
         self._pty_close()

@@ -15,15 +15,18 @@ stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
   chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC").
 
 A sheet with the array engine (`chiparray.ChipArray`) is served in batch: a SYNC is one numpy
-step for every chip behind the gateway, and in packed mode the samples go into the SNAPSHOT
-straight from the arrays (nothing encoded, nothing decoded again). The frames are the same as
-with one chip object each (tests/virtual_sheet/test_chiparray.py).
+step for every chip behind the gateway; per-chip serial frames stay one byte string in the
+queue until `pop_output` is asked for them one by one (`pop_wire`, what a serial device sends,
+never splits them), and in packed mode the sample words go into the SNAPSHOT straight from the
+arrays (nothing encoded, nothing decoded again). The frames are the same as with one chip
+object each (tests/virtual_sheet/test_chiparray.py).
 
 Time is passed in (``now_s``); nothing here reads a clock or touches a port.
 """
 
 from __future__ import annotations
 
+import struct
 from typing import Any, Sequence
 
 import numpy as np
@@ -31,14 +34,32 @@ import numpy as np
 from protocol.can import MAX_FD_SNAPSHOT_SAMPLES, CanFrame, decode_can, to_can
 from protocol.capacity import MAX_SERIAL_SNAPSHOT_SAMPLES
 from protocol.constants import SampleStatus
-from protocol.framing import MAX_ENCODED_SIZE, SAMPLE_WIRE_SIZE, DecodeError, StreamDecoder, decode_frame, encode
-from protocol.messages import NODE_BROADCAST, Message, Snapshot, Sync, pack_sample_words
+from protocol.framing import (MAX_ENCODED_SIZE, SAMPLE_WIRE_SIZE, DecodeError, StreamDecoder, decode_frame, encode,
+                              encode_frame)
+from protocol.messages import NODE_BROADCAST, Message, MsgType, Snapshot, Sync, pack_sample_words
 
 from .faults import ERROR_FRAME, FaultSpec, FaultStats, FrameFaults
 
 __all__ = ["Gateway", "GatewayStats", "CHIP_POLL_PERIOD_S"]
 
 CHIP_POLL_PERIOD_S = 0.01  #: how often the chips' timers (heartbeat, re-announce) are served
+_INVALID_WORD = int(SampleStatus.INVALID) << 36  #: the sample word of a link nobody answered for
+_FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into a sample word
+_SNAP_HDR = struct.Struct("<HHB")  # SNAPSHOT payload header: counter, first_link, count
+
+
+class _Run:
+    """A queue entry of ``n`` frames of ``size`` bytes each, back to back in ``data`` (a serial
+    SYNC's SAMPLE frames from the chip array: no Python object per frame until one is asked for)."""
+
+    __slots__ = ("data", "n", "size")
+
+    def __init__(self, data: bytes, n: int, size: int) -> None:
+        self.data, self.n, self.size = data, n, size
+
+    def frames(self) -> list[bytes]:
+        d, z = self.data, self.size
+        return [d[i:i + z] for i in range(0, len(d), z)]
 
 
 class GatewayStats:
@@ -96,18 +117,31 @@ class Gateway:
         self.stats = GatewayStats()
         self._rx = bytearray()
         self._rx_discard = False
-        self._queue: list[tuple[float, Any]] = []
+        self._queue: list[tuple[float, Any]] = []  # (due, frame or _Run), in due order
+        self._runs = 0  # _Run entries in the queue
         self._next_poll = 0.0
         self._next_sync: float | None = None
         self._sync_counter = 0
         self._covered = np.asarray(self.links, dtype=np.int64)
+        self._cov_all = bool(self._covered.size == sheet.n_links and (self._covered == np.arange(sheet.n_links)).all())
+        # SNAPSHOT frames of a SYNC: (first_link, position among the covered links, count), per
+        # contiguous run of covered links, chunked to what one frame holds
+        self._chunks: list[tuple[int, int, int]] = []
+        pos = 0
+        for run in np.split(self._covered, np.flatnonzero(np.diff(self._covered) != 1) + 1):
+            for i in range(0, run.size, self.max_per_frame):
+                m = min(self.max_per_frame, run.size - i)
+                self._chunks.append((int(run[i]), pos, m))
+                pos += m
+        self._words = np.zeros(sheet.n_links, dtype=np.int64)  # packed mode: each link's sample word
         self._snap_decoder = StreamDecoder(batch_samples=True)
         self.powered = False
         arr = getattr(sheet, "array", None)
         self.engine = arr if arr is not None and self.links == sorted(set(self.links)) else None
         if self.engine is not None:
-            self._sel = np.zeros(arr.n, dtype=bool)
-            self._sel[self.links] = True
+            sel = np.zeros(arr.n, dtype=bool)
+            sel[self.links] = True
+            self._sel = None if sel.all() else sel  # None: every chip of the array (its fast paths)
             self._delay_of = np.asarray(sheet.reply_delay_s, dtype=float)
 
     # ------------------------------------------------------------------ chips
@@ -221,6 +255,12 @@ class Gateway:
                             self.fault_stats.late_replies += j - i
                         i = j
                 else:
+                    if self.faults is None:  # serial: the frames stay one byte string
+                        wire = self.engine.sync_wire(frame, decoded, now_s, self._sel)
+                        if wire is not None:
+                            if wire[1]:
+                                self._emit_run(wire[0], wire[1], SAMPLE_WIRE_SIZE, now_s)
+                            return
                     out = self.engine.sync(frame, decoded, now_s, self._sel)
                     if out:
                         self._emit(out, now_s)
@@ -301,25 +341,27 @@ class Gateway:
             self._emit(other, now_s)
 
     def _sync_packed_array(self, frame, sync: Sync, now_s: float) -> None:
-        """Packed mode from the chip array: the same frames as `_sync_packed`, from arrays."""
+        """Packed mode from the chip array: the same frames as `_sync_packed`, from arrays — the
+        chips' 40-bit sample words go into the SNAPSHOT as they are (a word is exactly what a
+        SAMPLE carries and a SNAPSHOT packs)."""
         eng = self.engine
         n_links = self.sheet.n_links
-        idx, word, cnt, sts, extra = eng.sync_samples(frame, sync, now_s, self._sel)
-        link = eng.link[idx]
+        idx, word, extra = eng.sync_words(frame, sync, now_s, self._sel)
+        words = self._words
+        words.fill(_INVALID_WORD)  # links whose chip did not answer: INVALID, counts 0
+        link = eng.link if idx.size == eng.n else eng.link[idx]
         ok = (link >= 0) & (link < n_links)
-        counts = np.zeros((n_links, 3), dtype=np.int64)
-        status = np.full(n_links, int(SampleStatus.INVALID), dtype=np.int64)
-        have = bool(ok.any())
-        if have:
-            counts[link[ok]] = cnt[ok]
-            status[link[ok]] = sts[ok]
-        # what does not go into the SNAPSHOT, in chip order: samples of chips without a valid
-        # link, and the wrapped (faulty) chips' frames unless it is one sample of a valid link
-        items: list[tuple[int, list]] = []
-        if not ok.all():
+        if ok.all():
+            words[link] = word
+            have = idx.size > 0
+            other: list = []
+        else:
+            words[link[ok]] = word[ok]
+            have = bool(ok.any())
+            # samples of chips without a valid link do not go into the SNAPSHOT: as they are
             bad = idx[~ok]
-            for k, f in zip(bad.tolist(), eng.encode(bad, sync.counter, word[~ok])):
-                items.append((k, [f]))
+            other = [(k, [f]) for k, f in zip(bad.tolist(), eng.encode(bad, sync.counter, word[~ok]))]
+        # the wrapped (faulty) chips' frames, in chip order, unless it is one sample of a valid link
         for k, r in extra:
             if not r:
                 continue
@@ -329,25 +371,24 @@ class Gateway:
                          or isinstance(r[0], bytes) and len(r[0]) == SAMPLE_WIRE_SIZE)):
                 got_c, got_s, got_l = self._decode_samples(r, [lk], sync.counter)
                 if got_l.size:
-                    counts[got_l] = got_c
-                    status[got_l] = got_s
+                    words[got_l] = ((got_c.astype(np.int64) & 0xFFF) @ _FIELD_SHIFT) | ((got_s & 0xF) << 36)
                     have = True
                 continue
-            items.append((k, r))
-        items.sort(key=lambda t: t[0])
-        other = [f for _, r in items for f in r]
+            other.append((k, r))
+        if other:
+            other.sort(key=lambda t: t[0])
+            other = [f for _, r in other for f in r]
         if have:
-            cov = self._covered
-            words = pack_sample_words(counts[cov], status[cov])  # every covered link at once
-            frames = []
-            pos = 0
-            breaks = np.flatnonzero(np.diff(cov) != 1) + 1
-            for run in np.split(cov, breaks):
-                for i in range(0, run.size, self.max_per_frame):
-                    m = min(self.max_per_frame, run.size - i)
-                    snap = Snapshot(0, sync.counter, int(run[i]), words[5 * pos:5 * (pos + m)])
-                    pos += m
-                    frames.append(to_can(snap, fd=True) if self.can else encode(snap))
+            cov = words if self._cov_all else words[self._covered]
+            cov = np.ascontiguousarray(cov, dtype="<i8")
+            wb = np.ndarray((cov.shape[0],), dtype="V5", buffer=cov, strides=(8,)).tobytes()  # 5 LE bytes each
+            c = sync.counter
+            if self.can:
+                frames = [to_can(Snapshot(0, c, first, wb[5 * pos:5 * (pos + m)]), fd=True)
+                          for first, pos, m in self._chunks]
+            else:
+                frames = [encode_frame(MsgType.SNAPSHOT, 0, _SNAP_HDR.pack(c, first, m) + wb[5 * pos:5 * (pos + m)])
+                          for first, pos, m in self._chunks]
             self.stats.snapshots += len(frames)
             other = frames + other
         if other:
@@ -390,22 +431,65 @@ class Gateway:
         if self._late or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
             self._queue.sort(key=lambda p: p[0])  # stable: FIFO among equal times
 
-    def pop_output(self, now_s: float) -> list:
-        """Frames due by ``now_s``, in wire order: serial bytes, `CanFrame`, or `ERROR_FRAME`."""
+    def _emit_run(self, data: bytes, n: int, size: int, due_s: float) -> None:
+        """``n`` frames of ``size`` bytes back to back (no stream faults: those act per frame)."""
+        self.stats.chip_frames += n
+        self._queue.append((due_s, _Run(data, n, size)))
+        self._runs += 1
+        if self._late:
+            self._queue.sort(key=lambda p: p[0])
+
+    def _take(self, now_s: float) -> list:
+        """The queue entries due by ``now_s``, removed from the queue."""
         q = self._queue
         if not q:
             return []
         if q[-1][0] <= now_s:
             self._queue = []
-            out = [f for _, f in q]
+            return q
+        n = 0
+        while n < len(q) and q[n][0] <= now_s:
+            n += 1
+        out = q[:n]
+        del q[:n]
+        return out
+
+    def pop_output(self, now_s: float) -> list:
+        """Frames due by ``now_s``, in wire order: serial bytes, `CanFrame`, or `ERROR_FRAME`."""
+        items = self._take(now_s)
+        if not items:
+            return []
+        if self._runs:
+            out: list = []
+            for _, f in items:
+                if type(f) is _Run:
+                    out += f.frames()
+                    self._runs -= 1
+                else:
+                    out.append(f)
         else:
-            n = 0
-            while n < len(q) and q[n][0] <= now_s:
-                n += 1
-            out = [f for _, f in q[:n]]
-            del q[:n]
+            out = [f for _, f in items]
         self.stats.frames_to_host += len(out)
         return out
+
+    def pop_wire(self, now_s: float) -> tuple[bytes, int]:
+        """Serial: the frames due by ``now_s`` back to back, and how many (`pop_output` joined,
+        without a Python object per frame)."""
+        items = self._take(now_s)
+        if not items:
+            return b"", 0
+        parts = []
+        n = 0
+        for _, f in items:
+            if type(f) is _Run:
+                parts.append(f.data)
+                n += f.n
+                self._runs -= 1
+            else:
+                parts.append(f)
+                n += 1
+        self.stats.frames_to_host += n
+        return b"".join(parts), n
 
     def commission(self, now_s: float, *, start: bool = True, first_node: int = 1) -> None:
         """Assign every chip behind this gateway node ``first_node + link`` and its physical link
@@ -413,13 +497,14 @@ class Gateway:
         discarded. A shortcut for tests and benchmarks: a host normally does this."""
         from protocol.messages import Assign, Start
         saved, self._queue = self._queue, []
+        saved_runs, self._runs = self._runs, 0
         faults, self.faults = self.faults, None  # discarded answers: no fault is injected or counted
         for k, c in zip(self.links, self.chips):
             msg = Assign(c.node, new_node=first_node + k, link=k, uid_low=c.uid & 0xFFFFFFFF)
             self._inject(msg, now_s)
         if start:
             self._inject(Start(0), now_s)
-        self._queue, self.faults = saved, faults
+        self._queue, self._runs, self.faults = saved, saved_runs, faults
 
     def _inject(self, msg: Message, now_s: float) -> None:
         frame = to_can(msg) if self.can else encode(msg)
@@ -427,7 +512,7 @@ class Gateway:
 
     def pop_bytes(self, now_s: float) -> bytes:
         """Serial: the due frames as one byte string."""
-        return b"".join(self.pop_output(now_s))
+        return self.pop_wire(now_s)[0]
 
 
 assert ERROR_FRAME  # re-exported for CAN devices

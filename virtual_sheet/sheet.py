@@ -35,12 +35,14 @@ If the path ends in ``.json`` it is JSON instead::
 
 from __future__ import annotations
 
+import math
 import threading
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
+from protocol.constants import ADC_MAX, ADC_MIN, G0, SampleStatus
 from protocol.lattice import Lattice
 from protocol.layout import load_layout, save_layout
 from .chip import ChipModel
@@ -48,6 +50,7 @@ from .chiparray import ChipArray
 from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from .geometry import ideal_readings
 from .sensor import SensorModel
+from .sensor import _check_readings as check_readings
 from .shapes import StaticScene, make_scene
 
 __all__ = ["VirtualSheet", "make_uids", "read_layout"]
@@ -145,6 +148,9 @@ class VirtualSheet:
         self._period_steps = self._scene_period_steps()
         # (now_s, counts (n, 3) int64, status (n,) int64, counts as tuples or None, status list or None)
         self._cache: tuple = (None, None, None, None, None)
+        self._fast: tuple | None = None  # `_sample`: (model, chip errors, buffer, {step: (readings, Mᵀ f)})
+        self._no_status = np.zeros(n, dtype=np.int64)  # every link OK (shared, read-only)
+        self._no_status.setflags(write=False)
         self.sync_times: dict[int, float] = {}
         offset, sens = self.sensor_model.stored_calibration(n)  # what the chips hold before CAL_WRITE
         q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
@@ -190,10 +196,13 @@ class VirtualSheet:
         return source
 
     def _batch_source(self, now_s: float, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The `chiparray.BatchSensor`: counts and status of chips ``idx`` at ``now_s``."""
+        """The `chiparray.BatchSensor`: counts and status of chips ``idx`` (distinct, ascending, as
+        the chip array passes them) at ``now_s``; every chip: the cached arrays themselves (read-only)."""
         c = self._cache
         if c[0] != now_s:
             c = self._refresh(now_s)
+        if idx.size == self.n_links:
+            return c[1], c[2]
         return c[1][idx], c[2][idx]
 
     def _lists(self):
@@ -224,16 +233,19 @@ class VirtualSheet:
     def _scene_time(self, t_s: float) -> float:
         if self.static:
             return 0.0
-        return float(np.floor(t_s * self.scene_rate_hz) / self.scene_rate_hz)
+        return math.floor(t_s * self.scene_rate_hz) / self.scene_rate_hz
+
+    def _step_key(self, tq: float) -> int:
+        if self.static:
+            return 0
+        key = int(round(tq * self.scene_rate_hz))
+        if self._period_steps is not None:
+            key %= self._period_steps
+        return key
 
     def _scene_step(self, tq: float) -> tuple[float, np.ndarray, np.ndarray]:
         """``(tq, joints, ideal readings)`` of scene time ``tq`` (a step), solved once and kept."""
-        if self.static:
-            key = 0
-        else:
-            key = int(round(tq * self.scene_rate_hz))
-            if self._period_steps is not None:
-                key %= self._period_steps
+        key = self._step_key(tq)
         e = self._scenes.get(key)
         if e is None:
             t_solve = key / self.scene_rate_hz if not self.static else 0.0
@@ -258,12 +270,53 @@ class VirtualSheet:
             c = self._cache
             if c[0] == now_s:
                 return c
-            _tq, _joints, readings = self._geometry(now_s)
+            tq, _joints, readings = self._geometry(now_s)
             m = self.sensor_model
-            counts, status = m.sample(readings, self._noise_rng if m.noise_pct_g > 0 else None)
-            c = self._cache = (now_s, np.asarray(counts, dtype=np.int64), np.asarray(status, dtype=np.int64),
-                               None, None)
+            if m.motion_accel_mps2 is None:
+                counts, status = self._sample(m, tq, readings)
+            else:
+                counts, status = m.sample(readings, self._noise_rng if m.noise_pct_g > 0 else None)
+            counts, status = np.asarray(counts, dtype=np.int64), np.asarray(status, dtype=np.int64)
+            counts.setflags(write=False)
+            if status.flags.writeable:
+                status.setflags(write=False)
+            c = self._cache = (now_s, counts, status, None, None)
             return c
+
+    def _sample(self, m: SensorModel, tq: float, readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`SensorModel.sample` of ``readings`` (scene step ``tq``), the same numbers from the same
+        noise draws, with what does not change per SYNC kept: the chip errors, and per scene step
+        the readings in the chips' own (misaligned) axes. Per SYNC: noise, scale, round, clip."""
+        fast = self._fast
+        if fast is None or fast[0] is not m:
+            fast = self._fast = (m, m.chip_errors(self.n_links), np.empty((self.n_links, 3)), {})
+        _m, e, buf, steps = fast
+        key = self._step_key(tq)
+        f = steps.get(key)
+        if f is None or f[0] is not readings:
+            fm = np.einsum("nij,ni->nj", e.misalignment, check_readings(readings))  # Mᵀ f, as sample()
+            if len(steps) >= 4096:
+                steps.clear()
+            f = steps[key] = (readings, fm)
+        fm = f[1]
+        if m.noise_pct_g > 0:  # normal(0, s) draws loc + s * z: the same z, in the same order
+            self._noise_rng.standard_normal(out=buf)
+            buf *= m.noise_std_mps2
+            buf += fm
+        else:
+            np.copyto(buf, fm)
+        buf /= G0
+        buf *= e.sensitivity
+        buf += e.offset_counts
+        np.rint(buf, out=buf)
+        if buf.max() < ADC_MAX and buf.min() > ADC_MIN:  # nothing at a limit: nothing to clip
+            return buf.astype(np.int64), self._no_status
+        np.minimum(buf, ADC_MAX, out=buf)  # np.clip, without its per-call overhead
+        np.maximum(buf, ADC_MIN, out=buf)
+        counts = buf.astype(np.int64)
+        at = (counts == ADC_MIN) | (counts == ADC_MAX)
+        saturated = at[:, 0] | at[:, 1] | at[:, 2]  # .any(axis=1), a reduction slow on 3 columns
+        return counts, saturated.astype(np.int64) * int(SampleStatus.SATURATED)
 
     def counts_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """One fresh draw of every link's ``(counts (n, 3), status (n,))`` at ``t_s`` (tests)."""

@@ -12,9 +12,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol.can import to_can
-from protocol.framing import encode
-from protocol.messages import (Assign, CalRead, CalWrite, Config, GetInfo, Reset, Start, Stop, Sync,
-                               provisional_node)
+from protocol.framing import decode_frame, encode
+from protocol.messages import (Announce, Assign, CalRead, CalWrite, ChipState, Config, GetInfo, Info, Reset,
+                               Start, Status, Stop, Sync, provisional_node)
+from protocol.state import ANNOUNCE_PERIOD_S
 from virtual_sheet.chip import ChipModel
 from virtual_sheet.chiparray import ChipArray, cobs_encode_batch, crc16_ccitt_batch, encode_samples_serial
 from virtual_sheet.faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
@@ -47,6 +48,7 @@ OPS = st.one_of(
     st.tuples(st.just("bringup"), st.integers(0, 3), st.sampled_from([0, 200, 1000]), st.integers(0, 12)),
     st.tuples(st.just("bringup"), st.integers(0, 3), st.sampled_from([0, 200, 1000]), st.integers(0, 12)),
     st.tuples(st.just("poll")),
+    st.tuples(st.just("due")),
     st.tuples(st.just("wait"), st.floats(0.0005, 1.5)),
     st.tuples(st.just("assign"), st.integers(0, 7), st.integers(0, 40), st.booleans()),
     st.tuples(st.just("config"), st.integers(0, 7), st.integers(0, 4), st.integers(0, 4), st.integers(0, 5000),
@@ -136,6 +138,16 @@ def test_array_answers_exactly_as_n_chip_models(n, transport, seed, dead, dead_a
             want = [f for c in refs for f in c.poll(now)]
             assert arr.poll(now) == want
             continue
+        if op[0] == "due":  # time jumps to exactly the next timer of some chip (a >= edge)
+            inner = [c.inner if hasattr(c, "inner") else c for c in refs]
+            due = [c.next_announce_s if c.state == ChipState.BOOT else c.next_heartbeat_s
+                   for c in inner if c.powered]
+            due = [t for t in due if t is not None and t >= now]
+            if due:
+                now = min(due)
+            want = [f for c in refs for f in c.poll(now)]
+            assert arr.poll(now) == want
+            continue
         now += 0.001
         if op[0] == "poll":
             want = [f for c in refs for f in c.poll(now)]
@@ -192,6 +204,26 @@ def test_a_broken_batch_encoder_is_caught_by_the_equivalence_discipline():
     assert bytes(broken[0]) != bytes(rows[0])
 
 
+def _byte_heavy(bits: int):
+    """Integers of ``bits`` bits built byte by byte, each byte often 0x00 or 0xFF (COBS and CRC edges)."""
+    return st.lists(st.one_of(st.just(0), st.just(0xFF), st.integers(0, 255)), min_size=bits // 8,
+                    max_size=bits // 8).map(lambda bs: int.from_bytes(bytes(bs), "little"))
+
+
+@given(st.lists(st.tuples(_byte_heavy(16).filter(lambda v: v != 0xFFFF), _byte_heavy(40)), min_size=1, max_size=40),
+       _byte_heavy(16))
+def test_batch_sample_frames_are_the_frames_the_protocol_encodes(chips, counter):
+    """The table-driven SAMPLE encoder against `protocol.framing.encode`, frame by frame."""
+    from protocol.messages import Sample
+    node = np.array([nd for nd, _ in chips], dtype=np.int64)
+    word = np.array([w for _, w in chips], dtype=np.int64)
+    rows = encode_samples_serial(node, counter, word)
+    for r, (nd, w) in zip(rows, chips):
+        x, y, z = [((w >> s & 0xFFF) ^ 0x800) - 0x800 for s in (0, 12, 24)]
+        assert bytes(r) == encode(Sample(nd, counter, x, y, z, w >> 36 & 0xF))
+    assert rows.shape == (len(chips), 15)
+
+
 @given(st.lists(st.binary(min_size=13, max_size=13), min_size=1, max_size=20))
 def test_batch_cobs_and_crc_match_the_libraries(blocks):
     import binascii
@@ -234,3 +266,121 @@ def test_sheet_with_the_array_engine_sends_what_the_per_chip_sheet_sends(transpo
     assert a[1] == b[1]  # every injected fault counted alike
     assert a[2] == b[2]  # the truth of every counter
     assert sum(len(x) for x in a[0]) > 40
+
+
+# ------------------------------------------------------------------------ directed edge cases
+# The random sequences above rarely land on these edges (a float time equal to a timer's due
+# time; a counter gap just below half the counter space while missed_syncs is not yet saturated),
+# so each is also driven on purpose, against hand-written expectations and the reference model.
+
+def _steady(now_s: float, idx: np.ndarray):
+    """A sensor that always answers (never INVALID): every chip stays STREAMING."""
+    return np.tile(np.array([[5, -7, 1000]], dtype=np.int64), (idx.size, 1)), np.zeros(idx.size, dtype=np.int64)
+
+
+def _pair(n: int, seed: int = 7):
+    uids = make_uids(n, seed)
+    refs = [ChipModel(u, lambda now_s: ((5, -7, 1000), 0)) for u in uids]
+    return uids, refs, ChipArray(uids, _steady)
+
+
+def _both(arr, refs, msg, now):
+    """Send ``msg`` to the array and the reference chips; both answers, asserted equal."""
+    frame = encode(msg)
+    if msg.node == 0:
+        want = [f for c in refs for f in c.handle(frame, now, msg)]
+        got = arr.handle(frame, now, msg)
+    else:
+        want = [f for c in refs if c.node == msg.node for f in c.handle(frame, now, msg)]
+        got = arr.handle_node(msg.node, frame, now, msg)
+    assert got == want
+    return got
+
+
+# gap = SYNCs skipped between two answered counters; docs/protocol.md: a gap of 0x7FFF or more
+# (an older or repeated counter) adds nothing, anything less adds, saturating at 255
+@pytest.mark.parametrize("gap,missed", [(0, 0), (1, 1), (254, 254), (255, 255), (300, 255), (0x7FEF, 255),
+                                        (0x7FF0, 255), (0x7FFE, 255), (0x7FFF, 0), (0x8000, 0), (0xFFFF, 0)])
+@pytest.mark.parametrize("answering", ["all", "some"])  # the whole-array SYNC, and the gathered one
+def test_missed_syncs_of_a_counter_gap(gap, missed, answering):
+    n = 3
+    uids, refs, arr = _pair(n)
+    for c in refs:
+        c.power_on(0.0)
+    arr.power_on(0.0)
+    for k, c in enumerate(refs):
+        _both(arr, refs, Assign(c.node, new_node=1 + k, link=k, uid_low=c.uid & 0xFFFFFFFF), 0.01)
+    _both(arr, refs, Start(0), 0.02)
+    if answering == "some":
+        _both(arr, refs, Stop(n), 0.02)  # the last chip stops: the others answer alone
+    first = 1000
+    assert len(_both(arr, refs, Sync(counter=first), 0.03)) == (n if answering == "all" else n - 1)
+    _both(arr, refs, Sync(counter=(first + 1 + gap) & 0xFFFF), 0.04)
+    answered = range(n) if answering == "all" else range(n - 1)
+    assert [arr.views[k].missed_syncs for k in answered] == [missed] * len(answered)
+    assert [refs[k].missed_syncs for k in answered] == [missed] * len(answered)
+    if answering == "some":
+        assert arr.views[n - 1].missed_syncs == 0
+    # and on the wire: the STATUS heartbeat carries it (byte 3 of the payload)
+    st = arr.poll(0.01 + 1.0)
+    assert st == [f for c in refs for f in c.poll(0.01 + 1.0)]
+    assert [decode_frame(f[:-1]).missed_syncs for f in st] == [missed] * len(answered) + [0] * (n - len(answered))
+
+
+def test_timers_fire_at_exactly_their_due_time():
+    """ANNOUNCE repeats at boot + ANNOUNCE_PERIOD_S, not a tick later; STATUS at assign + period."""
+    n = 3
+    uids, refs, arr = _pair(n)
+    t0 = 0.25
+    for c in refs:
+        c.power_on(t0)
+    arr.power_on(t0)
+    due = t0 + ANNOUNCE_PERIOD_S
+    before = float(np.nextafter(due, 0.0))
+    assert arr.poll(before) == [] == [f for c in refs for f in c.poll(before)]
+    got = arr.poll(due)
+    assert got == [f for c in refs for f in c.poll(due)]
+    msgs = [decode_frame(f[:-1]) for f in got]
+    assert [type(m) for m in msgs] == [Announce, Info] * n
+    assert [m.node for m in msgs] == [provisional_node(u, 1) for u in uids for _ in (0, 1)]
+    assert [m.uid for m in msgs[::2]] == uids
+    # assigned at t1: the first heartbeat is due at t1 + 1 s (the default 1000 ms)
+    t1 = 2.5
+    for k, c in enumerate(refs):
+        _both(arr, refs, Assign(c.node, new_node=1 + k, link=k, uid_low=c.uid & 0xFFFFFFFF), t1)
+    hb = t1 + 1.0
+    before = float(np.nextafter(hb, 0.0))
+    assert arr.poll(before) == [] == [f for c in refs for f in c.poll(before)]
+    got = arr.poll(hb)
+    assert got == [f for c in refs for f in c.poll(hb)]
+    assert [(type(m), m.node) for m in (decode_frame(f[:-1]) for f in got)] == [(Status, 1 + k) for k in range(n)]
+
+
+@pytest.mark.parametrize("engine", ["array", "chips"])
+@pytest.mark.parametrize("packed", [False, True])
+@pytest.mark.parametrize("faults", [None, "drop_frame=0.05,dup_frame=0.05,seed=3", "drift_chip=2,drift_late_ms=3"])
+def test_pop_wire_is_pop_output_joined(engine, packed, faults):
+    """What a serial device writes (`pop_wire`, frames kept as one byte string) is what
+    `pop_output` hands out frame by frame, and both count the same frames."""
+    runs = []
+    for wire in (False, True):
+        sheet = VirtualSheet("grow", "5x4", seed=4, noise=1.0, faults=faults, engine=engine, scene_rate_hz=20.0)
+        gw = Gateway(sheet, packed=packed)
+        gw.power_on(0.0)
+        gw.commission(0.001)
+        data, frames = b"", 0
+        t = 0.002
+        for c in range(30):
+            t += 1 / 145
+            gw.feed(encode(Sync(counter=c)), t)
+            gw.poll(t)
+            if wire:
+                d, n = gw.pop_wire(t + 0.002)
+            else:
+                out = gw.pop_output(t + 0.002)
+                d, n = b"".join(out), len(out)
+            data += d
+            frames += n
+        runs.append((data, frames, gw.stats.frames_to_host))
+    assert runs[0] == runs[1]
+    assert runs[0][1] == runs[0][2] > 30
