@@ -1165,6 +1165,8 @@ class Host:
             if self.event_counts.get(kind):
                 errors[kind] += self.event_counts[kind]
         return {"snapshots": emitted, "complete_snapshots": agg.complete,
+                # completeness by snapshot and by valid link, over the same emitted snapshots
+                "complete_snapshots_pct": round(100 * agg.complete / emitted, 2) if emitted else 0.0,
                 "valid_links_pct": round(100 * frac, 2),
                 "links": n, "assigned": len(assigned),
                 "unassigned_links": [{"link": k, "uid": f"0x{uid_of[k]:016X}" if k in uid_of else None}

@@ -163,20 +163,31 @@ class _StatusAwareHandler(logging.StreamHandler):
         super().emit(record)
 
 
+def completeness_pct(emitted: int, complete: int, valid_links: int, n_links: int) -> tuple[float, float]:
+    """(complete snapshots %, valid link samples %) over the same ``emitted`` snapshots: by
+    snapshot, complete / emitted; by valid link, valid samples / (emitted x the lattice's links) —
+    the figure ``--min-complete`` judges. (0, 0) before any snapshot."""
+    if emitted <= 0:
+        return 0.0, 0.0
+    return 100.0 * complete / emitted, 100.0 * valid_links / (emitted * max(1, n_links))
+
+
 def _status_text(host: Host, t0: float, n0: int) -> str:
     st = host.aggregator.stats
     dt = max(1e-9, time.monotonic() - t0)
     rate = (st.emitted - n0) / dt
-    done = st.complete / max(1, st.emitted)
+    done, links = completeness_pct(st.emitted, st.complete, st.valid_links, host.lattice.n_links)
     errors = sum(t.stats.error_count for t in host.transports)
-    return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {100 * done:5.1f}%  "
+    return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {done:5.1f}% of snapshots, "
+            f"{links:5.1f}% of link samples valid  "
             f"late {st.late}  stray {st.stray}  dup {st.duplicates}  unknown {st.unknown}  "
             f"dropped {st.dropped}  errors {errors}  silent {len(host.silent_links)}  "
             f"recoveries {host.recoveries}")
 
 
 def _summary_lines(s: dict, min_pct: float) -> list[str]:
-    out = [f"summary: {s['snapshots']} snapshots, {s['complete_snapshots']} complete; "
+    out = [f"summary: {s['snapshots']} snapshots, {s['complete_snapshots']} complete "
+           f"({s['complete_snapshots_pct']:.1f} %); "
            f"{s['valid_links_pct']:.1f} % of the {s['links']} links' samples valid (need {min_pct:g} %)"]
     if s["unassigned_links"]:
         out.append(f"  links without a chip: {len(s['unassigned_links'])} "

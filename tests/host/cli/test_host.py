@@ -445,3 +445,52 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp
     else:
         assert s["stray_frames"] == 1 and s["recoveries"] == 0, s
         assert complete.size >= 100 and int((~complete).sum()) <= 1 + 2  # its own, and at most the two cut by STOP
+
+
+# -- completeness by snapshot and by valid link (issue 11, point 3) --------------------------------
+
+def test_status_line_and_json_show_completeness_by_snapshot_and_by_valid_link(virtuals, tmp_path):
+    """A 3x3 sheet (12 links) with link 4's chip dead from the start and 3 % of the gateway's frames
+    lost: the three figures differ — complete snapshots, valid link samples of the lattice (what
+    --min-complete judges) and of the assigned links. Each is checked against the recording (every
+    snapshot the host emitted, recomputed here from its valid flags), in the JSON and on the last
+    plain status line."""
+    import re
+    from host.record import read
+    lay, rec_path = tmp_path / "sheet.csv", tmp_path / "run.mcap"
+    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay),
+                 "--faults", "dead_chip=4,drop_frame=0.03,seed=5")
+    out = host(*v.host_cmd, "--rate", "10", "--duration", "4", "--allow-missing", "--min-complete", "0",
+               "--status-every", "0.5", "--record", str(rec_path), "--json")
+    assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr, out.stderr
+    doc = json.loads(out.stdout)
+    s, live = doc["summary"], doc["live"]
+    r = read(rec_path)
+    n = len(r.complete)
+    assert n == s["snapshots"] > 20, (n, s["snapshots"], doc["aggregator"]["dropped"])
+    valid = np.asarray(r.valid, dtype=bool)
+    assert valid.shape == (n, 12)
+    others = [k for k in range(12) if k != 4]
+    assert not valid[:, 4].any()  # the dead chip's link never carries a sample
+    complete = valid[:, others].all(axis=1)  # every assigned link valid
+    assert np.array_equal(complete, np.asarray(r.complete, dtype=bool))
+    want_snap = 100.0 * complete.sum() / n
+    want_lattice = 100.0 * valid.sum() / (n * 12)
+    want_assigned = 100.0 * valid[:, others].sum() / (n * 11)
+    assert want_snap < 100.0 and want_assigned < 100.0  # the lost frames show (else the test shows nothing)
+    assert s["complete_snapshots"] == int(complete.sum())
+    assert s["complete_snapshots_pct"] == pytest.approx(want_snap, abs=0.006)
+    assert s["valid_links_pct"] == pytest.approx(want_lattice, abs=0.006)
+    assert live["complete_snapshots_pct"] == pytest.approx(want_snap, abs=0.0006)
+    assert live["valid_links_pct"] == pytest.approx(want_assigned, abs=0.0006)
+    # not a terminal: plain status lines; the last one is printed after the stream stopped
+    lines = [ln for ln in out.stderr.splitlines() if " snapshots " in ln and "of link samples valid" in ln]
+    assert len(lines) >= 2, out.stderr
+    m = re.search(r"(\d+) snapshots .* complete\s+([\d.]+)% of snapshots,\s+([\d.]+)% of link samples valid",
+                  lines[-1])
+    assert m, lines[-1]
+    assert int(m.group(1)) == n
+    assert float(m.group(2)) == pytest.approx(want_snap, abs=0.051)
+    assert float(m.group(3)) == pytest.approx(want_lattice, abs=0.051)
+    assert f"{s['complete_snapshots']} complete ({want_snap:.1f} %)" in out.stderr
