@@ -39,6 +39,23 @@ RATES = [30, 60, 100, 145, 200, 300, 450, 640]
 QUICK_RATES = [60, 145, 300]
 
 
+def window_completeness(snapshots, first_counter: int, end_counter: int) -> dict:
+    """Completeness over one window of SYNCs: the counters ``first_counter`` .. ``end_counter - 1``
+    (mod 2^16) the host sent in it. ``snapshots``: ``(counter, complete)`` of every snapshot emitted
+    during and after the window. Numerator and denominator are the same set of counters: a snapshot
+    of a SYNC sent before the window (completed inside it) or after it is not counted, a SYNC of the
+    window whose snapshot never came (or was dropped) counts as incomplete. (The bench used to
+    divide the snapshots completed in the window by the SYNCs sent in it: up to 100.83 %.)"""
+    sent = (end_counter - first_counter) & 0xFFFF
+    seen: dict[int, bool] = {}
+    for counter, complete in snapshots:
+        if ((counter - first_counter) & 0xFFFF) < sent:
+            seen[counter & 0xFFFF] = seen.get(counter & 0xFFFF, False) or bool(complete)
+    complete = sum(seen.values())
+    return {"syncs_sent": sent, "snapshots": len(seen), "complete": complete,
+            "complete_pct": round(100.0 * complete / sent, 2) if sent else 0.0}
+
+
 def _serve(cfg: dict, conn) -> None:
     """Child process: the virtual sheet on its device until told to stop."""
     from virtual_sheet.sheet import VirtualSheet

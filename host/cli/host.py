@@ -5,6 +5,12 @@ live status line, record snapshots and end with a summary whose exit status tell
     capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record run.mcap --live
     capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
     capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
+    capsheet host --port /tmp/sheet0 --port /tmp/sheet1 --baud 12000000 --packed --layout sheet.json
+
+Several --port (a sheet behind several serial gateways, each with a block of its links) or several
+--can (buses) are merged into one lattice: each chip is known on the port it answers on. In drive
+mode the host sends every SYNC on every port; with a gateway driving SYNC (--sync follow) each port
+carries it.
 
 Exit status: 0 the run met ``--min-complete``; 1 no chip found, none streamed, completeness below
 ``--min-complete``, the port failed, or another SYNC source stopped a driving host; 2 a usage error
@@ -26,7 +32,7 @@ import time
 
 from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
 from host.cli.record_args import SessionOutputs, add_record_args
-from host.cli.transport_args import add_transport_args, open_transports
+from host.cli.transport_args import add_transport_args, check_ports, open_transports
 from host.transport import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
@@ -88,7 +94,7 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n")[0],
                               epilog=__doc__.split("\n\n", 2)[2].split("\n\nThe Python API")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_transport_args(p, title="transports (one --port, or one or more --can)")
+    add_transport_args(p, title="transports (one or more --port, or one or more --can)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
     p.add_argument("--lattice", type=lattice_arg, default=None,
                    help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
@@ -225,6 +231,7 @@ def run(args) -> int:
         root.setLevel(logging.WARNING)
 
     # -- everything checkable before a port is opened: one line, exit 2 --------------------------
+    check_ports(args, prog="capsheet host")  # neither or both of --port/--can, a port given twice
     layout = None
     if args.layout:
         try:
