@@ -45,3 +45,24 @@ def test_never_above_100_percent():
     snaps = [(c, True) for c in range(0, 200)]
     for first in range(0, 150, 7):
         assert window_completeness(snaps, first, first + 37)["complete_pct"] == 100.0
+
+
+def _sweep(rates, limit):
+    ran = []
+
+    def held_at(r):
+        ran.append(r)
+        return r <= limit
+    return bench_live.sweep_order(rates, held_at), ran
+
+
+def test_sweep_goes_up_from_145_while_rates_hold():
+    done, ran = _sweep([30, 60, 145, 300, 640], limit=400)
+    assert done == ran == [145, 300, 640]
+
+
+def test_sweep_goes_down_from_145_until_a_rate_holds():
+    done, ran = _sweep([30, 60, 145, 300, 640], limit=50)
+    assert done == ran == [145, 60, 30]
+    done, ran = _sweep([30, 60, 145, 300, 640], limit=10)  # none holds: every lower rate tried
+    assert ran == [145, 60, 30]
