@@ -43,8 +43,8 @@ CONFIGS = {
     "14x14-firmware-c": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, firmware="c"),
     "14x14-per-chip-busy-core": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, busy=1),
 }
-RATES = [30, 60, 100, 145, 200, 300, 450, 640]
-QUICK_RATES = [30, 60, 145, 300, 640]
+RATES = [10, 20, 30, 60, 100, 145, 200, 300, 450, 640]
+QUICK_RATES = [10, 30, 60, 145, 300, 640]
 
 
 def sweep_order(rates: list[float], held_at) -> list[float]:
@@ -134,7 +134,7 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
     try:
         with host:
             try:
-                host.bring_up(packed=cfg["packed"])
+                up = host.bring_up(packed=cfg["packed"])
             except Exception as exc:  # noqa: BLE001 - e.g. CapacityError: this rate is not held
                 row.update(held=False, error=f"{type(exc).__name__}: {exc}")
                 return row
@@ -163,7 +163,8 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
             row.update(win, achieved_sync_hz=round(win["syncs_sent"] / window_s, 1),
                        syncs_missed=host.stats["live"]["syncs_missed"],
                        deadline_ms=round(1e3 * agg.deadline_s, 1),
-                       late=agg.stats.late, loadavg=[round(x, 2) for x in os.getloadavg()])
+                       late=agg.stats.late, started=up["started"], silent_links=len(host.silent_links),
+                       valid_links_pct=host.aggregator.completeness()["valid_links_pct"], loadavg=[round(x, 2) for x in os.getloadavg()])
             row["held"] = row["complete_pct"] >= 99.0
             if lat_ms:
                 row["median_sync_to_estimate_ms"] = round(float(sorted(lat_ms)[len(lat_ms) // 2]), 2)

@@ -12,10 +12,15 @@ Several --port (a sheet behind several serial gateways, each with a block of its
 mode the host sends every SYNC on every port; with a gateway driving SYNC (--sync follow) each port
 carries it.
 
+The status line (and the summary, and --json) gives completeness twice, over the same snapshots:
+by snapshot (every expected link arrived) and by valid link sample over the lattice's links (what
+--min-complete judges: a dead or absent chip lowers it while the snapshots stay complete).
+
 Exit status: 0 the run met ``--min-complete``; 1 no chip found, none streamed, completeness below
 ``--min-complete``, the port failed, or another SYNC source stopped a driving host; 2 a usage error
 or a mismatch found before streaming (bad value, malformed layout, layout vs lattice, CAN FD frames
-on a classic bus, layout chips that never answer, over capacity).
+on a classic bus, layout chips that never answer, over capacity, a port given twice, the same chips
+on two ports, a port of another sheet).
 
 The Python API is `host.session.Host` (re-exported here).
 """
@@ -312,6 +317,14 @@ def run(args) -> int:
             end = None if args.duration is None else t0 + args.duration
             while end is None or time.monotonic() < end:
                 snap = host.get(0.1)
+                for _ in range(256):  # bounded: the duration and the status are checked meanwhile
+                    if snap is None or writer is None:
+                        break
+                    # every snapshot recorded, the estimate made on the newest: an estimate slower
+                    # than the SYNC period must not make the queue drop snapshots from the recording
+                    newer = host.get(0)
+                    writer.snapshot(snap, estimate=newer is None)
+                    snap = newer
                 if snap is not None and writer is not None:
                     writer.snapshot(snap)
                 if host.sync_conflict:

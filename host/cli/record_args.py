@@ -187,14 +187,19 @@ class SessionOutputs:
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
 
-    def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False):
+    def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False,
+                 estimate: bool = True):
         """Record ``snap``; estimate it (at most ``--live-rate`` per second, or when ``force``) for the
-        recording and the live view. Returns the estimate made, or None."""
+        recording and the live view. ``estimate=False``: record only (a newer snapshot is waiting:
+        the estimate is for the newest, the recording for every one). Returns the estimate made, or
+        None."""
         rec = self.recorder
         if rec is None:
             return None
         if rec.path is not None:
             rec.snapshot(snap)
+        if not estimate:
+            return None
         now = time.monotonic()
         if not (force or now - self._last_est >= self._period) or not snap.valid.any():
             return None

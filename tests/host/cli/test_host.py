@@ -62,6 +62,20 @@ class Virtual:
 
 
 @pytest.fixture
+def udp_bus_lock():
+    """python-can's udp_multicast buses share one UDP port, and on Linux every socket on it hears
+    every group: two tests on it at once (pytest -n 2, or another checkout's suite on this machine)
+    hear each other's RESET and SYNC. One at a time, machine-wide (a file lock)."""
+    import fcntl
+    with open(os.path.join("/tmp", "capsheet-udp-multicast-tests.lock"), "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@pytest.fixture
 def virtuals():
     made: list[Virtual] = []
 
@@ -338,7 +352,7 @@ def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
 
 # -- cross-process CAN without hardware -------------------------------------------------------------
 
-def test_udp_multicast_between_two_processes(virtuals, tmp_path):
+def test_udp_multicast_between_two_processes(udp_bus_lock, virtuals, tmp_path):
     try:
         import can
         b = can.Bus(interface="udp_multicast", channel="239.74.163.2")
@@ -408,7 +422,7 @@ def _udp_or_skip():
 
 
 @pytest.mark.parametrize("what", ["reset", "stray"])
-def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp_path, what):
+def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock, virtuals, tmp_path, what):
     """udp_multicast lets a third process speak on the sheet's bus: a RESET broadcast mid-stream is
     recovered (>= 99 % complete after the report); a SAMPLE with a counter the host never sent costs
     nothing but itself (counted as stray)."""
