@@ -1,18 +1,25 @@
-"""The live path, measured: the virtual sheet in its own process on a real pty (or SLCAN adapters on
-ptys, one per classic CAN bus), the host in this process, both on this machine. For each
-configuration: the highest SYNC rate at which >= 99 % of the SYNCs sent gave a complete snapshot,
-and at 145 Hz the median SYNC -> estimate latency (the estimator run on the newest snapshot).
+"""The live path, measured: the virtual sheet in its own process on real ptys (serial gateways, or
+SLCAN adapters on ptys, one per classic CAN bus), the host in this process, both on this machine.
+For each configuration: the highest SYNC rate at which >= 99 % of the SYNCs sent gave a complete
+snapshot, and at 145 Hz the median SYNC -> estimate latency (the estimator run on the newest
+snapshot).
 
-    .venv/bin/python benchmarks/bench_live.py            # full sweep, JSON on stdout (minutes)
-    .venv/bin/python benchmarks/bench_live.py --quick    # a short sweep (about 2 minutes)
+    .venv/bin/python benchmarks/bench_live.py            # full sweep, JSON on stdout (many minutes)
+    .venv/bin/python benchmarks/bench_live.py --quick    # a short sweep (a few minutes)
     .venv/bin/python benchmarks/bench_live.py --only 14x14-packed --rates 145,300
 
-Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed (a gateway declared as a
-24 Mbaud link: 1,984 links exceed one 12 Mbaud UART at 145 Hz), 14x14 over as many classic CAN
-buses as the capacity table says for 145 Hz (SLCAN on ptys), 14x14 with the C firmware, and 14x14
-per-chip again with one core kept busy. A pty has no baud rate: the gateway declares the link it
-stands for and the host's capacity check uses that figure (a rate over it counts as not held).
-Figures depend on the machine's load: the JSON carries ``os.getloadavg()`` at start and end.
+Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed over two serial gateways of
+12 Mbaud merged into one lattice (1,984 links exceed one 12 Mbaud UART at 145 Hz by the capacity
+table) and, for comparison, over one gateway declared as a 24 Mbaud link; 14x14 over as many
+classic CAN buses as the capacity table says for 145 Hz (9, SLCAN on ptys); 14x14 with the C
+firmware (one cffi chip per link); 14x14 per-chip again with one core kept busy (a
+``python3 -c 'while True: pass'`` beside it). A pty has no baud rate: the gateway declares the link
+it stands for and the host's capacity check uses that figure (a rate over it counts as not held).
+
+The sweep starts at 145 Hz and walks up the rate grid while rates hold, or down until one holds.
+Completeness is counted over one window of SYNC counters (`window_completeness`): numerator and
+denominator are the same SYNCs. Figures depend on the machine's load: every row carries
+``os.getloadavg()`` and the JSON the load at start and end.
 """
 
 from __future__ import annotations
@@ -30,13 +37,51 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 CONFIGS = {
     "14x14-per-chip": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000),
     "14x14-packed": dict(lattice="14x14", packed=True, transport="serial", baud=12_000_000),
-    "32x32-packed": dict(lattice="32x32", packed=True, transport="serial", baud=24_000_000),
+    "32x32-packed-2gw": dict(lattice="32x32", packed=True, transport="serial", baud=12_000_000, gateways=2),
+    "32x32-packed-24M": dict(lattice="32x32", packed=True, transport="serial", baud=24_000_000),
     "14x14-can": dict(lattice="14x14", packed=False, transport="slcan", bitrate=1_000_000),
     "14x14-firmware-c": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, firmware="c"),
     "14x14-per-chip-busy-core": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, busy=1),
 }
-RATES = [30, 60, 100, 145, 200, 300, 450, 640]
-QUICK_RATES = [60, 145, 300]
+RATES = [10, 20, 30, 60, 100, 145, 200, 300, 450, 640]
+QUICK_RATES = [10, 30, 60, 145, 300, 640]
+
+
+def sweep_order(rates: list[float], held_at) -> list[float]:
+    """The rates to try, adaptively: from 145 Hz (or the grid's nearest) up while each holds, else
+    down until one holds. ``held_at(rate) -> bool`` runs one rate. Returns the rates run, in order."""
+    grid = sorted(set(rates))
+    start = min(grid, key=lambda r: (abs(r - 145.0), r))
+    i = grid.index(start)
+    done = [start]
+    if held_at(start):
+        for r in grid[i + 1:]:
+            done.append(r)
+            if not held_at(r):
+                break
+    else:
+        for r in reversed(grid[:i]):
+            done.append(r)
+            if held_at(r):
+                break
+    return done
+
+
+def window_completeness(snapshots, first_counter: int, end_counter: int) -> dict:
+    """Completeness over one window of SYNCs: the counters ``first_counter`` .. ``end_counter - 1``
+    (mod 2^16) the host sent in it. ``snapshots``: ``(counter, complete)`` of every snapshot emitted
+    during and after the window. Numerator and denominator are the same set of counters: a snapshot
+    of a SYNC sent before the window (completed inside it) or after it is not counted, a SYNC of the
+    window whose snapshot never came (or was dropped) counts as incomplete. (The bench used to
+    divide the snapshots completed in the window by the SYNCs sent in it: up to 100.83 %.)"""
+    sent = (end_counter - first_counter) & 0xFFFF
+    seen: dict[int, bool] = {}
+    for counter, complete in snapshots:
+        if ((counter - first_counter) & 0xFFFF) < sent:
+            seen[counter & 0xFFFF] = seen.get(counter & 0xFFFF, False) or bool(complete)
+    complete = sum(seen.values())
+    return {"syncs_sent": sent, "snapshots": len(seen), "complete": complete,
+            "complete_pct": round(100.0 * complete / sent, 2) if sent else 0.0}
 
 
 def _serve(cfg: dict, conn) -> None:
@@ -55,6 +100,10 @@ def _serve(cfg: dict, conn) -> None:
     if can:
         from virtual_sheet.slcan import SlcanDevice
         dev = SlcanDevice(sheet, n_buses=cfg["n_buses"])
+        paths = dev.paths
+    elif cfg.get("gateways", 1) > 1:
+        from virtual_sheet.devices import MultiPtyDevice
+        dev = MultiPtyDevice(sheet, n_gateways=cfg["gateways"], packed=cfg["packed"])
         paths = dev.paths
     else:
         from virtual_sheet.devices import PtyDevice
@@ -77,20 +126,23 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
     if cfg["transport"] == "slcan":
         ts = [CanTransport(f"slcan:{p}", bitrate=cfg["bitrate"], sleep_after_open=0) for p in paths]
     else:
-        ts = [open_transport("serial", paths[0], baudrate=cfg["baud"])]
-    host = Host(ts, lat, layout=Layout.load(cfg["layout_path"]), rate_hz=rate)
+        ts = [open_transport("serial", p, baudrate=cfg["baud"]) for p in paths]
+    seen: list[tuple[int, bool]] = []  # (counter, complete) of every snapshot emitted
+    host = Host(ts, lat, layout=Layout.load(cfg["layout_path"]), rate_hz=rate,
+                on_snapshot=lambda snap: seen.append((snap.counter, snap.complete)))
     row: dict = {"rate_hz": rate}
     try:
         with host:
             try:
-                host.bring_up(packed=cfg["packed"])
+                up = host.bring_up(packed=cfg["packed"])
             except Exception as exc:  # noqa: BLE001 - e.g. CapacityError: this rate is not held
                 row.update(held=False, error=f"{type(exc).__name__}: {exc}")
                 return row
             time.sleep(0.5)  # settle
             agg = host.aggregator
             agg.drain()
-            c0, e0, s0 = agg.stats.complete, agg.stats.emitted, host.syncs_sent
+            first = host.counter  # the next SYNC counter: the window is first .. end - 1
+            t_start = time.monotonic()
             lat_ms: list[float] = []
             previous = None
             t_end = time.monotonic() + duration_s
@@ -104,15 +156,15 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
                 else:
                     time.sleep(0.05)
                     agg.drain()
-            sent = host.syncs_sent - s0
-            host.stop()
-            complete = agg.stats.complete - c0
-            row.update(syncs_sent=sent, snapshots=agg.stats.emitted - e0, complete=complete,
-                       complete_pct=round(100.0 * complete / max(1, sent), 2),
-                       achieved_sync_hz=round(sent / duration_s, 1),
+            end = host.counter
+            window_s = time.monotonic() - t_start
+            host.stop()  # the counters in flight get their chance to complete
+            win = window_completeness(list(seen), first, end)
+            row.update(win, achieved_sync_hz=round(win["syncs_sent"] / window_s, 1),
                        syncs_missed=host.stats["live"]["syncs_missed"],
                        deadline_ms=round(1e3 * agg.deadline_s, 1),
-                       late=agg.stats.late)
+                       late=agg.stats.late, started=up["started"], silent_links=len(host.silent_links),
+                       valid_links_pct=host.aggregator.completeness()["valid_links_pct"], loadavg=[round(x, 2) for x in os.getloadavg()])
             row["held"] = row["complete_pct"] >= 99.0
             if lat_ms:
                 row["median_sync_to_estimate_ms"] = round(float(sorted(lat_ms)[len(lat_ms) // 2]), 2)
@@ -123,7 +175,9 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
     return row
 
 
-def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp: str) -> dict:
+def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp: str, fixed: bool = False) -> dict:
+    """One configuration: the sheet in a child process, the host here, the rates swept
+    (`sweep_order`; ``fixed``: exactly ``rates``, in order)."""
     cfg = dict(cfg, layout_path=os.path.join(tmp, f"{name}.json"))
     if cfg["transport"] == "slcan":
         from protocol.capacity import buses_needed
@@ -145,14 +199,17 @@ def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp:
         if not parent.poll(180):
             raise RuntimeError("virtual sheet did not start")
         _, paths = parent.recv()
-        fails = 0
-        for r in rates:
+
+        def held_at(r: float) -> bool:
             row = _run_rate(cfg, paths, float(r), duration_s, estimate_latency=(r == 145))
             out["sweep"].append(row)
             print(json.dumps({"config": name, **row}), file=sys.stderr, flush=True)
-            fails = 0 if row.get("held") else fails + 1
-            if fails >= 2:
-                break
+            return bool(row.get("held"))
+        if fixed:
+            for r in rates:
+                held_at(r)
+        else:
+            sweep_order(rates, held_at)
         held = [row["rate_hz"] for row in out["sweep"] if row.get("held")]
         out["highest_rate_99pct_hz"] = max(held) if held else None
         at145 = [row for row in out["sweep"] if row["rate_hz"] == 145]
@@ -171,9 +228,9 @@ def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help=f"rates {QUICK_RATES}, 2 s each")
+    ap.add_argument("--quick", action="store_true", help=f"rate grid {QUICK_RATES}, 2 s each (a few minutes)")
     ap.add_argument("--only", action="append", choices=sorted(CONFIGS), help="run only this configuration (repeatable)")
-    ap.add_argument("--rates", help="comma-separated SYNC rates, Hz (default: the sweep)")
+    ap.add_argument("--rates", help="comma-separated SYNC rates, Hz, each run in order (default: the adaptive sweep)")
     ap.add_argument("--duration", type=float, help="seconds streamed per rate (default 5, --quick 2)")
     args = ap.parse_args(argv)
     try:
@@ -186,7 +243,7 @@ def main(argv=None) -> int:
     import tempfile
     tmp = tempfile.mkdtemp(prefix="capsheet-bench-live-")
     load0 = os.getloadavg()
-    results = [run_config(n, CONFIGS[n], rates, duration, tmp) for n in (args.only or CONFIGS)]
+    results = [run_config(n, CONFIGS[n], rates, duration, tmp, fixed=bool(args.rates)) for n in (args.only or CONFIGS)]
     print(json.dumps({"benchmark": "bench_live", "quick": args.quick, "duration_s": duration, "rates": rates,
                       "loadavg_start": [round(x, 2) for x in load0],
                       "loadavg_end": [round(x, 2) for x in os.getloadavg()], "cpus": os.cpu_count(),

@@ -494,6 +494,8 @@ class Host:
                                      quiet=True, link=rec.link, node=msg.node, uid=msg.uid)
                         if was_started and self._streaming.is_set():
                             self._queue_recovery(msg.uid, "rebooted")
+                    if rec.bus != bus and len(self.cross_bus_uids) < self.max_chips:
+                        self.cross_bus_uids.setdefault(msg.uid, {rec.bus}).add(bus)
                     rec.node, rec.bus = msg.node, bus
                 self._node_uid[(bus, msg.node)] = msg.uid
         elif isinstance(msg, Info):
@@ -875,6 +877,9 @@ class Host:
         self._recover_thread: threading.Thread | None = None
         self._in_recovery = False
         self._probes: dict[int, dict] = {}  # bus -> reconnect probe state
+        #: uid -> the buses it announced on, for uids heard on more than one (the same chips behind
+        #: two ports: one gateway named twice, or two sheets with the same uids); bounded by max_chips
+        self.cross_bus_uids: dict[int, set[int]] = {}
         self._resyncs_reported = 0
         self._stray_reported = 0
 
@@ -935,27 +940,46 @@ class Host:
             if n_fd:
                 raise MismatchError(f"{t.name} carries CAN FD frames ({n_fd} seen) but was opened for classic "
                                     f"CAN: add --fd")
+        if self.cross_bus_uids:
+            # a chip sits behind one gateway: the same uids on two ports are one gateway opened twice
+            # (or two sheets whose uids collide), never one lattice
+            uid, buses = min(self.cross_bus_uids.items())
+            names = " and ".join(self.transports[b].name for b in sorted(buses))
+            raise MismatchError(f"{len(self.cross_bus_uids)} chip(s) answer on more than one port, e.g. uid "
+                                f"0x{uid:016X} on {names}: the ports reach the same chips (one gateway "
+                                f"named twice?); give each gateway of the sheet once")
         if self.layout is None:
             return
         with self._lock:
             found = set(self.chips)
             missing = sorted(((k, u) for u, k in self.layout.links.items() if u not in found))
             unknown = sorted(found - set(self.layout.links))
+        # a port none of whose chips is in the layout: a gateway of another sheet (or a layout
+        # for another lattice): said beside whichever mismatch is raised
+        hint = ""
+        if unknown and len(self.transports) > 1:
+            with self._lock:
+                per_port = Counter(self.chips[u].bus for u in unknown)
+                alien = [self.transports[b].name for b, c in sorted(per_port.items())
+                         if c == sum(1 for r in self.chips.values() if r.bus == b)]
+            if alien:
+                hint = (f"; none of the chips on {', '.join(alien)} is in the layout (a gateway of another "
+                        f"sheet, or a layout for another lattice?)")
         for k, u in missing:
             self._report("missing_chip", f"layout chip 0x{u:016X} (link {k}) did not answer", quiet=True,
                          link=k, uid=u)
         if missing:
             names = ", ".join(f"link {k} (uid 0x{u:016X})" for k, u in missing[:5])
             more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
-            msg = f"{len(missing)} layout chip(s) never answered: {names}{more}"
+            msg = f"{len(missing)} layout chip(s) never answered: {names}{more}{hint}"
             if strict:
                 raise MismatchError(msg + " (check the layout file; --allow-missing streams without them)")
             log.warning("%s", msg)
         if unknown:
-            names = ", ".join(f"uid 0x{u:016X} (bus {self.chips[u].bus}, node 0x{self.chips[u].node:04X})"
-                              for u in unknown[:5])
+            names = ", ".join(f"uid 0x{u:016X} (on {self.transports[self.chips[u].bus].name}, node "
+                              f"0x{self.chips[u].node:04X})" for u in unknown[:5])
             more = f" and {len(unknown) - 5} more" if len(unknown) > 5 else ""
-            msg = f"{len(unknown)} announcing chip(s) are not in the layout: {names}{more}"
+            msg = f"{len(unknown)} announcing chip(s) are not in the layout: {names}{more}{hint}"
             if strict:
                 raise MismatchError(msg + " (wrong layout file? --allow-missing streams without them)")
             log.warning("%s", msg)
@@ -1165,6 +1189,8 @@ class Host:
             if self.event_counts.get(kind):
                 errors[kind] += self.event_counts[kind]
         return {"snapshots": emitted, "complete_snapshots": agg.complete,
+                # completeness by snapshot and by valid link, over the same emitted snapshots
+                "complete_snapshots_pct": round(100 * agg.complete / emitted, 2) if emitted else 0.0,
                 "valid_links_pct": round(100 * frac, 2),
                 "links": n, "assigned": len(assigned),
                 "unassigned_links": [{"link": k, "uid": f"0x{uid_of[k]:016X}" if k in uid_of else None}

@@ -8,6 +8,8 @@
                     ``device.channels`` are the channel names to open, one per bus
 `SlcanDevice`       an SLCAN (Lawicel) adapter on a pty (`virtual_sheet.slcan`): open it with
                     ``can.Bus(interface="slcan", channel=device.path)``
+`MultiPtyDevice`    several serial gateways of one sheet, each on its own pty with a contiguous
+                    block of the links (``device.paths``); gateway 0 leads the SYNC line
 =================== ========================================================================
 
 Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thread and stops it
@@ -42,7 +44,7 @@ from .faults import ERROR_FRAME
 from .gateway import Gateway
 from .memport import memory_link
 
-__all__ = ["Device", "MemoryDevice", "PtyDevice", "CanDevice", "open_pty"]
+__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "open_pty"]
 
 _IDLE_WAIT_S = 0.005
 
@@ -463,6 +465,99 @@ class PtyDevice(_PtyMixin, _SerialDevice):
 
     def describe(self) -> str:
         return f"serial port {self.path} (-> {self.tty})"
+
+
+class _GatewayPort(_PtyMixin):
+    name = "pty"
+
+
+class MultiPtyDevice(Device):
+    """One sheet behind ``n_gateways`` serial gateways, each on its own pty: a sheet too big for one
+    UART (1,984 links at 145 Hz exceed a 12 Mbaud link even packed, docs/protocol.md §10) split in
+    contiguous link blocks (`VirtualSheet.split`), as CAN buses are. The host opens every port and
+    merges them into one lattice (``capsheet host --port P0 --port P1``).
+
+    SYNC: a driving host sends SYNC on every port; each gateway passes it to its own chips. With
+    ``sync_rate_hz`` gateway 0 is the SYNC source and the others follow it over a SYNC line
+    (`Gateway.followers`): the same counter at the same instant on every port.
+
+    ``device.paths``: one stable symlink per gateway (``symlink_paths``, else in a private
+    temporary directory); ``device.path`` is the first. An outage closes every port.
+    """
+
+    name = "pty-gateways"
+
+    def __init__(self, sheet, *, n_gateways: int = 2, symlink_paths: list[str] | None = None, **kw) -> None:
+        if sheet.transport != "serial":
+            raise ValueError(f"MultiPtyDevice needs a sheet with transport='serial', got {sheet.transport!r}")
+        if symlink_paths is not None and len(symlink_paths) != n_gateways:
+            raise ValueError(f"{n_gateways} gateways need {n_gateways} symlink paths, got {len(symlink_paths)}")
+        if symlink_paths is not None and len({os.path.abspath(p) for p in symlink_paths}) != n_gateways:
+            raise ValueError(f"the gateways' symlink paths must differ: {symlink_paths}")
+        super().__init__(sheet, **kw)
+        self.blocks = sheet.split(n_gateways)
+        self.gateways = [Gateway(sheet, blk, packed=self.packed,
+                                 sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b)
+                         for b, blk in enumerate(self.blocks)]
+        self.gateways[0].followers = self.gateways[1:]
+        self.ports: list[_GatewayPort] = []
+        for b in range(n_gateways):
+            port = _GatewayPort()
+            port.name = f"pty{b}"
+            port._pty_init(symlink_paths[b] if symlink_paths else None)
+            self.ports.append(port)
+        self.paths = [p.path for p in self.ports]
+        self.path = self.paths[0]
+
+    @property
+    def tx_overflow_frames(self) -> int:
+        return sum(p.tx_overflow_frames for p in self.ports)
+
+    def _open(self) -> None:
+        for p in self.ports:
+            p._pty_open()
+
+    def _close(self) -> None:
+        for p in self.ports:
+            p._pty_cleanup()
+
+    def _serve(self, timeout_s: float) -> None:
+        fds = {p._master: b for b, p in enumerate(self.ports) if p._master >= 0}
+        if not fds:
+            time.sleep(timeout_s)
+            return
+        wl = [p._master for p in self.ports if p._pending and p._master >= 0]
+        r, w, _ = select.select(list(fds), wl, [], timeout_s)
+        for fd in w:
+            self.ports[fds[fd]]._pty_write(b"")
+        for fd in r:
+            b = fds[fd]
+            try:
+                data = os.read(fd, 65536)
+            except (BlockingIOError, InterruptedError):
+                continue
+            except OSError:  # EIO: no slave open right now
+                continue
+            if data:
+                if self.verbose is not None:
+                    self.verbose("rx", data)
+                self.gateways[b].feed(data, self.now())
+
+    def _send(self, bus: int, frames: list) -> None:
+        self.ports[bus]._pty_write(b"".join(frames), len(frames))
+
+    def _go_down(self) -> None:
+        for p in self.ports:
+            p._pty_close()
+
+    def _come_back(self) -> None:
+        for p in self.ports:
+            p._pty_open()
+
+    def describe(self) -> str:
+        return (f"{len(self.ports)} serial gateways: "
+                + ", ".join(f"{p.path} (-> {p.tty}, links {blk.start}..{blk.stop - 1})"
+                            for p, blk in zip(self.ports, self.blocks)))
 
 
 # ---------------------------------------------------------------------------------------------

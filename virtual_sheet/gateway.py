@@ -13,6 +13,11 @@ stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
   SNAPSHOT comes from node 0 (the gateway). Every other chip frame is forwarded unchanged.
 * **SYNC source** (``sync_rate_hz``): the gateway itself broadcasts SYNC at that rate to its
   chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC").
+* **SYNC line** (``followers``): gateways of one sheet on separate links (two serial gateways, each
+  with half the chips) share one SYNC: the leader (the one with ``sync_rate_hz``) hands every SYNC
+  it generates to its followers at the same instant, as a wired SYNC line between gateway boards
+  would; each follower broadcasts it to its own chips and forwards it to its own host port, so every
+  port's stream carries the SYNC before the samples that answer it.
 
 A sheet with the array engine (`chiparray.ChipArray`) is served in batch: a SYNC is one numpy
 step for every chip behind the gateway; per-chip serial frames stay one byte string in the
@@ -134,6 +139,7 @@ class Gateway:
                 self._chunks.append((int(run[i]), pos, m))
                 pos += m
         self._words = np.zeros(sheet.n_links, dtype=np.int64)  # packed mode: each link's sample word
+        self.followers: list[Gateway] = []  #: gateways that take this one's SYNC (a SYNC line)
         self._snap_decoder = StreamDecoder(batch_samples=True)
         self.powered = False
         arr = getattr(sheet, "array", None)
@@ -169,6 +175,8 @@ class Gateway:
             frame = to_can(sync) if self.can else encode(sync)
             self._emit([frame], now_s)  # the host hears the SYNC too
             self._dispatch(frame, sync, now_s)
+            for f in self.followers:  # the SYNC line: the same SYNC, at the same instant
+                f.follow_sync(frame, sync, now_s)
         if now_s >= self._next_poll:
             self._next_poll = max(self._next_poll + CHIP_POLL_PERIOD_S, now_s)
             if self.engine is not None:
@@ -185,6 +193,13 @@ class Gateway:
             held = self.faults.flush(now_s)
             if held:
                 self._queue.extend(held)
+
+    def follow_sync(self, frame, sync: Sync, now_s: float) -> None:
+        """A SYNC from the leader gateway's SYNC line: to this gateway's chips and its host port."""
+        if not self.powered:
+            return
+        self._emit([frame], now_s)
+        self._dispatch(frame, sync, now_s)
 
     def next_deadline(self) -> float:
         """When `poll` / `pop_output` next has something to do."""

@@ -5,11 +5,22 @@ live status line, record snapshots and end with a summary whose exit status tell
     capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record run.mcap --live
     capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
     capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
+    capsheet host --port /tmp/sheet0 --port /tmp/sheet1 --baud 12000000 --packed --layout sheet.json
+
+Several --port (a sheet behind several serial gateways, each with a block of its links) or several
+--can (buses) are merged into one lattice: each chip is known on the port it answers on. In drive
+mode the host sends every SYNC on every port; with a gateway driving SYNC (--sync follow) each port
+carries it.
+
+The status line (and the summary, and --json) gives completeness twice, over the same snapshots:
+by snapshot (every expected link arrived) and by valid link sample over the lattice's links (what
+--min-complete judges: a dead or absent chip lowers it while the snapshots stay complete).
 
 Exit status: 0 the run met ``--min-complete``; 1 no chip found, none streamed, completeness below
 ``--min-complete``, the port failed, or another SYNC source stopped a driving host; 2 a usage error
 or a mismatch found before streaming (bad value, malformed layout, layout vs lattice, CAN FD frames
-on a classic bus, layout chips that never answer, over capacity).
+on a classic bus, layout chips that never answer, over capacity, a port given twice, the same chips
+on two ports, a port of another sheet).
 
 The Python API is `host.session.Host` (re-exported here).
 """
@@ -26,7 +37,7 @@ import time
 
 from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
 from host.cli.record_args import SessionOutputs, add_record_args
-from host.cli.transport_args import add_transport_args, open_transports
+from host.cli.transport_args import add_transport_args, check_ports, open_transports
 from host.transport import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
@@ -88,7 +99,7 @@ def register(subparsers) -> None:
                               description=__doc__.split("\n\n")[0],
                               epilog=__doc__.split("\n\n", 2)[2].split("\n\nThe Python API")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_transport_args(p, title="transports (one --port, or one or more --can)")
+    add_transport_args(p, title="transports (one or more --port, or one or more --can)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
     p.add_argument("--lattice", type=lattice_arg, default=None,
                    help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
@@ -163,20 +174,31 @@ class _StatusAwareHandler(logging.StreamHandler):
         super().emit(record)
 
 
+def completeness_pct(emitted: int, complete: int, valid_links: int, n_links: int) -> tuple[float, float]:
+    """(complete snapshots %, valid link samples %) over the same ``emitted`` snapshots: by
+    snapshot, complete / emitted; by valid link, valid samples / (emitted x the lattice's links) —
+    the figure ``--min-complete`` judges. (0, 0) before any snapshot."""
+    if emitted <= 0:
+        return 0.0, 0.0
+    return 100.0 * complete / emitted, 100.0 * valid_links / (emitted * max(1, n_links))
+
+
 def _status_text(host: Host, t0: float, n0: int) -> str:
     st = host.aggregator.stats
     dt = max(1e-9, time.monotonic() - t0)
     rate = (st.emitted - n0) / dt
-    done = st.complete / max(1, st.emitted)
+    done, links = completeness_pct(st.emitted, st.complete, st.valid_links, host.lattice.n_links)
     errors = sum(t.stats.error_count for t in host.transports)
-    return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {100 * done:5.1f}%  "
+    return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {done:5.1f}% of snapshots, "
+            f"{links:5.1f}% of link samples valid  "
             f"late {st.late}  stray {st.stray}  dup {st.duplicates}  unknown {st.unknown}  "
             f"dropped {st.dropped}  errors {errors}  silent {len(host.silent_links)}  "
             f"recoveries {host.recoveries}")
 
 
 def _summary_lines(s: dict, min_pct: float) -> list[str]:
-    out = [f"summary: {s['snapshots']} snapshots, {s['complete_snapshots']} complete; "
+    out = [f"summary: {s['snapshots']} snapshots, {s['complete_snapshots']} complete "
+           f"({s['complete_snapshots_pct']:.1f} %); "
            f"{s['valid_links_pct']:.1f} % of the {s['links']} links' samples valid (need {min_pct:g} %)"]
     if s["unassigned_links"]:
         out.append(f"  links without a chip: {len(s['unassigned_links'])} "
@@ -214,6 +236,7 @@ def run(args) -> int:
         root.setLevel(logging.WARNING)
 
     # -- everything checkable before a port is opened: one line, exit 2 --------------------------
+    check_ports(args, prog="capsheet host")  # neither or both of --port/--can, a port given twice
     layout = None
     if args.layout:
         try:
@@ -294,6 +317,14 @@ def run(args) -> int:
             end = None if args.duration is None else t0 + args.duration
             while end is None or time.monotonic() < end:
                 snap = host.get(0.1)
+                for _ in range(256):  # bounded: the duration and the status are checked meanwhile
+                    if snap is None or writer is None:
+                        break
+                    # every snapshot recorded, the estimate made on the newest: an estimate slower
+                    # than the SYNC period must not make the queue drop snapshots from the recording
+                    newer = host.get(0)
+                    writer.snapshot(snap, estimate=newer is None)
+                    snap = newer
                 if snap is not None and writer is not None:
                     writer.snapshot(snap)
                 if host.sync_conflict:

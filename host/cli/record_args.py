@@ -204,22 +204,27 @@ class SessionOutputs:
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
 
-    def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False):
+    def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False,
+                 estimate: bool = True):
         """Record ``snap``; estimate it (at most ``--live-rate`` per second, or when ``force``) for the
-        recording and the live view. Returns the estimate made, or None."""
+        recording and the live view. ``estimate=False``: record only (a newer snapshot is waiting:
+        the estimate is for the newest, the recording for every one). Returns the estimate made, or
+        None."""
         rec = self.recorder
         if rec is None:
             return None
         if rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
+        if not estimate:
+            return None
         now = time.monotonic()
         if not (force or now - self._last_est >= self._period) or not snap.valid.any():
             return None
         self._last_est = now
-        from host.analysis.estimator import estimate
+        from host.analysis.estimator import estimate as estimate_shape
 
         try:  # a dead or saturated chip is masked out, not fatal to the session
-            est = estimate(snap.readings, self.lattice.rows, self.lattice.cols, self.link_length, valid=snap.valid,
+            est = estimate_shape(snap.readings, self.lattice.rows, self.lattice.cols, self.link_length, valid=snap.valid,
                            previous=self._previous, bad_readings="mask")
         except ValueError as exc:  # e.g. every valid link's reading is bad: counted, reported at close
             self.estimates_skipped += 1

@@ -8,6 +8,8 @@ them alike, and open them through the same `host.transport` classes.
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 
 from host.transport import CanTransport, SerialTransport, Transport, TransportError
 
@@ -36,7 +38,12 @@ def add_transport_args(parser: argparse.ArgumentParser, *, title: str, several_b
     list; otherwise it takes one bus and stores a string (or None).
     """
     g = parser.add_argument_group(title)
-    g.add_argument("--port", help="serial port: device path or pyserial URL (/dev/ttyUSB0, /dev/pts/5, loop://)")
+    if several_buses:
+        g.add_argument("--port", action="append", default=[], metavar="PORT",
+                       help="serial port: device path or pyserial URL (/dev/ttyUSB0, /dev/pts/5, loop://); "
+                            "repeat for a sheet behind several serial gateways, merged into one lattice")
+    else:
+        g.add_argument("--port", help="serial port: device path or pyserial URL (/dev/ttyUSB0, /dev/pts/5, loop://)")
     g.add_argument("--baud", type=positive_int, default=DEFAULT_BAUD, help=f"serial baud rate (default {DEFAULT_BAUD})")
     if several_buses:
         g.add_argument("--can", action="append", default=[], metavar="IFACE:CHANNEL",
@@ -57,19 +64,67 @@ def _can_specs(args: argparse.Namespace) -> list[str]:
     return [can] if isinstance(can, str) else list(can)
 
 
-def open_transports(args: argparse.Namespace, *, prog: str = "capsheet") -> list[Transport]:
-    """Open what ``args`` names: one `SerialTransport` for ``--port``, one `CanTransport` per ``--can``.
+def _port_specs(args: argparse.Namespace) -> list[str]:
+    port = args.port
+    if not port:
+        return []
+    return [port] if isinstance(port, str) else list(port)
 
-    Raises ``SystemExit`` with a one-line message when neither or both are given, and
-    `TransportError` (from the transport) when a port cannot be opened; buses already opened are
-    closed first.
+
+def _same_port(a: str, b: str) -> bool:
+    """Two --port values name the same port: equal, or paths (symlinks) to the same device."""
+    if a == b:
+        return True
+    if "://" in a or "://" in b:
+        return False
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
+def _usage(msg: str) -> None:
+    print(msg, file=sys.stderr)
+    raise SystemExit(2)
+
+
+def check_ports(args: argparse.Namespace, *, prog: str = "capsheet") -> None:
+    """Usage errors in the ports named (one line on stderr, ``SystemExit(2)``): neither or both of
+    --port and --can, a port or bus given twice (also two symlinks to one device)."""
+    ports, specs = _port_specs(args), _can_specs(args)
+    if bool(ports) == bool(specs):
+        _usage(f"{prog}: give either --port PATH (repeatable) or --can IFACE:CHANNEL (repeatable), "
+                         f"not both")
+    for names, what in ((ports, "--port"), (specs, "--can")):
+        for i, a in enumerate(names):
+            for b in names[:i]:
+                if (_same_port(a, b) if what == "--port" else a == b):
+                    same = "" if a == b else f" (both are {os.path.realpath(a)})"
+                    _usage(f"{prog}: {what} {a} is given twice{same}: each port is one gateway, "
+                                     f"name each once")
+
+
+def open_transports(args: argparse.Namespace, *, prog: str = "capsheet") -> list[Transport]:
+    """Open what ``args`` names: one `SerialTransport` per ``--port`` (several serial gateways of
+    one sheet), one `CanTransport` per ``--can``; several are merged into one lattice by the host.
+
+    Raises ``SystemExit`` with a one-line message (exit 2) when neither or both are given or a port
+    is given twice, and `TransportError` (from the transport) when a port cannot be opened; ports
+    already opened are closed first.
     """
+    check_ports(args, prog=prog)
     specs = _can_specs(args)
-    if bool(args.port) == bool(specs):
-        raise SystemExit(f"{prog}: give either --port PATH or --can IFACE:CHANNEL")
-    if args.port:
-        return [SerialTransport(args.port, baudrate=args.baud)]
     out: list[Transport] = []
+    ports = _port_specs(args)
+    if ports:
+        try:
+            for port in ports:
+                out.append(SerialTransport(port, baudrate=args.baud))
+        except TransportError:
+            for t in out:
+                t.close()
+            raise
+        return out
     try:
         for spec in specs:
             kw = {"sleep_after_open": 0.1} if spec.startswith("slcan:") else {}

@@ -15,6 +15,10 @@ __all__ = ["register", "run", "make_device", "load_chip_factory"]
 _EPILOG = """\
 transports:
   pty     a serial gateway on a pseudo-terminal; connect: capsheet host --port PATH
+          (--gateways N: N gateways, each on its own pty with a contiguous block of the links;
+          connect: capsheet host --port PATH0 --port PATH1 ... merges them into one lattice.
+          A driving host sends SYNC on every port; with --rate gateway 0 is the SYNC source and
+          passes each SYNC to the others over a SYNC line, and every port forwards it)
   slcan   SLCAN (Lawicel) USB-CAN adapter(s) on ptys; connect: capsheet host --can slcan:PATH
   can     python-can buses (--can-interface, default 'virtual': reachable only from this
           process; udp_multicast reaches another process on this machine: connect with
@@ -32,6 +36,7 @@ examples:
   capsheet virtual --shape gaussian --lattice 14x14 --transport pty --layout-out sheet.csv
   capsheet virtual --transport can --can-interface udp_multicast --lattice 6x6 --layout-out sheet.csv
   capsheet virtual --transport slcan --bus-count 2 --fd --packed
+  capsheet virtual --lattice 32x32 --packed --gateways 2 --symlink /tmp/sheet --layout-out sheet.json
   capsheet virtual --transport pty --rate 100 --faults bitflip=1e-5,outage_at_s=10,outage_s=2
 """
 
@@ -70,6 +75,9 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="how the host reaches the sheet (default pty)")
     p.add_argument("--bus-count", type=int, default=1, help="CAN buses (slcan/can); chips split in link "
                                                            "blocks across them (default 1)")
+    p.add_argument("--gateways", type=positive_int, default=1, metavar="N",
+                   help="pty: N serial gateways, each on its own pty with a contiguous block of the links "
+                        "(a sheet too big for one UART); gateway 0 leads SYNC with --rate (default 1)")
     p.add_argument("--can-interface", default="virtual",
                    help="python-can interface for --transport can (default virtual)")
     p.add_argument("--channel", action="append",
@@ -92,7 +100,8 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--faults", default="", help="fault spec (see below)")
     p.add_argument("--seed", type=int, default=0, help="seed of uids, chip errors and noise (default 0)")
     p.add_argument("--layout-out", metavar="FILE", help="write the uid,link layout (CSV, or JSON if .json)")
-    p.add_argument("--symlink", metavar="PATH", help="pty/slcan: publish the port under this stable path (a symlink; with --bus-count N, PATH0..PATHN-1)")
+    p.add_argument("--symlink", metavar="PATH", help="pty/slcan: publish the port under this stable path (a symlink; with --bus-count N or "
+                        "--gateways N, PATH0..PATHN-1)")
     p.add_argument("--firmware", choices=("python", "c"), default="python",
                    help="chip implementation: the Python model or the C reference firmware (SIL)")
     p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
@@ -148,7 +157,9 @@ def host_command(args, dev) -> str:
     """The exact ``capsheet host`` command that reaches this sheet (printed at start)."""
     cmd = ["capsheet", "host"]
     if args.transport == "pty":
-        cmd += ["--port", dev.path, "--baud", str(args.baud)]
+        for pth in getattr(dev, "paths", [dev.path]):
+            cmd += ["--port", pth]
+        cmd += ["--baud", str(args.baud)]
     elif args.transport == "slcan":
         for pth in dev.paths:
             cmd += ["--can", f"slcan:{pth}"]
@@ -195,7 +206,11 @@ def make_device(args, verbose=None):
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
                          chip_factory=load_chip_factory(args.firmware), faults=spec)
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
-    if args.transport == "pty":
+    if args.transport == "pty" and getattr(args, "gateways", 1) > 1:
+        from virtual_sheet.devices import MultiPtyDevice
+        paths = [f"{args.symlink}{b}" for b in range(args.gateways)] if args.symlink else None
+        dev = MultiPtyDevice(sheet, n_gateways=args.gateways, symlink_paths=paths, **kw)
+    elif args.transport == "pty":
         from virtual_sheet.devices import PtyDevice
         dev = PtyDevice(sheet, symlink_path=args.symlink, **kw)
     elif args.transport == "memory":
@@ -229,6 +244,10 @@ def run(args) -> int:
         print("capsheet virtual: udp_multicast buses share one UDP port, so on Linux their traffic crosses "
               "(every bus hears every other): use --bus-count 1, or --transport slcan for several buses",
               file=sys.stderr)
+        return 2
+    if getattr(args, "gateways", 1) > 1 and args.transport != "pty":
+        print(f"capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
+              f"--bus-count", file=sys.stderr)
         return 2
     try:
         sheet, dev = make_device(args, verbose if args.verbose else None)

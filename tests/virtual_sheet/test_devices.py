@@ -295,3 +295,38 @@ def test_a_pty_nobody_reads_drops_whole_frames_counted_and_stays_bounded():
             port.close()
     events = dec.feed(data)
     assert data and not any(isinstance(e, DecodeError) for e in events[1:])  # the first may be cut by open
+
+
+def test_two_serial_gateways_share_the_leaders_sync_line():
+    """Gateway 0 generates SYNC; gateway 1 takes every SYNC over the SYNC line at the same instant:
+    each stream carries every SYNC before the SNAPSHOT that answers it, each SNAPSHOT covers only its
+    gateway's links, and both halves hold the readings of the same SYNC time."""
+    from virtual_sheet.gateway import Gateway
+    sheet = VirtualSheet("gaussian", "4x4", seed=3, noise=0.0)  # 24 links
+    lead = Gateway(sheet, range(0, 12), packed=True, sync_rate_hz=100.0, stream=0)
+    follow = Gateway(sheet, range(12, 24), packed=True, stream=1)
+    lead.followers = [follow]
+    for gw in (lead, follow):
+        gw.power_on(0.0)
+        gw.commission(0.0)
+    streams = {0: [], 1: []}
+    decs = {0: StreamDecoder(), 1: StreamDecoder()}
+    for i in range(1, 101):  # 0.1 s on a simulated clock
+        t = i * 1e-3
+        lead.poll(t)
+        follow.poll(t)
+        for b, gw in ((0, lead), (1, follow)):
+            streams[b] += decs[b].feed(gw.pop_bytes(t))
+    for b, first in ((0, 0), (1, 12)):
+        syncs = [m.counter for m in streams[b] if isinstance(m, Sync)]
+        snaps = [m for m in streams[b] if isinstance(m, Snapshot)]
+        assert syncs == list(range(len(syncs))) and len(syncs) >= 9, syncs  # 100 Hz for 0.1 s
+        assert [s.counter for s in snaps] == syncs
+        assert all(s.first_link == first and s.count == 12 for s in snaps)
+        for s in snaps:  # the SYNC precedes its SNAPSHOT in the stream
+            kinds = [(type(m), m.counter) for m in streams[b] if isinstance(m, (Sync, Snapshot))]
+            assert kinds.index((Sync, s.counter)) < kinds.index((Snapshot, s.counter))
+            expect, _st = sheet.counts_at(sheet.sync_times[s.counter])
+            np.testing.assert_array_equal(s.counts, expect[first:first + 12])
+    assert lead.stats.syncs_generated == len(syncs) and follow.stats.syncs_generated == 0
+    assert follow.stats.syncs == lead.stats.syncs

@@ -62,6 +62,20 @@ class Virtual:
 
 
 @pytest.fixture
+def udp_bus_lock():
+    """python-can's udp_multicast buses share one UDP port, and on Linux every socket on it hears
+    every group: two tests on it at once (pytest -n 2, or another checkout's suite on this machine)
+    hear each other's RESET and SYNC. One at a time, machine-wide (a file lock)."""
+    import fcntl
+    with open(os.path.join("/tmp", "capsheet-udp-multicast-tests.lock"), "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+@pytest.fixture
 def virtuals():
     made: list[Virtual] = []
 
@@ -355,7 +369,7 @@ ONE_MULTICAST_BUS = pytest.mark.xdist_group("udp_multicast")
 
 
 @ONE_MULTICAST_BUS
-def test_udp_multicast_between_two_processes(virtuals, tmp_path):
+def test_udp_multicast_between_two_processes(udp_bus_lock, virtuals, tmp_path):
     try:
         import can
         b = can.Bus(interface="udp_multicast", channel="239.74.163.2")
@@ -426,7 +440,7 @@ def _udp_or_skip():
 
 @ONE_MULTICAST_BUS
 @pytest.mark.parametrize("what", ["reset", "stray"])
-def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp_path, what):
+def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock, virtuals, tmp_path, what):
     """udp_multicast lets a third process speak on the sheet's bus: a RESET broadcast mid-stream is
     recovered (>= 99 % complete after the report); a SAMPLE with a counter the host never sent costs
     nothing but itself (counted as stray)."""
@@ -463,3 +477,141 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(virtuals, tmp
     else:
         assert s["stray_frames"] == 1 and s["recoveries"] == 0, s
         assert complete.size >= 100 and int((~complete).sum()) <= 1 + 2  # its own, and at most the two cut by STOP
+
+
+# -- completeness by snapshot and by valid link (issue 11, point 3) --------------------------------
+
+def test_status_line_and_json_show_completeness_by_snapshot_and_by_valid_link(virtuals, tmp_path):
+    """A 3x3 sheet (12 links) with link 4's chip dead from the start and 3 % of the gateway's frames
+    lost: the three figures differ — complete snapshots, valid link samples of the lattice (what
+    --min-complete judges) and of the assigned links. Each is checked against the recording (every
+    snapshot the host emitted, recomputed here from its valid flags), in the JSON and on the last
+    plain status line."""
+    import re
+    from host.record import read
+    lay, rec_path = tmp_path / "sheet.csv", tmp_path / "run.mcap"
+    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay),
+                 "--faults", "dead_chip=4,drop_frame=0.03,seed=5")
+    out = host(*v.host_cmd, "--rate", "10", "--duration", "4", "--allow-missing", "--min-complete", "0",
+               "--status-every", "0.5", "--record", str(rec_path), "--live-rate", "1", "--json")
+    assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr, out.stderr
+    doc = json.loads(out.stdout)
+    s, live = doc["summary"], doc["live"]
+    r = read(rec_path)
+    n = len(r.complete)
+    # the recording holds every snapshot (10 Hz: the 64 queued snapshots cover a 6 s stall)
+    assert doc["aggregator"]["dropped"] == 0 and n == s["snapshots"] > 20, (n, s["snapshots"])
+    valid = np.asarray(r.valid, dtype=bool)
+    assert valid.shape == (n, 12)
+    others = [k for k in range(12) if k != 4]
+    assert not valid[:, 4].any()  # the dead chip's link never carries a sample
+    complete = valid[:, others].all(axis=1)  # every assigned link valid
+    arrived = (np.asarray(r.status).astype(np.int64) & 0x10) == 0  # LinkFlag.MISSING not set
+    assert np.array_equal(complete, arrived[:, others].all(axis=1))  # per-chip frames: arrived = valid
+    assert np.array_equal(complete, np.asarray(r.complete, dtype=bool))
+    want_snap = 100.0 * complete.sum() / n
+    want_lattice = 100.0 * valid.sum() / (n * 12)
+    want_assigned = 100.0 * valid[:, others].sum() / (n * 11)
+    assert want_snap < 100.0 and want_assigned < 100.0  # the lost frames show (else the test shows nothing)
+    assert s["complete_snapshots"] == int(complete.sum())
+    assert s["complete_snapshots_pct"] == pytest.approx(want_snap, abs=0.006)
+    assert s["valid_links_pct"] == pytest.approx(want_lattice, abs=0.006)
+    assert live["complete_snapshots_pct"] == pytest.approx(want_snap, abs=0.0006)
+    assert live["valid_links_pct"] == pytest.approx(want_assigned, abs=0.0006)
+    # not a terminal: plain status lines; the last one is printed after the stream stopped
+    lines = [ln for ln in out.stderr.splitlines() if " snapshots " in ln and "of link samples valid" in ln]
+    assert len(lines) >= 2, out.stderr
+    m = re.search(r"(\d+) snapshots .* complete\s+([\d.]+)% of snapshots,\s+([\d.]+)% of link samples valid",
+                  lines[-1])
+    assert m, lines[-1]
+    assert int(m.group(1)) == n
+    assert float(m.group(2)) == pytest.approx(want_snap, abs=0.051)
+    assert float(m.group(3)) == pytest.approx(want_lattice, abs=0.051)
+    assert f"{s['complete_snapshots']} complete ({want_snap:.1f} %)" in out.stderr
+
+
+# -- a sheet behind two serial gateways, merged into one lattice (issue 11, point 5) ---------------
+
+@pytest.mark.parametrize("mode", ["drive", "follow-packed"])
+def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
+    """``capsheet virtual --gateways 2``: two ptys, each with its own symlink and half the links;
+    ``capsheet host --port A --port B`` (the command it prints) merges them: every chip found, each
+    link's chip known on the port of its half, the snapshots complete. Driving: the host sends SYNC
+    on both ports. Following: gateway 0 leads SYNC and passes it to gateway 1 (packed frames)."""
+    from host.record import read
+    lay, rec_path, link = tmp_path / "sheet.json", tmp_path / "run.mcap", tmp_path / "gw"
+    extra = ["--rate", "30", "--packed"] if mode == "follow-packed" else []
+    v = virtuals("--lattice", "6x6", "--gateways", "2", "--symlink", str(link), "--layout-out", str(lay), *extra)
+    paths = [str(link) + "0", str(link) + "1"]
+    assert [a for i, a in enumerate(v.host_cmd) if i and v.host_cmd[i - 1] == "--port"] == paths, v.host_cmd
+    assert os.path.realpath(paths[0]) != os.path.realpath(paths[1])  # two ptys
+    if mode == "follow-packed":
+        assert "--sync" in v.host_cmd and "follow" in v.host_cmd and "--packed" in v.host_cmd
+    out, doc = host_json(*v.host_cmd, "--duration", "3", "--record", str(rec_path), "--live-rate", "1")
+    assert out.returncode == 0, out.stderr
+    assert "60 chips found, 60 assigned, 60 configured, 60 calibrated, 60 started" in out.stderr, out.stderr
+    assert [b["name"] for b in doc["buses"]] == paths
+    # 6x6 joints: 60 links; gateway 0 holds links 0..29, gateway 1 links 30..59
+    uids = {c["link"]: c["uid"].lower() for c in json.loads(lay.read_text())["chips"]}
+    chips = doc["chips"]
+    assert sorted(int(k) for k in chips) == list(range(60))
+    for k, c in chips.items():
+        assert c["bus"] == (0 if int(k) < 30 else 1), (k, c)
+        assert int(c["uid"], 16) == int(uids[int(k)], 16)
+        assert c["frames"] > 0
+    s = doc["summary"]
+    assert not s["errors"] and s["stray_frames"] == 0 and s["resyncs"] == 0, s
+    r = read(rec_path)
+    valid = np.asarray(r.valid, dtype=bool)
+    # every snapshot recorded or counted as dropped (newest wins when the recorder falls behind)
+    assert valid.shape[1] == 60 and valid.shape[0] + doc["aggregator"]["dropped"] == s["snapshots"]
+    assert valid.shape[0] >= 10
+    # both halves in the same snapshots: at most the last two cut by STOP are incomplete
+    # (packed: the first SNAPSHOT can carry chips that had not answered yet as INVALID)
+    both = valid[:, :30].all(axis=1) & valid[:, 30:].all(axis=1)
+    assert int((~both).sum()) <= 2, np.flatnonzero(~both)
+    arrived = (np.asarray(r.status).astype(np.int64) & 0x10) == 0  # LinkFlag.MISSING not set
+    assert np.array_equal(arrived.all(axis=1), np.asarray(r.complete, dtype=bool))
+    counters = np.asarray(r.counter).astype(np.int64)
+    assert np.all((np.diff(counters) % 65536) >= 1), counters[:20]  # one snapshot per counter, in order
+    if mode == "drive":
+        assert doc["syncs_seen"] == 0  # no SYNC source but the host
+    else:  # gateway 0 leads, gateway 1 takes its SYNC over the SYNC line: both ports carry every SYNC
+        assert doc["syncs_seen"] >= 2 * s["snapshots"] - 4, (doc["syncs_seen"], s["snapshots"])
+
+
+def test_a_port_given_twice_and_gateways_usage_are_exit_2(virtuals, tmp_path):
+    v = virtuals("--lattice", "3x3", "--gateways", "2", "--symlink", str(tmp_path / "gw"))
+    a = str(tmp_path / "gw0")
+    for ports in ([a, a], [a, os.path.realpath(a)]):
+        out = host("--port", ports[0], "--port", ports[1], "--lattice", "3x3", "--auto-assign", "--duration", "1")
+        assert out.returncode == 2 and "given twice" in out.stderr and "Traceback" not in out.stderr, out.stderr
+        assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+    out = host("--port", a, "--can", "virtual:x", "--lattice", "3x3", "--duration", "1")
+    assert out.returncode == 2 and "not both" in out.stderr, out.stderr
+    for args, needle in ((["--transport", "slcan", "--gateways", "2"], "--gateways is for --transport pty"),
+                         (["--lattice", "2x2", "--gateways", "5"], "need 1..4"),
+                         (["--gateways", "0"], "need > 0")):
+        p = subprocess.run(CLI + ["virtual", *args, "--duration", "1"], capture_output=True, text=True, timeout=60,
+                           env=ENV)
+        assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr, (args, p.stderr)
+    assert v.p.poll() is None
+
+
+def test_a_second_port_that_is_not_this_sheet_is_a_mismatch(virtuals, tmp_path):
+    """Two ports must be two halves of one sheet: a port whose chips are all foreign to the layout
+    (another sheet's gateway) is named; the same chips on both ports (two sheets with colliding
+    uids, as one gateway opened twice would be) are refused. Exit 2, one line, before streaming."""
+    lay = tmp_path / "sheet.json"
+    a = virtuals("--lattice", "3x3", "--gateways", "2", "--symlink", str(tmp_path / "a"), "--layout-out", str(lay))
+    b = virtuals("--lattice", "3x3", "--seed", "7", "--symlink", str(tmp_path / "b"))
+    out = host("--port", str(tmp_path / "a0"), "--port", str(tmp_path / "b"), "--layout", str(lay), "--duration", "2")
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert f"none of the chips on {tmp_path / 'b'} is in the layout" in out.stderr, out.stderr
+    c = virtuals("--lattice", "3x3", "--seed", "7", "--symlink", str(tmp_path / "c"))  # b's uids again
+    out = host("--port", str(tmp_path / "b"), "--port", str(tmp_path / "c"), "--lattice", "3x3", "--auto-assign",
+               "--duration", "2")
+    assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+    assert "answer on more than one port" in out.stderr and str(tmp_path / "c") in out.stderr, out.stderr
+    assert a.p.poll() is None and b.p.poll() is None and c.p.poll() is None
