@@ -458,20 +458,22 @@ class Aggregator:
         return 0
 
     # -- ingest ----------------------------------------------------------------------------
-    def ingest(self, events: Iterable, bus: int = 0) -> None:
-        """Feed decoder/transport events; anything but SAMPLE/SampleBatch/SNAPSHOT is ignored."""
+    def ingest(self, events: Iterable, bus: int = 0, now: float | None = None) -> None:
+        """Feed decoder/transport events; anything but SAMPLE/SampleBatch/SNAPSHOT is ignored.
+        ``now``: the arrival time to use (default: the clock, read under the lock) — a recorder
+        that stamped the input passes its stamp, so a replay at that stamp decides alike."""
         for ev in events:
             if isinstance(ev, SampleBatch):
-                self.ingest_batch(ev.node, ev.counter, ev.counts, ev.status, bus)
+                self.ingest_batch(ev.node, ev.counter, ev.counts, ev.status, bus, now=now)
             elif isinstance(ev, Snapshot):
-                self.ingest_snapshot(ev, bus)
+                self.ingest_snapshot(ev, bus, now=now)
             elif isinstance(ev, Sample):
                 self.ingest_batch(np.array([ev.node], dtype=np.uint16), np.array([ev.counter], dtype=np.uint16),
                                   np.array([[ev.x, ev.y, ev.z]], dtype=np.int16),
-                                  np.array([ev.status], dtype=np.uint8), bus)
+                                  np.array([ev.status], dtype=np.uint8), bus, now=now)
 
     def ingest_batch(self, node: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
-                     bus: int = 0) -> None:
+                     bus: int = 0, now: float | None = None) -> None:
         """Per-chip samples: arrays of equal length n (node u16, counter u16, counts (n, 3), status)."""
         with self._lock:
             links = self._lut[node]
@@ -479,9 +481,9 @@ class Aggregator:
             if not known.all():
                 self._count_unknown(node[~known], bus)
                 links, counter, counts, status = links[known], counter[known], counts[known], status[known]
-            self._scatter(links, counter, counts, status, bus)
+            self._scatter(links, counter, counts, status, bus, now)
 
-    def ingest_snapshot(self, snap: Snapshot, bus: int = 0) -> None:
+    def ingest_snapshot(self, snap: Snapshot, bus: int = 0, now: float | None = None) -> None:
         """A gateway's SNAPSHOT: links ``first_link ..`` of one counter."""
         counts, status = unpack_sample_words(snap.words)
         with self._lock:
@@ -491,7 +493,7 @@ class Aggregator:
                 self.stats.out_of_range += int(np.count_nonzero(~inside))
                 links, counts, status = links[inside], counts[inside], status[inside]
             counter = np.full(links.shape[0], snap.counter, dtype=np.uint16)
-            self._scatter(links, counter, counts, status, bus)
+            self._scatter(links, counter, counts, status, bus, now)
 
     def _count_unknown(self, nodes: np.ndarray, bus: int) -> None:
         st = self.stats
@@ -503,11 +505,12 @@ class Aggregator:
                 st.unknown_nodes[n] = st.unknown_nodes.get(n, 0) + k
 
     def _scatter(self, links: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
-                 bus: int) -> None:
+                 bus: int, now: float | None = None) -> None:
         n = links.shape[0]
         if n == 0:
             return
-        now = self.clock()
+        if now is None:
+            now = self.clock()
         st = self.stats
         st.bus_frames[bus] += n
         st.link_last_seen[links] = now  # the chip is alive, even if its frame turns out late
@@ -607,6 +610,22 @@ class Aggregator:
                 self._emit(s, now)
             else:
                 break
+
+    def emit_through(self, counter: int, now: float) -> None:
+        """Emit, at ``now``, open counters oldest first up to and including ``counter`` (if it is
+        open), and the complete ones it held back: what a replay does where the recording says the host emitted ``counter`` at its
+        deadline, whatever deadline this aggregator would have chosen."""
+        with self._lock:
+            if self._slot_of[int(counter) & 0xFFFF] < 0:
+                return
+            while self._open:
+                s = self._open[0]
+                c = int(self._slot_counter[s])
+                self._emit(s, now)
+                if c == int(counter) & 0xFFFF:
+                    break
+            while self._open and self._is_complete(self._open[0]):  # held back behind it, as `poll`
+                self._emit(self._open[0], now)
 
     def flush(self) -> None:
         """Emit every open counter now (masked where incomplete), oldest first."""

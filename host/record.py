@@ -317,7 +317,7 @@ class Recorder:
                 with aggregator._lock:
                     t = aggregator.clock()
                     self._write_pending(bus, t)
-                    return _ingest(events, bus)
+                    return _ingest(events, bus, now=t)  # decided at the stamp the replay uses
             return _ingest(events, bus)
         aggregator.ingest = tapped
 

@@ -171,7 +171,9 @@ class Replay:
     link_length : float, optional
         Metres; default the recording's (CAN log: 0.01).
     deadline_s : float, optional
-        Default the recording's (CAN log: ``max(2 / rate_hz, 0.05)`` with ``rate_hz`` 100).
+        A completion deadline of your own: counters are then emitted where it falls. Default: an
+        MCAP recording's counters are emitted where the host emitted them (its deadline adapted
+        as it ran; the recording holds each emission), a CAN log's after `CAN_LOG_DEADLINE_S`.
 
     Attributes
     ----------
@@ -209,6 +211,7 @@ class Replay:
                 raise ValueError(f"{str(self.path)!r} holds no received CAN frame")
         self.link_length = float(link_length if link_length is not None else session.get("link_length_m", 0.01))
         rate = float(session.get("rate_hz", 100.0))
+        self._own_deadline = deadline_s is not None
         if deadline_s is not None:
             dl = deadline_s
         elif self.recording is not None:
@@ -274,8 +277,10 @@ class Replay:
         si = 0
         ei = 0
         emits = None
-        if self.recording is not None and len(self.recording):
-            emits = np.sort(self.recording.timestamp + self.recording.latency_s).tolist()
+        if self.recording is not None and len(self.recording) and not self._own_deadline:
+            e = self.recording.timestamp + self.recording.latency_s
+            order = np.argsort(e, kind="stable")
+            emits = list(zip(e[order].tolist(), self.recording.counter[order].tolist()))
         first_sync = True
         wall0 = time.monotonic()
         t_first = min([h[0] for h in heap] + [s[0] for s in syncs[:1]], default=0.0)
@@ -293,12 +298,13 @@ class Replay:
                 if wait > 0:
                     time.sleep(wait)
             if emits is None:
-                agg.poll(max(self._now, t))  # no recorded emissions (a CAN log): deadlines as they fall
+                agg.poll(max(self._now, t))  # a CAN log, or a deadline of one's own: as they fall
             else:
                 # the host emitted a counter at its deadline *when its threads got to it*: poll when
                 # it did, so the frames that made it in live make it in here
-                while ei < len(emits) and emits[ei] < t:  # an emission at t came with the ingest at t
-                    agg.poll(max(self._now, emits[ei]))
+                while ei < len(emits) and emits[ei][0] < t:  # an emission at t came with the ingest at t
+                    # at the host's deadline, which adapted as it ran: the recorded decision, not ours
+                    agg.emit_through(emits[ei][1], max(self._now, emits[ei][0]))
                     ei += 1
             self._now = max(self._now, t)
             if kind == 0:

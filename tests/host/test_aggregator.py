@@ -169,6 +169,24 @@ def test_incomplete_counter_holds_back_newer_until_its_deadline():
     assert [(s.counter, s.complete) for s in agg.drain()] == [(5, False), (6, True)]
 
 
+def test_emit_through_emits_the_named_counter_and_the_older_at_the_given_time():
+    """What a replay does where the recording says a counter was emitted at its deadline."""
+    n = 2
+    agg, clock = make(n, deadline_s=10.0)  # no deadline of its own falls here
+    feed(agg, wire([sample(1, 5), sample(1, 6), sample(2, 6), sample(1, 7)]))
+    assert agg.drain() == []  # 6 is complete but 5 is not: held back
+    agg.emit_through(42, 100.03)  # not open: nothing
+    assert agg.drain() == []
+    agg.emit_through(5, 100.03)
+    got = agg.drain()
+    assert [(s.counter, s.complete) for s in got] == [(5, False), (6, True)]  # 6 completes behind 5
+    assert got[0].latency_s == pytest.approx(0.03) and got[0].valid.tolist() == [True, False]
+    feed(agg, wire([sample(2, 5)]))  # after its emission: late, whatever the deadline
+    assert agg.stats.late == 1 and agg.drain() == []
+    agg.emit_through(7, 100.04)
+    assert [(s.counter, s.complete) for s in agg.drain()] == [(7, False)]
+
+
 def test_frames_from_unknown_nodes_are_counted_per_node_and_ignored():
     n = 3
     agg, _ = make(n)
