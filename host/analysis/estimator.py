@@ -119,7 +119,11 @@ YAW_TOL_NOISE = 0.01
 #: Gauss-Newton iteration cap (warm starts need 2-3; cold starts from the rest layout ~10).
 MAX_ITER = 50
 #: A chord step (reused factorisation) that shrinks by less than this factor triggers a new one.
-_REFACTOR_RATIO = 0.3
+#: A factorisation costs 30-60 solves at every size (benchmarks/bench_estimator.py,
+#: ``linear_algebra``), a chord iteration one solve and one evaluation: a contraction of 0.7
+#: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
+#: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
+_REFACTOR_RATIO = 0.7
 #: Weight of the joints' prior (keeps components cut off by missing links defined), per m².
 JOINT_PRIOR_WEIGHT = 1e-9
 
@@ -757,6 +761,15 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
         step = prob.step(lu, grad)
         g_new = gamma.copy()
         g_new[vl] += step
+        smax = float(np.max(np.abs(step)))
+        if mu == 0.0 and (smax < tol or smax < prev_smax < np.inf
+                          and smax * smax < tol * prev_smax):
+            # converged: the step (or the next one, predicted from the contraction so far) is
+            # below the tolerance. A Gauss-Newton/chord step on an SPD matrix is a descent
+            # direction and this one is tiny, so it is taken without evaluating the cost again
+            # (an evaluation is a third of an iteration); the returned state is at ``g_new``.
+            gamma = g_new
+            break
         cost_new, grad_new, blocks_new = prob.evaluate(g_new)
         if not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
             lu = None  # refactorise here; damp if even a fresh Gauss-Newton step failed
@@ -767,10 +780,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             fresh = False
             continue
         gamma, cost, grad, blocks = g_new, cost_new, grad_new, blocks_new
-        smax = float(np.max(np.abs(step)))
-        # converged: this step, or the next one predicted from the contraction so far, is tiny
-        if smax < tol or (mu == 0.0 and smax < prev_smax < np.inf
-                          and smax * smax < tol * prev_smax):
+        if smax < tol:  # a damped step this small: converged as well
             break
         if mu > 0.0:
             mu = mu / 10.0 if mu > 1e-6 else 0.0
@@ -779,7 +789,6 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             lu = None
         prev_smax = smax
         fresh = False
-    prob.final_blocks = blocks
     return gamma, it, n_fact, lu, prob
 
 
