@@ -119,7 +119,11 @@ YAW_TOL_NOISE = 0.01
 #: Gauss-Newton iteration cap (warm starts need 2-3; cold starts from the rest layout ~10).
 MAX_ITER = 50
 #: A chord step (reused factorisation) that shrinks by less than this factor triggers a new one.
-_REFACTOR_RATIO = 0.3
+#: A factorisation costs 30-60 solves at every size (benchmarks/bench_estimator.py,
+#: ``linear_algebra``), a chord iteration one solve and one evaluation: a contraction of 0.7
+#: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
+#: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
+_REFACTOR_RATIO = 0.7
 #: Weight of the joints' prior (keeps components cut off by missing links defined), per m².
 JOINT_PRIOR_WEIGHT = 1e-9
 
@@ -757,6 +761,15 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
         step = prob.step(lu, grad)
         g_new = gamma.copy()
         g_new[vl] += step
+        smax = float(np.max(np.abs(step)))
+        if mu == 0.0 and (smax < tol or smax < prev_smax < np.inf
+                          and smax * smax < tol * prev_smax):
+            # converged: the step (or the next one, predicted from the contraction so far) is
+            # below the tolerance. A Gauss-Newton/chord step on an SPD matrix is a descent
+            # direction and this one is tiny, so it is taken without evaluating the cost again
+            # (an evaluation is a third of an iteration); the returned state is at ``g_new``.
+            gamma = g_new
+            break
         cost_new, grad_new, blocks_new = prob.evaluate(g_new)
         if not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
             lu = None  # refactorise here; damp if even a fresh Gauss-Newton step failed
@@ -767,10 +780,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             fresh = False
             continue
         gamma, cost, grad, blocks = g_new, cost_new, grad_new, blocks_new
-        smax = float(np.max(np.abs(step)))
-        # converged: this step, or the next one predicted from the contraction so far, is tiny
-        if smax < tol or (mu == 0.0 and smax < prev_smax < np.inf
-                          and smax * smax < tol * prev_smax):
+        if smax < tol:  # a damped step this small: converged as well
             break
         if mu > 0.0:
             mu = mu / 10.0 if mu > 1e-6 else 0.0
@@ -779,7 +789,6 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             lu = None
         prev_smax = smax
         fresh = False
-    prob.final_blocks = blocks
     return gamma, it, n_fact, lu, prob
 
 
@@ -1228,11 +1237,16 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     base = prob.rows(gamma)
     K = max(UNCERTAINTY_SAMPLES // 4, 8)
     var = np.zeros_like(base)
-    for _ in range(K):
-        a1, b1 = roll_pitch(r0 + g.normal(0.0, sigma, r0.shape))
-        pk = _YawProblem(st, a1, b1, gamma, prob.lam, prob.lam_b)
-        dr = pk.rows(gamma) - base
-        var += dr * dr
+    chunk = max(1, min(K, 2_000_000 // max(st.n_links, 1)))  # draws per batch (memory)
+    done = 0
+    while done < K:
+        c = min(chunk, K - done)
+        rk = r0 + g.normal(0.0, sigma, (c,) + r0.shape)  # the draws in order, as one per loop
+        dr = _data_rows_batch(st, np.arctan2(rk[..., 1], rk[..., 2]),
+                              np.arctan2(-rk[..., 0], np.hypot(rk[..., 1], rk[..., 2])),
+                              gamma) - base
+        var += np.einsum("ij,ij->j", dr, dr)
+        done += c
     var = np.maximum(var / K, (1e-6 * sigma / G0) ** 2)
     _, _, blocks = prob.evaluate(gamma)
     eps = 1.0 / np.pi ** 2
@@ -1264,17 +1278,24 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(nv, nv))
     lu = _factorise(st, A)
     S = UNCERTAINTY_SAMPLES
+    # all samples at once: sample s draws ξ_re (m), ξ_im (m), ξ_roll (K) and η (nv), in this
+    # order, from one stream (a row of Z); b = Jᵀ W^½ ξ + ε^½ η as one sparse product, and one
+    # multi-right-hand-side solve (a solve per sample cost 200 triangular sweeps)
+    kr = 0 if Jr is None else Jr.shape[0]
+    Z = g.standard_normal((S, 2 * m + kr + nv))
+    vals = [jre.ravel(), jim.ravel()]
+    rows_ = [uv.ravel(), uv.ravel()]
+    cols_ = [np.repeat(np.arange(m), uv.shape[1]), np.repeat(np.arange(m, 2 * m), uv.shape[1])]
+    if Jr is not None:
+        vals.append(Jr.ravel())
+        rows_.append(st.roll_var.ravel())
+        cols_.append(np.repeat(np.arange(2 * m, 2 * m + kr), st.roll_var.shape[1]))
+    M = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows_), np.concatenate(cols_))),
+                      shape=(nv + 1, 2 * m + kr))
+    b = M @ Z[:, :2 * m + kr].T  # (nv + 1, S)
+    b = b[:nv] + np.sqrt(eps) * Z[:, 2 * m + kr:].T
     dg = np.zeros((S, n))
-    for s_ in range(S):
-        b = np.bincount(uv.ravel(), weights=(jre * g.standard_normal(m)[:, None]
-                                             + jim * g.standard_normal(m)[:, None]).ravel(),
-                        minlength=nv + 1)
-        if Jr is not None:
-            b += np.bincount(st.roll_var.ravel(),
-                             weights=(Jr * g.standard_normal(Jr.shape[0])[:, None]).ravel(),
-                             minlength=nv + 1)
-        b = b[:nv] + np.sqrt(eps) * g.standard_normal(nv)
-        dg[s_, st.var_links] = _solve(lu, b[st.perm_inv])[st.perm_of_var]
+    dg[:, st.var_links] = _solve(lu, np.ascontiguousarray(b[st.perm_inv]))[st.perm_of_var].T
     dg[:, st.valid] -= dg[:, st.valid].mean(axis=1, keepdims=True)
     ys = np.sqrt(np.mean(dg * dg, axis=0))
     ys[~st.valid] = np.nan
@@ -1288,6 +1309,41 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     dP -= dP.mean(axis=0, keepdims=True)
     js = np.sqrt(np.mean(np.sum(dP * dP, axis=2), axis=1)).reshape(est.joints.shape[:2])
     return ys, js
+
+
+def _data_rows_batch(st: _Structure, alpha: np.ndarray, beta: np.ndarray,
+                     gamma: np.ndarray) -> np.ndarray:
+    """`_YawProblem.rows` at ``gamma`` for a batch of readings' angles ``alpha``, ``beta``
+    (B, n_links) at once: (B, rows), the same arithmetic with a leading batch axis."""
+    ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+    u = st.units
+    z = np.exp(1j * gamma)
+    zu = z[u]
+    t = (cb[:, u] * _S_D) * zu  # (B, U, 4)
+    r = t.sum(axis=2)
+    if st.model == "eq6":
+        rn = (((sb[:, u] * ca[:, u] - 1j * sa[:, u]) * (_S_N * NORMAL_WEIGHT)) * zu).sum(axis=2)
+        r = np.concatenate([r, rn], axis=1)
+        return np.concatenate([r.real, r.imag], axis=1)
+    k = st.roll_links
+    sbu = sb[:, u]
+    Az = -(sbu[..., 1] + sbu[..., 3])
+    Cz = -(sbu[..., 0] + sbu[..., 2])
+    D = t * _SIGN_D
+    Axy = D[..., 1] + D[..., 3]
+    Cxy = D[..., 0] + D[..., 2]
+    mxy = 1j * (Az * Cxy - Cz * Axy)
+    mz = (Axy.conj() * Cxy).imag
+    mm = np.sqrt(mxy.real ** 2 + mxy.imag ** 2 + mz * mz)
+    inv = np.where(mm > 1e-9, 1.0 / np.maximum(mm, 1e-300), 0.0)
+    nxy = mxy * inv
+    nz = mz * inv
+    c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
+    yxy = (sb[:, k] * sa[:, k] + 1j * ca[:, k]) * z[k]
+    Nxy = nxy[:, c0] + ws1 * nxy[:, c1]
+    Nz = nz[:, c0] + ws1 * nz[:, c1]
+    res = (ROLL_WEIGHT * st.roll_inv_ncell) * ((yxy.conj() * Nxy).real + (cb[:, k] * sa[:, k]) * Nz)
+    return np.concatenate([r.real, r.imag, res], axis=1)
 
 
 def _few(idx, limit: int = 8) -> str:

@@ -8,7 +8,11 @@ The recorded snapshots are estimated (a CAN log, or ``--from-raw``, is first rep
 decoder and aggregator, `host.replay`). Snapshots are cut into batches of ``--batch`` (each warm-
 starts from its own first snapshot, as a live run does from its previous one) spread over
 ``--jobs`` processes. ``joints.npz`` holds ``counter`` (n,), ``timestamp`` (n,) s, ``joints``
-(n, rows, cols, 3) m, ``residual`` (n,), ``valid`` (n, n_links), ``link_length_m``, ``lattice``.
+(n, rows, cols, 3) m, ``residual`` (n,), ``valid`` (n, n_links), ``link_length_m``, ``lattice``,
+and with ``--uncertainty`` ``yaw_std`` (n, n_links) rad and ``joint_std`` (n, rows, cols) m (also in
+the MCAP's estimates). The uncertainty is sampled (200 solves per snapshot, tens of times the estimate
+itself), so it is off by default: without it a 14x14 recording is estimated many times faster than
+real time, with it slower than real time.
 """
 
 from __future__ import annotations
@@ -54,26 +58,31 @@ def register(subparsers) -> None:
     p.add_argument("--jobs", type=_positive_int, default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--batch", type=_positive_int, default=256, help="snapshots per batch (default 256)")
+    p.add_argument("--uncertainty", action="store_true",
+                   help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
 
 def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int, L: float,
-                   method: str = "global") -> tuple[np.ndarray, np.ndarray, dict]:
+                   method: str = "global", uncertainty: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
     """Estimate a batch, warm-starting each snapshot from the previous one.
 
     Parameters
     ----------
     readings : ndarray, shape (n, n_links, 3), m/s²
     valid : ndarray of bool, shape (n, n_links)
+    uncertainty : bool
+        Also evaluate every estimate's ``yaw_std`` / ``joint_std`` (computed on first access, and
+        the dominant cost when asked for).
 
     Returns
     -------
     joints : ndarray, shape (n, rows, cols, 3), float64, metres (NaN for a snapshot with no valid link)
     residual : ndarray, shape (n,)
     extra : dict
-        ``yaw_std`` / ``joint_std`` stacked, when the estimator provides them; ``cpu_s`` the
+        ``yaw_std`` / ``joint_std`` stacked, when asked for and the estimator provides them; ``cpu_s`` the
         process CPU time the batch took (what a shared machine does not inflate as much as wall time).
     """
     from host.analysis.estimator import estimate
@@ -92,14 +101,14 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
         prev = est if method == "global" else None
         joints[k] = est.joints
         residual[k] = est.residual
-        for name in ("yaw_std", "joint_std"):
+        for name in ("yaw_std", "joint_std") if uncertainty else ():
             val = getattr(est, name, None)
             if val is not None:
                 extra.setdefault(name, [None] * n)[k] = np.asarray(val)
     out_extra: dict = {}
-    for name, vals in extra.items():
-        if all(v is not None for v in vals):
-            out_extra[name] = np.stack(vals)
+    for name, vals in extra.items():  # a snapshot with nothing to estimate: NaN, as its joints
+        like = next(v for v in vals if v is not None)
+        out_extra[name] = np.stack([np.full(like.shape, np.nan) if v is None else v for v in vals])
     out_extra["cpu_s"] = time.process_time() - cpu0
     return joints, residual, out_extra
 
@@ -151,7 +160,7 @@ def run(args) -> int:
     try:
         if jobs <= 1:
             results = ((s, estimate_batch(readings[s:s + args.batch], valid[s:s + args.batch], rows, cols, L,
-                                          args.method)) for s in starts)
+                                          args.method, args.uncertainty)) for s in starts)
             for s, (j, r, ex) in results:
                 cpu_s += ex.pop("cpu_s")
                 joints[s:s + j.shape[0]], residual[s:s + j.shape[0]] = j, r
@@ -162,7 +171,7 @@ def run(args) -> int:
             import multiprocessing as mp
             with ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("fork")) as pool:
                 futs = {pool.submit(estimate_batch, readings[s:s + args.batch], valid[s:s + args.batch], rows, cols,
-                                    L, args.method): s for s in starts}
+                                    L, args.method, args.uncertainty): s for s in starts}
                 from concurrent.futures import as_completed
                 for f in as_completed(futs):
                     s = futs[f]
@@ -192,7 +201,7 @@ def run(args) -> int:
                     extra_arrays, quiet=args.quiet)
     result = {"recording": str(args.recording), "out": str(out), "lattice": f"{rows}x{cols}", "link_length_m": L,
               "snapshots": n, "estimated": int(np.count_nonzero(np.isfinite(residual))), "jobs": jobs,
-              "batch": args.batch, "method": args.method,
+              "batch": args.batch, "method": args.method, "uncertainty": bool(args.uncertainty),
               "recorded_duration_s": round(float(ts[-1] - ts[0]), 3) if n > 1 else 0.0,
               "estimate_s": round(t_done - t_est, 3), "total_s": round(time.monotonic() - t_start, 3),
               "snapshots_per_s": round(n / max(t_done - t_est, 1e-9), 1),

@@ -229,6 +229,31 @@ def test_capsheet_estimate_writes_npz_and_mcap_with_the_estimators_joints(pty_re
     assert len(again) == len(rec) and len(again.estimates["counter"]) == int(ok.sum())
     np.testing.assert_allclose(again.estimates["joints"], z["joints"][ok].astype(np.float32), atol=1e-6)
     assert Path(out.with_suffix(".png")).stat().st_size > 10_000
+    assert "yaw_std" not in z.files and "yaw_std" not in again.estimates  # sampled: only when asked
+
+
+def test_capsheet_estimate_uncertainty_is_the_estimators_when_asked_for(pty_recording, tmp_path, capsys):
+    from host.analysis.estimator import estimate
+    from host.cli import main
+
+    rec = read(pty_recording, raw=False)
+    npz = tmp_path / "joints.npz"
+    assert main(["estimate", str(pty_recording), "--out", str(npz), "--jobs", "1", "--batch", "8",
+                 "--uncertainty", "--json", "-q"]) == 0
+    assert json.loads(capsys.readouterr().out)["uncertainty"] is True
+    z = np.load(npz)
+    ks = [k for k in range(8) if rec.valid[k].any()]  # the first batch (warm-started in turn)
+    prev = None
+    for k in range(ks[-1] + 1):
+        if rec.valid[k].any():
+            prev = estimate(rec.readings[k].astype(float), 5, 5, 0.01, valid=rec.valid[k], previous=prev)
+    np.testing.assert_allclose(z["yaw_std"][ks[-1]], prev.yaw_std, rtol=1e-9, equal_nan=True)
+    np.testing.assert_allclose(z["joint_std"][ks[-1]], prev.joint_std, rtol=1e-9)
+    assert np.all(z["yaw_std"][ks][:, rec.valid[ks[-1]]] > 0)
+    out = tmp_path / "shapes.mcap"
+    assert main(["estimate", str(pty_recording), "--out", str(out), "-q", "--uncertainty"]) == 0
+    again = read(out)
+    assert again.estimates["yaw_std"].shape == (len(again.estimates["counter"]), rec.valid.shape[1])
 
 
 def test_capsheet_estimate_of_a_can_log_replays_it_first(can_recording, tmp_path, capsys):
