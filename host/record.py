@@ -370,18 +370,21 @@ class Recorder:
 
     def estimate(self, est, counter: int, timestamp: float, wall_time: float | None = None, *,
                  error_joint: np.ndarray | None = None, error_pct_side: float | None = None,
-                 displacement: np.ndarray | None = None) -> None:
+                 displacement: np.ndarray | None = None, uncertainty: bool = False) -> None:
         """One `host.analysis.estimator.ShapeEstimate` of snapshot ``counter`` (and the 3D scene).
 
         ``error_joint`` (rows, cols) colours the lattice by error (% of side), ``displacement``
         (rows, cols) m by displacement; else links are coloured by state (valid / missing).
-        ``yaw_std`` and ``joint_std`` are recorded when the estimate has them.
+        ``yaw_std`` and ``joint_std`` are recorded when the estimate has computed them already, or
+        when ``uncertainty`` asks for them (they are sampled: tens of estimates' worth of CPU).
         """
         t_ns = _wall_ns(wall_time)
         msg = {"counter": int(counter), "timestamp": float(timestamp), "method": str(getattr(est, "method", "")),
                "residual": float(getattr(est, "residual", np.nan)), "iterations": int(getattr(est, "iterations", 0)),
                "joints": _arr(est.joints, "<f4")}
         for name in ("yaw_std", "joint_std"):
+            if not (uncertainty or name in getattr(est, "__dict__", {})):
+                continue  # a lazy property not yet computed: not computed here unasked
             v = getattr(est, name, None)
             if v is not None:
                 msg[name] = _arr(v, "<f4")
@@ -501,7 +504,8 @@ class Recording:
         `host.aggregator.LinkFlag` bits.
     estimates : dict
         ``counter`` (m,), ``timestamp`` (m,), ``joints`` (m, rows, cols, 3) float32 m, and
-        ``yaw_std`` / ``joint_std`` / ``error_pct_side`` when recorded.
+        ``yaw_std`` / ``joint_std`` (NaN rows for estimates recorded without them) /
+        ``error_pct_side`` when recorded.
     raw : dict
         bus -> list of ``(t, kind, payload)``: bytes (serial) or list of frame dicts (CAN).
     sync : ndarray, shape (k, 2)
@@ -649,9 +653,11 @@ def read(path, *, raw: bool = True) -> Recording:
         "timestamp": np.array([e["timestamp"] for e in ests], dtype=np.float64),
         "joints": (np.stack([_unarr(e["joints"]) for e in ests]) if ests
                    else np.zeros((0, rows, cols, 3), dtype=np.float32))}
-    for name in ("yaw_std", "joint_std"):
-        if ests and all(name in e for e in ests):
-            est[name] = np.stack([_unarr(e[name]) for e in ests])
+    for name in ("yaw_std", "joint_std"):  # NaN rows where an estimate carried none (live: ~1/s)
+        have = [_unarr(e[name]) if name in e else None for e in ests]
+        shape = next((v.shape for v in have if v is not None), None)
+        if shape is not None:
+            est[name] = np.stack([v if v is not None else np.full(shape, np.nan, np.float32) for v in have])
     if ests and all("error_pct_side" in e for e in ests):
         est["error_pct_side"] = np.array([e["error_pct_side"] for e in ests])
     return Recording(

@@ -96,6 +96,11 @@ def contact_dicts(contacts) -> list[dict]:
              "radius_m": float(np.max(c.axes_m))} for c in contacts]
 
 
+#: a live session records an estimate's sampled uncertainty (yaw_std, joint_std: ~100 ms of CPU at
+#: 14x14) at most this often; the other estimates carry joints only
+UNCERTAINTY_PERIOD_S = 1.0
+
+
 class SessionOutputs:
     """What ``--record``/``--live``/``--can-log`` ask of one session.
 
@@ -125,7 +130,7 @@ class SessionOutputs:
         self._can_lock = threading.Lock()
         self.can_frames_logged = 0
         self._period = 1.0 / float(getattr(args, "live_rate", 20.0) or 20.0)
-        self._last_est = -np.inf
+        self._last_est = self._last_unc = -np.inf
         self._previous = None
         self.estimates_skipped, self._skip_reason = 0, ""
         self.records_at_emission = False  #: `attach` records every emitted snapshot itself
@@ -231,10 +236,14 @@ class SessionOutputs:
             self._skip_reason = str(exc)
             return None
         self._previous = est
-        self.publish(est, snap, truth=truth, displacement=displacement)
+        unc = now - self._last_unc >= UNCERTAINTY_PERIOD_S
+        if unc:
+            self._last_unc = now
+        self.publish(est, snap, truth=truth, displacement=displacement, uncertainty=unc)
         return est
 
-    def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None) -> None:
+    def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
+                uncertainty: bool = False) -> None:
         """Record and show an estimate made elsewhere (the demo's own)."""
         if self.recorder is None:
             return
@@ -244,7 +253,7 @@ class SessionOutputs:
             err = error_percent_of_side(est.joints, truth, self.link_length)
             err_mean = float(np.mean(err))
         self.recorder.estimate(est, snap.counter, snap.timestamp, snap.wall_time, error_joint=err,
-                               error_pct_side=err_mean, displacement=displacement)
+                               error_pct_side=err_mean, displacement=displacement, uncertainty=uncertainty)
 
     def tactile(self, k: int, frame, truth=None) -> None:
         """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by

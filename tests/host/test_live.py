@@ -208,3 +208,32 @@ def test_a_session_estimates_past_a_dead_chip_and_counts_what_it_cannot(tmp_path
     assert "1 snapshots could not be estimated" in capsys.readouterr().err
     rec = read_recording(tmp_path / "run.mcap")
     assert len(rec) == 2
+
+
+def test_a_live_session_records_the_sampled_uncertainty_at_most_once_a_second(tmp_path):
+    """yaw_std costs tens of estimates: recorded for the first estimate, not for one 1 ms later;
+    the second estimate's lazy property is never computed for the recording."""
+    from host.aggregator import LatticeSnapshot
+    from host.analysis.estimator import estimate
+    from host.cli.record_args import SessionOutputs
+    from host.record import read_recording
+    from virtual_sheet.geometry import ideal_readings
+    from virtual_sheet.shapes import make_sheet
+
+    lat = Lattice(4, 4)
+    r = ideal_readings(make_sheet("cylinder", 4, 4, 0.01))
+    ok = np.ones(lat.n_links, bool)
+    args = argparse.Namespace(record=str(tmp_path / "run.mcap"), live=None, live_rate=1e9)
+    out = SessionOutputs(args, lat, 0.01, mode="host")
+    snaps = [LatticeSnapshot(k, float(k), float(k), r, ok, np.zeros(lat.n_links, np.uint8), True, 0.0)
+             for k in range(2)]
+    first = out.snapshot(snaps[0])
+    second = out.snapshot(snaps[1])
+    assert "yaw_std" not in second.__dict__  # not computed
+    out.close()
+    rec = read_recording(tmp_path / "run.mcap")
+    ys = rec.estimates["yaw_std"]
+    assert ys.shape == (2, lat.n_links)
+    np.testing.assert_array_equal(ys[0], first.yaw_std.astype(np.float32))
+    assert np.isnan(ys[1]).all()
+    np.testing.assert_array_equal(ys[0], estimate(r, 4, 4, 0.01).yaw_std.astype(np.float32))
