@@ -116,6 +116,11 @@ def _serve(cfg: dict, conn) -> None:
     conn.send("stopped")
 
 
+#: streaming before the window opens: the host's deadline adapts from its first 32 latencies and
+#: the estimator's first (cold) solves are slow; `capsheet demo` shows ~1 s of that transient
+SETTLE_S = 1.5
+
+
 def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estimate_latency: bool) -> dict:
     from host.estimator import estimate
     from host.session import Host, Layout
@@ -138,7 +143,7 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
             except Exception as exc:  # noqa: BLE001 - e.g. CapacityError: this rate is not held
                 row.update(held=False, error=f"{type(exc).__name__}: {exc}")
                 return row
-            time.sleep(0.5)  # settle
+            time.sleep(SETTLE_S)  # the deadline adapts and the first estimates run cold: not counted
             agg = host.aggregator
             agg.drain()
             first = host.counter  # the next SYNC counter: the window is first .. end - 1
