@@ -535,6 +535,20 @@ def _sumsq(x: np.ndarray) -> float:
     return float(np.add.reduce(x * x))
 
 
+def _cell_normals(D, Az, Cz):
+    """Per cell (last axis of ``D``: its 4 links' xy directions), ``A``, ``C`` the sums of its
+    i- and j-link directions (xy complex; ``Az``, ``Cz`` their z), and the unit normal of
+    ``m = A × C``: ``(Axy, Cxy, nxy, nz, 1/|m|)``. A squashed cell (A ∥ C) has no normal:
+    ``1/|m|`` is 0 there, so its roll terms drop out."""
+    Axy = D[..., 1] + D[..., 3]
+    Cxy = D[..., 0] + D[..., 2]
+    mxy = 1j * (Az * Cxy - Cz * Axy)
+    mz = (Axy.conj() * Cxy).imag
+    mm = np.sqrt(mxy.real ** 2 + mxy.imag ** 2 + mz * mz)
+    inv = np.where(mm > 1e-9, 1.0 / np.maximum(mm, 1e-300), 0.0)
+    return Axy, Cxy, mxy * inv, mz * inv, inv
+
+
 def _wrap_fast(x: np.ndarray) -> np.ndarray:
     """``x`` wrapped to [−π, π] (rounding, cheaper than a float modulo)."""
     return x - _TWO_PI * np.rint(x * (1.0 / _TWO_PI))
@@ -634,16 +648,8 @@ class _YawProblem:
         """
         st = self.st
         D = t * _SIGN_D  # links' xy directions per unit (U, 4), cos β e^{iγ}
-        Axy = D[:, 1] + D[:, 3]
-        Cxy = D[:, 0] + D[:, 2]
         Az, Cz = self.Az, self.Cz
-        mxy = 1j * (Az * Cxy - Cz * Axy)
-        mz = (Axy.conj() * Cxy).imag
-        mm = np.sqrt(mxy.real ** 2 + mxy.imag ** 2 + mz * mz)
-        # a squashed cell (A ∥ C) has no normal: its roll terms drop out (weight 0)
-        inv = np.where(mm > 1e-9, 1.0 / np.maximum(mm, 1e-300), 0.0)
-        nxy = mxy * inv
-        nz = mz * inv
+        Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
         dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=1)
         X = np.stack([Axy, Cxy, Axy, Cxy], axis=1)
         dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
@@ -1330,14 +1336,7 @@ def _data_rows_batch(st: _Structure, alpha: np.ndarray, beta: np.ndarray,
     Az = -(sbu[..., 1] + sbu[..., 3])
     Cz = -(sbu[..., 0] + sbu[..., 2])
     D = t * _SIGN_D
-    Axy = D[..., 1] + D[..., 3]
-    Cxy = D[..., 0] + D[..., 2]
-    mxy = 1j * (Az * Cxy - Cz * Axy)
-    mz = (Axy.conj() * Cxy).imag
-    mm = np.sqrt(mxy.real ** 2 + mxy.imag ** 2 + mz * mz)
-    inv = np.where(mm > 1e-9, 1.0 / np.maximum(mm, 1e-300), 0.0)
-    nxy = mxy * inv
-    nz = mz * inv
+    Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
     c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
     yxy = (sb[:, k] * sa[:, k] + 1j * ca[:, k]) * z[k]
     Nxy = nxy[:, c0] + ws1 * nxy[:, c1]
