@@ -320,8 +320,8 @@ def run(args) -> int:
                 for _ in range(256):  # bounded: the duration and the status are checked meanwhile
                     if snap is None or writer is None:
                         break
-                    # every snapshot recorded, the estimate made on the newest: an estimate slower
-                    # than the SYNC period must not make the queue drop snapshots from the recording
+                    # every queued snapshot passes `host.get` (calibration, health), the estimate
+                    # is made on the newest only (the recording took each as it was emitted)
                     newer = host.get(0)
                     writer.snapshot(snap, estimate=newer is None)
                     snap = newer
