@@ -56,6 +56,7 @@ This module needs numpy and scipy only; it does not import `virtual_sheet`.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -69,7 +70,7 @@ from protocol.lattice import Lattice
 
 from .metrics import error_percent_of_side, overlay, overlay_error
 
-__all__ = ["ShapeEstimate", "estimate", "roll_pitch", "solvability", "overlay",
+__all__ = ["ShapeEstimate", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
            "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]
 
 METHODS = ("global", "paper")
@@ -247,9 +248,12 @@ def roll_pitch(readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r = np.asarray(readings, dtype=float)
     if r.ndim != 2 or r.shape[1] != 3:
         raise ValueError(f"Expected `readings` to have shape (n_links, 3), got {r.shape}.")
-    alpha = np.arctan2(r[:, 1], r[:, 2])
-    beta = np.arctan2(-r[:, 0], np.hypot(r[:, 1], r[:, 2]))
-    return alpha, beta
+    return _angles(r)
+
+
+def _angles(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`roll_pitch` without the checks, over the last axis of ``r`` (..., 3)."""
+    return np.arctan2(r[..., 1], r[..., 2]), np.arctan2(-r[..., 0], np.hypot(r[..., 1], r[..., 2]))
 
 
 def _eq7_matrices(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
@@ -319,7 +323,7 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         (Case 1: a horizontal unit; Case 2: a squashed one). NaN where a link is missing.
     """
     units = _lattice(rows, cols).units
-    a, b = np.asarray(alpha, float)[units], np.asarray(beta, float)[units]
+    a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
     ratio = _solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
     if bad.any():
@@ -559,28 +563,52 @@ _TWO_PI = 2.0 * np.pi
 _SIGN_D = _S_D
 
 
+def _scatter(idx: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
+    """``Σ w`` into ``size`` bins by ``idx`` (m,) over ``w``'s last axis (..., m): a bincount,
+    one per leading row (at most one leading axis, the batch)."""
+    if w.ndim == 1:
+        return np.bincount(idx, weights=w, minlength=size)
+    B = w.shape[0]
+    off = (idx[None, :] + size * np.arange(B)[:, None]).ravel()
+    return np.bincount(off, weights=w.reshape(-1), minlength=B * size).reshape(B, size)
+
+
+def _sumsq_last(x: np.ndarray):
+    """``Σ |x|²`` over the last axis (a 0-d value for a 1-d ``x``), without BLAS."""
+    if np.iscomplexobj(x):
+        return np.add.reduce(x.real * x.real, axis=-1) + np.add.reduce(x.imag * x.imag, axis=-1)
+    return np.add.reduce(x * x, axis=-1)
+
+
 class _YawProblem:
-    """The global yaw least-squares problem for one snapshot (see the module docstring).
+    """The global yaw least-squares problem for one snapshot (see the module docstring), or for
+    a batch of snapshots of one structure at once: ``alpha``, ``beta`` (B, n_links), and
+    ``prior_w``/``bend_w`` per snapshot or shared; every method then works row-wise on a
+    leading batch axis (`estimate_batch`), with the same arithmetic.
 
     Cost ``½ Σ |loop|² (+ ½ Σ |eq6|²) + ½ Σ roll² + ½ Σ_pairs λ_p (wrap(γ_k − γ_l) − δ_kl)²
     (+ ½ Σ λ wrap(γ − τ)²)``; the complex form of every term is in docs/estimator.md.
     """
 
+    #: per-snapshot attributes and their number of axes without the batch axis (`take`)
+    _PER_SNAPSHOT = {"c_loop": 2, "c_n": 2, "Az": 1, "Cz": 1, "y_c": 1, "y_z": 1, "lam": 1,
+                     "lam_b": 1}
+
     def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w):
         self.st = st
         ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
         u = st.units
-        cbu = cb[u]
+        cbu = cb[..., u]
         self.c_loop = cbu * _S_D  # (U, 4) real
         if st.model == "eq6":
-            self.c_n = (sb[u] * ca[u] - 1j * sa[u]) * (_S_N * NORMAL_WEIGHT)  # (U, 4)
+            self.c_n = (sb[..., u] * ca[..., u] - 1j * sa[..., u]) * (_S_N * NORMAL_WEIGHT)
         else:
             k = st.roll_links
-            sbu = sb[u]
-            self.Az = -(sbu[:, 1] + sbu[:, 3])  # z of the cell's i-link sum A (yaw-free)
-            self.Cz = -(sbu[:, 0] + sbu[:, 2])  # z of its j-link sum C
-            self.y_c = (sb[k] * sa[k] + 1j * ca[k])  # sensor y, xy part before the yaw
-            self.y_z = cb[k] * sa[k]
+            sbu = sb[..., u]
+            self.Az = -(sbu[..., 1] + sbu[..., 3])  # z of the cell's i-link sum A (yaw-free)
+            self.Cz = -(sbu[..., 0] + sbu[..., 2])  # z of its j-link sum C
+            self.y_c = (sb[..., k] * sa[..., k] + 1j * ca[..., k])  # sensor y, xy before the yaw
+            self.y_z = cb[..., k] * sa[..., k]
             self.w = ROLL_WEIGHT * st.roll_inv_ncell
         self.target = target[st.var_links]
         self.lam = prior_w  # (nv,) prior weight per variable
@@ -588,40 +616,59 @@ class _YawProblem:
         self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
         self.lam_b = bend_w  # (n_pairs,)
 
-    def evaluate(self, gamma):
-        """Cost, gradient over the variables, and the Jacobian blocks (for `factor`)."""
+    def take(self, idx):
+        """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
+        sub = copy.copy(self)
+        for name, nd in self._PER_SNAPSHOT.items():
+            v = getattr(self, name, None)
+            if v is not None and np.ndim(v) == nd + 1:
+                setattr(sub, name, v[idx])
+        return sub
+
+    def evaluate(self, gamma, jac: bool = True):
+        """Cost, gradient over the variables, and the Jacobian blocks (for `factor`; None when
+        ``jac`` is False: the roll terms' gradient then comes from `_roll_grad`, without
+        forming their Jacobian)."""
         st = self.st
         nv1 = st.n_var + 1
         z = np.exp(1j * gamma)
-        zu = z[st.units]
+        zu = z[..., st.units]
         t = self.c_loop * zu  # (U, 4) complex; ∂r/∂γ_m = i t_m
-        r = t.sum(axis=1)
-        cost2 = _sumsq(r)
-        gu = (t.conj() * r[:, None]).imag  # (U, 4)
+        r = t.sum(axis=-1)
+        cost2 = _sumsq_last(r)
+        gu = (t.conj() * r[..., None]).imag  # (U, 4)
         blocks = [t]
         if st.model == "eq6":
             tn = self.c_n * zu
-            rn = tn.sum(axis=1)
-            cost2 += _sumsq(rn)
-            gu += (tn.conj() * rn[:, None]).imag
-            blocks = [np.stack([t, tn], axis=1)]
-        grad = np.bincount(st.unit_var.ravel(), weights=gu.ravel(), minlength=nv1).astype(float)  # int if no cell
-        if st.model == "cells":
+            rn = tn.sum(axis=-1)
+            cost2 = cost2 + _sumsq_last(rn)
+            gu += (tn.conj() * rn[..., None]).imag
+            blocks = [np.stack([t, tn], axis=-2)]
+        lead = gamma.shape[:-1]
+        if st.model == "cells" and not jac:
+            rr, gn, gd = self._roll_grad(z, t)
+            cost2 = cost2 + _sumsq_last(rr)
+            grad = _scatter(st.unit_var.ravel(), (gu + gn).reshape(lead + (-1,)), nv1)
+            grad += _scatter(st.roll_var[:, 0], gd, nv1)
+            blocks = None
+        else:
+            grad = _scatter(st.unit_var.ravel(), gu.reshape(lead + (-1,)), nv1).astype(float)
+        if st.model == "cells" and jac:
             Jr, rr = self._roll(z, t)
-            cost2 += _sumsq(rr)
-            grad += np.bincount(st.roll_var.ravel(), weights=(Jr * rr[:, None]).ravel(),
-                                minlength=nv1)
+            cost2 = cost2 + _sumsq_last(rr)
+            grad += _scatter(st.roll_var.ravel(), (Jr * rr[..., None]).reshape(lead + (-1,)),
+                             nv1)
             blocks.append(Jr)
         pr = st.pairs
-        eb = _wrap_fast(gamma[pr[:, 0]] - gamma[pr[:, 1]] - self.pair_t)
+        eb = _wrap_fast(gamma[..., pr[:, 0]] - gamma[..., pr[:, 1]] - self.pair_t)
         wb = self.lam_b * eb
-        cost2 += float(np.add.reduce(wb * eb))
-        grad += np.bincount(st.pair_var[:, 0], weights=wb, minlength=nv1)
-        grad -= np.bincount(st.pair_var[:, 1], weights=wb, minlength=nv1)
-        grad = grad[:st.n_var]
+        cost2 = cost2 + np.add.reduce(wb * eb, axis=-1)
+        grad += _scatter(st.pair_var[:, 0], wb, nv1)
+        grad -= _scatter(st.pair_var[:, 1], wb, nv1)
+        grad = grad[..., :st.n_var]
         if self.abs_prior:  # otherwise the floor only sits on the diagonal (`factor`)
-            e = _wrap_fast(gamma[st.var_links] - self.target)
-            cost2 += float(np.add.reduce(self.lam * e * e))
+            e = _wrap_fast(gamma[..., st.var_links] - self.target)
+            cost2 = cost2 + np.add.reduce(self.lam * e * e, axis=-1)
             grad += self.lam * e
         return 0.5 * cost2, grad, blocks
 
@@ -630,13 +677,13 @@ class _YawProblem:
         the roll residuals (the order `_uncertainty` weights them in)."""
         st = self.st
         z = np.exp(1j * gamma)
-        zu = z[st.units]
+        zu = z[..., st.units]
         t = self.c_loop * zu
-        r = t.sum(axis=1)
+        r = t.sum(axis=-1)
         if st.model == "eq6":
-            r = np.concatenate([r, (self.c_n * zu).sum(axis=1)])
-            return np.concatenate([r.real, r.imag])
-        return np.concatenate([r.real, r.imag, self._roll(z, t)[1]])
+            r = np.concatenate([r, (self.c_n * zu).sum(axis=-1)], axis=-1)
+            return np.concatenate([r.real, r.imag], axis=-1)
+        return np.concatenate([r.real, r.imag, self._roll(z, t)[1]], axis=-1)
 
     def _roll(self, z, t):
         """Roll residuals ``w · y_k · N_k`` and their Jacobian rows (K, 7).
@@ -650,34 +697,78 @@ class _YawProblem:
         D = t * _SIGN_D  # links' xy directions per unit (U, 4), cos β e^{iγ}
         Az, Cz = self.Az, self.Cz
         Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
-        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=1)
-        X = np.stack([Axy, Cxy, Axy, Cxy], axis=1)
+        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=-1)
+        X = np.stack([Axy, Cxy, Axy, Cxy], axis=-1)
         dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
-        nd = (nxy.conj()[:, None] * dmxy).real + nz[:, None] * dmz  # n · ∂m  (U, 4)
+        nd = (nxy.conj()[..., None] * dmxy).real + nz[..., None] * dmz  # n · ∂m  (U, 4)
         c0, c1, ws1 = st.roll_c0, st.roll_c1, self.st.roll_ws1
-        yxy = self.y_c * z[st.roll_links]
+        yxy = self.y_c * z[..., st.roll_links]
         yz = self.y_z
-        Nxy = nxy[c0] + ws1 * nxy[c1]
-        Nz = nz[c0] + ws1 * nz[c1]
+        Nxy = nxy[..., c0] + ws1 * nxy[..., c1]
+        Nz = nz[..., c0] + ws1 * nz[..., c1]
         yc = yxy.conj()
         w = self.w
         res = w * ((yc * Nxy).real + yz * Nz)
-        K = yxy.size
-        Jraw = np.empty((K, 2, 4))
+        K = c0.size
+        lead = yxy.shape[:-1]
+        Jraw = np.empty(lead + (K, 2, 4))
         for s_, c, ws in ((0, c0, None), (1, c1, ws1)):
-            ynu = (yc * nxy[c]).real + yz * nz[c]  # y · n_c  (K,)
-            ydm = (yc[:, None] * dmxy[c]).real + yz[:, None] * dmz[c]  # y · ∂m  (K, 4)
-            sc = inv[c] if ws is None else inv[c] * ws
-            Jraw[:, s_] = (ydm - ynu[:, None] * nd[c]) * sc[:, None]
-        flat = Jraw.reshape(-1)
-        J = np.empty((K, 7))
+            ynu = (yc * nxy[..., c]).real + yz * nz[..., c]  # y · n_c  (K,)
+            ydm = (yc[..., None] * dmxy[..., c, :]).real + yz[..., None] * dmz[..., c, :]
+            sc = inv[..., c] if ws is None else inv[..., c] * ws
+            Jraw[..., s_, :] = (ydm - ynu[..., None] * nd[..., c, :]) * sc[..., None]
+        flat = Jraw.reshape(lead + (-1,))
+        J = np.empty(lead + (K, 7))
         sidx = st.roll_idx_self
-        J[:, 0] = w * ((yc * Nxy).imag + flat[sidx[:, 0]] + flat[sidx[:, 1]])
-        J[:, 1:] = w[:, None] * flat[st.roll_idx_oth]
+        J[..., 0] = w * ((yc * Nxy).imag + flat[..., sidx[:, 0]] + flat[..., sidx[:, 1]])
+        J[..., 1:] = w[:, None] * flat[..., st.roll_idx_oth]
         return J, res
 
+    def _roll_grad(self, z, t):
+        """Roll residuals and their gradient ``Jᵀ res`` without the Jacobian (reverse mode):
+        (res (K,), per unit and position the part through the cell normals (U, 4), per roll
+        link the part through its own sensor y (K,)).
+
+        With ``ρ_k = w_k res_k``, cell ``c`` collects ``Y_c = Σ_k ρ_k y_k`` over its links (both
+        cells of a link: the mean's weights), and ``Y · ∂n = Q · ∂m`` with
+        ``Q = (Y − (Y·n) n)/|m|`` (``∂n = (∂m − n (n·∂m))/|m|``): the same terms as `_roll`'s rows
+        summed, in a few passes over the cells instead of one per Jacobian entry.
+        """
+        st = self.st
+        D = t * _SIGN_D
+        Az, Cz = self.Az, self.Cz
+        Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
+        c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
+        yxy = self.y_c * z[..., st.roll_links]
+        yz = self.y_z
+        Nxy = nxy[..., c0] + ws1 * nxy[..., c1]
+        Nz = nz[..., c0] + ws1 * nz[..., c1]
+        yc = yxy.conj()
+        w = self.w
+        res = w * ((yc * Nxy).real + yz * Nz)
+        rho = w * res
+        gd = rho * (yc * Nxy).imag  # through y_k = y_c e^{iγ_k}: ∂(ȳ N)/∂γ_k = Im(ȳ N)
+        U = st.n_units
+        cells = np.concatenate([c0, c1])
+        ry, rz = rho * yxy, rho * yz
+        r1 = ws1 * rho
+        wx = np.concatenate([ry.real, (r1 * yxy).real], axis=-1)
+        wy = np.concatenate([ry.imag, (r1 * yxy).imag], axis=-1)
+        wz = np.concatenate([rz, r1 * yz], axis=-1)
+        Yxy = _scatter(cells, wx, U) + 1j * _scatter(cells, wy, U)
+        Yz = _scatter(cells, wz, U)
+        Yn = (Yxy.conj() * nxy).real + Yz * nz
+        Qxy = (Yxy - Yn * nxy) * inv
+        Qz = (Yz - Yn * nz) * inv
+        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=-1)
+        X = np.stack([Axy, Cxy, Axy, Cxy], axis=-1)
+        dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
+        gn = (Qxy.conj()[..., None] * dmxy).real + Qz[..., None] * dmz
+        return res, gn, gd
+
     def factor(self, blocks, mu):
-        """Factorise the Gauss-Newton matrix ``JᵀJ + diag(λ) + μ I`` (permuted, fixed pattern)."""
+        """Factorise the Gauss-Newton matrix ``JᵀJ + diag(λ) + μ I`` (permuted, fixed pattern)
+        of one snapshot (``blocks`` from `evaluate` without a batch axis)."""
         st = self.st
         t = blocks[0]
         if t.ndim == 3:  # eq6: (U, 2, 4)
@@ -698,8 +789,12 @@ class _YawProblem:
         return _factorise(st, A)
 
     def step(self, lu, grad):
+        """The (chord) Gauss-Newton step ``−A⁻¹ grad``, row-wise for a batch (B, nv)."""
         st = self.st
-        return _solve(lu, -grad[st.perm_inv])[st.perm_of_var]
+        b = -grad[..., st.perm_inv]
+        if b.ndim == 1:
+            return _solve(lu, b)[st.perm_of_var]
+        return _solve(lu, np.ascontiguousarray(b.T)).T[:, st.perm_of_var]
 
 
 def _cholmod():
@@ -752,7 +847,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     if st.n_var == 0:
         return gamma, 0, 0, None, prob
     vl = st.var_links
-    cost, grad, blocks = prob.evaluate(gamma)
+    cost, grad, blocks = prob.evaluate(gamma, jac=lu is None)
     mu = 0.0
     fresh = False
     n_fact = 0
@@ -761,6 +856,8 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     while it < MAX_ITER:
         it += 1
         if lu is None:
+            if blocks is None:  # the Jacobian of this point, for its first factorisation
+                blocks = prob.evaluate(gamma)[2]
             lu = prob.factor(blocks, mu)
             fresh = True
             n_fact += 1
@@ -776,7 +873,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             # (an evaluation is a third of an iteration); the returned state is at ``g_new``.
             gamma = g_new
             break
-        cost_new, grad_new, blocks_new = prob.evaluate(g_new)
+        cost_new, grad_new, blocks_new = prob.evaluate(g_new, jac=False)
         if not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
             lu = None  # refactorise here; damp if even a fresh Gauss-Newton step failed
             if fresh:
@@ -896,17 +993,19 @@ def _paper_joints(rows: int, cols: int, vec: np.ndarray) -> np.ndarray:
 def _directions_normals(alpha, beta, gamma):
     ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
                               np.cos(gamma), np.sin(gamma))
-    d = np.stack([cg * cb, sg * cb, -sb], axis=1)
-    n = np.stack([cg * sb * ca + sg * sa, sg * sb * ca - cg * sa, cb * ca], axis=1)
+    d = np.stack([cg * cb, sg * cb, -sb], axis=-1)
+    n = np.stack([cg * sb * ca + sg * sa, sg * sb * ca - cg * sa, cb * ca], axis=-1)
     return d, n
 
 
-def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray) -> float:
-    """Σ over the given units (U, 4) of eq. (8)."""
-    du, nu = d[units], n[units]
-    rd = du[:, 0] + du[:, 1] - du[:, 2] - du[:, 3]
-    rn = nu[:, 0] - nu[:, 1] + nu[:, 2] - nu[:, 3]
-    return float(np.sum(rd * rd) + np.sum(rn * rn))
+def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
+    """Σ over the given units (U, 4) of eq. (8): a float, or one per snapshot for ``d``, ``n``
+    with a leading batch axis (B, n_links, 3)."""
+    du, nu = d[..., units, :], n[..., units, :]
+    rd = du[..., 0, :] + du[..., 1, :] - du[..., 2, :] - du[..., 3, :]
+    rn = nu[..., 0, :] - nu[..., 1, :] + nu[..., 2, :] - nu[..., 3, :]
+    tot = np.sum(rd * rd + rn * rn, axis=(-2, -1))
+    return float(tot) if d.ndim == 2 else tot
 
 
 def _check_int(name: str, v, lo: int) -> int:
@@ -967,16 +1066,22 @@ def _flatness(st, r, norm_g, noise):
     reading: ``s_z/|s|``), averaged over the (2 `FLAT_RADIUS` + 1)² units around;
     θ0 = `FLAT_TILT_NOISE` · σ. Noise-free readings (σ = 0) give 0 everywhere."""
     units = st.lattice.units.reshape(-1, 4)
-    if noise <= 0.0:
+    noise = np.asarray(noise, float)
+    if noise.ndim == 0 and noise <= 0.0:
         return np.zeros(units.shape[0])
-    cz = r[:, 2] / np.maximum(norm_g * G0, 1e-300)
-    th2 = 2.0 * (1.0 - cz[units]).mean(axis=1)
+    lead = noise.shape  # () or (B,): r (..., n_links, 3), norm_g (..., n_links)
+    cz = r[..., 2] / np.maximum(norm_g * G0, 1e-300)
+    th2 = 2.0 * (1.0 - cz[..., units]).mean(axis=-1)
     if FLAT_RADIUS > 0:
         # regional: a level strip between tilted cells (a cylinder's crest) is held by its
         # tilted neighbours through the lattice; only wide level regions need the prior
-        th2 = uniform_filter(th2.reshape(st.rows - 1, st.cols - 1), size=2 * FLAT_RADIUS + 1,
-                             mode="nearest").ravel()
-    return np.exp(-np.maximum(th2, 0.0) / (FLAT_TILT_NOISE * noise) ** 2)
+        k = 2 * FLAT_RADIUS + 1
+        th2 = uniform_filter(th2.reshape(lead + (st.rows - 1, st.cols - 1)),
+                             size=(1,) * len(lead) + (k, k), mode="nearest"
+                             ).reshape(lead + (-1,))
+    th0 = FLAT_TILT_NOISE * np.maximum(noise, 1e-300)
+    h = np.exp(-np.maximum(th2, 0.0) / (th0[..., None] ** 2 if lead else th0 ** 2))
+    return np.where((noise > 0.0)[..., None], h, 0.0) if lead else h
 
 
 def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
@@ -987,13 +1092,15 @@ def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
-    w = np.full(st.pairs.shape[0], PRIOR_WEIGHT_MIN)
+    lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("adaptive" only)
+    w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
     if prior == "adaptive":
-        w[:st.n_bend] = max((noise / BEND_STD_RAD) ** 2, PRIOR_WEIGHT_MIN)
-        h = _flatness(st, r, norm_g, noise)[st.shear_unit]
+        w[..., :st.n_bend] = np.maximum((np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2,
+                                        PRIOR_WEIGHT_MIN)
+        h = _flatness(st, r, norm_g, noise)[..., st.shear_unit]
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
-        w[st.n_bend:] = np.maximum(sw * h, PRIOR_WEIGHT_MIN)
+        w[..., st.n_bend:] = np.maximum(sw * h, PRIOR_WEIGHT_MIN)
     elif prior == "fixed":
         lam[:] = FIXED_PRIOR_WEIGHT
     elif prior == "local":
@@ -1209,6 +1316,240 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
                          _state=state)
 
 
+#: `estimate_batch`: chord iterations per snapshot before it is handed to `estimate` instead.
+BATCH_MAX_ITER = 8
+#: ... and factorisations per group at most (a slow contraction or a rising cost makes one).
+BATCH_REFACTOR = 3
+
+
+def _solve_global_batch(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu, tol):
+    """`_solve_global` for a batch (B, n_links) of snapshots of one structure, all started at
+    ``gamma0`` (n_links,): chord Gauss-Newton steps on one shared factorisation (the previous
+    snapshot's, or one made at the batch's first), with the same stopping rule per snapshot.
+    As in `_solve_global`, a new factorisation is made (at the first snapshot still iterating,
+    at most `BATCH_REFACTOR` times) when the steps contract by less than `_REFACTOR_RATIO`
+    (median over the batch) or raise some snapshot's cost. A snapshot whose step raised its cost,
+    or that has not converged in `BATCH_MAX_ITER` steps, is reported failed (the caller
+    re-estimates it with `estimate`). Returns (gamma (B, n), iterations (B,), failed (B,),
+    factorisations, lu, the problem's ``take``)."""
+    B = alpha.shape[0]
+    gamma = np.repeat(gamma0[None, :], B, axis=0)
+    iters = np.zeros(B, int)
+    failed = np.zeros(B, bool)
+    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w)
+    if st.n_var == 0:
+        return gamma, iters, failed, 0, lu, prob.take
+    vl = st.var_links
+    c_act, gr_act, _ = prob.evaluate(gamma, jac=False)
+    n_fact = 0
+    if lu is None:
+        p0 = prob.take(0)
+        lu = p0.factor(p0.evaluate(gamma[0])[2], 0.0)
+        n_fact = 1
+    act, sub, g_act = np.arange(B), prob, gamma.copy()  # the snapshots still iterating
+    prev_smax = np.full(B, np.inf)
+    rate = np.zeros(B)  # per snapshot, the slowest contraction since the factorisation
+    for _ in range(BATCH_MAX_ITER):
+        iters[act] += 1
+        step = sub.step(lu, gr_act)
+        smax = np.max(np.abs(step), axis=1)
+        g_new = g_act.copy()
+        g_new[:, vl] += step
+        ps, tl = prev_smax[act], tol[act]
+        # converged: the step, or the next one predicted at the slowest contraction seen (a
+        # shared factorisation contracts a snapshot's modes at different rates, so one fast
+        # step says little), is below the tolerance; taken without evaluating (`_solve_global`)
+        rt = np.maximum(rate[act], smax / ps)
+        conv = (smax < tl) | ((smax < ps) & (ps < np.inf) & (smax * rt < tl))
+        gamma[act[conv]] = g_new[conv]
+        keep = ~conv
+        act, g_new, smax = act[keep], g_new[keep], smax[keep]
+        if not act.size:
+            break
+        sub = prob.take(act)
+        c_new, gr_new, _ = sub.evaluate(g_new, jac=False)
+        worse = ~(c_new <= c_act[keep] * (1.0 + 1e-12) + 1e-300)
+        failed[act[worse]] = True
+        ok = ~worse
+        ratio = smax[ok] / prev_smax[act[ok]]
+        act, g_act, c_act, gr_act = act[ok], g_new[ok], c_new[ok], gr_new[ok]
+        gamma[act] = g_act
+        prev_smax[act] = smax[ok]
+        rate[act] = np.maximum(rate[act], ratio)
+        if not act.size:
+            break
+        if not ok.all():
+            sub = prob.take(act)
+        if n_fact < BATCH_REFACTOR and (worse.any() or np.median(ratio) > _REFACTOR_RATIO):
+            pf = prob.take(int(act[0]))
+            lu = pf.factor(pf.evaluate(g_act[0])[2], 0.0)
+            n_fact += 1
+            prev_smax[act] = np.inf  # a new matrix: its contraction is measured afresh
+            rate[act] = 0.0
+    failed[act] = True  # out of steps
+    return gamma, iters, failed, n_fact, lu, prob.take
+
+
+def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: float,
+                   valid: np.ndarray | None = None, previous: ShapeEstimate | None = None, *,
+                   noise_pct_g: float = 1.0, bad_readings: str = "raise",
+                   batch: int = 32) -> list[ShapeEstimate]:
+    """Estimate a sequence of snapshots, many at a time: what an offline run wants.
+
+    The result is what ``estimate(readings[k], ..., previous=result[k - 1])`` in a loop gives
+    (``method="global"``, ``model="cells"``, ``prior="adaptive"``), to the solver's tolerance:
+    the same cost is minimised with the same stopping rule, but ``batch`` consecutive snapshots
+    are solved together — every snapshot of a group starts from the estimate before the group,
+    their chord steps share one factorisation and their arithmetic runs as one numpy pass (one
+    multi-right-hand-side solve per step, one joint solve per group), so the per-call overhead
+    that dominates a 14x14 snapshot is paid once per group. A snapshot the group cannot finish
+    (its mask differs from the group's, its readings need checking, its step fails to descend or
+    it needs more than `BATCH_MAX_ITER` steps) is estimated by `estimate` on its own, in order.
+
+    Parameters
+    ----------
+    readings : ndarray, shape (S, n_links, 3)
+        Specific force per snapshot, m/s², as `estimate` takes one.
+    valid : ndarray of bool, shape (S, n_links) or (n_links,), optional
+        Per snapshot (or for all) the links present. Default: all.
+    previous : ShapeEstimate, optional
+        The estimate before the first snapshot (warm start), as in `estimate`.
+    noise_pct_g, bad_readings
+        As in `estimate`.
+    batch : int
+        Snapshots solved together (>= 1).
+
+    Returns
+    -------
+    list of ShapeEstimate, one per snapshot. ``iterations`` counts the snapshot's own steps,
+    ``factorisations`` is 1 on the snapshot whose group paid a factorisation, and ``timings``
+    holds its share of the group's time (``"batched"``: 1.0 when it was solved in a group).
+
+    Raises
+    ------
+    ValueError
+        As `estimate`, prefixed with the snapshot's index; wrong shapes or dtypes of the inputs.
+    """
+    rows = _check_int("rows", rows, 2)
+    cols = _check_int("cols", cols, 2)
+    batch = _check_int("batch", batch, 1)
+    if bad_readings not in ("raise", "mask"):
+        raise ValueError(f"Invalid bad_readings: {bad_readings!r} (expected 'raise' or 'mask')")
+    lat = _lattice(rows, cols)
+    n = lat.n_links
+    R = np.asarray(readings)
+    if R.dtype.kind not in "iuf":
+        raise ValueError(f"Invalid readings: dtype {R.dtype} (need real numbers, m/s²)")
+    if R.ndim != 3 or R.shape[1:] != (n, 3):
+        raise ValueError(f"Expected `readings` to have shape (S, {n}, 3) for a {rows}x{cols} "
+                         f"lattice, got {R.shape}.")
+    S = R.shape[0]
+    if valid is None:
+        V = np.ones((S, n), bool)
+    else:
+        V = np.asarray(valid)
+        if V.dtype != bool:
+            raise ValueError(f"Invalid valid: dtype {V.dtype} (need a boolean mask, True = "
+                             "link present)")
+        if V.shape == (n,):
+            V = np.broadcast_to(V, (S, n))
+        if V.shape != (S, n):
+            raise ValueError(f"Expected `valid` to have shape ({S}, {n}) or ({n},), got "
+                             f"{V.shape}.")
+    kw = dict(noise_pct_g=noise_pct_g, bad_readings=bad_readings)
+    # the checks `estimate` makes (it raises what is wrong; its messages name the links)
+    if previous is not None:
+        _check_previous(previous, n, rows, cols)
+    L = float(link_length) if isinstance(link_length, (int, float, np.number)) \
+        and not isinstance(link_length, (bool, np.bool_)) else link_length
+    if S == 0:
+        return []
+    out: list[ShapeEstimate | None] = [None] * S
+    prev = previous
+    lo, hi = READING_NORM_RANGE
+    for s0 in range(0, S, batch):
+        t0 = time.perf_counter()
+        r = R[s0:s0 + batch].astype(float, copy=False)
+        v = V[s0:s0 + batch]
+        m = r.shape[0]
+        norm = np.sqrt(np.einsum("bij,bij->bi", r, r)) / G0
+        clean = np.all(np.isfinite(r), axis=2) & (norm >= lo) & (norm <= hi)
+        mask0 = v[0]
+        fast = np.all(v == mask0, axis=1) & np.all(clean | ~mask0, axis=1) & mask0.any()
+        if not (isinstance(L, float) and np.isfinite(L) and L > 0):
+            fast[:] = False  # `estimate` says what is wrong with it
+        idx = np.flatnonzero(fast)
+        if idx.size:
+            mask = None if mask0.all() else mask0
+            st = _structure(rows, cols, mask, "cells")
+            rr = r[idx] if mask is None else np.where(mask0[None, :, None], r[idx],
+                                                      (0.0, 0.0, 1.0))
+            alpha, beta = _angles(rr)
+            nm = np.where(mask0, norm[idx], 1.0)
+            e = nm[:, mask0] - 1.0
+            noise = np.sqrt(np.add.reduce(e * e, axis=1) / max(e.shape[1], 1))
+            prior_w, bend_w = _prior_weights("adaptive", st, rr, nm, noise, False)
+            tol = np.maximum(YAW_TOL_RAD, YAW_TOL_NOISE * noise)
+            target = st.rest_yaw
+            start = target if prev is None else np.asarray(prev.yaws, dtype=float)
+            pstate = getattr(prev, "_state", None)
+            lu = pstate[1] if pstate is not None and pstate[0] is st else None
+            gamma, iters, failed, n_fact, lu, prob_of = _solve_global_batch(
+                st, alpha, beta, start, target, prior_w, bend_w, lu, tol)
+            ok = ~failed
+            rows_ok = np.flatnonzero(ok)
+            t1 = time.perf_counter()
+            d, nrm = _directions_normals(alpha[ok], beta[ok], gamma[ok])
+            k = int(ok.sum())
+            vl = st.valid_links
+            rhs_links = L * (d if st.all_valid else d[:, vl])  # (k, n_valid, 3)
+            pprior = (L * st.rest_joints_unit if prev is None
+                      else np.asarray(prev.joints, float).reshape(-1, 3))
+            rhs = st.incidence_T @ rhs_links.transpose(1, 0, 2).reshape(vl.size, 3 * k)
+            rhs += JOINT_PRIOR_WEIGHT * np.tile(pprior, (1, k))
+            P = st.lap_lu.solve(rhs).reshape(-1, k, 3).transpose(1, 0, 2) if k else \
+                np.zeros((0, rows * cols, 3))
+            P = P - P[:, :1]
+            residual = _eq8_residual(st.units, d, nrm) if k else np.zeros(0)
+            a_out, b_out, g_out = alpha[ok], beta[ok], gamma[ok]
+            if mask is not None:
+                ep = lat.endpoints
+                miss = ~mask0
+                chord = P[:, ep[miss, 1]] - P[:, ep[miss, 0]]
+                nc = np.linalg.norm(chord, axis=2, keepdims=True)
+                d[:, miss] = chord / np.where(nc > 0, nc, 1.0)
+                nrm[:, miss] = np.nan
+                g_out[:, miss] = target[miss]
+                a_out = np.where(mask0, a_out, np.nan)
+                b_out = np.where(mask0, b_out, np.nan)
+            solv = solvability(a_out, b_out, rows, cols)
+            dt = (time.perf_counter() - t0) / max(idx.size, 1)
+            for j, kk in enumerate(idx[ok]):
+                out[s0 + kk] = ShapeEstimate(
+                    joints=P[j].reshape(rows, cols, 3), directions=d[j], residual=float(residual[j]),
+                    solvability=solv[j], normals=nrm[j], yaws=g_out[j], alpha=a_out[j],
+                    beta=b_out[j], valid=mask0.copy(), link_length=L, method="global",
+                    iterations=int(iters[idx[ok][j]]), factorisations=n_fact if j == 0 else 0,
+                    timings={"angles": 0.0, "yaw": (t1 - t0) / max(idx.size, 1),
+                             "joints": 0.0, "total": dt, "batched": 1.0},
+                    noise_pct_g=float(noise_pct_g),
+                    _state=(st, lu, prob_of(int(rows_ok[j])), g_out[j]))
+            fast[idx[failed]] = False
+        # the rest, one at a time and in order (what `estimate` says about them is the answer)
+        for kk in range(m):
+            if out[s0 + kk] is not None:
+                continue
+            before = next((out[q] for q in range(s0 + kk - 1, -1, -1) if out[q] is not None),
+                          previous)
+            try:
+                out[s0 + kk] = estimate(r[kk], rows, cols, link_length, valid=v[kk],
+                                        previous=before, **kw)
+            except ValueError as exc:
+                raise ValueError(f"snapshot {s0 + kk}: {exc}") from exc
+        prev = out[s0 + m - 1]
+    return out  # type: ignore[return-value]
+
+
 #: Samples drawn to estimate `ShapeEstimate.yaw_std` / ``joint_std`` (seeded, deterministic).
 UNCERTAINTY_SAMPLES = 200
 
@@ -1319,30 +1660,10 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
 
 def _data_rows_batch(st: _Structure, alpha: np.ndarray, beta: np.ndarray,
                      gamma: np.ndarray) -> np.ndarray:
-    """`_YawProblem.rows` at ``gamma`` for a batch of readings' angles ``alpha``, ``beta``
-    (B, n_links) at once: (B, rows), the same arithmetic with a leading batch axis."""
-    ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
-    u = st.units
-    z = np.exp(1j * gamma)
-    zu = z[u]
-    t = (cb[:, u] * _S_D) * zu  # (B, U, 4)
-    r = t.sum(axis=2)
-    if st.model == "eq6":
-        rn = (((sb[:, u] * ca[:, u] - 1j * sa[:, u]) * (_S_N * NORMAL_WEIGHT)) * zu).sum(axis=2)
-        r = np.concatenate([r, rn], axis=1)
-        return np.concatenate([r.real, r.imag], axis=1)
-    k = st.roll_links
-    sbu = sb[:, u]
-    Az = -(sbu[..., 1] + sbu[..., 3])
-    Cz = -(sbu[..., 0] + sbu[..., 2])
-    D = t * _SIGN_D
-    Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
-    c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
-    yxy = (sb[:, k] * sa[:, k] + 1j * ca[:, k]) * z[k]
-    Nxy = nxy[:, c0] + ws1 * nxy[:, c1]
-    Nz = nz[:, c0] + ws1 * nz[:, c1]
-    res = (ROLL_WEIGHT * st.roll_inv_ncell) * ((yxy.conj() * Nxy).real + (cb[:, k] * sa[:, k]) * Nz)
-    return np.concatenate([r.real, r.imag, res], axis=1)
+    """`_YawProblem.rows` at ``gamma`` (n_links,) for a batch of readings' angles ``alpha``,
+    ``beta`` (B, n_links) at once: (B, rows) (the prior does not enter the rows)."""
+    return _YawProblem(st, alpha, beta, st.rest_yaw, np.full(st.n_var, ABS_PRIOR_FLOOR),
+                       np.zeros(st.pairs.shape[0])).rows(gamma)
 
 
 def _few(idx, limit: int = 8) -> str:
