@@ -1399,7 +1399,8 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     The result is what ``estimate(readings[k], ..., previous=result[k - 1])`` in a loop gives
     (``method="global"``, ``model="cells"``, ``prior="adaptive"``), to the solver's tolerance:
     the same cost is minimised with the same stopping rule, but ``batch`` consecutive snapshots
-    are solved together — every snapshot of a group starts from the estimate before the group,
+    are solved together — every snapshot of a group starts from the estimate before the group
+    (without ``previous``, the first snapshot is estimated alone and the rest start there),
     their chord steps share one factorisation and their arithmetic runs as one numpy pass (one
     multi-right-hand-side solve per step, one joint solve per group), so the per-call overhead
     that dominates a 14x14 snapshot is paid once per group. A snapshot the group cannot finish
@@ -1465,6 +1466,13 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     if S == 0:
         return []
     out: list[ShapeEstimate | None] = [None] * S
+
+    def _one(k, r_k, v_k, before):
+        try:
+            return estimate(r_k, rows, cols, link_length, valid=v_k, previous=before, **kw)
+        except ValueError as exc:
+            raise ValueError(f"snapshot {k}: {exc}") from exc
+
     prev = previous
     lo, hi = READING_NORM_RANGE
     for s0 in range(0, S, batch):
@@ -1478,6 +1486,9 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
         fast = np.all(v == mask0, axis=1) & np.all(clean | ~mask0, axis=1) & mask0.any()
         if not (isinstance(L, float) and np.isfinite(L) and L > 0):
             fast[:] = False  # `estimate` says what is wrong with it
+        if prev is None and fast[0]:  # a cold start is one snapshot's job; the rest start there
+            out[s0] = prev = _one(s0, r[0], v[0], None)
+            fast[0] = False
         idx = np.flatnonzero(fast)
         if idx.size:
             mask = None if mask0.all() else mask0
@@ -1529,7 +1540,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
                     joints=P[j].reshape(rows, cols, 3), directions=d[j], residual=float(residual[j]),
                     solvability=solv[j], normals=nrm[j], yaws=g_out[j], alpha=a_out[j],
                     beta=b_out[j], valid=mask0.copy(), link_length=L, method="global",
-                    iterations=int(iters[idx[ok][j]]), factorisations=n_fact if j == 0 else 0,
+                    iterations=int(iters[rows_ok[j]]), factorisations=n_fact if j == 0 else 0,
                     timings={"angles": 0.0, "yaw": (t1 - t0) / max(idx.size, 1),
                              "joints": 0.0, "total": dt, "batched": 1.0},
                     noise_pct_g=float(noise_pct_g),
@@ -1541,11 +1552,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
                 continue
             before = next((out[q] for q in range(s0 + kk - 1, -1, -1) if out[q] is not None),
                           previous)
-            try:
-                out[s0 + kk] = estimate(r[kk], rows, cols, link_length, valid=v[kk],
-                                        previous=before, **kw)
-            except ValueError as exc:
-                raise ValueError(f"snapshot {s0 + kk}: {exc}") from exc
+            out[s0 + kk] = _one(s0 + kk, r[kk], v[kk], before)
         prev = out[s0 + m - 1]
     return out  # type: ignore[return-value]
 
