@@ -31,7 +31,9 @@ Every message's log time is the host's wall clock (ns since the Unix epoch); ``t
 are the host's monotonic clock (s), the clock `host.aggregator.LatticeSnapshot.timestamp` uses.
 Metadata record ``capsheet.session``: lattice, link length, rate, sync mode, transports, versions.
 Attachments: ``layout.json`` (uid -> link), ``calibration.json`` (per link offset/sensitivity, the
-node map), and at close ``stats.json`` (the host's final statistics).
+node map), ``host_calibration.json`` (with ``capsheet host --calibration``: the calibration every recorded
+snapshot was corrected with, which replay applies too), and at close ``stats.json`` (the host's final
+statistics).
 
 `read` gives numpy arrays back (`Recording`).
 """
@@ -58,6 +60,9 @@ __all__ = ["Recorder", "Recording", "read", "read_recording", "tap_transport", "
            "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "FORMAT"]
 
 FORMAT = "capsheet-mcap-1"
+#: Attachment: the host-side calibration (``capsheet host --calibration``, `host.analysis.calibration`
+#: format, rebased to the chips' own) applied to every recorded snapshot; replay applies it too.
+HOST_CALIBRATION = "host_calibration.json"
 TOPIC_RAW = "/capsheet/raw/bus{}"
 TOPIC_SYNC = "/capsheet/sync"
 TOPIC_SNAPSHOT = "/capsheet/snapshot"
@@ -413,7 +418,11 @@ class Recorder:
         self.session.update(session)
         self._writer.write_metadata("capsheet.host", {k: json.dumps(v) for k, v in session.items()})
         now = time.time_ns()
-        for name, doc in (("layout.json", layout), ("calibration.json", calibration)):
+        docs = [("layout.json", layout), ("calibration.json", calibration)]
+        live_cal = getattr(getattr(host, "snapshot_filter", None), "calibration", None)
+        if live_cal is not None:  # `capsheet host --calibration`: what the snapshots were corrected with
+            docs.append((HOST_CALIBRATION, live_cal.to_dict()))
+        for name, doc in docs:
             self._writer.attach(log_time=now, create_time=now, name=name, media_type="application/json",
                                 data=json.dumps(doc, indent=1).encode())
 

@@ -190,6 +190,7 @@ class Replay:
         self.speed = speed
         self.recording = None
         self._syncs = np.zeros((0, 2))
+        self.host_calibration = None  #: applied to every snapshot, as the recording host did
         calibration = None
         session: dict = {}
         if self.path.suffix.lower() == ".mcap":
@@ -200,6 +201,11 @@ class Replay:
             buses = {names.get(b, f"bus{b}"): rec.raw[b] for b in sorted(rec.raw)}
             self._syncs = rec.sync
             calibration = rec.attachments.get("calibration.json")
+            host_cal = rec.attachments.get(record.HOST_CALIBRATION)
+            if host_cal is not None:  # `capsheet host --calibration`: the snapshots were corrected with it
+                from host.analysis.calibration import Calibration
+                self.host_calibration = Calibration.from_dict(host_cal, f"{self.path.name}: "
+                                                                         f"{record.HOST_CALIBRATION}")
             if not buses:
                 raise ValueError(f"{str(self.path)!r} holds no raw input (/capsheet/raw/bus*): nothing to replay")
         else:
@@ -336,8 +342,11 @@ class Replay:
         out.clear()
 
     def _fix(self, snaps):
+        cal = self.host_calibration
         for s in snaps:
-            yield s if self._wall_offset is None else replace(s, wall_time=s.timestamp + self._wall_offset)
+            if self._wall_offset is not None:
+                s = replace(s, wall_time=s.timestamp + self._wall_offset)
+            yield s if cal is None else replace(s, readings=cal.apply(s.readings))
 
     @property
     def stats(self) -> dict:

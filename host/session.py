@@ -348,6 +348,7 @@ class Host:
         self._send_failing: set[int] = set()
         #: callable ``snapshot -> snapshot`` that `get` applies first (``capsheet host --calibration``)
         self.snapshot_filter: Callable[[LatticeSnapshot], LatticeSnapshot] | None = None
+        self.calibration_reads = 0  #: `read_calibration` calls completed (a corrector follows them)
         #: a `host.health.HealthChecker` fed every snapshot `get` returns; its findings are host events
         self.health = None
         # SYNC schedule, loop lag and the lag-free watchdog clock (see _sync_step / _watchdog)
@@ -770,6 +771,7 @@ class Host:
                 rec.calibrated = len(axes) == 3
                 n_ok += rec.calibrated
             self._apply_calibration()
+            self.calibration_reads += 1
         return n_ok
 
     def start(self, uids=None) -> int:

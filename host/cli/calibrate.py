@@ -116,15 +116,35 @@ def _chip_calibration_of(host) -> tuple[np.ndarray, np.ndarray]:
     return off, sens
 
 
-def snapshot_corrector(host, cal: Calibration) -> Callable:
-    """A function ``snapshot -> snapshot`` with calibrated readings, for the chip calibration the
-    host read (call after ``read_calibration``): `Calibration.rebased` to it, so a file works
-    whether or not its offsets and sensitivities were written to the chips."""
-    live = cal.rebased(*_chip_calibration_of(host))
+class SnapshotCorrector:
+    """``snapshot -> snapshot`` with calibrated readings, for the chip calibration the host read:
+    `Calibration.rebased` to it, so a file works whether or not its offsets and sensitivities
+    were written to the chips. Set it before bring-up: it follows every ``read_calibration``
+    (``host.calibration_reads``), so the first snapshot streamed is corrected like the rest (and
+    recorded so); until the host has read the chips it passes snapshots through."""
 
-    def correct(snap):
-        return dataclasses.replace(snap, readings=live.apply(snap.readings))
-    return correct
+    def __init__(self, host, cal: Calibration) -> None:
+        self._host, self._cal = host, cal
+        self._live: Calibration | None = None
+        self._reads = 0
+
+    @property
+    def calibration(self) -> Calibration | None:
+        """What is applied now (None before the host read the chips' calibration): what a
+        recording attaches as ``host_calibration.json`` for its replay."""
+        reads = int(getattr(self._host, "calibration_reads", 1))
+        if reads and (self._live is None or reads != self._reads):
+            self._live, self._reads = self._cal.rebased(*_chip_calibration_of(self._host)), reads
+        return self._live
+
+    def __call__(self, snap):
+        live = self.calibration
+        return snap if live is None else dataclasses.replace(snap, readings=live.apply(snap.readings))
+
+
+def snapshot_corrector(host, cal: Calibration) -> Callable:
+    """A `SnapshotCorrector` of ``host`` for ``cal``."""
+    return SnapshotCorrector(host, cal)
 
 
 def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndarray) -> dict:

@@ -145,11 +145,11 @@ def run(args) -> int:
         outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
         outputs.attach(host)
+        if cal is not None:  # before bring-up: it follows the chip calibration the host reads
+            host.snapshot_filter = snapshot_corrector(host, cal)
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
-            if cal is not None:
-                host.snapshot_filter = snapshot_corrector(host, cal)
             print(f"capsheet demo: {summary['discovered']} chips discovered, {summary['assigned']} assigned, "
                   f"{summary['calibrated']} calibrated, {summary['started']} streaming "
                   f"({time.monotonic() - t_up:.1f} s)", file=sys.stderr)

@@ -293,6 +293,8 @@ def run(args) -> int:
     stats: dict | None = None
     code = EXIT_OK
     summary: dict | None = None
+    if cal is not None:  # before bring-up: the first snapshot streamed is corrected too
+        host.snapshot_filter = snapshot_corrector(host, cal)
     try:
         with host:
             try:
@@ -310,7 +312,6 @@ def run(args) -> int:
                 return _fail("no chip started streaming", EXIT_FAIL)
             if cal is not None:
                 from host.health import HealthChecker
-                host.snapshot_filter = snapshot_corrector(host, cal)
                 host.health = HealthChecker(host.lattice.rows, host.lattice.cols)
             out.describe(host)
             t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, time.monotonic()

@@ -118,11 +118,11 @@ def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
     transports = open_transports(args)
     host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate,
                 layout=Layout.load(args.layout) if args.layout else None)
+    if args.cal is not None:  # before bring-up: it follows the chip calibration the host reads
+        from host.cli.calibrate import snapshot_corrector
+        host.snapshot_filter = snapshot_corrector(host, args.cal)
     with host:
         host.bring_up()
-        if args.cal is not None:
-            from host.cli.calibrate import snapshot_corrector
-            host.snapshot_filter = snapshot_corrector(host, args.cal)
         learn = [s for s in host.snapshots(duration_s=args.learn_s) if s.complete]
         if len(learn) < 2:
             raise SystemExit("capsheet tactile: fewer than 2 complete snapshots while learning "
