@@ -24,8 +24,8 @@ import tempfile
 import time
 from pathlib import Path
 
-for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ[_var] = "1"
+# No BLAS thread variables here: the commands run as a user runs them (capsheet limits BLAS to one
+# thread itself, host.cli.one_blas_thread; a benchmark that set them hid a 2.6x loss).
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 

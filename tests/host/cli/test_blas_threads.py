@@ -1,0 +1,46 @@
+"""capsheet runs BLAS on one thread unless the user chose otherwise (host.cli.one_blas_thread)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from host.cli import BLAS_THREAD_VARS
+
+# numpy's OpenBLAS is loaded before main() runs (the CLI modules import numpy), scipy's after:
+# both must end up limited. A real subcommand runs first.
+PROBE = """
+import json, sys
+import numpy
+from host.cli import main
+rc = main(["protocol", "capacity"])
+import scipy.linalg, scipy.sparse.linalg
+from threadpoolctl import threadpool_info
+print("\\n" + json.dumps({"rc": rc, "blas": [(i["prefix"], i["num_threads"]) for i in threadpool_info()
+                                          if i["user_api"] == "blas"]}))
+"""
+
+
+def _run(env_extra: dict) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARS}
+    env.update(env_extra)
+    out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_capsheet_limits_every_loaded_blas_to_one_thread():
+    got = _run({})
+    assert got["rc"] == 0
+    assert got["blas"], "no BLAS library found loaded"
+    assert {n for _, n in got["blas"]} == {1}, got["blas"]
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="a one-core machine runs BLAS on one thread anyway")
+def test_a_thread_count_the_user_chose_is_kept():
+    got = _run({"OPENBLAS_NUM_THREADS": "2"})
+    assert {n for _, n in got["blas"]} == {2}, got["blas"]
