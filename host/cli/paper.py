@@ -30,8 +30,18 @@ from pathlib import Path
 
 import numpy as np
 
-from host.analysis import estimator as E
 from protocol.constants import G0
+
+class _LazyEstimator:
+    """``E.name`` -> ``host.analysis.estimator.name``, imported on first use: building the CLI's
+    parser must not import scipy (it cost every ``capsheet`` command ~0.8 s)."""
+
+    def __getattr__(self, name):
+        from host.analysis import estimator
+        return getattr(estimator, name)
+
+
+E = _LazyEstimator()
 
 __all__ = ["register", "unit_angles", "unit_state", "yaw_std_gain", "solvability_grid",
            "noise_study"]

@@ -136,6 +136,8 @@ class SessionOutputs:
         self.records_at_emission = False  #: `attach` records every emitted snapshot itself
         record, live = getattr(args, "record", None), getattr(args, "live", None)
         if record or live is not None:
+            import host.analysis.estimator  # noqa: F401 -- now, not at the first estimate: importing scipy
+            # mid-session (~0.8 s holding the GIL) stalls the live path it runs in
             from host.record import Recorder
             try:
                 self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},

@@ -21,9 +21,12 @@ import time
 import numpy as np
 
 from host.cli.transport_args import add_transport_args, open_transports
-from host.analysis.tactile import (DetectorSettings, Foam, TactileFrame, TactileSensor,
-                                   lattice_index, plot_frame)
-from host.analysis.tactile.plot import TrueMark
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # host.analysis.tactile (and through it the estimator and scipy) is imported where
+    # it is used, so that building the CLI's parser stays light
+    from host.analysis.tactile import DetectorSettings, Foam, TactileFrame
+    from host.analysis.tactile.plot import TrueMark
 
 
 def register(subparsers) -> None:
@@ -68,6 +71,7 @@ def _status(fr: TactileFrame, L: float) -> str:
 
 
 def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+    from host.analysis.tactile import TactileSensor
     from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamCylinder, FoamLayer, FoamScene,
                                     FoamSphere, Press, SphereIndenter)
     from virtual_sheet.geometry import ideal_readings
@@ -105,6 +109,8 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
 
 
 def _true_mark(scene, c, L: float) -> TrueMark:
+    from host.analysis.tactile import lattice_index
+    from host.analysis.tactile.plot import TrueMark
     """A true contact in lattice indices; its footprint's angle from the lattice's i direction
     (the surface's +u is the i direction on every virtual body)."""
     idx = lattice_index(scene.rest_joints, c.position)
@@ -113,6 +119,7 @@ def _true_mark(scene, c, L: float) -> TrueMark:
 
 
 def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+    from host.analysis.tactile import TactileSensor
     from host.session import Host, Layout
 
     transports = open_transports(args)
@@ -139,6 +146,8 @@ def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
 
 
 def run(args) -> int:
+    from host.analysis.tactile import DetectorSettings, Foam, plot_frame
+
     try:
         rows, cols = (int(x) for x in args.lattice.lower().split("x"))
         foam = Foam(args.thickness, args.youngs, args.poisson)
@@ -151,7 +160,7 @@ def run(args) -> int:
     real = bool(args.port or args.can)
     source = (_real if real else _virtual)(args, foam, settings, rows, cols)
     best, best_truth, last_print = None, None, -1e9
-    from host.cli.record_args import SessionOutputs, contact_dicts
+    from host.cli.record_args import SessionOutputs
     from protocol.lattice import Lattice
     outputs = SessionOutputs(args, Lattice(rows, cols), args.link_length, mode="tactile", colour_by="displacement",
                              prog="capsheet tactile")
