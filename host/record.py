@@ -48,7 +48,7 @@ import time
 from dataclasses import dataclass, field
 from importlib import metadata as _md
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import logging
 
@@ -56,7 +56,8 @@ import numpy as np
 
 log = logging.getLogger("capsheet.host.record")
 
-__all__ = ["Recorder", "Recording", "read", "read_recording", "tap_transport", "versions",
+__all__ = ["Recorder", "Recording", "read", "read_recording", "iter_snapshots", "SnapshotBatch", "snapshot_count",
+           "tap_transport", "versions",
            "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "FORMAT"]
 
 FORMAT = "capsheet-mcap-1"
@@ -647,16 +648,8 @@ def read(path, *, raw: bool = True) -> Recording:
             raise ValueError(f"{str(path)!r} was cut short before its 'capsheet.session' metadata: nothing to read")
         raise ValueError(f"{str(path)!r} is not a capsheet recording (no 'capsheet.session' metadata)")
     session = {**meta["capsheet.session"], **meta.get("capsheet.host", {})}
-    n_links = int(session["n_links"])
     rows, cols = int(session["rows"]), int(session["cols"])
-    n = len(snaps)
-    readings = np.empty((n, n_links, 3), dtype=np.float32)
-    valid = np.empty((n, n_links), dtype=bool)
-    status = np.empty((n, n_links), dtype=np.uint8)
-    for k, s in enumerate(snaps):
-        readings[k] = _unarr(s["readings"])
-        valid[k] = _unarr(s["valid"]).astype(bool)
-        status[k] = _unarr(s["status"])
+    b = _snapshot_batch(session, snaps)
     est: dict[str, np.ndarray] = {
         "counter": np.array([e["counter"] for e in ests], dtype=np.uint16),
         "timestamp": np.array([e["timestamp"] for e in ests], dtype=np.float64),
@@ -671,14 +664,101 @@ def read(path, *, raw: bool = True) -> Recording:
         est["error_pct_side"] = np.array([e["error_pct_side"] for e in ests])
     return Recording(
         session=session, attachments=attachments,
-        counter=np.array([s["counter"] for s in snaps], dtype=np.uint16),
-        timestamp=np.array([s["timestamp"] for s in snaps], dtype=np.float64),
-        wall_time=np.array([s["wall_time"] for s in snaps], dtype=np.float64),
+        counter=b.counter, timestamp=b.timestamp, wall_time=b.wall_time,
         latency_s=np.array([s["latency_s"] for s in snaps], dtype=np.float64),
         complete=np.array([s["complete"] for s in snaps], dtype=bool),
-        readings=readings, valid=valid, status=status, estimates=est, raw=raws,
+        readings=b.readings, valid=b.valid, status=b.status, estimates=est, raw=raws,
         sync=np.array(syncs, dtype=np.float64).reshape(-1, 2), contacts=contacts, message_counts=counts,
         truncated=truncated, metadata=meta)
+
+
+@dataclass
+class SnapshotBatch:
+    """Consecutive recorded snapshots (`iter_snapshots`): arrays with a leading axis of ``len(batch)``."""
+
+    session: dict  #: the ``capsheet.session`` metadata (rows, cols, n_links, link_length_m, ...)
+    counter: np.ndarray  #: (b,) uint16
+    timestamp: np.ndarray  #: (b,) float64, host monotonic s
+    wall_time: np.ndarray  #: (b,) float64, unix s
+    readings: np.ndarray  #: (b, n_links, 3) float32, m/s^2
+    valid: np.ndarray  #: (b, n_links) bool
+    status: np.ndarray  #: (b, n_links) uint8
+
+    def __len__(self) -> int:
+        return int(self.counter.shape[0])
+
+
+def snapshot_count(path) -> int | None:
+    """How many snapshots a cleanly closed recording holds (from its summary, without reading the
+    data), or None when the file has no summary (a killed writer)."""
+    from mcap.exceptions import McapError
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as f:
+            summary = make_reader(f).get_summary()
+    except (McapError, OSError, EOFError, ValueError):
+        return None
+    if summary is None or summary.statistics is None:
+        return None
+    ids = [c.id for c in summary.channels.values() if c.topic == TOPIC_SNAPSHOT]
+    return sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+
+
+def iter_snapshots(path, batch: int = 256) -> Iterator[SnapshotBatch]:
+    """The recorded snapshots of a capsheet MCAP, ``batch`` at a time, as the file is read: a long
+    recording is never in memory whole, and its first batches can be worked on while the rest is
+    read (``capsheet estimate``). The same snapshots, in the same order, as `read` (a file cut short
+    included); raw input, estimates and contacts are skipped.
+
+    Raises
+    ------
+    ValueError
+        Not MCAP, not a capsheet recording, or ``batch`` < 1.
+    """
+    from mcap.records import Channel, Message, Metadata
+
+    if int(batch) < 1:
+        raise ValueError(f"batch must be >= 1, got {batch!r}")
+    path = Path(path)
+    with open(path, "rb") as f:
+        if f.read(8) != b"\x89MCAP0\r\n":
+            raise ValueError(f"{str(path)!r} is not an MCAP file (magic bytes missing)")
+        f.seek(0)
+        snap_channels: set[int] = set()
+        session: dict | None = None
+        pending: list[dict] = []
+        for rec in _iter_records(f):
+            if isinstance(rec, Message):
+                if rec.channel_id in snap_channels:
+                    pending.append(json.loads(rec.data))
+                    if session is not None and len(pending) >= batch:
+                        yield _snapshot_batch(session, pending)
+                        pending = []
+            elif isinstance(rec, Channel):
+                if rec.topic == TOPIC_SNAPSHOT:
+                    snap_channels.add(rec.id)
+            elif isinstance(rec, Metadata) and rec.name == "capsheet.session":
+                session = {k: json.loads(v) for k, v in rec.metadata.items()}
+    if session is None:
+        raise ValueError(f"{str(path)!r} is not a capsheet recording, or was cut short before its "
+                         f"'capsheet.session' metadata (nothing to read)")
+    for k in range(0, len(pending), batch):
+        yield _snapshot_batch(session, pending[k:k + batch])
+
+
+def _snapshot_batch(session: dict, snaps: list[dict]) -> SnapshotBatch:
+    n, n_links = len(snaps), int(session["n_links"])
+    readings = np.empty((n, n_links, 3), dtype=np.float32)
+    valid = np.empty((n, n_links), dtype=bool)
+    status = np.empty((n, n_links), dtype=np.uint8)
+    for k, s in enumerate(snaps):
+        readings[k] = _unarr(s["readings"])
+        valid[k] = _unarr(s["valid"]).astype(bool)
+        status[k] = _unarr(s["status"])
+    return SnapshotBatch(session, np.array([s["counter"] for s in snaps], dtype=np.uint16),
+                         np.array([s["timestamp"] for s in snaps], dtype=np.float64),
+                         np.array([s["wall_time"] for s in snaps], dtype=np.float64), readings, valid, status)
 
 
 #: the name docs and older code used

@@ -401,3 +401,45 @@ def test_an_unwritable_recording_is_one_line_not_a_traceback(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["host", "--port", "loop://", "--record", str(tmp_path / "file" / "run.mcap"), "--duration", "0.1"])
     assert str(exc.value).startswith("capsheet host: cannot write ") and "run.mcap" in str(exc.value)
+
+
+@pytest.mark.parametrize("batch", [1, 5, 12, 100])
+def test_iter_snapshots_gives_the_recorded_snapshots_in_batches_in_order(tmp_path, batch):
+    from host.record import iter_snapshots, snapshot_count
+    rng = np.random.Generator(np.random.MT19937(7))
+    path = tmp_path / "run.mcap"
+    snaps, *_ = write_sample(path, rng)
+    parts = list(iter_snapshots(path, batch))
+    assert [len(p) for p in parts] == [min(batch, 12 - k) for k in range(0, 12, batch)]
+    assert all(p.session["rows"] == 3 and p.session["link_length_m"] == 0.02 for p in parts)
+    cat = {f: np.concatenate([getattr(p, f) for p in parts])
+           for f in ("counter", "timestamp", "wall_time", "readings", "valid", "status")}
+    assert cat["counter"].tolist() == [s.counter for s in snaps]
+    assert cat["timestamp"].tolist() == [s.timestamp for s in snaps]
+    assert cat["wall_time"].tolist() == [s.wall_time for s in snaps]
+    np.testing.assert_array_equal(cat["readings"], np.stack([s.readings for s in snaps]).astype(np.float32))
+    np.testing.assert_array_equal(cat["valid"], np.stack([s.valid for s in snaps]))
+    np.testing.assert_array_equal(cat["status"], np.stack([s.status for s in snaps]))
+    # the count from the summary is the number of snapshot messages a reader written from the spec sees
+    assert snapshot_count(path) == sum(t == "/capsheet/snapshot" for t, _, _ in _minimal_read(path)) == 12
+
+
+def test_iter_snapshots_reads_a_cut_file_as_far_as_read_does(tmp_path):
+    from host.record import iter_snapshots, snapshot_count
+    rng = np.random.Generator(np.random.MT19937(8))
+    path = tmp_path / "run.mcap"
+    with Recorder(path, Lattice(3, 4), 0.01, flush_interval_s=0.0) as rec:  # a chunk per message
+        for c in range(20):
+            rec.snapshot(snap(c, 17, rng))
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:len(data) // 2])
+    whole = read(cut)
+    got = np.concatenate([p.counter for p in iter_snapshots(cut, 3)])
+    assert 0 < len(whole) < 20 and got.tolist() == whole.counter.tolist()
+    assert snapshot_count(cut) is None  # no summary: the count is not known beforehand
+    cut.write_bytes(data[:60])
+    with pytest.raises(ValueError, match="capsheet.session"):
+        list(iter_snapshots(cut))
+    with pytest.raises(ValueError, match="batch must be >= 1"):
+        list(iter_snapshots(path, 0))
