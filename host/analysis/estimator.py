@@ -57,6 +57,7 @@ This module needs numpy and scipy only; it does not import `virtual_sheet`.
 from __future__ import annotations
 
 import copy
+import os
 import time
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -69,6 +70,13 @@ from scipy.sparse.linalg import splu
 from protocol.lattice import Lattice
 
 from .metrics import error_percent_of_side, overlay, overlay_error
+
+try:  # the compiled cost-and-gradient kernel (host/analysis/_kernel/); optional
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._yaw_kernel import ffi as _kffi, lib as _klib
+except ImportError:  # not built (no C compiler at install): the numpy code, same numbers
+    _kffi = _klib = None
 
 __all__ = ["ShapeEstimate", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
            "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]
@@ -125,6 +133,10 @@ MAX_ITER = 50
 #: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
 #: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
 _REFACTOR_RATIO = 0.7
+#: Evaluate a single snapshot's yaw cost and gradient (model "cells", the chord steps) with the
+#: compiled kernel when it is built; False: the numpy code (same numbers to ~1e-15 relative;
+#: tests/host/analysis/test_estimator_kernel.py). `estimate_batch` always uses numpy.
+USE_KERNEL = _klib is not None
 #: Weight of the joints' prior (keeps components cut off by missing links defined), per m².
 JOINT_PRIOR_WEIGHT = 1e-9
 
@@ -619,6 +631,7 @@ class _YawProblem:
     def take(self, idx):
         """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
         sub = copy.copy(self)
+        sub.__dict__.pop("_kp", None)  # the kernel's view of one snapshot's arrays
         for name, nd in self._PER_SNAPSHOT.items():
             v = getattr(self, name, None)
             if v is not None and np.ndim(v) == nd + 1:
@@ -630,6 +643,8 @@ class _YawProblem:
         ``jac`` is False: the roll terms' gradient then comes from `_roll_grad`, without
         forming their Jacobian)."""
         st = self.st
+        if not jac and st.model == "cells" and USE_KERNEL and gamma.ndim == 1:
+            return self._evaluate_kernel(gamma)
         nv1 = st.n_var + 1
         z = np.exp(1j * gamma)
         zu = z[..., st.units]
@@ -671,6 +686,52 @@ class _YawProblem:
             cost2 = cost2 + np.add.reduce(self.lam * e * e, axis=-1)
             grad += self.lam * e
         return 0.5 * cost2, grad, blocks
+
+    def _evaluate_kernel(self, gamma):
+        """`evaluate` with ``jac=False`` for one snapshot, model "cells", in the compiled kernel
+        (host/analysis/_kernel/yaw_eval.c: the same terms as `evaluate` and `_roll_grad`)."""
+        kp = self.__dict__.get("_kp")
+        if kp is None:
+            kp = self._kp = self._kernel_problem()
+        st = self.st
+        g = np.ascontiguousarray(gamma, dtype=float)
+        grad = np.empty(st.n_var + 1)
+        cost = _klib.capsheet_yaw_eval(kp[0], _kffi.from_buffer("double[]", g),
+                                       _kffi.from_buffer("double[]", grad), kp[1])
+        return cost, grad[:st.n_var], None
+
+    def _kernel_problem(self):
+        """The kernel's ``capsheet_yaw_t`` for this snapshot, its work buffer, and the arrays
+        it points into (kept alive with it)."""
+        st = self.st
+        keep = []
+
+        def ptr(a, kind):
+            a = np.ascontiguousarray(a, dtype=np.int64 if kind == "int64_t" else np.float64)
+            keep.append(a)
+            return _kffi.cast(f"{kind} *", _kffi.from_buffer(a))
+
+        p = _kffi.new("capsheet_yaw_t *")
+        p.n_units, p.n_roll = st.n_units, st.roll_links.size
+        p.n_pairs, p.n_var = st.pairs.shape[0], st.n_var
+        p.units, p.unit_var = ptr(st.units, "int64_t"), ptr(st.unit_var, "int64_t")
+        p.c_loop = ptr(self.c_loop, "double")
+        p.Az, p.Cz = ptr(self.Az, "double"), ptr(self.Cz, "double")
+        p.roll_links, p.roll_c0 = ptr(st.roll_links, "int64_t"), ptr(st.roll_c0, "int64_t")
+        p.roll_c1, p.roll_var0 = ptr(st.roll_c1, "int64_t"), ptr(st.roll_var[:, 0], "int64_t")
+        p.roll_ws1 = ptr(st.roll_ws1, "double")
+        p.y_c = ptr(np.ascontiguousarray(self.y_c, dtype=complex).view(np.float64), "double")
+        p.y_z, p.w = ptr(self.y_z, "double"), ptr(self.w, "double")
+        p.pairs, p.pair_var = ptr(st.pairs, "int64_t"), ptr(st.pair_var, "int64_t")
+        p.pair_t = ptr(self.pair_t, "double")
+        p.lam_b = ptr(np.broadcast_to(self.lam_b, (st.pairs.shape[0],)), "double")
+        p.var_links = ptr(st.var_links, "int64_t")
+        p.target = ptr(self.target, "double")
+        p.lam = ptr(np.broadcast_to(self.lam, (st.n_var,)), "double")
+        p.abs_prior = 1 if self.abs_prior else 0
+        work = np.empty(19 * max(st.n_units, 1))
+        keep.append(work)
+        return p, _kffi.from_buffer("double[]", work), keep
 
     def rows(self, gamma) -> np.ndarray:
         """The data residuals as real rows: loop (and eq. 6) real parts, imaginary parts, then
@@ -822,13 +883,46 @@ def _factorise(st: "_Structure", A):
             sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
             st._cholmod_sym = sym
         return ("cholmod", sym.cholesky(A))
-    return ("splu", splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                         options=dict(SymmetricMode=True)))
+    lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    return ("splu", lu, _triangular(lu) if USE_KERNEL else None)
+
+
+def _triangular(lu):
+    """SuperLU's factors as the kernel's ``capsheet_lu_solve`` takes them: the strictly lower
+    part of L and the strictly upper part of U in CSC (int32 indices) and U's diagonal; None
+    when SuperLU permuted rows or columns (it was asked not to: the ordering is the structure's)."""
+    n = lu.shape[0]
+    if not (np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n))):
+        return None
+
+    def strict(M, lower):
+        M = M.tocsc()
+        col = np.repeat(np.arange(n), np.diff(M.indptr))
+        keep = M.indices > col if lower else M.indices < col
+        ptr = np.zeros(n + 1, np.int32)
+        np.cumsum(np.bincount(col[keep], minlength=n), out=ptr[1:])
+        return (ptr, np.ascontiguousarray(M.indices[keep], np.int32),
+                np.ascontiguousarray(M.data[keep], np.float64))
+
+    U = lu.U.tocsc()
+    arrays = strict(lu.L, True) + strict(U, False) + (np.ascontiguousarray(U.diagonal()),)
+    ptrs = [_kffi.from_buffer(("int32_t[]" if a.dtype == np.int32 else "double[]"), a)
+            for a in arrays]
+    return arrays, ptrs
 
 
 def _solve(fac, b):
-    kind, f = fac
-    return f(b) if kind == "cholmod" else f.solve(b)
+    """``A⁻¹ b`` with a factorisation from `_factorise`; one right-hand side (b (n,)) of a SuperLU
+    factorisation goes through the kernel's triangular sweeps when it is built."""
+    kind, f = fac[0], fac[1]
+    if kind == "cholmod":
+        return f(b)
+    tri = fac[2] if len(fac) > 2 else None
+    if tri is None or b.ndim != 1 or not USE_KERNEL:
+        return f.solve(b)
+    x = np.array(b, dtype=np.float64)  # a copy: solved in place
+    _klib.capsheet_lu_solve(x.size, *tri[1], _kffi.from_buffer("double[]", x))
+    return x
 
 
 def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,

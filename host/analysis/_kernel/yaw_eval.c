@@ -1,0 +1,160 @@
+/* The yaw problem's cost and gradient for one snapshot, model "cells" (host/analysis/estimator.py,
+ * _YawProblem.evaluate with jac=False, and _roll_grad): the same terms in one pass over the
+ * units, roll links and prior pairs, for the Python fallback's numbers to ~1e-15 relative.
+ *
+ * Conventions are docs/design.md's; the terms are docs/estimator.md's. All arrays are
+ * C-contiguous, caller-owned; nothing is allocated. Complex numbers are stored as (re, im)
+ * pairs of doubles (numpy complex128's layout).
+ */
+#include "yaw_eval.h"
+
+#include <math.h>
+
+#define TWO_PI 6.283185307179586
+
+static double wrap_fast(double x)
+{
+    return x - TWO_PI * rint(x * (1.0 / TWO_PI));
+}
+
+double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
+                         double *work)
+{
+    const int64_t U = p->n_units, K = p->n_roll, NP = p->n_pairs, nv = p->n_var;
+    /* work: per unit t (8), A (2), C (2), n (3), inv (1), Y (3) = 19 doubles */
+    double *wt = work;
+    double *wA = wt + 8 * U, *wC = wA + 2 * U, *wn = wC + 2 * U, *winv = wn + 3 * U;
+    double *wY = winv + U;
+    double cost_loop = 0.0, cost_roll = 0.0, cost_pair = 0.0, cost_abs = 0.0;
+    int64_t u, m, k;
+
+    for (k = 0; k <= nv; ++k)
+        grad[k] = 0.0;
+
+    /* loop closure (eq. 4, xy) and the cells' normals */
+    for (u = 0; u < U; ++u) {
+        double tr[4], ti[4], rr = 0.0, ri = 0.0;
+        for (m = 0; m < 4; ++m) {
+            const double g = gamma[p->units[4 * u + m]], c = p->c_loop[4 * u + m];
+            tr[m] = c * cos(g);
+            ti[m] = c * sin(g);
+            rr += tr[m];
+            ri += ti[m];
+            wt[8 * u + 2 * m] = tr[m];
+            wt[8 * u + 2 * m + 1] = ti[m];
+        }
+        cost_loop += rr * rr + ri * ri;
+        for (m = 0; m < 4; ++m) /* Im(conj(t) r) */
+            grad[p->unit_var[4 * u + m]] += tr[m] * ri - ti[m] * rr;
+        {
+            /* D = t * (1, 1, -1, -1); A = D1 + D3, C = D0 + D2 */
+            const double Ar = tr[1] - tr[3], Ai = ti[1] - ti[3];
+            const double Cr = tr[0] - tr[2], Ci = ti[0] - ti[2];
+            const double Az = p->Az[u], Cz = p->Cz[u];
+            /* m_xy = i (Az C - Cz A), m_z = Im(conj(A) C) */
+            const double pr = Az * Cr - Cz * Ar, pi = Az * Ci - Cz * Ai;
+            const double mr = -pi, mi = pr;
+            const double mz = Ar * Ci - Ai * Cr;
+            const double mm = sqrt(mr * mr + mi * mi + mz * mz);
+            const double inv = mm > 1e-9 ? 1.0 / mm : 0.0;
+            wA[2 * u] = Ar;
+            wA[2 * u + 1] = Ai;
+            wC[2 * u] = Cr;
+            wC[2 * u + 1] = Ci;
+            wn[3 * u] = mr * inv;
+            wn[3 * u + 1] = mi * inv;
+            wn[3 * u + 2] = mz * inv;
+            winv[u] = inv;
+            wY[3 * u] = wY[3 * u + 1] = wY[3 * u + 2] = 0.0;
+        }
+    }
+
+    /* roll residuals w (y_k . N_k); their gradient in reverse mode (see _roll_grad) */
+    for (k = 0; k < K; ++k) {
+        const int64_t c0 = p->roll_c0[k], c1 = p->roll_c1[k];
+        const double ws1 = p->roll_ws1[k];
+        const double g = gamma[p->roll_links[k]], cg = cos(g), sg = sin(g);
+        const double yr = p->y_c[2 * k] * cg - p->y_c[2 * k + 1] * sg;
+        const double yi = p->y_c[2 * k] * sg + p->y_c[2 * k + 1] * cg;
+        const double yz = p->y_z[k], w = p->w[k];
+        const double Nr = wn[3 * c0] + ws1 * wn[3 * c1];
+        const double Ni = wn[3 * c0 + 1] + ws1 * wn[3 * c1 + 1];
+        const double Nz = wn[3 * c0 + 2] + ws1 * wn[3 * c1 + 2];
+        /* conj(y) N */
+        const double yNr = yr * Nr + yi * Ni, yNi = yr * Ni - yi * Nr;
+        const double res = w * (yNr + yz * Nz);
+        const double rho = w * res, r1 = ws1 * rho;
+        cost_roll += res * res;
+        grad[p->roll_var0[k]] += rho * yNi;
+        wY[3 * c0] += rho * yr;
+        wY[3 * c0 + 1] += rho * yi;
+        wY[3 * c0 + 2] += rho * yz;
+        wY[3 * c1] += r1 * yr;
+        wY[3 * c1 + 1] += r1 * yi;
+        wY[3 * c1 + 2] += r1 * yz;
+    }
+
+    /* Q = (Y - (Y.n) n) / |m|; gradient through the normals, Q . dm/dγ per link of the cell */
+    for (u = 0; u < U; ++u) {
+        const double *t = wt + 8 * u;
+        const double nr = wn[3 * u], ni = wn[3 * u + 1], nz = wn[3 * u + 2], inv = winv[u];
+        const double Yr = wY[3 * u], Yi = wY[3 * u + 1], Yz = wY[3 * u + 2];
+        const double Yn = Yr * nr + Yi * ni + Yz * nz;
+        const double Qr = (Yr - Yn * nr) * inv, Qi = (Yi - Yn * ni) * inv;
+        const double Qz = (Yz - Yn * nz) * inv;
+        const double Az = p->Az[u], Cz = p->Cz[u];
+        const double fac[4] = {-Az, Cz, -Az, Cz};
+        const double sgn[4] = {1.0, 1.0, -1.0, -1.0};
+        const double zs[4] = {1.0, -1.0, 1.0, -1.0};
+        for (m = 0; m < 4; ++m) {
+            const double Dr = sgn[m] * t[2 * m], Di = sgn[m] * t[2 * m + 1];
+            const double *X = (m & 1) ? wC + 2 * u : wA + 2 * u; /* A, C, A, C */
+            const double dmr = Dr * fac[m], dmi = Di * fac[m];
+            const double dmz = (X[0] * Dr + X[1] * Di) * zs[m];
+            grad[p->unit_var[4 * u + m]] += Qr * dmr + Qi * dmi + Qz * dmz;
+        }
+    }
+
+    /* prior pairs: λ (wrap(γ_k − γ_l − δ))² */
+    for (k = 0; k < NP; ++k) {
+        const double e = wrap_fast(gamma[p->pairs[2 * k]] - gamma[p->pairs[2 * k + 1]]
+                                   - p->pair_t[k]);
+        const double wb = p->lam_b[k] * e;
+        cost_pair += wb * e;
+        grad[p->pair_var[2 * k]] += wb;
+        grad[p->pair_var[2 * k + 1]] -= wb;
+    }
+
+    /* yaw prior towards the target (only when some weight exceeds the floor) */
+    if (p->abs_prior) {
+        for (k = 0; k < nv; ++k) {
+            const double e = wrap_fast(gamma[p->var_links[k]] - p->target[k]);
+            cost_abs += p->lam[k] * e * e;
+            grad[k] += p->lam[k] * e;
+        }
+    }
+    return 0.5 * (cost_loop + cost_roll + cost_pair + cost_abs);
+}
+
+void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
+                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
+                       const double *u_diag, double *x)
+{
+    int64_t j;
+    int32_t q;
+    /* L y = b, L unit lower (strict part by columns): scatter each solved entry downwards */
+    for (j = 0; j < n; ++j) {
+        const double xj = x[j];
+        if (xj != 0.0)
+            for (q = l_ptr[j]; q < l_ptr[j + 1]; ++q)
+                x[l_idx[q]] -= l_val[q] * xj;
+    }
+    /* U x = y, U upper (strict part by columns, diagonal apart): scatter upwards */
+    for (j = n - 1; j >= 0; --j) {
+        const double xj = x[j] / u_diag[j];
+        x[j] = xj;
+        if (xj != 0.0)
+            for (q = u_ptr[j]; q < u_ptr[j + 1]; ++q)
+                x[u_idx[q]] -= u_val[q] * xj;
+    }
+}

@@ -1,0 +1,43 @@
+/* The yaw problem's cost and gradient for one snapshot (model "cells"); see yaw_eval.c. */
+#ifndef CAPSHEET_YAW_EVAL_H
+#define CAPSHEET_YAW_EVAL_H
+
+#include <stdint.h>
+
+/* One snapshot's problem: the structure's index arrays and the snapshot's coefficients. */
+typedef struct {
+    int64_t n_units;          /* U: active units */
+    int64_t n_roll;           /* K: links with a roll residual */
+    int64_t n_pairs;          /* prior pairs */
+    int64_t n_var;            /* nv: variables; index nv is the dummy (gauge, padding) */
+    const int64_t *units;     /* (U, 4) link of every unit position */
+    const int64_t *unit_var;  /* (U, 4) its variable, nv for the gauge */
+    const double *c_loop;     /* (U, 4) ±cos β of eq. (4) */
+    const double *Az, *Cz;    /* (U,) z of the cell's i- and j-link sums */
+    const int64_t *roll_links, *roll_c0, *roll_c1, *roll_var0;  /* (K,) */
+    const double *roll_ws1;   /* (K,) 1 if the link has a second cell, else 0 */
+    const double *y_c;        /* (K,) complex: sensor y, xy, before the yaw */
+    const double *y_z, *w;    /* (K,) sensor y's z; the roll weight */
+    const int64_t *pairs, *pair_var;  /* (P, 2) links; their variables */
+    const double *pair_t, *lam_b;     /* (P,) target difference; weight */
+    const int64_t *var_links; /* (nv,) */
+    const double *target, *lam;       /* (nv,) */
+    int32_t abs_prior;        /* nonzero: apply the yaw prior λ wrap(γ − τ)² */
+} capsheet_yaw_t;
+
+/* Cost (½ Σ of the squared terms) at the yaws gamma (n_links,); grad (nv + 1,) receives the
+ * gradient over the variables (entry nv: the dummy's, discarded); work holds 19 U doubles.
+ * No failure cases: the indices are the caller's (validated when the structure is built). */
+double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
+                         double *work);
+
+
+/* Solve (L U) x = b in place (x holds b on entry), L unit lower and U upper triangular, n x n,
+ * given by their strictly triangular parts in CSC (column pointers, row indices, values) and
+ * U's diagonal: a sparse LU factorisation's (SuperLU's) two triangular sweeps, one right-hand
+ * side. No failure cases: a zero on U's diagonal gives inf/NaN, as SuperLU's solve does. */
+void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
+                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
+                       const double *u_diag, double *x);
+
+#endif
