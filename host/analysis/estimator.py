@@ -335,6 +335,17 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         (Case 1: a horizontal unit; Case 2: a squashed one). NaN where a link is missing.
     """
     units = _lattice(rows, cols).units
+    if USE_KERNEL and np.ndim(alpha) == 1 and np.ndim(beta) == 1:  # one snapshot: the kernel
+        al = np.ascontiguousarray(alpha, dtype=np.float64)
+        be = np.ascontiguousarray(beta, dtype=np.float64)
+        if al.shape == be.shape == (_lattice(rows, cols).n_links,):
+            u = _units_int64(rows, cols)
+            out = np.empty(units.shape[:2])
+            _klib.capsheet_solvability(u.shape[0], _kffi.from_buffer("int64_t[]", u),
+                                       _kffi.from_buffer("double[]", al),
+                                       _kffi.from_buffer("double[]", be),
+                                       _kffi.from_buffer("double[]", out))
+            return out
     a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
     ratio = _solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
@@ -516,11 +527,47 @@ class _Structure:
         self.rest_joints_unit = np.stack([ji.astype(float), jj.astype(float),
                                           np.zeros(nj)], axis=1)
 
+    def kernel_arrays(self) -> dict:
+        return _kernel_arrays(self)
+
+
+#: `_Structure.kernel_arrays`' index arrays, by their field name in ``capsheet_yaw_t``
+_KERNEL_INDEX_FIELDS = ("units", "unit_var", "roll_links", "roll_c0", "roll_c1", "roll_var0",
+                        "pairs", "pair_var", "var_links")
+
+
+def _kernel_arrays(st: "_Structure") -> dict:
+    """The structure's arrays as the kernel reads them (int64/float64, contiguous) with their
+    cffi pointers, and a work buffer (one snapshot at a time uses it): made once, kept on ``st``."""
+    ka = st.__dict__.get("_kernel")
+    if ka is not None:
+        return ka
+    src = {"units": st.units, "unit_var": st.unit_var, "roll_links": st.roll_links,
+           "roll_c0": st.roll_c0, "roll_c1": st.roll_c1, "roll_var0": st.roll_var[:, 0],
+           "pairs": st.pairs, "pair_var": st.pair_var, "var_links": st.var_links}
+    ka = {}
+    for name, a in src.items():
+        a = np.ascontiguousarray(a, dtype=np.int64)
+        ka[name] = (a, _kffi.from_buffer("int64_t[]", a))
+    for name, a in (("roll_ws1", st.roll_ws1), ("w", ROLL_WEIGHT * st.roll_inv_ncell)):
+        a = np.ascontiguousarray(a, dtype=np.float64)
+        ka[name] = (a, _kffi.from_buffer("double[]", a))
+    ka["sizes"] = (st.n_units, st.roll_links.size, st.pairs.shape[0], st.n_var)
+    ka["work"] = np.empty(19 * max(st.n_units, 1))
+    st._kernel = ka
+    return ka
+
 
 @lru_cache(maxsize=64)
 def _lattice(rows: int, cols: int) -> Lattice:
     """One `Lattice` per size, so its cached ``endpoints``/``units`` are computed once."""
     return Lattice(rows, cols)
+
+
+@lru_cache(maxsize=64)
+def _units_int64(rows: int, cols: int) -> np.ndarray:
+    """All units' links (n_units, 4), int64, contiguous: what the kernel's `solvability` reads."""
+    return np.ascontiguousarray(_lattice(rows, cols).units.reshape(-1, 4), dtype=np.int64)
 
 
 @lru_cache(maxsize=16)
@@ -702,36 +749,31 @@ class _YawProblem:
 
     def _kernel_problem(self):
         """The kernel's ``capsheet_yaw_t`` for this snapshot, its work buffer, and the arrays
-        it points into (kept alive with it)."""
+        it points into (kept alive with it). The structure's index arrays are shared
+        (`_Structure.kernel_arrays`)."""
         st = self.st
-        keep = []
+        sk = st.kernel_arrays()
+        keep = [sk]
+        fb = _kffi.from_buffer
 
-        def ptr(a, kind):
-            a = np.ascontiguousarray(a, dtype=np.int64 if kind == "int64_t" else np.float64)
+        def ptr(a):
+            a = np.ascontiguousarray(a, dtype=np.float64)
             keep.append(a)
-            return _kffi.cast(f"{kind} *", _kffi.from_buffer(a))
+            return fb("double[]", a)
 
         p = _kffi.new("capsheet_yaw_t *")
-        p.n_units, p.n_roll = st.n_units, st.roll_links.size
-        p.n_pairs, p.n_var = st.pairs.shape[0], st.n_var
-        p.units, p.unit_var = ptr(st.units, "int64_t"), ptr(st.unit_var, "int64_t")
-        p.c_loop = ptr(self.c_loop, "double")
-        p.Az, p.Cz = ptr(self.Az, "double"), ptr(self.Cz, "double")
-        p.roll_links, p.roll_c0 = ptr(st.roll_links, "int64_t"), ptr(st.roll_c0, "int64_t")
-        p.roll_c1, p.roll_var0 = ptr(st.roll_c1, "int64_t"), ptr(st.roll_var[:, 0], "int64_t")
-        p.roll_ws1 = ptr(st.roll_ws1, "double")
-        p.y_c = ptr(np.ascontiguousarray(self.y_c, dtype=complex).view(np.float64), "double")
-        p.y_z, p.w = ptr(self.y_z, "double"), ptr(self.w, "double")
-        p.pairs, p.pair_var = ptr(st.pairs, "int64_t"), ptr(st.pair_var, "int64_t")
-        p.pair_t = ptr(self.pair_t, "double")
-        p.lam_b = ptr(np.broadcast_to(self.lam_b, (st.pairs.shape[0],)), "double")
-        p.var_links = ptr(st.var_links, "int64_t")
-        p.target = ptr(self.target, "double")
-        p.lam = ptr(np.broadcast_to(self.lam, (st.n_var,)), "double")
+        p.n_units, p.n_roll, p.n_pairs, p.n_var = sk["sizes"]
+        for name in _KERNEL_INDEX_FIELDS:
+            setattr(p, name, sk[name][1])
+        p.roll_ws1, p.w = sk["roll_ws1"][1], sk["w"][1]
+        p.c_loop, p.Az, p.Cz = ptr(self.c_loop), ptr(self.Az), ptr(self.Cz)
+        p.y_c = ptr(np.ascontiguousarray(self.y_c, dtype=complex).view(np.float64))
+        p.y_z, p.pair_t = ptr(self.y_z), ptr(self.pair_t)
+        p.lam_b = ptr(self.lam_b if np.ndim(self.lam_b) else np.full(st.pairs.shape[0], self.lam_b))
+        p.target = ptr(self.target)
+        p.lam = ptr(self.lam if np.ndim(self.lam) else np.full(st.n_var, self.lam))
         p.abs_prior = 1 if self.abs_prior else 0
-        work = np.empty(19 * max(st.n_units, 1))
-        keep.append(work)
-        return p, _kffi.from_buffer("double[]", work), keep
+        return p, fb("double[]", sk["work"]), keep
 
     def rows(self, gamma) -> np.ndarray:
         """The data residuals as real rows: loop (and eq. 6) real parts, imaginary parts, then
@@ -1085,6 +1127,15 @@ def _paper_joints(rows: int, cols: int, vec: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 def _directions_normals(alpha, beta, gamma):
+    """Per link its direction (sensor x) and normal (sensor z) in the world, (..., n_links, 3)
+    each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``)."""
+    if USE_KERNEL and np.ndim(alpha) == 1:  # one snapshot: the kernel
+        a, b, g = (np.ascontiguousarray(x, dtype=np.float64) for x in (alpha, beta, gamma))
+        d, n = np.empty((a.size, 3)), np.empty((a.size, 3))
+        fb = _kffi.from_buffer
+        _klib.capsheet_directions(a.size, fb("double[]", a), fb("double[]", b),
+                                  fb("double[]", g), fb("double[]", d), fb("double[]", n))
+        return d, n
     ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
                               np.cos(gamma), np.sin(gamma))
     d = np.stack([cg * cb, sg * cb, -sb], axis=-1)
@@ -1095,6 +1146,12 @@ def _directions_normals(alpha, beta, gamma):
 def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
     """Σ over the given units (U, 4) of eq. (8): a float, or one per snapshot for ``d``, ``n``
     with a leading batch axis (B, n_links, 3)."""
+    if USE_KERNEL and d.ndim == 2:  # one snapshot: the kernel
+        u = np.ascontiguousarray(units, dtype=np.int64)
+        d, n = np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(n, dtype=np.float64)
+        fb = _kffi.from_buffer
+        return float(_klib.capsheet_eq8(u.shape[0], fb("int64_t[]", u), fb("double[]", d),
+                                        fb("double[]", n)))
     du, nu = d[..., units, :], n[..., units, :]
     rd = du[..., 0, :] + du[..., 1, :] - du[..., 2, :] - du[..., 3, :]
     rn = nu[..., 0, :] - nu[..., 1, :] + nu[..., 2, :] - nu[..., 3, :]

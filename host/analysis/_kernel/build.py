@@ -35,6 +35,11 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
 void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
                        const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
                        const double *u_diag, double *x);
+void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
+                         double *d, double *nrm);
+double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
+                          const double *beta, double *ratio);
 """
 
 

@@ -158,3 +158,68 @@ void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, co
                 x[u_idx[q]] -= u_val[q] * xj;
     }
 }
+
+void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
+                         double *d, double *nrm)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        const double ca = cos(alpha[k]), sa = sin(alpha[k]), cb = cos(beta[k]), sb = sin(beta[k]);
+        const double cg = cos(gamma[k]), sg = sin(gamma[k]);
+        d[3 * k] = cg * cb;
+        d[3 * k + 1] = sg * cb;
+        d[3 * k + 2] = -sb;
+        nrm[3 * k] = cg * sb * ca + sg * sa;
+        nrm[3 * k + 1] = sg * sb * ca - cg * sa;
+        nrm[3 * k + 2] = cb * ca;
+    }
+}
+
+double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm)
+{
+    double tot = 0.0;
+    int64_t u, c;
+    for (u = 0; u < n_units; ++u) {
+        const int64_t *l = units + 4 * u;
+        for (c = 0; c < 3; ++c) {
+            const double rd = d[3 * l[0] + c] + d[3 * l[1] + c] - d[3 * l[2] + c] - d[3 * l[3] + c];
+            const double rn = nrm[3 * l[0] + c] - nrm[3 * l[1] + c] + nrm[3 * l[2] + c]
+                              - nrm[3 * l[3] + c];
+            tot += rd * rd + rn * rn;
+        }
+    }
+    return tot;
+}
+
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
+                          const double *beta, double *ratio)
+{
+    static const double sa_sign[3] = {-1.0, 1.0, 1.0}, sb_sign[3] = {1.0, -1.0, 1.0};
+    int64_t u;
+    int m;
+    for (u = 0; u < n_units; ++u) {
+        const int64_t *l = units + 4 * u;
+        double A = 0.0, B = 0.0, Cr = 0.0, Ci = 0.0;
+        int finite = isfinite(alpha[l[0]]) && isfinite(beta[l[0]]);
+        for (m = 1; m < 4; ++m) {
+            const double al = alpha[l[m]], be = beta[l[m]];
+            const double ca = cos(al), sa = sin(al), cb = cos(be), sb = sin(be);
+            const double a = cb * sa_sign[m - 1];
+            const double br = sb * ca * sb_sign[m - 1], bi = -sa * sb_sign[m - 1];
+            finite = finite && isfinite(al) && isfinite(be);
+            A += a * a;
+            B += br * br + bi * bi;
+            Cr += a * br;
+            Ci += a * bi;
+        }
+        if (!finite) {
+            ratio[u] = NAN;
+        } else {
+            const double half = 0.5 * (A + B);
+            const double q = 0.25 * (A - B) * (A - B) + (Cr * Cr + Ci * Ci);
+            const double disc = sqrt(q > 0.0 ? q : 0.0);
+            const double mu1 = half + disc, mu2 = half - disc > 0.0 ? half - disc : 0.0;
+            ratio[u] = mu1 > 0.0 ? sqrt(mu2 / mu1) : 0.0;
+        }
+    }
+}

@@ -40,4 +40,17 @@ void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, co
                        const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
                        const double *u_diag, double *x);
 
+/* Per link (n links), the direction d (sensor x) and normal nrm (sensor z) in world coordinates,
+ * (n, 3) each, of R = Rz(γ) Ry(β) Rx(α) (docs/design.md). No failure cases. */
+void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
+                         double *d, double *nrm);
+
+/* Σ over the units (n_units, 4 links) of eq. (8): |d0 + d1 − d2 − d3|² + |n0 − n1 + n2 − n3|². */
+double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
+
+/* Per unit, λ3/λ1 of eq. (7) in the closed form of estimator._solvability_units; NaN where an
+ * angle of one of its 4 links is not finite (a missing link). */
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
+                          const double *beta, double *ratio);
+
 #endif

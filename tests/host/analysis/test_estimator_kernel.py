@@ -121,3 +121,25 @@ def test_warm_runs_give_the_same_joints_with_the_kernel_and_without(n, shape, sh
     for (j0, i0, f0), (j1, i1, f1) in zip(ref, new):
         assert (i1, f1) == (i0, f0)
         assert np.max(np.abs(j1 - j0)) <= 1e-9 * side
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(masked, monkeypatch):
+    n = 14
+    P = make_sheet("saddle", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 1.0, rng(7))
+    valid = _mask(n) if masked else None
+    est = E.estimate(r, n, n, L, valid=valid)
+    st = est._state[0]
+    alpha, beta = est.alpha, est.beta  # NaN on missing links: those units' solvability is NaN
+    gamma = est.yaws + rng(8).normal(0.0, 0.5, est.yaws.shape)
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        d, nrm = E._directions_normals(np.nan_to_num(alpha), np.nan_to_num(beta), gamma)
+        out[use] = (d, nrm, E._eq8_residual(st.units, d, nrm), E.solvability(alpha, beta, n, n))
+    (d0, n0, e0, s0), (d1, n1, e1, s1) = out[False], out[True]
+    assert np.max(np.abs(d1 - d0)) <= TOL and np.max(np.abs(n1 - n0)) <= TOL
+    assert abs(e1 - e0) <= TOL * e0
+    assert np.array_equal(np.isnan(s1), np.isnan(s0)) and np.isnan(s0).any() == masked
+    assert np.nanmax(np.abs(s1 - s0)) <= TOL
