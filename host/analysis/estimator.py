@@ -1221,6 +1221,18 @@ def _flatness(st, r, norm_g, noise):
     if noise.ndim == 0 and noise <= 0.0:
         return np.zeros(units.shape[0])
     lead = noise.shape  # () or (B,): r (..., n_links, 3), norm_g (..., n_links)
+    if USE_KERNEL and not lead and r.ndim == 2 and FLAT_RADIUS >= 0:  # one snapshot: the kernel
+        u = _units_int64(st.rows, st.cols)
+        rc = np.ascontiguousarray(r, dtype=np.float64)
+        ng = np.ascontiguousarray(norm_g, dtype=np.float64)
+        work, h = np.empty(2 * u.shape[0]), np.empty(u.shape[0])
+        fb = _kffi.from_buffer
+        _klib.capsheet_flatness(st.rows - 1, st.cols - 1, fb("int64_t[]", u), fb("double[]", rc),
+                                fb("double[]", ng), G0, FLAT_RADIUS,
+                                FLAT_TILT_NOISE * max(float(noise), 1e-300),
+                                fb("double[]", work[:u.shape[0]]),
+                                fb("double[]", work[u.shape[0]:]), fb("double[]", h))
+        return h
     cz = r[..., 2] / np.maximum(norm_g * G0, 1e-300)
     th2 = 2.0 * (1.0 - cz[..., units]).mean(axis=-1)
     if FLAT_RADIUS > 0:

@@ -40,6 +40,9 @@ void capsheet_directions(int64_t n, const double *alpha, const double *beta, con
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
 void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
                           const double *beta, double *ratio);
+void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
+                       const double *norm_g, double g0, int64_t radius, double th0, double *th2,
+                       double *tmp, double *h);
 """
 
 

@@ -223,3 +223,42 @@ void capsheet_solvability(int64_t n_units, const int64_t *units, const double *a
         }
     }
 }
+
+void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
+                       const double *norm_g, double g0, int64_t radius, double th0, double *th2,
+                       double *tmp, double *h)
+{
+    const int64_t nu = rows_u * cols_u, k = 2 * radius + 1;
+    int64_t u, i, j, q;
+    int m;
+    for (u = 0; u < nu; ++u) { /* θ² per unit: twice the mean of 1 − cos(tilt) of its links */
+        double s = 0.0;
+        for (m = 0; m < 4; ++m) {
+            const int64_t l = units[4 * u + m];
+            const double den = norm_g[l] * g0;
+            s += 1.0 - r[3 * l + 2] / (den > 1e-300 ? den : 1e-300);
+        }
+        th2[u] = 2.0 * (s / 4.0);
+    }
+    /* the (2 radius + 1)² box mean, edges extended by their nearest value (scipy's
+     * uniform_filter, mode "nearest"): along the rows, then along the columns */
+    for (i = 0; i < rows_u; ++i)
+        for (j = 0; j < cols_u; ++j) {
+            double s = 0.0;
+            for (q = i - radius; q <= i + radius; ++q) {
+                const int64_t qq = q < 0 ? 0 : (q >= rows_u ? rows_u - 1 : q);
+                s += th2[qq * cols_u + j];
+            }
+            tmp[i * cols_u + j] = s / (double)k;
+        }
+    for (i = 0; i < rows_u; ++i)
+        for (j = 0; j < cols_u; ++j) {
+            double s = 0.0;
+            for (q = j - radius; q <= j + radius; ++q) {
+                const int64_t qq = q < 0 ? 0 : (q >= cols_u ? cols_u - 1 : q);
+                s += tmp[i * cols_u + qq];
+            }
+            s /= (double)k;
+            h[i * cols_u + j] = exp(-(s > 0.0 ? s : 0.0) / (th0 * th0));
+        }
+}

@@ -53,4 +53,12 @@ double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, cons
 void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
                           const double *beta, double *ratio);
 
+/* Per unit (all units of a rows_u x cols_u grid, row-major; links ``units`` (n, 4)), the
+ * flatness h = exp(−(θ/θ0)²) of estimator._flatness for one snapshot: readings r (n_links, 3),
+ * their |s| in g, the (2 radius + 1)² regional mean of θ²; th2, tmp are work (rows_u cols_u each).
+ * No failure cases (θ0 > 0 is the caller's). */
+void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
+                       const double *norm_g, double g0, int64_t radius, double th0, double *th2,
+                       double *tmp, double *h);
+
 #endif

@@ -143,3 +143,21 @@ def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(mas
     assert abs(e1 - e0) <= TOL * e0
     assert np.array_equal(np.isnan(s1), np.isnan(s0)) and np.isnan(s0).any() == masked
     assert np.nanmax(np.abs(s1 - s0)) <= TOL
+
+
+@pytest.mark.parametrize("rows,cols,shape", [(14, 14, "cylinder"), (3, 3, "gaussian"),
+                                             (2, 9, "tilted"), (20, 11, "flat")])
+def test_the_kernels_flatness_is_the_numpy_codes(rows, cols, shape, monkeypatch):
+    P = make_sheet(shape, rows, cols, L)
+    r = noisy_readings(ideal_readings(P), 1.0, rng(9))
+    norm_g = np.linalg.norm(r, axis=1) / E.G0
+    st = E._structure(rows, cols, None)
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        out[use] = [E._flatness(st, r, norm_g, s) for s in (0.003, 0.01, 0.05)]
+    for h0, h1 in zip(out[False], out[True]):
+        assert h1.shape == h0.shape == ((rows - 1) * (cols - 1),)
+        assert np.max(np.abs(h1 - h0)) <= TOL
+    if shape == "flat":
+        assert np.max(out[True][1]) > 0.5  # a level region: the comparison is not of zeros
