@@ -549,9 +549,8 @@ def _kernel_arrays(st: "_Structure") -> dict:
     for name, a in src.items():
         a = np.ascontiguousarray(a, dtype=np.int64)
         ka[name] = (a, _kffi.from_buffer("int64_t[]", a))
-    for name, a in (("roll_ws1", st.roll_ws1), ("w", ROLL_WEIGHT * st.roll_inv_ncell)):
-        a = np.ascontiguousarray(a, dtype=np.float64)
-        ka[name] = (a, _kffi.from_buffer("double[]", a))
+    a = np.ascontiguousarray(st.roll_ws1, dtype=np.float64)
+    ka["roll_ws1"] = (a, _kffi.from_buffer("double[]", a))
     ka["sizes"] = (st.n_units, st.roll_links.size, st.pairs.shape[0], st.n_var)
     ka["work"] = np.empty(19 * max(st.n_units, 1))
     st._kernel = ka
@@ -655,6 +654,20 @@ class _YawProblem:
 
     def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w):
         self.st = st
+        self.target = target[st.var_links]
+        self.lam = prior_w  # (nv,) prior weight per variable
+        self.abs_prior = bool(np.any(prior_w > ABS_PRIOR_FLOOR))
+        if target is st.rest_yaw:  # the default target: its pair differences once per structure
+            pt = st.__dict__.get("_rest_pair_t")
+            if pt is None:
+                pt = st._rest_pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
+            self.pair_t = pt
+        else:
+            self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
+        self.lam_b = bend_w  # (n_pairs,)
+        if USE_KERNEL and st.model == "cells" and np.ndim(alpha) == 1:  # one snapshot: the kernel
+            self._coeffs_kernel(alpha, beta)
+            return
         ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
         u = st.units
         cbu = cb[..., u]
@@ -669,11 +682,23 @@ class _YawProblem:
             self.y_c = (sb[..., k] * sa[..., k] + 1j * ca[..., k])  # sensor y, xy before the yaw
             self.y_z = cb[..., k] * sa[..., k]
             self.w = ROLL_WEIGHT * st.roll_inv_ncell
-        self.target = target[st.var_links]
-        self.lam = prior_w  # (nv,) prior weight per variable
-        self.abs_prior = bool(np.any(prior_w > ABS_PRIOR_FLOOR))
-        self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
-        self.lam_b = bend_w  # (n_pairs,)
+
+    def _coeffs_kernel(self, alpha, beta):
+        """`__init__`'s yaw-free coefficients (model "cells", one snapshot) in the kernel."""
+        st = self.st
+        sk = st.kernel_arrays()
+        U, K = st.n_units, st.roll_links.size
+        a = np.ascontiguousarray(alpha, dtype=np.float64)
+        b = np.ascontiguousarray(beta, dtype=np.float64)
+        self.c_loop, self.Az, self.Cz = np.empty((U, 4)), np.empty(U), np.empty(U)
+        self.y_c, self.y_z = np.empty(K, dtype=complex), np.empty(K)
+        fb = _kffi.from_buffer
+        _klib.capsheet_yaw_coeffs(U, sk["units"][1], K, sk["roll_links"][1], fb("double[]", a),
+                                  fb("double[]", b), fb("double[]", self.c_loop),
+                                  fb("double[]", self.Az), fb("double[]", self.Cz),
+                                  fb("double[]", self.y_c.view(np.float64)),
+                                  fb("double[]", self.y_z))
+        self.w = ROLL_WEIGHT * st.roll_inv_ncell
 
     def take(self, idx):
         """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
@@ -765,7 +790,7 @@ class _YawProblem:
         p.n_units, p.n_roll, p.n_pairs, p.n_var = sk["sizes"]
         for name in _KERNEL_INDEX_FIELDS:
             setattr(p, name, sk[name][1])
-        p.roll_ws1, p.w = sk["roll_ws1"][1], sk["w"][1]
+        p.roll_ws1, p.w = sk["roll_ws1"][1], ptr(self.w)
         p.c_loop, p.Az, p.Cz = ptr(self.c_loop), ptr(self.Az), ptr(self.Cz)
         p.y_c = ptr(np.ascontiguousarray(self.y_c, dtype=complex).view(np.float64))
         p.y_z, p.pair_t = ptr(self.y_z), ptr(self.pair_t)

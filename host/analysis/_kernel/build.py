@@ -43,6 +43,9 @@ void capsheet_solvability(int64_t n_units, const int64_t *units, const double *a
 void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
                        const double *norm_g, double g0, int64_t radius, double th0, double *th2,
                        double *tmp, double *h);
+void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
+                         const int64_t *roll_links, const double *alpha, const double *beta,
+                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z);
 """
 
 

@@ -262,3 +262,29 @@ void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, con
             h[i * cols_u + j] = exp(-(s > 0.0 ? s : 0.0) / (th0 * th0));
         }
 }
+
+void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
+                         const int64_t *roll_links, const double *alpha, const double *beta,
+                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z)
+{
+    static const double s_d[4] = {1.0, 1.0, -1.0, -1.0};
+    int64_t u, k;
+    int m;
+    for (u = 0; u < n_units; ++u) {
+        double sbm[4];
+        for (m = 0; m < 4; ++m) {
+            const double be = beta[units[4 * u + m]];
+            c_loop[4 * u + m] = cos(be) * s_d[m];
+            sbm[m] = sin(be);
+        }
+        Az[u] = -(sbm[1] + sbm[3]);
+        Cz[u] = -(sbm[0] + sbm[2]);
+    }
+    for (k = 0; k < n_roll; ++k) {
+        const double al = alpha[roll_links[k]], be = beta[roll_links[k]];
+        const double sa = sin(al);
+        y_c[2 * k] = sin(be) * sa;
+        y_c[2 * k + 1] = cos(al);
+        y_z[k] = cos(be) * sa;
+    }
+}

@@ -61,4 +61,11 @@ void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, con
                        const double *norm_g, double g0, int64_t radius, double th0, double *th2,
                        double *tmp, double *h);
 
+/* One snapshot's yaw-free coefficients of the yaw problem (model "cells"; estimator._YawProblem):
+ * per unit c_loop (n_units, 4) = ±cos β, Az, Cz (n_units,) the z of its i- and j-link sums; per
+ * roll link y_c (n_roll,) complex = sin β sin α + i cos α, y_z = cos β sin α. No failure cases. */
+void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
+                         const int64_t *roll_links, const double *alpha, const double *beta,
+                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z);
+
 #endif

@@ -161,3 +161,20 @@ def test_the_kernels_flatness_is_the_numpy_codes(rows, cols, shape, monkeypatch)
         assert np.max(np.abs(h1 - h0)) <= TOL
     if shape == "flat":
         assert np.max(out[True][1]) > 0.5  # a level region: the comparison is not of zeros
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_kernels_yaw_coefficients_are_the_numpy_codes(masked, monkeypatch):
+    n = 14
+    st, _, prob, gamma = _problem(n, shape="cylinder", shear=0.1,
+                                  valid=_mask(n) if masked else None)
+    a = rng(4).uniform(-np.pi, np.pi, st.n_links)
+    b = rng(5).uniform(-np.pi / 2, np.pi / 2, st.n_links)
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        out[use] = E._YawProblem(st, a, b, st.rest_yaw, prob.lam, prob.lam_b)
+    for name in ("c_loop", "Az", "Cz", "y_c", "y_z", "w", "pair_t", "target"):
+        v0, v1 = getattr(out[False], name), getattr(out[True], name)
+        assert v1.shape == v0.shape and v1.dtype == v0.dtype, name
+        assert np.max(np.abs(v1 - v0)) <= TOL, name
