@@ -51,7 +51,11 @@ In both, joint ``(0, 0)`` is placed at the origin. The estimate is defined up to
 world z (yaw gauge); `overlay_error` and `error_percent_of_side` compare shapes as the paper does,
 after a least-squares rigid overlay.
 
-This module needs numpy and scipy only; it does not import `virtual_sheet`.
+This module needs numpy and scipy only; it does not import `virtual_sheet`. One snapshot's
+arithmetic (the yaw problem's coefficients, the chord steps' cost and gradient, SuperLU's triangular sweeps,
+the flatness, directions, eq. (8) and solvability) runs in a small C kernel when it is built
+(host/analysis/_kernel/, cffi, at install; `USE_KERNEL`), else in the numpy code beside it, which
+gives the same numbers to rounding; `estimate_batch` always runs the numpy code.
 """
 
 from __future__ import annotations
@@ -940,7 +944,7 @@ def _backend() -> str:
     return LINEAR_SOLVER
 
 
-def _factorise(st: "_Structure", A):
+def _factorise(st: "_Structure", A, sweeps: bool = True):
     """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
     the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
     if _backend() == "cholmod":
@@ -951,7 +955,9 @@ def _factorise(st: "_Structure", A):
             st._cholmod_sym = sym
         return ("cholmod", sym.cholesky(A))
     lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-    return ("splu", lu, _triangular(lu) if USE_KERNEL else None)
+    # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
+    # for a factorisation solved only with many at once (the uncertainty's)
+    return ("splu", lu, _triangular(lu) if USE_KERNEL and sweeps else None)
 
 
 def _triangular(lu):
@@ -1818,7 +1824,7 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     data = data[:st.nnz]
     data[st.diag_slot] += eps
     A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(nv, nv))
-    lu = _factorise(st, A)
+    lu = _factorise(st, A, sweeps=False)
     S = UNCERTAINTY_SAMPLES
     # all samples at once: sample s draws ξ_re (m), ξ_im (m), ξ_roll (K) and η (nv), in this
     # order, from one stream (a row of Z); b = Jᵀ W^½ ξ + ε^½ η as one sparse product, and one
