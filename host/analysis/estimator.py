@@ -52,10 +52,10 @@ world z (yaw gauge); `overlay_error` and `error_percent_of_side` compare shapes 
 after a least-squares rigid overlay.
 
 This module needs numpy and scipy only; it does not import `virtual_sheet`. One snapshot's
-arithmetic (the yaw problem's coefficients, the chord steps' cost and gradient, SuperLU's triangular sweeps,
-the flatness, directions, eq. (8) and solvability) runs in a small C kernel when it is built
-(host/analysis/_kernel/, cffi, at install; `USE_KERNEL`), else in the numpy code beside it, which
-gives the same numbers to rounding; `estimate_batch` always runs the numpy code.
+arithmetic (the yaw problem's coefficients, the chord steps' cost and gradient, SuperLU's
+triangular sweeps, the flatness, directions, eq. (8) and solvability) runs in a small C kernel
+when it is built (host/analysis/_kernel/, cffi, at install; `USE_KERNEL`), else in the numpy code
+beside it, which gives the same numbers to rounding; `estimate_batch` always runs the numpy code.
 """
 
 from __future__ import annotations
