@@ -1,6 +1,8 @@
-"""Only for the C extension: builds firmware_ref._capsheet_fw (the reference chip firmware) with cffi
-at install time. Everything else is in pyproject.toml."""
+"""Only for the C extensions, built with cffi at install time: firmware_ref._capsheet_fw (the
+reference chip firmware) and host.analysis._yaw_kernel (the estimator's compiled kernel; the
+estimator falls back to numpy without it). Everything else is in pyproject.toml."""
 
 from setuptools import setup
 
-setup(cffi_modules=["firmware_ref/build_ffi.py:ffibuilder"])
+setup(cffi_modules=["firmware_ref/build_ffi.py:ffibuilder",
+                    "host/analysis/_kernel/build.py:ffibuilder"])

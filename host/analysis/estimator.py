@@ -51,12 +51,17 @@ In both, joint ``(0, 0)`` is placed at the origin. The estimate is defined up to
 world z (yaw gauge); `overlay_error` and `error_percent_of_side` compare shapes as the paper does,
 after a least-squares rigid overlay.
 
-This module needs numpy and scipy only; it does not import `virtual_sheet`.
+This module needs numpy and scipy only; it does not import `virtual_sheet`. One snapshot's
+arithmetic (the yaw problem's coefficients, the chord steps' cost and gradient, SuperLU's
+triangular sweeps, the flatness, directions, eq. (8) and solvability) runs in a small C kernel
+when it is built (host/analysis/_kernel/, cffi, at install; `USE_KERNEL`), else in the numpy code
+beside it, which gives the same numbers to rounding; `estimate_batch` always runs the numpy code.
 """
 
 from __future__ import annotations
 
 import copy
+import os
 import time
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -69,6 +74,13 @@ from scipy.sparse.linalg import splu
 from protocol.lattice import Lattice
 
 from .metrics import error_percent_of_side, overlay, overlay_error
+
+try:  # the compiled cost-and-gradient kernel (host/analysis/_kernel/); optional
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._yaw_kernel import ffi as _kffi, lib as _klib
+except ImportError:  # not built (no C compiler at install): the numpy code, same numbers
+    _kffi = _klib = None
 
 __all__ = ["ShapeEstimate", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
            "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]
@@ -125,6 +137,10 @@ MAX_ITER = 50
 #: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
 #: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
 _REFACTOR_RATIO = 0.7
+#: Evaluate a single snapshot's yaw cost and gradient (model "cells", the chord steps) with the
+#: compiled kernel when it is built; False: the numpy code (same numbers to ~1e-15 relative;
+#: tests/host/analysis/test_estimator_kernel.py). `estimate_batch` always uses numpy.
+USE_KERNEL = _klib is not None
 #: Weight of the joints' prior (keeps components cut off by missing links defined), per m².
 JOINT_PRIOR_WEIGHT = 1e-9
 
@@ -323,6 +339,17 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         (Case 1: a horizontal unit; Case 2: a squashed one). NaN where a link is missing.
     """
     units = _lattice(rows, cols).units
+    if USE_KERNEL and np.ndim(alpha) == 1 and np.ndim(beta) == 1:  # one snapshot: the kernel
+        al = np.ascontiguousarray(alpha, dtype=np.float64)
+        be = np.ascontiguousarray(beta, dtype=np.float64)
+        if al.shape == be.shape == (_lattice(rows, cols).n_links,):
+            u = _units_int64(rows, cols)
+            out = np.empty(units.shape[:2])
+            _klib.capsheet_solvability(u.shape[0], _kffi.from_buffer("int64_t[]", u),
+                                       _kffi.from_buffer("double[]", al),
+                                       _kffi.from_buffer("double[]", be),
+                                       _kffi.from_buffer("double[]", out))
+            return out
     a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
     ratio = _solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
@@ -504,11 +531,46 @@ class _Structure:
         self.rest_joints_unit = np.stack([ji.astype(float), jj.astype(float),
                                           np.zeros(nj)], axis=1)
 
+    def kernel_arrays(self) -> dict:
+        return _kernel_arrays(self)
+
+
+#: `_Structure.kernel_arrays`' index arrays, by their field name in ``capsheet_yaw_t``
+_KERNEL_INDEX_FIELDS = ("units", "unit_var", "roll_links", "roll_c0", "roll_c1", "roll_var0",
+                        "pairs", "pair_var", "var_links")
+
+
+def _kernel_arrays(st: "_Structure") -> dict:
+    """The structure's arrays as the kernel reads them (int64/float64, contiguous) with their
+    cffi pointers, and a work buffer (one snapshot at a time uses it): made once, kept on ``st``."""
+    ka = st.__dict__.get("_kernel")
+    if ka is not None:
+        return ka
+    src = {"units": st.units, "unit_var": st.unit_var, "roll_links": st.roll_links,
+           "roll_c0": st.roll_c0, "roll_c1": st.roll_c1, "roll_var0": st.roll_var[:, 0],
+           "pairs": st.pairs, "pair_var": st.pair_var, "var_links": st.var_links}
+    ka = {}
+    for name, a in src.items():
+        a = np.ascontiguousarray(a, dtype=np.int64)
+        ka[name] = (a, _kffi.from_buffer("int64_t[]", a))
+    a = np.ascontiguousarray(st.roll_ws1, dtype=np.float64)
+    ka["roll_ws1"] = (a, _kffi.from_buffer("double[]", a))
+    ka["sizes"] = (st.n_units, st.roll_links.size, st.pairs.shape[0], st.n_var)
+    ka["work"] = np.empty(19 * max(st.n_units, 1))
+    st._kernel = ka
+    return ka
+
 
 @lru_cache(maxsize=64)
 def _lattice(rows: int, cols: int) -> Lattice:
     """One `Lattice` per size, so its cached ``endpoints``/``units`` are computed once."""
     return Lattice(rows, cols)
+
+
+@lru_cache(maxsize=64)
+def _units_int64(rows: int, cols: int) -> np.ndarray:
+    """All units' links (n_units, 4), int64, contiguous: what the kernel's `solvability` reads."""
+    return np.ascontiguousarray(_lattice(rows, cols).units.reshape(-1, 4), dtype=np.int64)
 
 
 @lru_cache(maxsize=16)
@@ -596,6 +658,20 @@ class _YawProblem:
 
     def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w):
         self.st = st
+        self.target = target[st.var_links]
+        self.lam = prior_w  # (nv,) prior weight per variable
+        self.abs_prior = bool(np.any(prior_w > ABS_PRIOR_FLOOR))
+        if target is st.rest_yaw:  # the default target: its pair differences once per structure
+            pt = st.__dict__.get("_rest_pair_t")
+            if pt is None:
+                pt = st._rest_pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
+            self.pair_t = pt
+        else:
+            self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
+        self.lam_b = bend_w  # (n_pairs,)
+        if USE_KERNEL and st.model == "cells" and np.ndim(alpha) == 1:  # one snapshot: the kernel
+            self._coeffs_kernel(alpha, beta)
+            return
         ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
         u = st.units
         cbu = cb[..., u]
@@ -610,15 +686,28 @@ class _YawProblem:
             self.y_c = (sb[..., k] * sa[..., k] + 1j * ca[..., k])  # sensor y, xy before the yaw
             self.y_z = cb[..., k] * sa[..., k]
             self.w = ROLL_WEIGHT * st.roll_inv_ncell
-        self.target = target[st.var_links]
-        self.lam = prior_w  # (nv,) prior weight per variable
-        self.abs_prior = bool(np.any(prior_w > ABS_PRIOR_FLOOR))
-        self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
-        self.lam_b = bend_w  # (n_pairs,)
+
+    def _coeffs_kernel(self, alpha, beta):
+        """`__init__`'s yaw-free coefficients (model "cells", one snapshot) in the kernel."""
+        st = self.st
+        sk = st.kernel_arrays()
+        U, K = st.n_units, st.roll_links.size
+        a = np.ascontiguousarray(alpha, dtype=np.float64)
+        b = np.ascontiguousarray(beta, dtype=np.float64)
+        self.c_loop, self.Az, self.Cz = np.empty((U, 4)), np.empty(U), np.empty(U)
+        self.y_c, self.y_z = np.empty(K, dtype=complex), np.empty(K)
+        fb = _kffi.from_buffer
+        _klib.capsheet_yaw_coeffs(U, sk["units"][1], K, sk["roll_links"][1], fb("double[]", a),
+                                  fb("double[]", b), fb("double[]", self.c_loop),
+                                  fb("double[]", self.Az), fb("double[]", self.Cz),
+                                  fb("double[]", self.y_c.view(np.float64)),
+                                  fb("double[]", self.y_z))
+        self.w = ROLL_WEIGHT * st.roll_inv_ncell
 
     def take(self, idx):
         """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
         sub = copy.copy(self)
+        sub.__dict__.pop("_kp", None)  # the kernel's view of one snapshot's arrays
         for name, nd in self._PER_SNAPSHOT.items():
             v = getattr(self, name, None)
             if v is not None and np.ndim(v) == nd + 1:
@@ -630,6 +719,8 @@ class _YawProblem:
         ``jac`` is False: the roll terms' gradient then comes from `_roll_grad`, without
         forming their Jacobian)."""
         st = self.st
+        if not jac and st.model == "cells" and USE_KERNEL and gamma.ndim == 1:
+            return self._evaluate_kernel(gamma)
         nv1 = st.n_var + 1
         z = np.exp(1j * gamma)
         zu = z[..., st.units]
@@ -671,6 +762,47 @@ class _YawProblem:
             cost2 = cost2 + np.add.reduce(self.lam * e * e, axis=-1)
             grad += self.lam * e
         return 0.5 * cost2, grad, blocks
+
+    def _evaluate_kernel(self, gamma):
+        """`evaluate` with ``jac=False`` for one snapshot, model "cells", in the compiled kernel
+        (host/analysis/_kernel/yaw_eval.c: the same terms as `evaluate` and `_roll_grad`)."""
+        kp = self.__dict__.get("_kp")
+        if kp is None:
+            kp = self._kp = self._kernel_problem()
+        st = self.st
+        g = np.ascontiguousarray(gamma, dtype=float)
+        grad = np.empty(st.n_var + 1)
+        cost = _klib.capsheet_yaw_eval(kp[0], _kffi.from_buffer("double[]", g),
+                                       _kffi.from_buffer("double[]", grad), kp[1])
+        return cost, grad[:st.n_var], None
+
+    def _kernel_problem(self):
+        """The kernel's ``capsheet_yaw_t`` for this snapshot, its work buffer, and the arrays
+        it points into (kept alive with it). The structure's index arrays are shared
+        (`_Structure.kernel_arrays`)."""
+        st = self.st
+        sk = st.kernel_arrays()
+        keep = [sk]
+        fb = _kffi.from_buffer
+
+        def ptr(a):
+            a = np.ascontiguousarray(a, dtype=np.float64)
+            keep.append(a)
+            return fb("double[]", a)
+
+        p = _kffi.new("capsheet_yaw_t *")
+        p.n_units, p.n_roll, p.n_pairs, p.n_var = sk["sizes"]
+        for name in _KERNEL_INDEX_FIELDS:
+            setattr(p, name, sk[name][1])
+        p.roll_ws1, p.w = sk["roll_ws1"][1], ptr(self.w)
+        p.c_loop, p.Az, p.Cz = ptr(self.c_loop), ptr(self.Az), ptr(self.Cz)
+        p.y_c = ptr(np.ascontiguousarray(self.y_c, dtype=complex).view(np.float64))
+        p.y_z, p.pair_t = ptr(self.y_z), ptr(self.pair_t)
+        p.lam_b = ptr(self.lam_b if np.ndim(self.lam_b) else np.full(st.pairs.shape[0], self.lam_b))
+        p.target = ptr(self.target)
+        p.lam = ptr(self.lam if np.ndim(self.lam) else np.full(st.n_var, self.lam))
+        p.abs_prior = 1 if self.abs_prior else 0
+        return p, fb("double[]", sk["work"]), keep
 
     def rows(self, gamma) -> np.ndarray:
         """The data residuals as real rows: loop (and eq. 6) real parts, imaginary parts, then
@@ -812,7 +944,7 @@ def _backend() -> str:
     return LINEAR_SOLVER
 
 
-def _factorise(st: "_Structure", A):
+def _factorise(st: "_Structure", A, sweeps: bool = True):
     """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
     the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
     if _backend() == "cholmod":
@@ -822,13 +954,48 @@ def _factorise(st: "_Structure", A):
             sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
             st._cholmod_sym = sym
         return ("cholmod", sym.cholesky(A))
-    return ("splu", splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                         options=dict(SymmetricMode=True)))
+    lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
+    # for a factorisation solved only with many at once (the uncertainty's)
+    return ("splu", lu, _triangular(lu) if USE_KERNEL and sweeps else None)
+
+
+def _triangular(lu):
+    """SuperLU's factors as the kernel's ``capsheet_lu_solve`` takes them: the strictly lower
+    part of L and the strictly upper part of U in CSC (int32 indices) and U's diagonal; None
+    when SuperLU permuted rows or columns (it was asked not to: the ordering is the structure's)."""
+    n = lu.shape[0]
+    if not (np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n))):
+        return None
+
+    def strict(M, lower):
+        M = M.tocsc()
+        col = np.repeat(np.arange(n), np.diff(M.indptr))
+        keep = M.indices > col if lower else M.indices < col
+        ptr = np.zeros(n + 1, np.int32)
+        np.cumsum(np.bincount(col[keep], minlength=n), out=ptr[1:])
+        return (ptr, np.ascontiguousarray(M.indices[keep], np.int32),
+                np.ascontiguousarray(M.data[keep], np.float64))
+
+    U = lu.U.tocsc()
+    arrays = strict(lu.L, True) + strict(U, False) + (np.ascontiguousarray(U.diagonal()),)
+    ptrs = [_kffi.from_buffer(("int32_t[]" if a.dtype == np.int32 else "double[]"), a)
+            for a in arrays]
+    return arrays, ptrs
 
 
 def _solve(fac, b):
-    kind, f = fac
-    return f(b) if kind == "cholmod" else f.solve(b)
+    """``A⁻¹ b`` with a factorisation from `_factorise`; one right-hand side (b (n,)) of a SuperLU
+    factorisation goes through the kernel's triangular sweeps when it is built."""
+    kind, f = fac[0], fac[1]
+    if kind == "cholmod":
+        return f(b)
+    tri = fac[2] if len(fac) > 2 else None
+    if tri is None or b.ndim != 1 or not USE_KERNEL:
+        return f.solve(b)
+    x = np.array(b, dtype=np.float64)  # a copy: solved in place
+    _klib.capsheet_lu_solve(x.size, *tri[1], _kffi.from_buffer("double[]", x))
+    return x
 
 
 def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
@@ -991,6 +1158,15 @@ def _paper_joints(rows: int, cols: int, vec: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 def _directions_normals(alpha, beta, gamma):
+    """Per link its direction (sensor x) and normal (sensor z) in the world, (..., n_links, 3)
+    each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``)."""
+    if USE_KERNEL and np.ndim(alpha) == 1:  # one snapshot: the kernel
+        a, b, g = (np.ascontiguousarray(x, dtype=np.float64) for x in (alpha, beta, gamma))
+        d, n = np.empty((a.size, 3)), np.empty((a.size, 3))
+        fb = _kffi.from_buffer
+        _klib.capsheet_directions(a.size, fb("double[]", a), fb("double[]", b),
+                                  fb("double[]", g), fb("double[]", d), fb("double[]", n))
+        return d, n
     ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
                               np.cos(gamma), np.sin(gamma))
     d = np.stack([cg * cb, sg * cb, -sb], axis=-1)
@@ -1001,6 +1177,12 @@ def _directions_normals(alpha, beta, gamma):
 def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
     """Σ over the given units (U, 4) of eq. (8): a float, or one per snapshot for ``d``, ``n``
     with a leading batch axis (B, n_links, 3)."""
+    if USE_KERNEL and d.ndim == 2:  # one snapshot: the kernel
+        u = np.ascontiguousarray(units, dtype=np.int64)
+        d, n = np.ascontiguousarray(d, dtype=np.float64), np.ascontiguousarray(n, dtype=np.float64)
+        fb = _kffi.from_buffer
+        return float(_klib.capsheet_eq8(u.shape[0], fb("int64_t[]", u), fb("double[]", d),
+                                        fb("double[]", n)))
     du, nu = d[..., units, :], n[..., units, :]
     rd = du[..., 0, :] + du[..., 1, :] - du[..., 2, :] - du[..., 3, :]
     rn = nu[..., 0, :] - nu[..., 1, :] + nu[..., 2, :] - nu[..., 3, :]
@@ -1070,6 +1252,18 @@ def _flatness(st, r, norm_g, noise):
     if noise.ndim == 0 and noise <= 0.0:
         return np.zeros(units.shape[0])
     lead = noise.shape  # () or (B,): r (..., n_links, 3), norm_g (..., n_links)
+    if USE_KERNEL and not lead and r.ndim == 2 and FLAT_RADIUS >= 0:  # one snapshot: the kernel
+        u = _units_int64(st.rows, st.cols)
+        rc = np.ascontiguousarray(r, dtype=np.float64)
+        ng = np.ascontiguousarray(norm_g, dtype=np.float64)
+        work, h = np.empty(2 * u.shape[0]), np.empty(u.shape[0])
+        fb = _kffi.from_buffer
+        _klib.capsheet_flatness(st.rows - 1, st.cols - 1, fb("int64_t[]", u), fb("double[]", rc),
+                                fb("double[]", ng), G0, FLAT_RADIUS,
+                                FLAT_TILT_NOISE * max(float(noise), 1e-300),
+                                fb("double[]", work[:u.shape[0]]),
+                                fb("double[]", work[u.shape[0]:]), fb("double[]", h))
+        return h
     cz = r[..., 2] / np.maximum(norm_g * G0, 1e-300)
     th2 = 2.0 * (1.0 - cz[..., units]).mean(axis=-1)
     if FLAT_RADIUS > 0:
@@ -1630,7 +1824,7 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     data = data[:st.nnz]
     data[st.diag_slot] += eps
     A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(nv, nv))
-    lu = _factorise(st, A)
+    lu = _factorise(st, A, sweeps=False)
     S = UNCERTAINTY_SAMPLES
     # all samples at once: sample s draws ξ_re (m), ξ_im (m), ξ_roll (K) and η (nv), in this
     # order, from one stream (a row of Z); b = Jᵀ W^½ ξ + ε^½ η as one sparse product, and one

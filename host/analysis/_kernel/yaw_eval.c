@@ -1,0 +1,290 @@
+/* The yaw problem's cost and gradient for one snapshot, model "cells" (host/analysis/estimator.py,
+ * _YawProblem.evaluate with jac=False, and _roll_grad): the same terms in one pass over the
+ * units, roll links and prior pairs, for the Python fallback's numbers to ~1e-15 relative.
+ *
+ * Conventions are docs/design.md's; the terms are docs/estimator.md's. All arrays are
+ * C-contiguous, caller-owned; nothing is allocated. Complex numbers are stored as (re, im)
+ * pairs of doubles (numpy complex128's layout).
+ */
+#include "yaw_eval.h"
+
+#include <math.h>
+
+#define TWO_PI 6.283185307179586
+
+static double wrap_fast(double x)
+{
+    return x - TWO_PI * rint(x * (1.0 / TWO_PI));
+}
+
+double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
+                         double *work)
+{
+    const int64_t U = p->n_units, K = p->n_roll, NP = p->n_pairs, nv = p->n_var;
+    /* work: per unit t (8), A (2), C (2), n (3), inv (1), Y (3) = 19 doubles */
+    double *wt = work;
+    double *wA = wt + 8 * U, *wC = wA + 2 * U, *wn = wC + 2 * U, *winv = wn + 3 * U;
+    double *wY = winv + U;
+    double cost_loop = 0.0, cost_roll = 0.0, cost_pair = 0.0, cost_abs = 0.0;
+    int64_t u, m, k;
+
+    for (k = 0; k <= nv; ++k)
+        grad[k] = 0.0;
+
+    /* loop closure (eq. 4, xy) and the cells' normals */
+    for (u = 0; u < U; ++u) {
+        double tr[4], ti[4], rr = 0.0, ri = 0.0;
+        for (m = 0; m < 4; ++m) {
+            const double g = gamma[p->units[4 * u + m]], c = p->c_loop[4 * u + m];
+            tr[m] = c * cos(g);
+            ti[m] = c * sin(g);
+            rr += tr[m];
+            ri += ti[m];
+            wt[8 * u + 2 * m] = tr[m];
+            wt[8 * u + 2 * m + 1] = ti[m];
+        }
+        cost_loop += rr * rr + ri * ri;
+        for (m = 0; m < 4; ++m) /* Im(conj(t) r) */
+            grad[p->unit_var[4 * u + m]] += tr[m] * ri - ti[m] * rr;
+        {
+            /* D = t * (1, 1, -1, -1); A = D1 + D3, C = D0 + D2 */
+            const double Ar = tr[1] - tr[3], Ai = ti[1] - ti[3];
+            const double Cr = tr[0] - tr[2], Ci = ti[0] - ti[2];
+            const double Az = p->Az[u], Cz = p->Cz[u];
+            /* m_xy = i (Az C - Cz A), m_z = Im(conj(A) C) */
+            const double pr = Az * Cr - Cz * Ar, pi = Az * Ci - Cz * Ai;
+            const double mr = -pi, mi = pr;
+            const double mz = Ar * Ci - Ai * Cr;
+            const double mm = sqrt(mr * mr + mi * mi + mz * mz);
+            const double inv = mm > 1e-9 ? 1.0 / mm : 0.0;
+            wA[2 * u] = Ar;
+            wA[2 * u + 1] = Ai;
+            wC[2 * u] = Cr;
+            wC[2 * u + 1] = Ci;
+            wn[3 * u] = mr * inv;
+            wn[3 * u + 1] = mi * inv;
+            wn[3 * u + 2] = mz * inv;
+            winv[u] = inv;
+            wY[3 * u] = wY[3 * u + 1] = wY[3 * u + 2] = 0.0;
+        }
+    }
+
+    /* roll residuals w (y_k . N_k); their gradient in reverse mode (see _roll_grad) */
+    for (k = 0; k < K; ++k) {
+        const int64_t c0 = p->roll_c0[k], c1 = p->roll_c1[k];
+        const double ws1 = p->roll_ws1[k];
+        const double g = gamma[p->roll_links[k]], cg = cos(g), sg = sin(g);
+        const double yr = p->y_c[2 * k] * cg - p->y_c[2 * k + 1] * sg;
+        const double yi = p->y_c[2 * k] * sg + p->y_c[2 * k + 1] * cg;
+        const double yz = p->y_z[k], w = p->w[k];
+        const double Nr = wn[3 * c0] + ws1 * wn[3 * c1];
+        const double Ni = wn[3 * c0 + 1] + ws1 * wn[3 * c1 + 1];
+        const double Nz = wn[3 * c0 + 2] + ws1 * wn[3 * c1 + 2];
+        /* conj(y) N */
+        const double yNr = yr * Nr + yi * Ni, yNi = yr * Ni - yi * Nr;
+        const double res = w * (yNr + yz * Nz);
+        const double rho = w * res, r1 = ws1 * rho;
+        cost_roll += res * res;
+        grad[p->roll_var0[k]] += rho * yNi;
+        wY[3 * c0] += rho * yr;
+        wY[3 * c0 + 1] += rho * yi;
+        wY[3 * c0 + 2] += rho * yz;
+        wY[3 * c1] += r1 * yr;
+        wY[3 * c1 + 1] += r1 * yi;
+        wY[3 * c1 + 2] += r1 * yz;
+    }
+
+    /* Q = (Y - (Y.n) n) / |m|; gradient through the normals, Q . dm/dγ per link of the cell */
+    for (u = 0; u < U; ++u) {
+        const double *t = wt + 8 * u;
+        const double nr = wn[3 * u], ni = wn[3 * u + 1], nz = wn[3 * u + 2], inv = winv[u];
+        const double Yr = wY[3 * u], Yi = wY[3 * u + 1], Yz = wY[3 * u + 2];
+        const double Yn = Yr * nr + Yi * ni + Yz * nz;
+        const double Qr = (Yr - Yn * nr) * inv, Qi = (Yi - Yn * ni) * inv;
+        const double Qz = (Yz - Yn * nz) * inv;
+        const double Az = p->Az[u], Cz = p->Cz[u];
+        const double fac[4] = {-Az, Cz, -Az, Cz};
+        const double sgn[4] = {1.0, 1.0, -1.0, -1.0};
+        const double zs[4] = {1.0, -1.0, 1.0, -1.0};
+        for (m = 0; m < 4; ++m) {
+            const double Dr = sgn[m] * t[2 * m], Di = sgn[m] * t[2 * m + 1];
+            const double *X = (m & 1) ? wC + 2 * u : wA + 2 * u; /* A, C, A, C */
+            const double dmr = Dr * fac[m], dmi = Di * fac[m];
+            const double dmz = (X[0] * Dr + X[1] * Di) * zs[m];
+            grad[p->unit_var[4 * u + m]] += Qr * dmr + Qi * dmi + Qz * dmz;
+        }
+    }
+
+    /* prior pairs: λ (wrap(γ_k − γ_l − δ))² */
+    for (k = 0; k < NP; ++k) {
+        const double e = wrap_fast(gamma[p->pairs[2 * k]] - gamma[p->pairs[2 * k + 1]]
+                                   - p->pair_t[k]);
+        const double wb = p->lam_b[k] * e;
+        cost_pair += wb * e;
+        grad[p->pair_var[2 * k]] += wb;
+        grad[p->pair_var[2 * k + 1]] -= wb;
+    }
+
+    /* yaw prior towards the target (only when some weight exceeds the floor) */
+    if (p->abs_prior) {
+        for (k = 0; k < nv; ++k) {
+            const double e = wrap_fast(gamma[p->var_links[k]] - p->target[k]);
+            cost_abs += p->lam[k] * e * e;
+            grad[k] += p->lam[k] * e;
+        }
+    }
+    return 0.5 * (cost_loop + cost_roll + cost_pair + cost_abs);
+}
+
+void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
+                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
+                       const double *u_diag, double *x)
+{
+    int64_t j;
+    int32_t q;
+    /* L y = b, L unit lower (strict part by columns): scatter each solved entry downwards */
+    for (j = 0; j < n; ++j) {
+        const double xj = x[j];
+        if (xj != 0.0)
+            for (q = l_ptr[j]; q < l_ptr[j + 1]; ++q)
+                x[l_idx[q]] -= l_val[q] * xj;
+    }
+    /* U x = y, U upper (strict part by columns, diagonal apart): scatter upwards */
+    for (j = n - 1; j >= 0; --j) {
+        const double xj = x[j] / u_diag[j];
+        x[j] = xj;
+        if (xj != 0.0)
+            for (q = u_ptr[j]; q < u_ptr[j + 1]; ++q)
+                x[u_idx[q]] -= u_val[q] * xj;
+    }
+}
+
+void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
+                         double *d, double *nrm)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        const double ca = cos(alpha[k]), sa = sin(alpha[k]), cb = cos(beta[k]), sb = sin(beta[k]);
+        const double cg = cos(gamma[k]), sg = sin(gamma[k]);
+        d[3 * k] = cg * cb;
+        d[3 * k + 1] = sg * cb;
+        d[3 * k + 2] = -sb;
+        nrm[3 * k] = cg * sb * ca + sg * sa;
+        nrm[3 * k + 1] = sg * sb * ca - cg * sa;
+        nrm[3 * k + 2] = cb * ca;
+    }
+}
+
+double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm)
+{
+    double tot = 0.0;
+    int64_t u, c;
+    for (u = 0; u < n_units; ++u) {
+        const int64_t *l = units + 4 * u;
+        for (c = 0; c < 3; ++c) {
+            const double rd = d[3 * l[0] + c] + d[3 * l[1] + c] - d[3 * l[2] + c] - d[3 * l[3] + c];
+            const double rn = nrm[3 * l[0] + c] - nrm[3 * l[1] + c] + nrm[3 * l[2] + c]
+                              - nrm[3 * l[3] + c];
+            tot += rd * rd + rn * rn;
+        }
+    }
+    return tot;
+}
+
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
+                          const double *beta, double *ratio)
+{
+    static const double sa_sign[3] = {-1.0, 1.0, 1.0}, sb_sign[3] = {1.0, -1.0, 1.0};
+    int64_t u;
+    int m;
+    for (u = 0; u < n_units; ++u) {
+        const int64_t *l = units + 4 * u;
+        double A = 0.0, B = 0.0, Cr = 0.0, Ci = 0.0;
+        int finite = isfinite(alpha[l[0]]) && isfinite(beta[l[0]]);
+        for (m = 1; m < 4; ++m) {
+            const double al = alpha[l[m]], be = beta[l[m]];
+            const double ca = cos(al), sa = sin(al), cb = cos(be), sb = sin(be);
+            const double a = cb * sa_sign[m - 1];
+            const double br = sb * ca * sb_sign[m - 1], bi = -sa * sb_sign[m - 1];
+            finite = finite && isfinite(al) && isfinite(be);
+            A += a * a;
+            B += br * br + bi * bi;
+            Cr += a * br;
+            Ci += a * bi;
+        }
+        if (!finite) {
+            ratio[u] = NAN;
+        } else {
+            const double half = 0.5 * (A + B);
+            const double q = 0.25 * (A - B) * (A - B) + (Cr * Cr + Ci * Ci);
+            const double disc = sqrt(q > 0.0 ? q : 0.0);
+            const double mu1 = half + disc, mu2 = half - disc > 0.0 ? half - disc : 0.0;
+            ratio[u] = mu1 > 0.0 ? sqrt(mu2 / mu1) : 0.0;
+        }
+    }
+}
+
+void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
+                       const double *norm_g, double g0, int64_t radius, double th0, double *th2,
+                       double *tmp, double *h)
+{
+    const int64_t nu = rows_u * cols_u, k = 2 * radius + 1;
+    int64_t u, i, j, q;
+    int m;
+    for (u = 0; u < nu; ++u) { /* θ² per unit: twice the mean of 1 − cos(tilt) of its links */
+        double s = 0.0;
+        for (m = 0; m < 4; ++m) {
+            const int64_t l = units[4 * u + m];
+            const double den = norm_g[l] * g0;
+            s += 1.0 - r[3 * l + 2] / (den > 1e-300 ? den : 1e-300);
+        }
+        th2[u] = 2.0 * (s / 4.0);
+    }
+    /* the (2 radius + 1)² box mean, edges extended by their nearest value (scipy's
+     * uniform_filter, mode "nearest"): along the rows, then along the columns */
+    for (i = 0; i < rows_u; ++i)
+        for (j = 0; j < cols_u; ++j) {
+            double s = 0.0;
+            for (q = i - radius; q <= i + radius; ++q) {
+                const int64_t qq = q < 0 ? 0 : (q >= rows_u ? rows_u - 1 : q);
+                s += th2[qq * cols_u + j];
+            }
+            tmp[i * cols_u + j] = s / (double)k;
+        }
+    for (i = 0; i < rows_u; ++i)
+        for (j = 0; j < cols_u; ++j) {
+            double s = 0.0;
+            for (q = j - radius; q <= j + radius; ++q) {
+                const int64_t qq = q < 0 ? 0 : (q >= cols_u ? cols_u - 1 : q);
+                s += tmp[i * cols_u + qq];
+            }
+            s /= (double)k;
+            h[i * cols_u + j] = exp(-(s > 0.0 ? s : 0.0) / (th0 * th0));
+        }
+}
+
+void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
+                         const int64_t *roll_links, const double *alpha, const double *beta,
+                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z)
+{
+    static const double s_d[4] = {1.0, 1.0, -1.0, -1.0};
+    int64_t u, k;
+    int m;
+    for (u = 0; u < n_units; ++u) {
+        double sbm[4];
+        for (m = 0; m < 4; ++m) {
+            const double be = beta[units[4 * u + m]];
+            c_loop[4 * u + m] = cos(be) * s_d[m];
+            sbm[m] = sin(be);
+        }
+        Az[u] = -(sbm[1] + sbm[3]);
+        Cz[u] = -(sbm[0] + sbm[2]);
+    }
+    for (k = 0; k < n_roll; ++k) {
+        const double al = alpha[roll_links[k]], be = beta[roll_links[k]];
+        const double sa = sin(al);
+        y_c[2 * k] = sin(be) * sa;
+        y_c[2 * k + 1] = cos(al);
+        y_z[k] = cos(be) * sa;
+    }
+}

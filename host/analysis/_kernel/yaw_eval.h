@@ -1,0 +1,71 @@
+/* The yaw problem's cost and gradient for one snapshot (model "cells"); see yaw_eval.c. */
+#ifndef CAPSHEET_YAW_EVAL_H
+#define CAPSHEET_YAW_EVAL_H
+
+#include <stdint.h>
+
+/* One snapshot's problem: the structure's index arrays and the snapshot's coefficients. */
+typedef struct {
+    int64_t n_units;          /* U: active units */
+    int64_t n_roll;           /* K: links with a roll residual */
+    int64_t n_pairs;          /* prior pairs */
+    int64_t n_var;            /* nv: variables; index nv is the dummy (gauge, padding) */
+    const int64_t *units;     /* (U, 4) link of every unit position */
+    const int64_t *unit_var;  /* (U, 4) its variable, nv for the gauge */
+    const double *c_loop;     /* (U, 4) ±cos β of eq. (4) */
+    const double *Az, *Cz;    /* (U,) z of the cell's i- and j-link sums */
+    const int64_t *roll_links, *roll_c0, *roll_c1, *roll_var0;  /* (K,) */
+    const double *roll_ws1;   /* (K,) 1 if the link has a second cell, else 0 */
+    const double *y_c;        /* (K,) complex: sensor y, xy, before the yaw */
+    const double *y_z, *w;    /* (K,) sensor y's z; the roll weight */
+    const int64_t *pairs, *pair_var;  /* (P, 2) links; their variables */
+    const double *pair_t, *lam_b;     /* (P,) target difference; weight */
+    const int64_t *var_links; /* (nv,) */
+    const double *target, *lam;       /* (nv,) */
+    int32_t abs_prior;        /* nonzero: apply the yaw prior λ wrap(γ − τ)² */
+} capsheet_yaw_t;
+
+/* Cost (½ Σ of the squared terms) at the yaws gamma (n_links,); grad (nv + 1,) receives the
+ * gradient over the variables (entry nv: the dummy's, discarded); work holds 19 U doubles.
+ * No failure cases: the indices are the caller's (validated when the structure is built). */
+double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
+                         double *work);
+
+
+/* Solve (L U) x = b in place (x holds b on entry), L unit lower and U upper triangular, n x n,
+ * given by their strictly triangular parts in CSC (column pointers, row indices, values) and
+ * U's diagonal: a sparse LU factorisation's (SuperLU's) two triangular sweeps, one right-hand
+ * side. No failure cases: a zero on U's diagonal gives inf/NaN, as SuperLU's solve does. */
+void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
+                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
+                       const double *u_diag, double *x);
+
+/* Per link (n links), the direction d (sensor x) and normal nrm (sensor z) in world coordinates,
+ * (n, 3) each, of R = Rz(γ) Ry(β) Rx(α) (docs/design.md). No failure cases. */
+void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
+                         double *d, double *nrm);
+
+/* Σ over the units (n_units, 4 links) of eq. (8): |d0 + d1 − d2 − d3|² + |n0 − n1 + n2 − n3|². */
+double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
+
+/* Per unit, λ3/λ1 of eq. (7) in the closed form of estimator._solvability_units; NaN where an
+ * angle of one of its 4 links is not finite (a missing link). */
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
+                          const double *beta, double *ratio);
+
+/* Per unit (all units of a rows_u x cols_u grid, row-major; links ``units`` (n, 4)), the
+ * flatness h = exp(−(θ/θ0)²) of estimator._flatness for one snapshot: readings r (n_links, 3),
+ * their |s| in g, the (2 radius + 1)² regional mean of θ²; th2, tmp are work (rows_u cols_u each).
+ * No failure cases (θ0 > 0 is the caller's). */
+void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
+                       const double *norm_g, double g0, int64_t radius, double th0, double *th2,
+                       double *tmp, double *h);
+
+/* One snapshot's yaw-free coefficients of the yaw problem (model "cells"; estimator._YawProblem):
+ * per unit c_loop (n_units, 4) = ±cos β, Az, Cz (n_units,) the z of its i- and j-link sums; per
+ * roll link y_c (n_roll,) complex = sin β sin α + i cos α, y_z = cos β sin α. No failure cases. */
+void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
+                         const int64_t *roll_links, const double *alpha, const double *beta,
+                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z);
+
+#endif

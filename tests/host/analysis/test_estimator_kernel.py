@@ -1,0 +1,180 @@
+"""The estimator's compiled kernel (host/analysis/_kernel/yaw_eval.c) against its numpy code.
+
+Two independent implementations of the same terms: the kernel's single-pass loops and
+`_YawProblem.evaluate`'s numpy (`_roll_grad`, reverse mode), and the kernel's triangular sweeps
+against SuperLU's own solve. Metric: difference of the cost (relative), of the gradient (to its
+largest entry, or to 1 where that is smaller: at a minimum, terms of order 1 cancel) and of the
+step (relative); tolerance 1e-12 (rounding: the two sum in different orders).
+Whole warm-started runs (the benchmark's: 1 % g, a sheared Gaussian, a masked lattice) must give
+the same joints within 1e-9 of the side and the same iteration counts with the kernel and without.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from host.analysis import estimator as E
+from virtual_sheet.geometry import ideal_readings
+from virtual_sheet.sensor import noisy_readings
+from virtual_sheet.shapes import make_sheet
+
+pytestmark = pytest.mark.skipif(not E.USE_KERNEL, reason="the estimator's kernel is not built")
+
+L = 0.01
+TOL = 1e-12
+
+
+def rng(seed: int) -> np.random.Generator:
+    return np.random.Generator(np.random.MT19937(seed))
+
+
+def _problem(n, shape="gaussian", shear=0.0, noise=1.0, valid=None, prior="adaptive", seed=3):
+    P = make_sheet(shape, n, n, L, shear=shear)
+    r = noisy_readings(ideal_readings(P), noise, rng(seed))
+    est = E.estimate(r, n, n, L, valid=valid, prior=prior)
+    return est._state
+
+
+def _both(prob, gamma, monkeypatch):
+    monkeypatch.setattr(E, "USE_KERNEL", False)
+    c0, g0, _ = prob.evaluate(gamma, jac=False)
+    monkeypatch.setattr(E, "USE_KERNEL", True)
+    c1, g1, b1 = prob.evaluate(gamma, jac=False)
+    assert b1 is None
+    return c0, g0, c1, g1
+
+
+def _mask(n, seed=5):
+    lat_links = 2 * n * (n - 1)
+    v = np.ones(lat_links, bool)
+    v[rng(seed).choice(lat_links, size=lat_links // 20, replace=False)] = False
+    return v
+
+
+@pytest.mark.parametrize("case", [
+    dict(n=5), dict(n=14), dict(n=14, shape="cylinder", shear=0.2),
+    dict(n=14, prior="fixed"), dict(n=14, valid="mask"), dict(n=9, noise=0.0),
+    dict(n=14, shape="sphere", shear=0.3, noise=5.0),
+])
+def test_the_kernels_cost_and_gradient_are_the_numpy_codes(case, monkeypatch):
+    case = dict(case)
+    if case.get("valid") == "mask":
+        case["valid"] = _mask(case["n"])
+    st, _, prob, gamma = _problem(**case)
+    g = rng(11)
+    for scale in (0.0, 0.01, 0.3, 2.0):  # at the estimate, near it, far from it
+        gg = gamma + g.normal(0.0, scale, gamma.shape)
+        c0, g0, c1, g1 = _both(prob, gg, monkeypatch)
+        assert abs(c1 - c0) <= TOL * max(abs(c0), 1e-300)
+        assert g1.shape == g0.shape == (st.n_var,)
+        assert np.max(np.abs(g1 - g0)) <= TOL * max(np.max(np.abs(g0)), 1.0)
+
+
+def test_the_comparison_sees_a_wrong_gradient(monkeypatch):
+    # the check proves itself: one yaw moved by 1e-6 rad changes the gradient beyond TOL
+    st, _, prob, gamma = _problem(14)
+    c0, g0, _, _ = _both(prob, gamma, monkeypatch)
+    moved = gamma.copy()
+    moved[st.var_links[7]] += 1e-6
+    _, _, c1, g1 = _both(prob, moved, monkeypatch)
+    assert np.max(np.abs(g1 - g0)) > TOL * max(np.max(np.abs(g0)), 1.0)
+
+
+@pytest.mark.parametrize("n", [5, 14, 32])
+def test_the_kernels_triangular_sweeps_solve_as_superlu_does(n):
+    st, lu, prob, gamma = _problem(n)
+    assert lu[0] == "splu" and lu[2] is not None
+    b = rng(n).normal(size=st.n_var)
+    x_superlu = lu[1].solve(b)
+    x = E._solve(lu, b)
+    assert np.max(np.abs(x - x_superlu)) <= TOL * np.max(np.abs(x_superlu))
+    B = np.stack([b, 2 * b], axis=1)  # several right-hand sides stay with SuperLU
+    assert np.array_equal(E._solve(lu, B), lu[1].solve(B))
+
+
+def _warm_run(n, snaps, valid):
+    prev, out = None, []
+    for r in snaps:
+        prev = E.estimate(r, n, n, L, valid=valid, previous=prev)
+        out.append((prev.joints, prev.iterations, prev.factorisations))
+    return out
+
+
+@pytest.mark.parametrize("n,shape,shear,masked", [(14, "gaussian", 0.0, False),
+                                                   (14, "saddle", 0.2, True),
+                                                   (24, "gaussian", 0.1, False)])
+def test_warm_runs_give_the_same_joints_with_the_kernel_and_without(n, shape, shear, masked,
+                                                                     monkeypatch):
+    P = make_sheet(shape, n, n, L, shear=shear)
+    r0 = ideal_readings(P)
+    g = rng(1)
+    snaps = [noisy_readings(r0, 1.0, g) for _ in range(12)]
+    valid = _mask(n) if masked else None
+    E._structure_cached.cache_clear()  # each run starts without a cached factorisation
+    monkeypatch.setattr(E, "USE_KERNEL", False)
+    ref = _warm_run(n, snaps, valid)
+    E._structure_cached.cache_clear()
+    monkeypatch.setattr(E, "USE_KERNEL", True)
+    new = _warm_run(n, snaps, valid)
+    side = (n - 1) * L
+    for (j0, i0, f0), (j1, i1, f1) in zip(ref, new):
+        assert (i1, f1) == (i0, f0)
+        assert np.max(np.abs(j1 - j0)) <= 1e-9 * side
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(masked, monkeypatch):
+    n = 14
+    P = make_sheet("saddle", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 1.0, rng(7))
+    valid = _mask(n) if masked else None
+    est = E.estimate(r, n, n, L, valid=valid)
+    st = est._state[0]
+    alpha, beta = est.alpha, est.beta  # NaN on missing links: those units' solvability is NaN
+    gamma = est.yaws + rng(8).normal(0.0, 0.5, est.yaws.shape)
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        d, nrm = E._directions_normals(np.nan_to_num(alpha), np.nan_to_num(beta), gamma)
+        out[use] = (d, nrm, E._eq8_residual(st.units, d, nrm), E.solvability(alpha, beta, n, n))
+    (d0, n0, e0, s0), (d1, n1, e1, s1) = out[False], out[True]
+    assert np.max(np.abs(d1 - d0)) <= TOL and np.max(np.abs(n1 - n0)) <= TOL
+    assert abs(e1 - e0) <= TOL * e0
+    assert np.array_equal(np.isnan(s1), np.isnan(s0)) and np.isnan(s0).any() == masked
+    assert np.nanmax(np.abs(s1 - s0)) <= TOL
+
+
+@pytest.mark.parametrize("rows,cols,shape", [(14, 14, "cylinder"), (3, 3, "gaussian"),
+                                             (2, 9, "tilted"), (20, 11, "flat")])
+def test_the_kernels_flatness_is_the_numpy_codes(rows, cols, shape, monkeypatch):
+    P = make_sheet(shape, rows, cols, L)
+    r = noisy_readings(ideal_readings(P), 1.0, rng(9))
+    norm_g = np.linalg.norm(r, axis=1) / E.G0
+    st = E._structure(rows, cols, None)
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        out[use] = [E._flatness(st, r, norm_g, s) for s in (0.003, 0.01, 0.05)]
+    for h0, h1 in zip(out[False], out[True]):
+        assert h1.shape == h0.shape == ((rows - 1) * (cols - 1),)
+        assert np.max(np.abs(h1 - h0)) <= TOL
+    if shape == "flat":
+        assert np.max(out[True][1]) > 0.5  # a level region: the comparison is not of zeros
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_the_kernels_yaw_coefficients_are_the_numpy_codes(masked, monkeypatch):
+    n = 14
+    st, _, prob, gamma = _problem(n, shape="cylinder", shear=0.1,
+                                  valid=_mask(n) if masked else None)
+    a = rng(4).uniform(-np.pi, np.pi, st.n_links)
+    b = rng(5).uniform(-np.pi / 2, np.pi / 2, st.n_links)
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        out[use] = E._YawProblem(st, a, b, st.rest_yaw, prob.lam, prob.lam_b)
+    for name in ("c_loop", "Az", "Cz", "y_c", "y_z", "w", "pair_t", "target"):
+        v0, v1 = getattr(out[False], name), getattr(out[True], name)
+        assert v1.shape == v0.shape and v1.dtype == v0.dtype, name
+        assert np.max(np.abs(v1 - v0)) <= TOL, name
