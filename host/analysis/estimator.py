@@ -68,7 +68,6 @@ from functools import cached_property, lru_cache
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.ndimage import uniform_filter
 from scipy.sparse.linalg import splu
 
 from protocol.lattice import Lattice
@@ -1269,6 +1268,8 @@ def _flatness(st, r, norm_g, noise):
     if FLAT_RADIUS > 0:
         # regional: a level strip between tilted cells (a cylinder's crest) is held by its
         # tilted neighbours through the lattice; only wide level regions need the prior
+        from scipy.ndimage import uniform_filter  # here: importing scipy.ndimage costs ~0.2 s
+
         k = 2 * FLAT_RADIUS + 1
         th2 = uniform_filter(th2.reshape(lead + (st.rows - 1, st.cols - 1)),
                              size=(1,) * len(lead) + (k, k), mode="nearest"
