@@ -65,6 +65,16 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def batched() -> bool:
+    """Whether ``method="global"`` goes through `host.analysis.estimator.estimate_batch` (numpy,
+    `GROUP` snapshots per pass) or `estimate` one snapshot at a time, each warm-started from the one
+    before: one at a time when the estimator's compiled kernel is built (`USE_KERNEL`; measured
+    0.95 against 1.31 ms of CPU per 14x14 snapshot), batched otherwise (numpy alone: 1.0 against
+    1.5 ms)."""
+    from host.analysis.estimator import USE_KERNEL
+    return not USE_KERNEL
+
+
 #: Snapshots `host.analysis.estimator.estimate_batch` solves together (measured best at 14x14:
 #: 16 gave 1.0 ms per snapshot against 1.7 ms one at a time, 64 gave 1.8 ms: larger groups
 #: start further from their snapshots and their arrays leave the cache).
@@ -73,9 +83,9 @@ GROUP = 16
 
 def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int, L: float,
                    method: str = "global", uncertainty: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Estimate a batch, warm-starting each snapshot from the previous one (``method="global"``:
-    `GROUP` snapshots at a time, `host.analysis.estimator.estimate_batch`). A dead or stuck chip's
-    link is masked out of its snapshot, as the live host does.
+    """Estimate a batch, warm-starting each snapshot from the previous one (``method="global"``: one
+    at a time, or `GROUP` at a time by `host.analysis.estimator.estimate_batch`: `batched`). A dead
+    or stuck chip's link is masked out of its snapshot, as the live host does.
 
     Parameters
     ----------
@@ -101,17 +111,22 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
     residual = np.full(n, np.nan)
     extra: dict[str, list] = {}
     has = np.asarray(valid, dtype=bool).any(axis=1)
-    if method == "global":  # many snapshots per numpy pass, each warm-started (estimate_batch)
+    if method == "global" and batched():  # many snapshots per numpy pass, each warm-started
         idx = np.flatnonzero(has)
         ests = solve_batch(np.asarray(readings[idx], dtype=float), rows, cols, L,
                            valid=np.asarray(valid[idx], dtype=bool), batch=GROUP,
                            bad_readings="mask")
         pairs = zip(idx, ests)
-    else:
-        pairs = ((k, estimate(np.asarray(readings[k], dtype=float), rows, cols, L,
-                              valid=np.asarray(valid[k], dtype=bool), method=method,
-                              bad_readings="mask"))
-                 for k in np.flatnonzero(has))
+    else:  # one at a time, each warm-started from the one before (the global method)
+        def one_by_one():
+            prev = None
+            for k in np.flatnonzero(has):
+                est = estimate(np.asarray(readings[k], dtype=float), rows, cols, L,
+                               valid=np.asarray(valid[k], dtype=bool), method=method,
+                               previous=prev if method == "global" else None, bad_readings="mask")
+                prev = est
+                yield k, est
+        pairs = one_by_one()
     for k, est in pairs:
         joints[k] = est.joints
         residual[k] = est.residual
