@@ -21,9 +21,16 @@ Rules (all counted in `AggregatorStats`, none raises):
   oldest are dropped (newest wins) and counted in ``dropped``; `latest` hands a slow consumer the
   newest snapshot and counts the ones it skips in ``dropped`` too.
 * **Adaptive deadline** (``min_deadline_s`` and ``max_deadline_s`` given): the deadline follows
-  the measured SYNC -> last-frame latency — every 32 measurements it becomes 1.5 x their 95th
-  percentile + 2 ms, bounded to ``[min_deadline_s, max_deadline_s]``. Frames that came after
-  their counter was emitted are measured too, so a deadline that is too short grows.
+  the measured SYNC -> last-frame latency (one measurement per emitted snapshot, and one per
+  batch of late frames: how long after its SYNC the latest of them came). Every 32 measurements
+  the target is 1.5 x the *maximum* of the last 256 measurements + 2 ms, bounded to
+  ``[min_deadline_s, max_deadline_s]``; the deadline rises to a higher target at once and falls
+  towards a lower one by at most 5 % per update (the first update replaces the starting value
+  outright: that was a guess, not a measurement). A frame that arrives after its counter was
+  emitted raises the deadline at once to 1.5 x its latency + 2 ms (bounded), without waiting for
+  the next update: counted in ``late_raises`` (and ``deadline_changes``). So one slow read keeps
+  the deadline up for the 256 measurements it stays in the window, then lets it decay slowly,
+  instead of a 95th percentile over 32 that forgot the tail and shrank it until frames were lost.
 * **Who is missing** (``miss_run``): per link, how many snapshots in a row were emitted without it
   while at least half of the other expected links arrived — the host's watchdog blames a chip
   only on this evidence (its neighbours' frames for the same counters came, its did not).
@@ -48,6 +55,10 @@ __all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "seri
 
 _MOD = 1 << 16
 _HALF = 1 << 15
+_LAT_WINDOW = 256  # adaptive deadline: latencies remembered
+_LAT_UPDATE = 32  # ... and measurements between two updates
+_DEADLINE_SLACK_S = 0.002  # target = 1.5 x the largest remembered latency + this
+_DEADLINE_DECAY = 0.05  # at most this fraction lower per update
 
 
 def serial_diff(a, b):
@@ -144,7 +155,8 @@ class AggregatorStats:
     out_of_range: int = 0  #: SNAPSHOT samples beyond the lattice
     assigned_links: int = 0  #: sum over emitted snapshots of the links with a chip assigned
     valid_links: int = 0  #: sum over emitted snapshots of the assigned links with a valid sample
-    deadline_changes: int = 0  #: times the adaptive deadline moved
+    deadline_changes: int = 0  #: times the adaptive deadline moved (late raises included)
+    late_raises: int = 0  #: times a late frame raised the adaptive deadline at once
     stray: int = 0  #: frames for a counter nobody sent (drive) or out of the sequence (follow): dropped
     resyncs: int = 0  #: follow mode: the counter sequence restarted or jumped and was followed
     unknown_nodes: dict = field(default_factory=dict)  #: node -> frames (at most 256 nodes kept)
@@ -171,8 +183,8 @@ class AggregatorStats:
     def summary(self) -> dict:
         return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
                                               "dropped", "late", "duplicates", "unknown", "out_of_range",
-                                              "assigned_links", "valid_links", "deadline_changes", "stray",
-                                              "resyncs")}
+                                              "assigned_links", "valid_links", "deadline_changes", "late_raises",
+                                              "stray", "resyncs")}
 
 
 class Aggregator:
@@ -232,7 +244,9 @@ class Aggregator:
             self.deadline_s = float(np.clip(self.deadline_s, min_deadline_s, max_deadline_s))
         self.min_deadline_s = float(min_deadline_s) if self.adaptive else self.deadline_s
         self.max_deadline_s = float(max_deadline_s) if self.adaptive else self.deadline_s
-        self._lat: list[float] = []  # latencies measured since the last adaptation
+        self._lat: deque[float] = deque(maxlen=_LAT_WINDOW)  # the last measured latencies (s)
+        self._n_measured = 0  # measurements since the last update of the deadline
+        self._measured_once = False  # the deadline has been set from measurements at least once
         self.max_open = int(max_open)
         self.max_age = int(max_age)
         self.clock = clock
@@ -544,11 +558,11 @@ class Aggregator:
                     return
             if late.any():
                 nl = int(np.count_nonzero(late))
-                if self.adaptive:  # how late they were: a deadline too short must grow
+                if self.adaptive:  # how late they were: a deadline too short grows at once
                     t0 = self._t0_of[counter[late].astype(np.int64)]
                     t0 = t0[np.isfinite(t0) & (now - t0 < 4 * self.max_deadline_s)]
                     if t0.size:
-                        self._measure(float(now - t0.min()))
+                        self._measure(float(now - t0.min()), late=True)
                 st.late += nl
                 st.bus_late[bus] += nl
                 st.link_late += np.bincount(links[late], minlength=self.n_links)
@@ -684,15 +698,31 @@ class Aggregator:
         if self.on_snapshot is not None:
             self.on_snapshot(snap)
 
-    def _measure(self, latency_s: float) -> None:
-        lat = self._lat
-        lat.append(latency_s)
-        if len(lat) >= 32:
-            new = float(np.clip(1.5 * np.percentile(lat, 95) + 0.002, self.min_deadline_s, self.max_deadline_s))
-            lat.clear()
-            if abs(new - self.deadline_s) > 1e-4:
+    def _target(self, latency_s: float) -> float:
+        """The deadline a latency calls for: 1.5 x it + 2 ms, within the bounds."""
+        return min(max(1.5 * latency_s + _DEADLINE_SLACK_S, self.min_deadline_s), self.max_deadline_s)
+
+    def _measure(self, latency_s: float, late: bool = False) -> None:
+        """One SYNC -> last-frame latency (module docstring, "Adaptive deadline"). ``late``: it is
+        a frame's whose counter was already emitted, so the deadline was too short: raise it now."""
+        self._lat.append(latency_s)
+        self._n_measured += 1
+        if late:
+            new = self._target(latency_s)
+            if new > self.deadline_s + 1e-9:
                 self.deadline_s = new
                 self.stats.deadline_changes += 1
+                self.stats.late_raises += 1
+        if self._n_measured < _LAT_UPDATE:
+            return
+        self._n_measured = 0
+        target = self._target(max(self._lat))
+        if self._measured_once and target < self.deadline_s:
+            target = max(target, (1.0 - _DEADLINE_DECAY) * self.deadline_s)
+        self._measured_once = True
+        if abs(target - self.deadline_s) > 1e-4:
+            self.deadline_s = target
+            self.stats.deadline_changes += 1
 
     def reset_miss_runs(self) -> None:
         """Forget who was missing (the host (re)starts streaming)."""

@@ -345,9 +345,9 @@ def test_adaptive_deadline_grows_to_the_measured_latency_within_its_bounds():
     agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock, queue_size=1000)
     _timeline(agg, clock, range(40), 0.03)
     st = agg.stats
-    # the first counters went out at the 10 ms deadline, their frames came late; 32 of them
-    # measured 30 ms: the deadline became 1.5 x 30 ms + 2 ms
-    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.047)
+    # the first counters went out at the 10 ms deadline, their frames came late: the first late
+    # batch measured 30 ms and raised the deadline at once to 1.5 x 30 ms + 2 ms
+    assert st.deadline_changes == 1 and st.late_raises == 1 and agg.deadline_s == pytest.approx(0.047)
     assert st.late > 0
     late_before = st.late
     _timeline(agg, clock, range(40, 80), 0.03)
@@ -373,6 +373,55 @@ def test_adaptive_deadline_shrinks_but_not_below_its_minimum():
         agg.open_counter(c, t)
         _ingest_at(agg, clock, c, [1, 2, 3, 4], t + 0.001)
     assert agg.deadline_s == 0.005  # 1.5 x 1 ms + 2 ms = 3.5 ms, bounded below
+
+
+def _script(agg, clock, steps):
+    """``(t, "sync" | "frames" | "poll", counter)`` in time order; frames from all 4 nodes."""
+    for t, what, c in steps:
+        clock.t = t
+        agg.poll(t)
+        if what == "sync":
+            agg.open_counter(c, t)
+        elif what == "frames":
+            _ingest_at(agg, clock, c, [1, 2, 3, 4], t)
+
+
+def test_a_late_frame_raises_the_deadline_at_once():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    _script(agg, clock, [(100.000, "sync", 0),
+                         (100.015, "poll", None),  # counter 0 goes out empty at its 10 ms deadline
+                         (100.020, "sync", 1),
+                         (100.028, "frames", 0)])  # 28 ms after its SYNC: late
+    st = agg.stats
+    assert st.late == 4 and st.late_raises == 1 and st.deadline_changes == 1
+    assert agg.deadline_s == pytest.approx(1.5 * 0.028 + 0.002)  # no 32 measurements needed
+    assert agg.stats.summary()["late_raises"] == 1
+    # counter 1, opened before the raise, is waited for under the raised deadline
+    _script(agg, clock, [(100.040, "poll", None), (100.048, "frames", 1)])
+    assert st.emitted == 2 and st.complete == 1 and st.late == 4
+    assert st.late_raises == 1  # 28 ms again, not late: nothing more to raise
+
+
+def test_adaptive_deadline_keeps_the_largest_of_256_latencies_then_decays_5_percent_per_update():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    st = agg.stats
+
+    def counters(first, n, latency_s):
+        for c in range(first, first + n):  # every counter complete, measured at its latency
+            t = 100.0 + 0.05 * c
+            _script(agg, clock, [(t, "sync", c), (t + latency_s, "frames", c)])
+
+    counters(0, 32, 0.020)  # the first update replaces the starting guess outright
+    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.032)
+    counters(32, 255, 0.002)  # 287 measured: the 20 ms ones are still among the last 256
+    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.032)
+    counters(287, 1, 0.002)  # the 288th: the update's window holds only 2 ms (target 5 ms)
+    assert st.deadline_changes == 2 and agg.deadline_s == pytest.approx(0.95 * 0.032)
+    counters(288, 64, 0.002)  # two more updates, 5 % each
+    assert st.deadline_changes == 4 and agg.deadline_s == pytest.approx(0.95 ** 3 * 0.032)
+    assert st.complete == 352 and st.late == 0 and st.late_raises == 0
 
 
 def test_miss_run_blames_only_a_link_whose_neighbours_arrived():
