@@ -5,6 +5,8 @@ Every streaming chip answers SYNC ``counter`` with a SAMPLE carrying that counte
 a bounded set of *open* counters, scatters incoming samples into per-counter buffers (numpy,
 vectorised: a batch of node ids becomes link indices through one lookup array), and emits a
 `LatticeSnapshot` when a counter is complete, or at its deadline with the missing links masked.
+The SNAPSHOT frames of one read go in together (`Aggregator.ingest_snapshots`: one numpy pass per
+run of frames, exactly what one frame at a time gives).
 
 Rules (all counted in `AggregatorStats`, none raises):
 
@@ -21,9 +23,16 @@ Rules (all counted in `AggregatorStats`, none raises):
   oldest are dropped (newest wins) and counted in ``dropped``; `latest` hands a slow consumer the
   newest snapshot and counts the ones it skips in ``dropped`` too.
 * **Adaptive deadline** (``min_deadline_s`` and ``max_deadline_s`` given): the deadline follows
-  the measured SYNC -> last-frame latency — every 32 measurements it becomes 1.5 x their 95th
-  percentile + 2 ms, bounded to ``[min_deadline_s, max_deadline_s]``. Frames that came after
-  their counter was emitted are measured too, so a deadline that is too short grows.
+  the measured SYNC -> last-frame latency (one measurement per emitted snapshot, and one per
+  batch of late frames: how long after its SYNC the latest of them came). Every 32 measurements
+  the target is 1.5 x the *maximum* of the last 256 measurements + 2 ms, bounded to
+  ``[min_deadline_s, max_deadline_s]``; the deadline rises to a higher target at once and falls
+  towards a lower one by at most 5 % per update (the first update replaces the starting value
+  outright: that was a guess, not a measurement). A frame that arrives after its counter was
+  emitted raises the deadline at once to 1.5 x its latency + 2 ms (bounded), without waiting for
+  the next update: counted in ``late_raises`` (and ``deadline_changes``). So one slow read keeps
+  the deadline up for the 256 measurements it stays in the window, then lets it decay slowly,
+  instead of a 95th percentile over 32 that forgot the tail and shrank it until frames were lost.
 * **Who is missing** (``miss_run``): per link, how many snapshots in a row were emitted without it
   while at least half of the other expected links arrived — the host's watchdog blames a chip
   only on this evidence (its neighbours' frames for the same counters came, its did not).
@@ -42,12 +51,16 @@ import numpy as np
 
 from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
 from protocol.framing import SampleBatch
-from protocol.messages import Sample, Snapshot, unpack_sample_words
+from protocol.messages import SAMPLE_WORD_SIZE, Sample, Snapshot, unpack_sample_words, unpack_snapshots
 
 __all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "serial_diff"]
 
 _MOD = 1 << 16
 _HALF = 1 << 15
+_LAT_WINDOW = 256  # adaptive deadline: latencies remembered
+_LAT_UPDATE = 32  # ... and measurements between two updates
+_DEADLINE_SLACK_S = 0.002  # target = 1.5 x the largest remembered latency + this
+_DEADLINE_DECAY = 0.05  # at most this fraction lower per update
 
 
 def serial_diff(a, b):
@@ -144,7 +157,8 @@ class AggregatorStats:
     out_of_range: int = 0  #: SNAPSHOT samples beyond the lattice
     assigned_links: int = 0  #: sum over emitted snapshots of the links with a chip assigned
     valid_links: int = 0  #: sum over emitted snapshots of the assigned links with a valid sample
-    deadline_changes: int = 0  #: times the adaptive deadline moved
+    deadline_changes: int = 0  #: times the adaptive deadline moved (late raises included)
+    late_raises: int = 0  #: times a late frame raised the adaptive deadline at once
     stray: int = 0  #: frames for a counter nobody sent (drive) or out of the sequence (follow): dropped
     resyncs: int = 0  #: follow mode: the counter sequence restarted or jumped and was followed
     unknown_nodes: dict = field(default_factory=dict)  #: node -> frames (at most 256 nodes kept)
@@ -171,8 +185,8 @@ class AggregatorStats:
     def summary(self) -> dict:
         return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
                                               "dropped", "late", "duplicates", "unknown", "out_of_range",
-                                              "assigned_links", "valid_links", "deadline_changes", "stray",
-                                              "resyncs")}
+                                              "assigned_links", "valid_links", "deadline_changes", "late_raises",
+                                              "stray", "resyncs")}
 
 
 class Aggregator:
@@ -232,7 +246,9 @@ class Aggregator:
             self.deadline_s = float(np.clip(self.deadline_s, min_deadline_s, max_deadline_s))
         self.min_deadline_s = float(min_deadline_s) if self.adaptive else self.deadline_s
         self.max_deadline_s = float(max_deadline_s) if self.adaptive else self.deadline_s
-        self._lat: list[float] = []  # latencies measured since the last adaptation
+        self._lat: deque[float] = deque(maxlen=_LAT_WINDOW)  # the last measured latencies (s)
+        self._n_measured = 0  # measurements since the last update of the deadline
+        self._measured_once = False  # the deadline has been set from measurements at least once
         self.max_open = int(max_open)
         self.max_age = int(max_age)
         self.clock = clock
@@ -462,15 +478,24 @@ class Aggregator:
         """Feed decoder/transport events; anything but SAMPLE/SampleBatch/SNAPSHOT is ignored.
         ``now``: the arrival time to use (default: the clock, read under the lock) — a recorder
         that stamped the input passes its stamp, so a replay at that stamp decides alike."""
+        snaps: list[Snapshot] = []  # a run of SNAPSHOT frames: ingested together, in one pass
         for ev in events:
+            if isinstance(ev, Snapshot):
+                snaps.append(ev)
+                continue
+            if not isinstance(ev, (SampleBatch, Sample)):
+                continue  # ignored: does not end a run
+            if snaps:
+                self.ingest_snapshots(snaps, bus, now=now)
+                snaps = []
             if isinstance(ev, SampleBatch):
                 self.ingest_batch(ev.node, ev.counter, ev.counts, ev.status, bus, now=now)
-            elif isinstance(ev, Snapshot):
-                self.ingest_snapshot(ev, bus, now=now)
-            elif isinstance(ev, Sample):
+            else:
                 self.ingest_batch(np.array([ev.node], dtype=np.uint16), np.array([ev.counter], dtype=np.uint16),
                                   np.array([[ev.x, ev.y, ev.z]], dtype=np.int16),
                                   np.array([ev.status], dtype=np.uint8), bus, now=now)
+        if snaps:
+            self.ingest_snapshots(snaps, bus, now=now)
 
     def ingest_batch(self, node: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
                      bus: int = 0, now: float | None = None) -> None:
@@ -488,12 +513,81 @@ class Aggregator:
         counts, status = unpack_sample_words(snap.words)
         with self._lock:
             links = snap.first_link + np.arange(counts.shape[0], dtype=np.int64)
-            inside = links < self.n_links
-            if not inside.all():
-                self.stats.out_of_range += int(np.count_nonzero(~inside))
-                links, counts, status = links[inside], counts[inside], status[inside]
             counter = np.full(links.shape[0], snap.counter, dtype=np.uint16)
-            self._scatter(links, counter, counts, status, bus, now)
+            self._scatter_inside(links, counter, counts, status, bus, now)
+
+    def ingest_snapshots(self, frames: Iterable[Snapshot], bus: int = 0, now: float | None = None) -> None:
+        """Many SNAPSHOT frames (what one read delivered), unpacked and scattered in one numpy pass:
+        exactly what `ingest_snapshot` on each in turn, at the same ``now``, gives — the same
+        snapshots, the same counts of late, duplicate, stray and out-of-range samples.
+
+        One pass needs that nothing is emitted between two of the frames, so the frames are cut
+        into runs: a run ends at the frame that completes the oldest open counter (one by one, it
+        would be emitted there and later frames for it would be late); a frame whose counter is
+        not open (it opens one, or is late or stray), and a frame while the oldest counter is past
+        its deadline, go alone, as one by one. Live, a read of a
+        packed gateway holds the frames of one or two counters: one or two passes.
+        """
+        frames = frames if isinstance(frames, list) else list(frames)
+        if len(frames) <= 1:
+            for f in frames:
+                self.ingest_snapshot(f, bus, now=now)
+            return
+        counter, links, counts, status = unpack_snapshots(frames)
+        links = links.astype(np.int64)
+        sizes = np.fromiter((len(f.words) for f in frames), dtype=np.int64, count=len(frames)) // SAMPLE_WORD_SIZE
+        ends = np.cumsum(sizes)  # frame k: samples ends[k] - sizes[k] .. ends[k] - 1
+        starts = ends - sizes
+        fcounter = counter[starts]
+        with self._lock:
+            if now is None:
+                now = self.clock()
+            i, nf = 0, len(frames)
+            while i < nf:
+                j = self._run_end(i, nf, fcounter, links, counter, starts, ends, now)
+                a, b = int(starts[i]), int(ends[j - 1])
+                self._scatter_inside(links[a:b], counter[a:b], counts[a:b], status[a:b], bus, now)
+                i = j
+
+    def _run_end(self, i: int, nf: int, fcounter, links, counter, starts, ends, now: float) -> int:
+        """`ingest_snapshots`: frames ``i .. j-1`` may be scattered in one pass; returns ``j``."""
+        if self._slot_of[int(fcounter[i])] < 0 or not self._open:
+            return i + 1  # opens a counter, or late / stray: alone
+        head = self._open[0]
+        if now - self._slot_t0[head] >= self.deadline_s:
+            return i + 1  # the pump after this frame emits the head
+        # frames of open counters, up to the first frame of a counter not open
+        is_open = self._slot_of[fcounter[i:]] >= 0
+        m = i + (int(np.argmin(is_open)) if not is_open.all() else nf - i)
+        L = self.n_links
+        # the frame that completes the head (the one-by-one pump would emit it right after). A
+        # silent link's frame makes it expected again, which only delays completion — unless
+        # nothing was expected: then it may complete the head at once, so go one at a time
+        n_exp = int(np.count_nonzero(self.expected))
+        if n_exp == 0:
+            return i + 1 if self.silent.any() else m  # else the head waits for its deadline
+        need = self.expected & ~self._got[head]
+        n_need = int(np.count_nonzero(need))
+        a, b = int(starts[i]), int(ends[m - 1])
+        lk = links[a:b]
+        pos = np.flatnonzero((counter[a:b] == self._slot_counter[head]) & (lk < L))
+        if pos.size:
+            pos = pos[need[lk[pos]]]
+        if n_need == 0 or pos.size < n_need:
+            return m if n_need else i + 1
+        u, first = np.unique(lk[pos], return_index=True)
+        if u.size < n_need:
+            return m
+        done_at = a + int(np.sort(pos[first])[n_need - 1])  # the sample that completes it
+        return int(np.searchsorted(ends, done_at, side="right")) + 1
+
+    def _scatter_inside(self, links, counter, counts, status, bus: int, now: float | None) -> None:
+        """SNAPSHOT samples: those beyond the lattice are counted (``out_of_range``), the rest scattered."""
+        inside = links < self.n_links
+        if not inside.all():
+            self.stats.out_of_range += int(np.count_nonzero(~inside))
+            links, counter, counts, status = links[inside], counter[inside], counts[inside], status[inside]
+        self._scatter(links, counter, counts, status, bus, now)
 
     def _count_unknown(self, nodes: np.ndarray, bus: int) -> None:
         st = self.stats
@@ -544,11 +638,11 @@ class Aggregator:
                     return
             if late.any():
                 nl = int(np.count_nonzero(late))
-                if self.adaptive:  # how late they were: a deadline too short must grow
+                if self.adaptive:  # how late they were: a deadline too short grows at once
                     t0 = self._t0_of[counter[late].astype(np.int64)]
                     t0 = t0[np.isfinite(t0) & (now - t0 < 4 * self.max_deadline_s)]
                     if t0.size:
-                        self._measure(float(now - t0.min()))
+                        self._measure(float(now - t0.min()), late=True)
                 st.late += nl
                 st.bus_late[bus] += nl
                 st.link_late += np.bincount(links[late], minlength=self.n_links)
@@ -578,10 +672,23 @@ class Aggregator:
         self._status.reshape(-1)[flat] = status
         got_flat[flat] = True
         st.samples += n_fresh
-        st.link_frames += np.bincount(links, minlength=L)
+        per_link = np.bincount(links, minlength=L)
+        st.link_frames += per_link
         lat = now - self._slot_t0[slots]
-        prev = st.link_latency_s[links]
-        st.link_latency_s[links] = np.where(np.isnan(prev), lat, prev + 0.1 * (lat - prev))
+        if n_fresh and per_link.max() > 1:
+            # a link in several counters' frames: its EWMA steps once per frame, in order, as
+            # one frame at a time would (one step per occurrence rank, the links unique in each)
+            order = np.argsort(links, kind="stable")
+            sl = links[order]
+            k = np.arange(n_fresh)
+            run0 = np.maximum.accumulate(np.where(np.r_[True, sl[1:] != sl[:-1]], k, 0))
+            rank = np.empty(n_fresh, dtype=np.int64)
+            rank[order] = k - run0
+            for r in range(int(rank.max()) + 1):
+                sel = rank == r
+                self._ewma_latency(links[sel], lat[sel])
+        else:
+            self._ewma_latency(links, lat)
         touched = np.bincount(slots, minlength=self.max_open)
         self._n_got += touched
         for s in np.flatnonzero(touched).tolist():
@@ -590,6 +697,12 @@ class Aggregator:
                 self._slot_first[s] = t_rel
             self._slot_last[s] = t_rel
         self._pump(now)
+
+    def _ewma_latency(self, links: np.ndarray, lat: np.ndarray) -> None:
+        """One EWMA step of ``link_latency_s`` for each of ``links`` (unique)."""
+        ll = self.stats.link_latency_s
+        prev = ll[links]
+        ll[links] = np.where(np.isnan(prev), lat, prev + 0.1 * (lat - prev))
 
     # -- emission --------------------------------------------------------------------------
     def _is_complete(self, s: int) -> bool:
@@ -684,15 +797,31 @@ class Aggregator:
         if self.on_snapshot is not None:
             self.on_snapshot(snap)
 
-    def _measure(self, latency_s: float) -> None:
-        lat = self._lat
-        lat.append(latency_s)
-        if len(lat) >= 32:
-            new = float(np.clip(1.5 * np.percentile(lat, 95) + 0.002, self.min_deadline_s, self.max_deadline_s))
-            lat.clear()
-            if abs(new - self.deadline_s) > 1e-4:
+    def _target(self, latency_s: float) -> float:
+        """The deadline a latency calls for: 1.5 x it + 2 ms, within the bounds."""
+        return min(max(1.5 * latency_s + _DEADLINE_SLACK_S, self.min_deadline_s), self.max_deadline_s)
+
+    def _measure(self, latency_s: float, late: bool = False) -> None:
+        """One SYNC -> last-frame latency (module docstring, "Adaptive deadline"). ``late``: it is
+        a frame's whose counter was already emitted, so the deadline was too short: raise it now."""
+        self._lat.append(latency_s)
+        self._n_measured += 1
+        if late:
+            new = self._target(latency_s)
+            if new > self.deadline_s + 1e-9:
                 self.deadline_s = new
                 self.stats.deadline_changes += 1
+                self.stats.late_raises += 1
+        if self._n_measured < _LAT_UPDATE:
+            return
+        self._n_measured = 0
+        target = self._target(max(self._lat))
+        if self._measured_once and target < self.deadline_s:
+            target = max(target, (1.0 - _DEADLINE_DECAY) * self.deadline_s)
+        self._measured_once = True
+        if abs(target - self.deadline_s) > 1e-4:
+            self.deadline_s = target
+            self.stats.deadline_changes += 1
 
     def reset_miss_runs(self) -> None:
         """Forget who was missing (the host (re)starts streaming)."""

@@ -318,7 +318,7 @@ class Host:
         self.watchdog_s = watchdog_s if watchdog_s is not None else max(0.5, 20.0 / self.rate_hz)
         n = self.lattice.n_links
         # completion deadline: a fixed one if given, else adapted to the measured SYNC -> sample
-        # latency within [1.5 periods, max(0.25 s, 8 periods)] (see Aggregator.adapt)
+        # latency within [1.5 periods, max(0.25 s, 8 periods)] (host/aggregator.py, "Adaptive deadline")
         period = 1.0 / self.rate_hz
         if deadline_s is not None:
             dl = dict(deadline_s=deadline_s)

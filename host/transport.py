@@ -300,6 +300,28 @@ def _import(module: str, what: str, port: str):
         raise TransportInitError(f"Cannot import module {module} for {what} {port!r}: {exc}", port) from exc
 
 
+#: the timeouts a serial read waits with, longest first (seconds)
+READ_TIMEOUTS_S = (0.1, 0.05, 0.02, 0.01, 0.005, 0.002, 0.001)
+
+
+def read_timeout_for(timeout_s: float | None) -> float:
+    """The read timeout for a receive with ``timeout_s`` left: 0.1 s for None (wait), 0 for a
+    poll, else the largest of `READ_TIMEOUTS_S` not over it (1 ms at least): `Transport.recv`
+    reads again until its own deadline, so a shorter read costs an iteration, not an event.
+
+    >>> read_timeout_for(None), read_timeout_for(0), read_timeout_for(0.0499), read_timeout_for(0.0003)
+    (0.1, 0.0, 0.02, 0.001)
+    """
+    if timeout_s is None:
+        return READ_TIMEOUTS_S[0]
+    if timeout_s <= 0:
+        return 0.0
+    for v in READ_TIMEOUTS_S:
+        if v <= timeout_s:
+            return v
+    return READ_TIMEOUTS_S[-1]
+
+
 class SerialTransport(Transport):
     """The serial back end: COBS frames (docs §6) over anything with pyserial's API.
 
@@ -319,6 +341,13 @@ class SerialTransport(Transport):
         Returns a fresh port object; used instead of reopening by name.
     read_size : int
         Largest read per call; large reads keep the batch decoder on its fast path.
+
+    Reads wait on pyserial's ``timeout``, and setting it costs pyserial a termios reconfiguration
+    (``tcsetattr``) every time, whatever the value. So a read's timeout is taken from a few fixed
+    values (`read_timeout_for`: the largest of 100, 50, 20, 10, 5, 2, 1 ms not over what is left,
+    0 for a poll) and set only when it differs from the port's current one: a streaming port sets
+    it once. ``read_timeouts`` counts the reads made per timeout value and ``read_timeout_sets``
+    the times it was set.
     """
 
     def __init__(self, port: Any, baudrate: int = 3_000_000, *, reconnect: bool = True,
@@ -331,6 +360,9 @@ class SerialTransport(Transport):
         self._reopen = reopen
         self._read_size = read_size
         self.decoder = StreamDecoder(batch_samples=True)
+        self._read_timeout: float | None = None  # the port's timeout as last set; None: unknown
+        self.read_timeouts: Counter = Counter()  #: read timeout (s) -> reads made with it
+        self.read_timeout_sets = 0  #: times the port's timeout was set (a termios call each)
         if self._url is not None:
             self._serial_mod = _import("serial", "serial port", self._url)
             self._port = self._open()
@@ -364,10 +396,12 @@ class SerialTransport(Transport):
 
     def _forget_internal(self) -> None:
         self._port = None
+        self._read_timeout = None
         self.decoder.reset()
 
     def _reopen_internal(self) -> None:
         self._port = self._reopen() if self._reopen is not None else self._open()
+        self._read_timeout = None
 
     # hooks -------------------------------------------------------------------------------
     def _recv_internal(self, timeout_s: float | None) -> list:
@@ -378,10 +412,12 @@ class SerialTransport(Transport):
                 return []
             port = self._port
         try:
-            if timeout_s is not None:
-                port.timeout = min(timeout_s, 0.1) if timeout_s > 0 else 0
-            else:
-                port.timeout = 0.1
+            rt = read_timeout_for(timeout_s)
+            if rt != self._read_timeout:
+                port.timeout = rt
+                self._read_timeout = rt
+                self.read_timeout_sets += 1
+            self.read_timeouts[rt] += 1
             waiting = port.in_waiting
             data = port.read(min(max(1, waiting), self._read_size))
             if data and waiting == 0:

@@ -10,6 +10,7 @@ import pytest
 from host.aggregator import Aggregator, LinkFlag, serial_diff
 from protocol import SampleStatus, Snapshot, StreamDecoder, decode_can, encode, to_can
 from protocol.constants import G0
+from protocol.framing import SampleBatch
 from protocol.messages import Sample
 
 
@@ -345,9 +346,9 @@ def test_adaptive_deadline_grows_to_the_measured_latency_within_its_bounds():
     agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock, queue_size=1000)
     _timeline(agg, clock, range(40), 0.03)
     st = agg.stats
-    # the first counters went out at the 10 ms deadline, their frames came late; 32 of them
-    # measured 30 ms: the deadline became 1.5 x 30 ms + 2 ms
-    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.047)
+    # the first counters went out at the 10 ms deadline, their frames came late: the first late
+    # batch measured 30 ms and raised the deadline at once to 1.5 x 30 ms + 2 ms
+    assert st.deadline_changes == 1 and st.late_raises == 1 and agg.deadline_s == pytest.approx(0.047)
     assert st.late > 0
     late_before = st.late
     _timeline(agg, clock, range(40, 80), 0.03)
@@ -373,6 +374,55 @@ def test_adaptive_deadline_shrinks_but_not_below_its_minimum():
         agg.open_counter(c, t)
         _ingest_at(agg, clock, c, [1, 2, 3, 4], t + 0.001)
     assert agg.deadline_s == 0.005  # 1.5 x 1 ms + 2 ms = 3.5 ms, bounded below
+
+
+def _script(agg, clock, steps):
+    """``(t, "sync" | "frames" | "poll", counter)`` in time order; frames from all 4 nodes."""
+    for t, what, c in steps:
+        clock.t = t
+        agg.poll(t)
+        if what == "sync":
+            agg.open_counter(c, t)
+        elif what == "frames":
+            _ingest_at(agg, clock, c, [1, 2, 3, 4], t)
+
+
+def test_a_late_frame_raises_the_deadline_at_once():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    _script(agg, clock, [(100.000, "sync", 0),
+                         (100.015, "poll", None),  # counter 0 goes out empty at its 10 ms deadline
+                         (100.020, "sync", 1),
+                         (100.028, "frames", 0)])  # 28 ms after its SYNC: late
+    st = agg.stats
+    assert st.late == 4 and st.late_raises == 1 and st.deadline_changes == 1
+    assert agg.deadline_s == pytest.approx(1.5 * 0.028 + 0.002)  # no 32 measurements needed
+    assert agg.stats.summary()["late_raises"] == 1
+    # counter 1, opened before the raise, is waited for under the raised deadline
+    _script(agg, clock, [(100.040, "poll", None), (100.048, "frames", 1)])
+    assert st.emitted == 2 and st.complete == 1 and st.late == 4
+    assert st.late_raises == 1  # 28 ms again, not late: nothing more to raise
+
+
+def test_adaptive_deadline_keeps_the_largest_of_256_latencies_then_decays_5_percent_per_update():
+    clock = FakeClock()
+    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    st = agg.stats
+
+    def counters(first, n, latency_s):
+        for c in range(first, first + n):  # every counter complete, measured at its latency
+            t = 100.0 + 0.05 * c
+            _script(agg, clock, [(t, "sync", c), (t + latency_s, "frames", c)])
+
+    counters(0, 32, 0.020)  # the first update replaces the starting guess outright
+    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.032)
+    counters(32, 255, 0.002)  # 287 measured: the 20 ms ones are still among the last 256
+    assert st.deadline_changes == 1 and agg.deadline_s == pytest.approx(0.032)
+    counters(287, 1, 0.002)  # the 288th: the update's window holds only 2 ms (target 5 ms)
+    assert st.deadline_changes == 2 and agg.deadline_s == pytest.approx(0.95 * 0.032)
+    counters(288, 64, 0.002)  # two more updates, 5 % each
+    assert st.deadline_changes == 4 and agg.deadline_s == pytest.approx(0.95 ** 3 * 0.032)
+    assert st.complete == 352 and st.late == 0 and st.late_raises == 0
 
 
 def test_miss_run_blames_only_a_link_whose_neighbours_arrived():
@@ -430,3 +480,110 @@ def test_invalid_deadline_bounds_are_refused():
         Aggregator(4, min_deadline_s=0.2, max_deadline_s=0.1)
     with pytest.raises(ValueError, match="deadline_s"):
         Aggregator(4, deadline_s=float("nan"))
+
+
+# ------------------------------------------------------------- SNAPSHOT frames of one read together
+
+def _snapshot_world(seed: int, batched: bool):
+    """One seeded session of a packed gateway's reads (SNAPSHOT runs, SampleBatch among them,
+    unknown nodes, frames beyond the lattice, duplicates, late and stray counters, silent links,
+    SYNCs, deadlines), fed either through `ingest` (runs of SNAPSHOT in one pass) or one frame at a
+    time with `ingest_snapshot` / `ingest_batch`. Returns the aggregator and its snapshots."""
+    r = rng(seed)
+    L = 12
+    clock = FakeClock()
+    out = []
+    trust = ("frames", "sent", "follow")[seed % 3]
+    agg = Aggregator(L, clock=clock, deadline_s=0.01, min_deadline_s=0.004, max_deadline_s=0.05,
+                     max_open=int(r.integers(2, 6)), queue_size=10_000, trust=trust, on_snapshot=out.append)
+    counter = 0
+    for _ in range(80):
+        clock.t += float(r.choice([0.0, 0.001, 0.004, 0.012]))
+        u = r.random()
+        if u < 0.3:
+            counter = (counter + 1) & 0xFFFF
+            agg.open_counter(counter, clock.t)
+        elif u < 0.35:
+            agg.mark_silent(int(r.integers(0, L)), bool(r.random() < 0.7))
+        elif u < 0.37:  # every link silent: nothing expected until one speaks again
+            for k in range(L):
+                agg.mark_silent(k)
+        elif u < 0.4:
+            agg.poll(clock.t)
+        events = []
+        for _ in range(int(r.integers(0, 9))):
+            c = (counter + int(r.integers(-4, 3))) & 0xFFFF
+            if r.random() < 0.15:  # per-chip samples, some from nodes nobody knows
+                k = int(r.integers(1, 5))
+                events.append(SampleBatch(r.integers(1, L + 4, size=k).astype(np.uint16),
+                                          np.full(k, c, dtype=np.uint16),
+                                          r.integers(-2048, 2048, size=(k, 3)).astype(np.int16),
+                                          r.integers(0, 16, size=k).astype(np.uint8)))
+                continue
+            first = int(r.integers(0, L + 2))
+            k = int(r.integers(1, 7))
+            events.append(Snapshot.from_arrays(0, c, first, r.integers(-2048, 2048, size=(k, 3)),
+                                               r.integers(0, 16, size=k)))
+        if batched:
+            agg.ingest(events, now=clock.t)
+        else:
+            for ev in events:
+                if isinstance(ev, Snapshot):
+                    agg.ingest_snapshot(ev, now=clock.t)
+                else:
+                    agg.ingest_batch(ev.node, ev.counter, ev.counts, ev.status, now=clock.t)
+    clock.t += 1.0
+    agg.poll(clock.t)
+    return agg, out
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_snapshot_frames_of_one_read_in_one_pass_equal_one_at_a_time(seed):
+    a, snaps_a = _snapshot_world(seed, batched=True)
+    b, snaps_b = _snapshot_world(seed, batched=False)
+    assert a.stats.summary() == b.stats.summary()
+    assert a.stats.unknown_nodes == b.stats.unknown_nodes
+    for name in ("link_frames", "link_late", "link_duplicates", "link_missing", "link_latency_s",
+                 "link_last_seen", "bus_frames", "bus_late", "bus_duplicates", "bus_unknown"):
+        assert np.array_equal(getattr(a.stats, name), getattr(b.stats, name), equal_nan=True), name
+    assert np.array_equal(a.miss_run, b.miss_run) and np.array_equal(a.silent, b.silent)
+    assert a.deadline_s == b.deadline_s
+    assert len(snaps_a) == len(snaps_b)
+    for x, y in zip(snaps_a, snaps_b):
+        assert (x.counter, x.timestamp, x.complete, x.latency_s) == (y.counter, y.timestamp, y.complete, y.latency_s)
+        assert np.array_equal(x.first_frame_s, y.first_frame_s, equal_nan=True)
+        assert np.array_equal(x.last_frame_s, y.last_frame_s, equal_nan=True)
+        assert np.array_equal(x.readings, y.readings, equal_nan=True)
+        assert np.array_equal(x.valid, y.valid) and np.array_equal(x.status, y.status)
+
+
+def test_the_snapshot_sessions_reach_every_case():
+    """The sessions above are not vacuous: together they hold every case one pass must get right."""
+    tot = {k: 0 for k in ("late", "duplicates", "unknown", "out_of_range", "stray", "evicted", "complete",
+                          "incomplete", "late_raises")}
+    for seed in range(60):
+        agg, _ = _snapshot_world(seed, batched=True)
+        for k in tot:
+            tot[k] += getattr(agg.stats, k)
+    assert all(v > 0 for v in tot.values()), tot
+
+
+def test_a_silent_link_speaking_in_a_run_completes_a_counter_that_expected_nothing_as_one_at_a_time():
+    """Every link silent, so nothing expected; the first frame's link speaks again and completes
+    the counter at once: one at a time, the next frame for that counter is late."""
+    stats = []
+    for batched in (True, False):
+        clock = FakeClock()
+        agg = Aggregator(2, clock=clock, deadline_s=0.05)
+        agg.mark_silent(0)
+        agg.mark_silent(1)
+        agg.open_counter(0, clock.t)
+        frames = [Snapshot.from_arrays(0, 0, k, np.zeros((1, 3), dtype=np.int16), np.zeros(1)) for k in (0, 1)]
+        if batched:
+            agg.ingest_snapshots(frames, now=clock.t)
+        else:
+            for f in frames:
+                agg.ingest_snapshot(f, now=clock.t)
+        stats.append(agg.stats.summary())
+    assert stats[0] == stats[1]
+    assert stats[0]["late"] == 1 and stats[0]["complete"] == 1

@@ -14,7 +14,7 @@ import pytest
 
 from host.transport import (CanTransport, MemoryTransport, SerialTransport, TransportCapabilities,
                             TransportError, TransportInitError, TransportOperationError, open_transport,
-                            parse_can_spec)
+                            READ_TIMEOUTS_S, parse_can_spec, read_timeout_for)
 from protocol import DecodeError, SampleBatch, Snapshot, encode, to_can
 from protocol.messages import Ack, Announce, MsgType, Sample, Sync
 from virtual_sheet.memport import memory_link
@@ -86,6 +86,35 @@ def test_pty_serial_receives_batches_and_counts_damage(pty_pair):
         time.sleep(0.05)
         assert os.read(master, 100) == encode(Sync(counter=7))
         assert t.capabilities.kind == "serial" and t.capabilities.bitrate == 3_000_000
+    finally:
+        t.close()
+
+
+def test_pty_serial_sets_the_read_timeout_only_when_it_changes(pty_pair):
+    """pyserial reconfigures the port (tcsetattr) at every ``timeout`` set: a streaming port sets
+    it once, not at every read, and what is written still arrives whole."""
+    master, _slave, path = pty_pair
+    t = SerialTransport(path, baudrate=3_000_000, read_size=512)  # small reads: many of them
+    try:
+        def receive(n_samples, timeout_s):
+            got, reads = [], 0
+            while sum(len(b) for b in got) < n_samples:
+                got += [ev for ev in t.recv(timeout_s) if isinstance(ev, SampleBatch)]
+                reads += 1
+                assert reads < 10_000
+            return got, reads
+
+        os.write(master, samples_wire(300))
+        first, reads = receive(300, None)
+        assert sum(len(b) for b in first) == 300 and reads > 5
+        assert [t.recv(0) for _ in range(20)] == [[]] * 20  # nothing more: polls
+        os.write(master, samples_wire(300))
+        second, _ = receive(300, None)
+        assert np.array_equal(np.concatenate([b.node for b in second]), np.concatenate([b.node for b in first]))
+        assert set(t.read_timeouts) == {0.1, 0.0} and t.read_timeouts[0.0] == 20
+        assert t.read_timeout_sets == 3  # 0.1 s, 0 for the polls, 0.1 s again
+        assert t._port.timeout == 0.1  # what pyserial holds is what the transport thinks it set
+        assert {read_timeout_for(r) for r in (0.05, 0.0499, 0.03, 0.011, 0.0004)} <= set(READ_TIMEOUTS_S)
     finally:
         t.close()
 
