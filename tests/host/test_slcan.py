@@ -1,0 +1,284 @@
+"""host/slcan.py's buffered SLCAN bus on real ptys, against python-can's own slcan interface: every
+frame delivered whatever the chunking (whole stream, byte by byte, seeded random chunks), parsed as
+python-can parses it; damaged lines counted and skipped with every valid frame around them kept;
+stale input an adapter left in the port drained at open."""
+
+from __future__ import annotations
+
+import os
+import select
+import threading
+import time
+import tty
+
+import numpy as np
+import pytest
+
+can = pytest.importorskip("can")
+
+from can.interfaces.slcan import slcanBus  # noqa: E402
+
+from host.slcan import MAX_LINE, BufferedSlcanBus  # noqa: E402
+from host.transport import CanTransport  # noqa: E402
+from protocol import DecodeError, SampleBatch, to_can  # noqa: E402
+from protocol.can import decode_can, make_id  # noqa: E402
+from protocol.messages import Ack, MsgType, Sample, Status, Sync  # noqa: E402
+
+
+@pytest.fixture
+def pty_pair():
+    master, slave = os.openpty()
+    tty.setraw(master)
+    tty.setraw(slave)
+    yield master, os.ttyname(slave)
+    for fd in (master, slave):
+        try:
+            os.close(fd)
+        except OSError:
+            pass
+
+
+def t_line(msg) -> bytes:
+    f = to_can(msg)
+    return f"T{f.arbitration_id:08X}{len(f.data)}{f.data.hex().upper()}\r".encode()
+
+
+#: one of each line python-can reads (frames of every kind, a Z1 timestamp, replies, an error reply)
+VALID_LINES = [
+    t_line(Sample(7, 0x1234, -2048, 2047, 1024, 0xF)),
+    b"T1FFFFFFF0\r",  # extended, no data, the largest identifier
+    b"t7FF8DEADBEEF01020304\r",
+    b"t1230\r",
+    b"T0101000023412ABCD\r",  # with the 4-digit timestamp of the Z1 mode
+    b"x0101000023412\r",  # CANDapter's extended frame
+    b"r1234\r",
+    b"R123456788\r",
+    b"d123F" + b"AB" * 64 + b"\r",
+    b"D0101000093412" + b"00" * 10 + b"\r",  # FD DLC 9: 12 bytes
+    b"b0002" + b"0102" + b"\r",
+    b"B1ABCDEF0C" + b"5A" * 24 + b"\r",
+    b"\r",  # OK
+    b"z\r", b"Z\r",  # transmit acknowledged
+    b"\a",  # error reply
+    b"V1013\r", b"NCS01\r", b"F00\r",
+]
+
+
+def stream(n_samples: int = 60) -> tuple[bytes, int]:
+    """The valid lines, then ``n_samples`` SAMPLE frames among replies: (bytes, frames in it)."""
+    rng = np.random.Generator(np.random.MT19937(11))
+    lines = list(VALID_LINES)
+    for k in range(n_samples):
+        x, y, z = (int(v) for v in rng.integers(-2048, 2048, 3))
+        lines.append(t_line(Sample(int(rng.integers(1, 400)), k, x, y, z, int(rng.integers(0, 16)))))
+        if k % 7 == 0:
+            lines.append(b"\r")
+    data = b"".join(lines)
+    n_frames = sum(1 for line in lines if line[:1] in b"TtxrRdDbB")
+    return data, n_frames
+
+
+def receive(bus, master: int, chunks: list[bytes], n_frames: int, timeout_s: float = 5.0) -> list:
+    """Write the chunks one by one, each read by the bus before the next is written (so the bus sees
+    exactly these chunk boundaries, or finer ones), then collect ``n_frames`` frames."""
+    out = []
+    for chunk in chunks:
+        os.write(master, chunk)
+        end = time.monotonic() + timeout_s
+        while bus.serialPortOrig.in_waiting == 0 and time.monotonic() < end:
+            time.sleep(0.0005)
+        while bus.serialPortOrig.in_waiting:
+            out += bus.drain(0.0)
+    end = time.monotonic() + timeout_s
+    while len(out) < n_frames and time.monotonic() < end:
+        out += bus.drain(0.05)
+    return out
+
+
+def reference(path: str, master: int, data: bytes, n_frames: int) -> list:
+    """What python-can's own slcan interface makes of ``data`` (it reads one byte per call)."""
+    ref = slcanBus(path, sleep_after_open=0)
+    try:
+        os.write(master, data)
+        out = []
+        end = time.monotonic() + 10
+        while len(out) < n_frames and time.monotonic() < end:
+            m = ref.recv(0.05)
+            if m is not None:
+                out.append(m)
+        return out
+    finally:
+        ref.shutdown()
+
+
+def same_frames(a: list, b: list) -> bool:
+    return len(a) == len(b) and all(x.equals(y, timestamp_delta=None) for x, y in zip(a, b))
+
+
+def open_bus(path: str, **kw) -> BufferedSlcanBus:
+    return BufferedSlcanBus(path, sleep_after_open=0, drain_quiet_s=0.02, **kw)
+
+
+def drain_master(master: int) -> None:
+    while select.select([master], [], [], 0)[0]:
+        os.read(master, 4096)
+
+
+# --------------------------------------------------------------------------------------- chunking
+
+@pytest.mark.parametrize("chunking", ["whole", "byte-by-byte", "random"])
+def test_every_frame_arrives_as_python_can_parses_it_whatever_the_chunking(pty_pair, chunking):
+    master, path = pty_pair
+    data, n_frames = stream()
+    expected = reference(path, master, data, n_frames)
+    assert len(expected) == n_frames  # python-can itself reads all of it (slowly)
+    drain_master(master)
+    if chunking == "whole":
+        chunks = [data]
+    elif chunking == "byte-by-byte":
+        chunks = [data[i:i + 1] for i in range(len(data))]
+    else:
+        rng = np.random.Generator(np.random.MT19937(5))
+        cuts = np.sort(rng.choice(np.arange(1, len(data)), size=120, replace=False))
+        chunks = [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)])]
+    bus = open_bus(path)
+    try:
+        drain_master(master)
+        got = receive(bus, master, chunks, n_frames)
+        assert same_frames(got, expected)
+        assert (bus.bad_lines, bus.nacks) == (0, 1)  # the one BEL of the stream
+    finally:
+        bus.shutdown()
+
+
+def test_recv_and_get_version_go_through_the_same_lines(pty_pair):
+    master, path = pty_pair
+    bus = open_bus(path)
+    try:
+        drain_master(master)
+        os.write(master, t_line(Ack(3, MsgType.START, 0))[:9])
+        assert bus.recv(0.05) is None  # half a line: nothing yet
+        os.write(master, t_line(Ack(3, MsgType.START, 0))[9:] + b"V1013\r")
+        m = bus.recv(1.0)
+        assert m is not None and m.arbitration_id == to_can(Ack(3, MsgType.START, 0)).arbitration_id
+        assert bus.get_version(1.0) == (10, 13)  # python-can's own query, over the buffered lines
+    finally:
+        bus.shutdown()
+
+
+# ------------------------------------------------------------------------------------ damaged lines
+
+#: damaged lines, each counted once and skipped (python-can raises on most, or returns a short frame)
+DAMAGED = [
+    b"T0101000023G12\r",  # a character that is not hex in the data
+    b"T01010000234\r",  # data shorter than its DLC
+    b"T010100002341200\r",  # longer (and not a 4-digit timestamp)
+    b"T0101000093412341234123412\r",  # classic DLC 9
+    b"TG1010000\r",  # identifier not hex
+    b"T2000000000\r",  # identifier over 29 bits
+    b"t8000\r",  # standard identifier over 11 bits
+    b"T01 1000023412\r",  # int(' 1', 16) would take the space
+    b"T\xff\xfe\r",  # not ASCII
+    b"T010\r",  # cut short
+    b"Q123\r",  # no SLCAN line
+    b"T01010000" + b"A" * (MAX_LINE + 40) + b"\r",  # over-long, its end arriving later
+    b"T0101000023412\a",  # an error reply after text
+]
+
+
+def test_damaged_lines_are_counted_and_the_frames_around_them_kept(pty_pair):
+    master, path = pty_pair
+    good = [Sample(k + 1, 9, k, -k, 1024, k % 16) for k in range(len(DAMAGED) + 1)]
+    data = bytearray(t_line(good[0]))
+    for bad, msg in zip(DAMAGED, good[1:]):
+        data += bad + t_line(msg)
+    bus = open_bus(path)
+    try:
+        drain_master(master)
+        rng = np.random.Generator(np.random.MT19937(3))
+        cuts = np.sort(rng.choice(np.arange(1, len(data)), size=40, replace=False))
+        got = receive(bus, master, [bytes(data[a:b]) for a, b in zip([0, *cuts], [*cuts, len(data)])], len(good))
+        assert [bytes(m.data) for m in got] == [to_can(s).data for s in good]
+        assert bus.bad_lines == len(DAMAGED)
+    finally:
+        bus.shutdown()
+
+
+def test_the_can_transport_reports_damaged_slcan_lines_as_transport_errors(pty_pair):
+    master, path = pty_pair
+    t = CanTransport(f"slcan:{path}", bitrate=1_000_000, sleep_after_open=0, drain_quiet_s=0.02)
+    try:
+        assert isinstance(t._bus, BufferedSlcanBus)
+        drain_master(master)
+        good = [Sample(k + 1, 4, k, 0, 1024, 0) for k in range(5)]
+        os.write(master, b"".join(t_line(s) + DAMAGED[k] for k, s in enumerate(good)) + t_line(Ack(2, MsgType.START, 0)))
+        samples, msgs = [], []
+        end = time.monotonic() + 5
+        while (sum(map(len, samples)) < 5 or not msgs) and time.monotonic() < end:
+            for ev in t.recv(0.05):
+                (samples if isinstance(ev, SampleBatch) else msgs).append(ev)
+        assert [m for b in samples for m in b.messages()] == good and msgs == [Ack(2, MsgType.START, 0)]
+        assert t.stats.errors == {"SLCAN_BAD_LINE": 5} and t.stats.frames_in == 6
+    finally:
+        t.close()
+
+
+# --------------------------------------------------------------------------------------- stale input
+
+class StreamingAdapter:
+    """A Lawicel adapter left open by a host that is gone: it streams frames into the port until it
+    reads ``C``, then flushes the backlog it still holds (as virtual_sheet's pty does), answers
+    commands with CR, and after ``O`` sends the fresh frames it is given."""
+
+    def __init__(self, master: int, stale: bytes, backlog: bytes) -> None:
+        self.master, self.stale, self.backlog = master, stale, backlog
+        self.opened = threading.Event()
+        self._stop = threading.Event()
+        self._th = threading.Thread(target=self._run, daemon=True)
+        self._th.start()
+
+    def _run(self) -> None:
+        closed, buf = False, b""
+        while not self._stop.is_set():
+            if not closed:
+                os.write(self.master, self.stale)  # streaming on, faster than nobody reads
+            r, _, _ = select.select([self.master], [], [], 0.002)
+            if not r:
+                continue
+            buf += os.read(self.master, 4096)
+            while b"\r" in buf:
+                line, buf = buf.split(b"\r", 1)
+                if line == b"C" and not closed:
+                    closed = True
+                    os.write(self.master, self.backlog)
+                os.write(self.master, b"\r")
+                if line == b"O":
+                    self.opened.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._th.join(2)
+
+
+def test_stale_input_in_the_port_is_drained_at_open(pty_pair):
+    master, path = pty_pair
+    stale = b"".join(t_line(Sample(k + 1, 0xAAAA, 1, 1, 1, 0)) for k in range(40))
+    backlog = stale * 8 + t_line(Sample(99, 0xAAAA, 1, 1, 1, 0))[:11]  # ends inside a line
+    peer = StreamingAdapter(master, stale, backlog)
+    try:
+        bus = open_bus(path)
+        try:
+            assert peer.opened.wait(5)
+            fresh = [Sample(k + 1, 0x0005, 2, 2, 2, 0) for k in range(10)]
+            time.sleep(0.05)
+            os.write(master, b"".join(t_line(s) for s in fresh))
+            got = []
+            end = time.monotonic() + 5
+            while len(got) < len(fresh) and time.monotonic() < end:
+                got += bus.drain(0.05)
+            assert [bytes(m.data) for m in got] == [to_can(s).data for s in fresh]  # nothing stale
+            assert bus.stale_bytes >= len(backlog) and bus.bad_lines == 0
+        finally:
+            bus.shutdown()
+    finally:
+        peer.stop()
