@@ -151,6 +151,10 @@ class EchoFilter:
         self._q: deque = deque()
         self._n: dict = {}
 
+    def __len__(self) -> int:
+        """Frames recorded and not yet echoed (0: nothing to look for; a receiver may skip `is_echo`)."""
+        return len(self._q)
+
     def sent(self, can_id: int, data: bytes) -> None:
         key = (can_id, bytes(data))
         self._q.append(key)

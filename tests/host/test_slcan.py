@@ -1,7 +1,8 @@
 """host/slcan.py's buffered SLCAN bus on real ptys, against python-can's own slcan interface: every
 frame delivered whatever the chunking (whole stream, byte by byte, seeded random chunks), parsed as
 python-can parses it; damaged lines counted and skipped with every valid frame around them kept;
-stale input an adapter left in the port drained at open."""
+stale input an adapter left in the port drained at open. And `CanTransport`'s batch decode equals
+decoding one frame per call, over python-can's virtual bus."""
 
 from __future__ import annotations
 
@@ -282,3 +283,88 @@ def test_stale_input_in_the_port_is_drained_at_open(pty_pair):
             bus.shutdown()
     finally:
         peer.stop()
+
+
+# ------------------------------------------------------------------------ batch decode == one by one
+
+def frame_mix(n: int, seed: int = 1) -> list:
+    """python-can messages as a sheet's bus carries them, with every kind of damage mixed in."""
+    rng = np.random.Generator(np.random.MT19937(seed))
+    out = []
+
+    def msg(f, **kw):
+        return can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True, is_fd=f.is_fd, **kw)
+
+    for k in range(n):
+        kind = int(rng.integers(0, 20))
+        node = int(rng.integers(1, 365))
+        if kind < 12:  # runs of samples, extremes included
+            x, y, z = (int(v) for v in rng.choice([-2048, -1, 0, 1, 2047, *rng.integers(-2048, 2048, 3)], 3))
+            out.append(msg(to_can(Sample(node, int(rng.integers(0, 1 << 16)), x, y, z, int(rng.integers(0, 16))))))
+        elif kind == 12:
+            out.append(msg(to_can(Ack(node, MsgType.START, 0))))
+        elif kind == 13:
+            out.append(msg(to_can(Status(node, 3, 0, 0, 0, k))))
+        elif kind == 14:  # a SAMPLE one byte short; from node 0xFFFF; on an 11-bit identifier
+            f = to_can(Sample(node, k, 1, 2, 3, 0))
+            out.append(can.Message(arbitration_id=f.arbitration_id, data=f.data[:6], is_extended_id=True))
+            out.append(can.Message(arbitration_id=f.arbitration_id | 0xFFFF, data=f.data, is_extended_id=True))
+            out.append(can.Message(arbitration_id=0x123, data=f.data, is_extended_id=False))
+        elif kind == 15:  # another protocol version; an unknown type
+            f = to_can(Sample(node, k, 1, 2, 3, 0))
+            out.append(can.Message(arbitration_id=f.arbitration_id ^ (1 << 16), data=f.data, is_extended_id=True))
+            out.append(can.Message(arbitration_id=make_id(0x3E, node, 7), data=b"\x01", is_extended_id=True))
+        elif kind == 16:
+            out.append(can.Message(is_error_frame=True))
+        elif kind == 17:
+            out.append(can.Message(arbitration_id=make_id(MsgType.SAMPLE, node), is_remote_frame=True, dlc=7))
+        elif kind == 18:  # a CAN FD frame on a bus opened classic
+            out.append(msg(to_can(Sample(node, k, 1, 2, 3, 0), fd=True)))
+        else:  # the echo of the host's own SYNC
+            out.append(msg(to_can(Sync(counter=k))))
+    return out
+
+
+def flat(events: list) -> list:
+    return [m for ev in events for m in (ev.messages() if isinstance(ev, SampleBatch) else [ev])]
+
+
+def test_batch_decode_equals_one_frame_per_call_over_a_virtual_bus():
+    channel = f"capsheet-batch-{os.getpid()}"
+    frames = frame_mix(1500)
+    batched = CanTransport(f"virtual:{channel}")
+    single = CanTransport(f"virtual:{channel}", max_batch=1)
+    sender = can.Bus(interface="virtual", channel=channel)
+    try:
+        for t in (batched, single):
+            for f in frames:
+                if f.arbitration_id == to_can(Sync(0)).arbitration_id:
+                    t.echo.sent(f.arbitration_id, f.data)  # as if it had sent that SYNC itself
+        for f in frames:
+            sender.send(f)
+        out = {}
+        for name, t in (("batched", batched), ("single", single)):
+            events = []
+            while got := t.recv(0.2):  # everything was sent before: [] means all of it was read
+                events += got
+            out[name] = events
+        b_events, s_events = out["batched"], out["single"]
+        assert flat(b_events) == flat(s_events)
+        # and both are what decode_can makes of each frame the transport keeps (an independent rule)
+        sync_id = to_can(Sync(0)).arbitration_id
+        kept = [f for f in frames if not (f.is_error_frame or f.is_remote_frame or f.is_fd or f.arbitration_id == sync_id)]
+        assert flat(s_events) == [decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id) for f in kept]
+        assert batched.stats.as_dict() == single.stats.as_dict()
+        assert batched.echo.echoes == single.echo.echoes > 0
+        errors = [ev for ev in s_events if isinstance(ev, DecodeError)]
+        assert {e.reason.name for e in errors} == {"BAD_LENGTH", "BAD_FIELD", "BAD_VERSION", "UNKNOWN_TYPE"}
+        assert set(batched.stats.errors) >= {"CAN_ERROR_FRAME", "FD_ON_CLASSIC", "BAD_LENGTH"}
+        # batched: one SampleBatch per run of samples between other events (all frames were
+        # queued before the first call, and fit in one drain), not one per frame
+        runs = sum(1 for a, b in zip([None, *s_events], s_events)
+                   if isinstance(b, SampleBatch) and not isinstance(a, SampleBatch))
+        assert sum(isinstance(ev, SampleBatch) for ev in b_events) == runs < len(flat(s_events)) // 2
+    finally:
+        for t in (batched, single):
+            t.close()
+        sender.shutdown()
