@@ -23,7 +23,9 @@ python-can's) with another receive path:
   (counted in `stale_bytes`), which python-can would read byte by byte, for seconds, before the first
   live frame;
 * `drain` returns every frame that is already buffered (or arrives within one read), parsed in one
-  pass, without a `BusABC.recv` round per frame; `host.transport.CanTransport` uses it.
+  pass, without a `BusABC.recv` round per frame; `drain_blocks` the same frames with each run of
+  7-byte classic extended frames (capsheet's SAMPLE) parsed by numpy into one `FrameBlock` of
+  arrays instead of one `can.Message` per frame: `host.transport.CanTransport` uses it.
 
 Everything on the wire is counted: ``bad_lines`` (damaged, skipped), ``nacks`` (BEL replies: the
 adapter refused a command — python-can's own bring-up sends ``O`` twice, so one NACK after opening
@@ -38,11 +40,15 @@ import time
 from collections import deque
 from typing import Any
 
+import numpy as np
+
 from can import Message
 from can.interfaces.slcan import slcanBus
 from can.util import CAN_FD_DLC
 
-__all__ = ["BufferedSlcanBus", "MAX_LINE", "parse_line"]
+from host.transport import FrameBlock
+
+__all__ = ["BufferedSlcanBus", "FrameBlock", "MAX_LINE", "parse_line"]
 
 #: the longest line accepted, in characters without the terminator: ``B`` + 8 id + 1 DLC + 128 data
 #: + 4 timestamp is 142; a longer run without a terminator is counted as one bad line and skipped
@@ -65,6 +71,17 @@ _FRAME_KINDS = {
 #: replies that are not frames: (first character, hex/decimal characters after it)
 _REPLIES = {ord("z"): 0, ord("Z"): 0, ord("V"): 4, ord("v"): 4, ord("N"): 4, ord("F"): 2}
 _BAD = object()  # parse_line's answer for a damaged line
+
+# drain_blocks' fast parse: "T" + 8 id digits + "7" + 14 data digits
+_FAST_LEN = 24
+_FAST_COLS = np.arange(1, _FAST_LEN)
+_ID_SHIFTS = np.arange(28, -1, -4, dtype=np.uint32)
+_NIBBLE = np.full(256, 0xFF, dtype=np.uint8)  # ASCII -> hex digit value, 0xFF if none
+for _c in b"0123456789":
+    _NIBBLE[_c] = _c - 0x30
+for _c in b"ABCDEF":
+    _NIBBLE[_c] = _c - 0x41 + 10
+    _NIBBLE[_c + 0x20] = _c - 0x41 + 10
 
 
 def _is_hex(b: bytes) -> bool:
@@ -164,13 +181,12 @@ class BufferedSlcanBus(slcanBus):
         data = port.read(n or 1)
         if not data:
             return False
-        self._split(data)
+        self._partial += data
         return True
 
-    def _split(self, data: bytes) -> None:
-        """Append ``data`` to the line buffer; complete lines (CR or BEL at the end) go to the queue."""
+    def _split(self) -> None:
+        """Complete lines (CR or BEL at the end) of the byte buffer go to the line queue."""
         buf = self._partial
-        buf += data
         start = 0
         end = len(buf)
         lines = self._lines
@@ -200,12 +216,15 @@ class BufferedSlcanBus(slcanBus):
         return None if line is None else line.decode("ascii", "replace")
 
     def _next_line(self, timeout: float | None) -> bytes | None:
+        if not self._lines:
+            self._split()
         if self._lines:
             return self._lines.popleft()
         deadline = None if timeout is None else time.monotonic() + timeout
         while True:
             remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
             self._fill(remaining)
+            self._split()
             if self._lines:
                 return self._lines.popleft()
             if deadline is not None and time.monotonic() >= deadline:
@@ -240,12 +259,13 @@ class BufferedSlcanBus(slcanBus):
         to ``timeout`` (None: indefinitely) for the first byte if nothing is there. Filters apply as
         in `recv`. Damaged lines are counted (`bad_lines`) and skipped. At most ``max_frames``
         frames; the rest stay buffered for the next call."""
-        while self._queue.qsize():
-            self._lines.appendleft(self._queue.get_nowait().encode("ascii", "replace"))
+        self._take_queue()
+        self._split()
         if not self._lines:
             self._fill(timeout)
         if self.serialPortOrig.in_waiting:
             self._fill(0)
+        self._split()
         out: list[Message] = []
         lines = self._lines
         now = time.time()
@@ -254,6 +274,88 @@ class BufferedSlcanBus(slcanBus):
             m = self._parse(lines.popleft(), now)
             if m is not None and (not filtered or self._matches_filters(m)):
                 out.append(m)
+        return out
+
+    def _take_queue(self) -> None:
+        """Lines python-can's ``get_version`` put back go first."""
+        back = []
+        while self._queue.qsize():
+            back.append(self._queue.get_nowait().encode("ascii", "replace"))
+        self._lines.extendleft(reversed(back))
+
+    def drain_blocks(self, timeout: float | None = 0.0, max_lines: int | None = None) -> list:
+        """Like `drain`, for a receiver that takes arrays: runs of the commonest line, a classic
+        extended frame of 7 data bytes (``Tiiiiiiii7dddddddddddddd``, a capsheet SAMPLE), come
+        out as one `FrameBlock` each, parsed by numpy for the whole run; every other line as a
+        `can.Message` from `parse_line`, in wire order. The same frames as `drain`, with the same
+        counts (a line the fast parse does not accept goes through `parse_line`). At most
+        ``max_lines`` lines per call (the rest stay buffered)."""
+        if self._filters is not None:
+            return self.drain(timeout, max_lines)
+        self._take_queue()
+        out: list = []
+        now = time.time()
+        lines = self._lines
+        while lines:  # lines already split (by recv or get_version) come before the raw bytes
+            m = self._parse(lines.popleft(), now)
+            if m is not None:
+                out.append(m)
+        if not out and b"\r" not in self._partial and b"\a" not in self._partial:
+            self._fill(timeout)
+        if self.serialPortOrig.in_waiting:
+            self._fill(0)
+        raw = self._partial
+        if self._skipping:  # the rest of an over-long or stale line
+            cut = min((i for i in (raw.find(b"\r"), raw.find(b"\a")) if i >= 0), default=-1)
+            if cut < 0:
+                raw.clear()
+                return out
+            del raw[:cut + 1]
+            self._skipping = False
+        data = bytes(raw)
+        arr = np.frombuffer(data, dtype=np.uint8)
+        term = np.flatnonzero((arr == 13) | (arr == 7))
+        if max_lines is not None:
+            term = term[:max(0, max_lines - len(out))]
+        if term.size:
+            del raw[:int(term[-1]) + 1]
+            out += self._parse_lines(data, arr, term, now)
+        if len(raw) > MAX_LINE:
+            self.bad_lines += 1
+            self._skipping = True
+            raw.clear()
+        return out
+
+    def _parse_lines(self, data: bytes, arr: np.ndarray, term: np.ndarray, now: float) -> list:
+        starts = np.empty_like(term)
+        starts[0] = 0
+        starts[1:] = term[:-1] + 1
+        fast = (term - starts == _FAST_LEN) & (arr[starts] == 0x54) & (arr[term] == 13)
+        cand = np.flatnonzero(fast)
+        if cand.size:
+            rows = arr[starts[cand, None] + _FAST_COLS]  # (m, 23): 8 id digits, the DLC, 14 data digits
+            nib = _NIBBLE[rows]
+            ok = (rows[:, 8] == 0x37) & (nib[:, :8] < 16).all(axis=1) & (nib[:, 9:] < 16).all(axis=1)
+            ids = (nib[:, :8].astype(np.uint32) << _ID_SHIFTS).sum(axis=1, dtype=np.uint32)
+            ok &= ids < (1 << 29)
+            fast[cand[~ok]] = False
+            keep = ok.nonzero()[0]
+            ids, nib = ids[keep], nib[keep]
+            frame_data = (nib[:, 9::2] << 4) | nib[:, 10::2]
+            row_of = np.cumsum(fast) - 1
+        out: list = []
+        edges = np.flatnonzero(np.diff(fast.astype(np.int8))) + 1
+        bounds = [0, *edges.tolist(), int(term.size)]
+        starts_l, term_l = starts.tolist(), term.tolist()
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if fast[a]:
+                i, j = int(row_of[a]), int(row_of[b - 1]) + 1
+                out.append(FrameBlock(ids[i:j], frame_data[i:j]))
+                continue
+            for k in range(a, b):
+                m = self._parse(data[starts_l[k]:term_l[k] + 1], now)
+                if m is not None:
+                    out.append(m)
         return out
 
     # ------------------------------------------------------------------ open

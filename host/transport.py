@@ -39,7 +39,7 @@ from protocol.messages import Message, MsgType, Sample, unpack_sample_words
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Transport", "SerialTransport", "MemoryTransport",
-           "CanTransport", "BACKENDS", "open_transport", "parse_can_spec"]
+           "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec"]
 
 log = logging.getLogger("capsheet.host.transport")
 
@@ -437,6 +437,27 @@ class MemoryTransport(SerialTransport):
 # CAN (python-can)
 # --------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameBlock:
+    """Consecutive classic extended data frames of 7 bytes, as arrays: what
+    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and `CanTransport`
+    decodes without a python-can message per frame.
+
+    Attributes
+    ----------
+    arbitration_id : ndarray, shape (n,), uint32
+        29-bit identifiers.
+    data : ndarray, shape (n, 7), uint8
+        Their data bytes.
+    """
+
+    arbitration_id: np.ndarray
+    data: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.arbitration_id.shape[0])
+
+
 def parse_can_spec(spec: str) -> tuple[str, str]:
     """``"interface:channel"`` -> ``(interface, channel)``; the channel may contain ':'.
 
@@ -533,9 +554,9 @@ class CanTransport(Transport):
             return []
         wait = min(timeout_s, 0.1) if timeout_s is not None else 0.1
         try:
-            drain = getattr(bus, "drain", None)
+            drain = getattr(bus, "drain_blocks", None)
             if drain is not None:  # BufferedSlcanBus: every buffered line parsed in one pass
-                frames = drain(wait, max_frames=self._max_batch)
+                frames = drain(wait, max_lines=self._max_batch)
                 self._count_bus_errors(bus)
             else:
                 first = bus.recv(wait)
@@ -563,44 +584,77 @@ class CanTransport(Transport):
     def _decode(self, frames: list) -> list:
         """Frames -> events in wire order, in one pass: runs of well-formed SAMPLE frames are
         collected and unpacked together by numpy (one `SampleBatch` per run); every other frame,
-        and any SAMPLE frame `decode_can` would reject, goes through `decode_can` one by one."""
+        and any SAMPLE frame `decode_can` would reject, goes through `decode_can` one by one.
+        ``frames``: python-can messages and `host.slcan.FrameBlock` arrays, in wire order."""
         events: list = []
-        run: list = []  # data of the current run of SAMPLE frames
+        pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
+        datas: list = []  # ... and its frames not yet in a piece (one by one)
         nodes: list[int] = []
         errors = self.stats.errors
         echo = self.echo
         fd_ok = self.fd
         n_bytes = 0
+
+        def flush() -> None:
+            if datas:
+                pieces.append(_rows(nodes, datas))
+                datas.clear()
+                nodes.clear()
+            if pieces:
+                events.append(_sample_run(pieces))
+                pieces.clear()
+
+        def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
+            if echo and echo.is_echo(aid, data):
+                return
+            if is_fd and not fd_ok:  # the bus carries CAN FD but was opened classic: a mismatch
+                errors["FD_ON_CLASSIC"] += 1
+                return
+            if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
+                    and is_extended_id and aid < (1 << 29) and (aid & 0xFFFF) != 0xFFFF):
+                datas.append(data)
+                nodes.append(aid & 0xFFFF)
+                return
+            ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
+            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
+                datas.append(data)
+                nodes.append(ev.node)
+                return
+            flush()
+            events.append(ev)
+
         for f in frames:
+            if type(f) is FrameBlock:
+                ids, rows = f.arbitration_id, f.data
+                n_bytes += rows.size
+                fast = ((ids & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION) & ((ids & 0xFFFF) != 0xFFFF)
+                if echo:
+                    pending = [i for i in echo.identifiers() if (i & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION]
+                    if pending:
+                        fast &= ~np.isin(ids, pending)
+                if fast.all():
+                    bounds = [0, len(ids)]
+                else:
+                    bounds = [0, *(np.flatnonzero(np.diff(fast.astype(np.int8))) + 1).tolist(), len(ids)]
+                for a, b in zip(bounds[:-1], bounds[1:]):
+                    if fast[a]:
+                        if datas:
+                            pieces.append(_rows(nodes, datas))
+                            datas.clear()
+                            nodes.clear()
+                        pieces.append(((ids[a:b] & 0xFFFF).astype(np.uint16), rows[a:b]))
+                    else:
+                        for k in range(a, b):
+                            one(int(ids[k]), rows[k].tobytes(), True, False)
+                continue
             if f.is_error_frame:
                 errors["CAN_ERROR_FRAME"] += 1  # the bus signalled an error (then retransmits)
                 continue
             if f.is_remote_frame:
                 continue
-            data = f.data
-            n_bytes += len(data)
-            aid = f.arbitration_id
-            if echo and echo.is_echo(aid, data):
-                continue
-            if f.is_fd and not fd_ok:  # the bus carries CAN FD but was opened classic: a mismatch
-                errors["FD_ON_CLASSIC"] += 1
-                continue
-            if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
-                    and f.is_extended_id and aid < (1 << 29) and (aid & 0xFFFF) != 0xFFFF):
-                run.append(data)
-                nodes.append(aid & 0xFFFF)
-                continue
-            ev = decode_can(aid, data, is_extended_id=f.is_extended_id, is_fd=f.is_fd)
-            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
-                run.append(data)
-                nodes.append(ev.node)
-                continue
-            if run:
-                events.append(_sample_run(nodes, run))
-                run, nodes = [], []
-            events.append(ev)
-        if run:
-            events.append(_sample_run(nodes, run))
+            n_bytes += len(f.data)
+            one(f.arbitration_id, f.data, f.is_extended_id, f.is_fd)
+        flush()
         self.stats.bytes_in += n_bytes
         return events
 
@@ -632,13 +686,24 @@ _TYPE_VERSION_MASK = 0x3FF0000
 _SAMPLE_TYPE_VERSION = make_id(MsgType.SAMPLE, 0, 0) & _TYPE_VERSION_MASK
 
 
-def _sample_run(nodes: list[int], datas: list) -> SampleBatch:
-    """Consecutive well-formed SAMPLE frames (7 data bytes each: counter u16, sample word) as one
-    batch, unpacked in one numpy pass; the batch of the `Sample` messages `decode_can` makes of them."""
-    d = np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), Sample.SIZE)
+def _rows(nodes: list[int], datas: list) -> tuple[np.ndarray, np.ndarray]:
+    """SAMPLE frames given one by one -> ``(node uint16 (n,), data uint8 (n, 7))``."""
+    return (np.array(nodes, dtype=np.uint16),
+            np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), Sample.SIZE))
+
+
+def _sample_run(pieces: list) -> SampleBatch:
+    """Consecutive well-formed SAMPLE frames (7 data bytes each: counter u16, sample word), given
+    as ``(node, data rows)`` pieces, as one batch unpacked in one numpy pass: the batch of the
+    `Sample` messages `decode_can` makes of them."""
+    if len(pieces) == 1:
+        node, d = pieces[0]
+    else:
+        node = np.concatenate([p[0] for p in pieces])
+        d = np.concatenate([p[1] for p in pieces])
     counter = (d[:, 0].astype(np.uint16) | (d[:, 1].astype(np.uint16) << 8))
     counts, status = unpack_sample_words(np.ascontiguousarray(d[:, 2:]).reshape(-1))
-    return SampleBatch(np.array(nodes, dtype=np.uint16), counter, counts, status)
+    return SampleBatch(node, counter, counts, status)
 
 
 # --------------------------------------------------------------------------------------------

@@ -20,7 +20,7 @@ can = pytest.importorskip("can")
 from can.interfaces.slcan import slcanBus  # noqa: E402
 
 from host.slcan import MAX_LINE, BufferedSlcanBus  # noqa: E402
-from host.transport import CanTransport  # noqa: E402
+from host.transport import CanTransport, FrameBlock  # noqa: E402
 from protocol import DecodeError, SampleBatch, to_can  # noqa: E402
 from protocol.can import decode_can, make_id  # noqa: E402
 from protocol.messages import Ack, MsgType, Sample, Status, Sync  # noqa: E402
@@ -79,9 +79,24 @@ def stream(n_samples: int = 60) -> tuple[bytes, int]:
     return data, n_frames
 
 
-def receive(bus, master: int, chunks: list[bytes], n_frames: int, timeout_s: float = 5.0) -> list:
+def as_messages(items: list) -> list:
+    """`drain_blocks` output as `can.Message` objects (a FrameBlock row by row)."""
+    out = []
+    for it in items:
+        if isinstance(it, FrameBlock):
+            out += [can.Message(arbitration_id=int(i), is_extended_id=True, dlc=7, data=bytearray(d.tobytes()))
+                    for i, d in zip(it.arbitration_id, it.data)]
+        else:
+            out.append(it)
+    return out
+
+
+def receive(bus, master: int, chunks: list[bytes], n_frames: int, timeout_s: float = 5.0,
+            method: str = "drain") -> list:
     """Write the chunks one by one, each read by the bus before the next is written (so the bus sees
-    exactly these chunk boundaries, or finer ones), then collect ``n_frames`` frames."""
+    exactly these chunk boundaries, or finer ones), then collect ``n_frames`` frames with
+    ``bus.drain`` or ``bus.drain_blocks``."""
+    read = bus.drain if method == "drain" else (lambda t: as_messages(bus.drain_blocks(t)))
     out = []
     for chunk in chunks:
         os.write(master, chunk)
@@ -89,10 +104,10 @@ def receive(bus, master: int, chunks: list[bytes], n_frames: int, timeout_s: flo
         while bus.serialPortOrig.in_waiting == 0 and time.monotonic() < end:
             time.sleep(0.0005)
         while bus.serialPortOrig.in_waiting:
-            out += bus.drain(0.0)
+            out += read(0.0)
     end = time.monotonic() + timeout_s
     while len(out) < n_frames and time.monotonic() < end:
-        out += bus.drain(0.05)
+        out += read(0.05)
     return out
 
 
@@ -127,8 +142,9 @@ def drain_master(master: int) -> None:
 
 # --------------------------------------------------------------------------------------- chunking
 
+@pytest.mark.parametrize("method", ["drain", "drain_blocks"])
 @pytest.mark.parametrize("chunking", ["whole", "byte-by-byte", "random"])
-def test_every_frame_arrives_as_python_can_parses_it_whatever_the_chunking(pty_pair, chunking):
+def test_every_frame_arrives_as_python_can_parses_it_whatever_the_chunking(pty_pair, chunking, method):
     master, path = pty_pair
     data, n_frames = stream()
     expected = reference(path, master, data, n_frames)
@@ -145,7 +161,7 @@ def test_every_frame_arrives_as_python_can_parses_it_whatever_the_chunking(pty_p
     bus = open_bus(path)
     try:
         drain_master(master)
-        got = receive(bus, master, chunks, n_frames)
+        got = receive(bus, master, chunks, n_frames, method=method)
         assert same_frames(got, expected)
         assert (bus.bad_lines, bus.nacks) == (0, 1)  # the one BEL of the stream
     finally:
@@ -184,10 +200,14 @@ DAMAGED = [
     b"Q123\r",  # no SLCAN line
     b"T01010000" + b"A" * (MAX_LINE + 40) + b"\r",  # over-long, its end arriving later
     b"T0101000023412\a",  # an error reply after text
+    b"T01010000712345678G0ABCD\r",  # the SAMPLE line's length, a character that is not hex
+    b"T3FFFFFFF700000000000000\r",  # ... an identifier over 29 bits
+    b"T01010000812345678901234\r",  # ... DLC 8 with 7 bytes
 ]
 
 
-def test_damaged_lines_are_counted_and_the_frames_around_them_kept(pty_pair):
+@pytest.mark.parametrize("method", ["drain", "drain_blocks"])
+def test_damaged_lines_are_counted_and_the_frames_around_them_kept(pty_pair, method):
     master, path = pty_pair
     good = [Sample(k + 1, 9, k, -k, 1024, k % 16) for k in range(len(DAMAGED) + 1)]
     data = bytearray(t_line(good[0]))
@@ -198,7 +218,8 @@ def test_damaged_lines_are_counted_and_the_frames_around_them_kept(pty_pair):
         drain_master(master)
         rng = np.random.Generator(np.random.MT19937(3))
         cuts = np.sort(rng.choice(np.arange(1, len(data)), size=40, replace=False))
-        got = receive(bus, master, [bytes(data[a:b]) for a, b in zip([0, *cuts], [*cuts, len(data)])], len(good))
+        got = receive(bus, master, [bytes(data[a:b]) for a, b in zip([0, *cuts], [*cuts, len(data)])], len(good),
+                      method=method)
         assert [bytes(m.data) for m in got] == [to_can(s).data for s in good]
         assert bus.bad_lines == len(DAMAGED)
     finally:
@@ -368,3 +389,43 @@ def test_batch_decode_equals_one_frame_per_call_over_a_virtual_bus():
         for t in (batched, single):
             t.close()
         sender.shutdown()
+
+
+def slcan_line(f) -> bytes:
+    """A python-can message as the adapter's line (classic frames only)."""
+    if f.is_remote_frame:
+        return (f"R{f.arbitration_id:08X}{f.dlc}" if f.is_extended_id else f"r{f.arbitration_id:03X}{f.dlc}").encode() + b"\r"
+    head = f"T{f.arbitration_id:08X}" if f.is_extended_id else f"t{f.arbitration_id:03X}"
+    return f"{head}{len(f.data)}{bytes(f.data).hex().upper()}\r".encode()
+
+
+def test_the_slcan_transport_decodes_blocks_as_decode_can_does_frame_by_frame(pty_pair):
+    master, path = pty_pair
+    frames = [f for f in frame_mix(1200, seed=2) if not (f.is_error_frame or f.is_fd)]
+    t = CanTransport(f"slcan:{path}", bitrate=1_000_000, sleep_after_open=0, drain_quiet_s=0.02)
+    try:
+        drain_master(master)
+        sync_id = to_can(Sync(0)).arbitration_id
+        for f in frames:
+            if f.arbitration_id == sync_id:
+                t.echo.sent(f.arbitration_id, f.data)
+        echoed = next(f for f in frames[50:] if len(f.data) == 7 and not f.is_remote_frame
+                      and (f.arbitration_id >> 20) & 0x3F == MsgType.SAMPLE)
+        t.echo.sent(echoed.arbitration_id, echoed.data)  # one SAMPLE the host "sent": its echo is dropped
+        data = b"".join(slcan_line(f) for f in frames)
+        events = []
+        rng = np.random.Generator(np.random.MT19937(8))
+        cuts = np.sort(rng.choice(np.arange(1, len(data)), size=60, replace=False))
+        for a, b in zip([0, *cuts], [*cuts, len(data)]):
+            os.write(master, data[a:b])
+            events += t.recv(0.0)
+        while got := t.recv(0.3):
+            events += got
+        kept = [f for f in frames if not (f.is_remote_frame or f.arbitration_id == sync_id)]
+        kept.remove(echoed)
+        assert flat(events) == [decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id) for f in kept]
+        assert t.echo.echoes == 1 + sum(f.arbitration_id == sync_id for f in frames)
+        assert t.stats.bytes_in == sum(len(f.data) for f in frames if not f.is_remote_frame)
+        assert "SLCAN_BAD_LINE" not in t.stats.errors
+    finally:
+        t.close()
