@@ -17,6 +17,7 @@ python-can's) with another receive path:
   and ``UnicodeDecodeError`` for non-ASCII bytes, and silently returns a short frame for a short
   line); the valid lines around it are kept. A received frame may end with the 4-digit timestamp of
   the ``Z1`` mode (python-can ignores it; so does this);
+* a command (a frame the host sends) is written without python-can's `tcdrain` after it (`_write`);
 * stale input is drained at open: before its first command the bus closes the channel (``C``) and
   reads and discards what the port delivers until it has been quiet for ``drain_quiet_s`` (at most
   ``drain_max_s``): the backlog an adapter kept streaming into the port for a host that is gone
@@ -43,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from can import Message
+from can.exceptions import error_check
 from can.interfaces.slcan import slcanBus
 from can.util import CAN_FD_DLC
 
@@ -360,11 +362,19 @@ class BufferedSlcanBus(slcanBus):
 
     # ------------------------------------------------------------------ open
     def _write(self, string: str) -> None:
+        """python-can's command writer, without its ``flush()`` after every line: on a tty that is
+        ``tcdrain``, which waits until the adapter has read the line, so every send (a SYNC on each
+        bus, 145 times a second) waited for the other side's read loop. The line is still written
+        whole (pyserial's ``write`` loops until it is, within ``write_timeout``)."""
         if not self._drained:
             self._drained = True
-            super()._write("C")  # an adapter left open by a host that is gone stops streaming
+            self._put("C")  # an adapter left open by a host that is gone stops streaming
             self._drain_stale()
-        super()._write(string)
+        self._put(string)
+
+    def _put(self, string: str) -> None:
+        with error_check("Could not write to serial device"):
+            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
 
     def _drain_stale(self) -> None:
         port = self.serialPortOrig
