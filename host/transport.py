@@ -585,14 +585,14 @@ class CanTransport(Transport):
         """Frames -> events in wire order, in one pass: runs of well-formed SAMPLE frames are
         collected and unpacked together by numpy (one `SampleBatch` per run); every other frame,
         and any SAMPLE frame `decode_can` would reject, goes through `decode_can` one by one.
-        ``frames``: python-can messages and `host.slcan.FrameBlock` arrays, in wire order."""
+        ``frames``: python-can messages and `FrameBlock` arrays, in wire order. (host/replay.py
+        reuses this method on its own transport: it reads ``self.fd`` only for an FD frame.)"""
         events: list = []
         pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
         datas: list = []  # ... and its frames not yet in a piece (one by one)
         nodes: list[int] = []
         errors = self.stats.errors
         echo = self.echo
-        fd_ok = self.fd
         n_bytes = 0
 
         def flush() -> None:
@@ -607,7 +607,7 @@ class CanTransport(Transport):
         def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
             if echo and echo.is_echo(aid, data):
                 return
-            if is_fd and not fd_ok:  # the bus carries CAN FD but was opened classic: a mismatch
+            if is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
                 errors["FD_ON_CLASSIC"] += 1
                 return
             if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
