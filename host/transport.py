@@ -33,13 +33,13 @@ from typing import Any, Callable
 
 import numpy as np
 
-from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, decode_can, to_can
+from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, decode_can, make_id, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
-from protocol.messages import Message, Sample
+from protocol.messages import Message, MsgType, Sample, unpack_sample_words
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Transport", "SerialTransport", "MemoryTransport",
-           "CanTransport", "BACKENDS", "open_transport", "parse_can_spec"]
+           "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec"]
 
 log = logging.getLogger("capsheet.host.transport")
 
@@ -473,6 +473,27 @@ class MemoryTransport(SerialTransport):
 # CAN (python-can)
 # --------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameBlock:
+    """Consecutive classic extended data frames of 7 bytes, as arrays: what
+    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and `CanTransport`
+    decodes without a python-can message per frame.
+
+    Attributes
+    ----------
+    arbitration_id : ndarray, shape (n,), uint32
+        29-bit identifiers.
+    data : ndarray, shape (n, 7), uint8
+        Their data bytes.
+    """
+
+    arbitration_id: np.ndarray
+    data: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.arbitration_id.shape[0])
+
+
 def parse_can_spec(spec: str) -> tuple[str, str]:
     """``"interface:channel"`` -> ``(interface, channel)``; the channel may contain ':'.
 
@@ -507,6 +528,10 @@ class CanTransport(Transport):
         as one `SampleBatch`.
     **bus_kwargs
         Passed to ``can.Bus`` (e.g. ``sleep_after_open=0`` for slcan on a pty).
+
+    The ``slcan`` interface is opened as `host.slcan.BufferedSlcanBus` (python-can's slcan bus,
+    read in chunks, stale input drained at open); the SLCAN lines it skips as damaged are counted
+    in ``stats.errors["SLCAN_BAD_LINE"]``.
     """
 
     def __init__(self, spec: str, *, fd: bool = False, bitrate: int | None = None,
@@ -535,6 +560,9 @@ class CanTransport(Transport):
     def _open(self):
         can = self._can
         try:
+            if self.interface == "slcan":  # python-can's slcan, read in chunks (host/slcan.py)
+                from .slcan import BufferedSlcanBus
+                return BufferedSlcanBus(self.channel, fd=self.fd, **self._bus_kwargs)
             return can.Bus(interface=self.interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError
             raise TransportInitError(f"Cannot open CAN bus {self.name!r}: {exc}", self.name) from exc
@@ -560,46 +588,110 @@ class CanTransport(Transport):
             self._try_reopen()
             time.sleep(min(0.05, timeout_s if timeout_s is not None else 0.05))
             return []
+        wait = min(timeout_s, 0.1) if timeout_s is not None else 0.1
         try:
-            first = bus.recv(min(timeout_s, 0.1) if timeout_s is not None else 0.1)
-            if first is None:
-                return []
-            frames = [first]
-            while len(frames) < self._max_batch:
-                m = bus.recv(0)
-                if m is None:
-                    break
-                frames.append(m)
+            drain = getattr(bus, "drain_blocks", None)
+            if drain is not None:  # BufferedSlcanBus: every buffered line parsed in one pass
+                frames = drain(wait, max_lines=self._max_batch)
+                self._count_bus_errors(bus)
+            else:
+                first = bus.recv(wait)
+                if first is None:
+                    return []
+                frames = [first]
+                while len(frames) < self._max_batch:
+                    m = bus.recv(0)
+                    if m is None:
+                        break
+                    frames.append(m)
         except Exception as exc:  # noqa: BLE001 - CanOperationError etc.
             self._lost(exc)
             return []
-        return self._decode(frames)
+        return self._decode(frames) if frames else []
+
+    def _count_bus_errors(self, bus) -> None:
+        """Damaged SLCAN lines the bus skipped -> ``SLCAN_BAD_LINE`` (taken, so a reopened bus
+        starts from zero)."""
+        n = bus.bad_lines
+        if n:
+            bus.bad_lines = 0
+            self.stats.errors["SLCAN_BAD_LINE"] += n
 
     def _decode(self, frames: list) -> list:
+        """Frames -> events in wire order, in one pass: runs of well-formed SAMPLE frames are
+        collected and unpacked together by numpy (one `SampleBatch` per run); every other frame,
+        and any SAMPLE frame `decode_can` would reject, goes through `decode_can` one by one.
+        ``frames``: python-can messages and `FrameBlock` arrays, in wire order. (host/replay.py
+        reuses this method on its own transport: it reads ``self.fd`` only for an FD frame.)"""
         events: list = []
-        samples: list[Sample] = []
+        pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
+        datas: list = []  # ... and its frames not yet in a piece (one by one)
+        nodes: list[int] = []
+        errors = self.stats.errors
+        echo = self.echo
+        n_bytes = 0
+
+        def flush() -> None:
+            if datas:
+                pieces.append(_rows(nodes, datas))
+                datas.clear()
+                nodes.clear()
+            if pieces:
+                events.append(_sample_run(pieces))
+                pieces.clear()
+
+        def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
+            if echo and echo.is_echo(aid, data):
+                return
+            if is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
+                errors["FD_ON_CLASSIC"] += 1
+                return
+            if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
+                    and is_extended_id and aid < (1 << 29) and (aid & 0xFFFF) != 0xFFFF):
+                datas.append(data)
+                nodes.append(aid & 0xFFFF)
+                return
+            ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
+            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
+                datas.append(data)
+                nodes.append(ev.node)
+                return
+            flush()
+            events.append(ev)
+
         for f in frames:
+            if type(f) is FrameBlock:
+                ids, rows = f.arbitration_id, f.data
+                n_bytes += rows.size
+                fast = ((ids & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION) & ((ids & 0xFFFF) != 0xFFFF)
+                if echo:
+                    pending = [i for i in echo.identifiers() if (i & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION]
+                    if pending:
+                        fast &= ~np.isin(ids, pending)
+                if fast.all():
+                    bounds = [0, len(ids)]
+                else:
+                    bounds = [0, *(np.flatnonzero(np.diff(fast.astype(np.int8))) + 1).tolist(), len(ids)]
+                for a, b in zip(bounds[:-1], bounds[1:]):
+                    if fast[a]:
+                        if datas:
+                            pieces.append(_rows(nodes, datas))
+                            datas.clear()
+                            nodes.clear()
+                        pieces.append(((ids[a:b] & 0xFFFF).astype(np.uint16), rows[a:b]))
+                    else:
+                        for k in range(a, b):
+                            one(int(ids[k]), rows[k].tobytes(), True, False)
+                continue
             if f.is_error_frame:
-                self.stats.errors["CAN_ERROR_FRAME"] += 1  # the bus signalled an error (then retransmits)
+                errors["CAN_ERROR_FRAME"] += 1  # the bus signalled an error (then retransmits)
                 continue
             if f.is_remote_frame:
                 continue
-            self.stats.bytes_in += len(f.data)
-            if self.echo.is_echo(f.arbitration_id, f.data):
-                continue
-            if f.is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
-                self.stats.errors["FD_ON_CLASSIC"] += 1
-                continue
-            ev = decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id, is_fd=f.is_fd)
-            if isinstance(ev, Sample):
-                samples.append(ev)
-                continue
-            if samples:
-                events.append(_batch(samples))
-                samples = []
-            events.append(ev)
-        if samples:
-            events.append(_batch(samples))
+            n_bytes += len(f.data)
+            one(f.arbitration_id, f.data, f.is_extended_id, f.is_fd)
+        flush()
+        self.stats.bytes_in += n_bytes
         return events
 
     def _send_internal(self, msg: Message) -> None:
@@ -625,12 +717,28 @@ class CanTransport(Transport):
             self._bus = None
 
 
-def _batch(samples: list[Sample]) -> SampleBatch:
-    n = len(samples)
-    node = np.fromiter((s.node for s in samples), dtype=np.uint16, count=n)
-    counter = np.fromiter((s.counter for s in samples), dtype=np.uint16, count=n)
-    counts = np.array([(s.x, s.y, s.z) for s in samples], dtype=np.int16).reshape(n, 3)
-    status = np.fromiter((s.status for s in samples), dtype=np.uint8, count=n)
+#: identifier bits 25..16 (type and version, docs §7) of a SAMPLE frame of this protocol version
+_TYPE_VERSION_MASK = 0x3FF0000
+_SAMPLE_TYPE_VERSION = make_id(MsgType.SAMPLE, 0, 0) & _TYPE_VERSION_MASK
+
+
+def _rows(nodes: list[int], datas: list) -> tuple[np.ndarray, np.ndarray]:
+    """SAMPLE frames given one by one -> ``(node uint16 (n,), data uint8 (n, 7))``."""
+    return (np.array(nodes, dtype=np.uint16),
+            np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), Sample.SIZE))
+
+
+def _sample_run(pieces: list) -> SampleBatch:
+    """Consecutive well-formed SAMPLE frames (7 data bytes each: counter u16, sample word), given
+    as ``(node, data rows)`` pieces, as one batch unpacked in one numpy pass: the batch of the
+    `Sample` messages `decode_can` makes of them."""
+    if len(pieces) == 1:
+        node, d = pieces[0]
+    else:
+        node = np.concatenate([p[0] for p in pieces])
+        d = np.concatenate([p[1] for p in pieces])
+    counter = (d[:, 0].astype(np.uint16) | (d[:, 1].astype(np.uint16) << 8))
+    counts, status = unpack_sample_words(np.ascontiguousarray(d[:, 2:]).reshape(-1))
     return SampleBatch(node, counter, counts, status)
 
 

@@ -140,7 +140,7 @@ class EchoFilter:
     (True, False, 1)
     """
 
-    __slots__ = ("size", "echoes", "_q", "_n")
+    __slots__ = ("size", "echoes", "_q", "_n", "_ids")
 
     def __init__(self, size: int = 512) -> None:
         from collections import deque
@@ -150,13 +150,32 @@ class EchoFilter:
         self.echoes = 0
         self._q: deque = deque()
         self._n: dict = {}
+        self._ids: dict = {}  # identifier -> frames recorded with it
+
+    def __len__(self) -> int:
+        """Frames recorded and not yet echoed (0: nothing to look for; a receiver may skip `is_echo`)."""
+        return len(self._q)
+
+    def identifiers(self):
+        """The identifiers of the frames recorded and not yet echoed (a receiver that decodes frames
+        in bulk looks up only the frames that carry one of them)."""
+        return self._ids.keys()
+
+    def _drop_id(self, can_id: int) -> None:
+        k = self._ids[can_id] - 1
+        if k:
+            self._ids[can_id] = k
+        else:
+            del self._ids[can_id]
 
     def sent(self, can_id: int, data: bytes) -> None:
         key = (can_id, bytes(data))
         self._q.append(key)
         self._n[key] = self._n.get(key, 0) + 1
+        self._ids[can_id] = self._ids.get(can_id, 0) + 1
         if len(self._q) > self.size:
             old = self._q.popleft()
+            self._drop_id(old[0])
             k = self._n[old] - 1
             if k:
                 self._n[old] = k
@@ -173,5 +192,6 @@ class EchoFilter:
         else:
             del self._n[key]
         self._q.remove(key)
+        self._drop_id(can_id)
         self.echoes += 1
         return True

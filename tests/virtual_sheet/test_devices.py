@@ -245,6 +245,23 @@ def test_slcan_codec_lines():
     assert a.feed(b"F\r") == b"F00\r"
 
 
+def test_slcan_batch_of_samples_is_formatted_as_the_per_frame_loop_does():
+    rng = np.random.Generator(np.random.MT19937(4))
+    samples = [to_can(Sample(int(rng.integers(1, 0xFFFF)), int(rng.integers(0, 1 << 16)),
+                             *(int(v) for v in rng.integers(-2048, 2048, 3)), int(rng.integers(0, 16))))
+               for _ in range(300)]
+    a = SlcanAdapter(lambda *_: None)
+    a.is_open = True
+    one_by_one = b"".join(a.frames_to_host([f], 0.0) for f in samples)  # below the batch size: the loop
+    assert a.frames_to_host(samples, 0.0) == one_by_one
+    # a batch the fast path does not take falls back to the loop, in order
+    mixed = samples[:20] + [to_can(Info(3, 0, 1, 0))] + samples[20:40]
+    assert a.frames_to_host(mixed, 0.0) == b"".join(a.frames_to_host([f], 0.0) for f in mixed)
+    sync = [to_can(Sync(counter=k)) for k in range(6)]  # 2 data bytes: 8 of them sum to 16, not 7 each
+    uneven = samples[:10] + sync + samples[10:12]
+    assert a.frames_to_host(uneven, 0.0) == b"".join(a.frames_to_host([f], 0.0) for f in uneven)
+
+
 # ------------------------------------------------------------------ CLI
 
 def test_cli_prints_the_port_and_runs_for_a_duration(capsys, tmp_path):
