@@ -5,9 +5,11 @@ last counter, missed SYNCs, range, timers) in arrays of length N. Its two hot pa
 
 * **SYNC** (`ChipArray.sync`): which chips answer, the missed-SYNC bookkeeping, one batch read of
   the sensors, the FAULT transition of an INVALID sample, the range shift, the 40-bit sample
-  words, and — per-chip mode — every SAMPLE frame encoded at once (`_SampleCodec`: the CRC as a
-  sum of per-byte table terms, COBS by a table keyed on where the zeros are, two 64-bit lanes a
-  frame; `ChipArray.sync_wire` gives the frames as one byte string), or — packed mode
+  words, and — per-chip mode — every SAMPLE frame encoded at once (`_SampleCodec`: one table
+  entry per 12-bit count, status, node and counter, XORed — CRC as a sum of per-input terms, the
+  bytes, zero flags — then COBS by a table keyed on where the zeros are, two 64-bit lanes a frame,
+  about a dozen numpy calls per SYNC whatever the chip count; `ChipArray.sync_wire` gives the
+  frames as one byte string), or — packed mode
   (`ChipArray.sync_words`) — the sample words handed to the gateway with nothing encoded.
   In the streaming steady state nothing is re-derived per SYNC: which chips answer, the gap to
   count, the range and the first due timer are kept and invalidated by any write through a view.
