@@ -5,9 +5,11 @@ last counter, missed SYNCs, range, timers) in arrays of length N. Its two hot pa
 
 * **SYNC** (`ChipArray.sync`): which chips answer, the missed-SYNC bookkeeping, one batch read of
   the sensors, the FAULT transition of an INVALID sample, the range shift, the 40-bit sample
-  words, and — per-chip mode — every SAMPLE frame encoded at once (`_SampleCodec`: the CRC as a
-  sum of per-byte table terms, COBS by a table keyed on where the zeros are, two 64-bit lanes a
-  frame; `ChipArray.sync_wire` gives the frames as one byte string), or — packed mode
+  words, and — per-chip mode — every SAMPLE frame encoded at once (`_SampleCodec`: one table
+  entry per 12-bit count, status, node and counter, XORed — CRC as a sum of per-input terms, the
+  bytes, zero flags — then COBS by a table keyed on where the zeros are, two 64-bit lanes a frame,
+  about a dozen numpy calls per SYNC whatever the chip count; `ChipArray.sync_wire` gives the
+  frames as one byte string), or — packed mode
   (`ChipArray.sync_words`) — the sample words handed to the gateway with nothing encoded.
   In the streaming steady state nothing is re-derived per SYNC: which chips answer, the gap to
   count, the range and the first due timer are kept and invalidated by any write through a view.
@@ -121,96 +123,117 @@ def _crc_position_tables(length: int) -> tuple[np.ndarray, int]:
     return t, binascii.crc_hqx(bytes(length), 0xFFFF)
 
 
-def _pair(t: np.ndarray, j: int) -> np.ndarray:
-    """``t[j][v & 0xFF] ^ t[j + 1][v >> 8]`` for every 16-bit little-endian value v (65536,)."""
-    return (t[j + 1][:, None] ^ t[j][None, :]).ravel()
-
-
-def _cobs_table(k: int) -> np.ndarray:
-    """COBS of a ``k``-byte row, by where its zeros are: row ``z`` (bit i set: byte i is 0) holds
-    the code bytes of the encoding at their places and 0 at the copied bytes, so that
-    ``COBS(row) = table[z] | (0, *row)`` — the code bytes sit exactly where the row's zeros are."""
-    z = np.arange(1 << k, dtype=np.int64)
-    zero = ((z[:, None] >> np.arange(k)) & 1).astype(bool)
+def _cobs_codes(zero: np.ndarray) -> np.ndarray:
+    """COBS of rows whose zero bytes are where ``zero`` (m, k) bool is set: the code bytes at
+    their places (and byte 0), 0 at the copied bytes, (m, k + 1) uint8 — so that
+    ``COBS(row) = codes | (0, *row)``: the code bytes sit exactly where the row's zeros are."""
     enc = cobs_encode_batch(np.where(zero, 0, 1).astype(np.uint8))
     enc[:, 1:][~zero] = 0
     return enc
 
 
+def _cobs_table(k: int) -> np.ndarray:
+    """`_cobs_codes` of a ``k``-byte row, by where its zeros are (row ``z``: bit i set, byte i is 0)."""
+    z = np.arange(1 << k, dtype=np.int64)
+    return _cobs_codes(((z[:, None] >> np.arange(k)) & 1).astype(bool))
+
+
+# `_SampleCodec.table`: where the entries of each input start
+_X, _Y, _Z, _S = 0, 4096, 8192, 12288
+_FIELD_ENTRIES = 12288 + 16
+_FIELD_OFF = np.array([[_X], [_Y], [_Z]], dtype=np.intp)
+_FIELD_MASK = np.int64(0xFFF)
+
+
 class _SampleCodec:
-    """SAMPLE frames as two little-endian 64-bit lanes per frame, with whole-column arithmetic.
+    """SAMPLE frames as two little-endian 64-bit lanes per frame, from one table gather.
 
     One SAMPLE on the wire, as a 16-byte row (the last byte is padding)::
 
         0 COBS code | 1 version | 2 type | 3-4 node | 5-6 counter | 7-11 word | 12-13 CRC | 14 0x00
 
-    * CRC: linear over GF(2) (`_crc_position_tables`): a term for the node (kept per chip), one
-      for the counter (per SYNC) and one per byte of the word, each stored
-      already at the CRC's place in lane 1 (bits 32-47, high byte first), so they are only XORed.
-    * COBS: the same table entries carry, at bit 48 + i, whether body byte i (0-12, before COBS)
-      is 0; the CRC's two bytes add theirs by a lookup each; the 13-bit zero pattern then looks
-      up every code byte of the frame at once (`_cobs_table`). The code bytes sit exactly where
-      the zeros are (and at byte 0), so they are ORed into the lanes.
+    The word's bytes are x (12 bits), y, z, status (4 bits) back to back. Every table entry is
+    such a row, 16 bytes, holding what one input adds to the frame before COBS: its bits at their
+    place, its term of the CRC (linear over GF(2), `_crc_position_tables`) at the CRC's place
+    (lane 1 bits 32-47, high byte first), and zero flags at lane 1 bits 48-58 (`_zero_bits`). The
+    inputs touch distinct bits except the CRC's, so the frame before COBS is the XOR of one entry
+    per input: the 12-bit x, y and z (4096 entries each), the status (16), the node with the fixed
+    header (`node_entries`, kept per chip) and the counter (`counter_entry`, per SYNC). The CRC's
+    two bytes add their zero flags by one lookup of the 16-bit CRC (`crc_zero`, bits 11-12), and
+    the 13-bit zero pattern then looks up every code byte of the frame at once (`cobs`); a `cobs`
+    entry also carries the flags of lane 1 bits 48-58, so XORing it clears them and sets the code
+    bytes (which sit exactly where the zeros are, and at byte 0). `_SampleEncoder` runs it.
 
-    int64 throughout (bit 63 wraps as in uint64; only values below 2**61 are shifted right).
+    A word byte made of two fields (x's high and y's low nibble; z's high nibble and the status)
+    is 0 only if both parts are: each part flags "not 0" on its own bit, and the COBS table reads
+    the byte as 0 when neither bit is set. int64 throughout (bit 63 wraps as in uint64).
     """
+
+    #: the zero pattern's bits: body byte (before COBS) -> bit, or the two bits of a split byte
+    #: (set when that part is *not* 0); version (0) and type (1) are constants, not in the pattern
+    _zero_bits = {2: 0, 3: 1, 4: 2, 5: 3, 6: 4, 7: (5, 6), 8: 7, 9: 8, 10: (9, 10), 11: 11, 12: 12}
 
     def __init__(self) -> None:
         t, c0 = _crc_position_tables(11)  # body bytes 0-10: version, type, node, counter, word
-        t = t.astype(np.int64)
+        t = self._t = t.astype(np.int64)
 
-        def term(lo: int, hi: int | None, pos: int) -> np.ndarray:
-            """Lane-1 entries by the value of body bytes ``pos`` (and ``pos + 1``): CRC term and
-            zero flags."""
-            v = np.arange(256 if hi is None else 65536, dtype=np.int64)
-            b0, b1 = v & 0xFF, v >> 8
-            crc = t[lo][b0] ^ (t[hi][b1] if hi is not None else 0)
-            e = ((crc >> 8) << 32) | ((crc & 0xFF) << 40) | ((b0 == 0).astype(np.int64) << (48 + pos))
-            if hi is not None:
-                e |= (b1 == 0).astype(np.int64) << (48 + pos + 1)
-            return e
-        const = c0 ^ int(t[0][PROTOCOL_VERSION]) ^ int(t[1][int(MsgType.SAMPLE)])
-        self.node = term(2, 3, 2) ^ ((const >> 8) << 32 | (const & 0xFF) << 40)
-        self.counter = term(4, 5, 4)
-        # the word's five bytes: a 256-entry table each (2 kB, in the L1 cache; 16-bit tables of
-        # 512 kB each missed the cache on nearly every lookup of a SYNC)
-        self.w0, self.w1, self.w2, self.w3, self.w4 = (term(6 + b, None, 6 + b) for b in range(5))
-        b = np.arange(256, dtype=np.int64)  # CRC bytes: high at lane-1 bits 32-39, low at 40-47
-        self.crc_hi_zero = (b == 0).astype(np.int64) << 11
-        self.crc_lo_zero = (b == 0).astype(np.int64) << 12
-        self.lane0 = PROTOCOL_VERSION << 8 | int(MsgType.SAMPLE) << 16
+        def crc_at(crc):
+            return ((crc >> 8) << 32) | ((crc & 0xFF) << 40)
+
+        def flag(bit, cond):
+            return np.asarray(cond).astype(np.int64) << (48 + bit)
+        self._crc_at, self._flag = crc_at, flag
+        zb = self._zero_bits
+        tab = np.zeros((_FIELD_ENTRIES, 2), dtype=np.int64)
+        v = np.arange(4096, dtype=np.int64)
+        lo, hi = v & 0xFF, v >> 8  # x: word byte 0, low nibble of byte 1
+        tab[_X:_X + 4096, 0] = lo << 56
+        tab[_X:_X + 4096, 1] = hi | crc_at(t[6][lo] ^ t[7][hi]) | flag(zb[6], lo == 0) | flag(zb[7][0], hi != 0)
+        lo, hi = v & 0xF, v >> 4  # y: high nibble of word byte 1, byte 2
+        tab[_Y:_Y + 4096, 1] = ((lo << 4) | (hi << 8) | crc_at(t[7][lo << 4] ^ t[8][hi]) | flag(zb[7][1], lo != 0)
+                                | flag(zb[8], hi == 0))
+        lo, hi = v & 0xFF, v >> 8  # z: word byte 3, low nibble of byte 4
+        tab[_Z:_Z + 4096, 1] = ((lo << 16) | (hi << 24) | crc_at(t[9][lo] ^ t[10][hi]) | flag(zb[9], lo == 0)
+                                | flag(zb[10][0], hi != 0))
+        s = np.arange(16, dtype=np.int64)  # status: high nibble of word byte 4
+        tab[_S:_S + 16, 1] = (s << 28) | crc_at(t[10][s << 4]) | flag(zb[10][1], s != 0)
+        self.fields = tab
+        hdr = (PROTOCOL_VERSION, int(MsgType.SAMPLE))
+        self._hdr = hdr
+        self._const = int(c0 ^ t[0][hdr[0]] ^ t[1][hdr[1]])  # CRC init and the fixed header's terms
+        # the counter's two bytes (body 4-5, frame 5-6), Python ints: one entry per SYNC
+        b = range(256)
+        self._ctr_lo = [int(crc_at(t[4][i])) | (i == 0) << (48 + zb[4]) for i in b]
+        self._ctr_hi = [int(crc_at(t[5][i])) | (i == 0) << (48 + zb[5]) for i in b]
+        v = np.arange(1 << 16)  # the CRC as lane-1 bits 32-47 read as uint16: high byte, low byte
+        self.crc_zero = ((((v & 0xFF) == 0).astype(np.uint16) << zb[11])
+                         | (((v >> 8) == 0).astype(np.uint16) << zb[12]))
+        # the COBS code bytes by zero pattern: the body's zero bytes from the pattern's bits
+        z = np.arange(1 << 13, dtype=np.int64)
+        bit = (z[:, None] >> np.arange(13)) & 1
+        zero = np.zeros((1 << 13, 13), dtype=bool)
+        zero[:, 0], zero[:, 1] = hdr[0] == 0, hdr[1] == 0
+        for pos, k in zb.items():
+            zero[:, pos] = (bit[:, k] == 1) if isinstance(k, int) else ((bit[:, k[0]] | bit[:, k[1]]) == 0)
         cobs16 = np.zeros((1 << 13, 16), dtype=np.uint8)
-        cobs16[:, :14] = _cobs_table(13)
-        self.cobs = cobs16.view("V16")[:, 0]  # (8192,) 16-byte rows, gathered whole
-        self.m8, self.s8, self.s16, self.s24, self.s32, self.s40, self.s48, self.s56 = (
-            np.int64(0xFF), np.int64(8), np.int64(16), np.int64(24), np.int64(32), np.int64(40), np.int64(48),
-            np.int64(56))
-        self.crc_bits = np.int64(0xFFFF << 32)
+        cobs16[:, :14] = _cobs_codes(zero)
+        cobs16.view("<i8")[:, 1] |= (z & 0x7FF) << 48  # XOR clears the flags
+        self.cobs = np.ascontiguousarray(cobs16.view("V16")[:, 0])  # (8192,) 16-byte rows, gathered whole
 
-    def node_terms(self, node: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """What depends on the node alone: ``(lane-0 bytes 1-4, the node's lane-1 entry)``."""
+    def node_entries(self, node: np.ndarray) -> np.ndarray:
+        """(m, 2) int64: what the node (with the fixed header and the CRC's init) adds, per node."""
         nd = np.asarray(node).astype(np.int64)
-        return self.lane0 | (nd << 24), self.node[nd]
+        lo, hi = nd & 0xFF, nd >> 8
+        e = np.empty((nd.size, 2), dtype=np.int64)
+        e[:, 0] = self._hdr[0] << 8 | self._hdr[1] << 16 | (nd << 24)
+        e[:, 1] = (self._crc_at(self._const ^ self._t[2][lo] ^ self._t[3][hi]) | self._flag(self._zero_bits[2], lo == 0)
+                   | self._flag(self._zero_bits[3], hi == 0))
+        return e
 
-    def encode(self, base0: np.ndarray, node1: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
-        """(m, 2) int64 lanes of the frames; ``base0``, ``node1`` from `node_terms`."""
-        w = word if word.dtype == np.int64 else word.astype(np.int64)
+    def counter_entry(self, counter: int) -> tuple[int, int]:
+        """What the counter adds: ``(lane 0, lane 1)``."""
         c = counter & 0xFFFF
-        m8 = self.m8
-        s = node1 ^ self.counter[c]
-        s ^= self.w0[w & m8]
-        s ^= self.w1[(w >> self.s8) & m8]
-        s ^= self.w2[(w >> self.s16) & m8]
-        s ^= self.w3[(w >> self.s24) & m8]
-        s ^= self.w4[w >> self.s32]
-        zeros = (s >> self.s48) | self.crc_hi_zero[(s >> self.s32) & m8]
-        zeros |= self.crc_lo_zero[(s >> self.s40) & m8]
-        out = self.cobs[zeros].view("<i8").reshape(-1, 2)  # the code bytes (a fresh array)
-        out[:, 0] |= base0 | (c << 40)
-        out[:, 0] |= w << self.s56
-        out[:, 1] |= w >> self.s8
-        out[:, 1] |= s & self.crc_bits
-        return out
+        return c << 40, self._ctr_lo[c & 0xFF] ^ self._ctr_hi[c >> 8]
 
 
 _CODEC: _SampleCodec | None = None
@@ -223,23 +246,99 @@ def _codec() -> _SampleCodec:
     return _CODEC
 
 
+class _SampleEncoder:
+    """The SAMPLE frames of chips with the nodes ``node`` (n,): `_SampleCodec` on one table of the
+    field entries, one entry per chip and a slot for the counter; the gather indices and buffers
+    of an all-chip SYNC are kept (the array builds a new encoder when a node changes). Per SYNC,
+    every chip: the counts into the indices (a copy, a mask, an offset), one gather, one XOR
+    reduction, two lookups (CRC zeros, COBS), one XOR — a dozen numpy calls whatever n is. Not
+    reentrant (one caller at a time, as the array it belongs to)."""
+
+    def __init__(self, node: np.ndarray, codec: _SampleCodec | None = None) -> None:
+        tb = self.codec = codec or _codec()
+        node = np.asarray(node)
+        n = self.n = node.size
+        self.slot = _FIELD_ENTRIES + n  # the counter's entry, written per SYNC
+        rows = np.concatenate([tb.fields, tb.node_entries(node), np.zeros((1, 2), dtype=np.int64)])
+        self.lanes = rows  # (entries, 2) int64 ...
+        self.table = rows.view("V16")[:, 0]  # ... and the same memory as 16-byte rows
+        self.idx = self._indices(np.arange(n))
+        self.buffers = self._buffers(n)
+
+    def _indices(self, chips: np.ndarray) -> np.ndarray:
+        """(6, m) gather indices: rows 0-2 x, y, z (per SYNC), 3 the chip's own entry, 4 the
+        counter's slot, 5 the status (per SYNC, when some status is not 0)."""
+        idx = np.empty((6, chips.size), dtype=np.intp)
+        idx[3] = _FIELD_ENTRIES + chips
+        idx[4] = self.slot
+        return idx
+
+    @staticmethod
+    def _buffers(m: int):
+        return (np.empty((6, m), dtype="V16"), np.empty(2 * m, dtype=np.int64), np.empty(m, dtype=np.uint16),
+                np.empty(m, dtype="V16"))
+
+    def encode(self, counter: int, counts: np.ndarray, status: np.ndarray | None,
+               chips: np.ndarray | None = None) -> np.ndarray:
+        """(m, 2) int64 lanes of the frames of every chip (``chips`` None: a buffer, valid until the
+        next call) or of chips ``chips`` (indices into ``node``).
+
+        ``counts`` (m, 3) ints, their low 12 bits sent; ``status`` (m,) SampleStatus bits (the low
+        4 sent), or None when every one is 0."""
+        tb = self.codec
+        m = counts.shape[0]
+        if chips is None:
+            idx, (g, r, z, code) = self.idx, self.buffers
+        else:
+            idx, (g, r, z, code) = self._indices(np.asarray(chips)), self._buffers(m)
+        self.lanes[self.slot] = tb.counter_entry(counter)
+        f = idx[:3]
+        np.copyto(f, counts.T, casting="unsafe")  # a contiguous copy first: the mask on it is cheaper
+        np.bitwise_and(f, _FIELD_MASK, out=f)
+        np.add(f, _FIELD_OFF, out=f)
+        rows = 5
+        if status is not None:
+            np.bitwise_and(status, 0xF, out=idx[5], casting="unsafe")
+            idx[5] += _S
+            rows = 6
+        # mode "clip": an unbuffered gather (the indices are in range)
+        tb_rows = g[:rows]
+        self.table.take(idx[:rows], out=tb_rows, mode="clip")
+        np.bitwise_xor.reduce(tb_rows.view("<i8").reshape(rows, 2 * m), axis=0, out=r)  # the frames before COBS
+        r16 = r.view(np.uint16).reshape(m, 8)  # 6: the CRC, 7: the zero flags
+        np.bitwise_or(r16[:, 7], tb.crc_zero.take(r16[:, 6], mode="clip"), out=z)
+        tb.cobs.take(z, out=code, mode="clip")
+        np.bitwise_xor(r, code.view("<i8"), out=r)
+        return r.reshape(m, 2)
+
+    def wire(self, counter: int, counts: np.ndarray, status: np.ndarray | None,
+             chips: np.ndarray | None = None) -> bytes:
+        """The frames of `encode`, back to back, as the wire has them."""
+        return samples_wire(self.encode(counter, counts, status, chips))
+
+
+def word_fields(word: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """40-bit sample words (m,) as ``(counts (m, 3) 12-bit fields, status (m,))``."""
+    w = np.asarray(word).astype(np.int64)
+    return (w[:, None] >> np.array([0, 12, 24])) & 0xFFF, (w >> 36) & 0xF
+
+
 def encode_samples_serial(node: np.ndarray, counter: int, word: np.ndarray) -> np.ndarray:
     """Every SAMPLE frame (version, SAMPLE, node, counter, 5-byte word, CRC, COBS, 0x00) as rows
     of a (m, 15) uint8 array: the bytes `protocol.framing.encode` gives for each.
 
     ``node`` (m,) ints < 65536, ``word`` (m,) 40-bit sample words (int64 or uint64)."""
-    tb = _codec()
-    base0, node1 = tb.node_terms(node)
-    return samples_rows(tb.encode(base0, node1, counter, np.asarray(word)))
+    counts, status = word_fields(word)
+    return samples_rows(_SampleEncoder(node).encode(counter, counts, status))
 
 
 def samples_rows(lanes: np.ndarray) -> np.ndarray:
-    """The (m, 2) lanes of `_SampleCodec.encode` as (m, 15) uint8 frames (a view)."""
+    """The (m, 2) lanes of `_SampleEncoder.encode` as (m, 15) uint8 frames (a view)."""
     return lanes.astype("<i8", copy=False).view(np.uint8).reshape(-1, 16)[:, :15]
 
 
 def samples_wire(lanes: np.ndarray) -> bytes:
-    """The (m, 2) lanes of `_SampleCodec.encode`: the m frames back to back, as the wire has them."""
+    """The (m, 2) lanes of `_SampleEncoder.encode`: the m frames back to back, as the wire has them."""
     lanes = np.ascontiguousarray(lanes, dtype="<i8")
     # one 15-byte item per 16-byte row: a single copy loop (a (m, 15) uint8 slice copies row by row)
     return np.ndarray((lanes.shape[0],), dtype="V15", buffer=lanes, strides=(16,)).tobytes()
@@ -251,7 +350,7 @@ def samples_wire(lanes: np.ndarray) -> bytes:
 
 #: the array's derived values (None: derive again) that a field written through a view invalidates
 _STALE_ON_SET = {
-    "node": ("_node_terms",),
+    "node": ("_encoder", "_can_ids"),
     "last_counter": ("_all_last",),
     "state": ("_steady", "_next_due"),
     "powered": ("_steady", "_next_due"),
@@ -377,7 +476,8 @@ class ChipArray:
         self.configured = np.zeros(n, dtype=bool)
         self.boot_s = np.zeros(n)
         # derived values, None until needed (and again after a view writes what they come from)
-        self._node_terms: tuple[np.ndarray, np.ndarray] | None = None  # `_SampleCodec.node_terms` of `node`
+        self._encoder: _SampleEncoder | None = None  # serial: the SAMPLE encoder of `node`
+        self._can_ids: tuple[np.ndarray, list[int]] | None = None  # CAN: each chip's SAMPLE identifier
         self._all_last: int | None = None  # every chip's last_counter, when they are all this one
         self._steady: bool | None = None  # every chip powered, started, STREAMING, no fault wrapper
         self._range_any: bool | None = None  # some chip has CONFIG range != 0
@@ -522,21 +622,24 @@ class ChipArray:
         return out
 
     def _answer(self, counter: int, now_s: float, sel):
-        """The vectorised SYNC for the plain chips: updates the state, returns ``(idx, word)``."""
+        """The vectorised SYNC for the plain chips: updates the state, returns ``(idx, counts,
+        status)`` — the answering chips, their sample counts (m, 3) as sent (after FAULT and the
+        range shift; the low 12 bits go on the wire) and SampleStatus bits (m,), or None when every
+        one is 0 (`_words` makes the 40-bit sample words of them)."""
         if sel is None and self._no_scalar:
             steady = self._steady
             if steady is None:
                 steady = self._steady = bool((self._plain & self.powered & self.streaming
                                               & (self.state == _STREAMING)).all())
             if steady:
-                return self._every, self._answer_all(counter, now_s, self._every)
+                return (self._every, *self._answer_all(counter, now_s, self._every))
         st = self.state
         ans = np.flatnonzero(self._plain & self._sel(sel) & self.powered & self.streaming
                              & ((st == _STREAMING) | (st == _FAULT)))
         if ans.size == 0:
-            return ans, np.zeros(0, dtype=np.int64)
+            return ans, np.zeros((0, 3), dtype=np.int64), None
         if ans.size == self.n and self._no_scalar and not (st == _FAULT).any():
-            return ans, self._answer_all(counter, now_s, ans)
+            return (ans, *self._answer_all(counter, now_s, ans))
         self._all_last = None
         last = self.last_counter[ans]
         miss = self.missed_syncs[ans]
@@ -571,14 +674,12 @@ class ChipArray:
             c = np.where(bad[:, None], c, c >> r[:, None])
             xyz[live] = c
             sts[live] = s
-        word = ((xyz[:, 0] & 0xFFF) | ((xyz[:, 1] & 0xFFF) << 12) | ((xyz[:, 2] & 0xFFF) << 24)
-                | ((sts & 0xF) << 36))
-        return ans, word
+        return ans, xyz, sts
 
-    def _answer_all(self, counter: int, now_s: float, ans: np.ndarray) -> np.ndarray:
+    def _answer_all(self, counter: int, now_s: float, ans: np.ndarray):
         """`_answer` when every chip answers with a fresh sample (the streaming steady state):
         the same arithmetic on whole arrays, no gathers; when every chip last answered the
-        previous counter (the usual next SYNC) there is no gap to count."""
+        previous counter (the usual next SYNC) there is no gap to count. ``(counts, status)``."""
         last = self._all_last
         if last is None or (counter - last - 1) & 0xFFFF:
             last, miss = self.last_counter, self.missed_syncs
@@ -591,13 +692,13 @@ class ChipArray:
         c, s = self.sensor(now_s, ans)
         c = np.asarray(c, dtype=np.int64)
         s = np.asarray(s, dtype=np.int64)
-        if not s.any():  # every sample OK: no fault, no status bits
-            rng = self._range_any
-            if rng is None:
-                rng = self._range_any = bool(self.range.any())
-            if rng:
+        rng = self._range_any
+        if rng is None:
+            rng = self._range_any = bool(self.range.any())
+        if not np.count_nonzero(s):  # every sample OK: no fault, no status bits (count_nonzero: the
+            if rng:                  # cheapest test, a fraction of .any()'s fixed cost)
                 c = c >> self.range[:, None]
-            return (c & 0xFFF) @ _FIELD_SHIFT
+            return c, None
         if (s & _INVALID).any():
             bad = (s & _INVALID) != 0
             self.state[bad] = _FAULT
@@ -606,13 +707,18 @@ class ChipArray:
             c[bad] = 0
         else:
             bad = None
-        rng = self._range_any
-        if rng is None:
-            rng = self._range_any = bool(self.range.any())
         if rng:
             sh = c >> self.range[:, None]
             c = sh if bad is None else np.where(bad[:, None], c, sh)
-        return ((c & 0xFFF) @ _FIELD_SHIFT) | ((s & 0xF) << 36)
+        return c, s
+
+    @staticmethod
+    def _words(counts: np.ndarray, status: np.ndarray | None) -> np.ndarray:
+        """The 40-bit sample words (int64) of `_answer`'s counts and status."""
+        word = (counts & 0xFFF) @ _FIELD_SHIFT
+        if status is not None:
+            word |= (status & 0xF) << 36
+        return word
 
     def _wrapped_in(self, sel) -> list[int]:
         if sel is None:
@@ -622,25 +728,30 @@ class ChipArray:
     def encode(self, idx: np.ndarray, counter: int, word: np.ndarray) -> list[Out]:
         """The SAMPLE frames of chips ``idx`` (their node ids) for ``counter``, batch-encoded."""
         if self.can:
-            nodes = self.node[idx].tolist()
-            cb = counter.to_bytes(2, "little")
-            return [CanFrame(make_id(MsgType.SAMPLE, nd), cb + w.to_bytes(5, "little"), False)
-                    for nd, w in zip(nodes, word.tolist())]
+            return self._can_frames(idx, counter, word)
         if not idx.size:
             return []
-        b = self._wire(idx, counter, word)
+        b = self._wire(idx, counter, *word_fields(word))
         return [b[i:i + 15] for i in range(0, len(b), 15)]
 
-    def _wire(self, idx: np.ndarray, counter: int, word: np.ndarray) -> bytes:
+    def _can_frames(self, idx: np.ndarray, counter: int, word: np.ndarray) -> list[CanFrame]:
+        """CAN: the SAMPLE frames of chips ``idx`` (identifiers kept per chip, the payloads of all
+        of them cut from one byte string)."""
+        ids = self._can_ids
+        if ids is None:
+            a = make_id(MsgType.SAMPLE, 0) | self.node
+            ids = self._can_ids = (a, a.tolist())
+        ids = ids[1] if idx.size == self.n else ids[0][idx].tolist()
+        data = np.ascontiguousarray((word << 16) | (counter & 0xFFFF), dtype="<i8")  # counter, word: 7 bytes LE
+        b = np.ndarray((data.size,), dtype="V7", buffer=data, strides=(8,)).tobytes()
+        return [CanFrame(i, b[j:j + 7], False) for i, j in zip(ids, range(0, len(b), 7))]
+
+    def _wire(self, idx: np.ndarray, counter: int, counts: np.ndarray, status: np.ndarray | None) -> bytes:
         """Serial: the SAMPLE frames of chips ``idx``, back to back."""
-        tb = _codec()
-        terms = self._node_terms
-        if terms is None:
-            terms = self._node_terms = tb.node_terms(self.node)
-        base0, node1 = terms
-        if idx.size != self.n:
-            base0, node1 = base0[idx], node1[idx]
-        return samples_wire(tb.encode(base0, node1, counter, word))
+        enc = self._encoder
+        if enc is None:
+            enc = self._encoder = _SampleEncoder(self.node)
+        return enc.wire(counter, counts, status, None if idx.size == self.n else idx)
 
     def sync_wire(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
         """Serial SYNC without a Python object per frame: ``(bytes, n_frames)`` — every answer
@@ -648,10 +759,10 @@ class ChipArray:
         wrapper among ``sel``, whose frames go in between)."""
         if self.can or self._wrapped_in(sel):
             return None
-        ans, word = self._answer(msg.counter, now_s, sel)
+        ans, counts, status = self._answer(msg.counter, now_s, sel)
         if not ans.size:
             return b"", 0
-        return self._wire(ans, msg.counter, word), int(ans.size)
+        return self._wire(ans, msg.counter, counts, status), int(ans.size)
 
     def sync(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None, *,
              owners: bool = False):
@@ -661,8 +772,14 @@ class ChipArray:
         wrapped = self._wrapped_in(sel)
         if wrapped:
             extra = {k: self.chips[k].handle(frame, now_s, msg) for k in wrapped}
-        ans, word = self._answer(c, now_s, sel)
-        frames = self.encode(ans, c, word)
+        ans, counts, status = self._answer(c, now_s, sel)
+        if self.can:
+            frames = self._can_frames(ans, c, self._words(counts, status))
+        elif ans.size:
+            b = self._wire(ans, c, counts, status)
+            frames = [b[i:i + 15] for i in range(0, len(b), 15)]
+        else:
+            frames = []
         own = ans
         if wrapped:
             frames, own = self._merge(frames, ans, extra)
@@ -681,8 +798,8 @@ class ChipArray:
         """SYNC for a packing gateway: ``(idx, word, other)`` — the plain chips that answered and
         their 40-bit sample words (int64), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
         extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
-        ans, word = self._answer(msg.counter, now_s, sel)
-        return ans, word, extra
+        ans, counts, status = self._answer(msg.counter, now_s, sel)
+        return ans, self._words(counts, status), extra
 
     def sync_samples(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
         """SYNC for a packing gateway: ``(idx, word, counts (m, 3), status (m,), other)`` — the
@@ -702,3 +819,4 @@ class ChipArray:
 
 
 assert NODE_BROADCAST == 0
+
