@@ -627,11 +627,13 @@ _SIGN_D = _S_D
 def _scatter(idx: np.ndarray, w: np.ndarray, size: int) -> np.ndarray:
     """``Σ w`` into ``size`` bins by ``idx`` (m,) over ``w``'s last axis (..., m): a bincount,
     one per leading row (at most one leading axis, the batch)."""
+    # astype: numpy's bincount of no entries is int64 even with float weights (a snapshot with no
+    # model cell: the in-place gradient sums then raised a casting error)
     if w.ndim == 1:
-        return np.bincount(idx, weights=w, minlength=size)
+        return np.bincount(idx, weights=w, minlength=size).astype(float, copy=False)
     B = w.shape[0]
     off = (idx[None, :] + size * np.arange(B)[:, None]).ravel()
-    return np.bincount(off, weights=w.reshape(-1), minlength=B * size).reshape(B, size)
+    return np.bincount(off, weights=w.reshape(-1), minlength=B * size).astype(float, copy=False).reshape(B, size)
 
 
 def _sumsq_last(x: np.ndarray):
@@ -1275,7 +1277,8 @@ def _flatness(st, r, norm_g, noise):
                              size=(1,) * len(lead) + (k, k), mode="nearest"
                              ).reshape(lead + (-1,))
     th0 = FLAT_TILT_NOISE * np.maximum(noise, 1e-300)
-    h = np.exp(-np.maximum(th2, 0.0) / (th0[..., None] ** 2 if lead else th0 ** 2))
+    with np.errstate(divide="ignore", over="ignore"):  # noise 0: th0² underflows; masked below
+        h = np.exp(-np.maximum(th2, 0.0) / (th0[..., None] ** 2 if lead else th0 ** 2))
     return np.where((noise > 0.0)[..., None], h, 0.0) if lead else h
 
 

@@ -178,3 +178,22 @@ def test_roll_gradient_without_the_jacobian_equals_jt_r():
         assert none is None and blocks is not None
         assert abs(c1 - c2) <= 1e-12 * abs(c1)
         np.testing.assert_allclose(g2, g1, rtol=0, atol=1e-12 * np.abs(g1).max())
+
+
+@pytest.mark.parametrize("n_valid", [1, 2, 3, 6])
+def test_a_few_valid_links_and_no_model_cell_estimate_alike_batched_and_alone(n_valid, monkeypatch):
+    # no cell with all four links: no roll term at all (numpy's bincount of nothing is int64, and
+    # the batched gradient sums raised a casting error on it)
+    from host.analysis import estimator as E
+    from virtual_sheet.geometry import ideal_readings
+    from virtual_sheet.shapes import make_sheet
+
+    r = ideal_readings(make_sheet("gaussian", 5, 5, 0.01))
+    v = np.zeros(len(r), bool)
+    v[:n_valid] = True
+    batch = E.estimate_batch(np.stack([r, r]), 5, 5, 0.01, valid=np.stack([v, v]))
+    monkeypatch.setattr(E, "USE_KERNEL", False)  # the numpy path of one snapshot too
+    alone = E.estimate(r, 5, 5, 0.01, valid=v)
+    for b in batch:
+        assert np.isfinite(b.joints).all()
+        np.testing.assert_allclose(b.joints, alone.joints, atol=1e-9)
