@@ -66,3 +66,14 @@ def test_sweep_goes_down_from_145_until_a_rate_holds():
     assert done == ran == [145, 60, 30]
     done, ran = _sweep([30, 60, 145, 300, 640], limit=10)  # none holds: every lower rate tried
     assert ran == [145, 60, 30]
+
+
+def test_a_rate_is_held_only_if_complete_sent_and_every_chip_started():
+    ok = {"rate_hz": 145.0, "complete_pct": 99.3, "achieved_sync_hz": 144.0, "started": 364}
+    assert bench_live.held(ok, 364)
+    # what the CAN row reported as held: complete, but the host sent 68.8 of 145 SYNC/s
+    assert not bench_live.held(dict(ok, achieved_sync_hz=68.8), 364)
+    # a bring-up that found 5 chips of 1,984 completes its 5 links every time
+    assert not bench_live.held(dict(ok, started=5), 364)
+    assert not bench_live.held(dict(ok, complete_pct=98.9), 364)
+    assert not bench_live.held({"rate_hz": 145.0, "error": "CapacityError"}, 364)
