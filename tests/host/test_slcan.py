@@ -111,11 +111,25 @@ def receive(bus, master: int, chunks: list[bytes], n_frames: int, timeout_s: flo
     return out
 
 
+def feed(master: int, chunks) -> threading.Thread:
+    """Write ``chunks`` to the pty's master side from a thread, each whole: a pty holds a few KB,
+    so a writer in the reading thread blocks forever once the reader falls behind (a loaded
+    machine hung the suite there)."""
+    def run():
+        for c in chunks:
+            view = memoryview(c)
+            while view:
+                view = view[os.write(master, view):]
+    th = threading.Thread(target=run, daemon=True)
+    th.start()
+    return th
+
+
 def reference(path: str, master: int, data: bytes, n_frames: int) -> list:
     """What python-can's own slcan interface makes of ``data`` (it reads one byte per call)."""
     ref = slcanBus(path, sleep_after_open=0)
     try:
-        os.write(master, data)
+        feed(master, [data])
         out = []
         end = time.monotonic() + 10
         while len(out) < n_frames and time.monotonic() < end:
@@ -416,9 +430,9 @@ def test_the_slcan_transport_decodes_blocks_as_decode_can_does_frame_by_frame(pt
         events = []
         rng = np.random.Generator(np.random.MT19937(8))
         cuts = np.sort(rng.choice(np.arange(1, len(data)), size=60, replace=False))
-        for a, b in zip([0, *cuts], [*cuts, len(data)]):
-            os.write(master, data[a:b])
-            events += t.recv(0.0)
+        writer = feed(master, [data[a:b] for a, b in zip([0, *cuts], [*cuts, len(data)])])
+        while writer.is_alive():
+            events += t.recv(0.01)
         while got := t.recv(0.3):
             events += got
         kept = [f for f in frames if not (f.is_remote_frame or f.arbitration_id == sync_id)]
