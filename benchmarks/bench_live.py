@@ -34,6 +34,8 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from host.aggregator import window_completeness  # noqa: E402
+
 CONFIGS = {
     "14x14-per-chip": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000),
     "14x14-packed": dict(lattice="14x14", packed=True, transport="serial", baud=12_000_000),
@@ -82,23 +84,6 @@ def held(row: dict, n_links: int) -> bool:
     return (row.get("complete_pct", 0.0) >= 99.0
             and row.get("achieved_sync_hz", 0.0) >= MIN_SENT_SHARE * row["rate_hz"]
             and row.get("started", 0) >= n_links)
-
-
-def window_completeness(snapshots, first_counter: int, end_counter: int) -> dict:
-    """Completeness over one window of SYNCs: the counters ``first_counter`` .. ``end_counter - 1``
-    (mod 2^16) the host sent in it. ``snapshots``: ``(counter, complete)`` of every snapshot emitted
-    during and after the window. Numerator and denominator are the same set of counters: a snapshot
-    of a SYNC sent before the window (completed inside it) or after it is not counted, a SYNC of the
-    window whose snapshot never came (or was dropped) counts as incomplete. (The bench used to
-    divide the snapshots completed in the window by the SYNCs sent in it: up to 100.83 %.)"""
-    sent = (end_counter - first_counter) & 0xFFFF
-    seen: dict[int, bool] = {}
-    for counter, complete in snapshots:
-        if ((counter - first_counter) & 0xFFFF) < sent:
-            seen[counter & 0xFFFF] = seen.get(counter & 0xFFFF, False) or bool(complete)
-    complete = sum(seen.values())
-    return {"syncs_sent": sent, "snapshots": len(seen), "complete": complete,
-            "complete_pct": round(100.0 * complete / sent, 2) if sent else 0.0}
 
 
 def _serve(cfg: dict, conn) -> None:

@@ -876,3 +876,33 @@ class Aggregator:
     @property
     def pending(self) -> int:
         return len(self._out)
+
+
+def window_completeness(snapshots, first_counter: int, end_counter: int, syncs_sent: int | None = None) -> dict:
+    """Completeness over one window of SYNCs: the counters ``first_counter`` .. ``end_counter - 1``
+    (mod 2^16) the host sent in it. ``snapshots``: ``(counter, complete)`` of every snapshot emitted
+    during and after the window, in emission order. Numerator and denominator are the same set of
+    SYNCs: a snapshot of a SYNC sent before the window (completed inside it) or after it is not
+    counted, a SYNC of the window whose snapshot never came (or was dropped) counts as incomplete.
+    (The bench used to divide the snapshots completed in the window by the SYNCs sent in it: up to
+    100.83 %; ``capsheet demo`` printed 100.1 %.)
+
+    A window longer than 2^16 SYNCs (7.5 min at 145 Hz) needs ``syncs_sent``, the host's count of
+    SYNCs sent in it (``Host.syncs_sent`` difference, off by a SYNC or two if read while it sends):
+    the window's length is the value congruent to ``end - first`` mod 2^16 nearest to it, and the
+    counters are unwrapped one snapshot after the other (consecutive emissions are far less than
+    2^15 SYNCs apart)."""
+    sent = (end_counter - first_counter) & 0xFFFF
+    if syncs_sent is not None:
+        sent = syncs_sent + ((((sent - syncs_sent) + 0x8000) & 0xFFFF) - 0x8000)
+    seen: dict[int, bool] = {}
+    pos, prev = 0, first_counter & 0xFFFF  # unwrapped position of the last counter (first = 0)
+    for counter, complete in snapshots:
+        c = counter & 0xFFFF
+        pos += (((c - prev) + 0x8000) & 0xFFFF) - 0x8000
+        prev = c
+        if 0 <= pos < sent:
+            seen[pos] = seen.get(pos, False) or bool(complete)
+    complete = sum(seen.values())
+    return {"syncs_sent": sent, "snapshots": len(seen), "complete": complete,
+            "complete_pct": round(100.0 * complete / sent, 2) if sent else 0.0}

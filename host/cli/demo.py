@@ -86,6 +86,7 @@ def run(args) -> int:
     import multiprocessing as mp
 
     from host.estimator import error_percent_of_side, estimate
+    from host.aggregator import window_completeness
     from host.session import Host, Layout
     from host.transport import open_transport
     from virtual_sheet.sheet import VirtualSheet
@@ -140,7 +141,9 @@ def run(args) -> int:
 
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
         transport = open_transport("serial", path, baudrate=12_000_000)
-        host = Host(transport, lat, layout=Layout.load(layout_path), rate_hz=args.rate)
+        seen: list[tuple[int, bool]] = []  # (counter, complete) of every snapshot emitted
+        host = Host(transport, lat, layout=Layout.load(layout_path), rate_hz=args.rate,
+                    on_snapshot=lambda snap: seen.append((snap.counter, snap.complete)))
         from host.cli.record_args import SessionOutputs
         outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
@@ -158,8 +161,9 @@ def run(args) -> int:
                 print(f"capsheet demo: only {summary['started']} of {lat.n_links} chips started", file=sys.stderr)
             previous = None
             t0 = time.monotonic()
-            sent0 = host.syncs_sent
+            first, sent0 = host.counter, host.syncs_sent  # the window: completeness counts its SYNCs only
             last_print = last_eval = 0.0
+            tty = sys.stderr.isatty()  # a log gets a line every 2 s, a terminal one line redrawn
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
                 snap = agg.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
@@ -181,20 +185,25 @@ def run(args) -> int:
                     last = (truth, est.joints, err, snap.counter)
                     outputs.publish(est, snap, truth=truth)
                 now = time.monotonic()
-                if now - last_print >= 0.25:
+                if now - last_print >= (0.25 if tty else 2.0):
                     el = now - t0
-                    sent = max(1, host.syncs_sent - sent0)
-                    print(f"\r{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
+                    # up to the newest SYNC emitted: those after it are in flight, not yet missed
+                    c_now, n_now = host.counter, host.syncs_sent - sent0
+                    end = (seen[-1][0] + 1) & 0xFFFF if seen else first
+                    win = window_completeness(seen, first, end, n_now - ((c_now - end) & 0xFFFF))
+                    cr = "\r" if tty else ""
+                    print(f"{cr}{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
                           f"{1e3 * np.median(latencies[-50:]):6.1f} ms | estimate {1e3 * np.median(times[-50:]):5.2f} ms | "
                           f"error {_fmt(errors[-1] if errors else None)} % of side | "
-                          f"complete {100 * agg.stats.complete / sent:5.1f} % of SYNCs",
-                          end="", file=sys.stderr, flush=True)
+                          f"complete {win['complete_pct']:5.1f} % of SYNCs",
+                          end="" if tty else "\n", file=sys.stderr, flush=True)
                     last_print = now
             elapsed = time.monotonic() - t0
-            host.stop()
-            sent = host.syncs_sent - sent0
+            end, sent_n = host.counter, host.syncs_sent - sent0
+            host.stop()  # the SYNCs in flight get their chance to complete
+            win = window_completeness(seen, first, end, sent_n)
             st = agg.stats
-            stats = {"syncs_sent": sent, "snapshots": st.emitted, "complete": st.complete,
+            stats = {"syncs_sent": win["syncs_sent"], "snapshots": win["snapshots"], "complete": win["complete"],
                      "skipped_newest_wins": st.dropped, **agg.completeness(),
                      "syncs_missed": host.stats["live"]["syncs_missed"], "deadline_ms": round(1e3 * agg.deadline_s, 2)}
             outputs.close(host.stats)

@@ -1,5 +1,5 @@
-"""benchmarks/bench_live.py's completeness over a window of SYNCs: numerator and denominator over
-the same counters (it once reported 100.83 % complete)."""
+"""benchmarks/bench_live.py: the order of its rate sweep and its rule for a rate held (the
+completeness over a window of SYNCs it uses is tested in tests/host/test_window_completeness.py)."""
 
 from __future__ import annotations
 
@@ -12,39 +12,6 @@ _spec = importlib.util.spec_from_file_location(
     "bench_live", Path(__file__).resolve().parents[2] / "benchmarks" / "bench_live.py")
 bench_live = importlib.util.module_from_spec(_spec)
 _spec.loader.exec_module(bench_live)
-window_completeness = bench_live.window_completeness
-
-
-def test_snapshots_of_syncs_sent_before_the_window_are_not_counted():
-    # counters 0..9 sent before the window, 10..19 in it; 5..9 complete inside it (late), 10..19 complete
-    snaps = [(c, True) for c in range(5, 20)]
-    got = window_completeness(snaps, 10, 20)
-    assert got == {"syncs_sent": 10, "snapshots": 10, "complete": 10, "complete_pct": 100.0}
-
-
-def test_after_the_window_and_missing_ones():
-    snaps = [(10, True), (11, False), (13, True), (20, True), (21, True)]  # 12 never came, 14..19 neither
-    got = window_completeness(snaps, 10, 20)
-    assert got == {"syncs_sent": 10, "snapshots": 3, "complete": 2, "complete_pct": 20.0}
-
-
-def test_a_counter_seen_twice_counts_once():
-    got = window_completeness([(3, True), (3, True), (4, False)], 3, 5)
-    assert got == {"syncs_sent": 2, "snapshots": 2, "complete": 1, "complete_pct": 50.0}
-
-
-@pytest.mark.parametrize("first", [65530, 65535])
-def test_the_window_wraps_at_2_16(first):
-    end = (first + 10) & 0xFFFF
-    snaps = [((first + i) & 0xFFFF, i != 3) for i in range(-2, 12)]
-    got = window_completeness(snaps, first, end)
-    assert got == {"syncs_sent": 10, "snapshots": 10, "complete": 9, "complete_pct": 90.0}
-
-
-def test_never_above_100_percent():
-    snaps = [(c, True) for c in range(0, 200)]
-    for first in range(0, 150, 7):
-        assert window_completeness(snaps, first, first + 37)["complete_pct"] == 100.0
 
 
 def _sweep(rates, limit):
