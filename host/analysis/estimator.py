@@ -492,7 +492,11 @@ class _Structure:
             pat = sp.csc_matrix((np.ones(rr.size), (rr, cc)), shape=(nv, nv))
             pat.sum_duplicates()
             pat = pat + sp.identity(nv, format="csc") * (4.0 * pat.max() + 1.0)
-            perm = splu(pat.tocsc(), permc_spec="MMD_AT_PLUS_A").perm_c
+            if nv >= ND_MIN_VARS:  # large: nested dissection on the links' positions
+                mid = np.stack([mid_i[var_links], mid_j[var_links]], axis=1)
+                perm = np.argsort(_nested_dissection(pat.tocsr(), mid))
+            else:  # small: minimum degree fills less
+                perm = splu(pat.tocsc(), permc_spec="MMD_AT_PLUS_A").perm_c
         else:
             perm = np.arange(0)
         pos_v = np.asarray(perm, dtype=np.int64)
@@ -535,6 +539,51 @@ class _Structure:
 
 
 #: `_Structure.kernel_arrays`' index arrays, by their field name in ``capsheet_yaw_t``
+#: `_Structure`: from this many yaw variables on (about 28x28 joints), the Gauss-Newton matrix is
+#: ordered by nested dissection instead of SuperLU's minimum degree. Fill of L (bench_estimator's
+#: Gaussian): 14x14 MMD 11.7k / ND 13.3k, 32x32 130k / 121k, 64x64 909k / 716k.
+ND_MIN_VARS = 1500
+#: ... and parts of at most this many variables are not split further.
+ND_LEAF = 16
+
+
+def _nested_dissection(adj, xy: np.ndarray, leaf: int = ND_LEAF) -> np.ndarray:
+    """An elimination order (position -> variable) by geometric nested dissection: split the
+    variables at the median of their longer extent, take as separator the smaller of the two
+    sides' boundaries (the variables with a neighbour across), order each side recursively and
+    the separator last. ``adj``: the symmetric pattern (CSR, any values); ``xy`` (nv, 2) the
+    variables' positions."""
+    nv = xy.shape[0]
+    out: list[np.ndarray] = []
+    side = np.zeros(nv, np.int8)  # scratch: 1 left part, 2 right part of the current split
+    stack = [(np.arange(nv), False)]
+    while stack:  # explicit stack: (nodes, emit) — emit=True places a separator
+        nodes, emit = stack.pop()
+        if emit or nodes.size <= leaf:
+            out.append(nodes)
+            continue
+        c = xy[nodes]
+        ax = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+        order = np.argsort(c[:, ax], kind="stable")
+        left = np.zeros(nodes.size, bool)
+        left[order[:nodes.size // 2]] = True
+        side[nodes[left]] = 1
+        side[nodes[~left]] = 2
+        sub = adj[nodes]
+        nb_side = side[sub.indices]
+        row = np.repeat(np.arange(nodes.size), np.diff(sub.indptr))
+        touch_r = np.bincount(row[nb_side == 2], minlength=nodes.size) > 0
+        touch_l = np.bincount(row[nb_side == 1], minlength=nodes.size) > 0
+        side[nodes] = 0
+        sep_l, sep_r = left & touch_r, ~left & touch_l
+        sep = sep_l if sep_l.sum() <= sep_r.sum() else sep_r
+        # popped last-in first: left part, then right part, then the separator
+        stack.append((nodes[sep], True))
+        stack.append((nodes[~left & ~sep], False))
+        stack.append((nodes[left & ~sep], False))
+    return np.concatenate(out) if out else np.arange(0)
+
+
 _KERNEL_INDEX_FIELDS = ("units", "unit_var", "roll_links", "roll_c0", "roll_c1", "roll_var0",
                         "pairs", "pair_var", "var_links")
 
@@ -958,31 +1007,84 @@ def _factorise(st: "_Structure", A, sweeps: bool = True):
     lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
     # for a factorisation solved only with many at once (the uncertainty's)
-    return ("splu", lu, _triangular(lu) if USE_KERNEL and sweeps else None)
+    return ("splu", lu, _triangular(lu, st) if USE_KERNEL and sweeps else None)
 
 
-def _triangular(lu):
-    """SuperLU's factors as the kernel's ``capsheet_lu_solve`` takes them: the strictly lower
-    part of L and the strictly upper part of U in CSC (int32 indices) and U's diagonal; None
-    when SuperLU permuted rows or columns (it was asked not to: the ordering is the structure's)."""
+def _triangular(lu, st=None):
+    """SuperLU's factors as the kernel's supernodal ``capsheet_ldl_solve`` takes them: the
+    matrix is SPD and factorised without pivoting, so ``U = D Lᵀ`` and L (unit lower) with U's
+    diagonal D is the whole factorisation; L's columns are grouped into supernodes (consecutive
+    columns sharing their rows below), each stored as a dense block so that a solve runs on
+    contiguous memory instead of scattered single entries, its values in float32 (the solve is
+    bound by memory; the chord step matrix is approximate anyway and the iteration's fixed point,
+    grad = 0, does not depend on it). The supernodes depend only on L's
+    pattern, fixed for a structure: built once and cached on ``st``. None when SuperLU permuted
+    rows or columns (it was asked not to: the ordering is the structure's)."""
     n = lu.shape[0]
     if not (np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n))):
         return None
+    L = lu.L
+    ptr = np.ascontiguousarray(L.indptr, np.int32)
+    idx = np.ascontiguousarray(L.indices, np.int32)
+    sym = getattr(st, "_ldl_symbolic", None)
+    if sym is None or not (np.array_equal(sym["l_ptr"], ptr) and np.array_equal(sym["l_idx"], idx)):
+        sym = _ldl_symbolic(n, ptr, idx)
+        if st is not None:
+            st._ldl_symbolic = sym
+    fb = _kffi.from_buffer
+    val = np.zeros(sym["n_val"], np.float32)
+    diag = np.ascontiguousarray(lu.U.diagonal(), np.float64)
+    _klib.capsheet_ldl_fill(sym["n_super"], fb("int32_t[]", ptr), fb("int32_t[]", idx),
+                            fb("double[]", np.ascontiguousarray(L.data, np.float64)),
+                            *sym["c_args"][:5], fb("int32_t[]", np.full(max(n, 1), -1, np.int32)),
+                            fb("float[]", val))
+    ptrs = (sym["n_super"], *sym["c_args"][:5], fb("float[]", val), fb("double[]", diag))
+    return (val, diag, sym), ptrs
 
-    def strict(M, lower):
-        M = M.tocsc()
-        col = np.repeat(np.arange(n), np.diff(M.indptr))
-        keep = M.indices > col if lower else M.indices < col
-        ptr = np.zeros(n + 1, np.int32)
-        np.cumsum(np.bincount(col[keep], minlength=n), out=ptr[1:])
-        return (ptr, np.ascontiguousarray(M.indices[keep], np.int32),
-                np.ascontiguousarray(M.data[keep], np.float64))
 
-    U = lu.U.tocsc()
-    arrays = strict(lu.L, True) + strict(U, False) + (np.ascontiguousarray(U.diagonal()),)
-    ptrs = [_kffi.from_buffer(("int32_t[]" if a.dtype == np.int32 else "double[]"), a)
-            for a in arrays]
-    return arrays, ptrs
+def _ldl_symbolic(n: int, l_ptr: np.ndarray, l_idx: np.ndarray) -> dict:
+    """L's supernodes (fundamental: column j+1 joins j's when j's first row below the diagonal
+    is j+1 and j+1 has exactly j's other rows) and the layout `capsheet_ldl_solve` reads."""
+    col = np.repeat(np.arange(n), np.diff(l_ptr))
+    keep = l_idx > col
+    ci, ri = col[keep], l_idx[keep].astype(np.int64)
+    order = np.lexsort((ri, ci))  # rows sorted within each column
+    ci, ri = ci[order], ri[order]
+    cnt = np.bincount(ci, minlength=n)
+    ptr = np.zeros(n + 1, np.int64)
+    np.cumsum(cnt, out=ptr[1:])
+    first = np.full(n, -1, np.int64)
+    nz = cnt > 0
+    first[nz] = ri[ptr[:-1][nz]]
+    cand = np.flatnonzero((first[:-1] == np.arange(1, n)) & (cnt[1:] == cnt[:-1] - 1))
+    m = cnt[cand + 1]
+    if m.sum():  # the rows themselves agree (the counts suffice for an exact symbolic pattern)
+        rep = np.repeat(np.arange(cand.size), m)
+        off = np.arange(int(m.sum())) - np.repeat(np.cumsum(m) - m, m)
+        same = ri[ptr[cand][rep] + 1 + off] == ri[ptr[cand + 1][rep] + off]
+        cand = cand[np.bincount(rep[~same], minlength=cand.size) == 0]
+    cont = np.zeros(n, bool)
+    cont[cand + 1] = True
+    sn_col = np.append(np.flatnonzero(~cont), n).astype(np.int32)
+    ns = sn_col.size - 1
+    w = np.diff(sn_col).astype(np.int64)
+    last = sn_col[1:].astype(np.int64) - 1
+    nb = cnt[last]
+    sn_row = np.zeros(ns + 1, np.int64)
+    np.cumsum(nb, out=sn_row[1:])
+    rep = np.repeat(np.arange(ns), nb)
+    rows = np.ascontiguousarray(ri[ptr[last][rep] + np.arange(rep.size) - sn_row[:-1][rep]], np.int32)
+    base = np.zeros(ns + 1, np.int64)
+    np.cumsum(w * w + w * nb, out=base[1:])
+    sn_diag = np.ascontiguousarray(base[:-1])
+    sn_below = np.ascontiguousarray(base[:-1] + w * w)
+    fb = _kffi.from_buffer
+    arrays = (sn_col, sn_row, rows, sn_diag, sn_below)
+    work = np.empty(max(int(nb.max()) if ns else 0, 1))
+    c_args = (fb("int32_t[]", sn_col), fb("int64_t[]", sn_row), fb("int32_t[]", rows),
+              fb("int64_t[]", sn_diag), fb("int64_t[]", sn_below))
+    return {"l_ptr": l_ptr.copy(), "l_idx": l_idx.copy(), "n_super": ns, "n_val": int(base[-1]),
+            "arrays": arrays, "c_args": c_args, "work_size": work.size}
 
 
 def _solve(fac, b):
@@ -995,7 +1097,9 @@ def _solve(fac, b):
     if tri is None or b.ndim != 1 or not USE_KERNEL:
         return f.solve(b)
     x = np.array(b, dtype=np.float64)  # a copy: solved in place
-    _klib.capsheet_lu_solve(x.size, *tri[1], _kffi.from_buffer("double[]", x))
+    work = np.empty(tri[0][2]["work_size"])  # per call: solves may run in several threads
+    _klib.capsheet_ldl_solve(x.size, *tri[1], _kffi.from_buffer("double[]", x),
+                             _kffi.from_buffer("double[]", work))
     return x
 
 

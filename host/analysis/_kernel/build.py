@@ -32,9 +32,13 @@ typedef struct {
 } capsheet_yaw_t;
 double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
                          double *work);
-void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
-                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
-                       const double *u_diag, double *x);
+void capsheet_ldl_solve(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                        const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                        const float *val, const double *diag, double *x, double *work);
+void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
+                       const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
+                       const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                       int32_t *map, float *val);
 void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
                          double *d, double *nrm);
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);

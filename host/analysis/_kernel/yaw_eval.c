@@ -136,29 +136,6 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
     return 0.5 * (cost_loop + cost_roll + cost_pair + cost_abs);
 }
 
-void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
-                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
-                       const double *u_diag, double *x)
-{
-    int64_t j;
-    int32_t q;
-    /* L y = b, L unit lower (strict part by columns): scatter each solved entry downwards */
-    for (j = 0; j < n; ++j) {
-        const double xj = x[j];
-        if (xj != 0.0)
-            for (q = l_ptr[j]; q < l_ptr[j + 1]; ++q)
-                x[l_idx[q]] -= l_val[q] * xj;
-    }
-    /* U x = y, U upper (strict part by columns, diagonal apart): scatter upwards */
-    for (j = n - 1; j >= 0; --j) {
-        const double xj = x[j] / u_diag[j];
-        x[j] = xj;
-        if (xj != 0.0)
-            for (q = u_ptr[j]; q < u_ptr[j + 1]; ++q)
-                x[u_idx[q]] -= u_val[q] * xj;
-    }
-}
-
 void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
                          double *d, double *nrm)
 {
@@ -286,5 +263,127 @@ void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
         y_c[2 * k] = sin(be) * sa;
         y_c[2 * k + 1] = cos(al);
         y_z[k] = cos(be) * sa;
+    }
+}
+
+/* Supernodal L D Lᵀ solve; see yaw_eval.h. Forward: per supernode the unit lower diagonal block
+ * (column axpys), then its below-rows accumulated column by column into `t` (contiguous axpys the
+ * compiler vectorises) and subtracted from x once. Backward: the below rows gathered into `t`,
+ * four columns' dot products at a time (four independent sums: no reassociation), then the
+ * diagonal block transposed. */
+void capsheet_ldl_solve(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                        const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                        const float *val, const double *diag, double *x, double *work)
+{
+    int64_t s, j;
+    for (s = 0; s < n_super; ++s) {
+        const int64_t c0 = sn_col[s], w = sn_col[s + 1] - c0;
+        const int64_t nb = sn_row[s + 1] - sn_row[s];
+        const int32_t *restrict r = rows + sn_row[s];
+        const float *restrict dg = val + sn_diag[s];
+        const float *restrict bl = val + sn_below[s];
+        double *restrict xs = x + c0;
+        int64_t k, i;
+        for (k = 0; k + 1 < w; ++k) {
+            const double xk = xs[k];
+            for (i = k + 1; i < w; ++i)
+                xs[i] -= dg[k * w + i] * xk;
+        }
+        if (nb == 0)
+            continue;
+        if (w == 1) {
+            const double x0 = xs[0];
+            for (i = 0; i < nb; ++i)
+                x[r[i]] -= bl[i] * x0;
+            continue;
+        }
+        {
+            double *restrict t = work;
+            for (i = 0; i < nb; ++i)
+                t[i] = 0.0;
+            for (k = 0; k < w; ++k) {
+                const double xk = xs[k];
+                const float *restrict b = bl + k * nb;
+                for (i = 0; i < nb; ++i)
+                    t[i] += b[i] * xk;
+            }
+            for (i = 0; i < nb; ++i)
+                x[r[i]] -= t[i];
+        }
+    }
+    for (j = 0; j < n; ++j)
+        x[j] /= diag[j];
+    for (s = n_super - 1; s >= 0; --s) {
+        const int64_t c0 = sn_col[s], w = sn_col[s + 1] - c0;
+        const int64_t nb = sn_row[s + 1] - sn_row[s];
+        const int32_t *restrict r = rows + sn_row[s];
+        const float *restrict dg = val + sn_diag[s];
+        const float *restrict bl = val + sn_below[s];
+        double *restrict xs = x + c0;
+        double *restrict g = work;
+        int64_t k, i;
+        if (nb > 0) {
+            for (i = 0; i < nb; ++i)
+                g[i] = x[r[i]];
+            for (k = 0; k + 4 <= w; k += 4) {
+                const float *restrict b0 = bl + k * nb, *restrict b1 = b0 + nb;
+                const float *restrict b2 = b1 + nb, *restrict b3 = b2 + nb;
+                double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
+                for (i = 0; i < nb; ++i) {
+                    const double gi = g[i];
+                    a0 += b0[i] * gi;
+                    a1 += b1[i] * gi;
+                    a2 += b2[i] * gi;
+                    a3 += b3[i] * gi;
+                }
+                xs[k] -= a0;
+                xs[k + 1] -= a1;
+                xs[k + 2] -= a2;
+                xs[k + 3] -= a3;
+            }
+            for (; k < w; ++k) {
+                const float *restrict b0 = bl + k * nb;
+                double a0 = 0.0;
+                for (i = 0; i < nb; ++i)
+                    a0 += b0[i] * g[i];
+                xs[k] -= a0;
+            }
+        }
+        for (k = w - 2; k >= 0; --k) {
+            double a = 0.0;
+            for (i = k + 1; i < w; ++i)
+                a += dg[k * w + i] * xs[i];
+            xs[k] -= a;
+        }
+    }
+}
+
+void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
+                       const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
+                       const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                       int32_t *map, float *val)
+{
+    int64_t s, q, j;
+    int32_t p;
+    for (s = 0; s < n_super; ++s) {
+        const int64_t c0 = sn_col[s], c1 = sn_col[s + 1], w = c1 - c0;
+        const int64_t nb = sn_row[s + 1] - sn_row[s];
+        const int32_t *r = rows + sn_row[s];
+        for (q = 0; q < nb; ++q)
+            map[r[q]] = (int32_t)q;
+        for (j = c0; j < c1; ++j) {
+            const int64_t k = j - c0;
+            for (p = l_ptr[j]; p < l_ptr[j + 1]; ++p) {
+                const int64_t i = l_idx[p];
+                if (i <= j)
+                    continue;
+                if (i < c1)
+                    val[sn_diag[s] + k * w + (i - c0)] = (float)l_val[p];
+                else if (map[i] >= 0)
+                    val[sn_below[s] + k * nb + map[i]] = (float)l_val[p];
+            }
+        }
+        for (q = 0; q < nb; ++q)
+            map[r[q]] = -1;
     }
 }

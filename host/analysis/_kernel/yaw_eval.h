@@ -32,14 +32,6 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
                          double *work);
 
 
-/* Solve (L U) x = b in place (x holds b on entry), L unit lower and U upper triangular, n x n,
- * given by their strictly triangular parts in CSC (column pointers, row indices, values) and
- * U's diagonal: a sparse LU factorisation's (SuperLU's) two triangular sweeps, one right-hand
- * side. No failure cases: a zero on U's diagonal gives inf/NaN, as SuperLU's solve does. */
-void capsheet_lu_solve(int64_t n, const int32_t *l_ptr, const int32_t *l_idx, const double *l_val,
-                       const int32_t *u_ptr, const int32_t *u_idx, const double *u_val,
-                       const double *u_diag, double *x);
-
 /* Per link (n links), the direction d (sensor x) and normal nrm (sensor z) in world coordinates,
  * (n, 3) each, of R = Rz(γ) Ry(β) Rx(α) (docs/design.md). No failure cases. */
 void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
@@ -67,5 +59,29 @@ void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, con
 void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
                          const int64_t *roll_links, const double *alpha, const double *beta,
                          double *c_loop, double *Az, double *Cz, double *y_c, double *y_z);
+
+
+/* Solve L D Lᵀ x = b in place (x holds b on entry): a symmetric positive definite matrix's
+ * factors, L unit lower triangular in supernodes. Supernode s covers the columns
+ * sn_col[s] .. sn_col[s+1]-1 (w of them), which share their rows below the supernode,
+ * rows[sn_row[s] .. sn_row[s+1]-1] (nb of them, any order). val[sn_diag[s] + k*w + i] holds
+ * L(c0+i, c0+k) for i > k (the diagonal block, column-major; other entries unused) and
+ * val[sn_below[s] + k*nb + q] holds L(rows[sn_row[s]+q], c0+k), in float: the solve streams
+ * through L twice and is bound by memory; sums are kept in double. diag: D (n,). work: at least
+ * the largest nb doubles. No failure cases: a zero in D gives inf/NaN. */
+void capsheet_ldl_solve(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                        const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                        const float *val, const double *diag, double *x, double *work);
+
+
+/* Fill the supernodal values (val, zeroed by the caller; layout as capsheet_ldl_solve's) from a
+ * unit lower triangular CSC matrix (column pointers, row indices in any order, values; entries
+ * on or above the diagonal are skipped) whose pattern the supernodes were built from. map: n
+ * int32 set to -1 on entry, left so. An entry outside its supernode's rows is dropped (never the
+ * case for the pattern they were built from). */
+void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
+                       const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
+                       const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                       int32_t *map, float *val);
 
 #endif
