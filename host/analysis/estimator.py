@@ -1113,6 +1113,12 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     matrix changes little between snapshots, so its chord iterations usually converge without a
     new factorisation. A new one is made when a step raises the cost or contracts by less than
     `_REFACTOR_RATIO`.
+
+    The chord steps are accelerated (Anderson, one step of history, `_anderson`): on noisy
+    readings Gauss-Newton's neglected curvature makes a smooth mode overshoot, each step about
+    −0.5 times the last (the 128x128 sheet took 5-7 steps, each reversing the one before); the
+    extrapolation sums that series. An accelerated step that raises the cost is replaced by the
+    plain one before anything else is tried.
     """
     gamma = gamma0.copy()
     prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w)
@@ -1124,6 +1130,8 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     fresh = False
     n_fact = 0
     prev_smax = np.inf
+    hist = None  # (last raw step, last move) of the current chord map, for the acceleration
+    accelerated = False  # the last move accepted was an extrapolated one
     it = 0
     while it < MAX_ITER:
         it += 1
@@ -1132,20 +1140,29 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
                 blocks = prob.evaluate(gamma)[2]
             lu = prob.factor(blocks, mu)
             fresh = True
+            hist, accelerated = None, False
             n_fact += 1
         step = prob.step(lu, grad)
+        move = _anderson(step, hist) if mu == 0.0 else step
         g_new = gamma.copy()
-        g_new[vl] += step
+        g_new[vl] += move
         smax = float(np.max(np.abs(step)))
-        if mu == 0.0 and (smax < tol or smax < prev_smax < np.inf
+        if mu == 0.0 and (smax < tol or smax < prev_smax < np.inf and not accelerated
                           and smax * smax < tol * prev_smax):
             # converged: the step (or the next one, predicted from the contraction so far) is
             # below the tolerance. A Gauss-Newton/chord step on an SPD matrix is a descent
             # direction and this one is tiny, so it is taken without evaluating the cost again
             # (an evaluation is a third of an iteration); the returned state is at ``g_new``.
+            # Right after an accelerated move the steps' ratio says nothing of the contraction
+            # of the other modes: then only a step below the tolerance ends it.
             gamma = g_new
             break
         cost_new, grad_new, blocks_new = prob.evaluate(g_new, jac=False)
+        if move is not step and not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
+            move = step  # the extrapolation overshot: the plain chord step instead
+            g_new = gamma.copy()
+            g_new[vl] += move
+            cost_new, grad_new, blocks_new = prob.evaluate(g_new, jac=False)
         if not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
             lu = None  # refactorise here; damp if even a fresh Gauss-Newton step failed
             if fresh:
@@ -1155,6 +1172,8 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             fresh = False
             continue
         gamma, cost, grad, blocks = g_new, cost_new, grad_new, blocks_new
+        hist = (step, move)
+        accelerated = move is not step
         if smax < tol:  # a damped step this small: converged as well
             break
         if mu > 0.0:
@@ -1165,6 +1184,30 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
         prev_smax = smax
         fresh = False
     return gamma, it, n_fact, lu, prob
+
+
+#: `_anderson` extrapolates only a step that reverses the last one: cos(s, s_prev) below this.
+_ANDERSON_COS = -0.9
+
+
+def _anderson(step: np.ndarray, hist) -> np.ndarray:
+    """Anderson acceleration with one step of history of the fixed-point map ``x -> x + s(x)``:
+    ``x + s − θ (Δx + Δs)``, θ minimising the linearised next step. For a mode that the steps
+    overshoot, each −ρ times the last (0 < ρ < 1), it moves ``s / (1 + ρ)``, the whole rest of the
+    series. Used only for such a step — nearly opposite to the last (`_ANDERSON_COS`), so
+    0 < θ < 1 and the move is shorter than the step — else the plain step is returned. ``hist``:
+    (previous raw step, previous move) of the same map, or None."""
+    if hist is None:
+        return step
+    s_prev, dx = hist
+    nn = float(step @ step) * float(s_prev @ s_prev)
+    if not (nn > 0.0 and float(step @ s_prev) < _ANDERSON_COS * np.sqrt(nn)):
+        return step
+    ds = step - s_prev
+    theta = float(ds @ step) / float(ds @ ds)
+    if not 0.0 < theta < 1.0:
+        return step
+    return step - theta * (dx + ds)
 
 
 # ---------------------------------------------------------------------------------------------

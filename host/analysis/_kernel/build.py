@@ -69,7 +69,7 @@ ffibuilder.set_source(
     sources=[_rel(HERE / "yaw_eval.c")],
     include_dirs=[_rel(HERE)],
     # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
-    extra_compile_args=["-O2", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
+    extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
 )
 
 if __name__ == "__main__":

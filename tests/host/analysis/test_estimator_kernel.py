@@ -7,7 +7,8 @@ largest entry, or to 1 where that is smaller: at a minimum, terms of order 1 can
 step (relative); tolerance 1e-12 (rounding: the two sum in different orders), 1e-6 for the
 solve (its factor is kept in float32, `SOLVE_TOL`).
 Whole warm-started runs (the benchmark's: 1 % g, a sheared Gaussian, a masked lattice) must give
-the same joints within 1e-9 of the side and the same iteration counts with the kernel and without.
+the same joints within 1e-8 of the side (1e-9 before the factor went float32) and the same
+iteration counts with the kernel and without.
 """
 
 from __future__ import annotations
@@ -161,7 +162,9 @@ def test_warm_runs_give_the_same_joints_with_the_kernel_and_without(n, shape, sh
     side = (n - 1) * L
     for (j0, i0, f0), (j1, i1, f1) in zip(ref, new):
         assert (i1, f1) == (i0, f0)
-        assert np.max(np.abs(j1 - j0)) <= 1e-9 * side
+        # the kernel's steps carry its float32 factor's error (SOLVE_TOL-level, relative), the
+        # iterations shrink it but not to float64 rounding: 1.5e-10 m = 1.2e-9 of side measured
+        assert np.max(np.abs(j1 - j0)) <= 1e-8 * side
 
 
 @pytest.mark.parametrize("masked", [False, True])
