@@ -145,7 +145,8 @@ def _warm_run(n, snaps, valid):
 
 @pytest.mark.parametrize("n,shape,shear,masked", [(14, "gaussian", 0.0, False),
                                                    (14, "saddle", 0.2, True),
-                                                   (24, "gaussian", 0.1, False)])
+                                                   (24, "gaussian", 0.1, False),
+                                                   (32, "saddle", 0.2, True)])  # ND ordering
 def test_warm_runs_give_the_same_joints_with_the_kernel_and_without(n, shape, shear, masked,
                                                                      monkeypatch):
     P = make_sheet(shape, n, n, L, shear=shear)
