@@ -203,8 +203,10 @@ def run(args) -> int:
             host.stop()  # the SYNCs in flight get their chance to complete
             win = window_completeness(seen, first, end, sent_n)
             st = agg.stats
+            # the window's SYNCs and their snapshots; snapshots_emitted: every one since bring-up
+            # (what a --record file holds)
             stats = {"syncs_sent": win["syncs_sent"], "snapshots": win["snapshots"], "complete": win["complete"],
-                     "skipped_newest_wins": st.dropped, **agg.completeness(),
+                     "snapshots_emitted": st.emitted, "skipped_newest_wins": st.dropped, **agg.completeness(),
                      "syncs_missed": host.stats["live"]["syncs_missed"], "deadline_ms": round(1e3 * agg.deadline_s, 2)}
             outputs.close(host.stats)
     finally:

@@ -33,6 +33,7 @@ import logging
 import math
 import signal
 import sys
+import threading
 import time
 
 from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
@@ -148,20 +149,26 @@ class StatusLine:
         self.stream = stream
         self.tty = bool(getattr(stream, "isatty", lambda: False)()) if tty is None else tty
         self.open = False  # a \r line is on screen without its newline
+        # the status is shown from the main thread, log records come from the host's threads:
+        # "end the line, then write the record" and "write the line" must not interleave (under
+        # load a record once landed between a status line's write and its ``open = True``)
+        self.lock = threading.RLock()
 
     def show(self, text: str) -> None:
-        if self.tty:
-            self.stream.write("\r" + text + "\x1b[K")
-            self.open = True
-        else:
-            self.stream.write(text + "\n")
-        self.stream.flush()
+        with self.lock:
+            if self.tty:
+                self.stream.write("\r" + text + "\x1b[K")
+                self.open = True
+            else:
+                self.stream.write(text + "\n")
+            self.stream.flush()
 
     def end(self) -> None:
-        if self.open:
-            self.stream.write("\n")
-            self.stream.flush()
-            self.open = False
+        with self.lock:
+            if self.open:
+                self.stream.write("\n")
+                self.stream.flush()
+                self.open = False
 
 
 class _StatusAwareHandler(logging.StreamHandler):
@@ -170,8 +177,9 @@ class _StatusAwareHandler(logging.StreamHandler):
         self.status = status
 
     def emit(self, record) -> None:
-        self.status.end()
-        super().emit(record)
+        with self.status.lock:
+            self.status.end()
+            super().emit(record)
 
 
 def completeness_pct(emitted: int, complete: int, valid_links: int, n_links: int) -> tuple[float, float]:

@@ -615,3 +615,48 @@ def test_a_second_port_that_is_not_this_sheet_is_a_mismatch(virtuals, tmp_path):
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     assert "answer on more than one port" in out.stderr and str(tmp_path / "c") in out.stderr, out.stderr
     assert a.p.poll() is None and b.p.poll() is None and c.p.poll() is None
+
+
+def test_a_record_logged_while_the_status_line_is_written_starts_on_its_own_line():
+    """The race the end-to-end test above once lost under load: a host thread logs while the main
+    thread is writing the status line, after its text and before it is marked open."""
+    import io
+    import logging
+
+    from host.cli.host import StatusLine, _StatusAwareHandler
+
+    class Terminal(io.StringIO):
+        def __init__(self):
+            super().__init__()
+            self.logger = None
+
+        def isatty(self):
+            return True
+
+        def write(self, s):
+            n = super().write(s)
+            if s.startswith("\r") and self.logger is not None:  # a status line just went out
+                log, self.logger = self.logger, None
+                t = threading.Thread(target=log.warning, args=("chip 4 silent",))
+                t.start()
+                t.join(0.3)  # without the lock it writes now, glued; with it, it waits
+                self.pending = t
+            return n
+
+    term = Terminal()
+    status = StatusLine(term)
+    log = logging.getLogger("capsheet.test.status_race")
+    log.propagate = False
+    handler = _StatusAwareHandler(status)
+    handler.setFormatter(logging.Formatter("WARNING %(message)s"))
+    log.addHandler(handler)
+    try:
+        term.logger = log
+        status.show("   10 snapshots")
+        term.pending.join(10)
+        status.show("   20 snapshots")
+    finally:
+        log.removeHandler(handler)
+    text = term.getvalue()
+    k = text.index("WARNING")
+    assert k > 0 and text[k - 1] == "\n", repr(text)
