@@ -826,6 +826,40 @@ class _YawProblem:
                                        _kffi.from_buffer("double[]", grad), kp[1])
         return cost, grad[:st.n_var], None
 
+    def chord_kernel(self, gamma, cost, grad, lu, tol):
+        """`_solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
+        (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
+        loop). ``gamma`` is updated in place. Returns (status, iterations, cost, grad,
+        prev_smax); status 0 converged, 1 the cost rose, 2 a poor contraction (refactorise
+        for both), 3 out of iterations."""
+        kp = self.__dict__.get("_kp")
+        if kp is None:
+            kp = self._kp = self._kernel_problem()
+        st = self.st
+        nv = st.n_var
+        (val, diag, sym), ptrs = lu[2]
+        fb = _kffi.from_buffer
+        c = _kffi.new("capsheet_chord_t *")
+        c.n_links, c.max_iter, c.tol = gamma.size, MAX_ITER, float(tol)
+        c.refactor_ratio, c.anderson_cos = _REFACTOR_RATIO, _ANDERSON_COS
+        pi = np.ascontiguousarray(st.perm_inv, np.int64)
+        pv = np.ascontiguousarray(st.perm_of_var, np.int64)
+        c.perm_inv, c.perm_of_var = fb("int64_t[]", pi), fb("int64_t[]", pv)
+        c.n_super = ptrs[0]
+        c.sn_col, c.sn_row, c.rows, c.sn_diag, c.sn_below = ptrs[1:6]
+        c.val, c.diag = ptrs[6], ptrs[7]
+        c.ldl_work_size = sym["work_size"]
+        g = np.zeros(nv + 1)
+        g[:nv] = grad
+        out_cost = _kffi.new("double *", float(cost))
+        its = _kffi.new("int64_t *", 0)
+        ps = _kffi.new("double *", np.inf)
+        work = np.empty(6 * nv + gamma.size + 1 + sym["work_size"] + 19 * max(st.n_units, 1))
+        assert gamma.dtype == np.float64 and gamma.flags.c_contiguous
+        status = _klib.capsheet_chord(kp[0], fb("double[]", gamma), out_cost, fb("double[]", g), c,
+                                      its, ps, fb("double[]", work))
+        return int(status), int(its[0]), float(out_cost[0]), g[:nv], float(ps[0])
+
     def _kernel_problem(self):
         """The kernel's ``capsheet_yaw_t`` for this snapshot, its work buffer, and the arrays
         it points into (kept alive with it). The structure's index arrays are shared
@@ -1133,6 +1167,12 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     hist = None  # (last raw step, last move) of the current chord map, for the acceleration
     accelerated = False  # the last move accepted was an extrapolated one
     it = 0
+    if lu is not None and _chord_in_kernel(st, lu, gamma):
+        # the warm start's chord steps in the kernel: this loop's iterations, one C call
+        status, it, cost, grad, prev_smax = prob.chord_kernel(gamma, cost, grad, lu, tol)
+        if status in (0, 3):  # converged, or out of iterations
+            return gamma, it, 0, lu, prob
+        lu, blocks = None, None  # 1: the cost rose; 2: a step contracted too little
     while it < MAX_ITER:
         it += 1
         if lu is None:
@@ -1184,6 +1224,13 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
         prev_smax = smax
         fresh = False
     return gamma, it, n_fact, lu, prob
+
+
+def _chord_in_kernel(st, lu, gamma) -> bool:
+    """Whether `_YawProblem.chord_kernel` can run this snapshot's chord steps: the kernel is
+    built, model "cells", one snapshot, a SuperLU factorisation with its supernodal form."""
+    return (USE_KERNEL and st.model == "cells" and gamma.ndim == 1 and lu[0] == "splu"
+            and len(lu) > 2 and lu[2] is not None)
 
 
 #: `_anderson` extrapolates only a step that reverses the last one: cos(s, s_prev) below this.

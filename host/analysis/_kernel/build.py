@@ -39,6 +39,16 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
                        const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
                        const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
                        int32_t *map, float *val);
+typedef struct {
+    int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
+    const int64_t *perm_inv, *perm_of_var;
+    int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
+    const int64_t *sn_diag, *sn_below; const float *val; const double *diag;
+    int64_t ldl_work_size;
+} capsheet_chord_t;
+int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
+                       const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
+                       double *work);
 void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
                          double *d, double *nrm);
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);

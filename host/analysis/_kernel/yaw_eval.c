@@ -387,3 +387,118 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
             map[r[q]] = -1;
     }
 }
+
+/* The chord iterations of estimator.py's _solve_global for one snapshot on a factorisation
+ * kept from before (no damping): see yaw_eval.h. Each iteration: the step −A⁻¹ grad (the
+ * supernodal solve on the structure's ordering), the Anderson move when the step reverses the
+ * last, the convergence test, the cost at the new point (the plain step instead when an
+ * accelerated move raised it), acceptance, the refactorisation test. */
+int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
+                       const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
+                       double *work)
+{
+    const int64_t nv = p->n_var, n_links = c->n_links;
+    double *step = work, *move = step + nv, *s_prev = move + nv, *dx = s_prev + nv;
+    double *x = dx + nv, *g_new = x + nv, *grad_new = g_new + n_links;
+    double *ldl_work = grad_new + nv + 1, *eval_work = ldl_work + c->ldl_work_size;
+    int32_t has_hist = 0, accelerated = 0;
+    int64_t it = *iterations, k;
+    double ps = *prev_smax, cst = *cost;
+    while (it < c->max_iter) {
+        double smax = 0.0, cost_new;
+        int32_t acc = 0;
+        ++it;
+        for (k = 0; k < nv; ++k)
+            x[k] = -grad[c->perm_inv[k]];
+        capsheet_ldl_solve(nv, c->n_super, c->sn_col, c->sn_row, c->rows, c->sn_diag,
+                           c->sn_below, c->val, c->diag, x, ldl_work);
+        for (k = 0; k < nv; ++k) {
+            const double s = x[c->perm_of_var[k]];
+            step[k] = s;
+            if (fabs(s) > smax)
+                smax = fabs(s);
+        }
+        if (has_hist) {  /* Anderson, one step of history, only on a reversing step */
+            double ss = 0.0, pp = 0.0, sp = 0.0;
+            for (k = 0; k < nv; ++k) {
+                ss += step[k] * step[k];
+                pp += s_prev[k] * s_prev[k];
+                sp += step[k] * s_prev[k];
+            }
+            if (ss * pp > 0.0 && sp < c->anderson_cos * sqrt(ss * pp)) {
+                double num = 0.0, den = 0.0;
+                for (k = 0; k < nv; ++k) {
+                    const double d = step[k] - s_prev[k];
+                    num += d * step[k];
+                    den += d * d;
+                }
+                if (den > 0.0) {
+                    const double th = num / den;
+                    if (th > 0.0 && th < 1.0) {
+                        for (k = 0; k < nv; ++k)
+                            move[k] = step[k] - th * (dx[k] + (step[k] - s_prev[k]));
+                        acc = 1;
+                    }
+                }
+            }
+        }
+        if (!acc)
+            for (k = 0; k < nv; ++k)
+                move[k] = step[k];
+        for (k = 0; k < n_links; ++k)
+            g_new[k] = gamma[k];
+        for (k = 0; k < nv; ++k)
+            g_new[p->var_links[k]] += move[k];
+        if (smax < c->tol || (smax < ps && isfinite(ps) && !accelerated && smax * smax < c->tol * ps)) {
+            for (k = 0; k < n_links; ++k)
+                gamma[k] = g_new[k];
+            *iterations = it;
+            *cost = cst;
+            return 0;
+        }
+        cost_new = capsheet_yaw_eval(p, g_new, grad_new, eval_work);
+        if (acc && !(cost_new <= cst * (1.0 + 1e-12) + 1e-300)) {
+            acc = 0;
+            for (k = 0; k < nv; ++k)
+                move[k] = step[k];
+            for (k = 0; k < n_links; ++k)
+                g_new[k] = gamma[k];
+            for (k = 0; k < nv; ++k)
+                g_new[p->var_links[k]] += move[k];
+            cost_new = capsheet_yaw_eval(p, g_new, grad_new, eval_work);
+        }
+        if (!(cost_new <= cst * (1.0 + 1e-12) + 1e-300)) {
+            *iterations = it;
+            *cost = cst;
+            *prev_smax = ps;
+            return 1;  /* refactorise at gamma (unchanged) */
+        }
+        for (k = 0; k < n_links; ++k)
+            gamma[k] = g_new[k];
+        for (k = 0; k <= nv; ++k)
+            grad[k] = grad_new[k];
+        cst = cost_new;
+        for (k = 0; k < nv; ++k) {
+            s_prev[k] = step[k];
+            dx[k] = move[k];
+        }
+        has_hist = 1;
+        accelerated = acc;
+        if (smax < c->tol) {
+            *iterations = it;
+            *cost = cst;
+            return 0;
+        }
+        if (smax > c->refactor_ratio * ps) {
+            *iterations = it;
+            *cost = cst;
+            *prev_smax = smax;
+            return 2;  /* accepted; refactorise at the new gamma */
+        }
+        ps = smax;
+    }
+    *iterations = it;
+    *cost = cst;
+    *prev_smax = ps;
+    return 3;
+}

@@ -84,4 +84,24 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
                        const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
                        int32_t *map, float *val);
 
+
+/* The chord iterations of _solve_global on a kept factorisation (supernodal, float32: see
+ * capsheet_ldl_solve) for one snapshot, without damping. perm_inv: position -> variable,
+ * perm_of_var: variable -> position of the factorisation's ordering. gamma (n_links) and
+ * cost / grad (nv + 1) hold the current point on entry and on return; iterations and prev_smax
+ * (the last step's largest entry, inf at first) are carried in and out. Returns 0 converged
+ * (gamma is the last step's point, unevaluated), 1 the cost rose (gamma unchanged: refactorise
+ * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma),
+ * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units doubles. */
+typedef struct {
+    int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
+    const int64_t *perm_inv, *perm_of_var;
+    int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
+    const int64_t *sn_diag, *sn_below; const float *val; const double *diag;
+    int64_t ldl_work_size;
+} capsheet_chord_t;
+int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
+                       const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
+                       double *work);
+
 #endif

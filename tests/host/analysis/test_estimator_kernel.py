@@ -223,3 +223,38 @@ def test_the_kernels_yaw_coefficients_are_the_numpy_codes(masked, monkeypatch):
         v0, v1 = getattr(out[False], name), getattr(out[True], name)
         assert v1.shape == v0.shape and v1.dtype == v0.dtype, name
         assert np.max(np.abs(v1 - v0)) <= TOL, name
+
+
+def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
+    """`capsheet_chord` (the warm chord iterations in C) against `_solve_global`'s Python loop on
+    the same kernel evaluations and solves: the same iteration and factorisation counts, the same
+    joints to rounding, over warm runs that also hand back to Python for a refactorisation."""
+    statuses = []
+    real = E._YawProblem.chord_kernel
+
+    def spy(self, *a):
+        out = real(self, *a)
+        statuses.append(out[0])
+        return out
+    runs = {}
+    for in_c in (False, True):
+        if in_c:
+            monkeypatch.setattr(E._YawProblem, "chord_kernel", spy)
+        else:
+            monkeypatch.setattr(E, "_chord_in_kernel", lambda *a: False)
+        out = []
+        for n, shapes, shear, noise in ((14, ("saddle",), 0.2, 1.0), (14, ("sphere",), 0.3, 5.0),
+                                        (24, ("gaussian", "saddle"), 0.1, 1.0)):
+            # two shapes in turn: a warm start far from the answer, refactorised
+            r0 = [ideal_readings(make_sheet(sh, n, n, L, shear=shear)) for sh in shapes]
+            g = rng(21)
+            snaps = [noisy_readings(r0[k % len(r0)], noise, g) for k in range(15)]
+            E._structure_cached.cache_clear()
+            out.append(_warm_run(n, snaps, None))
+        runs[in_c] = out
+        monkeypatch.undo()
+    assert statuses.count(0) > 10 and {1, 2} & set(statuses)  # converged, and handed back
+    for r0, r1 in zip(runs[False], runs[True]):
+        for (j0, i0, f0), (j1, i1, f1) in zip(r0, r1):
+            assert (i1, f1) == (i0, f0)
+            assert np.max(np.abs(j1 - j0)) <= 1e-12
