@@ -10,9 +10,10 @@ timed passes (and the median is reported too). Targets (issue 13), global: 14x14
 
 Also reported: how the time per snapshot scales with the number of links (least-squares exponent
 over the sizes), the time per stage, and the sparse linear algebra of the yaw problem measured
-side by side on the same Gauss-Newton matrix — scipy's SuperLU (``splu``, what the estimator
-uses, with the fill-reducing ordering computed once per lattice) against CHOLMOD (scikit-sparse,
-when installed: supernodal Cholesky, METIS/AMD orderings). Prints JSON.
+side by side on the same Gauss-Newton matrix — scipy's SuperLU (``splu``: the estimator
+factorises with it, on the ordering computed once per lattice), the kernel's supernodal float32
+solve of that factorisation (what the chord steps use), and CHOLMOD (scikit-sparse, when
+installed: supernodal Cholesky, METIS/AMD orderings). Prints JSON.
 
     .venv/bin/python benchmarks/bench_estimator.py [--quick]
 """
@@ -84,6 +85,16 @@ def linear_algebra(n: int, snap, repeats: int) -> dict:
            "splu": {"factor_ms": round(1e3 * best(fac, k), 3),
                     "solve_ms": round(1e3 * best(lambda: lu.solve(b), 5 * k), 3),
                     "nnz_factors": int(lu.L.nnz + lu.U.nnz)}}
+    from host.analysis import estimator as E
+    if E.USE_KERNEL:  # what the chord steps use: the kernel's supernodal float32 L D Lᵀ solve
+        fac = E._factorise(st, A)
+        if fac[2] is not None:
+            sym = fac[2][0][2]
+            x = E._solve(fac, b)
+            out["kernel_supernodal"] = {
+                "solve_ms": round(1e3 * best(lambda: E._solve(fac, b), 5 * k), 3),
+                "supernodes": int(sym["n_super"]), "stored_values_float32": int(sym["n_val"]),
+                "max_rel_diff_vs_splu": float(np.max(np.abs(x - lu.solve(b))) / np.max(np.abs(lu.solve(b))))}
     try:
         from sksparse.cholmod import analyze
     except ImportError:
