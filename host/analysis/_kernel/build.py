@@ -12,6 +12,7 @@ test_estimator_kernel.py compares them).
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 from cffi import FFI
@@ -19,48 +20,14 @@ from cffi import FFI
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
 
-CDEF = r"""
-typedef struct {
-    int64_t n_units; int64_t n_roll; int64_t n_pairs; int64_t n_var;
-    const int64_t *units; const int64_t *unit_var; const double *c_loop;
-    const double *Az, *Cz;
-    const int64_t *roll_links, *roll_c0, *roll_c1, *roll_var0;
-    const double *roll_ws1; const double *y_c; const double *y_z, *w;
-    const int64_t *pairs, *pair_var; const double *pair_t, *lam_b;
-    const int64_t *var_links; const double *target, *lam;
-    int32_t abs_prior;
-} capsheet_yaw_t;
-double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
-                         double *work);
-void capsheet_ldl_solve(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
-                        const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
-                        const float *val, const double *diag, double *x, double *work);
-void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
-                       const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
-                       const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
-                       int32_t *map, float *val);
-typedef struct {
-    int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
-    const int64_t *perm_inv, *perm_of_var;
-    int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
-    const int64_t *sn_diag, *sn_below; const float *val; const double *diag;
-    int64_t ldl_work_size;
-} capsheet_chord_t;
-int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
-                       const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
-                       double *work);
-void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
-                         double *d, double *nrm);
-double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
-void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
-                          const double *beta, double *ratio);
-void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
-                       const double *norm_g, double g0, int64_t radius, double th0, double *th2,
-                       double *tmp, double *h);
-void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
-                         const int64_t *roll_links, const double *alpha, const double *beta,
-                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z);
-"""
+def _cdef_from_header(path: Path) -> str:
+    """The header's declarations as cffi's ``cdef`` takes them (no comments, no preprocessor
+    lines): one source for the C code and its Python binding."""
+    text = re.sub(r"/\*.*?\*/", "", path.read_text(encoding="utf-8"), flags=re.S)
+    return "\n".join(ln for ln in text.splitlines() if not ln.lstrip().startswith("#"))
+
+
+CDEF = _cdef_from_header(HERE / "yaw_eval.h")
 
 
 def _rel(path: Path) -> str:
