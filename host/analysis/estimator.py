@@ -342,19 +342,46 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         al = np.ascontiguousarray(alpha, dtype=np.float64)
         be = np.ascontiguousarray(beta, dtype=np.float64)
         if al.shape == be.shape == (_lattice(rows, cols).n_links,):
-            u = _units_int64(rows, cols)
-            out = np.empty(units.shape[:2])
-            _klib.capsheet_solvability(u.shape[0], _kffi.from_buffer("int64_t[]", u),
-                                       _kffi.from_buffer("double[]", al),
-                                       _kffi.from_buffer("double[]", be),
-                                       _kffi.from_buffer("double[]", out))
-            return out
+            return _solvability_kernel(_angle_trig(al, be), rows, cols)
     a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
     ratio = _solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
     if bad.any():
         ratio[bad] = np.nan
     return ratio
+
+
+def _angle_trig(alpha, beta) -> np.ndarray:
+    """(n, 4): cos α, sin α, cos β, sin β per link (the kernel's ``trig``)."""
+    a = np.ascontiguousarray(alpha, dtype=np.float64)
+    b = np.ascontiguousarray(beta, dtype=np.float64)
+    trig = np.empty((a.size, 4))
+    fb = _kffi.from_buffer
+    _klib.capsheet_angle_trig(a.size, fb("double[]", a), fb("double[]", b), fb("double[]", trig))
+    return trig
+
+
+def _roll_pitch_trig(r: np.ndarray):
+    """`roll_pitch` of one snapshot's readings (n, 3), and their `_angle_trig` from the
+    readings' ratios in the kernel (a trigonometric call would cost more than the rest of a
+    stage): (alpha, beta, trig)."""
+    r = np.ascontiguousarray(r, dtype=np.float64)
+    alpha, beta = _angles(r)
+    trig = np.empty((r.shape[0], 4))
+    fb = _kffi.from_buffer
+    _klib.capsheet_reading_trig(r.shape[0], fb("double[]", r), fb("double[]", alpha),
+                                fb("double[]", beta), fb("double[]", trig))
+    return alpha, beta, trig
+
+
+def _solvability_kernel(trig: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """`solvability` of one snapshot from its links' trig (NaN rows: missing links)."""
+    u = _units_int64(rows, cols)
+    out = np.empty((rows - 1, cols - 1))
+    _klib.capsheet_solvability(u.shape[0], _kffi.from_buffer("int64_t[]", u),
+                               _kffi.from_buffer("double[]", trig),
+                               _kffi.from_buffer("double[]", out))
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -604,7 +631,7 @@ def _kernel_arrays(st: "_Structure") -> dict:
     a = np.ascontiguousarray(st.roll_ws1, dtype=np.float64)
     ka["roll_ws1"] = (a, _kffi.from_buffer("double[]", a))
     ka["sizes"] = (st.n_units, st.roll_links.size, st.pairs.shape[0], st.n_var)
-    ka["work"] = np.empty(19 * max(st.n_units, 1))
+    ka["work"] = np.empty(19 * max(st.n_units, 1) + 2 * st.n_links)
     st._kernel = ka
     return ka
 
@@ -706,7 +733,7 @@ class _YawProblem:
     _PER_SNAPSHOT = {"c_loop": 2, "c_n": 2, "Az": 1, "Cz": 1, "y_c": 1, "y_z": 1, "lam": 1,
                      "lam_b": 1}
 
-    def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w):
+    def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w, trig=None):
         self.st = st
         self.target = target[st.var_links]
         self.lam = prior_w  # (nv,) prior weight per variable
@@ -720,7 +747,7 @@ class _YawProblem:
             self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
         self.lam_b = bend_w  # (n_pairs,)
         if USE_KERNEL and st.model == "cells" and np.ndim(alpha) == 1:  # one snapshot: the kernel
-            self._coeffs_kernel(alpha, beta)
+            self._coeffs_kernel(alpha, beta, trig)
             return
         ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
         u = st.units
@@ -737,18 +764,19 @@ class _YawProblem:
             self.y_z = cb[..., k] * sa[..., k]
             self.w = ROLL_WEIGHT * st.roll_inv_ncell
 
-    def _coeffs_kernel(self, alpha, beta):
-        """`__init__`'s yaw-free coefficients (model "cells", one snapshot) in the kernel."""
+    def _coeffs_kernel(self, alpha, beta, trig=None):
+        """`__init__`'s yaw-free coefficients (model "cells", one snapshot) in the kernel;
+        ``trig``: the links' `_angle_trig`, if already made."""
         st = self.st
         sk = st.kernel_arrays()
         U, K = st.n_units, st.roll_links.size
-        a = np.ascontiguousarray(alpha, dtype=np.float64)
-        b = np.ascontiguousarray(beta, dtype=np.float64)
+        if trig is None:
+            trig = _angle_trig(alpha, beta)
         self.c_loop, self.Az, self.Cz = np.empty((U, 4)), np.empty(U), np.empty(U)
         self.y_c, self.y_z = np.empty(K, dtype=complex), np.empty(K)
         fb = _kffi.from_buffer
-        _klib.capsheet_yaw_coeffs(U, sk["units"][1], K, sk["roll_links"][1], fb("double[]", a),
-                                  fb("double[]", b), fb("double[]", self.c_loop),
+        _klib.capsheet_yaw_coeffs(U, sk["units"][1], K, sk["roll_links"][1],
+                                  fb("double[]", trig), fb("double[]", self.c_loop),
                                   fb("double[]", self.Az), fb("double[]", self.Cz),
                                   fb("double[]", self.y_c.view(np.float64)),
                                   fb("double[]", self.y_z))
@@ -854,7 +882,8 @@ class _YawProblem:
         out_cost = _kffi.new("double *", float(cost))
         its = _kffi.new("int64_t *", 0)
         ps = _kffi.new("double *", np.inf)
-        work = np.empty(6 * nv + gamma.size + 1 + sym["work_size"] + 19 * max(st.n_units, 1))
+        work = np.empty(6 * nv + gamma.size + 1 + sym["work_size"] + 19 * max(st.n_units, 1)
+                        + 2 * st.n_links)
         assert gamma.dtype == np.float64 and gamma.flags.c_contiguous
         status = _klib.capsheet_chord(kp[0], fb("double[]", gamma), out_cost, fb("double[]", g), c,
                                       its, ps, fb("double[]", work))
@@ -876,6 +905,7 @@ class _YawProblem:
 
         p = _kffi.new("capsheet_yaw_t *")
         p.n_units, p.n_roll, p.n_pairs, p.n_var = sk["sizes"]
+        p.n_links = st.n_links
         for name in _KERNEL_INDEX_FIELDS:
             setattr(p, name, sk[name][1])
         p.roll_ws1, p.w = sk["roll_ws1"][1], ptr(self.w)
@@ -1138,7 +1168,7 @@ def _solve(fac, b):
 
 
 def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
-                  tol=YAW_TOL_RAD):
+                  tol=YAW_TOL_RAD, trig=None):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
     Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
     lu, problem).
@@ -1155,7 +1185,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     plain one before anything else is tried.
     """
     gamma = gamma0.copy()
-    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w)
+    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
     if st.n_var == 0:
         return gamma, 0, 0, None, prob
     vl = st.var_links
@@ -1352,15 +1382,18 @@ def _paper_joints(rows: int, cols: int, vec: np.ndarray) -> np.ndarray:
 # estimate()
 # ---------------------------------------------------------------------------------------------
 
-def _directions_normals(alpha, beta, gamma):
+def _directions_normals(alpha, beta, gamma, trig=None):
     """Per link its direction (sensor x) and normal (sensor z) in the world, (..., n_links, 3)
-    each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``)."""
+    each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``); ``trig``: the links' `_angle_trig`, if
+    already made (one snapshot)."""
     if USE_KERNEL and np.ndim(alpha) == 1:  # one snapshot: the kernel
-        a, b, g = (np.ascontiguousarray(x, dtype=np.float64) for x in (alpha, beta, gamma))
-        d, n = np.empty((a.size, 3)), np.empty((a.size, 3))
+        if trig is None:
+            trig = _angle_trig(alpha, beta)
+        g = np.ascontiguousarray(gamma, dtype=np.float64)
+        d, n = np.empty((g.size, 3)), np.empty((g.size, 3))
         fb = _kffi.from_buffer
-        _klib.capsheet_directions(a.size, fb("double[]", a), fb("double[]", b),
-                                  fb("double[]", g), fb("double[]", d), fb("double[]", n))
+        _klib.capsheet_directions(g.size, fb("double[]", trig), fb("double[]", g),
+                                  fb("double[]", d), fb("double[]", n))
         return d, n
     ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
                               np.cos(gamma), np.sin(gamma))
@@ -1642,7 +1675,10 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
                          "use method='global'.")
 
     rr = r if mask is None else np.where(vmask[:, None], r, (0.0, 0.0, 1.0))
-    alpha, beta = roll_pitch(rr)
+    if USE_KERNEL:  # the angles and their sines and cosines, which every stage below uses
+        alpha, beta, trig = _roll_pitch_trig(rr)
+    else:
+        (alpha, beta), trig = _angles(rr), None
     t1 = time.perf_counter()
 
     state = None
@@ -1663,10 +1699,10 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
         tol = max(YAW_TOL_RAD, YAW_TOL_NOISE * noise_est)
         gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
-                                                       prior_w, bend_w, lu, tol)
+                                                       prior_w, bend_w, lu, tol, trig)
         state = (st, lu, prob, gamma)
         t2 = time.perf_counter()
-        d, nrm = _directions_normals(alpha, beta, gamma)
+        d, nrm = _directions_normals(alpha, beta, gamma, trig)
         rhs_links = L * (d if st.all_valid else d[st.valid_links])
         if previous is not None:
             pprior = np.asarray(previous.joints, float).reshape(-1, 3)
@@ -1689,15 +1725,18 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
             gamma[miss] = target[miss]
             alpha = np.where(vmask, alpha, np.nan)
             beta = np.where(vmask, beta, np.nan)
+            if trig is not None:
+                trig[miss] = np.nan
     else:
         gamma, iters = _solve_paper(rows, cols, alpha, beta)
         t2 = time.perf_counter()
-        d, nrm = _directions_normals(alpha, beta, gamma)
+        d, nrm = _directions_normals(alpha, beta, gamma, trig)
         joints = _paper_joints(rows, cols, L * d)
         residual = _eq8_residual(lat.units.reshape(-1, 4), d, nrm)
         n_fact = 0
     t3 = time.perf_counter()
-    solv = solvability(alpha, beta, rows, cols)
+    solv = (solvability(alpha, beta, rows, cols) if trig is None
+            else _solvability_kernel(trig, rows, cols))
     t4 = time.perf_counter()
     return ShapeEstimate(joints=joints, directions=d, residual=residual, solvability=solv,
                          normals=nrm, yaws=gamma, alpha=alpha, beta=beta, valid=vmask,

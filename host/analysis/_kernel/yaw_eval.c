@@ -21,23 +21,29 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
                          double *work)
 {
     const int64_t U = p->n_units, K = p->n_roll, NP = p->n_pairs, nv = p->n_var;
-    /* work: per unit t (8), A (2), C (2), n (3), inv (1), Y (3) = 19 doubles */
+    /* work: per unit t (8), A (2), C (2), n (3), inv (1), Y (3) = 19 doubles; per link
+     * (cos γ, sin γ): a link is in up to two cells and has a roll residual, so its sine and
+     * cosine are computed once here instead of up to three times below */
     double *wt = work;
     double *wA = wt + 8 * U, *wC = wA + 2 * U, *wn = wC + 2 * U, *winv = wn + 3 * U;
-    double *wY = winv + U;
+    double *wY = winv + U, *wcs = wY + 3 * U;
     double cost_loop = 0.0, cost_roll = 0.0, cost_pair = 0.0, cost_abs = 0.0;
     int64_t u, m, k;
 
     for (k = 0; k <= nv; ++k)
         grad[k] = 0.0;
+    for (k = 0; k < p->n_links; ++k) {
+        wcs[2 * k] = cos(gamma[k]);
+        wcs[2 * k + 1] = sin(gamma[k]);
+    }
 
     /* loop closure (eq. 4, xy) and the cells' normals */
     for (u = 0; u < U; ++u) {
         double tr[4], ti[4], rr = 0.0, ri = 0.0;
         for (m = 0; m < 4; ++m) {
-            const double g = gamma[p->units[4 * u + m]], c = p->c_loop[4 * u + m];
-            tr[m] = c * cos(g);
-            ti[m] = c * sin(g);
+            const double *cs = wcs + 2 * p->units[4 * u + m], c = p->c_loop[4 * u + m];
+            tr[m] = c * cs[0];
+            ti[m] = c * cs[1];
             rr += tr[m];
             ri += ti[m];
             wt[8 * u + 2 * m] = tr[m];
@@ -73,7 +79,7 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
     for (k = 0; k < K; ++k) {
         const int64_t c0 = p->roll_c0[k], c1 = p->roll_c1[k];
         const double ws1 = p->roll_ws1[k];
-        const double g = gamma[p->roll_links[k]], cg = cos(g), sg = sin(g);
+        const double *cs = wcs + 2 * p->roll_links[k], cg = cs[0], sg = cs[1];
         const double yr = p->y_c[2 * k] * cg - p->y_c[2 * k + 1] * sg;
         const double yi = p->y_c[2 * k] * sg + p->y_c[2 * k + 1] * cg;
         const double yz = p->y_z[k], w = p->w[k];
@@ -136,12 +142,13 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
     return 0.5 * (cost_loop + cost_roll + cost_pair + cost_abs);
 }
 
-void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
-                         double *d, double *nrm)
+void capsheet_directions(int64_t n, const double *trig, const double *gamma, double *d,
+                         double *nrm)
 {
     int64_t k;
     for (k = 0; k < n; ++k) {
-        const double ca = cos(alpha[k]), sa = sin(alpha[k]), cb = cos(beta[k]), sb = sin(beta[k]);
+        const double ca = trig[4 * k], sa = trig[4 * k + 1], cb = trig[4 * k + 2];
+        const double sb = trig[4 * k + 3];
         const double cg = cos(gamma[k]), sg = sin(gamma[k]);
         d[3 * k] = cg * cb;
         d[3 * k + 1] = sg * cb;
@@ -168,8 +175,8 @@ double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, cons
     return tot;
 }
 
-void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
-                          const double *beta, double *ratio)
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *trig,
+                          double *ratio)
 {
     static const double sa_sign[3] = {-1.0, 1.0, 1.0}, sb_sign[3] = {1.0, -1.0, 1.0};
     int64_t u;
@@ -177,13 +184,14 @@ void capsheet_solvability(int64_t n_units, const int64_t *units, const double *a
     for (u = 0; u < n_units; ++u) {
         const int64_t *l = units + 4 * u;
         double A = 0.0, B = 0.0, Cr = 0.0, Ci = 0.0;
-        int finite = isfinite(alpha[l[0]]) && isfinite(beta[l[0]]);
+        const double *t0 = trig + 4 * l[0];
+        int finite = isfinite(t0[0]) && isfinite(t0[2]);
         for (m = 1; m < 4; ++m) {
-            const double al = alpha[l[m]], be = beta[l[m]];
-            const double ca = cos(al), sa = sin(al), cb = cos(be), sb = sin(be);
+            const double *t = trig + 4 * l[m];
+            const double ca = t[0], sa = t[1], cb = t[2], sb = t[3];
             const double a = cb * sa_sign[m - 1];
             const double br = sb * ca * sb_sign[m - 1], bi = -sa * sb_sign[m - 1];
-            finite = finite && isfinite(al) && isfinite(be);
+            finite = finite && isfinite(ca) && isfinite(cb);
             A += a * a;
             B += br * br + bi * bi;
             Cr += a * br;
@@ -241,8 +249,8 @@ void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, con
 }
 
 void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
-                         const int64_t *roll_links, const double *alpha, const double *beta,
-                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z)
+                         const int64_t *roll_links, const double *trig, double *c_loop,
+                         double *Az, double *Cz, double *y_c, double *y_z)
 {
     static const double s_d[4] = {1.0, 1.0, -1.0, -1.0};
     int64_t u, k;
@@ -250,19 +258,51 @@ void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
     for (u = 0; u < n_units; ++u) {
         double sbm[4];
         for (m = 0; m < 4; ++m) {
-            const double be = beta[units[4 * u + m]];
-            c_loop[4 * u + m] = cos(be) * s_d[m];
-            sbm[m] = sin(be);
+            const double *t = trig + 4 * units[4 * u + m];
+            c_loop[4 * u + m] = t[2] * s_d[m];
+            sbm[m] = t[3];
         }
         Az[u] = -(sbm[1] + sbm[3]);
         Cz[u] = -(sbm[0] + sbm[2]);
     }
     for (k = 0; k < n_roll; ++k) {
-        const double al = alpha[roll_links[k]], be = beta[roll_links[k]];
-        const double sa = sin(al);
-        y_c[2 * k] = sin(be) * sa;
-        y_c[2 * k + 1] = cos(al);
-        y_z[k] = cos(be) * sa;
+        const double *t = trig + 4 * roll_links[k];
+        const double sa = t[1];
+        y_c[2 * k] = t[3] * sa;
+        y_c[2 * k + 1] = t[0];
+        y_z[k] = t[2] * sa;
+    }
+}
+
+void capsheet_angle_trig(int64_t n, const double *alpha, const double *beta, double *trig)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        trig[4 * k] = cos(alpha[k]);
+        trig[4 * k + 1] = sin(alpha[k]);
+        trig[4 * k + 2] = cos(beta[k]);
+        trig[4 * k + 3] = sin(beta[k]);
+    }
+}
+
+void capsheet_reading_trig(int64_t n, const double *r, const double *alpha, const double *beta,
+                           double *trig)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        const double x = r[3 * k], y = r[3 * k + 1], z = r[3 * k + 2];
+        const double h2 = y * y + z * z, h = sqrt(h2), m = sqrt(h2 + x * x);
+        if (h > 1e-150 && m < 1e150) {  /* cos, sin of the atan2s from the ratios */
+            trig[4 * k] = z / h;
+            trig[4 * k + 1] = y / h;
+            trig[4 * k + 2] = h / m;
+            trig[4 * k + 3] = -x / m;
+        } else {  /* on the x axis (atan2's signed zeros decide), extreme, or not finite */
+            trig[4 * k] = cos(alpha[k]);
+            trig[4 * k + 1] = sin(alpha[k]);
+            trig[4 * k + 2] = cos(beta[k]);
+            trig[4 * k + 3] = sin(beta[k]);
+        }
     }
 }
 

@@ -6,6 +6,7 @@
 
 /* One snapshot's problem: the structure's index arrays and the snapshot's coefficients. */
 typedef struct {
+    int64_t n_links;          /* links (the length of gamma) */
     int64_t n_units;          /* U: active units */
     int64_t n_roll;           /* K: links with a roll residual */
     int64_t n_pairs;          /* prior pairs */
@@ -26,24 +27,37 @@ typedef struct {
 } capsheet_yaw_t;
 
 /* Cost (½ Σ of the squared terms) at the yaws gamma (n_links,); grad (nv + 1,) receives the
- * gradient over the variables (entry nv: the dummy's, discarded); work holds 19 U doubles.
+ * gradient over the variables (entry nv: the dummy's, discarded); work holds 19 U + 2 n_links
+ * doubles.
  * No failure cases: the indices are the caller's (validated when the structure is built). */
 double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
                          double *work);
 
 
+/* Per link (n links) of readings r (n, 3) and their roll alpha = atan2(r_y, r_z) and pitch
+ * beta = atan2(−r_x, hypot(r_y, r_z)) (estimator.roll_pitch): trig (n, 4) = (cos α, sin α,
+ * cos β, sin β) from the reading's own ratios, without a trigonometric call except on the x
+ * axis. No failure cases (NaN in, NaN out). */
+void capsheet_reading_trig(int64_t n, const double *r, const double *alpha, const double *beta,
+                           double *trig);
+
+/* trig (n, 4) = (cos α, sin α, cos β, sin β) of given angles (n,) each. No failure cases. */
+void capsheet_angle_trig(int64_t n, const double *alpha, const double *beta, double *trig);
+
 /* Per link (n links), the direction d (sensor x) and normal nrm (sensor z) in world coordinates,
- * (n, 3) each, of R = Rz(γ) Ry(β) Rx(α) (docs/design.md). No failure cases. */
-void capsheet_directions(int64_t n, const double *alpha, const double *beta, const double *gamma,
-                         double *d, double *nrm);
+ * (n, 3) each, of R = Rz(γ) Ry(β) Rx(α) (docs/design.md); trig as capsheet_reading_trig's.
+ * No failure cases. */
+void capsheet_directions(int64_t n, const double *trig, const double *gamma, double *d,
+                         double *nrm);
 
 /* Σ over the units (n_units, 4 links) of eq. (8): |d0 + d1 − d2 − d3|² + |n0 − n1 + n2 − n3|². */
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
 
-/* Per unit, λ3/λ1 of eq. (7) in the closed form of estimator._solvability_units; NaN where an
- * angle of one of its 4 links is not finite (a missing link). */
-void capsheet_solvability(int64_t n_units, const int64_t *units, const double *alpha,
-                          const double *beta, double *ratio);
+/* Per unit, λ3/λ1 of eq. (7) in the closed form of estimator._solvability_units, from the
+ * links' trig (capsheet_reading_trig's); NaN where a cosine of one of its 4 links is not finite
+ * (a missing link). */
+void capsheet_solvability(int64_t n_units, const int64_t *units, const double *trig,
+                          double *ratio);
 
 /* Per unit (all units of a rows_u x cols_u grid, row-major; links ``units`` (n, 4)), the
  * flatness h = exp(−(θ/θ0)²) of estimator._flatness for one snapshot: readings r (n_links, 3),
@@ -55,10 +69,11 @@ void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, con
 
 /* One snapshot's yaw-free coefficients of the yaw problem (model "cells"; estimator._YawProblem):
  * per unit c_loop (n_units, 4) = ±cos β, Az, Cz (n_units,) the z of its i- and j-link sums; per
- * roll link y_c (n_roll,) complex = sin β sin α + i cos α, y_z = cos β sin α. No failure cases. */
+ * roll link y_c (n_roll,) complex = sin β sin α + i cos α, y_z = cos β sin α; trig as
+ * capsheet_reading_trig's. No failure cases. */
 void capsheet_yaw_coeffs(int64_t n_units, const int64_t *units, int64_t n_roll,
-                         const int64_t *roll_links, const double *alpha, const double *beta,
-                         double *c_loop, double *Az, double *Cz, double *y_c, double *y_z);
+                         const int64_t *roll_links, const double *trig, double *c_loop,
+                         double *Az, double *Cz, double *y_c, double *y_z);
 
 
 /* Solve L D Lᵀ x = b in place (x holds b on entry): a symmetric positive definite matrix's
@@ -92,7 +107,8 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * (the last step's largest entry, inf at first) are carried in and out. Returns 0 converged
  * (gamma is the last step's point, unevaluated), 1 the cost rose (gamma unchanged: refactorise
  * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma),
- * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units doubles. */
+ * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units + 2 n_links
+ * doubles. */
 typedef struct {
     int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
     const int64_t *perm_inv, *perm_of_var;

@@ -190,6 +190,51 @@ def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(mas
     assert np.nanmax(np.abs(s1 - s0)) <= TOL
 
 
+def test_the_readings_trig_is_the_cosine_and_sine_of_their_angles():
+    """`_roll_pitch_trig`: the kernel's (cos α, sin α, cos β, sin β) from the readings' ratios
+    against numpy's cos and sin of `roll_pitch`'s angles, on random readings of every scale and
+    on the axis cases where the ratios are undefined (atan2's signed zeros decide there)."""
+    g = rng(11)
+    r = g.normal(0.0, 1.0, (4000, 3)) * 10.0 ** g.uniform(-6, 6, (4000, 1))
+    axis = np.array([[1.0, 0.0, 0.0], [-2.0, 0.0, 0.0], [3.0, -0.0, 0.0], [1.0, 0.0, -0.0],
+                     [-1.0, -0.0, -0.0], [0.0, 0.0, 0.0], [0.0, 0.0, -5.0], [0.0, 7.0, 0.0],
+                     [np.nan, 1.0, 1.0], [1.0, np.nan, 1.0], [1e-200, 1e-200, 1e-200],
+                     [1e200, 1e200, -1e200]])
+    r = np.vstack([r, axis])
+    alpha, beta, trig = E._roll_pitch_trig(r)
+    a0, b0 = E.roll_pitch(r)
+    assert np.array_equal(alpha, a0, equal_nan=True) and np.array_equal(beta, b0, equal_nan=True)
+    want = np.stack([np.cos(a0), np.sin(a0), np.cos(b0), np.sin(b0)], axis=1)
+    assert np.array_equal(np.isnan(trig), np.isnan(want))
+    assert np.isnan(want[-4:-2]).any(axis=1).all()  # the NaN readings are in the comparison
+    assert np.nanmax(np.abs(trig - want)) <= 4e-16
+    assert np.array_equal(E._angle_trig(a0, b0), want, equal_nan=True)
+
+
+@pytest.mark.parametrize("masked", [False, True])
+def test_an_estimate_is_the_same_with_the_kernel_and_without(masked, monkeypatch):
+    """One cold estimate through `estimate` (the kernel's trig shared by every stage) against the
+    numpy code: solvability NaN on exactly the units of missing links, the rest within TOL."""
+    n = 14
+    P = make_sheet("sphere", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 0.3, rng(12))
+    valid = _mask(n) if masked else None
+    out = {}
+    for use in (False, True):
+        monkeypatch.setattr(E, "USE_KERNEL", use)
+        E._structure_cached.cache_clear()
+        out[use] = E.estimate(r, n, n, L, valid=valid)
+    e0, e1 = out[False], out[True]
+    assert np.array_equal(np.isnan(e1.solvability), np.isnan(e0.solvability))
+    assert np.isnan(e0.solvability).any() == masked
+    assert np.nanmax(np.abs(e1.solvability - e0.solvability)) <= TOL
+    assert e1.iterations == e0.iterations
+    for name in ("alpha", "beta"):
+        assert np.array_equal(getattr(e1, name), getattr(e0, name), equal_nan=True), name
+    assert np.nanmax(np.abs(e1.normals - e0.normals)) <= 1e-8
+    assert np.max(np.abs(e1.joints - e0.joints)) <= 1e-8 * L * (n - 1)
+
+
 @pytest.mark.parametrize("rows,cols,shape", [(14, 14, "cylinder"), (3, 3, "gaussian"),
                                              (2, 9, "tilted"), (20, 11, "flat")])
 def test_the_kernels_flatness_is_the_numpy_codes(rows, cols, shape, monkeypatch):
