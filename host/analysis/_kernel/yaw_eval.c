@@ -9,6 +9,9 @@
 #include "yaw_eval.h"
 
 #include <math.h>
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #define TWO_PI 6.283185307179586
 
@@ -306,6 +309,50 @@ void capsheet_reading_trig(int64_t n, const double *r, const double *alpha, cons
     }
 }
 
+/* The lane sums a_c[l] += Σ b_c[i] g[i] over i ≡ l (mod 4), i < nb rounded down to a multiple
+ * of 4, for four float columns b0..b3 against g; returns that bound. SSE2 (every x86-64) adds
+ * the same products in the same order as the plain loop, so results do not depend on it. */
+static int64_t dot4x4(int64_t nb, const float *restrict b0, const float *restrict b1,
+                      const float *restrict b2, const float *restrict b3,
+                      const double *restrict g, double *a0, double *a1, double *a2, double *a3)
+{
+    int64_t i = 0;
+#if defined(__SSE2__)
+    __m128d s[8];
+    const float *b[4];
+    double *a[4];
+    int c;
+    b[0] = b0; b[1] = b1; b[2] = b2; b[3] = b3;
+    a[0] = a0; a[1] = a1; a[2] = a2; a[3] = a3;
+    for (c = 0; c < 8; ++c)
+        s[c] = _mm_setzero_pd();
+    for (; i + 4 <= nb; i += 4) {
+        const __m128d g01 = _mm_loadu_pd(g + i), g23 = _mm_loadu_pd(g + i + 2);
+        for (c = 0; c < 4; ++c) {
+            const __m128 f = _mm_loadu_ps(b[c] + i);
+            s[2 * c] = _mm_add_pd(s[2 * c], _mm_mul_pd(_mm_cvtps_pd(f), g01));
+            s[2 * c + 1] = _mm_add_pd(s[2 * c + 1], _mm_mul_pd(_mm_cvtps_pd(_mm_movehl_ps(f, f)),
+                                                               g23));
+        }
+    }
+    for (c = 0; c < 4; ++c) {
+        _mm_storeu_pd(a[c], s[2 * c]);
+        _mm_storeu_pd(a[c] + 2, s[2 * c + 1]);
+    }
+#else
+    int l;
+    for (; i + 4 <= nb; i += 4)
+        for (l = 0; l < 4; ++l) {
+            const double gi = g[i + l];
+            a0[l] += b0[i + l] * gi;
+            a1[l] += b1[i + l] * gi;
+            a2[l] += b2[i + l] * gi;
+            a3[l] += b3[i + l] * gi;
+        }
+#endif
+    return i;
+}
+
 /* Supernodal L D Lᵀ solve; see yaw_eval.h. Forward: per supernode the unit lower diagonal block
  * (column axpys), then its below-rows accumulated column by column into `t` (contiguous axpys the
  * compiler vectorises) and subtracted from x once. Backward: the below rows gathered into `t`,
@@ -341,7 +388,14 @@ void capsheet_ldl_solve(int64_t n, int64_t n_super, const int32_t *sn_col, const
             double *restrict t = work;
             for (i = 0; i < nb; ++i)
                 t[i] = 0.0;
-            for (k = 0; k < w; ++k) {
+            for (k = 0; k + 4 <= w; k += 4) {  /* four columns per pass over t */
+                const double x0 = xs[k], x1 = xs[k + 1], x2 = xs[k + 2], x3 = xs[k + 3];
+                const float *restrict b0 = bl + k * nb, *restrict b1 = b0 + nb;
+                const float *restrict b2 = b1 + nb, *restrict b3 = b2 + nb;
+                for (i = 0; i < nb; ++i)
+                    t[i] += (b0[i] * x0 + b1[i] * x1) + (b2[i] * x2 + b3[i] * x3);
+            }
+            for (; k < w; ++k) {
                 const double xk = xs[k];
                 const float *restrict b = bl + k * nb;
                 for (i = 0; i < nb; ++i)
@@ -368,25 +422,33 @@ void capsheet_ldl_solve(int64_t n, int64_t n_super, const int32_t *sn_col, const
             for (k = 0; k + 4 <= w; k += 4) {
                 const float *restrict b0 = bl + k * nb, *restrict b1 = b0 + nb;
                 const float *restrict b2 = b1 + nb, *restrict b3 = b2 + nb;
-                double a0 = 0.0, a1 = 0.0, a2 = 0.0, a3 = 0.0;
-                for (i = 0; i < nb; ++i) {
+                /* four columns' dot products, each in four lanes (i mod 4) summed at the end:
+                 * sixteen independent sums in the same order with SSE2 and without */
+                double a0[4] = {0.0, 0.0, 0.0, 0.0}, a1[4] = {0.0, 0.0, 0.0, 0.0};
+                double a2[4] = {0.0, 0.0, 0.0, 0.0}, a3[4] = {0.0, 0.0, 0.0, 0.0};
+                i = dot4x4(nb, b0, b1, b2, b3, g, a0, a1, a2, a3);
+                for (; i < nb; ++i) {
                     const double gi = g[i];
-                    a0 += b0[i] * gi;
-                    a1 += b1[i] * gi;
-                    a2 += b2[i] * gi;
-                    a3 += b3[i] * gi;
+                    a0[0] += b0[i] * gi;
+                    a1[0] += b1[i] * gi;
+                    a2[0] += b2[i] * gi;
+                    a3[0] += b3[i] * gi;
                 }
-                xs[k] -= a0;
-                xs[k + 1] -= a1;
-                xs[k + 2] -= a2;
-                xs[k + 3] -= a3;
+                xs[k] -= (a0[0] + a0[1]) + (a0[2] + a0[3]);
+                xs[k + 1] -= (a1[0] + a1[1]) + (a1[2] + a1[3]);
+                xs[k + 2] -= (a2[0] + a2[1]) + (a2[2] + a2[3]);
+                xs[k + 3] -= (a3[0] + a3[1]) + (a3[2] + a3[3]);
             }
             for (; k < w; ++k) {
                 const float *restrict b0 = bl + k * nb;
-                double a0 = 0.0;
-                for (i = 0; i < nb; ++i)
-                    a0 += b0[i] * g[i];
-                xs[k] -= a0;
+                double a0[4] = {0.0, 0.0, 0.0, 0.0};
+                int l;
+                for (i = 0; i + 4 <= nb; i += 4)
+                    for (l = 0; l < 4; ++l)
+                        a0[l] += b0[i + l] * g[i + l];
+                for (; i < nb; ++i)
+                    a0[0] += b0[i] * g[i];
+                xs[k] -= (a0[0] + a0[1]) + (a0[2] + a0[3]);
             }
         }
         for (k = w - 2; k >= 0; --k) {
