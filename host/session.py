@@ -47,6 +47,9 @@ __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSche
 
 log = logging.getLogger("capsheet.host")
 
+#: how long (s) a driving host listens for another SYNC source before START (`Host.check_sync_source`)
+SYNC_LISTEN_S = 0.25
+
 
 def node_for_link(link: int) -> int:
     """Node id the host assigns to the chip on ``link``: ``link + 1``."""
@@ -866,6 +869,10 @@ class Host:
         self._discarding = False
         self._stale_chip_frames = 0
         self.foreign_syncs = 0  #: SYNCs seen while driving (another SYNC source)
+        #: before START a driving host listens this long (s, from the end of `quiesce`) for another
+        #: SYNC source: a source slower than 1 / sync_listen_s may be caught only once streaming
+        self.sync_listen_s = SYNC_LISTEN_S
+        self._listen_since: float | None = None
         self.sync_conflict: str | None = None  #: set when a foreign SYNC source stopped a driving host
         self.mismatch: str | None = None  #: a mismatch found only once streaming (e.g. FD SNAPSHOTs on classic)
         self.recoveries = 0  #: incidents recovered (a reboot wave, a reconnect)
@@ -920,6 +927,7 @@ class Host:
                     break
         finally:
             self._discarding = False
+            self._listen_since = self._now()  # what is heard from here on counts (check_sync_source)
         if reset:
             with self._lock:
                 self.chips.clear()
@@ -1028,8 +1036,18 @@ class Host:
 
     def check_sync_source(self) -> None:
         """Before START: in drive mode, another SYNC source already on the bus is a conflict —
-        ``sync="auto"`` follows it, ``sync="drive"`` raises `SyncConflictError`."""
-        if self.sync_mode != "drive" or not self.syncs_seen:
+        ``sync="auto"`` follows it, ``sync="drive"`` raises `SyncConflictError`.
+
+        The host listens for at least `sync_listen_s` after the bus was drained (`quiesce`) before
+        it decides: a bring-up is shorter than one period of a slow source (3x3 chips: 20-40 ms),
+        so without the wait a gateway's SYNC was caught only once streaming (exit 1, not 2)."""
+        if self.sync_mode != "drive":
+            return
+        now = self._now()
+        since = self._listen_since if self._listen_since is not None else now
+        while not self.syncs_seen and self._now() - since < self.sync_listen_s:
+            self._idle(min(0.01, self.sync_listen_s))
+        if not self.syncs_seen:
             return
         if self.sync_policy == "auto":
             self._switch_to_follow(f"{self.syncs_seen} SYNC frames from another source")

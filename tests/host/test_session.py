@@ -174,6 +174,25 @@ def test_a_gateway_sync_before_start_is_a_conflict_or_followed(rigs):
     assert len(snaps) >= 40 and sum(s.complete for s in snaps) >= len(snaps) - 2
 
 
+@pytest.mark.parametrize("listen_s, caught", [(0.25, True), (0.0, False)])
+def test_a_slow_gateway_sync_is_heard_before_start(rigs, listen_s, caught):
+    """A gateway that drives SYNC at 5 Hz: the bring-up after the drain is shorter than its period,
+    so the host hears it before START only because it listens `sync_listen_s` (0.25 s) first —
+    without the wait (0 s) the conflict surfaces only once streaming. A simulated clock."""
+    rig = rigs("memory", gateway_sync_hz=5.0)
+    rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"
+    rig.host.aggregator.set_trust("sent")
+    rig.host.sync_listen_s = listen_s
+    if caught:
+        with pytest.raises(SyncConflictError, match="another device drives SYNC on this sheet"):
+            rig.host.bring_up(0.05, discover_rounds=1)
+        assert rig.host.sync_conflict is None and rig.host.syncs_sent == 0
+    else:
+        rig.host.bring_up(0.05, discover_rounds=1)
+        list(rig.host.snapshots(duration_s=0.5))
+        assert rig.host.sync_conflict and "while this host does: stopped" in rig.host.sync_conflict
+
+
 # -- 5. capacity ---------------------------------------------------------------------------------
 
 def test_capacity_is_refused_over_100_percent_with_the_remedy(rigs):
