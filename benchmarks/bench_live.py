@@ -35,6 +35,7 @@ import time
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from host.aggregator import window_completeness  # noqa: E402
+from host.cli import one_blas_thread  # noqa: E402
 
 CONFIGS = {
     "14x14-per-chip": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000),
@@ -242,6 +243,7 @@ def main(argv=None) -> int:
     ap.add_argument("--rates", help="comma-separated SYNC rates, Hz, each run in order (default: the adaptive sweep)")
     ap.add_argument("--duration", type=float, help="seconds streamed per rate (default 5, --quick 2)")
     args = ap.parse_args(argv)
+    one_blas_thread()  # what every capsheet command does: the host's estimates run as the CLI's
     try:
         rates = [float(r) for r in args.rates.split(",")] if args.rates else (QUICK_RATES if args.quick else RATES)
         if any(not r > 0 for r in rates):
