@@ -73,6 +73,30 @@ def test_calibrate_writes_every_chip_its_true_calibration(tmp_path, board_sheet)
     assert np.abs(cal.misalignment - mis).max() < np.radians(0.1)
 
 
+def test_calibrate_writes_the_chips_over_slcan(tmp_path):
+    """The same calibration over CAN: CAL_WRITE / CAL_READ as CAN frames through python-can's slcan
+    interface, to an emulated SLCAN adapter on a real pty. Bias and scale the chips then store are
+    their true ones, as over the serial link."""
+    from virtual_sheet.slcan import SlcanDevice
+
+    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=3.0, move_s=0.6, seed=2)
+    sheet = VirtualSheet(lattice="3x3", scene=scene, seed=7, transport="can",
+                         sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+    layout = sheet.write_layout(tmp_path / "layout.csv")
+    truth = sheet.sensor_model.chip_errors(sheet.n_links)
+    with SlcanDevice(sheet) as dev:
+        res = calibrate("--can", f"slcan:{dev.path}", "--bitrate", "1000000", "--lattice", "3x3", "--layout",
+                        str(layout), "--out", str(tmp_path / "cal.json"), "--write-chips", "--poses", "6",
+                        "--samples", "40", "--rate", "50", "--timeout", "150")
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    assert "12 chips written, 12 read back and verified, 0 refused, 0 axis mismatches" in res.stderr
+    q4 = np.array([[c[0] for c in chip.cal] for chip in sheet.chips])
+    sens = np.array([[c[1] for c in chip.cal] for chip in sheet.chips])
+    assert np.abs(q4 / 16.0 - truth.offset_counts).max() < 2 * MG_COUNTS
+    assert np.abs(sens / truth.sensitivity - 1).max() < 1e-3
+    assert np.array_equal(Calibration.load(tmp_path / "cal.json").reference_offset_counts, q4 / 16.0)
+
+
 def test_without_write_chips_the_chips_are_untouched_and_json_is_alone(tmp_path, board_sheet):
     sheet, dev, layout = board_sheet
     out = tmp_path / "cal.json"
