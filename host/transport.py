@@ -552,6 +552,9 @@ class CanTransport(Transport):
         self._max_batch = max_batch
         #: our own frames handed back (udp_multicast does): dropped, counted in ``echo.echoes``
         self.echo = EchoFilter()
+        #: ``on_sent(can.Message)`` after every frame this host sent (``is_rx`` False, wall-clock
+        #: timestamp as python-can stamps received frames): what ``--can-log`` writes as Tx
+        self.on_sent: Callable[[Any], None] | None = None
         self._bus = self._open()
         self.capabilities = TransportCapabilities(
             kind="can", mtu=CAN_FD_MTU if fd else CAN_CLASSIC_MTU, fd=fd, bitrate=bitrate,
@@ -710,6 +713,9 @@ class CanTransport(Transport):
             self._lost(exc)
             raise TransportOperationError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc
         self.stats.bytes_out += len(frame.data)
+        if self.on_sent is not None:
+            m.timestamp, m.is_rx = time.time(), False
+            self.on_sent(m)
 
     def _close_internal(self) -> None:
         if self._bus is not None:

@@ -81,8 +81,8 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                    help="estimates per second for the live view and the recording (default 20)")
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=_can_log_path,
-                       help="also log every received CAN frame with python-can's logger "
-                            "(.log candump, .asc, .blf; cantools and capsheet replay read it)")
+                       help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
+                            "logger (.log candump, .asc, .blf; cantools and capsheet replay read it)")
     if link_length:
         g.add_argument("--link-length", type=_positive, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
@@ -129,6 +129,7 @@ class SessionOutputs:
         self.can_log = None
         self._can_lock = threading.Lock()
         self.can_frames_logged = 0
+        self.can_frames_sent_logged = 0  #: of those, frames this host sent (Tx)
         self._period = 1.0 / float(getattr(args, "live_rate", 20.0) or 20.0)
         self._last_est = self._last_unc = -np.inf
         self._previous = None
@@ -180,6 +181,7 @@ class SessionOutputs:
             for t in cans:
                 bus = host.transports.index(t)
                 tap_transport(t, lambda kind, frames, bus=bus: self._log_can(bus, frames))
+                t.on_sent = lambda m, bus=bus: self._log_can(bus, (m,), sent=True)
                 print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
 
     def _record_at_emission(self, host) -> None:
@@ -197,14 +199,16 @@ class SessionOutputs:
         agg.on_snapshot = on_snapshot
         self.records_at_emission = True
 
-    def _log_can(self, bus: int, frames) -> None:
+    def _log_can(self, bus: int, frames, sent: bool = False) -> None:
         """Frames of bus index ``bus`` into the log; the channel is the bus index (ASC and BLF
-        number channels; candump's .log shows it as ``can<index>``)."""
+        number channels; candump's .log shows it as ``can<index>``). What the host sent is logged
+        as Tx (``is_rx`` False: candump's ``T``, ASC's ``Tx``), received frames as Rx."""
         with self._can_lock:
             for m in frames:
                 m.channel = bus
                 self.can_log.on_message_received(m)
                 self.can_frames_logged += 1
+                self.can_frames_sent_logged += sent
 
     def describe(self, host) -> None:
         """After bring-up: the session's facts (layout, calibration, rate) into the recording."""
@@ -291,4 +295,5 @@ class SessionOutputs:
                       f"(last: {self._skip_reason})", file=sys.stderr)
         if self.can_log is not None:
             self.can_log.stop()
-            print(f"{self.prog}: logged {self.can_frames_logged} CAN frames to {self.can_log_path}", file=sys.stderr)
+            print(f"{self.prog}: logged {self.can_frames_logged} CAN frames ({self.can_frames_sent_logged} sent by "
+                  f"this host) to {self.can_log_path}", file=sys.stderr)

@@ -3,6 +3,7 @@ written through python-can's loggers, read by the ``cantools decode`` command li
 
 from __future__ import annotations
 
+from collections import Counter
 import json
 import subprocess
 import sys
@@ -67,7 +68,7 @@ def can_recording(tmp_path_factory):
             for m in frames:
                 w.on_message_received(can.Message(timestamp=m.timestamp, arbitration_id=m.arbitration_id,
                                                   is_extended_id=m.is_extended_id, data=m.data, is_fd=m.is_fd,
-                                                  channel=int(m.channel.removeprefix("can"))))
+                                                  is_rx=m.is_rx, channel=int(m.channel.removeprefix("can"))))
     return d
 
 
@@ -150,6 +151,31 @@ def test_replay_of_a_can_log_makes_the_snapshots_the_host_made(can_recording, su
         np.testing.assert_allclose(s.readings.astype(np.float32), rec.readings[k], rtol=0, atol=2e-3)
         matched += 1
     assert matched >= 1
+
+
+def test_a_can_log_holds_what_the_host_sent_as_tx(can_recording):
+    """The log has both sides: every SYNC the host opened (the MCAP's sync channel, an independent
+    record of it) is a Tx SYNC frame on each bus, with its bring-up commands before the first Rx
+    SAMPLE; python-can's reader gives the direction back (candump's R / T)."""
+    import can
+    from protocol.can import split_id
+    from protocol.messages import MsgType
+
+    frames = list(can.LogReader(str(can_recording / "run.log")))
+    tx = [m for m in frames if not m.is_rx]
+    assert tx and len(tx) < len(frames)
+    kinds = Counter((m.channel, MsgType(split_id(m.arbitration_id)[1]).name) for m in tx)
+    for ch in ("can0", "can1"):
+        assert kinds[(ch, "START")] >= 1 and kinds[(ch, "CONFIG")] >= 1 and kinds[(ch, "SYNC")] >= 1
+    assert not [m for m in tx if split_id(m.arbitration_id)[1] == MsgType.SAMPLE]  # chips' frames are Rx
+    rec = read(can_recording / "run.mcap")
+    sent = sorted(int(c) for c in rec.sync[:, 0])
+    for ch in ("can0", "can1"):
+        logged = sorted(int.from_bytes(bytes(m.data[:2]), "little") for m in tx
+                        if m.channel == ch and split_id(m.arbitration_id)[1] == MsgType.SYNC)
+        assert logged == sent
+    first_sample = next(i for i, m in enumerate(frames) if m.is_rx and split_id(m.arbitration_id)[1] == MsgType.SAMPLE)
+    assert any(not m.is_rx and split_id(m.arbitration_id)[1] == MsgType.START for m in frames[:first_sample])
 
 
 def test_replay_of_the_can_mcap_is_identical(can_recording):
