@@ -28,11 +28,21 @@ def calibrate(*argv, timeout=240):
                           text=True, timeout=timeout)
 
 
+def _board_pose_sheet(transport: str = "serial") -> VirtualSheet:
+    """3x3 realistic, uncalibrated chips turned through six board poses."""
+    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=3.0, move_s=0.6, seed=2)
+    return VirtualSheet(lattice="3x3", scene=scene, seed=7, transport=transport,
+                        sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+
+
+def _stored(sheet) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the virtual chips hold: offset_q4 (1/16 count), sensitivity, the non-volatile flag."""
+    return tuple(np.array([[c[i] for c in chip.cal] for chip in sheet.chips]) for i in range(3))
+
+
 @pytest.fixture
 def board_sheet(tmp_path):
-    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=3.0, move_s=0.6, seed=2)
-    sheet = VirtualSheet(lattice="3x3", scene=scene, seed=7,
-                         sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+    sheet = _board_pose_sheet()
     layout = sheet.write_layout(tmp_path / "layout.csv")
     with PtyDevice(sheet) as dev:
         yield sheet, dev, layout
@@ -54,9 +64,7 @@ def test_calibrate_writes_every_chip_its_true_calibration(tmp_path, board_sheet)
     table = [ln for ln in res.stdout.splitlines() if ln[:4].strip().isdigit()]
     assert [int(ln.split()[0]) for ln in table] == list(range(n))  # one residual line per chip
     # what the chips now hold: offset_q4 (1/16 count), sensitivity, stored in non-volatile memory
-    q4 = np.array([[c[0] for c in chip.cal] for chip in sheet.chips])
-    sens = np.array([[c[1] for c in chip.cal] for chip in sheet.chips])
-    stored = np.array([[c[2] for c in chip.cal] for chip in sheet.chips])
+    q4, sens, stored = _stored(sheet)
     assert np.all(stored == 1)
     assert np.abs(q4 / 16.0 - truth.offset_counts).max() < 2 * MG_COUNTS  # bias within 2 mg
     assert np.abs(sens / truth.sensitivity - 1).max() < 1e-3  # scale within 0.1 %
@@ -79,9 +87,7 @@ def test_calibrate_writes_the_chips_over_slcan(tmp_path):
     their true ones, as over the serial link."""
     from virtual_sheet.slcan import SlcanDevice
 
-    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=3.0, move_s=0.6, seed=2)
-    sheet = VirtualSheet(lattice="3x3", scene=scene, seed=7, transport="can",
-                         sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+    sheet = _board_pose_sheet("can")
     layout = sheet.write_layout(tmp_path / "layout.csv")
     truth = sheet.sensor_model.chip_errors(sheet.n_links)
     with SlcanDevice(sheet) as dev:
@@ -90,8 +96,7 @@ def test_calibrate_writes_the_chips_over_slcan(tmp_path):
                         "--samples", "40", "--rate", "50", "--timeout", "150")
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
     assert "12 chips written, 12 read back and verified, 0 refused, 0 axis mismatches" in res.stderr
-    q4 = np.array([[c[0] for c in chip.cal] for chip in sheet.chips])
-    sens = np.array([[c[1] for c in chip.cal] for chip in sheet.chips])
+    q4, sens, _ = _stored(sheet)
     assert np.abs(q4 / 16.0 - truth.offset_counts).max() < 2 * MG_COUNTS
     assert np.abs(sens / truth.sensitivity - 1).max() < 1e-3
     assert np.array_equal(Calibration.load(tmp_path / "cal.json").reference_offset_counts, q4 / 16.0)
