@@ -28,11 +28,7 @@ from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
 from virtual_sheet.geometry import ideal_readings
 from virtual_sheet.sensor import SensorModel
 from virtual_sheet.sheet import VirtualSheet
-
-try:
-    from virtual_sheet.slcan import SlcanDevice
-except ImportError:  # pragma: no cover
-    SlcanDevice = None
+from virtual_sheet.slcan import SlcanDevice
 
 KINDS = ["memory", "pty", "can-virtual", "slcan"]
 SIMULATED = ("memory", "can-virtual")  #: rigs on the simulated clock (exact counts)
@@ -71,8 +67,6 @@ class Rig:
             self.device = CanDevice(self.sheet, n_buses=2, channels=[f"b2b_{n}_a", f"b2b_{n}_b"], packed=packed,
                                     clock=self.clock)
         else:
-            if SlcanDevice is None:
-                pytest.skip("virtual_sheet.slcan.SlcanDevice has not landed")
             self.device = SlcanDevice(self.sheet, n_buses=2, packed=packed)
         # real clock: the chips are powered once the host has its port open (nothing sent unheard)
         self.device.start(power_on=self.sim)
