@@ -350,8 +350,11 @@ def fit_mag_ellipsoid(mag_t, field_t: float | None = None, *, iterations: int = 
         raise ValueError(f"Invalid field_t: {field_t!r} (need > 0 tesla)")
     if N > max_samples:
         m = m[np.round(np.linspace(0, N - 1, max_samples)).astype(int)]
-    scale = np.sqrt(np.mean(np.sum(m * m, axis=-1)))  # work in units of the readings' size
-    x = np.transpose(m / scale, (1, 0, 2))  # (n, N, 3)
+    # work about each chip's mean reading, in units of the readings' spread (conditioning: the hard
+    # iron can be larger than the field)
+    centre = m.mean(axis=0)  # (n, 3)
+    scale = np.sqrt(np.mean(np.sum((m - centre) ** 2, axis=-1)))
+    x = np.transpose((m - centre) / scale, (1, 0, 2))  # (n, N, 3)
     X, Y, Z = x[..., 0], x[..., 1], x[..., 2]
     D = np.stack([X * X, Y * Y, Z * Z, 2 * X * Y, 2 * X * Z, 2 * Y * Z, 2 * X, 2 * Y, 2 * Z], axis=-1)
     Ntn = D.transpose(0, 2, 1) @ D
@@ -393,7 +396,7 @@ def fit_mag_ellipsoid(mag_t, field_t: float | None = None, *, iterations: int = 
             break
     h = np.full((n, 3), np.nan)
     C = np.full((n, 3, 3), np.nan)
-    h[ok], C[ok] = par[:, :3] * scale, _sym(par[:, 3:]) / scale
+    h[ok], C[ok] = centre[ok] + par[:, :3] * scale, _sym(par[:, 3:]) / scale
     radius = np.linalg.norm(np.einsum("kij,tkj->tki", C, m - h), axis=-1)  # ≈ 1
     # C now maps the ellipsoid to the unit sphere; F: the given field, or its geometric mean radius
     F = np.cbrt(1.0 / np.linalg.det(C)) if field_t is None else np.full(n, float(field_t))
