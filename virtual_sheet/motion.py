@@ -970,15 +970,15 @@ def rest_scene(rows: int, cols: int, link_length: float = 0.01, *, shape: str = 
 
 
 def tumble_scene(rows: int, cols: int, link_length: float = 0.01, *, rates_hz=(0.05, 0.07, 0.11),
-                 ramp_s: float = 1.0) -> RigidScene:
+                 ramp_s: float = 3.0) -> RigidScene:
     """A flat sheet (on a board) turned every way: ``Rz(π sin) Ry(0.45π sin) Rx(π sin)`` at the
     slow ``rates_hz``, about its centre — every direction of a fixed field is seen in a few tens of
     seconds (magnetometer calibration)."""
     _check_size(rows, cols, link_length)
     base = flat_net(rows, cols, link_length)
     profs = [((1.0, 0, 0), Sine(np.pi, rates_hz[0], ramp_s=ramp_s)),
-             ((0, 1.0, 0), Sine(0.45 * np.pi, rates_hz[2], 0.3, ramp_s=ramp_s)),
-             ((0, 0, 1.0), Sine(np.pi, rates_hz[1], 1.1, ramp_s=ramp_s))]
+             ((0, 1.0, 0), Sine(0.45 * np.pi, rates_hz[2], ramp_s=ramp_s)),
+             ((0, 0, 1.0), Sine(np.pi, rates_hz[1], ramp_s=ramp_s))]
 
     def motion(t):
         m = RigidJet.identity(t.size)
