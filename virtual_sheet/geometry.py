@@ -439,6 +439,29 @@ def _compass(height: HeightFunction, A: np.ndarray, B: np.ndarray, C: np.ndarray
     return P
 
 
+def compass_diagonals(rows: int, cols: int, ic: int, jc: int):
+    """The order of the compass construction after the seed lines through anchor ``(ic, jc)``:
+    anti-diagonal ``k = a + b`` (``a, b >= 1`` steps from the anchor) of all four quadrants at once,
+    each joint needing only joints of diagonals ``k − 1`` and ``k − 2``. Yields per diagonal
+    ``(ii, jj, si, sj)``: the joints' indices and their quadrant's signs, so that the two placed
+    neighbours are ``(ii − si, jj)`` and ``(ii, jj − sj)`` and the opposite corner
+    ``(ii − si, jj − sj)``."""
+    quadrants = [(si, n_a, sj, n_b) for si, n_a in ((1, rows - 1 - ic), (-1, ic))
+                 for sj, n_b in ((1, cols - 1 - jc), (-1, jc)) if n_a and n_b]
+    k_max = max((n_a + n_b for _, n_a, _, n_b in quadrants), default=1)
+    for k in range(2, k_max + 1):
+        ii_l, jj_l, si_l, sj_l = [], [], [], []
+        for si, n_a, sj, n_b in quadrants:
+            a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
+            ii_l.append(ic + si * a)
+            jj_l.append(jc + sj * (k - a))
+            si_l.append(np.full(a.shape, si))
+            sj_l.append(np.full(a.shape, sj))
+        ii, jj = np.concatenate(ii_l), np.concatenate(jj_l)
+        if ii.size:
+            yield ii, jj, np.concatenate(si_l), np.concatenate(sj_l)
+
+
 def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: float, *,
                   origin: tuple[float, float] = (0.0, 0.0), angle: float = 0.0,
                   shear: float = 0.0, anchor: str = "centre") -> np.ndarray:
@@ -508,23 +531,7 @@ def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: flo
     if jc:
         P[ic, jc - 1::-1] = _seed_line(height, P[ic, jc], -v, jc, L)
 
-    # Anti-diagonal k = a + b (a, b >= 1 steps from the anchor) of all four quadrants at once:
-    # each joint needs only joints of diagonal k - 1 and k - 2.
-    quadrants = [(si, n_a, sj, n_b) for si, n_a in ((1, rows - 1 - ic), (-1, ic))
-                 for sj, n_b in ((1, cols - 1 - jc), (-1, jc)) if n_a and n_b]
-    k_max = max((n_a + n_b for _, n_a, _, n_b in quadrants), default=1)
-    for k in range(2, k_max + 1):
-        ii_l, jj_l, si_l, sj_l = [], [], [], []
-        for si, n_a, sj, n_b in quadrants:
-            a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
-            ii_l.append(ic + si * a)
-            jj_l.append(jc + sj * (k - a))
-            si_l.append(np.full(a.shape, si))
-            sj_l.append(np.full(a.shape, sj))
-        ii, jj = np.concatenate(ii_l), np.concatenate(jj_l)
-        if ii.size == 0:
-            continue
-        si, sj = np.concatenate(si_l), np.concatenate(sj_l)
+    for ii, jj, si, sj in compass_diagonals(rows, cols, ic, jc):
         P[ii, jj] = _compass(height, P[ii - si, jj], P[ii, jj - sj], P[ii - si, jj - sj], L,
                              ii, jj)
     err = np.max(np.abs(link_lengths(P) / L - 1.0))

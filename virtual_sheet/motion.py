@@ -64,7 +64,7 @@ import numpy as np
 
 from protocol.constants import G0
 from protocol.lattice import Lattice
-from .geometry import _cross, chebyshev_net, link_frames_jet, link_midpoints
+from .geometry import _cross, chebyshev_net, compass_diagonals, link_frames_jet, link_midpoints
 from .shapes import flat_net, make_sheet
 
 __all__ = ["Profile", "Constant", "Sine", "Pulse", "RigidJet", "HeightJet", "TravellingWave",
@@ -577,23 +577,9 @@ def chebyshev_net_jet(field: MovingField, rows: int, cols: int, link_length: flo
     line(0, 1, cols - 1 - jc, v)
     line(0, -1, jc, -v)
 
-    quadrants = [(si, n_a, sj, n_b) for si, n_a in ((1, rows - 1 - ic), (-1, ic))
-                 for sj, n_b in ((1, cols - 1 - jc), (-1, jc)) if n_a and n_b]
-    k_max = max((n_a + n_b for _, n_a, _, n_b in quadrants), default=1)
     tt = t[:, None]
     L2 = L * L
-    for k in range(2, k_max + 1):
-        ii_l, jj_l, si_l, sj_l = [], [], [], []
-        for si, n_a, sj, n_b in quadrants:
-            a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
-            ii_l.append(ic + si * a)
-            jj_l.append(jc + sj * (k - a))
-            si_l.append(np.full(a.shape, si))
-            sj_l.append(np.full(a.shape, sj))
-        ii, jj = np.concatenate(ii_l), np.concatenate(jj_l)
-        if ii.size == 0:
-            continue
-        si, sj = np.concatenate(si_l), np.concatenate(sj_l)
+    for ii, jj, si, sj in compass_diagonals(rows, cols, ic, jc):
         Pa, Pb, Pc = P[:, ii - si, jj], P[:, ii, jj - sj], P[:, ii - si, jj - sj]
         q = (Pa + Pb - Pc)[..., :2].copy()
         for _ in range(_NEWTON_MAX_ITER):
