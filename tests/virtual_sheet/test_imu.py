@@ -173,3 +173,5 @@ def test_bad_parts_inputs_and_times_are_refused():
     imu.read(tr)
     with pytest.raises(ValueError, match="must increase"):
         imu.read(tr)
+    with pytest.raises(ValueError, match="must increase"):  # within one read, without a gyroscope too
+        ImuArray(12).read(tr[[0, 2, 1]])
