@@ -27,7 +27,7 @@ hard iron). In a uniform field ``|B| = F`` the readings lie on the ellipsoid
 3. **Hard and soft iron from rotations** (`fit_mag_ellipsoid`): the general quadric
    ``mᵀ Q m + 2 vᵀ m = 1`` by linear least squares per chip (9 unknowns), its centre ``h`` and
    shape, then Gauss–Newton on the geometric residual ``|C (m − h)| − F`` with ``C`` symmetric
-   (Li & Griffiths 2004 for the algebraic fit; Vasconcelos et al. 2011 for the refinement). ``C``
+   (the geometric view of Vasconcelos et al. 2011). ``C``
    equals ``U D⁻¹`` for some rotation ``U``: the ellipsoid cannot see how the part is turned.
 4. **The part's rotation from the rests** (`fit_mag_alignment`): in every held pose the angle
    between gravity and the field is the same (the field's dip): the rotation ``R`` (3 unknowns) and
