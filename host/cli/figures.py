@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "estimate_run_figure", "ERROR_FLOOR_PCT"]
+__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "estimate_run_figure", "motion_scenes_figure",
+           "imu_stream_figure", "ERROR_FLOOR_PCT"]
 
 #: errors below this (% of side) are drawn at it on log axes (a noise-free estimate is exact to
 #: ~1e-12 %); the caption says so
@@ -212,5 +213,80 @@ def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.n
     _labels_cm(ax)
     ax.set_title("last estimated shape")
     fig.suptitle(title)
+    _save(fig, path)
+    return fig
+
+
+def motion_scenes_figure(path, scenes: list[dict], *, lattice: str, link_length: float, rate_hz: float):
+    """The moving scenes (issue 29): per scene (a row) the sheet at a few instants, drawn in one
+    box at the same scale, and its links' largest own acceleration and angular rate over time.
+
+    ``scenes``: dicts with ``name``; ``t_s`` (T,); ``snapshots``, a list of ``(t, joints (rows, cols,
+    3) m)`` (drawn in one cube per scene, so the sheet's motion shows at its true proportions);
+    ``peak_accel_mps2`` (T,), the largest link acceleration at each instant;
+    ``peak_rate_dps`` (T,), the largest link rate.
+    """
+    plt = _plt()
+    from matplotlib.ticker import MaxNLocator
+
+    n = len(scenes)
+    k = max(len(s["snapshots"]) for s in scenes)
+    fig = plt.figure(figsize=(4.0 * k + 5.5, 3.6 * n))
+    gs = fig.add_gridspec(n, k + 1, width_ratios=[1.0] * k + [1.5], left=0.02, right=0.95, bottom=0.04,
+                          top=0.95, wspace=0.12, hspace=0.3)
+    for r, sc in enumerate(scenes):
+        allP = np.concatenate([P.reshape(-1, 3) for _t, P in sc["snapshots"]]) * CM
+        lo, hi = allP.min(0), allP.max(0)
+        mid, half = 0.5 * (lo + hi), 0.5 * max(float(np.max(hi - lo)), 1e-9)
+        for c, (t, P) in enumerate(sc["snapshots"]):
+            ax = fig.add_subplot(gs[r, c], projection="3d")
+            _wire(ax, P * CM, color=f"C{c}", lw=0.7)
+            ax.set_title(f"{sc['name']}, t = {t:.2f} s", fontsize=10)
+            _labels_cm(ax)
+            ax.set_xlim(mid[0] - half, mid[0] + half)  # one cube for every instant: true proportions
+            ax.set_ylim(mid[1] - half, mid[1] + half)
+            ax.set_zlim(mid[2] - half, mid[2] + half)
+            ax.set_box_aspect((1, 1, 1), zoom=0.85)
+            for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+                axis.set_major_locator(MaxNLocator(4))
+        ax = fig.add_subplot(gs[r, k])
+        ax.plot(sc["t_s"], sc["peak_accel_mps2"], color="C3", lw=1.0, label="largest link acceleration")
+        for t, _P in sc["snapshots"]:
+            ax.axvline(t, color="0.8", lw=0.8)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel("acceleration [m/s²]", color="C3")
+        ax.axhline(2.0, color="C3", ls=":", lw=0.8, label="2 m/s² (issue 30's floor)")
+        ax2 = ax.twinx()
+        ax2.plot(sc["t_s"], sc["peak_rate_dps"], color="C0", lw=1.0, label="largest link rate")
+        ax2.set_ylabel("angular rate [°/s]", color="C0")
+        h1, l1 = ax.get_legend_handles_labels()
+        h2, l2 = ax2.get_legend_handles_labels()
+        ax.legend(h1 + h2, l1 + l2, loc="upper right", fontsize=7)
+        ax.set_title(f"{sc['name']}: peaks {np.max(sc['peak_accel_mps2']):.1f} m/s², "
+                     f"{np.max(sc['peak_rate_dps']):.0f} °/s", fontsize=10)
+    fig.suptitle(f"capsheet moving scenes: {lattice} joints, L = {link_length * CM:g} cm, exact nets at every "
+                 f"instant, sampled at {rate_hz:g} Hz")
+    _save(fig, path)
+    return fig
+
+
+def imu_stream_figure(path, t_s: np.ndarray, series: list[tuple[str, str, np.ndarray, np.ndarray]], *,
+                      title: str):
+    """One chip's readings against the truth, one panel per sensor (issue 29).
+
+    ``series``: ``(name, unit, truth (T, 3), reading (T, 3))``, already in ``unit``.
+    """
+    plt = _plt()
+    fig, axes = plt.subplots(len(series), 1, figsize=(11, 3.0 * len(series)), sharex=True, squeeze=False)
+    for ax, (name, unit, truth, reading) in zip(axes[:, 0], series):
+        for a, axis in enumerate("xyz"):
+            ax.plot(t_s, truth[:, a], color=f"C{a}", lw=1.2, label=f"truth {axis}")
+            ax.plot(t_s, reading[:, a], ".", color=f"C{a}", ms=1.5, alpha=0.6, label=f"reading {axis}")
+        ax.set_ylabel(f"{name} [{unit}]")
+        ax.legend(loc="upper right", fontsize=7, ncol=6, markerscale=4)
+        ax.grid(alpha=0.3)
+    axes[-1, 0].set_xlabel("t [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
     _save(fig, path)
     return fig

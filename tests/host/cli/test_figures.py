@@ -144,3 +144,44 @@ def test_estimate_run_figure_labels_residual_completeness_and_shape(gaussian, tm
         assert line.get_ydata().min() == pytest.approx(100 * (lat.n_links - 10) / lat.n_links)
     finally:
         plt.close(fig)
+
+
+def test_motion_scenes_figure_draws_each_scene_in_one_cube_with_its_peaks(tmp_path):
+    from virtual_sheet.motion import make_motion_scene
+
+    t = np.arange(0.0, 1.5, 1 / 50)
+    panels = []
+    for name in ("wave", "tap"):
+        tr = make_motion_scene(name, 6, 6, L).sample(t)
+        panels.append({"name": name, "t_s": t, "peak_accel_mps2": np.linalg.norm(tr.acceleration, axis=-1).max(1),
+                       "peak_rate_dps": np.degrees(np.linalg.norm(tr.angular_velocity, axis=-1).max(1)),
+                       "snapshots": [(float(t[i]), tr.joints[i]) for i in (0, 20, 60)]})
+    fig = figures.motion_scenes_figure(tmp_path / "m.png", panels, lattice="6x6", link_length=L, rate_hz=50)
+    try:
+        assert "6x6 joints" in fig._suptitle.get_text() and "50 Hz" in fig._suptitle.get_text()
+        views = [ax for ax in fig.axes if ax.name == "3d"]
+        assert len(views) == 6
+        for ax in views:  # one cube per scene, every instant at the same scale, in cm
+            assert (ax.get_xlabel(), ax.get_zlabel()) == ("x [cm]", "z [cm]")
+            lims = np.array([ax.get_xlim(), ax.get_ylim(), ax.get_zlim()])
+            assert np.ptp(lims, axis=1) == pytest.approx([np.ptp(lims[0])] * 3)
+        assert [ax.get_title() for ax in views[:3]] == ["wave, t = 0.00 s", "wave, t = 0.40 s", "wave, t = 1.20 s"]
+        series = [ax for ax in fig.axes if ax.name != "3d" and ax.get_xlabel() == "t [s]"]
+        assert len(series) == 2 and series[0].get_ylabel() == "acceleration [m/s²]"
+        assert "2 m/s² (issue 30's floor)" in _legend(series[0])
+        assert f"peaks {panels[1]['peak_accel_mps2'].max():.1f} m/s²" in series[1].get_title()
+    finally:
+        plt.close(fig)
+    assert (tmp_path / "m.png").stat().st_size > 20_000
+
+
+def test_imu_stream_figure_shows_truth_and_readings_per_sensor(tmp_path):
+    t = np.linspace(0, 1, 50)
+    truth = np.stack([np.sin(t), np.cos(t), t], axis=-1)
+    fig = figures.imu_stream_figure(tmp_path / "s.png", t, [("gyroscope", "°/s", truth, truth + 0.1),
+                                                             ("magnetometer", "µT", truth, truth - 0.1)], title="x")
+    try:
+        assert [ax.get_ylabel() for ax in fig.axes] == ["gyroscope [°/s]", "magnetometer [µT]"]
+        assert _legend(fig.axes[0])[:2] == ["truth x", "reading x"] and len(fig.axes[0].lines) == 6
+    finally:
+        plt.close(fig)
