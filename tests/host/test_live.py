@@ -1,6 +1,8 @@
 """The live 3D view (host/live.py): a headless Foxglove WebSocket client (``websockets``, subprotocol
-``foxglove.sdk.v1``) connects to the server foxglove-sdk runs on localhost, subscribes, and decodes
-the estimates and the scene it is sent; colours by error, displacement and link state."""
+``foxglove.sdk.v1`` as the Foxglove app offers it, or ``foxglove.websocket.v1`` as Lichtblick and the
+``@foxglove/ws-protocol`` client do) connects to the server on localhost, subscribes, and decodes the
+estimates and the scene it is sent; colours by error, displacement and link state. The real npm
+client under node is driven in test_live_node.py."""
 
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from host.live import ERROR_FULL_SCALE_PCT, SceneChannels, colours  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+V1 = "foxglove.websocket.v1"
 
 
 class Est:
@@ -31,11 +34,12 @@ class Snap:
         self.counter, self.timestamp, self.wall_time, self.valid = counter, float(counter), 1.7e9 + counter, valid
 
 
-async def _client(url: str, topics: list[str], publish, want: int, max_rounds: int = 200):
-    """Connect, subscribe to ``topics``, call ``publish(k)`` until ``want`` messages per topic came.
-    Returns (advertised channels by topic, {topic: [payload bytes]})."""
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
-        assert ws.subprotocol == SUBPROTOCOL
+async def _client(url: str, topics: list[str], publish, want: int, max_rounds: int = 200,
+                  subprotocol: str = SUBPROTOCOL):
+    """Connect offering ``subprotocol``, subscribe to ``topics``, call ``publish(k)`` until ``want``
+    messages per topic came. Returns (advertised channels by topic, {topic: [payload bytes]})."""
+    async with websockets.connect(url, subprotocols=[subprotocol], max_size=None) as ws:
+        assert ws.subprotocol == subprotocol  # answered in the name it asked for
         info = json.loads(await asyncio.wait_for(ws.recv(), 10))
         assert info["op"] == "serverInfo"
         channels: dict[str, dict] = {}
@@ -69,7 +73,8 @@ async def _client(url: str, topics: list[str], publish, want: int, max_rounds: i
         return channels, got
 
 
-def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints():
+@pytest.mark.parametrize("subprotocol", [SUBPROTOCOL, V1])
+def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints(subprotocol):
     from host.record import Recorder
 
     lat = Lattice(4, 5)
@@ -86,7 +91,7 @@ def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints():
             rec.estimate(Est(J, valid), k, float(k), 1.7e9 + k)
 
         channels, got = asyncio.run(_client(rec.live.url, ["/capsheet/estimate", "/sheet/scene", "/sheet/joints"],
-                                            publish, want=2))
+                                            publish, want=2, subprotocol=subprotocol))
     finally:
         rec.close()
     assert channels["/sheet/scene"]["schemaName"] == "foxglove.SceneUpdate"
