@@ -225,7 +225,7 @@ def _writable_folder(folder: Path, text: str, create: bool) -> None:
 def output_file(*suffixes: str, what: str = "a file", protect: bool = True):
     """A type: a file to write (`OutputPath`): one of ``suffixes``, not a folder, in a writable folder
     that exists. ``protect``: an existing file is replaced only with ``--overwrite`` (`CliParser`)."""
-    kinds = " or ".join(suffixes)
+    kinds = ", ".join(suffixes)
 
     def parse(text: str) -> OutputPath:
         if not text:

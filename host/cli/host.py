@@ -42,7 +42,6 @@ from host.cli.transport_args import add_transport_args, check_ports, open_transp
 from host.transport import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
-from protocol.messages import NODE_MAX_ASSIGNED
 
 __all__ = ["register", "run", "Host", "Layout", "open_transports", "StatusLine"]
 

@@ -3,7 +3,6 @@ the golden vectors and the DBC, print the capacity table. No port I/O here."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 

@@ -613,7 +613,7 @@ def test_a_port_given_twice_and_gateways_usage_are_exit_2(virtuals, tmp_path):
     assert out.returncode == 2 and "not both" in out.stderr, out.stderr
     for args, needle in ((["--transport", "slcan", "--gateways", "2"], "--gateways is for --transport pty"),
                          (["--lattice", "2x2", "--gateways", "5"], "need 1..4"),
-                         (["--gateways", "0"], "need > 0")):
+                         (["--gateways", "0"], "--gateways: invalid value '0': need an integer >= 1")):
         p = subprocess.run(CLI + ["virtual", *args, "--duration", "1"], capture_output=True, text=True, timeout=60,
                            env=ENV)
         assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr, (args, p.stderr)
