@@ -242,3 +242,41 @@ def test_a_live_session_records_the_sampled_uncertainty_at_most_once_a_second(tm
     np.testing.assert_array_equal(ys[0], first.yaw_std.astype(np.float32))
     assert np.isnan(ys[1]).all()
     np.testing.assert_array_equal(ys[0], estimate(r, 4, 4, 0.01).yaw_std.astype(np.float32))
+
+
+@pytest.mark.parametrize("offer, upstream, answer", [
+    ("foxglove.websocket.v1", "foxglove.sdk.v1", "foxglove.websocket.v1"),  # Lichtblick, @foxglove/ws-protocol
+    ("foxglove.sdk.v1", "foxglove.sdk.v1", None),  # the Foxglove app: unchanged
+    ("foxglove.websocket.v1, foxglove.sdk.v1", "foxglove.websocket.v1, foxglove.sdk.v1", None),
+    ("graphql-ws", "graphql-ws", None),  # nothing we serve: the SDK answers it (400)
+])
+def test_the_handshake_is_translated_only_for_the_older_name(offer, upstream, answer):
+    from host.live import rewrite_request, rewrite_response
+
+    head = (b"GET / HTTP/1.1\r\nHost: localhost:8765\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"sec-websocket-protocol: " + offer.encode() + b"\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n")
+    up, got = rewrite_request(head)
+    assert got == answer
+    lines = up.split(b"\r\n")
+    assert lines[0] == b"GET / HTTP/1.1" and up.endswith(b"\r\n\r\n")
+    protos = [ln.split(b":", 1)[1].strip().decode() for ln in lines if ln.lower().startswith(b"sec-websocket-protocol")]
+    assert protos == [upstream]
+    assert b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==" in up  # the rest of the head as it was
+    resp = (b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"Sec-WebSocket-Accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n")
+    back = rewrite_response(resp, got)
+    assert (b"Sec-WebSocket-Protocol: foxglove.websocket.v1" in back) == (answer is not None)
+    assert b"Sec-WebSocket-Accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=" in back and back.endswith(b"\r\n\r\n")
+
+
+def test_a_live_port_in_use_is_an_oserror_naming_it():
+    import foxglove
+
+    from host.live import LiveServer
+
+    a = LiveServer(foxglove.Context(), port=0)
+    try:
+        with pytest.raises(OSError, match=f"Cannot start the live view on 127.0.0.1:{a.port}"):
+            LiveServer(foxglove.Context(), port=a.port)
+    finally:
+        a.stop()
