@@ -43,7 +43,7 @@ from .aggregator import Aggregator, LatticeSnapshot
 from .transport import Transport, TransportError
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
-           "SessionError", "MismatchError", "CapacityError", "SyncConflictError", "link_ranges"]
+           "SessionError", "MismatchError", "CapacityError", "SyncConflictError", "link_ranges", "capacity_remedy"]
 
 log = logging.getLogger("capsheet.host")
 
@@ -87,6 +87,33 @@ class MismatchError(SessionError, ValueError):
 
 class CapacityError(MismatchError):
     """The traffic asked for does not fit a bus (docs/protocol.md §10)."""
+
+
+def capacity_remedy(kind: str, load: float, rate_hz: float, *, packed: bool, fd: bool = False,
+                    bitrate: int | None = None, split: str | None = None, pack: str | None = None,
+                    faster: bool = True) -> str:
+    """What takes a bus at ``load`` (1.0 = full) back under its capacity, for what is already set:
+    packing where it is not on (``pack``: how the command says so, e.g. with the gateways packing
+    needs), more gateways or buses (``split``), a faster link (``faster``), or the highest rate
+    that fits.
+
+    >>> capacity_remedy("serial", 2.5, 145.0, packed=True, bitrate=12_000_000)
+    'use more gateways (a --port each; at least 3), a link faster than 12 Mbaud (--baud), or --rate 58 or lower'
+    """
+    ways = []
+    k = int(np.ceil(load - 1e-9))
+    if kind == "serial":
+        if not packed:
+            ways.append(pack or "--packed (SNAPSHOT frames from the gateway)")
+        ways.append(split or f"more gateways (a --port each; at least {k})")
+        if faster:
+            ways.append("a link faster than " + (f"{bitrate / 1e6:g} Mbaud" if bitrate else "this one") + " (--baud)")
+    else:
+        if not (fd and packed):
+            ways.append(pack or "CAN FD with packed frames (--fd --packed)")
+        ways.append(split or f"more buses (a --can each; at least {k})")
+    ways.append(f"--rate {int(rate_hz / load):d} or lower")
+    return "use " + ", ".join(ways[:-1]) + ", or " + ways[-1]
 
 
 class SyncConflictError(SessionError):
@@ -365,6 +392,7 @@ class Host:
         self._seen_real = np.full(n, -np.inf)
         self._next_wd = -np.inf
         self._reconnects = [0] * len(self.transports)
+        self._disconnects = [t.stats.disconnects for t in self.transports]
         self._init_sessions()
 
     # -- lifetime ----------------------------------------------------------------------------
@@ -444,6 +472,8 @@ class Host:
             self._rx_errors.append(repr(exc))
             self._idle(0.05)
             return False
+        if t.stats.disconnects != self._disconnects[bus]:
+            self._port_lost(bus)
         if t.stats.reconnects != self._reconnects[bus]:
             self._reconnects[bus] = t.stats.reconnects
             self._report("reconnect", f"{t.name} is back (reconnect #{t.stats.reconnects})")
@@ -479,6 +509,8 @@ class Host:
 
     def _on_control(self, bus: int, msg: Message) -> None:
         if isinstance(msg, Announce):
+            if bus in self.unproven and not self._prove(bus, msg.uid):
+                return  # a chip that was never on this port: not ours to drive (reported)
             with self._lock:
                 rec = self.chips.get(msg.uid)
                 if rec is None:
@@ -550,7 +582,13 @@ class Host:
 
     # -- command rounds ------------------------------------------------------------------------
     def _send(self, bus: int, msg: Message) -> None:
-        self.transports[bus].send(msg)
+        t = self.transports[bus]
+        if t.stats.disconnects != self._disconnects[bus]:
+            self._port_lost(bus)
+        if bus in self.unproven and not isinstance(msg, GetInfo):
+            self.muted_sends += 1  # a port that came back drives nothing before it answers as the sheet
+            return
+        t.send(msg)
 
     def _broadcast(self, msg: Message) -> None:
         for bus in range(len(self.transports)):
@@ -777,6 +815,20 @@ class Host:
             self.calibration_reads += 1
         return n_ok
 
+    def calibration_summary(self) -> dict:
+        """Of the assigned chips whose calibration was read, ``{"own": n, "nominal": m}``: those whose
+        CAL_DATA differs from the nominal values on some axis, and those reporting the nominal values
+        on all three (what a chip with no stored calibration reports, docs/protocol.md §4.7)."""
+        nominal = nominal_sensitivity(self.range_code)
+        own = nom = 0
+        for rec in self._assigned():
+            if not rec.calibrated:
+                continue
+            plain = bool(np.all(np.asarray(rec.offset) == 0) and np.allclose(rec.sensitivity, nominal, rtol=1e-6))
+            nom += plain
+            own += not plain
+        return {"own": own, "nominal": nom}
+
     def start(self, uids=None) -> int:
         """START every assigned chip, then drive SYNC (or follow the gateway's). Returns ACK count.
 
@@ -886,6 +938,10 @@ class Host:
         self._recover_thread: threading.Thread | None = None
         self._in_recovery = False
         self._probes: dict[int, dict] = {}  # bus -> reconnect probe state
+        #: bus -> the uids it must answer with after a reconnect (empty: any chip). Until one of them
+        #: ANNOUNCEs, nothing but GET_INFO is sent there (`_send`): the path may lead elsewhere now
+        self.unproven: dict[int, set[int]] = {}
+        self.muted_sends = 0  #: frames not sent to a port that had not yet answered as the sheet
         #: uid -> the buses it announced on, for uids heard on more than one (the same chips behind
         #: two ports: one gateway named twice, or two sheets with the same uids); bounded by max_chips
         self.cross_bus_uids: dict[int, set[int]] = {}
@@ -958,8 +1014,8 @@ class Host:
             raise MismatchError(f"{len(self.cross_bus_uids)} chip(s) answer on more than one port, e.g. uid "
                                 f"0x{uid:016X} on {names}: the ports reach the same chips (one gateway "
                                 f"named twice?); give each gateway of the sheet once")
-        if self.layout is None:
-            return
+        if self.layout is None or not self.chips:
+            return  # no chip answered at all: the port (or the sheet's power), not the layout: the caller says so
         with self._lock:
             found = set(self.chips)
             missing = sorted(((k, u) for u, k in self.layout.links.items() if u not in found))
@@ -1025,8 +1081,8 @@ class Host:
             what = (f"{t.name}: {n} chips at {self.rate_hz:g} Hz need {100 * load:.0f} % of the bus "
                     f"({'packed SNAPSHOT' if packed else 'per-chip SAMPLE'} frames)")
             if load > 1.0:
-                remedy = ("use --packed on the gateway, a faster link (--baud), or a lower --rate" if cap.kind == "serial"
-                          else "split the sheet over more buses (--bus-count), use CAN FD (--fd --packed), or a lower --rate")
+                remedy = capacity_remedy(cap.kind, load, self.rate_hz, packed=packed, fd=bool(cap.fd),
+                                         bitrate=cap.bitrate)
                 if action == "refuse":
                     raise CapacityError(f"over capacity: {what}; {remedy}")
                 log.warning("over capacity: %s; %s", what, remedy)
@@ -1083,19 +1139,53 @@ class Host:
             self._recover_queue[uid] = why
         self._recover_event.set()
 
+    def _port_lost(self, bus: int) -> None:
+        """A port went away: from now on it must prove it leads to this sheet again (`_prove`) before
+        anything but GET_INFO is sent there. Marked at the loss, not at the reconnect: the transport
+        reopens the path in its receive thread, and a SYNC sent between the reopen and the host
+        hearing of it would already reach whatever the path leads to then."""
+        with self._lock:
+            t = self.transports[bus]
+            if t.stats.disconnects == self._disconnects[bus]:
+                return
+            self._disconnects[bus] = t.stats.disconnects
+            self.unproven[bus] = {u for u, r in self.chips.items() if r.bus == bus}
+
     def _on_reconnect(self, bus: int, t: Transport) -> None:
-        """The port came back: ask every chip who it is (a rebooted chip answers from a provisional
-        node id and is recovered) and watch that something sheet-like answers at all."""
+        """The port came back: drive nothing there until it proves to lead to this sheet (`_prove`:
+        one of the chips known on it ANNOUNCEs); ask every chip who it is (a rebooted chip answers
+        from a provisional node id and is recovered) and report a port where none answers."""
+        with self._lock:
+            self.unproven[bus] = {u for u, r in self.chips.items() if r.bus == bus}
         self._probes[bus] = {"t": self._now(), "frames": t.stats.frames_in, "bytes": t.stats.bytes_in,
                              "errors": t.stats.error_count, "asks": 0, "next": self._now()}
         self._recover_event.set()
 
+    def _prove(self, bus: int, uid: int) -> bool:
+        """A chip ANNOUNCEd on a port that came back: the port leads to this sheet again if the chip
+        is one of those known on it (any chip when none was known yet). Returns whether it is."""
+        expected = self.unproven.get(bus)
+        if expected is None:
+            return True
+        t = self.transports[bus]
+        if expected and uid not in expected:
+            if bus not in self.not_a_sheet:
+                why = (f"{t.name} came back but chip 0x{uid:016X} answers there, which was never on it "
+                       f"(another sheet on this path?): nothing is driven there")
+                self.not_a_sheet[bus] = why
+                self._report("not_a_sheet", why)
+            return False
+        self.unproven.pop(bus, None)
+        self._probes.pop(bus, None)
+        self.not_a_sheet.pop(bus, None)
+        self._report("reconnect", f"{t.name} answers as the sheet (chip 0x{uid:016X}): driven again", quiet=True)
+        return True
+
     def _check_probes(self, now: float) -> None:
         for bus, pr in list(self._probes.items()):
             t = self.transports[bus]
-            if t.stats.frames_in > pr["frames"] + 1:  # a sheet answers: done (chips recover by ANNOUNCE)
+            if bus not in self.unproven:  # proven by an ANNOUNCE (`_prove`)
                 del self._probes[bus]
-                self.not_a_sheet.pop(bus, None)
                 continue
             if now >= pr["next"] and pr["asks"] < 6:
                 pr["asks"] += 1
@@ -1106,12 +1196,12 @@ class Host:
                     pass
             if now - pr["t"] > 2.0 and bus not in self.not_a_sheet:
                 why = (f"{t.name} came back but answers nothing like a sheet: {t.stats.bytes_in - pr['bytes']} "
-                       f"bytes, {t.stats.error_count - pr['errors']} undecodable, no capsheet frame in "
-                       f"{now - pr['t']:.1f} s (a stale symlink to another device?)")
+                       f"bytes, {t.stats.error_count - pr['errors']} undecodable, no chip of it announced in "
+                       f"{now - pr['t']:.1f} s (a stale symlink to another device?): nothing is driven there")
                 self.not_a_sheet[bus] = why
                 self._report("not_a_sheet", why)
             if now - pr["t"] > 30.0:
-                del self._probes[bus]
+                del self._probes[bus]  # stop asking; the port stays muted until a chip of it announces
 
     def _recovery_loop(self) -> None:
         while not self._stop.is_set():
@@ -1223,6 +1313,9 @@ class Host:
                 "stray_frames": agg.stray, "resyncs": agg.resyncs, "late": agg.late,
                 "foreign_syncs": self.foreign_syncs, "sync_mode": self.sync_mode,
                 "sync_conflict": self.sync_conflict, "not_a_sheet": list(self.not_a_sheet.values()),
+                # ports that came back but never answered as the sheet, and what was not sent there
+                "unproven_ports": [self.transports[b].name for b in sorted(self.unproven)],
+                "muted_sends": self.muted_sends,
                 "mismatch": self.mismatch,
                 "chips_dropped": self.chips_dropped, "stale_frames_drained": self.stale_frames,
                 "incidents": [{"t": e.t, "kind": e.kind, "detail": e.detail} for e in list(self.events)

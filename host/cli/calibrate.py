@@ -12,14 +12,18 @@ CAL_WRITE (stored in non-volatile memory where the chip has CAL_STORAGE), reads 
 CAL_READ and checks them. The misalignment stays in the file: give it to capsheet host / demo /
 tactile with --calibration.
 
-    capsheet calibrate --port /dev/ttyUSB0 --lattice 14x14 --layout sheet.csv --out cal.json
-    capsheet calibrate --can slcan:/dev/ttyACM0 --bitrate 1000000 --out cal.json --write-chips
+    capsheet calibrate --port /dev/ttyUSB0 --baud 12000000 --lattice 14x14 --layout sheet.csv --out cal.json
+    capsheet calibrate --can slcan:/dev/ttyACM0 --bitrate 1000000 --lattice 6x6 --out cal.json --write-chips
 
 Without hardware:
 
     capsheet virtual --shape board --chip-errors realistic --noise 0.3 --layout-out sheet.csv \\
         --symlink /tmp/sheet &
-    capsheet calibrate --port /tmp/sheet --layout sheet.csv --out cal.json --write-chips
+    capsheet calibrate --port /tmp/sheet --baud 12000000 --layout sheet.csv --out cal.json --write-chips
+
+The bus must carry the sheet at --rate (checked at bring-up, as capsheet host does): 364 chips at
+100 Hz need a 12 Mbaud UART (or --packed, or a lower --rate: poses then take longer to average);
+--ignore-capacity streams anyway.
 
 Exit status: 0 calibrated (outliers are reported, not fatal); 1 not enough poses before --timeout,
 the fit refused the poses, or a chip's read-back differs from what was written; 2 usage errors.
@@ -50,30 +54,41 @@ MIN_POSE_SEPARATION_DEG = 20.0
 
 
 def register(subparsers) -> None:
+    from host.cli import argtypes as T
     p = subparsers.add_parser("calibrate", help="calibrate every chip in place from poses of the sheet on a board",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one --port, or one or more --can)")
-    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
-    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
-    p.add_argument("--out", required=True, metavar="FILE", help="calibration file to write (JSON)")
+    p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--layout", type=T.existing_file(".csv", ".json", what="a layout file"),
+                   help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
+    p.add_argument("--out", required=True, metavar="FILE", type=T.output_file(".json", what="a calibration file"),
+                   help="calibration file to write (JSON); checked before any pose is asked for; an existing "
+                        "file needs --overwrite")
+    T.add_overwrite_arg(p, "calibration files (--out)")
     p.add_argument("--write-chips", action="store_true",
                    help="CAL_WRITE each chip's offset and sensitivity, CAL_READ them back and verify")
-    p.add_argument("--poses", type=int, default=len(BOARD_POSES),
+    p.add_argument("--poses", type=T.int_range(MIN_POSES, 100), default=len(BOARD_POSES),
                    help=f"poses to capture, >= {MIN_POSES} (default {len(BOARD_POSES)}: docs/calibration.md)")
-    p.add_argument("--samples", type=int, default=200,
+    p.add_argument("--samples", type=T.int_range(1, 100_000), default=200,
                    help="snapshots averaged per pose (default 200: 2 s at 100 Hz)")
-    p.add_argument("--rate", type=float, default=100.0, help="SYNC rate, Hz (default 100)")
-    p.add_argument("--window", type=int, default=25,
+    p.add_argument("--rate", type=T.rate, default=100.0, help="SYNC rate, Hz (default 100)")
+    p.add_argument("--packed", action="store_true",
+                   help="the gateway packs SNAPSHOT frames: check the bus capacity for those")
+    p.add_argument("--ignore-capacity", action="store_true",
+                   help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2; a lower "
+                        "--rate only makes each pose take longer)")
+    p.add_argument("--window", type=T.int_range(2, 10_000), default=25,
                    help="snapshots in the stillness window (default 25)")
-    p.add_argument("--still-threshold", type=float, default=0.098, metavar="M/S2",
+    p.add_argument("--still-threshold", type=T.positive_float, default=0.098, metavar="M/S2",
                    help="a chip is still when its readings' standard deviation over the window is below "
                         "this (default 0.098 m/s^2 = 1 %% g)")
     p.add_argument("--non-orthogonality", action="store_true",
                    help="also fit 3 axis non-orthogonality terms per chip (kept in the file, like the misalignment)")
-    p.add_argument("--gravity", type=float, default=9.80665, metavar="M/S2",
+    p.add_argument("--gravity", type=T.bounded_float(1.0, 30.0, unit="m/s^2"), default=9.80665, metavar="M/S2",
                    help="local gravity (default standard gravity 9.80665); sets the common scale")
-    p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)")
-    p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
+    p.add_argument("--timeout", type=T.duration, default=600.0, help="give up after this many seconds (default 600)")
+    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5,
+                   help="discovery window per round (s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout (messages on stderr)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live indicator")
     p.set_defaults(func=run)
@@ -331,20 +346,11 @@ def _chip_table(cal: Calibration) -> list[dict]:
 def run(args) -> int:
     from host.session import Host, Layout
 
+    from host.session import MismatchError
+
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        rows, cols = (int(x) for x in args.lattice.lower().split("x"))
-        cap = PoseCapture(rows, cols, samples=args.samples, window=args.window,
-                          threshold_mps2=args.still_threshold)
-    except ValueError as exc:
-        print(f"capsheet calibrate: {exc}", file=sys.stderr)
-        return 2
-    if args.poses < MIN_POSES:
-        print(f"capsheet calibrate: --poses {args.poses}: need at least {MIN_POSES}", file=sys.stderr)
-        return 2
-    if not (args.timeout > 0 and args.rate > 0):
-        print("capsheet calibrate: --timeout and --rate must be > 0", file=sys.stderr)
-        return 2
+    rows, cols = args.lattice.rows, args.lattice.cols  # every value was checked by its type (argtypes)
+    cap = PoseCapture(rows, cols, samples=args.samples, window=args.window, threshold_mps2=args.still_threshold)
     try:
         layout = Layout.load(args.layout) if args.layout else None
     except (OSError, ValueError) as exc:
@@ -355,10 +361,26 @@ def run(args) -> int:
     except TransportError as exc:
         print(f"capsheet calibrate: {exc}", file=sys.stderr)
         return 1
-    host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+    try:
+        host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+    except (MismatchError, ValueError) as exc:
+        for t in transports:
+            t.close()
+        print(f"capsheet calibrate: {exc}", file=sys.stderr)
+        return 2
     result: dict = {}
     with host:
-        summary = host.bring_up(args.discover_s)
+        try:
+            summary = host.bring_up(args.discover_s, capacity="warn" if args.ignore_capacity else "refuse",
+                                    packed=args.packed)
+        except MismatchError as exc:  # over capacity (the remedy fits what is set), layout mismatches
+            print(f"capsheet calibrate: {exc}" + (" (or --ignore-capacity)" if "capacity" in str(exc) else ""),
+                  file=sys.stderr)
+            return 2
+        if summary["discovered"] == 0:
+            _say(args, f"no chip answered on {', '.join(t.name for t in transports)} (is the sheet powered and "
+                       f"the port right?)")
+            return 1
         _say(args, f"{summary['discovered']} chips found, {summary['assigned']} assigned, "
                    f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses")
         if summary["assigned"] < host.lattice.n_links:

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "estimate_run_figure", "motion_scenes_figure",
-           "imu_stream_figure", "ERROR_FLOOR_PCT"]
+__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "estimate_run_figure", "misfit_pct_of_link",
+           "motion_scenes_figure", "imu_stream_figure", "ERROR_FLOOR_PCT"]
 
 #: errors below this (% of side) are drawn at it on log axes (a noise-free estimate is exact to
 #: ~1e-12 %); the caption says so
@@ -184,17 +184,49 @@ def noise_figure(path, rows: list, methods, *, shape: str, side_joints: int, tri
     return fig
 
 
+def misfit_pct_of_link(residual: np.ndarray, valid: np.ndarray, lattice) -> np.ndarray:
+    """eq. (8)'s residual per snapshot as a figure a reader can picture: the RMS misfit of one unit
+    (its loop closure, in link lengths, and its normal assumption, in unit normals), in % — a
+    closure gap of 1 % of L per unit reads 1. ``residual`` sums over the units with four valid links
+    (`host.analysis.estimator.ShapeEstimate.residual`); ``valid`` (n, n_links) counts them."""
+    units = np.asarray(lattice.units).reshape(-1, 4)
+    n_units = np.asarray(valid, dtype=bool)[:, units].all(axis=2).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 100.0 * np.sqrt(np.asarray(residual, dtype=float) / np.where(n_units > 0, n_units, np.nan))
+
+
+def _readable_y(ax, y: np.ndarray) -> None:
+    """A linear axis when the values span less than a decade and a half, else a log axis with ticks
+    at 1, 2 and 5 of every decade written as plain numbers (a log axis had two labels, 2e-1 and
+    4e-1, in mathtext)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator
+
+    y = y[np.isfinite(y) & (y > 0)]
+    if y.size and y.max() / y.min() > 30:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_minor_locator(LogLocator(base=10, subs="auto"))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+    else:
+        ax.set_ylim(0, 1.1 * float(y.max()) if y.size else 1.0)
+        ax.yaxis.set_major_locator(MaxNLocator(6))
+
+
 def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.ndarray, joints: np.ndarray,
                         lattice, link_length: float, *, title: str):
-    """An offline run: residual and completeness over time, and the last estimated shape (cm)."""
+    """An offline run: eq. (8)'s misfit per unit (`misfit_pct_of_link`, %) and the valid links (%)
+    over time, and the last estimated shape (cm)."""
+    from matplotlib.ticker import MaxNLocator
+
     plt = _plt()
     fig = plt.figure(figsize=(13, 4.6), layout="constrained")
     ax = fig.add_subplot(1, 2, 1)
-    ok = np.isfinite(residual)
-    ax.plot(t_s[ok], np.maximum(residual[ok], 1e-16), ".", ms=2, color="C0", label="eq. (8) residual")
-    ax.set_yscale("log")
+    misfit = misfit_pct_of_link(residual, valid, lattice)
+    ok = np.isfinite(misfit)
+    ax.plot(t_s[ok], misfit[ok], ".", ms=2, color="C0", label="eq. (8) misfit per unit, RMS")
+    _readable_y(ax, misfit[ok])
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("residual (dimensionless)")
+    ax.set_ylabel("misfit per unit, RMS [% of a link length]")
     ax2 = ax.twinx()
     ax2.plot(t_s, 100 * np.asarray(valid).mean(axis=1), "-", lw=0.8, color="C1", label="links valid")
     ax2.set_ylabel("links valid [%]")
@@ -202,15 +234,18 @@ def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.n
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = ax2.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="lower left")
-    ax.set_title("per snapshot")
+    ax.set_title("per snapshot: loop closure and normal assumption (eq. 8), links valid")
     ax = fig.add_subplot(1, 2, 2, projection="3d")
-    last = np.flatnonzero(ok)
+    last = np.flatnonzero(np.isfinite(residual))
     if last.size:
         P = joints[last[-1]] * CM
         _wire(ax, P, color="C3", lw=0.8, label=f"estimate, snapshot {int(last[-1])}")
         _equal_box(ax, P)
+        ax.zaxis.set_major_locator(MaxNLocator(3))  # a flat box: 3 z labels do not collide
         ax.legend(loc="upper left", fontsize=8)
     _labels_cm(ax)
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.labelpad = 8  # clear of the tick labels
     ax.set_title("last estimated shape")
     fig.suptitle(title)
     _save(fig, path)

@@ -21,70 +21,30 @@ __all__ = ["add_record_args", "SessionOutputs", "CAN_LOG_SUFFIXES"]
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
 
 
-def _mcap_path(text: str) -> str:
-    if not text.lower().endswith(".mcap"):
-        raise argparse.ArgumentTypeError(f"{text!r}: a recording is an MCAP file, name it *.mcap")
-    return text
-
-
-def _can_log_path(text: str) -> str:
-    if Path(text).suffix.lower() not in CAN_LOG_SUFFIXES:
-        raise argparse.ArgumentTypeError(f"{text!r}: a CAN log is {', '.join(CAN_LOG_SUFFIXES)} "
-                                         f"(candump, Vector ASC, Vector BLF)")
-    return text
-
-
-def _port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid port {text!r} (need an integer 0..65535)") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"invalid port {v} (need 0..65535)")
-    return v
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need a number > 0)") from None
-    if not (np.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need a number > 0)")
-    return v
-
-
-def lattice_arg(text: str) -> str:
-    """argparse type: ``ROWSxCOLS`` joints, checked by `protocol.lattice.Lattice.parse`."""
-    from protocol.lattice import Lattice
-    try:
-        Lattice.parse(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-positive = _positive
-
-
 def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                     link_length: bool = False) -> argparse._ArgumentGroup:
-    """Add ``--record``, ``--live``, ``--live-rate`` (and ``--can-log``, ``--link-length``)."""
+    """Add ``--record``, ``--live``, ``--live-rate``, ``--overwrite`` (and ``--can-log``,
+    ``--link-length``). Every value is checked by `host.cli.argtypes`: an existing recording is
+    replaced only with ``--overwrite``."""
+    from host.cli import argtypes as T
+
     g = parser.add_argument_group("recording and live view (docs/recording.md)")
-    g.add_argument("--record", metavar="FILE.mcap", type=_mcap_path,
+    g.add_argument("--record", metavar="FILE.mcap", type=T.output_file(".mcap", what="an MCAP recording"),
                    help="record raw input, snapshots, estimates and the 3D scene to an MCAP file "
-                        "(Foxglove opens it; host.record.read loads it)")
-    g.add_argument("--live", metavar="PORT", type=_port, nargs="?", const=8765, default=None,
-                   help="serve the live 3D view over the Foxglove WebSocket protocol on localhost "
-                        "(default port 8765; open ws://localhost:8765 in Foxglove)")
-    g.add_argument("--live-rate", type=_positive, default=20.0,
+                        "(Foxglove opens it; host.record.read loads it); an existing file needs --overwrite")
+    g.add_argument("--live", metavar="PORT", type=T.tcp_port, nargs="?", const=8765, default=None,
+                   help="serve the live 3D view over the Foxglove WebSocket protocol (subprotocols "
+                        "foxglove.sdk.v1 and foxglove.websocket.v1) on localhost (default port 8765; "
+                        "open ws://localhost:8765 in Foxglove or Lichtblick)")
+    g.add_argument("--live-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=20.0,
                    help="estimates per second for the live view and the recording (default 20)")
+    T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
     if can_log:
-        g.add_argument("--can-log", metavar="FILE", type=_can_log_path,
+        g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
                             "logger (.log candump, .asc, .blf; cantools and capsheet replay read it)")
     if link_length:
-        g.add_argument("--link-length", type=_positive, default=0.01,
+        g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
     return g
 

@@ -273,3 +273,20 @@ def test_chips_falling_silent_together_are_one_log_line(rigs, caplog):
     s = rig.host.summary()
     assert [d["link"] for d in s["missing_links"]] == [1, 2, 3, 7]
     assert s["missing_links"][0]["uid"] == f"0x{rig.sheet.uids[1]:016X}"
+
+
+def test_the_bring_up_tells_calibrated_chips_from_nominal_ones(rigs):
+    """A chip with no stored calibration reports the nominal values (docs/protocol.md §4.7): the host
+    reads every chip's calibration, but only those with values of their own count as calibrated (the
+    bring-up line said "364 calibrated" of chips that had none)."""
+    def chip(uid, sensor, **kw):  # every chip with an odd uid carries a factory calibration of its own
+        if uid % 2:
+            kw["calibration"] = ((16, 1000.0), (-8, 1030.0), (0, 1024.0))
+        return ChipModel(uid, sensor, **kw)
+
+    rig = rigs("memory", chip_class=chip)
+    up = rig.host.bring_up(0.2)
+    n = rig.sheet.n_links
+    odd = sum(c.uid % 2 for c in rig.sheet.chips)
+    assert 0 < odd < n and up["calibrated"] == n  # every chip answered CAL_READ
+    assert rig.host.calibration_summary() == {"own": odd, "nominal": n - odd}

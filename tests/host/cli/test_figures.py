@@ -124,21 +124,33 @@ def test_noise_figure_has_log_axes_percentile_bars_and_the_timing(tmp_path):
         plt.close(fig)
 
 
-def test_estimate_run_figure_labels_residual_completeness_and_shape(gaussian, tmp_path):
+@pytest.mark.parametrize("spread", [2.0, 1000.0])
+def test_estimate_run_figure_labels_misfit_completeness_and_shape(gaussian, tmp_path, spread):
+    """The misfit is in % of a link length per unit (a reader can picture it), on an axis with
+    readable ticks: linear over a narrow range, a log axis with 1-2-5 ticks written as plain numbers
+    over a wide one (the residual's log axis had two labels, 2e-1 and 4e-1)."""
     lat = Lattice(14, 14)
     n = 20
     t = np.arange(n) / 145
-    residual = np.linspace(1e-6, 1e-3, n)
+    residual = np.linspace(1e-3, spread * 1e-3, n)
     valid = np.ones((n, lat.n_links), bool)
     valid[5, :10] = False
     joints = np.repeat(gaussian[None], n, axis=0)
     fig = figures.estimate_run_figure(tmp_path / "e.png", t, residual, valid, joints, lat, L, title="run x")
     try:
+        fig.canvas.draw()
         ax = fig.axes[0]
         ax3 = [a for a in fig.axes if a.name == "3d"][0]
         ax2 = [a for a in fig.axes if a is not ax and a is not ax3][0]
-        assert _legend(ax) == ["eq. (8) residual", "links valid"]
-        assert ax.get_yscale() == "log" and ax.get_xlabel() == "time [s]"
+        assert _legend(ax) == ["eq. (8) misfit per unit, RMS", "links valid"]
+        assert ax.get_ylabel() == "misfit per unit, RMS [% of a link length]" and ax.get_xlabel() == "time [s]"
+        # snapshot 0: every one of the 13 x 13 units valid; the figure shows 100 sqrt(residual / 169)
+        np.testing.assert_allclose(ax.lines[0].get_ydata()[0], 100 * np.sqrt(1e-3 / 169))
+        lo, hi = ax.get_ylim()
+        shown = [tk for tk in ax.get_yticklabels() if lo <= tk.get_position()[1] <= hi and tk.get_text()]
+        assert len(shown) >= 3, [tk.get_text() for tk in shown]
+        assert all("$" not in tk.get_text() and "^" not in tk.get_text() for tk in shown)
+        assert ax.get_yscale() == ("log" if spread > 30 else "linear")
         assert ax3.get_zlabel() == "z [cm]" and _legend(ax3) == ["estimate, snapshot 19"]
         line = [ln for ln in ax2.lines if ln.get_label() == "links valid"][0]
         assert line.get_ydata().min() == pytest.approx(100 * (lat.n_links - 10) / lat.n_links)
