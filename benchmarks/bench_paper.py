@@ -1,0 +1,127 @@
+"""The paper's method, every choice it leaves open side by side, on the paper's own experiment.
+Prints JSON (and with ``--markdown`` the docs/estimator.md tables on stderr).
+
+Setup: `host.cli.paper` (`capsheet paper noise`'s): the 14x14 spring-mass drape over the Fig. 9
+Gaussian and the other targets (``--target``), noise per component from MT19937 streams seeded by
+``(seed, level)`` — every row on the same draws — and the paper's error: mean (and standard
+deviation) of the 196 joints' distances after the least-squares overlay, % of the side, over
+``--trials`` trials per level.
+
+Rows: the paper's method with its defaults (`host.analysis.paper_method.PaperOptions`) and with
+one choice changed at a time; capsheet's global estimator (default, and ``prior="off"``); and the
+same with uniform instead of normal noise. Columns: noise 0, 1, 3, 5, 10 % g, and the highest
+level up to which the mean stays under the paper's 5 % failure line.
+
+    .venv/bin/python benchmarks/bench_paper.py [--trials 10] [--quick] [--markdown]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from host.analysis.paper_method import PaperOptions  # noqa: E402
+from host.cli import paper  # noqa: E402
+from host.cli.progress import Progress  # noqa: E402
+
+LEVELS = (0.0, 1.0, 3.0, 5.0, 10.0)
+TARGETS = ("fig9", "fig9-tilted", "fig9-compass", "fig9-surface")
+D = PaperOptions()
+#: row name -> what changes from the defaults (PaperOptions fields); "global*" rows are
+#: capsheet's estimator
+VARIANTS = {
+    "paper (defaults)": {},
+    "select=min (smallest eq. 8 of all starts)": {"select": "min"},
+    "accept=0.01": {"accept": 0.01},
+    "accept=0.03": {"accept": 0.03},
+    "accept=0.3": {"accept": 0.3},
+    "n_starts=1 (the square cell only)": {"n_starts": 1},
+    "n_starts=12": {"n_starts": 12},
+    "starts=random, n_starts=12, select=min": {"starts": "random", "n_starts": 12,
+                                                "select": "min"},
+    "combine=tree": {"combine": "tree"},
+    "combine=chain": {"combine": "chain"},
+    "combine=chain, select=min": {"combine": "chain", "select": "min"},
+    "joints=walk": {"joints": "walk"},
+    "max_iter=30": {"max_iter": 30},
+    "max_iter=3000": {"max_iter": 3000},
+}
+GLOBALS = {"global (capsheet default)": {}, "global, prior off": {"prior": "off"}}
+
+
+def methods() -> dict:
+    m = {name: {"method": "paper", "paper_options": dataclasses.replace(D, **kw)}
+         for name, kw in VARIANTS.items()}
+    m.update(GLOBALS)
+    return m
+
+
+def summarise(rows: list, names) -> dict:
+    return {name: {"mean_pct": {f"{r['noise_pct_g']:g}": round(r[name]["mean_pct"], 3)
+                                for r in rows},
+                   "std_pct": {f"{r['noise_pct_g']:g}": round(r[name]["std_pct"], 3)
+                               for r in rows},
+                   "time_ms": round(sum(r[name]["time_ms"] for r in rows) / len(rows), 1),
+                   "works_up_to_pct_g": paper.works_up_to(rows, name)}
+            for name in names}
+
+
+def markdown(out: dict) -> str:
+    lines = []
+    for tname, t in out["targets"].items():
+        levels = list(next(iter(t["rows"].values()))["mean_pct"])
+        lines += [f"**{tname}** ({out['noise_dist']} noise) — mean ± std, % of side:", "",
+                  "| reading | " + " | ".join(f"{lv} % g" for lv in levels)
+                  + " | under 5 % up to | ms |", "|---|" + "---:|" * (len(levels) + 2)]
+        for name, r in t["rows"].items():
+            up = r["works_up_to_pct_g"]
+            lines.append(f"| {name} | " + " | ".join(
+                f"{r['mean_pct'][lv]:.2f} ± {r['std_pct'][lv]:.2f}" for lv in levels)
+                + f" | {'–' if up is None else f'{up:g} % g'} | {r['time_ms']:.0f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--trials", type=int, default=10, help="trials per level (default 10)")
+    ap.add_argument("--seed", type=int, default=2008, help="MT19937 seed (default 2008)")
+    ap.add_argument("--target", action="append", default=None,
+                    help=f"targets (default {', '.join(TARGETS)})")
+    ap.add_argument("--noise-dist", choices=paper.NOISE_DISTS, default="normal")
+    ap.add_argument("--quick", action="store_true", help="2 trials, levels 0 and 5, fig9 only")
+    ap.add_argument("--markdown", action="store_true", help="also print the tables on stderr")
+    ap.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    args = ap.parse_args(argv)
+    if args.trials < 1:
+        ap.error("--trials must be >= 1")
+    trials, levels = (2, (0.0, 5.0)) if args.quick else (args.trials, LEVELS)
+    names = args.target or (["fig9"] if args.quick else list(TARGETS))
+    m = methods()
+    t0 = time.perf_counter()
+    out = {"benchmark": "paper_method", "lattice": "14x14", "trials": trials, "seed": args.seed,
+           "noise_dist": args.noise_dist, "levels_pct_g": list(levels),
+           "defaults": dataclasses.asdict(D), "targets": {}}
+    with Progress(len(names) * len(levels) * trials, "bench_paper", "trial",
+                  quiet=args.quiet) as bar:
+        for name in names:
+            target = paper.build_target(name)
+            rows = paper.noise_study(target, levels, trials, args.seed, methods=m,
+                                     noise_dist=args.noise_dist, progress=bar)
+            out["targets"][name] = {"description": target.description,
+                                    "rows": summarise(rows, m)}
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    if args.markdown:
+        print(markdown(out), file=sys.stderr)
+    print(json.dumps(out, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
