@@ -7,6 +7,11 @@ Gaussian and the other targets (``--target``), noise per component from MT19937 
 deviation) of the 196 joints' distances after the least-squares overlay, % of the side, over
 ``--trials`` trials per level.
 
+Also, per target, the units themselves ("units"): how many end in a wrong minimum (relative yaws
+more than 0.5 rad off the truth's) with the default selection and with ``select=min``, and how
+many of min's wrong units have a smaller eq. (8) than the truth — the reason the smallest eq. (8)
+is not the shape.
+
 Rows: the paper's method with its defaults (`host.analysis.paper_method.PaperOptions`) and with
 one choice changed at a time; capsheet's global estimator (default, and ``prior="off"``); and the
 same with uniform instead of normal noise. Columns: noise 0, 1, 3, 5, 10 % g, and the highest
@@ -62,6 +67,42 @@ def methods() -> dict:
     return m
 
 
+def unit_minima(target, levels, trials: int, seed: int, dist: str) -> dict:
+    """Per level: share of units in a wrong minimum (default selection, select=min), and of
+    min's wrong units the share whose eq. (8) is below the truth's."""
+    import numpy as np
+
+    from host.analysis import paper_method as pm
+    from host.analysis.estimator import roll_pitch
+    from protocol.lattice import Lattice
+    from virtual_sheet.geometry import link_angles
+
+    n = paper.SIDE_JOINTS
+    units = Lattice(n, n).units
+    gamma = link_angles(target.joints)[2]
+    true = pm._wrap(gamma[units] - gamma[units][..., :1])
+    out = {}
+    for level in levels:
+        wrong = {"default": [], "min": []}
+        lower = []
+        for r in paper.noise_draws(target.readings, level, trials, seed, dist):
+            a, b = roll_pitch(r)
+            cd, cn = pm._coefficients(a, b, units.reshape(-1, 4))
+            z = np.exp(1j * true.reshape(-1, 4))
+            p_true = np.abs((cd * z).sum(-1)) ** 2 + np.abs((cn * z).sum(-1)) ** 2
+            for name, opts in (("default", D), ("min", dataclasses.replace(D, select="min"))):
+                delta, P, _ = pm.unit_yaws(a, b, n, n, opts)
+                w = (np.abs(pm._wrap(delta - true)).max(-1) > 0.5).ravel()
+                wrong[name].append(w.mean())
+                if name == "min" and w.any():
+                    lower.append(np.mean(P.ravel()[w] < p_true[w]))
+        out[f"{level:g}"] = {"wrong_default_pct": round(100 * float(np.mean(wrong["default"])), 2),
+                             "wrong_min_pct": round(100 * float(np.mean(wrong["min"])), 2),
+                             "min_wrong_below_truth_pct": (round(100 * float(np.mean(lower)), 1)
+                                                           if lower else None)}
+    return out
+
+
 def summarise(rows: list, names) -> dict:
     return {name: {"mean_pct": {f"{r['noise_pct_g']:g}": round(r[name]["mean_pct"], 3)
                                 for r in rows},
@@ -84,6 +125,16 @@ def markdown(out: dict) -> str:
             lines.append(f"| {name} | " + " | ".join(
                 f"{r['mean_pct'][lv]:.2f} ± {r['std_pct'][lv]:.2f}" for lv in levels)
                 + f" | {'–' if up is None else f'{up:g} % g'} | {r['time_ms']:.0f} |")
+        u = t["units"]
+        lines += ["", "| units in a wrong minimum | " + " | ".join(f"{lv} % g" for lv in levels)
+                  + " |", "|---|" + "---:|" * len(levels),
+                  "| default selection | " + " | ".join(f"{u[lv]['wrong_default_pct']:.1f} %"
+                                                     for lv in levels) + " |",
+                  "| select=min | " + " | ".join(f"{u[lv]['wrong_min_pct']:.1f} %"
+                                              for lv in levels) + " |",
+                  "| … of which eq. (8) below the truth's | " + " | ".join(
+                      "–" if u[lv]["min_wrong_below_truth_pct"] is None
+                      else f"{u[lv]['min_wrong_below_truth_pct']:.0f} %" for lv in levels) + " |"]
         lines.append("")
     return "\n".join(lines)
 
@@ -115,7 +166,9 @@ def main(argv=None) -> int:
             rows = paper.noise_study(target, levels, trials, args.seed, methods=m,
                                      noise_dist=args.noise_dist, progress=bar)
             out["targets"][name] = {"description": target.description,
-                                    "rows": summarise(rows, m)}
+                                    "rows": summarise(rows, m),
+                                    "units": unit_minima(target, levels, trials, args.seed,
+                                                         args.noise_dist)}
     out["seconds"] = round(time.perf_counter() - t0, 1)
     if args.markdown:
         print(markdown(out), file=sys.stderr)
