@@ -17,7 +17,8 @@ one choice changed at a time; capsheet's global estimator (default, and ``prior=
 same with uniform instead of normal noise. Columns: noise 0, 1, 3, 5, 10 % g, and the highest
 level up to which the mean stays under the paper's 5 % failure line.
 
-    .venv/bin/python benchmarks/bench_paper.py [--trials 10] [--quick] [--markdown]
+    .venv/bin/python benchmarks/bench_paper.py [--trials 10] [--quick] [--markdown] > run.json
+    .venv/bin/python benchmarks/bench_paper.py --markdown-from run.json   # the tables again
 """
 
 from __future__ import annotations
@@ -113,8 +114,26 @@ def summarise(rows: list, names) -> dict:
             for name in names}
 
 
+#: the readings the summary table compares across targets
+SUMMARY = ("paper (defaults)", "n_starts=1 (the square cell only)",
+           "select=min (smallest eq. 8 of all starts)", "combine=chain",
+           "global (capsheet default)", "global, prior off")
+
+
+def summary(out: dict) -> list[str]:
+    """One row per target: the mean error at 5 and 10 % g of the readings in `SUMMARY`."""
+    levels = [lv for lv in ("5", "10") if lv in out["targets"][next(iter(out["targets"]))]
+              ["rows"]["paper (defaults)"]["mean_pct"]]
+    lines = ["| target | " + " | ".join(SUMMARY) + " |", "|---|" + "---:|" * len(SUMMARY)]
+    for tname, t in out["targets"].items():
+        lines.append(f"| {tname} | " + " | ".join(
+            " / ".join(f"{t['rows'][name]['mean_pct'][lv]:.2f}" for lv in levels)
+            for name in SUMMARY) + " |")
+    return [f"Mean % of side at {' / '.join(levels)} % g:", ""] + lines + [""]
+
+
 def markdown(out: dict) -> str:
-    lines = []
+    lines = summary(out)
     for tname, t in out["targets"].items():
         levels = list(next(iter(t["rows"].values()))["mean_pct"])
         lines += [f"**{tname}** ({out['noise_dist']} noise) — mean ± std, % of side:", "",
@@ -149,7 +168,12 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="2 trials, levels 0 and 5, fig9 only")
     ap.add_argument("--markdown", action="store_true", help="also print the tables on stderr")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    ap.add_argument("--markdown-from", metavar="JSON", default=None,
+                    help="print the tables of a saved run's JSON (stdout) and stop")
     args = ap.parse_args(argv)
+    if args.markdown_from:
+        print(markdown(json.loads(Path(args.markdown_from).read_text())))
+        return 0
     if args.trials < 1:
         ap.error("--trials must be >= 1")
     trials, levels = (2, (0.0, 5.0)) if args.quick else (args.trials, LEVELS)

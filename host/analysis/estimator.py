@@ -1492,8 +1492,8 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         `READING_NORM_RANGE` · g: a dead, stuck or saturated chip): raise a ValueError naming
         the links (default), or mask them out as missing.
     paper_options : host.analysis.paper_method.PaperOptions, optional
-        ``method="paper"`` only: the choices the paper leaves open (default: its best reading,
-        docs/estimator.md section 7).
+        ``method="paper"`` only: the choices the paper leaves open (default
+        ``PaperOptions()``; docs/estimator.md section 7 measures them).
 
     Returns
     -------

@@ -12,8 +12,10 @@ What the paper fixes:
    estimated by combining the estimated unit shapes."
 
 What it leaves open, each a field of `PaperOptions` (docs/estimator.md, section 7, measures the
-alternatives side by side on the paper's own experiment; the defaults are the reading that does
-best there, so that a comparison with it is fair):
+alternatives side by side on the paper's own experiment): the defaults read "trying multiple
+initial values" as retrying while the result looks like a local minimum; the two readings that do
+better there (a tolerant acceptance, or the square cell alone) do so by hardly ever trying a second
+start, and the comparisons quote them beside the defaults.
 
 * ``combine`` — how units become a sheet. ``"sync"`` (default): every unit solved on its own
   (its link 0 at yaw 0), then one rotation about z per unit chosen by least squares so that the
@@ -26,8 +28,11 @@ best there, so that a comparison with it is fair):
   yaws, not three) — capsheet's implementation before issue 33.
 * ``starts`` — the initial values: ``"parallelogram"`` (default): parallelogram unit shapes
   with the corner angle between links 3 and 0 at ``n_starts`` values evenly spread over the
-  circle (6: 60° apart); ``"random"``: ``n_starts`` uniformly random yaw triples from an MT19937
-  stream (``seed``). The start that ends with the smallest eq. (8) wins.
+  circle (6: 60° apart), the square cell first; ``"random"``: ``n_starts`` uniformly random yaw
+  triples from an MT19937 stream (``seed``).
+* ``select``, ``accept`` — which result is kept: ``"first"`` (default) the first start, in
+  order, whose eq. (8) ends at most ``accept`` (0.1: a unit that closes both its loops to a few
+  tenths of a link), else the smallest; ``"min"``: the smallest eq. (8) of all starts.
 * ``max_iter`` and the step rule — steepest descent with a step per unit and start that grows
   ×1.5 after a descent step and halves after a rejected one (no line search), stopped when the
   gradient's squared norm is below ``1e-14`` or after ``max_iter`` steps (default 300).
@@ -66,7 +71,7 @@ _GRAD_TOL = 1e-14
 
 @dataclass(frozen=True)
 class PaperOptions:
-    """The choices the paper leaves open (module docstring); the defaults are its best reading.
+    """The choices the paper leaves open (module docstring and docs/estimator.md section 7).
 
     Attributes
     ----------
