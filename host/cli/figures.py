@@ -207,8 +207,9 @@ def noise_figure(path, results: dict, methods, *, trials: int, seed: int, side_j
                      f"{res['solvability']['units']} below 0.1", fontsize=10)
         ax.legend(fontsize=8, loc="upper right")
         fig.colorbar(im, ax=ax, shrink=0.9, label="λ3/λ1")
+    sep = "; " if len(names) > 1 else "\n"  # one column: two lines, or the title is clipped
     fig.suptitle(f"Fig. 10 reproduced: {side_joints}x{side_joints} joints, {side_joints ** 2} joints "
-                 f"x {trials} trials per level, seed {seed}; both methods on the same draws")
+                 f"x {trials} trials per level, seed {seed}{sep}both methods on the same draws")
     _save(fig, path)
     return fig
 

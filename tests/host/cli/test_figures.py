@@ -141,6 +141,14 @@ def test_noise_figure_draws_mean_and_std_as_the_paper_with_its_failure_line_and_
     finally:
         plt.close(fig)
     assert (tmp_path / "n.png").stat().st_size > 30_000
+    one = {"fig9": res["fig9"]}  # one target, one column: the title still fits the figure
+    fig = figures.noise_figure(tmp_path / "n1.png", one, ("global", "paper"), trials=10, seed=2008,
+                               side_joints=14)
+    try:
+        box, width = _bbox(fig, fig._suptitle), fig.get_figwidth() * fig.dpi
+        assert box.x0 >= 0 and box.x1 <= width
+    finally:
+        plt.close(fig)
 
 
 def test_estimate_run_figure_labels_residual_completeness_and_shape(gaussian, tmp_path):
