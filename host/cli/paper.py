@@ -639,28 +639,26 @@ class _OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
-def _int_at_least(lo: int):
-    def parse(text: str) -> int:
+def _bounded(kind, lo: float, hi: float | None = None, name: str = "value", need: str = ""):
+    """An argparse type: ``kind(text)`` within [lo, hi], else one line naming what is allowed."""
+    need = need or f"need an integer >= {lo}"
+
+    def parse(text: str):
         try:
-            v = int(text)
+            v = kind(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"invalid value {text!r} (need an integer >= {lo})"
-                                             ) from None
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"invalid value {v} (need an integer >= {lo})")
+            raise argparse.ArgumentTypeError(f"invalid {name} {text!r} ({need})") from None
+        if not (np.isfinite(v) and v >= lo and (hi is None or v <= hi)):
+            raise argparse.ArgumentTypeError(f"invalid {name} {text!r} ({need})")
         return v
     return parse
 
 
-def _noise_arg(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid noise {text!r} (need a number of % g, 0..100)"
-                                         ) from None
-    if not (np.isfinite(v) and 0 <= v <= 100):
-        raise argparse.ArgumentTypeError(f"invalid noise {text!r} (need a number of % g, 0..100)")
-    return v
+def _int_at_least(lo: int):
+    return _bounded(int, lo)
+
+
+_noise_arg = _bounded(float, 0.0, 100.0, "noise", "need a number of % g, 0..100")
 
 
 def _target_arg(text: str) -> str:

@@ -104,15 +104,15 @@ def test_solvability_legend_and_table_count_the_same_states(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["noise", "--trials", "0"], "--trials: invalid value 0 (need an integer >= 1)"),
+    (["noise", "--trials", "0"], "--trials: invalid value '0' (need an integer >= 1)"),
     (["noise", "--trials", "x"], "--trials: invalid value 'x'"),
     (["noise", "--target", "cube"], "--target: unknown target 'cube'"),
-    (["noise", "--seed", "-1"], "--seed: invalid value -1"),
+    (["noise", "--seed", "-1"], "--seed: invalid value '-1'"),
     (["noise", "--paper-option", "combine"], "expected KEY=VALUE"),
     (["noise", "--paper-option", "n_starts=two"], "n_starts is an integer"),
     (["gaussian", "--noise", "-1"], "--noise: invalid noise '-1'"),
     (["gaussian", "--noise", "nan"], "--noise: invalid noise 'nan'"),
-    (["solvability", "--steps", "1"], "--steps: invalid value 1 (need an integer >= 2)"),
+    (["solvability", "--steps", "1"], "--steps: invalid value '1' (need an integer >= 2)"),
 ])
 def test_bad_values_are_one_line_and_exit_2(argv, message, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
