@@ -301,13 +301,14 @@ def _bar(frac: float, width: int = 20) -> str:
 
 
 def _capture(host, args, cap: PoseCapture) -> bool:
-    live = not args.quiet
+    from host.cli.progress import LiveLine
+
+    # a terminal: one line redrawn; a pipe or log: a line per new state, else every 5 s
+    live = LiveLine(quiet=args.quiet, every_s=5.0)
     t_end = time.monotonic() + args.timeout
-    last_line, state = 0.0, ""
     while len(cap.poses) < args.poses:
         if time.monotonic() > t_end:
-            if live:
-                print(file=sys.stderr)
+            live.end()
             _say(args, f"timed out after {args.timeout:g} s with {len(cap.poses)} of {args.poses} poses")
             return False
         snap = host.get(0.5)
@@ -316,22 +317,19 @@ def _capture(host, args, cap: PoseCapture) -> bool:
         what = cap.update(snap.readings, snap.valid)
         if what == "captured":
             u = cap.directions[-1]
-            if live:
-                print(file=sys.stderr)
+            live.end()
             _say(args, f"captured pose {len(cap.poses)}/{args.poses} (nearest: {cap.nearest_name(u)}; "
                        f"gravity in the board frame {np.round(u, 3).tolist()})")
-            state = ""
             continue
-        now = time.monotonic()
-        if live and (what != state or now - last_line > 0.25):
+        key = (len(cap.poses), what)
+        if live.due(key):
             name, instruction = cap.next_pose()
             shown = {"moving": "moving ... set the board down and hold still",
                      "holding": f"HOLD STILL [{_bar(cap.progress)}] {100 * cap.progress:3.0f} %",
                      "duplicate": "still, but this pose is already captured: turn the board",
                      "incomplete": "waiting for the chips"}[what]
-            print(f"\rpose {len(cap.poses) + 1}/{args.poses} next: {name} ({instruction}) | {shown}    ",
-                  end="", file=sys.stderr, flush=True)
-            last_line, state = now, what
+            live.show(f"pose {len(cap.poses) + 1}/{args.poses} next: {name} ({instruction}) | {shown}", key)
+    live.end()
     return True
 
 

@@ -130,11 +130,13 @@ def run(args) -> int:
 
     from host.estimator import error_percent_of_side, estimate
     from host.aggregator import window_completeness
+    from host.cli.progress import LiveLine
     from host.session import Host, Layout
     from host.transport import open_transport
     from virtual_sheet.sheet import VirtualSheet
 
     check_capacity(args)  # every other value was checked by its type (host.cli.argtypes)
+    live = LiveLine(every_s=2.0)  # the status: a terminal one line redrawn; a log a line every 2 s
     from host.cli.calibrate import load_calibration_arg, snapshot_corrector
     cal = load_calibration_arg(args.calibration, args.lattice, "capsheet demo")
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
@@ -209,8 +211,7 @@ def run(args) -> int:
             previous = None
             t0 = time.monotonic()
             first, sent0 = host.counter, host.syncs_sent  # the window: completeness counts its SYNCs only
-            last_print = last_eval = 0.0
-            tty = sys.stderr.isatty()  # a log gets a line every 2 s, a terminal one line redrawn
+            last_eval = 0.0
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
                 snap = agg.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
@@ -231,20 +232,16 @@ def run(args) -> int:
                     errors.append(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
                     outputs.publish(est, snap, truth=truth)
-                now = time.monotonic()
-                if now - last_print >= (0.25 if tty else 2.0):
-                    el = now - t0
+                if live.due():
+                    el = time.monotonic() - t0
                     # up to the newest SYNC emitted: those after it are in flight, not yet missed
                     c_now, n_now = host.counter, host.syncs_sent - sent0
                     end = (seen[-1][0] + 1) & 0xFFFF if seen else first
                     win = window_completeness(seen, first, end, n_now - ((c_now - end) & 0xFFFF))
-                    cr = "\r" if tty else ""
-                    print(f"{cr}{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
-                          f"{1e3 * np.median(latencies[-50:]):6.1f} ms | estimate {1e3 * np.median(times[-50:]):5.2f} ms | "
-                          f"error {_fmt(errors[-1] if errors else None)} % of side | "
-                          f"complete {win['complete_pct']:5.1f} % of SYNCs",
-                          end="" if tty else "\n", file=sys.stderr, flush=True)
-                    last_print = now
+                    live.show(f"{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
+                              f"{1e3 * np.median(latencies[-50:]):6.1f} ms | estimate {1e3 * np.median(times[-50:]):5.2f} ms | "
+                              f"error {_fmt(errors[-1] if errors else None)} % of side | "
+                              f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0
             end, sent_n = host.counter, host.syncs_sent - sent0
             host.stop()  # the SYNCs in flight get their chance to complete
@@ -262,7 +259,7 @@ def run(args) -> int:
             proc.join(10)
             if proc.is_alive():
                 proc.terminate()
-    print(file=sys.stderr)
+    live.end()
     sent = stats.get("syncs_sent", 0)
     complete_pct = 100.0 * stats.get("complete", 0) / sent if sent else 0.0
     mean_err = float(np.mean(errors)) if errors else None

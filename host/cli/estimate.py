@@ -52,7 +52,7 @@ def register(subparsers) -> None:
     p.add_argument("--uncertainty", action="store_true",
                    help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
@@ -183,7 +183,7 @@ def _chain(first, rest):
 def run(args) -> int:
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    from tqdm import tqdm
+    from host.cli.progress import Progress
 
     t_start = time.monotonic()
     pool = None
@@ -205,8 +205,7 @@ def run(args) -> int:
         t_est = time.monotonic()
         parts: list = []  # [SnapshotBatch, joints, residual, extra] in file order
         cpu_s = 0.0
-        bar = tqdm(total=total, unit="snapshot", desc="estimate", disable=args.quiet, file=sys.stderr,
-                   dynamic_ncols=True)
+        bar = Progress(total, "estimate", "snapshot", quiet=args.quiet)
 
         def done(k, result):
             nonlocal cpu_s
@@ -297,15 +296,16 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
                 quiet: bool) -> None:
     from types import SimpleNamespace
 
-    from tqdm import tqdm
-
     from host.aggregator import LatticeSnapshot
+    from host.cli.progress import Progress
     from host.record import Recorder
 
     rec = Recorder(out, lat, L, session={"mode": "estimate", "estimated_from": session.get("format", "?"),
                                          **{k: v for k, v in session.items() if k in ("rate_hz", "sync", "mode")}})
     try:
-        for k in tqdm(range(counter.shape[0]), unit="snapshot", desc="write", disable=quiet, file=sys.stderr):
+        bar = Progress(counter.shape[0], "write", "snapshot", quiet=quiet)
+        for k in range(counter.shape[0]):
+            bar.update()
             snap = LatticeSnapshot(int(counter[k]), float(ts[k]), float(wall[k]), readings[k], valid[k], status[k],
                                    bool(valid[k].all()), 0.0)
             rec.snapshot(snap)
@@ -313,5 +313,6 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
                 est = SimpleNamespace(joints=joints[k], valid=valid[k], residual=float(residual[k]), method="global",
                                       iterations=0, **{name: v[k] for name, v in extra.items()})
                 rec.estimate(est, int(counter[k]), float(ts[k]), float(wall[k]))
+        bar.close()
     finally:
         rec.close()

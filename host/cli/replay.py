@@ -79,15 +79,14 @@ def register(subparsers) -> None:
     p.add_argument("--allow-truncated", action="store_true",
                    help="replay a recording that was cut short (default: say so and exit 1)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     add_record_args(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
     from host.analysis.estimator import estimate, overlay_error
+    from host.cli.progress import Progress
     from host.cli.record_args import SessionOutputs
     from host.replay import Replay
 
@@ -116,8 +115,7 @@ def run(args) -> int:
     changes: list[float] = []
     previous = None
     t0 = time.monotonic()
-    bar = tqdm(total=rp.n_chunks, unit="chunk", desc="replay", disable=args.quiet, file=sys.stderr,
-               dynamic_ncols=True)
+    bar = Progress(rp.n_chunks, "replay", "chunk", quiet=args.quiet)
     last = [0]
 
     def progress(done: int) -> None:
