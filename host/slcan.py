@@ -48,7 +48,7 @@ from can.exceptions import error_check
 from can.interfaces.slcan import slcanBus
 from can.util import CAN_FD_DLC
 
-from host.transport import FrameBlock
+from protocol.can import FrameBlock
 
 __all__ = ["BufferedSlcanBus", "FrameBlock", "MAX_LINE", "parse_line"]
 

@@ -33,7 +33,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, decode_can, make_id, to_can
+from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, FrameBlock, decode_can, make_id, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
 from protocol.messages import Message, MsgType, Sample, unpack_sample_words
 
@@ -472,27 +472,6 @@ class MemoryTransport(SerialTransport):
 # --------------------------------------------------------------------------------------------
 # CAN (python-can)
 # --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FrameBlock:
-    """Consecutive classic extended data frames of 7 bytes, as arrays: what
-    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and `CanTransport`
-    decodes without a python-can message per frame.
-
-    Attributes
-    ----------
-    arbitration_id : ndarray, shape (n,), uint32
-        29-bit identifiers.
-    data : ndarray, shape (n, 7), uint8
-        Their data bytes.
-    """
-
-    arbitration_id: np.ndarray
-    data: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.arbitration_id.shape[0])
-
 
 def parse_can_spec(spec: str) -> tuple[str, str]:
     """``"interface:channel"`` -> ``(interface, channel)``; the channel may contain ':'.

@@ -17,13 +17,16 @@ is padded with 0x00 up to the next valid FD length (its count field says how man
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
+
+import numpy as np
 
 from .framing import DecodeError, ErrorReason
 from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Snapshot, Sync,  # noqa: F401 (doctest)
                        decode_payload, SAMPLE_WORD_SIZE)
 
-__all__ = ["EchoFilter", "CanFrame", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
+__all__ = ["EchoFilter", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
            "make_id", "split_id", "to_can", "from_can", "decode_can", "fd_length"]
 
 CAN_CLASSIC_MTU = 8
@@ -42,6 +45,27 @@ class CanFrame(NamedTuple):
     arbitration_id: int
     data: bytes
     is_fd: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameBlock:
+    """Consecutive classic extended data frames of 7 bytes, as arrays: what
+    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and
+    `host.transport.CanTransport` decodes without a python-can message per frame.
+
+    Attributes
+    ----------
+    arbitration_id : ndarray, shape (n,), uint32
+        29-bit identifiers.
+    data : ndarray, shape (n, 7), uint8
+        Their data bytes.
+    """
+
+    arbitration_id: np.ndarray
+    data: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.arbitration_id.shape[0])
 
 
 def make_id(type_code: int, node: int, priority: int | None = None, version: int = PROTOCOL_VERSION) -> int:
