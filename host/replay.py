@@ -33,11 +33,12 @@ from typing import Iterator
 import numpy as np
 
 from protocol.constants import nominal_sensitivity
+from protocol.can import CanDecoder
 from protocol.framing import StreamDecoder
 from protocol.lattice import Lattice
 
 from .aggregator import Aggregator, LatticeSnapshot
-from .transport import CanTransport, Transport, TransportCapabilities
+from .transport import Transport, TransportCapabilities, feed_can
 
 __all__ = ["ReplayTransport", "Replay", "CAN_LOG_SUFFIXES", "load_can_log"]
 
@@ -61,7 +62,7 @@ class ReplayTransport(Transport):
         ``(t - t_first) / speed`` after the first `recv` (1.0 real time); `recv` waits for them.
     """
 
-    def __init__(self, chunks: list, name: str = "replay", *, speed: float | None = None) -> None:
+    def __init__(self, chunks: list, name: str = "replay", *, speed: float | None = None, fd: bool = True) -> None:
         super().__init__(name)
         if speed is not None and not (np.isfinite(speed) and speed > 0):
             raise ValueError(f"Invalid speed: {speed!r} (need a number > 0, or None for as fast as possible)")
@@ -76,17 +77,12 @@ class ReplayTransport(Transport):
         self.speed = speed
         self._t_first = chunks[0][0] if chunks else 0.0
         self._wall0: float | None = None
-        self.decoder = StreamDecoder(batch_samples=True)
-        # CanTransport's decode step drops a bus's echoes of our own frames; a recording holds
-        # only frames the host received, so the filter sees no frame of ours and drops nothing
-        from protocol.can import EchoFilter
-        self.echo = EchoFilter()
+        # the live transports' decoders: a serial stream, or CAN frames (a recording holds only
+        # frames the host received, so the CAN decoder's echo filter sees none of ours)
+        self.decoder = StreamDecoder(batch_samples=True) if self.kind == "serial" else CanDecoder(fd=fd)
         self.sent: list = []
         self.capabilities = TransportCapabilities(kind=self.kind, mtu=1018 if self.kind == "serial" else 64,
-                                                  fd=self.kind == "can", name=name)
-
-    # CanTransport's decode step, unchanged: frames -> events (SampleBatch runs), errors counted
-    _decode = CanTransport._decode
+                                                  fd=self.kind == "can" and fd, name=name)
 
     @property
     def exhausted(self) -> bool:
@@ -120,7 +116,7 @@ class ReplayTransport(Transport):
         if kind == "serial":
             self.stats.bytes_in += len(payload)
             return self.decoder.feed(payload)
-        return self._decode([_frame(f) for f in payload])
+        return feed_can(self.decoder, [_frame(f) for f in payload], self.stats)
 
     def _send_internal(self, msg) -> None:
         self.sent.append(msg)
@@ -193,12 +189,17 @@ class Replay:
         self.host_calibration = None  #: applied to every snapshot, as the recording host did
         calibration = None
         session: dict = {}
+        fds: dict = {}
         if self.path.suffix.lower() == ".mcap":
             self.recording = rec = record.read(self.path)
             session = rec.session
             self.lattice = rec.lattice
-            names = {i: t.get("name", f"bus{i}") for i, t in enumerate(session.get("transports", []))}
+            recorded = session.get("transports", [])
+            names = {i: t.get("name", f"bus{i}") for i, t in enumerate(recorded)}
             buses = {names.get(b, f"bus{b}"): rec.raw[b] for b in sorted(rec.raw)}
+            # a bus the host opened classic dropped the CAN FD frames it got: so does its replay
+            fds = {names.get(b, f"bus{b}"): bool(recorded[b].get("fd", True)) if b < len(recorded) else True
+                   for b in rec.raw}
             self._syncs = rec.sync
             calibration = rec.attachments.get("calibration.json")
             host_cal = rec.attachments.get(record.HOST_CALIBRATION)
@@ -224,7 +225,7 @@ class Replay:
             dl = session.get("deadline_s", max(2.0 / rate, 0.05))
         else:
             dl = CAN_LOG_DEADLINE_S
-        self.transports = [ReplayTransport(chunks, name) for name, chunks in buses.items()]
+        self.transports = [ReplayTransport(chunks, name, fd=fds.get(name, True)) for name, chunks in buses.items()]
         self._now = min((t.next_time for t in self.transports if t.next_time is not None), default=0.0)
         n = self.lattice.n_links
         self.aggregator = Aggregator(n, n_buses=len(self.transports), deadline_s=float(dl),

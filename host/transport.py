@@ -31,15 +31,13 @@ from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
-import numpy as np
-
-from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, FrameBlock, decode_can, make_id, to_can
+from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
-from protocol.messages import Message, MsgType, Sample, unpack_sample_words
+from protocol.messages import Message
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Transport", "SerialTransport", "MemoryTransport",
-           "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec"]
+           "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec", "feed_can"]
 
 log = logging.getLogger("capsheet.host.transport")
 
@@ -473,6 +471,23 @@ class MemoryTransport(SerialTransport):
 # CAN (python-can)
 # --------------------------------------------------------------------------------------------
 
+def feed_can(decoder: CanDecoder, frames, stats: TransportStats) -> list:
+    """``decoder.feed(frames)``, with what the decoder took in and dropped without an event added
+    to a transport's ``stats``: data bytes to ``bytes_in``, error frames to
+    ``errors["CAN_ERROR_FRAME"]``, CAN FD frames on a classic bus to ``errors["FD_ON_CLASSIC"]``
+    (`Transport.recv` counts the `DecodeError` events). `CanTransport` and
+    `host.replay.ReplayTransport` receive through it."""
+    st = decoder.stats
+    b0, e0, f0 = st.bytes_in, st.error_frames, st.fd_on_classic
+    events = decoder.feed(frames)
+    stats.bytes_in += st.bytes_in - b0
+    if st.error_frames != e0:
+        stats.errors["CAN_ERROR_FRAME"] += st.error_frames - e0
+    if st.fd_on_classic != f0:
+        stats.errors["FD_ON_CLASSIC"] += st.fd_on_classic - f0
+    return events
+
+
 def parse_can_spec(spec: str) -> tuple[str, str]:
     """``"interface:channel"`` -> ``(interface, channel)``; the channel may contain ':'.
 
@@ -531,6 +546,8 @@ class CanTransport(Transport):
         self._max_batch = max_batch
         #: our own frames handed back (udp_multicast does): dropped, counted in ``echo.echoes``
         self.echo = EchoFilter()
+        #: the sans-I/O receiver (`protocol.can.CanDecoder`): frames in, events out
+        self.decoder = CanDecoder(fd=fd, echo=self.echo)
         #: ``on_sent(can.Message)`` after every frame this host sent (``is_rx`` False, wall-clock
         #: timestamp as python-can stamps received frames): what ``--can-log`` writes as Tx
         self.on_sent: Callable[[Any], None] | None = None
@@ -591,6 +608,9 @@ class CanTransport(Transport):
             return []
         return self._decode(frames) if frames else []
 
+    def _decode(self, frames: list) -> list:
+        return feed_can(self.decoder, frames, self.stats)
+
     def _count_bus_errors(self, bus) -> None:
         """Damaged SLCAN lines the bus skipped -> ``SLCAN_BAD_LINE`` (taken, so a reopened bus
         starts from zero)."""
@@ -598,83 +618,6 @@ class CanTransport(Transport):
         if n:
             bus.bad_lines = 0
             self.stats.errors["SLCAN_BAD_LINE"] += n
-
-    def _decode(self, frames: list) -> list:
-        """Frames -> events in wire order, in one pass: runs of well-formed SAMPLE frames are
-        collected and unpacked together by numpy (one `SampleBatch` per run); every other frame,
-        and any SAMPLE frame `decode_can` would reject, goes through `decode_can` one by one.
-        ``frames``: python-can messages and `FrameBlock` arrays, in wire order. (host/replay.py
-        reuses this method on its own transport: it reads ``self.fd`` only for an FD frame.)"""
-        events: list = []
-        pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
-        datas: list = []  # ... and its frames not yet in a piece (one by one)
-        nodes: list[int] = []
-        errors = self.stats.errors
-        echo = self.echo
-        n_bytes = 0
-
-        def flush() -> None:
-            if datas:
-                pieces.append(_rows(nodes, datas))
-                datas.clear()
-                nodes.clear()
-            if pieces:
-                events.append(_sample_run(pieces))
-                pieces.clear()
-
-        def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
-            if echo and echo.is_echo(aid, data):
-                return
-            if is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
-                errors["FD_ON_CLASSIC"] += 1
-                return
-            if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
-                    and is_extended_id and aid < (1 << 29) and (aid & 0xFFFF) != 0xFFFF):
-                datas.append(data)
-                nodes.append(aid & 0xFFFF)
-                return
-            ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
-            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
-                datas.append(data)
-                nodes.append(ev.node)
-                return
-            flush()
-            events.append(ev)
-
-        for f in frames:
-            if type(f) is FrameBlock:
-                ids, rows = f.arbitration_id, f.data
-                n_bytes += rows.size
-                fast = ((ids & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION) & ((ids & 0xFFFF) != 0xFFFF)
-                if echo:
-                    pending = [i for i in echo.identifiers() if (i & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION]
-                    if pending:
-                        fast &= ~np.isin(ids, pending)
-                if fast.all():
-                    bounds = [0, len(ids)]
-                else:
-                    bounds = [0, *(np.flatnonzero(np.diff(fast.astype(np.int8))) + 1).tolist(), len(ids)]
-                for a, b in zip(bounds[:-1], bounds[1:]):
-                    if fast[a]:
-                        if datas:
-                            pieces.append(_rows(nodes, datas))
-                            datas.clear()
-                            nodes.clear()
-                        pieces.append(((ids[a:b] & 0xFFFF).astype(np.uint16), rows[a:b]))
-                    else:
-                        for k in range(a, b):
-                            one(int(ids[k]), rows[k].tobytes(), True, False)
-                continue
-            if f.is_error_frame:
-                errors["CAN_ERROR_FRAME"] += 1  # the bus signalled an error (then retransmits)
-                continue
-            if f.is_remote_frame:
-                continue
-            n_bytes += len(f.data)
-            one(f.arbitration_id, f.data, f.is_extended_id, f.is_fd)
-        flush()
-        self.stats.bytes_in += n_bytes
-        return events
 
     def _send_internal(self, msg: Message) -> None:
         bus = self._bus
@@ -700,31 +643,6 @@ class CanTransport(Transport):
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None
-
-
-#: identifier bits 25..16 (type and version, docs §7) of a SAMPLE frame of this protocol version
-_TYPE_VERSION_MASK = 0x3FF0000
-_SAMPLE_TYPE_VERSION = make_id(MsgType.SAMPLE, 0, 0) & _TYPE_VERSION_MASK
-
-
-def _rows(nodes: list[int], datas: list) -> tuple[np.ndarray, np.ndarray]:
-    """SAMPLE frames given one by one -> ``(node uint16 (n,), data uint8 (n, 7))``."""
-    return (np.array(nodes, dtype=np.uint16),
-            np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), Sample.SIZE))
-
-
-def _sample_run(pieces: list) -> SampleBatch:
-    """Consecutive well-formed SAMPLE frames (7 data bytes each: counter u16, sample word), given
-    as ``(node, data rows)`` pieces, as one batch unpacked in one numpy pass: the batch of the
-    `Sample` messages `decode_can` makes of them."""
-    if len(pieces) == 1:
-        node, d = pieces[0]
-    else:
-        node = np.concatenate([p[0] for p in pieces])
-        d = np.concatenate([p[1] for p in pieces])
-    counter = (d[:, 0].astype(np.uint16) | (d[:, 1].astype(np.uint16) << 8))
-    counts, status = unpack_sample_words(np.ascontiguousarray(d[:, 2:]).reshape(-1))
-    return SampleBatch(node, counter, counts, status)
 
 
 # --------------------------------------------------------------------------------------------
