@@ -146,46 +146,26 @@ SCHEMAS: dict[str, dict] = {
 # Raw taps
 # --------------------------------------------------------------------------------------------
 
-class _TapDecoder:
-    """Stands in for a SerialTransport's decoder: hands every chunk to ``on_raw`` then decodes."""
+def tap_transport(transport, on_raw: Callable[[str, Any], None]) -> Callable:
+    """Call ``on_raw(kind, payload)`` with a transport's wire input as it is received: ``kind``
+    ``"serial"`` (payload: the bytes read) or ``"can"`` (payload: the frames of one receive, one
+    by one: python-can messages, and `host.transport.RawFrame` s for the rows of an SLCAN bus's
+    `protocol.can.FrameBlock`). A capture handler (`host.transport.Transport.begin_capture`);
+    returned, for `end_capture`. Raises TypeError for an object that is not a transport."""
+    begin = getattr(transport, "begin_capture", None)
+    if begin is None:
+        raise TypeError(f"Cannot record raw input of {type(transport).__name__} {getattr(transport, 'name', '?')!r} "
+                        f"(need a host.transport.Transport, which offers begin_capture)")
 
-    def __init__(self, inner, on_raw: Callable[[bytes], None]) -> None:
-        self._inner = inner
-        self._on_raw = on_raw
-
-    def feed(self, data: bytes):
-        self._on_raw(bytes(data))
-        return self._inner.feed(data)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)
-
-
-def tap_transport(transport, on_raw: Callable[[str, Any], None]) -> None:
-    """Call ``on_raw(kind, payload)`` with a transport's wire input as it is received, before decoding.
-
-    ``kind`` is ``"serial"`` (payload: the bytes read) or ``"can"`` (payload: the list of
-    ``can.Message`` of one receive batch). Works on `host.transport.SerialTransport` (and
-    `MemoryTransport`) and `CanTransport`; raises TypeError for others. The tap wraps the
-    transport's decode step on this instance only (`host.transport` is not changed).
-    """
-    from host.transport import CanTransport, SerialTransport
-
-    if isinstance(transport, CanTransport):
-        decode = transport._decode
-
-        def tapped(frames, _decode=decode):
-            on_raw("can", frames)
-            return _decode(frames)
-        transport._decode = tapped
-    elif isinstance(transport, SerialTransport):
-        transport.decoder = _TapDecoder(transport.decoder, lambda data: on_raw("serial", data))
-    else:
-        raise TypeError(f"Cannot record raw input of {type(transport).__name__} {transport.name!r} "
-                        f"(need a SerialTransport or CanTransport)")
+    def handler(cap) -> None:
+        if cap.direction == "rx":
+            on_raw(cap.kind, cap.frames(echoes=True) if cap.kind == "can" else cap.raw)
+    begin(handler)
+    return handler
 
 
 def _can_frame_dict(m) -> dict:
+    """A received frame (python-can message or `host.transport.RawFrame`) as the recording stores it."""
     return {"id": int(m.arbitration_id), "ext": bool(m.is_extended_id), "fd": bool(m.is_fd),
             "err": bool(m.is_error_frame), "rtr": bool(m.is_remote_frame),
             "brs": bool(getattr(m, "bitrate_switch", False)), "ts": float(m.timestamp or 0.0),
@@ -309,10 +289,11 @@ class Recorder:
         self._ports = {bus: t.name for bus, t in enumerate(transports)}
         for bus, t in enumerate(transports):
             if aggregator is None:
-                tap_transport(t, lambda kind, payload, bus=bus, name=t.name: self.raw(bus, kind, payload, name))
+                t.begin_capture(lambda cap, bus=bus, name=t.name: cap.direction == "rx" and self.raw(
+                    bus, cap.kind, _raw_payload(cap), name, t=cap.timestamp, log_time_ns=int(cap.wall_time * 1e9)))
             else:
-                tap_transport(t, lambda kind, payload, bus=bus: self._pending[bus].append(
-                    (time.monotonic(), time.time_ns(), kind, payload)))
+                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self._pending[bus].append(
+                    (cap.timestamp, int(cap.wall_time * 1e9), cap.kind, _raw_payload(cap))))
         if aggregator is None:
             return
         ingest = aggregator.ingest
@@ -474,6 +455,12 @@ class Recorder:
                    "transports": [{"name": t.name, "kind": t.capabilities.kind, "fd": t.capabilities.fd,
                                    "bitrate": t.capabilities.bitrate} for t in host.transports]}
         return session, layout, calibration
+
+
+def _raw_payload(cap):
+    """What `Recorder.raw` records of a received `host.transport.Capture`: the bytes, or every
+    frame as received (echoes too: the recording holds the wire)."""
+    return cap.frames(echoes=True) if cap.kind == "can" else cap.raw
 
 
 def _wall_ns(wall_time: float | None) -> int:

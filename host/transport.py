@@ -16,7 +16,18 @@ Only override the hooks, never `recv` / `send` directly.
 
 Events returned by `Transport.recv` are what the protocol decoders produce, in wire order:
 `protocol.Message` instances, `protocol.SampleBatch` (runs of SAMPLE, the fast path) and
-`protocol.DecodeError` (damage, counted in `TransportStats.errors`). Wire input never raises.
+`protocol.DecodeError` (damage, counted in `TransportStats.errors`). Wire input never raises. A
+transport only moves bytes and frames: the decoding is the sans-I/O `protocol.framing.StreamDecoder`
+(serial) or `protocol.can.CanDecoder` (CAN), the same objects replay and the tests use.
+
+**Capture** (pycyphal's ``Transport.begin_capture``): `Transport.begin_capture(handler)` hands the
+handler every unit of traffic from then on as a `Capture`, in both directions, raw and decoded: what
+a receive read (serial bytes, or the CAN frames the bus delivered) with the events decoded from it,
+and what a send wrote (bytes or a frame) with the message it carried. The recorder, ``--can-log``
+and the conformance audit are capture handlers; nothing reaches into a transport. **Raw sends**
+for tools that must put frames a conforming host never sends on the wire: `SerialTransport.send_bytes`
+and `CanTransport.send_frame`; they are captured too (``events`` empty), and a CAN frame sent raw is
+known to the echo filter like any other.
 """
 
 from __future__ import annotations
@@ -29,14 +40,14 @@ import time
 from abc import ABC, abstractmethod
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
 from protocol.messages import Message
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
-           "TransportCapabilities", "TransportStats", "Transport", "SerialTransport", "MemoryTransport",
+           "TransportCapabilities", "TransportStats", "Capture", "RawFrame", "Transport", "SerialTransport", "MemoryTransport",
            "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec", "feed_can"]
 
 log = logging.getLogger("capsheet.host.transport")
@@ -123,6 +134,7 @@ class TransportStats:
     disconnects: int = 0  #: times the port went away
     reconnects: int = 0  #: times it came back and was reopened
     send_failures: int = 0
+    capture_errors: int = 0  #: exceptions a capture handler raised (the first of each handler is logged)
 
     @property
     def error_count(self) -> int:
@@ -131,7 +143,93 @@ class TransportStats:
     def as_dict(self) -> dict:
         return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "frames_in": self.frames_in,
                 "frames_out": self.frames_out, "errors": dict(self.errors), "disconnects": self.disconnects,
-                "reconnects": self.reconnects, "send_failures": self.send_failures}
+                "reconnects": self.reconnects, "send_failures": self.send_failures,
+                "capture_errors": self.capture_errors}
+
+
+# --------------------------------------------------------------------------------------------
+# Capture: what a transport received and sent, for whoever subscribes
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Capture:
+    """One unit of traffic of a transport, as `Transport.begin_capture` hands it over.
+
+    Attributes
+    ----------
+    transport : Transport
+        Who moved it (``transport.name`` names the port or bus).
+    direction : str
+        ``"rx"`` (read from the wire) or ``"tx"`` (written to it).
+    timestamp : float
+        Host ``time.monotonic()`` seconds when it was read (after the read returned) or written.
+    wall_time : float
+        ``time.time()`` at the same instant (what log files stamp).
+    kind : str
+        ``"serial"`` or ``"can"``: what ``raw`` holds.
+    raw : bytes or tuple
+        Serial: the bytes as read or written (rx: one read, cut anywhere; tx: whole frames).
+        CAN rx: the frames one receive drained, in wire order, as the bus delivered them
+        (python-can ``Message`` s, and `protocol.can.FrameBlock` s from the SLCAN bus's fast
+        path), the echoes of this host's own frames included. CAN tx: ``(message,)``, the
+        python-can ``Message`` written.
+    events : tuple
+        Rx: what the decoder made of this input, exactly the events `Transport.recv` returns for
+        it (a serial frame cut across reads comes with the read that completes it). Tx: the
+        `protocol.Message` sent, or ``()`` for a raw send (`SerialTransport.send_bytes`,
+        `CanTransport.send_frame`).
+    echoes : tuple of (int, bytes)
+        CAN rx: ``(arbitration_id, data)`` of the frames of ``raw`` recognised as this host's own
+        handed back (python-can's ``udp_multicast`` does): dropped from ``events``. Else ``()``.
+    """
+
+    transport: Any
+    direction: str
+    timestamp: float
+    wall_time: float
+    kind: str
+    raw: Any
+    events: tuple = ()
+    echoes: tuple = ()
+
+    def frames(self, *, echoes: bool = False) -> list:
+        """CAN: the frames of ``raw`` one by one, in wire order: python-can messages as they are,
+        each row of a `protocol.can.FrameBlock` as a `RawFrame` (stamped ``wall_time``); the
+        echoes of this host's own frames left out unless ``echoes``. Serial: ``[]``."""
+        if self.kind != "can":
+            return []
+        out: list = []
+        for f in self.raw:
+            if type(f) is FrameBlock:
+                out += [RawFrame(aid, row, timestamp=self.wall_time)
+                        for aid, row in zip(f.arbitration_id.tolist(), map(bytes, f.data))]
+            else:
+                out.append(f)
+        if echoes or not self.echoes:
+            return out
+        left = Counter(self.echoes)
+        kept = []
+        for f in out:
+            key = (f.arbitration_id, bytes(f.data))
+            if left.get(key) and not (f.is_error_frame or f.is_remote_frame):
+                left[key] -= 1
+                continue
+            kept.append(f)
+        return kept
+
+
+class RawFrame(NamedTuple):
+    """One received CAN frame with python-can ``Message``'s attributes (what `Capture.frames`
+    makes of a `protocol.can.FrameBlock` row)."""
+
+    arbitration_id: int
+    data: bytes
+    is_extended_id: bool = True
+    is_fd: bool = False
+    is_error_frame: bool = False
+    is_remote_frame: bool = False
+    bitrate_switch: bool = False
+    timestamp: float = 0.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -143,7 +241,9 @@ class Transport(ABC):
     serialised by a lock).
 
     Subclasses implement ``_recv_internal(timeout_s) -> list`` (events, possibly empty; may return
-    early), ``_send_internal(msg)`` and ``_close_internal()``, and set ``capabilities``.
+    early), ``_send_internal(msg) -> raw`` (what was written: bytes, or the CAN frame) and
+    ``_close_internal()``, and set ``capabilities``. A back end hands what it reads to
+    `emit_capture` (the base class captures what `send` writes).
     """
 
     capabilities: TransportCapabilities
@@ -158,6 +258,52 @@ class Transport(ABC):
         self.reconnect = reconnect
         self.reconnect_interval_s = reconnect_interval_s
         self._last_attempt = float("-inf")
+        self._captures: tuple = ()  # capture handlers (a tuple: iterated without a lock)
+        self._capture_failed: set = set()  # handlers whose failure was logged once
+
+    # -- capture (pycyphal: Transport.begin_capture) -------------------------------------------
+    def begin_capture(self, handler: Callable[[Capture], None]) -> None:
+        """Hand ``handler`` every `Capture` from now on: each receive (raw input and the events
+        decoded from it) and each send (the raw output and the message, ``events`` empty for a
+        raw send), in wire order per direction.
+
+        The handler runs in the thread that moved the traffic: for rx inside `recv`, before the
+        events are returned (so it sees the input before anyone acts on it); for tx inside the send
+        lock, after the write. It must be quick, must not modify what it is given, and must not call
+        this transport's `send` or `recv`. An exception it raises is counted in
+        ``stats.capture_errors`` (the first of each handler logged with its traceback) and does not
+        reach the receive or send. Several handlers may be registered; `end_capture` removes one.
+        """
+        if not callable(handler):
+            raise TypeError(f"Invalid capture handler: {handler!r} (need a callable taking a Capture)")
+        self._captures = (*self._captures, handler)
+
+    def end_capture(self, handler: Callable[[Capture], None]) -> None:
+        """Stop handing captures to ``handler`` (registered by `begin_capture`); no error if it is not."""
+        self._captures = tuple(h for h in self._captures if h != handler)  # == : bound methods are new objects
+
+    @property
+    def capturing(self) -> bool:
+        """True while at least one capture handler is registered (a back end may skip the work)."""
+        return bool(self._captures)
+
+    def emit_capture(self, direction: str, raw: Any, events=(), echoes=()) -> None:
+        """For back ends: hand one unit of traffic (`Capture`'s fields) to every capture handler
+        now; nothing to do without handlers."""
+        handlers = self._captures
+        if not handlers:
+            return
+        cap = Capture(self, direction, time.monotonic(), time.time(), self.capabilities.kind
+                      if self.capabilities.kind != "memory" else "serial", raw, tuple(events), tuple(echoes))
+        for h in handlers:
+            try:
+                h(cap)
+            except Exception:  # noqa: BLE001 - a subscriber's bug must not stop the traffic
+                self.stats.capture_errors += 1
+                if id(h) not in self._capture_failed:
+                    self._capture_failed.add(id(h))
+                    log.exception("capture handler %r of %s %r failed (further failures are counted in "
+                                  "stats.capture_errors)", h, self.label, self.name)
 
     # -- reconnect, written once for every back end ----------------------------------------------
     def _lost(self, exc: BaseException) -> None:
@@ -241,7 +387,7 @@ class Transport(ABC):
             raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
         with self._send_lock:
             try:
-                self._send_internal(msg)
+                raw = self._send_internal(msg)
             except TransportError:
                 self.stats.send_failures += 1
                 raise
@@ -250,6 +396,8 @@ class Transport(ABC):
                 raise TransportOperationError(
                     f"Cannot send {msg.TYPE.name} on {self.name!r}: {exc}", self.name) from exc
             self.stats.frames_out += 1
+            if self._captures:
+                self.emit_capture("tx", raw, (msg,))
 
     def close(self) -> None:
         """Close the port. Idempotent."""
@@ -280,8 +428,9 @@ class Transport(ABC):
         """Events available within ``timeout_s``; [] if none. Never raises on wire input."""
 
     @abstractmethod
-    def _send_internal(self, msg: Message) -> None:
-        """Put one message on the wire."""
+    def _send_internal(self, msg: Message) -> Any:
+        """Put one message on the wire; return what was written, as `Capture.raw` holds it (bytes,
+        or a tuple of the CAN frame)."""
 
     def _close_internal(self) -> None:
         pass
@@ -428,13 +577,32 @@ class SerialTransport(Transport):
         if not data:
             return []
         self.stats.bytes_in += len(data)
-        return self.decoder.feed(data)
+        events = self.decoder.feed(data)
+        if self._captures:
+            self.emit_capture("rx", data, events)
+        return events
 
-    def _send_internal(self, msg: Message) -> None:
-        self.send_bytes(encode(msg))
+    def _send_internal(self, msg: Message) -> bytes:
+        data = encode(msg)
+        self._write(data)
+        return data
 
     def send_bytes(self, data: bytes) -> None:
-        """Raw wire bytes (already framed); for tests and bridges."""
+        """Raw send: wire bytes as they are (already framed, or deliberately not: a conformance
+        check's junk), under the send lock, captured (``events`` empty). Raises as `send` does."""
+        if self._closed:
+            raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+        data = bytes(data)
+        with self._send_lock:
+            try:
+                self._write(data)
+            except TransportError:
+                self.stats.send_failures += 1
+                raise
+            if self._captures:
+                self.emit_capture("tx", data)
+
+    def _write(self, data: bytes) -> None:
         port = self._port
         if port is None:
             raise TransportOperationError(f"Serial port {self.name!r} is not connected", self.name)
@@ -471,15 +639,15 @@ class MemoryTransport(SerialTransport):
 # CAN (python-can)
 # --------------------------------------------------------------------------------------------
 
-def feed_can(decoder: CanDecoder, frames, stats: TransportStats) -> list:
+def feed_can(decoder: CanDecoder, frames, stats: TransportStats, echoes: list | None = None) -> list:
     """``decoder.feed(frames)``, with what the decoder took in and dropped without an event added
     to a transport's ``stats``: data bytes to ``bytes_in``, error frames to
     ``errors["CAN_ERROR_FRAME"]``, CAN FD frames on a classic bus to ``errors["FD_ON_CLASSIC"]``
-    (`Transport.recv` counts the `DecodeError` events). `CanTransport` and
-    `host.replay.ReplayTransport` receive through it."""
+    (`Transport.recv` counts the `DecodeError` events). ``echoes``: `CanDecoder.feed`'s. `CanTransport`
+    and `host.replay.ReplayTransport` receive through it."""
     st = decoder.stats
     b0, e0, f0 = st.bytes_in, st.error_frames, st.fd_on_classic
-    events = decoder.feed(frames)
+    events = decoder.feed(frames, echoes)
     stats.bytes_in += st.bytes_in - b0
     if st.error_frames != e0:
         stats.errors["CAN_ERROR_FRAME"] += st.error_frames - e0
@@ -548,9 +716,6 @@ class CanTransport(Transport):
         self.echo = EchoFilter()
         #: the sans-I/O receiver (`protocol.can.CanDecoder`): frames in, events out
         self.decoder = CanDecoder(fd=fd, echo=self.echo)
-        #: ``on_sent(can.Message)`` after every frame this host sent (``is_rx`` False, wall-clock
-        #: timestamp as python-can stamps received frames): what ``--can-log`` writes as Tx
-        self.on_sent: Callable[[Any], None] | None = None
         self._bus = self._open()
         self.capabilities = TransportCapabilities(
             kind="can", mtu=CAN_FD_MTU if fd else CAN_CLASSIC_MTU, fd=fd, bitrate=bitrate,
@@ -606,10 +771,14 @@ class CanTransport(Transport):
         except Exception as exc:  # noqa: BLE001 - CanOperationError etc.
             self._lost(exc)
             return []
-        return self._decode(frames) if frames else []
-
-    def _decode(self, frames: list) -> list:
-        return feed_can(self.decoder, frames, self.stats)
+        if not frames:
+            return []
+        if not self._captures:
+            return feed_can(self.decoder, frames, self.stats)
+        echoes: list = []
+        events = feed_can(self.decoder, frames, self.stats, echoes)
+        self.emit_capture("rx", tuple(frames), events, echoes)
+        return events
 
     def _count_bus_errors(self, bus) -> None:
         """Damaged SLCAN lines the bus skipped -> ``SLCAN_BAD_LINE`` (taken, so a reopened bus
@@ -619,14 +788,38 @@ class CanTransport(Transport):
             bus.bad_lines = 0
             self.stats.errors["SLCAN_BAD_LINE"] += n
 
-    def _send_internal(self, msg: Message) -> None:
+    def _send_internal(self, msg: Message):
+        frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
+        return (self._put(frame.arbitration_id, frame.data, True, frame.is_fd),)
+
+    def send_frame(self, arbitration_id: int, data: bytes, *, extended: bool = True, fd: bool = False) -> None:
+        """Raw send: one CAN frame as given, whatever it holds (an undefined type, another protocol
+        version, a standard 11-bit identifier: what a conformance check sends), under the send lock.
+        Captured (``events`` empty) and known to the echo filter like every frame this host sends.
+        Raises `TransportOperationError` / `TransportTimeoutError` as `send` does."""
+        if self._closed:
+            raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+        with self._send_lock:
+            try:
+                m = self._put(int(arbitration_id), bytes(data), bool(extended), bool(fd))
+            except TransportError:
+                self.stats.send_failures += 1
+                raise
+            except Exception as exc:  # noqa: BLE001 - python-can rejects a malformed frame by ValueError etc.
+                self.stats.send_failures += 1
+                raise TransportOperationError(f"Cannot send frame 0x{arbitration_id:X} on {self.name!r}: {exc}",
+                                              self.name) from exc
+            if self._captures:
+                self.emit_capture("tx", (m,))
+
+    def _put(self, arbitration_id: int, data: bytes, extended: bool, fd: bool):
+        """Write one frame; returns the python-can message written (``is_rx`` False, stamped with
+        the wall clock as python-can stamps received frames)."""
         bus = self._bus
         if bus is None:
             raise TransportOperationError(f"CAN bus {self.name!r} is not connected", self.name)
-        frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
-        m = self._can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True,
-                              is_fd=frame.is_fd)
-        self.echo.sent(frame.arbitration_id, frame.data)
+        m = self._can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended, is_fd=fd)
+        self.echo.sent(arbitration_id, data)
         try:
             bus.send(m, timeout=1.0)
         except Exception as exc:  # noqa: BLE001
@@ -634,10 +827,9 @@ class CanTransport(Transport):
                 raise TransportTimeoutError(f"Send on CAN bus {self.name!r} timed out: {exc}", self.name) from exc
             self._lost(exc)
             raise TransportOperationError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc
-        self.stats.bytes_out += len(frame.data)
-        if self.on_sent is not None:
-            m.timestamp, m.is_rx = time.time(), False
-            self.on_sent(m)
+        self.stats.bytes_out += len(data)
+        m.timestamp, m.is_rx = time.time(), False
+        return m
 
     def _close_internal(self) -> None:
         if self._bus is not None:

@@ -301,9 +301,10 @@ class CanDecoder:
         self.echo = EchoFilter() if echo is None else echo
         self.stats = CanDecoderStats()
 
-    def feed(self, frames) -> list:
+    def feed(self, frames, echoes: list | None = None) -> list:
         """Decode ``frames`` (python-can-like messages and `FrameBlock` s, in wire order); return
-        their events in wire order."""
+        their events in wire order. ``echoes``: a list to which ``(arbitration_id, data)`` of
+        every frame dropped as an echo of this node's own is appended (for a capture)."""
         events: list = []
         pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
         datas: list = []  # ... and its frames not yet in a piece (one by one)
@@ -329,6 +330,8 @@ class CanDecoder:
         def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
             nonlocal n_frames
             if echo and echo.is_echo(aid, data):
+                if echoes is not None:
+                    echoes.append((aid, bytes(data)))
                 return
             if is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
                 st.fd_on_classic += 1
