@@ -276,37 +276,28 @@ class Recorder:
             self.flush()
 
     # -- what a session publishes ------------------------------------------------------------------
-    def tap(self, transports, aggregator=None) -> None:
-        """Record every transport's raw input (`tap_transport`), bus index = position in the list.
+    def tap(self, transports, feed=None) -> None:
+        """Record every transport's raw input (its capture, `host.transport.Transport.begin_capture`),
+        bus index = position in the list.
 
-        With ``aggregator`` (the one the transports feed, by ``ingest(events, bus)``), a chunk is
-        written when its events are ingested, stamped ``t`` = the aggregator's clock read under its
-        lock: the order of ingests and of the snapshots the host emits is then the recorded order,
-        so a replay makes the same snapshots however late the host's threads ran. (``t_rx`` keeps
-        the time the bytes were read.) A chunk without a complete frame waits for the next ingest.
+        With ``feed`` (the `host.feed.SnapshotFeed` the transports' events go into, as
+        ``feed.ingest(events, bus)``), a chunk is written when its events are ingested, stamped
+        ``t`` = the ``now`` the aggregator decides with (`SnapshotFeed.add_ingest_listener`): the
+        order of ingests and of the snapshots emitted is then the recorded order, so a replay makes
+        the same snapshots however late the host's threads ran. (``t_rx`` keeps the time the bytes
+        were read.) A chunk without a complete frame waits for the next ingest.
         """
         self._pending = {bus: [] for bus in range(len(transports))}
         self._ports = {bus: t.name for bus, t in enumerate(transports)}
         for bus, t in enumerate(transports):
-            if aggregator is None:
+            if feed is None:
                 t.begin_capture(lambda cap, bus=bus, name=t.name: cap.direction == "rx" and self.raw(
                     bus, cap.kind, _raw_payload(cap), name, t=cap.timestamp, log_time_ns=int(cap.wall_time * 1e9)))
             else:
                 t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self._pending[bus].append(
                     (cap.timestamp, int(cap.wall_time * 1e9), cap.kind, _raw_payload(cap))))
-        if aggregator is None:
-            return
-        ingest = aggregator.ingest
-
-        def tapped(events, bus=0, _ingest=ingest):
-            pending = self._pending.get(bus)
-            if pending:
-                with aggregator._lock:
-                    t = aggregator.clock()
-                    self._write_pending(bus, t)
-                    return _ingest(events, bus, now=t)  # decided at the stamp the replay uses
-            return _ingest(events, bus)
-        aggregator.ingest = tapped
+        if feed is not None:
+            feed.add_ingest_listener(lambda bus, now: self._pending.get(bus) and self._write_pending(bus, now))
 
     def _write_pending(self, bus: int, t: float | None) -> None:
         pending = self._pending[bus]
@@ -338,14 +329,9 @@ class Recorder:
         """The host opened SYNC ``counter`` at host monotonic ``t`` (replay re-opens it there)."""
         self._log(TOPIC_SYNC, "capsheet.Sync", {"counter": int(counter), "t": float(t)})
 
-    def tap_sync(self, aggregator) -> None:
-        """Record every counter the host opens on ``aggregator`` (`Aggregator.open_counter`)."""
-        open_counter = aggregator.open_counter
-
-        def tapped(counter, t=None, *, restart=False, _open=open_counter):
-            self.sync(counter, aggregator.clock() if t is None else t)
-            return _open(counter, t, restart=restart)
-        aggregator.open_counter = tapped
+    def tap_sync(self, feed) -> None:
+        """Record every counter the host opens (`host.feed.SnapshotFeed.add_open_listener`)."""
+        feed.add_open_listener(self.sync)
 
     def snapshot(self, snap) -> None:
         """One `host.aggregator.LatticeSnapshot`."""
@@ -401,7 +387,7 @@ class Recorder:
         self._writer.write_metadata("capsheet.host", {k: json.dumps(v) for k, v in session.items()})
         now = time.time_ns()
         docs = [("layout.json", layout), ("calibration.json", calibration)]
-        live_cal = getattr(getattr(host, "snapshot_filter", None), "calibration", None)
+        live_cal = host.calibration
         if live_cal is not None:  # `capsheet host --calibration`: what the snapshots were corrected with
             docs.append((HOST_CALIBRATION, live_cal.to_dict()))
         for name, doc in docs:

@@ -98,7 +98,7 @@ def run(args) -> int:
     if not 0 <= args.min_complete <= 100:
         print(f"capsheet demo: invalid --min-complete {args.min_complete!r} (need 0..100 %)", file=sys.stderr)
         return 2
-    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    from host.cli.calibrate import load_calibration_arg
     cal = load_calibration_arg(args.calibration, args.lattice, "capsheet demo")
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
     kw = _sheet_kwargs(args)
@@ -149,7 +149,7 @@ def run(args) -> int:
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
         outputs.attach(host)
         if cal is not None:  # before bring-up: it follows the chip calibration the host reads
-            host.snapshot_filter = snapshot_corrector(host, cal)
+            host.set_calibration(cal)
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
@@ -166,7 +166,7 @@ def run(args) -> int:
             tty = sys.stderr.isatty()  # a log gets a line every 2 s, a terminal one line redrawn
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
-                snap = agg.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
+                snap = host.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
                 if snap is None or not snap.valid.any():
                     continue
                 t_e = time.perf_counter()

@@ -170,9 +170,12 @@ class SessionOutputs:
         from host.transport import CanTransport
 
         if self.recorder is not None and self.recorder.path is not None:
-            self.recorder.tap(host.transports, host.aggregator)
-            self.recorder.tap_sync(host.aggregator)
-            self._record_at_emission(host)
+            self.recorder.tap(host.transports, host.feed)
+            self.recorder.tap_sync(host.feed)
+            # every snapshot as it is emitted, corrected (the feed's listeners run in order with
+            # the raw input): a consumer that falls behind drops from its queue, never from the file
+            host.feed.add_listener(self.recorder.snapshot)
+            self.records_at_emission = True
         if self.can_log is not None:
             cans = [t for t in host.transports if isinstance(t, CanTransport)]
             if not cans:
@@ -181,21 +184,6 @@ class SessionOutputs:
                 bus = host.transports.index(t)
                 t.begin_capture(lambda cap, bus=bus: self._log_can(bus, cap))
                 print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
-
-    def _record_at_emission(self, host) -> None:
-        """Every snapshot the aggregator emits is recorded as it is emitted (in the aggregator's
-        thread, under its lock: in order with the raw frames), with the host's calibration applied:
-        a consumer that falls behind drops from its queue (newest wins), never from the file."""
-        agg, rec = host.aggregator, self.recorder
-        chained = agg.on_snapshot
-
-        def on_snapshot(snap):
-            f = getattr(host, "snapshot_filter", None)
-            rec.snapshot(snap if f is None else f(snap))
-            if chained is not None:
-                chained(snap)
-        agg.on_snapshot = on_snapshot
-        self.records_at_emission = True
 
     def _log_can(self, bus: int, cap) -> None:
         """A capture (`host.transport.Capture`) of bus index ``bus`` into the log: one python-can
