@@ -52,6 +52,10 @@ __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "T
 
 log = logging.getLogger("capsheet.host.transport")
 
+#: the python-can interface name ``--can slcan:PORT`` opens (`host.slcan.SlcanBus`, registered
+#: by the ``can.interface`` entry point in pyproject.toml)
+SLCAN_INTERFACE = "capsheet_slcan"
+
 
 # --------------------------------------------------------------------------------------------
 # Errors by stage (python-can: CanError > CanInitializationError / CanOperationError / ...)
@@ -691,9 +695,10 @@ class CanTransport(Transport):
     **bus_kwargs
         Passed to ``can.Bus`` (e.g. ``sleep_after_open=0`` for slcan on a pty).
 
-    The ``slcan`` interface is opened as `host.slcan.BufferedSlcanBus` (python-can's slcan bus,
-    read in chunks, stale input drained at open); the SLCAN lines it skips as damaged are counted
-    in ``stats.errors["SLCAN_BAD_LINE"]``.
+    The ``slcan`` interface is opened as python-can's ``capsheet_slcan`` (`host.slcan.SlcanBus`:
+    read in chunks, stale input drained at open, runs of SAMPLE lines handed over as arrays by its
+    ``drain_blocks``); the SLCAN lines it skips as damaged are counted in
+    ``stats.errors["SLCAN_BAD_LINE"]``. Any other interface is python-can's ``can.Bus`` of that name.
     """
 
     def __init__(self, spec: str, *, fd: bool = False, bitrate: int | None = None,
@@ -723,11 +728,10 @@ class CanTransport(Transport):
 
     def _open(self):
         can = self._can
+        # slcan: capsheet's own SLCAN bus, a python-can interface found by name (host/slcan.py)
+        interface = SLCAN_INTERFACE if self.interface == "slcan" else self.interface
         try:
-            if self.interface == "slcan":  # python-can's slcan, read in chunks (host/slcan.py)
-                from .slcan import BufferedSlcanBus
-                return BufferedSlcanBus(self.channel, fd=self.fd, **self._bus_kwargs)
-            return can.Bus(interface=self.interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
+            return can.Bus(interface=interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError
             raise TransportInitError(f"Cannot open CAN bus {self.name!r}: {exc}", self.name) from exc
 
@@ -755,9 +759,11 @@ class CanTransport(Transport):
         wait = min(timeout_s, 0.1) if timeout_s is not None else 0.1
         try:
             drain = getattr(bus, "drain_blocks", None)
-            if drain is not None:  # BufferedSlcanBus: every buffered line parsed in one pass
+            if drain is not None:  # host.slcan.SlcanBus: every buffered line parsed in one pass
                 frames = drain(wait, max_lines=self._max_batch)
-                self._count_bus_errors(bus)
+                bad = bus.take_bad_lines()
+                if bad:
+                    self.stats.errors["SLCAN_BAD_LINE"] += bad
             else:
                 first = bus.recv(wait)
                 if first is None:
@@ -779,14 +785,6 @@ class CanTransport(Transport):
         events = feed_can(self.decoder, frames, self.stats, echoes)
         self.emit_capture("rx", tuple(frames), events, echoes)
         return events
-
-    def _count_bus_errors(self, bus) -> None:
-        """Damaged SLCAN lines the bus skipped -> ``SLCAN_BAD_LINE`` (taken, so a reopened bus
-        starts from zero)."""
-        n = bus.bad_lines
-        if n:
-            bus.bad_lines = 0
-            self.stats.errors["SLCAN_BAD_LINE"] += n
 
     def _send_internal(self, msg: Message):
         frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
