@@ -186,7 +186,7 @@ def solvability_grid(steps: int = 20) -> dict:
     gp = np.linspace(0.0, np.pi / 2, steps)
     tc, tf, tr, tp = np.meshgrid(g, g, g, gp, indexing="ij")
     a, b, c = unit_state(tc, tf, tr, tp)
-    ratio = E._solvability_units(a, b)
+    ratio = E.solvability_units(a, b)
     gain = yaw_std_gain(a, b, c)
     grid = np.stack([tc, tf, tr, tp], -1)
     bad = ratio < 0.1
