@@ -128,7 +128,23 @@ class FrameAudit:
             self._run.clear()
 
 
-class AuditedCanTransport(CanTransport):
+class _AuditView:
+    """``raw`` and ``bad_ids`` of the object's ``audit`` (a `FrameAudit`)."""
+
+    audit: FrameAudit
+
+    @property
+    def raw(self) -> deque:
+        """Every frame received, raw (`FrameAudit.raw`: serial byte runs, or CAN ``(id, data, fd)``)."""
+        return self.audit.raw
+
+    @property
+    def bad_ids(self) -> list[str]:
+        """CAN identifiers the audit rejected (`FrameAudit.bad_ids`)."""
+        return self.audit.bad_ids
+
+
+class AuditedCanTransport(_AuditView, CanTransport):
     """A `CanTransport` with a `FrameAudit` subscribed to its capture from the start: ``raw`` and
     ``bad_ids`` are the audit's. Raw frames (undefined types, another version, standard ids) go
     out through the transport's own `CanTransport.send_frame`."""
@@ -138,20 +154,12 @@ class AuditedCanTransport(CanTransport):
         self.audit = FrameAudit()
         self.begin_capture(self.audit)
 
-    @property
-    def raw(self) -> deque:
-        return self.audit.raw
-
-    @property
-    def bad_ids(self) -> list[str]:
-        return self.audit.bad_ids
-
 
 # ---------------------------------------------------------------------------------------------
 # The port: a reader thread, arrival times, event-driven waits
 # ---------------------------------------------------------------------------------------------
 
-class Port:
+class Port(_AuditView):
     """The transport to the device, read by one thread; ``next(deadline)`` blocks on arrivals.
 
     Parameters
@@ -276,16 +284,6 @@ class Port:
         if not isinstance(self.transport, CanTransport):
             raise Skip("raw CAN frames need a CAN transport")
         self.transport.send_frame(arbitration_id, data, extended=extended)
-
-    @property
-    def raw(self) -> deque:
-        """Every frame received, raw (`FrameAudit.raw`: serial byte runs, or CAN ``(id, data, fd)``)."""
-        return self.audit.raw
-
-    @property
-    def bad_ids(self) -> list[str]:
-        """CAN identifiers the audit rejected (`FrameAudit.bad_ids`)."""
-        return self.audit.bad_ids
 
     def close(self) -> None:
         self._stop.set()

@@ -10,7 +10,6 @@ import itertools
 import logging
 import os
 import time
-import tty
 
 import pytest
 
@@ -18,6 +17,7 @@ from host.transport import CanTransport, Capture, MemoryTransport, RawFrame, Ser
 from protocol import DecodeError, SampleBatch, encode, to_can
 from protocol.can import FrameBlock, make_id
 from protocol.messages import Ack, MsgType, Sample, Status, Sync
+from tests.host.test_slcan import pty_pair  # noqa: F401 - a fixture: a raw pty, its master fd and slave path
 from virtual_sheet.memport import memory_link
 
 can = pytest.importorskip("can")
@@ -131,19 +131,6 @@ def test_can_capture_both_ways_and_a_raw_frame_echo_is_dropped_not_blamed():
     assert sum(len(c.raw) for c in rx) == 5  # the wire: three echoes and the chip's two frames
     kept = [f.arbitration_id for c in rx for f in c.frames()]
     assert kept == [to_can(Sample(9, 5, 1, 2, 3, 0)).arbitration_id, to_can(Status(9, 3, 0, 0, 0, 1)).arbitration_id]
-
-
-@pytest.fixture
-def pty_pair():
-    master, slave = os.openpty()
-    tty.setraw(master)
-    tty.setraw(slave)
-    yield master, os.ttyname(slave)
-    for fd in (master, slave):
-        try:
-            os.close(fd)
-        except OSError:
-            pass
 
 
 def test_slcan_capture_expands_frame_blocks_into_the_frames_of_the_wire(pty_pair):

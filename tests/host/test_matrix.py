@@ -28,7 +28,6 @@ UDP port per machine): its runs go one after the other, under the machine-wide l
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import fcntl
 import json
 import os
@@ -40,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from tests.host.udp_lock import udp_multicast_lock
 
 ROOT = Path(__file__).resolve().parents[2]
 PY = sys.executable
@@ -285,7 +286,7 @@ class Batch:
             if not done.exists():
                 tmp.mkdir(parents=True, exist_ok=True)
                 if transport == "udp_multicast":
-                    with udp_lock():
+                    with udp_multicast_lock():  # one udp_multicast sheet per machine
                         b = cls(transport, tmp)
                 else:
                     b = cls(transport, tmp)
@@ -379,16 +380,6 @@ def _udp_available() -> None:
         pytest.skip(f"udp_multicast not available here: {exc}")
 
 
-@contextlib.contextmanager
-def udp_lock():
-    """The machine-wide lock of tests/host/cli/test_host.py's udp_multicast tests (its
-    ``udp_bus_lock``): one udp_multicast sheet on this machine at a time."""
-    with open(os.path.join("/tmp", "capsheet-udp-multicast-tests.lock"), "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def cells(feature: str):
