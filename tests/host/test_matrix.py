@@ -53,6 +53,7 @@ L = 0.01
 SEED = 5  #: the chip errors of the streaming sheet (realistic, noise-free: every snapshot alike)
 MUTANT = "counter_off_by_one"  #: breaks §5.1 on any transport (tests/host/conformance/mutants.py)
 MUTANT_FAILS = {22, 23, 24, 25}  #: tests/host/conformance/test_mutants.py's EXPECTED for it
+MUTANT_ONLY = "1,22,23,24,25,27"  #: the mutant's run: discovery, the checks it fails, one it passes
 
 #: feature -> what its cell asserts (the rows of the docs table)
 CELLS = {
@@ -308,18 +309,21 @@ class Batch:
         can_log = ["--can-log", str(tmp / "stream.log")] if transport in CAN else []
         streaming = ["--chip-errors", "realistic", "--seed", str(SEED)]
         host = ["host", "{port}", "--lattice", LATTICE, "--layout", "{layout}", "--rate", "30", "--deadline-ms", "500",
-                "--duration", "2", "--json", "-q", "--live-rate", "20", "--link-length", str(L)]
+                "--duration", "1.5", "--json", "-q", "--live-rate", "20", "--link-length", str(L)]
         chip = ["--rows", "2", "--cols", "2", "--shape", "flat", "--noise", "0.5"]
         specs = [
             ("stream", [*host, "--record", str(tmp / "stream.mcap"), "--live", "0", *can_log], streaming),
             ("calibration", [*host, "--record", str(tmp / "calibrated.mcap"), "--calibration", str(self.cal_path)],
              streaming),
-            ("conformance", ["conformance", "{port}"], chip),
-            ("mutant", ["conformance", "{port}"], [*chip, "--mutant", MUTANT]),
+            # the host-side slack of the timing checks is generous: the transport is under test here,
+            # the chip's timing is tests/host/conformance's, and the machine may be loaded
+            ("conformance", ["conformance", "{port}", "--slack-ms", "40"], chip),
+            ("mutant", ["conformance", "{port}", "--slack-ms", "40", "--only", MUTANT_ONLY],
+             [*chip, "--mutant", MUTANT]),
             ("calibrate", ["calibrate", "{port}", "--lattice", LATTICE, "--layout", "{layout}", "--out",
                            str(tmp / "fitted-cal.json"), "--write-chips", "--poses", "6", "--samples", "10",
                            "--window", "8", "--rate", "50", "--timeout", "150", "-q"],
-             ["--board", "1.0", "--chip-errors", "realistic", "--noise", "0.1", "--seed", "7"]),
+             ["--board", "0.8", "--chip-errors", "realistic", "--noise", "0.1", "--seed", "7"]),
             ("tactile", ["tactile", "{port}", "--lattice", LATTICE, "--layout", "{layout}", "--rate", "30", "--learn-s",
                          "0.7", "--duration", "1.5", "--record", str(tmp / "tactile.mcap"), "--out",
                          str(tmp / "tactile.png"), "-q"], ["--shape", "flat", "--noise", "0.1"]),
@@ -456,8 +460,9 @@ def test_conformance_passes_a_healthy_chip_and_fails_a_mutant(batch):
     if batch.transport in CAN:
         assert {20, 32} <= passed, healthy.stdout
     assert mutant.rc == 1 and "Traceback" not in mutant.stderr, mutant.stdout + mutant.stderr
-    failed = {int(ln.split()[1]) for ln in mutant.stdout.splitlines() if ln.startswith("FAIL")}
-    assert failed == MUTANT_FAILS, mutant.stdout
+    outcome = {int(ln.split()[1]): ln.split()[0] for ln in mutant.stdout.splitlines() if ln[:4] in ("PASS", "FAIL")}
+    assert outcome == {1: "PASS", 22: "FAIL", 23: "FAIL", 24: "FAIL", 25: "FAIL", 27: "PASS"}, mutant.stdout
+    assert {k for k, v in outcome.items() if v == "FAIL"} == MUTANT_FAILS
 
 
 @pytest.mark.parametrize("batch", cells("calibrate"), indirect=True)
