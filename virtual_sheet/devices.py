@@ -523,6 +523,38 @@ class _PtyMixin:
                 pass
 
 
+class PtyPort(_PtyMixin):
+    """One pseudo-terminal with a stable symlink, re-created after an outage: for a device that
+    serves several of its own (the SLCAN adapters of virtual_sheet/slcan.py)."""
+
+    def __init__(self, name: str, symlink_path: str | os.PathLike | None = None) -> None:
+        self.name = name
+        self._pty_init(symlink_path)
+
+    @property
+    def master(self) -> int:
+        """The master side's file descriptor (-1 while closed)."""
+        return self._master
+
+    @property
+    def has_pending(self) -> bool:
+        """Bytes wait for the host to read them (write again when the master is writable)."""
+        return bool(self._pending)
+
+    def open(self) -> None:
+        self._pty_open()
+
+    def close(self, remove_link: bool = True) -> None:
+        self._pty_close(remove_link)
+
+    def cleanup(self) -> None:
+        self._pty_cleanup()
+
+    def write(self, data: bytes, n_frames: int = 0) -> None:
+        """Queue ``data`` (``n_frames`` frames) for the host and write what the pty takes."""
+        self._pty_write(data, n_frames)
+
+
 class PtyDevice(_PtyMixin, _SerialDevice):
     """The sheet's gateway on a pseudo-terminal serial port.
 

@@ -283,7 +283,7 @@ def _eq7_matrices(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     return M
 
 
-def _solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+def solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     """``λ3/λ1`` of eq. (7) for units given as ``(..., 4)`` angle arrays.
 
     Eq. (7)'s 4x6 real matrix is the realification of a complex 2x3 matrix ``K`` acting on
@@ -297,6 +297,10 @@ def _solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     a = cb * np.array([-1.0, 1.0, 1.0])
     b = (sb * ca - 1j * sa) * np.array([1.0, -1.0, 1.0])
     return _sigma_ratio(a, b)
+
+
+#: its name before it was public (host/analysis/_kernel/yaw_eval.h cites it)
+_solvability_units = solvability_units
 
 
 def _sigma_ratio(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -335,7 +339,7 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         if al.shape == be.shape == (_lattice(rows, cols).n_links,):
             return _solvability_kernel(_angle_trig(al, be), rows, cols)
     a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
-    ratio = _solvability_units(a, b)
+    ratio = solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
     if bad.any():
         ratio[bad] = np.nan

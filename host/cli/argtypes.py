@@ -71,11 +71,10 @@ class CliParser(argparse.ArgumentParser):
     def _check_paths(self, ns: argparse.Namespace) -> None:
         outputs: list[tuple[str, OutputPath]] = []
         inputs: list[str] = []
-        for action in self._actions:
-            value = getattr(ns, action.dest, None)
+        for dest, value in vars(ns).items():  # the parsed values: argparse keeps its actions private
             for v in value if isinstance(value, list) else [value]:
                 if isinstance(v, OutputPath):
-                    outputs.append((action.option_strings[0] if action.option_strings else action.dest, v))
+                    outputs.append(("--" + dest.replace("_", "-"), v))
                 elif isinstance(v, InputPath):
                     inputs.append(v)
         for opt, out in outputs:

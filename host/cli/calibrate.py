@@ -32,22 +32,19 @@ the fit refused the poses, or a chip's read-back differs from what was written; 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
 import time
-from typing import Callable
 
 import numpy as np
 
-from host.analysis.calibration import (BOARD_POSES, MIN_POSES, NOMINAL_SENSITIVITY, Calibration,
+from host.analysis.calibration import (BOARD_POSES, MIN_POSES, Calibration,
                                        StaticDetector, board_frame_readings, fit_board_poses)
 from host.cli.transport_args import add_transport_args, open_transports
 from host.transport import TransportError
 
-__all__ = ["register", "run", "load_calibration_arg", "snapshot_corrector", "write_chip_calibration",
-           "PoseCapture"]
+__all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "PoseCapture"]
 
 #: a new pose must differ from every captured one by at least this angle, degrees
 MIN_POSE_SEPARATION_DEG = 20.0
@@ -120,48 +117,6 @@ def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | 
     return cal
 
 
-def _chip_calibration_of(host) -> tuple[np.ndarray, np.ndarray]:
-    """Offset and sensitivity (±2 g counts) the host converts each link's counts with (CAL_DATA)."""
-    n = host.lattice.n_links
-    off, sens = np.zeros((n, 3)), np.full((n, 3), NOMINAL_SENSITIVITY)
-    scale = float(1 << int(host.range_code))
-    for rec in host._assigned():
-        off[rec.link] = np.asarray(rec.offset) * scale
-        sens[rec.link] = np.asarray(rec.sensitivity) * scale
-    return off, sens
-
-
-class SnapshotCorrector:
-    """``snapshot -> snapshot`` with calibrated readings, for the chip calibration the host read:
-    `Calibration.rebased` to it, so a file works whether or not its offsets and sensitivities
-    were written to the chips. Set it before bring-up: it follows every ``read_calibration``
-    (``host.calibration_reads``), so the first snapshot streamed is corrected like the rest (and
-    recorded so); until the host has read the chips it passes snapshots through."""
-
-    def __init__(self, host, cal: Calibration) -> None:
-        self._host, self._cal = host, cal
-        self._live: Calibration | None = None
-        self._reads = 0
-
-    @property
-    def calibration(self) -> Calibration | None:
-        """What is applied now (None before the host read the chips' calibration): what a
-        recording attaches as ``host_calibration.json`` for its replay."""
-        reads = int(getattr(self._host, "calibration_reads", 1))
-        if reads and (self._live is None or reads != self._reads):
-            self._live, self._reads = self._cal.rebased(*_chip_calibration_of(self._host)), reads
-        return self._live
-
-    def __call__(self, snap):
-        live = self.calibration
-        return snap if live is None else dataclasses.replace(snap, readings=live.apply(snap.readings))
-
-
-def snapshot_corrector(host, cal: Calibration) -> Callable:
-    """A `SnapshotCorrector` of ``host`` for ``cal``."""
-    return SnapshotCorrector(host, cal)
-
-
 def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndarray) -> dict:
     """CAL_WRITE every assigned chip's three axes (chips must be IDLE), then CAL_READ them back.
 
@@ -173,7 +128,7 @@ def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndar
 
     q4 = np.clip(np.rint(np.asarray(offset_counts) * 16.0), -32768, 32767).astype(int)
     sens = np.asarray(sensitivity, dtype=np.float32)
-    chips = host._by_node()
+    chips = host.chips_by_node()
     refused: set[int] = set()
     for axis in range(3):
         def build(key, _attempt, axis=axis):
@@ -186,7 +141,7 @@ def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndar
             if isinstance(msg, (Ack, Nack)) and msg.command == MsgType.CAL_WRITE:
                 return (bus, msg.node)
             return None
-        answers, missing = host._round(chips, build, match, f"CAL_WRITE axis {axis}")
+        answers, missing = host.command_round(chips, build, match, f"CAL_WRITE axis {axis}")
         refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
         refused |= {chips[k].link for k in missing}
     host.read_calibration()
@@ -385,7 +340,7 @@ def run(args) -> int:
             _say(args, f"only {summary['assigned']} of {host.lattice.n_links} links have a chip: "
                        "every link is needed")
             return 1
-        ref_off, ref_sens = _chip_calibration_of(host)
+        ref_off, ref_sens = host.chip_calibration()
         try:
             done = _capture(host, args, cap)
         except KeyboardInterrupt:
@@ -427,7 +382,7 @@ def run(args) -> int:
                        f"and verified, {len(w['refused'])} refused, {len(w['mismatch'])} axis mismatches")
             if w["refused"] or w["mismatch"] or len(w["verified"]) < cal.n_links:
                 status = 1
-            cal = cal.rebased(*_chip_calibration_of(host))  # the file now describes the written chips
+            cal = cal.rebased(*host.chip_calibration())  # the file now describes the written chips
         try:
             cal.save(args.out)
         except OSError as exc:

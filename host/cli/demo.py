@@ -137,7 +137,7 @@ def run(args) -> int:
 
     check_capacity(args)  # every other value was checked by its type (host.cli.argtypes)
     live = LiveLine(every_s=2.0)  # the status: a terminal one line redrawn; a log a line every 2 s
-    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    from host.cli.calibrate import load_calibration_arg
     cal = load_calibration_arg(args.calibration, args.lattice, "capsheet demo")
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
     kw = _sheet_kwargs(args)
@@ -197,7 +197,7 @@ def run(args) -> int:
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
         outputs.attach(host)
         if cal is not None:  # before bring-up: it follows the chip calibration the host reads
-            host.snapshot_filter = snapshot_corrector(host, cal)
+            host.set_calibration(cal)
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
@@ -214,7 +214,7 @@ def run(args) -> int:
             last_eval = 0.0
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
-                snap = agg.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
+                snap = host.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
                 if snap is None or not snap.valid.any():
                     continue
                 t_e = time.perf_counter()

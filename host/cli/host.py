@@ -233,7 +233,7 @@ def run(args) -> int:
         if len(layout.links) < lattice.n_links:
             print(f"capsheet host: the layout names {len(layout.links)} chips for {lattice.n_links} links; "
                   f"{lattice.n_links - len(layout.links)} links have no chip (counted as missing)", file=sys.stderr)
-    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    from host.cli.calibrate import load_calibration_arg
     cal = load_calibration_arg(args.calibration, f"{lattice.rows}x{lattice.cols}", "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
@@ -265,7 +265,7 @@ def run(args) -> int:
     code = EXIT_OK
     summary: dict | None = None
     if cal is not None:  # before bring-up: the first snapshot streamed is corrected too
-        host.snapshot_filter = snapshot_corrector(host, cal)
+        host.set_calibration(cal)
     try:
         with host:
             try:
@@ -292,8 +292,8 @@ def run(args) -> int:
                 for _ in range(256):  # bounded: the duration and the status are checked meanwhile
                     if snap is None or writer is None:
                         break
-                    # every queued snapshot passes `host.get` (calibration, health), the estimate
-                    # is made on the newest only (the recording took each as it was emitted)
+                    # every queued snapshot is recorded (the recording took each as it was
+                    # emitted, corrected), the estimate is made on the newest only
                     newer = host.get(0)
                     writer.snapshot(snap, estimate=newer is None)
                     snap = newer
@@ -310,7 +310,7 @@ def run(args) -> int:
                     status.show(_status_text(host, t0, n0))
                     last = now
             host.stop()
-            for snap in host.aggregator.drain():
+            for snap in host.drain():
                 if writer is not None:
                     writer.snapshot(snap)
             if not args.quiet:

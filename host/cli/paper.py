@@ -256,7 +256,7 @@ def solvability_grid(steps: int = 20) -> dict:
     they split over `CASE_GROUPS`."""
     grid = _grid(steps)
     a, b, c = unit_state(*np.moveaxis(grid, -1, 0))
-    ratio = E._solvability_units(a, b)
+    ratio = E.solvability_units(a, b)
     gain = yaw_std_gain(a, b, c)
     median = float(np.median(gain))
     limit = YAW_STD_RELATIVE_LIMIT * median

@@ -62,8 +62,8 @@ def cmd_decode(args) -> int:
     events = dec.feed(data)
     for ev in events:
         print(ev)
-    if dec._partial:
-        print(f"(incomplete frame pending: {len(dec._partial)} bytes without a 0x00 delimiter)")
+    if dec.pending_bytes:
+        print(f"(incomplete frame pending: {dec.pending_bytes} bytes without a 0x00 delimiter)")
     print(f"frames={dec.stats.frames} errors={dict((k.name, v) for k, v in dec.stats.errors.items())}",
           file=sys.stderr)
     return 1 if dec.stats.error_count else 0

@@ -127,46 +127,43 @@ class SessionOutputs:
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
         """Before bring-up: record the raw input of every transport and every SYNC the host opens."""
-        from host.record import tap_transport
         from host.transport import CanTransport
 
         if self.recorder is not None and self.recorder.path is not None:
-            self.recorder.tap(host.transports, host.aggregator)
-            self.recorder.tap_sync(host.aggregator)
-            self._record_at_emission(host)
+            self.recorder.tap(host.transports, host.feed)
+            self.recorder.tap_sync(host.feed)
+            # every snapshot as it is emitted, corrected (the feed's listeners run in order with
+            # the raw input): a consumer that falls behind drops from its queue, never from the file
+            host.feed.add_listener(self.recorder.snapshot)
+            self.records_at_emission = True
         if self.can_log is not None:
             cans = [t for t in host.transports if isinstance(t, CanTransport)]
             if not cans:
                 print(f"{self.prog}: --can-log needs a CAN bus (--can); nothing is logged", file=sys.stderr)
             for t in cans:
                 bus = host.transports.index(t)
-                tap_transport(t, lambda kind, frames, bus=bus: self._log_can(bus, frames))
-                t.on_sent = lambda m, bus=bus: self._log_can(bus, (m,), sent=True)
+                t.begin_capture(lambda cap, bus=bus: self._log_can(bus, cap))
                 print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
 
-    def _record_at_emission(self, host) -> None:
-        """Every snapshot the aggregator emits is recorded as it is emitted (in the aggregator's
-        thread, under its lock: in order with the raw frames), with the host's calibration applied:
-        a consumer that falls behind drops from its queue (newest wins), never from the file."""
-        agg, rec = host.aggregator, self.recorder
-        chained = agg.on_snapshot
+    def _log_can(self, bus: int, cap) -> None:
+        """A capture (`host.transport.Capture`) of bus index ``bus`` into the log: one python-can
+        message per frame, copied (the bus's own messages are not touched), the channel the bus
+        index (ASC and BLF number channels; candump's .log shows it as ``can<index>``). What the
+        host sent is logged as Tx (``is_rx`` False: candump's ``T``, ASC's ``Tx``), received frames
+        as Rx; a received echo of the host's own frame (udp_multicast) is its Tx already."""
+        import can
 
-        def on_snapshot(snap):
-            f = getattr(host, "snapshot_filter", None)
-            rec.snapshot(snap if f is None else f(snap))
-            if chained is not None:
-                chained(snap)
-        agg.on_snapshot = on_snapshot
-        self.records_at_emission = True
-
-    def _log_can(self, bus: int, frames, sent: bool = False) -> None:
-        """Frames of bus index ``bus`` into the log; the channel is the bus index (ASC and BLF
-        number channels; candump's .log shows it as ``can<index>``). What the host sent is logged
-        as Tx (``is_rx`` False: candump's ``T``, ASC's ``Tx``), received frames as Rx."""
+        sent = cap.direction == "tx"
+        frames = cap.raw if sent else cap.frames()
         with self._can_lock:
-            for m in frames:
-                m.channel = bus
-                self.can_log.on_message_received(m)
+            for f in frames:
+                self.can_log.on_message_received(can.Message(
+                    timestamp=float(f.timestamp or cap.wall_time), arbitration_id=int(f.arbitration_id),
+                    is_extended_id=bool(f.is_extended_id), is_remote_frame=bool(f.is_remote_frame),
+                    is_error_frame=bool(f.is_error_frame), is_fd=bool(f.is_fd),
+                    bitrate_switch=bool(getattr(f, "bitrate_switch", False)),
+                    dlc=getattr(f, "dlc", None) if f.is_remote_frame else None,
+                    data=None if f.is_remote_frame else bytes(f.data), channel=bus, is_rx=not sent))
                 self.can_frames_logged += 1
                 self.can_frames_sent_logged += sent
 

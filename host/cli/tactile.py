@@ -78,8 +78,10 @@ def _status(fr: TactileFrame, L: float) -> str:
             + (": " + "; ".join(parts) if parts else ""))
 
 
-def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
+    from host.aggregator import LatticeSnapshot
     from host.analysis.tactile import TactileSensor
+    from host.feed import corrected
     from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamCylinder, FoamLayer, FoamScene,
                                     FoamSphere, Press, SphereIndenter)
     from virtual_sheet.geometry import ideal_readings
@@ -96,13 +98,25 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
                      ramp_s=0.1 * T)]
     scene = FoamScene(body, presses, rows, cols, L)
     rng = np.random.Generator(np.random.MT19937(args.seed))
-    if args.cal is not None:  # the virtual chips read with the nominal calibration
-        n = args.cal.n_links
-        _fix = args.cal.rebased(np.zeros((n, 3)), np.full((n, 3), 1024.0)).apply
-        noisy_readings = lambda r, *a, _n=noisy_readings: _fix(_n(r, *a))  # noqa: E731
+    n_links = (rows - 1) * cols + rows * (cols - 1)
+    # the virtual chips read with the nominal calibration: a calibration file is rebased to it and
+    # applied as the host's feed applies it (host.feed.corrected)
+    fix = (None if args.cal is None else
+           args.cal.rebased(np.zeros((n_links, 3)), np.full((n_links, 3), 1024.0)).apply)
+    valid, status = np.ones(n_links, dtype=bool), np.zeros(n_links, dtype=np.uint8)
+    valid.setflags(write=False)
+    status.setflags(write=False)
+    wall0 = time.time()
+
+    def snapshot(k: int, t: float, readings: np.ndarray):
+        """The readings as the snapshot a host would hand over, corrected; recorded if asked."""
+        readings.setflags(write=False)
+        snap = LatticeSnapshot(k, t, wall0 + t, readings, valid, status, True, 0.0)
+        return snap if fix is None else corrected(snap, fix)
+
     r0 = ideal_readings(scene.rest_joints)
-    rest = TactileSensor.learn_rest([noisy_readings(r0, args.noise, rng) for _ in range(32)],
-                                    rows, cols, L)
+    rest = TactileSensor.learn_rest([snapshot(-1, 0.0, noisy_readings(r0, args.noise, rng)).readings
+                                     for _ in range(32)], rows, cols, L)
     if not args.quiet:
         print(f"capsheet tactile: virtual {args.body}, {rows}x{cols}, L={L * 100:g} cm, noise "
               f"{args.noise:g} % g; rest learned from 32 untouched snapshots (noise "
@@ -111,8 +125,9 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
     n = max(1, int(round(T * args.snapshot_rate)))
     for k in range(n + 1):
         t = k / args.snapshot_rate
-        fr = sensor.process(noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng),
-                            t_s=t)
+        snap = snapshot(k, t, noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng))
+        outputs.snapshot(snap, estimate=False)  # what is estimated is what is recorded
+        fr = sensor.process(snap.readings, t_s=t)
         yield fr, [_true_mark(scene, c, L) for c in scene.contacts(t)]
 
 
@@ -126,9 +141,9 @@ def _true_mark(scene, c, L: float) -> TrueMark:
                     (c.footprint_m[0] / L, c.footprint_m[1] / L), c.angle_rad)
 
 
-def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
-    """Open the sheet's ports now (a port that cannot be opened: one line, exit 1, before anything
-    is written); the frames come from the generator returned."""
+def _real(args, rows: int, cols: int):
+    """Open the sheet's ports and make the host now (a port that cannot be opened: one line, exit
+    1, before anything is written); `_real_frames` then streams from it."""
     from host.session import Host, Layout, MismatchError
     from host.transport import TransportError
 
@@ -147,20 +162,21 @@ def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
             t.close()
         raise usage_error("capsheet tactile", str(exc)) from None
     if args.cal is not None:  # before bring-up: it follows the chip calibration the host reads
-        from host.cli.calibrate import snapshot_corrector
-        host.snapshot_filter = snapshot_corrector(host, args.cal)
-    return _real_frames(args, host, foam, settings, rows, cols)
+        host.set_calibration(args.cal)
+    return host
 
 
-def _real_frames(args, host, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+def _real_frames(args, host, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
     from host.analysis.tactile import TactileSensor
     from host.session import MismatchError
 
+    outputs.attach(host)  # --record: the raw input, the SYNCs and every snapshot, as emitted
     with host:
         try:
             host.bring_up()
         except MismatchError as exc:  # over capacity (its remedy), layout mismatches
             raise usage_error("capsheet tactile", str(exc)) from None
+        outputs.describe(host)
         learn = [s for s in host.snapshots(duration_s=args.learn_s) if s.complete]
         if len(learn) < 2:
             raise SystemExit("capsheet tactile: fewer than 2 complete snapshots while learning "
@@ -189,12 +205,14 @@ def run(args) -> int:
     args.cal = load_calibration_arg(getattr(args, "calibration", None), args.lattice, "capsheet tactile")
     settings = DetectorSettings(k_detect=args.threshold)
     real = bool(args.port or args.can)
-    source = (_real if real else _virtual)(args, foam, settings, rows, cols)
-    best, best_truth, last_print = None, None, -1e9
+    host = _real(args, rows, cols) if real else None  # ports first: a bad one writes nothing
     from host.cli.record_args import SessionOutputs
     from protocol.lattice import Lattice
     outputs = SessionOutputs(args, Lattice(rows, cols), args.link_length, mode="tactile", colour_by="displacement",
                              prog="capsheet tactile")
+    source = (_real_frames(args, host, foam, settings, rows, cols, outputs) if real
+              else _virtual(args, foam, settings, rows, cols, outputs))
+    best, best_truth, last_print = None, None, -1e9
     for k, (fr, truth) in enumerate(source):
         outputs.tactile(k, fr, truth)
         if best is None or fr.total_force_n > best.total_force_n:

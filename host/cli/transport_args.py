@@ -117,7 +117,7 @@ def open_transports(args: argparse.Namespace, *, prog: str = "capsheet") -> list
         return out
     try:
         for spec in specs:
-            kw = {"sleep_after_open": 0.1} if spec.startswith("slcan:") else {}
+            kw = {"sleep_after_open": 0.1} if spec.startswith(("slcan:", "capsheet_slcan:")) else {}
             out.append(CanTransport(spec, fd=args.fd, bitrate=args.bitrate, **kw))
     except TransportError:
         for t in out:

@@ -140,7 +140,7 @@ def test_a_stray_future_counter_frame_costs_at_most_its_own_snapshot(rigs, jump)
     rig.host.bring_up(0.2)
     snaps = list(rig.host.snapshots(duration_s=0.3))
     host = rig.host
-    host.aggregator.ingest([Sample(2, (host.counter + jump) & 0xFFFF, 0, 0, 1024, 0)])
+    host.feed.ingest([Sample(2, (host.counter + jump) & 0xFFFF, 0, 0, 1024, 0)])
     snaps += list(rig.host.snapshots(duration_s=1.0))
     assert host.aggregator.stats.stray == 1
     assert sum(not s.complete for s in snaps) <= 1
@@ -162,12 +162,12 @@ def test_foreign_sync_stops_a_driving_host(rigs):
 def test_a_gateway_sync_before_start_is_a_conflict_or_followed(rigs):
     rig = rigs("memory", gateway_sync_hz=50.0)
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"  # as if the user forgot --sync follow
-    rig.host.aggregator.set_trust("sent")
+    rig.host.feed.set_trust("sent")
     with pytest.raises(SyncConflictError, match="--sync follow"):
         rig.host.bring_up(0.2)
     rig2 = rigs("memory", gateway_sync_hz=50.0)
     rig2.host.sync_policy, rig2.host.sync_mode = "auto", "drive"
-    rig2.host.aggregator.set_trust("sent")
+    rig2.host.feed.set_trust("sent")
     rig2.host.bring_up(0.2)
     assert rig2.host.sync_mode == "follow"
     snaps = rig2.stream(1.0)
@@ -181,7 +181,7 @@ def test_a_slow_gateway_sync_is_heard_before_start(rigs, listen_s, caught):
     without the wait (0 s) the conflict surfaces only once streaming. A simulated clock."""
     rig = rigs("memory", gateway_sync_hz=5.0)
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"
-    rig.host.aggregator.set_trust("sent")
+    rig.host.feed.set_trust("sent")
     rig.host.sync_listen_s = listen_s
     if caught:
         with pytest.raises(SyncConflictError, match="another device drives SYNC on this sheet"):

@@ -63,16 +63,10 @@ class Virtual:
 
 @pytest.fixture
 def udp_bus_lock():
-    """python-can's udp_multicast buses share one UDP port, and on Linux every socket on it hears
-    every group: two tests on it at once (pytest -n 2, or another checkout's suite on this machine)
-    hear each other's RESET and SYNC. One at a time, machine-wide (a file lock)."""
-    import fcntl
-    with open(os.path.join("/tmp", "capsheet-udp-multicast-tests.lock"), "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    """One udp_multicast test on this machine at a time (tests/host/udp_lock.py says why)."""
+    from tests.host.udp_lock import udp_multicast_lock
+    with udp_multicast_lock():
+        yield
 
 
 @pytest.fixture
@@ -102,7 +96,8 @@ def host(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
 def host_json(*args: str, timeout_s: float = 120) -> tuple[subprocess.CompletedProcess, dict]:
     out = host(*args, "--json", "-q", timeout_s=timeout_s)
     assert "Traceback" not in out.stderr, out.stderr
-    doc = json.loads(out.stdout)  # JSON alone on stdout
+    assert out.stdout.strip(), (out.returncode, out.stderr)  # JSON alone on stdout
+    doc = json.loads(out.stdout)
     return out, doc
 
 
