@@ -53,13 +53,13 @@ scipy only (matplotlib for `plot`); it does not import `virtual_sheet`.
 from __future__ import annotations
 
 from ..metrics import rigid_fit
-from .contacts import Contact, DetectorSettings, find_contacts, lattice_index
+from .contacts import Contact, ContactModel, DetectorSettings, find_contacts, lattice_index
 from .foam import Foam
 from .plot import plot_frame
 from .rest import RestShape, deformation
 from .sensor import TactileFrame, TactileSensor
-from .tracking import ContactTracker
+from .tracking import ContactTracker, TrackEvent
 
-__all__ = ["Foam", "RestShape", "Contact", "DetectorSettings", "TactileFrame", "deformation",
-           "find_contacts", "ContactTracker", "TactileSensor", "plot_frame", "rigid_fit",
-           "lattice_index"]
+__all__ = ["Foam", "RestShape", "Contact", "ContactModel", "DetectorSettings", "TactileFrame",
+           "deformation", "find_contacts", "ContactTracker", "TrackEvent", "TactileSensor",
+           "plot_frame", "rigid_fit", "lattice_index"]

@@ -79,7 +79,7 @@ def frame_figure(frame: TactileFrame, title: str | None = None, truth=None,
         ax.add_patch(Ellipse((c.index[1], c.index[0]), 2 * c.axes_m[0] / L, 2 * c.axes_m[1] / L,
                              angle=90 - np.degrees(c.angle_rad), fill=False, color="black",
                              ls="--", lw=1))
-        ax.annotate(f"#{c.id} {c.force_n:.2f} N" + (" merged?" if c.merged else ""),
+        ax.annotate(f"#{c.id} {c.force_n:.2f} N" + (" count?" if c.ambiguous else ""),
                     (c.index[1], c.index[0]), xytext=(6, 6), textcoords="offset points",
                     color="black", fontsize=8)
     if frame.contacts:

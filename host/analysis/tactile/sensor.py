@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -10,6 +10,7 @@ import numpy as np
 from ..estimator import ShapeEstimate, estimate
 from .contacts import Contact, DetectorSettings, _dilate, find_contacts
 from .foam import Foam
+from .response import _footprint_table
 from .rest import RestShape, deformation
 from .tracking import ContactTracker
 
@@ -31,6 +32,8 @@ class TactileFrame:
         With track ids.
     total_force_n : float
         Sum of the contacts' forces, N.
+    events : list of TrackEvent
+        Onsets and releases of contacts that this snapshot revealed (`ContactTracker`).
     """
 
     t_s: float | None
@@ -38,6 +41,7 @@ class TactileFrame:
     displacement: np.ndarray
     contacts: list[Contact]
     total_force_n: float
+    events: list = field(default_factory=list)
 
 
 class TactileSensor:
@@ -85,6 +89,10 @@ class TactileSensor:
         self.baseline_rate_mps = np.zeros((rest.rows, rest.cols))
         self._t_prev: float | None = None       # time of the last baseline update
         self._t_contact: float | None = None
+        self._estimate: ShapeEstimate | None = None   # the estimator's warm start
+        self._contacts: list[Contact] = []            # the contact fit's warm start
+        self._moved: np.ndarray | None = None         # the joints the last overlay left out
+        _footprint_table()   # built once here, not in the first touched snapshot
 
     def _baseline_at(self, t_s: float | None) -> np.ndarray:
         """The baseline at ``t_s``: its level plus its rate times the time since the last update
@@ -131,20 +139,35 @@ class TactileSensor:
     def process(self, readings: np.ndarray, valid: np.ndarray | None = None,
                 t_s: float | None = None) -> TactileFrame:
         """One snapshot: readings ``(n_links, 3)`` m/s², sensor frames, docs/design.md link
-        order; ``t_s`` its time, seconds (the baseline needs it)."""
+        order; ``t_s`` its time, seconds (the baseline and the tracker's prediction need it).
+
+        The estimator starts from the previous snapshot's yaws (``previous=``: a warm start,
+        its prior is still the rest shape); the rigid overlay leaves out the joints the previous
+        snapshot's contacts moved, and is redone only when a contact appears outside them; the
+        contact fit starts from the previous snapshot's contacts (`find_contacts`'s
+        ``previous``)."""
         est = estimate(readings, self.rest.rows, self.rest.cols, self.rest.link_length,
-                       valid=valid, rest=self.rest.yaws)
+                       valid=valid, rest=self.rest.yaws, previous=self._estimate)
+        self._estimate = est
         base = self._baseline_at(t_s) if self.baseline_tau_s is not None else None
-        d, aligned = deformation(est.joints, self.rest, baseline_m=base)
-        found = find_contacts(d, self.rest, self.foam, self.settings, aligned=aligned)
-        if found:  # second pass: fit the rigid overlay without the dents and their tails
-            moved = np.zeros(d.shape, bool)
+        d, aligned = deformation(est.joints, self.rest, exclude=self._moved, baseline_m=base)
+        found = find_contacts(d, self.rest, self.foam, self.settings, aligned=aligned,
+                              previous=self._contacts)
+        moved = None
+        if found:
+            core = np.zeros(d.shape, bool)
             for c in found:
-                moved |= c.region
-            moved = _dilate(moved)
-            d, aligned = deformation(est.joints, self.rest, exclude=moved, baseline_m=base)
-            found = find_contacts(d, self.rest, self.foam, self.settings, aligned=aligned)
+                core |= c.region
+            moved = _dilate(core)
+            if self._moved is None or np.any(core & ~self._moved):
+                # a dent the overlay did not leave out: fit it again without the dents' tails
+                d, aligned = deformation(est.joints, self.rest, exclude=moved, baseline_m=base)
+                found = find_contacts(d, self.rest, self.foam, self.settings, aligned=aligned,
+                                      previous=found)
+        self._moved = moved
         self._follow(d, bool(found), t_s)
-        contacts = self.tracker.update(found)
+        contacts = self.tracker.update(found, now=t_s)
+        self._contacts = contacts
         return TactileFrame(t_s=t_s, estimate=est, displacement=d, contacts=contacts,
-                            total_force_n=float(sum(c.force_n for c in contacts)))
+                            total_force_n=float(sum(c.force_n for c in contacts)),
+                            events=self.tracker.pop_events())
