@@ -24,8 +24,21 @@ are reported as ``2 sqrt(moment)`` (a uniform disc of radius ``a`` gives ``a``).
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from scipy.special import i0e, i1e, k0e, k1e
+
+try:  # the compiled response (host/analysis/tactile/_kernel); optional, numpy without it
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._response_kernel import ffi as _kffi, lib as _klib
+except ImportError:
+    _kffi = _klib = None
+
+#: Whether `line_response` runs the compiled kernel (same formulas, Bessel functions by
+#: Abramowitz & Stegun 9.8 to 3e-7; the tests compare it with the numpy code).
+USE_KERNEL = _klib is not None
 
 __all__ = ["disc_response", "line_response", "pressure_half_axes", "LINE_NODES"]
 
@@ -112,7 +125,26 @@ def line_response(xy: np.ndarray, centre: np.ndarray, a: float, half_length: flo
         vector: the response is an even, smooth function of it, also at ``ℓ = 0`` (where an
         angle is undefined).
     """
+    if USE_KERNEL:
+        return _line_kernel(xy, centre, a, half_length, angle, lam, k, jacobian)
     return _line_numpy(xy, centre, a, half_length, angle, lam, k, jacobian)
+
+
+def _line_kernel(xy, centre, a, half_length, angle, lam, k, jacobian):
+    P = np.ascontiguousarray(xy, dtype=float)
+    n = P.shape[0]
+    w = np.empty(n)
+    J = np.empty((n, 5)) if jacobian else None
+    fb = _kffi.from_buffer
+    st = _klib.capsheet_line_response(
+        n, fb("double[]", P), float(centre[0]), float(centre[1]), float(a),
+        float(half_length * np.cos(angle)), float(half_length * np.sin(angle)), float(lam),
+        float(k), LINE_NODES, fb("double[]", _XI), fb("double[]", _WQ), fb("double[]", w),
+        fb("double[]", J) if jacobian else _kffi.NULL)
+    if st != 0:
+        raise ValueError(f"Invalid line response: a={a!r}, lam={lam!r}, k={k!r} "
+                         "(need finite values > 0)")
+    return (w, J) if jacobian else w
 
 
 def _line_numpy(xy, centre, a, half_length, angle, lam, k, jacobian):
@@ -153,7 +185,8 @@ def _footprint_table() -> np.ndarray:
     minor half-axes ``2 sqrt(moment)`` of the region deeper than half the centre's depth (uniform
     weights), and its area. Rays from the centre to the half-depth contour (bisection), moments
     of the star-shaped region by quadrature over the polar angle. Computed once, on first use
-    (seconds; `TactileSensor` asks for it when it is made)."""
+    (tenths of a second with the kernel, seconds without; `TactileSensor` asks for it when it
+    is made)."""
     global _fp_table
     if _fp_table is not None:
         return _fp_table

@@ -1,7 +1,7 @@
 """The contact model's templates (host/analysis/tactile/response.py): the Vlasov layer's response
 to a uniform disc and to a line of discs, checked against the layer's equation (finite
-differences), its force balance (quadrature), finite-difference Jacobians, and the half-depth
-footprint table against a direct computation."""
+differences), its force balance (quadrature), finite-difference Jacobians, the compiled kernel
+against the numpy code, and the half-depth footprint table against a direct computation."""
 
 import numpy as np
 import pytest
@@ -49,7 +49,11 @@ def test_every_template_carries_one_newton(a, half_length, angle):
     assert K * w.sum() * 0.0004 ** 2 == pytest.approx(1.0, rel=2e-3)
 
 
-def test_line_response_jacobian_matches_finite_differences():
+@pytest.mark.parametrize("use_kernel", [False, True], ids=["numpy", "kernel"])
+def test_line_response_jacobian_matches_finite_differences(use_kernel, monkeypatch):
+    if use_kernel and not R.USE_KERNEL:
+        pytest.skip("the compiled response kernel is not built (pip install -e .)")
+    monkeypatch.setattr(R, "USE_KERNEL", use_kernel)
     xy = rng(1).uniform(-0.03, 0.03, (60, 2))
     p = np.array([0.002, -0.001, 0.006, 0.015 * np.cos(0.4), 0.015 * np.sin(0.4)])
 
@@ -65,6 +69,23 @@ def test_line_response_jacobian_matches_finite_differences():
         e[j] = 1e-7
         num = (f(p + e) - f(p - e)) / 2e-7
         assert np.max(np.abs(num - J[:, j])) <= 1e-5 * np.max(np.abs(num))
+
+
+def test_the_kernel_gives_the_numpy_numbers():
+    """The compiled kernel (Abramowitz & Stegun's Bessel approximations) against scipy's."""
+    if not R.USE_KERNEL:
+        pytest.skip("the compiled response kernel is not built (pip install -e .)")
+    xy = rng(2).uniform(-0.05, 0.05, (300, 2))
+    for a, hl, th in [(0.006, 0.0, 0.0), (0.004, 0.02, 0.4), (0.001, 0.005, -1.0),
+                      (0.015, 0.03, 2.0)]:
+        wk, Jk = R._line_kernel(xy, np.array([0.001, -0.002]), a, hl, th, LAM, K, True)
+        wn, Jn = R._line_numpy(xy, np.array([0.001, -0.002]), a, hl, th, LAM, K, True)
+        assert np.max(np.abs(wk - wn)) <= 1e-6 * np.max(np.abs(wn))
+        for j in range(3):   # the ℓ columns vanish for ℓ = 0: compared absolutely below
+            assert np.max(np.abs(Jk[:, j] - Jn[:, j])) <= 1e-5 * np.max(np.abs(Jn[:, j]))
+        assert np.max(np.abs(Jk[:, 3:] - Jn[:, 3:])) <= 1e-5 * np.max(np.abs(Jn[:, :2]))
+    with pytest.raises(ValueError, match="a=0"):
+        R._line_kernel(xy, np.zeros(2), 0.0, 0.0, 0.0, LAM, K, False)
 
 
 @pytest.mark.parametrize("a,half_length", [(0.004, 0.0), (0.008, 0.0), (0.004, 0.025),
