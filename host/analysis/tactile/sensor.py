@@ -14,7 +14,13 @@ from .response import _footprint_table
 from .rest import RestShape, deformation
 from .tracking import ContactTracker
 
-__all__ = ["TactileFrame", "TactileSensor"]
+__all__ = ["TactileFrame", "TactileSensor", "ONSET_LOOKBACK", "ONSET_K"]
+
+#: Snapshots kept to read a new contact's force back to its onset (`TactileSensor`).
+ONSET_LOOKBACK = 4
+#: A snapshot before a contact's detection belongs to it when the contact's fitted model reads
+#: a force above this many of its standard deviations there.
+ONSET_K = 3.0
 
 
 @dataclass(frozen=True, eq=False)
@@ -93,6 +99,8 @@ class TactileSensor:
         self._contacts: list[Contact] = []            # the contact fit's warm start
         self._moved: np.ndarray | None = None         # the joints the last overlay left out
         _footprint_table()   # built once here, not in the first touched snapshot
+        #: The last `ONSET_LOOKBACK` snapshots' times and displacements (the onset's look-back).
+        self._history: list[tuple[float, np.ndarray]] = []
 
     def _baseline_at(self, t_s: float | None) -> np.ndarray:
         """The baseline at ``t_s``: its level plus its rate times the time since the last update
@@ -167,7 +175,59 @@ class TactileSensor:
         self._moved = moved
         self._follow(d, bool(found), t_s)
         contacts = self.tracker.update(found, now=t_s)
+        events = self.tracker.pop_events()
+        if t_s is not None and any(e.kind == "onset" for e in events):
+            contacts, events = self._refine_onsets(contacts, events)
+        if t_s is not None:
+            self._history = (self._history + [(float(t_s), d)])[-ONSET_LOOKBACK:]
         self._contacts = contacts
         return TactileFrame(t_s=t_s, estimate=est, displacement=d, contacts=contacts,
                             total_force_n=float(sum(c.force_n for c in contacts)),
-                            events=self.tracker.pop_events())
+                            events=events)
+
+    def _refine_onsets(self, contacts: list[Contact], events: list) -> tuple[list, list]:
+        """A new contact is detected once its deepest joint passes ``k_detect σ``; by then a
+        ramping press has been on for a snapshot or more. Its fitted model (geometry held,
+        force and offset free: a linear fit, its response at the rest joints) is read back
+        through the last `ONSET_LOOKBACK` snapshots: the onset is the earliest of the
+        consecutive snapshots before it whose force exceeds `ONSET_K` times the contact's
+        standard deviation (a matched filter: several times more sensitive than one joint)."""
+        from dataclasses import replace as dc_replace
+
+        from .response import line_response
+
+        rest, lam = self.rest, self.foam.shear_length_m
+        kmap = rest.k_map(self.foam)
+        out_c, out_e = list(contacts), []
+        for e in events:
+            if e.kind != "onset":
+                out_e.append(e)
+                continue
+            n, c = next(((n, c) for n, c in enumerate(out_c) if c.id == e.id), (None, None))
+            if c is None or c.model is None or not self._history:
+                out_e.append(e)
+                continue
+            m = c.model
+            sup = c.region.copy()
+            for _ in range(self.settings.skirt):
+                sup = _dilate(sup)
+            X = rest.joints[sup] - m.centre
+            t1 = m.direction
+            t2 = np.cross(c.normal, t1)
+            xy = np.stack([X @ t1, X @ t2], axis=1)
+            k = float(kmap[c.peak])
+            T = line_response(xy, np.zeros(2), m.half_width_m, m.half_length_m, 0.0, lam, k)
+            B = np.stack([T, np.ones_like(T)], axis=1)
+            P = np.linalg.pinv(B)[0]            # the force as a linear read of the joints
+            onset = e.t_s
+            for t_prev, d_prev in reversed(self._history):
+                if float(P @ d_prev[sup]) > ONSET_K * max(c.force_std_n, 1e-9):
+                    onset = t_prev
+                else:
+                    break
+            if onset != e.t_s:
+                self.tracker.set_onset(e.id, onset)
+                e = dc_replace(e, t_s=onset)
+                out_c[n] = dc_replace(c, onset_s=onset)
+            out_e.append(e)
+        return out_c, out_e

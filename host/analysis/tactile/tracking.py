@@ -100,6 +100,13 @@ class ContactTracker:
         out, self._events = self._events, []
         return out
 
+    def set_onset(self, track_id: int, t_s: float) -> None:
+        """Move a live track's onset earlier (`TactileSensor` reads a new contact back through
+        the snapshots before its detection); later contacts of the track carry it."""
+        tr = self._tracks.get(track_id)
+        if tr is not None and (tr.onset_s is None or t_s < tr.onset_s):
+            tr.onset_s = float(t_s)
+
     def _predict(self, tr: _Track, now: float | None) -> np.ndarray:
         if now is None or tr.t_s is None:
             return tr.position
