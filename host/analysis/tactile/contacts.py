@@ -58,8 +58,8 @@ class DetectorSettings:
         The prior on a contact's half-width ``a`` (default 8 ± 2 mm: a fingertip's, a 15 mm
         ball's at 2 N). Between joints the data cannot tell a sharp contact from a blunt one
         (no joint inside it sees its cap), and the force read from the dent's tail changes by
-        up to ~15 % along that valley; the prior holds ``a`` where the data do not decide
-        (docs/tactile.md, "The contact radius").
+        up to 16 % along that valley; the prior holds ``a`` where the data do not decide
+        (docs/tactile.md, "The contact model").
     contact_length_std_m : float
         The prior on a contact's half-length ``ℓ``: about 0 with this standard deviation
         (default 6 mm), as much as one joint's noise. A round punch's rim-heavy pressure fits
@@ -68,15 +68,15 @@ class DetectorSettings:
         its data.
     split_gain : float
         Two contacts are reported instead of one when they lower the fit's residual by at
-        least this, in units of the joints' noise variance (default 40: a single finger lowers
-        it by 2-25 by the extra parameters, two contacts 2 L apart by 55 and more).
+        least this, in units of the joints' noise variance (default 40: a single finger's
+        two-contact alternatives lowered it by at most 20 at 0.3-2 % g where the thresholds
+        were chosen, two contacts 2 L apart by 60 and more at 1 % g, 15 and more at 2 % g).
     ambiguous_gain : float
         Below `split_gain` but at least this (default 12): one contact is reported, flagged
-        ``ambiguous`` (a single finger's two-contact alternatives gain 2-20 at 0.3-2 % g, two
-        contacts 2 L apart 15-130 at 2 % g).
+        ``ambiguous``.
     split_try : float
         Two contacts are tried in a region whose one-contact fit leaves a residual above this
-        per joint, in units of the noise variance (default 1.5: single contacts leave 0.2-0.9 at
+        per joint, in units of the noise variance (default 1.5: single contacts left 0.2-0.9 at
         1 % g, two merged ones 1.1-11), or whose contact is long enough to hold two
         (`min_separation`).
     """
@@ -275,9 +275,28 @@ def _noise_map(displacement: np.ndarray, rest: RestShape) -> np.ndarray:
 
 def _segment(d: np.ndarray, sigma: np.ndarray, s: DetectorSettings) -> np.ndarray:
     """Watershed with merging by prominence and separation: labels ``(rows, cols)`` (-1 none).
-    Only the joints above the region threshold are visited (a few dozen per contact)."""
-    rows, cols = d.shape
+    The connected components of the joints above the region threshold are labelled at once
+    (`scipy.ndimage.label`); only a component with more than one local maximum is cut by the
+    watershed, joint by joint."""
+    from scipy.ndimage import label as nd_label, maximum_filter
+
     region_thr = np.maximum(s.k_region * sigma, s.floor_m)
+    inside = d > region_thr
+    comp, n = nd_label(inside, structure=np.ones((3, 3), int))
+    peaks = inside & (d >= maximum_filter(np.where(inside, d, -np.inf), size=3))
+    per = np.bincount(comp[peaks], minlength=n + 1)
+    out = comp - 1
+    for c in np.flatnonzero(per[1:] > 1) + 1:
+        sub = _watershed(np.where(comp == c, d, -np.inf), sigma, region_thr, s)
+        m = sub >= 0
+        out[m] = sub[m] + out.max() + 1
+    return out
+
+
+def _watershed(d: np.ndarray, sigma: np.ndarray, region_thr: np.ndarray, s: DetectorSettings
+               ) -> np.ndarray:
+    """`_segment`'s cut of one component (``d`` is -inf outside it)."""
+    rows, cols = d.shape
     label = -np.ones(d.shape, int)
     parent: list[int] = []
     peak_of: list[tuple[int, int]] = []
@@ -331,7 +350,24 @@ class _Frame:
     to_index: np.ndarray      # (2, 2): frame (u, v) metres -> lattice index offsets
 
 
+#: A part's frame is anchored at its centroid rounded to this many link lengths: frames are then
+#: cached per rest shape (its tangent plane barely turns within it; the fitted geometry is
+#: relative to the anchor wherever it is).
+FRAME_GRID = 0.1
+
+
 def _frame(rest: RestShape, fi: float, fj: float) -> _Frame:
+    """The tangent frame at ``(fi, fj)`` rounded to `FRAME_GRID`, cached on the rest shape."""
+    key = (round(fi / FRAME_GRID), round(fj / FRAME_GRID))
+    cache = rest.__dict__.setdefault("_frames", {})
+    if key not in cache:
+        if len(cache) > 4096:
+            cache.clear()
+        cache[key] = _make_frame(rest, key[0] * FRAME_GRID, key[1] * FRAME_GRID)
+    return cache[key]
+
+
+def _make_frame(rest: RestShape, fi: float, fj: float) -> _Frame:
     nrm = _bilinear(rest.normals, fi, fj)
     nrm /= np.linalg.norm(nrm)
     hi_i, lo_i = min(fi + 0.5, rest.rows - 1), max(fi - 0.5, 0)
@@ -693,27 +729,31 @@ def _sub_fit(fit: FitResult, which: list) -> FitResult:
 
 
 def _footprint_spread(g: ContactGeometry, Cp: np.ndarray, lam: float
-                      ) -> tuple[np.ndarray, float]:
-    """Standard deviations of the half-depth footprint's half-axes and of its angle, from the
-    covariance ``Cp`` of the fitted ``(u, v, a, q_x, q_y)`` by sigma points (the unscented
-    transform: ``mean ± √3 ·`` the covariance's square-root columns over ``(a, q)``): smooth
-    where the footprint is round (a linearisation there says nothing about the angle). An
-    angle that spreads by more than a uniform one would is `ANGLE_STD_UNKNOWN`."""
-    C3 = Cp[2:5, 2:5]
-    if not np.all(np.isfinite(C3)):
-        return np.full(2, np.nan), ANGLE_STD_UNKNOWN
-    ev, V = np.linalg.eigh(0.5 * (C3 + C3.T))
-    S = V * np.sqrt(np.maximum(ev, 0.0) * 3.0)            # columns: √3 × the square root
+                      ) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """The half-depth footprint's half-axes and area, and the standard deviations of its
+    half-axes and of its angle, from the covariance ``Cp`` of the fitted ``(u, v, a, q_x,
+    q_y)`` by sigma points (the unscented transform: ``mean ± √3 ·`` the covariance's
+    square-root columns over ``(a, q)``): smooth where the footprint is round (a linearisation
+    there says nothing about the angle). An angle that spreads by more than a uniform one would
+    is `ANGLE_STD_UNKNOWN`."""
     x0 = np.array([g.a, g.half_length * np.cos(g.angle), g.half_length * np.sin(g.angle)])
-    pts = np.concatenate([x0 + S.T, x0 - S.T])            # (6, 3)
-    a = np.maximum(pts[:, 0], 1e-4)
-    axes0, _ = half_depth_footprint(g.a, g.half_length, lam)
-    axes, _ = half_depth_footprint(a, np.hypot(pts[:, 1], pts[:, 2]), lam)
-    ax_std = np.sqrt(np.mean((axes - axes0) ** 2, axis=0))
-    dth = np.arctan2(pts[:, 2], pts[:, 1]) - g.angle
+    C3 = Cp[2:5, 2:5]
+    ok = bool(np.all(np.isfinite(C3)))
+    if ok:
+        ev, V = np.linalg.eigh(0.5 * (C3 + C3.T))
+        S = V * np.sqrt(np.maximum(ev, 0.0) * 3.0)        # columns: √3 × the square root
+        pts = np.concatenate([x0[None, :], x0 + S.T, x0 - S.T])   # (7, 3)
+    else:
+        pts = x0[None, :]
+    axes, area = half_depth_footprint(np.maximum(pts[:, 0], 1e-4),
+                                      np.hypot(pts[:, 1], pts[:, 2]), lam)
+    if not ok:
+        return axes[0], float(area[0]), np.full(2, np.nan), ANGLE_STD_UNKNOWN
+    ax_std = np.sqrt(np.mean((axes[1:] - axes[0]) ** 2, axis=0))
+    dth = np.arctan2(pts[1:, 2], pts[1:, 1]) - g.angle
     dth = (dth + np.pi / 2) % np.pi - np.pi / 2
     th_std = float(np.sqrt(np.mean(dth ** 2)))
-    return ax_std, min(th_std, ANGLE_STD_UNKNOWN)
+    return axes[0], float(area[0]), ax_std, min(th_std, ANGLE_STD_UNKNOWN)
 
 
 def _contacts_of(ctx: _Context, fit: FitResult, idx: list, members: list, union: np.ndarray
@@ -743,9 +783,8 @@ def _contacts_of(ctx: _Context, fit: FitResult, idx: list, members: list, union:
         index = np.clip(fr.index + fr.to_index @ np.array([g.u, g.v]), 0,
                         [rest.rows - 1, rest.cols - 1])
         nrm = _bilinear(rest.normals, *index)
-        C = fit.geometry_cov(c)
-        axes, area = half_depth_footprint(g.a, g.half_length, lam)
-        ax_std, th_std = _footprint_spread(g, fit.parameter_cov(c), lam)
+        Cp = fit.parameter_cov(c)
+        axes, area, ax_std, th_std = _footprint_spread(g, Cp, lam)
         if axes[0] < ORIENTATION_MIN_RATIO * axes[1]:
             th_std = ANGLE_STD_UNKNOWN
         cax, cax_std = fit.half_axes(c)
@@ -759,7 +798,7 @@ def _contacts_of(ctx: _Context, fit: FitResult, idx: list, members: list, union:
             force_n=float(sums[c] if s.force_model == "sum" else fit.force_n[c]),
             area_m2=area, axes_m=axes, angle_rad=ang, peak=(int(pk[0]), int(pk[1])),
             region=reg, ambiguous=bool(members[i].ambiguous), force_std_n=float(fstd[c]),
-            position_std_m=float(np.sqrt(max(np.linalg.eigvalsh(C[:2, :2]).max(), 0.0))),
+            position_std_m=float(np.sqrt(max(np.linalg.eigvalsh(Cp[:2, :2]).max(), 0.0))),
             axes_std_m=ax_std, angle_std_rad=th_std,
             contact_axes_m=cax, contact_axes_std_m=cax_std,
             model=ContactModel(fr.origin + g.u * fr.e1 + g.v * fr.e2, e, float(g.a),

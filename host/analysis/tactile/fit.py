@@ -108,11 +108,11 @@ class FitResult:
         metres (`response.pressure_half_axes`; delta method over ``a`` and ``ℓ``)."""
         g = self.geometry[c]
         ax = np.array(pressure_half_axes(g.a, g.half_length))
-        C = self.geometry_cov(c)[2:4, 2:4]
-        # d(major)/d(a, ℓ), d(minor)/d(a, ℓ)
-        J = np.array([[g.a / (2.0 * ax[0]) if ax[0] > 0 else 0.0,
-                       4.0 * g.half_length / (3.0 * ax[0]) if ax[0] > 0 else 0.0],
-                      [1.0, 0.0]])
+        Cq = self.parameter_cov(c)
+        e = np.array([np.cos(g.angle), np.sin(g.angle)])
+        # (a, ℓ) with dℓ = e · dq; then d(major)/d(a, ℓ) = (a, 4ℓ/3) / major, d(minor) = (1, 0)
+        C = np.array([[Cq[2, 2], Cq[2, 3:5] @ e], [Cq[2, 3:5] @ e, e @ Cq[3:5, 3:5] @ e]])
+        J = np.array([[g.a / ax[0], 4.0 * g.half_length / (3.0 * ax[0])], [1.0, 0.0]])
         return ax, np.sqrt(np.maximum(np.diag(J @ C @ J.T), 0.0))
 
 
