@@ -192,7 +192,7 @@ def footprint_figure(cases, path, link_length: float, zoom_l: float = 3.5):
     link_length : float
         ``L``, metres.
     zoom_l : float
-        Half-width of a footprint panel, link lengths.
+        Half-width of a footprint panel, link lengths (one more for a pair).
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -241,8 +241,9 @@ def footprint_figure(cases, path, link_length: float, zoom_l: float = 3.5):
                     va="bottom", ha="left",
                     bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.8", alpha=0.9))
             ci = np.mean(idx, axis=0)
-            ax.set_xlim(ci[1] - zoom_l, ci[1] + zoom_l)
-            ax.set_ylim(ci[0] - zoom_l, ci[0] + zoom_l)
+            z = zoom_l + (0.0 if sep is None else 1.0)     # a pair: room for the box below
+            ax.set_xlim(ci[1] - z, ci[1] + z)
+            ax.set_ylim(ci[0] - z, ci[0] + z)
             ax.set_aspect("equal")
             if r == 0:
                 ax.set_title(_column_title(kind, sep), fontsize=9)
