@@ -84,24 +84,10 @@ class FitResult:
 
     def parameter_cov(self, c: int) -> np.ndarray:
         """Covariance of contact ``c``'s fitted parameters ``(u, v, a, q_x, q_y)``, shape
-        (5, 5): smooth also for a round contact (`geometry_cov` is not, at ``ℓ = 0``)."""
+        (5, 5), ``q = ℓ (cos θ, sin θ)``: smooth also for a round contact (where ``θ`` has no
+        variance to speak of)."""
         i0 = len(self.force_n) + len(self.offset_m) + NPAR * c
         return self.cov[i0:i0 + NPAR, i0:i0 + NPAR]
-
-    def geometry_cov(self, c: int) -> np.ndarray:
-        """Covariance of contact ``c``'s geometry in `ContactGeometry` order ``(u, v, a, ℓ, θ)``,
-        shape (5, 5) (the fit's parameters are ``(u, v, a, q)``, ``q = ℓ (cos θ, sin θ)``;
-        ``θ``'s variance is infinite at ``ℓ = 0``)."""
-        i0 = len(self.force_n) + len(self.offset_m) + NPAR * c
-        Cq = self.cov[i0:i0 + NPAR, i0:i0 + NPAR]
-        g = self.geometry[c]
-        e = np.array([np.cos(g.angle), np.sin(g.angle)])
-        T = np.zeros((NPAR, NPAR))
-        T[0, 0] = T[1, 1] = T[2, 2] = 1.0
-        T[3, 3:5] = e                                   # dℓ = e · dq
-        T[4, 3:5] = np.array([-e[1], e[0]]) / g.half_length if g.half_length > 0 else np.inf
-        with np.errstate(invalid="ignore"):
-            return T @ Cq @ T.T
 
     def half_axes(self, c: int) -> tuple[np.ndarray, np.ndarray]:
         """Pressure half-axes (major, minor) of contact ``c`` and their standard deviations,
