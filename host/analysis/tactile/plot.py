@@ -54,6 +54,29 @@ def _ellipse(centre_ij, axes_l, angle_rad, **kw):
                    angle=90 - np.degrees(angle_rad), fill=False, **kw)
 
 
+def _clear_corner(ax, n_lines: int) -> tuple[float, float]:
+    """The corner of a footprint panel (axes fraction) for a box of ``n_lines`` lines that
+    covers the fewest points of the panel's ellipses: lower left unless something is there
+    (a pair's lower finger reached into it). The box's size is a generous estimate (7.5 pt
+    text, 3-inch panels); the test measures the drawn one."""
+    xlim, ylim = ax.get_xlim(), ax.get_ylim()
+    pts = [p.get_path().transformed(p.get_patch_transform()).vertices for p in ax.patches]
+    if not pts:
+        return 0.03, 0.03
+    xy = np.vstack(pts)
+    fx = (xy[:, 0] - xlim[0]) / (xlim[1] - xlim[0])
+    fy = (xy[:, 1] - ylim[0]) / (ylim[1] - ylim[0])
+    w, h = 0.5, 0.06 * n_lines + 0.04
+    best, where = None, (0.03, 0.03)
+    for cx, cy in ((0.03, 0.03), (0.97, 0.03), (0.03, 0.97), (0.97, 0.97)):
+        x0 = cx if cx < 0.5 else cx - w
+        y0 = cy if cy < 0.5 else cy - h
+        hits = int(np.sum((fx >= x0) & (fx <= x0 + w) & (fy >= y0) & (fy <= y0 + h)))
+        if best is None or hits < best:
+            best, where = hits, (cx, cy)
+    return where
+
+
 def _contact_line(c, L: float) -> str:
     ax = 2e3 * np.asarray(c.axes_m)
     line = (f"#{c.id}: {c.force_n:.2f} ± {c.force_std_n:.2f} N, footprint "
@@ -237,13 +260,14 @@ def footprint_figure(cases, path, link_length: float, zoom_l: float = 3.5):
                 ax.plot(c.index[1], c.index[0], "x", color="black", ms=6)
                 lines.append(f"{c.force_n:.2f} ± {c.force_std_n:.2f} N")
             lines.append("true " + ", ".join(f"{t.force_n:.2f} N" for t in truth))
-            ax.text(0.03, 0.03, "\n".join(lines), transform=ax.transAxes, fontsize=7.5,
-                    va="bottom", ha="left",
-                    bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.8", alpha=0.9))
             ci = np.mean(idx, axis=0)
-            z = zoom_l + (0.0 if sep is None else 1.0)     # a pair: room for the box below
+            z = zoom_l + (0.0 if sep is None else 1.0)     # a pair: room for the box
             ax.set_xlim(ci[1] - z, ci[1] + z)
             ax.set_ylim(ci[0] - z, ci[0] + z)
+            fx, fy = _clear_corner(ax, len(lines))
+            ax.text(fx, fy, "\n".join(lines), transform=ax.transAxes, fontsize=7.5,
+                    va="bottom" if fy < 0.5 else "top", ha="left" if fx < 0.5 else "right",
+                    bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="0.8", alpha=0.9))
             ax.set_aspect("equal")
             if r == 0:
                 ax.set_title(_column_title(kind, sep), fontsize=9)

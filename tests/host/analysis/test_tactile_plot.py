@@ -130,3 +130,41 @@ def test_plot_frame_writes_a_png(setup, tmp_path):
     out = tmp_path / "sub" / "t.png"
     plot_frame(fr, out, title="x", truth=marks)
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_footprint_figure_keeps_the_force_box_off_the_footprints(tmp_path):
+    """Two fingers side by side whose lower one reaches into the panel's lower left corner (where
+    the box used to sit, over its tip): the drawn box covers no point of any ellipse."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
+
+    from host.analysis.tactile.plot import footprint_figure
+    from virtual_sheet.foam import CapsuleIndenter
+
+    g = np.random.Generator(np.random.MT19937(7))
+    r0 = ideal_readings(FoamScene(FoamBlock(), [], 14, 14, L).rest_joints)
+    rest = TactileSensor.learn_rest([noisy_readings(r0, 1.0, g) for _ in range(16)], 14, 14, L)
+    ang = 0.7    # from the i direction towards j: the pair runs lower left to upper right
+    e = np.array([np.cos(ang), np.sin(ang)])
+    side = 0.02 * np.array([-e[1], e[0]])
+    sc = FoamScene(FoamBlock(), [Press(CapsuleIndenter(0.01, 0.02, angle_rad=ang), tuple(side / 2), 3.0),
+                                 Press(CapsuleIndenter(0.01, 0.02, angle_rad=ang), tuple(-side / 2), 3.0)],
+                   14, 14, L)
+    fr = TactileSensor(rest, Foam()).process(noisy_readings(ideal_readings(sc.joints(0.0)), 1.0, g))
+    assert len(fr.contacts) == 2
+    idx = [np.array(lattice_index(sc.rest_joints, t.position)) for t in sc.contacts(0.0)]
+    fig = footprint_figure([("block", "capsule", 2.0, 0, fr, sc.contacts(0.0), idx,
+                             sc.footprints(0.0))], tmp_path / "f.png", L)
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    ax = fig.axes[0]
+    ells = [p for p in ax.patches if isinstance(p, Ellipse)]
+    assert len(ells) == 8
+    # the lower left corner is where an ellipse is: the old place of the box would cover it
+    lower_left = ax.transAxes.transform([[0.0, 0.0], [0.5, 0.25]])
+    pts = np.vstack([p.get_verts() for p in ells])          # display coordinates
+    inside = lambda b, xy: (xy[:, 0] >= b[0][0]) & (xy[:, 0] <= b[1][0]) & (xy[:, 1] >= b[0][1]) & (xy[:, 1] <= b[1][1])  # noqa: E731
+    assert inside(lower_left, pts).any()
+    (box,) = [t for t in ax.texts if isinstance(t, Text) and "true" in t.get_text()]
+    bb = box.get_bbox_patch().get_window_extent(renderer)
+    assert not inside(((bb.x0, bb.y0), (bb.x1, bb.y1)), pts).any()
