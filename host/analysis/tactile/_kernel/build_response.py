@@ -3,7 +3,10 @@
 
 Built at install time through ``setup.py``'s ``cffi_modules`` (``pip install -e .``), or by hand::
 
-    .venv/bin/python host/analysis/tactile/_kernel/build.py   # host/analysis/tactile/_response_kernel*.so
+    .venv/bin/python host/analysis/tactile/_kernel/build_response.py   # host/analysis/tactile/_response_kernel*.so
+
+Named ``build_response.py``, not ``build.py``: ``pytest --doctest-modules`` imports a file outside a
+package by its basename, and host/analysis/_kernel/build.py has that one.
 
 Optional at run time: without it (no compiler, not built, or ``CAPSHEET_NO_KERNEL=1``)
 `host.analysis.tactile.response` runs its numpy code, which gives the same numbers to the
