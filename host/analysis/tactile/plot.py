@@ -77,6 +77,22 @@ def _clear_corner(ax, n_lines: int) -> tuple[float, float]:
     return where
 
 
+def _wrap_items(part: str, width: int) -> list[str]:
+    """``part`` in lines of at most ``width`` characters, broken after its commas (a value and
+    its unit stay together: "noise 0.3 %" / "g" was one such cut); an item longer than
+    ``width`` alone is wrapped at its spaces."""
+    lines: list[str] = []
+    for item in part.split(", "):
+        if lines and len(lines[-1]) + 2 + len(item) <= width:
+            lines[-1] += ", " + item
+        elif lines:
+            lines[-1] += ","
+            lines.extend(textwrap.wrap(item, width) or [""])
+        else:
+            lines.extend(textwrap.wrap(item, width) or [""])
+    return lines
+
+
 def _contact_line(c, L: float) -> str:
     ax = 2e3 * np.asarray(c.axes_m)
     line = (f"#{c.id}: {c.force_n:.2f} ± {c.force_std_n:.2f} N, footprint "
@@ -161,7 +177,7 @@ def frame_figure(frame: TactileFrame, title: str | None = None, truth=None,
     ax.set_ylabel("joint i (link lengths)")
     summary = f"{len(frame.contacts)} contact(s), total {frame.total_force_n:.2f} N"
     # the title's parts on lines of their own (never cut inside one), wrapped if still long
-    head = "".join("\n".join(textwrap.wrap(part, 70)) + "\n"
+    head = "".join("\n".join(_wrap_items(part, 70)) + "\n"
                    for part in title.split("; ")) if title else ""
     ax.set_title(head + summary, fontsize=9)
     # the numbers: one line per contact, and the truth's forces

@@ -48,6 +48,11 @@ def test_every_mark_has_a_legend_entry_and_the_truth_is_drawn(setup):
     assert ax.get_title().split("\n") == ["virtual foam block, 14x14, noise 1 % g",
                                           "foam h 20 mm, E 20 kPa", "t = 0.50 s",
                                           "2 contact(s), total " f"{fr.total_force_n:.2f} N"]
+    # a part too long for a line breaks after a comma, never between a value and its unit
+    long = frame_figure(fr, title="virtual foam cylinder, sphere and punch, 14x14, L = 1 cm, "
+                                  "noise 0.3 % g; foam h 20 mm").axes[0].get_title()
+    assert long.split("\n")[:3] == ["virtual foam cylinder, sphere and punch, 14x14, L = 1 cm,",
+                                    "noise 0.3 % g", "foam h 20 mm"]
     # the true crosses sit at the true centres
     crosses = [ln for ln in ax.get_lines() if ln.get_marker() == "x"]
     got = sorted((float(ln.get_ydata()[0]), float(ln.get_xdata()[0])) for ln in crosses)
