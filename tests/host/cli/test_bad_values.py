@@ -103,6 +103,8 @@ CASES = [
     (["tactile", "--snapshot-rate", "0"], "--snapshot-rate"),
     (["tactile", "--out", "heat.txt"], "--out"),
     (["tactile", "--record", "{mcap}"], "--record"),
+    (["tactile", "--indenter", "thumb"], "--indenter"),
+    (["tactile", "--indenter", ""], "--indenter"),
     # -- replay and estimate: inputs exist, outputs are not inputs --
     (["replay", "{nodir}.mcap"], "recording"),
     (["replay", "{dir}"], "recording"),
