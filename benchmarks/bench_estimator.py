@@ -62,7 +62,7 @@ def linear_algebra(n: int, snap, repeats: int) -> dict:
     from scipy.sparse.linalg import splu
 
     est = estimate(snap, n, n, L)
-    st, _, prob, gamma = est._state
+    st, _, prob, gamma = est.solution
     _, grad, blocks = prob.evaluate(gamma)
     b = grad[st.perm_inv]
 

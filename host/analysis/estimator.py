@@ -62,6 +62,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
@@ -148,6 +149,20 @@ _S_D = np.array([1.0, 1.0, -1.0, -1.0])
 _S_N = np.array([1.0, -1.0, 1.0, -1.0])
 
 
+class Solution(NamedTuple):
+    """The state of one global solve: what the uncertainty and the next snapshot's warm start
+    need (`ShapeEstimate.solution`)."""
+
+    #: the lattice's, mask's and model's fixed structure (sparsity pattern, ordering, Laplacian)
+    structure: object
+    #: the Gauss-Newton matrix's last factorisation, or None (what chord steps reuse)
+    factorisation: object
+    #: the snapshot's yaw problem (its coefficients and prior weights)
+    problem: object
+    #: the yaws it converged to, (n_links,), radians
+    yaws: np.ndarray
+
+
 @dataclass(frozen=True, eq=False)
 class ShapeEstimate:
     """One estimated shape of the sheet.
@@ -203,8 +218,10 @@ class ShapeEstimate:
     timings: dict = field(default_factory=dict)
     #: the reading noise (per axis, % of g) `yaw_std` and `joint_std` are stated for
     noise_pct_g: float = 1.0
-    #: solver state a later snapshot may warm-start from (structure, factorisation); private
-    _state: tuple | None = field(default=None, repr=False)
+    #: the global solve behind this estimate (`Solution`: structure, factorisation, yaw problem,
+    #: yaws): what `yaw_std` and ``joint_std`` are computed from and what ``previous=`` warm-starts
+    #: from; None for ``method="paper"``
+    solution: "Solution | None" = field(default=None, repr=False)
 
     @cached_property
     def yaw_std(self) -> np.ndarray:
@@ -1621,9 +1638,9 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         else:
             start = target
         lu = None
-        pstate = getattr(previous, "_state", None)
-        if pstate is not None and pstate[0] is st:
-            lu = pstate[1]
+        pstate = None if previous is None else previous.solution
+        if pstate is not None and pstate.structure is st:
+            lu = pstate.factorisation
         noise_est = _noise_from_norms(norm, vmask)
         prior_w, bend_w = _prior_weights(prior, st, rr, np.where(vmask, norm, 1.0), noise_est,
                                          rest_yaw is not None)
@@ -1631,7 +1648,7 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         tol = max(YAW_TOL_RAD, YAW_TOL_NOISE * noise_est)
         gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
                                                        prior_w, bend_w, lu, tol, trig)
-        state = (st, lu, prob, gamma)
+        state = Solution(st, lu, prob, gamma)
         t2 = time.perf_counter()
         d, nrm = _directions_normals(alpha, beta, gamma, trig)
         rhs_links = L * (d if st.all_valid else d[st.valid_links])
@@ -1676,7 +1693,7 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
                          factorisations=int(n_fact),
                          timings={"angles": t1 - t0, "yaw": t2 - t1, "joints": t3 - t2,
                                   "total": t4 - t0}, noise_pct_g=float(noise_pct_g),
-                         _state=state)
+                         solution=state)
 
 
 #: `estimate_batch`: chord iterations per snapshot before it is handed to `estimate` instead.
@@ -1866,8 +1883,8 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
             tol = np.maximum(YAW_TOL_RAD, YAW_TOL_NOISE * noise)
             target = st.rest_yaw
             start = target if prev is None else np.asarray(prev.yaws, dtype=float)
-            pstate = getattr(prev, "_state", None)
-            lu = pstate[1] if pstate is not None and pstate[0] is st else None
+            pstate = None if prev is None else prev.solution
+            lu = pstate.factorisation if pstate is not None and pstate.structure is st else None
             gamma, iters, failed, n_fact, lu, prob_of = _solve_global_batch(
                 st, alpha, beta, start, target, prior_w, bend_w, lu, tol)
             ok = ~failed
@@ -1907,7 +1924,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
                     timings={"angles": 0.0, "yaw": (t1 - t0) / max(idx.size, 1),
                              "joints": 0.0, "total": dt, "batched": 1.0},
                     noise_pct_g=float(noise_pct_g),
-                    _state=(st, lu, prob_of(int(rows_ok[j])), g_out[j]))
+                    solution=Solution(st, lu, prob_of(int(rows_ok[j])), g_out[j]))
             fast[idx[failed]] = False
         # the rest, one at a time and in order (what `estimate` says about them is the answer)
         for kk in range(m):
@@ -1938,7 +1955,7 @@ def _uncertainty(est: "ShapeEstimate") -> tuple[np.ndarray, np.ndarray]:
     """
     n = est.directions.shape[0]
     nanj = np.full(est.joints.shape[:2], np.nan)
-    state = est._state
+    state = est.solution
     if state is None:
         return np.full(n, np.nan), nanj
     st, _, prob, gamma = state

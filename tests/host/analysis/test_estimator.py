@@ -494,13 +494,13 @@ def test_splu_fallback_and_cholmod_give_the_same_estimate(monkeypatch):
     monkeypatch.setattr(E, "LINEAR_SOLVER", "splu")
     E._structure_cached.cache_clear()
     a = estimate(r, ROWS, COLS, L)
-    assert a._state[1][0] == "splu"
+    assert a.solution[1][0] == "splu"
     if E._cholmod() is None:
         pytest.skip("scikit-sparse (CHOLMOD) not installed: only the splu fallback ran")
     monkeypatch.setattr(E, "LINEAR_SOLVER", "cholmod")
     E._structure_cached.cache_clear()
     b = estimate(r, ROWS, COLS, L)
-    assert b._state[1][0] == "cholmod"
+    assert b.solution[1][0] == "cholmod"
     np.testing.assert_allclose(a.joints, b.joints, atol=1e-9)
     E._structure_cached.cache_clear()
 

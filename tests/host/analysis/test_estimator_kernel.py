@@ -35,7 +35,7 @@ def _problem(n, shape="gaussian", shear=0.0, noise=1.0, valid=None, prior="adapt
     P = make_sheet(shape, n, n, L, shear=shear)
     r = noisy_readings(ideal_readings(P), noise, rng(seed))
     est = E.estimate(r, n, n, L, valid=valid, prior=prior)
-    return est._state
+    return est.solution
 
 
 def _both(prob, gamma, monkeypatch):
@@ -175,7 +175,7 @@ def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(mas
     r = noisy_readings(ideal_readings(P), 1.0, rng(7))
     valid = _mask(n) if masked else None
     est = E.estimate(r, n, n, L, valid=valid)
-    st = est._state[0]
+    st = est.solution[0]
     alpha, beta = est.alpha, est.beta  # NaN on missing links: those units' solvability is NaN
     gamma = est.yaws + rng(8).normal(0.0, 0.5, est.yaws.shape)
     out = {}
