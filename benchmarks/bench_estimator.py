@@ -144,17 +144,17 @@ def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int) -> dict:
     backends = ["splu"] + (["cholmod"] if E._cholmod() is not None else [])
     plan = [("global", n_global, True, bk) for bk in backends]
     plan += [("paper", n_paper, False, "splu")] if n_paper else []
-    default = E.LINEAR_SOLVER
+    default = E.linalg.LINEAR_SOLVER
     for method, count, warm, backend in plan:
         times = []
         stages = {}
-        E.LINEAR_SOLVER = backend
+        E.linalg.LINEAR_SOLVER = backend
         E._structure_cached.cache_clear()  # a fresh structure: no factorisation of the other
         estimate(snaps[0], n, n, L)
         for _ in range(repeats if method == "global" else 1):
             dt, last = _pass(snaps[:count], n, method, warm)
             times.append(dt)
-        E.LINEAR_SOLVER = default
+        E.linalg.LINEAR_SOLVER = default
         if method == "global" and backend == "cholmod":
             method = "global_cholmod"
         for k_, v in last.timings.items():

@@ -37,8 +37,8 @@ def snapshots(n: int, count: int, seed: int, shape: str = "gaussian", shear: flo
 
 def exact(readings, n, previous=None, valid=None, **kw):
     """The same cost minimised to 1e-12 rad, one snapshot at a time."""
-    old = E.YAW_TOL_RAD, E.YAW_TOL_NOISE
-    E.YAW_TOL_RAD, E.YAW_TOL_NOISE = 1e-12, 0.0
+    old = E.solver.YAW_TOL_RAD, E.solver.YAW_TOL_NOISE
+    E.solver.YAW_TOL_RAD, E.solver.YAW_TOL_NOISE = 1e-12, 0.0
     try:
         out, prev = [], previous
         for k, r in enumerate(readings):
@@ -47,7 +47,7 @@ def exact(readings, n, previous=None, valid=None, **kw):
             out.append(prev)
         return out
     finally:
-        E.YAW_TOL_RAD, E.YAW_TOL_NOISE = old
+        E.solver.YAW_TOL_RAD, E.solver.YAW_TOL_NOISE = old
 
 
 def pct_from(a, b, n) -> np.ndarray:
@@ -192,7 +192,7 @@ def test_a_few_valid_links_and_no_model_cell_estimate_alike_batched_and_alone(n_
     v = np.zeros(len(r), bool)
     v[:n_valid] = True
     batch = E.estimate_batch(np.stack([r, r]), 5, 5, 0.01, valid=np.stack([v, v]))
-    monkeypatch.setattr(E, "USE_KERNEL", False)  # the numpy path of one snapshot too
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)  # the numpy path of one snapshot too
     alone = E.estimate(r, 5, 5, 0.01, valid=v)
     for b in batch:
         assert np.isfinite(b.joints).all()

@@ -39,9 +39,9 @@ def _problem(n, shape="gaussian", shear=0.0, noise=1.0, valid=None, prior="adapt
 
 
 def _both(prob, gamma, monkeypatch):
-    monkeypatch.setattr(E, "USE_KERNEL", False)
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
     c0, g0, _ = prob.evaluate(gamma, jac=False)
-    monkeypatch.setattr(E, "USE_KERNEL", True)
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", True)
     c1, g1, b1 = prob.evaluate(gamma, jac=False)
     assert b1 is None
     return c0, g0, c1, g1
@@ -155,10 +155,10 @@ def test_warm_runs_give_the_same_joints_with_the_kernel_and_without(n, shape, sh
     snaps = [noisy_readings(r0, 1.0, g) for _ in range(12)]
     valid = _mask(n) if masked else None
     E._structure_cached.cache_clear()  # each run starts without a cached factorisation
-    monkeypatch.setattr(E, "USE_KERNEL", False)
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
     ref = _warm_run(n, snaps, valid)
     E._structure_cached.cache_clear()
-    monkeypatch.setattr(E, "USE_KERNEL", True)
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", True)
     new = _warm_run(n, snaps, valid)
     side = (n - 1) * L
     for (j0, i0, f0), (j1, i1, f1) in zip(ref, new):
@@ -180,7 +180,7 @@ def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(mas
     gamma = est.yaws + rng(8).normal(0.0, 0.5, est.yaws.shape)
     out = {}
     for use in (False, True):
-        monkeypatch.setattr(E, "USE_KERNEL", use)
+        monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
         d, nrm = E._directions_normals(np.nan_to_num(alpha), np.nan_to_num(beta), gamma)
         out[use] = (d, nrm, E._eq8_residual(st.units, d, nrm), E.solvability(alpha, beta, n, n))
     (d0, n0, e0, s0), (d1, n1, e1, s1) = out[False], out[True]
@@ -221,7 +221,7 @@ def test_an_estimate_is_the_same_with_the_kernel_and_without(masked, monkeypatch
     valid = _mask(n) if masked else None
     out = {}
     for use in (False, True):
-        monkeypatch.setattr(E, "USE_KERNEL", use)
+        monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
         E._structure_cached.cache_clear()
         out[use] = E.estimate(r, n, n, L, valid=valid)
     e0, e1 = out[False], out[True]
@@ -244,7 +244,7 @@ def test_the_kernels_flatness_is_the_numpy_codes(rows, cols, shape, monkeypatch)
     st = E._structure(rows, cols, None)
     out = {}
     for use in (False, True):
-        monkeypatch.setattr(E, "USE_KERNEL", use)
+        monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
         out[use] = [E._flatness(st, r, norm_g, s) for s in (0.003, 0.01, 0.05)]
     for h0, h1 in zip(out[False], out[True]):
         assert h1.shape == h0.shape == ((rows - 1) * (cols - 1),)
@@ -262,7 +262,7 @@ def test_the_kernels_yaw_coefficients_are_the_numpy_codes(masked, monkeypatch):
     b = rng(5).uniform(-np.pi / 2, np.pi / 2, st.n_links)
     out = {}
     for use in (False, True):
-        monkeypatch.setattr(E, "USE_KERNEL", use)
+        monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
         out[use] = E._YawProblem(st, a, b, st.rest_yaw, prob.lam, prob.lam_b)
     for name in ("c_loop", "Az", "Cz", "y_c", "y_z", "w", "pair_t", "target"):
         v0, v1 = getattr(out[False], name), getattr(out[True], name)
@@ -286,7 +286,7 @@ def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
         if in_c:
             monkeypatch.setattr(E._YawProblem, "chord_kernel", spy)
         else:
-            monkeypatch.setattr(E, "_chord_in_kernel", lambda *a: False)
+            monkeypatch.setattr(E.solver, "_chord_in_kernel", lambda *a: False)
         out = []
         for n, shapes, shear, noise in ((14, ("saddle",), 0.2, 1.0), (14, ("sphere",), 0.3, 5.0),
                                         (24, ("gaussian", "saddle"), 0.1, 1.0)):

@@ -1,0 +1,140 @@
+"""The sparse linear algebra of the yaw problem: SuperLU (always there) or CHOLMOD (optional), and
+the kernel's supernodal triangular sweeps of a SuperLU factorisation."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse.linalg import splu
+
+import host.analysis.estimator.kernel as kernel  # the switch, read at call time
+from .kernel import ffi as _kffi, lib as _klib
+
+#: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there; the default:
+#: benchmarks/bench_estimator.py found no consistent gain from CHOLMOD on warm runs, -17 % to
+#: +29 % snapshots/s by size), "cholmod" (scikit-sparse, optional: ``pip install
+#: 'capture-sheet[fast]'``, needs libsuitesparse-dev) or "auto" (CHOLMOD when installed).
+LINEAR_SOLVER = "splu"
+
+
+def _cholmod():
+    """scikit-sparse's CHOLMOD module, or None when not installed (it is optional)."""
+    try:
+        from sksparse import cholmod
+    except ImportError:  # pragma: no cover - depends on the installation
+        return None
+    return cholmod
+
+
+def _backend() -> str:
+    if LINEAR_SOLVER == "auto":
+        return "cholmod" if _cholmod() is not None else "splu"
+    return LINEAR_SOLVER
+
+
+def _factorise(st: "_Structure", A, sweeps: bool = True):
+    """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
+    the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
+    if _backend() == "cholmod":
+        cm = _cholmod()
+        sym = getattr(st, "_cholmod_sym", None)
+        if sym is None:
+            sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
+            st._cholmod_sym = sym
+        return ("cholmod", sym.cholesky(A))
+    lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
+    # for a factorisation solved only with many at once (the uncertainty's)
+    return ("splu", lu, _triangular(lu, st) if kernel.USE_KERNEL and sweeps else None)
+
+
+def _triangular(lu, st=None):
+    """SuperLU's factors as the kernel's supernodal ``capsheet_ldl_solve`` takes them: the
+    matrix is SPD and factorised without pivoting, so ``U = D Lᵀ`` and L (unit lower) with U's
+    diagonal D is the whole factorisation; L's columns are grouped into supernodes (consecutive
+    columns sharing their rows below), each stored as a dense block so that a solve runs on
+    contiguous memory instead of scattered single entries, its values in float32 (the solve is
+    bound by memory; the chord step matrix is approximate anyway and the iteration's fixed point,
+    grad = 0, does not depend on it). The supernodes depend only on L's
+    pattern, fixed for a structure: built once and cached on ``st``. None when SuperLU permuted
+    rows or columns (it was asked not to: the ordering is the structure's)."""
+    n = lu.shape[0]
+    if not (np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n))):
+        return None
+    L = lu.L
+    ptr = np.ascontiguousarray(L.indptr, np.int32)
+    idx = np.ascontiguousarray(L.indices, np.int32)
+    sym = getattr(st, "_ldl_symbolic", None)
+    if sym is None or not (np.array_equal(sym["l_ptr"], ptr) and np.array_equal(sym["l_idx"], idx)):
+        sym = _ldl_symbolic(n, ptr, idx)
+        if st is not None:
+            st._ldl_symbolic = sym
+    fb = _kffi.from_buffer
+    val = np.zeros(sym["n_val"], np.float32)
+    diag = np.ascontiguousarray(lu.U.diagonal(), np.float64)
+    _klib.capsheet_ldl_fill(sym["n_super"], fb("int32_t[]", ptr), fb("int32_t[]", idx),
+                            fb("double[]", np.ascontiguousarray(L.data, np.float64)),
+                            *sym["c_args"][:5], fb("int32_t[]", np.full(max(n, 1), -1, np.int32)),
+                            fb("float[]", val))
+    ptrs = (sym["n_super"], *sym["c_args"][:5], fb("float[]", val), fb("double[]", diag))
+    return (val, diag, sym), ptrs
+
+
+def _ldl_symbolic(n: int, l_ptr: np.ndarray, l_idx: np.ndarray) -> dict:
+    """L's supernodes (fundamental: column j+1 joins j's when j's first row below the diagonal
+    is j+1 and j+1 has exactly j's other rows) and the layout `capsheet_ldl_solve` reads."""
+    col = np.repeat(np.arange(n), np.diff(l_ptr))
+    keep = l_idx > col
+    ci, ri = col[keep], l_idx[keep].astype(np.int64)
+    order = np.lexsort((ri, ci))  # rows sorted within each column
+    ci, ri = ci[order], ri[order]
+    cnt = np.bincount(ci, minlength=n)
+    ptr = np.zeros(n + 1, np.int64)
+    np.cumsum(cnt, out=ptr[1:])
+    first = np.full(n, -1, np.int64)
+    nz = cnt > 0
+    first[nz] = ri[ptr[:-1][nz]]
+    cand = np.flatnonzero((first[:-1] == np.arange(1, n)) & (cnt[1:] == cnt[:-1] - 1))
+    m = cnt[cand + 1]
+    if m.sum():  # the rows themselves agree (the counts suffice for an exact symbolic pattern)
+        rep = np.repeat(np.arange(cand.size), m)
+        off = np.arange(int(m.sum())) - np.repeat(np.cumsum(m) - m, m)
+        same = ri[ptr[cand][rep] + 1 + off] == ri[ptr[cand + 1][rep] + off]
+        cand = cand[np.bincount(rep[~same], minlength=cand.size) == 0]
+    cont = np.zeros(n, bool)
+    cont[cand + 1] = True
+    sn_col = np.append(np.flatnonzero(~cont), n).astype(np.int32)
+    ns = sn_col.size - 1
+    w = np.diff(sn_col).astype(np.int64)
+    last = sn_col[1:].astype(np.int64) - 1
+    nb = cnt[last]
+    sn_row = np.zeros(ns + 1, np.int64)
+    np.cumsum(nb, out=sn_row[1:])
+    rep = np.repeat(np.arange(ns), nb)
+    rows = np.ascontiguousarray(ri[ptr[last][rep] + np.arange(rep.size) - sn_row[:-1][rep]], np.int32)
+    base = np.zeros(ns + 1, np.int64)
+    np.cumsum(w * w + w * nb, out=base[1:])
+    sn_diag = np.ascontiguousarray(base[:-1])
+    sn_below = np.ascontiguousarray(base[:-1] + w * w)
+    fb = _kffi.from_buffer
+    arrays = (sn_col, sn_row, rows, sn_diag, sn_below)
+    work = np.empty(max(int(nb.max()) if ns else 0, 1))
+    c_args = (fb("int32_t[]", sn_col), fb("int64_t[]", sn_row), fb("int32_t[]", rows),
+              fb("int64_t[]", sn_diag), fb("int64_t[]", sn_below))
+    return {"l_ptr": l_ptr.copy(), "l_idx": l_idx.copy(), "n_super": ns, "n_val": int(base[-1]),
+            "arrays": arrays, "c_args": c_args, "work_size": work.size}
+
+
+def _solve(fac, b):
+    """``A⁻¹ b`` with a factorisation from `_factorise`; one right-hand side (b (n,)) of a SuperLU
+    factorisation goes through the kernel's triangular sweeps when it is built."""
+    kind, f = fac[0], fac[1]
+    if kind == "cholmod":
+        return f(b)
+    tri = fac[2] if len(fac) > 2 else None
+    if tri is None or b.ndim != 1 or not kernel.USE_KERNEL:
+        return f.solve(b)
+    x = np.array(b, dtype=np.float64)  # a copy: solved in place
+    work = np.empty(tri[0][2]["work_size"])  # per call: solves may run in several threads
+    _klib.capsheet_ldl_solve(x.size, *tri[1], _kffi.from_buffer("double[]", x),
+                             _kffi.from_buffer("double[]", work))
+    return x

@@ -1,0 +1,301 @@
+"""`estimate`: one snapshot of readings, checked, to its shape (global or the paper's method)."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+import host.analysis.estimator.kernel as kernel  # the switch, read at call time
+import host.analysis.estimator.solver as solver  # YAW_TOL_*, read at call time
+from .angles import G0, _angles, _roll_pitch_trig, _solvability_kernel, solvability
+from .joints import _directions_normals, _eq8_residual
+from .priors import PRIORS, _prior_weights
+from .result import ShapeEstimate, Solution
+from .solver import _solve_global
+from .structure import JOINT_PRIOR_WEIGHT, _lattice, _structure
+from .yawproblem import _sumsq
+
+METHODS = ("global", "paper")
+
+MODELS = ("cells", "eq6")
+#: Plausible |reading| range, in g: outside it a link is a dead, stuck or saturated chip.
+READING_NORM_RANGE = (0.5, 1.5)
+
+
+def _check_int(name: str, v, lo: int) -> int:
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < lo:
+        raise ValueError(f"Invalid {name}: {v!r} (need an integer >= {lo})")
+    return int(v)
+
+
+def _as_real(name: str, x, shape: tuple) -> np.ndarray:
+    """``x`` as a float array of ``shape``; complex, string, object or bool input is an error."""
+    a = np.asarray(x)
+    if a.dtype.kind not in "iuf":
+        raise ValueError(f"Invalid {name}: dtype {a.dtype} (need real numbers, m/s²)")
+    a = a.astype(float, copy=False)
+    if a.shape != shape:
+        raise ValueError(f"Expected `{name}` to have shape {shape}, got {a.shape}.")
+    return a
+
+
+def _rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
+    if isinstance(rest, ShapeEstimate):
+        if rest.joints.shape != (rows, cols, 3):
+            raise ValueError(f"Expected `rest` of a {rows}x{cols} lattice, joints shape "
+                             f"({rows}, {cols}, 3), got {rest.joints.shape}.")
+        y = np.asarray(rest.yaws, float)
+    else:
+        y = np.asarray(rest)
+        if y.dtype.kind not in "iuf":
+            raise ValueError(f"Invalid rest: {type(rest).__name__} of dtype {y.dtype} (need a "
+                             f"ShapeEstimate or rest yaws, shape ({n},), radians)")
+        y = y.astype(float)
+        if y.shape != (n,):
+            raise ValueError(f"Expected `rest` yaws to have shape ({n},) for a {rows}x{cols} "
+                             f"lattice, got {y.shape}.")
+    return y
+
+
+def _check_previous(previous, n: int, rows: int, cols: int) -> None:
+    if not isinstance(previous, ShapeEstimate):
+        raise ValueError(f"Invalid previous: {type(previous).__name__} (need a ShapeEstimate from "
+                         "an earlier estimate() of the same lattice, or None)")
+    pj = np.shape(previous.joints)
+    if pj != (rows, cols, 3):
+        raise ValueError(f"Expected `previous` of a {rows}x{cols} lattice, joints shape "
+                         f"({rows}, {cols}, 3), got {pj}.")
+    if np.shape(previous.yaws) != (n,):
+        raise ValueError(f"Expected `previous.yaws` to have shape ({n},), got "
+                         f"{np.shape(previous.yaws)}.")
+    if not (np.all(np.isfinite(previous.yaws)) and np.all(np.isfinite(previous.joints))):
+        raise ValueError("Invalid previous: its yaws or joints contain NaN or inf (a failed "
+                         "estimate cannot seed the next one; pass previous=None)")
+
+
+def _noise_from_norms(norm_g: np.ndarray, valid: np.ndarray) -> float:
+    """The readings' noise, per axis, as a fraction of g: the RMS of ``|s|/g − 1`` over the valid
+    links (white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g)."""
+    e = norm_g[valid] - 1.0
+    return float(np.sqrt(_sumsq(e) / max(e.size, 1)))
+
+
+def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
+             valid: np.ndarray | None = None, previous: ShapeEstimate | None = None,
+             method: str = "global", *, rest=None, model: str = "cells",
+             prior: str = "adaptive", noise_pct_g: float = 1.0,
+             bad_readings: str = "raise", paper_options=None) -> ShapeEstimate:
+    """Estimate the sheet's shape from one snapshot of readings.
+
+    Parameters
+    ----------
+    readings : ndarray, shape (n_links, 3)
+        Specific force of every link, m/s², sensor frame, links in docs/design.md order
+        (``n_links = (rows-1)*cols + rows*(cols-1)``). Entries of invalid links are ignored.
+    rows, cols : int
+        Joints along i and j, each >= 2.
+    link_length : float
+        ``L``, metres, > 0.
+    valid : ndarray of bool, shape (n_links,), optional
+        False marks a missing link (no constraint from it). Default: all valid.
+    previous : ShapeEstimate, optional
+        An earlier estimate of the same lattice: ``method="global"`` starts from its yaws (and
+        its factorisation). It is not the prior's target (that would let what the data cannot
+        see random-walk over a long run). ``method="paper"`` ignores it.
+    method : {"global", "paper"}
+        See the module docstring.
+    rest : ShapeEstimate or ndarray, shape (n_links,), optional
+        The sheet's rest shape (an estimate, or its link yaws in radians): the prior's target,
+        i.e. what fills in what the data cannot determine (a level sheet's layout, a sheet whose
+        cells are not square at rest, a tactile sensor's learned rest shape). Default: square
+        cells, i-links along +x.
+    model : {"cells", "eq6"}
+        The normal model (global method): ``"cells"`` (default) — every link's sensor z is the
+        mean normal of its cells, each ``A × C`` of the cell's mean i- and j-link (exact on a
+        Chebyshev net, docs/estimator.md); ``"eq6"`` — the paper's normal assumption (eq. 6).
+    prior : {"adaptive", "level", "off", "fixed", "local"}
+        What fills in what the data cannot determine (`PRIORS`; docs/estimator.md measures
+        them): "adaptive" (default) holds the bending of the lattice and the shear of level
+        cells, with weights that scale with the readings' noise (noise-free readings: only a
+        floor), so that it does not pull where the data decide; "level" holds the bending
+        only where the region is level (unbiased on a drape, whose lattice lines turn in
+        plan; noisier on nets whose lines run straight); "off" keeps only the floors (the data
+        alone); "fixed" and "local" are the alternatives it was measured against.
+    noise_pct_g : float
+        The reading noise (per axis, % of g) that `ShapeEstimate.yaw_std` and ``joint_std`` are
+        stated for. Does not change the estimate.
+    bad_readings : {"raise", "mask"}
+        What to do with a valid link whose reading is far from one g (``|s|`` outside
+        `READING_NORM_RANGE` · g: a dead, stuck or saturated chip): raise a ValueError naming
+        the links (default), or mask them out as missing.
+    paper_options : host.analysis.paper_method.PaperOptions, optional
+        ``method="paper"`` only: the choices the paper leaves open (default
+        ``PaperOptions()``; docs/estimator.md section 7 measures them).
+
+    Returns
+    -------
+    ShapeEstimate
+
+    Raises
+    ------
+    ValueError
+        Wrong shapes or dtypes (the message names the shape expected and got), non-finite or
+        implausible readings on valid links (naming them), a non-boolean mask, no valid link, a
+        non-numeric or non-positive ``link_length``, a ``previous`` that is not a finite
+        ShapeEstimate of this lattice, an unknown method or model, or missing links with
+        ``method="paper"``.
+    """
+    t0 = time.perf_counter()
+    if method not in METHODS:
+        raise ValueError(f"Invalid method: {method!r} (expected one of {METHODS})")
+    if model not in MODELS:
+        raise ValueError(f"Invalid model: {model!r} (expected one of {MODELS})")
+    if prior not in PRIORS:
+        raise ValueError(f"Invalid prior: {prior!r} (expected one of {PRIORS})")
+    if bad_readings not in ("raise", "mask"):
+        raise ValueError(f"Invalid bad_readings: {bad_readings!r} (expected 'raise' or 'mask')")
+    if paper_options is not None:  # method="paper" only (host.analysis.paper_method)
+        from ..paper_method import PaperOptions
+        if method != "paper" or not isinstance(paper_options, PaperOptions):
+            raise ValueError(f"Invalid paper_options: {paper_options!r} (a PaperOptions, with "
+                             "method='paper' only)")
+    rows = _check_int("rows", rows, 2)
+    cols = _check_int("cols", cols, 2)
+    lat = _lattice(rows, cols)
+    n = lat.n_links
+    if isinstance(link_length, (bool, np.bool_)) or not isinstance(link_length,
+                                                                    (int, float, np.number)):
+        raise ValueError(f"Invalid link_length: {link_length!r} (need a number of metres > 0)")
+    L = float(link_length)
+    if not (np.isfinite(L) and L > 0):
+        raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
+    if isinstance(noise_pct_g, (bool, np.bool_)) or not isinstance(noise_pct_g,
+                                                                    (int, float, np.number)) \
+            or not (np.isfinite(noise_pct_g) and noise_pct_g >= 0):
+        raise ValueError(f"Invalid noise_pct_g: {noise_pct_g!r} (need a finite value >= 0)")
+    r = np.asarray(readings)
+    if r.dtype.kind not in "iuf":
+        raise ValueError(f"Invalid readings: dtype {r.dtype} (need real numbers, m/s²)")
+    r = r.astype(float, copy=False)
+    if r.shape != (n, 3):
+        raise ValueError(f"Expected `readings` to have shape ({n}, 3) for a {rows}x{cols} "
+                         f"lattice, got {r.shape}.")
+    if valid is None:
+        vmask = np.ones(n, bool)
+    else:
+        vmask = np.asarray(valid)
+        if vmask.dtype != bool:
+            raise ValueError(f"Invalid valid: dtype {vmask.dtype} (need a boolean mask, True = "
+                             "link present)")
+        if vmask.shape != (n,):
+            raise ValueError(f"Expected `valid` to have shape ({n},) for a {rows}x{cols} lattice, "
+                             f"got {vmask.shape}.")
+        if not vmask.any():
+            raise ValueError(f"No valid link: all {n} links are masked out by `valid`; "
+                             "cannot estimate a shape.")
+    bad = ~np.all(np.isfinite(r), axis=1) & vmask
+    if bad.any():
+        raise ValueError(f"Non-finite readings on valid links {_few(np.flatnonzero(bad))}; mask "
+                         "them out with `valid`.")
+    norm = np.sqrt(np.einsum("ij,ij->i", r, r)) / G0
+    lo, hi = READING_NORM_RANGE
+    far = vmask & ~((norm >= lo) & (norm <= hi))
+    if far.any():
+        if bad_readings == "raise":
+            k = np.flatnonzero(far)
+            raise ValueError(f"Implausible readings on links {_few(k)}: |s| = "
+                             f"{_few(np.round(norm[k], 3))} g, outside [{lo}, {hi}] g (dead or "
+                             "stuck chips?); mask them with `valid` or bad_readings='mask'.")
+        vmask = vmask & ~far
+        if not vmask.any():
+            raise ValueError("No valid link left after masking the implausible readings.")
+    mask = None if vmask.all() else vmask
+    if previous is not None:
+        _check_previous(previous, n, rows, cols)
+    rest_yaw = None if rest is None else _rest_yaws(rest, n, rows, cols)
+    if rest_yaw is not None and not np.all(np.isfinite(rest_yaw)):
+        raise ValueError("Invalid rest: its yaws contain NaN or inf.")
+    if method == "paper" and mask is not None:
+        raise ValueError("method='paper' does not support missing links (the paper has none); "
+                         "use method='global'.")
+
+    rr = r if mask is None else np.where(vmask[:, None], r, (0.0, 0.0, 1.0))
+    if kernel.USE_KERNEL:  # the angles and their sines and cosines, which every stage below uses
+        alpha, beta, trig = _roll_pitch_trig(rr)
+    else:
+        (alpha, beta), trig = _angles(rr), None
+    t1 = time.perf_counter()
+
+    state = None
+    if method == "global":
+        st = _structure(rows, cols, mask, model)
+        target = st.rest_yaw if rest_yaw is None else rest_yaw
+        if previous is not None:
+            start = np.asarray(previous.yaws, dtype=float)
+        else:
+            start = target
+        lu = None
+        pstate = None if previous is None else previous.solution
+        if pstate is not None and pstate.structure is st:
+            lu = pstate.factorisation
+        noise_est = _noise_from_norms(norm, vmask)
+        prior_w, bend_w = _prior_weights(prior, st, rr, np.where(vmask, norm, 1.0), noise_est,
+                                         rest_yaw is not None)
+        # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
+        tol = max(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise_est)
+        gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
+                                                       prior_w, bend_w, lu, tol, trig)
+        state = Solution(st, lu, prob, gamma)
+        t2 = time.perf_counter()
+        d, nrm = _directions_normals(alpha, beta, gamma, trig)
+        rhs_links = L * (d if st.all_valid else d[st.valid_links])
+        if previous is not None:
+            pprior = np.asarray(previous.joints, float).reshape(-1, 3)
+        elif isinstance(rest, ShapeEstimate):
+            pprior = np.asarray(rest.joints, float).reshape(-1, 3)
+        else:
+            pprior = L * st.rest_joints_unit
+        rhs = st.incidence_T @ rhs_links + JOINT_PRIOR_WEIGHT * pprior
+        P = st.lap_lu.solve(rhs)
+        P -= P[0]
+        joints = P.reshape(rows, cols, 3)
+        residual = _eq8_residual(st.units, d, nrm)
+        if mask is not None:
+            ep = lat.endpoints
+            miss = ~vmask
+            chord = P[ep[miss, 1]] - P[ep[miss, 0]]
+            nc = np.linalg.norm(chord, axis=1, keepdims=True)
+            d[miss] = chord / np.where(nc > 0, nc, 1.0)
+            nrm[miss] = np.nan
+            gamma[miss] = target[miss]
+            alpha = np.where(vmask, alpha, np.nan)
+            beta = np.where(vmask, beta, np.nan)
+            if trig is not None:
+                trig[miss] = np.nan
+    else:  # --- method="paper": host.analysis.paper_method (issue 33) ---
+        from .. import paper_method
+
+        res = paper_method.estimate(alpha, beta, rows, cols, L,
+                                    paper_options or paper_method.PaperOptions())
+        gamma, iters, d, nrm = res["yaws"], res["iterations"], res["directions"], res["normals"]
+        joints, residual, n_fact = res["joints"], res["residual"], 0
+        t2 = t1 + res["t_yaw"]
+    t3 = time.perf_counter()
+    solv = (solvability(alpha, beta, rows, cols) if trig is None
+            else _solvability_kernel(trig, rows, cols))
+    t4 = time.perf_counter()
+    return ShapeEstimate(joints=joints, directions=d, residual=residual, solvability=solv,
+                         normals=nrm, yaws=gamma, alpha=alpha, beta=beta, valid=vmask,
+                         link_length=L, method=method, iterations=int(iters),
+                         factorisations=int(n_fact),
+                         timings={"angles": t1 - t0, "yaw": t2 - t1, "joints": t3 - t2,
+                                  "total": t4 - t0}, noise_pct_g=float(noise_pct_g),
+                         solution=state)
+
+
+def _few(idx, limit: int = 8) -> str:
+    """A short list for error messages: the first ``limit`` items and how many more."""
+    items = [str(v) for v in np.asarray(idx).tolist()[:limit]]
+    more = len(idx) - len(items)
+    return "[" + ", ".join(items) + (f", … {more} more" if more > 0 else "") + "]"

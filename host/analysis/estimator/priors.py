@@ -1,0 +1,122 @@
+"""What fills in what the data cannot determine: the priors' weights (`PRIORS`) from the flatness
+of the regions around every unit and the readings' noise."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import host.analysis.estimator.kernel as kernel  # the switch, read at call time
+from .kernel import ffi as _kffi, lib as _klib
+from .angles import G0
+from .structure import _units_int64
+
+#: The priors `estimate` offers (docs/estimator.md compares them): "adaptive" (default) —
+#: bending + flat-cell shear, both scaled by the readings' noise; "level" — the same with the
+#: bending held only where the region is level: unbiased on a sheet
+#: whose lattice lines turn in plan (a drape), noisier on nets whose lines run straight; "off" —
+#: only the floors that keep the problem regular (the data alone); "fixed" — the former prior,
+#: ``FIXED_PRIOR_WEIGHT`` on every yaw towards the rest; "local" — that yaw prior weighted by
+#: the cell's flatness.
+PRIORS = ("adaptive", "level", "off", "fixed", "local")
+#: Weight of the "fixed"/"local" priors on ``wrap(γ − γ_rest)²`` (the estimator's former prior).
+FIXED_PRIOR_WEIGHT = 1e-2
+#: Least weight of the yaw prior towards the rest yaws (keeps a link without constraints defined).
+ABS_PRIOR_FLOOR = 1e-10
+
+#: Prior std of the bending (yaw difference of parallel neighbours beyond the rest's), rad: the
+#: bending prior's weight is ``(σ/BEND_STD_RAD)²`` for readings of noise σ (fraction of g).
+BEND_STD_RAD = 0.1
+#: Weight of the shear prior (a cell's corner angle towards the rest's) on a flat cell; a cell
+#: of tilt θ gets ``SHEAR_WEIGHT · exp(−(θ / (FLAT_TILT_NOISE · σ))²)``.
+SHEAR_WEIGHT = 1e-3
+#: ... when the rest shape is given (``rest=``): then it is known, not guessed, and holds harder.
+SHEAR_WEIGHT_REST = 1e-2
+#: A cell counts as flat (locally unobservable, Case 1) while its tilt is below ~this many σ.
+FLAT_TILT_NOISE = 3.0
+#: ... averaged over (2 FLAT_RADIUS + 1)² cells around it.
+FLAT_RADIUS = 3
+#: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
+PRIOR_WEIGHT_MIN = 1e-8
+
+
+def _flatness(st, r, norm_g, noise):
+    """Per unit (all units, row-major), ``h = exp(−(θ/θ0)²)`` in [0, 1]: 1 where the region
+    around the unit is level within the noise (Case 1, unobservable), 0 where it is clearly
+    tilted. θ² is twice the mean of ``1 − cos`` of the links' sensor-z tilts (cos from the
+    reading: ``s_z/|s|``), averaged over the (2 `FLAT_RADIUS` + 1)² units around;
+    θ0 = `FLAT_TILT_NOISE` · σ. Noise-free readings (σ = 0) give 0 everywhere."""
+    units = st.lattice.units.reshape(-1, 4)
+    noise = np.asarray(noise, float)
+    if noise.ndim == 0 and noise <= 0.0:
+        return np.zeros(units.shape[0])
+    lead = noise.shape  # () or (B,): r (..., n_links, 3), norm_g (..., n_links)
+    if kernel.USE_KERNEL and not lead and r.ndim == 2 and FLAT_RADIUS >= 0:  # one snapshot: the kernel
+        u = _units_int64(st.rows, st.cols)
+        rc = np.ascontiguousarray(r, dtype=np.float64)
+        ng = np.ascontiguousarray(norm_g, dtype=np.float64)
+        work, h = np.empty(2 * u.shape[0]), np.empty(u.shape[0])
+        fb = _kffi.from_buffer
+        _klib.capsheet_flatness(st.rows - 1, st.cols - 1, fb("int64_t[]", u), fb("double[]", rc),
+                                fb("double[]", ng), G0, FLAT_RADIUS,
+                                FLAT_TILT_NOISE * max(float(noise), 1e-300),
+                                fb("double[]", work[:u.shape[0]]),
+                                fb("double[]", work[u.shape[0]:]), fb("double[]", h))
+        return h
+    cz = r[..., 2] / np.maximum(norm_g * G0, 1e-300)
+    th2 = 2.0 * (1.0 - cz[..., units]).mean(axis=-1)
+    if FLAT_RADIUS > 0:
+        # regional: a level strip between tilted cells (a cylinder's crest) is held by its
+        # tilted neighbours through the lattice; only wide level regions need the prior
+        from scipy.ndimage import uniform_filter  # here: importing scipy.ndimage costs ~0.2 s
+
+        k = 2 * FLAT_RADIUS + 1
+        th2 = uniform_filter(th2.reshape(lead + (st.rows - 1, st.cols - 1)),
+                             size=(1,) * len(lead) + (k, k), mode="nearest"
+                             ).reshape(lead + (-1,))
+    th0 = FLAT_TILT_NOISE * np.maximum(noise, 1e-300)
+    with np.errstate(divide="ignore", over="ignore"):  # noise 0: th0² underflows; masked below
+        h = np.exp(-np.maximum(th2, 0.0) / (th0[..., None] ** 2 if lead else th0 ** 2))
+    return np.where((noise > 0.0)[..., None], h, 0.0) if lead else h
+
+
+def _link_flatness(st, h):
+    """Per link, the mean flatness `h` (..., n_units) of the units it belongs to (one or two)."""
+    units = st.lattice.units.reshape(-1, 4)
+    acc = np.zeros(np.shape(h)[:-1] + (st.n_links,))
+    cnt = np.zeros(st.n_links)
+    for k in range(4):  # a link holds one position k in at most one unit: no repeated index
+        acc[..., units[:, k]] += h
+        cnt[units[:, k]] += 1.0
+    return acc / np.maximum(cnt, 1.0)
+
+
+def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
+    """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
+
+    "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
+    unit's `_flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
+    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `_link_flatness`; "off": floors only; "fixed":
+    `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
+    units. Pairs never go below `PRIOR_WEIGHT_MIN`.
+    """
+    lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("adaptive" only)
+    w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
+    lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
+    if prior in ("adaptive", "level"):
+        hu = _flatness(st, r, norm_g, noise)
+        bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
+        if prior == "level":  # a pair is held as much as its flatter link's units are level
+            bend = bend * _link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+        w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
+        sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
+        w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)
+    elif prior == "fixed":
+        lam[:] = FIXED_PRIOR_WEIGHT
+    elif prior == "local":
+        units = st.lattice.units.reshape(-1, 4)
+        h = _flatness(st, r, norm_g, noise)
+        acc = np.bincount(units.ravel(), weights=np.repeat(h, 4), minlength=st.n_links)
+        cnt = np.bincount(units.ravel(), minlength=st.n_links)
+        hl = acc / np.maximum(cnt, 1)
+        lam = np.maximum(FIXED_PRIOR_WEIGHT * hl[st.var_links], ABS_PRIOR_FLOOR)
+    return lam, w

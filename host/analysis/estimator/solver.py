@@ -1,0 +1,218 @@
+"""Gauss-Newton on all yaws at once: chord steps on a kept factorisation, Anderson acceleration,
+Levenberg-Marquardt damping; one snapshot, or a batch of one structure sharing a factorisation."""
+
+from __future__ import annotations
+
+import numpy as np
+
+import host.analysis.estimator.kernel as kernel  # the switch, read at call time
+from .structure import _Structure
+from .yawproblem import _YawProblem
+
+#: Gauss-Newton stops when the largest yaw step is below this, radians.
+YAW_TOL_RAD = 1e-4
+#: ... or below this fraction of the readings' noise σ (rad ≈ fraction of g): noise moves yaws by ~σ.
+YAW_TOL_NOISE = 0.01
+#: Gauss-Newton iteration cap (warm starts need 2-3; cold starts from the rest layout ~10).
+MAX_ITER = 50
+#: A chord step (reused factorisation) that shrinks by less than this factor triggers a new one.
+#: A factorisation costs 30-60 solves at every size (benchmarks/bench_estimator.py,
+#: ``linear_algebra``), a chord iteration one solve and one evaluation: a contraction of 0.7
+#: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
+#: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
+_REFACTOR_RATIO = 0.7
+
+
+def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
+                  tol=YAW_TOL_RAD, trig=None):
+    """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
+    Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
+    lu, problem).
+
+    ``lu`` may be the factorisation left by the previous snapshot (same structure): the normal
+    matrix changes little between snapshots, so its chord iterations usually converge without a
+    new factorisation. A new one is made when a step raises the cost or contracts by less than
+    `_REFACTOR_RATIO`.
+
+    The chord steps are accelerated (Anderson, one step of history, `_anderson`): on noisy
+    readings Gauss-Newton's neglected curvature makes a smooth mode overshoot, each step about
+    −0.5 times the last (the 128x128 sheet took 5-7 steps, each reversing the one before); the
+    extrapolation sums that series. An accelerated step that raises the cost is replaced by the
+    plain one before anything else is tried.
+    """
+    gamma = gamma0.copy()
+    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
+    if st.n_var == 0:
+        return gamma, 0, 0, None, prob
+    vl = st.var_links
+    cost, grad, blocks = prob.evaluate(gamma, jac=lu is None)
+    mu = 0.0
+    fresh = False
+    n_fact = 0
+    prev_smax = np.inf
+    hist = None  # (last raw step, last move) of the current chord map, for the acceleration
+    accelerated = False  # the last move accepted was an extrapolated one
+    it = 0
+    if lu is not None and _chord_in_kernel(st, lu, gamma):
+        # the warm start's chord steps in the kernel: this loop's iterations, one C call
+        status, it, cost, grad, prev_smax = prob.chord_kernel(
+            gamma, cost, grad, lu, tol, MAX_ITER, _REFACTOR_RATIO, _ANDERSON_COS)
+        if status in (0, 3):  # converged, or out of iterations
+            return gamma, it, 0, lu, prob
+        lu, blocks = None, None  # 1: the cost rose; 2: a step contracted too little
+    while it < MAX_ITER:
+        it += 1
+        if lu is None:
+            if blocks is None:  # the Jacobian of this point, for its first factorisation
+                blocks = prob.evaluate(gamma)[2]
+            lu = prob.factor(blocks, mu)
+            fresh = True
+            hist, accelerated = None, False
+            n_fact += 1
+        step = prob.step(lu, grad)
+        move = _anderson(step, hist) if mu == 0.0 else step
+        g_new = gamma.copy()
+        g_new[vl] += move
+        smax = float(np.max(np.abs(step)))
+        if mu == 0.0 and (smax < tol or smax < prev_smax < np.inf and not accelerated
+                          and smax * smax < tol * prev_smax):
+            # converged: the step (or the next one, predicted from the contraction so far) is
+            # below the tolerance. A Gauss-Newton/chord step on an SPD matrix is a descent
+            # direction and this one is tiny, so it is taken without evaluating the cost again
+            # (an evaluation is a third of an iteration); the returned state is at ``g_new``.
+            # Right after an accelerated move the steps' ratio says nothing of the contraction
+            # of the other modes: then only a step below the tolerance ends it.
+            gamma = g_new
+            break
+        cost_new, grad_new, blocks_new = prob.evaluate(g_new, jac=False)
+        if move is not step and not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
+            move = step  # the extrapolation overshot: the plain chord step instead
+            g_new = gamma.copy()
+            g_new[vl] += move
+            cost_new, grad_new, blocks_new = prob.evaluate(g_new, jac=False)
+        if not cost_new <= cost * (1.0 + 1e-12) + 1e-300:
+            lu = None  # refactorise here; damp if even a fresh Gauss-Newton step failed
+            if fresh:
+                mu = max(10.0 * mu, 1e-3)
+                if mu > 1e8:
+                    break
+            fresh = False
+            continue
+        gamma, cost, grad, blocks = g_new, cost_new, grad_new, blocks_new
+        hist = (step, move)
+        accelerated = move is not step
+        if smax < tol:  # a damped step this small: converged as well
+            break
+        if mu > 0.0:
+            mu = mu / 10.0 if mu > 1e-6 else 0.0
+            lu = None
+        elif smax > _REFACTOR_RATIO * prev_smax:
+            lu = None
+        prev_smax = smax
+        fresh = False
+    return gamma, it, n_fact, lu, prob
+
+
+def _chord_in_kernel(st, lu, gamma) -> bool:
+    """Whether `_YawProblem.chord_kernel` can run this snapshot's chord steps: the kernel is
+    built, model "cells", one snapshot, a SuperLU factorisation with its supernodal form."""
+    return (kernel.USE_KERNEL and st.model == "cells" and gamma.ndim == 1 and lu[0] == "splu"
+            and len(lu) > 2 and lu[2] is not None)
+
+
+#: `_anderson` extrapolates only a step that reverses the last one: cos(s, s_prev) below this.
+_ANDERSON_COS = -0.9
+
+
+def _anderson(step: np.ndarray, hist) -> np.ndarray:
+    """Anderson acceleration with one step of history of the fixed-point map ``x -> x + s(x)``:
+    ``x + s − θ (Δx + Δs)``, θ minimising the linearised next step. For a mode that the steps
+    overshoot, each −ρ times the last (0 < ρ < 1), it moves ``s / (1 + ρ)``, the whole rest of the
+    series. Used only for such a step — nearly opposite to the last (`_ANDERSON_COS`), so
+    0 < θ < 1 and the move is shorter than the step — else the plain step is returned. ``hist``:
+    (previous raw step, previous move) of the same map, or None."""
+    if hist is None:
+        return step
+    s_prev, dx = hist
+    nn = float(step @ step) * float(s_prev @ s_prev)
+    if not (nn > 0.0 and float(step @ s_prev) < _ANDERSON_COS * np.sqrt(nn)):
+        return step
+    ds = step - s_prev
+    theta = float(ds @ step) / float(ds @ ds)
+    if not 0.0 < theta < 1.0:
+        return step
+    return step - theta * (dx + ds)
+
+
+#: `estimate_batch`: chord iterations per snapshot before it is handed to `estimate` instead.
+BATCH_MAX_ITER = 8
+#: ... and factorisations per group at most (a slow contraction or a rising cost makes one).
+BATCH_REFACTOR = 3
+
+
+def _solve_global_batch(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu, tol):
+    """`_solve_global` for a batch (B, n_links) of snapshots of one structure, all started at
+    ``gamma0`` (n_links,): chord Gauss-Newton steps on one shared factorisation (the previous
+    snapshot's, or one made at the batch's first), with the same stopping rule per snapshot.
+    As in `_solve_global`, a new factorisation is made (at the first snapshot still iterating,
+    at most `BATCH_REFACTOR` times) when the steps contract by less than `_REFACTOR_RATIO`
+    (median over the batch) or raise some snapshot's cost. A snapshot whose step raised its cost,
+    or that has not converged in `BATCH_MAX_ITER` steps, is reported failed (the caller
+    re-estimates it with `estimate`). Returns (gamma (B, n), iterations (B,), failed (B,),
+    factorisations, lu, the problem's ``take``)."""
+    B = alpha.shape[0]
+    gamma = np.repeat(gamma0[None, :], B, axis=0)
+    iters = np.zeros(B, int)
+    failed = np.zeros(B, bool)
+    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w)
+    if st.n_var == 0:
+        return gamma, iters, failed, 0, lu, prob.take
+    vl = st.var_links
+    c_act, gr_act, _ = prob.evaluate(gamma, jac=False)
+    n_fact = 0
+    if lu is None:
+        p0 = prob.take(0)
+        lu = p0.factor(p0.evaluate(gamma[0])[2], 0.0)
+        n_fact = 1
+    act, sub, g_act = np.arange(B), prob, gamma.copy()  # the snapshots still iterating
+    prev_smax = np.full(B, np.inf)
+    rate = np.zeros(B)  # per snapshot, the slowest contraction since the factorisation
+    for _ in range(BATCH_MAX_ITER):
+        iters[act] += 1
+        step = sub.step(lu, gr_act)
+        smax = np.max(np.abs(step), axis=1)
+        g_new = g_act.copy()
+        g_new[:, vl] += step
+        ps, tl = prev_smax[act], tol[act]
+        # converged: the step, or the next one predicted at the slowest contraction seen (a
+        # shared factorisation contracts a snapshot's modes at different rates, so one fast
+        # step says little), is below the tolerance; taken without evaluating (`_solve_global`)
+        rt = np.maximum(rate[act], smax / ps)
+        conv = (smax < tl) | ((smax < ps) & (ps < np.inf) & (smax * rt < tl))
+        gamma[act[conv]] = g_new[conv]
+        keep = ~conv
+        act, g_new, smax = act[keep], g_new[keep], smax[keep]
+        if not act.size:
+            break
+        sub = prob.take(act)
+        c_new, gr_new, _ = sub.evaluate(g_new, jac=False)
+        worse = ~(c_new <= c_act[keep] * (1.0 + 1e-12) + 1e-300)
+        failed[act[worse]] = True
+        ok = ~worse
+        ratio = smax[ok] / prev_smax[act[ok]]
+        act, g_act, c_act, gr_act = act[ok], g_new[ok], c_new[ok], gr_new[ok]
+        gamma[act] = g_act
+        prev_smax[act] = smax[ok]
+        rate[act] = np.maximum(rate[act], ratio)
+        if not act.size:
+            break
+        if not ok.all():
+            sub = prob.take(act)
+        if n_fact < BATCH_REFACTOR and (worse.any() or np.median(ratio) > _REFACTOR_RATIO):
+            pf = prob.take(int(act[0]))
+            lu = pf.factor(pf.evaluate(g_act[0])[2], 0.0)
+            n_fact += 1
+            prev_smax[act] = np.inf  # a new matrix: its contraction is measured afresh
+            rate[act] = 0.0
+    failed[act] = True  # out of steps
+    return gamma, iters, failed, n_fact, lu, prob.take
