@@ -6,14 +6,13 @@ import time
 
 import numpy as np
 
-import host.analysis.estimator.solver as solver  # YAW_TOL_*, read at call time
-from .angles import G0, _angles, solvability
-from .joints import _directions_normals, _eq8_residual
-from .pipeline import READING_NORM_RANGE, _check_int, _check_previous, estimate
-from .priors import _prior_weights
+from .angles import G0
+from .joints import joints_and_mask
+from .pipeline import (READING_NORM_RANGE, WarmStart, _check_int, _check_previous, estimate,
+                       link_angles, link_solvability, prior_weights)
 from .result import ShapeEstimate, Solution
 from .solver import _solve_global_batch
-from .structure import JOINT_PRIOR_WEIGHT, _lattice, _structure
+from .structure import _lattice, _structure
 
 def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: float,
                    valid: np.ndarray | None = None, previous: ShapeEstimate | None = None, *,
@@ -118,47 +117,21 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
         if idx.size:
             mask = None if mask0.all() else mask0
             st = _structure(rows, cols, mask, "cells")
-            rr = r[idx] if mask is None else np.where(mask0[None, :, None], r[idx],
-                                                      (0.0, 0.0, 1.0))
-            alpha, beta = _angles(rr)
-            nm = np.where(mask0, norm[idx], 1.0)
-            e = nm[:, mask0] - 1.0
-            noise = np.sqrt(np.add.reduce(e * e, axis=1) / max(e.shape[1], 1))
-            prior_w, bend_w = _prior_weights("adaptive", st, rr, nm, noise, False)
-            tol = np.maximum(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise)
+            # the stages `estimate` runs (host.analysis.estimator.pipeline), on the group at once
+            rr, alpha, beta, _ = link_angles(r[idx], mask0, mask)
+            _, prior_w, bend_w, tol = prior_weights("adaptive", st, rr, norm[idx], mask0, False)
             target = st.rest_yaw
-            start = target if prev is None else np.asarray(prev.yaws, dtype=float)
-            pstate = None if prev is None else prev.solution
-            lu = pstate.factorisation if pstate is not None and pstate.structure is st else None
+            warm = WarmStart.of(prev)
+            start, lu = warm.start(st, target)
             gamma, iters, failed, n_fact, lu, prob_of = _solve_global_batch(
                 st, alpha, beta, start, target, prior_w, bend_w, lu, tol)
             ok = ~failed
             rows_ok = np.flatnonzero(ok)
             t1 = time.perf_counter()
-            d, nrm = _directions_normals(alpha[ok], beta[ok], gamma[ok])
-            k = int(ok.sum())
-            vl = st.valid_links
-            rhs_links = L * (d if st.all_valid else d[:, vl])  # (k, n_valid, 3)
-            pprior = (L * st.rest_joints_unit if prev is None
-                      else np.asarray(prev.joints, float).reshape(-1, 3))
-            rhs = st.incidence_T @ rhs_links.transpose(1, 0, 2).reshape(vl.size, 3 * k)
-            rhs += JOINT_PRIOR_WEIGHT * np.tile(pprior, (1, k))
-            P = st.lap_lu.solve(rhs).reshape(-1, k, 3).transpose(1, 0, 2) if k else \
-                np.zeros((0, rows * cols, 3))
-            P = P - P[:, :1]
-            residual = _eq8_residual(st.units, d, nrm) if k else np.zeros(0)
-            a_out, b_out, g_out = alpha[ok], beta[ok], gamma[ok]
-            if mask is not None:
-                ep = lat.endpoints
-                miss = ~mask0
-                chord = P[:, ep[miss, 1]] - P[:, ep[miss, 0]]
-                nc = np.linalg.norm(chord, axis=2, keepdims=True)
-                d[:, miss] = chord / np.where(nc > 0, nc, 1.0)
-                nrm[:, miss] = np.nan
-                g_out[:, miss] = target[miss]
-                a_out = np.where(mask0, a_out, np.nan)
-                b_out = np.where(mask0, b_out, np.nan)
-            solv = solvability(a_out, b_out, rows, cols)
+            if rows_ok.size:
+                P, d, nrm, g_out, a_out, b_out, residual = joints_and_mask(
+                    st, L, alpha[ok], beta[ok], gamma[ok], target, warm.joint_prior(st, L))
+                solv = link_solvability(a_out, b_out, None, rows, cols)
             dt = (time.perf_counter() - t0) / max(idx.size, 1)
             for j, kk in enumerate(idx[ok]):
                 out[s0 + kk] = ShapeEstimate(

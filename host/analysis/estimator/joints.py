@@ -1,4 +1,5 @@
-"""After the yaws: every link's direction and normal in the world, and eq. (8)'s residual."""
+"""After the yaws: every link's direction and normal in the world, the joints by least squares,
+eq. (8)'s residual, and what a missing link reports (`joints_and_mask`)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import numpy as np
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 from .angles import _angle_trig
+from .structure import JOINT_PRIOR_WEIGHT
 
 
 def _directions_normals(alpha, beta, gamma, trig=None):
@@ -43,3 +45,42 @@ def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
     rn = nu[..., 0, :] - nu[..., 1, :] + nu[..., 2, :] - nu[..., 3, :]
     tot = np.sum(rd * rd + rn * rn, axis=(-2, -1))
     return float(tot) if d.ndim == 2 else tot
+
+
+def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=None):
+    """The shape from the yaws, for one snapshot (``gamma`` (n_links,)) or a batch of one
+    structure (B, n_links): every link's direction and normal, the joints by least squares over
+    the valid links, ``min Σ ‖p_b − p_a − L d‖²`` plus ``JOINT_PRIOR_WEIGHT`` towards
+    ``joint_prior`` (n_joints, 3), with joint (0, 0) at the origin (one multi-right-hand-side
+    solve for a batch), eq. (8)'s residual over the active units, and for a missing link: the
+    chord between its estimated joints as its direction, NaN normal, roll and pitch, its yaw the
+    ``target``'s. Returns (joints (..., n_joints, 3), directions, normals, yaws, alpha, beta,
+    residual); ``trig`` (one snapshot) is updated in place (NaN for missing links)."""
+    d, nrm = _directions_normals(alpha, beta, gamma, trig)
+    single = gamma.ndim == 1
+    vl = st.valid_links
+    dl = L * (d if st.all_valid else d[..., vl, :])  # (..., n_valid, 3)
+    if single:
+        rhs = st.incidence_T @ dl + JOINT_PRIOR_WEIGHT * joint_prior
+        P = st.lap_lu.solve(rhs)
+        P -= P[0]
+    else:  # the snapshots side by side: (n_valid, 3 B), one solve
+        B = gamma.shape[0]
+        rhs = st.incidence_T @ dl.transpose(1, 0, 2).reshape(vl.size, 3 * B)
+        rhs += JOINT_PRIOR_WEIGHT * np.tile(joint_prior, (1, B))
+        P = st.lap_lu.solve(rhs).reshape(-1, B, 3).transpose(1, 0, 2)
+        P = P - P[:, :1]
+    residual = _eq8_residual(st.units, d, nrm)
+    if not st.all_valid:
+        ep = st.lattice.endpoints
+        miss = ~st.valid
+        chord = P[..., ep[miss, 1], :] - P[..., ep[miss, 0], :]
+        nc = np.linalg.norm(chord, axis=-1, keepdims=True)
+        d[..., miss, :] = chord / np.where(nc > 0, nc, 1.0)
+        nrm[..., miss, :] = np.nan
+        gamma[..., miss] = target[miss]
+        alpha = np.where(st.valid, alpha, np.nan)
+        beta = np.where(st.valid, beta, np.nan)
+        if trig is not None:
+            trig[miss] = np.nan
+    return P, d, nrm, gamma, alpha, beta, residual

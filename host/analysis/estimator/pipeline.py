@@ -3,21 +3,22 @@
 from __future__ import annotations
 
 import time
+from typing import NamedTuple
 
 import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 import host.analysis.estimator.solver as solver  # YAW_TOL_*, read at call time
 from .angles import G0, _angles, _roll_pitch_trig, _solvability_kernel, solvability
-from .joints import _directions_normals, _eq8_residual
+from .joints import joints_and_mask
 from .priors import PRIORS, _prior_weights
 from .result import ShapeEstimate, Solution
 from .solver import _solve_global
-from .structure import JOINT_PRIOR_WEIGHT, _lattice, _structure
-from .yawproblem import _sumsq
+from .structure import _lattice, _structure
 
+#: `estimate`'s methods (module docstring)
 METHODS = ("global", "paper")
-
+#: `estimate`'s normal models (module docstring)
 MODELS = ("cells", "eq6")
 #: Plausible |reading| range, in g: outside it a link is a dead, stuck or saturated chip.
 READING_NORM_RANGE = (0.5, 1.5)
@@ -72,13 +73,6 @@ def _check_previous(previous, n: int, rows: int, cols: int) -> None:
     if not (np.all(np.isfinite(previous.yaws)) and np.all(np.isfinite(previous.joints))):
         raise ValueError("Invalid previous: its yaws or joints contain NaN or inf (a failed "
                          "estimate cannot seed the next one; pass previous=None)")
-
-
-def _noise_from_norms(norm_g: np.ndarray, valid: np.ndarray) -> float:
-    """The readings' noise, per axis, as a fraction of g: the RMS of ``|s|/g − 1`` over the valid
-    links (white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g)."""
-    e = norm_g[valid] - 1.0
-    return float(np.sqrt(_sumsq(e) / max(e.size, 1)))
 
 
 def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
@@ -147,6 +141,47 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         ``method="paper"``.
     """
     t0 = time.perf_counter()
+    opts = check_options(method, model, prior, noise_pct_g, bad_readings, paper_options)
+    rows = _check_int("rows", rows, 2)
+    cols = _check_int("cols", cols, 2)
+    L = check_link_length(link_length)
+    opts = opts._replace(noise_pct_g=check_noise_pct_g(noise_pct_g))
+    snap = check_readings(readings, rows, cols, valid, bad_readings)
+    n = snap.valid.size
+    if previous is not None:
+        _check_previous(previous, n, rows, cols)
+    rest_yaw = None if rest is None else _rest_yaws(rest, n, rows, cols)
+    if rest_yaw is not None and not np.all(np.isfinite(rest_yaw)):
+        raise ValueError("Invalid rest: its yaws contain NaN or inf.")
+    if method == "paper" and snap.mask is not None:
+        raise ValueError("method='paper' does not support missing links (the paper has none); "
+                         "use method='global'.")
+    warm = WarmStart.of(previous)
+    if method == "global":
+        st = _structure(rows, cols, snap.mask, model)
+        return solve_snapshot(snap, st, L, opts, warm, rest, rest_yaw, t0)
+    return _paper(snap, rows, cols, L, opts, t0)
+
+
+# ---------------------------------------------------------------------------------------------
+# The checks (`estimate`, `estimate_batch` and `ShapeEstimator` make the same)
+# ---------------------------------------------------------------------------------------------
+
+class Options(NamedTuple):
+    """The checked options of `estimate` that do not depend on the lattice."""
+
+    method: str
+    model: str
+    prior: str
+    noise_pct_g: float
+    bad_readings: str
+    paper_options: object
+
+
+def check_options(method="global", model="cells", prior="adaptive", noise_pct_g=1.0,
+                  bad_readings="raise", paper_options=None) -> Options:
+    """`estimate`'s options checked (ValueError naming what is wrong), as an `Options`
+    (``noise_pct_g`` is checked by `check_noise_pct_g`)."""
     if method not in METHODS:
         raise ValueError(f"Invalid method: {method!r} (expected one of {METHODS})")
     if model not in MODELS:
@@ -160,20 +195,47 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         if method != "paper" or not isinstance(paper_options, PaperOptions):
             raise ValueError(f"Invalid paper_options: {paper_options!r} (a PaperOptions, with "
                              "method='paper' only)")
-    rows = _check_int("rows", rows, 2)
-    cols = _check_int("cols", cols, 2)
-    lat = _lattice(rows, cols)
-    n = lat.n_links
+    return Options(method, model, prior, noise_pct_g, bad_readings, paper_options)
+
+
+def check_noise_pct_g(noise_pct_g) -> float:
+    """``noise_pct_g`` as a finite float >= 0 (ValueError otherwise)."""
+    if isinstance(noise_pct_g, (bool, np.bool_)) or not isinstance(noise_pct_g,
+                                                                    (int, float, np.number)) \
+            or not (np.isfinite(noise_pct_g) and noise_pct_g >= 0):
+        raise ValueError(f"Invalid noise_pct_g: {noise_pct_g!r} (need a finite value >= 0)")
+    return float(noise_pct_g)
+
+
+def check_link_length(link_length) -> float:
+    """``link_length`` as a finite float > 0, metres (ValueError otherwise)."""
     if isinstance(link_length, (bool, np.bool_)) or not isinstance(link_length,
                                                                     (int, float, np.number)):
         raise ValueError(f"Invalid link_length: {link_length!r} (need a number of metres > 0)")
     L = float(link_length)
     if not (np.isfinite(L) and L > 0):
         raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
-    if isinstance(noise_pct_g, (bool, np.bool_)) or not isinstance(noise_pct_g,
-                                                                    (int, float, np.number)) \
-            or not (np.isfinite(noise_pct_g) and noise_pct_g >= 0):
-        raise ValueError(f"Invalid noise_pct_g: {noise_pct_g!r} (need a finite value >= 0)")
+    return L
+
+
+class Snapshot(NamedTuple):
+    """One snapshot's readings, checked (`check_readings`)."""
+
+    #: readings, (n_links, 3), m/s², float
+    readings: np.ndarray
+    #: the links used, (n_links,) bool: ``valid`` less the implausible readings masked out
+    valid: np.ndarray
+    #: ``valid``, or None when every link is used
+    mask: np.ndarray | None
+    #: ``|s| / G0`` per link, (n_links,)
+    norm_g: np.ndarray
+
+
+def check_readings(readings, rows: int, cols: int, valid=None, bad_readings: str = "raise"
+                   ) -> Snapshot:
+    """One snapshot's readings and mask checked as `estimate` checks them (ValueError naming the
+    shape expected and got, the non-finite or implausible links), as a `Snapshot`."""
+    n = _lattice(rows, cols).n_links
     r = np.asarray(readings)
     if r.dtype.kind not in "iuf":
         raise ValueError(f"Invalid readings: dtype {r.dtype} (need real numbers, m/s²)")
@@ -210,88 +272,129 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         vmask = vmask & ~far
         if not vmask.any():
             raise ValueError("No valid link left after masking the implausible readings.")
-    mask = None if vmask.all() else vmask
-    if previous is not None:
-        _check_previous(previous, n, rows, cols)
-    rest_yaw = None if rest is None else _rest_yaws(rest, n, rows, cols)
-    if rest_yaw is not None and not np.all(np.isfinite(rest_yaw)):
-        raise ValueError("Invalid rest: its yaws contain NaN or inf.")
-    if method == "paper" and mask is not None:
-        raise ValueError("method='paper' does not support missing links (the paper has none); "
-                         "use method='global'.")
+    return Snapshot(r, vmask, None if vmask.all() else vmask, norm)
 
-    rr = r if mask is None else np.where(vmask[:, None], r, (0.0, 0.0, 1.0))
-    if kernel.USE_KERNEL:  # the angles and their sines and cosines, which every stage below uses
-        alpha, beta, trig = _roll_pitch_trig(rr)
-    else:
-        (alpha, beta), trig = _angles(rr), None
+
+# ---------------------------------------------------------------------------------------------
+# The stages, for one snapshot (arrays (n_links, ...)) or a batch of one structure (B, n_links, ...)
+# ---------------------------------------------------------------------------------------------
+
+class WarmStart(NamedTuple):
+    """Where a global solve starts: the yaws (None: the prior's target), the joints the joint
+    problem's weak prior holds isolated parts at (None: the rest layout or ``rest``'s joints),
+    and the solution whose factorisation it may reuse (when its structure is this one)."""
+
+    yaws: np.ndarray | None = None
+    joints: np.ndarray | None = None
+    solution: Solution | None = None
+
+    @classmethod
+    def of(cls, previous: ShapeEstimate | None) -> "WarmStart":
+        """The warm start an earlier estimate gives (``previous=``); none for None."""
+        if previous is None:
+            return cls()
+        return cls(np.asarray(previous.yaws, dtype=float), np.asarray(previous.joints, float),
+                   previous.solution)
+
+    def start(self, st, target: np.ndarray):
+        """(start yaws, the factorisation to reuse or None) on structure ``st``."""
+        start = target if self.yaws is None else self.yaws
+        sol = self.solution
+        return start, (sol.factorisation if sol is not None and sol.structure is st else None)
+
+    def joint_prior(self, st, L: float, rest=None) -> np.ndarray:
+        """(n_joints, 3): the joints the joint problem's weak prior holds."""
+        if self.joints is not None:
+            return self.joints.reshape(-1, 3)
+        if isinstance(rest, ShapeEstimate):
+            return np.asarray(rest.joints, float).reshape(-1, 3)
+        return L * st.rest_joints_unit
+
+
+def link_angles(r: np.ndarray, valid: np.ndarray, mask):
+    """Roll and pitch of every link (eq. 2), the invalid links read as level: (readings used,
+    alpha, beta, trig) — ``trig`` the kernel's sines and cosines for one snapshot when the kernel
+    is used (every later stage reuses them), else None."""
+    rr = r if mask is None else np.where(valid[:, None], r, (0.0, 0.0, 1.0))
+    if kernel.USE_KERNEL and rr.ndim == 2:
+        return (rr, *_roll_pitch_trig(rr))
+    alpha, beta = _angles(rr)
+    return rr, alpha, beta, None
+
+
+def prior_weights(prior: str, st, rr, norm_g, valid, rest_given: bool):
+    """The readings' noise σ (per axis, fraction of g: the RMS of ``|s|/g − 1`` over the valid
+    links — white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g), the
+    prior's weights (`priors._prior_weights`) and the solver's tolerance: (σ, prior_w, bend_w,
+    tol), each per snapshot for a batch."""
+    e = norm_g[..., valid] - 1.0
+    noise = np.sqrt(np.add.reduce(e * e, axis=-1) / max(e.shape[-1], 1))
+    prior_w, bend_w = _prior_weights(prior, st, rr, np.where(valid, norm_g, 1.0),
+                                     float(noise) if noise.ndim == 0 else noise, rest_given)
+    # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
+    tol = np.maximum(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise)
+    if noise.ndim == 0:
+        return float(noise), prior_w, bend_w, float(tol)
+    return noise, prior_w, bend_w, tol
+
+
+def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart, rest=None,
+                   rest_yaw=None, t0: float | None = None) -> ShapeEstimate:
+    """``method="global"`` on one checked snapshot, on structure ``st`` (its lattice, mask and
+    model), from ``warm``: angles -> prior weights -> solve -> joints and mask."""
+    t0 = time.perf_counter() if t0 is None else t0
+    rows, cols = st.rows, st.cols
+    rr, alpha, beta, trig = link_angles(snap.readings, snap.valid, snap.mask)
     t1 = time.perf_counter()
-
-    state = None
-    if method == "global":
-        st = _structure(rows, cols, mask, model)
-        target = st.rest_yaw if rest_yaw is None else rest_yaw
-        if previous is not None:
-            start = np.asarray(previous.yaws, dtype=float)
-        else:
-            start = target
-        lu = None
-        pstate = None if previous is None else previous.solution
-        if pstate is not None and pstate.structure is st:
-            lu = pstate.factorisation
-        noise_est = _noise_from_norms(norm, vmask)
-        prior_w, bend_w = _prior_weights(prior, st, rr, np.where(vmask, norm, 1.0), noise_est,
-                                         rest_yaw is not None)
-        # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
-        tol = max(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise_est)
-        gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
-                                                       prior_w, bend_w, lu, tol, trig)
-        state = Solution(st, lu, prob, gamma)
-        t2 = time.perf_counter()
-        d, nrm = _directions_normals(alpha, beta, gamma, trig)
-        rhs_links = L * (d if st.all_valid else d[st.valid_links])
-        if previous is not None:
-            pprior = np.asarray(previous.joints, float).reshape(-1, 3)
-        elif isinstance(rest, ShapeEstimate):
-            pprior = np.asarray(rest.joints, float).reshape(-1, 3)
-        else:
-            pprior = L * st.rest_joints_unit
-        rhs = st.incidence_T @ rhs_links + JOINT_PRIOR_WEIGHT * pprior
-        P = st.lap_lu.solve(rhs)
-        P -= P[0]
-        joints = P.reshape(rows, cols, 3)
-        residual = _eq8_residual(st.units, d, nrm)
-        if mask is not None:
-            ep = lat.endpoints
-            miss = ~vmask
-            chord = P[ep[miss, 1]] - P[ep[miss, 0]]
-            nc = np.linalg.norm(chord, axis=1, keepdims=True)
-            d[miss] = chord / np.where(nc > 0, nc, 1.0)
-            nrm[miss] = np.nan
-            gamma[miss] = target[miss]
-            alpha = np.where(vmask, alpha, np.nan)
-            beta = np.where(vmask, beta, np.nan)
-            if trig is not None:
-                trig[miss] = np.nan
-    else:  # --- method="paper": host.analysis.paper_method (issue 33) ---
-        from .. import paper_method
-
-        res = paper_method.estimate(alpha, beta, rows, cols, L,
-                                    paper_options or paper_method.PaperOptions())
-        gamma, iters, d, nrm = res["yaws"], res["iterations"], res["directions"], res["normals"]
-        joints, residual, n_fact = res["joints"], res["residual"], 0
-        t2 = t1 + res["t_yaw"]
+    target = st.rest_yaw if rest_yaw is None else rest_yaw
+    start, lu = warm.start(st, target)
+    _, prior_w, bend_w, tol = prior_weights(opts.prior, st, rr, snap.norm_g, snap.valid,
+                                            rest_yaw is not None)
+    gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
+                                                   prior_w, bend_w, lu, tol, trig)
+    solution = Solution(st, lu, prob, gamma)
+    t2 = time.perf_counter()
+    P, d, nrm, gamma, alpha, beta, residual = joints_and_mask(
+        st, L, alpha, beta, gamma, target, warm.joint_prior(st, L, rest), trig)
     t3 = time.perf_counter()
-    solv = (solvability(alpha, beta, rows, cols) if trig is None
-            else _solvability_kernel(trig, rows, cols))
+    solv = link_solvability(alpha, beta, trig, rows, cols)
     t4 = time.perf_counter()
-    return ShapeEstimate(joints=joints, directions=d, residual=residual, solvability=solv,
-                         normals=nrm, yaws=gamma, alpha=alpha, beta=beta, valid=vmask,
-                         link_length=L, method=method, iterations=int(iters),
-                         factorisations=int(n_fact),
+    return ShapeEstimate(joints=P.reshape(rows, cols, 3), directions=d, residual=residual,
+                         solvability=solv, normals=nrm, yaws=gamma, alpha=alpha, beta=beta,
+                         valid=snap.valid, link_length=L, method="global",
+                         iterations=int(iters), factorisations=int(n_fact),
                          timings={"angles": t1 - t0, "yaw": t2 - t1, "joints": t3 - t2,
-                                  "total": t4 - t0}, noise_pct_g=float(noise_pct_g),
-                         solution=state)
+                                  "total": t4 - t0}, noise_pct_g=opts.noise_pct_g,
+                         solution=solution)
+
+
+def link_solvability(alpha, beta, trig, rows: int, cols: int) -> np.ndarray:
+    """`solvability` (from the kernel's ``trig`` when there is one)."""
+    if trig is None:
+        return solvability(alpha, beta, rows, cols)
+    return _solvability_kernel(trig, rows, cols)
+
+
+def _paper(snap: Snapshot, rows: int, cols: int, L: float, opts: Options, t0: float
+           ) -> ShapeEstimate:
+    """``method="paper"``: host.analysis.paper_method (issue 33) on the checked snapshot."""
+    from .. import paper_method
+
+    _, alpha, beta, trig = link_angles(snap.readings, snap.valid, snap.mask)
+    t1 = time.perf_counter()
+    res = paper_method.estimate(alpha, beta, rows, cols, L,
+                                opts.paper_options or paper_method.PaperOptions())
+    t2 = t1 + res["t_yaw"]
+    t3 = time.perf_counter()
+    solv = link_solvability(alpha, beta, trig, rows, cols)
+    t4 = time.perf_counter()
+    return ShapeEstimate(joints=res["joints"], directions=res["directions"],
+                         residual=res["residual"], solvability=solv, normals=res["normals"],
+                         yaws=res["yaws"], alpha=alpha, beta=beta, valid=snap.valid,
+                         link_length=L, method="paper", iterations=int(res["iterations"]),
+                         factorisations=0,
+                         timings={"angles": t1 - t0, "yaw": t2 - t1, "joints": t3 - t2,
+                                  "total": t4 - t0}, noise_pct_g=opts.noise_pct_g)
 
 
 def _few(idx, limit: int = 8) -> str:

@@ -31,13 +31,6 @@ def _wrap(x: np.ndarray) -> np.ndarray:
     return (x + np.pi) % (2 * np.pi) - np.pi
 
 
-def _sumsq(x: np.ndarray) -> float:
-    """``Σ |x|²`` without BLAS (a threaded BLAS dot on a busy machine costs milliseconds)."""
-    if np.iscomplexobj(x):
-        return float(np.add.reduce(x.real * x.real) + np.add.reduce(x.imag * x.imag))
-    return float(np.add.reduce(x * x))
-
-
 def _cell_normals(D, Az, Cz):
     """Per cell (last axis of ``D``: its 4 links' xy directions), ``A``, ``C`` the sums of its
     i- and j-link directions (xy complex; ``Az``, ``Cz`` their z), and the unit normal of
