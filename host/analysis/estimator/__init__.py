@@ -18,7 +18,8 @@ Two methods, same input, same output (`ShapeEstimate`):
 ``method="global"`` (default)
     Roll and pitch as above. All yaws at once, one sparse nonlinear least-squares problem
     (Gauss-Newton with Levenberg-Marquardt damping, one yaw fixed as gauge), warm-started from
-    ``previous`` (its yaws and its factorisation, reused while it still contracts well). Terms,
+    the last snapshot (its yaws and its factorisation, reused while it still contracts well:
+    `ShapeEstimator` holds them between its updates; `estimate` takes them as ``previous``). Terms,
     all in ``z_k = exp(iγ_k)`` (docs/estimator.md has the derivation and the measurements):
 
     * loop closure, eq. (4), xy part, per unit: ``Σ_m s_m cos β_m z_m = 0`` (exact);
@@ -60,6 +61,7 @@ The package, by concern (docs/design.md's layout table lists them too):
 `.pipeline`               `estimate`: the checks, then angles -> structure -> priors -> solve ->
                           joints
 `.batch`                  `estimate_batch`: many snapshots of one structure solved together
+`.stateful`               `ShapeEstimator`: a stream of snapshots, holding its warm start
 `.result`                 `ShapeEstimate` and the `Solution` state of a global solve
 `.angles`                 roll and pitch (eq. 2), solvability (eq. 7)
 `.structure`              per lattice, mask and model: sparsity pattern, ordering, Laplacian
@@ -88,6 +90,7 @@ from .pipeline import METHODS, MODELS, READING_NORM_RANGE, estimate
 from .priors import (ABS_PRIOR_FLOOR, BEND_STD_RAD, FIXED_PRIOR_WEIGHT, FLAT_RADIUS,
                      FLAT_TILT_NOISE, PRIOR_WEIGHT_MIN, PRIORS, SHEAR_WEIGHT, SHEAR_WEIGHT_REST)
 from .result import ShapeEstimate, Solution
+from .stateful import ShapeEstimator
 from .solver import BATCH_MAX_ITER, BATCH_REFACTOR, MAX_ITER, YAW_TOL_NOISE, YAW_TOL_RAD
 from .structure import JOINT_PRIOR_WEIGHT, ND_LEAF, ND_MIN_VARS
 from .uncertainty import UNCERTAINTY_SAMPLES
@@ -103,5 +106,5 @@ from .solver import _anderson, _chord_in_kernel  # noqa: F401
 from .structure import _nested_dissection, _structure, _structure_cached  # noqa: F401
 from .yawproblem import _YawProblem  # noqa: F401
 
-__all__ = ["ShapeEstimate", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
+__all__ = ["ShapeEstimate", "ShapeEstimator", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
            "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]

@@ -94,9 +94,12 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     valid : ndarray of bool, shape (n_links,), optional
         False marks a missing link (no constraint from it). Default: all valid.
     previous : ShapeEstimate, optional
-        An earlier estimate of the same lattice: ``method="global"`` starts from its yaws (and
-        its factorisation). It is not the prior's target (that would let what the data cannot
-        see random-walk over a long run). ``method="paper"`` ignores it.
+        An earlier estimate of the same lattice: ``method="global"`` starts from its yaws, its
+        joints (the joint problem's weak prior) and its factorisation (`ShapeEstimate.solution`).
+        It is not the prior's target (that would let what the data cannot see random-walk over a
+        long run). ``method="paper"`` ignores it. Kept for compatibility: a stream of snapshots
+        is `ShapeEstimator`'s job, which holds this warm start itself and gives the same
+        numbers as a ``previous=`` chain.
     method : {"global", "paper"}
         See the module docstring.
     rest : ShapeEstimate or ndarray, shape (n_links,), optional

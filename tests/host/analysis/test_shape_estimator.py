@@ -1,0 +1,123 @@
+"""`ShapeEstimator`: the stateful estimator of a stream, holding its warm start itself.
+
+Truth: exact Chebyshev nets (`virtual_sheet.shapes.make_sheet`), sheared, 1 % g noise (seeded
+MT19937). The reference is `estimate(..., previous=last)` in a loop, the call it replaces: the same
+arithmetic, so the comparisons are exact (array_equal), not within a tolerance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from host.estimator import ShapeEstimator, error_percent_of_side, estimate
+from virtual_sheet.geometry import ideal_readings
+from virtual_sheet.sensor import noisy_readings
+from virtual_sheet.shapes import make_sheet
+
+L = 0.01
+
+
+def snapshots(n: int, count: int, seed: int, shear: float = 0.2):
+    P = make_sheet("gaussian", n, n, L, shear=shear)
+    r0 = ideal_readings(P)
+    g = np.random.Generator(np.random.MT19937(seed))
+    return P, np.stack([noisy_readings(r0, 1.0, g) for _ in range(count)])
+
+
+def same(a, b) -> bool:
+    """Every output of two estimates equal, NaN where NaN."""
+    arrays = ("joints", "directions", "normals", "yaws", "alpha", "beta", "solvability", "valid")
+    return (all(np.array_equal(getattr(a, k), getattr(b, k), equal_nan=True) for k in arrays)
+            and a.residual == b.residual and a.iterations == b.iterations
+            and a.factorisations == b.factorisations)
+
+
+def chain(R, n, valid=None, **kw):
+    out, prev = [], None
+    for k, r in enumerate(R):
+        prev = estimate(r, n, n, L, previous=prev, valid=None if valid is None else valid[k], **kw)
+        out.append(prev)
+    return out
+
+
+@pytest.mark.parametrize("n, kw", [(12, {}), (14, {"prior": "level"}), (10, {"model": "eq6"})])
+def test_updates_equal_the_previous_chain_exactly(n, kw):
+    P, R = snapshots(n, 12, seed=n)
+    est = ShapeEstimator(n, n, L, **kw)
+    got = [est.update(r, now=0.1 * k) for k, r in enumerate(R)]
+    ref = chain(R, n, **kw)
+    assert all(same(a, b) for a, b in zip(got, ref))
+    # the warm start was used: after the cold first snapshot, the factorisation is mostly reused
+    assert got[0].factorisations >= 1
+    assert sum(e.factorisations for e in got[1:]) < len(got) - 1
+    assert est.updates == 12 and est.last is got[-1] and est.last_update == pytest.approx(1.1)
+    assert error_percent_of_side(got[-1].joints, P, L).mean() <= 1.0
+
+
+def test_a_new_mask_rebuilds_the_structure_and_refactorises():
+    n = 12
+    _, R = snapshots(n, 9, seed=3)
+    nl = R.shape[1]
+    hole = np.ones(nl, bool)
+    hole[[5, 40]] = False
+    masks = [None, None, None, hole, hole, hole, None, None, None]
+    est = ShapeEstimator(n, n, L)
+    got, structures = [], []
+    for r, v in zip(R, masks):
+        got.append(est.update(r, valid=v))
+        structures.append(est.structure)
+    ref = chain(R, n, valid=masks)
+    assert all(same(a, b) for a, b in zip(got, ref))
+    full, holed = structures[0], structures[3]
+    assert structures[1] is full and structures[2] is full  # unchanged mask: held
+    assert holed is not full and np.array_equal(holed.valid, hole)
+    assert structures[4] is holed and structures[5] is holed
+    assert structures[6].valid.all() and structures[6] is not holed
+    # a factorisation belongs to its structure: each change of mask makes a new one
+    assert got[3].factorisations >= 1 and got[6].factorisations >= 1
+    assert np.isnan(got[3].normals[[5, 40]]).all() and not got[3].valid[[5, 40]].any()
+    assert est.factorisation is got[-1].solution.factorisation
+
+
+def test_reset_starts_cold_and_a_rejected_snapshot_keeps_the_warm_start():
+    n = 10
+    _, R = snapshots(n, 6, seed=7)
+    est = ShapeEstimator(n, n, L)
+    for r in R[:3]:
+        est.update(r)
+    bad = R[3].copy()
+    bad[17] = np.nan
+    with pytest.raises(ValueError, match=r"Non-finite readings on valid links \[17\]"):
+        est.update(bad)
+    assert est.updates == 3
+    nxt = est.update(R[3])
+    assert same(nxt, estimate(R[3], n, n, L, previous=chain(R[:3], n)[-1]))
+    est.reset()
+    assert est.last is None and est.updates == 0 and est.factorisation is None
+    assert same(est.update(R[4]), estimate(R[4], n, n, L))
+
+
+def test_the_options_are_checked_once_at_construction():
+    with pytest.raises(ValueError, match="Invalid link_length"):
+        ShapeEstimator(4, 4, -1.0)
+    with pytest.raises(ValueError, match="Invalid method"):
+        ShapeEstimator(4, 4, L, method="fast")
+    with pytest.raises(ValueError, match="Invalid rows"):
+        ShapeEstimator(1, 4, L)
+    with pytest.raises(ValueError, match="Invalid noise_pct_g"):
+        ShapeEstimator(4, 4, L, noise_pct_g=-1)
+    with pytest.raises(ValueError, match=r"Expected `readings` to have shape \(24, 3\)"):
+        ShapeEstimator(4, 4, L).update(np.zeros((5, 3)))
+
+
+def test_the_paper_method_has_no_warm_start_and_no_missing_links():
+    n = 6
+    _, R = snapshots(n, 2, seed=11, shear=0.0)
+    est = ShapeEstimator(n, n, L, method="paper")
+    a = est.update(R[0])
+    assert same(a, estimate(R[0], n, n, L, method="paper"))
+    valid = np.ones(R.shape[1], bool)
+    valid[0] = False
+    with pytest.raises(ValueError, match="does not support missing links"):
+        est.update(R[1], valid=valid)
