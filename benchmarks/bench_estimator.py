@@ -88,12 +88,12 @@ def linear_algebra(n: int, snap, repeats: int) -> dict:
                     "nnz_factors": int(lu.L.nnz + lu.U.nnz)}}
     from host.analysis import estimator as E
     if E.USE_KERNEL:  # what the chord steps use: the kernel's supernodal float32 L D Lᵀ solve
-        fac = E._factorise(st, A)
+        fac = E.linalg.factorise(st, A)
         if fac[2] is not None:
             sym = fac[2][0][2]
-            x = E._solve(fac, b)
+            x = E.linalg.solve(fac, b)
             out["kernel_supernodal"] = {
-                "solve_ms": round(1e3 * best(lambda: E._solve(fac, b), 5 * k), 3),
+                "solve_ms": round(1e3 * best(lambda: E.linalg.solve(fac, b), 5 * k), 3),
                 "supernodes": int(sym["n_super"]), "stored_values_float32": int(sym["n_val"]),
                 "max_rel_diff_vs_splu": float(np.max(np.abs(x - lu.solve(b))) / np.max(np.abs(lu.solve(b))))}
     try:
@@ -141,7 +141,7 @@ def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int) -> dict:
     estimate(snaps[0], n, n, L)  # build the per-lattice structure once (cached, not timed)
     out = {"lattice": f"{n}x{n}", "links": 2 * n * (n - 1)}
     from host.analysis import estimator as E
-    backends = ["splu"] + (["cholmod"] if E._cholmod() is not None else [])
+    backends = ["splu"] + (["cholmod"] if E.linalg.cholmod_module() is not None else [])
     plan = [("global", n_global, True, bk) for bk in backends]
     plan += [("paper", n_paper, False, "splu")] if n_paper else []
     default = E.linalg.LINEAR_SOLVER
@@ -149,7 +149,7 @@ def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int) -> dict:
         times = []
         stages = {}
         E.linalg.LINEAR_SOLVER = backend
-        E._structure_cached.cache_clear()  # a fresh structure: no factorisation of the other
+        E.structure.cached_structure.cache_clear()  # a fresh structure: no factorisation of the other
         estimate(snaps[0], n, n, L)
         for _ in range(repeats if method == "global" else 1):
             dt, last = _pass(snaps[:count], n, method, warm)

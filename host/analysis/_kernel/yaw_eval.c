@@ -1,5 +1,5 @@
-/* The yaw problem's cost and gradient for one snapshot, model "cells" (host/analysis/estimator.py,
- * _YawProblem.evaluate with jac=False, and _roll_grad): the same terms in one pass over the
+/* The yaw problem's cost and gradient for one snapshot, model "cells" (host/analysis/estimator/yawproblem.py,
+ * YawProblem.evaluate with jac=False, and _roll_grad): the same terms in one pass over the
  * units, roll links and prior pairs, for the Python fallback's numbers to ~1e-15 relative.
  *
  * Conventions are docs/design.md's; the terms are docs/estimator.md's. All arrays are
@@ -490,7 +490,7 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
     }
 }
 
-/* The chord iterations of estimator.py's _solve_global for one snapshot on a factorisation
+/* The chord iterations of estimator/solver.py's solve_global for one snapshot on a factorisation
  * kept from before (no damping): see yaw_eval.h. Each iteration: the step −A⁻¹ grad (the
  * supernodal solve on the structure's ordering), the Anderson move when the step reverses the
  * last, the convergence test, the cost at the new point (the plain step instead when an

@@ -53,21 +53,21 @@ void capsheet_directions(int64_t n, const double *trig, const double *gamma, dou
 /* Σ over the units (n_units, 4 links) of eq. (8): |d0 + d1 − d2 − d3|² + |n0 − n1 + n2 − n3|². */
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
 
-/* Per unit, λ3/λ1 of eq. (7) in the closed form of estimator._solvability_units, from the
+/* Per unit, λ3/λ1 of eq. (7) in the closed form of estimator.angles.solvability_units, from the
  * links' trig (capsheet_reading_trig's); NaN where a cosine of one of its 4 links is not finite
  * (a missing link). */
 void capsheet_solvability(int64_t n_units, const int64_t *units, const double *trig,
                           double *ratio);
 
 /* Per unit (all units of a rows_u x cols_u grid, row-major; links ``units`` (n, 4)), the
- * flatness h = exp(−(θ/θ0)²) of estimator._flatness for one snapshot: readings r (n_links, 3),
+ * flatness h = exp(−(θ/θ0)²) of estimator.priors.flatness for one snapshot: readings r (n_links, 3),
  * their |s| in g, the (2 radius + 1)² regional mean of θ²; th2, tmp are work (rows_u cols_u each).
  * No failure cases (θ0 > 0 is the caller's). */
 void capsheet_flatness(int64_t rows_u, int64_t cols_u, const int64_t *units, const double *r,
                        const double *norm_g, double g0, int64_t radius, double th0, double *th2,
                        double *tmp, double *h);
 
-/* One snapshot's yaw-free coefficients of the yaw problem (model "cells"; estimator._YawProblem):
+/* One snapshot's yaw-free coefficients of the yaw problem (model "cells"; estimator.yawproblem.YawProblem):
  * per unit c_loop (n_units, 4) = ±cos β, Az, Cz (n_units,) the z of its i- and j-link sums; per
  * roll link y_c (n_roll,) complex = sin β sin α + i cos α, y_z = cos β sin α; trig as
  * capsheet_reading_trig's. No failure cases. */
@@ -100,7 +100,7 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
                        int32_t *map, float *val);
 
 
-/* The chord iterations of _solve_global on a kept factorisation (supernodal, float32: see
+/* The chord iterations of estimator.solver.solve_global on a kept factorisation (supernodal, float32: see
  * capsheet_ldl_solve) for one snapshot, without damping. perm_inv: position -> variable,
  * perm_of_var: variable -> position of the factorisation's ordering. gamma (n_links) and
  * cost / grad (nv + 1) hold the current point on entry and on return; iterations and prev_smax

@@ -82,6 +82,8 @@ import; a tunable is changed on the module that owns it (``estimator.solver.YAW_
 from __future__ import annotations
 
 from ..metrics import error_percent_of_side, overlay, overlay_error
+from . import (angles, batch, joints, kernel, linalg, pipeline, priors, result, solver, stateful,
+               structure, uncertainty, yawproblem)
 from .angles import G0, roll_pitch, solvability, solvability_units
 from .batch import estimate_batch
 from .kernel import USE_KERNEL
@@ -90,21 +92,25 @@ from .pipeline import METHODS, MODELS, READING_NORM_RANGE, estimate
 from .priors import (ABS_PRIOR_FLOOR, BEND_STD_RAD, FIXED_PRIOR_WEIGHT, FLAT_RADIUS,
                      FLAT_TILT_NOISE, PRIOR_WEIGHT_MIN, PRIORS, SHEAR_WEIGHT, SHEAR_WEIGHT_REST)
 from .result import ShapeEstimate, Solution
-from .stateful import ShapeEstimator
 from .solver import BATCH_MAX_ITER, BATCH_REFACTOR, MAX_ITER, YAW_TOL_NOISE, YAW_TOL_RAD
+from .stateful import ShapeEstimator
 from .structure import JOINT_PRIOR_WEIGHT, ND_LEAF, ND_MIN_VARS
 from .uncertainty import UNCERTAINTY_SAMPLES
 from .yawproblem import NORMAL_WEIGHT, ROLL_WEIGHT
 
-# the internals the tests and benchmarks still reach by their old names (until they use the
-# submodules)
-from .angles import _angle_trig, _eq7_matrices, _roll_pitch_trig, _solvability_units  # noqa: F401
-from .joints import _directions_normals, _eq8_residual  # noqa: F401
-from .linalg import _cholmod, _factorise, _solve  # noqa: F401
-from .priors import _flatness  # noqa: F401
-from .solver import _anderson, _chord_in_kernel  # noqa: F401
-from .structure import _nested_dissection, _structure, _structure_cached  # noqa: F401
-from .yawproblem import _YawProblem  # noqa: F401
-
-__all__ = ["ShapeEstimate", "ShapeEstimator", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
-           "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]
+__all__ = [
+    # estimating
+    "estimate", "estimate_batch", "ShapeEstimator", "ShapeEstimate", "Solution",
+    "roll_pitch", "solvability", "solvability_units",
+    # comparing shapes (host.analysis.metrics)
+    "overlay", "overlay_error", "error_percent_of_side",
+    # choices and constants (values at import; set a tunable on its module)
+    "METHODS", "MODELS", "PRIORS", "G0", "READING_NORM_RANGE", "USE_KERNEL", "LINEAR_SOLVER",
+    "YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "BATCH_MAX_ITER", "BATCH_REFACTOR",
+    "NORMAL_WEIGHT", "ROLL_WEIGHT", "ABS_PRIOR_FLOOR", "FIXED_PRIOR_WEIGHT", "BEND_STD_RAD",
+    "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN",
+    "JOINT_PRIOR_WEIGHT", "ND_MIN_VARS", "ND_LEAF", "UNCERTAINTY_SAMPLES",
+    # the modules, for what a benchmark or a test reaches below the pipeline (each has __all__)
+    "angles", "batch", "joints", "kernel", "linalg", "pipeline", "priors", "result", "solver",
+    "stateful", "structure", "uncertainty", "yawproblem",
+]

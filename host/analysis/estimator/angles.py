@@ -6,7 +6,10 @@ import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
-from .structure import _lattice, _units_int64
+from .structure import lattice_of, units_int64
+
+__all__ = ["G0", "roll_pitch", "angles_of", "eq7_matrices", "solvability_units", "solvability",
+           "angle_trig", "roll_pitch_trig", "solvability_from_trig"]
 
 #: Standard gravity, m/s² (protocol.constants.G0; host/analysis imports only protocol.lattice).
 G0 = 9.80665
@@ -33,15 +36,15 @@ def roll_pitch(readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     r = np.asarray(readings, dtype=float)
     if r.ndim != 2 or r.shape[1] != 3:
         raise ValueError(f"Expected `readings` to have shape (n_links, 3), got {r.shape}.")
-    return _angles(r)
+    return angles_of(r)
 
 
-def _angles(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def angles_of(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """`roll_pitch` without the checks, over the last axis of ``r`` (..., 3)."""
     return np.arctan2(r[..., 1], r[..., 2]), np.arctan2(-r[..., 0], np.hypot(r[..., 1], r[..., 2]))
 
 
-def _eq7_matrices(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+def eq7_matrices(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     """Eq. (7)'s 4x6 matrices for units given as ``(..., 4)`` angle arrays (paper numbering).
 
     Used by the solvability figure; `solvability` itself uses the equivalent complex form.
@@ -69,7 +72,7 @@ def solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     ``(e^{iγ1}, e^{iγ2}, e^{iγ3})``: row 1 holds ``−cos β1, cos β2, cos β3`` and row 2
     ``±(sin β_m cos α_m − i sin α_m)`` with signs ``+, −, +``. A realification has the singular
     values of ``K``, each twice, so ``λ1 = λ2 = σ1(K)`` and ``λ3 = λ4 = σ2(K)``, and ``σ²`` are the
-    eigenvalues of the 2x2 Hermitian ``K Kᴴ`` in closed form. `_eq7_matrices` + SVD agrees.
+    eigenvalues of the 2x2 Hermitian ``K Kᴴ`` in closed form. `eq7_matrices` + SVD agrees.
     """
     ca, sa, cb, sb = (np.cos(alpha[..., 1:]), np.sin(alpha[..., 1:]), np.cos(beta[..., 1:]),
                       np.sin(beta[..., 1:]))
@@ -78,8 +81,6 @@ def solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     return _sigma_ratio(a, b)
 
 
-#: its name before it was public (host/analysis/_kernel/yaw_eval.h cites it)
-_solvability_units = solvability_units
 
 
 def _sigma_ratio(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -111,12 +112,12 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         Third over first singular value, in [0, 1]; < 0.1 means unsolvable in the paper's sense
         (Case 1: a horizontal unit; Case 2: a squashed one). NaN where a link is missing.
     """
-    units = _lattice(rows, cols).units
+    units = lattice_of(rows, cols).units
     if kernel.USE_KERNEL and np.ndim(alpha) == 1 and np.ndim(beta) == 1:  # one snapshot: the kernel
         al = np.ascontiguousarray(alpha, dtype=np.float64)
         be = np.ascontiguousarray(beta, dtype=np.float64)
-        if al.shape == be.shape == (_lattice(rows, cols).n_links,):
-            return _solvability_kernel(_angle_trig(al, be), rows, cols)
+        if al.shape == be.shape == (lattice_of(rows, cols).n_links,):
+            return solvability_from_trig(angle_trig(al, be), rows, cols)
     a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
     ratio = solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
@@ -125,7 +126,7 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
     return ratio
 
 
-def _angle_trig(alpha, beta) -> np.ndarray:
+def angle_trig(alpha, beta) -> np.ndarray:
     """(n, 4): cos α, sin α, cos β, sin β per link (the kernel's ``trig``)."""
     a = np.ascontiguousarray(alpha, dtype=np.float64)
     b = np.ascontiguousarray(beta, dtype=np.float64)
@@ -135,12 +136,12 @@ def _angle_trig(alpha, beta) -> np.ndarray:
     return trig
 
 
-def _roll_pitch_trig(r: np.ndarray):
-    """`roll_pitch` of one snapshot's readings (n, 3), and their `_angle_trig` from the
+def roll_pitch_trig(r: np.ndarray):
+    """`roll_pitch` of one snapshot's readings (n, 3), and their `angle_trig` from the
     readings' ratios in the kernel (a trigonometric call would cost more than the rest of a
     stage): (alpha, beta, trig)."""
     r = np.ascontiguousarray(r, dtype=np.float64)
-    alpha, beta = _angles(r)
+    alpha, beta = angles_of(r)
     trig = np.empty((r.shape[0], 4))
     fb = _kffi.from_buffer
     _klib.capsheet_reading_trig(r.shape[0], fb("double[]", r), fb("double[]", alpha),
@@ -148,9 +149,9 @@ def _roll_pitch_trig(r: np.ndarray):
     return alpha, beta, trig
 
 
-def _solvability_kernel(trig: np.ndarray, rows: int, cols: int) -> np.ndarray:
+def solvability_from_trig(trig: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """`solvability` of one snapshot from its links' trig (NaN rows: missing links)."""
-    u = _units_int64(rows, cols)
+    u = units_int64(rows, cols)
     out = np.empty((rows - 1, cols - 1))
     _klib.capsheet_solvability(u.shape[0], _kffi.from_buffer("int64_t[]", u),
                                _kffi.from_buffer("double[]", trig),

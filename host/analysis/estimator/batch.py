@@ -8,11 +8,13 @@ import numpy as np
 
 from .angles import G0
 from .joints import joints_and_mask
-from .pipeline import (READING_NORM_RANGE, WarmStart, _check_int, _check_previous, estimate,
-                       link_angles, link_solvability, prior_weights)
+from .pipeline import (READING_NORM_RANGE, WarmStart, check_int, check_previous, estimate,
+                       link_angles, link_solvability, noise_and_priors)
 from .result import ShapeEstimate, Solution
-from .solver import _solve_global_batch
-from .structure import _lattice, _structure
+from .solver import solve_global_batch
+from .structure import lattice_of, structure_of
+
+__all__ = ["estimate_batch"]
 
 def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: float,
                    valid: np.ndarray | None = None, previous: ShapeEstimate | None = None, *,
@@ -55,12 +57,12 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     ValueError
         As `estimate`, prefixed with the snapshot's index; wrong shapes or dtypes of the inputs.
     """
-    rows = _check_int("rows", rows, 2)
-    cols = _check_int("cols", cols, 2)
-    batch = _check_int("batch", batch, 1)
+    rows = check_int("rows", rows, 2)
+    cols = check_int("cols", cols, 2)
+    batch = check_int("batch", batch, 1)
     if bad_readings not in ("raise", "mask"):
         raise ValueError(f"Invalid bad_readings: {bad_readings!r} (expected 'raise' or 'mask')")
-    lat = _lattice(rows, cols)
+    lat = lattice_of(rows, cols)
     n = lat.n_links
     R = np.asarray(readings)
     if R.dtype.kind not in "iuf":
@@ -84,7 +86,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     kw = dict(noise_pct_g=noise_pct_g, bad_readings=bad_readings)
     # the checks `estimate` makes (it raises what is wrong; its messages name the links)
     if previous is not None:
-        _check_previous(previous, n, rows, cols)
+        check_previous(previous, n, rows, cols)
     L = float(link_length) if isinstance(link_length, (int, float, np.number)) \
         and not isinstance(link_length, (bool, np.bool_)) else link_length
     if S == 0:
@@ -116,14 +118,14 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
         idx = np.flatnonzero(fast)
         if idx.size:
             mask = None if mask0.all() else mask0
-            st = _structure(rows, cols, mask, "cells")
+            st = structure_of(rows, cols, mask, "cells")
             # the stages `estimate` runs (host.analysis.estimator.pipeline), on the group at once
             rr, alpha, beta, _ = link_angles(r[idx], mask0, mask)
-            _, prior_w, bend_w, tol = prior_weights("adaptive", st, rr, norm[idx], mask0, False)
+            _, prior_w, bend_w, tol = noise_and_priors("adaptive", st, rr, norm[idx], mask0, False)
             target = st.rest_yaw
             warm = WarmStart.of(prev)
             start, lu = warm.start(st, target)
-            gamma, iters, failed, n_fact, lu, prob_of = _solve_global_batch(
+            gamma, iters, failed, n_fact, lu, prob_of = solve_global_batch(
                 st, alpha, beta, start, target, prior_w, bend_w, lu, tol)
             ok = ~failed
             rows_ok = np.flatnonzero(ok)

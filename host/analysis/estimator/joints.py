@@ -7,17 +7,19 @@ import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
-from .angles import _angle_trig
+from .angles import angle_trig
 from .structure import JOINT_PRIOR_WEIGHT
 
+__all__ = ["directions_normals", "eq8_residual", "joints_and_mask"]
 
-def _directions_normals(alpha, beta, gamma, trig=None):
+
+def directions_normals(alpha, beta, gamma, trig=None):
     """Per link its direction (sensor x) and normal (sensor z) in the world, (..., n_links, 3)
-    each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``); ``trig``: the links' `_angle_trig`, if
+    each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``); ``trig``: the links' `angle_trig`, if
     already made (one snapshot)."""
     if kernel.USE_KERNEL and np.ndim(alpha) == 1:  # one snapshot: the kernel
         if trig is None:
-            trig = _angle_trig(alpha, beta)
+            trig = angle_trig(alpha, beta)
         g = np.ascontiguousarray(gamma, dtype=np.float64)
         d, n = np.empty((g.size, 3)), np.empty((g.size, 3))
         fb = _kffi.from_buffer
@@ -31,7 +33,7 @@ def _directions_normals(alpha, beta, gamma, trig=None):
     return d, n
 
 
-def _eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
+def eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
     """Σ over the given units (U, 4) of eq. (8): a float, or one per snapshot for ``d``, ``n``
     with a leading batch axis (B, n_links, 3)."""
     if kernel.USE_KERNEL and d.ndim == 2:  # one snapshot: the kernel
@@ -56,7 +58,7 @@ def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=
     chord between its estimated joints as its direction, NaN normal, roll and pitch, its yaw the
     ``target``'s. Returns (joints (..., n_joints, 3), directions, normals, yaws, alpha, beta,
     residual); ``trig`` (one snapshot) is updated in place (NaN for missing links)."""
-    d, nrm = _directions_normals(alpha, beta, gamma, trig)
+    d, nrm = directions_normals(alpha, beta, gamma, trig)
     single = gamma.ndim == 1
     vl = st.valid_links
     dl = L * (d if st.all_valid else d[..., vl, :])  # (..., n_valid, 3)
@@ -70,7 +72,7 @@ def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=
         rhs += JOINT_PRIOR_WEIGHT * np.tile(joint_prior, (1, B))
         P = st.lap_lu.solve(rhs).reshape(-1, B, 3).transpose(1, 0, 2)
         P = P - P[:, :1]
-    residual = _eq8_residual(st.units, d, nrm)
+    residual = eq8_residual(st.units, d, nrm)
     if not st.all_valid:
         ep = st.lattice.endpoints
         miss = ~st.valid

@@ -9,6 +9,8 @@ from scipy.sparse.linalg import splu
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 
+__all__ = ["LINEAR_SOLVER", "cholmod_module", "backend", "factorise", "solve"]
+
 #: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there; the default:
 #: benchmarks/bench_estimator.py found no consistent gain from CHOLMOD on warm runs, -17 % to
 #: +29 % snapshots/s by size), "cholmod" (scikit-sparse, optional: ``pip install
@@ -16,7 +18,7 @@ from .kernel import ffi as _kffi, lib as _klib
 LINEAR_SOLVER = "splu"
 
 
-def _cholmod():
+def cholmod_module():
     """scikit-sparse's CHOLMOD module, or None when not installed (it is optional)."""
     try:
         from sksparse import cholmod
@@ -25,17 +27,19 @@ def _cholmod():
     return cholmod
 
 
-def _backend() -> str:
+def backend() -> str:
+    """The factorisation `LINEAR_SOLVER` names: "splu" or "cholmod" ("auto": CHOLMOD when
+    installed)."""
     if LINEAR_SOLVER == "auto":
-        return "cholmod" if _cholmod() is not None else "splu"
+        return "cholmod" if cholmod_module() is not None else "splu"
     return LINEAR_SOLVER
 
 
-def _factorise(st: "_Structure", A, sweeps: bool = True):
+def factorise(st: "Structure", A, sweeps: bool = True):
     """Factorise the (permuted, SPD) Gauss-Newton matrix with the chosen backend: SuperLU on
     the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
-    if _backend() == "cholmod":
-        cm = _cholmod()
+    if backend() == "cholmod":
+        cm = cholmod_module()
         sym = getattr(st, "_cholmod_sym", None)
         if sym is None:
             sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
@@ -124,8 +128,8 @@ def _ldl_symbolic(n: int, l_ptr: np.ndarray, l_idx: np.ndarray) -> dict:
             "arrays": arrays, "c_args": c_args, "work_size": work.size}
 
 
-def _solve(fac, b):
-    """``A⁻¹ b`` with a factorisation from `_factorise`; one right-hand side (b (n,)) of a SuperLU
+def solve(fac, b):
+    """``A⁻¹ b`` with a factorisation from `factorise`; one right-hand side (b (n,)) of a SuperLU
     factorisation goes through the kernel's triangular sweeps when it is built."""
     kind, f = fac[0], fac[1]
     if kind == "cholmod":

@@ -9,12 +9,17 @@ import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 import host.analysis.estimator.solver as solver  # YAW_TOL_*, read at call time
-from .angles import G0, _angles, _roll_pitch_trig, _solvability_kernel, solvability
+from .angles import G0, angles_of, roll_pitch_trig, solvability_from_trig, solvability
 from .joints import joints_and_mask
-from .priors import PRIORS, _prior_weights
+from .priors import PRIORS, prior_weights
 from .result import ShapeEstimate, Solution
-from .solver import _solve_global
-from .structure import _lattice, _structure
+from .solver import solve_global
+from .structure import lattice_of, structure_of
+
+__all__ = ["METHODS", "MODELS", "READING_NORM_RANGE", "check_int", "rest_yaws", "check_previous",
+           "estimate", "Options", "check_options", "check_noise_pct_g", "check_link_length",
+           "Snapshot", "check_readings", "WarmStart", "link_angles", "noise_and_priors",
+           "solve_snapshot", "link_solvability", "paper_snapshot"]
 
 #: `estimate`'s methods (module docstring)
 METHODS = ("global", "paper")
@@ -24,7 +29,8 @@ MODELS = ("cells", "eq6")
 READING_NORM_RANGE = (0.5, 1.5)
 
 
-def _check_int(name: str, v, lo: int) -> int:
+def check_int(name: str, v, lo: int) -> int:
+    """``v`` as an int >= ``lo`` (ValueError naming ``name`` otherwise; a bool is no integer)."""
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < lo:
         raise ValueError(f"Invalid {name}: {v!r} (need an integer >= {lo})")
     return int(v)
@@ -41,7 +47,8 @@ def _as_real(name: str, x, shape: tuple) -> np.ndarray:
     return a
 
 
-def _rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
+def rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
+    """The rest yaws (n,) of ``rest`` (a `ShapeEstimate` of this lattice, or its yaws), checked."""
     if isinstance(rest, ShapeEstimate):
         if rest.joints.shape != (rows, cols, 3):
             raise ValueError(f"Expected `rest` of a {rows}x{cols} lattice, joints shape "
@@ -59,7 +66,8 @@ def _rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
     return y
 
 
-def _check_previous(previous, n: int, rows: int, cols: int) -> None:
+def check_previous(previous, n: int, rows: int, cols: int) -> None:
+    """ValueError unless ``previous`` is a finite `ShapeEstimate` of this lattice."""
     if not isinstance(previous, ShapeEstimate):
         raise ValueError(f"Invalid previous: {type(previous).__name__} (need a ShapeEstimate from "
                          "an earlier estimate() of the same lattice, or None)")
@@ -145,15 +153,15 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     """
     t0 = time.perf_counter()
     opts = check_options(method, model, prior, noise_pct_g, bad_readings, paper_options)
-    rows = _check_int("rows", rows, 2)
-    cols = _check_int("cols", cols, 2)
+    rows = check_int("rows", rows, 2)
+    cols = check_int("cols", cols, 2)
     L = check_link_length(link_length)
     opts = opts._replace(noise_pct_g=check_noise_pct_g(noise_pct_g))
     snap = check_readings(readings, rows, cols, valid, bad_readings)
     n = snap.valid.size
     if previous is not None:
-        _check_previous(previous, n, rows, cols)
-    rest_yaw = None if rest is None else _rest_yaws(rest, n, rows, cols)
+        check_previous(previous, n, rows, cols)
+    rest_yaw = None if rest is None else rest_yaws(rest, n, rows, cols)
     if rest_yaw is not None and not np.all(np.isfinite(rest_yaw)):
         raise ValueError("Invalid rest: its yaws contain NaN or inf.")
     if method == "paper" and snap.mask is not None:
@@ -161,9 +169,9 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
                          "use method='global'.")
     warm = WarmStart.of(previous)
     if method == "global":
-        st = _structure(rows, cols, snap.mask, model)
+        st = structure_of(rows, cols, snap.mask, model)
         return solve_snapshot(snap, st, L, opts, warm, rest, rest_yaw, t0)
-    return _paper(snap, rows, cols, L, opts, t0)
+    return paper_snapshot(snap, rows, cols, L, opts, t0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -238,7 +246,7 @@ def check_readings(readings, rows: int, cols: int, valid=None, bad_readings: str
                    ) -> Snapshot:
     """One snapshot's readings and mask checked as `estimate` checks them (ValueError naming the
     shape expected and got, the non-finite or implausible links), as a `Snapshot`."""
-    n = _lattice(rows, cols).n_links
+    n = lattice_of(rows, cols).n_links
     r = np.asarray(readings)
     if r.dtype.kind not in "iuf":
         raise ValueError(f"Invalid readings: dtype {r.dtype} (need real numbers, m/s²)")
@@ -320,19 +328,19 @@ def link_angles(r: np.ndarray, valid: np.ndarray, mask):
     is used (every later stage reuses them), else None."""
     rr = r if mask is None else np.where(valid[:, None], r, (0.0, 0.0, 1.0))
     if kernel.USE_KERNEL and rr.ndim == 2:
-        return (rr, *_roll_pitch_trig(rr))
-    alpha, beta = _angles(rr)
+        return (rr, *roll_pitch_trig(rr))
+    alpha, beta = angles_of(rr)
     return rr, alpha, beta, None
 
 
-def prior_weights(prior: str, st, rr, norm_g, valid, rest_given: bool):
+def noise_and_priors(prior: str, st, rr, norm_g, valid, rest_given: bool):
     """The readings' noise σ (per axis, fraction of g: the RMS of ``|s|/g − 1`` over the valid
     links — white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g), the
     prior's weights (`priors._prior_weights`) and the solver's tolerance: (σ, prior_w, bend_w,
     tol), each per snapshot for a batch."""
     e = norm_g[..., valid] - 1.0
     noise = np.sqrt(np.add.reduce(e * e, axis=-1) / max(e.shape[-1], 1))
-    prior_w, bend_w = _prior_weights(prior, st, rr, np.where(valid, norm_g, 1.0),
+    prior_w, bend_w = prior_weights(prior, st, rr, np.where(valid, norm_g, 1.0),
                                      float(noise) if noise.ndim == 0 else noise, rest_given)
     # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
     tol = np.maximum(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise)
@@ -351,9 +359,9 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     t1 = time.perf_counter()
     target = st.rest_yaw if rest_yaw is None else rest_yaw
     start, lu = warm.start(st, target)
-    _, prior_w, bend_w, tol = prior_weights(opts.prior, st, rr, snap.norm_g, snap.valid,
+    _, prior_w, bend_w, tol = noise_and_priors(opts.prior, st, rr, snap.norm_g, snap.valid,
                                             rest_yaw is not None)
-    gamma, iters, n_fact, lu, prob = _solve_global(st, alpha, beta, start.copy(), target,
+    gamma, iters, n_fact, lu, prob = solve_global(st, alpha, beta, start.copy(), target,
                                                    prior_w, bend_w, lu, tol, trig)
     solution = Solution(st, lu, prob, gamma)
     t2 = time.perf_counter()
@@ -375,10 +383,10 @@ def link_solvability(alpha, beta, trig, rows: int, cols: int) -> np.ndarray:
     """`solvability` (from the kernel's ``trig`` when there is one)."""
     if trig is None:
         return solvability(alpha, beta, rows, cols)
-    return _solvability_kernel(trig, rows, cols)
+    return solvability_from_trig(trig, rows, cols)
 
 
-def _paper(snap: Snapshot, rows: int, cols: int, L: float, opts: Options, t0: float
+def paper_snapshot(snap: Snapshot, rows: int, cols: int, L: float, opts: Options, t0: float
            ) -> ShapeEstimate:
     """``method="paper"``: host.analysis.paper_method (issue 33) on the checked snapshot."""
     from .. import paper_method

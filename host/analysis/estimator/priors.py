@@ -8,7 +8,11 @@ import numpy as np
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 from .angles import G0
-from .structure import _units_int64
+from .structure import units_int64
+
+__all__ = ["PRIORS", "FIXED_PRIOR_WEIGHT", "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT",
+           "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness",
+           "link_flatness", "prior_weights"]
 
 #: The priors `estimate` offers (docs/estimator.md compares them): "adaptive" (default) —
 #: bending + flat-cell shear, both scaled by the readings' noise; "level" — the same with the
@@ -39,7 +43,7 @@ FLAT_RADIUS = 3
 PRIOR_WEIGHT_MIN = 1e-8
 
 
-def _flatness(st, r, norm_g, noise):
+def flatness(st, r, norm_g, noise):
     """Per unit (all units, row-major), ``h = exp(−(θ/θ0)²)`` in [0, 1]: 1 where the region
     around the unit is level within the noise (Case 1, unobservable), 0 where it is clearly
     tilted. θ² is twice the mean of ``1 − cos`` of the links' sensor-z tilts (cos from the
@@ -50,8 +54,8 @@ def _flatness(st, r, norm_g, noise):
     if noise.ndim == 0 and noise <= 0.0:
         return np.zeros(units.shape[0])
     lead = noise.shape  # () or (B,): r (..., n_links, 3), norm_g (..., n_links)
-    if kernel.USE_KERNEL and not lead and r.ndim == 2 and FLAT_RADIUS >= 0:  # one snapshot: the kernel
-        u = _units_int64(st.rows, st.cols)
+    if kernel.USE_KERNEL and not lead and r.ndim == 2 and FLAT_RADIUS >= 0:  # one snapshot
+        u = units_int64(st.rows, st.cols)
         rc = np.ascontiguousarray(r, dtype=np.float64)
         ng = np.ascontiguousarray(norm_g, dtype=np.float64)
         work, h = np.empty(2 * u.shape[0]), np.empty(u.shape[0])
@@ -79,7 +83,7 @@ def _flatness(st, r, norm_g, noise):
     return np.where((noise > 0.0)[..., None], h, 0.0) if lead else h
 
 
-def _link_flatness(st, h):
+def link_flatness(st, h):
     """Per link, the mean flatness `h` (..., n_units) of the units it belongs to (one or two)."""
     units = st.lattice.units.reshape(-1, 4)
     acc = np.zeros(np.shape(h)[:-1] + (st.n_links,))
@@ -90,12 +94,12 @@ def _link_flatness(st, h):
     return acc / np.maximum(cnt, 1.0)
 
 
-def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
+def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
 
     "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
-    unit's `_flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
-    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `_link_flatness`; "off": floors only; "fixed":
+    unit's `flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
+    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `link_flatness`; "off": floors only; "fixed":
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
@@ -103,10 +107,10 @@ def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
     if prior in ("adaptive", "level"):
-        hu = _flatness(st, r, norm_g, noise)
+        hu = flatness(st, r, norm_g, noise)
         bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
         if prior == "level":  # a pair is held as much as its flatter link's units are level
-            bend = bend * _link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+            bend = bend * link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
         w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
         w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)
@@ -114,7 +118,7 @@ def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
         lam[:] = FIXED_PRIOR_WEIGHT
     elif prior == "local":
         units = st.lattice.units.reshape(-1, 4)
-        h = _flatness(st, r, norm_g, noise)
+        h = flatness(st, r, norm_g, noise)
         acc = np.bincount(units.ravel(), weights=np.repeat(h, 4), minlength=st.n_links)
         cnt = np.bincount(units.ravel(), minlength=st.n_links)
         hl = acc / np.maximum(cnt, 1)

@@ -8,7 +8,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .uncertainty import _uncertainty
+from .uncertainty import yaw_joint_std
+
+__all__ = ["Solution", "ShapeEstimate"]
 
 
 class Solution(NamedTuple):
@@ -92,7 +94,7 @@ class ShapeEstimate:
         (docs/estimator.md), relative to the sheet's mean yaw. Where the data do not determine a
         yaw (Case 1, a squashed unit) it is large (the prior's floor: ≫ 1 rad). NaN for
         ``method="paper"`` and for missing links."""
-        return _uncertainty(self)[0]
+        return yaw_joint_std(self)[0]
 
     @cached_property
     def joint_std(self) -> np.ndarray:
@@ -100,7 +102,7 @@ class ShapeEstimate:
         (rows, cols), for readings of `noise_pct_g` per axis, from the yaws' uncertainty
         (`yaw_std`) carried through the joint least squares, after removing the mean
         translation. NaN for ``method="paper"``."""
-        return _uncertainty(self)[1]
+        return yaw_joint_std(self)[1]
 
     @property
     def rows(self) -> int:

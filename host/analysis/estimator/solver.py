@@ -6,8 +6,12 @@ from __future__ import annotations
 import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
-from .structure import _Structure
-from .yawproblem import _YawProblem
+from .structure import Structure
+from .yawproblem import YawProblem
+
+__all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "solve_global",
+           "chord_in_kernel", "ANDERSON_COS", "anderson", "BATCH_MAX_ITER", "BATCH_REFACTOR",
+           "solve_global_batch"]
 
 #: Gauss-Newton stops when the largest yaw step is below this, radians.
 YAW_TOL_RAD = 1e-4
@@ -20,10 +24,10 @@ MAX_ITER = 50
 #: ``linear_algebra``), a chord iteration one solve and one evaluation: a contraction of 0.7
 #: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
 #: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
-_REFACTOR_RATIO = 0.7
+REFACTOR_RATIO = 0.7
 
 
-def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
+def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
                   tol=YAW_TOL_RAD, trig=None):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
     Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
@@ -32,16 +36,16 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     ``lu`` may be the factorisation left by the previous snapshot (same structure): the normal
     matrix changes little between snapshots, so its chord iterations usually converge without a
     new factorisation. A new one is made when a step raises the cost or contracts by less than
-    `_REFACTOR_RATIO`.
+    `REFACTOR_RATIO`.
 
-    The chord steps are accelerated (Anderson, one step of history, `_anderson`): on noisy
+    The chord steps are accelerated (Anderson, one step of history, `anderson`): on noisy
     readings Gauss-Newton's neglected curvature makes a smooth mode overshoot, each step about
     −0.5 times the last (the 128x128 sheet took 5-7 steps, each reversing the one before); the
     extrapolation sums that series. An accelerated step that raises the cost is replaced by the
     plain one before anything else is tried.
     """
     gamma = gamma0.copy()
-    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
+    prob = YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
     if st.n_var == 0:
         return gamma, 0, 0, None, prob
     vl = st.var_links
@@ -53,10 +57,10 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
     hist = None  # (last raw step, last move) of the current chord map, for the acceleration
     accelerated = False  # the last move accepted was an extrapolated one
     it = 0
-    if lu is not None and _chord_in_kernel(st, lu, gamma):
+    if lu is not None and chord_in_kernel(st, lu, gamma):
         # the warm start's chord steps in the kernel: this loop's iterations, one C call
         status, it, cost, grad, prev_smax = prob.chord_kernel(
-            gamma, cost, grad, lu, tol, MAX_ITER, _REFACTOR_RATIO, _ANDERSON_COS)
+            gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS)
         if status in (0, 3):  # converged, or out of iterations
             return gamma, it, 0, lu, prob
         lu, blocks = None, None  # 1: the cost rose; 2: a step contracted too little
@@ -70,7 +74,7 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
             hist, accelerated = None, False
             n_fact += 1
         step = prob.step(lu, grad)
-        move = _anderson(step, hist) if mu == 0.0 else step
+        move = anderson(step, hist) if mu == 0.0 else step
         g_new = gamma.copy()
         g_new[vl] += move
         smax = float(np.max(np.abs(step)))
@@ -106,36 +110,36 @@ def _solve_global(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, 
         if mu > 0.0:
             mu = mu / 10.0 if mu > 1e-6 else 0.0
             lu = None
-        elif smax > _REFACTOR_RATIO * prev_smax:
+        elif smax > REFACTOR_RATIO * prev_smax:
             lu = None
         prev_smax = smax
         fresh = False
     return gamma, it, n_fact, lu, prob
 
 
-def _chord_in_kernel(st, lu, gamma) -> bool:
-    """Whether `_YawProblem.chord_kernel` can run this snapshot's chord steps: the kernel is
+def chord_in_kernel(st, lu, gamma) -> bool:
+    """Whether `YawProblem.chord_kernel` can run this snapshot's chord steps: the kernel is
     built, model "cells", one snapshot, a SuperLU factorisation with its supernodal form."""
     return (kernel.USE_KERNEL and st.model == "cells" and gamma.ndim == 1 and lu[0] == "splu"
             and len(lu) > 2 and lu[2] is not None)
 
 
-#: `_anderson` extrapolates only a step that reverses the last one: cos(s, s_prev) below this.
-_ANDERSON_COS = -0.9
+#: `anderson` extrapolates only a step that reverses the last one: cos(s, s_prev) below this.
+ANDERSON_COS = -0.9
 
 
-def _anderson(step: np.ndarray, hist) -> np.ndarray:
+def anderson(step: np.ndarray, hist) -> np.ndarray:
     """Anderson acceleration with one step of history of the fixed-point map ``x -> x + s(x)``:
     ``x + s − θ (Δx + Δs)``, θ minimising the linearised next step. For a mode that the steps
     overshoot, each −ρ times the last (0 < ρ < 1), it moves ``s / (1 + ρ)``, the whole rest of the
-    series. Used only for such a step — nearly opposite to the last (`_ANDERSON_COS`), so
+    series. Used only for such a step — nearly opposite to the last (`ANDERSON_COS`), so
     0 < θ < 1 and the move is shorter than the step — else the plain step is returned. ``hist``:
     (previous raw step, previous move) of the same map, or None."""
     if hist is None:
         return step
     s_prev, dx = hist
     nn = float(step @ step) * float(s_prev @ s_prev)
-    if not (nn > 0.0 and float(step @ s_prev) < _ANDERSON_COS * np.sqrt(nn)):
+    if not (nn > 0.0 and float(step @ s_prev) < ANDERSON_COS * np.sqrt(nn)):
         return step
     ds = step - s_prev
     theta = float(ds @ step) / float(ds @ ds)
@@ -150,12 +154,12 @@ BATCH_MAX_ITER = 8
 BATCH_REFACTOR = 3
 
 
-def _solve_global_batch(st: _Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu, tol):
-    """`_solve_global` for a batch (B, n_links) of snapshots of one structure, all started at
+def solve_global_batch(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu, tol):
+    """`solve_global` for a batch (B, n_links) of snapshots of one structure, all started at
     ``gamma0`` (n_links,): chord Gauss-Newton steps on one shared factorisation (the previous
     snapshot's, or one made at the batch's first), with the same stopping rule per snapshot.
-    As in `_solve_global`, a new factorisation is made (at the first snapshot still iterating,
-    at most `BATCH_REFACTOR` times) when the steps contract by less than `_REFACTOR_RATIO`
+    As in `solve_global`, a new factorisation is made (at the first snapshot still iterating,
+    at most `BATCH_REFACTOR` times) when the steps contract by less than `REFACTOR_RATIO`
     (median over the batch) or raise some snapshot's cost. A snapshot whose step raised its cost,
     or that has not converged in `BATCH_MAX_ITER` steps, is reported failed (the caller
     re-estimates it with `estimate`). Returns (gamma (B, n), iterations (B,), failed (B,),
@@ -164,7 +168,7 @@ def _solve_global_batch(st: _Structure, alpha, beta, gamma0, target, prior_w, be
     gamma = np.repeat(gamma0[None, :], B, axis=0)
     iters = np.zeros(B, int)
     failed = np.zeros(B, bool)
-    prob = _YawProblem(st, alpha, beta, target, prior_w, bend_w)
+    prob = YawProblem(st, alpha, beta, target, prior_w, bend_w)
     if st.n_var == 0:
         return gamma, iters, failed, 0, lu, prob.take
     vl = st.var_links
@@ -186,7 +190,7 @@ def _solve_global_batch(st: _Structure, alpha, beta, gamma0, target, prior_w, be
         ps, tl = prev_smax[act], tol[act]
         # converged: the step, or the next one predicted at the slowest contraction seen (a
         # shared factorisation contracts a snapshot's modes at different rates, so one fast
-        # step says little), is below the tolerance; taken without evaluating (`_solve_global`)
+        # step says little), is below the tolerance; taken without evaluating (`solve_global`)
         rt = np.maximum(rate[act], smax / ps)
         conv = (smax < tl) | ((smax < ps) & (ps < np.inf) & (smax * rt < tl))
         gamma[act[conv]] = g_new[conv]
@@ -208,7 +212,7 @@ def _solve_global_batch(st: _Structure, alpha, beta, gamma0, target, prior_w, be
             break
         if not ok.all():
             sub = prob.take(act)
-        if n_fact < BATCH_REFACTOR and (worse.any() or np.median(ratio) > _REFACTOR_RATIO):
+        if n_fact < BATCH_REFACTOR and (worse.any() or np.median(ratio) > REFACTOR_RATIO):
             pf = prob.take(int(act[0]))
             lu = pf.factor(pf.evaluate(g_act[0])[2], 0.0)
             n_fact += 1

@@ -6,10 +6,12 @@ import time
 
 import numpy as np
 
-from .pipeline import (Options, WarmStart, _check_int, _paper, _rest_yaws, check_link_length,
+from .pipeline import (Options, WarmStart, check_int, paper_snapshot, rest_yaws, check_link_length,
                        check_noise_pct_g, check_options, check_readings, solve_snapshot)
 from .result import ShapeEstimate
-from .structure import _lattice, _structure
+from .structure import lattice_of, structure_of
+
+__all__ = ["ShapeEstimator"]
 
 
 class ShapeEstimator:
@@ -44,13 +46,13 @@ class ShapeEstimator:
                  rest=None, model: str = "cells", prior: str = "adaptive",
                  noise_pct_g: float = 1.0, bad_readings: str = "raise", paper_options=None):
         opts = check_options(method, model, prior, noise_pct_g, bad_readings, paper_options)
-        self.rows = _check_int("rows", rows, 2)
-        self.cols = _check_int("cols", cols, 2)
+        self.rows = check_int("rows", rows, 2)
+        self.cols = check_int("cols", cols, 2)
         self.link_length = check_link_length(link_length)
         self.options: Options = opts._replace(noise_pct_g=check_noise_pct_g(noise_pct_g))
-        n = _lattice(self.rows, self.cols).n_links
+        n = lattice_of(self.rows, self.cols).n_links
         self._rest = rest
-        self._rest_yaw = None if rest is None else _rest_yaws(rest, n, self.rows, self.cols)
+        self._rest_yaw = None if rest is None else rest_yaws(rest, n, self.rows, self.cols)
         if self._rest_yaw is not None and not np.all(np.isfinite(self._rest_yaw)):
             raise ValueError("Invalid rest: its yaws contain NaN or inf.")
         #: the last estimate (None before the first update or after `reset`)
@@ -64,7 +66,7 @@ class ShapeEstimator:
 
     @property
     def structure(self):
-        """The structure of the last update's mask (`structure._Structure`), or None."""
+        """The structure of the last update's mask (`structure.Structure`), or None."""
         return None if self._held is None else self._held[1]
 
     @property
@@ -105,9 +107,9 @@ class ShapeEstimator:
             if snap.mask is not None:
                 raise ValueError("method='paper' does not support missing links (the paper has "
                                  "none); use method='global'.")
-            est = _paper(snap, self.rows, self.cols, self.link_length, opts, t0)
+            est = paper_snapshot(snap, self.rows, self.cols, self.link_length, opts, t0)
         else:
-            st = self._structure_of(snap.mask)
+            st = self._held_structure(snap.mask)
             est = solve_snapshot(snap, st, self.link_length, opts, self._warm, self._rest,
                                  self._rest_yaw, t0)
             self._warm = WarmStart(est.yaws, est.joints, est.solution)
@@ -116,10 +118,10 @@ class ShapeEstimator:
         self.last_update = now
         return est
 
-    def _structure_of(self, mask):
+    def _held_structure(self, mask):
         """The structure of ``mask``: the one held when the mask is unchanged, else (a change
         of the links present) the lattice's structure for the new mask."""
         key = None if mask is None else mask.tobytes()
         if self._held is None or self._held[0] != key:
-            self._held = (key, _structure(self.rows, self.cols, mask, self.options.model))
+            self._held = (key, structure_of(self.rows, self.cols, mask, self.options.model))
         return self._held[1]

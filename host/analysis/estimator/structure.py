@@ -14,6 +14,10 @@ from protocol.lattice import Lattice
 
 from .kernel import ffi as _kffi
 
+__all__ = ["JOINT_PRIOR_WEIGHT", "Structure", "ND_MIN_VARS", "ND_LEAF", "nested_dissection",
+           "KERNEL_INDEX_FIELDS", "kernel_arrays", "lattice_of", "units_int64", "cached_structure",
+           "structure_of"]
+
 #: Weight of the joints' prior (keeps components cut off by missing links defined), per m².
 JOINT_PRIOR_WEIGHT = 1e-9
 
@@ -25,7 +29,7 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
 
 
-class _Structure:
+class Structure:
     """Everything about a lattice, mask and model that does not depend on the readings.
 
     The yaw problem's residuals come in blocks with a fixed set of variables per row: the loop
@@ -151,7 +155,7 @@ class _Structure:
             pat = pat + sp.identity(nv, format="csc") * (4.0 * pat.max() + 1.0)
             if nv >= ND_MIN_VARS:  # large: nested dissection on the links' positions
                 mid = np.stack([mid_i[var_links], mid_j[var_links]], axis=1)
-                perm = np.argsort(_nested_dissection(pat.tocsr(), mid))
+                perm = np.argsort(nested_dissection(pat.tocsr(), mid))
             else:  # small: minimum degree fills less
                 perm = splu(pat.tocsc(), permc_spec="MMD_AT_PLUS_A").perm_c
         else:
@@ -192,11 +196,11 @@ class _Structure:
                                           np.zeros(nj)], axis=1)
 
     def kernel_arrays(self) -> dict:
-        return _kernel_arrays(self)
+        return kernel_arrays(self)
 
 
-#: `_Structure.kernel_arrays`' index arrays, by their field name in ``capsheet_yaw_t``
-#: `_Structure`: from this many yaw variables on (about 28x28 joints), the Gauss-Newton matrix is
+#: `Structure.kernel_arrays`' index arrays, by their field name in ``capsheet_yaw_t``
+#: `Structure`: from this many yaw variables on (about 28x28 joints), the Gauss-Newton matrix is
 #: ordered by nested dissection instead of SuperLU's minimum degree. Fill of L (bench_estimator's
 #: Gaussian): 14x14 MMD 11.7k / ND 13.3k, 32x32 130k / 121k, 64x64 909k / 716k.
 ND_MIN_VARS = 1500
@@ -204,7 +208,7 @@ ND_MIN_VARS = 1500
 ND_LEAF = 16
 
 
-def _nested_dissection(adj, xy: np.ndarray, leaf: int = ND_LEAF) -> np.ndarray:
+def nested_dissection(adj, xy: np.ndarray, leaf: int = ND_LEAF) -> np.ndarray:
     """An elimination order (position -> variable) by geometric nested dissection: split the
     variables at the median of their longer extent, take as separator the smaller of the two
     sides' boundaries (the variables with a neighbour across), order each side recursively and
@@ -241,11 +245,11 @@ def _nested_dissection(adj, xy: np.ndarray, leaf: int = ND_LEAF) -> np.ndarray:
     return np.concatenate(out) if out else np.arange(0)
 
 
-_KERNEL_INDEX_FIELDS = ("units", "unit_var", "roll_links", "roll_c0", "roll_c1", "roll_var0",
+KERNEL_INDEX_FIELDS = ("units", "unit_var", "roll_links", "roll_c0", "roll_c1", "roll_var0",
                         "pairs", "pair_var", "var_links")
 
 
-def _kernel_arrays(st: "_Structure") -> dict:
+def kernel_arrays(st: "Structure") -> dict:
     """The structure's arrays as the kernel reads them (int64/float64, contiguous) with their
     cffi pointers, and a work buffer (one snapshot at a time uses it): made once, kept on ``st``."""
     ka = st.__dict__.get("_kernel")
@@ -267,25 +271,28 @@ def _kernel_arrays(st: "_Structure") -> dict:
 
 
 @lru_cache(maxsize=64)
-def _lattice(rows: int, cols: int) -> Lattice:
+def lattice_of(rows: int, cols: int) -> Lattice:
     """One `Lattice` per size, so its cached ``endpoints``/``units`` are computed once."""
     return Lattice(rows, cols)
 
 
 @lru_cache(maxsize=64)
-def _units_int64(rows: int, cols: int) -> np.ndarray:
+def units_int64(rows: int, cols: int) -> np.ndarray:
     """All units' links (n_units, 4), int64, contiguous: what the kernel's `solvability` reads."""
-    return np.ascontiguousarray(_lattice(rows, cols).units.reshape(-1, 4), dtype=np.int64)
+    return np.ascontiguousarray(lattice_of(rows, cols).units.reshape(-1, 4), dtype=np.int64)
 
 
 @lru_cache(maxsize=16)
-def _structure_cached(rows: int, cols: int, mask_bytes: bytes | None, model: str) -> _Structure:
+def cached_structure(rows: int, cols: int, mask_bytes: bytes | None, model: str) -> Structure:
+    """The `Structure` of a lattice, mask (its bytes; None: all valid) and model, built once
+    (``cached_structure.cache_clear()`` forgets them: a benchmark's cold start)."""
     n = Lattice(rows, cols).n_links
     valid = np.ones(n, bool) if mask_bytes is None else np.frombuffer(mask_bytes, dtype=bool).copy()
-    return _Structure(rows, cols, valid, model)
+    return Structure(rows, cols, valid, model)
 
 
-def _structure(rows: int, cols: int, valid: np.ndarray | None, model: str = "cells") -> _Structure:
+def structure_of(rows: int, cols: int, valid: np.ndarray | None, model: str = "cells") -> Structure:
+    """The (cached) `Structure` of a lattice, mask of valid links (None: all) and model."""
     if valid is None or valid.all():
-        return _structure_cached(rows, cols, None, model)
-    return _structure_cached(rows, cols, valid.tobytes(), model)
+        return cached_structure(rows, cols, None, model)
+    return cached_structure(rows, cols, valid.tobytes(), model)

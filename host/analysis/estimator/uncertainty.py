@@ -6,16 +6,18 @@ import numpy as np
 import scipy.sparse as sp
 
 from .angles import G0
-from .linalg import _factorise, _solve
+from .linalg import factorise, solve
 from .priors import ABS_PRIOR_FLOOR
-from .structure import _Structure
-from .yawproblem import _YawProblem
+from .structure import Structure
+from .yawproblem import YawProblem
+
+__all__ = ["UNCERTAINTY_SAMPLES", "yaw_joint_std"]
 
 #: Samples drawn to estimate `ShapeEstimate.yaw_std` / ``joint_std`` (seeded, deterministic).
 UNCERTAINTY_SAMPLES = 200
 
 
-def _uncertainty(est) -> tuple[np.ndarray, np.ndarray]:
+def yaw_joint_std(est) -> tuple[np.ndarray, np.ndarray]:
     """(yaw_std, joint_std) of an estimate, from the data's Fisher information (no prior).
 
     Linearised at the estimate: ``F = Jᵀ W J`` with ``W`` the inverse variance of every
@@ -84,7 +86,7 @@ def _uncertainty(est) -> tuple[np.ndarray, np.ndarray]:
     data = data[:st.nnz]
     data[st.diag_slot] += eps
     A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(nv, nv))
-    lu = _factorise(st, A, sweeps=False)
+    lu = factorise(st, A, sweeps=False)
     S = UNCERTAINTY_SAMPLES
     # all samples at once: sample s draws ξ_re (m), ξ_im (m), ξ_roll (K) and η (nv), in this
     # order, from one stream (a row of Z); b = Jᵀ W^½ ξ + ε^½ η as one sparse product, and one
@@ -103,7 +105,7 @@ def _uncertainty(est) -> tuple[np.ndarray, np.ndarray]:
     b = M @ Z[:, :2 * m + kr].T  # (nv + 1, S)
     b = b[:nv] + np.sqrt(eps) * Z[:, 2 * m + kr:].T
     dg = np.zeros((S, n))
-    dg[:, st.var_links] = _solve(lu, np.ascontiguousarray(b[st.perm_inv]))[st.perm_of_var].T
+    dg[:, st.var_links] = solve(lu, np.ascontiguousarray(b[st.perm_inv]))[st.perm_of_var].T
     dg[:, st.valid] -= dg[:, st.valid].mean(axis=1, keepdims=True)
     ys = np.sqrt(np.mean(dg * dg, axis=0))
     ys[~st.valid] = np.nan
@@ -119,9 +121,9 @@ def _uncertainty(est) -> tuple[np.ndarray, np.ndarray]:
     return ys, js
 
 
-def _data_rows_batch(st: _Structure, alpha: np.ndarray, beta: np.ndarray,
+def _data_rows_batch(st: Structure, alpha: np.ndarray, beta: np.ndarray,
                      gamma: np.ndarray) -> np.ndarray:
-    """`_YawProblem.rows` at ``gamma`` (n_links,) for a batch of readings' angles ``alpha``,
+    """`YawProblem.rows` at ``gamma`` (n_links,) for a batch of readings' angles ``alpha``,
     ``beta`` (B, n_links) at once: (B, rows) (the prior does not enter the rows)."""
-    return _YawProblem(st, alpha, beta, st.rest_yaw, np.full(st.n_var, ABS_PRIOR_FLOOR),
+    return YawProblem(st, alpha, beta, st.rest_yaw, np.full(st.n_var, ABS_PRIOR_FLOOR),
                        np.zeros(st.pairs.shape[0])).rows(gamma)

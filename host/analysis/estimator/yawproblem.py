@@ -1,5 +1,6 @@
 """The global yaw least-squares problem of one snapshot (or a batch of one structure): its
-coefficients, cost, gradient, Jacobian blocks and Gauss-Newton matrix, in numpy and in the kernel."""
+coefficients, cost, gradient, Jacobian blocks and Gauss-Newton matrix, in numpy and in the
+kernel."""
 
 from __future__ import annotations
 
@@ -9,11 +10,13 @@ import numpy as np
 import scipy.sparse as sp
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
-from .angles import _angle_trig
+from .angles import angle_trig
 from .kernel import ffi as _kffi, lib as _klib
-from .linalg import _factorise, _solve
+from .linalg import factorise, solve
 from .priors import ABS_PRIOR_FLOOR
-from .structure import _KERNEL_INDEX_FIELDS, _Structure
+from .structure import KERNEL_INDEX_FIELDS, Structure
+
+__all__ = ["NORMAL_WEIGHT", "ROLL_WEIGHT", "YawProblem"]
 
 #: Weight of the normal-assumption residuals (eq. 6) relative to the loop closure (eq. 4).
 NORMAL_WEIGHT = 0.2
@@ -74,7 +77,7 @@ def _sumsq_last(x: np.ndarray):
     return np.add.reduce(x * x, axis=-1)
 
 
-class _YawProblem:
+class YawProblem:
     """The global yaw least-squares problem for one snapshot (see the module docstring), or for
     a batch of snapshots of one structure at once: ``alpha``, ``beta`` (B, n_links), and
     ``prior_w``/``bend_w`` per snapshot or shared; every method then works row-wise on a
@@ -88,7 +91,7 @@ class _YawProblem:
     _PER_SNAPSHOT = {"c_loop": 2, "c_n": 2, "Az": 1, "Cz": 1, "y_c": 1, "y_z": 1, "lam": 1,
                      "lam_b": 1}
 
-    def __init__(self, st: _Structure, alpha, beta, target, prior_w, bend_w, trig=None):
+    def __init__(self, st: Structure, alpha, beta, target, prior_w, bend_w, trig=None):
         self.st = st
         self.target = target[st.var_links]
         self.lam = prior_w  # (nv,) prior weight per variable
@@ -121,12 +124,12 @@ class _YawProblem:
 
     def _coeffs_kernel(self, alpha, beta, trig=None):
         """`__init__`'s yaw-free coefficients (model "cells", one snapshot) in the kernel;
-        ``trig``: the links' `_angle_trig`, if already made."""
+        ``trig``: the links' `angle_trig`, if already made."""
         st = self.st
         sk = st.kernel_arrays()
         U, K = st.n_units, st.roll_links.size
         if trig is None:
-            trig = _angle_trig(alpha, beta)
+            trig = angle_trig(alpha, beta)
         self.c_loop, self.Az, self.Cz = np.empty((U, 4)), np.empty(U), np.empty(U)
         self.y_c, self.y_z = np.empty(K, dtype=complex), np.empty(K)
         fb = _kffi.from_buffer
@@ -210,10 +213,10 @@ class _YawProblem:
         return cost, grad[:st.n_var], None
 
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos):
-        """`_solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
+        """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
-        `_REFACTOR_RATIO`, `_ANDERSON_COS`). ``gamma`` is updated in place. Returns (status, iterations, cost, grad,
+        `REFACTOR_RATIO`, `ANDERSON_COS`). ``gamma`` is updated in place. Returns (status, iterations, cost, grad,
         prev_smax); status 0 converged, 1 the cost rose, 2 a poor contraction (refactorise
         for both), 3 out of iterations."""
         kp = self.__dict__.get("_kp")
@@ -248,7 +251,7 @@ class _YawProblem:
     def _kernel_problem(self):
         """The kernel's ``capsheet_yaw_t`` for this snapshot, its work buffer, and the arrays
         it points into (kept alive with it). The structure's index arrays are shared
-        (`_Structure.kernel_arrays`)."""
+        (`Structure.kernel_arrays`)."""
         st = self.st
         sk = st.kernel_arrays()
         keep = [sk]
@@ -262,7 +265,7 @@ class _YawProblem:
         p = _kffi.new("capsheet_yaw_t *")
         p.n_units, p.n_roll, p.n_pairs, p.n_var = sk["sizes"]
         p.n_links = st.n_links
-        for name in _KERNEL_INDEX_FIELDS:
+        for name in KERNEL_INDEX_FIELDS:
             setattr(p, name, sk[name][1])
         p.roll_ws1, p.w = sk["roll_ws1"][1], ptr(self.w)
         p.c_loop, p.Az, p.Cz = ptr(self.c_loop), ptr(self.Az), ptr(self.Cz)
@@ -276,7 +279,7 @@ class _YawProblem:
 
     def rows(self, gamma) -> np.ndarray:
         """The data residuals as real rows: loop (and eq. 6) real parts, imaginary parts, then
-        the roll residuals (the order `_uncertainty` weights them in)."""
+        the roll residuals (the order `yaw_joint_std` weights them in)."""
         st = self.st
         z = np.exp(1j * gamma)
         zu = z[..., st.units]
@@ -388,12 +391,12 @@ class _YawProblem:
         data = data[:st.nnz]
         data[st.diag_slot] += self.lam + mu
         A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
-        return _factorise(st, A)
+        return factorise(st, A)
 
     def step(self, lu, grad):
         """The (chord) Gauss-Newton step ``−A⁻¹ grad``, row-wise for a batch (B, nv)."""
         st = self.st
         b = -grad[..., st.perm_inv]
         if b.ndim == 1:
-            return _solve(lu, b)[st.perm_of_var]
-        return _solve(lu, np.ascontiguousarray(b.T)).T[:, st.perm_of_var]
+            return solve(lu, b)[st.perm_of_var]
+        return solve(lu, np.ascontiguousarray(b.T)).T[:, st.perm_of_var]

@@ -163,14 +163,14 @@ def test_wrong_mask_and_batch_are_value_errors():
 
 
 def test_roll_gradient_without_the_jacobian_equals_jt_r():
-    """`_YawProblem._roll_grad` (reverse mode) against ``Jᵀ r`` from the Jacobian rows."""
+    """`YawProblem._roll_grad` (reverse mode) against ``Jᵀ r`` from the Jacobian rows."""
     n = 9
     _, R = snapshots(n, 2, seed=2)
     g = rng(4)
     for mask in (None, np.arange(R.shape[1]) % 7 != 3):
-        st = E._structure(n, n, mask)
+        st = E.structure.structure_of(n, n, mask)
         a, b = E.roll_pitch(R[0])
-        prob = E._YawProblem(st, a, b, st.rest_yaw, np.full(st.n_var, 1e-10),
+        prob = E.yawproblem.YawProblem(st, a, b, st.rest_yaw, np.full(st.n_var, 1e-10),
                              np.full(st.pairs.shape[0], 1e-4))
         gamma = st.rest_yaw + 0.3 * g.standard_normal(st.n_links)
         c1, g1, blocks = prob.evaluate(gamma, jac=True)

@@ -238,8 +238,8 @@ def test_solvability_equals_svd_of_the_eq7_matrix():
     g = rng(3)
     a = g.uniform(-np.pi, np.pi, (50, 4))
     b = g.uniform(-np.pi / 2, np.pi / 2, (50, 4))
-    s = np.linalg.svd(E._eq7_matrices(a, b), compute_uv=False)
-    np.testing.assert_allclose(E._solvability_units(a, b), s[:, 2] / s[:, 0], atol=1e-12)
+    s = np.linalg.svd(E.angles.eq7_matrices(a, b), compute_uv=False)
+    np.testing.assert_allclose(E.angles.solvability_units(a, b), s[:, 2] / s[:, 0], atol=1e-12)
 
 
 # --- angles, overlay ------------------------------------------------------------------------------
@@ -492,17 +492,17 @@ def test_splu_fallback_and_cholmod_give_the_same_estimate(monkeypatch):
     P = sheet("saddle", 0.2)
     r = noisy_readings(ideal_readings(P), 1.0, rng(4))
     monkeypatch.setattr(E.linalg, "LINEAR_SOLVER", "splu")
-    E._structure_cached.cache_clear()
+    E.structure.cached_structure.cache_clear()
     a = estimate(r, ROWS, COLS, L)
     assert a.solution[1][0] == "splu"
-    if E._cholmod() is None:
+    if E.linalg.cholmod_module() is None:
         pytest.skip("scikit-sparse (CHOLMOD) not installed: only the splu fallback ran")
     monkeypatch.setattr(E.linalg, "LINEAR_SOLVER", "cholmod")
-    E._structure_cached.cache_clear()
+    E.structure.cached_structure.cache_clear()
     b = estimate(r, ROWS, COLS, L)
     assert b.solution[1][0] == "cholmod"
     np.testing.assert_allclose(a.joints, b.joints, atol=1e-9)
-    E._structure_cached.cache_clear()
+    E.structure.cached_structure.cache_clear()
 
 
 def test_the_level_prior_is_unbiased_on_a_drape_where_the_default_is_not():

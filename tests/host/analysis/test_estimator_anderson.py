@@ -1,4 +1,4 @@
-"""The chord iteration's acceleration (`host.analysis.estimator._anderson`): for a mode each step
+"""The chord iteration's acceleration (`host.analysis.estimator.solver.anderson`): for a mode each step
 overshoots (step = −ρ × the last), the accelerated move is the rest of the series, s / (1 + ρ);
 any other pair of steps is left alone."""
 
@@ -25,7 +25,7 @@ def test_an_overshooting_mode_is_summed_to_its_fixed_point():
     for rho in (0.2, 0.5, 0.9):
         x_star, x1, s0, s1 = _series(rho)
         np.testing.assert_allclose(s1, -rho * s0)
-        move = E._anderson(s1, (s0, s0))
+        move = E.solver.anderson(s1, (s0, s0))
         np.testing.assert_allclose(x1 + move, x_star, atol=1e-12)
         # the plain step would land -rho times as far on the other side
         assert np.max(np.abs(x1 + s1 - x_star)) > 0.1 * rho * np.max(np.abs(x1 - x_star))
@@ -35,6 +35,6 @@ def test_steps_that_do_not_reverse_are_left_alone():
     g = np.random.Generator(np.random.MT19937(5))
     a, b = g.normal(size=40), g.normal(size=40)
     for s_prev, s in ((a, 0.5 * a), (a, b), (a, -0.5 * a + 2.0 * b)):  # contracting, unrelated, weak
-        assert E._anderson(s, (s_prev, s_prev)) is s
-    assert E._anderson(a, None) is a
-    assert E._anderson(np.zeros(40), (a, a)).tolist() == [0.0] * 40
+        assert E.solver.anderson(s, (s_prev, s_prev)) is s
+    assert E.solver.anderson(a, None) is a
+    assert E.solver.anderson(np.zeros(40), (a, a)).tolist() == [0.0] * 40

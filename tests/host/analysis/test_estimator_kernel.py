@@ -1,7 +1,7 @@
 """The estimator's compiled kernel (host/analysis/_kernel/yaw_eval.c) against its numpy code.
 
 Two independent implementations of the same terms: the kernel's single-pass loops and
-`_YawProblem.evaluate`'s numpy (`_roll_grad`, reverse mode), and the kernel's triangular sweeps
+`YawProblem.evaluate`'s numpy (`_roll_grad`, reverse mode), and the kernel's triangular sweeps
 against SuperLU's own solve. Metric: difference of the cost (relative), of the gradient (to its
 largest entry, or to 1 where that is smaller: at a minimum, terms of order 1 cancel) and of the
 step (relative); tolerance 1e-12 (rounding: the two sum in different orders), 1e-6 for the
@@ -96,10 +96,10 @@ def test_the_kernels_supernodal_solve_solves_as_superlu_does(n):
     assert (st.n_var >= E.ND_MIN_VARS) == (n >= 32)
     b = rng(n).normal(size=st.n_var)
     x_superlu = lu[1].solve(b)
-    x = E._solve(lu, b)
+    x = E.linalg.solve(lu, b)
     assert np.max(np.abs(x - x_superlu)) <= SOLVE_TOL * np.max(np.abs(x_superlu))
     B = np.stack([b, 2 * b], axis=1)  # several right-hand sides stay with SuperLU
-    assert np.array_equal(E._solve(lu, B), lu[1].solve(B))
+    assert np.array_equal(E.linalg.solve(lu, B), lu[1].solve(B))
     # supernodes of more than one column exist (else this is the plain column solve)
     assert np.diff(lu[2][0][2]["arrays"][0]).max() > 1
 
@@ -110,7 +110,7 @@ def test_the_solve_comparison_sees_a_wrong_factor():
     val = lu[2][0][0]
     k = int(np.argmax(np.abs(val)))
     val[k] *= 1.001  # one entry of L off by 0.1 %
-    x = E._solve(lu, b)
+    x = E.linalg.solve(lu, b)
     val[k] /= 1.001
     assert np.max(np.abs(x - lu[1].solve(b))) > SOLVE_TOL * np.max(np.abs(lu[1].solve(b)))
 
@@ -125,7 +125,7 @@ def test_nested_dissection_orders_a_grid_with_less_fill_than_its_rows():
     A = sp.coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m * m, m * m))
     A = (A + A.T + 5 * sp.identity(m * m)).tocsr()
     xy = np.stack([idx.ravel() // m, idx.ravel() % m], 1).astype(float)
-    order = E._nested_dissection(A, xy)
+    order = E.structure.nested_dissection(A, xy)
     assert np.array_equal(np.sort(order), np.arange(m * m))
 
     def fill(o):
@@ -154,10 +154,10 @@ def test_warm_runs_give_the_same_joints_with_the_kernel_and_without(n, shape, sh
     g = rng(1)
     snaps = [noisy_readings(r0, 1.0, g) for _ in range(12)]
     valid = _mask(n) if masked else None
-    E._structure_cached.cache_clear()  # each run starts without a cached factorisation
+    E.structure.cached_structure.cache_clear()  # each run starts without a cached factorisation
     monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
     ref = _warm_run(n, snaps, valid)
-    E._structure_cached.cache_clear()
+    E.structure.cached_structure.cache_clear()
     monkeypatch.setattr(E.kernel, "USE_KERNEL", True)
     new = _warm_run(n, snaps, valid)
     side = (n - 1) * L
@@ -181,8 +181,8 @@ def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(mas
     out = {}
     for use in (False, True):
         monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
-        d, nrm = E._directions_normals(np.nan_to_num(alpha), np.nan_to_num(beta), gamma)
-        out[use] = (d, nrm, E._eq8_residual(st.units, d, nrm), E.solvability(alpha, beta, n, n))
+        d, nrm = E.joints.directions_normals(np.nan_to_num(alpha), np.nan_to_num(beta), gamma)
+        out[use] = (d, nrm, E.joints.eq8_residual(st.units, d, nrm), E.solvability(alpha, beta, n, n))
     (d0, n0, e0, s0), (d1, n1, e1, s1) = out[False], out[True]
     assert np.max(np.abs(d1 - d0)) <= TOL and np.max(np.abs(n1 - n0)) <= TOL
     assert abs(e1 - e0) <= TOL * e0
@@ -191,7 +191,7 @@ def test_the_kernels_directions_residual_and_solvability_are_the_numpy_codes(mas
 
 
 def test_the_readings_trig_is_the_cosine_and_sine_of_their_angles():
-    """`_roll_pitch_trig`: the kernel's (cos α, sin α, cos β, sin β) from the readings' ratios
+    """`roll_pitch_trig`: the kernel's (cos α, sin α, cos β, sin β) from the readings' ratios
     against numpy's cos and sin of `roll_pitch`'s angles, on random readings of every scale and
     on the axis cases where the ratios are undefined (atan2's signed zeros decide there)."""
     g = rng(11)
@@ -201,14 +201,14 @@ def test_the_readings_trig_is_the_cosine_and_sine_of_their_angles():
                      [np.nan, 1.0, 1.0], [1.0, np.nan, 1.0], [1e-200, 1e-200, 1e-200],
                      [1e200, 1e200, -1e200]])
     r = np.vstack([r, axis])
-    alpha, beta, trig = E._roll_pitch_trig(r)
+    alpha, beta, trig = E.angles.roll_pitch_trig(r)
     a0, b0 = E.roll_pitch(r)
     assert np.array_equal(alpha, a0, equal_nan=True) and np.array_equal(beta, b0, equal_nan=True)
     want = np.stack([np.cos(a0), np.sin(a0), np.cos(b0), np.sin(b0)], axis=1)
     assert np.array_equal(np.isnan(trig), np.isnan(want))
     assert np.isnan(want[-4:-2]).any(axis=1).all()  # the NaN readings are in the comparison
     assert np.nanmax(np.abs(trig - want)) <= 4e-16
-    assert np.array_equal(E._angle_trig(a0, b0), want, equal_nan=True)
+    assert np.array_equal(E.angles.angle_trig(a0, b0), want, equal_nan=True)
 
 
 @pytest.mark.parametrize("masked", [False, True])
@@ -222,7 +222,7 @@ def test_an_estimate_is_the_same_with_the_kernel_and_without(masked, monkeypatch
     out = {}
     for use in (False, True):
         monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
-        E._structure_cached.cache_clear()
+        E.structure.cached_structure.cache_clear()
         out[use] = E.estimate(r, n, n, L, valid=valid)
     e0, e1 = out[False], out[True]
     assert np.array_equal(np.isnan(e1.solvability), np.isnan(e0.solvability))
@@ -241,11 +241,11 @@ def test_the_kernels_flatness_is_the_numpy_codes(rows, cols, shape, monkeypatch)
     P = make_sheet(shape, rows, cols, L)
     r = noisy_readings(ideal_readings(P), 1.0, rng(9))
     norm_g = np.linalg.norm(r, axis=1) / E.G0
-    st = E._structure(rows, cols, None)
+    st = E.structure.structure_of(rows, cols, None)
     out = {}
     for use in (False, True):
         monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
-        out[use] = [E._flatness(st, r, norm_g, s) for s in (0.003, 0.01, 0.05)]
+        out[use] = [E.priors.flatness(st, r, norm_g, s) for s in (0.003, 0.01, 0.05)]
     for h0, h1 in zip(out[False], out[True]):
         assert h1.shape == h0.shape == ((rows - 1) * (cols - 1),)
         assert np.max(np.abs(h1 - h0)) <= TOL
@@ -263,7 +263,7 @@ def test_the_kernels_yaw_coefficients_are_the_numpy_codes(masked, monkeypatch):
     out = {}
     for use in (False, True):
         monkeypatch.setattr(E.kernel, "USE_KERNEL", use)
-        out[use] = E._YawProblem(st, a, b, st.rest_yaw, prob.lam, prob.lam_b)
+        out[use] = E.yawproblem.YawProblem(st, a, b, st.rest_yaw, prob.lam, prob.lam_b)
     for name in ("c_loop", "Az", "Cz", "y_c", "y_z", "w", "pair_t", "target"):
         v0, v1 = getattr(out[False], name), getattr(out[True], name)
         assert v1.shape == v0.shape and v1.dtype == v0.dtype, name
@@ -271,11 +271,11 @@ def test_the_kernels_yaw_coefficients_are_the_numpy_codes(masked, monkeypatch):
 
 
 def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
-    """`capsheet_chord` (the warm chord iterations in C) against `_solve_global`'s Python loop on
+    """`capsheet_chord` (the warm chord iterations in C) against `solve_global`'s Python loop on
     the same kernel evaluations and solves: the same iteration and factorisation counts, the same
     joints to rounding, over warm runs that also hand back to Python for a refactorisation."""
     statuses = []
-    real = E._YawProblem.chord_kernel
+    real = E.yawproblem.YawProblem.chord_kernel
 
     def spy(self, *a):
         out = real(self, *a)
@@ -284,9 +284,9 @@ def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
     runs = {}
     for in_c in (False, True):
         if in_c:
-            monkeypatch.setattr(E._YawProblem, "chord_kernel", spy)
+            monkeypatch.setattr(E.yawproblem.YawProblem, "chord_kernel", spy)
         else:
-            monkeypatch.setattr(E.solver, "_chord_in_kernel", lambda *a: False)
+            monkeypatch.setattr(E.solver, "chord_in_kernel", lambda *a: False)
         out = []
         for n, shapes, shear, noise in ((14, ("saddle",), 0.2, 1.0), (14, ("sphere",), 0.3, 5.0),
                                         (24, ("gaussian", "saddle"), 0.1, 1.0)):
@@ -294,7 +294,7 @@ def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
             r0 = [ideal_readings(make_sheet(sh, n, n, L, shear=shear)) for sh in shapes]
             g = rng(21)
             snaps = [noisy_readings(r0[k % len(r0)], noise, g) for k in range(15)]
-            E._structure_cached.cache_clear()
+            E.structure.cached_structure.cache_clear()
             out.append(_warm_run(n, snaps, None))
         runs[in_c] = out
         monkeypatch.undo()
