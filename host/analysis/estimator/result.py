@@ -8,7 +8,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .structure import Structure
 from .uncertainty import yaw_joint_std
+from .yawproblem import YawProblem
 
 __all__ = ["Solution", "ShapeEstimate"]
 
@@ -18,11 +20,12 @@ class Solution(NamedTuple):
     need (`ShapeEstimate.solution`)."""
 
     #: the lattice's, mask's and model's fixed structure (sparsity pattern, ordering, Laplacian)
-    structure: object
-    #: the Gauss-Newton matrix's last factorisation, or None (what chord steps reuse)
-    factorisation: object
+    structure: Structure
+    #: the Gauss-Newton matrix's last factorisation (`linalg.factorise`'s), or None (what the
+    #: next snapshot's chord steps reuse while its structure is the same)
+    factorisation: tuple | None
     #: the snapshot's yaw problem (its coefficients and prior weights)
-    problem: object
+    problem: YawProblem
     #: the yaws it converged to, (n_links,), radians
     yaws: np.ndarray
 
@@ -85,7 +88,7 @@ class ShapeEstimate:
     #: the global solve behind this estimate (`Solution`: structure, factorisation, yaw problem,
     #: yaws): what `yaw_std` and ``joint_std`` are computed from and what ``previous=`` warm-starts
     #: from; None for ``method="paper"``
-    solution: "Solution | None" = field(default=None, repr=False)
+    solution: Solution | None = field(default=None, repr=False)
 
     @cached_property
     def yaw_std(self) -> np.ndarray:
