@@ -336,17 +336,20 @@ def link_angles(r: np.ndarray, valid: np.ndarray, mask):
 def noise_and_priors(prior: str, st, rr, norm_g, valid, rest_given: bool):
     """The readings' noise σ (per axis, fraction of g: the RMS of ``|s|/g − 1`` over the valid
     links — white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g), the
-    prior's weights (`priors._prior_weights`) and the solver's tolerance: (σ, prior_w, bend_w,
+    prior's weights (`priors.prior_weights`) and the solver's tolerance: (σ, prior_w, bend_w,
     tol), each per snapshot for a batch."""
-    e = norm_g[..., valid] - 1.0
-    noise = np.sqrt(np.add.reduce(e * e, axis=-1) / max(e.shape[-1], 1))
-    prior_w, bend_w = prior_weights(prior, st, rr, np.where(valid, norm_g, 1.0),
-                                     float(noise) if noise.ndim == 0 else noise, rest_given)
+    if norm_g.ndim == 1:  # one snapshot: Python floats (numpy's scalars cost microseconds)
+        e = norm_g[valid] - 1.0
+        noise = float(np.sqrt(float(np.add.reduce(e * e)) / max(e.size, 1)))
+    else:
+        e = norm_g[:, valid] - 1.0
+        noise = np.sqrt(np.add.reduce(e * e, axis=1) / max(e.shape[1], 1))
+    prior_w, bend_w = prior_weights(prior, st, rr, np.where(valid, norm_g, 1.0), noise,
+                                    rest_given)
     # stop when the step is far below what the noise moves the yaws by (σ rad, roughly)
-    tol = np.maximum(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise)
-    if noise.ndim == 0:
-        return float(noise), prior_w, bend_w, float(tol)
-    return noise, prior_w, bend_w, tol
+    if norm_g.ndim == 1:
+        return noise, prior_w, bend_w, max(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise)
+    return noise, prior_w, bend_w, np.maximum(solver.YAW_TOL_RAD, solver.YAW_TOL_NOISE * noise)
 
 
 def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart, rest=None,
@@ -360,9 +363,9 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     target = st.rest_yaw if rest_yaw is None else rest_yaw
     start, lu = warm.start(st, target)
     _, prior_w, bend_w, tol = noise_and_priors(opts.prior, st, rr, snap.norm_g, snap.valid,
-                                            rest_yaw is not None)
+                                               rest_yaw is not None)
     gamma, iters, n_fact, lu, prob = solve_global(st, alpha, beta, start.copy(), target,
-                                                   prior_w, bend_w, lu, tol, trig)
+                                                  prior_w, bend_w, lu, tol, trig)
     solution = Solution(st, lu, prob, gamma)
     t2 = time.perf_counter()
     P, d, nrm, gamma, alpha, beta, residual = joints_and_mask(

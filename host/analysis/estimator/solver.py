@@ -28,7 +28,7 @@ REFACTOR_RATIO = 0.7
 
 
 def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
-                  tol=YAW_TOL_RAD, trig=None):
+                 tol=YAW_TOL_RAD, trig=None):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
     Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
     lu, problem).

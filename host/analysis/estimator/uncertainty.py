@@ -126,4 +126,4 @@ def _data_rows_batch(st: Structure, alpha: np.ndarray, beta: np.ndarray,
     """`YawProblem.rows` at ``gamma`` (n_links,) for a batch of readings' angles ``alpha``,
     ``beta`` (B, n_links) at once: (B, rows) (the prior does not enter the rows)."""
     return YawProblem(st, alpha, beta, st.rest_yaw, np.full(st.n_var, ABS_PRIOR_FLOOR),
-                       np.zeros(st.pairs.shape[0])).rows(gamma)
+                      np.zeros(st.pairs.shape[0])).rows(gamma)

@@ -171,7 +171,7 @@ def test_roll_gradient_without_the_jacobian_equals_jt_r():
         st = E.structure.structure_of(n, n, mask)
         a, b = E.roll_pitch(R[0])
         prob = E.yawproblem.YawProblem(st, a, b, st.rest_yaw, np.full(st.n_var, 1e-10),
-                             np.full(st.pairs.shape[0], 1e-4))
+                                       np.full(st.pairs.shape[0], 1e-4))
         gamma = st.rest_yaw + 0.3 * g.standard_normal(st.n_links)
         c1, g1, blocks = prob.evaluate(gamma, jac=True)
         c2, g2, none = prob.evaluate(gamma, jac=False)
