@@ -63,6 +63,8 @@ def rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
         if y.shape != (n,):
             raise ValueError(f"Expected `rest` yaws to have shape ({n},) for a {rows}x{cols} "
                              f"lattice, got {y.shape}.")
+    if not np.all(np.isfinite(y)):
+        raise ValueError("Invalid rest: its yaws contain NaN or inf.")
     return y
 
 
@@ -162,8 +164,6 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
     if previous is not None:
         check_previous(previous, n, rows, cols)
     rest_yaw = None if rest is None else rest_yaws(rest, n, rows, cols)
-    if rest_yaw is not None and not np.all(np.isfinite(rest_yaw)):
-        raise ValueError("Invalid rest: its yaws contain NaN or inf.")
     if method == "paper" and snap.mask is not None:
         raise ValueError("method='paper' does not support missing links (the paper has none); "
                          "use method='global'.")

@@ -53,8 +53,6 @@ class ShapeEstimator:
         n = lattice_of(self.rows, self.cols).n_links
         self._rest = rest
         self._rest_yaw = None if rest is None else rest_yaws(rest, n, self.rows, self.cols)
-        if self._rest_yaw is not None and not np.all(np.isfinite(self._rest_yaw)):
-            raise ValueError("Invalid rest: its yaws contain NaN or inf.")
         #: the last estimate (None before the first update or after `reset`)
         self.last: ShapeEstimate | None = None
         #: snapshots estimated since construction or the last `reset`

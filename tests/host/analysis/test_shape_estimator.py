@@ -121,3 +121,16 @@ def test_the_paper_method_has_no_warm_start_and_no_missing_links():
     valid[0] = False
     with pytest.raises(ValueError, match="does not support missing links"):
         est.update(R[1], valid=valid)
+
+
+def test_a_rest_shape_is_the_prior_target_as_in_estimate():
+    n = 8
+    _, R = snapshots(n, 5, seed=13, shear=0.1)
+    rest = estimate(R[0], n, n, L)
+    est = ShapeEstimator(n, n, L, rest=rest)
+    got = [est.update(r) for r in R[1:]]
+    assert all(same(a, b) for a, b in zip(got, chain(R[1:], n, rest=rest)))
+    # the rest changes the answer (the comparison could fail): not the default target
+    assert not np.array_equal(got[0].yaws, estimate(R[1], n, n, L).yaws)
+    with pytest.raises(ValueError, match="Invalid rest: its yaws contain NaN or inf"):
+        ShapeEstimator(n, n, L, rest=np.full(R.shape[1], np.nan))
