@@ -8,8 +8,9 @@ import numpy as np
 
 from .angles import G0
 from .joints import joints_and_mask
-from .pipeline import (READING_NORM_RANGE, WarmStart, check_int, check_previous, estimate,
-                       link_angles, link_solvability, noise_and_priors)
+from .pipeline import (READING_NORM_RANGE, WarmStart, check_int, check_noise_pct_g,
+                       check_options, check_previous, estimate, link_angles, link_solvability,
+                       noise_and_priors)
 from .result import ShapeEstimate, Solution
 from .solver import solve_global_batch
 from .structure import lattice_of, structure_of
@@ -60,8 +61,9 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     rows = check_int("rows", rows, 2)
     cols = check_int("cols", cols, 2)
     batch = check_int("batch", batch, 1)
-    if bad_readings not in ("raise", "mask"):
-        raise ValueError(f"Invalid bad_readings: {bad_readings!r} (expected 'raise' or 'mask')")
+    check_options(bad_readings=bad_readings)
+    # the group's estimates carry it without `estimate` seeing it: checked here, once
+    noise_pct_g = check_noise_pct_g(noise_pct_g)
     lat = lattice_of(rows, cols)
     n = lat.n_links
     R = np.asarray(readings)

@@ -159,6 +159,12 @@ def test_wrong_mask_and_batch_are_value_errors():
         estimate_batch(R, 10, 10, L, valid=np.ones((2, 180), bool))
     with pytest.raises(ValueError, match="batch"):
         estimate_batch(R, 10, 10, L, batch=0)
+    # with a `previous` every snapshot is batched and none passes `estimate`'s checks: the
+    # noise was taken as it came (-1 % g on every estimate)
+    with pytest.raises(ValueError, match=r"Invalid noise_pct_g: -1\.0"):
+        estimate_batch(R, 10, 10, L, previous=estimate(R[0], 10, 10, L), noise_pct_g=-1.0)
+    with pytest.raises(ValueError, match="Invalid bad_readings"):
+        estimate_batch(R, 10, 10, L, bad_readings="drop")
     assert estimate_batch(R[:0], 10, 10, L) == []
 
 
