@@ -49,7 +49,7 @@ In both, joint ``(0, 0)`` is placed at the origin. The estimate is defined up to
 world z (yaw gauge); `overlay_error` and `error_percent_of_side` compare shapes as the paper does,
 after a least-squares rigid overlay.
 
-This module needs numpy and scipy only; it does not import `virtual_sheet`. One snapshot's
+This package needs numpy and scipy only; it does not import `virtual_sheet`. One snapshot's
 arithmetic (the yaw problem's coefficients, the chord steps' cost and gradient, SuperLU's
 triangular sweeps, the flatness, directions, eq. (8) and solvability) runs in a small C kernel
 when it is built (host/analysis/_kernel/, cffi, at install; `USE_KERNEL`), else in the numpy code
@@ -58,8 +58,8 @@ beside it, which gives the same numbers to rounding; `estimate_batch` always run
 The package, by concern (docs/design.md's layout table lists them too):
 
 ========================  ======================================================================
-`.pipeline`               `estimate`: the checks, then angles -> structure -> priors -> solve ->
-                          joints
+`.pipeline`               `estimate`: the checks, then angles -> structure -> prior weights ->
+                          solve -> joints and mask, stages `.batch` and `.stateful` share
 `.batch`                  `estimate_batch`: many snapshots of one structure solved together
 `.stateful`               `ShapeEstimator`: a stream of snapshots, holding its warm start
 `.result`                 `ShapeEstimate` and the `Solution` state of a global solve
@@ -69,7 +69,7 @@ The package, by concern (docs/design.md's layout table lists them too):
 `.linalg`                 SuperLU / CHOLMOD and the kernel's triangular sweeps
 `.solver`                 Gauss-Newton with chord steps and Anderson acceleration
 `.priors`                 the priors' weights (`PRIORS`)
-`.joints`                 links' directions and normals in the world, eq. (8)'s residual
+`.joints`                 links' directions and normals, the joints, eq. (8), missing links
 `.uncertainty`            `ShapeEstimate.yaw_std` and ``joint_std``
 `.kernel`                 the compiled kernel and its switch ``USE_KERNEL``
 ========================  ======================================================================
