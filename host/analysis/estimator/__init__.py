@@ -58,10 +58,11 @@ beside it, which gives the same numbers to rounding; `estimate_batch` always run
 The package, by concern (docs/design.md's layout table lists them too):
 
 ========================  ======================================================================
-`.pipeline`               `estimate`: the checks, then angles -> structure -> prior weights ->
+`.pipeline`               `estimate`: `.checks`, then angles -> structure -> prior weights ->
                           solve -> joints and mask, stages `.batch` and `.stateful` share
 `.batch`                  `estimate_batch`: many snapshots of one structure solved together
 `.stateful`               `ShapeEstimator`: a stream of snapshots, holding its warm start
+`.checks`                 the checks every entry point makes (options, readings, mask, ...)
 `.result`                 `ShapeEstimate` and the `Solution` state of a global solve
 `.angles`                 roll and pitch (eq. 2), solvability (eq. 7)
 `.structure`              per lattice, mask and model: sparsity pattern, ordering, Laplacian
@@ -82,13 +83,14 @@ import; a tunable is changed on the module that owns it (``estimator.solver.YAW_
 from __future__ import annotations
 
 from ..metrics import error_percent_of_side, overlay, overlay_error
-from . import (angles, batch, joints, kernel, linalg, pipeline, priors, result, solver, stateful,
-               structure, uncertainty, yawproblem)
+from . import (angles, batch, checks, joints, kernel, linalg, pipeline, priors, result, solver,
+               stateful, structure, uncertainty, yawproblem)
 from .angles import G0, roll_pitch, solvability, solvability_units
 from .batch import estimate_batch
 from .kernel import USE_KERNEL
 from .linalg import LINEAR_SOLVER
-from .pipeline import METHODS, MODELS, READING_NORM_RANGE, estimate
+from .checks import METHODS, MODELS, READING_NORM_RANGE
+from .pipeline import estimate
 from .priors import (ABS_PRIOR_FLOOR, BEND_STD_RAD, FIXED_PRIOR_WEIGHT, FLAT_RADIUS,
                      FLAT_TILT_NOISE, PRIOR_WEIGHT_MIN, PRIORS, SHEAR_WEIGHT, SHEAR_WEIGHT_REST)
 from .result import ShapeEstimate, Solution
@@ -111,6 +113,6 @@ __all__ = [
     "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN",
     "JOINT_PRIOR_WEIGHT", "ND_MIN_VARS", "ND_LEAF", "UNCERTAINTY_SAMPLES",
     # the modules, for what a benchmark or a test reaches below the pipeline (each has __all__)
-    "angles", "batch", "joints", "kernel", "linalg", "pipeline", "priors", "result", "solver",
-    "stateful", "structure", "uncertainty", "yawproblem",
+    "angles", "batch", "checks", "joints", "kernel", "linalg", "pipeline", "priors", "result",
+    "solver", "stateful", "structure", "uncertainty", "yawproblem",
 ]

@@ -7,10 +7,10 @@ import time
 import numpy as np
 
 from .angles import G0
+from .checks import (READING_NORM_RANGE, check_int, check_noise_pct_g, check_options,
+                     check_previous)
 from .joints import joints_and_mask
-from .pipeline import (READING_NORM_RANGE, WarmStart, check_int, check_noise_pct_g,
-                       check_options, check_previous, estimate, link_angles, link_solvability,
-                       noise_and_priors)
+from .pipeline import WarmStart, estimate, link_angles, link_solvability, noise_and_priors
 from .result import ShapeEstimate, Solution
 from .solver import solve_global_batch
 from .structure import lattice_of, structure_of

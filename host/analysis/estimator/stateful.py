@@ -6,8 +6,9 @@ import time
 
 import numpy as np
 
-from .pipeline import (Options, WarmStart, check_int, paper_snapshot, rest_yaws, check_link_length,
-                       check_noise_pct_g, check_options, check_readings, solve_snapshot)
+from .checks import (Options, check_int, check_link_length, check_noise_pct_g, check_options,
+                     check_readings, rest_yaws)
+from .pipeline import WarmStart, paper_snapshot, solve_snapshot
 from .result import ShapeEstimate
 from .structure import lattice_of, structure_of
 
