@@ -5,4 +5,5 @@ estimator falls back to numpy without it). Everything else is in pyproject.toml.
 from setuptools import setup
 
 setup(cffi_modules=["firmware_ref/build_ffi.py:ffibuilder",
+                    "firmware_ref/build_ffi.py:ffibuilder_mutants",
                     "host/analysis/_kernel/build.py:ffibuilder"])

@@ -397,6 +397,7 @@ class ArrayChip(ChipModel):
 
     state = _F(ChipState)
     node = _F(int)
+    prev_node = _F(int, none=-1)
     link = _F(int, none=-1)
     streaming = _F(bool)
     last_counter = _F(int, none=-1)
@@ -463,6 +464,7 @@ class ChipArray:
         self.uid = np.array(uids, dtype=np.uint64)
         self.state = np.full(n, _BOOT, dtype=np.int64)
         self.node = np.zeros(n, dtype=np.int64)
+        self.prev_node = np.full(n, -1, dtype=np.int64)  # BOOT: the previous round's provisional id
         self.link = np.full(n, -1, dtype=np.int64)
         self.streaming = np.zeros(n, dtype=bool)
         self.last_counter = np.full(n, -1, dtype=np.int64)
@@ -547,7 +549,8 @@ class ChipArray:
                 items.append((k, r))
         if hb.size:
             period = self.heartbeat_ms[hb] / 1000.0
-            self.next_heartbeat_s[hb] = np.maximum(self.next_heartbeat_s[hb] + period, now_s)
+            nxt = self.next_heartbeat_s[hb] + period  # protocol.state.next_deadline, vectorised
+            self.next_heartbeat_s[hb] = np.where(nxt > now_s, nxt, now_s + period)
             frames = self._status_frames(hb, now_s)
             if not items:
                 return frames
@@ -615,9 +618,13 @@ class ChipArray:
         return out
 
     def handle_node(self, node: int, frame: Out, now_s: float, decoded, sel: np.ndarray | None = None) -> list[Out]:
-        """A frame addressed to ``node``: only the chips speaking from that node hear it."""
+        """A frame addressed to ``node``: only the chips speaking from that node hear it (and, for an
+        ASSIGN, the chips in BOOT whose previous provisional id it is: docs §3.3)."""
         out: list[Out] = []
-        for k in np.flatnonzero((self.node == node) & self._sel(sel)).tolist():
+        who = self.node == node
+        if decoded.TYPE == MsgType.ASSIGN:
+            who = who | ((self.prev_node == node) & (self.state == _BOOT))
+        for k in np.flatnonzero(who & self._sel(sel)).tolist():
             out += self.chips[k].handle(frame, now_s, decoded)
         return out
 

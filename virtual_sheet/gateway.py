@@ -306,8 +306,9 @@ class Gateway:
             return
         if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
             node = decoded.node
+            assign = decoded.TYPE == MsgType.ASSIGN  # also heard at a BOOT chip's previous id (§3.3)
             for c in self.chips:
-                if c.node == node:
+                if c.node == node or (assign and getattr(c, "prev_node", None) == node):
                     out += c.handle(frame, now_s, decoded)
         else:
             for c in self.chips:
