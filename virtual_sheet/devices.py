@@ -59,8 +59,14 @@ class Device:
     name = "device"
 
     def __init__(self, sheet, *, packed: bool = False, sync_rate_hz: float | None = None,
-                 verbose: Any = None, clock=None) -> None:
+                 verbose: Any = None, clock=None, gateway_node: bool | None = None,
+                 gateway_class: type | None = None) -> None:
         self.clock = clock  # manual mode when given: seconds, the device's `now`
+        #: the gateways are nodes on the wire (None: when they pack or drive SYNC, as the spec requires;
+        #: False: a protocol 1.0 gateway that does not announce itself)
+        self.gateway_node = gateway_node
+        #: what the gateways are made with (a subclass of `Gateway`: the conformance suite's broken gateways)
+        self.gateway_class = gateway_class or Gateway
         self._outage_end: float | None = None
         self.sheet = sheet
         self.packed = packed
@@ -273,7 +279,7 @@ class _SerialDevice(Device):
             raise ValueError(f"{type(self).__name__} needs a sheet with transport='serial', "
                              f"got {sheet.transport!r}")
         super().__init__(sheet, **kw)
-        self.gateway = Gateway(sheet, packed=self.packed, sync_rate_hz=self.sync_rate_hz)
+        self.gateway = self.gateway_class(sheet, packed=self.packed, sync_rate_hz=self.sync_rate_hz, as_node=self.gateway_node)
         self.gateways = [self.gateway]
 
     def _handle_input(self, data: bytes) -> None:
@@ -496,8 +502,9 @@ class MultiPtyDevice(Device):
             raise ValueError(f"the gateways' symlink paths must differ: {symlink_paths}")
         super().__init__(sheet, **kw)
         self.blocks = sheet.split(n_gateways)
-        self.gateways = [Gateway(sheet, blk, packed=self.packed,
-                                 sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b)
+        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed,
+                                 sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b,
+                                 as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.gateways[0].followers = self.gateways[1:]
         self.ports: list[_GatewayPort] = []
@@ -594,7 +601,8 @@ class CanDevice(Device):
         if len(self.channels) != n_buses and channels is not None:
             n_buses = len(self.channels)
         self.blocks = sheet.split(n_buses)
-        self.gateways = [Gateway(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b)
+        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b,
+                                 as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.bus_kwargs = dict(bus_kwargs or {})
         self.buses: list = []
