@@ -40,6 +40,7 @@ from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, CalData
                                Status, Stop, Sync)
 
 from .aggregator import Aggregator, LatticeSnapshot
+from .gateways import GatewayNodes
 from .transport import Transport, TransportError
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
@@ -478,6 +479,8 @@ class Host:
         return True
 
     def _on_control(self, bus: int, msg: Message) -> None:
+        if self.gateway_nodes.observe(bus, msg):  # a gateway node's frame (docs/protocol.md §13)
+            return
         if isinstance(msg, Announce):
             with self._lock:
                 rec = self.chips.get(msg.uid)
@@ -838,7 +841,8 @@ class Host:
         capacity : {"refuse", "warn", "off"}
             What a bus over 100 % of its capacity does (`check_capacity`); over 80 % always warns.
         packed : bool
-            The gateway packs SNAPSHOT frames (capacity is checked for those).
+            Check capacity for SNAPSHOT frames on every port, whatever the gateways say (an override:
+            a port whose gateway node says it packs, GATEWAY_INFO, is checked for SNAPSHOTs anyway).
 
         Returns a summary dict (counts of each step).
         """
@@ -846,13 +850,14 @@ class Host:
             self.quiesce()
         found = self.discover(discover_timeout_s, discover_rounds)
         self.check_discovery(strict=strict)
+        self.gateway_nodes.assign()
         self.assign()
         n_cfg = self.configure()
         n_cal = self.read_calibration()
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = self.start()
         return {"discovered": len(found), "assigned": len(self._assigned()), "configured": n_cfg,
-                "calibrated": n_cal, "started": n_start}
+                "calibrated": n_cal, "started": n_start, "gateways": len(self.gateway_nodes.by_uid)}
 
     # -- sessions that survive real life (issue 12) ----------------------------------------------
     def _init_sessions(self) -> None:
@@ -880,6 +885,8 @@ class Host:
         self.recovery_times_s: list[float] = []  #: per incident: first report -> chips started again
         self.not_a_sheet: dict[int, str] = {}  #: bus -> why (after a reconnect nothing sheet-like answered)
         self.capacity_report: list[dict] = []
+        #: the gateway nodes heard (host/gateways.py): they say whether a port packs, who drives SYNC
+        self.gateway_nodes = GatewayNodes(self)
         self._recover_queue: dict[int, str] = {}  # uid -> why
         self._recover_since: float | None = None
         self._recover_event = threading.Event()
@@ -933,6 +940,7 @@ class Host:
                 self.chips.clear()
                 self._node_uid.clear()
                 self.unknown_chips.clear()
+            self.gateway_nodes.forget()
             self._broadcast(Reset(0))
         drained = self.stale_frames - before
         if drained:
@@ -995,7 +1003,8 @@ class Host:
             log.warning("%s", msg)
 
     def check_capacity(self, action: str = "refuse", packed: bool = False) -> list[dict]:
-        """The load each bus would carry at ``rate_hz`` (docs/protocol.md §10, `protocol.capacity`).
+        """The load each bus would carry at ``rate_hz`` (docs/protocol.md §10, `protocol.capacity`),
+        in SNAPSHOT frames where a gateway node says it packs (or everywhere with ``packed``).
 
         Over 100 %: `CapacityError` naming the remedy (``action="refuse"``), else a warning; over
         80 %: a warning. A bus whose bit rate is unknown and that has no wire (a memory link, the
@@ -1007,9 +1016,11 @@ class Host:
         if action == "off":
             return report
         per_bus = Counter(r.bus for r in self._assigned())
+        packed_any = packed
         for bus, t in enumerate(self.transports):
             cap = t.capabilities
             n = per_bus.get(bus, 0)
+            packed = packed_any or self.gateway_nodes.packing(bus)
             if n == 0:
                 continue
             if cap.kind == "memory" or (cap.kind == "can" and cap.bitrate is None
@@ -1043,6 +1054,14 @@ class Host:
         so without the wait a gateway's SYNC was caught only once streaming (exit 1, not 2)."""
         if self.sync_mode != "drive":
             return
+        sources = self.gateway_nodes.sync_sources()  # a gateway that said so (GATEWAY_INFO, §13.3)
+        if sources:
+            what = "; ".join(r.describe() for r in sources)
+            if self.sync_policy == "auto":
+                self._switch_to_follow(what)
+                return
+            raise SyncConflictError(f"{what}: it passes no SYNC from this host to its chips; use --sync follow "
+                                    f"(or --sync auto)")
         now = self._now()
         since = self._listen_since if self._listen_since is not None else now
         while not self.syncs_seen and self._now() - since < self.sync_listen_s:
@@ -1223,7 +1242,7 @@ class Host:
                 "stray_frames": agg.stray, "resyncs": agg.resyncs, "late": agg.late,
                 "foreign_syncs": self.foreign_syncs, "sync_mode": self.sync_mode,
                 "sync_conflict": self.sync_conflict, "not_a_sheet": list(self.not_a_sheet.values()),
-                "mismatch": self.mismatch,
+                "mismatch": self.mismatch, "gateways": self.gateway_nodes.summary(),
                 "chips_dropped": self.chips_dropped, "stale_frames_drained": self.stale_frames,
                 "incidents": [{"t": e.t, "kind": e.kind, "detail": e.detail} for e in list(self.events)
                               if e.kind in ("recovery", "reconnect", "resync", "not_a_sheet", "sync")][-100:]}

@@ -84,9 +84,11 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="python-can channel per bus (repeat); default capsheet0, capsheet1, ...")
     p.add_argument("--fd", action="store_true", help="CAN FD chips and buses")
     p.add_argument("--packed", action="store_true",
-                   help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD)")
+                   help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD); it is then a node "
+                        "on the wire that says so (docs/protocol.md §13)")
     p.add_argument("--rate", type=_rate, default=None, metavar="HZ",
-                   help="the gateway generates SYNC at this rate (the host then follows it)")
+                   help="the gateway generates SYNC at this rate and refuses the host's (one SYNC source "
+                        "per segment); the host then follows it")
     p.add_argument("--baud", type=positive_int, default=12_000_000,
                    help="pty: the UART rate the virtual gateway stands for (a pty has none), used for the "
                         "capacity check and printed in the host command (default 12000000)")
@@ -176,10 +178,9 @@ def host_command(args, dev) -> str:
         cmd += ["--layout", args.layout_out]
     else:
         cmd.append("--auto-assign")
-    if args.rate is not None:
+    if args.rate is not None:  # the gateway says it drives SYNC (§13.3); a driving host would refuse
         cmd += ["--sync", "follow", "--rate", f"{args.rate:g}"]
-    if args.packed:
-        cmd.append("--packed")
+    # no --packed: the gateway node says it packs (GATEWAY_INFO), the host learns it
     return shlex.join(cmd)
 
 

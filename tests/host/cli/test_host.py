@@ -316,8 +316,8 @@ def test_two_sync_sources(virtuals, tmp_path):
     base = [a for a in v.host_cmd]
     i = base.index("--sync")
     del base[i:i + 2]
-    out = host(*base, "--duration", "1")  # drive mode against a gateway that drives SYNC
-    assert out.returncode == 2 and "another device drives SYNC" in out.stderr and "--sync follow" in out.stderr
+    out = host(*base, "--duration", "1")  # drive mode against a gateway that drives SYNC: it said so itself
+    assert out.returncode == 2 and "is its segment's SYNC source" in out.stderr and "--sync follow" in out.stderr
     out, doc = host_json(*base, "--sync", "auto", "--duration", "1.5")
     assert out.returncode == 0, out.stderr
     assert doc["summary"]["sync_mode"] == "follow" and doc["summary"]["valid_links_pct"] >= 95.0
@@ -547,7 +547,7 @@ def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
     assert [a for i, a in enumerate(v.host_cmd) if i and v.host_cmd[i - 1] == "--port"] == paths, v.host_cmd
     assert os.path.realpath(paths[0]) != os.path.realpath(paths[1])  # two ptys
     if mode == "follow-packed":
-        assert "--sync" in v.host_cmd and "follow" in v.host_cmd and "--packed" in v.host_cmd
+        assert "--sync" in v.host_cmd and "follow" in v.host_cmd  # packing: the gateway nodes say so
     out, doc = host_json(*v.host_cmd, "--duration", "3", "--record", str(rec_path), "--live-rate", "1")
     assert out.returncode == 0, out.stderr
     assert "60 chips found, 60 assigned, 60 configured, 60 calibrated, 60 started" in out.stderr, out.stderr
