@@ -1,28 +1,10 @@
 """Chip scenarios (tests/vectors/chip.json): what a chip answers, frame by frame and on a simulated
-clock, in every case docs/protocol.md v1.1 decided (§16 lists them). Written out by hand from the
+clock, in every case docs/protocol.md v1.1 decided (§15 lists them). Written out by hand from the
 spec — every expected frame below is a literal, not something a chip implementation computed — and
 held against every chip implementation (the Python model, the chip array, the C firmware) by
 tests/virtual_sheet/test_chip_scenarios.py. A third-party chip runs the JSON the same way.
 
-A scenario is a chip (``uid``, ``capabilities``, a sensor that reads ``sensor`` until a step changes
-it) and steps, each at a time ``at`` (seconds, never decreasing):
-
-=============== ======================================================================================
-``power_on``    power the chip on
-``send``        a host frame from its fields: ``type``, ``node``, ``fields`` (as serial.json)
-``send_raw``    a host frame from its parts: ``version``, ``type`` (any code), ``node``, ``payload`` hex
-                (serial: COBS(header + payload + CRC) + 0x00; CAN: identifier with the type's priority,
-                4 for an undefined type, classic frame)
-``send_wire``   serial only: these bytes as they are (damage)
-``poll``        the chip's timers at ``at`` (a chip is polled at every step's time anyway)
-``sensor``      from now on the sensor reads ``xyz`` (±2 g counts) with status bits ``status``
-``sensor_fault`` the application tells the chip its sensor stopped answering
-=============== ======================================================================================
-
-``expect`` lists the frames the chip sends in answer to the step, in order, as ``{type, node,
-fields}``; a field not listed is not compared (INFO's firmware version). Before every step but
-``power_on`` and ``poll`` the chip's timers are served (``poll(at)``), and what that sends must be
-listed under ``timers`` (absent: nothing); a ``poll`` step's own output is its ``expect``.
+The format is `FORMAT` (also the ``about`` of chip.json, so the file explains itself).
 """
 
 from __future__ import annotations
@@ -31,7 +13,30 @@ from .messages import (LINK_NONE, Ack, Announce, Assign, CalData, CalRead, CalWr
                        GetInfo, Info, Message, MsgType, Nack, NackReason, Reset, Sample, Start, Status, StatusFlag,
                        Stop, Sync)
 
-__all__ = ["UID", "scenarios", "PROVISIONAL"]
+__all__ = ["UID", "scenarios", "PROVISIONAL", "FORMAT"]
+
+#: How to run a scenario (the ``about`` of tests/vectors/chip.json).
+FORMAT = """\
+A scenario is one chip: 'uid', 'capabilities' (INFO bits), no stored calibration (CAL_DATA reports the
+nominal offset 0 and sensitivity 1024.0, flags 0), and a sensor that reads 'sensor' ('xyz': counts at
++-2 g; 'status': the conversion's own status bits, STALE and SELF_TEST passing through to the sample)
+until a step changes it. At range r the chip reports those counts shifted right by r (floor), as a chip
+that implements ranges by scaling a +-2 g reading does (docs/protocol.md §8.3). Run it on a simulated
+clock, on each transport of 'transport' ('both': serial and can). Steps, in order, each at time 'at'
+(seconds, never decreasing):
+  power_on      power the chip on.
+  poll          serve the chip's timers at 'at'; what it sends is the step's 'expect'.
+  send          a host frame from its fields: 'type', 'node', 'fields' (as in serial.json).
+  send_raw      a host frame from its parts: 'version', 'type' (any code), 'node', 'payload' (hex).
+                serial: COBS(header + payload + CRC) + 0x00; CAN: the identifier with the type's
+                priority (4 for an undefined type) and that version, a classic frame.
+  send_wire     serial only: these bytes as they are; split at each 0x00, empty runs skipped.
+  sensor        from now on the sensor reads 'xyz' with 'status'.
+  sensor_fault  the application tells the chip its sensor stopped answering.
+Before every step but power_on and poll the chip's timers are served at 'at' first; what that sends
+must be the step's 'timers' (absent: nothing). 'expect' is every frame the chip sends in answer to the
+step, in order, as {type, node, fields}; a field not listed is not compared (INFO's firmware version);
+a float within 1e-6 relative."""
 
 UID = 0x0123456789ABCDEF
 UID_LOW = UID & 0xFFFFFFFF
@@ -294,6 +299,21 @@ def scenarios() -> list[dict]:
         _send(0.1, Sync(counter=1)),  # not started
         _send(0.1, Start(N), Ack(N, MsgType.START, 0)),
         _send(0.1, Sync(counter=2), Sample(N, 2, 0, 0, 0, 8)),
+    ])
+    add("saturated_follows_the_counts_sent", "5.2, 8.6", _streaming() + [
+        {"at": 0.1, "do": "sensor", "xyz": [2047, 0, 1024], "status": 0, "expect": []},
+        _send(0.1, Sync(counter=1), Sample(N, 1, 2047, 0, 1024, 1)),  # at a rail: SATURATED, set by the chip
+        {"at": 0.1, "do": "sensor", "xyz": [100, -2048, 1024], "status": 4, "expect": []},
+        _send(0.1, Sync(counter=2), Sample(N, 2, 100, -2048, 1024, 5)),  # STALE passes through
+        {"at": 0.1, "do": "sensor", "xyz": [100, 0, 1024], "status": 1, "expect": []},
+        _send(0.1, Sync(counter=3), Sample(N, 3, 100, 0, 1024, 0)),  # the ADC's flag without a rail: cleared
+        _send(0.1, Stop(N), Ack(N, MsgType.STOP, 0)),
+        _send(0.1, Config(N, rate_hz=145, range=1, filter=0, heartbeat_ms=1000), Ack(N, MsgType.CONFIG, 0)),
+        _send(0.1, Start(N), Ack(N, MsgType.START, 0)),
+        {"at": 0.1, "do": "sensor", "xyz": [2047, 0, 1024], "status": 1, "expect": []},
+        _send(0.1, Sync(counter=4), Sample(N, 4, 1023, 0, 512, 0)),  # range 1: 1023 is no rail
+        {"at": 0.1, "do": "sensor", "xyz": [2047, 0, 1024], "status": 9, "expect": []},
+        _send(0.1, Sync(counter=5), Sample(N, 5, 0, 0, 0, 8)),  # a failed conversion: INVALID alone
     ])
     add("sensor_fault_in_boot_changes_nothing", "8.6", [
         {"at": 0.0, "do": "power_on", "expect": _boot(P0)},

@@ -69,6 +69,11 @@ def canonical_messages() -> list[tuple[str, Message]]:
     ]
 
 
+def _scenario_format() -> str:
+    from .scenarios import FORMAT
+    return FORMAT
+
+
 def chip_scenarios() -> list[dict]:
     """The chip scenarios of protocol/scenarios.py (tests/vectors/chip.json)."""
     from .scenarios import scenarios
@@ -109,9 +114,7 @@ def build_vectors() -> dict[str, dict]:
                                    "(type, node, fields) or the reason a receiver reports",
                           "vectors": verdict_vectors()},
         "chip.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.1",
-                      "about": "what a chip answers, step by step on a simulated clock (protocol/scenarios.py "
-                               "says how to run them)",
-                      "scenarios": chip_scenarios()},
+                      "about": _scenario_format().splitlines(), "scenarios": chip_scenarios()},
     }
 
 

@@ -32,7 +32,9 @@ file only adds what the table leaves to the implementation:
   (the sensor source always reports ±2 g counts); ``filter`` and ``rate_hz`` are stored only.
   ``range`` != 0 needs MULTI_RANGE and ``filter`` != 0 needs FILTER (else NACK UNSUPPORTED).
 * A sample the sensor flags INVALID (the ADC did not answer) puts an assigned chip in FAULT; so
-  does `fault`. Only RESET (or a power cycle) leaves FAULT.
+  does `fault`. Only RESET (or a power cycle) leaves FAULT. An INVALID sample has counts 0 and
+  status INVALID alone. SATURATED is set exactly when a count sent is -2048 or 2047 (§5.2): the chip
+  computes it from what it sends; the sensor's other bits (STALE, SELF_TEST) pass through.
 
 The interface (protocol/chip_interface.py) is shared with the C firmware
 (`firmware_ref.chip.CFirmwareChip`), so a virtual sheet runs on either through its ``chip_factory``.
@@ -66,6 +68,8 @@ _NACK_FOR = {ErrorReason.BAD_VERSION: NackReason.BAD_VERSION, ErrorReason.UNKNOW
 _STREAM_STATES = (ChipState.STREAMING, ChipState.FAULT)
 _SAMPLE_HDR = struct.Struct("<BBHH")  # version, type, node, counter
 _INVALID = int(SampleStatus.INVALID)
+_SAT_BIT = int(SampleStatus.SATURATED)
+_RAILS = (-2048, 2047)
 _FAULT = ChipState.FAULT
 
 
@@ -195,12 +199,16 @@ class ChipModel:
         else:
             (x, y, z), st = self.sensor(now_s)
             st = int(st)
-            if st & _INVALID:
+            if st & _INVALID:  # the conversion failed: FAULT, and an INVALID sample (§8.6)
                 self.state = _FAULT
                 x = y = z = 0
-            elif self.range:
-                r = self.range
-                x, y, z = x >> r, y >> r, z >> r
+                st = _INVALID
+            else:
+                if self.range:
+                    r = self.range
+                    x, y, z = x >> r, y >> r, z >> r
+                # SATURATED exactly when a count sent is at a rail (§5.2), whatever the ADC flagged
+                st = (st & ~_SAT_BIT) | (_SAT_BIT if (x in _RAILS or y in _RAILS or z in _RAILS) else 0)
         word = (x & 0xFFF) | ((y & 0xFFF) << 12) | ((z & 0xFFF) << 24) | ((st & 0xF) << 36)
         if self._can:
             return CanFrame(self._sample_id, counter.to_bytes(2, "little") + word.to_bytes(5, "little"), False)

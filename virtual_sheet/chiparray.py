@@ -52,6 +52,14 @@ _BOOT, _IDLE, _STREAMING, _FAULT = (int(ChipState.BOOT), int(ChipState.IDLE), in
 _INVALID = int(SampleStatus.INVALID)
 _SAT = 255
 _FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into the sample word
+_SAT_BIT = int(SampleStatus.SATURATED)
+
+
+def _saturated(counts: np.ndarray, status: np.ndarray) -> np.ndarray:
+    """``status`` with SATURATED set exactly where a count sent is -2048 or 2047 (docs §5.2), as
+    `chip.ChipModel` computes it."""
+    rail = ((counts == 2047) | (counts == -2048)).any(axis=1)
+    return (np.asarray(status, dtype=np.int64) & ~_SAT_BIT) | (rail * _SAT_BIT)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -679,6 +687,8 @@ class ChipArray:
                 c[bad] = 0
             r = self.range[li]
             c = np.where(bad[:, None], c, c >> r[:, None])
+            s = _saturated(c, s)
+            s[bad] = _INVALID
             xyz[live] = c
             sts[live] = s
         return ans, xyz, sts
@@ -705,6 +715,8 @@ class ChipArray:
         if not np.count_nonzero(s):  # every sample OK: no fault, no status bits (count_nonzero: the
             if rng:                  # cheapest test, a fraction of .any()'s fixed cost)
                 c = c >> self.range[:, None]
+            if c.size and (c.max() >= 2047 or c.min() <= -2048):  # SATURATED: from the counts sent (§5.2)
+                return c, _saturated(c, s)
             return c, None
         if (s & _INVALID).any():
             bad = (s & _INVALID) != 0
@@ -717,6 +729,9 @@ class ChipArray:
         if rng:
             sh = c >> self.range[:, None]
             c = sh if bad is None else np.where(bad[:, None], c, sh)
+        s = _saturated(c, s)
+        if bad is not None:
+            s[bad] = _INVALID  # an INVALID sample: counts 0, status INVALID alone (§8.6)
         return c, s
 
     @staticmethod

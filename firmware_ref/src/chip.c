@@ -436,18 +436,22 @@ static int32_t on_sync(capsheet_chip_t *c, uint16_t counter, uint64_t now_us)
         status = 0;
     }
     if (status & CAPSHEET_SAMPLE_INVALID) {
-        c->state = CAPSHEET_FAULT;  /* the sensor did not answer: counts 0, its status bits */
-        m.u.sample.status = status & 0xFu;
+        c->state = CAPSHEET_FAULT;  /* the sensor did not answer: counts 0, status INVALID alone (§8.6) */
+        m.u.sample.status = CAPSHEET_SAMPLE_INVALID;
         return send_msg(c, &m);
     }
+    status = (uint8_t)(status & 0xFu & ~CAPSHEET_SAMPLE_SATURATED);
     for (i = 0; i < 3u; i++) {
         int16_t v = xyz[i] < -2048 ? -2048 : (xyz[i] > 2047 ? 2047 : xyz[i]);
         xyz[i] = asr(v, c->range_code);  /* the HAL reports ±2 g counts; range r scales by 2^-r */
+        if (xyz[i] == -2048 || xyz[i] == 2047) {
+            status = (uint8_t)(status | CAPSHEET_SAMPLE_SATURATED);  /* exactly at a rail sent (§5.2) */
+        }
     }
     m.u.sample.x = xyz[0];
     m.u.sample.y = xyz[1];
     m.u.sample.z = xyz[2];
-    m.u.sample.status = status & 0xFu;
+    m.u.sample.status = status;
 #ifdef CAPSHEET_MUTANTS
     if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_FROZEN_SAMPLE)) {  /* one conversion, then that word again */
         if (!c->has_frozen) {
