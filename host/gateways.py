@@ -49,6 +49,17 @@ class GatewayRecord:
     def sync_rate_hz(self) -> int:
         return max((g.sync_rate_hz for g in self.runs.values()), default=0)
 
+    def covers(self, link: int) -> bool:
+        return any(link in g.links for g in self.runs.values())
+
+    def first_link(self) -> int | None:
+        """The first link of its first non-empty run (None: it announced no links)."""
+        runs = self.links
+        return runs[0].start if runs else None
+
+    def label(self) -> str:
+        return f"gateway 0x{self.uid:016X} (node 0x{self.node:04X})"
+
     def describe(self) -> str:
         f = self.flags
         what = [n for n, b in (("packs SNAPSHOTs", GatewayFlag.PACKING), ("is its segment's SYNC source",

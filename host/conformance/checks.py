@@ -182,9 +182,9 @@ def c_discover(s: Session):
     g = s.packing_gateway_for_any()
     if g is not None:
         s.link = g.first_link()
-        detail += f"; behind {g.describe()}, which packs: the run gives the chip link {s.link}"
+        detail += f"; behind {g.label()}, which packs: the run gives the chip link {s.link}"
     if s.sync_gateway is not None:
-        detail += f"; {s.sync_gateway.describe()} is the segment's SYNC source: the SYNC checks use its counters"
+        detail += f"; {s.sync_gateway.label()} is the segment's SYNC source: the SYNC checks use its counters"
     return detail
 
 
@@ -642,7 +642,7 @@ def c_stale(s: Session):
        "was; START forgets the last counter")
 def c_wraparound(s: Session):
     if s.sync_gateway is not None:
-        raise Skip(f"{s.sync_gateway.describe()} is the segment's SYNC source: the suite cannot choose counters")
+        raise Skip(f"{s.sync_gateway.label()} is the segment's SYNC source: the suite cannot choose counters")
     s.to_streaming()
     st0 = s.status().missed_syncs
     if st0 > 250:  # near saturation: start from a fresh count
@@ -816,7 +816,7 @@ def c_gateway_sync_source(s: Session):
     g = s.gateways[s.uid]
     if not g.flags & GatewayFlag.SYNC_SOURCE:
         raise Skip("the gateway is not a SYNC source (GATEWAY_INFO flag SYNC_SOURCE clear)")
-    rate = max(r.sync_rate_hz for r in g.runs.values())
+    rate = g.sync_rate_hz
     before = s.status().missed_syncs
     s.drain()
     host = [0x7A00 + k for k in range(5)]

@@ -37,6 +37,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
+from host.gateways import GatewayRecord
 from host.transport import CanTransport, SerialTransport, Transport, TransportError, TransportOperationError
 from protocol.can import decode_can, split_id
 from protocol.framing import DecodeError, SampleBatch, StreamDecoder
@@ -289,33 +290,6 @@ class Port:
 _TOLERATED = (Status, Announce, Info, GatewayInfo)
 
 
-@dataclass
-class GatewaySeen:
-    """A gateway node heard during the run (docs/protocol.md §13): what it said about itself."""
-
-    uid: int
-    node: int
-    info: Info | None = None
-    runs: dict = field(default_factory=dict)  #: first_link -> GatewayInfo
-
-    @property
-    def flags(self) -> GatewayFlag:
-        out = GatewayFlag.NONE
-        for g in self.runs.values():
-            out |= g.flags
-        return out
-
-    def covers(self, link: int) -> bool:
-        return any(link in g.links for g in self.runs.values())
-
-    def first_link(self) -> int | None:
-        runs = [g for g in sorted(self.runs.values(), key=lambda g: g.first_link) if g.link_count]
-        return runs[0].first_link if runs else None
-
-    def describe(self) -> str:
-        return f"gateway 0x{self.uid:016X} (node 0x{self.node:04X})"
-
-
 def _cobs_head(encoded: bytes, n: int = 4) -> bytes | None:
     """The first ``n`` bytes of a COBS run (a damaged frame's excerpt), or None."""
     out = bytearray()
@@ -350,7 +324,7 @@ class Session:
     acks: list = field(default_factory=list)  #: every ACK the chip under test sent (§4.5 detail)
     profile: str = "chip"  #: "chip" or "gateway": which kind of node is under test (§11)
     link: int = 0  #: the link the run assigns the chip (a packing gateway's first link, if there is one)
-    gateways: dict = field(default_factory=dict)  #: uid -> GatewaySeen, every gateway node heard
+    gateways: dict = field(default_factory=dict)  #: uid -> host.gateways.GatewayRecord of every gateway heard
     uids_heard: dict = field(default_factory=dict)  #: uid -> "chip" / "gateway" / None (INFO not yet seen)
     #: (type, intact?) -> frames of the node under test by type: a type whose every frame fails its CRC
     #: while others arrive intact is the node's encoding, not the port (§6.2; `systematic_damage`)
@@ -374,7 +348,7 @@ class Session:
         # its current node, or the node this run assigns (the ACK to ASSIGN comes from the new id)
         return m.node == self.cur or (self.node is not None and m.node == self.node)
 
-    def packing_gateway_for_any(self) -> GatewaySeen | None:
+    def packing_gateway_for_any(self) -> GatewayRecord | None:
         """The first gateway heard that packs some links (the run then gives the chip one of them)."""
         for g in self.gateways.values():
             if g.flags & GatewayFlag.PACKING and g.first_link() is not None:
@@ -382,7 +356,7 @@ class Session:
         return None
 
     @property
-    def packing_gateway(self) -> GatewaySeen | None:
+    def packing_gateway(self) -> GatewayRecord | None:
         """A gateway that packs the link the run gives the chip (its SAMPLEs come in SNAPSHOTs)."""
         if self.profile != "chip":
             return None
@@ -392,7 +366,7 @@ class Session:
         return None
 
     @property
-    def sync_gateway(self) -> GatewaySeen | None:
+    def sync_gateway(self) -> GatewayRecord | None:
         """A gateway that is its segment's SYNC source: SYNC from this suite does not reach the chip."""
         if self.profile != "chip":
             return None
@@ -432,7 +406,7 @@ class Session:
             kind = "gateway" if m.capabilities & Capability.GATEWAY else "chip"
             self.uids_heard[uid] = kind
             if kind == "gateway":
-                g = self.gateways.setdefault(uid, GatewaySeen(uid, m.node))
+                g = self.gateways.setdefault(uid, GatewayRecord(uid, m.node, bus=0))
                 g.node, g.info = m.node, m
         elif isinstance(m, GatewayInfo):
             for g in self.gateways.values():
@@ -617,7 +591,7 @@ class Session:
     @property
     def gateway_sync_wait_s(self) -> float:
         g = self.sync_gateway
-        rate = max((x.sync_rate_hz for x in g.runs.values()), default=0) if g is not None else 0
+        rate = g.sync_rate_hz if g is not None else 0
         return max(self.answer_s, 3.0 / rate) if rate else self.answer_s
 
     def sync_round(self, counter: int) -> tuple[int, float, list]:
@@ -636,7 +610,7 @@ class Session:
             got = self.collect(self.gateway_sync_wait_s, lambda ms: any(isinstance(m, Sync) for m in ms), syncs=True)
             syn = [(t, m) for t, m in got if isinstance(m, Sync)]
             if not syn:
-                raise Skip(f"{g.describe()} is the segment's SYNC source and sent no SYNC within "
+                raise Skip(f"{g.label()} is the segment's SYNC source and sent no SYNC within "
                            f"{self.gateway_sync_wait_s:.1f} s")
             t0, c = syn[-1][0], syn[-1][1].counter
         got = self.collect(self.answer_s, lambda ms: any(isinstance(m, Sample) and m.counter == c for m in ms))

@@ -8,23 +8,8 @@ import pytest
 
 from host.session import CapacityError, SyncConflictError
 from protocol.messages import Capability, Status
-from tests.host.test_back2back import Rig
-from virtual_sheet.chip import ChipModel
+from tests.host.test_session import rigs  # noqa: F401 (the fixture)
 from virtual_sheet.gateway import gateway_uid
-
-
-@pytest.fixture
-def rigs():
-    made = []
-
-    def make(*a, **kw):
-        kw.setdefault("chip_class", ChipModel)
-        r = Rig(*a, **kw)
-        made.append(r)
-        return r
-    yield make
-    for r in made:
-        r.close()
 
 
 def test_a_packing_gateway_is_a_gateway_not_a_chip_and_is_assigned(rigs):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from protocol.can import decode_can, make_id, to_can
+from protocol.can import decode_can, to_can
 from protocol.constants import SampleStatus
 from protocol.framing import StreamDecoder, encode, encode_frame
 from protocol.messages import (LINK_NONE, Ack, Announce, Assign, Capability, ChipState, Config, GatewayFlag,

@@ -21,8 +21,8 @@ from cobs import cobs
 
 from protocol.can import CanFrame, decode_can, make_id, split_id, to_can
 from protocol.framing import DecodeError, decode_frame, encode
-from protocol.messages import (Ack, Announce, Assign, Capability, ChipState, Config, Direction, GatewayFlag, Info,
-                               MsgType, Nack, NackReason, Reset, Sample, Start, Stop, Sync)
+from protocol.messages import (Ack, Assign, Capability, ChipState, Config, Direction, Info, MsgType, Nack, NackReason,
+                               Reset, Sample, Start, Stop, Sync)
 from virtual_sheet.chip import ChipModel, frame_header
 from virtual_sheet.gateway import Gateway, GatewayNode
 

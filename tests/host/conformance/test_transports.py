@@ -53,19 +53,13 @@ def _expected(kind, failing=frozenset()):
     return {n: ("FAIL" if n in failing else "PASS") for n in common | own}
 
 
+@pytest.mark.parametrize("chip,failing", [(None, set()), (CounterOffByOne, {24, 25, 26, 27})],
+                         ids=["healthy", "counter_off_by_one"])
 @pytest.mark.parametrize("kind", ["pty", pytest.param("slcan", marks=ISSUE_25),
                                   pytest.param("udp_multicast", marks=[ISSUE_25, ONE_MULTICAST_BUS])])
-def test_a_healthy_chip_passes_on_every_transport(request, kind):
+def test_the_same_verdicts_on_every_transport(request, kind, chip, failing):
+    """A healthy chip passes every check, a broken one fails the same checks, on each transport."""
     if kind == "udp_multicast":
         request.getfixturevalue("udp_bus_lock")
-    got, report = _outcomes(kind, None)
-    assert got == _expected(kind), report
-
-
-@pytest.mark.parametrize("kind", ["pty", pytest.param("slcan", marks=ISSUE_25),
-                                  pytest.param("udp_multicast", marks=[ISSUE_25, ONE_MULTICAST_BUS])])
-def test_a_broken_chip_fails_the_same_checks_on_every_transport(request, kind):
-    if kind == "udp_multicast":
-        request.getfixturevalue("udp_bus_lock")
-    got, report = _outcomes(kind, CounterOffByOne)
-    assert got == _expected(kind, failing={24, 25, 26, 27}), report
+    got, report = _outcomes(kind, chip)
+    assert got == _expected(kind, failing=failing), report
