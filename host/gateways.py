@@ -15,7 +15,7 @@ import logging
 from dataclasses import dataclass, field
 
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, GatewayFlag,
-                               GatewayInfo, Info, Message, MsgType, SampleFormat, Status)
+                               GatewayInfo, Info, Message, MsgType, SampleFormat, Snapshot, Status)
 
 __all__ = ["GatewayRecord", "GatewayNodes"]
 
@@ -76,6 +76,9 @@ class GatewayNodes:
         self.host = host
         self.by_uid: dict[int, GatewayRecord] = {}
         self._node: dict[tuple[int, int], int] = {}  # (bus, node) -> uid, for every id a gateway used
+        #: uids of gateways whose SNAPSHOT words are in a format this host does not know (§4.16)
+        self.unreadable: set[int] = set()
+        self.unreadable_frames = 0  #: their SNAPSHOT frames dropped, not read
 
     # ---- receiving
     def observe(self, bus: int, msg: Message) -> bool:
@@ -110,14 +113,26 @@ class GatewayNodes:
         rec = self.by_uid[uid]
         if isinstance(msg, GatewayInfo):
             if msg.sample_format != SampleFormat.ACCEL_12:
-                self.host._report("not_a_sheet", f"{rec.describe()} packs sample format {msg.sample_format}, "
-                                                 f"which protocol 1.1 does not define: its SNAPSHOTs are not read")
+                if uid not in self.unreadable:
+                    self.unreadable.add(uid)
+                    self.host._report("not_a_sheet", f"{rec.describe()} packs sample format {msg.sample_format}, "
+                                                     f"which protocol 1.1 does not define: its SNAPSHOTs are not read")
+            else:
+                self.unreadable.discard(uid)
             rec.runs[msg.first_link] = msg
             return True
         if isinstance(msg, Status):
             rec.last_status = msg
             return True
         return False  # ACK / NACK: the command round's
+
+    def drop_unreadable(self, bus: int, events: list) -> list:
+        """``events`` without the SNAPSHOTs of gateways whose sample format is unknown (§4.16: a host
+        MUST NOT interpret those words); they are counted in `unreadable_frames`."""
+        out = [ev for ev in events
+               if not (isinstance(ev, Snapshot) and self._node.get((bus, ev.node)) in self.unreadable)]
+        self.unreadable_frames += len(events) - len(out)
+        return out
 
     def forget(self) -> None:
         """After a broadcast RESET: every gateway is in BOOT again (they re-announce)."""

@@ -456,6 +456,8 @@ class Host:
             if self._driver is None:
                 agg.poll()
             return False
+        if self.gateway_nodes.unreadable:  # a gateway packs words this host cannot read (§4.16)
+            events = self.gateway_nodes.drop_unreadable(bus, events)
         control = False
         for ev in events:
             if not isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):

@@ -87,6 +87,7 @@ class GatewayNode:
         self.can = can
         self.capabilities = Capability(int(capabilities) | Capability.GATEWAY | (Capability.CAN_FD if fd else 0))
         self.flags = GatewayFlag.NONE
+        self.sample_format = int(SampleFormat.ACCEL_12)  #: what GATEWAY_INFO says its SNAPSHOT words are
         self.runs: list[tuple[int, int]] = []
         self.sync_rate_hz = 0
         self.refused_syncs = 0  #: host SYNCs not passed on (saturating at 255 in STATUS)
@@ -113,7 +114,7 @@ class GatewayNode:
         out = [self._out(Announce(self.node, self.uid)),
                self._out(Info(self.node, *FIRMWARE_VERSION, PROTOCOL_VERSION, int(self.capabilities), 0, self.state))]
         for first, count in (self.runs or [(0, 0)]):
-            out.append(self._out(GatewayInfo(self.node, int(self.flags), SampleFormat.ACCEL_12, first, count,
+            out.append(self._out(GatewayInfo(self.node, int(self.flags), self.sample_format, first, count,
                                              min(0xFFFF, int(round(self.sync_rate_hz))))))
         return out
 

@@ -67,3 +67,16 @@ def test_a_driving_host_is_told_which_gateway_drives_sync(rigs):
     rig.host.sync_listen_s = 0.0
     with pytest.raises(SyncConflictError, match=r"gateway 0x6A7E[0-9A-F]{12} \(node 0x7FFF.*SYNC source"):
         rig.host.bring_up(0.2)
+
+
+def test_snapshots_in_an_unknown_sample_format_are_not_read(rigs):
+    """A gateway whose GATEWAY_INFO names a sample format 1.1 does not define: the host reports it and
+    reads none of its SNAPSHOT words (docs/protocol.md §4.16) — counted, not taken for accelerations."""
+    rig = rigs("memory", packed=True)
+    node = rig.device.gateway.node
+    node.sample_format = 7  # what its next GATEWAY_INFO says: a format of a later revision
+    rig.host.bring_up(0.2)
+    snaps = rig.stream(0.3)
+    assert rig.host.gateway_nodes.unreadable_frames > 0
+    assert not any(s.valid.any() for s in snaps)
+    assert rig.host.event_counts["not_a_sheet"] == 1
