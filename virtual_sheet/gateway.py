@@ -425,6 +425,8 @@ class Gateway:
                     buf.clear()
                     self._rx_discard = True
                     self.stats.host_errors += 1
+                    if self.node is not None:  # OVERSIZE: an integrity failure for its STATUS (§13.1)
+                        self.node.rx_errors += 1
                 return
             seg = bytes(buf[:i])
             del buf[:i + 1]
