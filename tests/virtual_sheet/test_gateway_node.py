@@ -99,8 +99,11 @@ def test_the_gateway_table():
     got = r.send(GetInfo(0))  # broadcast: the gateway and every chip
     assert [type(m) for m in got[:3]] == [Announce, Info, GatewayInfo] and got[1].state == ChipState.IDLE
     assert sum(isinstance(m, Announce) for m in got) == 1 + r.sheet.n_links
+    r.send(bytes.fromhex("04010301020603012002030387a200"))  # a bad CRC
+    r.send(b"\x01" * 1100 + b"\x00")  # OVERSIZE
     hb = [m for m in r.run(r.t + 1.01) if isinstance(m, Status)]  # STATUS every 1 s once assigned
     assert hb and hb[0].node == 0x7FFF and hb[0].state == ChipState.IDLE
+    assert hb[0].rx_errors == 2  # the host frames it dropped for their integrity (§13.1)
     got = r.send(Reset(0x7FFF))
     assert got[0] == Ack(0x7FFF, MsgType.RESET, 0) and got[1] == Announce(provisional_node(uid, 0), uid)
 
