@@ -349,11 +349,14 @@ def c_heartbeat(s: Session):
         time.sleep(HEARTBEAT_MS / 2000)
         s.drain()
         s.port.send(Config(s.node, rate_hz=145, range=0, filter=0, heartbeat_ms=HEARTBEAT_MS))
-        got = s.collect(s.answer_s, lambda ms: any(isinstance(m, Status) for m in ms))
-        ack = [t for t, m in got if acked([m], s.node, MsgType.CONFIG)]
-        sts = [t for t, m in got if isinstance(m, Status)]
-        require(bool(ack) and bool(sts), f"CONFIG: ACK then STATUS expected; got {[m for _, m in got]}")
-        gaps.append((sts[0] - ack[0]) * 1000)
+        def after_ack(ms):
+            k = next((i for i, m in enumerate(ms) if acked([m], s.node, MsgType.CONFIG)), None)
+            return k is not None and any(isinstance(m, Status) for m in ms[k + 1:])
+        got = s.collect(s.answer_s, after_ack)
+        k = next((i for i, (_, m) in enumerate(got) if acked([m], s.node, MsgType.CONFIG)), None)
+        sts = [t for t, m in got[k + 1:] if isinstance(m, Status)] if k is not None else []
+        require(k is not None and bool(sts), f"CONFIG: ACK then STATUS expected; got {[m for _, m in got]}")
+        gaps.append((sts[0] - got[k][0]) * 1000)  # a STATUS of the old period before the ACK is no evidence
     gap = statistics.median(gaps)
     n = 9
     st = s.statuses(n, timeout_s=n * HEARTBEAT_MS / 1000 * 1.5 + s.timeout_s)

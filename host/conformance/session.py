@@ -287,7 +287,9 @@ class Port:
 # The session: one chip, tracked through its node id
 # ---------------------------------------------------------------------------------------------
 
-_TOLERATED = (Status, Announce, Info, GatewayInfo)
+#: never taken as the answer to a command: heartbeats, (re-)announces, and samples — a streaming chip
+#: behind a gateway that drives SYNC answers that SYNC all the time (a SYNC check collects them itself)
+_TOLERATED = (Status, Announce, Info, GatewayInfo, Sample)
 
 
 def _cobs_head(encoded: bytes, n: int = 4) -> bytes | None:
@@ -493,13 +495,14 @@ class Session:
         return self.answers(got)
 
     def silent(self, send: Message | Callable[[], object], duration_s: float | None = None) -> list[Message]:
-        """Send and return everything this chip answered within the timeout (should be nothing)."""
+        """Send and return everything this chip answered within the timeout (should be nothing); a
+        SAMPLE counts as an answer here (a SYNC that should go unanswered)."""
         self.drain()
         if isinstance(send, Message):
             self.port.send(send)
         else:
             send()
-        return self.answers(self.collect(duration_s or self.timeout_s))
+        return self.answers(self.collect(duration_s or self.timeout_s), keep=(Sample,))
 
     def statuses(self, n: int, timeout_s: float | None = None) -> list:
         """``[(arrival_time, Status)]``: this chip's next ``n`` heartbeats (fewer on timeout)."""
