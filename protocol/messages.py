@@ -501,7 +501,9 @@ class CalData(Message):
 @dataclass(frozen=True, slots=True, eq=False)
 class Snapshot(Message):
     """§4.8 SNAPSHOT (gateway): ``counter`` u16, ``first_link`` u16, ``count`` u8, then ``count``
-    40-bit sample words for links ``first_link .. first_link + count - 1``.
+    40-bit sample words for links ``first_link .. first_link + count - 1``; ``node`` is the packing
+    gateway's node id. Count 1..255 here; the transports cap it (serial 202: a longer frame is over
+    1024 bytes; CAN FD 11).
 
     The samples are kept packed (``words``, 5 bytes each); `counts` and `status` unpack them.
     Build from arrays with `Snapshot.from_arrays`.
