@@ -12,6 +12,7 @@ chips' ids) in one command round; `packing(bus)` and `sync_sources()` answer the
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass, field
 
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, GatewayFlag,
@@ -70,10 +71,12 @@ class GatewayRecord:
 
 
 class GatewayNodes:
-    """The gateways of one `Host` (module docstring). Thread-safe through the host's lock."""
+    """The gateways of one `Host` (module docstring). Thread-safe through ``lock`` (the host passes its
+    own, so a gateway's INFO and the chip record it replaces change together)."""
 
-    def __init__(self, host) -> None:
+    def __init__(self, host, lock: threading.RLock | None = None) -> None:
         self.host = host
+        self.lock = lock if lock is not None else threading.RLock()
         self.by_uid: dict[int, GatewayRecord] = {}
         self._node: dict[tuple[int, int], int] = {}  # (bus, node) -> uid, for every id a gateway used
         #: uids of gateways whose SNAPSHOT words are in a format this host does not know (§4.16)
@@ -85,12 +88,11 @@ class GatewayNodes:
         """Take a control frame if it is a gateway's; True when it was (the host then ignores it)."""
         key = (bus, msg.node)
         if isinstance(msg, Info) and msg.capabilities & Capability.GATEWAY:
-            uid = self.host._node_uid.get(key) or self._node.get(key)
+            uid = self.host.uid_at(bus, msg.node) or self._node.get(key)
             if uid is None:
                 return True  # an INFO whose ANNOUNCE was lost: the next round tells
-            with self.host._lock:
-                self.host.chips.pop(uid, None)  # its ANNOUNCE made it look like a chip until now
-                self.host._node_uid.pop(key, None)
+            with self.lock:
+                self.host.drop_chip(bus, msg.node, uid)  # its ANNOUNCE made it look like a chip until now
                 rec = self.by_uid.get(uid)
                 if rec is None:
                     rec = self.by_uid[uid] = GatewayRecord(uid, msg.node, bus)
@@ -115,7 +117,7 @@ class GatewayNodes:
             if msg.sample_format != SampleFormat.ACCEL_12:
                 if uid not in self.unreadable:
                     self.unreadable.add(uid)
-                    self.host._report("not_a_sheet", f"{rec.describe()} packs sample format {msg.sample_format}, "
+                    self.host.report("not_a_sheet", f"{rec.describe()} packs sample format {msg.sample_format}, "
                                                      f"which protocol 1.1 does not define: its SNAPSHOTs are not read")
             else:
                 self.unreadable.discard(uid)
@@ -152,14 +154,11 @@ class GatewayNodes:
         """ASSIGN every unassigned gateway a node id (0x7FFF downwards, free of the chips' ids; link
         0xFFFF) in one command round. Returns how many ACKed."""
         host = self.host
-        with host._lock:
+        with self.lock:
             todo = sorted(u for u, r in self.by_uid.items() if not r.assigned)
             if not todo:
                 return 0
-            used = {rec.node for rec in host.chips.values() if rec.assigned}
-            if host.layout is not None:
-                used |= {k + 1 for k in host.layout.links.values()}
-            used |= {r.node for r in self.by_uid.values() if r.assigned}
+            used = host.node_ids_in_use() | {r.node for r in self.by_uid.values() if r.assigned}
             want, n = {}, NODE_MAX_ASSIGNED
             for uid in todo:
                 while n in used:
@@ -177,7 +176,7 @@ class GatewayNodes:
                     if node == msg.node and self.by_uid[uid].bus == bus:
                         return uid
             return None
-        answers, _ = host._round({u: None for u in todo}, build, match, "ASSIGN gateways")
+        answers, _ = host.command_round({u: None for u in todo}, build, match, "ASSIGN gateways")
         for uid in answers:
             rec = self.by_uid[uid]
             rec.node, rec.assigned = want[uid], True

@@ -28,7 +28,7 @@ __all__ = [
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
     "Message", "Announce", "Info", "Sample", "Status", "Ack", "Nack", "CalData", "Snapshot",
     "GatewayInfo", "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
-    "MESSAGE_TYPES", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
+    "MESSAGE_TYPES", "message_to_fields", "message_from_fields", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
 ]
 
@@ -217,6 +217,12 @@ class Message:
 
     def _validate(self) -> None:  # pragma: no cover - overridden where there are fields
         pass
+
+    @classmethod
+    def payload_struct(cls) -> struct.Struct | None:
+        """The fixed payload layout (docs §4) of this type, or None where the payload is not one
+        fixed struct (SAMPLE, SNAPSHOT). The DBC is generated from it (`protocol.dbc`)."""
+        return cls._FMT
 
     # Fixed-layout messages: the payload is the struct of the fields after `node`, in order.
     def payload(self) -> bytes:
@@ -782,3 +788,20 @@ def decode_payload(type_code: int, node: int, payload: bytes) -> Message:
         raise PayloadError("BAD_FIELD", "node 0xFFFF is reserved")
     return cls.from_payload(node, payload)
 
+
+def message_to_fields(msg: Message) -> dict:
+    """A message's fields as the vector files write them (JSON numbers; a SNAPSHOT's arrays as lists)."""
+    if isinstance(msg, Snapshot):
+        return {"counter": msg.counter, "first_link": msg.first_link,
+                "counts": msg.counts.tolist(), "status": msg.status.tolist()}
+    return {f.name: (float(v) if isinstance(v, float) else int(v))
+            for f in fields(msg)[1:] for v in [getattr(msg, f.name)]}
+
+
+def message_from_fields(type_name: str, node: int, values: dict) -> Message:
+    """The message `message_to_fields` wrote (type by name, node, fields)."""
+    cls = MESSAGE_TYPES[MsgType[type_name]]
+    if cls is Snapshot:
+        return Snapshot.from_arrays(node, values["counter"], values["first_link"],
+                                    np.array(values["counts"]), np.array(values["status"]))
+    return cls(node, **values)

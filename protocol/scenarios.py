@@ -9,7 +9,7 @@ The format is `FORMAT` (also the ``about`` of chip.json, so the file explains it
 
 from __future__ import annotations
 
-from .messages import (LINK_NONE, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability, ChipState, Config,
+from .messages import (message_to_fields, LINK_NONE, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability, ChipState, Config,
                        GetInfo, Info, Message, MsgType, Nack, NackReason, Reset, Sample, Start, Status, StatusFlag,
                        Stop, Sync)
 
@@ -50,7 +50,6 @@ _CAPS = int(Capability.MULTI_RANGE | Capability.FILTER)  # no CAL_STORAGE: STATU
 
 
 def _m(msg: Message, **omit) -> dict:
-    from .vectors import message_to_fields
     f = message_to_fields(msg)
     if isinstance(msg, Info):  # the firmware version is the implementation's own
         for k in ("fw_major", "fw_minor", "fw_patch"):

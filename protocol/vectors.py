@@ -18,7 +18,6 @@ Snapshot fields are ``counter``, ``first_link``, ``counts`` (list of [x, y, z]) 
 from __future__ import annotations
 
 import json
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -26,10 +25,10 @@ import numpy as np
 from .can import to_can
 from .constants import SampleStatus
 from .framing import encode, encode_frame
-from .messages import (LINK_NONE, MESSAGE_TYPES, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead,
+from .messages import (LINK_NONE, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead,
                        CalWrite, Capability, ChipState, Config, GatewayFlag, GatewayInfo, GetInfo, Info, Message,
                        MsgType, Nack, NackReason, Reset, Sample, SampleFormat, Snapshot, Start, Status,
-                       StatusFlag, Stop, Sync)
+                       StatusFlag, Stop, Sync, message_from_fields, message_to_fields)
 
 __all__ = ["canonical_messages", "message_to_fields", "message_from_fields", "build_vectors",
            "error_vectors", "verdict_vectors", "chip_scenarios", "VECTOR_DIR", "write_vectors"]
@@ -78,22 +77,6 @@ def chip_scenarios() -> list[dict]:
     """The chip scenarios of protocol/scenarios.py (tests/vectors/chip.json)."""
     from .scenarios import scenarios
     return scenarios()
-
-
-def message_to_fields(msg: Message) -> dict:
-    if isinstance(msg, Snapshot):
-        return {"counter": msg.counter, "first_link": msg.first_link,
-                "counts": msg.counts.tolist(), "status": msg.status.tolist()}
-    return {f.name: (float(v) if isinstance(v, float) else int(v))
-            for f in fields(msg)[1:] for v in [getattr(msg, f.name)]}
-
-
-def message_from_fields(type_name: str, node: int, values: dict) -> Message:
-    cls = MESSAGE_TYPES[MsgType[type_name]]
-    if cls is Snapshot:
-        return Snapshot.from_arrays(node, values["counter"], values["first_link"],
-                                    np.array(values["counts"]), np.array(values["status"]))
-    return cls(node, **values)
 
 
 def build_vectors() -> dict[str, dict]:

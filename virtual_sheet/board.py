@@ -27,7 +27,7 @@ import numpy as np
 
 from protocol.constants import G0
 from protocol.lattice import Lattice
-from .shapes import flat_net
+from .geometry import flat_net
 
 __all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation"]
 
@@ -134,6 +134,36 @@ class BoardPoseScene:
         w = 0.5 - 0.5 * np.cos(np.pi * w)  # start and stop smoothly
         j = (i + 1) % self.n_poses
         return Slerp([0.0, 1.0], Rotation.from_matrix(self._R[[i, j]]))([w]).as_matrix()[0]
+
+    def rotation_jet(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`orientation` at every instant of ``t`` (seconds, (T,)) with its exact rates.
+
+        During a turn from pose ``i`` to ``j`` the board is ``R_i Exp(w(τ) v)``, ``v`` the rotation
+        vector of ``R_iᵀ R_j`` and ``w = (1 − cos πτ)/2`` (what `Slerp` computes), so its angular
+        velocity is ``ẇ v`` in the board's frame and its angular acceleration ``ẅ v``.
+
+        Returns
+        -------
+        rotation : ndarray, shape (T, 3, 3)
+            Board -> world.
+        omega, omega_dot : ndarray, shape (T, 3)
+            rad/s and rad/s², world frame.
+        """
+        from scipy.spatial.transform import Rotation
+
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        step = self.hold_s + self.move_s
+        i, tau = np.divmod(np.mod(t, self.period_s), step)
+        i = i.astype(int) % self.n_poses
+        j = (i + 1) % self.n_poses
+        v = Rotation.from_matrix(np.transpose(self._R[i], (0, 2, 1)) @ self._R[j]).as_rotvec()
+        moving = tau >= self.hold_s
+        x = np.where(moving, (tau - self.hold_s) / self.move_s, 0.0)
+        w = np.where(moving, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
+        wd = np.where(moving, 0.5 * np.pi * np.sin(np.pi * x) / self.move_s, 0.0)
+        wdd = np.where(moving, 0.5 * np.pi ** 2 * np.cos(np.pi * x) / self.move_s ** 2, 0.0)
+        R = self._R[i] @ Rotation.from_rotvec(w[:, None] * v).as_matrix()
+        return R, np.einsum("tij,tj->ti", R, wd[:, None] * v), np.einsum("tij,tj->ti", R, wdd[:, None] * v)
 
     def gravity_in_board(self, pose: int) -> np.ndarray:
         """Specific force of gravity in the board's frame in pose ``pose`` (truth), m/s², (3,)."""

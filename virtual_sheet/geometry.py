@@ -28,8 +28,8 @@ import numpy as np
 from protocol.constants import G0
 from protocol.lattice import Lattice
 
-__all__ = ["chebyshev_net", "link_frames", "ideal_readings", "specific_force", "roll_pitch",
-           "link_angles", "link_lengths", "rotation_from_angles", "HeightFunction"]
+__all__ = ["chebyshev_net", "link_frames", "link_frames_jet", "link_midpoints", "ideal_readings", "specific_force", "roll_pitch",
+           "link_angles", "link_lengths", "rotation_from_angles", "HeightFunction", "flat_net"]
 
 #: A vectorised height field: ``height(x, y) -> z`` on arrays of equal shape (metres, world frame).
 HeightFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -118,19 +118,106 @@ def link_lengths(joints: np.ndarray) -> np.ndarray:
     return np.linalg.norm(lat.link_vectors(joints), axis=1)
 
 
-def _cell_normals(joints: np.ndarray) -> np.ndarray:
-    """Unit normal of every lattice cell, shape ``(rows-1, cols-1, 3)``, top face side.
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` over the last axis, by components (the same products, without its overhead)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return np.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
-    The cell with lower corner ``(i, j)`` has normal ``(P[i+1,j+1] − P[i,j]) × (P[i,j+1] − P[i+1,j])``
-    (cross product of its diagonals, normalised): +z for a flat sheet with i along +x, j along +y.
-    """
-    d1 = joints[1:, 1:] - joints[:-1, :-1]
-    d2 = joints[:-1, 1:] - joints[1:, :-1]
-    n = np.cross(d1, d2)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
-    if np.any(norm <= 0.0):
+
+def _unit(a: np.ndarray, ad: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """``a / |a|`` along the last axis, its time derivative if ``ad`` (the derivative of ``a``) is
+    given (``(ad − u (u·ad)) / |a|``), and ``|a|`` (keepdims)."""
+    norm = np.linalg.norm(a, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = a / norm
+        ud = None if ad is None else (ad - u * np.sum(u * ad, axis=-1, keepdims=True)) / norm
+    return u, ud, norm
+
+
+def _link_pairs(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-joint ``values (..., rows, cols, k)`` at every link's lower and higher joint, each
+    ``(..., n_links, k)`` in lattice order (docs/design.md: i-links then j-links, both row-major of
+    the lower joint — the order of `Lattice.endpoints`)."""
+    lead, k = values.shape[:-3], values.shape[-1]
+    lo = np.concatenate([values[..., :-1, :, :].reshape(lead + (-1, k)),
+                         values[..., :, :-1, :].reshape(lead + (-1, k))], axis=-2)
+    hi = np.concatenate([values[..., 1:, :, :].reshape(lead + (-1, k)),
+                         values[..., :, 1:, :].reshape(lead + (-1, k))], axis=-2)
+    return lo, hi
+
+
+def _frames(joints: np.ndarray, velocities: np.ndarray | None = None):
+    """`link_frames` on ``(..., rows, cols, 3)`` joints and, with joint velocities, the body-frame
+    angular velocity of every frame (the time derivative of each step of the definition)."""
+    rows, cols = joints.shape[-3:-1]
+    lead = joints.shape[:-3]
+    V = velocities
+    a, b = _link_pairs(joints)
+    vec = b - a
+    if V is not None:
+        va, vb = _link_pairs(V)
+        vecd = vb - va
+    x, xd, length = _unit(vec, vecd if V is not None else None)
+    if np.any(length <= 0.0):
+        raise ValueError("Zero-length link: cannot define the sensor x axis.")
+
+    # cell (i, j): normal of the cross product of its diagonals, top face side
+    d1 = joints[..., 1:, 1:, :] - joints[..., :-1, :-1, :]
+    d2 = joints[..., :-1, 1:, :] - joints[..., 1:, :-1, :]
+    c = _cross(d1, d2)
+    cd = None
+    if V is not None:
+        d1d = V[..., 1:, 1:, :] - V[..., :-1, :-1, :]
+        d2d = V[..., :-1, 1:, :] - V[..., 1:, :-1, :]
+        cd = _cross(d1d, d2) + _cross(d1, d2d)
+    cn, cnd, cnorm = _unit(c, cd)
+    if np.any(cnorm <= 0.0):
         raise ValueError("Degenerate lattice cell (zero area): cannot define the sheet normal.")
-    return n / norm
+
+    def per_link(cells: np.ndarray) -> np.ndarray:
+        # i-link (i, j)->(i+1, j) borders cells (i, j-1) and (i, j); j-link (i, j)->(i, j+1)
+        # borders cells (i-1, j) and (i, j): pad the cells with zeros and add the two neighbours.
+        pad_j = np.zeros(lead + (rows - 1, cols + 1, 3))
+        pad_j[..., :, 1:-1, :] = cells
+        n_i = (pad_j[..., :, :-1, :] + pad_j[..., :, 1:, :]).reshape(lead + (-1, 3))
+        pad_i = np.zeros(lead + (rows + 1, cols - 1, 3))
+        pad_i[..., 1:-1, :, :] = cells
+        n_j = (pad_i[..., :-1, :, :] + pad_i[..., 1:, :, :]).reshape(lead + (-1, 3))
+        return np.concatenate([n_i, n_j], axis=-2)  # lattice order
+
+    n = per_link(cn)
+    nx = np.sum(n * x, axis=-1, keepdims=True)
+    w = n - nx * x
+    wd = None
+    if V is not None:
+        nd = per_link(cnd)
+        nxd = np.sum(nd * x, axis=-1, keepdims=True) + np.sum(n * xd, axis=-1, keepdims=True)
+        wd = nd - nxd * x - nx * xd
+    z, zd, zn = _unit(w, wd)
+    if np.any(zn <= 1e-12):
+        raise ValueError("Sheet normal parallel to a link (folded sheet): cannot define sensor z.")
+    y = _cross(z, x)
+    R = np.stack([x, y, z], axis=-1)
+    if V is None:
+        return R, None
+    yd = _cross(zd, x) + _cross(z, xd)
+    # Rᵀ Ṙ = [ω]×: ω_x = z·ẏ, ω_y = x·ż, ω_z = y·ẋ (columns of R are x, y, z)
+    omega = np.stack([np.sum(z * yd, axis=-1), np.sum(x * zd, axis=-1), np.sum(y * xd, axis=-1)],
+                     axis=-1)
+    return R, omega
+
+
+def link_midpoints(values: np.ndarray) -> np.ndarray:
+    """The mean of every link's two joints' values: ``(..., rows, cols, k)`` -> ``(..., n_links, k)``,
+    lattice order. Of joint positions: where each link's chip sits; of joint accelerations: the
+    chip's own acceleration (the midpoint of a rigid link moves as the mean of its ends)."""
+    v = np.asarray(values, dtype=float)
+    if v.ndim < 3 or v.shape[-3] < 2 or v.shape[-2] < 2:
+        raise ValueError(f"Expected `values` to have shape (..., rows, cols, k) with rows, cols >= 2, "
+                         f"got {v.shape}.")
+    lo, hi = _link_pairs(v)
+    return 0.5 * (lo + hi)
 
 
 def link_frames(joints: np.ndarray) -> np.ndarray:
@@ -143,13 +230,13 @@ def link_frames(joints: np.ndarray) -> np.ndarray:
     * y = z × x.
 
     Definition of the link normal: the unit normals of the (one or two) lattice cells that share
-    the link (each the normalised cross product of the cell's diagonals, see ``_cell_normals``) are
-    averaged; that average, minus its component along x (Gram-Schmidt), normalised, is z. This is
-    the surface normal at the link's midpoint to first order (exactly so inside a sheet bent
-    round a cylinder; a link on the sheet's edge has one cell only, so its normal leans by half
-    that cell's bend), and it keeps the paper's normal assumption (eq. 6) approximate, as on a
-    real sheet. A flat sheet with i along +x and j along
-    +y has z = +z on every link.
+    the link (each the normalised cross product of the cell's diagonals
+    ``(P[i+1,j+1] − P[i,j]) × (P[i,j+1] − P[i+1,j])``: +z for a flat sheet with i along +x, j
+    along +y) are averaged; that average, minus its component along x (Gram-Schmidt), normalised,
+    is z. This is the surface normal at the link's midpoint to first order (exactly so inside a
+    sheet bent round a cylinder; a link on the sheet's edge has one cell only, so its normal leans
+    by half that cell's bend), and it keeps the paper's normal assumption (eq. 6) approximate, as
+    on a real sheet. A flat sheet with i along +x and j along +y has z = +z on every link.
 
     Parameters
     ----------
@@ -161,33 +248,41 @@ def link_frames(joints: np.ndarray) -> np.ndarray:
     ndarray, shape (n_links, 3, 3)
         ``R`` with ``R @ v_sensor = v_world``; orthonormal, ``det R = +1``.
     """
-    joints = _check_joints(joints)
-    rows, cols = joints.shape[:2]
-    lat = Lattice(rows, cols)
-    vec = lat.link_vectors(joints)
-    length = np.linalg.norm(vec, axis=1, keepdims=True)
-    if np.any(length <= 0.0):
-        raise ValueError("Zero-length link: cannot define the sensor x axis.")
-    x = vec / length
+    return _frames(_check_joints(joints))[0]
 
-    cn = _cell_normals(joints)  # (rows-1, cols-1, 3)
-    # i-link (i, j)->(i+1, j) borders cells (i, j-1) and (i, j); pad cells with zeros along j.
-    pad_j = np.zeros((rows - 1, cols + 1, 3))
-    pad_j[:, 1:-1] = cn
-    n_i = (pad_j[:, :-1] + pad_j[:, 1:]).reshape(-1, 3)
-    # j-link (i, j)->(i, j+1) borders cells (i-1, j) and (i, j); pad along i.
-    pad_i = np.zeros((rows + 1, cols - 1, 3))
-    pad_i[1:-1, :] = cn
-    n_j = (pad_i[:-1, :] + pad_i[1:, :]).reshape(-1, 3)
-    n = np.concatenate([n_i, n_j])  # lattice order: i-links then j-links, both row-major
 
-    z = n - np.sum(n * x, axis=1, keepdims=True) * x
-    zn = np.linalg.norm(z, axis=1, keepdims=True)
-    if np.any(zn <= 1e-12):
-        raise ValueError("Sheet normal parallel to a link (folded sheet): cannot define sensor z.")
-    z = z / zn
-    y = np.cross(z, x)
-    return np.stack([x, y, z], axis=2)
+def link_frames_jet(joints: np.ndarray, velocities: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`link_frames` of moving joints, and every frame's angular velocity.
+
+    The frames are those of `link_frames` at each instant; the angular velocity is the exact time
+    derivative of that definition (chain rule through the link direction, the cells' normals, their
+    average and the Gram-Schmidt step), expressed in the frame itself: ``Rᵀ Ṙ = [ω]×``, what a
+    gyroscope on the link measures.
+
+    Parameters
+    ----------
+    joints : ndarray, shape (..., rows, cols, 3)
+        Joint positions, metres, world frame (any leading dimensions, e.g. time).
+    velocities : ndarray, same shape
+        Their time derivatives, m/s.
+
+    Returns
+    -------
+    frames : ndarray, shape (..., n_links, 3, 3)
+        Rotations sensor -> world, lattice order.
+    omega : ndarray, shape (..., n_links, 3)
+        Angular velocity of each frame, rad/s, in that frame (body frame).
+    """
+    P = np.asarray(joints, dtype=float)
+    V = np.asarray(velocities, dtype=float)
+    if P.ndim < 3 or P.shape[-1] != 3 or P.shape[-3] < 2 or P.shape[-2] < 2:
+        raise ValueError(f"Expected `joints` to have shape (..., rows, cols, 3) with rows, cols >= 2, "
+                         f"got {P.shape}.")
+    if V.shape != P.shape:
+        raise ValueError(f"Expected `velocities` to have the shape of `joints` {P.shape}, got {V.shape}.")
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(V))):
+        raise ValueError("Expected `joints` and `velocities` to be finite; got NaN or inf.")
+    return _frames(P, V)
 
 
 def specific_force(frames: np.ndarray, accel_world_mps2: np.ndarray | None = None) -> np.ndarray:
@@ -344,6 +439,29 @@ def _compass(height: HeightFunction, A: np.ndarray, B: np.ndarray, C: np.ndarray
     return P
 
 
+def compass_diagonals(rows: int, cols: int, ic: int, jc: int):
+    """The order of the compass construction after the seed lines through anchor ``(ic, jc)``:
+    anti-diagonal ``k = a + b`` (``a, b >= 1`` steps from the anchor) of all four quadrants at once,
+    each joint needing only joints of diagonals ``k − 1`` and ``k − 2``. Yields per diagonal
+    ``(ii, jj, si, sj)``: the joints' indices and their quadrant's signs, so that the two placed
+    neighbours are ``(ii − si, jj)`` and ``(ii, jj − sj)`` and the opposite corner
+    ``(ii − si, jj − sj)``."""
+    quadrants = [(si, n_a, sj, n_b) for si, n_a in ((1, rows - 1 - ic), (-1, ic))
+                 for sj, n_b in ((1, cols - 1 - jc), (-1, jc)) if n_a and n_b]
+    k_max = max((n_a + n_b for _, n_a, _, n_b in quadrants), default=1)
+    for k in range(2, k_max + 1):
+        ii_l, jj_l, si_l, sj_l = [], [], [], []
+        for si, n_a, sj, n_b in quadrants:
+            a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
+            ii_l.append(ic + si * a)
+            jj_l.append(jc + sj * (k - a))
+            si_l.append(np.full(a.shape, si))
+            sj_l.append(np.full(a.shape, sj))
+        ii, jj = np.concatenate(ii_l), np.concatenate(jj_l)
+        if ii.size:
+            yield ii, jj, np.concatenate(si_l), np.concatenate(sj_l)
+
+
 def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: float, *,
                   origin: tuple[float, float] = (0.0, 0.0), angle: float = 0.0,
                   shear: float = 0.0, anchor: str = "centre") -> np.ndarray:
@@ -413,27 +531,37 @@ def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: flo
     if jc:
         P[ic, jc - 1::-1] = _seed_line(height, P[ic, jc], -v, jc, L)
 
-    # Anti-diagonal k = a + b (a, b >= 1 steps from the anchor) of all four quadrants at once:
-    # each joint needs only joints of diagonal k - 1 and k - 2.
-    quadrants = [(si, n_a, sj, n_b) for si, n_a in ((1, rows - 1 - ic), (-1, ic))
-                 for sj, n_b in ((1, cols - 1 - jc), (-1, jc)) if n_a and n_b]
-    k_max = max((n_a + n_b for _, n_a, _, n_b in quadrants), default=1)
-    for k in range(2, k_max + 1):
-        ii_l, jj_l, si_l, sj_l = [], [], [], []
-        for si, n_a, sj, n_b in quadrants:
-            a = np.arange(max(1, k - n_b), min(n_a, k - 1) + 1)
-            ii_l.append(ic + si * a)
-            jj_l.append(jc + sj * (k - a))
-            si_l.append(np.full(a.shape, si))
-            sj_l.append(np.full(a.shape, sj))
-        ii, jj = np.concatenate(ii_l), np.concatenate(jj_l)
-        if ii.size == 0:
-            continue
-        si, sj = np.concatenate(si_l), np.concatenate(sj_l)
+    for ii, jj, si, sj in compass_diagonals(rows, cols, ic, jc):
         P[ii, jj] = _compass(height, P[ii - si, jj], P[ii, jj - sj], P[ii - si, jj - sj], L,
                              ii, jj)
     err = np.max(np.abs(link_lengths(P) / L - 1.0))
     if not err <= _LENGTH_RTOL:
         raise ValueError(f"Chebyshev net: link lengths off by {err:.3g} relative (tolerance "
                          f"{_LENGTH_RTOL:g}); the height field may be discontinuous.")
+    return P
+
+
+def flat_net(rows: int, cols: int, link_length: float, *, angle: float = 0.0, shear: float = 0.0,
+             origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """A level flat net, centred on ``origin``: joint ``(i, j)`` at ``(i − i_c) L u + (j − j_c) L v``
+    with ``u``/``v`` the i/j directions of `chebyshev_net` (``i_c, j_c = rows // 2, cols // 2``).
+
+    Returns
+    -------
+    ndarray, shape (rows, cols, 3)
+        Joints, metres, world frame, z = 0.
+    """
+    Lattice(rows, cols)
+    if not abs(shear) < np.pi / 2:
+        raise ValueError(f"Invalid shear: {shear!r} rad (need |shear| < pi/2)")
+    L = float(link_length)
+    if not (np.isfinite(L) and L > 0):
+        raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
+    u = np.array([np.cos(angle), np.sin(angle), 0.0])
+    v = np.array([np.cos(angle + np.pi / 2 + shear), np.sin(angle + np.pi / 2 + shear), 0.0])
+    i = (np.arange(rows) - rows // 2)[:, None, None]
+    j = (np.arange(cols) - cols // 2)[None, :, None]
+    P = L * (i * u + j * v)
+    P[..., 0] += origin[0]
+    P[..., 1] += origin[1]
     return P

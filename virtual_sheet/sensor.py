@@ -57,10 +57,11 @@ def make_rng(rng: np.random.Generator | int) -> np.random.Generator:
     raise ValueError(f"Invalid rng: {rng!r} (expected a numpy Generator or a seed >= 0)")
 
 
-def _check_readings(readings: np.ndarray) -> np.ndarray:
+def _check_readings(readings: np.ndarray, batched: bool = False) -> np.ndarray:
     r = np.asarray(readings, dtype=float)
-    if r.ndim != 2 or r.shape[1] != 3:
-        raise ValueError(f"Expected `readings` to have shape (n_links, 3), got {r.shape}.")
+    if (r.ndim < 2 if batched else r.ndim != 2) or r.shape[-1] != 3:
+        shape = "(..., n_links, 3)" if batched else "(n_links, 3)"
+        raise ValueError(f"Expected `readings` to have shape {shape}, got {r.shape}.")
     if not np.all(np.isfinite(r)):
         raise ValueError("Expected `readings` to be finite; got NaN or inf.")
     return r
@@ -245,20 +246,20 @@ class SensorModel:
                       *, frames: np.ndarray | None = None) -> np.ndarray:
         """Specific force along each chip's own axes, with motion and noise, before the ADC.
 
-        Parameters and the order of random draws are those of `sample`; m/s², shape (n, 3).
+        Parameters and the order of random draws are those of `sample`; m/s², shape of ``readings``.
         """
-        f = _check_readings(readings)
-        n = f.shape[0]
+        f = _check_readings(readings, batched=True)
+        n = f.shape[-2]
         if self.motion_accel_mps2 is not None:
             if frames is None:
                 raise ValueError("motion_accel_mps2 is set: sample() needs `frames` "
                                  "(link_frames(joints)) to rotate it into the sensor frames")
             frames = np.asarray(frames, dtype=float)
-            if frames.shape != (n, 3, 3):
-                raise ValueError(f"Expected `frames` to have shape ({n}, 3, 3), got {frames.shape}.")
-            f = f + np.einsum("nij,i->nj", frames, np.asarray(self.motion_accel_mps2))
+            if frames.shape != f.shape + (3,):
+                raise ValueError(f"Expected `frames` to have shape {f.shape + (3,)}, got {frames.shape}.")
+            f = f + np.einsum("...nij,i->...nj", frames, np.asarray(self.motion_accel_mps2))
         e = self.chip_errors(n)
-        f = np.einsum("nij,ni->nj", e.misalignment, f)  # Mᵀ f
+        f = np.einsum("nij,...ni->...nj", e.misalignment, f)  # Mᵀ f
         if self.noise_pct_g > 0:
             if rng is None:
                 raise ValueError("noise_pct_g > 0: sample() needs a seeded `rng` (Generator or seed)")
@@ -271,25 +272,26 @@ class SensorModel:
 
         Parameters
         ----------
-        readings : ndarray, shape (n_links, 3)
-            True specific force, m/s², each link's sensor frame (`geometry.ideal_readings`).
+        readings : ndarray, shape (n_links, 3) or (..., n_links, 3)
+            True specific force, m/s², each link's sensor frame (`geometry.ideal_readings`); leading
+            dimensions are successive SYNCs (the same draws as one call per SYNC, in order).
         rng : numpy Generator or int, optional
             Noise source (seeded); required when ``noise_pct_g > 0``.
-        frames : ndarray, shape (n_links, 3, 3), optional
+        frames : ndarray, shape (..., n_links, 3, 3), optional
             Rotations sensor -> world (`geometry.link_frames`); required with motion acceleration.
 
         Returns
         -------
-        counts : ndarray of int16, shape (n_links, 3)
+        counts : ndarray of int16, shape (..., n_links, 3)
             12-bit two's-complement ADC counts, in ``[-2048, 2047]``.
-        status : ndarray of uint8, shape (n_links,)
+        status : ndarray of uint8, shape (..., n_links)
             `SampleStatus` flags: ``SATURATED`` when any axis sits at an ADC limit.
         """
         f = self.chip_readings(readings, rng, frames=frames)
-        e = self.chip_errors(f.shape[0])
+        e = self.chip_errors(f.shape[-2])
         raw = np.rint(f / G0 * e.sensitivity + e.offset_counts)
         counts = np.clip(raw, ADC_MIN, ADC_MAX).astype(np.int16)
-        saturated = np.any((counts == ADC_MIN) | (counts == ADC_MAX), axis=1)
+        saturated = np.any((counts == ADC_MIN) | (counts == ADC_MAX), axis=-1)
         status = np.where(saturated, np.uint8(SampleStatus.SATURATED),
                           np.uint8(SampleStatus.OK)).astype(np.uint8)
         return counts, status

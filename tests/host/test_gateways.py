@@ -51,7 +51,7 @@ def test_a_sync_source_gateway_is_followed_without_being_heard_first(rigs):
     """sync=auto: the gateway's GATEWAY_INFO says it drives SYNC; the host follows before it listens."""
     rig = rigs("memory", gateway_sync_hz=50.0)
     rig.host.sync_policy, rig.host.sync_mode = "auto", "drive"
-    rig.host.aggregator.set_trust("sent")
+    rig.host.feed.set_trust("sent")
     rig.host.sync_listen_s = 0.0  # no listening: only the gateway node can tell
     rig.host.bring_up(0.2)
     assert rig.host.sync_mode == "follow" and rig.host.syncs_sent == 0
@@ -63,7 +63,7 @@ def test_a_sync_source_gateway_is_followed_without_being_heard_first(rigs):
 def test_a_driving_host_is_told_which_gateway_drives_sync(rigs):
     rig = rigs("memory", gateway_sync_hz=50.0)
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"
-    rig.host.aggregator.set_trust("sent")
+    rig.host.feed.set_trust("sent")
     rig.host.sync_listen_s = 0.0
     with pytest.raises(SyncConflictError, match=r"gateway 0x6A7E[0-9A-F]{12} \(node 0x7FFF.*SYNC source"):
         rig.host.bring_up(0.2)

@@ -3,24 +3,22 @@ one, and a mutant that breaks the SYNC counter) over a pty (serial), an SLCAN ad
 python-can's udp_multicast bus — the transports a vendor's bench uses. Every check of the chip profile
 must reach the same outcome on each, but for the transport's own checks (serial: 21; CAN: 22, 41).
 
-SLCAN and udp_multicast need the receive path of issue 25 (python-can's slcan hands over frame
-blocks the 1.0 audit did not read; udp_multicast echoes a sender's own frames): until that lands here
-they are strict xfails, so the merge that fixes them turns them into failures to un-mark."""
+SLCAN hands frames over in blocks and udp_multicast echoes a sender's own frames: the port's audit
+reads both through the transport's capture (issue 25). Over SLCAN the suite is given a plain
+`CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`."""
 
 from __future__ import annotations
 
 import pytest
 
 from host.conformance import AuditedCanTransport, CHECKS, Port, run_checks
-from host.transport import SerialTransport
+from host.transport import CanTransport, SerialTransport
 from tests.host.cli.test_host import ONE_MULTICAST_BUS, _udp_or_skip, udp_bus_lock  # noqa: F401 (fixture)
 from tests.host.conformance.mutants import CounterOffByOne
 from virtual_sheet.devices import CanDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 from virtual_sheet.slcan import SlcanDevice
 
-ISSUE_25 = pytest.mark.xfail(strict=True, reason="needs issue 25's SLCAN/udp_multicast receive path "
-                                                 "(FrameBlock audit, echo filter): remove at that merge")
 OWN = {"serial": {21}, "can": {22, 41}}  # a transport's own checks
 
 
@@ -32,7 +30,7 @@ def _outcomes(kind, chip_class):
         t = SerialTransport(str(dev.path), reconnect=False)
     elif kind == "slcan":
         dev = SlcanDevice(sheet).start()
-        t = AuditedCanTransport(f"slcan:{dev.path}", bitrate=1_000_000, reconnect=False, sleep_after_open=0)
+        t = CanTransport(f"slcan:{dev.path}", bitrate=1_000_000, reconnect=False, sleep_after_open=0)
     else:
         _udp_or_skip()
         dev = CanDevice(sheet, interface="udp_multicast", channels=["239.74.163.2"]).start()
@@ -55,8 +53,7 @@ def _expected(kind, failing=frozenset()):
 
 @pytest.mark.parametrize("chip,failing", [(None, set()), (CounterOffByOne, {24, 25, 26, 27})],
                          ids=["healthy", "counter_off_by_one"])
-@pytest.mark.parametrize("kind", ["pty", pytest.param("slcan", marks=ISSUE_25),
-                                  pytest.param("udp_multicast", marks=[ISSUE_25, ONE_MULTICAST_BUS])])
+@pytest.mark.parametrize("kind", ["pty", "slcan", pytest.param("udp_multicast", marks=ONE_MULTICAST_BUS)])
 def test_the_same_verdicts_on_every_transport(request, kind, chip, failing):
     """A healthy chip passes every check, a broken one fails the same checks, on each transport."""
     if kind == "udp_multicast":

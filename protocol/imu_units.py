@@ -1,0 +1,115 @@
+"""Gyroscope and magnetometer ranges, and their counts <-> SI conversions (6/9-axis chips, issue 29).
+
+The accelerometer's are in `protocol.constants` (12-bit counts, ``Range``, `counts_to_si`); these
+follow the same rule for the two new sensors: a ``bits``-bit two's-complement count at a
+configured full-scale range ``FS``, nominal sensitivity ``2^(bits−1) / FS`` counts per unit,
+a per-chip calibration refining it (``offset`` in counts, ``sensitivity`` in counts per unit)::
+
+    value [unit] = (counts − offset) / sensitivity
+
+Units on the wire follow the datasheets (°/s, gauss); the SI functions return rad/s and tesla.
+No wire format uses these yet: they are the one place the simulator and, later, the protocol
+(v1.1, docs/protocol.md) take the conversion from.
+
+>>> gyro_nominal_sensitivity(GyroRange.DPS2000)   # 16-bit counts per °/s
+16.384
+>>> round(float(gyro_counts_to_si(16384, GyroRange.DPS2000)), 6)   # 1000 °/s in rad/s
+17.453293
+>>> mag_nominal_sensitivity(MagRange.GAUSS4)        # counts per gauss
+8192.0
+>>> float(mag_counts_to_si(8192, MagRange.GAUSS4))   # 1 gauss = 100 µT
+0.0001
+"""
+
+from __future__ import annotations
+
+import math
+from enum import IntEnum
+
+__all__ = ["GYRO_BITS", "MAG_BITS", "GyroRange", "MagRange", "RAD_PER_DEG", "TESLA_PER_GAUSS",
+           "count_limits", "gyro_nominal_sensitivity", "mag_nominal_sensitivity", "gyro_counts_to_si",
+           "si_to_gyro_counts", "mag_counts_to_si", "si_to_mag_counts"]
+
+GYRO_BITS = 16  #: width of one gyroscope axis sample (the parts' native output: ICM-42688-P, BMI270)
+MAG_BITS = 16  #: width of one magnetometer axis sample (LIS3MDL; 18-bit parts are rounded to 16)
+RAD_PER_DEG = math.pi / 180.0
+TESLA_PER_GAUSS = 1e-4
+
+
+class GyroRange(IntEnum):
+    """Gyroscope full-scale range code: ±125 · 2^code °/s."""
+
+    DPS125 = 0  #: ±125 °/s, 262.144 counts per °/s at 16 bits
+    DPS250 = 1  #: ±250 °/s
+    DPS500 = 2  #: ±500 °/s
+    DPS1000 = 3  #: ±1000 °/s
+    DPS2000 = 4  #: ±2000 °/s, 16.384 counts per °/s at 16 bits
+
+    @property
+    def full_scale_dps(self) -> int:
+        return 125 << int(self)
+
+
+class MagRange(IntEnum):
+    """Magnetometer full-scale range code: ±4 · (code + 1) gauss (the LIS3MDL's four ranges)."""
+
+    GAUSS4 = 0  #: ±4 gauss (±400 µT), 8192 counts per gauss at 16 bits
+    GAUSS8 = 1  #: ±8 gauss
+    GAUSS12 = 2  #: ±12 gauss
+    GAUSS16 = 3  #: ±16 gauss, 2048 counts per gauss at 16 bits
+
+    @property
+    def full_scale_gauss(self) -> int:
+        return 4 * (int(self) + 1)
+
+
+def count_limits(bits: int) -> tuple[int, int]:
+    """``(min, max)`` of a ``bits``-bit two's-complement count.
+
+    >>> count_limits(16)
+    (-32768, 32767)
+    """
+    if not (isinstance(bits, int) and 2 <= bits <= 32):
+        raise ValueError(f"Invalid bits: {bits!r} (need an integer 2..32)")
+    return -(1 << (bits - 1)), (1 << (bits - 1)) - 1
+
+
+def gyro_nominal_sensitivity(range_code: int = GyroRange.DPS2000, bits: int = GYRO_BITS) -> float:
+    """Counts per °/s: ``2^(bits−1) / full_scale_dps``."""
+    return float(1 << (bits - 1)) / GyroRange(range_code).full_scale_dps
+
+
+def mag_nominal_sensitivity(range_code: int = MagRange.GAUSS4, bits: int = MAG_BITS) -> float:
+    """Counts per gauss: ``2^(bits−1) / full_scale_gauss``."""
+    return float(1 << (bits - 1)) / MagRange(range_code).full_scale_gauss
+
+
+def gyro_counts_to_si(counts, range_code: int = GyroRange.DPS2000, offset=0.0, sensitivity=None,
+                      bits: int = GYRO_BITS):
+    """Gyroscope counts -> angular rate in rad/s: ``(counts − offset) / sensitivity`` °/s.
+
+    ``sensitivity`` (counts per °/s) defaults to the range's nominal one; scalars and numpy arrays
+    alike (``offset``/``sensitivity`` broadcast per axis)."""
+    s = gyro_nominal_sensitivity(range_code, bits) if sensitivity is None else sensitivity
+    return (counts - offset) / s * RAD_PER_DEG
+
+
+def si_to_gyro_counts(rate_rps, range_code: int = GyroRange.DPS2000, offset=0.0, sensitivity=None,
+                      bits: int = GYRO_BITS):
+    """rad/s -> ideal (unrounded, unclipped) counts; inverse of `gyro_counts_to_si`."""
+    s = gyro_nominal_sensitivity(range_code, bits) if sensitivity is None else sensitivity
+    return rate_rps / RAD_PER_DEG * s + offset
+
+
+def mag_counts_to_si(counts, range_code: int = MagRange.GAUSS4, offset=0.0, sensitivity=None,
+                     bits: int = MAG_BITS):
+    """Magnetometer counts -> flux density in tesla: ``(counts − offset) / sensitivity`` gauss."""
+    s = mag_nominal_sensitivity(range_code, bits) if sensitivity is None else sensitivity
+    return (counts - offset) / s * TESLA_PER_GAUSS
+
+
+def si_to_mag_counts(field_t, range_code: int = MagRange.GAUSS4, offset=0.0, sensitivity=None,
+                     bits: int = MAG_BITS):
+    """Tesla -> ideal (unrounded, unclipped) counts; inverse of `mag_counts_to_si`."""
+    s = mag_nominal_sensitivity(range_code, bits) if sensitivity is None else sensitivity
+    return field_t / TESLA_PER_GAUSS * s + offset
