@@ -52,15 +52,15 @@ LATTICE = "3x3"
 L = 0.01
 SEED = 5  #: the chip errors of the streaming sheet (realistic, noise-free: every snapshot alike)
 MUTANT = "counter_off_by_one"  #: breaks §5.1 on any transport (tests/host/conformance/mutants.py)
-MUTANT_FAILS = {22, 23, 24, 25}  #: tests/host/conformance/test_mutants.py's EXPECTED for it
-MUTANT_ONLY = "1,22,23,24,25,27"  #: the mutant's run: discovery, the checks it fails, one it passes
+MUTANT_FAILS = {24, 25, 26, 27}  #: tests/host/conformance/test_mutants.py's EXPECTED for it
+MUTANT_ONLY = "1,24,25,26,27,29"  #: the mutant's run: discovery, the checks it fails, one it passes
 
 #: feature -> what its cell asserts (the rows of the docs table)
 CELLS = {
     "stream": "`capsheet host`: every chip found and streaming, >= 95 % of link samples valid, no error",
     "record-replay": "`--record` then `capsheet replay`: every recorded snapshot replayed identical",
     "can-log": "`--can-log` decoded by `python -m cantools decode`: every line, Rx and Tx",
-    "conformance": "`capsheet conformance`: PASS on a healthy chip, FAIL exactly 22-25 on a mutant",
+    "conformance": "`capsheet conformance`: PASS on a healthy chip, FAIL exactly 24-27 on a mutant",
     "calibrate": "`capsheet calibrate --write-chips`: every chip written and read back",
     "calibration-host": "`capsheet host --calibration`: applied once, the estimate changes as the chips' errors predict",
     "calibration-demo": "`capsheet demo --calibration`: the estimate's error is what the calibration predicts",
@@ -456,12 +456,12 @@ def test_conformance_passes_a_healthy_chip_and_fails_a_mutant(batch):
     _ok(healthy)
     assert " 0 failed" in healthy.stdout and "LOST" not in healthy.stdout, healthy.stdout
     passed = {int(ln.split()[1]) for ln in healthy.stdout.splitlines() if ln.startswith("PASS")}
-    assert {1, 14, 22, 23, 24, 25, 27, 30, 31} <= passed, healthy.stdout
+    assert {1, 15, 24, 25, 26, 27, 29, 39, 40} <= passed, healthy.stdout
     if batch.transport in CAN:
-        assert {20, 32} <= passed, healthy.stdout
+        assert {22, 41} <= passed, healthy.stdout
     assert mutant.rc == 1 and "Traceback" not in mutant.stderr, mutant.stdout + mutant.stderr
     outcome = {int(ln.split()[1]): ln.split()[0] for ln in mutant.stdout.splitlines() if ln[:4] in ("PASS", "FAIL")}
-    assert outcome == {1: "PASS", 22: "FAIL", 23: "FAIL", 24: "FAIL", 25: "FAIL", 27: "PASS"}, mutant.stdout
+    assert outcome == {1: "PASS", 24: "FAIL", 25: "FAIL", 26: "FAIL", 27: "FAIL", 29: "PASS"}, mutant.stdout
     assert {k for k, v in outcome.items() if v == "FAIL"} == MUTANT_FAILS
 
 
