@@ -36,7 +36,7 @@ def pty_recording(tmp_path_factory):
     out = d / "run.mcap"
     with PtyDevice(sheet) as dev:
         assert main(["host", "--port", dev.path, "--lattice", "5x5", "--layout", str(layout), "--rate", "100",
-                     "--record", str(out), "--duration", "0.6", "-q"]) == 0
+                     "--record", str(out), "--duration", "1.5", "-q"]) == 0
     return out
 
 
@@ -78,7 +78,9 @@ def _by_counter(snaps):
 
 def test_replay_of_a_serial_recording_makes_the_recorded_snapshots(pty_recording):
     rec = read(pty_recording)
-    assert len(rec) >= 40  # complete or not (a loaded machine misses deadlines): replayed alike
+    # complete or not (a loaded machine misses deadlines and SYNCs): replayed alike. Enough
+    # snapshots to mean something, not a rate: 150 SYNCs are due in 1.5 s at 100 Hz
+    assert len(rec) >= 10
     cal = rec.attachments["calibration.json"]["links"]
     assert np.ptp([c["offset"] for c in cal]) > 1 and np.ptp([c["sensitivity"] for c in cal]) > 1
     rp = Replay(pty_recording)
