@@ -10,6 +10,10 @@ Prints one JSON object: per target the runs, how many passed, the failed checks,
     .venv/bin/python benchmarks/bench_conformance_stability.py --runs 20
     .venv/bin/python benchmarks/bench_conformance_stability.py --runs 20 --busy
     .venv/bin/python benchmarks/bench_conformance_stability.py --runs 2 --targets python:noise_free,qemu
+
+The runs go round-robin over the targets (run 1 of each, then run 2 of each, ...), so with
+``--budget-min M`` a run that would start after M minutes is not started and every target has the
+same number of runs (or one fewer): the JSON says how many rounds were done of the ones asked for.
 """
 
 from __future__ import annotations
@@ -27,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def _virtual(factory, variant: str, runs: int, profile: str = "chip") -> list[dict]:
+def _virtual(factory, variant: str, runs: int, profile: str = "chip", first_seed: int = 0) -> list[dict]:
     from host.conformance import Port, run_checks
     from host.transport import SerialTransport
     from tests.host.conformance.mutants import HEALTHY
@@ -37,7 +41,7 @@ def _virtual(factory, variant: str, runs: int, profile: str = "chip") -> list[di
     sheet_kw = dict(sheet_kw)
     lattice = sheet_kw.pop("lattice", "2x2")
     out = []
-    for i in range(runs):
+    for i in range(first_seed, first_seed + runs):
         sheet = VirtualSheet("flat", lattice, seed=i, chip_factory=factory, **sheet_kw)
         t0 = time.monotonic()
         with PtyDevice(sheet, **dev_kw) as dev:
@@ -90,6 +94,8 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=20)
     p.add_argument("--busy", action="store_true", help="keep one core busy (a spinning process) meanwhile")
     p.add_argument("--targets", default="python,c,gateway,qemu")
+    p.add_argument("--budget-min", type=float, default=None,
+                   help="start no run after this many minutes (the rounds done are reported)")
     args = p.parse_args()
     targets = _targets(args.targets)
     load_before = os.getloadavg()
@@ -97,31 +103,46 @@ def main() -> int:
     if args.busy:
         spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:
-        res = {}
-        for fw, variant, profile in targets:
-            if fw == "qemu":
-                runs = _qemu(args.runs)
-            else:
-                if fw == "python":
-                    from virtual_sheet.chip import ChipModel as factory
+        per: dict = {}
+        t_start = time.monotonic()
+        rounds = 0
+        for i in range(args.runs):
+            for fw, variant, profile in targets:
+                if args.budget_min is not None and time.monotonic() - t_start > 60 * args.budget_min:
+                    break
+                key = fw if fw == "qemu" else f"{fw}:{variant}" + (" (gateway profile)" if profile == "gateway" else "")
+                if fw == "qemu":
+                    got = _qemu(1)
                 else:
-                    from firmware_ref.chip import CFirmwareChip as factory
-                runs = _virtual(factory, variant, args.runs, profile)
+                    if fw == "python":
+                        from virtual_sheet.chip import ChipModel as factory
+                    else:
+                        from firmware_ref.chip import CFirmwareChip as factory
+                    got = _virtual(factory, variant, 1, profile, first_seed=i)
+                per.setdefault(key, []).extend(got)
+            else:
+                rounds += 1
+                continue
+            break
+        res = {}
+        for key, runs in per.items():
             secs = [r["seconds"] for r in runs]
-            key = fw if fw == "qemu" else f"{fw}:{variant}" + (" (gateway profile)" if profile == "gateway" else "")
             res[key] = {"runs": len(runs), "passed": sum(r["ok"] is True for r in runs),
                         "seconds_min_median_max": [round(min(secs), 2), round(statistics.median(secs), 2),
                                                    round(max(secs), 2)],
                         "failures": [b for r in runs for b in r["bad"]]}
             if runs and "skipped" in runs[0]:
                 res[key]["skipped_checks"] = sorted({n for r in runs for n in r["skipped"]})
-            if fw == "qemu" and runs and "stack_high_water_bytes" in runs[0]:
+            if key == "qemu" and runs and "stack_high_water_bytes" in runs[0]:
                 res[key]["stack_high_water_bytes_max"] = max(r["stack_high_water_bytes"] for r in runs)
+        wall = time.monotonic() - t_start
     finally:
         if spinner is not None:
             spinner.kill()
             spinner.wait()
     print(json.dumps({"benchmark": "conformance_stability", "busy_core": args.busy,
+                      "rounds_asked": args.runs, "rounds_done": rounds, "budget_min": args.budget_min,
+                      "wall_min": round(wall / 60, 1),
                       "load_before": [round(x, 2) for x in load_before],
                       "load_after": [round(x, 2) for x in os.getloadavg()],
                       "total_runs": sum(v["runs"] for v in res.values()),
