@@ -488,6 +488,11 @@ typedef enum {
     CAPSHEET_MUT_STREAMS_AFTER_STOP,  /* §4.12 keeps answering SYNC after STOP */
     CAPSHEET_MUT_MISSED_SYNCS_WRAP,   /* §5.1  counts the 0xFFFF -> 0 wrap as 65535 missed */
     CAPSHEET_MUT_CONFIG_WHILE_STREAMING, /* §8.2 ACKs CONFIG while STREAMING */
+    CAPSHEET_MUT_RESERVED_CAPABILITY_BIT, /* §4.2 INFO capabilities with reserved bit 15 set */
+    CAPSHEET_MUT_REFUSES_REPEATED_CONFIG, /* §8.3 NACKs BAD_STATE a CONFIG equal to the one it has */
+    CAPSHEET_MUT_ANSWERS_BROADCAST,   /* §8.2  NACKs BAD_STATE a broadcast START the state table refuses */
+    CAPSHEET_MUT_IGNORES_BROADCAST_START, /* §4.12 acts on START/STOP only when addressed */
+    CAPSHEET_MUT_WRONG_PRIORITY,      /* §7.1  CAN: SAMPLE sent with priority 4 (the table: 2) */
     CAPSHEET_MUT_COUNT
 } capsheet_mutant_t;
 

@@ -111,6 +111,9 @@ static int32_t send_msg(capsheet_chip_t *c, const capsheet_msg_t *m)
         if (n < 0) {
             return n;
         }
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_WRONG_PRIORITY) && m->type == CAPSHEET_SAMPLE) {
+            id = (id & 0x03FFFFFFu) | ((uint32_t)4u << 26);
+        }
         return (c->hal->send_can(c->hal->user, id, c->tx, (uint8_t)n, fd) < 0) ? CAPSHEET_ERR_HAL : 1;
     }
 }
@@ -166,6 +169,9 @@ static int32_t send_announce_info(capsheet_chip_t *c)
     m.u.info.fw_patch = CAPSHEET_FW_VERSION_PATCH;
     m.u.info.protocol_version = (uint8_t)CAPSHEET_PROTOCOL_VERSION;
     m.u.info.capabilities = capabilities(c);
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_RESERVED_CAPABILITY_BIT)) {
+        m.u.info.capabilities = (uint16_t)(m.u.info.capabilities | 0x8000u);
+    }
     m.u.info.adc_bits = 12;
     m.u.info.state = c->state;
     rc = send_msg(c, &m);
@@ -555,8 +561,19 @@ static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m,
         && c->state == CAPSHEET_STREAMING) {
         return send_ack(c, m->type);
     }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_REFUSES_REPEATED_CONFIG) && m->type == CAPSHEET_CONFIG && addressed
+        && (c->flags & CAPSHEET_FLAG_CONFIGURED) && m->u.config.rate_hz == c->rate_hz
+        && m->u.config.range == c->range_code && m->u.config.filter == c->filter
+        && m->u.config.heartbeat_ms == c->heartbeat_ms) {
+        return send_nack(c, m->type, CAPSHEET_NACK_BAD_STATE);
+    }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_IGNORES_BROADCAST_START) && !addressed
+        && (m->type == CAPSHEET_START || m->type == CAPSHEET_STOP)) {
+        return 0;
+    }
     if (capsheet_rule_for(c->state, m->type, &rule) != 1) {  /* 6. the state table */
-        return (addressed || CAPSHEET_MUTANT(c, CAPSHEET_MUT_NACKS_BROADCAST))
+        return (addressed || CAPSHEET_MUTANT(c, CAPSHEET_MUT_NACKS_BROADCAST)
+                || (CAPSHEET_MUTANT(c, CAPSHEET_MUT_ANSWERS_BROADCAST) && m->type == CAPSHEET_START))
                    ? send_nack(c, m->type, CAPSHEET_NACK_BAD_STATE) : 0;
     }
     if (rule.validate) {  /* 7. the rule's field checks */

@@ -535,8 +535,13 @@ C_MUTANTS = {
     "accepts_bad_config": "accepts_bad_config", "ignores_capability": "claims_no_multi_range",
     "start_not_idempotent": "start_not_idempotent", "streams_after_stop": "streams_after_stop",
     "missed_syncs_wrap": "missed_syncs_counts_wrap", "config_while_streaming": "config_while_streaming",
+    "reserved_capability_bit": "reserved_capability_bit", "refuses_repeated_config": "refuses_repeated_config",
+    "answers_broadcast": "answers_broadcast", "ignores_broadcast_start": "ignores_broadcast_start",
+    "wrong_priority": "wrong_priority",
 }
 #: ignores_capability ACKs a range the chip lacks: it must lack MULTI_RANGE, as its twin does
+#: checks a C mutant's run adds to its twin's so that the broken frame is sent at all (a SAMPLE needs a SYNC)
+C_MUTANT_EVIDENCE = {"wrong_priority": {24}}
 C_MUTANT_OPTIONS = {"ignores_capability": dict(capabilities=int(Capability.CAL_STORAGE | Capability.FILTER))}
 
 #: gateway mutants: name -> (gateway class, device options); the gateway profile must fail them

@@ -16,7 +16,7 @@ import pytest
 
 from host.conformance import CHECKS, AuditedCanTransport, Port, run_checks
 from host.transport import MemoryTransport
-from tests.host.conformance.mutants import C_MUTANT_OPTIONS, C_MUTANTS, GATEWAY_MUTANTS, HEALTHY, MUTANTS
+from tests.host.conformance.mutants import C_MUTANT_EVIDENCE, C_MUTANT_OPTIONS, C_MUTANTS, GATEWAY_MUTANTS, HEALTHY, MUTANTS
 from virtual_sheet.devices import CanDevice, MemoryDevice
 from virtual_sheet.sheet import VirtualSheet
 
@@ -123,6 +123,13 @@ def test_every_c_mutant_has_a_python_twin():
     assert set(C_MUTANTS.values()) <= set(MUTANTS)
 
 
+def test_every_chip_check_is_failed_by_some_c_mutant():
+    """The C firmware, too, has a broken build for every check of the chip profile (issue 27, point 4)."""
+    chip = {c.number for c in CHECKS if "chip" in c.profiles}
+    covered = set().union(*(EXPECTED[twin] for twin in C_MUTANTS.values()))
+    assert chip - covered == set(NOT_SHOWN)
+
+
 @pytest.mark.parametrize("name", sorted(C_MUTANTS))
 def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name):
     pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
@@ -134,8 +141,10 @@ def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name):
         return CFirmwareChip(uid, sensor, mutant=name, **{**kw, **C_MUTANT_OPTIONS.get(name, {})})
     _cls, transport, allow_broadcast = MUTANTS[twin]
     sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=factory)
-    # its twin's checks, and check 7 (an ASSIGN: an ACK for the reserved-bits check to look at)
-    results = _run(sheet, allow_broadcast=allow_broadcast, only=[str(n) for n in sorted(expected | {7})])
+    # its twin's checks, and check 7 (an ASSIGN: an ACK for the reserved-bits check to look at), and
+    # what makes the chip send the frame it breaks (C_MUTANT_EVIDENCE: SYNC for a SAMPLE)
+    run = expected | {7} | C_MUTANT_EVIDENCE.get(name, set())
+    results = _run(sheet, allow_broadcast=allow_broadcast, only=[str(n) for n in sorted(run)])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == expected, report
     assert all(_clause_named(results, n) for n in expected), report
