@@ -70,19 +70,27 @@ GATEWAY_EXPECTED = {
 NOT_SHOWN = {22: "the virtual CanDevice filters standard-identifier frames before the chips see them"}
 
 
+#: host-side latency allowed on top of the spec's timing tolerances (the CLI's --slack-ms): the chips
+#: here run in this process's threads, and on a loaded 2-core machine a frame is sometimes handed over
+#: 100 ms late — the mutants are about verdicts, none breaks a timing by less than 2x (as the matrix)
+SLACK_MS = 40.0
+
+
 def _run(sheet, *, allow_broadcast=False, profile="chip", only=None, **dev):
     if sheet.transport == "serial":
         with MemoryDevice(sheet, **dev) as d:
             port = Port(MemoryTransport(d.port))
             try:
-                return run_checks(port, timeout_s=0.3, allow_broadcast=allow_broadcast, profile=profile, only=only)
+                return run_checks(port, timeout_s=0.3, allow_broadcast=allow_broadcast, profile=profile, only=only,
+                                  slack_ms=SLACK_MS)
             finally:
                 port.close()
     with CanDevice(sheet, **dev) as d:
         t = AuditedCanTransport(f"virtual:{d.channels[0]}", reconnect=False)
         port = Port(t)
         try:
-            return run_checks(port, timeout_s=0.3, allow_broadcast=allow_broadcast, profile=profile, only=only)
+            return run_checks(port, timeout_s=0.3, allow_broadcast=allow_broadcast, profile=profile, only=only,
+                                  slack_ms=SLACK_MS)
         finally:
             port.close()
             t.close()
