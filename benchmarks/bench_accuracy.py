@@ -45,7 +45,7 @@ SHEARS = (0.0, 0.1, 0.2, 0.3)
 NOISES = (0.0, 0.3, 5.0)
 TARGETS = {0.0: 0.1, 0.3: 0.2, 5.0: 1.0}  #: issue 13: mean error bound, % of side, per noise % g
 GOAL_NOISE_FREE = 0.02  #: issue 13's goal for the noise-free floor, % of side
-COLUMNS = {"adaptive": {}, "off": {"prior": "off"}, "fixed": {"prior": "fixed"},
+COLUMNS = {"adaptive": {}, "level": {"prior": "level"}, "off": {"prior": "off"}, "fixed": {"prior": "fixed"},
            "local": {"prior": "local"}, "eq6": {"model": "eq6"}}
 
 

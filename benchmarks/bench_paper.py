@@ -19,6 +19,7 @@ level up to which the mean stays under the paper's 5 % failure line.
 
     .venv/bin/python benchmarks/bench_paper.py [--trials 10] [--quick] [--markdown] > run.json
     .venv/bin/python benchmarks/bench_paper.py --markdown-from run.json   # the tables again
+    .venv/bin/python benchmarks/bench_paper.py --rows global --target fig9   # capsheet's rows only
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ VARIANTS = {
     "max_iter=30": {"max_iter": 30},
     "max_iter=3000": {"max_iter": 3000},
 }
-GLOBALS = {"global (capsheet default)": {}, "global, prior off": {"prior": "off"}}
+GLOBALS = {"global (capsheet default)": {}, "global, prior level": {"prior": "level"},
+           "global, prior off": {"prior": "off"}}
 
 
 def methods() -> dict:
@@ -117,18 +119,20 @@ def summarise(rows: list, names) -> dict:
 #: the readings the summary table compares across targets
 SUMMARY = ("paper (defaults)", "n_starts=1 (the square cell only)",
            "select=min (smallest eq. 8 of all starts)", "combine=chain",
-           "global (capsheet default)", "global, prior off")
+           "global (capsheet default)", "global, prior level", "global, prior off")
 
 
 def summary(out: dict) -> list[str]:
-    """One row per target: the mean error at 5 and 10 % g of the readings in `SUMMARY`."""
-    levels = [lv for lv in ("5", "10") if lv in out["targets"][next(iter(out["targets"]))]
-              ["rows"]["paper (defaults)"]["mean_pct"]]
-    lines = ["| target | " + " | ".join(SUMMARY) + " |", "|---|" + "---:|" * len(SUMMARY)]
+    """One row per target: the mean error at 5 and 10 % g of the readings in `SUMMARY` that the
+    run has (``--rows`` may leave some out)."""
+    first = next(iter(out["targets"].values()))["rows"]
+    names = [n for n in SUMMARY if n in first]
+    levels = [lv for lv in ("1", "5", "10") if lv in next(iter(first.values()))["mean_pct"]]
+    lines = ["| target | " + " | ".join(names) + " |", "|---|" + "---:|" * len(names)]
     for tname, t in out["targets"].items():
         lines.append(f"| {tname} | " + " | ".join(
             " / ".join(f"{t['rows'][name]['mean_pct'][lv]:.2f}" for lv in levels)
-            for name in SUMMARY) + " |")
+            for name in names) + " |")
     return [f"Mean % of side at {' / '.join(levels)} % g:", ""] + lines + [""]
 
 
@@ -166,6 +170,8 @@ def main(argv=None) -> int:
                     help=f"targets (default {', '.join(TARGETS)})")
     ap.add_argument("--noise-dist", choices=paper.NOISE_DISTS, default="normal")
     ap.add_argument("--quick", action="store_true", help="2 trials, levels 0 and 5, fig9 only")
+    ap.add_argument("--rows", metavar="TEXT", default=None,
+                    help="only the rows whose name contains TEXT (e.g. 'global')")
     ap.add_argument("--markdown", action="store_true", help="also print the tables on stderr")
     ap.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     ap.add_argument("--markdown-from", metavar="JSON", default=None,
@@ -179,6 +185,10 @@ def main(argv=None) -> int:
     trials, levels = (2, (0.0, 5.0)) if args.quick else (args.trials, LEVELS)
     names = args.target or (["fig9"] if args.quick else list(TARGETS))
     m = methods()
+    if args.rows:
+        m = {k: v for k, v in m.items() if args.rows in k}
+        if not m:
+            ap.error(f"--rows {args.rows!r}: no row's name contains it")
     t0 = time.perf_counter()
     out = {"benchmark": "paper_method", "lattice": "14x14", "trials": trials, "seed": args.seed,
            "noise_dist": args.noise_dist, "levels_pct_g": list(levels),

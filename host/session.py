@@ -60,14 +60,18 @@ def node_for_link(link: int) -> int:
     return link + 1
 
 
-def link_ranges(links) -> str:
-    """Links as compact ranges, for one log line per incident.
+def link_ranges(links, limit: int = 12) -> str:
+    """Links as compact ranges, for one log line per incident; past ``limit`` ranges the rest is
+    counted, not listed (a 128x128 sheet's incident stays one readable line).
 
     >>> link_ranges([0, 1, 2, 3, 7, 9, 10])
     '0–3, 7, 9–10'
+    >>> link_ranges([0, 2, 4, 6, 8], limit=2)
+    '0, 2 and 3 more (5 links in all)'
     """
     out, run = [], []
-    for k in sorted(set(int(x) for x in links)):
+    ks = sorted(set(int(x) for x in links))
+    for k in ks:
         if run and k == run[-1] + 1:
             run.append(k)
             continue
@@ -76,6 +80,8 @@ def link_ranges(links) -> str:
         run = [k]
     if run:
         out.append(f"{run[0]}–{run[-1]}" if len(run) > 1 else f"{run[0]}")
+    if len(out) > limit:
+        return f"{', '.join(out[:limit])} and {len(out) - limit} more ({len(ks)} links in all)"
     return ", ".join(out)
 
 

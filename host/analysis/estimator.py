@@ -89,10 +89,13 @@ MODELS = ("cells", "eq6")
 READING_NORM_RANGE = (0.5, 1.5)
 
 #: The priors `estimate` offers (docs/estimator.md compares them): "adaptive" (default) —
-#: bending + flat-cell shear, both scaled by the readings' noise; "off" — only the floors that
-#: keep the problem regular (the data alone); "fixed" — the former prior, ``FIXED_PRIOR_WEIGHT``
-#: on every yaw towards the rest; "local" — that yaw prior weighted by the cell's flatness.
-PRIORS = ("adaptive", "off", "fixed", "local")
+#: bending + flat-cell shear, both scaled by the readings' noise; "level" — the same with the
+#: bending held only where the region is level: unbiased on a sheet
+#: whose lattice lines turn in plan (a drape), noisier on nets whose lines run straight; "off" —
+#: only the floors that keep the problem regular (the data alone); "fixed" — the former prior,
+#: ``FIXED_PRIOR_WEIGHT`` on every yaw towards the rest; "local" — that yaw prior weighted by
+#: the cell's flatness.
+PRIORS = ("adaptive", "level", "off", "fixed", "local")
 #: Weight of the "fixed"/"local" priors on ``wrap(γ − γ_rest)²`` (the estimator's former prior).
 FIXED_PRIOR_WEIGHT = 1e-2
 #: Least weight of the yaw prior towards the rest yaws (keeps a link without constraints defined).
@@ -1413,23 +1416,37 @@ def _flatness(st, r, norm_g, noise):
     return np.where((noise > 0.0)[..., None], h, 0.0) if lead else h
 
 
+def _link_flatness(st, h):
+    """Per link, the mean flatness `h` (..., n_units) of the units it belongs to (one or two)."""
+    units = st.lattice.units.reshape(-1, 4)
+    acc = np.zeros(np.shape(h)[:-1] + (st.n_links,))
+    cnt = np.zeros(st.n_links)
+    for k in range(4):  # a link holds one position k in at most one unit: no repeated index
+        acc[..., units[:, k]] += h
+        cnt[units[:, k]] += 1.0
+    return acc / np.maximum(cnt, 1.0)
+
+
 def _prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
 
     "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
-    unit's `_flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "off": floors only; "fixed":
+    unit's `_flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
+    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `_link_flatness`; "off": floors only; "fixed":
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
     lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("adaptive" only)
     w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
-    if prior == "adaptive":
-        w[..., :st.n_bend] = np.maximum((np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2,
-                                        PRIOR_WEIGHT_MIN)
-        h = _flatness(st, r, norm_g, noise)[..., st.shear_unit]
+    if prior in ("adaptive", "level"):
+        hu = _flatness(st, r, norm_g, noise)
+        bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
+        if prior == "level":  # a pair is held as much as its flatter link's units are level
+            bend = bend * _link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+        w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
-        w[..., st.n_bend:] = np.maximum(sw * h, PRIOR_WEIGHT_MIN)
+        w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)
     elif prior == "fixed":
         lam[:] = FIXED_PRIOR_WEIGHT
     elif prior == "local":
@@ -1482,12 +1499,14 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         The normal model (global method): ``"cells"`` (default) — every link's sensor z is the
         mean normal of its cells, each ``A × C`` of the cell's mean i- and j-link (exact on a
         Chebyshev net, docs/estimator.md); ``"eq6"`` — the paper's normal assumption (eq. 6).
-    prior : {"adaptive", "off", "fixed", "local"}
+    prior : {"adaptive", "level", "off", "fixed", "local"}
         What fills in what the data cannot determine (`PRIORS`; docs/estimator.md measures
         them): "adaptive" (default) holds the bending of the lattice and the shear of level
         cells, with weights that scale with the readings' noise (noise-free readings: only a
-        floor), so that it does not pull where the data decide; "off" keeps only the floors
-        (the data alone); "fixed" and "local" are the alternatives it was measured against.
+        floor), so that it does not pull where the data decide; "level" holds the bending
+        only where the region is level (unbiased on a drape, whose lattice lines turn in
+        plan; noisier on nets whose lines run straight); "off" keeps only the floors (the data
+        alone); "fixed" and "local" are the alternatives it was measured against.
     noise_pct_g : float
         The reading noise (per axis, % of g) that `ShapeEstimate.yaw_std` and ``joint_std`` are
         stated for. Does not change the estimate.

@@ -58,7 +58,13 @@ class CliParser(argparse.ArgumentParser):
     """`argparse.ArgumentParser` whose usage errors are ONE line, ``prog: message``, exit 2 (argparse
     prints a usage block of 6-8 lines first), and that checks output paths once every value is in
     (`OutputPath`: nothing a user owns is replaced without ``--overwrite``). Subparsers made by
-    ``add_subparsers`` are of this class too."""
+    ``add_subparsers`` are of this class too. Options are never abbreviated: ``--noise`` is not
+    taken for ``--noise-dist`` (argparse's default would, and then reject the value for a reason
+    the user cannot see)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):  # noqa: D401 - argparse's hook
         self.exit(2, f"{self.prog}: {message}\n")

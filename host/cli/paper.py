@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.constants import G0
+from host.cli.argtypes import CliParser
 
 
 class _LazyEstimator:
@@ -632,13 +633,6 @@ def _emit(stem: Path, markdown: str, data: dict) -> None:
     print(f"wrote {stem.with_suffix('.md')} and {stem.with_suffix('.json')}")
 
 
-class _OneLineParser(argparse.ArgumentParser):
-    """A bad value is one line on stderr (``capsheet paper noise: error: ...``), exit 2."""
-
-    def error(self, message):
-        self.exit(2, f"{self.prog}: error: {message}\n")
-
-
 def _bounded(kind, lo: float, hi: float | None = None, name: str = "value", need: str = ""):
     """An argparse type: ``kind(text)`` within [lo, hi], else one line naming what is allowed."""
     need = need or f"need an integer >= {lo}"
@@ -683,7 +677,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("paper", help="the paper's Fig. 8-10, as the authors ran them "
                                             "(PNG + tables)",
                               description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="paper_command", metavar="FIGURE", parser_class=_OneLineParser)
+    sub = p.add_subparsers(dest="paper_command", metavar="FIGURE", parser_class=CliParser)
 
     def common(sp, seed=True):
         sp.add_argument("--out", default="out/paper", help="output directory (default out/paper)")

@@ -1,11 +1,13 @@
 """``capsheet tactile``: contacts and forces live, from the virtual foam sheet or a real sheet.
 
 By default it runs in-process on the virtual foam block (`virtual_sheet.foam`): a 14x14 sheet,
-L = 1 cm, 1 % g reading noise, a scripted press and release of two indenters (a sphere that slides
-slowly, then a flat punch). It first learns the rest shape from an untouched period, then prints
-one status line per snapshot (count, positions in lattice indices, forces, track ids) and writes
-a PNG heat map of the normal displacement with the contacts outlined (the snapshot with the
-largest total force).
+L = 1 cm, 1 % g reading noise, a scripted press and release of two indenters (``--indenter
+sphere-punch``: a sphere that slides slowly, then a flat punch; ``--indenter finger``: a finger
+that presses and slides, then a second finger beside it, 2.5 link lengths apart). It first learns
+the rest shape from an untouched period, then prints one status line per snapshot (count,
+positions in lattice indices, forces with their standard deviations, footprints, track ids,
+onsets and releases) and writes a PNG heat map of the normal displacement with the contacts
+outlined (the snapshot with the largest total force).
 
 With ``--port`` or ``--can`` it runs on a real sheet through `host.session.Host` (the same
 transports as ``capsheet host``): the first ``--learn-s`` seconds must be untouched (rest shape),
@@ -28,6 +30,10 @@ if TYPE_CHECKING:  # host.analysis.tactile (and through it the estimator and sci
     # it is used, so that building the CLI's parser stays light
     from host.analysis.tactile import DetectorSettings, Foam, TactileFrame
     from host.analysis.tactile.plot import TrueMark
+
+
+#: ``--indenter`` choices: the virtual sheet's scripted presses (`_presses`).
+INDENTERS = ("sphere-punch", "finger")
 
 
 def register(subparsers) -> None:
@@ -55,6 +61,10 @@ def register(subparsers) -> None:
     virt = p.add_argument_group("virtual sheet")
     virt.add_argument("--body", choices=("block", "cylinder", "sphere"), default="block",
                       help="foam body (default block: a level top face, the paper's Case 1 at rest)")
+    virt.add_argument("--indenter", choices=INDENTERS, default="sphere-punch",
+                      help="what presses the virtual sheet (default sphere-punch: a 15 mm ball, "
+                           "then a 7.5 mm flat punch; finger: a 4 cm finger, then a second "
+                           "beside it)")
     virt.add_argument("--noise", type=T.noise, default=1.0, help="reading noise, %% g (default 1)")
     virt.add_argument("--snapshot-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=8.0,
                       help="snapshots per simulated second (default 8)")
@@ -72,18 +82,44 @@ def register(subparsers) -> None:
 
 def _status(fr: TactileFrame, L: float) -> str:
     t = "" if fr.t_s is None else f"t={fr.t_s:5.2f}s "
-    parts = [f"#{c.id} ({c.index[0]:.1f},{c.index[1]:.1f}) {c.force_n:.2f}N "
-             f"{c.depth_m * 1e3:.1f}mm" for c in fr.contacts]
-    return (f"{t}{len(fr.contacts)} contact(s) total {fr.total_force_n:5.2f} N"
+    parts = []
+    for c in fr.contacts:
+        shape = f"{2e3 * c.axes_m[0]:.0f}x{2e3 * c.axes_m[1]:.0f}mm"
+        if np.isfinite(c.angle_std_rad) and c.angle_std_rad < np.pi / 6:
+            shape += f"@{np.degrees(c.angle_rad):+.0f}deg"
+        parts.append(f"#{c.id} ({c.index[0]:.1f},{c.index[1]:.1f}) {c.force_n:.2f}"
+                     f"±{c.force_std_n:.2f}N {shape}" + (" count?" if c.ambiguous else ""))
+    line = (f"{t}{len(fr.contacts)} contact(s) total {fr.total_force_n:5.2f} N"
             + (": " + "; ".join(parts) if parts else ""))
+    for e in getattr(fr, "events", ()):
+        line += f"  [{e.kind} #{e.id}" + ("" if e.t_s is None else f" at {e.t_s:.2f}s") + "]"
+    return line
+
+
+def _presses(which: str, T: float):
+    """The scripted presses of ``--indenter`` over a run of ``T`` seconds (surface (u, v), m)."""
+    from virtual_sheet.foam import CapsuleIndenter, FlatPunch, Press, SphereIndenter
+
+    if which == "finger":
+        ang = 0.5
+        e = np.array([np.cos(ang), np.sin(ang)])
+        side = 0.025 * np.array([-e[1], e[0]])
+        return [Press(CapsuleIndenter(0.008, 0.02, angle_rad=ang), (-0.01, -0.01), 3.0,
+                      t_on_s=0.05 * T, t_off_s=0.8 * T, ramp_s=0.05 * T,
+                      velocity_mps=tuple(0.01 / T * e)),
+                Press(CapsuleIndenter(0.008, 0.02, angle_rad=ang), tuple((-0.01, -0.01) + side),
+                      2.0, t_on_s=0.35 * T, t_off_s=0.7 * T, ramp_s=0.05 * T)]
+    return [Press(SphereIndenter(0.015), (-0.03, -0.02), 2.0, t_on_s=0.05 * T,
+                  t_off_s=0.65 * T, ramp_s=0.1 * T, velocity_mps=(0.01 / T, 0.01 / T)),
+            Press(FlatPunch(0.0075), (0.025, 0.02), 1.5, t_on_s=0.25 * T, t_off_s=0.85 * T,
+                  ramp_s=0.1 * T)]
 
 
 def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
     from host.aggregator import LatticeSnapshot
     from host.analysis.tactile import TactileSensor
     from host.feed import corrected
-    from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamCylinder, FoamLayer, FoamScene,
-                                    FoamSphere, Press, SphereIndenter)
+    from virtual_sheet.foam import FoamBlock, FoamCylinder, FoamLayer, FoamScene, FoamSphere
     from virtual_sheet.geometry import ideal_readings
     from virtual_sheet.sensor import noisy_readings
 
@@ -92,11 +128,7 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int,
     body = {"block": lambda: FoamBlock(layer), "cylinder": lambda: FoamCylinder(0.08, layer),
             "sphere": lambda: FoamSphere(0.1, layer)}[args.body]()
     T = args.duration
-    presses = [Press(SphereIndenter(0.015), (-0.03, -0.02), 2.0, t_on_s=0.05 * T,
-                     t_off_s=0.65 * T, ramp_s=0.1 * T, velocity_mps=(0.01 / T, 0.01 / T)),
-               Press(FlatPunch(0.0075), (0.025, 0.02), 1.5, t_on_s=0.25 * T, t_off_s=0.85 * T,
-                     ramp_s=0.1 * T)]
-    scene = FoamScene(body, presses, rows, cols, L)
+    scene = FoamScene(body, _presses(args.indenter, T), rows, cols, L)
     rng = np.random.Generator(np.random.MT19937(args.seed))
     n_links = (rows - 1) * cols + rows * (cols - 1)
     # the virtual chips read with the nominal calibration: a calibration file is rebased to it and
@@ -128,17 +160,27 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int,
         snap = snapshot(k, t, noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng))
         outputs.snapshot(snap, estimate=False)  # what is estimated is what is recorded
         fr = sensor.process(snap.readings, t_s=t)
-        yield fr, [_true_mark(scene, c, L) for c in scene.contacts(t)]
+        yield fr, _true_marks(scene, t, L)
 
 
-def _true_mark(scene, c, L: float) -> TrueMark:
+def _true_marks(scene, t: float, L: float) -> list[TrueMark]:
+    """The true contacts at ``t`` in lattice indices, with their half-depth footprints (the
+    definition of `Contact.axes_m`); angles from the lattice's i direction (the surface's +u is
+    the i direction on every virtual body)."""
     from host.analysis.tactile import lattice_index
     from host.analysis.tactile.plot import TrueMark
-    """A true contact in lattice indices; its footprint's angle from the lattice's i direction
-    (the surface's +u is the i direction on every virtual body)."""
-    idx = lattice_index(scene.rest_joints, c.position)
-    return TrueMark((float(idx[0]), float(idx[1])), c.force_n,
-                    (c.footprint_m[0] / L, c.footprint_m[1] / L), c.angle_rad)
+
+    contacts = scene.contacts(t)
+    if not contacts:
+        return []
+    fps = {f.index: f for f in scene.footprints(t)}
+    out = []
+    for c in contacts:
+        idx = lattice_index(scene.rest_joints, c.position)
+        fp = fps[c.index]
+        out.append(TrueMark((float(idx[0]), float(idx[1])), c.force_n,
+                            (fp.dent_axes_m[0] / L, fp.dent_axes_m[1] / L), fp.dent_angle_rad))
+    return out
 
 
 def _real(args, rows: int, cols: int):
@@ -231,7 +273,8 @@ def run(args) -> int:
     if best is None:
         print("capsheet tactile: no snapshot received", file=sys.stderr)
         return 1
-    source_name = "real sheet" if real else f"virtual foam {args.body}"
+    source_name = "real sheet" if real else (f"virtual foam {args.body}, "
+                                             f"{args.indenter.replace('-', ' and ')}")
     params = (f"{source_name}, {rows}x{cols}, L = {args.link_length * 100:g} cm"
               + ("" if real else f", noise {args.noise:g} % g")
               + f"; foam h {args.thickness * 1e3:g} mm, E {args.youngs / 1e3:g} kPa, "

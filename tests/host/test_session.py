@@ -260,6 +260,9 @@ def test_a_nack_storm_keeps_one_log_line_and_bounded_histories(rigs, caplog):
 
 def test_link_ranges_compacts_incidents():
     assert link_ranges(range(364)) == "0–363"
+    # thousands of scattered links (a large sheet's incident): the first ranges, the rest counted
+    assert link_ranges(range(0, 4000, 2)) == ("0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 20, 22 and 1988 more "
+                                            "(2000 links in all)")
     assert link_ranges([5, 1, 2, 3, 9]) == "1–3, 5, 9"
 
 

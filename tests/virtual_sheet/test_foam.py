@@ -127,3 +127,32 @@ def test_host_reads_the_curvature_the_virtual_body_has():
         assert got == pytest.approx(want, abs=0.03 * max(want[0], 1.0))
         k_host = np.median(Foam().k_at(rest.curvatures))
         assert k_host == pytest.approx(body.contact_layer.k_pa_per_m, rel=0.01)
+
+
+def test_true_footprints_of_round_and_elongated_presses():
+    """`FoamScene.footprints`: every press's contact patch (pressure moments) and its own dent's
+    half-depth footprint: round for a ball and a punch (a punch's pressure is rim-heavy: its
+    patch's 2 sqrt(moment) exceeds its radius), a finger's long along its angle; each centred on
+    its press."""
+    from virtual_sheet.foam import TrueFootprint
+    presses = [Press(SphereIndenter(0.015), (0.03, 0.03), 2.0),
+               Press(FlatPunch(0.0075), (-0.03, 0.03), 2.0),
+               Press(CapsuleIndenter(0.01, 0.02, angle_rad=0.5), (0.0, -0.02), 3.0)]
+    sc = FoamScene(FoamBlock(), presses, 14, 14, L)
+    fps = sc.footprints(0.0)
+    assert [f.index for f in fps] == [0, 1, 2] and all(isinstance(f, TrueFootprint) for f in fps)
+    step = sc.deflection(0.0).step_m
+    for f, p in zip(fps, presses):
+        assert np.linalg.norm(f.pressure_centre_m - np.asarray(p.position_m)) < step
+    ball, punch, finger = fps
+    for f in (ball, punch):
+        assert f.pressure_axes_m[1] > 0.95 * f.pressure_axes_m[0]
+        assert f.dent_axes_m[1] > 0.95 * f.dent_axes_m[0]
+        assert f.dent_axes_m[0] > f.pressure_axes_m[1] * 0.9   # the dent spreads beyond it
+    assert 0.0075 < punch.pressure_axes_m[0] < 1.4 * 0.0075
+    assert finger.pressure_axes_m[0] > 4 * finger.pressure_axes_m[1]
+    assert abs(finger.pressure_angle_rad - 0.5) < 0.02 and abs(finger.dent_angle_rad - 0.5) < 0.02
+    assert finger.dent_area_m2 > 3 * ball.dent_area_m2
+    untouched = FoamScene(FoamBlock(), [Press(SphereIndenter(0.015), (0.0, 0.0), 2.0,
+                                              t_on_s=1.0)], 14, 14, L)
+    assert untouched.footprints(0.5) == []

@@ -70,10 +70,10 @@ from .bodies import FoamBlock, FoamBody, FoamCylinder, FoamSphere
 from .indenters import (CapsuleIndenter, FlatPunch, Indenter, Press, RectPunch, SphereIndenter,
                         TrueContact)
 from .material import FoamLayer, column_compliance, oedometric_modulus
-from .scene import Creep, FoamScene
+from .scene import Creep, FoamScene, TrueFootprint
 from .solver import Deflection, solve_contact
 
 __all__ = ["FoamLayer", "oedometric_modulus", "Indenter", "SphereIndenter", "FlatPunch",
            "CapsuleIndenter", "RectPunch", "Press", "TrueContact", "FoamBody", "FoamBlock",
            "FoamCylinder", "FoamSphere", "FoamScene", "Deflection", "solve_contact",
-           "column_compliance", "Creep"]
+           "column_compliance", "Creep", "TrueFootprint"]

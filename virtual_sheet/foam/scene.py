@@ -15,7 +15,53 @@ from .indenters import Press, TrueContact
 from .material import FoamLayer, _positive
 from .solver import Deflection, solve_contact
 
-__all__ = ["FoamScene", "Creep"]
+__all__ = ["FoamScene", "Creep", "TrueFootprint"]
+
+
+@dataclass(frozen=True)
+class TrueFootprint:
+    """The exact footprints of one active press, from the solved deflection and pressure
+    (surface coordinates; half-axes ``2 sqrt(eigenvalue)`` of second central moments, so a
+    uniform disc of radius ``a`` gives ``a``).
+
+    Attributes
+    ----------
+    index : int
+        Its `Press` in the scene.
+    pressure_centre_m : ndarray, shape (2,)
+        Centre of its pressure, metres.
+    pressure_axes_m : tuple of float
+        Half-axes (major, minor) of its pressure distribution (pressure-weighted moments):
+        the contact patch.
+    pressure_angle_rad : float
+        Major axis from surface +u, in (−π/2, π/2].
+    dent_axes_m : tuple of float
+        Half-axes (major, minor) of its half-depth footprint: the region where its own dent
+        (the layer's response to its pressure alone: the layer is linear) is at least half its
+        deepest, uniform weights.
+    dent_angle_rad : float
+        Its major axis from surface +u, in (−π/2, π/2].
+    dent_area_m2 : float
+    """
+
+    index: int
+    pressure_centre_m: np.ndarray
+    pressure_axes_m: tuple[float, float]
+    pressure_angle_rad: float
+    dent_axes_m: tuple[float, float]
+    dent_angle_rad: float
+    dent_area_m2: float
+
+
+def _moment_axes(xy: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, tuple, float]:
+    """Weighted centre, half-axes ``2 sqrt(eig)`` (major, minor) and major-axis angle."""
+    mu = w @ xy / w.sum()
+    X = xy - mu
+    C = X.T @ (X * w[:, None]) / w.sum()
+    ev, evec = np.linalg.eigh(C)
+    ang = float(np.arctan2(evec[1, 1], evec[0, 1]))
+    ang = ang - np.pi if ang > np.pi / 2 else ang + np.pi if ang <= -np.pi / 2 else ang
+    return mu, (float(2 * np.sqrt(max(ev[1], 0.0))), float(2 * np.sqrt(max(ev[0], 0.0)))), ang
 
 
 @dataclass(frozen=True)
@@ -158,6 +204,49 @@ class FoamScene:
             self._cache[key] = self.body.sheet(d, self.rows, self.cols, self.link_length,
                                                np.array(self.rest_joints))
         return self._cache[key].copy()
+
+    def footprints(self, t_s: float) -> list[TrueFootprint]:
+        """The exact footprints of the presses active at ``t_s`` (`TrueFootprint`), in
+        `presses` order. A cell of positive pressure belongs to the press whose tip touches it
+        (the smallest gap between tip and deflected surface); every other cell to the press
+        whose contact is nearest (a Voronoi partition of the surface by contact patches)."""
+        from scipy.ndimage import distance_transform_edt
+
+        defl = self.deflection(t_s)
+        if defl is None:
+            return []
+        active = [i for i, p in enumerate(self.presses) if p.force_at(t_s) > self.min_force_n]
+        U, V = np.meshgrid(defl.u, defl.v, indexing="ij")
+        gap = []
+        for i in active:
+            c = self.presses[i].position_at(t_s)
+            g = self.presses[i].indenter.profile(U - c[0], V - c[1])
+            gap.append(g - defl.depths_m.get(i, 0.0) + defl.w)
+        touch = np.argmin(np.array(gap), axis=0)
+        dist = []
+        for n in range(len(active)):
+            patch = (defl.pressure > 0) & (touch == n)
+            dist.append(distance_transform_edt(~patch) if patch.any()
+                        else np.full(U.shape, np.inf))
+        own = np.argmin(np.array(dist), axis=0)
+        xy = np.stack([U.ravel(), V.ravel()], axis=1)
+        from scipy.fft import irfft2, rfft2
+
+        from .solver import _compliance
+        n_grid = U.shape[0]
+        comp = _compliance(self.layer, n_grid, defl.step_m)
+        out = []
+        for n, i in enumerate(active):
+            mine = own == n
+            pm = np.where(mine, defl.pressure, 0.0)
+            p = pm.ravel()
+            pc, pax, pang = _moment_axes(xy[p > 0], p[p > 0])
+            w = irfft2(rfft2(pm) * comp, s=U.shape).ravel()   # its own dent
+            half = w >= 0.5 * w.max()
+            _, dax, dang = _moment_axes(xy[half], np.ones(int(half.sum())))
+            out.append(TrueFootprint(i, pc, pax, pang, dax, dang,
+                                     float(half.sum() * defl.step_m ** 2)))
+        return out
 
     def contacts(self, t_s: float) -> list[TrueContact]:
         """The true contacts active at ``t_s``, in `presses` order."""

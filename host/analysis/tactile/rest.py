@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
@@ -87,6 +87,11 @@ class RestShape:
         unknown; `find_contacts` then uses a robust spread of each frame).
     yaws : ndarray, shape (n_links,), optional
         Link yaws for the estimator's prior (default: from the joints).
+    noise_samples_m : ndarray, shape (S, rows, cols), optional
+        The untouched snapshots' normal displacements from their mean, metres (`learn` keeps
+        them): the joints' noise is correlated (heights are integrated slopes), and the contact
+        fit states its uncertainties from these samples (a sandwich estimate) instead of
+        assuming independent joints.
 
     Derived: ``normals`` (rows, cols, 3), out of the foam; ``areas`` (rows, cols), m², a quarter
     of every adjacent cell; ``curvatures`` (rows, cols, 2), the principal curvatures, 1/m,
@@ -97,6 +102,7 @@ class RestShape:
     link_length: float
     noise_m: np.ndarray | None = None
     yaws: np.ndarray | None = None
+    noise_samples_m: np.ndarray | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         P = np.array(self.joints, dtype=float)
@@ -186,7 +192,8 @@ class RestShape:
         if all(isinstance(s, ShapeEstimate) for s in snaps):
             y = np.array([s.yaws for s in snaps])
             yaws = np.angle(np.exp(1j * y).mean(axis=0))
-        return cls(joints=mean, link_length=float(link_length), noise_m=noise, yaws=yaws)
+        return cls(joints=mean, link_length=float(link_length), noise_m=noise, yaws=yaws,
+                   noise_samples_m=(d - d.mean(axis=0)).reshape((len(P),) + shape[:2]))
 
 
 #: Weight of the tangential (point-to-point) residuals against the normal ones in `normal_fit`:
@@ -260,7 +267,7 @@ def normal_fit(src: np.ndarray, dst: np.ndarray, normals: np.ndarray, weights: n
         b[3:] += eps * (w @ e)
         step = np.linalg.solve(M, b)
         p = x @ _rotation(step[:3]).T + c + step[3:]
-        if np.max(np.abs(step)) < 1e-10:
+        if np.max(np.abs(step)) < 1e-9:   # 1 nm, 1 nrad
             break
     return p
 
@@ -313,6 +320,7 @@ def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | No
     if allowed.sum() < 4:
         allowed = np.ones(len(src), bool)
     moved = rigid_fit(src, dst, allowed.astype(float))
+    kept = None
     for _ in range(iterations):
         d = np.sum((dst - moved) * n, axis=1)
         r = d - np.median(d[allowed])
@@ -320,6 +328,9 @@ def deformation(joints: np.ndarray, rest: RestShape, *, exclude: np.ndarray | No
         keep = allowed & (np.abs(r) <= max(trim_sigma * s, floor))
         if keep.sum() < 6:
             keep = allowed
+        if kept is not None and np.array_equal(keep, kept):
+            break   # the same joints as the last fit: it would not move
+        kept = keep
         moved = normal_fit(src, dst, n, keep.astype(float), start=moved)
     d = np.sum((dst - moved) * n, axis=1)
     return d.reshape(P.shape[:2]), moved.reshape(P.shape)

@@ -103,6 +103,8 @@ CASES = [
     (["tactile", "--snapshot-rate", "0"], "--snapshot-rate"),
     (["tactile", "--out", "heat.txt"], "--out"),
     (["tactile", "--record", "{mcap}"], "--record"),
+    (["tactile", "--indenter", "thumb"], "--indenter"),
+    (["tactile", "--indenter", ""], "--indenter"),
     # -- replay and estimate: inputs exist, outputs are not inputs --
     (["replay", "{nodir}.mcap"], "recording"),
     (["replay", "{dir}"], "recording"),
@@ -125,6 +127,9 @@ CASES = [
     (["protocol", "capacity", "--lattice", "1x1"], "--lattice"),
     # -- paper: argparse's own errors are one line too --
     (["paper", "gaussian", "--seed", "abc"], "--seed"),
+    # an abbreviation is not taken for a longer option (--noise is not --noise-dist)
+    (["paper", "noise", "--noise", "5"], "unrecognized arguments: --noise"),
+    (["host", "--port", "/dev/null", "--dur", "3"], "unrecognized arguments: --dur"),
 ]
 
 
