@@ -135,10 +135,25 @@ def compiled_modules(root: Path = ROOT) -> set[str]:
                 if isinstance(c, ast.Constant) and isinstance(c.value, str) and ".py:" in c.value]
     out = set()
     for b in builders:
-        for node in ast.walk(ast.parse((root / b).read_text())):
-            if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "set_source" \
-                    and node.args and isinstance(node.args[0], ast.Constant):
+        tree = ast.parse((root / b).read_text())
+        helpers = set()  # functions whose parameter is set_source's name (firmware_ref: _builder(module, ...))
+        for fn in ast.walk(tree):
+            if not isinstance(fn, ast.FunctionDef):
+                continue
+            params = [a.arg for a in fn.args.args]
+            for node in ast.walk(fn):
+                if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "set_source" and node.args \
+                        and isinstance(node.args[0], ast.Name) and node.args[0].id in params:
+                    helpers.add((fn.name, params.index(node.args[0].id)))
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Call) or not node.args:
+                continue
+            if getattr(node.func, "attr", None) == "set_source" and isinstance(node.args[0], ast.Constant):
                 out.add(node.args[0].value)
+            for name, k in helpers:
+                if getattr(node.func, "id", None) == name and len(node.args) > k \
+                        and isinstance(node.args[k], ast.Constant):
+                    out.add(node.args[k].value)
     return out
 
 
@@ -210,8 +225,8 @@ def test_the_cycle_finder_sees_a_cycle():
 
 def test_compiled_extensions_are_known_to_the_import_graph():
     # each cffi module of setup.py; the estimator and the tactile response import theirs relatively
-    assert compiled_modules() == {"firmware_ref._capsheet_fw", "host.analysis._yaw_kernel",
-                                  "host.analysis.tactile._response_kernel"}
+    assert compiled_modules() == {"firmware_ref._capsheet_fw", "firmware_ref._capsheet_fw_mutants",
+                                  "host.analysis._yaw_kernel", "host.analysis.tactile._response_kernel"}
     graph = import_graph()
     assert "host.analysis.tactile" not in graph["host.analysis.tactile.response"]
     assert "host.analysis.tactile.response" in graph["host.analysis.tactile.fit"]
