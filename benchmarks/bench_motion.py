@@ -183,7 +183,8 @@ def drift(n: int, minutes: float, cal, seed: int) -> dict:
            "fused_end_pct": round(float(err[end].mean()), 4)}
     row["fused_ratio"] = round(row["fused_end_pct"] / row["fused_start_pct"], 3)
     if keep:
-        Jp, _F = per_link_filter(t, np.concatenate(keep["acc"]), np.concatenate(keep["gyr"]), n, n, L)
+        Jp, _F = per_link_filter(t, np.concatenate(keep["acc"]), np.concatenate(keep["gyr"]), n, n, L,
+                                 with_frames=False)
         ep = np.array([error_percent_of_side(Jp[k], keep["truth"], L).mean() for k in range(t.size)])
         row["per_link_start_pct"] = round(float(ep[start].mean()), 4)
         row["per_link_end_pct"] = round(float(ep[end].mean()), 4)

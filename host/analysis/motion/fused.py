@@ -50,6 +50,7 @@ the magnetometers' median.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -57,8 +58,18 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._lattice import CLOSURE_SIGNS, topology
 
+try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._link_kernel import ffi as _kffi, lib as _klib
+except ImportError:  # not built: the numpy code, the same numbers to rounding
+    _kffi = _klib = None
+
+#: Run the per-link steps in the compiled kernel when it is built (False: numpy).
+USE_KERNEL = _klib is not None
+
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
-           "calibrated"]
+           "calibrated", "relative_accelerations"]
 
 _EX = np.array([1.0, 0.0, 0.0])
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
@@ -264,6 +275,23 @@ def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
     return x
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of ``(n, 3)`` arrays (np.cross's axis handling costs more than
+    the products at these sizes)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``Q R_k`` for every frame ``R (n, 3, 3)``, as one 3 x 3n product."""
+    n = R.shape[0]
+    return np.ascontiguousarray((Q @ R.transpose(1, 0, 2).reshape(3, 3 * n))
+                                .reshape(3, n, 3).transpose(1, 0, 2))
+
+
 def _wrap(x):
     return (x + np.pi) % (2 * np.pi) - np.pi
 
@@ -277,6 +305,117 @@ def frames_from_angles(alpha, beta, gamma) -> np.ndarray:
     R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa
     R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sb, cb * sa, cb * ca
     return R
+
+
+# ---------------------------------------------------------------------------------------------
+# The per-link steps: numpy, and the same in C (host/analysis/motion/_kernel/link_filter.c) when
+# built. Each updates its arrays in place; link_filter.h documents them.
+# ---------------------------------------------------------------------------------------------
+
+def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
+    dth = 0.5 * (w0 + w1) * dt[:, None] + _cross(w0, w1) * (dt * dt / 12.0)[:, None]
+    R[:] = R @ rotation_matrices(dth)
+    G = R * dt[:, None, None]  # δθ' = δθ − R δb dt
+    Ptt, Ptb, Pbb = P[:, :3, :3], P[:, :3, 3:], P[:, 3:, 3:]
+    GPbb = G @ Pbb
+    GPbt = G @ P[:, 3:, :3]
+    Ptt_new = Ptt - GPbt - GPbt.transpose(0, 2, 1) + GPbb @ G.transpose(0, 2, 1)
+    Ptt_new += q[:, None, None] * np.eye(3)
+    P[:, :3, 3:] = Ptb - GPbb
+    P[:, 3:, :3] = P[:, :3, 3:].transpose(0, 2, 1)
+    P[:, :3, :3] = Ptt_new
+    P[:, 3:, 3:] += qb[:, None, None] * np.eye(3)
+
+
+def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
+    Rt = R.transpose(0, 2, 1)
+    y = f - np.einsum("kij,kj->ki", Rt, vec)
+    H = Rt @ _skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
+    HP = H @ P[:, :3, :]  # (n, 3, 6)
+    S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
+    Si = _inv_sym3(S)
+    m2 = np.einsum("ki,kij,kj->k", y, Si, y)
+    Si /= np.maximum(1.0, m2 / gate)[:, None, None]
+    K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
+    K[~valid] = 0.0
+    x[:] = np.einsum("kij,kj->ki", K, y)
+    P -= K @ HP
+
+
+def _np_yaw(P, mu, a_diag, x) -> None:
+    c = P[:, :, 2].copy()  # (n, 6): covariance with the yaw error
+    p = c[:, 2].copy()
+    g = c / p[:, None]
+    P -= np.einsum("ki,kj->kij", g, c * (1.0 - 1.0 / (a_diag * p))[:, None])
+    x[:] = g * mu[:, None]
+
+
+def _np_apply(R, bias, P, x) -> None:
+    R[:] = rotation_matrices(x[:, :3]) @ R
+    bias += x[:, 3:]
+    P += P.transpose(0, 2, 1)
+    P *= 0.5
+
+
+_NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
+
+
+def _kernel_step(name: str, *args) -> None:
+    ptr = []
+    for a in args:
+        if isinstance(a, np.ndarray):
+            if a.dtype == bool:
+                a = a.astype(np.uint8)
+            elif not a.flags.c_contiguous or a.dtype != np.float64:
+                raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
+            ptr.append(_kffi.cast("uint8_t *" if a.dtype == np.uint8 else "double *",
+                                  _kffi.from_buffer(a)))
+        else:
+            ptr.append(float(a))
+    n = args[0].shape[0]
+    getattr(_klib, "capsheet_mf_" + name)(n, *ptr)
+
+
+def _step(name: str, *args) -> None:
+    """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
+    `USE_KERNEL`, else numpy's."""
+    if USE_KERNEL:
+        _kernel_step(name, *args)
+    else:
+        _NUMPY_STEPS[name](*args)
+
+
+def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray,
+                           rows: int, cols: int, link_length: float,
+                           endpoints: np.ndarray | None = None) -> np.ndarray:
+    """Every chip's acceleration less the mean of all chips', from the links' frames, rates and
+    angular accelerations alone (module docstring, step 2): a link's direction ``d = R e_x`` has
+    ``d̈ = R (ω × (ω × e_x) + ω̇ × e_x)``; the joints' accelerations follow from the ``d̈`` as the
+    joints from the ``d`` (`joints_from_directions`), and a chip (at its link's midpoint) has the
+    mean of its link's ends'.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (n_links, 3, 3)
+        Sensor -> world.
+    omega, omega_dot : ndarray, shape (n_links, 3)
+        Angular velocity (rad/s) and its time derivative (rad/s²), link frames.
+
+    Returns
+    -------
+    ndarray, shape (n_links, 3)
+        m/s², world frame, summing to zero over the links.
+    """
+    w = np.asarray(omega, dtype=float)
+    wdot = np.asarray(omega_dot, dtype=float)
+    body = w[:, 0:1] * w - np.einsum("ki,ki->k", w, w)[:, None] * _EX  # ω × (ω × e_x)
+    body[:, 1] += wdot[:, 2]  # + ω̇ × e_x
+    body[:, 2] -= wdot[:, 1]
+    ddot = np.einsum("kij,kj->ki", frames, body)
+    A = joints_from_directions(ddot, rows, cols, link_length).reshape(-1, 3)
+    ep = topology(rows, cols).lattice.endpoints if endpoints is None else endpoints
+    a = 0.5 * (A[ep[:, 0]] + A[ep[:, 1]])
+    return a - a.mean(axis=0)
 
 
 def calibrated(cal, accel_mps2, gyro_rps=None, mag_t=None):
@@ -470,7 +609,7 @@ class MotionEstimator:
             off = _wrap(self.declination_rad - head[v])
             phi = float(np.arctan2(np.median(np.sin(off)), np.median(np.cos(off))))
             phi += float(np.median(_wrap(off - phi)))
-            R = rotation_matrices(np.array([0.0, 0.0, phi]))[None] @ R
+            R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, phi])), R)
             W = np.einsum("kij,kj->ki", R, m)[v]
             F = float(np.median(np.linalg.norm(W, axis=1)))
             dip = float(np.median(np.arcsin(np.clip(-W[:, 2] / np.linalg.norm(W, axis=1), -1, 1))))
@@ -490,22 +629,10 @@ class MotionEstimator:
     # ------------------------------------------------------------------------------- 1. gyro
     def _propagate(self, w_c, dt) -> None:
         cfg = self.config
-        w0 = self._w_hist[-1]
-        dth = 0.5 * (w0 + w_c) * dt[:, None] + np.cross(w0, w_c) * (dt * dt / 12.0)[:, None]
-        self.R = self.R @ rotation_matrices(dth)
-        G = self.R * dt[:, None, None]  # δθ' = δθ − R δb dt
-        P = self.P
-        Ptt, Ptb, Pbb = P[:, :3, :3], P[:, :3, 3:], P[:, 3:, 3:]
-        GPbb = G @ Pbb
-        Ptt_new = Ptt - G @ Ptb.transpose(0, 2, 1) - Ptb @ G.transpose(0, 2, 1) \
-            + GPbb @ G.transpose(0, 2, 1)
         q = cfg.orientation_walk_rad ** 2 * dt + (cfg.gyro_noise_rps * dt) ** 2 \
             + (cfg.gyro_scale_error * np.linalg.norm(w_c, axis=1) * dt) ** 2
-        Ptt_new += q[:, None, None] * np.eye(3)
-        P[:, :3, 3:] = Ptb - GPbb
-        P[:, 3:, :3] = P[:, :3, 3:].transpose(0, 2, 1)
-        P[:, :3, :3] = Ptt_new
-        P[:, 3:, 3:] += (cfg.gyro_bias_walk_rps ** 2 * dt)[:, None, None] * np.eye(3)
+        qb = cfg.gyro_bias_walk_rps ** 2 * dt
+        _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
 
     # ------------------------------------------------------------------------------- 2, 3. accel
     def _relative_accel(self, w_c, dt) -> np.ndarray:
@@ -516,15 +643,8 @@ class MotionEstimator:
             wdot = (3.0 * w_c - 4.0 * wm1 + wm2) / (2.0 * h)
         else:
             wdot = (w_c - wm1) / h
-        # ω × (ω × e_x) + ω̇ × e_x, link frame
-        body = w_c[:, 0:1] * w_c - np.einsum("ki,ki->k", w_c, w_c)[:, None] * _EX
-        body[:, 1] += wdot[:, 2]
-        body[:, 2] -= wdot[:, 1]
-        ddot = np.einsum("kij,kj->ki", self.R, body)
-        A = joints_from_directions(ddot, self.rows, self.cols, self.link_length).reshape(-1, 3)
-        ep = self.topo.lattice.endpoints
-        a = 0.5 * (A[ep[:, 0]] + A[ep[:, 1]])
-        return a - a.mean(axis=0)
+        return relative_accelerations(self.R, w_c, wdot, self.rows, self.cols, self.link_length,
+                                      self.topo.lattice.endpoints)
 
     def _accel_update(self, f, w_c, dt, v) -> np.ndarray:
         cfg = self.config
@@ -532,31 +652,15 @@ class MotionEstimator:
         Rf = np.einsum("kij,kj->ki", self.R, f)
         a_c = (Rf[v] - _GRAVITY_SF - da[v]).mean(axis=0) if v.any() else np.zeros(3)
         vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * a_c
-        Rt = self.R.transpose(0, 2, 1)
-        y = f - np.einsum("kij,kj->ki", Rt, vec)
-        H = Rt @ _skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
-        P = self.P
-        HP = H @ P[:, :3, :]  # (n, 3, 6)
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + (cfg.rel_accel_error * np.linalg.norm(da, axis=1)) ** 2
-        S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
-        Si = _inv_sym3(S)
-        m2 = np.einsum("ki,kij,kj->k", y, Si, y)
-        infl = np.maximum(1.0, m2 / cfg.gate)
-        Si /= infl[:, None, None]
-        K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
-        K[~v] = 0.0
-        x = np.einsum("kij,kj->ki", K, y)
-        P -= K @ HP
+        x = np.empty((self.n_links, 6))
+        _step("accel", self.R, self.P, f, vec, r2, cfg.gate, v, x)
         self._apply(x)
         return a_c
 
     def _apply(self, x) -> None:
-        self.R = rotation_matrices(x[:, :3]) @ self.R
-        self.bias += x[:, 3:]
-        P = self.P
-        P += P.transpose(0, 2, 1)
-        P *= 0.5
+        _step("apply", self.R, self.bias, self.P, x)
 
     # ------------------------------------------------------------------------------- 4. lattice
     def _lattice_update(self, m, v, dt) -> None:
@@ -577,7 +681,7 @@ class MotionEstimator:
         # the cells' normals A × C and each link's sensor y against their mean
         A = du[:, 1] + du[:, 3]
         C = du[:, 0] + du[:, 2]
-        N = np.cross(A, C)
+        N = _cross(A, C)
         nN = np.sqrt(np.einsum("ui,ui->u", N, N))
         ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
         inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
@@ -590,8 +694,8 @@ class MotionEstimator:
         ncp = nc[pc]
         wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
             * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
-        CxW = np.cross(C[pc], wkc)
-        WxA = np.cross(wkc, A[pc])
+        CxW = _cross(C[pc], wkc)
+        WxA = _cross(wkc, A[pc])
         ez_c = ezd_u[pc]  # (K2, 4, 3)
         j_pair = np.empty((pl.size, 4))
         j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
@@ -619,10 +723,9 @@ class MotionEstimator:
         mu = _pcg(lambda x: JT @ (wts * (J @ x)) + diag * x, rhs, 1.0 / a_diag)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
-        c = P[:, :, 2].copy()  # (n, 6): covariance with the yaw error
-        g = c / p[:, None]
-        P -= np.einsum("ki,kj->kij", g, c * (1.0 - 1.0 / (a_diag * p))[:, None])
-        self._apply(g * mu[:, None])
+        x = np.empty((n, 6))
+        _step("yaw", P, mu, a_diag, x)
+        self._apply(x)
         if m is not None:
             self._heading_update(m, v, dt)
 
@@ -641,7 +744,7 @@ class MotionEstimator:
         r = 1.0 / total + cfg.mag_common_floor_rad ** 2
         gain = self._hvar / (self._hvar + r)
         self._hvar *= 1.0 - gain
-        self.R = rotation_matrices(np.array([0.0, 0.0, -gain * err]))[None] @ self.R
+        self.R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, -gain * err])), self.R)
 
     def _magnetometer(self, m, v, dt):
         """Per link: the weight (information, 1/rad²) of its heading and its heading's offset

@@ -21,6 +21,9 @@ import numpy as np
 from ..estimator import estimate, joints_from_directions
 from .fused import frames_from_angles
 
+#: snapshots turned into joints at once by `per_link_filter`
+_CHUNK = 4096
+
 __all__ = ["accel_only", "per_link_filter", "frames_from_quaternions", "yaw_of_frames",
            "have_vqf"]
 
@@ -92,7 +95,8 @@ def yaw_of_frames(R: np.ndarray) -> np.ndarray:
 
 
 def per_link_filter(t_s, accel_mps2, gyro_rps, rows: int, cols: int, link_length: float,
-                    mag_t=None, *, declination_rad: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+                    mag_t=None, *, declination_rad: float = 0.0,
+                    with_frames: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
     """VQF on every link, then the joints from the links' directions (module docstring).
 
     Parameters
@@ -108,7 +112,7 @@ def per_link_filter(t_s, accel_mps2, gyro_rps, rows: int, cols: int, link_length
     Returns
     -------
     joints : ndarray, shape (T, rows, cols, 3)
-    frames : ndarray, shape (T, n_links, 3, 3)
+    frames : ndarray, shape (T, n_links, 3, 3), or None with ``with_frames=False``
         Each link's sensor -> world rotation.
 
     Raises
@@ -138,15 +142,21 @@ def per_link_filter(t_s, accel_mps2, gyro_rps, rows: int, cols: int, link_length
         if mag is not None:
             args.append(np.ascontiguousarray(mag[:, k]))
         q[:, k] = f.updateBatch(*args)[key]
-    R = frames_from_quaternions(q)
-    c, s = np.cos, np.sin
+    R0 = frames_from_quaternions(q[0])
     if mag is None:  # align each link's heading once, at the first snapshot
         ref = estimate(acc[0], rows, cols, link_length, bad_readings="mask")
         R_ref = frames_from_angles(*(np.nan_to_num(a) for a in (ref.alpha, ref.beta, ref.yaws)))
-        off = yaw_of_frames(R_ref) - yaw_of_frames(R[0])
+        off = yaw_of_frames(R_ref) - yaw_of_frames(R0)
     else:  # VQF's earth frame is east-north-up: north (+y) is at the declination from world x
         off = np.full(n, declination_rad - np.pi / 2)
     Z = np.zeros((n, 3, 3))
-    Z[:, 0, 0], Z[:, 0, 1], Z[:, 1, 0], Z[:, 1, 1], Z[:, 2, 2] = c(off), -s(off), s(off), c(off), 1
-    R = np.einsum("kij,tkjl->tkil", Z, R)
-    return joints_from_directions(R[..., 0], rows, cols, link_length), R
+    Z[:, 0, 0], Z[:, 0, 1], Z[:, 2, 2] = np.cos(off), -np.sin(off), 1.0
+    Z[:, 1, 0], Z[:, 1, 1] = np.sin(off), np.cos(off)
+    joints = np.empty((T, rows, cols, 3))
+    frames = np.empty((T, n, 3, 3)) if with_frames else None
+    for a in range(0, T, _CHUNK):  # in chunks: a long run's frames need not all be in memory
+        R = np.einsum("kij,tkjl->tkil", Z, frames_from_quaternions(q[a:a + _CHUNK]))
+        joints[a:a + _CHUNK] = joints_from_directions(R[..., 0], rows, cols, link_length)
+        if with_frames:
+            frames[a:a + _CHUNK] = R
+    return joints, frames
