@@ -3,7 +3,7 @@
 * only the command line (host/cli/) imports the simulator (virtual_sheet);
 * protocol/ imports neither pyserial nor python-can, nor any other capsheet package;
 * the science (host/analysis/) imports only protocol.lattice, numpy/scipy/matplotlib (and the
-  optional sksparse) and itself;
+  optional sksparse, and the per-link peer's vqf) and itself;
 * firmware_ref and virtual_sheet do not import each other's chip modules in a cycle.
 """
 
@@ -73,8 +73,10 @@ def test_protocol_does_no_io_and_depends_on_nothing_of_ours(lib):
 def test_the_science_imports_only_the_lattice_and_itself():
     # sksparse: the estimator's optional CHOLMOD backend (scipy's splu when absent); cffi: only
     # host/analysis/_kernel/build.py, which builds the estimator's optional kernel at install time
+    # (and host/analysis/motion/_kernel/build.py the fused estimator's); vqf: the per-link peer
+    # of host/analysis/motion/peers.py (optional, imported when that peer runs)
     allowed = ("protocol.lattice", "host.analysis", "numpy", "scipy", "sksparse", "matplotlib",
-               "__future__", "cffi")
+               "__future__", "cffi", "vqf")
     stdlib = sys.stdlib_module_names
 
     def forbidden(m: str) -> bool:

@@ -518,10 +518,14 @@ class MotionEstimator:
                     raise ValueError(f"Non-finite {name} on valid links {k[:8].tolist()}"
                                      f"{' ...' if k.size > 8 else ''}; mask them with `valid`.")
         t = np.asarray(t_s, dtype=float)
-        if t.shape not in ((), (n,)) or not np.all(np.isfinite(t)):
-            raise ValueError(f"Invalid t_s: need finite seconds, a scalar or shape ({n},), got "
-                             f"shape {t.shape}.")
+        if t.shape not in ((), (n,)):
+            raise ValueError(f"Invalid t_s: need seconds, a scalar or shape ({n},), got shape "
+                             f"{t.shape}.")
         t = np.broadcast_to(t, (n,)).astype(float)
+        if not np.all(np.isfinite(t[v])) or not v.any() and not np.all(np.isfinite(t)):
+            raise ValueError("Invalid t_s: the valid links' sample times must be finite seconds.")
+        if not v.all():  # a link without a sample has no time of its own: the snapshot's
+            t[~v] = np.max(t[v]) if v.any() else t[0]
         if self._with_mag is not None and (arrays["mag"] is not None) != self._with_mag:
             raise ValueError("Magnetometer readings must be given on every snapshot or on none "
                              f"(this estimator started {'with' if self._with_mag else 'without'}).")
@@ -540,8 +544,9 @@ class MotionEstimator:
         Parameters
         ----------
         t_s : float or ndarray, shape (n_links,)
-            Sample time(s), s: one for the snapshot or each link's own (the chip timestamps);
-            increasing from snapshot to snapshot.
+            Sample time(s), s: one for the snapshot or each link's own (the chip timestamps;
+            ignored, and may be NaN, where ``valid`` is False); increasing from snapshot to
+            snapshot.
         accel : ndarray, shape (n_links, 3)
             Specific force, m/s², link frames, calibrated.
         gyro : ndarray, shape (n_links, 3)
@@ -580,7 +585,7 @@ class MotionEstimator:
             self._lattice_update(m, v, dt)
             t3 = time.perf_counter()
             self._w_hist = [self._w_hist[-1], w_c]
-            self._t = np.where(v, t, self._t + dt)
+            self._t = t
         joints = joints_from_directions(self.R[:, :, 0], self.rows, self.cols, self.link_length)
         t4 = time.perf_counter()
         self.snapshots += 1
