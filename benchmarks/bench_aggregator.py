@@ -73,8 +73,8 @@ def run_stream(data: bytes, n_links: int, chunk: int, n_counters: int) -> dict:
     dec = StreamDecoder(batch_samples=True)
     t0 = time.perf_counter()
     for i in range(0, len(data), chunk):
-        agg.ingest(dec.feed(data[i:i + chunk]))
-    agg.flush()
+        agg.ingest(dec.feed(data[i:i + chunk]), now=0.0)
+    agg.flush(0.0)
     dt = time.perf_counter() - t0
     snaps = agg.drain()
     assert len(snaps) == n_counters and all(s.complete for s in snaps), (len(snaps), agg.stats.summary())
@@ -93,8 +93,8 @@ def run_batches(data: bytes, n_links: int, chunk: int, n_counters: int) -> tuple
     agg = Aggregator(n_links, deadline_s=1e9, queue_size=n_counters + 1)
     t0 = time.perf_counter()
     for b in batches:
-        agg.ingest_batch(b.node, b.counter, b.counts, b.status)
-    agg.flush()
+        agg.ingest_batch(b.node, b.counter, b.counts, b.status, now=0.0)
+    agg.flush(0.0)
     t_agg = time.perf_counter() - t0
     assert agg.stats.complete == n_counters, agg.stats.summary()
     n = n_links * n_counters

@@ -2,8 +2,9 @@
 
 Truth: the virtual sheet's Gaussian (exact Chebyshev net) on 14x14, 32x32, 64x64 and 128x128
 joints, L = 1 cm. Every snapshot has fresh noise (seeded MT19937); ``method="global"`` warm-starts
-from the previous estimate. The paper's method (no warm start in the paper) runs on the same
-snapshots, fewer of them, and only up to 32x32 (its chained steepest descent takes seconds per
+from the previous estimate. The paper's method (no warm start in the paper; read as
+`host.analysis.paper_method`'s defaults, docs/estimator.md section 7) runs on the same snapshots,
+fewer of them, and only up to 32x32 (its per-unit steepest descent takes tenths of a second per
 snapshot at 14x14 already). The machine may be shared: each rate is the best of ``--repeats``
 timed passes (and the median is reported too). Targets (issue 13), global: 14x14 >= 2000/s,
 32x32 >= 500/s, 64x64 >= 145/s, 128x128 >= 30/s.

@@ -148,7 +148,7 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
                 return row
             time.sleep(SETTLE_S)  # the deadline adapts and the first estimates run cold: not counted
             agg = host.aggregator
-            agg.drain()
+            host.drain()
             first = host.counter  # the next SYNC counter: the window is first .. end - 1
             t_start = time.monotonic()
             lat_ms: list[float] = []
@@ -156,14 +156,14 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
             t_end = time.monotonic() + duration_s
             while time.monotonic() < t_end:
                 if estimate_latency:
-                    snap = agg.latest(0.2)
+                    snap = host.latest(0.2)
                     if snap is None or not snap.valid.any():
                         continue
                     previous = estimate(snap.readings, rows, cols, 0.01, valid=snap.valid, previous=previous)
                     lat_ms.append(1e3 * (time.monotonic() - snap.timestamp))
                 else:
                     time.sleep(0.05)
-                    agg.drain()
+                    host.drain()
             end = host.counter
             window_s = time.monotonic() - t_start
             host.stop()  # the counters in flight get their chance to complete

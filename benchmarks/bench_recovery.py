@@ -55,7 +55,7 @@ def one_run(transport: str, lattice: str, sync: str, rate: float) -> dict:
     from host.record import read_recording
     import numpy as np
     tmp = Path(tempfile.mkdtemp(prefix="bench-recovery-"))
-    port, lay, rec = tmp / "port", tmp / "sheet.csv", tmp / "run.cap"
+    port, lay, rec = tmp / "port", tmp / "sheet.csv", tmp / "run.mcap"
     vargs = ["--lattice", lattice, "--transport", transport, "--symlink", str(port), "--layout-out", str(lay)]
     if sync == "follow":
         vargs += ["--rate", f"{rate:g}"]

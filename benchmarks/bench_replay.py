@@ -106,7 +106,7 @@ def main() -> int:
         est_best, rep_best = np.inf, np.inf
         est_json = rep_json = None
         for _ in range(repeats):
-            dt, est_json = _timed(["estimate", str(path), "--out", str(Path(d) / "joints.npz"), "--jobs",
+            dt, est_json = _timed(["estimate", str(path), "--out", str(Path(d) / "joints.npz"), "--overwrite", "--jobs",
                                    str(args.jobs), "--json", "-q"])
             est_best = min(est_best, dt)
             dt, rep_json = _timed(["replay", str(path), "--speed", "max", "--json", "-q"])

@@ -8,6 +8,12 @@ vectorised: a batch of node ids becomes link indices through one lookup array), 
 The SNAPSHOT frames of one read go in together (`Aggregator.ingest_snapshots`: one numpy pass per
 run of frames, exactly what one frame at a time gives).
 
+Sans-I/O (docs/design.md §8): every call that may emit takes ``now`` (host monotonic seconds); the
+aggregator reads no clock, holds no lock and starts no thread. Emitted snapshots are handed to
+``on_snapshot`` and kept for `Aggregator.drain`. For threads — a receive thread per bus and a SYNC
+thread feeding one aggregator, consumers waiting for snapshots — `host.feed.SnapshotFeed` wraps it:
+the lock, the clock, the queue consumers block on, and the one place snapshots are corrected.
+
 Rules (all counted in `AggregatorStats`, none raises):
 
 * Counters compare in serial arithmetic mod 2^16 (RFC 1982 style): ``a`` is newer than ``b`` if
@@ -19,9 +25,9 @@ Rules (all counted in `AggregatorStats`, none raises):
   kept); a frame from a node the layout does not know is *unknown* (counted per node, bounded).
 * At most ``max_open`` counters are open; opening one more emits the oldest (masked): memory is
   bounded whatever the input.
-* The output queue holds ``queue_size`` snapshots; when the consumer is slower than the sheet the
-  oldest are dropped (newest wins) and counted in ``dropped``; `latest` hands a slow consumer the
-  newest snapshot and counts the ones it skips in ``dropped`` too.
+* The output buffer holds ``queue_size`` snapshots not yet drained; beyond it the oldest are
+  dropped (newest wins) and counted in ``dropped`` (so is what `host.feed.SnapshotFeed.latest`
+  skips for a slow consumer).
 * **Adaptive deadline** (``min_deadline_s`` and ``max_deadline_s`` given): the deadline follows
   the measured SYNC -> last-frame latency (one measurement per emitted snapshot, and one per
   batch of late frames: how long after its SYNC the latest of them came). Every 32 measurements
@@ -40,8 +46,6 @@ Rules (all counted in `AggregatorStats`, none raises):
 
 from __future__ import annotations
 
-import threading
-import time
 from collections import deque
 from dataclasses import dataclass, field
 from enum import IntFlag
@@ -96,10 +100,10 @@ class LatticeSnapshot:
     counter : int
         The SYNC counter (u16) the samples answer.
     timestamp : float
-        Host ``time.monotonic()`` seconds when the counter opened: when the host sent (or saw) its
-        SYNC, else when its first frame arrived.
+        Host monotonic seconds (the ``now`` the aggregator was given) when the counter opened: when
+        the host sent (or saw) its SYNC, else when its first frame arrived.
     wall_time : float
-        ``time.time()`` at the same instant (for recordings).
+        ``timestamp + Aggregator.wall_offset``: Unix time of the same instant (for recordings).
     readings : ndarray, shape (n_links, 3), float64
         Specific force in m/s², sensor frame (docs/design.md), after per-chip calibration
         (`protocol.constants.counts_to_si`); NaN where not ``valid``.
@@ -214,20 +218,24 @@ class Aggregator:
     max_age : int
         Frames more than this many counters behind the newest open one are late.
     queue_size : int
-        Output queue length (newest wins).
+        Snapshots kept for `drain` (newest wins; the dropped ones counted in ``stats.dropped``).
     n_buses : int
         Number of buses feeding this aggregator (for per-bus statistics).
     on_snapshot : callable, optional
-        Called with each emitted snapshot (in the thread that caused the emission), in addition to
-        the queue.
-    clock : callable
-        Monotonic clock in seconds (tests pass a fake one).
+        Called with each emitted snapshot, during the call that emitted it, in addition to the
+        buffer `drain` empties.
+
+    Attributes
+    ----------
+    wall_offset : float
+        Unix seconds minus monotonic seconds: a snapshot's ``wall_time`` is its ``timestamp`` plus
+        this, as set when its counter opened (the owner keeps it current; 0 by default).
     """
 
     def __init__(self, n_links: int, node_to_link=None, *, offset=None, sensitivity=None,
                  deadline_s: float = 0.05, max_open: int = 32, max_age: int = 256, queue_size: int = 64,
                  n_buses: int = 1, on_snapshot: Callable[[LatticeSnapshot], None] | None = None,
-                 clock: Callable[[], float] = time.monotonic, min_deadline_s: float | None = None,
+                 min_deadline_s: float | None = None,
                  max_deadline_s: float | None = None, trust: str = "frames", max_jump: int = 64,
                  resync_after: int = 3) -> None:
         if not isinstance(n_links, (int, np.integer)) or n_links < 1:
@@ -251,11 +259,9 @@ class Aggregator:
         self._measured_once = False  # the deadline has been set from measurements at least once
         self.max_open = int(max_open)
         self.max_age = int(max_age)
-        self.clock = clock
         self.on_snapshot = on_snapshot
+        self.wall_offset = 0.0
         self.stats = AggregatorStats(self.n_links, n_buses)
-        self._lock = threading.RLock()
-        self._cond = threading.Condition(self._lock)
         self._out: deque[LatticeSnapshot] = deque()
         self.queue_size = int(queue_size)
         self.set_node_map(node_to_link)
@@ -304,8 +310,11 @@ class Aggregator:
             if arr.shape != (_MOD,):
                 raise ValueError(f"Expected `node_to_link` to have shape (65536,), got {arr.shape}.")
             lut[:] = arr
-        with self._lock:
-            self._lut = lut
+        self._lut = lut
+
+    def link_of(self, node):
+        """Link of node id ``node`` (an int or an array of them), -1 where the map has none."""
+        return self._lut[node]
 
     def set_calibration(self, offset=None, sensitivity=None) -> None:
         """Per-link calibration: ``offset`` counts and ``sensitivity`` counts/g, each (n_links, 3)."""
@@ -317,57 +326,47 @@ class Aggregator:
                 raise ValueError(f"Expected `{name}` to have shape ({L}, 3), got {a.shape}.")
         if not np.all(np.isfinite(sens) & (sens > 0)):
             raise ValueError("Invalid sensitivity: every value must be finite and > 0")
-        with self._lock:
-            self._offset, self._sens = off, sens
+        self._offset, self._sens = off, sens
 
-    def set_expected(self, expected: np.ndarray) -> None:
-        """Links that must arrive for a snapshot to be complete."""
+    def set_expected(self, expected: np.ndarray, now: float) -> None:
+        """Links that must arrive for a snapshot to be complete (emits, at ``now``, what that completes)."""
         expected = np.asarray(expected, dtype=bool)
         if expected.shape != (self.n_links,):
             raise ValueError(f"Expected `expected` to have shape ({self.n_links},), got {expected.shape}.")
-        with self._lock:
-            self.expected = expected.copy()
-            self._pump(self.clock())
+        self.expected = expected.copy()
+        self._pump(now)
 
-    def mark_silent(self, link: int, silent: bool = True) -> None:
+    def mark_silent(self, link: int, silent: bool, now: float) -> None:
         """Watchdog: a silent link is not waited for (and flagged SILENT) until it speaks again."""
-        with self._lock:
-            self.silent[link] = silent
-            self.expected[link] = not silent and not self.unassigned[link]
-            self._pump(self.clock())
+        self.silent[link] = silent
+        self.expected[link] = not silent and not self.unassigned[link]
+        self._pump(now)
 
-    def set_unassigned(self, unassigned: np.ndarray) -> None:
-        with self._lock:
-            self.unassigned = np.asarray(unassigned, dtype=bool).copy()
-            self.expected = ~self.unassigned & ~self.silent
-            self._pump(self.clock())
+    def set_unassigned(self, unassigned: np.ndarray, now: float) -> None:
+        """Links with no chip assigned: flagged UNASSIGNED, never expected."""
+        self.unassigned = np.asarray(unassigned, dtype=bool).copy()
+        self.expected = ~self.unassigned & ~self.silent
+        self._pump(now)
 
     # -- counters --------------------------------------------------------------------------
-    def open_counter(self, counter: int, t: float | None = None, *, restart: bool = False) -> bool:
-        """The host sent (or saw) SYNC ``counter`` at ``t``: open it now so its timestamp and
+    def open_counter(self, counter: int, now: float, *, restart: bool = False) -> bool:
+        """The host sent (or saw) SYNC ``counter`` at ``now``: open it so its timestamp and
         deadline start at the SYNC. Returns False if it is late (not newer than the last emitted
         counter). ``restart=True`` starts a new counter sequence: every open counter is emitted and
         the ordering history is forgotten (the host does this when it (re)starts streaming)."""
-        with self._lock:
-            now = self.clock() if t is None else t
-            if restart:
-                while self._open:
-                    self._emit(self._open[0], now)
-                self._last_emitted = None
-                self._newest = None
-            slot = self._slot_for(int(counter) & 0xFFFF, now)
-            self._pump(self.clock())
-            return slot >= 0
+        if restart:
+            self.restart(now)
+        slot = self._slot_for(int(counter) & 0xFFFF, now)
+        self._pump(now)
+        return slot >= 0
 
-    def restart(self) -> None:
+    def restart(self, now: float) -> None:
         """A new counter sequence begins (the host (re)starts streaming): emit what is open and
         forget the ordering history, so the new counters are not taken for late ones."""
-        with self._lock:
-            now = self.clock()
-            while self._open:
-                self._emit(self._open[0], now)
-            self._last_emitted = None
-            self._newest = None
+        while self._open:
+            self._emit(self._open[0], now)
+        self._last_emitted = None
+        self._newest = None
 
     def _slot_for(self, c: int, now: float, from_frame: bool = False) -> int:
         """Slot of counter ``c``, opening it if allowed; -1 if late, -2 if stray (counter trust)."""
@@ -391,7 +390,7 @@ class Aggregator:
         self._slot_counter[s] = c
         self._slot_t0[s] = now
         self._t0_of[c] = now
-        self._slot_wall[s] = time.time() - (self.clock() - now)
+        self._slot_wall[s] = now + self.wall_offset
         self._slot_first[s] = np.nan
         self._slot_last[s] = np.nan
         self._got[s] = False
@@ -437,8 +436,7 @@ class Aggregator:
 
     def set_trust(self, trust: str) -> None:
         """Switch the rule (the host does when it changes between driving and following SYNC)."""
-        with self._lock:
-            self._init_trust(trust, self.max_jump, self.resync_after)
+        self._init_trust(trust, self.max_jump, self.resync_after)
 
     def _trust_verdict(self, c: int, now: float, from_frame: bool) -> int:
         """0: ``c`` may be opened; -1: late; -2: stray. May resync (follow)."""
@@ -474,10 +472,9 @@ class Aggregator:
         return 0
 
     # -- ingest ----------------------------------------------------------------------------
-    def ingest(self, events: Iterable, bus: int = 0, now: float | None = None) -> None:
-        """Feed decoder/transport events; anything but SAMPLE/SampleBatch/SNAPSHOT is ignored.
-        ``now``: the arrival time to use (default: the clock, read under the lock) — a recorder
-        that stamped the input passes its stamp, so a replay at that stamp decides alike."""
+    def ingest(self, events: Iterable, bus: int = 0, *, now: float) -> None:
+        """Feed decoder/transport events that arrived at ``now``; anything but
+        SAMPLE/SampleBatch/SNAPSHOT is ignored (a replay at a recorded ``now`` decides alike)."""
         snaps: list[Snapshot] = []  # a run of SNAPSHOT frames: ingested together, in one pass
         for ev in events:
             if isinstance(ev, Snapshot):
@@ -498,25 +495,23 @@ class Aggregator:
             self.ingest_snapshots(snaps, bus, now=now)
 
     def ingest_batch(self, node: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
-                     bus: int = 0, now: float | None = None) -> None:
+                     bus: int = 0, *, now: float) -> None:
         """Per-chip samples: arrays of equal length n (node u16, counter u16, counts (n, 3), status)."""
-        with self._lock:
-            links = self._lut[node]
-            known = links >= 0
-            if not known.all():
-                self._count_unknown(node[~known], bus)
-                links, counter, counts, status = links[known], counter[known], counts[known], status[known]
-            self._scatter(links, counter, counts, status, bus, now)
+        links = self._lut[node]
+        known = links >= 0
+        if not known.all():
+            self._count_unknown(node[~known], bus)
+            links, counter, counts, status = links[known], counter[known], counts[known], status[known]
+        self._scatter(links, counter, counts, status, bus, now)
 
-    def ingest_snapshot(self, snap: Snapshot, bus: int = 0, now: float | None = None) -> None:
+    def ingest_snapshot(self, snap: Snapshot, bus: int = 0, *, now: float) -> None:
         """A gateway's SNAPSHOT: links ``first_link ..`` of one counter."""
         counts, status = unpack_sample_words(snap.words)
-        with self._lock:
-            links = snap.first_link + np.arange(counts.shape[0], dtype=np.int64)
-            counter = np.full(links.shape[0], snap.counter, dtype=np.uint16)
-            self._scatter_inside(links, counter, counts, status, bus, now)
+        links = snap.first_link + np.arange(counts.shape[0], dtype=np.int64)
+        counter = np.full(links.shape[0], snap.counter, dtype=np.uint16)
+        self._scatter_inside(links, counter, counts, status, bus, now)
 
-    def ingest_snapshots(self, frames: Iterable[Snapshot], bus: int = 0, now: float | None = None) -> None:
+    def ingest_snapshots(self, frames: Iterable[Snapshot], bus: int = 0, *, now: float) -> None:
         """Many SNAPSHOT frames (what one read delivered), unpacked and scattered in one numpy pass:
         exactly what `ingest_snapshot` on each in turn, at the same ``now``, gives — the same
         snapshots, the same counts of late, duplicate, stray and out-of-range samples.
@@ -539,15 +534,12 @@ class Aggregator:
         ends = np.cumsum(sizes)  # frame k: samples ends[k] - sizes[k] .. ends[k] - 1
         starts = ends - sizes
         fcounter = counter[starts]
-        with self._lock:
-            if now is None:
-                now = self.clock()
-            i, nf = 0, len(frames)
-            while i < nf:
-                j = self._run_end(i, nf, fcounter, links, counter, starts, ends, now)
-                a, b = int(starts[i]), int(ends[j - 1])
-                self._scatter_inside(links[a:b], counter[a:b], counts[a:b], status[a:b], bus, now)
-                i = j
+        i, nf = 0, len(frames)
+        while i < nf:
+            j = self._run_end(i, nf, fcounter, links, counter, starts, ends, now)
+            a, b = int(starts[i]), int(ends[j - 1])
+            self._scatter_inside(links[a:b], counter[a:b], counts[a:b], status[a:b], bus, now)
+            i = j
 
     def _run_end(self, i: int, nf: int, fcounter, links, counter, starts, ends, now: float) -> int:
         """`ingest_snapshots`: frames ``i .. j-1`` may be scattered in one pass; returns ``j``."""
@@ -581,7 +573,7 @@ class Aggregator:
         done_at = a + int(np.sort(pos[first])[n_need - 1])  # the sample that completes it
         return int(np.searchsorted(ends, done_at, side="right")) + 1
 
-    def _scatter_inside(self, links, counter, counts, status, bus: int, now: float | None) -> None:
+    def _scatter_inside(self, links, counter, counts, status, bus: int, now: float) -> None:
         """SNAPSHOT samples: those beyond the lattice are counted (``out_of_range``), the rest scattered."""
         inside = links < self.n_links
         if not inside.all():
@@ -599,12 +591,10 @@ class Aggregator:
                 st.unknown_nodes[n] = st.unknown_nodes.get(n, 0) + k
 
     def _scatter(self, links: np.ndarray, counter: np.ndarray, counts: np.ndarray, status: np.ndarray,
-                 bus: int, now: float | None = None) -> None:
+                 bus: int, now: float) -> None:
         n = links.shape[0]
         if n == 0:
             return
-        if now is None:
-            now = self.clock()
         st = self.stats
         st.bus_frames[bus] += n
         st.link_last_seen[links] = now  # the chip is alive, even if its frame turns out late
@@ -711,10 +701,9 @@ class Aggregator:
             return False
         return bool(np.all(self._got[s] | ~self.expected))
 
-    def poll(self, now: float | None = None) -> None:
-        """Emit counters whose deadline has passed. Call periodically (the host's threads do)."""
-        with self._lock:
-            self._pump(self.clock() if now is None else now)
+    def poll(self, now: float) -> None:
+        """Emit counters whose deadline has passed at ``now``. Call periodically (the host's threads do)."""
+        self._pump(now)
 
     def _pump(self, now: float) -> None:
         while self._open:
@@ -728,24 +717,21 @@ class Aggregator:
         """Emit, at ``now``, open counters oldest first up to and including ``counter`` (if it is
         open), and the complete ones it held back: what a replay does where the recording says the host emitted ``counter`` at its
         deadline, whatever deadline this aggregator would have chosen."""
-        with self._lock:
-            if self._slot_of[int(counter) & 0xFFFF] < 0:
-                return
-            while self._open:
-                s = self._open[0]
-                c = int(self._slot_counter[s])
-                self._emit(s, now)
-                if c == int(counter) & 0xFFFF:
-                    break
-            while self._open and self._is_complete(self._open[0]):  # held back behind it, as `poll`
-                self._emit(self._open[0], now)
+        if self._slot_of[int(counter) & 0xFFFF] < 0:
+            return
+        while self._open:
+            s = self._open[0]
+            c = int(self._slot_counter[s])
+            self._emit(s, now)
+            if c == int(counter) & 0xFFFF:
+                break
+        while self._open and self._is_complete(self._open[0]):  # held back behind it, as `poll`
+            self._emit(self._open[0], now)
 
-    def flush(self) -> None:
-        """Emit every open counter now (masked where incomplete), oldest first."""
-        with self._lock:
-            now = self.clock()
-            while self._open:
-                self._emit(self._open[0], now)
+    def flush(self, now: float) -> None:
+        """Emit every open counter at ``now`` (masked where incomplete), oldest first."""
+        while self._open:
+            self._emit(self._open[0], now)
 
     def _emit(self, s: int, now: float, evicted: bool = False) -> None:
         st = self.stats
@@ -793,7 +779,6 @@ class Aggregator:
             self._out.popleft()
             st.dropped += 1
         self._out.append(snap)
-        self._cond.notify_all()
         if self.on_snapshot is not None:
             self.on_snapshot(snap)
 
@@ -825,8 +810,7 @@ class Aggregator:
 
     def reset_miss_runs(self) -> None:
         """Forget who was missing (the host (re)starts streaming)."""
-        with self._lock:
-            self.miss_run[:] = 0
+        self.miss_run[:] = 0
 
     def completeness(self) -> dict:
         """Completeness so far: by snapshot (complete / emitted) and by valid link (valid samples of
@@ -836,38 +820,11 @@ class Aggregator:
                 "valid_links_pct": round(100.0 * st.valid_links / st.assigned_links, 3) if st.assigned_links else None}
 
     # -- output ----------------------------------------------------------------------------
-    def get(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
-        """The oldest queued snapshot, waiting up to ``timeout_s`` (None: forever); None on timeout."""
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        with self._cond:
-            while not self._out:
-                remaining = None if deadline is None else deadline - time.monotonic()
-                if remaining is not None and remaining <= 0:
-                    return None
-                self._cond.wait(remaining if remaining is None else min(remaining, 0.05))
-                if not self._out:
-                    self._pump(self.clock())
-            return self._out.popleft()
-
-    def latest(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
-        """Newest wins: the newest queued snapshot (waiting up to ``timeout_s`` for one); the older
-        ones queued are skipped and counted in ``stats.dropped``. None on timeout."""
-        snap = self.get(timeout_s)
-        if snap is None:
-            return None
-        with self._lock:
-            if self._out:  # `snap` and all but the newest queued are skipped
-                self.stats.dropped += len(self._out)
-                snap = self._out.pop()
-                self._out.clear()
-        return snap
-
     def drain(self) -> list[LatticeSnapshot]:
-        """Every queued snapshot, oldest first, without waiting."""
-        with self._lock:
-            out = list(self._out)
-            self._out.clear()
-            return out
+        """Every snapshot emitted since the last call, oldest first."""
+        out = list(self._out)
+        self._out.clear()
+        return out
 
     @property
     def n_open(self) -> int:

@@ -1,12 +1,6 @@
-"""Alias of `host.analysis.calibration`, the name other tools import (``from host.calibration
-import fit_board_poses, Calibration``).
+"""The old import path of `host.analysis.calibration`, the name other tools import (``from
+host.calibration import fit_board_poses, Calibration``): its public names (``__all__``),
+re-exported. The module is `host.analysis.calibration`."""
 
-The module object is the same (``host.calibration is host.analysis.calibration``), as
-`host.estimator` is for `host.analysis.estimator`.
-"""
-
-import sys
-
-from host.analysis import calibration as _calibration
-
-sys.modules[__name__] = _calibration
+from host.analysis.calibration import *  # noqa: F401,F403 - the re-export is the point
+from host.analysis.calibration import __all__  # noqa: F401

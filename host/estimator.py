@@ -1,11 +1,6 @@
-"""Alias of `host.analysis.estimator`, kept because other tools import ``host.estimator``.
+"""The old import path of `host.analysis.estimator`, kept because other tools import ``host.estimator``:
+its public names (``__all__``), re-exported. The module is `host.analysis.estimator`; patch or
+introspect that one."""
 
-The module object is the same (``host.estimator is host.analysis.estimator``), so monkeypatching,
-private helpers and ``isinstance`` checks behave exactly as on the real module.
-"""
-
-import sys
-
-from host.analysis import estimator as _estimator
-
-sys.modules[__name__] = _estimator
+from host.analysis.estimator import *  # noqa: F401,F403 - the re-export is the point
+from host.analysis.estimator import __all__  # noqa: F401

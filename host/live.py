@@ -11,16 +11,35 @@ contact's, and a text with its force), ``/sheet/joints`` a `foxglove.PointCloud`
 * ``links`` (default, a real sheet): valid links green, missing/invalid links red (drawn along
   the chord between their estimated joints).
 
-`LiveServer` serves a context on ``ws://127.0.0.1:8765`` with the Foxglove WebSocket protocol
-(subprotocol ``foxglove.sdk.v1``). Open it in Foxglove: *Open connection* -> *Foxglove WebSocket*
--> ``ws://localhost:8765``, then add a *3D* panel (fixed frame ``world``) and a *Plot* panel.
+`LiveServer` serves a context on ``ws://127.0.0.1:8765`` with the Foxglove WebSocket protocol under
+both of its subprotocol names: ``foxglove.sdk.v1`` (the Foxglove app, foxglove-sdk's own clients)
+and ``foxglove.websocket.v1`` (Lichtblick, the ``@foxglove/ws-protocol`` client, foxglove_bridge
+0.8 era tools). foxglove-sdk serves the first only (0.30, and its main branch: any other offer is
+an HTTP 400); the two name one protocol, so a relay in front of it (`SubprotocolRelay`) takes the
+connections, offers the SDK's name upstream and answers the client in the name it asked for;
+the frames after the handshake pass unchanged. Open it in Foxglove: *Open connection* ->
+*Foxglove WebSocket* -> ``ws://localhost:8765``, then add a *3D* panel (fixed frame ``world``) and a
+*Plot* panel.
 """
 
 from __future__ import annotations
 
+import logging
+import selectors
+import socket
+import threading
+
 import numpy as np
 
-__all__ = ["SceneChannels", "LiveServer", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT"]
+__all__ = ["SceneChannels", "LiveServer", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
+           "SUBPROTOCOLS", "rewrite_request", "rewrite_response"]
+
+log = logging.getLogger(__name__)
+
+#: the subprotocol foxglove-sdk serves, and the older name of the same protocol v1
+SDK_SUBPROTOCOL, WS_V1_SUBPROTOCOL = "foxglove.sdk.v1", "foxglove.websocket.v1"
+#: what the live view accepts, in order of preference when a client offers both
+SUBPROTOCOLS = (SDK_SUBPROTOCOL, WS_V1_SUBPROTOCOL)
 
 COLOUR_MODES = ("error", "displacement", "links")
 #: % of side shown as full red in ``error`` mode
@@ -142,8 +161,166 @@ def _ts(t_ns: int, Timestamp):
     return Timestamp(int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000))
 
 
+# -- the handshake, sans I/O: bytes in, bytes out ---------------------------------------------------
+
+#: an HTTP request or response head longer than this is refused (a client cannot make us buffer more)
+MAX_HEAD_BYTES = 64 << 10
+_PROTO = b"sec-websocket-protocol"
+
+
+def _offered(head: bytes) -> list[str]:
+    out: list[str] = []
+    for line in head.split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == _PROTO:
+            out += [v.strip() for v in value.decode("latin-1").split(",") if v.strip()]
+    return out
+
+
+def _set_protocol(head: bytes, value: str) -> bytes:
+    """``head`` (ending in the blank line) with every Sec-WebSocket-Protocol line replaced by one."""
+    lines = head.split(b"\r\n")
+    kept = [ln for ln in lines[1:] if ln and ln.partition(b":")[0].strip().lower() != _PROTO]
+    return b"\r\n".join([lines[0], *kept, b"Sec-WebSocket-Protocol: " + value.encode("latin-1"), b"", b""])
+
+
+def rewrite_request(head: bytes) -> tuple[bytes, str | None]:
+    """A client's handshake head for foxglove-sdk: a client that offers only the protocol's older name
+    (``foxglove.websocket.v1``) is offered upstream under the SDK's (``foxglove.sdk.v1``). Returns the
+    head to send upstream and the name to answer the client in (None: the head passes unchanged).
+
+    >>> h = b"GET / HTTP/1.1\\r\\nHost: x\\r\\nSec-WebSocket-Protocol: foxglove.websocket.v1\\r\\n\\r\\n"
+    >>> up, answer = rewrite_request(h)
+    >>> answer, b"Sec-WebSocket-Protocol: foxglove.sdk.v1" in up
+    ('foxglove.websocket.v1', True)
+    """
+    offered = _offered(head)
+    if SDK_SUBPROTOCOL in offered or WS_V1_SUBPROTOCOL not in offered:
+        return head, None  # the SDK's own name (or nothing we could serve): the SDK answers
+    return _set_protocol(head, SDK_SUBPROTOCOL), WS_V1_SUBPROTOCOL
+
+
+def rewrite_response(head: bytes, answer: str | None) -> bytes:
+    """foxglove-sdk's handshake answer, in the name the client asked for (`rewrite_request`)."""
+    if answer is None or SDK_SUBPROTOCOL not in _offered(head):
+        return head
+    return _set_protocol(head, answer)
+
+
+def _read_head(sock: socket.socket) -> tuple[bytes, bytes]:
+    """(head up to and including the blank line, bytes after it) from ``sock``; ValueError if the
+    peer closes first or the head exceeds `MAX_HEAD_BYTES`."""
+    buf = b""
+    while b"\r\n\r\n" not in buf:
+        if len(buf) > MAX_HEAD_BYTES:
+            raise ValueError("handshake head too long")
+        chunk = sock.recv(4096)
+        if not chunk:
+            raise ValueError("closed during the handshake")
+        buf += chunk
+    k = buf.index(b"\r\n\r\n") + 4
+    return buf[:k], buf[k:]
+
+
+class SubprotocolRelay:
+    """Accept WebSocket clients on ``(host, port)`` and relay each to ``upstream`` (foxglove-sdk's
+    server), translating the subprotocol name in the handshake (`rewrite_request`,
+    `rewrite_response`); afterwards bytes pass both ways unchanged. One thread accepts, one thread
+    per connection relays (a live view has a few viewers).
+
+    Raises OSError when ``(host, port)`` cannot be bound (in use)."""
+
+    def __init__(self, host: str, port: int, upstream: tuple[str, int]) -> None:
+        self.upstream = upstream
+        self._sock = socket.create_server((host, int(port)))
+        self._sock.settimeout(0.2)
+        self.port = int(self._sock.getsockname()[1])
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._open: set[socket.socket] = set()
+        self.connections = 0  #: clients accepted
+        self.translated = 0  #: of those, answered as ``foxglove.websocket.v1``
+        self._threads: list[threading.Thread] = []
+        self._accept = threading.Thread(target=self._accept_loop, name="capsheet-live-relay", daemon=True)
+        self._accept.start()
+
+    def _accept_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                client, _ = self._sock.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return  # closed by `stop`
+            self.connections += 1
+            th = threading.Thread(target=self._relay, args=(client,), name="capsheet-live-conn", daemon=True)
+            with self._lock:
+                self._open.add(client)
+                self._threads = [t for t in self._threads if t.is_alive()] + [th]
+            th.start()
+
+    def _relay(self, client: socket.socket) -> None:
+        up = None
+        try:
+            client.settimeout(10.0)
+            head, rest = _read_head(client)
+            head, answer = rewrite_request(head)
+            up = socket.create_connection(self.upstream, timeout=10.0)
+            with self._lock:
+                self._open.add(up)
+            up.sendall(head + rest)
+            resp, rest = _read_head(up)
+            if answer is not None:
+                self.translated += 1
+            client.sendall(rewrite_response(resp, answer) + rest)
+            client.settimeout(None)
+            up.settimeout(None)
+            self._pump(client, up)
+        except (OSError, ValueError) as exc:
+            if not self._stop.is_set():
+                log.info("live view connection ended: %s", exc)
+        finally:
+            for s in (client, up):
+                if s is not None:
+                    with self._lock:
+                        self._open.discard(s)
+                    try:
+                        s.close()
+                    except OSError:
+                        pass
+
+    def _pump(self, a: socket.socket, b: socket.socket) -> None:
+        """Bytes both ways until either side closes (or `stop`)."""
+        other = {a: b, b: a}
+        with selectors.DefaultSelector() as sel:
+            sel.register(a, selectors.EVENT_READ)
+            sel.register(b, selectors.EVENT_READ)
+            while not self._stop.is_set():
+                for key, _ in sel.select(0.2):
+                    data = key.fileobj.recv(1 << 16)
+                    if not data:
+                        return
+                    other[key.fileobj].sendall(data)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._sock.close()
+        with self._lock:
+            open_, threads = list(self._open), list(self._threads)
+        for s in open_:
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        self._accept.join(2.0)
+        for th in threads:
+            th.join(2.0)
+
+
 class LiveServer:
-    """A Foxglove WebSocket server (foxglove-sdk) for one context, on localhost by default.
+    """A Foxglove WebSocket server for one context, on localhost by default: foxglove-sdk's server
+    on a free loopback port, behind a `SubprotocolRelay` on ``port`` that serves both subprotocol
+    names (`SUBPROTOCOLS`, module docstring).
 
     Parameters
     ----------
@@ -160,15 +337,26 @@ class LiveServer:
         if not 0 <= int(port) <= 65535:
             raise ValueError(f"Invalid port: {port!r} (need 0..65535)")
         try:
-            self._server = foxglove.start_server(name=name, host=host, port=int(port), context=context)
-        except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types (address in use, ...)
+            self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=context)
+        except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types
+            raise OSError(f"Cannot start the live view: {exc}") from exc
+        try:
+            self._relay = SubprotocolRelay(host, int(port), ("127.0.0.1", int(self._server.port)))
+        except OSError as exc:  # the port is in use
+            self._server.stop()
             raise OSError(f"Cannot start the live view on {host}:{port}: {exc}") from exc
         self.host = host
-        self.port = int(self._server.port)
+        self.port = self._relay.port
 
     @property
     def url(self) -> str:
         return f"ws://{'localhost' if self.host in ('127.0.0.1', '::1') else self.host}:{self.port}"
 
+    @property
+    def connections(self) -> int:
+        """Clients that connected (through the relay)."""
+        return self._relay.connections
+
     def stop(self) -> None:
+        self._relay.stop()
         self._server.stop()

@@ -146,46 +146,26 @@ SCHEMAS: dict[str, dict] = {
 # Raw taps
 # --------------------------------------------------------------------------------------------
 
-class _TapDecoder:
-    """Stands in for a SerialTransport's decoder: hands every chunk to ``on_raw`` then decodes."""
+def tap_transport(transport, on_raw: Callable[[str, Any], None]) -> Callable:
+    """Call ``on_raw(kind, payload)`` with a transport's wire input as it is received: ``kind``
+    ``"serial"`` (payload: the bytes read) or ``"can"`` (payload: the frames of one receive, one
+    by one: python-can messages, and `host.transport.RawFrame` s for the rows of an SLCAN bus's
+    `protocol.can.FrameBlock`). A capture handler (`host.transport.Transport.begin_capture`);
+    returned, for `end_capture`. Raises TypeError for an object that is not a transport."""
+    begin = getattr(transport, "begin_capture", None)
+    if begin is None:
+        raise TypeError(f"Cannot record raw input of {type(transport).__name__} {getattr(transport, 'name', '?')!r} "
+                        f"(need a host.transport.Transport, which offers begin_capture)")
 
-    def __init__(self, inner, on_raw: Callable[[bytes], None]) -> None:
-        self._inner = inner
-        self._on_raw = on_raw
-
-    def feed(self, data: bytes):
-        self._on_raw(bytes(data))
-        return self._inner.feed(data)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self._inner, name)
-
-
-def tap_transport(transport, on_raw: Callable[[str, Any], None]) -> None:
-    """Call ``on_raw(kind, payload)`` with a transport's wire input as it is received, before decoding.
-
-    ``kind`` is ``"serial"`` (payload: the bytes read) or ``"can"`` (payload: the list of
-    ``can.Message`` of one receive batch). Works on `host.transport.SerialTransport` (and
-    `MemoryTransport`) and `CanTransport`; raises TypeError for others. The tap wraps the
-    transport's decode step on this instance only (`host.transport` is not changed).
-    """
-    from host.transport import CanTransport, SerialTransport
-
-    if isinstance(transport, CanTransport):
-        decode = transport._decode
-
-        def tapped(frames, _decode=decode):
-            on_raw("can", frames)
-            return _decode(frames)
-        transport._decode = tapped
-    elif isinstance(transport, SerialTransport):
-        transport.decoder = _TapDecoder(transport.decoder, lambda data: on_raw("serial", data))
-    else:
-        raise TypeError(f"Cannot record raw input of {type(transport).__name__} {transport.name!r} "
-                        f"(need a SerialTransport or CanTransport)")
+    def handler(cap) -> None:
+        if cap.direction == "rx":
+            on_raw(cap.kind, cap.frames(echoes=True) if cap.kind == "can" else cap.raw)
+    begin(handler)
+    return handler
 
 
 def _can_frame_dict(m) -> dict:
+    """A received frame (python-can message or `host.transport.RawFrame`) as the recording stores it."""
     return {"id": int(m.arbitration_id), "ext": bool(m.is_extended_id), "fd": bool(m.is_fd),
             "err": bool(m.is_error_frame), "rtr": bool(m.is_remote_frame),
             "brs": bool(getattr(m, "bitrate_switch", False)), "ts": float(m.timestamp or 0.0),
@@ -296,36 +276,28 @@ class Recorder:
             self.flush()
 
     # -- what a session publishes ------------------------------------------------------------------
-    def tap(self, transports, aggregator=None) -> None:
-        """Record every transport's raw input (`tap_transport`), bus index = position in the list.
+    def tap(self, transports, feed=None) -> None:
+        """Record every transport's raw input (its capture, `host.transport.Transport.begin_capture`),
+        bus index = position in the list.
 
-        With ``aggregator`` (the one the transports feed, by ``ingest(events, bus)``), a chunk is
-        written when its events are ingested, stamped ``t`` = the aggregator's clock read under its
-        lock: the order of ingests and of the snapshots the host emits is then the recorded order,
-        so a replay makes the same snapshots however late the host's threads ran. (``t_rx`` keeps
-        the time the bytes were read.) A chunk without a complete frame waits for the next ingest.
+        With ``feed`` (the `host.feed.SnapshotFeed` the transports' events go into, as
+        ``feed.ingest(events, bus)``), a chunk is written when its events are ingested, stamped
+        ``t`` = the ``now`` the aggregator decides with (`SnapshotFeed.add_ingest_listener`): the
+        order of ingests and of the snapshots emitted is then the recorded order, so a replay makes
+        the same snapshots however late the host's threads ran. (``t_rx`` keeps the time the bytes
+        were read.) A chunk without a complete frame waits for the next ingest.
         """
         self._pending = {bus: [] for bus in range(len(transports))}
         self._ports = {bus: t.name for bus, t in enumerate(transports)}
         for bus, t in enumerate(transports):
-            if aggregator is None:
-                tap_transport(t, lambda kind, payload, bus=bus, name=t.name: self.raw(bus, kind, payload, name))
+            if feed is None:
+                t.begin_capture(lambda cap, bus=bus, name=t.name: cap.direction == "rx" and self.raw(
+                    bus, cap.kind, _raw_payload(cap), name, t=cap.timestamp, log_time_ns=int(cap.wall_time * 1e9)))
             else:
-                tap_transport(t, lambda kind, payload, bus=bus: self._pending[bus].append(
-                    (time.monotonic(), time.time_ns(), kind, payload)))
-        if aggregator is None:
-            return
-        ingest = aggregator.ingest
-
-        def tapped(events, bus=0, _ingest=ingest):
-            pending = self._pending.get(bus)
-            if pending:
-                with aggregator._lock:
-                    t = aggregator.clock()
-                    self._write_pending(bus, t)
-                    return _ingest(events, bus, now=t)  # decided at the stamp the replay uses
-            return _ingest(events, bus)
-        aggregator.ingest = tapped
+                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self._pending[bus].append(
+                    (cap.timestamp, int(cap.wall_time * 1e9), cap.kind, _raw_payload(cap))))
+        if feed is not None:
+            feed.add_ingest_listener(lambda bus, now: self._pending.get(bus) and self._write_pending(bus, now))
 
     def _write_pending(self, bus: int, t: float | None) -> None:
         pending = self._pending[bus]
@@ -357,14 +329,9 @@ class Recorder:
         """The host opened SYNC ``counter`` at host monotonic ``t`` (replay re-opens it there)."""
         self._log(TOPIC_SYNC, "capsheet.Sync", {"counter": int(counter), "t": float(t)})
 
-    def tap_sync(self, aggregator) -> None:
-        """Record every counter the host opens on ``aggregator`` (`Aggregator.open_counter`)."""
-        open_counter = aggregator.open_counter
-
-        def tapped(counter, t=None, *, restart=False, _open=open_counter):
-            self.sync(counter, aggregator.clock() if t is None else t)
-            return _open(counter, t, restart=restart)
-        aggregator.open_counter = tapped
+    def tap_sync(self, feed) -> None:
+        """Record every counter the host opens (`host.feed.SnapshotFeed.add_open_listener`)."""
+        feed.add_open_listener(self.sync)
 
     def snapshot(self, snap) -> None:
         """One `host.aggregator.LatticeSnapshot`."""
@@ -420,7 +387,7 @@ class Recorder:
         self._writer.write_metadata("capsheet.host", {k: json.dumps(v) for k, v in session.items()})
         now = time.time_ns()
         docs = [("layout.json", layout), ("calibration.json", calibration)]
-        live_cal = getattr(getattr(host, "snapshot_filter", None), "calibration", None)
+        live_cal = host.calibration
         if live_cal is not None:  # `capsheet host --calibration`: what the snapshots were corrected with
             docs.append((HOST_CALIBRATION, live_cal.to_dict()))
         for name, doc in docs:
@@ -474,6 +441,12 @@ class Recorder:
                    "transports": [{"name": t.name, "kind": t.capabilities.kind, "fd": t.capabilities.fd,
                                    "bitrate": t.capabilities.bitrate} for t in host.transports]}
         return session, layout, calibration
+
+
+def _raw_payload(cap):
+    """What `Recorder.raw` records of a received `host.transport.Capture`: the bytes, or every
+    frame as received (echoes too: the recording holds the wire)."""
+    return cap.frames(echoes=True) if cap.kind == "can" else cap.raw
 
 
 def _wall_ns(wall_time: float | None) -> int:

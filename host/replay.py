@@ -25,7 +25,6 @@ from __future__ import annotations
 import base64
 import heapq
 import time
-from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterator
@@ -33,11 +32,13 @@ from typing import Iterator
 import numpy as np
 
 from protocol.constants import nominal_sensitivity
+from protocol.can import CanDecoder
 from protocol.framing import StreamDecoder
 from protocol.lattice import Lattice
 
 from .aggregator import Aggregator, LatticeSnapshot
-from .transport import CanTransport, Transport, TransportCapabilities
+from .feed import SnapshotFeed
+from .transport import Transport, TransportCapabilities, feed_can
 
 __all__ = ["ReplayTransport", "Replay", "CAN_LOG_SUFFIXES", "load_can_log"]
 
@@ -61,7 +62,7 @@ class ReplayTransport(Transport):
         ``(t - t_first) / speed`` after the first `recv` (1.0 real time); `recv` waits for them.
     """
 
-    def __init__(self, chunks: list, name: str = "replay", *, speed: float | None = None) -> None:
+    def __init__(self, chunks: list, name: str = "replay", *, speed: float | None = None, fd: bool = True) -> None:
         super().__init__(name)
         if speed is not None and not (np.isfinite(speed) and speed > 0):
             raise ValueError(f"Invalid speed: {speed!r} (need a number > 0, or None for as fast as possible)")
@@ -76,17 +77,12 @@ class ReplayTransport(Transport):
         self.speed = speed
         self._t_first = chunks[0][0] if chunks else 0.0
         self._wall0: float | None = None
-        self.decoder = StreamDecoder(batch_samples=True)
-        # CanTransport's decode step drops a bus's echoes of our own frames; a recording holds
-        # only frames the host received, so the filter sees no frame of ours and drops nothing
-        from protocol.can import EchoFilter
-        self.echo = EchoFilter()
+        # the live transports' decoders: a serial stream, or CAN frames (a recording holds only
+        # frames the host received, so the CAN decoder's echo filter sees none of ours)
+        self.decoder = StreamDecoder(batch_samples=True) if self.kind == "serial" else CanDecoder(fd=fd)
         self.sent: list = []
         self.capabilities = TransportCapabilities(kind=self.kind, mtu=1018 if self.kind == "serial" else 64,
-                                                  fd=self.kind == "can", name=name)
-
-    # CanTransport's decode step, unchanged: frames -> events (SampleBatch runs), errors counted
-    _decode = CanTransport._decode
+                                                  fd=self.kind == "can" and fd, name=name)
 
     @property
     def exhausted(self) -> bool:
@@ -120,7 +116,7 @@ class ReplayTransport(Transport):
         if kind == "serial":
             self.stats.bytes_in += len(payload)
             return self.decoder.feed(payload)
-        return self._decode([_frame(f) for f in payload])
+        return feed_can(self.decoder, [_frame(f) for f in payload], self.stats)
 
     def _send_internal(self, msg) -> None:
         self.sent.append(msg)
@@ -190,22 +186,27 @@ class Replay:
         self.speed = speed
         self.recording = None
         self._syncs = np.zeros((0, 2))
-        self.host_calibration = None  #: applied to every snapshot, as the recording host did
+        self._host_calibration = None
         calibration = None
         session: dict = {}
+        fds: dict = {}
         if self.path.suffix.lower() == ".mcap":
             self.recording = rec = record.read(self.path)
             session = rec.session
             self.lattice = rec.lattice
-            names = {i: t.get("name", f"bus{i}") for i, t in enumerate(session.get("transports", []))}
+            recorded = session.get("transports", [])
+            names = {i: t.get("name", f"bus{i}") for i, t in enumerate(recorded)}
             buses = {names.get(b, f"bus{b}"): rec.raw[b] for b in sorted(rec.raw)}
+            # a bus the host opened classic dropped the CAN FD frames it got: so does its replay
+            fds = {names.get(b, f"bus{b}"): bool(recorded[b].get("fd", True)) if b < len(recorded) else True
+                   for b in rec.raw}
             self._syncs = rec.sync
             calibration = rec.attachments.get("calibration.json")
             host_cal = rec.attachments.get(record.HOST_CALIBRATION)
             if host_cal is not None:  # `capsheet host --calibration`: the snapshots were corrected with it
                 from host.analysis.calibration import Calibration
-                self.host_calibration = Calibration.from_dict(host_cal, f"{self.path.name}: "
-                                                                         f"{record.HOST_CALIBRATION}")
+                self._host_calibration = Calibration.from_dict(host_cal, f"{self.path.name}: "
+                                                                          f"{record.HOST_CALIBRATION}")
             if not buses:
                 raise ValueError(f"{str(self.path)!r} holds no raw input (/capsheet/raw/bus*): nothing to replay")
         else:
@@ -224,17 +225,22 @@ class Replay:
             dl = session.get("deadline_s", max(2.0 / rate, 0.05))
         else:
             dl = CAN_LOG_DEADLINE_S
-        self.transports = [ReplayTransport(chunks, name) for name, chunks in buses.items()]
+        self.transports = [ReplayTransport(chunks, name, fd=fds.get(name, True)) for name, chunks in buses.items()]
         self._now = min((t.next_time for t in self.transports if t.next_time is not None), default=0.0)
         n = self.lattice.n_links
-        self.aggregator = Aggregator(n, n_buses=len(self.transports), deadline_s=float(dl),
-                                     queue_size=1 << 30, clock=lambda: self._now)
-        if calibration is not None:
-            self._apply_calibration(calibration)
-        # wall clock of the recording: LatticeSnapshot.wall_time = timestamp + offset
-        self._wall_offset = None
+        # wall clock of the recording: LatticeSnapshot.wall_time = timestamp + offset (a CAN log's
+        # times are Unix times already)
+        self._wall_offset = 0.0
         if self.recording is not None and len(self.recording):
             self._wall_offset = float(self.recording.wall_time[0] - self.recording.timestamp[0])
+        self.aggregator = Aggregator(n, n_buses=len(self.transports), deadline_s=float(dl), queue_size=1 << 30)
+        # the host's feed on the recorded clock: the same correction (the recorded host calibration),
+        # applied where the host applied it
+        self.feed = SnapshotFeed(self.aggregator, clock=lambda: self._now, queue_size=1 << 30,
+                                 wall_clock=lambda: self._now + self._wall_offset)
+        self.host_calibration = self._host_calibration
+        if calibration is not None:
+            self._apply_calibration(calibration)
 
     def _apply_calibration(self, cal: dict) -> None:
         """The node map, offsets and sensitivities exactly as `host.session.Host` set them."""
@@ -251,9 +257,19 @@ class Replay:
             off[k] = c["offset"]
             sens[k] = c["sensitivity"]
         if cal.get("links"):
-            self.aggregator.set_node_map(lut)
-            self.aggregator.set_unassigned(unassigned)
-        self.aggregator.set_calibration(off, sens)
+            self.feed.set_map(lut, unassigned)
+        self.feed.set_calibration(off, sens)
+
+    @property
+    def host_calibration(self):
+        """The calibration every snapshot is corrected with, as the recording host did (its
+        ``host_calibration.json``), or None; settable (None replays the uncorrected snapshots)."""
+        return self._host_calibration
+
+    @host_calibration.setter
+    def host_calibration(self, cal) -> None:
+        self._host_calibration = cal
+        self.feed.set_correction(None if cal is None else cal.apply)
 
     @property
     def duration_s(self) -> float:
@@ -272,9 +288,7 @@ class Replay:
         ``recorder``: a `host.record.Recorder` that gets the raw input and SYNCs again, with their
         recorded times (so a re-recording replays too).
         """
-        agg = self.aggregator
-        out: list[LatticeSnapshot] = []
-        agg.on_snapshot = out.append
+        feed = self.feed
         syncs = [(float(t), 0, int(c)) for c, t in self._syncs.tolist()]
         heap: list = []
         for bus, tr in enumerate(self.transports):
@@ -304,19 +318,19 @@ class Replay:
                 if wait > 0:
                     time.sleep(wait)
             if emits is None:
-                agg.poll(max(self._now, t))  # a CAN log, or a deadline of one's own: as they fall
+                feed.poll(max(self._now, t))  # a CAN log, or a deadline of one's own: as they fall
             else:
                 # the host emitted a counter at its deadline *when its threads got to it*: poll when
                 # it did, so the frames that made it in live make it in here
                 while ei < len(emits) and emits[ei][0] < t:  # an emission at t came with the ingest at t
                     # at the host's deadline, which adapted as it ran: the recorded decision, not ours
-                    agg.emit_through(emits[ei][1], max(self._now, emits[ei][0]))
+                    feed.emit_through(emits[ei][1], max(self._now, emits[ei][0]))
                     ei += 1
             self._now = max(self._now, t)
             if kind == 0:
                 if recorder is not None:
                     recorder.sync(who, t)
-                agg.open_counter(who, t, restart=first_sync)
+                feed.open_counter(who, t, restart=first_sync)
                 first_sync = False
             else:
                 tr = self.transports[who]
@@ -326,27 +340,18 @@ class Replay:
                         payload = [_frame(f) for f in payload]
                     recorder.raw(who, rkind, payload, tr.name, t=t)
                 events = tr.recv(0)
-                agg.ingest(events, who)
+                feed.ingest(events, who, self._now)
                 if tr.next_time is not None:
                     heapq.heappush(heap, (tr.next_time, 1, who))
                 done += 1
                 if progress is not None:
                     progress(done)
-            if out:
-                yield from self._fix(out)
-                out.clear()
-        self._now += agg.deadline_s
-        agg.poll(self._now)
-        agg.flush()
-        yield from self._fix(out)
-        out.clear()
-
-    def _fix(self, snaps):
-        cal = self.host_calibration
-        for s in snaps:
-            if self._wall_offset is not None:
-                s = replace(s, wall_time=s.timestamp + self._wall_offset)
-            yield s if cal is None else replace(s, readings=cal.apply(s.readings))
+            if feed.pending:
+                yield from feed.drain()
+        self._now += self.aggregator.deadline_s
+        feed.poll(self._now)
+        feed.flush(self._now)
+        yield from feed.drain()
 
     @property
     def stats(self) -> dict:

@@ -40,10 +40,11 @@ from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, CalData
                                Status, Stop, Sync)
 
 from .aggregator import Aggregator, LatticeSnapshot
+from .feed import SnapshotFeed
 from .transport import Transport, TransportError
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
-           "SessionError", "MismatchError", "CapacityError", "SyncConflictError", "link_ranges"]
+           "SessionError", "MismatchError", "CapacityError", "SyncConflictError", "link_ranges", "capacity_remedy"]
 
 log = logging.getLogger("capsheet.host")
 
@@ -87,6 +88,33 @@ class MismatchError(SessionError, ValueError):
 
 class CapacityError(MismatchError):
     """The traffic asked for does not fit a bus (docs/protocol.md §10)."""
+
+
+def capacity_remedy(kind: str, load: float, rate_hz: float, *, packed: bool, fd: bool = False,
+                    bitrate: int | None = None, split: str | None = None, pack: str | None = None,
+                    faster: bool = True) -> str:
+    """What takes a bus at ``load`` (1.0 = full) back under its capacity, for what is already set:
+    packing where it is not on (``pack``: how the command says so, e.g. with the gateways packing
+    needs), more gateways or buses (``split``), a faster link (``faster``), or the highest rate
+    that fits.
+
+    >>> capacity_remedy("serial", 2.5, 145.0, packed=True, bitrate=12_000_000)
+    'use more gateways (a --port each; at least 3), a link faster than 12 Mbaud (--baud), or --rate 58 or lower'
+    """
+    ways = []
+    k = int(np.ceil(load - 1e-9))
+    if kind == "serial":
+        if not packed:
+            ways.append(pack or "--packed (SNAPSHOT frames from the gateway)")
+        ways.append(split or f"more gateways (a --port each; at least {k})")
+        if faster:
+            ways.append("a link faster than " + (f"{bitrate / 1e6:g} Mbaud" if bitrate else "this one") + " (--baud)")
+    else:
+        if not (fd and packed):
+            ways.append(pack or "CAN FD with packed frames (--fd --packed)")
+        ways.append(split or f"more buses (a --can each; at least {k})")
+    ways.append(f"--rate {int(rate_hz / load):d} or lower")
+    return "use " + ", ".join(ways[:-1]) + ", or " + ways[-1]
 
 
 class SyncConflictError(SessionError):
@@ -267,9 +295,10 @@ class Host:
     timeout_s, retries : float, int
         Per command round: wait ``timeout_s`` for ACKs, resend what is unanswered, ``retries`` times.
     on_snapshot : callable, optional
-        Called (in a receive or SYNC thread) with every emitted `LatticeSnapshot`.
+        Called (in a receive or SYNC thread) with every emitted `LatticeSnapshot`, corrected as
+        every consumer gets it (`feed`).
     queue_size : int
-        Snapshots kept for `snapshots` / `get`; older ones are dropped when the consumer is slow.
+        Snapshots kept for `snapshots` / `get` / `latest`; older ones are dropped when the consumer is slow.
     clock : callable, optional
         ``() -> seconds``, monotonic (default ``time.monotonic``). Every time the host uses comes
         from it, so a test can run the host on a simulated clock.
@@ -328,9 +357,17 @@ class Host:
         else:
             dl = dict(deadline_s=max(2.0 * period, 0.05), min_deadline_s=max(1.5 * period, 0.004),
                       max_deadline_s=max(0.25, 8.0 * period))
+        #: the sans-I/O aggregator: its configuration and statistics (read them freely; it is
+        #: driven only through `feed`)
         self.aggregator = Aggregator(n, node_to_link=None, n_buses=len(self.transports),
-                                     queue_size=queue_size, on_snapshot=on_snapshot, clock=self.clock,
                                      trust="sent" if self.sync_mode == "drive" else "follow", **dl)
+        #: the one place snapshots come from (`host.feed.SnapshotFeed`): what `get`, `latest`,
+        #: `snapshots`, `drain` and every listener (``on_snapshot``, a recorder, `health`) see,
+        #: corrected by `set_calibration` once
+        self.feed = SnapshotFeed(self.aggregator, clock=self.clock, queue_size=queue_size)
+        self.feed.add_listener(self._check_health)
+        if on_snapshot is not None:
+            self.feed.add_listener(on_snapshot)
         self.chips: dict[int, ChipRecord] = {}  # uid -> record
         self._node_uid: dict[tuple[int, int], int] = {}  # (bus, node) -> uid
         self.events: list[HostEvent] = []
@@ -349,10 +386,10 @@ class Host:
         self._rx_errors: list[str] = []
         self.unknown_chips: set[int] = set()
         self._send_failing: set[int] = set()
-        #: callable ``snapshot -> snapshot`` that `get` applies first (``capsheet host --calibration``)
-        self.snapshot_filter: Callable[[LatticeSnapshot], LatticeSnapshot] | None = None
-        self.calibration_reads = 0  #: `read_calibration` calls completed (a corrector follows them)
-        #: a `host.health.HealthChecker` fed every snapshot `get` returns; its findings are host events
+        self._host_calibration = None  # as given to `set_calibration`
+        self._live_calibration = None  # ... rebased to the chips' own calibration
+        self.calibration_reads = 0  #: `read_calibration` calls completed
+        #: a `host.health.HealthChecker` fed every emitted snapshot (corrected); its findings are host events
         self.health = None
         # SYNC schedule, loop lag and the lag-free watchdog clock (see _sync_step / _watchdog)
         self.sync_schedule: SyncSchedule | None = None
@@ -365,6 +402,7 @@ class Host:
         self._seen_real = np.full(n, -np.inf)
         self._next_wd = -np.inf
         self._reconnects = [0] * len(self.transports)
+        self._disconnects = [t.stats.disconnects for t in self.transports]
         self._init_sessions()
 
     # -- lifetime ----------------------------------------------------------------------------
@@ -430,7 +468,7 @@ class Host:
     def _rx_once(self, bus: int, t: Transport, timeout_s: float) -> bool | None:
         """One receive from transport ``bus``: ingest samples, handle control frames. Returns
         whether anything arrived, None when the transport is closed for good."""
-        agg = self.aggregator
+        feed = self.feed
         try:
             events = t.recv(timeout_s)
         except TransportError as exc:
@@ -444,6 +482,8 @@ class Host:
             self._rx_errors.append(repr(exc))
             self._idle(0.05)
             return False
+        if t.stats.disconnects != self._disconnects[bus]:
+            self._port_lost(bus)
         if t.stats.reconnects != self._reconnects[bus]:
             self._reconnects[bus] = t.stats.reconnects
             self._report("reconnect", f"{t.name} is back (reconnect #{t.stats.reconnects})")
@@ -453,7 +493,7 @@ class Host:
             return True
         if not events:
             if self._driver is None:
-                agg.poll()
+                feed.poll()
             return False
         control = False
         for ev in events:
@@ -461,7 +501,7 @@ class Host:
                 control = True
                 break
         if not control:
-            agg.ingest(events, bus)
+            feed.ingest(events, bus)
             return True
         # in wire order: a SYNC opens its counter before the samples that answer it are ingested
         data: list = []
@@ -470,15 +510,17 @@ class Host:
                 data.append(ev)
                 continue
             if data:
-                agg.ingest(data, bus)
+                feed.ingest(data, bus)
                 data = []
             self._on_control(bus, ev)
         if data:
-            agg.ingest(data, bus)
+            feed.ingest(data, bus)
         return True
 
     def _on_control(self, bus: int, msg: Message) -> None:
         if isinstance(msg, Announce):
+            if bus in self.unproven and not self._prove(bus, msg.uid):
+                return  # a chip that was never on this port: not ours to drive (reported)
             with self._lock:
                 rec = self.chips.get(msg.uid)
                 if rec is None:
@@ -508,7 +550,7 @@ class Host:
                 if uid is not None:
                     self.chips[uid].info = msg
         elif isinstance(msg, Status):
-            link = self.aggregator._lut[msg.node]
+            link = self.aggregator.link_of(msg.node)
             if link >= 0:
                 self._status_seen[link] = self._now()
             uid = self._node_uid.get((bus, msg.node))
@@ -526,7 +568,7 @@ class Host:
             if self.sync_mode == "drive":
                 self._foreign_sync(bus, msg)
             elif self.sync_mode == "follow" and self._streaming.is_set():
-                self.aggregator.open_counter(msg.counter)
+                self.feed.open_counter(msg.counter)
         elif isinstance(msg, (Ack, Nack, CalData)):
             if isinstance(msg, Nack):
                 uid = self._node_uid.get((bus, msg.node))
@@ -550,7 +592,13 @@ class Host:
 
     # -- command rounds ------------------------------------------------------------------------
     def _send(self, bus: int, msg: Message) -> None:
-        self.transports[bus].send(msg)
+        t = self.transports[bus]
+        if t.stats.disconnects != self._disconnects[bus]:
+            self._port_lost(bus)
+        if bus in self.unproven and not isinstance(msg, GetInfo):
+            self.muted_sends += 1  # a port that came back drives nothing before it answers as the sheet
+            return
+        t.send(msg)
 
     def _broadcast(self, msg: Message) -> None:
         for bus in range(len(self.transports)):
@@ -709,18 +757,76 @@ class Host:
         for rec in self._assigned():
             lut[rec.node] = rec.link
             unassigned[rec.link] = False
-        self.aggregator.set_node_map(lut)
-        self.aggregator.set_unassigned(unassigned)
+        self.feed.set_map(lut, unassigned)
         self._apply_calibration()
 
     def _apply_calibration(self) -> None:
+        """The chips' own calibration (CAL_DATA) to the aggregator's conversion of counts, and the
+        host's calibration (`set_calibration`) rebased to it, to the feed's correction."""
         n = self.lattice.n_links
         off = np.zeros((n, 3))
         sens = np.full((n, 3), nominal_sensitivity(self.range_code))
         for rec in self._assigned():
             off[rec.link] = rec.offset
             sens[rec.link] = rec.sensitivity
-        self.aggregator.set_calibration(off, sens)
+        self.feed.set_calibration(off, sens)
+        cal = self._host_calibration
+        live = None if cal is None else cal.rebased(*self.chip_calibration())
+        self._live_calibration = live
+        self.feed.set_correction(None if live is None else live.apply)
+
+    def set_calibration(self, calibration) -> None:
+        """Correct every snapshot with ``calibration`` (a `host.analysis.calibration.Calibration`
+        of this lattice: ``capsheet calibrate``'s file) from now on, or none (None). It is rebased
+        to the calibration the chips report whenever the host reads it (`read_calibration`), so a
+        file works whether or not it was written to the chips; applied once, where every consumer
+        reads (`feed`). Set it before bring-up so the first snapshot streamed is corrected too."""
+        if calibration is not None and calibration.n_links != self.lattice.n_links:
+            raise MismatchError(f"the calibration is for {calibration.rows}x{calibration.cols} joints "
+                                f"({calibration.n_links} links), the lattice has {self.lattice.n_links} links")
+        self._host_calibration = calibration
+        self._apply_calibration()
+
+    @property
+    def calibration(self):
+        """The host calibration applied now, rebased to the chips' own (what a recording attaches
+        for its replay), or None."""
+        return self._live_calibration
+
+    def chip_calibration(self) -> tuple[np.ndarray, np.ndarray]:
+        """The calibration the chips report (CAL_DATA, nominal where they did not answer), in ±2 g
+        counts: ``(offset_counts (n_links, 3), sensitivity (n_links, 3))``; links without a chip
+        nominal."""
+        n = self.lattice.n_links
+        scale = float(1 << int(self.range_code))
+        off, sens = np.zeros((n, 3)), np.full((n, 3), nominal_sensitivity())
+        for rec in self._assigned():
+            off[rec.link] = np.asarray(rec.offset) * scale
+            sens[rec.link] = np.asarray(rec.sensitivity) * scale
+        return off, sens
+
+    def assigned_chips(self) -> list[ChipRecord]:
+        """The chips assigned to a link."""
+        return self._assigned()
+
+    def chips_by_node(self, uids=None) -> dict[tuple[int, int], ChipRecord]:
+        """``(bus, node) -> ChipRecord`` of the assigned chips (of ``uids``, if given): the keys a
+        `command_round` addresses chips by."""
+        return self._by_node(uids)
+
+    def command_round(self, requests: dict, build, match, what: str) -> tuple[dict, list]:
+        """One command round, as every bring-up step runs it: send each request, collect the
+        answers, resend the unanswered, `retries` times (a tool's own command: ``capsheet calibrate``'s
+        CAL_WRITE). ``build(key, attempt) -> [(bus, message), ...]``; ``match(bus, message) -> key``
+        answered (by an ACK, NACK or CAL_DATA) or None. Returns ``(answers, unanswered keys)``."""
+        return self._round(requests, build, match, what)
+
+    def _check_health(self, snap: LatticeSnapshot) -> None:
+        """Feed listener: every emitted snapshot, corrected, to `health` (if set)."""
+        health = self.health
+        if health is not None:
+            for ev in health.update(snap.readings, snap.valid, snap.timestamp):
+                self._report(ev.kind, ev.detail, link=ev.link)
 
     def _by_node(self, uids=None) -> dict[tuple[int, int], ChipRecord]:
         return {(r.bus, r.node): r for r in self._assigned() if uids is None or r.uid in uids}
@@ -777,6 +883,20 @@ class Host:
             self.calibration_reads += 1
         return n_ok
 
+    def calibration_summary(self) -> dict:
+        """Of the assigned chips whose calibration was read, ``{"own": n, "nominal": m}``: those whose
+        CAL_DATA differs from the nominal values on some axis, and those reporting the nominal values
+        on all three (what a chip with no stored calibration reports, docs/protocol.md §4.7)."""
+        nominal = nominal_sensitivity(self.range_code)
+        own = nom = 0
+        for rec in self._assigned():
+            if not rec.calibrated:
+                continue
+            plain = bool(np.all(np.asarray(rec.offset) == 0) and np.allclose(rec.sensitivity, nominal, rtol=1e-6))
+            nom += plain
+            own += not plain
+        return {"own": own, "nominal": nom}
+
     def start(self, uids=None) -> int:
         """START every assigned chip, then drive SYNC (or follow the gateway's). Returns ACK count.
 
@@ -791,17 +911,16 @@ class Host:
         if uids is not None:
             return len(ok)
         now = self._now()
-        self.aggregator.stats.link_last_seen[:] = now
+        self.feed.streaming_from(now)
         self._seen_real[:] = now
         self._seen_service[:] = self._service_s
         self._silent_reported[:] = False
-        self.aggregator.reset_miss_runs()
         if self.sync_schedule is not None:
             self._syncs_missed_before += self.sync_schedule.missed
         self.sync_schedule = None
         self._streaming.set()
         if self.sync_mode == "follow":
-            self.aggregator.restart()
+            self.feed.restart()
         if self._sync_thread is None and self._driver is None:
             self._sync_thread = threading.Thread(target=self._sync_loop, name="capsheet-sync", daemon=True)
             self._sync_thread.start()
@@ -816,11 +935,11 @@ class Host:
         self._streaming.clear()
         # let the counters in flight complete (up to their deadline) before masking them
         end = self._now() + self.aggregator.deadline_s + 0.02
-        while self.aggregator.n_open and self._now() < end:
+        while self.feed.n_open and self._now() < end:
             self._idle(0.005)
-            self.aggregator.poll(self._now())
+            self.feed.poll()
         self._broadcast(Stop(0))
-        self.aggregator.flush()
+        self.feed.flush()
 
     def bring_up(self, discover_timeout_s: float = 0.5, discover_rounds: int = 3, *, reset: bool = True,
                  strict: bool = False, capacity: str = "refuse", packed: bool = False) -> dict:
@@ -886,6 +1005,10 @@ class Host:
         self._recover_thread: threading.Thread | None = None
         self._in_recovery = False
         self._probes: dict[int, dict] = {}  # bus -> reconnect probe state
+        #: bus -> the uids it must answer with after a reconnect (empty: any chip). Until one of them
+        #: ANNOUNCEs, nothing but GET_INFO is sent there (`_send`): the path may lead elsewhere now
+        self.unproven: dict[int, set[int]] = {}
+        self.muted_sends = 0  #: frames not sent to a port that had not yet answered as the sheet
         #: uid -> the buses it announced on, for uids heard on more than one (the same chips behind
         #: two ports: one gateway named twice, or two sheets with the same uids); bounded by max_chips
         self.cross_bus_uids: dict[int, set[int]] = {}
@@ -958,8 +1081,8 @@ class Host:
             raise MismatchError(f"{len(self.cross_bus_uids)} chip(s) answer on more than one port, e.g. uid "
                                 f"0x{uid:016X} on {names}: the ports reach the same chips (one gateway "
                                 f"named twice?); give each gateway of the sheet once")
-        if self.layout is None:
-            return
+        if self.layout is None or not self.chips:
+            return  # no chip answered at all: the port (or the sheet's power), not the layout: the caller says so
         with self._lock:
             found = set(self.chips)
             missing = sorted(((k, u) for u, k in self.layout.links.items() if u not in found))
@@ -1025,8 +1148,8 @@ class Host:
             what = (f"{t.name}: {n} chips at {self.rate_hz:g} Hz need {100 * load:.0f} % of the bus "
                     f"({'packed SNAPSHOT' if packed else 'per-chip SAMPLE'} frames)")
             if load > 1.0:
-                remedy = ("use --packed on the gateway, a faster link (--baud), or a lower --rate" if cap.kind == "serial"
-                          else "split the sheet over more buses (--bus-count), use CAN FD (--fd --packed), or a lower --rate")
+                remedy = capacity_remedy(cap.kind, load, self.rate_hz, packed=packed, fd=bool(cap.fd),
+                                         bitrate=cap.bitrate)
                 if action == "refuse":
                     raise CapacityError(f"over capacity: {what}; {remedy}")
                 log.warning("over capacity: %s; %s", what, remedy)
@@ -1057,8 +1180,8 @@ class Host:
 
     def _switch_to_follow(self, why: str) -> None:
         self.sync_mode = "follow"
-        self.aggregator.set_trust("follow")
-        self.aggregator.restart()
+        self.feed.set_trust("follow")
+        self.feed.restart()
         self._report("sync", f"{why}: following that SYNC source (--sync auto)")
 
     def _foreign_sync(self, bus: int, msg: Sync) -> None:
@@ -1068,7 +1191,7 @@ class Host:
             return  # before START: `check_sync_source` decides
         if self.sync_policy == "auto":
             self._switch_to_follow(f"SYNC from another source on {self.transports[bus].name}")
-            self.aggregator.open_counter(msg.counter)
+            self.feed.open_counter(msg.counter)
         elif self.sync_conflict is None:
             self.sync_conflict = (f"another device drives SYNC on {self.transports[bus].name} while this host "
                                   f"does: stopped (use --sync follow or --sync auto)")
@@ -1083,19 +1206,53 @@ class Host:
             self._recover_queue[uid] = why
         self._recover_event.set()
 
+    def _port_lost(self, bus: int) -> None:
+        """A port went away: from now on it must prove it leads to this sheet again (`_prove`) before
+        anything but GET_INFO is sent there. Marked at the loss, not at the reconnect: the transport
+        reopens the path in its receive thread, and a SYNC sent between the reopen and the host
+        hearing of it would already reach whatever the path leads to then."""
+        with self._lock:
+            t = self.transports[bus]
+            if t.stats.disconnects == self._disconnects[bus]:
+                return
+            self._disconnects[bus] = t.stats.disconnects
+            self.unproven[bus] = {u for u, r in self.chips.items() if r.bus == bus}
+
     def _on_reconnect(self, bus: int, t: Transport) -> None:
-        """The port came back: ask every chip who it is (a rebooted chip answers from a provisional
-        node id and is recovered) and watch that something sheet-like answers at all."""
+        """The port came back: drive nothing there until it proves to lead to this sheet (`_prove`:
+        one of the chips known on it ANNOUNCEs); ask every chip who it is (a rebooted chip answers
+        from a provisional node id and is recovered) and report a port where none answers."""
+        with self._lock:
+            self.unproven[bus] = {u for u, r in self.chips.items() if r.bus == bus}
         self._probes[bus] = {"t": self._now(), "frames": t.stats.frames_in, "bytes": t.stats.bytes_in,
                              "errors": t.stats.error_count, "asks": 0, "next": self._now()}
         self._recover_event.set()
 
+    def _prove(self, bus: int, uid: int) -> bool:
+        """A chip ANNOUNCEd on a port that came back: the port leads to this sheet again if the chip
+        is one of those known on it (any chip when none was known yet). Returns whether it is."""
+        expected = self.unproven.get(bus)
+        if expected is None:
+            return True
+        t = self.transports[bus]
+        if expected and uid not in expected:
+            if bus not in self.not_a_sheet:
+                why = (f"{t.name} came back but chip 0x{uid:016X} answers there, which was never on it "
+                       f"(another sheet on this path?): nothing is driven there")
+                self.not_a_sheet[bus] = why
+                self._report("not_a_sheet", why)
+            return False
+        self.unproven.pop(bus, None)
+        self._probes.pop(bus, None)
+        self.not_a_sheet.pop(bus, None)
+        self._report("reconnect", f"{t.name} answers as the sheet (chip 0x{uid:016X}): driven again", quiet=True)
+        return True
+
     def _check_probes(self, now: float) -> None:
         for bus, pr in list(self._probes.items()):
             t = self.transports[bus]
-            if t.stats.frames_in > pr["frames"] + 1:  # a sheet answers: done (chips recover by ANNOUNCE)
+            if bus not in self.unproven:  # proven by an ANNOUNCE (`_prove`)
                 del self._probes[bus]
-                self.not_a_sheet.pop(bus, None)
                 continue
             if now >= pr["next"] and pr["asks"] < 6:
                 pr["asks"] += 1
@@ -1106,12 +1263,12 @@ class Host:
                     pass
             if now - pr["t"] > 2.0 and bus not in self.not_a_sheet:
                 why = (f"{t.name} came back but answers nothing like a sheet: {t.stats.bytes_in - pr['bytes']} "
-                       f"bytes, {t.stats.error_count - pr['errors']} undecodable, no capsheet frame in "
-                       f"{now - pr['t']:.1f} s (a stale symlink to another device?)")
+                       f"bytes, {t.stats.error_count - pr['errors']} undecodable, no chip of it announced in "
+                       f"{now - pr['t']:.1f} s (a stale symlink to another device?): nothing is driven there")
                 self.not_a_sheet[bus] = why
                 self._report("not_a_sheet", why)
             if now - pr["t"] > 30.0:
-                del self._probes[bus]
+                del self._probes[bus]  # stop asking; the port stays muted until a chip of it announces
 
     def _recovery_loop(self) -> None:
         while not self._stop.is_set():
@@ -1223,6 +1380,9 @@ class Host:
                 "stray_frames": agg.stray, "resyncs": agg.resyncs, "late": agg.late,
                 "foreign_syncs": self.foreign_syncs, "sync_mode": self.sync_mode,
                 "sync_conflict": self.sync_conflict, "not_a_sheet": list(self.not_a_sheet.values()),
+                # ports that came back but never answered as the sheet, and what was not sent there
+                "unproven_ports": [self.transports[b].name for b in sorted(self.unproven)],
+                "muted_sends": self.muted_sends,
                 "mismatch": self.mismatch,
                 "chips_dropped": self.chips_dropped, "stale_frames_drained": self.stale_frames,
                 "incidents": [{"t": e.t, "kind": e.kind, "detail": e.detail} for e in list(self.events)
@@ -1268,11 +1428,11 @@ class Host:
                 sched = self.sync_schedule = SyncSchedule(self.rate_hz, now)
             if sched.due(now):
                 c = self.counter
-                self.aggregator.open_counter(c, now, restart=first)
+                self.feed.open_counter(c, now, restart=first)
                 self._broadcast(Sync(counter=c))
                 self.syncs_sent += 1
                 self.counter = (c + 1) & 0xFFFF
-        self.aggregator.poll(now)
+        self.feed.poll(now)
         if now >= self._next_wd:
             self._watchdog(now)
             self._next_wd = now + min(0.05, self.watchdog_s / 4)
@@ -1341,13 +1501,13 @@ class Host:
         newly = silent & ~self._silent_reported
         back = self._silent_reported & ~silent
         for link in np.flatnonzero(newly).tolist():
-            agg.mark_silent(link, True)
+            self.feed.mark_silent(link, True)
             self._report("silent", f"link {link} (node {node_for_link(link)}) silent "
                                    f"({int(agg.miss_run[link])} snapshots without it, "
                                    f"{quiet[link]:.2f} s host time): marked missing",
                          link=link, node=node_for_link(link), quiet=True)
         for link in np.flatnonzero(back).tolist():
-            agg.mark_silent(link, False)
+            self.feed.mark_silent(link, False)
             self._report("recovered", f"link {link} (node {node_for_link(link)}) speaks again",
                          link=link, node=node_for_link(link), quiet=True)
         if newly.any():  # one log line per incident, not one per link
@@ -1359,14 +1519,17 @@ class Host:
 
     # -- output -------------------------------------------------------------------------------
     def get(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
-        """The next snapshot (oldest queued), or None after ``timeout_s``."""
-        snap = self.aggregator.get(timeout_s)
-        if snap is not None and self.snapshot_filter is not None:
-            snap = self.snapshot_filter(snap)
-        if snap is not None and self.health is not None:
-            for ev in self.health.update(snap.readings, snap.valid, snap.timestamp):
-                self._report(ev.kind, ev.detail, link=ev.link)
-        return snap
+        """The next snapshot (oldest queued), or None after ``timeout_s`` (`feed`)."""
+        return self.feed.get(timeout_s)
+
+    def latest(self, timeout_s: float | None = None) -> LatticeSnapshot | None:
+        """Newest wins: the newest queued snapshot, the older ones skipped (counted in the
+        aggregator's ``stats.dropped``), or None after ``timeout_s`` (`feed`)."""
+        return self.feed.latest(timeout_s)
+
+    def drain(self) -> list[LatticeSnapshot]:
+        """Every queued snapshot, oldest first, without waiting (`feed`)."""
+        return self.feed.drain()
 
     def snapshots(self, duration_s: float | None = None, count: int | None = None,
                   timeout_s: float = 1.0) -> Iterator[LatticeSnapshot]:
@@ -1393,7 +1556,7 @@ class Host:
         end = None if duration_s is None else self._now() + duration_s
         n, quiet_since = 0, self._now()
         while count is None or n < count:
-            for snap in self.aggregator.drain():
+            for snap in self.feed.drain():
                 n += 1
                 quiet_since = self._now()
                 yield snap

@@ -1,37 +1,47 @@
-"""A buffered SLCAN (Lawicel ASCII) bus for the host: python-can's ``slcan`` interface, read in chunks.
+"""The SLCAN (Lawicel ASCII) bus capsheet reads, as a python-can interface of its own: `SlcanBus`.
 
-python-can's `can.interfaces.slcan.slcanBus` reads the serial port one byte per ``read(1)`` call and
-hands back one line per receive; at 145 Hz a 14x14 sheet on nine classic buses is ~53,000 lines a
-second, and nine such readers in one process do not even get through bring-up. `BufferedSlcanBus`
-is the same bus (it subclasses it: bring-up, bit rates, send, version and serial-number queries are
-python-can's) with another receive path:
+python-can's own ``slcan`` interface (`can.interfaces.slcan.slcanBus`) reads the serial port one
+byte per ``read(1)`` call and hands back one line per receive; at 145 Hz a 14x14 sheet on nine
+classic buses is ~53,000 lines a second, and nine such readers in one process do not even get
+through bring-up. `SlcanBus` is a `can.BusABC` of its own, written to python-can's backend contract:
+it implements ``_recv_internal`` and ``send`` (and ``shutdown``, ``fileno``), and python-can's
+``BusABC.recv`` does the timeout loop and the filters. It is registered under the name
+``capsheet_slcan`` through python-can's ``can.interface`` entry point (pyproject.toml), so
 
-* ``_read`` takes everything the port has in one ``read(in_waiting or 1)`` and splits the lines
-  itself (a line ends with CR, or with BEL, the adapter's error reply, as python-can splits them);
-  a line cut across reads is completed by the next one, whatever the chunking;
-* frames are parsed with python-can's rules (``T``/``x``, ``t``, ``r``, ``R``, ``d``, ``D``, ``b``,
-  ``B``; the same `can.Message` fields), but strictly: a damaged line (a character that is not hex,
-  a data field shorter or longer than its DLC, a classic DLC over 8, an identifier out of range, a
-  line that is no SLCAN frame or reply, bytes that are not ASCII, a line over `MAX_LINE` characters)
-  is counted in `bad_lines` and skipped, never raised (python-can raises ``ValueError`` for bad hex
-  and ``UnicodeDecodeError`` for non-ASCII bytes, and silently returns a short frame for a short
-  line); the valid lines around it are kept. A received frame may end with the 4-digit timestamp of
-  the ``Z1`` mode (python-can ignores it; so does this);
-* a command (a frame the host sends) is written without python-can's `tcdrain` after it (`_write`);
+    bus = can.Bus(interface="capsheet_slcan", channel="/dev/ttyACM0", bitrate=1_000_000)
+
+and python-can configuration files (``interface = capsheet_slcan``) open it, in any program.
+`host.transport.CanTransport` opens it for ``--can slcan:PORT`` (and ``capsheet_slcan:PORT``).
+
+How it reads and writes:
+
+* a receive takes everything the port has in one ``read(in_waiting or 1)`` and splits the lines
+  itself (a line ends with CR, or with BEL, the adapter's error reply); a line cut across reads is
+  completed by the next one, whatever the chunking;
+* frames are parsed with python-can's rules (``T``/``x``, ``t``, ``r``, ``R``, ``d``, ``D``,
+  ``b``, ``B``; the same `can.Message` fields), but strictly: a damaged line (a character that is
+  not hex, a data field shorter or longer than its DLC, a classic DLC over 8, an identifier out of
+  range, a line that is no SLCAN frame or reply, bytes that are not ASCII, a line over `MAX_LINE`
+  characters) is counted in `bad_lines` and skipped, never raised (python-can raises ``ValueError``
+  for bad hex and ``UnicodeDecodeError`` for non-ASCII bytes, and silently returns a short frame
+  for a short line); the valid lines around it are kept. A received frame may end with the 4-digit
+  timestamp of the ``Z1`` mode (ignored, as python-can does);
+* a command is written whole without a ``tcdrain`` after it (python-can flushes after every line,
+  which on a tty waits until the adapter has read it: every SYNC waited for the other side);
 * stale input is drained at open: before its first command the bus closes the channel (``C``) and
   reads and discards what the port delivers until it has been quiet for ``drain_quiet_s`` (at most
   ``drain_max_s``): the backlog an adapter kept streaming into the port for a host that is gone
-  (counted in `stale_bytes`), which python-can would read byte by byte, for seconds, before the first
-  live frame;
-* `drain` returns every frame that is already buffered (or arrives within one read), parsed in one
-  pass, without a `BusABC.recv` round per frame; `drain_blocks` the same frames with each run of
-  7-byte classic extended frames (capsheet's SAMPLE) parsed by numpy into one `FrameBlock` of
-  arrays instead of one `can.Message` per frame: `host.transport.CanTransport` uses it.
+  (counted in `stale_bytes`), which a byte-by-byte reader would take seconds to get through;
+* **the batched fast path** (public, documented): `SlcanBus.drain` returns every frame already
+  buffered (or arriving within one read), parsed in one pass, without a ``recv`` round per frame;
+  `SlcanBus.drain_blocks` the same frames with each run of 7-byte classic extended frames
+  (capsheet's SAMPLE) parsed by numpy into one `protocol.can.FrameBlock` of arrays instead of one
+  `can.Message` per frame. `host.transport.CanTransport` receives through ``drain_blocks`` and
+  `protocol.can.CanDecoder` decodes the blocks without a message per frame.
 
-Everything on the wire is counted: ``bad_lines`` (damaged, skipped), ``nacks`` (BEL replies: the
-adapter refused a command — python-can's own bring-up sends ``O`` twice, so one NACK after opening
-is normal), ``stale_bytes`` (drained at open). `host.transport.CanTransport` reports ``bad_lines``
-as ``SLCAN_BAD_LINE`` in `TransportStats.errors`.
+Everything on the wire is counted: `bad_lines` (damaged, skipped), `nacks` (BEL replies: the
+adapter refused a command), `stale_bytes` (drained at open). `host.transport.CanTransport` reports
+the damaged lines as ``SLCAN_BAD_LINE`` in its ``stats.errors`` (`SlcanBus.take_bad_lines`).
 """
 
 from __future__ import annotations
@@ -43,14 +53,16 @@ from typing import Any
 
 import numpy as np
 
-from can import Message
-from can.exceptions import error_check
-from can.interfaces.slcan import slcanBus
-from can.util import CAN_FD_DLC
+from can import BusABC, Message
+from can.exceptions import CanInitializationError, CanOperationError, error_check
+from can.util import CAN_FD_DLC, len2dlc
 
-from host.transport import FrameBlock
+from protocol.can import FrameBlock
 
-__all__ = ["BufferedSlcanBus", "FrameBlock", "MAX_LINE", "parse_line"]
+__all__ = ["SlcanBus", "BufferedSlcanBus", "INTERFACE", "MAX_LINE", "parse_line"]
+
+#: the name python-can knows this bus by (the ``can.interface`` entry point in pyproject.toml)
+INTERFACE = "capsheet_slcan"
 
 #: the longest line accepted, in characters without the terminator: ``B`` + 8 id + 1 DLC + 128 data
 #: + 4 timestamp is 142; a longer run without a terminator is counted as one bad line and skipped
@@ -133,40 +145,273 @@ def parse_line(line: bytes, now: float | None = None):
                    bitrate_switch=brs, dlc=length, data=None if remote else bytearray.fromhex(body.decode("ascii")))
 
 
-class BufferedSlcanBus(slcanBus):
-    """python-can's slcan bus with a chunked, counting receive path (module docstring).
+#: bit rate -> the command that sets it (Lawicel ``Sn``; ``S9`` is 83.3 kbit/s, as python-can has it)
+BITRATES = {10_000: "S0", 20_000: "S1", 50_000: "S2", 100_000: "S3", 125_000: "S4", 250_000: "S5",
+            500_000: "S6", 750_000: "S7", 1_000_000: "S8", 83_300: "S9"}
+#: CAN FD data bit rate -> command (CANable 2.0's extension, as python-can has it)
+DATA_BITRATES = {2_000_000: "Y2", 5_000_000: "Y5"}
+
+
+class SlcanBus(BusABC):
+    """An SLCAN (Lawicel) adapter as a python-can bus, read in chunks (module docstring).
 
     Parameters
     ----------
     channel : str
-        The serial port (``/dev/ttyACM0``, a pty), as for ``slcanBus``.
-    drain_quiet_s : float
-        At open, stale input is read and discarded until the port has been quiet this long.
-        0 skips the drain (the bus then sends exactly python-can's commands).
-    drain_max_s : float
-        ... but for at most this long (an adapter that streams on regardless).
-    **kwargs
-        Everything ``slcanBus`` takes (``bitrate``, ``sleep_after_open``, ``tty_baudrate``, ...).
+        The serial port (``/dev/ttyACM0``, a pty, any pyserial URL); ``PORT@BAUD`` sets the tty
+        baud rate, as for python-can's slcan.
+    bitrate : int, optional
+        CAN bit rate, one of `BITRATES` (``S0`` .. ``S9``); None: the adapter keeps its own.
+    data_bitrate : int, optional
+        CAN FD data bit rate, one of `DATA_BITRATES`.
+    btr : str, optional
+        ``"xxyy"``: BTR0/BTR1 bit timing (``sxxyy``), instead of ``bitrate``.
+    fd : bool
+        The bus carries CAN FD (python-can's ``fd`` argument; frames are parsed either way).
+    listen_only : bool
+        Open with ``L`` (listen only) instead of ``O``.
+    tty_baudrate : int
+        Baud rate of the serial port (real UARTs; ignored by ptys and USB CDC).
+    sleep_after_open : float
+        Seconds to wait after opening the port before the first command (python-can's default 2 s:
+        some adapters reset when the port opens).
+    drain_quiet_s, drain_max_s : float
+        At open, stale input is read and discarded until the port has been quiet ``drain_quiet_s``
+        (at most ``drain_max_s``); ``drain_quiet_s=0`` skips it.
+    can_filters : list, optional
+        python-can filters, applied by ``recv`` (and by `drain` / `drain_blocks`).
     """
 
-    def __init__(self, channel: Any, *args: Any, drain_quiet_s: float = 0.05, drain_max_s: float = 1.0,
-                 **kwargs: Any) -> None:
+    def __init__(self, channel: Any, *, bitrate: int | None = None, data_bitrate: int | None = None,
+                 btr: str | None = None, timing=None, fd: bool = False, listen_only: bool = False,
+                 tty_baudrate: int = 115200, sleep_after_open: float = 2.0, rtscts: bool = False,
+                 drain_quiet_s: float = 0.05, drain_max_s: float = 1.0, can_filters=None, **kwargs: Any) -> None:
+        import serial
+        from can import BitTiming, BitTimingFd
+
+        if not channel:
+            raise ValueError("Must specify a serial port.")
+        channel = str(channel)
+        if "@" in channel:
+            channel, _, baud = channel.rpartition("@")
+            tty_baudrate = int(baud)
+        # a python-can configuration file hands over strings
+        bitrate = None if bitrate is None else int(bitrate)
+        data_bitrate = None if data_bitrate is None else int(data_bitrate)
+        tty_baudrate, sleep_after_open = int(tty_baudrate), float(sleep_after_open)
+        drain_quiet_s, drain_max_s = float(drain_quiet_s), float(drain_max_s)
+        fd, listen_only, rtscts = _flag(fd), _flag(listen_only), _flag(rtscts)
+        if isinstance(timing, BitTimingFd):
+            bitrate, data_bitrate = timing.nom_bitrate, timing.data_bitrate
+        elif isinstance(timing, BitTiming):
+            if timing.f_clock != 8_000_000:
+                raise ValueError(f"Invalid timing: an SLCAN adapter's BTR registers run at f_clock 8 MHz, "
+                                 f"not {timing.f_clock} Hz")
+            btr = f"{timing.btr0:02X}{timing.btr1:02X}"
+        if bitrate is not None and bitrate not in BITRATES:
+            raise ValueError(f"Invalid bitrate {bitrate!r}, choose one of {', '.join(map(str, BITRATES))}")
+        if data_bitrate is not None and data_bitrate not in DATA_BITRATES:
+            raise ValueError(f"Invalid data bitrate {data_bitrate!r}, choose one of "
+                             f"{', '.join(map(str, DATA_BITRATES))}")
+        if bitrate is not None and btr is not None:
+            raise ValueError("bitrate and btr are mutually exclusive")
         self.bad_lines = 0  #: damaged lines skipped (module docstring)
         self.nacks = 0  #: BEL replies (the adapter refused a command)
         self.stale_bytes = 0  #: bytes drained at open
-        self._drain_quiet_s = drain_quiet_s
-        self._drain_max_s = drain_max_s
-        self._drained = drain_quiet_s <= 0
+        self.fd = bool(fd)
         self._lines: deque[bytes] = deque()  # complete lines, terminator included
         self._partial = bytearray()  # the start of a line not yet terminated
         self._skipping = False  # inside an over-long line: discard up to its terminator
-        super().__init__(channel, *args, **kwargs)
+        with error_check(exception_type=CanInitializationError):
+            self._port = serial.serial_for_url(channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0)
+        try:
+            time.sleep(sleep_after_open)
+            with error_check(exception_type=CanInitializationError):
+                self._write("C")  # an adapter left open by a host that is gone stops streaming
+                if drain_quiet_s > 0:
+                    self._drain_stale(drain_quiet_s, drain_max_s)
+                if bitrate is not None:
+                    self._write(BITRATES[bitrate])
+                if btr is not None:
+                    self._write("s" + btr)
+                if data_bitrate is not None:
+                    self._write(DATA_BITRATES[data_bitrate])
+                self._write("L" if listen_only else "O")
+        except BaseException:
+            self._port.close()
+            raise
+        self.channel_info = f"SLCAN adapter on {channel}"
+        super().__init__(channel, can_filters=can_filters, **kwargs)
+
+    # ------------------------------------------------------------------ python-can's contract
+    def _recv_internal(self, timeout: float | None) -> tuple[Message | None, bool]:
+        """The next frame within ``timeout`` (None: wait), and False (python-can applies the
+        filters). Replies and damaged lines are consumed on the way."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            line = self._next_line(remaining)
+            if line is None:
+                return None, False
+            m = self._parse(line)
+            if m is not None:
+                return m, False
+            if deadline is not None and time.monotonic() >= deadline and not self._lines:
+                return None, False
+
+    def send(self, msg: Message, timeout: float | None = None) -> None:
+        """Write ``msg`` as one SLCAN line (whole; ``timeout``: the port's write timeout)."""
+        if timeout != self._port.write_timeout:
+            self._port.write_timeout = timeout
+        aid = msg.arbitration_id
+        ident = f"{aid:08X}" if msg.is_extended_id else f"{aid:03X}"
+        if msg.is_remote_frame:
+            line = ("R" if msg.is_extended_id else "r") + ident + f"{msg.dlc:d}"
+        elif msg.is_fd:
+            kind = ("B" if msg.is_extended_id else "b") if msg.bitrate_switch else ("D" if msg.is_extended_id else "d")
+            line = kind + ident + f"{len2dlc(msg.dlc):X}" + msg.data.hex().upper()
+        else:
+            line = ("T" if msg.is_extended_id else "t") + ident + f"{msg.dlc:d}" + msg.data.hex().upper()
+        with error_check("Could not write to serial device", CanOperationError):
+            self._write(line)
+
+    def shutdown(self) -> None:
+        """Close the channel (``C``) and the port. Safe to call twice."""
+        super().shutdown()
+        try:
+            self._write("C")
+        except Exception:  # noqa: BLE001 - the port may be gone already
+            pass
+        with error_check("Could not close serial socket"):
+            self._port.close()
+
+    def fileno(self) -> int:
+        try:
+            return int(self._port.fileno())
+        except Exception as exc:  # noqa: BLE001 - loop:// and friends have none
+            raise NotImplementedError(f"fileno is not available for this port: {exc}") from None
+
+    # ------------------------------------------------------------------ the adapter's queries
+    def get_version(self, timeout: float | None) -> tuple[int | None, int | None]:
+        """Hardware and software version (``V``), or ``(None, None)`` after ``timeout``."""
+        line = self._query("V", 4, timeout)
+        return (None, None) if line is None else (int(line[1:3]), int(line[3:5]))
+
+    def get_serial_number(self, timeout: float | None) -> str | None:
+        """The adapter's serial number (``N``), or None after ``timeout``."""
+        line = self._query("N", 4, timeout)
+        return None if line is None else line[1:5].decode("ascii", "replace")
+
+    def _query(self, cmd: str, n: int, timeout: float | None) -> bytes | None:
+        """Send ``cmd`` and wait for its reply line; the frames that arrive meanwhile stay queued."""
+        self._write(cmd)
+        held: list[bytes] = []
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while True:
+                remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+                line = self._next_line(remaining)
+                if line is None:
+                    return None
+                if line[:1] == cmd.encode() and len(line) == n + 2:
+                    return line
+                held.append(line)
+        finally:
+            self._lines.extendleft(reversed(held))
+
+    @property
+    def in_waiting(self) -> int:
+        """Bytes the port holds that this bus has not read yet."""
+        return int(self._port.in_waiting)
+
+    def take_bad_lines(self) -> int:
+        """Damaged lines skipped since the last call (the count starts again from 0)."""
+        n, self.bad_lines = self.bad_lines, 0
+        return n
+
+    # ------------------------------------------------------------------ the batched fast path
+    def drain(self, timeout: float | None = 0.0, max_frames: int | None = None) -> list[Message]:
+        """Every frame already buffered or in the port, in wire order, parsed in one pass; waits up
+        to ``timeout`` (None: indefinitely) for the first byte if nothing is there. Filters apply as
+        in ``recv``. Damaged lines are counted (`bad_lines`) and skipped. At most ``max_frames``
+        frames; the rest stay buffered for the next call."""
+        self._split()
+        if not self._lines:
+            self._fill(timeout)
+        if self._port.in_waiting:
+            self._fill(0)
+        self._split()
+        out: list[Message] = []
+        lines = self._lines
+        now = time.time()
+        while lines and (max_frames is None or len(out) < max_frames):
+            m = self._parse(lines.popleft(), now)
+            if m is not None:
+                out.append(m)
+        return self._filtered(out)
+
+    def drain_blocks(self, timeout: float | None = 0.0, max_lines: int | None = None) -> list:
+        """Like `drain`, for a receiver that takes arrays: runs of the commonest line, a classic
+        extended frame of 7 data bytes (``Tiiiiiiii7dddddddddddddd``, a capsheet SAMPLE), come
+        out as one `protocol.can.FrameBlock` each, parsed by numpy for the whole run; every other
+        line as a `can.Message`, in wire order. The same frames as `drain`, with the same counts (a
+        line the fast parse does not accept goes through `parse_line`). At most ``max_lines`` lines
+        per call (the rest stay buffered). With filters set, it is `drain` (no blocks)."""
+        if self.filters is not None:
+            return self.drain(timeout, max_lines)
+        out: list = []
+        now = time.time()
+        lines = self._lines
+        while lines:  # lines already split (by recv or a query) come before the raw bytes
+            m = self._parse(lines.popleft(), now)
+            if m is not None:
+                out.append(m)
+        if not out and b"\r" not in self._partial and b"\a" not in self._partial:
+            self._fill(timeout)
+        if self._port.in_waiting:
+            self._fill(0)
+        raw = self._partial
+        if self._skipping:  # the rest of an over-long or stale line
+            cut = min((i for i in (raw.find(b"\r"), raw.find(b"\a")) if i >= 0), default=-1)
+            if cut < 0:
+                raw.clear()
+                return out
+            del raw[:cut + 1]
+            self._skipping = False
+        data = bytes(raw)
+        arr = np.frombuffer(data, dtype=np.uint8)
+        term = np.flatnonzero((arr == 13) | (arr == 7))
+        if max_lines is not None:
+            term = term[:max(0, max_lines - len(out))]
+        if term.size:
+            del raw[:int(term[-1]) + 1]
+            out += self._parse_lines(data, arr, term, now)
+        if len(raw) > MAX_LINE:
+            self.bad_lines += 1
+            self._skipping = True
+            raw.clear()
+        return out
+
+    def flush(self) -> None:
+        """Discard buffered input: what the port holds and this bus's lines."""
+        self._lines.clear()
+        self._partial.clear()
+        self._skipping = False
+        with error_check("Could not flush"):
+            self._port.reset_input_buffer()
 
     # ------------------------------------------------------------------ bytes -> lines
+    def _filtered(self, frames: list[Message]) -> list[Message]:
+        """``frames`` that pass the bus's python-can filters (public `BusABC.filters`)."""
+        flt = self.filters
+        if flt is None:
+            return frames
+        return [m for m in frames if _matches(m, flt)]
+
     def _fill(self, timeout: float | None) -> bool:
-        """Read what the port has (waiting up to ``timeout`` for the first byte) into lines.
+        """Read what the port has (waiting up to ``timeout`` for the first byte) into the buffer.
         True if anything was read."""
-        port = self.serialPortOrig
+        port = self._port
         n = port.in_waiting
         if not n:
             if timeout is not None and timeout <= 0:
@@ -210,13 +455,6 @@ class BufferedSlcanBus(slcanBus):
                 self._skipping = True
             buf.clear()
 
-    def _read(self, timeout: float | None) -> str | None:
-        """python-can's hook: the next line, terminator included, as a str (or None on timeout).
-        Used by python-can's ``get_version`` / ``get_serial_number``; frames go through
-        `_recv_internal` / `drain`, which read the bytes directly."""
-        line = self._next_line(timeout)
-        return None if line is None else line.decode("ascii", "replace")
-
     def _next_line(self, timeout: float | None) -> bytes | None:
         if not self._lines:
             self._split()
@@ -246,87 +484,6 @@ class BufferedSlcanBus(slcanBus):
             self.bad_lines += 1
             return None
         return m
-
-    def _recv_internal(self, timeout: float | None) -> tuple[Message | None, bool]:
-        if self._queue.qsize():  # a line python-can's get_version put back
-            line = self._queue.get_nowait().encode("ascii", "replace")
-        else:
-            line = self._next_line(timeout)
-        if line is None:
-            return None, False
-        return self._parse(line), False
-
-    def drain(self, timeout: float | None = 0.0, max_frames: int | None = None) -> list[Message]:
-        """Every frame already buffered or in the port, in wire order, parsed in one pass; waits up
-        to ``timeout`` (None: indefinitely) for the first byte if nothing is there. Filters apply as
-        in `recv`. Damaged lines are counted (`bad_lines`) and skipped. At most ``max_frames``
-        frames; the rest stay buffered for the next call."""
-        self._take_queue()
-        self._split()
-        if not self._lines:
-            self._fill(timeout)
-        if self.serialPortOrig.in_waiting:
-            self._fill(0)
-        self._split()
-        out: list[Message] = []
-        lines = self._lines
-        now = time.time()
-        filtered = self._filters is not None
-        while lines and (max_frames is None or len(out) < max_frames):
-            m = self._parse(lines.popleft(), now)
-            if m is not None and (not filtered or self._matches_filters(m)):
-                out.append(m)
-        return out
-
-    def _take_queue(self) -> None:
-        """Lines python-can's ``get_version`` put back go first."""
-        back = []
-        while self._queue.qsize():
-            back.append(self._queue.get_nowait().encode("ascii", "replace"))
-        self._lines.extendleft(reversed(back))
-
-    def drain_blocks(self, timeout: float | None = 0.0, max_lines: int | None = None) -> list:
-        """Like `drain`, for a receiver that takes arrays: runs of the commonest line, a classic
-        extended frame of 7 data bytes (``Tiiiiiiii7dddddddddddddd``, a capsheet SAMPLE), come
-        out as one `FrameBlock` each, parsed by numpy for the whole run; every other line as a
-        `can.Message` from `parse_line`, in wire order. The same frames as `drain`, with the same
-        counts (a line the fast parse does not accept goes through `parse_line`). At most
-        ``max_lines`` lines per call (the rest stay buffered)."""
-        if self._filters is not None:
-            return self.drain(timeout, max_lines)
-        self._take_queue()
-        out: list = []
-        now = time.time()
-        lines = self._lines
-        while lines:  # lines already split (by recv or get_version) come before the raw bytes
-            m = self._parse(lines.popleft(), now)
-            if m is not None:
-                out.append(m)
-        if not out and b"\r" not in self._partial and b"\a" not in self._partial:
-            self._fill(timeout)
-        if self.serialPortOrig.in_waiting:
-            self._fill(0)
-        raw = self._partial
-        if self._skipping:  # the rest of an over-long or stale line
-            cut = min((i for i in (raw.find(b"\r"), raw.find(b"\a")) if i >= 0), default=-1)
-            if cut < 0:
-                raw.clear()
-                return out
-            del raw[:cut + 1]
-            self._skipping = False
-        data = bytes(raw)
-        arr = np.frombuffer(data, dtype=np.uint8)
-        term = np.flatnonzero((arr == 13) | (arr == 7))
-        if max_lines is not None:
-            term = term[:max(0, max_lines - len(out))]
-        if term.size:
-            del raw[:int(term[-1]) + 1]
-            out += self._parse_lines(data, arr, term, now)
-        if len(raw) > MAX_LINE:
-            self.bad_lines += 1
-            self._skipping = True
-            raw.clear()
-        return out
 
     def _parse_lines(self, data: bytes, arr: np.ndarray, term: np.ndarray, now: float) -> list:
         starts = np.empty_like(term)
@@ -362,27 +519,16 @@ class BufferedSlcanBus(slcanBus):
 
     # ------------------------------------------------------------------ open
     def _write(self, string: str) -> None:
-        """python-can's command writer, without its ``flush()`` after every line: on a tty that is
-        ``tcdrain``, which waits until the adapter has read the line, so every send (a SYNC on each
-        bus, 145 times a second) waited for the other side's read loop. The line is still written
-        whole (pyserial's ``write`` loops until it is, within ``write_timeout``)."""
-        if not self._drained:
-            self._drained = True
-            self._put("C")  # an adapter left open by a host that is gone stops streaming
-            self._drain_stale()
-        self._put(string)
+        """One command line, written whole (pyserial's ``write`` loops until it is), no tcdrain."""
+        self._port.write(string.encode() + b"\r")
 
-    def _put(self, string: str) -> None:
-        with error_check("Could not write to serial device"):
-            self.serialPortOrig.write(string.encode() + self.LINE_TERMINATOR)
-
-    def _drain_stale(self) -> None:
-        port = self.serialPortOrig
+    def _drain_stale(self, quiet_s: float, max_s: float) -> None:
+        port = self._port
         t0 = last = time.monotonic()
         tail = b"\r"
         while True:
             now = time.monotonic()
-            if now - last >= self._drain_quiet_s or now - t0 >= self._drain_max_s:
+            if now - last >= quiet_s or now - t0 >= max_s:
                 break
             n = port.in_waiting
             if n:
@@ -391,16 +537,30 @@ class BufferedSlcanBus(slcanBus):
                 tail = data[-1:] or tail
                 last = time.monotonic()
             else:
-                time.sleep(min(0.005, self._drain_quiet_s))
-        self._buffer.clear()
+                time.sleep(min(0.005, quiet_s))
         self._lines.clear()
         self._partial.clear()
         # stopped inside a line (an adapter streaming on): its rest is stale too, not a damaged line
         self._skipping = tail not in (b"\r", b"\a")
 
-    def flush(self) -> None:
-        """Discard buffered input (python-can's ``flush``, and this bus's line buffer)."""
-        self._lines.clear()
-        self._partial.clear()
-        self._skipping = False
-        super().flush()
+
+def _flag(v) -> bool:
+    """A boolean argument, also as a configuration file writes it (``true``, ``1``, ``no`` ...)."""
+    if isinstance(v, str):
+        return v.strip().lower() in ("1", "true", "yes", "on")
+    return bool(v)
+
+
+def _matches(msg: Message, filters) -> bool:
+    """python-can's filter rule (``can_id``, ``can_mask``, optional ``extended``), as documented
+    for `can.BusABC.set_filters`: a frame passes if any filter matches."""
+    for f in filters:
+        if "extended" in f and f["extended"] != msg.is_extended_id:
+            continue
+        if (msg.arbitration_id ^ f["can_id"]) & f["can_mask"] == 0:
+            return True
+    return False
+
+
+#: the name this bus had when it subclassed python-can's slcanBus
+BufferedSlcanBus = SlcanBus

@@ -16,7 +16,18 @@ Only override the hooks, never `recv` / `send` directly.
 
 Events returned by `Transport.recv` are what the protocol decoders produce, in wire order:
 `protocol.Message` instances, `protocol.SampleBatch` (runs of SAMPLE, the fast path) and
-`protocol.DecodeError` (damage, counted in `TransportStats.errors`). Wire input never raises.
+`protocol.DecodeError` (damage, counted in `TransportStats.errors`). Wire input never raises. A
+transport only moves bytes and frames: the decoding is the sans-I/O `protocol.framing.StreamDecoder`
+(serial) or `protocol.can.CanDecoder` (CAN), the same objects replay and the tests use.
+
+**Capture** (pycyphal's ``Transport.begin_capture``): `Transport.begin_capture(handler)` hands the
+handler every unit of traffic from then on as a `Capture`, in both directions, raw and decoded: what
+a receive read (serial bytes, or the CAN frames the bus delivered) with the events decoded from it,
+and what a send wrote (bytes or a frame) with the message it carried. The recorder, ``--can-log``
+and the conformance audit are capture handlers; nothing reaches into a transport. **Raw sends**
+for tools that must put frames a conforming host never sends on the wire: `SerialTransport.send_bytes`
+and `CanTransport.send_frame`; they are captured too (``events`` empty), and a CAN frame sent raw is
+known to the echo filter like any other.
 """
 
 from __future__ import annotations
@@ -29,19 +40,21 @@ import time
 from abc import ABC, abstractmethod
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
-import numpy as np
-
-from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, EchoFilter, decode_can, make_id, to_can
+from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, SampleBatch, StreamDecoder, encode
-from protocol.messages import Message, MsgType, Sample, unpack_sample_words
+from protocol.messages import Message
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
-           "TransportCapabilities", "TransportStats", "Transport", "SerialTransport", "MemoryTransport",
-           "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec"]
+           "TransportCapabilities", "TransportStats", "Capture", "RawFrame", "Transport", "SerialTransport", "MemoryTransport",
+           "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec", "feed_can"]
 
 log = logging.getLogger("capsheet.host.transport")
+
+#: the python-can interface name ``--can slcan:PORT`` opens (`host.slcan.SlcanBus`, registered
+#: by the ``can.interface`` entry point in pyproject.toml)
+SLCAN_INTERFACE = "capsheet_slcan"
 
 
 # --------------------------------------------------------------------------------------------
@@ -125,6 +138,7 @@ class TransportStats:
     disconnects: int = 0  #: times the port went away
     reconnects: int = 0  #: times it came back and was reopened
     send_failures: int = 0
+    capture_errors: int = 0  #: exceptions a capture handler raised (the first of each handler is logged)
 
     @property
     def error_count(self) -> int:
@@ -133,7 +147,93 @@ class TransportStats:
     def as_dict(self) -> dict:
         return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "frames_in": self.frames_in,
                 "frames_out": self.frames_out, "errors": dict(self.errors), "disconnects": self.disconnects,
-                "reconnects": self.reconnects, "send_failures": self.send_failures}
+                "reconnects": self.reconnects, "send_failures": self.send_failures,
+                "capture_errors": self.capture_errors}
+
+
+# --------------------------------------------------------------------------------------------
+# Capture: what a transport received and sent, for whoever subscribes
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Capture:
+    """One unit of traffic of a transport, as `Transport.begin_capture` hands it over.
+
+    Attributes
+    ----------
+    transport : Transport
+        Who moved it (``transport.name`` names the port or bus).
+    direction : str
+        ``"rx"`` (read from the wire) or ``"tx"`` (written to it).
+    timestamp : float
+        Host ``time.monotonic()`` seconds when it was read (after the read returned) or written.
+    wall_time : float
+        ``time.time()`` at the same instant (what log files stamp).
+    kind : str
+        ``"serial"`` or ``"can"``: what ``raw`` holds.
+    raw : bytes or tuple
+        Serial: the bytes as read or written (rx: one read, cut anywhere; tx: whole frames).
+        CAN rx: the frames one receive drained, in wire order, as the bus delivered them
+        (python-can ``Message`` s, and `protocol.can.FrameBlock` s from the SLCAN bus's fast
+        path), the echoes of this host's own frames included. CAN tx: ``(message,)``, the
+        python-can ``Message`` written.
+    events : tuple
+        Rx: what the decoder made of this input, exactly the events `Transport.recv` returns for
+        it (a serial frame cut across reads comes with the read that completes it). Tx: the
+        `protocol.Message` sent, or ``()`` for a raw send (`SerialTransport.send_bytes`,
+        `CanTransport.send_frame`).
+    echoes : tuple of (int, bytes)
+        CAN rx: ``(arbitration_id, data)`` of the frames of ``raw`` recognised as this host's own
+        handed back (python-can's ``udp_multicast`` does): dropped from ``events``. Else ``()``.
+    """
+
+    transport: Any
+    direction: str
+    timestamp: float
+    wall_time: float
+    kind: str
+    raw: Any
+    events: tuple = ()
+    echoes: tuple = ()
+
+    def frames(self, *, echoes: bool = False) -> list:
+        """CAN: the frames of ``raw`` one by one, in wire order: python-can messages as they are,
+        each row of a `protocol.can.FrameBlock` as a `RawFrame` (stamped ``wall_time``); the
+        echoes of this host's own frames left out unless ``echoes``. Serial: ``[]``."""
+        if self.kind != "can":
+            return []
+        out: list = []
+        for f in self.raw:
+            if type(f) is FrameBlock:
+                out += [RawFrame(aid, row, timestamp=self.wall_time)
+                        for aid, row in zip(f.arbitration_id.tolist(), map(bytes, f.data))]
+            else:
+                out.append(f)
+        if echoes or not self.echoes:
+            return out
+        left = Counter(self.echoes)
+        kept = []
+        for f in out:
+            key = (f.arbitration_id, bytes(f.data))
+            if left.get(key) and not (f.is_error_frame or f.is_remote_frame):
+                left[key] -= 1
+                continue
+            kept.append(f)
+        return kept
+
+
+class RawFrame(NamedTuple):
+    """One received CAN frame with python-can ``Message``'s attributes (what `Capture.frames`
+    makes of a `protocol.can.FrameBlock` row)."""
+
+    arbitration_id: int
+    data: bytes
+    is_extended_id: bool = True
+    is_fd: bool = False
+    is_error_frame: bool = False
+    is_remote_frame: bool = False
+    bitrate_switch: bool = False
+    timestamp: float = 0.0
 
 
 # --------------------------------------------------------------------------------------------
@@ -145,7 +245,9 @@ class Transport(ABC):
     serialised by a lock).
 
     Subclasses implement ``_recv_internal(timeout_s) -> list`` (events, possibly empty; may return
-    early), ``_send_internal(msg)`` and ``_close_internal()``, and set ``capabilities``.
+    early), ``_send_internal(msg) -> raw`` (what was written: bytes, or the CAN frame) and
+    ``_close_internal()``, and set ``capabilities``. A back end hands what it reads to
+    `emit_capture` (the base class captures what `send` writes).
     """
 
     capabilities: TransportCapabilities
@@ -160,6 +262,52 @@ class Transport(ABC):
         self.reconnect = reconnect
         self.reconnect_interval_s = reconnect_interval_s
         self._last_attempt = float("-inf")
+        self._captures: tuple = ()  # capture handlers (a tuple: iterated without a lock)
+        self._capture_failed: set = set()  # handlers whose failure was logged once
+
+    # -- capture (pycyphal: Transport.begin_capture) -------------------------------------------
+    def begin_capture(self, handler: Callable[[Capture], None]) -> None:
+        """Hand ``handler`` every `Capture` from now on: each receive (raw input and the events
+        decoded from it) and each send (the raw output and the message, ``events`` empty for a
+        raw send), in wire order per direction.
+
+        The handler runs in the thread that moved the traffic: for rx inside `recv`, before the
+        events are returned (so it sees the input before anyone acts on it); for tx inside the send
+        lock, after the write. It must be quick, must not modify what it is given, and must not call
+        this transport's `send` or `recv`. An exception it raises is counted in
+        ``stats.capture_errors`` (the first of each handler logged with its traceback) and does not
+        reach the receive or send. Several handlers may be registered; `end_capture` removes one.
+        """
+        if not callable(handler):
+            raise TypeError(f"Invalid capture handler: {handler!r} (need a callable taking a Capture)")
+        self._captures = (*self._captures, handler)
+
+    def end_capture(self, handler: Callable[[Capture], None]) -> None:
+        """Stop handing captures to ``handler`` (registered by `begin_capture`); no error if it is not."""
+        self._captures = tuple(h for h in self._captures if h != handler)  # == : bound methods are new objects
+
+    @property
+    def capturing(self) -> bool:
+        """True while at least one capture handler is registered (a back end may skip the work)."""
+        return bool(self._captures)
+
+    def emit_capture(self, direction: str, raw: Any, events=(), echoes=()) -> None:
+        """For back ends: hand one unit of traffic (`Capture`'s fields) to every capture handler
+        now; nothing to do without handlers."""
+        handlers = self._captures
+        if not handlers:
+            return
+        cap = Capture(self, direction, time.monotonic(), time.time(), self.capabilities.kind
+                      if self.capabilities.kind != "memory" else "serial", raw, tuple(events), tuple(echoes))
+        for h in handlers:
+            try:
+                h(cap)
+            except Exception:  # noqa: BLE001 - a subscriber's bug must not stop the traffic
+                self.stats.capture_errors += 1
+                if id(h) not in self._capture_failed:
+                    self._capture_failed.add(id(h))
+                    log.exception("capture handler %r of %s %r failed (further failures are counted in "
+                                  "stats.capture_errors)", h, self.label, self.name)
 
     # -- reconnect, written once for every back end ----------------------------------------------
     def _lost(self, exc: BaseException) -> None:
@@ -243,7 +391,7 @@ class Transport(ABC):
             raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
         with self._send_lock:
             try:
-                self._send_internal(msg)
+                raw = self._send_internal(msg)
             except TransportError:
                 self.stats.send_failures += 1
                 raise
@@ -252,6 +400,8 @@ class Transport(ABC):
                 raise TransportOperationError(
                     f"Cannot send {msg.TYPE.name} on {self.name!r}: {exc}", self.name) from exc
             self.stats.frames_out += 1
+            if self._captures:
+                self.emit_capture("tx", raw, (msg,))
 
     def close(self) -> None:
         """Close the port. Idempotent."""
@@ -282,8 +432,9 @@ class Transport(ABC):
         """Events available within ``timeout_s``; [] if none. Never raises on wire input."""
 
     @abstractmethod
-    def _send_internal(self, msg: Message) -> None:
-        """Put one message on the wire."""
+    def _send_internal(self, msg: Message) -> Any:
+        """Put one message on the wire; return what was written, as `Capture.raw` holds it (bytes,
+        or a tuple of the CAN frame)."""
 
     def _close_internal(self) -> None:
         pass
@@ -430,13 +581,32 @@ class SerialTransport(Transport):
         if not data:
             return []
         self.stats.bytes_in += len(data)
-        return self.decoder.feed(data)
+        events = self.decoder.feed(data)
+        if self._captures:
+            self.emit_capture("rx", data, events)
+        return events
 
-    def _send_internal(self, msg: Message) -> None:
-        self.send_bytes(encode(msg))
+    def _send_internal(self, msg: Message) -> bytes:
+        data = encode(msg)
+        self._write(data)
+        return data
 
     def send_bytes(self, data: bytes) -> None:
-        """Raw wire bytes (already framed); for tests and bridges."""
+        """Raw send: wire bytes as they are (already framed, or deliberately not: a conformance
+        check's junk), under the send lock, captured (``events`` empty). Raises as `send` does."""
+        if self._closed:
+            raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+        data = bytes(data)
+        with self._send_lock:
+            try:
+                self._write(data)
+            except TransportError:
+                self.stats.send_failures += 1
+                raise
+            if self._captures:
+                self.emit_capture("tx", data)
+
+    def _write(self, data: bytes) -> None:
         port = self._port
         if port is None:
             raise TransportOperationError(f"Serial port {self.name!r} is not connected", self.name)
@@ -473,25 +643,21 @@ class MemoryTransport(SerialTransport):
 # CAN (python-can)
 # --------------------------------------------------------------------------------------------
 
-@dataclass(frozen=True, slots=True, eq=False)
-class FrameBlock:
-    """Consecutive classic extended data frames of 7 bytes, as arrays: what
-    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and `CanTransport`
-    decodes without a python-can message per frame.
-
-    Attributes
-    ----------
-    arbitration_id : ndarray, shape (n,), uint32
-        29-bit identifiers.
-    data : ndarray, shape (n, 7), uint8
-        Their data bytes.
-    """
-
-    arbitration_id: np.ndarray
-    data: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.arbitration_id.shape[0])
+def feed_can(decoder: CanDecoder, frames, stats: TransportStats, echoes: list | None = None) -> list:
+    """``decoder.feed(frames)``, with what the decoder took in and dropped without an event added
+    to a transport's ``stats``: data bytes to ``bytes_in``, error frames to
+    ``errors["CAN_ERROR_FRAME"]``, CAN FD frames on a classic bus to ``errors["FD_ON_CLASSIC"]``
+    (`Transport.recv` counts the `DecodeError` events). ``echoes``: `CanDecoder.feed`'s. `CanTransport`
+    and `host.replay.ReplayTransport` receive through it."""
+    st = decoder.stats
+    b0, e0, f0 = st.bytes_in, st.error_frames, st.fd_on_classic
+    events = decoder.feed(frames, echoes)
+    stats.bytes_in += st.bytes_in - b0
+    if st.error_frames != e0:
+        stats.errors["CAN_ERROR_FRAME"] += st.error_frames - e0
+    if st.fd_on_classic != f0:
+        stats.errors["FD_ON_CLASSIC"] += st.fd_on_classic - f0
+    return events
 
 
 def parse_can_spec(spec: str) -> tuple[str, str]:
@@ -529,9 +695,10 @@ class CanTransport(Transport):
     **bus_kwargs
         Passed to ``can.Bus`` (e.g. ``sleep_after_open=0`` for slcan on a pty).
 
-    The ``slcan`` interface is opened as `host.slcan.BufferedSlcanBus` (python-can's slcan bus,
-    read in chunks, stale input drained at open); the SLCAN lines it skips as damaged are counted
-    in ``stats.errors["SLCAN_BAD_LINE"]``.
+    The ``slcan`` interface is opened as python-can's ``capsheet_slcan`` (`host.slcan.SlcanBus`:
+    read in chunks, stale input drained at open, runs of SAMPLE lines handed over as arrays by its
+    ``drain_blocks``); the SLCAN lines it skips as damaged are counted in
+    ``stats.errors["SLCAN_BAD_LINE"]``. Any other interface is python-can's ``can.Bus`` of that name.
     """
 
     def __init__(self, spec: str, *, fd: bool = False, bitrate: int | None = None,
@@ -552,9 +719,8 @@ class CanTransport(Transport):
         self._max_batch = max_batch
         #: our own frames handed back (udp_multicast does): dropped, counted in ``echo.echoes``
         self.echo = EchoFilter()
-        #: ``on_sent(can.Message)`` after every frame this host sent (``is_rx`` False, wall-clock
-        #: timestamp as python-can stamps received frames): what ``--can-log`` writes as Tx
-        self.on_sent: Callable[[Any], None] | None = None
+        #: the sans-I/O receiver (`protocol.can.CanDecoder`): frames in, events out
+        self.decoder = CanDecoder(fd=fd, echo=self.echo)
         self._bus = self._open()
         self.capabilities = TransportCapabilities(
             kind="can", mtu=CAN_FD_MTU if fd else CAN_CLASSIC_MTU, fd=fd, bitrate=bitrate,
@@ -562,11 +728,10 @@ class CanTransport(Transport):
 
     def _open(self):
         can = self._can
+        # slcan: capsheet's own SLCAN bus, a python-can interface found by name (host/slcan.py)
+        interface = SLCAN_INTERFACE if self.interface == "slcan" else self.interface
         try:
-            if self.interface == "slcan":  # python-can's slcan, read in chunks (host/slcan.py)
-                from .slcan import BufferedSlcanBus
-                return BufferedSlcanBus(self.channel, fd=self.fd, **self._bus_kwargs)
-            return can.Bus(interface=self.interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
+            return can.Bus(interface=interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError
             raise TransportInitError(f"Cannot open CAN bus {self.name!r}: {exc}", self.name) from exc
 
@@ -594,9 +759,11 @@ class CanTransport(Transport):
         wait = min(timeout_s, 0.1) if timeout_s is not None else 0.1
         try:
             drain = getattr(bus, "drain_blocks", None)
-            if drain is not None:  # BufferedSlcanBus: every buffered line parsed in one pass
+            if drain is not None:  # host.slcan.SlcanBus: every buffered line parsed in one pass
                 frames = drain(wait, max_lines=self._max_batch)
-                self._count_bus_errors(bus)
+                bad = bus.take_bad_lines()
+                if bad:
+                    self.stats.errors["SLCAN_BAD_LINE"] += bad
             else:
                 first = bus.recv(wait)
                 if first is None:
@@ -610,101 +777,47 @@ class CanTransport(Transport):
         except Exception as exc:  # noqa: BLE001 - CanOperationError etc.
             self._lost(exc)
             return []
-        return self._decode(frames) if frames else []
-
-    def _count_bus_errors(self, bus) -> None:
-        """Damaged SLCAN lines the bus skipped -> ``SLCAN_BAD_LINE`` (taken, so a reopened bus
-        starts from zero)."""
-        n = bus.bad_lines
-        if n:
-            bus.bad_lines = 0
-            self.stats.errors["SLCAN_BAD_LINE"] += n
-
-    def _decode(self, frames: list) -> list:
-        """Frames -> events in wire order, in one pass: runs of well-formed SAMPLE frames are
-        collected and unpacked together by numpy (one `SampleBatch` per run); every other frame,
-        and any SAMPLE frame `decode_can` would reject, goes through `decode_can` one by one.
-        ``frames``: python-can messages and `FrameBlock` arrays, in wire order. (host/replay.py
-        reuses this method on its own transport: it reads ``self.fd`` only for an FD frame.)"""
-        events: list = []
-        pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
-        datas: list = []  # ... and its frames not yet in a piece (one by one)
-        nodes: list[int] = []
-        errors = self.stats.errors
-        echo = self.echo
-        n_bytes = 0
-
-        def flush() -> None:
-            if datas:
-                pieces.append(_rows(nodes, datas))
-                datas.clear()
-                nodes.clear()
-            if pieces:
-                events.append(_sample_run(pieces))
-                pieces.clear()
-
-        def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
-            if echo and echo.is_echo(aid, data):
-                return
-            if is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
-                errors["FD_ON_CLASSIC"] += 1
-                return
-            if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
-                    and is_extended_id and aid < (1 << 29) and (aid & 0xFFFF) != 0xFFFF):
-                datas.append(data)
-                nodes.append(aid & 0xFFFF)
-                return
-            ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
-            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
-                datas.append(data)
-                nodes.append(ev.node)
-                return
-            flush()
-            events.append(ev)
-
-        for f in frames:
-            if type(f) is FrameBlock:
-                ids, rows = f.arbitration_id, f.data
-                n_bytes += rows.size
-                fast = ((ids & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION) & ((ids & 0xFFFF) != 0xFFFF)
-                if echo:
-                    pending = [i for i in echo.identifiers() if (i & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION]
-                    if pending:
-                        fast &= ~np.isin(ids, pending)
-                if fast.all():
-                    bounds = [0, len(ids)]
-                else:
-                    bounds = [0, *(np.flatnonzero(np.diff(fast.astype(np.int8))) + 1).tolist(), len(ids)]
-                for a, b in zip(bounds[:-1], bounds[1:]):
-                    if fast[a]:
-                        if datas:
-                            pieces.append(_rows(nodes, datas))
-                            datas.clear()
-                            nodes.clear()
-                        pieces.append(((ids[a:b] & 0xFFFF).astype(np.uint16), rows[a:b]))
-                    else:
-                        for k in range(a, b):
-                            one(int(ids[k]), rows[k].tobytes(), True, False)
-                continue
-            if f.is_error_frame:
-                errors["CAN_ERROR_FRAME"] += 1  # the bus signalled an error (then retransmits)
-                continue
-            if f.is_remote_frame:
-                continue
-            n_bytes += len(f.data)
-            one(f.arbitration_id, f.data, f.is_extended_id, f.is_fd)
-        flush()
-        self.stats.bytes_in += n_bytes
+        if not frames:
+            return []
+        if not self._captures:
+            return feed_can(self.decoder, frames, self.stats)
+        echoes: list = []
+        events = feed_can(self.decoder, frames, self.stats, echoes)
+        self.emit_capture("rx", tuple(frames), events, echoes)
         return events
 
-    def _send_internal(self, msg: Message) -> None:
+    def _send_internal(self, msg: Message):
+        frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
+        return (self._put(frame.arbitration_id, frame.data, True, frame.is_fd),)
+
+    def send_frame(self, arbitration_id: int, data: bytes, *, extended: bool = True, fd: bool = False) -> None:
+        """Raw send: one CAN frame as given, whatever it holds (an undefined type, another protocol
+        version, a standard 11-bit identifier: what a conformance check sends), under the send lock.
+        Captured (``events`` empty) and known to the echo filter like every frame this host sends.
+        Raises `TransportOperationError` / `TransportTimeoutError` as `send` does."""
+        if self._closed:
+            raise TransportOperationError(f"Transport {self.name!r} is closed", self.name)
+        with self._send_lock:
+            try:
+                m = self._put(int(arbitration_id), bytes(data), bool(extended), bool(fd))
+            except TransportError:
+                self.stats.send_failures += 1
+                raise
+            except Exception as exc:  # noqa: BLE001 - python-can rejects a malformed frame by ValueError etc.
+                self.stats.send_failures += 1
+                raise TransportOperationError(f"Cannot send frame 0x{arbitration_id:X} on {self.name!r}: {exc}",
+                                              self.name) from exc
+            if self._captures:
+                self.emit_capture("tx", (m,))
+
+    def _put(self, arbitration_id: int, data: bytes, extended: bool, fd: bool):
+        """Write one frame; returns the python-can message written (``is_rx`` False, stamped with
+        the wall clock as python-can stamps received frames)."""
         bus = self._bus
         if bus is None:
             raise TransportOperationError(f"CAN bus {self.name!r} is not connected", self.name)
-        frame = to_can(msg, fd=True if (self.fd and len(msg.payload()) > CAN_CLASSIC_MTU) else None)
-        m = self._can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=True,
-                              is_fd=frame.is_fd)
-        self.echo.sent(frame.arbitration_id, frame.data)
+        m = self._can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended, is_fd=fd)
+        self.echo.sent(arbitration_id, data)
         try:
             bus.send(m, timeout=1.0)
         except Exception as exc:  # noqa: BLE001
@@ -712,40 +825,14 @@ class CanTransport(Transport):
                 raise TransportTimeoutError(f"Send on CAN bus {self.name!r} timed out: {exc}", self.name) from exc
             self._lost(exc)
             raise TransportOperationError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc
-        self.stats.bytes_out += len(frame.data)
-        if self.on_sent is not None:
-            m.timestamp, m.is_rx = time.time(), False
-            self.on_sent(m)
+        self.stats.bytes_out += len(data)
+        m.timestamp, m.is_rx = time.time(), False
+        return m
 
     def _close_internal(self) -> None:
         if self._bus is not None:
             self._bus.shutdown()
             self._bus = None
-
-
-#: identifier bits 25..16 (type and version, docs §7) of a SAMPLE frame of this protocol version
-_TYPE_VERSION_MASK = 0x3FF0000
-_SAMPLE_TYPE_VERSION = make_id(MsgType.SAMPLE, 0, 0) & _TYPE_VERSION_MASK
-
-
-def _rows(nodes: list[int], datas: list) -> tuple[np.ndarray, np.ndarray]:
-    """SAMPLE frames given one by one -> ``(node uint16 (n,), data uint8 (n, 7))``."""
-    return (np.array(nodes, dtype=np.uint16),
-            np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), Sample.SIZE))
-
-
-def _sample_run(pieces: list) -> SampleBatch:
-    """Consecutive well-formed SAMPLE frames (7 data bytes each: counter u16, sample word), given
-    as ``(node, data rows)`` pieces, as one batch unpacked in one numpy pass: the batch of the
-    `Sample` messages `decode_can` makes of them."""
-    if len(pieces) == 1:
-        node, d = pieces[0]
-    else:
-        node = np.concatenate([p[0] for p in pieces])
-        d = np.concatenate([p[1] for p in pieces])
-    counter = (d[:, 0].astype(np.uint16) | (d[:, 1].astype(np.uint16) << 8))
-    counts, status = unpack_sample_words(np.ascontiguousarray(d[:, 2:]).reshape(-1))
-    return SampleBatch(node, counter, counts, status)
 
 
 # --------------------------------------------------------------------------------------------

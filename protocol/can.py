@@ -1,4 +1,6 @@
-"""CAN mapping (docs/protocol.md §7): 29-bit identifier layout and payloads, classic and FD.
+"""CAN mapping (docs/protocol.md §7): 29-bit identifier layout and payloads, classic and FD, and
+`CanDecoder`, the sans-I/O receiver: CAN frames in, events out (`protocol.framing.StreamDecoder`'s
+counterpart for CAN).
 
 The payload is the message payload of docs §4 unchanged (CAN has its own CRC). The identifier::
 
@@ -17,13 +19,17 @@ is padded with 0x00 up to the next valid FD length (its count field says how man
 
 from __future__ import annotations
 
+from collections import Counter
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
-from .framing import DecodeError, ErrorReason
-from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Snapshot, Sync,  # noqa: F401 (doctest)
-                       decode_payload, SAMPLE_WORD_SIZE)
+import numpy as np
 
-__all__ = ["EchoFilter", "CanFrame", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
+from .framing import DecodeError, ErrorReason, SampleBatch
+from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Sample, Snapshot,
+                       Sync, decode_payload, SAMPLE_WORD_SIZE, unpack_sample_words)  # noqa: F401 (Sync: doctest)
+
+__all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
            "make_id", "split_id", "to_can", "from_can", "decode_can", "fd_length"]
 
 CAN_CLASSIC_MTU = 8
@@ -42,6 +48,27 @@ class CanFrame(NamedTuple):
     arbitration_id: int
     data: bytes
     is_fd: bool
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameBlock:
+    """Consecutive classic extended data frames of 7 bytes, as arrays: what
+    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and
+    `host.transport.CanTransport` decodes without a python-can message per frame.
+
+    Attributes
+    ----------
+    arbitration_id : ndarray, shape (n,), uint32
+        29-bit identifiers.
+    data : ndarray, shape (n, 7), uint8
+        Their data bytes.
+    """
+
+    arbitration_id: np.ndarray
+    data: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.arbitration_id.shape[0])
 
 
 def make_id(type_code: int, node: int, priority: int | None = None, version: int = PROTOCOL_VERSION) -> int:
@@ -195,3 +222,190 @@ class EchoFilter:
         self._drop_id(can_id)
         self.echoes += 1
         return True
+
+
+# --------------------------------------------------------------------------------------------
+# The receiver: frames in, events out
+# --------------------------------------------------------------------------------------------
+
+@dataclass
+class CanDecoderStats:
+    """Counters of a `CanDecoder`: what came in, and what was dropped without an event.
+
+    Attributes
+    ----------
+    bytes_in : int
+        Data bytes of every data frame fed (remote and error frames carry none).
+    frames : int
+        Messages decoded (every SAMPLE of a `SampleBatch` counts).
+    errors : Counter
+        `DecodeError` events by `ErrorReason` (each was also returned as an event).
+    error_frames : int
+        CAN error frames (the bus signalled an error; the sender retransmits): dropped.
+    fd_on_classic : int
+        CAN FD frames on a decoder for a classic bus (``fd=False``): a configuration mismatch, dropped.
+    remote_frames : int
+        Remote frames (capsheet uses none): dropped.
+    """
+
+    bytes_in: int = 0
+    frames: int = 0
+    errors: Counter = field(default_factory=Counter)
+    error_frames: int = 0
+    fd_on_classic: int = 0
+    remote_frames: int = 0
+
+
+#: identifier bits 25..16 (type and version, docs §7) of a SAMPLE frame of this protocol version
+_TYPE_VERSION_MASK = 0x3FF0000
+_SAMPLE_TYPE_VERSION = make_id(MsgType.SAMPLE, 0, 0) & _TYPE_VERSION_MASK
+
+
+class CanDecoder:
+    """Feed CAN frames, get messages, `SampleBatch` runs and `DecodeError` events, in wire order.
+
+    Sans-I/O (no python-can import): a frame is any object with python-can ``Message``'s
+    attributes (``arbitration_id``, ``data``, ``is_extended_id``, ``is_fd``, ``is_error_frame``,
+    ``is_remote_frame``), or a `FrameBlock` (a run of 7-byte classic extended frames as arrays).
+    In one pass: runs of well-formed SAMPLE frames are collected and unpacked together by numpy
+    (one `SampleBatch` per run, as `StreamDecoder(batch_samples=True)` gives them on serial);
+    every other frame, and any SAMPLE frame `decode_can` would reject, goes through `decode_can`
+    one by one. Feeding the frames all at once, one by one, or in any other grouping gives the
+    same messages (batches are cut at call boundaries).
+
+    Parameters
+    ----------
+    fd : bool
+        The bus was opened for CAN FD. On a classic decoder an FD frame is a configuration
+        mismatch: dropped and counted (`CanDecoderStats.fd_on_classic`), not decoded.
+    echo : EchoFilter, optional
+        Frames this node sent: a bus that hands them back (python-can's ``udp_multicast``) has
+        them dropped here (``echo.echoes`` counts them). Default: a new, empty filter.
+
+    Wire input never raises; error and remote frames are dropped and counted in `stats`.
+
+    >>> from types import SimpleNamespace as F
+    >>> def frame(msg):
+    ...     f = to_can(msg)
+    ...     return F(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True, is_fd=f.is_fd,
+    ...              is_error_frame=False, is_remote_frame=False)
+    >>> from protocol.messages import Ack, Sample
+    >>> dec = CanDecoder()
+    >>> ev = dec.feed([frame(Sample(5, 7, 1, 2, 3, 0)), frame(Sample(6, 7, 4, 5, 6, 0)), frame(Ack(5, MsgType.START, 0))])
+    >>> [type(e).__name__ for e in ev], ev[0].node.tolist(), dec.stats.frames
+    (['SampleBatch', 'Ack'], [5, 6], 3)
+    """
+
+    def __init__(self, *, fd: bool = False, echo: EchoFilter | None = None) -> None:
+        self.fd = bool(fd)
+        self.echo = EchoFilter() if echo is None else echo
+        self.stats = CanDecoderStats()
+
+    def feed(self, frames, echoes: list | None = None) -> list:
+        """Decode ``frames`` (python-can-like messages and `FrameBlock` s, in wire order); return
+        their events in wire order. ``echoes``: a list to which ``(arbitration_id, data)`` of
+        every frame dropped as an echo of this node's own is appended (for a capture)."""
+        events: list = []
+        pieces: list = []  # (node, data rows) of the current run of SAMPLE frames, in order
+        datas: list = []  # ... and its frames not yet in a piece (one by one)
+        nodes: list[int] = []
+        st = self.stats
+        errors = st.errors
+        echo = self.echo
+        n_bytes = 0
+        n_frames = 0
+
+        def flush() -> None:
+            nonlocal n_frames
+            if datas:
+                pieces.append(_rows(nodes, datas))
+                datas.clear()
+                nodes.clear()
+            if pieces:
+                batch = _sample_run(pieces)
+                n_frames += len(batch)
+                events.append(batch)
+                pieces.clear()
+
+        def one(aid: int, data, is_extended_id: bool, is_fd: bool) -> None:
+            nonlocal n_frames
+            if echo and echo.is_echo(aid, data):
+                if echoes is not None:
+                    echoes.append((aid, bytes(data)))
+                return
+            if is_fd and not self.fd:  # the bus carries CAN FD but was opened classic: a mismatch
+                st.fd_on_classic += 1
+                return
+            if ((aid & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION and len(data) == Sample.SIZE
+                    and is_extended_id and aid < (1 << 29) and (aid & 0xFFFF) != 0xFFFF):
+                datas.append(data)
+                nodes.append(aid & 0xFFFF)
+                return
+            ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
+            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
+                datas.append(data)
+                nodes.append(ev.node)
+                return
+            flush()
+            if isinstance(ev, DecodeError):
+                errors[ev.reason] += 1
+            else:
+                n_frames += 1
+            events.append(ev)
+
+        for f in frames:
+            if type(f) is FrameBlock:
+                ids, rows = f.arbitration_id, f.data
+                n_bytes += rows.size
+                fast = ((ids & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION) & ((ids & 0xFFFF) != 0xFFFF)
+                if echo:
+                    pending = [i for i in echo.identifiers() if (i & _TYPE_VERSION_MASK) == _SAMPLE_TYPE_VERSION]
+                    if pending:
+                        fast &= ~np.isin(ids, pending)
+                if fast.all():
+                    bounds = [0, len(ids)]
+                else:
+                    bounds = [0, *(np.flatnonzero(np.diff(fast.astype(np.int8))) + 1).tolist(), len(ids)]
+                for a, b in zip(bounds[:-1], bounds[1:]):
+                    if fast[a]:
+                        if datas:
+                            pieces.append(_rows(nodes, datas))
+                            datas.clear()
+                            nodes.clear()
+                        pieces.append(((ids[a:b] & 0xFFFF).astype(np.uint16), rows[a:b]))
+                    else:
+                        for k in range(a, b):
+                            one(int(ids[k]), rows[k].tobytes(), True, False)
+                continue
+            if f.is_error_frame:
+                st.error_frames += 1  # the bus signalled an error (then retransmits)
+                continue
+            if f.is_remote_frame:
+                st.remote_frames += 1
+                continue
+            n_bytes += len(f.data)
+            one(f.arbitration_id, f.data, f.is_extended_id, f.is_fd)
+        flush()
+        st.bytes_in += n_bytes
+        st.frames += n_frames
+        return events
+
+
+def _rows(nodes: list[int], datas: list) -> tuple[np.ndarray, np.ndarray]:
+    """SAMPLE frames given one by one -> ``(node uint16 (n,), data uint8 (n, 7))``."""
+    return (np.array(nodes, dtype=np.uint16),
+            np.frombuffer(b"".join(datas), dtype=np.uint8).reshape(len(datas), Sample.SIZE))
+
+
+def _sample_run(pieces: list) -> SampleBatch:
+    """Consecutive well-formed SAMPLE frames (7 data bytes each: counter u16, sample word), given
+    as ``(node, data rows)`` pieces, as one batch unpacked in one numpy pass: the batch of the
+    `Sample` messages `decode_can` makes of them."""
+    if len(pieces) == 1:
+        node, d = pieces[0]
+    else:
+        node = np.concatenate([p[0] for p in pieces])
+        d = np.concatenate([p[1] for p in pieces])
+    counter = (d[:, 0].astype(np.uint16) | (d[:, 1].astype(np.uint16) << 8))
+    counts, status = unpack_sample_words(np.ascontiguousarray(d[:, 2:]).reshape(-1))
+    return SampleBatch(node, counter, counts, status)

@@ -53,7 +53,7 @@ def _signals(cls):
             sigs += _sample_signals(f"_{k}", 40 + 40 * k)
         return sigs
     sigs, bit = [], 0
-    for f, ch in zip(fields(cls)[1:], cls._FMT.format.lstrip("<")):
+    for f, ch in zip(fields(cls)[1:], cls.payload_struct().format.lstrip("<")):
         length, signed, is_float = _FORMAT_BITS[ch]
         sigs.append(Signal(f.name, bit, length, byte_order="little_endian", is_signed=signed,
                            conversion=BaseConversion.factory(is_float=is_float)))
@@ -72,7 +72,8 @@ def build_database():
         cls = MESSAGE_TYPES[code]
         sender = "HOST" if cls.DIRECTION == Direction.HOST_TO_CHIP else ("GATEWAY" if cls is Snapshot else "CHIP")
         fd = cls is Snapshot
-        size = CAN_FD_MTU if fd else (cls._FMT.size if cls._FMT is not None else Sample.SIZE)
+        layout = cls.payload_struct()
+        size = CAN_FD_MTU if fd else (layout.size if layout is not None else Sample.SIZE)
         assert size <= (CAN_FD_MTU if fd else CAN_CLASSIC_MTU)
         messages.append(Message(frame_id=make_id(code, 0), name=code.name, length=size,
                                 signals=_signals(cls), is_extended_frame=True, is_fd=fd,

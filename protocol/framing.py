@@ -195,6 +195,11 @@ class StreamDecoder:
         self._partial = bytearray()
         self._discarding = False
 
+    @property
+    def pending_bytes(self) -> int:
+        """Bytes of an incomplete frame held, waiting for their 0x00 delimiter."""
+        return len(self._partial)
+
     def reset(self) -> None:
         """Forget any partial frame (e.g. after the port was reopened)."""
         self._partial.clear()

@@ -177,6 +177,12 @@ class Message:
     def _validate(self) -> None:  # pragma: no cover - overridden where there are fields
         pass
 
+    @classmethod
+    def payload_struct(cls) -> struct.Struct | None:
+        """The fixed payload layout (docs §4) of this type, or None where the payload is not one
+        fixed struct (SAMPLE, SNAPSHOT). The DBC is generated from it (`protocol.dbc`)."""
+        return cls._FMT
+
     # Fixed-layout messages: the payload is the struct of the fields after `node`, in order.
     def payload(self) -> bytes:
         """The payload bytes (docs §4), without header, CRC or CAN identifier."""

@@ -4,7 +4,12 @@
 * protocol/ imports neither pyserial nor python-can, nor any other capsheet package;
 * the science (host/analysis/) imports only protocol.lattice, numpy/scipy/matplotlib (and the
   optional sksparse, and the per-link peer's vqf) and itself;
-* firmware_ref and virtual_sheet do not import each other's chip modules in a cycle.
+* firmware_ref and virtual_sheet do not import each other's chip modules in a cycle;
+* no import cycle among capsheet's own modules (function-level imports included);
+* seams, not patches (issue 25): no module of protocol/, host/, virtual_sheet/ reads or writes
+  another module's private attribute (``obj._name``), and none reassigns a method of another object;
+* the aggregator is sans-I/O: it imports no clock and no thread; python-can finds the SLCAN bus by
+  name (the ``can.interface`` entry point).
 """
 
 from __future__ import annotations
@@ -107,3 +112,227 @@ def test_conventions_are_cited_from_the_repo_not_from_outside_it():
                 bad.append(rel)
     bad = [b for b in bad if b != "tests/test_architecture.py"]
     assert bad == []
+
+
+# ------------------------------------------------------------------- import cycles (issue 25)
+
+PACKAGES = ("protocol", "host", "virtual_sheet", "firmware_ref")
+
+
+def module_names(root: Path = ROOT) -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in sorted((root / pkg).rglob("*.py")):
+            rel = path.relative_to(root).with_suffix("")
+            out[".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)] = path
+    return out
+
+
+def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
+    """Module -> the capsheet modules it imports anywhere (module level or inside a function);
+    ``from package import name`` counts as importing ``package.name`` when that is a module."""
+    mods = module_names(root)
+    graph = {}
+    for name, path in mods.items():
+        tree = ast.parse(path.read_text(), str(path))
+        pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
+        found = set()
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                found |= {al.name for al in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                base = (".".join(pkg.split(".")[: len(pkg.split(".")) - node.level + 1] + ([node.module] if node.module else []))
+                        if node.level else node.module)
+                found |= {base} | {f"{base}.{al.name}" for al in node.names}
+        edges = set()
+        for m in found:
+            while m and m not in mods:
+                m = m.rpartition(".")[0]
+            if m and m != name:
+                edges.add(m)
+        graph[name] = edges
+    return graph
+
+
+def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_cycle_finder_sees_a_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_cycles_among_our_modules():
+    # host/slcan.py <-> host/transport.py (FrameBlock lived in the transport module) and
+    # virtual_sheet/board.py <-> virtual_sheet/shapes.py (flat_net lived in shapes) were the two
+    assert cycles(import_graph()) == []
+
+
+# ------------------------------------------------------------ seams, not patches (issue 25)
+
+SEAM_PACKAGES = ("protocol", "host", "virtual_sheet")
+#: namedtuple's documented methods (underscored so as not to clash with field names)
+NAMEDTUPLE_API = {"_replace", "_asdict", "_fields", "_make", "_field_defaults"}
+
+
+def _private(name: str) -> bool:
+    """A private name: one leading underscore; not a dunder, not an enum's sunder (``_value_``)."""
+    return name.startswith("_") and not name.endswith("_") and name not in NAMEDTUPLE_API
+
+
+def _annotations(tree) -> set[int]:
+    """ids of the nodes inside annotations (they name types; nothing is accessed at run time)."""
+    out = set()
+    for node in ast.walk(tree):
+        anns = []
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+            anns = [a.annotation for a in node.args.args + node.args.kwonlyargs + node.args.posonlyargs] + [node.returns]
+            anns += [a.annotation for a in (node.args.vararg, node.args.kwarg) if a is not None]
+        elif isinstance(node, ast.AnnAssign):
+            anns = [node.annotation]
+        for ann in anns:
+            if ann is not None:
+                out |= {id(n) for n in ast.walk(ann)}
+    return out
+
+
+def defined_privates(tree) -> set[str]:
+    """Private names a module defines: functions, classes, module or local names, arguments,
+    attributes it assigns (``x._a = ...``, ``object.__setattr__(self, "_a", ...)``), __slots__."""
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            out.add(node.name)
+        elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store):
+            out.add(node.attr)
+        elif isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
+            out.add(node.id)
+        elif isinstance(node, ast.arg):
+            out.add(node.arg)
+        elif isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "__setattr__" and len(node.args) >= 2 \
+                and isinstance(node.args[1], ast.Constant) and isinstance(node.args[1].value, str):
+            out.add(node.args[1].value)
+        elif isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__slots__" for t in node.targets):
+            out |= {c.value for c in ast.walk(node.value) if isinstance(c, ast.Constant) and isinstance(c.value, str)}
+    return {n for n in out if _private(n)}
+
+
+def private_access_offenders(root: Path = ROOT) -> list[str]:
+    """Every ``obj._name`` (and ``getattr(obj, "_name")``) whose private name the module does not
+    define itself: another module's private attribute (an inherited one through ``self`` too)."""
+    bad = []
+    for pkg in SEAM_PACKAGES:
+        for path in sorted((root / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text(), str(path))
+            own = defined_privates(tree)
+            skip = _annotations(tree)
+            rel = path.relative_to(root).as_posix()
+            for node in ast.walk(tree):
+                name = None
+                if isinstance(node, ast.Attribute) and _private(node.attr) and id(node) not in skip:
+                    name = node.attr
+                elif isinstance(node, ast.Call) and getattr(node.func, "id", None) in ("getattr", "setattr", "hasattr") \
+                        and len(node.args) >= 2 and isinstance(node.args[1], ast.Constant) \
+                        and isinstance(node.args[1].value, str) and _private(node.args[1].value):
+                    name = node.args[1].value
+                if name is not None and name not in own:
+                    bad.append(f"{rel}:{node.lineno}: {ast.unparse(node)}")
+    return bad
+
+
+def method_patch_offenders(root: Path = ROOT) -> list[str]:
+    """Every ``obj.name = <a function>`` (obj not ``self``/``cls``; the value a lambda or a function
+    the module defines) where ``name`` is a method of one of our classes: one object rewiring
+    another's behaviour (a monkeypatch)."""
+    methods = set()
+    trees = {}
+    for pkg in SEAM_PACKAGES:
+        for path in sorted((root / pkg).rglob("*.py")):
+            trees[path] = tree = ast.parse(path.read_text(), str(path))
+            for cls in (n for n in ast.walk(tree) if isinstance(n, ast.ClassDef)):
+                methods |= {f.name for f in cls.body if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef))
+                            and not any(getattr(d, "id", None) == "property" or getattr(d, "attr", None) == "setter"
+                                        for d in f.decorator_list)}
+    bad = []
+    for path, tree in trees.items():
+        functions = {n.name for n in ast.walk(tree) if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef))}
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Assign):
+                continue
+            v = node.value
+            if not (isinstance(v, ast.Lambda) or (isinstance(v, ast.Name) and v.id in functions)):
+                continue
+            for t in node.targets:
+                if isinstance(t, ast.Attribute) and t.attr in methods and not (
+                        isinstance(t.value, ast.Name) and t.value.id in ("self", "cls")):
+                    bad.append(f"{path.relative_to(root).as_posix()}:{node.lineno}: {ast.unparse(t)} = ...")
+    return bad
+
+
+def test_the_seam_checks_see_what_they_look_for(tmp_path):
+    # the checkers on a miniature tree: another module's private read, an inherited private used
+    # through self, a method reassigned on another object; the module's own privates are fine
+    (tmp_path / "host").mkdir()
+    (tmp_path / "host" / "a.py").write_text(
+        "class A:\n    def __init__(self):\n        self._x = 1\n    def go(self):\n        return self._x\n")
+    (tmp_path / "host" / "b.py").write_text(
+        "from host.a import A\nclass B(A):\n    def go(self):\n        return self._x\n"
+        "def use(a: 'A._Hint'):\n    a.go = lambda: 0\n    return a._x + getattr(a, '_x')\n"
+        "def later(a):\n    def go():\n        return 1\n    a.go = go\n    a.n = 2\n")
+    for pkg in ("protocol", "virtual_sheet"):
+        (tmp_path / pkg).mkdir()
+    assert private_access_offenders(tmp_path) == ["host/b.py:4: self._x", "host/b.py:7: a._x",
+                                                  "host/b.py:7: getattr(a, '_x')"]
+    assert method_patch_offenders(tmp_path) == ["host/b.py:6: a.go = ...", "host/b.py:11: a.go = ..."]
+
+
+def test_no_module_reads_another_modules_private_attributes():
+    # on the code before issue 25: CanTransport._decode reused by replay and patched by the
+    # recorder, AuditedCanTransport's _bus/_can/_send_lock, aggregator._lut, host._round,
+    # dec._partial, slcanBus's _queue/_filters/_buffer, devices' _pty_* ... (34 offenders)
+    assert private_access_offenders() == []
+
+
+def test_no_module_reassigns_another_objects_methods():
+    # before issue 25: aggregator.ingest, aggregator.open_counter and transport._decode were patched
+    assert method_patch_offenders() == []
+
+
+def test_the_aggregator_reads_no_clock_and_starts_no_thread():
+    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/feed.py's
+    assert not imports_of(ROOT / "host/aggregator.py") & {"time", "threading", "queue", "asyncio"}
+
+
+def test_python_can_finds_the_slcan_bus_by_name():
+    import tomllib
+    eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["can.interface"]
+    assert eps == {"capsheet_slcan": "host.slcan:SlcanBus"}

@@ -27,7 +27,7 @@ import numpy as np
 
 from protocol.constants import G0
 from protocol.lattice import Lattice
-from .shapes import flat_net
+from .geometry import flat_net
 
 __all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation"]
 

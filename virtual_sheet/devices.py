@@ -27,10 +27,20 @@ outage the device closes the pty (the host's reads fail as on an unplugged USB a
 removes the symlink; when the bus comes back it opens a new pty and re-points the symlink
 atomically, so a host that reopens the same path reconnects. On CAN the device stops answering
 for the outage (frames sent to it are lost), after signalling an error frame.
+
+**Whose path it is** (`claim_symlink`): a symlink path given by the caller may already hold
+something. A folder is never touched; a file, or a symlink nobody here made, is replaced only when
+the caller says so; a symlink a capsheet device published is replaced only when it is stale: every
+published symlink is recorded (`SYMLINK_RECORDS`: the path, where it points, the publishing
+process), and one is ours to replace when it still points where the record says and that process
+is gone (a sheet killed with SIGKILL leaves its symlink behind). A device removes its symlink at
+stop only while it still points to its own pty.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import select
 import tempfile
@@ -44,7 +54,8 @@ from .faults import ERROR_FRAME
 from .gateway import Gateway
 from .memport import memory_link
 
-__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "open_pty"]
+__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "open_pty", "claim_symlink",
+           "SYMLINK_RECORDS"]
 
 _IDLE_WAIT_S = 0.005
 
@@ -329,6 +340,82 @@ class MemoryDevice(_SerialDevice):
         return "in-memory link (use device.port)"
 
 
+#: where the record of every symlink a device publishes is kept (one small JSON file per path)
+SYMLINK_RECORDS = os.path.join(os.environ.get("XDG_RUNTIME_DIR") or tempfile.gettempdir(),
+                               f"capsheet-symlinks-{os.getuid()}")
+
+
+def _record_file(path: str) -> str:
+    return os.path.join(SYMLINK_RECORDS, hashlib.sha256(os.path.abspath(path).encode()).hexdigest()[:24] + ".json")
+
+
+def _read_record(path: str) -> dict | None:
+    try:
+        with open(_record_file(path)) as fh:
+            rec = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    return rec if isinstance(rec, dict) and rec.get("path") == os.path.abspath(path) else None
+
+
+def _write_record(path: str, target: str) -> None:
+    os.makedirs(SYMLINK_RECORDS, mode=0o700, exist_ok=True)
+    tmp = _record_file(path) + f".{os.getpid()}"
+    with open(tmp, "w") as fh:
+        json.dump({"path": os.path.abspath(path), "target": target, "pid": os.getpid()}, fh)
+    os.replace(tmp, _record_file(path))
+
+
+def _drop_record(path: str) -> None:
+    rec = _read_record(path)
+    if rec is not None and rec.get("pid") == os.getpid():
+        try:
+            os.unlink(_record_file(path))
+        except FileNotFoundError:
+            pass
+
+
+def _alive(pid) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OSError, ValueError, TypeError):
+        return True  # it exists (another user's), or we cannot tell: do not take its path
+    return True
+
+
+def claim_symlink(path: str | os.PathLike, *, replace: bool = False) -> None:
+    """Check that a device may publish its symlink at ``path`` (module docstring, "Whose path it
+    is"): nothing there, or a stale symlink a capsheet device published (replaced when the device
+    starts). ``replace`` (the user said so): a file or a foreign symlink there is removed now.
+
+    Raises
+    ------
+    FileExistsError
+        ``path`` is a folder, the live port of another running sheet, or (without ``replace``) a
+        file or a symlink no capsheet device published. The message says which.
+    """
+    path = os.fspath(path)
+    if not os.path.lexists(path):
+        return
+    if os.path.isdir(path) and not os.path.islink(path):
+        raise FileExistsError(f"{path} is a folder: a port symlink cannot take its place (give another path)")
+    if os.path.islink(path):
+        target, rec = os.readlink(path), _read_record(path)
+        if rec is not None and rec.get("target") == target:
+            if rec.get("pid") != os.getpid() and _alive(rec.get("pid")):
+                raise FileExistsError(f"{path} is the port of a running virtual sheet (pid {rec['pid']}): stop it "
+                                      f"or give another path")
+            return  # a stale symlink of ours (its sheet was killed): replaced at start
+        what = f"a symlink to {target} that no capsheet sheet published"
+    else:
+        what = "a file"
+    if not replace:
+        raise FileExistsError(f"{path} is {what}: not replaced (--overwrite replaces it)")
+    os.unlink(path)
+
+
 def open_pty() -> tuple[int, int, str]:
     """A raw pseudo-terminal: ``(master_fd, slave_fd, slave_path)``, master non-blocking."""
     master, slave = os.openpty()
@@ -345,6 +432,8 @@ class _PtyMixin:
         if symlink_path is None:
             self._tmpdir = tempfile.mkdtemp(prefix="capsheet-")
             symlink_path = os.path.join(self._tmpdir, self.name)
+        else:
+            claim_symlink(symlink_path)  # nothing there but (at most) a stale symlink of ours
         self.path = str(symlink_path)
         self.tty: str | None = None
         self._master = self._slave = -1
@@ -357,13 +446,17 @@ class _PtyMixin:
 
     def _pty_open(self) -> None:
         self._master, self._slave, self.tty = open_pty()
-        tmp = self.path + ".new"
-        try:
+        claim_symlink(self.path)  # still nothing but (at most) a stale symlink of ours there
+        # a name of our own beside it, then one atomic rename: a host reopening the path never
+        # finds it missing, and nothing else's file is touched
+        tmp = os.path.join(os.path.dirname(os.path.abspath(self.path)),
+                           f".{os.path.basename(self.path)}.capsheet-{os.getpid()}-{id(self):x}")
+        if os.path.lexists(tmp):
             os.unlink(tmp)
-        except FileNotFoundError:
-            pass
         os.symlink(self.tty, tmp)
         os.replace(tmp, self.path)
+        if self._tmpdir is None:
+            _write_record(self.path, self.tty)
 
     def _pty_close(self, remove_link: bool = True) -> None:
         for fd in (self._master, self._slave):
@@ -376,9 +469,12 @@ class _PtyMixin:
         self._pending.clear()
         if remove_link:
             try:
-                os.unlink(self.path)
-            except FileNotFoundError:
+                if self.tty is not None and os.readlink(self.path) == self.tty:  # still ours
+                    os.unlink(self.path)
+            except OSError:  # gone, or no longer a symlink: someone else's now
                 pass
+            if self._tmpdir is None:
+                _drop_record(self.path)
 
     def _pty_read(self, timeout_s: float) -> bytes:
         if self._master < 0:
@@ -425,6 +521,38 @@ class _PtyMixin:
                 os.rmdir(self._tmpdir)
             except OSError:
                 pass
+
+
+class PtyPort(_PtyMixin):
+    """One pseudo-terminal with a stable symlink, re-created after an outage: for a device that
+    serves several of its own (the SLCAN adapters of virtual_sheet/slcan.py)."""
+
+    def __init__(self, name: str, symlink_path: str | os.PathLike | None = None) -> None:
+        self.name = name
+        self._pty_init(symlink_path)
+
+    @property
+    def master(self) -> int:
+        """The master side's file descriptor (-1 while closed)."""
+        return self._master
+
+    @property
+    def has_pending(self) -> bool:
+        """Bytes wait for the host to read them (write again when the master is writable)."""
+        return bool(self._pending)
+
+    def open(self) -> None:
+        self._pty_open()
+
+    def close(self, remove_link: bool = True) -> None:
+        self._pty_close(remove_link)
+
+    def cleanup(self) -> None:
+        self._pty_cleanup()
+
+    def write(self, data: bytes, n_frames: int = 0) -> None:
+        """Queue ``data`` (``n_frames`` frames) for the host and write what the pty takes."""
+        self._pty_write(data, n_frames)
 
 
 class PtyDevice(_PtyMixin, _SerialDevice):

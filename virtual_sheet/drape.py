@@ -12,7 +12,15 @@ largest relative link-length error is below ``tol`` with every joint on the surf
 The target is anything with ``project(points) -> closest points`` and an ``anchor`` point, so
 non-height-fields work: `Cylinder` (a sheet wrapped round it), `Sphere`, and `HeightField`.
 The result is a Chebyshev net on the surface, like `geometry.chebyshev_net` but by the paper's
-method; the net is laid from the anchor outwards first (initial guess), then relaxed.
+method; the net is laid from the anchor outwards first (initial guess, ``init="compass"``), or
+laid flat over the target and relaxed (``init="flat"``: the paper's "laid over a target shape by
+iterative calculation", what `host.cli.paper`'s Fig. 9 and 10 use).
+
+Sensor axes ("the direction of the sensor axes are simulated"): `geometry.link_frames` takes a
+link's sensor z from the sheet itself (the mean normal of its cells, all a spring-mass model
+knows); `surface_frames` takes it from the target instead (the surface normal under the link's
+midpoint, what a chip lying on the body would see), so an estimator's normal model is not exact
+by construction.
 
 >>> P, info = drape(Cylinder(0.03), 14, 14, 0.01)
 >>> info.converged, info.max_length_error < 1e-9, info.max_surface_distance < 1e-12
@@ -28,7 +36,8 @@ import numpy as np
 
 from protocol.lattice import Lattice, joint_normals
 
-__all__ = ["Surface", "Sphere", "Cylinder", "HeightField", "DrapeInfo", "drape"]
+__all__ = ["Surface", "Sphere", "Cylinder", "HeightField", "DrapeInfo", "drape", "surface_frames",
+           "surface_readings"]
 
 
 def _points(points: np.ndarray) -> np.ndarray:
@@ -80,6 +89,10 @@ class Sphere:
             raise ValueError("Cannot project the sphere's centre onto the sphere.")
         return c + self.radius * w / n
 
+    def normal(self, points: np.ndarray) -> np.ndarray:
+        """Outward unit normal at the surface points nearest ``points`` (..., 3)."""
+        return (self.project(points) - np.asarray(self.centre, float)) / self.radius
+
 
 @dataclass(frozen=True)
 class Cylinder:
@@ -120,6 +133,12 @@ class Cylinder:
         if np.any(n == 0):
             raise ValueError("Cannot project a point on the cylinder's axis onto the cylinder.")
         return c + along * a + self.radius * perp / n
+
+    def normal(self, points: np.ndarray) -> np.ndarray:
+        """Outward unit normal at the surface points nearest ``points`` (..., 3)."""
+        a, c = self._a, np.asarray(self.centre, float)
+        w = self.project(points) - c
+        return (w - np.sum(w * a, axis=-1, keepdims=True) * a) / self.radius
 
 
 @dataclass(frozen=True)
@@ -166,6 +185,16 @@ class HeightField:
             if np.max(np.abs(dx) + np.abs(dy)) <= 1e-15 * (1 + np.max(np.abs(p[:, :2]))):
                 break
         return np.column_stack([x, y, self._z(x, y)]).reshape(shape)
+
+    def normal(self, points: np.ndarray) -> np.ndarray:
+        """Upward unit normal ``(−f_x, −f_y, 1)/|…|`` at the surface points nearest ``points``
+        (..., 3); the gradient by central differences of ``step_m``."""
+        q = self.project(points)
+        x, y, h = q[..., 0], q[..., 1], self.step_m
+        fx = (self._z(x + h, y) - self._z(x - h, y)) / (2 * h)
+        fy = (self._z(x, y + h) - self._z(x, y - h)) / (2 * h)
+        n = np.stack([-fx, -fy, np.ones_like(fx)], axis=-1)
+        return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
 @dataclass(frozen=True)
@@ -418,3 +447,44 @@ def drape(surface: Surface, rows: int, cols: int, link_length: float, *,
     dist = float(np.max(np.linalg.norm(P - surface.project(P), axis=-1)))
     return P, DrapeInfo(converged=bool(err <= tol), iterations=done, newton_steps=newton,
                         max_length_error=err, max_surface_distance=dist, history=tuple(history))
+
+
+def surface_frames(joints: np.ndarray, surface) -> np.ndarray:
+    """Sensor frames (sensor -> world, (n_links, 3, 3), lattice order) of a sheet lying on
+    ``surface``: x along the link (docs/design.md), z the surface's normal under the link's
+    midpoint (``surface.normal``) made orthogonal to x, on the sheet's top face (the side of
+    `geometry.link_frames`' z), y = z × x.
+
+    Parameters
+    ----------
+    joints : ndarray, shape (rows, cols, 3)
+        The draped joints, metres (on the surface: `drape` projects them last).
+    surface : Sphere, Cylinder or HeightField
+        Anything with ``normal(points) -> unit normals``.
+    """
+    from .geometry import link_frames
+
+    if not callable(getattr(surface, "normal", None)):
+        raise ValueError(f"Invalid surface: {surface!r} has no normal(points) method")
+    cells = link_frames(joints)  # checks the joints; its z fixes the top face
+    P = np.asarray(joints, float)
+    lat = Lattice(P.shape[0], P.shape[1])
+    flat = P.reshape(-1, 3)
+    e = lat.endpoints
+    x = cells[:, :, 0]
+    n = surface.normal(0.5 * (flat[e[:, 0]] + flat[e[:, 1]]))
+    n = np.where(np.sum(n * cells[:, :, 2], axis=1, keepdims=True) < 0, -n, n)
+    z = n - np.sum(n * x, axis=1, keepdims=True) * x
+    zn = np.linalg.norm(z, axis=1, keepdims=True)
+    if np.any(zn <= 1e-12):
+        raise ValueError("Surface normal parallel to a link: cannot define sensor z.")
+    z = z / zn
+    return np.stack([x, np.cross(z, x), z], axis=2)
+
+
+def surface_readings(joints: np.ndarray, surface) -> np.ndarray:
+    """Noise-free readings (specific force, m/s², (n_links, 3)) of a sheet lying on ``surface``,
+    sensor z from the surface (`surface_frames`)."""
+    from .geometry import specific_force
+
+    return specific_force(surface_frames(joints, surface))

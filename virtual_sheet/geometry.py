@@ -29,7 +29,7 @@ from protocol.constants import G0
 from protocol.lattice import Lattice
 
 __all__ = ["chebyshev_net", "link_frames", "link_frames_jet", "link_midpoints", "ideal_readings", "specific_force", "roll_pitch",
-           "link_angles", "link_lengths", "rotation_from_angles", "HeightFunction"]
+           "link_angles", "link_lengths", "rotation_from_angles", "HeightFunction", "flat_net"]
 
 #: A vectorised height field: ``height(x, y) -> z`` on arrays of equal shape (metres, world frame).
 HeightFunction = Callable[[np.ndarray, np.ndarray], np.ndarray]
@@ -538,4 +538,30 @@ def chebyshev_net(height: HeightFunction, rows: int, cols: int, link_length: flo
     if not err <= _LENGTH_RTOL:
         raise ValueError(f"Chebyshev net: link lengths off by {err:.3g} relative (tolerance "
                          f"{_LENGTH_RTOL:g}); the height field may be discontinuous.")
+    return P
+
+
+def flat_net(rows: int, cols: int, link_length: float, *, angle: float = 0.0, shear: float = 0.0,
+             origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """A level flat net, centred on ``origin``: joint ``(i, j)`` at ``(i − i_c) L u + (j − j_c) L v``
+    with ``u``/``v`` the i/j directions of `chebyshev_net` (``i_c, j_c = rows // 2, cols // 2``).
+
+    Returns
+    -------
+    ndarray, shape (rows, cols, 3)
+        Joints, metres, world frame, z = 0.
+    """
+    Lattice(rows, cols)
+    if not abs(shear) < np.pi / 2:
+        raise ValueError(f"Invalid shear: {shear!r} rad (need |shear| < pi/2)")
+    L = float(link_length)
+    if not (np.isfinite(L) and L > 0):
+        raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
+    u = np.array([np.cos(angle), np.sin(angle), 0.0])
+    v = np.array([np.cos(angle + np.pi / 2 + shear), np.sin(angle + np.pi / 2 + shear), 0.0])
+    i = (np.arange(rows) - rows // 2)[:, None, None]
+    j = (np.arange(cols) - cols // 2)[None, :, None]
+    P = L * (i * u + j * v)
+    P[..., 0] += origin[0]
+    P[..., 1] += origin[1]
     return P

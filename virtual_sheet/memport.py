@@ -4,6 +4,11 @@
 like the two sides of a serial cable. The API is the subset of pyserial's ``Serial`` the host
 uses (``write``, ``read(size)`` honouring ``timeout``, ``in_waiting``, ``close``, ``is_open``), so
 the host's serial transport runs on it unchanged.
+
+A link's end can also be published under a name (`publish`) and opened by pyserial as the URL
+``memory://NAME`` once `URL_HANDLERS` is in ``serial.protocol_handler_packages`` (pyserial's own
+extension point for URL schemes, virtual_sheet/serial_urls/): so a program that takes a port by
+name (``capsheet host --port memory://sheet``) reaches a sheet in its own process.
 """
 
 from __future__ import annotations
@@ -11,7 +16,11 @@ from __future__ import annotations
 import threading
 import time
 
-__all__ = ["MemoryEnd", "memory_link"]
+__all__ = ["MemoryEnd", "memory_link", "publish", "published", "URL_HANDLERS"]
+
+#: the package to add to ``serial.protocol_handler_packages`` for ``memory://NAME``
+URL_HANDLERS = "virtual_sheet.serial_urls"
+_PUBLISHED: dict = {}  # name -> MemoryEnd
 
 
 class _Pipe:
@@ -83,3 +92,21 @@ def memory_link(name: str = "mem", timeout: float | None = 0.1) -> tuple[MemoryE
     """Two connected ends ``(host_end, device_end)``."""
     p, q = _Pipe(), _Pipe()
     return MemoryEnd(p, q, f"{name}:host", timeout), MemoryEnd(q, p, f"{name}:device", timeout)
+
+
+def publish(name: str, end: MemoryEnd) -> str:
+    """Make ``end`` what pyserial opens as ``memory://NAME``; returns that URL."""
+    if not name or "/" in name:
+        raise ValueError(f"Invalid memory link name: {name!r} (need a non-empty name without '/')")
+    _PUBLISHED[name] = end
+    return f"memory://{name}"
+
+
+def published(url: str) -> MemoryEnd:
+    """The end published for ``memory://NAME``; ``OSError`` naming it if there is none (or it was
+    closed: a vanished port)."""
+    name = url.split("://", 1)[1] if "://" in url else url
+    end = _PUBLISHED.get(name)
+    if end is None or not end.is_open:
+        raise OSError(f"no memory link published as {url!r} in this process")
+    return end

@@ -37,7 +37,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 import numpy as np
 
 from protocol.lattice import Lattice
-from .geometry import HeightFunction, chebyshev_net
+from .geometry import HeightFunction, chebyshev_net, flat_net  # flat_net: re-exported (it lived here)
 
 __all__ = ["SHAPES", "SCENES", "ShapeSpec", "SceneSpec", "make_sheet", "height_field",
            "Scene", "StaticScene", "GrowScene", "TiltScene", "PressScene", "make_scene",
@@ -57,32 +57,6 @@ def _rot_xy(tilt_x: float, tilt_y: float) -> np.ndarray:
     rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
     ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
     return ry @ rx
-
-
-def flat_net(rows: int, cols: int, link_length: float, *, angle: float = 0.0, shear: float = 0.0,
-             origin: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """A level flat net, centred on ``origin``: joint ``(i, j)`` at ``(i − i_c) L u + (j − j_c) L v``
-    with ``u``/``v`` the i/j directions of `chebyshev_net` (``i_c, j_c = rows // 2, cols // 2``).
-
-    Returns
-    -------
-    ndarray, shape (rows, cols, 3)
-        Joints, metres, world frame, z = 0.
-    """
-    Lattice(rows, cols)
-    if not abs(shear) < np.pi / 2:
-        raise ValueError(f"Invalid shear: {shear!r} rad (need |shear| < pi/2)")
-    L = float(link_length)
-    if not (np.isfinite(L) and L > 0):
-        raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
-    u = np.array([np.cos(angle), np.sin(angle), 0.0])
-    v = np.array([np.cos(angle + np.pi / 2 + shear), np.sin(angle + np.pi / 2 + shear), 0.0])
-    i = (np.arange(rows) - rows // 2)[:, None, None]
-    j = (np.arange(cols) - cols // 2)[None, :, None]
-    P = L * (i * u + j * v)
-    P[..., 0] += origin[0]
-    P[..., 1] += origin[1]
-    return P
 
 
 # ---------------------------------------------------------------------------------------------
@@ -419,7 +393,7 @@ SCENES: dict[str, SceneSpec] = {s.name: s for s in [
 
 
 def _board_scene(*args: Any, **kwargs: Any) -> Scene:
-    from .board import BoardPoseScene  # board.py builds on flat_net: imported late, no cycle
+    from .board import BoardPoseScene  # imported late: a scene others rarely need
     return BoardPoseScene(*args, **kwargs)
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from protocol.can import CanFrame
 
-from .devices import Device, _PtyMixin
+from .devices import Device, PtyPort
 from .faults import ERROR_FRAME
 from .gateway import Gateway
 
@@ -227,10 +227,6 @@ def _sample_lines(frames: list) -> bytes | None:
     return out.tobytes()
 
 
-class _SlcanPort(_PtyMixin):
-    name = "slcan"
-
-
 class SlcanDevice(Device):
     """One emulated SLCAN adapter per bus, each on its own pty, chips split across the buses.
 
@@ -250,10 +246,7 @@ class SlcanDevice(Device):
         self.ports = []
         self.adapters = []
         for b in range(n_buses):
-            port = _SlcanPort()
-            port.name = f"slcan{b}"
-            port._pty_init(symlink_paths[b] if symlink_paths else None)
-            self.ports.append(port)
+            self.ports.append(PtyPort(f"slcan{b}", symlink_paths[b] if symlink_paths else None))
             self.adapters.append(SlcanAdapter(self._sender(b), fd=sheet.fd))
         self.paths = [p.path for p in self.ports]
         self.path = self.paths[0]
@@ -269,19 +262,19 @@ class SlcanDevice(Device):
 
     def _open(self) -> None:
         for p in self.ports:
-            p._pty_open()
+            p.open()
 
     def _close(self) -> None:
         for p in self.ports:
-            p._pty_cleanup()
+            p.cleanup()
 
     def _serve(self, timeout_s: float) -> None:
         import select
-        fds = {p._master: b for b, p in enumerate(self.ports) if p._master >= 0}
-        wl = [p._master for p in self.ports if p._pending and p._master >= 0]
+        fds = {p.master: b for b, p in enumerate(self.ports) if p.master >= 0}
+        wl = [p.master for p in self.ports if p.has_pending and p.master >= 0]
         r, w, _ = select.select(list(fds), wl, [], timeout_s)
         for fd in w:
-            self.ports[fds[fd]]._pty_write(b"")
+            self.ports[fds[fd]].write(b"")
         for fd in r:
             b = fds[fd]
             port = self.ports[b]
@@ -294,21 +287,21 @@ class SlcanDevice(Device):
             if data:
                 reply = self.adapters[b].feed(data, self.now())
                 if reply:
-                    port._pty_write(reply)
+                    port.write(reply)
 
     def _send(self, bus: int, frames: list) -> None:
         data = self.adapters[bus].frames_to_host(frames, self.now())
         if data:
-            self.ports[bus]._pty_write(data, len(frames))
+            self.ports[bus].write(data, len(frames))
 
     def _go_down(self) -> None:
         for p, a in zip(self.ports, self.adapters):
-            p._pty_close()
+            p.close()
             a.is_open = False
 
     def _come_back(self) -> None:
         for p in self.ports:
-            p._pty_open()
+            p.open()
 
     def describe(self) -> str:
         return f"SLCAN adapter{'s' if len(self.paths) > 1 else ''} on {', '.join(self.paths)}"

@@ -9,14 +9,11 @@ specific force (flat, top face up, reads ``(0, 0, +G0)``); ``R = Rz(γ) Ry(β) R
 Two methods, same input, same output (`ShapeEstimate`):
 
 ``method="paper"`` (Hoshi & Shinoda, sections 2-3; the reference to beat)
-    Roll and pitch from eq. (2) in closed form. Yaw per 4-link unit: with ``γ0`` fixed, minimise
-    eq. (8) over ``(γ1, γ2, γ3)`` by steepest descent from several starts (all units and starts at
-    once, vectorised). The units are chained from a root link (unit ``(0, 0)``'s link 0, yaw π/2 as
-    at rest): along row 0 through the shared i-links, then down every column through the shared
-    j-links; each link takes its yaw from the unit it is link 0 or 3 of (the last row's j-links and
-    the last column's i-links from the unit they are link 2 or 1 of). Joints are then placed by
-    walking along links from joint ``(0, 0)``: along row 0, then down every column ("combining the
-    estimated unit shapes"). Missing links are not supported (the paper has none).
+    Roll and pitch from eq. (2) in closed form; per 4-link unit, eq. (8) by steepest descent
+    from several starts; the units combined into the sheet. It lives in
+    `host.analysis.paper_method`, which names every choice the paper leaves open
+    (``paper_options=PaperOptions(...)``); this module only checks the input and dispatches.
+    Missing links are not supported (the paper has none).
 
 ``method="global"`` (default)
     Roll and pitch as above. All yaws at once, one sparse nonlinear least-squares problem
@@ -148,12 +145,6 @@ JOINT_PRIOR_WEIGHT = 1e-9
 _S_D = np.array([1.0, 1.0, -1.0, -1.0])
 _S_N = np.array([1.0, -1.0, 1.0, -1.0])
 
-# paper method: steepest descent settings
-_SD_STARTS_CORNER = np.array([np.pi / 2, np.pi / 4, 3 * np.pi / 4, -np.pi / 2, -np.pi / 4,
-                              -3 * np.pi / 4])
-_SD_MAX_ITER = 300
-_SD_TOL = 1e-14
-
 
 @dataclass(frozen=True, eq=False)
 class ShapeEstimate:
@@ -185,8 +176,8 @@ class ShapeEstimate:
     method : str
         ``"global"`` or ``"paper"``.
     iterations : int
-        Gauss-Newton iterations (global) or steepest-descent iterations, summed over the chain
-        (paper).
+        Gauss-Newton iterations (global) or steepest-descent steps (paper,
+        `host.analysis.paper_method`).
     factorisations : int
         Sparse factorisations of the Gauss-Newton matrix made for this snapshot (global; 0 when
         the previous snapshot's factorisation sufficed).
@@ -293,7 +284,7 @@ def _eq7_matrices(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     return M
 
 
-def _solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
+def solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     """``λ3/λ1`` of eq. (7) for units given as ``(..., 4)`` angle arrays.
 
     Eq. (7)'s 4x6 real matrix is the realification of a complex 2x3 matrix ``K`` acting on
@@ -307,6 +298,10 @@ def _solvability_units(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:
     a = cb * np.array([-1.0, 1.0, 1.0])
     b = (sb * ca - 1j * sa) * np.array([1.0, -1.0, 1.0])
     return _sigma_ratio(a, b)
+
+
+#: its name before it was public (host/analysis/_kernel/yaw_eval.h cites it)
+_solvability_units = solvability_units
 
 
 def _sigma_ratio(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -345,7 +340,7 @@ def solvability(alpha: np.ndarray, beta: np.ndarray, rows: int, cols: int) -> np
         if al.shape == be.shape == (_lattice(rows, cols).n_links,):
             return _solvability_kernel(_angle_trig(al, be), rows, cols)
     a, b = np.asarray(alpha, float)[..., units], np.asarray(beta, float)[..., units]
-    ratio = _solvability_units(a, b)
+    ratio = solvability_units(a, b)
     bad = ~np.all(np.isfinite(a) & np.isfinite(b), axis=-1)
     if bad.any():
         ratio[bad] = np.nan
@@ -1289,97 +1284,6 @@ def _anderson(step: np.ndarray, hist) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# Paper method: per-unit steepest descent on eq. (8), chained
-# ---------------------------------------------------------------------------------------------
-
-def _steepest_descent(cd, cn, g, free):
-    """Minimise eq. (8) per unit and start by steepest descent (adaptive step, per element).
-
-    cd, cn : complex (U, 1, 4) coefficients; g : (U, S, 4) yaws, updated where ``free`` (U, 1, 4).
-    Returns the yaws, eq. (8)'s γ-dependent part per (U, S), and the iterations used.
-    """
-    def value_grad(g):
-        z = np.exp(1j * g)
-        td, tn = cd * z, cn * z
-        rd, rn = td.sum(-1), tn.sum(-1)
-        P = rd.real ** 2 + rd.imag ** 2 + rn.real ** 2 + rn.imag ** 2
-        grad = 2 * ((np.conj(td) * rd[..., None]).imag + (np.conj(tn) * rn[..., None]).imag)
-        return P, grad * free
-
-    P, grad = value_grad(g)
-    step = np.full(P.shape, 0.1)
-    it = 0
-    for it in range(1, _SD_MAX_ITER + 1):
-        g_new = g - step[..., None] * grad
-        P_new, grad_new = value_grad(g_new)
-        better = P_new <= P
-        g = np.where(better[..., None], g_new, g)
-        P = np.where(better, P_new, P)
-        grad = np.where(better[..., None], grad_new, grad)
-        step = np.where(better, step * 1.5, step * 0.5)
-        if np.all((np.sum(grad * grad, -1) < _SD_TOL) | (step < 1e-10)):
-            break
-    return g, P, it
-
-
-def _solve_paper(rows: int, cols: int, alpha, beta):
-    """Paper's yaw estimation: units chained from a root link, each by steepest descent on eq. (8).
-
-    Unit ``(0, 0)`` has its link 0 fixed (root, yaw π/2 as at rest) and solves for its other three
-    yaws. Every further unit has one or two links already fixed by the units solved before it
-    (link 3 = left neighbour's link 1, link 0 = upper neighbour's link 2) and solves for the rest,
-    by steepest descent from several starts (parallelogram shapes of several corner angles); the
-    start ending with the smallest eq. (8) wins. Units on one anti-diagonal ``i + j = k`` do not
-    depend on each other and are solved together (vectorised). Returns (gamma, iterations).
-    """
-    lat = Lattice(rows, cols)
-    units = lat.units  # (R-1, C-1, 4)
-    a, b = alpha[units], beta[units]
-    cb, sb, ca, sa = np.cos(b), np.sin(b), np.cos(a), np.sin(a)
-    cd_all = cb * _S_D
-    cn_all = (sb * ca - 1j * sa) * _S_N
-    gamma = np.full(lat.n_links, np.nan)
-    gamma[units[0, 0, 0]] = np.pi / 2  # the root link
-    c = _SD_STARTS_CORNER  # (S,)
-    R1, C1 = units.shape[:2]
-    total_it = 0
-    for k in range(R1 + C1 - 1):
-        ii = np.arange(max(0, k - C1 + 1), min(R1 - 1, k) + 1)
-        jj = k - ii
-        lk = units[ii, jj]  # (U, 4)
-        known = np.isfinite(gamma[lk])  # (U, 4)
-        g_known = np.where(known, gamma[lk], 0.0)
-        g0, g3 = g_known[:, 0:1], g_known[:, 3:4]
-        # starts (U, S, 4): parallelogram with corner angle c between link 3 and link 0
-        k0 = known[:, 0:1]
-        k3 = known[:, 3:4]
-        base0 = np.where(k0, g0, g3 + c)  # link 0
-        base3 = np.where(k3, g3, g0 - c)  # link 3
-        both = k0 & k3
-        shift = np.where(both, c - np.pi / 2, 0.0)  # both known: perturb links 1 and 2 instead
-        g = np.stack([base0, base3 + shift, base0 + shift, base3], axis=-1)
-        g = np.where(known[:, None, :], g_known[:, None, :], g)
-        g, P, it = _steepest_descent(cd_all[ii, jj][:, None, :], cn_all[ii, jj][:, None, :], g,
-                                     (~known)[:, None, :].astype(float))
-        total_it += it
-        best = np.argmin(P, axis=1)
-        gb = g[np.arange(lk.shape[0]), best]  # (U, 4)
-        gamma[lk] = np.where(known, gamma[lk], gb)
-    return _wrap(gamma), total_it
-
-
-def _paper_joints(rows: int, cols: int, vec: np.ndarray) -> np.ndarray:
-    """Walk along links from joint (0, 0): row 0 by its j-links, then down every column."""
-    lat = Lattice(rows, cols)
-    vi = vec[:lat.n_i_links].reshape(rows - 1, cols, 3)
-    vj = vec[lat.n_i_links:].reshape(rows, cols - 1, 3)
-    P = np.zeros((rows, cols, 3))
-    P[0, 1:] = np.cumsum(vj[0], axis=0)
-    P[1:] = P[0][None] + np.cumsum(vi, axis=0)
-    return P
-
-
-# ---------------------------------------------------------------------------------------------
 # estimate()
 # ---------------------------------------------------------------------------------------------
 
@@ -1550,7 +1454,7 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
              valid: np.ndarray | None = None, previous: ShapeEstimate | None = None,
              method: str = "global", *, rest=None, model: str = "cells",
              prior: str = "adaptive", noise_pct_g: float = 1.0,
-             bad_readings: str = "raise") -> ShapeEstimate:
+             bad_readings: str = "raise", paper_options=None) -> ShapeEstimate:
     """Estimate the sheet's shape from one snapshot of readings.
 
     Parameters
@@ -1592,6 +1496,9 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         What to do with a valid link whose reading is far from one g (``|s|`` outside
         `READING_NORM_RANGE` · g: a dead, stuck or saturated chip): raise a ValueError naming
         the links (default), or mask them out as missing.
+    paper_options : host.analysis.paper_method.PaperOptions, optional
+        ``method="paper"`` only: the choices the paper leaves open (default
+        ``PaperOptions()``; docs/estimator.md section 7 measures them).
 
     Returns
     -------
@@ -1615,6 +1522,11 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         raise ValueError(f"Invalid prior: {prior!r} (expected one of {PRIORS})")
     if bad_readings not in ("raise", "mask"):
         raise ValueError(f"Invalid bad_readings: {bad_readings!r} (expected 'raise' or 'mask')")
+    if paper_options is not None:  # method="paper" only (host.analysis.paper_method)
+        from .paper_method import PaperOptions
+        if method != "paper" or not isinstance(paper_options, PaperOptions):
+            raise ValueError(f"Invalid paper_options: {paper_options!r} (a PaperOptions, with "
+                             "method='paper' only)")
     rows = _check_int("rows", rows, 2)
     cols = _check_int("cols", cols, 2)
     lat = _lattice(rows, cols)
@@ -1728,13 +1640,14 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
             beta = np.where(vmask, beta, np.nan)
             if trig is not None:
                 trig[miss] = np.nan
-    else:
-        gamma, iters = _solve_paper(rows, cols, alpha, beta)
-        t2 = time.perf_counter()
-        d, nrm = _directions_normals(alpha, beta, gamma, trig)
-        joints = _paper_joints(rows, cols, L * d)
-        residual = _eq8_residual(lat.units.reshape(-1, 4), d, nrm)
-        n_fact = 0
+    else:  # --- method="paper": host.analysis.paper_method (issue 33) ---
+        from . import paper_method
+
+        res = paper_method.estimate(alpha, beta, rows, cols, L,
+                                    paper_options or paper_method.PaperOptions())
+        gamma, iters, d, nrm = res["yaws"], res["iterations"], res["directions"], res["normals"]
+        joints, residual, n_fact = res["joints"], res["residual"], 0
+        t2 = t1 + res["t_yaw"]
     t3 = time.perf_counter()
     solv = (solvability(alpha, beta, rows, cols) if trig is None
             else _solvability_kernel(trig, rows, cols))

@@ -34,7 +34,9 @@ def _version() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    from host.cli.argtypes import CliParser  # a bad value: one line, exit 2 (every subcommand's parser too)
+
+    parser = CliParser(
         prog="capsheet",
         description="capsheet: 3D capture sheet toolkit — talk to sensor chips over serial or CAN, "
                     "run a virtual sheet, estimate the sheet's shape and its contacts.",

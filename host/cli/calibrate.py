@@ -12,14 +12,18 @@ CAL_WRITE (stored in non-volatile memory where the chip has CAL_STORAGE), reads 
 CAL_READ and checks them. The misalignment stays in the file: give it to capsheet host / demo /
 tactile with --calibration.
 
-    capsheet calibrate --port /dev/ttyUSB0 --lattice 14x14 --layout sheet.csv --out cal.json
-    capsheet calibrate --can slcan:/dev/ttyACM0 --bitrate 1000000 --out cal.json --write-chips
+    capsheet calibrate --port /dev/ttyUSB0 --baud 12000000 --lattice 14x14 --layout sheet.csv --out cal.json
+    capsheet calibrate --can slcan:/dev/ttyACM0 --bitrate 1000000 --lattice 6x6 --out cal.json --write-chips
 
 Without hardware:
 
     capsheet virtual --shape board --chip-errors realistic --noise 0.3 --layout-out sheet.csv \\
         --symlink /tmp/sheet &
-    capsheet calibrate --port /tmp/sheet --layout sheet.csv --out cal.json --write-chips
+    capsheet calibrate --port /tmp/sheet --baud 12000000 --layout sheet.csv --out cal.json --write-chips
+
+The bus must carry the sheet at --rate (checked at bring-up, as capsheet host does): 364 chips at
+100 Hz need a 12 Mbaud UART (or --packed, or a lower --rate: poses then take longer to average);
+--ignore-capacity streams anyway.
 
 Exit status: 0 calibrated (outliers are reported, not fatal); 1 not enough poses before --timeout,
 the fit refused the poses, or a chip's read-back differs from what was written; 2 usage errors.
@@ -28,52 +32,60 @@ the fit refused the poses, or a chip's read-back differs from what was written; 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import sys
 import time
-from typing import Callable
 
 import numpy as np
 
-from host.analysis.calibration import (BOARD_POSES, MIN_POSES, NOMINAL_SENSITIVITY, Calibration,
+from host.analysis.calibration import (BOARD_POSES, MIN_POSES, Calibration,
                                        StaticDetector, board_frame_readings, fit_board_poses)
 from host.cli.transport_args import add_transport_args, open_transports
 from host.transport import TransportError
 
-__all__ = ["register", "run", "load_calibration_arg", "snapshot_corrector", "write_chip_calibration",
-           "PoseCapture"]
+__all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "PoseCapture"]
 
 #: a new pose must differ from every captured one by at least this angle, degrees
 MIN_POSE_SEPARATION_DEG = 20.0
 
 
 def register(subparsers) -> None:
+    from host.cli import argtypes as T
     p = subparsers.add_parser("calibrate", help="calibrate every chip in place from poses of the sheet on a board",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one --port, or one or more --can)")
-    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
-    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
-    p.add_argument("--out", required=True, metavar="FILE", help="calibration file to write (JSON)")
+    p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--layout", type=T.existing_file(".csv", ".json", what="a layout file"),
+                   help="uid -> link file (CSV 'uid,link' or JSON; docs/host.md)")
+    p.add_argument("--out", required=True, metavar="FILE", type=T.output_file(".json", what="a calibration file"),
+                   help="calibration file to write (JSON); checked before any pose is asked for; an existing "
+                        "file needs --overwrite")
+    T.add_overwrite_arg(p, "calibration files (--out)")
     p.add_argument("--write-chips", action="store_true",
                    help="CAL_WRITE each chip's offset and sensitivity, CAL_READ them back and verify")
-    p.add_argument("--poses", type=int, default=len(BOARD_POSES),
+    p.add_argument("--poses", type=T.int_range(MIN_POSES, 100), default=len(BOARD_POSES),
                    help=f"poses to capture, >= {MIN_POSES} (default {len(BOARD_POSES)}: docs/calibration.md)")
-    p.add_argument("--samples", type=int, default=200,
+    p.add_argument("--samples", type=T.int_range(1, 100_000), default=200,
                    help="snapshots averaged per pose (default 200: 2 s at 100 Hz)")
-    p.add_argument("--rate", type=float, default=100.0, help="SYNC rate, Hz (default 100)")
-    p.add_argument("--window", type=int, default=25,
+    p.add_argument("--rate", type=T.rate, default=100.0, help="SYNC rate, Hz (default 100)")
+    p.add_argument("--packed", action="store_true",
+                   help="the gateway packs SNAPSHOT frames: check the bus capacity for those")
+    p.add_argument("--ignore-capacity", action="store_true",
+                   help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2; a lower "
+                        "--rate only makes each pose take longer)")
+    p.add_argument("--window", type=T.int_range(2, 10_000), default=25,
                    help="snapshots in the stillness window (default 25)")
-    p.add_argument("--still-threshold", type=float, default=0.098, metavar="M/S2",
+    p.add_argument("--still-threshold", type=T.positive_float, default=0.098, metavar="M/S2",
                    help="a chip is still when its readings' standard deviation over the window is below "
                         "this (default 0.098 m/s^2 = 1 %% g)")
     p.add_argument("--non-orthogonality", action="store_true",
                    help="also fit 3 axis non-orthogonality terms per chip (kept in the file, like the misalignment)")
-    p.add_argument("--gravity", type=float, default=9.80665, metavar="M/S2",
+    p.add_argument("--gravity", type=T.bounded_float(1.0, 30.0, unit="m/s^2"), default=9.80665, metavar="M/S2",
                    help="local gravity (default standard gravity 9.80665); sets the common scale")
-    p.add_argument("--timeout", type=float, default=600.0, help="give up after this many seconds (default 600)")
-    p.add_argument("--discover-s", type=float, default=0.5, help="discovery window per round (s)")
+    p.add_argument("--timeout", type=T.duration, default=600.0, help="give up after this many seconds (default 600)")
+    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5,
+                   help="discovery window per round (s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout (messages on stderr)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live indicator")
     p.set_defaults(func=run)
@@ -105,48 +117,6 @@ def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | 
     return cal
 
 
-def _chip_calibration_of(host) -> tuple[np.ndarray, np.ndarray]:
-    """Offset and sensitivity (±2 g counts) the host converts each link's counts with (CAL_DATA)."""
-    n = host.lattice.n_links
-    off, sens = np.zeros((n, 3)), np.full((n, 3), NOMINAL_SENSITIVITY)
-    scale = float(1 << int(host.range_code))
-    for rec in host._assigned():
-        off[rec.link] = np.asarray(rec.offset) * scale
-        sens[rec.link] = np.asarray(rec.sensitivity) * scale
-    return off, sens
-
-
-class SnapshotCorrector:
-    """``snapshot -> snapshot`` with calibrated readings, for the chip calibration the host read:
-    `Calibration.rebased` to it, so a file works whether or not its offsets and sensitivities
-    were written to the chips. Set it before bring-up: it follows every ``read_calibration``
-    (``host.calibration_reads``), so the first snapshot streamed is corrected like the rest (and
-    recorded so); until the host has read the chips it passes snapshots through."""
-
-    def __init__(self, host, cal: Calibration) -> None:
-        self._host, self._cal = host, cal
-        self._live: Calibration | None = None
-        self._reads = 0
-
-    @property
-    def calibration(self) -> Calibration | None:
-        """What is applied now (None before the host read the chips' calibration): what a
-        recording attaches as ``host_calibration.json`` for its replay."""
-        reads = int(getattr(self._host, "calibration_reads", 1))
-        if reads and (self._live is None or reads != self._reads):
-            self._live, self._reads = self._cal.rebased(*_chip_calibration_of(self._host)), reads
-        return self._live
-
-    def __call__(self, snap):
-        live = self.calibration
-        return snap if live is None else dataclasses.replace(snap, readings=live.apply(snap.readings))
-
-
-def snapshot_corrector(host, cal: Calibration) -> Callable:
-    """A `SnapshotCorrector` of ``host`` for ``cal``."""
-    return SnapshotCorrector(host, cal)
-
-
 def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndarray) -> dict:
     """CAL_WRITE every assigned chip's three axes (chips must be IDLE), then CAL_READ them back.
 
@@ -158,7 +128,7 @@ def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndar
 
     q4 = np.clip(np.rint(np.asarray(offset_counts) * 16.0), -32768, 32767).astype(int)
     sens = np.asarray(sensitivity, dtype=np.float32)
-    chips = host._by_node()
+    chips = host.chips_by_node()
     refused: set[int] = set()
     for axis in range(3):
         def build(key, _attempt, axis=axis):
@@ -171,7 +141,7 @@ def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndar
             if isinstance(msg, (Ack, Nack)) and msg.command == MsgType.CAL_WRITE:
                 return (bus, msg.node)
             return None
-        answers, missing = host._round(chips, build, match, f"CAL_WRITE axis {axis}")
+        answers, missing = host.command_round(chips, build, match, f"CAL_WRITE axis {axis}")
         refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
         refused |= {chips[k].link for k in missing}
     host.read_calibration()
@@ -286,13 +256,14 @@ def _bar(frac: float, width: int = 20) -> str:
 
 
 def _capture(host, args, cap: PoseCapture) -> bool:
-    live = not args.quiet
+    from host.cli.progress import LiveLine
+
+    # a terminal: one line redrawn; a pipe or log: a line per new state, else every 5 s
+    live = LiveLine(quiet=args.quiet, every_s=5.0)
     t_end = time.monotonic() + args.timeout
-    last_line, state = 0.0, ""
     while len(cap.poses) < args.poses:
         if time.monotonic() > t_end:
-            if live:
-                print(file=sys.stderr)
+            live.end()
             _say(args, f"timed out after {args.timeout:g} s with {len(cap.poses)} of {args.poses} poses")
             return False
         snap = host.get(0.5)
@@ -301,22 +272,19 @@ def _capture(host, args, cap: PoseCapture) -> bool:
         what = cap.update(snap.readings, snap.valid)
         if what == "captured":
             u = cap.directions[-1]
-            if live:
-                print(file=sys.stderr)
+            live.end()
             _say(args, f"captured pose {len(cap.poses)}/{args.poses} (nearest: {cap.nearest_name(u)}; "
                        f"gravity in the board frame {np.round(u, 3).tolist()})")
-            state = ""
             continue
-        now = time.monotonic()
-        if live and (what != state or now - last_line > 0.25):
+        key = (len(cap.poses), what)
+        if live.due(key):
             name, instruction = cap.next_pose()
             shown = {"moving": "moving ... set the board down and hold still",
                      "holding": f"HOLD STILL [{_bar(cap.progress)}] {100 * cap.progress:3.0f} %",
                      "duplicate": "still, but this pose is already captured: turn the board",
                      "incomplete": "waiting for the chips"}[what]
-            print(f"\rpose {len(cap.poses) + 1}/{args.poses} next: {name} ({instruction}) | {shown}    ",
-                  end="", file=sys.stderr, flush=True)
-            last_line, state = now, what
+            live.show(f"pose {len(cap.poses) + 1}/{args.poses} next: {name} ({instruction}) | {shown}", key)
+    live.end()
     return True
 
 
@@ -331,20 +299,11 @@ def _chip_table(cal: Calibration) -> list[dict]:
 def run(args) -> int:
     from host.session import Host, Layout
 
+    from host.session import MismatchError
+
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    try:
-        rows, cols = (int(x) for x in args.lattice.lower().split("x"))
-        cap = PoseCapture(rows, cols, samples=args.samples, window=args.window,
-                          threshold_mps2=args.still_threshold)
-    except ValueError as exc:
-        print(f"capsheet calibrate: {exc}", file=sys.stderr)
-        return 2
-    if args.poses < MIN_POSES:
-        print(f"capsheet calibrate: --poses {args.poses}: need at least {MIN_POSES}", file=sys.stderr)
-        return 2
-    if not (args.timeout > 0 and args.rate > 0):
-        print("capsheet calibrate: --timeout and --rate must be > 0", file=sys.stderr)
-        return 2
+    rows, cols = args.lattice.rows, args.lattice.cols  # every value was checked by its type (argtypes)
+    cap = PoseCapture(rows, cols, samples=args.samples, window=args.window, threshold_mps2=args.still_threshold)
     try:
         layout = Layout.load(args.layout) if args.layout else None
     except (OSError, ValueError) as exc:
@@ -355,17 +314,33 @@ def run(args) -> int:
     except TransportError as exc:
         print(f"capsheet calibrate: {exc}", file=sys.stderr)
         return 1
-    host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+    try:
+        host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+    except (MismatchError, ValueError) as exc:
+        for t in transports:
+            t.close()
+        print(f"capsheet calibrate: {exc}", file=sys.stderr)
+        return 2
     result: dict = {}
     with host:
-        summary = host.bring_up(args.discover_s)
+        try:
+            summary = host.bring_up(args.discover_s, capacity="warn" if args.ignore_capacity else "refuse",
+                                    packed=args.packed)
+        except MismatchError as exc:  # over capacity (the remedy fits what is set), layout mismatches
+            print(f"capsheet calibrate: {exc}" + (" (or --ignore-capacity)" if "capacity" in str(exc) else ""),
+                  file=sys.stderr)
+            return 2
+        if summary["discovered"] == 0:
+            _say(args, f"no chip answered on {', '.join(t.name for t in transports)} (is the sheet powered and "
+                       f"the port right?)")
+            return 1
         _say(args, f"{summary['discovered']} chips found, {summary['assigned']} assigned, "
                    f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses")
         if summary["assigned"] < host.lattice.n_links:
             _say(args, f"only {summary['assigned']} of {host.lattice.n_links} links have a chip: "
                        "every link is needed")
             return 1
-        ref_off, ref_sens = _chip_calibration_of(host)
+        ref_off, ref_sens = host.chip_calibration()
         try:
             done = _capture(host, args, cap)
         except KeyboardInterrupt:
@@ -407,7 +382,7 @@ def run(args) -> int:
                        f"and verified, {len(w['refused'])} refused, {len(w['mismatch'])} axis mismatches")
             if w["refused"] or w["mismatch"] or len(w["verified"]) < cal.n_links:
                 status = 1
-            cal = cal.rebased(*_chip_calibration_of(host))  # the file now describes the written chips
+            cal = cal.rebased(*host.chip_calibration())  # the file now describes the written chips
         try:
             cal.save(args.out)
         except OSError as exc:

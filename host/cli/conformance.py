@@ -19,10 +19,6 @@ from host.transport import SerialTransport, TransportError
 __all__ = ["register", "run"]
 
 
-def _int(v: str) -> int:
-    return int(v, 0)
-
-
 def run(args: argparse.Namespace) -> int:
     if args.list:
         print(table(), end="")
@@ -35,13 +31,6 @@ def run(args: argparse.Namespace) -> int:
         select(only)
     except ValueError as exc:
         print(f"capsheet conformance: {exc}", file=sys.stderr)
-        return 2
-    if args.node is not None and not 1 <= args.node <= 0x7FFF:
-        print(f"capsheet conformance: Invalid --node {args.node:#x} (an assigned node id is 1..0x7FFF)",
-              file=sys.stderr)
-        return 2
-    if args.timeout <= 0:
-        print(f"capsheet conformance: Invalid --timeout {args.timeout} (need > 0 s)", file=sys.stderr)
         return 2
     try:
         if args.port:
@@ -71,6 +60,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def register(subparsers) -> argparse.ArgumentParser:
+    from host.cli import argtypes as T
     p = subparsers.add_parser(
         "conformance", help="hold a chip (or gateway) to the protocol spec, clause by clause",
         description=(_conf.__doc__ or "") + "\n" + (__doc__.split("\n\n", 1)[1] if __doc__ else "")
@@ -78,19 +68,19 @@ def register(subparsers) -> argparse.ArgumentParser:
           " --only 4.6,5\n    capsheet conformance --list\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="the port the chip is on (exactly one)", several_buses=False)
-    p.add_argument("--timeout", type=float, default=0.5, help="seconds the chip must stay silent where it should not answer; an expected answer is "
+    p.add_argument("--timeout", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="seconds the chip must stay silent where it should not answer; an expected answer is "
                         "awaited max(1 s, 3 x this) and ends as soon as it arrives (default 0.5)")
-    p.add_argument("--node", type=_int, default=None,
+    p.add_argument("--node", type=T.int_range(1, 0x7FFF, what="an assigned node id"), default=None,
                    help="node id to assign for the run (default: the highest id no chip was heard from)")
-    p.add_argument("--uid", type=_int, default=None,
+    p.add_argument("--uid", type=T.int_range(0, 2 ** 64 - 1, what="a 64-bit uid"), default=None,
                    help="the chip under test, by uid (default: the first to answer a broadcast GET_INFO)")
-    p.add_argument("--slack-ms", type=float, default=10.0,
+    p.add_argument("--slack-ms", type=T.bounded_float(0.0, 10_000.0, unit="ms"), default=10.0,
                    help="host-side latency allowed on top of the 2 ms SYNC deadline (a SHOULD) and the "
                         "heartbeat/re-announce periods, ms (default 10)")
     p.add_argument("--only", help=f"comma-separated check numbers (1..{len(CHECKS)}) or clause prefixes, e.g. 4.6,5")
     p.add_argument("--allow-broadcast", action="store_true",
                    help="also run the checks that broadcast START/STOP (they address every chip on the port)")
-    p.add_argument("--attempts", type=int, default=3, choices=range(1, 10), metavar="N",
+    p.add_argument("--attempts", type=T.int_range(1, 9), default=3, metavar="N",
                    help="tries per check when the port lost frames (default 3)")
     p.add_argument("--list", action="store_true", help="print the clause table (docs/conformance.md) and exit")
     p.set_defaults(func=run)

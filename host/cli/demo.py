@@ -24,25 +24,35 @@ from pathlib import Path
 import numpy as np
 
 
+#: the UART rate each virtual gateway stands for (a pty has none): what 364 chips at 145 Hz need
+GATEWAY_BAUD = 12_000_000
+
+
 def register(sub) -> None:
+    from host.cli import argtypes as T
     p = sub.add_parser(
         "demo", help="the main job on a virtual sheet: pty serial -> host -> live shape estimate -> PNG",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shape", default="grow",
                    help="scene or shape of the virtual sheet (grow, tilt, press, gaussian, sphere, ...; default grow)")
-    p.add_argument("--lattice", default="14x14", help="joints, ROWSxCOLS (default 14x14)")
-    p.add_argument("--link-length", type=float, default=0.01, help="metres (default 0.01)")
-    p.add_argument("--noise", type=float, default=1.0, help="sensor noise, %% of g per axis (default 1)")
-    p.add_argument("--rate", type=float, default=145.0, help="SYNC rate, Hz (default 145, the paper's)")
-    p.add_argument("--min-complete", type=float, default=99.0,
+    p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints, ROWSxCOLS (default 14x14)")
+    p.add_argument("--link-length", type=T.link_length, default=0.01, help="metres (default 0.01)")
+    p.add_argument("--noise", type=T.noise, default=1.0, help="sensor noise, %% of g per axis (default 1)")
+    p.add_argument("--rate", type=T.rate, default=145.0, help="SYNC rate, Hz (default 145, the paper's)")
+    p.add_argument("--min-complete", type=T.percent, default=99.0,
                    help="%% of SYNCs that must give a complete snapshot to pass (default 99)")
-    p.add_argument("--duration", type=float, default=6.0, help="seconds of live streaming (default 6)")
+    p.add_argument("--duration", type=T.duration, default=6.0, help="seconds of live streaming (default 6)")
     p.add_argument("--packed", action="store_true", help="the gateway packs SNAPSHOT frames instead of per-chip SAMPLEs")
-    p.add_argument("--target", type=float, default=1.0, help="max mean joint error, %% of side (default 1)")
-    p.add_argument("--out", default="out/demo.png", help="PNG of estimated vs true shape (default out/demo.png)")
-    p.add_argument("--calibration", metavar="CAL_JSON", help="apply this calibration (capsheet calibrate) to every snapshot")
+    p.add_argument("--gateways", type=T.int_range(1, 64), default=1, metavar="N",
+                   help="the sheet behind N serial gateways, each on its own pty with a block of the links, "
+                        "merged by the host into one lattice (default 1; 32x32 at 145 Hz needs 2, packed)")
+    p.add_argument("--target", type=T.positive_float, default=1.0, help="max mean joint error, %% of side (default 1)")
+    p.add_argument("--out", type=T.figure_file, default="out/demo.png",
+                   help="PNG of estimated vs true shape (default out/demo.png)")
+    p.add_argument("--calibration", metavar="CAL_JSON", type=T.existing_file(".json", what="a calibration file"),
+                   help="apply this calibration (capsheet calibrate) to every snapshot")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout; messages on stderr)")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--seed", type=T.seed, default=1, help="seed of the sheet's uids and noise (default 1)")
     from host.cli.record_args import add_record_args
     add_record_args(p)  # --record FILE.mcap, --live [PORT]
     p.set_defaults(func=run)
@@ -56,18 +66,51 @@ def _sheet_kwargs(args) -> dict:
                 seed=args.seed, scene_rate_hz=10.0)
 
 
-def _serve_virtual_sheet(kwargs: dict, packed: bool, layout_path: str, conn) -> None:
+def check_capacity(args) -> None:
+    """Before anything starts: the sheet's traffic fits its gateways at ``--rate`` (each stands for a
+    `GATEWAY_BAUD` UART), else a usage error whose remedy fits what is set (`capacity_remedy`)."""
+    from host.cli.argtypes import usage_error
+    from host.cli.transport_args import split_needed
+    from host.session import capacity_remedy
+    from protocol.capacity import bus_load
+
+    lat, g = args.lattice, args.gateways
+    per = -(-lat.n_links // g)  # the largest block (VirtualSheet.split: contiguous, near equal)
+    load = bus_load(per, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=args.packed)
+    if load <= 1.0:
+        return
+    def fits(packed: bool, start: int):
+        return split_needed(lat.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=packed, start=start)
+    more, k_packed = fits(args.packed, g + 1), (None if args.packed else fits(True, g))
+    pack = None if k_packed is None else "--packed" if k_packed == g else f"--packed --gateways {k_packed}"
+    remedy = capacity_remedy("serial", load, args.rate, packed=args.packed or pack is None, pack=pack,
+                             split=f"--gateways {more}" if more else "more gateways than 64", faster=False)
+    raise usage_error("capsheet demo", f"--rate {args.rate:g}: {lat.n_links:,} chips "
+                      f"{'packed' if args.packed else 'per-chip'} over {g} gateway{'s' if g > 1 else ''} of "
+                      f"{GATEWAY_BAUD / 1e6:g} Mbaud need {100 * load:.0f} % of each; {remedy}")
+
+
+def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path: str, conn) -> None:
     """Child process: the virtual sheet on a pty, like a real sheet on its own hardware. Answers
     "truth" requests with the scene time of each SYNC counter it has seen since the last request."""
     from virtual_sheet.devices import PtyDevice
     from virtual_sheet.sheet import VirtualSheet
 
-    sheet = VirtualSheet(kwargs.pop("shape"), kwargs.pop("lattice"), **kwargs)
-    sheet.precompute()
-    sheet.write_layout(layout_path)
+    try:
+        sheet = VirtualSheet(kwargs.pop("shape"), kwargs.pop("lattice"), **kwargs)
+        sheet.precompute()
+        sheet.write_layout(layout_path)
+        if gateways > 1:
+            from virtual_sheet.devices import MultiPtyDevice
+            device = MultiPtyDevice(sheet, n_gateways=gateways, packed=packed)
+        else:
+            device = PtyDevice(sheet, packed=packed)
+    except Exception as exc:  # noqa: BLE001 - the parent says it in one line instead of waiting
+        conn.send(("error", f"{type(exc).__name__}: {exc}"))
+        return
     sent: set[int] = set()
-    with PtyDevice(sheet, packed=packed) as dev:
-        conn.send(("ready", str(dev.path), dev.describe()))
+    with device as dev:
+        conn.send(("ready", list(getattr(dev, "paths", [str(dev.path)])), dev.describe()))
         while True:
             req = conn.recv()
             if req == "stop":
@@ -87,18 +130,14 @@ def run(args) -> int:
 
     from host.estimator import error_percent_of_side, estimate
     from host.aggregator import window_completeness
+    from host.cli.progress import LiveLine
     from host.session import Host, Layout
     from host.transport import open_transport
     from virtual_sheet.sheet import VirtualSheet
 
-    for name, v in (("--rate", args.rate), ("--duration", args.duration), ("--target", args.target)):
-        if not (np.isfinite(v) and v > 0):
-            print(f"capsheet demo: invalid {name} {v!r} (need a finite value > 0)", file=sys.stderr)
-            return 2
-    if not 0 <= args.min_complete <= 100:
-        print(f"capsheet demo: invalid --min-complete {args.min_complete!r} (need 0..100 %)", file=sys.stderr)
-        return 2
-    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    check_capacity(args)  # every other value was checked by its type (host.cli.argtypes)
+    live = LiveLine(every_s=2.0)  # the status: a terminal one line redrawn; a log a line every 2 s
+    from host.cli.calibrate import load_calibration_arg
     cal = load_calibration_arg(args.calibration, args.lattice, "capsheet demo")
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
     kw = _sheet_kwargs(args)
@@ -112,7 +151,8 @@ def run(args) -> int:
     tmp = Path(tempfile.mkdtemp(prefix="capsheet-demo-"))
     layout_path = tmp / "layout.json"
     print(f"capsheet demo: virtual {rows}x{cols} sheet ({lat.n_links} chips), scene {args.shape!r}, "
-          f"noise {args.noise:g} % g, {args.rate:g} Hz{', packed' if args.packed else ''}", file=sys.stderr)
+          f"noise {args.noise:g} % g, SYNC at {args.rate:g} Hz{', packed' if args.packed else ''}"
+          f"{f', {args.gateways} gateways' if args.gateways > 1 else ''}", file=sys.stderr)
     errors: list[float] = []
     times: list[float] = []
     latencies: list[float] = []
@@ -120,16 +160,24 @@ def run(args) -> int:
     truth_times: dict[int, float] = {}
     ctx = mp.get_context("spawn")
     parent, child = ctx.Pipe()
-    proc = ctx.Process(target=_serve_virtual_sheet, args=(_sheet_kwargs(args), args.packed, str(layout_path), child),
-                       daemon=True)
+    proc = ctx.Process(target=_serve_virtual_sheet,
+                       args=(_sheet_kwargs(args), args.packed, args.gateways, str(layout_path), child), daemon=True)
     proc.start()
     n_est = 0
     elapsed = 0.0
     stats: dict = {}
     try:
-        if not parent.poll(120):
-            raise RuntimeError("the virtual sheet process did not start within 120 s")
-        _, path, described = parent.recv()
+        t_wait = time.monotonic()
+        while not parent.poll(0.2):  # the sheet's process builds its scene: wait while it lives
+            if not proc.is_alive():
+                raise SystemExit(f"capsheet demo: the virtual sheet's process ended (exit {proc.exitcode}) "
+                                 f"before it was ready")
+            if time.monotonic() - t_wait > 300:
+                raise SystemExit("capsheet demo: the virtual sheet did not start within 300 s")
+        msg = parent.recv()
+        if msg[0] != "ready":  # the sheet could not be built or its ptys opened: its one line
+            raise SystemExit(f"capsheet demo: the virtual sheet did not start: {msg[1]}")
+        _, paths, described = msg
         print(f"capsheet demo: virtual sheet (own process) on {described}; host opens it with pyserial",
               file=sys.stderr)
 
@@ -140,21 +188,22 @@ def run(args) -> int:
             return truth_sheet.joints_at_scene_time(truth_times[counter])
 
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
-        transport = open_transport("serial", path, baudrate=12_000_000)
+        transports = [open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths]
         seen: list[tuple[int, bool]] = []  # (counter, complete) of every snapshot emitted
-        host = Host(transport, lat, layout=Layout.load(layout_path), rate_hz=args.rate,
+        host = Host(transports, lat, layout=Layout.load(layout_path), rate_hz=args.rate,
                     on_snapshot=lambda snap: seen.append((snap.counter, snap.complete)))
         from host.cli.record_args import SessionOutputs
         outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
         outputs.attach(host)
         if cal is not None:  # before bring-up: it follows the chip calibration the host reads
-            host.snapshot_filter = snapshot_corrector(host, cal)
+            host.set_calibration(cal)
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
+            from host.cli.host import calibration_words
             print(f"capsheet demo: {summary['discovered']} chips discovered, {summary['assigned']} assigned, "
-                  f"{summary['calibrated']} calibrated, {summary['started']} streaming "
+                  f"{calibration_words(host, summary)}, {summary['started']} streaming "
                   f"({time.monotonic() - t_up:.1f} s)", file=sys.stderr)
             outputs.describe(host)
             if summary["started"] < lat.n_links:
@@ -162,11 +211,10 @@ def run(args) -> int:
             previous = None
             t0 = time.monotonic()
             first, sent0 = host.counter, host.syncs_sent  # the window: completeness counts its SYNCs only
-            last_print = last_eval = 0.0
-            tty = sys.stderr.isatty()  # a log gets a line every 2 s, a terminal one line redrawn
+            last_eval = 0.0
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
-                snap = agg.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
+                snap = host.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
                 if snap is None or not snap.valid.any():
                     continue
                 t_e = time.perf_counter()
@@ -184,20 +232,16 @@ def run(args) -> int:
                     errors.append(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
                     outputs.publish(est, snap, truth=truth)
-                now = time.monotonic()
-                if now - last_print >= (0.25 if tty else 2.0):
-                    el = now - t0
+                if live.due():
+                    el = time.monotonic() - t0
                     # up to the newest SYNC emitted: those after it are in flight, not yet missed
                     c_now, n_now = host.counter, host.syncs_sent - sent0
                     end = (seen[-1][0] + 1) & 0xFFFF if seen else first
                     win = window_completeness(seen, first, end, n_now - ((c_now - end) & 0xFFFF))
-                    cr = "\r" if tty else ""
-                    print(f"{cr}{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
-                          f"{1e3 * np.median(latencies[-50:]):6.1f} ms | estimate {1e3 * np.median(times[-50:]):5.2f} ms | "
-                          f"error {_fmt(errors[-1] if errors else None)} % of side | "
-                          f"complete {win['complete_pct']:5.1f} % of SYNCs",
-                          end="" if tty else "\n", file=sys.stderr, flush=True)
-                    last_print = now
+                    live.show(f"{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
+                              f"{1e3 * np.median(latencies[-50:]):6.1f} ms | estimate {1e3 * np.median(times[-50:]):5.2f} ms | "
+                              f"error {_fmt(errors[-1] if errors else None)} % of side | "
+                              f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0
             end, sent_n = host.counter, host.syncs_sent - sent0
             host.stop()  # the SYNCs in flight get their chance to complete
@@ -215,7 +259,7 @@ def run(args) -> int:
             proc.join(10)
             if proc.is_alive():
                 proc.terminate()
-    print(file=sys.stderr)
+    live.end()
     sent = stats.get("syncs_sent", 0)
     complete_pct = 100.0 * stats.get("complete", 0) / sent if sent else 0.0
     mean_err = float(np.mean(errors)) if errors else None
@@ -225,6 +269,8 @@ def run(args) -> int:
     result = {
         "rate_hz": args.rate, "duration_s": args.duration, "packed": args.packed, **stats,
         "complete_pct_of_syncs": round(complete_pct, 2),
+        "syncs_per_s": round(sent / max(elapsed, 1e-9), 1), "gateways": args.gateways,
+        # the live estimate takes the newest snapshot (newest wins): fewer estimates than SYNCs
         "estimates": n_est, "estimates_per_s": round(n_est / max(elapsed, 1e-9), 1),
         "compared_with_truth": len(errors),
         "mean_error_pct_side": round(mean_err, 3) if mean_err is not None else None,
@@ -248,7 +294,8 @@ def run(args) -> int:
     line = (f"capsheet demo: {verdict}: mean joint error {_fmt(mean_err, '.3f')} % of side "
             f"(target <= {args.target:g} %{'' if err_ok else ': MISSED'}), {complete_pct:.1f} % of {sent} SYNCs "
             f"complete (need >= {args.min_complete:g} %{'' if complete_ok else ': MISSED'}); "
-            f"{n_est} estimates at {result['estimates_per_s']}/s, median latency "
+            f"SYNC at {args.rate:g} Hz ({result['syncs_per_s']}/s sent), shape estimated "
+            f"{result['estimates_per_s']}/s ({n_est} estimates, newest snapshot first), median latency "
             f"{_fmt(result['median_latency_ms'], '.1f', ' ms')}, estimate {_fmt(result['median_estimate_ms'], '.2f', ' ms')}")
     print(line, file=sys.stderr if args.json else sys.stdout)
     if args.json:

@@ -27,41 +27,32 @@ from pathlib import Path
 import numpy as np
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need an integer >= 1)") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"invalid value {v} (need an integer >= 1)")
-    return v
-
-
-def _out_path(text: str) -> str:
-    if Path(text).suffix.lower() not in (".npz", ".mcap"):
-        raise argparse.ArgumentTypeError(f"{text!r}: --out is a .npz (numpy) or .mcap (Foxglove) file")
-    return text
-
-
 def register(subparsers) -> None:
-    from host.cli.record_args import lattice_arg, positive
+    from host.cli import argtypes as T
+    from host.cli.replay import RECORDING_SUFFIXES
     p = subparsers.add_parser("estimate", help="estimate a recording offline (batched, all cores) to .npz or .mcap",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", help="capsheet .mcap, or a CAN log (.log, .asc, .blf)")
-    p.add_argument("--out", required=True, type=_out_path, help="joints.npz or shapes.mcap")
-    p.add_argument("--png", nargs="?", const="", default=None, metavar="FILE",
+    p.add_argument("recording", type=T.existing_file(*RECORDING_SUFFIXES, what="a recording"),
+                   help="capsheet .mcap, or a CAN log (.log, .asc, .blf)")
+    p.add_argument("--out", required=True, type=T.output_file(".npz", ".mcap", what="an output file"),
+                   help="joints.npz or shapes.mcap (an existing file needs --overwrite)")
+    T.add_overwrite_arg(p, "output files (--out)")
+    p.add_argument("--png", nargs="?", const="", default=None, metavar="FILE", type=T.figure_file,
                    help="also draw the run (default: --out with .png)")
-    p.add_argument("--lattice", type=lattice_arg, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
-    p.add_argument("--link-length", type=positive, default=None, help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--allow-truncated", action="store_true",
+                   help="estimate a recording that was cut short (default: say so and exit 1)")
+    p.add_argument("--lattice", type=T.lattice, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
+    p.add_argument("--link-length", type=T.link_length, default=None,
+                   help="L, metres (default: the recording's, or 0.01)")
     p.add_argument("--from-raw", action="store_true", help="replay the raw input instead of the recorded snapshots")
     p.add_argument("--method", choices=("global", "paper"), default="global", help="estimator (default global)")
-    p.add_argument("--jobs", type=_positive_int, default=min(2, os.cpu_count() or 1),
+    p.add_argument("--jobs", type=T.int_range(1, 256), default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: min(2, cores))")
-    p.add_argument("--batch", type=_positive_int, default=256, help="snapshots per batch (default 256)")
+    p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
     p.add_argument("--uncertainty", action="store_true",
                    help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
 
 
@@ -147,9 +138,10 @@ def _import_estimator() -> None:
 
 
 def _source(args):
-    """``(lattice, L, session, batches, total)``: the recording's snapshots as an iterator of
-    `host.record.SnapshotBatch` of ``--batch`` each, read as they are consumed (``total``: the
-    snapshot count if known beforehand, else None)."""
+    """``(lattice, L, session, batches, total, truncated)``: the recording's snapshots as an iterator
+    of `host.record.SnapshotBatch` of ``--batch`` each, read as they are consumed (``total``: the
+    snapshot count if known beforehand, else None; ``truncated``: the MCAP was cut short, its
+    summary missing)."""
     from host.record import SnapshotBatch, iter_snapshots, snapshot_count
     from host.replay import Replay
     from protocol.lattice import Lattice
@@ -163,7 +155,8 @@ def _source(args):
         session = first.session
         lat = Lattice(int(session["rows"]), int(session["cols"]))
         L = float(args.link_length or session.get("link_length_m", 0.01))
-        return lat, L, session, _chain(first, it), snapshot_count(path)
+        total = snapshot_count(path)  # None: no summary, the file was cut short
+        return lat, L, session, _chain(first, it), total, total is None
     rp = Replay(path, lattice=args.lattice, link_length=args.link_length)
     snaps = list(rp.snapshots())
     if not snaps:
@@ -175,7 +168,7 @@ def _source(args):
                           np.stack([s.status for s in snaps]))
     parts = (SnapshotBatch(session, *(getattr(whole, f)[k:k + args.batch] for f in _FIELDS))
              for k in range(0, len(whole), args.batch))
-    return rp.lattice, rp.link_length, session, parts, len(whole)
+    return rp.lattice, rp.link_length, session, parts, len(whole), bool(rp.recording and rp.recording.truncated)
 
 
 #: `host.record.SnapshotBatch`'s array fields, in order
@@ -190,7 +183,7 @@ def _chain(first, rest):
 def run(args) -> int:
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
-    from tqdm import tqdm
+    from host.cli.progress import Progress
 
     t_start = time.monotonic()
     pool = None
@@ -201,16 +194,18 @@ def run(args) -> int:
             pool.submit(_import_estimator)
     try:
         try:
-            lat, L, session, batches, total = _source(args)
+            lat, L, session, batches, total, truncated = _source(args)
         except (ValueError, OSError) as exc:
             print(f"capsheet estimate: {exc}", file=sys.stderr)
+            return 1
+        from host.cli.replay import truncated_note
+        if truncated and truncated_note("capsheet estimate", args.recording, args.allow_truncated, "estimates it"):
             return 1
         rows, cols = lat.rows, lat.cols
         t_est = time.monotonic()
         parts: list = []  # [SnapshotBatch, joints, residual, extra] in file order
         cpu_s = 0.0
-        bar = tqdm(total=total, unit="snapshot", desc="estimate", disable=args.quiet, file=sys.stderr,
-                   dynamic_ncols=True)
+        bar = Progress(total, "estimate", "snapshot", quiet=args.quiet)
 
         def done(k, result):
             nonlocal cpu_s
@@ -270,6 +265,7 @@ def run(args) -> int:
     jobs = min(args.jobs, len(parts))
     t_written = time.monotonic()
     result = {"recording": str(args.recording), "out": str(out), "lattice": f"{rows}x{cols}", "link_length_m": L,
+              "truncated": truncated,
               "snapshots": n, "estimated": int(np.count_nonzero(np.isfinite(residual))), "jobs": jobs,
               "batch": args.batch, "method": args.method, "uncertainty": bool(args.uncertainty),
               "recorded_duration_s": round(float(ts[-1] - ts[0]), 3) if n > 1 else 0.0,
@@ -300,15 +296,16 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
                 quiet: bool) -> None:
     from types import SimpleNamespace
 
-    from tqdm import tqdm
-
     from host.aggregator import LatticeSnapshot
+    from host.cli.progress import Progress
     from host.record import Recorder
 
     rec = Recorder(out, lat, L, session={"mode": "estimate", "estimated_from": session.get("format", "?"),
                                          **{k: v for k, v in session.items() if k in ("rate_hz", "sync", "mode")}})
     try:
-        for k in tqdm(range(counter.shape[0]), unit="snapshot", desc="write", disable=quiet, file=sys.stderr):
+        bar = Progress(counter.shape[0], "write", "snapshot", quiet=quiet)
+        for k in range(counter.shape[0]):
+            bar.update()
             snap = LatticeSnapshot(int(counter[k]), float(ts[k]), float(wall[k]), readings[k], valid[k], status[k],
                                    bool(valid[k].all()), 0.0)
             rec.snapshot(snap)
@@ -316,5 +313,6 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
                 est = SimpleNamespace(joints=joints[k], valid=valid[k], residual=float(residual[k]), method="global",
                                       iterations=0, **{name: v[k] for name, v in extra.items()})
                 rec.estimate(est, int(counter[k]), float(ts[k]), float(wall[k]))
+        bar.close()
     finally:
         rec.close()

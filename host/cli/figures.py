@@ -1,10 +1,10 @@
-"""Figures fit for a paper: the demo's, the paper's Fig. 9 (Gaussian) and Fig. 10 (noise), and an
-offline run's (``capsheet estimate --png``).
+"""Figures fit for a paper: the demo's, the paper's Fig. 8 (solvability), Fig. 9 (Gaussian) and
+Fig. 10 (noise), and an offline run's (``capsheet estimate --png``).
 
 Conventions: lengths in cm (a 1 cm-link sheet; the unit is in every axis label); errors in % of the
-side length ``(cols - 1) L`` after the rigid overlay (`host.analysis.metrics`), on log axes with
-percentile bars (5th-95th) around the median; the run's parameters (shape, lattice, noise, rate,
-seed) in the title; a legend entry for every mark. Each function draws, saves ``path`` (PNG) and
+side length ``(cols - 1) L`` after the rigid overlay (`host.analysis.metrics`) — Fig. 10 as the
+paper draws it, mean and standard deviation on a linear axis with its 5 % failure line; the run's
+parameters (shape, lattice, noise, rate, seed) in the title; a legend entry for every mark. Each function draws, saves ``path`` (PNG) and
 returns the `matplotlib.figure.Figure` (close it with ``plt.close(fig)``), so a test can check
 what is drawn.
 """
@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "estimate_run_figure", "motion_scenes_figure",
-           "imu_stream_figure", "ERROR_FLOOR_PCT"]
+__all__ = ["demo_figure", "gaussian_figure", "noise_figure", "solvability_figure", "estimate_run_figure",
+           "misfit_pct_of_link", "motion_scenes_figure", "imu_stream_figure", "ERROR_FLOOR_PCT"]
 
 #: errors below this (% of side) are drawn at it on log axes (a noise-free estimate is exact to
 #: ~1e-12 %); the caption says so
@@ -50,8 +50,10 @@ def _equal_box(ax, P_cm: np.ndarray) -> None:
         ax.set_zlim(mid - need / 2, mid + need / 2)
         ext = np.array([ext[0], ext[1], need])
     ax.set_box_aspect(ext, zoom=0.82)
-    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+    for axis in (ax.xaxis, ax.yaxis):
         axis.set_major_locator(MaxNLocator(5))
+    # the z box is the flattest: fewer ticks, or their labels crowd each other and "z [cm]"
+    ax.zaxis.set_major_locator(MaxNLocator(5 if ext[2] >= 0.6 * ext.max() else 3))
 
 
 def _wire(ax, P_cm, **kw):
@@ -59,8 +61,8 @@ def _wire(ax, P_cm, **kw):
 
 
 def _labels_cm(ax) -> None:
-    ax.set_xlabel("x [cm]", labelpad=2)
-    ax.set_ylabel("y [cm]", labelpad=2)
+    ax.set_xlabel("x [cm]", labelpad=7)
+    ax.set_ylabel("y [cm]", labelpad=7)
     ax.set_zlabel("z [cm]", labelpad=2)
 
 
@@ -114,19 +116,21 @@ def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *
 
 
 def gaussian_figure(path, truth: np.ndarray, estimates: dict, errors_pct: dict, *, shape: str,
-                    noise_pct_g: float, seed: int, link_length: float):
+                    noise_pct_g: float, seed: int, link_length: float, caption: str | None = None):
     """Fig. 9: the model and each method's estimate, overlaid on the model, in cm.
 
     ``estimates``: method -> joints (rows, cols, 3) m (not yet overlaid); ``errors_pct``: method ->
-    mean joint error, % of side.
+    mean joint error, % of side; ``caption``: text under the panels (the paper's description of
+    its figure beside what is drawn here).
     """
     plt = _plt()
     from host.analysis.metrics import overlay
 
     rows, cols = truth.shape[:2]
     T = truth * CM
-    fig = plt.figure(figsize=(5.2 * (1 + len(estimates)), 5.2))
-    fig.subplots_adjust(left=0.01, right=0.97, bottom=0.05, top=0.86, wspace=0.12)
+    fig = plt.figure(figsize=(5.2 * (1 + len(estimates)), 5.9 if caption else 5.2))
+    fig.subplots_adjust(left=0.01, right=0.97, bottom=0.16 if caption else 0.05, top=0.86,
+                        wspace=0.12)
     ax = fig.add_subplot(1, 1 + len(estimates), 1, projection="3d")
     _wire(ax, T, color="C0", lw=0.8, label="model (truth)")
     ax.set_title("model (truth)")
@@ -143,58 +147,174 @@ def gaussian_figure(path, truth: np.ndarray, estimates: dict, errors_pct: dict, 
         ax.legend(loc="upper left", fontsize=8)
     fig.suptitle(f"Fig. 9: '{shape}', {rows}x{cols} joints, L = {link_length * CM:g} cm, "
                  f"{noise_pct_g:g} % g noise, seed {seed}")
+    if caption:
+        import textwrap
+        fig.text(0.02, 0.02, "\n".join(textwrap.fill(p, 150) for p in caption.split("\n")),
+                 fontsize=8, va="bottom", ha="left")
     _save(fig, path)
     return fig
 
 
-def noise_figure(path, rows: list, methods, *, shape: str, side_joints: int, trials: int, seed: int):
-    """Fig. 10: joint error vs noise (log; median, 5th-95th percentile bars) and time per snapshot.
+def noise_figure(path, results: dict, methods, *, trials: int, seed: int, side_joints: int,
+                 noise_dist: str = "normal", failure_line_pct: float = 5.0):
+    """Fig. 10, as the paper draws it: per target, the mean joint error (dots) and its standard
+    deviation (bars) against the noise, both methods, the paper's failure line; under it the
+    target's units' λ3/λ1 (eq. 7, noise-free), the reason a method cannot see some of them.
 
-    ``rows``: `host.cli.paper.noise_study` output; each method entry needs ``p05_pct``, ``p50_pct``,
-    ``p95_pct``, ``mean_pct`` and ``time_ms``.
+    ``results``: target name -> ``{"rows": host.cli.paper.noise_study output, "solvability":
+    {"map": (R-1, C-1) list, "below_0_1": int, "units": int}, "works_up_to_pct_g": {method:
+    level or None}}``.
     """
     plt = _plt()
-    fig, (ax, axt) = plt.subplots(1, 2, figsize=(12, 4.6), layout="constrained")
-    x = np.array([r["noise_pct_g"] for r in rows], dtype=float)
-    dx = 0.08 * max(1.0, float(np.ptp(x)) / 10)
-    for k, m in enumerate(methods):
-        med = np.maximum([r[m]["p50_pct"] for r in rows], ERROR_FLOOR_PCT)
-        lo = np.maximum([r[m]["p05_pct"] for r in rows], ERROR_FLOOR_PCT)
-        hi = np.maximum([r[m]["p95_pct"] for r in rows], ERROR_FLOOR_PCT)
-        mean = np.maximum([r[m]["mean_pct"] for r in rows], ERROR_FLOOR_PCT)
-        xs = x + (k - (len(methods) - 1) / 2) * dx
-        ax.errorbar(xs, med, yerr=[med - lo, hi - med], fmt="o", capsize=3, color=f"C{k}",
-                    label=f"{m}: median, 5-95 % bar")
-        ax.plot(xs, mean, "x", color=f"C{k}", label=f"{m}: mean")
-        axt.plot(x, [r[m]["time_ms"] for r in rows], "o-", color=f"C{k}", label=f"{m}: median time")
-    ax.axhline(5.0, color="0.5", linestyle="--", linewidth=0.8, label="paper's failure line (5 %)")
-    ax.set_yscale("log")
-    ax.set_xlabel("noise [% g]")
-    ax.set_ylabel("joint error [% of side]")
-    ax.set_title(f"joint error ({side_joints ** 2} joints x {trials} trials per level)")
-    ax.legend(fontsize=8)
-    axt.set_yscale("log")
-    axt.set_xlabel("noise [% g]")
-    axt.set_ylabel("time per snapshot [ms]")
-    axt.set_title("run time per snapshot (one core)")
-    axt.legend(fontsize=8)
-    fig.suptitle(f"Fig. 10: '{shape}', {side_joints}x{side_joints} joints, {trials} trials, seed {seed}; "
-                 f"errors < {ERROR_FLOOR_PCT:g} % drawn at {ERROR_FLOOR_PCT:g} %")
+    names = list(results)
+    vmax = max(0.5, *(float(np.max(results[n]["solvability"]["map"])) for n in names))
+    fig, axes = plt.subplots(2, len(names), figsize=(6.4 * len(names), 9.2), squeeze=False,
+                             height_ratios=(1.25, 1.0), layout="constrained")
+    for c, name in enumerate(names):
+        res = results[name]
+        ax = axes[0, c]
+        rows = res["rows"]
+        x = np.array([r["noise_pct_g"] for r in rows], dtype=float)
+        dx = 0.12 * max(1.0, float(np.ptp(x)) / 10)
+        for k, m in enumerate(methods):
+            mean = np.array([r[m]["mean_pct"] for r in rows])
+            std = np.array([r[m]["std_pct"] for r in rows])
+            xs = x + (k - (len(methods) - 1) / 2) * dx
+            label = "paper's method" if m == "paper" else f"{m} (capsheet)" if m == "global" else m
+            ax.errorbar(xs, mean, yerr=std, fmt="o", ms=4, capsize=3, color=f"C{k}",
+                        label=f"{label}: mean ± std")
+        ax.axhline(failure_line_pct, color="C3", linestyle="--", linewidth=1.0,
+                   label=f"paper's failure line ({failure_line_pct:g} % of side)")
+        top = max(float(r[m]["mean_pct"] + r[m]["std_pct"]) for r in rows for m in methods)
+        ax.set_ylim(0, max(1.5 * failure_line_pct, 1.08 * top))  # room for the legend above the line
+        ax.set_xlabel(f"noise [% g, {noise_dist}, per component]")
+        ax.set_ylabel("joint error [% of side]")
+        upto = res.get("works_up_to_pct_g", {}).get("paper")
+        ax.set_title(f"'{name}': paper's method under the line up to "
+                     + ("no level" if upto is None else f"{upto:g} % g"), fontsize=10)
+        ax.legend(fontsize=8, loc="upper left")
+        ax = axes[1, c]
+        sv = np.asarray(res["solvability"]["map"], dtype=float)
+        im = ax.imshow(sv, origin="lower", cmap="viridis", vmin=0.0, vmax=vmax,
+                       extent=(-0.5, sv.shape[1] - 0.5, -0.5, sv.shape[0] - 0.5))
+        bi, bj = np.nonzero(sv < 0.1)
+        ax.plot(bj, bi, "x", color="C3", ms=7, mew=1.5, label="λ3/λ1 < 0.1 (unsolvable, Fig. 8)")
+        ax.set_xticks(np.arange(0, sv.shape[1], 2))
+        ax.set_yticks(np.arange(0, sv.shape[0], 2))
+        ax.set_xlabel("unit j")
+        ax.set_ylabel("unit i")
+        ax.set_title(f"units' λ3/λ1 of eq. (7), noise-free: {res['solvability']['below_0_1']} of "
+                     f"{res['solvability']['units']} below 0.1", fontsize=10)
+        ax.legend(fontsize=8, loc="upper right")
+        fig.colorbar(im, ax=ax, shrink=0.9, label="λ3/λ1")
+    sep = "; " if len(names) > 1 else "\n"  # one column: two lines, or the title is clipped
+    fig.suptitle(f"Fig. 10 reproduced: {side_joints}x{side_joints} joints, {side_joints ** 2} joints "
+                 f"x {trials} trials per level, seed {seed}{sep}both methods on the same draws")
     _save(fig, path)
     return fig
+
+
+def solvability_figure(path, res: dict, groups, cases):
+    """Fig. 8: the unit states each criterion flags, in (θf, θr, θp), coloured by the paper's
+    case; Case 2 is counted, not drawn (θc ∈ {0, π} alone fills the cube once θc is projected
+    out); every legend count is a count of grid states, as the table's.
+
+    ``res``: `host.cli.paper.solvability_grid` output; ``groups``: ``CASE_GROUPS``;
+    ``cases``: the partition function ``(points, steps) -> masks``.
+    """
+    plt = _plt()
+    steps = res["steps"]
+    short = {"case2": "Case 2", "case1": "Case 1", "near_case2": "near Case 2",
+             "near_case1": "near Case 1", "vertical": "θp = π/2", "other": "elsewhere"}
+    colour = {"case1": "C0", "near_case1": "C9", "near_case2": "C1", "vertical": "C2",
+              "other": "C3"}
+    fig = plt.figure(figsize=(13, 7.6))
+    fig.subplots_adjust(left=0.0, right=0.97, bottom=0.2, top=0.88, wspace=0.06)
+    panels = ((res["points"], res["eq7"], "λ3/λ1 < 0.1 (eq. 7, the paper's criterion)"),
+              (res["points_yaw"], res["yaw_std"],
+               f"yaw std > {res['yaw_gain_limit']:.0f} (10 × the median unit; estimator's "
+               "normal matrix)"))
+    for k, (pts, counts, title) in enumerate(panels):
+        ax = fig.add_subplot(1, 2, k + 1, projection="3d")
+        masks = cases(pts, steps) if len(pts) else {}
+        for key, _ in groups:
+            if key == "case2":
+                ax.scatter([], [], [], s=0, label=f"Case 2 ({counts['case2']:,}): not drawn")
+                continue
+            sel = masks.get(key, np.zeros(0, bool))
+            big = key == "case1"  # a handful of states in the corners: drawn larger
+            ax.scatter(pts[sel, 1], pts[sel, 2], pts[sel, 3], s=40 if big else 9,
+                       marker="*" if big else "o", color=colour[key], depthshade=False,
+                       zorder=3 if big else 2, label=f"{short[key]} ({counts[key]:,})")
+        ax.set_xlim(0, np.pi)
+        ax.set_ylim(0, np.pi)
+        ax.set_zlim(0, np.pi / 2)
+        for axis, top in ((ax.xaxis, 1.0), (ax.yaxis, 1.0), (ax.zaxis, 0.5)):
+            ticks = np.array([0.0, 0.25, 0.5, 0.75, 1.0]) * top
+            axis.set_ticks(np.pi * ticks)
+            axis.set_ticklabels(["0", "π/4", "π/2", "3π/4", "π"][:len(ticks)] if top == 1.0
+                                else ["0", "π/8", "π/4", "3π/8", "π/2"])
+        ax.set_xlabel("fold θf [rad]")
+        ax.set_ylabel("roll θr [rad]")
+        ax.set_zlabel("pitch θp [rad]")
+        ax.set_title(f"{title}\n{counts['flagged']:,} of {res['n_total']:,} states flagged",
+                     fontsize=10)
+        ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.02), ncol=3, fontsize=8,
+                  title="grid states per group (as the table)", title_fontsize=8)
+    fig.suptitle("Fig. 8: unsolvable states of one unit (corner θc, fold θf, roll θr, pitch θp)")
+    fig.text(0.02, 0.02,
+             "θc is projected out: a dot is a (θf, θr, θp) flagged at one or more corner angles "
+             f"θc ({steps} values in [0, π]); the counts are grid states. Case 2 (θc = 0 or π, "
+             "or θf = π) is counted but not drawn:\nits θc ends would fill the whole cube. "
+             "Groups as the table's (a state in the first group it belongs to); 'near': within "
+             "one grid step.", fontsize=8, va="bottom")
+    _save(fig, path)
+    return fig
+
+
+def misfit_pct_of_link(residual: np.ndarray, valid: np.ndarray, lattice) -> np.ndarray:
+    """eq. (8)'s residual per snapshot as a figure a reader can picture: the RMS misfit of one unit
+    (its loop closure, in link lengths, and its normal assumption, in unit normals), in % — a
+    closure gap of 1 % of L per unit reads 1. ``residual`` sums over the units with four valid links
+    (`host.analysis.estimator.ShapeEstimate.residual`); ``valid`` (n, n_links) counts them."""
+    units = np.asarray(lattice.units).reshape(-1, 4)
+    n_units = np.asarray(valid, dtype=bool)[:, units].all(axis=2).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 100.0 * np.sqrt(np.asarray(residual, dtype=float) / np.where(n_units > 0, n_units, np.nan))
+
+
+def _readable_y(ax, y: np.ndarray) -> None:
+    """A linear axis when the values span less than a decade and a half, else a log axis with ticks
+    at 1, 2 and 5 of every decade written as plain numbers (a log axis had two labels, 2e-1 and
+    4e-1, in mathtext)."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator
+
+    y = y[np.isfinite(y) & (y > 0)]
+    if y.size and y.max() / y.min() > 30:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_minor_locator(LogLocator(base=10, subs="auto"))
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _pos: f"{v:g}"))
+    else:
+        ax.set_ylim(0, 1.1 * float(y.max()) if y.size else 1.0)
+        ax.yaxis.set_major_locator(MaxNLocator(6))
 
 
 def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.ndarray, joints: np.ndarray,
                         lattice, link_length: float, *, title: str):
-    """An offline run: residual and completeness over time, and the last estimated shape (cm)."""
+    """An offline run: eq. (8)'s misfit per unit (`misfit_pct_of_link`, %) and the valid links (%)
+    over time, and the last estimated shape (cm)."""
+    from matplotlib.ticker import MaxNLocator
+
     plt = _plt()
     fig = plt.figure(figsize=(13, 4.6), layout="constrained")
     ax = fig.add_subplot(1, 2, 1)
-    ok = np.isfinite(residual)
-    ax.plot(t_s[ok], np.maximum(residual[ok], 1e-16), ".", ms=2, color="C0", label="eq. (8) residual")
-    ax.set_yscale("log")
+    misfit = misfit_pct_of_link(residual, valid, lattice)
+    ok = np.isfinite(misfit)
+    ax.plot(t_s[ok], misfit[ok], ".", ms=2, color="C0", label="eq. (8) misfit per unit, RMS")
+    _readable_y(ax, misfit[ok])
     ax.set_xlabel("time [s]")
-    ax.set_ylabel("residual (dimensionless)")
+    ax.set_ylabel("misfit per unit, RMS [% of a link length]")
     ax2 = ax.twinx()
     ax2.plot(t_s, 100 * np.asarray(valid).mean(axis=1), "-", lw=0.8, color="C1", label="links valid")
     ax2.set_ylabel("links valid [%]")
@@ -202,15 +322,18 @@ def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.n
     h1, l1 = ax.get_legend_handles_labels()
     h2, l2 = ax2.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="lower left")
-    ax.set_title("per snapshot")
+    ax.set_title("per snapshot: loop closure and normal assumption (eq. 8), links valid")
     ax = fig.add_subplot(1, 2, 2, projection="3d")
-    last = np.flatnonzero(ok)
+    last = np.flatnonzero(np.isfinite(residual))
     if last.size:
         P = joints[last[-1]] * CM
         _wire(ax, P, color="C3", lw=0.8, label=f"estimate, snapshot {int(last[-1])}")
         _equal_box(ax, P)
+        ax.zaxis.set_major_locator(MaxNLocator(3))  # a flat box: 3 z labels do not collide
         ax.legend(loc="upper left", fontsize=8)
     _labels_cm(ax)
+    for axis in (ax.xaxis, ax.yaxis):
+        axis.labelpad = 8  # clear of the tick labels
     ax.set_title("last estimated shape")
     fig.suptitle(title)
     _save(fig, path)

@@ -30,69 +30,22 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import math
 import signal
 import sys
 import threading
 import time
 
+from host.cli import argtypes as T
 from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
 from host.cli.record_args import SessionOutputs, add_record_args
 from host.cli.transport_args import add_transport_args, check_ports, open_transports
 from host.transport import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
-from protocol.messages import NODE_MAX_ASSIGNED
 
 __all__ = ["register", "run", "Host", "Layout", "open_transports", "StatusLine"]
 
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
-
-
-# ---------------------------------------------------------------------------------------------
-# argument types: every bad value is one line from argparse (exit 2), never a traceback
-# ---------------------------------------------------------------------------------------------
-
-def lattice_arg(text: str) -> Lattice:
-    try:
-        lat = Lattice.parse(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    if lat.n_links > NODE_MAX_ASSIGNED:
-        raise argparse.ArgumentTypeError(f"lattice {text} has {lat.n_links} links; node ids cover at most "
-                                         f"{NODE_MAX_ASSIGNED}")
-    return lat
-
-
-def _finite(text: str, what: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: not a number") from None
-    if not math.isfinite(v):
-        raise argparse.ArgumentTypeError(f"invalid {what} {text!r}: need a finite number")
-    return v
-
-
-def rate_arg(text: str) -> float:
-    v = _finite(text, "rate")
-    if not 0 < v <= 4000:
-        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: need 0 < rate <= 4000 Hz")
-    return v
-
-
-def positive_arg(text: str) -> float:
-    v = _finite(text, "value")
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r}: need > 0")
-    return v
-
-
-def percent_arg(text: str) -> float:
-    v = _finite(text, "percentage")
-    if not 0 <= v <= 100:
-        raise argparse.ArgumentTypeError(f"invalid percentage {text!r}: need 0..100")
-    return v
 
 
 def register(subparsers) -> None:
@@ -102,15 +55,16 @@ def register(subparsers) -> None:
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one or more --port, or one or more --can)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
-    p.add_argument("--lattice", type=lattice_arg, default=None,
+    p.add_argument("--lattice", type=T.lattice, default=None,
                    help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
-    p.add_argument("--layout", help="uid -> link file (CSV 'uid,link' or JSON; uids in hex; docs/host.md)")
+    p.add_argument("--layout", type=T.existing_file(".csv", ".json", what="a layout file"),
+                   help="uid -> link file (CSV 'uid,link' or JSON; uids in hex; docs/host.md)")
     p.add_argument("--auto-assign", action="store_true",
                    help="without --layout: place chips on links in uid order (positions arbitrary)")
     p.add_argument("--allow-missing", action="store_true",
                    help="stream even if layout chips never answer or chips not in the layout announce "
                         "(default: a mismatch, exit 2)")
-    p.add_argument("--rate", type=rate_arg, default=100.0, help="SYNC rate in Hz, 0 < rate <= 4000 (default 100)")
+    p.add_argument("--rate", type=T.rate, default=100.0, help="SYNC rate in Hz, 0 < rate <= 4000 (default 100)")
     p.add_argument("--sync", choices=("drive", "follow", "auto"), default="drive",
                    help="drive SYNC from the host (default; another SYNC source is an error), follow a "
                         "gateway's SYNC, or auto: drive unless another source is heard, then follow it")
@@ -118,18 +72,18 @@ def register(subparsers) -> None:
                    help="the gateway packs SNAPSHOT frames: check the bus capacity for those")
     p.add_argument("--ignore-capacity", action="store_true",
                    help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2)")
-    p.add_argument("--deadline-ms", type=positive_arg, default=None, help="wait this long for missing links")
-    p.add_argument("--duration", type=positive_arg, default=None, help="stop after this many seconds")
-    p.add_argument("--discover-s", type=positive_arg, default=0.5, help="discovery window per round (s)")
+    p.add_argument("--deadline-ms", type=T.bounded_float(0.0, 60_000.0, lo_open=True, unit="ms"), default=None, help="wait this long for missing links")
+    p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
+    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s)")
     p.add_argument("--no-reset", action="store_true",
                    help="bring-up without RESET (STOP and drain only): chips keep their state")
-    p.add_argument("--min-complete", type=percent_arg, default=90.0, metavar="PCT",
+    p.add_argument("--min-complete", type=T.percent, default=90.0, metavar="PCT",
                    help="exit 1 if fewer than PCT %% of the lattice's link samples arrived valid (default 90)")
-    p.add_argument("--status-every", type=positive_arg, default=None, metavar="S",
+    p.add_argument("--status-every", type=T.bounded_float(0.0, 3600.0, lo_open=True, unit="s"), default=None, metavar="S",
                    help="status period (default 0.5 s on a terminal as one updated line, 5 s as plain lines otherwise)")
     p.add_argument("--json", action="store_true",
                    help="print the final statistics (with the summary under 'summary') as JSON on stdout")
-    p.add_argument("--calibration", metavar="CAL_JSON",
+    p.add_argument("--calibration", metavar="CAL_JSON", type=T.existing_file(".json", what="a calibration file"),
                    help="apply this calibration (capsheet calibrate) to every snapshot, and check chip "
                         "health on still stretches (docs/calibration.md)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
@@ -227,6 +181,15 @@ def _summary_lines(s: dict, min_pct: float) -> list[str]:
     return out
 
 
+def calibration_words(host: Host, up: dict) -> str:
+    """The bring-up line's calibration part: chips with a calibration of their own apart from those
+    reporting the nominal values (no stored calibration), e.g. ``0 calibrated (364 nominal)``."""
+    c = host.calibration_summary()
+    unread = up["assigned"] - c["own"] - c["nominal"]
+    return (f"{c['own']} calibrated ({c['nominal']} nominal: no calibration of their own"
+            + (f"; {unread} did not answer CAL_READ" if unread > 0 else "") + ")")
+
+
 def _fail(msg: str, code: int) -> int:
     print(f"capsheet host: {msg}", file=sys.stderr)
     return code
@@ -270,7 +233,7 @@ def run(args) -> int:
         if len(layout.links) < lattice.n_links:
             print(f"capsheet host: the layout names {len(layout.links)} chips for {lattice.n_links} links; "
                   f"{lattice.n_links - len(layout.links)} links have no chip (counted as missing)", file=sys.stderr)
-    from host.cli.calibrate import load_calibration_arg, snapshot_corrector
+    from host.cli.calibrate import load_calibration_arg
     cal = load_calibration_arg(args.calibration, f"{lattice.rows}x{lattice.cols}", "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
@@ -302,7 +265,7 @@ def run(args) -> int:
     code = EXIT_OK
     summary: dict | None = None
     if cal is not None:  # before bring-up: the first snapshot streamed is corrected too
-        host.snapshot_filter = snapshot_corrector(host, cal)
+        host.set_calibration(cal)
     try:
         with host:
             try:
@@ -311,7 +274,7 @@ def run(args) -> int:
             except (MismatchError, SyncConflictError) as exc:
                 return _fail(str(exc), EXIT_USAGE)
             print(f"capsheet host: {up['discovered']} chips found, {up['assigned']} assigned, "
-                  f"{up['configured']} configured, {up['calibrated']} calibrated, "
+                  f"{up['configured']} configured, {calibration_words(host, up)}, "
                   f"{up['started']} started on {', '.join(t.name for t in transports)}", file=sys.stderr)
             if up["discovered"] == 0:
                 return _fail(f"no chip answered on {', '.join(t.name for t in transports)} "
@@ -329,8 +292,8 @@ def run(args) -> int:
                 for _ in range(256):  # bounded: the duration and the status are checked meanwhile
                     if snap is None or writer is None:
                         break
-                    # every queued snapshot passes `host.get` (calibration, health), the estimate
-                    # is made on the newest only (the recording took each as it was emitted)
+                    # every queued snapshot is recorded (the recording took each as it was
+                    # emitted, corrected), the estimate is made on the newest only
                     newer = host.get(0)
                     writer.snapshot(snap, estimate=newer is None)
                     snap = newer
@@ -347,7 +310,7 @@ def run(args) -> int:
                     status.show(_status_text(host, t0, n0))
                     last = now
             host.stop()
-            for snap in host.aggregator.drain():
+            for snap in host.drain():
                 if writer is not None:
                     writer.snapshot(snap)
             if not args.quiet:

@@ -3,17 +3,27 @@ the golden vectors and the DBC, print the capacity table. No port I/O here."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
 
-def _parse_value(text: str):
+#: fields ``protocol encode`` fills with 0 when they are not given (bit fields: no bit set); every
+#: other field must be given, so a forgotten one is never encoded as a silent 0
+OPTIONAL_FIELDS = ("status", "flags", "detail")
+
+
+def _parse_field(name: str, kind: str, text: str):
+    """``text`` as the field's type (``int``: decimal or 0x.., ``float``, ``bytes``: hex)."""
     text = text.strip()
     try:
+        if kind == "float":
+            return float(text)
+        if kind == "bytes":
+            return bytes.fromhex(text)
         return int(text, 0)
     except ValueError:
-        return float(text)
+        need = {"float": "a number", "bytes": "hex bytes"}.get(kind, "an integer (or 0x..)")
+        raise ValueError(f"{name}={text!r}: need {need}") from None
 
 
 def _hex_arg(text: str) -> bytes | None:
@@ -52,8 +62,8 @@ def cmd_decode(args) -> int:
     events = dec.feed(data)
     for ev in events:
         print(ev)
-    if dec._partial:
-        print(f"(incomplete frame pending: {len(dec._partial)} bytes without a 0x00 delimiter)")
+    if dec.pending_bytes:
+        print(f"(incomplete frame pending: {dec.pending_bytes} bytes without a 0x00 delimiter)")
     print(f"frames={dec.stats.frames} errors={dict((k.name, v) for k, v in dec.stats.errors.items())}",
           file=sys.stderr)
     return 1 if dec.stats.error_count else 0
@@ -66,17 +76,34 @@ def cmd_encode(args) -> int:
     try:
         cls = MESSAGE_TYPES[MsgType[args.type.upper()]]
     except KeyError:
-        print(f"unknown type {args.type!r}; one of: {', '.join(t.name for t in MsgType)}", file=sys.stderr)
+        print(f"capsheet protocol encode: unknown type {args.type!r}; one of: {', '.join(t.name for t in MsgType)}",
+              file=sys.stderr)
         return 2
+    import dataclasses
+    prog, name = "capsheet protocol encode", cls.TYPE.name
+    kinds = {f.name: str(f.type) for f in dataclasses.fields(cls)}
+    listed = " ".join(f"{k}=" for k in kinds)
     try:
         fields = dict(kv.split("=", 1) for kv in args.fields)
     except ValueError:
-        print(f"fields are name=value pairs, got {args.fields}", file=sys.stderr)
+        print(f"{prog}: fields are name=value pairs ({name}: {listed}), got {' '.join(args.fields)}", file=sys.stderr)
+        return 2
+    unknown = [k for k in fields if k not in kinds]
+    if unknown:
+        print(f"{prog}: {name} has no field {', '.join(unknown)} (its fields: {listed})", file=sys.stderr)
+        return 2
+    # node too where the message has a default one (SYNC: broadcast, node 0)
+    optional = set(OPTIONAL_FIELDS) | {f.name for f in dataclasses.fields(cls)
+                                       if f.name == "node" and f.default is not dataclasses.MISSING}
+    missing = [k for k in kinds if k not in fields and k not in optional]
+    if missing:
+        print(f"{prog}: {name} needs {' '.join(k + '=' for k in missing)} too (every field but "
+              f"{'/'.join(sorted(optional))}, which default to 0)", file=sys.stderr)
         return 2
     try:
-        msg = cls(**{k: _parse_value(v) for k, v in fields.items()})
+        msg = cls(**{k: _parse_field(k, kinds[k], v) for k, v in fields.items()})
     except (TypeError, ValueError) as exc:
-        print(f"cannot build {cls.TYPE.name}: {exc}", file=sys.stderr)
+        print(f"{prog}: cannot build {name}: {exc}", file=sys.stderr)
         return 2
     print(f"message: {msg}")
     print(f"serial : {encode(msg).hex(' ')}")
@@ -107,25 +134,6 @@ def cmd_dbc(args) -> int:
     return 0
 
 
-def _rate(text: str) -> float:
-    import math
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: not a number") from None
-    if not (math.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: need a finite value > 0 Hz")
-    return v
-
-
-def _lattice(text: str):
-    from protocol.lattice import Lattice
-    try:
-        return Lattice.parse(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
 def cmd_capacity(args) -> int:
     from protocol.capacity import buses_needed, capacity_table
     rows = capacity_table(args.rate)
@@ -151,6 +159,7 @@ def cmd_capacity(args) -> int:
 
 
 def register(sub) -> None:
+    from host.cli import argtypes as T
     p = sub.add_parser("protocol", help="wire protocol helpers: decode/encode frames, vectors, DBC, capacity",
                        description="Wire protocol v1 helpers (docs/protocol.md). No port is opened.")
     ps = p.add_subparsers(dest="protocol_command", metavar="ACTION", required=True)
@@ -171,7 +180,7 @@ def register(sub) -> None:
     b.add_argument("--write", action="store_true")
     b.set_defaults(func=cmd_dbc)
     c = ps.add_parser("capacity", help="chips per bus at a sample rate, from the frame sizes")
-    c.add_argument("--rate", type=_rate, default=145.0, help="samples per second per chip (default 145)")
-    c.add_argument("--lattice", type=_lattice, default=None, metavar="ROWSxCOLS",
+    c.add_argument("--rate", type=T.rate, default=145.0, help="samples per second per chip (default 145)")
+    c.add_argument("--lattice", type=T.lattice, default=None, metavar="ROWSxCOLS",
                    help="say how many buses of each kind a sheet of this size needs")
     c.set_defaults(func=cmd_capacity)

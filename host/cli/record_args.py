@@ -21,70 +21,30 @@ __all__ = ["add_record_args", "SessionOutputs", "CAN_LOG_SUFFIXES"]
 CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
 
 
-def _mcap_path(text: str) -> str:
-    if not text.lower().endswith(".mcap"):
-        raise argparse.ArgumentTypeError(f"{text!r}: a recording is an MCAP file, name it *.mcap")
-    return text
-
-
-def _can_log_path(text: str) -> str:
-    if Path(text).suffix.lower() not in CAN_LOG_SUFFIXES:
-        raise argparse.ArgumentTypeError(f"{text!r}: a CAN log is {', '.join(CAN_LOG_SUFFIXES)} "
-                                         f"(candump, Vector ASC, Vector BLF)")
-    return text
-
-
-def _port(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid port {text!r} (need an integer 0..65535)") from None
-    if not 0 <= v <= 65535:
-        raise argparse.ArgumentTypeError(f"invalid port {v} (need 0..65535)")
-    return v
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need a number > 0)") from None
-    if not (np.isfinite(v) and v > 0):
-        raise argparse.ArgumentTypeError(f"invalid value {text!r} (need a number > 0)")
-    return v
-
-
-def lattice_arg(text: str) -> str:
-    """argparse type: ``ROWSxCOLS`` joints, checked by `protocol.lattice.Lattice.parse`."""
-    from protocol.lattice import Lattice
-    try:
-        Lattice.parse(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-    return text
-
-
-positive = _positive
-
-
 def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                     link_length: bool = False) -> argparse._ArgumentGroup:
-    """Add ``--record``, ``--live``, ``--live-rate`` (and ``--can-log``, ``--link-length``)."""
+    """Add ``--record``, ``--live``, ``--live-rate``, ``--overwrite`` (and ``--can-log``,
+    ``--link-length``). Every value is checked by `host.cli.argtypes`: an existing recording is
+    replaced only with ``--overwrite``."""
+    from host.cli import argtypes as T
+
     g = parser.add_argument_group("recording and live view (docs/recording.md)")
-    g.add_argument("--record", metavar="FILE.mcap", type=_mcap_path,
+    g.add_argument("--record", metavar="FILE.mcap", type=T.output_file(".mcap", what="an MCAP recording"),
                    help="record raw input, snapshots, estimates and the 3D scene to an MCAP file "
-                        "(Foxglove opens it; host.record.read loads it)")
-    g.add_argument("--live", metavar="PORT", type=_port, nargs="?", const=8765, default=None,
-                   help="serve the live 3D view over the Foxglove WebSocket protocol on localhost "
-                        "(default port 8765; open ws://localhost:8765 in Foxglove)")
-    g.add_argument("--live-rate", type=_positive, default=20.0,
+                        "(Foxglove opens it; host.record.read loads it); an existing file needs --overwrite")
+    g.add_argument("--live", metavar="PORT", type=T.tcp_port, nargs="?", const=8765, default=None,
+                   help="serve the live 3D view over the Foxglove WebSocket protocol (subprotocols "
+                        "foxglove.sdk.v1 and foxglove.websocket.v1) on localhost (default port 8765; "
+                        "open ws://localhost:8765 in Foxglove or Lichtblick)")
+    g.add_argument("--live-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=20.0,
                    help="estimates per second for the live view and the recording (default 20)")
+    T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
     if can_log:
-        g.add_argument("--can-log", metavar="FILE", type=_can_log_path,
+        g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
                             "logger (.log candump, .asc, .blf; cantools and capsheet replay read it)")
     if link_length:
-        g.add_argument("--link-length", type=_positive, default=0.01,
+        g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
     return g
 
@@ -167,46 +127,43 @@ class SessionOutputs:
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
         """Before bring-up: record the raw input of every transport and every SYNC the host opens."""
-        from host.record import tap_transport
         from host.transport import CanTransport
 
         if self.recorder is not None and self.recorder.path is not None:
-            self.recorder.tap(host.transports, host.aggregator)
-            self.recorder.tap_sync(host.aggregator)
-            self._record_at_emission(host)
+            self.recorder.tap(host.transports, host.feed)
+            self.recorder.tap_sync(host.feed)
+            # every snapshot as it is emitted, corrected (the feed's listeners run in order with
+            # the raw input): a consumer that falls behind drops from its queue, never from the file
+            host.feed.add_listener(self.recorder.snapshot)
+            self.records_at_emission = True
         if self.can_log is not None:
             cans = [t for t in host.transports if isinstance(t, CanTransport)]
             if not cans:
                 print(f"{self.prog}: --can-log needs a CAN bus (--can); nothing is logged", file=sys.stderr)
             for t in cans:
                 bus = host.transports.index(t)
-                tap_transport(t, lambda kind, frames, bus=bus: self._log_can(bus, frames))
-                t.on_sent = lambda m, bus=bus: self._log_can(bus, (m,), sent=True)
+                t.begin_capture(lambda cap, bus=bus: self._log_can(bus, cap))
                 print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
 
-    def _record_at_emission(self, host) -> None:
-        """Every snapshot the aggregator emits is recorded as it is emitted (in the aggregator's
-        thread, under its lock: in order with the raw frames), with the host's calibration applied:
-        a consumer that falls behind drops from its queue (newest wins), never from the file."""
-        agg, rec = host.aggregator, self.recorder
-        chained = agg.on_snapshot
+    def _log_can(self, bus: int, cap) -> None:
+        """A capture (`host.transport.Capture`) of bus index ``bus`` into the log: one python-can
+        message per frame, copied (the bus's own messages are not touched), the channel the bus
+        index (ASC and BLF number channels; candump's .log shows it as ``can<index>``). What the
+        host sent is logged as Tx (``is_rx`` False: candump's ``T``, ASC's ``Tx``), received frames
+        as Rx; a received echo of the host's own frame (udp_multicast) is its Tx already."""
+        import can
 
-        def on_snapshot(snap):
-            f = getattr(host, "snapshot_filter", None)
-            rec.snapshot(snap if f is None else f(snap))
-            if chained is not None:
-                chained(snap)
-        agg.on_snapshot = on_snapshot
-        self.records_at_emission = True
-
-    def _log_can(self, bus: int, frames, sent: bool = False) -> None:
-        """Frames of bus index ``bus`` into the log; the channel is the bus index (ASC and BLF
-        number channels; candump's .log shows it as ``can<index>``). What the host sent is logged
-        as Tx (``is_rx`` False: candump's ``T``, ASC's ``Tx``), received frames as Rx."""
+        sent = cap.direction == "tx"
+        frames = cap.raw if sent else cap.frames()
         with self._can_lock:
-            for m in frames:
-                m.channel = bus
-                self.can_log.on_message_received(m)
+            for f in frames:
+                self.can_log.on_message_received(can.Message(
+                    timestamp=float(f.timestamp or cap.wall_time), arbitration_id=int(f.arbitration_id),
+                    is_extended_id=bool(f.is_extended_id), is_remote_frame=bool(f.is_remote_frame),
+                    is_error_frame=bool(f.is_error_frame), is_fd=bool(f.is_fd),
+                    bitrate_switch=bool(getattr(f, "bitrate_switch", False)),
+                    dlc=getattr(f, "dlc", None) if f.is_remote_frame else None,
+                    data=None if f.is_remote_frame else bytes(f.data), channel=bus, is_rx=not sent))
                 self.can_frames_logged += 1
                 self.can_frames_sent_logged += sent
 

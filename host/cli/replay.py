@@ -21,6 +21,35 @@ import time
 import numpy as np
 
 
+#: what ``capsheet replay`` and ``estimate`` read
+RECORDING_SUFFIXES = (".mcap", ".log", ".asc", ".blf")
+
+
+def truncated_note(prog: str, path, allow: bool, what: str) -> bool:
+    """A recording cut short (its writer killed, a partial copy): say so, once, in one line. Returns
+    whether to stop (exit 1): unless ``allow`` (``--allow-truncated``), a partial recording is not
+    worked on as if it were whole."""
+    if allow:
+        print(f"{prog}: {path} was cut short (no MCAP summary: its writer was killed, or the file is a "
+              f"partial copy); {what} up to the cut", file=sys.stderr)
+        return False
+    print(f"{prog}: {path} was cut short (no MCAP summary: its writer was killed, or the file is a partial "
+          f"copy); --allow-truncated {what} up to the cut", file=sys.stderr)
+    return True
+
+
+def _no_summary(path) -> bool:
+    """An MCAP file (by its magic bytes) without its summary: a killed writer, a partial copy."""
+    from host.record import snapshot_count
+    try:
+        with open(path, "rb") as f:
+            if f.read(8) != b"\x89MCAP0\r\n":
+                return False
+    except OSError:
+        return False
+    return snapshot_count(path) is None
+
+
 def _speed(text: str):
     if text == "max":
         return None
@@ -34,36 +63,46 @@ def _speed(text: str):
 
 
 def register(subparsers) -> None:
-    from host.cli.record_args import add_record_args, lattice_arg, positive
+    from host.cli import argtypes as T
+    from host.cli.record_args import add_record_args
 
     p = subparsers.add_parser("replay", help="replay a recording (MCAP or CAN log) through decoder, aggregator, estimator",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", help="capsheet .mcap, or a CAN log (.log candump, .asc, .blf)")
+    p.add_argument("recording", type=T.existing_file(*RECORDING_SUFFIXES, what="a recording"),
+                   help="capsheet .mcap, or a CAN log (.log candump, .asc, .blf)")
     p.add_argument("--speed", type=_speed, default=None, metavar="1|max",
                    help="'max' (default) as fast as possible, or a factor of real time (1 = as recorded)")
-    p.add_argument("--lattice", type=lattice_arg, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
-    p.add_argument("--link-length", type=positive, default=None, help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--lattice", type=T.lattice, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
+    p.add_argument("--link-length", type=T.link_length, default=None,
+                   help="L, metres (default: the recording's, or 0.01)")
     p.add_argument("--no-estimate", action="store_true", help="only decode and aggregate")
+    p.add_argument("--allow-truncated", action="store_true",
+                   help="replay a recording that was cut short (default: say so and exit 1)")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     add_record_args(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
     from host.analysis.estimator import estimate, overlay_error
+    from host.cli.progress import Progress
     from host.cli.record_args import SessionOutputs
     from host.replay import Replay
 
     try:
         rp = Replay(args.recording, speed=args.speed, lattice=args.lattice, link_length=args.link_length)
     except (ValueError, OSError) as exc:
-        print(f"capsheet replay: {exc}", file=sys.stderr)
+        cut = ""
+        if str(args.recording).lower().endswith(".mcap") and _no_summary(args.recording):
+            cut = " (it was cut short: no MCAP summary)"
+        print(f"capsheet replay: {exc}{cut}", file=sys.stderr)
         return 2 if isinstance(exc, ValueError) and "give the lattice" in str(exc) else 1
     lat, L = rp.lattice, rp.link_length
     rec = rp.recording
+    truncated = bool(rec is not None and rec.truncated)
+    if truncated and truncated_note("capsheet replay", args.recording, args.allow_truncated, "replays it"):
+        return 1
     recorded = {int(c): k for k, c in enumerate(rec.counter)} if rec is not None else {}
     rec_est = ({int(c): k for k, c in enumerate(rec.estimates["counter"])} if rec is not None else {})
     att = rec.attachments if rec is not None else {}
@@ -76,8 +115,7 @@ def run(args) -> int:
     changes: list[float] = []
     previous = None
     t0 = time.monotonic()
-    bar = tqdm(total=rp.n_chunks, unit="chunk", desc="replay", disable=args.quiet, file=sys.stderr,
-               dynamic_ncols=True)
+    bar = Progress(rp.n_chunks, "replay", "chunk", quiet=args.quiet)
     last = [0]
 
     def progress(done: int) -> None:
@@ -117,7 +155,7 @@ def run(args) -> int:
     elapsed = time.monotonic() - t0
     result = {"recording": str(args.recording), "lattice": f"{lat.rows}x{lat.cols}", "link_length_m": L,
               "speed": "max" if args.speed is None else args.speed, "snapshots": n,
-              "recorded_snapshots": len(rec) if rec is not None else None,
+              "recorded_snapshots": len(rec) if rec is not None else None, "truncated": truncated,
               "snapshots_compared": compared, "snapshots_identical": identical,
               "estimates": est_n, "estimates_compared": len(changes),
               "estimate_change_pct_side_mean": round(float(np.mean(changes)), 5) if changes else None,
@@ -125,9 +163,16 @@ def run(args) -> int:
               "recorded_duration_s": round(rp.duration_s, 3), "elapsed_s": round(elapsed, 3),
               "aggregator": rp.aggregator.stats.summary(),
               "decode_errors": {t.name: dict(t.stats.errors) for t in rp.transports}}
+    if rec is None:  # a CAN log holds frames only
+        same = "no recorded snapshots to compare with (a CAN log)"
+    elif not len(rec):
+        same = "the recording holds no snapshot to compare with"
+    elif not compared:
+        same = f"none of the {len(rec)} recorded snapshots' counters was replayed"
+    else:
+        same = f"{identical} of {compared} identical to the recorded ones"
     print(f"capsheet replay: {n} snapshots from {rp.n_chunks} raw chunks ({rp.duration_s:.2f} s recorded) in "
-          f"{elapsed:.2f} s; {identical} of {compared} identical to the recorded ones; {est_n} estimated",
-          file=sys.stderr)
+          f"{elapsed:.2f} s; {same}; {est_n} estimated", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=1))
     return 0

@@ -20,6 +20,7 @@ import time
 
 import numpy as np
 
+from host.cli.argtypes import usage_error
 from host.cli.transport_args import add_transport_args, open_transports
 from typing import TYPE_CHECKING
 
@@ -30,32 +31,39 @@ if TYPE_CHECKING:  # host.analysis.tactile (and through it the estimator and sci
 
 
 def register(subparsers) -> None:
+    from host.cli import argtypes as T
     p = subparsers.add_parser(
         "tactile", help="contacts and forces on the sheet wrapped on foam (virtual by default)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     src = add_transport_args(p, title="source (default: the virtual foam block in-process)")
-    src.add_argument("--layout", help="uid -> link file (real sheet)")
-    src.add_argument("--rate", type=float, default=50.0, help="real sheet: SYNC rate, Hz (default 50)")
-    src.add_argument("--learn-s", type=float, default=2.0,
+    src.add_argument("--layout", type=T.existing_file(".csv", ".json", what="a layout file"),
+                     help="uid -> link file (real sheet)")
+    src.add_argument("--rate", type=T.rate, default=50.0, help="real sheet: SYNC rate, Hz (default 50)")
+    src.add_argument("--learn-s", type=T.duration, default=2.0,
                      help="real sheet: untouched period to learn the rest shape, s (default 2)")
-    p.add_argument("--calibration", metavar="CAL_JSON", help="apply this calibration (capsheet calibrate) to the readings")
-    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
-    p.add_argument("--link-length", type=float, default=0.01, help="L, metres (default 0.01)")
+    p.add_argument("--calibration", metavar="CAL_JSON", type=T.existing_file(".json", what="a calibration file"),
+                   help="apply this calibration (capsheet calibrate) to the readings")
+    p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--link-length", type=T.link_length, default=0.01, help="L, metres (default 0.01)")
     foam = p.add_argument_group("foam (the host's force model: F = k sum w A, k = E_oed / h)")
-    foam.add_argument("--thickness", type=float, default=0.02, help="h, metres (default 0.02)")
-    foam.add_argument("--youngs", type=float, default=20e3, help="E, Pa (default 20000)")
-    foam.add_argument("--poisson", type=float, default=0.25, help="nu (default 0.25)")
+    foam.add_argument("--thickness", type=T.bounded_float(1e-4, 1.0, unit="m", what="a thickness"), default=0.02,
+                      help="h, metres (default 0.02)")
+    foam.add_argument("--youngs", type=T.bounded_float(1.0, 1e9, unit="Pa"), default=20e3,
+                      help="E, Pa (default 20000)")
+    foam.add_argument("--poisson", type=T.bounded_float(0.0, 0.49), default=0.25,
+                      help="nu, 0 .. 0.49 (default 0.25)")
     virt = p.add_argument_group("virtual sheet")
     virt.add_argument("--body", choices=("block", "cylinder", "sphere"), default="block",
                       help="foam body (default block: a level top face, the paper's Case 1 at rest)")
-    virt.add_argument("--noise", type=float, default=1.0, help="reading noise, %% g (default 1)")
-    virt.add_argument("--snapshot-rate", type=float, default=8.0,
+    virt.add_argument("--noise", type=T.noise, default=1.0, help="reading noise, %% g (default 1)")
+    virt.add_argument("--snapshot-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=8.0,
                       help="snapshots per simulated second (default 8)")
-    virt.add_argument("--seed", type=int, default=1, help="noise seed (default 1)")
-    p.add_argument("--duration", type=float, default=4.0, help="seconds to run (default 4)")
-    p.add_argument("--threshold", type=float, default=5.0,
+    virt.add_argument("--seed", type=T.seed, default=1, help="noise seed (default 1)")
+    p.add_argument("--duration", type=T.bounded_float(0.0, 3600.0, lo_open=True, unit="s"), default=4.0,
+                   help="seconds to run (default 4)")
+    p.add_argument("--threshold", type=T.positive_float, default=5.0,
                    help="detection threshold in noise sigmas (default 5)")
-    p.add_argument("--out", default="out/tactile.png", help="heat map PNG (default out/tactile.png)")
+    p.add_argument("--out", type=T.figure_file, default="out/tactile.png", help="heat map PNG (default out/tactile.png)")
     p.add_argument("-q", "--quiet", action="store_true", help="no status lines")
     from host.cli.record_args import add_record_args
     add_record_args(p)  # --record FILE.mcap (estimates, contacts), --live [PORT]
@@ -70,8 +78,10 @@ def _status(fr: TactileFrame, L: float) -> str:
             + (": " + "; ".join(parts) if parts else ""))
 
 
-def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
+def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
+    from host.aggregator import LatticeSnapshot
     from host.analysis.tactile import TactileSensor
+    from host.feed import corrected
     from virtual_sheet.foam import (FlatPunch, FoamBlock, FoamCylinder, FoamLayer, FoamScene,
                                     FoamSphere, Press, SphereIndenter)
     from virtual_sheet.geometry import ideal_readings
@@ -88,13 +98,25 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
                      ramp_s=0.1 * T)]
     scene = FoamScene(body, presses, rows, cols, L)
     rng = np.random.Generator(np.random.MT19937(args.seed))
-    if args.cal is not None:  # the virtual chips read with the nominal calibration
-        n = args.cal.n_links
-        _fix = args.cal.rebased(np.zeros((n, 3)), np.full((n, 3), 1024.0)).apply
-        noisy_readings = lambda r, *a, _n=noisy_readings: _fix(_n(r, *a))  # noqa: E731
+    n_links = (rows - 1) * cols + rows * (cols - 1)
+    # the virtual chips read with the nominal calibration: a calibration file is rebased to it and
+    # applied as the host's feed applies it (host.feed.corrected)
+    fix = (None if args.cal is None else
+           args.cal.rebased(np.zeros((n_links, 3)), np.full((n_links, 3), 1024.0)).apply)
+    valid, status = np.ones(n_links, dtype=bool), np.zeros(n_links, dtype=np.uint8)
+    valid.setflags(write=False)
+    status.setflags(write=False)
+    wall0 = time.time()
+
+    def snapshot(k: int, t: float, readings: np.ndarray):
+        """The readings as the snapshot a host would hand over, corrected; recorded if asked."""
+        readings.setflags(write=False)
+        snap = LatticeSnapshot(k, t, wall0 + t, readings, valid, status, True, 0.0)
+        return snap if fix is None else corrected(snap, fix)
+
     r0 = ideal_readings(scene.rest_joints)
-    rest = TactileSensor.learn_rest([noisy_readings(r0, args.noise, rng) for _ in range(32)],
-                                    rows, cols, L)
+    rest = TactileSensor.learn_rest([snapshot(-1, 0.0, noisy_readings(r0, args.noise, rng)).readings
+                                     for _ in range(32)], rows, cols, L)
     if not args.quiet:
         print(f"capsheet tactile: virtual {args.body}, {rows}x{cols}, L={L * 100:g} cm, noise "
               f"{args.noise:g} % g; rest learned from 32 untouched snapshots (noise "
@@ -103,8 +125,9 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int)
     n = max(1, int(round(T * args.snapshot_rate)))
     for k in range(n + 1):
         t = k / args.snapshot_rate
-        fr = sensor.process(noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng),
-                            t_s=t)
+        snap = snapshot(k, t, noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng))
+        outputs.snapshot(snap, estimate=False)  # what is estimated is what is recorded
+        fr = sensor.process(snap.readings, t_s=t)
         yield fr, [_true_mark(scene, c, L) for c in scene.contacts(t)]
 
 
@@ -118,18 +141,42 @@ def _true_mark(scene, c, L: float) -> TrueMark:
                     (c.footprint_m[0] / L, c.footprint_m[1] / L), c.angle_rad)
 
 
-def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
-    from host.analysis.tactile import TactileSensor
-    from host.session import Host, Layout
+def _real(args, rows: int, cols: int):
+    """Open the sheet's ports and make the host now (a port that cannot be opened: one line, exit
+    1, before anything is written); `_real_frames` then streams from it."""
+    from host.session import Host, Layout, MismatchError
+    from host.transport import TransportError
 
-    transports = open_transports(args)
-    host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate,
-                layout=Layout.load(args.layout) if args.layout else None)
+    try:
+        layout = Layout.load(args.layout) if args.layout else None
+    except ValueError as exc:
+        raise usage_error("capsheet tactile", f"bad --layout: {exc}") from None
+    try:
+        transports = open_transports(args, prog="capsheet tactile")
+    except TransportError as exc:  # a port that does not exist: one line, as capsheet host says it
+        raise SystemExit(f"capsheet tactile: {exc}") from None
+    try:
+        host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate, layout=layout)
+    except (MismatchError, ValueError) as exc:
+        for t in transports:
+            t.close()
+        raise usage_error("capsheet tactile", str(exc)) from None
     if args.cal is not None:  # before bring-up: it follows the chip calibration the host reads
-        from host.cli.calibrate import snapshot_corrector
-        host.snapshot_filter = snapshot_corrector(host, args.cal)
+        host.set_calibration(args.cal)
+    return host
+
+
+def _real_frames(args, host, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
+    from host.analysis.tactile import TactileSensor
+    from host.session import MismatchError
+
+    outputs.attach(host)  # --record: the raw input, the SYNCs and every snapshot, as emitted
     with host:
-        host.bring_up()
+        try:
+            host.bring_up()
+        except MismatchError as exc:  # over capacity (its remedy), layout mismatches
+            raise usage_error("capsheet tactile", str(exc)) from None
+        outputs.describe(host)
         learn = [s for s in host.snapshots(duration_s=args.learn_s) if s.complete]
         if len(learn) < 2:
             raise SystemExit("capsheet tactile: fewer than 2 complete snapshots while learning "
@@ -148,8 +195,8 @@ def _real(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int):
 def run(args) -> int:
     from host.analysis.tactile import DetectorSettings, Foam, plot_frame
 
+    rows, cols = args.lattice.rows, args.lattice.cols  # every value was checked by its type (argtypes)
     try:
-        rows, cols = (int(x) for x in args.lattice.lower().split("x"))
         foam = Foam(args.thickness, args.youngs, args.poisson)
     except ValueError as exc:
         print(f"capsheet tactile: {exc}", file=sys.stderr)
@@ -158,12 +205,14 @@ def run(args) -> int:
     args.cal = load_calibration_arg(getattr(args, "calibration", None), args.lattice, "capsheet tactile")
     settings = DetectorSettings(k_detect=args.threshold)
     real = bool(args.port or args.can)
-    source = (_real if real else _virtual)(args, foam, settings, rows, cols)
-    best, best_truth, last_print = None, None, -1e9
+    host = _real(args, rows, cols) if real else None  # ports first: a bad one writes nothing
     from host.cli.record_args import SessionOutputs
     from protocol.lattice import Lattice
     outputs = SessionOutputs(args, Lattice(rows, cols), args.link_length, mode="tactile", colour_by="displacement",
                              prog="capsheet tactile")
+    source = (_real_frames(args, host, foam, settings, rows, cols, outputs) if real
+              else _virtual(args, foam, settings, rows, cols, outputs))
+    best, best_truth, last_print = None, None, -1e9
     for k, (fr, truth) in enumerate(source):
         outputs.tactile(k, fr, truth)
         if best is None or fr.total_force_n > best.total_force_n:

@@ -11,23 +11,13 @@ import argparse
 import os
 import sys
 
+from host.cli.argtypes import positive_int
 from host.transport import CanTransport, SerialTransport, Transport, TransportError
 
 __all__ = ["add_transport_args", "open_transports", "DEFAULT_BAUD"]
 
 #: serial baud rate when ``--baud`` is not given (a 3 Mbaud UART, docs/protocol.md §10)
 DEFAULT_BAUD = 3_000_000
-
-
-def positive_int(text: str) -> int:
-    """argparse type: an integer > 0 (bit and baud rates), else a one-line usage error."""
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r}: need an integer") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"invalid value {text!r}: need > 0")
-    return v
 
 
 def add_transport_args(parser: argparse.ArgumentParser, *, title: str, several_buses: bool = True,
@@ -127,10 +117,22 @@ def open_transports(args: argparse.Namespace, *, prog: str = "capsheet") -> list
         return out
     try:
         for spec in specs:
-            kw = {"sleep_after_open": 0.1} if spec.startswith("slcan:") else {}
+            kw = {"sleep_after_open": 0.1} if spec.startswith(("slcan:", "capsheet_slcan:")) else {}
             out.append(CanTransport(spec, fd=args.fd, bitrate=args.bitrate, **kw))
     except TransportError:
         for t in out:
             t.close()
         raise
     return out
+
+
+def split_needed(n_links: int, rate_hz: float, *, kind: str, bitrate: float, packed: bool = False,
+                 fd: bool = False, start: int = 1, limit: int = 64) -> int | None:
+    """The fewest gateways (serial) or buses (CAN), from ``start`` on, that carry ``n_links`` chips at
+    ``rate_hz`` when the links are split in near-equal contiguous blocks (`VirtualSheet.split`);
+    None if more than ``limit`` would be needed."""
+    from protocol.capacity import bus_load
+    for k in range(max(1, start), limit + 1):
+        if bus_load(-(-n_links // k), rate_hz, kind=kind, bitrate=bitrate, fd=fd, packed=packed) <= 1.0:
+            return k
+    return None

@@ -4,10 +4,13 @@ in-memory link, until interrupted."""
 from __future__ import annotations
 
 import argparse
+import filecmp
 import math
+import os
 import shlex
 import signal
 import sys
+import tempfile
 import time
 
 __all__ = ["register", "run", "make_device", "load_chip_factory"]
@@ -57,8 +60,13 @@ def load_chip_factory(firmware: str):
     raise ValueError(f"Unknown firmware {firmware!r} (expected python or c)")
 
 
+#: the SYNC rate the printed host command drives when the sheet does not lead SYNC (--rate): the
+#: paper's, where the link carries it
+HOST_RATE_HZ = 145.0
+
+
 def register(subparsers) -> argparse.ArgumentParser:
-    from host.cli.transport_args import positive_int
+    from host.cli import argtypes as T
     from virtual_sheet.shapes import SCENES, SHAPES
     p = subparsers.add_parser(
         "virtual", help="run a virtual sheet on a pty, SLCAN adapter or python-can bus",
@@ -69,13 +77,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--shape", default="gaussian",
                    help=f"static shape ({', '.join(SHAPES)}) or moving scene ({', '.join(SCENES)}); "
                         "default gaussian")
-    p.add_argument("--lattice", default="14x14", help="joints ROWSxCOLS (default 14x14)")
-    p.add_argument("--link-length", type=float, default=0.01, help="link length, m (default 0.01)")
+    p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints ROWSxCOLS (default 14x14)")
+    p.add_argument("--link-length", type=T.link_length, default=0.01, help="link length, m (default 0.01)")
     p.add_argument("--transport", choices=("pty", "slcan", "can", "memory"), default="pty",
                    help="how the host reaches the sheet (default pty)")
-    p.add_argument("--bus-count", type=int, default=1, help="CAN buses (slcan/can); chips split in link "
+    p.add_argument("--bus-count", type=T.int_range(1, 64), default=1, help="CAN buses (slcan/can); chips split in link "
                                                            "blocks across them (default 1)")
-    p.add_argument("--gateways", type=positive_int, default=1, metavar="N",
+    p.add_argument("--gateways", type=T.int_range(1, 64), default=1, metavar="N",
                    help="pty: N serial gateways, each on its own pty with a contiguous block of the links "
                         "(a sheet too big for one UART); gateway 0 leads SYNC with --rate (default 1)")
     p.add_argument("--can-interface", default="virtual",
@@ -85,39 +93,36 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--fd", action="store_true", help="CAN FD chips and buses")
     p.add_argument("--packed", action="store_true",
                    help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD)")
-    p.add_argument("--rate", type=_rate, default=None, metavar="HZ",
-                   help="the gateway generates SYNC at this rate (the host then follows it)")
-    p.add_argument("--baud", type=positive_int, default=12_000_000,
+    p.add_argument("--rate", type=T.rate, default=None, metavar="HZ",
+                   help="the gateway generates SYNC at this rate (the host then follows it); without it the "
+                        f"host drives SYNC (the printed command: {HOST_RATE_HZ:g} Hz where the link carries it)")
+    p.add_argument("--baud", type=T.positive_int, default=12_000_000,
                    help="pty: the UART rate the virtual gateway stands for (a pty has none), used for the "
                         "capacity check and printed in the host command (default 12000000)")
-    p.add_argument("--bitrate", type=positive_int, default=1_000_000,
+    p.add_argument("--bitrate", type=T.positive_int, default=1_000_000,
                    help="CAN: the nominal bit rate the virtual bus stands for (default 1000000; CAN FD data 8x)")
-    p.add_argument("--noise", type=float, default=0.02, help="sensor noise, %% of g per axis (default 0.02)")
+    p.add_argument("--noise", type=T.noise, default=0.02, help="sensor noise, %% of g per axis (default 0.02)")
     p.add_argument("--chip-errors", choices=("none", "realistic"), default="none",
                    help="per-chip bias, scale and misalignment: none (ideal, factory calibrated; default) or "
                         "realistic (30 mg, 1.5 %%, 1.5° per axis, uncalibrated; seeded by --seed; "
                         "docs/calibration.md). Use --shape board for the calibration poses")
     p.add_argument("--faults", default="", help="fault spec (see below)")
-    p.add_argument("--seed", type=int, default=0, help="seed of uids, chip errors and noise (default 0)")
-    p.add_argument("--layout-out", metavar="FILE", help="write the uid,link layout (CSV, or JSON if .json)")
-    p.add_argument("--symlink", metavar="PATH", help="pty/slcan: publish the port under this stable path (a symlink; with --bus-count N or "
-                        "--gateways N, PATH0..PATHN-1)")
+    p.add_argument("--seed", type=T.seed, default=0, help="seed of uids, chip errors and noise (default 0)")
+    p.add_argument("--layout-out", metavar="FILE", type=T.output_file(".csv", ".json", what="a layout file",
+                                                                        protect=False),
+                   help="write the uid,link layout (CSV, or JSON if .json); an existing file that differs "
+                        "needs --overwrite")
+    p.add_argument("--symlink", metavar="PATH", type=T.symlink_path,
+                   help="pty/slcan: publish the port under this stable path (a symlink; with --bus-count N or "
+                        "--gateways N, PATH0..PATHN-1). Only a capsheet sheet's own stale symlink is replaced; "
+                        "anything else there needs --overwrite")
+    T.add_overwrite_arg(p, "files at --layout-out and --symlink")
     p.add_argument("--firmware", choices=("python", "c"), default="python",
                    help="chip implementation: the Python model or the C reference firmware (SIL)")
-    p.add_argument("--duration", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("-v", "--verbose", action="store_true", help="print every frame sent and received")
     p.set_defaults(func=run)
     return p
-
-
-def _rate(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: not a number") from None
-    if not (math.isfinite(v) and 0 < v <= 4000):
-        raise argparse.ArgumentTypeError(f"invalid rate {text!r}: need 0 < rate <= 4000 Hz")
-    return v
 
 
 def _channels(args) -> list[str] | None:
@@ -145,16 +150,41 @@ def _capacity(args, sheet, dev) -> tuple[list[str], list[str], float | None]:
         what = (f"{n} chips per bus at {args.rate:g} Hz need {100 * load:.0f} % of a "
                 f"{bitrate / 1e6:g} Mbit/s {'UART' if kind == 'serial' else 'CAN FD' if args.fd else 'CAN'} bus")
         if load > 1.0:
-            remedy = ("--packed, a faster --baud, or a lower --rate" if kind == "serial"
-                      else "more buses (--bus-count), --fd --packed, or a lower --rate")
-            errors.append(f"over capacity: {what} (at most {max_rate:.0f} Hz); use {remedy}")
+            from host.cli.transport_args import split_needed
+            from host.session import capacity_remedy
+            now = len(per_bus)
+            opt = "--gateways" if kind == "serial" else "--bus-count"
+            can_split = kind == "can" or args.transport == "pty"
+
+            def fits(packed: bool, fd: bool, start: int):
+                return split_needed(sheet.n_links, args.rate, kind=kind, bitrate=bitrate, packed=packed, fd=fd,
+                                    start=start) if can_split or start == now else None
+            more = fits(args.packed, args.fd, now + 1)
+            pack_opts = "--packed" if kind == "serial" else "--fd --packed"
+            already = args.packed and (kind == "serial" or args.fd)
+            k_packed = None if already else fits(True, True, now)
+            pack = None if k_packed is None else pack_opts if k_packed == now else f"{pack_opts} {opt} {k_packed}"
+            remedy = capacity_remedy(kind, load, args.rate, packed=already or pack is None, fd=already or pack is None,
+                                     bitrate=bitrate, pack=pack, split=f"{opt} {more}" if more else None)
+            errors.append(f"--rate {args.rate:g} is over capacity: {what}; {remedy}")
         elif load > 0.8:
             warnings.append(f"near capacity: {what}")
     return errors, warnings, max_rate
 
 
-def host_command(args, dev) -> str:
-    """The exact ``capsheet host`` command that reaches this sheet (printed at start)."""
+def host_rate(args, max_rate: float | None) -> float:
+    """The SYNC rate the printed host command uses: the sheet's own (--rate, the host follows it),
+    else `HOST_RATE_HZ` where the link carries it, else the highest whole rate it carries."""
+    if args.rate is not None:
+        return args.rate
+    if max_rate is None or max_rate >= HOST_RATE_HZ:
+        return HOST_RATE_HZ
+    return float(max(1, math.floor(max_rate)))
+
+
+def host_command(args, dev, max_rate: float | None = None) -> str:
+    """The exact ``capsheet host`` command that reaches this sheet (printed at start): its ports,
+    link rate, lattice, layout, SYNC source and rate, packing."""
     cmd = ["capsheet", "host"]
     if args.transport == "pty":
         for pth in getattr(dev, "paths", [dev.path]):
@@ -171,16 +201,40 @@ def host_command(args, dev) -> str:
         return ""
     if args.fd:
         cmd.append("--fd")
-    cmd += ["--lattice", args.lattice]
+    lat = args.lattice
+    cmd += ["--lattice", lat if isinstance(lat, str) else f"{lat.rows}x{lat.cols}"]
     if args.layout_out:
         cmd += ["--layout", args.layout_out]
     else:
         cmd.append("--auto-assign")
     if args.rate is not None:
-        cmd += ["--sync", "follow", "--rate", f"{args.rate:g}"]
+        cmd += ["--sync", "follow"]
+    cmd += ["--rate", f"{host_rate(args, max_rate):g}"]
     if args.packed:
         cmd.append("--packed")
     return shlex.join(cmd)
+
+
+def write_layout(sheet, path: str, *, overwrite: bool = False) -> str | None:
+    """Write ``sheet``'s layout to ``path``; a file already there is kept when it holds the same
+    layout (a sheet started again with the same seed) and replaced only with ``overwrite`` when it
+    differs (someone's layout of a real sheet). Returns why it was not written, or None."""
+    folder = os.path.dirname(os.path.abspath(path))
+    fd, tmp = tempfile.mkstemp(prefix=".layout-", suffix=os.path.splitext(path)[1], dir=folder)
+    os.close(fd)
+    try:
+        sheet.write_layout(tmp)
+        if os.path.lexists(path):
+            if os.path.isfile(path) and filecmp.cmp(tmp, path, shallow=False):
+                return None  # the same layout: nothing to change
+            if not overwrite:
+                return f"{path} exists and holds another layout: add --overwrite to replace it, or give another name"
+        os.replace(tmp, path)
+        tmp = None
+        return None
+    finally:
+        if tmp is not None:
+            os.unlink(tmp)
 
 
 def _fmt_frame(frame) -> str:
@@ -206,6 +260,14 @@ def make_device(args, verbose=None):
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
                          chip_factory=load_chip_factory(args.firmware), faults=spec)
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
+    if args.symlink and args.transport in ("pty", "slcan"):
+        from virtual_sheet.devices import claim_symlink
+        n = args.gateways if args.transport == "pty" else args.bus_count
+        for pth in [args.symlink] if n == 1 else [f"{args.symlink}{b}" for b in range(n)]:
+            try:
+                claim_symlink(pth, replace=bool(getattr(args, "overwrite", False)))
+            except FileExistsError as exc:
+                raise ValueError(f"--symlink {exc}") from None
     if args.transport == "pty" and getattr(args, "gateways", 1) > 1:
         from virtual_sheet.devices import MultiPtyDevice
         paths = [f"{args.symlink}{b}" for b in range(args.gateways)] if args.symlink else None
@@ -251,7 +313,7 @@ def run(args) -> int:
         return 2
     try:
         sheet, dev = make_device(args, verbose if args.verbose else None)
-    except (ValueError, RuntimeError) as exc:
+    except (ValueError, RuntimeError, OSError) as exc:  # a bad shape or fault spec, a path not ours
         print(f"capsheet virtual: {exc}", file=sys.stderr)
         return 2
     errors, warnings, max_rate = _capacity(args, sheet, dev)
@@ -270,7 +332,10 @@ def run(args) -> int:
         except (ValueError, OSError):  # not the main thread
             pass
     if args.layout_out:
-        sheet.write_layout(args.layout_out)
+        why = write_layout(sheet, args.layout_out, overwrite=args.overwrite)
+        if why:
+            print(f"capsheet virtual: --layout-out {why}", file=sys.stderr)
+            return 2
     try:
         dev.start()
     except Exception as exc:  # noqa: BLE001 - a port or bus that cannot be opened: one line
@@ -280,7 +345,7 @@ def run(args) -> int:
     try:
         print(f"capsheet virtual: {sheet!r}", file=out)
         print(f"connect to: {dev.describe()}", file=out)
-        cmd = host_command(args, dev)
+        cmd = host_command(args, dev, max_rate)
         if cmd:
             print(f"  {cmd}", file=out)
         elif args.transport == "can" and args.can_interface == "virtual":

@@ -28,7 +28,7 @@ from protocol.messages import (NODE_PROVISIONAL_MAX, NODE_PROVISIONAL_MIN, PROTO
 from protocol.constants import SampleStatus
 from protocol.state import ANNOUNCE_PERIOD_S, SYNC_REPLY_DEADLINE_S
 
-from .session import HEARTBEAT_MS, acked, AuditedCanTransport, CheckFailed, PortLost, RecordingDecoder, RunAborted, Session, Skip, require
+from .session import HEARTBEAT_MS, acked, AuditedCanTransport, CheckFailed, PortLost, RunAborted, Session, Skip, require
 
 __all__ = ["Check", "CHECKS", "INFORMATIVE", "SHOULD_NOT_MET", "table", "clauses_covered"]
 
@@ -600,8 +600,8 @@ def _canonical_serial(raw: bytes) -> str | None:
 def c_canonical(s: Session):
     t = s.port.transport
     bad, n = [], 0
-    if isinstance(getattr(t, "decoder", None), RecordingDecoder):
-        for raw in list(t.decoder.raw):
+    if s.port.kind == "serial":
+        for raw in list(s.port.raw):
             if not _from(s, raw):
                 continue
             n += 1

@@ -37,14 +37,14 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
-from host.transport import CanTransport, SerialTransport, Transport, TransportError, TransportOperationError
+from host.transport import CanTransport, Transport, TransportError, TransportOperationError
 from protocol.can import decode_can, split_id
-from protocol.framing import DecodeError, SampleBatch, StreamDecoder
+from protocol.framing import DecodeError, SampleBatch
 from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, ChipState, Config, Direction, GetInfo,
                                Info, Message, MsgType, Reset, Start, Status, Stop)
 
-__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport", "RecordingDecoder",
-           "HEARTBEAT_MS"]
+__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
+           "FrameAudit", "HEARTBEAT_MS"]
 
 #: STATUS period the run configures (CONFIG heartbeat_ms), ms
 HEARTBEAT_MS = 100
@@ -77,98 +77,107 @@ def require(cond: bool, what: str) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# Raw-frame audits on top of the host transports (public API plus one decoder hook each)
+# Raw-frame audits: capture handlers on the host transports (`Transport.begin_capture`)
 # ---------------------------------------------------------------------------------------------
 
-class RecordingDecoder(StreamDecoder):
-    """A `StreamDecoder` that also keeps the raw bytes of every run between delimiters.
+class FrameAudit:
+    """A capture handler (`host.transport.Transport.begin_capture`) that keeps every frame the port
+    received, raw, and audits CAN identifiers (§7.1: the priority the table gives the type, no CAN
+    FD for a payload that fits classic CAN).
 
-    Installed as a `SerialTransport`'s ``decoder``, so the §2/§9 check can compare each frame the
-    chip sent with the reference encoding of its content. ``raw`` holds ``(bytes,)`` runs, newest
-    last, at most ``keep``.
+    ``raw``: serial — each run of bytes between delimiters, with its 0x00 (what the chip sent,
+    for the §2/§9 comparison with the reference encoding); CAN — ``(arbitration_id, data, is_fd)``
+    of every extended data frame, the echoes of the host's own frames left out (a bus that hands
+    them back, python-can's ``udp_multicast``, must not make the suite blame the chip for them).
+    At most ``keep``, newest last. ``bad_ids``: one line per identifier the audit rejects.
     """
 
-    def __init__(self, *args, keep: int = 4096, **kw) -> None:
-        super().__init__(*args, **kw)
-        self.raw: deque[bytes] = deque(maxlen=keep)
-        self._rec_partial = bytearray()
-
-    def feed(self, data: bytes) -> list:
-        parts = bytes(data).split(b"\x00")
-        for p in parts[:-1]:
-            run = bytes(self._rec_partial) + p
-            self._rec_partial.clear()
-            if run:
-                self.raw.append(run + b"\x00")
-        self._rec_partial += parts[-1]
-        if len(self._rec_partial) > 2048:
-            self._rec_partial.clear()
-        return super().feed(data)
-
-    def reset(self) -> None:  # the transport's reconnect calls it
-        self._rec_partial.clear()
-        super().reset()
-
-
-class AuditedCanTransport(CanTransport):
-    """`CanTransport` that audits each received identifier (§7.1: priority, no FD when it fits
-    classic CAN) and can send raw frames (undefined types, another version, standard ids).
-
-    Note: it relies on `CanTransport`'s ``_decode`` hook and its open ``_bus``; host/transport.py
-    offers no public raw-frame API yet (see docs/conformance.md).
-    """
-
-    def __init__(self, *args, **kw) -> None:
-        super().__init__(*args, **kw)
+    def __init__(self, keep: int = 4096) -> None:
+        self.raw: deque = deque(maxlen=keep)
         self.bad_ids: list[str] = []
-        self.raw: deque = deque(maxlen=4096)  # (arbitration_id, data, is_fd)
+        self._run = bytearray()  # serial: the start of a run not yet delimited
 
-    def _decode(self, frames: list) -> list:
-        for f in frames:
+    def __call__(self, cap) -> None:
+        if cap.direction != "rx":
+            return
+        if cap.kind == "serial":
+            self._serial(cap.raw)
+            return
+        for f in cap.frames():
             if f.is_error_frame or f.is_remote_frame or not f.is_extended_id:
                 continue
-            self.raw.append((f.arbitration_id, bytes(f.data), bool(f.is_fd)))
-            ev = decode_can(f.arbitration_id, f.data, is_extended_id=True, is_fd=f.is_fd)
+            data = bytes(f.data)
+            self.raw.append((f.arbitration_id, data, bool(f.is_fd)))
+            ev = decode_can(f.arbitration_id, data, is_extended_id=True, is_fd=f.is_fd)
             if isinstance(ev, Message) and ev.DIRECTION == Direction.CHIP_TO_HOST:
                 prio = split_id(f.arbitration_id)[0]
                 if prio != ev.PRIORITY:
                     self.bad_ids.append(f"{ev.TYPE.name} sent with priority {prio}, the table says {ev.PRIORITY}")
                 if f.is_fd and len(ev.payload()) <= 8:
                     self.bad_ids.append(f"{ev.TYPE.name} sent as CAN FD though it fits classic CAN")
-        return super()._decode(frames)
 
-    def send_frame(self, arbitration_id: int, data: bytes, *, extended: bool = True, fd: bool = False) -> None:
-        bus = self._bus
-        if bus is None:
-            raise TransportError(f"CAN bus {self.name!r} is not connected", self.name)
-        m = self._can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=extended, is_fd=fd)
-        with self._send_lock:
-            try:
-                bus.send(m, timeout=1.0)
-            except Exception as exc:  # noqa: BLE001 - python-can raises many kinds
-                raise TransportError(f"Cannot send on CAN bus {self.name!r}: {exc}", self.name) from exc
+    def _serial(self, data: bytes) -> None:
+        parts = bytes(data).split(b"\x00")
+        for p in parts[:-1]:
+            run = bytes(self._run) + p
+            self._run.clear()
+            if run:
+                self.raw.append(run + b"\x00")
+        self._run += parts[-1]
+        if len(self._run) > 2048:
+            self._run.clear()
+
+
+class _AuditView:
+    """``raw`` and ``bad_ids`` of the object's ``audit`` (a `FrameAudit`)."""
+
+    audit: FrameAudit
+
+    @property
+    def raw(self) -> deque:
+        """Every frame received, raw (`FrameAudit.raw`: serial byte runs, or CAN ``(id, data, fd)``)."""
+        return self.audit.raw
+
+    @property
+    def bad_ids(self) -> list[str]:
+        """CAN identifiers the audit rejected (`FrameAudit.bad_ids`)."""
+        return self.audit.bad_ids
+
+
+class AuditedCanTransport(_AuditView, CanTransport):
+    """A `CanTransport` with a `FrameAudit` subscribed to its capture from the start: ``raw`` and
+    ``bad_ids`` are the audit's. Raw frames (undefined types, another version, standard ids) go
+    out through the transport's own `CanTransport.send_frame`."""
+
+    def __init__(self, *args, **kw) -> None:
+        super().__init__(*args, **kw)
+        self.audit = FrameAudit()
+        self.begin_capture(self.audit)
 
 
 # ---------------------------------------------------------------------------------------------
 # The port: a reader thread, arrival times, event-driven waits
 # ---------------------------------------------------------------------------------------------
 
-class Port:
+class Port(_AuditView):
     """The transport to the device, read by one thread; ``next(deadline)`` blocks on arrivals.
 
     Parameters
     ----------
     transport : Transport
         An open `SerialTransport` (any pyserial URL: a pty, ``socket://`` to QEMU, a USB adapter)
-        or `CanTransport` (best: `AuditedCanTransport`, which also audits identifiers).
+        or `CanTransport`. The port subscribes a `FrameAudit` to its capture (an
+        `AuditedCanTransport` has one already), so the checks see every frame received, raw.
     """
 
     def __init__(self, transport: Transport) -> None:
         self.transport = transport
         kind = transport.capabilities.kind
         self.kind = "can" if kind == "can" else "serial"
-        if isinstance(transport, SerialTransport) and not isinstance(transport.decoder, RecordingDecoder):
-            transport.decoder = RecordingDecoder(batch_samples=True)
+        #: every frame received, raw, and the CAN identifier audit (`FrameAudit`)
+        self.audit = transport.audit if isinstance(transport, AuditedCanTransport) else FrameAudit()
+        if not isinstance(transport, AuditedCanTransport):
+            transport.begin_capture(self.audit)
         self._q: deque = deque()
         self._cond = threading.Condition()
         self._stop = threading.Event()
@@ -272,13 +281,14 @@ class Port:
         return time.monotonic()
 
     def _can_raw(self, arbitration_id: int, data: bytes, extended: bool = True) -> None:
-        if not isinstance(self.transport, AuditedCanTransport):
-            raise Skip("raw CAN frames need AuditedCanTransport")
+        if not isinstance(self.transport, CanTransport):
+            raise Skip("raw CAN frames need a CAN transport")
         self.transport.send_frame(arbitration_id, data, extended=extended)
 
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2.0)
+        self.transport.end_capture(self.audit)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -15,6 +15,8 @@ from protocol.messages import Sample
 
 
 class FakeClock:
+    """The simulated time the tests pass in (the aggregator reads no clock): ``t`` seconds."""
+
     def __init__(self) -> None:
         self.t = 100.0
 
@@ -34,13 +36,13 @@ def wire(msgs) -> bytes:
     return b"".join(encode(m) for m in msgs)
 
 
-def feed(agg, data: bytes, chunk: int | None = None):
+def feed(agg, data: bytes, chunk: int | None = None, now: float = 100.0):
     dec = StreamDecoder(batch_samples=True)
     if chunk is None:
-        agg.ingest(dec.feed(data))
+        agg.ingest(dec.feed(data), now=now)
     else:
         for i in range(0, len(data), chunk):
-            agg.ingest(dec.feed(data[i:i + chunk]))
+            agg.ingest(dec.feed(data[i:i + chunk]), now=now)
     return dec
 
 
@@ -51,7 +53,7 @@ def full_counter(n_links, counter, value=None):
 def make(n_links=6, **kw):
     clock = FakeClock()
     kw.setdefault("deadline_s", 0.05)
-    agg = Aggregator(n_links, clock=clock, **kw)
+    agg = Aggregator(n_links, **kw)
     return agg, clock
 
 
@@ -133,10 +135,10 @@ def test_late_frame_after_emission_is_counted_not_reopened():
     feed(agg, wire(full_counter(n, 1)))
     feed(agg, wire([sample(1, 2)]))
     clock.t += 1.0
-    agg.poll()
+    agg.poll(clock.t)
     snaps = agg.drain()
     assert [(s.counter, s.complete) for s in snaps] == [(1, True), (2, False)]
-    feed(agg, wire([sample(2, 2), sample(1, 1)]))  # both counters already emitted
+    feed(agg, wire([sample(2, 2), sample(1, 1)]), now=clock.t)  # both counters already emitted
     assert agg.stats.late == 2 and agg.n_open == 0
     assert agg.stats.link_late.tolist() == [1, 1]
     assert agg.drain() == []
@@ -147,10 +149,10 @@ def test_deadline_emits_with_missing_links_masked():
     agg, clock = make(n, deadline_s=0.05)
     feed(agg, wire([sample(1, 3), sample(2, 3, status=SampleStatus.INVALID), sample(4, 3, status=SampleStatus.SATURATED)]))
     clock.t += 0.04
-    agg.poll()
+    agg.poll(clock.t)
     assert agg.drain() == []
     clock.t += 0.02
-    agg.poll()
+    agg.poll(clock.t)
     [snap] = agg.drain()
     assert not snap.complete
     assert snap.valid.tolist() == [True, False, False, True]
@@ -166,7 +168,7 @@ def test_incomplete_counter_holds_back_newer_until_its_deadline():
     feed(agg, wire([sample(1, 5)] + full_counter(n, 6)))
     assert agg.drain() == []  # 6 is complete but 5 is not
     clock.t += 0.1
-    agg.poll()
+    agg.poll(clock.t)
     assert [(s.counter, s.complete) for s in agg.drain()] == [(5, False), (6, True)]
 
 
@@ -182,7 +184,7 @@ def test_emit_through_emits_the_named_counter_and_the_older_at_the_given_time():
     got = agg.drain()
     assert [(s.counter, s.complete) for s in got] == [(5, False), (6, True)]  # 6 completes behind 5
     assert got[0].latency_s == pytest.approx(0.03) and got[0].valid.tolist() == [True, False]
-    feed(agg, wire([sample(2, 5)]))  # after its emission: late, whatever the deadline
+    feed(agg, wire([sample(2, 5)]), now=100.03)  # after its emission: late, whatever the deadline
     assert agg.stats.late == 1 and agg.drain() == []
     agg.emit_through(7, 100.04)
     assert [(s.counter, s.complete) for s in agg.drain()] == [(7, False)]
@@ -201,7 +203,7 @@ def test_frames_from_unknown_nodes_are_counted_per_node_and_ignored():
 def test_silent_link_is_not_waited_for():
     n = 3
     agg, _ = make(n)
-    agg.mark_silent(2)
+    agg.mark_silent(2, True, 100.0)
     feed(agg, wire([sample(1, 1), sample(2, 1)]))
     [snap] = agg.drain()
     assert snap.complete and snap.valid.tolist() == [True, True, False]
@@ -248,12 +250,12 @@ def test_snapshot_frames_fill_links_directly_and_merge_with_per_chip_frames():
 def test_can_frames_crafted_with_to_can_aggregate_like_serial():
     n = 4
     agg, _ = make(n)
-    agg.open_counter(0xFFFF)  # the host sent both SYNCs: their order is known
-    agg.open_counter(0)
+    agg.open_counter(0xFFFF, 100.0)  # the host sent both SYNCs: their order is known
+    agg.open_counter(0, 100.0)
     frames = [to_can(m) for c in (0xFFFF, 0) for m in full_counter(n, c)]
     frames.reverse()  # every frame of counter 0 before any of 0xFFFF
     events = [decode_can(f.arbitration_id, f.data, is_fd=f.is_fd) for f in frames]
-    agg.ingest(events, bus=0)
+    agg.ingest(events, bus=0, now=100.0)
     snaps = agg.drain()
     assert [s.counter for s in snaps] == [0xFFFF, 0] and all(s.complete for s in snaps)
 
@@ -274,11 +276,11 @@ def test_sync_opened_counter_times_from_the_sync_and_rejects_stale_counters():
     agg, clock = make(n)
     assert agg.open_counter(100, clock.t)
     clock.t += 0.01
-    feed(agg, wire(full_counter(n, 100)))
+    feed(agg, wire(full_counter(n, 100)), now=clock.t)
     [snap] = agg.drain()
     assert snap.timestamp == 100.0 and snap.latency_s == pytest.approx(0.01)
-    assert not agg.open_counter(99)  # older than emitted
-    assert agg.open_counter(5, restart=True)  # the host restarted its sequence
+    assert not agg.open_counter(99, clock.t)  # older than emitted
+    assert agg.open_counter(5, clock.t, restart=True)  # the host restarted its sequence
 
 
 def test_per_bus_statistics():
@@ -286,8 +288,8 @@ def test_per_bus_statistics():
     agg, _ = make(n)
     agg.stats.__init__(n, 2)
     dec = StreamDecoder(batch_samples=True)
-    agg.ingest(dec.feed(wire(full_counter(2, 1))), bus=0)
-    agg.ingest(dec.feed(wire([sample(3, 1), sample(4, 1), sample(4, 1), sample(99, 1)])), bus=1)
+    agg.ingest(dec.feed(wire(full_counter(2, 1))), bus=0, now=100.0)
+    agg.ingest(dec.feed(wire([sample(3, 1), sample(4, 1), sample(4, 1), sample(99, 1)])), bus=1, now=100.0)
     assert agg.stats.bus_frames.tolist() == [2, 3]
     assert agg.stats.bus_duplicates.tolist() == [0, 1]
     assert agg.stats.bus_unknown.tolist() == [0, 1]
@@ -307,10 +309,10 @@ def test_any_counter_sequence_never_raises_and_accounts_for_every_frame():
             counter = ((base + r.integers(-3, 4, size=k)) & 0xFFFF).astype(np.uint16)
             counts = r.integers(-2048, 2048, size=(k, 3)).astype(np.int16)
             status = r.integers(0, 16, size=k).astype(np.uint8)
-            agg.ingest_batch(node, counter, counts, status)
+            agg.ingest_batch(node, counter, counts, status, now=clock.t)
             total += k
             clock.t += float(r.random() * 0.02)
-            agg.poll()
+            agg.poll(clock.t)
         st = agg.stats
         assert st.samples + st.late + st.duplicates + st.unknown == total
         assert agg.n_open <= 4 and agg.pending <= 8
@@ -322,7 +324,7 @@ def _ingest_at(agg, clock, counter, nodes, t):
     clock.t = t
     agg.ingest_batch(np.asarray(nodes, dtype=np.uint16), np.full(len(nodes), counter, dtype=np.uint16),
                      np.tile(np.array([[0, 0, 1024]], dtype=np.int16), (len(nodes), 1)),
-                     np.zeros(len(nodes), dtype=np.uint8))
+                     np.zeros(len(nodes), dtype=np.uint8), now=t)
 
 
 def _timeline(agg, clock, counters, latency_s, period_s=0.01, t0=100.0):
@@ -343,7 +345,7 @@ def _timeline(agg, clock, counters, latency_s, period_s=0.01, t0=100.0):
 
 def test_adaptive_deadline_grows_to_the_measured_latency_within_its_bounds():
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock, queue_size=1000)
+    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, queue_size=1000)
     _timeline(agg, clock, range(40), 0.03)
     st = agg.stats
     # the first counters went out at the 10 ms deadline, their frames came late: the first late
@@ -353,14 +355,14 @@ def test_adaptive_deadline_grows_to_the_measured_latency_within_its_bounds():
     late_before = st.late
     _timeline(agg, clock, range(40, 80), 0.03)
     assert st.late == late_before  # now the frames are waited for
-    agg.flush()
+    agg.flush(clock.t)
     assert st.complete >= 40
 
 
 def test_fixed_deadline_stays_put_and_keeps_dropping_late_frames():
     """The broken input for the test above: without bounds the deadline does not adapt."""
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.01, clock=clock, queue_size=1000)
+    agg = Aggregator(4, deadline_s=0.01, queue_size=1000)
     _timeline(agg, clock, range(80), 0.03)
     assert agg.deadline_s == 0.01 and agg.stats.deadline_changes == 0
     assert agg.stats.complete == 0 and agg.stats.late >= 4 * 70
@@ -368,7 +370,7 @@ def test_fixed_deadline_stays_put_and_keeps_dropping_late_frames():
 
 def test_adaptive_deadline_shrinks_but_not_below_its_minimum():
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2)
     for c in range(32):
         t = 100.0 + 0.01 * c
         agg.open_counter(c, t)
@@ -389,7 +391,7 @@ def _script(agg, clock, steps):
 
 def test_a_late_frame_raises_the_deadline_at_once():
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    agg = Aggregator(4, deadline_s=0.01, min_deadline_s=0.005, max_deadline_s=0.2)
     _script(agg, clock, [(100.000, "sync", 0),
                          (100.015, "poll", None),  # counter 0 goes out empty at its 10 ms deadline
                          (100.020, "sync", 1),
@@ -406,7 +408,7 @@ def test_a_late_frame_raises_the_deadline_at_once():
 
 def test_adaptive_deadline_keeps_the_largest_of_256_latencies_then_decays_5_percent_per_update():
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2, clock=clock)
+    agg = Aggregator(4, deadline_s=0.1, min_deadline_s=0.005, max_deadline_s=0.2)
     st = agg.stats
 
     def counters(first, n, latency_s):
@@ -427,7 +429,7 @@ def test_adaptive_deadline_keeps_the_largest_of_256_latencies_then_decays_5_perc
 
 def test_miss_run_blames_only_a_link_whose_neighbours_arrived():
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.01, clock=clock)
+    agg = Aggregator(4, deadline_s=0.01)
     for c in range(5):  # link 2 (node 3) never answers, the others do
         t = 100.0 + 0.02 * c
         agg.open_counter(c, t)
@@ -443,14 +445,14 @@ def test_miss_run_blames_only_a_link_whose_neighbours_arrived():
     assert agg.miss_run.tolist() == [0, 0, 5, 0]
     _ingest_at(agg, clock, 9, [1, 2, 3, 4], clock.t)
     agg.open_counter(9, clock.t)
-    agg.flush()
+    agg.flush(clock.t)
     assert agg.miss_run.tolist() == [0, 0, 0, 0]
 
 
 def test_completeness_by_snapshot_and_by_valid_link_counts_empty_snapshots():
     """Empty snapshots count as incomplete and as 0 valid links (the demo once showed -600 %)."""
     clock = FakeClock()
-    agg = Aggregator(4, deadline_s=0.01, clock=clock)
+    agg = Aggregator(4, deadline_s=0.01)
     assert agg.completeness() == {"complete_snapshots_pct": None, "valid_links_pct": None}
     agg.open_counter(0, clock.t)
     _ingest_at(agg, clock, 0, [1, 2, 3, 4], clock.t)  # complete
@@ -464,15 +466,18 @@ def test_completeness_by_snapshot_and_by_valid_link_counts_empty_snapshots():
     assert agg.completeness() == {"complete_snapshots_pct": 20.0, "valid_links_pct": 30.0}  # 6 of 20 links
 
 
-def test_latest_hands_the_newest_snapshot_and_counts_the_skipped():
+def test_the_feed_hands_the_newest_snapshot_and_counts_the_skipped():
+    from host.feed import SnapshotFeed
     clock = FakeClock()
-    agg = Aggregator(2, deadline_s=0.01, clock=clock)
+    agg = Aggregator(2, deadline_s=0.01)
+    feed = SnapshotFeed(agg, clock=clock)
     for c in range(5):
-        agg.open_counter(c, clock.t)
-        _ingest_at(agg, clock, c, [1, 2], clock.t)
-    snap = agg.latest(0.0)
-    assert snap.counter == 4 and agg.stats.dropped == 4 and agg.pending == 0
-    assert agg.latest(0.0) is None
+        feed.open_counter(c)
+        feed.ingest([SampleBatch(np.array([1, 2], dtype=np.uint16), np.full(2, c, dtype=np.uint16),
+                                 np.zeros((2, 3), dtype=np.int16), np.zeros(2, dtype=np.uint8))])
+    snap = feed.latest(0.0)
+    assert snap.counter == 4 and agg.stats.dropped == 4 and feed.pending == 0 and agg.pending == 0
+    assert feed.latest(0.0) is None
 
 
 def test_invalid_deadline_bounds_are_refused():
@@ -494,7 +499,7 @@ def _snapshot_world(seed: int, batched: bool):
     clock = FakeClock()
     out = []
     trust = ("frames", "sent", "follow")[seed % 3]
-    agg = Aggregator(L, clock=clock, deadline_s=0.01, min_deadline_s=0.004, max_deadline_s=0.05,
+    agg = Aggregator(L, deadline_s=0.01, min_deadline_s=0.004, max_deadline_s=0.05,
                      max_open=int(r.integers(2, 6)), queue_size=10_000, trust=trust, on_snapshot=out.append)
     counter = 0
     for _ in range(80):
@@ -504,10 +509,10 @@ def _snapshot_world(seed: int, batched: bool):
             counter = (counter + 1) & 0xFFFF
             agg.open_counter(counter, clock.t)
         elif u < 0.35:
-            agg.mark_silent(int(r.integers(0, L)), bool(r.random() < 0.7))
+            agg.mark_silent(int(r.integers(0, L)), bool(r.random() < 0.7), clock.t)
         elif u < 0.37:  # every link silent: nothing expected until one speaks again
             for k in range(L):
-                agg.mark_silent(k)
+                agg.mark_silent(k, True, clock.t)
         elif u < 0.4:
             agg.poll(clock.t)
         events = []
@@ -574,9 +579,9 @@ def test_a_silent_link_speaking_in_a_run_completes_a_counter_that_expected_nothi
     stats = []
     for batched in (True, False):
         clock = FakeClock()
-        agg = Aggregator(2, clock=clock, deadline_s=0.05)
-        agg.mark_silent(0)
-        agg.mark_silent(1)
+        agg = Aggregator(2, deadline_s=0.05)
+        agg.mark_silent(0, True, clock.t)
+        agg.mark_silent(1, True, clock.t)
         agg.open_counter(0, clock.t)
         frames = [Snapshot.from_arrays(0, 0, k, np.zeros((1, 3), dtype=np.int16), np.zeros(1)) for k in (0, 1)]
         if batched:

@@ -14,20 +14,20 @@ N = 4
 
 def make(trust, **kw):
     clock = FakeClock()
-    return Aggregator(N, clock=clock, deadline_s=0.05, trust=trust, queue_size=1000, **kw), clock
+    return Aggregator(N, deadline_s=0.05, trust=trust, queue_size=1000, **kw), clock
 
 
 def run_counters(agg, clock, counters, *, sync: bool, stray_after=None, stray=None):
     """Per counter: (SYNC ->) all N frames; a stray frame is injected after counter ``stray_after``."""
     for c in counters:
         if sync:
-            agg.open_counter(c)
-        feed(agg, wire(full_counter(N, c)))
+            agg.open_counter(c, clock.t)
+        feed(agg, wire(full_counter(N, c)), now=clock.t)
         clock.t += 0.01
-        agg.poll()
+        agg.poll(clock.t)
         if c == stray_after:
-            feed(agg, wire([stray]))
-    agg.flush()
+            feed(agg, wire([stray]), now=clock.t)
+    agg.flush(clock.t)
     return agg.drain()
 
 
@@ -49,8 +49,8 @@ def test_without_trust_the_same_stray_frame_loses_snapshots():
 
 def test_drive_mode_frames_never_open_counters():
     agg, clock = make("sent")
-    feed(agg, wire(full_counter(N, 7)))  # no SYNC sent for 7: a foreign frame source
-    agg.flush()
+    feed(agg, wire(full_counter(N, 7)), now=clock.t)  # no SYNC sent for 7: a foreign frame source
+    agg.flush(clock.t)
     assert agg.drain() == [] and agg.stats.stray == N
 
 
@@ -92,5 +92,5 @@ def test_follow_mode_late_frames_of_a_slow_chip_are_not_a_resync():
     """Frames (not SYNCs) for counters already emitted are late, however many in a row."""
     agg, clock = make("follow")
     run_counters(agg, clock, range(0, 50), sync=True)
-    feed(agg, wire([sample(1, c) for c in range(40, 50)]))
+    feed(agg, wire([sample(1, c) for c in range(40, 50)]), now=clock.t)
     assert agg.stats.resyncs == 0 and agg.stats.late == 10 and agg.stats.stray == 0

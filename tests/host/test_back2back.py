@@ -111,7 +111,7 @@ class Rig:
     def stream(self, duration_s: float) -> list:
         snaps = list(self.host.snapshots(duration_s=duration_s))
         self.host.stop()
-        snaps += self.host.aggregator.drain()
+        snaps += self.host.drain()
         return snaps
 
 
@@ -339,7 +339,7 @@ def test_a_stalled_host_blames_no_chip(rig_factory):
     sent_before = rig.host.syncs_sent
     snaps += list(rig.host.snapshots(duration_s=0.3))
     rig.host.stop()
-    snaps += rig.host.aggregator.drain()
+    snaps += rig.host.drain()
     check_accounting(rig, snaps)
     assert [e for e in rig.host.events if e.kind == "silent"] == []
     assert rig.host.stats["live"]["syncs_missed"] == 100  # 1 s at 100 Hz skipped, not caught up

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from host.analysis.calibration import Calibration
-from host.cli.calibrate import snapshot_corrector
 from host.health import HealthChecker
 from host.session import Host, Layout
 from host.transport import SerialTransport
@@ -141,7 +140,8 @@ def test_the_host_corrects_snapshots_and_reports_health_events(realistic_rig):
     assert not flagged & {k for k in range(sheet.n_links) if abs(raw_dev[k]) < 15 * MG}
     assert flagged  # realistic chips: some are off
     # calibrated with the truth: readings are the ideal ones to the noise; the flags clear
-    host.snapshot_filter = snapshot_corrector(host, true_calibration(sheet))
+    host.set_calibration(true_calibration(sheet))  # corrects every snapshot emitted from now on
+    host.drain()  # those emitted before
     fixed = [s for s in host.snapshots(count=120) if s.complete]
     host.stop()
     assert len(raw) > 40 and len(fixed) > 40

@@ -1,6 +1,8 @@
 """The live 3D view (host/live.py): a headless Foxglove WebSocket client (``websockets``, subprotocol
-``foxglove.sdk.v1``) connects to the server foxglove-sdk runs on localhost, subscribes, and decodes
-the estimates and the scene it is sent; colours by error, displacement and link state."""
+``foxglove.sdk.v1`` as the Foxglove app offers it, or ``foxglove.websocket.v1`` as Lichtblick and the
+``@foxglove/ws-protocol`` client do) connects to the server on localhost, subscribes, and decodes the
+estimates and the scene it is sent; colours by error, displacement and link state. The real npm
+client under node is driven in test_live_node.py."""
 
 from __future__ import annotations
 
@@ -19,6 +21,7 @@ from host.live import ERROR_FULL_SCALE_PCT, SceneChannels, colours  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 
 SUBPROTOCOL = "foxglove.sdk.v1"
+V1 = "foxglove.websocket.v1"
 
 
 class Est:
@@ -31,11 +34,12 @@ class Snap:
         self.counter, self.timestamp, self.wall_time, self.valid = counter, float(counter), 1.7e9 + counter, valid
 
 
-async def _client(url: str, topics: list[str], publish, want: int, max_rounds: int = 200):
-    """Connect, subscribe to ``topics``, call ``publish(k)`` until ``want`` messages per topic came.
-    Returns (advertised channels by topic, {topic: [payload bytes]})."""
-    async with websockets.connect(url, subprotocols=[SUBPROTOCOL], max_size=None) as ws:
-        assert ws.subprotocol == SUBPROTOCOL
+async def _client(url: str, topics: list[str], publish, want: int, max_rounds: int = 200,
+                  subprotocol: str = SUBPROTOCOL):
+    """Connect offering ``subprotocol``, subscribe to ``topics``, call ``publish(k)`` until ``want``
+    messages per topic came. Returns (advertised channels by topic, {topic: [payload bytes]})."""
+    async with websockets.connect(url, subprotocols=[subprotocol], max_size=None) as ws:
+        assert ws.subprotocol == subprotocol  # answered in the name it asked for
         info = json.loads(await asyncio.wait_for(ws.recv(), 10))
         assert info["op"] == "serverInfo"
         channels: dict[str, dict] = {}
@@ -69,7 +73,8 @@ async def _client(url: str, topics: list[str], publish, want: int, max_rounds: i
         return channels, got
 
 
-def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints():
+@pytest.mark.parametrize("subprotocol", [SUBPROTOCOL, V1])
+def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints(subprotocol):
     from host.record import Recorder
 
     lat = Lattice(4, 5)
@@ -86,7 +91,7 @@ def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints():
             rec.estimate(Est(J, valid), k, float(k), 1.7e9 + k)
 
         channels, got = asyncio.run(_client(rec.live.url, ["/capsheet/estimate", "/sheet/scene", "/sheet/joints"],
-                                            publish, want=2))
+                                            publish, want=2, subprotocol=subprotocol))
     finally:
         rec.close()
     assert channels["/sheet/scene"]["schemaName"] == "foxglove.SceneUpdate"
@@ -237,3 +242,41 @@ def test_a_live_session_records_the_sampled_uncertainty_at_most_once_a_second(tm
     np.testing.assert_array_equal(ys[0], first.yaw_std.astype(np.float32))
     assert np.isnan(ys[1]).all()
     np.testing.assert_array_equal(ys[0], estimate(r, 4, 4, 0.01).yaw_std.astype(np.float32))
+
+
+@pytest.mark.parametrize("offer, upstream, answer", [
+    ("foxglove.websocket.v1", "foxglove.sdk.v1", "foxglove.websocket.v1"),  # Lichtblick, @foxglove/ws-protocol
+    ("foxglove.sdk.v1", "foxglove.sdk.v1", None),  # the Foxglove app: unchanged
+    ("foxglove.websocket.v1, foxglove.sdk.v1", "foxglove.websocket.v1, foxglove.sdk.v1", None),
+    ("graphql-ws", "graphql-ws", None),  # nothing we serve: the SDK answers it (400)
+])
+def test_the_handshake_is_translated_only_for_the_older_name(offer, upstream, answer):
+    from host.live import rewrite_request, rewrite_response
+
+    head = (b"GET / HTTP/1.1\r\nHost: localhost:8765\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"sec-websocket-protocol: " + offer.encode() + b"\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\r\n")
+    up, got = rewrite_request(head)
+    assert got == answer
+    lines = up.split(b"\r\n")
+    assert lines[0] == b"GET / HTTP/1.1" and up.endswith(b"\r\n\r\n")
+    protos = [ln.split(b":", 1)[1].strip().decode() for ln in lines if ln.lower().startswith(b"sec-websocket-protocol")]
+    assert protos == [upstream]
+    assert b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==" in up  # the rest of the head as it was
+    resp = (b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+            b"Sec-WebSocket-Accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n")
+    back = rewrite_response(resp, got)
+    assert (b"Sec-WebSocket-Protocol: foxglove.websocket.v1" in back) == (answer is not None)
+    assert b"Sec-WebSocket-Accept: s3pPLMBiTxaQ9kYGzzhZRbK+xOo=" in back and back.endswith(b"\r\n\r\n")
+
+
+def test_a_live_port_in_use_is_an_oserror_naming_it():
+    import foxglove
+
+    from host.live import LiveServer
+
+    a = LiveServer(foxglove.Context(), port=0)
+    try:
+        with pytest.raises(OSError, match=f"Cannot start the live view on 127.0.0.1:{a.port}"):
+            LiveServer(foxglove.Context(), port=a.port)
+    finally:
+        a.stop()

@@ -307,10 +307,10 @@ def test_capsheet_host_command_discovers_streams_and_records(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, message", [
-    (["--record", "run.npy"], "a recording is an MCAP file, name it *.mcap"),
-    (["--can-log", "run.txt"], "a CAN log is .log, .asc, .blf"),
-    (["--live", "70000"], "invalid port 70000"),
-    (["--link-length", "-1"], "need a number > 0"),
+    (["--record", "run.npy"], "--record: invalid value 'run.npy': need an MCAP recording named *.mcap"),
+    (["--can-log", "run.txt"], "--can-log: invalid value 'run.txt': need a CAN log (.log, .asc, .blf)"),
+    (["--live", "70000"], "--live: invalid value '70000': need a TCP port >= 0 and <= 65535"),
+    (["--link-length", "-1"], "--link-length: invalid value '-1': need a length"),
 ])
 def test_capsheet_host_refuses_bad_recording_flags(argv, message, capsys):
     from host.cli import main
@@ -344,14 +344,19 @@ def test_version(capsys):
     assert out.startswith("capsheet ") and out.split()[1][0].isdigit()
 
 
-def test_capsheet_tactile_records_estimates_and_contacts_with_the_true_ones(tmp_path, capsys):
+def test_capsheet_tactile_records_what_it_estimates_with_the_true_contacts(tmp_path, capsys):
+    """The virtual foam sheet: every snapshot the sensor estimates is recorded with its estimate and
+    contacts (it recorded estimates from snapshots it never recorded: 0 snapshots, 9 estimates)."""
     from host.cli import main
     out = tmp_path / "tactile.mcap"
     assert main(["tactile", "--duration", "1", "--snapshot-rate", "8", "--record", str(out),
                  "--out", str(tmp_path / "t.png"), "-q"]) == 0
-    assert "recorded 0 snapshots, 9 estimates, 9 contact frames" in capsys.readouterr().err
+    assert "recorded 9 snapshots, 9 estimates, 9 contact frames" in capsys.readouterr().err
     rec = read(out)
-    assert rec.session["mode"] == "tactile" and len(rec.contacts) == len(rec.estimates["counter"]) == 9
+    assert rec.session["mode"] == "tactile" and len(rec.contacts) == len(rec.estimates["counter"]) == len(rec) == 9
+    assert rec.counter.tolist() == rec.estimates["counter"].tolist() == list(range(9))
+    assert rec.valid.all() and rec.complete.all()
+    assert np.allclose(rec.timestamp, rec.estimates["timestamp"])  # each snapshot with its own estimate
     detected = [c for _, _, cs in rec.contacts for c in cs if not c.get("true")]
     true = [c for _, _, cs in rec.contacts for c in cs if c.get("true")]
     assert detected and true
@@ -399,9 +404,12 @@ def test_a_file_cut_anywhere_reads_what_it_holds_or_says_why_not(tmp_path):
 def test_an_unwritable_recording_is_one_line_not_a_traceback(tmp_path, capsys):
     from host.cli import main
     (tmp_path / "file").write_text("")
-    with pytest.raises(SystemExit) as exc:
+    with pytest.raises(SystemExit) as exc:  # checked with the other values, before the port is opened
         main(["host", "--port", "loop://", "--record", str(tmp_path / "file" / "run.mcap"), "--duration", "0.1"])
-    assert str(exc.value).startswith("capsheet host: cannot write ") and "run.mcap" in str(exc.value)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("capsheet host: argument --record: ") and "is a file, not a folder" in err, err
+    assert len(err.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize("batch", [1, 5, 12, 100])

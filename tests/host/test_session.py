@@ -140,7 +140,7 @@ def test_a_stray_future_counter_frame_costs_at_most_its_own_snapshot(rigs, jump)
     rig.host.bring_up(0.2)
     snaps = list(rig.host.snapshots(duration_s=0.3))
     host = rig.host
-    host.aggregator.ingest([Sample(2, (host.counter + jump) & 0xFFFF, 0, 0, 1024, 0)])
+    host.feed.ingest([Sample(2, (host.counter + jump) & 0xFFFF, 0, 0, 1024, 0)])
     snaps += list(rig.host.snapshots(duration_s=1.0))
     assert host.aggregator.stats.stray == 1
     assert sum(not s.complete for s in snaps) <= 1
@@ -162,12 +162,12 @@ def test_foreign_sync_stops_a_driving_host(rigs):
 def test_a_gateway_sync_before_start_is_a_conflict_or_followed(rigs):
     rig = rigs("memory", gateway_sync_hz=50.0)
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"  # as if the user forgot --sync follow
-    rig.host.aggregator.set_trust("sent")
+    rig.host.feed.set_trust("sent")
     with pytest.raises(SyncConflictError, match="--sync follow"):
         rig.host.bring_up(0.2)
     rig2 = rigs("memory", gateway_sync_hz=50.0)
     rig2.host.sync_policy, rig2.host.sync_mode = "auto", "drive"
-    rig2.host.aggregator.set_trust("sent")
+    rig2.host.feed.set_trust("sent")
     rig2.host.bring_up(0.2)
     assert rig2.host.sync_mode == "follow"
     snaps = rig2.stream(1.0)
@@ -181,7 +181,7 @@ def test_a_slow_gateway_sync_is_heard_before_start(rigs, listen_s, caught):
     without the wait (0 s) the conflict surfaces only once streaming. A simulated clock."""
     rig = rigs("memory", gateway_sync_hz=5.0)
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"
-    rig.host.aggregator.set_trust("sent")
+    rig.host.feed.set_trust("sent")
     rig.host.sync_listen_s = listen_s
     if caught:
         with pytest.raises(SyncConflictError, match="another device drives SYNC on this sheet"):
@@ -273,3 +273,20 @@ def test_chips_falling_silent_together_are_one_log_line(rigs, caplog):
     s = rig.host.summary()
     assert [d["link"] for d in s["missing_links"]] == [1, 2, 3, 7]
     assert s["missing_links"][0]["uid"] == f"0x{rig.sheet.uids[1]:016X}"
+
+
+def test_the_bring_up_tells_calibrated_chips_from_nominal_ones(rigs):
+    """A chip with no stored calibration reports the nominal values (docs/protocol.md §4.7): the host
+    reads every chip's calibration, but only those with values of their own count as calibrated (the
+    bring-up line said "364 calibrated" of chips that had none)."""
+    def chip(uid, sensor, **kw):  # every chip with an odd uid carries a factory calibration of its own
+        if uid % 2:
+            kw["calibration"] = ((16, 1000.0), (-8, 1030.0), (0, 1024.0))
+        return ChipModel(uid, sensor, **kw)
+
+    rig = rigs("memory", chip_class=chip)
+    up = rig.host.bring_up(0.2)
+    n = rig.sheet.n_links
+    odd = sum(c.uid % 2 for c in rig.sheet.chips)
+    assert 0 < odd < n and up["calibrated"] == n  # every chip answered CAL_READ
+    assert rig.host.calibration_summary() == {"own": odd, "nominal": n - odd}

@@ -1,8 +1,9 @@
-"""host/slcan.py's buffered SLCAN bus on real ptys, against python-can's own slcan interface: every
-frame delivered whatever the chunking (whole stream, byte by byte, seeded random chunks), parsed as
-python-can parses it; damaged lines counted and skipped with every valid frame around them kept;
-stale input an adapter left in the port drained at open. And `CanTransport`'s batch decode equals
-decoding one frame per call, over python-can's virtual bus."""
+"""host/slcan.py's SLCAN bus (python-can interface ``capsheet_slcan``) on real ptys, against python-can's
+own slcan interface: every frame delivered whatever the chunking (whole stream, byte by byte, seeded
+random chunks), parsed as python-can parses it; damaged lines counted and skipped with every valid
+frame around them kept; stale input an adapter left in the port drained at open; found by name
+through python-can's entry point, from ``can.Bus`` and from a python-can configuration file. And
+`CanTransport`'s batch decode equals decoding one frame per call, over python-can's virtual bus."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ can = pytest.importorskip("can")
 
 from can.interfaces.slcan import slcanBus  # noqa: E402
 
-from host.slcan import MAX_LINE, BufferedSlcanBus  # noqa: E402
+from host.slcan import MAX_LINE, SlcanBus  # noqa: E402
 from host.transport import CanTransport, FrameBlock  # noqa: E402
 from protocol import DecodeError, SampleBatch, to_can  # noqa: E402
 from protocol.can import decode_can, make_id  # noqa: E402
@@ -101,9 +102,9 @@ def receive(bus, master: int, chunks: list[bytes], n_frames: int, timeout_s: flo
     for chunk in chunks:
         os.write(master, chunk)
         end = time.monotonic() + timeout_s
-        while bus.serialPortOrig.in_waiting == 0 and time.monotonic() < end:
+        while bus.in_waiting == 0 and time.monotonic() < end:
             time.sleep(0.0005)
-        while bus.serialPortOrig.in_waiting:
+        while bus.in_waiting:
             out += read(0.0)
     end = time.monotonic() + timeout_s
     while len(out) < n_frames and time.monotonic() < end:
@@ -145,8 +146,8 @@ def same_frames(a: list, b: list) -> bool:
     return len(a) == len(b) and all(x.equals(y, timestamp_delta=None) for x, y in zip(a, b))
 
 
-def open_bus(path: str, **kw) -> BufferedSlcanBus:
-    return BufferedSlcanBus(path, sleep_after_open=0, drain_quiet_s=0.02, **kw)
+def open_bus(path: str, **kw) -> SlcanBus:
+    return SlcanBus(path, sleep_after_open=0, drain_quiet_s=0.02, **kw)
 
 
 def drain_master(master: int) -> None:
@@ -244,7 +245,6 @@ def test_the_can_transport_reports_damaged_slcan_lines_as_transport_errors(pty_p
     master, path = pty_pair
     t = CanTransport(f"slcan:{path}", bitrate=1_000_000, sleep_after_open=0, drain_quiet_s=0.02)
     try:
-        assert isinstance(t._bus, BufferedSlcanBus)
         drain_master(master)
         good = [Sample(k + 1, 4, k, 0, 1024, 0) for k in range(5)]
         os.write(master, b"".join(t_line(s) + DAMAGED[k] for k, s in enumerate(good)) + t_line(Ack(2, MsgType.START, 0)))
@@ -443,3 +443,57 @@ def test_the_slcan_transport_decodes_blocks_as_decode_can_does_frame_by_frame(pt
         assert "SLCAN_BAD_LINE" not in t.stats.errors
     finally:
         t.close()
+
+
+# ------------------------------------------------------------------------- a python-can interface
+
+def test_slcan_bus_implements_python_cans_hooks_and_nothing_else_of_busabc():
+    """A back end implements the documented hooks (python-can: "only override _recv_internal"),
+    never ``recv`` or the filtering: whatever of `can.BusABC` it defines is one of these."""
+    overridden = {name for name in vars(SlcanBus) if name in vars(can.BusABC) and callable(vars(SlcanBus)[name])}
+    assert overridden <= {"__init__", "_recv_internal", "send", "shutdown", "fileno"}
+    assert {"_recv_internal", "send"} <= overridden
+    assert not issubclass(SlcanBus, slcanBus)
+
+
+def test_can_bus_opens_it_by_name_through_the_entry_point(pty_pair):
+    master, path = pty_pair
+    assert can.interfaces.BACKENDS["capsheet_slcan"] == ("host.slcan", "SlcanBus")
+    bus = can.Bus(interface="capsheet_slcan", channel=path, bitrate=1_000_000, sleep_after_open=0, drain_quiet_s=0.02)
+    try:
+        assert isinstance(bus, SlcanBus)
+        os.write(master, t_line(Ack(4, MsgType.START, 0)))
+        m = bus.recv(2.0)
+        assert (m.arbitration_id, bytes(m.data)) == (to_can(Ack(4, MsgType.START, 0)).arbitration_id,
+                                                     to_can(Ack(4, MsgType.START, 0)).data)
+        bus.send(can.Message(arbitration_id=0x1010000, data=b"\x34\x12", is_extended_id=True))
+        time.sleep(0.05)
+        wrote = os.read(master, 4096)
+        assert wrote == b"C\rS8\rO\rT010100002" + b"3412\r"  # bring-up, then the frame, as python-can writes it
+    finally:
+        bus.shutdown()
+
+
+def test_a_python_can_configuration_file_opens_it(pty_pair, tmp_path):
+    """``interface = capsheet_slcan`` in python-can's configuration file (``~/can.conf``): any
+    python-can program opens capsheet's SLCAN bus without naming it in code."""
+    import subprocess
+    import sys
+    master, path = pty_pair
+    (tmp_path / "can.conf").write_text(f"[default]\ninterface = capsheet_slcan\nchannel = {path}\n"
+                                       f"bitrate = 500000\nsleep_after_open = 0\ndrain_quiet_s = 0\n")
+    code = ("import can; b = can.Bus(); print(type(b).__name__, flush=True); m = b.recv(10); "
+            "print(hex(m.arbitration_id), bytes(m.data).hex()); b.shutdown()")
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=dict(os.environ, HOME=str(tmp_path)))
+    try:
+        assert p.stdout.readline().strip() == "SlcanBus", p.stderr.read()
+        os.write(master, t_line(Sample(9, 77, 1, 2, 3, 0)))
+        out, err = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 0, err
+    f = to_can(Sample(9, 77, 1, 2, 3, 0))
+    assert out.split() == [hex(f.arbitration_id), f.data.hex()]
+    assert os.read(master, 4096).startswith(b"C\rS6\rO\r")  # 500 kbit/s from the file

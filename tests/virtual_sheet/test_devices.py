@@ -4,6 +4,7 @@ and, on CAN, with cantools and the DBC. Every device thread is stopped by its fi
 
 from __future__ import annotations
 
+import json
 import os
 import time
 
@@ -347,3 +348,65 @@ def test_two_serial_gateways_share_the_leaders_sync_line():
             np.testing.assert_array_equal(s.counts, expect[first:first + 12])
     assert lead.stats.syncs_generated == len(syncs) and follow.stats.syncs_generated == 0
     assert follow.stats.syncs == lead.stats.syncs
+
+
+def test_a_symlink_path_is_taken_only_when_it_is_free_or_a_stale_one_of_ours(tmp_path, monkeypatch):
+    """`claim_symlink`: a folder is never taken; a file or a foreign symlink only when the caller says
+    so (it is then removed); a symlink a device published is taken over only once its process is
+    gone (a sheet killed with SIGKILL), never while that process runs."""
+    import subprocess
+    import sys
+
+    from virtual_sheet import devices
+    from virtual_sheet.devices import claim_symlink
+
+    monkeypatch.setattr(devices, "SYMLINK_RECORDS", str(tmp_path / "records"))
+    folder, mine, foreign = tmp_path / "folder", tmp_path / "notes.txt", tmp_path / "foreign"
+    folder.mkdir()
+    mine.write_text("mine")
+    os.symlink("/dev/null", foreign)
+    claim_symlink(tmp_path / "free")  # nothing there: fine
+    for path, what in ((folder, "is a folder"), (mine, "is a file"), (foreign, "no capsheet sheet published")):
+        with pytest.raises(FileExistsError, match=what):
+            claim_symlink(path)
+    with pytest.raises(FileExistsError, match="is a folder"):
+        claim_symlink(folder, replace=True)
+    assert mine.read_text() == "mine" and os.readlink(foreign) == "/dev/null"
+    claim_symlink(mine, replace=True)
+    assert not mine.exists()
+    # a published one: recorded with its target and process
+    link = tmp_path / "port"
+    os.symlink("/dev/pts/999", link)
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    devices._write_record(str(link), "/dev/pts/999")
+    rec = devices._read_record(str(link))
+    for pid, ok in ((int(gone.stdout), True), (1, False)):  # its process gone / still running (init)
+        rec["pid"] = pid
+        with open(devices._record_file(str(link)), "w") as fh:
+            json.dump(rec, fh)
+        if ok:
+            claim_symlink(link)  # stale and ours: the device replaces it when it starts
+        else:
+            with pytest.raises(FileExistsError, match="port of a running virtual sheet"):
+                claim_symlink(link)
+    os.unlink(link)
+    os.symlink("/dev/pts/998", link)  # re-pointed by someone else since: not ours any more
+    with pytest.raises(FileExistsError, match="no capsheet sheet published"):
+        claim_symlink(link)
+
+
+def test_a_device_publishes_replaces_its_stale_symlink_and_removes_only_its_own(tmp_path, monkeypatch):
+    from virtual_sheet import devices
+
+    monkeypatch.setattr(devices, "SYMLINK_RECORDS", str(tmp_path / "records"))
+    link = tmp_path / "port"
+    sheet = VirtualSheet("flat", "2x2")
+    dev = PtyDevice(sheet, symlink_path=link)
+    dev.start()
+    try:
+        assert os.readlink(link) == dev.tty and devices._read_record(str(link))["target"] == dev.tty
+    finally:
+        os.unlink(link)
+        os.symlink("/dev/null", link)  # replaced under it: at stop the device leaves it alone
+        dev.stop()
+    assert os.readlink(link) == "/dev/null"

@@ -86,3 +86,45 @@ def test_drape_rejects_invalid_options(bad):
 def test_surfaces_validate_themselves(make):
     with pytest.raises(ValueError, match="Invalid"):
         make()
+
+
+# --- sensor axes from the target (surface_frames) ----------------------------------------------
+
+def test_surface_normals_are_the_surfaces():
+    p = np.array([[0.3, -0.2, 0.5], [0.0, 0.1, -0.4]])
+    np.testing.assert_allclose(Sphere(0.2).normal(p), p / np.linalg.norm(p, axis=1, keepdims=True))
+    n = Cylinder(0.1, axis=(0.0, 1.0, 0.0)).normal(p)
+    radial = p * [1, 0, 1]
+    np.testing.assert_allclose(n, radial / np.linalg.norm(radial, axis=1, keepdims=True))
+    plane = HeightField(lambda x, y: 0.2 * x - 0.5 * y)
+    np.testing.assert_allclose(plane.normal(p), np.tile([-0.2, 0.5, 1.0] / np.sqrt(1.29), (2, 1)),
+                               atol=1e-9)
+
+
+def test_surface_frames_agree_with_the_sheets_normal_where_the_cells_are_exact():
+    from virtual_sheet.drape import surface_frames, surface_readings
+    from virtual_sheet.geometry import ideal_readings
+
+    plane = HeightField(lambda x, y: 0.2 * x - 0.5 * y)
+    P, _ = drape(plane, 6, 6, L, init="flat")
+    np.testing.assert_allclose(surface_readings(P, plane), ideal_readings(P), atol=1e-6)
+    # round a cylinder the cells' mean normal is the surface's inside the sheet; on its edge a
+    # link has one cell and leans by half its bend (L / 2r = 7.2°): the two models differ there
+    c = Cylinder(0.04)
+    P, _ = drape(c, 8, 8, L)
+    F, G = surface_frames(P, c), link_frames(P)
+    np.testing.assert_allclose(F[:, :, 0], G[:, :, 0])  # x: the link
+    np.testing.assert_allclose(np.einsum("nij,nik->njk", F, F), np.tile(np.eye(3), (len(F), 1, 1)),
+                               atol=1e-12)
+    ang = np.degrees(np.arccos(np.clip(np.sum(F[:, :, 2] * G[:, :, 2], axis=1), -1, 1)))
+    e = Lattice(8, 8).endpoints
+    edge = np.all((e // 8 == 0) | (e // 8 == 7) | (e % 8 == 0) | (e % 8 == 7), axis=1)
+    assert ang[~edge].max() < 1e-5 and ang[edge].max() == pytest.approx(np.degrees(L / 0.04 / 2), rel=0.01)
+
+
+def test_surface_frames_need_a_surface_with_normals():
+    from virtual_sheet.drape import surface_frames
+
+    P, _ = drape(Sphere(0.1), 4, 4, L)
+    with pytest.raises(ValueError, match="normal"):
+        surface_frames(P, object())

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..drape import drape
 from ..geometry import chebyshev_net
-from ..shapes import flat_net
+from ..geometry import flat_net
 from .material import FoamLayer, _positive
 from .solver import Deflection
 

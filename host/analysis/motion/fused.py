@@ -1,5 +1,5 @@
 """The fused estimator: the lattice's loops with gyroscopes, accelerometers and magnetometers
-(issue 30). docs/estimator.md §7 gives the model, why it is built this way, and where it fails.
+(issue 30). docs/estimator.md §8 gives the model, why it is built this way, and where it fails.
 
 One `MotionEstimator` per sheet, fed one snapshot at a time (sans-I/O: the snapshot's time is an
 argument, nothing reads a clock)::
@@ -254,7 +254,7 @@ def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
          maxiter: int = 200) -> np.ndarray:
     """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
     its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
-    the filter has settled, so a few iterations suffice (docs/estimator.md §7)."""
+    the filter has settled, so a few iterations suffice (docs/estimator.md §8)."""
     x = np.zeros_like(b)
     r = b.copy()
     z = inv_diag * r

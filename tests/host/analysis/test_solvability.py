@@ -4,16 +4,20 @@ eq. (7)'s λ3/λ1 and the estimator's yaw standard deviation from its normal mat
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from host.cli import paper
 
 
-def test_yaw_std_flags_every_case_2_state_that_lambda_ratio_misses():
+def test_the_yaw_criterion_flags_rank_deficient_units_not_generic_ones():
     res = paper.solvability_grid(8)
+    y = res["yaw_std"]
     n_case2 = 2 * 8 ** 3 + 8 ** 3 - 2 * 8 ** 2  # θc ∈ {0, π} or θf = π, on an 8^4 grid
-    assert res["yaw_std"]["case2"] == n_case2  # all of them
-    assert res["case2"] < n_case2 // 5  # λ3/λ1 < 0.1 finds few (squashed at a generic tilt: no)
-    assert res["yaw_std"]["case1"] == res["case1"] > 0  # both find the horizontal unit
+    assert y["case2"] == n_case2 and res["eq7"]["case2"] < n_case2 // 5
+    assert y["case1"] == res["eq7"]["case1"] > 0  # both find the horizontal unit
+    assert y["other"] < 0.01 * res["n_total"]  # not a share of the generic units
+    gain = res["gain"]
+    assert np.median(gain) < 10 and res["yaw_gain_limit"] == pytest.approx(10 * np.median(gain))
 
 
 def test_yaw_std_gain_of_a_generic_unit_is_small_and_of_a_squashed_one_large():

@@ -118,12 +118,39 @@ def test_without_write_chips_the_chips_are_untouched_and_json_is_alone(tmp_path,
 
 def test_bad_arguments_exit_2_with_one_line(tmp_path):
     res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--poses", "3")
-    assert res.returncode == 2 and "--poses 3: need at least 6" in res.stderr
+    assert res.returncode == 2 and "--poses: invalid value '3': need an integer >= 6" in res.stderr
     assert "Traceback" not in res.stderr
     res = calibrate("--port", "/dev/null")
     assert res.returncode == 2 and "--out" in res.stderr
     res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--lattice", "3by3")
     assert res.returncode == 2 and "Traceback" not in res.stderr
+
+
+
+def test_a_sheet_over_the_bus_capacity_is_one_line_with_a_way_past_it(tmp_path):
+    """The --help example without --baud: 364 chips at 100 Hz over a 3 Mbaud UART. One line, exit 2,
+    the remedy for what is set (--packed, more gateways, --baud, a lower --rate) and --ignore-capacity
+    (it was a CapacityError traceback, and calibrate had no way past it but --baud); nothing written."""
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+
+    sheet = VirtualSheet("board", "14x14", seed=2)
+    layout = sheet.write_layout(tmp_path / "sheet.csv")
+    with PtyDevice(sheet) as dev:
+        res = calibrate("--port", dev.path, "--layout", str(layout), "--out", str(tmp_path / "cal.json"),
+                        "--timeout", "5", "--discover-s", "0.2")
+        assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr
+        line = [ln for ln in res.stderr.splitlines() if "over capacity" in ln]
+        # 364 SAMPLE frames of 15 B (10 bits a byte on the UART) per SYNC: 54.6 kbit, and the SYNC: a
+        # 3 Mbaud UART carries 54 a second, 182 % of it at 100 Hz
+        assert len(line) == 1 and "182 %" in line[0] and "--rate 54 or lower" in line[0], res.stderr
+        assert "--baud" in line[0] and "--packed" in line[0]
+        assert "--ignore-capacity" in line[0]
+        assert not (tmp_path / "cal.json").exists()
+        # past it: the poses stream at the rate asked for (here none is held still: timed out, exit 1)
+        res = calibrate("--port", dev.path, "--layout", str(layout), "--out", str(tmp_path / "cal.json"),
+                        "--timeout", "1", "--discover-s", "0.2", "--ignore-capacity", "-q")
+        assert res.returncode == 1 and "timed out" in res.stderr and "Traceback" not in res.stderr, res.stderr
 
 
 def capsheet(*argv, timeout=120):

@@ -52,3 +52,28 @@ def test_demo_refuses_bad_options_with_one_line_and_status_2():
         out = _demo(*args, timeout=60)
         assert out.returncode == 2, (args, out.stderr)
         assert "Traceback" not in out.stderr and out.stderr.strip().count("\n") == 0, out.stderr
+
+
+def test_over_capacity_the_remedy_fits_what_is_set():
+    """32x32 packed at 145 Hz is over one 12 Mbaud gateway: one line, exit 2, before anything starts,
+    and the remedy names what helps with --packed already given (it said "use --packed")."""
+    out = _demo("--lattice", "32x32", "--packed", "--rate", "145", timeout=60)
+    assert out.returncode == 2 and out.stderr.strip().count("\n") == 0, out.stderr
+    line = out.stderr.strip()
+    assert "--gateways 2" in line and "--packed" not in line.split(";", 1)[1], line
+    out = _demo("--lattice", "32x32", "--rate", "145", timeout=60)  # per-chip: packing needs 2 gateways too
+    assert out.returncode == 2 and "--packed --gateways 2" in out.stderr and "--gateways 4" in out.stderr, out.stderr
+
+
+def test_demo_runs_a_sheet_behind_two_gateways(tmp_path):
+    """--gateways N: the sheet behind N serial gateways (each its own pty and block of links), merged
+    by the host into one lattice; the summary gives the estimates per second beside the SYNC rate."""
+    out = _demo("--lattice", "8x8", "--gateways", "2", "--packed", "--duration", "2", "--rate", "30",
+                "--out", str(tmp_path / "d.png"), "--json")
+    assert out.returncode in (0, 1), out.stderr
+    result = json.loads(out.stdout)
+    assert "2 serial gateways" in out.stderr and "112 chips discovered, 112 assigned" in out.stderr, out.stderr
+    assert result["gateways"] == 2 and result["syncs_sent"] > 0 and result["estimates"] >= 1
+    assert result["estimates_per_s"] > 0 and result["syncs_per_s"] > 0
+    verdict = [ln for ln in out.stderr.splitlines() if ln.startswith(("capsheet demo: PASS", "capsheet demo: FAIL"))]
+    assert len(verdict) == 1 and "SYNC at 30 Hz" in verdict[0] and "shape estimated" in verdict[0], verdict

@@ -83,62 +83,101 @@ def test_gaussian_figure_is_in_cm_with_a_legend_per_panel(gaussian, tmp_path):
         assert "seed 2008" in fig._suptitle.get_text() and "L = 1 cm" in fig._suptitle.get_text()
     finally:
         plt.close(fig)
-
-
-def _rows():
-    rows = []
-    for level, base in ((0.0, 1e-13), (1.0, 0.1), (5.0, 0.6)):
-        row = {"noise_pct_g": level}
-        for k, m in enumerate(("global", "paper")):
-            f = 1 + 30 * k
-            row[m] = {"mean_pct": base * f * 1.1, "std_pct": base * f * 2.0, "p05_pct": base * f * 0.3,
-                      "p50_pct": base * f, "p95_pct": base * f * 2.5, "time_ms": 1.0 + 400 * k}
-        rows.append(row)
-    return rows
-
-
-def test_noise_figure_has_log_axes_percentile_bars_and_the_timing(tmp_path):
-    rows = _rows()
-    fig = figures.noise_figure(tmp_path / "n.png", rows, ("global", "paper"), shape="gaussian", side_joints=14,
-                               trials=10, seed=2008)
-    try:
-        ax, axt = fig.axes
-        assert ax.get_yscale() == "log" and axt.get_yscale() == "log"  # not symlog
-        fig.canvas.draw()
-        labels = [t.get_text() for t in ax.get_yticklabels()]
-        assert not [s for s in labels if s.startswith("−") or s.startswith("-")]  # no negative ticks
-        assert ax.get_ylim()[0] > 0
-        assert sorted(_legend(ax)) == sorted(["global: median, 5-95 % bar", "global: mean",
-                                              "paper: median, 5-95 % bar", "paper: mean",
-                                              "paper's failure line (5 %)"])
-        assert _legend(axt) == ["global: median time", "paper: median time"]
-        assert (ax.get_ylabel(), axt.get_ylabel()) == ("joint error [% of side]", "time per snapshot [ms]")
-        # the bars span the 5th..95th percentiles, the zero-noise error drawn at the stated floor
-        bars = ax.containers[0]
-        segs = bars.lines[2][0].get_segments()
-        np.testing.assert_allclose([s[:, 1] for s in segs][1], [0.1 * 0.3, 0.1 * 2.5])
-        np.testing.assert_allclose(bars.lines[0].get_ydata()[0], figures.ERROR_FLOOR_PCT)
-        assert axt.lines[1].get_ydata().tolist() == [401.0] * 3
-        assert "14x14" in fig._suptitle.get_text() and "10 trials" in fig._suptitle.get_text()
+    fig = figures.gaussian_figure(tmp_path / "g.png", gaussian, ests, {"global": 0.1, "paper": 3.8},
+                                  shape="fig9", noise_pct_g=0.0, seed=2008, link_length=L,
+                                  caption="Paper, Fig. 9: ...\nHere: a Gaussian, A = σ = S/4")
+    try:  # the paper's description of its figure beside what is drawn, clear of the panels
+        text = fig.texts[-1]
+        assert "Paper, Fig. 9" in text.get_text() and "A = σ = S/4" in text.get_text()
+        assert _bbox(fig, text).y1 < min(_bbox(fig, ax.xaxis.label).y0 for ax in fig.axes)
     finally:
         plt.close(fig)
 
 
-def test_estimate_run_figure_labels_residual_completeness_and_shape(gaussian, tmp_path):
+def _results():
+    rows = []
+    for level, base in ((0.0, 0.0), (1.0, 0.1), (5.0, 0.6)):
+        row = {"noise_pct_g": level}
+        for k, m in enumerate(("global", "paper")):
+            f = 1 + 30 * k
+            row[m] = {"mean_pct": base * f * 1.1, "std_pct": base * f * 0.5, "time_ms": 1.0 + 400 * k}
+        rows.append(row)
+    sv = np.full((13, 13), 0.4)
+    sv[0, 0], sv[6, 7] = 0.05, 0.08
+    flat = {"map": sv.tolist(), "below_0_1": 2, "units": 169}
+    tilted = {"map": np.full((13, 13), 0.7).tolist(), "below_0_1": 0, "units": 169}
+    return {"fig9": {"rows": rows, "solvability": flat, "works_up_to_pct_g": {"paper": 1.0}},
+            "fig9-tilted": {"rows": rows, "solvability": tilted, "works_up_to_pct_g": {"paper": None}}}
+
+
+def test_noise_figure_draws_mean_and_std_as_the_paper_with_its_failure_line_and_the_units(tmp_path):
+    res = _results()
+    fig = figures.noise_figure(tmp_path / "n.png", res, ("global", "paper"), trials=10, seed=2008,
+                               side_joints=14)
+    try:
+        err_axes = [a for a in fig.axes if a.get_ylabel() == "joint error [% of side]"]
+        map_axes = [a for a in fig.axes if a.get_ylabel() == "unit i"]
+        assert len(err_axes) == 2 and len(map_axes) == 2
+        ax = err_axes[0]
+        assert ax.get_yscale() == "linear" and ax.get_ylim()[0] == 0  # as Fig. 10
+        assert sorted(_legend(ax)) == sorted(["global (capsheet): mean ± std", "paper's method: mean ± std",
+                                              "paper's failure line (5 % of side)"])
+        line = [ln for ln in ax.lines if ln.get_label().startswith("paper's failure")][0]
+        assert line.get_ydata()[0] == 5.0
+        paper_bars = ax.containers[1]  # dots at the mean, bars mean ± std
+        np.testing.assert_allclose(paper_bars.lines[0].get_ydata(), [0.0, 3.41, 20.46])
+        segs = paper_bars.lines[2][0].get_segments()
+        np.testing.assert_allclose(segs[2][:, 1], [20.46 - 9.3, 20.46 + 9.3])
+        assert ax.get_ylim()[1] >= 20.46 + 9.3  # nothing clipped
+        assert "up to 1 % g" in ax.get_title() and "no level" in err_axes[1].get_title()
+        # the units' λ3/λ1: the data, the unsolvable ones marked, one colour scale for both maps
+        im = map_axes[0].images[0]
+        assert np.asarray(im.get_array())[0, 0] == pytest.approx(0.05)
+        marks = [ln for ln in map_axes[0].lines if ln.get_label().startswith("λ3/λ1 < 0.1")][0]
+        assert sorted(zip(marks.get_xdata(), marks.get_ydata())) == [(0, 0), (7, 6)]
+        assert im.get_clim() == map_axes[1].images[0].get_clim()
+        assert "2 of 169 below 0.1" in map_axes[0].get_title()
+        assert "14x14" in fig._suptitle.get_text() and "10 trials" in fig._suptitle.get_text()
+    finally:
+        plt.close(fig)
+    assert (tmp_path / "n.png").stat().st_size > 30_000
+    one = {"fig9": res["fig9"]}  # one target, one column: the title still fits the figure
+    fig = figures.noise_figure(tmp_path / "n1.png", one, ("global", "paper"), trials=10, seed=2008,
+                               side_joints=14)
+    try:
+        box, width = _bbox(fig, fig._suptitle), fig.get_figwidth() * fig.dpi
+        assert box.x0 >= 0 and box.x1 <= width
+    finally:
+        plt.close(fig)
+
+
+@pytest.mark.parametrize("spread", [2.0, 1000.0])
+def test_estimate_run_figure_labels_misfit_completeness_and_shape(gaussian, tmp_path, spread):
+    """The misfit is in % of a link length per unit (a reader can picture it), on an axis with
+    readable ticks: linear over a narrow range, a log axis with 1-2-5 ticks written as plain numbers
+    over a wide one (the residual's log axis had two labels, 2e-1 and 4e-1)."""
     lat = Lattice(14, 14)
     n = 20
     t = np.arange(n) / 145
-    residual = np.linspace(1e-6, 1e-3, n)
+    residual = np.linspace(1e-3, spread * 1e-3, n)
     valid = np.ones((n, lat.n_links), bool)
     valid[5, :10] = False
     joints = np.repeat(gaussian[None], n, axis=0)
     fig = figures.estimate_run_figure(tmp_path / "e.png", t, residual, valid, joints, lat, L, title="run x")
     try:
+        fig.canvas.draw()
         ax = fig.axes[0]
         ax3 = [a for a in fig.axes if a.name == "3d"][0]
         ax2 = [a for a in fig.axes if a is not ax and a is not ax3][0]
-        assert _legend(ax) == ["eq. (8) residual", "links valid"]
-        assert ax.get_yscale() == "log" and ax.get_xlabel() == "time [s]"
+        assert _legend(ax) == ["eq. (8) misfit per unit, RMS", "links valid"]
+        assert ax.get_ylabel() == "misfit per unit, RMS [% of a link length]" and ax.get_xlabel() == "time [s]"
+        # snapshot 0: every one of the 13 x 13 units valid; the figure shows 100 sqrt(residual / 169)
+        np.testing.assert_allclose(ax.lines[0].get_ydata()[0], 100 * np.sqrt(1e-3 / 169))
+        lo, hi = ax.get_ylim()
+        shown = [tk for tk in ax.get_yticklabels() if lo <= tk.get_position()[1] <= hi and tk.get_text()]
+        assert len(shown) >= 3, [tk.get_text() for tk in shown]
+        assert all("$" not in tk.get_text() and "^" not in tk.get_text() for tk in shown)
+        assert ax.get_yscale() == ("log" if spread > 30 else "linear")
         assert ax3.get_zlabel() == "z [cm]" and _legend(ax3) == ["estimate, snapshot 19"]
         line = [ln for ln in ax2.lines if ln.get_label() == "links valid"][0]
         assert line.get_ydata().min() == pytest.approx(100 * (lat.n_links - 10) / lat.n_links)

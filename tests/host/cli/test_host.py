@@ -63,16 +63,10 @@ class Virtual:
 
 @pytest.fixture
 def udp_bus_lock():
-    """python-can's udp_multicast buses share one UDP port, and on Linux every socket on it hears
-    every group: two tests on it at once (pytest -n 2, or another checkout's suite on this machine)
-    hear each other's RESET and SYNC. One at a time, machine-wide (a file lock)."""
-    import fcntl
-    with open(os.path.join("/tmp", "capsheet-udp-multicast-tests.lock"), "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    """One udp_multicast test on this machine at a time (tests/host/udp_lock.py says why)."""
+    from tests.host.udp_lock import udp_multicast_lock
+    with udp_multicast_lock():
+        yield
 
 
 @pytest.fixture
@@ -102,7 +96,8 @@ def host(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
 def host_json(*args: str, timeout_s: float = 120) -> tuple[subprocess.CompletedProcess, dict]:
     out = host(*args, "--json", "-q", timeout_s=timeout_s)
     assert "Traceback" not in out.stderr, out.stderr
-    doc = json.loads(out.stdout)  # JSON alone on stdout
+    assert out.stdout.strip(), (out.returncode, out.stderr)  # JSON alone on stdout
+    doc = json.loads(out.stdout)
     return out, doc
 
 
@@ -158,20 +153,20 @@ def _bad_layouts(tmp: Path) -> dict:
         ("--layout", str(tmp / "truncated.json")): "not valid JSON",
         ("--layout", str(tmp / "types.json")): "uid must be a hex string",
         ("--layout", str(tmp / "binary.csv")): "binary data",
-        ("--layout", str(tmp / "missing.csv")): "cannot read layout file",
+        ("--layout", str(tmp / "missing.csv")): "--layout: invalid value",
         ("--layout", str(tmp / "beyond.csv")): "beyond lattice 14x14 (364 links), e.g. uid 0x0000000000000002 on link 400",
         ("--layout", str(tmp / "small.json"), "--lattice", "14x14"): "the layout",
     }
 
 
 def test_every_bad_value_is_one_line_and_exit_2(tmp_path):
-    cases = {("--lattice", "14by14"): "Invalid lattice size '14by14'",
-             ("--rate", "0"): "invalid rate '0'", ("--rate", "nan"): "invalid rate 'nan'",
-             ("--rate", "-3"): "invalid rate '-3'", ("--rate", "inf"): "invalid rate 'inf'",
-             ("--duration", "0"): "need > 0", ("--min-complete", "101"): "need 0..100",
-             ("--sync", "sometimes"): "invalid choice", ("--discover-s", "x"): "not a number",
-             ("--baud", "-1"): "invalid value '-1': need > 0", ("--bitrate", "abc"): "need an integer",
-             ("--lattice", "300x300"): "node ids cover at most 32767"}
+    cases = {("--lattice", "14by14"): "--lattice: invalid value '14by14'",
+             ("--rate", "0"): "--rate: invalid value '0'", ("--rate", "nan"): "--rate: invalid value 'nan'",
+             ("--rate", "-3"): "--rate: invalid value '-3'", ("--rate", "inf"): "--rate: invalid value 'inf'",
+             ("--duration", "0"): "need a number > 0", ("--min-complete", "101"): "need a number >= 0 and <= 100 %",
+             ("--sync", "sometimes"): "invalid choice", ("--discover-s", "x"): "--discover-s: invalid value 'x'",
+             ("--baud", "-1"): "invalid value '-1': need an integer >= 1", ("--bitrate", "abc"): "need an integer",
+             ("--lattice", "300x300"): "a sheet has at most 32,767"}
     cases.update(_bad_layouts(tmp_path))
     for args, needle in cases.items():
         out = host("--port", str(tmp_path / "no-such-port"), *args)
@@ -183,15 +178,22 @@ def test_every_bad_value_is_one_line_and_exit_2(tmp_path):
     assert "--lattice 14x14 but the layout" in out.stderr and "is for 2x2" in out.stderr
 
 
-def test_no_chip_is_exit_1(tmp_path):
-    """A port where nothing answers: 'no chip answered', exit 1 (was 0 % complete and exit 0)."""
+@pytest.mark.parametrize("layout", [False, True])
+def test_no_chip_is_exit_1(tmp_path, layout):
+    """A port where nothing answers: 'no chip answered', exit 1 (was 0 % complete and exit 0). With a
+    layout too: the port is named, not the layout (was "12 layout chip(s) never answered ... check
+    the layout file", exit 2)."""
+    lay = tmp_path / "sheet.csv"
+    lay.write_text("uid,link\n" + "".join(f"0x{0x1000 + k:X},{k}\n" for k in range(12)))
     master, slave = os.openpty()
     try:
-        out = host("--port", os.ttyname(slave), "--auto-assign", "--discover-s", "0.2", "--lattice", "3x3")
+        out = host("--port", os.ttyname(slave), *(["--layout", str(lay)] if layout else ["--auto-assign"]),
+                   "--discover-s", "0.2", "--lattice", "3x3")
     finally:
         os.close(master)
         os.close(slave)
     assert out.returncode == 1 and "no chip answered" in out.stderr, out.stderr
+    assert "never answered" not in out.stderr and "check the layout" not in out.stderr, out.stderr
 
 
 # -- bring-up from any state ---------------------------------------------------------------------
@@ -210,7 +212,7 @@ def test_host_killed_mid_stream_and_restarted_gets_every_chip(virtuals, tmp_path
         p.stdout.close()
         out, doc = host_json(*v.host_cmd, "--duration", "1.5")
         assert out.returncode == 0, out.stderr
-        assert "60 chips found, 60 assigned, 60 configured, 60 calibrated, 60 started" in out.stderr
+        assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr
         s = doc["summary"]
         assert s["valid_links_pct"] >= 95.0 and s["snapshots"] > 0 and not s["errors"], s
     assert v.p.poll() is None  # the sheet kept running through both
@@ -226,7 +228,7 @@ def test_three_sessions_in_a_row(virtuals, tmp_path, transport):
         # --min-complete 0, and the data must merely flow
         out, doc = host_json(*v.host_cmd, "--duration", "1.5", "--min-complete", "0")
         assert out.returncode == 0, (session, out.stderr)
-        assert "24 chips found, 24 assigned, 24 configured, 24 calibrated, 24 started" in out.stderr, (session, out.stderr)
+        assert "24 chips found, 24 assigned, 24 configured, 0 calibrated (24 nominal: no calibration of their own), 24 started" in out.stderr, (session, out.stderr)
         s = doc["summary"]
         assert s["snapshots"] > 0 and s["valid_links_pct"] > 0 and s["complete_snapshots"] > 0, (session, s)
         assert not s["errors"], (session, s)
@@ -272,7 +274,13 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
 
 def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_path):
     """The sheet dies without cleaning up (SIGKILL) and its path now leads to another device that
-    answers nothing like a sheet: reported as such, exit 1 (was: 'reconnect' and SYNC written into it)."""
+    answers nothing like a sheet: reported as such, exit 1 (was: 'reconnect' and SYNC written into it),
+    and nothing but the question "who are you" (GET_INFO) is written into that device."""
+    import select
+
+    from protocol.framing import StreamDecoder
+    from protocol.messages import GetInfo
+
     lay, port = tmp_path / "sheet.csv", tmp_path / "sheet"
     a = virtuals("--lattice", "3x3", "--symlink", str(port), "--layout-out", str(lay))
     p = popen_host(*a.host_cmd, "--duration", "8", "--json", "-q")
@@ -281,12 +289,17 @@ def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_
     a.stop(signal.SIGKILL)
     assert port.is_symlink()  # SIGKILL cannot be caught: the stale symlink stays
     master, slave = os.openpty()  # "whatever process next owns" the path: it babbles text
+    import tty
+    tty.setraw(slave)
     stop = threading.Event()
+    written = bytearray()  # what the host wrote into that other device
 
     def babble():
         while not stop.is_set():
             try:
                 os.write(master, b"AT OK\r\n")
+                while select.select([master], [], [], 0)[0]:
+                    written.extend(os.read(master, 4096))
             except OSError:
                 pass
             time.sleep(0.05)
@@ -305,6 +318,9 @@ def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_
     s = json.loads(out)["summary"]
     assert p.returncode == 1
     assert s["not_a_sheet"] and "answers nothing like a sheet" in s["not_a_sheet"][0], s
+    sent = StreamDecoder().feed(bytes(written))
+    assert sent and all(isinstance(m, GetInfo) for m in sent), [type(m).__name__ for m in sent][:20]
+    assert len(sent) <= 6 and s["muted_sends"] > 0, (len(sent), s["muted_sends"])  # SYNC held back, counted
 
 
 # -- one SYNC source ------------------------------------------------------------------------------
@@ -550,7 +566,7 @@ def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
         assert "--sync" in v.host_cmd and "follow" in v.host_cmd and "--packed" in v.host_cmd
     out, doc = host_json(*v.host_cmd, "--duration", "3", "--record", str(rec_path), "--live-rate", "1")
     assert out.returncode == 0, out.stderr
-    assert "60 chips found, 60 assigned, 60 configured, 60 calibrated, 60 started" in out.stderr, out.stderr
+    assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr, out.stderr
     assert [b["name"] for b in doc["buses"]] == paths
     # 6x6 joints: 60 links; gateway 0 holds links 0..29, gateway 1 links 30..59
     uids = {c["link"]: c["uid"].lower() for c in json.loads(lay.read_text())["chips"]}
@@ -592,7 +608,7 @@ def test_a_port_given_twice_and_gateways_usage_are_exit_2(virtuals, tmp_path):
     assert out.returncode == 2 and "not both" in out.stderr, out.stderr
     for args, needle in ((["--transport", "slcan", "--gateways", "2"], "--gateways is for --transport pty"),
                          (["--lattice", "2x2", "--gateways", "5"], "need 1..4"),
-                         (["--gateways", "0"], "need > 0")):
+                         (["--gateways", "0"], "--gateways: invalid value '0': need an integer >= 1")):
         p = subprocess.run(CLI + ["virtual", *args, "--duration", "1"], capture_output=True, text=True, timeout=60,
                            env=ENV)
         assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr, (args, p.stderr)

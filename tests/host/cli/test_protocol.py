@@ -52,10 +52,10 @@ def test_capacity_for_a_lattice_says_how_many_buses_of_each_kind():
 def test_bad_values_are_one_line_errors_with_exit_2():
     for args, needle in ((("decode", "zz"), "invalid hex 'zz'"),
                          (("decode", "00", "--can-id", "xyz"), "invalid --can-id 'xyz'"),
-                         (("capacity", "--rate", "0"), "invalid rate '0'"),
-                         (("capacity", "--rate", "nan"), "invalid rate 'nan'"),
-                         (("capacity", "--rate", "-5"), "invalid rate '-5'"),
-                         (("capacity", "--lattice", "14by14"), "Invalid lattice size '14by14'")):
+                         (("capacity", "--rate", "0"), "--rate: invalid value '0': need a number > 0"),
+                         (("capacity", "--rate", "nan"), "--rate: invalid value 'nan'"),
+                         (("capacity", "--rate", "-5"), "--rate: invalid value '-5'"),
+                         (("capacity", "--lattice", "14by14"), "--lattice: invalid value '14by14': need ROWSxCOLS")):
         out = run(*args)
         assert out.returncode == 2, (args, out.stderr)
         assert needle in out.stderr and "Traceback" not in out.stderr, (args, out.stderr)

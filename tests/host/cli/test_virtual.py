@@ -1,9 +1,10 @@
 """``capsheet virtual`` through the real CLI (issue 12): it removes its symlinks on every exit it can
-catch, prints the exact host command that works, and checks its own traffic against the link's
-capacity."""
+catch, replaces only a stale symlink of its own (issue 28), prints the exact host command that works,
+and checks its own traffic against the link's capacity."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 
@@ -25,6 +26,41 @@ def test_the_symlink_goes_with_the_sheet(tmp_path, transport, sig):
         v.stop(signal.SIGKILL)
 
 
+def test_only_a_stale_symlink_of_its_own_is_replaced(tmp_path):
+    """A sheet killed with SIGKILL leaves its symlink: the next sheet on that path takes it over. A
+    running sheet's symlink, someone's file, or a symlink no sheet made are not touched (exit 2, one
+    line), unless --overwrite says so (never a folder)."""
+    link = tmp_path / "port"
+    a = Virtual("--lattice", "3x3", "--symlink", str(link))
+    try:
+        first = os.readlink(link)
+        busy = subprocess.run(CLI + ["virtual", "--lattice", "3x3", "--symlink", str(link), "--duration", "1"],
+                              capture_output=True, text=True, timeout=60, env=ENV)
+        assert busy.returncode == 2 and "port of a running virtual sheet" in busy.stderr, busy.stderr
+        assert os.readlink(link) == first
+        a.stop(signal.SIGKILL)
+        assert os.readlink(link) == first  # SIGKILL: nothing could clean up
+        b = Virtual("--lattice", "3x3", "--symlink", str(link))  # ours and stale: replaced
+        assert b.p.poll() is None and link.is_symlink()  # it started on the path the killed one left
+        assert b.stop() == 0 and not link.is_symlink()
+    finally:
+        a.stop(signal.SIGKILL)
+    os.symlink("/dev/null", link)  # a symlink nobody's sheet made
+    mine = tmp_path / "notes.txt"
+    mine.write_text("mine")
+    for path, what in ((link, "a symlink to /dev/null that no capsheet sheet published"), (mine, "a file")):
+        out = subprocess.run(CLI + ["virtual", "--lattice", "3x3", "--symlink", str(path), "--duration", "1"],
+                             capture_output=True, text=True, timeout=60, env=ENV)
+        assert out.returncode == 2 and what in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert os.readlink(link) == "/dev/null" and mine.read_text() == "mine"
+    c = Virtual("--lattice", "3x3", "--symlink", str(mine), "--overwrite")  # said so: replaced
+    try:
+        assert mine.is_symlink()
+    finally:
+        assert c.stop() == 0
+    assert not mine.exists()
+
+
 def test_the_printed_host_command_carries_what_the_sheet_needs(tmp_path):
     v = Virtual("--lattice", "4x4", "--transport", "slcan", "--bus-count", "2", "--fd", "--packed",
                 "--rate", "50", "--symlink", str(tmp_path / "can"), "--layout-out", str(tmp_path / "s.json"))
@@ -35,6 +71,14 @@ def test_the_printed_host_command_carries_what_the_sheet_needs(tmp_path):
             assert flag in cmd
         assert cmd[cmd.index("--sync") + 1] == "follow" and cmd[cmd.index("--layout") + 1] == str(tmp_path / "s.json")
         assert cmd[cmd.index("--lattice") + 1] == "4x4" and cmd[cmd.index("--bitrate") + 1] == "1000000"
+        assert cmd[cmd.index("--rate") + 1] == "50"  # the sheet's own SYNC rate, which the host follows
+    finally:
+        v.stop()
+    # without --rate the host drives SYNC: the command says at what rate (the paper's where it fits)
+    v = Virtual("--lattice", "4x4", "--symlink", str(tmp_path / "serial"))
+    try:
+        cmd = v.host_cmd
+        assert cmd[cmd.index("--rate") + 1] == "145" and "--sync" not in cmd
     finally:
         v.stop()
 
@@ -55,9 +99,10 @@ def test_its_own_traffic_over_capacity_is_refused(tmp_path):
     assert "capacity: this link carries this sheet's traffic up to 143 Hz" in out.stdout
 
 
-@pytest.mark.parametrize("args,needle", [(("--rate", "0"), "invalid rate '0'"), (("--rate", "nan"), "invalid rate"),
-                                         (("--lattice", "14by14"), "Invalid lattice size"),
-                                         (("--baud", "0"), "need > 0")])
+@pytest.mark.parametrize("args,needle", [(("--rate", "0"), "--rate: invalid value '0'"),
+                                         (("--rate", "nan"), "--rate: invalid value 'nan'"),
+                                         (("--lattice", "14by14"), "--lattice: invalid value '14by14'"),
+                                         (("--baud", "0"), "need an integer >= 1")])
 def test_bad_values_are_one_line_errors(args, needle):
     out = subprocess.run(CLI + ["virtual", "--transport", "memory", "--duration", "0.1", *args],
                          capture_output=True, text=True, timeout=60, env=ENV)

@@ -165,8 +165,10 @@ def test_list_and_usage_errors(capsys):
     assert "Cannot open serial port" in capsys.readouterr().err
     assert main(["conformance", "--port", "loop://", "--only", "99"]) == 2
     assert "there is no check 99" in capsys.readouterr().err
-    assert main(["conformance", "--port", "loop://", "--node", "0x8000"]) == 2
-    assert "Invalid --node" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:  # a usage error, from the argument's type: one line, exit 2
+        main(["conformance", "--port", "loop://", "--node", "0x8000"])
+    assert exc.value.code == 2
+    assert "--node: invalid value '0x8000': need an assigned node id >= 1 and <= 32767" in capsys.readouterr().err
 
 
 def test_the_cli_exits_non_zero_on_a_failing_chip(capsys):

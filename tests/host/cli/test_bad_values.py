@@ -1,0 +1,167 @@
+"""Every subcommand, through its real command line (a subprocess with a timeout): a bad value is
+ONE short line on stderr that names the option, exit status 2, no traceback, no hang, nothing
+written, nothing started.
+
+The table is what a careless hand types: sizes no memory or bus holds, zero and negative lengths,
+durations and rates, paths whose folder is missing or that name a folder, files that exist and would
+be lost, an output that is the command's own input."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+CLI = [sys.executable, "-m", "host.cli"]
+#: a bad value must be refused well within this (a hang or a 3 GB allocation took 25 s and more)
+TIMEOUT_S = 60
+#: "one short line": what a terminal shows without wrapping much
+MAX_LINE = 240
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    """``{name: path}`` of files a case refers to (by ``{name}`` in its arguments)."""
+    d = tmp_path_factory.mktemp("bad-values")
+    made = {"dir": d / "a-folder", "mcap": d / "precious.mcap", "csv": d / "precious.csv",
+            "json": d / "precious.json", "npz": d / "precious.npz", "txt": d / "notes.txt",
+            "log": d / "precious.log"}
+    made["dir"].mkdir()
+    for k, p in made.items():
+        if k != "dir":
+            p.write_bytes(b"mine, not yours\n")
+    made["under_file"] = made["txt"] / "x"  # a path whose "folder" is a regular file
+    made["nodir"] = d / "no-such-folder" / "x"
+    return {k: str(v) for k, v in made.items()}
+
+
+#: (subcommand and arguments, the option the line must name). ``{name}`` is a `files` path.
+CASES = [
+    # -- demo: sizes, lengths, rates, durations, outputs, capacity (post-parse, still exit 2) --
+    (["demo", "--lattice", "1000000x2"], "--lattice"),
+    (["demo", "--lattice", "200x200"], "--lattice"),
+    (["demo", "--lattice", "1x5"], "--lattice"),
+    (["demo", "--link-length", "0"], "--link-length"),
+    (["demo", "--link-length", "-1"], "--link-length"),
+    (["demo", "--link-length", "nan"], "--link-length"),
+    (["demo", "--rate", "0"], "--rate"),
+    (["demo", "--rate", "inf"], "--rate"),
+    (["demo", "--duration", "-1"], "--duration"),
+    (["demo", "--noise", "-1"], "--noise"),
+    (["demo", "--min-complete", "101"], "--min-complete"),
+    (["demo", "--seed", "-1"], "--seed"),
+    (["demo", "--gateways", "0"], "--gateways"),
+    (["demo", "--out", "{under_file}.png"], "--out"),
+    (["demo", "--out", "demo.txt"], "--out"),
+    (["demo", "--record", "{mcap}"], "--record"),
+    (["demo", "--record", "{nodir}.mcap"], "--record"),
+    (["demo", "--live", "70000"], "--live"),
+    (["demo", "--calibration", "{nodir}.json"], "--calibration"),
+    (["demo", "--lattice", "32x32", "--packed", "--rate", "1000"], "--rate"),
+    # -- virtual --
+    (["virtual", "--lattice", "1000000x2"], "--lattice"),
+    (["virtual", "--link-length", "0"], "--link-length"),
+    (["virtual", "--duration", "-1"], "--duration"),
+    (["virtual", "--rate", "0"], "--rate"),
+    (["virtual", "--noise", "-1"], "--noise"),
+    (["virtual", "--bus-count", "0"], "--bus-count"),
+    (["virtual", "--gateways", "0"], "--gateways"),
+    (["virtual", "--seed", "-1"], "--seed"),
+    (["virtual", "--layout-out", "{nodir}.csv"], "--layout-out"),
+    (["virtual", "--layout-out", "layout.txt"], "--layout-out"),
+    (["virtual", "--transport", "memory", "--layout-out", "{csv}"], "--layout-out"),
+    (["virtual", "--symlink", "{dir}"], "--symlink"),
+    (["virtual", "--symlink", "{txt}"], "--symlink"),
+    (["virtual", "--symlink", "{nodir}"], "--symlink"),
+    # -- host --
+    (["host", "--port", "/dev/null", "--lattice", "200x200"], "--lattice"),
+    (["host", "--port", "/dev/null", "--rate", "0"], "--rate"),
+    (["host", "--port", "/dev/null", "--duration", "-1"], "--duration"),
+    (["host", "--port", "/dev/null", "--link-length", "0"], "--link-length"),
+    (["host", "--port", "/dev/null", "--record", "{mcap}"], "--record"),
+    (["host", "--can", "virtual:x", "--can-log", "{log}"], "--can-log"),
+    (["host", "--port", "/dev/null", "--layout", "{nodir}.csv"], "--layout"),
+    (["host", "--port", "/dev/null", "--baud", "0"], "--baud"),
+    # -- calibrate: the output is checked before any pose is asked for --
+    (["calibrate", "--port", "/dev/null", "--out", "{nodir}.json"], "--out"),
+    (["calibrate", "--port", "/dev/null", "--out", "{json}"], "--out"),
+    (["calibrate", "--port", "/dev/null", "--out", "cal.txt"], "--out"),
+    (["calibrate", "--port", "/dev/null", "--out", "{dir}"], "--out"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--lattice", "200x200"], "--lattice"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--samples", "0"], "--samples"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--rate", "-3"], "--rate"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--timeout", "0"], "--timeout"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--gravity", "0"], "--gravity"),
+    # -- tactile --
+    (["tactile", "--duration", "-1"], "--duration"),
+    (["tactile", "--lattice", "1000000x2"], "--lattice"),
+    (["tactile", "--link-length", "0"], "--link-length"),
+    (["tactile", "--thickness", "0"], "--thickness"),
+    (["tactile", "--poisson", "0.7"], "--poisson"),
+    (["tactile", "--snapshot-rate", "0"], "--snapshot-rate"),
+    (["tactile", "--out", "heat.txt"], "--out"),
+    (["tactile", "--record", "{mcap}"], "--record"),
+    # -- replay and estimate: inputs exist, outputs are not inputs --
+    (["replay", "{nodir}.mcap"], "recording"),
+    (["replay", "{dir}"], "recording"),
+    (["replay", "{mcap}", "--speed", "0"], "--speed"),
+    (["replay", "{mcap}", "--record", "{mcap}", "--overwrite"], "--record"),
+    (["estimate", "{nodir}.mcap", "--out", "j.npz"], "recording"),
+    (["estimate", "{mcap}", "--out", "{mcap}", "--overwrite"], "--out"),
+    (["estimate", "{mcap}", "--out", "{npz}"], "--out"),
+    (["estimate", "{mcap}", "--out", "j.txt"], "--out"),
+    (["estimate", "{mcap}", "--out", "j.npz", "--jobs", "0"], "--jobs"),
+    (["estimate", "{mcap}", "--out", "j.npz", "--png", "j.txt"], "--png"),
+    # -- conformance and protocol --
+    (["conformance", "--port", "/dev/null", "--timeout", "0"], "--timeout"),
+    (["conformance", "--port", "/dev/null", "--node", "0x8000"], "--node"),
+    (["conformance", "--port", "/dev/null", "--slack-ms", "-1"], "--slack-ms"),
+    (["protocol", "encode", "SAMPLE", "node=1"], "counter"),
+    (["protocol", "encode", "SAMPLE", "node=1", "counter=abc", "x=0", "y=0", "z=0"], "counter"),
+    (["protocol", "encode", "SAMPLE", "node=1", "bogus=3"], "bogus"),
+    (["protocol", "capacity", "--rate", "0"], "--rate"),
+    (["protocol", "capacity", "--lattice", "1x1"], "--lattice"),
+    # -- paper: argparse's own errors are one line too --
+    (["paper", "gaussian", "--seed", "abc"], "--seed"),
+]
+
+
+def _ids():
+    return [" ".join(a) for a, _ in CASES]
+
+
+@pytest.mark.parametrize("argv, option", CASES, ids=_ids())
+def test_a_bad_value_is_one_line_and_exit_2(argv, option, files, tmp_path):
+    argv = [a.format(**files) for a in argv]
+    before = {k: open(p, "rb").read() for k, p in files.items() if os.path.isfile(p)}
+    out = subprocess.run(CLI + argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path,
+                         stdin=subprocess.DEVNULL)
+    err = out.stderr.strip()
+    assert "Traceback" not in out.stderr, out.stderr
+    assert out.returncode == 2, f"exit {out.returncode}; stderr:\n{out.stderr}"
+    lines = err.splitlines()
+    assert len(lines) == 1, f"{len(lines)} lines on stderr:\n{out.stderr}"
+    assert len(lines[0]) <= MAX_LINE, lines[0]
+    assert option in lines[0], f"the line does not name {option}: {lines[0]}"
+    assert lines[0].startswith("capsheet"), lines[0]
+    # nothing the user had was touched, nothing was written where the command runs
+    assert {k: open(p, "rb").read() for k, p in files.items() if os.path.isfile(p)} == before
+    assert os.listdir(tmp_path) == []
+
+
+#: a port that does not exist is not a usage error (the value is well formed): one line, exit 1
+@pytest.mark.parametrize("argv", [
+    ["tactile", "--port", "/dev/ttyNOPE"],
+    ["host", "--port", "/dev/ttyNOPE"],
+    ["calibrate", "--port", "/dev/ttyNOPE", "--out", "cal.json"],
+], ids=lambda a: " ".join(a))
+def test_a_missing_port_is_one_line(argv, tmp_path):
+    out = subprocess.run(CLI + argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path,
+                         stdin=subprocess.DEVNULL)
+    assert "Traceback" not in out.stderr, out.stderr
+    assert out.returncode == 1, out.stderr
+    lines = [ln for ln in out.stderr.strip().splitlines() if "auto-assigning" not in ln]
+    assert len(lines) == 1 and "/dev/ttyNOPE" in lines[0], out.stderr
+    assert os.listdir(tmp_path) == []

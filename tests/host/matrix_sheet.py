@@ -1,0 +1,111 @@
+"""A virtual sheet for the feature x transport matrix (tests/host/test_matrix.py), run as its own
+process: ``python -m tests.host.matrix_sheet [options] [-- capsheet ARGS]``.
+
+It builds a `VirtualSheet` (optionally with realistic chip errors, the calibration board scene, or a
+mutant chip of tests/host/conformance/mutants.py) behind the device of ``--transport`` and prints
+one line ``PORT <json list of capsheet port arguments>``. Then either
+
+* without ``-- ARGS``: serves until stdin closes (or SIGTERM): a host in another process connects
+  (pty, slcan, udp_multicast), or
+* with ``-- ARGS``: runs ``capsheet ARGS`` in this very process (``host.cli.main``), with ``{port}``
+  in ARGS replaced by the port arguments, and exits with its status: the transports that reach only
+  their own process (``memory``: an in-memory link opened as ``memory://NAME``; python-can
+  ``virtual``) go through the real command line this way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import sys
+
+
+def port_args(transport: str, dev) -> list[str]:
+    if transport == "memory":
+        return ["--port", dev.url]
+    if transport == "pty":
+        return ["--port", dev.path]
+    if transport == "slcan":
+        return ["--can", f"slcan:{dev.path}", "--bitrate", "1000000"]
+    return ["--can", f"{dev.interface}:{dev.channels[0]}"]
+
+
+def build(args):
+    from virtual_sheet.board import DEFAULT_DIRECTIONS, BoardPoseScene
+    from virtual_sheet.sensor import chip_error_model
+    from virtual_sheet.sheet import VirtualSheet
+
+    can_kind = args.transport in ("slcan", "virtual", "udp_multicast")
+    chip_factory = None
+    if args.mutant:
+        from tests.host.conformance.mutants import MUTANTS
+        chip_factory = MUTANTS[args.mutant][0]
+    scene = None
+    if args.board:
+        scene = BoardPoseScene(args.rows, args.cols, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=args.board,
+                               move_s=0.3, seed=2)
+    sensor = chip_error_model(args.chip_errors, noise_pct_g=args.noise, chip_seed=args.seed)
+    sheet = VirtualSheet(args.shape, f"{args.rows}x{args.cols}", scene=scene, sensor=sensor, seed=args.seed,
+                         transport="can" if can_kind else "serial", chip_factory=chip_factory)
+    if args.transport == "memory":
+        from virtual_sheet.devices import MemoryDevice
+        from virtual_sheet.memport import publish
+        dev = MemoryDevice(sheet)
+        dev.url = publish(f"matrix{os.getpid()}", dev.port)
+    elif args.transport == "pty":
+        from virtual_sheet.devices import PtyDevice
+        dev = PtyDevice(sheet)
+    elif args.transport == "slcan":
+        from virtual_sheet.slcan import SlcanDevice
+        dev = SlcanDevice(sheet)
+    else:
+        from virtual_sheet.devices import CanDevice
+        channel = "239.74.163.2" if args.transport == "udp_multicast" else f"matrix{os.getpid()}"
+        dev = CanDevice(sheet, interface=args.transport, channels=[channel])
+    return sheet, dev
+
+
+def main(argv: list[str]) -> int:
+    if "--" in argv:
+        k = argv.index("--")
+        argv, cli = argv[:k], argv[k + 1:]
+    else:
+        cli = []
+    ap = argparse.ArgumentParser(prog="matrix_sheet")
+    ap.add_argument("--transport", required=True, choices=("memory", "pty", "slcan", "virtual", "udp_multicast"))
+    ap.add_argument("--rows", type=int, default=3)
+    ap.add_argument("--cols", type=int, default=3)
+    ap.add_argument("--shape", default="gaussian")
+    ap.add_argument("--noise", type=float, default=0.0, help="%% g")
+    ap.add_argument("--chip-errors", default="none", choices=("none", "realistic"))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--mutant", default=None)
+    ap.add_argument("--board", type=float, default=0.0, help="the calibration board scene, holding each pose this long (s)")
+    ap.add_argument("--layout-out", required=True)
+    args = ap.parse_args(argv)
+    sheet, dev = build(args)
+    sheet.write_layout(args.layout_out)
+    if args.transport == "memory":
+        import serial
+
+        from virtual_sheet.memport import URL_HANDLERS
+        serial.protocol_handler_packages.append(URL_HANDLERS)
+    dev.start()
+    ports = port_args(args.transport, dev)
+    print("PORT " + json.dumps(ports), flush=True)
+    try:
+        if cli:
+            from host.cli import main as capsheet
+            argv = [a for arg in cli for a in (ports if arg == "{port}" else [arg])]
+            return int(capsheet(argv) or 0)
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+        sys.stdin.read()  # until the test closes our stdin
+        return 0
+    finally:
+        dev.stop()
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,151 @@
+"""`host.feed.SnapshotFeed`: the sans-I/O aggregator for threads, and the one place snapshots are read
+from. On a simulated clock, exact counts: the correction is applied once, before any listener or
+consumer sees a snapshot; listeners see every snapshot in emission order; the queue drops the oldest
+(counted); inputs are observed at the ``now`` they are applied with. And a Host: every consumer —
+`get`, `latest`, `drain`, ``on_snapshot``, the health check — gets the corrected snapshot."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from host.aggregator import Aggregator
+from host.feed import SnapshotFeed
+from protocol import SampleBatch
+from protocol.constants import G0
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 10.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def batch(counter: int, nodes=(1, 2, 3), z=1024) -> SampleBatch:
+    n = len(nodes)
+    counts = np.zeros((n, 3), dtype=np.int16)
+    counts[:, 2] = z
+    return SampleBatch(np.asarray(nodes, dtype=np.uint16), np.full(n, counter, dtype=np.uint16), counts,
+                       np.zeros(n, dtype=np.uint8))
+
+
+def test_the_correction_is_applied_once_before_anyone_sees_a_snapshot():
+    clock = Clock()
+    feed = SnapshotFeed(Aggregator(3, deadline_s=0.05), clock=clock, queue_size=100)
+    calls = []
+
+    def correct(r):
+        calls.append(r.copy())
+        return 2.0 * r + 1.0
+    feed.set_correction(correct)
+    heard = []
+    feed.add_listener(heard.append)
+    for c in range(5):
+        feed.open_counter(c)
+        clock.t += 0.001
+        feed.ingest([batch(c, nodes=(1, 2, 3) if c != 2 else (1, 2))])
+        clock.t += 0.01
+    clock.t += 1.0
+    feed.poll()
+    got = feed.drain()
+    assert [s.counter for s in got] == [s.counter for s in heard] == [0, 1, 2, 3, 4]
+    assert all(a is b for a, b in zip(got, heard))  # the very snapshot: corrected once, for all
+    assert len(calls) == 5  # once per snapshot
+    for s, raw in zip(got, calls):
+        np.testing.assert_array_equal(s.readings, 2.0 * raw + 1.0)
+        assert not s.readings.flags.writeable
+    assert np.isnan(got[2].readings[2]).all() and not got[2].valid[2]  # a missing link stays missing
+    np.testing.assert_allclose(got[0].readings[:, 2], 2.0 * G0 + 1.0)
+
+
+def test_listeners_and_the_queue_see_every_snapshot_in_order_and_the_slow_consumer_loses_the_oldest():
+    clock = Clock()
+    agg = Aggregator(3, deadline_s=0.05)
+    feed = SnapshotFeed(agg, clock=clock, queue_size=4)
+    heard = []
+    feed.add_listener(lambda s: heard.append(s.counter))
+    for c in range(10):
+        feed.open_counter(c)
+        feed.ingest([batch(c)])
+    assert heard == list(range(10))  # listeners miss nothing
+    assert [s.counter for s in feed.drain()] == [6, 7, 8, 9] and agg.stats.dropped == 6
+    for c in range(10, 13):
+        feed.open_counter(c)
+        feed.ingest([batch(c)])
+    snap = feed.latest(0.0)
+    assert snap.counter == 12 and agg.stats.dropped == 8 and feed.pending == 0
+
+
+def test_inputs_are_observed_at_the_now_they_are_applied_with():
+    clock = Clock()
+    feed = SnapshotFeed(Aggregator(3, deadline_s=0.05, n_buses=2), clock=clock, wall_clock=lambda: clock.t + 1000.0)
+    seen = []
+    feed.add_open_listener(lambda counter, now: seen.append(("open", counter, now)))
+    feed.add_ingest_listener(lambda bus, now: seen.append(("ingest", bus, now)))
+    feed.add_listener(lambda s: seen.append(("snapshot", s.counter, s.timestamp)))
+    feed.open_counter(7)
+    clock.t = 10.004
+    feed.ingest([batch(7)], bus=1)
+    assert seen == [("open", 7, 10.0), ("ingest", 1, 10.004), ("snapshot", 7, 10.0)]
+    [snap] = feed.drain()
+    assert snap.latency_s == pytest.approx(0.004) and snap.wall_time == pytest.approx(1010.0)
+
+
+def test_the_aggregator_of_a_feed_has_no_listener_of_its_own():
+    with pytest.raises(ValueError, match="add_listener"):
+        SnapshotFeed(Aggregator(3, on_snapshot=print))
+    with pytest.raises(ValueError, match="queue_size"):
+        SnapshotFeed(Aggregator(3), queue_size=0)
+
+
+def test_every_consumer_of_a_host_gets_the_calibrated_snapshot():
+    """A host on a simulated clock (memory link, manual mode) with a calibration: what `get`,
+    `latest`, `drain` and ``on_snapshot`` hand over, and what the health check is fed, is the
+    aggregator's snapshot corrected exactly once, as `Calibration.apply` says."""
+    from host.analysis.calibration import Calibration
+    from host.health import HealthChecker
+    from host.session import Host, Layout
+    from host.transport import MemoryTransport
+    from virtual_sheet.devices import MemoryDevice
+    from virtual_sheet.sheet import VirtualSheet
+
+    class Fed(HealthChecker):
+        """The health check, keeping what it is fed."""
+
+        def update(self, readings, valid, now):
+            fed.append(readings)
+            return super().update(readings, valid, now)
+
+    clock = Clock()
+    sheet = VirtualSheet("flat", "3x3", seed=4)
+    dev = MemoryDevice(sheet, clock=clock)
+    dev.start(power_on=True)
+    cal = Calibration(3, 3, bias=np.tile([0.2, -0.1, 0.5], (12, 1)), scale=np.full((12, 3), 1.02),
+                      misalignment=np.tile([0.0, 0.0, 0.03], (12, 1)))
+    heard, fed = [], []
+
+    def driver(dt):
+        clock.t += dt
+        dev.step()
+    host = Host(MemoryTransport(dev.port), "3x3", layout=Layout(dict(sheet.layout)), rate_hz=50, clock=clock,
+                driver=driver, deadline_s=0.02, on_snapshot=heard.append)
+    try:
+        host.set_calibration(cal)
+        host.health = Fed(3, 3, window=5)
+        host.bring_up(0.2)
+        got = list(host.snapshots(count=20))
+        host.stop()
+        got += host.drain()
+    finally:
+        host.close()
+        dev.stop()
+    assert len(got) >= 20 and [s.counter for s in got] == [s.counter for s in heard]
+    assert all(a is b for a, b in zip(got, heard))
+    assert len(fed) == len(heard) and all(f is s.readings for f, s in zip(fed, heard))
+    assert host.calibration is not None and np.allclose(host.calibration.bias, cal.bias)  # nominal chips
+    flat = np.tile([0.0, 0.0, G0], (12, 1))
+    for s in got:
+        if s.complete:
+            np.testing.assert_allclose(s.readings, cal.apply(flat), atol=0.02)  # once, not twice, not zero

@@ -1,0 +1,20 @@
+"""The machine-wide lock of the udp_multicast tests: python-can's udp_multicast buses share one UDP
+port, and on Linux every socket on it hears every group, so two tests on it at once (pytest -n 2,
+or another checkout's suite on this machine) hear each other's RESET and SYNC. One at a time (a
+file lock)."""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+
+
+@contextlib.contextmanager
+def udp_multicast_lock():
+    with open(os.path.join("/tmp", "capsheet-udp-multicast-tests.lock"), "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
