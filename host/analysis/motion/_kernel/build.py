@@ -16,8 +16,8 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[3]
 
 def _shared():
-    """The estimator kernel's build helpers (`_cdef_from_header`, `_rel`), loaded by path: at
-    install time this file runs outside the package."""
+    """The estimator kernel's build script, for its public helpers (`cdef_from_header`,
+    `rel_source`), loaded by path: at install time this file runs outside the package."""
     import importlib.util
 
     spec = importlib.util.spec_from_file_location("_capsheet_yaw_build",
@@ -28,8 +28,7 @@ def _shared():
 
 
 _B = _shared()
-CDEF = _B._cdef_from_header(HERE / "link_filter.h")
-_rel = _B._rel
+CDEF = _B.cdef_from_header(HERE / "link_filter.h")
 
 
 ffibuilder = FFI()
@@ -37,8 +36,8 @@ ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "host.analysis.motion._link_kernel",
     '#include "link_filter.h"\n',
-    sources=[_rel(HERE / "link_filter.c")],
-    include_dirs=[_rel(HERE)],
+    sources=[_B.rel_source(HERE / "link_filter.c")],
+    include_dirs=[_B.rel_source(HERE)],
     # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
     extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
 )
