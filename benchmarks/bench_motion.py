@@ -34,7 +34,7 @@ error over its last 10 s ≤ 1.2x that over seconds 10–20 (after the filter se
 32x32 ≥ 60; CPU time, the machine's load beside it).
 
     .venv/bin/python benchmarks/bench_motion.py --json [--seconds 6] [--drift-minutes 10]
-    .venv/bin/python benchmarks/bench_motion.py --json --png out     # out/motion_error_time.png, out/motion_paper.png
+    .venv/bin/python benchmarks/bench_motion.py --json --png out     # out/motion_error_time.png, out/motion_heading_time.png, out/motion_paper.png
 """
 
 from __future__ import annotations
@@ -146,14 +146,15 @@ def scene_rows(name: str, n: int, seconds: float, cal, seed: int, curves: dict) 
         Jf, Ff = run_fused(n, t, acc, gyr, m)
         res["fused"] = (errors(Jf, tr["joints"]), Ff)
         for method, (err, frames) in res.items():
-            head = None
+            head = hseries = None
             if m is not None and frames is not None:
-                head = float(np.degrees(np.abs(heading_error(frames, tr["frames"])).mean()))
+                hseries = np.degrees(np.abs(heading_error(frames, tr["frames"])))
+                head = float(hseries.mean())
             out.append({"scene": name + variant, "sensors": sensors, "method": method,
                         "mean_error_pct_side": round(float(err.mean()), 4),
                         "max_error_pct_side": round(float(err.max()), 4),
                         "heading_err_deg": None if head is None else round(head, 3)})
-            curves[(name + variant, sensors, method)] = (t, err)
+            curves[(name + variant, sensors, method)] = (t, err, hseries)
     return out
 
 
@@ -252,31 +253,59 @@ def figures(curves: dict, rows: list[dict], outdir: Path) -> None:
 
     outdir.mkdir(parents=True, exist_ok=True)
     colours = {"accel_only": "tab:red", "per_link_filter": "tab:blue", "fused": "tab:green"}
-    scenes = sorted({k[0] for k in curves}, key=lambda s: (s.endswith("+disturbed"), s))
-    cols = 3
-    nrow = -(-len(scenes) // cols)
-    fig, axes = plt.subplots(nrow, cols, figsize=(5 * cols, 3.2 * nrow), squeeze=False)
-    for ax, scene in zip(axes.ravel(), scenes):
-        for (s, sensors, method), (t, err) in curves.items():
-            if s != scene:
-                continue
-            ls = "-" if sensors == "accel+gyro+mag" else "--"
-            if method == "accel_only" and sensors == "accel+gyro+mag":
-                continue  # the same curve as accel+gyro's
-            ax.plot(t, err, ls, color=colours[method], lw=1,
-                    label=f"{method} ({'accel' if method == 'accel_only' else sensors})")
-        ax.set_yscale("log")
-        ax.set_title(scene)
-        ax.set_xlabel("time [s]")
-        ax.set_ylabel("mean joint error [% of side]")
-        ax.axhline(0.5, color="grey", lw=0.5)
-        ax.legend(fontsize=6)
-    for ax in axes.ravel()[len(scenes):]:
-        ax.axis("off")
-    fig.suptitle("Shape error over time, 14x14, L = 1 cm, 1 % g accelerometers, ICM-42688-P "
-                 "gyroscopes, LIS3MDL magnetometers (bench_motion.py)")
-    fig.tight_layout()
+    names = list(dict.fromkeys(k[0] for k in curves if not k[0].endswith("+disturbed")))
+
+    # error over time: one column per scene; top row the undisturbed field, bottom row the magnet
+    # under a quarter of the sheet, each with the run without magnetometers as its baseline
+    fig, axes = plt.subplots(2, len(names), figsize=(4.2 * len(names), 6.6), squeeze=False,
+                             sharex=True)
+    for j, name in enumerate(names):
+        for i, variant in enumerate(("", "+disturbed")):
+            ax = axes[i, j]
+            t, ea, _h = curves[(name, "accel+gyro", "accel_only")]
+            ax.plot(t, ea, color=colours["accel_only"], lw=0.6, label="accel_only (accel)")
+            for method in ("per_link_filter", "fused"):
+                c = colours[method]
+                t, e, _h = curves[(name, "accel+gyro", method)]
+                ax.plot(t, e, color=c, lw=3.0, alpha=0.3, label=f"{method} (accel+gyro)")
+                t, e, _h = curves[(name + variant, "accel+gyro+mag", method)]
+                ax.plot(t, e, color=c, lw=0.9,
+                        label=f"{method} (accel+gyro+mag{', magnet' if variant else ''})")
+            ax.set_yscale("log")
+            ax.axhline(0.5, color="grey", lw=0.6, ls=":")
+            ax.set_title(name + (" — magnet under a quarter" if variant else ""), fontsize=9)
+            if i == 1:
+                ax.set_xlabel("time [s]")
+            if j == 0:
+                ax.set_ylabel("mean joint error [% of side]")
+    handles = [h for ax in axes[:, 0] for h in ax.get_legend_handles_labels()[0]]
+    labels = [lb for ax in axes[:, 0] for lb in ax.get_legend_handles_labels()[1]]
+    keep = dict(zip(labels, handles))
+    fig.legend(keep.values(), keep.keys(), loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle("Shape error over time, 14x14, L = 1 cm, 1 % g accelerometers, ICM-42688-P gyroscopes, "
+                 "LIS3MDL magnetometers (bench_motion.py; dotted: 0.5 % of side; the fused estimator's "
+                 "magnetometers turn the sheet rigidly, so its thin and thick curves coincide)", fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 0.96))
     fig.savefig(outdir / "motion_error_time.png", dpi=110)
+    plt.close(fig)
+
+    # heading over time (with magnetometers): where the disturbance shows in the fused estimator
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.3), squeeze=False, sharey=True)
+    for ax, name in zip(axes[0], names):
+        for method in ("per_link_filter", "fused"):
+            for variant, ls in (("", "-"), ("+disturbed", "--")):
+                t, _e, h = curves[(name + variant, "accel+gyro+mag", method)]
+                ax.plot(t, h, ls, color=colours[method], lw=0.9,
+                        label=f"{method}{' (magnet)' if variant else ''}")
+        ax.axhline(2.0, color="grey", lw=0.6, ls=":")
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("time [s]")
+    axes[0, 0].set_ylabel("|mean heading error| [deg]")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("Heading with magnetometers, undisturbed (solid) and with a magnet under a quarter of "
+                 "the sheet (dashed); dotted: 2 deg (bench_motion.py)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(outdir / "motion_heading_time.png", dpi=110)
     plt.close(fig)
 
     # paper-style (its Fig. 10: mean error with its spread, per condition and method)
@@ -300,9 +329,10 @@ def figures(curves: dict, rows: list[dict], outdir: Path) -> None:
     ax.set_xticks(np.arange(len(groups)))
     ax.set_xticklabels([f"{s}\n{x}" for s, x in groups], fontsize=7, rotation=30, ha="right")
     ax.set_ylabel("joint error [% of side] (mean, 5-95 % over time)")
-    ax.axhline(0.5, color="grey", lw=0.5)
+    ax.axhline(0.5, color="grey", lw=0.6, ls=":")
     ax.legend()
-    ax.set_title("Error of the shape while the sheet moves, three estimators on the same data")
+    ax.set_title("Error of the shape while the sheet moves, three estimators on the same data "
+                 "(14x14, 1 % g; dotted: 0.5 % of side)")
     fig.tight_layout()
     fig.savefig(outdir / "motion_paper.png", dpi=110)
     plt.close(fig)
