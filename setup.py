@@ -7,4 +7,4 @@ from setuptools import setup
 
 setup(cffi_modules=["firmware_ref/build_ffi.py:ffibuilder",
                     "host/analysis/_kernel/build.py:ffibuilder",
-                    "host/analysis/motion/_kernel/build.py:ffibuilder"])
+                    "host/analysis/motion/_kernel/build_link_kernel.py:ffibuilder"])

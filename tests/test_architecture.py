@@ -79,7 +79,7 @@ def test_protocol_does_no_io_and_depends_on_nothing_of_ours(lib):
 def test_the_science_imports_only_the_lattice_and_itself():
     # sksparse: the estimator's optional CHOLMOD backend (scipy's splu when absent); cffi: only
     # host/analysis/_kernel/build.py, which builds the estimator's optional kernel at install time
-    # (and host/analysis/motion/_kernel/build.py the fused estimator's); vqf: the per-link peer
+    # (and host/analysis/motion/_kernel/build_link_kernel.py the fused estimator's); vqf: the per-link peer
     # of host/analysis/motion/peers.py (optional, imported when that peer runs)
     allowed = ("protocol.lattice", "host.analysis", "numpy", "scipy", "sksparse", "matplotlib",
                "__future__", "cffi", "vqf")

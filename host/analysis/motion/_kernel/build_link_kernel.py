@@ -1,7 +1,7 @@
 """cffi build of the fused estimator's per-link kernel as ``host.analysis.motion._link_kernel``
 (API mode), at install time through ``setup.py's`` ``cffi_modules``, or by hand::
 
-    .venv/bin/python host/analysis/motion/_kernel/build.py
+    .venv/bin/python host/analysis/motion/_kernel/build_link_kernel.py
 
 Optional at run time: without it (no compiler, or ``CAPSHEET_NO_KERNEL=1``) the fused estimator
 runs its numpy code, which gives the same numbers (tests/host/analysis/test_motion_kernel.py).
