@@ -22,8 +22,10 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
    ``d`` (`joints_from_directions`: ``p_b − p_a = L d`` holds at every instant, so it holds for
    the derivatives), and a chip's is the mean of its link's ends'. That fixes every link's
    acceleration relative to the others; what is common to all links (the sheet's translation,
-   3 numbers) is taken from the accelerometers themselves, less a small leak
-   (`FusedConfig.common_tilt_leak`) that ties the sheet's mean tilt to gravity over tens of seconds.
+   3 numbers) is taken from the accelerometers themselves, less its running mean over
+   `FusedConfig.common_accel_tau_s` (5 s: a sheet whose velocity stays bounded has a common
+   acceleration that averages out, so what persists is a tilt of the whole sheet, and the
+   accelerometers correct it) and a small leak (`FusedConfig.common_tilt_leak`).
 3. **Accelerometers: gravity plus that acceleration**, per link, an extended Kalman update of
    ``(δθ, δb)`` (the reading predicts ``Rᵀ (g + a)``); its noise grows with the link's relative
    acceleration (the model's own error) and a gate inflates it for a reading far off.
@@ -99,6 +101,10 @@ class FusedConfig:
         A floor on the accelerometer update's noise, m/s².
     common_tilt_leak : float
         Fraction of the common acceleration left to correct the sheet's mean tilt (step 2).
+    common_accel_tau_s : float or None
+        Time constant of the common acceleration's running mean, s, which is left to correct the
+        sheet's mean tilt (step 2); None: the leak alone (the sheet's absolute tilt then drifts by
+        1–2° a minute on calibrated chips, docs/estimator.md §8).
     gate : float
         Mahalanobis distance² (3 axes) beyond which an accelerometer update is inflated.
     lattice_floor_rad : float
@@ -134,6 +140,7 @@ class FusedConfig:
     rel_accel_error: float = 0.05
     accel_floor_mps2: float = 0.02
     common_tilt_leak: float = 0.02
+    common_accel_tau_s: float | None = 5.0
     gate: float = 25.0
     lattice_floor_rad: float = 1e-3
     mag_noise_t: float = 0.4e-6
@@ -151,11 +158,15 @@ class FusedConfig:
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
             v = getattr(self, name)
+            if name == "common_accel_tau_s" and v is None:
+                continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
                     or not np.isfinite(v) or v < 0:
                 raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
         if not self.common_tilt_leak <= 1:
             raise ValueError(f"Invalid common_tilt_leak: {self.common_tilt_leak!r} (need 0..1)")
+        if self.common_accel_tau_s is not None and self.common_accel_tau_s <= 0:
+            raise ValueError(f"Invalid common_accel_tau_s: {self.common_accel_tau_s!r} (need > 0 or None)")
         for name in ("accel_noise_mps2", "gyro_bias_std_rps", "disturbance_tau_s",
                      "disturbance_heading_rad", "disturbance_field_frac", "disturbance_dip_rad",
                      "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate"):
@@ -630,6 +641,7 @@ class MotionEstimator:
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
+        self._a_bar = np.zeros(3)
 
     # ------------------------------------------------------------------------------- 1. gyro
     def _propagate(self, w_c, dt) -> None:
@@ -656,7 +668,12 @@ class MotionEstimator:
         da = self._relative_accel(w_c, dt)
         Rf = np.einsum("kij,kj->ki", self.R, f)
         a_c = (Rf[v] - _GRAVITY_SF - da[v]).mean(axis=0) if v.any() else np.zeros(3)
-        vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * a_c
+        tau = cfg.common_accel_tau_s
+        if tau is not None:
+            self._a_bar += min(float(np.mean(dt)) / tau, 1.0) * (a_c - self._a_bar)
+            vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * (a_c - self._a_bar)
+        else:
+            vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * a_c
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + (cfg.rel_accel_error * np.linalg.norm(da, axis=1)) ** 2
         x = np.empty((self.n_links, 6))
