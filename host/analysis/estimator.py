@@ -79,6 +79,7 @@ except ImportError:  # not built (no C compiler at install): the numpy code, sam
     _kffi = _klib = None
 
 __all__ = ["ShapeEstimate", "estimate", "estimate_batch", "roll_pitch", "solvability", "overlay",
+           "joints_from_directions",
            "overlay_error", "error_percent_of_side", "METHODS", "MODELS", "PRIORS"]
 
 METHODS = ("global", "paper")
@@ -2041,3 +2042,43 @@ def _few(idx, limit: int = 8) -> str:
     items = [str(v) for v in np.asarray(idx).tolist()[:limit]]
     more = len(idx) - len(items)
     return "[" + ", ".join(items) + (f", … {more} more" if more > 0 else "") + "]"
+
+
+# ---------------------------------------------------------------------------------------------
+# The joints-from-directions step alone (issue 30: the per-link filters and the fused estimator of
+# host/analysis/motion/ place their joints with it, as `estimate` does)
+# ---------------------------------------------------------------------------------------------
+
+def joints_from_directions(directions: np.ndarray, rows: int, cols: int, link_length: float,
+                           valid: np.ndarray | None = None) -> np.ndarray:
+    """Joints from link directions by least squares, ``min Σ ‖p_b − p_a − L d‖²`` over the valid
+    links (docs/design.md §5.6), joint ``(0, 0)`` at the origin: `estimate`'s last step, with the
+    Laplacian factorised once per lattice and mask, without `estimate`'s weak prior.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (..., n_links, 3)
+        Unit link directions (or any per-link vectors: the map is linear), world frame.
+    rows, cols : int
+    link_length : float
+        ``L``, metres.
+    valid : ndarray of bool, shape (n_links,), optional
+
+    Returns
+    -------
+    ndarray, shape (..., rows, cols, 3)
+    """
+    rows, cols = _check_int("rows", rows, 2), _check_int("cols", cols, 2)
+    n = _lattice(rows, cols).n_links
+    d = np.asarray(directions, dtype=float)
+    if d.ndim < 2 or d.shape[-2:] != (n, 3):
+        raise ValueError(f"Expected `directions` to have shape (..., {n}, 3) for a {rows}x{cols} "
+                         f"lattice, got {d.shape}.")
+    vm = np.ones(n, bool) if valid is None else np.asarray(valid, dtype=bool)
+    st = _structure(rows, cols, None if vm.all() else vm)
+    batch = d.shape[:-2]
+    dl = np.moveaxis(d.reshape((-1, n, 3))[:, st.valid_links], 0, -1)  # (links, 3, B)
+    P = st.lap_lu.solve(st.incidence_T @ (float(link_length) * dl.reshape(dl.shape[0], -1)))
+    P = P.reshape(rows * cols, 3, -1)
+    P -= P[:1]
+    return np.moveaxis(P, -1, 0).reshape(batch + (rows, cols, 3))
