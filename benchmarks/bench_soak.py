@@ -16,7 +16,8 @@ Measured:
   or incomplete within 2 s of it (``incidents``; goal 0) and the host's own incidents then.
 * ``recording``: the files (split every ``--split-duration`` s, so the set is exercised), bytes
   per hour over the run, and per channel (uncompressed message bytes, and zstd level 9 of each
-  channel alone: what each costs in the file, roughly).
+  channel alone over a minute after the warm-up, scaled to an hour: what each costs in the file,
+  roughly).
 * ``load_average``: /proc/loadavg at start and end (the machine may be shared).
 
     python benchmarks/bench_soak.py --duration 960 [--packed] [--lattice 14x14] [--rate 145]
@@ -84,7 +85,7 @@ def _loadavg() -> list[float]:
         return [float(v) for v in f.read().split()[:3]]
 
 
-def _analyse(files: list[Path], duration_s: float) -> dict:
+def _analyse(files: list[Path], duration_s: float, window: tuple[float, float]) -> dict:
     """Completeness per minute, counter wraps and channel sizes, streaming through the files."""
     import zstandard
     from mcap.records import Channel, Message
@@ -97,6 +98,7 @@ def _analyse(files: list[Path], duration_s: float) -> dict:
     comp: dict[str, tuple] = {}
     syncs: list[tuple[int, float]] = []
     snaps: list[tuple[int, float, bool]] = []
+    t_first = None
     for path in files:
         topic: dict[int, str] = {}
         with open(path, "rb") as f:
@@ -107,11 +109,12 @@ def _analyse(files: list[Path], duration_s: float) -> dict:
                     t = topic[rec.channel_id]
                     data = bytes(rec.data)
                     sizes[t] = sizes.get(t, 0) + len(data)
-                    if t not in comp:
-                        c = zstandard.ZstdCompressor(level=9).compressobj()
-                        comp[t] = (c, [0])
-                    c, n = comp[t]
-                    n[0] += len(c.compress(data))
+                    t_first = rec.log_time if t_first is None else t_first
+                    if window[0] <= (rec.log_time - t_first) / 1e9 < window[1]:
+                        if t not in comp:
+                            comp[t] = (zstandard.ZstdCompressor(level=9).compressobj(), [0])
+                        c, n = comp[t]
+                        n[0] += len(c.compress(data))
                     if t == "/capsheet/sync":
                         m = Sync.FromString(data)
                         syncs.append((m.counter, m.t))
@@ -119,8 +122,9 @@ def _analyse(files: list[Path], duration_s: float) -> dict:
                         m = Snapshot.FromString(data)
                         snaps.append((m.counter, m.timestamp, m.complete))
     zsize = {t: n[0] + len(c.flush()) for t, (c, n) in comp.items()}
-    per_h = 3600.0 / duration_s
-    channels = {t: {"messages_bytes_per_h": round(sizes[t] * per_h), "zstd9_bytes_per_h": round(zsize[t] * per_h)}
+    per_h, per_h_window = 3600.0 / duration_s, 3600.0 / (window[1] - window[0])
+    channels = {t: {"messages_bytes_per_h": round(sizes[t] * per_h),
+                    "zstd9_bytes_per_h": round(zsize[t] * per_h_window) if t in zsize else None}
                 for t in sorted(sizes)}
     # per minute of the host's clock: SYNCs opened, complete snapshots of them
     t0 = syncs[0][1] if syncs else 0.0
@@ -226,7 +230,8 @@ def run(args) -> dict:
     steady = [(t, s) for t, _, s in samples if t >= args.warmup]
     slope = ((steady[-1][1] - steady[0][1]) / (steady[-1][0] - steady[0][0]) * 3600.0
              if len(steady) > 1 and steady[-1][0] > steady[0][0] else None)
-    analysis = _analyse(files, args.duration)
+    w0 = min(args.warmup, max(0.0, args.duration - 60.0))
+    analysis = _analyse(files, args.duration, (w0, w0 + min(60.0, args.duration)))
     try:
         summary = json.loads(out[0]) if out and out[0].strip() else None
     except ValueError:
@@ -248,8 +253,9 @@ def run(args) -> dict:
         **analysis,
         "min_minute_completeness_pct": min((m["completeness_pct"] for m in analysis["completeness_per_minute"]
                                             if m["completeness_pct"] is not None), default=None),
-        "host_summary": {k: s.get(k) for k in ("snapshots", "complete", "resyncs", "late", "reconnects",
-                                                "recoveries", "stray_frames")} if s else None,
+        "host_summary": {k: s.get(k) for k in ("snapshots", "complete_snapshots", "complete_snapshots_pct",
+                                                "resyncs", "late", "reconnects", "recoveries", "stray_frames",
+                                                "events_cut", "rx_errors")} if s else None,
         "host_incidents": [i for i in s.get("incidents", []) if i.get("kind") not in ("info",)][:50] if s else None,
         "host_stderr_tail": "".join(err[-8:]),
     }
