@@ -7,25 +7,29 @@ file and the live view carry the very same messages. The writer is foxglove-sdk'
 zstd); a chunk is closed every ``flush_interval_s``, so a killed host leaves a file that `read`
 (and any MCAP stream reader) reads up to its last finished chunk.
 
-Topics (capsheet's own are JSON with a JSON Schema, the encoding Foxglove plots natively; bulky
-arrays are base64 of little-endian arrays, dtype and shape given in the message):
+Topics (format ``capsheet-mcap-2``: capsheet's own are protobuf, schemas built by
+`host.record_schema` and stored in the file; docs/recording.md has every field):
 
-==========================  ===================  =================================================
-topic                       schema               content
-==========================  ===================  =================================================
-``/capsheet/raw/bus{N}``    capsheet.RawSerial   wire bytes of bus N as read (serial, pty, memory);
-                                                 ``t`` when ingested, ``t_rx`` when read
-                            capsheet.RawCan      CAN frames of bus N as received (one batch)
-``/capsheet/sync``          capsheet.Sync        the host opened SYNC ``counter`` at ``t``
-``/capsheet/snapshot``      capsheet.Snapshot    counter, readings (n_links, 3) m/s², valid, status
-``/capsheet/estimate``      capsheet.Estimate    joints (rows, cols, 3) m; ``yaw_std`` (n_links,)
-                                                 rad and ``joint_std`` (rows, cols, 3) m when the
-                                                 estimator provides them; error vs truth if known
-``/capsheet/contacts``      capsheet.Contacts    tactile contacts: position, force, radius, id
-``/sheet/scene``            foxglove.SceneUpdate the lattice as a coloured line list, contacts
-``/sheet/joints``           foxglove.PointCloud  the estimated joints (x, y, z float32, m)
+==========================  =======================  =============================================
+topic                       schema                   content
+==========================  =======================  =============================================
+``/capsheet/raw/bus{N}``    capsheet.v2.RawSerial    wire bytes of bus N as read (serial, pty, memory);
+                                                     ``t`` when ingested, ``t_rx`` when read
+                            capsheet.v2.RawCan       CAN frames of bus N as received (one batch)
+``/capsheet/sync``          capsheet.v2.Sync         the host opened SYNC ``counter`` at ``t``
+``/capsheet/snapshot``      capsheet.v2.Snapshot     counter, the chips' counts (int16; `read`
+                                                     converts them with the recorded calibration),
+                                                     valid bitmap, status
+``/capsheet/estimate``      capsheet.v2.Estimate     joints (rows, cols, 3) m; ``yaw_std``,
+                                                     ``joint_std`` when computed; error vs truth
+``/capsheet/contacts``      capsheet.Contacts (JSON) tactile contacts: position, force, radius, id
+``/sheet/scene``            foxglove.SceneUpdate     the lattice as a coloured line list, contacts
+``/sheet/joints``           foxglove.PointCloud      the estimated joints (x, y, z float32, m)
 ``/tf``                     foxglove.FrameTransform  ``world`` -> ``sheet`` (identity)
-==========================  ===================  =================================================
+==========================  =======================  =============================================
+
+Recordings of format ``capsheet-mcap-1`` (JSON channels) are read too. A recording may be a split
+set (``run_0000.mcap``, ``run_0001.mcap``, ...: `split_path`, `recording_set`).
 
 Every message's log time is the host's wall clock (ns since the Unix epoch); ``t`` fields inside
 are the host's monotonic clock (s), the clock `host.aggregator.LatticeSnapshot.timestamp` uses.
