@@ -177,3 +177,42 @@ def test_the_free_space_check_reads_the_real_disk(tmp_path):
     with Recorder(tmp_path / "y.mcap", Lattice(3, 3), 0.01, min_free=1) as rec:
         rec.flush()
     assert rec.stopped is None and read(tmp_path / "y.mcap").session["rows"] == 3
+
+
+def test_capsheet_host_splits_its_recording_and_replay_takes_the_set(tmp_path, capsys):
+    """End to end over a real pty: --split-size makes numbered files, each readable alone;
+    capsheet replay of the set by its name replays every snapshot identical."""
+    from host.cli import main
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+    sheet = VirtualSheet("gaussian", "4x4", seed=5)
+    layout = sheet.write_layout(tmp_path / "sheet.csv")
+    out = tmp_path / "run.mcap"
+    with PtyDevice(sheet) as dev:
+        rc = main(["host", "--port", dev.path, "--lattice", "4x4", "--layout", str(layout), "--rate", "100",
+                   "--record", str(out), "--split-size", "0.001", "--duration", "3", "-q"])
+    assert rc == 0
+    files = recording_set(out)
+    assert len(files) >= 2 and files[0].name == "run_0000.mcap"
+    assert f"to {len(files)} files, {files[0]}" in capsys.readouterr().err
+    assert all(read(f).attachments["calibration.json"]["links"] for f in files)
+    whole = read(out)
+    assert len(whole) == sum(len(read(f)) for f in files) >= 1
+    assert main(["replay", str(out), "--json", "-q", "--no-estimate"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["snapshots_identical"] == len(whole)
+
+
+def test_capsheet_host_refuses_to_record_without_the_free_space_it_needs(tmp_path, capsys):
+    from host.cli import main
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+    sheet = VirtualSheet("flat", "3x3", seed=5)
+    layout = sheet.write_layout(tmp_path / "sheet.csv")
+    huge_mb = shutil.disk_usage(tmp_path).free / 1e6 + 1e6
+    with PtyDevice(sheet) as dev:
+        with pytest.raises(SystemExit) as exc:
+            main(["host", "--port", dev.path, "--lattice", "3x3", "--layout", str(layout), "--rate", "50",
+                  "--record", str(tmp_path / "run.mcap"), "--min-free", f"{huge_mb:.0f}", "--duration", "1", "-q"])
+    assert "MB free on the disk of" in str(exc.value) and "nothing recorded" in str(exc.value)
+    assert not (tmp_path / "run.mcap").exists()
