@@ -80,24 +80,7 @@ def one_blas_thread() -> bool:
     return True
 
 
-def few_malloc_arenas(n: int = 2) -> bool:
-    """Let glibc's malloc keep at most ``n`` arenas (``M_ARENA_MAX``) unless ``MALLOC_ARENA_MAX``
-    is set. A host's threads (receive, SYNC, estimates, the MCAP writer's) each got an arena of
-    its own, and the resident size of a 14x14 145 Hz session grew in steps as they fragmented
-    (issue 34, benchmarks/bench_soak.py); the GIL serialises Python's allocations anyway. Called
-    before any thread starts. Returns whether it was set (False off glibc)."""
-    if "MALLOC_ARENA_MAX" in os.environ or not sys.platform.startswith("linux"):
-        return False
-    try:
-        import ctypes
-        libc = ctypes.CDLL("libc.so.6")
-        return bool(libc.mallopt(-8, int(n)))  # M_ARENA_MAX
-    except (OSError, AttributeError):  # not glibc (musl): nothing to set
-        return False
-
-
 def main(argv: list[str] | None = None) -> int:
-    few_malloc_arenas()
     one_blas_thread()
     parser = build_parser()
     args = parser.parse_args(argv)
