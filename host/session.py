@@ -388,8 +388,8 @@ class Host:
         self.syncs_seen = 0
         self._status_seen = np.full(n, -np.inf)
         self._silent_reported = np.zeros(n, dtype=bool)
-        self._rx_errors: deque[str] = deque(maxlen=RX_ERRORS_KEPT)  #: the newest receive errors
-        self.rx_errors_total = 0  #: every receive error (the deque keeps the newest)
+        self._rx_errors: list[str] = []  #: the newest RX_ERRORS_KEPT receive errors (`_rx_error`)
+        self.rx_errors_total = 0  #: every receive error (the list keeps the newest)
         self.unknown_chips: set[int] = set()
         self._send_failing: set[int] = set()
         self._host_calibration = None  # as given to `set_calibration`
@@ -446,6 +446,13 @@ class Host:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _rx_error(self, text: str) -> None:
+        """A receive error: counted, the newest RX_ERRORS_KEPT kept."""
+        self.rx_errors_total += 1
+        self._rx_errors.append(text)
+        if len(self._rx_errors) > RX_ERRORS_KEPT:
+            del self._rx_errors[0]
+
     def _keep_event(self, ev) -> None:
         """``events`` keeps at most `EVENTS_KEPT` (the oldest half goes when full; ``events_cut``
         counts them; ``event_counts`` counts every event by kind)."""
@@ -483,14 +490,12 @@ class Host:
         except TransportError as exc:
             if self._stop.is_set() or t.closed:
                 return None
-            self._rx_errors.append(str(exc))
-            self.rx_errors_total += 1
+            self._rx_error(str(exc))
             self._idle(0.05)
             return False
         except Exception as exc:  # noqa: BLE001 - never let the receive thread die silently
             log.exception("receive thread %d", bus)
-            self._rx_errors.append(repr(exc))
-            self.rx_errors_total += 1
+            self._rx_error(repr(exc))
             self._idle(0.05)
             return False
         if t.stats.disconnects != self._disconnects[bus]:
