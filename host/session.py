@@ -23,7 +23,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -51,6 +51,10 @@ log = logging.getLogger("capsheet.host")
 
 #: how long (s) a driving host listens for another SYNC source before START (`Host.check_sync_source`)
 SYNC_LISTEN_S = 0.25
+#: bounds of what a host keeps for a run of days (issue 34); what goes is counted
+EVENTS_KEPT = 10_000
+RX_ERRORS_KEPT = 64
+RECOVERIES_KEPT = 1_000
 
 
 def node_for_link(link: int) -> int:
@@ -377,7 +381,8 @@ class Host:
             self.feed.add_listener(on_snapshot)
         self.chips: dict[int, ChipRecord] = {}  # uid -> record
         self._node_uid: dict[tuple[int, int], int] = {}  # (bus, node) -> uid
-        self.events: list[HostEvent] = []
+        self.events: list[HostEvent] = []  #: the newest events (bounded: `_keep_event`)
+        self.events_cut = 0
         self._events_lock = threading.Lock()
         self._inbox: queue.Queue = queue.Queue(maxsize=100_000)
         self._lock = threading.RLock()
@@ -390,7 +395,8 @@ class Host:
         self.syncs_seen = 0
         self._status_seen = np.full(n, -np.inf)
         self._silent_reported = np.zeros(n, dtype=bool)
-        self._rx_errors: list[str] = []
+        self._rx_errors: list[str] = []  #: the newest RX_ERRORS_KEPT receive errors (`_rx_error`)
+        self.rx_errors_total = 0  #: every receive error (the list keeps the newest)
         self.unknown_chips: set[int] = set()
         self._send_failing: set[int] = set()
         self._host_calibration = None  # as given to `set_calibration`
@@ -447,21 +453,31 @@ class Host:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _rx_error(self, text: str) -> None:
+        """A receive error: counted, the newest RX_ERRORS_KEPT kept."""
+        self.rx_errors_total += 1
+        self._rx_errors.append(text)
+        if len(self._rx_errors) > RX_ERRORS_KEPT:
+            del self._rx_errors[0]
+
+    def _keep_event(self, ev) -> None:
+        """``events`` keeps at most `EVENTS_KEPT` (the oldest half goes when full; ``events_cut``
+        counts them; ``event_counts`` counts every event by kind)."""
+        with self._events_lock:
+            self.events.append(ev)
+            if len(self.events) > EVENTS_KEPT:
+                del self.events[:EVENTS_KEPT // 2]
+                self.events_cut += EVENTS_KEPT // 2
+
     def _report(self, kind: str, detail: str, *, quiet: bool = False, **kw) -> None:
         """Record an event (bounded) and log it, unless ``quiet`` (the caller logs the incident once)."""
         self.event_counts[kind] += 1
         if quiet:
             ev = HostEvent(self._now(), kind, detail, **kw)
-            with self._events_lock:
-                self.events.append(ev)
-                if len(self.events) > 10_000:
-                    del self.events[:5_000]
+            self._keep_event(ev)
             return
         ev = HostEvent(self._now(), kind, detail, **kw)
-        with self._events_lock:
-            self.events.append(ev)
-            if len(self.events) > 10_000:
-                del self.events[:5_000]
+        self._keep_event(ev)
         (log.warning if kind in ("silent", "nack", "no_ack", "recovery", "reconnect", "not_a_sheet", "sync",
                                   "resync", "mismatch", "stray", "health_magnitude", "health_bias_shift")
          else log.info)("%s: %s", kind, detail)
@@ -481,12 +497,12 @@ class Host:
         except TransportError as exc:
             if self._stop.is_set() or t.closed:
                 return None
-            self._rx_errors.append(str(exc))
+            self._rx_error(str(exc))
             self._idle(0.05)
             return False
         except Exception as exc:  # noqa: BLE001 - never let the receive thread die silently
             log.exception("receive thread %d", bus)
-            self._rx_errors.append(repr(exc))
+            self._rx_error(repr(exc))
             self._idle(0.05)
             return False
         if t.stats.disconnects != self._disconnects[bus]:
@@ -1039,7 +1055,8 @@ class Host:
         self.mismatch: str | None = None  #: a mismatch found only once streaming (e.g. FD SNAPSHOTs on classic)
         self.recoveries = 0  #: incidents recovered (a reboot wave, a reconnect)
         self.recovered_chips = 0
-        self.recovery_times_s: list[float] = []  #: per incident: first report -> chips started again
+        #: per incident, the newest RECOVERIES_KEPT: first report -> chips started again
+        self.recovery_times_s: deque[float] = deque(maxlen=RECOVERIES_KEPT)
         self.not_a_sheet: dict[int, str] = {}  #: bus -> why (after a reconnect nothing sheet-like answered)
         self.capacity_report: list[dict] = []
         #: the gateway nodes heard (host/gateways.py): they say whether a port packs, who drives SYNC
@@ -1442,6 +1459,7 @@ class Host:
                 "muted_sends": self.muted_sends,
                 "mismatch": self.mismatch, "gateways": self.gateway_nodes.summary(),
                 "chips_dropped": self.chips_dropped, "stale_frames_drained": self.stale_frames,
+                "events_cut": self.events_cut, "rx_errors": self.rx_errors_total,
                 "incidents": [{"t": e.t, "kind": e.kind, "detail": e.detail} for e in list(self.events)
                               if e.kind in ("recovery", "reconnect", "resync", "not_a_sheet", "sync")][-100:]}
 

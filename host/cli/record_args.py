@@ -38,6 +38,15 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "open ws://localhost:8765 in Foxglove or Lichtblick)")
     g.add_argument("--live-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=20.0,
                    help="estimates per second for the live view and the recording (default 20)")
+    g.add_argument("--split-size", metavar="MB", type=T.bounded_float(0.0, 1e7, lo_open=True, unit="MB"),
+                   help="start a new file of the recording once one holds this many MB: FILE_0000.mcap, "
+                        "FILE_0001.mcap, ..., each readable alone (replay and estimate take the set)")
+    g.add_argument("--split-duration", metavar="S", type=T.duration,
+                   help="start a new file of the recording every S seconds (as --split-size)")
+    g.add_argument("--min-free", metavar="MB", type=T.bounded_float(0.0, 1e9, unit="MB"), default=DEFAULT_MIN_FREE_MB,
+                   help="free disk space the recording leaves: checked at the start (refused below it) and "
+                        f"every second, where the recording stops cleanly, its file readable (default "
+                        f"{DEFAULT_MIN_FREE_MB:g} MB; 0: until the disk is full)")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
@@ -55,6 +64,9 @@ def contact_dicts(contacts) -> list[dict]:
              "force_n": float(c.force_n), "depth_m": float(c.depth_m), "area_m2": float(c.area_m2),
              "radius_m": float(np.max(c.axes_m))} for c in contacts]
 
+
+#: --min-free default, MB: 20 minutes of a 14x14 145 Hz recording (docs/recording.md)
+DEFAULT_MIN_FREE_MB = 500.0
 
 #: a live session records an estimate's sampled uncertainty (yaw_std, joint_std: ~100 ms of CPU at
 #: 14x14) at most this often; the other estimates carry joints only
@@ -99,14 +111,27 @@ class SessionOutputs:
         if record or live is not None:
             import host.analysis.estimator  # noqa: F401 -- now, not at the first estimate: importing scipy
             # mid-session (~0.8 s holding the GIL) stalls the live path it runs in
-            from host.record import Recorder
+            from host import record as R
+            split_mb, split_s = getattr(args, "split_size", None), getattr(args, "split_duration", None)
+            if record and (split_mb or split_s) and R.split_path(record, 0).exists() \
+                    and not getattr(args, "overwrite", False):
+                raise SystemExit(f"{prog}: {R.split_path(record, 0)} exists (a split recording): give --overwrite "
+                                 f"to replace it, or another --record name")
+            live_session = mode == "host"  # the file gets the derived estimates and scene at a lower rate
             try:
-                self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},
-                                         live_port=live, colour_by=colour_by, layout=layout,
-                                         calibration=calibration)
+                self.recorder = R.Recorder(
+                    record, lattice, link_length, session={"mode": mode, **(session or {})},
+                    live_port=live, colour_by=colour_by, layout=layout, calibration=calibration,
+                    split_size=None if not split_mb else int(split_mb * 1e6), split_duration=split_s,
+                    min_free=int(float(getattr(args, "min_free", 0.0) or 0.0) * 1e6) if record else 0,
+                    on_stop=self._recording_stopped,
+                    estimate_file_period_s=R.ESTIMATE_FILE_PERIOD_S if live_session else 0.0,
+                    scene_file_period_s=R.SCENE_FILE_PERIOD_S if live_session else 0.0)
             except OSError as exc:  # an unwritable --record path, a --live port in use
                 what = "" if "live view" in str(exc) else f"cannot write {record}: "
                 raise SystemExit(f"{prog}: {what}{exc}") from None
+            except ValueError as exc:  # too little free space
+                raise SystemExit(f"{prog}: {exc}") from None
             if self.recorder.live is not None:
                 print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
                       f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
@@ -119,6 +144,11 @@ class SessionOutputs:
             except OSError as exc:
                 raise SystemExit(f"{prog}: cannot write {path}: {exc}") from None
             self.can_log_path = path
+
+    def _recording_stopped(self, reason: str) -> None:
+        print(f"{self.prog}: recording stopped: {reason}; {self.recorder.paths[-1]} is complete and readable "
+              f"(the session goes on{', the live view too' if self.recorder.live is not None else ''})",
+              file=sys.stderr)
 
     @property
     def active(self) -> bool:
@@ -242,11 +272,16 @@ class SessionOutputs:
             self.recorder.close(stats)
             if self.recorder.path is not None:
                 c = self.recorder.counts
+                files = self.recorder.paths
+                where = files[0] if len(files) == 1 else f"{len(files)} files, {files[0]} .. {files[-1].name}"
                 what = [f"{c.get(t, 0)} {name}" for t, name in (("/capsheet/snapshot", "snapshots"),
                                                                 ("/capsheet/estimate", "estimates"),
                                                                 ("/capsheet/contacts", "contact frames"))
                         if c.get(t, 0) or name == "snapshots"]
-                print(f"{self.prog}: recorded {', '.join(what)} to {self.recorder.path}", file=sys.stderr)
+                print(f"{self.prog}: recorded {', '.join(what)} to {where}", file=sys.stderr)
+                if self.recorder.stopped:
+                    print(f"{self.prog}: the recording stopped early ({self.recorder.stopped}); "
+                          f"{self.recorder.not_recorded} messages after it were not recorded", file=sys.stderr)
             if self.estimates_skipped:
                 print(f"{self.prog}: {self.estimates_skipped} snapshots could not be estimated "
                       f"(last: {self._skip_reason})", file=sys.stderr)

@@ -28,6 +28,7 @@ UDP port per machine): its runs go one after the other, under the machine-wide l
 from __future__ import annotations
 
 import asyncio
+import base64
 import fcntl
 import json
 import re
@@ -233,7 +234,8 @@ LIVE_TOPICS = ("/capsheet/snapshot", "/capsheet/estimate")
 
 
 async def _live_client(url: str, want: int = 2, timeout_s: float = 60.0) -> dict:
-    """Subscribe to `LIVE_TOPICS` and return ``{topic: [decoded JSON messages]}`` (``want`` each)."""
+    """Subscribe to `LIVE_TOPICS` and return ``{topic: [decoded messages]}`` (``want`` each): JSON, or
+    protobuf decoded with the schema the server advertised (not capsheet's own code)."""
     import struct
 
     import websockets
@@ -258,8 +260,22 @@ async def _live_client(url: str, want: int = 2, timeout_s: float = 60.0) -> dict
                         await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
             elif m[0] == 0x01:
                 sid, _ts = struct.unpack_from("<IQ", m, 1)
-                got[subscribed[sid]].append(json.loads(m[13:]))
+                ch = channels[subscribed[sid]]
+                got[subscribed[sid]].append(_decode_advertised(ch, m[13:]))
         return got
+
+
+def _decode_advertised(ch: dict, payload: bytes):
+    if ch["encoding"] != "protobuf":
+        return json.loads(payload)
+    import base64
+
+    from google.protobuf import descriptor_pb2, descriptor_pool, json_format, message_factory
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"])).file:
+        pool.Add(fd)
+    msg = message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"])).FromString(payload)
+    return json_format.MessageToDict(msg, preserving_proto_field_name=True)  # shared between workers as JSON
 
 
 class Done:
@@ -543,9 +559,10 @@ def test_live_serves_a_foxglove_client(batch):
     _ok(batch.jobs["stream"])
     got = batch.live
     assert isinstance(got, dict) and all(len(got[t]) >= 2 for t in LIVE_TOPICS), got
-    snap = got["/capsheet/snapshot"][-1]
-    assert snap["readings"]["shape"] == [12, 3] and snap["valid"]["shape"] == [12]
-    assert got["/capsheet/estimate"][-1]["joints"]["shape"] == [3, 3, 3]
+    snap = got["/capsheet/snapshot"][-1]  # the chips' counts (capsheet.v2.Snapshot), 12 links
+    assert snap["n_links"] == 12 and len(snap["counts"]) == 12 * 3
+    assert len(base64.b64decode(snap["status"])) == 12
+    assert len(got["/capsheet/estimate"][-1]["joints"]) == 3 * 3 * 3
 
 
 def test_the_docs_table_is_this_matrix():
