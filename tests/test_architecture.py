@@ -394,7 +394,8 @@ def test_the_aggregator_reads_no_clock_and_starts_no_thread():
     assert not imports_of(ROOT / "host/aggregator.py") & {"time", "threading", "queue", "asyncio"}
 
 
-def test_python_can_finds_the_slcan_bus_by_name():
+def test_python_can_finds_capsheets_buses_by_name():
     import tomllib
     eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["can.interface"]
-    assert eps == {"capsheet_slcan": "host.slcan:SlcanBus"}
+    assert eps == {"capsheet_slcan": "host.slcan:SlcanBus",
+                   "capsheet_udp_multicast": "host.udp_multicast:IsolatedUdpMulticastBus"}

@@ -725,6 +725,10 @@ class CanDevice(Device):
             raise ValueError(f"CanDevice needs a sheet with transport='can', got {sheet.transport!r}")
         super().__init__(sheet, **kw)
         self.interface = interface
+        #: the python-can interface opened: ``udp_multicast`` is python-can's bus isolated to its
+        #: group (``capsheet_udp_multicast``, host/udp_multicast.py, found by name): two sheets on
+        #: distinct groups on one machine do not hear each other
+        self.bus_interface = "capsheet_udp_multicast" if interface == "udp_multicast" else interface
         self.channels = channels or [f"capsheet{b}" for b in range(n_buses)]
         if len(self.channels) != n_buses and channels is not None:
             n_buses = len(self.channels)
@@ -744,7 +748,7 @@ class CanDevice(Device):
         self._can = can
         try:
             for ch in self.channels:
-                self.buses.append(can.Bus(interface=self.interface, channel=ch, fd=self.sheet.fd,
+                self.buses.append(can.Bus(interface=self.bus_interface, channel=ch, fd=self.sheet.fd,
                                           receive_own_messages=False, **self.bus_kwargs))
         except Exception as exc:
             self._close()

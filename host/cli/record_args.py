@@ -1,5 +1,6 @@
 """The recording options the commands that run a sheet share (``capsheet host``, ``demo``,
-``tactile``): ``--record FILE.mcap``, ``--live [PORT]`` and, on CAN, ``--can-log FILE``.
+``tactile``): ``--record FILE.mcap``, ``--live [PORT]``, ``--publish zenoh[:ENDPOINT]`` (with
+``--sheet-name``) and, on CAN, ``--can-log FILE``.
 
 One definition, so the three commands spell and explain them alike; `SessionOutputs` does the
 wiring (raw taps, SYNC taps, session facts, live estimates) so each command adds one block.
@@ -48,6 +49,12 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         f"every second, where the recording stops cleanly, its file readable (default "
                         f"{DEFAULT_MIN_FREE_MB:g} MB; 0: until the disk is full)")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
+    g.add_argument("--publish", metavar="zenoh[:ENDPOINT]", type=_publish_arg, default=None,
+                   help="publish snapshots, estimates, health and (queryable) layout and calibration to Zenoh "
+                        "under capsheet/<sheet>/... (docs/distribution.md); peer mode on loopback, or client "
+                        "mode connected to ENDPOINT (a locator, e.g. tcp/127.0.0.1:7447)")
+    g.add_argument("--sheet-name", metavar="NAME", type=_sheet_name, default="sheet",
+                   help="the sheet's name in the published key expressions (default 'sheet')")
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
@@ -56,6 +63,21 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
         g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
     return g
+
+
+def _publish_arg(value: str):
+    from host.publish import parse_publish
+    try:
+        return parse_publish(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _sheet_name(value: str) -> str:
+    from host.publish import SHEET_NAME
+    if not SHEET_NAME.match(value):
+        raise argparse.ArgumentTypeError(f"bad sheet name {value!r}: 1-64 of A-Z a-z 0-9 _ . - (one key chunk)")
+    return value
 
 
 def contact_dicts(contacts) -> list[dict]:
@@ -98,6 +120,8 @@ class SessionOutputs:
         self.lattice = lattice
         self.link_length = float(link_length)
         self.recorder = None
+        self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
+        self._host = None
         self.can_log = None
         self._can_lock = threading.Lock()
         self.can_frames_logged = 0
@@ -135,6 +159,18 @@ class SessionOutputs:
             if self.recorder.live is not None:
                 print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
                       f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
+        publish = getattr(args, "publish", None)
+        if publish is not None:
+            import host.analysis.estimator  # noqa: F401,F811 -- now, not mid-session (above)
+            from host.publish import ZenohPublisher
+            sheet = getattr(args, "sheet_name", "sheet")
+            try:
+                self.publisher = ZenohPublisher(sheet, publish[1], lattice, link_length,
+                                                info={"mode": mode, **(session or {})})
+            except OSError as exc:
+                raise SystemExit(f"{prog}: {exc}") from None
+            print(f"{prog}: publishing to Zenoh under {self.publisher.prefix}/ "
+                  f"({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
         path = getattr(args, "can_log", None)
         if path:
             import can
@@ -152,13 +188,16 @@ class SessionOutputs:
 
     @property
     def active(self) -> bool:
-        return self.recorder is not None or self.can_log is not None
+        return self.recorder is not None or self.can_log is not None or self.publisher is not None
 
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
         """Before bring-up: record the raw input of every transport and every SYNC the host opens."""
         from host.transport import CanTransport
 
+        self._host = host
+        if self.publisher is not None:  # every snapshot as emitted, corrected, as the recording
+            host.feed.add_listener(self.publisher.snapshot)
         if self.recorder is not None and self.recorder.path is not None:
             self.recorder.tap(host.transports, host.feed)
             self.recorder.tap_sync(host.feed)
@@ -201,6 +240,13 @@ class SessionOutputs:
         """After bring-up: the session's facts (layout, calibration, rate) into the recording."""
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
+        if self.publisher is not None:
+            from host.record import Recorder
+            session, layout, calibration = Recorder.session_facts(host)
+            live_cal = host.calibration
+            if live_cal is not None:  # `--calibration`: what the snapshots were corrected with
+                calibration = {**calibration, "host_calibration": live_cal.to_dict()}
+            self.publisher.describe(layout, calibration, session)
 
     def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False,
                  estimate: bool = True):
@@ -209,9 +255,10 @@ class SessionOutputs:
         the estimate is for the newest, the recording for every one). Returns the estimate made, or
         None."""
         rec = self.recorder
-        if rec is None:
+        self._health()
+        if rec is None and self.publisher is None:
             return None
-        if rec.path is not None and not self.records_at_emission:
+        if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
         if not estimate:
             return None
@@ -237,7 +284,10 @@ class SessionOutputs:
 
     def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
                 uncertainty: bool = False) -> None:
-        """Record and show an estimate made elsewhere (the demo's own)."""
+        """Record, show and publish an estimate made elsewhere (the demo's own)."""
+        if self.publisher is not None:
+            self.publisher.estimate(est, snap, uncertainty=uncertainty)
+            self._health()
         if self.recorder is None:
             return
         err = err_mean = None
@@ -263,11 +313,26 @@ class SessionOutputs:
                     "position": None} for F, i in marks]
         rec.contacts(k, t, cs)
 
+    def _health(self, *, force: bool = False) -> None:
+        """The host's summary to ``capsheet/<sheet>/health`` (about once a second)."""
+        if self.publisher is not None and self._host is not None:
+            self.publisher.health(self._host.summary(), force=force)
+
     def flush(self) -> None:
         if self.recorder is not None:
             self.recorder.flush()
 
     def close(self, stats: dict | None = None) -> None:
+        if self.publisher is not None:
+            try:
+                self._health(force=True)  # the final summary
+            finally:
+                self.publisher.close()
+                c = self.publisher.counts
+                print(f"{self.prog}: published {c['snapshot']} snapshots, {c['estimate']} estimates, "
+                      f"{c['health']} health reports to Zenoh ({c['info']} info queries answered)",
+                      file=sys.stderr)
+                self.publisher = None
         if self.recorder is not None:
             self.recorder.close(stats)
             if self.recorder.path is not None:

@@ -303,11 +303,6 @@ def run(args) -> int:
         except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
             pass
 
-    if args.transport == "can" and args.can_interface == "udp_multicast" and args.bus_count > 1:
-        print("capsheet virtual: udp_multicast buses share one UDP port, so on Linux their traffic crosses "
-              "(every bus hears every other): use --bus-count 1, or --transport slcan for several buses",
-              file=sys.stderr)
-        return 2
     if getattr(args, "gateways", 1) > 1 and args.transport != "pty":
         print(f"capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
               f"--bus-count", file=sys.stderr)

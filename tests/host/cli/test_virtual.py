@@ -107,11 +107,3 @@ def test_bad_values_are_one_line_errors(args, needle):
     out = subprocess.run(CLI + ["virtual", "--transport", "memory", "--duration", "0.1", *args],
                          capture_output=True, text=True, timeout=60, env=ENV)
     assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
-
-
-def test_several_udp_multicast_buses_are_refused():
-    """Measured: two python-can udp_multicast groups on one port hear each other on Linux."""
-    out = subprocess.run(CLI + ["virtual", "--transport", "can", "--can-interface", "udp_multicast",
-                                "--bus-count", "2", "--duration", "0.1"],
-                         capture_output=True, text=True, timeout=60, env=ENV)
-    assert out.returncode == 2 and "traffic crosses" in out.stderr and "--transport slcan" in out.stderr
