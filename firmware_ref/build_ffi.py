@@ -1,4 +1,5 @@
-"""cffi build of the reference firmware as ``firmware_ref._capsheet_fw`` (out-of-line API mode).
+"""cffi build of the reference firmware as ``firmware_ref._capsheet_fw`` (out-of-line API mode), and
+of its mutant test build ``firmware_ref._capsheet_fw_mutants`` (-DCAPSHEET_MUTANTS).
 
 Built at install time through ``setup.py``'s ``cffi_modules`` (``pip install -e .``), or by hand
 for development::
@@ -53,6 +54,7 @@ typedef struct {
         struct { uint8_t command, reason; } nack;
         capsheet_cal_t cal;
         struct { uint16_t counter, first_link; uint8_t count; const uint8_t *words; } snapshot;
+        struct { uint8_t flags, sample_format; uint16_t first_link, link_count, sync_rate_hz; } gateway_info;
         struct { uint16_t counter; } sync;
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
@@ -85,6 +87,8 @@ typedef struct { capsheet_transport_t transport; bool can_fd; uint16_t capabilit
 typedef struct {
     uint64_t uid;
     uint16_t node;
+    uint16_t prev_node;
+    bool has_prev;
     uint16_t link;
     bool has_link;
     uint8_t state;
@@ -99,6 +103,8 @@ typedef struct {
     uint16_t heartbeat_ms;
     capsheet_cal_t cal[3];
     capsheet_stream_t rx;
+    uint64_t boot_us;
+    MUTANT_FIELDS
     ...;
 } capsheet_chip_t;
 
@@ -166,15 +172,34 @@ def _rel(path: Path) -> str:
 
 _check_compiler()
 
-ffibuilder = FFI()
-ffibuilder.cdef(CDEF)
-ffibuilder.set_source(
-    "firmware_ref._capsheet_fw",
-    '#include "capsheet_fw.h"\n',
-    sources=[_rel(HERE / s) for s in SOURCES],
-    include_dirs=[_rel(HERE / "include")],
-    extra_compile_args=["-O2"] if os.name != "nt" else [],
-)
+
+def _mutant_enum() -> str:
+    """``capsheet_mutant_t`` as cffi declares it: the names from the header, the values from C."""
+    import re
+    names = re.findall(r"^\s*(CAPSHEET_MUT_[A-Z0-9_]+)", (HERE / "include" / "capsheet_fw.h").read_text(), re.M)
+    return "typedef enum { " + ", ".join(names) + ", ... } capsheet_mutant_t;\n"
+
+
+def _builder(module: str, mutants: bool) -> FFI:
+    ffi = FFI()
+    ffi.cdef(_mutant_enum() + CDEF.replace("MUTANT_FIELDS", "int32_t mutant;" if mutants else ""))
+    ffi.set_source(
+        module,
+        '#include "capsheet_fw.h"\n',
+        sources=[_rel(HERE / s) for s in SOURCES],
+        include_dirs=[_rel(HERE / "include")],
+        define_macros=[("CAPSHEET_MUTANTS", "1")] if mutants else [],
+        extra_compile_args=["-O2"] if os.name != "nt" else [],
+    )
+    return ffi
+
+
+#: the firmware as a chip vendor builds it
+ffibuilder = _builder("firmware_ref._capsheet_fw", mutants=False)
+#: a test build: the same sources with -DCAPSHEET_MUTANTS, each chip breaking the rule its
+#: ``mutant`` field names (capsheet_fw.h; tests/host/conformance/mutants.py)
+ffibuilder_mutants = _builder("firmware_ref._capsheet_fw_mutants", mutants=True)
 
 if __name__ == "__main__":
     ffibuilder.compile(tmpdir=str(ROOT), verbose=False)
+    ffibuilder_mutants.compile(tmpdir=str(ROOT), verbose=False)

@@ -16,9 +16,16 @@ from protocol.messages import Capability, ChipState
 
 from ._ffi import ffi, lib
 
-__all__ = ["CFirmwareChip", "Out", "SensorSource", "DEFAULT_CAPABILITIES", "FIRMWARE_VERSION", "FirmwareError"]
+__all__ = ["CFirmwareChip", "Out", "SensorSource", "DEFAULT_CAPABILITIES", "FIRMWARE_VERSION", "FirmwareError",
+           "C_MUTANTS", "mutant_library"]
 
 FIRMWARE_VERSION = (lib.CAPSHEET_FW_VERSION_MAJOR, lib.CAPSHEET_FW_VERSION_MINOR, lib.CAPSHEET_FW_VERSION_PATCH)
+
+#: the mutants of the test build (capsheet_fw.h ``capsheet_mutant_t``), by name: ``dead_sensor`` ...
+C_MUTANTS: tuple[str, ...] = tuple(
+    name[len("CAPSHEET_MUT_"):].lower() for name in sorted(
+        (n for n in dir(lib) if n.startswith("CAPSHEET_MUT_") and n not in ("CAPSHEET_MUT_NONE", "CAPSHEET_MUT_COUNT")),
+        key=lambda n: getattr(lib, n)))
 
 
 class FirmwareError(RuntimeError):
@@ -45,8 +52,16 @@ class CFirmwareChip:
     def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
                  capabilities: int = DEFAULT_CAPABILITIES,
                  calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0,
-                 rx_buffer: int | None = None) -> None:
+                 rx_buffer: int | None = None, mutant: str | None = None) -> None:
         check_chip_args(uid, transport, calibration)
+        if mutant is None:
+            ffi_, lib_ = ffi, lib
+        else:
+            ffi_, lib_ = mutant_library()
+            if mutant not in C_MUTANTS:
+                raise ValueError(f"Invalid mutant {mutant!r} (known: {', '.join(C_MUTANTS)})")
+        self._ffi, self._lib = ffi_, lib_
+        self.mutant = mutant
         self.uid = uid
         self.sensor = sensor
         self.transport = transport
@@ -58,27 +73,29 @@ class CFirmwareChip:
         self.cal_store = [(int(o), float(s), stored) for o, s in calibration]
         self._out: list[Out] = []
         self._exc: BaseException | None = None
-        self._handle = ffi.new_handle(self)
-        self._hal = ffi.new("capsheet_hal_t *")
+        self._handle = self._ffi.new_handle(self)
+        self._hal = self._ffi.new("capsheet_hal_t *")
         self._hal.user = self._handle
-        self._hal.read_axes = lib.capsheet_py_read_axes
-        self._hal.send_bytes = lib.capsheet_py_send_bytes
-        self._hal.send_can = lib.capsheet_py_send_can
-        self._hal.read_uid = lib.capsheet_py_read_uid
-        self._hal.cal_load = lib.capsheet_py_cal_load
-        self._hal.cal_store = lib.capsheet_py_cal_store
-        cfg = ffi.new("capsheet_chip_config_t *")
-        cfg.transport = lib.CAPSHEET_TRANSPORT_CAN if transport == "can" else lib.CAPSHEET_TRANSPORT_SERIAL
+        self._hal.read_axes = self._lib.capsheet_py_read_axes
+        self._hal.send_bytes = self._lib.capsheet_py_send_bytes
+        self._hal.send_can = self._lib.capsheet_py_send_can
+        self._hal.read_uid = self._lib.capsheet_py_read_uid
+        self._hal.cal_load = self._lib.capsheet_py_cal_load
+        self._hal.cal_store = self._lib.capsheet_py_cal_store
+        cfg = self._ffi.new("capsheet_chip_config_t *")
+        cfg.transport = self._lib.CAPSHEET_TRANSPORT_CAN if transport == "can" else self._lib.CAPSHEET_TRANSPORT_SERIAL
         cfg.can_fd = self.fd
         cfg.capabilities = int(capabilities) & 0xFFFF
         self._cfg = cfg
-        self._rx_cap = rx_buffer or lib.CAPSHEET_MAX_ENCODED_SIZE
-        self._rx = ffi.new("uint8_t[]", self._rx_cap)
-        self._chip = ffi.new("capsheet_chip_t *")
-        rc = lib.capsheet_chip_init(self._chip, cfg, self._hal, self._rx if transport == "serial" else ffi.NULL,
+        self._rx_cap = rx_buffer or self._lib.CAPSHEET_MAX_ENCODED_SIZE
+        self._rx = self._ffi.new("uint8_t[]", self._rx_cap)
+        self._chip = self._ffi.new("capsheet_chip_t *")
+        rc = self._lib.capsheet_chip_init(self._chip, cfg, self._hal, self._rx if transport == "serial" else self._ffi.NULL,
                                     self._rx_cap if transport == "serial" else 0)
         if rc < 0:
             raise FirmwareError(f"capsheet_chip_init failed: {rc}")
+        if mutant is not None:
+            self._chip.mutant = getattr(lib_, f"CAPSHEET_MUT_{mutant.upper()}")
 
     # ------------------------------------------------------------------ state, read from C
     @property
@@ -107,6 +124,11 @@ class CFirmwareChip:
         return int(self._chip.last_sync) if self._chip.have_sync else None
 
     @property
+    def prev_node(self) -> int | None:
+        """BOOT: the provisional id of the round before, which still takes an ASSIGN (§3.3)."""
+        return int(self._chip.prev_node) if self._chip.has_prev and self._chip.state == 0 else None
+
+    @property
     def salt(self) -> int:
         return int(self._chip.salt)
 
@@ -126,7 +148,7 @@ class CFirmwareChip:
 
     def power_on(self, now_s: float) -> list[Out]:
         """Boot: ANNOUNCE then INFO from the provisional node id."""
-        return self._run(lib.capsheet_chip_power_on(self._chip, _us(now_s)))
+        return self._run(self._lib.capsheet_chip_power_on(self._chip, _us(now_s)))
 
     def handle(self, frame: Out, now_s: float, decoded=None) -> list[Out]:
         """React to one frame heard on the bus (``decoded`` is ignored: the C firmware decodes)."""
@@ -134,26 +156,26 @@ class CFirmwareChip:
             if self.transport != "can":
                 return []
             data = bytes(frame.data)
-            rc = lib.capsheet_chip_rx_can(self._chip, frame.arbitration_id & 0xFFFFFFFF, True, bool(frame.is_fd),
+            rc = self._lib.capsheet_chip_rx_can(self._chip, frame.arbitration_id & 0xFFFFFFFF, True, bool(frame.is_fd),
                                           data, len(data), _us(now_s))
         else:
             if self.transport != "serial":
                 return []
             data = bytes(frame)
-            rc = lib.capsheet_chip_rx_bytes(self._chip, data, len(data), _us(now_s))
+            rc = self._lib.capsheet_chip_rx_bytes(self._chip, data, len(data), _us(now_s))
         return self._run(rc)
 
     def feed(self, data: bytes, now_s: float) -> list[Out]:
         """Serial only: any chunk of received bytes (frames may span calls)."""
-        return self._run(lib.capsheet_chip_rx_bytes(self._chip, bytes(data), len(data), _us(now_s)))
+        return self._run(self._lib.capsheet_chip_rx_bytes(self._chip, bytes(data), len(data), _us(now_s)))
 
     def poll(self, now_s: float) -> list[Out]:
         """Time-driven output: re-ANNOUNCE (BOOT), STATUS heartbeat (assigned)."""
-        return self._run(lib.capsheet_chip_poll(self._chip, _us(now_s)))
+        return self._run(self._lib.capsheet_chip_poll(self._chip, _us(now_s)))
 
     def fault(self) -> None:
         """The sensor stopped answering: an assigned chip enters FAULT now (as ChipModel.fault)."""
-        lib.capsheet_chip_sensor_fault(self._chip)
+        self._lib.capsheet_chip_sensor_fault(self._chip)
 
     def __repr__(self) -> str:
         return (f"CFirmwareChip(uid=0x{self.uid:016X}, node=0x{self.node:04X}, state={self.state.name}, "
@@ -164,56 +186,66 @@ class CFirmwareChip:
 # HAL callbacks: C -> Python. An exception is kept and re-raised when the C call returns.
 # ---------------------------------------------------------------------------------------------
 
-def _chip(user) -> CFirmwareChip:
-    return ffi.from_handle(user)
+def _register(ffi_) -> None:
+    """Define the HAL callbacks (``extern "Python"``) of one cffi module."""
 
+    def chip(user) -> CFirmwareChip:
+        return ffi_.from_handle(user)
 
-def _onerror(exception, exc_value, traceback):
-    # cffi calls this with no access to the chip; the callbacks catch their own exceptions.
-    return None
+    @ffi_.def_extern()
+    def capsheet_py_read_axes(user, now_us, xyz, status):
+        c = chip(user)
+        try:
+            (x, y, z), st = c.sensor(now_us / 1e6)
+            xyz[0], xyz[1], xyz[2] = int(x), int(y), int(z)
+            status[0] = int(st) & 0xF
+            return 0
+        except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
+            c._exc = exc
+            return -1
 
-
-@ffi.def_extern()
-def capsheet_py_read_axes(user, now_us, xyz, status):
-    chip = _chip(user)
-    try:
-        (x, y, z), st = chip.sensor(now_us / 1e6)
-        xyz[0], xyz[1], xyz[2] = int(x), int(y), int(z)
-        status[0] = int(st) & 0xF
+    @ffi_.def_extern()
+    def capsheet_py_send_bytes(user, data, length):
+        chip(user)._out.append(bytes(ffi_.buffer(data, length)))
         return 0
-    except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
-        chip._exc = exc
-        return -1
+
+    @ffi_.def_extern()
+    def capsheet_py_send_can(user, can_id, data, length, is_fd):
+        chip(user)._out.append(CanFrame(int(can_id), bytes(ffi_.buffer(data, length)), bool(is_fd)))
+        return 0
+
+    @ffi_.def_extern()
+    def capsheet_py_read_uid(user):
+        return chip(user).uid
+
+    @ffi_.def_extern()
+    def capsheet_py_cal_load(user, axis, cal):
+        offset, sens, stored = chip(user).cal_store[axis]
+        cal.axis = axis
+        cal.flags = stored
+        cal.offset_q4 = offset
+        cal.sensitivity = sens
+        return 0
+
+    @ffi_.def_extern()
+    def capsheet_py_cal_store(user, axis, cal):
+        chip(user).cal_store[axis] = (int(cal.offset_q4), float(cal.sensitivity), 1)
+        return 0
 
 
-@ffi.def_extern()
-def capsheet_py_send_bytes(user, data, length):
-    _chip(user)._out.append(bytes(ffi.buffer(data, length)))
-    return 0
+_register(ffi)
+_MUTANT_LIB = None
 
 
-@ffi.def_extern()
-def capsheet_py_send_can(user, can_id, data, length, is_fd):
-    _chip(user)._out.append(CanFrame(int(can_id), bytes(ffi.buffer(data, length)), bool(is_fd)))
-    return 0
-
-
-@ffi.def_extern()
-def capsheet_py_read_uid(user):
-    return _chip(user).uid
-
-
-@ffi.def_extern()
-def capsheet_py_cal_load(user, axis, cal):
-    offset, sens, stored = _chip(user).cal_store[axis]
-    cal.axis = axis
-    cal.flags = stored
-    cal.offset_q4 = offset
-    cal.sensitivity = sens
-    return 0
-
-
-@ffi.def_extern()
-def capsheet_py_cal_store(user, axis, cal):
-    _chip(user).cal_store[axis] = (int(cal.offset_q4), float(cal.sensitivity), 1)
-    return 0
+def mutant_library():
+    """``(ffi, lib)`` of the mutant test build (``firmware_ref._capsheet_fw_mutants``)."""
+    global _MUTANT_LIB
+    if _MUTANT_LIB is None:
+        try:
+            from ._capsheet_fw_mutants import ffi as mffi, lib as mlib
+        except ImportError as exc:  # pragma: no cover - depends on the installation
+            raise ImportError("the mutant test build firmware_ref._capsheet_fw_mutants is not built "
+                              f"(pip install -e . builds it): {exc}") from exc
+        _register(mffi)
+        _MUTANT_LIB = (mffi, mlib)
+    return _MUTANT_LIB

@@ -42,6 +42,7 @@ class CodecError(ValueError):
 _MEMBER = {
     MsgType.ANNOUNCE: "announce", MsgType.INFO: "info", MsgType.SAMPLE: "sample", MsgType.STATUS: "status",
     MsgType.ACK: "ack", MsgType.NACK: "nack", MsgType.CAL_DATA: "cal", MsgType.SNAPSHOT: "snapshot",
+    MsgType.GATEWAY_INFO: "gateway_info",
     MsgType.SYNC: "sync", MsgType.ASSIGN: "assign", MsgType.CONFIG: "config", MsgType.CAL_WRITE: "cal",
     MsgType.CAL_READ: "cal_read",
 }

@@ -32,7 +32,14 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 QEMU = os.environ.get("QEMU", "qemu-system-arm")
 ARM_CC = os.environ.get("ARM_CC", "arm-none-eabi-gcc")
-MUTANTS = ("dead_sensor", "wrong_crc", "slow_clock")
+def _mutants() -> tuple[str, ...]:
+    """The mutant builds: every ``capsheet_mutant_t`` of the header (the library's test build), and
+    ``slow_clock`` (the port's clock at half speed)."""
+    names = re.findall(r"^\s*CAPSHEET_MUT_([A-Z0-9_]+)", (HERE / "include" / "capsheet_fw.h").read_text(), re.M)
+    return tuple(n.lower() for n in names if n not in ("NONE", "COUNT")) + ("slow_clock",)
+
+
+MUTANTS = _mutants()
 STACK_PAINT = 0xDEADBEEF
 
 

@@ -117,6 +117,9 @@ class LatticeSnapshot:
         ``emitted - timestamp``: from SYNC (or first frame) to emission.
     first_frame_s, last_frame_s : float
         Arrival of the first / last frame after ``timestamp`` (seconds; NaN if none).
+    counts : ndarray, shape (n_links, 3), int16, or None
+        The chips' ADC counts the readings were converted from (0 where not ``valid``): what a
+        recording stores (docs/recording.md); None for a snapshot made without an aggregator.
     """
 
     counter: int
@@ -129,6 +132,7 @@ class LatticeSnapshot:
     latency_s: float
     first_frame_s: float = float("nan")
     last_frame_s: float = float("nan")
+    counts: np.ndarray | None = None
 
     @property
     def n_links(self) -> int:
@@ -744,6 +748,9 @@ class Aggregator:
         complete = bool(self.expected.any() and np.all(got | ~self.expected))
         readings = counts_to_si(self._counts[s].astype(np.float64), self._offset, self._sens)
         readings[~valid] = np.nan
+        counts = self._counts[s].copy()
+        counts[~valid] = 0
+        counts.setflags(write=False)
         status |= np.where(got, 0, LinkFlag.MISSING).astype(np.uint8)
         status |= np.where(self.silent, LinkFlag.SILENT, 0).astype(np.uint8)
         status |= np.where(self.unassigned, LinkFlag.UNASSIGNED, 0).astype(np.uint8)
@@ -752,7 +759,7 @@ class Aggregator:
         status.setflags(write=False)
         snap = LatticeSnapshot(c, float(self._slot_t0[s]), float(self._slot_wall[s]), readings, valid, status,
                                complete, float(now - self._slot_t0[s]), float(self._slot_first[s]),
-                               float(self._slot_last[s]))
+                               float(self._slot_last[s]), counts)
         st.emitted += 1
         assigned = ~self.unassigned
         st.assigned_links += int(np.count_nonzero(assigned))

@@ -70,18 +70,20 @@ class SceneChannels:
     context : foxglove.Context
     lattice : protocol.lattice.Lattice
     colour_by : {"error", "displacement", "links"}
+    metadata : dict, optional
+        Channel metadata (`host.record.Recorder` marks which sink a set of channels is for).
     """
 
-    def __init__(self, context, lattice, colour_by: str = "links") -> None:
+    def __init__(self, context, lattice, colour_by: str = "links", metadata: dict | None = None) -> None:
         from foxglove.channels import FrameTransformChannel, PointCloudChannel, SceneUpdateChannel
 
         if colour_by not in COLOUR_MODES:
             raise ValueError(f"Invalid colour_by: {colour_by!r} (need one of {COLOUR_MODES})")
         self.lattice = lattice
         self.colour_by = colour_by
-        self.scene = SceneUpdateChannel("/sheet/scene", context=context)
-        self.cloud = PointCloudChannel("/sheet/joints", context=context)
-        self.tf = FrameTransformChannel("/tf", context=context)
+        self.scene = SceneUpdateChannel("/sheet/scene", context=context, metadata=metadata)
+        self.cloud = PointCloudChannel("/sheet/joints", context=context, metadata=metadata)
+        self.tf = FrameTransformChannel("/tf", context=context, metadata=metadata)
         self._ends = np.asarray(lattice.endpoints)
 
     def log_transform(self, t_ns: int) -> None:
@@ -329,15 +331,19 @@ class LiveServer:
         TCP port; 0 picks a free one (see `port`).
     host : str
         Interface to listen on; the default serves this machine only.
+    channel_filter : callable, optional
+        ``(foxglove.ChannelDescriptor) -> bool``: the channels the view gets (default all).
     """
 
-    def __init__(self, context, port: int = 8765, host: str = "127.0.0.1", name: str = "capsheet") -> None:
+    def __init__(self, context, port: int = 8765, host: str = "127.0.0.1", name: str = "capsheet",
+                 channel_filter=None) -> None:
         import foxglove
 
         if not 0 <= int(port) <= 65535:
             raise ValueError(f"Invalid port: {port!r} (need 0..65535)")
         try:
-            self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=context)
+            self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=context,
+                                                 channel_filter=channel_filter)
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types
             raise OSError(f"Cannot start the live view: {exc}") from exc
         try:

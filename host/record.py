@@ -7,25 +7,29 @@ file and the live view carry the very same messages. The writer is foxglove-sdk'
 zstd); a chunk is closed every ``flush_interval_s``, so a killed host leaves a file that `read`
 (and any MCAP stream reader) reads up to its last finished chunk.
 
-Topics (capsheet's own are JSON with a JSON Schema, the encoding Foxglove plots natively; bulky
-arrays are base64 of little-endian arrays, dtype and shape given in the message):
+Topics (format ``capsheet-mcap-2``: capsheet's own are protobuf, schemas built by
+`host.record_schema` and stored in the file; docs/recording.md has every field):
 
-==========================  ===================  =================================================
-topic                       schema               content
-==========================  ===================  =================================================
-``/capsheet/raw/bus{N}``    capsheet.RawSerial   wire bytes of bus N as read (serial, pty, memory);
-                                                 ``t`` when ingested, ``t_rx`` when read
-                            capsheet.RawCan      CAN frames of bus N as received (one batch)
-``/capsheet/sync``          capsheet.Sync        the host opened SYNC ``counter`` at ``t``
-``/capsheet/snapshot``      capsheet.Snapshot    counter, readings (n_links, 3) m/s², valid, status
-``/capsheet/estimate``      capsheet.Estimate    joints (rows, cols, 3) m; ``yaw_std`` (n_links,)
-                                                 rad and ``joint_std`` (rows, cols, 3) m when the
-                                                 estimator provides them; error vs truth if known
-``/capsheet/contacts``      capsheet.Contacts    tactile contacts: position, force, radius, id
-``/sheet/scene``            foxglove.SceneUpdate the lattice as a coloured line list, contacts
-``/sheet/joints``           foxglove.PointCloud  the estimated joints (x, y, z float32, m)
+==========================  =======================  =============================================
+topic                       schema                   content
+==========================  =======================  =============================================
+``/capsheet/raw/bus{N}``    capsheet.v2.RawSerial    wire bytes of bus N as read (serial, pty, memory);
+                                                     ``t`` when ingested, ``t_rx`` when read
+                            capsheet.v2.RawCan       CAN frames of bus N as received (one batch)
+``/capsheet/sync``          capsheet.v2.Sync         the host opened SYNC ``counter`` at ``t``
+``/capsheet/snapshot``      capsheet.v2.Snapshot     counter, the chips' counts (int16; `read`
+                                                     converts them with the recorded calibration),
+                                                     valid bitmap, status
+``/capsheet/estimate``      capsheet.v2.Estimate     joints (rows, cols, 3) m; ``yaw_std``,
+                                                     ``joint_std`` when computed; error vs truth
+``/capsheet/contacts``      capsheet.Contacts (JSON) tactile contacts: position, force, radius, id
+``/sheet/scene``            foxglove.SceneUpdate     the lattice as a coloured line list, contacts
+``/sheet/joints``           foxglove.PointCloud      the estimated joints (x, y, z float32, m)
 ``/tf``                     foxglove.FrameTransform  ``world`` -> ``sheet`` (identity)
-==========================  ===================  =================================================
+==========================  =======================  =============================================
+
+Recordings of format ``capsheet-mcap-1`` (JSON channels) are read too. A recording may be a split
+set (``run_0000.mcap``, ``run_0001.mcap``, ...: `split_path`, `recording_set`).
 
 Every message's log time is the host's wall clock (ns since the Unix epoch); ``t`` fields inside
 are the host's monotonic clock (s), the clock `host.aggregator.LatticeSnapshot.timestamp` uses.
@@ -43,6 +47,7 @@ from __future__ import annotations
 import base64
 import json
 import platform
+import shutil
 import threading
 import time
 from dataclasses import dataclass, field
@@ -60,7 +65,9 @@ __all__ = ["Recorder", "Recording", "read", "read_recording", "iter_snapshots", 
            "tap_transport", "versions",
            "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "FORMAT"]
 
-FORMAT = "capsheet-mcap-1"
+FORMAT = "capsheet-mcap-2"
+#: what older capsheet wrote (JSON channels); `read`, replay and estimate still read it
+FORMAT_V1 = "capsheet-mcap-1"
 #: Attachment: the host-side calibration (``capsheet host --calibration``, `host.analysis.calibration`
 #: format, rebased to the chips' own) applied to every recorded snapshot; replay applies it too.
 HOST_CALIBRATION = "host_calibration.json"
@@ -164,6 +171,50 @@ def tap_transport(transport, on_raw: Callable[[str, Any], None]) -> Callable:
     return handler
 
 
+#: channel metadata key: which sink a channel is for ("file" or "live"); channels without it go to both
+SINK_KEY = "capsheet.sink"
+#: the file gets the 3D scene (derived from the estimates) at most this often, s
+SCENE_FILE_PERIOD_S = 1.0
+#: ... and the live estimates at most this often (5/s; `capsheet estimate` makes every one offline), s
+ESTIMATE_FILE_PERIOD_S = 0.2
+#: zstd level of the chunks: 9 makes a 14x14 145 Hz recording ~10 % smaller than the default (3)
+#: for ~2 % of a core (docs/recording.md, "Size")
+COMPRESSION_LEVEL = 9
+
+
+def _not_for(sink: str):
+    """A sink's channel filter: every channel but those marked for the other sink."""
+    return lambda ch: (ch.metadata or {}).get(SINK_KEY) != ("live" if sink == "live" else "file")
+
+
+def split_path(path, index: int) -> Path:
+    """File ``index`` of a split recording: ``run.mcap`` -> ``run_0000.mcap``, ``run_0001.mcap``, ..."""
+    path = Path(path)
+    return path.with_name(f"{path.stem}_{int(index):04d}{path.suffix}")
+
+
+def recording_set(path) -> list[Path]:
+    """The files of a recording: ``path`` itself if it exists, else the split set it names
+    (``run.mcap`` -> ``run_0000.mcap``, ``run_0001.mcap``, ... as far as they go, in order).
+    Raises FileNotFoundError when there is neither."""
+    path = Path(path)
+    if path.exists():
+        return [path]
+    out = []
+    while split_path(path, len(out)).exists():
+        out.append(split_path(path, len(out)))
+    if not out:
+        raise FileNotFoundError(f"{str(path)!r} does not exist (nor {split_path(path, 0).name}, a split set)")
+    return out
+
+
+def _can_flags(m) -> int:
+    from host import record_schema as P
+    return ((P.CAN_EXT if m.is_extended_id else 0) | (P.CAN_FD if m.is_fd else 0)
+            | (P.CAN_ERR if m.is_error_frame else 0) | (P.CAN_RTR if m.is_remote_frame else 0)
+            | (P.CAN_BRS if getattr(m, "bitrate_switch", False) else 0))
+
+
 def _can_frame_dict(m) -> dict:
     """A received frame (python-can message or `host.transport.RawFrame`) as the recording stores it."""
     return {"id": int(m.arbitration_id), "ext": bool(m.is_extended_id), "fd": bool(m.is_fd),
@@ -200,12 +251,43 @@ class Recorder:
         A chunk is closed at least this often (what a killed host can lose).
     chunk_size : int
         Target uncompressed chunk size, bytes.
+    split_size : int, optional
+        Start the next file once this one holds at least this many bytes (checked at every flush).
+    split_duration : float, optional
+        Start the next file after this many seconds. With either split, the files are
+        ``<stem>_0000<suffix>``, ``<stem>_0001<suffix>``, ... (`split_path`), each a whole
+        recording (session metadata, layout, calibration), read alone or as a set (`read`).
+    min_free : int
+        Bytes that must stay free on the file's disk: checked when the recorder starts (ValueError
+        below it, nothing written) and at every flush, where the recording stops cleanly (the file
+        closed with its summary, `stopped` says why; the session and the live view go on).
+    free_bytes : callable
+        ``(directory) -> free bytes`` (default `shutil.disk_usage`; a simulated disk in tests).
+    estimate_file_period_s : float
+        The file gets at most one estimate per this many seconds (the live view every one; 0:
+        every one). A live session records at `ESTIMATE_FILE_PERIOD_S` (docs/recording.md, "Size").
+    scene_file_period_s : float
+        The same for the 3D scene (derived from the estimates); a live session: `SCENE_FILE_PERIOD_S`.
+    on_stop : callable, optional
+        ``(reason)``, called once when the recording stops before `close` (the disk filled).
+
+    Attributes
+    ----------
+    paths : list of Path
+        The files written so far, in order.
+    stopped : str or None
+        Why the recording stopped before `close`, if it did.
+    not_recorded : int
+        Messages logged after the recording stopped (they reached the live view only).
     """
 
     def __init__(self, path, lattice, link_length: float, *, session: dict | None = None,
                  layout: dict | None = None, calibration: dict | None = None, live_port: int | None = None,
                  live_host: str = "127.0.0.1", colour_by: str = "links", flush_interval_s: float = 1.0,
-                 chunk_size: int = 1 << 20) -> None:
+                 chunk_size: int = 1 << 20, split_size: int | None = None, split_duration: float | None = None,
+                 min_free: int = 0, free_bytes: Callable[[Path], int] | None = None,
+                 on_stop: Callable[[str], None] | None = None,
+                 estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -215,65 +297,202 @@ class Recorder:
             raise ValueError("Recorder needs a path, a live_port, or both")
         if not (np.isfinite(link_length) and link_length > 0):
             raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
+        if split_size is not None and not int(split_size) >= 1:
+            raise ValueError(f"Invalid split_size: {split_size!r} (need >= 1 byte)")
+        if split_duration is not None and not (np.isfinite(split_duration) and split_duration > 0):
+            raise ValueError(f"Invalid split_duration: {split_duration!r} (need a finite value > 0 s)")
         self.path = None if path is None else Path(path)
+        self.split_size = None if split_size is None else int(split_size)
+        self.split_duration = None if split_duration is None else float(split_duration)
+        self.split = self.split_size is not None or self.split_duration is not None
+        self.min_free = int(min_free)
+        self._free_bytes = free_bytes or (lambda d: shutil.disk_usage(d).free)
+        self.on_stop = on_stop
+        self.paths: list[Path] = []
+        self.stopped: str | None = None
+        self.not_recorded = 0
+        self._file_docs: list[tuple[str, str, Any]] = []  # what every file of a split set repeats
         self.lattice = lattice
         self.link_length = float(link_length)
         self.flush_interval_s = float(flush_interval_s)
         self.counts: dict[str, int] = {}
         self.context = foxglove.Context()
         self._lock = threading.Lock()
+        self._io = threading.RLock()  # one message at a time into the writer; a file switch between two
         self._last_flush = time.monotonic()
         self._closed = False
         self._writer = None
+        self._opts = MCAPWriteOptions(chunk_size=int(chunk_size), compression_threads=0, profile="",
+                                      compression_level=COMPRESSION_LEVEL)
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            opts = MCAPWriteOptions(chunk_size=int(chunk_size), compression_threads=0, profile="")
-            self._writer = foxglove.open_mcap(str(self.path), allow_overwrite=True, context=self.context,
-                                              writer_options=opts)
-        self._schemas = {name: foxglove.Schema(name=name, encoding="jsonschema", data=json.dumps(s).encode())
-                         for name, s in SCHEMAS.items()}
+            free = self._free_bytes(self.path.parent)
+            if free < self.min_free:
+                raise ValueError(f"only {free / 1e6:.0f} MB free on the disk of {self.path} (need "
+                                 f"{self.min_free / 1e6:.0f} MB free to record): nothing recorded")
+            self._open_file()
+        from host import record_schema as P
+
+        self._pb = P
+        fds = P.file_descriptor_set()
+        self._schemas = {name: foxglove.Schema(name=name, encoding="protobuf", data=fds) for name in P.NAMES}
+        self._schemas["capsheet.Contacts"] = foxglove.Schema(name="capsheet.Contacts", encoding="jsonschema",
+                                                             data=json.dumps(SCHEMAS["capsheet.Contacts"]).encode())
         self._channels: dict[str, Any] = {}
-        self.scene = SceneChannels(self.context, lattice, colour_by=colour_by)
-        for topic, schema in ((TOPIC_SNAPSHOT, "capsheet.Snapshot"), (TOPIC_ESTIMATE, "capsheet.Estimate")):
-            self._channel(topic, schema)  # advertised from the start (a live client sees them at once)
+        # the 3D scene is derived from the estimates: the live view gets one per estimate, the file
+        # at most one per SCENE_FILE_PERIOD_S (docs/recording.md, "Size"), on channels of its own
+        self.scene = self.file_scene = None
+        if live_port is not None:
+            self.scene = SceneChannels(self.context, lattice, colour_by=colour_by,
+                                       metadata={SINK_KEY: "live"} if self.path is not None else None)
+        if self.path is not None:
+            self.file_scene = SceneChannels(self.context, lattice, colour_by=colour_by, metadata={SINK_KEY: "file"})
+        self._last_file_scene_ns = None
+        self.scene_cut = 0  #: estimates whose scene went to the live view but not the file (rate)
+        self.estimate_file_period_s = float(estimate_file_period_s)
+        self.scene_file_period_s = float(scene_file_period_s)
+        self._last_file_estimate_ns = None
+        self.estimates_cut = 0  #: estimates the live view got but the file did not (its rate)
+        self._channel(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot")  # advertised from the start (a live
+        # client sees them at once)
+        if live_port is not None:
+            self._channel(TOPIC_ESTIMATE, "capsheet.v2.Estimate", "live" if self.path is not None else None)
+        if self.path is not None:
+            self._channel(TOPIC_ESTIMATE, "capsheet.v2.Estimate", "file")
         self.session = {"format": FORMAT, "rows": lattice.rows, "cols": lattice.cols, "n_links": lattice.n_links,
                         "link_length_m": self.link_length, "started_unix_s": time.time(),
                         "versions": versions(), **(session or {})}
         if self._writer is not None:
-            self._writer.write_metadata("capsheet.session", {k: json.dumps(v) for k, v in self.session.items()})
-            now = time.time_ns()
+            self._document("metadata", "capsheet.session", {k: json.dumps(v) for k, v in self.session.items()})
             for name, doc in (("layout.json", layout), ("calibration.json", calibration)):
                 if doc is not None:
-                    self._writer.attach(log_time=now, create_time=now, name=name, media_type="application/json",
-                                        data=json.dumps(doc, indent=1).encode())
+                    self._document("attachment", name, doc)
         self.live = None
         if live_port is not None:
             from host.live import LiveServer
             self.live = LiveServer(self.context, port=live_port, host=live_host,
-                                   name=f"capsheet {lattice.rows}x{lattice.cols}")
-        self.scene.log_transform(time.time_ns())
+                                   name=f"capsheet {lattice.rows}x{lattice.cols}", channel_filter=_not_for("file"))
+        for sc in self._scenes():
+            sc.log_transform(time.time_ns())
+
+    # -- files ---------------------------------------------------------------------------------
+    def _open_file(self) -> None:
+        import foxglove
+
+        path = split_path(self.path, len(self.paths)) if self.split else self.path
+        self._writer = foxglove.open_mcap(str(path), allow_overwrite=True, context=self.context,
+                                          writer_options=self._opts, channel_filter=_not_for("live"))
+        self.paths.append(path)
+        self._file_t0 = time.monotonic()
+        for kind, name, doc in self._file_docs:  # the next file of a set: readable alone
+            self._write_doc(kind, name, doc)
+        if self.split:
+            self._write_doc("metadata", "capsheet.split", {"index": json.dumps(len(self.paths) - 1)})
+        if getattr(self, "file_scene", None) is not None:  # the next file of a set: its own frame and scene
+            self.file_scene.log_transform(time.time_ns())
+            self._last_file_scene_ns = None
+
+    def _document(self, kind: str, name: str, doc) -> None:
+        """A metadata record or JSON attachment every file of a split set holds (replacing an
+        earlier one of the same name)."""
+        with self._io:
+            self._file_docs = [d for d in self._file_docs if d[:2] != (kind, name)] + [(kind, name, doc)]
+            if self._writer is not None:
+                self._write_doc(kind, name, doc)
+
+    def _write_doc(self, kind: str, name: str, doc) -> None:
+        if kind == "metadata":
+            self._writer.write_metadata(name, doc)
+        else:
+            now = time.time_ns()
+            self._writer.attach(log_time=now, create_time=now, name=name, media_type="application/json",
+                                data=json.dumps(doc, indent=1, default=_jsonable).encode())
+
+    @property
+    def current_path(self) -> Path | None:
+        """The file being written (None once stopped or without a file)."""
+        return self.paths[-1] if self._writer is not None and self.paths else None
+
+    def _check_files(self) -> None:
+        """At a flush: stop on a full disk, else start the next file of a split set when due."""
+        path = self.paths[-1]
+        try:
+            free = self._free_bytes(path.parent)
+        except OSError as exc:
+            free, why = 0, f"cannot read the free space of {path.parent}: {exc}"
+        else:
+            why = (f"only {free / 1e6:.0f} MB left free on the disk of {path} (--min-free "
+                   f"{self.min_free / 1e6:.0f} MB)")
+        if free < self.min_free:
+            self._stop(why)
+            return
+        if self.split_duration is not None and time.monotonic() - self._file_t0 >= self.split_duration:
+            self._next_file()
+        elif self.split_size is not None and path.stat().st_size >= self.split_size:
+            self._next_file()
+
+    def _next_file(self) -> None:
+        with self._io:
+            self._end_file()
+            self._writer.close()
+            self._open_file()
+
+    def _end_file(self) -> None:
+        self._writer.write_metadata("capsheet.end", {"finished_unix_s": json.dumps(time.time()),
+                                                     "counts": json.dumps(self.counts)})
+
+    def _stop(self, reason: str) -> None:
+        """Stop recording (the disk is full): close the file with its summary; the live view goes on."""
+        with self._io:
+            if self._writer is None:
+                return
+            self.stopped = reason
+            try:
+                self._end_file()
+                self._writer.close()
+            except Exception as exc:  # noqa: BLE001 - the SDK's own error types; the file is as far as it got
+                log.warning("closing %s: %s", self.paths[-1], exc)
+            self._writer = None
+        log.warning("recording stopped: %s; %s is readable", reason, self.paths[-1])
+        if self.on_stop is not None:
+            self.on_stop(reason)
 
     # -- channels ------------------------------------------------------------------------------
-    def _channel(self, topic: str, schema: str):
-        ch = self._channels.get(topic)
+    def _channel(self, topic: str, schema: str, sink: str | None = None):
+        """The channel of ``topic``; ``sink`` ``"file"`` / ``"live"``: one that only that sink gets."""
+        key = (topic, sink)
+        ch = self._channels.get(key)
         if ch is None:
             import foxglove
             with self._lock:
-                ch = self._channels.get(topic)
+                ch = self._channels.get(key)
                 if ch is None:
-                    ch = foxglove.Channel(topic, schema=self._schemas[schema], message_encoding="json",
-                                          context=self.context)
-                    self._channels[topic] = ch
+                    enc = "json" if self._schemas[schema].encoding == "jsonschema" else "protobuf"
+                    ch = foxglove.Channel(topic, schema=self._schemas[schema], message_encoding=enc,
+                                          context=self.context, metadata=None if sink is None else {SINK_KEY: sink})
+                    self._channels[key] = ch
         return ch
 
-    def _log(self, topic: str, schema: str, msg: dict, log_time_ns: int | None = None) -> None:
+    def _log(self, topic: str, schema: str, msg, log_time_ns: int | None = None, sink: str | None = None) -> None:
+        """Log ``msg`` (a dict: JSON; a protobuf message: its bytes) on ``topic`` (to ``sink`` only)."""
         if self._closed:
             return
-        self._channel(topic, schema).log(json.dumps(msg, separators=(",", ":")).encode(),
-                                         log_time=time.time_ns() if log_time_ns is None else int(log_time_ns))
-        self.counts[topic] = self.counts.get(topic, 0) + 1
-        if self._writer is not None and time.monotonic() - self._last_flush >= self.flush_interval_s:
-            self.flush()
+        data = (json.dumps(msg, separators=(",", ":")).encode() if isinstance(msg, dict)
+                else msg.SerializeToString())
+        with self._io:
+            self._channel(topic, schema, sink).log(data, log_time=time.time_ns() if log_time_ns is None
+                                                   else int(log_time_ns))
+            if sink == "live":
+                return
+            if self._writer is None and self.path is not None:
+                self.not_recorded += 1
+                return
+            self.counts[topic] = self.counts.get(topic, 0) + 1
+            if self._writer is not None and time.monotonic() - self._last_flush >= self.flush_interval_s:
+                self.flush()
+
+    def _scenes(self) -> list:
+        return [sc for sc in (self.scene, self.file_scene) if sc is not None]
 
     # -- what a session publishes ------------------------------------------------------------------
     def tap(self, transports, feed=None) -> None:
@@ -315,31 +534,46 @@ class Recorder:
         ``t`` host monotonic s when it was taken in (default now); ``t_rx`` when it was read."""
         t = time.monotonic() if t is None else t
         topic = TOPIC_RAW.format(bus)
-        head = {"bus": bus, "port": port, "t": t, "t_rx": t if t_rx is None else t_rx}
+        P = self._pb
+        t_rx = t if t_rx is None else t_rx
         if kind == "can":
-            self._log(topic, "capsheet.RawCan", {**head, "frames": [_can_frame_dict(m) for m in payload]},
-                      log_time_ns)
+            msg = P.message_class("RawCan")(bus=int(bus), t=float(t), t_rx=float(t_rx))
+            for m in payload:
+                msg.frames.add(id=int(m.arbitration_id), flags=_can_flags(m), ts=float(m.timestamp or 0.0),
+                               data=bytes(m.data))
+            self._log(topic, "capsheet.v2.RawCan", msg, log_time_ns)
         elif kind == "serial":
-            self._log(topic, "capsheet.RawSerial", {**head, "data": base64.b64encode(payload).decode()},
-                      log_time_ns)
+            self._log(topic, "capsheet.v2.RawSerial", P.message_class("RawSerial")(
+                bus=int(bus), t=float(t), t_rx=float(t_rx), data=bytes(payload)), log_time_ns)
         else:
             raise ValueError(f"Invalid raw kind: {kind!r} (need 'serial' or 'can')")
 
     def sync(self, counter: int, t: float) -> None:
         """The host opened SYNC ``counter`` at host monotonic ``t`` (replay re-opens it there)."""
-        self._log(TOPIC_SYNC, "capsheet.Sync", {"counter": int(counter), "t": float(t)})
+        self._log(TOPIC_SYNC, "capsheet.v2.Sync", self._pb.message_class("Sync")(counter=int(counter), t=float(t)))
 
     def tap_sync(self, feed) -> None:
         """Record every counter the host opens (`host.feed.SnapshotFeed.add_open_listener`)."""
         feed.add_open_listener(self.sync)
 
     def snapshot(self, snap) -> None:
-        """One `host.aggregator.LatticeSnapshot`."""
-        self._log(TOPIC_SNAPSHOT, "capsheet.Snapshot", {
-            "counter": int(snap.counter), "timestamp": float(snap.timestamp), "wall_time": float(snap.wall_time),
-            "latency_s": float(snap.latency_s), "complete": bool(snap.complete),
-            "readings": _arr(snap.readings, "<f4"), "valid": _arr(snap.valid, "|u1"),
-            "status": _arr(snap.status, "|u1")}, _wall_ns(snap.wall_time))
+        """One `host.aggregator.LatticeSnapshot`: its chips' counts when it has them (the readings
+        are then the counts converted with the recorded calibration, `read`), else its readings
+        as float32."""
+        if self._closed:
+            return
+        valid = np.asarray(snap.valid, dtype=bool)
+        msg = self._pb.message_class("Snapshot")(
+            counter=int(snap.counter), timestamp=float(snap.timestamp), wall_time=float(snap.wall_time),
+            latency_s=float(snap.latency_s), complete=bool(snap.complete), n_links=int(valid.shape[0]),
+            valid=np.packbits(valid, bitorder="little").tobytes(),
+            status=np.ascontiguousarray(snap.status, dtype=np.uint8).tobytes())
+        counts = getattr(snap, "counts", None)
+        if counts is not None:
+            msg.counts.extend(np.asarray(counts, dtype=np.int16).ravel().tolist())
+        else:
+            msg.readings.extend(np.asarray(snap.readings, dtype=np.float32).ravel().tolist())
+        self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg, _wall_ns(snap.wall_time))
 
     def estimate(self, est, counter: int, timestamp: float, wall_time: float | None = None, *,
                  error_joint: np.ndarray | None = None, error_pct_side: float | None = None,
@@ -352,21 +586,48 @@ class Recorder:
         when ``uncertainty`` asks for them (they are sampled: tens of estimates' worth of CPU).
         """
         t_ns = _wall_ns(wall_time)
-        msg = {"counter": int(counter), "timestamp": float(timestamp), "method": str(getattr(est, "method", "")),
-               "residual": float(getattr(est, "residual", np.nan)), "iterations": int(getattr(est, "iterations", 0)),
-               "joints": _arr(est.joints, "<f4")}
+        msg = self._pb.message_class("Estimate")(
+            counter=int(counter), timestamp=float(timestamp), method=str(getattr(est, "method", "")),
+            residual=float(getattr(est, "residual", np.nan)), iterations=int(getattr(est, "iterations", 0)))
+        msg.joints.extend(np.asarray(est.joints, dtype=np.float32).ravel().tolist())
         for name in ("yaw_std", "joint_std"):
             if not (uncertainty or name in getattr(est, "__dict__", {})):
                 continue  # a lazy property not yet computed: not computed here unasked
             v = getattr(est, name, None)
             if v is not None:
-                msg[name] = _arr(v, "<f4")
+                v = np.asarray(v, dtype=np.float32)
+                getattr(msg, name).extend(v.ravel().tolist())
+                if name == "joint_std":
+                    msg.joint_std_shape.extend(list(v.shape))
         if error_pct_side is not None:
-            msg["error_pct_side"] = float(error_pct_side)
-        self._log(TOPIC_ESTIMATE, "capsheet.Estimate", msg, t_ns)
-        if not self._closed:
-            self.scene.log_lattice(est.joints, np.asarray(est.valid, dtype=bool), t_ns,
-                                   error=error_joint, displacement=displacement)
+            msg.error_pct_side = float(error_pct_side)
+        if self._closed:
+            return
+        with self._io:  # the live view gets every estimate, the file one per ESTIMATE_FILE_PERIOD_S
+            if self.live is not None:
+                self._log(TOPIC_ESTIMATE, "capsheet.v2.Estimate", msg, t_ns,
+                          sink="live" if self.path is not None else None)
+            if self.path is not None:
+                last = self._last_file_estimate_ns
+                if last is None or not 0 <= t_ns - last < self.estimate_file_period_s * 1e9:
+                    self._last_file_estimate_ns = t_ns
+                    self._log(TOPIC_ESTIMATE, "capsheet.v2.Estimate", msg, t_ns, sink="file")
+                else:
+                    self.estimates_cut += 1
+        with self._io:
+            self._log_scene(est, t_ns, error_joint, displacement)
+
+    def _log_scene(self, est, t_ns: int, error_joint, displacement) -> None:
+        valid = np.asarray(est.valid, dtype=bool)
+        if self.scene is not None:
+            self.scene.log_lattice(est.joints, valid, t_ns, error=error_joint, displacement=displacement)
+        if self.file_scene is not None and self._writer is not None:
+            last = self._last_file_scene_ns
+            if last is None or not 0 <= t_ns - last < self.scene_file_period_s * 1e9:
+                self._last_file_scene_ns = t_ns
+                self.file_scene.log_lattice(est.joints, valid, t_ns, error=error_joint, displacement=displacement)
+            else:
+                self.scene_cut += 1
 
     def contacts(self, counter: int, timestamp: float, contacts: list[dict], wall_time: float | None = None) -> None:
         """Tactile contacts of one frame: dicts with ``id``, ``index`` (i, j), ``position`` (x, y, z) m,
@@ -375,7 +636,9 @@ class Recorder:
         self._log(TOPIC_CONTACTS, "capsheet.Contacts", {"counter": int(counter), "timestamp": float(timestamp),
                                                         "contacts": contacts}, t_ns)
         if not self._closed:
-            self.scene.log_contacts(contacts, t_ns)
+            with self._io:
+                for sc in self._scenes():
+                    sc.log_contacts(contacts, t_ns)
 
     def add_host_facts(self, host) -> None:
         """After bring-up: metadata ``capsheet.host`` (rate, sync, deadline, transports) and the
@@ -384,22 +647,27 @@ class Recorder:
             return
         session, layout, calibration = self.session_facts(host)
         self.session.update(session)
-        self._writer.write_metadata("capsheet.host", {k: json.dumps(v) for k, v in session.items()})
-        now = time.time_ns()
+        self._document("metadata", "capsheet.host", {k: json.dumps(v) for k, v in session.items()})
         docs = [("layout.json", layout), ("calibration.json", calibration)]
         live_cal = host.calibration
         if live_cal is not None:  # `capsheet host --calibration`: what the snapshots were corrected with
             docs.append((HOST_CALIBRATION, live_cal.to_dict()))
         for name, doc in docs:
-            self._writer.attach(log_time=now, create_time=now, name=name, media_type="application/json",
-                                data=json.dumps(doc, indent=1).encode())
+            self._document("attachment", name, doc)
 
     # -- lifetime ------------------------------------------------------------------------------
     def flush(self) -> None:
         """Close the current chunk and push it to the OS (a kill after this loses nothing before)."""
-        if self._writer is not None and not self._closed:
-            self._writer.flush()
-        self._last_flush = time.monotonic()
+        with self._io:
+            self._last_flush = time.monotonic()
+            if self._writer is None or self._closed:
+                return
+            try:
+                self._writer.flush()
+            except Exception as exc:  # noqa: BLE001 - e.g. the disk filled between two checks
+                self._stop(f"cannot write {self.paths[-1]}: {exc}")
+                return
+            self._check_files()
 
     def close(self, stats: dict | None = None) -> None:
         """Attach ``stats.json`` (if given), write the summary, stop the live server. Idempotent."""
@@ -407,16 +675,14 @@ class Recorder:
             return
         for bus in list(getattr(self, "_pending", {})):
             self._write_pending(bus, None)  # read but never ingested (the session ended)
-        if self._writer is not None:
-            if stats is not None:
-                now = time.time_ns()
-                self._writer.attach(log_time=now, create_time=now, name="stats.json", media_type="application/json",
-                                    data=json.dumps(stats, indent=1, default=_jsonable).encode())
-            self._writer.write_metadata("capsheet.end", {"finished_unix_s": json.dumps(time.time()),
-                                                         "counts": json.dumps(self.counts)})
-        self._closed = True
-        if self._writer is not None:
-            self._writer.close()
+        with self._io:
+            if self._writer is not None:
+                if stats is not None:
+                    self._write_doc("attachment", "stats.json", stats)
+                self._end_file()
+            self._closed = True
+            if self._writer is not None:
+                self._writer.close()
         if self.live is not None:
             self.live.stop()
 
@@ -546,12 +812,142 @@ def _iter_records(f):
     return False
 
 
+class _Decoder:
+    """Decodes the messages of one capsheet recording's channels, whichever format wrote them:
+    ``capsheet-mcap-1`` (JSON) or ``capsheet-mcap-2`` (protobuf, `host.record_schema`)."""
+
+    def __init__(self) -> None:
+        self.topic: dict[int, str] = {}
+        self.proto: dict[int, Any] = {}  # channel id -> protobuf message class (v2)
+        self._schemas: dict[int, tuple[str, str]] = {}
+
+    def schema(self, rec) -> None:
+        self._schemas[rec.id] = (rec.name, rec.encoding)
+
+    def channel(self, rec) -> None:
+        self.topic[rec.id] = rec.topic
+        name, enc = self._schemas.get(rec.schema_id, ("", ""))
+        if rec.message_encoding == "protobuf" and name.startswith("capsheet.v2."):
+            from host import record_schema as P
+            self.proto[rec.id] = P.message_class(name)
+
+    def snapshot(self, rec) -> dict:
+        cls = self.proto.get(rec.channel_id)
+        if cls is None:  # capsheet-mcap-1
+            d = json.loads(rec.data)
+            return {"counter": d["counter"], "timestamp": d["timestamp"], "wall_time": d["wall_time"],
+                    "latency_s": d["latency_s"], "complete": d["complete"], "readings": _unarr(d["readings"]),
+                    "counts": None, "valid": _unarr(d["valid"]).astype(bool), "status": _unarr(d["status"])}
+        m = cls.FromString(rec.data)
+        n = int(m.n_links)
+        return {"counter": m.counter, "timestamp": m.timestamp, "wall_time": m.wall_time, "latency_s": m.latency_s,
+                "complete": m.complete,
+                "counts": np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None,
+                "readings": np.array(m.readings, dtype=np.float32).reshape(n, 3) if len(m.readings) else None,
+                "valid": np.unpackbits(np.frombuffer(m.valid, np.uint8), count=n, bitorder="little").astype(bool),
+                "status": np.frombuffer(m.status, np.uint8)}
+
+    def estimate(self, rec, rows: int, cols: int) -> dict:
+        cls = self.proto.get(rec.channel_id)
+        if cls is None:
+            d = json.loads(rec.data)
+            out = {"counter": d["counter"], "timestamp": d["timestamp"], "joints": _unarr(d["joints"])}
+            for name in ("yaw_std", "joint_std"):
+                if name in d:
+                    out[name] = _unarr(d[name])
+            if "error_pct_side" in d:
+                out["error_pct_side"] = d["error_pct_side"]
+            return out
+        m = cls.FromString(rec.data)
+        out = {"counter": m.counter, "timestamp": m.timestamp,
+               "joints": np.array(m.joints, dtype=np.float32).reshape(rows, cols, 3)}
+        if len(m.yaw_std):
+            out["yaw_std"] = np.array(m.yaw_std, dtype=np.float32)
+        if len(m.joint_std):
+            out["joint_std"] = np.array(m.joint_std, dtype=np.float32).reshape(tuple(m.joint_std_shape))
+        if m.HasField("error_pct_side"):
+            out["error_pct_side"] = m.error_pct_side
+        return out
+
+    def sync(self, rec) -> tuple[int, float]:
+        cls = self.proto.get(rec.channel_id)
+        if cls is None:
+            d = json.loads(rec.data)
+            return d["counter"], d["t"]
+        m = cls.FromString(rec.data)
+        return m.counter, m.t
+
+    def raw(self, rec) -> tuple[int, float, str, Any]:
+        """``(bus, t, kind, payload)``: bytes (serial) or frame dicts (CAN, the v1 layout)."""
+        cls = self.proto.get(rec.channel_id)
+        if cls is None:
+            d = json.loads(rec.data)
+            if "frames" in d:
+                return d["bus"], d["t"], "can", d["frames"]
+            return d["bus"], d["t"], "serial", base64.b64decode(d["data"])
+        m = cls.FromString(rec.data)
+        if cls.DESCRIPTOR.name == "RawSerial":
+            return m.bus, m.t, "serial", bytes(m.data)
+        from host import record_schema as P
+        return m.bus, m.t, "can", [{"id": f.id, "ext": bool(f.flags & P.CAN_EXT), "fd": bool(f.flags & P.CAN_FD),
+                                    "err": bool(f.flags & P.CAN_ERR), "rtr": bool(f.flags & P.CAN_RTR),
+                                    "brs": bool(f.flags & P.CAN_BRS), "ts": f.ts,
+                                    "data": base64.b64encode(f.data).decode()} for f in m.frames]
+
+
+class _Counts:
+    """Counts -> readings exactly as the recording host converted and corrected them: the
+    aggregator's `protocol.constants.counts_to_si` with ``calibration.json``'s offsets and
+    sensitivities (nominal for links without a chip), then ``host_calibration.json``'s correction
+    (`host.feed.corrected`), one snapshot at a time."""
+
+    def __init__(self, n_links: int, attachments: dict) -> None:
+        from protocol.constants import nominal_sensitivity
+        cal = attachments.get("calibration.json") or {}
+        self.off = np.zeros((n_links, 3))
+        self.sens = np.full((n_links, 3), nominal_sensitivity(int(cal.get("range_code", 0))))
+        for c in cal.get("links", []):
+            self.off[int(c["link"])] = c["offset"]
+            self.sens[int(c["link"])] = c["sensitivity"]
+        self.correction = None
+        host_cal = attachments.get(HOST_CALIBRATION)
+        if host_cal is not None:
+            from host.analysis.calibration import Calibration
+            self.correction = Calibration.from_dict(host_cal, HOST_CALIBRATION).apply
+
+    def __call__(self, counts: np.ndarray, valid: np.ndarray) -> np.ndarray:
+        from protocol.constants import counts_to_si
+        r = counts_to_si(counts.astype(np.float64), self.off, self.sens)
+        r[~valid] = np.nan
+        if self.correction is not None:
+            r = np.asarray(self.correction(r), dtype=np.float64)
+        return r
+
+
+def _attachment(rec):
+    try:
+        return json.loads(rec.data)
+    except ValueError:
+        return bytes(rec.data)
+
+
+def _paths(path) -> list[Path]:
+    if isinstance(path, (list, tuple)):
+        if not path:
+            raise ValueError("no recording given (an empty list of files)")
+        return [Path(p) for p in path]
+    return recording_set(path)
+
+
 def read(path, *, raw: bool = True) -> Recording:
-    """Read a capsheet MCAP recording into numpy arrays (tolerates a file cut short).
+    """Read a capsheet MCAP recording into numpy arrays (tolerates a file cut short); either
+    format (``capsheet-mcap-2``, or ``-1`` of older capsheet). A split recording (``--split-size``,
+    ``--split-duration``) is read whole from its files in order: give them as a list, or the name
+    they were recorded under (``run.mcap`` for ``run_0000.mcap``, ``run_0001.mcap``, ...).
 
     Parameters
     ----------
-    path : str or Path
+    path : str or Path, or a list of them
     raw : bool
         Also decode the raw wire input (slower for long recordings).
 
@@ -560,6 +956,35 @@ def read(path, *, raw: bool = True) -> Recording:
     ValueError
         The file is not MCAP, or not a capsheet recording (no ``capsheet.session`` metadata).
     """
+    parts = [_read_one(p, raw=raw) for p in _paths(path)]
+    return parts[0] if len(parts) == 1 else _concat(parts)
+
+
+def _concat(parts: list[Recording]) -> Recording:
+    """Consecutive files of a split recording as one."""
+    first, last = parts[0], parts[-1]
+    est: dict = {}
+    for k in first.estimates:
+        if all(k in p.estimates for p in parts):
+            est[k] = np.concatenate([p.estimates[k] for p in parts])
+    raw: dict[int, list] = {}
+    for p in parts:
+        for bus, chunks in p.raw.items():
+            raw.setdefault(bus, []).extend(chunks)
+    counts: dict[str, int] = {}
+    for p in parts:
+        for t, n in p.message_counts.items():
+            counts[t] = counts.get(t, 0) + n
+    cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+    return Recording(session=first.session, attachments={k: v for p in parts for k, v in p.attachments.items()},
+                     counter=cat("counter"), timestamp=cat("timestamp"), wall_time=cat("wall_time"),
+                     latency_s=cat("latency_s"), complete=cat("complete"), readings=cat("readings"),
+                     valid=cat("valid"), status=cat("status"), estimates=est, raw=raw, sync=cat("sync"),
+                     contacts=[c for p in parts for c in p.contacts], message_counts=counts,
+                     truncated=any(p.truncated for p in parts), metadata={**first.metadata, **last.metadata})
+
+
+def _read_one(path, *, raw: bool = True) -> Recording:
     from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
 
     path = Path(path)
@@ -567,12 +992,12 @@ def read(path, *, raw: bool = True) -> Recording:
         if f.read(8) != b"\x89MCAP0\r\n":
             raise ValueError(f"{str(path)!r} is not an MCAP file (magic bytes missing)")
         f.seek(0)
-        channels: dict[int, str] = {}
+        dec = _Decoder()
         meta: dict[str, dict] = {}
         attachments: dict = {}
         counts: dict[str, int] = {}
         snaps: list[dict] = []
-        ests: list[dict] = []
+        ests: list = []
         raws: dict[int, list] = {}
         syncs: list[tuple[int, float]] = []
         contacts: list = []
@@ -584,52 +1009,46 @@ def read(path, *, raw: bool = True) -> Recording:
             except StopIteration as stop:
                 truncated = bool(stop.value) or not ended
                 break
-            if isinstance(rec, Channel):
-                channels[rec.id] = rec.topic
-            elif isinstance(rec, Message):
-                topic = channels.get(rec.channel_id, "?")
+            if isinstance(rec, Message):
+                topic = dec.topic.get(rec.channel_id, "?")
                 counts[topic] = counts.get(topic, 0) + 1
                 if topic == TOPIC_SNAPSHOT:
-                    snaps.append(json.loads(rec.data))
+                    snaps.append(dec.snapshot(rec))
                 elif topic == TOPIC_ESTIMATE:
-                    ests.append(json.loads(rec.data))
+                    ests.append(rec)  # decoded once the lattice is known
                 elif topic == TOPIC_SYNC:
-                    d = json.loads(rec.data)
-                    syncs.append((d["counter"], d["t"]))
+                    syncs.append(dec.sync(rec))
                 elif topic == TOPIC_CONTACTS:
                     d = json.loads(rec.data)
                     contacts.append((d["counter"], d["timestamp"], d["contacts"]))
                 elif raw and topic.startswith("/capsheet/raw/bus"):
-                    d = json.loads(rec.data)
-                    if "frames" in d:
-                        raws.setdefault(d["bus"], []).append((d["t"], "can", d["frames"]))
-                    else:
-                        raws.setdefault(d["bus"], []).append((d["t"], "serial", base64.b64decode(d["data"])))
+                    bus, t, kind, payload = dec.raw(rec)
+                    raws.setdefault(bus, []).append((t, kind, payload))
+            elif isinstance(rec, Channel):
+                dec.channel(rec)
+            elif isinstance(rec, Schema):
+                dec.schema(rec)
             elif isinstance(rec, Metadata):
                 meta[rec.name] = {k: json.loads(v) for k, v in rec.metadata.items()}
             elif isinstance(rec, Attachment):
-                try:
-                    attachments[rec.name] = json.loads(rec.data)
-                except ValueError:
-                    attachments[rec.name] = bytes(rec.data)
+                attachments[rec.name] = _attachment(rec)
             elif isinstance(rec, (DataEnd, Footer)):
                 ended = True
-            elif isinstance(rec, Schema):
-                pass
     if "capsheet.session" not in meta:
         if truncated:
             raise ValueError(f"{str(path)!r} was cut short before its 'capsheet.session' metadata: nothing to read")
         raise ValueError(f"{str(path)!r} is not a capsheet recording (no 'capsheet.session' metadata)")
     session = {**meta["capsheet.session"], **meta.get("capsheet.host", {})}
     rows, cols = int(session["rows"]), int(session["cols"])
-    b = _snapshot_batch(session, snaps)
+    ests = [dec.estimate(e, rows, cols) for e in ests]
+    b = _snapshot_batch(session, snaps, _Counts(int(session["n_links"]), attachments))
     est: dict[str, np.ndarray] = {
         "counter": np.array([e["counter"] for e in ests], dtype=np.uint16),
         "timestamp": np.array([e["timestamp"] for e in ests], dtype=np.float64),
-        "joints": (np.stack([_unarr(e["joints"]) for e in ests]) if ests
+        "joints": (np.stack([e["joints"] for e in ests]) if ests
                    else np.zeros((0, rows, cols, 3), dtype=np.float32))}
     for name in ("yaw_std", "joint_std"):  # NaN rows where an estimate carried none (live: ~1/s)
-        have = [_unarr(e[name]) if name in e else None for e in ests]
+        have = [e.get(name) for e in ests]
         shape = next((v.shape for v in have if v is not None), None)
         if shape is not None:
             est[name] = np.stack([v if v is not None else np.full(shape, np.nan, np.float32) for v in have])
@@ -663,7 +1082,13 @@ class SnapshotBatch:
 
 def snapshot_count(path) -> int | None:
     """How many snapshots a cleanly closed recording holds (from its summary, without reading the
-    data), or None when the file has no summary (a killed writer)."""
+    data), or None when the file has no summary (a killed writer). A split set: the sum over its
+    files (None if any has no summary)."""
+    counts = [_snapshot_count_one(p) for p in _paths(path)]
+    return None if any(c is None for c in counts) else sum(counts)
+
+
+def _snapshot_count_one(path) -> int | None:
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
@@ -684,51 +1109,71 @@ def iter_snapshots(path, batch: int = 256) -> Iterator[SnapshotBatch]:
     read (``capsheet estimate``). The same snapshots, in the same order, as `read` (a file cut short
     included); raw input, estimates and contacts are skipped.
 
+    A split set (``path`` a list, or the name it was recorded under) is read file after file.
+
     Raises
     ------
     ValueError
         Not MCAP, not a capsheet recording, or ``batch`` < 1.
     """
-    from mcap.records import Channel, Message, Metadata
-
     if int(batch) < 1:
         raise ValueError(f"batch must be >= 1, got {batch!r}")
+    for p in _paths(path):
+        yield from _iter_snapshots_one(p, batch)
+
+
+def _iter_snapshots_one(path, batch: int) -> Iterator[SnapshotBatch]:
+    from mcap.records import Attachment, Channel, Message, Metadata, Schema
+
     path = Path(path)
     with open(path, "rb") as f:
         if f.read(8) != b"\x89MCAP0\r\n":
             raise ValueError(f"{str(path)!r} is not an MCAP file (magic bytes missing)")
         f.seek(0)
+        dec = _Decoder()
         snap_channels: set[int] = set()
         session: dict | None = None
+        attachments: dict = {}
+        conv = None
         pending: list[dict] = []
         for rec in _iter_records(f):
             if isinstance(rec, Message):
                 if rec.channel_id in snap_channels:
-                    pending.append(json.loads(rec.data))
-                    if session is not None and len(pending) >= batch:
-                        yield _snapshot_batch(session, pending)
+                    pending.append(dec.snapshot(rec))
+                    # counts wait for the calibration (attached after bring-up) before they convert
+                    if (session is not None and len(pending) >= batch
+                            and (pending[-1]["counts"] is None or "calibration.json" in attachments)):
+                        conv = conv or _Counts(int(session["n_links"]), attachments)
+                        yield _snapshot_batch(session, pending, conv)
                         pending = []
             elif isinstance(rec, Channel):
+                dec.channel(rec)
                 if rec.topic == TOPIC_SNAPSHOT:
                     snap_channels.add(rec.id)
+            elif isinstance(rec, Schema):
+                dec.schema(rec)
+            elif isinstance(rec, Attachment) and rec.name in ("calibration.json", HOST_CALIBRATION):
+                attachments[rec.name] = _attachment(rec)
+                conv = None
             elif isinstance(rec, Metadata) and rec.name == "capsheet.session":
                 session = {k: json.loads(v) for k, v in rec.metadata.items()}
     if session is None:
         raise ValueError(f"{str(path)!r} is not a capsheet recording, or was cut short before its "
                          f"'capsheet.session' metadata (nothing to read)")
+    conv = conv or _Counts(int(session["n_links"]), attachments)
     for k in range(0, len(pending), batch):
-        yield _snapshot_batch(session, pending[k:k + batch])
+        yield _snapshot_batch(session, pending[k:k + batch], conv)
 
 
-def _snapshot_batch(session: dict, snaps: list[dict]) -> SnapshotBatch:
+def _snapshot_batch(session: dict, snaps: list[dict], conv: "_Counts") -> SnapshotBatch:
     n, n_links = len(snaps), int(session["n_links"])
     readings = np.empty((n, n_links, 3), dtype=np.float32)
     valid = np.empty((n, n_links), dtype=bool)
     status = np.empty((n, n_links), dtype=np.uint8)
     for k, s in enumerate(snaps):
-        readings[k] = _unarr(s["readings"])
-        valid[k] = _unarr(s["valid"]).astype(bool)
-        status[k] = _unarr(s["status"])
+        valid[k] = s["valid"]
+        status[k] = s["status"]
+        readings[k] = s["readings"] if s["counts"] is None else conv(s["counts"], s["valid"])
     return SnapshotBatch(session, np.array([s["counter"] for s in snaps], dtype=np.uint16),
                          np.array([s["timestamp"] for s in snaps], dtype=np.float64),
                          np.array([s["wall_time"] for s in snaps], dtype=np.float64), readings, valid, status)

@@ -182,7 +182,8 @@ class Replay:
                  link_length: float | None = None, deadline_s: float | None = None) -> None:
         from . import record
 
-        self.path = Path(path)
+        source = [str(p) for p in path] if isinstance(path, (list, tuple)) else path
+        self.path = Path(source[0] if isinstance(source, list) else source)
         self.speed = speed
         self.recording = None
         self._syncs = np.zeros((0, 2))
@@ -191,7 +192,7 @@ class Replay:
         session: dict = {}
         fds: dict = {}
         if self.path.suffix.lower() == ".mcap":
-            self.recording = rec = record.read(self.path)
+            self.recording = rec = record.read(source)  # a split set too
             session = rec.session
             self.lattice = rec.lattice
             recorded = session.get("transports", [])

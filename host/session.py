@@ -23,7 +23,7 @@ import logging
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -41,6 +41,7 @@ from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, CalData
 
 from .aggregator import Aggregator, LatticeSnapshot
 from .feed import SnapshotFeed
+from .gateways import GatewayNodes
 from .transport import Transport, TransportError
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
@@ -50,6 +51,10 @@ log = logging.getLogger("capsheet.host")
 
 #: how long (s) a driving host listens for another SYNC source before START (`Host.check_sync_source`)
 SYNC_LISTEN_S = 0.25
+#: bounds of what a host keeps for a run of days (issue 34); what goes is counted
+EVENTS_KEPT = 10_000
+RX_ERRORS_KEPT = 64
+RECOVERIES_KEPT = 1_000
 
 
 def node_for_link(link: int) -> int:
@@ -376,7 +381,8 @@ class Host:
             self.feed.add_listener(on_snapshot)
         self.chips: dict[int, ChipRecord] = {}  # uid -> record
         self._node_uid: dict[tuple[int, int], int] = {}  # (bus, node) -> uid
-        self.events: list[HostEvent] = []
+        self.events: list[HostEvent] = []  #: the newest events (bounded: `_keep_event`)
+        self.events_cut = 0
         self._events_lock = threading.Lock()
         self._inbox: queue.Queue = queue.Queue(maxsize=100_000)
         self._lock = threading.RLock()
@@ -389,7 +395,8 @@ class Host:
         self.syncs_seen = 0
         self._status_seen = np.full(n, -np.inf)
         self._silent_reported = np.zeros(n, dtype=bool)
-        self._rx_errors: list[str] = []
+        self._rx_errors: list[str] = []  #: the newest RX_ERRORS_KEPT receive errors (`_rx_error`)
+        self.rx_errors_total = 0  #: every receive error (the list keeps the newest)
         self.unknown_chips: set[int] = set()
         self._send_failing: set[int] = set()
         self._host_calibration = None  # as given to `set_calibration`
@@ -446,21 +453,31 @@ class Host:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def _rx_error(self, text: str) -> None:
+        """A receive error: counted, the newest RX_ERRORS_KEPT kept."""
+        self.rx_errors_total += 1
+        self._rx_errors.append(text)
+        if len(self._rx_errors) > RX_ERRORS_KEPT:
+            del self._rx_errors[0]
+
+    def _keep_event(self, ev) -> None:
+        """``events`` keeps at most `EVENTS_KEPT` (the oldest half goes when full; ``events_cut``
+        counts them; ``event_counts`` counts every event by kind)."""
+        with self._events_lock:
+            self.events.append(ev)
+            if len(self.events) > EVENTS_KEPT:
+                del self.events[:EVENTS_KEPT // 2]
+                self.events_cut += EVENTS_KEPT // 2
+
     def _report(self, kind: str, detail: str, *, quiet: bool = False, **kw) -> None:
         """Record an event (bounded) and log it, unless ``quiet`` (the caller logs the incident once)."""
         self.event_counts[kind] += 1
         if quiet:
             ev = HostEvent(self._now(), kind, detail, **kw)
-            with self._events_lock:
-                self.events.append(ev)
-                if len(self.events) > 10_000:
-                    del self.events[:5_000]
+            self._keep_event(ev)
             return
         ev = HostEvent(self._now(), kind, detail, **kw)
-        with self._events_lock:
-            self.events.append(ev)
-            if len(self.events) > 10_000:
-                del self.events[:5_000]
+        self._keep_event(ev)
         (log.warning if kind in ("silent", "nack", "no_ack", "recovery", "reconnect", "not_a_sheet", "sync",
                                   "resync", "mismatch", "stray", "health_magnitude", "health_bias_shift")
          else log.info)("%s: %s", kind, detail)
@@ -480,12 +497,12 @@ class Host:
         except TransportError as exc:
             if self._stop.is_set() or t.closed:
                 return None
-            self._rx_errors.append(str(exc))
+            self._rx_error(str(exc))
             self._idle(0.05)
             return False
         except Exception as exc:  # noqa: BLE001 - never let the receive thread die silently
             log.exception("receive thread %d", bus)
-            self._rx_errors.append(repr(exc))
+            self._rx_error(repr(exc))
             self._idle(0.05)
             return False
         if t.stats.disconnects != self._disconnects[bus]:
@@ -501,6 +518,8 @@ class Host:
             if self._driver is None:
                 feed.poll()
             return False
+        if self.gateway_nodes.unreadable:  # a gateway packs words this host cannot read (§4.16)
+            events = self.gateway_nodes.drop_unreadable(bus, events)
         control = False
         for ev in events:
             if not isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):
@@ -524,6 +543,8 @@ class Host:
         return True
 
     def _on_control(self, bus: int, msg: Message) -> None:
+        if self.gateway_nodes.observe(bus, msg):  # a gateway node's frame (docs/protocol.md §13)
+            return
         if isinstance(msg, Announce):
             if bus in self.unproven and not self._prove(bus, msg.uid):
                 return  # a chip that was never on this port: not ours to drive (reported)
@@ -615,6 +636,36 @@ class Host:
                 if bus not in self._send_failing:  # once per failure spell, not once per SYNC
                     self._send_failing.add(bus)
                     log.warning("%s", exc)
+
+    # ---- what the gateway nodes (host/gateways.py) ask of the host, and nothing else reads
+    def report(self, kind: str, detail: str, **kw) -> None:
+        """Record an incident (`events`, `event_counts`) and log it."""
+        self._report(kind, detail, **kw)
+
+    def command_round(self, requests: dict, build: Callable[[object, int], list[tuple[int, Message]]],
+                      match: Callable[[int, Message], object | None], what: str) -> tuple[dict, list]:
+        """One command round with retries, as the bring-up's own (ASSIGN, CONFIG, ...): see `_round`."""
+        return self._round(requests, build, match, what)
+
+    def uid_at(self, bus: int, node: int) -> int | None:
+        """The uid whose ANNOUNCE last came from ``node`` on transport ``bus`` (None: none heard)."""
+        with self._lock:
+            return self._node_uid.get((bus, node))
+
+    def drop_chip(self, bus: int, node: int, uid: int) -> None:
+        """Forget the chip record an ANNOUNCE made of ``uid`` at ``node``: it is a gateway node (its INFO
+        says so), which the host does not drive as a chip."""
+        with self._lock:
+            self.chips.pop(uid, None)
+            self._node_uid.pop((bus, node), None)
+
+    def node_ids_in_use(self) -> set[int]:
+        """Node ids the chips hold or will be given: assigned chips and every link of the layout."""
+        with self._lock:
+            used = {rec.node for rec in self.chips.values() if rec.assigned}
+            if self.layout is not None:
+                used |= {k + 1 for k in self.layout.links.values()}
+            return used
 
     def _round(self, requests: dict, build: Callable[[object, int], list[tuple[int, Message]]],
                match: Callable[[int, Message], object | None], what: str) -> tuple[dict, list]:
@@ -963,7 +1014,8 @@ class Host:
         capacity : {"refuse", "warn", "off"}
             What a bus over 100 % of its capacity does (`check_capacity`); over 80 % always warns.
         packed : bool
-            The gateway packs SNAPSHOT frames (capacity is checked for those).
+            Check capacity for SNAPSHOT frames on every port, whatever the gateways say (an override:
+            a port whose gateway node says it packs, GATEWAY_INFO, is checked for SNAPSHOTs anyway).
 
         Returns a summary dict (counts of each step).
         """
@@ -971,13 +1023,14 @@ class Host:
             self.quiesce()
         found = self.discover(discover_timeout_s, discover_rounds)
         self.check_discovery(strict=strict)
+        self.gateway_nodes.assign()
         self.assign()
         n_cfg = self.configure()
         n_cal = self.read_calibration()
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = self.start()
         return {"discovered": len(found), "assigned": len(self._assigned()), "configured": n_cfg,
-                "calibrated": n_cal, "started": n_start}
+                "calibrated": n_cal, "started": n_start, "gateways": len(self.gateway_nodes.by_uid)}
 
     # -- sessions that survive real life (issue 12) ----------------------------------------------
     def _init_sessions(self) -> None:
@@ -1002,9 +1055,12 @@ class Host:
         self.mismatch: str | None = None  #: a mismatch found only once streaming (e.g. FD SNAPSHOTs on classic)
         self.recoveries = 0  #: incidents recovered (a reboot wave, a reconnect)
         self.recovered_chips = 0
-        self.recovery_times_s: list[float] = []  #: per incident: first report -> chips started again
+        #: per incident, the newest RECOVERIES_KEPT: first report -> chips started again
+        self.recovery_times_s: deque[float] = deque(maxlen=RECOVERIES_KEPT)
         self.not_a_sheet: dict[int, str] = {}  #: bus -> why (after a reconnect nothing sheet-like answered)
         self.capacity_report: list[dict] = []
+        #: the gateway nodes heard (host/gateways.py): they say whether a port packs, who drives SYNC
+        self.gateway_nodes = GatewayNodes(self, lock=self._lock)
         self._recover_queue: dict[int, str] = {}  # uid -> why
         self._recover_since: float | None = None
         self._recover_event = threading.Event()
@@ -1062,6 +1118,7 @@ class Host:
                 self.chips.clear()
                 self._node_uid.clear()
                 self.unknown_chips.clear()
+            self.gateway_nodes.forget()
             self._broadcast(Reset(0))
         drained = self.stale_frames - before
         if drained:
@@ -1124,7 +1181,8 @@ class Host:
             log.warning("%s", msg)
 
     def check_capacity(self, action: str = "refuse", packed: bool = False) -> list[dict]:
-        """The load each bus would carry at ``rate_hz`` (docs/protocol.md §10, `protocol.capacity`).
+        """The load each bus would carry at ``rate_hz`` (docs/protocol.md §10, `protocol.capacity`),
+        in SNAPSHOT frames where a gateway node says it packs (or everywhere with ``packed``).
 
         Over 100 %: `CapacityError` naming the remedy (``action="refuse"``), else a warning; over
         80 %: a warning. A bus whose bit rate is unknown and that has no wire (a memory link, the
@@ -1136,9 +1194,11 @@ class Host:
         if action == "off":
             return report
         per_bus = Counter(r.bus for r in self._assigned())
+        packed_any = packed
         for bus, t in enumerate(self.transports):
             cap = t.capabilities
             n = per_bus.get(bus, 0)
+            packed = packed_any or self.gateway_nodes.packing(bus)
             if n == 0:
                 continue
             if cap.kind == "memory" or (cap.kind == "can" and cap.bitrate is None
@@ -1172,6 +1232,14 @@ class Host:
         so without the wait a gateway's SYNC was caught only once streaming (exit 1, not 2)."""
         if self.sync_mode != "drive":
             return
+        sources = self.gateway_nodes.sync_sources()  # a gateway that said so (GATEWAY_INFO, §13.3)
+        if sources:
+            what = "; ".join(r.describe() for r in sources)
+            if self.sync_policy == "auto":
+                self._switch_to_follow(what)
+                return
+            raise SyncConflictError(f"{what}: it passes no SYNC from this host to its chips; use --sync follow "
+                                    f"(or --sync auto)")
         now = self._now()
         since = self._listen_since if self._listen_since is not None else now
         while not self.syncs_seen and self._now() - since < self.sync_listen_s:
@@ -1389,8 +1457,9 @@ class Host:
                 # ports that came back but never answered as the sheet, and what was not sent there
                 "unproven_ports": [self.transports[b].name for b in sorted(self.unproven)],
                 "muted_sends": self.muted_sends,
-                "mismatch": self.mismatch,
+                "mismatch": self.mismatch, "gateways": self.gateway_nodes.summary(),
                 "chips_dropped": self.chips_dropped, "stale_frames_drained": self.stale_frames,
+                "events_cut": self.events_cut, "rx_errors": self.rx_errors_total,
                 "incidents": [{"t": e.t, "kind": e.kind, "detail": e.detail} for e in list(self.events)
                               if e.kind in ("recovery", "reconnect", "resync", "not_a_sheet", "sync")][-100:]}
 

@@ -55,6 +55,8 @@ log = logging.getLogger("capsheet.host.transport")
 #: the python-can interface name ``--can slcan:PORT`` opens (`host.slcan.SlcanBus`, registered
 #: by the ``can.interface`` entry point in pyproject.toml)
 SLCAN_INTERFACE = "capsheet_slcan"
+#: python-can's udp_multicast hearing its own group only (host/udp_multicast.py)
+UDP_MULTICAST_INTERFACE = "capsheet_udp_multicast"
 
 
 # --------------------------------------------------------------------------------------------
@@ -729,7 +731,9 @@ class CanTransport(Transport):
     def _open(self):
         can = self._can
         # slcan: capsheet's own SLCAN bus, a python-can interface found by name (host/slcan.py)
-        interface = SLCAN_INTERFACE if self.interface == "slcan" else self.interface
+        # udp_multicast: python-can's, isolated to its group (host/udp_multicast.py)
+        interface = {"slcan": SLCAN_INTERFACE, "udp_multicast": UDP_MULTICAST_INTERFACE}.get(
+            self.interface, self.interface)
         try:
             return can.Bus(interface=interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError

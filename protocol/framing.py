@@ -57,7 +57,7 @@ class ErrorReason(Enum):
     BAD_COBS = "bad_cobs"  #: the bytes between two delimiters are not valid COBS
     SHORT = "short"  #: shorter than header + CRC (6 bytes)
     BAD_CRC = "bad_crc"  #: CRC mismatch
-    OVERSIZE = "oversize"  #: more than MAX_ENCODED_SIZE bytes without a delimiter
+    OVERSIZE = "oversize"  #: over MAX_ENCODED_SIZE bytes without a delimiter, or over MAX_FRAME_SIZE decoded
     BAD_VERSION = "bad_version"  #: version byte is not PROTOCOL_VERSION (an incompatible peer)
     UNKNOWN_TYPE = "unknown_type"  #: type code not defined
     BAD_LENGTH = "bad_length"  #: payload length does not match the type
@@ -126,7 +126,11 @@ def encode(msg: Message) -> bytes:
 
 
 def decode_frame(encoded: bytes) -> Message | DecodeError:
-    """Decode the bytes between two delimiters (without the 0x00). Never raises."""
+    """Decode the bytes between two delimiters (without the 0x00). Never raises.
+
+    The checks, in the order of docs/protocol.md §8.1: OVERSIZE (run), BAD_COBS, OVERSIZE (decoded
+    frame over 1024 bytes), SHORT, BAD_CRC, BAD_VERSION, then the payload's (UNKNOWN_TYPE, BAD_FIELD
+    for node 0xFFFF, BAD_LENGTH, BAD_FIELD)."""
     excerpt = bytes(encoded[:16])
     if len(encoded) > MAX_ENCODED_SIZE:
         return DecodeError(ErrorReason.OVERSIZE, f"frame exceeds {MAX_ENCODED_SIZE} bytes without a delimiter", excerpt)
@@ -134,6 +138,8 @@ def decode_frame(encoded: bytes) -> Message | DecodeError:
         body = cobs.decode(encoded)
     except cobs.DecodeError as exc:
         return DecodeError(ErrorReason.BAD_COBS, str(exc), excerpt)
+    if len(body) > MAX_FRAME_SIZE:  # COBS of a frame with zeros is shorter than the worst case
+        return DecodeError(ErrorReason.OVERSIZE, f"frame of {len(body)} bytes exceeds {MAX_FRAME_SIZE}", excerpt)
     if len(body) < HEADER_SIZE + CRC_SIZE:
         return DecodeError(ErrorReason.SHORT, f"{len(body)} bytes, need at least {HEADER_SIZE + CRC_SIZE}", excerpt)
     if crc16_ccitt_false(body) != 0:

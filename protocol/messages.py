@@ -1,4 +1,4 @@
-"""Message set of the capsheet wire protocol v1 (docs/protocol.md §4).
+"""Message set of the capsheet wire protocol v1.1 (docs/protocol.md §4).
 
 Every message is a frozen, slotted dataclass that validates itself when built. The *payload* layout
 of a message is the same on every transport; serial wraps it in a header + CRC + COBS
@@ -21,17 +21,36 @@ import numpy as np
 from .constants import ADC_MAX, ADC_MIN
 
 __all__ = [
-    "PROTOCOL_VERSION", "MsgType", "Direction", "ChipState", "Capability", "StatusFlag", "NackReason",
+    "PROTOCOL_VERSION", "SPEC_VERSION", "MsgType", "Direction", "ChipState", "Capability", "StatusFlag",
+    "NackReason", "GatewayFlag", "SampleFormat", "RESERVED_CAPABILITIES", "NODE_TO_HOST_TYPES", "HOST_TO_NODE_TYPES",
+    "LINK_NONE", "is_node_to_host_type",
     "NODE_BROADCAST", "NODE_MAX_ASSIGNED", "NODE_PROVISIONAL_MIN", "NODE_PROVISIONAL_MAX",
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
     "Message", "Announce", "Info", "Sample", "Status", "Ack", "Nack", "CalData", "Snapshot",
-    "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
-    "MESSAGE_TYPES", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
+    "GatewayInfo", "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
+    "MESSAGE_TYPES", "message_to_fields", "message_from_fields", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
 ]
 
-#: Protocol version carried in every serial frame (byte 0) and every CAN identifier (bits 19..16).
+#: Protocol version carried in every serial frame (byte 0) and every CAN identifier (bits 19..16):
+#: the major version. Minor revisions of the document (1.1) add types and capability bits only and
+#: keep it (docs §12).
 PROTOCOL_VERSION = 1
+#: The revision of docs/protocol.md this code implements (major, minor).
+SPEC_VERSION = (1, 1)
+
+#: Type codes a node sends to the host (docs §4): 0x01..0x0F, defined or not. A chip ignores every
+#: frame with such a type, whatever its node (another node's frame, perhaps of a later revision).
+NODE_TO_HOST_TYPES = range(0x01, 0x10)
+#: Type codes the host sends to nodes: 0x10..0x2F. 0x00 and 0x30..0x3F are reserved.
+HOST_TO_NODE_TYPES = range(0x10, 0x30)
+#: ASSIGN ``link`` for a node that sits on no link (a gateway, docs §13).
+LINK_NONE = 0xFFFF
+
+
+def is_node_to_host_type(type_code: int) -> bool:
+    """Whether ``type_code`` is in the node -> host range 0x01..0x0F (docs §4), defined or not."""
+    return 0x01 <= type_code <= 0x0F
 
 NODE_BROADCAST = 0x0000  #: host -> every chip
 NODE_MAX_ASSIGNED = 0x7FFF  #: assigned node ids are 1..0x7FFF
@@ -54,6 +73,7 @@ class MsgType(IntEnum):
     NACK = 0x06  #: §4.6 a command was refused, with a reason
     CAL_DATA = 0x07  #: §4.7 one axis of stored calibration
     SNAPSHOT = 0x08  #: §4.8 a gateway's packed samples of many links for one counter
+    GATEWAY_INFO = 0x09  #: §4.16 a gateway's packing, SYNC source and links (v1.1)
     # host -> chip
     SYNC = 0x10  #: §4.9 sample now; broadcast, carries the counter
     ASSIGN = 0x11  #: §4.10 give a chip its node id and lattice address
@@ -85,11 +105,32 @@ class Capability(IntFlag):
 
     NONE = 0
     CAN_FD = 0x0001  #: can send and receive CAN FD frames
-    SNAPSHOT = 0x0002  #: is a gateway that sends SNAPSHOT
-    SELF_TEST = 0x0004  #: has accelerometer self-test
+    SNAPSHOT = 0x0002  #: a gateway that can pack samples into SNAPSHOT frames (§13.2)
+    SELF_TEST = 0x0004  #: has a self-test started by means outside the protocol (no v1.1 command)
     CAL_STORAGE = 0x0008  #: keeps calibration in non-volatile memory
     MULTI_RANGE = 0x0010  #: supports range codes other than ±2 g
     FILTER = 0x0020  #: supports CONFIG filter codes other than 0
+    GATEWAY = 0x0040  #: the node is a gateway, not a chip: it sits on no link (v1.1, §13)
+    SYNC_SOURCE = 0x0080  #: a gateway that can generate its segment's SYNC (v1.1, §13.3)
+
+
+#: INFO capability bits reserved in v1.1 (bits 8..15; a later revision adds sensor kinds there):
+#: sent as 0, ignored on receipt.
+RESERVED_CAPABILITIES = 0xFF00
+
+
+class GatewayFlag(IntFlag):
+    """GATEWAY_INFO flags (docs/protocol.md §4.16): what the gateway does now."""
+
+    NONE = 0
+    PACKING = 0x01  #: answers SYNC with SNAPSHOT frames of its links (not the chips' SAMPLEs)
+    SYNC_SOURCE = 0x02  #: generates its segment's SYNC; passes no SYNC from the host to the segment
+
+
+class SampleFormat(IntEnum):
+    """GATEWAY_INFO ``sample_format``: the word a SNAPSHOT packs (docs §4.16; v1.1 defines one)."""
+
+    ACCEL_12 = 0  #: §5.2: three 12-bit accelerometer axes + 4 status bits, 5 bytes
 
 
 class StatusFlag(IntFlag):
@@ -105,7 +146,7 @@ class StatusFlag(IntFlag):
 class NackReason(IntEnum):
     """NACK reason codes (docs/protocol.md §4.6)."""
 
-    UNKNOWN_COMMAND = 1  #: the type is not a host -> chip command this chip knows
+    UNKNOWN_COMMAND = 1  #: an undefined type outside 0x01..0x0F, addressed to the node
     BAD_LENGTH = 2  #: the payload length does not match the type
     BAD_VALUE = 3  #: a field is out of range (e.g. range code 7)
     BAD_STATE = 4  #: not allowed in the current state (e.g. START before ASSIGN)
@@ -466,7 +507,9 @@ class CalData(Message):
 @dataclass(frozen=True, slots=True, eq=False)
 class Snapshot(Message):
     """§4.8 SNAPSHOT (gateway): ``counter`` u16, ``first_link`` u16, ``count`` u8, then ``count``
-    40-bit sample words for links ``first_link .. first_link + count - 1``.
+    40-bit sample words for links ``first_link .. first_link + count - 1``; ``node`` is the packing
+    gateway's node id. Count 1..255 here; the transports cap it (serial 202: a longer frame is over
+    1024 bytes; CAN FD 11).
 
     The samples are kept packed (``words``, 5 bytes each); `counts` and `status` unpack them.
     Build from arrays with `Snapshot.from_arrays`.
@@ -537,6 +580,43 @@ class Snapshot(Message):
             return cls(node, counter, first, bytes(payload[5:]))
         except ValueError as exc:
             raise PayloadError("BAD_FIELD", str(exc)) from exc
+
+
+@dataclass(frozen=True, slots=True)
+class GatewayInfo(Message):
+    """§4.16 GATEWAY_INFO (v1.1), sent by a gateway after its INFO: ``flags`` u8 (GatewayFlag: what it
+    does now), ``sample_format`` u8 (SampleFormat of its SNAPSHOT words), ``first_link`` u16 and
+    ``link_count`` u16 (one contiguous run of the links behind it; a gateway with several runs sends
+    one GATEWAY_INFO per run), ``sync_rate_hz`` u16 (the rate of the SYNC it generates; 0 when it
+    does not)."""
+
+    TYPE = MsgType.GATEWAY_INFO
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 5
+    _FMT = struct.Struct("<BBHHH")
+    flags: int = 0
+    sample_format: int = SampleFormat.ACCEL_12
+    first_link: int = 0
+    link_count: int = 0
+    sync_rate_hz: int = 0
+
+    def _validate(self) -> None:
+        _check_uint("flags", self.flags, 8)
+        _check_uint("sample_format", self.sample_format, 8)
+        _check_uint("first_link", self.first_link, 16)
+        _check_uint("link_count", self.link_count, 16)
+        _check_uint("sync_rate_hz", self.sync_rate_hz, 16)
+        if self.first_link + self.link_count > 0x10000:
+            raise ValueError(f"Invalid link_count: first_link {self.first_link} + {self.link_count} exceeds 65536")
+        object.__setattr__(self, "flags", GatewayFlag(self.flags))
+
+    @property
+    def links(self) -> range:
+        """The links of this run."""
+        return range(self.first_link, self.first_link + self.link_count)
+
+
+assert GatewayInfo._FMT.size == 8
 
 
 # --------------------------------------------------------------------------------------------
@@ -692,7 +772,7 @@ class CalRead(Message):
 
 #: type code -> message class
 MESSAGE_TYPES: dict[int, type[Message]] = {
-    cls.TYPE: cls for cls in (Announce, Info, Sample, Status, Ack, Nack, CalData, Snapshot,
+    cls.TYPE: cls for cls in (Announce, Info, Sample, Status, Ack, Nack, CalData, Snapshot, GatewayInfo,
                               Sync, Assign, Config, Start, Stop, GetInfo, Reset, CalWrite, CalRead)
 }
 assert set(MESSAGE_TYPES) == set(MsgType)
@@ -702,8 +782,26 @@ def decode_payload(type_code: int, node: int, payload: bytes) -> Message:
     """Payload -> message. Raises `PayloadError` with reason UNKNOWN_TYPE, BAD_LENGTH or BAD_FIELD."""
     cls = MESSAGE_TYPES.get(type_code)
     if cls is None:
-        raise PayloadError("UNKNOWN_TYPE", f"type 0x{type_code:02X} is not defined in protocol v{PROTOCOL_VERSION}")
+        raise PayloadError("UNKNOWN_TYPE", f"type 0x{type_code:02X} is not defined in protocol "
+                                           f"v{SPEC_VERSION[0]}.{SPEC_VERSION[1]}")
     if node == 0xFFFF:
         raise PayloadError("BAD_FIELD", "node 0xFFFF is reserved")
     return cls.from_payload(node, payload)
 
+
+def message_to_fields(msg: Message) -> dict:
+    """A message's fields as the vector files write them (JSON numbers; a SNAPSHOT's arrays as lists)."""
+    if isinstance(msg, Snapshot):
+        return {"counter": msg.counter, "first_link": msg.first_link,
+                "counts": msg.counts.tolist(), "status": msg.status.tolist()}
+    return {f.name: (float(v) if isinstance(v, float) else int(v))
+            for f in fields(msg)[1:] for v in [getattr(msg, f.name)]}
+
+
+def message_from_fields(type_name: str, node: int, values: dict) -> Message:
+    """The message `message_to_fields` wrote (type by name, node, fields)."""
+    cls = MESSAGE_TYPES[MsgType[type_name]]
+    if cls is Snapshot:
+        return Snapshot.from_arrays(node, values["counter"], values["first_link"],
+                                    np.array(values["counts"]), np.array(values["status"]))
+    return cls(node, **values)

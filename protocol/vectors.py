@@ -1,5 +1,7 @@
 """Golden test vectors (tests/vectors/*.json): canonical messages and their exact wire bytes on
-serial and CAN. The C firmware and any chip are held to these bytes (docs §9).
+serial and CAN (serial.json, can.json), damaged serial input (serial_errors.json), edge frames and
+the receiver's verdict for each (verdicts.json), and chip scenarios (chip.json). The C firmware and
+any chip are held to them (docs §9).
 
 ``capsheet protocol vectors --write`` regenerates the files; a test fails if the encoder and the
 checked-in files ever disagree, so a change of wire format cannot slip through unnoticed.
@@ -16,7 +18,6 @@ Snapshot fields are ``counter``, ``first_link``, ``counts`` (list of [x, y, z]) 
 from __future__ import annotations
 
 import json
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +25,13 @@ import numpy as np
 from .can import to_can
 from .constants import SampleStatus
 from .framing import encode, encode_frame
-from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead, CalWrite,
-                       Capability, ChipState, Config, GetInfo, Info, Message, MsgType, Nack, NackReason,
-                       Reset, Sample, Snapshot, Start, Status, StatusFlag, Stop, Sync)
+from .messages import (LINK_NONE, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead,
+                       CalWrite, Capability, ChipState, Config, GatewayFlag, GatewayInfo, GetInfo, Info, Message,
+                       MsgType, Nack, NackReason, Reset, Sample, SampleFormat, Snapshot, Start, Status,
+                       StatusFlag, Stop, Sync, message_from_fields, message_to_fields)
 
 __all__ = ["canonical_messages", "message_to_fields", "message_from_fields", "build_vectors",
-           "error_vectors", "VECTOR_DIR", "write_vectors"]
+           "error_vectors", "verdict_vectors", "chip_scenarios", "VECTOR_DIR", "write_vectors"]
 
 VECTOR_DIR = Path(__file__).resolve().parent.parent / "tests" / "vectors"
 
@@ -39,7 +41,7 @@ def canonical_messages() -> list[tuple[str, Message]]:
     snap_counts = np.array([[0, 0, 1024], [-2048, 2047, -1], [1, -1, 0], [100, -200, 300]])
     snap_status = np.array([0, SampleStatus.SATURATED, SampleStatus.INVALID, 0xF])
     return [
-        ("announce", Announce(0x8123, uid=0x0123456789ABCDEF)),
+        ("announce", Announce(0x9112, uid=0x0123456789ABCDEF)),  # provisional_node(uid, 0), §3.2
         ("announce_assigned", Announce(42, uid=0xFFFFFFFFFFFFFFFF)),
         ("info", Info(42, 1, 2, 3, PROTOCOL_VERSION, Capability.CAN_FD | Capability.SELF_TEST, 12, ChipState.IDLE)),
         ("sample_flat", Sample(1, counter=0, x=0, y=0, z=1024, status=0)),
@@ -49,10 +51,13 @@ def canonical_messages() -> list[tuple[str, Message]]:
         ("ack_start", Ack(42, MsgType.START, 0)),
         ("nack_bad_state", Nack(42, MsgType.START, NackReason.BAD_STATE)),
         ("cal_data", CalData(42, axis=2, flags=1, offset_q4=-37, sensitivity=1019.25)),
-        ("snapshot", Snapshot.from_arrays(0, 0xABCD, 360, snap_counts, snap_status)),
+        ("snapshot", Snapshot.from_arrays(0x7FFF, 0xABCD, 360, snap_counts, snap_status)),
+        ("gateway_info", GatewayInfo(0x7FFF, GatewayFlag.PACKING | GatewayFlag.SYNC_SOURCE, SampleFormat.ACCEL_12,
+                                     0, 364, 145)),
         ("sync", Sync(counter=0)),
         ("sync_wrap", Sync(counter=0xFFFF)),
-        ("assign", Assign(0x8123, new_node=1, link=0, uid_low=0x89ABCDEF)),
+        ("assign", Assign(0x9112, new_node=1, link=0, uid_low=0x89ABCDEF)),
+        ("assign_gateway", Assign(0x9112, new_node=0x7FFF, link=LINK_NONE, uid_low=0x89ABCDEF)),
         ("config", Config(0, rate_hz=145, range=0, filter=1, heartbeat_ms=1000)),
         ("start_broadcast", Start(0)),
         ("stop_one", Stop(7)),
@@ -63,20 +68,15 @@ def canonical_messages() -> list[tuple[str, Message]]:
     ]
 
 
-def message_to_fields(msg: Message) -> dict:
-    if isinstance(msg, Snapshot):
-        return {"counter": msg.counter, "first_link": msg.first_link,
-                "counts": msg.counts.tolist(), "status": msg.status.tolist()}
-    return {f.name: (float(v) if isinstance(v, float) else int(v))
-            for f in fields(msg)[1:] for v in [getattr(msg, f.name)]}
+def _scenario_format() -> str:
+    from .scenarios import FORMAT
+    return FORMAT
 
 
-def message_from_fields(type_name: str, node: int, values: dict) -> Message:
-    cls = MESSAGE_TYPES[MsgType[type_name]]
-    if cls is Snapshot:
-        return Snapshot.from_arrays(node, values["counter"], values["first_link"],
-                                    np.array(values["counts"]), np.array(values["status"]))
-    return cls(node, **values)
+def chip_scenarios() -> list[dict]:
+    """The chip scenarios of protocol/scenarios.py (tests/vectors/chip.json)."""
+    from .scenarios import scenarios
+    return scenarios()
 
 
 def build_vectors() -> dict[str, dict]:
@@ -92,6 +92,12 @@ def build_vectors() -> dict[str, dict]:
         "can.json": {"protocol_version": PROTOCOL_VERSION, "identifier": "29-bit: priority[28:26] type[25:20] version[19:16] node[15:0]",
                      "vectors": can},
         "serial_errors.json": {"protocol_version": PROTOCOL_VERSION, "vectors": error_vectors()},
+        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.1",
+                          "about": "edge frames and the verdict of docs/protocol.md §8.1 for each: 'decoded' "
+                                   "(type, node, fields) or the reason a receiver reports",
+                          "vectors": verdict_vectors()},
+        "chip.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.1",
+                      "about": _scenario_format().splitlines(), "scenarios": chip_scenarios()},
     }
 
 
@@ -122,3 +128,139 @@ def write_vectors(directory: Path = VECTOR_DIR) -> list[Path]:
         path.write_text(json.dumps(content, indent=1) + "\n")
         written.append(path)
     return written
+
+
+# --------------------------------------------------------------------------------------------
+# Receiver verdicts (tests/vectors/verdicts.json): edge frames and what every receiver reports
+# --------------------------------------------------------------------------------------------
+
+def _ser(name: str, verdict: str, clause: str, type_code: int, node: int, payload: bytes, *,
+         version: int = PROTOCOL_VERSION, msg: Message | None = None) -> dict:
+    """A serial edge frame built from its parts (the CRC is right unless the vector says otherwise)."""
+    from .crc import crc16_ccitt_false
+    from cobs import cobs
+    body = bytes([version, type_code]) + node.to_bytes(2, "little") + payload
+    body += crc16_ccitt_false(body).to_bytes(2, "big")
+    out = {"name": name, "transport": "serial", "hex": (cobs.encode(body) + b"\x00").hex(),
+           "frame_size": len(body), "verdict": verdict, "clause": clause}
+    if msg is not None:
+        out.update(type=msg.TYPE.name, node=msg.node, fields=message_to_fields(msg))
+    return out
+
+
+def _can(name: str, verdict: str, clause: str, can_id: int, data: bytes, *, fd: bool = False,
+         extended: bool = True, msg: Message | None = None) -> dict:
+    out = {"name": name, "transport": "can", "id": f"{can_id:08X}", "extended": extended, "fd": fd,
+           "data": data.hex(), "verdict": verdict, "clause": clause}
+    if msg is not None:
+        out.update(type=msg.TYPE.name, node=msg.node, fields=message_to_fields(msg))
+    return out
+
+
+def verdict_vectors() -> list[dict]:
+    """Edge frames on both transports and the verdict of docs §8.1 for each: ``"decoded"`` (with the
+    message's fields) or the ErrorReason a receiver reports. Written out by hand, not derived from
+    the decoder, which the tests hold to them (and so the C codec, and any implementation)."""
+    import struct
+    from .can import make_id
+    flat = bytes.fromhex("0000000004")  # the sample word (0, 0, 1024), status 0
+    w202 = flat * 202
+    f32 = struct.Struct("<f")
+
+    def cal(axis, sens):
+        return bytes([axis, 0]) + (0).to_bytes(2, "little") + f32.pack(sens)
+    v: list[dict] = [
+        # --- limits: 1024 bytes before COBS (§6.3); the serial SNAPSHOT cap follows from it (§4.8)
+        _ser("snapshot_202_samples_is_1021_bytes", "decoded", "6.3, 4.8", MsgType.SNAPSHOT, 0x7FFF,
+             struct.pack("<HHB", 7, 0, 202) + w202,
+             msg=Snapshot.from_arrays(0x7FFF, 7, 0, np.tile([0, 0, 1024], (202, 1)), np.zeros(202, int))),
+        _ser("snapshot_203_samples_is_1026_bytes", "oversize", "6.3, 4.8", MsgType.SNAPSHOT, 0x7FFF,
+             struct.pack("<HHB", 7, 0, 203) + flat * 203),
+        _ser("frame_of_1025_bytes", "oversize", "6.3", MsgType.CONFIG, 5, bytes(1019)),
+        _ser("frame_of_1024_bytes_wrong_length", "bad_length", "6.3, 8.1", MsgType.CONFIG, 5, bytes(1018)),
+        # --- the order of the checks (§8.1)
+        _ser("version_2_and_a_wrong_length", "bad_version", "8.1, 12", MsgType.START, 5, b"\x01", version=2),
+        _ser("version_0", "bad_version", "8.1, 12", MsgType.START, 5, b"", version=0),
+        _ser("undefined_type_0x0a_node_to_host_range", "unknown_type", "4, 8.1", 0x0A, 5, b""),
+        _ser("undefined_type_0x00", "unknown_type", "4, 8.1", 0x00, 5, b""),
+        _ser("undefined_type_0x19", "unknown_type", "4, 8.1", 0x19, 5, b"\x01\x02"),
+        _ser("undefined_type_and_node_ffff", "unknown_type", "8.1", 0x3F, 0xFFFF, b""),
+        _ser("node_ffff_and_a_wrong_length", "bad_field", "3.1, 8.1", MsgType.START, 0xFFFF, b"\x01"),
+        _ser("node_ffff_valid_payload", "bad_field", "3.1, 8.1", MsgType.SAMPLE, 0xFFFF, bytes(7)),
+        # --- addressing rules of single messages
+        _ser("sync_addressed_to_a_node", "bad_field", "4.9", MsgType.SYNC, 5, b"\x01\x00"),
+        _ser("assign_broadcast", "bad_field", "4.10", MsgType.ASSIGN, 0, struct.pack("<HHI", 1, 0, 0x89ABCDEF)),
+        _ser("assign_new_node_0", "bad_field", "4.10", MsgType.ASSIGN, 5, struct.pack("<HHI", 0, 0, 1)),
+        _ser("assign_new_node_0x8000", "bad_field", "4.10", MsgType.ASSIGN, 5, struct.pack("<HHI", 0x8000, 0, 1)),
+        _ser("assign_link_none_for_a_gateway", "decoded", "4.10, 13.1", MsgType.ASSIGN, 0x9112,
+             struct.pack("<HHI", 0x7FFF, LINK_NONE, 0x89ABCDEF),
+             msg=Assign(0x9112, new_node=0x7FFF, link=LINK_NONE, uid_low=0x89ABCDEF)),
+        _ser("cal_read_broadcast", "bad_field", "4.15", MsgType.CAL_READ, 0, b"\x00"),
+        _ser("cal_read_axis_3", "bad_field", "4.15", MsgType.CAL_READ, 5, b"\x03"),
+        _ser("cal_write_broadcast", "bad_field", "4.15", MsgType.CAL_WRITE, 0, cal(0, 1024.0)),
+        _ser("cal_write_axis_3", "bad_field", "4.7, 4.15", MsgType.CAL_WRITE, 5, cal(3, 1024.0)),
+        _ser("cal_write_sensitivity_0", "bad_field", "4.7, 4.15", MsgType.CAL_WRITE, 5, cal(0, 0.0)),
+        _ser("cal_write_sensitivity_negative", "bad_field", "4.7, 4.15", MsgType.CAL_WRITE, 5, cal(0, -1024.0)),
+        _ser("cal_write_sensitivity_infinite", "bad_field", "4.7, 4.15", MsgType.CAL_WRITE, 5,
+             cal(0, float("inf"))),
+        _ser("cal_write_sensitivity_nan", "bad_field", "4.7, 4.15", MsgType.CAL_WRITE, 5,
+             bytes([0, 0, 0, 0]) + bytes.fromhex("0000c07f")),
+        _ser("cal_data_negative_zero_sensitivity", "bad_field", "4.7", MsgType.CAL_DATA, 5,
+             bytes([0, 0, 0, 0]) + bytes.fromhex("00000080")),
+        _ser("config_values_out_of_range_decode", "decoded", "4.11, 8.3", MsgType.CONFIG, 5,
+             struct.pack("<HBBH", 5000, 7, 9, 100), msg=Config(5, rate_hz=5000, range=7, filter=9, heartbeat_ms=100)),
+        _ser("snapshot_count_0", "bad_length", "4.8", MsgType.SNAPSHOT, 0x7FFF, struct.pack("<HHB", 1, 0, 0)),
+        _ser("snapshot_count_2_one_word", "bad_length", "4.8", MsgType.SNAPSHOT, 0x7FFF,
+             struct.pack("<HHB", 1, 0, 2) + flat),
+        _ser("snapshot_last_link_65535", "decoded", "4.8", MsgType.SNAPSHOT, 0x7FFF,
+             struct.pack("<HHB", 1, 0xFFFE, 2) + flat * 2,
+             msg=Snapshot.from_arrays(0x7FFF, 1, 0xFFFE, np.tile([0, 0, 1024], (2, 1)), np.zeros(2, int))),
+        _ser("snapshot_past_link_65535", "bad_field", "4.8", MsgType.SNAPSHOT, 0x7FFF,
+             struct.pack("<HHB", 1, 0xFFFF, 2) + flat * 2),
+        _ser("info_state_4", "bad_field", "4.2", MsgType.INFO, 5, bytes([1, 0, 0, 1, 0, 0, 12, 4])),
+        _ser("status_state_4", "bad_field", "4.4", MsgType.STATUS, 5, bytes([4, 0, 0, 0, 0, 0, 0, 0])),
+        _ser("nack_reason_0", "bad_field", "4.6", MsgType.NACK, 5, bytes([0x13, 0])),
+        _ser("nack_reason_8", "bad_field", "4.6", MsgType.NACK, 5, bytes([0x13, 8])),
+        _ser("gateway_info_past_link_65535", "bad_field", "4.16", MsgType.GATEWAY_INFO, 0x7FFF,
+             struct.pack("<BBHHH", 1, 0, 0xFFFF, 2, 0)),
+        # --- reserved bits and values are ignored on receipt (§2): the frame decodes
+        _ser("ack_detail_1", "decoded", "2, 4.5", MsgType.ACK, 5, bytes([0x13, 1]), msg=Ack(5, 0x13, 1)),
+        _ser("info_reserved_capability_bits", "decoded", "2, 4.2", MsgType.INFO, 5,
+             bytes([1, 0, 0, 1]) + (0x8001).to_bytes(2, "little") + bytes([12, 1]),
+             msg=Info(5, 1, 0, 0, 1, 0x8001, 12, ChipState.IDLE)),
+        _ser("gateway_info_reserved_flags_and_format", "decoded", "2, 4.16", MsgType.GATEWAY_INFO, 0x7FFF,
+             struct.pack("<BBHHH", 0x81, 3, 10, 4, 0),
+             msg=GatewayInfo(0x7FFF, 0x81, 3, 10, 4, 0)),
+        _ser("status_unknown_flags", "decoded", "2, 4.4", MsgType.STATUS, 5, bytes([1, 0xF0, 0, 0, 1, 0, 0, 0]),
+             msg=Status(5, ChipState.IDLE, 0xF0, 0, 0, 1)),
+    ]
+    # --- CAN (§7): the same decisions, and the CAN-only ones
+    snap11 = struct.pack("<HHB", 3, 0, 11) + flat * 11
+    snap1 = struct.pack("<HHB", 3, 0, 1) + flat
+    sid = make_id(MsgType.SNAPSHOT, 0x7FFF)
+    v += [
+        _can("standard_identifier", "bad_field", "7.1", 0x123, b"\x01\x02", extended=False),
+        _can("identifier_over_29_bits", "bad_field", "7.1", 1 << 29, b""),
+        _can("version_2", "bad_version", "7.1, 12", make_id(MsgType.START, 5, version=2), b""),
+        _can("any_priority_is_accepted", "decoded", "7.1", make_id(MsgType.SAMPLE, 1, priority=7),
+             bytes(2) + flat, msg=Sample(1, 0, 0, 0, 1024, 0)),
+        _can("sync_addressed_to_a_node", "bad_field", "4.9", make_id(MsgType.SYNC, 5), b"\x01\x00"),
+        _can("undefined_type_0x0a", "unknown_type", "4, 8.1", make_id(0x0A, 5, priority=4), b""),
+        _can("classic_nine_bytes", "bad_length", "7.2", make_id(MsgType.CONFIG, 5), bytes(9)),
+        _can("fd_length_nine_is_not_an_fd_length", "bad_length", "7.2", make_id(MsgType.CONFIG, 5), bytes(9),
+             fd=True),
+        _can("snapshot_on_classic_can", "bad_length", "7.2", sid, snap1),
+        _can("snapshot_fd_unpadded", "bad_length", "7.2", sid, snap1, fd=True),
+        _can("snapshot_fd_padded", "decoded", "7.2", sid, snap1 + bytes(2), fd=True,
+             msg=Snapshot.from_arrays(0x7FFF, 3, 0, np.array([[0, 0, 1024]]), np.zeros(1, int))),
+        _can("snapshot_fd_non_zero_padding", "bad_field", "7.2", sid, snap1 + b"\x00\x01", fd=True),
+        _can("snapshot_fd_11_samples", "decoded", "7.2, 4.8", sid, snap11 + bytes(4), fd=True,
+             msg=Snapshot.from_arrays(0x7FFF, 3, 0, np.tile([0, 0, 1024], (11, 1)), np.zeros(11, int))),
+        _can("snapshot_fd_count_12", "bad_length", "7.2, 4.8", sid, struct.pack("<HHB", 3, 0, 12) + flat * 11 + bytes(4),
+             fd=True),
+        _can("sample_fd_padded_to_8", "bad_length", "7.2", make_id(MsgType.SAMPLE, 1), bytes(2) + flat + b"\x00",
+             fd=True),
+        _can("gateway_info", "decoded", "4.16", make_id(MsgType.GATEWAY_INFO, 0x7FFF),
+             struct.pack("<BBHHH", 1, 0, 0, 364, 0), msg=GatewayInfo(0x7FFF, 1, 0, 0, 364, 0)),
+    ]
+    return v

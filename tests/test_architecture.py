@@ -3,7 +3,7 @@
 * only the command line (host/cli/) imports the simulator (virtual_sheet);
 * protocol/ imports neither pyserial nor python-can, nor any other capsheet package;
 * the science (host/analysis/) imports only protocol.lattice, numpy/scipy/matplotlib (and the
-  optional sksparse) and itself;
+  optional sksparse, and the per-link peer's vqf) and itself;
 * firmware_ref and virtual_sheet do not import each other's chip modules in a cycle;
 * no import cycle among capsheet's own modules (function-level imports included);
 * seams, not patches (issue 25): no module of protocol/, host/, virtual_sheet/ reads or writes
@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import sys
 from pathlib import Path
 
@@ -78,8 +79,10 @@ def test_protocol_does_no_io_and_depends_on_nothing_of_ours(lib):
 def test_the_science_imports_only_the_lattice_and_itself():
     # sksparse: the estimator's optional CHOLMOD backend (scipy's splu when absent); cffi: only
     # host/analysis/_kernel/build.py, which builds the estimator's optional kernel at install time
+    # (and host/analysis/motion/_kernel/build_link_kernel.py the fused estimator's); vqf: the per-link peer
+    # of host/analysis/motion/peers.py (optional, imported when that peer runs)
     allowed = ("protocol.lattice", "host.analysis", "numpy", "scipy", "sksparse", "matplotlib",
-               "__future__", "cffi")
+               "__future__", "cffi", "vqf")
     stdlib = sys.stdlib_module_names
 
     def forbidden(m: str) -> bool:
@@ -117,12 +120,17 @@ def test_conventions_are_cited_from_the_repo_not_from_outside_it():
 PACKAGES = ("protocol", "host", "virtual_sheet", "firmware_ref")
 
 
-def module_names(root: Path = ROOT) -> dict[str, Path]:
+def module_names(root: Path = ROOT) -> dict[str, Path | None]:
+    """Our modules: every .py, and the compiled ones each cffi build script names in
+    ``set_source`` (leaves, mapped to None), whether or not they are built here — else
+    ``from ._link_kernel import lib`` would count as importing the package around it."""
     out = {}
     for pkg in PACKAGES:
         for path in sorted((root / pkg).rglob("*.py")):
             rel = path.relative_to(root).with_suffix("")
             out[".".join(rel.parts[:-1] if rel.name == "__init__" else rel.parts)] = path
+            out.update((m, None) for m in re.findall(r"set_source\(\s*[\"']([\w.]+)[\"']",
+                                                     path.read_text(errors="replace")))
     return out
 
 
@@ -135,10 +143,25 @@ def compiled_modules(root: Path = ROOT) -> set[str]:
                 if isinstance(c, ast.Constant) and isinstance(c.value, str) and ".py:" in c.value]
     out = set()
     for b in builders:
-        for node in ast.walk(ast.parse((root / b).read_text())):
-            if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "set_source" \
-                    and node.args and isinstance(node.args[0], ast.Constant):
+        tree = ast.parse((root / b).read_text())
+        helpers = set()  # functions whose parameter is set_source's name (firmware_ref: _builder(module, ...))
+        for fn in ast.walk(tree):
+            if not isinstance(fn, ast.FunctionDef):
+                continue
+            params = [a.arg for a in fn.args.args]
+            for node in ast.walk(fn):
+                if isinstance(node, ast.Call) and getattr(node.func, "attr", None) == "set_source" and node.args \
+                        and isinstance(node.args[0], ast.Name) and node.args[0].id in params:
+                    helpers.add((fn.name, params.index(node.args[0].id)))
+        for node in ast.walk(tree):
+            if not isinstance(node, ast.Call) or not node.args:
+                continue
+            if getattr(node.func, "attr", None) == "set_source" and isinstance(node.args[0], ast.Constant):
                 out.add(node.args[0].value)
+            for name, k in helpers:
+                if getattr(node.func, "id", None) == name and len(node.args) > k \
+                        and isinstance(node.args[k], ast.Constant):
+                    out.add(node.args[k].value)
     return out
 
 
@@ -149,6 +172,9 @@ def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
     leaves = compiled_modules(root)
     graph = {}
     for name, path in mods.items():
+        if path is None:  # a compiled module imports none of ours
+            graph[name] = set()
+            continue
         tree = ast.parse(path.read_text(), str(path))
         pkg = name if path.name == "__init__.py" else name.rpartition(".")[0]
         found = set()
@@ -163,11 +189,11 @@ def import_graph(root: Path = ROOT) -> dict[str, set[str]]:
         for m in found:
             while m and m not in mods and m not in leaves:
                 m = m.rpartition(".")[0]
-            if m in leaves:  # a C extension: a leaf, nothing of ours behind it
-                continue
             if m and m != name:
                 edges.add(m)
         graph[name] = edges
+    for leaf in leaves:  # a C extension: a leaf, nothing of ours behind it
+        graph.setdefault(leaf, set())
     return graph
 
 
@@ -210,11 +236,21 @@ def test_the_cycle_finder_sees_a_cycle():
 
 def test_compiled_extensions_are_known_to_the_import_graph():
     # each cffi module of setup.py; the estimator and the tactile response import theirs relatively
-    assert compiled_modules() == {"firmware_ref._capsheet_fw", "host.analysis._yaw_kernel",
-                                  "host.analysis.tactile._response_kernel"}
+    assert compiled_modules() == {"firmware_ref._capsheet_fw", "firmware_ref._capsheet_fw_mutants",
+                                  "host.analysis._yaw_kernel", "host.analysis.tactile._response_kernel",
+                                  "host.analysis.motion._link_kernel"}
     graph = import_graph()
     assert "host.analysis.tactile" not in graph["host.analysis.tactile.response"]
     assert "host.analysis.tactile.response" in graph["host.analysis.tactile.fit"]
+
+
+def test_the_graph_knows_the_compiled_modules_built_or_not():
+    # cffi's API-mode extensions are not .py files; read from their build scripts they are leaves
+    graph = import_graph()
+    for name in ("host.analysis._yaw_kernel", "host.analysis.motion._link_kernel", "firmware_ref._capsheet_fw"):
+        assert graph[name] == set()
+    assert "host.analysis.motion._link_kernel" in graph["host.analysis.motion.fused"]
+    assert "host.analysis.motion" not in graph["host.analysis.motion.fused"]
 
 
 def test_no_import_cycles_among_our_modules():
@@ -358,7 +394,8 @@ def test_the_aggregator_reads_no_clock_and_starts_no_thread():
     assert not imports_of(ROOT / "host/aggregator.py") & {"time", "threading", "queue", "asyncio"}
 
 
-def test_python_can_finds_the_slcan_bus_by_name():
+def test_python_can_finds_capsheets_buses_by_name():
     import tomllib
     eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["can.interface"]
-    assert eps == {"capsheet_slcan": "host.slcan:SlcanBus"}
+    assert eps == {"capsheet_slcan": "host.slcan:SlcanBus",
+                   "capsheet_udp_multicast": "host.udp_multicast:IsolatedUdpMulticastBus"}

@@ -6,37 +6,35 @@ simulated time or a benchmark. What it does with each command is `protocol.state
 file only adds what the table leaves to the implementation:
 
 * Boot (power-on and after RESET): the chip speaks from ``provisional_node(uid, salt)`` with
-  ``salt`` = the number of ANNOUNCE rounds already left unanswered (0 at boot), sends ANNOUNCE
-  then INFO at once and every `ANNOUNCE_PERIOD_S` until it is assigned.
-* ASSIGN is for this chip only if addressed to its current node **and** ``uid_low`` matches its
-  uid; otherwise it is ignored silently (another chip that shares the provisional id). The ACK
-  comes from the new node id.
-* SYNC: a STREAMING chip answers with SAMPLE carrying the counter; a FAULT chip that has had a
-  START answers with an INVALID sample (counts 0). ``missed_syncs`` adds the counter gap
-  ``(counter - last - 1) mod 2**16`` while answering SYNC (a repeated counter or a gap of 0x8000
-  or more — an older SYNC — adds nothing; START forgets the last counter), saturating at 255.
-* STATUS heartbeat every ``heartbeat_ms`` (CONFIG; 1000 until configured, 0 = off) while
-  assigned, from `poll`.
-* ``rx_errors`` (saturating at 255) counts every frame heard that did not decode (any
-  `ErrorReason`), including those answered with a NACK.
-* Chip -> host types heard (another chip's frames on a shared CAN bus) are ignored silently.
-* NACK, from the chip's current node, with ``command`` = the frame's type code:
-
-  ================ ================================================================================
-  UNKNOWN_COMMAND  an undefined type code addressed to this chip
-  BAD_LENGTH       a host -> chip type with the wrong payload length, addressed to this chip
-  BAD_VALUE        a field out of range: addressed frames the decoder rejects (e.g. CAL_READ
-                   axis 3); CONFIG range > 3, filter > 3, rate_hz 0 or > 4000 (also broadcast)
-  UNSUPPORTED      CONFIG range != 0 without MULTI_RANGE; CAL_WRITE flags bit 0 without
-                   CAL_STORAGE
-  BAD_STATE        a (state, type) pair not in RULES, addressed to this chip (broadcast: silent)
-  BAD_VERSION      a frame of another protocol version addressed to this chip or broadcast
-  ================ ================================================================================
-
-  Order of checks: decode (version, type, length, fields) -> RULES -> field checks of the rule.
+  ``salt`` = the number of ANNOUNCE rounds already left unanswered (0 at power-on and after
+  RESET), sends ANNOUNCE then INFO at once and every `ANNOUNCE_PERIOD_S` until it is assigned.
+* ASSIGN is for this chip only if ``uid_low`` matches its uid and it is addressed to its current
+  node id — or, in BOOT, to the provisional id of the round before (an ASSIGN that crossed the
+  next ANNOUNCE on the wire, docs §3.3); otherwise it is ignored silently. The ACK comes from the
+  new node id.
+* SYNC: a STREAMING chip answers every SYNC frame with one SAMPLE carrying the counter; a FAULT
+  chip that has had a START answers with an INVALID sample (counts 0). ``missed_syncs`` adds the
+  counter gap ``(counter - last - 1) mod 2**16`` while answering SYNC (a repeated counter or a gap
+  of 0x7FFF or more — an older SYNC — adds nothing); the counter becomes ``last`` whatever it was;
+  START forgets ``last``; saturating at 255.
+* STATUS heartbeat every ``heartbeat_ms`` (1000 from ASSIGN until a CONFIG sets another, 0 = off)
+  while assigned, from `poll`; the first one ``heartbeat_ms`` after the ASSIGN that left BOOT, and
+  ``heartbeat_ms`` after every accepted CONFIG. ``uptime_s`` counts from power-on (RESET does not
+  restart it).
+* What a frame heard does, in the order of docs §8.1 (`handle`): a damaged frame is counted in
+  ``rx_errors`` and dropped; a frame for another node, or of a node -> host type (0x01..0x0F,
+  defined or not), is ignored and not counted; another version, an undefined type, a wrong length
+  or a field out of range is counted, and NACKed (BAD_VERSION, UNKNOWN_COMMAND, BAD_LENGTH,
+  BAD_VALUE) only when addressed to this chip; then the ASSIGN uid check, `protocol.state.RULES`
+  (BAD_STATE) and the CONFIG / CAL_WRITE field checks (BAD_VALUE, UNSUPPORTED). **A broadcast is
+  never answered with a NACK** — whatever is wrong with it, the chip drops it and changes nothing.
 * CONFIG ``range`` r scales the sensor's ±2 g counts by an arithmetic shift ``counts >> r``
   (the sensor source always reports ±2 g counts); ``filter`` and ``rate_hz`` are stored only.
-* A sample the sensor flags INVALID (the ADC did not answer) puts an assigned chip in FAULT.
+  ``range`` != 0 needs MULTI_RANGE and ``filter`` != 0 needs FILTER (else NACK UNSUPPORTED).
+* A sample the sensor flags INVALID (the ADC did not answer) puts an assigned chip in FAULT; so
+  does `fault`. Only RESET (or a power cycle) leaves FAULT. An INVALID sample has counts 0 and
+  status INVALID alone. SATURATED is set exactly when a count sent is -2048 or 2047 (§5.2): the chip
+  computes it from what it sends; the sensor's other bits (STALE, SELF_TEST) pass through.
 
 The interface (protocol/chip_interface.py) is shared with the C firmware
 (`firmware_ref.chip.CFirmwareChip`), so a virtual sheet runs on either through its ``chip_factory``.
@@ -56,19 +54,22 @@ from protocol.framing import HEADER, DecodeError, ErrorReason, decode_frame, enc
 from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, CalData,
                                CalRead, CalWrite, Capability, ChipState, Config, Direction, Info,
                                Message, MsgType, Nack, NackReason, Status, StatusFlag, Sync,
-                               MESSAGE_TYPES, provisional_node)
-from protocol.state import ANNOUNCE_PERIOD_S, Reply, rule_for
+                               is_node_to_host_type, provisional_node)
+from protocol.state import ANNOUNCE_PERIOD_S, DEFAULT_HEARTBEAT_MS, DEFAULT_RATE_HZ, Reply, next_deadline, rule_for
 
 __all__ = ["Out", "SensorSource", "ChipModel", "ChipFactory", "DEFAULT_CAPABILITIES",
            "FIRMWARE_VERSION", "DEFAULT_HEARTBEAT_MS", "frame_header", "check_chip_args"]
 
 FIRMWARE_VERSION = (0, 1, 0)  #: INFO fw_major, fw_minor, fw_patch of the model
-DEFAULT_HEARTBEAT_MS = 1000  #: STATUS period until a CONFIG sets another
 _SAT = 255
-_HOST_TYPES = frozenset(t for t, c in MESSAGE_TYPES.items() if c.DIRECTION == Direction.HOST_TO_CHIP)
+_INTEGRITY = (ErrorReason.BAD_COBS, ErrorReason.SHORT, ErrorReason.BAD_CRC, ErrorReason.OVERSIZE)
+_NACK_FOR = {ErrorReason.BAD_VERSION: NackReason.BAD_VERSION, ErrorReason.UNKNOWN_TYPE: NackReason.UNKNOWN_COMMAND,
+             ErrorReason.BAD_LENGTH: NackReason.BAD_LENGTH, ErrorReason.BAD_FIELD: NackReason.BAD_VALUE}
 _STREAM_STATES = (ChipState.STREAMING, ChipState.FAULT)
 _SAMPLE_HDR = struct.Struct("<BBHH")  # version, type, node, counter
 _INVALID = int(SampleStatus.INVALID)
+_SAT_BIT = int(SampleStatus.SATURATED)
+_RAILS = (-2048, 2047)
 _FAULT = ChipState.FAULT
 
 
@@ -124,6 +125,7 @@ class ChipModel:
                              for o, s in calibration]
         self._stored_cal = list(self._factory_cal)
         self.powered = False
+        self.boot_s = 0.0
         self._boot_vars(0.0)
 
     # ------------------------------------------------------------------ state
@@ -131,8 +133,9 @@ class ChipModel:
         self.state = ChipState.BOOT
         self.salt = 0
         self.node = provisional_node(self.uid, 0)
+        self.prev_node: int | None = None  # BOOT: the provisional id of the round before (§3.3)
         self.link: int | None = None
-        self.rate_hz = 145
+        self.rate_hz = DEFAULT_RATE_HZ
         self.range = 0
         self.filter = 0
         self.heartbeat_ms = DEFAULT_HEARTBEAT_MS
@@ -142,7 +145,6 @@ class ChipModel:
         self.missed_syncs = 0
         self.last_counter: int | None = None
         self.cal = list(self._stored_cal)
-        self.boot_s = now_s
         self.next_announce_s = now_s + ANNOUNCE_PERIOD_S
         self.next_heartbeat_s: float | None = None
         self._set_node(self.node)
@@ -197,12 +199,16 @@ class ChipModel:
         else:
             (x, y, z), st = self.sensor(now_s)
             st = int(st)
-            if st & _INVALID:
+            if st & _INVALID:  # the conversion failed: FAULT, and an INVALID sample (§8.6)
                 self.state = _FAULT
                 x = y = z = 0
-            elif self.range:
-                r = self.range
-                x, y, z = x >> r, y >> r, z >> r
+                st = _INVALID
+            else:
+                if self.range:
+                    r = self.range
+                    x, y, z = x >> r, y >> r, z >> r
+                # SATURATED exactly when a count sent is at a rail (§5.2), whatever the ADC flagged
+                st = (st & ~_SAT_BIT) | (_SAT_BIT if (x in _RAILS or y in _RAILS or z in _RAILS) else 0)
         word = (x & 0xFFF) | ((y & 0xFFF) << 12) | ((z & 0xFFF) << 24) | ((st & 0xF) << 36)
         if self._can:
             return CanFrame(self._sample_id, counter.to_bytes(2, "little") + word.to_bytes(5, "little"), False)
@@ -211,8 +217,9 @@ class ChipModel:
 
     # ------------------------------------------------------------------ public API
     def power_on(self, now_s: float) -> list[Out]:
-        """Boot: ANNOUNCE then INFO from the provisional node id."""
+        """Boot: ANNOUNCE then INFO from the provisional node id. ``uptime_s`` counts from here."""
         self.powered = True
+        self.boot_s = now_s
         return self._boot(now_s)
 
     def poll(self, now_s: float) -> list[Out]:
@@ -222,13 +229,14 @@ class ChipModel:
         if self.state == ChipState.BOOT:
             if now_s >= self.next_announce_s:
                 self.salt += 1
+                self.prev_node = self.node
                 self._set_node(provisional_node(self.uid, self.salt))
-                self.next_announce_s = max(self.next_announce_s + ANNOUNCE_PERIOD_S, now_s)
+                self.next_announce_s = next_deadline(self.next_announce_s, ANNOUNCE_PERIOD_S, now_s)
                 return self._announce_info()
             return []
         if self.heartbeat_ms and self.next_heartbeat_s is not None and now_s >= self.next_heartbeat_s:
             period = self.heartbeat_ms / 1000.0
-            self.next_heartbeat_s = max(self.next_heartbeat_s + period, now_s)
+            self.next_heartbeat_s = next_deadline(self.next_heartbeat_s, period, now_s)
             return [self._status(now_s)]
         return []
 
@@ -262,10 +270,13 @@ class ChipModel:
             return []
         if cls is DecodeError:
             return self._on_error(frame, msg)
-        if msg.DIRECTION != Direction.HOST_TO_CHIP:
-            return []
         node = msg.node
         if node != NODE_BROADCAST and node != self.node:
+            if node == self.prev_node and cls is Assign and self.state == ChipState.BOOT:
+                node = self.node  # §3.3: the ASSIGN crossed this chip's next ANNOUNCE on the wire
+            else:
+                return []
+        if msg.DIRECTION != Direction.HOST_TO_CHIP:
             return []
         t = msg.TYPE
         if t == MsgType.ASSIGN and msg.uid_low != (self.uid & 0xFFFFFFFF):
@@ -276,30 +287,31 @@ class ChipModel:
         if rule.validate:
             reason = self._check(msg)
             if reason is not None:
-                return self._nack(t, reason)
+                return self._nack(t, reason) if node != NODE_BROADCAST else []
         return self._apply(msg, rule, now_s)
 
     # ------------------------------------------------------------------ internals
     def _on_error(self, frame: Out, err: DecodeError) -> list[Out]:
-        if self.rx_errors < _SAT:
-            self.rx_errors += 1
-        if err.reason in (ErrorReason.BAD_COBS, ErrorReason.SHORT, ErrorReason.BAD_CRC, ErrorReason.OVERSIZE):
+        """A frame that did not decode (docs §8.1): integrity failures are counted and dropped; a
+        frame whose header names another node or a node -> host type is not this chip's business;
+        the rest is counted, and NACKed only when addressed to this chip."""
+        if err.reason in _INTEGRITY:
+            self._count_rx_error()
             return []
         hdr = frame_header(frame)
-        if hdr is None:
+        if hdr is None:  # pragma: no cover - every non-integrity error has an intact header
             return []
         _v, t, node = hdr
-        if err.reason == ErrorReason.BAD_VERSION:
-            return self._nack(t, NackReason.BAD_VERSION) if node in (NODE_BROADCAST, self.node) else []
-        if node != self.node:
-            return []  # broadcast or someone else's: silent
-        if err.reason == ErrorReason.UNKNOWN_TYPE:
-            return self._nack(t, NackReason.UNKNOWN_COMMAND)
-        if t not in _HOST_TYPES:
-            return []  # a damaged chip -> host frame from another chip
-        if err.reason == ErrorReason.BAD_LENGTH:
-            return self._nack(t, NackReason.BAD_LENGTH)
-        return self._nack(t, NackReason.BAD_VALUE)  # BAD_FIELD
+        if (node != NODE_BROADCAST and node != self.node) or is_node_to_host_type(t):
+            return []
+        self._count_rx_error()
+        if node == NODE_BROADCAST:
+            return []  # a broadcast is never NACKed (§8.1): one frame must not draw an answer from every chip
+        return self._nack(t, _NACK_FOR[err.reason])
+
+    def _count_rx_error(self) -> None:
+        if self.rx_errors < _SAT:
+            self.rx_errors += 1
 
     def _check(self, msg: Message) -> NackReason | None:
         if isinstance(msg, Config):
@@ -307,9 +319,9 @@ class ChipModel:
                 return NackReason.BAD_VALUE
             if msg.range != 0 and not self.capabilities & Capability.MULTI_RANGE:
                 return NackReason.UNSUPPORTED
+            if msg.filter != 0 and not self.capabilities & Capability.FILTER:
+                return NackReason.UNSUPPORTED
         elif isinstance(msg, CalWrite):
-            if msg.axis > 2:
-                return NackReason.BAD_VALUE
             if msg.flags & 1 and not self.capabilities & Capability.CAL_STORAGE:
                 return NackReason.UNSUPPORTED
         return None
@@ -324,6 +336,7 @@ class ChipModel:
         if t == MsgType.ASSIGN:
             assert isinstance(msg, Assign)
             first = self.state == ChipState.BOOT
+            self.prev_node = None
             self._set_node(msg.new_node)
             self.link = msg.link
             if first or self.next_heartbeat_s is None:

@@ -52,6 +52,14 @@ _BOOT, _IDLE, _STREAMING, _FAULT = (int(ChipState.BOOT), int(ChipState.IDLE), in
 _INVALID = int(SampleStatus.INVALID)
 _SAT = 255
 _FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into the sample word
+_SAT_BIT = int(SampleStatus.SATURATED)
+
+
+def _saturated(counts: np.ndarray, status: np.ndarray) -> np.ndarray:
+    """``status`` with SATURATED set exactly where a count sent is -2048 or 2047 (docs §5.2), as
+    `chip.ChipModel` computes it."""
+    rail = ((counts == 2047) | (counts == -2048)).any(axis=1)
+    return (np.asarray(status, dtype=np.int64) & ~_SAT_BIT) | (rail * _SAT_BIT)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -397,6 +405,7 @@ class ArrayChip(ChipModel):
 
     state = _F(ChipState)
     node = _F(int)
+    prev_node = _F(int, none=-1)
     link = _F(int, none=-1)
     streaming = _F(bool)
     last_counter = _F(int, none=-1)
@@ -463,6 +472,7 @@ class ChipArray:
         self.uid = np.array(uids, dtype=np.uint64)
         self.state = np.full(n, _BOOT, dtype=np.int64)
         self.node = np.zeros(n, dtype=np.int64)
+        self.prev_node = np.full(n, -1, dtype=np.int64)  # BOOT: the previous round's provisional id
         self.link = np.full(n, -1, dtype=np.int64)
         self.streaming = np.zeros(n, dtype=bool)
         self.last_counter = np.full(n, -1, dtype=np.int64)
@@ -547,7 +557,8 @@ class ChipArray:
                 items.append((k, r))
         if hb.size:
             period = self.heartbeat_ms[hb] / 1000.0
-            self.next_heartbeat_s[hb] = np.maximum(self.next_heartbeat_s[hb] + period, now_s)
+            nxt = self.next_heartbeat_s[hb] + period  # protocol.state.next_deadline, vectorised
+            self.next_heartbeat_s[hb] = np.where(nxt > now_s, nxt, now_s + period)
             frames = self._status_frames(hb, now_s)
             if not items:
                 return frames
@@ -615,9 +626,13 @@ class ChipArray:
         return out
 
     def handle_node(self, node: int, frame: Out, now_s: float, decoded, sel: np.ndarray | None = None) -> list[Out]:
-        """A frame addressed to ``node``: only the chips speaking from that node hear it."""
+        """A frame addressed to ``node``: only the chips speaking from that node hear it (and, for an
+        ASSIGN, the chips in BOOT whose previous provisional id it is: docs §3.3)."""
         out: list[Out] = []
-        for k in np.flatnonzero((self.node == node) & self._sel(sel)).tolist():
+        who = self.node == node
+        if decoded.TYPE == MsgType.ASSIGN:
+            who = who | ((self.prev_node == node) & (self.state == _BOOT))
+        for k in np.flatnonzero(who & self._sel(sel)).tolist():
             out += self.chips[k].handle(frame, now_s, decoded)
         return out
 
@@ -672,6 +687,8 @@ class ChipArray:
                 c[bad] = 0
             r = self.range[li]
             c = np.where(bad[:, None], c, c >> r[:, None])
+            s = _saturated(c, s)
+            s[bad] = _INVALID
             xyz[live] = c
             sts[live] = s
         return ans, xyz, sts
@@ -698,6 +715,8 @@ class ChipArray:
         if not np.count_nonzero(s):  # every sample OK: no fault, no status bits (count_nonzero: the
             if rng:                  # cheapest test, a fraction of .any()'s fixed cost)
                 c = c >> self.range[:, None]
+            if c.size and (c.max() >= 2047 or c.min() <= -2048):  # SATURATED: from the counts sent (§5.2)
+                return c, _saturated(c, s)
             return c, None
         if (s & _INVALID).any():
             bad = (s & _INVALID) != 0
@@ -710,6 +729,9 @@ class ChipArray:
         if rng:
             sh = c >> self.range[:, None]
             c = sh if bad is None else np.where(bad[:, None], c, sh)
+        s = _saturated(c, s)
+        if bad is not None:
+            s[bad] = _INVALID  # an INVALID sample: counts 0, status INVALID alone (§8.6)
         return c, s
 
     @staticmethod

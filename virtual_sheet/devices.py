@@ -70,8 +70,14 @@ class Device:
     name = "device"
 
     def __init__(self, sheet, *, packed: bool = False, sync_rate_hz: float | None = None,
-                 verbose: Any = None, clock=None) -> None:
+                 verbose: Any = None, clock=None, gateway_node: bool | None = None,
+                 gateway_class: type | None = None) -> None:
         self.clock = clock  # manual mode when given: seconds, the device's `now`
+        #: the gateways are nodes on the wire (None: when they pack or drive SYNC, as the spec requires;
+        #: False: a protocol 1.0 gateway that does not announce itself)
+        self.gateway_node = gateway_node
+        #: what the gateways are made with (a subclass of `Gateway`: the conformance suite's broken gateways)
+        self.gateway_class = gateway_class or Gateway
         self._outage_end: float | None = None
         self.sheet = sheet
         self.packed = packed
@@ -284,7 +290,7 @@ class _SerialDevice(Device):
             raise ValueError(f"{type(self).__name__} needs a sheet with transport='serial', "
                              f"got {sheet.transport!r}")
         super().__init__(sheet, **kw)
-        self.gateway = Gateway(sheet, packed=self.packed, sync_rate_hz=self.sync_rate_hz)
+        self.gateway = self.gateway_class(sheet, packed=self.packed, sync_rate_hz=self.sync_rate_hz, as_node=self.gateway_node)
         self.gateways = [self.gateway]
 
     def _handle_input(self, data: bytes) -> None:
@@ -624,8 +630,9 @@ class MultiPtyDevice(Device):
             raise ValueError(f"the gateways' symlink paths must differ: {symlink_paths}")
         super().__init__(sheet, **kw)
         self.blocks = sheet.split(n_gateways)
-        self.gateways = [Gateway(sheet, blk, packed=self.packed,
-                                 sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b)
+        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed,
+                                 sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b,
+                                 as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.gateways[0].followers = self.gateways[1:]
         self.ports: list[_GatewayPort] = []
@@ -718,11 +725,16 @@ class CanDevice(Device):
             raise ValueError(f"CanDevice needs a sheet with transport='can', got {sheet.transport!r}")
         super().__init__(sheet, **kw)
         self.interface = interface
+        #: the python-can interface opened: ``udp_multicast`` is python-can's bus isolated to its
+        #: group (``capsheet_udp_multicast``, host/udp_multicast.py, found by name): two sheets on
+        #: distinct groups on one machine do not hear each other
+        self.bus_interface = "capsheet_udp_multicast" if interface == "udp_multicast" else interface
         self.channels = channels or [f"capsheet{b}" for b in range(n_buses)]
         if len(self.channels) != n_buses and channels is not None:
             n_buses = len(self.channels)
         self.blocks = sheet.split(n_buses)
-        self.gateways = [Gateway(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b)
+        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b,
+                                 as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.bus_kwargs = dict(bus_kwargs or {})
         self.buses: list = []
@@ -736,7 +748,7 @@ class CanDevice(Device):
         self._can = can
         try:
             for ch in self.channels:
-                self.buses.append(can.Bus(interface=self.interface, channel=ch, fd=self.sheet.fd,
+                self.buses.append(can.Bus(interface=self.bus_interface, channel=ch, fd=self.sheet.fd,
                                           receive_own_messages=False, **self.bus_kwargs))
         except Exception as exc:
             self._close()

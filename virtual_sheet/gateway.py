@@ -6,13 +6,21 @@ broadcasts: every chip; an addressed frame: the chips with that node id; a frame
 decode: every chip, which counts it), and queues what the chips answer for the host, after the
 stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
 
+* **A node on the wire** (docs/protocol.md §13): a gateway that packs or generates SYNC is a
+  gateway node (`GatewayNode`): it announces itself (ANNOUNCE, INFO with capability GATEWAY,
+  GATEWAY_INFO with its flags and link runs), takes ASSIGN, GET_INFO and RESET, sends STATUS once
+  assigned and refuses chip commands with NACK UNSUPPORTED — so a host learns packing and the SYNC
+  source from it. A gateway that does neither is a transparent bridge: no node, no frames of its own.
 * **Per-chip mode**: every chip's frames go to the host as they are (SAMPLE per chip).
 * **Packed mode** (``packed=True``): the gateway answers a SYNC with SNAPSHOT frames that pack
   the samples of every link it covers for that counter (at most 202 samples per serial frame,
-  11 per CAN FD frame; links whose chip did not answer are sent as INVALID with counts 0). The
-  SNAPSHOT comes from node 0 (the gateway). Every other chip frame is forwarded unchanged.
+  11 per CAN FD frame; links whose chip did not answer by `SNAPSHOT_DEADLINE_S` — a chip whose
+  reply delay is longer — are sent as INVALID with counts 0, and their late SAMPLE is dropped). The
+  SNAPSHOT comes from the gateway's node id. Every other chip frame is forwarded unchanged.
 * **SYNC source** (``sync_rate_hz``): the gateway itself broadcasts SYNC at that rate to its
-  chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC").
+  chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC"). It is its
+  segment's only SYNC source (§5.1, §13.3): SYNC frames from the host are not passed to the chips,
+  they are counted (``stats.syncs_refused``, and STATUS ``missed_syncs``).
 * **SYNC line** (``followers``): gateways of one sheet on separate links (two serial gateways, each
   with half the chips) share one SYNC: the leader (the one with ``sync_rate_hz``) hands every SYNC
   it generates to its followers at the same instant, as a wired SYNC line between gateway boards
@@ -41,13 +49,148 @@ from protocol.capacity import MAX_SERIAL_SNAPSHOT_SAMPLES
 from protocol.constants import SampleStatus
 from protocol.framing import (MAX_ENCODED_SIZE, SAMPLE_WIRE_SIZE, DecodeError, StreamDecoder, decode_frame, encode,
                               encode_frame)
-from protocol.messages import NODE_BROADCAST, Message, MsgType, Snapshot, Sync, pack_sample_words
+from protocol.framing import ErrorReason
+from protocol.messages import (LINK_NONE, NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, Capability,
+                               ChipState, Direction, GatewayFlag, GatewayInfo, Info, Message, MsgType, Nack,
+                               NackReason, SampleFormat, Snapshot, Status, Sync, is_node_to_host_type,
+                               pack_sample_words, provisional_node)
+from protocol.state import (ANNOUNCE_PERIOD_S, GATEWAY_HEARTBEAT_MS, SNAPSHOT_DEADLINE_S, Reply, gateway_rule_for,
+                            next_deadline)
 
 from .faults import ERROR_FRAME, FaultSpec, FaultStats, FrameFaults
 
-__all__ = ["Gateway", "GatewayStats", "CHIP_POLL_PERIOD_S"]
+__all__ = ["Gateway", "GatewayStats", "GatewayNode", "CHIP_POLL_PERIOD_S", "gateway_uid", "FIRMWARE_VERSION"]
 
 CHIP_POLL_PERIOD_S = 0.01  #: how often the chips' timers (heartbeat, re-announce) are served
+FIRMWARE_VERSION = (0, 1, 0)  #: the virtual gateway's INFO fw_major, fw_minor, fw_patch
+_INTEGRITY = (ErrorReason.BAD_COBS, ErrorReason.SHORT, ErrorReason.BAD_CRC, ErrorReason.OVERSIZE)
+_NACK_FOR = {ErrorReason.BAD_VERSION: NackReason.BAD_VERSION, ErrorReason.UNKNOWN_TYPE: NackReason.UNKNOWN_COMMAND,
+             ErrorReason.BAD_LENGTH: NackReason.BAD_LENGTH, ErrorReason.BAD_FIELD: NackReason.BAD_VALUE}
+
+
+def gateway_uid(sheet_seed: int, stream: int) -> int:
+    """The uid of a virtual sheet's gateway ``stream``: fixed by the sheet's seed, in a range of its
+    own (prefix 0x6A7E) so it never meets a chip's."""
+    return (0x6A7E << 48) | ((int(sheet_seed) & 0xFFFFFFFF) << 16) | (int(stream) & 0xFFFF)
+
+
+class GatewayNode:
+    """A gateway as a node on the wire (docs/protocol.md §13), sans-I/O: the frames it sends, and
+    what it does with the host frames addressed to it. The `Gateway` consults it for every host
+    frame and forwards the frame to its chips as well (§13.1: a chip in BOOT may share its id).
+
+    ``flags`` and ``runs`` are read when GATEWAY_INFO is sent: the `Gateway` keeps them current.
+    """
+
+    def __init__(self, uid: int, *, can: bool, fd: bool, capabilities: int) -> None:
+        self.uid = uid
+        self.can = can
+        self.capabilities = Capability(int(capabilities) | Capability.GATEWAY | (Capability.CAN_FD if fd else 0))
+        self.flags = GatewayFlag.NONE
+        self.sample_format = int(SampleFormat.ACCEL_12)  #: what GATEWAY_INFO says its SNAPSHOT words are
+        self.runs: list[tuple[int, int]] = []
+        self.sync_rate_hz = 0
+        self.refused_syncs = 0  #: host SYNCs not passed on (saturating at 255 in STATUS)
+        self.rx_errors = 0
+        self.boot_s = 0.0
+        self.powered = False
+        self._boot_vars(0.0)
+
+    def _boot_vars(self, now_s: float) -> None:
+        self.state = ChipState.BOOT
+        self.salt = 0
+        self.node = provisional_node(self.uid, 0)
+        self.prev_node: int | None = None
+        self.next_announce_s = now_s + ANNOUNCE_PERIOD_S
+        self.next_heartbeat_s: float | None = None
+        self.rx_errors = 0
+        self.refused_syncs = 0
+
+    def _out(self, msg: Message):
+        return to_can(msg) if self.can else encode(msg)
+
+    def announce(self) -> list:
+        """ANNOUNCE, INFO, one GATEWAY_INFO per run (§13.1)."""
+        out = [self._out(Announce(self.node, self.uid)),
+               self._out(Info(self.node, *FIRMWARE_VERSION, PROTOCOL_VERSION, int(self.capabilities), 0, self.state))]
+        for first, count in (self.runs or [(0, 0)]):
+            out.append(self._out(GatewayInfo(self.node, int(self.flags), self.sample_format, first, count,
+                                             min(0xFFFF, int(round(self.sync_rate_hz))))))
+        return out
+
+    def power_on(self, now_s: float) -> list:
+        self.powered = True
+        self.boot_s = now_s
+        self._boot_vars(now_s)
+        return self.announce()
+
+    def poll(self, now_s: float) -> list:
+        if not self.powered:
+            return []
+        if self.state == ChipState.BOOT:
+            if now_s < self.next_announce_s:
+                return []
+            self.salt += 1
+            self.prev_node = self.node
+            self.node = provisional_node(self.uid, self.salt)
+            self.next_announce_s = next_deadline(self.next_announce_s, ANNOUNCE_PERIOD_S, now_s)
+            return self.announce()
+        if self.next_heartbeat_s is not None and now_s >= self.next_heartbeat_s:
+            self.next_heartbeat_s = next_deadline(self.next_heartbeat_s, GATEWAY_HEARTBEAT_MS / 1000, now_s)
+            return [self._out(Status(self.node, self.state, 0, min(255, self.rx_errors), min(255, self.refused_syncs),
+                                     int(max(0.0, now_s - self.boot_s)) & 0xFFFFFFFF))]
+        return []
+
+    def refuse_sync(self) -> None:
+        self.refused_syncs += 1
+
+    def handle(self, frame, decoded, now_s: float) -> list:
+        """A host frame (already decoded by the `Gateway`): the gateway's own answer (§13.4)."""
+        if not self.powered:
+            return []
+        if isinstance(decoded, DecodeError):
+            if decoded.reason in _INTEGRITY:
+                self.rx_errors += 1
+                return []
+            hdr = _header(frame)
+            if hdr is None:
+                return []
+            _v, t, node = hdr
+            if node != self.node or is_node_to_host_type(t):
+                return []  # broadcast or another node's: never a NACK (§8.1)
+            return [self._out(Nack(self.node, t & 0xFF, _NACK_FOR[decoded.reason]))]
+        node = decoded.node
+        t = decoded.TYPE
+        if decoded.DIRECTION != Direction.HOST_TO_CHIP or t == MsgType.SYNC:
+            return []
+        addressed = node == self.node or (t == MsgType.ASSIGN and self.state == ChipState.BOOT
+                                          and node == self.prev_node and node is not None)
+        if not addressed and not (node == NODE_BROADCAST and t in (MsgType.GET_INFO, MsgType.RESET)):
+            return []
+        if t == MsgType.ASSIGN and decoded.uid_low != (self.uid & 0xFFFFFFFF):
+            return []
+        rule = gateway_rule_for(self.state, t)
+        if rule is None or rule.reply is Reply.UNSUPPORTED:
+            return [self._out(Nack(self.node, t, NackReason.UNSUPPORTED))] if addressed else []
+        if rule.reply is Reply.ANNOUNCE_INFO:
+            return self.announce()
+        if rule.reply is Reply.ACK_THEN_BOOT:
+            ack = self._out(Ack(self.node, t, 0))
+            self._boot_vars(now_s)
+            return [ack] + self.announce()
+        assert isinstance(decoded, Assign)
+        if self.state == ChipState.BOOT:
+            self.next_heartbeat_s = now_s + GATEWAY_HEARTBEAT_MS / 1000
+        self.node = decoded.new_node
+        self.prev_node = None
+        self.state = ChipState.IDLE
+        return [self._out(Ack(self.node, t, 0))]
+
+
+def _header(frame):
+    """``(version, type, node)`` of an intact frame (the chip model's `frame_header`)."""
+    from .chip import frame_header
+    return frame_header(frame)
 _INVALID_WORD = int(SampleStatus.INVALID) << 36  #: the sample word of a link nobody answered for
 _FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into a sample word
 _SNAP_HDR = struct.Struct("<HHB")  # SNAPSHOT payload header: counter, first_link, count
@@ -70,8 +213,8 @@ class _Run:
 class GatewayStats:
     """Counters of one gateway."""
 
-    __slots__ = ("host_frames", "host_errors", "host_bytes", "syncs", "syncs_generated", "chip_frames",
-                 "snapshots", "frames_to_host")
+    __slots__ = ("host_frames", "host_errors", "host_bytes", "syncs", "syncs_generated", "syncs_refused",
+                 "chip_frames", "snapshots", "frames_to_host", "late_dropped")
 
     def __init__(self) -> None:
         for s in self.__slots__:
@@ -97,12 +240,18 @@ class Gateway:
     faults : FaultSpec, optional
         Stream faults on the frames to the host (default: the sheet's).
     stream : int
-        Distinguishes the fault random streams of several gateways of one sheet.
+        Distinguishes the fault random streams of several gateways of one sheet (and their uids).
+    as_node : bool, optional
+        Be a gateway node on the wire (docs/protocol.md §13.1); default: when it packs or is a SYNC
+        source (the spec requires it then), else a transparent bridge.
     """
+
+    #: the class of its node on the wire (a subclass: the conformance suite's broken gateways)
+    node_class: type = GatewayNode
 
     def __init__(self, sheet, links: Sequence[int] | None = None, *, packed: bool = False,
                  sync_rate_hz: float | None = None, faults: FaultSpec | None = None,
-                 fault_stats: FaultStats | None = None, stream: int = 0) -> None:
+                 fault_stats: FaultStats | None = None, stream: int = 0, as_node: bool | None = None) -> None:
         self.sheet = sheet
         self.can = sheet.transport == "can"
         self.fd = sheet.fd
@@ -139,7 +288,14 @@ class Gateway:
                 self._chunks.append((int(run[i]), pos, m))
                 pos += m
         self._words = np.zeros(sheet.n_links, dtype=np.int64)  # packed mode: each link's sample word
-        self.followers: list[Gateway] = []  #: gateways that take this one's SYNC (a SYNC line)
+        self._cov_mask = np.zeros(sheet.n_links, dtype=bool)  # the links of this gateway's runs
+        self._cov_mask[self._covered] = True
+        self._followers: list[Gateway] = []
+        self._leader: Gateway | None = None  # set when this gateway takes another's SYNC line
+        self.stream = stream
+        self.as_node = as_node
+        self.uid = gateway_uid(getattr(sheet, "seed", 0), stream)
+        self.node: GatewayNode | None = None  #: the gateway node, once powered (None: a transparent bridge)
         self._snap_decoder = StreamDecoder(batch_samples=True)
         self.powered = False
         arr = getattr(sheet, "array", None)
@@ -150,11 +306,53 @@ class Gateway:
             self._sel = None if sel.all() else sel  # None: every chip of the array (its fast paths)
             self._delay_of = np.asarray(sheet.reply_delay_s, dtype=float)
 
+    # ------------------------------------------------------------------ the gateway as a node
+    @property
+    def followers(self) -> list:
+        """Gateways that take this one's SYNC (a SYNC line): each is its own segment's SYNC source."""
+        return self._followers
+
+    @followers.setter
+    def followers(self, gws) -> None:
+        self._followers = list(gws)
+        for g in self._followers:
+            g._leader = self
+
+    @property
+    def sync_source(self) -> bool:
+        """It generates its segment's SYNC (or takes it from a leader's SYNC line): host SYNC is refused."""
+        return bool(self.sync_rate_hz) or (self._leader is not None and self._leader.sync_source)
+
+    @property
+    def node_id(self) -> int:
+        """The node id its SNAPSHOT frames come from (0 for a transparent bridge)."""
+        return self.node.node if self.node is not None else 0
+
+    def _link_runs(self) -> list[tuple[int, int]]:
+        out = []
+        for run in np.split(self._covered, np.flatnonzero(np.diff(self._covered) != 1) + 1):
+            if run.size:
+                out.append((int(run[0]), int(run.size)))
+        return out
+
+    def _make_node(self) -> GatewayNode:
+        can_pack = not self.can or self.fd
+        caps = (Capability.SNAPSHOT if can_pack else 0) | Capability.SYNC_SOURCE
+        node = self.node_class(self.uid, can=self.can, fd=self.fd, capabilities=caps)
+        node.runs = self._link_runs()
+        node.flags = (GatewayFlag.PACKING if self.packed else 0) | (GatewayFlag.SYNC_SOURCE if self.sync_source else 0)
+        rate = self.sync_rate_hz or (self._leader.sync_rate_hz if self._leader is not None else 0)
+        node.sync_rate_hz = rate or 0
+        return node
+
     # ------------------------------------------------------------------ chips
     def power_on(self, now_s: float) -> None:
-        """Power every chip: their boot frames (ANNOUNCE, INFO) are queued."""
+        """Power the gateway node (if it is one) and every chip: their boot frames are queued."""
         self.powered = True
         out: list = []
+        if self.as_node if self.as_node is not None else (self.packed or self.sync_source):
+            self.node = self._make_node()
+            out += self.node.power_on(now_s)
         for c in self.chips:
             out += c.power_on(now_s)
         self._emit(out, now_s)
@@ -179,6 +377,10 @@ class Gateway:
                 f.follow_sync(frame, sync, now_s)
         if now_s >= self._next_poll:
             self._next_poll = max(self._next_poll + CHIP_POLL_PERIOD_S, now_s)
+            if self.node is not None:
+                own = self.node.poll(now_s)
+                if own:
+                    self._emit(own, now_s)
             if self.engine is not None:
                 out = self.engine.poll(now_s, self._sel)
             else:
@@ -223,6 +425,8 @@ class Gateway:
                     buf.clear()
                     self._rx_discard = True
                     self.stats.host_errors += 1
+                    if self.node is not None:  # OVERSIZE: an integrity failure for its STATUS (§13.1)
+                        self.node.rx_errors += 1
                 return
             seg = bytes(buf[:i])
             del buf[:i + 1]
@@ -235,7 +439,7 @@ class Gateway:
             self.stats.host_frames += 1
             if isinstance(decoded, DecodeError):
                 self.stats.host_errors += 1
-            self._dispatch(seg + b"\x00", decoded, now_s)
+            self._from_host(seg + b"\x00", decoded, now_s)
 
     def receive(self, frame: CanFrame, now_s: float) -> None:
         """One CAN frame from the host (or another node on the bus)."""
@@ -243,6 +447,20 @@ class Gateway:
         self.stats.host_frames += 1
         if isinstance(decoded, DecodeError):
             self.stats.host_errors += 1
+        self._from_host(frame, decoded, now_s)
+
+    def _from_host(self, frame, decoded, now_s: float) -> None:
+        """A frame from the host: the gateway node's own answer first (§13.4), then the segment —
+        except a SYNC while this gateway is its segment's SYNC source (§13.3)."""
+        if type(decoded) is Sync and self.sync_source:
+            self.stats.syncs_refused += 1
+            if self.node is not None:
+                self.node.refuse_sync()
+            return
+        if self.node is not None:
+            own = self.node.handle(frame, decoded, now_s)
+            if own:
+                self._emit(own, now_s)
         self._dispatch(frame, decoded, now_s)
 
     def _dispatch(self, frame, decoded, now_s: float) -> None:
@@ -306,8 +524,9 @@ class Gateway:
             return
         if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
             node = decoded.node
+            assign = decoded.TYPE == MsgType.ASSIGN  # also heard at a BOOT chip's previous id (§3.3)
             for c in self.chips:
-                if c.node == node:
+                if c.node == node or (assign and getattr(c, "prev_node", None) == node):
                     out += c.handle(frame, now_s, decoded)
         else:
             for c in self.chips:
@@ -317,41 +536,49 @@ class Gateway:
         if out:
             self._emit(out, now_s)
 
+    @staticmethod
+    def _is_sample(r: list) -> bool:
+        return (len(r) == 1 and (isinstance(r[0], CanFrame) and len(r[0].data) == 7
+                                 and (r[0].arbitration_id >> 20) & 0x3F == 3
+                                 or isinstance(r[0], bytes) and len(r[0]) == SAMPLE_WIRE_SIZE))
+
     def _sync_packed(self, frame, sync: Sync, now_s: float) -> None:
+        """Packed mode, one chip object each: the covered links' SAMPLEs into SNAPSHOT frames
+        (docs §13.2). A chip whose reply delay passes `SNAPSHOT_DEADLINE_S` is sent INVALID (its
+        SAMPLE is dropped); a SAMPLE of a link outside the covered runs is passed on as it is."""
         samples: list = []
         links: list[int] = []
         other: list = []
-        n_links = self.sheet.n_links
-        for c in self.chips:
+        latest = 0.0
+        cov = self._cov_mask
+        for c, d in zip(self.chips, self.delays):
             r = c.handle(frame, now_s, sync)
             if not r:
                 continue
             link = c.link
-            if (len(r) == 1 and link is not None and 0 <= link < n_links
-                    and (isinstance(r[0], CanFrame) and len(r[0].data) == 7 and (r[0].arbitration_id >> 20) & 0x3F == 3
-                         or isinstance(r[0], bytes) and len(r[0]) == SAMPLE_WIRE_SIZE)):
+            if self._is_sample(r) and link is not None and 0 <= link < cov.size and cov[link]:
+                if d > SNAPSHOT_DEADLINE_S:
+                    self.stats.late_dropped += 1
+                    continue
                 samples.append(r[0])
                 links.append(link)
+                latest = max(latest, d)
             else:
                 other += r
         if samples:
+            n_links = self.sheet.n_links
             counts = np.zeros((n_links, 3), dtype=np.int64)
             status = np.full(n_links, int(SampleStatus.INVALID), dtype=np.int64)
             got_c, got_s, got_l = self._decode_samples(samples, links, sync.counter)
             counts[got_l] = got_c
             status[got_l] = got_s
-            cov = self._covered
             frames = []
-            # contiguous runs of covered links, chunked
-            breaks = np.flatnonzero(np.diff(cov) != 1) + 1
-            for run in np.split(cov, breaks):
-                for i in range(0, run.size, self.max_per_frame):
-                    part = run[i:i + self.max_per_frame]
-                    words = pack_sample_words(counts[part], status[part])
-                    snap = Snapshot(0, sync.counter, int(part[0]), words)
-                    frames.append(to_can(snap, fd=True) if self.can else encode(snap))
+            for first, pos, m in self._chunks:
+                part = self._covered[pos:pos + m]
+                snap = Snapshot(self.node_id, sync.counter, first, pack_sample_words(counts[part], status[part]))
+                frames.append(to_can(snap, fd=True) if self.can else encode(snap))
             self.stats.snapshots += len(frames)
-            other = frames + other
+            self._emit(frames, now_s + latest)
         if other:
             self._emit(other, now_s)
 
@@ -365,7 +592,15 @@ class Gateway:
         words = self._words
         words.fill(_INVALID_WORD)  # links whose chip did not answer: INVALID, counts 0
         link = eng.link if idx.size == eng.n else eng.link[idx]
+        latest = 0.0
+        if self._late:  # §13.2: a SAMPLE later than SNAPSHOT_DEADLINE_S goes in as INVALID (dropped)
+            d = self._delay_of[idx]
+            keep = d <= SNAPSHOT_DEADLINE_S
+            self.stats.late_dropped += int((~keep).sum())
+            idx, word, link, d = idx[keep], word[keep], link[keep], d[keep]
+            latest = float(d.max()) if d.size else 0.0
         ok = (link >= 0) & (link < n_links)
+        ok[ok] = self._cov_mask[link[ok]]  # a link outside the covered runs: passed on as a SAMPLE
         if ok.all():
             words[link] = word
             have = idx.size > 0
@@ -381,9 +616,7 @@ class Gateway:
             if not r:
                 continue
             lk = eng.views[k].link
-            if (len(r) == 1 and lk is not None and 0 <= lk < n_links
-                    and (isinstance(r[0], CanFrame) and len(r[0].data) == 7 and (r[0].arbitration_id >> 20) & 0x3F == 3
-                         or isinstance(r[0], bytes) and len(r[0]) == SAMPLE_WIRE_SIZE)):
+            if self._is_sample(r) and lk is not None and 0 <= lk < n_links and self._cov_mask[lk]:
                 got_c, got_s, got_l = self._decode_samples(r, [lk], sync.counter)
                 if got_l.size:
                     words[got_l] = ((got_c.astype(np.int64) & 0xFFF) @ _FIELD_SHIFT) | ((got_s & 0xF) << 36)
@@ -398,14 +631,18 @@ class Gateway:
             cov = np.ascontiguousarray(cov, dtype="<i8")
             wb = np.ndarray((cov.shape[0],), dtype="V5", buffer=cov, strides=(8,)).tobytes()  # 5 LE bytes each
             c = sync.counter
+            nid = self.node_id
             if self.can:
-                frames = [to_can(Snapshot(0, c, first, wb[5 * pos:5 * (pos + m)]), fd=True)
+                frames = [to_can(Snapshot(nid, c, first, wb[5 * pos:5 * (pos + m)]), fd=True)
                           for first, pos, m in self._chunks]
             else:
-                frames = [encode_frame(MsgType.SNAPSHOT, 0, _SNAP_HDR.pack(c, first, m) + wb[5 * pos:5 * (pos + m)])
+                frames = [encode_frame(MsgType.SNAPSHOT, nid, _SNAP_HDR.pack(c, first, m) + wb[5 * pos:5 * (pos + m)])
                           for first, pos, m in self._chunks]
             self.stats.snapshots += len(frames)
-            other = frames + other
+            if latest:
+                self._emit(frames, now_s + latest)
+            else:
+                other = frames + other
         if other:
             self._emit(other, now_s)
 
@@ -508,15 +745,19 @@ class Gateway:
 
     def commission(self, now_s: float, *, start: bool = True, first_node: int = 1) -> None:
         """Assign every chip behind this gateway node ``first_node + link`` and its physical link
-        (the sheet's layout), and START them, through real frames; the chips' answers are
-        discarded. A shortcut for tests and benchmarks: a host normally does this."""
-        from protocol.messages import Assign, Start
+        (the sheet's layout), and START them, through real frames; the gateway node (if it is one)
+        gets node ``0x7FFF - stream``; the answers are discarded. A shortcut for tests and
+        benchmarks: a host normally does this."""
+        from protocol.messages import Start
         saved, self._queue = self._queue, []
         saved_runs, self._runs = self._runs, 0
         faults, self.faults = self.faults, None  # discarded answers: no fault is injected or counted
         for k, c in zip(self.links, self.chips):
             msg = Assign(c.node, new_node=first_node + k, link=k, uid_low=c.uid & 0xFFFFFFFF)
             self._inject(msg, now_s)
+        if self.node is not None and self.node.state == ChipState.BOOT:  # the gateway too (§13.1)
+            msg = Assign(self.node.node, new_node=0x7FFF - self.stream, link=LINK_NONE, uid_low=self.uid & 0xFFFFFFFF)
+            self.node.handle(to_can(msg) if self.can else encode(msg), msg, now_s)
         if start:
             self._inject(Start(0), now_s)
         self._queue, self._runs, self.faults = saved, saved_runs, faults

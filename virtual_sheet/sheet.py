@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections import OrderedDict
 from pathlib import Path
 from typing import Any, Callable
 
@@ -46,6 +47,10 @@ from protocol.constants import ADC_MAX, ADC_MIN, G0, SampleStatus
 from protocol.lattice import Lattice
 from protocol.layout import load_layout, save_layout
 from .chip import ChipModel
+
+#: SYNC times kept for the truth (`VirtualSheet.truth_time`): 28 s at 145 Hz, far more than any
+#: snapshot stays in flight
+SYNC_TIMES_KEPT = 4096
 from .chiparray import ChipArray
 from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from .geometry import ideal_readings
@@ -151,7 +156,10 @@ class VirtualSheet:
         self._fast: tuple | None = None  # `_sample`: (model, chip errors, buffer, {step: (readings, Mᵀ f)})
         self._no_status = np.zeros(n, dtype=np.int64)  # every link OK (shared, read-only)
         self._no_status.setflags(write=False)
-        self.sync_times: dict[int, float] = {}
+        #: counter -> when its SYNC reached the chips, the newest `SYNC_TIMES_KEPT` (a day-long run
+        #: would otherwise hold every counter: 65536 floats and ints, ~6 MB); older ones cut, counted
+        self.sync_times: OrderedDict[int, float] = OrderedDict()
+        self.sync_times_cut = 0
         offset, sens = self.sensor_model.stored_calibration(n)  # what the chips hold before CAL_WRITE
         q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
         cal = [tuple(zip(q4[k], sens[k].tolist())) for k in range(n)]
@@ -327,7 +335,13 @@ class VirtualSheet:
     # ------------------------------------------------------------------ truth
     def record_sync(self, counter: int, now_s: float) -> None:
         """Called by the gateways when a SYNC reaches the chips."""
-        self.sync_times[counter & 0xFFFF] = now_s
+        c = counter & 0xFFFF
+        st = self.sync_times
+        st[c] = now_s
+        st.move_to_end(c)  # a counter seen again after a wrap is the newest
+        if len(st) > SYNC_TIMES_KEPT:
+            st.popitem(last=False)
+            self.sync_times_cut += 1
 
     def truth_time(self, counter: int) -> float:
         """Scene time of the readings answering SYNC ``counter`` (KeyError if never seen)."""

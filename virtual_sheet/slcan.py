@@ -241,7 +241,8 @@ class SlcanDevice(Device):
             raise ValueError(f"SlcanDevice needs a sheet with transport='can', got {sheet.transport!r}")
         super().__init__(sheet, **kw)
         self.blocks = sheet.split(n_buses)
-        self.gateways = [Gateway(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b)
+        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b,
+                                 as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.ports = []
         self.adapters = []

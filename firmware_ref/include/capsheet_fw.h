@@ -1,5 +1,5 @@
 /*
- * capsheet_fw.h — reference chip firmware for the capsheet wire protocol v1 (docs/protocol.md).
+ * capsheet_fw.h — reference chip firmware for the capsheet wire protocol v1.1 (docs/protocol.md).
  *
  * Portable C99, no dynamic memory: every buffer is the caller's, with its capacity; time is passed
  * in (microseconds, `now_us`), never read; the hardware sits behind `capsheet_hal_t`.
@@ -40,14 +40,15 @@ extern "C" {
 #endif
 
 #define CAPSHEET_FW_VERSION_MAJOR 1
-#define CAPSHEET_FW_VERSION_MINOR 0
+#define CAPSHEET_FW_VERSION_MINOR 1
 #define CAPSHEET_FW_VERSION_PATCH 0
 
 /* ------------------------------------------------------------------------------------------ */
 /* Protocol constants (protocol/messages.py, framing.py, can.py)                               */
 /* ------------------------------------------------------------------------------------------ */
 
-#define CAPSHEET_PROTOCOL_VERSION 1u
+#define CAPSHEET_PROTOCOL_VERSION 1u           /* on the wire: the major version (§12) */
+#define CAPSHEET_SPEC_VERSION_MINOR 1u         /* the revision of docs/protocol.md implemented: 1.1 */
 #define CAPSHEET_NODE_BROADCAST 0x0000u
 #define CAPSHEET_NODE_MAX_ASSIGNED 0x7FFFu
 #define CAPSHEET_NODE_PROVISIONAL_MIN 0x8000u
@@ -67,7 +68,7 @@ extern "C" {
 #define CAPSHEET_MIN_RX_BUFFER_SIZE CAPSHEET_COBS_ENCODED_SIZE(CAPSHEET_HEADER_SIZE + 8u + CAPSHEET_CRC_SIZE)
 #define CAPSHEET_CAN_CLASSIC_MTU 8u
 #define CAPSHEET_CAN_FD_MTU 64u
-#define CAPSHEET_ANNOUNCE_PERIOD_US 1000000u     /* §3.2 */
+#define CAPSHEET_ANNOUNCE_PERIOD_US 1000000u     /* §3.2, §14 */
 #define CAPSHEET_DEFAULT_HEARTBEAT_MS 1000u      /* STATUS period until a CONFIG says otherwise */
 
 /* Serial RX buffer of the chip: a build-time option (bytes between two 0x00 delimiters).
@@ -106,6 +107,7 @@ typedef enum {
     /* chip -> host */
     CAPSHEET_ANNOUNCE = 0x01, CAPSHEET_INFO = 0x02, CAPSHEET_SAMPLE = 0x03, CAPSHEET_STATUS = 0x04,
     CAPSHEET_ACK = 0x05, CAPSHEET_NACK = 0x06, CAPSHEET_CAL_DATA = 0x07, CAPSHEET_SNAPSHOT = 0x08,
+    CAPSHEET_GATEWAY_INFO = 0x09,
     /* host -> chip */
     CAPSHEET_SYNC = 0x10, CAPSHEET_ASSIGN = 0x11, CAPSHEET_CONFIG = 0x12, CAPSHEET_START = 0x13,
     CAPSHEET_STOP = 0x14, CAPSHEET_GET_INFO = 0x15, CAPSHEET_RESET = 0x16, CAPSHEET_CAL_WRITE = 0x17,
@@ -114,6 +116,10 @@ typedef enum {
 
 #define CAPSHEET_HOST_TYPE_FIRST 0x10u
 #define CAPSHEET_HOST_TYPE_LAST 0x18u
+/* Every type in 0x01..0x0F, defined or not, goes node -> host: a chip ignores such frames (§4, §8.1). */
+#define CAPSHEET_NODE_TO_HOST_FIRST 0x01u
+#define CAPSHEET_NODE_TO_HOST_LAST 0x0Fu
+#define CAPSHEET_LINK_NONE 0xFFFFu               /* ASSIGN link of a node on no link (a gateway, §13) */
 
 typedef enum { CAPSHEET_BOOT = 0, CAPSHEET_IDLE = 1, CAPSHEET_STREAMING = 2, CAPSHEET_FAULT = 3 } capsheet_state_t;
 #define CAPSHEET_STATE_COUNT 4u
@@ -125,6 +131,8 @@ typedef enum { CAPSHEET_BOOT = 0, CAPSHEET_IDLE = 1, CAPSHEET_STREAMING = 2, CAP
 #define CAPSHEET_CAP_CAL_STORAGE 0x0008u
 #define CAPSHEET_CAP_MULTI_RANGE 0x0010u
 #define CAPSHEET_CAP_FILTER 0x0020u
+#define CAPSHEET_CAP_GATEWAY 0x0040u            /* v1.1: the node is a gateway (never set by a chip) */
+#define CAPSHEET_CAP_SYNC_SOURCE 0x0080u        /* v1.1: a gateway that can generate SYNC */
 
 /* STATUS flag bits (§4.4) */
 #define CAPSHEET_FLAG_CAL_VALID 0x01u
@@ -178,6 +186,10 @@ typedef struct {
             uint8_t count;
             const uint8_t *words;  /* count * 5 bytes; decode: points into the decoded buffer */
         } snapshot;
+        struct {
+            uint8_t flags, sample_format;
+            uint16_t first_link, link_count, sync_rate_hz;
+        } gateway_info;
         struct { uint16_t counter; } sync;
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
@@ -247,8 +259,9 @@ int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node,
 
 /* Decode the bytes between two delimiters (without the 0x00), IN PLACE: `frame` is overwritten
  * with the decoded bytes, and a SNAPSHOT's `words` point into it. Checks in the order of
- * protocol.framing.decode_frame. Returns 0.
- * CAPSHEET_ERR_OVERSIZE (len > CAPSHEET_MAX_ENCODED_SIZE), CAPSHEET_ERR_BAD_COBS,
+ * protocol.framing.decode_frame (docs §8.1). Returns 0.
+ * CAPSHEET_ERR_OVERSIZE (len > CAPSHEET_MAX_ENCODED_SIZE, or more than CAPSHEET_MAX_FRAME_SIZE
+ * bytes after COBS decoding), CAPSHEET_ERR_BAD_COBS,
  * CAPSHEET_ERR_SHORT, CAPSHEET_ERR_BAD_CRC: `out` is not touched.
  * CAPSHEET_ERR_BAD_VERSION: `out->type`/`out->node` hold the header's type and node and `*version`
  * (if not NULL) the peer's version. CAPSHEET_ERR_UNKNOWN_TYPE, CAPSHEET_ERR_BAD_LENGTH,
@@ -376,6 +389,8 @@ typedef struct {
     capsheet_chip_config_t config;
     uint64_t uid;
     uint16_t node;
+    uint16_t prev_node;      /* BOOT: the provisional id of the round before (ASSIGN only, §3.3) */
+    bool has_prev;
     uint16_t link;
     bool has_link;
     uint8_t state;           /* capsheet_state_t */
@@ -388,7 +403,7 @@ typedef struct {
     bool have_sync;
     uint16_t last_sync;
     uint32_t salt;           /* periodic ANNOUNCEs unanswered since boot */
-    uint64_t boot_us;
+    uint64_t boot_us;        /* power-on: uptime_s counts from here (RESET does not restart it) */
     uint64_t next_announce_us;
     uint64_t next_heartbeat_us;
     uint16_t rate_hz;
@@ -398,6 +413,12 @@ typedef struct {
     capsheet_cal_t cal[3];
     capsheet_stream_t rx;    /* serial only */
     uint8_t tx[CAPSHEET_CHIP_TX_WIRE_SIZE];
+#ifdef CAPSHEET_MUTANTS
+    int32_t mutant;          /* capsheet_mutant_t: the rule this test build breaks (0: none) */
+    bool has_frozen;         /* CAPSHEET_MUT_FROZEN_SAMPLE: the first SAMPLE's fields */
+    int16_t frozen_xyz[3];
+    uint8_t frozen_status;
+#endif
 } capsheet_chip_t;
 
 /* Set up a chip (it stays silent until capsheet_chip_power_on). Serial needs `rx_buf` with
@@ -428,8 +449,58 @@ int32_t capsheet_chip_rx_can(capsheet_chip_t *chip, uint32_t id, bool is_extende
 void capsheet_chip_sensor_fault(capsheet_chip_t *chip);
 
 /* Time-driven work: re-ANNOUNCE every second while unassigned, STATUS every heartbeat period
- * while assigned. Call it at least every few milliseconds. Returns frames sent or CAPSHEET_ERR_HAL. */
+ * while assigned (next deadline = previous + period, or now + period when that is already past:
+ * docs §14). Call it at least every few milliseconds. Returns frames sent or CAPSHEET_ERR_HAL. */
 int32_t capsheet_chip_poll(capsheet_chip_t *chip, uint64_t now_us);
+
+/* ------------------------------------------------------------------------------------------ */
+/* Mutants: test builds only (-DCAPSHEET_MUTANTS)                                              */
+/* ------------------------------------------------------------------------------------------ */
+
+/* A test build compiled with -DCAPSHEET_MUTANTS breaks one rule of the spec per chip, chosen by the
+ * chip's `mutant` field (0: none; set it after capsheet_chip_init), so that the conformance suite
+ * can be shown to fail each (tests/host/conformance/mutants.py; docs/conformance.md). A production
+ * build does not define CAPSHEET_MUTANTS: the field does not exist and every mutant branch is
+ * `if (0)`, compiled away. */
+typedef enum {
+    CAPSHEET_MUT_NONE = 0,
+    CAPSHEET_MUT_DEAD_SENSOR,         /* §5.2  the ADC reads (0, 0, 0), status OK */
+    CAPSHEET_MUT_FROZEN_SAMPLE,       /* §5.3  after the first SYNC, repeats that SAMPLE's word, unflagged */
+    CAPSHEET_MUT_WRONG_CRC,           /* §6.2  CRC-16/XMODEM (init 0) on every frame */
+    CAPSHEET_MUT_WRONG_CRC_SAMPLE,    /* §6.2  a wrong CRC on every SAMPLE only */
+    CAPSHEET_MUT_COUNTER_OFF_BY_ONE,  /* §5.1  SAMPLE carries counter + 1 */
+    CAPSHEET_MUT_SYNC_TWICE,          /* §5.1  every SYNC answered with two SAMPLEs */
+    CAPSHEET_MUT_SLOW_HEARTBEAT,      /* §8.4  STATUS at twice heartbeat_ms */
+    CAPSHEET_MUT_NO_REANNOUNCE,       /* §3.2  no ANNOUNCE after the first while unassigned */
+    CAPSHEET_MUT_WRONG_NACK_REASON,   /* §4.6  every NACK carries the next reason code */
+    CAPSHEET_MUT_IGNORED_RESET,       /* §4.14 ACKs RESET and keeps its state */
+    CAPSHEET_MUT_NACKS_BROADCAST,     /* §8.1  NACKs broadcasts (BAD_STATE, BAD_VERSION, ...) like addressed frames */
+    CAPSHEET_MUT_NACKS_NODE_TYPES,    /* §8.1  NACKs UNKNOWN_COMMAND a node -> host type addressed to it */
+    CAPSHEET_MUT_ACK_DETAIL,          /* §4.5  ACK detail 1 */
+    CAPSHEET_MUT_NO_RX_ERRORS,        /* §4.4  rx_errors never counts */
+    CAPSHEET_MUT_ASSIGN_IGNORES_UID,  /* §4.10 takes an ASSIGN whatever its uid_low */
+    CAPSHEET_MUT_NO_PREVIOUS_ID,      /* §3.3  refuses an ASSIGN to the previous provisional id */
+    CAPSHEET_MUT_UPTIME_RESET,        /* §4.4  uptime_s restarts at RESET */
+    CAPSHEET_MUT_CAL_READ_NOMINAL,    /* §4.15 CAL_READ answers the nominal calibration */
+    CAPSHEET_MUT_ACCEPTS_BAD_CONFIG,  /* §4.11 ACKs a CONFIG with fields out of range */
+    CAPSHEET_MUT_IGNORES_CAPABILITY,  /* §4.11 ACKs range != 0 without MULTI_RANGE */
+    CAPSHEET_MUT_START_NOT_IDEMPOTENT, /* §4.12 NACKs START while STREAMING */
+    CAPSHEET_MUT_STREAMS_AFTER_STOP,  /* §4.12 keeps answering SYNC after STOP */
+    CAPSHEET_MUT_MISSED_SYNCS_WRAP,   /* §5.1  counts the 0xFFFF -> 0 wrap as 65535 missed */
+    CAPSHEET_MUT_CONFIG_WHILE_STREAMING, /* §8.2 ACKs CONFIG while STREAMING */
+    CAPSHEET_MUT_RESERVED_CAPABILITY_BIT, /* §4.2 INFO capabilities with reserved bit 15 set */
+    CAPSHEET_MUT_REFUSES_REPEATED_CONFIG, /* §8.3 NACKs BAD_STATE a CONFIG equal to the one it has */
+    CAPSHEET_MUT_ANSWERS_BROADCAST,   /* §8.2  NACKs BAD_STATE a broadcast START the state table refuses */
+    CAPSHEET_MUT_IGNORES_BROADCAST_START, /* §4.12 acts on START/STOP only when addressed */
+    CAPSHEET_MUT_WRONG_PRIORITY,      /* §7.1  CAN: SAMPLE sent with priority 4 (the table: 2) */
+    CAPSHEET_MUT_COUNT
+} capsheet_mutant_t;
+
+#ifdef CAPSHEET_MUTANTS
+#define CAPSHEET_MUTANT(chip, m) ((chip)->mutant == (int32_t)(m))
+#else
+#define CAPSHEET_MUTANT(chip, m) 0
+#endif
 
 #ifdef __cplusplus
 }

@@ -2,20 +2,22 @@
  * chip.c — the chip side of the capsheet protocol (docs/protocol.md §3–§8) on top of codec.c.
  *
  * Everything that decides what the chip does with a command is the table `k_rules` below, a
- * transcription of protocol/state.py RULES (the tests compare the two pair by pair). What the table
- * leaves open is decided exactly as the Python chip model (virtual_sheet/chip.py) decides it, so
- * the two are interchangeable (and the tests drive both with the same frames):
- *   1. every frame the decoder drops counts in rx_errors (saturating at 255); one without a usable
- *      header (COBS, short, CRC, oversize, bad CAN identifier) gets no answer;
- *   2. BAD_VERSION: NACK BAD_VERSION when addressed to this chip or broadcast;
- *   3. chip -> host types (another chip's frames) and other nodes' frames: ignored;
- *   4. unknown type / bad length / bad field, addressed to this chip: NACK UNKNOWN_COMMAND /
- *      BAD_LENGTH / BAD_VALUE; broadcast: silent;
+ * transcription of protocol/state.py RULES (the tests compare the two pair by pair). The rest follows
+ * docs/protocol.md v1.1 §8.1 exactly as the Python chip model (virtual_sheet/chip.py) does, so the
+ * two are interchangeable (the tests drive both with the same frames, and with tests/vectors/chip.json):
+ *   1. a frame whose integrity failed (COBS, short, CRC, oversize) is counted in rx_errors
+ *      (saturating at 255) and dropped;
+ *   2. a frame for another node (not its node id, not 0: also every CAN frame that is not a capsheet
+ *      frame) is ignored, not counted — except, in BOOT, an ASSIGN to its previous provisional id;
+ *   3. a node -> host type (0x01..0x0F, defined or not) is ignored, not counted;
+ *   4. another version / an undefined type / a wrong length / a field out of range: counted; NACK
+ *      BAD_VERSION / UNKNOWN_COMMAND / BAD_LENGTH / BAD_VALUE when addressed, silence when broadcast;
  *   5. ASSIGN whose uid_low is not this chip's: silent;
  *   6. (state, type) not in the table: NACK BAD_STATE when addressed, silent when broadcast;
- *   7. the rule's field checks (CONFIG, CAL_WRITE): NACK BAD_VALUE or UNSUPPORTED (also when
- *      broadcast);
+ *   7. the rule's field checks (CONFIG, CAL_WRITE): NACK BAD_VALUE or UNSUPPORTED when addressed,
+ *      silent (and nothing applied) when broadcast;
  *   8. the rule's reply and transition.
+ * A broadcast is never answered with a NACK.
  */
 #include "capsheet_fw.h"
 
@@ -32,11 +34,11 @@
 /* [state][type - 0x10]: SYNC ASSIGN CONFIG START STOP GET_INFO RESET CAL_WRITE CAL_READ */
 static const capsheet_rule_t k_rules[CAPSHEET_STATE_COUNT][9] = {
     /* BOOT */
-    {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 1), NO_RULE, NO_RULE, NO_RULE,
+    {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), NO_RULE, NO_RULE, NO_RULE,
      R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0), R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE,
      NO_RULE},
     /* IDLE */
-    {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 1), R_(CAPSHEET_REPLY_ACK, ST, 1),
+    {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
      R_(CAPSHEET_REPLY_ACK, CAPSHEET_STREAMING, 0), R_(CAPSHEET_REPLY_ACK, ST, 0),
      R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0), R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0),
      R_(CAPSHEET_REPLY_ACK, ST, 1), R_(CAPSHEET_REPLY_CAL_DATA, ST, 0)},
@@ -45,7 +47,7 @@ static const capsheet_rule_t k_rules[CAPSHEET_STATE_COUNT][9] = {
      R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0),
      R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0)},
     /* FAULT */
-    {R_(CAPSHEET_REPLY_SAMPLE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_FAULT, 1), R_(CAPSHEET_REPLY_ACK, ST, 1),
+    {R_(CAPSHEET_REPLY_SAMPLE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_FAULT, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
      R_(CAPSHEET_REPLY_ACK, ST, 0), R_(CAPSHEET_REPLY_ACK, ST, 0), R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0),
      R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0)},
 };
@@ -60,6 +62,28 @@ int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule)
     return (rule->reply == 0xFFu) ? 0 : 1;
 }
 
+#ifdef CAPSHEET_MUTANTS
+/* Mutant: the frame in c->tx re-encoded with CRC-16/XMODEM (init 0x0000). Returns its length. */
+static int32_t mutant_wrong_crc(capsheet_chip_t *c, int32_t n)
+{
+    uint8_t raw[CAPSHEET_CHIP_TX_WIRE_SIZE];
+    int32_t k = capsheet_cobs_decode(c->tx, (size_t)n - 1u, raw, sizeof raw);
+    uint16_t crc;
+    if (k < 2) {
+        return n;
+    }
+    crc = capsheet_crc16(raw, (size_t)k - 2u, 0x0000u);
+    raw[k - 2] = (uint8_t)(crc >> 8);
+    raw[k - 1] = (uint8_t)(crc & 0xFFu);
+    k = capsheet_cobs_encode(raw, (size_t)k, c->tx, sizeof c->tx - 1u);
+    if (k < 0) {
+        return n;
+    }
+    c->tx[k] = 0u;
+    return k + 1;
+}
+#endif
+
 /* ------------------------------------------------------------------------------------------ */
 /* Sending                                                                                     */
 /* ------------------------------------------------------------------------------------------ */
@@ -73,6 +97,12 @@ static int32_t send_msg(capsheet_chip_t *c, const capsheet_msg_t *m)
         if (n < 0) {
             return n;
         }
+#ifdef CAPSHEET_MUTANTS
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_WRONG_CRC)
+            || (CAPSHEET_MUTANT(c, CAPSHEET_MUT_WRONG_CRC_SAMPLE) && m->type == CAPSHEET_SAMPLE)) {
+            n = mutant_wrong_crc(c, n);
+        }
+#endif
         return (c->hal->send_bytes(c->hal->user, c->tx, (size_t)n) < 0) ? CAPSHEET_ERR_HAL : 1;
     } else {
         uint32_t id;
@@ -80,6 +110,9 @@ static int32_t send_msg(capsheet_chip_t *c, const capsheet_msg_t *m)
         n = capsheet_can_encode(m, CAPSHEET_CAN_AUTO, &id, c->tx, CAPSHEET_CAN_CLASSIC_MTU, &fd);
         if (n < 0) {
             return n;
+        }
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_WRONG_PRIORITY) && m->type == CAPSHEET_SAMPLE) {
+            id = (id & 0x03FFFFFFu) | ((uint32_t)4u << 26);
         }
         return (c->hal->send_can(c->hal->user, id, c->tx, (uint8_t)n, fd) < 0) ? CAPSHEET_ERR_HAL : 1;
     }
@@ -97,6 +130,9 @@ static int32_t send_ack(capsheet_chip_t *c, uint8_t command)
     capsheet_msg_t m;
     msg_init(&m, CAPSHEET_ACK, c->node);
     m.u.ack.command = command;
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_ACK_DETAIL)) {
+        m.u.ack.detail = 1u;
+    }
     return send_msg(c, &m);
 }
 
@@ -106,6 +142,9 @@ static int32_t send_nack(capsheet_chip_t *c, uint8_t command, uint8_t reason)
     msg_init(&m, CAPSHEET_NACK, c->node);
     m.u.nack.command = command;
     m.u.nack.reason = reason;
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_WRONG_NACK_REASON)) {
+        m.u.nack.reason = (uint8_t)(reason % 7u + 1u);
+    }
     return send_msg(c, &m);
 }
 
@@ -130,6 +169,9 @@ static int32_t send_announce_info(capsheet_chip_t *c)
     m.u.info.fw_patch = CAPSHEET_FW_VERSION_PATCH;
     m.u.info.protocol_version = (uint8_t)CAPSHEET_PROTOCOL_VERSION;
     m.u.info.capabilities = capabilities(c);
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_RESERVED_CAPABILITY_BIT)) {
+        m.u.info.capabilities = (uint16_t)(m.u.info.capabilities | 0x8000u);
+    }
     m.u.info.adc_bits = 12;
     m.u.info.state = c->state;
     rc = send_msg(c, &m);
@@ -199,10 +241,11 @@ static void load_calibration(capsheet_chip_t *c)
 
 static void schedule(uint64_t *deadline, uint64_t period_us, uint64_t now_us)
 {
-    /* next = max(previous deadline + period, now): no drift, no burst after a long gap */
+    /* docs §14: next = previous deadline + period (no drift); if that is not after now (a whole
+     * period was missed), now + period: what was missed is skipped, never sent back to back */
     *deadline += period_us;
-    if (*deadline < now_us) {
-        *deadline = now_us;
+    if (*deadline <= now_us) {
+        *deadline = now_us + period_us;
     }
 }
 
@@ -212,6 +255,8 @@ static int32_t boot(capsheet_chip_t *c, uint64_t now_us)
     c->state = CAPSHEET_BOOT;
     c->salt = 0;
     c->node = capsheet_provisional_node(c->uid, 0);
+    c->has_prev = false;
+    c->prev_node = 0;
     c->link = 0;
     c->has_link = false;
     c->started = false;
@@ -219,7 +264,9 @@ static int32_t boot(capsheet_chip_t *c, uint64_t now_us)
     c->rx_errors = 0;
     c->missed_syncs = 0;
     c->have_sync = false;
-    c->boot_us = now_us;
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_UPTIME_RESET)) {
+        c->boot_us = now_us;
+    }
     c->next_announce_us = now_us + CAPSHEET_ANNOUNCE_PERIOD_US;
     c->heartbeat_on = false;
     c->next_heartbeat_us = 0;
@@ -270,6 +317,7 @@ int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *
 int32_t capsheet_chip_power_on(capsheet_chip_t *chip, uint64_t now_us)
 {
     CAPSHEET_ASSERT(chip != NULL && chip->hal != NULL);
+    chip->boot_us = now_us;  /* uptime_s counts from power-on; RESET does not restart it (§4.4) */
     return boot(chip, now_us);
 }
 
@@ -292,14 +340,21 @@ int32_t capsheet_chip_poll(capsheet_chip_t *c, uint64_t now_us)
         if (now_us < c->next_announce_us) {
             return 0;
         }
-        /* unanswered: a new provisional id (salt = ANNOUNCE rounds unanswered, docs §3.2) */
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_NO_REANNOUNCE)) {
+            return 0;
+        }
+        /* unanswered: a new provisional id (salt = ANNOUNCE rounds unanswered, docs §3.2); the
+         * previous one still takes an ASSIGN that crossed this ANNOUNCE on the wire (§3.3) */
         c->salt++;
+        c->prev_node = c->node;
+        c->has_prev = true;
         c->node = capsheet_provisional_node(c->uid, c->salt);
         schedule(&c->next_announce_us, CAPSHEET_ANNOUNCE_PERIOD_US, now_us);
         return send_announce_info(c);
     }
     if (c->heartbeat_ms != 0u && c->heartbeat_on && now_us >= c->next_heartbeat_us) {
-        schedule(&c->next_heartbeat_us, (uint64_t)((uint32_t)c->heartbeat_ms * 1000u), now_us);
+        schedule(&c->next_heartbeat_us, (uint64_t)((uint32_t)c->heartbeat_ms * 1000u)
+                                            * (CAPSHEET_MUTANT(c, CAPSHEET_MUT_SLOW_HEARTBEAT) ? 2u : 1u), now_us);
         rc = send_status(c, now_us);
         return rc;
     }
@@ -312,6 +367,9 @@ int32_t capsheet_chip_poll(capsheet_chip_t *c, uint64_t now_us)
 
 static void count_rx_error(capsheet_chip_t *c)
 {
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_NO_RX_ERRORS)) {
+        return;
+    }
     if (c->rx_errors < 0xFFu) {
         c->rx_errors++;
     }
@@ -322,11 +380,15 @@ static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
 {
     const uint16_t caps = capabilities(c);
     if (m->type == CAPSHEET_CONFIG) {
-        if (m->u.config.rate_hz < 1u || m->u.config.rate_hz > 4000u || m->u.config.range > 3u
-            || m->u.config.filter > 3u) {
+        if ((m->u.config.rate_hz < 1u || m->u.config.rate_hz > 4000u || m->u.config.range > 3u
+             || m->u.config.filter > 3u) && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_ACCEPTS_BAD_CONFIG)) {
             return CAPSHEET_NACK_BAD_VALUE;
         }
-        if (m->u.config.range != 0u && !(caps & CAPSHEET_CAP_MULTI_RANGE)) {
+        if (m->u.config.range != 0u && !(caps & CAPSHEET_CAP_MULTI_RANGE)
+            && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_IGNORES_CAPABILITY)) {
+            return CAPSHEET_NACK_UNSUPPORTED;
+        }
+        if (m->u.config.filter != 0u && !(caps & CAPSHEET_CAP_FILTER)) {
             return CAPSHEET_NACK_UNSUPPORTED;
         }
     } else if (m->type == CAPSHEET_CAL_WRITE) {
@@ -352,21 +414,22 @@ static int32_t on_sync(capsheet_chip_t *c, uint16_t counter, uint64_t now_us)
     int16_t xyz[3] = {0, 0, 0};
     uint8_t status = 0;
     unsigned i;
+    int32_t rc;
     if (!c->started || (c->state != CAPSHEET_STREAMING && c->state != CAPSHEET_FAULT)) {
         return 0;
     }
     if (c->have_sync) {
-        /* counters skipped; a repeated or older counter (gap >= 0x7FFF) adds nothing */
+        /* §5.1: counters skipped; a repeated or older counter (gap >= 0x7FFF) adds nothing */
         const uint16_t gap = (uint16_t)(counter - c->last_sync - 1u);
-        if (gap < 0x7FFFu) {
+        if (gap < 0x7FFFu || CAPSHEET_MUTANT(c, CAPSHEET_MUT_MISSED_SYNCS_WRAP)) {
             const uint32_t missed = (uint32_t)c->missed_syncs + gap;
             c->missed_syncs = (missed > 0xFFu) ? 0xFFu : (uint8_t)missed;
         }
     }
     c->have_sync = true;
-    c->last_sync = counter;
+    c->last_sync = counter;  /* whatever the counter: the chip follows its SYNC source */
     msg_init(&m, CAPSHEET_SAMPLE, c->node);
-    m.u.sample.counter = counter;
+    m.u.sample.counter = CAPSHEET_MUTANT(c, CAPSHEET_MUT_COUNTER_OFF_BY_ONE) ? (uint16_t)(counter + 1u) : counter;
     if (c->state == CAPSHEET_FAULT) {
         m.u.sample.status = CAPSHEET_SAMPLE_INVALID;
         return send_msg(c, &m);
@@ -374,24 +437,71 @@ static int32_t on_sync(capsheet_chip_t *c, uint16_t counter, uint64_t now_us)
     if (c->hal->read_axes(c->hal->user, now_us, xyz, &status) < 0) {
         status = CAPSHEET_SAMPLE_INVALID;
     }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_DEAD_SENSOR)) {
+        xyz[0] = xyz[1] = xyz[2] = 0;
+        status = 0;
+    }
     if (status & CAPSHEET_SAMPLE_INVALID) {
-        c->state = CAPSHEET_FAULT;  /* the sensor did not answer: counts 0, its status bits */
-        m.u.sample.status = status & 0xFu;
+        c->state = CAPSHEET_FAULT;  /* the sensor did not answer: counts 0, status INVALID alone (§8.6) */
+        m.u.sample.status = CAPSHEET_SAMPLE_INVALID;
         return send_msg(c, &m);
     }
+    status = (uint8_t)(status & 0xFu & ~CAPSHEET_SAMPLE_SATURATED);
     for (i = 0; i < 3u; i++) {
         int16_t v = xyz[i] < -2048 ? -2048 : (xyz[i] > 2047 ? 2047 : xyz[i]);
         xyz[i] = asr(v, c->range_code);  /* the HAL reports ±2 g counts; range r scales by 2^-r */
+        if (xyz[i] == -2048 || xyz[i] == 2047) {
+            status = (uint8_t)(status | CAPSHEET_SAMPLE_SATURATED);  /* exactly at a rail sent (§5.2) */
+        }
     }
     m.u.sample.x = xyz[0];
     m.u.sample.y = xyz[1];
     m.u.sample.z = xyz[2];
-    m.u.sample.status = status & 0xFu;
-    return send_msg(c, &m);
+    m.u.sample.status = status;
+#ifdef CAPSHEET_MUTANTS
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_FROZEN_SAMPLE)) {  /* one conversion, then that word again */
+        if (!c->has_frozen) {
+            c->has_frozen = true;
+            memcpy(c->frozen_xyz, xyz, sizeof c->frozen_xyz);
+            c->frozen_status = m.u.sample.status;
+        }
+        m.u.sample.x = c->frozen_xyz[0];
+        m.u.sample.y = c->frozen_xyz[1];
+        m.u.sample.z = c->frozen_xyz[2];
+        m.u.sample.status = c->frozen_status;
+    }
+#endif
+    rc = send_msg(c, &m);
+    if (rc >= 0 && CAPSHEET_MUTANT(c, CAPSHEET_MUT_SYNC_TWICE)) {
+        const int32_t rc2 = send_msg(c, &m);
+        return (rc2 < 0) ? rc2 : rc + rc2;
+    }
+    return rc;
+}
+
+static bool is_integrity_error(int32_t rc)
+{
+    return rc == CAPSHEET_ERR_BAD_COBS || rc == CAPSHEET_ERR_SHORT || rc == CAPSHEET_ERR_BAD_CRC
+           || rc == CAPSHEET_ERR_OVERSIZE;
+}
+
+/* The NACK reason for a decode error of a frame addressed to the chip (§8.1). */
+static uint8_t nack_reason_for(int32_t rc)
+{
+    switch (rc) {
+    case CAPSHEET_ERR_BAD_VERSION:
+        return CAPSHEET_NACK_BAD_VERSION;
+    case CAPSHEET_ERR_UNKNOWN_TYPE:
+        return CAPSHEET_NACK_UNKNOWN_COMMAND;
+    case CAPSHEET_ERR_BAD_LENGTH:
+        return CAPSHEET_NACK_BAD_LENGTH;
+    default:
+        return CAPSHEET_NACK_BAD_VALUE;  /* CAPSHEET_ERR_BAD_FIELD */
+    }
 }
 
 /* React to a decoded frame (rc == 0), or a decode error rc < 0 with `m->type`/`m->node` from the
- * header when there was one (node 0xFFFF when not). */
+ * header when there was one (node 0xFFFF when not), in the order of docs §8.1. */
 static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m, uint64_t now_us)
 {
     capsheet_rule_t rule;
@@ -401,45 +511,75 @@ static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m,
     if (!c->powered) {
         return 0;
     }
-    if (rc < 0) {
-        count_rx_error(c);  /* every frame the receiver drops, whoever it was for */
-    }
-    if (m->node != c->node && m->node != CAPSHEET_NODE_BROADCAST) {
-        return 0;  /* not for this chip; also every frame without a usable header (node 0xFFFF) */
+    if (is_integrity_error(rc)) {  /* 1. damage: counted, never answered */
+        count_rx_error(c);
+        return 0;
     }
     addressed = (m->node == c->node);
-    if (rc == CAPSHEET_ERR_BAD_VERSION) {
-        return send_nack(c, m->type, CAPSHEET_NACK_BAD_VERSION);
-    }
-    if (m->type < CAPSHEET_HOST_TYPE_FIRST && capsheet_type_known(m->type)) {
-        return 0;  /* another chip's frame */
-    }
-    if (rc < 0) {
-        if (!addressed) {
+    if (!addressed && m->node != CAPSHEET_NODE_BROADCAST) {
+        /* 2. another node's frame (also a CAN frame that is not capsheet's: node 0xFFFF) — unless,
+         * in BOOT, an ASSIGN to the previous provisional id that crossed the last ANNOUNCE (§3.3) */
+        if (!(rc == 0 && m->type == CAPSHEET_ASSIGN && c->state == CAPSHEET_BOOT && c->has_prev
+              && m->node == c->prev_node && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_NO_PREVIOUS_ID))) {
             return 0;
         }
-        if (rc == CAPSHEET_ERR_UNKNOWN_TYPE) {
+        addressed = true;
+    }
+    if (m->type >= CAPSHEET_NODE_TO_HOST_FIRST && m->type <= CAPSHEET_NODE_TO_HOST_LAST) {
+        /* 3. another node's type (of this revision or a later one): never answered, not counted */
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_NACKS_NODE_TYPES) && addressed) {
             return send_nack(c, m->type, CAPSHEET_NACK_UNKNOWN_COMMAND);
         }
-        if (m->type < CAPSHEET_HOST_TYPE_FIRST || m->type > CAPSHEET_HOST_TYPE_LAST) {
+        return 0;
+    }
+    if (rc < 0) {  /* 4. version, type, length, field: counted; NACKed only when addressed */
+        count_rx_error(c);
+        if (!addressed && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_NACKS_BROADCAST)) {
             return 0;
         }
-        reason = (rc == CAPSHEET_ERR_BAD_LENGTH) ? (uint8_t)CAPSHEET_NACK_BAD_LENGTH : (uint8_t)CAPSHEET_NACK_BAD_VALUE;
-        return send_nack(c, m->type, reason);
+        return send_nack(c, m->type, nack_reason_for(rc));
     }
     if (m->type == CAPSHEET_SYNC) {  /* the hot path: SAMPLE in STREAMING/FAULT, nothing elsewhere */
         return on_sync(c, m->u.sync.counter, now_us);
     }
-    if (m->type == CAPSHEET_ASSIGN && m->u.assign.uid_low != (uint32_t)(c->uid & 0xFFFFFFFFu)) {
-        return 0;  /* §4.10: meant for another chip that shares the node id */
+    if (m->type == CAPSHEET_ASSIGN && m->u.assign.uid_low != (uint32_t)(c->uid & 0xFFFFFFFFu)
+        && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_ASSIGN_IGNORES_UID)) {
+        return 0;  /* 5. §4.10: meant for another chip that shares the node id */
     }
-    if (capsheet_rule_for(c->state, m->type, &rule) != 1) {
-        return addressed ? send_nack(c, m->type, CAPSHEET_NACK_BAD_STATE) : 0;
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_IGNORED_RESET) && m->type == CAPSHEET_RESET) {
+        return send_ack(c, m->type);
     }
-    if (rule.validate) {
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_START_NOT_IDEMPOTENT) && m->type == CAPSHEET_START
+        && c->state == CAPSHEET_STREAMING && addressed) {
+        return send_nack(c, m->type, CAPSHEET_NACK_BAD_STATE);
+    }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_STREAMS_AFTER_STOP) && m->type == CAPSHEET_STOP
+        && c->state == CAPSHEET_STREAMING) {
+        return send_ack(c, m->type);
+    }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_CONFIG_WHILE_STREAMING) && m->type == CAPSHEET_CONFIG
+        && c->state == CAPSHEET_STREAMING) {
+        return send_ack(c, m->type);
+    }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_REFUSES_REPEATED_CONFIG) && m->type == CAPSHEET_CONFIG && addressed
+        && (c->flags & CAPSHEET_FLAG_CONFIGURED) && m->u.config.rate_hz == c->rate_hz
+        && m->u.config.range == c->range_code && m->u.config.filter == c->filter
+        && m->u.config.heartbeat_ms == c->heartbeat_ms) {
+        return send_nack(c, m->type, CAPSHEET_NACK_BAD_STATE);
+    }
+    if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_IGNORES_BROADCAST_START) && !addressed
+        && (m->type == CAPSHEET_START || m->type == CAPSHEET_STOP)) {
+        return 0;
+    }
+    if (capsheet_rule_for(c->state, m->type, &rule) != 1) {  /* 6. the state table */
+        return (addressed || CAPSHEET_MUTANT(c, CAPSHEET_MUT_NACKS_BROADCAST)
+                || (CAPSHEET_MUTANT(c, CAPSHEET_MUT_ANSWERS_BROADCAST) && m->type == CAPSHEET_START))
+                   ? send_nack(c, m->type, CAPSHEET_NACK_BAD_STATE) : 0;
+    }
+    if (rule.validate) {  /* 7. the rule's field checks */
         reason = check_fields(c, m);
         if (reason != 0u) {
-            return send_nack(c, m->type, reason);
+            return (addressed || CAPSHEET_MUTANT(c, CAPSHEET_MUT_NACKS_BROADCAST)) ? send_nack(c, m->type, reason) : 0;
         }
     }
     if (rule.reply == CAPSHEET_REPLY_ACK_THEN_BOOT) {
@@ -457,6 +597,7 @@ static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m,
             c->heartbeat_on = true;
         }
         c->node = m->u.assign.new_node;
+        c->has_prev = false;
         c->link = m->u.assign.link;
         c->has_link = true;
         break;
@@ -500,6 +641,11 @@ static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m,
         capsheet_msg_t d;
         msg_init(&d, CAPSHEET_CAL_DATA, c->node);
         d.u.cal = c->cal[m->u.cal_read.axis];
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_CAL_READ_NOMINAL)) {
+            d.u.cal.flags = 0;
+            d.u.cal.offset_q4 = 0;
+            d.u.cal.sensitivity = 1024.0f;
+        }
         return send_msg(c, &d);
     }
     default:

@@ -192,13 +192,13 @@ int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t
 #define UND 0xFFu
 static const uint8_t k_size[0x19] = {
     UND, 8, 8, 7, 8, 2, 2, 8, VAR,        /* 0x00..0x08 */
-    UND, UND, UND, UND, UND, UND, UND,     /* 0x09..0x0F */
+    8, UND, UND, UND, UND, UND, UND,       /* 0x09 GATEWAY_INFO, 0x0A..0x0F */
     2, 8, 6, 0, 0, 0, 0, 8, 1             /* 0x10..0x18 */
 };
 /* priority per type (docs §7.1) */
 static const uint8_t k_priority[0x19] = {
     7, 5, 5, 2, 6, 3, 3, 5, 2,
-    7, 7, 7, 7, 7, 7, 7,
+    5, 7, 7, 7, 7, 7, 7,
     0, 4, 4, 4, 1, 4, 1, 4, 4
 };
 
@@ -293,6 +293,13 @@ static int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
         put_u16(p + 2, m->u.snapshot.first_link);
         p[4] = m->u.snapshot.count;
         return 5;
+    case CAPSHEET_GATEWAY_INFO:
+        p[0] = m->u.gateway_info.flags;
+        p[1] = m->u.gateway_info.sample_format;
+        put_u16(p + 2, m->u.gateway_info.first_link);
+        put_u16(p + 4, m->u.gateway_info.link_count);
+        put_u16(p + 6, m->u.gateway_info.sync_rate_hz);
+        return 8;
     case CAPSHEET_SYNC:
         put_u16(p, m->u.sync.counter);
         return 2;
@@ -451,6 +458,14 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
             return CAPSHEET_ERR_BAD_FIELD;
         }
         return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_GATEWAY_INFO:
+        out->u.gateway_info.flags = p[0];
+        out->u.gateway_info.sample_format = p[1];
+        out->u.gateway_info.first_link = get_u16(p + 2);
+        out->u.gateway_info.link_count = get_u16(p + 4);
+        out->u.gateway_info.sync_rate_hz = get_u16(p + 6);
+        return ((uint32_t)out->u.gateway_info.first_link + out->u.gateway_info.link_count > 0x10000u)
+                   ? CAPSHEET_ERR_BAD_FIELD : 0;
     case CAPSHEET_SYNC:
         out->u.sync.counter = get_u16(p);
         return (node == CAPSHEET_NODE_BROADCAST) ? 0 : CAPSHEET_ERR_BAD_FIELD;
@@ -548,6 +563,9 @@ int32_t capsheet_serial_decode_frame(uint8_t *frame, size_t len, capsheet_msg_t 
     n = capsheet_cobs_decode(frame, len, frame, len);
     if (n < 0) {
         return CAPSHEET_ERR_BAD_COBS;
+    }
+    if ((size_t)n > CAPSHEET_MAX_FRAME_SIZE) {
+        return CAPSHEET_ERR_OVERSIZE;  /* COBS of a frame with zeros is shorter than the worst case (§6.3) */
     }
     if ((size_t)n < CAPSHEET_HEADER_SIZE + CAPSHEET_CRC_SIZE) {
         return CAPSHEET_ERR_SHORT;

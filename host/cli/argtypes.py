@@ -211,6 +211,20 @@ def existing_file(*suffixes: str, what: str = "a file"):
     return parse
 
 
+def recording_file(*suffixes: str, what: str = "a recording"):
+    """`existing_file`, or the name a split recording was made under (``run.mcap`` when
+    ``run_0000.mcap`` exists: `host.record.recording_set`)."""
+    plain = existing_file(*suffixes, what=what)
+
+    def parse(text: str) -> InputPath:
+        from host.record import split_path
+        if not Path(text).exists() and _suffix_ok(text, suffixes) and split_path(text, 0).is_file():
+            return InputPath(text)
+        return plain(text)
+    parse.__name__ = "file"
+    return parse
+
+
 def _writable_folder(folder: Path, text: str, create: bool) -> None:
     """The folder a new file goes in exists and is writable; with ``create`` it may be missing if its
     nearest existing ancestor is a writable folder (it is created when the file is written)."""

@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
     only = [o.strip() for o in args.only.split(",")] if args.only else None
     try:
-        select(only)
+        select(only, args.profile)
     except ValueError as exc:
         print(f"capsheet conformance: {exc}", file=sys.stderr)
         return 2
@@ -42,10 +42,10 @@ def run(args: argparse.Namespace) -> int:
         return 2
     port = Port(transport)
     try:
-        print(f"capsheet conformance: {args.port or args.can} ({port.kind})", flush=True)
+        print(f"capsheet conformance: {args.port or args.can} ({port.kind}), {args.profile} profile", flush=True)
         results = run_checks(port, timeout_s=args.timeout, node=args.node, uid=args.uid, slack_ms=args.slack_ms,
                              only=only, allow_broadcast=args.allow_broadcast, attempts=args.attempts,
-                             out=sys.stdout)
+                             out=sys.stdout, profile=args.profile)
     except TransportError as exc:
         print(f"capsheet conformance: {exc}", file=sys.stderr)
         return 3
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> int:
 def register(subparsers) -> argparse.ArgumentParser:
     from host.cli import argtypes as T
     p = subparsers.add_parser(
-        "conformance", help="hold a chip (or gateway) to the protocol spec, clause by clause",
+        "conformance", help="hold a chip or a gateway to the protocol spec, clause by clause",
         description=(_conf.__doc__ or "") + "\n" + (__doc__.split("\n\n", 1)[1] if __doc__ else "")
         + "\nExamples:\n    capsheet conformance --port /dev/ttyUSB0\n    capsheet conformance --can socketcan:can0"
           " --only 4.6,5\n    capsheet conformance --list\n",
@@ -73,11 +73,16 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--node", type=T.int_range(1, 0x7FFF, what="an assigned node id"), default=None,
                    help="node id to assign for the run (default: the highest id no chip was heard from)")
     p.add_argument("--uid", type=T.int_range(0, 2 ** 64 - 1, what="a 64-bit uid"), default=None,
-                   help="the chip under test, by uid (default: the first to answer a broadcast GET_INFO)")
+                   help="the node under test, by uid (default: the first of the profile's kind to answer a "
+                        "broadcast GET_INFO)")
+    p.add_argument("--profile", choices=("chip", "gateway"), default="chip",
+                   help="hold a chip to the spec (default; directly or behind any gateway), or the first gateway "
+                        "node (docs/protocol.md §13)")
     p.add_argument("--slack-ms", type=T.bounded_float(0.0, 10_000.0, unit="ms"), default=10.0,
                    help="host-side latency allowed on top of the 2 ms SYNC deadline (a SHOULD) and the "
                         "heartbeat/re-announce periods, ms (default 10)")
-    p.add_argument("--only", help=f"comma-separated check numbers (1..{len(CHECKS)}) or clause prefixes, e.g. 4.6,5")
+    p.add_argument("--only", help=f"comma-separated check numbers (1..{len(CHECKS)}, of the profile) or clause "
+                                  f"prefixes, e.g. 4.6,5")
     p.add_argument("--allow-broadcast", action="store_true",
                    help="also run the checks that broadcast START/STOP (they address every chip on the port)")
     p.add_argument("--attempts", type=T.int_range(1, 9), default=3, metavar="N",

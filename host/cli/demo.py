@@ -108,15 +108,17 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     except Exception as exc:  # noqa: BLE001 - the parent says it in one line instead of waiting
         conn.send(("error", f"{type(exc).__name__}: {exc}"))
         return
-    sent: set[int] = set()
+    sent: dict[int, float] = {}
     with device as dev:
         conn.send(("ready", list(getattr(dev, "paths", [str(dev.path)])), dev.describe()))
         while True:
             req = conn.recv()
             if req == "stop":
                 break
-            new = {c: sheet.truth_time(c) for c in list(sheet.sync_times) if c not in sent}
-            sent.update(new)
+            # what is new since the last request: a counter not sent, or sent before its wrap
+            now_kept = dict(sheet.sync_times)
+            new = {c: sheet.truth_time(c) for c, t in now_kept.items() if sent.get(c) != t}
+            sent = now_kept  # bounded as the sheet's own (SYNC_TIMES_KEPT)
             conn.send(new)
     conn.send(("stopped",))
 
@@ -185,7 +187,10 @@ def run(args) -> int:
             if counter not in truth_times:
                 parent.send("truth")
                 truth_times.update(parent.recv())
-            return truth_sheet.joints_at_scene_time(truth_times[counter])
+                while len(truth_times) > 8192:  # counters never asked for (skipped snapshots): oldest out
+                    del truth_times[next(iter(truth_times))]
+            # used once: after the counter wraps, the same number is a new SYNC, asked for again
+            return truth_sheet.joints_at_scene_time(truth_times.pop(counter))
 
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
         transports = [open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths]

@@ -32,7 +32,7 @@ def register(subparsers) -> None:
     from host.cli.replay import RECORDING_SUFFIXES
     p = subparsers.add_parser("estimate", help="estimate a recording offline (batched, all cores) to .npz or .mcap",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", type=T.existing_file(*RECORDING_SUFFIXES, what="a recording"),
+    p.add_argument("recording", type=T.recording_file(*RECORDING_SUFFIXES, what="a recording"), nargs="+",
                    help="capsheet .mcap, or a CAN log (.log, .asc, .blf)")
     p.add_argument("--out", required=True, type=T.output_file(".npz", ".mcap", what="an output file"),
                    help="joints.npz or shapes.mcap (an existing file needs --overwrite)")
@@ -146,18 +146,18 @@ def _source(args):
     from host.replay import Replay
     from protocol.lattice import Lattice
 
-    path = Path(args.recording)
+    src, path = args.source, Path(args.recording)
     if path.suffix.lower() == ".mcap" and not args.from_raw:
-        it = iter_snapshots(path, args.batch)
+        it = iter_snapshots(src, args.batch)
         first = next(it, None)
         if first is None:
             raise ValueError(f"{str(path)!r} holds no snapshot (try --from-raw)")
         session = first.session
         lat = Lattice(int(session["rows"]), int(session["cols"]))
         L = float(args.link_length or session.get("link_length_m", 0.01))
-        total = snapshot_count(path)  # None: no summary, the file was cut short
+        total = snapshot_count(src)  # None: no summary, the file was cut short
         return lat, L, session, _chain(first, it), total, total is None
-    rp = Replay(path, lattice=args.lattice, link_length=args.link_length)
+    rp = Replay(src, lattice=args.lattice, link_length=args.link_length)
     snaps = list(rp.snapshots())
     if not snaps:
         raise ValueError(f"{str(path)!r}: the replay made no snapshot")
@@ -186,6 +186,9 @@ def run(args) -> int:
     from host.cli.progress import Progress
 
     t_start = time.monotonic()
+    # one file, a split set by its name, or its files in order (host.record.read)
+    args.source = args.recording[0] if len(args.recording) == 1 else [str(p) for p in args.recording]
+    args.recording = args.recording[0] if len(args.recording) == 1 else " + ".join(map(str, args.recording))
     pool = None
     if args.jobs > 1:  # workers import the estimator (scipy: ~0.5 s) while this process reads the file
         import multiprocessing as mp

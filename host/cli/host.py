@@ -5,12 +5,13 @@ live status line, record snapshots and end with a summary whose exit status tell
     capsheet host --port /dev/pts/5 --lattice 14x14 --layout sheet.csv --rate 100 --record run.mcap --live
     capsheet host --can virtual:bus0 --can virtual:bus1 --lattice 14x14 --duration 10
     capsheet host --can slcan:/dev/pts/6 --bitrate 1000000 --auto-assign
-    capsheet host --port /tmp/sheet0 --port /tmp/sheet1 --baud 12000000 --packed --layout sheet.json
+    capsheet host --port /tmp/sheet0 --port /tmp/sheet1 --baud 12000000 --layout sheet.json
 
 Several --port (a sheet behind several serial gateways, each with a block of its links) or several
 --can (buses) are merged into one lattice: each chip is known on the port it answers on. In drive
 mode the host sends every SYNC on every port; with a gateway driving SYNC (--sync follow) each port
-carries it.
+carries it. Gateway nodes (docs/protocol.md §13) are discovered with the chips and assigned node ids
+from 0x7FFF down: the host learns from them which ports pack SNAPSHOTs and which gateway drives SYNC.
 
 The status line (and the summary, and --json) gives completeness twice, over the same snapshots:
 by snapshot (every expected link arrived) and by valid link sample over the lattice's links (what
@@ -66,10 +67,12 @@ def register(subparsers) -> None:
                         "(default: a mismatch, exit 2)")
     p.add_argument("--rate", type=T.rate, default=100.0, help="SYNC rate in Hz, 0 < rate <= 4000 (default 100)")
     p.add_argument("--sync", choices=("drive", "follow", "auto"), default="drive",
-                   help="drive SYNC from the host (default; another SYNC source is an error), follow a "
-                        "gateway's SYNC, or auto: drive unless another source is heard, then follow it")
+                   help="drive SYNC from the host (default; another SYNC source — a gateway that says it "
+                        "generates SYNC, or SYNC frames heard — is an error), follow a gateway's SYNC, or auto: "
+                        "drive unless another source is found, then follow it")
     p.add_argument("--packed", action="store_true",
-                   help="the gateway packs SNAPSHOT frames: check the bus capacity for those")
+                   help="check every port's capacity for SNAPSHOT frames (an override: a gateway node that "
+                        "packs says so, docs/protocol.md §13, and its port is checked for SNAPSHOTs anyway)")
     p.add_argument("--ignore-capacity", action="store_true",
                    help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2)")
     p.add_argument("--deadline-ms", type=T.bounded_float(0.0, 60_000.0, lo_open=True, unit="ms"), default=None, help="wait this long for missing links")

@@ -1,5 +1,6 @@
 """The recording options the commands that run a sheet share (``capsheet host``, ``demo``,
-``tactile``): ``--record FILE.mcap``, ``--live [PORT]`` and, on CAN, ``--can-log FILE``.
+``tactile``): ``--record FILE.mcap``, ``--live [PORT]``, ``--publish zenoh[:ENDPOINT]`` (with
+``--sheet-name``) and, on CAN, ``--can-log FILE``.
 
 One definition, so the three commands spell and explain them alike; `SessionOutputs` does the
 wiring (raw taps, SYNC taps, session facts, live estimates) so each command adds one block.
@@ -38,7 +39,22 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "open ws://localhost:8765 in Foxglove or Lichtblick)")
     g.add_argument("--live-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=20.0,
                    help="estimates per second for the live view and the recording (default 20)")
+    g.add_argument("--split-size", metavar="MB", type=T.bounded_float(0.0, 1e7, lo_open=True, unit="MB"),
+                   help="start a new file of the recording once one holds this many MB: FILE_0000.mcap, "
+                        "FILE_0001.mcap, ..., each readable alone (replay and estimate take the set)")
+    g.add_argument("--split-duration", metavar="S", type=T.duration,
+                   help="start a new file of the recording every S seconds (as --split-size)")
+    g.add_argument("--min-free", metavar="MB", type=T.bounded_float(0.0, 1e9, unit="MB"), default=DEFAULT_MIN_FREE_MB,
+                   help="free disk space the recording leaves: checked at the start (refused below it) and "
+                        f"every second, where the recording stops cleanly, its file readable (default "
+                        f"{DEFAULT_MIN_FREE_MB:g} MB; 0: until the disk is full)")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
+    g.add_argument("--publish", metavar="zenoh[:ENDPOINT]", type=_publish_arg, default=None,
+                   help="publish snapshots, estimates, health and (queryable) layout and calibration to Zenoh "
+                        "under capsheet/<sheet>/... (docs/distribution.md); peer mode on loopback, or client "
+                        "mode connected to ENDPOINT (a locator, e.g. tcp/127.0.0.1:7447)")
+    g.add_argument("--sheet-name", metavar="NAME", type=_sheet_name, default="sheet",
+                   help="the sheet's name in the published key expressions (default 'sheet')")
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
@@ -49,12 +65,30 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
     return g
 
 
+def _publish_arg(value: str):
+    from host.publish import parse_publish
+    try:
+        return parse_publish(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _sheet_name(value: str) -> str:
+    from host.publish import SHEET_NAME
+    if not SHEET_NAME.match(value):
+        raise argparse.ArgumentTypeError(f"bad sheet name {value!r}: 1-64 of A-Z a-z 0-9 _ . - (one key chunk)")
+    return value
+
+
 def contact_dicts(contacts) -> list[dict]:
     """`host.analysis.tactile.Contact` s as the plain dicts a recording stores."""
     return [{"id": int(c.id), "index": [float(v) for v in c.index], "position": [float(v) for v in c.position],
              "force_n": float(c.force_n), "depth_m": float(c.depth_m), "area_m2": float(c.area_m2),
              "radius_m": float(np.max(c.axes_m))} for c in contacts]
 
+
+#: --min-free default, MB: 20 minutes of a 14x14 145 Hz recording (docs/recording.md)
+DEFAULT_MIN_FREE_MB = 500.0
 
 #: a live session records an estimate's sampled uncertainty (yaw_std, joint_std: ~100 ms of CPU at
 #: 14x14) at most this often; the other estimates carry joints only
@@ -86,6 +120,8 @@ class SessionOutputs:
         self.lattice = lattice
         self.link_length = float(link_length)
         self.recorder = None
+        self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
+        self._host = None
         self.can_log = None
         self._can_lock = threading.Lock()
         self.can_frames_logged = 0
@@ -99,17 +135,42 @@ class SessionOutputs:
         if record or live is not None:
             import host.analysis.estimator  # noqa: F401 -- now, not at the first estimate: importing scipy
             # mid-session (~0.8 s holding the GIL) stalls the live path it runs in
-            from host.record import Recorder
+            from host import record as R
+            split_mb, split_s = getattr(args, "split_size", None), getattr(args, "split_duration", None)
+            if record and (split_mb or split_s) and R.split_path(record, 0).exists() \
+                    and not getattr(args, "overwrite", False):
+                raise SystemExit(f"{prog}: {R.split_path(record, 0)} exists (a split recording): give --overwrite "
+                                 f"to replace it, or another --record name")
+            live_session = mode == "host"  # the file gets the derived estimates and scene at a lower rate
             try:
-                self.recorder = Recorder(record, lattice, link_length, session={"mode": mode, **(session or {})},
-                                         live_port=live, colour_by=colour_by, layout=layout,
-                                         calibration=calibration)
+                self.recorder = R.Recorder(
+                    record, lattice, link_length, session={"mode": mode, **(session or {})},
+                    live_port=live, colour_by=colour_by, layout=layout, calibration=calibration,
+                    split_size=None if not split_mb else int(split_mb * 1e6), split_duration=split_s,
+                    min_free=int(float(getattr(args, "min_free", 0.0) or 0.0) * 1e6) if record else 0,
+                    on_stop=self._recording_stopped,
+                    estimate_file_period_s=R.ESTIMATE_FILE_PERIOD_S if live_session else 0.0,
+                    scene_file_period_s=R.SCENE_FILE_PERIOD_S if live_session else 0.0)
             except OSError as exc:  # an unwritable --record path, a --live port in use
                 what = "" if "live view" in str(exc) else f"cannot write {record}: "
                 raise SystemExit(f"{prog}: {what}{exc}") from None
+            except ValueError as exc:  # too little free space
+                raise SystemExit(f"{prog}: {exc}") from None
             if self.recorder.live is not None:
                 print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
                       f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
+        publish = getattr(args, "publish", None)
+        if publish is not None:
+            import host.analysis.estimator  # noqa: F401,F811 -- now, not mid-session (above)
+            from host.publish import ZenohPublisher
+            sheet = getattr(args, "sheet_name", "sheet")
+            try:
+                self.publisher = ZenohPublisher(sheet, publish[1], lattice, link_length,
+                                                info={"mode": mode, **(session or {})})
+            except OSError as exc:
+                raise SystemExit(f"{prog}: {exc}") from None
+            print(f"{prog}: publishing to Zenoh under {self.publisher.prefix}/ "
+                  f"({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
         path = getattr(args, "can_log", None)
         if path:
             import can
@@ -120,15 +181,23 @@ class SessionOutputs:
                 raise SystemExit(f"{prog}: cannot write {path}: {exc}") from None
             self.can_log_path = path
 
+    def _recording_stopped(self, reason: str) -> None:
+        print(f"{self.prog}: recording stopped: {reason}; {self.recorder.paths[-1]} is complete and readable "
+              f"(the session goes on{', the live view too' if self.recorder.live is not None else ''})",
+              file=sys.stderr)
+
     @property
     def active(self) -> bool:
-        return self.recorder is not None or self.can_log is not None
+        return self.recorder is not None or self.can_log is not None or self.publisher is not None
 
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
         """Before bring-up: record the raw input of every transport and every SYNC the host opens."""
         from host.transport import CanTransport
 
+        self._host = host
+        if self.publisher is not None:  # every snapshot as emitted, corrected, as the recording
+            host.feed.add_listener(self.publisher.snapshot)
         if self.recorder is not None and self.recorder.path is not None:
             self.recorder.tap(host.transports, host.feed)
             self.recorder.tap_sync(host.feed)
@@ -171,6 +240,13 @@ class SessionOutputs:
         """After bring-up: the session's facts (layout, calibration, rate) into the recording."""
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
+        if self.publisher is not None:
+            from host.record import Recorder
+            session, layout, calibration = Recorder.session_facts(host)
+            live_cal = host.calibration
+            if live_cal is not None:  # `--calibration`: what the snapshots were corrected with
+                calibration = {**calibration, "host_calibration": live_cal.to_dict()}
+            self.publisher.describe(layout, calibration, session)
 
     def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False,
                  estimate: bool = True):
@@ -179,9 +255,10 @@ class SessionOutputs:
         the estimate is for the newest, the recording for every one). Returns the estimate made, or
         None."""
         rec = self.recorder
-        if rec is None:
+        self._health()
+        if rec is None and self.publisher is None:
             return None
-        if rec.path is not None and not self.records_at_emission:
+        if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
         if not estimate:
             return None
@@ -207,7 +284,10 @@ class SessionOutputs:
 
     def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
                 uncertainty: bool = False) -> None:
-        """Record and show an estimate made elsewhere (the demo's own)."""
+        """Record, show and publish an estimate made elsewhere (the demo's own)."""
+        if self.publisher is not None:
+            self.publisher.estimate(est, snap, uncertainty=uncertainty)
+            self._health()
         if self.recorder is None:
             return
         err = err_mean = None
@@ -233,20 +313,40 @@ class SessionOutputs:
                     "position": None} for F, i in marks]
         rec.contacts(k, t, cs)
 
+    def _health(self, *, force: bool = False) -> None:
+        """The host's summary to ``capsheet/<sheet>/health`` (about once a second)."""
+        if self.publisher is not None and self._host is not None:
+            self.publisher.health(self._host.summary(), force=force)
+
     def flush(self) -> None:
         if self.recorder is not None:
             self.recorder.flush()
 
     def close(self, stats: dict | None = None) -> None:
+        if self.publisher is not None:
+            try:
+                self._health(force=True)  # the final summary
+            finally:
+                self.publisher.close()
+                c = self.publisher.counts
+                print(f"{self.prog}: published {c['snapshot']} snapshots, {c['estimate']} estimates, "
+                      f"{c['health']} health reports to Zenoh ({c['info']} info queries answered)",
+                      file=sys.stderr)
+                self.publisher = None
         if self.recorder is not None:
             self.recorder.close(stats)
             if self.recorder.path is not None:
                 c = self.recorder.counts
+                files = self.recorder.paths
+                where = files[0] if len(files) == 1 else f"{len(files)} files, {files[0]} .. {files[-1].name}"
                 what = [f"{c.get(t, 0)} {name}" for t, name in (("/capsheet/snapshot", "snapshots"),
                                                                 ("/capsheet/estimate", "estimates"),
                                                                 ("/capsheet/contacts", "contact frames"))
                         if c.get(t, 0) or name == "snapshots"]
-                print(f"{self.prog}: recorded {', '.join(what)} to {self.recorder.path}", file=sys.stderr)
+                print(f"{self.prog}: recorded {', '.join(what)} to {where}", file=sys.stderr)
+                if self.recorder.stopped:
+                    print(f"{self.prog}: the recording stopped early ({self.recorder.stopped}); "
+                          f"{self.recorder.not_recorded} messages after it were not recorded", file=sys.stderr)
             if self.estimates_skipped:
                 print(f"{self.prog}: {self.estimates_skipped} snapshots could not be estimated "
                       f"(last: {self._skip_reason})", file=sys.stderr)

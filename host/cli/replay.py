@@ -40,14 +40,15 @@ def truncated_note(prog: str, path, allow: bool, what: str) -> bool:
 
 def _no_summary(path) -> bool:
     """An MCAP file (by its magic bytes) without its summary: a killed writer, a partial copy."""
-    from host.record import snapshot_count
+    from host.record import recording_set, snapshot_count
     try:
-        with open(path, "rb") as f:
-            if f.read(8) != b"\x89MCAP0\r\n":
-                return False
+        for p in (path if isinstance(path, list) else recording_set(path)):
+            with open(p, "rb") as f:
+                if f.read(8) != b"\x89MCAP0\r\n":
+                    return False
+        return snapshot_count(path) is None
     except OSError:
         return False
-    return snapshot_count(path) is None
 
 
 def _speed(text: str):
@@ -68,7 +69,7 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser("replay", help="replay a recording (MCAP or CAN log) through decoder, aggregator, estimator",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", type=T.existing_file(*RECORDING_SUFFIXES, what="a recording"),
+    p.add_argument("recording", type=T.recording_file(*RECORDING_SUFFIXES, what="a recording"), nargs="+",
                    help="capsheet .mcap, or a CAN log (.log candump, .asc, .blf)")
     p.add_argument("--speed", type=_speed, default=None, metavar="1|max",
                    help="'max' (default) as fast as possible, or a factor of real time (1 = as recorded)")
@@ -90,11 +91,14 @@ def run(args) -> int:
     from host.cli.record_args import SessionOutputs
     from host.replay import Replay
 
+    # one file, a split set by its name, or its files in order (host.record.read)
+    src = args.recording[0] if len(args.recording) == 1 else [str(p) for p in args.recording]
+    args.recording = args.recording[0] if len(args.recording) == 1 else " + ".join(map(str, args.recording))
     try:
-        rp = Replay(args.recording, speed=args.speed, lattice=args.lattice, link_length=args.link_length)
+        rp = Replay(src, speed=args.speed, lattice=args.lattice, link_length=args.link_length)
     except (ValueError, OSError) as exc:
         cut = ""
-        if str(args.recording).lower().endswith(".mcap") and _no_summary(args.recording):
+        if str(args.recording).lower().endswith(".mcap") and _no_summary(src):
             cut = " (it was cut short: no MCAP summary)"
         print(f"capsheet replay: {exc}{cut}", file=sys.stderr)
         return 2 if isinstance(exc, ValueError) and "give the lattice" in str(exc) else 1
@@ -103,8 +107,12 @@ def run(args) -> int:
     truncated = bool(rec is not None and rec.truncated)
     if truncated and truncated_note("capsheet replay", args.recording, args.allow_truncated, "replays it"):
         return 1
-    recorded = {int(c): k for k, c in enumerate(rec.counter)} if rec is not None else {}
-    rec_est = ({int(c): k for k, c in enumerate(rec.estimates["counter"])} if rec is not None else {})
+    # by (counter, timestamp): a recording longer than 65536 SYNCs (7.5 min at 145 Hz) holds each counter again
+    recorded = ({(int(c), float(t)): k for k, (c, t) in enumerate(zip(rec.counter, rec.timestamp))}
+                if rec is not None else {})
+    rec_est = ({(int(c), float(t)): k for k, (c, t) in enumerate(zip(rec.estimates["counter"],
+                                                                        rec.estimates["timestamp"]))}
+               if rec is not None else {})
     att = rec.attachments if rec is not None else {}
     out = SessionOutputs(args, lat, L, mode="replay", prog="capsheet replay",
                          session={"replay_of": str(args.recording),
@@ -126,7 +134,7 @@ def run(args) -> int:
         rerecord = out.recorder if out.recorder is not None and out.recorder.path is not None else None
         for snap in rp.snapshots(progress=progress, recorder=rerecord):
             n += 1
-            k = recorded.get(snap.counter)
+            k = recorded.get((int(snap.counter), float(snap.timestamp)))
             if k is not None:
                 compared += 1
                 same = (np.array_equal(snap.valid, rec.valid[k]) and np.array_equal(snap.status, rec.status[k])
@@ -140,7 +148,7 @@ def run(args) -> int:
             est = estimate(snap.readings, lat.rows, lat.cols, L, valid=snap.valid, previous=previous)
             previous = est
             est_n += 1
-            j = rec_est.get(snap.counter)
+            j = rec_est.get((int(snap.counter), float(snap.timestamp)))
             if j is not None:
                 d = overlay_error(est.joints, rec.estimates["joints"][j].astype(float))
                 changes.append(100.0 * float(np.mean(d)) / (L * (max(lat.rows, lat.cols) - 1)))

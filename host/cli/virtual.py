@@ -92,10 +92,12 @@ def register(subparsers) -> argparse.ArgumentParser:
                    help="python-can channel per bus (repeat); default capsheet0, capsheet1, ...")
     p.add_argument("--fd", action="store_true", help="CAN FD chips and buses")
     p.add_argument("--packed", action="store_true",
-                   help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD)")
+                   help="the gateway answers SYNC with SNAPSHOT frames (serial, or CAN FD); it is then a node "
+                        "on the wire that says so (docs/protocol.md §13), and the host learns it")
     p.add_argument("--rate", type=T.rate, default=None, metavar="HZ",
-                   help="the gateway generates SYNC at this rate (the host then follows it); without it the "
-                        f"host drives SYNC (the printed command: {HOST_RATE_HZ:g} Hz where the link carries it)")
+                   help="the gateway generates SYNC at this rate and refuses the host's (one SYNC source per "
+                        "segment, §13.3); the host then follows it. Without it the host drives SYNC (the printed "
+                        f"command: {HOST_RATE_HZ:g} Hz where the link carries it)")
     p.add_argument("--baud", type=T.positive_int, default=12_000_000,
                    help="pty: the UART rate the virtual gateway stands for (a pty has none), used for the "
                         "capacity check and printed in the host command (default 12000000)")
@@ -207,11 +209,10 @@ def host_command(args, dev, max_rate: float | None = None) -> str:
         cmd += ["--layout", args.layout_out]
     else:
         cmd.append("--auto-assign")
-    if args.rate is not None:
+    if args.rate is not None:  # the gateway says it drives SYNC (§13.3); a driving host would refuse
         cmd += ["--sync", "follow"]
     cmd += ["--rate", f"{host_rate(args, max_rate):g}"]
-    if args.packed:
-        cmd.append("--packed")
+    # no --packed: the gateway node says it packs (GATEWAY_INFO), the host learns it
     return shlex.join(cmd)
 
 
@@ -302,11 +303,6 @@ def run(args) -> int:
         except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
             pass
 
-    if args.transport == "can" and args.can_interface == "udp_multicast" and args.bus_count > 1:
-        print("capsheet virtual: udp_multicast buses share one UDP port, so on Linux their traffic crosses "
-              "(every bus hears every other): use --bus-count 1, or --transport slcan for several buses",
-              file=sys.stderr)
-        return 2
     if getattr(args, "gateways", 1) > 1 and args.transport != "pty":
         print(f"capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
               f"--bus-count", file=sys.stderr)

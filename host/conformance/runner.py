@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 from host.transport import TransportError
 
-from .checks import CHECKS, SHOULD_NOT_MET, Check
+from .checks import CHECKS, PROFILES, SHOULD_NOT_MET, Check, discovery_check
 from .session import CheckFailed, Port, PortLost, RunAborted, Session, Skip
 
 __all__ = ["CheckResult", "select", "run_checks", "summary", "exit_code"]
@@ -36,30 +36,38 @@ class CheckResult:
             (f"  [{self.detail}]" if self.detail else "")
 
 
-def select(only: list[str] | None) -> list[Check]:
-    """The checks named by ``only`` (numbers, or clause prefixes like ``4.6`` / ``§5``), in run order.
+def select(only: list[str] | None, profile: str = "chip") -> list[Check]:
+    """The checks of ``profile`` named by ``only`` (numbers, or clause prefixes like ``4.6`` / ``§5``),
+    in run order.
 
-    The discovery check (1) is always included. Raises ValueError naming any item that matches no check.
+    The profile's discovery check is always included. Raises ValueError naming any item that matches
+    no check of the profile.
     """
+    if profile not in PROFILES:
+        raise ValueError(f"Invalid profile {profile!r} (known: {', '.join(PROFILES)})")
+    first = discovery_check(profile)
+    mine = [first] + [c for c in CHECKS if profile in c.profiles and c is not first]  # discovery runs first
     if not only:
-        return list(CHECKS)
-    chosen: set[int] = {1}
+        return mine
+    chosen: set[int] = {discovery_check(profile).number}
     for o in only:
         o = o.strip()
         if not o:
             continue
         if o.isdigit():
             n = int(o)
-            if not any(c.number == n for c in CHECKS):
-                raise ValueError(f"Invalid --only item {o!r}: there is no check {n} (checks are 1..{len(CHECKS)})")
+            if not any(c.number == n for c in mine):
+                raise ValueError(f"Invalid --only item {o!r}: there is no check {n} in the {profile} profile "
+                                 f"(its checks: {', '.join(str(c.number) for c in mine)})")
             chosen.add(n)
             continue
         prefix = o.lstrip("§")
-        hits = {c.number for c in CHECKS for cl in c.clauses if cl == prefix or cl.startswith(prefix + ".")}
+        hits = {c.number for c in mine for cl in c.clauses if cl == prefix or cl.startswith(prefix + ".")}
         if not hits:
-            raise ValueError(f"Invalid --only item {o!r}: no check holds a chip to clause §{prefix}")
+            raise ValueError(f"Invalid --only item {o!r}: no check of the {profile} profile holds a node to "
+                             f"clause §{prefix}")
         chosen |= hits
-    return [c for c in CHECKS if c.number in chosen]
+    return [c for c in mine if c.number in chosen]
 
 
 def _run_one(c: Check, s: Session, attempts: int) -> CheckResult:
@@ -81,6 +89,10 @@ def _run_one(c: Check, s: Session, attempts: int) -> CheckResult:
         except Exception as exc:  # noqa: BLE001 - a broken device must not stop the battery
             outcome, detail = "FAIL", f"{type(exc).__name__}: {exc}"
         lost = port.lost - lost0
+        if outcome != "PASS" and lost:
+            chip = s.systematic_damage()
+            if chip:  # the damage is the node's own encoding (§6.2), not the port: no retry, a FAIL
+                return CheckResult(c.number, c.clause, c.title, "FAIL", f"{chip}; {detail}", attempt)
         if outcome == "PASS":
             if losses:
                 detail += f" (passed on attempt {attempt}; the port lost {sum(losses)} frames before)"
@@ -98,8 +110,9 @@ def _run_one(c: Check, s: Session, attempts: int) -> CheckResult:
 
 def run_checks(port: Port, *, timeout_s: float = 0.5, node: int | None = None, uid: int | None = None,
                slack_ms: float = 10.0, only: list[str] | None = None, allow_broadcast: bool = False,
-               attempts: int = 3, out=None) -> list[CheckResult]:
-    """Run the selected checks in order against the first chip that answers (or ``uid``).
+               attempts: int = 3, out=None, profile: str = "chip") -> list[CheckResult]:
+    """Run the selected checks of ``profile`` in order against the first node of that kind that
+    answers (or ``uid``): a chip (the default), or a gateway node.
 
     Parameters
     ----------
@@ -121,19 +134,26 @@ def run_checks(port: Port, *, timeout_s: float = 0.5, node: int | None = None, u
         Tries per check when the port lost frames.
     out : file-like, optional
         Each result's line is printed there as it completes.
+    profile : {"chip", "gateway"}
+        Which kind of node is held to the spec (docs/protocol.md §11).
 
     Returns
     -------
     list of CheckResult
         One per check run (the other transport's checks are left out). The chip is left in BOOT.
     """
-    chosen = select(only)
-    s = Session(port, timeout_s=timeout_s, node=node, slack_ms=slack_ms, uid=uid, allow_broadcast=allow_broadcast)
+    chosen = select(only, profile)
+    s = Session(port, timeout_s=timeout_s, node=node, slack_ms=slack_ms, uid=uid, allow_broadcast=allow_broadcast,
+                profile=profile)
+    first = discovery_check(profile).number
     results = []
     for c in chosen:
         if c.transport and c.transport != port.kind:
             continue
-        if c.broadcast and not allow_broadcast:
+        if c.number != first and c.needs_node and results and results[0].number == first \
+                and results[0].outcome != "PASS":
+            r = CheckResult(c.number, c.clause, c.title, "SKIP", f"no {profile} found (check {first})")
+        elif c.broadcast and not allow_broadcast:
             r = CheckResult(c.number, c.clause, c.title, "SKIP",
                             "broadcast check: run with --allow-broadcast (it addresses every chip on the port)")
         else:
@@ -152,7 +172,7 @@ def run_checks(port: Port, *, timeout_s: float = 0.5, node: int | None = None, u
 def summary(results: list[CheckResult]) -> str:
     n = {k: sum(r.outcome == k for r in results) for k in ("PASS", "FAIL", "SKIP", "LOST")}
     lost = f", {n['LOST']} inconclusive (port lost frames)" if n["LOST"] else ""
-    should = sum(r.outcome == "PASS" and r.detail.startswith(SHOULD_NOT_MET) for r in results)
+    should = sum(r.outcome in ("PASS", "SKIP") and r.detail.startswith(SHOULD_NOT_MET) for r in results)
     should = f" ({should} with a SHOULD not met)" if should else ""
     return f"conformance: {n['PASS']} checks passed{should}, {n['FAIL']} failed, {n['SKIP']} skipped{lost}"
 

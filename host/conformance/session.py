@@ -37,11 +37,13 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
+from host.gateways import GatewayRecord
 from host.transport import CanTransport, Transport, TransportError, TransportOperationError
 from protocol.can import decode_can, split_id
 from protocol.framing import DecodeError, SampleBatch
-from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, ChipState, Config, Direction, GetInfo,
-                               Info, Message, MsgType, Reset, Start, Status, Stop)
+from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, ChipState, Config,
+                               Direction, GatewayFlag, GatewayInfo, GetInfo, Info, Message, MsgType, Reset, Sample,
+                               Snapshot, Start, Status, Stop, Sync, is_node_to_host_type)
 
 __all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
            "FrameAudit", "HEARTBEAT_MS"]
@@ -295,7 +297,24 @@ class Port(_AuditView):
 # The session: one chip, tracked through its node id
 # ---------------------------------------------------------------------------------------------
 
-_TOLERATED = (Status, Announce, Info)
+#: never taken as the answer to a command: heartbeats, (re-)announces, and samples — a streaming chip
+#: behind a gateway that drives SYNC answers that SYNC all the time (a SYNC check collects them itself)
+_TOLERATED = (Status, Announce, Info, GatewayInfo, Sample)
+
+
+def _cobs_head(encoded: bytes, n: int = 4) -> bytes | None:
+    """The first ``n`` bytes of a COBS run (a damaged frame's excerpt), or None."""
+    out = bytearray()
+    i = 0
+    while i < len(encoded) and len(out) < n:
+        code = encoded[i]
+        if code == 0:
+            return None
+        out += encoded[i + 1:i + code]
+        i += code
+        if i < len(encoded) and code != 0xFF:
+            out.append(0)
+    return bytes(out[:n]) if len(out) >= n else None
 
 
 @dataclass
@@ -315,6 +334,15 @@ class Session:
     boot_t: float = 0.0  #: when the chip last entered BOOT (its ANNOUNCE arrived)
     my_nodes: set = field(default_factory=set)  #: every node id the chip under test spoke from
     acks: list = field(default_factory=list)  #: every ACK the chip under test sent (§4.5 detail)
+    profile: str = "chip"  #: "chip" or "gateway": which kind of node is under test (§11)
+    link: int = 0  #: the link the run assigns the chip (a packing gateway's first link, if there is one)
+    gateways: dict = field(default_factory=dict)  #: uid -> host.gateways.GatewayRecord of every gateway heard
+    uids_heard: dict = field(default_factory=dict)  #: uid -> "chip" / "gateway" / None (INFO not yet seen)
+    #: (type, intact?) -> frames of the node under test by type: a type whose every frame fails its CRC
+    #: while others arrive intact is the node's encoding, not the port (§6.2; `systematic_damage`)
+    by_type: Counter = field(default_factory=Counter)
+    _last_announce: dict = field(default_factory=dict)  #: node -> the uid of its last ANNOUNCE
+    node_of_uid: dict = field(default_factory=dict)  #: uid -> the node id of its last ANNOUNCE
 
     @property
     def answer_s(self) -> float:
@@ -332,8 +360,92 @@ class Session:
         # its current node, or the node this run assigns (the ACK to ASSIGN comes from the new id)
         return m.node == self.cur or (self.node is not None and m.node == self.node)
 
-    def collect(self, duration_s: float, stop: Callable[[list], bool] | None = None) -> list:
-        """This chip's messages, ``[(arrival_time, msg)]``, for ``duration_s`` or until ``stop(msgs)``."""
+    def packing_gateway_for_any(self) -> GatewayRecord | None:
+        """The first gateway heard that packs some links (the run then gives the chip one of them)."""
+        for g in self.gateways.values():
+            if g.flags & GatewayFlag.PACKING and g.first_link() is not None:
+                return g
+        return None
+
+    @property
+    def packing_gateway(self) -> GatewayRecord | None:
+        """A gateway that packs the link the run gives the chip (its SAMPLEs come in SNAPSHOTs)."""
+        if self.profile != "chip":
+            return None
+        for g in self.gateways.values():
+            if g.flags & GatewayFlag.PACKING and g.covers(self.link):
+                return g
+        return None
+
+    @property
+    def sync_gateway(self) -> GatewayRecord | None:
+        """A gateway that is its segment's SYNC source: SYNC from this suite does not reach the chip."""
+        if self.profile != "chip":
+            return None
+        for g in self.gateways.values():
+            if g.flags & GatewayFlag.SYNC_SOURCE:
+                return g
+        return None
+
+    def _from_snapshot(self, m: Snapshot) -> Sample | None:
+        """The chip under test's sample in a SNAPSHOT (a packing gateway's), as the SAMPLE it stands for."""
+        if self.profile != "chip" or self.node is None or self.cur != self.node \
+                or not (m.first_link <= self.link < m.first_link + m.count):
+            return None
+        k = self.link - m.first_link
+        (x, y, z), st = m.counts[k].tolist(), int(m.status[k])
+        return Sample(self.node, m.counter, x, y, z, st)
+
+    def note(self, t: float, m) -> None:
+        """Bookkeeping of every frame heard: node ids in use, uids, gateways, the node's frames by type."""
+        if isinstance(m, DecodeError):
+            hdr = _cobs_head(m.excerpt) if m.reason.name == "BAD_CRC" else None
+            if hdr is not None and hdr[0] == 1 and is_node_to_host_type(hdr[1]) and \
+                    int.from_bytes(hdr[2:4], "little") in (self.my_nodes | {self.cur, self.node}):
+                self.by_type[(hdr[1], False)] += 1
+            return
+        if not isinstance(m, Message) or m.DIRECTION != Direction.CHIP_TO_HOST:
+            return
+        self.nodes_seen.setdefault(m.node, m.uid if isinstance(m, Announce) else None)
+        if isinstance(m, Announce):
+            self._last_announce[m.node] = m.uid
+            self.node_of_uid[m.uid] = m.node
+            self.uids_heard.setdefault(m.uid, None)
+            if m.uid in self.gateways:
+                self.gateways[m.uid].node = m.node
+        elif isinstance(m, Info) and m.node in self._last_announce:
+            uid = self._last_announce[m.node]
+            kind = "gateway" if m.capabilities & Capability.GATEWAY else "chip"
+            self.uids_heard[uid] = kind
+            if kind == "gateway":
+                g = self.gateways.setdefault(uid, GatewayRecord(uid, m.node, bus=0))
+                g.node, g.info = m.node, m
+        elif isinstance(m, GatewayInfo):
+            for g in self.gateways.values():
+                if g.node == m.node:
+                    g.runs[m.first_link] = m
+        if m.node in self.my_nodes or m.node in (self.cur, self.node):
+            self.by_type[(int(m.TYPE), True)] += 1
+
+    def systematic_damage(self) -> str | None:
+        """A message type every frame of which, from the node under test, failed its CRC (at least 3)
+        while its other types arrived intact: the node's encoding (§6.2), not a lossy port."""
+        intact_any = sum(v for (t, ok), v in self.by_type.items() if ok)
+        for (t, ok), bad in self.by_type.items():
+            if ok or bad < 3 or self.by_type.get((t, True), 0) or not intact_any:
+                continue
+            name = MsgType(t).name if t in MsgType._value2member_map_ else f"type 0x{t:02X}"
+            return (f"§6.2: every {name} frame from the node ({bad} of {bad}) fails its CRC while its other "
+                    f"frames ({intact_any}) arrive intact: the node's CRC, not the port")
+        return None
+
+    def collect(self, duration_s: float, stop: Callable[[list], bool] | None = None, *,
+                syncs: bool = False) -> list:
+        """This node's messages, ``[(arrival_time, msg)]``, for ``duration_s`` or until ``stop(msgs)``.
+
+        A packing gateway's SNAPSHOT that covers the chip's link counts as the SAMPLE it carries for
+        the chip; with ``syncs`` the SYNC frames heard (a gateway's, forwarded) are kept too. Every
+        frame heard updates the bookkeeping (`note`), and ``stop`` is asked after each."""
         out: list = []
         deadline = time.monotonic() + duration_s
         while True:
@@ -341,19 +453,24 @@ class Session:
             if item is None:
                 return out
             t, m = item
-            if isinstance(m, Message) and m.DIRECTION == Direction.CHIP_TO_HOST:
-                self.nodes_seen.setdefault(m.node, m.uid if isinstance(m, Announce) else None)
-            if not self.mine(m):
-                continue
-            if isinstance(m, Announce):
-                self.cur = m.node  # a re-announce comes from a new provisional id
-                self.boot_t = t
-            self.my_nodes.add(m.node)
-            if isinstance(m, Ack):
-                self.acks.append(m)
-                if m.command == MsgType.ASSIGN:
-                    self.cur = m.node  # assigned (even by an ASSIGN it should have ignored)
-            out.append((t, m))
+            self.note(t, m)
+            if syncs and isinstance(m, Sync):
+                pass
+            elif isinstance(m, Snapshot):
+                m = self._from_snapshot(m)
+            elif not self.mine(m):
+                m = None
+            if m is not None:
+                if isinstance(m, Announce):
+                    self.cur = m.node  # a re-announce comes from a new provisional id
+                    self.boot_t = t
+                if not isinstance(m, Sync):
+                    self.my_nodes.add(m.node)
+                if isinstance(m, Ack):
+                    self.acks.append(m)
+                    if m.command == MsgType.ASSIGN:
+                        self.cur = m.node  # assigned (even by an ASSIGN it should have ignored)
+                out.append((t, m))
             if stop is not None and stop([x for _, x in out]):
                 return out
 
@@ -388,13 +505,14 @@ class Session:
         return self.answers(got)
 
     def silent(self, send: Message | Callable[[], object], duration_s: float | None = None) -> list[Message]:
-        """Send and return everything this chip answered within the timeout (should be nothing)."""
+        """Send and return everything this chip answered within the timeout (should be nothing); a
+        SAMPLE counts as an answer here (a SYNC that should go unanswered)."""
         self.drain()
         if isinstance(send, Message):
             self.port.send(send)
         else:
             send()
-        return self.answers(self.collect(duration_s or self.timeout_s))
+        return self.answers(self.collect(duration_s or self.timeout_s), keep=(Sample,))
 
     def statuses(self, n: int, timeout_s: float | None = None) -> list:
         """``[(arrival_time, Status)]``: this chip's next ``n`` heartbeats (fewer on timeout)."""
@@ -421,12 +539,15 @@ class Session:
         self.collect(self.answer_s, lambda ms: any(isinstance(m, Announce) for m in ms))
 
     def fresh_boot(self) -> None:
-        """RESET: ACK, ANNOUNCE, INFO. The chip then stays at this provisional id for 1 s."""
+        """RESET: ACK, ANNOUNCE, INFO (a gateway: and GATEWAY_INFO). The node then stays at this
+        provisional id for 1 s."""
         self.need_chip()
-        ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
+        n = 4 if self.profile == "gateway" else 3
+        keep = (Announce, Info, GatewayInfo)
+        ans = self.request(Reset(self.cur), n, keep=keep)
         if not ans:  # it moved (a re-announce we did not hear: lost on the port): find it, once
             self.relocate()
-            ans = self.request(Reset(self.cur), 3, keep=(Announce, Info))
+            ans = self.request(Reset(self.cur), n, keep=keep)
         require(len(ans) >= 3 and isinstance(ans[0], Ack) and ans[0].command == MsgType.RESET and isinstance(ans[1], Announce)
                 and isinstance(ans[2], Info), f"RESET not answered ACK, ANNOUNCE, INFO: {ans}")
         self.cur = ans[1].node
@@ -440,7 +561,7 @@ class Session:
             ans = self.request_info(self.cur)
         if len(ans) == 2 and isinstance(ans[1], Info) and ans[1].state == ChipState.STREAMING:
             self.request(Stop(self.cur))
-        ans = self.request(Assign(self.cur, new_node=self.node, link=0, uid_low=self.uid & 0xFFFFFFFF))
+        ans = self.request(Assign(self.cur, new_node=self.node, link=self.link, uid_low=self.uid & 0xFFFFFFFF))
         require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
         self.cur = self.node
         ans = self.request(Config(self.node, rate_hz=145, range=0, filter=0, heartbeat_ms=heartbeat_ms))
@@ -449,7 +570,7 @@ class Session:
     def to_idle(self, heartbeat_ms: int = HEARTBEAT_MS) -> None:
         """Fresh boot, ASSIGN to the run's node id, CONFIG: the chip is IDLE at ``self.node``."""
         self.fresh_boot()
-        ans = self.request(Assign(self.cur, new_node=self.node, link=0, uid_low=self.uid & 0xFFFFFFFF))
+        ans = self.request(Assign(self.cur, new_node=self.node, link=self.link, uid_low=self.uid & 0xFFFFFFFF))
         require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
         self.cur = self.node
         ans = self.request(Config(self.node, rate_hz=145, range=0, filter=0, heartbeat_ms=heartbeat_ms))
@@ -467,10 +588,58 @@ class Session:
                     return
         self.to_idle()
 
+    def ensure_node(self) -> None:
+        """The node under test assigned at the run's node id: IDLE (a chip, configured) or a gateway."""
+        if self.profile == "gateway":
+            self.assign_gateway()
+        else:
+            self.ensure_idle()
+
     def to_streaming(self) -> None:
         self.ensure_idle()
         ans = self.request(Start(self.node))
         require(acked(ans, self.node, MsgType.START), f"START answered {ans}")
+
+    # ---- SYNC, wherever it comes from
+    @property
+    def gateway_sync_wait_s(self) -> float:
+        g = self.sync_gateway
+        rate = g.sync_rate_hz if g is not None else 0
+        return max(self.answer_s, 3.0 / rate) if rate else self.answer_s
+
+    def sync_round(self, counter: int) -> tuple[int, float, list]:
+        """One SYNC and the chip's answers to it: ``(counter, time of the SYNC, [(time, Sample)])``.
+
+        The suite sends SYNC ``counter`` — or, behind a gateway that is its segment's SYNC source
+        (§13.3, which passes no SYNC from this suite), takes that gateway's next SYNC and its counter.
+        A packing gateway's SNAPSHOT counts as the chip's SAMPLE (`collect`). Waits until a sample
+        with the counter arrived, at most `answer_s`."""
+        self.drain()
+        g = self.sync_gateway
+        if g is None:
+            t0 = self.port.send(Sync(counter=counter))
+            c = counter
+        else:
+            got = self.collect(self.gateway_sync_wait_s, lambda ms: any(isinstance(m, Sync) for m in ms), syncs=True)
+            syn = [(t, m) for t, m in got if isinstance(m, Sync)]
+            if not syn:
+                raise Skip(f"{g.label()} is the segment's SYNC source and sent no SYNC within "
+                           f"{self.gateway_sync_wait_s:.1f} s")
+            t0, c = syn[-1][0], syn[-1][1].counter
+        got = self.collect(self.answer_s, lambda ms: any(isinstance(m, Sample) and m.counter == c for m in ms))
+        return c, t0, [(t, m) for t, m in got if isinstance(m, Sample)]
+
+    def assign_gateway(self) -> None:
+        """The gateway under test: ASSIGN where it is (link 0xFFFF): IDLE at ``self.node``."""
+        self.need_chip()
+        if self.cur == self.node:
+            return
+        ans = self.request(Assign(self.cur, new_node=self.node, link=LINK_NONE, uid_low=self.uid & 0xFFFFFFFF))
+        if not ans:
+            self.relocate()
+            ans = self.request(Assign(self.cur, new_node=self.node, link=LINK_NONE, uid_low=self.uid & 0xFFFFFFFF))
+        require(acked(ans, self.node, MsgType.ASSIGN), f"ASSIGN answered {ans}")
+        self.cur = self.node
 
     def pick_node(self) -> int:
         """The highest assigned node id no chip was heard from (so a full sheet is not disturbed)."""

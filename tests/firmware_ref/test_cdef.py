@@ -14,7 +14,7 @@ FW = Path(__file__).resolve().parents[2] / "firmware_ref"
 def _cdef_text() -> str:
     src = (FW / "build_ffi.py").read_text()
     start = src.index('CDEF = r"""') + len('CDEF = r"""')
-    return src[start:src.index('"""', start)]
+    return src[start:src.index('"""', start)].replace("MUTANT_FIELDS", "")  # the production build's
 
 
 def _clean(t: str) -> str:

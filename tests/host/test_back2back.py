@@ -51,7 +51,7 @@ class Rig:
 
     def __init__(self, kind: str, *, shape="flat", lattice="4x4", faults=None, sensor=None, packed=False,
                  rate_hz=100.0, watchdog_s=None, layout=True, seed=1, gateway_sync_hz=None,
-                 chip_class=None) -> None:
+                 chip_class=None, gateway_node=None) -> None:
         can_kind = kind in ("can-virtual", "slcan")
         self.kind = kind
         self.sim = kind in SIMULATED
@@ -59,7 +59,8 @@ class Rig:
         self.sheet = VirtualSheet(shape, lattice, seed=seed, transport="can" if can_kind else "serial",
                                   faults=faults, sensor=sensor, fd=packed and can_kind, chip_factory=chip_class)
         if kind == "memory":
-            self.device = MemoryDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz, clock=self.clock)
+            self.device = MemoryDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz, clock=self.clock,
+                                       gateway_node=gateway_node)
         elif kind == "pty":
             self.device = PtyDevice(self.sheet, packed=packed, sync_rate_hz=gateway_sync_hz)
         elif kind == "can-virtual":
@@ -177,7 +178,7 @@ def test_bring_up_and_stream_complete_calibrated_snapshots(rig_factory, kind):
     rig = rig_factory(kind, shape="gaussian", sensor=sensor)
     n = rig.sheet.n_links
     summary = rig.host.bring_up(0.3)
-    assert summary == {"discovered": n, "assigned": n, "configured": n, "calibrated": n, "started": n}
+    assert summary == {"discovered": n, "assigned": n, "configured": n, "calibrated": n, "started": n, "gateways": 0}
     assert {r.link for r in rig.host.chips.values()} == set(range(n))
     snaps = rig.stream(0.6)
     check_accounting(rig, snaps)

@@ -97,11 +97,19 @@ def test_a_foxglove_client_subscribes_and_decodes_the_estimates_joints(subprotoc
     assert channels["/sheet/scene"]["schemaName"] == "foxglove.SceneUpdate"
     assert channels["/sheet/scene"]["encoding"] == "protobuf"
     assert channels["/sheet/joints"]["schemaName"] == "foxglove.PointCloud"
-    assert channels["/capsheet/estimate"]["encoding"] == "json"
+    est = channels["/capsheet/estimate"]
+    assert (est["encoding"], est["schemaName"]) == ("protobuf", "capsheet.v2.Estimate")
+    # decoded with the schema the server advertised (a FileDescriptorSet, base64), not capsheet's code
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(est["schema"])).file:
+        pool.Add(fd)
+    Estimate = message_factory.GetMessageClass(pool.FindMessageTypeByName(est["schemaName"]))
+    assert got["/capsheet/estimate"]
     for payload in got["/capsheet/estimate"]:
-        doc = json.loads(payload)
-        J = np.frombuffer(base64.b64decode(doc["joints"]["data"]), dtype="<f4").reshape(doc["joints"]["shape"])
-        np.testing.assert_array_equal(J, sent[doc["counter"]].astype(np.float32))
+        doc = Estimate.FromString(payload)
+        J = np.array(doc.joints, dtype=np.float32).reshape(4, 5, 3)
+        np.testing.assert_array_equal(J, sent[doc.counter].astype(np.float32))
     # the point cloud carries the joints as packed float32 x, y, z: find them in the protobuf bytes
     pc = got["/sheet/joints"][0]
     assert any(sent[k].astype("<f4").tobytes() in pc for k in sent)

@@ -75,11 +75,19 @@ def test_the_npm_ws_protocol_client_receives_the_channels_and_the_estimates():
     assert channels["/sheet/scene"]["schemaName"] == "foxglove.SceneUpdate"
     assert channels["/sheet/scene"]["encoding"] == "protobuf"
     assert channels["/sheet/joints"]["schemaName"] == "foxglove.PointCloud"
-    assert channels["/capsheet/estimate"]["encoding"] == "json"
+    ch = channels["/capsheet/estimate"]
+    assert (ch["encoding"], ch["schemaName"]) == ("protobuf", "capsheet.v2.Estimate")
+    # decoded with the schema the server advertised to the npm client (a FileDescriptorSet, base64)
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"])).file:
+        pool.Add(fd)
+    Estimate = message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
+    assert doc["messages"]["/capsheet/estimate"]
     for payload in doc["messages"]["/capsheet/estimate"]:
-        est = json.loads(base64.b64decode(payload))
-        J = np.frombuffer(base64.b64decode(est["joints"]["data"]), dtype="<f4").reshape(est["joints"]["shape"])
-        np.testing.assert_array_equal(J, sent[est["counter"]].astype(np.float32))
+        est = Estimate.FromString(base64.b64decode(payload))
+        J = np.array(est.joints, dtype=np.float32).reshape(lat.rows, lat.cols, 3)
+        np.testing.assert_array_equal(J, sent[est.counter].astype(np.float32))
     clouds = [base64.b64decode(m) for m in doc["messages"]["/sheet/joints"]]
     assert all(any(s.astype("<f4").tobytes() in pc for s in sent.values()) for pc in clouds)
     assert all(len(base64.b64decode(m)) > lat.n_links * 2 * 12 for m in doc["messages"]["/sheet/scene"])

@@ -28,6 +28,7 @@ UDP port per machine): its runs go one after the other, under the machine-wide l
 from __future__ import annotations
 
 import asyncio
+import base64
 import fcntl
 import json
 import re
@@ -53,15 +54,15 @@ LATTICE = "3x3"
 L = 0.01
 SEED = 5  #: the chip errors of the streaming sheet (realistic, noise-free: every snapshot alike)
 MUTANT = "counter_off_by_one"  #: breaks §5.1 on any transport (tests/host/conformance/mutants.py)
-MUTANT_FAILS = {22, 23, 24, 25}  #: tests/host/conformance/test_mutants.py's EXPECTED for it
-MUTANT_ONLY = "1,22,23,24,25,27"  #: the mutant's run: discovery, the checks it fails, one it passes
+MUTANT_FAILS = {24, 25, 26, 27}  #: tests/host/conformance/test_mutants.py's EXPECTED for it
+MUTANT_ONLY = "1,24,25,26,27,29"  #: the mutant's run: discovery, the checks it fails, one it passes
 
 #: feature -> what its cell asserts (the rows of the docs table)
 CELLS = {
     "stream": "`capsheet host`: every chip found and streaming, >= 95 % of link samples valid, no error",
     "record-replay": "`--record` then `capsheet replay`: every recorded snapshot replayed identical",
     "can-log": "`--can-log` decoded by `python -m cantools decode`: every line, Rx and Tx",
-    "conformance": "`capsheet conformance`: PASS on a healthy chip, FAIL exactly 22-25 on a mutant",
+    "conformance": "`capsheet conformance`: PASS on a healthy chip, FAIL exactly 24-27 on a mutant",
     "calibrate": "`capsheet calibrate --write-chips`: every chip written and read back",
     "calibration-host": "`capsheet host --calibration`: applied once, the estimate changes as the chips' errors predict",
     "calibration-demo": "`capsheet demo --calibration`: the estimate's error is what the calibration predicts",
@@ -233,7 +234,8 @@ LIVE_TOPICS = ("/capsheet/snapshot", "/capsheet/estimate")
 
 
 async def _live_client(url: str, want: int = 2, timeout_s: float = 60.0) -> dict:
-    """Subscribe to `LIVE_TOPICS` and return ``{topic: [decoded JSON messages]}`` (``want`` each)."""
+    """Subscribe to `LIVE_TOPICS` and return ``{topic: [decoded messages]}`` (``want`` each): JSON, or
+    protobuf decoded with the schema the server advertised (not capsheet's own code)."""
     import struct
 
     import websockets
@@ -258,8 +260,22 @@ async def _live_client(url: str, want: int = 2, timeout_s: float = 60.0) -> dict
                         await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
             elif m[0] == 0x01:
                 sid, _ts = struct.unpack_from("<IQ", m, 1)
-                got[subscribed[sid]].append(json.loads(m[13:]))
+                ch = channels[subscribed[sid]]
+                got[subscribed[sid]].append(_decode_advertised(ch, m[13:]))
         return got
+
+
+def _decode_advertised(ch: dict, payload: bytes):
+    if ch["encoding"] != "protobuf":
+        return json.loads(payload)
+    import base64
+
+    from google.protobuf import descriptor_pb2, descriptor_pool, json_format, message_factory
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"])).file:
+        pool.Add(fd)
+    msg = message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"])).FromString(payload)
+    return json_format.MessageToDict(msg, preserving_proto_field_name=True)  # shared between workers as JSON
 
 
 class Done:
@@ -460,12 +476,12 @@ def test_conformance_passes_a_healthy_chip_and_fails_a_mutant(batch):
     _ok(healthy)
     assert " 0 failed" in healthy.stdout and "LOST" not in healthy.stdout, healthy.stdout
     passed = {int(ln.split()[1]) for ln in healthy.stdout.splitlines() if ln.startswith("PASS")}
-    assert {1, 14, 22, 23, 24, 25, 27, 30, 31} <= passed, healthy.stdout
+    assert {1, 15, 24, 25, 26, 27, 29, 39, 40} <= passed, healthy.stdout
     if batch.transport in CAN:
-        assert {20, 32} <= passed, healthy.stdout
+        assert {22, 41} <= passed, healthy.stdout
     assert mutant.rc == 1 and "Traceback" not in mutant.stderr, mutant.stdout + mutant.stderr
     outcome = {int(ln.split()[1]): ln.split()[0] for ln in mutant.stdout.splitlines() if ln[:4] in ("PASS", "FAIL")}
-    assert outcome == {1: "PASS", 22: "FAIL", 23: "FAIL", 24: "FAIL", 25: "FAIL", 27: "PASS"}, mutant.stdout
+    assert outcome == {1: "PASS", 24: "FAIL", 25: "FAIL", 26: "FAIL", 27: "FAIL", 29: "PASS"}, mutant.stdout
     assert {k for k, v in outcome.items() if v == "FAIL"} == MUTANT_FAILS
 
 
@@ -543,9 +559,10 @@ def test_live_serves_a_foxglove_client(batch):
     _ok(batch.jobs["stream"])
     got = batch.live
     assert isinstance(got, dict) and all(len(got[t]) >= 2 for t in LIVE_TOPICS), got
-    snap = got["/capsheet/snapshot"][-1]
-    assert snap["readings"]["shape"] == [12, 3] and snap["valid"]["shape"] == [12]
-    assert got["/capsheet/estimate"][-1]["joints"]["shape"] == [3, 3, 3]
+    snap = got["/capsheet/snapshot"][-1]  # the chips' counts (capsheet.v2.Snapshot), 12 links
+    assert snap["n_links"] == 12 and len(snap["counts"]) == 12 * 3
+    assert len(base64.b64decode(snap["status"])) == 12
+    assert len(got["/capsheet/estimate"][-1]["joints"]) == 3 * 3 * 3
 
 
 def test_the_docs_table_is_this_matrix():

@@ -80,18 +80,26 @@ def test_capsheet_reads_back_what_it_recorded(tmp_path):
     assert set(rec.attachments) == {"layout.json", "calibration.json"}
 
 
+class _JsonDecoders:
+    """The contacts channel stays JSON: json.loads as its decoder (mcap's DecoderFactory interface)."""
+
+    def decoder_for(self, message_encoding, schema):
+        return json.loads if message_encoding == "json" else None
+
+
 def test_the_mcap_packages_reader_sees_the_same_messages_and_foxglove_schemas(tmp_path):
     from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
 
     rng = np.random.Generator(np.random.MT19937(2))
     path = tmp_path / "run.mcap"
     snaps, raws, joints, _ = write_sample(path, rng)
     with open(path, "rb") as f:
-        reader = make_reader(f)
+        reader = make_reader(f, decoder_factories=[DecoderFactory(), _JsonDecoders()])
         summary = reader.get_summary()
         by_topic = {}
-        for schema, channel, message in reader.iter_messages():
-            by_topic.setdefault(channel.topic, []).append((schema, channel, message))
+        for schema, channel, message, decoded in reader.iter_decoded_messages():
+            by_topic.setdefault(channel.topic, []).append((schema, channel, message, decoded))
         meta = {m.name: m.metadata for m in reader.iter_metadata()}
     counts = {t: len(v) for t, v in by_topic.items()}
     assert counts["/capsheet/snapshot"] == 12 and counts["/capsheet/sync"] == 12
@@ -99,18 +107,24 @@ def test_the_mcap_packages_reader_sees_the_same_messages_and_foxglove_schemas(tm
     assert counts["/capsheet/estimate"] == 3 and counts["/capsheet/contacts"] == 1
     assert counts["/sheet/joints"] == 3 and counts["/sheet/scene"] == 4 and counts["/tf"] == 1
     assert summary.statistics.message_count == sum(counts.values())
-    schema, channel, _ = by_topic["/sheet/scene"][0]
+    schema, channel, _, _ = by_topic["/sheet/scene"][0]
     assert (schema.name, schema.encoding, channel.message_encoding) == ("foxglove.SceneUpdate", "protobuf", "protobuf")
     assert by_topic["/sheet/joints"][0][0].name == "foxglove.PointCloud"
     assert by_topic["/tf"][0][0].name == "foxglove.FrameTransform"
-    s, c, m = by_topic["/capsheet/snapshot"][7]
-    assert (s.name, s.encoding, c.message_encoding) == ("capsheet.Snapshot", "jsonschema", "json")
-    doc = json.loads(m.data)
-    r = np.frombuffer(base64.b64decode(doc["readings"]["data"]), dtype="<f4").reshape(doc["readings"]["shape"])
+    s, c, m, d = by_topic["/capsheet/snapshot"][7]
+    assert (s.name, s.encoding, c.message_encoding) == ("capsheet.v2.Snapshot", "protobuf", "protobuf")
+    # made without an aggregator: no counts, so its readings as float32 (decoded by mcap-protobuf-support
+    # from the schema the file holds)
+    assert len(d.counts) == 0 and d.n_links == 3 * 3 + 2 * 4
+    r = np.array(d.readings, dtype=np.float32).reshape(-1, 3)
     np.testing.assert_array_equal(r, snaps[7].readings.astype(np.float32))
+    v = np.unpackbits(np.frombuffer(d.valid, np.uint8), count=d.n_links, bitorder="little").astype(bool)
+    np.testing.assert_array_equal(v, snaps[7].valid)
     assert m.log_time == int(round(snaps[7].wall_time * 1e9))
-    raw0 = [base64.b64decode(json.loads(m.data)["data"]) for _, _, m in by_topic["/capsheet/raw/bus0"]]
-    assert raw0 == raws[0::2]
+    assert [d.data for _, _, _, d in by_topic["/capsheet/raw/bus0"]] == raws[0::2]
+    e = by_topic["/capsheet/estimate"][1][3]
+    np.testing.assert_array_equal(np.array(e.joints, np.float32).reshape(joints[1].shape), joints[1].astype(np.float32))
+    assert e.error_pct_side == 0.5 and e.method == "global"
     assert json.loads(meta["capsheet.session"]["link_length_m"]) == 0.02
 
 
@@ -131,20 +145,38 @@ def _string(b: bytes, p: int):
     return b[p + 4:p + 4 + n].decode(), p + 4 + n
 
 
+def _decode(schema, data: bytes):
+    """A message decoded with the schema its file holds (protobuf: a FileDescriptorSet), not capsheet's."""
+    if schema is None or schema[1] != "protobuf":
+        return data
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(schema[2]).file:
+        pool.Add(fd)
+    return message_factory.GetMessageClass(pool.FindMessageTypeByName(schema[0])).FromString(data)
+
+
 def _minimal_read(path):
     import zstandard
 
     buf = open(path, "rb").read()
     assert buf[:8] == b"\x89MCAP0\r\n"
-    channels, messages = {}, []
+    channels, messages, schemas = {}, [], {}
 
     def handle(op, body):
-        if op == 0x04:  # Channel: id u16, schema_id u16, topic
-            cid = struct.unpack_from("<H", body, 0)[0]
+        if op == 0x03:  # Schema: id u16, name, encoding, data (u32 length)
+            sid = struct.unpack_from("<H", body, 0)[0]
+            name, p = _string(body, 2)
+            enc, p = _string(body, p)
+            n = struct.unpack_from("<I", body, p)[0]
+            schemas[sid] = (name, enc, body[p + 4:p + 4 + n])
+        elif op == 0x04:  # Channel: id u16, schema_id u16, topic
+            cid, sid = struct.unpack_from("<HH", body, 0)
             channels[cid] = _string(body, 4)[0]
+            schemas[("channel", cid)] = schemas.get(sid)
         elif op == 0x05:  # Message: channel u16, sequence u32, log_time u64, publish_time u64, data
             cid, _, log_time = struct.unpack_from("<HIQ", body, 0)
-            messages.append((channels[cid], log_time, body[22:]))
+            messages.append((channels[cid], log_time, _decode(schemas[("channel", cid)], body[22:])))
         elif op == 0x06:  # Chunk: start u64, end u64, uncompressed size u64, crc u32, compression, records
             size = struct.unpack_from("<Q", body, 16)[0]
             comp, p = _string(body, 28)
@@ -168,13 +200,16 @@ def test_a_second_reader_written_from_the_mcap_spec_agrees(tmp_path):
     path = tmp_path / "run.mcap"
     snaps, raws, joints, _ = write_sample(path, rng)
     msgs = _minimal_read(path)
-    snap_docs = [json.loads(d) for t, _, d in msgs if t == "/capsheet/snapshot"]
-    assert [d["counter"] for d in snap_docs] == list(range(12))
-    v = np.frombuffer(base64.b64decode(snap_docs[4]["valid"]["data"]), dtype="u1").astype(bool)
+    snap_docs = [d for t, _, d in msgs if t == "/capsheet/snapshot"]
+    assert [d.counter for d in snap_docs] == list(range(12))
+    v = np.unpackbits(np.frombuffer(snap_docs[4].valid, np.uint8), count=snap_docs[4].n_links,
+                      bitorder="little").astype(bool)
     np.testing.assert_array_equal(v, snaps[4].valid)
-    est = [json.loads(d) for t, _, d in msgs if t == "/capsheet/estimate"]
-    j = np.frombuffer(base64.b64decode(est[1]["joints"]["data"]), dtype="<f4").reshape(est[1]["joints"]["shape"])
-    np.testing.assert_array_equal(j, joints[1].astype(np.float32))
+    np.testing.assert_array_equal(np.frombuffer(snap_docs[4].status, np.uint8), snaps[4].status)
+    est = [d for t, _, d in msgs if t == "/capsheet/estimate"]
+    np.testing.assert_array_equal(np.array(est[1].joints, np.float32).reshape(joints[1].shape),
+                                  joints[1].astype(np.float32))
+    assert [d.data for t, _, d in msgs if t == "/capsheet/raw/bus1"] == raws[1::2]
 
 
 KILLED_WRITER = textwrap.dedent("""

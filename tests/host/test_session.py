@@ -55,7 +55,7 @@ def test_bring_up_of_a_sheet_left_streaming_by_another_session(rigs, first_node)
         inject(rig, Sync(counter=c))
     up = rig.host.bring_up(0.2)
     n = rig.sheet.n_links
-    assert up == {"discovered": n, "assigned": n, "configured": n, "calibrated": n, "started": n}
+    assert up == {"discovered": n, "assigned": n, "configured": n, "calibrated": n, "started": n, "gateways": 0}
     assert rig.host.stale_frames >= 50 * n  # the backlog was drained, not ingested
     assert rig.host.nack_counts == {}
     snaps = rig.stream(0.5)
@@ -163,7 +163,8 @@ def test_a_gateway_sync_before_start_is_a_conflict_or_followed(rigs):
     rig = rigs("memory", gateway_sync_hz=50.0)
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"  # as if the user forgot --sync follow
     rig.host.feed.set_trust("sent")
-    with pytest.raises(SyncConflictError, match="--sync follow"):
+    # the gateway node said so itself (GATEWAY_INFO, docs/protocol.md §13.3): named in the error
+    with pytest.raises(SyncConflictError, match=r"gateway 0x6A7E.* is its segment's SYNC source.*--sync follow"):
         rig.host.bring_up(0.2)
     rig2 = rigs("memory", gateway_sync_hz=50.0)
     rig2.host.sync_policy, rig2.host.sync_mode = "auto", "drive"
@@ -179,7 +180,7 @@ def test_a_slow_gateway_sync_is_heard_before_start(rigs, listen_s, caught):
     """A gateway that drives SYNC at 5 Hz: the bring-up after the drain is shorter than its period,
     so the host hears it before START only because it listens `sync_listen_s` (0.25 s) first —
     without the wait (0 s) the conflict surfaces only once streaming. A simulated clock."""
-    rig = rigs("memory", gateway_sync_hz=5.0)
+    rig = rigs("memory", gateway_sync_hz=5.0, gateway_node=False)  # a 1.0 gateway: it does not announce itself
     rig.host.sync_policy, rig.host.sync_mode = "drive", "drive"
     rig.host.feed.set_trust("sent")
     rig.host.sync_listen_s = listen_s

@@ -1,7 +1,8 @@
 """The machine-wide lock of the udp_multicast tests: python-can's udp_multicast buses share one UDP
-port, and on Linux every socket on it hears every group, so two tests on it at once (pytest -n 2,
-or another checkout's suite on this machine) hear each other's RESET and SYNC. One at a time (a
-file lock)."""
+port, and on Linux a plain python-can bus on it hears every group (capsheet's own buses are isolated
+to their group, host/udp_multicast.py; the tests' injector buses and an older checkout's suite on
+this machine are not), and most tests use the default group: two at once could hear each other's
+RESET and SYNC. One at a time (a file lock)."""
 
 from __future__ import annotations
 

@@ -17,7 +17,8 @@ import serial
 from protocol.can import decode_can, to_can
 from protocol.dbc import DBC_PATH, dbc_frame_id
 from protocol.framing import StreamDecoder, encode
-from protocol.messages import Ack, Announce, Assign, GetInfo, Info, MsgType, Sample, Snapshot, Start, Sync
+from protocol.messages import (Ack, Announce, Assign, Capability, GetInfo, Info, MsgType, Sample, Snapshot, Start,
+                               Sync)
 from virtual_sheet.chip import ChipModel
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet, read_layout
@@ -42,6 +43,18 @@ def read_until(read, pred, timeout_s=TIMEOUT_S):
     raise AssertionError(f"timed out; got {len(got)} events: {got[:5]}")
 
 
+def chips_announced(events) -> dict[int, int]:
+    """``{uid: node}`` of the chips among the ANNOUNCE + INFO pairs (a gateway node's INFO has
+    capability GATEWAY: docs/protocol.md §13.1)."""
+    out, last = {}, {}
+    for m in events:
+        if isinstance(m, Announce):
+            last[m.node] = m.uid
+        elif isinstance(m, Info) and m.node in last and not m.capabilities & Capability.GATEWAY:
+            out[last[m.node]] = m.node
+    return out
+
+
 # ------------------------------------------------------------------ serial
 
 def serial_session(port, sheet, dec):
@@ -49,8 +62,8 @@ def serial_session(port, sheet, dec):
     def read():
         return dec.feed(port.read(65536))
     port.write(encode(GetInfo(0)))
-    ev = read_until(read, lambda e: len({m.uid for m in e if isinstance(m, Announce)}) >= sheet.n_links)
-    nodes = {m.uid: m.node for m in ev if isinstance(m, Announce)}
+    ev = read_until(read, lambda e: len(chips_announced(e)) >= sheet.n_links)
+    nodes = chips_announced(ev)
     layout = sheet.layout
     for uid, node in nodes.items():
         k = layout[uid]
@@ -162,14 +175,13 @@ def can_session(buses, sheet, *, timeout_s=TIMEOUT_S):
 
     for b in buses:
         send(b, GetInfo(0))
-    ev = read_until(read, lambda e: len({m.uid for m in e if isinstance(m, Announce)}) >= sheet.n_links)
+    ev = read_until(read, lambda e: len(chips_announced(e)) >= sheet.n_links)
     layout = sheet.layout
     blocks = sheet.split(len(buses))
-    for m in ev:
-        if isinstance(m, Announce):
-            k = layout[m.uid]
-            bus = buses[next(i for i, blk in enumerate(blocks) if k in blk)]
-            send(bus, Assign(m.node, new_node=k + 1, link=k, uid_low=m.uid & 0xFFFFFFFF))
+    for uid, node in chips_announced(ev).items():
+        k = layout[uid]
+        bus = buses[next(i for i, blk in enumerate(blocks) if k in blk)]
+        send(bus, Assign(node, new_node=k + 1, link=k, uid_low=uid & 0xFFFFFFFF))
     for b in buses:
         send(b, Start(0))
     read_until(read, lambda e: sum(isinstance(m, Ack) for m in e) >= 2 * sheet.n_links)

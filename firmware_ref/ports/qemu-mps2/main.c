@@ -6,8 +6,8 @@
  * plus ±2 counts of deterministic noise per axis (xorshift32), status 0.
  *
  * Mutant builds (conformance must fail them; `make -C firmware_ref qemu MUTANT=...`):
- *   -DMUTANT_DEAD_SENSOR   the ADC reads (0, 0, 0) with status OK
- *   -DMUTANT_WRONG_CRC     frames are sent with CRC-16/XMODEM (init 0x0000) instead of CCITT-FALSE
+ *   -DCAPSHEET_MUTANTS -DCAPSHEET_QEMU_MUTANT=CAPSHEET_MUT_...  the library breaks that rule
+ *                          (capsheet_mutant_t in capsheet_fw.h: a dead sensor, a wrong CRC, ...)
  *   -DCLOCK_DIVIDER=2      the clock runs at half speed: heartbeat and re-announce at twice their period
  */
 #include <string.h>
@@ -35,44 +35,13 @@ static int32_t read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *s
 {
     (void)user;
     (void)now_us;
-#ifdef MUTANT_DEAD_SENSOR
-    (void)noise;
-    xyz[0] = 0;
-    xyz[1] = 0;
-    xyz[2] = 0;
-#else
     xyz[0] = noise();
     xyz[1] = noise();
     xyz[2] = (int16_t)(1024 + noise());
-#endif
     *status = 0u;
     return 0;
 }
 
-#ifdef MUTANT_WRONG_CRC
-static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
-{
-    uint8_t raw[CAPSHEET_CHIP_TX_WIRE_SIZE];
-    uint8_t wire[CAPSHEET_CHIP_TX_WIRE_SIZE];
-    int32_t n, k;
-    uint16_t crc;
-    (void)user;
-    n = capsheet_cobs_decode(data, len - 1u, raw, sizeof raw);
-    if (n < 2) {
-        return CAPSHEET_ERR_HAL;
-    }
-    crc = capsheet_crc16(raw, (size_t)n - 2u, 0x0000u);
-    raw[n - 2] = (uint8_t)(crc >> 8);
-    raw[n - 1] = (uint8_t)(crc & 0xFFu);
-    k = capsheet_cobs_encode(raw, (size_t)n, wire, sizeof wire - 1u);
-    if (k < 0) {
-        return CAPSHEET_ERR_HAL;
-    }
-    wire[k] = 0u;
-    uart_write(wire, (size_t)k + 1u);
-    return 0;
-}
-#else
 /* `data` is the chip's TX buffer, reused by the next send: uart_write returns once every byte
  * is in the UART, so nothing needs copying (a DMA HAL would copy, see README.md). */
 static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
@@ -81,7 +50,6 @@ static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
     uart_write(data, len);
     return 0;
 }
-#endif
 
 static uint64_t read_uid(void *user)
 {
@@ -129,6 +97,9 @@ int main(void)
         for (;;) {
         }
     }
+#ifdef CAPSHEET_QEMU_MUTANT
+    chip.mutant = CAPSHEET_QEMU_MUTANT;  /* a broken build: the rule capsheet_fw.h names */
+#endif
     (void)capsheet_chip_power_on(&chip, clock_us());
     for (;;) {
         const size_t n = uart_read(buf, sizeof buf);

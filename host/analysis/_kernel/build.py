@@ -20,17 +20,17 @@ from cffi import FFI
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
 
-def _cdef_from_header(path: Path) -> str:
+def cdef_from_header(path: Path) -> str:
     """The header's declarations as cffi's ``cdef`` takes them (no comments, no preprocessor
     lines): one source for the C code and its Python binding."""
     text = re.sub(r"/\*.*?\*/", "", path.read_text(encoding="utf-8"), flags=re.S)
     return "\n".join(ln for ln in text.splitlines() if not ln.lstrip().startswith("#"))
 
 
-CDEF = _cdef_from_header(HERE / "yaw_eval.h")
+CDEF = cdef_from_header(HERE / "yaw_eval.h")
 
 
-def _rel(path: Path) -> str:
+def rel_source(path: Path) -> str:
     # setuptools wants sources relative to the project root (the cwd of a build).
     try:
         return os.path.relpath(path, os.getcwd())
@@ -43,8 +43,8 @@ ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "host.analysis._yaw_kernel",
     '#include "yaw_eval.h"\n',
-    sources=[_rel(HERE / "yaw_eval.c")],
-    include_dirs=[_rel(HERE)],
+    sources=[rel_source(HERE / "yaw_eval.c")],
+    include_dirs=[rel_source(HERE)],
     # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
     extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
 )

@@ -70,7 +70,8 @@ The package, by concern (docs/design.md's layout table lists them too):
 `.linalg`                 SuperLU / CHOLMOD and the kernel's triangular sweeps
 `.solver`                 Gauss-Newton with chord steps and Anderson acceleration
 `.priors`                 the priors' weights (`PRIORS`)
-`.joints`                 links' directions and normals, the joints, eq. (8), missing links
+`.joints`                 links' directions and normals, the joints (`joints_from_directions`),
+                          eq. (8), missing links
 `.uncertainty`            `ShapeEstimate.yaw_std` and ``joint_std``
 `.kernel`                 the compiled kernel and its switch ``USE_KERNEL``
 ========================  ======================================================================
@@ -90,6 +91,7 @@ from .batch import estimate_batch
 from .kernel import USE_KERNEL
 from .linalg import LINEAR_SOLVER
 from .checks import METHODS, MODELS, READING_NORM_RANGE
+from .joints import joints_from_directions
 from .pipeline import estimate
 from .priors import (ABS_PRIOR_FLOOR, BEND_STD_RAD, FIXED_PRIOR_WEIGHT, FLAT_RADIUS,
                      FLAT_TILT_NOISE, PRIOR_WEIGHT_MIN, PRIORS, SHEAR_WEIGHT, SHEAR_WEIGHT_REST)
@@ -103,7 +105,7 @@ from .yawproblem import NORMAL_WEIGHT, ROLL_WEIGHT
 __all__ = [
     # estimating
     "estimate", "estimate_batch", "ShapeEstimator", "ShapeEstimate", "Solution",
-    "roll_pitch", "solvability", "solvability_units",
+    "roll_pitch", "solvability", "solvability_units", "joints_from_directions",
     # comparing shapes (host.analysis.metrics)
     "overlay", "overlay_error", "error_percent_of_side",
     # choices and constants (values at import; set a tunable on its module)

@@ -8,9 +8,10 @@ import numpy as np
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 from .angles import angle_trig
-from .structure import JOINT_PRIOR_WEIGHT
+from .checks import check_int
+from .structure import JOINT_PRIOR_WEIGHT, lattice_of, structure_of
 
-__all__ = ["directions_normals", "eq8_residual", "joints_and_mask"]
+__all__ = ["directions_normals", "eq8_residual", "joints_and_mask", "joints_from_directions"]
 
 
 def directions_normals(alpha, beta, gamma, trig=None):
@@ -86,3 +87,43 @@ def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=
         if trig is not None:
             trig[miss] = np.nan
     return P, d, nrm, gamma, alpha, beta, residual
+
+
+# ---------------------------------------------------------------------------------------------
+# The joints-from-directions step alone (issue 30: the per-link filters and the fused estimator of
+# host/analysis/motion/ place their joints with it, as `estimate` does)
+# ---------------------------------------------------------------------------------------------
+
+def joints_from_directions(directions: np.ndarray, rows: int, cols: int, link_length: float,
+                           valid: np.ndarray | None = None) -> np.ndarray:
+    """Joints from link directions by least squares, ``min Σ ‖p_b − p_a − L d‖²`` over the valid
+    links (docs/design.md §5.6), joint ``(0, 0)`` at the origin: `estimate`'s last step, with the
+    Laplacian factorised once per lattice and mask, without `estimate`'s weak prior.
+
+    Parameters
+    ----------
+    directions : ndarray, shape (..., n_links, 3)
+        Unit link directions (or any per-link vectors: the map is linear), world frame.
+    rows, cols : int
+    link_length : float
+        ``L``, metres.
+    valid : ndarray of bool, shape (n_links,), optional
+
+    Returns
+    -------
+    ndarray, shape (..., rows, cols, 3)
+    """
+    rows, cols = check_int("rows", rows, 2), check_int("cols", cols, 2)
+    n = lattice_of(rows, cols).n_links
+    d = np.asarray(directions, dtype=float)
+    if d.ndim < 2 or d.shape[-2:] != (n, 3):
+        raise ValueError(f"Expected `directions` to have shape (..., {n}, 3) for a {rows}x{cols} "
+                         f"lattice, got {d.shape}.")
+    vm = np.ones(n, bool) if valid is None else np.asarray(valid, dtype=bool)
+    st = structure_of(rows, cols, None if vm.all() else vm)
+    batch = d.shape[:-2]
+    dl = np.moveaxis(d.reshape((-1, n, 3))[:, st.valid_links], 0, -1)  # (links, 3, B)
+    P = st.lap_lu.solve(st.incidence_T @ (float(link_length) * dl.reshape(dl.shape[0], -1)))
+    P = P.reshape(rows * cols, 3, -1)
+    P -= P[:1]
+    return np.moveaxis(P, -1, 0).reshape(batch + (rows, cols, 3))

@@ -1,8 +1,16 @@
-"""Deliberately broken chips ("mutants") on the Python chip model: each breaks one rule of
-docs/protocol.md, so the conformance suite must fail it — and only in the checks that hold a chip
-to that rule (tests/host/conformance/test_mutants.py). Each subclasses `ChipModel` (whose behaviour
-is not changed) and rewrites what it hears or sends. The C firmware has its own mutant builds,
-by compile-time switch, in firmware_ref/ports/qemu-mps2/main.c (``make -C firmware_ref qemu MUTANT=``).
+"""Deliberately broken nodes ("mutants"): each breaks one MUST of docs/protocol.md, so the conformance
+suite must fail it — and only in the checks that hold a node to that rule
+(tests/host/conformance/test_mutants.py).
+
+* Chips on the Python chip model: each subclasses `ChipModel` (whose behaviour is not changed) and
+  rewrites what it hears or sends (`MUTANTS`).
+* The same breakages in the C firmware: its test build (-DCAPSHEET_MUTANTS, the cffi module
+  ``firmware_ref._capsheet_fw_mutants``) breaks the rule a chip's ``mutant`` field names
+  (`C_MUTANTS` maps them to the Python mutants whose expected failures they share); the QEMU port
+  builds three of them (``make -C firmware_ref qemu MUTANT=``).
+* Gateways: subclasses of the virtual `Gateway` (`GATEWAY_MUTANTS`), for the gateway profile.
+* Healthy variants (`HEALTHY`): nodes the suite must pass — noise-free, a quiet 12-bit sensor, a
+  packing gateway in front, several chips on one port, a SYNC-source gateway.
 """
 
 from __future__ import annotations
@@ -13,9 +21,10 @@ from cobs import cobs
 
 from protocol.can import CanFrame, decode_can, make_id, split_id, to_can
 from protocol.framing import DecodeError, decode_frame, encode
-from protocol.messages import (Ack, Announce, Assign, Capability, ChipState, Direction, Info, MsgType, Nack,
-                               NackReason, Reset, Sample, Start, Stop)
-from virtual_sheet.chip import ChipModel
+from protocol.messages import (Ack, Assign, Capability, ChipState, Config, Direction, Info, MsgType, Nack, NackReason,
+                               Reset, Sample, Start, Stop, Sync)
+from virtual_sheet.chip import ChipModel, frame_header
+from virtual_sheet.gateway import Gateway, GatewayNode
 
 __all__ = ["MUTANTS"]
 
@@ -56,17 +65,17 @@ class DeadSensor(ChipModel):
         super().__init__(uid, lambda now_s: ((0, 0, 0), 0), **kw)
 
 
-class StaleMarkedFresh(ChipModel):
-    """Converts once, then repeats that value at every SYNC without the STALE flag."""
+class FrozenSample(_Rewriting):
+    """Converts once: every later SAMPLE repeats the first one's counts and status, unflagged (§5.3) —
+    also after a range change, which a real conversion would show."""
 
-    def __init__(self, uid, sensor, **kw):
-        frozen = {}
-
-        def once(now_s):
-            if "v" not in frozen:
-                frozen["v"] = sensor(now_s)
-            return frozen["v"]
-        super().__init__(uid, once, **kw)
+    def rewrite(self, m):
+        if isinstance(m, Sample):
+            first = getattr(self, "_frozen", None)
+            if first is None:
+                self._frozen = first = (m.x, m.y, m.z, m.status)
+            return Sample(m.node, m.counter, *first)
+        return m
 
 
 class WrongCrc(ChipModel):
@@ -87,6 +96,18 @@ class WrongCrc(ChipModel):
 
     def power_on(self, now_s):
         return self._fix(super().power_on(now_s))
+
+
+class WrongCrcOnSamples(ChipModel):
+    """A wrong CRC (XMODEM) on every SAMPLE, the right one on everything else (§6.2): a port does not
+    damage one message type only — the suite must blame the chip, not the port."""
+
+    def _sample(self, counter, now_s):
+        f = super()._sample(counter, now_s)
+        if self._can:
+            return f
+        body = cobs.decode(bytes(f).rstrip(b"\x00"))[:-2]
+        return cobs.encode(body + binascii.crc_hqx(body, 0).to_bytes(2, "big")) + b"\x00"
 
 
 class CounterOffByOne(_Rewriting):
@@ -174,6 +195,59 @@ class IgnoresBroadcastStart(ChipModel):
         msg = self.decode(frame) if decoded is None else decoded
         if isinstance(msg, (Start, Stop)) and msg.node == 0:
             return []
+        return super().handle(frame, now_s, msg)
+
+
+class NacksBroadcast(ChipModel):
+    """NACKs a broadcast that does not decode (another version, an undefined type, a wrong length) as
+    if it were addressed to it (the 1.0 reference did, for BAD_VERSION: a NACK storm)."""
+
+    def _on_error(self, frame, err):
+        out = super()._on_error(frame, err)
+        hdr = frame_header(frame)
+        if out or hdr is None or hdr[2] != 0 or err.reason.name in ("BAD_COBS", "SHORT", "BAD_CRC", "OVERSIZE"):
+            return out
+        from virtual_sheet.chip import _NACK_FOR
+        return self._nack(hdr[1], _NACK_FOR[err.reason])
+
+
+class NoPreviousId(ChipModel):
+    """Forgets its previous provisional id: an ASSIGN that crossed its ANNOUNCE is lost (§3.3)."""
+
+    def poll(self, now_s):
+        out = super().poll(now_s)
+        self.prev_node = None
+        return out
+
+
+class UptimeRestartsAtReset(ChipModel):
+    """Restarts uptime_s at RESET (§4.4: it counts from power-on)."""
+
+    def _boot(self, now_s):
+        self.boot_s = now_s
+        return super()._boot(now_s)
+
+
+class MissedSyncsCountsWrap(ChipModel):
+    """Counts the wrap 0xFFFF -> 0 and older counters as gaps (no serial-number arithmetic, §5.1)."""
+
+    def handle(self, frame, now_s, decoded=None):
+        msg = self.decode(frame) if decoded is None else decoded
+        if isinstance(msg, Sync) and self.streaming and self.last_counter is not None:
+            gap = (msg.counter - self.last_counter - 1) & 0xFFFF
+            if gap >= 0x7FFF:
+                self.missed_syncs = min(255, self.missed_syncs + gap)
+        return super().handle(frame, now_s, msg)
+
+
+class ConfigWhileStreaming(ChipModel):
+    """ACKs (and applies) CONFIG while STREAMING (§8.2: BAD_STATE)."""
+
+    def handle(self, frame, now_s, decoded=None):
+        msg = self.decode(frame) if decoded is None else decoded
+        if isinstance(msg, Config) and msg.node == self.node and self.state == ChipState.STREAMING:
+            self.range = msg.range
+            return [self._out(Ack(self.node, MsgType.CONFIG, 0))]
         return super().handle(frame, now_s, msg)
 
 
@@ -322,19 +396,113 @@ class WrongPriority(ChipModel):
         return f
 
 
+# ---------------------------------------------------------------------------------------------
+# gateways (the gateway profile)
+# ---------------------------------------------------------------------------------------------
+
+class SilentGateway(Gateway):
+    """Packs SNAPSHOTs but is no node (a 1.0 gateway): a host cannot learn that it packs (§13.1)."""
+
+    def __init__(self, *a, **kw):
+        kw["as_node"] = False
+        super().__init__(*a, **kw)
+
+
+class PassesHostSync(Gateway):
+    """A SYNC source that passes the host's SYNC to its chips too: two sources on one segment (§13.3)."""
+
+    def _from_host(self, frame, decoded, now_s):
+        if type(decoded) is Sync and self.sync_source:
+            self._dispatch(frame, decoded, now_s)
+            return
+        super()._from_host(frame, decoded, now_s)
+
+
+class PacksOnlyAnswers(Gateway):
+    """Packs only the links whose chip answered, leaving the others out instead of INVALID (§13.2)."""
+
+    def _emit(self, frames, due_s):
+        from protocol.framing import decode_frame, encode
+        from protocol.messages import Snapshot
+        out = []
+        for f in frames:
+            m = decode_frame(bytes(f).rstrip(b"\x00")) if isinstance(f, bytes) else None
+            if isinstance(m, Snapshot):
+                keep = [k for k in range(m.count) if not m.status[k] & 8]
+                if keep:
+                    out.append(encode(Snapshot.from_arrays(m.node, m.counter, m.first_link + keep[0],
+                                                           m.counts[keep], m.status[keep])))
+                continue
+            out.append(f)
+        super()._emit(out, due_s)
+
+
+class _AcksChipCommands(GatewayNode):
+    def handle(self, frame, decoded, now_s):
+        out = super().handle(frame, decoded, now_s)
+        if out and isinstance(decoded, (Config, Start, Stop)):
+            return [self._out(Ack(self.node, decoded.TYPE, 0))]
+        return out
+
+
+class AcksChipCommands(Gateway):
+    """ACKs CONFIG/START/STOP addressed to the gateway instead of NACK UNSUPPORTED (§13.1)."""
+
+    node_class = _AcksChipCommands
+
+
+class _NoStatus(GatewayNode):
+    def poll(self, now_s):
+        return [] if self.state == ChipState.IDLE else super().poll(now_s)
+
+
+class GatewayWithoutStatus(Gateway):
+    """Sends no STATUS once assigned (§13.1)."""
+
+    node_class = _NoStatus
+
+
+class PackingWithoutCapability(Gateway):
+    """Says PACKING in GATEWAY_INFO without capability SNAPSHOT in INFO (§4.16)."""
+
+    def _make_node(self):
+        node = super()._make_node()
+        node.capabilities &= ~Capability.SNAPSHOT
+        return node
+
+
+class _NacksBroadcastNode(GatewayNode):
+    def handle(self, frame, decoded, now_s):
+        out = super().handle(frame, decoded, now_s)
+        hdr = frame_header(frame)
+        if not out and hdr is not None and hdr[2] == 0 and getattr(decoded, "reason", None) is not None \
+                and decoded.reason.name not in ("BAD_COBS", "SHORT", "BAD_CRC", "OVERSIZE"):
+            return [self._out(Nack(self.node, hdr[1], NackReason.BAD_VERSION))]
+        return out
+
+
+class GatewayNacksBroadcast(Gateway):
+    """NACKs a broadcast that does not decode (§4.6)."""
+
+    node_class = _NacksBroadcastNode
+
+
 #: name -> (chip class, transport, allow_broadcast)
 MUTANTS = {
     "dead_sensor": (DeadSensor, "serial", False),
-    "stale_marked_fresh": (StaleMarkedFresh, "serial", False),
+    "frozen_sample": (FrozenSample, "serial", False),
     "wrong_crc": (WrongCrc, "serial", False),
+    "wrong_crc_sample": (WrongCrcOnSamples, "serial", False),
     "counter_off_by_one": (CounterOffByOne, "serial", False),
     "wrong_byte_order": (WrongByteOrder, "serial", False),
     "sync_answered_twice": (SyncAnsweredTwice, "serial", False),
     "slow_heartbeat": (SlowHeartbeat, "serial", False),
     "no_reannounce": (NoReannounce, "serial", False),
+    "no_previous_id": (NoPreviousId, "serial", False),
     "wrong_nack_reason": (WrongNackReason, "serial", False),
     "ignored_reset": (IgnoredReset, "serial", False),
     "answers_broadcast": (AnswersBroadcast, "serial", True),
+    "nacks_broadcast": (NacksBroadcast, "serial", False),
     "ignores_broadcast_start": (IgnoresBroadcastStart, "serial", True),
     "nacks_chip_types": (NacksChipTypes, "serial", False),
     "ack_detail_set": (AckDetailSet, "serial", False),
@@ -342,11 +510,56 @@ MUTANTS = {
     "no_rx_errors": (NoRxErrors, "serial", False),
     "assign_ignores_uid": (AssignIgnoresUid, "serial", False),
     "assigned_id_in_boot": (AssignedIdInBoot, "serial", False),
+    "uptime_restarts_at_reset": (UptimeRestartsAtReset, "serial", False),
     "cal_read_nominal": (CalReadNominal, "serial", False),
     "accepts_bad_config": (AcceptsBadConfig, "serial", False),
     "claims_no_multi_range": (ClaimsNoMultiRange, "serial", False),
     "refuses_repeated_config": (RefusesRepeatedConfig, "serial", False),
     "start_not_idempotent": (StartNotIdempotent, "serial", False),
     "streams_after_stop": (StreamsAfterStop, "serial", False),
+    "missed_syncs_counts_wrap": (MissedSyncsCountsWrap, "serial", False),
+    "config_while_streaming": (ConfigWhileStreaming, "serial", False),
     "wrong_priority": (WrongPriority, "can", False),
+}
+
+#: the C firmware's mutants (capsheet_fw.h ``capsheet_mutant_t``) -> the Python mutant that breaks the
+#: same rule (so the same checks must fail); `C_MUTANT_OPTIONS` the chip options a mutant needs
+C_MUTANTS = {
+    "dead_sensor": "dead_sensor", "frozen_sample": "frozen_sample", "wrong_crc": "wrong_crc",
+    "wrong_crc_sample": "wrong_crc_sample", "counter_off_by_one": "counter_off_by_one",
+    "sync_twice": "sync_answered_twice", "slow_heartbeat": "slow_heartbeat", "no_reannounce": "no_reannounce",
+    "wrong_nack_reason": "wrong_nack_reason", "ignored_reset": "ignored_reset", "nacks_broadcast": "nacks_broadcast",
+    "nacks_node_types": "nacks_chip_types", "ack_detail": "ack_detail_set", "no_rx_errors": "no_rx_errors",
+    "assign_ignores_uid": "assign_ignores_uid", "no_previous_id": "no_previous_id",
+    "uptime_reset": "uptime_restarts_at_reset", "cal_read_nominal": "cal_read_nominal",
+    "accepts_bad_config": "accepts_bad_config", "ignores_capability": "claims_no_multi_range",
+    "start_not_idempotent": "start_not_idempotent", "streams_after_stop": "streams_after_stop",
+    "missed_syncs_wrap": "missed_syncs_counts_wrap", "config_while_streaming": "config_while_streaming",
+    "reserved_capability_bit": "reserved_capability_bit", "refuses_repeated_config": "refuses_repeated_config",
+    "answers_broadcast": "answers_broadcast", "ignores_broadcast_start": "ignores_broadcast_start",
+    "wrong_priority": "wrong_priority",
+}
+#: ignores_capability ACKs a range the chip lacks: it must lack MULTI_RANGE, as its twin does
+#: checks a C mutant's run adds to its twin's so that the broken frame is sent at all (a SAMPLE needs a SYNC)
+C_MUTANT_EVIDENCE = {"wrong_priority": {24}}
+C_MUTANT_OPTIONS = {"ignores_capability": dict(capabilities=int(Capability.CAL_STORAGE | Capability.FILTER))}
+
+#: gateway mutants: name -> (gateway class, device options); the gateway profile must fail them
+GATEWAY_MUTANTS = {
+    "silent_gateway": (SilentGateway, dict(packed=True)),
+    "passes_host_sync": (PassesHostSync, dict(packed=True, sync_rate_hz=50.0)),
+    "packs_only_answers": (PacksOnlyAnswers, dict(packed=True)),
+    "acks_chip_commands": (AcksChipCommands, dict(packed=True)),
+    "gateway_without_status": (GatewayWithoutStatus, dict(packed=True)),
+    "packing_without_capability": (PackingWithoutCapability, dict(packed=True)),
+    "gateway_nacks_broadcast": (GatewayNacksBroadcast, dict(packed=True)),
+}
+
+#: healthy variants: name -> (sheet options, device options); the suite must pass every one
+HEALTHY = {
+    "noise_free": (dict(noise=0.0), dict()),
+    "quiet_12_bit": (dict(noise=0.02), dict()),
+    "packing_gateway": (dict(noise=0.02), dict(packed=True)),
+    "several_chips_one_port": (dict(noise=0.5, lattice="3x3"), dict()),
+    "sync_source_gateway": (dict(noise=0.02), dict(packed=True, sync_rate_hz=50.0)),
 }

@@ -61,7 +61,7 @@ client.on("serverInfo", (info) => {
 });
 client.on("advertise", (channels) => {
   for (const ch of channels) {
-    out.channels.push({ id: ch.id, topic: ch.topic, encoding: ch.encoding, schemaName: ch.schemaName });
+    out.channels.push({ id: ch.id, topic: ch.topic, encoding: ch.encoding, schemaName: ch.schemaName, schema: ch.schema });
     if (topics.includes(ch.topic)) subscribed.set(client.subscribe(ch.id), ch.topic);
   }
 });

@@ -1,0 +1,374 @@
+"""Shape while the sheet moves (issue 30): the fused estimator against its peers, on the same
+simulated data, and its speed. Prints JSON.
+
+One sheet of 9-axis chips (`virtual_sheet.imu`: ICM-42688-P gyroscope and accelerometer with the
+accelerometer's noise raised to 1 % g, LIS3MDL magnetometer; every fixed error of the parts —
+turn-on bias, scale, cross-axis, g-sensitivity, mounting, hard and soft iron), 14x14 joints,
+L = 1 cm, 145 Hz, Earth's field 50 µT dipping 60° (declination 0: world x is magnetic north).
+The chips are first calibrated as a user would (`host.analysis.imu_calibration.fit_capture` on
+the board scene's capture, 84 s), and every estimator takes the same calibrated readings
+(`host.analysis.motion.calibrated`):
+
+* ``accel_only`` — today's estimator, warm-started (`host.analysis.motion.accel_only`);
+* ``per_link_filter`` — VQF on every link, then the joints from the directions
+  (`host.analysis.motion.per_link_filter`);
+* ``fused`` — `host.analysis.motion.MotionEstimator`.
+
+Rows (``rows``): every moving scene of `virtual_sheet.motion.MOTION_SCENES` (``flat_turn`` is
+the flat horizontal one) with ``sensors`` ``accel+gyro`` and ``accel+gyro+mag`` — the same
+accelerometer and gyroscope samples in both (the chips' noise streams are separate) — and
+``<scene>+disturbed``: the same with a magnet under a quarter of the sheet
+(`virtual_sheet.magfield.quarter_disturbance`), ``accel+gyro+mag``. Per row:
+``mean_error_pct_side`` (the paper's error, `host.analysis.metrics.error_percent_of_side`,
+averaged over joints and every snapshot of the run, the first included), ``max_error_pct_side``
+(the worst snapshot's mean), and ``heading_err_deg`` where heading is defined (with
+magnetometers): the mean over snapshots of the absolute mean heading error of the links (the
+rotation about world z between each estimated frame and the true one), else null.
+
+``targets`` checks issue 30's: fused ≤ 0.5 % while moving; ≥ 5x lower than accel_only where that
+is above 1 %; ≥ 2x lower than per_link_filter where that is above 0.5 %; the flat sheet with
+magnetometers ≤ 0.3 % and heading within 2°; with the disturbance no worse than without
+magnetometers (fused, same scene); ``drift``: a sheet at rest for ``--drift-minutes`` (10),
+error over its last 10 s ≤ 1.2x that over seconds 10–20 (after the filter settled);
+``speed``: snapshots per second of the fused estimator, one core, warm (14x14 ≥ 145,
+32x32 ≥ 60; CPU time, the machine's load beside it).
+
+    .venv/bin/python benchmarks/bench_motion.py --json [--seconds 6] [--drift-minutes 10]
+    .venv/bin/python benchmarks/bench_motion.py --json --png out     # out/motion_error_time.png, out/motion_heading_time.png, out/motion_paper.png
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+             "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS"):
+    os.environ[_var] = "1"  # one core, before numpy is imported
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import numpy as np  # noqa: E402
+
+from host.analysis.imu_calibration import fit_capture  # noqa: E402
+from host.analysis.metrics import error_percent_of_side  # noqa: E402
+from host.analysis.motion import MotionEstimator, accel_only, calibrated, per_link_filter  # noqa: E402
+from host.analysis.motion.peers import have_vqf, yaw_of_frames  # noqa: E402
+from virtual_sheet.imu import imu_array, simulate  # noqa: E402
+from virtual_sheet.magfield import EarthField, MagneticField, quarter_disturbance  # noqa: E402
+from virtual_sheet.motion import MOTION_SCENES, board_scene, make_motion_scene  # noqa: E402
+
+L = 0.01
+EARTH = EarthField(50e-6, np.radians(60.0), 0.0)
+METHODS = ("accel_only", "per_link_filter", "fused")
+TARGETS = {"fused_max_pct": 0.5, "vs_accel_only": 5.0, "accel_only_above_pct": 1.0,
+           "vs_per_link": 2.0, "per_link_above_pct": 0.5, "flat_mag_pct": 0.3,
+           "flat_heading_deg": 2.0, "drift_ratio": 1.2, "rate_14": 145.0, "rate_32": 60.0}
+
+
+def _load() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def chips(n: int, seed: int, field=None):
+    """The sheet's 9-axis chips (the same chips for every run: ``chip_seed`` 7), noise ``seed``."""
+    return imu_array(2 * n * (n - 1), "accel+gyro+mag", noise_pct_g=1.0, seed=seed, chip_seed=7,
+                     field=MagneticField(EARTH, () if field is None else (field,)))
+
+
+def capture(scene, imu, seconds: float) -> tuple:
+    runs = list(simulate(scene, imu, seconds))
+    truth = {k: np.concatenate([getattr(t, k) for t, _r in runs]) for k in ("joints", "frames")}
+    rd = {k: np.concatenate([getattr(r, k) for _t, r in runs]) for k in ("t_s", "accel_mps2",
+                                                                           "gyro_rps", "mag_t")}
+    return truth, rd
+
+
+def calibrate(n: int):
+    """The chips calibrated on the board, as docs/calibration.md says (returns the calibration and
+    the CPU seconds it took, simulation excluded)."""
+    board = board_scene(n, n, L, jitter_rad=0.03, seed=7)
+    _truth, rd = capture(board, chips(n, 900), board.board.period_s)
+    c0 = time.process_time()
+    cal = fit_capture(rd["t_s"], rd["accel_mps2"], n, n, rd["gyro_rps"], rd["mag_t"],
+                      field_t=EARTH.magnitude_t, threshold_mps2=0.3)  # 3x the 1 % g noise
+    return cal, time.process_time() - c0
+
+
+def heading_error(frames_est: np.ndarray, frames_true: np.ndarray) -> np.ndarray:
+    """Per snapshot, the links' mean heading error, rad: the circular mean over links of the
+    rotation about world z between each estimated frame and the true one."""
+    d = yaw_of_frames(frames_est) - yaw_of_frames(frames_true)
+    return np.arctan2(np.sin(d).mean(axis=-1), np.cos(d).mean(axis=-1))
+
+
+def run_fused(n, t, acc, gyr, mag):
+    est = MotionEstimator(n, n, L)
+    J = np.empty((t.size, n, n, 3))
+    F = np.empty((t.size, 2 * n * (n - 1), 3, 3))
+    for k in range(t.size):
+        e = est.update(t[k], acc[k], gyr[k], None if mag is None else mag[k])
+        J[k], F[k] = e.joints, e.frames
+    return J, F
+
+
+def errors(J, truth_joints) -> np.ndarray:
+    return np.array([error_percent_of_side(J[k], truth_joints[k], L).mean() for k in range(len(J))])
+
+
+def scene_rows(name: str, n: int, seconds: float, cal, seed: int, curves: dict) -> list[dict]:
+    scene = make_motion_scene(name, n, n, L)
+    out = []
+    data = {}
+    for variant, field in (("", None), ("+disturbed", quarter_disturbance(n, n, L))):
+        truth, rd = capture(scene, chips(n, seed, field), seconds)
+        acc, gyr, mag = calibrated(cal, rd["accel_mps2"], rd["gyro_rps"], rd["mag_t"])
+        data[variant] = (truth, rd["t_s"], acc, gyr, mag)
+    truth, t, acc, gyr, mag = data[""]
+    ea = errors([e.joints for e in accel_only(acc, n, n, L)], truth["joints"])
+    runs = [("accel+gyro", "", None), ("accel+gyro+mag", "", mag),
+            ("accel+gyro+mag", "+disturbed", data["+disturbed"][4])]
+    for sensors, variant, m in runs:
+        tr = data[variant][0]
+        assert np.array_equal(data[variant][2], acc) and np.array_equal(data[variant][3], gyr)
+        res = {"accel_only": (ea, None)}
+        if have_vqf():
+            Jp, Fp = per_link_filter(t, acc, gyr, n, n, L, m)
+            res["per_link_filter"] = (errors(Jp, tr["joints"]), Fp)
+        Jf, Ff = run_fused(n, t, acc, gyr, m)
+        res["fused"] = (errors(Jf, tr["joints"]), Ff)
+        for method, (err, frames) in res.items():
+            head = hseries = None
+            if m is not None and frames is not None:
+                hseries = np.degrees(np.abs(heading_error(frames, tr["frames"])))
+                head = float(hseries.mean())
+            out.append({"scene": name + variant, "sensors": sensors, "method": method,
+                        "mean_error_pct_side": round(float(err.mean()), 4),
+                        "max_error_pct_side": round(float(err.max()), 4),
+                        "heading_err_deg": None if head is None else round(head, 3)})
+            curves[(name + variant, sensors, method)] = (t, err, hseries)
+    return out
+
+
+def drift(n: int, minutes: float, cal, seed: int) -> dict:
+    """A sheet at rest (`rest` scene, a Gaussian) for ``minutes``: fused and per-link errors over
+    seconds 10-20 and over the last 10 s, 9-axis chips read as 6-axis (the gyroscopes' bias
+    instability is what drifts)."""
+    scene = make_motion_scene("rest", n, n, L)
+    imu = chips(n, seed)
+    est = MotionEstimator(n, n, L)
+    errs, t_all, keep = [], [], {}
+    for truth, rd in simulate(scene, imu, minutes * 60.0, chunk_s=10.0):
+        acc, gyr, _m = calibrated(cal, rd.accel_mps2, rd.gyro_rps)
+        for k in range(rd.t_s.size):
+            e = est.update(rd.t_s[k], acc[k], gyr[k])
+            errs.append(error_percent_of_side(e.joints, truth.joints[k], L).mean())
+        t_all.append(rd.t_s)
+        if have_vqf():
+            keep.setdefault("acc", []).append(acc)
+            keep.setdefault("gyr", []).append(gyr)
+            keep.setdefault("truth", truth.joints[0])
+    t = np.concatenate(t_all)
+    err = np.array(errs)
+    start, end = (t >= 10) & (t < 20), t >= t[-1] - 10
+    row = {"scene": "rest", "minutes": minutes, "sensors": "accel+gyro",
+           "fused_start_pct": round(float(err[start].mean()), 4),
+           "fused_end_pct": round(float(err[end].mean()), 4)}
+    row["fused_ratio"] = round(row["fused_end_pct"] / row["fused_start_pct"], 3)
+    if keep:
+        Jp, _F = per_link_filter(t, np.concatenate(keep["acc"]), np.concatenate(keep["gyr"]), n, n, L,
+                                 with_frames=False)
+        ep = np.array([error_percent_of_side(Jp[k], keep["truth"], L).mean() for k in range(t.size)])
+        row["per_link_start_pct"] = round(float(ep[start].mean()), 4)
+        row["per_link_end_pct"] = round(float(ep[end].mean()), 4)
+    return row
+
+
+def speed(n: int, seconds: float = 3.0) -> dict:
+    """The fused estimator's snapshots per second on one core, warm (the first second skipped)."""
+    scene = make_motion_scene("wave", n, n, L)
+    imu = chips(n, 5)
+    _truth, rd = capture(scene, imu, seconds)
+    est = MotionEstimator(n, n, L)
+    m = rd["mag_t"]
+    k0 = 145
+    for k in range(k0):
+        est.update(rd["t_s"][k], rd["accel_mps2"][k], rd["gyro_rps"][k], m[k])
+    c0, w0 = time.process_time(), time.perf_counter()
+    for k in range(k0, rd["t_s"].size):
+        est.update(rd["t_s"][k], rd["accel_mps2"][k], rd["gyro_rps"][k], m[k])
+    c1, w1 = time.process_time(), time.perf_counter()
+    count = rd["t_s"].size - k0
+    return {"lattice": f"{n}x{n}", "links": 2 * n * (n - 1), "sensors": "accel+gyro+mag",
+            "snapshots_per_s_cpu": round(count / (c1 - c0), 1),
+            "snapshots_per_s_wall": round(count / (w1 - w0), 1),
+            "target": TARGETS["rate_14"] if n == 14 else TARGETS["rate_32"] if n == 32 else None,
+            "load": _load()}
+
+
+def check(rows: list[dict], drift_row: dict | None, speed_rows: list[dict]) -> dict:
+    by = {(r["scene"], r["sensors"], r["method"]): r for r in rows}
+    fails = []
+    for (scene, sensors, method), r in by.items():
+        if method != "fused":
+            continue
+        e = r["mean_error_pct_side"]
+        if e > TARGETS["fused_max_pct"]:
+            fails.append(f"{scene} {sensors}: fused {e} > {TARGETS['fused_max_pct']} %")
+        a = by[(scene, sensors, "accel_only")]["mean_error_pct_side"]
+        if a > TARGETS["accel_only_above_pct"] and a / e < TARGETS["vs_accel_only"]:
+            fails.append(f"{scene} {sensors}: accel_only {a} only {a / e:.1f}x fused {e}")
+        p = by.get((scene, sensors, "per_link_filter"))
+        if p and p["mean_error_pct_side"] > TARGETS["per_link_above_pct"] \
+                and p["mean_error_pct_side"] / e < TARGETS["vs_per_link"]:
+            fails.append(f"{scene} {sensors}: per_link {p['mean_error_pct_side']} only "
+                         f"{p['mean_error_pct_side'] / e:.1f}x fused {e}")
+        if scene.endswith("+disturbed"):
+            base = by[(scene.removesuffix("+disturbed"), "accel+gyro", "fused")]["mean_error_pct_side"]
+            if e > base * 1.05 + 0.005:
+                fails.append(f"{scene}: with the disturbance {e} > without magnetometers {base}")
+        if "flat" in scene and not scene.endswith("+disturbed") and sensors == "accel+gyro+mag":
+            if e > TARGETS["flat_mag_pct"] or r["heading_err_deg"] > TARGETS["flat_heading_deg"]:
+                fails.append(f"{scene}: {e} % / heading {r['heading_err_deg']} deg")
+    if drift_row and drift_row["fused_ratio"] > TARGETS["drift_ratio"]:
+        fails.append(f"drift: end/start {drift_row['fused_ratio']}")
+    for s in speed_rows:
+        if s["target"] and s["snapshots_per_s_cpu"] < s["target"]:
+            fails.append(f"speed {s['lattice']}: {s['snapshots_per_s_cpu']} < {s['target']}")
+    return {"met": not fails, "failures": fails}
+
+
+def figures(curves: dict, rows: list[dict], outdir: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    outdir.mkdir(parents=True, exist_ok=True)
+    colours = {"accel_only": "tab:red", "per_link_filter": "tab:blue", "fused": "tab:green"}
+    names = list(dict.fromkeys(k[0] for k in curves if not k[0].endswith("+disturbed")))
+
+    # error over time: one column per scene; top row the undisturbed field, bottom row the magnet
+    # under a quarter of the sheet, each with the run without magnetometers as its baseline
+    fig, axes = plt.subplots(2, len(names), figsize=(4.2 * len(names), 6.6), squeeze=False,
+                             sharex=True)
+    for j, name in enumerate(names):
+        for i, variant in enumerate(("", "+disturbed")):
+            ax = axes[i, j]
+            t, ea, _h = curves[(name, "accel+gyro", "accel_only")]
+            ax.plot(t, ea, color=colours["accel_only"], lw=0.6, label="accel_only (accel)")
+            for method in ("per_link_filter", "fused"):
+                c = colours[method]
+                t, e, _h = curves[(name, "accel+gyro", method)]
+                ax.plot(t, e, color=c, lw=3.0, alpha=0.3, label=f"{method} (accel+gyro)")
+                t, e, _h = curves[(name + variant, "accel+gyro+mag", method)]
+                ax.plot(t, e, color=c, lw=0.9,
+                        label=f"{method} (accel+gyro+mag{', magnet' if variant else ''})")
+            ax.set_yscale("log")
+            ax.axhline(0.5, color="grey", lw=0.6, ls=":")
+            ax.set_title(name + (" — magnet under a quarter" if variant else ""), fontsize=9)
+            if i == 1:
+                ax.set_xlabel("time [s]")
+            if j == 0:
+                ax.set_ylabel("mean joint error [% of side]")
+    handles = [h for ax in axes[:, 0] for h in ax.get_legend_handles_labels()[0]]
+    labels = [lb for ax in axes[:, 0] for lb in ax.get_legend_handles_labels()[1]]
+    keep = dict(zip(labels, handles))
+    fig.legend(keep.values(), keep.keys(), loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle("Shape error over time, 14x14, L = 1 cm, 1 % g accelerometers, ICM-42688-P gyroscopes, "
+                 "LIS3MDL magnetometers (bench_motion.py; dotted: 0.5 % of side; the fused estimator's "
+                 "magnetometers turn the sheet rigidly, so its thin and thick curves coincide)", fontsize=9)
+    fig.tight_layout(rect=(0, 0.07, 1, 0.96))
+    fig.savefig(outdir / "motion_error_time.png", dpi=110)
+    plt.close(fig)
+
+    # heading over time (with magnetometers): where the disturbance shows in the fused estimator
+    fig, axes = plt.subplots(1, len(names), figsize=(4.2 * len(names), 3.3), squeeze=False, sharey=True)
+    for ax, name in zip(axes[0], names):
+        for method in ("per_link_filter", "fused"):
+            for variant, ls in (("", "-"), ("+disturbed", "--")):
+                t, _e, h = curves[(name + variant, "accel+gyro+mag", method)]
+                ax.plot(t, h, ls, color=colours[method], lw=0.9,
+                        label=f"{method}{' (magnet)' if variant else ''}")
+        ax.axhline(2.0, color="grey", lw=0.6, ls=":")
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("time [s]")
+    axes[0, 0].set_ylabel("|mean heading error| [deg]")
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle("Heading with magnetometers, undisturbed (solid) and with a magnet under a quarter of "
+                 "the sheet (dashed); dotted: 2 deg (bench_motion.py)", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(outdir / "motion_heading_time.png", dpi=110)
+    plt.close(fig)
+
+    # paper-style (its Fig. 10: mean error with its spread, per condition and method)
+    fig, ax = plt.subplots(figsize=(12, 4.5))
+    groups = [(r["scene"], r["sensors"]) for r in rows if r["method"] == "fused"]
+    w = 0.27
+    for i, method in enumerate(METHODS):
+        ys, lo, hi = [], [], []
+        for g in groups:
+            key = (g[0], g[1], method)
+            if key not in curves:
+                ys.append(np.nan), lo.append(0), hi.append(0)
+                continue
+            err = curves[key][1]
+            ys.append(err.mean())
+            lo.append(err.mean() - np.percentile(err, 5))
+            hi.append(np.percentile(err, 95) - err.mean())
+        ax.bar(np.arange(len(groups)) + (i - 1) * w, ys, w, yerr=[lo, hi], capsize=2,
+               color=colours[method], label=method)
+    ax.set_yscale("log")
+    ax.set_xticks(np.arange(len(groups)))
+    ax.set_xticklabels([f"{s}\n{x}" for s, x in groups], fontsize=7, rotation=30, ha="right")
+    ax.set_ylabel("joint error [% of side] (mean, 5-95 % over time)")
+    ax.axhline(0.5, color="grey", lw=0.6, ls=":")
+    ax.legend()
+    ax.set_title("Error of the shape while the sheet moves, three estimators on the same data "
+                 "(14x14, 1 % g; dotted: 0.5 % of side)")
+    fig.tight_layout()
+    fig.savefig(outdir / "motion_paper.png", dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--json", action="store_true", help="print JSON (the only output format)")
+    ap.add_argument("--lattice", type=int, default=14)
+    ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument("--scenes", nargs="*", default=[s for s, v in MOTION_SCENES.items() if v.moving])
+    ap.add_argument("--drift-minutes", type=float, default=10.0, help="0: leave the drift run out")
+    ap.add_argument("--speed-lattices", type=int, nargs="*", default=[14, 32])
+    ap.add_argument("--png", type=Path, help="write the figures into this folder")
+    args = ap.parse_args(argv)
+    n = args.lattice
+    unknown = [s for s in args.scenes if s not in MOTION_SCENES]
+    if unknown or n < 3 or args.seconds <= 0 or args.drift_minutes < 0:
+        print(f"bench_motion.py: invalid arguments (unknown scenes {unknown}, lattice {n}, "
+              f"seconds {args.seconds}, drift minutes {args.drift_minutes})", file=sys.stderr)
+        return 2
+    cal, cal_cpu = calibrate(n)
+    rows, curves = [], {}
+    for i, name in enumerate(args.scenes):
+        rows += scene_rows(name, n, args.seconds, cal, 100 + i, curves)
+    drift_row = drift(n, args.drift_minutes, cal, 300) if args.drift_minutes > 0 else None
+    speed_rows = [speed(k) for k in args.speed_lattices]
+    if args.png:
+        figures(curves, rows, args.png)
+    print(json.dumps({"lattice": f"{n}x{n}", "link_length_m": L, "rate_hz": 145.0,
+                      "seconds": args.seconds, "calibration_cpu_s": round(cal_cpu, 1),
+                      "vqf": have_vqf(), "rows": rows, "drift": drift_row, "speed": speed_rows,
+                      "targets": TARGETS, "check": check(rows, drift_row, speed_rows),
+                      "load": _load()}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

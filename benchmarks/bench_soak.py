@@ -1,0 +1,290 @@
+"""Soak: ``capsheet virtual`` + ``capsheet host --record`` for a long run (issue 34). Prints JSON.
+
+What a five-minute run does not show: memory that grows by tens of MB an hour, a recording's size
+per hour, what happens when the 16-bit SYNC counter wraps (every 65536 SYNCs: 452 s at 145 Hz).
+
+Measured:
+
+* ``rss_mb``: every process of both commands (their children too), sampled every ``--sample-s``
+  from /proc/<pid>/status (VmRSS); ``growth_after_warmup_mb`` = last sample minus the first
+  sample after ``--warmup`` s, ``max_growth_after_warmup_mb`` the largest sample minus it.
+  Goal: <= 2 MB.
+* ``completeness_per_minute``: per minute of the host's clock, complete snapshots of the SYNCs
+  the host opened (from the recording's ``/capsheet/sync`` and ``/capsheet/snapshot``). Goal:
+  >= 99.9 % every minute.
+* ``counter_wraps``: every wrap of the SYNC counter in the recording, with the counters missing
+  or incomplete within 2 s of it (``incidents``; goal 0) and the host's own incidents then.
+* ``recording``: the files (split every ``--split-duration`` s, so the set is exercised), bytes
+  per hour over the run, and per channel (uncompressed message bytes, and zstd level 9 of each
+  channel alone over a minute after the warm-up, scaled to an hour: what each costs in the file,
+  roughly).
+* ``load_average``: /proc/loadavg at start and end (the machine may be shared).
+
+    python benchmarks/bench_soak.py --duration 960 [--packed] [--lattice 14x14] [--rate 145]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+CLI = [sys.executable, "-m", "host.cli"]
+ENV = dict(os.environ, PYTHONUNBUFFERED="1")
+WRAP_WINDOW_S = 2.0
+
+
+def _children(pid: int) -> list[int]:
+    """``pid`` and every descendant (from /proc/*/stat)."""
+    parent: dict[int, int] = {}
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                with open(f"/proc/{d}/stat") as f:
+                    parent[int(d)] = int(f.read().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += [c for c, pp in parent.items() if pp == p]
+    return out
+
+
+def _rss_mb(pid: int) -> float | None:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def _cmdline(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace").strip()
+    except OSError:
+        return "?"
+
+
+def _loadavg() -> list[float]:
+    with open("/proc/loadavg") as f:
+        return [float(v) for v in f.read().split()[:3]]
+
+
+def _analyse(files: list[Path], duration_s: float, window: tuple[float, float]) -> dict:
+    """Completeness per minute, counter wraps and channel sizes, streaming through the files."""
+    import zstandard
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+
+    from host.record_schema import message_class
+
+    Snapshot, Sync = message_class("Snapshot"), message_class("Sync")
+    sizes: dict[str, int] = {}
+    comp: dict[str, tuple] = {}
+    syncs: list[tuple[int, float]] = []
+    snaps: list[tuple[int, float, bool]] = []
+    t_first = None
+    for path in files:
+        topic: dict[int, str] = {}
+        with open(path, "rb") as f:
+            for rec in StreamReader(f).records:
+                if isinstance(rec, Channel):
+                    topic[rec.id] = rec.topic
+                elif isinstance(rec, Message):
+                    t = topic[rec.channel_id]
+                    data = bytes(rec.data)
+                    sizes[t] = sizes.get(t, 0) + len(data)
+                    t_first = rec.log_time if t_first is None else t_first
+                    if window[0] <= (rec.log_time - t_first) / 1e9 < window[1]:
+                        if t not in comp:
+                            comp[t] = (zstandard.ZstdCompressor(level=9).compressobj(), [0])
+                        c, n = comp[t]
+                        n[0] += len(c.compress(data))
+                    if t == "/capsheet/sync":
+                        m = Sync.FromString(data)
+                        syncs.append((m.counter, m.t))
+                    elif t == "/capsheet/snapshot":
+                        m = Snapshot.FromString(data)
+                        snaps.append((m.counter, m.timestamp, m.complete))
+    zsize = {t: n[0] + len(c.flush()) for t, (c, n) in comp.items()}
+    per_h, per_h_window = 3600.0 / duration_s, 3600.0 / (window[1] - window[0])
+    channels = {t: {"messages_bytes_per_h": round(sizes[t] * per_h),
+                    "zstd9_bytes_per_h": round(zsize[t] * per_h_window) if t in zsize else None}
+                for t in sorted(sizes)}
+    # per minute of the host's clock: SYNCs opened, complete snapshots of them
+    t0 = syncs[0][1] if syncs else 0.0
+    complete_of: dict[tuple[int, float], bool] = {(c, t): ok for c, t, ok in snaps}
+    minutes: dict[int, list[int]] = {}
+    for c, t in syncs:
+        m = minutes.setdefault(int((t - t0) // 60), [0, 0])
+        m[0] += 1
+        m[1] += bool(complete_of.get((c, t), False))
+    per_minute = [{"minute": k, "syncs": v[0], "complete": v[1],
+                   "completeness_pct": round(100.0 * v[1] / v[0], 3) if v[0] else None}
+                  for k, v in sorted(minutes.items())]
+    wraps = []
+    for i in range(1, len(syncs)):
+        if syncs[i][0] < syncs[i - 1][0]:  # the counter went round
+            tw = syncs[i][1]
+            near = [(c, t) for c, t in syncs if abs(t - tw) <= WRAP_WINDOW_S]
+            missing = [c for c, t in near if (c, t) not in complete_of]
+            incomplete = [c for c, t in near if (c, t) in complete_of and not complete_of[(c, t)]]
+            steps = [(syncs[j][0] - syncs[j - 1][0]) % 65536 for j in range(max(1, i - 300), min(len(syncs), i + 300))]
+            wraps.append({"t_s": round(tw - t0, 3), "from": syncs[i - 1][0], "to": syncs[i][0],
+                          "syncs_within_2s": len(near), "missing": len(missing), "incomplete": len(incomplete),
+                          "counter_steps_not_1": sum(s != 1 for s in steps),
+                          "incidents": len(missing) + len(incomplete)})
+    return {"syncs": len(syncs), "snapshots": len(snaps), "complete": sum(ok for _, _, ok in snaps),
+            "completeness_pct": round(100.0 * sum(ok for _, _, ok in snaps) / max(1, len(syncs)), 3),
+            "completeness_per_minute": per_minute, "counter_wraps": wraps, "channels": channels}
+
+
+def run(args) -> dict:
+    tmp = Path(tempfile.mkdtemp(prefix="bench-soak-"))
+    port, lay, rec = tmp / "port", tmp / "sheet.csv", tmp / "run.mcap"
+    vargs = ["--lattice", args.lattice, "--symlink", str(port), "--layout-out", str(lay)]
+    if args.packed:
+        vargs += ["--packed"]
+    load0 = _loadavg()
+    virt = subprocess.Popen(CLI + ["virtual", *vargs], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                            text=True, env=ENV, cwd=ROOT)
+    host = None
+    try:
+        cmd = None
+        for line in virt.stdout:
+            if line.strip().startswith("capsheet host "):
+                cmd = line.split()[2:]
+                break
+        if cmd is None:
+            raise RuntimeError("capsheet virtual printed no host command")
+        threading.Thread(target=lambda: [None for _ in virt.stdout], daemon=True).start()
+        if "--rate" in cmd:
+            cmd[cmd.index("--rate") + 1] = f"{args.rate:g}"
+        else:
+            cmd += ["--rate", f"{args.rate:g}"]
+        hcmd = ["host", *cmd, "--duration", f"{args.duration:g}", "--json", "-q", "--record", str(rec),
+                "--overwrite"]
+        if args.split_duration:
+            hcmd += ["--split-duration", f"{args.split_duration:g}"]
+        host = subprocess.Popen(CLI + hcmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+                                cwd=ROOT)
+        err: list[str] = []
+        threading.Thread(target=lambda: err.extend(host.stderr), daemon=True).start()
+        out: list[str] = []
+        threading.Thread(target=lambda: out.append(host.stdout.read()), daemon=True).start()
+        t_start = time.monotonic()
+        samples = []  # (t, {pid: rss}), recording bytes
+        names: dict[int, str] = {}
+        while host.poll() is None:
+            t = time.monotonic() - t_start
+            row = {}
+            for who, root in (("host", host.pid), ("virtual", virt.pid)):
+                for pid in _children(root):
+                    mb = _rss_mb(pid)
+                    if mb is not None:
+                        row[pid] = mb
+                        names.setdefault(pid, f"{who}: {_cmdline(pid)[:90]}")
+            size = sum(p.stat().st_size for p in tmp.glob("run*.mcap"))
+            samples.append((t, row, size))
+            time.sleep(args.sample_s)
+        host.wait()
+        load1 = _loadavg()
+    finally:
+        for p in (host, virt):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+    procs = {}
+    for pid, name in names.items():
+        series = [(t, row[pid]) for t, row, _ in samples if pid in row]
+        after = [mb for t, mb in series if t >= args.warmup]
+        procs[name] = {"pid": pid, "samples": len(series),
+                       "rss_mb_first": round(series[0][1], 1) if series else None,
+                       "rss_mb_at_warmup": round(after[0], 1) if after else None,
+                       "rss_mb_last": round(series[-1][1], 1) if series else None,
+                       "rss_mb_max": round(max(mb for _, mb in series), 1) if series else None,
+                       "growth_after_warmup_mb": round(after[-1] - after[0], 2) if after else None,
+                       "max_growth_after_warmup_mb": round(max(after) - after[0], 2) if after else None,
+                       "rss_mb_every_minute": [round(mb, 1) for t, mb in series[::max(1, int(60 / args.sample_s))]]}
+    files = sorted(tmp.glob("run_*.mcap")) or [rec]
+    total = sum(p.stat().st_size for p in files)
+    # bytes per hour over the steady part: recording size growth from warm-up end to the last sample
+    steady = [(t, s) for t, _, s in samples if t >= args.warmup]
+    slope = ((steady[-1][1] - steady[0][1]) / (steady[-1][0] - steady[0][0]) * 3600.0
+             if len(steady) > 1 and steady[-1][0] > steady[0][0] else None)
+    w0 = min(args.warmup, max(0.0, args.duration - 60.0))
+    analysis = _analyse(files, args.duration, (w0, w0 + min(60.0, args.duration)))
+    try:
+        summary = json.loads(out[0]) if out and out[0].strip() else None
+    except ValueError:
+        summary = None
+    s = (summary or {}).get("summary", {})
+    doc = {
+        "config": {"lattice": args.lattice, "mode": "packed" if args.packed else "per-chip", "rate_hz": args.rate,
+                   "duration_s": args.duration, "warmup_s": args.warmup, "sample_s": args.sample_s,
+                   "split_duration_s": args.split_duration},
+        "machine": {"cpus": os.cpu_count(), "load_average_start": load0, "load_average_end": load1},
+        "host_exit": host.returncode,
+        "processes": procs,
+        "max_growth_after_warmup_mb": max((p["growth_after_warmup_mb"] or 0.0) for p in procs.values()) if procs else None,
+        "recording": {"files": [p.name for p in files], "bytes": total,
+                      "bytes_per_hour": round(total / args.duration * 3600.0),
+                      "gb_per_hour": round(total / args.duration * 3600.0 / 1e9, 3),
+                      "steady_bytes_per_hour": round(slope) if slope else None,
+                      "channels": analysis.pop("channels")},
+        **analysis,
+        "min_minute_completeness_pct": min((m["completeness_pct"] for m in analysis["completeness_per_minute"]
+                                            if m["completeness_pct"] is not None), default=None),
+        "host_summary": {k: s.get(k) for k in ("snapshots", "complete_snapshots", "complete_snapshots_pct",
+                                                "resyncs", "late", "reconnects", "recoveries", "stray_frames",
+                                                "events_cut", "rx_errors")} if s else None,
+        "host_incidents": [i for i in s.get("incidents", []) if i.get("kind") not in ("info",)][:50] if s else None,
+        "host_stderr_tail": "".join(err[-8:]),
+    }
+    if not args.keep:
+        shutil.rmtree(tmp, ignore_errors=True)
+    else:
+        doc["recording"]["dir"] = str(tmp)
+    return doc
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=960.0, help="seconds (default 960: two counter wraps)")
+    ap.add_argument("--lattice", default="14x14")
+    ap.add_argument("--rate", type=float, default=145.0)
+    ap.add_argument("--packed", action="store_true", help="the gateway answers SYNC with SNAPSHOT frames")
+    ap.add_argument("--warmup", type=float, default=120.0, help="s before memory growth is counted (default 120)")
+    ap.add_argument("--sample-s", type=float, default=5.0)
+    ap.add_argument("--split-duration", type=float, default=300.0,
+                    help="capsheet host --split-duration (default 300; 0: one file)")
+    ap.add_argument("--keep", action="store_true", help="keep the recording (its folder is printed)")
+    ap.add_argument("--out", help="also write the JSON here")
+    args = ap.parse_args()
+    doc = run(args)
+    text = json.dumps(doc, indent=1)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,205 @@
+/* See link_filter.h. */
+#include "link_filter.h"
+
+#include <math.h>
+
+static void rodrigues(const double *v, double *out)
+{
+    double x = v[0], y = v[1], z = v[2];
+    double th2 = x * x + y * y + z * z;
+    double a, b;
+    if (th2 < 1e-12) {
+        a = 1.0 - th2 / 6.0;
+        b = 0.5 - th2 / 24.0;
+    } else {
+        double th = sqrt(th2);
+        a = sin(th) / th;
+        b = (1.0 - cos(th)) / th2;
+    }
+    double xx = x * x, yy = y * y, zz = z * z, xy = x * y, xz = x * z, yz = y * z;
+    out[0] = 1.0 - b * (yy + zz);
+    out[4] = 1.0 - b * (xx + zz);
+    out[8] = 1.0 - b * (xx + yy);
+    out[1] = b * xy - a * z;
+    out[3] = b * xy + a * z;
+    out[2] = b * xz + a * y;
+    out[6] = b * xz - a * y;
+    out[5] = b * yz - a * x;
+    out[7] = b * yz + a * x;
+}
+
+static void mat3_mul(const double *A, const double *B, double *C)
+{
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) {
+            C[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j];
+        }
+    }
+}
+
+void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, const double *w1,
+                           const double *dt, const double *q, const double *qb)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *a = w0 + 3 * k, *b = w1 + 3 * k;
+        double h = dt[k], h2 = h * h / 12.0;
+        double d[3], E[9], Rn[9];
+        d[0] = 0.5 * (a[0] + b[0]) * h + (a[1] * b[2] - a[2] * b[1]) * h2;
+        d[1] = 0.5 * (a[1] + b[1]) * h + (a[2] * b[0] - a[0] * b[2]) * h2;
+        d[2] = 0.5 * (a[2] + b[2]) * h + (a[0] * b[1] - a[1] * b[0]) * h2;
+        rodrigues(d, E);
+        double *Rk = R + 9 * k;
+        mat3_mul(Rk, E, Rn);
+        for (int i = 0; i < 9; i++) {
+            Rk[i] = Rn[i];
+        }
+        /* G = R dt; Ptt' = Ptt - G Pbt - Ptb G^T + G Pbb G^T + q I; Ptb' = Ptb - G Pbb */
+        double *Pk = P + 36 * k;
+        double G[9], GPbb[9], GPbt[9], T[9];
+        for (int i = 0; i < 9; i++) {
+            G[i] = Rn[i] * h;
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                double s1 = 0.0, s2 = 0.0;
+                for (int l = 0; l < 3; l++) {
+                    s1 += G[3 * i + l] * Pk[6 * (3 + l) + 3 + j];
+                    s2 += G[3 * i + l] * Pk[6 * (3 + l) + j];
+                }
+                GPbb[3 * i + j] = s1;
+                GPbt[3 * i + j] = s2;
+            }
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                double s = 0.0;
+                for (int l = 0; l < 3; l++) {
+                    s += GPbb[3 * i + l] * G[3 * j + l];
+                }
+                T[3 * i + j] = Pk[6 * i + j] - GPbt[3 * i + j] - GPbt[3 * j + i] + s;
+            }
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                Pk[6 * i + j] = T[3 * i + j] + (i == j ? q[k] : 0.0);
+                double tb = Pk[6 * i + 3 + j] - GPbb[3 * i + j];
+                Pk[6 * i + 3 + j] = tb;
+            }
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                Pk[6 * (3 + j) + i] = Pk[6 * i + 3 + j];
+            }
+            Pk[6 * (3 + i) + 3 + i] += qb[k];
+        }
+    }
+}
+
+void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, const double *vec,
+                       const double *r2, double gate, const uint8_t *valid, double *x)
+{
+    for (size_t k = 0; k < n; k++) {
+        double *xk = x + 6 * k;
+        if (!valid[k]) {
+            for (int i = 0; i < 6; i++) {
+                xk[i] = 0.0;
+            }
+            continue;
+        }
+        const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k;
+        double *Pk = P + 36 * k;
+        double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
+        double H[9], y[3], HP[18], S[9], Si[9];
+        /* H = R^T [v]x ; y = f - R^T v */
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                H[3 * i + j] = Rk[i] * Vx[j] + Rk[3 + i] * Vx[3 + j] + Rk[6 + i] * Vx[6 + j];
+            }
+            y[i] = fk[i] - (Rk[i] * v[0] + Rk[3 + i] * v[1] + Rk[6 + i] * v[2]);
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 6; j++) {
+                HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
+            }
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
+                               + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2[k] : 0.0);
+            }
+        }
+        /* symmetric inverse by cofactors (fused.py `_inv_sym3`) */
+        double a = S[0], b = S[1], c = S[2], d = S[4], e = S[5], ff = S[8];
+        double A = d * ff - e * e, B = c * e - b * ff, C = b * e - c * d;
+        double D = a * ff - c * c, E = b * c - a * e, F = a * d - b * b;
+        double inv_det = 1.0 / (a * A + b * B + c * C);
+        Si[0] = A * inv_det; Si[1] = B * inv_det; Si[2] = C * inv_det;
+        Si[3] = B * inv_det; Si[4] = D * inv_det; Si[5] = E * inv_det;
+        Si[6] = C * inv_det; Si[7] = E * inv_det; Si[8] = F * inv_det;
+        double m2 = 0.0;
+        for (int i = 0; i < 3; i++) {
+            m2 += y[i] * (Si[3 * i] * y[0] + Si[3 * i + 1] * y[1] + Si[3 * i + 2] * y[2]);
+        }
+        double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
+        for (int i = 0; i < 9; i++) {
+            Si[i] /= infl;
+        }
+        /* K = HP^T Si (6 x 3); x = K y; P -= K HP */
+        double K[18];
+        for (int i = 0; i < 6; i++) {
+            for (int j = 0; j < 3; j++) {
+                K[3 * i + j] = HP[i] * Si[j] + HP[6 + i] * Si[3 + j] + HP[12 + i] * Si[6 + j];
+            }
+            xk[i] = K[3 * i] * y[0] + K[3 * i + 1] * y[1] + K[3 * i + 2] * y[2];
+        }
+        for (int i = 0; i < 6; i++) {
+            for (int j = 0; j < 6; j++) {
+                Pk[6 * i + j] -= K[3 * i] * HP[j] + K[3 * i + 1] * HP[6 + j] + K[3 * i + 2] * HP[12 + j];
+            }
+        }
+    }
+}
+
+void capsheet_mf_yaw(size_t n, double *P, const double *mu, const double *a_diag, double *x)
+{
+    for (size_t k = 0; k < n; k++) {
+        double *Pk = P + 36 * k;
+        double c[6];
+        for (int i = 0; i < 6; i++) {
+            c[i] = Pk[6 * i + 2];
+        }
+        double p = c[2];
+        double s = (1.0 - 1.0 / (a_diag[k] * p));
+        for (int i = 0; i < 6; i++) {
+            double g = c[i] / p;
+            x[6 * k + i] = g * mu[k];
+            for (int j = 0; j < 6; j++) {
+                Pk[6 * i + j] -= g * (c[j] * s);
+            }
+        }
+    }
+}
+
+void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const double *x)
+{
+    for (size_t k = 0; k < n; k++) {
+        double E[9], Rn[9];
+        rodrigues(x + 6 * k, E);
+        double *Rk = R + 9 * k;
+        mat3_mul(E, Rk, Rn);
+        for (int i = 0; i < 9; i++) {
+            Rk[i] = Rn[i];
+        }
+        for (int i = 0; i < 3; i++) {
+            bias[3 * k + i] += x[6 * k + 3 + i];
+        }
+        double *Pk = P + 36 * k;
+        for (int i = 0; i < 6; i++) {
+            for (int j = i + 1; j < 6; j++) {
+                double s = 0.5 * (Pk[6 * i + j] + Pk[6 * j + i]);
+                Pk[6 * i + j] = s;
+                Pk[6 * j + i] = s;
+            }
+        }
+    }
+}

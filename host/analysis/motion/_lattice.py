@@ -1,0 +1,93 @@
+"""What the fused estimator needs of the lattice, built once per size: the units' links and
+signs (loop closure, eq. 4), every link's cells and its position in them (the cells' normals),
+and the fixed sparsity pattern of the yaw problem's Jacobian and normal matrix.
+
+Conventions are docs/design.md's (`protocol.lattice.Lattice` is the one source of link indices).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+import scipy.sparse as sp
+
+from protocol.lattice import Lattice
+
+#: eq. (4): d0 + d1 − d2 − d3 = 0 (`Lattice.units` numbering)
+CLOSURE_SIGNS = np.array([1.0, 1.0, -1.0, -1.0])
+#: unit slots holding i-links (their sum is a cell's A) and j-links (C): normal A × C
+I_SLOTS = (1, 3)
+J_SLOTS = (0, 2)
+
+
+class LatticeTopology:
+    """Index arrays of one lattice (no data): see the module docstring.
+
+    Attributes
+    ----------
+    units : ndarray of int, shape (U, 4)
+    pair_link, pair_cell : ndarray of int, shape (K2,)
+        Every (link, cell it belongs to) pair: the normal rows' terms.
+    inv_ncell : ndarray, shape (n_links,)
+        1 / number of cells of a link (0 for a link in no cell).
+    jac : scipy.sparse.csr_matrix
+        The yaw Jacobian's pattern, rows: 2 per unit (closure x, y), then one per link (normal);
+        ``jac_slot_*`` map the computed entries onto its ``data``.
+    """
+
+    def __init__(self, rows: int, cols: int) -> None:
+        lat = Lattice(rows, cols)
+        self.lattice = lat
+        self.rows, self.cols = rows, cols
+        n = lat.n_links
+        self.n_links = n
+        self.units = np.ascontiguousarray(lat.units.reshape(-1, 4))
+        U = self.units.shape[0]
+        self.n_units = U
+        cell_of = [[] for _ in range(n)]
+        for u in range(U):
+            for s in range(4):
+                cell_of[self.units[u, s]].append(u)
+        pl, pc = [], []
+        for k in range(n):
+            for u in cell_of[k]:
+                pl.append(k)
+                pc.append(u)
+        self.pair_link = np.array(pl, dtype=np.int64)
+        self.pair_cell = np.array(pc, dtype=np.int64)
+        ncell = np.bincount(self.pair_link, minlength=n)
+        self.inv_ncell = np.where(ncell > 0, 1.0 / np.maximum(ncell, 1), 0.0)
+
+        # Jacobian entries in a fixed order: closure (2U rows x 4), diagonal of the normal rows
+        # (n), then every pair's 4 cell links (K2 x 4); summed into CSR slots.
+        K2 = self.pair_link.size
+        rows_c = np.repeat(np.arange(2 * U), 4)
+        cols_c = np.repeat(self.units, 2, axis=0).ravel()
+        rows_d = 2 * U + np.arange(n)
+        cols_d = np.arange(n)
+        rows_p = np.repeat(2 * U + self.pair_link, 4)
+        cols_p = self.units[self.pair_cell].ravel()
+        r = np.concatenate([rows_c, rows_d, rows_p])
+        c = np.concatenate([cols_c, cols_d, cols_p])
+        key = r * n + c
+        ukey, inv = np.unique(key, return_inverse=True)
+        self.jac_slots = inv
+        self.n_rows = 2 * U + n
+        indptr = np.searchsorted(ukey // n, np.arange(self.n_rows + 1))
+        self.jac = sp.csr_matrix((np.zeros(ukey.size), (ukey % n).astype(np.int32), indptr),
+                                 shape=(self.n_rows, n))
+        self.jac_nnz = ukey.size
+        self.jac_rows = np.repeat(np.arange(self.n_rows), np.diff(indptr))
+        self.jac_cols = (ukey % n).astype(np.int64)
+        self.jac_T = self.jac.T.tocsr()  # the pattern of Jᵀ and where J's entries go in it
+        order = np.argsort(self.jac_cols * self.n_rows + self.jac_rows, kind="stable")
+        self.jac_T_from = order
+        # the cells' normals averaged onto their links: (n_links x U), weights 1 / ncell
+        self.cell_to_link = sp.csr_matrix((self.inv_ncell[self.pair_link],
+                                           (self.pair_link, self.pair_cell)), shape=(n, U))
+
+
+@lru_cache(maxsize=16)
+def topology(rows: int, cols: int) -> LatticeTopology:
+    return LatticeTopology(int(rows), int(cols))

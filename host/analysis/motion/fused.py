@@ -1,0 +1,792 @@
+"""The fused estimator: the lattice's loops with gyroscopes, accelerometers and magnetometers
+(issue 30). docs/estimator.md §8 gives the model, why it is built this way, and where it fails.
+
+One `MotionEstimator` per sheet, fed one snapshot at a time (sans-I/O: the snapshot's time is an
+argument, nothing reads a clock)::
+
+    est = MotionEstimator(rows, cols, link_length)
+    for t, accel, gyro, mag in stream:                # calibrated SI values, link frames
+        e = est.update(t, accel, gyro, mag)           # -> MotionEstimate (joints, frames, ...)
+
+Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope's bias ``b``
+(link frame), with an error-state covariance ``P`` (6 x 6: a small rotation in the world frame,
+``R = exp([δθ]×) R̂``, and the bias error). Every snapshot:
+
+1. **Gyroscope: the process model.** ``R ← R exp([Δθ]×)`` with the rate less the bias, second
+   order over the sample interval (the two samples' mean plus the coning term); ``P`` grows by
+   the gyroscope's noise, a rate-proportional term (residual scale and cross-axis errors) and a
+   small floor for what the model leaves out; the bias is a random walk.
+2. **Linear acceleration from the lattice.** Every link's direction ``d = R e_x`` has the second
+   derivative ``d̈ = R (ω × (ω × e_x) + ω̇ × e_x)`` (``ω̇`` a second-order backward difference of the
+   rates); the joints' accelerations follow from the ``d̈`` exactly as the joints follow from the
+   ``d`` (`joints_from_directions`: ``p_b − p_a = L d`` holds at every instant, so it holds for
+   the derivatives), and a chip's is the mean of its link's ends'. That fixes every link's
+   acceleration relative to the others; what is common to all links (the sheet's translation,
+   3 numbers) is taken from the accelerometers themselves, less its running mean over
+   `FusedConfig.common_accel_tau_s` (5 s: a sheet whose velocity stays bounded has a common
+   acceleration that averages out, so what persists is a tilt of the whole sheet, and the
+   accelerometers correct it) and a small leak (`FusedConfig.common_tilt_leak`).
+3. **Accelerometers: gravity plus that acceleration**, per link, an extended Kalman update of
+   ``(δθ, δb)`` (the reading predicts ``Rᵀ (g + a)``); its noise grows with the link's relative
+   acceleration (the model's own error) and a gate inflates it for a reading far off.
+4. **The lattice and the magnetometers: one sparse least-squares problem in all links' yaw
+   corrections** ``δψ`` (a rotation about world z), solved jointly: loop closure (eq. 4, xy part,
+   per unit), the cells' normals (per link, its sensor y ⊥ the mean normal of its cells: exact on a
+   Chebyshev net, docs/estimator.md §2), every link's own prediction (variance from ``P``), and the
+   magnetometers' heading, each weighted by its agreement with the lattice's consensus and with
+   Earth's field (magnitude and dip), averaged over `FusedConfig.disturbance_tau_s`: a local
+   disturbance is detected and down-weighted per link. The solution updates each link's whole
+   state through its covariance (the bias about z learns from the loops).
+5. **Joints** from the directions by least squares (`host.analysis.estimator.joints_from_directions`).
+
+Without magnetometers the loops fix every relative yaw and the common heading is the only free
+gauge (held by the gyroscopes: it wanders slowly, and `overlay` removes it). With them heading is
+absolute (world x is magnetic north turned by ``declination_rad``) and a flat horizontal sheet (the
+paper's Case 1) is solvable.
+
+The first snapshot initialises: roll, pitch and the relative yaws from the accelerometer-only
+estimator (`host.analysis.estimator.estimate`, the sheet is assumed still at that instant), the
+heading from the magnetometers' robust mean when present, and Earth's field (magnitude, dip) from
+the magnetometers' median.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from ..estimator import G0, estimate, joints_from_directions
+from ._lattice import CLOSURE_SIGNS, topology
+
+try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._link_kernel import ffi as _kffi, lib as _klib
+except ImportError:  # not built: the numpy code, the same numbers to rounding
+    _kffi = _klib = None
+
+#: Run the per-link steps in the compiled kernel when it is built (False: numpy).
+USE_KERNEL = _klib is not None
+
+__all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
+           "calibrated", "relative_accelerations"]
+
+_EX = np.array([1.0, 0.0, 0.0])
+_GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
+
+
+@dataclass(frozen=True)
+class FusedConfig:
+    """The fused estimator's noise model and tuning (standard deviations).
+
+    Parameters
+    ----------
+    accel_noise_mps2 : float
+        Accelerometer white noise per axis per sample, m/s² (1 % g: issue 30's targets).
+    gyro_noise_rps : float
+        Gyroscope white noise per axis per sample, rad/s (ICM-42688-P at 145 Hz: 0.024 °/s).
+    gyro_bias_std_rps : float
+        The bias's uncertainty at the start, rad/s (after calibration: 0.01 °/s).
+    gyro_bias_walk_rps : float
+        The bias's random walk, rad/s/√s (3 °/h of bias instability over 100 s ≈ 2e-6).
+    gyro_scale_error : float
+        Residual scale and cross-axis error after calibration: process noise ``∝ |ω| Δt``.
+    orientation_walk_rad : float
+        A floor of process noise on every orientation, rad/√s (what the model leaves out).
+    rel_accel_error : float
+        Fraction of a link's relative acceleration taken as the model's error (step 2).
+    accel_floor_mps2 : float
+        A floor on the accelerometer update's noise, m/s².
+    common_tilt_leak : float
+        Fraction of the common acceleration left to correct the sheet's mean tilt (step 2).
+    common_accel_tau_s : float or None
+        Time constant of the common acceleration's running mean, s, which is left to correct the
+        sheet's mean tilt (step 2); None: the leak alone (the sheet's absolute tilt then drifts by
+        1–2° a minute on calibrated chips, docs/estimator.md §8).
+    gate : float
+        Mahalanobis distance² (3 axes) beyond which an accelerometer update is inflated.
+    lattice_floor_rad : float
+        Model floor of the closure and normal residuals (unit vectors ≈ radians).
+    mag_noise_t : float
+        Magnetometer white noise per axis per sample, tesla (LIS3MDL: 0.32–0.41 µT).
+    mag_floor_rad : float
+        A floor on a link's heading error from its calibrated magnetometer, rad.
+    mag_common_floor_rad : float
+        A floor on the error of the links' mean magnetic heading, rad.
+    heading_walk_rad : float
+        Random walk of the sheet's common heading between magnetometer updates, rad/√s.
+    initial_heading_std_rad : float
+        Uncertainty of the first snapshot's heading (the magnetometers' median), rad.
+    disturbance_tau_s : float
+        Time constant of the per-link disturbance tests' averages, s.
+    disturbance_heading_rad, disturbance_field_frac, disturbance_dip_rad : float
+        One standard unit of each test: heading off the lattice's consensus, field magnitude off
+        Earth's (fraction), dip off Earth's.
+    disturbance_scale : float
+        A link's magnetometer weight is ``1 / (1 + (s / scale)²)``, ``s`` its combined test
+        in standard units.
+    initial_yaw_std_rad : float
+        Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
+    """
+
+    accel_noise_mps2: float = 0.01 * G0
+    gyro_noise_rps: float = float(np.radians(0.024))
+    gyro_bias_std_rps: float = float(np.radians(0.01))
+    gyro_bias_walk_rps: float = 2e-6
+    gyro_scale_error: float = 2e-3
+    orientation_walk_rad: float = float(np.radians(0.05))
+    rel_accel_error: float = 0.05
+    accel_floor_mps2: float = 0.02
+    common_tilt_leak: float = 0.02
+    common_accel_tau_s: float | None = 5.0
+    gate: float = 25.0
+    lattice_floor_rad: float = 1e-3
+    mag_noise_t: float = 0.4e-6
+    mag_floor_rad: float = float(np.radians(0.5))
+    mag_common_floor_rad: float = float(np.radians(0.1))
+    heading_walk_rad: float = float(np.radians(0.05))
+    initial_heading_std_rad: float = float(np.radians(2.0))
+    disturbance_tau_s: float = 0.3
+    disturbance_heading_rad: float = float(np.radians(0.5))
+    disturbance_field_frac: float = 0.01
+    disturbance_dip_rad: float = float(np.radians(0.5))
+    disturbance_scale: float = 2.0
+    initial_yaw_std_rad: float = 0.05
+
+    def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:
+            v = getattr(self, name)
+            if name == "common_accel_tau_s" and v is None:
+                continue
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
+                    or not np.isfinite(v) or v < 0:
+                raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
+        if not self.common_tilt_leak <= 1:
+            raise ValueError(f"Invalid common_tilt_leak: {self.common_tilt_leak!r} (need 0..1)")
+        if self.common_accel_tau_s is not None and self.common_accel_tau_s <= 0:
+            raise ValueError(f"Invalid common_accel_tau_s: {self.common_accel_tau_s!r} (need > 0 or None)")
+        for name in ("accel_noise_mps2", "gyro_bias_std_rps", "disturbance_tau_s",
+                     "disturbance_heading_rad", "disturbance_field_frac", "disturbance_dip_rad",
+                     "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
+
+
+@dataclass(frozen=True, eq=False)
+class MotionEstimate:
+    """The fused estimator's output for one snapshot.
+
+    Attributes
+    ----------
+    t_s : float
+        The snapshot's time, s (the latest of its samples').
+    joints : ndarray, shape (rows, cols, 3)
+        Metres, world frame, joint ``(0, 0)`` at the origin.
+    frames : ndarray, shape (n_links, 3, 3)
+        Every link's sensor -> world rotation (its direction is the first column).
+    gyro_bias_rps : ndarray, shape (n_links, 3)
+        The estimated bias, rad/s, link frames (what is left after calibration).
+    mag_weight : ndarray, shape (n_links,) or None
+        Each magnetometer's weight in (0, 1] (a disturbed one near 0); None without them.
+    common_accel_mps2 : ndarray, shape (3,)
+        The acceleration common to all links (the sheet's translation), world.
+    heading_absolute : bool
+        True when magnetometers make the heading absolute (world x: magnetic north turned by the
+        declination); False: heading is a gauge.
+    timings : dict
+        Wall time of the stages, s: ``propagate``, ``accel``, ``lattice``, ``joints``, ``total``.
+    """
+
+    t_s: float
+    joints: np.ndarray
+    frames: np.ndarray
+    gyro_bias_rps: np.ndarray
+    mag_weight: np.ndarray | None
+    common_accel_mps2: np.ndarray
+    heading_absolute: bool
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def directions(self) -> np.ndarray:
+        """Unit link directions, shape (n_links, 3), world."""
+        return self.frames[:, :, 0]
+
+
+def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
+    """``exp([v]×)`` for rotation vectors ``(..., 3)`` (Rodrigues), shape ``(..., 3, 3)``."""
+    v = np.asarray(rotvec, dtype=float)
+    th2 = np.einsum("...i,...i->...", v, v)
+    th = np.sqrt(th2)
+    small = th2 < 1e-12
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    out = np.empty(v.shape[:-1] + (3, 3))
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    out[..., 0, 0] = 1.0 - b * (yy + zz)
+    out[..., 1, 1] = 1.0 - b * (xx + zz)
+    out[..., 2, 2] = 1.0 - b * (xx + yy)
+    out[..., 0, 1] = b * xy - a * z
+    out[..., 1, 0] = b * xy + a * z
+    out[..., 0, 2] = b * xz + a * y
+    out[..., 2, 0] = b * xz - a * y
+    out[..., 1, 2] = b * yz - a * x
+    out[..., 2, 1] = b * yz + a * x
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _inv_sym3(S: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric 3 x 3 matrices ``(n, 3, 3)`` by cofactors (no LAPACK call per
+    matrix: the stack is small and many)."""
+    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
+    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    inv_det = 1.0 / (a * A + b * B + c * C)
+    out = np.empty_like(S)
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = A, B, C
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = B, D, E
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = C, E, F
+    out *= inv_det[:, None, None]
+    return out
+
+
+def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
+         maxiter: int = 200) -> np.ndarray:
+    """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
+    its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
+    the filter has settled, so a few iterations suffice (docs/estimator.md §8)."""
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = inv_diag * r
+    pdir = z.copy()
+    rz = float(r @ z)
+    stop = rtol * rtol * float(b @ b)
+    for _ in range(maxiter):
+        if float(r @ r) <= stop:
+            break
+        q = matvec(pdir)
+        alpha = rz / float(pdir @ q)
+        x += alpha * pdir
+        r -= alpha * q
+        z = inv_diag * r
+        rz_new = float(r @ z)
+        pdir = z + (rz_new / rz) * pdir
+        rz = rz_new
+    return x
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of ``(n, 3)`` arrays (np.cross's axis handling costs more than
+    the products at these sizes)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``Q R_k`` for every frame ``R (n, 3, 3)``, as one 3 x 3n product."""
+    n = R.shape[0]
+    return np.ascontiguousarray((Q @ R.transpose(1, 0, 2).reshape(3, 3 * n))
+                                .reshape(3, n, 3).transpose(1, 0, 2))
+
+
+def _wrap(x):
+    return (x + np.pi) % (2 * np.pi) - np.pi
+
+
+def frames_from_angles(alpha, beta, gamma) -> np.ndarray:
+    """``Rz(γ) Ry(β) Rx(α)`` (docs/design.md), shape (n, 3, 3)."""
+    ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
+                              np.cos(gamma), np.sin(gamma))
+    R = np.empty(alpha.shape + (3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cg * cb, cg * sb * sa - sg * ca, cg * sb * ca + sg * sa
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sb, cb * sa, cb * ca
+    return R
+
+
+# ---------------------------------------------------------------------------------------------
+# The per-link steps: numpy, and the same in C (host/analysis/motion/_kernel/link_filter.c) when
+# built. Each updates its arrays in place; link_filter.h documents them.
+# ---------------------------------------------------------------------------------------------
+
+def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
+    dth = 0.5 * (w0 + w1) * dt[:, None] + _cross(w0, w1) * (dt * dt / 12.0)[:, None]
+    R[:] = R @ rotation_matrices(dth)
+    G = R * dt[:, None, None]  # δθ' = δθ − R δb dt
+    Ptt, Ptb, Pbb = P[:, :3, :3], P[:, :3, 3:], P[:, 3:, 3:]
+    GPbb = G @ Pbb
+    GPbt = G @ P[:, 3:, :3]
+    Ptt_new = Ptt - GPbt - GPbt.transpose(0, 2, 1) + GPbb @ G.transpose(0, 2, 1)
+    Ptt_new += q[:, None, None] * np.eye(3)
+    P[:, :3, 3:] = Ptb - GPbb
+    P[:, 3:, :3] = P[:, :3, 3:].transpose(0, 2, 1)
+    P[:, :3, :3] = Ptt_new
+    P[:, 3:, 3:] += qb[:, None, None] * np.eye(3)
+
+
+def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
+    Rt = R.transpose(0, 2, 1)
+    y = f - np.einsum("kij,kj->ki", Rt, vec)
+    H = Rt @ _skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
+    HP = H @ P[:, :3, :]  # (n, 3, 6)
+    S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
+    Si = _inv_sym3(S)
+    m2 = np.einsum("ki,kij,kj->k", y, Si, y)
+    Si /= np.maximum(1.0, m2 / gate)[:, None, None]
+    K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
+    K[~valid] = 0.0
+    x[:] = np.einsum("kij,kj->ki", K, y)
+    P -= K @ HP
+
+
+def _np_yaw(P, mu, a_diag, x) -> None:
+    c = P[:, :, 2].copy()  # (n, 6): covariance with the yaw error
+    p = c[:, 2].copy()
+    g = c / p[:, None]
+    P -= np.einsum("ki,kj->kij", g, c * (1.0 - 1.0 / (a_diag * p))[:, None])
+    x[:] = g * mu[:, None]
+
+
+def _np_apply(R, bias, P, x) -> None:
+    R[:] = rotation_matrices(x[:, :3]) @ R
+    bias += x[:, 3:]
+    P += P.transpose(0, 2, 1)
+    P *= 0.5
+
+
+_NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
+
+
+def _kernel_step(name: str, *args) -> None:
+    ptr = []
+    for a in args:
+        if isinstance(a, np.ndarray):
+            if a.dtype == bool:
+                a = a.astype(np.uint8)
+            elif not a.flags.c_contiguous or a.dtype != np.float64:
+                raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
+            ptr.append(_kffi.cast("uint8_t *" if a.dtype == np.uint8 else "double *",
+                                  _kffi.from_buffer(a)))
+        else:
+            ptr.append(float(a))
+    n = args[0].shape[0]
+    getattr(_klib, "capsheet_mf_" + name)(n, *ptr)
+
+
+def _step(name: str, *args) -> None:
+    """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
+    `USE_KERNEL`, else numpy's."""
+    if USE_KERNEL:
+        _kernel_step(name, *args)
+    else:
+        _NUMPY_STEPS[name](*args)
+
+
+def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray,
+                           rows: int, cols: int, link_length: float,
+                           endpoints: np.ndarray | None = None) -> np.ndarray:
+    """Every chip's acceleration less the mean of all chips', from the links' frames, rates and
+    angular accelerations alone (module docstring, step 2): a link's direction ``d = R e_x`` has
+    ``d̈ = R (ω × (ω × e_x) + ω̇ × e_x)``; the joints' accelerations follow from the ``d̈`` as the
+    joints from the ``d`` (`joints_from_directions`), and a chip (at its link's midpoint) has the
+    mean of its link's ends'.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (n_links, 3, 3)
+        Sensor -> world.
+    omega, omega_dot : ndarray, shape (n_links, 3)
+        Angular velocity (rad/s) and its time derivative (rad/s²), link frames.
+
+    Returns
+    -------
+    ndarray, shape (n_links, 3)
+        m/s², world frame, summing to zero over the links.
+    """
+    w = np.asarray(omega, dtype=float)
+    wdot = np.asarray(omega_dot, dtype=float)
+    body = w[:, 0:1] * w - np.einsum("ki,ki->k", w, w)[:, None] * _EX  # ω × (ω × e_x)
+    body[:, 1] += wdot[:, 2]  # + ω̇ × e_x
+    body[:, 2] -= wdot[:, 1]
+    ddot = np.einsum("kij,kj->ki", frames, body)
+    A = joints_from_directions(ddot, rows, cols, link_length).reshape(-1, 3)
+    ep = topology(rows, cols).lattice.endpoints if endpoints is None else endpoints
+    a = 0.5 * (A[ep[:, 0]] + A[ep[:, 1]])
+    return a - a.mean(axis=0)
+
+
+def calibrated(cal, accel_mps2, gyro_rps=None, mag_t=None):
+    """The chips' readings corrected by one board capture's calibration
+    (`host.analysis.imu_calibration.CaptureCalibration`, docs/calibration.md): what the fused
+    estimator and its peers take. Arrays ``(..., n_links, 3)``, SI, as the chips report them;
+    returns ``(accel, gyro, mag)`` in the link frames (None where not given). The gyroscope's
+    g-sensitivity term uses the bias- and scale-corrected specific force in the chip's axes."""
+    a = np.asarray(accel_mps2, dtype=float)
+    acc = cal.accel.apply(a)
+    gyr = mag = None
+    if gyro_rps is not None:
+        if cal.gyro is None:
+            raise ValueError("The calibration has no gyroscope part (captured without gyroscopes).")
+        gyr = cal.gyro.apply(gyro_rps, (a - cal.accel.bias) / cal.accel.scale)
+    if mag_t is not None:
+        if cal.mag is None:
+            raise ValueError("The calibration has no magnetometer part (captured without them).")
+        mag = cal.mag.apply(mag_t)
+    return acc, gyr, mag
+
+
+class MotionEstimator:
+    """The fused estimator of one sheet (module docstring). Stateful, sans-I/O.
+
+    Parameters
+    ----------
+    rows, cols : int
+        Joints along i and j, each >= 2.
+    link_length : float
+        ``L``, metres.
+    config : FusedConfig, optional
+    declination_rad : float
+        The yaw of magnetic north from world x (with magnetometers), radians.
+    """
+
+    def __init__(self, rows: int, cols: int, link_length: float, *,
+                 config: FusedConfig | None = None, declination_rad: float = 0.0) -> None:
+        for name, v in (("rows", rows), ("cols", cols)):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 2:
+                raise ValueError(f"Invalid {name}: {v!r} (need an integer >= 2)")
+        if isinstance(link_length, (bool, np.bool_)) or not isinstance(
+                link_length, (int, float, np.number)) or not (np.isfinite(link_length)
+                                                               and link_length > 0):
+            raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
+        if not np.isfinite(declination_rad):
+            raise ValueError(f"Invalid declination_rad: {declination_rad!r}")
+        self.rows, self.cols = int(rows), int(cols)
+        self.link_length = float(link_length)
+        self.config = FusedConfig() if config is None else config
+        if not isinstance(self.config, FusedConfig):
+            raise ValueError(f"Invalid config: {config!r} (expected a FusedConfig)")
+        self.declination_rad = float(declination_rad)
+        self.topo = topology(self.rows, self.cols)
+        self.n_links = self.topo.n_links
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything: the next snapshot initialises again."""
+        self.R: np.ndarray | None = None
+        self.bias = np.zeros((self.n_links, 3))
+        self.P = np.zeros((self.n_links, 6, 6))
+        self._t = None
+        self._w_hist: list[np.ndarray] = []  # the last two bias-corrected rates
+        self._with_mag: bool | None = None
+        self._b_ref = None
+        self._dist = None
+        self.snapshots = 0
+
+    # ------------------------------------------------------------------------------- input
+    def _check(self, t_s, accel, gyro, mag, valid):
+        n = self.n_links
+        arrays = {}
+        for name, a in (("accel", accel), ("gyro", gyro), ("mag", mag)):
+            if a is None:
+                arrays[name] = None
+                continue
+            x = np.asarray(a)
+            if x.dtype.kind not in "iuf":
+                raise ValueError(f"Invalid {name}: dtype {x.dtype} (need real numbers)")
+            if x.shape != (n, 3):
+                raise ValueError(f"Expected `{name}` to have shape ({n}, 3) for a {self.rows}x"
+                                 f"{self.cols} lattice, got {x.shape}.")
+            arrays[name] = x.astype(float, copy=False)
+        if arrays["gyro"] is None:
+            raise ValueError("The fused estimator needs gyroscopes (`gyro` of shape (n_links, 3)); "
+                             "for accelerometers alone use host.analysis.estimator.estimate.")
+        if valid is None:
+            v = np.ones(n, bool)
+        else:
+            v = np.asarray(valid)
+            if v.dtype != bool or v.shape != (n,):
+                raise ValueError(f"Invalid valid: need a boolean mask of shape ({n},), got "
+                                 f"{v.dtype} {v.shape}.")
+        for name, x in arrays.items():
+            if x is not None:
+                bad = v & ~np.all(np.isfinite(x), axis=1)
+                if bad.any():
+                    k = np.flatnonzero(bad)
+                    raise ValueError(f"Non-finite {name} on valid links {k[:8].tolist()}"
+                                     f"{' ...' if k.size > 8 else ''}; mask them with `valid`.")
+        t = np.asarray(t_s, dtype=float)
+        if t.shape not in ((), (n,)):
+            raise ValueError(f"Invalid t_s: need seconds, a scalar or shape ({n},), got shape "
+                             f"{t.shape}.")
+        t = np.broadcast_to(t, (n,)).astype(float)
+        if not np.all(np.isfinite(t[v])) or not v.any() and not np.all(np.isfinite(t)):
+            raise ValueError("Invalid t_s: the valid links' sample times must be finite seconds.")
+        if not v.all():  # a link without a sample has no time of its own: the snapshot's
+            t[~v] = np.max(t[v]) if v.any() else t[0]
+        if self._with_mag is not None and (arrays["mag"] is not None) != self._with_mag:
+            raise ValueError("Magnetometer readings must be given on every snapshot or on none "
+                             f"(this estimator started {'with' if self._with_mag else 'without'}).")
+        if self._t is not None:
+            dt = t - self._t
+            back = v & (dt <= 0)
+            if back.any():
+                raise ValueError(f"Sample times must increase: links {np.flatnonzero(back)[:8].tolist()} "
+                                 f"go from {self._t[back][0]!r} to {t[back][0]!r} s.")
+        return t, arrays["accel"], arrays["gyro"], arrays["mag"], v
+
+    # ------------------------------------------------------------------------------- update
+    def update(self, t_s, accel, gyro, mag=None, valid=None) -> MotionEstimate:
+        """Feed one snapshot, get the shape.
+
+        Parameters
+        ----------
+        t_s : float or ndarray, shape (n_links,)
+            Sample time(s), s: one for the snapshot or each link's own (the chip timestamps;
+            ignored, and may be NaN, where ``valid`` is False); increasing from snapshot to
+            snapshot.
+        accel : ndarray, shape (n_links, 3)
+            Specific force, m/s², link frames, calibrated.
+        gyro : ndarray, shape (n_links, 3)
+            Angular rate, rad/s, link frames, calibrated.
+        mag : ndarray, shape (n_links, 3), optional
+            Magnetic field, tesla, link frames, calibrated (every snapshot or none).
+        valid : ndarray of bool, shape (n_links,), optional
+            False: that link's sample did not arrive (its orientation is carried by its last
+            rate; its accelerometer and magnetometer are not used). Default: all valid.
+
+        Returns
+        -------
+        MotionEstimate
+
+        Raises
+        ------
+        ValueError
+            Wrong shapes or dtypes, non-finite values on valid links, no gyroscope, times that do
+            not increase, magnetometers on some snapshots only, no valid link at the first
+            snapshot.
+        """
+        t0 = time.perf_counter()
+        t, f, w, m, v = self._check(t_s, accel, gyro, mag, valid)
+        cfg = self.config
+        if self.R is None:
+            self._initialise(t, f, w, m, v)
+            t1 = t2 = t3 = time.perf_counter()
+            a_c = np.zeros(3)
+        else:
+            dt = t - self._t
+            w_c = np.where(v[:, None], w - self.bias, self._w_hist[-1])
+            self._propagate(w_c, dt)
+            t1 = time.perf_counter()
+            a_c = self._accel_update(f, w_c, dt, v)
+            t2 = time.perf_counter()
+            self._lattice_update(m, v, dt)
+            t3 = time.perf_counter()
+            self._w_hist = [self._w_hist[-1], w_c]
+            self._t = t
+        joints = joints_from_directions(self.R[:, :, 0], self.rows, self.cols, self.link_length)
+        t4 = time.perf_counter()
+        self.snapshots += 1
+        return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
+                              gyro_bias_rps=self.bias.copy(),
+                              mag_weight=None if self._dist is None else self._weights.copy(),
+                              common_accel_mps2=a_c, heading_absolute=bool(self._with_mag),
+                              timings={"propagate": t1 - t0, "accel": t2 - t1,
+                                       "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0})
+
+    def _initialise(self, t, f, w, m, v) -> None:
+        cfg = self.config
+        if not v.any():
+            raise ValueError("No valid link in the first snapshot: cannot initialise.")
+        e = estimate(np.where(v[:, None], f, (0.0, 0.0, G0)), self.rows, self.cols,
+                     self.link_length, valid=v if not v.all() else None, bad_readings="mask")
+        gamma = np.where(np.isfinite(e.yaws), e.yaws, 0.0)
+        alpha = np.where(np.isfinite(e.alpha), e.alpha, 0.0)
+        beta = np.where(np.isfinite(e.beta), e.beta, 0.0)
+        R = frames_from_angles(alpha, beta, gamma)
+        n = self.n_links
+        self._with_mag = m is not None
+        if m is not None:
+            W = np.einsum("kij,kj->ki", R, m)
+            head = np.arctan2(W[:, 1], W[:, 0])
+            off = _wrap(self.declination_rad - head[v])
+            phi = float(np.arctan2(np.median(np.sin(off)), np.median(np.cos(off))))
+            phi += float(np.median(_wrap(off - phi)))
+            R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, phi])), R)
+            W = np.einsum("kij,kj->ki", R, m)[v]
+            F = float(np.median(np.linalg.norm(W, axis=1)))
+            dip = float(np.median(np.arcsin(np.clip(-W[:, 2] / np.linalg.norm(W, axis=1), -1, 1))))
+            self._b_ref = (F, dip)
+            self._dist = np.zeros((n, 3))
+            self._weights = np.ones(n)
+            self._hvar = cfg.initial_heading_std_rad ** 2
+        self.R = R
+        tilt = (cfg.accel_noise_mps2 / G0) ** 2 + cfg.lattice_floor_rad ** 2
+        self.P[:] = 0.0
+        self.P[:, 0, 0] = self.P[:, 1, 1] = tilt
+        self.P[:, 2, 2] = cfg.initial_yaw_std_rad ** 2
+        self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
+        self._t = t.copy()
+        self._w_hist = [w.copy(), w.copy()]
+        self._a_bar = np.zeros(3)
+
+    # ------------------------------------------------------------------------------- 1. gyro
+    def _propagate(self, w_c, dt) -> None:
+        cfg = self.config
+        q = cfg.orientation_walk_rad ** 2 * dt + (cfg.gyro_noise_rps * dt) ** 2 \
+            + (cfg.gyro_scale_error * np.linalg.norm(w_c, axis=1) * dt) ** 2
+        qb = cfg.gyro_bias_walk_rps ** 2 * dt
+        _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
+
+    # ------------------------------------------------------------------------------- 2, 3. accel
+    def _relative_accel(self, w_c, dt) -> np.ndarray:
+        """Every chip's acceleration less the chips' mean, world (step 2 of the docstring)."""
+        wm1, wm2 = self._w_hist[-1], self._w_hist[-2]
+        h = dt[:, None]
+        if self.snapshots >= 2:
+            wdot = (3.0 * w_c - 4.0 * wm1 + wm2) / (2.0 * h)
+        else:
+            wdot = (w_c - wm1) / h
+        return relative_accelerations(self.R, w_c, wdot, self.rows, self.cols, self.link_length,
+                                      self.topo.lattice.endpoints)
+
+    def _accel_update(self, f, w_c, dt, v) -> np.ndarray:
+        cfg = self.config
+        da = self._relative_accel(w_c, dt)
+        Rf = np.einsum("kij,kj->ki", self.R, f)
+        a_c = (Rf[v] - _GRAVITY_SF - da[v]).mean(axis=0) if v.any() else np.zeros(3)
+        tau = cfg.common_accel_tau_s
+        if tau is not None:
+            self._a_bar += min(float(np.mean(dt)) / tau, 1.0) * (a_c - self._a_bar)
+            vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * (a_c - self._a_bar)
+        else:
+            vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * a_c
+        r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
+            + (cfg.rel_accel_error * np.linalg.norm(da, axis=1)) ** 2
+        x = np.empty((self.n_links, 6))
+        _step("accel", self.R, self.P, f, vec, r2, cfg.gate, v, x)
+        self._apply(x)
+        return a_c
+
+    def _apply(self, x) -> None:
+        _step("apply", self.R, self.bias, self.P, x)
+
+    # ------------------------------------------------------------------------------- 4. lattice
+    def _lattice_update(self, m, v, dt) -> None:
+        cfg = self.config
+        topo = self.topo
+        R = self.R
+        d = R[:, :, 0]
+        Y = R[:, :, 1]
+        units = topo.units
+        n = self.n_links
+        du = d[units]  # (U, 4, 3)
+        # loop closure, xy part: residual and its derivative in each link's yaw
+        r_cl = du[:, 0, :2] + du[:, 1, :2] - du[:, 2, :2] - du[:, 3, :2]  # (U, 2)
+        ezd = np.empty((n, 3))  # e_z × d
+        ezd[:, 0], ezd[:, 1], ezd[:, 2] = -d[:, 1], d[:, 0], 0.0
+        ezd_u = ezd[units]  # (U, 4, 3)
+        j_cl = (CLOSURE_SIGNS[None, :, None] * ezd_u[:, :, :2]).transpose(0, 2, 1)  # (U, 2, 4)
+        # the cells' normals A × C and each link's sensor y against their mean
+        A = du[:, 1] + du[:, 3]
+        C = du[:, 0] + du[:, 2]
+        N = _cross(A, C)
+        nN = np.sqrt(np.einsum("ui,ui->u", N, N))
+        ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
+        inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
+        nc = N * inv_nN[:, None]
+        nbar = topo.cell_to_link @ nc
+        r_n = np.einsum("ki,ki->k", Y, nbar)
+        j_diag = Y[:, 0] * nbar[:, 1] - Y[:, 1] * nbar[:, 0]  # (e_z × Y) · n̄
+        pl, pc = topo.pair_link, topo.pair_cell
+        Yp = Y[pl]
+        ncp = nc[pc]
+        wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
+            * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
+        CxW = _cross(C[pc], wkc)
+        WxA = _cross(wkc, A[pc])
+        ez_c = ezd_u[pc]  # (K2, 4, 3)
+        j_pair = np.empty((pl.size, 4))
+        j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
+        j_pair[:, 2] = np.einsum("ki,ki->k", ez_c[:, 2], WxA)
+        j_pair[:, 1] = np.einsum("ki,ki->k", ez_c[:, 1], CxW)
+        j_pair[:, 3] = np.einsum("ki,ki->k", ez_c[:, 3], CxW)
+        jd = np.bincount(topo.jac_slots, weights=np.concatenate([j_cl.ravel(), j_diag,
+                                                                  j_pair.ravel()]),
+                         minlength=topo.jac_nnz)
+        J, JT = topo.jac, topo.jac_T
+        J.data = jd
+        JT.data = jd[topo.jac_T_from]
+        # weights: the tilt variance of the links involved plus the model's floor
+        P = self.P
+        tilt = P[:, 0, 0] + P[:, 1, 1]
+        fl = cfg.lattice_floor_rad ** 2
+        w_cl = 1.0 / (tilt[units].sum(axis=1) + fl)
+        wts = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + fl)])
+        res = np.concatenate([r_cl.ravel(), r_n])
+        p = P[:, 2, 2].copy()
+        diag = 1.0 / p
+        rhs = -(JT @ (wts * res))
+        a_diag = diag + np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd,
+                                    minlength=n)
+        mu = _pcg(lambda x: JT @ (wts * (J @ x)) + diag * x, rhs, 1.0 / a_diag)
+        # each link's whole state follows its yaw through its covariance; the yaw's posterior
+        # variance is taken as the conditional one, 1 / A_kk
+        x = np.empty((n, 6))
+        _step("yaw", P, mu, a_diag, x)
+        self._apply(x)
+        if m is not None:
+            self._heading_update(m, v, dt)
+
+    def _heading_update(self, m, v, dt) -> None:
+        """The magnetometers turn the whole sheet about world z (a rigid rotation: they never
+        bend it), by a scalar Kalman filter on the common heading: the measurement is the
+        weighted mean of the links' heading errors, each link weighted by its disturbance tests
+        and its noise (module docstring, step 4)."""
+        cfg = self.config
+        mw, me = self._magnetometer(m, v, dt)
+        total = float(mw.sum())
+        self._hvar += cfg.heading_walk_rad ** 2 * float(np.mean(dt))
+        if total <= 0:
+            return
+        err = float(mw @ me) / total
+        r = 1.0 / total + cfg.mag_common_floor_rad ** 2
+        gain = self._hvar / (self._hvar + r)
+        self._hvar *= 1.0 - gain
+        self.R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, -gain * err])), self.R)
+
+    def _magnetometer(self, m, v, dt):
+        """Per link: the weight (information, 1/rad²) of its heading and its heading's offset
+        from Earth's field (rad), after the disturbance tests (module docstring, step 4)."""
+        cfg = self.config
+        W = np.einsum("kij,kj->ki", self.R, m)
+        hz = np.hypot(W[:, 0], W[:, 1])
+        norm = np.linalg.norm(W, axis=1)
+        e = _wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
+        F, dip = self._b_ref
+        ok = v & (hz > 0.1 * F)
+        cons = float(np.median(e[ok])) if ok.any() else 0.0
+        tests = np.stack([_wrap(e - cons) / cfg.disturbance_heading_rad,
+                          (norm / F - 1.0) / cfg.disturbance_field_frac,
+                          (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
+                          / cfg.disturbance_dip_rad], axis=1)
+        alpha = np.clip(dt / cfg.disturbance_tau_s, 0.0, 1.0)[:, None]
+        self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
+        s2 = np.einsum("ki,ki->k", self._dist, self._dist)
+        wgt = 1.0 / (1.0 + s2 / cfg.disturbance_scale ** 2)
+        self._weights = np.where(ok, wgt, 0.0)
+        var = (cfg.mag_noise_t / np.maximum(hz, 1e-30)) ** 2 + cfg.mag_floor_rad ** 2
+        return self._weights / var, np.where(ok, e, 0.0)

@@ -1,0 +1,62 @@
+"""The same verdicts whatever carries the frames: the conformance suite against the same chip (a healthy
+one, and a mutant that breaks the SYNC counter) over a pty (serial), an SLCAN adapter on a pty and
+python-can's udp_multicast bus — the transports a vendor's bench uses. Every check of the chip profile
+must reach the same outcome on each, but for the transport's own checks (serial: 21; CAN: 22, 41).
+
+SLCAN hands frames over in blocks and udp_multicast echoes a sender's own frames: the port's audit
+reads both through the transport's capture (issue 25). Over SLCAN the suite is given a plain
+`CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`."""
+
+from __future__ import annotations
+
+import pytest
+
+from host.conformance import AuditedCanTransport, CHECKS, Port, run_checks
+from host.transport import CanTransport, SerialTransport
+from tests.host.cli.test_host import ONE_MULTICAST_BUS, _udp_or_skip, udp_bus_lock  # noqa: F401 (fixture)
+from tests.host.conformance.mutants import CounterOffByOne
+from virtual_sheet.devices import CanDevice, PtyDevice
+from virtual_sheet.sheet import VirtualSheet
+from virtual_sheet.slcan import SlcanDevice
+
+OWN = {"serial": {21}, "can": {22, 41}}  # a transport's own checks
+
+
+def _outcomes(kind, chip_class):
+    sheet = VirtualSheet("flat", "2x2", transport="serial" if kind == "pty" else "can", noise=0.5,
+                         chip_factory=chip_class)
+    if kind == "pty":
+        dev = PtyDevice(sheet).start()
+        t = SerialTransport(str(dev.path), reconnect=False)
+    elif kind == "slcan":
+        dev = SlcanDevice(sheet).start()
+        t = CanTransport(f"slcan:{dev.path}", bitrate=1_000_000, reconnect=False, sleep_after_open=0)
+    else:
+        _udp_or_skip()
+        dev = CanDevice(sheet, interface="udp_multicast", channels=["239.74.163.2"]).start()
+        t = AuditedCanTransport("udp_multicast:239.74.163.2", reconnect=False)
+    port = Port(t)
+    try:
+        results = run_checks(port, timeout_s=0.3, allow_broadcast=True, slack_ms=40.0)  # as the matrix
+    finally:
+        port.close()
+        t.close()
+        dev.stop()
+    return {r.number: r.outcome for r in results}, "\n".join(r.line() for r in results)
+
+
+def _expected(kind, failing=frozenset()):
+    own = OWN["serial" if kind == "pty" else "can"]
+    common = {c.number for c in CHECKS if "chip" in c.profiles} - OWN["serial"] - OWN["can"]
+    return {n: ("FAIL" if n in failing else "PASS") for n in common | own}
+
+
+@pytest.mark.parametrize("chip,failing", [(None, set()), (CounterOffByOne, {24, 25, 26, 27})],
+                         ids=["healthy", "counter_off_by_one"])
+@pytest.mark.parametrize("kind", ["pty", "slcan", pytest.param("udp_multicast", marks=ONE_MULTICAST_BUS)])
+def test_the_same_verdicts_on_every_transport(request, kind, chip, failing):
+    """A healthy chip passes every check, a broken one fails the same checks, on each transport."""
+    if kind == "udp_multicast":
+        request.getfixturevalue("udp_bus_lock")
+    got, report = _outcomes(kind, chip)
+    assert got == _expected(kind, failing=failing), report
