@@ -523,3 +523,25 @@ def test_the_level_prior_is_unbiased_on_a_drape_where_the_default_is_not():
     level, default = np.mean(err["level"]), np.mean(err["adaptive"])
     assert level <= 0.3, err  # the paper's method reaches 0.27 % of side here (section 7.4)
     assert level <= 0.5 * default, err
+
+
+def test_joints_from_directions_rebuilds_a_sheet_from_its_exact_link_directions():
+    # truth: an exact Chebyshev net; its links' directions (chords / L) give it back, joint (0, 0)
+    # at the origin, a batch at once, and with a link missing the rest still hold it
+    n = 7
+    P = make_sheet("gaussian", n, n, 0.01, shear=0.2)
+    ep = Lattice(n, n).endpoints
+    flat = P.reshape(-1, 3)
+    d = (flat[ep[:, 1]] - flat[ep[:, 0]]) / 0.01
+    want = P - P[0, 0]
+    np.testing.assert_allclose(E.joints_from_directions(d, n, n, 0.01), want, atol=1e-9)
+    both = E.joints_from_directions(np.stack([d, -d]), n, n, 0.01)
+    assert both.shape == (2, n, n, 3)
+    np.testing.assert_allclose(both[1], -want, atol=1e-9)
+    valid = np.ones(d.shape[0], bool)
+    valid[10] = False
+    d_bad = d.copy()
+    d_bad[10] = (5.0, 5.0, 5.0)  # what a missing link says is not looked at
+    np.testing.assert_allclose(E.joints_from_directions(d_bad, n, n, 0.01, valid), want, atol=1e-9)
+    with pytest.raises(ValueError, match=r"shape \(\.\.\., 84, 3\)"):
+        E.joints_from_directions(d[:5], n, n, 0.01)
