@@ -386,6 +386,9 @@ class Host:
         self._events_lock = threading.Lock()
         self._inbox: queue.Queue = queue.Queue(maxsize=100_000)
         self._lock = threading.RLock()
+        # held for one whole `_sync_step` (SYNC sent and its counter opened together): `stop` takes
+        # it, so no SYNC goes out after stop has looked at what is open
+        self._step_lock = threading.Lock()
         self._stop = threading.Event()
         self._rx_threads: list[threading.Thread] = []
         self._sync_thread: threading.Thread | None = None
@@ -989,7 +992,8 @@ class Host:
 
     def stop(self) -> None:
         """Stop driving SYNC, STOP every chip (broadcast, best effort), emit what is open."""
-        self._streaming.clear()
+        with self._step_lock:  # a SYNC step in flight finishes first: its counter is then open
+            self._streaming.clear()
         # let the counters in flight complete (up to their deadline) before masking them
         end = self._now() + self.aggregator.deadline_s + 0.02
         while self.feed.n_open and self._now() < end:
@@ -1472,7 +1476,8 @@ class Host:
             lag = max(0.0, now - wake)
             self.loop_lag_s += 0.05 * (lag - self.loop_lag_s)
             self.max_loop_lag_s = max(self.max_loop_lag_s, lag)
-            self._sync_step(now)
+            with self._step_lock:
+                self._sync_step(now)
             if not self._streaming.is_set():
                 wake = now + 0.01
             else:
@@ -1521,7 +1526,8 @@ class Host:
             for _ in range(1000):  # everything that is there, bounded
                 if not self._rx_once(bus, t, 0.0):
                     break
-        self._sync_step(self._now() if now is None else now)
+        with self._step_lock:
+            self._sync_step(self._now() if now is None else now)
         self._maybe_recover()
 
     def _now(self) -> float:
