@@ -44,6 +44,7 @@ from host.analysis.calibration import (BOARD_POSES, MIN_POSES, Calibration,
 from host.cli.transport_args import add_transport_args, open_transports
 from host.transport import TransportError
 from protocol.constants import G0
+from protocol.lattice import Lattice
 
 __all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "PoseCapture"]
 
@@ -109,8 +110,8 @@ def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | 
     except (OSError, ValueError) as exc:
         raise usage(f"--calibration: {exc}") from None
     try:
-        rows, cols = ((lattice.rows, lattice.cols) if hasattr(lattice, "rows")
-                      else tuple(int(x) for x in str(lattice).lower().split("x")))
+        lat = lattice if isinstance(lattice, Lattice) else Lattice.parse(str(lattice))
+        rows, cols = lat.rows, lat.cols
     except ValueError:
         raise usage(f"--lattice {lattice!r}: expected ROWSxCOLS") from None
     if (cal.rows, cal.cols) != (rows, cols):
