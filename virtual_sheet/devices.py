@@ -12,6 +12,9 @@
                     block of the links (``device.paths``); gateway 0 leads the SYNC line
 =================== ========================================================================
 
+The two devices with a pty per gateway or bus (`MultiPtyDevice`, `SlcanDevice`) are
+`PtyGroupDevice` s: one `PtyGroup` of `PtyPort` s, served by one ``select``.
+
 Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thread and stops it
 (joined, ports closed) on exit; `start` / `stop` do the same by hand. The clock is
 ``time.monotonic()`` from `start` (``device.now()``); the chips are powered on at start.
@@ -54,7 +57,7 @@ from .faults import ERROR_FRAME
 from .gateway import Gateway
 from .memport import memory_link
 
-__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "PtyPort", "PtyGroup", "open_pty", "claim_symlink",
+__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "PtyPort", "PtyGroup", "PtyGroupDevice", "open_pty", "claim_symlink",
            "SYMLINK_RECORDS"]
 
 _IDLE_WAIT_S = 0.005
@@ -663,7 +666,37 @@ class PtyDevice(_PtyMixin, _SerialDevice):
         return f"serial port {self.path} (-> {self.tty})"
 
 
-class MultiPtyDevice(Device):
+class PtyGroupDevice(Device):
+    """A device that serves its host through several ptys, one `PtyGroup`: opened, served, closed
+    in an outage and re-opened together. A subclass sets ``self.ports`` (and ``paths``/``path``)
+    and says what a port's bytes do (`_received`)."""
+
+    ports: PtyGroup
+
+    @property
+    def tx_overflow_frames(self) -> int:
+        return self.ports.tx_overflow_frames
+
+    def _open(self) -> None:
+        self.ports.open()
+
+    def _close(self) -> None:
+        self.ports.cleanup()
+
+    def _serve(self, timeout_s: float) -> None:
+        self.ports.serve(timeout_s, self._received)
+
+    def _received(self, b: int, data: bytes) -> None:
+        raise NotImplementedError
+
+    def _go_down(self) -> None:
+        self.ports.close()
+
+    def _come_back(self) -> None:
+        self.ports.open()
+
+
+class MultiPtyDevice(PtyGroupDevice):
     """One sheet behind ``n_gateways`` serial gateways, each on its own pty: a sheet too big for one
     UART (1,984 links at 145 Hz exceed a 12 Mbaud link even packed, docs/protocol.md §10) split in
     contiguous link blocks (`VirtualSheet.split`), as CAN buses are. The host opens every port and
@@ -697,19 +730,6 @@ class MultiPtyDevice(Device):
         self.paths = self.ports.paths
         self.path = self.paths[0]
 
-    @property
-    def tx_overflow_frames(self) -> int:
-        return self.ports.tx_overflow_frames
-
-    def _open(self) -> None:
-        self.ports.open()
-
-    def _close(self) -> None:
-        self.ports.cleanup()
-
-    def _serve(self, timeout_s: float) -> None:
-        self.ports.serve(timeout_s, self._received)
-
     def _received(self, b: int, data: bytes) -> None:
         if self.verbose is not None:
             self.verbose("rx", data)
@@ -717,12 +737,6 @@ class MultiPtyDevice(Device):
 
     def _send(self, bus: int, frames: list) -> None:
         self.ports[bus].write(b"".join(frames), len(frames))
-
-    def _go_down(self) -> None:
-        self.ports.close()
-
-    def _come_back(self) -> None:
-        self.ports.open()
 
     def describe(self) -> str:
         return (f"{len(self.ports)} serial gateways: "

@@ -38,7 +38,7 @@ import numpy as np
 
 from protocol.can import CanFrame
 
-from .devices import Device, PtyGroup
+from .devices import PtyGroup, PtyGroupDevice
 from .faults import ERROR_FRAME
 from .gateway import Gateway
 
@@ -226,7 +226,7 @@ def _sample_lines(frames: list) -> bytes | None:
     return out.tobytes()
 
 
-class SlcanDevice(Device):
+class SlcanDevice(PtyGroupDevice):
     """One emulated SLCAN adapter per bus, each on its own pty, chips split across the buses.
 
     ``device.path`` (first bus) / ``device.paths``: stable symlinks to open with
@@ -257,15 +257,6 @@ class SlcanDevice(Device):
             self.gateways[b].receive(frame, self.now())
         return send
 
-    def _open(self) -> None:
-        self.ports.open()
-
-    def _close(self) -> None:
-        self.ports.cleanup()
-
-    def _serve(self, timeout_s: float) -> None:
-        self.ports.serve(timeout_s, self._received)
-
     def _received(self, b: int, data: bytes) -> None:
         reply = self.adapters[b].feed(data, self.now())
         if reply:
@@ -277,12 +268,9 @@ class SlcanDevice(Device):
             self.ports[bus].write(data, len(frames))
 
     def _go_down(self) -> None:
-        self.ports.close()
+        super()._go_down()
         for a in self.adapters:
             a.is_open = False
-
-    def _come_back(self) -> None:
-        self.ports.open()
 
     def describe(self) -> str:
         return f"SLCAN adapter{'s' if len(self.paths) > 1 else ''} on {', '.join(self.paths)}"
