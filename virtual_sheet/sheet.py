@@ -169,7 +169,7 @@ class VirtualSheet:
             raise ValueError(f"Invalid engine: {engine!r} (expected 'array' or 'chips')")
         if engine == "array" and chip_factory not in (None, ChipModel):
             raise ValueError("engine='array' runs the Python chip model; give engine='chips' for chip_factory")
-        self.engine = engine
+        self.engine_name = engine  #: "array" (one `ChipArray`, `array`) or "chips" (one object per chip, `chips`)
         self.chip_factory = chip_factory or ChipModel
         self.reply_delay_s = [0.0] * n
         self.chips = []
