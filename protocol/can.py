@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .framing import DecodeError, ErrorReason, SampleBatch
-from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Sample, Snapshot,
+from .framing import DecodeError, ErrorReason
+from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Sample, SampleBatch, Snapshot,
                        Sync, decode_payload, SAMPLE_WORD_SIZE, unpack_sample_words)  # noqa: F401 (Sync: doctest)
 
 __all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
