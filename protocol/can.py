@@ -341,11 +341,8 @@ class CanDecoder:
                 datas.append(data)
                 nodes.append(aid & 0xFFFF)
                 return
+            # every SAMPLE decode_can accepts passed the test above: what is left is no SAMPLE
             ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
-            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
-                datas.append(data)
-                nodes.append(ev.node)
-                return
             flush()
             if isinstance(ev, DecodeError):
                 errors[ev.reason] += 1

@@ -45,7 +45,7 @@ import numpy as np
 
 from protocol.constants import ADC_MAX, ADC_MIN, G0, SampleStatus
 from protocol.lattice import Lattice
-from protocol.layout import load_layout, save_layout
+from protocol.layout import save_layout
 from .chip import ChipModel
 
 #: SYNC times kept for the truth (`VirtualSheet.truth_time`): 28 s at 145 Hz, far more than any
@@ -58,7 +58,7 @@ from .sensor import SensorModel
 from .sensor import _check_readings as check_readings
 from .shapes import StaticScene, make_scene
 
-__all__ = ["VirtualSheet", "make_uids", "read_layout"]
+__all__ = ["VirtualSheet", "make_uids"]
 
 
 def make_uids(n: int, seed: int) -> list[int]:
@@ -75,11 +75,6 @@ def make_uids(n: int, seed: int) -> list[int]:
                 if len(out) == n:
                     break
     return out
-
-
-def read_layout(path: str | Path) -> dict[int, int]:
-    """``{uid: link}`` from a layout file (`protocol.layout`: the one format the host reads too)."""
-    return dict(load_layout(path).links)
 
 
 class VirtualSheet:
