@@ -119,6 +119,25 @@ def test_any_frames_never_raise_and_each_is_accounted_for(raw):
     assert all(not isinstance(e, DecodeError) or e.reason in st_.errors for e in flat(events))
 
 
+@given(st.lists(st.tuples(st.sampled_from([make_id(MsgType.SAMPLE, 1) & ~0xFFFF, 0]), st.integers(0, 0xFFFF),
+                          st.integers(0, 1 << 30), st.sampled_from([5, 6, 7, 8, 12]), st.booleans(), st.booleans()),
+                min_size=1, max_size=30), st.integers(0, 2 ** 32 - 1))
+def test_every_sample_decode_can_accepts_takes_the_batch_path(raw, seed):
+    # the receiver batches SAMPLEs by a test of the identifier and length before decode_can; what
+    # decode_can would make a Sample of must pass that test (the path after it has no SAMPLE branch):
+    # every Sample comes out inside a SampleBatch, in order, and nothing else does
+    rng = np.random.Generator(np.random.MT19937(seed))
+    frames = []
+    for base, node, other, n, ext, fd in raw:
+        aid = (base | node) if base else other
+        frames.append(frame(aid, rng.integers(0, 256, n).astype(np.uint8).tobytes(), ext=ext, fd=fd))
+    events = CanDecoder(fd=True).feed(frames)
+    samples = [ev for f in frames if isinstance(ev := decode_can(f.arbitration_id, f.data, is_extended_id=f.is_extended_id,
+                                                                   is_fd=f.is_fd), Sample)]
+    assert [m for ev in events if isinstance(ev, SampleBatch) for m in ev.messages()] == samples
+    assert not any(isinstance(ev, Sample) for ev in events)
+
+
 @given(messages(max_snapshot=MAX_FD_SNAPSHOT_SAMPLES))
 def test_every_message_round_trips_over_can(msg):
     frame = to_can(msg)
