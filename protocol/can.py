@@ -25,8 +25,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .framing import DecodeError, ErrorReason, SampleBatch
-from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Sample, Snapshot,
+from .framing import DecodeError, ErrorReason
+from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Sample, SampleBatch, Snapshot,
                        Sync, decode_payload, SAMPLE_WORD_SIZE, unpack_sample_words)  # noqa: F401 (Sync: doctest)
 
 __all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
@@ -341,11 +341,8 @@ class CanDecoder:
                 datas.append(data)
                 nodes.append(aid & 0xFFFF)
                 return
+            # every SAMPLE decode_can accepts passed the test above: what is left is no SAMPLE
             ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
-            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
-                datas.append(data)
-                nodes.append(ev.node)
-                return
             flush()
             if isinstance(ev, DecodeError):
                 errors[ev.reason] += 1

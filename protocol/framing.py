@@ -25,7 +25,7 @@ import numpy as np
 from cobs import cobs
 
 from .crc import crc16_ccitt_false, crc16_rows
-from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SAMPLE_WORD_SIZE,
+from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SampleBatch, SAMPLE_WORD_SIZE,
                        decode_payload)
 
 __all__ = ["HEADER", "HEADER_SIZE", "CRC_SIZE", "MAX_FRAME_SIZE", "MAX_PAYLOAD_SIZE", "MAX_ENCODED_SIZE",
@@ -73,28 +73,6 @@ class DecodeError:
     detail: str
     excerpt: bytes = b""
     version: int | None = None
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class SampleBatch:
-    """Consecutive SAMPLE frames, decoded at once (batch mode of `StreamDecoder`).
-
-    Attributes are arrays of equal length n: ``node`` uint16, ``counter`` uint16,
-    ``counts`` int16 (n, 3) ADC counts, ``status`` uint8 SampleStatus bits.
-    """
-
-    node: np.ndarray
-    counter: np.ndarray
-    counts: np.ndarray
-    status: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.node.shape[0])
-
-    def messages(self) -> list[Sample]:
-        """The batch as `Sample` messages (slow; for tests and display)."""
-        return [Sample(int(n), int(c), int(x), int(y), int(z), int(s))
-                for n, c, (x, y, z), s in zip(self.node, self.counter, self.counts, self.status)]
 
 
 @dataclass
