@@ -1,6 +1,6 @@
 """The recording options the commands that run a sheet share (``capsheet host``, ``demo``,
-``tactile``): ``--record FILE.mcap``, ``--live [PORT]``, ``--publish zenoh[:ENDPOINT]`` (with
-``--sheet-name``) and, on CAN, ``--can-log FILE``.
+``tactile``): ``--record FILE.mcap``, ``--live [PORT]``, ``--publish zenoh|ros2[:ENDPOINT]`` (with
+``--sheet-name``), ``--record-ros2 FILE.mcap`` and, on CAN, ``--can-log FILE``.
 
 One definition, so the three commands spell and explain them alike; `SessionOutputs` does the
 wiring (raw taps, SYNC taps, session facts, live estimates) so each command adds one block.
@@ -49,12 +49,18 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         f"every second, where the recording stops cleanly, its file readable (default "
                         f"{DEFAULT_MIN_FREE_MB:g} MB; 0: until the disk is full)")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
-    g.add_argument("--publish", metavar="zenoh[:ENDPOINT]", type=_publish_arg, default=None,
-                   help="publish snapshots, estimates, health and (queryable) layout and calibration to Zenoh "
-                        "under capsheet/<sheet>/... (docs/distribution.md); peer mode on loopback, or client "
-                        "mode connected to ENDPOINT (a locator, e.g. tcp/127.0.0.1:7447)")
+    g.add_argument("--publish", metavar="zenoh|ros2[:ENDPOINT]", type=_publish_arg, default=None,
+                   help="zenoh: publish snapshots, estimates, health and (queryable) layout and calibration to "
+                        "Zenoh under capsheet/<sheet>/...; ros2: the same as ROS 2 messages laid out as rmw_zenoh "
+                        "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics; ROS_DOMAIN_ID), "
+                        "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
+                        "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
     g.add_argument("--sheet-name", metavar="NAME", type=_sheet_name, default="sheet",
-                   help="the sheet's name in the published key expressions (default 'sheet')")
+                   help="the sheet's name in the published key expressions and ROS 2 topics (default 'sheet'; "
+                        "for ros2 a ROS name: letters, digits, _)")
+    g.add_argument("--record-ros2", metavar="FILE.mcap", type=T.output_file(".mcap", what="a ROS 2 MCAP recording"),
+                   help="also record the ROS 2 messages of --publish ros2 (CDR) to a ROS 2-profile MCAP "
+                        "(ros2 bag, rosbags and Foxglove read it); an existing file needs --overwrite")
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
@@ -121,6 +127,7 @@ class SessionOutputs:
         self.link_length = float(link_length)
         self.recorder = None
         self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
+        self.ros2 = None  #: `host.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
         self._host = None
         self.can_log = None
         self._can_lock = threading.Lock()
@@ -160,7 +167,10 @@ class SessionOutputs:
                 print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
                       f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
         publish = getattr(args, "publish", None)
-        if publish is not None:
+        record_ros2 = getattr(args, "record_ros2", None)
+        if (publish is not None and publish[0] == "ros2") or record_ros2:
+            self._open_ros2(args, lattice, publish, record_ros2, prog)
+        if publish is not None and publish[0] == "zenoh":
             import host.analysis.estimator  # noqa: F401,F811 -- now, not mid-session (above)
             from host.publish import ZenohPublisher
             sheet = getattr(args, "sheet_name", "sheet")
@@ -181,6 +191,30 @@ class SessionOutputs:
                 raise SystemExit(f"{prog}: cannot write {path}: {exc}") from None
             self.can_log_path = path
 
+    def _open_ros2(self, args, lattice, publish, record_ros2, prog: str) -> None:
+        import host.analysis.estimator  # noqa: F401 -- now, not mid-session (above)
+        from host.ros2 import ROS_NAME, Ros2Outputs, domain_id
+        sheet = getattr(args, "sheet_name", "sheet")
+        if not ROS_NAME.match(sheet):
+            print(f"{prog}: --sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
+                  f"A-Z a-z 0-9 _, starting with a letter", file=sys.stderr)
+            raise SystemExit(2)
+        try:
+            domain = domain_id()
+        except ValueError as exc:
+            print(f"{prog}: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+        ros2_pub = publish is not None and publish[0] == "ros2"
+        try:
+            self.ros2 = Ros2Outputs(sheet, lattice, publish=ros2_pub, endpoint=publish[1] if ros2_pub else None,
+                                    record=record_ros2, domain=domain)
+        except OSError as exc:
+            what = f"cannot write {record_ros2}: " if record_ros2 and "Zenoh" not in str(exc) else ""
+            raise SystemExit(f"{prog}: {what}{exc}") from None
+        if ros2_pub:
+            print(f"{prog}: publishing ROS 2 messages (rmw_zenoh layout, domain {domain}) under "
+                  f"{self.ros2.namespace}/ and /diagnostics ({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+
     def _recording_stopped(self, reason: str) -> None:
         print(f"{self.prog}: recording stopped: {reason}; {self.recorder.paths[-1]} is complete and readable "
               f"(the session goes on{', the live view too' if self.recorder.live is not None else ''})",
@@ -188,7 +222,8 @@ class SessionOutputs:
 
     @property
     def active(self) -> bool:
-        return self.recorder is not None or self.can_log is not None or self.publisher is not None
+        return (self.recorder is not None or self.can_log is not None or self.publisher is not None
+                or self.ros2 is not None)
 
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
@@ -198,6 +233,8 @@ class SessionOutputs:
         self._host = host
         if self.publisher is not None:  # every snapshot as emitted, corrected, as the recording
             host.feed.add_listener(self.publisher.snapshot)
+        if self.ros2 is not None:
+            host.feed.add_listener(self.ros2.snapshot)
         if self.recorder is not None and self.recorder.path is not None:
             self.recorder.tap(host.transports, host.feed)
             self.recorder.tap_sync(host.feed)
@@ -256,7 +293,7 @@ class SessionOutputs:
         None."""
         rec = self.recorder
         self._health()
-        if rec is None and self.publisher is None:
+        if rec is None and self.publisher is None and self.ros2 is None:
             return None
         if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
@@ -287,6 +324,9 @@ class SessionOutputs:
         """Record, show and publish an estimate made elsewhere (the demo's own)."""
         if self.publisher is not None:
             self.publisher.estimate(est, snap, uncertainty=uncertainty)
+        if self.ros2 is not None:
+            self.ros2.estimate(est, snap, uncertainty=uncertainty)
+        if self.publisher is not None or self.ros2 is not None:
             self._health()
         if self.recorder is None:
             return
@@ -302,6 +342,10 @@ class SessionOutputs:
         """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by
         displacement, and its contacts (with the true contacts, ``(force, index)``, if known)."""
         rec = self.recorder
+        if self.ros2 is not None:  # the estimate (joints, surface) and the contacts, every frame
+            self.ros2.estimate(frame.estimate, wall_time=time.time())
+            self.ros2.contacts(k, frame.contacts, frame.total_force_n)
+            self._health()
         if rec is None:
             return
         t = float(frame.t_s) if frame.t_s is not None else float(k)
@@ -315,8 +359,12 @@ class SessionOutputs:
 
     def _health(self, *, force: bool = False) -> None:
         """The host's summary to ``capsheet/<sheet>/health`` (about once a second)."""
-        if self.publisher is not None and self._host is not None:
+        if self._host is None:
+            return
+        if self.publisher is not None:
             self.publisher.health(self._host.summary(), force=force)
+        if self.ros2 is not None:
+            self.ros2.health(self._host.summary(), force=force)
 
     def flush(self) -> None:
         if self.recorder is not None:
@@ -333,6 +381,17 @@ class SessionOutputs:
                       f"{c['health']} health reports to Zenoh ({c['info']} info queries answered)",
                       file=sys.stderr)
                 self.publisher = None
+        if self.ros2 is not None:
+            try:
+                self._health(force=True)
+            finally:
+                self.ros2.close()
+                c, r = self.ros2.counts, self.ros2
+                what = " and ".join((["published"] if r.publisher is not None else [])
+                                    + ([f"recorded to {r.recorder.path}"] if r.recorder is not None else []))
+                print(f"{self.prog}: {what} ROS 2 messages: {c['snapshot']} snapshots, {c['joints']} joints and "
+                      f"surfaces, {c['contacts']} contact frames, {c['/diagnostics']} diagnostics", file=sys.stderr)
+                self.ros2 = None
         if self.recorder is not None:
             self.recorder.close(stats)
             if self.recorder.path is not None:
