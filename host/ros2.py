@@ -34,7 +34,7 @@ import numpy as np
 __all__ = ["MsgType", "TypeRegistry", "registry", "rihs01", "Cdr", "Ros2Encoder", "Ros2Publisher",
            "Ros2Recorder", "Ros2Outputs", "topic_keyexpr", "liveliness_keyexpr", "qos_keyexpr", "dds_type_name",
            "mangle", "attachment", "publisher_gid", "ROS_NAME", "TOPICS", "SENSOR_QOS", "DEFAULT_QOS",
-           "domain_id", "CDR_LE_HEADER"]
+           "domain_id", "CDR_LE_HEADER", "KEYEXPR_DEFAULT_QOS"]
 
 #: the capsheet_msgs package in the repository (a ROS 2 package: colcon builds it)
 MSGS_DIR = Path(__file__).resolve().parents[1] / "msgs"
@@ -307,8 +307,11 @@ ROS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 # 2 volatile, history 1 keep last / 2 keep all
 #: the sensor-data profile (rmw_qos_profile_sensor_data): best effort, volatile, keep last 5
 SENSOR_QOS = {"reliability": 2, "durability": 2, "history": 1, "depth": 5}
-#: rmw_qos_profile_default: reliable, volatile, keep last 10 (rmw_zenoh's defaults: empty in the key)
+#: rmw_qos_profile_default: reliable, volatile, keep last 10
 DEFAULT_QOS = {"reliability": 1, "durability": 2, "history": 1, "depth": 10}
+#: rmw_zenoh's own defaults (its qos.cpp), the values ``qos_to_keyexpr`` leaves empty: reliable,
+#: volatile, keep last 42; deadline, lifespan and liveliness lease infinite, liveliness automatic
+KEYEXPR_DEFAULT_QOS = {"reliability": 1, "durability": 2, "history": 1, "depth": 42}
 _QOS_OF = {"/diagnostics": DEFAULT_QOS}
 #: PointField.FLOAT32
 _FLOAT32 = 7
@@ -332,9 +335,9 @@ def mangle(name: str) -> str:
 
 def qos_keyexpr(qos: dict) -> str:
     """rmw_zenoh's compact QoS (``qos_to_keyexpr``): ``reliability:durability:history,depth:
-    deadline_s,ns:lifespan_s,ns:liveliness,lease_s,ns``, a value left empty where it is the
-    default's (`DEFAULT_QOS`; deadline, lifespan and liveliness are always the defaults here)."""
-    d = DEFAULT_QOS
+    deadline_s,ns:lifespan_s,ns:liveliness,lease_s,ns``, a value left empty where it is rmw_zenoh's
+    default (`KEYEXPR_DEFAULT_QOS`; deadline, lifespan and liveliness are always the defaults here)."""
+    d = KEYEXPR_DEFAULT_QOS
     part = [str(qos[k]) if qos[k] != d[k] else "" for k in ("reliability", "durability", "history", "depth")]
     return f"{part[0]}:{part[1]}:{part[2]},{part[3]}:,:,:,,"
 
