@@ -388,7 +388,8 @@ class Ros2Encoder:
         i, j = np.divmod(cells, max(cols - 1, 1))
         a, b, c, d = i * cols + j, (i + 1) * cols + j, i * cols + j + 1, (i + 1) * cols + j + 1
         #: joint indices of the surface's triangles, two per cell: (a, b, c) and (b, d, c)
-        self.triangles = np.stack([np.stack([a, b, c], 1), np.stack([b, d, c], 1)], 1).reshape(-1)
+        self.triangles = np.stack([np.stack([a, b, c], 1), np.stack([b, d, c], 1)], 1).reshape(-1).astype(np.intp)
+        self._surface_tail: bytes | None = None
 
     def snapshot(self, snap) -> tuple[bytes, int]:
         stamp = _stamp_ns(snap.wall_time)
@@ -426,8 +427,8 @@ class Ros2Encoder:
         return w.bytes()
 
     def surface(self, joints: np.ndarray, stamp: int) -> bytes:
-        """A Marker TRIANGLE_LIST: two triangles per lattice cell, metres, in ``frame_id``."""
-        pts = np.asarray(joints, "<f8").reshape(-1, 3)[self.triangles]
+        """A Marker TRIANGLE_LIST: two triangles per lattice cell, metres, in ``frame_id``. The
+        points (most of the message) are gathered once and joined, not copied through the writer."""
         w = Cdr()
         w.header(stamp, self.frame_id)
         w.string(self.sheet)  # ns
@@ -440,19 +441,25 @@ class Ros2Encoder:
         w.i32(0)  # lifetime: forever
         w.u32(0)
         w.bool(False)  # frame_locked
-        w.seq(pts, "<f8", count=len(pts))  # points
-        w.u32(0)  # colors
-        w.string("")  # texture_resource
-        w.header(0, "")  # texture: CompressedImage
-        w.string("")
-        w.u32(0)
-        w.u32(0)  # uv_coordinates
-        w.string("")  # text
-        w.string("")  # mesh_resource
-        w.string("")  # mesh_file
-        w.u32(0)
-        w.bool(False)  # mesh_use_embedded_materials
-        return w.bytes()
+        w.u32(len(self.triangles))  # points: their count, then 8-aligned float64 x, y, z each
+        w.align(8)
+        flat = np.ascontiguousarray(joints, "<f8").reshape(-1, 3)
+        points = np.take(flat, self.triangles, axis=0).tobytes()
+        if self._surface_tail is None:  # the fields after the points: the same every time (the
+            t = Cdr()  # points end 8-aligned, so the tail's padding never changes)
+            t.u32(0)  # colors
+            t.string("")  # texture_resource
+            t.header(0, "")  # texture: CompressedImage
+            t.string("")
+            t.u32(0)
+            t.u32(0)  # uv_coordinates
+            t.string("")  # text
+            t.string("")  # mesh_resource
+            t.string("")  # mesh_file
+            t.u32(0)
+            t.bool(False)  # mesh_use_embedded_materials
+            self._surface_tail = t.bytes()[len(CDR_LE_HEADER):]
+        return b"".join((w.buf, points, self._surface_tail))
 
     def contacts(self, frame: int, stamp: int, contacts, total_force_n: float) -> bytes:
         w = Cdr()
