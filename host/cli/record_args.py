@@ -319,6 +319,19 @@ class SessionOutputs:
         self.publish(est, snap, truth=truth, displacement=displacement, uncertainty=unc)
         return est
 
+    def emit(self, snap) -> None:
+        """A snapshot no host feed carries (``capsheet replay``): to ``--publish`` and ``--record-ros2``
+        as `attach` sends a live host's."""
+        if self.publisher is not None:
+            self.publisher.snapshot(snap)
+        if self.ros2 is not None:
+            self.ros2.snapshot(snap)
+
+    @property
+    def wants_estimates(self) -> bool:
+        """Something takes estimates: the recording, the live view or a publisher."""
+        return self.recorder is not None or self.publisher is not None or self.ros2 is not None
+
     def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
                 uncertainty: bool = False) -> None:
         """Record, show and publish an estimate made elsewhere (the demo's own)."""
