@@ -139,14 +139,16 @@ class TypeRegistry:
 
     def __init__(self) -> None:
         self.types: dict[str, MsgType] = {}
+        self._hash: dict[str, str] = {}
         for n, t in STANDARD.items():
             self.add(n, t)
         for f in sorted(MSGS_DIR.glob("*/msg/*.msg")):
             self.add(f"{f.parent.parent.name}/msg/{f.stem}", f.read_text())
-        self._hash: dict[str, str] = {}
 
     def add(self, name: str, text: str) -> MsgType:
+        """Add (or replace) a type from its ``.msg`` text; hashes are computed anew."""
         self.types[name] = MsgType(name, text)
+        self._hash.clear()
         return self.types[name]
 
     def closure(self, name: str) -> list[str]:

@@ -61,6 +61,8 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
     g.add_argument("--record-ros2", metavar="FILE.mcap", type=T.output_file(".mcap", what="a ROS 2 MCAP recording"),
                    help="also record the ROS 2 messages of --publish ros2 (CDR) to a ROS 2-profile MCAP "
                         "(ros2 bag, rosbags and Foxglove read it); an existing file needs --overwrite")
+    if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
+        parser.add_check(_check_ros2)
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
@@ -77,6 +79,23 @@ def _publish_arg(value: str):
         return parse_publish(value)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _check_ros2(ns) -> str | None:
+    """--publish ros2 / --record-ros2 need a sheet name that is a ROS name and a valid ROS_DOMAIN_ID."""
+    publish = getattr(ns, "publish", None)
+    if not ((publish is not None and publish[0] == "ros2") or getattr(ns, "record_ros2", None)):
+        return None
+    from host.ros2 import ROS_NAME, domain_id
+    sheet = getattr(ns, "sheet_name", "sheet")
+    if not ROS_NAME.match(sheet):
+        return (f"--sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
+                f"A-Z a-z 0-9 _, starting with a letter")
+    try:
+        domain_id()
+    except ValueError as exc:
+        return f"{exc} (--publish ros2, --record-ros2)"
+    return None
 
 
 def _sheet_name(value: str) -> str:

@@ -185,16 +185,15 @@ def test_tactile_records_contacts_and_estimates_to_a_ros2_mcap(tmp_path):
     (["--publish", "ros2", "--sheet-name", "left-arm"], {}, "not a ROS 2 name"),
     (["--publish", "ros2"], {"ROS_DOMAIN_ID": "abc"}, "ROS_DOMAIN_ID"),
 ])
-def test_a_bad_ros2_value_is_one_line_and_exit_2(virtuals, tmp_path, args, env, needle):  # noqa: F811
-    port = ["--port", "/nonexistent"]
-    if "not a ROS 2 name" in needle or "ROS_DOMAIN_ID" in needle:  # checked once the port is open
-        v = virtuals("--lattice", "2x2", "--symlink", str(tmp_path / "sheet"))
-        port = [*v.host_cmd]
-    out = subprocess.run(CLI + ["host", *port, "--duration", "1", *args], capture_output=True, text=True,
+@pytest.mark.parametrize("command", ["host", "demo", "tactile"])
+def test_a_bad_ros2_value_is_one_line_and_exit_2(tmp_path, command, args, env, needle):
+    # before anything starts: no port opened (host's is absent), no virtual sheet started (demo)
+    port = ["--port", "/nonexistent"] if command == "host" else []
+    out = subprocess.run(CLI + [command, *port, "--duration", "1", *args], capture_output=True, text=True,
                          timeout=120, env=dict(ENV, **env), cwd=tmp_path)
     assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
-    lines = [ln for ln in out.stderr.splitlines() if needle in ln]
-    assert len(lines) == 1, out.stderr
+    assert out.stderr.count("\n") == 1 and out.stderr.startswith(f"capsheet {command}: "), out.stderr
+    assert not list(tmp_path.iterdir())  # nothing written
 
 
 def test_an_existing_ros2_recording_needs_overwrite(tmp_path):
