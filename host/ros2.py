@@ -15,6 +15,8 @@ Per sheet ``<sheet>``, a node ``/capsheet/<sheet>`` publishes
   rows x cols, organised)
 * ``/capsheet/<sheet>/surface``   ``visualization_msgs/msg/Marker`` (TRIANGLE_LIST over the joints)
 * ``/capsheet/<sheet>/contacts``  ``capsheet_msgs/msg/Contacts`` (``capsheet tactile``)
+* ``/capsheet/<sheet>/info``      ``std_msgs/msg/String``: JSON, lattice, layout and calibration
+  (transient local, keep last 1: a late subscriber gets the newest, as ``/tf_static``)
 * ``/diagnostics``                ``diagnostic_msgs/msg/DiagnosticArray`` (the host's health, ~1/s)
 """
 
@@ -34,7 +36,7 @@ import numpy as np
 __all__ = ["MsgType", "TypeRegistry", "registry", "rihs01", "Cdr", "Ros2Encoder", "Ros2Publisher",
            "Ros2Recorder", "Ros2Outputs", "topic_keyexpr", "liveliness_keyexpr", "qos_keyexpr", "dds_type_name",
            "mangle", "attachment", "publisher_gid", "ROS_NAME", "TOPICS", "SENSOR_QOS", "DEFAULT_QOS",
-           "domain_id", "CDR_LE_HEADER", "KEYEXPR_DEFAULT_QOS"]
+           "domain_id", "CDR_LE_HEADER", "KEYEXPR_DEFAULT_QOS", "LATCHED_QOS"]
 
 #: the capsheet_msgs package in the repository (a ROS 2 package: colcon builds it)
 MSGS_DIR = Path(__file__).resolve().parents[1] / "msgs"
@@ -301,6 +303,7 @@ TOPICS = {
     "joints": "sensor_msgs/msg/PointCloud2",
     "surface": "visualization_msgs/msg/Marker",
     "contacts": "capsheet_msgs/msg/Contacts",
+    "info": "std_msgs/msg/String",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
 #: a ROS 2 name token (topics, nodes): what a sheet's name must be for --publish ros2
@@ -314,7 +317,11 @@ DEFAULT_QOS = {"reliability": 1, "durability": 2, "history": 1, "depth": 10}
 #: rmw_zenoh's own defaults (its qos.cpp), the values ``qos_to_keyexpr`` leaves empty: reliable,
 #: volatile, keep last 42; deadline, lifespan and liveliness lease infinite, liveliness automatic
 KEYEXPR_DEFAULT_QOS = {"reliability": 1, "durability": 2, "history": 1, "depth": 42}
-_QOS_OF = {"/diagnostics": DEFAULT_QOS}
+#: reliable, transient local, keep last 1 (as /tf_static): what a late subscriber is sent
+LATCHED_QOS = {"reliability": 1, "durability": 1, "history": 1, "depth": 1}
+_QOS_OF = {"/diagnostics": DEFAULT_QOS, "info": LATCHED_QOS}
+#: rmw_zenoh's heartbeat period for a reliable, transient-local publisher (sample miss detection), s
+MISS_HEARTBEAT_S = 0.5
 #: PointField.FLOAT32
 _FLOAT32 = 7
 _POINT_FIELDS = (("x", 0), ("y", 4), ("z", 8), ("std", 12))
@@ -475,6 +482,12 @@ class Ros2Encoder:
                   float(c.force_n), float(c.depth_m), float(c.area_m2), float(np.max(c.axes_m)))
         return w.bytes()
 
+    def string(self, text: str) -> bytes:
+        """A ``std_msgs/msg/String``."""
+        w = Cdr()
+        w.string(text)
+        return w.bytes()
+
     def diagnostics(self, doc: dict, stamp: int) -> bytes:
         """The host's summary (`host.session.Host.summary`) as one DiagnosticStatus: level WARN
         when links are missing or under 99 % of the snapshots were complete, else OK; every
@@ -543,8 +556,16 @@ class Ros2Publisher:
             key = topic_keyexpr(domain, fq, typ)
             lv = liveliness_keyexpr(domain, self.zid, 0, eid, "MP", self.namespace, self.node, fq, typ, qos)
             rel = zenoh.Reliability.BEST_EFFORT if qos["reliability"] == 2 else zenoh.Reliability.RELIABLE
-            self._pub[topic] = self.session.declare_publisher(key, reliability=rel,
-                                                              congestion_control=zenoh.CongestionControl.DROP)
+            if qos["durability"] == 1:  # transient local: as rmw_zenoh, an advanced publisher with a cache
+                import zenoh.ext as zx  # of `depth` samples, detectable by late subscribers, heartbeats
+                self._pub[topic] = zx.declare_advanced_publisher(
+                    self.session, key, reliability=rel, congestion_control=zenoh.CongestionControl.DROP,
+                    cache=zx.CacheConfig(qos["depth"]), publisher_detection=True,
+                    sample_miss_detection=(zx.MissDetectionConfig(sporadic_heartbeat=MISS_HEARTBEAT_S)
+                                           if qos["reliability"] == 1 else None))
+            else:
+                self._pub[topic] = self.session.declare_publisher(key, reliability=rel,
+                                                                  congestion_control=zenoh.CongestionControl.DROP)
             self.tokens.append(self.session.liveliness().declare_token(lv))
             self.keys[topic], self.liveliness[topic] = key, lv
             self._gid[topic], self._seq[topic] = publisher_gid(lv), 0
@@ -664,6 +685,11 @@ class Ros2Outputs:
     def contacts(self, frame: int, contacts, total_force_n: float, wall_time=None) -> None:
         stamp = _stamp_ns(wall_time)
         self._out("contacts", self.encoder.contacts(frame, stamp, contacts, total_force_n), stamp)
+
+    def info(self, doc: dict) -> None:
+        """The sheet's facts (lattice, layout, calibration ...) as JSON on the latched ``info`` topic."""
+        stamp = time.time_ns()
+        self._out("info", self.encoder.string(json.dumps(doc, default=str)), stamp)
 
     def health(self, doc: dict, *, force: bool = False, period_s: float = 1.0) -> None:
         now = time.monotonic()

@@ -146,6 +146,7 @@ class SessionOutputs:
         self.link_length = float(link_length)
         self.recorder = None
         self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
+        self.session_facts = {"mode": mode, **(session or {})}  #: what the session says of itself
         self.ros2 = None  #: `host.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
         self._host = None
         self.can_log = None
@@ -212,7 +213,7 @@ class SessionOutputs:
 
     def _open_ros2(self, args, lattice, publish, record_ros2, prog: str) -> None:
         import host.analysis.estimator  # noqa: F401 -- now, not mid-session (above)
-        from host.ros2 import ROS_NAME, Ros2Outputs, domain_id
+        from host.ros2 import ROS_NAME, TOPICS, Ros2Outputs, domain_id
         sheet = getattr(args, "sheet_name", "sheet")
         if not ROS_NAME.match(sheet):
             print(f"{prog}: --sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
@@ -230,6 +231,11 @@ class SessionOutputs:
         except OSError as exc:
             what = f"cannot write {record_ros2}: " if record_ros2 and "Zenoh" not in str(exc) else ""
             raise SystemExit(f"{prog}: {what}{exc}") from None
+        self._ros2_info = {"format": "capsheet-ros2-info", "version": 1, "sheet": sheet, "rows": lattice.rows,
+                           "cols": lattice.cols, "links": lattice.n_links, "link_length_m": self.link_length,
+                           "layout": None, "calibration": None, "session": dict(self.session_facts),
+                           "topics": {t: {"name": self.ros2.fq(t), "type": typ} for t, typ in TOPICS.items()}}
+        self.ros2.info(self._ros2_info)  # before bring-up: no layout, no calibration yet
         if ros2_pub:
             print(f"{prog}: publishing ROS 2 messages (rmw_zenoh layout, domain {domain}) under "
                   f"{self.ros2.namespace}/ and /diagnostics ({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
@@ -296,13 +302,18 @@ class SessionOutputs:
         """After bring-up: the session's facts (layout, calibration, rate) into the recording."""
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
-        if self.publisher is not None:
+        if self.publisher is not None or self.ros2 is not None:
             from host.record import Recorder
             session, layout, calibration = Recorder.session_facts(host)
             live_cal = host.calibration
             if live_cal is not None:  # `--calibration`: what the snapshots were corrected with
                 calibration = {**calibration, "host_calibration": live_cal.to_dict()}
-            self.publisher.describe(layout, calibration, session)
+            if self.publisher is not None:
+                self.publisher.describe(layout, calibration, session)
+            if self.ros2 is not None:
+                self._ros2_info.update(layout=layout, calibration=calibration)
+                self._ros2_info["session"].update(session or {})
+                self.ros2.info(self._ros2_info)
 
     def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False,
                  estimate: bool = True):

@@ -100,6 +100,17 @@ def on_sample(sample):
         out["bad"].append(f"{key}: {exc!r}")
 
 
+def on_info(sample):
+    key, data = str(sample.key_expr), bytes(sample.payload.to_bytes())
+    try:
+        m = DATA_KEY.match(key)
+        assert m and f"{m[3]}/msg/{m[4]}" == "std_msgs/msg/String", key
+        assert "RIHS01_" + m[5] == ts.hash_rihs01("std_msgs/msg/String")
+        out["late_info"] = ts.deserialize_cdr(data, "std_msgs/msg/String").data
+    except Exception as exc:  # noqa: BLE001 - reported, the test fails on it
+        out["bad"].append(f"{key}: {exc!r}")
+
+
 def on_token(sample):
     key = str(sample.key_expr)
     if sample.kind == zenoh.SampleKind.DELETE:
@@ -121,6 +132,12 @@ while time.monotonic() < end:
         asked = True  # a graph query, as a ROS 2 context starting late makes it (liveliness get)
         out["tokens_queried"] = [str(r.ok.key_expr) for r in session.liveliness().get(f"@ros2_lv/{domain}/**",
                                                                                      timeout=5.0) if r.ok]
+        # the latched info topic (transient local), asked late as rmw_zenoh's transient-local
+        # subscription does: an advanced subscriber with history, detecting late publishers
+        import zenoh.ext as zx
+        subs.append(zx.declare_advanced_subscriber(
+            session, f"{domain}/capsheet/{sheet}/info/**", on_info,
+            history=zx.HistoryConfig(detect_late_publishers=True)))
     if out["tokens_gone"] and asked:  # the host has gone (its tokens withdrawn): wait a moment for stragglers
         end = min(end, time.monotonic() + 1.0)
     time.sleep(0.05)

@@ -47,7 +47,7 @@ def _name(tmp_path) -> tuple[str, int]:
 def test_host_publishes_the_rmw_zenoh_layout_and_records_a_ros2_mcap(virtuals, tmp_path):  # noqa: F811
     sheet, domain = _name(tmp_path)
     mcap = tmp_path / "run.mcap"
-    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"))
+    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"))
     sub = subprocess.Popen([sys.executable, str(SUB), str(domain), sheet, "40", "3"], stdout=subprocess.PIPE,
                            stderr=subprocess.PIPE, text=True, env=ENV)
     try:
@@ -139,11 +139,21 @@ def test_host_publishes_the_rmw_zenoh_layout_and_records_a_ros2_mcap(virtuals, t
         assert p, t
         assert p[1] == zid and p[2] == re.match(NODE_TOKEN.format(d=domain, s=sheet), node[0])[2]
         seen[p[4].replace("%", "/")] = (p[5], p[6], p[7])
-    assert set(seen) == {f"{ns}/snapshot", f"{ns}/joints", f"{ns}/surface", f"{ns}/contacts", "/diagnostics"}
+    assert set(seen) == {f"{ns}/snapshot", f"{ns}/joints", f"{ns}/surface", f"{ns}/contacts", f"{ns}/info",
+                         "/diagnostics"}
     for topic, key in doc["keys"].items():  # the token names the same type and hash as the data key
         assert key.endswith(f"/{seen[topic][0]}/{seen[topic][1]}")
     # QoS: best effort (2), keep last 5 for the sensor data; reliable, keep last 10 for /diagnostics
     assert seen[f"{ns}/snapshot"][2] == "2::,5:,:,:,," and seen["/diagnostics"][2] == "::,10:,:,:,,"
+    assert seen[f"{ns}/info"][2] == ":1:,1:,:,:,,"  # reliable, transient local, keep last 1 (as /tf_static)
+    # the latched info: a subscriber that came late (an advanced subscriber asking for history, as
+    # rmw_zenoh's transient-local subscription) got the newest, after bring-up: layout and calibration
+    info = json.loads(doc["late_info"])
+    assert (info["sheet"], info["rows"], info["cols"], info["links"]) == (sheet, 3, 3, 12)
+    uids = {ln.split(",")[0].lower().removeprefix("0x").lstrip("0")
+            for ln in (tmp_path / "s.csv").read_text().splitlines()[1:]}
+    assert {c["uid"].lower().removeprefix("0x").lstrip("0") for c in info["layout"]["chips"]} == uids
+    assert len(info["calibration"]["links"]) == 12 and info["topics"]["joints"]["name"] == f"{ns}/joints"
     assert set(node + pub_tokens) <= set(doc.get("tokens_queried", []))
     assert set(node + pub_tokens) <= set(doc["tokens_gone"])
 
@@ -152,9 +162,12 @@ def test_host_publishes_the_rmw_zenoh_layout_and_records_a_ros2_mcap(virtuals, t
         conns = {c.topic: c for c in r.connections}
         assert {t: c.msgtype for t, c in conns.items()} == {
             f"{ns}/snapshot": "capsheet_msgs/msg/LatticeSnapshot", f"{ns}/joints": "sensor_msgs/msg/PointCloud2",
-            f"{ns}/surface": "visualization_msgs/msg/Marker", "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray"}
+            f"{ns}/surface": "visualization_msgs/msg/Marker", "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+            f"{ns}/info": "std_msgs/msg/String"}
         assert conns[f"{ns}/snapshot"].msgcount == n_snap and conns[f"{ns}/joints"].msgcount == n_est
         assert conns["/diagnostics"].msgcount == n_diag
+        infos = [json.loads(ts.deserialize_cdr(raw, c.msgtype).data) for c, _, raw in r.messages([conns[f"{ns}/info"]])]
+        assert [i["layout"] is None for i in infos] == [True, False]  # at start, then after bring-up
         rec = [ts.deserialize_cdr(raw, c.msgtype).counter for c, _, raw in r.messages([conns[f"{ns}/snapshot"]])]
     assert counters[0] in rec and rec[rec.index(counters[0]):][:len(counters)] == counters
 
