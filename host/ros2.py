@@ -536,9 +536,14 @@ class Ros2Publisher:
         from host.publish import zenoh_config
         self.sheet, self.endpoint, self.domain = sheet, endpoint, domain
         self.namespace, self.node = "/capsheet", sheet
-        conf = zenoh_config(endpoint)
-        if endpoint is not None:  # as rmw_zenoh's session config: a peer that connects to the router
+        if endpoint is None:
+            conf = zenoh_config(None)  # peer mode on loopback, multicast scouting on lo
+        else:  # rmw_zenoh's default session config: a peer that connects to the router (ENDPOINT), listens
+            conf = zenoh.Config()  # on localhost for peer-to-peer links, no multicast scouting
             conf.insert_json5("mode", '"peer"')
+            conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+            conf.insert_json5("listen/endpoints", '["tcp/localhost:0"]')
+            conf.insert_json5("scouting/multicast/enabled", "false")
         try:
             self.session = zenoh.open(conf)
         except zenoh.ZError as exc:

@@ -3,7 +3,10 @@ knows the zenoh API, rmw_zenoh's documented layout (its docs/design.md: key expr
 attachment, liveliness tokens) and decodes with rosbags' type store (capsheet_msgs registered from
 the repository's .msg files) — not host.ros2. Prints one JSON line: what it received and decoded.
 
-    python ros2_subscriber.py DOMAIN SHEET SECONDS MIN_JOINTS
+    python ros2_subscriber.py DOMAIN SHEET SECONDS MIN_JOINTS [LISTEN]
+
+LISTEN (a locator, e.g. tcp/127.0.0.1:7450): listen there with multicast scouting off (the host
+connects to it: ``--publish ros2:LISTEN``); without it, a peer on loopback found by scouting.
 """
 
 import json
@@ -25,10 +28,15 @@ for f in sorted(msgs.glob("*.msg")):
     types.update(get_types_from_msg(f.read_text(), f"capsheet_msgs/msg/{f.stem}"))
 ts.register(types)
 
+listen = sys.argv[5] if len(sys.argv) > 5 else None
 conf = zenoh.Config()
 conf.insert_json5("mode", '"peer"')
-conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-conf.insert_json5("scouting/multicast/interface", '"lo"')
+if listen:
+    conf.insert_json5("listen/endpoints", json.dumps([listen]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+else:
+    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    conf.insert_json5("scouting/multicast/interface", '"lo"')
 session = zenoh.open(conf)
 out = {"samples": {}, "keys": {}, "bad": [], "tokens": [], "tokens_gone": [], "attachments": {},
        "diagnostics": []}

@@ -172,6 +172,37 @@ def test_host_publishes_the_rmw_zenoh_layout_and_records_a_ros2_mcap(virtuals, t
     assert counters[0] in rec and rec[rec.index(counters[0]):][:len(counters)] == counters
 
 
+def test_an_endpoint_is_connected_to_without_scouting(virtuals, tmp_path):  # noqa: F811
+    """``--publish ros2:ENDPOINT``: the host connects to the locator given (here the subscriber's
+    own, multicast scouting off on both sides: nothing else could have brought them together)."""
+    import socket
+    sheet, domain = _name(tmp_path)
+    with socket.socket() as s:  # a free port (the subscriber listens on it)
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    locator = f"tcp/127.0.0.1:{port}"
+    v = virtuals("--lattice", "2x2", "--symlink", str(tmp_path / "sheet"))
+    sub = subprocess.Popen([sys.executable, str(SUB), str(domain), sheet, "30", "2", locator],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert sub.stdout.readline().strip() == "ready"
+        out = subprocess.run(CLI + ["host", *v.host_cmd, "--rate", "30", "--deadline-ms", "500", "--duration", "3",
+                                    "--publish", f"ros2:{locator}", "--sheet-name", sheet, "--live-rate", "5", "-q"],
+                             capture_output=True, text=True, timeout=120, env=dict(ENV, ROS_DOMAIN_ID=str(domain)))
+        got, err = sub.communicate(timeout=60)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    assert locator in out.stderr
+    doc = json.loads(got.strip().splitlines()[-1])
+    assert doc["bad"] == [], doc["bad"]
+    snaps = doc["samples"][f"/capsheet/{sheet}/snapshot"]
+    assert len(snaps) >= 10 and all((s["rows"], s["cols"], s["n"]) == (2, 2, 4) for s in snaps)
+    assert len(doc["samples"][f"/capsheet/{sheet}/joints"]) >= 2
+    assert any(re.match(NODE_TOKEN.format(d=domain, s=sheet), t) for t in doc["tokens"])
+
+
 def test_tactile_records_contacts_and_estimates_to_a_ros2_mcap(tmp_path):
     mcap = tmp_path / "touch.mcap"
     out = subprocess.run(CLI + ["tactile", "--duration", "1.5", "--record-ros2", str(mcap), "--sheet-name", "palm",
