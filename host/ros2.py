@@ -664,16 +664,32 @@ class Ros2Outputs:
                 self.publisher.close()
             raise
         self.counts = {t: 0 for t in TOPICS}
+        #: messages a sink could not take (`_out`), and the last reason
+        self.failed = {"publish": 0, "record": 0}
+        self.last_error = {"publish": "", "record": ""}
         self._last_health = -np.inf
 
     def fq(self, topic: str) -> str:
         return topic if topic.startswith("/") else f"{self.namespace}/{topic}"
 
     def _out(self, topic: str, payload: bytes, stamp: int) -> None:
+        """To each sink. A sink that fails (a closed Zenoh session, a full disk) is counted in
+        `failed` with its last error, never raised into the host's receive thread; a recording that
+        failed once takes no more (counted too)."""
         if self.publisher is not None:
-            self.publisher.write(topic, payload, stamp)
-        if self.recorder is not None:
-            self.recorder.write(topic, payload, stamp, self.fq(topic))
+            try:
+                self.publisher.write(topic, payload, stamp)
+            except Exception as exc:  # noqa: BLE001 -- zenoh.ZError and kin: counted, reported at close
+                self.failed["publish"] += 1
+                self.last_error["publish"] = f"{type(exc).__name__}: {exc}"
+        if self.recorder is not None and not self.failed["record"]:
+            try:
+                self.recorder.write(topic, payload, stamp, self.fq(topic))
+            except Exception as exc:  # noqa: BLE001 -- OSError, a closed writer: counted, reported at close
+                self.failed["record"] += 1
+                self.last_error["record"] = f"{type(exc).__name__}: {exc}"
+        elif self.recorder is not None:
+            self.failed["record"] += 1
         self.counts[topic] += 1
 
     def snapshot(self, snap) -> None:
@@ -710,4 +726,8 @@ class Ros2Outputs:
                 self.publisher.close()
         finally:
             if self.recorder is not None:
-                self.recorder.close()
+                try:
+                    self.recorder.close()
+                except OSError as exc:  # the file could not be finished (a full disk): counted, reported
+                    self.failed["record"] += 1
+                    self.last_error["record"] = f"{type(exc).__name__}: {exc}"

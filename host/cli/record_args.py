@@ -434,6 +434,11 @@ class SessionOutputs:
                                     + ([f"recorded to {r.recorder.path}"] if r.recorder is not None else []))
                 print(f"{self.prog}: {what} ROS 2 messages: {c['snapshot']} snapshots, {c['joints']} joints and "
                       f"surfaces, {c['contacts']} contact frames, {c['/diagnostics']} diagnostics", file=sys.stderr)
+                for sink, n in r.failed.items():
+                    if n:
+                        print(f"{self.prog}: {n} ROS 2 messages could not be "
+                              f"{'published' if sink == 'publish' else 'recorded'} ({r.last_error[sink]})",
+                              file=sys.stderr)
                 self.ros2 = None
         if self.recorder is not None:
             self.recorder.close(stats)

@@ -162,3 +162,17 @@ def test_the_ros2msg_schema_is_what_rosbags_parses(ts):
         store = get_typestore(Stores.EMPTY)
         store.register(get_types_from_msg(text, typ))  # rosbags reads the concatenated definition
         assert store.hash_rihs01(typ) == R.rihs01(typ), typ
+
+
+def test_a_failing_recording_is_counted_not_raised():
+    """A sink that fails (here a full disk: /dev/full) never raises into the caller (the host's
+    receive thread) nor at close: counted, with its reason; the recording stops at the first failure."""
+    from protocol.lattice import Lattice
+    out = R.Ros2Outputs("s", Lattice(14, 14), record="/dev/full")
+    rng = np.random.default_rng(3)
+    snap = _snap(rng, 364)
+    for _ in range(400):  # 5 kB each: past the MCAP writer's 1 MB chunk, which it then writes
+        out.snapshot(snap)
+    assert out.counts["snapshot"] == 400 and out.failed["record"] >= 1 and out.failed["publish"] == 0
+    assert "No space left" in out.last_error["record"] or "28" in out.last_error["record"]
+    out.close()
