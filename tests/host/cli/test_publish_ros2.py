@@ -276,6 +276,19 @@ def test_demo_records_ros2_and_replay_converts_its_recording(tmp_path):
 
     a, a_joints = snapshots(live)
     b, b_joints = snapshots(conv)
+    # a second reader, mcap-ros2-support (Foxglove's): it parses the ros2msg schema text itself
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+    with open(live, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        seen = {}
+        for schema, channel, _, msg in reader.iter_decoded_messages():
+            seen.setdefault(channel.topic, []).append(msg)
+        assert reader.get_header().profile == "ros2"
+    assert [m.counter for m in seen["/capsheet/sheet/snapshot"]] == [m.counter for m in a]
+    assert len(seen["/capsheet/sheet/surface"]) == a_joints
+    assert all(m.type == 11 and len(m.points) == 24 for m in seen["/capsheet/sheet/surface"])
+    assert json.loads(seen["/capsheet/sheet/info"][-1].data)["layout"] is not None
     assert len(a) >= 50 and [m.counter for m in a] == [m.counter for m in b]
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x.specific_force, y.specific_force)
