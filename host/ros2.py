@@ -654,6 +654,10 @@ class Ros2Outputs:
         if not ROS_NAME.match(sheet):
             raise ValueError(f"sheet name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): "
                              f"1-64 of A-Z a-z 0-9 _, starting with a letter")
+        missing = sorted(set(TOPICS.values()) - set(registry().types))
+        if missing:  # capsheet_msgs are read from the repository (an editable install, `make`)
+            raise OSError(f"message definitions {', '.join(missing)} not found (capsheet_msgs is read from "
+                          f"{MSGS_DIR}: install capsheet from its repository with `make`)")
         self.encoder = Ros2Encoder(sheet, lattice.rows, lattice.cols)
         self.namespace = f"/capsheet/{sheet}"
         self.publisher = Ros2Publisher(sheet, endpoint, domain=domain) if publish else None
