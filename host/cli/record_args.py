@@ -229,7 +229,8 @@ class SessionOutputs:
             self.ros2 = Ros2Outputs(sheet, lattice, publish=ros2_pub, endpoint=publish[1] if ros2_pub else None,
                                     record=record_ros2, domain=domain)
         except OSError as exc:
-            what = f"cannot write {record_ros2}: " if record_ros2 and "Zenoh" not in str(exc) else ""
+            # a file's own error (PermissionError ...) is the recording's; a plain OSError says what failed
+            what = f"cannot write {record_ros2}: " if record_ros2 and type(exc) is not OSError else ""
             raise SystemExit(f"{prog}: {what}{exc}") from None
         self._ros2_info = {"format": "capsheet-ros2-info", "version": 1, "sheet": sheet, "rows": lattice.rows,
                            "cols": lattice.cols, "links": lattice.n_links, "link_length_m": self.link_length,
