@@ -90,7 +90,8 @@ def test_cdr_is_what_rosbags_reads_and_writes(ts, rows, cols):
         assert bytes(ts.serialize_cdr(msg, typ)) == data, typ
     m = ts.deserialize_cdr(cases[0][0], cases[0][1])
     assert (m.counter, m.host_time, m.rows, m.cols) == (70000, 123.25, rows, cols)
-    assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == (1_700_000_000, 500_000_000, "capsheet_left")
+    assert (m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id) == \
+        (1_700_000_000, 500_000_000, "capsheet_left")
     np.testing.assert_array_equal(np.asarray(m.valid, bool), snap.valid)
     np.testing.assert_array_equal(m.status, snap.status)
     np.testing.assert_allclose(m.specific_force.reshape(-1, 3), snap.readings.astype(np.float32), equal_nan=True)

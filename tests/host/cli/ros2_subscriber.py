@@ -126,7 +126,8 @@ def on_token(sample):
     elif key not in out["tokens"]:
         out["tokens"].append(key)
         if "/MP/" in key:  # rmw_zenoh's GID: XXH3-128 of the liveliness key, low then high 64 bits
-            out.setdefault("gid_of_token", {})[key] = xxhash.xxh3_128_intdigest(key.encode()).to_bytes(16, "little").hex()
+            gid = xxhash.xxh3_128_intdigest(key.encode()).to_bytes(16, "little")
+            out.setdefault("gid_of_token", {})[key] = gid.hex()
 
 
 subs = [session.declare_subscriber(f"{domain}/capsheet/{sheet}/**", on_sample),
