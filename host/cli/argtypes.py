@@ -74,7 +74,19 @@ class CliParser(argparse.ArgumentParser):
         if extra and self._is_subcommand:  # named by the subcommand that was given them
             self.error(f"unrecognized arguments: {' '.join(extra)}")
         self._check_paths(ns)
+        for check in self._checks:
+            message = check(ns)
+            if message:
+                self.error(message)
         return ns, extra
+
+    #: checks of values that depend on each other (`add_check`)
+    _checks: tuple = ()
+
+    def add_check(self, check) -> None:
+        """A check of values that depend on each other, run once every value is in (before anything
+        starts): ``check(namespace)`` returns None, or a usage error's message (one line, exit 2)."""
+        self._checks = (*self._checks, check)
 
     #: made by ``add_subparsers``: every argument after the subcommand's name is its own, so what it
     #: does not know is reported under its name (``capsheet host: unrecognized arguments: ...``), not
