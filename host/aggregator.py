@@ -307,14 +307,6 @@ class Aggregator:
             raise ValueError("Invalid sensitivity: every value must be finite and > 0")
         self._offset, self._sens = off, sens
 
-    def set_expected(self, expected: np.ndarray, now: float) -> None:
-        """Links that must arrive for a snapshot to be complete (emits, at ``now``, what that completes)."""
-        expected = np.asarray(expected, dtype=bool)
-        if expected.shape != (self.n_links,):
-            raise ValueError(f"Expected `expected` to have shape ({self.n_links},), got {expected.shape}.")
-        self.expected = expected.copy()
-        self._pump(now)
-
     def mark_silent(self, link: int, silent: bool, now: float) -> None:
         """Watchdog: a silent link is not waited for (and flagged SILENT) until it speaks again."""
         self.silent[link] = silent
