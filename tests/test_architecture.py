@@ -8,8 +8,8 @@
 * no import cycle among capsheet's own modules (function-level imports included);
 * seams, not patches (issue 25): no module of protocol/, host/, virtual_sheet/ reads or writes
   another module's private attribute (``obj._name``), and none reassigns a method of another object;
-* the aggregator (and its counter trust and deadline policy) is sans-I/O: it imports no clock and no thread; python-can finds the SLCAN bus by
-  name (the ``can.interface`` entry point).
+* the aggregator (and its counter trust and deadline policy) is sans-I/O: it imports no clock and
+  no thread; python-can finds the SLCAN bus by name (the ``can.interface`` entry point).
 """
 
 from __future__ import annotations
