@@ -242,8 +242,8 @@ class Aggregator:
         self.stats = AggregatorStats(self.n_links, n_buses)
         self._out: deque[LatticeSnapshot] = deque()
         self.queue_size = int(queue_size)
-        self.set_node_map(node_to_link)
-        self.set_calibration(offset, sensitivity)
+        self._lut = self._node_lut(node_to_link)  # node id -> link, -1 = unknown
+        self._offset, self._sens = self._checked_calibration(offset, sensitivity)  # per link and axis
         #: links expected in every snapshot (a snapshot is complete when all of these arrived)
         self.expected = np.ones(self.n_links, dtype=bool)
         #: links with no chip assigned (flagged UNASSIGNED, never expected)
@@ -275,6 +275,9 @@ class Aggregator:
     # -- configuration ---------------------------------------------------------------------
     def set_node_map(self, node_to_link=None) -> None:
         """Node id -> link index (dict or array of 65536, -1 = unknown). None: node k -> link k-1."""
+        self._lut = self._node_lut(node_to_link)
+
+    def _node_lut(self, node_to_link) -> np.ndarray:
         lut = np.full(_MOD, -1, dtype=np.int64)
         if node_to_link is None:
             n = min(self.n_links, _MOD - 1)
@@ -289,7 +292,7 @@ class Aggregator:
             if arr.shape != (_MOD,):
                 raise ValueError(f"Expected `node_to_link` to have shape (65536,), got {arr.shape}.")
             lut[:] = arr
-        self._lut = lut
+        return lut
 
     def link_of(self, node):
         """Link of node id ``node`` (an int or an array of them), -1 where the map has none."""
@@ -297,6 +300,9 @@ class Aggregator:
 
     def set_calibration(self, offset=None, sensitivity=None) -> None:
         """Per-link calibration: ``offset`` counts and ``sensitivity`` counts/g, each (n_links, 3)."""
+        self._offset, self._sens = self._checked_calibration(offset, sensitivity)
+
+    def _checked_calibration(self, offset, sensitivity) -> tuple[np.ndarray, np.ndarray]:
         L = self.n_links
         off = np.zeros((L, 3)) if offset is None else np.asarray(offset, dtype=float)
         sens = np.full((L, 3), nominal_sensitivity()) if sensitivity is None else np.asarray(sensitivity, dtype=float)
@@ -305,7 +311,7 @@ class Aggregator:
                 raise ValueError(f"Expected `{name}` to have shape ({L}, 3), got {a.shape}.")
         if not np.all(np.isfinite(sens) & (sens > 0)):
             raise ValueError("Invalid sensitivity: every value must be finite and > 0")
-        self._offset, self._sens = off, sens
+        return off, sens
 
     def mark_silent(self, link: int, silent: bool, now: float) -> None:
         """Watchdog: a silent link is not waited for (and flagged SILENT) until it speaks again."""
