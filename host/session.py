@@ -16,17 +16,16 @@ or ``host.bring_up()`` for discover + assign + configure + read_calibration + st
 `Host` is a façade: it holds the configuration, the threads and the receive path, and hands the
 work to its parts, each in its own module with its own state:
 
-==================  ==========================  ===============================================
-``host.registry``   `host.registry`             the chips heard, the layout, node ids
-``host.commands``   `host.commands`             sending, command rounds with retries, NACKs
-``host.bringup``    `host.bringup`              quiesce, discover, assign, configure, calibrate,
-                                                capacity; the calibration applied to the feed
-``host.sync_driver``  `host.syncdriver`         SYNC: schedule, drive or follow, the SYNC step
-``host.watchdog``   `host.watchdog`             links fallen silent
-``host.recovery``   `host.recovery`             rebooted chips, ports that come back, incidents
-``host.event_log``  `host.report`               events, counts, receive errors; `summary`, `stats`
-``host.feed``       `host.feed`                 the aggregator for threads: what consumers read
-==================  ==========================  ===============================================
+* ``host.registry`` (`host.registry.ChipRegistry`): the chips heard, the layout, node ids;
+* ``host.commands`` (`host.commands.CommandRounds`): sending, command rounds with retries, NACKs;
+* ``host.bringup`` (`host.bringup.BringUp`): quiesce, discover, assign, configure, calibrate,
+  capacity; the calibration applied to the feed;
+* ``host.sync_driver`` (`host.syncdriver.SyncDriver`): drive or follow SYNC, the SYNC step;
+* ``host.watchdog`` (`host.watchdog.Watchdog`): links fallen silent;
+* ``host.recovery`` (`host.recovery.Recovery`): rebooted chips, ports that come back, incidents;
+* ``host.event_log`` (`host.report.EventLog`): events, counts, receive errors (and `summary`,
+  `stats`: `host.report`);
+* ``host.feed`` (`host.feed.SnapshotFeed`): the aggregator for threads, what consumers read.
 
 What they share they reach through each other's public names. The attributes a `Host` has always
 had (``host.chips``, ``host.syncs_sent``, ``host.events``, ...) read and write the part's.
