@@ -9,8 +9,8 @@
 * no import cycle among capsheet's own modules (function-level imports included);
 * seams, not patches (issue 25): no module of protocol/, host/, virtual_sheet/ reads or writes
   another module's private attribute (``obj._name``), and none reassigns a method of another object;
-* the aggregator is sans-I/O: it imports no clock and no thread; python-can finds the SLCAN bus by
-  name (the ``can.interface`` entry point).
+* the aggregator (and its counter trust and deadline policy) is sans-I/O: it imports no clock and
+  no thread; python-can finds the SLCAN bus by name (the ``can.interface`` entry point).
 """
 
 from __future__ import annotations
@@ -404,9 +404,11 @@ def test_no_module_reassigns_another_objects_methods():
     assert method_patch_offenders() == []
 
 
-def test_the_aggregator_reads_no_clock_and_starts_no_thread():
-    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/feed.py's
-    assert not imports_of(ROOT / "host/aggregator.py") & {"time", "threading", "queue", "asyncio"}
+@pytest.mark.parametrize("part", ["host/aggregator.py", "host/counter_trust.py", "host/deadline.py"])
+def test_the_aggregator_reads_no_clock_and_starts_no_thread(part):
+    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/feed.py's;
+    # its counter trust and deadline policy are told counters and latencies, and read no clock either
+    assert not imports_of(ROOT / part) & {"time", "threading", "queue", "asyncio"}
 
 
 def test_python_can_finds_capsheets_buses_by_name():

@@ -134,7 +134,7 @@ def rig_factory(chip_class):
 def check_accounting(rig: Rig, snaps: list) -> None:
     """No exception anywhere; every snapshot delivered; every accepted sample in a snapshot."""
     st = rig.host.aggregator.stats
-    assert rig.host._rx_errors == []
+    assert rig.host.event_log.rx_errors == []
     assert st.dropped == 0
     assert len(snaps) == st.emitted
     received = sum(int(np.count_nonzero((s.status & LinkFlag.MISSING) == 0)) for s in snaps)
