@@ -49,10 +49,7 @@ class Layout:
     def __post_init__(self) -> None:
         rows = cols = None
         if self.lattice is not None:
-            r, _, c = str(self.lattice).lower().partition("x")
-            if not (r.isdigit() and c.isdigit()):
-                raise ValueError(f"Invalid lattice: {self.lattice!r} (need 'ROWSxCOLS')")
-            rows, cols = int(r), int(c)
+            rows, cols = self._rows_cols()
         LayoutDoc(dict(self.links), rows, cols)  # validates uids, links, duplicates
 
     @classmethod
@@ -62,11 +59,15 @@ class Layout:
         return cls(dict(doc.links), doc.lattice)
 
     def save(self, path) -> None:
-        rows = cols = None
-        if self.lattice:
-            r, c = self.lattice.lower().split("x")
-            rows, cols = int(r), int(c)
+        rows, cols = self._rows_cols() if self.lattice else (None, None)
         save_layout(path, self.links, rows, cols)
+
+    def _rows_cols(self) -> tuple[int, int]:
+        try:
+            lat = Lattice.parse(str(self.lattice))
+        except ValueError:
+            raise ValueError(f"Invalid lattice: {self.lattice!r} (need 'ROWSxCOLS')") from None
+        return lat.rows, lat.cols
 
     @classmethod
     def auto(cls, uids: Sequence[int], lattice: Lattice) -> "Layout":
