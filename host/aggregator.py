@@ -55,7 +55,9 @@ import numpy as np
 
 from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
 from protocol.framing import SampleBatch
-from protocol.messages import SAMPLE_WORD_SIZE, Sample, Snapshot, unpack_sample_words, unpack_snapshots
+from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
+from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotImu,
+                               unpack_sample_words, unpack_snapshots)
 
 __all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "serial_diff"]
 
@@ -120,6 +122,14 @@ class LatticeSnapshot:
     counts : ndarray, shape (n_links, 3), int16, or None
         The chips' ADC counts the readings were converted from (0 where not ``valid``): what a
         recording stores (docs/recording.md); None for a snapshot made without an aggregator.
+    gyro : ndarray, shape (n_links, 3), float64, or None
+        6/9-axis chips (docs/protocol.md §16): angular rate in rad/s, sensor frame, nominal
+        sensitivity at the aggregator's ``gyro_range``; NaN where no record came. None when no link
+        sent an IMU record (accel-only chips).
+    mag : ndarray, shape (n_links, 3), float64, or None
+        Magnetic flux density in tesla at ``mag_range`` (9-axis records); None without any.
+    sample_time_s : ndarray, shape (n_links,), float64, or None
+        Each record's ``time_us`` in seconds after the SYNC; NaN where unknown. None with ``gyro``.
     """
 
     counter: int
@@ -133,6 +143,9 @@ class LatticeSnapshot:
     first_frame_s: float = float("nan")
     last_frame_s: float = float("nan")
     counts: np.ndarray | None = None
+    gyro: np.ndarray | None = None
+    mag: np.ndarray | None = None
+    sample_time_s: np.ndarray | None = None
 
     @property
     def n_links(self) -> int:
@@ -296,6 +309,9 @@ class Aggregator:
         #: per link: snapshots in a row emitted without it while most expected links arrived
         self.miss_run = np.zeros(L, dtype=np.int64)
         self._init_trust(trust, max_jump, resync_after)
+        #: CONFIG_IMU ranges the chips were given (docs §16.2): how IMU counts convert (the owner sets them)
+        self.gyro_range, self.mag_range = 3, 0
+        self._imu: dict[int, list] = {}  # open counter -> [gyro (L, 3), mag (L, 3) or None, time (L,)], SI
 
     # -- configuration ---------------------------------------------------------------------
     def set_node_map(self, node_to_link=None) -> None:
@@ -484,6 +500,12 @@ class Aggregator:
             if isinstance(ev, Snapshot):
                 snaps.append(ev)
                 continue
+            if isinstance(ev, (ImuSample, SnapshotImu)):
+                if snaps:
+                    self.ingest_snapshots(snaps, bus, now=now)
+                    snaps = []
+                self.ingest_imu(ev, bus, now=now)
+                continue
             if not isinstance(ev, (SampleBatch, Sample)):
                 continue  # ignored: does not end a run
             if snaps:
@@ -507,6 +529,45 @@ class Aggregator:
             self._count_unknown(node[~known], bus)
             links, counter, counts, status = links[known], counter[known], counts[known], status[known]
         self._scatter(links, counter, counts, status, bus, now)
+
+    def ingest_imu(self, ev, bus: int = 0, *, now: float) -> None:
+        """An IMU_SAMPLE or a SNAPSHOT_IMU (docs §16): the accelerometer part as any sample, the
+        gyroscope, magnetometer and sample time kept beside it for the counter's snapshot (the first
+        record of a link and counter wins, as for the accelerometer)."""
+        if isinstance(ev, ImuSample):
+            counter = np.array([ev.counter], dtype=np.uint16)
+            counts = np.array([[ev.x, ev.y, ev.z]], dtype=np.int16)
+            status = np.array([ev.status], dtype=np.uint8)
+            t_us, gyro = np.array([ev.time_us]), np.array([ev.gyro])
+            mag = None if ev.mx is None else np.array([ev.mag])
+            link = self._lut[np.array([ev.node], dtype=np.uint16)].astype(np.int64)
+        else:
+            counts, status, t_us, gyro, mag = ev.arrays()
+            link = ev.first_link + np.arange(counts.shape[0], dtype=np.int64)
+            counter = np.full(link.shape[0], ev.counter, dtype=np.uint16)
+        ok = (link >= 0) & (link < self.n_links)
+        c = int(counter[0])
+        if ok.any():
+            e = self._imu.get(c)
+            if e is None:
+                L = self.n_links
+                e = self._imu[c] = [np.full((L, 3), np.nan), None, np.full(L, np.nan)]
+            lk = link[ok]
+            new = np.isnan(e[0][lk, 0])
+            lk = lk[new]
+            e[0][lk] = gyro_counts_to_si(gyro[ok][new].astype(np.float64), self.gyro_range)
+            t = t_us[ok][new].astype(np.float64)
+            e[2][lk] = np.where(t == TIME_UNKNOWN, np.nan, t * 1e-6)
+            if mag is not None:
+                if e[1] is None:
+                    e[1] = np.full((self.n_links, 3), np.nan)
+                e[1][lk] = mag_counts_to_si(mag[ok][new].astype(np.float64), self.mag_range)
+        if isinstance(ev, ImuSample):
+            self.ingest_batch(np.array([ev.node], dtype=np.uint16), counter, counts, status, bus, now=now)
+        else:
+            self._scatter_inside(link, counter, counts, status, bus, now)
+        if c in self._imu and self._slot_of[c] < 0:
+            del self._imu[c]  # late or stray: its accelerometer part was not taken either
 
     def ingest_snapshot(self, snap: Snapshot, bus: int = 0, *, now: float) -> None:
         """A gateway's SNAPSHOT: links ``first_link ..`` of one counter."""
@@ -757,9 +818,17 @@ class Aggregator:
         readings.setflags(write=False)
         valid.setflags(write=False)
         status.setflags(write=False)
+        imu = self._imu.pop(c, None)
+        gyro = mag = t_s = None
+        if imu is not None:
+            gyro, mag, t_s = imu
+            gyro[~valid] = np.nan
+            t_s[~valid] = np.nan
+            if mag is not None:
+                mag[~valid] = np.nan
         snap = LatticeSnapshot(c, float(self._slot_t0[s]), float(self._slot_wall[s]), readings, valid, status,
                                complete, float(now - self._slot_t0[s]), float(self._slot_first[s]),
-                               float(self._slot_last[s]), counts)
+                               float(self._slot_last[s]), counts, gyro, mag, t_s)
         st.emitted += 1
         assigned = ~self.unassigned
         st.assigned_links += int(np.count_nonzero(assigned))
