@@ -36,13 +36,16 @@ from protocol.lattice import Lattice
 from protocol.layout import LayoutDoc, LayoutError, load_layout, save_layout
 from protocol.capacity import bus_load
 from protocol.messages import (NODE_MAX_ASSIGNED, Ack, Announce, Assign, CalData, CalRead, ChipState, Config,
-                               GetInfo, Info, Message, MsgType, Nack, NackReason, Reset, Sample, Snapshot, Start,
+                               ConfigImu, GetInfo, ImuSample, Info, Message, MsgType, Nack, NackReason, Reset, Sample, Snapshot, SnapshotImu, Start,
                                Status, Stop, Sync)
 
 from .aggregator import Aggregator, LatticeSnapshot
 from .feed import SnapshotFeed
 from .gateways import GatewayNodes
 from .transport import Transport, TransportError
+
+#: events that are data for the aggregator (IMU records of 6/9-axis chips too, docs/protocol.md §16)
+_DATA = (SampleBatch, Snapshot, Sample, DecodeError, ImuSample, SnapshotImu)
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
            "SessionError", "MismatchError", "CapacityError", "SyncConflictError", "link_ranges", "capacity_remedy"]
@@ -354,6 +357,9 @@ class Host:
                 raise MismatchError(f"the layout puts {len(far)} chip(s) beyond lattice {self.lattice.rows}x"
                                     f"{self.lattice.cols} ({self.lattice.n_links} links), e.g. 0x{u:016X} on link {k}")
         self.range_code = Range(range_code)
+        #: CONFIG_IMU for 6/9-axis chips (docs/protocol.md §16.2), sent by `bring_up` after CONFIG
+        #: when set: a `protocol.messages.ConfigImu`'s fields (format, gyro_range, mag_range, flags)
+        self.imu_config: tuple[int, int, int, int] | None = None
         self.filter_code = filter_code
         self.heartbeat_ms = heartbeat_ms
         self.timeout_s = timeout_s
@@ -525,7 +531,7 @@ class Host:
             events = self.gateway_nodes.drop_unreadable(bus, events)
         control = False
         for ev in events:
-            if not isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):
+            if not isinstance(ev, _DATA):
                 control = True
                 break
         if not control:
@@ -534,7 +540,7 @@ class Host:
         # in wire order: a SYNC opens its counter before the samples that answer it are ingested
         data: list = []
         for ev in events:
-            if isinstance(ev, (SampleBatch, Snapshot, Sample, DecodeError)):
+            if isinstance(ev, _DATA):
                 data.append(ev)
                 continue
             if data:
@@ -911,6 +917,14 @@ class Host:
             rec.configured = True
         return len(ok)
 
+    def configure_imu(self, uids=None) -> int:
+        """CONFIG_IMU every assigned chip (docs §16.2) with `imu_config`; the aggregator converts the
+        records at those ranges. Returns how many ACKed (a chip without the sensors NACKs UNSUPPORTED)."""
+        fmt, gr, mr, fl = self.imu_config
+        ok = self._simple_round(lambda r: ConfigImu(r.node, fmt, gr, mr, fl), MsgType.CONFIG_IMU, "CONFIG_IMU", uids)
+        self.aggregator.gyro_range, self.aggregator.mag_range = gr, mr
+        return len(ok)
+
     def read_calibration(self, uids=None) -> int:
         """CAL_READ the three axes of every assigned chip; chips that do not answer keep nominal
         values (reported). CAL_DATA refers to ±2 g counts; they are scaled to the configured range.
@@ -1030,6 +1044,8 @@ class Host:
         self.gateway_nodes.assign()
         self.assign()
         n_cfg = self.configure()
+        if self.imu_config is not None:
+            self.configure_imu()
         n_cal = self.read_calibration()
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = self.start()
@@ -1192,6 +1208,7 @@ class Host:
         80 %: a warning. A bus whose bit rate is unknown and that has no wire (a memory link, the
         in-process python-can ``virtual`` bus) is not checked; other CAN buses without ``--bitrate``
         are checked at 1 Mbit/s (CAN FD: 1/8 Mbit/s). Returns one dict per bus."""
+        imu_fmt = self.imu_config[0] if self.imu_config is not None else 0  # IMU records: larger (§16)
         if action not in ("refuse", "warn", "off"):
             raise ValueError(f"Invalid capacity action: {action!r} (need 'refuse', 'warn' or 'off')")
         report = []
@@ -1209,10 +1226,11 @@ class Host:
                                         and getattr(t, "interface", "") == "virtual"):
                 continue
             if cap.kind == "serial":
-                load = bus_load(n, self.rate_hz, kind="serial", bitrate=cap.bitrate or 3_000_000, packed=packed)
+                load = bus_load(n, self.rate_hz, kind="serial", bitrate=cap.bitrate or 3_000_000, packed=packed,
+                                fmt=imu_fmt)
             else:
                 load = bus_load(n, self.rate_hz, kind="can", bitrate=cap.bitrate or 1_000_000, fd=cap.fd,
-                                data_bitrate=cap.data_bitrate or 8_000_000, packed=packed)
+                                data_bitrate=cap.data_bitrate or 8_000_000, packed=packed, fmt=imu_fmt)
             row = {"bus": t.name, "chips": n, "load_pct": round(100 * load, 1)}
             report.append(row)
             what = (f"{t.name}: {n} chips at {self.rate_hz:g} Hz need {100 * load:.0f} % of the bus "

@@ -153,13 +153,17 @@ def imu_capacity_rows(rate_hz: float = 145.0) -> list[Capacity]:
 
 
 def bus_load(n_chips: int, rate_hz: float, *, kind: str, bitrate: float, fd: bool = False,
-             data_bitrate: float | None = None, packed: bool = False) -> float:
+             data_bitrate: float | None = None, packed: bool = False, fmt: int = 0) -> float:
     """Worst-case fraction of a bus's time that ``n_chips`` sampled at ``rate_hz`` take (1.0 = full).
 
     ``kind="serial"``: a UART at ``bitrate`` baud, 8N1 (the chip-to-host direction; SYNC goes the
     other way). ``kind="can"``: classic CAN at ``bitrate`` (or CAN FD with ``data_bitrate``), one
     SYNC per period included. ``packed``: the gateway sends SNAPSHOT frames (serial, or CAN FD);
-    classic CAN cannot pack, so per-chip SAMPLE is counted there.
+    classic CAN cannot pack, so per-chip SAMPLE is counted there. ``fmt`` 1 or 2: 6/9-axis IMU records
+    (docs §16: IMU_SAMPLE per chip, or on classic CAN its 2 or 3 frames; SNAPSHOT_IMU packed).
+
+    >>> round(bus_load(21, 145, kind="can", bitrate=1e6, fmt=1), 2)   # (21 x 2 x 160 + 100) x 145 / 1e6
+    0.99
 
     >>> round(bus_load(364, 100, kind="can", bitrate=1e6), 2)  # 364 x 100 x 150 bits + 100 x 100 (SYNC)
     5.47
@@ -174,6 +178,10 @@ def bus_load(n_chips: int, rate_hz: float, *, kind: str, bitrate: float, fd: boo
         raise ValueError(f"Invalid rate_hz: {rate_hz!r} (need a finite value > 0)")
     if not (math.isfinite(bitrate) and bitrate > 0):
         raise ValueError(f"Invalid bitrate: {bitrate!r} (need a finite value > 0)")
+    if fmt not in (0, 1, 2):
+        raise ValueError(f"Invalid fmt: {fmt!r} (0 SAMPLE, 1 6-axis, 2 9-axis records)")
+    if fmt:
+        return _imu_load(n_chips, rate_hz, kind, bitrate, fd, data_bitrate, packed, SampleFormat(fmt))
     if kind == "serial":
         per_period = serial_snapshot_bytes(n_chips) if packed else n_chips * SAMPLE_WIRE_SIZE
         return rate_hz * per_period * 10 / bitrate
@@ -191,6 +199,30 @@ def bus_load(n_chips: int, rate_hz: float, *, kind: str, bitrate: float, fd: boo
             t += fd_can_frame_time_s(Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * rest, bitrate, data_bps)[1]
     else:
         t = n_chips * fd_can_frame_time_s(Sample.SIZE, bitrate, data_bps)[1]
+    return rate_hz * (t + sync_bits / bitrate)
+
+
+def _imu_load(n, rate_hz, kind, bitrate, fd, data_bitrate, packed, fmt) -> float:
+    size = IMU_RECORD_SIZE[fmt]
+    if kind == "serial":
+        per_period = (serial_snapshot_imu_bytes(n, fmt) if packed
+                      else n * (cobs_encoded_size(HEADER_SIZE + 2 + size + CRC_SIZE) + 1))
+        return rate_hz * per_period * 10 / bitrate
+    if kind != "can":
+        raise ValueError(f"Invalid kind: {kind!r} (need 'serial' or 'can')")
+    sync_bits = classic_can_frame_bits(2)[1]
+    if not fd:
+        frames = 2 if fmt == SampleFormat.IMU6 else 3
+        return rate_hz * (n * frames * classic_can_frame_bits(8)[1] + sync_bits) / bitrate
+    data_bps = data_bitrate if data_bitrate is not None else 8 * bitrate
+    if packed:
+        k = MAX_FD_IMU_RECORDS[fmt]
+        full, rest = divmod(n, k)
+        t = full * fd_can_frame_time_s(SnapshotImu.HEADER_SIZE + size * k, bitrate, data_bps)[1]
+        if rest:
+            t += fd_can_frame_time_s(SnapshotImu.HEADER_SIZE + size * rest, bitrate, data_bps)[1]
+    else:
+        t = n * fd_can_frame_time_s(2 + size, bitrate, data_bps)[1]
     return rate_hz * (t + sync_bits / bitrate)
 
 
