@@ -54,7 +54,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
-from protocol.framing import SampleBatch
+from protocol.framing import ImuBatch, SampleBatch
 from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
 from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotImu,
                                unpack_sample_words, unpack_snapshots)
@@ -501,7 +501,7 @@ class Aggregator:
             if isinstance(ev, Snapshot):
                 snaps.append(ev)
                 continue
-            if isinstance(ev, (ImuSample, SnapshotImu)):
+            if isinstance(ev, (ImuSample, SnapshotImu, ImuBatch)):
                 if snaps:
                     self.ingest_snapshots(snaps, bus, now=now)
                     snaps = []
@@ -536,39 +536,51 @@ class Aggregator:
         gyroscope, magnetometer and sample time kept beside it for the counter's snapshot (the first
         record of a link and counter wins, as for the accelerometer)."""
         if isinstance(ev, ImuSample):
+            node = np.array([ev.node], dtype=np.uint16)
             counter = np.array([ev.counter], dtype=np.uint16)
             counts = np.array([[ev.x, ev.y, ev.z]], dtype=np.int16)
             status = np.array([ev.status], dtype=np.uint8)
             t_us, gyro = np.array([ev.time_us]), np.array([ev.gyro])
             mag = None if ev.mx is None else np.array([ev.mag])
-            link = self._lut[np.array([ev.node], dtype=np.uint16)].astype(np.int64)
+        elif isinstance(ev, ImuBatch):
+            node, counter, counts, status, t_us, gyro, mag = (ev.node, ev.counter, ev.counts, ev.status, ev.time_us,
+                                                              ev.gyro, ev.mag)
         else:
             counts, status, t_us, gyro, mag = ev.arrays()
             link = ev.first_link + np.arange(counts.shape[0], dtype=np.int64)
             counter = np.full(link.shape[0], ev.counter, dtype=np.uint16)
+            self._imu_extras(link, counter, t_us, gyro, mag)
+            self._scatter_inside(link, counter, counts, status, bus, now)
+            self._imu_prune(counter)
+            return
+        self._imu_extras(self._lut[node], counter, t_us, gyro, mag)
+        self.ingest_batch(node, counter, counts, status, bus, now=now)
+        self._imu_prune(counter)
+
+    def _imu_extras(self, link, counter, t_us, gyro, mag) -> None:
+        """Keep the records' gyroscope, magnetometer and time beside their counters (first per link wins)."""
         ok = (link >= 0) & (link < self.n_links)
-        c = int(counter[0])
-        if ok.any():
+        for c in np.unique(counter[ok]).tolist():
+            sel = ok & (counter == c)
             e = self._imu.get(c)
             if e is None:
                 L = self.n_links
                 e = self._imu[c] = [np.full((L, 3), np.nan), None, np.full(L, np.nan)]
-            lk = link[ok]
+            lk = link[sel]
             new = np.isnan(e[0][lk, 0])
             lk = lk[new]
-            e[0][lk] = gyro_counts_to_si(gyro[ok][new].astype(np.float64), self.gyro_range)
-            t = t_us[ok][new].astype(np.float64)
+            e[0][lk] = gyro_counts_to_si(gyro[sel][new].astype(np.float64), self.gyro_range)
+            t = t_us[sel][new].astype(np.float64)
             e[2][lk] = np.where(t == TIME_UNKNOWN, np.nan, t * 1e-6)
             if mag is not None:
                 if e[1] is None:
                     e[1] = np.full((self.n_links, 3), np.nan)
-                e[1][lk] = mag_counts_to_si(mag[ok][new].astype(np.float64), self.mag_range)
-        if isinstance(ev, ImuSample):
-            self.ingest_batch(np.array([ev.node], dtype=np.uint16), counter, counts, status, bus, now=now)
-        else:
-            self._scatter_inside(link, counter, counts, status, bus, now)
-        if c in self._imu and self._slot_of[c] < 0:
-            del self._imu[c]  # late or stray: its accelerometer part was not taken either
+                e[1][lk] = mag_counts_to_si(mag[sel][new].astype(np.float64), self.mag_range)
+
+    def _imu_prune(self, counter) -> None:
+        for c in np.unique(counter).tolist():
+            if c in self._imu and self._slot_of[c] < 0:
+                del self._imu[c]  # late or stray: its accelerometer part was not taken either
 
     def ingest_snapshot(self, snap: Snapshot, bus: int = 0, *, now: float) -> None:
         """A gateway's SNAPSHOT: links ``first_link ..`` of one counter."""

@@ -31,7 +31,7 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from protocol.constants import Range, nominal_sensitivity
-from protocol.framing import DecodeError, SampleBatch
+from protocol.framing import DecodeError, ImuBatch, SampleBatch
 from protocol.lattice import Lattice
 from protocol.layout import LayoutDoc, LayoutError, load_layout, save_layout
 from protocol.capacity import bus_load
@@ -45,7 +45,7 @@ from .gateways import GatewayNodes
 from .transport import Transport, TransportError
 
 #: events that are data for the aggregator (IMU records of 6/9-axis chips too, docs/protocol.md §16)
-_DATA = (SampleBatch, Snapshot, Sample, DecodeError, ImuSample, SnapshotImu)
+_DATA = (SampleBatch, Snapshot, Sample, DecodeError, ImuSample, SnapshotImu, ImuBatch)
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
            "SessionError", "MismatchError", "CapacityError", "SyncConflictError", "link_ranges", "capacity_remedy"]
@@ -1099,7 +1099,7 @@ class Host:
 
     def _count_stale(self, events: list) -> None:
         for ev in events:
-            k = len(ev) if isinstance(ev, SampleBatch) else 1
+            k = len(ev) if isinstance(ev, (SampleBatch, ImuBatch)) else 1
             self.stale_frames += k
             if not isinstance(ev, (Sync, DecodeError)):
                 self._stale_chip_frames += k

@@ -945,6 +945,20 @@ def tap_scene(rows: int, cols: int, link_length: float = 0.01, *, depth_m: float
     return FieldScene(Dent(pulse, sig, c), rows, cols, link_length, name="tap", **net)
 
 
+def grow_scene(rows: int, cols: int, link_length: float = 0.01, *, amplitude: float | None = None,
+               sigma: float | None = None, period_s: float = 4.0, **net: Any) -> FieldScene:
+    """`shapes.GrowScene` with exact kinematics (for 6/9-axis chips): a Gaussian bump of height
+    ``amplitude · (1 − cos 2πt/T)/2`` (default S/4, width S/4, T = 4 s) — a `Dent` of negative depth."""
+    S = _check_size(rows, cols, link_length)
+    a = S / 4 if amplitude is None else float(amplitude)
+    sig = S / 4 if sigma is None else float(sigma)
+    if not (np.isfinite(period_s) and period_s > 0):
+        raise ValueError(f"Invalid period_s: {period_s!r} (need > 0 s)")
+    depth = Sine(a / 2, 1.0 / period_s, np.pi / 2, offset=-a / 2)  # -a (1 - cos)/2: the dent is a bump
+    return FieldScene(Dent(depth, sig), rows, cols, link_length, name="grow", period_s=float(period_s),
+                      periodic_from_s=0.0, **net)
+
+
 def flat_turn_scene(rows: int, cols: int, link_length: float = 0.01, *, heading_rad: float = 1.2,
                     heading_hz: float = 0.2, slide_m=(0.06, 0.04), slide_hz=(1.0, 0.8),
                     ramp_s: float = 1.0, **net: Any) -> RigidScene:
@@ -1036,6 +1050,8 @@ MOTION_SCENES: dict[str, MotionSceneSpec] = {s.name: s for s in [
     MotionSceneSpec("flat_turn", "a flat horizontal sheet turning in heading and sliding",
                     flat_turn_scene),
     MotionSceneSpec("rest", "a static shape (shape=...) at rest", rest_scene, moving=False),
+    MotionSceneSpec("grow", "a Gaussian bump rising and falling (shapes.GrowScene, exact kinematics)", grow_scene,
+                    moving=False),
     MotionSceneSpec("tumble", "a flat sheet turned every way (magnetometer calibration)",
                     tumble_scene, moving=False),
     MotionSceneSpec("board", "the calibration board turned through held poses", board_scene,

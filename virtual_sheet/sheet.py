@@ -147,7 +147,7 @@ class VirtualSheet:
         self.sensor_model = sensor if sensor is not None else SensorModel(noise_pct_g=noise, chip_seed=seed)
         self.imu_source: ImuSource | None = None
         if scene is None and (shape in MOTION_SHAPES or sensors != "accel"):
-            if shape in MOTION_SHAPES:
+            if shape in MOTION_SHAPES or shape == "grow":  # grow: `shapes.GrowScene`, exact kinematics
                 motion = make_motion_scene(shape, rows, cols, link_length, **(shape_params or {}))
             elif shape in SHAPES:
                 motion = make_motion_scene("rest", rows, cols, link_length, shape=shape, **(shape_params or {}))
@@ -274,7 +274,9 @@ class VirtualSheet:
     def precompute(self) -> int:
         """Solve every step of a periodic scene now (before streaming); returns how many. A
         non-periodic scene is solved as it goes (each step once)."""
-        if self._period_steps is None or self.imu_source is not None:
+        if self.imu_source is not None:
+            return self.imu_source.precompute()
+        if self._period_steps is None:
             return 0
         for i in range(self._period_steps):
             self._scene_step(i / self.scene_rate_hz)
@@ -321,7 +323,11 @@ class VirtualSheet:
             if c[0] == now_s:
                 return c
             if self.imu_source is not None:  # a moving sheet: the accelerometers read its truth
-                counts, status = self.imu_source.read(now_s, np.arange(self.n_links))[:2]
+                every = np.arange(self.n_links)
+                counts, status = self.imu_source.read(now_s, every)[:2]
+                stale = self.imu_source.mark_read(now_s, every)  # a repeated instant: no new conversion
+                if stale.any():
+                    status = status | np.where(stale, int(SampleStatus.STALE), 0)
                 counts.setflags(write=False)
                 status.setflags(write=False)
                 c = self._cache = (now_s, counts, status, None, None)
@@ -394,8 +400,7 @@ class VirtualSheet:
     def truth_time(self, counter: int) -> float:
         """Scene time of the readings answering SYNC ``counter`` (KeyError if never seen)."""
         if self.imu_source is not None:  # the grid instant the chips read (`imu_source.ImuSource`)
-            g = self.imu_source.grid_hz
-            return math.floor(self.sync_times[counter & 0xFFFF] * g + 1e-9) / g
+            return self.imu_source.time_of(self.sync_times[counter & 0xFFFF])
         return self._scene_time(self.sync_times[counter & 0xFFFF])
 
     def truth(self, counter: int) -> np.ndarray:
@@ -406,7 +411,7 @@ class VirtualSheet:
         """Joints ``(rows, cols, 3)`` of scene step ``tq`` (a `truth_time`), exactly as the chips'
         readings were made from them (the same solved step)."""
         if self.imu_source is not None:
-            return np.asarray(self.scene.sample(np.array([float(tq)])).joints[0], dtype=float).copy()
+            return self.imu_source.joints_at(tq)
         return self._scene_step(tq)[1].copy()
 
     def joints(self, t_s: float = 0.0) -> np.ndarray:
