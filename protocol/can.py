@@ -30,7 +30,7 @@ from .messages import (IMU_RECORD_SIZE, MESSAGE_TYPES, PROTOCOL_VERSION, ImuAcce
                        Message, MsgType, PayloadError, Sample, SampleFormat, Snapshot, SnapshotImu,
                        Sync, decode_payload, SAMPLE_WORD_SIZE, unpack_sample_words)  # noqa: F401 (Sync: doctest)
 
-__all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES", "MAX_FD_IMU_RECORDS",
+__all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES", "MAX_FD_IMU_RECORDS", "INCOMPLETE_IMU",
            "imu_can_frames",
            "make_id", "split_id", "to_can", "from_can", "decode_can", "fd_length"]
 
@@ -47,6 +47,8 @@ assert MAX_FD_IMU_RECORDS == {SampleFormat.IMU6: 4, SampleFormat.IMU9: 3}
 _FD_IMU_SAMPLE = {16: 15, 24: 21}
 
 _PRIORITY_SHIFT, _TYPE_SHIFT, _VERSION_SHIFT = 26, 20, 16
+#: the detail's start of the event a `CanDecoder` reports for classic IMU frames that make no record (§16.4)
+INCOMPLETE_IMU = "incomplete IMU record"
 
 
 class CanFrame(NamedTuple):
@@ -331,7 +333,7 @@ class CanDecoder:
 
     def _incomplete(self, detail: str) -> DecodeError:
         self.stats.errors[ErrorReason.BAD_FIELD] += 1
-        return DecodeError(ErrorReason.BAD_FIELD, f"incomplete IMU record: {detail}", b"")
+        return DecodeError(ErrorReason.BAD_FIELD, f"{INCOMPLETE_IMU}: {detail}", b"")
 
     def _assemble(self, ev) -> list:
         """Classic CAN IMU frames (docs §16.4) -> the IMU_SAMPLE they stand for, or incomplete-record events."""
