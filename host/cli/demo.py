@@ -141,6 +141,17 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     conn.send(("stopped",))
 
 
+class FusedShape:
+    """The fused estimator's shape as the recorder and the live view take an estimate: ``joints``,
+    ``valid`` (the links of the snapshot that had an IMU record), ``method``; ``motion`` the
+    `host.analysis.motion.MotionEstimate` itself."""
+
+    method = "fused"
+
+    def __init__(self, motion, valid: np.ndarray) -> None:
+        self.motion, self.joints, self.valid = motion, motion.joints, valid
+
+
 def fused_update(fused, snap):
     """One snapshot into the fused estimator (issue 30): each link at its own sample time (the SYNC's
     host time plus the chip's ``time_us``), links without an IMU record masked. None for a snapshot
@@ -155,7 +166,7 @@ def fused_update(fused, snap):
     accel = np.where(valid[:, None], snap.readings, 0.0)
     mag = None if snap.mag is None else np.where(valid[:, None], snap.mag, 0.0)
     try:
-        return fused.update(t, accel, gyro, mag, valid=valid)
+        return FusedShape(fused.update(t, accel, gyro, mag, valid=valid), valid)
     except ValueError:  # e.g. a sample time that went back (a SYNC counter restarted): start again
         fused.reset()
         return None

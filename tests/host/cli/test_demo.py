@@ -83,8 +83,9 @@ def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
     """`--sensors accel+gyro+mag` (issue 29 point 6, issue 30 point 4): the host asks the chips for
     IMU records, the fused estimator shapes every snapshot in order, the same rule and honesty as
     above; the IMU records need two 12 Mbaud gateways for 364 chips at 145 Hz (capacity), 1 at 30 Hz."""
-    png = tmp_path / "demo9.png"
-    out = _demo("--sensors", "accel+gyro+mag", "--duration", "3", "--rate", "30", "--out", str(png), "--json")
+    png, mcap = tmp_path / "demo9.png", tmp_path / "demo9.mcap"
+    out = _demo("--sensors", "accel+gyro+mag", "--duration", "3", "--rate", "30", "--out", str(png), "--json",
+                "--record", str(mcap))
     assert out.returncode in (0, 1), out.stderr
     result = json.loads(out.stdout)
     assert result["sensors"] == "accel+gyro+mag" and result["estimator"] == "fused" and result["gateways"] == 1
@@ -94,6 +95,9 @@ def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
         assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
     assert result["pass"] == (result["error_ok"] and result["complete_ok"])
     assert out.returncode == (0 if result["pass"] else 1)
+    from host.record import read  # the recording holds the axes and the fused estimates
+    rec = read(mcap)
+    assert rec.gyro is not None and rec.mag is not None and len(rec.estimates["joints"]) >= 1
 
 
 def test_demo_with_imu_chips_picks_the_gateways_the_records_need():
