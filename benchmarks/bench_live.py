@@ -36,6 +36,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 from host.aggregator import window_completeness  # noqa: E402
 from host.cli import one_blas_thread  # noqa: E402
+from protocol.lattice import Lattice  # noqa: E402
 
 CONFIGS = {
     "14x14-per-chip": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000),
@@ -130,7 +131,8 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
     from host.transport import CanTransport, open_transport
 
     lat = cfg["lattice"]
-    rows, cols = (int(v) for v in lat.split("x"))
+    lattice = Lattice.parse(lat)
+    rows, cols = lattice.rows, lattice.cols
     if cfg["transport"] == "slcan":
         ts = [CanTransport(f"slcan:{p}", bitrate=cfg["bitrate"], sleep_after_open=0) for p in paths]
     else:
@@ -189,8 +191,7 @@ def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp:
     cfg = dict(cfg, layout_path=os.path.join(tmp, f"{name}.json"))
     if cfg["transport"] == "slcan":
         from protocol.capacity import buses_needed
-        rows, cols = (int(v) for v in cfg["lattice"].split("x"))
-        n_links = rows * (cols - 1) + cols * (rows - 1)
+        n_links = Lattice.parse(cfg["lattice"]).n_links
         cfg["n_buses"] = next(k for c, k in buses_needed(n_links, 145.0) if "classic" in c.link)
     if cfg.get("firmware") == "c":
         try:

@@ -1,9 +1,12 @@
-"""The cost of ``--publish zenoh`` on the host's receive thread: encoding a snapshot
-(`host.publish.encode_snapshot`) and one ``Publisher.put`` in peer mode on loopback, with one
-subscriber process-local peer listening (so the put goes to a transport, not to nothing), per
-lattice size. Prints JSON: microseconds per snapshot (median of ``--n`` puts) and payload bytes.
+"""The cost of ``--publish zenoh`` and ``--publish ros2`` on the host's receive thread: encoding a
+snapshot (`host.publish.encode_snapshot`; ros2: a CDR ``capsheet_msgs/LatticeSnapshot``) and one
+``Publisher.put`` (ros2: with rmw_zenoh's attachment) in peer mode on loopback, with one subscriber
+process-local peer listening (so the put goes to a transport, not to nothing), per lattice size; for
+ros2 also an estimate (``sensor_msgs/PointCloud2`` of the joints + ``visualization_msgs/Marker``
+TRIANGLE_LIST, encoded and put). Prints JSON: microseconds per message (median of ``--n`` puts) and
+payload bytes.
 
-    .venv/bin/python benchmarks/bench_publish.py [--n 2000]
+    .venv/bin/python benchmarks/bench_publish.py [--n 2000] [--kinds zenoh,ros2]
 """
 
 from __future__ import annotations
@@ -27,10 +30,58 @@ class Snap:  # the fields encode_snapshot reads, as a LatticeSnapshot has them
         self.status = np.zeros(n, np.uint8)
 
 
+class Est:  # the field Ros2Outputs.estimate reads, as a ShapeEstimate has it
+    def __init__(self, joints):
+        self.joints, self.joint_std = joints, None
+
+
+def bench_ros2(sub_session, lat, size, rng, n) -> dict:
+    from host.ros2 import Ros2Outputs
+    name = f"bench{size}"
+    got = [0, 0]
+    subs = [sub_session.declare_subscriber(f"0/capsheet/{name}/snapshot/**", lambda s: got.__setitem__(0, got[0] + 1)),
+            sub_session.declare_subscriber(f"0/capsheet/{name}/joints/**", lambda s: got.__setitem__(1, got[1] + 1))]
+    pub = Ros2Outputs(name, lat, publish=True)
+    time.sleep(2.0)  # discovery
+    snap = Snap(lat.n_links, rng)
+    est = Est(rng.normal(size=(lat.rows, lat.cols, 3)) * 0.01)
+    t_snap, t_est, t_enc = [], [], []
+    for k in range(n):
+        snap.counter = k
+        t0 = time.perf_counter()
+        pub.snapshot(snap)
+        t1 = time.perf_counter()
+        t_snap.append(t1 - t0)
+    for k in range(max(1, n // 4)):  # estimates: --live-rate per second, not every snapshot
+        t0 = time.perf_counter()
+        pub.estimate(est, snap)
+        t_est.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        pub.encoder.joints(est.joints, None, 0)
+        pub.encoder.surface(est.joints, 0)
+        t_enc.append(time.perf_counter() - t0)
+    time.sleep(1.0)
+    enc = pub.encoder
+    res = {"links": lat.n_links, "snapshot_bytes": len(enc.snapshot(snap)[0]),
+           "snapshot_encode_and_put_us_median": round(1e6 * float(np.median(t_snap)), 1),
+           "snapshot_encode_and_put_us_p99": round(1e6 * float(np.percentile(t_snap, 99)), 1),
+           "joints_bytes": len(enc.joints(est.joints, None, 0)), "surface_bytes": len(enc.surface(est.joints, 0)),
+           "estimate_encode_us_median": round(1e6 * float(np.median(t_enc)), 1),
+           "estimate_encode_and_put_us_median": round(1e6 * float(np.median(t_est)), 1),
+           "published_snapshots": n, "received_snapshots": got[0],
+           "published_estimates": len(t_est), "received_joints": got[1]}
+    pub.close()
+    for s in subs:
+        s.undeclare()
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=2000)
+    ap.add_argument("--kinds", default="zenoh,ros2")
     args = ap.parse_args()
+    kinds = args.kinds.split(",")
     import zenoh
     rng = np.random.default_rng(1)
     sub_session = zenoh.open(zenoh_config(None))
@@ -38,6 +89,11 @@ def main() -> None:
     out = {}
     for size in ("14x14", "32x32", "64x64"):
         lat = Lattice.parse(size)
+        out[size] = {}
+        if "ros2" in kinds:
+            out[size]["ros2"] = bench_ros2(sub_session, lat, size, rng, args.n)
+        if "zenoh" not in kinds:
+            continue
         name = f"bench{size}"
         sub = sub_session.declare_subscriber(f"capsheet/{name}/snapshot", lambda s: got.__setitem__(0, got[0] + 1))
         pub = ZenohPublisher(name, None, lat, 0.01)
@@ -54,7 +110,7 @@ def main() -> None:
             enc.append(t1 - t0)
             put.append(t2 - t1)
         time.sleep(1.0)
-        out[size] = {"links": lat.n_links, "bytes": len(encode_snapshot(snap, lat.rows, lat.cols)),
+        out[size]["zenoh"] = {"links": lat.n_links, "bytes": len(encode_snapshot(snap, lat.rows, lat.cols)),
                      "encode_us_median": round(1e6 * float(np.median(enc)), 1),
                      "encode_and_put_us_median": round(1e6 * float(np.median(put)), 1),
                      "encode_and_put_us_p99": round(1e6 * float(np.percentile(put, 99)), 1),

@@ -28,17 +28,12 @@ Rules (all counted in `AggregatorStats`, none raises):
 * The output buffer holds ``queue_size`` snapshots not yet drained; beyond it the oldest are
   dropped (newest wins) and counted in ``dropped`` (so is what `host.feed.SnapshotFeed.latest`
   skips for a slow consumer).
-* **Adaptive deadline** (``min_deadline_s`` and ``max_deadline_s`` given): the deadline follows
-  the measured SYNC -> last-frame latency (one measurement per emitted snapshot, and one per
-  batch of late frames: how long after its SYNC the latest of them came). Every 32 measurements
-  the target is 1.5 x the *maximum* of the last 256 measurements + 2 ms, bounded to
-  ``[min_deadline_s, max_deadline_s]``; the deadline rises to a higher target at once and falls
-  towards a lower one by at most 5 % per update (the first update replaces the starting value
-  outright: that was a guess, not a measurement). A frame that arrives after its counter was
-  emitted raises the deadline at once to 1.5 x its latency + 2 ms (bounded), without waiting for
-  the next update: counted in ``late_raises`` (and ``deadline_changes``). So one slow read keeps
-  the deadline up for the 256 measurements it stays in the window, then lets it decay slowly,
-  instead of a 95th percentile over 32 that forgot the tail and shrank it until frames were lost.
+* **The deadline** (`host.deadline.DeadlinePolicy`): fixed, or, with ``min_deadline_s`` and
+  ``max_deadline_s``, adapted to the measured SYNC -> last-frame latency (one measurement per
+  emitted snapshot, and one per batch of late frames).
+* **Counter trust** (`host.counter_trust.CounterTrust`): which counters may open a snapshot — any
+  frame's (``trust="frames"``), only the SYNCs the host sent (``"sent"``), or a gateway's sequence,
+  followed through a restart (``"follow"``).
 * **Who is missing** (``miss_run``): per link, how many snapshots in a row were emitted without it
   while at least half of the other expected links arrived — the host's watchdog blames a chip
   only on this evidence (its neighbours' frames for the same counters came, its did not).
@@ -54,29 +49,18 @@ from typing import Callable, Iterable
 import numpy as np
 
 from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
-from protocol.framing import ImuBatch, SampleBatch
+from protocol.messages import ImuBatch, SampleBatch
 from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
 from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotImu,
                                unpack_sample_words, unpack_snapshots)
+
+from .counter_trust import OPEN, RESYNC, CounterTrust, serial_diff
+from .deadline import DeadlinePolicy
 
 __all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "serial_diff"]
 
 _MOD = 1 << 16
 _HALF = 1 << 15
-_LAT_WINDOW = 256  # adaptive deadline: latencies remembered
-_LAT_UPDATE = 32  # ... and measurements between two updates
-_DEADLINE_SLACK_S = 0.002  # target = 1.5 x the largest remembered latency + this
-_DEADLINE_DECAY = 0.05  # at most this fraction lower per update
-
-
-def serial_diff(a, b):
-    """``a - b`` in serial arithmetic mod 2^16, in -32768..32767 (works on arrays).
-
-    >>> serial_diff(0, 0xFFFF), serial_diff(0xFFFF, 0), serial_diff(5, 3)
-    (1, -1, 2)
-    """
-    return ((np.asarray(a, dtype=np.int64) - b + _HALF) % _MOD) - _HALF if isinstance(a, np.ndarray) \
-        else ((int(a) - int(b) + _HALF) % _MOD) - _HALF
 
 
 class LinkFlag(IntFlag):
@@ -229,8 +213,8 @@ class Aggregator:
         An incomplete counter is emitted (masked) this long after it opened (the starting value
         when adaptive).
     min_deadline_s, max_deadline_s : float, optional
-        Both given: the deadline adapts to the measured latency within these bounds (module
-        docstring). Otherwise it stays ``deadline_s``.
+        Both given: the deadline adapts to the measured latency within these bounds
+        (`host.deadline.DeadlinePolicy`). Otherwise it stays ``deadline_s``.
     max_open : int
         At most this many counters are open at once.
     max_age : int
@@ -242,6 +226,8 @@ class Aggregator:
     on_snapshot : callable, optional
         Called with each emitted snapshot, during the call that emitted it, in addition to the
         buffer `drain` empties.
+    trust, max_jump, resync_after
+        Which counters may open a snapshot (`host.counter_trust.CounterTrust`).
 
     Attributes
     ----------
@@ -261,20 +247,8 @@ class Aggregator:
         if max_open < 1:
             raise ValueError(f"Invalid max_open: {max_open!r} (need >= 1)")
         self.n_links = int(n_links)
-        self.deadline_s = float(deadline_s)
-        if not (np.isfinite(self.deadline_s) and self.deadline_s > 0):
-            raise ValueError(f"Invalid deadline_s: {deadline_s!r} (need a finite value > 0 s)")
-        self.adaptive = min_deadline_s is not None and max_deadline_s is not None
-        if self.adaptive:
-            if not (0 < min_deadline_s <= max_deadline_s and np.isfinite(max_deadline_s)):
-                raise ValueError(f"Invalid deadline bounds: min_deadline_s={min_deadline_s!r}, "
-                                 f"max_deadline_s={max_deadline_s!r} (need 0 < min <= max, finite)")
-            self.deadline_s = float(np.clip(self.deadline_s, min_deadline_s, max_deadline_s))
-        self.min_deadline_s = float(min_deadline_s) if self.adaptive else self.deadline_s
-        self.max_deadline_s = float(max_deadline_s) if self.adaptive else self.deadline_s
-        self._lat: deque[float] = deque(maxlen=_LAT_WINDOW)  # the last measured latencies (s)
-        self._n_measured = 0  # measurements since the last update of the deadline
-        self._measured_once = False  # the deadline has been set from measurements at least once
+        #: how long an open counter waits for its missing links (`host.deadline.DeadlinePolicy`)
+        self.deadline = DeadlinePolicy(deadline_s, min_deadline_s, max_deadline_s)
         self.max_open = int(max_open)
         self.max_age = int(max_age)
         self.on_snapshot = on_snapshot
@@ -282,8 +256,8 @@ class Aggregator:
         self.stats = AggregatorStats(self.n_links, n_buses)
         self._out: deque[LatticeSnapshot] = deque()
         self.queue_size = int(queue_size)
-        self.set_node_map(node_to_link)
-        self.set_calibration(offset, sensitivity)
+        self._lut = self._node_lut(node_to_link)  # node id -> link, -1 = unknown
+        self._offset, self._sens = self._checked_calibration(offset, sensitivity)  # per link and axis
         #: links expected in every snapshot (a snapshot is complete when all of these arrived)
         self.expected = np.ones(self.n_links, dtype=bool)
         #: links with no chip assigned (flagged UNASSIGNED, never expected)
@@ -309,7 +283,8 @@ class Aggregator:
         self._t0_of = np.full(_MOD, np.nan)  # counter -> when it opened (latency of late frames)
         #: per link: snapshots in a row emitted without it while most expected links arrived
         self.miss_run = np.zeros(L, dtype=np.int64)
-        self._init_trust(trust, max_jump, resync_after)
+        #: which counters may open a snapshot (`host.counter_trust.CounterTrust`)
+        self.counter_trust = CounterTrust(trust, max_jump, resync_after, self.max_age)
         #: CONFIG_IMU ranges the chips were given (docs §16.2): how IMU counts convert (the owner sets them)
         self.gyro_range, self.mag_range = 3, 0
         self._imu: dict[int, list] = {}  # open counter -> [gyro (L, 3), mag (L, 3) or None, time (L,)], SI
@@ -317,6 +292,9 @@ class Aggregator:
     # -- configuration ---------------------------------------------------------------------
     def set_node_map(self, node_to_link=None) -> None:
         """Node id -> link index (dict or array of 65536, -1 = unknown). None: node k -> link k-1."""
+        self._lut = self._node_lut(node_to_link)
+
+    def _node_lut(self, node_to_link) -> np.ndarray:
         lut = np.full(_MOD, -1, dtype=np.int64)
         if node_to_link is None:
             n = min(self.n_links, _MOD - 1)
@@ -331,7 +309,7 @@ class Aggregator:
             if arr.shape != (_MOD,):
                 raise ValueError(f"Expected `node_to_link` to have shape (65536,), got {arr.shape}.")
             lut[:] = arr
-        self._lut = lut
+        return lut
 
     def link_of(self, node):
         """Link of node id ``node`` (an int or an array of them), -1 where the map has none."""
@@ -339,6 +317,9 @@ class Aggregator:
 
     def set_calibration(self, offset=None, sensitivity=None) -> None:
         """Per-link calibration: ``offset`` counts and ``sensitivity`` counts/g, each (n_links, 3)."""
+        self._offset, self._sens = self._checked_calibration(offset, sensitivity)
+
+    def _checked_calibration(self, offset, sensitivity) -> tuple[np.ndarray, np.ndarray]:
         L = self.n_links
         off = np.zeros((L, 3)) if offset is None else np.asarray(offset, dtype=float)
         sens = np.full((L, 3), nominal_sensitivity()) if sensitivity is None else np.asarray(sensitivity, dtype=float)
@@ -347,15 +328,7 @@ class Aggregator:
                 raise ValueError(f"Expected `{name}` to have shape ({L}, 3), got {a.shape}.")
         if not np.all(np.isfinite(sens) & (sens > 0)):
             raise ValueError("Invalid sensitivity: every value must be finite and > 0")
-        self._offset, self._sens = off, sens
-
-    def set_expected(self, expected: np.ndarray, now: float) -> None:
-        """Links that must arrive for a snapshot to be complete (emits, at ``now``, what that completes)."""
-        expected = np.asarray(expected, dtype=bool)
-        if expected.shape != (self.n_links,):
-            raise ValueError(f"Expected `expected` to have shape ({self.n_links},), got {expected.shape}.")
-        self.expected = expected.copy()
-        self._pump(now)
+        return off, sens
 
     def mark_silent(self, link: int, silent: bool, now: float) -> None:
         """Watchdog: a silent link is not waited for (and flagged SILENT) until it speaks again."""
@@ -427,70 +400,64 @@ class Aggregator:
             self._open.insert(k, s)
         return s
 
-    # -- counter trust (issue 12; a separate piece: only `_slot_for` and `_scatter` call it) --
-    def _init_trust(self, trust: str, max_jump: int, resync_after: int) -> None:
-        """Which counters may open a snapshot.
-
-        * ``"frames"`` (default, standalone use): any frame opens its counter (the old rule).
-        * ``"sent"`` (a host driving SYNC): only `open_counter` opens counters; a frame for a counter
-          not open and newer than the newest sent is *stray* (dropped, counted), so a stray or foreign
-          frame never moves the sequence and costs at most its own sample.
-        * ``"follow"`` (a gateway drives SYNC): SYNCs and frames open counters within
-          ``-max_age .. +max_jump`` of the newest (a SYNC only when newer: a SYNC source never goes
-          back); one outside is stray, unless ``resync_after``
-          consecutive counters (each 1..2 after the previous) continue it: then the sequence has
-          restarted or jumped (a gateway reset) and is followed — what is open is emitted, the history
-          forgotten, ``resyncs`` counted and ``resync_events`` records ``(old newest, new counter)``.
-        """
-        if trust not in ("frames", "sent", "follow"):
-            raise ValueError(f"Invalid trust: {trust!r} (need 'frames', 'sent' or 'follow')")
-        if not (isinstance(max_jump, int) and 1 <= max_jump < _HALF):
-            raise ValueError(f"Invalid max_jump: {max_jump!r} (need 1..32767)")
-        if not (isinstance(resync_after, int) and resync_after >= 1):
-            raise ValueError(f"Invalid resync_after: {resync_after!r} (need >= 1)")
-        self.trust = trust
-        self.max_jump = max_jump
-        self.resync_after = resync_after
-        self.resync_events: deque = deque(maxlen=64)  #: (previous newest, counter followed)
-        self._cand: int | None = None  # follow: newest counter of a candidate new sequence
-        self._cand_run = 0
-
+    # -- counter trust (`host.counter_trust`; only `_slot_for` asks it) --------------------------
     def set_trust(self, trust: str) -> None:
         """Switch the rule (the host does when it changes between driving and following SYNC)."""
-        self._init_trust(trust, self.max_jump, self.resync_after)
+        ct = self.counter_trust
+        self.counter_trust = CounterTrust(trust, ct.max_jump, ct.resync_after, self.max_age)
+
+    @property
+    def trust(self) -> str:
+        """The counter-trust rule: "frames", "sent" or "follow"."""
+        return self.counter_trust.trust
+
+    @property
+    def resync_events(self):
+        """``(previous newest, counter followed)`` of the newest resyncs (`CounterTrust.resync_events`)."""
+        return self.counter_trust.resync_events
 
     def _trust_verdict(self, c: int, now: float, from_frame: bool) -> int:
-        """0: ``c`` may be opened; -1: late; -2: stray. May resync (follow)."""
-        if self.trust == "frames" or self._newest is None:
-            if self.trust == "sent" and from_frame:
-                return -2 if self._last_emitted is None or serial_diff(c, self._last_emitted) > 0 else -1
-            return 0
-        d = serial_diff(c, self._newest)
-        if self.trust == "sent":
-            if not from_frame:
-                return 0
-            return -1 if -self.max_age <= d <= 0 else -2  # sent recently and gone: late; else never sent
-        # follow. A SYNC (not a frame) for a counter not newer than the newest is out of sequence
-        # too: a SYNC source never goes back, unless it restarted (frames may just be late).
-        if (-self.max_age <= d <= self.max_jump) and (from_frame or d > 0):
-            if d > 0:
-                self._cand, self._cand_run = None, 0
-            return 0
-        if self._cand is not None and 1 <= serial_diff(c, self._cand) <= 2:
-            self._cand, self._cand_run = c, self._cand_run + 1
-        elif self._cand is None or c != self._cand:
-            self._cand, self._cand_run = c, 1
-        if self._cand_run < self.resync_after:
-            return -2
-        old = self._newest
+        """0: ``c`` may be opened; -1: late; -2: stray. On a resync (follow) what is open is emitted
+        and the ordering history forgotten first."""
+        v = self.counter_trust.verdict(c, self._newest, self._last_emitted, from_frame)
+        if v != RESYNC:
+            return v
         while self._open:
             self._emit(self._open[0], now)
         self._last_emitted = None
         self._newest = None
-        self._cand, self._cand_run = None, 0
         self.stats.resyncs += 1
-        self.resync_events.append((old, c))
-        return 0
+        return OPEN
+
+    # -- the deadline (`host.deadline`) --------------------------------------------------------
+    @property
+    def deadline_s(self) -> float:
+        """The deadline now (`DeadlinePolicy.deadline_s`)."""
+        return self.deadline.deadline_s
+
+    @property
+    def adaptive(self) -> bool:
+        """Whether the deadline adapts to measured latency (settable: False keeps it where it is)."""
+        return self.deadline.adaptive
+
+    @adaptive.setter
+    def adaptive(self, on: bool) -> None:
+        self.deadline.adaptive = bool(on)
+
+    @property
+    def min_deadline_s(self) -> float:
+        return self.deadline.min_deadline_s
+
+    @property
+    def max_deadline_s(self) -> float:
+        return self.deadline.max_deadline_s
+
+    def _measure(self, latency_s: float, late: bool = False) -> None:
+        """One latency to the deadline policy; its counts to ``stats``."""
+        dl = self.deadline
+        dl.measure(latency_s, late)
+        self.stats.deadline_changes = dl.changes
+        self.stats.late_raises = dl.late_raises
 
     # -- ingest ----------------------------------------------------------------------------
     def ingest(self, events: Iterable, bus: int = 0, *, now: float) -> None:
@@ -871,32 +838,6 @@ class Aggregator:
         self._out.append(snap)
         if self.on_snapshot is not None:
             self.on_snapshot(snap)
-
-    def _target(self, latency_s: float) -> float:
-        """The deadline a latency calls for: 1.5 x it + 2 ms, within the bounds."""
-        return min(max(1.5 * latency_s + _DEADLINE_SLACK_S, self.min_deadline_s), self.max_deadline_s)
-
-    def _measure(self, latency_s: float, late: bool = False) -> None:
-        """One SYNC -> last-frame latency (module docstring, "Adaptive deadline"). ``late``: it is
-        a frame's whose counter was already emitted, so the deadline was too short: raise it now."""
-        self._lat.append(latency_s)
-        self._n_measured += 1
-        if late:
-            new = self._target(latency_s)
-            if new > self.deadline_s + 1e-9:
-                self.deadline_s = new
-                self.stats.deadline_changes += 1
-                self.stats.late_raises += 1
-        if self._n_measured < _LAT_UPDATE:
-            return
-        self._n_measured = 0
-        target = self._target(max(self._lat))
-        if self._measured_once and target < self.deadline_s:
-            target = max(target, (1.0 - _DEADLINE_DECAY) * self.deadline_s)
-        self._measured_once = True
-        if abs(target - self.deadline_s) > 1e-4:
-            self.deadline_s = target
-            self.stats.deadline_changes += 1
 
     def reset_miss_runs(self) -> None:
         """Forget who was missing (the host (re)starts streaming)."""

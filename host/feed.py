@@ -224,11 +224,6 @@ class SnapshotFeed:
             self.aggregator.mark_silent(link, silent, self._now(now))
             self._deliver()
 
-    def set_expected(self, expected, now: float | None = None) -> None:
-        with self._lock:
-            self.aggregator.set_expected(expected, self._now(now))
-            self._deliver()
-
     def set_map(self, node_to_link, unassigned, now: float | None = None) -> None:
         """`Aggregator.set_node_map` and `Aggregator.set_unassigned` together (a new assignment)."""
         with self._lock:

@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-__all__ = ["ZenohPublisher", "parse_publish", "encode_snapshot", "encode_estimate", "decode_snapshot",
+__all__ = ["ZenohPublisher", "parse_publish", "PUBLISH_KINDS", "LOCATOR", "encode_snapshot", "encode_estimate", "decode_snapshot",
            "decode_estimate", "KINDS", "HEADER", "PAYLOAD_VERSION"]
 
 #: ``(kind, version, rows, cols, n, flags, counter, timestamp, wall_time)``: see docs/distribution.md
@@ -41,13 +41,21 @@ SHEET_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 HEALTH_PERIOD_S = 1.0
 
 
+#: a Zenoh locator: ``<protocol>/<address>:<port>`` (or a unix socket path)
+LOCATOR = re.compile(r"^(?:(?:tcp|udp|tls|quic|ws)/\S+:\d{1,5}|unixsock-stream/\S+)$")
+#: what ``--publish`` takes: zenoh (capsheet's keys, this module) or ros2 (rmw_zenoh's layout, host/ros2.py)
+PUBLISH_KINDS = ("zenoh", "ros2")
+
+
 def parse_publish(value: str) -> tuple[str, str | None]:
-    """``zenoh`` or ``zenoh:ENDPOINT`` -> ``("zenoh", endpoint or None)``; ValueError otherwise."""
-    kind, _, endpoint = value.partition(":")
-    if kind != "zenoh":
-        raise ValueError(f"unknown --publish {value!r}: give zenoh or zenoh:ENDPOINT (e.g. zenoh:tcp/127.0.0.1:7447)")
-    if _ and not re.match(r"^[a-z]+/.+", endpoint):
-        raise ValueError(f"bad Zenoh endpoint {endpoint!r}: a locator such as tcp/127.0.0.1:7447")
+    """``zenoh``, ``ros2``, ``zenoh:ENDPOINT`` or ``ros2:ENDPOINT`` -> ``(kind, endpoint or None)``;
+    ValueError otherwise."""
+    kind, colon, endpoint = value.partition(":")
+    if kind not in PUBLISH_KINDS:
+        raise ValueError(f"unknown --publish {value!r}: give zenoh, ros2, zenoh:ENDPOINT or ros2:ENDPOINT "
+                         f"(ENDPOINT a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
+    if colon and not LOCATOR.match(endpoint):
+        raise ValueError(f"bad Zenoh endpoint {endpoint!r} in --publish {value!r}: a locator such as tcp/127.0.0.1:7447")
     return kind, endpoint or None
 
 

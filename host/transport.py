@@ -43,8 +43,8 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple
 
 from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
-from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, ImuBatch, SampleBatch, StreamDecoder, encode
-from protocol.messages import Message
+from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, StreamDecoder, encode
+from protocol.messages import ImuBatch, Message, SampleBatch
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Capture", "RawFrame", "Transport", "SerialTransport", "MemoryTransport",

@@ -68,7 +68,14 @@ class IsolatedUdpMulticastBus(UdpMulticastBus):
     """
 
     def __init__(self, channel: str = UdpMulticastBus.DEFAULT_GROUP_IPv6, *args, **kwargs) -> None:
-        super().__init__(channel, *args, **kwargs)
+        try:
+            super().__init__(channel, *args, **kwargs)
+        except BaseException:
+            # python-can's bus failed to open (a group that is no address, no multicast route):
+            # mark the half-made bus shut down, or its __del__ logs "was not properly shut down"
+            # under the user's one-line error
+            can.BusABC.shutdown(self)
+            raise
         try:
             #: datagrams queued before the group filter was set, discarded at open
             self.stale_datagrams = isolate(self.fileno())

@@ -25,9 +25,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .framing import DecodeError, ErrorReason, SampleBatch
+from .framing import DecodeError, ErrorReason
 from .messages import (IMU_RECORD_SIZE, MESSAGE_TYPES, PROTOCOL_VERSION, ImuAccel, ImuGyro, ImuMag, ImuSample,
-                       Message, MsgType, PayloadError, Sample, SampleFormat, Snapshot, SnapshotImu,
+                       Message, MsgType, PayloadError, Sample, SampleBatch, SampleFormat, Snapshot, SnapshotImu,
                        Sync, decode_payload, SAMPLE_WORD_SIZE, unpack_sample_words)  # noqa: F401 (Sync: doctest)
 
 __all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES", "MAX_FD_IMU_RECORDS", "INCOMPLETE_IMU",
@@ -410,11 +410,8 @@ class CanDecoder:
                 datas.append(data)
                 nodes.append(aid & 0xFFFF)
                 return
+            # every SAMPLE decode_can accepts passed the test above: what is left is no SAMPLE
             ev = decode_can(aid, data, is_extended_id=is_extended_id, is_fd=is_fd)
-            if isinstance(ev, Sample):  # not reached: the test above takes every valid SAMPLE
-                datas.append(data)
-                nodes.append(ev.node)
-                return
             flush()
             if isinstance(ev, DecodeError):
                 errors[ev.reason] += 1

@@ -25,8 +25,8 @@ import numpy as np
 from cobs import cobs
 
 from .crc import crc16_ccitt_false, crc16_rows
-from .messages import (IMU_RECORD_SIZE, TIME_UNKNOWN, ImuSample, SampleFormat, unpack_imu_records)
-from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SAMPLE_WORD_SIZE,
+from .messages import (IMU_RECORD_SIZE, TIME_UNKNOWN, ImuBatch, ImuSample, SampleFormat, unpack_imu_records)
+from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SampleBatch, SAMPLE_WORD_SIZE,
                        decode_payload)
 
 __all__ = ["HEADER", "HEADER_SIZE", "CRC_SIZE", "MAX_FRAME_SIZE", "MAX_PAYLOAD_SIZE", "MAX_ENCODED_SIZE",
@@ -74,59 +74,6 @@ class DecodeError:
     detail: str
     excerpt: bytes = b""
     version: int | None = None
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class SampleBatch:
-    """Consecutive SAMPLE frames, decoded at once (batch mode of `StreamDecoder`).
-
-    Attributes are arrays of equal length n: ``node`` uint16, ``counter`` uint16,
-    ``counts`` int16 (n, 3) ADC counts, ``status`` uint8 SampleStatus bits.
-    """
-
-    node: np.ndarray
-    counter: np.ndarray
-    counts: np.ndarray
-    status: np.ndarray
-
-    def __len__(self) -> int:
-        return int(self.node.shape[0])
-
-    def messages(self) -> list[Sample]:
-        """The batch as `Sample` messages (slow; for tests and display)."""
-        return [Sample(int(n), int(c), int(x), int(y), int(z), int(s))
-                for n, c, (x, y, z), s in zip(self.node, self.counter, self.counts, self.status)]
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class ImuBatch:
-    """Consecutive IMU_SAMPLE frames of one format, decoded at once (batch mode of `StreamDecoder`;
-    docs/protocol.md §16.3).
-
-    Arrays of equal length n: ``node`` uint16, ``counter`` uint16, ``counts`` int16 (n, 3)
-    accelerometer counts, ``status`` uint8, ``time_us`` int16 (`TIME_UNKNOWN`: unknown), ``gyro``
-    int16 (n, 3), ``mag`` int16 (n, 3) or None (format 1).
-    """
-
-    node: np.ndarray
-    counter: np.ndarray
-    counts: np.ndarray
-    status: np.ndarray
-    time_us: np.ndarray
-    gyro: np.ndarray
-    mag: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return int(self.node.shape[0])
-
-    def messages(self) -> list[ImuSample]:
-        """The batch as `ImuSample` messages (slow; for tests and display)."""
-        out = []
-        for k in range(len(self)):
-            m = (None, None, None) if self.mag is None else tuple(int(v) for v in self.mag[k])
-            out.append(ImuSample(int(self.node[k]), int(self.counter[k]), *(int(v) for v in self.counts[k]),
-                                 int(self.status[k]), int(self.time_us[k]), *(int(v) for v in self.gyro[k]), *m))
-        return out
 
 
 @dataclass

@@ -26,7 +26,7 @@ __all__ = [
     "LINK_NONE", "is_node_to_host_type",
     "NODE_BROADCAST", "NODE_MAX_ASSIGNED", "NODE_PROVISIONAL_MIN", "NODE_PROVISIONAL_MAX",
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
-    "Message", "Announce", "Info", "Sample", "Status", "Ack", "Nack", "CalData", "Snapshot",
+    "Message", "Announce", "Info", "Sample", "SampleBatch", "ImuBatch", "Status", "Ack", "Nack", "CalData", "Snapshot",
     "GatewayInfo", "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
     "MESSAGE_TYPES", "message_to_fields", "message_from_fields", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
@@ -430,6 +430,60 @@ class Sample(Message):
         x, y, z = ((w >> s) & 0xFFF for s in (0, 12, 24))
         return cls(node, counter, x - ((x & 0x800) << 1), y - ((y & 0x800) << 1),
                    z - ((z & 0x800) << 1), (w >> 36) & 0xF)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SampleBatch:
+    """Consecutive SAMPLEs, decoded at once: the event of `framing.StreamDecoder` (batch mode) and of
+    `can.CanDecoder` alike (re-exported by `protocol.framing`, where it was first).
+
+    Attributes are arrays of equal length n: ``node`` uint16, ``counter`` uint16,
+    ``counts`` int16 (n, 3) ADC counts, ``status`` uint8 SampleStatus bits.
+    """
+
+    node: np.ndarray
+    counter: np.ndarray
+    counts: np.ndarray
+    status: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.node.shape[0])
+
+    def messages(self) -> list[Sample]:
+        """The batch as `Sample` messages (slow; for tests and display)."""
+        return [Sample(int(n), int(c), int(x), int(y), int(z), int(s))
+                for n, c, (x, y, z), s in zip(self.node, self.counter, self.counts, self.status)]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class ImuBatch:
+    """Consecutive IMU_SAMPLE frames of one format, decoded at once: the batch event of
+    `framing.StreamDecoder` (re-exported there; docs/protocol.md §16.3).
+
+    Arrays of equal length n: ``node`` uint16, ``counter`` uint16, ``counts`` int16 (n, 3)
+    accelerometer counts, ``status`` uint8, ``time_us`` int16 (`TIME_UNKNOWN`: unknown), ``gyro``
+    int16 (n, 3), ``mag`` int16 (n, 3) or None (format 1).
+    """
+
+    node: np.ndarray
+    counter: np.ndarray
+    counts: np.ndarray
+    status: np.ndarray
+    time_us: np.ndarray
+    gyro: np.ndarray
+    mag: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.node.shape[0])
+
+    def messages(self) -> list[ImuSample]:
+        """The batch as `ImuSample` messages (slow; for tests and display)."""
+        out = []
+        for k in range(len(self)):
+            m = (None, None, None) if self.mag is None else tuple(int(v) for v in self.mag[k])
+            out.append(ImuSample(int(self.node[k]), int(self.counter[k]), *(int(v) for v in self.counts[k]),
+                                 int(self.status[k]), int(self.time_us[k]), *(int(v) for v in self.gyro[k]), *m))
+        return out
 
 
 @dataclass(frozen=True, slots=True)

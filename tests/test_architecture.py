@@ -2,14 +2,15 @@
 
 * only the command line (host/cli/) imports the simulator (virtual_sheet);
 * protocol/ imports neither pyserial nor python-can, nor any other capsheet package;
-* the science (host/analysis/) imports only protocol.lattice, numpy/scipy/matplotlib (and the
-  optional sksparse, and the per-link peer's vqf) and itself;
+* the science (host/analysis/) imports only protocol's pure modules (`PURE_PROTOCOL`: the lattice,
+  the constants, the frames' conventions; each imports nothing but the standard library, numpy and
+  each other), numpy/scipy/matplotlib (and the optional sksparse, and the per-link peer's vqf) and itself;
 * firmware_ref and virtual_sheet do not import each other's chip modules in a cycle;
 * no import cycle among capsheet's own modules (function-level imports included);
 * seams, not patches (issue 25): no module of protocol/, host/, virtual_sheet/ reads or writes
   another module's private attribute (``obj._name``), and none reassigns a method of another object;
-* the aggregator is sans-I/O: it imports no clock and no thread; python-can finds the SLCAN bus by
-  name (the ``can.interface`` entry point).
+* the aggregator (and its counter trust and deadline policy) is sans-I/O: it imports no clock and
+  no thread; python-can finds the SLCAN bus by name (the ``can.interface`` entry point).
 """
 
 from __future__ import annotations
@@ -76,12 +77,26 @@ def test_protocol_does_no_io_and_depends_on_nothing_of_ours(lib):
     assert offenders("protocol", lambda m: m == lib or m.startswith(lib + ".")) == []
 
 
-def test_the_science_imports_only_the_lattice_and_itself():
+#: protocol's modules that are pure computation (no I/O, nothing but the standard library and numpy):
+#: the conventions defined once there (docs/design.md §2) that the science may import
+PURE_PROTOCOL = ("protocol.lattice", "protocol.constants", "protocol.frames")
+
+
+def test_the_pure_protocol_modules_import_only_the_standard_library_numpy_and_each_other():
+    stdlib = sys.stdlib_module_names
+    for mod in PURE_PROTOCOL:
+        path = ROOT / (mod.replace(".", "/") + ".py")
+        bad = {m for m in imports_of(path)
+               if not (m.split(".")[0] in stdlib or m == "numpy" or m.startswith("numpy.") or m in PURE_PROTOCOL)}
+        assert bad == set(), f"{mod} imports {bad}"
+
+
+def test_the_science_imports_only_the_pure_protocol_and_itself():
     # sksparse: the estimator's optional CHOLMOD backend (scipy's splu when absent); cffi: only
     # host/analysis/_kernel/build.py, which builds the estimator's optional kernel at install time
     # (and host/analysis/motion/_kernel/build_link_kernel.py the fused estimator's); vqf: the per-link peer
     # of host/analysis/motion/peers.py (optional, imported when that peer runs)
-    allowed = ("protocol.lattice", "host.analysis", "numpy", "scipy", "sksparse", "matplotlib",
+    allowed = PURE_PROTOCOL + ("host.analysis", "numpy", "scipy", "sksparse", "matplotlib",
                "__future__", "cffi", "vqf")
     stdlib = sys.stdlib_module_names
 
@@ -389,9 +404,11 @@ def test_no_module_reassigns_another_objects_methods():
     assert method_patch_offenders() == []
 
 
-def test_the_aggregator_reads_no_clock_and_starts_no_thread():
-    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/feed.py's
-    assert not imports_of(ROOT / "host/aggregator.py") & {"time", "threading", "queue", "asyncio"}
+@pytest.mark.parametrize("part", ["host/aggregator.py", "host/counter_trust.py", "host/deadline.py"])
+def test_the_aggregator_reads_no_clock_and_starts_no_thread(part):
+    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/feed.py's;
+    # its counter trust and deadline policy are told counters and latencies, and read no clock either
+    assert not imports_of(ROOT / part) & {"time", "threading", "queue", "asyncio"}
 
 
 def test_python_can_finds_capsheets_buses_by_name():

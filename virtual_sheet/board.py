@@ -8,8 +8,8 @@ direction in the board's frame, ``R_iᵀ (0, 0, 1)``, is ``directions[i]`` turne
 random rotation (``jitter_rad`` standard deviation per axis: nobody sets a board down exactly).
 The board's frame is the flat sheet's: i-links along its x, j-links along its y, top face +z.
 
-The default directions are the twelve poses of `host.analysis.calibration.BOARD_POSES` (six faces,
-then six 45° tilts), in its order (a test checks they agree; the simulator cannot import the host).
+The default directions are the twelve poses of `protocol.frames.BOARD_POSES` (six faces, then six
+45° tilts), in its order.
 
 >>> s = BoardPoseScene(3, 3, hold_s=2.0, move_s=1.0, jitter_rad=0.0)
 >>> s.pose_at(0.5), s.pose_at(2.5), s.pose_at(3.1)
@@ -26,18 +26,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.constants import G0
+from protocol.frames import BOARD_POSES
 from protocol.lattice import Lattice
 from .geometry import flat_net
 
 __all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation"]
 
-_S = float(np.sqrt(0.5))
-#: gravity directions in the board's frame, in `host.analysis.calibration.BOARD_POSES` order
-DEFAULT_DIRECTIONS: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0),
-    (0.0, -1.0, 0.0), (_S, 0.0, _S), (0.0, _S, _S), (-_S, 0.0, -_S), (0.0, -_S, -_S),
-    (_S, _S, 0.0), (-_S, _S, 0.0),
-)
+#: gravity directions in the board's frame, in `protocol.frames.BOARD_POSES` order
+DEFAULT_DIRECTIONS: tuple[tuple[float, float, float], ...] = tuple(p[2] for p in BOARD_POSES)
 
 
 def board_rotation(direction) -> np.ndarray:

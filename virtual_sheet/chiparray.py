@@ -34,7 +34,6 @@ Sans-I/O and time as an argument, as `chip.ChipModel`.
 
 from __future__ import annotations
 
-import binascii
 from typing import Callable, Sequence
 
 import numpy as np
@@ -42,14 +41,14 @@ import numpy as np
 from protocol.can import CanFrame, make_id
 from protocol.chip_interface import DEFAULT_CAPABILITIES, Out, check_chip_args
 from protocol.constants import SampleStatus
+from protocol.crc import CRC_TABLE, crc16_ccitt_false, crc16_rows
 from protocol.messages import (IMU_RECORD_SIZE, NODE_BROADCAST, PROTOCOL_VERSION, TIME_UNKNOWN, ChipState,
                                ConfigImuFlag, MsgType, SampleFormat, Status, StatusFlag, Sync, pack_imu_records)
 
 from .chip import ChipModel
 from .faults import FaultSpec, FaultStats, wrap_chip
 
-__all__ = ["ChipArray", "ArrayChip", "BatchSensor", "encode_samples_serial", "crc16_ccitt_batch",
-           "cobs_encode_batch"]
+__all__ = ["ChipArray", "ArrayChip", "BatchSensor", "encode_samples_serial", "cobs_encode_batch"]
 
 #: ``(now_s, idx) -> (counts (m, 3) int64 ±2 g ADC counts, status (m,) int64 SampleStatus bits)``
 BatchSensor = Callable[[float, np.ndarray], tuple[np.ndarray, np.ndarray]]
@@ -72,33 +71,6 @@ def _saturated(counts: np.ndarray, status: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 # batch encoding
 # ---------------------------------------------------------------------------------------------
-
-def _crc_table() -> np.ndarray:
-    t = np.zeros(256, dtype=np.uint16)
-    for b in range(256):
-        c = b << 8
-        for _ in range(8):
-            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
-        t[b] = c & 0xFFFF
-    return t
-
-
-_CRC_TABLE = _crc_table()
-
-
-def crc16_ccitt_batch(rows: np.ndarray) -> np.ndarray:
-    """CRC-16/CCITT-FALSE (``binascii.crc_hqx(row, 0xFFFF)``) of every row of ``rows`` (m, k) uint8.
-
-    >>> import binascii
-    >>> rows = np.frombuffer(b"123456789" * 2, np.uint8).reshape(2, 9)
-    >>> [hex(int(c)) for c in crc16_ccitt_batch(rows)], hex(binascii.crc_hqx(b"123456789", 0xFFFF))
-    (['0x29b1', '0x29b1'], '0x29b1')
-    """
-    crc = np.full(rows.shape[0], 0xFFFF, dtype=np.uint16)
-    for j in range(rows.shape[1]):
-        crc = (crc << np.uint16(8)) ^ _CRC_TABLE[(crc >> np.uint16(8)) ^ rows[:, j]]
-    return crc
-
 
 def cobs_encode_batch(rows: np.ndarray) -> np.ndarray:
     """COBS (``cobs.cobs.encode``) of every row of ``rows`` (m, k) uint8, k < 254: (m, k + 1).
@@ -131,11 +103,11 @@ def _crc_position_tables(length: int) -> tuple[np.ndarray, int]:
     """
     t = np.zeros((length, 256), dtype=np.uint16)
     for j in range(length):
-        c = _CRC_TABLE.copy()  # byte b at position j, init 0: the state after it is TABLE[b]
+        c = CRC_TABLE.copy()  # byte b at position j, init 0: the state after it is TABLE[b]
         for _ in range(length - 1 - j):  # then the zero bytes after it
-            c = (c << np.uint16(8)) ^ _CRC_TABLE[c >> np.uint16(8)]
+            c = (c << np.uint16(8)) ^ CRC_TABLE[c >> np.uint16(8)]
         t[j] = c
-    return t, binascii.crc_hqx(bytes(length), 0xFFFF)
+    return t, crc16_ccitt_false(bytes(length))
 
 
 def _cobs_codes(zero: np.ndarray) -> np.ndarray:
@@ -596,7 +568,7 @@ class ChipArray:
             body[:, 3] = nodes >> 8
             body[:, 4:6] = ctr
             body[:, 6:6 + size] = recs
-            crc = crc16_ccitt_batch(body[:, :6 + size])
+            crc = crc16_rows(body[:, :6 + size])
             body[:, 6 + size] = crc >> 8
             body[:, 7 + size] = crc & 0xFF
             enc = cobs_encode_batch(body)
@@ -694,7 +666,7 @@ class ChipArray:
         body[:, 2] = node & 0xFF
         body[:, 3] = node >> 8
         body[:, 4:12] = pay
-        crc = crc16_ccitt_batch(body[:, :12])
+        crc = crc16_rows(body[:, :12])
         body[:, 12] = crc >> np.uint16(8)
         body[:, 13] = crc & np.uint16(0xFF)
         out = np.zeros((m, 16), dtype=np.uint8)

@@ -12,6 +12,9 @@
                     block of the links (``device.paths``); gateway 0 leads the SYNC line
 =================== ========================================================================
 
+The two devices with a pty per gateway or bus (`MultiPtyDevice`, `SlcanDevice`) are
+`PtyGroupDevice` s: one `PtyGroup` of `PtyPort` s, served by one ``select``.
+
 Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thread and stops it
 (joined, ports closed) on exit; `start` / `stop` do the same by hand. The clock is
 ``time.monotonic()`` from `start` (``device.now()``); the chips are powered on at start.
@@ -48,13 +51,13 @@ import threading
 import time
 import tty
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from .faults import ERROR_FRAME
 from .gateway import Gateway
 from .memport import memory_link
 
-__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "open_pty", "claim_symlink",
+__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "PtyPort", "PtyGroup", "PtyGroupDevice", "open_pty", "claim_symlink",
            "SYMLINK_RECORDS"]
 
 _IDLE_WAIT_S = 0.005
@@ -561,6 +564,68 @@ class PtyPort(_PtyMixin):
         self._pty_write(data, n_frames)
 
 
+class PtyGroup:
+    """Several `PtyPort` s served as one: one ``select`` over their masters, each port's bytes
+    handed on with its index. What a device with a pty per gateway (`MultiPtyDevice`) or per CAN
+    bus (virtual_sheet/slcan.py's `SlcanDevice`) serves its host through.
+
+    ``group[b]`` is port ``b``; ``group.paths`` their stable symlinks (``symlink_paths``, else
+    each in a private temporary directory, named ``f"{prefix}{b}"``).
+    """
+
+    def __init__(self, prefix: str, n: int, symlink_paths: list[str] | None = None) -> None:
+        self.ports = [PtyPort(f"{prefix}{b}", symlink_paths[b] if symlink_paths else None) for b in range(n)]
+        self.paths = [p.path for p in self.ports]
+
+    def __len__(self) -> int:
+        return len(self.ports)
+
+    def __getitem__(self, b: int) -> PtyPort:
+        return self.ports[b]
+
+    def __iter__(self):
+        return iter(self.ports)
+
+    @property
+    def tx_overflow_frames(self) -> int:
+        """Frames dropped whole, over every port, because the host did not read (counted)."""
+        return sum(p.tx_overflow_frames for p in self.ports)
+
+    def open(self) -> None:
+        for p in self.ports:
+            p.open()
+
+    def close(self) -> None:
+        """Close every port (an outage): the symlinks go until `open`."""
+        for p in self.ports:
+            p.close()
+
+    def cleanup(self) -> None:
+        for p in self.ports:
+            p.cleanup()
+
+    def serve(self, timeout_s: float, on_data: Callable[[int, bytes], None]) -> None:
+        """Wait at most ``timeout_s`` for the host: write what waits where a port takes it, and
+        hand what a port received to ``on_data(index, data)``."""
+        fds = {p.master: b for b, p in enumerate(self.ports) if p.master >= 0}
+        if not fds:
+            time.sleep(timeout_s)
+            return
+        wl = [p.master for p in self.ports if p.has_pending and p.master >= 0]
+        r, w, _ = select.select(list(fds), wl, [], timeout_s)
+        for fd in w:
+            self.ports[fds[fd]].write(b"")
+        for fd in r:
+            try:
+                data = os.read(fd, 65536)
+            except (BlockingIOError, InterruptedError):
+                continue
+            except OSError:  # EIO: no slave open right now
+                continue
+            if data:
+                on_data(fds[fd], data)
+
+
 class PtyDevice(_PtyMixin, _SerialDevice):
     """The sheet's gateway on a pseudo-terminal serial port.
 
@@ -601,11 +666,37 @@ class PtyDevice(_PtyMixin, _SerialDevice):
         return f"serial port {self.path} (-> {self.tty})"
 
 
-class _GatewayPort(_PtyMixin):
-    name = "pty"
+class PtyGroupDevice(Device):
+    """A device that serves its host through several ptys, one `PtyGroup`: opened, served, closed
+    in an outage and re-opened together. A subclass sets ``self.ports`` (and ``paths``/``path``)
+    and says what a port's bytes do (`_received`)."""
+
+    ports: PtyGroup
+
+    @property
+    def tx_overflow_frames(self) -> int:
+        return self.ports.tx_overflow_frames
+
+    def _open(self) -> None:
+        self.ports.open()
+
+    def _close(self) -> None:
+        self.ports.cleanup()
+
+    def _serve(self, timeout_s: float) -> None:
+        self.ports.serve(timeout_s, self._received)
+
+    def _received(self, b: int, data: bytes) -> None:
+        raise NotImplementedError
+
+    def _go_down(self) -> None:
+        self.ports.close()
+
+    def _come_back(self) -> None:
+        self.ports.open()
 
 
-class MultiPtyDevice(Device):
+class MultiPtyDevice(PtyGroupDevice):
     """One sheet behind ``n_gateways`` serial gateways, each on its own pty: a sheet too big for one
     UART (1,984 links at 145 Hz exceed a 12 Mbaud link even packed, docs/protocol.md §10) split in
     contiguous link blocks (`VirtualSheet.split`), as CAN buses are. The host opens every port and
@@ -635,59 +726,17 @@ class MultiPtyDevice(Device):
                                  as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.gateways[0].followers = self.gateways[1:]
-        self.ports: list[_GatewayPort] = []
-        for b in range(n_gateways):
-            port = _GatewayPort()
-            port.name = f"pty{b}"
-            port._pty_init(symlink_paths[b] if symlink_paths else None)
-            self.ports.append(port)
-        self.paths = [p.path for p in self.ports]
+        self.ports = PtyGroup("pty", n_gateways, symlink_paths)
+        self.paths = self.ports.paths
         self.path = self.paths[0]
 
-    @property
-    def tx_overflow_frames(self) -> int:
-        return sum(p.tx_overflow_frames for p in self.ports)
-
-    def _open(self) -> None:
-        for p in self.ports:
-            p._pty_open()
-
-    def _close(self) -> None:
-        for p in self.ports:
-            p._pty_cleanup()
-
-    def _serve(self, timeout_s: float) -> None:
-        fds = {p._master: b for b, p in enumerate(self.ports) if p._master >= 0}
-        if not fds:
-            time.sleep(timeout_s)
-            return
-        wl = [p._master for p in self.ports if p._pending and p._master >= 0]
-        r, w, _ = select.select(list(fds), wl, [], timeout_s)
-        for fd in w:
-            self.ports[fds[fd]]._pty_write(b"")
-        for fd in r:
-            b = fds[fd]
-            try:
-                data = os.read(fd, 65536)
-            except (BlockingIOError, InterruptedError):
-                continue
-            except OSError:  # EIO: no slave open right now
-                continue
-            if data:
-                if self.verbose is not None:
-                    self.verbose("rx", data)
-                self.gateways[b].feed(data, self.now())
+    def _received(self, b: int, data: bytes) -> None:
+        if self.verbose is not None:
+            self.verbose("rx", data)
+        self.gateways[b].feed(data, self.now())
 
     def _send(self, bus: int, frames: list) -> None:
-        self.ports[bus]._pty_write(b"".join(frames), len(frames))
-
-    def _go_down(self) -> None:
-        for p in self.ports:
-            p._pty_close()
-
-    def _come_back(self) -> None:
-        for p in self.ports:
-            p._pty_open()
+        self.ports[bus].write(b"".join(frames), len(frames))
 
     def describe(self) -> str:
         return (f"{len(self.ports)} serial gateways: "

@@ -299,8 +299,8 @@ class Gateway:
         self._snap_decoder = StreamDecoder(batch_samples=True)
         self.powered = False
         arr = getattr(sheet, "array", None)
-        self.engine = arr if arr is not None and self.links == sorted(set(self.links)) else None
-        if self.engine is not None:
+        self.chip_array = arr if arr is not None and self.links == sorted(set(self.links)) else None
+        if self.chip_array is not None:
             sel = np.zeros(arr.n, dtype=bool)
             sel[self.links] = True
             self._sel = None if sel.all() else sel  # None: every chip of the array (its fast paths)
@@ -381,8 +381,8 @@ class Gateway:
                 own = self.node.poll(now_s)
                 if own:
                     self._emit(own, now_s)
-            if self.engine is not None:
-                out = self.engine.poll(now_s, self._sel)
+            if self.chip_array is not None:
+                out = self.chip_array.poll(now_s, self._sel)
             else:
                 out = []
                 for c in self.chips:
@@ -468,14 +468,14 @@ class Gateway:
             self.stats.syncs += 1
             self.sheet.record_sync(decoded.counter, now_s)
             if self.packed:
-                if self.engine is not None:
+                if self.chip_array is not None:
                     self._sync_packed_array(frame, decoded, now_s)
                 else:
                     self._sync_packed(frame, decoded, now_s)
                 return
-            if self.engine is not None:
+            if self.chip_array is not None:
                 if self._late:
-                    frames, owners = self.engine.sync(frame, decoded, now_s, self._sel, owners=True)
+                    frames, owners = self.chip_array.sync(frame, decoded, now_s, self._sel, owners=True)
                     delays = self._delay_of[owners]
                     i = 0
                     while i < len(frames):  # runs of equal delay, in chip order
@@ -489,12 +489,12 @@ class Gateway:
                         i = j
                 else:
                     if self.faults is None:  # serial: the frames stay one byte string
-                        wire = self.engine.sync_wire(frame, decoded, now_s, self._sel)
+                        wire = self.chip_array.sync_wire(frame, decoded, now_s, self._sel)
                         if wire is not None:
                             if wire[1]:
                                 self._emit_run(wire[0], wire[1], SAMPLE_WIRE_SIZE, now_s)
                             return
-                    out = self.engine.sync(frame, decoded, now_s, self._sel)
+                    out = self.chip_array.sync(frame, decoded, now_s, self._sel)
                     if out:
                         self._emit(out, now_s)
                 return
@@ -514,11 +514,11 @@ class Gateway:
             self._emit(out, now_s)
             return
         out = []
-        if self.engine is not None:
+        if self.chip_array is not None:
             if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
-                out = self.engine.handle_node(decoded.node, frame, now_s, decoded, self._sel)
+                out = self.chip_array.handle_node(decoded.node, frame, now_s, decoded, self._sel)
             else:
-                out = self.engine.handle(frame, now_s, decoded, self._sel)
+                out = self.chip_array.handle(frame, now_s, decoded, self._sel)
             if out:
                 self._emit(out, now_s)
             return
@@ -586,7 +586,7 @@ class Gateway:
         """Packed mode from the chip array: the same frames as `_sync_packed`, from arrays — the
         chips' 40-bit sample words go into the SNAPSHOT as they are (a word is exactly what a
         SAMPLE carries and a SNAPSHOT packs)."""
-        eng = self.engine
+        eng = self.chip_array
         n_links = self.sheet.n_links
         idx, word, extra = eng.sync_words(frame, sync, now_s, self._sel)
         words = self._words

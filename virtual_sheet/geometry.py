@@ -26,6 +26,7 @@ from typing import Callable
 import numpy as np
 
 from protocol.constants import G0
+from protocol.frames import roll_pitch
 from protocol.lattice import Lattice
 
 __all__ = ["chebyshev_net", "link_frames", "link_frames_jet", "link_midpoints", "ideal_readings", "specific_force", "roll_pitch",
@@ -41,43 +42,6 @@ _LENGTH_RTOL = 1e-10  # construction's own acceptance test, tighter than the 1e-
 # ---------------------------------------------------------------------------------------------
 # Readings and angles
 # ---------------------------------------------------------------------------------------------
-
-def _check_readings(readings: np.ndarray) -> np.ndarray:
-    readings = np.asarray(readings, dtype=float)
-    if readings.ndim != 2 or readings.shape[1] != 3:
-        raise ValueError(f"Expected `readings` to have shape (n_links, 3), got {readings.shape}.")
-    return readings
-
-
-def roll_pitch(readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Roll and pitch of every link from its reading, closed form (paper eq. 2).
-
-    With ``R = Rz(γ) Ry(β) Rx(α)`` (sensor -> world) the reading is the specific force
-    ``Rᵀ (0, 0, +g) = g (−sin β, cos β sin α, cos β cos α)`` — the paper's ``s`` with the sign of
-    docs/design.md (reading = −s). Hence ``α = atan2(r_y, r_z)`` and ``β = atan2(−r_x, hypot(r_y, r_z))``.
-    The magnitude of the reading does not matter (scale errors common to the three axes cancel).
-
-    Parameters
-    ----------
-    readings : ndarray, shape (n_links, 3)
-        Specific force in m/s² (or any common unit, e.g. counts minus offset), sensor frame.
-
-    Returns
-    -------
-    alpha : ndarray, shape (n_links,)
-        Roll about the link (sensor x), radians, in (−π, π].
-    beta : ndarray, shape (n_links,)
-        Pitch, radians, in [−π/2, π/2]; positive when the link points downwards.
-
-    >>> a, b = roll_pitch(np.array([[0.0, 0.0, G0], [-G0, 0.0, 0.0]]))
-    >>> a.tolist(), (b.round(6) + 0.0).tolist()
-    ([0.0, 0.0], [0.0, 1.570796])
-    """
-    r = _check_readings(readings)
-    alpha = np.arctan2(r[:, 1], r[:, 2])
-    beta = np.arctan2(-r[:, 0], np.hypot(r[:, 1], r[:, 2]))
-    return alpha, beta
-
 
 def rotation_from_angles(alpha: np.ndarray, beta: np.ndarray, gamma: np.ndarray) -> np.ndarray:
     """``R = Rz(γ) Ry(β) Rx(α)`` (sensor -> world) for arrays of angles, shape ``(n, 3, 3)``."""

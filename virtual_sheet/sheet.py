@@ -45,7 +45,7 @@ import numpy as np
 
 from protocol.constants import ADC_MAX, ADC_MIN, G0, SampleStatus
 from protocol.lattice import Lattice
-from protocol.layout import load_layout, save_layout
+from protocol.layout import save_layout
 from .chip import ChipModel
 
 #: SYNC times kept for the truth (`VirtualSheet.truth_time`): 28 s at 145 Hz, far more than any
@@ -61,7 +61,7 @@ from .imu_source import MOTION_SHAPES, ImuSource
 from .motion import make_motion_scene
 from .shapes import SHAPES, StaticScene, make_scene
 
-__all__ = ["VirtualSheet", "make_uids", "read_layout"]
+__all__ = ["VirtualSheet", "make_uids"]
 
 
 def make_uids(n: int, seed: int) -> list[int]:
@@ -78,11 +78,6 @@ def make_uids(n: int, seed: int) -> list[int]:
                 if len(out) == n:
                     break
     return out
-
-
-def read_layout(path: str | Path) -> dict[int, int]:
-    """``{uid: link}`` from a layout file (`protocol.layout`: the one format the host reads too)."""
-    return dict(load_layout(path).links)
 
 
 class VirtualSheet:
@@ -195,7 +190,7 @@ class VirtualSheet:
             raise ValueError(f"Invalid engine: {engine!r} (expected 'array' or 'chips')")
         if engine == "array" and chip_factory not in (None, ChipModel):
             raise ValueError("engine='array' runs the Python chip model; give engine='chips' for chip_factory")
-        self.engine = engine
+        self.engine_name = engine  #: "array" (one `ChipArray`, `array`) or "chips" (one object per chip, `chips`)
         self.chip_factory = chip_factory or ChipModel
         self.reply_delay_s = [0.0] * n
         self.chips = []

@@ -32,14 +32,13 @@ Received frames (from the chips) go to the host only while the channel is open, 
 
 from __future__ import annotations
 
-import os
 from typing import Callable
 
 import numpy as np
 
 from protocol.can import CanFrame
 
-from .devices import Device, PtyPort
+from .devices import PtyGroup, PtyGroupDevice
 from .faults import ERROR_FRAME
 from .gateway import Gateway
 
@@ -227,7 +226,7 @@ def _sample_lines(frames: list) -> bytes | None:
     return out.tobytes()
 
 
-class SlcanDevice(Device):
+class SlcanDevice(PtyGroupDevice):
     """One emulated SLCAN adapter per bus, each on its own pty, chips split across the buses.
 
     ``device.path`` (first bus) / ``device.paths``: stable symlinks to open with
@@ -244,12 +243,9 @@ class SlcanDevice(Device):
         self.gateways = [self.gateway_class(sheet, blk, packed=self.packed, sync_rate_hz=self.sync_rate_hz, stream=b,
                                  as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
-        self.ports = []
-        self.adapters = []
-        for b in range(n_buses):
-            self.ports.append(PtyPort(f"slcan{b}", symlink_paths[b] if symlink_paths else None))
-            self.adapters.append(SlcanAdapter(self._sender(b), fd=sheet.fd))
-        self.paths = [p.path for p in self.ports]
+        self.ports = PtyGroup("slcan", n_buses, symlink_paths)
+        self.adapters = [SlcanAdapter(self._sender(b), fd=sheet.fd) for b in range(n_buses)]
+        self.paths = self.ports.paths
         self.path = self.paths[0]
 
     def _sender(self, b: int):
@@ -261,34 +257,10 @@ class SlcanDevice(Device):
             self.gateways[b].receive(frame, self.now())
         return send
 
-    def _open(self) -> None:
-        for p in self.ports:
-            p.open()
-
-    def _close(self) -> None:
-        for p in self.ports:
-            p.cleanup()
-
-    def _serve(self, timeout_s: float) -> None:
-        import select
-        fds = {p.master: b for b, p in enumerate(self.ports) if p.master >= 0}
-        wl = [p.master for p in self.ports if p.has_pending and p.master >= 0]
-        r, w, _ = select.select(list(fds), wl, [], timeout_s)
-        for fd in w:
-            self.ports[fds[fd]].write(b"")
-        for fd in r:
-            b = fds[fd]
-            port = self.ports[b]
-            try:
-                data = os.read(fd, 65536)
-            except (BlockingIOError, InterruptedError):
-                continue
-            except OSError:
-                continue
-            if data:
-                reply = self.adapters[b].feed(data, self.now())
-                if reply:
-                    port.write(reply)
+    def _received(self, b: int, data: bytes) -> None:
+        reply = self.adapters[b].feed(data, self.now())
+        if reply:
+            self.ports[b].write(reply)
 
     def _send(self, bus: int, frames: list) -> None:
         data = self.adapters[bus].frames_to_host(frames, self.now())
@@ -296,13 +268,9 @@ class SlcanDevice(Device):
             self.ports[bus].write(data, len(frames))
 
     def _go_down(self) -> None:
-        for p, a in zip(self.ports, self.adapters):
-            p.close()
+        super()._go_down()
+        for a in self.adapters:
             a.is_open = False
-
-    def _come_back(self) -> None:
-        for p in self.ports:
-            p.open()
 
     def describe(self) -> str:
         return f"SLCAN adapter{'s' if len(self.paths) > 1 else ''} on {', '.join(self.paths)}"

@@ -39,6 +39,19 @@ extern "C" {
 #define CAPSHEET_ASSERT(x) assert(x)
 #endif
 
+/* Every function that can fail (it returns a negative CAPSHEET_ERR_* code, or a HAL callback's
+ * negative value) is marked CAPSHEET_WARN_UNUSED: a caller that ignores the result is warned, and
+ * under the strict flags of firmware_ref/Makefile (-Werror) the build fails. GCC and Clang only
+ * (an attribute, not C99: empty elsewhere). Under GCC a cast to (void) does not silence it: test
+ * the result. Overridable like CAPSHEET_ASSERT: define it (empty) before including this header. */
+#ifndef CAPSHEET_WARN_UNUSED
+#if defined(__GNUC__) || defined(__clang__)
+#define CAPSHEET_WARN_UNUSED __attribute__((warn_unused_result))
+#else
+#define CAPSHEET_WARN_UNUSED
+#endif
+#endif
+
 #define CAPSHEET_FW_VERSION_MAJOR 1
 #define CAPSHEET_FW_VERSION_MINOR 1
 #define CAPSHEET_FW_VERSION_PATCH 0
@@ -210,14 +223,14 @@ uint16_t capsheet_crc16(const uint8_t *data, size_t len, uint16_t crc);
  * Returns the encoded length (at most CAPSHEET_COBS_ENCODED_SIZE(len)).
  * CAPSHEET_ERR_CAPACITY: `cap` is too small (nothing beyond `out[cap-1]` is written).
  * CAPSHEET_ERR_ARGUMENT: `len` > 0x7FFFFF00 (the length would not fit the int32_t result). */
-int32_t capsheet_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
+CAPSHEET_WARN_UNUSED int32_t capsheet_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
 
 /* COBS-decode `len` bytes (without the delimiter) into `out`; `out == in` is allowed (in-place).
  * Returns the decoded length (< len for len > 0).
  * CAPSHEET_ERR_BAD_COBS: a 0x00 byte inside, or a code byte that points past the end.
  * CAPSHEET_ERR_CAPACITY: the decoded bytes do not fit `cap`.
  * CAPSHEET_ERR_ARGUMENT: `len` > 0x7FFFFF00. */
-int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
+CAPSHEET_WARN_UNUSED int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
 
 /* The CAN priority of a type (docs §7.1); 7 for an unknown type. */
 uint8_t capsheet_priority(uint8_t type);
@@ -235,7 +248,7 @@ uint16_t capsheet_provisional_node(uint64_t uid, uint32_t salt);
  * CAPSHEET_ERR_UNKNOWN_TYPE: `msg->type` is not defined.
  * CAPSHEET_ERR_ARGUMENT: a SNAPSHOT with count 0 or words == NULL.
  * CAPSHEET_ERR_CAPACITY: the payload does not fit `cap`. */
-int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t cap);
+CAPSHEET_WARN_UNUSED int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t cap);
 
 /* Payload bytes -> message, with the same checks, in the same order, as
  * protocol.messages.decode_payload: type, then node 0xFFFF, then length, then fields.
@@ -243,18 +256,18 @@ int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t 
  * are filled as decoded (so a chip can still, e.g., check an ASSIGN's uid_low).
  * A SNAPSHOT's `words` points into `payload`.
  * CAPSHEET_ERR_UNKNOWN_TYPE, CAPSHEET_ERR_BAD_LENGTH, CAPSHEET_ERR_BAD_FIELD. */
-int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *payload, size_t len,
+CAPSHEET_WARN_UNUSED int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *payload, size_t len,
                                 capsheet_msg_t *out);
 
 /* Message -> one serial frame: COBS(header + payload + CRC) + 0x00. Returns the wire length.
  * Errors as capsheet_payload_encode, and CAPSHEET_ERR_ARGUMENT if the frame would exceed
  * CAPSHEET_MAX_FRAME_SIZE. */
-int32_t capsheet_serial_encode(const capsheet_msg_t *msg, uint8_t *out, size_t cap);
+CAPSHEET_WARN_UNUSED int32_t capsheet_serial_encode(const capsheet_msg_t *msg, uint8_t *out, size_t cap);
 
 /* Low level: a serial frame from its parts, unvalidated except for size (tests use it to build
  * frames a conforming sender never would). Errors: CAPSHEET_ERR_ARGUMENT (too big),
  * CAPSHEET_ERR_CAPACITY. */
-int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node, const uint8_t *payload,
+CAPSHEET_WARN_UNUSED int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node, const uint8_t *payload,
                                    size_t len, uint8_t *out, size_t cap);
 
 /* Decode the bytes between two delimiters (without the 0x00), IN PLACE: `frame` is overwritten
@@ -266,7 +279,7 @@ int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node,
  * CAPSHEET_ERR_BAD_VERSION: `out->type`/`out->node` hold the header's type and node and `*version`
  * (if not NULL) the peer's version. CAPSHEET_ERR_UNKNOWN_TYPE, CAPSHEET_ERR_BAD_LENGTH,
  * CAPSHEET_ERR_BAD_FIELD: as capsheet_payload_decode. */
-int32_t capsheet_serial_decode_frame(uint8_t *frame, size_t len, capsheet_msg_t *out, uint8_t *version);
+CAPSHEET_WARN_UNUSED int32_t capsheet_serial_decode_frame(uint8_t *frame, size_t len, capsheet_msg_t *out, uint8_t *version);
 
 /* Byte-at-a-time serial stream decoder over a caller-provided buffer (bounded: at most `cap`
  * bytes of one frame are held; a longer run without 0x00 is reported once as
@@ -283,13 +296,13 @@ typedef struct {
 
 /* `cap` must be >= 1; CAPSHEET_MAX_ENCODED_SIZE (1029) accepts every frame the spec allows.
  * Returns 0. CAPSHEET_ERR_ARGUMENT: `buf` is NULL or `cap` == 0. */
-int32_t capsheet_stream_init(capsheet_stream_t *s, uint8_t *buf, size_t cap);
+CAPSHEET_WARN_UNUSED int32_t capsheet_stream_init(capsheet_stream_t *s, uint8_t *buf, size_t cap);
 
 /* Feed one byte. Returns 0: nothing complete; 1: a frame was decoded into `*out` (a SNAPSHOT's
  * words point into the stream buffer, valid until the next feed); a negative decode error: a
  * frame was dropped (codes and the state of `*out` as capsheet_serial_decode_frame;
  * CAPSHEET_ERR_OVERSIZE when the buffer overflows). */
-int32_t capsheet_stream_feed(capsheet_stream_t *s, uint8_t byte, capsheet_msg_t *out);
+CAPSHEET_WARN_UNUSED int32_t capsheet_stream_feed(capsheet_stream_t *s, uint8_t byte, capsheet_msg_t *out);
 
 /* CAN (docs §7). Identifier: priority[28:26] type[25:20] version[19:16] node[15:0]. */
 uint32_t capsheet_can_make_id(uint8_t priority, uint8_t type, uint8_t version, uint16_t node);
@@ -303,18 +316,18 @@ typedef enum {
 /* Message -> CAN frame: identifier with the type's priority, data (FD-padded), length and FD flag.
  * `cap` is the capacity of `data` (64 always suffices). Returns the data length.
  * Errors as capsheet_payload_encode, and CAPSHEET_ERR_NEEDS_FD. */
-int32_t capsheet_can_encode(const capsheet_msg_t *msg, capsheet_can_mode_t mode, uint32_t *id,
+CAPSHEET_WARN_UNUSED int32_t capsheet_can_encode(const capsheet_msg_t *msg, capsheet_can_mode_t mode, uint32_t *id,
                             uint8_t *data, size_t cap, bool *is_fd);
 
 /* Smallest CAN FD length >= n, or CAPSHEET_ERR_ARGUMENT for n > 64. */
-int32_t capsheet_can_fd_length(size_t n);
+CAPSHEET_WARN_UNUSED int32_t capsheet_can_fd_length(size_t n);
 
 /* One received CAN frame -> message, with the checks of protocol.can.decode_can in its order:
  * CAPSHEET_ERR_BAD_FIELD (standard identifier, identifier over 29 bits, non-zero FD padding),
  * CAPSHEET_ERR_BAD_VERSION, CAPSHEET_ERR_BAD_LENGTH (invalid CAN length), then as
  * capsheet_payload_decode. `out->type`/`out->node` are set from the identifier whenever it is a
  * 29-bit one; `*version` (if not NULL) gets the identifier's version. Returns 0. */
-int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uint8_t *data, size_t len,
+CAPSHEET_WARN_UNUSED int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uint8_t *data, size_t len,
                             capsheet_msg_t *out, uint8_t *version);
 
 /* ------------------------------------------------------------------------------------------ */
@@ -337,7 +350,7 @@ typedef struct {
 /* The rule for (state, host -> chip type). Returns 1 and fills `*rule`; 0 if the pair is not in
  * the table (NACK BAD_STATE when addressed, ignored when broadcast); CAPSHEET_ERR_ARGUMENT for a
  * state or type out of range. */
-int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule);
+CAPSHEET_WARN_UNUSED int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule);
 
 /* ------------------------------------------------------------------------------------------ */
 /* The chip                                                                                    */
@@ -363,17 +376,17 @@ typedef struct {
     void *user;
     /* Convert and read the three axes (ADC counts, clamped to -2048..2047 by the chip) and the
      * SampleStatus bits. A negative return, or the INVALID bit, is a sensor fault. */
-    int32_t (*read_axes)(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status);
+    CAPSHEET_WARN_UNUSED int32_t (*read_axes)(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status);
     /* serial transport: send one whole frame (delimiter included) */
-    int32_t (*send_bytes)(void *user, const uint8_t *data, size_t len);
+    CAPSHEET_WARN_UNUSED int32_t (*send_bytes)(void *user, const uint8_t *data, size_t len);
     /* CAN transport: send one frame with a 29-bit identifier */
-    int32_t (*send_can)(void *user, uint32_t id, const uint8_t *data, uint8_t len, bool is_fd);
+    CAPSHEET_WARN_UNUSED int32_t (*send_can)(void *user, uint32_t id, const uint8_t *data, uint8_t len, bool is_fd);
     /* the chip's 64-bit unique id */
     uint64_t (*read_uid)(void *user);
     /* optional (NULL: none): load / store one axis of calibration in non-volatile memory.
      * cal_load returns 0 if the axis was stored, negative if not. */
-    int32_t (*cal_load)(void *user, uint8_t axis, capsheet_cal_t *cal);
-    int32_t (*cal_store)(void *user, uint8_t axis, const capsheet_cal_t *cal);
+    CAPSHEET_WARN_UNUSED int32_t (*cal_load)(void *user, uint8_t axis, capsheet_cal_t *cal);
+    CAPSHEET_WARN_UNUSED int32_t (*cal_store)(void *user, uint8_t axis, const capsheet_cal_t *cal);
 } capsheet_hal_t;
 
 typedef struct {
@@ -426,21 +439,21 @@ typedef struct {
  * needs none (NULL, 0). Returns 0.
  * CAPSHEET_ERR_ARGUMENT: a required HAL callback is NULL, CAL_STORAGE without cal_load/cal_store,
  * or a serial RX buffer below the minimum. */
-int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *config,
+CAPSHEET_WARN_UNUSED int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *config,
                            const capsheet_hal_t *hal, uint8_t *rx_buf, size_t rx_cap);
 
 /* Boot: read the uid, load calibration, enter BOOT with a provisional node id, send ANNOUNCE + INFO.
  * Returns the number of frames sent, or CAPSHEET_ERR_HAL if a send failed. */
-int32_t capsheet_chip_power_on(capsheet_chip_t *chip, uint64_t now_us);
+CAPSHEET_WARN_UNUSED int32_t capsheet_chip_power_on(capsheet_chip_t *chip, uint64_t now_us);
 
 /* Serial: consume received bytes (any chunking), reacting to every complete frame.
  * Returns the number of frames sent, or CAPSHEET_ERR_HAL if a send failed (the remaining input
  * is still consumed). CAPSHEET_ERR_ARGUMENT: the chip was initialised for CAN. */
-int32_t capsheet_chip_rx_bytes(capsheet_chip_t *chip, const uint8_t *data, size_t len, uint64_t now_us);
+CAPSHEET_WARN_UNUSED int32_t capsheet_chip_rx_bytes(capsheet_chip_t *chip, const uint8_t *data, size_t len, uint64_t now_us);
 
 /* CAN: react to one received frame. Returns the number of frames sent, or CAPSHEET_ERR_HAL.
  * CAPSHEET_ERR_ARGUMENT: the chip was initialised for serial. */
-int32_t capsheet_chip_rx_can(capsheet_chip_t *chip, uint32_t id, bool is_extended, bool is_fd,
+CAPSHEET_WARN_UNUSED int32_t capsheet_chip_rx_can(capsheet_chip_t *chip, uint32_t id, bool is_extended, bool is_fd,
                              const uint8_t *data, size_t len, uint64_t now_us);
 
 /* The sensor stopped answering (e.g. a data-ready timeout seen by the application): an assigned
@@ -451,7 +464,7 @@ void capsheet_chip_sensor_fault(capsheet_chip_t *chip);
 /* Time-driven work: re-ANNOUNCE every second while unassigned, STATUS every heartbeat period
  * while assigned (next deadline = previous + period, or now + period when that is already past:
  * docs §14). Call it at least every few milliseconds. Returns frames sent or CAPSHEET_ERR_HAL. */
-int32_t capsheet_chip_poll(capsheet_chip_t *chip, uint64_t now_us);
+CAPSHEET_WARN_UNUSED int32_t capsheet_chip_poll(capsheet_chip_t *chip, uint64_t now_us);
 
 /* ------------------------------------------------------------------------------------------ */
 /* Mutants: test builds only (-DCAPSHEET_MUTANTS)                                              */

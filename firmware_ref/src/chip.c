@@ -89,7 +89,7 @@ static int32_t mutant_wrong_crc(capsheet_chip_t *c, int32_t n)
 /* ------------------------------------------------------------------------------------------ */
 
 /* Send one message; returns 1 (one frame) or a negative error. */
-static int32_t send_msg(capsheet_chip_t *c, const capsheet_msg_t *m)
+static CAPSHEET_WARN_UNUSED int32_t send_msg(capsheet_chip_t *c, const capsheet_msg_t *m)
 {
     int32_t n;
     if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL) {
@@ -125,7 +125,7 @@ static void msg_init(capsheet_msg_t *m, uint8_t type, uint16_t node)
     m->node = node;
 }
 
-static int32_t send_ack(capsheet_chip_t *c, uint8_t command)
+static CAPSHEET_WARN_UNUSED int32_t send_ack(capsheet_chip_t *c, uint8_t command)
 {
     capsheet_msg_t m;
     msg_init(&m, CAPSHEET_ACK, c->node);
@@ -136,7 +136,7 @@ static int32_t send_ack(capsheet_chip_t *c, uint8_t command)
     return send_msg(c, &m);
 }
 
-static int32_t send_nack(capsheet_chip_t *c, uint8_t command, uint8_t reason)
+static CAPSHEET_WARN_UNUSED int32_t send_nack(capsheet_chip_t *c, uint8_t command, uint8_t reason)
 {
     capsheet_msg_t m;
     msg_init(&m, CAPSHEET_NACK, c->node);
@@ -153,7 +153,7 @@ static uint16_t capabilities(const capsheet_chip_t *c)
     return (uint16_t)(c->config.capabilities | (c->config.can_fd ? CAPSHEET_CAP_CAN_FD : 0u));
 }
 
-static int32_t send_announce_info(capsheet_chip_t *c)
+static CAPSHEET_WARN_UNUSED int32_t send_announce_info(capsheet_chip_t *c)
 {
     capsheet_msg_t m;
     int32_t rc;
@@ -208,7 +208,7 @@ static uint8_t status_flags(const capsheet_chip_t *c)
     return f;
 }
 
-static int32_t send_status(capsheet_chip_t *c, uint64_t now_us)
+static CAPSHEET_WARN_UNUSED int32_t send_status(capsheet_chip_t *c, uint64_t now_us)
 {
     capsheet_msg_t m;
     msg_init(&m, CAPSHEET_STATUS, c->node);
@@ -249,7 +249,7 @@ static void schedule(uint64_t *deadline, uint64_t period_us, uint64_t now_us)
     }
 }
 
-static int32_t boot(capsheet_chip_t *c, uint64_t now_us)
+static CAPSHEET_WARN_UNUSED int32_t boot(capsheet_chip_t *c, uint64_t now_us)
 {
     c->uid = c->hal->read_uid(c->hal->user);
     c->state = CAPSHEET_BOOT;
@@ -408,7 +408,7 @@ static int16_t asr(int16_t v, uint8_t r)
     return (int16_t)(-1 - (int16_t)((-1 - v) >> r));
 }
 
-static int32_t on_sync(capsheet_chip_t *c, uint16_t counter, uint64_t now_us)
+static CAPSHEET_WARN_UNUSED int32_t on_sync(capsheet_chip_t *c, uint16_t counter, uint64_t now_us)
 {
     capsheet_msg_t m;
     int16_t xyz[3] = {0, 0, 0};
@@ -502,7 +502,7 @@ static uint8_t nack_reason_for(int32_t rc)
 
 /* React to a decoded frame (rc == 0), or a decode error rc < 0 with `m->type`/`m->node` from the
  * header when there was one (node 0xFFFF when not), in the order of docs §8.1. */
-static int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m, uint64_t now_us)
+static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, const capsheet_msg_t *m, uint64_t now_us)
 {
     capsheet_rule_t rule;
     bool addressed;

@@ -88,7 +88,7 @@ typedef struct {
     size_t n;
 } span_t;
 
-static int32_t cobs_encode_spans(const span_t *spans, size_t nspans, uint8_t *out, size_t cap)
+static CAPSHEET_WARN_UNUSED int32_t cobs_encode_spans(const span_t *spans, size_t nspans, uint8_t *out, size_t cap)
 {
     size_t total = 0, done = 0, s, i;
     size_t code_pos = 0, dst = 1;
@@ -246,7 +246,7 @@ static void put_cal(uint8_t *p, const capsheet_cal_t *c)
 
 /* Encode the fixed part of a payload into `p` (>= 8 bytes): everything but SNAPSHOT's words.
  * Returns the number of bytes written, or an error. */
-static int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
+static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
 {
     switch (m->type) {
     case CAPSHEET_ANNOUNCE:
@@ -328,7 +328,7 @@ static int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
 }
 
 /* The payload as (fixed part in `tmp`, SNAPSHOT words) spans; returns the payload length. */
-static int32_t payload_spans(const capsheet_msg_t *m, uint8_t tmp[8], span_t sp[2])
+static CAPSHEET_WARN_UNUSED int32_t payload_spans(const capsheet_msg_t *m, uint8_t tmp[8], span_t sp[2])
 {
     const int32_t n = encode_fixed(m, tmp);
     if (n < 0) {
@@ -493,7 +493,7 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
 /* Serial frames                                                                               */
 /* ------------------------------------------------------------------------------------------ */
 
-static int32_t serial_encode_spans(uint8_t version, uint8_t type, uint16_t node, const span_t *payload,
+static CAPSHEET_WARN_UNUSED int32_t serial_encode_spans(uint8_t version, uint8_t type, uint16_t node, const span_t *payload,
                                    size_t npayload, uint8_t *out, size_t cap)
 {
     uint8_t header[CAPSHEET_HEADER_SIZE], crc_be[CAPSHEET_CRC_SIZE];

@@ -40,6 +40,9 @@ static uint64_t read_uid(void *user)
 }
 
 static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0};
+/* every call's result is kept (CAPSHEET_WARN_UNUSED: a result may not be dropped; a real chip
+ * would act on a negative one) */
+static volatile int32_t last_rc;
 static capsheet_chip_t chip;
 static uint8_t rx_buf[CAPSHEET_RX_BUFFER_SIZE];
 
@@ -58,15 +61,15 @@ void app_main(void)
         CAPSHEET_TRANSPORT_SERIAL,
 #endif
         false, 0};
-    (void)capsheet_chip_init(&chip, &cfg, &hal, rx_buf, sizeof rx_buf);
-    (void)capsheet_chip_power_on(&chip, clock_us);
+    last_rc = capsheet_chip_init(&chip, &cfg, &hal, rx_buf, sizeof rx_buf);
+    last_rc = capsheet_chip_power_on(&chip, clock_us);
     for (;;) {
         const uint8_t b = rx_byte;
 #ifdef SIZE_CAN
-        (void)capsheet_chip_rx_can(&chip, clock_us & 0x1FFFFFFFu, true, false, &b, 1, clock_us);
+        last_rc = capsheet_chip_rx_can(&chip, clock_us & 0x1FFFFFFFu, true, false, &b, 1, clock_us);
 #else
-        (void)capsheet_chip_rx_bytes(&chip, &b, 1, clock_us);
+        last_rc = capsheet_chip_rx_bytes(&chip, &b, 1, clock_us);
 #endif
-        (void)capsheet_chip_poll(&chip, clock_us);
+        last_rc = capsheet_chip_poll(&chip, clock_us);
     }
 }

@@ -46,14 +46,14 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol.constants import G0
+from protocol.frames import BOARD_POSES
 from protocol.lattice import Lattice
 
 __all__ = ["Calibration", "fit_board_poses", "link_frames_on_board", "board_frame_readings",
            "pose_directions", "StaticDetector", "BOARD_POSES", "MIN_POSES", "G0",
            "NOMINAL_SENSITIVITY", "FORMAT", "VERSION"]
 
-#: Standard gravity, m/s² (the value of `protocol.constants.G0`; the science may not import it).
-G0 = 9.80665
 #: Counts per g at ±2 g (`protocol.constants.nominal_sensitivity`): what a chip without calibration reports.
 NOMINAL_SENSITIVITY = 1024.0
 #: Fewest poses `fit_board_poses` accepts (9 unknowns per chip need 3 independent poses; 6 make
@@ -62,26 +62,7 @@ MIN_POSES = 6
 #: cal.json format name and version
 FORMAT = "capsheet-calibration"
 VERSION = 1
-
-#: The suggested poses, in order: (name, instruction, gravity's specific force direction in the
-#: board's frame: what a chip with x along the board's x reads, normalised). The six faces then
-#: six tilts of 45° towards the edges; the twelve give every parameter with the accuracy
-#: docs/calibration.md states at 200 averaged samples per pose.
-_S = float(np.sqrt(0.5))
-BOARD_POSES: tuple[tuple[str, str, tuple[float, float, float]], ...] = (
-    ("top up", "board flat, top face up", (0.0, 0.0, 1.0)),
-    ("top down", "board flat, top face down", (0.0, 0.0, -1.0)),
-    ("+x edge up", "board on its -x edge (the edge at low i down)", (1.0, 0.0, 0.0)),
-    ("-x edge up", "board on its +x edge (the edge at high i down)", (-1.0, 0.0, 0.0)),
-    ("+y edge up", "board on its -y edge (the edge at low j down)", (0.0, 1.0, 0.0)),
-    ("-y edge up", "board on its +y edge (the edge at high j down)", (0.0, -1.0, 0.0)),
-    ("top up, +x raised 45°", "top up, tilted 45° with the +x edge raised", (_S, 0.0, _S)),
-    ("top up, +y raised 45°", "top up, tilted 45° with the +y edge raised", (0.0, _S, _S)),
-    ("top down, -x raised 45°", "top down, tilted 45° with the -x edge raised", (-_S, 0.0, -_S)),
-    ("top down, -y raised 45°", "top down, tilted 45° with the -y edge raised", (0.0, -_S, -_S)),
-    ("+x and +y edges up 45°", "on the (-x,-y) corner edge, 45° between the two", (_S, _S, 0.0)),
-    ("-x and +y edges up 45°", "on the (+x,-y) corner edge, 45° between the two", (-_S, _S, 0.0)),
-)
+# G0 (`protocol.constants`) and the suggested poses BOARD_POSES (`protocol.frames`) are re-exported.
 
 
 def link_frames_on_board(rows: int, cols: int) -> np.ndarray:

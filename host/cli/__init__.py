@@ -81,6 +81,8 @@ def one_blas_thread() -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from host.memory import fix_mmap_threshold
+    fix_mmap_threshold()  # a host that runs for days: large buffers go back to the system at free
     one_blas_thread()
     parser = build_parser()
     args = parser.parse_args(argv)

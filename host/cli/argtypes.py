@@ -71,8 +71,31 @@ class CliParser(argparse.ArgumentParser):
 
     def parse_known_args(self, args=None, namespace=None):
         ns, extra = super().parse_known_args(args, namespace)
+        if extra and self._is_subcommand:  # named by the subcommand that was given them
+            self.error(f"unrecognized arguments: {' '.join(extra)}")
         self._check_paths(ns)
+        for check in self._checks:
+            message = check(ns)
+            if message:
+                self.error(message)
         return ns, extra
+
+    #: checks of values that depend on each other (`add_check`)
+    _checks: tuple = ()
+
+    def add_check(self, check) -> None:
+        """A check of values that depend on each other, run once every value is in (before anything
+        starts): ``check(namespace)`` returns None, or a usage error's message (one line, exit 2)."""
+        self._checks = (*self._checks, check)
+
+    #: made by ``add_subparsers``: every argument after the subcommand's name is its own, so what it
+    #: does not know is reported under its name (``capsheet host: unrecognized arguments: ...``), not
+    #: the top level's
+    _is_subcommand = False
+
+    def add_subparsers(self, **kwargs):
+        kwargs.setdefault("parser_class", _SubcommandParser)
+        return super().add_subparsers(**kwargs)
 
     def _check_paths(self, ns: argparse.Namespace) -> None:
         outputs: list[tuple[str, OutputPath]] = []
@@ -89,6 +112,12 @@ class CliParser(argparse.ArgumentParser):
                     self.error(f"{opt} {out} is also an input of this command: write elsewhere")
             if out.protect and os.path.lexists(out) and not getattr(ns, "overwrite", False):
                 self.error(f"{opt} {out} exists: add --overwrite to replace it, or give another name")
+
+
+class _SubcommandParser(CliParser):
+    """A subcommand's `CliParser` (see ``CliParser._is_subcommand``)."""
+
+    _is_subcommand = True
 
 
 def usage_error(prog: str, message: str) -> SystemExit:

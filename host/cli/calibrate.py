@@ -43,6 +43,8 @@ from host.analysis.calibration import (BOARD_POSES, MIN_POSES, Calibration,
                                        StaticDetector, board_frame_readings, fit_board_poses)
 from host.cli.transport_args import add_transport_args, open_transports
 from host.transport import TransportError
+from protocol.constants import G0
+from protocol.lattice import Lattice
 
 __all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "PoseCapture"]
 
@@ -81,8 +83,8 @@ def register(subparsers) -> None:
                         "this (default 0.098 m/s^2 = 1 %% g)")
     p.add_argument("--non-orthogonality", action="store_true",
                    help="also fit 3 axis non-orthogonality terms per chip (kept in the file, like the misalignment)")
-    p.add_argument("--gravity", type=T.bounded_float(1.0, 30.0, unit="m/s^2"), default=9.80665, metavar="M/S2",
-                   help="local gravity (default standard gravity 9.80665); sets the common scale")
+    p.add_argument("--gravity", type=T.bounded_float(1.0, 30.0, unit="m/s^2"), default=G0, metavar="M/S2",
+                   help=f"local gravity (default standard gravity {G0}); sets the common scale")
     p.add_argument("--timeout", type=T.duration, default=600.0, help="give up after this many seconds (default 600)")
     p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5,
                    help="discovery window per round (s)")
@@ -108,8 +110,8 @@ def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | 
     except (OSError, ValueError) as exc:
         raise usage(f"--calibration: {exc}") from None
     try:
-        rows, cols = ((lattice.rows, lattice.cols) if hasattr(lattice, "rows")
-                      else tuple(int(x) for x in str(lattice).lower().split("x")))
+        lat = lattice if isinstance(lattice, Lattice) else Lattice.parse(str(lattice))
+        rows, cols = lat.rows, lat.cols
     except ValueError:
         raise usage(f"--lattice {lattice!r}: expected ROWSxCOLS") from None
     if (cal.rows, cal.cols) != (rows, cols):
@@ -289,8 +291,8 @@ def _capture(host, args, cap: PoseCapture) -> bool:
 
 
 def _chip_table(cal: Calibration) -> list[dict]:
-    return [{"link": k, "rms_mg": round(float(cal.chip_rms[k]) / 9.80665 * 1e3, 3),
-             "bias_mg": np.round(cal.bias[k] / 9.80665 * 1e3, 2).tolist(),
+    return [{"link": k, "rms_mg": round(float(cal.chip_rms[k]) / G0 * 1e3, 3),
+             "bias_mg": np.round(cal.bias[k] / G0 * 1e3, 2).tolist(),
              "scale_pct": np.round((cal.scale[k] - 1) * 100, 3).tolist(),
              "misalignment_deg": np.round(np.degrees(cal.misalignment[k]), 3).tolist(),
              "outlier": k in cal.outliers} for k in range(cal.n_links)]
@@ -359,7 +361,7 @@ def run(args) -> int:
             return 1
         table = _chip_table(cal)
         result = {"poses": len(cap.poses), "samples_per_pose": args.samples,
-                  "residual_rms_mg": round(cal.residual_rms / 9.80665 * 1e3, 4),
+                  "residual_rms_mg": round(cal.residual_rms / G0 * 1e3, 4),
                   "outliers": list(cal.outliers), "out": args.out, "chips": table}
         out = sys.stderr if args.json else sys.stdout
         if not args.json:

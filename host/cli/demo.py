@@ -24,7 +24,9 @@ import argparse
 import json
 import sys
 import tempfile
+import threading
 import time
+from collections import deque
 from pathlib import Path
 
 import numpy as np
@@ -180,8 +182,8 @@ def run(args) -> int:
     import multiprocessing as mp
 
     from host.estimator import error_percent_of_side, estimate
-    from host.aggregator import window_completeness
     from host.cli.progress import LiveLine
+    from host.cli.runstats import CompletenessWindow, Samples
     from host.session import Host, Layout
     from host.transport import open_transport
     from virtual_sheet.sheet import VirtualSheet
@@ -206,9 +208,9 @@ def run(args) -> int:
     print(f"capsheet demo: virtual {rows}x{cols} sheet ({lat.n_links} chips), scene {args.shape!r}, "
           f"noise {args.noise:g} % g, SYNC at {args.rate:g} Hz{', packed' if args.packed else ''}"
           f"{f', {args.gateways} gateways' if args.gateways > 1 else ''}", file=sys.stderr)
-    errors: list[float] = []
-    times: list[float] = []
-    latencies: list[float] = []
+    # bounded however long --duration is (issue 34): exact count, mean, max; medians from a
+    # uniform sample of at most 65,536 (host.cli.runstats)
+    errors, times, latencies = Samples(), Samples(), Samples()
     last = None
     truth_times: dict[int, float] = {}
     ctx = mp.get_context("spawn")
@@ -246,9 +248,20 @@ def run(args) -> int:
 
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
         transports = [open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths]
-        seen: list[tuple[int, bool]] = []  # (counter, complete) of every snapshot emitted
-        host = Host(transports, lat, layout=Layout.load(layout_path), rate_hz=args.rate,
-                    on_snapshot=lambda snap: seen.append((snap.counter, snap.complete)))
+        # (counter, complete) of every snapshot emitted, counted into the window of SYNCs the
+        # demo measures once bring-up has set its first counter (those before it, held until then)
+        window_lock = threading.Lock()
+        window: list = [None]
+        before_window: deque = deque(maxlen=4096)
+
+        def on_snapshot(snap) -> None:
+            with window_lock:
+                if window[0] is None:
+                    before_window.append((snap.counter, snap.complete))
+                else:
+                    window[0].add(snap.counter, snap.complete)
+
+        host = Host(transports, lat, layout=Layout.load(layout_path), rate_hz=args.rate, on_snapshot=on_snapshot)
         from host.cli.host import imu_config
         host.imu_config = imu_config(args)
         fused = None
@@ -274,6 +287,11 @@ def run(args) -> int:
             previous = None
             t0 = time.monotonic()
             first, sent0 = host.counter, host.syncs_sent  # the window: completeness counts its SYNCs only
+            with window_lock:
+                window[0] = CompletenessWindow(first)
+                for c, ok in before_window:
+                    window[0].add(c, ok)
+                before_window.clear()
             last_eval = 0.0
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
@@ -289,33 +307,36 @@ def run(args) -> int:
                         continue
                 else:
                     est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
-                times.append(time.perf_counter() - t_e)
+                times.add(time.perf_counter() - t_e)
                 previous = est
                 n_est += 1
-                latencies.append(time.monotonic() - snap.timestamp)
+                latencies.add(time.monotonic() - snap.timestamp)
                 # the truth: compare at most 10 complete snapshots/s (the error target is for a
                 # complete sheet; an incomplete one is estimated and shown, not scored)
                 if snap.complete and time.monotonic() - last_eval >= 0.1:
                     last_eval = time.monotonic()
                     truth = truth_of(snap.counter)
                     err = error_percent_of_side(est.joints, truth, L)
-                    errors.append(float(err.mean()))
+                    errors.add(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
                     outputs.publish(est, snap, truth=truth)
                 if live.due():
                     el = time.monotonic() - t0
                     # up to the newest SYNC emitted: those after it are in flight, not yet missed
                     c_now, n_now = host.counter, host.syncs_sent - sent0
-                    end = (seen[-1][0] + 1) & 0xFFFF if seen else first
-                    win = window_completeness(seen, first, end, n_now - ((c_now - end) & 0xFFFF))
+                    with window_lock:
+                        last_c = window[0].last_counter
+                        end = (last_c + 1) & 0xFFFF if last_c is not None else first
+                        win = window[0].result(end, n_now - ((c_now - end) & 0xFFFF))
                     live.show(f"{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
-                              f"{1e3 * np.median(latencies[-50:]):6.1f} ms | estimate {1e3 * np.median(times[-50:]):5.2f} ms | "
-                              f"error {_fmt(errors[-1] if errors else None)} % of side | "
+                              f"{1e3 * np.median(latencies.recent(50)):6.1f} ms | estimate {1e3 * np.median(times.recent(50)):5.2f} ms | "
+                              f"error {_fmt(errors.last)} % of side | "
                               f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0
             end, sent_n = host.counter, host.syncs_sent - sent0
             host.stop()  # the SYNCs in flight get their chance to complete
-            win = window_completeness(seen, first, end, sent_n)
+            with window_lock:
+                win = window[0].result(end, sent_n)
             st = agg.stats
             # the window's SYNCs and their snapshots; snapshots_emitted: every one since bring-up
             # (what a --record file holds)
@@ -332,7 +353,7 @@ def run(args) -> int:
     live.end()
     sent = stats.get("syncs_sent", 0)
     complete_pct = 100.0 * stats.get("complete", 0) / sent if sent else 0.0
-    mean_err = float(np.mean(errors)) if errors else None
+    mean_err = errors.mean
     err_ok = mean_err is not None and mean_err <= args.target
     complete_ok = sent > 0 and complete_pct >= args.min_complete
     ok = err_ok and complete_ok
@@ -342,11 +363,13 @@ def run(args) -> int:
         "syncs_per_s": round(sent / max(elapsed, 1e-9), 1), "gateways": args.gateways,
         # the live estimate takes the newest snapshot (newest wins): fewer estimates than SYNCs
         "estimates": n_est, "estimates_per_s": round(n_est / max(elapsed, 1e-9), 1),
-        "compared_with_truth": len(errors),
+        "compared_with_truth": errors.count,
         "mean_error_pct_side": round(mean_err, 3) if mean_err is not None else None,
-        "max_snapshot_error_pct_side": round(float(np.max(errors)), 3) if errors else None,
-        "median_latency_ms": round(1e3 * float(np.median(latencies)), 2) if latencies else None,
-        "median_estimate_ms": round(1e3 * float(np.median(times)), 3) if times else None,
+        "max_snapshot_error_pct_side": round(errors.max, 3) if errors else None,
+        "median_latency_ms": round(1e3 * latencies.median(), 2) if latencies else None,
+        "median_estimate_ms": round(1e3 * times.median(), 3) if times else None,
+        # medians beyond 65,536 values are of a uniform sample of them: how many were left out
+        "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,
         "sensors": getattr(args, "sensors", "accel"), "estimator": "fused" if fused is not None else "accel_only",
         "error_ok": err_ok, "complete_ok": complete_ok, "pass": ok,
@@ -357,7 +380,7 @@ def run(args) -> int:
         from host.cli.figures import demo_figure
         import matplotlib.pyplot as plt
         plt.close(demo_figure(out, truth, est_joints, err, shape=args.shape, noise_pct_g=args.noise,
-                              rate_hz=args.rate, run_mean_error_pct=float(np.mean(errors)), counter=counter,
+                              rate_hz=args.rate, run_mean_error_pct=errors.mean, counter=counter,
                               link_length=L))
         result["png"] = str(out)
         print(f"capsheet demo: wrote {out}", file=sys.stderr)

@@ -62,8 +62,8 @@ def batched() -> bool:
     before: one at a time when the estimator's compiled kernel is built (`USE_KERNEL`; measured
     0.95 against 1.31 ms of CPU per 14x14 snapshot), batched otherwise (numpy alone: 1.0 against
     1.5 ms)."""
-    from host.analysis.estimator import USE_KERNEL
-    return not USE_KERNEL
+    from host.analysis.estimator import kernel  # the switch where the estimator reads it
+    return not kernel.USE_KERNEL
 
 
 #: Snapshots `host.analysis.estimator.estimate_batch` solves together (measured best at 14x14:
@@ -92,7 +92,9 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
     residual : ndarray, shape (n,)
     extra : dict
         ``yaw_std`` / ``joint_std`` stacked, when asked for and the estimator provides them; ``cpu_s`` the
-        process CPU time the batch took (what a shared machine does not inflate as much as wall time).
+        process CPU time the batch took (what a shared machine does not inflate as much as wall time);
+        ``skipped`` {reason: count} of the snapshots with valid links the estimator refused (their
+        joints NaN, as a snapshot with no valid link), e.g. every valid link's reading implausible.
     """
     from host.analysis.estimator import estimate, estimate_batch as solve_batch
 
@@ -102,21 +104,32 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
     residual = np.full(n, np.nan)
     extra: dict[str, list] = {}
     has = np.asarray(valid, dtype=bool).any(axis=1)
-    if method == "global" and batched():  # many snapshots per numpy pass, each warm-started
-        idx = np.flatnonzero(has)
-        ests = solve_batch(np.asarray(readings[idx], dtype=float), rows, cols, L,
-                           valid=np.asarray(valid[idx], dtype=bool), batch=GROUP,
-                           bad_readings="mask")
-        pairs = zip(idx, ests)
-    else:  # one at a time, each warm-started from the one before (the global method)
-        def one_by_one():
-            prev = None
-            for k in np.flatnonzero(has):
+    skipped: dict[str, int] = {}  # why a snapshot with valid links has no estimate -> how many
+
+    def one_by_one():  # each warm-started from the one before (the global method)
+        prev = None
+        for k in np.flatnonzero(has):
+            try:
                 est = estimate(np.asarray(readings[k], dtype=float), rows, cols, L,
                                valid=np.asarray(valid[k], dtype=bool), method=method,
                                previous=prev if method == "global" else None, bad_readings="mask")
-                prev = est
-                yield k, est
+            except ValueError as exc:  # e.g. every valid link implausible: this snapshot only
+                skipped[str(exc)] = skipped.get(str(exc), 0) + 1
+                continue
+            prev = est
+            yield k, est
+
+    pairs = None
+    if method == "global" and batched():  # many snapshots per numpy pass, each warm-started
+        idx = np.flatnonzero(has)
+        try:
+            ests = solve_batch(np.asarray(readings[idx], dtype=float), rows, cols, L,
+                               valid=np.asarray(valid[idx], dtype=bool), batch=GROUP,
+                               bad_readings="mask")
+            pairs = zip(idx, ests)
+        except ValueError:  # a snapshot the estimator refuses: this batch one at a time, to name it
+            pairs = None
+    if pairs is None:
         pairs = one_by_one()
     for k, est in pairs:
         joints[k] = est.joints
@@ -130,6 +143,7 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
         like = next(v for v in vals if v is not None)
         out_extra[name] = np.stack([np.full(like.shape, np.nan) if v is None else v for v in vals])
     out_extra["cpu_s"] = time.process_time() - cpu0
+    out_extra["skipped"] = skipped
     return joints, residual, out_extra
 
 
@@ -208,12 +222,15 @@ def run(args) -> int:
         t_est = time.monotonic()
         parts: list = []  # [SnapshotBatch, joints, residual, extra] in file order
         cpu_s = 0.0
+        skipped: dict[str, int] = {}
         bar = Progress(total, "estimate", "snapshot", quiet=args.quiet)
 
         def done(k, result):
             nonlocal cpu_s
             j, r, ex = result
             cpu_s += ex.pop("cpu_s")
+            for why, count in ex.pop("skipped").items():
+                skipped[why] = skipped.get(why, 0) + count
             parts[k][1:] = [j, r, ex]
             bar.update(j.shape[0])
 
@@ -275,6 +292,8 @@ def run(args) -> int:
               "first_batch_s": round(t_est - t_start, 3), "estimate_s": round(t_done - t_est, 3),
               "write_s": round(t_written - t_done, 3), "total_s": round(time.monotonic() - t_start, 3),
               "snapshots_per_s": round(n / max(t_done - t_est, 1e-9), 1),
+              "not_estimated": {"no_valid_link": int(n - np.count_nonzero(valid.any(axis=1))),
+                                "refused": sum(skipped.values()), "reasons": skipped},
               "estimator_cpu_s": round(cpu_s, 3),
               "snapshots_per_cpu_s": round(n / max(cpu_s, 1e-9), 1)}
     if n > 1 and ts[-1] > ts[0]:
@@ -288,6 +307,8 @@ def run(args) -> int:
                                   f"L = {100 * L:g} cm, {n} snapshots")
         result["png"] = str(png)
         print(f"capsheet estimate: wrote {png}", file=sys.stderr)
+    for why, count in sorted(skipped.items()):
+        print(f"capsheet estimate: {count} snapshot(s) not estimated: {why}", file=sys.stderr)
     print(f"capsheet estimate: {result['estimated']} of {n} snapshots estimated in {result['estimate_s']} s "
           f"({result['snapshots_per_s']}/s, {jobs} jobs) -> {out}", file=sys.stderr)
     if args.json:

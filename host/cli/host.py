@@ -271,7 +271,7 @@ def run(args) -> int:
             print(f"capsheet host: the layout names {len(layout.links)} chips for {lattice.n_links} links; "
                   f"{lattice.n_links - len(layout.links)} links have no chip (counted as missing)", file=sys.stderr)
     from host.cli.calibrate import load_calibration_arg
-    cal = load_calibration_arg(args.calibration, f"{lattice.rows}x{lattice.cols}", "capsheet host")
+    cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
               "Pass --auto-assign to silence this.", file=sys.stderr)

@@ -45,7 +45,6 @@ from pathlib import Path
 import numpy as np
 
 from protocol.constants import G0
-from host.cli.argtypes import CliParser
 
 
 class _LazyEstimator:
@@ -677,7 +676,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("paper", help="the paper's Fig. 8-10, as the authors ran them "
                                             "(PNG + tables)",
                               description=__doc__.split("\n\n")[0])
-    sub = p.add_subparsers(dest="paper_command", metavar="FIGURE", parser_class=CliParser)
+    sub = p.add_subparsers(dest="paper_command", metavar="FIGURE")
 
     def common(sp, seed=True):
         sp.add_argument("--out", default="out/paper", help="output directory (default out/paper)")

@@ -1,6 +1,6 @@
 """The recording options the commands that run a sheet share (``capsheet host``, ``demo``,
-``tactile``): ``--record FILE.mcap``, ``--live [PORT]``, ``--publish zenoh[:ENDPOINT]`` (with
-``--sheet-name``) and, on CAN, ``--can-log FILE``.
+``tactile``): ``--record FILE.mcap``, ``--live [PORT]``, ``--publish zenoh|ros2[:ENDPOINT]`` (with
+``--sheet-name``), ``--record-ros2 FILE.mcap`` and, on CAN, ``--can-log FILE``.
 
 One definition, so the three commands spell and explain them alike; `SessionOutputs` does the
 wiring (raw taps, SYNC taps, session facts, live estimates) so each command adds one block.
@@ -49,12 +49,20 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         f"every second, where the recording stops cleanly, its file readable (default "
                         f"{DEFAULT_MIN_FREE_MB:g} MB; 0: until the disk is full)")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
-    g.add_argument("--publish", metavar="zenoh[:ENDPOINT]", type=_publish_arg, default=None,
-                   help="publish snapshots, estimates, health and (queryable) layout and calibration to Zenoh "
-                        "under capsheet/<sheet>/... (docs/distribution.md); peer mode on loopback, or client "
-                        "mode connected to ENDPOINT (a locator, e.g. tcp/127.0.0.1:7447)")
+    g.add_argument("--publish", metavar="zenoh|ros2[:ENDPOINT]", type=_publish_arg, default=None,
+                   help="zenoh: publish snapshots, estimates, health and (queryable) layout and calibration to "
+                        "Zenoh under capsheet/<sheet>/...; ros2: the same as ROS 2 messages laid out as rmw_zenoh "
+                        "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics; ROS_DOMAIN_ID), "
+                        "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
+                        "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
     g.add_argument("--sheet-name", metavar="NAME", type=_sheet_name, default="sheet",
-                   help="the sheet's name in the published key expressions (default 'sheet')")
+                   help="the sheet's name in the published key expressions and ROS 2 topics (default 'sheet'; "
+                        "for ros2 a ROS name: letters, digits, _)")
+    g.add_argument("--record-ros2", metavar="FILE.mcap", type=T.output_file(".mcap", what="a ROS 2 MCAP recording"),
+                   help="also record the ROS 2 messages of --publish ros2 (CDR) to a ROS 2-profile MCAP "
+                        "(ros2 bag, rosbags and Foxglove read it); an existing file needs --overwrite")
+    if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
+        parser.add_check(_check_ros2)
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
@@ -71,6 +79,23 @@ def _publish_arg(value: str):
         return parse_publish(value)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _check_ros2(ns) -> str | None:
+    """--publish ros2 / --record-ros2 need a sheet name that is a ROS name and a valid ROS_DOMAIN_ID."""
+    publish = getattr(ns, "publish", None)
+    if not ((publish is not None and publish[0] == "ros2") or getattr(ns, "record_ros2", None)):
+        return None
+    from host.ros2 import ROS_NAME, domain_id
+    sheet = getattr(ns, "sheet_name", "sheet")
+    if not ROS_NAME.match(sheet):
+        return (f"--sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
+                f"A-Z a-z 0-9 _, starting with a letter")
+    try:
+        domain_id()
+    except ValueError as exc:
+        return f"{exc} (--publish ros2, --record-ros2)"
+    return None
 
 
 def _sheet_name(value: str) -> str:
@@ -121,6 +146,8 @@ class SessionOutputs:
         self.link_length = float(link_length)
         self.recorder = None
         self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
+        self.session_facts = {"mode": mode, **(session or {})}  #: what the session says of itself
+        self.ros2 = None  #: `host.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
         self._host = None
         self.can_log = None
         self._can_lock = threading.Lock()
@@ -160,7 +187,10 @@ class SessionOutputs:
                 print(f"{prog}: live 3D view on {self.recorder.live.url} (Foxglove: Open connection -> "
                       f"Foxglove WebSocket -> {self.recorder.live.url})", file=sys.stderr)
         publish = getattr(args, "publish", None)
-        if publish is not None:
+        record_ros2 = getattr(args, "record_ros2", None)
+        if (publish is not None and publish[0] == "ros2") or record_ros2:
+            self._open_ros2(args, lattice, publish, record_ros2, prog)
+        if publish is not None and publish[0] == "zenoh":
             import host.analysis.estimator  # noqa: F401,F811 -- now, not mid-session (above)
             from host.publish import ZenohPublisher
             sheet = getattr(args, "sheet_name", "sheet")
@@ -181,6 +211,36 @@ class SessionOutputs:
                 raise SystemExit(f"{prog}: cannot write {path}: {exc}") from None
             self.can_log_path = path
 
+    def _open_ros2(self, args, lattice, publish, record_ros2, prog: str) -> None:
+        import host.analysis.estimator  # noqa: F401 -- now, not mid-session (above)
+        from host.ros2 import ROS_NAME, TOPICS, Ros2Outputs, domain_id
+        sheet = getattr(args, "sheet_name", "sheet")
+        if not ROS_NAME.match(sheet):
+            print(f"{prog}: --sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
+                  f"A-Z a-z 0-9 _, starting with a letter", file=sys.stderr)
+            raise SystemExit(2)
+        try:
+            domain = domain_id()
+        except ValueError as exc:
+            print(f"{prog}: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+        ros2_pub = publish is not None and publish[0] == "ros2"
+        try:
+            self.ros2 = Ros2Outputs(sheet, lattice, publish=ros2_pub, endpoint=publish[1] if ros2_pub else None,
+                                    record=record_ros2, domain=domain)
+        except OSError as exc:
+            # a file's own error (PermissionError ...) is the recording's; a plain OSError says what failed
+            what = f"cannot write {record_ros2}: " if record_ros2 and type(exc) is not OSError else ""
+            raise SystemExit(f"{prog}: {what}{exc}") from None
+        self._ros2_info = {"format": "capsheet-ros2-info", "version": 1, "sheet": sheet, "rows": lattice.rows,
+                           "cols": lattice.cols, "links": lattice.n_links, "link_length_m": self.link_length,
+                           "layout": None, "calibration": None, "session": dict(self.session_facts),
+                           "topics": {t: {"name": self.ros2.fq(t), "type": typ} for t, typ in TOPICS.items()}}
+        self.ros2.info(self._ros2_info)  # before bring-up: no layout, no calibration yet
+        if ros2_pub:
+            print(f"{prog}: publishing ROS 2 messages (rmw_zenoh layout, domain {domain}) under "
+                  f"{self.ros2.namespace}/ and /diagnostics ({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+
     def _recording_stopped(self, reason: str) -> None:
         print(f"{self.prog}: recording stopped: {reason}; {self.recorder.paths[-1]} is complete and readable "
               f"(the session goes on{', the live view too' if self.recorder.live is not None else ''})",
@@ -188,7 +248,8 @@ class SessionOutputs:
 
     @property
     def active(self) -> bool:
-        return self.recorder is not None or self.can_log is not None or self.publisher is not None
+        return (self.recorder is not None or self.can_log is not None or self.publisher is not None
+                or self.ros2 is not None)
 
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
@@ -198,6 +259,8 @@ class SessionOutputs:
         self._host = host
         if self.publisher is not None:  # every snapshot as emitted, corrected, as the recording
             host.feed.add_listener(self.publisher.snapshot)
+        if self.ros2 is not None:
+            host.feed.add_listener(self.ros2.snapshot)
         if self.recorder is not None and self.recorder.path is not None:
             self.recorder.tap(host.transports, host.feed)
             self.recorder.tap_sync(host.feed)
@@ -240,13 +303,18 @@ class SessionOutputs:
         """After bring-up: the session's facts (layout, calibration, rate) into the recording."""
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
-        if self.publisher is not None:
+        if self.publisher is not None or self.ros2 is not None:
             from host.record import Recorder
             session, layout, calibration = Recorder.session_facts(host)
             live_cal = host.calibration
             if live_cal is not None:  # `--calibration`: what the snapshots were corrected with
                 calibration = {**calibration, "host_calibration": live_cal.to_dict()}
-            self.publisher.describe(layout, calibration, session)
+            if self.publisher is not None:
+                self.publisher.describe(layout, calibration, session)
+            if self.ros2 is not None:
+                self._ros2_info.update(layout=layout, calibration=calibration)
+                self._ros2_info["session"].update(session or {})
+                self.ros2.info(self._ros2_info)
 
     def snapshot(self, snap, *, truth: np.ndarray | None = None, displacement=None, force: bool = False,
                  estimate: bool = True):
@@ -256,7 +324,7 @@ class SessionOutputs:
         None."""
         rec = self.recorder
         self._health()
-        if rec is None and self.publisher is None:
+        if rec is None and self.publisher is None and self.ros2 is None:
             return None
         if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
@@ -282,11 +350,27 @@ class SessionOutputs:
         self.publish(est, snap, truth=truth, displacement=displacement, uncertainty=unc)
         return est
 
+    def emit(self, snap) -> None:
+        """A snapshot no host feed carries (``capsheet replay``): to ``--publish`` and ``--record-ros2``
+        as `attach` sends a live host's."""
+        if self.publisher is not None:
+            self.publisher.snapshot(snap)
+        if self.ros2 is not None:
+            self.ros2.snapshot(snap)
+
+    @property
+    def wants_estimates(self) -> bool:
+        """Something takes estimates: the recording, the live view or a publisher."""
+        return self.recorder is not None or self.publisher is not None or self.ros2 is not None
+
     def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
                 uncertainty: bool = False) -> None:
         """Record, show and publish an estimate made elsewhere (the demo's own)."""
         if self.publisher is not None:
             self.publisher.estimate(est, snap, uncertainty=uncertainty)
+        if self.ros2 is not None:
+            self.ros2.estimate(est, snap, uncertainty=uncertainty)
+        if self.publisher is not None or self.ros2 is not None:
             self._health()
         if self.recorder is None:
             return
@@ -302,6 +386,10 @@ class SessionOutputs:
         """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by
         displacement, and its contacts (with the true contacts, ``(force, index)``, if known)."""
         rec = self.recorder
+        if self.ros2 is not None:  # the estimate (joints, surface) and the contacts, every frame
+            self.ros2.estimate(frame.estimate, wall_time=time.time())
+            self.ros2.contacts(k, frame.contacts, frame.total_force_n)
+            self._health()
         if rec is None:
             return
         t = float(frame.t_s) if frame.t_s is not None else float(k)
@@ -315,8 +403,12 @@ class SessionOutputs:
 
     def _health(self, *, force: bool = False) -> None:
         """The host's summary to ``capsheet/<sheet>/health`` (about once a second)."""
-        if self.publisher is not None and self._host is not None:
+        if self._host is None:
+            return
+        if self.publisher is not None:
             self.publisher.health(self._host.summary(), force=force)
+        if self.ros2 is not None:
+            self.ros2.health(self._host.summary(), force=force)
 
     def flush(self) -> None:
         if self.recorder is not None:
@@ -333,6 +425,22 @@ class SessionOutputs:
                       f"{c['health']} health reports to Zenoh ({c['info']} info queries answered)",
                       file=sys.stderr)
                 self.publisher = None
+        if self.ros2 is not None:
+            try:
+                self._health(force=True)
+            finally:
+                self.ros2.close()
+                c, r = self.ros2.counts, self.ros2
+                what = " and ".join((["published"] if r.publisher is not None else [])
+                                    + ([f"recorded to {r.recorder.path}"] if r.recorder is not None else []))
+                print(f"{self.prog}: {what} ROS 2 messages: {c['snapshot']} snapshots, {c['joints']} joints and "
+                      f"surfaces, {c['contacts']} contact frames, {c['/diagnostics']} diagnostics", file=sys.stderr)
+                for sink, n in r.failed.items():
+                    if n:
+                        print(f"{self.prog}: {n} ROS 2 messages could not be "
+                              f"{'published' if sink == 'publish' else 'recorded'} ({r.last_error[sink]})",
+                              file=sys.stderr)
+                self.ros2 = None
         if self.recorder is not None:
             self.recorder.close(stats)
             if self.recorder.path is not None:

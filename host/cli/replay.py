@@ -156,6 +156,7 @@ def run(args) -> int:
                 identical += same
             if out.recorder is not None and out.recorder.path is not None:
                 out.recorder.snapshot(snap)
+            out.emit(snap)  # --publish, --record-ros2: a recording converted
             if args.no_estimate or not snap.valid.any():
                 continue
             est = estimate(snap.readings, lat.rows, lat.cols, L, valid=snap.valid, previous=previous)
@@ -165,7 +166,7 @@ def run(args) -> int:
             if j is not None:
                 d = overlay_error(est.joints, rec.estimates["joints"][j].astype(float))
                 changes.append(100.0 * float(np.mean(d)) / (L * (max(lat.rows, lat.cols) - 1)))
-            if out.recorder is not None:
+            if out.wants_estimates:
                 out.publish(est, snap)
     except KeyboardInterrupt:
         print("", file=sys.stderr)

@@ -41,7 +41,8 @@ from host.gateways import GatewayRecord
 from host.transport import CanTransport, Transport, TransportError, TransportOperationError
 from protocol.can import decode_can, split_id
 from protocol.can import INCOMPLETE_IMU
-from protocol.framing import DecodeError, ImuBatch, SampleBatch
+from protocol.framing import DecodeError
+from protocol.messages import ImuBatch, SampleBatch
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, ChipState, Config,
                                Direction, GatewayFlag, GatewayInfo, GetInfo, Info, Message, MsgType, Reset, Sample,
                                Snapshot, Start, Status, Stop, Sync, is_node_to_host_type)

@@ -48,3 +48,24 @@ def test_decoders_and_chip_survive_arbitrary_input_under_asan_and_ubsan(tmp_path
     assert "random: 200000 inputs ok" in out
     corpus = list((FW / "tests" / "corpus").iterdir())
     assert corpus and f"replay: {len(corpus)} files ok" in out
+
+
+def _strict_flags() -> list[str]:
+    line = next(ln for ln in (FW / "Makefile").read_text().splitlines() if ln.startswith("STRICT"))
+    return line.split(":=", 1)[1].split()
+
+
+@pytest.mark.parametrize("use", ["ignored", "tested"])
+def test_a_caller_that_ignores_a_fallible_result_fails_the_strict_build(tmp_path, use):
+    # CAPSHEET_WARN_UNUSED (include/capsheet_fw.h) under the Makefile's strict flags (-Werror); a
+    # cast to (void) does not silence GCC, only testing the result does
+    call = {"ignored": "    (void)capsheet_can_fd_length(n);\n    return 0;",
+            "tested": "    return capsheet_can_fd_length(n) < 0;"}[use]
+    src = tmp_path / "caller.c"
+    src.write_text(f'#include "capsheet_fw.h"\nint caller(size_t n);\nint caller(size_t n)\n{{\n{call}\n}}\n')
+    proc = subprocess.run(["cc", *_strict_flags(), f"-I{FW / 'include'}", "-c", str(src), "-o", str(tmp_path / "caller.o")],
+                          capture_output=True, text=True, timeout=60)
+    if use == "tested":
+        assert proc.returncode == 0, proc.stderr
+    else:
+        assert proc.returncode != 0 and "warn_unused_result" in proc.stderr, proc.stderr

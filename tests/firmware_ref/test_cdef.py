@@ -19,6 +19,7 @@ def _cdef_text() -> str:
 
 def _clean(t: str) -> str:
     t = re.sub(r"/\*.*?\*/", " ", t, flags=re.S)
+    t = re.sub(r"\bCAPSHEET_WARN_UNUSED\s+", "", t)  # an attribute for the compiler, not the ABI cffi checks
     return re.sub(r"^\s*#(?!define).*$", "", t, flags=re.M)
 
 
@@ -108,6 +109,20 @@ def test_the_cdef_matches_the_header():
     assert len(prototypes(cdef)) == len(prototypes(header)) >= 20
     assert {"capsheet_msg_t", "capsheet_hal_t", "capsheet_chip_t"} <= set(structs(cdef))
     assert mismatches(header, cdef) == []
+
+
+def test_every_fallible_function_is_marked_warn_unused():
+    # the negative CAPSHEET_ERR_* convention: every function and HAL callback returning int32_t can
+    # fail, and a caller may not drop its result (CAPSHEET_WARN_UNUSED; test_build.py shows the
+    # strict build refusing a caller that does)
+    header = re.sub(r"/\*.*?\*/", " ", (FW / "include/capsheet_fw.h").read_text(), flags=re.S)
+    functions = re.findall(r"^(.*?)\bint32_t (capsheet_\w+)\(", header, re.M)
+    callbacks = re.findall(r"^(.*?)\bint32_t \(\*(\w+)\)\(", header, re.M)
+    assert len(functions) >= 18 and {n for _, n in callbacks} >= {"read_axes", "send_bytes", "send_can"}
+    assert [n for pre, n in functions + callbacks if "CAPSHEET_WARN_UNUSED" not in pre] == []
+    # and nothing that cannot fail is marked (a uint16_t CRC, a bool, a void)
+    marked = re.findall(r"^\s*CAPSHEET_WARN_UNUSED\s+(\w+)", header, re.M)
+    assert set(marked) == {"int32_t"}
 
 
 def test_a_drifted_cdef_is_caught():

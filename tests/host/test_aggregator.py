@@ -10,7 +10,7 @@ import pytest
 from host.aggregator import Aggregator, LinkFlag, serial_diff
 from protocol import SampleStatus, Snapshot, StreamDecoder, decode_can, encode, to_can
 from protocol.constants import G0
-from protocol.framing import SampleBatch
+from protocol.messages import SampleBatch
 from protocol.messages import Sample
 
 

@@ -1,6 +1,7 @@
 """Back-to-back: the host against the virtual sheet over every transport, the same assertions for each
 (in-memory link, pty serial, python-can virtual with two buses, SLCAN adapters on ptys through
-python-can's own slcan interface), then under every injected fault.
+capsheet's own SLCAN bus, host/slcan.py's ``capsheet_slcan`` python-can interface), then under
+every injected fault.
 
 The in-process rigs (memory link, python-can ``virtual``) run on a **simulated clock**: host and
 sheet in one thread (`Host(driver=...)`, `Device(clock=...)`), time advanced 1 ms per step, so
@@ -85,8 +86,8 @@ class Rig:
             self.device.stop()
             raise
         if kind == "slcan":
-            # python-can's slcan reads one byte per call: two adapters plus the emulator in one
-            # process on a small box keep up with 50 Hz x 24 chips, not always with 100 Hz
+            # two SLCAN adapters (ASCII lines both ways) plus the emulator in one process on a
+            # small box keep up with 50 Hz x 24 chips, not always with 100 Hz
             rate_hz = min(rate_hz, 50.0)
         if not self.sim:
             self.device.power_on()
@@ -133,7 +134,7 @@ def rig_factory(chip_class):
 def check_accounting(rig: Rig, snaps: list) -> None:
     """No exception anywhere; every snapshot delivered; every accepted sample in a snapshot."""
     st = rig.host.aggregator.stats
-    assert rig.host._rx_errors == []
+    assert rig.host.event_log.rx_errors == []
     assert st.dropped == 0
     assert len(snaps) == st.emitted
     received = sum(int(np.count_nonzero((s.status & LinkFlag.MISSING) == 0)) for s in snaps)
@@ -419,4 +420,4 @@ def test_the_suite_runs_the_chip_implementation_under_test(rig_factory, chip_cla
     the C reference firmware behind cffi (the ``chip_class`` fixture; no monkeypatching)."""
     rig = rig_factory("memory")
     assert all(isinstance(c, chip_class) for c in rig.sheet.chips)
-    assert rig.sheet.engine == ("array" if chip_class.__name__ == "ChipModel" else "chips")
+    assert rig.sheet.engine_name == ("array" if chip_class.__name__ == "ChipModel" else "chips")

@@ -123,7 +123,7 @@ def test_host_events_and_receive_errors_stay_bounded_and_counted():
         host = rig.host
         n = 3 * EVENTS_KEPT + 123
         for k in range(n):
-            host._report("info", f"event {k}", quiet=True)
+            host.report("info", f"event {k}", quiet=True)
         assert len(host.events) <= EVENTS_KEPT and host.events_cut + len(host.events) == n
         assert host.events[-1].detail == f"event {n - 1}" and host.event_counts["info"] == n
         assert host.summary()["events_cut"] == host.events_cut

@@ -379,26 +379,6 @@ def test_version(capsys):
     assert out.startswith("capsheet ") and out.split()[1][0].isdigit()
 
 
-def test_capsheet_tactile_records_what_it_estimates_with_the_true_contacts(tmp_path, capsys):
-    """The virtual foam sheet: every snapshot the sensor estimates is recorded with its estimate and
-    contacts (it recorded estimates from snapshots it never recorded: 0 snapshots, 9 estimates)."""
-    from host.cli import main
-    out = tmp_path / "tactile.mcap"
-    assert main(["tactile", "--duration", "1", "--snapshot-rate", "8", "--record", str(out),
-                 "--out", str(tmp_path / "t.png"), "-q"]) == 0
-    assert "recorded 9 snapshots, 9 estimates, 9 contact frames" in capsys.readouterr().err
-    rec = read(out)
-    assert rec.session["mode"] == "tactile" and len(rec.contacts) == len(rec.estimates["counter"]) == len(rec) == 9
-    assert rec.counter.tolist() == rec.estimates["counter"].tolist() == list(range(9))
-    assert rec.valid.all() and rec.complete.all()
-    assert np.allclose(rec.timestamp, rec.estimates["timestamp"])  # each snapshot with its own estimate
-    detected = [c for _, _, cs in rec.contacts for c in cs if not c.get("true")]
-    true = [c for _, _, cs in rec.contacts for c in cs if c.get("true")]
-    assert detected and true
-    assert all(c["force_n"] > 0 and len(c["position"]) == 3 for c in detected)
-    assert rec.message_counts["/sheet/scene"] == 18  # lattice + contacts, per frame
-
-
 def test_capsheet_demo_records_snapshots_and_estimates_with_their_error(tmp_path):
     out = tmp_path / "demo.mcap"
     proc = subprocess.run([sys.executable, "-m", "host.cli", "demo", "--lattice", "6x6", "--duration", "1.5",

@@ -82,7 +82,7 @@ def test_ten_sessions_in_a_row_on_one_sheet(rigs):
         assert host.bring_up(0.2)["started"] == n, session
         snaps = list(host.snapshots(count=10))
         assert len(snaps) == 10 and all(s.complete for s in snaps)
-        host._streaming.clear()  # the session ends without STOP (killed): the next one must cope
+        host.streaming.clear()  # the session ends without STOP (killed): the next one must cope
 
 
 # -- 2. recovery without a person --------------------------------------------------------------

@@ -95,3 +95,21 @@ def test_datagrams_queued_before_the_filter_are_discarded_and_counted():
         finally:
             plain.shutdown()
             tx.shutdown()
+
+
+@pytest.mark.parametrize("group", ["not-an-ip", "1.2.3.4"])
+def test_a_group_that_cannot_be_opened_is_one_error_and_no_shutdown_warning(group):
+    """python-can's bus raises from its constructor after its base class counted it open; the
+    half-made bus must not log "was not properly shut down" under the user's one-line error."""
+    import subprocess
+    code = ("import gc, logging, can\n"
+            "logging.basicConfig(level=logging.WARNING)\n"
+            "try:\n"
+            f"    can.Bus(interface='capsheet_udp_multicast', channel={group!r})\n"
+            "except (can.CanError, OSError) as exc:\n"
+            "    print('refused:', type(exc).__name__)\n"
+            "gc.collect()\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("refused:"), r.stdout + r.stderr
+    assert "not properly shut down" not in r.stderr, r.stderr

@@ -1,16 +1,13 @@
-"""The serial stream decoder and the CAN mapping: round trips, chunking invariance, and damage that
-loses only the frames it touches (never an exception)."""
+"""The serial framing and stream decoder: round trips, chunking invariance, and damage that loses
+only the frames it touches (never an exception). The CAN mapping: test_can.py."""
 
 import numpy as np
-import pytest
 from hypothesis import given, strategies as st
 from cobs import cobs
 
-from protocol import (DecodeError, ErrorReason, Sample, SampleBatch, Snapshot, StreamDecoder, decode_can,
-                      decode_frame, encode, from_can, to_can)
-from protocol.can import CAN_CLASSIC_MTU, FD_LENGTHS, MAX_FD_SNAPSHOT_SAMPLES, make_id, split_id
+from protocol import DecodeError, ErrorReason, Sample, SampleBatch, StreamDecoder, decode_frame, encode
 from protocol.framing import MAX_ENCODED_SIZE, encode_frame
-from protocol.messages import MsgType, PROTOCOL_VERSION, Sync
+from protocol.messages import MsgType, PROTOCOL_VERSION
 from tests.strategies import messages
 
 lists_of_messages = st.lists(messages(), min_size=1, max_size=12)
@@ -35,59 +32,12 @@ def test_every_message_round_trips_over_serial(msg):
     assert StreamDecoder().feed(encode(msg)) == [msg]
 
 
-@given(messages(max_snapshot=MAX_FD_SNAPSHOT_SAMPLES))
-def test_every_message_round_trips_over_can(msg):
-    frame = to_can(msg)
-    assert len(frame.data) <= (64 if frame.is_fd else CAN_CLASSIC_MTU)
-    assert frame.is_fd == (len(msg.payload()) > CAN_CLASSIC_MTU)
-    if frame.is_fd:
-        assert len(frame.data) in FD_LENGTHS
-    assert from_can(frame.arbitration_id, frame.data, is_fd=frame.is_fd) == msg
-    prio, type_code, version, node = split_id(frame.arbitration_id)
-    assert (prio, type_code, version, node) == (msg.PRIORITY, msg.TYPE, PROTOCOL_VERSION, msg.node)
-
-
 @given(messages())
 def test_serial_frame_layout_is_header_payload_crc(msg):
     body = cobs.decode(encode(msg)[:-1])
     assert body[:4] == bytes([PROTOCOL_VERSION, msg.TYPE]) + msg.node.to_bytes(2, "little")
     assert body[4:-2] == msg.payload()
     assert b"\x00" not in encode(msg)[:-1]
-
-
-def test_classic_can_refuses_a_snapshot_and_fd_pads_it():
-    snap = Snapshot.from_arrays(0, 1, 0, np.zeros((3, 3), int), np.zeros(3, int))
-    with pytest.raises(ValueError, match="needs CAN FD"):
-        to_can(snap, fd=False)
-    f = to_can(snap)
-    assert f.is_fd and len(f.data) == 20 and f.data[5 + 15:] == b""  # 5 + 3 * 5 = 20: no padding needed
-    g = to_can(Snapshot.from_arrays(0, 1, 0, np.zeros((2, 3), int), np.zeros(2, int)))
-    assert len(g.data) == 16 and g.data[15:] == b"\x00"  # 15 bytes -> FD length 16, padded with 0x00
-    assert decode_can(g.arbitration_id, g.data[:-1] + b"\x01", is_fd=True).reason == ErrorReason.BAD_FIELD
-    assert decode_can(g.arbitration_id, g.data + bytes(4), is_fd=True).reason == ErrorReason.BAD_LENGTH
-
-
-def test_can_frames_of_another_version_are_reported_not_decoded():
-    f = to_can(Sample(3, 1, 2, 3, 4, 0))
-    other = make_id(MsgType.SAMPLE, 3, version=2)
-    ev = decode_can(other, f.data)
-    assert isinstance(ev, DecodeError) and ev.reason == ErrorReason.BAD_VERSION and ev.version == 2
-    assert decode_can(f.arbitration_id & 0x7FF, f.data, is_extended_id=False).reason == ErrorReason.BAD_FIELD
-
-
-@given(st.integers(0, (1 << 29) - 1), st.binary(max_size=64), st.booleans())
-def test_any_can_frame_decodes_or_reports(arb, data, fd):
-    out = decode_can(arb, data, is_fd=fd)
-    assert isinstance(out, DecodeError) or to_can(out, fd=fd).data[:len(data)] == data
-
-
-def test_sync_is_broadcast_only_and_validates_fields():
-    with pytest.raises(ValueError, match="node"):
-        Sync(node=3, counter=1)
-    with pytest.raises(ValueError, match="Invalid counter: 65536"):
-        Sync(counter=65536)
-    with pytest.raises(ValueError, match="Invalid x: 2048"):
-        Sample(1, 0, 2048, 0, 0, 0)
 
 
 # ------------------------------------------------------------------ chunking invariance
@@ -206,17 +156,3 @@ def test_batch_mode_gives_the_same_samples_as_the_exact_path(msgs, seed):
     assert all(isinstance(e, SampleBatch) or not isinstance(e, Sample) for e in events)
 
 
-@given(st.lists(st.integers(0, 2**32 - 1), min_size=1, max_size=6))
-def test_unpack_snapshots_equals_unpacking_each(seeds):
-    from protocol.messages import unpack_snapshots
-    snaps = []
-    for seed in seeds:
-        rng = np.random.Generator(np.random.MT19937(seed))
-        n = int(rng.integers(1, 40))
-        snaps.append(Snapshot.from_arrays(0, int(rng.integers(0, 65536)), int(rng.integers(0, 1000)),
-                                          rng.integers(-2048, 2048, (n, 3)), rng.integers(0, 16, n)))
-    counter, link, counts, status = unpack_snapshots(snaps)
-    assert counter.tolist() == [s.counter for s in snaps for _ in range(s.count)]
-    assert link.tolist() == [s.first_link + k for s in snaps for k in range(s.count)]
-    assert counts.tolist() == [row for s in snaps for row in s.counts.tolist()]
-    assert status.tolist() == [v for s in snaps for v in s.status.tolist()]

@@ -32,15 +32,16 @@ def test_bad_uids_are_refused(text):
 
 def test_the_virtual_sheet_and_the_host_read_the_same_file(tmp_path):
     from host.session import Layout
-    from virtual_sheet.sheet import VirtualSheet, read_layout
+    from protocol.layout import load_layout
+    from virtual_sheet.sheet import VirtualSheet
     sheet = VirtualSheet("flat", "3x3", seed=4)
     for name in ("v.csv", "v.json"):
         path = sheet.write_layout(tmp_path / name)
-        assert read_layout(path) == Layout.load(path).links == dict(sheet.layout)
+        assert dict(load_layout(path).links) == Layout.load(path).links == dict(sheet.layout)
     assert Layout.load(tmp_path / "v.json").lattice == "3x3"
     # a hand-written file without 0x: both read it as hex
     (tmp_path / "hand.csv").write_text("uid,link\n10,0\n")
-    assert read_layout(tmp_path / "hand.csv") == Layout.load(tmp_path / "hand.csv").links == {16: 0}
+    assert dict(load_layout(tmp_path / "hand.csv").links) == Layout.load(tmp_path / "hand.csv").links == {16: 0}
 
 
 BAD = {

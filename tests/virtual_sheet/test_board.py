@@ -4,16 +4,11 @@ the board's frame as the calibration sees it."""
 import numpy as np
 import pytest
 
-from host.analysis.calibration import BOARD_POSES
 from protocol.constants import G0
 from virtual_sheet.board import DEFAULT_DIRECTIONS, BoardPoseScene, board_rotation
 from virtual_sheet.geometry import ideal_readings, link_lengths
 from virtual_sheet.shapes import make_scene
 from virtual_sheet.sheet import VirtualSheet
-
-
-def test_default_poses_are_the_ones_calibrate_asks_for():
-    assert np.allclose(DEFAULT_DIRECTIONS, [p[2] for p in BOARD_POSES])
 
 
 @pytest.mark.parametrize("u", DEFAULT_DIRECTIONS + ((0.3, -0.5, 0.8), (0.0, 0.0, -2.0)))

@@ -12,12 +12,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from protocol.can import to_can
+from protocol.crc import crc16_rows
 from protocol.framing import decode_frame, encode
 from protocol.messages import (Announce, Assign, CalRead, CalWrite, ChipState, Config, GetInfo, Info, Reset,
                                Start, Status, Stop, Sync, provisional_node)
 from protocol.state import ANNOUNCE_PERIOD_S
 from virtual_sheet.chip import ChipModel
-from virtual_sheet.chiparray import ChipArray, cobs_encode_batch, crc16_ccitt_batch, encode_samples_serial
+from virtual_sheet.chiparray import ChipArray, cobs_encode_batch, encode_samples_serial
 from virtual_sheet.faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from virtual_sheet.gateway import Gateway
 from virtual_sheet.sheet import VirtualSheet, make_uids
@@ -229,7 +230,7 @@ def test_batch_cobs_and_crc_match_the_libraries(blocks):
     import binascii
     rows = np.frombuffer(b"".join(blocks), np.uint8).reshape(len(blocks), 13)
     assert [bytes(r) for r in cobs_encode_batch(rows)] == [cobs.encode(b) for b in blocks]
-    assert crc16_ccitt_batch(rows).tolist() == [binascii.crc_hqx(b, 0xFFFF) for b in blocks]
+    assert crc16_rows(rows).tolist() == [binascii.crc_hqx(b, 0xFFFF) for b in blocks]
 
 
 # ------------------------------------------------------------------------------------ sheet level

@@ -17,11 +17,12 @@ import serial
 from protocol.can import decode_can, to_can
 from protocol.dbc import DBC_PATH, dbc_frame_id
 from protocol.framing import StreamDecoder, encode
+from protocol.layout import load_layout
 from protocol.messages import (Ack, Announce, Assign, Capability, GetInfo, Info, MsgType, Sample, Snapshot, Start,
                                Sync)
 from virtual_sheet.chip import ChipModel
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
-from virtual_sheet.sheet import VirtualSheet, read_layout
+from virtual_sheet.sheet import VirtualSheet
 from virtual_sheet.slcan import SlcanAdapter, SlcanDevice
 
 TIMEOUT_S = 3.0
@@ -137,8 +138,8 @@ def test_memory_device_packed_snapshots_and_own_sync(tmp_path):
     np.testing.assert_array_equal(last.counts, expect)
     assert not last.status.any()
     path = sheet.write_layout(tmp_path / "layout.csv")
-    assert read_layout(path) == sheet.layout
-    assert read_layout(sheet.write_layout(tmp_path / "layout.json")) == sheet.layout
+    assert dict(load_layout(path).links) == sheet.layout
+    assert dict(load_layout(sheet.write_layout(tmp_path / "layout.json")).links) == sheet.layout
 
 
 def test_chip_factory_hook():
@@ -284,7 +285,7 @@ def test_cli_prints_the_port_and_runs_for_a_duration(capsys, tmp_path):
                "--layout-out", str(layout), "--faults", "drop_frame=0.5,seed=1"])
     out = capsys.readouterr().out
     assert rc == 0 and "connect to: serial port" in out and "sync 2" in out and "frames_dropped" in out
-    assert len(read_layout(layout)) == 12
+    assert len(load_layout(layout).links) == 12
 
 
 def test_cli_firmware_c_fails_clearly_when_missing(capsys):

@@ -88,6 +88,18 @@ static const capsheet_chip_config_t config = {CAPSHEET_TRANSPORT_SERIAL, false,
 static capsheet_chip_t chip;
 static uint8_t rx_buf[CAPSHEET_RX_BUFFER_SIZE];
 
+/* The chip's calls return the frames sent, or CAPSHEET_ERR_HAL when a send failed. This port's
+ * send_bytes cannot fail, so a failure is only counted (readable in a debugger); a port whose
+ * HAL can fail would retry or reset here. */
+static volatile uint32_t hal_errors;
+
+static void check(int32_t rc)
+{
+    if (rc < 0) {
+        hal_errors++;
+    }
+}
+
 int main(void)
 {
     uint8_t buf[32];
@@ -100,14 +112,14 @@ int main(void)
 #ifdef CAPSHEET_QEMU_MUTANT
     chip.mutant = CAPSHEET_QEMU_MUTANT;  /* a broken build: the rule capsheet_fw.h names */
 #endif
-    (void)capsheet_chip_power_on(&chip, clock_us());
+    check(capsheet_chip_power_on(&chip, clock_us()));
     for (;;) {
         const size_t n = uart_read(buf, sizeof buf);
         const uint64_t now = clock_us();
         if (n > 0u) {
-            (void)capsheet_chip_rx_bytes(&chip, buf, n, now);
+            check(capsheet_chip_rx_bytes(&chip, buf, n, now));
         }
-        (void)capsheet_chip_poll(&chip, now);
+        check(capsheet_chip_poll(&chip, now));
         if (n == 0u) {
             __asm volatile("wfi"); /* woken by the UART RX interrupt or the 1 kHz SysTick */
         }

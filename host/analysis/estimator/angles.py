@@ -1,8 +1,12 @@
-"""Roll and pitch from a reading (paper eq. 2) and the solvability of a unit (eq. 7)."""
+"""Roll and pitch from a reading (paper eq. 2: `protocol.frames.roll_pitch`, re-exported) and the
+solvability of a unit (eq. 7)."""
 
 from __future__ import annotations
 
 import numpy as np
+
+from protocol.constants import G0
+from protocol.frames import angles_of, roll_pitch
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
@@ -10,38 +14,6 @@ from .structure import lattice_of, units_int64
 
 __all__ = ["G0", "roll_pitch", "angles_of", "eq7_matrices", "solvability_units", "solvability",
            "angle_trig", "roll_pitch_trig", "solvability_from_trig"]
-
-#: Standard gravity, m/s² (protocol.constants.G0; host/analysis imports only protocol.lattice).
-G0 = 9.80665
-
-
-def roll_pitch(readings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Roll α and pitch β of every link from its reading, closed form (paper eq. 2).
-
-    The reading is ``g (−sin β, cos β sin α, cos β cos α)`` (specific force; the paper's ``s`` with
-    the opposite sign), so ``α = atan2(r_y, r_z)``, ``β = atan2(−r_x, hypot(r_y, r_z))``.
-
-    Parameters
-    ----------
-    readings : ndarray, shape (n_links, 3)
-        Specific force, m/s² (any common scale), sensor frame.
-
-    Returns
-    -------
-    alpha : ndarray, shape (n_links,)
-        Roll, radians, in (−π, π].
-    beta : ndarray, shape (n_links,)
-        Pitch, radians, in [−π/2, π/2]; positive when the link points down.
-    """
-    r = np.asarray(readings, dtype=float)
-    if r.ndim != 2 or r.shape[1] != 3:
-        raise ValueError(f"Expected `readings` to have shape (n_links, 3), got {r.shape}.")
-    return angles_of(r)
-
-
-def angles_of(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """`roll_pitch` without the checks, over the last axis of ``r`` (..., 3)."""
-    return np.arctan2(r[..., 1], r[..., 2]), np.arctan2(-r[..., 0], np.hypot(r[..., 1], r[..., 2]))
 
 
 def eq7_matrices(alpha: np.ndarray, beta: np.ndarray) -> np.ndarray:

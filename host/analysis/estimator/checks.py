@@ -32,17 +32,6 @@ def check_int(name: str, v, lo: int) -> int:
     return int(v)
 
 
-def _as_real(name: str, x, shape: tuple) -> np.ndarray:
-    """``x`` as a float array of ``shape``; complex, string, object or bool input is an error."""
-    a = np.asarray(x)
-    if a.dtype.kind not in "iuf":
-        raise ValueError(f"Invalid {name}: dtype {a.dtype} (need real numbers, m/s²)")
-    a = a.astype(float, copy=False)
-    if a.shape != shape:
-        raise ValueError(f"Expected `{name}` to have shape {shape}, got {a.shape}.")
-    return a
-
-
 def rest_yaws(rest, n: int, rows: int, cols: int) -> np.ndarray:
     """The rest yaws (n,) of ``rest`` (a `ShapeEstimate` of this lattice, or its yaws), checked."""
     if isinstance(rest, ShapeEstimate):

@@ -78,7 +78,7 @@ def flatness(st, r, norm_g, noise):
                              size=(1,) * len(lead) + (k, k), mode="nearest"
                              ).reshape(lead + (-1,))
     th0 = FLAT_TILT_NOISE * np.maximum(noise, 1e-300)
-    with np.errstate(divide="ignore", over="ignore"):  # noise 0: th0² underflows; masked below
+    with np.errstate(divide="ignore", over="ignore", invalid="ignore"):  # noise 0: th0² underflows (0/0 on a level unit); masked below
         h = np.exp(-np.maximum(th2, 0.0) / (th0[..., None] ** 2 if lead else th0 ** 2))
     return np.where((noise > 0.0)[..., None], h, 0.0) if lead else h
 

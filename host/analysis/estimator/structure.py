@@ -22,13 +22,6 @@ __all__ = ["JOINT_PRIOR_WEIGHT", "Structure", "ND_MIN_VARS", "ND_LEAF", "nested_
 JOINT_PRIOR_WEIGHT = 1e-9
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a × b`` over the last axis (3), without np.cross's overhead."""
-    ax, ay, az = a[..., 0], a[..., 1], a[..., 2]
-    bx, by, bz = b[..., 0], b[..., 1], b[..., 2]
-    return np.stack([ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx], axis=-1)
-
-
 class Structure:
     """Everything about a lattice, mask and model that does not depend on the readings.
 

@@ -290,6 +290,30 @@ class YawProblem:
             return np.concatenate([r.real, r.imag], axis=-1)
         return np.concatenate([r.real, r.imag, self._roll(z, t)[1]], axis=-1)
 
+    def _roll_terms(self, z, t):
+        """What `_roll` and `_roll_grad` share: the links' xy directions per unit ``D`` (U, 4),
+        ``cos β e^{iγ}``; the cells' ``A``, ``C`` (xy), normals ``n`` (xy, z) and ``1/|m|``; each roll
+        link's sensor y (xy complex ``yxy`` and its conjugate ``yc``), its cells' mean normal
+        (xy ``Nxy``) and the roll residuals ``res = w · y_k · N_k`` (K,)."""
+        st = self.st
+        D = t * _SIGN_D
+        Axy, Cxy, nxy, nz, inv = _cell_normals(D, self.Az, self.Cz)
+        c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
+        yxy = self.y_c * z[..., st.roll_links]
+        Nxy = nxy[..., c0] + ws1 * nxy[..., c1]
+        Nz = nz[..., c0] + ws1 * nz[..., c1]
+        yc = yxy.conj()
+        res = self.w * ((yc * Nxy).real + self.y_z * Nz)
+        return D, Axy, Cxy, nxy, nz, inv, yxy, yc, Nxy, res
+
+    def _dm(self, D, Axy, Cxy):
+        """``∂m/∂γ`` of every cell per unit link (U, 4): xy (complex) and z (`_roll`'s docstring)."""
+        Az, Cz = self.Az, self.Cz
+        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=-1)
+        X = np.stack([Axy, Cxy, Axy, Cxy], axis=-1)
+        dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
+        return dmxy, dmz
+
     def _roll(self, z, t):
         """Roll residuals ``w · y_k · N_k`` and their Jacobian rows (K, 7).
 
@@ -299,21 +323,12 @@ class YawProblem:
         ``(−A_z c, Re(Ā c))`` (xy, z), with ``a``, ``c`` the links' xy directions.
         """
         st = self.st
-        D = t * _SIGN_D  # links' xy directions per unit (U, 4), cos β e^{iγ}
-        Az, Cz = self.Az, self.Cz
-        Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
-        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=-1)
-        X = np.stack([Axy, Cxy, Axy, Cxy], axis=-1)
-        dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
+        D, Axy, Cxy, nxy, nz, inv, yxy, yc, Nxy, res = self._roll_terms(z, t)
+        dmxy, dmz = self._dm(D, Axy, Cxy)
         nd = (nxy.conj()[..., None] * dmxy).real + nz[..., None] * dmz  # n · ∂m  (U, 4)
-        c0, c1, ws1 = st.roll_c0, st.roll_c1, self.st.roll_ws1
-        yxy = self.y_c * z[..., st.roll_links]
+        c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
         yz = self.y_z
-        Nxy = nxy[..., c0] + ws1 * nxy[..., c1]
-        Nz = nz[..., c0] + ws1 * nz[..., c1]
-        yc = yxy.conj()
         w = self.w
-        res = w * ((yc * Nxy).real + yz * Nz)
         K = c0.size
         lead = yxy.shape[:-1]
         Jraw = np.empty(lead + (K, 2, 4))
@@ -340,18 +355,10 @@ class YawProblem:
         summed, in a few passes over the cells instead of one per Jacobian entry.
         """
         st = self.st
-        D = t * _SIGN_D
-        Az, Cz = self.Az, self.Cz
-        Axy, Cxy, nxy, nz, inv = _cell_normals(D, Az, Cz)
+        D, Axy, Cxy, nxy, nz, inv, yxy, yc, Nxy, res = self._roll_terms(z, t)
         c0, c1, ws1 = st.roll_c0, st.roll_c1, st.roll_ws1
-        yxy = self.y_c * z[..., st.roll_links]
         yz = self.y_z
-        Nxy = nxy[..., c0] + ws1 * nxy[..., c1]
-        Nz = nz[..., c0] + ws1 * nz[..., c1]
-        yc = yxy.conj()
-        w = self.w
-        res = w * ((yc * Nxy).real + yz * Nz)
-        rho = w * res
+        rho = self.w * res
         gd = rho * (yc * Nxy).imag  # through y_k = y_c e^{iγ_k}: ∂(ȳ N)/∂γ_k = Im(ȳ N)
         U = st.n_units
         cells = np.concatenate([c0, c1])
@@ -365,9 +372,7 @@ class YawProblem:
         Yn = (Yxy.conj() * nxy).real + Yz * nz
         Qxy = (Yxy - Yn * nxy) * inv
         Qz = (Yz - Yn * nz) * inv
-        dmxy = D * np.stack([-Az, Cz, -Az, Cz], axis=-1)
-        X = np.stack([Axy, Cxy, Axy, Cxy], axis=-1)
-        dmz = (X.conj() * D).real * np.array([1.0, -1.0, 1.0, -1.0])
+        dmxy, dmz = self._dm(D, Axy, Cxy)
         gn = (Qxy.conj()[..., None] * dmxy).real + Qz[..., None] * dmz
         return res, gn, gd
 

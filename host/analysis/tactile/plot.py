@@ -139,7 +139,8 @@ def frame_figure(frame: TactileFrame, title: str | None = None, truth=None,
         if c.region.any():
             ax.contour(np.arange(cols), np.arange(rows), c.region.astype(float), levels=[0.5],
                        colors="black", linewidths=1.0)
-        ax.plot(c.index[1], c.index[0], "o", color="black", ms=4)
+        # a ring, above the true cross: a centre on its true contact stays visible around the cross
+        ax.plot(c.index[1], c.index[0], "o", mfc="none", mec="black", ms=7, mew=1.6, zorder=4)
         ax.add_patch(_ellipse(c.index, np.asarray(c.axes_m) / L, c.angle_rad, color="black",
                               ls="--", lw=1.2))
         # the id beside the footprint, on a white box (readable on any cell)
@@ -149,14 +150,14 @@ def frame_figure(frame: TactileFrame, title: str | None = None, truth=None,
                     bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.85))
     if frame.contacts:
         handles += [Line2D([], [], color="black", lw=1.0, label="contact region"),
-                    Line2D([], [], color="black", marker="o", ls="", ms=4,
+                    Line2D([], [], marker="o", mfc="none", mec="black", ls="", ms=7, mew=1.6,
                            label="contact centre (#id)"),
                     Line2D([], [], color="black", ls="--", lw=1.2,
                            label="half-depth footprint")]
     marks = [t if isinstance(t, TrueMark) else TrueMark((float(t[0]), float(t[1])), float("nan"))
              for t in (truth or ())]
     for t in marks:
-        ax.plot(t.index[1], t.index[0], "x", color="limegreen", ms=8, mew=2)
+        ax.plot(t.index[1], t.index[0], "x", color="limegreen", ms=8, mew=2, zorder=3)
         if t.axes_l is not None:
             ax.add_patch(_ellipse(t.index, t.axes_l, t.angle_rad, color="limegreen", ls=":",
                                   lw=1.8))

@@ -57,6 +57,14 @@ def test_every_mark_has_a_legend_entry_and_the_truth_is_drawn(setup):
     crosses = [ln for ln in ax.get_lines() if ln.get_marker() == "x"]
     got = sorted((float(ln.get_ydata()[0]), float(ln.get_xdata()[0])) for ln in crosses)
     assert np.allclose(got, sorted(tuple(map(float, m.index)) for m in marks))
+    # each contact centre is a ring drawn above the crosses, larger than a cross's arms are thick:
+    # an estimate on its true contact is seen around the cross, not hidden under it
+    rings = [ln for ln in ax.get_lines() if ln.get_marker() == "o"]
+    assert len(rings) == len(fr.contacts)
+    for ring in rings:
+        assert ring.get_markerfacecolor() == "none"
+        assert ring.get_zorder() > max(c.get_zorder() for c in crosses)
+        assert ring.get_markersize() >= 0.8 * crosses[0].get_markersize()
     # on the map only the ids, on white boxes; the forces (with their standard deviations)
     # and the truth's in the table below it
     assert sorted(t.get_text() for t in ax.texts) == ["#0", "#1"]

@@ -130,6 +130,11 @@ CASES = [
     # an abbreviation is not taken for a longer option (--noise is not --noise-dist)
     (["paper", "noise", "--noise", "5"], "unrecognized arguments: --noise"),
     (["host", "--port", "/dev/null", "--dur", "3"], "unrecognized arguments: --dur"),
+    # what a subcommand does not know is reported under its own name, not the top level's
+    (["host", "--port", "/dev/null", "--bogus"], "capsheet host: unrecognized arguments: --bogus"),
+    (["paper", "gaussian", "--bogus", "1"], "capsheet paper gaussian: unrecognized arguments: --bogus 1"),
+    (["protocol", "capacity", "--zz"], "capsheet protocol capacity: unrecognized arguments: --zz"),
+    (["--bogus"], "capsheet: unrecognized arguments: --bogus"),
 ]
 
 

@@ -126,7 +126,6 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path):
     assert res.returncode == 2 and "Traceback" not in res.stderr
 
 
-
 def test_a_sheet_over_the_bus_capacity_is_one_line_with_a_way_past_it(tmp_path):
     """The --help example without --baud: 364 chips at 100 Hz over a 3 Mbaud UART. One line, exit 2,
     the remedy for what is set (--packed, more gateways, --baud, a lower --rate) and --ignore-capacity
@@ -168,21 +167,6 @@ def test_calibration_flag_of_host_demo_tactile_refuses_bad_files(tmp_path):
         assert "is for a 3x3 lattice, not 4x4" in res.stderr and "Traceback" not in res.stderr
     res = capsheet("host", "--port", "/dev/null", "--lattice", "4x4", "--calibration", str(tmp_path / "junk.json"))
     assert res.returncode == 2 and "not JSON" in res.stderr and "Traceback" not in res.stderr
-
-
-def test_tactile_applies_a_calibration_file(tmp_path):
-    # the identity file gives exactly the output of no file; a file with a bias changes it
-    ident = Calibration.identity(6, 6).save(tmp_path / "id.json")
-    base = ["tactile", "--lattice", "6x6", "--duration", "1", "--snapshot-rate", "4",
-            "--out", str(tmp_path / "t.png")]
-    plain = capsheet(*base)
-    with_id = capsheet(*base, "--calibration", str(ident))
-    assert plain.returncode == 0 and with_id.returncode == 0, with_id.stderr
-    assert plain.stdout == with_id.stdout
-    c = Calibration.identity(6, 6)
-    biased = Calibration(6, 6, bias=np.full((c.n_links, 3), 0.5), scale=c.scale, misalignment=c.misalignment)
-    other = capsheet(*base, "--calibration", str(biased.save(tmp_path / "b.json")))
-    assert other.returncode == 0 and other.stdout != plain.stdout
 
 
 def test_capsheet_virtual_chip_errors_and_board_scene():

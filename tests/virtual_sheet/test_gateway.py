@@ -189,3 +189,14 @@ def test_packing_passes_on_a_sample_of_a_link_it_does_not_cover():
     assert [m for m in ev if isinstance(m, Sample)] == [Sample(50, 3, 0, 0, 1024, 0)]
     snaps = [m for m in ev if isinstance(m, Snapshot)]
     assert len(snaps) == 1 and snaps[0].status[2] == SampleStatus.INVALID
+
+
+def test_a_gateway_serves_the_chip_array_only_over_its_own_sorted_links():
+    # Gateway.chip_array: the sheet's ChipArray when the sheet keeps one and the gateway's links are
+    # sorted and distinct (its batch paths), else None (the chips one by one)
+    array_sheet = VirtualSheet("flat", "4x4", seed=2)
+    assert array_sheet.engine_name == "array" and array_sheet.array is not None
+    assert Gateway(array_sheet).chip_array is array_sheet.array
+    assert Gateway(array_sheet, [3, 1, 2]).chip_array is None
+    chips_sheet = VirtualSheet("flat", "4x4", seed=2, engine="chips")
+    assert chips_sheet.engine_name == "chips" and Gateway(chips_sheet).chip_array is None

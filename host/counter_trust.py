@@ -1,0 +1,113 @@
+"""Counter trust: which SYNC counters may open a snapshot in the aggregator (issue 12).
+
+Sans-I/O and clock-free: `CounterTrust.verdict` is told a counter not open yet, the newest counter
+opened and the last one emitted, and answers OPEN, LATE, STRAY or RESYNC;
+`host.aggregator.Aggregator` acts on the answer (opens the counter, counts the frame, or on RESYNC
+emits what is open and forgets its ordering history).
+
+* ``"frames"`` (default, standalone use): any frame opens its counter (the old rule).
+* ``"sent"`` (a host driving SYNC): only SYNCs (`Aggregator.open_counter`) open counters; a frame for
+  a counter not open and newer than the newest sent is *stray* (dropped, counted), so a stray or
+  foreign frame never moves the sequence and costs at most its own sample.
+* ``"follow"`` (a gateway drives SYNC): SYNCs and frames open counters within
+  ``-max_age .. +max_jump`` of the newest (a SYNC only when newer: a SYNC source never goes
+  back); one outside is stray, unless ``resync_after`` consecutive counters (each 1..2 after the
+  previous) continue it: then the sequence has restarted or jumped (a gateway reset) and is
+  followed — RESYNC, and ``resync_events`` records ``(old newest, new counter)``.
+
+Counters compare in serial arithmetic mod 2^16 (`serial_diff`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+__all__ = ["CounterTrust", "serial_diff", "OPEN", "LATE", "STRAY", "RESYNC", "TRUST_RULES"]
+
+_MOD = 1 << 16
+_HALF = 1 << 15
+
+OPEN = 0  #: the counter may be opened
+LATE = -1  #: a frame for a counter already gone (or too old): late
+STRAY = -2  #: a counter nobody sent (drive) or out of the sequence (follow): dropped
+RESYNC = 1  #: follow: the sequence restarted or jumped; emit what is open, forget, then open it
+
+TRUST_RULES = ("frames", "sent", "follow")
+
+
+def serial_diff(a, b):
+    """``a - b`` in serial arithmetic mod 2^16, in -32768..32767 (works on arrays).
+
+    >>> serial_diff(0, 0xFFFF), serial_diff(0xFFFF, 0), serial_diff(5, 3)
+    (1, -1, 2)
+    """
+    return ((np.asarray(a, dtype=np.int64) - b + _HALF) % _MOD) - _HALF if isinstance(a, np.ndarray) \
+        else ((int(a) - int(b) + _HALF) % _MOD) - _HALF
+
+
+class CounterTrust:
+    """Which counters may open a snapshot (module docstring).
+
+    Parameters
+    ----------
+    trust : {"frames", "sent", "follow"}
+        The rule.
+    max_jump : int
+        Follow: how far ahead of the newest a counter may open.
+    resync_after : int
+        Follow: consecutive counters of a new sequence before it is followed.
+    max_age : int
+        Counters more than this behind the newest are late (the aggregator's ``max_age``).
+
+    Attributes
+    ----------
+    resync_events : deque
+        ``(previous newest, counter followed)`` of the newest 64 resyncs.
+    """
+
+    def __init__(self, trust: str = "frames", max_jump: int = 64, resync_after: int = 3,
+                 max_age: int = 256) -> None:
+        if trust not in TRUST_RULES:
+            raise ValueError(f"Invalid trust: {trust!r} (need 'frames', 'sent' or 'follow')")
+        if not (isinstance(max_jump, int) and 1 <= max_jump < _HALF):
+            raise ValueError(f"Invalid max_jump: {max_jump!r} (need 1..32767)")
+        if not (isinstance(resync_after, int) and resync_after >= 1):
+            raise ValueError(f"Invalid resync_after: {resync_after!r} (need >= 1)")
+        self.trust = trust
+        self.max_jump = max_jump
+        self.resync_after = resync_after
+        self.max_age = int(max_age)
+        self.resync_events: deque = deque(maxlen=64)  #: (previous newest, counter followed)
+        self._cand: int | None = None  # follow: newest counter of a candidate new sequence
+        self._cand_run = 0
+
+    def verdict(self, c: int, newest: int | None, last_emitted: int | None, from_frame: bool) -> int:
+        """OPEN, LATE, STRAY or RESYNC for counter ``c`` (not open) heard in a frame (``from_frame``)
+        or a SYNC, given the newest counter opened and the last emitted (None: none since the
+        sequence began)."""
+        if self.trust == "frames" or newest is None:
+            if self.trust == "sent" and from_frame:
+                return STRAY if last_emitted is None or serial_diff(c, last_emitted) > 0 else LATE
+            return OPEN
+        d = serial_diff(c, newest)
+        if self.trust == "sent":
+            if not from_frame:
+                return OPEN
+            return LATE if -self.max_age <= d <= 0 else STRAY  # sent recently and gone: late; else never sent
+        # follow. A SYNC (not a frame) for a counter not newer than the newest is out of sequence
+        # too: a SYNC source never goes back, unless it restarted (frames may just be late).
+        if (-self.max_age <= d <= self.max_jump) and (from_frame or d > 0):
+            if d > 0:
+                self._cand, self._cand_run = None, 0
+            return OPEN
+        if self._cand is not None and 1 <= serial_diff(c, self._cand) <= 2:
+            self._cand, self._cand_run = c, self._cand_run + 1
+        elif self._cand is None or c != self._cand:
+            self._cand, self._cand_run = c, 1
+        if self._cand_run < self.resync_after:
+            return STRAY
+        self._cand, self._cand_run = None, 0
+        self.resync_events.append((newest, c))
+        return RESYNC
