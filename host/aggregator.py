@@ -49,8 +49,10 @@ from typing import Callable, Iterable
 import numpy as np
 
 from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
-from protocol.framing import SampleBatch
-from protocol.messages import SAMPLE_WORD_SIZE, Sample, Snapshot, unpack_sample_words, unpack_snapshots
+from protocol.messages import ImuBatch, SampleBatch
+from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
+from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotImu,
+                               unpack_sample_words, unpack_snapshots)
 
 from .counter_trust import OPEN, RESYNC, CounterTrust, serial_diff
 from .deadline import DeadlinePolicy
@@ -104,6 +106,14 @@ class LatticeSnapshot:
     counts : ndarray, shape (n_links, 3), int16, or None
         The chips' ADC counts the readings were converted from (0 where not ``valid``): what a
         recording stores (docs/recording.md); None for a snapshot made without an aggregator.
+    gyro : ndarray, shape (n_links, 3), float64, or None
+        6/9-axis chips (docs/protocol.md §16): angular rate in rad/s, sensor frame, nominal
+        sensitivity at the aggregator's ``gyro_range``; NaN where no record came. None when no link
+        sent an IMU record (accel-only chips).
+    mag : ndarray, shape (n_links, 3), float64, or None
+        Magnetic flux density in tesla at ``mag_range`` (9-axis records); None without any.
+    sample_time_s : ndarray, shape (n_links,), float64, or None
+        Each record's ``time_us`` in seconds after the SYNC; NaN where unknown. None with ``gyro``.
     """
 
     counter: int
@@ -117,6 +127,9 @@ class LatticeSnapshot:
     first_frame_s: float = float("nan")
     last_frame_s: float = float("nan")
     counts: np.ndarray | None = None
+    gyro: np.ndarray | None = None
+    mag: np.ndarray | None = None
+    sample_time_s: np.ndarray | None = None
 
     @property
     def n_links(self) -> int:
@@ -149,6 +162,7 @@ class AggregatorStats:
     out_of_range: int = 0  #: SNAPSHOT samples beyond the lattice
     assigned_links: int = 0  #: sum over emitted snapshots of the links with a chip assigned
     valid_links: int = 0  #: sum over emitted snapshots of the assigned links with a valid sample
+    imu_links: int = 0  #: sum over emitted snapshots of the links with a valid IMU record (gyroscope, §16)
     deadline_changes: int = 0  #: times the adaptive deadline moved (late raises included)
     late_raises: int = 0  #: times a late frame raised the adaptive deadline at once
     stray: int = 0  #: frames for a counter nobody sent (drive) or out of the sequence (follow): dropped
@@ -177,7 +191,7 @@ class AggregatorStats:
     def summary(self) -> dict:
         return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
                                               "dropped", "late", "duplicates", "unknown", "out_of_range",
-                                              "assigned_links", "valid_links", "deadline_changes", "late_raises",
+                                              "assigned_links", "valid_links", "imu_links", "deadline_changes", "late_raises",
                                               "stray", "resyncs")}
 
 
@@ -271,6 +285,9 @@ class Aggregator:
         self.miss_run = np.zeros(L, dtype=np.int64)
         #: which counters may open a snapshot (`host.counter_trust.CounterTrust`)
         self.counter_trust = CounterTrust(trust, max_jump, resync_after, self.max_age)
+        #: CONFIG_IMU ranges the chips were given (docs §16.2): how IMU counts convert (the owner sets them)
+        self.gyro_range, self.mag_range = 3, 0
+        self._imu: dict[int, list] = {}  # open counter -> [gyro (L, 3), mag (L, 3) or None, time (L,)], SI
 
     # -- configuration ---------------------------------------------------------------------
     def set_node_map(self, node_to_link=None) -> None:
@@ -451,6 +468,12 @@ class Aggregator:
             if isinstance(ev, Snapshot):
                 snaps.append(ev)
                 continue
+            if isinstance(ev, (ImuSample, SnapshotImu, ImuBatch)):
+                if snaps:
+                    self.ingest_snapshots(snaps, bus, now=now)
+                    snaps = []
+                self.ingest_imu(ev, bus, now=now)
+                continue
             if not isinstance(ev, (SampleBatch, Sample)):
                 continue  # ignored: does not end a run
             if snaps:
@@ -474,6 +497,57 @@ class Aggregator:
             self._count_unknown(node[~known], bus)
             links, counter, counts, status = links[known], counter[known], counts[known], status[known]
         self._scatter(links, counter, counts, status, bus, now)
+
+    def ingest_imu(self, ev, bus: int = 0, *, now: float) -> None:
+        """An IMU_SAMPLE or a SNAPSHOT_IMU (docs §16): the accelerometer part as any sample, the
+        gyroscope, magnetometer and sample time kept beside it for the counter's snapshot (the first
+        record of a link and counter wins, as for the accelerometer)."""
+        if isinstance(ev, ImuSample):
+            node = np.array([ev.node], dtype=np.uint16)
+            counter = np.array([ev.counter], dtype=np.uint16)
+            counts = np.array([[ev.x, ev.y, ev.z]], dtype=np.int16)
+            status = np.array([ev.status], dtype=np.uint8)
+            t_us, gyro = np.array([ev.time_us]), np.array([ev.gyro])
+            mag = None if ev.mx is None else np.array([ev.mag])
+        elif isinstance(ev, ImuBatch):
+            node, counter, counts, status, t_us, gyro, mag = (ev.node, ev.counter, ev.counts, ev.status, ev.time_us,
+                                                              ev.gyro, ev.mag)
+        else:
+            counts, status, t_us, gyro, mag = ev.arrays()
+            link = ev.first_link + np.arange(counts.shape[0], dtype=np.int64)
+            counter = np.full(link.shape[0], ev.counter, dtype=np.uint16)
+            self._imu_extras(link, counter, t_us, gyro, mag)
+            self._scatter_inside(link, counter, counts, status, bus, now)
+            self._imu_prune(counter)
+            return
+        self._imu_extras(self._lut[node], counter, t_us, gyro, mag)
+        self.ingest_batch(node, counter, counts, status, bus, now=now)
+        self._imu_prune(counter)
+
+    def _imu_extras(self, link, counter, t_us, gyro, mag) -> None:
+        """Keep the records' gyroscope, magnetometer and time beside their counters (first per link wins)."""
+        ok = (link >= 0) & (link < self.n_links)
+        for c in np.unique(counter[ok]).tolist():
+            sel = ok & (counter == c)
+            e = self._imu.get(c)
+            if e is None:
+                L = self.n_links
+                e = self._imu[c] = [np.full((L, 3), np.nan), None, np.full(L, np.nan)]
+            lk = link[sel]
+            new = np.isnan(e[0][lk, 0])
+            lk = lk[new]
+            e[0][lk] = gyro_counts_to_si(gyro[sel][new].astype(np.float64), self.gyro_range)
+            t = t_us[sel][new].astype(np.float64)
+            e[2][lk] = np.where(t == TIME_UNKNOWN, np.nan, t * 1e-6)
+            if mag is not None:
+                if e[1] is None:
+                    e[1] = np.full((self.n_links, 3), np.nan)
+                e[1][lk] = mag_counts_to_si(mag[sel][new].astype(np.float64), self.mag_range)
+
+    def _imu_prune(self, counter) -> None:
+        for c in np.unique(counter).tolist():
+            if c in self._imu and self._slot_of[c] < 0:
+                del self._imu[c]  # late or stray: its accelerometer part was not taken either
 
     def ingest_snapshot(self, snap: Snapshot, bus: int = 0, *, now: float) -> None:
         """A gateway's SNAPSHOT: links ``first_link ..`` of one counter."""
@@ -724,9 +798,18 @@ class Aggregator:
         readings.setflags(write=False)
         valid.setflags(write=False)
         status.setflags(write=False)
+        imu = self._imu.pop(c, None)
+        gyro = mag = t_s = None
+        if imu is not None:
+            gyro, mag, t_s = imu
+            gyro[~valid] = np.nan
+            t_s[~valid] = np.nan
+            st.imu_links += int(np.count_nonzero(np.isfinite(gyro[:, 0])))
+            if mag is not None:
+                mag[~valid] = np.nan
         snap = LatticeSnapshot(c, float(self._slot_t0[s]), float(self._slot_wall[s]), readings, valid, status,
                                complete, float(now - self._slot_t0[s]), float(self._slot_first[s]),
-                               float(self._slot_last[s]), counts)
+                               float(self._slot_last[s]), counts, gyro, mag, t_s)
         st.emitted += 1
         assigned = ~self.unassigned
         st.assigned_links += int(np.count_nonzero(assigned))

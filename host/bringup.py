@@ -15,9 +15,9 @@ import numpy as np
 
 from protocol.capacity import bus_load
 from protocol.constants import nominal_sensitivity
-from protocol.framing import DecodeError, SampleBatch
-from protocol.messages import (Ack, Assign, CalData, CalRead, Config, GetInfo,
-                               MsgType, Nack, Reset, Start, Stop, Sync)
+from protocol.framing import DecodeError
+from protocol.messages import (Ack, Assign, CalData, CalRead, Config, ConfigImu, GetInfo, ImuBatch,
+                               MsgType, Nack, Reset, SampleBatch, Start, Stop, Sync)
 
 from .errors import CapacityError, MismatchError
 from .registry import ChipRecord, Layout, node_for_link
@@ -91,6 +91,8 @@ class BringUp:
         host.gateway_nodes.assign()
         self.assign()
         n_cfg = self.configure()
+        if host.imu_config is not None:
+            self.configure_imu()
         n_cal = self.read_calibration()
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = host.start()
@@ -101,7 +103,7 @@ class BringUp:
     def count_stale(self, events: list) -> None:
         """What arrived while `discarding`: counted, dropped."""
         for ev in events:
-            k = len(ev) if isinstance(ev, SampleBatch) else 1
+            k = len(ev) if isinstance(ev, (SampleBatch, ImuBatch)) else 1
             self.stale_frames += k
             if not isinstance(ev, (Sync, DecodeError)):
                 self._stale_chip_frames += k
@@ -271,6 +273,15 @@ class BringUp:
             rec.configured = True
         return len(ok)
 
+    def configure_imu(self, uids=None) -> int:
+        """`Host.configure_imu`."""
+        host = self.host
+        fmt, gr, mr, fl = host.imu_config
+        ok = host.commands.simple_round(lambda r: ConfigImu(r.node, fmt, gr, mr, fl), MsgType.CONFIG_IMU,
+                                        "CONFIG_IMU", uids)
+        host.aggregator.gyro_range, host.aggregator.mag_range = gr, mr
+        return len(ok)
+
     def read_calibration(self, uids=None) -> int:
         """`Host.read_calibration`."""
         host, reg = self.host, self.host.registry
@@ -330,6 +341,7 @@ class BringUp:
         if action not in ("refuse", "warn", "off"):
             raise ValueError(f"Invalid capacity action: {action!r} (need 'refuse', 'warn' or 'off')")
         host = self.host
+        imu_fmt = host.imu_config[0] if host.imu_config is not None else 0  # IMU records: larger (§16)
         report = []
         if action == "off":
             return report
@@ -345,10 +357,11 @@ class BringUp:
                                         and getattr(t, "interface", "") == "virtual"):
                 continue
             if cap.kind == "serial":
-                load = bus_load(n, host.rate_hz, kind="serial", bitrate=cap.bitrate or 3_000_000, packed=packed)
+                load = bus_load(n, host.rate_hz, kind="serial", bitrate=cap.bitrate or 3_000_000, packed=packed,
+                                fmt=imu_fmt)
             else:
                 load = bus_load(n, host.rate_hz, kind="can", bitrate=cap.bitrate or 1_000_000, fd=cap.fd,
-                                data_bitrate=cap.data_bitrate or 8_000_000, packed=packed)
+                                data_bitrate=cap.data_bitrate or 8_000_000, packed=packed, fmt=imu_fmt)
             row = {"bus": t.name, "chips": n, "load_pct": round(100 * load, 1)}
             report.append(row)
             what = (f"{t.name}: {n} chips at {host.rate_hz:g} Hz need {100 * load:.0f} % of the bus "

@@ -19,7 +19,8 @@ topic                       schema                   content
 ``/capsheet/sync``          capsheet.v2.Sync         the host opened SYNC ``counter`` at ``t``
 ``/capsheet/snapshot``      capsheet.v2.Snapshot     counter, the chips' counts (int16; `read`
                                                      converts them with the recorded calibration),
-                                                     valid bitmap, status
+                                                     valid bitmap, status; 6/9-axis chips: gyro
+                                                     (rad/s), mag (T), sample_time_s (float32)
 ``/capsheet/estimate``      capsheet.v2.Estimate     joints (rows, cols, 3) m; ``yaw_std``,
                                                      ``joint_std`` when computed; error vs truth
 ``/capsheet/contacts``      capsheet.Contacts (JSON) tactile contacts: position, force, radius, id
@@ -573,6 +574,10 @@ class Recorder:
             msg.counts.extend(np.asarray(counts, dtype=np.int16).ravel().tolist())
         else:
             msg.readings.extend(np.asarray(snap.readings, dtype=np.float32).ravel().tolist())
+        for name in ("gyro", "mag", "sample_time_s"):  # 6/9-axis chips (docs/protocol.md §16)
+            v = getattr(snap, name, None)
+            if v is not None:
+                getattr(msg, name).extend(np.asarray(v, dtype=np.float32).ravel().tolist())
         self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg, _wall_ns(snap.wall_time))
 
     def estimate(self, est, counter: int, timestamp: float, wall_time: float | None = None, *,
@@ -704,6 +709,7 @@ class Recorder:
                                   "sensitivity": [float(v) for v in r.sensitivity],
                                   "calibrated": bool(r.calibrated)} for r in chips]}
         session = {"rate_hz": host.rate_hz, "sync": host.sync_mode, "deadline_s": host.aggregator.deadline_s,
+                   "imu_config": None if getattr(host, "imu_config", None) is None else list(host.imu_config),
                    "transports": [{"name": t.name, "kind": t.capabilities.kind, "fd": t.capabilities.fd,
                                    "bitrate": t.capabilities.bitrate} for t in host.transports]}
         return session, layout, calibration
@@ -784,6 +790,11 @@ class Recording:
     message_counts: dict
     truncated: bool = False
     metadata: dict = field(default_factory=dict)
+    #: 6/9-axis chips (docs/protocol.md §16): (n, n_links, 3) rad/s, (n, n_links, 3) T, (n, n_links) s
+    #: after the SYNC, float32, NaN where a snapshot had none; None when no snapshot carried them
+    gyro: np.ndarray | None = None
+    mag: np.ndarray | None = None
+    sample_time_s: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.counter.shape[0])
@@ -845,7 +856,10 @@ class _Decoder:
                 "counts": np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None,
                 "readings": np.array(m.readings, dtype=np.float32).reshape(n, 3) if len(m.readings) else None,
                 "valid": np.unpackbits(np.frombuffer(m.valid, np.uint8), count=n, bitorder="little").astype(bool),
-                "status": np.frombuffer(m.status, np.uint8)}
+                "status": np.frombuffer(m.status, np.uint8),
+                "gyro": np.array(m.gyro, dtype=np.float32).reshape(n, 3) if len(m.gyro) else None,
+                "mag": np.array(m.mag, dtype=np.float32).reshape(n, 3) if len(m.mag) else None,
+                "sample_time_s": np.array(m.sample_time_s, dtype=np.float32) if len(m.sample_time_s) else None}
 
     def estimate(self, rec, rows: int, cols: int) -> dict:
         cls = self.proto.get(rec.channel_id)
@@ -976,12 +990,21 @@ def _concat(parts: list[Recording]) -> Recording:
         for t, n in p.message_counts.items():
             counts[t] = counts.get(t, 0) + n
     cat = lambda name: np.concatenate([getattr(p, name) for p in parts])  # noqa: E731
+
+    def cat_imu(name):
+        if all(getattr(p, name) is None for p in parts):
+            return None
+        return np.concatenate([getattr(p, name) if getattr(p, name) is not None else
+                               np.full((len(p),) + next(getattr(q, name) for q in parts
+                                                        if getattr(q, name) is not None).shape[1:], np.nan, np.float32)
+                               for p in parts])
     return Recording(session=first.session, attachments={k: v for p in parts for k, v in p.attachments.items()},
                      counter=cat("counter"), timestamp=cat("timestamp"), wall_time=cat("wall_time"),
                      latency_s=cat("latency_s"), complete=cat("complete"), readings=cat("readings"),
                      valid=cat("valid"), status=cat("status"), estimates=est, raw=raw, sync=cat("sync"),
                      contacts=[c for p in parts for c in p.contacts], message_counts=counts,
-                     truncated=any(p.truncated for p in parts), metadata={**first.metadata, **last.metadata})
+                     truncated=any(p.truncated for p in parts), metadata={**first.metadata, **last.metadata},
+                     gyro=cat_imu("gyro"), mag=cat_imu("mag"), sample_time_s=cat_imu("sample_time_s"))
 
 
 def _read_one(path, *, raw: bool = True) -> Recording:
@@ -1061,7 +1084,17 @@ def _read_one(path, *, raw: bool = True) -> Recording:
         complete=np.array([s["complete"] for s in snaps], dtype=bool),
         readings=b.readings, valid=b.valid, status=b.status, estimates=est, raw=raws,
         sync=np.array(syncs, dtype=np.float64).reshape(-1, 2), contacts=contacts, message_counts=counts,
-        truncated=truncated, metadata=meta)
+        truncated=truncated, metadata=meta, **_imu_arrays(snaps, int(session["n_links"])))
+
+
+def _imu_arrays(snaps: list[dict], n_links: int) -> dict:
+    """The recorded IMU axes as arrays over the snapshots (NaN rows where one had none), or None."""
+    out = {}
+    for name, shape in (("gyro", (n_links, 3)), ("mag", (n_links, 3)), ("sample_time_s", (n_links,))):
+        have = [s.get(name) for s in snaps]
+        if any(v is not None for v in have):
+            out[name] = np.stack([v if v is not None else np.full(shape, np.nan, np.float32) for v in have])
+    return out
 
 
 @dataclass

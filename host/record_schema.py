@@ -36,7 +36,9 @@ _MESSAGES = [
     ("Snapshot", [("counter", 1, _U32, _OPT), ("timestamp", 2, _D, _OPT), ("wall_time", 3, _D, _OPT),
                   ("latency_s", 4, _D, _OPT), ("complete", 5, _BOOL, _OPT), ("n_links", 6, _U32, _OPT),
                   ("counts", 7, _S32, _REP), ("readings", 8, _F, _REP), ("valid", 9, _B, _OPT),
-                  ("status", 10, _B, _OPT)]),
+                  ("status", 10, _B, _OPT),
+                  # 6/9-axis chips (docs/protocol.md §16): rad/s, T, s after the SYNC (NaN unknown)
+                  ("gyro", 11, _F, _REP), ("mag", 12, _F, _REP), ("sample_time_s", 13, _F, _REP)]),
     ("Estimate", [("counter", 1, _U32, _OPT), ("timestamp", 2, _D, _OPT), ("method", 3, _STR, _OPT),
                   ("residual", 4, _D, _OPT), ("iterations", 5, _U32, _OPT), ("joints", 6, _F, _REP),
                   ("yaw_std", 7, _F, _REP), ("joint_std", 8, _F, _REP), ("joint_std_shape", 9, _U32, _REP),

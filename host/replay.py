@@ -235,6 +235,9 @@ class Replay:
         if self.recording is not None and len(self.recording):
             self._wall_offset = float(self.recording.wall_time[0] - self.recording.timestamp[0])
         self.aggregator = Aggregator(n, n_buses=len(self.transports), deadline_s=float(dl), queue_size=1 << 30)
+        imu = session.get("imu_config") if self.recording is not None else None
+        if imu:  # 6/9-axis chips: their records converted at the ranges the host gave them (§16.2)
+            self.aggregator.gyro_range, self.aggregator.mag_range = int(imu[1]), int(imu[2])
         # the host's feed on the recorded clock: the same correction (the recorded host calibration),
         # applied where the host applied it
         self.feed = SnapshotFeed(self.aggregator, clock=lambda: self._now, queue_size=1 << 30,

@@ -42,11 +42,11 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from protocol.constants import Range
-from protocol.framing import DecodeError, SampleBatch
+from protocol.framing import DecodeError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
-from protocol.messages import (Ack, Announce, CalData, ChipState, Info, Message, Nack, Sample, Snapshot, Status,
-                               Stop, Sync)
+from protocol.messages import (Ack, Announce, CalData, ChipState, ImuBatch, ImuSample, Info, Message, Nack, Sample,
+                               SampleBatch, Snapshot, SnapshotImu, Status, Stop, Sync)
 
 from .aggregator import Aggregator, LatticeSnapshot
 from .bringup import BringUp, capacity_remedy
@@ -67,7 +67,8 @@ __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSche
 
 log = logging.getLogger("capsheet.host")
 
-_DATA = (SampleBatch, Snapshot, Sample, DecodeError)  # what the receive path hands the feed
+#: what the receive path hands the feed (IMU records of 6/9-axis chips too, docs/protocol.md §16)
+_DATA = (SampleBatch, Snapshot, Sample, DecodeError, ImuSample, SnapshotImu, ImuBatch)
 
 
 class _InPart:
@@ -194,6 +195,9 @@ class Host:
         #: the chips heard and the layout (`host.registry`)
         self.registry = ChipRegistry(self.lattice, layout, self._lock)
         self.range_code = Range(range_code)
+        #: CONFIG_IMU for 6/9-axis chips (docs/protocol.md §16.2), sent by `bring_up` after CONFIG
+        #: when set: a `protocol.messages.ConfigImu`'s fields (format, gyro_range, mag_range, flags)
+        self.imu_config: tuple[int, int, int, int] | None = None
         self.filter_code = filter_code
         self.heartbeat_ms = heartbeat_ms
         self.timeout_s = timeout_s
@@ -500,6 +504,11 @@ class Host:
         """CONFIG every assigned chip (or those of ``uids``): rate, range, filter, heartbeat. Returns
         how many ACKed."""
         return self.bringup.configure(uids)
+
+    def configure_imu(self, uids=None) -> int:
+        """CONFIG_IMU every assigned chip (docs §16.2) with `imu_config`; the aggregator converts the
+        records at those ranges. Returns how many ACKed (a chip without the sensors NACKs UNSUPPORTED)."""
+        return self.bringup.configure_imu(uids)
 
     def read_calibration(self, uids=None) -> int:
         """CAL_READ the three axes of every assigned chip; chips that do not answer keep nominal

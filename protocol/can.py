@@ -26,10 +26,12 @@ from typing import NamedTuple
 import numpy as np
 
 from .framing import DecodeError, ErrorReason
-from .messages import (MESSAGE_TYPES, PROTOCOL_VERSION, Message, MsgType, PayloadError, Sample, SampleBatch, Snapshot,
+from .messages import (IMU_RECORD_SIZE, MESSAGE_TYPES, PROTOCOL_VERSION, ImuAccel, ImuGyro, ImuMag, ImuSample,
+                       Message, MsgType, PayloadError, Sample, SampleBatch, SampleFormat, Snapshot, SnapshotImu,
                        Sync, decode_payload, SAMPLE_WORD_SIZE, unpack_sample_words)  # noqa: F401 (Sync: doctest)
 
-__all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES",
+__all__ = ["EchoFilter", "CanDecoder", "CanDecoderStats", "CanFrame", "FrameBlock", "CAN_CLASSIC_MTU", "CAN_FD_MTU", "FD_LENGTHS", "MAX_FD_SNAPSHOT_SAMPLES", "MAX_FD_IMU_RECORDS", "INCOMPLETE_IMU",
+           "imu_can_frames",
            "make_id", "split_id", "to_can", "from_can", "decode_can", "fd_length"]
 
 CAN_CLASSIC_MTU = 8
@@ -38,8 +40,15 @@ FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 #: SNAPSHOT samples in one CAN FD frame: (64 - 5) // 5
 MAX_FD_SNAPSHOT_SAMPLES = (CAN_FD_MTU - Snapshot.HEADER_SIZE) // SAMPLE_WORD_SIZE
 assert MAX_FD_SNAPSHOT_SAMPLES == 11
+#: SNAPSHOT_IMU records in one CAN FD frame by format (docs §16.5): (64 - 6) // 13 and // 19
+MAX_FD_IMU_RECORDS = {f: (CAN_FD_MTU - SnapshotImu.HEADER_SIZE) // size for f, size in IMU_RECORD_SIZE.items()}
+assert MAX_FD_IMU_RECORDS == {SampleFormat.IMU6: 4, SampleFormat.IMU9: 3}
+#: IMU_SAMPLE on CAN FD: padded data length -> payload length (docs §16.3)
+_FD_IMU_SAMPLE = {16: 15, 24: 21}
 
 _PRIORITY_SHIFT, _TYPE_SHIFT, _VERSION_SHIFT = 26, 20, 16
+#: the detail's start of the event a `CanDecoder` reports for classic IMU frames that make no record (§16.4)
+INCOMPLETE_IMU = "incomplete IMU record"
 
 
 class CanFrame(NamedTuple):
@@ -112,6 +121,15 @@ def to_can(msg: Message, *, fd: bool | None = None) -> CanFrame:
     return CanFrame(make_id(msg.TYPE, msg.node, msg.PRIORITY), payload, fd)
 
 
+def imu_can_frames(msg: ImuSample, *, fd: bool = False) -> list[CanFrame]:
+    """An IMU_SAMPLE as CAN frames (docs §16.3, §16.4): one FD frame, or on classic CAN IMU_GYRO
+    (+ IMU_MAG) + IMU_ACCEL, in their sending order."""
+    from .messages import imu_sample_to_can_parts
+    if fd:
+        return [to_can(msg, fd=True)]
+    return [to_can(p, fd=False) for p in imu_sample_to_can_parts(msg)]
+
+
 def decode_can(arbitration_id: int, data: bytes, *, is_extended_id: bool = True,
                is_fd: bool = False) -> Message | DecodeError:
     """One CAN frame -> message, or a `DecodeError` event. Never raises.
@@ -132,12 +150,23 @@ def decode_can(arbitration_id: int, data: bytes, *, is_extended_id: bool = True,
     if len(data) > (CAN_FD_MTU if is_fd else CAN_CLASSIC_MTU) or (is_fd and len(data) not in FD_LENGTHS):
         return DecodeError(ErrorReason.BAD_LENGTH, f"{len(data)} data bytes is not a valid "
                                                    f"{'CAN FD' if is_fd else 'classic CAN'} length", excerpt)
+    need = None
     if type_code == MsgType.SNAPSHOT and len(data) >= Snapshot.HEADER_SIZE:
-        need = Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * data[4]
+        need, what = Snapshot.HEADER_SIZE + SAMPLE_WORD_SIZE * data[4], f"SNAPSHOT with count {data[4]}"
+    elif (type_code == MsgType.SNAPSHOT_IMU and len(data) >= SnapshotImu.HEADER_SIZE
+          and data[5] in IMU_RECORD_SIZE):  # another format: BAD_FIELD from the payload decoder
+        need = SnapshotImu.HEADER_SIZE + IMU_RECORD_SIZE[data[5]] * data[4]
+        what = f"SNAPSHOT_IMU with format {data[5]} and count {data[4]}"
+    elif type_code == MsgType.IMU_SAMPLE and is_fd:
+        need = _FD_IMU_SAMPLE.get(len(data))
+        if need is None:
+            return DecodeError(ErrorReason.BAD_LENGTH, f"IMU_SAMPLE on CAN FD is 16 or 24 bytes, got {len(data)}",
+                               excerpt)
+        what = "IMU_SAMPLE"
+    if need is not None:
         expected = fd_length(need) if is_fd and need <= CAN_FD_MTU else need
         if len(data) != expected:
-            return DecodeError(ErrorReason.BAD_LENGTH, f"SNAPSHOT with count {data[4]} needs "
-                                                       f"{expected} bytes, got {len(data)}", excerpt)
+            return DecodeError(ErrorReason.BAD_LENGTH, f"{what} needs {expected} bytes, got {len(data)}", excerpt)
         if any(data[need:]):
             return DecodeError(ErrorReason.BAD_FIELD, "CAN FD padding is not 0x00", excerpt)
         data = data[:need]
@@ -300,6 +329,46 @@ class CanDecoder:
         self.fd = bool(fd)
         self.echo = EchoFilter() if echo is None else echo
         self.stats = CanDecoderStats()
+        self._imu_open: dict[int, list] = {}  # node -> [IMU_GYRO, IMU_MAG or None]: a record being assembled
+
+    def _incomplete(self, detail: str) -> DecodeError:
+        self.stats.errors[ErrorReason.BAD_FIELD] += 1
+        return DecodeError(ErrorReason.BAD_FIELD, f"{INCOMPLETE_IMU}: {detail}", b"")
+
+    def _assemble(self, ev) -> list:
+        """Classic CAN IMU frames (docs §16.4) -> the IMU_SAMPLE they stand for, or incomplete-record events."""
+        node, opened = ev.node, self._imu_open
+        if isinstance(ev, ImuGyro):
+            out = []
+            if node in opened:
+                old = opened[node][0]
+                out.append(self._incomplete(f"node {node} counter {old.counter} got no IMU_ACCEL before "
+                                            f"the IMU_GYRO of counter {ev.counter}; dropped"))
+            opened[node] = [ev, None]
+            return out
+        o = opened.get(node)
+        if isinstance(ev, ImuMag):
+            if o is None or o[0].counter != ev.counter or o[1] is not None:
+                return [self._incomplete(f"IMU_MAG of node {node} counter {ev.counter} without its IMU_GYRO; dropped")]
+            o[1] = ev
+            return []
+        opened.pop(node, None)
+        if o is None:
+            return [self._incomplete(f"IMU_ACCEL of node {node} (counter byte {ev.counter_lo}) without its "
+                                     "IMU_GYRO; dropped")]
+        g, m = o
+        if (g.counter & 0xFF) != ev.counter_lo:
+            return [self._incomplete(f"node {node}: IMU_ACCEL of counter byte {ev.counter_lo} does not close "
+                                     f"the record of counter {g.counter}; both dropped")]
+        mag = (None, None, None) if m is None else (m.mx, m.my, m.mz)
+        return [ImuSample(node, g.counter, ev.x, ev.y, ev.z, ev.status, ev.time_us, g.gx, g.gy, g.gz, *mag)]
+
+    def close(self) -> list:
+        """End of the stream: an incomplete-record event for every IMU record still open (§16.4)."""
+        out = [self._incomplete(f"node {node} counter {o[0].counter} still open at the end of the stream")
+               for node, o in sorted(self._imu_open.items())]
+        self._imu_open.clear()
+        return out
 
     def feed(self, frames, echoes: list | None = None) -> list:
         """Decode ``frames`` (python-can-like messages and `FrameBlock` s, in wire order); return
@@ -348,6 +417,9 @@ class CanDecoder:
                 errors[ev.reason] += 1
             else:
                 n_frames += 1
+                if isinstance(ev, (ImuGyro, ImuMag, ImuAccel)):
+                    events.extend(self._assemble(ev))
+                    return
             events.append(ev)
 
         for f in frames:

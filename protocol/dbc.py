@@ -13,8 +13,9 @@ from __future__ import annotations
 from dataclasses import fields
 from pathlib import Path
 
-from .can import CAN_CLASSIC_MTU, CAN_FD_MTU, MAX_FD_SNAPSHOT_SAMPLES, make_id
-from .messages import MESSAGE_TYPES, Direction, MsgType, Sample, Snapshot
+from .can import CAN_CLASSIC_MTU, CAN_FD_MTU, MAX_FD_IMU_RECORDS, MAX_FD_SNAPSHOT_SAMPLES, make_id
+from .messages import (IMU_RECORD_SIZE, MESSAGE_TYPES, Direction, ImuAccel, ImuSample, MsgType, Sample, SampleFormat,
+                       Snapshot, SnapshotImu)
 
 __all__ = ["DBC_PATH", "DBC_ID_MASK", "build_database", "dbc_text", "dbc_frame_id", "load_database", "write_dbc"]
 
@@ -40,9 +41,43 @@ def _sample_signals(prefix: str, start: int):
     return out
 
 
+def _i16(name: str, start: int, unit: str = "counts", **kw):
+    from cantools.database import Signal
+    return Signal(name, start, 16, byte_order="little_endian", is_signed=True, unit=unit, **kw)
+
+
+def _record_signals(suffix: str, start: int, fmt: int, **kw):
+    """One IMU record (docs §16.1) at bit ``start``: the accel word, time_us, gyro, and mag for format 2."""
+    sigs = _sample_signals(suffix, start)
+    for sig in sigs:
+        for k, v in kw.items():
+            setattr(sig, k, v)
+    sigs.append(_i16(f"time_us{suffix}", start + 40, "us", **kw))
+    sigs += [_i16(f"g{a}{suffix}", start + 56 + 16 * i, **kw) for i, a in enumerate("xyz")]
+    if fmt == SampleFormat.IMU9:
+        sigs += [_i16(f"m{a}{suffix}", start + 104 + 16 * i, **kw) for i, a in enumerate("xyz")]
+    return sigs
+
+
 def _signals(cls):
     from cantools.database import Signal
     from cantools.database.conversion import BaseConversion
+    if cls is ImuAccel:
+        return ([Signal("counter_lo", 0, 8, byte_order="little_endian")] + _sample_signals("", 8)
+                + [_i16("time_us", 48, "us")])
+    if cls is ImuSample:  # the 9-axis layout; a 6-axis frame (16 bytes) ends after gz
+        return [Signal("counter", 0, 16, byte_order="little_endian")] + _record_signals("", 16, SampleFormat.IMU9)
+    if cls is SnapshotImu:  # the records' layout follows the format byte: a multiplexed message
+        sigs = [Signal("counter", 0, 16, byte_order="little_endian"),
+                Signal("first_link", 16, 16, byte_order="little_endian"),
+                Signal("count", 32, 8, byte_order="little_endian"),
+                Signal("format", 40, 8, byte_order="little_endian", is_multiplexer=True)]
+        for fmt in (SampleFormat.IMU6, SampleFormat.IMU9):
+            size = IMU_RECORD_SIZE[fmt] * 8
+            for k in range(MAX_FD_IMU_RECORDS[fmt]):
+                sigs += _record_signals(f"_{int(fmt)}_{k}", 48 + size * k, fmt, multiplexer_ids=[int(fmt)],
+                                        multiplexer_signal="format")
+        return sigs
     if cls is Sample:
         return [Signal("counter", 0, 16, byte_order="little_endian")] + _sample_signals("", 16)
     if cls is Snapshot:
@@ -70,10 +105,12 @@ def build_database():
     messages = []
     for code in MsgType:
         cls = MESSAGE_TYPES[code]
-        sender = "HOST" if cls.DIRECTION == Direction.HOST_TO_CHIP else ("GATEWAY" if cls is Snapshot else "CHIP")
-        fd = cls is Snapshot
+        sender = "HOST" if cls.DIRECTION == Direction.HOST_TO_CHIP else (
+            "GATEWAY" if cls in (Snapshot, SnapshotImu) else "CHIP")
+        fd = cls in (Snapshot, SnapshotImu, ImuSample)
         layout = cls.payload_struct()
-        size = CAN_FD_MTU if fd else (layout.size if layout is not None else Sample.SIZE)
+        size = (24 if cls is ImuSample else CAN_FD_MTU) if fd else (
+            layout.size if layout is not None else cls.SIZE)
         assert size <= (CAN_FD_MTU if fd else CAN_CLASSIC_MTU)
         messages.append(Message(frame_id=make_id(code, 0), name=code.name, length=size,
                                 signals=_signals(cls), is_extended_frame=True, is_fd=fd,

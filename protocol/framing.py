@@ -25,11 +25,12 @@ import numpy as np
 from cobs import cobs
 
 from .crc import crc16_ccitt_false, crc16_rows
+from .messages import (IMU_RECORD_SIZE, TIME_UNKNOWN, ImuBatch, ImuSample, SampleFormat, unpack_imu_records)
 from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SampleBatch, SAMPLE_WORD_SIZE,
                        decode_payload)
 
 __all__ = ["HEADER", "HEADER_SIZE", "CRC_SIZE", "MAX_FRAME_SIZE", "MAX_PAYLOAD_SIZE", "MAX_ENCODED_SIZE",
-           "SAMPLE_WIRE_SIZE", "ErrorReason", "DecodeError", "SampleBatch", "DecoderStats",
+           "SAMPLE_WIRE_SIZE", "ErrorReason", "DecodeError", "SampleBatch", "ImuBatch", "DecoderStats",
            "encode", "encode_frame", "decode_frame", "StreamDecoder", "cobs_encoded_size"]
 
 HEADER = struct.Struct("<BBH")
@@ -137,24 +138,32 @@ _SAMPLE_ENC = SAMPLE_WIRE_SIZE - 1  # 14 encoded bytes between delimiters
 _SAMPLE_DEC = _SAMPLE_ENC - 1  # 13 decoded bytes
 
 
-def _fast_samples(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """COBS-decode and check ``(n, 14)`` candidate SAMPLE frames at once.
+#: the fast path's frames by encoded length between delimiters: SAMPLE (14), IMU_SAMPLE format 1
+#: (22) and format 2 (28) (docs §6.3, §16.3)
+_FAST_KINDS = {_SAMPLE_ENC: (1, MsgType.SAMPLE)}
+for _f, _size in IMU_RECORD_SIZE.items():
+    _FAST_KINDS[HEADER_SIZE + 2 + _size + CRC_SIZE + 1] = (1 + int(_f), MsgType.IMU_SAMPLE)
 
-    Returns ``(ok mask (n,), decoded (n, 13))``. Rows not ok go to the exact slow path, which
-    reports the precise reason; rows ok are exactly those `decode_frame` would accept as SAMPLE.
+
+def _fast_samples(rows: np.ndarray, msg_type: int = MsgType.SAMPLE) -> tuple[np.ndarray, np.ndarray]:
+    """COBS-decode and check ``(n, L)`` candidate frames of one type and length at once (SAMPLE:
+    L = 14; IMU_SAMPLE: 22 or 28).
+
+    Returns ``(ok mask (n,), decoded (n, L - 1))``. Rows not ok go to the exact slow path, which
+    reports the precise reason; rows ok are exactly those `decode_frame` would accept.
     """
-    n = rows.shape[0]
+    n, enc = rows.shape
     r = rows.astype(np.int64)
-    dec = np.empty((n, _SAMPLE_DEC), dtype=np.int64)
+    dec = np.empty((n, enc - 1), dtype=np.int64)
     nxt = r[:, 0].copy()  # position of the next code byte
-    for p in range(1, _SAMPLE_ENC):
+    for p in range(1, enc):
         is_code = nxt == p
         dec[:, p - 1] = np.where(is_code, 0, r[:, p])
         nxt = np.where(is_code, p + r[:, p], nxt)
-    ok = nxt == _SAMPLE_ENC
+    ok = nxt == enc
     ok &= crc16_rows(dec) == 0
     ok &= dec[:, 0] == PROTOCOL_VERSION
-    ok &= dec[:, 1] == MsgType.SAMPLE
+    ok &= dec[:, 1] == msg_type
     ok &= (dec[:, 3] << 8 | dec[:, 2]) != 0xFFFF
     return ok, dec
 
@@ -252,27 +261,44 @@ class StreamDecoder:
         starts, lengths = starts[keep], lengths[keep]
         if starts.size == 0:
             return
-        cand = np.flatnonzero(lengths == _SAMPLE_ENC)
-        fast = np.zeros(starts.size, dtype=bool)
-        if cand.size:
-            rows = buf[starts[cand, None] + np.arange(_SAMPLE_ENC)]
-            ok, dec = _fast_samples(rows)
-            fast[cand[ok]] = True
-            dec = dec[ok]
-        if not fast.any():
+        kind = np.zeros(starts.size, dtype=np.int8)  # 0 slow, 1 SAMPLE, 2/3 IMU_SAMPLE format 1/2
+        decs: dict[int, np.ndarray] = {}
+        row_of = np.zeros(starts.size, dtype=np.int64)
+        for enc, (k, t) in _FAST_KINDS.items():
+            cand = np.flatnonzero(lengths == enc)
+            if cand.size:
+                rows = buf[starts[cand, None] + np.arange(enc)]
+                ok, dec = _fast_samples(rows, t)
+                kind[cand[ok]] = k
+                decs[k] = dec[ok]
+                row_of[cand[ok]] = np.arange(int(ok.sum()))
+        if not kind.any():
             for s, n in zip(starts.tolist(), lengths.tolist()):
                 self._slow(chunk[s:s + n], events)
             return
-        # map each fast segment to its decoded row
-        row_of = np.cumsum(fast) - 1
-        edges = np.flatnonzero(np.diff(fast.astype(np.int8))) + 1
+        edges = np.flatnonzero(np.diff(kind)) + 1
         bounds = np.concatenate([[0], edges, [starts.size]])
         for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist()):
-            if fast[a]:
-                self._emit_samples(dec[row_of[a]:row_of[b - 1] + 1], events)
+            k = int(kind[a])
+            if k == 1:
+                self._emit_samples(decs[1][row_of[a]:row_of[b - 1] + 1], events)
+            elif k:
+                self._emit_imu(decs[k][row_of[a]:row_of[b - 1] + 1], SampleFormat(k - 1), events)
             else:
                 for s, n in zip(starts[a:b].tolist(), lengths[a:b].tolist()):
                     self._slow(chunk[s:s + n], events)
+
+    def _emit_imu(self, d: np.ndarray, fmt: SampleFormat, events: list) -> None:
+        self.stats.frames += d.shape[0]
+        node = (d[:, 2] | (d[:, 3] << 8)).astype(np.uint16)
+        counter = (d[:, 4] | (d[:, 5] << 8)).astype(np.uint16)
+        size = IMU_RECORD_SIZE[fmt]
+        counts, status, t_us, gyro, mag = unpack_imu_records(d[:, 6:6 + size].astype(np.uint8).reshape(-1), fmt)
+        batch = ImuBatch(node, counter, counts, status, t_us, gyro, mag)
+        if self.batch_samples:
+            events.append(batch)
+        else:
+            events.extend(batch.messages())
 
     def _emit_samples(self, d: np.ndarray, events: list) -> None:
         self.stats.frames += d.shape[0]

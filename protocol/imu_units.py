@@ -8,8 +8,8 @@ a per-chip calibration refining it (``offset`` in counts, ``sensitivity`` in cou
     value [unit] = (counts − offset) / sensitivity
 
 Units on the wire follow the datasheets (°/s, gauss); the SI functions return rad/s and tesla.
-No wire format uses these yet: they are the one place the simulator and, later, the protocol
-(v1.1, docs/protocol.md) take the conversion from.
+They are the one place the simulator and the protocol (v1.2, docs/protocol.md §16.1: the IMU
+record's 16-bit gyroscope and magnetometer counts at CONFIG_IMU's range codes) take the conversion from.
 
 >>> gyro_nominal_sensitivity(GyroRange.DPS2000)   # 16-bit counts per °/s
 16.384

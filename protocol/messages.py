@@ -1,4 +1,4 @@
-"""Message set of the capsheet wire protocol v1.1 (docs/protocol.md §4).
+"""Message set of the capsheet wire protocol v1.2 (docs/protocol.md §4, §16).
 
 Every message is a frozen, slotted dataclass that validates itself when built. The *payload* layout
 of a message is the same on every transport; serial wraps it in a header + CRC + COBS
@@ -26,10 +26,12 @@ __all__ = [
     "LINK_NONE", "is_node_to_host_type",
     "NODE_BROADCAST", "NODE_MAX_ASSIGNED", "NODE_PROVISIONAL_MIN", "NODE_PROVISIONAL_MAX",
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
-    "Message", "Announce", "Info", "Sample", "SampleBatch", "Status", "Ack", "Nack", "CalData", "Snapshot",
+    "Message", "Announce", "Info", "Sample", "SampleBatch", "ImuBatch", "Status", "Ack", "Nack", "CalData", "Snapshot",
     "GatewayInfo", "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
     "MESSAGE_TYPES", "message_to_fields", "message_from_fields", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
+    "ImuGyro", "ImuMag", "ImuAccel", "ImuSample", "SnapshotImu", "ConfigImu", "TIME_UNKNOWN", "IMU_RECORD_SIZE",
+    "MAX_SERIAL_IMU_RECORDS", "ConfigImuFlag", "IMU_TYPES", "imu_sample_to_can_parts", "pack_imu_records", "unpack_imu_records", "imu_saturated",
 ]
 
 #: Protocol version carried in every serial frame (byte 0) and every CAN identifier (bits 19..16):
@@ -37,7 +39,7 @@ __all__ = [
 #: keep it (docs §12).
 PROTOCOL_VERSION = 1
 #: The revision of docs/protocol.md this code implements (major, minor).
-SPEC_VERSION = (1, 1)
+SPEC_VERSION = (1, 2)
 
 #: Type codes a node sends to the host (docs §4): 0x01..0x0F, defined or not. A chip ignores every
 #: frame with such a type, whatever its node (another node's frame, perhaps of a later revision).
@@ -74,6 +76,11 @@ class MsgType(IntEnum):
     CAL_DATA = 0x07  #: §4.7 one axis of stored calibration
     SNAPSHOT = 0x08  #: §4.8 a gateway's packed samples of many links for one counter
     GATEWAY_INFO = 0x09  #: §4.16 a gateway's packing, SYNC source and links (v1.1)
+    IMU_GYRO = 0x0A  #: §16.4 classic CAN, first frame of an IMU record: counter + gyroscope (v1.2)
+    IMU_MAG = 0x0B  #: §16.4 classic CAN, format 2's middle frame: counter + magnetometer (v1.2)
+    IMU_ACCEL = 0x0C  #: §16.4 classic CAN, last frame: counter low byte + accel word + time_us (v1.2)
+    IMU_SAMPLE = 0x0D  #: §16.3 one IMU record for one SYNC counter, serial and CAN FD (v1.2)
+    SNAPSHOT_IMU = 0x0E  #: §16.5 a gateway's packed IMU records of many links for one counter (v1.2)
     # host -> chip
     SYNC = 0x10  #: §4.9 sample now; broadcast, carries the counter
     ASSIGN = 0x11  #: §4.10 give a chip its node id and lattice address
@@ -84,6 +91,7 @@ class MsgType(IntEnum):
     RESET = 0x16  #: §4.14 forget the assignment, reboot, announce again
     CAL_WRITE = 0x17  #: §4.15 write one axis of calibration
     CAL_READ = 0x18  #: §4.15 read one axis of calibration (answered by CAL_DATA)
+    CONFIG_IMU = 0x19  #: §16.2 sample format, gyroscope and magnetometer ranges (v1.2)
 
 
 class Direction(IntEnum):
@@ -112,11 +120,13 @@ class Capability(IntFlag):
     FILTER = 0x0020  #: supports CONFIG filter codes other than 0
     GATEWAY = 0x0040  #: the node is a gateway, not a chip: it sits on no link (v1.1, §13)
     SYNC_SOURCE = 0x0080  #: a gateway that can generate its segment's SYNC (v1.1, §13.3)
+    GYRO = 0x0100  #: a triaxial gyroscope: CONFIG_IMU formats 1 and 2 (v1.2, §16)
+    MAG = 0x0200  #: a triaxial magnetometer: CONFIG_IMU format 2 (v1.2, §16)
+    SAMPLE_TIME = 0x0400  #: IMU records carry a true time_us (without it: TIME_UNKNOWN) (v1.2, §16.1)
 
 
-#: INFO capability bits reserved in v1.1 (bits 8..15; a later revision adds sensor kinds there):
-#: sent as 0, ignored on receipt.
-RESERVED_CAPABILITIES = 0xFF00
+#: INFO capability bits reserved in v1.2 (bits 11..15): sent as 0, ignored on receipt.
+RESERVED_CAPABILITIES = 0xF800
 
 
 class GatewayFlag(IntFlag):
@@ -128,9 +138,28 @@ class GatewayFlag(IntFlag):
 
 
 class SampleFormat(IntEnum):
-    """GATEWAY_INFO ``sample_format``: the word a SNAPSHOT packs (docs §4.16; v1.1 defines one)."""
+    """What a chip answers SYNC with (CONFIG_IMU ``format``, docs §16.2) and what a gateway packs
+    (GATEWAY_INFO ``sample_format``, §4.16): the same codes."""
 
-    ACCEL_12 = 0  #: §5.2: three 12-bit accelerometer axes + 4 status bits, 5 bytes
+    ACCEL_12 = 0  #: §5.2: three 12-bit accelerometer axes + 4 status bits, 5 bytes (SAMPLE, SNAPSHOT)
+    IMU6 = 1  #: §16.1: accel word, time_us, gyroscope: 13-byte records (IMU_SAMPLE, SNAPSHOT_IMU)
+    IMU9 = 2  #: §16.1: accel word, time_us, gyroscope, magnetometer: 19-byte records
+
+
+class ConfigImuFlag(IntFlag):
+    """CONFIG_IMU ``flags`` (docs §16.2)."""
+
+    NONE = 0
+    FD = 0x01  #: on CAN, one IMU_SAMPLE per record in a CAN FD frame (else the classic frames of §16.4)
+
+
+#: ``time_us`` of an IMU record whose time is not known (a chip without SAMPLE_TIME, an INVALID record).
+TIME_UNKNOWN = -32768
+#: bytes of one IMU record by format (docs §16.1)
+IMU_RECORD_SIZE = {SampleFormat.IMU6: 13, SampleFormat.IMU9: 19}
+#: SNAPSHOT_IMU records in one serial frame (payload <= 1018 bytes, docs §16.5)
+MAX_SERIAL_IMU_RECORDS = {f: (1018 - 6) // size for f, size in IMU_RECORD_SIZE.items()}
+assert MAX_SERIAL_IMU_RECORDS == {SampleFormat.IMU6: 77, SampleFormat.IMU9: 53}
 
 
 class StatusFlag(IntFlag):
@@ -426,6 +455,37 @@ class SampleBatch:
                 for n, c, (x, y, z), s in zip(self.node, self.counter, self.counts, self.status)]
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class ImuBatch:
+    """Consecutive IMU_SAMPLE frames of one format, decoded at once: the batch event of
+    `framing.StreamDecoder` (re-exported there; docs/protocol.md §16.3).
+
+    Arrays of equal length n: ``node`` uint16, ``counter`` uint16, ``counts`` int16 (n, 3)
+    accelerometer counts, ``status`` uint8, ``time_us`` int16 (`TIME_UNKNOWN`: unknown), ``gyro``
+    int16 (n, 3), ``mag`` int16 (n, 3) or None (format 1).
+    """
+
+    node: np.ndarray
+    counter: np.ndarray
+    counts: np.ndarray
+    status: np.ndarray
+    time_us: np.ndarray
+    gyro: np.ndarray
+    mag: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.node.shape[0])
+
+    def messages(self) -> list[ImuSample]:
+        """The batch as `ImuSample` messages (slow; for tests and display)."""
+        out = []
+        for k in range(len(self)):
+            m = (None, None, None) if self.mag is None else tuple(int(v) for v in self.mag[k])
+            out.append(ImuSample(int(self.node[k]), int(self.counter[k]), *(int(v) for v in self.counts[k]),
+                                 int(self.status[k]), int(self.time_us[k]), *(int(v) for v in self.gyro[k]), *m))
+        return out
+
+
 @dataclass(frozen=True, slots=True)
 class Status(Message):
     """§4.4 STATUS (heartbeat): state u8, flags u8, rx_errors u8, missed_syncs u8 (both
@@ -643,6 +703,309 @@ assert GatewayInfo._FMT.size == 8
 
 
 # --------------------------------------------------------------------------------------------
+# IMU records (docs §16, v1.2): 6-axis and 9-axis chips
+# --------------------------------------------------------------------------------------------
+
+_I16_MIN, _I16_MAX = -32768, 32767
+
+
+def _record_dtype(fmt: int) -> np.dtype:
+    fields_ = [("word", "u1", (SAMPLE_WORD_SIZE,)), ("time_us", "<i2"), ("gyro", "<i2", (3,))]
+    if fmt == SampleFormat.IMU9:
+        fields_.append(("mag", "<i2", (3,)))
+    dt = np.dtype(fields_)
+    assert dt.itemsize == IMU_RECORD_SIZE[SampleFormat(fmt)]
+    return dt
+
+
+def imu_saturated(counts, gyro, mag=None) -> np.ndarray:
+    """Per record, whether a count sent is at its rail (docs §16.1's SATURATED): an accelerometer
+    count −2048 or +2047, a gyroscope or magnetometer count −32768 or +32767."""
+    counts = np.asarray(counts)
+    out = np.any((counts == ADC_MIN) | (counts == ADC_MAX), axis=-1)
+    for a in (gyro, mag):
+        if a is not None:
+            a = np.asarray(a)
+            out = out | np.any((a == _I16_MIN) | (a == _I16_MAX), axis=-1)
+    return out
+
+
+def pack_imu_records(counts, status, time_us, gyro, mag=None) -> bytes:
+    """Pack IMU records (docs §16.1): 13 bytes each (``mag`` None, format 1) or 19 (format 2).
+
+    ``counts`` (n, 3) accelerometer counts −2048..2047, ``status`` (n,) 0..15, ``time_us`` (n,)
+    −32768..32767, ``gyro`` and ``mag`` (n, 3) −32768..32767. The status bits are sent as given."""
+    counts = np.asarray(counts, dtype=np.int64)
+    n = counts.shape[0] if counts.ndim == 2 else -1
+    cols = {"time_us": (np.asarray(time_us, dtype=np.int64), (n,)), "gyro": (np.asarray(gyro, dtype=np.int64), (n, 3))}
+    if mag is not None:
+        cols["mag"] = (np.asarray(mag, dtype=np.int64), (n, 3))
+    for name, (a, shape) in cols.items():
+        if a.shape != shape:
+            raise ValueError(f"Expected `{name}` to have shape {shape}, got {a.shape}.")
+        if a.size and (a.min() < _I16_MIN or a.max() > _I16_MAX):
+            raise ValueError(f"Invalid {name}: outside {_I16_MIN}..{_I16_MAX}")
+    words = pack_sample_words(counts, status)  # checks counts and status
+    fmt = SampleFormat.IMU9 if mag is not None else SampleFormat.IMU6
+    rec = np.zeros(n, dtype=_record_dtype(fmt))
+    rec["word"] = np.frombuffer(words, dtype=np.uint8).reshape(n, SAMPLE_WORD_SIZE)
+    for name, (a, _shape) in cols.items():
+        rec[name] = a
+    return rec.tobytes()
+
+
+def unpack_imu_records(data, fmt: int):
+    """Inverse of `pack_imu_records`: ``(counts int16 (n, 3), status uint8 (n,), time_us int16 (n,),
+    gyro int16 (n, 3), mag int16 (n, 3) or None)``."""
+    fmt = SampleFormat(fmt)
+    if fmt not in IMU_RECORD_SIZE:
+        raise ValueError(f"Invalid format: {int(fmt)} (IMU records are format 1 or 2)")
+    b = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
+    size = IMU_RECORD_SIZE[fmt]
+    if b.size % size:
+        raise ValueError(f"Format-{int(fmt)} records are a multiple of {size} bytes, got {b.size}")
+    rec = np.ascontiguousarray(b).view(_record_dtype(fmt))
+    counts, status = unpack_sample_words(np.ascontiguousarray(rec["word"]).reshape(-1))
+    mag = rec["mag"].astype(np.int16) if fmt == SampleFormat.IMU9 else None
+    return counts, status, rec["time_us"].astype(np.int16), rec["gyro"].astype(np.int16), mag
+
+
+def _check_i16(name: str, value) -> None:
+    _check_int(name, value, _I16_MIN, _I16_MAX)
+
+
+@dataclass(frozen=True, slots=True)
+class ImuSample(Message):
+    """§16.3 IMU_SAMPLE: ``counter`` u16, then one IMU record (§16.1): the accelerometer word (x, y, z
+    12-bit counts, 4 status bits), ``time_us`` i16 (µs after the SYNC; `TIME_UNKNOWN` = unknown),
+    gyroscope ``gx, gy, gz`` i16, and for format 2 magnetometer ``mx, my, mz`` i16 (None in format 1).
+    15 or 21 bytes; on classic CAN it travels as IMU_GYRO (+ IMU_MAG) + IMU_ACCEL (§16.4)."""
+
+    TYPE = MsgType.IMU_SAMPLE
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    counter: int = 0
+    x: int = 0
+    y: int = 0
+    z: int = 0
+    status: int = 0
+    time_us: int = TIME_UNKNOWN
+    gx: int = 0
+    gy: int = 0
+    gz: int = 0
+    mx: int | None = None
+    my: int | None = None
+    mz: int | None = None
+
+    SIZES: ClassVar[dict] = {2 + 13: SampleFormat.IMU6, 2 + 19: SampleFormat.IMU9}
+
+    def _validate(self) -> None:
+        _check_uint("counter", self.counter, 16)
+        for name in ("x", "y", "z"):
+            _check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
+        _check_uint("status", self.status, 4)
+        for name in ("time_us", "gx", "gy", "gz"):
+            _check_i16(name, getattr(self, name))
+        mags = (self.mx, self.my, self.mz)
+        if any(m is not None for m in mags):
+            if any(m is None for m in mags):
+                raise ValueError(f"Invalid magnetometer: {mags!r} (all three axes or none)")
+            for name in ("mx", "my", "mz"):
+                _check_i16(name, getattr(self, name))
+
+    @property
+    def format(self) -> SampleFormat:
+        return SampleFormat.IMU6 if self.mx is None else SampleFormat.IMU9
+
+    @property
+    def gyro(self) -> tuple[int, int, int]:
+        return (self.gx, self.gy, self.gz)
+
+    @property
+    def mag(self) -> tuple[int, int, int] | None:
+        return None if self.mx is None else (self.mx, self.my, self.mz)
+
+    def record(self) -> bytes:
+        """The IMU record (§16.1), without the counter."""
+        mag = None if self.mx is None else [self.mag]
+        return pack_imu_records([(self.x, self.y, self.z)], [self.status], [self.time_us], [self.gyro], mag)
+
+    def payload(self) -> bytes:
+        return self.counter.to_bytes(2, "little") + self.record()
+
+    @classmethod
+    def from_payload(cls, node: int, payload: bytes) -> "ImuSample":
+        fmt = cls.SIZES.get(len(payload))
+        if fmt is None:
+            raise PayloadError("BAD_LENGTH", f"IMU_SAMPLE payload is 15 or 21 bytes, got {len(payload)}")
+        counts, status, t, g, m = unpack_imu_records(bytes(payload[2:]), fmt)
+        mag = (None, None, None) if m is None else tuple(int(v) for v in m[0])
+        return cls(node, payload[0] | (payload[1] << 8), *(int(v) for v in counts[0]), int(status[0]),
+                   int(t[0]), *(int(v) for v in g[0]), *mag)
+
+
+@dataclass(frozen=True, slots=True)
+class ImuGyro(Message):
+    """§16.4 IMU_GYRO (classic CAN, a record's first frame): ``counter`` u16, ``gx, gy, gz`` i16."""
+
+    TYPE = MsgType.IMU_GYRO
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    _FMT = struct.Struct("<Hhhh")
+    counter: int = 0
+    gx: int = 0
+    gy: int = 0
+    gz: int = 0
+
+    def _validate(self) -> None:
+        _check_uint("counter", self.counter, 16)
+        for name in ("gx", "gy", "gz"):
+            _check_i16(name, getattr(self, name))
+
+
+@dataclass(frozen=True, slots=True)
+class ImuMag(Message):
+    """§16.4 IMU_MAG (classic CAN, format 2's middle frame): ``counter`` u16, ``mx, my, mz`` i16."""
+
+    TYPE = MsgType.IMU_MAG
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    _FMT = struct.Struct("<Hhhh")
+    counter: int = 0
+    mx: int = 0
+    my: int = 0
+    mz: int = 0
+
+    def _validate(self) -> None:
+        _check_uint("counter", self.counter, 16)
+        for name in ("mx", "my", "mz"):
+            _check_i16(name, getattr(self, name))
+
+
+@dataclass(frozen=True, slots=True)
+class ImuAccel(Message):
+    """§16.4 IMU_ACCEL (classic CAN, a record's last frame): ``counter_lo`` u8 (the counter's low
+    byte), the accelerometer word (x, y, z, status; §5.2), ``time_us`` i16. 8 bytes."""
+
+    TYPE = MsgType.IMU_ACCEL
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    counter_lo: int = 0
+    x: int = 0
+    y: int = 0
+    z: int = 0
+    status: int = 0
+    time_us: int = TIME_UNKNOWN
+
+    SIZE: ClassVar[int] = 8
+
+    def _validate(self) -> None:
+        _check_uint("counter_lo", self.counter_lo, 8)
+        for name in ("x", "y", "z"):
+            _check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
+        _check_uint("status", self.status, 4)
+        _check_i16("time_us", self.time_us)
+
+    def payload(self) -> bytes:
+        return (bytes([self.counter_lo]) + pack_sample_words([(self.x, self.y, self.z)], [self.status])
+                + struct.pack("<h", self.time_us))
+
+    @classmethod
+    def from_payload(cls, node: int, payload: bytes) -> "ImuAccel":
+        if len(payload) != cls.SIZE:
+            raise PayloadError("BAD_LENGTH", f"IMU_ACCEL payload is {cls.SIZE} bytes, got {len(payload)}")
+        counts, status = unpack_sample_words(bytes(payload[1:6]))
+        return cls(node, payload[0], *(int(v) for v in counts[0]), int(status[0]),
+                   struct.unpack_from("<h", payload, 6)[0])
+
+
+def imu_sample_to_can_parts(msg: ImuSample) -> list[Message]:
+    """The classic CAN frames of one record (§16.4), in their sending order."""
+    parts: list[Message] = [ImuGyro(msg.node, msg.counter, msg.gx, msg.gy, msg.gz)]
+    if msg.mx is not None:
+        parts.append(ImuMag(msg.node, msg.counter, msg.mx, msg.my, msg.mz))
+    parts.append(ImuAccel(msg.node, msg.counter & 0xFF, msg.x, msg.y, msg.z, msg.status, msg.time_us))
+    return parts
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SnapshotImu(Message):
+    """§16.5 SNAPSHOT_IMU (gateway): ``counter`` u16, ``first_link`` u16, ``count`` u8, ``format`` u8
+    (1: 13-byte, 2: 19-byte records), then ``count`` IMU records (§16.1) for links
+    ``first_link .. first_link + count − 1``. Records are kept packed (``records``); `arrays` unpacks."""
+
+    TYPE = MsgType.SNAPSHOT_IMU
+    DIRECTION = Direction.CHIP_TO_HOST
+    PRIORITY = 2
+    counter: int = 0
+    first_link: int = 0
+    format: int = SampleFormat.IMU6
+    records: bytes = b""
+
+    HEADER_SIZE: ClassVar[int] = 6
+
+    def _validate(self) -> None:
+        _check_uint("counter", self.counter, 16)
+        _check_uint("first_link", self.first_link, 16)
+        if self.format not in IMU_RECORD_SIZE:
+            raise ValueError(f"Invalid format: {self.format!r} (1 = 6-axis, 2 = 9-axis records)")
+        object.__setattr__(self, "format", SampleFormat(self.format))
+        if not isinstance(self.records, (bytes, bytearray, memoryview)):
+            raise ValueError(f"Invalid records: {type(self.records).__name__} (need bytes)")
+        object.__setattr__(self, "records", bytes(self.records))
+        n, rem = divmod(len(self.records), IMU_RECORD_SIZE[self.format])
+        if rem:
+            raise ValueError(f"Invalid records: length {len(self.records)} is not a multiple of "
+                             f"{IMU_RECORD_SIZE[self.format]}")
+        if not 1 <= n <= MAX_SNAPSHOT_SAMPLES:
+            raise ValueError(f"Invalid count: {n} (need 1..{MAX_SNAPSHOT_SAMPLES})")
+        if self.first_link + n > 0x10000:
+            raise ValueError(f"Invalid first_link: {self.first_link} + count {n} exceeds 65536")
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, SnapshotImu):
+            return NotImplemented
+        return (self.node, self.counter, self.first_link, self.format, self.records) == (
+            other.node, other.counter, other.first_link, other.format, other.records)
+
+    def __hash__(self) -> int:
+        return hash((self.node, self.counter, self.first_link, self.format, self.records))
+
+    @classmethod
+    def from_arrays(cls, node: int, counter: int, first_link: int, counts, status, time_us, gyro,
+                    mag=None) -> "SnapshotImu":
+        fmt = SampleFormat.IMU6 if mag is None else SampleFormat.IMU9
+        return cls(node, counter, first_link, fmt, pack_imu_records(counts, status, time_us, gyro, mag))
+
+    @property
+    def count(self) -> int:
+        return len(self.records) // IMU_RECORD_SIZE[self.format]
+
+    def arrays(self):
+        """``(counts, status, time_us, gyro, mag or None)`` as `unpack_imu_records`."""
+        return unpack_imu_records(self.records, self.format)
+
+    def payload(self) -> bytes:
+        return struct.pack("<HHBB", self.counter, self.first_link, self.count, self.format) + self.records
+
+    @classmethod
+    def from_payload(cls, node: int, payload: bytes) -> "SnapshotImu":
+        if len(payload) < cls.HEADER_SIZE:
+            raise PayloadError("BAD_LENGTH", f"SNAPSHOT_IMU payload is at least 6 bytes, got {len(payload)}")
+        counter, first, count, fmt = struct.unpack_from("<HHBB", payload)
+        size = IMU_RECORD_SIZE.get(fmt)
+        if size is None:
+            raise PayloadError("BAD_FIELD", f"SNAPSHOT_IMU format {fmt} (1 = 6-axis, 2 = 9-axis records)")
+        if count == 0 or len(payload) != cls.HEADER_SIZE + size * count:
+            raise PayloadError("BAD_LENGTH", f"SNAPSHOT_IMU with format {fmt} and count {count} is "
+                                             f"{cls.HEADER_SIZE + size * count} bytes, got {len(payload)}")
+        try:
+            return cls(node, counter, first, fmt, bytes(payload[cls.HEADER_SIZE:]))
+        except ValueError as exc:
+            raise PayloadError("BAD_FIELD", str(exc)) from exc
+
+
+# --------------------------------------------------------------------------------------------
 # host -> chip
 # --------------------------------------------------------------------------------------------
 
@@ -793,12 +1156,36 @@ class CalRead(Message):
             raise ValueError(f"Invalid axis: {self.axis!r} (0 = x, 1 = y, 2 = z)")
 
 
+@dataclass(frozen=True, slots=True)
+class ConfigImu(Message):
+    """§16.2 CONFIG_IMU: ``format`` u8 (SampleFormat: 0 SAMPLE, 1 accel + gyro, 2 accel + gyro + mag),
+    ``gyro_range`` u8 (GyroRange 0..4), ``mag_range`` u8 (MagRange 0..3), ``flags`` u8 (ConfigImuFlag).
+    The decoder takes every value; the chip checks them (BAD_VALUE, UNSUPPORTED)."""
+
+    TYPE = MsgType.CONFIG_IMU
+    DIRECTION = Direction.HOST_TO_CHIP
+    PRIORITY = 4
+    _FMT = struct.Struct("<BBBB")
+    format: int = SampleFormat.ACCEL_12
+    gyro_range: int = 3
+    mag_range: int = 0
+    flags: int = 0
+
+    def _validate(self) -> None:
+        for name in ("format", "gyro_range", "mag_range", "flags"):
+            _check_uint(name, getattr(self, name), 8)
+
+
 #: type code -> message class
 MESSAGE_TYPES: dict[int, type[Message]] = {
     cls.TYPE: cls for cls in (Announce, Info, Sample, Status, Ack, Nack, CalData, Snapshot, GatewayInfo,
-                              Sync, Assign, Config, Start, Stop, GetInfo, Reset, CalWrite, CalRead)
+                              ImuGyro, ImuMag, ImuAccel, ImuSample, SnapshotImu,
+                              Sync, Assign, Config, Start, Stop, GetInfo, Reset, CalWrite, CalRead, ConfigImu)
 }
 assert set(MESSAGE_TYPES) == set(MsgType)
+#: the types v1.2 added (docs §16): 6/9-axis chips
+IMU_TYPES = frozenset({MsgType.IMU_GYRO, MsgType.IMU_MAG, MsgType.IMU_ACCEL, MsgType.IMU_SAMPLE,
+                       MsgType.SNAPSHOT_IMU, MsgType.CONFIG_IMU})
 
 
 def decode_payload(type_code: int, node: int, payload: bytes) -> Message:
@@ -817,8 +1204,16 @@ def message_to_fields(msg: Message) -> dict:
     if isinstance(msg, Snapshot):
         return {"counter": msg.counter, "first_link": msg.first_link,
                 "counts": msg.counts.tolist(), "status": msg.status.tolist()}
-    return {f.name: (float(v) if isinstance(v, float) else int(v))
-            for f in fields(msg)[1:] for v in [getattr(msg, f.name)]}
+    if isinstance(msg, SnapshotImu):
+        counts, status, time_us, gyro, mag = msg.arrays()
+        out = {"counter": msg.counter, "first_link": msg.first_link, "counts": counts.tolist(),
+               "status": status.tolist(), "time_us": time_us.tolist(), "gyro": gyro.tolist()}
+        if mag is not None:
+            out["mag"] = mag.tolist()
+        return out
+    return {f.name: (None if v is None else float(v) if isinstance(v, float) else int(v))
+            for f in fields(msg)[1:] for v in [getattr(msg, f.name)]
+            if not (v is None and isinstance(msg, ImuSample))}
 
 
 def message_from_fields(type_name: str, node: int, values: dict) -> Message:
@@ -827,4 +1222,9 @@ def message_from_fields(type_name: str, node: int, values: dict) -> Message:
     if cls is Snapshot:
         return Snapshot.from_arrays(node, values["counter"], values["first_link"],
                                     np.array(values["counts"]), np.array(values["status"]))
+    if cls is SnapshotImu:
+        mag = values.get("mag")
+        return SnapshotImu.from_arrays(node, values["counter"], values["first_link"], np.array(values["counts"]),
+                                       np.array(values["status"]), np.array(values["time_us"]),
+                                       np.array(values["gyro"]), None if mag is None else np.array(mag))
     return cls(node, **values)

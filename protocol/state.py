@@ -75,6 +75,8 @@ RULES[_I, MsgType.ASSIGN] = Rule(Reply.ACK, _I)
 RULES[_F, MsgType.ASSIGN] = Rule(Reply.ACK, _F)
 RULES[_I, MsgType.CONFIG] = Rule(Reply.ACK, validate=True)
 RULES[_F, MsgType.CONFIG] = Rule(Reply.ACK, validate=True)
+RULES[_I, MsgType.CONFIG_IMU] = Rule(Reply.ACK, validate=True)  # v1.2, §16.2: as CONFIG
+RULES[_F, MsgType.CONFIG_IMU] = Rule(Reply.ACK, validate=True)
 RULES[_I, MsgType.START] = Rule(Reply.ACK, _S)
 RULES[_S, MsgType.START] = Rule(Reply.ACK)
 RULES[_F, MsgType.START] = Rule(Reply.ACK)  # stays FAULT: answers SYNC with INVALID samples
@@ -101,7 +103,7 @@ for _st in (_B, _I):
     GATEWAY_RULES[_st, MsgType.GET_INFO] = Rule(Reply.ANNOUNCE_INFO)
     GATEWAY_RULES[_st, MsgType.RESET] = Rule(Reply.ACK_THEN_BOOT, _B)
     GATEWAY_RULES[_st, MsgType.ASSIGN] = Rule(Reply.ACK, _I)
-    for _t in (MsgType.CONFIG, MsgType.START, MsgType.STOP, MsgType.CAL_WRITE, MsgType.CAL_READ):
+    for _t in (MsgType.CONFIG, MsgType.START, MsgType.STOP, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU):
         GATEWAY_RULES[_st, _t] = Rule(Reply.UNSUPPORTED)
 
 
@@ -139,13 +141,13 @@ def chip_table() -> str:
         rows.append(f"| {name} | " + " | ".join(cells) + " |")
 
     for t in (MsgType.SYNC, MsgType.ASSIGN, MsgType.CONFIG, MsgType.START, MsgType.STOP, MsgType.GET_INFO,
-              MsgType.RESET, MsgType.CAL_WRITE, MsgType.CAL_READ):
+              MsgType.RESET, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU):
         name = t.name + (" (broadcast only)" if t == MsgType.SYNC else
                          " (uid_low matches)" if t == MsgType.ASSIGN else "")
         row(name, [_cell(rule_for(s, t), s, t) for s in states])
     row("ASSIGN, uid_low differs", ["—"] * len(states))
     row("a node → host type 0x01..0x0F, defined or not", ["—"] * len(states))
-    row("an undefined type 0x00, 0x19..0x3F", ["NACK 1"] * len(states))
+    row("an undefined type 0x00, 0x1A..0x3F", ["NACK 1"] * len(states))
     row("another protocol version", ["NACK 6"] * len(states))
     row("a defined host → node type of the wrong length", ["NACK 2"] * len(states))
     row("a field out of range (decoder: BAD_FIELD)", ["NACK 3"] * len(states))
@@ -157,7 +159,7 @@ def gateway_table() -> str:
     """The gateway's table (docs §13.4) as markdown: frames addressed to the gateway's node id."""
     rows = ["| input (addressed to the gateway) | BOOT | IDLE |", "|---|---|---|"]
     for t in (MsgType.ASSIGN, MsgType.GET_INFO, MsgType.RESET, MsgType.CONFIG, MsgType.START, MsgType.STOP,
-              MsgType.CAL_WRITE, MsgType.CAL_READ):
+              MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU):
         name = t.name + (" (uid_low matches)" if t == MsgType.ASSIGN else "")
         cells = []
         for s in (_B, _I):

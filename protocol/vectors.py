@@ -28,7 +28,8 @@ from .framing import encode, encode_frame
 from .messages import (LINK_NONE, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead,
                        CalWrite, Capability, ChipState, Config, GatewayFlag, GatewayInfo, GetInfo, Info, Message,
                        MsgType, Nack, NackReason, Reset, Sample, SampleFormat, Snapshot, Start, Status,
-                       StatusFlag, Stop, Sync, message_from_fields, message_to_fields)
+                       StatusFlag, Stop, Sync, message_from_fields, message_to_fields,
+                       TIME_UNKNOWN, ConfigImu, ImuAccel, ImuGyro, ImuMag, ImuSample, SnapshotImu)
 
 __all__ = ["canonical_messages", "message_to_fields", "message_from_fields", "build_vectors",
            "error_vectors", "verdict_vectors", "chip_scenarios", "VECTOR_DIR", "write_vectors"]
@@ -65,6 +66,24 @@ def canonical_messages() -> list[tuple[str, Message]]:
         ("reset", Reset(7)),
         ("cal_write", CalWrite(7, axis=0, flags=1, offset_q4=16, sensitivity=1024.0)),
         ("cal_read", CalRead(7, axis=1)),
+        # v1.2 (docs §16): the worked example of §16.1 (node 1, counter 0x0102) and edges
+        ("imu_sample_6_axis", ImuSample(1, 0x0102, 0, 0, 1024, 0, -1500, 100, -200, 3000)),
+        ("imu_sample_9_axis", ImuSample(1, 0x0102, 0, 0, 1024, 0, -1500, 100, -200, 3000, 8192, -4096, 1)),
+        ("imu_sample_extremes", ImuSample(0x7FFF, 0xFFFF, -2048, 2047, -1, SampleStatus.SATURATED, 32767,
+                                          -32768, 32767, 0, -32768, 32767, 0)),
+        ("imu_sample_invalid", ImuSample(3, 9, 0, 0, 0, SampleStatus.INVALID, TIME_UNKNOWN, 0, 0, 0)),
+        ("imu_gyro", ImuGyro(1, 0x0102, 100, -200, 3000)),
+        ("imu_mag", ImuMag(1, 0x0102, 8192, -4096, 1)),
+        ("imu_accel", ImuAccel(1, 0x02, 0, 0, 1024, 0, -1500)),
+        ("snapshot_imu_6_axis", SnapshotImu.from_arrays(0x7FFF, 0xABCD, 360, [[0, 0, 1024], [-2048, 2047, -1]],
+                                                        [0, SampleStatus.SATURATED], [-1500, TIME_UNKNOWN],
+                                                        [[100, -200, 3000], [-32768, 32767, 1]])),
+        ("snapshot_imu_9_axis", SnapshotImu.from_arrays(0x7FFF, 5, 0, [[0, 0, 1024], [1, -1, 0], [0, 0, 0]],
+                                                        [0, 0, SampleStatus.INVALID], [120, -7000, TIME_UNKNOWN],
+                                                        [[1, 2, 3], [-4, -5, -6], [0, 0, 0]],
+                                                        [[8192, -4096, 1], [0, 0, -8192], [0, 0, 0]])),
+        ("config_imu", ConfigImu(1, format=SampleFormat.IMU9, gyro_range=3, mag_range=1, flags=0)),
+        ("config_imu_fd_broadcast", ConfigImu(0, format=SampleFormat.IMU6, gyro_range=4, mag_range=0, flags=1)),
     ]
 
 
@@ -92,7 +111,7 @@ def build_vectors() -> dict[str, dict]:
         "can.json": {"protocol_version": PROTOCOL_VERSION, "identifier": "29-bit: priority[28:26] type[25:20] version[19:16] node[15:0]",
                      "vectors": can},
         "serial_errors.json": {"protocol_version": PROTOCOL_VERSION, "vectors": error_vectors()},
-        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.1",
+        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.2",
                           "about": "edge frames and the verdict of docs/protocol.md §8.1 for each: 'decoded' "
                                    "(type, node, fields) or the reason a receiver reports",
                           "vectors": verdict_vectors()},
@@ -181,9 +200,9 @@ def verdict_vectors() -> list[dict]:
         # --- the order of the checks (§8.1)
         _ser("version_2_and_a_wrong_length", "bad_version", "8.1, 12", MsgType.START, 5, b"\x01", version=2),
         _ser("version_0", "bad_version", "8.1, 12", MsgType.START, 5, b"", version=0),
-        _ser("undefined_type_0x0a_node_to_host_range", "unknown_type", "4, 8.1", 0x0A, 5, b""),
+        _ser("undefined_type_0x0f_node_to_host_range", "unknown_type", "4, 8.1", 0x0F, 5, b""),
         _ser("undefined_type_0x00", "unknown_type", "4, 8.1", 0x00, 5, b""),
-        _ser("undefined_type_0x19", "unknown_type", "4, 8.1", 0x19, 5, b"\x01\x02"),
+        _ser("undefined_type_0x1a", "unknown_type", "4, 8.1", 0x1A, 5, b"\x01\x02"),
         _ser("undefined_type_and_node_ffff", "unknown_type", "8.1", 0x3F, 0xFFFF, b""),
         _ser("node_ffff_and_a_wrong_length", "bad_field", "3.1, 8.1", MsgType.START, 0xFFFF, b"\x01"),
         _ser("node_ffff_valid_payload", "bad_field", "3.1, 8.1", MsgType.SAMPLE, 0xFFFF, bytes(7)),
@@ -245,7 +264,7 @@ def verdict_vectors() -> list[dict]:
         _can("any_priority_is_accepted", "decoded", "7.1", make_id(MsgType.SAMPLE, 1, priority=7),
              bytes(2) + flat, msg=Sample(1, 0, 0, 0, 1024, 0)),
         _can("sync_addressed_to_a_node", "bad_field", "4.9", make_id(MsgType.SYNC, 5), b"\x01\x00"),
-        _can("undefined_type_0x0a", "unknown_type", "4, 8.1", make_id(0x0A, 5, priority=4), b""),
+        _can("undefined_type_0x0f", "unknown_type", "4, 8.1", make_id(0x0F, 5, priority=4), b""),
         _can("classic_nine_bytes", "bad_length", "7.2", make_id(MsgType.CONFIG, 5), bytes(9)),
         _can("fd_length_nine_is_not_an_fd_length", "bad_length", "7.2", make_id(MsgType.CONFIG, 5), bytes(9),
              fd=True),
@@ -263,4 +282,69 @@ def verdict_vectors() -> list[dict]:
         _can("gateway_info", "decoded", "4.16", make_id(MsgType.GATEWAY_INFO, 0x7FFF),
              struct.pack("<BBHHH", 1, 0, 0, 364, 0), msg=GatewayInfo(0x7FFF, 1, 0, 0, 364, 0)),
     ]
-    return v
+    return v + _imu_verdict_vectors(flat)
+
+
+def _imu_verdict_vectors(flat: bytes) -> list[dict]:
+    """v1.2 (docs §16): the IMU frames' edges, bytes built here with struct from §16's tables."""
+    import struct
+    from .can import make_id
+    unknown = struct.pack("<h", TIME_UNKNOWN)
+    rec6 = flat + unknown + struct.pack("<hhh", 0, 0, 0)  # 13 bytes: word, time_us, gyro
+    rec9 = rec6 + struct.pack("<hhh", 0, 0, 0)  # 19 bytes: + mag
+
+    def snap(count, fmt, rec, first=0):
+        return struct.pack("<HHBB", 7, first, count, fmt) + rec * count
+
+    def recs(n, fmt):
+        z = np.zeros((n, 3), int)
+        return dict(counts=np.tile([0, 0, 1024], (n, 1)), status=np.zeros(n, int), time_us=np.full(n, TIME_UNKNOWN),
+                    gyro=z, mag=z if fmt == 2 else None)
+    imu = make_id(MsgType.IMU_SAMPLE, 1)
+    sid = make_id(MsgType.SNAPSHOT_IMU, 0x7FFF)
+    return [
+        _ser("imu_sample_6_axis_15_bytes", "decoded", "16.3", MsgType.IMU_SAMPLE, 1, b"\x05\x00" + rec6,
+             msg=ImuSample(1, 5, 0, 0, 1024, 0, TIME_UNKNOWN, 0, 0, 0)),
+        _ser("imu_sample_9_axis_21_bytes", "decoded", "16.3", MsgType.IMU_SAMPLE, 1, b"\x05\x00" + rec9,
+             msg=ImuSample(1, 5, 0, 0, 1024, 0, TIME_UNKNOWN, 0, 0, 0, 0, 0, 0)),
+        _ser("imu_sample_16_bytes", "bad_length", "16.3", MsgType.IMU_SAMPLE, 1, b"\x05\x00" + rec6 + b"\x00"),
+        _ser("imu_sample_7_bytes_is_not_a_sample", "bad_length", "16.3", MsgType.IMU_SAMPLE, 1, b"\x05\x00" + flat),
+        _ser("config_imu_values_out_of_range_decode", "decoded", "16.2", MsgType.CONFIG_IMU, 5, bytes([3, 5, 4, 0xFE]),
+             msg=ConfigImu(5, 3, 5, 4, 0xFE)),
+        _ser("config_imu_3_bytes", "bad_length", "16.2, 8.1", MsgType.CONFIG_IMU, 5, bytes([1, 3, 0])),
+        _ser("snapshot_imu_77_records_is_1013_bytes", "decoded", "16.5, 6.3", MsgType.SNAPSHOT_IMU, 0x7FFF,
+             snap(77, 1, rec6), msg=SnapshotImu.from_arrays(0x7FFF, 7, 0, **recs(77, 1))),
+        _ser("snapshot_imu_78_records_is_1026_bytes", "oversize", "16.5, 6.3", MsgType.SNAPSHOT_IMU, 0x7FFF,
+             snap(78, 1, rec6)),
+        _ser("snapshot_imu_53_9_axis_records", "decoded", "16.5, 6.3", MsgType.SNAPSHOT_IMU, 0x7FFF,
+             snap(53, 2, rec9), msg=SnapshotImu.from_arrays(0x7FFF, 7, 0, **recs(53, 2))),
+        _ser("snapshot_imu_54_9_axis_records", "oversize", "16.5, 6.3", MsgType.SNAPSHOT_IMU, 0x7FFF,
+             snap(54, 2, rec9)),
+        _ser("snapshot_imu_format_0", "bad_field", "16.5", MsgType.SNAPSHOT_IMU, 0x7FFF, snap(1, 0, rec6)),
+        _ser("snapshot_imu_format_3", "bad_field", "16.5", MsgType.SNAPSHOT_IMU, 0x7FFF, snap(1, 3, rec6)),
+        _ser("snapshot_imu_count_0", "bad_length", "16.5", MsgType.SNAPSHOT_IMU, 0x7FFF, snap(0, 1, rec6)),
+        _ser("snapshot_imu_format_2_with_13_byte_records", "bad_length", "16.5", MsgType.SNAPSHOT_IMU, 0x7FFF,
+             struct.pack("<HHBB", 7, 0, 1, 2) + rec6),
+        _ser("snapshot_imu_past_link_65535", "bad_field", "16.5", MsgType.SNAPSHOT_IMU, 0x7FFF,
+             snap(2, 1, rec6, first=0xFFFF)),
+        _ser("imu_gyro_7_bytes", "bad_length", "16.4", MsgType.IMU_GYRO, 1, bytes(7)),
+        _ser("imu_accel_decodes_alone", "decoded", "16.4", MsgType.IMU_ACCEL, 1, b"\x05" + flat + unknown,
+             msg=ImuAccel(1, 5, 0, 0, 1024, 0, TIME_UNKNOWN)),
+        _can("imu_sample_on_classic_can", "bad_length", "16.3, 7.2", imu, b"\x05\x00" + rec6),
+        _can("imu_sample_fd_unpadded", "bad_length", "16.3, 7.2", imu, b"\x05\x00" + rec6, fd=True),
+        _can("imu_sample_fd_padded_to_16", "decoded", "16.3", imu, b"\x05\x00" + rec6 + b"\x00", fd=True,
+             msg=ImuSample(1, 5, 0, 0, 1024, 0, TIME_UNKNOWN, 0, 0, 0)),
+        _can("imu_sample_fd_padded_to_24", "decoded", "16.3", imu, b"\x05\x00" + rec9 + b"\x00\x00\x00", fd=True,
+             msg=ImuSample(1, 5, 0, 0, 1024, 0, TIME_UNKNOWN, 0, 0, 0, 0, 0, 0)),
+        _can("imu_sample_fd_20_bytes", "bad_length", "16.3", imu, b"\x05\x00" + rec6 + bytes(5), fd=True),
+        _can("imu_sample_fd_non_zero_padding", "bad_field", "16.3, 7.2", imu, b"\x05\x00" + rec6 + b"\x01", fd=True),
+        _can("snapshot_imu_fd_4_records", "decoded", "16.5", sid, snap(4, 1, rec6) + bytes(6), fd=True,
+             msg=SnapshotImu.from_arrays(0x7FFF, 7, 0, **recs(4, 1))),
+        _can("snapshot_imu_fd_3_9_axis_records", "decoded", "16.5", sid, snap(3, 2, rec9) + bytes(1), fd=True,
+             msg=SnapshotImu.from_arrays(0x7FFF, 7, 0, **recs(3, 2))),
+        _can("snapshot_imu_fd_count_5", "bad_length", "16.5", sid, snap(5, 1, rec6)[:64], fd=True),
+        _can("snapshot_imu_fd_non_zero_padding", "bad_field", "16.5, 7.2", sid, snap(4, 1, rec6) + bytes(5) + b"\x01",
+             fd=True),
+        _can("imu_gyro_classic", "decoded", "16.4", make_id(MsgType.IMU_GYRO, 1), struct.pack("<Hhhh", 5, -32768, 32767, 0),
+             msg=ImuGyro(1, 5, -32768, 32767, 0)),
+    ]

@@ -36,6 +36,12 @@ file only adds what the table leaves to the implementation:
   status INVALID alone. SATURATED is set exactly when a count sent is -2048 or 2047 (§5.2): the chip
   computes it from what it sends; the sensor's other bits (STALE, SELF_TEST) pass through.
 
+* v1.2 (docs §16): built with ``sensors="accel+gyro"`` or ``"accel+gyro+mag"`` and an ``imu``
+  source, the chip reports GYRO (and MAG) and SAMPLE_TIME, takes CONFIG_IMU (checked as §16.2
+  says) and, in format 1 or 2, answers SYNC with one IMU record: an IMU_SAMPLE on serial and with
+  CONFIG_IMU flag FD on CAN, else IMU_GYRO (+ IMU_MAG) + IMU_ACCEL on classic CAN. SATURATED covers
+  every count sent; an INVALID record has counts 0 and ``time_us`` unknown.
+
 The interface (protocol/chip_interface.py) is shared with the C firmware
 (`firmware_ref.chip.CFirmwareChip`), so a virtual sheet runs on either through its ``chip_factory``.
 """
@@ -47,14 +53,15 @@ import struct
 
 from cobs import cobs
 
-from protocol.can import CanFrame, decode_can, make_id, split_id, to_can
+from protocol.can import CanFrame, decode_can, imu_can_frames, make_id, split_id, to_can
 from protocol.chip_interface import DEFAULT_CAPABILITIES, ChipFactory, Out, SensorSource, check_chip_args
 from protocol.constants import SampleStatus
 from protocol.framing import HEADER, DecodeError, ErrorReason, decode_frame, encode
 from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, CalData,
                                CalRead, CalWrite, Capability, ChipState, Config, Direction, Info,
                                Message, MsgType, Nack, NackReason, Status, StatusFlag, Sync,
-                               is_node_to_host_type, provisional_node)
+                               is_node_to_host_type, provisional_node, ConfigImu, ConfigImuFlag, ImuSample,
+                               SampleFormat, TIME_UNKNOWN)
 from protocol.state import ANNOUNCE_PERIOD_S, DEFAULT_HEARTBEAT_MS, DEFAULT_RATE_HZ, Reply, next_deadline, rule_for
 
 __all__ = ["Out", "SensorSource", "ChipModel", "ChipFactory", "DEFAULT_CAPABILITIES",
@@ -71,6 +78,10 @@ _INVALID = int(SampleStatus.INVALID)
 _SAT_BIT = int(SampleStatus.SATURATED)
 _RAILS = (-2048, 2047)
 _FAULT = ChipState.FAULT
+_I16_RAILS = (-32768, 32767)
+#: INFO capability bits by ``sensors`` (v1.2, docs §16)
+_SENSOR_CAPS = {"accel": 0, "accel+gyro": int(Capability.GYRO | Capability.SAMPLE_TIME),
+                "accel+gyro+mag": int(Capability.GYRO | Capability.MAG | Capability.SAMPLE_TIME)}
 
 
 def frame_header(frame: Out) -> tuple[int, int, int] | None:
@@ -108,12 +119,26 @@ class ChipModel:
         Factory calibration per axis (stored in non-volatile memory if CAL_STORAGE).
     seed : int
         Unused by the model (it has no randomness); kept for chip classes that do.
+    sensors : {"accel", "accel+gyro", "accel+gyro+mag"}
+        The chip's sensors (docs §16); anything but "accel" needs ``imu``.
+    imu : callable, optional
+        ``(now_s, gyro_range, mag_range) -> ((gx, gy, gz), (mx, my, mz) or None, time_us)``: the
+        gyroscope's and magnetometer's 16-bit counts at those range codes and the sample's time after
+        the SYNC in µs, read at SYNC beside ``sensor``.
     """
 
     def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
                  capabilities: int = DEFAULT_CAPABILITIES,
-                 calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0) -> None:
+                 calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0,
+                 sensors: str = "accel", imu=None) -> None:
         check_chip_args(uid, transport, calibration)
+        if sensors not in _SENSOR_CAPS:
+            raise ValueError(f"Invalid sensors: {sensors!r} (expected one of {', '.join(_SENSOR_CAPS)})")
+        if sensors != "accel" and imu is None:
+            raise ValueError(f"Invalid imu: None (sensors {sensors!r} need an imu source)")
+        self.sensors = sensors
+        self.imu = imu
+        capabilities = int(capabilities) | _SENSOR_CAPS[sensors]
         self.uid = uid
         self.sensor = sensor
         self.transport = transport
@@ -139,6 +164,8 @@ class ChipModel:
         self.range = 0
         self.filter = 0
         self.heartbeat_ms = DEFAULT_HEARTBEAT_MS
+        self.imu_format = SampleFormat.ACCEL_12  # CONFIG_IMU (§16.2) defaults
+        self.gyro_range, self.mag_range, self.imu_flags = 3, 0, 0
         self.configured = False
         self.streaming = False  # START received (FAULT answers SYNC only then)
         self.rx_errors = 0
@@ -215,6 +242,29 @@ class ChipModel:
         body = _SAMPLE_HDR.pack(PROTOCOL_VERSION, MsgType.SAMPLE, self._sample_hdr, counter) + word.to_bytes(5, "little")
         return cobs.encode(body + binascii.crc_hqx(body, 0xFFFF).to_bytes(2, "big")) + b"\x00"
 
+    def _imu_sample(self, counter: int, now_s: float) -> list[Out]:
+        """One IMU record (docs §16.1) for this SYNC, in the frames the transport and CONFIG_IMU ask for."""
+        nine = self.imu_format == SampleFormat.IMU9
+        frame = self._sample(counter, now_s)  # the accelerometer word, its range, SATURATED and FAULT rules
+        if isinstance(frame, CanFrame):
+            data = frame.data
+        else:
+            data = decode_frame(frame.rstrip(b"\x00")).payload()
+        w = int.from_bytes(data[2:7], "little")
+        x, y, z = (((w >> sh) & 0xFFF) - (((w >> sh) & 0x800) << 1) for sh in (0, 12, 24))
+        st = (w >> 36) & 0xF
+        if st & _INVALID:
+            g, m, t_us = (0, 0, 0), ((0, 0, 0) if nine else None), TIME_UNKNOWN
+        else:
+            g, m, t_us = self.imu(now_s, self.gyro_range, self.mag_range)
+            m = tuple(m) if nine else None
+            if any(v in _I16_RAILS for v in (*g, *(m or ()))):
+                st |= _SAT_BIT
+        msg = ImuSample(self.node, counter, x, y, z, st, int(t_us), *g, *(m if m is not None else (None,) * 3))
+        if self._can:
+            return imu_can_frames(msg, fd=bool(self.imu_flags & ConfigImuFlag.FD))
+        return [encode(msg)]
+
     # ------------------------------------------------------------------ public API
     def power_on(self, now_s: float) -> list[Out]:
         """Boot: ANNOUNCE then INFO from the provisional node id. ``uptime_s`` counts from here."""
@@ -266,6 +316,8 @@ class ChipModel:
                     if gap < 0x7FFF and self.missed_syncs < _SAT:
                         self.missed_syncs = min(_SAT, self.missed_syncs + gap)
                 self.last_counter = c
+                if self.imu_format:
+                    return self._imu_sample(c, now_s)
                 return [self._sample(c, now_s)]
             return []
         if cls is DecodeError:
@@ -324,6 +376,13 @@ class ChipModel:
         elif isinstance(msg, CalWrite):
             if msg.flags & 1 and not self.capabilities & Capability.CAL_STORAGE:
                 return NackReason.UNSUPPORTED
+        elif isinstance(msg, ConfigImu):  # §16.2, in this order
+            if msg.format > 2 or msg.gyro_range > 4 or msg.mag_range > 3:
+                return NackReason.BAD_VALUE
+            caps = self.capabilities
+            if ((msg.format >= 1 and not caps & Capability.GYRO) or (msg.format == 2 and not caps & Capability.MAG)
+                    or (msg.flags & ConfigImuFlag.FD and not caps & Capability.CAN_FD)):
+                return NackReason.UNSUPPORTED
         return None
 
     def _apply(self, msg: Message, rule, now_s: float) -> list[Out]:
@@ -347,6 +406,10 @@ class ChipModel:
             self.heartbeat_ms = msg.heartbeat_ms
             self.configured = True
             self.next_heartbeat_s = now_s + msg.heartbeat_ms / 1000.0 if msg.heartbeat_ms else None
+        elif t == MsgType.CONFIG_IMU:
+            assert isinstance(msg, ConfigImu)
+            self.imu_format = SampleFormat(msg.format)
+            self.gyro_range, self.mag_range, self.imu_flags = msg.gyro_range, msg.mag_range, msg.flags
         elif t == MsgType.START:
             self.streaming = True
             self.last_counter = None

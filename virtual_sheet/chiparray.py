@@ -23,6 +23,12 @@ fault (dead, babbling: `faults.wrap_chip`) — runs the reference model's own co
 exactly as N `ChipModel` s would. tests/virtual_sheet/test_chiparray.py drives both with the same
 random command sequences, faults and timers and compares every frame, byte for byte.
 
+6/9-axis chips (docs/protocol.md §16): built with ``sensors`` and a batch ``imu`` source, every chip
+takes CONFIG_IMU through its view; a SYNC answered by chips in format 1 or 2 reads the gyroscopes
+(and magnetometers) of those chips in one batch and encodes their IMU records at once (serial:
+CRC and COBS by rows; CAN: the classic frames of §16.4 or one FD IMU_SAMPLE each), the records'
+accelerometer part being the vectorised SAMPLE path's counts and status.
+
 Sans-I/O and time as an argument, as `chip.ChipModel`.
 """
 
@@ -36,7 +42,8 @@ from protocol.can import CanFrame, make_id
 from protocol.chip_interface import DEFAULT_CAPABILITIES, Out, check_chip_args
 from protocol.constants import SampleStatus
 from protocol.crc import CRC_TABLE, crc16_ccitt_false, crc16_rows
-from protocol.messages import NODE_BROADCAST, PROTOCOL_VERSION, ChipState, MsgType, Status, StatusFlag, Sync
+from protocol.messages import (IMU_RECORD_SIZE, NODE_BROADCAST, PROTOCOL_VERSION, TIME_UNKNOWN, ChipState,
+                               ConfigImuFlag, MsgType, SampleFormat, Status, StatusFlag, Sync, pack_imu_records)
 
 from .chip import ChipModel
 from .faults import FaultSpec, FaultStats, wrap_chip
@@ -336,6 +343,7 @@ _STALE_ON_SET = {
     "powered": ("_steady", "_next_due"),
     "streaming": ("_steady",),
     "range": ("_range_any",),
+    "imu_format": ("_imu_any",),
     "heartbeat_ms": ("_next_due",),
     "next_heartbeat_s": ("_next_due",),
     "next_announce_s": ("_next_due",),
@@ -390,12 +398,16 @@ class ArrayChip(ChipModel):
     rx_errors = _F(int)
     configured = _F(bool)
     boot_s = _F(float)
+    imu_format = _F(SampleFormat)
+    gyro_range = _F(int)
+    mag_range = _F(int)
+    imu_flags = _F(int)
 
     def __init__(self, arr: "ChipArray", k: int, uid: int, sensor, *, transport: str, fd: bool,
-                 capabilities: int, calibration) -> None:
+                 capabilities: int, calibration, sensors: str = "accel", imu=None) -> None:
         self._arr, self._k = arr, k
         super().__init__(uid, sensor, transport=transport, fd=fd, capabilities=capabilities,
-                         calibration=calibration)
+                         calibration=calibration, sensors=sensors, imu=imu)
 
     def __repr__(self) -> str:
         return "Array" + super().__repr__()
@@ -430,8 +442,11 @@ class ChipArray:
 
     def __init__(self, uids: Sequence[int], sensor: BatchSensor, *, transport: str = "serial", fd: bool = False,
                  capabilities: int = DEFAULT_CAPABILITIES, calibrations=None, sensors: dict | None = None,
-                 faults: FaultSpec | None = None, fault_stats: FaultStats | None = None) -> None:
+                 faults: FaultSpec | None = None, fault_stats: FaultStats | None = None,
+                 imu_sensors: str = "accel", imu=None) -> None:
         n = self.n = len(uids)
+        self.imu_sensors = imu_sensors
+        self.imu = imu  #: batch IMU source: (now_s, idx, gyro_range (m,), mag_range (m,)) -> (gyro, mag, time_us)
         cal0 = ((0, 1024.0),) * 3
         calibrations = [cal0] * n if calibrations is None else list(calibrations)
         if len(calibrations) != n:
@@ -457,6 +472,11 @@ class ChipArray:
         self.rx_errors = np.zeros(n, dtype=np.int64)
         self.configured = np.zeros(n, dtype=bool)
         self.boot_s = np.zeros(n)
+        self.imu_format = np.zeros(n, dtype=np.int64)  # CONFIG_IMU (§16.2), per chip
+        self.gyro_range = np.full(n, 3, dtype=np.int64)
+        self.mag_range = np.zeros(n, dtype=np.int64)
+        self.imu_flags = np.zeros(n, dtype=np.int64)
+        self._imu_any: bool | None = None  # some chip is in format 1 or 2
         # derived values, None until needed (and again after a view writes what they come from)
         self._encoder: _SampleEncoder | None = None  # serial: the SAMPLE encoder of `node`
         self._can_ids: tuple[np.ndarray, list[int]] | None = None  # CAN: each chip's SAMPLE identifier
@@ -472,7 +492,8 @@ class ChipArray:
             if k in sensors:
                 self._scalar[k] = True
             self.views.append(ArrayChip(self, k, int(u), src, transport=transport, fd=fd,
-                                        capabilities=capabilities, calibration=calibrations[k]))
+                                        capabilities=capabilities, calibration=calibrations[k],
+                                        sensors=imu_sensors, imu=self._scalar_imu(k) if imu is not None else None))
         self.faults = faults if faults is not None else FaultSpec()
         self.fault_stats = fault_stats if fault_stats is not None else FaultStats()
         #: what the gateway talks to, per chip: the view, or the view inside its fault wrapper
@@ -485,6 +506,75 @@ class ChipArray:
         self._no_scalar = not self._scalar.any()
         if not self.can:
             _codec()  # the SAMPLE tables now, not in the first SYNC's answer time
+
+    def _scalar_imu(self, k: int):
+        idx = np.array([k])
+
+        def source(now_s: float, gyro_range: int, mag_range: int):
+            g, m, t = self.imu(now_s, idx, np.array([gyro_range]), np.array([mag_range]))
+            return tuple(g[0].tolist()), (None if m is None else tuple(m[0].tolist())), int(t[0])
+        return source
+
+    def _imu_active(self) -> bool:
+        a = self._imu_any
+        if a is None:
+            a = self._imu_any = bool(self.imu_format.any())
+        return a
+
+    def _imu_frames(self, ans: np.ndarray, counter: int, now_s: float, counts: np.ndarray,
+                    status: np.ndarray | None) -> list:
+        """The answers of chips ``ans`` when some are in format 1 or 2: per chip in chip order, its
+        SAMPLE (format 0) or its IMU record's frames (docs §16.3, §16.4)."""
+        fmt = self.imu_format[ans]
+        st = np.zeros(ans.size, dtype=np.int64) if status is None else np.asarray(status, dtype=np.int64)
+        per: list = [None] * ans.size
+        plain = np.flatnonzero(fmt == 0)
+        if plain.size:
+            word = self._words(counts[plain], None if status is None else st[plain])
+            frames = self._can_frames(ans[plain], counter, word) if self.can else self.encode(ans[plain], counter, word)
+            for j, f in zip(plain.tolist(), frames):
+                per[j] = [f]
+        for f_code in (SampleFormat.IMU6, SampleFormat.IMU9):
+            sel = np.flatnonzero(fmt == f_code)
+            if not sel.size:
+                continue
+            idx = ans[sel]
+            c, s_ = counts[sel].astype(np.int64), st[sel].copy()
+            g, m, t = self.imu(now_s, idx, self.gyro_range[idx], self.mag_range[idx])
+            g = np.asarray(g, dtype=np.int64).copy()
+            m = None if f_code == SampleFormat.IMU6 else np.asarray(m, dtype=np.int64).copy()
+            t = np.asarray(t, dtype=np.int64).copy()
+            bad = (s_ & _INVALID) != 0
+            g[bad] = 0
+            t[bad] = TIME_UNKNOWN
+            rails = ((g == 32767) | (g == -32768)).any(axis=1)
+            if m is not None:
+                m[bad] = 0
+                rails |= ((m == 32767) | (m == -32768)).any(axis=1)
+            s_ = np.where(bad, s_, s_ | (rails * _SAT_BIT))
+            recs = np.frombuffer(pack_imu_records(c, s_, t, g, m), dtype=np.uint8).reshape(sel.size, -1)
+            nodes = self.node[idx]
+            ctr = np.array([counter & 0xFF, counter >> 8], dtype=np.uint8)
+            if self.can:
+                fd = (self.imu_flags[idx] & int(ConfigImuFlag.FD)) != 0
+                for j, node, rec, use_fd in zip(sel.tolist(), nodes.tolist(), recs, fd.tolist()):
+                    per[j] = _imu_can(node, counter, rec.tobytes(), use_fd, f_code)
+                continue
+            size = IMU_RECORD_SIZE[f_code]
+            body = np.empty((sel.size, 6 + size + 2), dtype=np.uint8)
+            body[:, 0] = PROTOCOL_VERSION
+            body[:, 1] = int(MsgType.IMU_SAMPLE)
+            body[:, 2] = nodes & 0xFF
+            body[:, 3] = nodes >> 8
+            body[:, 4:6] = ctr
+            body[:, 6:6 + size] = recs
+            crc = crc16_rows(body[:, :6 + size])
+            body[:, 6 + size] = crc >> 8
+            body[:, 7 + size] = crc & 0xFF
+            enc = cobs_encode_batch(body)
+            for j, row in zip(sel.tolist(), enc):
+                per[j] = [row.tobytes() + b"\x00"]
+        return [f for fs in per for f in fs]
 
     def _scalar_source(self, k: int):
         idx = np.array([k])
@@ -753,6 +843,8 @@ class ChipArray:
         wrapper among ``sel``, whose frames go in between)."""
         if self.can or self._wrapped_in(sel):
             return None
+        if self._imu_active():
+            return None  # IMU records: `sync` encodes them
         ans, counts, status = self._answer(msg.counter, now_s, sel)
         if not ans.size:
             return b"", 0
@@ -767,16 +859,24 @@ class ChipArray:
         if wrapped:
             extra = {k: self.chips[k].handle(frame, now_s, msg) for k in wrapped}
         ans, counts, status = self._answer(c, now_s, sel)
-        if self.can:
+        imu_owners = None
+        if ans.size and self._imu_active():
+            frames = self._imu_frames(ans, c, now_s, counts, status)
+            n_per = np.where(self.imu_format[ans] == 0, 1, 1 if not self.can else 0)
+            if self.can:  # classic: 2 or 3 frames a record, FD: 1
+                fmt, fd = self.imu_format[ans], (self.imu_flags[ans] & int(ConfigImuFlag.FD)) != 0
+                n_per = np.where(fmt == 0, 1, np.where(fd, 1, np.where(fmt == 2, 3, 2)))
+            imu_owners = np.repeat(ans, n_per)
+        elif self.can:
             frames = self._can_frames(ans, c, self._words(counts, status))
         elif ans.size:
             b = self._wire(ans, c, counts, status)
             frames = [b[i:i + 15] for i in range(0, len(b), 15)]
         else:
             frames = []
-        own = ans
+        own = ans if imu_owners is None else imu_owners
         if wrapped:
-            frames, own = self._merge(frames, ans, extra)
+            frames, own = self._merge(frames, own, extra)
         return (frames, own) if owners else frames
 
     def _merge(self, frames: list, ans: np.ndarray, extra: dict):
@@ -791,6 +891,9 @@ class ChipArray:
     def sync_words(self, frame: Out, msg: Sync, now_s: float, sel: np.ndarray | None = None):
         """SYNC for a packing gateway: ``(idx, word, other)`` — the plain chips that answered and
         their 40-bit sample words (int64), and the wrapped chips' frames ``other`` as ``[(k, frames)]``."""
+        if self._imu_active():
+            raise NotImplementedError("a packing gateway of IMU records (SNAPSHOT_IMU, docs §16.5) is not "
+                                      "simulated yet: run 6/9-axis chips per chip (no --pack)")
         extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
         ans, counts, status = self._answer(msg.counter, now_s, sel)
         return ans, self._words(counts, status), extra
@@ -810,6 +913,20 @@ class ChipArray:
 
     def __repr__(self) -> str:
         return f"ChipArray({self.n} chips, transport={self.transport!r})"
+
+
+def _imu_can(node: int, counter: int, rec: bytes, fd: bool, fmt) -> list[CanFrame]:
+    """One IMU record's CAN frames (docs §16.3, §16.4) from its 13/19 record bytes."""
+    ctr = counter.to_bytes(2, "little")
+    if fd:
+        payload = ctr + rec
+        pad = 16 if len(payload) <= 16 else 24
+        return [CanFrame(make_id(MsgType.IMU_SAMPLE, node), payload + bytes(pad - len(payload)), True)]
+    out = [CanFrame(make_id(MsgType.IMU_GYRO, node), ctr + rec[7:13], False)]
+    if fmt == SampleFormat.IMU9:
+        out.append(CanFrame(make_id(MsgType.IMU_MAG, node), ctr + rec[13:19], False))
+    out.append(CanFrame(make_id(MsgType.IMU_ACCEL, node), ctr[:1] + rec[:7], False))
+    return out
 
 
 assert NODE_BROADCAST == 0

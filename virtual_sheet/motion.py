@@ -796,11 +796,20 @@ class RigidScene(MotionScene):
 
 class FieldScene(MotionScene):
     """The exact net on a moving height field (`chebyshev_net_jet`), optionally carried by a rigid
-    ``motion``. ``net`` holds the net options ``origin``, ``angle``, ``shear``."""
+    ``motion``. ``net`` holds the net options ``origin``, ``angle``, ``shear``.
+
+    ``periodic_from_s``: the field is exactly periodic with ``period_s`` from this time on (a wave
+    once faded in), and there is no rigid motion: the net is solved at the equivalent time in the
+    first period, ``t0 + (t − t0) mod period``. The truth is the same (to rounding: a test checks)
+    and a long run stays where the solver converges (the wave's net solved at t > 20 s failed to
+    converge, though its shape is the one of the first period)."""
 
     def __init__(self, field: MovingField, rows: int, cols: int, link_length: float, *,
                  motion: Callable[[np.ndarray], RigidJet] | None = None, name: str = "field",
-                 period_s: float | None = None, **net: Any) -> None:
+                 period_s: float | None = None, periodic_from_s: float | None = None, **net: Any) -> None:
+        if periodic_from_s is not None and (motion is not None or not (period_s and np.isfinite(period_s) and period_s > 0)):
+            raise ValueError("Invalid periodic_from_s: needs a period_s > 0 and no rigid motion")
+        self.periodic_from_s = periodic_from_s
         Lattice(rows, cols)
         unknown = set(net) - {"origin", "angle", "shear"}
         if unknown:
@@ -817,10 +826,17 @@ class FieldScene(MotionScene):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         return RigidJet.identity(t.size) if self._motion is None else self._motion(t)
 
+    def _wrap(self, t):
+        t0 = self.periodic_from_s
+        if t0 is None:
+            return t
+        return np.where(t > t0, t0 + np.mod(t - t0, self.period_s), t)
+
     def _body(self, t):
-        return chebyshev_net_jet(self.field, self.rows, self.cols, self.link_length, t, **self.net)
+        return chebyshev_net_jet(self.field, self.rows, self.cols, self.link_length, self._wrap(t), **self.net)
 
     def _body_at(self, t_s):
+        t_s = float(self._wrap(np.array([float(t_s)]))[0])
         return chebyshev_net(lambda x, y: self.field(x, y, t_s), self.rows, self.cols, self.link_length,
                              **self.net)
 
@@ -874,7 +890,9 @@ def wave_scene(rows: int, cols: int, link_length: float = 0.01, *, amplitude_m: 
                          "(need > 0)")
     f = np.sqrt(peak_accel_mps2 / A) / (2 * np.pi) if frequency_hz is None else float(frequency_hz)
     field = TravellingWave(Sine(A, 0.0, np.pi / 2, ramp_s=ramp_s), lam, f, direction)
-    return FieldScene(field, rows, cols, link_length, name="wave", **net)
+    # faded in, the wave repeats every 1/f exactly: solved in its first period, it runs for ever
+    periodic = dict(period_s=1.0 / f, periodic_from_s=float(ramp_s)) if f > 0 else {}
+    return FieldScene(field, rows, cols, link_length, name="wave", **periodic, **net)
 
 
 def elbow_scene(rows: int, cols: int, link_length: float = 0.01, *, bend_rad: float = 2 * np.pi / 3,
@@ -925,6 +943,20 @@ def tap_scene(rows: int, cols: int, link_length: float = 0.01, *, depth_m: float
     c = (0.15 * S, -0.1 * S) if centre is None else (float(centre[0]), float(centre[1]))
     pulse = Pulse(rise_s, hold_s, fall_s, rest_s, level=d, delay_s=delay_s)
     return FieldScene(Dent(pulse, sig, c), rows, cols, link_length, name="tap", **net)
+
+
+def grow_scene(rows: int, cols: int, link_length: float = 0.01, *, amplitude: float | None = None,
+               sigma: float | None = None, period_s: float = 4.0, **net: Any) -> FieldScene:
+    """`shapes.GrowScene` with exact kinematics (for 6/9-axis chips): a Gaussian bump of height
+    ``amplitude · (1 − cos 2πt/T)/2`` (default S/4, width S/4, T = 4 s) — a `Dent` of negative depth."""
+    S = _check_size(rows, cols, link_length)
+    a = S / 4 if amplitude is None else float(amplitude)
+    sig = S / 4 if sigma is None else float(sigma)
+    if not (np.isfinite(period_s) and period_s > 0):
+        raise ValueError(f"Invalid period_s: {period_s!r} (need > 0 s)")
+    depth = Sine(a / 2, 1.0 / period_s, np.pi / 2, offset=-a / 2)  # -a (1 - cos)/2: the dent is a bump
+    return FieldScene(Dent(depth, sig), rows, cols, link_length, name="grow", period_s=float(period_s),
+                      periodic_from_s=0.0, **net)
 
 
 def flat_turn_scene(rows: int, cols: int, link_length: float = 0.01, *, heading_rad: float = 1.2,
@@ -1018,6 +1050,8 @@ MOTION_SCENES: dict[str, MotionSceneSpec] = {s.name: s for s in [
     MotionSceneSpec("flat_turn", "a flat horizontal sheet turning in heading and sliding",
                     flat_turn_scene),
     MotionSceneSpec("rest", "a static shape (shape=...) at rest", rest_scene, moving=False),
+    MotionSceneSpec("grow", "a Gaussian bump rising and falling (shapes.GrowScene, exact kinematics)", grow_scene,
+                    moving=False),
     MotionSceneSpec("tumble", "a flat sheet turned every way (magnetometer calibration)",
                     tumble_scene, moving=False),
     MotionSceneSpec("board", "the calibration board turned through held poses", board_scene,

@@ -56,7 +56,10 @@ from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from .geometry import ideal_readings
 from .sensor import SensorModel
 from .sensor import _check_readings as check_readings
-from .shapes import StaticScene, make_scene
+from .imu import SENSOR_SETS, GyroModel, ImuArray, MagModel
+from .imu_source import MOTION_SHAPES, ImuSource
+from .motion import make_motion_scene
+from .shapes import SHAPES, StaticScene, make_scene
 
 __all__ = ["VirtualSheet", "make_uids"]
 
@@ -112,6 +115,11 @@ class VirtualSheet:
     engine : {"array", "chips"}, optional
         Chips as one vectorised `ChipArray` or one object each; default "array" for the Python
         model, "chips" when ``chip_factory`` is given.
+    sensors : {"accel", "accel+gyro", "accel+gyro+mag"}
+        The chips' sensors (issue 29, docs/protocol.md §16). A moving scene of `imu_source.MOTION_SHAPES`
+        (carry, wave, elbow, tap, flat_turn, tumble) or a static shape can carry any; the chips then read
+        the phase-1 models (`imu.ImuArray`: ICM-42688-P gyroscope, LIS3MDL magnetometer in Earth's
+        field, the accelerometer of ``sensor``/``noise``) through an `imu_source.ImuSource`.
     """
 
     def __init__(self, shape: str = "gaussian", lattice: Any = "14x14", *, link_length: float = 0.01,
@@ -119,7 +127,7 @@ class VirtualSheet:
                  sensor: SensorModel | None = None, seed: int = 0, transport: str = "serial",
                  fd: bool = False, chip_factory: Callable[..., Any] | None = None,
                  faults: FaultSpec | str | None = None, scene_rate_hz: float = 50.0,
-                 engine: str | None = None) -> None:
+                 engine: str | None = None, sensors: str = "accel") -> None:
         if isinstance(lattice, Lattice):
             self.lattice = lattice
         elif isinstance(lattice, str):
@@ -128,6 +136,25 @@ class VirtualSheet:
             self.lattice = Lattice(*lattice)
         rows, cols = self.lattice.rows, self.lattice.cols
         self.shape = shape
+        self.sensors = sensors
+        if sensors not in SENSOR_SETS:
+            raise ValueError(f"Invalid sensors: {sensors!r} (expected one of {', '.join(SENSOR_SETS)})")
+        self.sensor_model = sensor if sensor is not None else SensorModel(noise_pct_g=noise, chip_seed=seed)
+        self.imu_source: ImuSource | None = None
+        if scene is None and (shape in MOTION_SHAPES or sensors != "accel"):
+            if shape in MOTION_SHAPES or shape == "grow":  # grow: `shapes.GrowScene`, exact kinematics
+                motion = make_motion_scene(shape, rows, cols, link_length, **(shape_params or {}))
+            elif shape in SHAPES:
+                motion = make_motion_scene("rest", rows, cols, link_length, shape=shape, **(shape_params or {}))
+            else:
+                raise ValueError(f"Invalid shape {shape!r} for {sensors} chips: a moving scene "
+                                 f"({', '.join(MOTION_SHAPES)}) or a static shape ({', '.join(SHAPES)})")
+            cs = seed
+            gyro = GyroModel.part("icm42688p", chip_seed=cs) if "gyro" in sensors else None
+            mag = MagModel.part("lis3mdl", chip_seed=cs) if "mag" in sensors else None
+            self.imu_source = ImuSource(motion, ImuArray(self.lattice.n_links, accel=self.sensor_model, gyro=gyro,
+                                                         mag=mag, seed=seed))
+            scene = motion
         self.scene = scene if scene is not None else make_scene(shape, rows, cols, link_length,
                                                                 **(shape_params or {}))
         self.static = isinstance(self.scene, StaticScene)
@@ -135,7 +162,6 @@ class VirtualSheet:
         self.transport = transport
         self.fd = fd
         self.scene_rate_hz = float(scene_rate_hz)
-        self.sensor_model = sensor if sensor is not None else SensorModel(noise_pct_g=noise, chip_seed=seed)
         self.faults = FaultSpec.parse(faults) if isinstance(faults, str) or faults is None else faults
         self.fault_stats = FaultStats()
         n = self.n_links = self.lattice.n_links
@@ -176,7 +202,8 @@ class VirtualSheet:
                     drift[k] = DriftingSensor(self._source(k), self.faults.drift, self.fault_stats)
                     self.reply_delay_s[k] = self.faults.drift_late_ms / 1e3
             self.array = ChipArray(self.uids, self._batch_source, transport=transport, fd=fd, calibrations=cal,
-                                   sensors=drift, faults=self.faults, fault_stats=self.fault_stats)
+                                   sensors=drift, faults=self.faults, fault_stats=self.fault_stats,
+                                   imu_sensors=sensors, imu=self._batch_imu if sensors != "accel" else None)
             self.chips = self.array.chips
             return
         for k, uid in enumerate(self.uids):
@@ -184,10 +211,25 @@ class VirtualSheet:
             if k in self.faults.drift_chip:
                 src = DriftingSensor(src, self.faults.drift, self.fault_stats)
                 self.reply_delay_s[k] = self.faults.drift_late_ms / 1e3
-            chip = self.chip_factory(uid, src, transport=transport, fd=fd, calibration=cal[k], seed=seed + k)
+            extra = {} if sensors == "accel" else {"sensors": sensors, "imu": self._imu_scalar(k)}
+            chip = self.chip_factory(uid, src, transport=transport, fd=fd, calibration=cal[k], seed=seed + k, **extra)
             self.chips.append(wrap_chip(chip, k, self.faults, self.fault_stats, can=transport == "can"))
 
     # ------------------------------------------------------------------ readings
+    def _batch_imu(self, now_s: float, idx: np.ndarray, gyro_range, mag_range):
+        """The chip array's IMU source: gyroscope and magnetometer counts at the chips' ranges and
+        ``time_us``, at the instant the accelerometer of the same SYNC was read."""
+        _a, _s, g, m, t = self.imu_source.read(now_s, idx, gyro_range, mag_range)
+        return g, m, t
+
+    def _imu_scalar(self, k: int):
+        idx = np.array([k])
+
+        def source(now_s: float, gyro_range: int, mag_range: int, _idx=idx):
+            g, m, t = self._batch_imu(now_s, _idx, gyro_range, mag_range)
+            return tuple(g[0].tolist()), (None if m is None else tuple(m[0].tolist())), int(t[0])
+        return source
+
     def _source(self, k: int) -> Callable[[float], tuple]:
         def source(now_s: float, _k=k):
             c = self._cache
@@ -227,6 +269,8 @@ class VirtualSheet:
     def precompute(self) -> int:
         """Solve every step of a periodic scene now (before streaming); returns how many. A
         non-periodic scene is solved as it goes (each step once)."""
+        if self.imu_source is not None:
+            return self.imu_source.precompute()
         if self._period_steps is None:
             return 0
         for i in range(self._period_steps):
@@ -272,6 +316,16 @@ class VirtualSheet:
         with self._lock:
             c = self._cache
             if c[0] == now_s:
+                return c
+            if self.imu_source is not None:  # a moving sheet: the accelerometers read its truth
+                every = np.arange(self.n_links)
+                counts, status = self.imu_source.read(now_s, every)[:2]
+                stale = self.imu_source.mark_read(now_s, every)  # a repeated instant: no new conversion
+                if stale.any():
+                    status = status | np.where(stale, int(SampleStatus.STALE), 0)
+                counts.setflags(write=False)
+                status.setflags(write=False)
+                c = self._cache = (now_s, counts, status, None, None)
                 return c
             tq, _joints, readings = self._geometry(now_s)
             m = self.sensor_model
@@ -340,6 +394,8 @@ class VirtualSheet:
 
     def truth_time(self, counter: int) -> float:
         """Scene time of the readings answering SYNC ``counter`` (KeyError if never seen)."""
+        if self.imu_source is not None:  # the grid instant the chips read (`imu_source.ImuSource`)
+            return self.imu_source.time_of(self.sync_times[counter & 0xFFFF])
         return self._scene_time(self.sync_times[counter & 0xFFFF])
 
     def truth(self, counter: int) -> np.ndarray:
@@ -349,6 +405,8 @@ class VirtualSheet:
     def joints_at_scene_time(self, tq: float) -> np.ndarray:
         """Joints ``(rows, cols, 3)`` of scene step ``tq`` (a `truth_time`), exactly as the chips'
         readings were made from them (the same solved step)."""
+        if self.imu_source is not None:
+            return self.imu_source.joints_at(tq)
         return self._scene_step(tq)[1].copy()
 
     def joints(self, t_s: float = 0.0) -> np.ndarray:

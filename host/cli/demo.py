@@ -10,6 +10,12 @@ Pass rule (exit 0): the mean joint error of the complete snapshots compared with
 the SYNCs sent gave a complete snapshot. Otherwise exit 1 (2 for bad options). The host takes the
 newest snapshot when estimation falls behind (newest wins; the skipped ones are counted).
 The virtual gateway stands for a 12 Mbaud UART (what 364 chips at 145 Hz need, per-chip).
+
+6/9-axis chips (``--sensors accel+gyro`` or ``accel+gyro+mag``, docs/protocol.md §16) on a moving
+sheet (``--shape carry|wave|elbow|tap|flat_turn``, docs/motion.md): the host asks for IMU records
+(CONFIG_IMU) and shapes every snapshot, in order, with the fused estimator of issue 30
+(`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times);
+the same pass rule.
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ def register(sub) -> None:
         "demo", help="the main job on a virtual sheet: pty serial -> host -> live shape estimate -> PNG",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--shape", default="grow",
-                   help="scene or shape of the virtual sheet (grow, tilt, press, gaussian, sphere, ...; default grow)")
+                   help="scene or shape of the virtual sheet (grow, tilt, press, gaussian, sphere, ...; the moving "
+                        "sheets carry, wave, elbow, tap, flat_turn; default grow)")
     p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints, ROWSxCOLS (default 14x14)")
     p.add_argument("--link-length", type=T.link_length, default=0.01, help="metres (default 0.01)")
     p.add_argument("--noise", type=T.noise, default=1.0, help="sensor noise, %% of g per axis (default 1)")
@@ -45,9 +52,10 @@ def register(sub) -> None:
                    help="%% of SYNCs that must give a complete snapshot to pass (default 99)")
     p.add_argument("--duration", type=T.duration, default=6.0, help="seconds of live streaming (default 6)")
     p.add_argument("--packed", action="store_true", help="the gateway packs SNAPSHOT frames instead of per-chip SAMPLEs")
-    p.add_argument("--gateways", type=T.int_range(1, 64), default=1, metavar="N",
+    p.add_argument("--gateways", type=T.int_range(1, 64), default=None, metavar="N",
                    help="the sheet behind N serial gateways, each on its own pty with a block of the links, "
-                        "merged by the host into one lattice (default 1; 32x32 at 145 Hz needs 2, packed)")
+                        "merged by the host into one lattice (default 1; 32x32 at 145 Hz needs 2, packed; "
+                        "with --sensors as many as the IMU records need: 14x14 9-axis at 145 Hz, 2)")
     p.add_argument("--target", type=T.positive_float, default=1.0, help="max mean joint error, %% of side (default 1)")
     p.add_argument("--out", type=T.figure_file, default="out/demo.png",
                    help="PNG of estimated vs true shape (default out/demo.png)")
@@ -55,6 +63,8 @@ def register(sub) -> None:
                    help="apply this calibration (capsheet calibrate) to every snapshot")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout; messages on stderr)")
     p.add_argument("--seed", type=T.seed, default=1, help="seed of the sheet's uids and noise (default 1)")
+    from host.cli.host import add_sensor_args
+    add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
     from host.cli.record_args import add_record_args
     add_record_args(p)  # --record FILE.mcap, --live [PORT]
     p.set_defaults(func=run)
@@ -65,7 +75,7 @@ def _sheet_kwargs(args) -> dict:
     # (VirtualSheet.precompute before streaming); the truth of a counter is the very step its
     # readings came from, so error against truth is exact
     return dict(shape=args.shape, lattice=args.lattice, link_length=args.link_length, noise=args.noise,
-                seed=args.seed, scene_rate_hz=10.0)
+                seed=args.seed, scene_rate_hz=10.0, sensors=getattr(args, "sensors", "accel"))
 
 
 def check_capacity(args) -> None:
@@ -76,14 +86,22 @@ def check_capacity(args) -> None:
     from host.session import capacity_remedy
     from protocol.capacity import bus_load
 
+    fmt = {"accel": 0, "accel+gyro": 1, "accel+gyro+mag": 2}[getattr(args, "sensors", "accel")]
+    if fmt and args.packed:
+        raise usage_error("capsheet demo", f"--sensors {args.sensors} with --packed: a gateway packing IMU records "
+                                           "(SNAPSHOT_IMU) is not simulated yet")
+    if args.gateways is None:  # IMU records per chip: as many 12 Mbaud gateways as they need
+        need = split_needed(args.lattice.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, fmt=fmt) if fmt else 1
+        args.gateways = need or 64
     lat, g = args.lattice, args.gateways
     per = -(-lat.n_links // g)  # the largest block (VirtualSheet.split: contiguous, near equal)
-    load = bus_load(per, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=args.packed)
+    load = bus_load(per, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=args.packed, fmt=fmt)
     if load <= 1.0:
         return
     def fits(packed: bool, start: int):
-        return split_needed(lat.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=packed, start=start)
-    more, k_packed = fits(args.packed, g + 1), (None if args.packed else fits(True, g))
+        return split_needed(lat.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=packed, start=start,
+                            fmt=fmt)
+    more, k_packed = fits(args.packed, g + 1), (None if args.packed or fmt else fits(True, g))
     pack = None if k_packed is None else "--packed" if k_packed == g else f"--packed --gateways {k_packed}"
     remedy = capacity_remedy("serial", load, args.rate, packed=args.packed or pack is None, pack=pack,
                              split=f"--gateways {more}" if more else "more gateways than 64", faster=False)
@@ -125,6 +143,37 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     conn.send(("stopped",))
 
 
+class FusedShape:
+    """The fused estimator's shape as the recorder and the live view take an estimate: ``joints``,
+    ``valid`` (the links of the snapshot that had an IMU record), ``method``; ``motion`` the
+    `host.analysis.motion.MotionEstimate` itself."""
+
+    method = "fused"
+
+    def __init__(self, motion, valid: np.ndarray) -> None:
+        self.motion, self.joints, self.valid = motion, motion.joints, valid
+
+
+def fused_update(fused, snap):
+    """One snapshot into the fused estimator (issue 30): each link at its own sample time (the SYNC's
+    host time plus the chip's ``time_us``), links without an IMU record masked. None for a snapshot
+    without IMU records (the chips did not take CONFIG_IMU)."""
+    if snap.gyro is None:
+        return None
+    valid = snap.valid & np.isfinite(snap.gyro[:, 0])
+    if not valid.any():
+        return None
+    t = snap.timestamp + np.where(np.isfinite(snap.sample_time_s), snap.sample_time_s, 0.0)
+    gyro = np.where(valid[:, None], snap.gyro, 0.0)
+    accel = np.where(valid[:, None], snap.readings, 0.0)
+    mag = None if snap.mag is None else np.where(valid[:, None], snap.mag, 0.0)
+    try:
+        return FusedShape(fused.update(t, accel, gyro, mag, valid=valid), valid)
+    except ValueError:  # e.g. a sample time that went back (a SYNC counter restarted): start again
+        fused.reset()
+        return None
+
+
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
     return "n/a" if v is None else f"{v:{spec}}{unit}"
 
@@ -152,6 +201,8 @@ def run(args) -> int:
         return 2
     lat = truth_sheet.lattice
     rows, cols, L = lat.rows, lat.cols, args.link_length
+    if truth_sheet.imu_source is not None:  # a periodic moving scene: its truth solved once, looked up live
+        truth_sheet.precompute()
     tmp = Path(tempfile.mkdtemp(prefix="capsheet-demo-"))
     layout_path = tmp / "layout.json"
     print(f"capsheet demo: virtual {rows}x{cols} sheet ({lat.n_links} chips), scene {args.shape!r}, "
@@ -168,6 +219,7 @@ def run(args) -> int:
                        args=(_sheet_kwargs(args), args.packed, args.gateways, str(layout_path), child), daemon=True)
     proc.start()
     n_est = 0
+    fused = None
     elapsed = 0.0
     stats: dict = {}
     try:
@@ -210,6 +262,12 @@ def run(args) -> int:
                     window[0].add(snap.counter, snap.complete)
 
         host = Host(transports, lat, layout=Layout.load(layout_path), rate_hz=args.rate, on_snapshot=on_snapshot)
+        from host.cli.host import imu_config
+        host.imu_config = imu_config(args)
+        fused = None
+        if host.imu_config is not None:  # issue 30 point 4: the gyroscopes drive the shape
+            from host.analysis.motion import MotionEstimator
+            fused = MotionEstimator(rows, cols, L)
         from host.cli.record_args import SessionOutputs
         outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
@@ -237,11 +295,18 @@ def run(args) -> int:
             last_eval = 0.0
             agg = host.aggregator
             while time.monotonic() - t0 < args.duration:
-                snap = host.latest(min(0.5, max(0.0, args.duration - (time.monotonic() - t0))))
+                wait = min(0.5, max(0.0, args.duration - (time.monotonic() - t0)))
+                # the fused estimator integrates the gyroscopes: every snapshot, in order
+                snap = host.latest(wait) if fused is None else host.get(wait)
                 if snap is None or not snap.valid.any():
                     continue
                 t_e = time.perf_counter()
-                est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
+                if fused is not None:
+                    est = fused_update(fused, snap)
+                    if est is None:
+                        continue
+                else:
+                    est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
                 times.add(time.perf_counter() - t_e)
                 previous = est
                 n_est += 1
@@ -306,6 +371,7 @@ def run(args) -> int:
         # medians beyond 65,536 values are of a uniform sample of them: how many were left out
         "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,
+        "sensors": getattr(args, "sensors", "accel"), "estimator": "fused" if fused is not None else "accel_only",
         "error_ok": err_ok, "complete_ok": complete_ok, "pass": ok,
     }
     if last is not None:

@@ -90,6 +90,7 @@ def register(subparsers) -> None:
                    help="apply this calibration (capsheet calibrate) to every snapshot, and check chip "
                         "health on still stretches (docs/calibration.md)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
+    add_sensor_args(p)
     add_record_args(p, can_log=True, link_length=True)  # --record --live --live-rate --can-log --link-length
     p.set_defaults(func=run)
 
@@ -154,8 +155,10 @@ def _status_text(host: Host, t0: float, n0: int) -> str:
     rate = (st.emitted - n0) / dt
     done, links = completeness_pct(st.emitted, st.complete, st.valid_links, host.lattice.n_links)
     errors = sum(t.stats.error_count for t in host.transports)
+    imu = (f"{100.0 * st.imu_links / max(1, st.emitted * host.lattice.n_links):5.1f}% with gyro  "
+           if host.imu_config is not None else "")
     return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {done:5.1f}% of snapshots, "
-            f"{links:5.1f}% of link samples valid  "
+            f"{links:5.1f}% of link samples valid  {imu}"
             f"late {st.late}  stray {st.stray}  dup {st.duplicates}  unknown {st.unknown}  "
             f"dropped {st.dropped}  errors {errors}  silent {len(host.silent_links)}  "
             f"recoveries {host.recoveries}")
@@ -165,6 +168,9 @@ def _summary_lines(s: dict, min_pct: float) -> list[str]:
     out = [f"summary: {s['snapshots']} snapshots, {s['complete_snapshots']} complete "
            f"({s['complete_snapshots_pct']:.1f} %); "
            f"{s['valid_links_pct']:.1f} % of the {s['links']} links' samples valid (need {min_pct:g} %)"]
+    if "imu_links_pct" in s:
+        out.append(f"  IMU records (gyroscope{', magnetometer' if s['sensors'].endswith('mag') else ''}, sample time): "
+                   f"{s['imu_links_pct']:.1f} % of the link samples")
     if s["unassigned_links"]:
         out.append(f"  links without a chip: {len(s['unassigned_links'])} "
                    f"({link_ranges(d['link'] for d in s['unassigned_links'])})")
@@ -182,6 +188,34 @@ def _summary_lines(s: dict, min_pct: float) -> list[str]:
     if s["sync_conflict"]:
         out.append(f"  {s['sync_conflict']}")
     return out
+
+
+def add_sensor_args(p) -> None:
+    """``--sensors`` and the IMU ranges (docs/protocol.md §16.2): what the host asks 6/9-axis chips for."""
+    p.add_argument("--sensors", choices=("accel", "accel+gyro", "accel+gyro+mag"), default="accel",
+                   help="what every chip sends per SYNC: accel (v1.1 SAMPLE, default), accel+gyro or "
+                        "accel+gyro+mag (IMU records, CONFIG_IMU; the chips must have the sensors)")
+    p.add_argument("--gyro-range", type=int, choices=(125, 250, 500, 1000, 2000), default=1000, metavar="DPS",
+                   help="gyroscope full scale, °/s (125, 250, 500, 1000, 2000; default 1000)")
+    p.add_argument("--mag-range", type=int, choices=(4, 8, 12, 16), default=4, metavar="GAUSS",
+                   help="magnetometer full scale, gauss (4, 8, 12, 16; default 4)")
+
+
+def imu_config(args) -> tuple[int, int, int, int] | None:
+    """The CONFIG_IMU fields ``--sensors`` and the ranges ask for, or None for accel-only chips."""
+    fmt = {"accel": 0, "accel+gyro": 1, "accel+gyro+mag": 2}[getattr(args, "sensors", "accel")]
+    if fmt == 0:
+        return None
+    return fmt, {125: 0, 250: 1, 500: 2, 1000: 3, 2000: 4}[args.gyro_range], args.mag_range // 4 - 1, 0
+
+
+def imu_summary(host: Host, summary: dict, args) -> None:
+    """The summary's IMU part (when the chips were asked for IMU records)."""
+    if host.imu_config is None:
+        return
+    st = host.aggregator.stats
+    summary["sensors"] = args.sensors
+    summary["imu_links_pct"] = round(100.0 * st.imu_links / max(1, st.emitted * host.lattice.n_links), 2)
 
 
 def calibration_words(host: Host, up: dict) -> str:
@@ -252,6 +286,7 @@ def run(args) -> int:
         for t in transports:
             t.close()
         return _fail(str(exc), EXIT_USAGE)
+    host.imu_config = imu_config(args)
 
     def on_term(signum, frame):  # SIGTERM: stop the sheet as Ctrl-C does
         raise KeyboardInterrupt
@@ -321,6 +356,7 @@ def run(args) -> int:
                 status.end()
             stats = host.stats
             summary = host.summary()
+            imu_summary(host, summary, args)
     except KeyboardInterrupt:
         status.end()
         stats = host.stats

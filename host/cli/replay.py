@@ -85,6 +85,17 @@ def register(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _same_axis(replayed, recorded, k: int) -> bool:
+    """A 6/9-axis snapshot's gyro, mag or sample time (docs/protocol.md §16) as recorded: both absent,
+    or equal as float32 (NaN where a link had none)."""
+    if recorded is None or np.all(np.isnan(recorded[k])):
+        return replayed is None or bool(np.all(np.isnan(replayed)))
+    if replayed is None:
+        return False
+    return np.array_equal(np.nan_to_num(np.asarray(replayed, dtype=np.float32), nan=1e30),
+                          np.nan_to_num(recorded[k], nan=1e30))
+
+
 def run(args) -> int:
     from host.analysis.estimator import estimate, overlay_error
     from host.cli.progress import Progress
@@ -139,7 +150,9 @@ def run(args) -> int:
                 compared += 1
                 same = (np.array_equal(snap.valid, rec.valid[k]) and np.array_equal(snap.status, rec.status[k])
                         and np.array_equal(np.nan_to_num(snap.readings.astype(np.float32), nan=1e30),
-                                           np.nan_to_num(rec.readings[k], nan=1e30)))
+                                           np.nan_to_num(rec.readings[k], nan=1e30))
+                        and all(_same_axis(getattr(snap, a), getattr(rec, a), k)
+                                for a in ("gyro", "mag", "sample_time_s")))
                 identical += same
             if out.recorder is not None and out.recorder.path is not None:
                 out.recorder.snapshot(snap)

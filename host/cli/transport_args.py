@@ -127,12 +127,12 @@ def open_transports(args: argparse.Namespace, *, prog: str = "capsheet") -> list
 
 
 def split_needed(n_links: int, rate_hz: float, *, kind: str, bitrate: float, packed: bool = False,
-                 fd: bool = False, start: int = 1, limit: int = 64) -> int | None:
+                 fd: bool = False, start: int = 1, limit: int = 64, fmt: int = 0) -> int | None:
     """The fewest gateways (serial) or buses (CAN), from ``start`` on, that carry ``n_links`` chips at
     ``rate_hz`` when the links are split in near-equal contiguous blocks (`VirtualSheet.split`);
     None if more than ``limit`` would be needed."""
     from protocol.capacity import bus_load
     for k in range(max(1, start), limit + 1):
-        if bus_load(-(-n_links // k), rate_hz, kind=kind, bitrate=bitrate, fd=fd, packed=packed) <= 1.0:
+        if bus_load(-(-n_links // k), rate_hz, kind=kind, bitrate=bitrate, fd=fd, packed=packed, fmt=fmt) <= 1.0:
             return k
     return None

@@ -74,9 +74,14 @@ def register(subparsers) -> argparse.ArgumentParser:
                     "announce themselves, take ASSIGN/CONFIG/START and answer SYNC. Prints the port "
                     "(or bus) to connect to, then a summary line per second; Ctrl-C stops.",
         epilog=_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    from virtual_sheet.imu_source import MOTION_SHAPES
     p.add_argument("--shape", default="gaussian",
-                   help=f"static shape ({', '.join(SHAPES)}) or moving scene ({', '.join(SCENES)}); "
+                   help=f"static shape ({', '.join(SHAPES)}), moving scene ({', '.join(SCENES)}) or moving "
+                        f"sheet with exact kinematics for 6/9-axis chips ({', '.join(MOTION_SHAPES)}); "
                         "default gaussian")
+    p.add_argument("--sensors", choices=("accel", "accel+gyro", "accel+gyro+mag"), default="accel",
+                   help="the chips' sensors (docs/protocol.md §16): accel (default), accel+gyro (6-axis) or "
+                        "accel+gyro+mag (9-axis); the host asks for the IMU records with CONFIG_IMU")
     p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints ROWSxCOLS (default 14x14)")
     p.add_argument("--link-length", type=T.link_length, default=0.01, help="link length, m (default 0.01)")
     p.add_argument("--transport", choices=("pty", "slcan", "can", "memory"), default="pty",
@@ -135,6 +140,9 @@ def _channels(args) -> list[str] | None:
     return None
 
 
+_SENSOR_FMT = {"accel": 0, "accel+gyro": 1, "accel+gyro+mag": 2}
+
+
 def _capacity(args, sheet, dev) -> tuple[list[str], list[str], float | None]:
     """(errors, warnings, highest rate the busiest bus carries) for this sheet's own traffic."""
     from protocol.capacity import bus_load
@@ -144,11 +152,12 @@ def _capacity(args, sheet, dev) -> tuple[list[str], list[str], float | None]:
     bitrate = args.baud if kind == "serial" else args.bitrate
     per_bus = [len(b) for b in getattr(dev, "blocks", [range(sheet.n_links)])]
     n = max(per_bus)
-    load1 = bus_load(n, 1.0, kind=kind, bitrate=bitrate, fd=args.fd, packed=args.packed)
+    fmt = _SENSOR_FMT[args.sensors]
+    load1 = bus_load(n, 1.0, kind=kind, bitrate=bitrate, fd=args.fd, packed=args.packed, fmt=fmt)
     max_rate = 1.0 / load1
     errors, warnings = [], []
     if args.rate is not None:
-        load = bus_load(n, args.rate, kind=kind, bitrate=bitrate, fd=args.fd, packed=args.packed)
+        load = bus_load(n, args.rate, kind=kind, bitrate=bitrate, fd=args.fd, packed=args.packed, fmt=fmt)
         what = (f"{n} chips per bus at {args.rate:g} Hz need {100 * load:.0f} % of a "
                 f"{bitrate / 1e6:g} Mbit/s {'UART' if kind == 'serial' else 'CAN FD' if args.fd else 'CAN'} bus")
         if load > 1.0:
@@ -212,6 +221,8 @@ def host_command(args, dev, max_rate: float | None = None) -> str:
     if args.rate is not None:  # the gateway says it drives SYNC (§13.3); a driving host would refuse
         cmd += ["--sync", "follow"]
     cmd += ["--rate", f"{host_rate(args, max_rate):g}"]
+    if getattr(args, "sensors", "accel") != "accel":
+        cmd += ["--sensors", args.sensors]
     # no --packed: the gateway node says it packs (GATEWAY_INFO), the host learns it
     return shlex.join(cmd)
 
@@ -257,9 +268,16 @@ def make_device(args, verbose=None):
     spec = FaultSpec.parse(args.faults)
     from virtual_sheet.sensor import chip_error_model
     sensor = chip_error_model(getattr(args, "chip_errors", "none"), noise_pct_g=args.noise, chip_seed=args.seed)
+    sensors = getattr(args, "sensors", "accel")
+    if sensors != "accel" and args.packed:
+        raise ValueError(f"--sensors {sensors} with --packed: a gateway packing IMU records (SNAPSHOT_IMU, "
+                         "docs/protocol.md §16.5) is not simulated yet; run the chips per chip")
+    if sensors != "accel" and args.firmware != "python":
+        raise ValueError(f"--sensors {sensors} with --firmware {args.firmware}: the C firmware has no "
+                         "IMU formats yet (issue 29 point 3)")
     sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
-                         chip_factory=load_chip_factory(args.firmware), faults=spec)
+                         chip_factory=load_chip_factory(args.firmware), faults=spec, sensors=sensors)
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
     if args.symlink and args.transport in ("pty", "slcan"):
         from virtual_sheet.devices import claim_symlink

@@ -30,7 +30,8 @@ from protocol.framing import HEADER, DecodeError, decode_frame, encode, encode_f
 from protocol.messages import (NODE_PROVISIONAL_MAX, NODE_PROVISIONAL_MIN, PROTOCOL_VERSION, RESERVED_CAPABILITIES,
                                Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability, ChipState, Config,
                                GatewayFlag, GatewayInfo, GetInfo, Info, Message, MsgType, Nack, NackReason, Reset,
-                               Sample, Snapshot, Start, Status, StatusFlag, Stop, Sync, provisional_node)
+                               Sample, Snapshot, Start, Status, StatusFlag, Stop, Sync, provisional_node,
+                               TIME_UNKNOWN, ConfigImu, ConfigImuFlag, ImuSample, SampleFormat)
 from protocol.constants import SampleStatus
 from protocol.state import ANNOUNCE_PERIOD_S, GATEWAY_HEARTBEAT_MS, SYNC_REPLY_DEADLINE_S, TIMER_TOLERANCE
 
@@ -110,6 +111,12 @@ INFORMATIVE: dict[str, str] = {
     "13.4": "the gateway's table, restated by §13.1 and held by checks 3, 6, 7, 14, 17, 19, 33 and 35",
     "14": "the timing table; each number is held by the check of the clause it names (8, 11, 24, 36, 37, 38)",
     "15": "the list of changes from 1.0",
+    "16": "overview of the IMU chips; its clauses are held by checks 42-44 on a chip whose INFO has GYRO "
+          "(skipped on an accelerometer-only chip, to which §16 does not apply)",
+    "16.5": "packing IMU records (SNAPSHOT_IMU) is a gateway's; no check yet (no reference gateway packs "
+            "them): the golden vectors and the codec tests hold the layout",
+    "16.6": "where the new clauses are checked and counted: this suite and `capsheet protocol capacity`",
+    "16.7": "the list of changes from 1.1",
 }
 
 
@@ -1032,6 +1039,140 @@ def c_dbc(s: Session):
         raise Skip("no frame of the node was recorded: nothing to decode")
     require(not bad, f"{len(bad)} of {n} frames: {bad[0] if bad else ''}")
     return f"{n} frames decoded by the DBC"
+
+
+# ---------------------------------------------------------------------------------------------
+# 6/9-axis chips (v1.2, §16): only on a chip whose INFO has GYRO
+# ---------------------------------------------------------------------------------------------
+
+def _imu_caps(s: Session) -> Capability:
+    s.need_chip()
+    caps = Capability(s.info.capabilities) if s.info is not None else Capability.NONE
+    if not caps & Capability.GYRO:
+        raise Skip("the chip's INFO has no GYRO capability: an accelerometer chip, §16 does not apply")
+    return caps
+
+
+def _config_imu(s: Session, fmt: int, gyro: int = 3, mag: int = 0, flags: int = 0) -> list:
+    return s.request(ConfigImu(s.node, fmt, gyro, mag, flags))
+
+
+def _nacked(ans, s: Session, reason: NackReason) -> bool:
+    return any(isinstance(m, Nack) and m.node == s.node and m.command == MsgType.CONFIG_IMU and m.reason == reason
+               for m in ans)
+
+
+@check("16.2, 4.6, 8.2", "CONFIG_IMU: values out of range NACK BAD_VALUE, a sensor or CAN FD the chip lacks "
+       "NACK UNSUPPORTED, refused while STREAMING (BAD_STATE), accepted in IDLE",
+       "a host cannot select the 6/9-axis records, or selects one the chip cannot send",
+       "check CONFIG_IMU's fields in §16.2's order before changing anything; ACK it in IDLE and FAULT")
+def c_config_imu(s: Session):
+    caps = _imu_caps(s)
+    s.ensure_idle()
+    for cfg in ((3, 3, 0), (1, 5, 0), (1, 3, 4)):
+        ans = _config_imu(s, *cfg)
+        require(_nacked(ans, s, NackReason.BAD_VALUE), f"CONFIG_IMU format/gyro/mag {cfg} answered {ans}")
+    lacks = []
+    if not caps & Capability.MAG:
+        lacks.append(((2, 3, 0, 0), "format 2 without MAG"))
+    if not caps & Capability.CAN_FD:
+        lacks.append(((1, 3, 0, int(ConfigImuFlag.FD)), "flag FD without CAN_FD"))
+    for cfg, why in lacks:
+        ans = _config_imu(s, *cfg)
+        require(_nacked(ans, s, NackReason.UNSUPPORTED), f"CONFIG_IMU {why} answered {ans}")
+    fmt = 2 if caps & Capability.MAG else 1
+    ans = _config_imu(s, fmt)
+    require(acked(ans, s.node, MsgType.CONFIG_IMU), f"CONFIG_IMU format {fmt} in IDLE answered {ans}")
+    s.to_streaming()
+    ans = _config_imu(s, 0)
+    require(_nacked(ans, s, NackReason.BAD_STATE), f"CONFIG_IMU while STREAMING answered {ans}")
+    require(acked(s.request(Stop(s.node)), s.node, MsgType.STOP), "STOP refused")
+    ans = _config_imu(s, 0)
+    require(acked(ans, s.node, MsgType.CONFIG_IMU), f"CONFIG_IMU format 0 in IDLE answered {ans}")
+    return f"format {fmt} taken, {3 + len(lacks)} refusals as §16.2 orders them, BAD_STATE while STREAMING"
+
+
+def _imu_round(s: Session, c: int) -> list:
+    """SYNC ``c``: every answer of the chip to it, ``[(time, msg)]`` (records, and SAMPLEs that should not be)."""
+    s.drain()
+    s.port.send(Sync(counter=c))
+    got = s.collect(s.answer_s, lambda ms: any(isinstance(m, (ImuSample, Sample)) and m.counter == c for m in ms))
+    got += s.collect(min(0.05, s.timeout_s))  # a second answer to the same SYNC, if the chip sends one
+    return [(t, m) for t, m in got if isinstance(m, (ImuSample, Sample))]
+
+
+@check("16.3, 16.1, 5.1", "in format 1 or 2: every SYNC -> exactly one IMU record of that format with its counter; "
+       "SATURATED exactly at the rails of every count; time_us −32768 iff the chip lacks SAMPLE_TIME, else within "
+       "a SYNC period of the SYNC",
+       "a host gets no gyroscope (or magnetometer), the wrong record, or sample times it cannot integrate with",
+       "answer each SYNC with one IMU_SAMPLE (classic CAN: §16.4's frames) of the configured format; set "
+       "SATURATED from the counts sent; send time_us (µs after the SYNC) or −32768 without SAMPLE_TIME")
+def c_imu_records(s: Session):
+    caps = _imu_caps(s)
+    if s.sync_gateway is not None or s.packing_gateway:
+        raise Skip("behind a gateway that drives SYNC or packs: the records are the gateway's business (§16.5)")
+    s.ensure_idle()
+    fmt = 2 if caps & Capability.MAG else 1
+    require(acked(_config_imu(s, fmt), s.node, MsgType.CONFIG_IMU), f"CONFIG_IMU format {fmt} refused")
+    s.to_streaming()
+    timed = bool(caps & Capability.SAMPLE_TIME)
+    seen = []
+    for c in range(300, 316):
+        ans = _imu_round(s, c)
+        mine = [m for _, m in ans if m.counter == c]
+        require(len(mine) == 1 and isinstance(mine[0], ImuSample),
+                f"SYNC 0x{c:04X} answered {[m for _, m in ans][:3]} (one IMU record of format {fmt})")
+        m = mine[0]
+        require(m.format == fmt, f"SYNC 0x{c:04X}: a format-{int(m.format)} record after CONFIG_IMU format {fmt}")
+        counts = (m.x, m.y, m.z)
+        rails = any(v in (-2048, 2047) for v in counts) or any(v in (-32768, 32767) for v in m.gyro + (m.mag or ()))
+        require(rails == bool(m.status & SampleStatus.SATURATED),
+                f"SATURATED {'clear' if rails else 'set'} for accel {counts}, gyro {m.gyro}, mag {m.mag}")
+        if timed:
+            require(m.time_us != TIME_UNKNOWN, f"time_us unknown (−32768) from a chip with SAMPLE_TIME (§16.1)")
+            require(abs(m.time_us) <= 1e6 / 145 + 2000,
+                    f"time_us {m.time_us} µs: more than a SYNC period (145 Hz) from its SYNC")
+        else:
+            require(m.time_us == TIME_UNKNOWN, f"time_us {m.time_us} from a chip without SAMPLE_TIME: −32768 (§16.1)")
+        seen.append(m)
+    require(acked(s.request(Stop(s.node)), s.node, MsgType.STOP), "STOP refused")
+    require(acked(_config_imu(s, 0), s.node, MsgType.CONFIG_IMU), "CONFIG_IMU format 0 refused")
+    last = seen[-1]
+    return (f"{len(seen)} records of format {fmt}; last accel {(last.x, last.y, last.z)}, gyro {last.gyro}"
+            + (f", mag {last.mag}" if last.mag else "") + f", time_us {last.time_us}")
+
+
+@check("16.4, 7.2", "classic CAN: a record as IMU_GYRO (IMU_MAG) IMU_ACCEL, in that order, back to back, "
+       "each 8 bytes, one counter", "a receiver cannot assemble the records (it reports them incomplete)",
+       "send the frames of §16.4 in their order with the record's counter (IMU_ACCEL: its low byte)",
+       transport="can")
+def c_imu_can_frames(s: Session):
+    caps = _imu_caps(s)
+    if s.sync_gateway is not None or s.packing_gateway:
+        raise Skip("behind a gateway that drives SYNC or packs (§16.5)")
+    fmt = 2 if caps & Capability.MAG else 1
+    s.ensure_idle()
+    require(acked(_config_imu(s, fmt), s.node, MsgType.CONFIG_IMU), f"CONFIG_IMU format {fmt} refused")
+    s.to_streaming()
+    s.port.raw.clear()
+    for c in range(400, 408):
+        _imu_round(s, c)
+    require(acked(s.request(Stop(s.node)), s.node, MsgType.STOP), "STOP refused")
+    require(acked(_config_imu(s, 0), s.node, MsgType.CONFIG_IMU), "CONFIG_IMU format 0 refused")
+    want = [MsgType.IMU_GYRO] + ([MsgType.IMU_MAG] if fmt == 2 else []) + [MsgType.IMU_ACCEL]
+    seq = [(t, aid, d) for aid, d, _fd in s.port.raw for t in [(aid >> 20) & 0x3F]
+           if (aid & 0xFFFF) == s.node and t in (MsgType.IMU_GYRO, MsgType.IMU_MAG, MsgType.IMU_ACCEL, MsgType.IMU_SAMPLE)]
+    require(bool(seq), "no IMU frame from the chip")
+    types = [t for t, _, _ in seq]
+    require(len(types) % len(want) == 0 and all(types[i:i + len(want)] == want for i in range(0, len(types), len(want))),
+            f"frame types {[MsgType(t).name for t in types[:6]]}: §16.4 sends {[w.name for w in want]} per record")
+    for i in range(0, len(seq), len(want)):
+        grp = seq[i:i + len(want)]
+        require(all(len(d) == 8 for _, _, d in grp), f"IMU frames of {[len(d) for _, _, d in grp]} bytes, not 8")
+        ctr = grp[0][2][0] | grp[0][2][1] << 8
+        require(all((d[0] | d[1] << 8) == ctr for _, _, d in grp[1:-1]) and grp[-1][2][0] == ctr & 0xFF,
+                f"a record's frames carry different counters: {[d.hex() for _, _, d in grp]}")
+    return f"{len(seq) // len(want)} records, {len(want)} frames each, in order"
 
 
 def table() -> str:

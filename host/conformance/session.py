@@ -40,10 +40,13 @@ from typing import Callable
 from host.gateways import GatewayRecord
 from host.transport import CanTransport, Transport, TransportError, TransportOperationError
 from protocol.can import decode_can, split_id
-from protocol.framing import DecodeError, SampleBatch
+from protocol.can import INCOMPLETE_IMU
+from protocol.framing import DecodeError
+from protocol.messages import ImuBatch, SampleBatch
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, ChipState, Config,
                                Direction, GatewayFlag, GatewayInfo, GetInfo, Info, Message, MsgType, Reset, Sample,
                                Snapshot, Start, Status, Stop, Sync, is_node_to_host_type)
+
 
 __all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
            "FrameAudit", "HEARTBEAT_MS"]
@@ -186,6 +189,7 @@ class Port(_AuditView):
         self.error: BaseException | None = None
         self.frames = 0  #: messages decoded
         self.damaged = 0  #: frames that arrived damaged (DecodeError) plus CAN error frames
+        self.incomplete_imu = 0  #: classic CAN IMU frames that made no record (docs/protocol.md §16.4)
         self.damage: Counter = Counter()  #: reason -> count
         self._err_base = transport.stats.errors.get("CAN_ERROR_FRAME", 0)
         self._disc_base = transport.stats.disconnects
@@ -214,10 +218,14 @@ class Port(_AuditView):
             t = time.monotonic()
             with self._cond:
                 for ev in events:
-                    if isinstance(ev, SampleBatch):
+                    if isinstance(ev, (SampleBatch, ImuBatch)):
                         for m in ev.messages():
                             self.frames += 1
                             self._q.append((t, m))
+                    elif isinstance(ev, DecodeError) and ev.detail.startswith(INCOMPLETE_IMU):
+                        # classic CAN frames of an IMU record that do not make one (§16.4): every frame
+                        # arrived intact, so the node sent them so; the §16 checks see no record
+                        self.incomplete_imu += 1
                     elif isinstance(ev, DecodeError):
                         self.damaged += 1
                         self.damage[ev.reason.name] += 1

@@ -12,14 +12,14 @@ from pathlib import Path
 
 import pytest
 from cobs import cobs
-from hypothesis import given
+from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from protocol import can as pycan
 from protocol import framing
 from protocol.crc import crc16_ccitt_false
 from protocol.framing import DecodeError, ErrorReason, StreamDecoder
-from protocol.messages import MsgType, Snapshot, Sync, provisional_node
+from protocol.messages import IMU_TYPES, MsgType, Snapshot, Sync, provisional_node
 from protocol.state import RULES, Reply
 from protocol.vectors import message_from_fields
 from tests.strategies import messages
@@ -29,6 +29,12 @@ codec = pytest.importorskip("firmware_ref.codec", reason="C firmware extension n
 VECTORS = Path(__file__).resolve().parents[1] / "vectors"
 SERIAL = json.loads((VECTORS / "serial.json").read_text())["vectors"]
 CAN = json.loads((VECTORS / "can.json").read_text())["vectors"]
+#: the C firmware does not speak v1.2's IMU messages yet (issue 29 point 3): their vectors are held to
+#: the Python reference only (tests/protocol), and the random frames below leave their type codes out
+_IMU_NAMES = {t.name for t in IMU_TYPES}
+C_SERIAL = [v for v in SERIAL if v["type"] not in _IMU_NAMES]
+C_CAN = [v for v in CAN if v["type"] not in _IMU_NAMES]
+assert len(C_SERIAL) < len(SERIAL) and len(C_CAN) < len(CAN)
 SERIAL_ERRORS = json.loads((VECTORS / "serial_errors.json").read_text())["vectors"]
 
 
@@ -40,12 +46,12 @@ def _msg(v):
 # golden vectors
 # ---------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("v", SERIAL, ids=[v["name"] for v in SERIAL])
+@pytest.mark.parametrize("v", C_SERIAL, ids=[v["name"] for v in C_SERIAL])
 def test_serial_vector_encoded_byte_for_byte_by_c(v):
     assert codec.encode_serial(_msg(v)).hex() == v["hex"]
 
 
-@pytest.mark.parametrize("v", SERIAL, ids=[v["name"] for v in SERIAL])
+@pytest.mark.parametrize("v", C_SERIAL, ids=[v["name"] for v in C_SERIAL])
 def test_serial_vector_decoded_by_c(v):
     wire = bytes.fromhex(v["hex"])
     assert wire[-1] == 0
@@ -54,13 +60,13 @@ def test_serial_vector_decoded_by_c(v):
     assert codec.decode_stream(b"\x00" + wire + b"\x00\x00") == [_msg(v)]
 
 
-@pytest.mark.parametrize("v", CAN, ids=[v["name"] for v in CAN])
+@pytest.mark.parametrize("v", C_CAN, ids=[v["name"] for v in C_CAN])
 def test_can_vector_encoded_byte_for_byte_by_c(v):
     f = codec.encode_can(_msg(v))
     assert (f"{f.arbitration_id:08X}", f.data.hex(), f.is_fd) == (v["id"], v["data"], v["fd"])
 
 
-@pytest.mark.parametrize("v", CAN, ids=[v["name"] for v in CAN])
+@pytest.mark.parametrize("v", C_CAN, ids=[v["name"] for v in C_CAN])
 def test_can_vector_decoded_by_c(v):
     got = codec.decode_can(int(v["id"], 16), bytes.fromhex(v["data"]), is_fd=v["fd"])
     assert got == _msg(v)
@@ -134,7 +140,7 @@ def test_c_state_table_is_protocol_state_rules():
     replies = {0: Reply.NONE, 1: Reply.ACK, 2: Reply.SAMPLE, 3: Reply.ANNOUNCE_INFO, 4: Reply.CAL_DATA,
                5: Reply.ACK_THEN_BOOT}
     from protocol.messages import ChipState
-    host_types = [t for t in MsgType if t >= 0x10]
+    host_types = [t for t in MsgType if t >= 0x10 and t not in IMU_TYPES]  # CONFIG_IMU: not in C yet
     assert len(host_types) == 9
     for state in ChipState:
         for t in host_types:
@@ -193,7 +199,16 @@ def _c_verdict(segment: bytes):
         return exc.reason
 
 
-def _frames(draw_types=st.integers(0, 0x3F)):
+def _imu_segment(segment: bytes) -> bool:
+    """A delimited run that decodes to a frame of a v1.2 IMU type (the C firmware does not know them yet)."""
+    try:
+        raw = cobs.decode(segment)
+    except cobs.DecodeError:
+        return False
+    return len(raw) >= 2 and raw[1] in {int(t) for t in IMU_TYPES}
+
+
+def _frames(draw_types=st.integers(0, 0x3F).filter(lambda t: t not in {int(t) for t in IMU_TYPES})):
     """Frames a conforming sender never sends: any version, type, node and payload."""
     return st.builds(lambda v, t, n, p: framing.encode_frame(t, n, p, version=v)[:-1],
                      st.sampled_from([1, 1, 1, 2, 0]), draw_types, st.integers(0, 0xFFFF),
@@ -203,12 +218,14 @@ def _frames(draw_types=st.integers(0, 0x3F)):
 @given(st.one_of(st.binary(max_size=64), _frames()))
 def test_any_frame_gets_the_same_verdict_from_c_and_python(segment):
     segment = segment.replace(b"\x00", b"\x01") if b"\x00" in segment else segment
+    assume(not _imu_segment(segment))
     assert _c_verdict(segment) == _py_verdict(segment)
 
 
 @given(st.lists(st.one_of(st.binary(max_size=40), _frames().map(lambda f: f + b"\x00")), max_size=8))
 def test_any_byte_stream_gives_the_same_events_from_c_and_python(chunks):
     data = b"".join(chunks)
+    assume(not any(_imu_segment(seg) for seg in data.split(b"\x00")))
     py = StreamDecoder()
     expected = [ev.reason if isinstance(ev, DecodeError) else ev for ev in py.feed(data)]
     assert codec.decode_stream(data) == expected
@@ -216,6 +233,7 @@ def test_any_byte_stream_gives_the_same_events_from_c_and_python(chunks):
 
 @given(st.integers(0, 2**29 - 1), st.binary(max_size=64), st.booleans())
 def test_any_can_frame_gets_the_same_verdict_from_c_and_python(can_id, data, is_fd):
+    assume((can_id >> 20) & 0x3F not in {int(t) for t in IMU_TYPES})
     ev = pycan.decode_can(can_id, data, is_fd=is_fd)
     expected = ev.reason if isinstance(ev, DecodeError) else ev
     try:

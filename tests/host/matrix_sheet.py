@@ -48,7 +48,7 @@ def build(args):
                                move_s=0.3, seed=2)
     sensor = chip_error_model(args.chip_errors, noise_pct_g=args.noise, chip_seed=args.seed)
     sheet = VirtualSheet(args.shape, f"{args.rows}x{args.cols}", scene=scene, sensor=sensor, seed=args.seed,
-                         transport="can" if can_kind else "serial", chip_factory=chip_factory)
+                         transport="can" if can_kind else "serial", chip_factory=chip_factory, sensors=args.sensors)
     if args.transport == "memory":
         from virtual_sheet.devices import MemoryDevice
         from virtual_sheet.memport import publish
@@ -82,6 +82,7 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--chip-errors", default="none", choices=("none", "realistic"))
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--mutant", default=None)
+    ap.add_argument("--sensors", default="accel", choices=("accel", "accel+gyro", "accel+gyro+mag"))
     ap.add_argument("--board", type=float, default=0.0, help="the calibration board scene, holding each pose this long (s)")
     ap.add_argument("--layout-out", required=True)
     args = ap.parse_args(argv)

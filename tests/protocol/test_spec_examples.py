@@ -11,10 +11,10 @@ from pathlib import Path
 import pytest
 from cobs import cobs
 
-from protocol.can import decode_can, to_can
+from protocol.can import decode_can, fd_length, to_can
 from protocol.crc import crc16_ccitt_false
 from protocol.framing import decode_frame, encode
-from protocol.messages import Message, Sample
+from protocol.messages import Message, MsgType, Sample
 
 SPEC = (Path(__file__).resolve().parents[2] / "docs/protocol.md").read_text()
 
@@ -46,6 +46,12 @@ def word_examples(text: str = SPEC) -> list[tuple[tuple[int, ...], bytes]]:
             for m in re.finditer(r"`\(([−\-\d, ]+)\)`\s*→\s*`([0-9a-f ]+)`", text)]
 
 
+#: types new in v1.2 (docs §16): the C firmware does not encode them yet, so their examples are held
+#: to the Python reference only
+V12_TYPES = {MsgType.IMU_GYRO, MsgType.IMU_MAG, MsgType.IMU_ACCEL, MsgType.IMU_SAMPLE, MsgType.SNAPSHOT_IMU,
+             MsgType.CONFIG_IMU}
+
+
 def c_codec():
     pytest.importorskip("firmware_ref._capsheet_fw", reason="C firmware extension not built")
     from firmware_ref import codec
@@ -53,11 +59,13 @@ def c_codec():
 
 
 def test_the_examples_are_all_found():
-    # §4.1 ANNOUNCE, §4.3 SAMPLE, §4.6 NACK, §4.8 SNAPSHOT, §4.9 SYNC, §4.10 ASSIGN
-    assert len(serial_examples()) == 6
-    assert sum(w is not None for _, w in serial_examples()) == 3
-    # §4.3, §4.9, §4.10 (id only), §7.2 SNAPSHOT (id, FD), §7.2 SAMPLE and ASSIGN (id#data)
-    assert len(can_examples()) == 6
+    # §4.1 ANNOUNCE, §4.3 SAMPLE, §4.6 NACK, §4.8 SNAPSHOT, §4.9 SYNC, §4.10 ASSIGN; v1.2: §16.2
+    # CONFIG_IMU, §16.3 IMU_SAMPLE (6- and 9-axis), §16.5 SNAPSHOT_IMU
+    assert len(serial_examples()) == 10
+    assert sum(w is not None for _, w in serial_examples()) == 5
+    # §4.3, §4.9, §4.10 (id only), §7.2 SNAPSHOT (id, FD), §7.2 SAMPLE and ASSIGN (id#data); v1.2:
+    # §16.2 CONFIG_IMU (id, data), §16.3 IMU_SAMPLE (id, FD), §16.4 IMU_GYRO, IMU_MAG, IMU_ACCEL (id#data)
+    assert len(can_examples()) == 11
     assert len(word_examples()) == 2
 
 
@@ -79,6 +87,8 @@ def test_a_serial_example_is_what_both_encoders_send(raw, wire):
     msg = decode_frame(encoded[:-1])
     assert isinstance(msg, Message), msg
     assert encode(msg) == encoded
+    if msg.TYPE in V12_TYPES:
+        return
     codec = c_codec()
     assert codec.encode_serial(msg) == encoded
     assert codec.decode_frame(encoded[:-1]) == msg
@@ -96,12 +106,14 @@ def _payload_for(aid: int) -> bytes:
 def test_a_can_example_is_what_both_encoders_send(aid, data, fd):
     if data is None:
         data = _payload_for(aid)
-        if fd:  # the SNAPSHOT example: 25 bytes padded to the FD length 32
-            data = data + bytes(32 - len(data))
+        if fd:  # the SNAPSHOT example: 25 bytes padded to the FD length 32; IMU_SAMPLE 15 to 16
+            data = data + bytes(fd_length(len(data)) - len(data))
     msg = decode_can(aid, data, is_fd=fd)
     assert isinstance(msg, Message), msg
     frame = to_can(msg)
     assert (frame.arbitration_id, frame.data, frame.is_fd) == (aid, data, fd)
+    if msg.TYPE in V12_TYPES:
+        return
     c = c_codec().encode_can(msg)
     assert (c.arbitration_id, c.data, c.is_fd) == (aid, data, fd)
 

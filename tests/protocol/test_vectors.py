@@ -94,6 +94,16 @@ def test_cantools_decodes_our_frames_field_by_field(vec):
         assert decoded["count"] == msg.count
         for k, ((x, y, z), s) in enumerate(zip(msg.counts.tolist(), msg.status.tolist())):
             assert (decoded[f"x_{k}"], decoded[f"y_{k}"], decoded[f"z_{k}"], decoded[f"status_{k}"]) == (x, y, z, s)
+    elif vec["type"] == "SNAPSHOT_IMU":  # a multiplexed entry: the format byte picks the record signals
+        f = vec["fields"]
+        fmt = 2 if "mag" in f else 1
+        assert (decoded["counter"], decoded["first_link"], decoded["count"], decoded["format"]) == (
+            f["counter"], f["first_link"], len(f["counts"]), fmt)
+        for k in range(len(f["counts"])):
+            got = [decoded[f"{a}_{fmt}_{k}"] for a in ("x", "y", "z", "status", "time_us", "gx", "gy", "gz")]
+            assert got == [*f["counts"][k], f["status"][k], f["time_us"][k], *f["gyro"][k]]
+            if fmt == 2:
+                assert [decoded[f"m{a}_2_{k}"] for a in "xyz"] == f["mag"][k]
     else:
         assert decoded == pytest.approx(vec["fields"])
 
@@ -146,9 +156,40 @@ def reference_payload(name: str, f: dict) -> bytes:
     return out
 
 
+V12 = {"IMU_GYRO", "IMU_MAG", "IMU_ACCEL", "IMU_SAMPLE", "SNAPSHOT_IMU", "CONFIG_IMU"}
+
+
+def reference_v12(name: str, f: dict) -> bytes:
+    """A v1.2 payload packed from docs §16 alone: §16.1's record (the §5.2 word, time_us i16, 3 × i16
+    gyroscope, 3 × i16 magnetometer in format 2), §16.2-§16.5's tables."""
+    def word(x, y, z, s):
+        return ((x & 0xFFF) | (y & 0xFFF) << 12 | (z & 0xFFF) << 24 | s << 36).to_bytes(5, "little")
+
+    def record(c, s, t, g, m):
+        return word(*c, s) + struct.pack("<h3h", t, *g) + (struct.pack("<3h", *m) if m is not None else b"")
+    if name == "CONFIG_IMU":
+        return struct.pack("<4B", f["format"], f["gyro_range"], f["mag_range"], f["flags"])
+    if name == "IMU_GYRO":
+        return struct.pack("<H3h", f["counter"], f["gx"], f["gy"], f["gz"])
+    if name == "IMU_MAG":
+        return struct.pack("<H3h", f["counter"], f["mx"], f["my"], f["mz"])
+    if name == "IMU_ACCEL":
+        return struct.pack("<B", f["counter_lo"]) + word(f["x"], f["y"], f["z"], f["status"]) + struct.pack("<h", f["time_us"])
+    if name == "IMU_SAMPLE":
+        mag = [f["mx"], f["my"], f["mz"]] if "mx" in f else None
+        return struct.pack("<H", f["counter"]) + record((f["x"], f["y"], f["z"]), f["status"], f["time_us"],
+                                                       (f["gx"], f["gy"], f["gz"]), mag)
+    if name == "SNAPSHOT_IMU":
+        mags = f.get("mag", [None] * len(f["counts"]))
+        return struct.pack("<HHBB", f["counter"], f["first_link"], len(f["counts"]), 2 if "mag" in f else 1) + b"".join(
+            record(*r) for r in zip(f["counts"], f["status"], f["time_us"], f["gyro"], mags))
+    raise AssertionError(name)
+
+
 def reference_wire(vec) -> bytes:
     code, _prio = spec_types()[vec["type"]]
-    frame = bytes([1, code]) + vec["node"].to_bytes(2, "little") + reference_payload(vec["type"], vec["fields"])
+    pack = reference_v12 if vec["type"] in V12 else reference_payload
+    frame = bytes([1, code]) + vec["node"].to_bytes(2, "little") + pack(vec["type"], vec["fields"])
     return cobs.encode(frame + binascii.crc_hqx(frame, 0xFFFF).to_bytes(2, "big")) + b"\x00"
 
 
@@ -157,7 +198,11 @@ from cobs import cobs  # noqa: E402
 
 def test_the_spec_tables_cover_every_message_type():
     assert set(spec_types()) == {t.name for t in MsgType}
-    assert set(spec_layouts()) == {t.name for t in MsgType}
+    # v1.2's IMU types are laid out in §16 (the record table, the classic-CAN frame table), packed
+    # by `reference_v12` below from those tables' words
+    assert set(spec_layouts()) | V12 == {t.name for t in MsgType}
+    for name in V12:
+        assert re.search(rf"\b{name} \(0x", SPEC.partition("\n## 16. ")[2]), name
     assert spec_layouts()["CAL_WRITE"] == spec_layouts()["CAL_DATA"]
     assert spec_layouts()["START"] == []
 
@@ -187,6 +232,20 @@ def test_can_vector_rederived_by_cantools_and_the_spec(vec):
             f.update({f"x_{k}": x, f"y_{k}": y, f"z_{k}": z, f"status_{k}": s})
         for k in range(len(counts), 11):
             f.update({f"x_{k}": 0, f"y_{k}": 0, f"z_{k}": 0, f"status_{k}": 0})
+    if vec["type"] == "IMU_SAMPLE" and "mx" not in f:  # a 6-axis record: the 9-axis entry's mag is the padding
+        f.update(mx=0, my=0, mz=0)
+    if vec["type"] == "SNAPSHOT_IMU":
+        fmt = 2 if "mag" in f else 1
+        counts, status, time_us, gyro, mag = (f.pop(k, None) for k in ("counts", "status", "time_us", "gyro", "mag"))
+        f.update(count=len(counts), format=fmt)
+        n_max = 4 if fmt == 1 else 3
+        for k in range(n_max):
+            c, s, t, g = (counts[k], status[k], time_us[k], gyro[k]) if k < len(counts) else ([0] * 3, 0, 0, [0] * 3)
+            f.update({f"x_{fmt}_{k}": c[0], f"y_{fmt}_{k}": c[1], f"z_{fmt}_{k}": c[2], f"status_{fmt}_{k}": s,
+                      f"time_us_{fmt}_{k}": t, f"gx_{fmt}_{k}": g[0], f"gy_{fmt}_{k}": g[1], f"gz_{fmt}_{k}": g[2]})
+            if fmt == 2:
+                m = mag[k] if k < len(counts) else [0] * 3
+                f.update({f"mx_2_{k}": m[0], f"my_2_{k}": m[1], f"mz_2_{k}": m[2]})
     data = entry.encode(f, scaling=False, padding=False, strict=False) if f or entry.signals else b""
     want = bytes.fromhex(vec["data"])
     assert data[:len(want)] == want and not any(data[len(want):])

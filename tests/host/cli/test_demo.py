@@ -77,3 +77,43 @@ def test_demo_runs_a_sheet_behind_two_gateways(tmp_path):
     assert result["estimates_per_s"] > 0 and result["syncs_per_s"] > 0
     verdict = [ln for ln in out.stderr.splitlines() if ln.startswith(("capsheet demo: PASS", "capsheet demo: FAIL"))]
     assert len(verdict) == 1 and "SYNC at 30 Hz" in verdict[0] and "shape estimated" in verdict[0], verdict
+
+
+def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
+    """`--sensors accel+gyro+mag` (issue 29 point 6, issue 30 point 4): the host asks the chips for
+    IMU records, the fused estimator shapes every snapshot in order, the same rule and honesty as
+    above; the IMU records need two 12 Mbaud gateways for 364 chips at 145 Hz (capacity), 1 at 30 Hz."""
+    png, mcap = tmp_path / "demo9.png", tmp_path / "demo9.mcap"
+    out = _demo("--sensors", "accel+gyro+mag", "--duration", "3", "--rate", "30", "--out", str(png), "--json",
+                "--record", str(mcap))
+    assert out.returncode in (0, 1), out.stderr
+    result = json.loads(out.stdout)
+    assert result["sensors"] == "accel+gyro+mag" and result["estimator"] == "fused" and result["gateways"] == 1
+    assert "364 chips discovered, 364 assigned" in out.stderr
+    assert result["estimates"] >= 1
+    if result["compared_with_truth"]:
+        assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
+    assert result["pass"] == (result["error_ok"] and result["complete_ok"])
+    assert out.returncode == (0 if result["pass"] else 1)
+    from host.record import read  # the recording holds the axes and the fused estimates
+    rec = read(mcap)
+    assert rec.gyro is not None and rec.mag is not None and len(rec.estimates["joints"]) >= 1
+
+
+def test_demo_with_imu_chips_picks_the_gateways_the_records_need():
+    import argparse
+
+    from host.cli import main
+    from host.cli.demo import check_capacity
+    from host.cli import argtypes as T
+    ns = argparse.Namespace(lattice=T.lattice("14x14"), rate=145.0, gateways=None, packed=False,
+                            sensors="accel+gyro+mag")
+    check_capacity(ns)
+    assert ns.gateways == 2  # 364 chips x 29 B x 10 bits x 145 Hz: 128 % of one 12 Mbaud UART, 64 % of two
+    ns = argparse.Namespace(lattice=T.lattice("14x14"), rate=145.0, gateways=None, packed=False, sensors="accel")
+    check_capacity(ns)
+    assert ns.gateways == 1
+    import pytest
+    with pytest.raises(SystemExit) as exc:  # packing IMU records: not simulated, said so (a usage error)
+        main(["demo", "--sensors", "accel+gyro", "--packed"])
+    assert exc.value.code == 2

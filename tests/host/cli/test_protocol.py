@@ -70,3 +70,24 @@ def test_a_closed_pipe_is_not_a_traceback():
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) in (0, 141)
     assert "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_capacity_lists_the_imu_formats_with_the_buses_a_14x14_sheet_needs(capsys):
+    """v1.2 (docs §16.6): per-chip and packed rows for 6- and 9-axis chips. Expected values by hand:
+    classic CAN, worst case 160 bits per 8-byte frame (§10): 6-axis 2 frames -> 1e6 / 320 / 145 = 21.5
+    chips, 9-axis 3 frames -> 14.4; UART 8N1: IMU_SAMPLE is 23 (29) bytes on the wire (§16.3), so
+    3e5 / 23 / 145 = 89.9 and 1.2e6 / 29 / 145 = 285.4 chips."""
+    from host.cli import main
+    assert main(["protocol", "capacity", "--lattice", "14x14", "--rate", "145"]) == 0
+    rows = {tuple(c.strip() for c in line.split("|")[1:3]): line.split("|")[3:5]
+            for line in capsys.readouterr().out.splitlines() if line.startswith("| ")}
+
+    def row(link, carries):
+        per, need = rows[(link, carries)]
+        return int(per.replace(",", "")), int(need)
+    assert row("classic CAN 1 Mbit/s, 29-bit id", "6-axis: IMU_GYRO + IMU_ACCEL (2 × 8 B)") == (21, 18)
+    assert row("classic CAN 1 Mbit/s, 29-bit id", "9-axis: IMU_GYRO + IMU_MAG + IMU_ACCEL (3 × 8 B)") == (14, 26)
+    assert row("UART 8N1 3 Mbaud", "6-axis: IMU_SAMPLE per chip") == (89, 5)
+    assert row("UART 8N1 12 Mbaud", "9-axis: IMU_SAMPLE per chip") == (285, 2)
+    assert row("UART 8N1 12 Mbaud", "6-axis: SNAPSHOT_IMU (packed)")[1] == 1
+    assert row("classic CAN 1 Mbit/s, 29-bit id", "SAMPLE (7 B)") == (45, 9)  # today's rows unchanged

@@ -21,8 +21,8 @@ from cobs import cobs
 
 from protocol.can import CanFrame, decode_can, make_id, split_id, to_can
 from protocol.framing import DecodeError, decode_frame, encode
-from protocol.messages import (Ack, Assign, Capability, ChipState, Config, Direction, Info, MsgType, Nack, NackReason,
-                               Reset, Sample, Start, Stop, Sync)
+from protocol.messages import (Ack, Assign, Capability, ChipState, Config, Direction, ImuSample, Info, MsgType, Nack,
+                               NackReason, Reset, Sample, Start, Stop, Sync)
 from virtual_sheet.chip import ChipModel, frame_header
 from virtual_sheet.gateway import Gateway, GatewayNode
 
@@ -524,6 +524,55 @@ MUTANTS = {
 
 #: the C firmware's mutants (capsheet_fw.h ``capsheet_mutant_t``) -> the Python mutant that breaks the
 #: same rule (so the same checks must fail); `C_MUTANT_OPTIONS` the chip options a mutant needs
+# ---- 6/9-axis chips (v1.2, docs/protocol.md §16): the Python model built with sensors= -------------
+
+class ImuAnswersSample(_Rewriting):
+    """Takes CONFIG_IMU but answers SYNC with the accelerometer's SAMPLE alone (§16.3)."""
+
+    def rewrite(self, msg):
+        if isinstance(msg, ImuSample):
+            return Sample(msg.node, msg.counter, msg.x, msg.y, msg.z, msg.status)
+        return msg
+
+
+class ImuTimeWithoutCapability(ChipModel):
+    """Reports no SAMPLE_TIME but sends a time_us (§16.1: −32768 without it)."""
+
+    def __init__(self, *a, **kw):
+        super().__init__(*a, **kw)
+        self.capabilities &= ~Capability.SAMPLE_TIME
+
+
+class ImuAcceptsBadConfig(_Rewriting):
+    """ACKs a CONFIG_IMU whose values are out of range (§16.2: BAD_VALUE); changes nothing."""
+
+    def rewrite(self, msg):
+        if isinstance(msg, Nack) and msg.command == MsgType.CONFIG_IMU and msg.reason == NackReason.BAD_VALUE:
+            return Ack(msg.node, MsgType.CONFIG_IMU, 0)
+        return msg
+
+
+class ImuAccelFirst(ChipModel):
+    """Classic CAN: sends a record's IMU_ACCEL before its IMU_GYRO (§16.4: GYRO, MAG, ACCEL)."""
+
+    def handle(self, frame, now_s, decoded=None):
+        out = super().handle(frame, now_s, decoded)
+        imu = [f for f in out if isinstance(f, CanFrame) and split_id(f.arbitration_id)[1] in
+               (MsgType.IMU_GYRO, MsgType.IMU_MAG, MsgType.IMU_ACCEL)]
+        if len(imu) >= 2:
+            return [imu[-1]] + imu[:-1] + [f for f in out if f not in imu]
+        return out
+
+
+#: name -> (class, transport, sensors): the §16 mutants (checks 42-44), each a 6/9-axis chip
+IMU_MUTANTS = {
+    "imu_answers_sample": (ImuAnswersSample, "serial", "accel+gyro"),
+    "imu_time_without_capability": (ImuTimeWithoutCapability, "serial", "accel+gyro+mag"),
+    "imu_accepts_bad_config": (ImuAcceptsBadConfig, "serial", "accel+gyro"),
+    "imu_accel_first": (ImuAccelFirst, "can", "accel+gyro"),
+}
+
+
 C_MUTANTS = {
     "dead_sensor": "dead_sensor", "frozen_sample": "frozen_sample", "wrong_crc": "wrong_crc",
     "wrong_crc_sample": "wrong_crc_sample", "counter_off_by_one": "counter_off_by_one",
