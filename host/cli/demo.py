@@ -381,7 +381,7 @@ def run(args) -> int:
         import matplotlib.pyplot as plt
         plt.close(demo_figure(out, truth, est_joints, err, shape=args.shape, noise_pct_g=args.noise,
                               rate_hz=args.rate, run_mean_error_pct=errors.mean, counter=counter,
-                              link_length=L))
+                              link_length=L, sensors=getattr(args, "sensors", "accel")))
         result["png"] = str(out)
         print(f"capsheet demo: wrote {out}", file=sys.stderr)
     verdict = "PASS" if ok else "FAIL"
@@ -389,7 +389,8 @@ def run(args) -> int:
             f"(target <= {args.target:g} %{'' if err_ok else ': MISSED'}), {complete_pct:.1f} % of {sent} SYNCs "
             f"complete (need >= {args.min_complete:g} %{'' if complete_ok else ': MISSED'}); "
             f"SYNC at {args.rate:g} Hz ({result['syncs_per_s']}/s sent), shape estimated "
-            f"{result['estimates_per_s']}/s ({n_est} estimates, newest snapshot first), median latency "
+            f"{result['estimates_per_s']}/s ({n_est} estimates, "
+            f"{'every snapshot in order, fused' if result['estimator'] == 'fused' else 'newest snapshot first'}), median latency "
             f"{_fmt(result['median_latency_ms'], '.1f', ' ms')}, estimate {_fmt(result['median_estimate_ms'], '.2f', ' ms')}")
     print(line, file=sys.stderr if args.json else sys.stdout)
     if args.json:

@@ -67,7 +67,8 @@ def _labels_cm(ax) -> None:
 
 
 def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *, shape: str, noise_pct_g: float,
-                rate_hz: float, run_mean_error_pct: float, counter: int, link_length: float):
+                rate_hz: float, run_mean_error_pct: float, counter: int, link_length: float,
+                sensors: str = "accel"):
     """The demo's figure: truth; estimate (overlaid) drawn over the truth; per-joint error map.
 
     Parameters
@@ -78,6 +79,9 @@ def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *
         That snapshot's joint error, % of side.
     run_mean_error_pct : float
         The run's summary figure (mean over the compared snapshots), shown in the title.
+    sensors : str
+        The chips' sensors (``--sensors``): 6/9-axis chips are named in the title with the fused
+        estimator that used them.
     """
     plt = _plt()
     from host.analysis.metrics import overlay
@@ -109,7 +113,8 @@ def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *
     ax.set_ylabel("joint i")
     ax.set_title(f"joint error, counter {counter} (mean {float(np.mean(err_pct)):.2f} %)")
     fig.colorbar(im, ax=ax, shrink=0.85, label="error [% of side]")
-    fig.suptitle(f"capsheet demo: {rows}x{cols} joints, L = {link_length * CM:g} cm, '{shape}', "
+    chips = "" if sensors == "accel" else f"{sensors} chips (fused estimator), "
+    fig.suptitle(f"capsheet demo: {rows}x{cols} joints, L = {link_length * CM:g} cm, '{shape}', {chips}"
                  f"{noise_pct_g:g} % g noise, {rate_hz:g} Hz: run mean error {run_mean_error_pct:.2f} % of side")
     _save(fig, path)
     return fig

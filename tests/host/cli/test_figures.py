@@ -65,6 +65,17 @@ def test_demo_figure_overlays_the_estimate_on_the_truth_with_integer_ticks(gauss
     finally:
         plt.close(fig)
     assert (tmp_path / "demo.png").stat().st_size > 20_000
+    assert "chips" not in title and "fused" not in title  # today's chips: nothing to name
+
+
+def test_demo_figure_names_6_and_9_axis_chips_and_the_fused_estimator(gaussian, tmp_path):
+    fig = figures.demo_figure(tmp_path / "demo.png", gaussian, gaussian, np.zeros((14, 14)), shape="wave",
+                              noise_pct_g=1.0, rate_hz=145.0, run_mean_error_pct=0.2, counter=5, link_length=L,
+                              sensors="accel+gyro+mag")
+    try:
+        assert "'wave', accel+gyro+mag chips (fused estimator), 1 % g noise" in fig._suptitle.get_text()
+    finally:
+        plt.close(fig)
 
 
 def test_gaussian_figure_is_in_cm_with_a_legend_per_panel(gaussian, tmp_path):
