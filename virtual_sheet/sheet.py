@@ -59,7 +59,7 @@ from .sensor import _check_readings as check_readings
 from .imu import SENSOR_SETS, GyroModel, ImuArray, MagModel
 from .imu_source import MOTION_SHAPES, ImuSource
 from .motion import make_motion_scene
-from .shapes import SHAPES, StaticScene, make_scene
+from .shapes import SCENES, SHAPES, StaticScene, make_scene
 
 __all__ = ["VirtualSheet", "make_uids"]
 
@@ -155,6 +155,9 @@ class VirtualSheet:
             self.imu_source = ImuSource(motion, ImuArray(self.lattice.n_links, accel=self.sensor_model, gyro=gyro,
                                                          mag=mag, seed=seed))
             scene = motion
+        if scene is None and shape not in SCENES and shape not in SHAPES:
+            raise ValueError(f"Unknown scene {shape!r}; scenes: {', '.join(SCENES)}; moving (for 6/9-axis "
+                             f"chips too): {', '.join(MOTION_SHAPES)}; static shapes: {', '.join(SHAPES)}")
         self.scene = scene if scene is not None else make_scene(shape, rows, cols, link_length,
                                                                 **(shape_params or {}))
         self.static = isinstance(self.scene, StaticScene)

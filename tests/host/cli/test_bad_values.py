@@ -125,6 +125,9 @@ CASES = [
     (["protocol", "encode", "SAMPLE", "node=1", "bogus=3"], "bogus"),
     (["protocol", "capacity", "--rate", "0"], "--rate"),
     (["protocol", "capacity", "--lattice", "1x1"], "--lattice"),
+    # an unknown scene names every kind there is, the moving ones too
+    (["demo", "--shape", "nope"], "carry"),
+    (["virtual", "--shape", "nope"], "carry"),
     # -- paper: argparse's own errors are one line too --
     (["paper", "gaussian", "--seed", "abc"], "--seed"),
     # an abbreviation is not taken for a longer option (--noise is not --noise-dist)
