@@ -19,7 +19,7 @@ Frames from other nodes are ignored.
 
 Timeouts (from ``timeout_s``, the ``--timeout`` option, default 0.5 s): an expected answer
 ``max(1 s, 3 timeout_s)`` (`Session.answer_s`; the wait ends when it arrives); a window in which
-the chip must stay silent ``timeout_s``; a heartbeat ``max(1.5 s, 3 timeout_s)``; a re-announce 2.6 s.
+the chip must stay silent ``timeout_s``; a heartbeat ``max(1.5 s, 3 timeout_s)``; a re-announce 3.6 s.
 
 The port's own losses are kept apart from the chip's faults: every `DecodeError` the transport
 delivers (a damaged frame) and every CAN error frame counts in `Port.damaged`. A check during which
