@@ -351,12 +351,13 @@ def run(args) -> int:
             print(f"capsheet virtual: --layout-out {why}", file=sys.stderr)
             return 2
     try:
-        dev.start()
-    except Exception as exc:  # noqa: BLE001 - a port or bus that cannot be opened: one line
-        print(f"capsheet virtual: cannot start the {args.transport} device: {exc}", file=sys.stderr)
-        dev.stop()
-        return 1
-    try:
+        # inside the try whose `finally` stops the device: a SIGTERM/SIGHUP that lands while it is
+        # starting (its symlink already published) still stops it and removes the symlink
+        try:
+            dev.start()
+        except Exception as exc:  # noqa: BLE001 - a port or bus that cannot be opened: one line
+            print(f"capsheet virtual: cannot start the {args.transport} device: {exc}", file=sys.stderr)
+            return 1
         print(f"capsheet virtual: {sheet!r}", file=out)
         print(f"connect to: {dev.describe()}", file=out)
         cmd = host_command(args, dev, max_rate)
