@@ -89,6 +89,14 @@ extern "C" {
 #ifndef CAPSHEET_IMU
 #define CAPSHEET_IMU 1
 #endif
+/* A chip's image: a build-time option. 0 (the default): the codec encodes and decodes every type
+ * (a host, a gateway, a sniffer, the tests). 1: it decodes only host -> node payloads and encodes
+ * only what a chip sends (ANNOUNCE, INFO, SAMPLE, STATUS, ACK, NACK, CAL_DATA, the IMU frames); the
+ * other types give CAPSHEET_ERR_UNKNOWN_TYPE. The chip behaves identically either way: it ignores a
+ * node -> host frame before its payload matters (§8.1 row 7) — only its flash is smaller. */
+#ifndef CAPSHEET_CHIP_ONLY
+#define CAPSHEET_CHIP_ONLY 0
+#endif
 /* Largest frame a chip ever sends, on the wire: ANNOUNCE/INFO/STATUS/CAL_DATA (8-byte payloads), or
  * with CAPSHEET_IMU a 9-axis IMU_SAMPLE (21-byte payload: 29 bytes on the wire; 24 on CAN FD). */
 #if CAPSHEET_IMU

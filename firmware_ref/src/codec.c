@@ -49,12 +49,14 @@ static float bits_float(uint32_t u)
 
 typedef char capsheet_float_is_32_bits[(sizeof(float) == 4) ? 1 : -1];
 
+#if !CAPSHEET_CHIP_ONLY  /* decoding node -> host payloads only */
 /* sign-extend a 12-bit field */
 static int16_t sext12(uint32_t v)
 {
     v &= 0xFFFu;
     return (int16_t)((int32_t)v - (int32_t)((v & 0x800u) << 1));
 }
+#endif
 
 /* ------------------------------------------------------------------------------------------ */
 /* CRC-16/CCITT-FALSE                                                                          */
@@ -238,6 +240,7 @@ static void put_sample_word(uint8_t *p, int16_t x, int16_t y, int16_t z, uint8_t
     p[4] = (uint8_t)((uz >> 8) | ((uint32_t)(status & 0xFu) << 4));
 }
 
+#if !CAPSHEET_CHIP_ONLY
 /* the 40-bit sample word (§5.2) at p[0..4] */
 static void get_sample_word(const uint8_t *p, int16_t *x, int16_t *y, int16_t *z, uint8_t *status)
 {
@@ -247,6 +250,14 @@ static void get_sample_word(const uint8_t *p, int16_t *x, int16_t *y, int16_t *z
     *z = sext12((w >> 24) | ((uint32_t)p[4] << 8));
     *status = (uint8_t)(p[4] >> 4);
 }
+
+static void get_i16x3(const uint8_t *p, int16_t *a, int16_t *b, int16_t *c)
+{
+    *a = (int16_t)get_u16(p);
+    *b = (int16_t)get_u16(p + 2);
+    *c = (int16_t)get_u16(p + 4);
+}
+#endif
 
 static void put_i16x3(uint8_t *p, int16_t a, int16_t b, int16_t c)
 {
@@ -274,44 +285,18 @@ static void put_cal(uint8_t *p, const capsheet_cal_t *c)
  * a 9-axis IMU_SAMPLE's 21 bytes. */
 #define FIXED_MAX 21u
 
-/* Encode the fixed part of a payload into `p` (FIXED_MAX bytes). Returns the number of bytes
- * written, or an error. */
-static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
+/* §16.1's record after its accelerometer word's position: the word, time_us (7 bytes at p) */
+static void put_word_time(uint8_t *p, int16_t x, int16_t y, int16_t z, uint8_t status, int16_t time_us)
+{
+    put_sample_word(p, x, y, z, status);
+    put_u16(p + 5, (uint16_t)time_us);
+}
+
+#if !CAPSHEET_CHIP_ONLY
+/* The types a chip never sends: a gateway's and the host's. */
+static CAPSHEET_WARN_UNUSED int32_t encode_other(const capsheet_msg_t *m, uint8_t *p)
 {
     switch (m->type) {
-    case CAPSHEET_ANNOUNCE:
-        put_u32(p, (uint32_t)(m->u.announce.uid & 0xFFFFFFFFu));
-        put_u32(p + 4, (uint32_t)(m->u.announce.uid >> 32));
-        return 8;
-    case CAPSHEET_INFO:
-        p[0] = m->u.info.fw_major;
-        p[1] = m->u.info.fw_minor;
-        p[2] = m->u.info.fw_patch;
-        p[3] = m->u.info.protocol_version;
-        put_u16(p + 4, m->u.info.capabilities);
-        p[6] = m->u.info.adc_bits;
-        p[7] = m->u.info.state;
-        return 8;
-    case CAPSHEET_SAMPLE:
-        put_u16(p, m->u.sample.counter);
-        put_sample_word(p + 2, m->u.sample.x, m->u.sample.y, m->u.sample.z, m->u.sample.status);
-        return 7;
-    case CAPSHEET_STATUS:
-        p[0] = m->u.status.state;
-        p[1] = m->u.status.flags;
-        p[2] = m->u.status.rx_errors;
-        p[3] = m->u.status.missed_syncs;
-        put_u32(p + 4, m->u.status.uptime_s);
-        return 8;
-    case CAPSHEET_ACK:
-        p[0] = m->u.ack.command;
-        p[1] = m->u.ack.detail;
-        return 2;
-    case CAPSHEET_NACK:
-        p[0] = m->u.nack.command;
-        p[1] = m->u.nack.reason;
-        return 2;
-    case CAPSHEET_CAL_DATA:
     case CAPSHEET_CAL_WRITE:
         put_cal(p, &m->u.cal);
         return 8;
@@ -330,33 +315,6 @@ static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_
         put_u16(p + 4, m->u.gateway_info.link_count);
         put_u16(p + 6, m->u.gateway_info.sync_rate_hz);
         return 8;
-    case CAPSHEET_IMU_GYRO:
-        put_u16(p, m->u.imu_gyro.counter);
-        put_i16x3(p + 2, m->u.imu_gyro.gx, m->u.imu_gyro.gy, m->u.imu_gyro.gz);
-        return 8;
-    case CAPSHEET_IMU_MAG:
-        put_u16(p, m->u.imu_mag.counter);
-        put_i16x3(p + 2, m->u.imu_mag.mx, m->u.imu_mag.my, m->u.imu_mag.mz);
-        return 8;
-    case CAPSHEET_IMU_ACCEL:
-        p[0] = m->u.imu_accel.counter_lo;
-        put_sample_word(p + 1, m->u.imu_accel.x, m->u.imu_accel.y, m->u.imu_accel.z, m->u.imu_accel.status);
-        put_u16(p + 6, (uint16_t)m->u.imu_accel.time_us);
-        return 8;
-    case CAPSHEET_IMU_SAMPLE: {
-        const size_t rec = imu_record_size(m->u.imu_sample.format);
-        if (rec == 0u) {
-            return CAPSHEET_ERR_ARGUMENT;
-        }
-        put_u16(p, m->u.imu_sample.counter);
-        put_sample_word(p + 2, m->u.imu_sample.x, m->u.imu_sample.y, m->u.imu_sample.z, m->u.imu_sample.status);
-        put_u16(p + 7, (uint16_t)m->u.imu_sample.time_us);
-        put_i16x3(p + 9, m->u.imu_sample.gx, m->u.imu_sample.gy, m->u.imu_sample.gz);
-        if (rec == CAPSHEET_IMU9_RECORD_SIZE) {
-            put_i16x3(p + 15, m->u.imu_sample.mx, m->u.imu_sample.my, m->u.imu_sample.mz);
-        }
-        return (int32_t)(2u + rec);
-    }
     case CAPSHEET_SNAPSHOT_IMU:
         if (m->u.snapshot_imu.count == 0u || m->u.snapshot_imu.records == NULL
             || imu_record_size(m->u.snapshot_imu.format) == 0u) {
@@ -399,6 +357,80 @@ static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_
         return CAPSHEET_ERR_UNKNOWN_TYPE;
     }
 }
+#endif
+
+/* Encode the fixed part of a payload into `p` (FIXED_MAX bytes). Returns the number of bytes
+ * written, or an error. The types a chip sends here, the others in encode_other. */
+static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
+{
+    switch (m->type) {
+    case CAPSHEET_ANNOUNCE:
+        put_u32(p, (uint32_t)(m->u.announce.uid & 0xFFFFFFFFu));
+        put_u32(p + 4, (uint32_t)(m->u.announce.uid >> 32));
+        return 8;
+    case CAPSHEET_INFO:
+        p[0] = m->u.info.fw_major;
+        p[1] = m->u.info.fw_minor;
+        p[2] = m->u.info.fw_patch;
+        p[3] = m->u.info.protocol_version;
+        put_u16(p + 4, m->u.info.capabilities);
+        p[6] = m->u.info.adc_bits;
+        p[7] = m->u.info.state;
+        return 8;
+    case CAPSHEET_SAMPLE:
+        put_u16(p, m->u.sample.counter);
+        put_sample_word(p + 2, m->u.sample.x, m->u.sample.y, m->u.sample.z, m->u.sample.status);
+        return 7;
+    case CAPSHEET_STATUS:
+        p[0] = m->u.status.state;
+        p[1] = m->u.status.flags;
+        p[2] = m->u.status.rx_errors;
+        p[3] = m->u.status.missed_syncs;
+        put_u32(p + 4, m->u.status.uptime_s);
+        return 8;
+    case CAPSHEET_ACK:
+        p[0] = m->u.ack.command;
+        p[1] = m->u.ack.detail;
+        return 2;
+    case CAPSHEET_NACK:
+        p[0] = m->u.nack.command;
+        p[1] = m->u.nack.reason;
+        return 2;
+    case CAPSHEET_CAL_DATA:
+        put_cal(p, &m->u.cal);
+        return 8;
+    case CAPSHEET_IMU_GYRO:
+    case CAPSHEET_IMU_MAG:  /* the same layout: imu_gyro and imu_mag share their members' types (C99 6.5.2.3) */
+        put_u16(p, m->u.imu_gyro.counter);
+        put_i16x3(p + 2, m->u.imu_gyro.gx, m->u.imu_gyro.gy, m->u.imu_gyro.gz);
+        return 8;
+    case CAPSHEET_IMU_ACCEL:
+        p[0] = m->u.imu_accel.counter_lo;
+        put_word_time(p + 1, m->u.imu_accel.x, m->u.imu_accel.y, m->u.imu_accel.z, m->u.imu_accel.status,
+                      m->u.imu_accel.time_us);
+        return 8;
+    case CAPSHEET_IMU_SAMPLE: {
+        const size_t rec = imu_record_size(m->u.imu_sample.format);
+        if (rec == 0u) {
+            return CAPSHEET_ERR_ARGUMENT;
+        }
+        put_u16(p, m->u.imu_sample.counter);
+        put_word_time(p + 2, m->u.imu_sample.x, m->u.imu_sample.y, m->u.imu_sample.z, m->u.imu_sample.status,
+                      m->u.imu_sample.time_us);
+        put_i16x3(p + 9, m->u.imu_sample.gx, m->u.imu_sample.gy, m->u.imu_sample.gz);
+        if (rec == CAPSHEET_IMU9_RECORD_SIZE) {
+            put_i16x3(p + 15, m->u.imu_sample.mx, m->u.imu_sample.my, m->u.imu_sample.mz);
+        }
+        return (int32_t)(2u + rec);
+    }
+    default:
+#if CAPSHEET_CHIP_ONLY
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+#else
+        return encode_other(m, p);
+#endif
+    }
+}
 
 /* The payload as (fixed part in `tmp`, SNAPSHOT words / SNAPSHOT_IMU records) spans; returns the
  * payload length. */
@@ -412,6 +444,7 @@ static CAPSHEET_WARN_UNUSED int32_t payload_spans(const capsheet_msg_t *m, uint8
     sp[0].n = (size_t)n;
     sp[1].p = NULL;
     sp[1].n = 0;
+#if !CAPSHEET_CHIP_ONLY
     if (m->type == CAPSHEET_SNAPSHOT) {
         sp[1].p = m->u.snapshot.words;
         sp[1].n = (size_t)m->u.snapshot.count * CAPSHEET_SAMPLE_WORD_SIZE;
@@ -419,6 +452,7 @@ static CAPSHEET_WARN_UNUSED int32_t payload_spans(const capsheet_msg_t *m, uint8
         sp[1].p = m->u.snapshot_imu.records;
         sp[1].n = (size_t)m->u.snapshot_imu.count * imu_record_size(m->u.snapshot_imu.format);
     }
+#endif
     return (int32_t)(sp[0].n + sp[1].n);
 }
 
@@ -458,19 +492,10 @@ static void get_cal(const uint8_t *p, capsheet_cal_t *c)
     c->sensitivity = bits_float(get_u32(p + 4));
 }
 
-int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, size_t len, capsheet_msg_t *out)
+#if !CAPSHEET_CHIP_ONLY
+/* The node -> host payloads (0x01..0x0F): what a host or gateway decodes; a chip ignores them (§8.1). */
+static CAPSHEET_WARN_UNUSED int32_t decode_node_payload(uint8_t type, const uint8_t *p, size_t len, capsheet_msg_t *out)
 {
-    uint8_t size;
-    CAPSHEET_ASSERT(out != NULL && (p != NULL || len == 0));
-    out->type = type;
-    out->node = node;
-    if (!capsheet_type_known(type)) {
-        return CAPSHEET_ERR_UNKNOWN_TYPE;
-    }
-    if (node == CAPSHEET_NODE_RESERVED) {
-        return CAPSHEET_ERR_BAD_FIELD;
-    }
-    size = k_size[type];
     if (type == CAPSHEET_IMU_SAMPLE) {  /* §16.3: the length says the format */
         const uint8_t format = (len == 2u + CAPSHEET_IMU6_RECORD_SIZE)   ? CAPSHEET_IMU_FORMAT_6AXIS
                                : (len == 2u + CAPSHEET_IMU9_RECORD_SIZE) ? CAPSHEET_IMU_FORMAT_9AXIS : 0u;
@@ -482,13 +507,9 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         get_sample_word(p + 2, &out->u.imu_sample.x, &out->u.imu_sample.y, &out->u.imu_sample.z,
                         &out->u.imu_sample.status);
         out->u.imu_sample.time_us = (int16_t)get_u16(p + 7);
-        out->u.imu_sample.gx = (int16_t)get_u16(p + 9);
-        out->u.imu_sample.gy = (int16_t)get_u16(p + 11);
-        out->u.imu_sample.gz = (int16_t)get_u16(p + 13);
+        get_i16x3(p + 9, &out->u.imu_sample.gx, &out->u.imu_sample.gy, &out->u.imu_sample.gz);
         if (format == CAPSHEET_IMU_FORMAT_9AXIS) {
-            out->u.imu_sample.mx = (int16_t)get_u16(p + 15);
-            out->u.imu_sample.my = (int16_t)get_u16(p + 17);
-            out->u.imu_sample.mz = (int16_t)get_u16(p + 19);
+            get_i16x3(p + 15, &out->u.imu_sample.mx, &out->u.imu_sample.my, &out->u.imu_sample.mz);
         } else {
             out->u.imu_sample.mx = out->u.imu_sample.my = out->u.imu_sample.mz = 0;
         }
@@ -513,7 +534,7 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         }
         return ((uint32_t)out->u.snapshot_imu.first_link + p[4] > 0x10000u) ? CAPSHEET_ERR_BAD_FIELD : 0;
     }
-    if (size == VAR) {  /* SNAPSHOT */
+    if (type == CAPSHEET_SNAPSHOT) {
         size_t count;
         if (len < CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE) {
             return CAPSHEET_ERR_BAD_LENGTH;
@@ -529,7 +550,7 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         /* count >= 1 here (len >= 10); first_link + count must not pass 65536 */
         return ((uint32_t)out->u.snapshot.first_link + count > 0x10000u) ? CAPSHEET_ERR_BAD_FIELD : 0;
     }
-    if (len != size) {
+    if (len != k_size[type]) {
         return CAPSHEET_ERR_BAD_LENGTH;
     }
     switch (type) {
@@ -550,28 +571,15 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         get_sample_word(p + 2, &out->u.sample.x, &out->u.sample.y, &out->u.sample.z, &out->u.sample.status);
         return 0;
     case CAPSHEET_IMU_GYRO:
+    case CAPSHEET_IMU_MAG:  /* the same layout (C99 6.5.2.3: a common initial sequence) */
         out->u.imu_gyro.counter = get_u16(p);
-        out->u.imu_gyro.gx = (int16_t)get_u16(p + 2);
-        out->u.imu_gyro.gy = (int16_t)get_u16(p + 4);
-        out->u.imu_gyro.gz = (int16_t)get_u16(p + 6);
-        return 0;
-    case CAPSHEET_IMU_MAG:
-        out->u.imu_mag.counter = get_u16(p);
-        out->u.imu_mag.mx = (int16_t)get_u16(p + 2);
-        out->u.imu_mag.my = (int16_t)get_u16(p + 4);
-        out->u.imu_mag.mz = (int16_t)get_u16(p + 6);
+        get_i16x3(p + 2, &out->u.imu_gyro.gx, &out->u.imu_gyro.gy, &out->u.imu_gyro.gz);
         return 0;
     case CAPSHEET_IMU_ACCEL:
         out->u.imu_accel.counter_lo = p[0];
         get_sample_word(p + 1, &out->u.imu_accel.x, &out->u.imu_accel.y, &out->u.imu_accel.z,
                         &out->u.imu_accel.status);
         out->u.imu_accel.time_us = (int16_t)get_u16(p + 6);
-        return 0;
-    case CAPSHEET_CONFIG_IMU:
-        out->u.config_imu.format = p[0];
-        out->u.config_imu.gyro_range = p[1];
-        out->u.config_imu.mag_range = p[2];
-        out->u.config_imu.flags = p[3];
         return 0;
     case CAPSHEET_STATUS:
         out->u.status.state = p[0];
@@ -590,11 +598,7 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         return (p[1] >= CAPSHEET_NACK_UNKNOWN_COMMAND && p[1] <= CAPSHEET_NACK_STORAGE_FAILED)
                    ? 0 : CAPSHEET_ERR_BAD_FIELD;
     case CAPSHEET_CAL_DATA:
-    case CAPSHEET_CAL_WRITE:
         get_cal(p, &out->u.cal);
-        if (type == CAPSHEET_CAL_WRITE && node == CAPSHEET_NODE_BROADCAST) {
-            return CAPSHEET_ERR_BAD_FIELD;
-        }
         return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
     case CAPSHEET_GATEWAY_INFO:
         out->u.gateway_info.flags = p[0];
@@ -604,6 +608,46 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         out->u.gateway_info.sync_rate_hz = get_u16(p + 6);
         return ((uint32_t)out->u.gateway_info.first_link + out->u.gateway_info.link_count > 0x10000u)
                    ? CAPSHEET_ERR_BAD_FIELD : 0;
+    default:
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+}
+#endif
+
+int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, size_t len, capsheet_msg_t *out)
+{
+    CAPSHEET_ASSERT(out != NULL && (p != NULL || len == 0));
+    out->type = type;
+    out->node = node;
+    if (!capsheet_type_known(type)) {
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+    if (node == CAPSHEET_NODE_RESERVED) {
+        return CAPSHEET_ERR_BAD_FIELD;
+    }
+    if (type < CAPSHEET_HOST_TYPE_FIRST) {
+#if CAPSHEET_CHIP_ONLY
+        return CAPSHEET_ERR_UNKNOWN_TYPE;  /* a chip build decodes no node -> host payload */
+#else
+        return decode_node_payload(type, p, len, out);
+#endif
+    }
+    if (len != k_size[type]) {
+        return CAPSHEET_ERR_BAD_LENGTH;
+    }
+    switch (type) {
+    case CAPSHEET_CONFIG_IMU:
+        out->u.config_imu.format = p[0];
+        out->u.config_imu.gyro_range = p[1];
+        out->u.config_imu.mag_range = p[2];
+        out->u.config_imu.flags = p[3];
+        return 0;
+    case CAPSHEET_CAL_WRITE:
+        get_cal(p, &out->u.cal);
+        if (type == CAPSHEET_CAL_WRITE && node == CAPSHEET_NODE_BROADCAST) {
+            return CAPSHEET_ERR_BAD_FIELD;
+        }
+        return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
     case CAPSHEET_SYNC:
         out->u.sync.counter = get_u16(p);
         return (node == CAPSHEET_NODE_BROADCAST) ? 0 : CAPSHEET_ERR_BAD_FIELD;
@@ -860,6 +904,7 @@ int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uin
         || (is_fd && capsheet_can_fd_length(len) != (int32_t)len)) {
         return CAPSHEET_ERR_BAD_LENGTH;
     }
+#if !CAPSHEET_CHIP_ONLY
     {
         /* the padded types (§7.2, §16.3, §16.5): `need` payload bytes, padded with 0x00 on FD */
         size_t need = 0, expected, i;
@@ -888,4 +933,7 @@ int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uin
         }
         return capsheet_payload_decode(type, node, data, need, out);
     }
+#else
+    return capsheet_payload_decode(type, node, data, len, out);  /* node -> host types: not decoded */
+#endif
 }
