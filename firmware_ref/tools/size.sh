@@ -78,6 +78,8 @@ echo "RAM of a serial chip = sizeof(capsheet_chip_t) + the RX buffer (+ the stac
   echo "| whole library, every function (object files) | $1 B | $2 B |"
   sed 's/RX buffer \([0-9]*\) B/RX buffer \1 B/' "$MD.rows"
   echo
+  echo "A serial chip's RX buffer is 64 B (the default) where its row does not say."
+  echo
   echo "Stack, static worst case (\`-fcallgraph-info=su\`, \`firmware_ref/tools/stack.py\`; HAL callbacks as in tools/size_app.c), default build:"
   echo
   echo "$STACK" | sed 's/^/    /'
