@@ -253,9 +253,9 @@ typedef struct {
             uint16_t counter;
             int16_t x, y, z;
             uint8_t status;
+            uint8_t format;
             int16_t time_us;
             int16_t gx, gy, gz, mx, my, mz;
-            uint8_t format;
         } imu_sample;
         struct { uint16_t counter; int16_t gx, gy, gz; } imu_gyro;      /* IMU_GYRO (classic CAN) */
         struct { uint16_t counter; int16_t mx, my, mz; } imu_mag;       /* IMU_MAG (classic CAN) */

@@ -434,6 +434,13 @@ static int16_t asr(int16_t v, uint8_t r)
 }
 
 #if CAPSHEET_IMU
+/* send_record out of line: its two messages and the reading stay off the stack of a chip in format 0 */
+#if defined(__GNUC__) || defined(__clang__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
+
 static bool i16_rail(const int16_t *v, unsigned n)
 {
     unsigned i;
@@ -463,7 +470,8 @@ static int16_t sample_time_us(const capsheet_chip_t *c, uint64_t latch_us, uint6
 /* Format 1 or 2 (§16): the SAMPLE `s` the chip would send (its accelerometer word, range, SATURATED
  * and FAULT rules applied) becomes one IMU record with the HAL's gyroscope (and magnetometer) and
  * time_us, sent as IMU_SAMPLE (serial; CAN with flag FD) or IMU_GYRO (+ IMU_MAG) + IMU_ACCEL. */
-static CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, const capsheet_msg_t *s, uint64_t now_us)
+static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, const capsheet_msg_t *s,
+                                                         uint64_t now_us)
 {
     capsheet_msg_t r;
     const bool nine = c->imu_format == CAPSHEET_IMU_FORMAT_9AXIS;
