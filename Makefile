@@ -36,5 +36,5 @@ firmware-size:    ## Cortex-M0+ flash/RAM (needs gcc-arm-none-eabi; installs not
 	$(MAKE) -C firmware_ref size
 firmware-qemu:    ## the firmware for QEMU mps2-an385 (needs gcc-arm-none-eabi, libnewlib-arm-none-eabi)
 	$(MAKE) -C firmware_ref qemu
-firmware-qemu-conformance: $(STAMP) firmware-qemu  ## boot it in QEMU, run the whole conformance suite, non-zero on failure
-	$(PY) -m firmware_ref.qemu conformance --runs $(or $(RUNS),1)
+firmware-qemu-conformance: $(STAMP) firmware-qemu  ## boot it in QEMU, run the whole conformance suite, non-zero on failure (SENSORS=accel+gyro[+mag]: a 6/9-axis chip)
+	$(PY) -m firmware_ref.qemu conformance --runs $(or $(RUNS),1) --sensors $(or $(SENSORS),accel)

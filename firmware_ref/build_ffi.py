@@ -59,6 +59,13 @@ typedef struct {
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
         struct { uint8_t axis; } cal_read;
+        struct { uint16_t counter; int16_t x, y, z; uint8_t status; uint8_t format; int16_t time_us;
+                 int16_t gx, gy, gz, mx, my, mz; } imu_sample;
+        struct { uint16_t counter; int16_t gx, gy, gz; } imu_gyro;
+        struct { uint16_t counter; int16_t mx, my, mz; } imu_mag;
+        struct { uint8_t counter_lo; int16_t x, y, z; uint8_t status; int16_t time_us; } imu_accel;
+        struct { uint16_t counter, first_link; uint8_t count, format; const uint8_t *records; } snapshot_imu;
+        struct { uint8_t format, gyro_range, mag_range, flags; } config_imu;
     } u;
 } capsheet_msg_t;
 
@@ -73,6 +80,13 @@ typedef enum { CAPSHEET_CAN_AUTO = 0, CAPSHEET_CAN_CLASSIC = 1, CAPSHEET_CAN_FD 
 typedef enum { CAPSHEET_TRANSPORT_SERIAL = 0, CAPSHEET_TRANSPORT_CAN = 1 } capsheet_transport_t;
 
 typedef struct {
+    int16_t gyro[3];
+    int16_t mag[3];
+    uint64_t latch_us;
+    uint8_t status;
+} capsheet_imu_reading_t;
+
+typedef struct {
     void *user;
     int32_t (*read_axes)(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status);
     int32_t (*send_bytes)(void *user, const uint8_t *data, size_t len);
@@ -80,6 +94,8 @@ typedef struct {
     uint64_t (*read_uid)(void *user);
     int32_t (*cal_load)(void *user, uint8_t axis, capsheet_cal_t *cal);
     int32_t (*cal_store)(void *user, uint8_t axis, const capsheet_cal_t *cal);
+    int32_t (*read_imu)(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
+                        bool want_mag, capsheet_imu_reading_t *out);
 } capsheet_hal_t;
 
 typedef struct { capsheet_transport_t transport; bool can_fd; uint16_t capabilities; } capsheet_chip_config_t;
@@ -101,6 +117,10 @@ typedef struct {
     uint32_t salt;
     uint8_t range_code;
     uint16_t heartbeat_ms;
+    uint8_t imu_format;
+    uint8_t gyro_range;
+    uint8_t mag_range;
+    uint8_t imu_flags;
     capsheet_cal_t cal[3];
     capsheet_stream_t rx;
     uint64_t boot_us;
@@ -120,6 +140,11 @@ typedef struct {
 #define CAPSHEET_FW_VERSION_PATCH ...
 #define CAPSHEET_CRC_INIT ...
 #define CAPSHEET_STAY ...
+#define CAPSHEET_IMU ...
+#define CAPSHEET_TIME_UNKNOWN ...
+#define CAPSHEET_CAP_GYRO ...
+#define CAPSHEET_CAP_MAG ...
+#define CAPSHEET_CAP_SAMPLE_TIME ...
 
 uint16_t capsheet_crc16(const uint8_t *data, size_t len, uint16_t crc);
 int32_t capsheet_cobs_encode(const uint8_t *in, size_t len, uint8_t *out, size_t cap);
@@ -159,6 +184,7 @@ extern "Python" int32_t capsheet_py_send_can(void *, uint32_t, const uint8_t *, 
 extern "Python" uint64_t capsheet_py_read_uid(void *);
 extern "Python" int32_t capsheet_py_cal_load(void *, uint8_t, capsheet_cal_t *);
 extern "Python" int32_t capsheet_py_cal_store(void *, uint8_t, const capsheet_cal_t *);
+extern "Python" int32_t capsheet_py_read_imu(void *, uint64_t, uint8_t, uint8_t, bool, capsheet_imu_reading_t *);
 """
 
 

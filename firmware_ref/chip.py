@@ -6,6 +6,11 @@ the sensor source is read at SYNC, sent frames are collected and returned, calib
 a per-chip list that survives RESET (like flash) but not a new instance.
 
 Time: ``now_s`` (float seconds) is passed to C as integer microseconds, ``round(now_s * 1e6)``.
+
+6/9-axis chips (docs §16): ``sensors="accel+gyro"`` or ``"accel+gyro+mag"`` with an ``imu`` source, as
+`virtual_sheet.chip.ChipModel` takes them: the chip reports GYRO (MAG) and SAMPLE_TIME, and the C HAL's
+``read_imu`` reads the source — its ``time_us`` becomes the latch instant ``now_us + time_us`` that the
+firmware turns back into the record's ``time_us``.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from protocol.messages import Capability, ChipState
 from ._ffi import ffi, lib
 
 __all__ = ["CFirmwareChip", "Out", "SensorSource", "DEFAULT_CAPABILITIES", "FIRMWARE_VERSION", "FirmwareError",
-           "C_MUTANTS", "mutant_library"]
+           "C_MUTANTS", "mutant_library", "SENSOR_CAPABILITIES"]
 
 FIRMWARE_VERSION = (lib.CAPSHEET_FW_VERSION_MAJOR, lib.CAPSHEET_FW_VERSION_MINOR, lib.CAPSHEET_FW_VERSION_PATCH)
 
@@ -26,6 +31,11 @@ C_MUTANTS: tuple[str, ...] = tuple(
     name[len("CAPSHEET_MUT_"):].lower() for name in sorted(
         (n for n in dir(lib) if n.startswith("CAPSHEET_MUT_") and n not in ("CAPSHEET_MUT_NONE", "CAPSHEET_MUT_COUNT")),
         key=lambda n: getattr(lib, n)))
+
+
+#: INFO capability bits a chip gets by its ``sensors`` (docs §16), as `virtual_sheet.chip.ChipModel` adds them
+SENSOR_CAPABILITIES = {"accel": Capability.NONE, "accel+gyro": Capability.GYRO | Capability.SAMPLE_TIME,
+                       "accel+gyro+mag": Capability.GYRO | Capability.MAG | Capability.SAMPLE_TIME}
 
 
 class FirmwareError(RuntimeError):
@@ -47,13 +57,22 @@ class CFirmwareChip:
     ``rx_buffer`` is the serial receive buffer in bytes (default CAPSHEET_MAX_ENCODED_SIZE, 1029:
     every frame the spec allows, so the chip's ``rx_errors`` count the same frames as the Python
     model's; the C build's own default, CAPSHEET_RX_BUFFER_SIZE, is 64).
+    ``sensors`` ("accel", "accel+gyro", "accel+gyro+mag") and ``imu`` (``(now_s, gyro_range,
+    mag_range) -> ((gx, gy, gz), (mx, my, mz) or None, time_us)``, needed for anything but "accel") as
+    `virtual_sheet.chip.ChipModel`.
     """
 
     def __init__(self, uid: int, sensor: SensorSource, *, transport: str = "serial", fd: bool = False,
                  capabilities: int = DEFAULT_CAPABILITIES,
                  calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0,
-                 rx_buffer: int | None = None, mutant: str | None = None) -> None:
+                 rx_buffer: int | None = None, mutant: str | None = None, sensors: str = "accel",
+                 imu=None) -> None:
         check_chip_args(uid, transport, calibration)
+        if sensors not in SENSOR_CAPABILITIES:
+            raise ValueError(f"Invalid sensors: {sensors!r} (expected one of {', '.join(SENSOR_CAPABILITIES)})")
+        if sensors != "accel" and imu is None:
+            raise ValueError(f"Invalid imu: None (sensors {sensors!r} need an imu source)")
+        capabilities = int(capabilities) | int(SENSOR_CAPABILITIES[sensors])
         if mutant is None:
             ffi_, lib_ = ffi, lib
         else:
@@ -67,6 +86,8 @@ class CFirmwareChip:
         self.transport = transport
         self.fd = bool(fd)
         self.seed = seed
+        self.sensors = sensors
+        self.imu = imu
         self.capabilities = Capability(int(capabilities) | (Capability.CAN_FD if fd else 0))
         stored = 1 if self.capabilities & Capability.CAL_STORAGE else 0
         #: the chip's non-volatile calibration: (offset_q4, sensitivity, stored flag) per axis
@@ -82,6 +103,7 @@ class CFirmwareChip:
         self._hal.read_uid = self._lib.capsheet_py_read_uid
         self._hal.cal_load = self._lib.capsheet_py_cal_load
         self._hal.cal_store = self._lib.capsheet_py_cal_store
+        self._hal.read_imu = self._lib.capsheet_py_read_imu if imu is not None else self._ffi.NULL
         cfg = self._ffi.new("capsheet_chip_config_t *")
         cfg.transport = self._lib.CAPSHEET_TRANSPORT_CAN if transport == "can" else self._lib.CAPSHEET_TRANSPORT_SERIAL
         cfg.can_fd = self.fd
@@ -135,6 +157,12 @@ class CFirmwareChip:
     @property
     def powered(self) -> bool:
         return bool(self._chip.powered)
+
+    @property
+    def imu_config(self) -> tuple[int, int, int, int]:
+        """CONFIG_IMU in use (§16.2): ``(format, gyro_range, mag_range, flags)``."""
+        c = self._chip
+        return int(c.imu_format), int(c.gyro_range), int(c.mag_range), int(c.imu_flags)
 
     # ------------------------------------------------------------------ the interface
     def _run(self, rc: int) -> list[Out]:
@@ -199,6 +227,21 @@ def _register(ffi_) -> None:
             (x, y, z), st = c.sensor(now_us / 1e6)
             xyz[0], xyz[1], xyz[2] = int(x), int(y), int(z)
             status[0] = int(st) & 0xF
+            return 0
+        except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
+            c._exc = exc
+            return -1
+
+    @ffi_.def_extern()
+    def capsheet_py_read_imu(user, now_us, gyro_range, mag_range, want_mag, out):
+        c = chip(user)
+        try:
+            g, m, t_us = c.imu(now_us / 1e6, int(gyro_range), int(mag_range))
+            out.gyro[0], out.gyro[1], out.gyro[2] = (int(v) for v in g)
+            if want_mag:
+                out.mag[0], out.mag[1], out.mag[2] = (int(v) for v in m)
+            out.latch_us = max(0, int(now_us) + int(t_us))  # the firmware sends latch - now
+            out.status = 0
             return 0
         except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
             c._exc = exc

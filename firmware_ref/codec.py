@@ -12,7 +12,7 @@ from dataclasses import fields
 
 from protocol.can import CanFrame
 from protocol.framing import ErrorReason
-from protocol.messages import MESSAGE_TYPES, Message, MsgType, Snapshot
+from protocol.messages import IMU_RECORD_SIZE, MESSAGE_TYPES, ImuSample, Message, MsgType, Snapshot, SnapshotImu
 
 from ._ffi import ffi, lib
 
@@ -45,7 +45,10 @@ _MEMBER = {
     MsgType.GATEWAY_INFO: "gateway_info",
     MsgType.SYNC: "sync", MsgType.ASSIGN: "assign", MsgType.CONFIG: "config", MsgType.CAL_WRITE: "cal",
     MsgType.CAL_READ: "cal_read",
+    MsgType.IMU_GYRO: "imu_gyro", MsgType.IMU_MAG: "imu_mag", MsgType.IMU_ACCEL: "imu_accel",
+    MsgType.CONFIG_IMU: "config_imu",
 }
+_IMU_FIELDS = ("counter", "x", "y", "z", "status", "time_us", "gx", "gy", "gz")
 
 
 def to_c(msg: Message):
@@ -61,6 +64,18 @@ def to_c(msg: Message):
         m.u.snapshot.first_link = msg.first_link
         m.u.snapshot.count = msg.count
         m.u.snapshot.words = keep
+    elif isinstance(msg, SnapshotImu):
+        keep = ffi.new("uint8_t[]", msg.records)
+        s = m.u.snapshot_imu
+        s.counter, s.first_link, s.count, s.format, s.records = (msg.counter, msg.first_link, msg.count,
+                                                                 int(msg.format), keep)
+    elif isinstance(msg, ImuSample):
+        s = m.u.imu_sample
+        for name in _IMU_FIELDS:
+            setattr(s, name, getattr(msg, name))
+        s.format = int(msg.format)
+        if msg.mx is not None:
+            s.mx, s.my, s.mz = msg.mx, msg.my, msg.mz
     elif member is not None:
         dst = getattr(m.u, member)
         for f in fields(msg)[1:]:
@@ -75,6 +90,14 @@ def from_c(m) -> Message:
     if cls is Snapshot:
         s = m.u.snapshot
         return Snapshot(m.node, s.counter, s.first_link, bytes(ffi.buffer(s.words, 5 * s.count)))
+    if cls is SnapshotImu:
+        s = m.u.snapshot_imu
+        return SnapshotImu(m.node, s.counter, s.first_link, s.format,
+                           bytes(ffi.buffer(s.records, IMU_RECORD_SIZE[s.format] * s.count)))
+    if cls is ImuSample:
+        s = m.u.imu_sample
+        mag = (s.mx, s.my, s.mz) if s.format == 2 else (None, None, None)
+        return ImuSample(m.node, *(getattr(s, name) for name in _IMU_FIELDS), *mag)
     if member is None:
         return cls(m.node)
     src = getattr(m.u, member)

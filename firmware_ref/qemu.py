@@ -1,7 +1,8 @@
 """The reference firmware on an emulated Cortex-M: build it, boot it in QEMU, hold it to the spec.
 
-``python -m firmware_ref.qemu build [--mutant M]`` builds ``firmware_ref/build/qemu/*.elf``
-(``make -C firmware_ref qemu``). ``python -m firmware_ref.qemu conformance [--runs N] [--mutant M]``
+``python -m firmware_ref.qemu build [--mutant M] [--sensors S]`` builds ``firmware_ref/build/qemu/*.elf``
+(``make -C firmware_ref qemu``; ``--sensors accel+gyro`` or ``accel+gyro+mag``: a 6/9-axis chip, docs
+§16). ``python -m firmware_ref.qemu conformance [--runs N] [--mutant M] [--sensors S]``
 boots a fresh QEMU ``mps2-an385`` per run with UART0 on a TCP chardev (QEMU is the server and waits
 for the client: the boot ANNOUNCE is not lost) and runs ``capsheet conformance --port
 socket://127.0.0.1:PORT`` against it; the exit status is the first non-zero one of the runs (1: a
@@ -40,6 +41,8 @@ def _mutants() -> tuple[str, ...]:
 
 
 MUTANTS = _mutants()
+#: the port's sensor builds (``make -C firmware_ref qemu SENSORS=...``) and their ELF name suffix
+SENSORS = {"accel": "", "accel+gyro": "_6axis", "accel+gyro+mag": "_9axis"}
 STACK_PAINT = 0xDEADBEEF
 
 
@@ -56,21 +59,24 @@ def missing_tools() -> str | None:
     return None
 
 
-def elf_path(mutant: str | None = None, out: Path | None = None) -> Path:
+def elf_path(mutant: str | None = None, out: Path | None = None, sensors: str = "accel") -> Path:
     base = Path(out) if out is not None else HERE / "build"
-    return base / "qemu" / (f"capsheet_mps2_{mutant}.elf" if mutant else "capsheet_mps2.elf")
+    return base / "qemu" / (f"capsheet_mps2{SENSORS[sensors]}" + (f"_{mutant}" if mutant else "") + ".elf")
 
 
-def build(mutant: str | None = None, *, out: Path | None = None, quiet: bool = True) -> Path:
-    """``make -C firmware_ref qemu [MUTANT=...] [OUT=...]``; returns the ELF. RuntimeError on failure."""
+def build(mutant: str | None = None, *, out: Path | None = None, quiet: bool = True, sensors: str = "accel") -> Path:
+    """``make -C firmware_ref qemu [MUTANT=...] [SENSORS=...] [OUT=...]``; returns the ELF. RuntimeError on
+    failure."""
     if mutant is not None and mutant not in MUTANTS:
         raise ValueError(f"Invalid mutant {mutant!r} (known: {', '.join(MUTANTS)})")
-    cmd = ["make", "-s", "-C", str(HERE), "qemu"] + ([f"MUTANT={mutant}"] if mutant else []) + \
+    if sensors not in SENSORS:
+        raise ValueError(f"Invalid sensors {sensors!r} (known: {', '.join(SENSORS)})")
+    cmd = ["make", "-s", "-C", str(HERE), "qemu", f"SENSORS={sensors}"] + ([f"MUTANT={mutant}"] if mutant else []) + \
         ([f"OUT={Path(out).resolve()}"] if out is not None else [])
     r = subprocess.run(cmd, capture_output=quiet, text=True)
     if r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed: {(r.stderr or r.stdout or '').strip()[-2000:]}")
-    return elf_path(mutant, out)
+    return elf_path(mutant, out, sensors)
 
 
 def _symbol(elf: Path, name: str) -> int:
@@ -183,6 +189,9 @@ def main(argv: list[str] | None = None) -> int:
     c = sub.add_parser("conformance", help="boot QEMU and run capsheet conformance against it")
     c.add_argument("--runs", type=int, default=1, help="consecutive runs, each on a fresh QEMU (default 1)")
     c.add_argument("--mutant", choices=MUTANTS, help="a deliberately broken build (the suite must fail it)")
+    for q in (b, c):
+        q.add_argument("--sensors", choices=tuple(SENSORS), default="accel",
+                       help="the chip's sensors (docs/protocol.md §16): accel (default), or a 6/9-axis chip")
     c.add_argument("--json", action="store_true", help="print one JSON summary on stdout (run logs to stderr)")
     for q in (b, c):
         q.add_argument("--out", type=Path, default=None, help="build directory (default firmware_ref/build)")
@@ -193,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"firmware_ref.qemu: SKIPPED: {why}", file=sys.stderr)
         return 2
     try:
-        elf = build(args.mutant, out=args.out)
+        elf = build(args.mutant, out=args.out, sensors=args.sensors)
     except RuntimeError as exc:
         print(f"firmware_ref.qemu: {exc}", file=sys.stderr)
         return 2
@@ -220,9 +229,11 @@ def main(argv: list[str] | None = None) -> int:
             first_bad = first_bad or r.returncode
         runs.append({"exit": r.returncode, "seconds": round(dt, 2), "stack_high_water_bytes": stack,
                      "summary": last,
-                     "failed": [ln for ln in r.stdout.splitlines() if ln.startswith(("FAIL", "LOST"))]})
+                     "failed": [ln for ln in r.stdout.splitlines() if ln.startswith(("FAIL", "LOST"))],
+                     "passed": [int(ln.split()[1]) for ln in r.stdout.splitlines() if ln.startswith("PASS")],
+                     "skipped": [ln for ln in r.stdout.splitlines() if ln.startswith("SKIP")]})
     if args.json:
-        print(json.dumps({"elf": str(elf), "mutant": args.mutant, "runs": len(runs),
+        print(json.dumps({"elf": str(elf), "mutant": args.mutant, "sensors": args.sensors, "runs": len(runs),
                           "passed": sum(x["exit"] == 0 for x in runs),
                           "stack_high_water_bytes_max": max(x["stack_high_water_bytes"] for x in runs),
                           "seconds_max": max(x["seconds"] for x in runs), "per_run": runs}))

@@ -1,5 +1,5 @@
 /*
- * capsheet_fw.h — reference chip firmware for the capsheet wire protocol v1.1 (docs/protocol.md).
+ * capsheet_fw.h — reference chip firmware for the capsheet wire protocol v1.2 (docs/protocol.md).
  *
  * Portable C99, no dynamic memory: every buffer is the caller's, with its capacity; time is passed
  * in (microseconds, `now_us`), never read; the hardware sits behind `capsheet_hal_t`.
@@ -8,8 +8,9 @@
  *   1. the codec — pure functions, no state: CRC-16/CCITT-FALSE, COBS, message struct <-> payload
  *      bytes, serial frame, CAN identifier + data, and a byte-at-a-time serial stream decoder;
  *   2. the chip  — `capsheet_chip_t`: the chip side of the protocol (ANNOUNCE, ASSIGN, CONFIG,
- *      SYNC -> SAMPLE, STATUS heartbeat, NACKs, calibration) driven by the state table of
- *      docs/protocol.md §8 (protocol/state.py), over serial or CAN.
+ *      SYNC -> SAMPLE, STATUS heartbeat, NACKs, calibration; v1.2: CONFIG_IMU and the 6/9-axis
+ *      IMU records of §16) driven by the state table of docs/protocol.md §8 (protocol/state.py),
+ *      over serial or CAN.
  *
  * Return values: success is non-negative (0, or a length/count where stated); failure is one of
  * the negative CAPSHEET_ERR_* codes, each documented per function. Wire input never asserts:
@@ -53,7 +54,7 @@ extern "C" {
 #endif
 
 #define CAPSHEET_FW_VERSION_MAJOR 1
-#define CAPSHEET_FW_VERSION_MINOR 1
+#define CAPSHEET_FW_VERSION_MINOR 2
 #define CAPSHEET_FW_VERSION_PATCH 0
 
 /* ------------------------------------------------------------------------------------------ */
@@ -61,13 +62,17 @@ extern "C" {
 /* ------------------------------------------------------------------------------------------ */
 
 #define CAPSHEET_PROTOCOL_VERSION 1u           /* on the wire: the major version (§12) */
-#define CAPSHEET_SPEC_VERSION_MINOR 1u         /* the revision of docs/protocol.md implemented: 1.1 */
+#define CAPSHEET_SPEC_VERSION_MINOR 2u         /* the revision of docs/protocol.md implemented: 1.2 */
 #define CAPSHEET_NODE_BROADCAST 0x0000u
 #define CAPSHEET_NODE_MAX_ASSIGNED 0x7FFFu
 #define CAPSHEET_NODE_PROVISIONAL_MIN 0x8000u
 #define CAPSHEET_NODE_RESERVED 0xFFFFu
 #define CAPSHEET_SAMPLE_WORD_SIZE 5u
 #define CAPSHEET_SNAPSHOT_HEADER_SIZE 5u
+#define CAPSHEET_SNAPSHOT_IMU_HEADER_SIZE 6u   /* §16.5: counter, first_link, count, format */
+#define CAPSHEET_IMU6_RECORD_SIZE 13u          /* §16.1: accel word, time_us, gyroscope */
+#define CAPSHEET_IMU9_RECORD_SIZE 19u          /* ... and magnetometer */
+#define CAPSHEET_TIME_UNKNOWN (-32768)         /* §16.1 time_us: not known */
 #define CAPSHEET_HEADER_SIZE 4u                  /* version, type, node (LE) */
 #define CAPSHEET_CRC_SIZE 2u                     /* CRC-16/CCITT-FALSE, MSB first */
 #define CAPSHEET_MAX_FRAME_SIZE 1024u            /* header + payload + CRC, before COBS (§6.3) */
@@ -75,8 +80,30 @@ extern "C" {
 #define CAPSHEET_MAX_ENCODED_SIZE 1029u          /* COBS(1024): n + 1 + n / 254 */
 #define CAPSHEET_MAX_WIRE_SIZE 1030u             /* ... plus the 0x00 delimiter */
 #define CAPSHEET_COBS_ENCODED_SIZE(n) ((n) + 1u + (n) / 254u)
-/* Largest frame a chip ever sends (ANNOUNCE/INFO/STATUS/CAL_DATA: 8-byte payloads), on the wire. */
+/* 6/9-axis chips (docs §16): a build-time option. 1 (the default): the chip can be built with a
+ * gyroscope (and a magnetometer) — capability GYRO (MAG) with the HAL's read_imu — and answers SYNC
+ * with IMU records after CONFIG_IMU selects them. 0: an accelerometer-only build; the IMU record path
+ * and the larger TX buffer are compiled out (capsheet_chip_init refuses GYRO), CONFIG_IMU is still
+ * checked as §16.2 says (format 0 ACKed, formats 1 and 2 UNSUPPORTED). The codec speaks every type
+ * either way. */
+#ifndef CAPSHEET_IMU
+#define CAPSHEET_IMU 1
+#endif
+/* A chip's image: a build-time option. 0 (the default): the codec encodes and decodes every type
+ * (a host, a gateway, a sniffer, the tests). 1: it decodes only host -> node payloads and encodes
+ * only what a chip sends (ANNOUNCE, INFO, SAMPLE, STATUS, ACK, NACK, CAL_DATA, the IMU frames); the
+ * other types give CAPSHEET_ERR_UNKNOWN_TYPE. The chip behaves identically either way: it ignores a
+ * node -> host frame before its payload matters (§8.1 row 7) — only its flash is smaller. */
+#ifndef CAPSHEET_CHIP_ONLY
+#define CAPSHEET_CHIP_ONLY 0
+#endif
+/* Largest frame a chip ever sends, on the wire: ANNOUNCE/INFO/STATUS/CAL_DATA (8-byte payloads), or
+ * with CAPSHEET_IMU a 9-axis IMU_SAMPLE (21-byte payload: 29 bytes on the wire; 24 on CAN FD). */
+#if CAPSHEET_IMU
+#define CAPSHEET_CHIP_TX_WIRE_SIZE (CAPSHEET_COBS_ENCODED_SIZE(CAPSHEET_HEADER_SIZE + 21u + CAPSHEET_CRC_SIZE) + 1u)
+#else
 #define CAPSHEET_CHIP_TX_WIRE_SIZE (CAPSHEET_COBS_ENCODED_SIZE(CAPSHEET_HEADER_SIZE + 8u + CAPSHEET_CRC_SIZE) + 1u)
+#endif
 /* Largest host -> chip frame (8-byte payload) between delimiters: the smallest useful RX buffer. */
 #define CAPSHEET_MIN_RX_BUFFER_SIZE CAPSHEET_COBS_ENCODED_SIZE(CAPSHEET_HEADER_SIZE + 8u + CAPSHEET_CRC_SIZE)
 #define CAPSHEET_CAN_CLASSIC_MTU 8u
@@ -121,14 +148,17 @@ typedef enum {
     CAPSHEET_ANNOUNCE = 0x01, CAPSHEET_INFO = 0x02, CAPSHEET_SAMPLE = 0x03, CAPSHEET_STATUS = 0x04,
     CAPSHEET_ACK = 0x05, CAPSHEET_NACK = 0x06, CAPSHEET_CAL_DATA = 0x07, CAPSHEET_SNAPSHOT = 0x08,
     CAPSHEET_GATEWAY_INFO = 0x09,
+    /* chip -> host, v1.2 (§16): classic CAN record frames, the record on serial / CAN FD, a gateway's packed records */
+    CAPSHEET_IMU_GYRO = 0x0A, CAPSHEET_IMU_MAG = 0x0B, CAPSHEET_IMU_ACCEL = 0x0C, CAPSHEET_IMU_SAMPLE = 0x0D,
+    CAPSHEET_SNAPSHOT_IMU = 0x0E,
     /* host -> chip */
     CAPSHEET_SYNC = 0x10, CAPSHEET_ASSIGN = 0x11, CAPSHEET_CONFIG = 0x12, CAPSHEET_START = 0x13,
     CAPSHEET_STOP = 0x14, CAPSHEET_GET_INFO = 0x15, CAPSHEET_RESET = 0x16, CAPSHEET_CAL_WRITE = 0x17,
-    CAPSHEET_CAL_READ = 0x18
+    CAPSHEET_CAL_READ = 0x18, CAPSHEET_CONFIG_IMU = 0x19
 } capsheet_msg_type_t;
 
 #define CAPSHEET_HOST_TYPE_FIRST 0x10u
-#define CAPSHEET_HOST_TYPE_LAST 0x18u
+#define CAPSHEET_HOST_TYPE_LAST 0x19u
 /* Every type in 0x01..0x0F, defined or not, goes node -> host: a chip ignores such frames (§4, §8.1). */
 #define CAPSHEET_NODE_TO_HOST_FIRST 0x01u
 #define CAPSHEET_NODE_TO_HOST_LAST 0x0Fu
@@ -146,6 +176,16 @@ typedef enum { CAPSHEET_BOOT = 0, CAPSHEET_IDLE = 1, CAPSHEET_STREAMING = 2, CAP
 #define CAPSHEET_CAP_FILTER 0x0020u
 #define CAPSHEET_CAP_GATEWAY 0x0040u            /* v1.1: the node is a gateway (never set by a chip) */
 #define CAPSHEET_CAP_SYNC_SOURCE 0x0080u        /* v1.1: a gateway that can generate SYNC */
+#define CAPSHEET_CAP_GYRO 0x0100u               /* v1.2: a triaxial gyroscope (CONFIG_IMU formats 1, 2) */
+#define CAPSHEET_CAP_MAG 0x0200u                /* v1.2: a triaxial magnetometer (CONFIG_IMU format 2) */
+#define CAPSHEET_CAP_SAMPLE_TIME 0x0400u        /* v1.2: IMU records carry a true time_us */
+
+/* CONFIG_IMU (§16.2) */
+#define CAPSHEET_IMU_FORMAT_ACCEL 0u            /* SAMPLE, as in 1.1 */
+#define CAPSHEET_IMU_FORMAT_6AXIS 1u            /* accel + gyro: 13-byte records */
+#define CAPSHEET_IMU_FORMAT_9AXIS 2u            /* accel + gyro + mag: 19-byte records */
+#define CAPSHEET_IMU_FLAG_FD 0x01u              /* on CAN, one IMU_SAMPLE per record in an FD frame */
+#define CAPSHEET_IMU_DEFAULT_GYRO_RANGE 3u      /* ±1000 °/s until a CONFIG_IMU */
 
 /* STATUS flag bits (§4.4) */
 #define CAPSHEET_FLAG_CAL_VALID 0x01u
@@ -207,6 +247,30 @@ typedef struct {
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
         struct { uint8_t axis; } cal_read;
+        /* v1.2 (§16). IMU_SAMPLE: `format` 1 (6-axis, 15-byte payload) or 2 (9-axis, 21 bytes;
+         * mx..mz only then); the status bits cover the whole record (§16.1). */
+        struct {
+            uint16_t counter;
+            int16_t x, y, z;
+            uint8_t status;
+            uint8_t format;
+            int16_t time_us;
+            int16_t gx, gy, gz, mx, my, mz;
+        } imu_sample;
+        struct { uint16_t counter; int16_t gx, gy, gz; } imu_gyro;      /* IMU_GYRO (classic CAN) */
+        struct { uint16_t counter; int16_t mx, my, mz; } imu_mag;       /* IMU_MAG (classic CAN) */
+        struct {
+            uint8_t counter_lo;
+            int16_t x, y, z;
+            uint8_t status;
+            int16_t time_us;
+        } imu_accel;                                                    /* IMU_ACCEL (classic CAN) */
+        struct {
+            uint16_t counter, first_link;
+            uint8_t count, format;
+            const uint8_t *records;  /* count * 13 (format 1) or 19 (format 2) bytes; decode: into the buffer */
+        } snapshot_imu;
+        struct { uint8_t format, gyro_range, mag_range, flags; } config_imu;
     } u;
 } capsheet_msg_t;
 
@@ -242,11 +306,12 @@ bool capsheet_type_known(uint8_t type);
  * h = (uint32)(uid ^ (uid >> 32)) ^ (uint32)(salt * 0x9E3779B9); h ^= h >> 16. */
 uint16_t capsheet_provisional_node(uint64_t uid, uint32_t salt);
 
-/* Message -> payload bytes (docs §4), no header or CRC. Fields are not validated (a sender
- * composes what it means; the decoder is strict); a SNAPSHOT's `count` must be 1..255.
- * Returns the payload length.
+/* Message -> payload bytes (docs §4, §16), no header or CRC. Fields are not validated (a sender
+ * composes what it means; the decoder is strict); a SNAPSHOT's or SNAPSHOT_IMU's `count` must be
+ * 1..255, an IMU_SAMPLE's or SNAPSHOT_IMU's `format` 1 or 2. Returns the payload length.
  * CAPSHEET_ERR_UNKNOWN_TYPE: `msg->type` is not defined.
- * CAPSHEET_ERR_ARGUMENT: a SNAPSHOT with count 0 or words == NULL.
+ * CAPSHEET_ERR_ARGUMENT: a SNAPSHOT (SNAPSHOT_IMU) with count 0 or words (records) == NULL, an
+ * IMU_SAMPLE or SNAPSHOT_IMU whose format is not 1 or 2.
  * CAPSHEET_ERR_CAPACITY: the payload does not fit `cap`. */
 CAPSHEET_WARN_UNUSED int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t cap);
 
@@ -254,7 +319,8 @@ CAPSHEET_WARN_UNUSED int32_t capsheet_payload_encode(const capsheet_msg_t *msg, 
  * protocol.messages.decode_payload: type, then node 0xFFFF, then length, then fields.
  * Returns 0. `out->type` and `out->node` are always set; on CAPSHEET_ERR_BAD_FIELD the fields
  * are filled as decoded (so a chip can still, e.g., check an ASSIGN's uid_low).
- * A SNAPSHOT's `words` points into `payload`.
+ * A SNAPSHOT's `words` (a SNAPSHOT_IMU's `records`) point into `payload`; an IMU_SAMPLE's `format`
+ * is 1 or 2 from its length (15 or 21 bytes).
  * CAPSHEET_ERR_UNKNOWN_TYPE, CAPSHEET_ERR_BAD_LENGTH, CAPSHEET_ERR_BAD_FIELD. */
 CAPSHEET_WARN_UNUSED int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *payload, size_t len,
                                 capsheet_msg_t *out);
@@ -323,8 +389,9 @@ CAPSHEET_WARN_UNUSED int32_t capsheet_can_encode(const capsheet_msg_t *msg, caps
 CAPSHEET_WARN_UNUSED int32_t capsheet_can_fd_length(size_t n);
 
 /* One received CAN frame -> message, with the checks of protocol.can.decode_can in its order:
- * CAPSHEET_ERR_BAD_FIELD (standard identifier, identifier over 29 bits, non-zero FD padding),
- * CAPSHEET_ERR_BAD_VERSION, CAPSHEET_ERR_BAD_LENGTH (invalid CAN length), then as
+ * CAPSHEET_ERR_BAD_FIELD (standard identifier, identifier over 29 bits, non-zero FD padding of a
+ * SNAPSHOT, SNAPSHOT_IMU or IMU_SAMPLE), CAPSHEET_ERR_BAD_VERSION, CAPSHEET_ERR_BAD_LENGTH (invalid
+ * CAN length; an FD IMU_SAMPLE not 16 or 24 bytes; a padded length that is not the count's), then as
  * capsheet_payload_decode. `out->type`/`out->node` are set from the identifier whenever it is a
  * 29-bit one; `*version` (if not NULL) gets the identifier's version. Returns 0. */
 CAPSHEET_WARN_UNUSED int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uint8_t *data, size_t len,
@@ -362,8 +429,10 @@ typedef enum { CAPSHEET_TRANSPORT_SERIAL = 0, CAPSHEET_TRANSPORT_CAN = 1 } capsh
  * then returns CAPSHEET_ERR_HAL from the call that invoked it).
  *
  * Lifetime: the `data` given to send_bytes / send_can is the chip's own TX buffer (capsheet_chip_t
- * `tx`, 17 bytes, on both transports) and is reused by the very next send: it is valid only until
- * the callback returns. A HAL that sends later (DMA, an interrupt-driven FIFO) must copy it first.
+ * `tx`, CAPSHEET_CHIP_TX_WIRE_SIZE bytes: 29, or 17 with CAPSHEET_IMU 0, on both transports) and is
+ * reused by the very next send (the 2-3 classic CAN frames of one IMU record go back to back): it
+ * is valid only until the callback returns. A HAL that sends later (DMA, an interrupt-driven FIFO)
+ * must copy it first.
  *
  * Concurrency: the library is not reentrant and takes no locks. Call every capsheet_chip_* function
  * for one chip from one context (the main loop, or one RTOS task), never from an interrupt
@@ -372,6 +441,17 @@ typedef enum { CAPSHEET_TRANSPORT_SERIAL = 0, CAPSHEET_TRANSPORT_CAN = 1 } capsh
  * with a single-producer ring). The callbacks are called from inside those functions, in the same
  * context; they must not call back into the chip. Different chips (capsheet_chip_t) are independent.
  * The codec functions are pure and may be called from any context. */
+/* One gyroscope (and magnetometer) reading, filled by the HAL's read_imu (docs §16.1). */
+typedef struct {
+    int16_t gyro[3];       /* 16-bit counts at the gyro_range asked for, sensor frame */
+    int16_t mag[3];        /* 16-bit counts at the mag_range asked for (read only when asked) */
+    uint64_t latch_us;     /* when the reading was latched, on the `now_us` time base: the chip sends
+                            * latch_us - (the SYNC's now_us) as time_us, clamped to ±32767 (with
+                            * capability SAMPLE_TIME; without it, −32768) */
+    uint8_t status;        /* SampleStatus bits for the record: STALE (no gyroscope conversion since
+                            * the previous SYNC), SELF_TEST; INVALID is a sensor fault */
+} capsheet_imu_reading_t;
+
 typedef struct {
     void *user;
     /* Convert and read the three axes (ADC counts, clamped to -2048..2047 by the chip) and the
@@ -387,12 +467,20 @@ typedef struct {
      * cal_load returns 0 if the axis was stored, negative if not. */
     CAPSHEET_WARN_UNUSED int32_t (*cal_load)(void *user, uint8_t axis, capsheet_cal_t *cal);
     CAPSHEET_WARN_UNUSED int32_t (*cal_store)(void *user, uint8_t axis, const capsheet_cal_t *cal);
+    /* 6/9-axis chips (capability GYRO; NULL otherwise, and unused with CAPSHEET_IMU 0): called at a
+     * SYNC in CONFIG_IMU format 1 or 2, right after read_axes answered valid, for the gyroscope read
+     * with the same latch as the accelerometer and — when `want_mag` — the magnetometer's latest
+     * output, at CONFIG_IMU's range codes. `out` is zeroed before the call. A negative return, or
+     * INVALID in `out->status`, is a sensor fault (an INVALID record, FAULT). */
+    CAPSHEET_WARN_UNUSED int32_t (*read_imu)(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
+                                             bool want_mag, capsheet_imu_reading_t *out);
 } capsheet_hal_t;
 
 typedef struct {
     capsheet_transport_t transport;
     bool can_fd;             /* the CAN controller takes FD frames (sets CAPSHEET_CAP_CAN_FD) */
-    uint16_t capabilities;   /* INFO capabilities (CAL_STORAGE needs cal_load/cal_store) */
+    uint16_t capabilities;   /* INFO capabilities (CAL_STORAGE needs cal_load/cal_store; GYRO needs
+                              * read_imu and CAPSHEET_IMU; format 2 needs GYRO and MAG) */
 } capsheet_chip_config_t;
 
 /* The chip's state. Allocate it (statically) and initialise it with capsheet_chip_init; the
@@ -423,6 +511,10 @@ typedef struct {
     uint8_t range_code;
     uint8_t filter;
     uint16_t heartbeat_ms;
+    uint8_t imu_format;      /* CONFIG_IMU (§16.2): 0 SAMPLE, 1 6-axis, 2 9-axis records */
+    uint8_t gyro_range;      /* 0..4: ±125 .. ±2000 °/s */
+    uint8_t mag_range;       /* 0..3: ±4 .. ±16 gauss */
+    uint8_t imu_flags;       /* CAPSHEET_IMU_FLAG_FD */
     capsheet_cal_t cal[3];
     capsheet_stream_t rx;    /* serial only */
     uint8_t tx[CAPSHEET_CHIP_TX_WIRE_SIZE];
@@ -438,7 +530,7 @@ typedef struct {
  * `rx_cap` >= CAPSHEET_MIN_RX_BUFFER_SIZE (CAPSHEET_RX_BUFFER_SIZE is the build's choice); CAN
  * needs none (NULL, 0). Returns 0.
  * CAPSHEET_ERR_ARGUMENT: a required HAL callback is NULL, CAL_STORAGE without cal_load/cal_store,
- * or a serial RX buffer below the minimum. */
+ * GYRO without read_imu (or in a CAPSHEET_IMU 0 build), or a serial RX buffer below the minimum. */
 CAPSHEET_WARN_UNUSED int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *config,
                            const capsheet_hal_t *hal, uint8_t *rx_buf, size_t rx_cap);
 

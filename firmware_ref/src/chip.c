@@ -3,7 +3,7 @@
  *
  * Everything that decides what the chip does with a command is the table `k_rules` below, a
  * transcription of protocol/state.py RULES (the tests compare the two pair by pair). The rest follows
- * docs/protocol.md v1.1 §8.1 exactly as the Python chip model (virtual_sheet/chip.py) does, so the
+ * docs/protocol.md v1.2 §8.1 exactly as the Python chip model (virtual_sheet/chip.py) does, so the
  * two are interchangeable (the tests drive both with the same frames, and with tests/vectors/chip.json):
  *   1. a frame whose integrity failed (COBS, short, CRC, oversize) is counted in rx_errors
  *      (saturating at 255) and dropped;
@@ -14,10 +14,16 @@
  *      BAD_VERSION / UNKNOWN_COMMAND / BAD_LENGTH / BAD_VALUE when addressed, silence when broadcast;
  *   5. ASSIGN whose uid_low is not this chip's: silent;
  *   6. (state, type) not in the table: NACK BAD_STATE when addressed, silent when broadcast;
- *   7. the rule's field checks (CONFIG, CAL_WRITE): NACK BAD_VALUE or UNSUPPORTED when addressed,
- *      silent (and nothing applied) when broadcast;
+ *   7. the rule's field checks (CONFIG, CAL_WRITE, CONFIG_IMU): NACK BAD_VALUE or UNSUPPORTED when
+ *      addressed, silent (and nothing applied) when broadcast;
  *   8. the rule's reply and transition.
  * A broadcast is never answered with a NACK.
+ *
+ * v1.2 (§16): a chip built with capability GYRO (and MAG) takes CONFIG_IMU and, in format 1 or 2,
+ * answers each SYNC with one IMU record — the accelerometer word exactly as a SAMPLE's (range,
+ * SATURATED, STALE, FAULT rules), the HAL's gyroscope (and magnetometer) counts, time_us — as an
+ * IMU_SAMPLE on serial and, with CONFIG_IMU flag FD, in a CAN FD frame; else as IMU_GYRO (+ IMU_MAG)
+ * + IMU_ACCEL classic CAN frames, in that order. Format 0 is the 1.1 chip, byte for byte.
  */
 #include "capsheet_fw.h"
 
@@ -31,25 +37,26 @@
 #define NO_RULE R_(0xFF, CAPSHEET_STAY, 0)
 #define ST CAPSHEET_STAY
 
-/* [state][type - 0x10]: SYNC ASSIGN CONFIG START STOP GET_INFO RESET CAL_WRITE CAL_READ */
-static const capsheet_rule_t k_rules[CAPSHEET_STATE_COUNT][9] = {
+/* [state][type - 0x10]: SYNC ASSIGN CONFIG START STOP GET_INFO RESET CAL_WRITE CAL_READ CONFIG_IMU */
+static const capsheet_rule_t k_rules[CAPSHEET_STATE_COUNT][CAPSHEET_HOST_TYPE_LAST - CAPSHEET_HOST_TYPE_FIRST + 1u] = {
     /* BOOT */
     {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), NO_RULE, NO_RULE, NO_RULE,
      R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0), R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE,
-     NO_RULE},
+     NO_RULE, NO_RULE},
     /* IDLE */
     {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
      R_(CAPSHEET_REPLY_ACK, CAPSHEET_STREAMING, 0), R_(CAPSHEET_REPLY_ACK, ST, 0),
      R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0), R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0),
-     R_(CAPSHEET_REPLY_ACK, ST, 1), R_(CAPSHEET_REPLY_CAL_DATA, ST, 0)},
+     R_(CAPSHEET_REPLY_ACK, ST, 1), R_(CAPSHEET_REPLY_CAL_DATA, ST, 0), R_(CAPSHEET_REPLY_ACK, ST, 1)},
     /* STREAMING */
     {R_(CAPSHEET_REPLY_SAMPLE, ST, 0), NO_RULE, NO_RULE, R_(CAPSHEET_REPLY_ACK, ST, 0),
      R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0),
-     R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0)},
+     R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0), NO_RULE},
     /* FAULT */
     {R_(CAPSHEET_REPLY_SAMPLE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_FAULT, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
      R_(CAPSHEET_REPLY_ACK, ST, 0), R_(CAPSHEET_REPLY_ACK, ST, 0), R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0),
-     R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0)},
+     R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0),
+     R_(CAPSHEET_REPLY_ACK, ST, 1)},
 };
 
 int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule)
@@ -107,7 +114,8 @@ static CAPSHEET_WARN_UNUSED int32_t send_msg(capsheet_chip_t *c, const capsheet_
     } else {
         uint32_t id;
         bool fd;
-        n = capsheet_can_encode(m, CAPSHEET_CAN_AUTO, &id, c->tx, CAPSHEET_CAN_CLASSIC_MTU, &fd);
+        /* AUTO: classic for every payload of 8 bytes or less (§7.2), FD for an IMU_SAMPLE (§16.3) */
+        n = capsheet_can_encode(m, CAPSHEET_CAN_AUTO, &id, c->tx, sizeof c->tx, &fd);
         if (n < 0) {
             return n;
         }
@@ -274,6 +282,10 @@ static CAPSHEET_WARN_UNUSED int32_t boot(capsheet_chip_t *c, uint64_t now_us)
     c->range_code = 0;
     c->filter = 0;
     c->heartbeat_ms = CAPSHEET_DEFAULT_HEARTBEAT_MS;
+    c->imu_format = CAPSHEET_IMU_FORMAT_ACCEL;  /* §16.2: until the first CONFIG_IMU */
+    c->gyro_range = CAPSHEET_IMU_DEFAULT_GYRO_RANGE;
+    c->mag_range = 0;
+    c->imu_flags = 0;
     load_calibration(c);
     if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL) {
         c->rx.len = 0;
@@ -293,6 +305,9 @@ int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *
     }
     if ((config->capabilities & CAPSHEET_CAP_CAL_STORAGE) && (hal->cal_load == NULL || hal->cal_store == NULL)) {
         return CAPSHEET_ERR_ARGUMENT;
+    }
+    if ((config->capabilities & CAPSHEET_CAP_GYRO) && (!CAPSHEET_IMU || hal->read_imu == NULL)) {
+        return CAPSHEET_ERR_ARGUMENT;  /* a gyroscope the HAL cannot read, or a build without IMU records */
     }
     if (config->transport == CAPSHEET_TRANSPORT_SERIAL) {
         if (hal->send_bytes == NULL || rx_cap < CAPSHEET_MIN_RX_BUFFER_SIZE) {
@@ -375,7 +390,7 @@ static void count_rx_error(capsheet_chip_t *c)
     }
 }
 
-/* The rule's field checks (CONFIG, CAL_WRITE): 0, or a NACK reason. */
+/* The rule's field checks (CONFIG, CAL_WRITE, CONFIG_IMU): 0, or a NACK reason. */
 static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
 {
     const uint16_t caps = capabilities(c);
@@ -395,6 +410,16 @@ static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
         if ((m->u.cal.flags & 1u) && !(caps & CAPSHEET_CAP_CAL_STORAGE)) {
             return CAPSHEET_NACK_UNSUPPORTED;
         }
+    } else if (m->type == CAPSHEET_CONFIG_IMU) {  /* §16.2, in this order; the ranges whatever the format */
+        if (m->u.config_imu.format > CAPSHEET_IMU_FORMAT_9AXIS || m->u.config_imu.gyro_range > 4u
+            || m->u.config_imu.mag_range > 3u) {
+            return CAPSHEET_NACK_BAD_VALUE;
+        }
+        if ((m->u.config_imu.format >= CAPSHEET_IMU_FORMAT_6AXIS && !(caps & CAPSHEET_CAP_GYRO))
+            || (m->u.config_imu.format == CAPSHEET_IMU_FORMAT_9AXIS && !(caps & CAPSHEET_CAP_MAG))
+            || ((m->u.config_imu.flags & CAPSHEET_IMU_FLAG_FD) && !(caps & CAPSHEET_CAP_CAN_FD))) {
+            return CAPSHEET_NACK_UNSUPPORTED;
+        }
     }
     return 0;
 }
@@ -406,6 +431,132 @@ static int16_t asr(int16_t v, uint8_t r)
         return (int16_t)(v >> r);
     }
     return (int16_t)(-1 - (int16_t)((-1 - v) >> r));
+}
+
+#if CAPSHEET_IMU
+/* send_record out of line: its two messages and the reading stay off the stack of a chip in format 0 */
+#if defined(__GNUC__) || defined(__clang__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
+
+static bool i16_rail(const int16_t *v, unsigned n)
+{
+    unsigned i;
+    for (i = 0; i < n; i++) {
+        if (v[i] == INT16_MIN || v[i] == INT16_MAX) {
+            return true;
+        }
+    }
+    return false;
+}
+
+/* §16.1 time_us: latch - now in µs, clamped to ±32767; −32768 (unknown) without SAMPLE_TIME */
+static int16_t sample_time_us(const capsheet_chip_t *c, uint64_t latch_us, uint64_t now_us)
+{
+    uint64_t d;
+    if (!(capabilities(c) & CAPSHEET_CAP_SAMPLE_TIME)) {
+        return (int16_t)CAPSHEET_TIME_UNKNOWN;
+    }
+    if (latch_us >= now_us) {
+        d = latch_us - now_us;
+        return (int16_t)(d > 32767u ? 32767u : d);
+    }
+    d = now_us - latch_us;
+    return (int16_t)-(int32_t)(d > 32767u ? 32767u : d);
+}
+
+/* Format 1 or 2 (§16): the SAMPLE `s` the chip would send (its accelerometer word, range, SATURATED
+ * and FAULT rules applied) becomes one IMU record with the HAL's gyroscope (and magnetometer) and
+ * time_us, sent as IMU_SAMPLE (serial; CAN with flag FD) or IMU_GYRO (+ IMU_MAG) + IMU_ACCEL. */
+static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, const capsheet_msg_t *s,
+                                                         uint64_t now_us)
+{
+    capsheet_msg_t r;
+    const bool nine = c->imu_format == CAPSHEET_IMU_FORMAT_9AXIS;
+    uint8_t status = s->u.sample.status;
+    int32_t rc, sent;
+    msg_init(&r, CAPSHEET_IMU_SAMPLE, c->node);
+    r.u.imu_sample.format = c->imu_format;
+    r.u.imu_sample.counter = s->u.sample.counter;
+    r.u.imu_sample.time_us = (int16_t)CAPSHEET_TIME_UNKNOWN;
+    if (!(status & CAPSHEET_SAMPLE_INVALID)) {
+        capsheet_imu_reading_t rd;
+        memset(&rd, 0, sizeof rd);
+        if (c->hal->read_imu(c->hal->user, now_us, c->gyro_range, c->mag_range, nine, &rd) < 0
+            || (rd.status & CAPSHEET_SAMPLE_INVALID)) {
+            c->state = CAPSHEET_FAULT;  /* the gyroscope failed: an INVALID record, FAULT (§16.1, §8.6) */
+            status = CAPSHEET_SAMPLE_INVALID;
+        } else {
+            r.u.imu_sample.x = s->u.sample.x;
+            r.u.imu_sample.y = s->u.sample.y;
+            r.u.imu_sample.z = s->u.sample.z;
+            r.u.imu_sample.gx = rd.gyro[0];
+            r.u.imu_sample.gy = rd.gyro[1];
+            r.u.imu_sample.gz = rd.gyro[2];
+            if (nine) {
+                r.u.imu_sample.mx = rd.mag[0];
+                r.u.imu_sample.my = rd.mag[1];
+                r.u.imu_sample.mz = rd.mag[2];
+            }
+            status = (uint8_t)(status | (rd.status & (CAPSHEET_SAMPLE_STALE | CAPSHEET_SAMPLE_SELF_TEST)));
+            if (i16_rail(rd.gyro, 3u) || (nine && i16_rail(rd.mag, 3u))) {
+                status = (uint8_t)(status | CAPSHEET_SAMPLE_SATURATED);  /* a count sent at its rail (§16.1) */
+            }
+            r.u.imu_sample.time_us = sample_time_us(c, rd.latch_us, now_us);
+        }
+    }
+    r.u.imu_sample.status = status;
+    if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL || (c->imu_flags & CAPSHEET_IMU_FLAG_FD)) {
+        return send_msg(c, &r);
+    }
+    {   /* classic CAN (§16.4): IMU_GYRO, IMU_MAG (format 2), IMU_ACCEL, back to back */
+        capsheet_msg_t f;
+        msg_init(&f, CAPSHEET_IMU_GYRO, c->node);
+        f.u.imu_gyro.counter = r.u.imu_sample.counter;
+        f.u.imu_gyro.gx = r.u.imu_sample.gx;
+        f.u.imu_gyro.gy = r.u.imu_sample.gy;
+        f.u.imu_gyro.gz = r.u.imu_sample.gz;
+        sent = send_msg(c, &f);
+        if (sent < 0) {
+            return sent;
+        }
+        if (nine) {
+            msg_init(&f, CAPSHEET_IMU_MAG, c->node);
+            f.u.imu_mag.counter = r.u.imu_sample.counter;
+            f.u.imu_mag.mx = r.u.imu_sample.mx;
+            f.u.imu_mag.my = r.u.imu_sample.my;
+            f.u.imu_mag.mz = r.u.imu_sample.mz;
+            rc = send_msg(c, &f);
+            if (rc < 0) {
+                return rc;
+            }
+            sent += rc;
+        }
+        msg_init(&f, CAPSHEET_IMU_ACCEL, c->node);
+        f.u.imu_accel.counter_lo = (uint8_t)(r.u.imu_sample.counter & 0xFFu);
+        f.u.imu_accel.x = r.u.imu_sample.x;
+        f.u.imu_accel.y = r.u.imu_sample.y;
+        f.u.imu_accel.z = r.u.imu_sample.z;
+        f.u.imu_accel.status = r.u.imu_sample.status;
+        f.u.imu_accel.time_us = r.u.imu_sample.time_us;
+        rc = send_msg(c, &f);
+        return (rc < 0) ? rc : sent + rc;
+    }
+}
+#endif
+
+/* What a SYNC is answered with: the SAMPLE `s` (format 0), or the IMU record built around it. */
+static CAPSHEET_WARN_UNUSED int32_t send_reading(capsheet_chip_t *c, const capsheet_msg_t *s, uint64_t now_us)
+{
+#if CAPSHEET_IMU
+    if (c->imu_format != CAPSHEET_IMU_FORMAT_ACCEL) {
+        return send_record(c, s, now_us);
+    }
+#endif
+    (void)now_us;
+    return send_msg(c, s);
 }
 
 static CAPSHEET_WARN_UNUSED int32_t on_sync(capsheet_chip_t *c, uint16_t counter, uint64_t now_us)
@@ -432,7 +583,7 @@ static CAPSHEET_WARN_UNUSED int32_t on_sync(capsheet_chip_t *c, uint16_t counter
     m.u.sample.counter = CAPSHEET_MUTANT(c, CAPSHEET_MUT_COUNTER_OFF_BY_ONE) ? (uint16_t)(counter + 1u) : counter;
     if (c->state == CAPSHEET_FAULT) {
         m.u.sample.status = CAPSHEET_SAMPLE_INVALID;
-        return send_msg(c, &m);
+        return send_reading(c, &m, now_us);
     }
     if (c->hal->read_axes(c->hal->user, now_us, xyz, &status) < 0) {
         status = CAPSHEET_SAMPLE_INVALID;
@@ -444,7 +595,7 @@ static CAPSHEET_WARN_UNUSED int32_t on_sync(capsheet_chip_t *c, uint16_t counter
     if (status & CAPSHEET_SAMPLE_INVALID) {
         c->state = CAPSHEET_FAULT;  /* the sensor did not answer: counts 0, status INVALID alone (§8.6) */
         m.u.sample.status = CAPSHEET_SAMPLE_INVALID;
-        return send_msg(c, &m);
+        return send_reading(c, &m, now_us);
     }
     status = (uint8_t)(status & 0xFu & ~CAPSHEET_SAMPLE_SATURATED);
     for (i = 0; i < 3u; i++) {
@@ -471,9 +622,9 @@ static CAPSHEET_WARN_UNUSED int32_t on_sync(capsheet_chip_t *c, uint16_t counter
         m.u.sample.status = c->frozen_status;
     }
 #endif
-    rc = send_msg(c, &m);
+    rc = send_reading(c, &m, now_us);
     if (rc >= 0 && CAPSHEET_MUTANT(c, CAPSHEET_MUT_SYNC_TWICE)) {
-        const int32_t rc2 = send_msg(c, &m);
+        const int32_t rc2 = send_reading(c, &m, now_us);
         return (rc2 < 0) ? rc2 : rc + rc2;
     }
     return rc;
@@ -609,6 +760,12 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         c->next_heartbeat_us = now_us + (uint64_t)((uint32_t)c->heartbeat_ms * 1000u);
         c->heartbeat_on = c->heartbeat_ms != 0u;
         c->flags = (uint8_t)(c->flags | CAPSHEET_FLAG_CONFIGURED);
+        break;
+    case CAPSHEET_CONFIG_IMU:  /* §16.2: at once; CONFIG's fields, CONFIGURED and the heartbeat untouched */
+        c->imu_format = m->u.config_imu.format;
+        c->gyro_range = m->u.config_imu.gyro_range;
+        c->mag_range = m->u.config_imu.mag_range;
+        c->imu_flags = m->u.config_imu.flags;
         break;
     case CAPSHEET_START:
         c->started = true;

@@ -49,12 +49,14 @@ static float bits_float(uint32_t u)
 
 typedef char capsheet_float_is_32_bits[(sizeof(float) == 4) ? 1 : -1];
 
+#if !CAPSHEET_CHIP_ONLY  /* decoding node -> host payloads only */
 /* sign-extend a 12-bit field */
 static int16_t sext12(uint32_t v)
 {
     v &= 0xFFFu;
     return (int16_t)((int32_t)v - (int32_t)((v & 0x800u) << 1));
 }
+#endif
 
 /* ------------------------------------------------------------------------------------------ */
 /* CRC-16/CCITT-FALSE                                                                          */
@@ -187,22 +189,24 @@ int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t
 /* Types                                                                                       */
 /* ------------------------------------------------------------------------------------------ */
 
-/* Fixed payload size per type (0x01..0x18); 0xFF = not defined; 0xFE = variable (SNAPSHOT). */
+/* Fixed payload size per type (0x01..0x19); 0xFF = not defined; 0xFE = variable (SNAPSHOT,
+ * IMU_SAMPLE: 15 or 21, SNAPSHOT_IMU). */
 #define VAR 0xFEu
 #define UND 0xFFu
-static const uint8_t k_size[0x19] = {
+#define N_TYPES 0x1Au
+static const uint8_t k_size[N_TYPES] = {
     UND, 8, 8, 7, 8, 2, 2, 8, VAR,        /* 0x00..0x08 */
-    8, UND, UND, UND, UND, UND, UND,       /* 0x09 GATEWAY_INFO, 0x0A..0x0F */
-    2, 8, 6, 0, 0, 0, 0, 8, 1             /* 0x10..0x18 */
+    8, 8, 8, 8, VAR, VAR, UND,             /* 0x09 GATEWAY_INFO, 0x0A..0x0E IMU (v1.2), 0x0F */
+    2, 8, 6, 0, 0, 0, 0, 8, 1, 4          /* 0x10..0x19 (0x19 CONFIG_IMU, v1.2) */
 };
-/* priority per type (docs §7.1) */
-static const uint8_t k_priority[0x19] = {
+/* priority per type (docs §7.1, §4) */
+static const uint8_t k_priority[N_TYPES] = {
     7, 5, 5, 2, 6, 3, 3, 5, 2,
-    5, 7, 7, 7, 7, 7, 7,
-    0, 4, 4, 4, 1, 4, 1, 4, 4
+    5, 2, 2, 2, 2, 2, 7,
+    0, 4, 4, 4, 1, 4, 1, 4, 4, 4
 };
 
-bool capsheet_type_known(uint8_t type) { return type < 0x19u && k_size[type] != UND; }
+bool capsheet_type_known(uint8_t type) { return type < N_TYPES && k_size[type] != UND; }
 
 uint8_t capsheet_priority(uint8_t type) { return capsheet_type_known(type) ? k_priority[type] : 7u; }
 
@@ -236,6 +240,39 @@ static void put_sample_word(uint8_t *p, int16_t x, int16_t y, int16_t z, uint8_t
     p[4] = (uint8_t)((uz >> 8) | ((uint32_t)(status & 0xFu) << 4));
 }
 
+#if !CAPSHEET_CHIP_ONLY
+/* the 40-bit sample word (§5.2) at p[0..4] */
+static void get_sample_word(const uint8_t *p, int16_t *x, int16_t *y, int16_t *z, uint8_t *status)
+{
+    const uint32_t w = get_u32(p);
+    *x = sext12(w);
+    *y = sext12(w >> 12);
+    *z = sext12((w >> 24) | ((uint32_t)p[4] << 8));
+    *status = (uint8_t)(p[4] >> 4);
+}
+
+static void get_i16x3(const uint8_t *p, int16_t *a, int16_t *b, int16_t *c)
+{
+    *a = (int16_t)get_u16(p);
+    *b = (int16_t)get_u16(p + 2);
+    *c = (int16_t)get_u16(p + 4);
+}
+#endif
+
+static void put_i16x3(uint8_t *p, int16_t a, int16_t b, int16_t c)
+{
+    put_u16(p, (uint16_t)a);
+    put_u16(p + 2, (uint16_t)b);
+    put_u16(p + 4, (uint16_t)c);
+}
+
+/* record size by format (§16.1): 0 for a format that is not 1 or 2 */
+static size_t imu_record_size(uint8_t format)
+{
+    return (format == CAPSHEET_IMU_FORMAT_6AXIS) ? CAPSHEET_IMU6_RECORD_SIZE
+           : (format == CAPSHEET_IMU_FORMAT_9AXIS) ? CAPSHEET_IMU9_RECORD_SIZE : 0u;
+}
+
 static void put_cal(uint8_t *p, const capsheet_cal_t *c)
 {
     p[0] = c->axis;
@@ -244,8 +281,86 @@ static void put_cal(uint8_t *p, const capsheet_cal_t *c)
     put_u32(p + 4, float_bits(c->sensitivity));
 }
 
-/* Encode the fixed part of a payload into `p` (>= 8 bytes): everything but SNAPSHOT's words.
- * Returns the number of bytes written, or an error. */
+/* The fixed part of a payload: everything but SNAPSHOT's words and SNAPSHOT_IMU's records; at most
+ * a 9-axis IMU_SAMPLE's 21 bytes. */
+#define FIXED_MAX 21u
+
+/* §16.1's record after its accelerometer word's position: the word, time_us (7 bytes at p) */
+static void put_word_time(uint8_t *p, int16_t x, int16_t y, int16_t z, uint8_t status, int16_t time_us)
+{
+    put_sample_word(p, x, y, z, status);
+    put_u16(p + 5, (uint16_t)time_us);
+}
+
+#if !CAPSHEET_CHIP_ONLY
+/* The types a chip never sends: a gateway's and the host's. */
+static CAPSHEET_WARN_UNUSED int32_t encode_other(const capsheet_msg_t *m, uint8_t *p)
+{
+    switch (m->type) {
+    case CAPSHEET_CAL_WRITE:
+        put_cal(p, &m->u.cal);
+        return 8;
+    case CAPSHEET_SNAPSHOT:
+        if (m->u.snapshot.count == 0u || m->u.snapshot.words == NULL) {
+            return CAPSHEET_ERR_ARGUMENT;
+        }
+        put_u16(p, m->u.snapshot.counter);
+        put_u16(p + 2, m->u.snapshot.first_link);
+        p[4] = m->u.snapshot.count;
+        return 5;
+    case CAPSHEET_GATEWAY_INFO:
+        p[0] = m->u.gateway_info.flags;
+        p[1] = m->u.gateway_info.sample_format;
+        put_u16(p + 2, m->u.gateway_info.first_link);
+        put_u16(p + 4, m->u.gateway_info.link_count);
+        put_u16(p + 6, m->u.gateway_info.sync_rate_hz);
+        return 8;
+    case CAPSHEET_SNAPSHOT_IMU:
+        if (m->u.snapshot_imu.count == 0u || m->u.snapshot_imu.records == NULL
+            || imu_record_size(m->u.snapshot_imu.format) == 0u) {
+            return CAPSHEET_ERR_ARGUMENT;
+        }
+        put_u16(p, m->u.snapshot_imu.counter);
+        put_u16(p + 2, m->u.snapshot_imu.first_link);
+        p[4] = m->u.snapshot_imu.count;
+        p[5] = m->u.snapshot_imu.format;
+        return 6;
+    case CAPSHEET_SYNC:
+        put_u16(p, m->u.sync.counter);
+        return 2;
+    case CAPSHEET_ASSIGN:
+        put_u16(p, m->u.assign.new_node);
+        put_u16(p + 2, m->u.assign.link);
+        put_u32(p + 4, m->u.assign.uid_low);
+        return 8;
+    case CAPSHEET_CONFIG:
+        put_u16(p, m->u.config.rate_hz);
+        p[2] = m->u.config.range;
+        p[3] = m->u.config.filter;
+        put_u16(p + 4, m->u.config.heartbeat_ms);
+        return 6;
+    case CAPSHEET_START:
+    case CAPSHEET_STOP:
+    case CAPSHEET_GET_INFO:
+    case CAPSHEET_RESET:
+        return 0;
+    case CAPSHEET_CAL_READ:
+        p[0] = m->u.cal_read.axis;
+        return 1;
+    case CAPSHEET_CONFIG_IMU:
+        p[0] = m->u.config_imu.format;
+        p[1] = m->u.config_imu.gyro_range;
+        p[2] = m->u.config_imu.mag_range;
+        p[3] = m->u.config_imu.flags;
+        return 4;
+    default:
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+}
+#endif
+
+/* Encode the fixed part of a payload into `p` (FIXED_MAX bytes). Returns the number of bytes
+ * written, or an error. The types a chip sends here, the others in encode_other. */
 static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_t *p)
 {
     switch (m->type) {
@@ -282,53 +397,44 @@ static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_
         p[1] = m->u.nack.reason;
         return 2;
     case CAPSHEET_CAL_DATA:
-    case CAPSHEET_CAL_WRITE:
         put_cal(p, &m->u.cal);
         return 8;
-    case CAPSHEET_SNAPSHOT:
-        if (m->u.snapshot.count == 0u || m->u.snapshot.words == NULL) {
+    case CAPSHEET_IMU_GYRO:
+    case CAPSHEET_IMU_MAG:  /* the same layout: imu_gyro and imu_mag share their members' types (C99 6.5.2.3) */
+        put_u16(p, m->u.imu_gyro.counter);
+        put_i16x3(p + 2, m->u.imu_gyro.gx, m->u.imu_gyro.gy, m->u.imu_gyro.gz);
+        return 8;
+    case CAPSHEET_IMU_ACCEL:
+        p[0] = m->u.imu_accel.counter_lo;
+        put_word_time(p + 1, m->u.imu_accel.x, m->u.imu_accel.y, m->u.imu_accel.z, m->u.imu_accel.status,
+                      m->u.imu_accel.time_us);
+        return 8;
+    case CAPSHEET_IMU_SAMPLE: {
+        const size_t rec = imu_record_size(m->u.imu_sample.format);
+        if (rec == 0u) {
             return CAPSHEET_ERR_ARGUMENT;
         }
-        put_u16(p, m->u.snapshot.counter);
-        put_u16(p + 2, m->u.snapshot.first_link);
-        p[4] = m->u.snapshot.count;
-        return 5;
-    case CAPSHEET_GATEWAY_INFO:
-        p[0] = m->u.gateway_info.flags;
-        p[1] = m->u.gateway_info.sample_format;
-        put_u16(p + 2, m->u.gateway_info.first_link);
-        put_u16(p + 4, m->u.gateway_info.link_count);
-        put_u16(p + 6, m->u.gateway_info.sync_rate_hz);
-        return 8;
-    case CAPSHEET_SYNC:
-        put_u16(p, m->u.sync.counter);
-        return 2;
-    case CAPSHEET_ASSIGN:
-        put_u16(p, m->u.assign.new_node);
-        put_u16(p + 2, m->u.assign.link);
-        put_u32(p + 4, m->u.assign.uid_low);
-        return 8;
-    case CAPSHEET_CONFIG:
-        put_u16(p, m->u.config.rate_hz);
-        p[2] = m->u.config.range;
-        p[3] = m->u.config.filter;
-        put_u16(p + 4, m->u.config.heartbeat_ms);
-        return 6;
-    case CAPSHEET_START:
-    case CAPSHEET_STOP:
-    case CAPSHEET_GET_INFO:
-    case CAPSHEET_RESET:
-        return 0;
-    case CAPSHEET_CAL_READ:
-        p[0] = m->u.cal_read.axis;
-        return 1;
+        put_u16(p, m->u.imu_sample.counter);
+        put_word_time(p + 2, m->u.imu_sample.x, m->u.imu_sample.y, m->u.imu_sample.z, m->u.imu_sample.status,
+                      m->u.imu_sample.time_us);
+        put_i16x3(p + 9, m->u.imu_sample.gx, m->u.imu_sample.gy, m->u.imu_sample.gz);
+        if (rec == CAPSHEET_IMU9_RECORD_SIZE) {
+            put_i16x3(p + 15, m->u.imu_sample.mx, m->u.imu_sample.my, m->u.imu_sample.mz);
+        }
+        return (int32_t)(2u + rec);
+    }
     default:
+#if CAPSHEET_CHIP_ONLY
         return CAPSHEET_ERR_UNKNOWN_TYPE;
+#else
+        return encode_other(m, p);
+#endif
     }
 }
 
-/* The payload as (fixed part in `tmp`, SNAPSHOT words) spans; returns the payload length. */
-static CAPSHEET_WARN_UNUSED int32_t payload_spans(const capsheet_msg_t *m, uint8_t tmp[8], span_t sp[2])
+/* The payload as (fixed part in `tmp`, SNAPSHOT words / SNAPSHOT_IMU records) spans; returns the
+ * payload length. */
+static CAPSHEET_WARN_UNUSED int32_t payload_spans(const capsheet_msg_t *m, uint8_t tmp[FIXED_MAX], span_t sp[2])
 {
     const int32_t n = encode_fixed(m, tmp);
     if (n < 0) {
@@ -338,16 +444,21 @@ static CAPSHEET_WARN_UNUSED int32_t payload_spans(const capsheet_msg_t *m, uint8
     sp[0].n = (size_t)n;
     sp[1].p = NULL;
     sp[1].n = 0;
+#if !CAPSHEET_CHIP_ONLY
     if (m->type == CAPSHEET_SNAPSHOT) {
         sp[1].p = m->u.snapshot.words;
         sp[1].n = (size_t)m->u.snapshot.count * CAPSHEET_SAMPLE_WORD_SIZE;
+    } else if (m->type == CAPSHEET_SNAPSHOT_IMU) {
+        sp[1].p = m->u.snapshot_imu.records;
+        sp[1].n = (size_t)m->u.snapshot_imu.count * imu_record_size(m->u.snapshot_imu.format);
     }
+#endif
     return (int32_t)(sp[0].n + sp[1].n);
 }
 
 int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t cap)
 {
-    uint8_t tmp[8];
+    uint8_t tmp[FIXED_MAX];
     span_t sp[2];
     int32_t n;
     CAPSHEET_ASSERT(msg != NULL && (buf != NULL || cap == 0));
@@ -381,20 +492,49 @@ static void get_cal(const uint8_t *p, capsheet_cal_t *c)
     c->sensitivity = bits_float(get_u32(p + 4));
 }
 
-int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, size_t len, capsheet_msg_t *out)
+#if !CAPSHEET_CHIP_ONLY
+/* The node -> host payloads (0x01..0x0F): what a host or gateway decodes; a chip ignores them (§8.1). */
+static CAPSHEET_WARN_UNUSED int32_t decode_node_payload(uint8_t type, const uint8_t *p, size_t len, capsheet_msg_t *out)
 {
-    uint8_t size;
-    CAPSHEET_ASSERT(out != NULL && (p != NULL || len == 0));
-    out->type = type;
-    out->node = node;
-    if (!capsheet_type_known(type)) {
-        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    if (type == CAPSHEET_IMU_SAMPLE) {  /* §16.3: the length says the format */
+        const uint8_t format = (len == 2u + CAPSHEET_IMU6_RECORD_SIZE)   ? CAPSHEET_IMU_FORMAT_6AXIS
+                               : (len == 2u + CAPSHEET_IMU9_RECORD_SIZE) ? CAPSHEET_IMU_FORMAT_9AXIS : 0u;
+        if (format == 0u) {
+            return CAPSHEET_ERR_BAD_LENGTH;
+        }
+        out->u.imu_sample.format = format;
+        out->u.imu_sample.counter = get_u16(p);
+        get_sample_word(p + 2, &out->u.imu_sample.x, &out->u.imu_sample.y, &out->u.imu_sample.z,
+                        &out->u.imu_sample.status);
+        out->u.imu_sample.time_us = (int16_t)get_u16(p + 7);
+        get_i16x3(p + 9, &out->u.imu_sample.gx, &out->u.imu_sample.gy, &out->u.imu_sample.gz);
+        if (format == CAPSHEET_IMU_FORMAT_9AXIS) {
+            get_i16x3(p + 15, &out->u.imu_sample.mx, &out->u.imu_sample.my, &out->u.imu_sample.mz);
+        } else {
+            out->u.imu_sample.mx = out->u.imu_sample.my = out->u.imu_sample.mz = 0;
+        }
+        return 0;
     }
-    if (node == CAPSHEET_NODE_RESERVED) {
-        return CAPSHEET_ERR_BAD_FIELD;
+    if (type == CAPSHEET_SNAPSHOT_IMU) {  /* §16.5: the format before the length it implies */
+        size_t rec;
+        if (len < CAPSHEET_SNAPSHOT_IMU_HEADER_SIZE) {
+            return CAPSHEET_ERR_BAD_LENGTH;
+        }
+        out->u.snapshot_imu.counter = get_u16(p);
+        out->u.snapshot_imu.first_link = get_u16(p + 2);
+        out->u.snapshot_imu.count = p[4];
+        out->u.snapshot_imu.format = p[5];
+        out->u.snapshot_imu.records = p + CAPSHEET_SNAPSHOT_IMU_HEADER_SIZE;
+        rec = imu_record_size(p[5]);
+        if (rec == 0u) {
+            return CAPSHEET_ERR_BAD_FIELD;
+        }
+        if (p[4] == 0u || len != CAPSHEET_SNAPSHOT_IMU_HEADER_SIZE + rec * (size_t)p[4]) {
+            return CAPSHEET_ERR_BAD_LENGTH;
+        }
+        return ((uint32_t)out->u.snapshot_imu.first_link + p[4] > 0x10000u) ? CAPSHEET_ERR_BAD_FIELD : 0;
     }
-    size = k_size[type];
-    if (size == VAR) {  /* SNAPSHOT */
+    if (type == CAPSHEET_SNAPSHOT) {
         size_t count;
         if (len < CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE) {
             return CAPSHEET_ERR_BAD_LENGTH;
@@ -410,7 +550,7 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         /* count >= 1 here (len >= 10); first_link + count must not pass 65536 */
         return ((uint32_t)out->u.snapshot.first_link + count > 0x10000u) ? CAPSHEET_ERR_BAD_FIELD : 0;
     }
-    if (len != size) {
+    if (len != k_size[type]) {
         return CAPSHEET_ERR_BAD_LENGTH;
     }
     switch (type) {
@@ -426,15 +566,21 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         out->u.info.adc_bits = p[6];
         out->u.info.state = p[7];
         return (p[7] < CAPSHEET_STATE_COUNT) ? 0 : CAPSHEET_ERR_BAD_FIELD;
-    case CAPSHEET_SAMPLE: {
-        const uint32_t w = get_u32(p + 2);
+    case CAPSHEET_SAMPLE:
         out->u.sample.counter = get_u16(p);
-        out->u.sample.x = sext12(w);
-        out->u.sample.y = sext12(w >> 12);
-        out->u.sample.z = sext12((w >> 24) | ((uint32_t)p[6] << 8));
-        out->u.sample.status = (uint8_t)(p[6] >> 4);
+        get_sample_word(p + 2, &out->u.sample.x, &out->u.sample.y, &out->u.sample.z, &out->u.sample.status);
         return 0;
-    }
+    case CAPSHEET_IMU_GYRO:
+    case CAPSHEET_IMU_MAG:  /* the same layout (C99 6.5.2.3: a common initial sequence) */
+        out->u.imu_gyro.counter = get_u16(p);
+        get_i16x3(p + 2, &out->u.imu_gyro.gx, &out->u.imu_gyro.gy, &out->u.imu_gyro.gz);
+        return 0;
+    case CAPSHEET_IMU_ACCEL:
+        out->u.imu_accel.counter_lo = p[0];
+        get_sample_word(p + 1, &out->u.imu_accel.x, &out->u.imu_accel.y, &out->u.imu_accel.z,
+                        &out->u.imu_accel.status);
+        out->u.imu_accel.time_us = (int16_t)get_u16(p + 6);
+        return 0;
     case CAPSHEET_STATUS:
         out->u.status.state = p[0];
         out->u.status.flags = p[1];
@@ -452,11 +598,7 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         return (p[1] >= CAPSHEET_NACK_UNKNOWN_COMMAND && p[1] <= CAPSHEET_NACK_STORAGE_FAILED)
                    ? 0 : CAPSHEET_ERR_BAD_FIELD;
     case CAPSHEET_CAL_DATA:
-    case CAPSHEET_CAL_WRITE:
         get_cal(p, &out->u.cal);
-        if (type == CAPSHEET_CAL_WRITE && node == CAPSHEET_NODE_BROADCAST) {
-            return CAPSHEET_ERR_BAD_FIELD;
-        }
         return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
     case CAPSHEET_GATEWAY_INFO:
         out->u.gateway_info.flags = p[0];
@@ -466,6 +608,46 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
         out->u.gateway_info.sync_rate_hz = get_u16(p + 6);
         return ((uint32_t)out->u.gateway_info.first_link + out->u.gateway_info.link_count > 0x10000u)
                    ? CAPSHEET_ERR_BAD_FIELD : 0;
+    default:
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+}
+#endif
+
+int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, size_t len, capsheet_msg_t *out)
+{
+    CAPSHEET_ASSERT(out != NULL && (p != NULL || len == 0));
+    out->type = type;
+    out->node = node;
+    if (!capsheet_type_known(type)) {
+        return CAPSHEET_ERR_UNKNOWN_TYPE;
+    }
+    if (node == CAPSHEET_NODE_RESERVED) {
+        return CAPSHEET_ERR_BAD_FIELD;
+    }
+    if (type < CAPSHEET_HOST_TYPE_FIRST) {
+#if CAPSHEET_CHIP_ONLY
+        return CAPSHEET_ERR_UNKNOWN_TYPE;  /* a chip build decodes no node -> host payload */
+#else
+        return decode_node_payload(type, p, len, out);
+#endif
+    }
+    if (len != k_size[type]) {
+        return CAPSHEET_ERR_BAD_LENGTH;
+    }
+    switch (type) {
+    case CAPSHEET_CONFIG_IMU:
+        out->u.config_imu.format = p[0];
+        out->u.config_imu.gyro_range = p[1];
+        out->u.config_imu.mag_range = p[2];
+        out->u.config_imu.flags = p[3];
+        return 0;
+    case CAPSHEET_CAL_WRITE:
+        get_cal(p, &out->u.cal);
+        if (type == CAPSHEET_CAL_WRITE && node == CAPSHEET_NODE_BROADCAST) {
+            return CAPSHEET_ERR_BAD_FIELD;
+        }
+        return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
     case CAPSHEET_SYNC:
         out->u.sync.counter = get_u16(p);
         return (node == CAPSHEET_NODE_BROADCAST) ? 0 : CAPSHEET_ERR_BAD_FIELD;
@@ -542,7 +724,7 @@ int32_t capsheet_serial_encode_raw(uint8_t version, uint8_t type, uint16_t node,
 
 int32_t capsheet_serial_encode(const capsheet_msg_t *msg, uint8_t *out, size_t cap)
 {
-    uint8_t tmp[8];
+    uint8_t tmp[FIXED_MAX];
     span_t sp[2];
     int32_t n;
     CAPSHEET_ASSERT(msg != NULL && out != NULL);
@@ -665,7 +847,7 @@ int32_t capsheet_can_fd_length(size_t n)
 int32_t capsheet_can_encode(const capsheet_msg_t *msg, capsheet_can_mode_t mode, uint32_t *id,
                             uint8_t *data, size_t cap, bool *is_fd)
 {
-    uint8_t tmp[8];
+    uint8_t tmp[FIXED_MAX];
     span_t sp[2];
     int32_t n, padded;
     bool fd;
@@ -722,10 +904,25 @@ int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uin
         || (is_fd && capsheet_can_fd_length(len) != (int32_t)len)) {
         return CAPSHEET_ERR_BAD_LENGTH;
     }
-    if (type == CAPSHEET_SNAPSHOT && len >= CAPSHEET_SNAPSHOT_HEADER_SIZE) {
-        const size_t need = CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE * (size_t)data[4];
-        const size_t expected = (is_fd && need <= CAPSHEET_CAN_FD_MTU) ? (size_t)capsheet_can_fd_length(need) : need;
-        size_t i;
+#if !CAPSHEET_CHIP_ONLY
+    {
+        /* the padded types (§7.2, §16.3, §16.5): `need` payload bytes, padded with 0x00 on FD */
+        size_t need = 0, expected, i;
+        if (type == CAPSHEET_SNAPSHOT && len >= CAPSHEET_SNAPSHOT_HEADER_SIZE) {
+            need = CAPSHEET_SNAPSHOT_HEADER_SIZE + CAPSHEET_SAMPLE_WORD_SIZE * (size_t)data[4];
+        } else if (type == CAPSHEET_SNAPSHOT_IMU && len >= CAPSHEET_SNAPSHOT_IMU_HEADER_SIZE
+                   && imu_record_size(data[5]) != 0u) {  /* another format: BAD_FIELD from the payload decoder */
+            need = CAPSHEET_SNAPSHOT_IMU_HEADER_SIZE + imu_record_size(data[5]) * (size_t)data[4];
+        } else if (type == CAPSHEET_IMU_SAMPLE && is_fd) {
+            need = (len == 16u) ? 2u + CAPSHEET_IMU6_RECORD_SIZE : (len == 24u) ? 2u + CAPSHEET_IMU9_RECORD_SIZE : 0u;
+            if (need == 0u) {
+                return CAPSHEET_ERR_BAD_LENGTH;
+            }
+        }
+        if (need == 0u) {
+            return capsheet_payload_decode(type, node, data, len, out);
+        }
+        expected = (is_fd && need <= CAPSHEET_CAN_FD_MTU) ? (size_t)capsheet_can_fd_length(need) : need;
         if (len != expected) {
             return CAPSHEET_ERR_BAD_LENGTH;
         }
@@ -734,7 +931,9 @@ int32_t capsheet_can_decode(uint32_t id, bool is_extended, bool is_fd, const uin
                 return CAPSHEET_ERR_BAD_FIELD;
             }
         }
-        len = need;
+        return capsheet_payload_decode(type, node, data, need, out);
     }
-    return capsheet_payload_decode(type, node, data, len, out);
+#else
+    return capsheet_payload_decode(type, node, data, len, out);  /* node -> host types: not decoded */
+#endif
 }

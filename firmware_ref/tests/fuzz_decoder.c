@@ -15,7 +15,9 @@
  *   - serial/CAN decode of an accepted frame -> encode reproduces it;
  *   - COBS decode(encode(x)) == x;
  *   - the stream decoder never holds more than its capacity;
- *   - every frame the chip sends decodes without error, and fits CAPSHEET_CHIP_TX_WIRE_SIZE.
+ *   - every frame the chip sends decodes without error, and fits CAPSHEET_CHIP_TX_WIRE_SIZE;
+ *     a chip with a gyroscope (and magnetometer) is driven too, and its IMU records (serial,
+ *     classic CAN frames, CAN FD) decode as well.
  */
 #include "capsheet_fw.h"
 
@@ -65,7 +67,31 @@ typedef struct {
     capsheet_cal_t stored[3];
     uint8_t have[3];
     uint8_t store_fails;
+    uint32_t imu_reads;
+    uint32_t imu_frames;   /* IMU_GYRO / IMU_MAG / IMU_ACCEL / IMU_SAMPLE frames sent */
 } fake_t;
+
+static int32_t fake_read_imu(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range, bool want_mag,
+                             capsheet_imu_reading_t *out)
+{
+    fake_t *f = (fake_t *)user;
+    unsigned i;
+    CHECK(gyro_range <= 4u && mag_range <= 3u);
+    f->imu_reads++;
+    for (i = 0; i < 3u; i++) {
+        out->gyro[i] = (int16_t)((int32_t)((f->imu_reads * (7u + i) * 9973u) % 65536u) - 32768);
+        out->mag[i] = want_mag ? (int16_t)((int32_t)(f->imu_reads * 131u % 65536u) - 32768) : 0;
+    }
+    out->latch_us = now_us + (f->imu_reads % 3u) * 20000u - 20000u;  /* before, at and after the SYNC */
+    out->status = (uint8_t)(f->imu_reads % 5u == 4u ? CAPSHEET_SAMPLE_STALE : 0u);
+    return 0;
+}
+
+static bool chip_type_ok(uint8_t type)
+{
+    return (type >= CAPSHEET_ANNOUNCE && type <= CAPSHEET_CAL_DATA)
+           || (type >= CAPSHEET_IMU_GYRO && type <= CAPSHEET_IMU_SAMPLE);
+}
 
 static int32_t fake_read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status)
 {
@@ -88,7 +114,9 @@ static int32_t fake_send_bytes(void *user, const uint8_t *data, size_t len)
     CHECK(data[len - 1u] == 0u);
     copy = dup_exact(data, len - 1u);
     CHECK(capsheet_serial_decode_frame(copy, len - 1u, &m, NULL) == 0);
-    CHECK(m.type >= CAPSHEET_ANNOUNCE && m.type <= CAPSHEET_CAL_DATA);
+    CHECK(chip_type_ok(m.type) && m.type != CAPSHEET_IMU_GYRO && m.type != CAPSHEET_IMU_MAG
+          && m.type != CAPSHEET_IMU_ACCEL);
+    f->imu_frames += m.type == CAPSHEET_IMU_SAMPLE;
     free(copy);
     f->sent++;
     return 0;
@@ -99,9 +127,10 @@ static int32_t fake_send_can(void *user, uint32_t id, const uint8_t *data, uint8
     fake_t *f = (fake_t *)user;
     capsheet_msg_t m;
     uint8_t *copy = dup_exact(data, len);
-    CHECK(len <= 8u && !is_fd);
-    CHECK(capsheet_can_decode(id, true, false, copy, len, &m, NULL) == 0);
-    CHECK(m.type >= CAPSHEET_ANNOUNCE && m.type <= CAPSHEET_CAL_DATA);
+    CHECK(len <= (is_fd ? 24u : 8u));
+    CHECK(capsheet_can_decode(id, true, is_fd, copy, len, &m, NULL) == 0);
+    CHECK(chip_type_ok(m.type) && is_fd == (m.type == CAPSHEET_IMU_SAMPLE));
+    f->imu_frames += m.type >= CAPSHEET_IMU_GYRO && m.type <= CAPSHEET_IMU_SAMPLE;
     free(copy);
     f->sent++;
     return 0;
@@ -147,6 +176,7 @@ static void make_hal(capsheet_hal_t *hal, fake_t *f)
     hal->read_uid = fake_uid;
     hal->cal_load = fake_cal_load;
     hal->cal_store = fake_cal_store;
+    hal->read_imu = fake_read_imu;
 }
 
 /* ---------------------------------------------------------------------------------------- */
@@ -315,6 +345,10 @@ static void check_chip_script(const uint8_t *data, size_t len, capsheet_transpor
     cfg.transport = transport;
     cfg.can_fd = (len > 1u) && (data[1] & 1u);
     cfg.capabilities = (uint16_t)(len > 1u ? ((data[1] >> 1) & 0x3Fu) : 0u);
+    if (len > 1u && (data[1] & 0x80u)) {  /* a 6-axis chip, 9-axis when data[0] bit 1 is set too */
+        cfg.capabilities = (uint16_t)(cfg.capabilities | CAPSHEET_CAP_GYRO | CAPSHEET_CAP_SAMPLE_TIME
+                                      | ((data[0] & 2u) ? CAPSHEET_CAP_MAG : 0u));
+    }
     if (!(cfg.capabilities & CAPSHEET_CAP_CAL_STORAGE)) {
         hal.cal_load = NULL;
         hal.cal_store = NULL;
@@ -429,6 +463,62 @@ static void random_input(uint8_t *buf, size_t *len)
     *len = n;
 }
 
+/* A 9-axis chip on each transport through CONFIG_IMU and START: one SYNC gives the record's frames. */
+static void selftest_imu(capsheet_transport_t transport, uint8_t flags, int32_t frames)
+{
+    capsheet_hal_t hal;
+    fake_t f;
+    capsheet_chip_t chip;
+    capsheet_chip_config_t cfg;
+    capsheet_msg_t m;
+    uint8_t *rx = canary_buf(CAPSHEET_RX_BUFFER_SIZE);
+    uint8_t buf[64];
+    uint32_t id;
+    bool fd;
+    int32_t n;
+    uint16_t node;
+    unsigned step;
+    make_hal(&hal, &f);
+    cfg.transport = transport;
+    cfg.can_fd = true;
+    cfg.capabilities = CAPSHEET_CAP_GYRO | CAPSHEET_CAP_MAG | CAPSHEET_CAP_SAMPLE_TIME;
+    CHECK(capsheet_chip_init(&chip, &cfg, &hal, rx, CAPSHEET_RX_BUFFER_SIZE) == 0);
+    CHECK(capsheet_chip_power_on(&chip, 0) == 2);
+    node = chip.node;
+    for (step = 0; step < 4u; step++) {
+        memset(&m, 0, sizeof m);
+        m.node = (step == 0u) ? node : 7u;
+        if (step == 0u) {
+            m.type = CAPSHEET_ASSIGN;
+            m.u.assign.new_node = 7;
+            m.u.assign.uid_low = 0x89ABCDEFu;
+        } else if (step == 1u) {
+            m.type = CAPSHEET_CONFIG_IMU;
+            m.u.config_imu.format = CAPSHEET_IMU_FORMAT_9AXIS;
+            m.u.config_imu.gyro_range = 4;
+            m.u.config_imu.flags = flags;
+        } else if (step == 2u) {
+            m.type = CAPSHEET_START;
+        } else {
+            m.type = CAPSHEET_SYNC;
+            m.node = 0;
+            m.u.sync.counter = 0x0102;
+        }
+        if (transport == CAPSHEET_TRANSPORT_SERIAL) {
+            n = capsheet_serial_encode(&m, buf, sizeof buf);
+            CHECK(n > 0);
+            n = capsheet_chip_rx_bytes(&chip, buf, (size_t)n, 1000u * (step + 1u));
+        } else {
+            n = capsheet_can_encode(&m, CAPSHEET_CAN_CLASSIC, &id, buf, sizeof buf, &fd);
+            CHECK(n >= 0);
+            n = capsheet_chip_rx_can(&chip, id, true, false, buf, (size_t)n, 1000u * (step + 1u));
+        }
+        CHECK(n == (step == 3u ? frames : 1));
+    }
+    CHECK(f.imu_reads == 1u && f.imu_frames == (uint32_t)frames && chip.state == CAPSHEET_STREAMING);
+    free(rx);
+}
+
 static int selftest(void)
 {
     static const uint8_t check[] = {'1', '2', '3', '4', '5', '6', '7', '8', '9'};
@@ -456,6 +546,9 @@ static int selftest(void)
     CHECK(capsheet_serial_decode_frame(buf, (size_t)n - 1u, &m, NULL) == 0);
     CHECK(m.type == CAPSHEET_SAMPLE && m.node == 1u && m.u.sample.z == 1024);
     fuzz_one(sample_flat, sizeof sample_flat);
+    selftest_imu(CAPSHEET_TRANSPORT_SERIAL, 0, 1);
+    selftest_imu(CAPSHEET_TRANSPORT_CAN, 0, 3);
+    selftest_imu(CAPSHEET_TRANSPORT_CAN, CAPSHEET_IMU_FLAG_FD, 1);
     printf("selftest: ok (%u-bit)\n", (unsigned)(sizeof(void *) * 8u));
     return 0;
 }

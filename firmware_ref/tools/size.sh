@@ -26,21 +26,47 @@ report() {  # $1 label, $2 elf
 
 echo
 echo "== 2. linked chip images (--gc-sections: only what a chip calls; incl. memcpy/memset, libgcc)"
+#    today's accelerometer chip: the build without the IMU record path (-DCAPSHEET_IMU=0, as before v1.2);
+#    the default build (CAPSHEET_IMU 1) as an accelerometer, a 6-axis and a 9-axis chip; then the chip
+#    images (-DCAPSHEET_CHIP_ONLY=1: the codec without the node -> host decoders and host encoders)
 for rx in 15 64 1029; do
-    $ARM_CC $FLAGS -DCAPSHEET_RX_BUFFER_SIZE=$rx src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_serial_rx$rx.elf"
-    report "serial chip, RX buffer $rx B" "$OUT/chip_serial_rx$rx.elf"
+    $ARM_CC $FLAGS -DCAPSHEET_IMU=0 -DCAPSHEET_RX_BUFFER_SIZE=$rx src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_serial_rx$rx.elf"
+    report "serial chip, accelerometer only (\`-DCAPSHEET_IMU=0\`), RX buffer $rx B" "$OUT/chip_serial_rx$rx.elf"
 done
-$ARM_CC $FLAGS -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_can.elf"
-report "CAN chip (no RX buffer)" "$OUT/chip_can.elf"
+$ARM_CC $FLAGS -DCAPSHEET_IMU=0 -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_can.elf"
+report "CAN chip, accelerometer only (\`-DCAPSHEET_IMU=0\`, no RX buffer)" "$OUT/chip_can.elf"
+img() {  # $1 label, $2 file, $3 flags
+    $ARM_CC $FLAGS $3 src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/$2.elf"
+    report "$1" "$OUT/$2.elf"
+}
+for only in 0 1; do
+    tag=$([ $only = 1 ] && echo ", \`-DCAPSHEET_CHIP_ONLY=1\`" || echo "")
+    [ $only = 1 ] && img "serial chip, accelerometer only (\`-DCAPSHEET_IMU=0\`)$tag" chip_serial_accel_only "-DCAPSHEET_IMU=0 -DCAPSHEET_CHIP_ONLY=1"
+    img "serial chip, default build, as an accelerometer chip$tag" chip_serial_default_accel$only "-DCAPSHEET_CHIP_ONLY=$only"
+    img "**6-axis serial chip** (GYRO, SAMPLE_TIME)$tag" chip_serial_6axis$only "-DSIZE_IMU=1 -DCAPSHEET_CHIP_ONLY=$only"
+    img "9-axis serial chip (GYRO, MAG, SAMPLE_TIME)$tag" chip_serial_9axis$only "-DSIZE_IMU=2 -DCAPSHEET_CHIP_ONLY=$only"
+    img "6-axis CAN chip (no RX buffer)$tag" chip_can_6axis$only "-DSIZE_IMU=1 -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 -DCAPSHEET_CHIP_ONLY=$only"
+done
+echo "(RX buffer 64 B unless said)"
 echo
-echo "== 3. stack: static worst case per entry point (-fcallgraph-info=su; HAL callbacks: the size app's stubs)"
-mkdir -p "$OUT/stack"
-(cd "$OUT/stack" && for f in codec chip; do $ARM_CC $FLAGS -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/src/$f.c" -o $f.o; done \
-  && $ARM_CC $FLAGS -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/tools/size_app.c" -o size_app.o)
-STACK=$(python3 tools/stack.py "$OUT"/stack/*.ci --root capsheet_chip_rx_bytes --root capsheet_chip_rx_can \
+echo "== 3. stack: static worst case per entry point (-fcallgraph-info=su; HAL callbacks: the size app's stubs),"
+echo "      the default build (6-axis size app) and the accelerometer-only one (-DCAPSHEET_IMU=0)"
+stack() {  # $1 directory, $2 extra flags
+    mkdir -p "$1"
+    (cd "$1" && for f in codec chip; do $ARM_CC $FLAGS $2 -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/src/$f.c" -o $f.o; done \
+      && $ARM_CC $FLAGS $2 -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/tools/size_app.c" -o size_app.o)
+    python3 tools/stack.py "$1"/*.ci --root capsheet_chip_rx_bytes --root capsheet_chip_rx_can \
         --root capsheet_chip_poll --root capsheet_chip_power_on --indirect read_axes --indirect send_bytes \
-        --indirect send_can --indirect read_uid)
+        --indirect send_can --indirect read_uid --indirect read_imu
+}
+STACK=$(stack "$OUT/stack" "-DSIZE_IMU=1")
+STACK0=$(stack "$OUT/stack_accel" "-DCAPSHEET_IMU=0")
+STACK1=$(stack "$OUT/stack_chip" "-DSIZE_IMU=1 -DCAPSHEET_CHIP_ONLY=1")
 echo "$STACK"
+echo "-- accelerometer only (-DCAPSHEET_IMU=0):"
+echo "$STACK0"
+echo "-- 6-axis chip image (-DCAPSHEET_CHIP_ONLY=1):"
+echo "$STACK1"
 echo
 echo "RAM of a serial chip = sizeof(capsheet_chip_t) + the RX buffer (+ the stack); budget: flash <= 6144 B, RAM <= 1024 B."
 {
@@ -52,9 +78,19 @@ echo "RAM of a serial chip = sizeof(capsheet_chip_t) + the RX buffer (+ the stac
   echo "| whole library, every function (object files) | $1 B | $2 B |"
   sed 's/RX buffer \([0-9]*\) B/RX buffer \1 B/' "$MD.rows"
   echo
-  echo "Stack, static worst case (\`-fcallgraph-info=su\`, \`firmware_ref/tools/stack.py\`; HAL callbacks as in tools/size_app.c):"
+  echo "A serial chip's RX buffer is 64 B (the default) where its row does not say."
+  echo
+  echo "Stack, static worst case (\`-fcallgraph-info=su\`, \`firmware_ref/tools/stack.py\`; HAL callbacks as in tools/size_app.c), default build:"
   echo
   echo "$STACK" | sed 's/^/    /'
+  echo
+  echo "the accelerometer-only build (\`-DCAPSHEET_IMU=0\`):"
+  echo
+  echo "$STACK0" | sed 's/^/    /'
+  echo
+  echo "and the 6-axis chip image (\`-DCAPSHEET_CHIP_ONLY=1\`):"
+  echo
+  echo "$STACK1" | sed 's/^/    /'
 } > "$MD"
 rm -f "$MD.rows"
 echo "== wrote $MD"

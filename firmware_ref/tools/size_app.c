@@ -3,6 +3,8 @@
  * its RX buffer of CAPSHEET_RX_BUFFER_SIZE bytes (a build-time option), stub HAL callbacks, and a
  * main loop calling every entry point. Linked with --gc-sections, so the image holds exactly what
  * a chip uses (the SNAPSHOT encoder and the decoders a chip never calls drop out).
+ * -DSIZE_CAN: a CAN chip; -DSIZE_IMU=1 / 2: a 6-axis / 9-axis chip (capability GYRO (+ MAG) and
+ * SAMPLE_TIME, a stub read_imu); -DCAPSHEET_IMU=0: the accelerometer-only build.
  */
 #include "capsheet_fw.h"
 
@@ -15,6 +17,30 @@ static int32_t read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *s
     *status = 0;
     return 0;
 }
+
+#ifdef SIZE_IMU
+static int32_t read_imu(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range, bool want_mag,
+                        capsheet_imu_reading_t *out)
+{
+    (void)user;
+    out->gyro[0] = (int16_t)(now_us & 0x7FFu);
+    out->gyro[2] = (int16_t)(gyro_range * 100);
+    if (want_mag) {
+        out->mag[0] = (int16_t)(8192 >> mag_range);
+    }
+    out->latch_us = now_us;
+    return 0;
+}
+#define READ_IMU read_imu
+#if SIZE_IMU == 2
+#define IMU_CAPS (CAPSHEET_CAP_GYRO | CAPSHEET_CAP_MAG | CAPSHEET_CAP_SAMPLE_TIME)
+#else
+#define IMU_CAPS (CAPSHEET_CAP_GYRO | CAPSHEET_CAP_SAMPLE_TIME)
+#endif
+#else
+#define READ_IMU 0
+#define IMU_CAPS 0
+#endif
 
 static volatile uint8_t sink;
 
@@ -39,7 +65,7 @@ static uint64_t read_uid(void *user)
     return 0x0123456789ABCDEFull;
 }
 
-static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0};
+static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0, READ_IMU};
 /* every call's result is kept (CAPSHEET_WARN_UNUSED: a result may not be dropped; a real chip
  * would act on a negative one) */
 static volatile int32_t last_rc;
@@ -60,7 +86,7 @@ void app_main(void)
 #else
         CAPSHEET_TRANSPORT_SERIAL,
 #endif
-        false, 0};
+        false, IMU_CAPS};
     last_rc = capsheet_chip_init(&chip, &cfg, &hal, rx_buf, sizeof rx_buf);
     last_rc = capsheet_chip_power_on(&chip, clock_us);
     for (;;) {

@@ -5,7 +5,8 @@ Two ways:
   RULES on both transports, NACK reasons, timers, counters) runs with ``chip_class`` = `CFirmwareChip`
   as one of its fixture parameters — one suite, two back ends;
 * hypothesis drives the C chip and the Python chip with the same random frame sequences (valid
-  commands, damaged frames, time steps) and requires the same answers, frame for frame.
+  commands, damaged frames, time steps) and requires the same answers, frame for frame — as
+  accelerometer chips and as 6/9-axis chips (docs §16: CONFIG_IMU, IMU records on every transport).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from hypothesis import strategies as st
 
 from protocol.can import CanFrame, decode_can, make_id, to_can
 from protocol.framing import DecodeError, decode_frame, encode, encode_frame
-from protocol.messages import (Assign, CalRead, CalWrite, ChipState, Config, GetInfo, Info, MsgType,
+from protocol.messages import (Assign, CalRead, CalWrite, ChipState, Config, ConfigImu, GetInfo, Info, MsgType,
                                Reset, Start, Stop, Sync)
 
 pytest.importorskip("firmware_ref._capsheet_fw", reason="C firmware extension not built")
@@ -45,6 +46,15 @@ def _sensor(now_s):
     return ((k * 37) % 4096 - 2048, (k * 11) % 4096 - 2048, 1000 - k % 50), (8 if k % 7 == 5 else k % 3)
 
 
+def _imu(now_s, gyro_range, mag_range):
+    """A gyroscope and magnetometer that move with time, at their rails now and then (SATURATED),
+    latched up to 3 ms either side of the SYNC."""
+    k = int(now_s * 64)
+    g = ((k * 4099) % 65536 - 32768, -(k * 97 % 30000) >> gyro_range, 32767 if k % 11 == 3 else k)
+    m = (8192 >> mag_range, -32768 if k % 13 == 7 else -4096, k % 100)
+    return g, m, (k * 37) % 6001 - 3000
+
+
 def _normalise(frames, transport):
     """Decoded frames, INFO's firmware version masked (the two firmwares differ there only)."""
     out = []
@@ -62,7 +72,7 @@ def _command(draw, transport):
     chip's current node (so "addressed to the chip" follows its node through ASSIGN and RESET)."""
     target = draw(st.sampled_from(["chip", "chip", "chip", "broadcast", "other"]))
     kind = draw(st.sampled_from(["assign", "assign", "config", "start", "stop", "sync", "sync", "sync", "get_info",
-                                 "reset", "cal_write", "cal_read", "raw", "damaged"]))
+                                 "reset", "cal_write", "cal_read", "raw", "damaged", "config_imu", "config_imu"]))
     uid_low = draw(st.sampled_from([UID & 0xFFFFFFFF, UID & 0xFFFFFFFF, 0xDEADBEEF]))
     new_node = draw(st.sampled_from([1, 42, 0x7FFF]))
     link = draw(st.integers(0, 300))
@@ -71,8 +81,10 @@ def _command(draw, transport):
     counter = draw(st.sampled_from([0, 1, 2, 3, 10, 0x7FFF, 0xFFFE, 0xFFFF]))
     cal = (draw(st.integers(0, 2)), draw(st.integers(0, 3)), draw(st.integers(-40, 40)),
            draw(st.sampled_from([1000.0, 1024.5])))
-    # 0x1A: undefined in v1.1 and v1.2 (0x19 is v1.2's CONFIG_IMU, which the C firmware lacks yet: issue 29 point 3)
-    raw_type = draw(st.sampled_from([0x03, 0x10, 0x11, 0x12, 0x13, 0x17, 0x18, 0x1A, 0x3F]))
+    imu = (draw(st.sampled_from([0, 1, 2, 2, 3])), draw(st.sampled_from([0, 3, 4, 5])), draw(st.sampled_from([0, 1, 3, 4])),
+           draw(st.sampled_from([0, 0, 1, 2])))
+    # 0x0D: a node -> host type (IMU_SAMPLE); 0x19 CONFIG_IMU of any length; 0x1A: undefined in v1.2
+    raw_type = draw(st.sampled_from([0x03, 0x0D, 0x10, 0x11, 0x12, 0x13, 0x17, 0x18, 0x19, 0x1A, 0x3F]))
     payload = draw(st.binary(max_size=9))
     version = draw(st.sampled_from([1, 1, 2]))
     is_fd = draw(st.booleans())
@@ -98,6 +110,8 @@ def _command(draw, transport):
             msg = CalWrite(n or 1, *cal)
         elif kind == "cal_read":
             msg = CalRead(n or 1, axis=cal[0])
+        elif kind == "config_imu":
+            msg = ConfigImu(n, *imu)
         elif transport == "can":
             return CanFrame(make_id(raw_type, n, priority=4, version=version), payload, is_fd)
         else:
@@ -123,8 +137,15 @@ def _scripts(draw, transport):
     return steps
 
 
-def _run_both(steps, transport, fd, capabilities):
-    chips = [cls(UID, _sensor, transport=transport, fd=fd, capabilities=capabilities)
+def _late_fault_sensor(now_s):
+    """Valid readings (rails now and then) until k = 36, then an ADC failure (INVALID)."""
+    (x, y, z), st = _sensor(now_s)
+    return (x, y, z), (8 if int(now_s * 64) >= 36 else st & 3)
+
+
+def _run_both(steps, transport, fd, capabilities, sensors="accel", sensor=_sensor):
+    imu = _imu if sensors != "accel" else None
+    chips = [cls(UID, sensor, transport=transport, fd=fd, capabilities=capabilities, sensors=sensors, imu=imu)
              for cls in (ChipModel, CFirmwareChip)]
     t = 0.0
     outs = [_normalise(c.power_on(t), transport) for c in chips]
@@ -153,6 +174,30 @@ def _run_both(steps, transport, fd, capabilities):
 def test_c_chip_answers_exactly_as_the_python_chip(data, transport, fd, caps):
     steps = data.draw(_scripts(transport))
     _run_both(steps, transport, fd and transport == "can", caps)
+
+
+@settings(max_examples=150)
+@given(st.data(), st.sampled_from(["serial", "can"]), st.booleans(), st.sampled_from([0, 0x3C]),
+       st.sampled_from(["accel+gyro", "accel+gyro+mag"]))
+def test_a_6_or_9_axis_c_chip_answers_exactly_as_the_python_chip(data, transport, fd, caps, sensors):
+    """CONFIG_IMU's checks and states, and every SYNC's record — IMU_SAMPLE, classic frames, CAN FD —
+    frame for frame as the Python model, with SATURATED from the gyroscope's and magnetometer's rails."""
+    steps = data.draw(_scripts(transport))
+    _run_both(steps, transport, fd and transport == "can", caps, sensors)
+
+
+def test_a_6_and_9_axis_lifecycle_reaches_every_record_on_both_chips_identically():
+    """Deterministic: CONFIG_IMU format 1 then 2 (classic CAN and FD), SYNCs with rails, an INVALID
+    record from a failed conversion (FAULT), RESET back to format 0."""
+    for transport, fd in (("serial", False), ("can", False), ("can", True)):
+        w = (lambda m: to_can(m)) if transport == "can" else encode
+        steps = [(0.0, lambda n: w(Assign(n, new_node=NODE, link=5, uid_low=UID & 0xFFFFFFFF))),
+                 (0.0, w(ConfigImu(NODE, 1, 4, 0, 0))), (0.0, w(Start(0)))]
+        steps += [(1 / 64, w(Sync(counter=c))) for c in range(1, 4)]
+        steps += [(0.0, w(Stop(NODE))), (0.0, w(ConfigImu(NODE, 2, 2, 3, int(fd)))), (0.0, w(Start(NODE)))]
+        steps += [(1 / 64, w(Sync(counter=c))) for c in range(4, 40)]
+        steps += [(0.0, w(Reset(NODE))), (2.0, w(GetInfo(0)))]
+        assert _run_both(steps, transport, fd, 0x3C, "accel+gyro+mag", _late_fault_sensor) == set(ChipState)
 
 
 def test_walk_through_the_lifecycle_on_both_chips_identically():

@@ -72,14 +72,8 @@ def test_python_can_decoder(v):
     _check(v, decode_can(int(v["id"], 16), bytes.fromhex(v["data"]), is_extended_id=v["extended"], is_fd=v["fd"]))
 
 
-def _skip_imu(v) -> None:
-    if v["clause"].startswith("16"):
-        pytest.skip("v1.2 IMU frames (§16): not in the C firmware yet (issue 29 point 3)")
-
-
 @pytest.mark.parametrize("v", SERIAL, ids=[v["name"] for v in SERIAL])
 def test_c_frame_and_stream_decoders(v):
-    _skip_imu(v)
     codec = _c()
     data = bytes.fromhex(v["hex"])
     try:
@@ -93,7 +87,6 @@ def test_c_frame_and_stream_decoders(v):
 
 @pytest.mark.parametrize("v", CAN, ids=[v["name"] for v in CAN])
 def test_c_can_decoder(v):
-    _skip_imu(v)
     codec = _c()
     try:
         got = codec.decode_can(int(v["id"], 16), bytes.fromhex(v["data"]), is_extended_id=v["extended"], is_fd=v["fd"])

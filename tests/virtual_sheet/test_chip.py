@@ -13,7 +13,7 @@ import pytest
 from protocol.can import CanFrame, decode_can, make_id, to_can
 from protocol.constants import SampleStatus
 from protocol.framing import decode_frame, encode, encode_frame
-from protocol.messages import (IMU_TYPES, MESSAGE_TYPES, ConfigImu, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability,
+from protocol.messages import (MESSAGE_TYPES, ConfigImu, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability,
                                ChipState, Config, Direction, GetInfo, Info, MsgType, Nack, NackReason, Reset,
                                Sample, Start, Status, Stop, Sync, provisional_node)
 from protocol.vectors import canonical_messages
@@ -101,8 +101,6 @@ _ADDRESSINGS = [(t, b) for t in HOST_TYPES for b in (False, True)
 @pytest.mark.parametrize("state", list(ChipState))
 @pytest.mark.parametrize("msg_type,broadcast", _ADDRESSINGS)
 def test_every_state_and_type_follows_the_rules(chip_class, transport, state, msg_type, broadcast):
-    if msg_type in IMU_TYPES and chip_class is not ChipModel:
-        pytest.skip("CONFIG_IMU (v1.2, §16.2): not in the C firmware yet (issue 29 point 3)")
     d = Driver(chip_class, transport)
     d.to_state(state)
     node = d.chip.node

@@ -5,6 +5,12 @@
  * The stub ADC is a chip lying flat, top face up: (0, 0, +1 g) = (0, 0, 1024) counts at ±2 g,
  * plus ±2 counts of deterministic noise per axis (xorshift32), status 0.
  *
+ * Sensors (docs §16; `make -C firmware_ref qemu SENSORS=accel+gyro|accel+gyro+mag`, which sets
+ * CAPSHEET_QEMU_SENSORS 1 or 2; default 0, the accelerometer chip): a stub gyroscope at rest (0 °/s,
+ * ±2 counts of noise per axis) and a stub magnetometer in a field of (0.2, 0, −0.4) gauss, both
+ * latched at the read with the port's clock, so time_us is the true delay from the SYNC's end to
+ * the read. The chip then reports GYRO (and MAG) and SAMPLE_TIME.
+ *
  * Mutant builds (conformance must fail them; `make -C firmware_ref qemu MUTANT=...`):
  *   -DCAPSHEET_MUTANTS -DCAPSHEET_QEMU_MUTANT=CAPSHEET_MUT_...  the library breaks that rule
  *                          (capsheet_mutant_t in capsheet_fw.h: a dead sensor, a wrong CRC, ...)
@@ -41,6 +47,40 @@ static int32_t read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *s
     *status = 0u;
     return 0;
 }
+
+#ifndef CAPSHEET_QEMU_SENSORS
+#define CAPSHEET_QEMU_SENSORS 0
+#endif
+#if CAPSHEET_QEMU_SENSORS == 0
+#define SENSOR_CAPS 0u
+#define READ_IMU 0
+#else
+#if CAPSHEET_QEMU_SENSORS == 2
+#define SENSOR_CAPS (CAPSHEET_CAP_GYRO | CAPSHEET_CAP_MAG | CAPSHEET_CAP_SAMPLE_TIME)
+#else
+#define SENSOR_CAPS (CAPSHEET_CAP_GYRO | CAPSHEET_CAP_SAMPLE_TIME)
+#endif
+#define READ_IMU read_imu
+
+/* gyroscope at rest (noise only, whatever the range); magnetometer at 8192 / (r + 1) counts per gauss */
+static int32_t read_imu(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range, bool want_mag,
+                        capsheet_imu_reading_t *out)
+{
+    static const int16_t field_mgauss[3] = {200, 0, -400};
+    unsigned i;
+    (void)user;
+    (void)now_us;
+    (void)gyro_range;
+    for (i = 0; i < 3u; i++) {
+        out->gyro[i] = noise();
+        if (want_mag) {
+            out->mag[i] = (int16_t)((int32_t)field_mgauss[i] * 8192 / 1000 / (int32_t)(mag_range + 1u) + noise());
+        }
+    }
+    out->latch_us = clock_us();  /* the read's instant: time_us = this - the SYNC's end */
+    return 0;
+}
+#endif
 
 /* `data` is the chip's TX buffer, reused by the next send: uart_write returns once every byte
  * is in the UART, so nothing needs copying (a DMA HAL would copy, see README.md). */
@@ -82,9 +122,9 @@ static int32_t cal_store(void *user, uint8_t axis, const capsheet_cal_t *cal)
     return 0;
 }
 
-static const capsheet_hal_t hal = {0, read_axes, send_bytes, 0, read_uid, cal_load, cal_store};
+static const capsheet_hal_t hal = {0, read_axes, send_bytes, 0, read_uid, cal_load, cal_store, READ_IMU};
 static const capsheet_chip_config_t config = {CAPSHEET_TRANSPORT_SERIAL, false,
-                                              CAPSHEET_CAP_CAL_STORAGE | CAPSHEET_CAP_MULTI_RANGE};
+                                              CAPSHEET_CAP_CAL_STORAGE | CAPSHEET_CAP_MULTI_RANGE | SENSOR_CAPS};
 static capsheet_chip_t chip;
 static uint8_t rx_buf[CAPSHEET_RX_BUFFER_SIZE];
 

@@ -75,7 +75,7 @@ IMU_EXPECTED = {
     "imu_accepts_bad_config": {42},
     "imu_accel_first": {43, 44},
 }
-#: the §16 checks: the C firmware has no IMU formats yet (issue 29 point 3), so no C mutant fails them
+#: the §16 checks: the C firmware speaks §16 (issue 29 point 3) but has no mutant that breaks a §16 rule, so no C mutant fails them
 IMU_CHECKS = {42, 43, 44}
 
 #: checks no mutant here can fail, and why (the virtual CAN device drops standard frames before any chip)
