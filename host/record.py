@@ -1084,7 +1084,7 @@ def _read_one(path, *, raw: bool = True) -> Recording:
         complete=np.array([s["complete"] for s in snaps], dtype=bool),
         readings=b.readings, valid=b.valid, status=b.status, estimates=est, raw=raws,
         sync=np.array(syncs, dtype=np.float64).reshape(-1, 2), contacts=contacts, message_counts=counts,
-        truncated=truncated, metadata=meta, **_imu_arrays(snaps, int(session["n_links"])))
+        truncated=truncated, metadata=meta, gyro=b.gyro, mag=b.mag, sample_time_s=b.sample_time_s)
 
 
 def _imu_arrays(snaps: list[dict], n_links: int) -> dict:
@@ -1108,6 +1108,11 @@ class SnapshotBatch:
     readings: np.ndarray  #: (b, n_links, 3) float32, m/s^2
     valid: np.ndarray  #: (b, n_links) bool
     status: np.ndarray  #: (b, n_links) uint8
+    #: 6/9-axis chips (docs/protocol.md §16), as `Recording`'s: (b, n_links, 3) rad/s, (b, n_links, 3) T,
+    #: (b, n_links) s after the SYNC, float32, NaN where a snapshot had none; None when none in the batch had them
+    gyro: np.ndarray | None = None
+    mag: np.ndarray | None = None
+    sample_time_s: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.counter.shape[0])
@@ -1209,7 +1214,8 @@ def _snapshot_batch(session: dict, snaps: list[dict], conv: "_Counts") -> Snapsh
         readings[k] = s["readings"] if s["counts"] is None else conv(s["counts"], s["valid"])
     return SnapshotBatch(session, np.array([s["counter"] for s in snaps], dtype=np.uint16),
                          np.array([s["timestamp"] for s in snaps], dtype=np.float64),
-                         np.array([s["wall_time"] for s in snaps], dtype=np.float64), readings, valid, status)
+                         np.array([s["wall_time"] for s in snaps], dtype=np.float64), readings, valid, status,
+                         **_imu_arrays(snaps, n_links))
 
 
 #: the name docs and older code used

@@ -85,6 +85,9 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--sensors", default="accel", choices=("accel", "accel+gyro", "accel+gyro+mag"))
     ap.add_argument("--board", type=float, default=0.0, help="the calibration board scene, holding each pose this long (s)")
     ap.add_argument("--layout-out", required=True)
+    ap.add_argument("--truth-out", default=None,
+                    help="at exit, write the truth of every SYNC counter the sheet answered (npz: counter, "
+                         "scene_time_s, joints (n, rows, cols, 3) m), from the sheet's own scene")
     args = ap.parse_args(argv)
     sheet, dev = build(args)
     sheet.write_layout(args.layout_out)
@@ -106,6 +109,19 @@ def main(argv: list[str]) -> int:
         return 0
     finally:
         dev.stop()
+        if args.truth_out:
+            write_truth(sheet, args.truth_out)
+
+
+def write_truth(sheet, path: str) -> None:
+    """The joints each answered SYNC counter's readings came from (`VirtualSheet.truth`): what a test
+    compares an estimate of the recording with, never computed by the code under test."""
+    import numpy as np
+
+    counters = np.array(sorted(sheet.sync_times), dtype=np.uint16)
+    times = np.array([sheet.truth_time(int(c)) for c in counters])
+    joints = np.stack([sheet.joints_at_scene_time(t) for t in times]) if counters.size else np.zeros((0, 0, 0, 3))
+    np.savez(path, counter=counters, scene_time_s=times, joints=joints)
 
 
 if __name__ == "__main__":
