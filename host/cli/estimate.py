@@ -190,7 +190,7 @@ def estimate_fused_batch(b, fused, units: np.ndarray) -> tuple[np.ndarray, np.nd
     from types import SimpleNamespace
 
     from host.analysis.estimator.joints import eq8_residual
-    from host.cli.demo import fused_update
+    from host.analysis.motion.snapshots import fused_update
 
     cpu0 = time.process_time()
     n = len(b)

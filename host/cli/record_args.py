@@ -332,7 +332,7 @@ class SessionOutputs:
         fused = None
         if getattr(snap, "gyro", None) is not None:  # 6/9-axis chips: the gyroscopes drive the shape
             # (issue 30), so the fused estimator takes every snapshot in order, shown at the live rate
-            from host.cli.demo import fused_update
+            from host.analysis.motion.snapshots import fused_update
             if self._fused is None:
                 from host.analysis.motion import MotionEstimator
                 self._fused = MotionEstimator(self.lattice.rows, self.lattice.cols, self.link_length)
