@@ -162,3 +162,56 @@ def test_estimate_refuses_a_method_the_recording_cannot_take(tmp_path):
     p = _estimate(six, tmp_path / "u.npz", "--uncertainty")
     assert p.returncode == 2 and "--uncertainty is for the accelerometer-only methods" in p.stderr, p.stderr
     assert len(p.stderr.strip().splitlines()) == 1
+
+
+#: transport -> (sensors, host asks with --sensors): packed IMU records on every transport that packs
+#: (serial; CAN FD): the 9-axis ones once without --sensors (the gateway configures its chips itself)
+PACKED = {"memory": ("accel+gyro+mag", True), "pty": ("accel+gyro", True), "slcan": ("accel+gyro+mag", False),
+          "virtual": ("accel+gyro", True), "udp_multicast": ("accel+gyro+mag", True)}
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_a_packing_gateway_carries_imu_records_in_snapshot_imu_on_every_transport(transport, tmp_path):
+    """``capsheet virtual --packed --sensors ...`` (CAN: ``--fd``) then ``capsheet host``: the host learns
+    the packing gateway, every link sample comes with its gyroscope (and magnetometer) from
+    SNAPSHOT_IMU frames, and the recording of the pty run holds SNAPSHOT_IMU and no per-chip record."""
+    import numpy as np
+
+    from host.record import read
+    from protocol.framing import StreamDecoder
+    from protocol.messages import ImuSample, SnapshotImu
+    sensors, ask = PACKED[transport]
+    can = transport in ("slcan", "virtual", "udp_multicast")
+    mcap = tmp_path / "packed.mcap"
+    args = ["host", "{port}", "--lattice", "3x3", "--layout", "{layout}", "--rate", "100", "--duration", "2", "-q",
+            "--json", *(["--sensors", sensors] if ask else []), *(["--fd"] if can else []),
+            *(["--record", str(mcap)] if transport == "pty" else [])]
+    lock = udp_multicast_lock() if transport == "udp_multicast" else contextlib.nullcontext()
+    with lock:
+        job = Job(transport, tmp_path, f"packed-{transport}", args,
+                  ["--shape", "wave", "--sensors", sensors, "--noise", "1", "--packed", *(["--fd"] if can else [])]
+                  ).finish()
+    assert job.rc == 0, job.stderr
+    s = job.json()["summary"]
+    assert [g["packing"] for g in s["gateways"]] == [True]
+    assert s["snapshots"] > 0 and s["valid_links_pct"] >= 95.0 and s["errors"] == {}, s
+    assert s["sensors"] == sensors
+    assert s["imu_links_pct"] == pytest.approx(s["valid_links_pct"], abs=1e-6)
+    if sensors.endswith("mag"):
+        assert s["mag_links_pct"] == pytest.approx(s["valid_links_pct"], abs=1e-6)
+    if transport == "pty":
+        rec = read(mcap)
+        assert rec.gyro is not None and np.nanmax(np.abs(rec.gyro)) > 0.01
+        ev = StreamDecoder().feed(b"".join(p for _t, _k, p in rec.raw[0]))
+        assert any(isinstance(e, SnapshotImu) for e in ev) and not any(isinstance(e, ImuSample) for e in ev)
+
+
+def test_packing_imu_records_on_classic_can_is_one_line_and_exit_2(tmp_path):
+    """SNAPSHOT_IMU needs CAN FD (§16.5: classic CAN cannot carry it)."""
+    import subprocess
+
+    from tests.host.test_matrix import PY, ROOT
+    p = subprocess.run([PY, "-m", "host.cli", "virtual", "--transport", "slcan", "--packed", "--sensors", "accel+gyro",
+                        "--lattice", "3x3", "--duration", "1"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "SNAPSHOT_IMU needs CAN FD" in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr
