@@ -687,7 +687,8 @@ class Gateway:
         """§16.5: a gateway packing IMU records configures its chips itself. Before it passes a START
         on, every chip it concerns that is still in format 0 takes CONFIG_IMU of the gateway's format at
         the default ranges (a host's own CONFIG_IMU, which passes through, has set its chips already);
-        the chips' ACKs are the gateway's, not the host's (counted in ``stats.imu_configured``)."""
+        the chips' answers are the gateway's, not the host's (the chips that took it are counted in
+        ``stats.imu_configured``)."""
         eng = self.chip_array
         sel = np.zeros(eng.n, dtype=bool)
         sel[self.links] = True
@@ -697,8 +698,8 @@ class Gateway:
         for k in np.flatnonzero(sel).tolist():
             node = int(eng.node[k])
             msg = ConfigImu(node, self.imu_format)
-            acks = eng.handle_node(node, to_can(msg) if self.can else encode(msg), now_s, msg, self._sel)
-            self.stats.imu_configured += len(acks)
+            eng.handle_node(node, to_can(msg) if self.can else encode(msg), now_s, msg, self._sel)  # answer: ours
+            self.stats.imu_configured += int(eng.imu_format[k] == self.imu_format)
 
     def _sync_packed_imu(self, frame, sync: Sync, now_s: float) -> None:
         """Packed mode of a 6/9-axis sheet (docs §16.5): the covered links' IMU records into
