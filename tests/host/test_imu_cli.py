@@ -77,6 +77,9 @@ def test_a_recording_of_a_6_axis_sheet_carries_its_axes_and_replays_identical(tr
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout[out.stdout.index("{"):])
     assert r["snapshots_identical"] == r["snapshots_compared"] == r["recorded_snapshots"] == len(rec), r
+    # the live host shaped every snapshot with the fused estimator (estimates at its --live-rate); the
+    # replay does it again, in order, on the same snapshots: the same shapes (float32 in the file)
+    assert r["estimates_compared"] >= 1 and r["estimate_change_pct_side_max"] < 1e-3, r
 
 
 def _kabsch_error(est: "np.ndarray", truth: "np.ndarray") -> float:
