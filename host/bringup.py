@@ -26,6 +26,10 @@ __all__ = ["BringUp", "capacity_remedy"]
 
 log = logging.getLogger("capsheet.host")
 
+#: (packed, IMU records) -> the frames a bus's load is counted in (docs/protocol.md §10, §16)
+_FRAMING = {(False, False): "SAMPLE", (True, False): "SNAPSHOT", (False, True): "IMU_SAMPLE",
+            (True, True): "SNAPSHOT_IMU"}
+
 
 def capacity_remedy(kind: str, load: float, rate_hz: float, *, packed: bool, fd: bool = False,
                     bitrate: int | None = None, split: str | None = None, pack: str | None = None,
@@ -337,7 +341,7 @@ class BringUp:
         return len(ok)
 
     def check_capacity(self, action: str = "refuse", packed: bool = False) -> list[dict]:
-        """`Host.check_capacity`."""
+        """`Host.check_capacity` (the message names the frames counted: `_FRAMING`)."""
         if action not in ("refuse", "warn", "off"):
             raise ValueError(f"Invalid capacity action: {action!r} (need 'refuse', 'warn' or 'off')")
         host = self.host
@@ -366,8 +370,7 @@ class BringUp:
             row = {"bus": t.name, "chips": n, "load_pct": round(100 * load, 1)}
             report.append(row)
             what = (f"{t.name}: {n} chips at {host.rate_hz:g} Hz need {100 * load:.0f} % of the bus "
-                    f"({('packed SNAPSHOT_IMU' if fmt else 'packed SNAPSHOT') if packed else 'per-chip SAMPLE'}"
-                    f" frames)")
+                    f"({'packed ' if packed else 'per-chip '}{_FRAMING[packed, bool(fmt)]} frames)")
             if load > 1.0:
                 remedy = capacity_remedy(cap.kind, load, host.rate_hz, packed=packed, fd=bool(cap.fd),
                                          bitrate=cap.bitrate)
