@@ -13,7 +13,10 @@ Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed over two s
 table) and, for comparison, over one gateway declared as a 24 Mbaud link; 14x14 over as many
 classic CAN buses as the capacity table says for 145 Hz (9, SLCAN on ptys); 14x14 with the C
 firmware (one cffi chip per link); 14x14 per-chip again with one core kept busy (a
-``python3 -c 'while True: pass'`` beside it). A pty has no baud rate: the gateway declares the link
+``python3 -c 'while True: pass'`` beside it); 6-axis chips (issue 29) on a carried-and-turned sheet,
+per chip over the two 12 Mbaud gateways their IMU_SAMPLEs need at 145 Hz and packed in SNAPSHOT_IMU
+over one, each row with that capacity (``capacity_at_145``, `imu_capacity`) and its latency taken
+with the fused estimator on every snapshot in order (as ``capsheet demo --sensors`` runs it). A pty has no baud rate: the gateway declares the link
 it stands for and the host's capacity check uses that figure (a rate over it counts as not held).
 
 The sweep starts at 145 Hz and walks up the rate grid while rates hold, or down until one holds.
@@ -46,7 +49,15 @@ CONFIGS = {
     "14x14-can": dict(lattice="14x14", packed=False, transport="slcan", bitrate=1_000_000),
     "14x14-firmware-c": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, firmware="c"),
     "14x14-per-chip-busy-core": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, busy=1),
+    # 6-axis chips (issue 29) on a carried-and-turned sheet, shaped by the fused estimator: per chip
+    # their IMU_SAMPLEs need two 12 Mbaud gateways at 145 Hz (101 % of one), packed one (58 %)
+    "14x14-6axis-per-chip-2gw": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000,
+                                     gateways=2, sensors="accel+gyro"),
+    "14x14-6axis-packed": dict(lattice="14x14", packed=True, transport="serial", baud=12_000_000,
+                               sensors="accel+gyro"),
 }
+#: CONFIG_IMU fields per --sensors (format, gyro range code 3 = ±1000 °/s, mag range code 0, flags)
+IMU_CONFIG = {"accel+gyro": (1, 3, 0, 0), "accel+gyro+mag": (2, 3, 0, 0)}
 RATES = [10, 20, 30, 60, 100, 145, 200, 300, 450, 640]
 QUICK_RATES = [10, 30, 60, 145, 300, 640]
 
@@ -96,8 +107,9 @@ def _serve(cfg: dict, conn) -> None:
         from firmware_ref.chip import CFirmwareChip
         kw["chip_factory"] = CFirmwareChip
     can = cfg["transport"] == "slcan"
-    sheet = VirtualSheet("grow", cfg["lattice"], seed=1, noise=1.0, scene_rate_hz=10.0,
-                         transport="can" if can else "serial", **kw)
+    sensors = cfg.get("sensors", "accel")
+    sheet = VirtualSheet("carry" if sensors != "accel" else "grow", cfg["lattice"], seed=1, noise=1.0,
+                         scene_rate_hz=10.0, transport="can" if can else "serial", sensors=sensors, **kw)
     sheet.precompute()
     layout = cfg["layout_path"]
     sheet.write_layout(layout)
@@ -140,6 +152,12 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
     seen: list[tuple[int, bool]] = []  # (counter, complete) of every snapshot emitted
     host = Host(ts, lat, layout=Layout.load(cfg["layout_path"]), rate_hz=rate,
                 on_snapshot=lambda snap: seen.append((snap.counter, snap.complete)))
+    fused = None
+    if cfg.get("sensors", "accel") != "accel":  # CONFIG_IMU; every snapshot, in order, to the fused estimator
+        from host.analysis.motion import MotionEstimator
+        from host.analysis.motion.snapshots import fused_update
+        host.imu_config = IMU_CONFIG[cfg["sensors"]]
+        fused = MotionEstimator(rows, cols, 0.01)
     row: dict = {"rate_hz": rate}
     try:
         with host:
@@ -157,7 +175,12 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
             previous = None
             t_end = time.monotonic() + duration_s
             while time.monotonic() < t_end:
-                if estimate_latency:
+                if estimate_latency and fused is not None:
+                    snap = host.get(0.2)
+                    if snap is None or not snap.valid.any() or fused_update(fused, snap) is None:
+                        continue
+                    lat_ms.append(1e3 * (time.monotonic() - snap.timestamp))
+                elif estimate_latency:
                     snap = host.latest(0.2)
                     if snap is None or not snap.valid.any():
                         continue
@@ -176,6 +199,9 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
                        late=agg.stats.late, started=up["started"], silent_links=len(host.silent_links),
                        valid_links_pct=host.aggregator.completeness()["valid_links_pct"], loadavg=[round(x, 2) for x in os.getloadavg()])
             row["held"] = held(row, rows * (cols - 1) + cols * (rows - 1))
+            if fused is not None:
+                st = agg.stats
+                row["imu_links_pct"] = round(100.0 * st.imu_links / max(1, st.valid_links), 2)  # of valid samples
             if lat_ms:
                 row["median_sync_to_estimate_ms"] = round(float(sorted(lat_ms)[len(lat_ms) // 2]), 2)
                 row["estimates"] = len(lat_ms)
@@ -183,6 +209,22 @@ def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estim
         for t in ts:
             t.close()
     return row
+
+
+def imu_capacity(cfg: dict) -> dict:
+    """What the configuration's IMU records need at 145 Hz, by `capsheet protocol capacity`'s
+    functions (`protocol.capacity.bus_load`): each gateway's load and the fewest 12 Mbaud gateways
+    that carry the sheet (the links split in near-equal blocks)."""
+    from protocol.capacity import bus_load
+    n = Lattice.parse(cfg["lattice"]).n_links
+    fmt = IMU_CONFIG[cfg["sensors"]][0]
+    g = cfg.get("gateways", 1)
+
+    def load(k: int) -> float:
+        return bus_load(-(-n // k), 145.0, kind="serial", bitrate=cfg["baud"], packed=cfg["packed"], fmt=fmt)
+    return {"framing": "SNAPSHOT_IMU" if cfg["packed"] else "IMU_SAMPLE per chip", "format": fmt,
+            "load_pct_per_gateway": round(100 * load(g), 1), "gateways": g,
+            "gateways_needed": next(k for k in range(1, 65) if load(k) <= 1.0)}
 
 
 def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp: str, fixed: bool = False) -> dict:
@@ -204,6 +246,8 @@ def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp:
     proc = ctx.Process(target=_serve, args=(cfg, child), daemon=True)
     proc.start()
     out: dict = {"config": name, **{k: v for k, v in cfg.items() if k != "layout_path"}, "sweep": []}
+    if cfg.get("sensors", "accel") != "accel":
+        out["capacity_at_145"] = imu_capacity(cfg)
     try:
         if not parent.poll(180):
             raise RuntimeError("virtual sheet did not start")

@@ -163,6 +163,7 @@ class AggregatorStats:
     assigned_links: int = 0  #: sum over emitted snapshots of the links with a chip assigned
     valid_links: int = 0  #: sum over emitted snapshots of the assigned links with a valid sample
     imu_links: int = 0  #: sum over emitted snapshots of the links with a valid IMU record (gyroscope, §16)
+    mag_links: int = 0  #: ... of them, with a magnetometer (9-axis records)
     deadline_changes: int = 0  #: times the adaptive deadline moved (late raises included)
     late_raises: int = 0  #: times a late frame raised the adaptive deadline at once
     stray: int = 0  #: frames for a counter nobody sent (drive) or out of the sequence (follow): dropped
@@ -191,7 +192,8 @@ class AggregatorStats:
     def summary(self) -> dict:
         return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
                                               "dropped", "late", "duplicates", "unknown", "out_of_range",
-                                              "assigned_links", "valid_links", "imu_links", "deadline_changes", "late_raises",
+                                              "assigned_links", "valid_links", "imu_links", "mag_links", "deadline_changes",
+                                              "late_raises",
                                               "stray", "resyncs")}
 
 
@@ -807,6 +809,7 @@ class Aggregator:
             st.imu_links += int(np.count_nonzero(np.isfinite(gyro[:, 0])))
             if mag is not None:
                 mag[~valid] = np.nan
+                st.mag_links += int(np.count_nonzero(np.isfinite(mag[:, 0])))
         snap = LatticeSnapshot(c, float(self._slot_t0[s]), float(self._slot_wall[s]), readings, valid, status,
                                complete, float(now - self._slot_t0[s]), float(self._slot_first[s]),
                                float(self._slot_last[s]), counts, gyro, mag, t_s)

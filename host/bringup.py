@@ -26,6 +26,10 @@ __all__ = ["BringUp", "capacity_remedy"]
 
 log = logging.getLogger("capsheet.host")
 
+#: (packed, IMU records) -> the frames a bus's load is counted in (docs/protocol.md §10, §16)
+_FRAMING = {(False, False): "SAMPLE", (True, False): "SNAPSHOT", (False, True): "IMU_SAMPLE",
+            (True, True): "SNAPSHOT_IMU"}
+
 
 def capacity_remedy(kind: str, load: float, rate_hz: float, *, packed: bool, fd: bool = False,
                     bitrate: int | None = None, split: str | None = None, pack: str | None = None,
@@ -337,7 +341,7 @@ class BringUp:
         return len(ok)
 
     def check_capacity(self, action: str = "refuse", packed: bool = False) -> list[dict]:
-        """`Host.check_capacity`."""
+        """`Host.check_capacity` (the message names the frames counted: `_FRAMING`)."""
         if action not in ("refuse", "warn", "off"):
             raise ValueError(f"Invalid capacity action: {action!r} (need 'refuse', 'warn' or 'off')")
         host = self.host
@@ -351,6 +355,7 @@ class BringUp:
             cap = t.capabilities
             n = per_bus.get(bus, 0)
             packed = packed_any or host.gateway_nodes.packing(bus)
+            fmt = imu_fmt or host.gateway_nodes.sample_format(bus)  # a gateway packing IMU records it set itself
             if n == 0:
                 continue
             if cap.kind == "memory" or (cap.kind == "can" and cap.bitrate is None
@@ -358,14 +363,14 @@ class BringUp:
                 continue
             if cap.kind == "serial":
                 load = bus_load(n, host.rate_hz, kind="serial", bitrate=cap.bitrate or 3_000_000, packed=packed,
-                                fmt=imu_fmt)
+                                fmt=fmt)
             else:
                 load = bus_load(n, host.rate_hz, kind="can", bitrate=cap.bitrate or 1_000_000, fd=cap.fd,
-                                data_bitrate=cap.data_bitrate or 8_000_000, packed=packed, fmt=imu_fmt)
+                                data_bitrate=cap.data_bitrate or 8_000_000, packed=packed, fmt=fmt)
             row = {"bus": t.name, "chips": n, "load_pct": round(100 * load, 1)}
             report.append(row)
             what = (f"{t.name}: {n} chips at {host.rate_hz:g} Hz need {100 * load:.0f} % of the bus "
-                    f"({'packed SNAPSHOT' if packed else 'per-chip SAMPLE'} frames)")
+                    f"({'packed ' if packed else 'per-chip '}{_FRAMING[packed, bool(fmt)]} frames)")
             if load > 1.0:
                 remedy = capacity_remedy(cap.kind, load, host.rate_hz, packed=packed, fd=bool(cap.fd),
                                          bitrate=cap.bitrate)

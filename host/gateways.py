@@ -16,7 +16,11 @@ import threading
 from dataclasses import dataclass, field
 
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, GatewayFlag,
-                               GatewayInfo, Info, Message, MsgType, SampleFormat, Snapshot, Status)
+                               GatewayInfo, Info, Message, MsgType, SampleFormat, Snapshot, SnapshotImu, Status)
+
+#: GATEWAY_INFO ``sample_format`` values this host reads: §5.2's words in SNAPSHOT, and the 6/9-axis
+#: IMU records in SNAPSHOT_IMU (§16.5, protocol 1.2)
+KNOWN_SAMPLE_FORMATS = (SampleFormat.ACCEL_12, SampleFormat.IMU6, SampleFormat.IMU9)
 
 __all__ = ["GatewayRecord", "GatewayNodes"]
 
@@ -114,11 +118,11 @@ class GatewayNodes:
             return False
         rec = self.by_uid[uid]
         if isinstance(msg, GatewayInfo):
-            if msg.sample_format != SampleFormat.ACCEL_12:
+            if msg.sample_format not in KNOWN_SAMPLE_FORMATS:
                 if uid not in self.unreadable:
                     self.unreadable.add(uid)
                     self.host.report("not_a_sheet", f"{rec.describe()} packs sample format {msg.sample_format}, "
-                                                     f"which protocol 1.1 does not define: its SNAPSHOTs are not read")
+                                                     f"which protocol 1.2 does not define: its SNAPSHOTs are not read")
             else:
                 self.unreadable.discard(uid)
             rec.runs[msg.first_link] = msg
@@ -132,7 +136,7 @@ class GatewayNodes:
         """``events`` without the SNAPSHOTs of gateways whose sample format is unknown (§4.16: a host
         MUST NOT interpret those words); they are counted in `unreadable_frames`."""
         out = [ev for ev in events
-               if not (isinstance(ev, Snapshot) and self._node.get((bus, ev.node)) in self.unreadable)]
+               if not (isinstance(ev, (Snapshot, SnapshotImu)) and self._node.get((bus, ev.node)) in self.unreadable)]
         self.unreadable_frames += len(events) - len(out)
         return out
 
@@ -145,6 +149,12 @@ class GatewayNodes:
     def packing(self, bus: int) -> bool:
         """A gateway on transport ``bus`` says it packs (GATEWAY_INFO flag PACKING)."""
         return any(r.bus == bus and r.flags & GatewayFlag.PACKING for r in self.by_uid.values())
+
+    def sample_format(self, bus: int) -> int:
+        """What the packing gateways on transport ``bus`` pack (GATEWAY_INFO ``sample_format``: 0
+        words, 1/2 IMU records; the largest if they differ), 0 when none packs."""
+        return max((int(g.sample_format) for r in self.by_uid.values() if r.bus == bus and r.flags & GatewayFlag.PACKING
+                    for g in r.runs.values() if g.sample_format in KNOWN_SAMPLE_FORMATS), default=0)
 
     def sync_sources(self) -> list[GatewayRecord]:
         """The gateways that generate their segment's SYNC (GATEWAY_INFO flag SYNC_SOURCE)."""

@@ -24,6 +24,9 @@ topic                       schema                   content
 ``/capsheet/estimate``      capsheet.v2.Estimate     joints (rows, cols, 3) m; ``yaw_std``,
                                                      ``joint_std`` when computed; error vs truth
 ``/capsheet/contacts``      capsheet.Contacts (JSON) tactile contacts: position, force, radius, id
+``/sheet/imu``              capsheet.Imu (JSON)      live view only, 6/9-axis chips: per link gyro
+                                                     (rad/s), |gyro| (°/s), mag (µT), the fused
+                                                     estimator's magnetometer weights; summaries
 ``/sheet/scene``            foxglove.SceneUpdate     the lattice as a coloured line list, contacts
 ``/sheet/joints``           foxglove.PointCloud      the estimated joints (x, y, z float32, m)
 ``/tf``                     foxglove.FrameTransform  ``world`` -> ``sheet`` (identity)
@@ -64,7 +67,8 @@ log = logging.getLogger("capsheet.host.record")
 
 __all__ = ["Recorder", "Recording", "read", "read_recording", "iter_snapshots", "SnapshotBatch", "snapshot_count",
            "tap_transport", "versions",
-           "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "FORMAT"]
+           "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "TOPIC_IMU",
+           "FORMAT"]
 
 FORMAT = "capsheet-mcap-2"
 #: what older capsheet wrote (JSON channels); `read`, replay and estimate still read it
@@ -77,6 +81,8 @@ TOPIC_SYNC = "/capsheet/sync"
 TOPIC_SNAPSHOT = "/capsheet/snapshot"
 TOPIC_ESTIMATE = "/capsheet/estimate"
 TOPIC_CONTACTS = "/capsheet/contacts"
+#: the live view's IMU channel (6/9-axis chips; not in the file, whose snapshots carry the axes)
+TOPIC_IMU = "/sheet/imu"
 
 
 def versions() -> dict:
@@ -147,6 +153,20 @@ SCHEMAS: dict[str, dict] = {
         "counter": {"type": "integer"}, "timestamp": {"type": "number"},
         "contacts": {"type": "array", "items": {"type": "object"}}},
         "Tactile contacts: id, index (i, j), position (m), force_n (N), radius_m"),
+    "capsheet.Imu": _schema("capsheet.Imu", {
+        "counter": {"type": "integer"}, "timestamp": {"type": "number"}, "n_links": {"type": "integer"},
+        "links_with_imu": {"type": "integer", "description": "links whose IMU record came"},
+        "gyro": {"type": "array", "items": {"type": ["number", "null"]},
+                 "description": "(n_links, 3) rad/s, sensor frame, row-major; null where no record"},
+        "gyro_norm_dps": {"type": "array", "items": {"type": ["number", "null"]}, "description": "|gyro| per link, deg/s"},
+        "gyro_rms_dps": {"type": ["number", "null"]}, "gyro_max_dps": {"type": ["number", "null"]},
+        "mag": {"type": ["array", "null"], "items": {"type": ["number", "null"]},
+                "description": "(n_links, 3) microtesla, sensor frame; null without magnetometers"},
+        "mag_norm_ut": {"type": ["number", "null"], "description": "mean |mag| over the links, microtesla"},
+        "mag_weight": {"type": ["array", "null"], "items": {"type": "number"},
+                       "description": "the fused estimator's weight per magnetometer (0: disturbed)"},
+        "method": {"type": "string", "description": "the estimator of the shape shown with it"}},
+        "6/9-axis chips' axes of one snapshot for the live view (docs/protocol.md section 16)"),
 }
 
 
@@ -337,8 +357,8 @@ class Recorder:
         self._pb = P
         fds = P.file_descriptor_set()
         self._schemas = {name: foxglove.Schema(name=name, encoding="protobuf", data=fds) for name in P.NAMES}
-        self._schemas["capsheet.Contacts"] = foxglove.Schema(name="capsheet.Contacts", encoding="jsonschema",
-                                                             data=json.dumps(SCHEMAS["capsheet.Contacts"]).encode())
+        for name in ("capsheet.Contacts", "capsheet.Imu"):
+            self._schemas[name] = foxglove.Schema(name=name, encoding="jsonschema", data=json.dumps(SCHEMAS[name]).encode())
         self._channels: dict[str, Any] = {}
         # the 3D scene is derived from the estimates: the live view gets one per estimate, the file
         # at most one per SCENE_FILE_PERIOD_S (docs/recording.md, "Size"), on channels of its own
@@ -621,6 +641,37 @@ class Recorder:
                     self.estimates_cut += 1
         with self._io:
             self._log_scene(est, t_ns, error_joint, displacement)
+
+    def imu(self, snap, est=None) -> None:
+        """The live view's IMU channel (`TOPIC_IMU`) for a snapshot of 6/9-axis chips (a
+        `host.aggregator.LatticeSnapshot` with ``gyro``; nothing without): every link's gyroscope
+        and magnetometer, their magnitudes, and with ``est`` (the shape shown with it) its method and,
+        for the fused estimator, the magnetometers' weights. Only the live view gets it (the file's
+        snapshots carry the axes); called per estimate, so at the live view's rate."""
+        gyro = getattr(snap, "gyro", None)
+        if gyro is None or self.live is None or self._closed:
+            return
+        g = np.asarray(gyro, dtype=float)
+        have = np.isfinite(g).all(axis=1) & np.asarray(snap.valid, dtype=bool)
+        norm = np.degrees(np.linalg.norm(g, axis=1))
+        mag = getattr(snap, "mag", None)
+        m = None if mag is None else 1e6 * np.asarray(mag, dtype=float)
+        motion = getattr(est, "motion", None)
+        weight = None if motion is None else getattr(motion, "mag_weight", None)
+
+        def listed(a):  # JSON has no NaN: null where a link had no record
+            return [None if not np.isfinite(v) else round(float(v), 6) for v in np.ravel(a)]
+        msg = {"counter": int(snap.counter), "timestamp": float(snap.timestamp), "n_links": int(g.shape[0]),
+               "links_with_imu": int(have.sum()), "gyro": listed(np.where(have[:, None], g, np.nan)),
+               "gyro_norm_dps": listed(np.where(have, norm, np.nan)),
+               "gyro_rms_dps": float(np.sqrt(np.mean(norm[have] ** 2))) if have.any() else None,
+               "gyro_max_dps": float(norm[have].max()) if have.any() else None,
+               "mag": None if m is None else listed(np.where(have[:, None], m, np.nan)),
+               "mag_norm_ut": (float(np.linalg.norm(m[have], axis=1).mean()) if m is not None and have.any()
+                               else None),
+               "mag_weight": None if weight is None else [round(float(v), 4) for v in np.ravel(weight)],
+               "method": str(getattr(est, "method", ""))}
+        self._log(TOPIC_IMU, "capsheet.Imu", msg, _wall_ns(snap.wall_time), sink="live" if self.path is not None else None)
 
     def _log_scene(self, est, t_ns: int, error_joint, displacement) -> None:
         valid = np.asarray(est.valid, dtype=bool)
@@ -1084,7 +1135,7 @@ def _read_one(path, *, raw: bool = True) -> Recording:
         complete=np.array([s["complete"] for s in snaps], dtype=bool),
         readings=b.readings, valid=b.valid, status=b.status, estimates=est, raw=raws,
         sync=np.array(syncs, dtype=np.float64).reshape(-1, 2), contacts=contacts, message_counts=counts,
-        truncated=truncated, metadata=meta, **_imu_arrays(snaps, int(session["n_links"])))
+        truncated=truncated, metadata=meta, gyro=b.gyro, mag=b.mag, sample_time_s=b.sample_time_s)
 
 
 def _imu_arrays(snaps: list[dict], n_links: int) -> dict:
@@ -1108,6 +1159,11 @@ class SnapshotBatch:
     readings: np.ndarray  #: (b, n_links, 3) float32, m/s^2
     valid: np.ndarray  #: (b, n_links) bool
     status: np.ndarray  #: (b, n_links) uint8
+    #: 6/9-axis chips (docs/protocol.md §16), as `Recording`'s: (b, n_links, 3) rad/s, (b, n_links, 3) T,
+    #: (b, n_links) s after the SYNC, float32, NaN where a snapshot had none; None when none in the batch had them
+    gyro: np.ndarray | None = None
+    mag: np.ndarray | None = None
+    sample_time_s: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.counter.shape[0])
@@ -1209,7 +1265,8 @@ def _snapshot_batch(session: dict, snaps: list[dict], conv: "_Counts") -> Snapsh
         readings[k] = s["readings"] if s["counts"] is None else conv(s["counts"], s["valid"])
     return SnapshotBatch(session, np.array([s["counter"] for s in snaps], dtype=np.uint16),
                          np.array([s["timestamp"] for s in snaps], dtype=np.float64),
-                         np.array([s["wall_time"] for s in snaps], dtype=np.float64), readings, valid, status)
+                         np.array([s["wall_time"] for s in snaps], dtype=np.float64), readings, valid, status,
+                         **_imu_arrays(snaps, n_links))
 
 
 #: the name docs and older code used

@@ -539,20 +539,7 @@ class ChipArray:
             if not sel.size:
                 continue
             idx = ans[sel]
-            c, s_ = counts[sel].astype(np.int64), st[sel].copy()
-            g, m, t = self.imu(now_s, idx, self.gyro_range[idx], self.mag_range[idx])
-            g = np.asarray(g, dtype=np.int64).copy()
-            m = None if f_code == SampleFormat.IMU6 else np.asarray(m, dtype=np.int64).copy()
-            t = np.asarray(t, dtype=np.int64).copy()
-            bad = (s_ & _INVALID) != 0
-            g[bad] = 0
-            t[bad] = TIME_UNKNOWN
-            rails = ((g == 32767) | (g == -32768)).any(axis=1)
-            if m is not None:
-                m[bad] = 0
-                rails |= ((m == 32767) | (m == -32768)).any(axis=1)
-            s_ = np.where(bad, s_, s_ | (rails * _SAT_BIT))
-            recs = np.frombuffer(pack_imu_records(c, s_, t, g, m), dtype=np.uint8).reshape(sel.size, -1)
+            recs = self._imu_records(f_code, idx, now_s, counts[sel], st[sel])
             nodes = self.node[idx]
             ctr = np.array([counter & 0xFF, counter >> 8], dtype=np.uint8)
             if self.can:
@@ -575,6 +562,53 @@ class ChipArray:
             for j, row in zip(sel.tolist(), enc):
                 per[j] = [row.tobytes() + b"\x00"]
         return [f for fs in per for f in fs]
+
+    def _imu_records(self, f_code, idx: np.ndarray, now_s: float, counts: np.ndarray,
+                     status: np.ndarray) -> np.ndarray:
+        """The IMU records (docs §16.1) of chips ``idx`` in format ``f_code`` with their accelerometer
+        ``counts`` and ``status``: rows of 13 or 19 bytes, shape (m, size), uint8. An INVALID sample's
+        gyroscope and magnetometer are 0 and its time unknown; a gyroscope or magnetometer axis at a
+        rail sets SATURATED."""
+        c, s_ = np.asarray(counts, dtype=np.int64), np.asarray(status, dtype=np.int64).copy()
+        g, m, t = self.imu(now_s, idx, self.gyro_range[idx], self.mag_range[idx])
+        g = np.asarray(g, dtype=np.int64).copy()
+        m = None if f_code == SampleFormat.IMU6 else np.asarray(m, dtype=np.int64).copy()
+        t = np.asarray(t, dtype=np.int64).copy()
+        bad = (s_ & _INVALID) != 0
+        g[bad] = 0
+        t[bad] = TIME_UNKNOWN
+        rails = ((g == 32767) | (g == -32768)).any(axis=1)
+        if m is not None:
+            m[bad] = 0
+            rails |= ((m == 32767) | (m == -32768)).any(axis=1)
+        s_ = np.where(bad, s_, s_ | (rails * _SAT_BIT))
+        return np.frombuffer(pack_imu_records(c, s_, t, g, m), dtype=np.uint8).reshape(idx.size, -1)
+
+    def sync_records(self, frame: Out, msg: Sync, now_s: float, f_code, sel: np.ndarray | None = None):
+        """SYNC for a gateway packing IMU records (SNAPSHOT_IMU, docs §16.5): ``(idx, recs, other)`` —
+        the chips in format ``f_code`` that answered and their records (rows of 13 or 19 bytes, as
+        `_imu_records`), and ``other`` ``[(k, frames)]``: what the rest answered as they would send it
+        (a chip in another format, a wrapped chip), in chip order."""
+        extra = [(k, self.chips[k].handle(frame, now_s, msg)) for k in self._wrapped_in(sel)]
+        ans, counts, status = self._answer(msg.counter, now_s, sel)
+        st = np.zeros(ans.size, dtype=np.int64) if status is None else np.asarray(status, dtype=np.int64)
+        mine = self.imu_format[ans] == int(f_code)
+        idx = ans[mine]
+        recs = (self._imu_records(f_code, idx, now_s, counts[mine], st[mine]) if idx.size
+                else np.zeros((0, IMU_RECORD_SIZE[f_code]), dtype=np.uint8))
+        if not mine.all():  # as per-chip mode sends them
+            rest = ans[~mine]
+            frames = self._imu_frames(rest, msg.counter, now_s, counts[~mine], None if status is None else st[~mine])
+            fmt = self.imu_format[rest]
+            if self.can:
+                fd = (self.imu_flags[rest] & int(ConfigImuFlag.FD)) != 0
+                n_per = np.where(fmt == 0, 1, np.where(fd, 1, np.where(fmt == 2, 3, 2)))
+            else:
+                n_per = np.ones(rest.size, dtype=np.int64)
+            ends = np.cumsum(n_per)
+            extra += [(int(k), frames[e - n:e]) for k, n, e in zip(rest.tolist(), n_per.tolist(), ends.tolist())]
+            extra.sort(key=lambda t: t[0])
+        return idx, recs, extra
 
     def _scalar_source(self, k: int):
         idx = np.array([k])

@@ -17,6 +17,10 @@ stream faults (`faults.FrameFaults`). `pop_output(now_s)` returns what is due.
   11 per CAN FD frame; links whose chip did not answer by `SNAPSHOT_DEADLINE_S` — a chip whose
   reply delay is longer — are sent as INVALID with counts 0, and their late SAMPLE is dropped). The
   SNAPSHOT comes from the gateway's node id. Every other chip frame is forwarded unchanged.
+  On a 6/9-axis sheet (``sensors``) it packs the chips' IMU records into SNAPSHOT_IMU instead
+  (docs §16.5: at most 77/53 records per serial frame, 4/3 per CAN FD frame; a link not heard is an
+  INVALID record), says so in GATEWAY_INFO (``sample_format`` 1 or 2), and configures its chips itself:
+  CONFIG_IMU of its format before it passes START on to a chip still in format 0.
 * **SYNC source** (``sync_rate_hz``): the gateway itself broadcasts SYNC at that rate to its
   chips and forwards each SYNC to the host (a host then "follows the gateway's SYNC"). It is its
   segment's only SYNC source (§5.1, §13.3): SYNC frames from the host are not passed to the chips,
@@ -44,7 +48,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from protocol.can import MAX_FD_SNAPSHOT_SAMPLES, CanFrame, decode_can, to_can
+from protocol.can import MAX_FD_IMU_RECORDS, MAX_FD_SNAPSHOT_SAMPLES, CanFrame, decode_can, imu_can_frames, to_can
 from protocol.capacity import MAX_SERIAL_SNAPSHOT_SAMPLES
 from protocol.constants import SampleStatus
 from protocol.framing import (MAX_ENCODED_SIZE, SAMPLE_WIRE_SIZE, DecodeError, StreamDecoder, decode_frame, encode,
@@ -53,7 +57,9 @@ from protocol.framing import ErrorReason
 from protocol.messages import (LINK_NONE, NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, Capability,
                                ChipState, Direction, GatewayFlag, GatewayInfo, Info, Message, MsgType, Nack,
                                NackReason, SampleFormat, Snapshot, Status, Sync, is_node_to_host_type,
-                               pack_sample_words, provisional_node)
+                               pack_sample_words, provisional_node, IMU_RECORD_SIZE, MAX_SERIAL_IMU_RECORDS,
+                               TIME_UNKNOWN, ConfigImu, ImuSample, SnapshotImu, Start, pack_imu_records,
+                               unpack_imu_records)
 from protocol.state import (ANNOUNCE_PERIOD_S, GATEWAY_HEARTBEAT_MS, SNAPSHOT_DEADLINE_S, Reply, gateway_rule_for,
                             next_deadline)
 
@@ -194,6 +200,10 @@ def _header(frame):
 _INVALID_WORD = int(SampleStatus.INVALID) << 36  #: the sample word of a link nobody answered for
 _FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into a sample word
 _SNAP_HDR = struct.Struct("<HHB")  # SNAPSHOT payload header: counter, first_link, count
+_SNAP_IMU_HDR = struct.Struct("<HHBB")  # SNAPSHOT_IMU payload header: counter, first_link, count, format
+assert _SNAP_IMU_HDR.size == SnapshotImu.HEADER_SIZE == 6
+#: the SNAPSHOT_IMU format a packing gateway of a sheet with these sensors packs (docs §16.5)
+PACKED_IMU_FORMAT = {"accel": 0, "accel+gyro": int(SampleFormat.IMU6), "accel+gyro+mag": int(SampleFormat.IMU9)}
 
 
 class _Run:
@@ -214,7 +224,7 @@ class GatewayStats:
     """Counters of one gateway."""
 
     __slots__ = ("host_frames", "host_errors", "host_bytes", "syncs", "syncs_generated", "syncs_refused",
-                 "chip_frames", "snapshots", "frames_to_host", "late_dropped")
+                 "chip_frames", "snapshots", "frames_to_host", "late_dropped", "imu_configured")
 
     def __init__(self) -> None:
         for s in self.__slots__:
@@ -305,6 +315,28 @@ class Gateway:
             sel[self.links] = True
             self._sel = None if sel.all() else sel  # None: every chip of the array (its fast paths)
             self._delay_of = np.asarray(sheet.reply_delay_s, dtype=float)
+        # packed mode on a 6/9-axis sheet: IMU records into SNAPSHOT_IMU (docs §16.5), the chips
+        # configured by the gateway itself (CONFIG_IMU before it passes START on)
+        self.imu_format = PACKED_IMU_FORMAT.get(getattr(sheet, "sensors", "accel"), 0) if packed else 0
+        if self.imu_format:
+            if self.chip_array is None:
+                raise ValueError("A gateway packing IMU records (SNAPSHOT_IMU) takes them from the chip array "
+                                 "(engine='array'): one chip object each is not simulated")
+            fmt = SampleFormat(self.imu_format)
+            cap = MAX_FD_IMU_RECORDS[fmt] if self.can else MAX_SERIAL_IMU_RECORDS[fmt]
+            self._imu_chunks: list[tuple[int, int, int]] = []
+            pos = 0
+            for run in np.split(self._covered, np.flatnonzero(np.diff(self._covered) != 1) + 1):
+                for i in range(0, run.size, cap):
+                    m = min(cap, run.size - i)
+                    self._imu_chunks.append((int(run[i]), pos, m))
+                    pos += m
+            z = np.zeros((1, 3), dtype=np.int64)
+            # the record of a link nobody answered for: INVALID, counts 0, time unknown (§16.1)
+            self._invalid_rec = np.frombuffer(pack_imu_records(
+                z, np.array([int(SampleStatus.INVALID)]), np.array([TIME_UNKNOWN]), z,
+                z if fmt == SampleFormat.IMU9 else None), dtype=np.uint8)
+            self._recs = np.empty((sheet.n_links, IMU_RECORD_SIZE[fmt]), dtype=np.uint8)
 
     # ------------------------------------------------------------------ the gateway as a node
     @property
@@ -341,6 +373,7 @@ class Gateway:
         node = self.node_class(self.uid, can=self.can, fd=self.fd, capabilities=caps)
         node.runs = self._link_runs()
         node.flags = (GatewayFlag.PACKING if self.packed else 0) | (GatewayFlag.SYNC_SOURCE if self.sync_source else 0)
+        node.sample_format = self.imu_format  # what its snapshots pack: 0 words, 1/2 IMU records (§4.16, §16.5)
         rate = self.sync_rate_hz or (self._leader.sync_rate_hz if self._leader is not None else 0)
         node.sync_rate_hz = rate or 0
         return node
@@ -468,7 +501,9 @@ class Gateway:
             self.stats.syncs += 1
             self.sheet.record_sync(decoded.counter, now_s)
             if self.packed:
-                if self.chip_array is not None:
+                if self.imu_format:
+                    self._sync_packed_imu(frame, decoded, now_s)
+                elif self.chip_array is not None:
                     self._sync_packed_array(frame, decoded, now_s)
                 else:
                     self._sync_packed(frame, decoded, now_s)
@@ -514,6 +549,8 @@ class Gateway:
             self._emit(out, now_s)
             return
         out = []
+        if self.imu_format and type(decoded) is Start:
+            self._configure_imu(decoded, now_s)
         if self.chip_array is not None:
             if isinstance(decoded, Message) and decoded.node != NODE_BROADCAST:
                 out = self.chip_array.handle_node(decoded.node, frame, now_s, decoded, self._sel)
@@ -638,6 +675,75 @@ class Gateway:
             else:
                 frames = [encode_frame(MsgType.SNAPSHOT, nid, _SNAP_HDR.pack(c, first, m) + wb[5 * pos:5 * (pos + m)])
                           for first, pos, m in self._chunks]
+            self.stats.snapshots += len(frames)
+            if latest:
+                self._emit(frames, now_s + latest)
+            else:
+                other = frames + other
+        if other:
+            self._emit(other, now_s)
+
+    def _configure_imu(self, start: Start, now_s: float) -> None:
+        """§16.5: a gateway packing IMU records configures its chips itself. Before it passes a START
+        on, every chip it concerns that is still in format 0 takes CONFIG_IMU of the gateway's format at
+        the default ranges (a host's own CONFIG_IMU, which passes through, has set its chips already);
+        the chips' answers are the gateway's, not the host's (the chips that took it are counted in
+        ``stats.imu_configured``)."""
+        eng = self.chip_array
+        sel = np.zeros(eng.n, dtype=bool)
+        sel[self.links] = True
+        if start.node != NODE_BROADCAST:
+            sel &= eng.node == start.node
+        sel &= eng.imu_format == 0
+        for k in np.flatnonzero(sel).tolist():
+            node = int(eng.node[k])
+            msg = ConfigImu(node, self.imu_format)
+            eng.handle_node(node, to_can(msg) if self.can else encode(msg), now_s, msg, self._sel)  # answer: ours
+            self.stats.imu_configured += int(eng.imu_format[k] == self.imu_format)
+
+    def _sync_packed_imu(self, frame, sync: Sync, now_s: float) -> None:
+        """Packed mode of a 6/9-axis sheet (docs §16.5): the covered links' IMU records into
+        SNAPSHOT_IMU frames, as `_sync_packed_array` packs sample words into SNAPSHOT — the same
+        deadline (a later chip's link is an INVALID record), the records straight from the arrays. A
+        chip in another format, a wrapped (faulty) chip, a chip without a covered link: its frames
+        pass on as it sends them."""
+        eng = self.chip_array
+        n_links = self.sheet.n_links
+        fmt = self.imu_format
+        idx, recs, extra = eng.sync_records(frame, sync, now_s, fmt, self._sel)
+        table = self._recs
+        table[:] = self._invalid_rec
+        link = eng.link if idx.size == eng.n else eng.link[idx]
+        latest = 0.0
+        if self._late:
+            d = self._delay_of[idx]
+            keep = d <= SNAPSHOT_DEADLINE_S
+            self.stats.late_dropped += int((~keep).sum())
+            idx, recs, link, d = idx[keep], recs[keep], link[keep], d[keep]
+            latest = float(d.max()) if d.size else 0.0
+        ok = (link >= 0) & (link < n_links)
+        ok[ok] = self._cov_mask[link[ok]]
+        table[link[ok]] = recs[ok]
+        have = bool(ok.any())
+        other = [(k, r) for k, r in extra if r]
+        if not ok.all():  # records of chips without a covered link: as IMU_SAMPLEs of their own
+            c_, s_, t_, g_, m_ = unpack_imu_records(recs[~ok].tobytes(), fmt)
+            for j, k in enumerate(idx[~ok].tolist()):
+                mag = (None,) * 3 if m_ is None else tuple(int(v) for v in m_[j])
+                msg = ImuSample(int(eng.node[k]), sync.counter, *(int(v) for v in c_[j]), int(s_[j]), int(t_[j]),
+                                *(int(v) for v in g_[j]), *mag)
+                other.append((k, imu_can_frames(msg, fd=self.fd) if self.can else [encode(msg)]))
+            other.sort(key=lambda t: t[0])
+        other = [f for _, r in other for f in r]
+        if have:
+            c, nid = sync.counter, self.node_id
+            rows = table if self._cov_all else table[self._covered]
+            if self.can:
+                frames = [to_can(SnapshotImu(nid, c, first, fmt, rows[pos:pos + m].tobytes()), fd=True)
+                          for first, pos, m in self._imu_chunks]
+            else:
+                frames = [encode_frame(MsgType.SNAPSHOT_IMU, nid, _SNAP_IMU_HDR.pack(c, first, m, fmt)
+                                       + rows[pos:pos + m].tobytes()) for first, pos, m in self._imu_chunks]
             self.stats.snapshots += len(frames)
             if latest:
                 self._emit(frames, now_s + latest)

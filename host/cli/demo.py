@@ -87,11 +87,9 @@ def check_capacity(args) -> None:
     from protocol.capacity import bus_load
 
     fmt = {"accel": 0, "accel+gyro": 1, "accel+gyro+mag": 2}[getattr(args, "sensors", "accel")]
-    if fmt and args.packed:
-        raise usage_error("capsheet demo", f"--sensors {args.sensors} with --packed: a gateway packing IMU records "
-                                           "(SNAPSHOT_IMU) is not simulated yet")
-    if args.gateways is None:  # IMU records per chip: as many 12 Mbaud gateways as they need
-        need = split_needed(args.lattice.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, fmt=fmt) if fmt else 1
+    if args.gateways is None:  # IMU records: as many 12 Mbaud gateways as they need
+        need = split_needed(args.lattice.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, fmt=fmt,
+                            packed=args.packed) if fmt else 1
         args.gateways = need or 64
     lat, g = args.lattice, args.gateways
     per = -(-lat.n_links // g)  # the largest block (VirtualSheet.split: contiguous, near equal)
@@ -101,7 +99,7 @@ def check_capacity(args) -> None:
     def fits(packed: bool, start: int):
         return split_needed(lat.n_links, args.rate, kind="serial", bitrate=GATEWAY_BAUD, packed=packed, start=start,
                             fmt=fmt)
-    more, k_packed = fits(args.packed, g + 1), (None if args.packed or fmt else fits(True, g))
+    more, k_packed = fits(args.packed, g + 1), (None if args.packed else fits(True, g))
     pack = None if k_packed is None else "--packed" if k_packed == g else f"--packed --gateways {k_packed}"
     remedy = capacity_remedy("serial", load, args.rate, packed=args.packed or pack is None, pack=pack,
                              split=f"--gateways {more}" if more else "more gateways than 64", faster=False)
@@ -143,37 +141,6 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     conn.send(("stopped",))
 
 
-class FusedShape:
-    """The fused estimator's shape as the recorder and the live view take an estimate: ``joints``,
-    ``valid`` (the links of the snapshot that had an IMU record), ``method``; ``motion`` the
-    `host.analysis.motion.MotionEstimate` itself."""
-
-    method = "fused"
-
-    def __init__(self, motion, valid: np.ndarray) -> None:
-        self.motion, self.joints, self.valid = motion, motion.joints, valid
-
-
-def fused_update(fused, snap):
-    """One snapshot into the fused estimator (issue 30): each link at its own sample time (the SYNC's
-    host time plus the chip's ``time_us``), links without an IMU record masked. None for a snapshot
-    without IMU records (the chips did not take CONFIG_IMU)."""
-    if snap.gyro is None:
-        return None
-    valid = snap.valid & np.isfinite(snap.gyro[:, 0])
-    if not valid.any():
-        return None
-    t = snap.timestamp + np.where(np.isfinite(snap.sample_time_s), snap.sample_time_s, 0.0)
-    gyro = np.where(valid[:, None], snap.gyro, 0.0)
-    accel = np.where(valid[:, None], snap.readings, 0.0)
-    mag = None if snap.mag is None else np.where(valid[:, None], snap.mag, 0.0)
-    try:
-        return FusedShape(fused.update(t, accel, gyro, mag, valid=valid), valid)
-    except ValueError:  # e.g. a sample time that went back (a SYNC counter restarted): start again
-        fused.reset()
-        return None
-
-
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
     return "n/a" if v is None else f"{v:{spec}}{unit}"
 
@@ -181,6 +148,7 @@ def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
 def run(args) -> int:
     import multiprocessing as mp
 
+    from host.analysis.motion.snapshots import fused_update
     from host.estimator import error_percent_of_side, estimate
     from host.cli.progress import LiveLine
     from host.cli.runstats import CompletenessWindow, Samples

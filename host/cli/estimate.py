@@ -13,6 +13,15 @@ and with ``--uncertainty`` ``yaw_std`` (n, n_links) rad and ``joint_std`` (n, ro
 the MCAP's estimates). The uncertainty is sampled (200 solves per snapshot, tens of times the estimate
 itself), so it is off by default: without it a 14x14 recording is estimated many times faster than
 real time, with it slower than real time.
+
+A recording of 6/9-axis chips (``capsheet host --sensors accel+gyro`` or ``accel+gyro+mag``,
+docs/protocol.md §16) carries every link's gyroscope (and magnetometer) and sample time: ``--method
+auto`` (the default) then shapes it with the fused estimator (`host.analysis.motion.MotionEstimator`,
+docs/estimator.md §8) as ``capsheet demo --sensors ...`` does live: every snapshot in order, each
+link at its own sample time, the gyroscopes the process model (the magnetometers, when recorded,
+the heading). It carries its state from snapshot to snapshot, so it runs in one process whatever
+``--jobs`` says; ``residual`` is then eq. (8) of its directions and normals. An accelerometer
+recording is estimated as before (``auto`` is ``global`` there).
 """
 
 from __future__ import annotations
@@ -45,7 +54,13 @@ def register(subparsers) -> None:
     p.add_argument("--link-length", type=T.link_length, default=None,
                    help="L, metres (default: the recording's, or 0.01)")
     p.add_argument("--from-raw", action="store_true", help="replay the raw input instead of the recorded snapshots")
-    p.add_argument("--method", choices=("global", "paper"), default="global", help="estimator (default global)")
+    p.add_argument("--method", choices=METHODS, default="auto",
+                   help="auto (default): fused when the recording carries gyroscopes (6/9-axis chips), else global. "
+                        "fused: the lattice's loops with the gyroscopes (and magnetometers when recorded), every "
+                        "snapshot in order, one process: right while the sheet moves, and it needs the gyroscopes. "
+                        "global / paper: the accelerometers alone, each snapshot on its own, batched over --jobs: "
+                        "they take the readings as gravity (the paper's Assumption 1, a sheet held still), so a "
+                        "moving sheet's own acceleration becomes shape error")
     p.add_argument("--jobs", type=T.int_range(1, 256), default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
@@ -54,6 +69,11 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     p.set_defaults(func=run)
+
+
+#: ``--method`` choices; ``auto`` resolves to `FUSED` or ``global`` by what the recording carries
+METHODS = ("auto", "global", "paper", "fused")
+FUSED = "fused"
 
 
 def batched() -> bool:
@@ -147,6 +167,62 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
     return joints, residual, out_extra
 
 
+#: why `estimate_fused_batch` left a snapshot with valid links unestimated
+NO_GYRO = "no gyroscope record in the snapshot (the fused method needs one per link it shapes)"
+RESTARTED = "its sample time went back (a SYNC counter restarted): the fused estimator started again"
+
+
+def estimate_fused_batch(b, fused, units: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Consecutive snapshots into the fused estimator, in order (`host.cli.demo.fused_update`, as
+    ``capsheet demo`` feeds it live: each link at its own sample time, links without a gyroscope
+    record masked). Returns what `estimate_batch` returns; ``residual`` is eq. (8) of the fused
+    directions and normals over the units whose four links the snapshot had.
+
+    Parameters
+    ----------
+    b : host.record.SnapshotBatch
+        With ``gyro`` (and ``mag``, ``sample_time_s`` when recorded).
+    fused : host.analysis.motion.MotionEstimator
+        Carries its state into the next batch.
+    units : ndarray of int, shape (n_units, 4)
+        The lattice's units (`protocol.lattice.Lattice.units`).
+    """
+    from types import SimpleNamespace
+
+    from host.analysis.estimator.joints import eq8_residual
+    from host.analysis.motion.snapshots import fused_update
+
+    cpu0 = time.process_time()
+    n = len(b)
+    rows, cols = fused.rows, fused.cols
+    joints = np.full((n, rows, cols, 3), np.nan)
+    residual = np.full(n, np.nan)
+    skipped: dict[str, int] = {}
+    for k in range(n):
+        valid = np.asarray(b.valid[k], dtype=bool)
+        if not valid.any():
+            continue  # counted by the caller (no valid link)
+        gyro = None if b.gyro is None else np.asarray(b.gyro[k], dtype=float)
+        if gyro is None or not (valid & np.isfinite(gyro[:, 0])).any():
+            skipped[NO_GYRO] = skipped.get(NO_GYRO, 0) + 1
+            continue
+        n_links = valid.shape[0]
+        snap = SimpleNamespace(
+            timestamp=float(b.timestamp[k]), valid=valid, readings=np.asarray(b.readings[k], dtype=float), gyro=gyro,
+            mag=None if b.mag is None else np.asarray(b.mag[k], dtype=float),
+            sample_time_s=(np.full(n_links, np.nan) if b.sample_time_s is None
+                           else np.asarray(b.sample_time_s[k], dtype=float)))
+        out = fused_update(fused, snap)
+        if out is None:
+            skipped[RESTARTED] = skipped.get(RESTARTED, 0) + 1
+            continue
+        joints[k] = out.joints
+        whole = units[out.valid[units].all(axis=1)]
+        frames = out.motion.frames
+        residual[k] = eq8_residual(whole, frames[:, :, 0], frames[:, :, 2]) if whole.size else 0.0
+    return joints, residual, {"cpu_s": time.process_time() - cpu0, "skipped": skipped}
+
+
 def _import_estimator() -> None:
     import host.analysis.estimator  # noqa: F401 -- imported for the work that follows
 
@@ -176,17 +252,37 @@ def _source(args):
     if not snaps:
         raise ValueError(f"{str(path)!r}: the replay made no snapshot")
     session = rp.recording.session if rp.recording else {}
+    n_links = rp.lattice.n_links
+    imu = {}  # the IMU axes of 6/9-axis chips, NaN where a snapshot had none (as host.record reads them)
+    for name, shape in (("gyro", (n_links, 3)), ("mag", (n_links, 3)), ("sample_time_s", (n_links,))):
+        have = [getattr(s, name, None) for s in snaps]
+        if any(v is not None for v in have):
+            imu[name] = np.stack([np.full(shape, np.nan) if v is None else v for v in have]).astype(np.float32)
     whole = SnapshotBatch(session, np.array([s.counter for s in snaps], dtype=np.uint16),
                           np.array([s.timestamp for s in snaps]), np.array([s.wall_time for s in snaps]),
                           np.stack([s.readings for s in snaps]).astype(np.float32), np.stack([s.valid for s in snaps]),
-                          np.stack([s.status for s in snaps]))
-    parts = (SnapshotBatch(session, *(getattr(whole, f)[k:k + args.batch] for f in _FIELDS))
+                          np.stack([s.status for s in snaps]), **imu)
+    parts = (SnapshotBatch(session, *(getattr(whole, f)[k:k + args.batch] for f in _FIELDS),
+                           **{name: v[k:k + args.batch] for name, v in imu.items()})
              for k in range(0, len(whole), args.batch))
     return rp.lattice, rp.link_length, session, parts, len(whole), bool(rp.recording and rp.recording.truncated)
 
 
 #: `host.record.SnapshotBatch`'s array fields, in order
 _FIELDS = ("counter", "timestamp", "wall_time", "readings", "valid", "status")
+
+
+def resolve_method(method: str, gyro, recording) -> str:
+    """``--method`` for this recording: ``auto`` is `FUSED` when its first snapshots carry
+    gyroscopes (``gyro``: their array, or None), else ``global``. ValueError for `FUSED` on a
+    recording without them (the one line says what to run instead)."""
+    has_gyro = gyro is not None and bool(np.isfinite(gyro).any())
+    if method == "auto":
+        return FUSED if has_gyro else "global"
+    if method == FUSED and not has_gyro:
+        raise ValueError(f"--method fused needs gyroscopes, and {str(recording)!r} carries accelerometers only "
+                         "(record 6/9-axis chips with capsheet host --sensors accel+gyro); use --method global")
+    return method
 
 
 def _chain(first, rest):
@@ -219,6 +315,24 @@ def run(args) -> int:
         if truncated and truncated_note("capsheet estimate", args.recording, args.allow_truncated, "estimates it"):
             return 1
         rows, cols = lat.rows, lat.cols
+        first = next(batches)
+        batches = _chain(first, batches)
+        try:
+            method = resolve_method(args.method, first.gyro, args.recording)
+            if method == FUSED and args.uncertainty:
+                raise ValueError("--uncertainty is for the accelerometer-only methods (global, paper); the fused "
+                                 "method has none")
+        except ValueError as exc:  # a method the recording cannot take: the option is wrong for it
+            print(f"capsheet estimate: {exc}", file=sys.stderr)
+            return 2
+        fused = None
+        if method == FUSED:  # one state from snapshot to snapshot: in this process, in order
+            from host.analysis.motion import MotionEstimator
+            fused = MotionEstimator(rows, cols, L)
+            units = np.asarray(lat.units).reshape(-1, 4)
+            if pool is not None:
+                pool.shutdown(wait=False, cancel_futures=True)
+                pool = None
         t_est = time.monotonic()
         parts: list = []  # [SnapshotBatch, joints, residual, extra] in file order
         cpu_s = 0.0
@@ -241,10 +355,13 @@ def run(args) -> int:
             for b in batches:
                 parts.append([b, None, None, None])
                 k = len(parts) - 1
-                if pool is None:
-                    done(k, estimate_batch(b.readings, b.valid, rows, cols, L, args.method, args.uncertainty))
+                if fused is not None:
+                    done(k, estimate_fused_batch(b, fused, units))
                     continue
-                pending[pool.submit(estimate_batch, b.readings, b.valid, rows, cols, L, args.method,
+                if pool is None:
+                    done(k, estimate_batch(b.readings, b.valid, rows, cols, L, method, args.uncertainty))
+                    continue
+                pending[pool.submit(estimate_batch, b.readings, b.valid, rows, cols, L, method,
                                     args.uncertainty)] = k
                 while len(pending) > 2 * args.jobs:
                     finished, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -281,13 +398,18 @@ def run(args) -> int:
                  link_length_m=L, lattice=np.array([rows, cols]), **extra_arrays)
     else:
         _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status, joints, residual,
-                    extra_arrays, quiet=args.quiet)
-    jobs = min(args.jobs, len(parts))
+                    extra_arrays, quiet=args.quiet, method=method,
+                    imu={name: np.concatenate([getattr(p[0], name) for p in parts])
+                         for name in ("gyro", "mag", "sample_time_s")
+                         if all(getattr(p[0], name) is not None for p in parts)})
+    jobs = 1 if fused is not None else min(args.jobs, len(parts))
     t_written = time.monotonic()
     result = {"recording": str(args.recording), "out": str(out), "lattice": f"{rows}x{cols}", "link_length_m": L,
               "truncated": truncated,
               "snapshots": n, "estimated": int(np.count_nonzero(np.isfinite(residual))), "jobs": jobs,
-              "batch": args.batch, "method": args.method, "uncertainty": bool(args.uncertainty),
+              "batch": args.batch, "method": method, "uncertainty": bool(args.uncertainty),
+              "sensors": ("accel+gyro+mag" if first.mag is not None else "accel+gyro" if first.gyro is not None
+                          else "accel"),
               "recorded_duration_s": round(float(ts[-1] - ts[0]), 3) if n > 1 else 0.0,
               "first_batch_s": round(t_est - t_start, 3), "estimate_s": round(t_done - t_est, 3),
               "write_s": round(t_written - t_done, 3), "total_s": round(time.monotonic() - t_start, 3),
@@ -304,20 +426,21 @@ def run(args) -> int:
         png = Path(args.png) if args.png else out.with_suffix(".png")
         estimate_run_figure(png, ts - ts[0], residual, valid, joints, lat, L,
                             title=f"capsheet estimate: {Path(args.recording).name}, {rows}x{cols}, "
-                                  f"L = {100 * L:g} cm, {n} snapshots")
+                                  f"L = {100 * L:g} cm, {n} snapshots, method {method}")
         result["png"] = str(png)
         print(f"capsheet estimate: wrote {png}", file=sys.stderr)
     for why, count in sorted(skipped.items()):
         print(f"capsheet estimate: {count} snapshot(s) not estimated: {why}", file=sys.stderr)
-    print(f"capsheet estimate: {result['estimated']} of {n} snapshots estimated in {result['estimate_s']} s "
-          f"({result['snapshots_per_s']}/s, {jobs} jobs) -> {out}", file=sys.stderr)
+    print(f"capsheet estimate: {result['estimated']} of {n} snapshots estimated ({method}"
+          f"{', ' + result['sensors'] if method == FUSED else ''}) in {result['estimate_s']} s "
+          f"({result['snapshots_per_s']}/s, {jobs} job{'s' if jobs > 1 else ''}) -> {out}", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=1))
     return 0
 
 
 def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status, joints, residual, extra,
-                quiet: bool) -> None:
+                quiet: bool, method: str = "global", imu: dict | None = None) -> None:
     from types import SimpleNamespace
 
     from host.aggregator import LatticeSnapshot
@@ -331,10 +454,10 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
         for k in range(counter.shape[0]):
             bar.update()
             snap = LatticeSnapshot(int(counter[k]), float(ts[k]), float(wall[k]), readings[k], valid[k], status[k],
-                                   bool(valid[k].all()), 0.0)
+                                   bool(valid[k].all()), 0.0, **{name: v[k] for name, v in (imu or {}).items()})
             rec.snapshot(snap)
             if np.isfinite(residual[k]):
-                est = SimpleNamespace(joints=joints[k], valid=valid[k], residual=float(residual[k]), method="global",
+                est = SimpleNamespace(joints=joints[k], valid=valid[k], residual=float(residual[k]), method=method,
                                       iterations=0, **{name: v[k] for name, v in extra.items()})
                 rec.estimate(est, int(counter[k]), float(ts[k]), float(wall[k]))
         bar.close()

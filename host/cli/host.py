@@ -155,8 +155,10 @@ def _status_text(host: Host, t0: float, n0: int) -> str:
     rate = (st.emitted - n0) / dt
     done, links = completeness_pct(st.emitted, st.complete, st.valid_links, host.lattice.n_links)
     errors = sum(t.stats.error_count for t in host.transports)
-    imu = (f"{100.0 * st.imu_links / max(1, st.emitted * host.lattice.n_links):5.1f}% with gyro  "
-           if host.imu_config is not None else "")
+    per = max(1, st.emitted * host.lattice.n_links)
+    imu = (f"{100.0 * st.imu_links / per:5.1f}% with gyro  " if host.imu_config is not None or st.imu_links else "")
+    if st.mag_links:
+        imu += f"{100.0 * st.mag_links / per:5.1f}% with mag  "
     return (f"{st.emitted:7d} snapshots {rate:7.1f}/s  complete {done:5.1f}% of snapshots, "
             f"{links:5.1f}% of link samples valid  {imu}"
             f"late {st.late}  stray {st.stray}  dup {st.duplicates}  unknown {st.unknown}  "
@@ -169,8 +171,8 @@ def _summary_lines(s: dict, min_pct: float) -> list[str]:
            f"({s['complete_snapshots_pct']:.1f} %); "
            f"{s['valid_links_pct']:.1f} % of the {s['links']} links' samples valid (need {min_pct:g} %)"]
     if "imu_links_pct" in s:
-        out.append(f"  IMU records (gyroscope{', magnetometer' if s['sensors'].endswith('mag') else ''}, sample time): "
-                   f"{s['imu_links_pct']:.1f} % of the link samples")
+        mag = f", magnetometer {s['mag_links_pct']:.1f} %" if "mag_links_pct" in s else ""
+        out.append(f"  IMU records (gyroscope, sample time): {s['imu_links_pct']:.1f} %{mag} of the link samples")
     if s["unassigned_links"]:
         out.append(f"  links without a chip: {len(s['unassigned_links'])} "
                    f"({link_ranges(d['link'] for d in s['unassigned_links'])})")
@@ -211,11 +213,15 @@ def imu_config(args) -> tuple[int, int, int, int] | None:
 
 def imu_summary(host: Host, summary: dict, args) -> None:
     """The summary's IMU part (when the chips were asked for IMU records)."""
-    if host.imu_config is None:
-        return
     st = host.aggregator.stats
-    summary["sensors"] = args.sensors
-    summary["imu_links_pct"] = round(100.0 * st.imu_links / max(1, st.emitted * host.lattice.n_links), 2)
+    if host.imu_config is None and not st.imu_links:  # (a packing gateway may configure its chips itself, §16.5)
+        return
+    per = max(1, st.emitted * host.lattice.n_links)
+    summary["sensors"] = (args.sensors if host.imu_config is not None
+                          else "accel+gyro+mag" if st.mag_links else "accel+gyro")
+    summary["imu_links_pct"] = round(100.0 * st.imu_links / per, 2)
+    if summary["sensors"].endswith("mag") or st.mag_links:
+        summary["mag_links_pct"] = round(100.0 * st.mag_links / per, 2)
 
 
 def calibration_words(host: Host, up: dict) -> str:

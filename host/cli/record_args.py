@@ -156,6 +156,7 @@ class SessionOutputs:
         self._period = 1.0 / float(getattr(args, "live_rate", 20.0) or 20.0)
         self._last_est = self._last_unc = -np.inf
         self._previous = None
+        self._fused = None  # 6/9-axis chips: the fused estimator, fed every snapshot in order
         self.estimates_skipped, self._skip_reason = 0, ""
         self.records_at_emission = False  #: `attach` records every emitted snapshot itself
         record, live = getattr(args, "record", None), getattr(args, "live", None)
@@ -328,12 +329,25 @@ class SessionOutputs:
             return None
         if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
+        fused = None
+        if getattr(snap, "gyro", None) is not None:  # 6/9-axis chips: the gyroscopes drive the shape
+            # (issue 30), so the fused estimator takes every snapshot in order, shown at the live rate
+            from host.analysis.motion.snapshots import fused_update
+            if self._fused is None:
+                from host.analysis.motion import MotionEstimator
+                self._fused = MotionEstimator(self.lattice.rows, self.lattice.cols, self.link_length)
+            fused = fused_update(self._fused, snap)
+            if fused is None:
+                return None
         if not estimate:
             return None
         now = time.monotonic()
         if not (force or now - self._last_est >= self._period) or not snap.valid.any():
             return None
         self._last_est = now
+        if fused is not None:
+            self.publish(fused, snap, truth=truth, displacement=displacement)
+            return fused
         from host.analysis.estimator import estimate as estimate_shape
 
         try:  # a dead or saturated chip is masked out, not fatal to the session
@@ -381,6 +395,7 @@ class SessionOutputs:
             err_mean = float(np.mean(err))
         self.recorder.estimate(est, snap.counter, snap.timestamp, snap.wall_time, error_joint=err,
                                error_pct_side=err_mean, displacement=displacement, uncertainty=uncertainty)
+        self.recorder.imu(snap, est)  # 6/9-axis chips: their axes beside the shape (live view)
 
     def tactile(self, k: int, frame, truth=None) -> None:
         """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by

@@ -8,7 +8,8 @@
 The recorded raw input (not the recorded snapshots) is decoded again; for a capsheet MCAP the
 replayed snapshots are compared with the recorded ones (``snapshots_identical``) and the new
 estimates with the recorded ones (``estimate_change_pct_side``: mean joint distance after the rigid
-overlay, % of side), so a newer estimator can be judged on old data.
+overlay, % of side), so a newer estimator can be judged on old data. A recording of 6/9-axis chips
+is shaped as it was live: by the fused estimator, every snapshot in order.
 """
 
 from __future__ import annotations
@@ -133,6 +134,8 @@ def run(args) -> int:
     n = identical = compared = est_n = 0
     changes: list[float] = []
     previous = None
+    fused = None
+    from host.analysis.motion.snapshots import fused_update
     t0 = time.monotonic()
     bar = Progress(rp.n_chunks, "replay", "chunk", quiet=args.quiet)
     last = [0]
@@ -159,8 +162,16 @@ def run(args) -> int:
             out.emit(snap)  # --publish, --record-ros2: a recording converted
             if args.no_estimate or not snap.valid.any():
                 continue
-            est = estimate(snap.readings, lat.rows, lat.cols, L, valid=snap.valid, previous=previous)
-            previous = est
+            if snap.gyro is not None:  # 6/9-axis chips: the fused estimator, every snapshot in order (as live)
+                if fused is None:
+                    from host.analysis.motion import MotionEstimator
+                    fused = MotionEstimator(lat.rows, lat.cols, L)
+                est = fused_update(fused, snap)
+                if est is None:
+                    continue
+            else:
+                est = estimate(snap.readings, lat.rows, lat.cols, L, valid=snap.valid, previous=previous)
+                previous = est
             est_n += 1
             j = rec_est.get((int(snap.counter), float(snap.timestamp)))
             if j is not None:

@@ -169,7 +169,7 @@ def _capacity(args, sheet, dev) -> tuple[list[str], list[str], float | None]:
 
             def fits(packed: bool, fd: bool, start: int):
                 return split_needed(sheet.n_links, args.rate, kind=kind, bitrate=bitrate, packed=packed, fd=fd,
-                                    start=start) if can_split or start == now else None
+                                    start=start, fmt=fmt) if can_split or start == now else None
             more = fits(args.packed, args.fd, now + 1)
             pack_opts = "--packed" if kind == "serial" else "--fd --packed"
             already = args.packed and (kind == "serial" or args.fd)
@@ -269,9 +269,9 @@ def make_device(args, verbose=None):
     from virtual_sheet.sensor import chip_error_model
     sensor = chip_error_model(getattr(args, "chip_errors", "none"), noise_pct_g=args.noise, chip_seed=args.seed)
     sensors = getattr(args, "sensors", "accel")
-    if sensors != "accel" and args.packed:
-        raise ValueError(f"--sensors {sensors} with --packed: a gateway packing IMU records (SNAPSHOT_IMU, "
-                         "docs/protocol.md §16.5) is not simulated yet; run the chips per chip")
+    if sensors != "accel" and args.packed and args.transport in ("can", "slcan") and not args.fd:
+        raise ValueError(f"--sensors {sensors} with --packed on classic CAN: SNAPSHOT_IMU needs CAN FD "
+                         "(docs/protocol.md §16.5: classic CAN cannot carry it); add --fd, or drop --packed")
     if sensors != "accel" and args.firmware != "python":
         raise ValueError(f"--sensors {sensors} with --firmware {args.firmware}: the C firmware has no "
                          "IMU formats yet (issue 29 point 3)")

@@ -113,8 +113,9 @@ INFORMATIVE: dict[str, str] = {
     "15": "the list of changes from 1.0",
     "16": "overview of the IMU chips; its clauses are held by checks 42-44 on a chip whose INFO has GYRO "
           "(skipped on an accelerometer-only chip, to which §16 does not apply)",
-    "16.5": "packing IMU records (SNAPSHOT_IMU) is a gateway's; no check yet (no reference gateway packs "
-            "them): the golden vectors and the codec tests hold the layout",
+    "16.5": "packing IMU records (SNAPSHOT_IMU) is a gateway's; no check yet: the golden vectors and the codec "
+            "tests hold the layout, tests/virtual_sheet/test_gateway_imu.py the virtual gateway's records to "
+            "its chips' own IMU_SAMPLEs, byte for byte",
     "16.6": "where the new clauses are checked and counted: this suite and `capsheet protocol capacity`",
     "16.7": "the list of changes from 1.1",
 }

@@ -44,3 +44,15 @@ def test_a_rate_is_held_only_if_complete_sent_and_every_chip_started():
     assert not bench_live.held(dict(ok, started=5), 364)
     assert not bench_live.held(dict(ok, complete_pct=98.9), 364)
     assert not bench_live.held({"rate_hz": 145.0, "error": "CapacityError"}, 364)
+
+
+def test_the_6_axis_rows_run_on_the_gateways_their_records_need():
+    """Per chip, 364 6-axis IMU_SAMPLEs (23 B on the wire) at 145 Hz are 101 % of one 12 Mbaud UART:
+    the row runs over two gateways; packed in SNAPSHOT_IMU (13 B a record) they fit one."""
+    per = bench_live.imu_capacity(bench_live.CONFIGS["14x14-6axis-per-chip-2gw"])
+    assert per["gateways"] == per["gateways_needed"] == 2 and per["load_pct_per_gateway"] <= 100
+    # by hand: 182 chips x 23 B x 10 bits x 145 Hz / 12e6
+    assert per["load_pct_per_gateway"] == pytest.approx(100 * 182 * 23 * 10 * 145 / 12e6, abs=0.1)
+    packed = bench_live.imu_capacity(bench_live.CONFIGS["14x14-6axis-packed"])
+    assert packed["gateways"] == packed["gateways_needed"] == 1 and packed["framing"] == "SNAPSHOT_IMU"
+    assert 50 < packed["load_pct_per_gateway"] < 60  # 364 x 13 B + 5 frames' overhead, x 10 bits x 145 Hz

@@ -48,22 +48,24 @@ def build(args):
                                move_s=0.3, seed=2)
     sensor = chip_error_model(args.chip_errors, noise_pct_g=args.noise, chip_seed=args.seed)
     sheet = VirtualSheet(args.shape, f"{args.rows}x{args.cols}", scene=scene, sensor=sensor, seed=args.seed,
-                         transport="can" if can_kind else "serial", chip_factory=chip_factory, sensors=args.sensors)
+                         transport="can" if can_kind else "serial", chip_factory=chip_factory, sensors=args.sensors,
+                         fd=args.fd and can_kind)
+    kw = {"packed": args.packed}
     if args.transport == "memory":
         from virtual_sheet.devices import MemoryDevice
         from virtual_sheet.memport import publish
-        dev = MemoryDevice(sheet)
+        dev = MemoryDevice(sheet, **kw)
         dev.url = publish(f"matrix{os.getpid()}", dev.port)
     elif args.transport == "pty":
         from virtual_sheet.devices import PtyDevice
-        dev = PtyDevice(sheet)
+        dev = PtyDevice(sheet, **kw)
     elif args.transport == "slcan":
         from virtual_sheet.slcan import SlcanDevice
-        dev = SlcanDevice(sheet)
+        dev = SlcanDevice(sheet, **kw)
     else:
         from virtual_sheet.devices import CanDevice
         channel = "239.74.163.2" if args.transport == "udp_multicast" else f"matrix{os.getpid()}"
-        dev = CanDevice(sheet, interface=args.transport, channels=[channel])
+        dev = CanDevice(sheet, interface=args.transport, channels=[channel], **kw)
     return sheet, dev
 
 
@@ -84,7 +86,12 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--mutant", default=None)
     ap.add_argument("--sensors", default="accel", choices=("accel", "accel+gyro", "accel+gyro+mag"))
     ap.add_argument("--board", type=float, default=0.0, help="the calibration board scene, holding each pose this long (s)")
+    ap.add_argument("--packed", action="store_true", help="the gateway packs (SNAPSHOT, or SNAPSHOT_IMU)")
+    ap.add_argument("--fd", action="store_true", help="CAN FD chips and bus (CAN transports)")
     ap.add_argument("--layout-out", required=True)
+    ap.add_argument("--truth-out", default=None,
+                    help="at exit, write the truth of every SYNC counter the sheet answered (npz: counter, "
+                         "scene_time_s, joints (n, rows, cols, 3) m), from the sheet's own scene")
     args = ap.parse_args(argv)
     sheet, dev = build(args)
     sheet.write_layout(args.layout_out)
@@ -106,6 +113,19 @@ def main(argv: list[str]) -> int:
         return 0
     finally:
         dev.stop()
+        if args.truth_out:
+            write_truth(sheet, args.truth_out)
+
+
+def write_truth(sheet, path: str) -> None:
+    """The joints each answered SYNC counter's readings came from (`VirtualSheet.truth`): what a test
+    compares an estimate of the recording with, never computed by the code under test."""
+    import numpy as np
+
+    counters = np.array(sorted(sheet.sync_times), dtype=np.uint16)
+    times = np.array([sheet.truth_time(int(c)) for c in counters])
+    joints = np.stack([sheet.joints_at_scene_time(t) for t in times]) if counters.size else np.zeros((0, 0, 0, 3))
+    np.savez(path, counter=counters, scene_time_s=times, joints=joints)
 
 
 if __name__ == "__main__":

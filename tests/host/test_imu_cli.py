@@ -77,3 +77,144 @@ def test_a_recording_of_a_6_axis_sheet_carries_its_axes_and_replays_identical(tr
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout[out.stdout.index("{"):])
     assert r["snapshots_identical"] == r["snapshots_compared"] == r["recorded_snapshots"] == len(rec), r
+    # the live host shaped every snapshot with the fused estimator (estimates at its --live-rate); the
+    # replay does it again, in order, on the same snapshots: the same shapes (float32 in the file)
+    assert r["estimates_compared"] >= 1 and r["estimate_change_pct_side_max"] < 1e-3, r
+
+
+def _kabsch_error(est: "np.ndarray", truth: "np.ndarray") -> float:
+    """Mean joint distance after the least-squares rigid overlay (written here, apart from
+    host.analysis.metrics), metres."""
+    import numpy as np
+    a, b = est.reshape(-1, 3), truth.reshape(-1, 3)
+    ca, cb = a.mean(axis=0), b.mean(axis=0)
+    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(Vt.T @ U.T))
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return float(np.linalg.norm((a - ca) @ R.T + cb - b, axis=1).mean())
+
+
+def _record(tmp_path, name: str, shape: str, sensors: str, duration: str = "3"):
+    """``capsheet host --record`` of a 3x3 sheet on a pty, and the sheet's own truth per counter."""
+    mcap, truth = tmp_path / f"{name}.mcap", tmp_path / f"{name}-truth.npz"
+    args = ["host", "{port}", "--lattice", "3x3", "--layout", "{layout}", "--sensors", sensors, "--rate", "100",
+            "--duration", duration, "-q", "--record", str(mcap)]
+    job = Job("pty", tmp_path, name, args, ["--shape", shape, "--sensors", sensors, "--noise", "1",
+                                             "--truth-out", str(truth)]).finish()
+    assert job.rc == 0, job.stderr
+    return mcap, truth
+
+
+def _estimate(mcap, out, *extra):
+    import subprocess
+
+    from tests.host.test_matrix import PY, ROOT
+    return subprocess.run([PY, "-m", "host.cli", "estimate", str(mcap), "--out", str(out), "--json", "-q", *extra],
+                          cwd=ROOT, capture_output=True, text=True, timeout=240)
+
+
+def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(tmp_path):
+    """``capsheet estimate`` of a carried-and-turned 6-axis sheet's recording runs the fused estimator
+    (by default: the recording carries gyroscopes), and its shapes are closer to the virtual sheet's
+    own truth than the accelerometer-only estimate of the same recording (which takes the sheet's
+    own acceleration for gravity: measured 0.6 against 1.9 % of side)."""
+    import numpy as np
+
+    from host.record import read
+    mcap, truth_file = _record(tmp_path, "carry6", "carry", "accel+gyro")
+    truth = np.load(truth_file)
+    true_joints = dict(zip(truth["counter"].tolist(), truth["joints"]))
+    errors = {}
+    for method in ("auto", "global"):
+        out = tmp_path / f"{method}.npz"
+        p = _estimate(mcap, out, "--method", method)
+        assert p.returncode == 0, p.stderr
+        summary = json.loads(p.stdout)
+        assert summary["method"] == ("fused" if method == "auto" else "global")
+        assert summary["sensors"] == "accel+gyro"
+        est = np.load(out)
+        assert summary["estimated"] == summary["snapshots"] == est["joints"].shape[0] >= 200
+        side = 2 * 0.01
+        errors[method] = np.array([100 * _kabsch_error(j, true_joints[int(c)]) / side
+                                   for c, j in zip(est["counter"], est["joints"])])
+    assert errors["auto"].mean() < 0.6 * errors["global"].mean(), {m: e.mean() for m, e in errors.items()}
+    assert errors["auto"].mean() < 1.5
+    # an MCAP out keeps the axes and names the method
+    p = _estimate(mcap, tmp_path / "shapes.mcap")
+    assert p.returncode == 0, p.stderr
+    rec = read(tmp_path / "shapes.mcap")
+    assert rec.gyro is not None and np.isfinite(rec.gyro).any() and rec.mag is None
+    assert len(rec.estimates["joints"]) > 0
+
+
+def test_estimate_refuses_a_method_the_recording_cannot_take(tmp_path):
+    """``--method fused`` on an accelerometer recording, ``--uncertainty`` with the fused method, an
+    unknown method: one line each, exit 2, nothing written; ``auto`` on it is the global method."""
+    mcap, _ = _record(tmp_path, "accel", "gaussian", "accel", duration="1")
+    cases = {("--method", "fused"): "--method fused needs gyroscopes",
+             ("--method", "kalman"): "invalid choice: 'kalman'"}
+    for extra, needle in cases.items():
+        out = tmp_path / "x.npz"
+        p = _estimate(mcap, out, *extra)
+        assert p.returncode == 2 and needle in p.stderr, (extra, p.stderr)
+        assert "Traceback" not in p.stderr and not out.exists()
+    p = _estimate(mcap, tmp_path / "auto.npz")
+    assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout)["method"] == "global"
+    six, _ = _record(tmp_path, "wave6", "wave", "accel+gyro", duration="1")
+    p = _estimate(six, tmp_path / "u.npz", "--uncertainty")
+    assert p.returncode == 2 and "--uncertainty is for the accelerometer-only methods" in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1
+
+
+#: transport -> (sensors, host asks with --sensors): packed IMU records on every transport that packs
+#: (serial; CAN FD): the 9-axis ones once without --sensors (the gateway configures its chips itself)
+PACKED = {"memory": ("accel+gyro+mag", True), "pty": ("accel+gyro", True), "slcan": ("accel+gyro+mag", False),
+          "virtual": ("accel+gyro", True), "udp_multicast": ("accel+gyro+mag", True)}
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_a_packing_gateway_carries_imu_records_in_snapshot_imu_on_every_transport(transport, tmp_path):
+    """``capsheet virtual --packed --sensors ...`` (CAN: ``--fd``) then ``capsheet host``: the host learns
+    the packing gateway, every link sample comes with its gyroscope (and magnetometer) from
+    SNAPSHOT_IMU frames, and the recording of the pty run holds SNAPSHOT_IMU and no per-chip record."""
+    import numpy as np
+
+    from host.record import read
+    from protocol.framing import StreamDecoder
+    from protocol.messages import ImuSample, SnapshotImu
+    sensors, ask = PACKED[transport]
+    can = transport in ("slcan", "virtual", "udp_multicast")
+    mcap = tmp_path / "packed.mcap"
+    args = ["host", "{port}", "--lattice", "3x3", "--layout", "{layout}", "--rate", "100", "--duration", "2", "-q",
+            "--json", *(["--sensors", sensors] if ask else []), *(["--fd"] if can else []),
+            *(["--record", str(mcap)] if transport == "pty" else [])]
+    lock = udp_multicast_lock() if transport == "udp_multicast" else contextlib.nullcontext()
+    with lock:
+        job = Job(transport, tmp_path, f"packed-{transport}", args,
+                  ["--shape", "wave", "--sensors", sensors, "--noise", "1", "--packed", *(["--fd"] if can else [])]
+                  ).finish()
+    assert job.rc == 0, job.stderr
+    s = job.json()["summary"]
+    assert [g["packing"] for g in s["gateways"]] == [True]
+    assert s["snapshots"] > 0 and s["valid_links_pct"] >= 95.0 and s["errors"] == {}, s
+    assert s["sensors"] == sensors
+    assert s["imu_links_pct"] == pytest.approx(s["valid_links_pct"], abs=1e-6)
+    if sensors.endswith("mag"):
+        assert s["mag_links_pct"] == pytest.approx(s["valid_links_pct"], abs=1e-6)
+    if transport == "pty":
+        rec = read(mcap)
+        assert rec.gyro is not None and np.nanmax(np.abs(rec.gyro)) > 0.01
+        ev = StreamDecoder().feed(b"".join(p for _t, _k, p in rec.raw[0]))
+        assert any(isinstance(e, SnapshotImu) for e in ev) and not any(isinstance(e, ImuSample) for e in ev)
+
+
+def test_packing_imu_records_on_classic_can_is_one_line_and_exit_2(tmp_path):
+    """SNAPSHOT_IMU needs CAN FD (§16.5: classic CAN cannot carry it)."""
+    import subprocess
+
+    from tests.host.test_matrix import PY, ROOT
+    p = subprocess.run([PY, "-m", "host.cli", "virtual", "--transport", "slcan", "--packed", "--sensors", "accel+gyro",
+                        "--lattice", "3x3", "--duration", "1"], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "SNAPSHOT_IMU needs CAN FD" in p.stderr, p.stderr
+    assert len(p.stderr.strip().splitlines()) == 1 and "Traceback" not in p.stderr

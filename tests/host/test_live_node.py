@@ -91,3 +91,44 @@ def test_the_npm_ws_protocol_client_receives_the_channels_and_the_estimates():
     clouds = [base64.b64decode(m) for m in doc["messages"]["/sheet/joints"]]
     assert all(any(s.astype("<f4").tobytes() in pc for s in sent.values()) for pc in clouds)
     assert all(len(base64.b64decode(m)) > lat.n_links * 2 * 12 for m in doc["messages"]["/sheet/scene"])
+
+
+def test_the_npm_client_sees_a_moving_6_axis_sheet_live_with_its_gyroscopes(tmp_path):
+    """``capsheet host --sensors accel+gyro --live`` on a carried-and-turned sheet: the npm client
+    gets ``/sheet/imu`` (every link's gyroscope, from the chips) beside estimates made by the fused
+    estimator whose shapes change as the sheet moves."""
+    node = _node()
+    from tests.host.test_matrix import Job
+
+    args = ["host", "{port}", "--lattice", "3x3", "--layout", "{layout}", "--sensors", "accel+gyro", "--rate", "100",
+            "--duration", "30", "-q", "--live", "0", "--live-rate", "10"]
+    job = Job("pty", tmp_path, "live-imu", args, ["--shape", "carry", "--sensors", "accel+gyro", "--noise", "1"])
+    try:
+        url = job.proc.wait_line("live 3D view on ", 120, stream="err").split(" on ", 1)[1].split()[0]
+        topics = ["/sheet/imu", "/capsheet/estimate"]
+        p = subprocess.run([node, str(CLIENT_JS), url, json.dumps(topics), "5", "60"], capture_output=True, text=True,
+                           timeout=90, env=dict(os.environ, NODE_PATH=str(NODE_MODULES)))
+    finally:
+        job.proc.p.terminate()  # the host's --duration is a bound; the client has what it needs
+        job.finish()
+    doc = json.loads(p.stdout.strip().splitlines()[-1])
+    assert p.returncode == 0, (doc["errors"], p.stderr)
+    channels = {c["topic"]: c for c in doc["channels"]}
+    assert (channels["/sheet/imu"]["encoding"], channels["/sheet/imu"]["schemaName"]) == ("json", "capsheet.Imu")
+    imu = [json.loads(base64.b64decode(m)) for m in doc["messages"]["/sheet/imu"]]
+    for m in imu:
+        assert m["n_links"] == 12 and m["links_with_imu"] == 12 and len(m["gyro"]) == 36
+        assert m["mag"] is None and m["method"] == "fused"
+    # the sheet is carried and turned: its links rotate (the scene's rates are tens of °/s)
+    assert max(m["gyro_max_dps"] for m in imu) > 1.0
+    from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+    ch = channels["/capsheet/estimate"]
+    pool = descriptor_pool.DescriptorPool()
+    for fd in descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(ch["schema"])).file:
+        pool.Add(fd)
+    Estimate = message_factory.GetMessageClass(pool.FindMessageTypeByName(ch["schemaName"]))
+    ests = [Estimate.FromString(base64.b64decode(m)) for m in doc["messages"]["/capsheet/estimate"]]
+    assert all(e.method == "fused" for e in ests)
+    shapes = [np.array(e.joints).reshape(3, 3, 3) for e in ests]
+    # the moving sheet's shape: successive estimates differ by more than noise would move them
+    assert max(np.abs(s - shapes[0]).max() for s in shapes[1:]) > 1e-4

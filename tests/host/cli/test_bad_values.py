@@ -116,6 +116,7 @@ CASES = [
     (["estimate", "{mcap}", "--out", "j.txt"], "--out"),
     (["estimate", "{mcap}", "--out", "j.npz", "--jobs", "0"], "--jobs"),
     (["estimate", "{mcap}", "--out", "j.npz", "--png", "j.txt"], "--png"),
+    (["estimate", "{mcap}", "--out", "j.npz", "--method", "kalman"], "--method"),
     # -- conformance and protocol --
     (["conformance", "--port", "/dev/null", "--timeout", "0"], "--timeout"),
     (["conformance", "--port", "/dev/null", "--node", "0x8000"], "--node"),

@@ -113,7 +113,12 @@ def test_demo_with_imu_chips_picks_the_gateways_the_records_need():
     ns = argparse.Namespace(lattice=T.lattice("14x14"), rate=145.0, gateways=None, packed=False, sensors="accel")
     check_capacity(ns)
     assert ns.gateways == 1
+    # packed in SNAPSHOT_IMU (§16.5): 364 x 19 B + 7 frame headers, 10 bits, 145 Hz: 85 % of one UART
+    ns = argparse.Namespace(lattice=T.lattice("14x14"), rate=145.0, gateways=None, packed=True,
+                            sensors="accel+gyro+mag")
+    check_capacity(ns)
+    assert ns.gateways == 1
     import pytest
-    with pytest.raises(SystemExit) as exc:  # packing IMU records: not simulated, said so (a usage error)
-        main(["demo", "--sensors", "accel+gyro", "--packed"])
+    with pytest.raises(SystemExit) as exc:  # over capacity on the gateways asked for: a usage error
+        main(["demo", "--sensors", "accel+gyro", "--packed", "--gateways", "1", "--rate", "1000"])
     assert exc.value.code == 2
