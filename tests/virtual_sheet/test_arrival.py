@@ -1,0 +1,71 @@
+"""`arrival.SyncArrival`: when a SYNC reached the chips, from when a virtual sheet read it (exact
+counts on a simulated clock)."""
+
+from __future__ import annotations
+
+import pytest
+
+from virtual_sheet.arrival import SyncArrival
+
+P = 1 / 128  # a SYNC period exact in binary: sums of it are exact
+
+
+def _stream(arr: SyncArrival, reads, first_counter=0):
+    return [arr.arrival((first_counter + i) & 0xFFFF, r) for i, r in enumerate(reads)]
+
+
+def test_reads_on_time_arrive_when_read_and_late_reads_one_period_after_the_previous_arrival():
+    arr = SyncArrival(slack_s=0.0, window=5)
+    reads = [k * P for k in range(6)] + [6 * P + 0.020, 7 * P + 0.0201, 8 * P, 9 * P]
+    got = _stream(arr, reads)
+    assert got[:6] == reads[:6]  # on time: when read (the window filled at the 5th)
+    # 20 ms late twice: one period after the previous arrival; the late reads in the window do
+    # not move the period (the median of the spacings across half the window)
+    assert got[6] == 6 * P and got[7] == 7 * P
+    assert got[8:] == [8 * P, 9 * P]
+    assert arr.pulled == 2 and arr.pulled_s == pytest.approx(0.0401, abs=1e-12)
+
+
+def test_several_syncs_in_one_read_arrive_a_period_apart_and_none_before_the_window_is_full():
+    arr = SyncArrival(slack_s=0.0, window=5)
+    assert _stream(arr, [0.0, 0.0, 0.0]) == [0.0, 0.0, 0.0]  # before the period is known: when read
+    arr = SyncArrival(slack_s=0.0, window=5)
+    reads = [0.0, P, 2 * P, 3 * P, 4 * P, 7 * P, 7 * P, 7 * P]  # the last three read together
+    assert _stream(arr, reads) == [k * P for k in range(8)]
+    assert arr.pulled == 2
+
+
+def test_slack_lets_a_host_that_sent_a_little_late_keep_its_time():
+    arr = SyncArrival(slack_s=0.001, window=5)
+    reads = [k * P for k in range(6)] + [6 * P + 0.0008, 7 * P + 0.0008]
+    assert _stream(arr, reads) == reads  # within the slack of one period after the previous: as read
+    assert arr.pulled == 0
+    arr2 = SyncArrival(slack_s=0.001, window=5)
+    got = _stream(arr2, [k * P for k in range(6)] + [6 * P + 0.003])
+    assert got[-1] == 5 * P + P + 0.001  # 3 ms late: one period and the slack after the previous
+
+
+def test_the_same_counter_on_a_second_port_arrives_as_on_the_first_and_a_gap_starts_afresh():
+    arr = SyncArrival(slack_s=0.0, window=5)
+    got = _stream(arr, [k * P for k in range(5)] + [5 * P + 0.01])
+    assert got[-1] == 5 * P
+    assert arr.arrival(5, 5 * P + 0.012) == 5 * P  # counter 5 again (the second gateway): its arrival
+    assert arr.arrival(11, 5 * P + 0.02) == 5 * P + 0.02  # a gap in the counters: as read
+    assert arr.arrival(12, 5 * P + 0.03) == 5 * P + 0.03  # the window refills: as read
+    assert arr.period_s is None
+    for c in range(13, 16):
+        arr.arrival(c, 5 * P + 0.03 + (c - 12) * P)
+    assert arr.period_s == P
+
+
+def test_counters_wrap_and_a_stream_restarted_after_a_pause_arrives_when_read():
+    arr = SyncArrival(slack_s=0.0, window=5, max_gap_s=0.5)
+    got = _stream(arr, [k * P for k in range(5)] + [5 * P + 0.01], first_counter=0xFFFC)  # ... 0xFFFF, 0, 1
+    assert got[-1] == 5 * P
+    assert arr.arrival(2, 10.0) == 10.0  # 10 s later: a new stream, not a late read
+
+
+def test_invalid_parameters_are_refused():
+    for kw in ({"slack_s": -1e-3}, {"window": 1}, {"max_gap_s": 0.0}):
+        with pytest.raises(ValueError):
+            SyncArrival(**kw)
