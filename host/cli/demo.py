@@ -138,7 +138,7 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
             if req == "stop":
                 break
             # what is new since the last request: a counter not sent, or sent before its wrap; with
-            # when the sheet read its SYNC (monotonic: the host compares it with when it sent it)
+            # when its chips took the SYNC to arrive (monotonic: the host compares it with when it sent it)
             now_kept = dict(sheet.sync_times)
             new = {c: (sheet.truth_time(c), epoch + t) for c, t in now_kept.items() if sent.get(c) != t}
             sent = now_kept  # bounded as the sheet's own (SYNC_TIMES_KEPT)
@@ -213,7 +213,7 @@ def run(args) -> int:
           f"{f', {args.gateways} gateways' if args.gateways > 1 else ''}", file=sys.stderr)
     # bounded however long --duration is (issue 34): exact count, mean, max; medians from a
     # uniform sample of at most 65,536 (host.cli.runstats)
-    errors, times, latencies, read_lags = Samples(), Samples(), Samples(), Samples()
+    errors, times, latencies, sample_lags = Samples(), Samples(), Samples(), Samples()
     last = None
     truth_times: dict[int, float] = {}
     ctx = mp.get_context("spawn")
@@ -248,10 +248,11 @@ def run(args) -> int:
                 while len(truth_times) > 8192:  # counters never asked for (skipped snapshots): oldest out
                     del truth_times[next(iter(truth_times))]
             # used once: after the counter wraps, the same number is a new SYNC, asked for again
-            t_scene, t_read = truth_times.pop(counter)
-            # how long after the host sent (stamped) this SYNC the sheet read it: a pty's delay that
-            # a real bus has not (the chips sample then, docs/motion.md "Time on a pty")
-            read_lags.add(t_read - snap.timestamp)
+            t_scene, t_arrived = truth_times.pop(counter)
+            # how long after the host sent (stamped) this SYNC the sheet's chips took it to arrive
+            # (they sample then): on a wire ~0; on a pty the sheet's late reads less what its arrival
+            # estimate takes back (docs/motion.md, "Time on a pty")
+            sample_lags.add(t_arrived - snap.timestamp)
             return truth_sheet.joints_at_scene_time(t_scene)
 
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
@@ -376,9 +377,9 @@ def run(args) -> int:
         "max_snapshot_error_pct_side": round(errors.max, 3) if errors else None,
         "median_latency_ms": round(1e3 * latencies.median(), 2) if latencies else None,
         "median_estimate_ms": round(1e3 * times.median(), 3) if times else None,
-        # the SYNCs compared with the truth: how late the sheet read each after the host sent it
-        "sync_read_lag_ms": ({"median": round(1e3 * read_lags.median(), 2), "max": round(1e3 * read_lags.max, 2)}
-                             if read_lags else None),
+        # the SYNCs compared with the truth: how long after the host sent each the chips sampled it
+        "sync_sample_lag_ms": ({"median": round(1e3 * sample_lags.median(), 2), "max": round(1e3 * sample_lags.max, 2)}
+                             if sample_lags else None),
         # medians beyond 65,536 values are of a uniform sample of them: how many were left out
         "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,
