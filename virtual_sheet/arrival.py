@@ -15,15 +15,18 @@ have arrived one period (plus ``slack_s``) after it — the rest of the wait was
     arrival(c) = min(read(c), arrival(c − 1) + period + slack)       (c − 1 the SYNC just before)
 
 and never before ``arrival(c − 1)``. ``period`` is measured, not told, from the reads of the
-last ``window`` consecutive SYNCs before it (`period_s`: a median, which late reads leave alone
-while fewer than half the spacings it takes have one). A SYNC after a gap in the counters, the first ones, or one
-read before the window is full arrive when read. The same counter read again (another gateway of
-the sheet: the host writes every port at once) arrives when it did the first time.
+last ``window`` consecutive SYNCs before it (`period_s`: the median spacing, which late reads,
+backlogs and skipped slots leave alone while most spacings are one period). A SYNC after a gap
+in the counters, and the first ones (half a window), arrive when read. The same counter read
+again (another gateway of the sheet: the host writes every port at once) arrives when it did the
+first time.
 
 What it cannot know: a host that really sent a SYNC late (its thread woke late, or it skipped a
 slot) looks the same as a late read; the arrival is then early by the host's delay less ``slack_s``
-(at most one period for a skipped slot), and the following SYNCs close that gap by ``slack_s``
-each. docs/motion.md ("Time on a pty") measures both delays live.
+(at most one period for a skipped slot). The two part after that: a stalled reader reads its
+backlog at once and is on time again, a host that skipped a slot keeps sending one period apart on
+its new phase — so ``steady`` SYNCs in a row read one period apart but still put before their reads
+take the reads again (`rephased`). docs/motion.md ("Time on a pty") measures both delays live.
 
 Sans-I/O: read times are arguments; exact on a simulated clock.
 """
@@ -45,33 +48,40 @@ class SyncArrival:
         How much later than one period after the previous arrival a SYNC may arrive (a host's
         own wake-up jitter) before the rest of its read delay is taken for the reader's.
     window : int
-        Consecutive SYNCs over which the period is measured (at least 2).
+        Spacings of consecutive SYNCs over which the period is measured (at least 2).
     max_gap_s : float
         Reads further apart than this start afresh (a stream stopped and started again).
+    steady : int
+        After this many SYNCs in a row put before their reads although read one period apart (as
+        a host that sent late or skipped a slot, then keeps its grid), the reads are taken again.
     """
 
-    def __init__(self, *, slack_s: float = 0.5e-3, window: int = 64, max_gap_s: float = 0.5) -> None:
-        if not (slack_s >= 0 and window >= 2 and max_gap_s > 0):
+    def __init__(self, *, slack_s: float = 0.5e-3, window: int = 64, max_gap_s: float = 0.5,
+                 steady: int = 3) -> None:
+        if not (slack_s >= 0 and window >= 2 and max_gap_s > 0 and steady >= 1):
             raise ValueError(f"Invalid slack_s={slack_s!r} / window={window!r} / max_gap_s={max_gap_s!r}")
         self.slack_s = float(slack_s)
         self.window = int(window)
         self.max_gap_s = float(max_gap_s)
-        self._reads: deque[float] = deque(maxlen=self.window)  # read times of consecutive counters
+        self._spacings: deque[float] = deque(maxlen=self.window)  # between reads of consecutive counters
         self._last: tuple[int, float, float] | None = None  # (counter, arrival, read) of the newest SYNC
         self.pulled = 0  #: SYNCs whose arrival was put before their read (a late read)
         self.pulled_s = 0.0  #: the total of those corrections, s
+        self.steady = int(steady)
+        self._steady = 0  # SYNCs in a row read one period apart yet put before their reads
+        self.rephased = 0  #: times the reads were taken again after a host's late SYNC or skipped slot
 
     @property
     def period_s(self) -> float | None:
-        """The measured SYNC period: over the last ``window`` reads of consecutive SYNCs, the median
-        of the spacings across half the window, each divided by the SYNCs it spans (a late read
-        stretches the spacings it ends and shortens those it starts: the median keeps the others);
-        None until there are that many."""
-        r = self._reads
-        if len(r) < self.window:
+        """The measured SYNC period: the median of the spacings between the reads of consecutive
+        SYNCs, over the last ``window`` of them, those of SYNCs read together (0) left out. Each
+        late read stretches one spacing and shortens the next, a backlog read at once gives one
+        long spacing, a skipped slot one of two periods: the median keeps the host's period while
+        most spacings are untouched. None until half the window has spacings."""
+        sp = [x for x in self._spacings if x > 0]
+        if len(sp) < max(1, self.window // 2):
             return None
-        h = self.window // 2
-        return median([(r[j + h] - r[j]) / h for j in range(len(r) - h)])
+        return median(sp)
 
     def arrival(self, counter: int, read_s: float) -> float:
         """The instant the chips take SYNC ``counter`` (16 bits), read at ``read_s``, to have arrived."""
@@ -84,10 +94,19 @@ class SyncArrival:
             p = self.period_s  # of the reads before this one
             if p is not None:
                 a = min(read_s, last[1] + p + self.slack_s)  # >= the previous: read_s >= its read
-            self._reads.append(read_s)
+                # still behind its read while the reads come one period apart: not a stalled reader
+                # (it reads a backlog at once, then on time) but a host that sent late or skipped
+                # a slot and keeps its new phase; after `steady` such SYNCs, take the reads again
+                if a < read_s and abs(read_s - last[2] - p) <= self.slack_s:
+                    self._steady += 1
+                    if self._steady >= self.steady:
+                        a, self._steady = read_s, 0
+                        self.rephased += 1
+                else:
+                    self._steady = 0
+            self._spacings.append(read_s - last[2])
         else:
-            self._reads.clear()
-            self._reads.append(read_s)
+            self._spacings.clear()
         if a < read_s:
             self.pulled += 1
             self.pulled_s += read_s - a
