@@ -17,7 +17,7 @@ have arrived one period (plus ``slack_s``) after it — the rest of the wait was
 and never before ``arrival(c − 1)``. ``period`` is measured, not told, from the reads of the
 last ``window`` consecutive SYNCs before it (`period_s`: the median spacing, which late reads,
 backlogs and skipped slots leave alone while most spacings are one period). A SYNC after a gap
-in the counters, and the first ones (half a window), arrive when read. The same counter read
+in the counters, and the first ones (8 spacings), arrive when read. The same counter read
 again (another gateway of the sheet: the host writes every port at once) arrives when it did the
 first time.
 
@@ -77,9 +77,9 @@ class SyncArrival:
         SYNCs, over the last ``window`` of them, those of SYNCs read together (0) left out. Each
         late read stretches one spacing and shortens the next, a backlog read at once gives one
         long spacing, a skipped slot one of two periods: the median keeps the host's period while
-        most spacings are untouched. None until half the window has spacings."""
+        most spacings are untouched. None until there are 8 (or half the window, if smaller)."""
         sp = [x for x in self._spacings if x > 0]
-        if len(sp) < max(1, self.window // 2):
+        if len(sp) < min(8, self.window // 2):
             return None
         return median(sp)
 
