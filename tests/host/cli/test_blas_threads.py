@@ -56,9 +56,9 @@ def test_streaming_commands_shorten_the_interpreters_switch_interval_never_lengt
     try:
         sys.setswitchinterval(0.005)
         assert short_gil_switch() == 0.005
-        assert abs(sys.getswitchinterval() - STREAMING_SWITCH_INTERVAL_S) < 1e-9 and STREAMING_SWITCH_INTERVAL_S == 0.0005
+        assert abs(sys.getswitchinterval() - STREAMING_SWITCH_INTERVAL_S) < 2e-6 and STREAMING_SWITCH_INTERVAL_S == 0.0005
         sys.setswitchinterval(0.0001)
         short_gil_switch()
-        assert abs(sys.getswitchinterval() - 0.0001) < 1e-9
+        assert abs(sys.getswitchinterval() - 0.0001) < 2e-6  # kept (held in whole µs)
     finally:
         sys.setswitchinterval(saved)
