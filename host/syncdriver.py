@@ -148,7 +148,10 @@ class SyncDriver:
                 sched = self.sync_schedule = SyncSchedule(host.rate_hz, now)
             if sched.due(now):
                 c = self.counter
-                host.feed.open_counter(c, now, restart=first)
+                # the counter's time is read under the feed's lock, right before the SYNC is written:
+                # the chips sample when it arrives, and a receive thread holding the lock (ingesting
+                # a read) would otherwise put that wait between the snapshot's time and the SYNC
+                host.feed.open_counter(c, restart=first)
                 host.commands.broadcast(Sync(counter=c))
                 self.syncs_sent += 1
                 self.counter = (c + 1) & 0xFFFF

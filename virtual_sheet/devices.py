@@ -604,9 +604,14 @@ class PtyGroup:
         for p in self.ports:
             p.cleanup()
 
-    def serve(self, timeout_s: float, on_data: Callable[[int, bytes], None]) -> None:
+    def serve(self, timeout_s: float, on_data: Callable[[int, bytes, float], None],
+              clock: Callable[[], float]) -> None:
         """Wait at most ``timeout_s`` for the host: write what waits where a port takes it, and
-        hand what a port received to ``on_data(index, data)``."""
+        hand what a port received to ``on_data(index, data, t)``, ``t`` the ``clock`` when it was read.
+
+        Every ready port is read (and stamped) before any ``on_data``: the host writes a SYNC to
+        every port at once, and a port's bytes arrive when they are read, not after the other
+        ports' answers were made (a chip samples when its SYNC arrives, docs/motion.md)."""
         fds = {p.master: b for b, p in enumerate(self.ports) if p.master >= 0}
         if not fds:
             time.sleep(timeout_s)
@@ -615,6 +620,7 @@ class PtyGroup:
         r, w, _ = select.select(list(fds), wl, [], timeout_s)
         for fd in w:
             self.ports[fds[fd]].write(b"")
+        got = []
         for fd in r:
             try:
                 data = os.read(fd, 65536)
@@ -623,7 +629,9 @@ class PtyGroup:
             except OSError:  # EIO: no slave open right now
                 continue
             if data:
-                on_data(fds[fd], data)
+                got.append((fds[fd], data, clock()))
+        for b, data, t in got:
+            on_data(b, data, t)
 
 
 class PtyDevice(_PtyMixin, _SerialDevice):
@@ -684,9 +692,10 @@ class PtyGroupDevice(Device):
         self.ports.cleanup()
 
     def _serve(self, timeout_s: float) -> None:
-        self.ports.serve(timeout_s, self._received)
+        self.ports.serve(timeout_s, self._received, self.now)
 
-    def _received(self, b: int, data: bytes) -> None:
+    def _received(self, b: int, data: bytes, t: float) -> None:
+        """Port ``b`` received ``data`` at device time ``t``."""
         raise NotImplementedError
 
     def _go_down(self) -> None:
@@ -730,10 +739,10 @@ class MultiPtyDevice(PtyGroupDevice):
         self.paths = self.ports.paths
         self.path = self.paths[0]
 
-    def _received(self, b: int, data: bytes) -> None:
+    def _received(self, b: int, data: bytes, t: float) -> None:
         if self.verbose is not None:
             self.verbose("rx", data)
-        self.gateways[b].feed(data, self.now())
+        self.gateways[b].feed(data, t)  # when it was read: the chips sample at their SYNC's arrival
 
     def _send(self, bus: int, frames: list) -> None:
         self.ports[bus].write(b"".join(frames), len(frames))

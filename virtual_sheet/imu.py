@@ -404,6 +404,8 @@ class ImuArray:
         self._cal = self.accel.stored_calibration(self.n_links)
         self._gyro_errors = gyro.errors(self.n_links) if gyro is not None else None
         self._mag_errors = mag.errors(self.n_links) if mag is not None else None
+        #: ``W M_mᵀ``, computed once (`MagErrors.distortion` computes it at each call)
+        self._mag_distortion = self._mag_errors.distortion if mag is not None else None
         self.reset()
 
     def reset(self) -> None:
@@ -508,7 +510,7 @@ class ImuArray:
         if self.mag is not None:
             m, e = self.mag, self._mag_errors
             B = field_in_sensor_frames(self.field, truth.position, truth.frames)  # (T, n, 3) T
-            val = np.einsum("nij,tnj->tni", e.distortion, B) + e.hard_iron_t
+            val = np.einsum("nij,tnj->tni", self._mag_distortion, B) + e.hard_iron_t
             val += self._rng_mag.standard_normal((T, n, 3)) * np.asarray(m.noise_t)
             counts, sat = _adc(val / TESLA_PER_GAUSS * m.sensitivity)
             out.update(mag_counts=counts, mag_saturated=sat,

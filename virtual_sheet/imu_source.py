@@ -26,7 +26,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from protocol.constants import SampleStatus
-from protocol.imu_units import gyro_nominal_sensitivity, mag_nominal_sensitivity
+from protocol.imu_units import GyroRange, MagRange, gyro_nominal_sensitivity, mag_nominal_sensitivity
 
 __all__ = ["ImuSource", "MOTION_SHAPES"]
 
@@ -61,6 +61,7 @@ class ImuSource:
             self._steps = steps
             self._k0 = math.ceil(t0 * grid_hz - 1e-9)  # the first grid instant of the periodic part
             self._cache: dict[int, SimpleNamespace] = {}
+        self._ramp: dict[int, SimpleNamespace] = {}  # a periodic scene's fade-in, when precomputed
         self.grid_hz = float(grid_hz)
         self.chunk = max(1, int(round(chunk_s * self.grid_hz)))
         self._ahead: tuple[int, object] | None = None  # (first grid index, Truth) of the chunk solved
@@ -75,7 +76,11 @@ class ImuSource:
         return {f: np.asarray(getattr(tr, f)) for f in _FIELDS}
 
     def precompute(self) -> int:
-        """Solve a periodic scene's one period now (before streaming); returns how many instants."""
+        """Solve a periodic scene now (before streaming): its fade-in (the instants before
+        ``periodic_from_s``) and one period; returns how many instants. A live stream then solves
+        nothing: a chunk of a net scene solved between two SYNCs held the sheet ~36 ms (14 × 14),
+        and a stream that starts within the fade-in (a demo's bring-up is shorter than a wave's 1 s
+        fade-in) met one every 0.1 s."""
         if not self.periodic:
             return 0
         for a in range(0, self._steps, 64):
@@ -83,7 +88,12 @@ class ImuSource:
             sol = self._solve(self._k0 + key)
             for j, kk in enumerate(key.tolist()):
                 self._cache[kk] = SimpleNamespace(**{f: sol[f][j] for f in _FIELDS})
-        return self._steps
+        for a in range(0, self._k0, 64):
+            ks = np.arange(a, min(a + 64, self._k0))
+            sol = self._solve(ks)
+            for j, kk in enumerate(ks.tolist()):
+                self._ramp[kk] = SimpleNamespace(**{f: sol[f][j] for f in _FIELDS})
+        return self._steps + self._k0
 
     def _truth(self, k: int) -> SimpleNamespace:
         if self.periodic and k >= self._k0:
@@ -95,6 +105,9 @@ class ImuSource:
                 for j, kk in enumerate(keys.tolist()):
                     self._cache[kk] = SimpleNamespace(**{f: sol[f][j] for f in _FIELDS})
                 e = self._cache[key]
+            return e
+        e = self._ramp.get(k)
+        if e is not None:
             return e
         ah = self._ahead
         if ah is None or not (ah[0] <= k < ah[0] + self.chunk):
@@ -159,9 +172,25 @@ def _rescale(counts, model_sens: float, range_code, nominal) -> np.ndarray:
     if range_code is None:
         return c
     rc = np.asarray(range_code)
-    sens = np.vectorize(nominal, otypes=[float])(rc) if rc.ndim else nominal(int(rc))
+    if rc.ndim:  # per chip: the codes' sensitivities by table (a call per chip cost ~0.5 ms a SYNC)
+        sens = _sensitivity_table(nominal)[rc]
+    else:
+        sens = nominal(int(rc))
     scale = np.asarray(sens, dtype=float) / model_sens
     if np.all(scale == 1.0):
         return c
     out = np.rint(c * (scale[:, None] if np.ndim(scale) else scale))
     return np.clip(out, -32768, 32767).astype(np.int64)
+
+
+_TABLES: dict = {}
+
+
+def _sensitivity_table(nominal) -> np.ndarray:
+    """``nominal(code)`` for every range code of its sensor (the codes CONFIG_IMU takes)."""
+    t = _TABLES.get(nominal)
+    if t is None:
+        codes = GyroRange if nominal is gyro_nominal_sensitivity else MagRange
+        t = _TABLES[nominal] = np.array([nominal(int(c)) for c in sorted(codes)], dtype=float)
+        assert [int(c) for c in sorted(codes)] == list(range(t.size))
+    return t

@@ -51,6 +51,7 @@ from .chip import ChipModel
 #: SYNC times kept for the truth (`VirtualSheet.truth_time`): 28 s at 145 Hz, far more than any
 #: snapshot stays in flight
 SYNC_TIMES_KEPT = 4096
+from .arrival import SyncArrival
 from .chiparray import ChipArray
 from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from .geometry import ideal_readings
@@ -120,6 +121,10 @@ class VirtualSheet:
         (carry, wave, elbow, tap, flat_turn, tumble) or a static shape can carry any; the chips then read
         the phase-1 models (`imu.ImuArray`: ICM-42688-P gyroscope, LIS3MDL magnetometer in Earth's
         field, the accelerometer of ``sensor``/``noise``) through an `imu_source.ImuSource`.
+    sync_arrival : bool
+        The chips sample a SYNC at its estimated arrival (`arrival.SyncArrival`: a read that came
+        late is put one SYNC period after the previous SYNC's arrival) instead of when the gateway
+        read it: a pty read late on a loaded machine is a delay no wire adds (docs/motion.md).
     """
 
     def __init__(self, shape: str = "gaussian", lattice: Any = "14x14", *, link_length: float = 0.01,
@@ -127,7 +132,7 @@ class VirtualSheet:
                  sensor: SensorModel | None = None, seed: int = 0, transport: str = "serial",
                  fd: bool = False, chip_factory: Callable[..., Any] | None = None,
                  faults: FaultSpec | str | None = None, scene_rate_hz: float = 50.0,
-                 engine: str | None = None, sensors: str = "accel") -> None:
+                 engine: str | None = None, sensors: str = "accel", sync_arrival: bool = True) -> None:
         if isinstance(lattice, Lattice):
             self.lattice = lattice
         elif isinstance(lattice, str):
@@ -184,6 +189,9 @@ class VirtualSheet:
         #: would otherwise hold every counter: 65536 floats and ints, ~6 MB); older ones cut, counted
         self.sync_times: OrderedDict[int, float] = OrderedDict()
         self.sync_times_cut = 0
+        #: when each SYNC reached the chips, from when it was read (None: when it was read)
+        self.sync_arrival: SyncArrival | None = SyncArrival() if sync_arrival else None
+        self._read_at: tuple[float, float] | None = None  # (read time, arrival) of the newest SYNC
         offset, sens = self.sensor_model.stored_calibration(n)  # what the chips hold before CAL_WRITE
         q4 = np.clip(np.rint(offset * 16), -32768, 32767).astype(int).tolist()
         cal = [tuple(zip(q4[k], sens[k].tolist())) for k in range(n)]
@@ -222,8 +230,14 @@ class VirtualSheet:
     def _batch_imu(self, now_s: float, idx: np.ndarray, gyro_range, mag_range):
         """The chip array's IMU source: gyroscope and magnetometer counts at the chips' ranges and
         ``time_us``, at the instant the accelerometer of the same SYNC was read."""
-        _a, _s, g, m, t = self.imu_source.read(now_s, idx, gyro_range, mag_range)
+        _a, _s, g, m, t = self.imu_source.read(self._sample_time(now_s), idx, gyro_range, mag_range)
         return g, m, t
+
+    def _sample_time(self, now_s: float) -> float:
+        """When the chips sample for a call at ``now_s``: the arrival of the SYNC read at ``now_s``
+        (`record_sync`), else ``now_s``."""
+        r = self._read_at
+        return r[1] if r is not None and r[0] == now_s else now_s
 
     def _imu_scalar(self, k: int):
         idx = np.array([k])
@@ -235,9 +249,10 @@ class VirtualSheet:
 
     def _source(self, k: int) -> Callable[[float], tuple]:
         def source(now_s: float, _k=k):
+            t = self._sample_time(now_s)
             c = self._cache
-            if c[0] != now_s:
-                c = self._refresh(now_s)
+            if c[0] != t:
+                c = self._refresh(t)
             if c[3] is None:
                 c = self._lists()
             return c[3][_k], c[4][_k]
@@ -246,9 +261,10 @@ class VirtualSheet:
     def _batch_source(self, now_s: float, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The `chiparray.BatchSensor`: counts and status of chips ``idx`` (distinct, ascending, as
         the chip array passes them) at ``now_s``; every chip: the cached arrays themselves (read-only)."""
+        t = self._sample_time(now_s)
         c = self._cache
-        if c[0] != now_s:
-            c = self._refresh(now_s)
+        if c[0] != t:
+            c = self._refresh(t)
         if idx.size == self.n_links:
             return c[1], c[2]
         return c[1][idx], c[2][idx]
@@ -386,10 +402,13 @@ class VirtualSheet:
 
     # ------------------------------------------------------------------ truth
     def record_sync(self, counter: int, now_s: float) -> None:
-        """Called by the gateways when a SYNC reaches the chips."""
+        """Called by the gateways when they read a SYNC (at ``now_s``), before its chips answer: its
+        arrival (`sync_arrival`) is when they sample, and what `truth` takes."""
         c = counter & 0xFFFF
+        a = now_s if self.sync_arrival is None else self.sync_arrival.arrival(c, now_s)
+        self._read_at = (now_s, a)
         st = self.sync_times
-        st[c] = now_s
+        st[c] = a
         st.move_to_end(c)  # a counter seen again after a wrap is the newest
         if len(st) > SYNC_TIMES_KEPT:
             st.popitem(last=False)

@@ -257,8 +257,8 @@ class SlcanDevice(PtyGroupDevice):
             self.gateways[b].receive(frame, self.now())
         return send
 
-    def _received(self, b: int, data: bytes) -> None:
-        reply = self.adapters[b].feed(data, self.now())
+    def _received(self, b: int, data: bytes, t: float) -> None:
+        reply = self.adapters[b].feed(data, t)
         if reply:
             self.ports[b].write(reply)
 

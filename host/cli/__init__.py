@@ -80,6 +80,27 @@ def one_blas_thread() -> bool:
     return True
 
 
+#: the interpreter's switch interval while a command streams (`short_gil_switch`), seconds
+STREAMING_SWITCH_INTERVAL_S = 0.0005
+
+
+def short_gil_switch() -> float:
+    """While this process streams, a thread waiting for the interpreter lock gets it within
+    `STREAMING_SWITCH_INTERVAL_S` instead of Python's 5 ms; returns the interval it replaced.
+
+    The host's SYNC thread wakes at each slot (6.9 ms at 145 Hz) and needs the lock to stamp and
+    write the SYNC, while the receive threads decode and the main thread shapes snapshots (the fused
+    estimator ~1.2 ms of mostly small numpy calls). With 5 ms it missed a slot whenever it waited
+    too long: `capsheet demo --sensors accel+gyro+mag` beside two busy cores sent 121–139 SYNCs/s
+    (38–146 slots missed in 6 s) and failed 3 of 9 runs; with 0.5 ms, 138–140/s and 6 of 6 passed
+    (docs/motion.md). Real chips are owed the same punctual SYNC: the streaming commands set it
+    (`capsheet host`, `capsheet demo`), not the library, whose users own their interpreter."""
+    import sys
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(min(old, STREAMING_SWITCH_INTERVAL_S))
+    return old
+
+
 def main(argv: list[str] | None = None) -> int:
     from host.memory import fix_mmap_threshold
     fix_mmap_threshold()  # a host that runs for days: large buffers go back to the system at free

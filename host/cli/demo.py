@@ -129,13 +129,16 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     sent: dict[int, float] = {}
     with device as dev:
         conn.send(("ready", list(getattr(dev, "paths", [str(dev.path)])), dev.describe()))
+        # the device's clock on the machine's monotonic clock, which the host's is too (same machine)
+        epoch = time.monotonic() - dev.now()
         while True:
             req = conn.recv()
             if req == "stop":
                 break
-            # what is new since the last request: a counter not sent, or sent before its wrap
+            # what is new since the last request: a counter not sent, or sent before its wrap; with
+            # when its chips took the SYNC to arrive (monotonic: the host compares it with when it sent it)
             now_kept = dict(sheet.sync_times)
-            new = {c: sheet.truth_time(c) for c, t in now_kept.items() if sent.get(c) != t}
+            new = {c: (sheet.truth_time(c), epoch + t) for c, t in now_kept.items() if sent.get(c) != t}
             sent = now_kept  # bounded as the sheet's own (SYNC_TIMES_KEPT)
             conn.send(new)
     conn.send(("stopped",))
@@ -147,6 +150,8 @@ def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
 
 def run(args) -> int:
     import multiprocessing as mp
+    from host.cli import short_gil_switch
+    short_gil_switch()  # the SYNC thread gets the interpreter lock within 0.5 ms, not 5 ms
 
     from host.analysis.motion.snapshots import fused_update
     from host.estimator import error_percent_of_side, estimate
@@ -178,7 +183,7 @@ def run(args) -> int:
           f"{f', {args.gateways} gateways' if args.gateways > 1 else ''}", file=sys.stderr)
     # bounded however long --duration is (issue 34): exact count, mean, max; medians from a
     # uniform sample of at most 65,536 (host.cli.runstats)
-    errors, times, latencies = Samples(), Samples(), Samples()
+    errors, times, latencies, sample_lags = Samples(), Samples(), Samples(), Samples()
     last = None
     truth_times: dict[int, float] = {}
     ctx = mp.get_context("spawn")
@@ -205,14 +210,20 @@ def run(args) -> int:
         print(f"capsheet demo: virtual sheet (own process) on {described}; host opens it with pyserial",
               file=sys.stderr)
 
-        def truth_of(counter: int) -> np.ndarray:
+        def truth_of(snap) -> np.ndarray:
+            counter = snap.counter
             if counter not in truth_times:
                 parent.send("truth")
                 truth_times.update(parent.recv())
                 while len(truth_times) > 8192:  # counters never asked for (skipped snapshots): oldest out
                     del truth_times[next(iter(truth_times))]
             # used once: after the counter wraps, the same number is a new SYNC, asked for again
-            return truth_sheet.joints_at_scene_time(truth_times.pop(counter))
+            t_scene, t_arrived = truth_times.pop(counter)
+            # how long after the host sent (stamped) this SYNC the sheet's chips took it to arrive
+            # (they sample then): on a wire ~0; on a pty the sheet's late reads less what its arrival
+            # estimate takes back (docs/motion.md, "Time on a pty")
+            sample_lags.add(t_arrived - snap.timestamp)
+            return truth_sheet.joints_at_scene_time(t_scene)
 
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
         transports = [open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths]
@@ -283,7 +294,7 @@ def run(args) -> int:
                 # complete sheet; an incomplete one is estimated and shown, not scored)
                 if snap.complete and time.monotonic() - last_eval >= 0.1:
                     last_eval = time.monotonic()
-                    truth = truth_of(snap.counter)
+                    truth = truth_of(snap)
                     err = error_percent_of_side(est.joints, truth, L)
                     errors.add(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
@@ -336,6 +347,9 @@ def run(args) -> int:
         "max_snapshot_error_pct_side": round(errors.max, 3) if errors else None,
         "median_latency_ms": round(1e3 * latencies.median(), 2) if latencies else None,
         "median_estimate_ms": round(1e3 * times.median(), 3) if times else None,
+        # the SYNCs compared with the truth: how long after the host sent each the chips sampled it
+        "sync_sample_lag_ms": ({"median": round(1e3 * sample_lags.median(), 2), "max": round(1e3 * sample_lags.max, 2)}
+                             if sample_lags else None),
         # medians beyond 65,536 values are of a uniform sample of them: how many were left out
         "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,

@@ -149,3 +149,57 @@ def test_every_consumer_of_a_host_gets_the_calibrated_snapshot():
     for s in got:
         if s.complete:
             np.testing.assert_allclose(s.readings, cal.apply(flat), atol=0.02)  # once, not twice, not zero
+
+
+def test_a_sync_is_stamped_when_the_host_has_the_feeds_lock_not_when_its_thread_woke():
+    """A driving host's SYNC thread wakes at ``now``, but a receive thread holding the feed's lock
+    (ingesting a read) makes it wait before the SYNC is written; the chips sample when the SYNC
+    arrives, so the counter's time is the clock read once the lock is had: here 50 ms after the
+    step's ``now`` (simulated clock; the other thread really holds the lock)."""
+    import threading
+
+    from host.session import Host, Layout
+    from host.transport import MemoryTransport
+    from virtual_sheet.devices import MemoryDevice
+    from virtual_sheet.sheet import VirtualSheet
+
+    clock = Clock()
+    sheet = VirtualSheet("flat", "3x3", seed=4)
+    dev = MemoryDevice(sheet, clock=clock)
+    dev.start(power_on=True)
+
+    def driver(dt):
+        clock.t += dt
+        dev.step()
+    host = Host(MemoryTransport(dev.port), "3x3", layout=Layout(dict(sheet.layout)), rate_hz=50, clock=clock,
+                driver=driver, deadline_s=0.02)
+    holding, release = threading.Event(), threading.Event()
+    opened = []
+    try:
+        host.bring_up(0.2)
+        list(host.snapshots(count=3))
+        t_step = clock.t + 0.1  # past the next SYNC slot: the step sends one
+        clock.t = t_step
+
+        def hold(bus, now):
+            holding.set()
+            release.wait(5.0)
+        host.feed.add_open_listener(lambda c, now: opened.append((c, now)))
+        host.feed.add_ingest_listener(hold)
+        receiver = threading.Thread(target=host.feed.ingest, args=([],))
+        receiver.start()
+        assert holding.wait(5.0)
+        sender = threading.Thread(target=lambda: host.sync_driver.step(t_step))
+        sender.start()
+        sender.join(0.2)
+        assert sender.is_alive()  # waiting for the lock
+        clock.t = t_step + 0.05
+        release.set()
+        receiver.join(5.0)
+        sender.join(5.0)
+        assert not sender.is_alive()
+    finally:
+        release.set()
+        host.close()
+        dev.stop()
+    assert len(opened) == 1 and opened[0][1] == t_step + 0.05

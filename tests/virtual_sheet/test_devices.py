@@ -423,3 +423,46 @@ def test_a_device_publishes_replaces_its_stale_symlink_and_removes_only_its_own(
         os.symlink("/dev/null", link)  # replaced under it: at stop the device leaves it alone
         dev.stop()
     assert os.readlink(link) == "/dev/null"
+
+
+def test_a_pty_group_stamps_every_port_when_read_before_any_port_is_handled():
+    """The host writes a SYNC to every gateway's pty at once: port 1's bytes arrived when they were
+    read, not after port 0's answers were made (its chips sample then, docs/motion.md). The clock
+    is simulated: handling port 0 takes it 5 s forward; port 1 keeps the stamp of its read."""
+    from virtual_sheet.devices import PtyGroup
+
+    group = PtyGroup("t", 2)
+    group.open()
+    slaves = []
+    try:
+        for p in group:
+            slaves.append(os.open(p.path, os.O_RDWR | os.O_NOCTTY))
+        for b, fd in enumerate(slaves):
+            os.write(fd, bytes([0x10 + b, 0x00]))
+        clock = {"t": 0.0}
+
+        def tick():
+            clock["t"] += 1.0
+            return clock["t"]
+
+        got = []
+
+        def on_data(b, data, t):
+            got.append((b, bytes(data), t))
+            clock["t"] += 5.0  # the answers of this port take time
+
+        import select
+        masters = [p.master for p in group]
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:  # both ports readable before the one serve
+            if len(select.select(masters, [], [], 0.05)[0]) == 2:
+                break
+        group.serve(0.2, on_data, tick)
+        assert [(b, d) for b, d, _ in got] == [(0, b"\x10\x00"), (1, b"\x11\x00")] or \
+            [(b, d) for b, d, _ in got] == [(1, b"\x11\x00"), (0, b"\x10\x00")]
+        # each stamped at its read (1 s, 2 s), neither after a port's handling (which adds 5 s)
+        assert sorted(t for _, _, t in got) == [1.0, 2.0]
+    finally:
+        for fd in slaves:
+            os.close(fd)
+        group.cleanup()

@@ -44,3 +44,21 @@ def test_capsheet_limits_every_loaded_blas_to_one_thread():
 def test_a_thread_count_the_user_chose_is_kept():
     got = _run({"OPENBLAS_NUM_THREADS": "2"})
     assert {n for _, n in got["blas"]} == {2}, got["blas"]
+
+
+def test_streaming_commands_shorten_the_interpreters_switch_interval_never_lengthen_it():
+    """`short_gil_switch` (capsheet host, capsheet demo): a thread waiting for the interpreter lock
+    gets it within 0.5 ms; an interval already shorter is kept; it returns the one it replaced."""
+    import sys
+
+    from host.cli import STREAMING_SWITCH_INTERVAL_S, short_gil_switch
+    saved = sys.getswitchinterval()
+    try:
+        sys.setswitchinterval(0.005)
+        assert short_gil_switch() == 0.005
+        assert abs(sys.getswitchinterval() - STREAMING_SWITCH_INTERVAL_S) < 2e-6 and STREAMING_SWITCH_INTERVAL_S == 0.0005
+        sys.setswitchinterval(0.0001)
+        short_gil_switch()
+        assert abs(sys.getswitchinterval() - 0.0001) < 2e-6  # kept (held in whole µs)
+    finally:
+        sys.setswitchinterval(saved)

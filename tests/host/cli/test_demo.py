@@ -93,6 +93,9 @@ def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
     assert result["estimates"] >= 1
     if result["compared_with_truth"]:
         assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
+        # when the chips took each compared SYNC to arrive, after the host sent it (a figure, not a rate)
+        lag = result["sync_sample_lag_ms"]
+        assert set(lag) == {"median", "max"} and lag["median"] <= lag["max"]
     assert result["pass"] == (result["error_ok"] and result["complete_ok"])
     assert out.returncode == (0 if result["pass"] else 1)
     from host.record import read  # the recording holds the axes and the fused estimates
