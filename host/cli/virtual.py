@@ -272,9 +272,6 @@ def make_device(args, verbose=None):
     if sensors != "accel" and args.packed and args.transport in ("can", "slcan") and not args.fd:
         raise ValueError(f"--sensors {sensors} with --packed on classic CAN: SNAPSHOT_IMU needs CAN FD "
                          "(docs/protocol.md §16.5: classic CAN cannot carry it); add --fd, or drop --packed")
-    if sensors != "accel" and args.firmware != "python":
-        raise ValueError(f"--sensors {sensors} with --firmware {args.firmware}: the C firmware has no "
-                         "IMU formats yet (issue 29 point 3)")
     sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
                          chip_factory=load_chip_factory(args.firmware), faults=spec, sensors=sensors)
