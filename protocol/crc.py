@@ -76,6 +76,14 @@ _POSITION_MAX = 64
 _POSITION_TABLES: dict[int, tuple[np.ndarray, int, np.ndarray]] = {}
 
 
+def crc_position_tables(m: int) -> tuple[np.ndarray, int]:
+    """The CRC of an ``m``-byte message term by term: ``(t (m, 256) uint16, c0)`` with
+    ``crc(b) = c0 ^ t[0][b[0]] ^ ... ^ t[m-1][b[m-1]]`` (see `_position_tables`; read-only, kept per
+    length). For encoders that fold the CRC into their own tables (the virtual chip array's)."""
+    flat, c0, _ = _position_tables(m)
+    return flat.reshape(m, 256), c0
+
+
 def _position_tables(m: int) -> tuple[np.ndarray, int, np.ndarray]:
     """CRC-16/CCITT-FALSE of an ``m``-byte message as a sum of per-byte terms: the register update
     is linear over GF(2), so ``crc(b) = c0 ^ t[0][b[0]] ^ ... ^ t[m-1][b[m-1]]`` with ``t[j][v]``

@@ -41,7 +41,7 @@ import numpy as np
 from protocol.can import CanFrame, make_id
 from protocol.chip_interface import DEFAULT_CAPABILITIES, Out, check_chip_args
 from protocol.constants import SampleStatus
-from protocol.crc import CRC_TABLE, crc16_ccitt_false, crc16_rows
+from protocol.crc import crc16_rows, crc_position_tables
 from protocol.messages import (IMU_RECORD_SIZE, NODE_BROADCAST, PROTOCOL_VERSION, TIME_UNKNOWN, ChipState,
                                ConfigImuFlag, MsgType, SampleFormat, Status, StatusFlag, Sync, pack_imu_records)
 
@@ -93,23 +93,6 @@ def cobs_encode_batch(rows: np.ndarray) -> np.ndarray:
     return out
 
 
-def _crc_position_tables(length: int) -> tuple[np.ndarray, int]:
-    """CRC-16/CCITT-FALSE of a ``length``-byte message as a sum of per-byte terms.
-
-    The CRC register update is linear over GF(2), so for messages of one length
-    ``crc(m) = c0 ^ t[0][m[0]] ^ t[1][m[1]] ^ ... ^ t[length-1][m[length-1]]``, with ``t[j][b]`` the
-    CRC (init 0) of byte ``b`` at position ``j`` and zeros elsewhere, and ``c0`` the CRC (init
-    0xFFFF) of ``length`` zero bytes. Returns ``(t (length, 256) uint16, c0)``.
-    """
-    t = np.zeros((length, 256), dtype=np.uint16)
-    for j in range(length):
-        c = CRC_TABLE.copy()  # byte b at position j, init 0: the state after it is TABLE[b]
-        for _ in range(length - 1 - j):  # then the zero bytes after it
-            c = (c << np.uint16(8)) ^ CRC_TABLE[c >> np.uint16(8)]
-        t[j] = c
-    return t, crc16_ccitt_false(bytes(length))
-
-
 def _cobs_codes(zero: np.ndarray) -> np.ndarray:
     """COBS of rows whose zero bytes are where ``zero`` (m, k) bool is set: the code bytes at
     their places (and byte 0), 0 at the copied bytes, (m, k + 1) uint8 — so that
@@ -141,7 +124,7 @@ class _SampleCodec:
 
     The word's bytes are x (12 bits), y, z, status (4 bits) back to back. Every table entry is
     such a row, 16 bytes, holding what one input adds to the frame before COBS: its bits at their
-    place, its term of the CRC (linear over GF(2), `_crc_position_tables`) at the CRC's place
+    place, its term of the CRC (linear over GF(2), `protocol.crc.crc_position_tables`) at the CRC's place
     (lane 1 bits 32-47, high byte first), and zero flags at lane 1 bits 48-58 (`_zero_bits`). The
     inputs touch distinct bits except the CRC's, so the frame before COBS is the XOR of one entry
     per input: the 12-bit x, y and z (4096 entries each), the status (16), the node with the fixed
@@ -161,7 +144,7 @@ class _SampleCodec:
     _zero_bits = {2: 0, 3: 1, 4: 2, 5: 3, 6: 4, 7: (5, 6), 8: 7, 9: 8, 10: (9, 10), 11: 11, 12: 12}
 
     def __init__(self) -> None:
-        t, c0 = _crc_position_tables(11)  # body bytes 0-10: version, type, node, counter, word
+        t, c0 = crc_position_tables(11)  # body bytes 0-10: version, type, node, counter, word
         t = self._t = t.astype(np.int64)
 
         def crc_at(crc):
