@@ -206,6 +206,20 @@ assert _SNAP_IMU_HDR.size == SnapshotImu.HEADER_SIZE == 6
 PACKED_IMU_FORMAT = {"accel": 0, "accel+gyro": int(SampleFormat.IMU6), "accel+gyro+mag": int(SampleFormat.IMU9)}
 
 
+def _frame_chunks(covered: np.ndarray, cap: int) -> list[tuple[int, int, int]]:
+    """How a packing gateway splits its covered links (sorted) into frames of at most ``cap``:
+    ``(first link, position in covered, count)`` per frame, a frame never spanning a gap (its links
+    are ``first .. first + count - 1``)."""
+    chunks = []
+    pos = 0
+    for run in np.split(covered, np.flatnonzero(np.diff(covered) != 1) + 1):
+        for i in range(0, run.size, cap):
+            m = min(cap, run.size - i)
+            chunks.append((int(run[i]), pos, m))
+            pos += m
+    return chunks
+
+
 class _Run:
     """A queue entry of ``n`` frames of ``size`` bytes each, back to back in ``data`` (a serial
     SYNC's SAMPLE frames from the chip array: no Python object per frame until one is asked for)."""
@@ -290,13 +304,7 @@ class Gateway:
         self._cov_all = bool(self._covered.size == sheet.n_links and (self._covered == np.arange(sheet.n_links)).all())
         # SNAPSHOT frames of a SYNC: (first_link, position among the covered links, count), per
         # contiguous run of covered links, chunked to what one frame holds
-        self._chunks: list[tuple[int, int, int]] = []
-        pos = 0
-        for run in np.split(self._covered, np.flatnonzero(np.diff(self._covered) != 1) + 1):
-            for i in range(0, run.size, self.max_per_frame):
-                m = min(self.max_per_frame, run.size - i)
-                self._chunks.append((int(run[i]), pos, m))
-                pos += m
+        self._chunks = _frame_chunks(self._covered, self.max_per_frame)
         self._words = np.zeros(sheet.n_links, dtype=np.int64)  # packed mode: each link's sample word
         self._cov_mask = np.zeros(sheet.n_links, dtype=bool)  # the links of this gateway's runs
         self._cov_mask[self._covered] = True
@@ -324,13 +332,7 @@ class Gateway:
                                  "(engine='array'): one chip object each is not simulated")
             fmt = SampleFormat(self.imu_format)
             cap = MAX_FD_IMU_RECORDS[fmt] if self.can else MAX_SERIAL_IMU_RECORDS[fmt]
-            self._imu_chunks: list[tuple[int, int, int]] = []
-            pos = 0
-            for run in np.split(self._covered, np.flatnonzero(np.diff(self._covered) != 1) + 1):
-                for i in range(0, run.size, cap):
-                    m = min(cap, run.size - i)
-                    self._imu_chunks.append((int(run[i]), pos, m))
-                    pos += m
+            self._imu_chunks = _frame_chunks(self._covered, cap)
             z = np.zeros((1, 3), dtype=np.int64)
             # the record of a link nobody answered for: INVALID, counts 0, time unknown (§16.1)
             self._invalid_rec = np.frombuffer(pack_imu_records(
@@ -619,6 +621,28 @@ class Gateway:
         if other:
             self._emit(other, now_s)
 
+    def _in_time(self, idx: np.ndarray, values: np.ndarray, link: np.ndarray):
+        """§13.2: a chip answering later than SNAPSHOT_DEADLINE_S goes into the SNAPSHOT as INVALID
+        (its answer dropped, counted in ``stats.late_dropped``). Returns the chips in time, their
+        values and links, and the latest delay among them (0 when no chip is delayed)."""
+        if not self._late:
+            return idx, values, link, 0.0
+        d = self._delay_of[idx]
+        keep = d <= SNAPSHOT_DEADLINE_S
+        self.stats.late_dropped += int((~keep).sum())
+        d = d[keep]
+        return idx[keep], values[keep], link[keep], (float(d.max()) if d.size else 0.0)
+
+    def _emit_packed(self, frames: list, other: list, latest: float, now_s: float) -> None:
+        """The packed frames when the latest chip in them answered (``latest`` after the SYNC), the
+        other frames now; with no delay the packed frames go first, in one output."""
+        if frames and latest:
+            self._emit(frames, now_s + latest)
+        elif frames:
+            other = frames + other
+        if other:
+            self._emit(other, now_s)
+
     def _sync_packed_array(self, frame, sync: Sync, now_s: float) -> None:
         """Packed mode from the chip array: the same frames as `_sync_packed`, from arrays — the
         chips' 40-bit sample words go into the SNAPSHOT as they are (a word is exactly what a
@@ -629,13 +653,7 @@ class Gateway:
         words = self._words
         words.fill(_INVALID_WORD)  # links whose chip did not answer: INVALID, counts 0
         link = eng.link if idx.size == eng.n else eng.link[idx]
-        latest = 0.0
-        if self._late:  # §13.2: a SAMPLE later than SNAPSHOT_DEADLINE_S goes in as INVALID (dropped)
-            d = self._delay_of[idx]
-            keep = d <= SNAPSHOT_DEADLINE_S
-            self.stats.late_dropped += int((~keep).sum())
-            idx, word, link, d = idx[keep], word[keep], link[keep], d[keep]
-            latest = float(d.max()) if d.size else 0.0
+        idx, word, link, latest = self._in_time(idx, word, link)
         ok = (link >= 0) & (link < n_links)
         ok[ok] = self._cov_mask[link[ok]]  # a link outside the covered runs: passed on as a SAMPLE
         if ok.all():
@@ -663,6 +681,7 @@ class Gateway:
         if other:
             other.sort(key=lambda t: t[0])
             other = [f for _, r in other for f in r]
+        frames: list = []
         if have:
             cov = words if self._cov_all else words[self._covered]
             cov = np.ascontiguousarray(cov, dtype="<i8")
@@ -676,12 +695,7 @@ class Gateway:
                 frames = [encode_frame(MsgType.SNAPSHOT, nid, _SNAP_HDR.pack(c, first, m) + wb[5 * pos:5 * (pos + m)])
                           for first, pos, m in self._chunks]
             self.stats.snapshots += len(frames)
-            if latest:
-                self._emit(frames, now_s + latest)
-            else:
-                other = frames + other
-        if other:
-            self._emit(other, now_s)
+        self._emit_packed(frames, other, latest, now_s)
 
     def _configure_imu(self, start: Start, now_s: float) -> None:
         """§16.5: a gateway packing IMU records configures its chips itself. Before it passes a START
@@ -714,13 +728,7 @@ class Gateway:
         table = self._recs
         table[:] = self._invalid_rec
         link = eng.link if idx.size == eng.n else eng.link[idx]
-        latest = 0.0
-        if self._late:
-            d = self._delay_of[idx]
-            keep = d <= SNAPSHOT_DEADLINE_S
-            self.stats.late_dropped += int((~keep).sum())
-            idx, recs, link, d = idx[keep], recs[keep], link[keep], d[keep]
-            latest = float(d.max()) if d.size else 0.0
+        idx, recs, link, latest = self._in_time(idx, recs, link)
         ok = (link >= 0) & (link < n_links)
         ok[ok] = self._cov_mask[link[ok]]
         table[link[ok]] = recs[ok]
@@ -735,6 +743,7 @@ class Gateway:
                 other.append((k, imu_can_frames(msg, fd=self.fd) if self.can else [encode(msg)]))
             other.sort(key=lambda t: t[0])
         other = [f for _, r in other for f in r]
+        frames: list = []
         if have:
             c, nid = sync.counter, self.node_id
             rows = table if self._cov_all else table[self._covered]
@@ -745,12 +754,7 @@ class Gateway:
                 frames = [encode_frame(MsgType.SNAPSHOT_IMU, nid, _SNAP_IMU_HDR.pack(c, first, m, fmt)
                                        + rows[pos:pos + m].tobytes()) for first, pos, m in self._imu_chunks]
             self.stats.snapshots += len(frames)
-            if latest:
-                self._emit(frames, now_s + latest)
-            else:
-                other = frames + other
-        if other:
-            self._emit(other, now_s)
+        self._emit_packed(frames, other, latest, now_s)
 
     def _decode_samples(self, samples: list, links: list[int], counter: int):
         links_a = np.asarray(links, dtype=np.int64)
