@@ -27,7 +27,7 @@ import time
 import numpy as np
 
 __all__ = ["ZenohPublisher", "parse_publish", "PUBLISH_KINDS", "LOCATOR", "encode_snapshot", "encode_estimate", "decode_snapshot",
-           "decode_estimate", "KINDS", "HEADER", "PAYLOAD_VERSION"]
+           "decode_estimate", "encode_no_estimate", "FLAG_UNCERTAINTY", "FLAG_NOT_ESTIMATED", "KINDS", "HEADER", "PAYLOAD_VERSION"]
 
 #: ``(kind, version, rows, cols, n, flags, counter, timestamp, wall_time)``: see docs/distribution.md
 HEADER = struct.Struct("<4sBBHHIHQdd")
@@ -36,6 +36,9 @@ PAYLOAD_VERSION = 1
 KINDS = {"snapshot": b"CSNP", "estimate": b"CEST"}
 #: estimate flag: a float32 joint_std (metres) per joint follows the joints
 FLAG_UNCERTAINTY = 1
+#: estimate flag: the snapshot could not be estimated (no valid link, every reading refused): joints NaN.
+#: An estimate worker (`host.distribute`) publishes one for every snapshot it takes, this one included.
+FLAG_NOT_ESTIMATED = 2
 #: the sheet name: one Zenoh key chunk (no ``/``, no wildcard or reserved characters)
 SHEET_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 HEALTH_PERIOD_S = 1.0
@@ -87,6 +90,14 @@ def encode_estimate(est, counter: int, timestamp: float, wall_time: float, *, un
     return b"".join(parts)
 
 
+def encode_no_estimate(rows: int, cols: int, counter: int, timestamp: float, wall_time: float) -> bytes:
+    """An estimate payload saying the snapshot ``counter`` could not be estimated: flag
+    `FLAG_NOT_ESTIMATED`, joints NaN."""
+    n = rows * cols
+    return _header("estimate", rows, cols, n, FLAG_NOT_ESTIMATED, counter, timestamp, wall_time) + \
+        np.full(3 * n, np.nan, dtype="<f4").tobytes()
+
+
 def _decode_header(payload: bytes, kind: str) -> dict:
     if len(payload) < HEADER.size:
         raise ValueError(f"payload of {len(payload)} bytes: shorter than the {HEADER.size}-byte header")
@@ -121,6 +132,7 @@ def decode_estimate(payload: bytes) -> dict:
     h["joints"] = np.frombuffer(payload, "<f4", 3 * n, o).reshape(h["rows"], h["cols"], 3)
     h["joint_std"] = (np.frombuffer(payload, "<f4", n, o + 12 * n).reshape(h["rows"], h["cols"])
                       if unc else None)
+    h["estimated"] = not h["flags"] & FLAG_NOT_ESTIMATED
     return h
 
 

@@ -1,0 +1,195 @@
+"""Estimation spread over processes (issue 31, point 3; docs/distribution.md "Estimate workers").
+
+`capsheet estimate --subscribe` runs `SheetWork` per sheet: it takes the sheet's snapshots as a host
+published them (``capsheet/<sheet>/snapshot``, `host.publish.decode_snapshot`), in the order they
+came, and makes one estimate for each (`host.publish.encode_estimate`; a snapshot that cannot be
+estimated gets an estimate flagged `host.publish.FLAG_NOT_ESTIMATED`, joints NaN, so that every
+snapshot has exactly one). What is lost on the way is counted from the SYNC counter in every
+header (`Sequence`). This module is sans I/O: payloads in, payloads out, ``now`` given.
+
+Which worker takes which sheet: ``--sheets NAME,...`` names them, or ``--worker I/N`` takes the
+sheets whose `shard` is I — CRC-32 of the name modulo N, so N workers started with 0/N .. N-1/N
+share every sheet without talking to each other or to a coordinator, each sheet to exactly one.
+"""
+
+from __future__ import annotations
+
+import zlib
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["Sequence", "SheetWork", "shard", "parse_worker", "parse_sheets", "COUNTER_MODULO", "latency_ms"]
+
+#: the SYNC counter is 16-bit on the wire (docs/protocol.md): it wraps here
+COUNTER_MODULO = 1 << 16
+#: a counter more than half the circle ahead of the last one is taken as an old one come late
+_HALF = COUNTER_MODULO // 2
+
+
+def shard(sheet: str, n: int) -> int:
+    """The worker index (0 .. n-1) that takes ``sheet`` under ``--worker I/N``: CRC-32 (zlib's,
+    IEEE 802.3) of its UTF-8 name modulo ``n``.
+
+    >>> shard("left_arm", 2), shard("right_arm", 2)
+    (1, 0)
+    """
+    return zlib.crc32(sheet.encode()) % n
+
+
+def parse_worker(text: str) -> tuple[int, int]:
+    """``"I/N"`` -> ``(I, N)``, 0 <= I < N <= 1024; ValueError otherwise."""
+    i, slash, n = text.partition("/")
+    try:
+        i_, n_ = int(i), int(n)
+    except ValueError:
+        i_ = n_ = -1
+    if not slash or not (0 <= i_ < n_ <= 1024):
+        raise ValueError(f"bad --worker {text!r}: I/N with 0 <= I < N <= 1024 (e.g. 0/2 and 1/2 for two workers)")
+    return i_, n_
+
+
+def parse_sheets(text: str) -> list[str]:
+    """``"a,b"`` -> ``["a", "b"]``: each a sheet name (`host.publish.SHEET_NAME`), none twice."""
+    from host.publish import SHEET_NAME
+    names = [s.strip() for s in text.split(",")]
+    for s in names:
+        if not SHEET_NAME.match(s):
+            raise ValueError(f"bad sheet name {s!r} in --sheets {text!r}: 1-64 of A-Z a-z 0-9 _ . - each, "
+                             f"separated by commas")
+    if len(set(names)) != len(names):
+        raise ValueError(f"--sheets {text!r} names a sheet twice")
+    return names
+
+
+@dataclass
+class Sequence:
+    """The SYNC counters of one sheet's snapshots as they arrive, modulo `COUNTER_MODULO`.
+
+    `see` classifies each: ``first``; ``next`` (the one after the last); ``gap`` (newer, with
+    ``lost`` snapshots between: counted, the snapshot itself is fine); ``duplicate`` (the last one
+    again) or ``old`` (behind the last one): both dropped by the caller, counted, since estimating
+    them would break the order of the sheet's estimates.
+    """
+
+    last: int | None = None
+    first: int | None = None
+    received: int = 0  #: snapshots seen, whatever their kind
+    lost: int = 0  #: counters skipped between snapshots that came
+    gaps: int = 0  #: how many times the sequence skipped (each may lose several)
+    duplicates: int = 0
+    old: int = 0
+
+    def see(self, counter: int) -> str:
+        c = int(counter) % COUNTER_MODULO
+        self.received += 1
+        if self.last is None:
+            self.first = self.last = c
+            return "first"
+        d = (c - self.last) % COUNTER_MODULO
+        if d == 0:
+            self.duplicates += 1
+            return "duplicate"
+        if d >= _HALF:
+            self.old += 1
+            return "old"
+        self.last = c
+        if d == 1:
+            return "next"
+        self.lost += d - 1
+        self.gaps += 1
+        return "gap"
+
+
+def latency_ms(values) -> dict:
+    """``{"n", "p50", "p99", "max"}`` of latencies in seconds, as milliseconds (None when empty)."""
+    v = np.asarray(values, dtype=float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"n": 0, "p50": None, "p99": None, "max": None}
+    return {"n": int(v.size), "p50": round(float(np.percentile(v, 50)) * 1e3, 3),
+            "p99": round(float(np.percentile(v, 99)) * 1e3, 3), "max": round(float(v.max()) * 1e3, 3)}
+
+
+@dataclass
+class SheetWork:
+    """One sheet's estimation in a worker: its facts from ``capsheet/<sheet>/info`` (`set_info`),
+    its sequence, its estimator state (the previous estimate warm-starts the next, as the live host
+    does) and its counts.
+
+    ``uncertainty_period_s``: an estimate carries ``joint_std`` at most this often (None: never).
+    """
+
+    name: str
+    uncertainty_period_s: float | None = None
+    info: dict | None = None
+    seq: Sequence = field(default_factory=Sequence)
+    estimated: int = 0  #: published with joints
+    not_estimated: dict = field(default_factory=dict)  #: reason -> snapshots published flagged, joints NaN
+    bad_payloads: int = 0
+    last_bad: str = ""
+    latencies: list = field(default_factory=list)  #: publish wall time - the snapshot's SYNC wall time, s
+    _previous: object = None
+    _last_unc: float = -np.inf
+
+    @property
+    def ready(self) -> bool:
+        return self.info is not None
+
+    def set_info(self, doc: dict) -> None:
+        """The sheet's ``info`` answer (JSON decoded); ValueError when it lacks the lattice or link length."""
+        try:
+            rows, cols, L = int(doc["rows"]), int(doc["cols"]), float(doc["link_length_m"])
+        except (KeyError, TypeError, ValueError):
+            raise ValueError(f"capsheet/{self.name}/info lacks rows, cols or link_length_m") from None
+        if not (rows >= 2 and cols >= 2 and 0 < L < 10):
+            raise ValueError(f"capsheet/{self.name}/info: {rows}x{cols}, link length {L} m is not a sheet")
+        self.info = doc
+
+    @property
+    def link_length(self) -> float:
+        return float(self.info["link_length_m"])
+
+    def work(self, payload: bytes, now: float) -> bytes | None:
+        """One snapshot payload -> the estimate payload to publish, or None (a bad payload, a
+        duplicate or an old snapshot: counted). Needs `set_info` first. ``now``: monotonic seconds."""
+        from host.publish import decode_snapshot, encode_estimate, encode_no_estimate
+        try:
+            s = decode_snapshot(payload)
+            if (s["rows"], s["cols"]) != (int(self.info["rows"]), int(self.info["cols"])):
+                raise ValueError(f"a {s['rows']}x{s['cols']} snapshot for a {self.info['rows']}x{self.info['cols']} sheet")
+        except ValueError as exc:
+            self.bad_payloads += 1
+            self.last_bad = str(exc)
+            return None
+        kind = self.seq.see(s["counter"])
+        if kind in ("duplicate", "old"):
+            return None
+        rows, cols = s["rows"], s["cols"]
+        why = None
+        if not s["valid"].any():
+            why = "no valid link"
+        else:
+            from host.analysis.estimator import estimate
+            try:
+                est = estimate(s["readings"].astype(float), rows, cols, self.link_length, valid=s["valid"],
+                               previous=self._previous, bad_readings="mask")
+            except ValueError as exc:  # e.g. every valid link's reading implausible
+                why = str(exc)
+        if why is not None:
+            self.not_estimated[why] = self.not_estimated.get(why, 0) + 1
+            return encode_no_estimate(rows, cols, s["counter"], s["timestamp"], s["wall_time"])
+        self._previous = est
+        unc = self.uncertainty_period_s is not None and now - self._last_unc >= self.uncertainty_period_s
+        if unc:
+            self._last_unc = now
+        self.estimated += 1
+        return encode_estimate(est, s["counter"], s["timestamp"], s["wall_time"], uncertainty=unc)
+
+    def summary(self) -> dict:
+        q = self.seq
+        return {"sheet": self.name, "info": self.ready, "received": q.received, "first_counter": q.first,
+                "last_counter": q.last, "estimated": self.estimated,
+                "not_estimated": sum(self.not_estimated.values()), "not_estimated_reasons": dict(self.not_estimated),
+                "lost": q.lost, "gaps": q.gaps, "duplicates": q.duplicates, "old": q.old,
+                "bad_payloads": self.bad_payloads, "latency_ms": latency_ms(self.latencies)}
