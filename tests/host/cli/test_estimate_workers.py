@@ -1,0 +1,147 @@
+"""``capsheet estimate --subscribe`` (issue 31, point 3): two sheets (``capsheet virtual`` on ptys, each
+with ``capsheet host --publish zenoh --no-publish-estimates``), two workers sharing them by
+``--worker 0/2`` and ``1/2``, and a subscriber in another process (tests/host/cli/estimate_checker.py:
+zenoh and docs/distribution.md only) that checks every snapshot of each sheet gets exactly one
+estimate, in order, decoded. All on loopback in Zenoh peer mode, no router. Asserts what is
+delivered, never a rate. Also the worker's errors: an unknown sheet, no router, usage."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import pytest
+
+from tests.host.cli.test_host import CLI, ENV, popen_host, virtuals, wait_line  # noqa: F401 -- the fixture
+
+pytest.importorskip("zenoh")
+CHECKER = Path(__file__).with_name("estimate_checker.py")
+
+
+def _two_names(tmp_path) -> list[str]:
+    """Two sheet names of this test's own (a shared machine), one per worker of two: CRC-32 of the
+    name modulo 2 is 0 for the first, 1 for the second (the rule docs/distribution.md states)."""
+    base = f"t{abs(hash(str(tmp_path))) % 10**6}"
+    names = {}
+    k = 0
+    while len(names) < 2:
+        name = f"{base}_{k}"
+        names.setdefault(zlib.crc32(name.encode()) % 2, name)
+        k += 1
+    return [names[0], names[1]]
+
+
+def _worker(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(CLI + ["estimate", "--subscribe", *args, "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV)
+
+
+def test_two_workers_estimate_every_snapshot_of_two_sheets_once_in_order(virtuals, tmp_path):  # noqa: F811
+    names = _two_names(tmp_path)
+    vs = [virtuals("--lattice", "3x3", "--symlink", str(tmp_path / f"sheet{k}"), "--layout-out",
+                   str(tmp_path / f"s{k}.csv")) for k in range(2)]
+    workers = [_worker("--worker", f"{k}/2", "--idle", "6", "--duration", "150") for k in range(2)]
+    procs = list(workers)
+    try:
+        for w in workers:
+            wait_line(w, "worker ready", 60, [])
+        checker = subprocess.Popen([sys.executable, str(CHECKER), ",".join(names), "150", "8"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+        procs.append(checker)
+        assert checker.stdout.readline().strip() == "ready"
+        hosts = [popen_host(*v.host_cmd, "--duration", "4", "--publish", "zenoh", "--no-publish-estimates",
+                            "--sheet-name", name, "-q") for v, name in zip(vs, names)]
+        procs += hosts
+        host_err = [h.communicate(timeout=120)[1] for h in hosts]
+        done = [w.communicate(timeout=120) for w in workers]
+        got, cerr = checker.communicate(timeout=120)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for h, err in zip(hosts, host_err):
+        assert h.returncode == 0 and "Traceback" not in err, err
+    published = [int(err.split("published ")[1].split(" snapshots")[0]) for err in host_err]
+    assert all(", 0 estimates" in err for err in host_err)  # the hosts left the estimates to the workers
+    docs = []
+    for w, (out, err) in zip(workers, done):
+        assert "Traceback" not in err, err
+        doc = json.loads(out)
+        # another session's sheets on this machine's loopback may come and go (their own exit status)
+        doc["sheets"] = [s for s in doc["sheets"] if s["sheet"] in names]
+        assert w.returncode == 0 or len(doc["sheets"]) < len(json.loads(out)["sheets"]), err
+        docs.append(doc)
+    # each worker took exactly its sheet, by the CRC-32 rule, and left the other one
+    for k, doc in enumerate(docs):
+        assert [s["sheet"] for s in doc["sheets"]] == [names[k]], doc
+        assert names[1 - k] in doc["ignored"]
+    checked = json.loads(got.strip().splitlines()[-1])
+    assert checked["bad"] == []
+    for k, name in enumerate(names):
+        w = docs[k]["sheets"][0]
+        # the worker was there before the host streamed: every published snapshot, none lost
+        assert (w["lost"], w["gaps"], w["duplicates"], w["old"], w["bad_payloads"]) == (0, 0, 0, 0, 0)
+        assert w["received"] == published[k] >= 20
+        assert w["received"] == w["last_counter"] - w["first_counter"] + 1
+        assert w["estimated"] + w["not_estimated"] == w["received"]
+        snaps = [s["counter"] for s in checked["sheets"][name]["snapshot"]]
+        ests = checked["sheets"][name]["estimate"]
+        counters = [e["counter"] for e in ests]
+        # exactly one estimate per snapshot, in the snapshots' order, each decoded
+        assert counters == list(range(w["first_counter"], w["last_counter"] + 1))
+        assert set(snaps) <= set(counters) and len(snaps) >= 20
+        assert sum(e["estimated"] for e in ests) == w["estimated"] >= len(ests) - 3  # the first may be empty
+        for e in ests:
+            assert (e["rows"], e["cols"]) == (3, 3)
+            if e["estimated"]:
+                assert e["finite"] and abs(e["link_m"] - 0.01) < 0.001  # metres, L = 1 cm (the info's)
+        assert f"sheet {name}: received {published[k]}" in done[k][1]  # the summary says it
+
+
+def test_an_unknown_sheet_is_one_line_and_exit_1():
+    out = subprocess.run(CLI + ["estimate", "--subscribe", "--sheets", "no_such_sheet_here", "--wait", "1.5"],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "unknown sheet no_such_sheet_here" in out.stderr and "capsheet/no_such_sheet_here/info" in out.stderr
+
+
+def test_no_reachable_router_is_one_line_and_exit_1():
+    out = subprocess.run(CLI + ["estimate", "--subscribe", "zenoh:tcp/127.0.0.1:1", "--duration", "1"],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "cannot reach the Zenoh router at tcp/127.0.0.1:1" in out.stderr
+
+
+def test_nothing_received_is_said_and_exit_1():
+    out = subprocess.run(CLI + ["estimate", "--subscribe", "--worker", "0/1", "--duration", "1.5"],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode in (0, 1) and "Traceback" not in out.stderr, out.stderr
+    if "received no snapshot" in out.stderr:  # another session's host may publish on this machine
+        assert out.returncode == 1
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--subscribe", "ros2"], "--subscribe"),
+    (["--subscribe", "zenoh:localhost"], "bad Zenoh endpoint"),
+    (["--subscribe", "--worker", "2/2"], "--worker"),
+    (["--subscribe", "--sheets", "a/b"], "bad sheet name"),
+    (["--subscribe", "--sheets", "a", "--worker", "0/2"], "not both"),
+    (["--subscribe", "--method", "fused"], "global method"),
+    (["--subscribe", "--out", "x.npz"], "--out is for a recording"),
+    (["--worker", "0/2"], "--worker is for an estimate worker"),
+    ([], "give a recording"),
+])
+def test_usage_errors_are_one_line_and_exit_2(args, needle, tmp_path):
+    out = subprocess.run(CLI + ["estimate", *args], capture_output=True, text=True, timeout=60, env=ENV,
+                         cwd=tmp_path)
+    assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+def test_a_host_refuses_no_publish_estimates_without_zenoh():
+    out = subprocess.run(CLI + ["host", "--port", "/nonexistent", "--no-publish-estimates"], capture_output=True,
+                         text=True, timeout=60, env=ENV)
+    assert out.returncode == 2 and "--no-publish-estimates is for --publish zenoh" in out.stderr, out.stderr

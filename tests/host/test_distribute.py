@@ -1,0 +1,106 @@
+"""`host.distribute` without I/O: the counter sequence of one sheet (exact counts, wrap included),
+the sharding of sheets among workers, and `SheetWork` turning snapshot payloads into one estimate
+payload each (issue 31, point 3)."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from host.distribute import Sequence, SheetWork, parse_sheets, parse_worker, shard
+from host.publish import encode_snapshot
+from protocol.lattice import Lattice
+
+HDR = "<4sBBHHIHQdd"  # docs/distribution.md
+
+
+def test_a_sequence_counts_lost_duplicate_and_old_snapshots_exactly():
+    q = Sequence()
+    kinds = [q.see(c) for c in (5, 6, 7, 10, 10, 9, 11, 15)]
+    assert kinds == ["first", "next", "next", "gap", "duplicate", "old", "next", "gap"]
+    assert (q.received, q.lost, q.gaps, q.duplicates, q.old) == (8, 2 + 3, 2, 1, 1)
+    assert (q.first, q.last) == (5, 15)
+
+
+def test_a_sequence_follows_the_16_bit_counter_through_its_wrap():
+    q = Sequence()
+    kinds = [q.see(c) for c in (65534, 65535, 0, 1, 3)]
+    assert kinds == ["first", "next", "next", "next", "gap"]
+    assert (q.lost, q.gaps) == (1, 1)
+    assert q.see(65535) == "old"  # behind the last across the wrap, not 65,534 ahead
+
+
+def test_sharding_is_crc32_of_the_name_and_splits_every_sheet_to_one_worker():
+    names = [f"sheet_{k}" for k in range(40)]
+    for n in (1, 2, 3, 8):
+        got = [shard(s, n) for s in names]
+        assert got == [zlib.crc32(s.encode()) % n for s in names]  # the documented rule, from zlib
+        assert all(0 <= g < n for g in got)
+    assert {shard(s, 2) for s in names} == {0, 1}
+
+
+@pytest.mark.parametrize("text", ["2/2", "-1/2", "1", "a/b", "0/0", "0/2000"])
+def test_a_bad_worker_value_is_refused(text):
+    with pytest.raises(ValueError, match="--worker"):
+        parse_worker(text)
+
+
+def test_sheets_are_names_none_twice():
+    assert parse_sheets("a,b.c") == ["a", "b.c"]
+    for bad in ("a,a", "a/b", "", "a,,b"):
+        with pytest.raises(ValueError):
+            parse_sheets(bad)
+
+
+class _Snap:
+    def __init__(self, counter, readings, valid):
+        self.counter, self.timestamp, self.wall_time = counter, 100.0 + counter / 145, 1.7e9 + counter / 145
+        self.readings, self.valid = readings, valid
+        self.status = np.zeros(valid.shape[0], np.uint8)
+
+
+def _flat(lat: Lattice, rng) -> np.ndarray:
+    """A flat sheet held level: every link reads gravity along its sensor z, with noise."""
+    return np.tile([0.0, 0.0, 9.81], (lat.n_links, 1)) + rng.normal(0, 0.05, (lat.n_links, 3))
+
+
+def test_sheet_work_makes_one_estimate_per_snapshot_in_order_and_flags_one_it_cannot_make():
+    lat = Lattice(3, 4)
+    rng = np.random.Generator(np.random.MT19937(3))
+    w = SheetWork("s", uncertainty_period_s=None)
+    w.set_info({"rows": 3, "cols": 4, "link_length_m": 0.02})
+    valid = np.ones(lat.n_links, bool)
+    outs = []
+    for c in (7, 8, 9, 12):
+        outs.append(w.work(encode_snapshot(_Snap(c, _flat(lat, rng), valid), 3, 4), now=float(c)))
+    outs.append(w.work(encode_snapshot(_Snap(13, _flat(lat, rng), np.zeros(lat.n_links, bool)), 3, 4), now=13.0))
+    assert w.work(encode_snapshot(_Snap(13, _flat(lat, rng), valid), 3, 4), now=14.0) is None  # duplicate
+    assert w.work(b"CSNP junk", now=15.0) is None
+    heads = [struct.unpack_from(HDR, o) for o in outs]
+    assert [h[7] for h in heads] == [7, 8, 9, 12, 13]
+    assert all(h[0] == b"CEST" and (h[3], h[4], h[5]) == (3, 4, 12) for h in heads)
+    assert [h[2] for h in heads] == [0, 0, 0, 0, 2]  # the empty snapshot: flag 2, not estimated
+    for o in outs[:4]:
+        j = np.frombuffer(o, "<f4", 36, 40).reshape(3, 4, 3)
+        links = np.linalg.norm(np.diff(j, axis=1), axis=2)
+        np.testing.assert_allclose(links, 0.02, rtol=0.02)  # the link length from the info, metres
+        assert np.ptp(j[..., 2]) < 0.002  # flat
+    assert np.isnan(np.frombuffer(outs[4], "<f4", 36, 40)).all()
+    s = w.summary()
+    assert (s["received"], s["estimated"], s["not_estimated"], s["lost"], s["gaps"], s["duplicates"],
+            s["bad_payloads"]) == (6, 4, 1, 2, 1, 1, 1)
+    assert s["not_estimated_reasons"] == {"no valid link": 1}
+
+
+def test_sheet_work_refuses_an_info_without_the_lattice_and_a_snapshot_of_another_size():
+    w = SheetWork("s")
+    with pytest.raises(ValueError, match="link_length_m"):
+        w.set_info({"rows": 3, "cols": 3})
+    w.set_info({"rows": 3, "cols": 3, "link_length_m": 0.01})
+    lat = Lattice(4, 4)
+    snap = _Snap(1, np.zeros((lat.n_links, 3)), np.ones(lat.n_links, bool))
+    assert w.work(encode_snapshot(snap, 4, 4), now=0.0) is None
+    assert w.bad_payloads == 1 and "4x4 snapshot for a 3x3 sheet" in w.last_bad
