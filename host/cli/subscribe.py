@@ -26,7 +26,7 @@ import signal
 import sys
 import time
 
-__all__ = ["add_subscribe_args", "check_subscribe", "run_worker"]
+__all__ = ["addsubscribe_args", "check_subscribe", "run_worker"]
 
 PROG = "capsheet estimate"
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
@@ -36,7 +36,7 @@ INFO_RETRY_S = 1.0
 MAX_PENDING = 100_000
 
 
-def _subscribe_arg(value: str):
+def subscribe_arg(value: str):
     from host.publish import parse_publish
     try:
         kind, endpoint = parse_publish(value)
@@ -64,11 +64,11 @@ def _sheets_arg(value: str):
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def add_subscribe_args(p) -> None:
+def addsubscribe_args(p) -> None:
     from host.cli import argtypes as T
     g = p.add_argument_group("estimate worker on Zenoh (--subscribe; docs/distribution.md \"Estimate workers\")")
     g.add_argument("--subscribe", metavar="zenoh[:ENDPOINT]", nargs="?", const=("zenoh", None), default=None,
-                   type=_subscribe_arg,
+                   type=subscribe_arg,
                    help="be a worker: estimate the snapshots hosts publish (capsheet host --publish zenoh) and "
                         "publish one estimate per snapshot under capsheet/<sheet>/estimate. zenoh: peer mode on "
                         "loopback (multicast scouting on lo); zenoh:ENDPOINT: client of the router at that "
@@ -116,7 +116,7 @@ def check_subscribe(ns) -> str | None:
     return None
 
 
-def _open_session(endpoint):
+def open_session(endpoint):
     import zenoh
 
     from host.publish import zenoh_config
@@ -149,7 +149,7 @@ def run_worker(args) -> int:
     import host.analysis.estimator  # noqa: F401 -- before the first snapshot, not during it
 
     try:
-        session = _open_session(args.subscribe[1])
+        session = open_session(args.subscribe[1])
     except OSError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_FAIL
