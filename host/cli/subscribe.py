@@ -26,7 +26,7 @@ import signal
 import sys
 import time
 
-__all__ = ["addsubscribe_args", "check_subscribe", "run_worker"]
+__all__ = ["add_subscribe_args", "check_subscribe", "run_worker", "subscribe_arg", "open_session"]
 
 PROG = "capsheet estimate"
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
@@ -64,7 +64,7 @@ def _sheets_arg(value: str):
         raise argparse.ArgumentTypeError(str(exc)) from None
 
 
-def addsubscribe_args(p) -> None:
+def add_subscribe_args(p) -> None:
     from host.cli import argtypes as T
     g = p.add_argument_group("estimate worker on Zenoh (--subscribe; docs/distribution.md \"Estimate workers\")")
     g.add_argument("--subscribe", metavar="zenoh[:ENDPOINT]", nargs="?", const=("zenoh", None), default=None,
