@@ -12,8 +12,8 @@ counter skipped on the way, or published and never received), estimates the reco
 the SYNC -> estimate latency (the snapshot's wall time, stamped by the host when its SYNC counter
 opened, to the recorder's receipt of its estimate; and to the worker's ``put``) at p50/p99. CPU
 seconds of every process (/proc/<pid>/stat, sampled until it exits) per sheet per second of the
-run (from the hosts' start to their end; the workers' and recorder's start-up left out, the hosts'
-bring-up included), by role: host, worker, recorder, and the virtual sheets (the simulated chips, which on a robot
+run (from the hosts' start to their end; start-up left out: a host's from the end of its bring-up),
+by role: host, worker, recorder, and the virtual sheets (the simulated chips, which on a robot
 are hardware, so apart). JSON on stdout, with ``os.getloadavg()`` at start and end: the machine is
 shared, its load changes the figures.
 """
@@ -110,6 +110,29 @@ class Watched:
         self.cpu = 0.0
         self.lines: list[str] = []
 
+    def read_in_threads(self, mark: str | None = None) -> None:
+        """Collect stdout and stderr in threads; at the first stderr line holding ``mark``, sample the
+        CPU time (`cpu_mark`: a host's bring-up is over, streaming starts)."""
+        self.out: list[str] = []
+        self.cpu_mark = None
+
+        def err():
+            for line in self.p.stderr:
+                self.lines.append(line)
+                if mark is not None and self.cpu_mark is None and mark in line:
+                    self.sample()
+                    self.cpu_mark = self.cpu
+        self._threads = [threading.Thread(target=lambda: self.out.extend(self.p.stdout), daemon=True),
+                         threading.Thread(target=err, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def wait(self, timeout: float) -> tuple[str, str]:
+        self.p.wait(timeout)
+        for t in self._threads:
+            t.join(10)
+        return "".join(self.out), "".join(self.lines)
+
     def sample(self) -> None:
         c = cpu_s(self.p.pid)
         if c is not None:
@@ -196,7 +219,9 @@ def main() -> int:
                                         "--json", "-q"])
                  for cmd, name in zip(host_cmds, names)]
         procs += hosts
-        host_out = [h.p.communicate(timeout=a.duration + 300) for h in hosts]
+        for h in hosts:
+            h.read_in_threads(mark=" started on ")
+        host_out = [h.wait(timeout=a.duration + 300) for h in hosts]
         t_hosts = time.monotonic() - t0
         for w in procs:
             if w.p.poll() is None:
@@ -244,9 +269,9 @@ def main() -> int:
                      "snapshots_per_s": round(summ.get("snapshots", 0) / a.duration, 1)})
     cpu = {}
     for role in ("host", "worker", "recorder", "virtual"):
-        # from the hosts' start to their end (a host's own bring-up included: a few seconds of
-        # discovery and configuration before --duration starts, so the host figure is an upper bound)
-        c = sum(cpu1.get(id(w), w.cpu) - cpu0.get(id(w), 0.0) for w in procs if w.role == role)
+        # from the hosts' start to their end; a host's from the end of its bring-up ("... started on")
+        c = sum(cpu1.get(id(w), w.cpu) - (w.cpu_mark if getattr(w, "cpu_mark", None) is not None
+                                           else cpu0.get(id(w), 0.0)) for w in procs if w.role == role)
         cpu[role] = {"cpu_s": round(c, 2), "cpu_s_per_sheet_per_s": round(c / a.sheets / a.duration, 4)}
     doc = {"bench": "robot", "sheets": a.sheets, "lattice": a.lattice, "rate_hz": a.rate, "duration_s": a.duration,
            "workers": a.workers, "packed": not a.per_chip, "cores": os.cpu_count(),
