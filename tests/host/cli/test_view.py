@@ -179,3 +179,11 @@ def test_two_sheets_in_one_scene_each_at_its_pose_for_the_npm_client(tmp_path):
     assert channels[f"/{names[0]}/scene"]["schemaName"] == "foxglove.SceneUpdate"
     for name in names:
         assert f"sheet {name}: " in err and " estimates received" in err
+
+
+def test_the_documented_example_is_a_valid_robot():
+    from pathlib import Path
+    r = load_robot(Path(__file__).resolve().parents[3] / "docs" / "robot.toml")
+    assert [p.name for p in r.sheets] == ["left_forearm", "right_forearm", "chest"] and r.frame == "base_link"
+    want = Rotation.from_euler("xyz", [0.0, -90.0, 0.0], degrees=True).as_quat()
+    np.testing.assert_allclose(np.abs(r.sheets[2].rotation), np.abs(want), atol=1e-12)
