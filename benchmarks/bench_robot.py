@@ -197,7 +197,7 @@ def main() -> int:
                 if line.strip().startswith("capsheet host "):
                     host_cmds.append(line.strip().split()[2:])
                     break
-        workers = [Watched("worker", CLI + ["estimate", "--subscribe", "--worker", f"{k}/{a.workers}", "--idle", "8",
+        workers = [Watched("worker", CLI + ["estimate", "--subscribe", "--sheets", "robot_*", "--worker", f"{k}/{a.workers}", "--idle", "8",
                                             "--duration", str(a.duration + 300), "--json", "-q"])
                    for k in range(a.workers)]
         procs += workers

@@ -14,12 +14,15 @@ share every sheet without talking to each other or to a coordinator, each sheet 
 
 from __future__ import annotations
 
+import re
 import zlib
 from dataclasses import dataclass, field
+from fnmatch import fnmatchcase
 
 import numpy as np
 
-__all__ = ["Sequence", "SheetWork", "shard", "parse_worker", "parse_sheets", "COUNTER_MODULO", "latency_ms"]
+__all__ = ["Sequence", "SheetWork", "Selection", "shard", "parse_worker", "parse_sheets", "COUNTER_MODULO",
+           "latency_ms"]
 
 #: the SYNC counter is 16-bit on the wire (docs/protocol.md): it wraps here
 COUNTER_MODULO = 1 << 16
@@ -49,17 +52,55 @@ def parse_worker(text: str) -> tuple[int, int]:
     return i_, n_
 
 
+#: a sheet name, or a pattern of names (``*`` any characters, ``?`` one)
+_SHEET_PATTERN = re.compile(r"^[A-Za-z0-9_.\-*?]{1,64}$")
+
+
 def parse_sheets(text: str) -> list[str]:
-    """``"a,b"`` -> ``["a", "b"]``: each a sheet name (`host.publish.SHEET_NAME`), none twice."""
-    from host.publish import SHEET_NAME
+    """``"a,b_*"`` -> ``["a", "b_*"]``: each a sheet name (`host.publish.SHEET_NAME`) or a pattern
+    with ``*`` / ``?``, none twice."""
     names = [s.strip() for s in text.split(",")]
     for s in names:
-        if not SHEET_NAME.match(s):
-            raise ValueError(f"bad sheet name {s!r} in --sheets {text!r}: 1-64 of A-Z a-z 0-9 _ . - each, "
-                             f"separated by commas")
+        if not _SHEET_PATTERN.match(s):
+            raise ValueError(f"bad sheet name {s!r} in --sheets {text!r}: 1-64 of A-Z a-z 0-9 _ . - each (or a "
+                             f"pattern with * and ?), separated by commas")
     if len(set(names)) != len(names):
         raise ValueError(f"--sheets {text!r} names a sheet twice")
     return names
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which sheets a worker takes: ``names`` (exact: each must exist), ``patterns`` (``*``, ``?``:
+    whichever publish; none of either: every sheet), and of those, with ``worker`` ``(I, N)``, the
+    ones whose `shard` is I."""
+
+    names: tuple[str, ...] = ()
+    patterns: tuple[str, ...] = ()
+    worker: tuple[int, int] | None = None
+
+    @classmethod
+    def of(cls, sheets: list[str] | None, worker: tuple[int, int] | None) -> "Selection":
+        sheets = sheets or []
+        return cls(tuple(s for s in sheets if not set(s) & set("*?")),
+                   tuple(s for s in sheets if set(s) & set("*?")), worker)
+
+    def in_share(self, sheet: str) -> bool:
+        return self.worker is None or shard(sheet, self.worker[1]) == self.worker[0]
+
+    def takes(self, sheet: str) -> bool:
+        if not self.in_share(sheet):
+            return False
+        if not self.names and not self.patterns:
+            return True
+        return sheet in self.names or any(fnmatchcase(sheet, p) for p in self.patterns)
+
+    @property
+    def keys(self) -> list[str]:
+        """The key expressions to subscribe to: the named sheets' snapshots, or every sheet's."""
+        if self.names and not self.patterns:
+            return [f"capsheet/{s}/snapshot" for s in self.names]
+        return ["capsheet/*/snapshot"]
 
 
 @dataclass
@@ -118,10 +159,15 @@ class SheetWork:
     does) and its counts.
 
     ``uncertainty_period_s``: an estimate carries ``joint_std`` at most this often (None: never).
+    ``method``: ``auto`` (the fused estimator for snapshots that carry gyroscopes, 6/9-axis chips,
+    every one in order as ``capsheet estimate --method auto`` does a recording; the global method
+    otherwise), ``global`` (the accelerometers alone, whatever the chips) or ``fused`` (a snapshot
+    without gyroscopes is then not estimated, counted).
     """
 
     name: str
     uncertainty_period_s: float | None = None
+    method: str = "auto"
     info: dict | None = None
     seq: Sequence = field(default_factory=Sequence)
     estimated: int = 0  #: published with joints
@@ -129,7 +175,9 @@ class SheetWork:
     bad_payloads: int = 0
     last_bad: str = ""
     latencies: list = field(default_factory=list)  #: publish wall time - the snapshot's SYNC wall time, s
+    methods: dict = field(default_factory=dict)  #: method -> estimates made with it
     _previous: object = None
+    _fused: object = None
     _last_unc: float = -np.inf
 
     @property
@@ -166,9 +214,12 @@ class SheetWork:
         if kind in ("duplicate", "old"):
             return None
         rows, cols = s["rows"], s["cols"]
-        why = None
+        fused = self.method == "fused" or (self.method == "auto" and s["gyro"] is not None)
+        est, why = None, None
         if not s["valid"].any():
             why = "no valid link"
+        elif fused:
+            est, why = self._fused_estimate(s)
         else:
             from host.analysis.estimator import estimate
             try:
@@ -179,17 +230,43 @@ class SheetWork:
         if why is not None:
             self.not_estimated[why] = self.not_estimated.get(why, 0) + 1
             return encode_no_estimate(rows, cols, s["counter"], s["timestamp"], s["wall_time"])
-        self._previous = est
-        unc = self.uncertainty_period_s is not None and now - self._last_unc >= self.uncertainty_period_s
-        if unc:
-            self._last_unc = now
+        unc = False
+        if not fused:
+            self._previous = est
+            unc = self.uncertainty_period_s is not None and now - self._last_unc >= self.uncertainty_period_s
+            if unc:
+                self._last_unc = now
+        m = "fused" if fused else "global"
+        self.methods[m] = self.methods.get(m, 0) + 1
         self.estimated += 1
         return encode_estimate(est, s["counter"], s["timestamp"], s["wall_time"], uncertainty=unc)
+
+    def _fused_estimate(self, s: dict):
+        """``(estimate, None)`` or ``(None, why)``: the snapshot into the sheet's fused estimator
+        (`host.analysis.motion.snapshots.fused_update`), which carries its state to the next."""
+        from types import SimpleNamespace
+
+        from host.analysis.motion.snapshots import fused_update
+        if s["gyro"] is None:
+            return None, "no gyroscopes (--method fused)"
+        if self._fused is None:
+            from host.analysis.motion import MotionEstimator
+            self._fused = MotionEstimator(int(self.info["rows"]), int(self.info["cols"]), self.link_length)
+        n = s["n"]
+        f64 = (lambda v: None if v is None else v.astype(float))
+        snap = SimpleNamespace(timestamp=s["timestamp"], valid=s["valid"], readings=s["readings"].astype(float),
+                               gyro=f64(s["gyro"]), mag=f64(s["mag"]),
+                               sample_time_s=np.full(n, np.nan) if s["sample_time_s"] is None
+                               else s["sample_time_s"].astype(float))
+        out = fused_update(self._fused, snap)
+        if out is None:
+            return None, "no IMU record, or the fused estimator restarted"
+        return out, None
 
     def summary(self) -> dict:
         q = self.seq
         return {"sheet": self.name, "info": self.ready, "received": q.received, "first_counter": q.first,
                 "last_counter": q.last, "estimated": self.estimated,
                 "not_estimated": sum(self.not_estimated.values()), "not_estimated_reasons": dict(self.not_estimated),
-                "lost": q.lost, "gaps": q.gaps, "duplicates": q.duplicates, "old": q.old,
+                "methods": dict(self.methods), "lost": q.lost, "gaps": q.gaps, "duplicates": q.duplicates, "old": q.old,
                 "bad_payloads": self.bad_payloads, "latency_ms": latency_ms(self.latencies)}

@@ -74,13 +74,13 @@ def add_subscribe_args(p) -> None:
                         "loopback (multicast scouting on lo); zenoh:ENDPOINT: client of the router at that "
                         "locator, e.g. zenoh:tcp/192.168.1.10:7447")
     g.add_argument("--sheets", metavar="NAME,...", type=_sheets_arg, default=None,
-                   help="take these sheets only; each must answer capsheet/<sheet>/info within --wait (else: "
-                        "unknown sheet, exit 1). Default: every sheet that publishes snapshots (with --worker, "
-                        "this worker's share)")
+                   help="take these sheets only: names, each of which must answer capsheet/<sheet>/info within "
+                        "--wait (else: unknown sheet, exit 1), or patterns with * and ? (e.g. 'left_*'), taken "
+                        "as they publish. Default: every sheet that publishes snapshots")
     g.add_argument("--worker", metavar="I/N", type=_worker_arg, default=None,
-                   help="one of N workers, index I (0..N-1): take the sheets whose CRC-32 of the name modulo N "
-                        "is I, so N workers given 0/N .. N-1/N share every sheet, each sheet to one of them, "
-                        "without a coordinator")
+                   help="one of N workers, index I (0..N-1): of the sheets selected, take those whose CRC-32 of "
+                        "the name modulo N is I, so N workers given 0/N .. N-1/N share them, each sheet to one "
+                        "of them, without a coordinator")
     g.add_argument("--duration", type=T.duration, default=None, metavar="S",
                    help="stop after S seconds (default: until interrupted, or --idle)")
     g.add_argument("--idle", type=T.duration, default=None, metavar="S",
@@ -108,11 +108,15 @@ def check_subscribe(ns) -> str | None:
                     ("--lattice", ns.lattice), ("--link-length", ns.link_length)):
         if v is not None:
             return f"{flag} is for a recording, not for --subscribe (the sheets' info says their lattice and link length)"
-    if ns.method not in ("auto", "global"):
-        return (f"--method {ns.method} with --subscribe: the worker estimates each snapshot with the global method "
-                f"(published snapshots carry no gyroscopes for the fused one)")
+    if ns.method == "paper":
+        return "--method paper with --subscribe: a worker estimates with auto, global or fused"
     if ns.sheets is not None and ns.worker is not None:
-        return "give --sheets or --worker, not both"
+        from host.distribute import Selection
+        sel = Selection.of(ns.sheets, ns.worker)
+        for s in sel.names:
+            if not sel.in_share(s):
+                return (f"--sheets {s} is not in --worker {ns.worker[0]}/{ns.worker[1]}'s share (CRC-32 of the name "
+                        f"modulo {ns.worker[1]} is not {ns.worker[0]}): name it to that worker, or drop --worker")
     return None
 
 
@@ -143,7 +147,7 @@ def _ask_info(session, sheet: str, timeout_s: float) -> dict | None:
 def run_worker(args) -> int:
     import zenoh
 
-    from host.distribute import SheetWork, latency_ms, shard
+    from host.distribute import Selection, SheetWork, latency_ms
     from host.publish import HEADER
 
     import host.analysis.estimator  # noqa: F401 -- before the first snapshot, not during it
@@ -197,18 +201,18 @@ def run_worker(args) -> int:
     first_at = last_at = None
     interrupted = False
     subs: list = []
+    sel = Selection.of(args.sheets, args.worker)
     try:
-        subs += [session.declare_subscriber(f"capsheet/{s}/snapshot", on_sample) for s in args.sheets] \
-            if args.sheets else [session.declare_subscriber("capsheet/*/snapshot", on_sample)]
-        if args.sheets:  # each named sheet must answer: else it is unknown (a typo, a host not running)
+        subs += [session.declare_subscriber(k, on_sample) for k in sel.keys]
+        if sel.names:  # each named sheet must answer: else it is unknown (a typo, a host not running)
             end = time.monotonic() + args.wait
-            missing = list(args.sheets)
+            missing = list(sel.names)
             while missing and time.monotonic() < end:
                 for s in list(missing):
                     doc = _ask_info(session, s, min(2.0, max(0.1, end - time.monotonic())))
                     if doc is not None:
                         try:
-                            w = SheetWork(s, uncertainty_period_s=period)
+                            w = SheetWork(s, uncertainty_period_s=period, method=args.method)
                             w.set_info(doc)
                         except ValueError as exc:
                             print(f"{PROG}: {exc}", file=sys.stderr)
@@ -240,7 +244,7 @@ def run_worker(args) -> int:
                 asked[s] = now
                 doc = _ask_info(session, s, 1.0)
                 if doc is not None:
-                    w = SheetWork(s, uncertainty_period_s=period)
+                    w = SheetWork(s, uncertainty_period_s=period, method=args.method)
                     try:
                         w.set_info(doc)
                     except ValueError as exc:
@@ -260,7 +264,7 @@ def run_worker(args) -> int:
             if sheet in ignored:
                 continue
             if sheet not in works:
-                if args.worker is not None and shard(sheet, args.worker[1]) != args.worker[0]:
+                if not sel.takes(sheet):
                     ignored.add(sheet)
                     continue
                 p = pending.setdefault(sheet, [])
@@ -287,8 +291,7 @@ def run_worker(args) -> int:
                     out = works[sheet].work(payload, time.monotonic())
                     if out is not None:
                         publish(sheet, out)
-                elif sheet not in ignored and not (args.worker is not None
-                                                   and shard(sheet, args.worker[1]) != args.worker[0]):
+                elif sheet not in ignored and sel.takes(sheet):
                     pending.setdefault(sheet, []).append(payload)
         except KeyboardInterrupt:
             interrupted = True
@@ -315,7 +318,9 @@ def run_worker(args) -> int:
                         if d[k])
         lines.append(f"{PROG}: sheet {d['sheet']}: received {d['received']}"
                      + (f" (counters {d['first_counter']}..{d['last_counter']})" if d["received"] else "")
-                     + f", estimated {d['estimated']}, not estimated {d['not_estimated']}"
+                     + f", estimated {d['estimated']}"
+                     + (f" ({', '.join(f'{n} {m}' for m, n in sorted(d['methods'].items()))})" if d["methods"] else "")
+                     + f", not estimated {d['not_estimated']}"
                      + "".join(f" ({n}: {why})" for why, n in d["not_estimated_reasons"].items())
                      + f", lost {d['lost']} in {d['gaps']} gap{'s' if d['gaps'] != 1 else ''}{extra}"
                      + (f"; SYNC -> published estimate p50 {lat['p50']} ms, p99 {lat['p99']} ms" if lat["n"] else ""))
@@ -326,8 +331,9 @@ def run_worker(args) -> int:
                      + (f" from {', '.join(args.sheets)}" if args.sheets else "")
                      + " (is a host publishing with --publish zenoh on this Zenoh network?)")
         code = EXIT_FAIL
-    if args.worker is not None and ignored:
-        lines.append(f"{PROG}: left {len(ignored)} sheet(s) to the other workers: {', '.join(sorted(ignored))}")
+    if ignored:
+        lines.append(f"{PROG}: left {len(ignored)} sheet(s) not selected (--sheets, --worker): "
+                     f"{', '.join(sorted(ignored))}")
     lines.append(f"{PROG}: {sum(d['received'] for d in sheets)} snapshots, "
                  f"{sum(d['estimated'] for d in sheets)} estimated in {wall_s:.1f} s, {cpu_s:.2f} s of CPU, "
                  f"queue peak {peak[0]}" + (" (interrupted)" if interrupted else ""))

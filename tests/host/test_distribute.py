@@ -48,6 +48,19 @@ def test_a_bad_worker_value_is_refused(text):
         parse_worker(text)
 
 
+def test_a_selection_takes_names_patterns_and_a_workers_share():
+    from host.distribute import Selection
+    sel = Selection.of(parse_sheets("arm,leg_*"), None)
+    assert (sel.names, sel.patterns) == (("arm",), ("leg_*",)) and sel.keys == ["capsheet/*/snapshot"]
+    assert [sel.takes(s) for s in ("arm", "leg_1", "leg", "arms")] == [True, True, False, False]
+    assert Selection.of(["a", "b"], None).keys == ["capsheet/a/snapshot", "capsheet/b/snapshot"]
+    names = [f"leg_{k}" for k in range(20)]
+    shares = [[s for s in names if Selection.of(["leg_*"], (i, 3)).takes(s)] for i in range(3)]
+    assert sorted(sum(shares, [])) == sorted(names)  # each sheet to exactly one worker
+    assert shares[1] == [s for s in names if zlib.crc32(s.encode()) % 3 == 1]
+    assert Selection.of(None, None).takes("anything")
+
+
 def test_sheets_are_names_none_twice():
     assert parse_sheets("a,b.c") == ["a", "b.c"]
     for bad in ("a,a", "a/b", "", "a,,b"):
@@ -104,3 +117,28 @@ def test_sheet_work_refuses_an_info_without_the_lattice_and_a_snapshot_of_anothe
     snap = _Snap(1, np.zeros((lat.n_links, 3)), np.ones(lat.n_links, bool))
     assert w.work(encode_snapshot(snap, 4, 4), now=0.0) is None
     assert w.bad_payloads == 1 and "4x4 snapshot for a 3x3 sheet" in w.last_bad
+
+
+def test_a_6_axis_snapshot_carries_its_gyroscopes_magnetometers_and_sample_times():
+    from host.publish import decode_snapshot
+    lat = Lattice(3, 3)
+    n = lat.n_links
+    rng = np.random.Generator(np.random.MT19937(5))
+    snap = _Snap(4, _flat(lat, rng), np.ones(n, bool))
+    snap.gyro, snap.mag = rng.normal(0, 0.3, (n, 3)), rng.normal(0, 4e-5, (n, 3))
+    snap.sample_time_s = rng.uniform(0, 0.005, n)
+    snap.gyro[2] = np.nan  # a link without an IMU record
+    payload = encode_snapshot(snap, 3, 3)
+    assert len(payload) == 40 + 14 * n + 12 * n + 12 * n + 4 * n  # docs/distribution.md
+    assert struct.unpack_from(HDR, payload)[2] == 1 | 2 | 4
+    d = decode_snapshot(payload)
+    for name in ("gyro", "mag", "sample_time_s"):
+        np.testing.assert_array_equal(d[name], getattr(snap, name).astype(np.float32))
+    snap.mag = None
+    d = decode_snapshot(encode_snapshot(snap, 3, 3))
+    assert d["mag"] is None and d["gyro"].shape == (n, 3)
+    w = SheetWork("s", method="fused")
+    w.set_info({"rows": 3, "cols": 3, "link_length_m": 0.01})
+    plain = _Snap(5, _flat(lat, rng), np.ones(n, bool))
+    out = w.work(encode_snapshot(plain, 3, 3), now=0.0)  # no gyroscopes: flagged, counted
+    assert struct.unpack_from(HDR, out)[2] == 2 and w.not_estimated == {"no gyroscopes (--method fused)": 1}

@@ -35,8 +35,12 @@ def on_sample(sample):
     try:
         magic, ver, flags, rows, cols, n, _, counter, ts, wall = struct.unpack_from(HDR, data)
         if kind == "snapshot":
-            assert magic == b"CSNP" and ver == 1 and len(data) == O + 14 * n, key
-            rec = {"counter": counter}
+            # flags: bit 0 gyro float32 (n, 3), bit 1 mag float32 (n, 3), bit 2 sample time float32 (n,)
+            size = O + 14 * n + (12 * n if flags & 1 else 0) + (12 * n if flags & 2 else 0) + (4 * n if flags & 4 else 0)
+            assert magic == b"CSNP" and ver == 1 and len(data) == size, key
+            gyro = np.frombuffer(data, "<f4", 3 * n, O + 14 * n).reshape(n, 3) if flags & 1 else None
+            rec = {"counter": counter, "flags": flags,
+                   "gyro_max": None if gyro is None else float(np.nanmax(np.abs(gyro)))}
         else:
             assert magic == b"CEST" and ver == 1 and n == rows * cols, key
             assert len(data) == O + 12 * n + (4 * n if flags & 1 else 0), key
