@@ -73,7 +73,8 @@ def register(subparsers) -> None:
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
     p.add_argument("--uncertainty", action="store_true",
-                   help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower)")
+                   help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower); "
+                        "with --subscribe, joint_std about once a second per sheet")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     from host.cli.subscribe import add_subscribe_args, check_subscribe
