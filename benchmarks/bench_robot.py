@@ -260,6 +260,8 @@ def main() -> int:
                      "host_valid_links_pct": summ.get("valid_links_pct"),
                      "published": published, "worker_received": w.get("received"),
                      "worker_estimated": w.get("estimated"), "worker_not_estimated": w.get("not_estimated"),
+                     "worker_not_estimated_reasons": w.get("not_estimated_reasons"),
+                     "worker_queue_peak": w.get("worker_queue_peak"),
                      "lost": lost, "worker_gaps": w.get("gaps"),
                      "recorder_snapshots": r["snapshots"], "recorder_estimates": r["estimates"],
                      "recorder_in_order": r["in_order"],
