@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import re
 import zlib
+from collections import deque
 from dataclasses import dataclass, field
 from fnmatch import fnmatchcase
 
@@ -24,6 +25,8 @@ import numpy as np
 __all__ = ["Sequence", "SheetWork", "Selection", "shard", "parse_worker", "parse_sheets", "COUNTER_MODULO",
            "latency_ms"]
 
+#: latencies a sheet keeps for its percentiles: the newest (11.5 minutes at 145 Hz)
+LATENCIES_KEPT = 100_000
 #: the SYNC counter is 16-bit on the wire (docs/protocol.md): it wraps here
 COUNTER_MODULO = 1 << 16
 #: a counter more than half the circle ahead of the last one is taken as an old one come late
@@ -174,7 +177,8 @@ class SheetWork:
     not_estimated: dict = field(default_factory=dict)  #: reason -> snapshots published flagged, joints NaN
     bad_payloads: int = 0
     last_bad: str = ""
-    latencies: list = field(default_factory=list)  #: publish wall time - the snapshot's SYNC wall time, s
+    #: publish wall time - the snapshot's SYNC wall time, s: the newest `LATENCIES_KEPT` (a worker runs for days)
+    latencies: deque = field(default_factory=lambda: deque(maxlen=LATENCIES_KEPT))
     methods: dict = field(default_factory=dict)  #: method -> estimates made with it
     _previous: object = None
     _fused: object = None
