@@ -29,6 +29,8 @@ __all__ = ["Sequence", "SheetWork", "Selection", "shard", "parse_worker", "parse
 LATENCIES_KEPT = 100_000
 #: the SYNC counter is 16-bit on the wire (docs/protocol.md): it wraps here
 COUNTER_MODULO = 1 << 16
+#: a jump of at most this many counters is a gap whatever the time says (`Sequence`)
+RESTART_MIN_JUMP = 64
 #: a counter more than half the circle ahead of the last one is taken as an old one come late
 _HALF = COUNTER_MODULO // 2
 
@@ -108,12 +110,17 @@ class Selection:
 
 @dataclass
 class Sequence:
-    """The SYNC counters of one sheet's snapshots as they arrive, modulo `COUNTER_MODULO`.
+    """The SYNC counters of one sheet's snapshots as they arrive, modulo `COUNTER_MODULO`, with the
+    time each counter opened (``t``: the header's wall time, else its host time).
 
     `see` classifies each: ``first``; ``next`` (the one after the last); ``gap`` (newer, with
     ``lost`` snapshots between: counted, the snapshot itself is fine); ``duplicate`` (the last one
-    again) or ``old`` (behind the last one): both dropped by the caller, counted, since estimating
-    them would break the order of the sheet's estimates.
+    again) or ``old`` (behind the last one, and older): both dropped by the caller, counted, since
+    estimating them would break the order of the sheet's estimates; ``restart``: the host started
+    counting again (a restarted host, a resynchronised sheet) — a counter not ahead of the last but
+    newer in time, or more than `RESTART_MIN_JUMP` ahead of it in less than half the SYNC periods
+    (`period`, learnt from consecutive counters) it skipped; a new sequence, nothing counted lost.
+    A short skip is always a gap: a late SYNC beside an early one must not hide a lost snapshot.
     """
 
     last: int | None = None
@@ -123,26 +130,42 @@ class Sequence:
     gaps: int = 0  #: how many times the sequence skipped (each may lose several)
     duplicates: int = 0
     old: int = 0
+    restarts: int = 0
+    last_t: float | None = None
+    period: float | None = None  #: seconds per counter, a running mean over consecutive counters
 
-    def see(self, counter: int) -> str:
+    def see(self, counter: int, t: float | None = None) -> str:
         c = int(counter) % COUNTER_MODULO
+        t = None if t is None or not np.isfinite(t) else float(t)
         self.received += 1
         if self.last is None:
             self.first = self.last = c
+            self.last_t = t
             return "first"
         d = (c - self.last) % COUNTER_MODULO
-        if d == 0:
-            self.duplicates += 1
-            return "duplicate"
-        if d >= _HALF:
-            self.old += 1
-            return "old"
-        self.last = c
-        if d == 1:
-            return "next"
-        self.lost += d - 1
-        self.gaps += 1
-        return "gap"
+        dt = None if t is None or self.last_t is None else t - self.last_t
+        if d == 0 or d >= _HALF:
+            if dt is None or dt <= 0:
+                if d == 0:
+                    self.duplicates += 1
+                    return "duplicate"
+                self.old += 1
+                return "old"
+            kind = "restart"  # behind (or equal) in counter, ahead in time
+        elif d > RESTART_MIN_JUMP and dt is not None and self.period is not None and dt < 0.5 * d * self.period:
+            kind = "restart"  # skipped d counters in far less than d periods
+        else:
+            kind = "next" if d == 1 else "gap"
+        self.last, self.last_t = c, t if t is not None else self.last_t
+        if kind == "restart":
+            self.restarts += 1
+        elif kind == "next":
+            if dt is not None and dt > 0:
+                self.period = dt if self.period is None else 0.9 * self.period + 0.1 * dt
+        else:
+            self.lost += d - 1
+            self.gaps += 1
+        return kind
 
 
 def latency_ms(values) -> dict:
@@ -214,9 +237,12 @@ class SheetWork:
             self.bad_payloads += 1
             self.last_bad = str(exc)
             return None
-        kind = self.seq.see(s["counter"])
+        wall = s["wall_time"]
+        kind = self.seq.see(s["counter"], wall if np.isfinite(wall) else s["timestamp"])
         if kind in ("duplicate", "old"):
             return None
+        if kind == "restart":  # the sheet's host started again: nothing to warm-start from
+            self._previous = self._fused = None
         rows, cols = s["rows"], s["cols"]
         fused = self.method == "fused" or (self.method == "auto" and s["gyro"] is not None)
         est, why = None, None
@@ -273,4 +299,5 @@ class SheetWork:
                 "last_counter": q.last, "estimated": self.estimated,
                 "not_estimated": sum(self.not_estimated.values()), "not_estimated_reasons": dict(self.not_estimated),
                 "methods": dict(self.methods), "lost": q.lost, "gaps": q.gaps, "duplicates": q.duplicates, "old": q.old,
+                "restarts": q.restarts,
                 "bad_payloads": self.bad_payloads, "latency_ms": latency_ms(self.latencies)}

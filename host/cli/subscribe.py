@@ -323,6 +323,7 @@ def run_worker(args) -> int:
                      + f", not estimated {d['not_estimated']}"
                      + "".join(f" ({n}: {why})" for why, n in d["not_estimated_reasons"].items())
                      + f", lost {d['lost']} in {d['gaps']} gap{'s' if d['gaps'] != 1 else ''}{extra}"
+                     + (f", counting restarted {d['restarts']} time(s) (the host started again)" if d["restarts"] else "")
                      + (f"; SYNC -> published estimate p50 {lat['p50']} ms, p99 {lat['p99']} ms" if lat["n"] else ""))
         if d["lost"] or d["bad_payloads"] or d["duplicates"] or d["old"]:
             code = EXIT_FAIL

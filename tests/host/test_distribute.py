@@ -33,6 +33,22 @@ def test_a_sequence_follows_the_16_bit_counter_through_its_wrap():
     assert q.see(65535) == "old"  # behind the last across the wrap, not 65,534 ahead
 
 
+def test_a_restarted_host_is_a_new_sequence_not_lost_or_old_snapshots():
+    q = Sequence()
+    p = 1 / 145
+    # 145 Hz from counter 40,000; the host restarts 2 s later at 0, then again at 50,000 after 1 s
+    seen = [q.see(40_000 + k, 100.0 + k * p) for k in range(10)]
+    seen += [q.see(k, 102.0 + k * p) for k in range(5)]  # behind in counter, ahead in time
+    seen += [q.see(50_000, 103.0)]  # 49,996 counters ahead in 1 s: not 49,995 lost
+    seen += [q.see(50_003, 103.0 + 3 * p)]  # a real gap of 2
+    seen += [q.see(50_001, 103.0 + p)]  # an old one come late: older in time too
+    assert seen == ["first"] + ["next"] * 9 + ["restart"] + ["next"] * 4 + ["restart", "gap", "old"]
+    assert (q.restarts, q.lost, q.gaps, q.old, q.duplicates) == (2, 2, 1, 1, 0)
+    assert q.see(50_003, 103.0 + 3 * p) == "duplicate"
+    # a short skip in little time (a late SYNC, then an early one) is still a lost snapshot
+    assert q.see(50_005, 103.0 + 3.6 * p) == "gap" and (q.lost, q.restarts) == (3, 2)
+
+
 def test_sharding_is_crc32_of_the_name_and_splits_every_sheet_to_one_worker():
     names = [f"sheet_{k}" for k in range(40)]
     for n in (1, 2, 3, 8):
