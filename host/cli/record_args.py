@@ -55,6 +55,10 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics; ROS_DOMAIN_ID), "
                         "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
                         "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
+    g.add_argument("--no-publish-estimates", action="store_true",
+                   help="--publish zenoh: publish snapshots, health and info but no estimates, and make none for "
+                        "it: capsheet/<sheet>/estimate is left to estimate workers (capsheet estimate --subscribe), "
+                        "this host's CPU to its sheet")
     g.add_argument("--sheet-name", metavar="NAME", type=_sheet_name, default="sheet",
                    help="the sheet's name in the published key expressions and ROS 2 topics (default 'sheet'; "
                         "for ros2 a ROS name: letters, digits, _)")
@@ -63,6 +67,7 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "(ros2 bag, rosbags and Foxglove read it); an existing file needs --overwrite")
     if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
         parser.add_check(_check_ros2)
+        parser.add_check(_check_no_estimates)
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
@@ -79,6 +84,13 @@ def _publish_arg(value: str):
         return parse_publish(value)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _check_no_estimates(ns) -> str | None:
+    publish = getattr(ns, "publish", None)
+    if getattr(ns, "no_publish_estimates", False) and (publish is None or publish[0] != "zenoh"):
+        return "--no-publish-estimates is for --publish zenoh (estimate workers make the estimates)"
+    return None
 
 
 def _check_ros2(ns) -> str | None:
@@ -148,6 +160,8 @@ class SessionOutputs:
         self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
         self.session_facts = {"mode": mode, **(session or {})}  #: what the session says of itself
         self.ros2 = None  #: `host.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
+        #: ``--publish zenoh`` publishes this session's estimates (not with ``--no-publish-estimates``)
+        self.publishes_estimates = not getattr(args, "no_publish_estimates", False)
         self._host = None
         self.can_log = None
         self._can_lock = threading.Lock()
@@ -325,8 +339,8 @@ class SessionOutputs:
         None."""
         rec = self.recorder
         self._health()
-        if rec is None and self.publisher is None and self.ros2 is None:
-            return None
+        if rec is None and self.ros2 is None and (self.publisher is None or not self.publishes_estimates):
+            return None  # nothing takes this session's estimates (workers make them: --no-publish-estimates)
         if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
         fused = None
@@ -375,12 +389,13 @@ class SessionOutputs:
     @property
     def wants_estimates(self) -> bool:
         """Something takes estimates: the recording, the live view or a publisher."""
-        return self.recorder is not None or self.publisher is not None or self.ros2 is not None
+        return (self.recorder is not None or self.ros2 is not None
+                or (self.publisher is not None and self.publishes_estimates))
 
     def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
                 uncertainty: bool = False) -> None:
         """Record, show and publish an estimate made elsewhere (the demo's own)."""
-        if self.publisher is not None:
+        if self.publisher is not None and self.publishes_estimates:
             self.publisher.estimate(est, snap, uncertainty=uncertainty)
         if self.ros2 is not None:
             self.ros2.estimate(est, snap, uncertainty=uncertainty)
