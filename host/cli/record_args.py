@@ -387,21 +387,23 @@ class SessionOutputs:
     # -- the estimator process (--estimate-process) ---------------------------------------------
     def _to_worker(self, snap, force: bool = False) -> None:
         """Every snapshot is a candidate (the estimator process keeps up, in order): sent when its
-        turn under --live-rate comes (a credit of one period, so a snapshot that arrives early by
-        jitter is not skipped) and the process has room, else kept as the newest waiting."""
+        turn under --live-rate comes and the process has room, else kept as the newest waiting.
+        The turn is on the snapshots' own times (their SYNC), not on when this thread gets to them:
+        the main thread takes queued snapshots in bursts, and a burst must not read as a rate over
+        --live-rate (a credit of one period absorbs the SYNCs' jitter)."""
         self.poll()
         if not snap.valid.any():
             return
-        now = time.monotonic()
-        if not force and now < self._next_est:
+        t = float(snap.timestamp)
+        if not force and t < self._next_est:
             return
-        self._next_est = max(self._next_est, now - self._period) + self._period
+        self._next_est = max(self._next_est, t - self._period) + self._period
         if not self.worker.free:
             if self._waiting is not None:
                 self.estimates_not_made += 1  # replaced by a newer one
             self._waiting = snap
             return
-        self._send(snap, now)
+        self._send(snap, time.monotonic())
 
     def _send(self, snap, now: float) -> None:
         unc = self.worker.uncertainty_due(now, UNCERTAINTY_PERIOD_S)
