@@ -124,6 +124,8 @@ DEFAULT_MIN_FREE_MB = 500.0
 #: a live session records an estimate's sampled uncertainty (yaw_std, joint_std: ~100 ms of CPU at
 #: 14x14) at most this often; the other estimates carry joints only
 UNCERTAINTY_PERIOD_S = 1.0
+#: --estimate-process: --live-rate holds on average over this long (or one period), not snapshot by snapshot
+ESTIMATE_CREDIT_S = 0.1
 
 
 class SessionOutputs:
@@ -390,14 +392,15 @@ class SessionOutputs:
         turn under --live-rate comes and the process has room, else kept as the newest waiting.
         The turn is on the snapshots' own times (their SYNC), not on when this thread gets to them:
         the main thread takes queued snapshots in bursts, and a burst must not read as a rate over
-        --live-rate (a credit of one period absorbs the SYNCs' jitter)."""
+        --live-rate (a credit of `ESTIMATE_CREDIT_S` absorbs the SYNCs' jitter: a SYNC sent late
+        and the next on time are closer than a period)."""
         self.poll()
         if not snap.valid.any():
             return
         t = float(snap.timestamp)
         if not force and t < self._next_est:
             return
-        self._next_est = max(self._next_est, t - self._period) + self._period
+        self._next_est = max(self._next_est, t - max(self._period, ESTIMATE_CREDIT_S)) + self._period
         if not self.worker.free:
             if self._waiting is not None:
                 self.estimates_not_made += 1  # replaced by a newer one
