@@ -7,9 +7,9 @@ frames arrive after their counter's deadline (issue 31: 13.9 % complete, 20 of 9
 estimated at 145 Hz). `EstimatorProcess` runs `host.analysis.estimator.estimate` in a child
 process (``spawn``) and hands back `RemoteEstimate` s, in order:
 
-* `submit` sends one snapshot's readings and mask (raw float64 bytes over a pipe, no pickling of
-  arrays); at most `max_in_flight` are outstanding, so a slow estimator costs queued snapshots
-  (counted by the caller), never memory;
+* `submit` sends one snapshot's readings and mask (raw float64 bytes over a 1 MB pipe, no pickling
+  of arrays); at most `max_in_flight` are outstanding, so a slow estimator costs queued snapshots
+  (counted by the caller), never memory, and a send never blocks on a full pipe;
 * `results` returns the estimates made since the last call, each with the counter it belongs to;
 * the uncertainty is asked for with a snapshot (``uncertainty=True``) and made only when its last
   cost is under `UNCERTAINTY_SHARE` of the time since: at 14x14 (~0.1 s) once a second as in
@@ -33,6 +33,8 @@ __all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE"]
 
 #: the uncertainty may take at most this share of the estimator's time (its cost / time since the last)
 UNCERTAINTY_SHARE = 0.03
+#: each pipe's buffer, bytes (Linux's default pipe-max-size): 4 requests of a 64x64 sheet
+PIPE_SIZE = 1 << 20
 #: request header: counter, n_links, flags (1 = uncertainty asked)
 _REQ = struct.Struct("<qII")
 #: answer header: counter, ok, iterations, residual, has_std, seconds spent
@@ -63,8 +65,18 @@ class RemoteEstimate:
         raise AttributeError(name)
 
 
-def _child(conn, rows: int, cols: int, link_length: float) -> None:
+def _widen(conn) -> None:
+    """Make a one-way pipe's buffer `PIPE_SIZE` (Linux; elsewhere it stays as it is)."""
+    try:
+        import fcntl
+        fcntl.fcntl(conn.fileno(), 1031, PIPE_SIZE)  # F_SETPIPE_SZ
+    except (ImportError, OSError):
+        pass
+
+
+def _child(pipes, rows: int, cols: int, link_length: float) -> None:
     """The estimator process: estimate every request in order until the pipe closes."""
+    req, ans = pipes
     from host.cli import one_blas_thread
     one_blas_thread()
     from host.analysis.estimator import estimate
@@ -73,7 +85,7 @@ def _child(conn, rows: int, cols: int, link_length: float) -> None:
     previous = None
     while True:
         try:
-            buf = conn.recv_bytes()
+            buf = req.recv_bytes()
         except (EOFError, OSError):
             return
         counter, n_links, flags = _REQ.unpack_from(buf, 0)
@@ -85,7 +97,7 @@ def _child(conn, rows: int, cols: int, link_length: float) -> None:
             est = estimate(readings, rows, cols, link_length, valid=valid, previous=previous, bad_readings="mask")
         except ValueError as exc:  # every valid link's reading bad: said, not fatal
             err = str(exc).encode()[:2000]
-            conn.send_bytes(_ANS.pack(counter, 0, 0, float("nan"), 0, time.perf_counter() - t0) + err)
+            ans.send_bytes(_ANS.pack(counter, 0, 0, float("nan"), 0, time.perf_counter() - t0) + err)
             continue
         previous = est
         parts = [np.ascontiguousarray(est.joints, dtype="<f8").tobytes(),
@@ -96,7 +108,7 @@ def _child(conn, rows: int, cols: int, link_length: float) -> None:
                       np.ascontiguousarray(est.joint_std, dtype="<f8").tobytes()]
             has_std = 1
         head = _ANS.pack(counter, 1, int(est.iterations), float(est.residual), has_std, time.perf_counter() - t0)
-        conn.send_bytes(head + est.method.encode().ljust(16, b"\0") + b"".join(parts))
+        ans.send_bytes(head + est.method.encode().ljust(16, b"\0") + b"".join(parts))
 
 
 class EstimatorProcess:
@@ -108,20 +120,29 @@ class EstimatorProcess:
         Joints.
     link_length : float
         Metres.
-    max_in_flight : int
-        Snapshots sent and not yet answered, at most.
+    max_in_flight : int, optional
+        Snapshots sent and not yet answered, at most (default: what the request pipe holds, 2..16).
     """
 
-    def __init__(self, rows: int, cols: int, link_length: float, *, max_in_flight: int = 4) -> None:
+    def __init__(self, rows: int, cols: int, link_length: float, *, max_in_flight: int | None = None) -> None:
         self.rows, self.cols, self.link_length = int(rows), int(cols), float(link_length)
         self.n_links = self.rows * (self.cols - 1) + self.cols * (self.rows - 1)
-        self.max_in_flight = int(max_in_flight)
+        request = _REQ.size + 25 * self.n_links
+        #: default: as many as the request pipe holds (a send never blocks), 2..16 (64x64: 5)
+        self.max_in_flight = int(max_in_flight) if max_in_flight else max(2, min(16, PIPE_SIZE // request))
         ctx = mp.get_context("spawn")
-        self._conn, child = ctx.Pipe()
-        self._proc = ctx.Process(target=_child, args=(child, self.rows, self.cols, self.link_length),
+        # two one-way pipes, each widened to `PIPE_SIZE`: a request is 32 bytes a link (a 64x64
+        # snapshot 200 KB), and on a duplex pipe (a socket pair, ~200 KB buffered) the second one in
+        # flight blocked the main thread until the child had finished the first
+        req_r, self._req = ctx.Pipe(duplex=False)
+        self._ans, ans_w = ctx.Pipe(duplex=False)
+        for c in (req_r, ans_w):
+            _widen(c)
+        self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length),
                                  name="capsheet-estimator", daemon=True)
         self._proc.start()
-        child.close()
+        req_r.close()
+        ans_w.close()
         self._in_flight: deque[float] = deque()  # send times
         self.submitted = 0
         self.made = 0  #: estimates returned
@@ -154,7 +175,7 @@ class EstimatorProcess:
             raise ValueError(f"snapshot of {readings.shape} readings for a lattice of {self.n_links} links")
         if uncertainty:
             self._last_unc = time.monotonic()
-        self._conn.send_bytes(b"".join((_REQ.pack(int(snap.counter), self.n_links, 1 if uncertainty else 0),
+        self._req.send_bytes(b"".join((_REQ.pack(int(snap.counter), self.n_links, 1 if uncertainty else 0),
                                         readings.tobytes(), valid.tobytes())))
         self._in_flight.append(time.monotonic())
         self.submitted += 1
@@ -163,9 +184,9 @@ class EstimatorProcess:
         """Estimates made since the last call (waiting up to ``timeout_s`` for the first)."""
         out: list[RemoteEstimate] = []
         n, rc = self.n_links, (self.rows, self.cols, 3)
-        while self._in_flight and self._conn.poll(timeout_s if not out else 0.0):
+        while self._in_flight and self._ans.poll(timeout_s if not out else 0.0):
             try:
-                buf = self._conn.recv_bytes()
+                buf = self._ans.recv_bytes()
             except (EOFError, OSError):
                 self._in_flight.clear()
                 break
@@ -201,7 +222,8 @@ class EstimatorProcess:
         t_end = time.monotonic() + timeout_s
         while self._in_flight and time.monotonic() < t_end:
             out += self.results(min(0.1, max(0.0, t_end - time.monotonic())))
-        self._conn.close()
+        self._req.close()
+        self._ans.close()
         self._proc.join(2.0)
         if self._proc.is_alive():
             self._proc.terminate()
