@@ -258,6 +258,8 @@ def run(args) -> int:
 
     # -- everything checkable before a port is opened: one line, exit 2 --------------------------
     check_ports(args, prog="capsheet host")  # neither or both of --port/--can, a port given twice
+    if args.reader_processes and not getattr(args, "port", None):
+        return _fail("--reader-processes reads serial ports (--port); python-can reads --can buses itself", EXIT_USAGE)
     layout = None
     if args.layout:
         try:

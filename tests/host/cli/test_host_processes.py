@@ -107,3 +107,9 @@ def test_reader_processes_need_a_port_with_a_file_descriptor():
     out = host("--port", "loop://", "--reader-processes", "--lattice", "3x3", "--auto-assign", "--duration", "1")
     assert out.returncode == 1 and "through a reader process" in out.stderr, out.stderr
     assert "Traceback" not in out.stderr
+
+
+def test_reader_processes_on_a_can_bus_is_a_usage_error():
+    out = host("--can", "virtual:rp", "--reader-processes", "--lattice", "3x3", "--auto-assign", "--duration", "1")
+    assert out.returncode == 2 and "--reader-processes reads serial ports" in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
