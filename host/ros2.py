@@ -18,6 +18,16 @@ Per sheet ``<sheet>``, a node ``/capsheet/<sheet>`` publishes
 * ``/capsheet/<sheet>/info``      ``std_msgs/msg/String``: JSON, lattice, layout and calibration
   (transient local, keep last 1: a late subscriber gets the newest, as ``/tf_static``)
 * ``/diagnostics``                ``diagnostic_msgs/msg/DiagnosticArray`` (the host's health, ~1/s)
+
+and, when the chips have gyroscopes (6/9-axis sheets), per link ``k`` (`imu_topics`: ``link_000`` ..,
+the link's index in the lattice's order, zero-padded) one sensor per topic as REP 145 names them:
+
+* ``/capsheet/<sheet>/link_<k>/imu/data``  ``sensor_msgs/msg/Imu`` (every snapshot the link sent an
+  IMU record in; frame_id ``capsheet_<sheet>_link_<k>``; orientation from the fused estimator, or
+  ``orientation_covariance[0] = -1`` without it)
+* ``/capsheet/<sheet>/link_<k>/imu/mag``   ``sensor_msgs/msg/MagneticField`` (9-axis chips)
+
+declared at the first snapshot with IMU records.
 """
 
 from __future__ import annotations
@@ -36,7 +46,7 @@ import numpy as np
 __all__ = ["MsgType", "TypeRegistry", "registry", "rihs01", "Cdr", "Ros2Encoder", "Ros2Publisher",
            "Ros2Recorder", "Ros2Outputs", "topic_keyexpr", "liveliness_keyexpr", "qos_keyexpr", "dds_type_name",
            "mangle", "attachment", "publisher_gid", "ROS_NAME", "TOPICS", "SENSOR_QOS", "DEFAULT_QOS",
-           "domain_id", "CDR_LE_HEADER", "KEYEXPR_DEFAULT_QOS", "LATCHED_QOS"]
+           "domain_id", "CDR_LE_HEADER", "KEYEXPR_DEFAULT_QOS", "LATCHED_QOS", "imu_topics", "IMU_TYPE", "MAG_TYPE"]
 
 #: the capsheet_msgs package in the repository (a ROS 2 package: colcon builds it)
 MSGS_DIR = Path(__file__).resolve().parents[1] / "msgs"
@@ -61,6 +71,12 @@ STANDARD = {
         "std_msgs/Header header\nuint32 height\nuint32 width\nPointField[] fields\nbool is_bigendian\n"
         "uint32 point_step\nuint32 row_step\nuint8[] data\nbool is_dense\n"),
     "sensor_msgs/msg/CompressedImage": "std_msgs/Header header\nstring format\nuint8[] data\n",
+    "sensor_msgs/msg/Imu": (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\nfloat64[9] orientation_covariance\n"
+        "geometry_msgs/Vector3 angular_velocity\nfloat64[9] angular_velocity_covariance\n"
+        "geometry_msgs/Vector3 linear_acceleration\nfloat64[9] linear_acceleration_covariance\n"),
+    "sensor_msgs/msg/MagneticField": (
+        "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\nfloat64[9] magnetic_field_covariance\n"),
     "visualization_msgs/msg/UVCoordinate": "float32 u\nfloat32 v\n",
     "visualization_msgs/msg/MeshFile": "string filename\nuint8[] data\n",
     "visualization_msgs/msg/Marker": (
@@ -306,6 +322,17 @@ TOPICS = {
     "info": "std_msgs/msg/String",
     "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
+IMU_TYPE, MAG_TYPE = "sensor_msgs/msg/Imu", "sensor_msgs/msg/MagneticField"
+
+
+def imu_topics(n_links: int) -> list[str]:
+    """The links' names, ``link_000`` .. (zero-padded to at least 3 digits: the same width on a
+    sheet, so names sort in the lattice's order); a link's topics are ``<name>/imu/data`` and
+    ``<name>/imu/mag``, its frame ``capsheet_<sheet>_<name>``."""
+    width = max(3, len(str(max(n_links - 1, 0))))
+    return [f"link_{k:0{width}d}" for k in range(n_links)]
+
+
 #: a ROS 2 name token (topics, nodes): what a sheet's name must be for --publish ros2
 ROS_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]{0,63}$")
 # rmw_qos_profile_t values: reliability 1 reliable / 2 best effort, durability 1 transient local /
@@ -399,6 +426,7 @@ class Ros2Encoder:
         #: joint indices of the surface's triangles, two per cell: (a, b, c) and (b, d, c)
         self.triangles = np.stack([np.stack([a, b, c], 1), np.stack([b, d, c], 1)], 1).reshape(-1).astype(np.intp)
         self._surface_tail: bytes | None = None
+        self._templates: dict[tuple[int, int], tuple[np.ndarray, int]] = {}
 
     def snapshot(self, snap) -> tuple[bytes, int]:
         stamp = _stamp_ns(snap.wall_time)
@@ -482,6 +510,66 @@ class Ros2Encoder:
                   float(c.force_n), float(c.depth_m), float(c.area_m2), float(np.max(c.axes_m)))
         return w.bytes()
 
+    def _link_template(self, n_links: int, n_floats: int) -> tuple[np.ndarray, int]:
+        """Every link's message of ``n_floats`` float64 after its header, all zero but the CDR header
+        and the link's frame_id (one row each; every frame_id has the same length, so every field is
+        at the same offset in every row): ``(rows, offset of the floats)``."""
+        key = (n_links, n_floats)
+        if key not in self._templates:
+            names = imu_topics(n_links)
+            w = Cdr()
+            w.header(0, f"{self.frame_id}_{names[0]}")
+            w.align(8)
+            off = len(w.buf)
+            rows = np.zeros((n_links, off + 8 * n_floats), np.uint8)
+            rows[:, :len(w.buf)] = np.frombuffer(w.bytes(), np.uint8)
+            ids = np.frombuffer("".join(f"{self.frame_id}_{n}" for n in names).encode(), np.uint8)
+            width = len(ids) // n_links  # the frame_id's bytes start after stamp (8) and length (4)
+            rows[:, 16:16 + width] = ids.reshape(n_links, width)
+            rows.setflags(write=False)
+            self._templates[key] = (rows, off)
+        return self._templates[key]
+
+    def _link_messages(self, n_links: int, links: np.ndarray, stamps_ns: np.ndarray, floats: np.ndarray) -> np.ndarray:
+        rows, off = self._link_template(n_links, floats.shape[1])
+        out = rows[links]  # a copy
+        sec, nsec = np.divmod(np.asarray(stamps_ns, np.int64), 1_000_000_000)
+        out[:, 4:8].view("<i4")[:, 0] = sec
+        out[:, 8:12].view("<u4")[:, 0] = nsec
+        out[:, off:].view("<f8")[:] = floats
+        return out
+
+    def imu(self, n_links: int, links: np.ndarray, stamps_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray,
+            quat: np.ndarray | None, orientation_cov: np.ndarray | None, gyro_var: float,
+            accel_var: float) -> np.ndarray:
+        """``sensor_msgs/msg/Imu`` of the links ``links`` (one row of CDR bytes each): angular
+        velocity (rad/s) and linear acceleration (the accelerometer's specific force, m/s², +g up at
+        rest as REP 145 has it), both in the link's frame, diagonal covariances ``gyro_var`` (rad/s)²,
+        ``accel_var`` (m/s²)²; orientation (x, y, z, w: link frame -> the sheet's frame) with its
+        3 x 3 covariance (rad², about the sheet's axes), or unknown: ``orientation_covariance[0] = -1``."""
+        m = len(links)
+        f = np.zeros((m, 37))
+        if quat is None:
+            f[:, 3] = 1.0  # the identity, flagged unknown
+            f[:, 4] = -1.0
+        else:
+            f[:, 0:4] = quat
+            f[:, 4:13] = np.asarray(orientation_cov, float).reshape(m, 9)
+        f[:, 13:16] = gyro
+        f[:, [16, 20, 24]] = gyro_var
+        f[:, 25:28] = accel
+        f[:, [28, 32, 36]] = accel_var
+        return self._link_messages(n_links, links, stamps_ns, f)
+
+    def magnetic_field(self, n_links: int, links: np.ndarray, stamps_ns: np.ndarray, mag: np.ndarray,
+                       mag_var: float) -> np.ndarray:
+        """``sensor_msgs/msg/MagneticField`` of the links ``links``: tesla, link frame, diagonal
+        covariance ``mag_var`` T²."""
+        f = np.zeros((len(links), 12))
+        f[:, 0:3] = mag
+        f[:, [3, 7, 11]] = mag_var
+        return self._link_messages(n_links, links, stamps_ns, f)
+
     def string(self, text: str) -> bytes:
         """A ``std_msgs/msg/String``."""
         w = Cdr()
@@ -556,22 +644,31 @@ class Ros2Publisher:
         self.liveliness: dict[str, str] = {"node": node_key}
         self._pub, self._gid, self._seq = {}, {}, {}
         self._lock = threading.Lock()
-        for eid, (topic, typ) in enumerate(TOPICS.items(), start=1):
-            fq = self.fq(topic)
-            qos = _QOS_OF.get(topic, SENSOR_QOS)
-            key = topic_keyexpr(domain, fq, typ)
-            lv = liveliness_keyexpr(domain, self.zid, 0, eid, "MP", self.namespace, self.node, fq, typ, qos)
-            rel = zenoh.Reliability.BEST_EFFORT if qos["reliability"] == 2 else zenoh.Reliability.RELIABLE
-            if qos["durability"] == 1:  # transient local: as rmw_zenoh, an advanced publisher with a cache
-                import zenoh.ext as zx  # of `depth` samples, detectable by late subscribers, heartbeats
-                self._pub[topic] = zx.declare_advanced_publisher(
-                    self.session, key, reliability=rel, congestion_control=zenoh.CongestionControl.DROP,
-                    cache=zx.CacheConfig(qos["depth"]), publisher_detection=True,
-                    sample_miss_detection=(zx.MissDetectionConfig(sporadic_heartbeat=MISS_HEARTBEAT_S)
-                                           if qos["reliability"] == 1 else None))
-            else:
-                self._pub[topic] = self.session.declare_publisher(key, reliability=rel,
-                                                                  congestion_control=zenoh.CongestionControl.DROP)
+        for topic, typ in TOPICS.items():
+            self.declare(topic, typ)
+
+    def declare(self, topic: str, typ: str) -> None:
+        """A publisher of ``typ`` on ``topic`` (relative to the node's namespace, or absolute) and
+        its liveliness token; its entity id the next of the node's."""
+        import zenoh
+
+        domain, eid = self.domain, len(self._pub) + 1
+        fq = self.fq(topic)
+        qos = _QOS_OF.get(topic, SENSOR_QOS)
+        key = topic_keyexpr(domain, fq, typ)
+        lv = liveliness_keyexpr(domain, self.zid, 0, eid, "MP", self.namespace, self.node, fq, typ, qos)
+        rel = zenoh.Reliability.BEST_EFFORT if qos["reliability"] == 2 else zenoh.Reliability.RELIABLE
+        if qos["durability"] == 1:  # transient local: as rmw_zenoh, an advanced publisher with a cache
+            import zenoh.ext as zx  # of `depth` samples, detectable by late subscribers, heartbeats
+            pub = zx.declare_advanced_publisher(
+                self.session, key, reliability=rel, congestion_control=zenoh.CongestionControl.DROP,
+                cache=zx.CacheConfig(qos["depth"]), publisher_detection=True,
+                sample_miss_detection=(zx.MissDetectionConfig(sporadic_heartbeat=MISS_HEARTBEAT_S)
+                                       if qos["reliability"] == 1 else None))
+        else:
+            pub = self.session.declare_publisher(key, reliability=rel, congestion_control=zenoh.CongestionControl.DROP)
+        with self._lock:
+            self._pub[topic] = pub
             self.tokens.append(self.session.liveliness().declare_token(lv))
             self.keys[topic], self.liveliness[topic] = key, lv
             self._gid[topic], self._seq[topic] = publisher_gid(lv), 0
@@ -613,13 +710,21 @@ class Ros2Recorder:
         self._seq: dict[str, int] = {}
         self.sheet = sheet
         self.counts: dict[str, int] = {}
+        #: topic -> type: `TOPICS` and what `add_topic` added (the links' IMU topics)
+        self.types = dict(TOPICS)
         reg = registry()
         self._schemas = {t: self._writer.register_schema(t, "ros2msg", reg.msgdef(t).encode())
-                         for t in set(TOPICS.values())}
+                         for t in sorted(set(TOPICS.values()))}
+
+    def add_topic(self, topic: str, typ: str) -> None:
+        with self._lock:
+            self.types[topic] = typ
+            if typ not in self._schemas:
+                self._schemas[typ] = self._writer.register_schema(typ, "ros2msg", registry().msgdef(typ).encode())
 
     def _channel(self, topic: str, fq: str) -> int:
         if topic not in self._channels:
-            typ = TOPICS[topic]
+            typ = self.types[topic]
             qos = _QOS_OF.get(topic, SENSOR_QOS)
             profile = (f"- history: {qos['history']}\n  depth: {qos['depth']}\n  reliability: {qos['reliability']}\n"
                        f"  durability: {qos['durability']}\n  deadline:\n    sec: 2147483647\n    nsec: 4294967295\n"
@@ -669,6 +774,11 @@ class Ros2Outputs:
                 self.publisher.close()
             raise
         self.counts = {t: 0 for t in TOPICS}
+        self.counts.update(imu=0, mag=0)  # the links' Imu and MagneticField messages, all links
+        #: topic -> type: `TOPICS` and, once IMU records come, the links' topics (`imu_topics`)
+        self.types = dict(TOPICS)
+        self._imu_links: list[str] | None = None
+        self._mag_declared = False
         #: messages a sink could not take (`_out`), and the last reason
         self.failed = {"publish": 0, "record": 0}
         self.last_error = {"publish": "", "record": ""}
@@ -677,7 +787,7 @@ class Ros2Outputs:
     def fq(self, topic: str) -> str:
         return topic if topic.startswith("/") else f"{self.namespace}/{topic}"
 
-    def _out(self, topic: str, payload: bytes, stamp: int) -> None:
+    def _out(self, topic: str, payload: bytes, stamp: int, count_as: str | None = None) -> None:
         """To each sink. A sink that fails (a closed Zenoh session, a full disk) is counted in
         `failed` with its last error, never raised into the host's receive thread; a recording that
         failed once takes no more (counted too)."""
@@ -695,7 +805,7 @@ class Ros2Outputs:
                 self.last_error["record"] = f"{type(exc).__name__}: {exc}"
         elif self.recorder is not None:
             self.failed["record"] += 1
-        self.counts[topic] += 1
+        self.counts[count_as or topic] += 1
 
     def snapshot(self, snap) -> None:
         """A feed listener: every emitted, corrected snapshot."""
@@ -711,6 +821,65 @@ class Ros2Outputs:
     def contacts(self, frame: int, contacts, total_force_n: float, wall_time=None) -> None:
         stamp = _stamp_ns(wall_time)
         self._out("contacts", self.encoder.contacts(frame, stamp, contacts, total_force_n), stamp)
+
+    def _declare_links(self, n_links: int, mag: bool) -> None:
+        names = imu_topics(n_links)
+        want = [(f"{n}/imu/data", IMU_TYPE) for n in names] + ([(f"{n}/imu/mag", MAG_TYPE) for n in names] if mag else [])
+        for topic, typ in want:
+            if topic in self.types:
+                continue
+            self.types[topic] = typ
+            if self.publisher is not None:
+                self.publisher.declare(topic, typ)
+            if self.recorder is not None:
+                self.recorder.add_topic(topic, typ)
+        self._imu_links = names
+        self._mag_declared = self._mag_declared or mag
+
+    def imu(self, snap, motion=None, orientation_cov=None, noise=None) -> None:
+        """A snapshot of 6/9-axis chips (``snap.gyro`` not None) as one ``sensor_msgs/msg/Imu`` per
+        link that sent an IMU record (and a ``sensor_msgs/msg/MagneticField`` with ``snap.mag``),
+        each stamped at the link's own sample time (the SYNC's plus ``sample_time_s``).
+        ``motion``: the fused estimator's `host.analysis.motion.MotionEstimate` of this snapshot
+        (its ``frames`` give the orientations) and ``orientation_cov`` (n_links, 3, 3) rad²; None:
+        the orientation is unknown. ``noise``: the white noise per axis per sample the covariances
+        say (attributes ``accel_noise_mps2``, ``gyro_noise_rps``, ``mag_noise_t``; default
+        `host.analysis.motion.FusedConfig`'s, the datasheets' figures the fused estimator assumes)."""
+        gyro = getattr(snap, "gyro", None)
+        if gyro is None:
+            return
+        if noise is None:
+            from host.analysis.motion import FusedConfig
+            noise = FusedConfig()
+        n = len(snap.valid)
+        mag = getattr(snap, "mag", None)
+        if self._imu_links is None or len(self._imu_links) != n or (mag is not None and not self._mag_declared):
+            self._declare_links(n, mag is not None)
+        ok = np.asarray(snap.valid, bool) & np.isfinite(gyro).all(1) & np.isfinite(snap.readings).all(1)
+        links = np.flatnonzero(ok)
+        if not len(links):
+            return
+        base = _stamp_ns(snap.wall_time)
+        st = getattr(snap, "sample_time_s", None)
+        offs = np.zeros(n) if st is None else np.where(np.isfinite(st), st, 0.0)
+        stamps = base + np.round(offs[links] * 1e9).astype(np.int64)
+        quat = ocov = None
+        if motion is not None:
+            from scipy.spatial.transform import Rotation
+            quat = Rotation.from_matrix(np.asarray(motion.frames)[links]).as_quat()  # x, y, z, w
+            ocov = (np.full((len(links), 3, 3), np.nan) if orientation_cov is None
+                    else np.asarray(orientation_cov)[links])
+        rows = self.encoder.imu(n, links, stamps, np.asarray(gyro)[links], np.asarray(snap.readings)[links], quat, ocov,
+                                float(noise.gyro_noise_rps) ** 2, float(noise.accel_noise_mps2) ** 2)
+        names = self._imu_links
+        for i, k in enumerate(links):
+            self._out(f"{names[k]}/imu/data", rows[i].tobytes(), int(stamps[i]), count_as="imu")
+        if mag is not None:
+            okm = np.isfinite(np.asarray(mag)[links]).all(1)
+            mrows = self.encoder.magnetic_field(n, links[okm], stamps[okm], np.asarray(mag)[links[okm]],
+                                                float(noise.mag_noise_t) ** 2)
+            for i, k in enumerate(links[okm]):
+                self._out(f"{names[k]}/imu/mag", mrows[i].tobytes(), int(stamps[okm][i]), count_as="mag")
 
     def info(self, doc: dict) -> None:
         """The sheet's facts (lattice, layout, calibration ...) as JSON on the latched ``info`` topic."""

@@ -282,6 +282,7 @@ def run(args) -> int:
                 t_e = time.perf_counter()
                 if fused is not None:
                     est = fused_update(fused, snap)
+                    outputs.imu(snap, est, fused)  # --publish ros2, --record-ros2: every link's IMU
                     if est is None:
                         continue
                 else:

@@ -369,6 +369,7 @@ class SessionOutputs:
                 from host.analysis.motion import MotionEstimator
                 self._fused = MotionEstimator(self.lattice.rows, self.lattice.cols, self.link_length)
             fused = fused_update(self._fused, snap)
+            self.imu(snap, fused, self._fused)
             if fused is None:
                 return None
         if self.worker is not None and fused is None:
@@ -399,6 +400,18 @@ class SessionOutputs:
             self._last_unc = now
         self.publish(est, snap, truth=truth, displacement=displacement, uncertainty=unc)
         return est
+
+    def imu(self, snap, fused=None, estimator=None) -> None:
+        """A snapshot of 6/9-axis chips to ``--publish ros2`` / ``--record-ros2`` as the links'
+        ``sensor_msgs/msg/Imu`` (and ``MagneticField``): with ``fused`` (`fused_update`'s shape of
+        this snapshot, made by ``estimator``, a `host.analysis.motion.MotionEstimator`) their
+        orientations and covariances, else none."""
+        if self.ros2 is None or getattr(snap, "gyro", None) is None:
+            return
+        if fused is None or estimator is None:
+            self.ros2.imu(snap, noise=None if estimator is None else estimator.config)
+        else:
+            self.ros2.imu(snap, fused.motion, estimator.P[:, :3, :3], estimator.config)
 
     # -- the estimator process (--estimate-process) ---------------------------------------------
     def _to_worker(self, snap, force: bool = False) -> None:
@@ -564,8 +577,10 @@ class SessionOutputs:
                 c, r = self.ros2.counts, self.ros2
                 what = " and ".join((["published"] if r.publisher is not None else [])
                                     + ([f"recorded to {r.recorder.path}"] if r.recorder is not None else []))
+                imu = (f", {c['imu']} link IMU and {c['mag']} magnetic field messages"
+                       if c["imu"] or c["mag"] else "")
                 print(f"{self.prog}: {what} ROS 2 messages: {c['snapshot']} snapshots, {c['joints']} joints and "
-                      f"surfaces, {c['contacts']} contact frames, {c['/diagnostics']} diagnostics", file=sys.stderr)
+                      f"surfaces, {c['contacts']} contact frames, {c['/diagnostics']} diagnostics{imu}", file=sys.stderr)
                 for sink, n in r.failed.items():
                     if n:
                         print(f"{self.prog}: {n} ROS 2 messages could not be "

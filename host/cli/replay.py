@@ -161,12 +161,14 @@ def run(args) -> int:
                 out.recorder.snapshot(snap)
             out.emit(snap)  # --publish, --record-ros2: a recording converted
             if args.no_estimate or not snap.valid.any():
+                out.imu(snap)  # 6/9-axis chips: the links' IMU messages (--record-ros2), no orientation
                 continue
             if snap.gyro is not None:  # 6/9-axis chips: the fused estimator, every snapshot in order (as live)
                 if fused is None:
                     from host.analysis.motion import MotionEstimator
                     fused = MotionEstimator(lat.rows, lat.cols, L)
                 est = fused_update(fused, snap)
+                out.imu(snap, est, fused)  # --publish ros2, --record-ros2: the links' IMU messages
                 if est is None:
                     continue
             else:

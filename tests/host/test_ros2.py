@@ -41,7 +41,8 @@ def test_type_hashes_are_the_published_ones():
 
 
 def test_every_type_hash_is_rosbags(ts):
-    names = set(R.TOPICS.values()) | {"capsheet_msgs/msg/Contact", "geometry_msgs/msg/Pose", "std_msgs/msg/Header"}
+    names = set(R.TOPICS.values()) | {"capsheet_msgs/msg/Contact", "geometry_msgs/msg/Pose", "std_msgs/msg/Header",
+                                      R.IMU_TYPE, R.MAG_TYPE}
     for n in sorted(names):
         assert R.rihs01(n) == ts.hash_rihs01(n), n
 
@@ -158,7 +159,7 @@ def test_ros_domain_id(value, expect):
 
 def test_the_ros2msg_schema_is_what_rosbags_parses(ts):
     reg = R.registry()
-    for typ in sorted(set(R.TOPICS.values())):
+    for typ in sorted(set(R.TOPICS.values()) | {R.IMU_TYPE, R.MAG_TYPE}):
         text = reg.msgdef(typ)
         store = get_typestore(Stores.EMPTY)
         store.register(get_types_from_msg(text, typ))  # rosbags reads the concatenated definition
@@ -177,3 +178,77 @@ def test_a_failing_recording_is_counted_not_raised():
     assert out.counts["snapshot"] == 400 and out.failed["record"] >= 1 and out.failed["publish"] == 0
     assert "No space left" in out.last_error["record"] or "28" in out.last_error["record"]
     out.close()
+
+
+def test_link_names_sort_in_the_lattices_order():
+    assert R.imu_topics(12) == [f"link_{k:03d}" for k in range(12)]
+    names = R.imu_topics(8064)  # a 64x64 sheet: 4 digits, every name as wide
+    assert names[0] == "link_0000" and names[-1] == "link_8063" and names == sorted(names)
+
+
+def _imu_snap(rng, n):
+    s = _snap(rng, n)
+    s.valid[:] = True
+    s.readings = rng.normal(size=(n, 3))
+    s.gyro = rng.normal(size=(n, 3))
+    s.mag = rng.normal(size=(n, 3)) * 5e-5
+    s.sample_time_s = rng.random(n) * 4e-3
+    s.gyro[2] = np.nan  # link 2 sent no IMU record
+    s.valid[5] = False  # link 5 did not answer
+    s.mag[7] = np.nan  # link 7's magnetometer sample is missing
+    s.sample_time_s[9] = np.nan  # link 9's sample time unknown: the SYNC's
+    return s
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_the_links_imu_messages_are_what_rosbags_reads(ts, tmp_path, fused):
+    """Per link that sent an IMU record, one ``sensor_msgs/msg/Imu`` on ``link_<k>/imu/data`` and
+    one ``MagneticField`` on ``link_<k>/imu/mag``, stamped at the link's sample time, in its frame,
+    with the covariances given; read back from the MCAP by rosbags."""
+    from rosbags.rosbag2 import Reader
+    from scipy.spatial.transform import Rotation
+
+    from protocol.lattice import Lattice
+    rng = np.random.default_rng(7 + fused)
+    lat = Lattice(3, 3)
+    n = lat.n_links
+    snaps = [_imu_snap(rng, n) for _ in range(3)]
+    quats = Rotation.random(n, random_state=5).as_quat()  # x, y, z, w
+    motion = SimpleNamespace(frames=Rotation.from_quat(quats).as_matrix()) if fused else None
+    A = rng.normal(size=(n, 3, 3))
+    ocov = A @ A.transpose(0, 2, 1) * 1e-6  # symmetric, positive
+    noise = SimpleNamespace(accel_noise_mps2=0.1, gyro_noise_rps=0.002, mag_noise_t=4e-7)
+    out = R.Ros2Outputs("arm", lat, record=tmp_path / "imu.mcap")
+    for s in snaps:
+        out.imu(s, motion, ocov if fused else None, noise)
+    out.close()
+    sent = [k for k in range(n) if k not in (2, 5)]
+    assert out.counts["imu"] == 3 * len(sent) and out.counts["mag"] == 3 * (len(sent) - 1)
+    with Reader(tmp_path / "imu.mcap") as r:
+        conns = {c.topic: c for c in r.connections}
+        got = {t: [ts.deserialize_cdr(raw, c.msgtype) for c, _, raw in r.messages([c])] for t, c in conns.items()}
+    assert set(conns) == {f"/capsheet/arm/link_{k:03d}/imu/data" for k in sent} | \
+        {f"/capsheet/arm/link_{k:03d}/imu/mag" for k in sent if k != 7}
+    for k in sent:
+        imu = got[f"/capsheet/arm/link_{k:03d}/imu/data"]
+        assert conns[f"/capsheet/arm/link_{k:03d}/imu/data"].msgtype == "sensor_msgs/msg/Imu" and len(imu) == 3
+        for s, m in zip(snaps, imu):
+            dt = 0.0 if k == 9 else s.sample_time_s[k]
+            assert m.header.frame_id == f"capsheet_arm_link_{k:03d}"
+            assert abs(m.header.stamp.sec + 1e-9 * m.header.stamp.nanosec - (s.wall_time + dt)) < 1e-6
+            v = lambda x: [x.x, x.y, x.z]  # noqa: E731
+            assert v(m.angular_velocity) == s.gyro[k].tolist() and v(m.linear_acceleration) == s.readings[k].tolist()
+            np.testing.assert_allclose(m.angular_velocity_covariance, np.diag([0.002 ** 2] * 3).ravel())
+            np.testing.assert_allclose(m.linear_acceleration_covariance, np.diag([0.01] * 3).ravel())
+            q = [m.orientation.x, m.orientation.y, m.orientation.z, m.orientation.w]
+            if fused:  # the same rotation (a quaternion or its negative)
+                assert min(np.abs(np.subtract(q, quats[k])).max(), np.abs(np.add(q, quats[k])).max()) < 1e-12
+                np.testing.assert_allclose(m.orientation_covariance, ocov[k].ravel())
+            else:  # REP 145 / Imu.msg: no orientation estimate
+                assert m.orientation_covariance[0] == -1.0
+        if k == 7:
+            continue
+        for s, m in zip(snaps, got[f"/capsheet/arm/link_{k:03d}/imu/mag"]):
+            assert m.header.frame_id == f"capsheet_arm_link_{k:03d}"
+            assert [m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] == s.mag[k].tolist()
+            np.testing.assert_allclose(m.magnetic_field_covariance, np.diag([1.6e-13] * 3).ravel())

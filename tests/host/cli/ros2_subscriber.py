@@ -102,6 +102,19 @@ def on_sample(sample):
             s.append({"type": int(msg.type), "action": int(msg.action), "points": len(p),
                       "edge_m_min": float(edges.min()), "edge_m_max": float(edges.max()),
                       "frame_id": msg.header.frame_id})
+        elif typ == "sensor_msgs/msg/Imu":  # REP 145: orientation sensor -> fixed frame, +g up at rest
+            import numpy as np
+            q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
+            f = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+            w = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+            s.append({"frame_id": msg.header.frame_id, "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
+                      "q": q.tolist(), "f": f.tolist(), "w": w.tolist(),
+                      "ocov": msg.orientation_covariance.tolist(), "wcov": msg.angular_velocity_covariance.tolist(),
+                      "fcov": msg.linear_acceleration_covariance.tolist()})
+        elif typ == "sensor_msgs/msg/MagneticField":
+            m = msg.magnetic_field
+            s.append({"frame_id": msg.header.frame_id, "stamp": msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec,
+                      "m": [m.x, m.y, m.z], "cov": msg.magnetic_field_covariance.tolist()})
         else:
             s.append({"type": typ})
     except Exception as exc:  # noqa: BLE001 - reported, the test fails on it
