@@ -294,3 +294,114 @@ def test_demo_records_ros2_and_replay_converts_its_recording(tmp_path):
         np.testing.assert_array_equal(x.specific_force, y.specific_force)
         np.testing.assert_array_equal(x.valid, y.valid)
     assert 0 < a_joints and b_joints == len(b)  # replay estimates every snapshot
+
+
+def _tilt_deg(q, f) -> float:
+    """The angle between the specific force turned into the fixed frame by the orientation ``q``
+    (x, y, z, w) and +z: REP 145's convention, +g up at rest."""
+    x, y, z, w = q
+    Rm = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                   [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                   [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    v = Rm @ np.asarray(f)
+    return float(np.degrees(np.arccos(v[2] / np.linalg.norm(v))))
+
+
+def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
+    """``capsheet demo --sensors accel+gyro+mag --publish ros2 --record-ros2``: one ``sensor_msgs/Imu``
+    topic and one ``MagneticField`` topic per link (docs/distribution.md), decoded by rosbags in
+    another process and in the MCAP; the fused orientations turn each link's accelerometer to +z
+    (REP 145: orientation sensor -> fixed frame, +g up at rest); ``capsheet replay --no-estimate``
+    converts the demo's recording with the same readings and no orientation."""
+    sheet, domain = _name(tmp_path)
+    live, run, conv = tmp_path / "live.mcap", tmp_path / "run.mcap", tmp_path / "conv.mcap"
+    sub = subprocess.Popen([sys.executable, str(SUB), str(domain), sheet, "60", "3"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert sub.stdout.readline().strip() == "ready"
+        out = subprocess.run(CLI + ["demo", "--lattice", "3x3", "--duration", "3", "--rate", "30", "--min-complete", "0",
+                                    "--sensors", "accel+gyro+mag", "--publish", "ros2", "--sheet-name", sheet,
+                                    "--record-ros2", str(live), "--record", str(run), "--out", str(tmp_path / "d.png")],
+                             capture_output=True, text=True, timeout=300, env=dict(ENV, ROS_DOMAIN_ID=str(domain)))
+        got, err = sub.communicate(timeout=90)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+    # the demo's own targets are not under test here: what it published and recorded is
+    assert out.returncode in (0, 1) and "Traceback" not in out.stderr, out.stderr
+    assert "Traceback" not in err, err
+    m = re.search(r"(\d+) snapshots, .* (\d+) link IMU and (\d+) magnetic field messages", out.stderr)
+    assert m, out.stderr
+    n_snap, n_imu, n_mag = int(m[1]), int(m[2]), int(m[3])
+    assert n_imu == n_mag and 0 < n_imu <= 12 * n_snap
+    doc = json.loads(got.strip().splitlines()[-1])
+    assert doc["bad"] == [], doc["bad"]
+    ts = typestore()
+    ns = f"/capsheet/{sheet}"
+    links = [f"link_{k:03d}" for k in range(12)]
+    for ln in links:
+        for topic, typ, dds in ((f"{ns}/{ln}/imu/data", "sensor_msgs/msg/Imu", "Imu_"),
+                                (f"{ns}/{ln}/imu/mag", "sensor_msgs/msg/MagneticField", "MagneticField_")):
+            assert doc["keys"][topic] == f"{domain}{topic}/sensor_msgs::msg::dds_::{dds}/{ts.hash_rihs01(typ)}"
+            token = [t for t in doc["tokens"] if f"/{topic.replace('/', '%')}/" in t]
+            assert len(token) == 1 and token[0].endswith(f"/sensor_msgs::msg::dds_::{dds}/{ts.hash_rihs01(typ)}"
+                                                         f"/2::,5:,:,:,,"), token  # best effort, keep last 5
+        imu = doc["samples"][f"{ns}/{ln}/imu/data"]
+        mag = {s["stamp"]: s for s in doc["samples"][f"{ns}/{ln}/imu/mag"]}
+        assert len(imu) >= 10
+        for s in imu:
+            assert s["frame_id"] == f"capsheet_{sheet}_{ln}"
+            assert abs(np.linalg.norm(s["f"]) - 9.81) < 2.0 and _tilt_deg(s["q"], s["f"]) < 8.0
+            assert abs(np.linalg.norm(s["q"]) - 1) < 1e-9 and s["ocov"][0] > 0
+            # docs/distribution.md: ICM-42688-P 0.024 °/s and 1 % g per axis, LIS3MDL 0.4 µT
+            np.testing.assert_allclose(s["wcov"], np.diag([np.radians(0.024) ** 2] * 3).ravel(), rtol=1e-9)
+            np.testing.assert_allclose(s["fcov"], np.diag([0.0981 ** 2] * 3).ravel(), rtol=2e-3)
+            mg = mag[s["stamp"]]  # the same sample: the same stamp
+            assert mg["frame_id"] == s["frame_id"] and 5e-6 < np.linalg.norm(mg["m"]) < 2e-4  # tesla
+            np.testing.assert_allclose(mg["cov"], np.diag([0.4e-6 ** 2] * 3).ravel())
+        stamps = [s["stamp"] for s in imu]
+        assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
+        assert doc["attachments"][f"{ns}/{ln}/imu/data"]["seq"] == sorted(set(
+            doc["attachments"][f"{ns}/{ln}/imu/data"]["seq"]))
+
+    def link_imu(path):
+        with Reader(path) as r:
+            conns = {c.topic: c for c in r.connections if "/imu/" in c.topic}
+            return {t: [ts.deserialize_cdr(raw, c.msgtype) for c, _, raw in r.messages([c])] for t, c in conns.items()}
+
+    rec = link_imu(live)
+    assert set(rec) == {f"{ns}/{ln}/imu/{k}" for ln in links for k in ("data", "mag")}
+    assert sum(len(v) for t, v in rec.items() if t.endswith("data")) == n_imu
+    for ln in links:
+        topic = f"{ns}/{ln}/imu/data"
+        recorded = [x.header.stamp.sec + 1e-9 * x.header.stamp.nanosec for x in rec[topic]]
+        published = [s["stamp"] for s in doc["samples"][topic]]  # what was published was recorded
+        assert set(published) <= set(recorded) and len(published) >= 0.5 * len(recorded)
+        for x in rec[topic]:
+            q = [x.orientation.x, x.orientation.y, x.orientation.z, x.orientation.w]
+            f = [x.linear_acceleration.x, x.linear_acceleration.y, x.linear_acceleration.z]
+            assert _tilt_deg(q, f) < 8.0
+
+    out = subprocess.run(CLI + ["replay", str(run), "--speed", "max", "--no-estimate", "--record-ros2", str(conv),
+                                "--sheet-name", sheet, "-q"], capture_output=True, text=True, timeout=300, env=ENV)
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    conv_imu = link_imu(conv)
+    assert set(conv_imu) == set(rec)
+    for topic, msgs in conv_imu.items():
+        if topic.endswith("/data"):
+            assert all(x.orientation_covariance[0] == -1.0 for x in msgs)  # no estimator: no orientation
+        # the same samples (their stamps to a microsecond: the recording keeps sample times as float32),
+        # the same readings
+        field = "angular_velocity" if topic.endswith("/data") else "magnetic_field"
+
+        def stamp(x):
+            return x.header.stamp.sec + 1e-9 * x.header.stamp.nanosec
+        tb = np.array([stamp(x) for x in msgs])
+        matched = 0
+        for x in rec[topic]:
+            i = int(np.argmin(np.abs(tb - stamp(x))))
+            if abs(tb[i] - stamp(x)) < 2e-6:
+                matched += 1
+                va, vb = getattr(x, field), getattr(msgs[i], field)
+                np.testing.assert_allclose([vb.x, vb.y, vb.z], [va.x, va.y, va.z], rtol=1e-6, atol=1e-12)
+        assert matched == len(rec[topic]) == len(msgs), (matched, len(rec[topic]), len(msgs))
