@@ -6,6 +6,7 @@ Per sheet, under ``capsheet/<sheet>/``:
   consumers that fall behind never make it skip one), `encode_snapshot`;
 * ``estimate``: every shape estimate the session makes (``--live-rate`` per second), joints and,
   when computed (about once a second), their uncertainty, `encode_estimate`;
+* ``contacts``: ``capsheet tactile``'s contacts and forces, JSON, one per tactile frame (`contacts`);
 * ``health``: the host's summary (completeness, errors, missing links), JSON, about once a second;
 * ``info`` (queryable): lattice, link length, layout and calibration, JSON — a late subscriber asks
   for it (``session.get("capsheet/<sheet>/info")``).
@@ -202,15 +203,15 @@ class ZenohPublisher:
                       "rows": lattice.rows, "cols": lattice.cols, "links": lattice.n_links,
                       "link_length_m": float(link_length), "layout": None, "calibration": None,
                       "session": dict(info or {}),
-                      "keys": {k: f"{self.prefix}/{k}" for k in ("snapshot", "estimate", "health", "info")}}
-        self.counts = {"snapshot": 0, "estimate": 0, "health": 0, "info": 0}
+                      "keys": {k: f"{self.prefix}/{k}" for k in ("snapshot", "estimate", "contacts", "health", "info")}}
+        self.counts = {"snapshot": 0, "estimate": 0, "contacts": 0, "health": 0, "info": 0}
         self._last_health = -np.inf
         try:
             self.session = zenoh.open(zenoh_config(endpoint))
         except zenoh.ZError as exc:
             raise OSError(f"cannot open a Zenoh session ({endpoint or 'peer mode on loopback'}): {exc}") from None
         self._pub = {k: self.session.declare_publisher(f"{self.prefix}/{k}")
-                     for k in ("snapshot", "estimate", "health")}
+                     for k in ("snapshot", "estimate", "contacts", "health")}
         self._queryable = self.session.declare_queryable(f"{self.prefix}/info", self._reply_info)
 
     def _reply_info(self, query) -> None:
@@ -236,6 +237,17 @@ class ZenohPublisher:
         self._pub["estimate"].put(encode_estimate(est, snap.counter, snap.timestamp, snap.wall_time,
                                                   uncertainty=uncertainty))
         self.counts["estimate"] += 1
+
+    def contacts(self, frame: int, t_s: float | None, wall_time: float, total_force_n: float,
+                 contacts: list[dict]) -> None:
+        """One tactile frame's contacts (``capsheet tactile``) as JSON: ``frame`` (its number in the
+        session), ``t_s``, ``wall_time`` (Unix s), ``total_force_n`` and ``contacts``, each ``id``,
+        ``index`` (lattice row, col), ``position`` (m), ``force_n``, ``depth_m``, ``area_m2``,
+        ``radius_m`` (docs/distribution.md)."""
+        doc = {"sheet": self.sheet, "frame": int(frame), "t_s": None if t_s is None else float(t_s),
+               "wall_time": float(wall_time), "total_force_n": float(total_force_n), "contacts": contacts}
+        self._pub["contacts"].put(json.dumps(doc).encode(), encoding="application/json")
+        self.counts["contacts"] += 1
 
     def health(self, doc: dict, *, force: bool = False) -> None:
         """The host's summary as JSON, at most once per `HEALTH_PERIOD_S` (always with ``force``)."""

@@ -13,6 +13,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -523,9 +524,17 @@ class SessionOutputs:
         """One `host.analysis.tactile.TactileFrame` (number ``k``): its estimate coloured by
         displacement, and its contacts (with the true contacts, ``(force, index)``, if known)."""
         rec = self.recorder
+        wall = time.time()
         if self.ros2 is not None:  # the estimate (joints, surface) and the contacts, every frame
-            self.ros2.estimate(frame.estimate, wall_time=time.time())
-            self.ros2.contacts(k, frame.contacts, frame.total_force_n)
+            self.ros2.estimate(frame.estimate, wall_time=wall)
+            self.ros2.contacts(k, frame.contacts, frame.total_force_n, wall_time=wall)
+        if self.publisher is not None:  # the same to capsheet/<sheet>/estimate and contacts, numbered by frame
+            t_s = float(frame.t_s) if frame.t_s is not None else float("nan")
+            if self.publishes_estimates:
+                self.publisher.estimate(frame.estimate, SimpleNamespace(counter=k, timestamp=t_s, wall_time=wall),
+                                        uncertainty=False)
+            self.publisher.contacts(k, frame.t_s, wall, frame.total_force_n, contact_dicts(frame.contacts))
+        if self.ros2 is not None or self.publisher is not None:
             self._health()
         if rec is None:
             return
@@ -565,7 +574,8 @@ class SessionOutputs:
             finally:
                 self.publisher.close()
                 c = self.publisher.counts
-                print(f"{self.prog}: published {c['snapshot']} snapshots, {c['estimate']} estimates, "
+                touch = f"{c['contacts']} contact frames, " if c["contacts"] else ""
+                print(f"{self.prog}: published {c['snapshot']} snapshots, {c['estimate']} estimates, {touch}"
                       f"{c['health']} health reports to Zenoh ({c['info']} info queries answered)",
                       file=sys.stderr)
                 self.publisher = None

@@ -159,6 +159,7 @@ def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int,
         t = k / args.snapshot_rate
         snap = snapshot(k, t, noisy_readings(ideal_readings(scene.joints(t)), args.noise, rng))
         outputs.snapshot(snap, estimate=False)  # what is estimated is what is recorded
+        outputs.emit(snap)  # --publish, --record-ros2: the raw snapshot (a real sheet's host feed sends its own)
         fr = sensor.process(snap.readings, t_s=t)
         yield fr, _true_marks(scene, t, L)
 

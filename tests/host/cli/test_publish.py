@@ -5,6 +5,7 @@ from docs/distribution.md alone. Asserts what is delivered and decoded, never a 
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -64,3 +65,45 @@ def test_a_bad_publish_value_is_one_line(value):
     out = subprocess.run(CLI + ["host", "--port", "/nonexistent", "--publish", value], capture_output=True,
                          text=True, timeout=60, env=ENV)
     assert out.returncode == 2 and "--publish" in out.stderr and "Traceback" not in out.stderr, out.stderr
+
+
+def test_tactile_publishes_snapshots_estimates_and_contacts(tmp_path):
+    """``capsheet tactile --publish zenoh`` (the virtual foam): every snapshot, every frame's estimate
+    and its contacts (JSON on ``capsheet/<sheet>/contacts``, docs/distribution.md), decoded in another
+    process. The scripted presses are a 2 N sphere and a 1.5 N flat punch (``--indenter
+    sphere-punch``): both on the sheet at once carry about 3.5 N."""
+    sheet = f"touch{abs(hash(str(tmp_path))) % 10**8}"
+    sub = subprocess.Popen([sys.executable, str(SUB), sheet, "15", "100000"], stdout=subprocess.PIPE,
+                           stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        assert sub.stdout.readline().strip() == "ready"
+        out = subprocess.run(CLI + ["tactile", "--duration", "3", "--publish", "zenoh", "--sheet-name", sheet, "-q",
+                                    "--out", str(tmp_path / "t.png")], capture_output=True, text=True, timeout=120,
+                             env=ENV)
+        got, err = sub.communicate(timeout=60)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+    assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr
+    assert "Traceback" not in err, err
+    m = re.search(r"published (\d+) snapshots, (\d+) estimates, (\d+) contact frames", out.stderr)
+    assert m and int(m[1]) == int(m[2]) == int(m[3]) == 25, out.stderr  # 3 s at 8 snapshots/s, and the first
+    doc = json.loads(got.strip().splitlines()[-1])
+    assert doc["bad"] == [], doc["bad"]
+    frames = [c["frame"] for c in doc["contacts"]]
+    assert len(frames) >= 10 and frames == list(range(frames[0], frames[0] + len(frames)))  # in order, none lost
+    counters = [s["counter"] for s in doc["snapshot"]]  # the virtual sheet's snapshot k is frame k
+    assert counters == list(range(counters[0], counters[0] + len(counters))) and set(frames) <= set(counters)
+    assert [e["counter"] for e in doc["estimate"]] == frames
+    for s in doc["snapshot"]:
+        assert (s["rows"], s["cols"], s["n"], s["valid"]) == (14, 14, 364, 364) and abs(s["norm"] - 9.81) < 0.5
+    for e in doc["estimate"]:
+        assert (e["rows"], e["cols"]) == (14, 14) and abs(e["link_m"] - 0.01) < 0.001
+    for c in doc["contacts"]:
+        assert c["sheet"] == sheet and abs(sum(x["force_n"] for x in c["contacts"]) - c["total_force_n"]) < 1e-9
+        for x in c["contacts"]:
+            assert x["force_n"] > 0 and x["depth_m"] > 0 and x["radius_m"] > 0 and len(x["position"]) == 3
+            assert 0 <= x["index"][0] <= 13 and 0 <= x["index"][1] <= 13
+    assert max(len(c["contacts"]) for c in doc["contacts"]) == 2
+    assert abs(max(c["total_force_n"] for c in doc["contacts"]) - 3.5) < 0.9
+    assert doc["contacts"][-1]["contacts"] == []  # both released by the end

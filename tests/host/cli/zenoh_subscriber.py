@@ -19,7 +19,7 @@ conf.insert_json5("mode", '"peer"')
 conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
 conf.insert_json5("scouting/multicast/interface", '"lo"')
 session = zenoh.open(conf)
-out = {"snapshot": [], "estimate": [], "health": [], "bad": [], "info": None}
+out = {"snapshot": [], "estimate": [], "contacts": [], "health": [], "bad": [], "info": None}
 HDR = "<4sBBHHIHQdd"  # docs/distribution.md: 40 bytes
 
 
@@ -27,8 +27,9 @@ def on_sample(sample):
     key, data = str(sample.key_expr), bytes(sample.payload.to_bytes())
     kind = key.rsplit("/", 1)[-1]
     try:
-        if kind == "health":
-            out["health"].append(json.loads(data))
+        if kind in ("health", "contacts"):  # JSON
+            assert sample.encoding == zenoh.Encoding.APPLICATION_JSON, f"{key}: encoding {sample.encoding}"
+            out[kind].append(json.loads(data))
             return
         magic, ver, flags, rows, cols, n, _, counter, ts, wall = struct.unpack_from(HDR, data)
         o = struct.calcsize(HDR)
