@@ -3,10 +3,12 @@ snapshot (`host.publish.encode_snapshot`; ros2: a CDR ``capsheet_msgs/LatticeSna
 ``Publisher.put`` (ros2: with rmw_zenoh's attachment) in peer mode on loopback, with one subscriber
 process-local peer listening (so the put goes to a transport, not to nothing), per lattice size; for
 ros2 also an estimate (``sensor_msgs/PointCloud2`` of the joints + ``visualization_msgs/Marker``
-TRIANGLE_LIST, encoded and put). Prints JSON: microseconds per message (median of ``--n`` puts) and
-payload bytes.
+TRIANGLE_LIST, encoded and put); for imu a 9-axis snapshot as every link's ``sensor_msgs/Imu`` and
+``sensor_msgs/MagneticField`` (``--n`` / 20 snapshots, with orientations: what a 6/9-axis session
+publishes per snapshot, in its main thread). Prints JSON: microseconds per message (median of
+``--n`` puts) and payload bytes.
 
-    .venv/bin/python benchmarks/bench_publish.py [--n 2000] [--kinds zenoh,ros2]
+    .venv/bin/python benchmarks/bench_publish.py [--n 2000] [--kinds zenoh,ros2,imu]
 """
 
 from __future__ import annotations
@@ -76,10 +78,47 @@ def bench_ros2(sub_session, lat, size, rng, n) -> dict:
     return res
 
 
+def bench_imu(sub_session, lat, size, rng, n) -> dict:
+    """Every link's Imu and MagneticField of one snapshot (`Ros2Outputs.imu`): encoded for all links
+    at once, one put per message."""
+    from types import SimpleNamespace
+
+    from host.ros2 import Ros2Outputs
+    name = f"benchimu{size}"
+    got = [0]
+    sub = sub_session.declare_subscriber(f"0/capsheet/{name}/**", lambda s: got.__setitem__(0, got[0] + 1))
+    pub = Ros2Outputs(name, lat, publish=True)
+    snap = Snap(lat.n_links, rng)
+    snap.gyro, snap.mag = rng.normal(size=(lat.n_links, 3)), rng.normal(size=(lat.n_links, 3)) * 5e-5
+    snap.sample_time_s = rng.random(lat.n_links) * 1e-3
+    from scipy.spatial.transform import Rotation
+    motion = SimpleNamespace(frames=Rotation.random(lat.n_links, random_state=1).as_matrix())
+    cov = np.tile(np.eye(3) * 1e-6, (lat.n_links, 1, 1))
+    pub.imu(snap, motion, cov)  # the links' publishers are declared at the first
+    time.sleep(2.0)  # discovery
+    got[0] = 0
+    t = []
+    for k in range(n):
+        t0 = time.perf_counter()
+        pub.imu(snap, motion, cov)
+        t.append(time.perf_counter() - t0)
+    time.sleep(1.0)
+    per = 2 * lat.n_links
+    res = {"links": lat.n_links, "messages_per_snapshot": per,
+           "imu_bytes": len(pub.encoder.imu(lat.n_links, np.arange(1), np.zeros(1, np.int64), np.zeros((1, 3)),
+                                            np.zeros((1, 3)), None, None, 0.0, 0.0)[0]),
+           "snapshot_encode_and_put_ms_median": round(1e3 * float(np.median(t)), 2),
+           "per_message_us_median": round(1e6 * float(np.median(t)) / per, 2),
+           "published_messages": n * per, "received_messages": got[0]}
+    pub.close()
+    sub.undeclare()
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--n", type=int, default=2000)
-    ap.add_argument("--kinds", default="zenoh,ros2")
+    ap.add_argument("--kinds", default="zenoh,ros2,imu")
     args = ap.parse_args()
     kinds = args.kinds.split(",")
     import zenoh
@@ -92,6 +131,8 @@ def main() -> None:
         out[size] = {}
         if "ros2" in kinds:
             out[size]["ros2"] = bench_ros2(sub_session, lat, size, rng, args.n)
+        if "imu" in kinds:
+            out[size]["imu"] = bench_imu(sub_session, lat, size, rng, max(5, args.n // 20))
         if "zenoh" not in kinds:
             continue
         name = f"bench{size}"

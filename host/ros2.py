@@ -683,6 +683,14 @@ class Ros2Publisher:
             att = attachment(self._seq[topic], time.time_ns(), self._gid[topic])
             self._pub[topic].put(payload, attachment=att)
 
+    def write_many(self, topics: list[str], payloads: list[bytes]) -> None:
+        """Several samples (a snapshot's links), one lock and one source timestamp for all."""
+        now = time.time_ns()
+        with self._lock:
+            for topic, payload in zip(topics, payloads):
+                seq = self._seq[topic] = self._seq[topic] + 1
+                self._pub[topic].put(payload, attachment=attachment(seq, now, self._gid[topic]))
+
     def close(self) -> None:
         try:
             for p in self._pub.values():
@@ -834,6 +842,8 @@ class Ros2Outputs:
             if self.recorder is not None:
                 self.recorder.add_topic(topic, typ)
         self._imu_links = names
+        self._imu_data = [f"{n}/imu/data" for n in names]
+        self._imu_mag = [f"{n}/imu/mag" for n in names]
         self._mag_declared = self._mag_declared or mag
 
     def imu(self, snap, motion=None, orientation_cov=None, noise=None) -> None:
@@ -871,15 +881,33 @@ class Ros2Outputs:
                     else np.asarray(orientation_cov)[links])
         rows = self.encoder.imu(n, links, stamps, np.asarray(gyro)[links], np.asarray(snap.readings)[links], quat, ocov,
                                 float(noise.gyro_noise_rps) ** 2, float(noise.accel_noise_mps2) ** 2)
-        names = self._imu_links
-        for i, k in enumerate(links):
-            self._out(f"{names[k]}/imu/data", rows[i].tobytes(), int(stamps[i]), count_as="imu")
+        self._out_many([self._imu_data[k] for k in links], rows, stamps, "imu")
         if mag is not None:
             okm = np.isfinite(np.asarray(mag)[links]).all(1)
             mrows = self.encoder.magnetic_field(n, links[okm], stamps[okm], np.asarray(mag)[links[okm]],
                                                 float(noise.mag_noise_t) ** 2)
-            for i, k in enumerate(links[okm]):
-                self._out(f"{names[k]}/imu/mag", mrows[i].tobytes(), int(stamps[okm][i]), count_as="mag")
+            self._out_many([self._imu_mag[k] for k in links[okm]], mrows, stamps[okm], "mag")
+
+    def _out_many(self, topics: list[str], rows: np.ndarray, stamps: np.ndarray, count_as: str) -> None:
+        """`_out` for a snapshot's links at once (one row of CDR bytes each); failures counted alike."""
+        payloads = [r.tobytes() for r in rows]
+        if self.publisher is not None:
+            try:
+                self.publisher.write_many(topics, payloads)
+            except Exception as exc:  # noqa: BLE001 -- as _out
+                self.failed["publish"] += 1
+                self.last_error["publish"] = f"{type(exc).__name__}: {exc}"
+        if self.recorder is not None:
+            for topic, payload, stamp in zip(topics, payloads, stamps.tolist()):
+                if self.failed["record"]:
+                    self.failed["record"] += 1
+                    continue
+                try:
+                    self.recorder.write(topic, payload, stamp, self.fq(topic))
+                except Exception as exc:  # noqa: BLE001 -- as _out
+                    self.failed["record"] += 1
+                    self.last_error["record"] = f"{type(exc).__name__}: {exc}"
+        self.counts[count_as] += len(topics)
 
     def info(self, doc: dict) -> None:
         """The sheet's facts (lattice, layout, calibration ...) as JSON on the latched ``info`` topic."""
