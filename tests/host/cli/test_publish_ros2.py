@@ -404,4 +404,6 @@ def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
                 matched += 1
                 va, vb = getattr(x, field), getattr(msgs[i], field)
                 np.testing.assert_allclose([vb.x, vb.y, vb.z], [va.x, va.y, va.z], rtol=1e-6, atol=1e-12)
-        assert matched == len(rec[topic]) == len(msgs), (matched, len(rec[topic]), len(msgs))
+        # every live sample is in the conversion (the recording also has the SYNCs the demo's loop did
+        # not get to before its end)
+        assert matched == len(rec[topic]) and len(msgs) >= len(rec[topic]), (matched, len(rec[topic]), len(msgs))
