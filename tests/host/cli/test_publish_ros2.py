@@ -311,7 +311,7 @@ def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
     """``capsheet demo --sensors accel+gyro+mag --publish ros2 --record-ros2``: one ``sensor_msgs/Imu``
     topic and one ``MagneticField`` topic per link (docs/distribution.md), decoded by rosbags in
     another process and in the MCAP; the fused orientations turn each link's accelerometer to +z
-    (REP 145: orientation sensor -> fixed frame, +g up at rest); ``capsheet replay --no-estimate``
+    (REP 145: orientation sensor -> fixed frame, +g up at rest; within the estimator's error); ``capsheet replay --no-estimate``
     converts the demo's recording with the same readings and no orientation."""
     sheet, domain = _name(tmp_path)
     live, run, conv = tmp_path / "live.mcap", tmp_path / "run.mcap", tmp_path / "conv.mcap"
@@ -351,7 +351,7 @@ def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
         assert len(imu) >= 10
         for s in imu:
             assert s["frame_id"] == f"capsheet_{sheet}_{ln}"
-            assert abs(np.linalg.norm(s["f"]) - 9.81) < 2.0 and _tilt_deg(s["q"], s["f"]) < 8.0
+            assert abs(np.linalg.norm(s["f"]) - 9.81) < 2.0 and _tilt_deg(s["q"], s["f"]) < 20.0
             assert abs(np.linalg.norm(s["q"]) - 1) < 1e-9 and s["ocov"][0] > 0
             # docs/distribution.md: ICM-42688-P 0.024 °/s and 1 % g per axis, LIS3MDL 0.4 µT
             np.testing.assert_allclose(s["wcov"], np.diag([np.radians(0.024) ** 2] * 3).ravel(), rtol=1e-9)
@@ -359,6 +359,11 @@ def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
             mg = mag[s["stamp"]]  # the same sample: the same stamp
             assert mg["frame_id"] == s["frame_id"] and 5e-6 < np.linalg.norm(mg["m"]) < 2e-4  # tesla
             np.testing.assert_allclose(mg["cov"], np.diag([0.4e-6 ** 2] * 3).ravel())
+        # the estimator's tilt error on a moving sheet (docs/estimator.md §8: about a degree), with room
+        # for its first snapshots; a rotation the wrong way round or a quaternion in w, x, y, z order is
+        # tens of degrees off
+        tilts = [_tilt_deg(s["q"], s["f"]) for s in imu]
+        assert np.median(tilts) < 3.0 and np.percentile(tilts, 90) < 8.0, tilts
         stamps = [s["stamp"] for s in imu]
         assert stamps == sorted(stamps) and len(set(stamps)) == len(stamps)
         assert doc["attachments"][f"{ns}/{ln}/imu/data"]["seq"] == sorted(set(
@@ -377,10 +382,10 @@ def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
         recorded = [x.header.stamp.sec + 1e-9 * x.header.stamp.nanosec for x in rec[topic]]
         published = [s["stamp"] for s in doc["samples"][topic]]  # what was published was recorded
         assert set(published) <= set(recorded) and len(published) >= 0.5 * len(recorded)
-        for x in rec[topic]:
-            q = [x.orientation.x, x.orientation.y, x.orientation.z, x.orientation.w]
-            f = [x.linear_acceleration.x, x.linear_acceleration.y, x.linear_acceleration.z]
-            assert _tilt_deg(q, f) < 8.0
+        tilts = [_tilt_deg([x.orientation.x, x.orientation.y, x.orientation.z, x.orientation.w],
+                           [x.linear_acceleration.x, x.linear_acceleration.y, x.linear_acceleration.z])
+                 for x in rec[topic]]
+        assert np.median(tilts) < 3.0 and max(tilts) < 20.0
 
     out = subprocess.run(CLI + ["replay", str(run), "--speed", "max", "--no-estimate", "--record-ros2", str(conv),
                                 "--sheet-name", sheet, "-q"], capture_output=True, text=True, timeout=300, env=ENV)
