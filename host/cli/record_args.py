@@ -53,7 +53,8 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
     g.add_argument("--publish", metavar="zenoh|ros2[:ENDPOINT]", type=_publish_arg, default=None,
                    help="zenoh: publish snapshots, estimates, health and (queryable) layout and calibration to "
                         "Zenoh under capsheet/<sheet>/...; ros2: the same as ROS 2 messages laid out as rmw_zenoh "
-                        "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics; ROS_DOMAIN_ID), "
+                        "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics, and with gyroscopes "
+                        "link_<k>/imu/data and imu/mag per link; ROS_DOMAIN_ID), "
                         "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
                         "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
     g.add_argument("--no-publish-estimates", action="store_true",
