@@ -293,7 +293,9 @@ def test_demo_records_ros2_and_replay_converts_its_recording(tmp_path):
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x.specific_force, y.specific_force)
         np.testing.assert_array_equal(x.valid, y.valid)
-    assert 0 < a_joints and b_joints == len(b)  # replay estimates every snapshot
+    # replay estimates every snapshot with a valid link (a loaded demo can record an empty one:
+    # its SYNC went unanswered in time; replay has nothing to estimate there)
+    assert 0 < a_joints and b_joints == sum(1 for m in b if np.any(m.valid))
 
 
 def _tilt_deg(q, f) -> float:
