@@ -223,7 +223,12 @@ class BringUp:
             reg.layout = layout
         with reg.lock:
             if reg.layout is None:
-                reg.layout = Layout.auto(list(reg.chips), lattice)
+                runs = {}
+                for b in {rec.bus for rec in reg.chips.values()}:
+                    on_bus = host.gateway_nodes.runs_on(b)
+                    if on_bus:
+                        runs.update({u: on_bus for u, rec in reg.chips.items() if rec.bus == b})
+                reg.layout = Layout.auto(list(reg.chips), lattice, runs=runs)
             links = reg.layout.links
             todo = {}
             for uid, rec in reg.chips.items():
