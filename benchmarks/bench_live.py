@@ -407,7 +407,7 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                 syncs_seen=doc.get("syncs_seen"), sync_mode=s.get("sync_mode"),
                 # SYNCs per second on the wire: sent by the host, or (following) heard from the gateway
                 sync_rate_hz=round((doc["syncs_sent"] if s.get("sync_mode") != "follow"
-                                    else doc.get("syncs_seen", 0)) / cfg["duration"], 1),
+                                    else doc.get("syncs_seen", 0) / gw) / cfg["duration"], 1),
                 syncs_missed=doc["live"]["syncs_missed"],
                 complete_pct=s["complete_snapshots_pct"], valid_links_pct=s["valid_links_pct"],
                 estimated_pct=round(100.0 * est.get("made", 0) / snaps, 2), estimates=est,
