@@ -15,7 +15,9 @@ and ``capsheet host`` on its five ports as a user does, at 145 Hz with ``--recor
 ``--reader-processes --estimate-process``; per design the share of snapshots complete, estimated
 and recorded, the SYNCs sent, and the CPU of every process (% of one core: the virtual sheet, which a
 real sheet does not put on this machine, the host's main process, its readers, its estimator) with
-the cost per link sample.
+the cost per link sample. ``64x64-packed-5gw-record-gwsync`` is the same with gateway 0 generating
+the SYNC (``capsheet virtual --rate 145``) and the host following it (``--sync follow``): its SYNC
+rate is the SYNCs one port brought per second.
 
 Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed over two serial gateways of
 12 Mbaud merged into one lattice (1,984 links exceed one 12 Mbaud UART at 145 Hz by the capacity
