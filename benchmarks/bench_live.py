@@ -17,7 +17,7 @@ and recorded, the SYNCs sent, and the CPU of every process (% of one core: the v
 real sheet does not put on this machine, the host's main process, its readers, its estimator) with
 the cost per link sample. ``64x64-packed-5gw-record-gwsync`` is the same with gateway 0 generating
 the SYNC (``capsheet virtual --rate 145``) and the host following it (``--sync follow``): its SYNC
-rate is the SYNCs one port brought per second.
+rate is the gateway's SYNCs that opened a snapshot, per second of streaming.
 
 Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed over two serial gateways of
 12 Mbaud merged into one lattice (1,984 links exceed one 12 Mbaud UART at 145 Hz by the capacity
@@ -407,9 +407,11 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
             row.update(
                 exit=doc["exit"], snapshots=s["snapshots"], syncs_sent=doc["syncs_sent"],
                 syncs_seen=doc.get("syncs_seen"), sync_mode=s.get("sync_mode"),
-                # SYNCs per second on the wire: sent by the host, or (following) heard from the gateway
+                # SYNCs per second while streaming: sent by the host, or (following) the gateway's
+                # SYNCs that opened a snapshot (syncs_seen counts each once per port, and the
+                # SYNCs heard during the bring-up too)
                 sync_rate_hz=round((doc["syncs_sent"] if s.get("sync_mode") != "follow"
-                                    else doc.get("syncs_seen", 0) / gw) / cfg["duration"], 1),
+                                    else s["snapshots"]) / cfg["duration"], 1),
                 syncs_missed=doc["live"]["syncs_missed"],
                 complete_pct=s["complete_snapshots_pct"], valid_links_pct=s["valid_links_pct"],
                 estimated_pct=round(100.0 * est.get("made", 0) / snaps, 2), estimates=est,
