@@ -26,6 +26,11 @@ __all__ = ["BringUp", "capacity_remedy"]
 
 log = logging.getLogger("capsheet.host")
 
+#: discovery: a round's window lasts until no new chip was heard for this long (s) ...
+DISCOVER_QUIET_S = 0.25
+#: ... and at most this many times the window asked for
+DISCOVER_MAX_STRETCH = 20
+
 #: (packed, IMU records) -> the frames a bus's load is counted in (docs/protocol.md §10, §16)
 _FRAMING = {(False, False): "SAMPLE", (True, False): "SNAPSHOT", (False, True): "IMU_SAMPLE",
             (True, True): "SNAPSHOT_IMU"}
@@ -151,7 +156,10 @@ class BringUp:
         host.open()
         for _ in range(rounds):
             host.commands.broadcast(GetInfo(0))
-            deadline = host.now() + timeout_s
+            start = host.now()
+            with reg.lock:
+                last = sum(1 for r in reg.chips.values() if r.info is not None)
+            deadline = start + timeout_s
             while host.now() < deadline:
                 host.idle(0.01)
                 with reg.lock:
@@ -159,6 +167,15 @@ class BringUp:
                     if layout is not None and all(u in reg.chips and reg.chips[u].info is not None
                                                   for u in layout.links):
                         return dict(reg.chips)
+                    known = sum(1 for r in reg.chips.values() if r.info is not None)
+                if known != last:
+                    # answers still coming in: the window lasts until they stop for DISCOVER_QUIET_S
+                    # (at most DISCOVER_MAX_STRETCH windows). 8,064 chips answer with 16,128 frames;
+                    # on a loaded machine the host read them for longer than 0.5 s, and the chips
+                    # whose answers it had not read by then were "missing" (1-2 in 3 of 8 runs)
+                    last = known
+                    deadline = max(deadline, min(host.now() + DISCOVER_QUIET_S,
+                                                 start + DISCOVER_MAX_STRETCH * timeout_s))
         with reg.lock:
             return dict(reg.chips)
 
@@ -223,7 +240,12 @@ class BringUp:
             reg.layout = layout
         with reg.lock:
             if reg.layout is None:
-                reg.layout = Layout.auto(list(reg.chips), lattice)
+                runs = {}
+                for b in {rec.bus for rec in reg.chips.values()}:
+                    on_bus = host.gateway_nodes.runs_on(b)
+                    if on_bus:
+                        runs.update({u: on_bus for u, rec in reg.chips.items() if rec.bus == b})
+                reg.layout = Layout.auto(list(reg.chips), lattice, runs=runs)
             links = reg.layout.links
             todo = {}
             for uid, rec in reg.chips.items():

@@ -156,6 +156,11 @@ class GatewayNodes:
         return max((int(g.sample_format) for r in self.by_uid.values() if r.bus == bus and r.flags & GatewayFlag.PACKING
                     for g in r.runs.values() if g.sample_format in KNOWN_SAMPLE_FORMATS), default=0)
 
+    def runs_on(self, bus: int) -> list[range]:
+        """The links the gateways on transport ``bus`` announced (GATEWAY_INFO runs), in link order:
+        the chips behind them are on these links (§13.2), so auto-assign places them there."""
+        return sorted((x for r in self.by_uid.values() if r.bus == bus for x in r.links), key=lambda x: x.start)
+
     def sync_sources(self) -> list[GatewayRecord]:
         """The gateways that generate their segment's SYNC (GATEWAY_INFO flag SYNC_SOURCE)."""
         return [r for r in self.by_uid.values() if r.flags & GatewayFlag.SYNC_SOURCE]

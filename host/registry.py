@@ -70,17 +70,41 @@ class Layout:
         return lat.rows, lat.cols
 
     @classmethod
-    def auto(cls, uids: Sequence[int], lattice: Lattice) -> "Layout":
+    def auto(cls, uids: Sequence[int], lattice: Lattice, runs: dict | None = None) -> "Layout":
         """Auto-assign: chips in ascending uid order take links 0, 1, 2, ... The positions are then
-        arbitrary (a shape estimate is meaningless until a real layout is given); a warning says so."""
-        uids = sorted(set(int(u) for u in uids))
-        if len(uids) > lattice.n_links:
-            log.warning("auto-assign: %d chips for %d links; the extra chips stay unassigned", len(uids),
-                        lattice.n_links)
-        log.warning("auto-assign: %d chips placed on links in uid order; positions are arbitrary "
-                    "(give a layout file for a meaningful shape)", min(len(uids), lattice.n_links))
-        return cls({u: k for k, u in enumerate(uids[:lattice.n_links])}, f"{lattice.rows}x{lattice.cols}", is_auto=True)
+        arbitrary (a shape estimate is meaningless until a real layout is given); a warning says so.
 
+        ``runs``: uid -> the links its gateway announced (GATEWAY_INFO runs, a list of ranges). A
+        packing gateway carries exactly its runs in its SNAPSHOTs (docs/protocol.md §13.2), so its
+        chips take the free links of those runs first (in uid order); placed elsewhere, their samples
+        would come as SAMPLEs while the gateway sends their links INVALID in its SNAPSHOTs and a
+        link behind another gateway got two answers per SYNC. The chips left take the lowest free
+        links in uid order."""
+        uids = sorted(set(int(u) for u in uids))
+        n = lattice.n_links
+        if len(uids) > n:
+            log.warning("auto-assign: %d chips for %d links; the extra chips stay unassigned", len(uids), n)
+        links: dict[int, int] = {}
+        taken = np.zeros(n, dtype=bool)
+        for u in uids:
+            for run in (runs or {}).get(u, ()):
+                r = range(max(0, run.start), min(n, run.stop))
+                free = np.flatnonzero(~taken[r.start:r.stop]) if len(r) else ()
+                if len(free):
+                    links[u] = r.start + int(free[0])
+                    taken[links[u]] = True
+                    break
+        free = iter(np.flatnonzero(~taken).tolist())
+        for u in uids:
+            if u not in links:
+                k = next(free, None)
+                if k is None:
+                    break
+                links[u] = k
+        log.warning("auto-assign: %d chips placed on links in uid order%s; positions are arbitrary "
+                    "(give a layout file for a meaningful shape)", len(links),
+                    " within their gateways' runs" if runs else "")
+        return cls(links, f"{lattice.rows}x{lattice.cols}", is_auto=True)
 
 @dataclass
 class ChipRecord:

@@ -81,7 +81,7 @@ def register(subparsers) -> None:
                    help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2)")
     p.add_argument("--deadline-ms", type=T.bounded_float(0.0, 60_000.0, lo_open=True, unit="ms"), default=None, help="wait this long for missing links")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
-    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s)")
+    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s); it lasts while new chips are still answering (until 0.25 s pass without one, at most 20 windows)")
     p.add_argument("--no-reset", action="store_true",
                    help="bring-up without RESET (STOP and drain only): chips keep their state")
     p.add_argument("--min-complete", type=T.percent, default=90.0, metavar="PCT",

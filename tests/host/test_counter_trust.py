@@ -37,7 +37,7 @@ def test_follow_rule_opens_within_the_window_and_a_sync_only_forwards():
     assert t.verdict(164, 100, 99, from_frame=True) == OPEN
     assert t.verdict(165, 100, 99, from_frame=True) == STRAY
     assert t.verdict(100 - 256, 100, 99, from_frame=True) == OPEN  # an old frame: late, not stray
-    assert t.verdict(90, 100, 99, from_frame=False) == STRAY  # a SYNC source never goes back
+    assert t.verdict(100 - 65, 100, 99, from_frame=False) == STRAY  # a SYNC source never goes back
     assert t.verdict(101, 100, 99, from_frame=False) == OPEN
     assert list(t.resync_events) == []
 
@@ -74,3 +74,22 @@ def test_follow_rule_a_counter_back_in_sequence_forgets_the_candidate():
 def test_invalid_settings_are_refused_by_name(kw, match):
     with pytest.raises(ValueError, match=match):
         CounterTrust(**kw)
+
+
+def test_follow_rule_a_sync_copy_from_a_lagging_port_is_late_and_never_a_new_sequence():
+    """Five gateways on one SYNC line: every SYNC comes once per port, a port read later brings
+    copies 0..max_jump behind the newest. They are late, and a run of them never resyncs (it did:
+    three consecutive copies were taken for a restarted source)."""
+    t = CounterTrust("follow", max_jump=64, resync_after=3)
+    newest = 5000
+    for c in range(newest - 64, newest + 1):
+        assert t.verdict(c, newest, newest - 1, from_frame=False) == LATE, c
+    assert list(t.resync_events) == []
+    # a source restarted far back is still followed after resync_after SYNCs
+    assert [t.verdict(c, newest, newest - 1, from_frame=False) for c in (0, 1, 2)] == [STRAY, STRAY, RESYNC]
+    # and copies behind the newest leave a candidate run alone
+    t2 = CounterTrust("follow", max_jump=64, resync_after=3)
+    assert t2.verdict(0, newest, newest - 1, from_frame=False) == STRAY
+    assert t2.verdict(newest - 2, newest, newest - 1, from_frame=False) == LATE
+    assert t2.verdict(1, newest, newest - 1, from_frame=False) == STRAY
+    assert t2.verdict(2, newest, newest - 1, from_frame=False) == RESYNC

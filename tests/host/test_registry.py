@@ -103,3 +103,16 @@ def test_node_ids_in_use_include_every_layout_link_and_forget_clears_all():
     reg.unknown_chips.add(0xC)
     reg.forget()
     assert reg.chips == {} and reg.unknown_chips == set() and reg.uid_at(0, 10) is None
+
+
+def test_auto_layout_places_chips_behind_a_gateway_on_its_runs_and_the_rest_in_uid_order():
+    """Layout.auto with gateway runs: chips 1..4 behind a gateway announcing links 4-5 and 8-9 take
+    those (in uid order), chip 5 behind a gateway whose runs are full takes the lowest free link,
+    chips without a gateway the lowest free links in uid order; without runs, links 0, 1, ... ."""
+    from protocol.lattice import Lattice
+    from host.registry import Layout
+    lat = Lattice(3, 3)  # 12 links
+    runs = {u: [range(4, 6), range(8, 10)] for u in (4, 1, 3, 2, 5)}
+    lay = Layout.auto([9, 5, 4, 3, 2, 1, 7], lat, runs=runs)
+    assert lay.links == {1: 4, 2: 5, 3: 8, 4: 9, 5: 0, 7: 1, 9: 2}
+    assert Layout.auto([9, 5, 1], lat).links == {1: 0, 5: 1, 9: 2}

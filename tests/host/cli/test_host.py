@@ -720,3 +720,17 @@ def test_a_record_logged_while_the_status_line_is_written_starts_on_its_own_line
     text = term.getvalue()
     k = text.index("WARNING")
     assert k > 0 and text[k - 1] == "\n", repr(text)
+
+
+def test_discovery_window_lasts_while_chips_are_still_answering(virtuals, tmp_path):
+    """1,984 chips answer GET_INFO with ~4,000 frames, more than the host reads in three 50 ms
+    windows: before, 913 layout chips "never answered" (exit 2; at 64x64 under load, 1-2 of 8,064
+    with the default 0.5 s). A round's window now lasts until no new chip has been heard for
+    `DISCOVER_QUIET_S`, so every chip is found and started."""
+    lay = tmp_path / "sheet.json"
+    v = virtuals("--lattice", "32x32", "--packed", "--layout-out", str(lay))
+    out, doc = host_json(*v.host_cmd, "--discover-s", "0.05", "--duration", "0.5", "--min-complete", "0")
+    assert out.returncode == 0, out.stderr
+    assert "1984 chips found, 1984 assigned, 1984 configured" in out.stderr, out.stderr
+    assert "1984 started" in out.stderr, out.stderr
+    assert doc["summary"]["missing_links"] == [], doc["summary"]["missing_links"]
