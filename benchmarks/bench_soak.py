@@ -7,8 +7,12 @@ Measured:
 
 * ``rss_mb``: every process of both commands (their children too), sampled every ``--sample-s``
   from /proc/<pid>/status (VmRSS); ``growth_after_warmup_mb`` = last sample minus the first
-  sample after ``--warmup`` s, ``max_growth_after_warmup_mb`` the largest sample minus it.
+  sample after ``--warmup`` s, ``max_growth_after_warmup_mb`` the largest sample minus it,
+  ``anon_growth_after_warmup_mb`` the same of RssAnon (the heaps, without mapped files).
   Goal: <= 2 MB.
+* ``host_probe`` (``--probe EVERY_S``): the host's `host.memory.MemoryProbe` lines (tracked objects
+  by type, containers that grew, glibc heap, the cyclic collector's pauses, the aggregator's late
+  frames). The probe walks the heap (~0.1 s, a few MB for a moment): not in the README's runs.
 * ``completeness_per_minute``: per minute of the host's clock, complete snapshots of the SYNCs
   the host opened (from the recording's ``/capsheet/sync`` and ``/capsheet/snapshot``). Goal:
   >= 99.9 % every minute.
@@ -61,15 +65,18 @@ def _children(pid: int) -> list[int]:
     return out
 
 
-def _rss_mb(pid: int) -> float | None:
+def _rss_mb(pid: int) -> tuple[float, float] | None:
+    """(VmRSS, RssAnon) in MB: the anonymous part is the heap's; the rest is mapped files (code
+    pages of the libraries, touched as new paths run)."""
+    got = {}
     try:
         with open(f"/proc/{pid}/status") as f:
             for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024.0
+                if line.startswith(("VmRSS:", "RssAnon:")):
+                    got[line.split(":")[0]] = int(line.split()[1]) / 1024.0
     except OSError:
         return None
-    return None
+    return (got["VmRSS"], got.get("RssAnon", got["VmRSS"])) if "VmRSS" in got else None
 
 
 def _cmdline(pid: int) -> str:
@@ -181,7 +188,10 @@ def run(args) -> dict:
                 "--overwrite"]
         if args.split_duration:
             hcmd += ["--split-duration", f"{args.split_duration:g}"]
-        host = subprocess.Popen(CLI + hcmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV,
+        henv = dict(ENV)
+        if args.probe:
+            henv["CAPSHEET_MEMORY_PROBE"] = f"{tmp / 'probe.jsonl'},{args.probe:g}"
+        host = subprocess.Popen(CLI + hcmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=henv,
                                 cwd=ROOT)
         err: list[str] = []
         threading.Thread(target=lambda: err.extend(host.stderr), daemon=True).start()
@@ -214,7 +224,8 @@ def run(args) -> dict:
                     p.kill()
     procs = {}
     for pid, name in names.items():
-        series = [(t, row[pid]) for t, row, _ in samples if pid in row]
+        anon = [row[pid][1] for t, row, _ in samples if pid in row and t >= args.warmup]
+        series = [(t, row[pid][0]) for t, row, _ in samples if pid in row]
         after = [mb for t, mb in series if t >= args.warmup]
         procs[name] = {"pid": pid, "samples": len(series),
                        "rss_mb_first": round(series[0][1], 1) if series else None,
@@ -223,6 +234,7 @@ def run(args) -> dict:
                        "rss_mb_max": round(max(mb for _, mb in series), 1) if series else None,
                        "growth_after_warmup_mb": round(after[-1] - after[0], 2) if after else None,
                        "max_growth_after_warmup_mb": round(max(after) - after[0], 2) if after else None,
+                       "anon_growth_after_warmup_mb": round(anon[-1] - anon[0], 2) if anon else None,
                        "rss_mb_every_minute": [round(mb, 1) for t, mb in series[::max(1, int(60 / args.sample_s))]]}
     files = sorted(tmp.glob("run_*.mcap")) or [rec]
     total = sum(p.stat().st_size for p in files)
@@ -259,6 +271,9 @@ def run(args) -> dict:
         "host_incidents": [i for i in s.get("incidents", []) if i.get("kind") not in ("info",)][:50] if s else None,
         "host_stderr_tail": "".join(err[-8:]),
     }
+    probe = tmp / "probe.jsonl"
+    if probe.exists():
+        doc["host_probe"] = [json.loads(line) for line in probe.read_text().splitlines() if line.strip()]
     if not args.keep:
         shutil.rmtree(tmp, ignore_errors=True)
     else:
@@ -278,6 +293,9 @@ def main() -> None:
                     help="capsheet host --split-duration (default 300; 0: one file)")
     ap.add_argument("--keep", action="store_true", help="keep the recording (its folder is printed)")
     ap.add_argument("--out", help="also write the JSON here")
+    ap.add_argument("--probe", type=float, default=0.0, metavar="EVERY_S",
+                    help="the host writes host.memory.MemoryProbe lines every EVERY_S s (types of objects "
+                         "that grow, glibc heap, the cyclic collector's pauses): in the JSON as host_probe")
     args = ap.parse_args()
     doc = run(args)
     text = json.dumps(doc, indent=1)

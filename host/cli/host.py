@@ -338,6 +338,10 @@ def run(args) -> int:
                 from host.health import HealthChecker
                 host.health = HealthChecker(host.lattice.rows, host.lattice.cols)
             out.describe(host)
+            from host.memory import probe_from_env
+            probe = probe_from_env(lambda: {k: host.aggregator.stats.summary().get(k) for k in
+                                            ("emitted", "complete", "incomplete", "late", "deadline_changes", "late_raises")}
+                                   | {"deadline_ms": round(1e3 * host.aggregator.deadline_s, 2)})  # CAPSHEET_MEMORY_PROBE: what grows, the collector's pauses
             t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, time.monotonic()
             end = None if args.duration is None else t0 + args.duration
             while end is None or time.monotonic() < end:
@@ -365,6 +369,8 @@ def run(args) -> int:
                     status.show(_status_text(host, t0, n0))
                     last = now
             host.stop()
+            if probe is not None:
+                probe.stop()
             for snap in host.drain():
                 if writer is not None:
                     writer.snapshot(snap)
