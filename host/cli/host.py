@@ -80,6 +80,10 @@ def register(subparsers) -> None:
     p.add_argument("--ignore-capacity", action="store_true",
                    help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2)")
     p.add_argument("--deadline-ms", type=T.bounded_float(0.0, 60_000.0, lo_open=True, unit="ms"), default=None, help="wait this long for missing links")
+    p.add_argument("--no-input-hold", action="store_true",
+                   help="give an incomplete counter up at its deadline even when its bus was not read past it "
+                        "yet (a host that was not scheduled for a while; the behaviour before issue 34: "
+                        "host.aggregator, 'Input watermark')")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s)")
     p.add_argument("--no-reset", action="store_true",
@@ -302,6 +306,7 @@ def run(args) -> int:
             t.close()
         return _fail(str(exc), EXIT_USAGE)
     host.imu_config = imu_config(args)
+    host.aggregator.hold_for_input = not args.no_input_hold
 
     def on_term(signum, frame):  # SIGTERM: stop the sheet as Ctrl-C does
         raise KeyboardInterrupt
