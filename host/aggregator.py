@@ -34,6 +34,17 @@ Rules (all counted in `AggregatorStats`, none raises):
 * **Counter trust** (`host.counter_trust.CounterTrust`): which counters may open a snapshot — any
   frame's (``trust="frames"``), only the SYNCs the host sent (``"sent"``), or a gateway's sequence,
   followed through a restart (``"follow"``).
+* **Input watermark** (``hold_for_input``, the host's): a deadline says how long to wait for
+  frames *after they could have been read*, not how long the host's threads happened to sleep. When
+  the whole host process is not scheduled for 100 ms (a loaded machine), the frames of the counters
+  opened meanwhile wait in the port's buffer; the thread that wakes first must not give those
+  counters up before the receive thread has read them. So, per bus, ``input_mark`` is how far the
+  input has been read: the SYNC time of the newest counter whose frames were ingested (a serial
+  line and a CAN bus deliver in order, so a counter's frames came before later counters'), or the
+  clock when the bus was found idle (`input_idle`: its reader found nothing). A counter past its
+  deadline is emitted incomplete only once every bus's mark is a deadline past its SYNC, or
+  `INPUT_HOLD_S` after its deadline at the latest (a reader that stopped); such waits are
+  counted in ``input_holds``. Measured with ``benchmarks/bench_soak.py`` (docs/host.md).
 * **Who is missing** (``miss_run``): per link, how many snapshots in a row were emitted without it
   while at least half of the other expected links arrived — the host's watchdog blames a chip
   only on this evidence (its neighbours' frames for the same counters came, its did not).
@@ -60,6 +71,9 @@ from .deadline import DeadlinePolicy
 __all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "serial_diff"]
 
 _MOD = 1 << 16
+#: holding for input (``hold_for_input``), a counter waits at most this long past its deadline
+#: (a bus whose reader stopped must not stop the snapshots), seconds
+INPUT_HOLD_S = 0.25
 _HALF = 1 << 15
 
 
@@ -166,6 +180,7 @@ class AggregatorStats:
     mag_links: int = 0  #: ... of them, with a magnetometer (9-axis records)
     deadline_changes: int = 0  #: times the adaptive deadline moved (late raises included)
     late_raises: int = 0  #: times a late frame raised the adaptive deadline at once
+    input_holds: int = 0  #: counters past their deadline held until the input was read past it
     stray: int = 0  #: frames for a counter nobody sent (drive) or out of the sequence (follow): dropped
     resyncs: int = 0  #: follow mode: the counter sequence restarted or jumped and was followed
     unknown_nodes: dict = field(default_factory=dict)  #: node -> frames (at most 256 nodes kept)
@@ -193,7 +208,7 @@ class AggregatorStats:
         return {k: getattr(self, k) for k in ("samples", "emitted", "complete", "incomplete", "evicted",
                                               "dropped", "late", "duplicates", "unknown", "out_of_range",
                                               "assigned_links", "valid_links", "imu_links", "mag_links", "deadline_changes",
-                                              "late_raises",
+                                              "late_raises", "input_holds",
                                               "stray", "resyncs")}
 
 
@@ -230,6 +245,10 @@ class Aggregator:
         buffer `drain` empties.
     trust, max_jump, resync_after
         Which counters may open a snapshot (`host.counter_trust.CounterTrust`).
+    hold_for_input : bool
+        A counter past its deadline is emitted only once the input is known to have been read past
+        it (`input_idle`, module docstring "Input watermark"); at most `INPUT_HOLD_S` longer. Off:
+        the deadline alone decides (a replay, which re-decides at recorded times, leaves it off).
 
     Attributes
     ----------
@@ -243,7 +262,7 @@ class Aggregator:
                  n_buses: int = 1, on_snapshot: Callable[[LatticeSnapshot], None] | None = None,
                  min_deadline_s: float | None = None,
                  max_deadline_s: float | None = None, trust: str = "frames", max_jump: int = 64,
-                 resync_after: int = 3) -> None:
+                 resync_after: int = 3, hold_for_input: bool = False) -> None:
         if not isinstance(n_links, (int, np.integer)) or n_links < 1:
             raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 1)")
         if max_open < 1:
@@ -290,6 +309,11 @@ class Aggregator:
         #: CONFIG_IMU ranges the chips were given (docs §16.2): how IMU counts convert (the owner sets them)
         self.gyro_range, self.mag_range = 3, 0
         self._imu: dict[int, list] = {}  # open counter -> [gyro (L, 3), mag (L, 3) or None, time (L,)], SI
+        self.hold_for_input = bool(hold_for_input)
+        self._held = -1  # the slot last held for input (counted once in stats.input_holds)
+        #: per bus: input read up to here (the newest SYNC time of a counter whose frames were
+        #: ingested, or when the bus was last found idle); -inf: nothing yet (module docstring)
+        self.input_mark = np.full(max(1, int(n_buses)), -np.inf)
 
     # -- configuration ---------------------------------------------------------------------
     def set_node_map(self, node_to_link=None) -> None:
@@ -645,6 +669,11 @@ class Aggregator:
         st = self.stats
         st.bus_frames[bus] += n
         st.link_last_seen[links] = now  # the chip is alive, even if its frame turns out late
+        if self.hold_for_input and 0 <= bus < self.input_mark.shape[0]:
+            # the bus was read up to frames answering this SYNC (a serial line, a CAN bus: in order)
+            t0 = self._t0_of[counter.astype(np.int64)]
+            if np.isfinite(t0).any():
+                self.input_mark[bus] = max(self.input_mark[bus], float(np.nanmax(t0)))
         if self.silent.any():  # links that were silent and speak again are waited for again
             back = self.silent[links]
             if back.any():
@@ -752,10 +781,31 @@ class Aggregator:
         """Emit counters whose deadline has passed at ``now``. Call periodically (the host's threads do)."""
         self._pump(now)
 
+    def input_idle(self, bus: int, now: float) -> None:
+        """Bus ``bus`` had nothing more to read at ``now`` (its reader found it empty): the input
+        watermark of an idle bus is the clock. Then emit what is due."""
+        if 0 <= bus < self.input_mark.shape[0]:
+            self.input_mark[bus] = max(self.input_mark[bus], now)
+        self._pump(now)
+
+    def _due(self, s: int, now: float) -> bool:
+        """Whether open slot ``s`` is past its deadline and, holding for input, the input was read
+        past that deadline (or `INPUT_HOLD_S` more passed)."""
+        waited = now - self._slot_t0[s]
+        if waited < self.deadline_s:
+            return False
+        if not self.hold_for_input or waited >= self.deadline_s + INPUT_HOLD_S:
+            return True
+        if float(self.input_mark.min()) - self._slot_t0[s] >= self.deadline_s:
+            return True
+        self.stats.input_holds += self._held != s
+        self._held = s
+        return False
+
     def _pump(self, now: float) -> None:
         while self._open:
             s = self._open[0]
-            if self._is_complete(s) or now - self._slot_t0[s] >= self.deadline_s:
+            if self._is_complete(s) or self._due(s, now):
                 self._emit(s, now)
             else:
                 break

@@ -201,6 +201,12 @@ class SnapshotFeed:
             self.aggregator.poll(self._now(now))
             self._deliver()
 
+    def input_idle(self, bus: int, now: float | None = None) -> None:
+        """`Aggregator.input_idle`: bus ``bus`` had nothing more to read at ``now``."""
+        with self._lock:
+            self.aggregator.input_idle(bus, self._now(now))
+            self._deliver()
+
     def flush(self, now: float | None = None) -> None:
         """`Aggregator.flush`: emit every open counter, masked where incomplete."""
         with self._lock:

@@ -213,8 +213,12 @@ class Host:
                       max_deadline_s=max(0.25, 8.0 * period))
         #: the sans-I/O aggregator: its configuration and statistics (read them freely; it is
         #: driven only through `feed`)
+        # hold_for_input: a counter past its deadline waits until its bus was read past it, so a
+        # host that was not scheduled for a while reads the frames waiting for it before it gives
+        # their counters up (host.aggregator, "Input watermark"; issue 34)
         self.aggregator = Aggregator(n, node_to_link=None, n_buses=len(self.transports),
-                                     trust="sent" if self.sync_driver.sync_mode == "drive" else "follow", **dl)
+                                     trust="sent" if self.sync_driver.sync_mode == "drive" else "follow",
+                                     hold_for_input=True, **dl)
         #: the one place snapshots come from (`host.feed.SnapshotFeed`): what `get`, `latest`,
         #: `snapshots`, `drain` and every listener (``on_snapshot``, a recorder, `health`) see,
         #: corrected by `set_calibration` once
@@ -382,8 +386,7 @@ class Host:
             self.bringup.count_stale(events)
             return True
         if not events:
-            if self._driver is None:
-                feed.poll()
+            feed.input_idle(bus)  # read up to now: its counters may be given up at their deadline
             return False
         if self.gateway_nodes.unreadable:  # a gateway packs words this host cannot read (§4.16)
             events = self.gateway_nodes.drop_unreadable(bus, events)

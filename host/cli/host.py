@@ -80,6 +80,10 @@ def register(subparsers) -> None:
     p.add_argument("--ignore-capacity", action="store_true",
                    help="stream even when the traffic exceeds a bus's capacity (default: refuse, exit 2)")
     p.add_argument("--deadline-ms", type=T.bounded_float(0.0, 60_000.0, lo_open=True, unit="ms"), default=None, help="wait this long for missing links")
+    p.add_argument("--no-input-hold", action="store_true",
+                   help="give an incomplete counter up at its deadline even when its bus was not read past it "
+                        "yet (a host that was not scheduled for a while; the behaviour before issue 34: "
+                        "host.aggregator, 'Input watermark')")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s); it lasts while new chips are still answering (until 0.25 s pass without one, at most 20 windows)")
     p.add_argument("--no-reset", action="store_true",
@@ -302,6 +306,7 @@ def run(args) -> int:
             t.close()
         return _fail(str(exc), EXIT_USAGE)
     host.imu_config = imu_config(args)
+    host.aggregator.hold_for_input = not args.no_input_hold
 
     def on_term(signum, frame):  # SIGTERM: stop the sheet as Ctrl-C does
         raise KeyboardInterrupt
@@ -338,6 +343,10 @@ def run(args) -> int:
                 from host.health import HealthChecker
                 host.health = HealthChecker(host.lattice.rows, host.lattice.cols)
             out.describe(host)
+            from host.memory import probe_from_env
+            probe = probe_from_env(lambda: {k: host.aggregator.stats.summary().get(k) for k in
+                                            ("emitted", "complete", "incomplete", "late", "deadline_changes", "late_raises")}
+                                   | {"deadline_ms": round(1e3 * host.aggregator.deadline_s, 2)})  # CAPSHEET_MEMORY_PROBE: what grows, the collector's pauses
             t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, time.monotonic()
             end = None if args.duration is None else t0 + args.duration
             while end is None or time.monotonic() < end:
@@ -365,6 +374,8 @@ def run(args) -> int:
                     status.show(_status_text(host, t0, n0))
                     last = now
             host.stop()
+            if probe is not None:
+                probe.stop()
             for snap in host.drain():
                 if writer is not None:
                     writer.snapshot(snap)

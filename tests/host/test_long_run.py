@@ -149,3 +149,96 @@ def test_a_recorder_over_a_long_split_run_keeps_only_counts_and_file_names(tmp_p
     assert rec.counts["/capsheet/snapshot"] == 30_000 and len(rec.paths) >= 3
     whole = read(tmp_path / "long.mcap", raw=False)
     assert len(whole) == 30_000 and np.all(np.diff(whole.counter.astype(int)) % 65536 == 1)
+
+
+def _stalled_host_run(hold: bool) -> tuple:
+    """4 links at 145 Hz, deadline 20 ms. SYNCs 0..29 on time; the host process then sleeps 120 ms
+    (SYNCs 30..46 are sent late, at its wake-up: a SyncSchedule catches up) while the chips answer
+    SYNC 30 and 31 into the port. At wake-up the SYNC thread polls *before* the receive thread reads
+    the port. Returns (emitted complete, incomplete, late frames, input holds)."""
+    period, dl = 1 / RATE_HZ, 0.02
+    agg = Aggregator(4, {k + 1: k for k in range(4)}, deadline_s=dl, trust="sent", hold_for_input=hold)
+
+    def frames(c):
+        return [Sample(node, c, 0, 0, 1024, 0) for node in range(1, 5)]
+    t = 0.0
+    for c in range(30):
+        t = c * period
+        agg.open_counter(c, t)
+        agg.ingest(frames(c), 0, now=t + 0.001)
+    # the stall: SYNC 30 and 31 went out, their answers wait in the port
+    agg.open_counter(30, 30 * period)
+    agg.open_counter(31, 31 * period)
+    wake = 31 * period + 0.120
+    agg.poll(wake)  # the SYNC thread, first to get the interpreter
+    agg.ingest(frames(30) + frames(31), 0, now=wake + 0.0005)  # the receive thread reads the port
+    for c in range(32, 40):  # back to normal
+        t = wake + (c - 31) * period
+        agg.open_counter(c, t)
+        agg.ingest(frames(c), 0, now=t + 0.001)
+    agg.input_idle(0, t + 0.05)  # the chips stop; the reader finds the port empty
+    agg.poll(t + 0.05)
+    st = agg.stats
+    return st.complete, st.incomplete, st.late, st.input_holds
+
+
+def test_a_host_that_slept_reads_the_frames_waiting_for_it_before_it_gives_their_counters_up():
+    """The deadline counts from when frames could have been read (host.aggregator, "Input
+    watermark"): without it, a 120 ms stall of the whole host loses the two counters whose frames
+    sat in the port (8 late frames, 2 incomplete snapshots); with it, all 40 complete."""
+    assert _stalled_host_run(hold=False) == (38, 2, 8, 0)
+    assert _stalled_host_run(hold=True) == (40, 0, 0, 2)  # counters 30 and 31 held, then complete
+
+
+def test_holding_for_input_gives_a_counter_up_once_the_bus_is_idle_or_after_the_hold():
+    """A chip that never answers: its counter is emitted incomplete at the deadline once the bus
+    was found idle, or once later counters' frames were read; a bus that says nothing at all (its
+    reader stopped) holds a counter at most INPUT_HOLD_S past the deadline."""
+    from host.aggregator import INPUT_HOLD_S
+    dl = 0.02
+    # one bus: link 3 silent; the frames of later counters move the watermark
+    agg = Aggregator(4, {k + 1: k for k in range(4)}, deadline_s=dl, trust="sent", hold_for_input=True)
+    agg.open_counter(0, 0.0)
+    agg.ingest([Sample(n, 0, 0, 0, 1024, 0) for n in (1, 2, 3)], 0, now=0.001)
+    agg.poll(0.03)
+    assert agg.stats.emitted == 0  # past the deadline, but nothing read past it yet
+    agg.open_counter(5, 0.025)
+    agg.ingest([Sample(n, 5, 0, 0, 1024, 0) for n in (1, 2, 3)], 0, now=0.031)
+    assert (agg.stats.emitted, agg.stats.incomplete) == (1, 0 + 1)  # counter 0, read past: given up
+    # two buses: bus 1 idle (found empty) releases it; bus 1 silent (reader gone) holds it
+    for idle, expect_at in ((True, 0.021), (False, dl + INPUT_HOLD_S)):
+        agg = Aggregator(4, {k + 1: k for k in range(4)}, deadline_s=dl, trust="sent", n_buses=2,
+                         hold_for_input=True)
+        agg.open_counter(0, 0.0)
+        agg.ingest([Sample(n, 0, 0, 0, 1024, 0) for n in (1, 2)], 0, now=0.001)
+        agg.input_idle(0, 0.021)
+        if idle:
+            agg.input_idle(1, 0.021)
+        t = 0.021
+        while agg.stats.emitted == 0 and t < 1.0:
+            agg.poll(t)
+            t = round(t + 0.001, 6)
+        assert agg.stats.emitted == 1 and abs((t - 0.001 if not idle else 0.021) - expect_at) < 1.5e-3
+
+
+def test_the_estimators_structure_cache_keeps_the_newest_masks_only_over_a_long_run():
+    """A live host estimates incomplete snapshots now and then, each missing another link: after
+    2000 different masks the cache holds the structure of all links valid and MASKED_KEPT masked
+    ones (~1.1 MB apiece at 14x14; one cache of 16 for all kept 16 one-offs, a creep of megabytes
+    in the soak run); a mask that repeats (a chip that stays missing) is reused, not rebuilt."""
+    from host.analysis.estimator import structure as S
+    S.cached_structure.cache_clear()
+    rows = cols = 4
+    n = Lattice(rows, cols).n_links
+    full = S.structure_of(rows, cols, None)
+    bits = 1 << np.arange(n - 1)
+    for k in range(1, 2001):  # 2000 different masks: link j+1 missing where bit j of k is set
+        S.structure_of(rows, cols, np.r_[True, (k & bits) == 0])
+    info = S.cached_structure.cache_info()
+    assert (info.misses, info.currsize) == (2000, S.MASKED_KEPT)
+    assert S.structure_of(rows, cols, None) is full  # not pushed out by the masks
+    dead = np.ones(n, bool)
+    dead[5] = False
+    first = S.structure_of(rows, cols, dead)
+    assert all(S.structure_of(rows, cols, dead) is first for _ in range(100))
+    assert S.cached_structure.cache_info().currsize == S.MASKED_KEPT

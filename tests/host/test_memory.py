@@ -62,3 +62,44 @@ def test_every_capsheet_command_fixes_it_and_a_users_choice_stands():
     assert _mmapped_bytes(via_cli) >= 4 << 20
     env = dict(os.environ, MALLOC_MMAP_THRESHOLD_=str(64 << 20))  # the user's: above the block
     assert _mmapped_bytes(via_cli, env=env) == 0
+
+
+# -- the probe's parts (host.memory.GcPauses, container_lengths) -------------------------------------
+
+def test_gc_pauses_on_a_simulated_clock_are_counted_per_generation_with_their_longest():
+    from host.memory import GcPauses
+    now = [0.0]
+    p = GcPauses(lambda: now[0])
+    for gen, dt in ((0, 0.0001), (0, 0.0003), (2, 0.030), (1, 0.006), (2, 0.060)):
+        p.on_gc("start", {"generation": gen})
+        now[0] += dt
+        p.on_gc("stop", {"generation": gen, "collected": 3})
+        now[0] += 1.0
+    p.on_gc("stop", {"generation": 2})  # a stop without its start (installed mid-collection): ignored
+    d = p.as_dict()
+    assert [d[f"gen{g}"]["count"] for g in range(3)] == [2, 1, 2]
+    assert d["gen2"]["max_ms"] == 60.0 and d["gen2"]["total_ms"] == 90.0
+    assert d["gen0"]["max_ms"] == 0.3 and d["gen0"]["collected"] == 6
+    assert (d["gen2"]["at_least_5ms"], d["gen2"]["at_least_20ms"], d["gen2"]["at_least_50ms"]) == (2, 2, 1)
+    assert (d["gen1"]["at_least_5ms"], d["gen1"]["at_least_20ms"]) == (1, 0)
+
+
+def test_container_lengths_names_a_growing_field_even_when_the_collector_does_not_track_it():
+    import gc
+
+    from host.memory import container_lengths
+
+    class Holder:
+        def __init__(self):
+            self.table = {}  # ints to floats: the collector does not track this dict itself
+
+    h = Holder()
+    for i in range(40):
+        h.table[i] = float(i)
+    assert not gc.is_tracked(h.table)
+    before = container_lengths()
+    for i in range(40, 100):
+        h.table[i] = float(i)
+    after = container_lengths()
+    assert before[id(h.table)][0] == 40 and before[id(h.table)][1].endswith("Holder.table:dict")
+    assert after[id(h.table)][0] == 100

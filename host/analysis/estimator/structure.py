@@ -275,17 +275,44 @@ def units_int64(rows: int, cols: int) -> np.ndarray:
     return np.ascontiguousarray(lattice_of(rows, cols).units.reshape(-1, 4), dtype=np.int64)
 
 
-@lru_cache(maxsize=16)
-def cached_structure(rows: int, cols: int, mask_bytes: bytes | None, model: str) -> Structure:
-    """The `Structure` of a lattice, mask (its bytes; None: all valid) and model, built once
-    (``cached_structure.cache_clear()`` forgets them: a benchmark's cold start)."""
+def _build(rows: int, cols: int, mask_bytes: bytes | None, model: str) -> Structure:
     n = Lattice(rows, cols).n_links
     valid = np.ones(n, bool) if mask_bytes is None else np.frombuffer(mask_bytes, dtype=bool).copy()
     return Structure(rows, cols, valid, model)
 
 
+#: structures of masks kept (`structure_of`): the newest few
+MASKED_KEPT = 2
+_cached_full = lru_cache(maxsize=16)(_build)
+_cached_masked = lru_cache(maxsize=MASKED_KEPT)(_build)
+
+
+def cached_structure(rows: int, cols: int, mask_bytes: bytes | None, model: str) -> Structure:
+    """The `Structure` of a lattice, mask (its bytes; None: all valid) and model, built once: 16
+    kept with all links valid, the `MASKED_KEPT` newest masks (``cached_structure.cache_clear()``
+    forgets them all: a benchmark's cold start; ``cache_info()`` is the masked ones')."""
+    return (_cached_full if mask_bytes is None else _cached_masked)(rows, cols, mask_bytes, model)
+
+
+def _clear_structures() -> None:
+    _cached_full.cache_clear()
+    _cached_masked.cache_clear()
+
+
+cached_structure.cache_clear = _clear_structures
+cached_structure.cache_info = _cached_masked.cache_info
+
+
 def structure_of(rows: int, cols: int, valid: np.ndarray | None, model: str = "cells") -> Structure:
-    """The (cached) `Structure` of a lattice, mask of valid links (None: all) and model."""
+    """The (cached) `Structure` of a lattice, mask of valid links (None: all) and model.
+
+    A structure with its factorisation is ~1.1 MB at 14x14. A live host estimates the newest
+    snapshot, and on a loaded machine an incomplete one now and then, each missing another link:
+    one cache of 16 for every mask kept 16 such one-off structures (~18 MB) and, replacing them,
+    fragmented the heap — the host's resident size crept up by megabytes in a soak run (issue 34).
+    So masks have a cache of their own, of the `MASKED_KEPT` newest: a chip that stays missing
+    repeats its mask (the warm start reuses the structure's factorisation), one-offs go soon.
+    """
     if valid is None or valid.all():
         return cached_structure(rows, cols, None, model)
     return cached_structure(rows, cols, valid.tobytes(), model)
