@@ -59,6 +59,8 @@ typedef struct {
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
         struct { uint8_t axis; } cal_read;
+        struct { uint8_t block, index, flags, reserved; float value; } cal_imu;
+        struct { uint8_t block, index; } cal_imu_read;
         struct { uint16_t counter; int16_t x, y, z; uint8_t status; uint8_t format; int16_t time_us;
                  int16_t gx, gy, gz, mx, my, mz; } imu_sample;
         struct { uint16_t counter; int16_t gx, gy, gz; } imu_gyro;

@@ -131,8 +131,9 @@ def nominal_imu_cal() -> dict:
 
 
 def _clamp_round(x):
+    """Round to nearest, halves away from zero (as C's ``(int)(v + 0.5)`` on |v|), then clamp."""
     import numpy as np
-    return np.clip(np.rint(x), -32768, 32767).astype(np.int64)
+    return np.clip(np.sign(x) * np.floor(np.abs(x) + 0.5), -32768, 32767).astype(np.int64)
 
 
 def corrected_gyro_counts(counts, range_code, matrix, bias_rps, g_sens, accel_g):

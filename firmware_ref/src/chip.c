@@ -37,26 +37,29 @@
 #define NO_RULE R_(0xFF, CAPSHEET_STAY, 0)
 #define ST CAPSHEET_STAY
 
-/* [state][type - 0x10]: SYNC ASSIGN CONFIG START STOP GET_INFO RESET CAL_WRITE CAL_READ CONFIG_IMU */
+/* [state][type - 0x10]: SYNC ASSIGN CONFIG START STOP GET_INFO RESET CAL_WRITE CAL_READ CONFIG_IMU
+ * CAL_IMU_WRITE CAL_IMU_READ */
 static const capsheet_rule_t k_rules[CAPSHEET_STATE_COUNT][CAPSHEET_HOST_TYPE_LAST - CAPSHEET_HOST_TYPE_FIRST + 1u] = {
     /* BOOT */
     {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), NO_RULE, NO_RULE, NO_RULE,
      R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0), R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE,
-     NO_RULE, NO_RULE},
+     NO_RULE, NO_RULE, NO_RULE, NO_RULE},
     /* IDLE */
     {R_(CAPSHEET_REPLY_NONE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
      R_(CAPSHEET_REPLY_ACK, CAPSHEET_STREAMING, 0), R_(CAPSHEET_REPLY_ACK, ST, 0),
      R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0), R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0),
-     R_(CAPSHEET_REPLY_ACK, ST, 1), R_(CAPSHEET_REPLY_CAL_DATA, ST, 0), R_(CAPSHEET_REPLY_ACK, ST, 1)},
+     R_(CAPSHEET_REPLY_ACK, ST, 1), R_(CAPSHEET_REPLY_CAL_DATA, ST, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
+     R_(CAPSHEET_REPLY_ACK, ST, 1), R_(CAPSHEET_REPLY_CAL_IMU_DATA, ST, 1)},
     /* STREAMING */
     {R_(CAPSHEET_REPLY_SAMPLE, ST, 0), NO_RULE, NO_RULE, R_(CAPSHEET_REPLY_ACK, ST, 0),
      R_(CAPSHEET_REPLY_ACK, CAPSHEET_IDLE, 0), R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0),
-     R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0), NO_RULE},
+     R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0), NO_RULE,
+     NO_RULE, R_(CAPSHEET_REPLY_CAL_IMU_DATA, ST, 1)},
     /* FAULT */
     {R_(CAPSHEET_REPLY_SAMPLE, ST, 0), R_(CAPSHEET_REPLY_ACK, CAPSHEET_FAULT, 0), R_(CAPSHEET_REPLY_ACK, ST, 1),
      R_(CAPSHEET_REPLY_ACK, ST, 0), R_(CAPSHEET_REPLY_ACK, ST, 0), R_(CAPSHEET_REPLY_ANNOUNCE_INFO, ST, 0),
      R_(CAPSHEET_REPLY_ACK_THEN_BOOT, CAPSHEET_BOOT, 0), NO_RULE, R_(CAPSHEET_REPLY_CAL_DATA, ST, 0),
-     R_(CAPSHEET_REPLY_ACK, ST, 1)},
+     R_(CAPSHEET_REPLY_ACK, ST, 1), NO_RULE, R_(CAPSHEET_REPLY_CAL_IMU_DATA, ST, 1)},
 };
 
 int32_t capsheet_rule_for(uint8_t state, uint8_t type, capsheet_rule_t *rule)
@@ -247,6 +250,107 @@ static void load_calibration(capsheet_chip_t *c)
     }
 }
 
+/* ---- v1.3 (§17): the gyroscope's and magnetometer's calibration ---- */
+
+static const uint8_t k_cal_imu_first[5] = {0u, 9u, 12u, 21u, 30u};
+
+static uint8_t cal_imu_slot(uint8_t block, uint8_t index)
+{
+    return (uint8_t)(k_cal_imu_first[block] + index);
+}
+
+/* identity for the two matrices' diagonals, 0 elsewhere (§17.1) */
+static float cal_imu_nominal(uint8_t k)
+{
+    return (k == 0u || k == 4u || k == 8u || k == 21u || k == 25u || k == 29u) ? 1.0f : 0.0f;
+}
+
+static bool cal_imu_nominal_range(const capsheet_chip_t *c, uint8_t first, uint8_t last)
+{
+    uint8_t k;
+    for (k = first; k <= last; k++) {
+        if (c->imu_cal[k] != cal_imu_nominal(k)) {
+            return false;
+        }
+    }
+    return true;
+}
+
+static void imu_cal_changed(capsheet_chip_t *c)
+{
+    c->imu_cal_on = (uint8_t)((cal_imu_nominal_range(c, 0u, 20u) ? 0u : 1u)
+                              | (cal_imu_nominal_range(c, 21u, 32u) ? 0u : 2u));
+}
+
+/* At boot (power-on, RESET): the stored elements, nominal values for the others. */
+static void load_imu_calibration(capsheet_chip_t *c)
+{
+    uint8_t k;
+    for (k = 0; k < CAPSHEET_IMU_CAL_COUNT; k++) {
+        if (c->imu_cal_flags[k] & 2u) {
+            c->imu_cal[k] = c->imu_cal_nvm[k];
+            c->imu_cal_flags[k] = 3u;
+        } else {
+            c->imu_cal[k] = cal_imu_nominal(k);
+            c->imu_cal_flags[k] = 0u;
+        }
+    }
+    imu_cal_changed(c);
+}
+
+#if CAPSHEET_IMU
+/* round to nearest, clamped to a 16-bit count (§17.3) */
+static int16_t count_of(float v)
+{
+    if (v >= 32767.0f) {
+        return 32767;
+    }
+    if (v <= -32768.0f) {
+        return -32768;
+    }
+    return (int16_t)((v >= 0.0f) ? (int32_t)(v + 0.5f) : -(int32_t)(-v + 0.5f));
+}
+
+/* out = M (v - off), M the 3 x 3 at imu_cal[m], counts per unit `s` back at the end */
+static void apply_matrix(const float *M, const float v[3], float s, int16_t out[3])
+{
+    uint8_t i;
+    for (i = 0; i < 3u; i++) {
+        out[i] = count_of((M[3u * i] * v[0] + M[3u * i + 1u] * v[1] + M[3u * i + 2u] * v[2]) * s);
+    }
+}
+
+/* §17.3: correct the gyroscope (and magnetometer) counts of one record in place. `a` the
+ * accelerometer counts sent at CONFIG's range. Counts per rad/s: 32768 / (125 · 2^r) · 180/π;
+ * counts per tesla: 32768 / (4 (r + 1)) · 10^4. */
+static void apply_imu_calibration(const capsheet_chip_t *c, const int16_t a[3], int16_t g[3], int16_t m[3],
+                                  bool nine)
+{
+    uint8_t i;
+    float v[3];
+    if (c->imu_cal_on & 1u) {
+        const float s = 32768.0f / (125.0f * (float)(1u << c->gyro_range)) * 57.29577951308232f;
+        float f[3];
+        for (i = 0; i < 3u; i++) {
+            f[i] = ((float)((int32_t)a[i] * (int32_t)(1 << c->range_code)) - (float)c->cal[i].offset_q4 / 16.0f)
+                   / c->cal[i].sensitivity;
+        }
+        for (i = 0; i < 3u; i++) {
+            const float *G = &c->imu_cal[12u + 3u * i];
+            v[i] = (float)g[i] / s - c->imu_cal[9u + i] - (G[0] * f[0] + G[1] * f[1] + G[2] * f[2]);
+        }
+        apply_matrix(&c->imu_cal[0], v, s, g);
+    }
+    if (nine && (c->imu_cal_on & 2u)) {
+        const float s = 32768.0f / (4.0f * (float)(c->mag_range + 1u)) * 10000.0f;
+        for (i = 0; i < 3u; i++) {
+            v[i] = (float)m[i] / s - c->imu_cal[30u + i];
+        }
+        apply_matrix(&c->imu_cal[21u], v, s, m);
+    }
+}
+#endif
+
 static void schedule(uint64_t *deadline, uint64_t period_us, uint64_t now_us)
 {
     /* docs §14: next = previous deadline + period (no drift); if that is not after now (a whole
@@ -287,6 +391,7 @@ static CAPSHEET_WARN_UNUSED int32_t boot(capsheet_chip_t *c, uint64_t now_us)
     c->mag_range = 0;
     c->imu_flags = 0;
     load_calibration(c);
+    load_imu_calibration(c);
     if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL) {
         c->rx.len = 0;
         c->rx.discarding = false;
@@ -410,6 +515,14 @@ static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
         if ((m->u.cal.flags & 1u) && !(caps & CAPSHEET_CAP_CAL_STORAGE)) {
             return CAPSHEET_NACK_UNSUPPORTED;
         }
+    } else if (m->type == CAPSHEET_CAL_IMU_WRITE || m->type == CAPSHEET_CAL_IMU_READ) {  /* §17.2, in this order */
+        const uint8_t block = (m->type == CAPSHEET_CAL_IMU_WRITE) ? m->u.cal_imu.block : m->u.cal_imu_read.block;
+        if (!(caps & ((block <= 2u) ? CAPSHEET_CAP_GYRO : CAPSHEET_CAP_MAG))) {
+            return CAPSHEET_NACK_UNSUPPORTED;
+        }
+        if (m->type == CAPSHEET_CAL_IMU_WRITE && (m->u.cal_imu.flags & 1u) && !(caps & CAPSHEET_CAP_CAL_STORAGE)) {
+            return CAPSHEET_NACK_UNSUPPORTED;
+        }
     } else if (m->type == CAPSHEET_CONFIG_IMU) {  /* §16.2, in this order; the ranges whatever the format */
         if (m->u.config_imu.format > CAPSHEET_IMU_FORMAT_9AXIS || m->u.config_imu.gyro_range > 4u
             || m->u.config_imu.mag_range > 3u) {
@@ -489,6 +602,10 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
             c->state = CAPSHEET_FAULT;  /* the gyroscope failed: an INVALID record, FAULT (§16.1, §8.6) */
             status = CAPSHEET_SAMPLE_INVALID;
         } else {
+            const int16_t a[3] = {s->u.sample.x, s->u.sample.y, s->u.sample.z};
+            if (c->imu_cal_on) {
+                apply_imu_calibration(c, a, rd.gyro, rd.mag, nine);  /* §17.3 */
+            }
             r.u.imu_sample.x = s->u.sample.x;
             r.u.imu_sample.y = s->u.sample.y;
             r.u.imu_sample.z = s->u.sample.z;
@@ -783,6 +900,17 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         c->cal[cal.axis] = cal;
         break;
     }
+    case CAPSHEET_CAL_IMU_WRITE: {  /* §17.3: per element; the stored copy survives RESET */
+        const uint8_t k = cal_imu_slot(m->u.cal_imu.block, m->u.cal_imu.index);
+        c->imu_cal[k] = m->u.cal_imu.value;
+        c->imu_cal_flags[k] = (uint8_t)((c->imu_cal_flags[k] & 2u) | (m->u.cal_imu.flags & 1u));
+        if (m->u.cal_imu.flags & 1u) {
+            c->imu_cal_nvm[k] = m->u.cal_imu.value;
+            c->imu_cal_flags[k] = 3u;
+        }
+        imu_cal_changed(c);
+        break;
+    }
     default:
         break;
     }
@@ -802,6 +930,21 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
             d.u.cal.flags = 0;
             d.u.cal.offset_q4 = 0;
             d.u.cal.sensitivity = 1024.0f;
+        }
+        return send_msg(c, &d);
+    }
+    case CAPSHEET_REPLY_CAL_IMU_DATA: {
+        capsheet_msg_t d;
+        const uint8_t k = cal_imu_slot(m->u.cal_imu_read.block, m->u.cal_imu_read.index);
+        msg_init(&d, CAPSHEET_CAL_IMU_DATA, c->node);
+        d.u.cal_imu.block = m->u.cal_imu_read.block;
+        d.u.cal_imu.index = m->u.cal_imu_read.index;
+        d.u.cal_imu.flags = (uint8_t)(c->imu_cal_flags[k] & 1u);
+        d.u.cal_imu.reserved = 0;
+        d.u.cal_imu.value = c->imu_cal[k];
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_CAL_IMU_READ_NOMINAL)) {
+            d.u.cal_imu.flags = 0;
+            d.u.cal_imu.value = cal_imu_nominal(k);
         }
         return send_msg(c, &d);
     }

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from protocol.can import CanFrame, decode_can, make_id, to_can
 from protocol.framing import DecodeError, decode_frame, encode, encode_frame
-from protocol.messages import (Assign, CalRead, CalWrite, ChipState, Config, ConfigImu, GetInfo, Info, MsgType,
+from protocol.messages import (Assign, CalImuRead, CalImuWrite, CalRead, CalWrite, ChipState, Config, ConfigImu, GetInfo, Info, MsgType,
                                Reset, Start, Stop, Sync)
 
 pytest.importorskip("firmware_ref._capsheet_fw", reason="C firmware extension not built")
@@ -72,7 +72,8 @@ def _command(draw, transport):
     chip's current node (so "addressed to the chip" follows its node through ASSIGN and RESET)."""
     target = draw(st.sampled_from(["chip", "chip", "chip", "broadcast", "other"]))
     kind = draw(st.sampled_from(["assign", "assign", "config", "start", "stop", "sync", "sync", "sync", "get_info",
-                                 "reset", "cal_write", "cal_read", "raw", "damaged", "config_imu", "config_imu"]))
+                                 "reset", "cal_write", "cal_read", "raw", "damaged", "config_imu", "config_imu",
+                                 "cal_imu_write", "cal_imu_write", "cal_imu_read"]))
     uid_low = draw(st.sampled_from([UID & 0xFFFFFFFF, UID & 0xFFFFFFFF, 0xDEADBEEF]))
     new_node = draw(st.sampled_from([1, 42, 0x7FFF]))
     link = draw(st.integers(0, 300))
@@ -83,8 +84,16 @@ def _command(draw, transport):
            draw(st.sampled_from([1000.0, 1024.5])))
     imu = (draw(st.sampled_from([0, 1, 2, 2, 3])), draw(st.sampled_from([0, 3, 4, 5])), draw(st.sampled_from([0, 1, 3, 4])),
            draw(st.sampled_from([0, 0, 1, 2])))
-    # 0x0D: a node -> host type (IMU_SAMPLE); 0x19 CONFIG_IMU of any length; 0x1A: undefined in v1.2
-    raw_type = draw(st.sampled_from([0x03, 0x0D, 0x10, 0x11, 0x12, 0x13, 0x17, 0x18, 0x19, 0x1A, 0x3F]))
+    # v1.3 (§17): elements whose corrected counts land near integers (never near a half), so binary32
+    # on the C chip and binary64 in Python round alike: matrices of small integers, a bias of 100
+    # counts at ±1000 °/s (an even count at every range), a hard iron of 1 gauss
+    block = draw(st.integers(0, 4))
+    index = draw(st.integers(0, 2 if block in (1, 4) else 8))
+    value = {0: draw(st.sampled_from([1.0, 2.0, -1.0, 0.0])), 1: draw(st.sampled_from([0.0, 100 / 1877.4681031])),
+             2: 0.0, 3: draw(st.sampled_from([1.0, -1.0, 2.0, 0.0])), 4: draw(st.sampled_from([0.0, 1e-4]))}[block]
+    cal_imu = (block, index, draw(st.integers(0, 1)), 0, value)
+    # 0x0D: a node -> host type (IMU_SAMPLE); 0x19 CONFIG_IMU, 0x1A CAL_IMU_WRITE of any length; 0x1C: undefined in v1.3
+    raw_type = draw(st.sampled_from([0x03, 0x0D, 0x10, 0x11, 0x12, 0x13, 0x17, 0x18, 0x19, 0x1A, 0x1B, 0x1C, 0x3F]))
     payload = draw(st.binary(max_size=9))
     version = draw(st.sampled_from([1, 1, 2]))
     is_fd = draw(st.booleans())
@@ -112,6 +121,10 @@ def _command(draw, transport):
             msg = CalRead(n or 1, axis=cal[0])
         elif kind == "config_imu":
             msg = ConfigImu(n, *imu)
+        elif kind == "cal_imu_write":
+            msg = CalImuWrite(n or 1, *cal_imu)
+        elif kind == "cal_imu_read":
+            msg = CalImuRead(n or 1, *cal_imu[:2])
         elif transport == "can":
             return CanFrame(make_id(raw_type, n, priority=4, version=version), payload, is_fd)
         else:
