@@ -29,7 +29,7 @@ from enum import IntEnum
 __all__ = ["GYRO_BITS", "MAG_BITS", "GyroRange", "MagRange", "RAD_PER_DEG", "TESLA_PER_GAUSS",
            "count_limits", "gyro_nominal_sensitivity", "mag_nominal_sensitivity", "gyro_counts_to_si",
            "si_to_gyro_counts", "mag_counts_to_si", "si_to_mag_counts", "nominal_imu_cal",
-           "corrected_gyro_counts", "corrected_mag_counts"]
+           "corrected_gyro_counts", "corrected_mag_counts", "accel_g_of_counts"]
 
 GYRO_BITS = 16  #: width of one gyroscope axis sample (the parts' native output: ICM-42688-P, BMI270)
 MAG_BITS = 16  #: width of one magnetometer axis sample (LIS3MDL; 18-bit parts are rounded to 16)
@@ -137,11 +137,12 @@ def _clamp_round(x):
 
 
 def corrected_gyro_counts(counts, range_code, matrix, bias_rps, g_sens, accel_g):
-    """§17.3: the gyroscope counts a calibrated chip sends, ``(m, 3)`` int64.
+    """§17.3: the gyroscope counts a calibrated chip sends, ``(m, 3)`` int64:
+    ``round(A (c − s (b + Γ f)))`` with ``s`` the counts per rad/s at the range.
 
     ``counts (m, 3)`` as read at ``range_code (m,)`` (or a scalar), ``matrix (m, 3, 3)``, ``bias_rps
-    (m, 3)``, ``g_sens (m, 3, 3)`` (rad/s per g), ``accel_g (m, 3)``: the same reading's specific
-    force in g (the accelerometer counts sent, scaled to ±2 g, through the chip's CAL_DATA).
+    (m, 3)``, ``g_sens (m, 3, 3)`` (rad/s per g), ``accel_g (m, 3)``: the same record's accelerometer
+    counts sent, scaled to ±2 g counts, over the nominal 1024 counts per g (`accel_g_of_counts`).
 
     >>> import numpy as np
     >>> I = np.eye(3)[None]; z = np.zeros((1, 3))
@@ -154,14 +155,21 @@ def corrected_gyro_counts(counts, range_code, matrix, bias_rps, g_sens, accel_g)
     c = np.asarray(counts, dtype=float)
     r = np.broadcast_to(np.asarray(range_code, dtype=np.int64), c.shape[:1])
     s = (float(1 << (GYRO_BITS - 1)) / (125.0 * np.exp2(r)))[:, None] / RAD_PER_DEG  # counts per rad/s
-    w = c / s - np.asarray(bias_rps, dtype=float) - np.einsum("kij,kj->ki", np.asarray(g_sens, dtype=float),
-                                                              np.asarray(accel_g, dtype=float))
-    return _clamp_round(np.einsum("kij,kj->ki", np.asarray(matrix, dtype=float), w) * s)
+    off = np.asarray(bias_rps, dtype=float) + np.einsum("kij,kj->ki", np.asarray(g_sens, dtype=float),
+                                                        np.asarray(accel_g, dtype=float))
+    return _clamp_round(np.einsum("kij,kj->ki", np.asarray(matrix, dtype=float), c - s * off))
+
+
+def accel_g_of_counts(counts, range_code):
+    """§17.3's ``f``: accelerometer counts sent at CONFIG range code ``range_code``, in g at the
+    nominal ±2 g sensitivity (1024 counts per g; the chip's CAL_DATA is not applied)."""
+    import numpy as np
+    return np.asarray(counts, dtype=float) * np.exp2(np.asarray(range_code, dtype=float))[..., None] / 1024.0
 
 
 def corrected_mag_counts(counts, range_code, matrix, hard_iron_t):
-    """§17.3: the magnetometer counts a calibrated chip sends, ``(m, 3)`` int64 (as
-    `corrected_gyro_counts`: ``S (B − h)`` at the record's range, rounded, clamped).
+    """§17.3: the magnetometer counts a calibrated chip sends, ``(m, 3)`` int64:
+    ``round(S (c − s h))`` with ``s`` the counts per tesla at the range.
 
     >>> import numpy as np
     >>> corrected_mag_counts([[8192, 0, -8192]], 0, np.eye(3)[None], [[1e-4, 0.0, 0.0]]).tolist()
@@ -171,5 +179,5 @@ def corrected_mag_counts(counts, range_code, matrix, hard_iron_t):
     c = np.asarray(counts, dtype=float)
     r = np.broadcast_to(np.asarray(range_code, dtype=np.int64), c.shape[:1])
     s = (float(1 << (MAG_BITS - 1)) / (4.0 * (r + 1)))[:, None] / TESLA_PER_GAUSS  # counts per tesla
-    b = c / s - np.asarray(hard_iron_t, dtype=float)
-    return _clamp_round(np.einsum("kij,kj->ki", np.asarray(matrix, dtype=float), b) * s)
+    return _clamp_round(np.einsum("kij,kj->ki", np.asarray(matrix, dtype=float),
+                                  c - s * np.asarray(hard_iron_t, dtype=float)))

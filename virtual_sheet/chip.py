@@ -57,7 +57,7 @@ from cobs import cobs
 from protocol.can import CanFrame, decode_can, imu_can_frames, make_id, split_id, to_can
 from protocol.chip_interface import DEFAULT_CAPABILITIES, ChipFactory, Out, SensorSource, check_chip_args
 from protocol.constants import SampleStatus
-from protocol.imu_units import corrected_gyro_counts, corrected_mag_counts, nominal_imu_cal
+from protocol.imu_units import accel_g_of_counts, corrected_gyro_counts, corrected_mag_counts, nominal_imu_cal
 from protocol.framing import HEADER, DecodeError, ErrorReason, decode_frame, encode
 from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, CalData,
                                CalImuData, CalImuRead, CalImuWrite, CalBlock,
@@ -293,12 +293,9 @@ class ChipModel:
         ``gyro``, ``mag`` whose accelerometer counts sent are ``accel_sent``; unchanged for a sensor
         with the nominal calibration."""
         if self.gyro_cal is not None:
-            a = np.asarray(accel_sent, dtype=float) * (1 << self.range)
-            off = np.array([c[0] for c in self.cal], dtype=float) / 16.0
-            sens = np.array([c[1] for c in self.cal], dtype=float)
             A, b, G = self.gyro_cal
-            gyro = tuple(corrected_gyro_counts([gyro], self.gyro_range, A[None], b[None], G[None],
-                                               ((a - off) / sens)[None])[0].tolist())
+            f = accel_g_of_counts([accel_sent], self.range)
+            gyro = tuple(corrected_gyro_counts([gyro], self.gyro_range, A[None], b[None], G[None], f)[0].tolist())
         if mag is not None and self.mag_cal is not None:
             S, h = self.mag_cal
             mag = tuple(corrected_mag_counts([mag], self.mag_range, S[None], h[None])[0].tolist())

@@ -526,10 +526,12 @@ typedef struct {
     uint8_t mag_range;       /* 0..3: ±4 .. ±16 gauss */
     uint8_t imu_flags;       /* CAPSHEET_IMU_FLAG_FD */
     capsheet_cal_t cal[3];
+#if CAPSHEET_IMU
     float imu_cal[CAPSHEET_IMU_CAL_COUNT];      /* v1.3 (§17): in use */
     float imu_cal_nvm[CAPSHEET_IMU_CAL_COUNT];  /* what survives RESET (RAM in this reference) */
     uint8_t imu_cal_flags[CAPSHEET_IMU_CAL_COUNT]; /* bit 0: in use = stored; bit 1: imu_cal_nvm holds one */
     uint8_t imu_cal_on;      /* bit 0: gyroscope calibration not nominal, bit 1: magnetometer's */
+#endif
     capsheet_stream_t rx;    /* serial only */
     uint8_t tx[CAPSHEET_CHIP_TX_WIRE_SIZE];
 #ifdef CAPSHEET_MUTANTS

@@ -250,7 +250,9 @@ static void load_calibration(capsheet_chip_t *c)
     }
 }
 
-/* ---- v1.3 (§17): the gyroscope's and magnetometer's calibration ---- */
+/* ---- v1.3 (§17): the gyroscope's and magnetometer's calibration (an accelerometer-only build,
+ * CAPSHEET_IMU 0, has neither sensor: it answers every CAL_IMU_* with NACK 5 and keeps nothing) ---- */
+#if CAPSHEET_IMU
 
 static const uint8_t k_cal_imu_first[5] = {0u, 9u, 12u, 21u, 30u};
 
@@ -259,27 +261,29 @@ static uint8_t cal_imu_slot(uint8_t block, uint8_t index)
     return (uint8_t)(k_cal_imu_first[block] + index);
 }
 
-/* identity for the two matrices' diagonals, 0 elsewhere (§17.1) */
-static float cal_imu_nominal(uint8_t k)
+/* the nominal value's bits (§17.1): 1.0f on the two matrices' diagonals, +0 elsewhere */
+static uint32_t cal_imu_nominal_bits(uint8_t k)
 {
-    return (k == 0u || k == 4u || k == 8u || k == 21u || k == 25u || k == 29u) ? 1.0f : 0.0f;
+    return (k == 0u || k == 4u || k == 8u || k == 21u || k == 25u || k == 29u) ? 0x3F800000u : 0u;
 }
 
-static bool cal_imu_nominal_range(const capsheet_chip_t *c, uint8_t first, uint8_t last)
+static uint32_t f32_bits(float f)
 {
-    uint8_t k;
-    for (k = first; k <= last; k++) {
-        if (c->imu_cal[k] != cal_imu_nominal(k)) {
-            return false;
-        }
-    }
-    return true;
+    uint32_t u;
+    memcpy(&u, &f, sizeof u);
+    return u;
 }
 
+/* (compared bit for bit: no soft-float compare; a −0 counts as written, which changes no count) */
 static void imu_cal_changed(capsheet_chip_t *c)
 {
-    c->imu_cal_on = (uint8_t)((cal_imu_nominal_range(c, 0u, 20u) ? 0u : 1u)
-                              | (cal_imu_nominal_range(c, 21u, 32u) ? 0u : 2u));
+    uint8_t k, on = 0;
+    for (k = 0; k < CAPSHEET_IMU_CAL_COUNT; k++) {
+        if (f32_bits(c->imu_cal[k]) != cal_imu_nominal_bits(k)) {
+            on = (uint8_t)(on | ((k < 21u) ? 1u : 2u));
+        }
+    }
+    c->imu_cal_on = on;
 }
 
 /* At boot (power-on, RESET): the stored elements, nominal values for the others. */
@@ -291,15 +295,21 @@ static void load_imu_calibration(capsheet_chip_t *c)
             c->imu_cal[k] = c->imu_cal_nvm[k];
             c->imu_cal_flags[k] = 3u;
         } else {
-            c->imu_cal[k] = cal_imu_nominal(k);
+            const uint32_t bits = cal_imu_nominal_bits(k);
+            memcpy(&c->imu_cal[k], &bits, sizeof bits);
             c->imu_cal_flags[k] = 0u;
         }
     }
     imu_cal_changed(c);
 }
 
-#if CAPSHEET_IMU
-/* round to nearest, clamped to a 16-bit count (§17.3) */
+/* counts per rad/s at gyro range r: 32768 / (125 · 2^r) · 180/π; counts per tesla at mag range r:
+ * 32768 / (4 (r + 1)) · 10^4 (§16.1) — tables, so the chip divides nothing */
+static const float k_gyro_cps[5] = {15019.744824677f, 7509.872412339f, 3754.936206169f, 1877.468103085f,
+                                    938.734051542f};
+static const float k_mag_cpt[4] = {81920000.0f, 40960000.0f, 27306666.666667f, 20480000.0f};
+
+/* round to nearest, halves away from zero, clamped to a 16-bit count (§17.3) */
 static int16_t count_of(float v)
 {
     if (v >= 32767.0f) {
@@ -308,45 +318,43 @@ static int16_t count_of(float v)
     if (v <= -32768.0f) {
         return -32768;
     }
-    return (int16_t)((v >= 0.0f) ? (int32_t)(v + 0.5f) : -(int32_t)(-v + 0.5f));
+    return (int16_t)((v >= 0.0f) ? (int32_t)(v + 0.5f) : -(int32_t)(0.5f - v));
 }
 
-/* out = M (v - off), M the 3 x 3 at imu_cal[m], counts per unit `s` back at the end */
-static void apply_matrix(const float *M, const float v[3], float s, int16_t out[3])
+/* out = M u, rounded (M the 3 x 3 row-major at M) */
+static void apply_matrix(const float *M, const float u[3], int16_t out[3])
 {
     uint8_t i;
     for (i = 0; i < 3u; i++) {
-        out[i] = count_of((M[3u * i] * v[0] + M[3u * i + 1u] * v[1] + M[3u * i + 2u] * v[2]) * s);
+        out[i] = count_of(M[3u * i] * u[0] + M[3u * i + 1u] * u[1] + M[3u * i + 2u] * u[2]);
     }
 }
 
-/* §17.3: correct the gyroscope (and magnetometer) counts of one record in place. `a` the
- * accelerometer counts sent at CONFIG's range. Counts per rad/s: 32768 / (125 · 2^r) · 180/π;
- * counts per tesla: 32768 / (4 (r + 1)) · 10^4. */
+/* §17.3, in counts: g' = A (g − s (b + Γ f)), f = a · 2^r_a / 1024; m' = S (m − s_m h). `a` the
+ * accelerometer counts sent at CONFIG's range. In place. */
 static void apply_imu_calibration(const capsheet_chip_t *c, const int16_t a[3], int16_t g[3], int16_t m[3],
                                   bool nine)
 {
     uint8_t i;
-    float v[3];
+    float u[3];
     if (c->imu_cal_on & 1u) {
-        const float s = 32768.0f / (125.0f * (float)(1u << c->gyro_range)) * 57.29577951308232f;
+        const float s = k_gyro_cps[c->gyro_range];
         float f[3];
         for (i = 0; i < 3u; i++) {
-            f[i] = ((float)((int32_t)a[i] * (int32_t)(1 << c->range_code)) - (float)c->cal[i].offset_q4 / 16.0f)
-                   / c->cal[i].sensitivity;
+            f[i] = (float)((int32_t)a[i] * (int32_t)(1 << c->range_code)) * (1.0f / 1024.0f);
         }
         for (i = 0; i < 3u; i++) {
             const float *G = &c->imu_cal[12u + 3u * i];
-            v[i] = (float)g[i] / s - c->imu_cal[9u + i] - (G[0] * f[0] + G[1] * f[1] + G[2] * f[2]);
+            u[i] = (float)g[i] - s * (c->imu_cal[9u + i] + (G[0] * f[0] + G[1] * f[1] + G[2] * f[2]));
         }
-        apply_matrix(&c->imu_cal[0], v, s, g);
+        apply_matrix(&c->imu_cal[0], u, g);
     }
     if (nine && (c->imu_cal_on & 2u)) {
-        const float s = 32768.0f / (4.0f * (float)(c->mag_range + 1u)) * 10000.0f;
+        const float s = k_mag_cpt[c->mag_range];
         for (i = 0; i < 3u; i++) {
-            v[i] = (float)m[i] / s - c->imu_cal[30u + i];
+            u[i] = (float)m[i] - s * c->imu_cal[30u + i];
         }
-        apply_matrix(&c->imu_cal[21u], v, s, m);
+        apply_matrix(&c->imu_cal[21u], u, m);
     }
 }
 #endif
@@ -391,7 +399,9 @@ static CAPSHEET_WARN_UNUSED int32_t boot(capsheet_chip_t *c, uint64_t now_us)
     c->mag_range = 0;
     c->imu_flags = 0;
     load_calibration(c);
+#if CAPSHEET_IMU
     load_imu_calibration(c);
+#endif
     if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL) {
         c->rx.len = 0;
         c->rx.discarding = false;
@@ -517,7 +527,7 @@ static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
         }
     } else if (m->type == CAPSHEET_CAL_IMU_WRITE || m->type == CAPSHEET_CAL_IMU_READ) {  /* §17.2, in this order */
         const uint8_t block = (m->type == CAPSHEET_CAL_IMU_WRITE) ? m->u.cal_imu.block : m->u.cal_imu_read.block;
-        if (!(caps & ((block <= 2u) ? CAPSHEET_CAP_GYRO : CAPSHEET_CAP_MAG))) {
+        if (!CAPSHEET_IMU || !(caps & ((block <= 2u) ? CAPSHEET_CAP_GYRO : CAPSHEET_CAP_MAG))) {
             return CAPSHEET_NACK_UNSUPPORTED;
         }
         if (m->type == CAPSHEET_CAL_IMU_WRITE && (m->u.cal_imu.flags & 1u) && !(caps & CAPSHEET_CAP_CAL_STORAGE)) {
@@ -900,6 +910,7 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         c->cal[cal.axis] = cal;
         break;
     }
+#if CAPSHEET_IMU
     case CAPSHEET_CAL_IMU_WRITE: {  /* §17.3: per element; the stored copy survives RESET */
         const uint8_t k = cal_imu_slot(m->u.cal_imu.block, m->u.cal_imu.index);
         c->imu_cal[k] = m->u.cal_imu.value;
@@ -911,6 +922,7 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         imu_cal_changed(c);
         break;
     }
+#endif
     default:
         break;
     }
@@ -933,6 +945,7 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         }
         return send_msg(c, &d);
     }
+#if CAPSHEET_IMU
     case CAPSHEET_REPLY_CAL_IMU_DATA: {
         capsheet_msg_t d;
         const uint8_t k = cal_imu_slot(m->u.cal_imu_read.block, m->u.cal_imu_read.index);
@@ -943,11 +956,13 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         d.u.cal_imu.reserved = 0;
         d.u.cal_imu.value = c->imu_cal[k];
         if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_CAL_IMU_READ_NOMINAL)) {
+            const uint32_t bits = cal_imu_nominal_bits(k);
             d.u.cal_imu.flags = 0;
-            d.u.cal_imu.value = cal_imu_nominal(k);
+            memcpy(&d.u.cal_imu.value, &bits, sizeof bits);
         }
         return send_msg(c, &d);
     }
+#endif
     default:
         return 0;
     }
