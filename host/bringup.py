@@ -16,7 +16,8 @@ import numpy as np
 from protocol.capacity import bus_load
 from protocol.constants import nominal_sensitivity
 from protocol.framing import DecodeError
-from protocol.messages import (Ack, Assign, CalData, CalRead, Config, ConfigImu, GetInfo, ImuBatch,
+from protocol.messages import (CAL_BLOCK_SIZE, CalBlock, CalImuData, CalImuRead, Capability,
+                               Ack, Assign, CalData, CalRead, Config, ConfigImu, GetInfo, ImuBatch,
                                MsgType, Nack, Reset, SampleBatch, Start, Stop, Sync)
 
 from .errors import CapacityError, MismatchError
@@ -98,10 +99,11 @@ class BringUp:
         if host.imu_config is not None:
             self.configure_imu()
         n_cal = self.read_calibration()
+        n_imu_cal = self.read_imu_calibration() if host.imu_config is not None else 0
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = host.start()
         return {"discovered": len(found), "assigned": len(host.registry.assigned()), "configured": n_cfg,
-                "calibrated": n_cal, "started": n_start, "gateways": len(host.gateway_nodes.by_uid)}
+                "calibrated": n_cal, "imu_calibrated": n_imu_cal, "started": n_start, "gateways": len(host.gateway_nodes.by_uid)}
 
     # -- quiesce ---------------------------------------------------------------------------
     def count_stale(self, events: list) -> None:
@@ -316,6 +318,38 @@ class BringUp:
             self.apply_calibration()
             self.calibration_reads += 1
         return n_ok
+
+    def read_imu_calibration(self, uids=None) -> int:
+        """`Host.read_imu_calibration`."""
+        host, reg = self.host, self.host.registry
+        chips = reg.by_node(uids)
+
+        def elements(rec) -> list[tuple[int, int]]:
+            caps = rec.info.capabilities if rec.info is not None else 0
+            return [(b, i) for b in CalBlock if caps & (Capability.GYRO if b <= CalBlock.GYRO_G_SENS else Capability.MAG)
+                    for i in range(CAL_BLOCK_SIZE[b])]
+
+        want = {k: elements(rec) for k, rec in chips.items()}
+        got: dict[tuple[int, int], dict] = {k: {} for k in chips}
+        for step in range(max((len(e) for e in want.values()), default=0)):
+            todo = {k: rec for k, rec in chips.items() if step < len(want[k])}
+
+            def build(key, _a, step=step):
+                b, i = want[key][step]
+                return [(key[0], CalImuRead(key[1], b, i))]
+
+            def match(bus, msg, step=step):
+                if isinstance(msg, CalImuData) or (isinstance(msg, Nack) and msg.command == MsgType.CAL_IMU_READ):
+                    return (bus, msg.node)
+                return None
+            answers, _ = host.commands.round(todo, build, match, f"CAL_IMU_READ element {step}")
+            for key, msg in answers.items():
+                if isinstance(msg, CalImuData) and (msg.block, msg.index) == want[key][step]:
+                    got[key][msg.block, msg.index] = (msg.value, msg.flags & 1)
+        with reg.lock:
+            for key, rec in chips.items():
+                rec.imu_cal = got[key]
+        return sum(1 for k in chips if want[k] and len(got[k]) == len(want[k]))
 
     def calibration_summary(self) -> dict:
         """`Host.calibration_summary`."""
