@@ -102,7 +102,7 @@ def register(subparsers) -> None:
     p.add_argument("--field-ut", type=T.bounded_float(1.0, 1000.0, unit="µT"), default=None, metavar="UT",
                    help="local magnetic field magnitude, µT (a geomagnetic model gives it; default: the fitted "
                         "ellipsoids' mean radius)")
-    from host.cli.host import add_sensor_args
+    from host.cli.sensor_args import add_sensor_args
     add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
     p.set_defaults(func=run)
 
@@ -441,7 +441,7 @@ def run(args) -> int:
         return 1
     try:
         host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
-        from host.cli.host import imu_config
+        from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
     except (MismatchError, ValueError) as exc:
         for t in transports:
