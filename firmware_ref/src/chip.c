@@ -303,56 +303,87 @@ static void load_imu_calibration(capsheet_chip_t *c)
     imu_cal_changed(c);
 }
 
-/* counts per rad/s at gyro range r: 32768 / (125 · 2^r) · 180/π; counts per tesla at mag range r:
- * 32768 / (4 (r + 1)) · 10^4 (§16.1) — tables, so the chip divides nothing */
-static const float k_gyro_cps[5] = {15019.744824677f, 7509.872412339f, 3754.936206169f, 1877.468103085f,
-                                    938.734051542f};
-static const float k_mag_cpt[4] = {81920000.0f, 40960000.0f, 27306666.666667f, 20480000.0f};
+/* §17.3 in integers (a Cortex-M0+ has no FPU; soft float cost ~4 KB of flash): every float32
+ * element is turned into a fixed-point integer as it is used (`f32_scaled`), the correction is
+ * computed in int64 and rounded once. Counts per rad/s at gyro range r, x 2^16:
+ * round(32768 / (125 · 2^r) · 180/π · 65536); counts per tesla at mag range r:
+ * round(32768 / (4 (r + 1)) · 10^4). */
+static const int64_t k_gyro_cps_q16[5] = {984333997, 492166998, 246083499, 123041750, 61520875};
+static const int64_t k_mag_cpt[4] = {81920000, 40960000, 27306667, 20480000};
 
-/* round to nearest, halves away from zero, clamped to a 16-bit count (§17.3) */
-static int16_t count_of(float v)
+#define Q_LIM (((int64_t)1) << 62)
+
+/* round(v · k · 2^-sh) for the float32 v with these bits, |k| < 2^39; saturated at ±2^62 */
+static int64_t f32_scaled(uint32_t bits, int64_t k, int32_t sh)
 {
-    if (v >= 32767.0f) {
-        return 32767;
+    const int32_t e = (int32_t)((bits >> 23) & 0xFFu);
+    const int64_t m = (int64_t)((bits & 0x7FFFFFu) | (e ? 0x800000u : 0u));
+    const int32_t t = (e ? e : 1) - 150 - sh;  /* v = m · 2^(e − 150) (subnormal: e − 149) */
+    int64_t p = m * k, r;
+    const bool neg = (p < 0) != ((bits >> 31) != 0u);
+    if (p < 0) {
+        p = -p;
     }
-    if (v <= -32768.0f) {
-        return -32768;
+    if (t >= 0) {
+        r = (t >= 62 || p > (Q_LIM >> t)) ? Q_LIM : (p << t);
+    } else {
+        r = (t <= -63) ? 0 : ((p + (((int64_t)1) << (-t - 1))) >> (-t));
     }
-    return (int16_t)((v >= 0.0f) ? (int32_t)(v + 0.5f) : -(int32_t)(0.5f - v));
+    return neg ? -r : r;
 }
 
-/* out = M u, rounded (M the 3 x 3 row-major at M) */
-static void apply_matrix(const float *M, const float u[3], int16_t out[3])
+static int64_t clamp64(int64_t v, int64_t lim)
 {
-    uint8_t i;
+    return (v > lim) ? lim : ((v < -lim) ? -lim : v);
+}
+
+/* round(v / 2^n), halves away from zero (no shift of a negative value: C99 leaves it to the compiler) */
+static int64_t shr_round(int64_t v, uint8_t n)
+{
+    const int64_t r = ((v < 0 ? -v : v) + (((int64_t)1) << (n - 1u))) >> n;
+    return (v < 0) ? -r : r;
+}
+
+/* out = round(M u / 2^32), M's elements at `M` as Q24 (|M| < 64), u Q8 counts; halves away from
+ * zero; clamped to a 16-bit count */
+static void apply_matrix(const float *M, const int64_t u[3], int16_t out[3])
+{
+    uint8_t i, j;
     for (i = 0; i < 3u; i++) {
-        out[i] = count_of(M[3u * i] * u[0] + M[3u * i + 1u] * u[1] + M[3u * i + 2u] * u[2]);
+        int64_t acc = 0, r;
+        for (j = 0; j < 3u; j++) {
+            acc += clamp64(f32_scaled(f32_bits(M[3u * i + j]), ((int64_t)1) << 24, 0), ((int64_t)1) << 30)
+                   * clamp64(u[j], ((int64_t)1) << 30);
+        }
+        r = shr_round(acc, 32u);
+        out[i] = (int16_t)((r > 32767) ? 32767 : ((r < -32768) ? -32768 : r));
     }
 }
 
 /* §17.3, in counts: g' = A (g − s (b + Γ f)), f = a · 2^r_a / 1024; m' = S (m − s_m h). `a` the
- * accelerometer counts sent at CONFIG's range. In place. */
+ * accelerometer counts sent at CONFIG's range. In place. u in Q8 counts. */
 static void apply_imu_calibration(const capsheet_chip_t *c, const int16_t a[3], int16_t g[3], int16_t m[3],
                                   bool nine)
 {
-    uint8_t i;
-    float u[3];
+    uint8_t i, j;
+    int64_t u[3];
     if (c->imu_cal_on & 1u) {
-        const float s = k_gyro_cps[c->gyro_range];
-        float f[3];
+        const int64_t s = k_gyro_cps_q16[c->gyro_range];
         for (i = 0; i < 3u; i++) {
-            f[i] = (float)((int32_t)a[i] * (int32_t)(1 << c->range_code)) * (1.0f / 1024.0f);
-        }
-        for (i = 0; i < 3u; i++) {
-            const float *G = &c->imu_cal[12u + 3u * i];
-            u[i] = (float)g[i] - s * (c->imu_cal[9u + i] + (G[0] * f[0] + G[1] * f[1] + G[2] * f[2]));
+            int64_t gs = 0;  /* s Γ f, Q32 counts */
+            for (j = 0; j < 3u; j++) {
+                gs += clamp64(f32_scaled(f32_bits(c->imu_cal[12u + 3u * i + j]), s, -(6 + (int32_t)c->range_code)),
+                              ((int64_t)1) << 48) * (int64_t)a[j];
+            }
+            u[i] = (int64_t)g[i] * 256 - clamp64(f32_scaled(f32_bits(c->imu_cal[9u + i]), s, 8), ((int64_t)1) << 40)
+                   - shr_round(gs, 24u);
         }
         apply_matrix(&c->imu_cal[0], u, g);
     }
     if (nine && (c->imu_cal_on & 2u)) {
-        const float s = k_mag_cpt[c->mag_range];
+        const int64_t s = k_mag_cpt[c->mag_range];
         for (i = 0; i < 3u; i++) {
-            u[i] = (float)m[i] - s * c->imu_cal[30u + i];
+            u[i] = (int64_t)m[i] * 256 - clamp64(f32_scaled(f32_bits(c->imu_cal[30u + i]), s, -8), ((int64_t)1) << 40);
         }
         apply_matrix(&c->imu_cal[21u], u, m);
     }

@@ -226,3 +226,45 @@ def test_walk_through_the_lifecycle_on_both_chips_identically():
         steps += [(1 / 64, w(Sync(counter=c))) for c in range(1, 120)]
         steps += [(0.5, w(GetInfo(0))), (0.0, w(Stop(NODE))), (0.0, w(Reset(NODE))), (2.0, w(GetInfo(0)))]
         assert _run_both(steps, transport, False, 0x3C) == set(ChipState)
+
+
+def test_the_c_chip_applies_any_gyro_and_mag_calibration_within_one_count_of_the_python_chip():
+    """§17.3: the C chip computes in fixed point, the Python model in binary64; a chip may be off by
+    one count from the exact result. Random (seeded) calibrations of realistic size and readings over
+    the whole range, at every gyro and mag range and two accelerometer ranges."""
+    import numpy as np
+
+    from protocol.messages import ImuSample, provisional_node
+
+    rng = np.random.Generator(np.random.MT19937(29))
+    worst = changed = 0
+    for trial in range(40):
+        readings = rng.integers(-32768, 32768, size=(2, 3))
+        accel = rng.integers(-2048, 2048, size=3)
+        chips = [cls(UID, lambda t, a=tuple(int(v) for v in accel): (a, 0), transport="serial",
+                     capabilities=0x3C, sensors="accel+gyro+mag",
+                     imu=lambda t, g, m, r=readings: (tuple(int(v) for v in r[0]), tuple(int(v) for v in r[1]), 0))
+                 for cls in (ChipModel, CFirmwareChip)]
+        cal = {0: np.eye(3) + rng.normal(0, 0.02, (3, 3)), 1: rng.normal(0, 0.02, 3),
+               2: rng.normal(0, 3e-4, (3, 3)), 3: np.eye(3) + rng.normal(0, 0.1, (3, 3)), 4: rng.normal(0, 2e-5, 3)}
+        gr, mr, ar = int(rng.integers(0, 5)), int(rng.integers(0, 4)), int(rng.integers(0, 2))
+        recs = []
+        for c in chips:
+            c.power_on(0.0)
+            c.handle(encode(Assign(provisional_node(UID, 0), new_node=NODE, link=0, uid_low=UID & 0xFFFFFFFF)), 0.0)
+            for b, v in cal.items():
+                for i, x in enumerate(np.ravel(v).tolist()):
+                    c.handle(encode(CalImuWrite(NODE, b, i, 0, 0, x)), 0.0)
+            c.handle(encode(Config(NODE, range=ar)), 0.0)
+            c.handle(encode(ConfigImu(NODE, 2, gr, mr, 0)), 0.0)
+            c.handle(encode(Start(NODE)), 0.0)
+            (rec,) = [m for m in _normalise(c.handle(encode(Sync(counter=trial)), 0.01), "serial")
+                      if isinstance(m, ImuSample)]
+            recs.append(rec)
+        a, b = recs
+        assert (a.x, a.y, a.z, a.time_us) == (b.x, b.y, b.z, b.time_us)
+        d = np.abs(np.subtract(a.gyro + a.mag, b.gyro + b.mag))
+        worst = max(worst, int(d.max()))
+        changed += a.gyro != tuple(readings[0]) and a.mag != tuple(readings[1])
+        assert d.max() <= 1, (trial, a, b)
+    assert worst <= 1 and changed >= 35  # (the calibrations did change what was sent)
