@@ -34,26 +34,28 @@ _FRAMING = {(False, False): "SAMPLE", (True, False): "SNAPSHOT", (False, True): 
 
 def capacity_remedy(kind: str, load: float, rate_hz: float, *, packed: bool, fd: bool = False,
                     bitrate: int | None = None, split: str | None = None, pack: str | None = None,
-                    faster: bool = True) -> str:
+                    faster: bool = True, imu: bool = False) -> str:
     """What takes a bus at ``load`` (1.0 = full) back under its capacity, for what is already set:
     packing where it is not on (``pack``: how the command says so, e.g. with the gateways packing
-    needs), more gateways or buses (``split``), a faster link (``faster``), or the highest rate
-    that fits.
+    needs; ``imu``: the chips send IMU records, which a gateway packs into SNAPSHOT_IMU, §16.5),
+    more gateways or buses (``split``), a faster link (``faster``), or the highest rate that fits.
 
     >>> capacity_remedy("serial", 2.5, 145.0, packed=True, bitrate=12_000_000)
     'use more gateways (a --port each; at least 3), a link faster than 12 Mbaud (--baud), or --rate 58 or lower'
+    >>> capacity_remedy("serial", 1.5, 145.0, packed=False, imu=True).split(", ")[0]
+    'use --packed (SNAPSHOT_IMU frames from the gateway)'
     """
     ways = []
     k = int(np.ceil(load - 1e-9))
     if kind == "serial":
         if not packed:
-            ways.append(pack or "--packed (SNAPSHOT frames from the gateway)")
+            ways.append(pack or f"--packed ({'SNAPSHOT_IMU' if imu else 'SNAPSHOT'} frames from the gateway)")
         ways.append(split or f"more gateways (a --port each; at least {k})")
         if faster:
             ways.append("a link faster than " + (f"{bitrate / 1e6:g} Mbaud" if bitrate else "this one") + " (--baud)")
     else:
         if not (fd and packed):
-            ways.append(pack or "CAN FD with packed frames (--fd --packed)")
+            ways.append(pack or f"CAN FD with packed {'SNAPSHOT_IMU ' if imu else ''}frames (--fd --packed)")
         ways.append(split or f"more buses (a --can each; at least {k})")
     ways.append(f"--rate {int(rate_hz / load):d} or lower")
     return "use " + ", ".join(ways[:-1]) + ", or " + ways[-1]
@@ -407,7 +409,7 @@ class BringUp:
                     f"({'packed ' if packed else 'per-chip '}{_FRAMING[packed, bool(fmt)]} frames)")
             if load > 1.0:
                 remedy = capacity_remedy(cap.kind, load, host.rate_hz, packed=packed, fd=bool(cap.fd),
-                                         bitrate=cap.bitrate)
+                                         bitrate=cap.bitrate, imu=bool(fmt))
                 if action == "refuse":
                     raise CapacityError(f"over capacity: {what}; {remedy}")
                 log.warning("over capacity: %s; %s", what, remedy)
