@@ -615,6 +615,9 @@ typedef enum {
     CAPSHEET_MUT_IGNORES_BROADCAST_START, /* §4.12 acts on START/STOP only when addressed */
     CAPSHEET_MUT_WRONG_PRIORITY,      /* §7.1  CAN: SAMPLE sent with priority 4 (the table: 2) */
     CAPSHEET_MUT_CAL_IMU_READ_NOMINAL, /* §17.2 CAL_IMU_READ answers the nominal value */
+    CAPSHEET_MUT_IMU_ANSWERS_SAMPLE,  /* §16.3 takes CONFIG_IMU but answers SYNC with the SAMPLE alone */
+    CAPSHEET_MUT_IMU_ACCEL_FIRST,     /* §16.4 classic CAN: IMU_ACCEL before IMU_GYRO (and IMU_MAG) */
+    CAPSHEET_MUT_IMU_ACCEPTS_BAD_CONFIG, /* §16.2 ACKs a CONFIG_IMU with values out of range (changes nothing) */
     CAPSHEET_MUT_COUNT
 } capsheet_mutant_t;
 

@@ -565,8 +565,8 @@ static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
             return CAPSHEET_NACK_UNSUPPORTED;
         }
     } else if (m->type == CAPSHEET_CONFIG_IMU) {  /* §16.2, in this order; the ranges whatever the format */
-        if (m->u.config_imu.format > CAPSHEET_IMU_FORMAT_9AXIS || m->u.config_imu.gyro_range > 4u
-            || m->u.config_imu.mag_range > 3u) {
+        if ((m->u.config_imu.format > CAPSHEET_IMU_FORMAT_9AXIS || m->u.config_imu.gyro_range > 4u
+             || m->u.config_imu.mag_range > 3u) && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_IMU_ACCEPTS_BAD_CONFIG)) {
             return CAPSHEET_NACK_BAD_VALUE;
         }
         if ((m->u.config_imu.format >= CAPSHEET_IMU_FORMAT_6AXIS && !(caps & CAPSHEET_CAP_GYRO))
@@ -670,16 +670,32 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
         return send_msg(c, &r);
     }
     {   /* classic CAN (§16.4): IMU_GYRO, IMU_MAG (format 2), IMU_ACCEL, back to back */
-        capsheet_msg_t f;
+        capsheet_msg_t f, a;
+        const bool accel_first = CAPSHEET_MUTANT(c, CAPSHEET_MUT_IMU_ACCEL_FIRST);
+        msg_init(&a, CAPSHEET_IMU_ACCEL, c->node);
+        a.u.imu_accel.counter_lo = (uint8_t)(r.u.imu_sample.counter & 0xFFu);
+        a.u.imu_accel.x = r.u.imu_sample.x;
+        a.u.imu_accel.y = r.u.imu_sample.y;
+        a.u.imu_accel.z = r.u.imu_sample.z;
+        a.u.imu_accel.status = r.u.imu_sample.status;
+        a.u.imu_accel.time_us = r.u.imu_sample.time_us;
+        sent = 0;
+        if (accel_first) {
+            sent = send_msg(c, &a);
+            if (sent < 0) {
+                return sent;
+            }
+        }
         msg_init(&f, CAPSHEET_IMU_GYRO, c->node);
         f.u.imu_gyro.counter = r.u.imu_sample.counter;
         f.u.imu_gyro.gx = r.u.imu_sample.gx;
         f.u.imu_gyro.gy = r.u.imu_sample.gy;
         f.u.imu_gyro.gz = r.u.imu_sample.gz;
-        sent = send_msg(c, &f);
-        if (sent < 0) {
-            return sent;
+        rc = send_msg(c, &f);
+        if (rc < 0) {
+            return rc;
         }
+        sent += rc;
         if (nine) {
             msg_init(&f, CAPSHEET_IMU_MAG, c->node);
             f.u.imu_mag.counter = r.u.imu_sample.counter;
@@ -692,14 +708,10 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
             }
             sent += rc;
         }
-        msg_init(&f, CAPSHEET_IMU_ACCEL, c->node);
-        f.u.imu_accel.counter_lo = (uint8_t)(r.u.imu_sample.counter & 0xFFu);
-        f.u.imu_accel.x = r.u.imu_sample.x;
-        f.u.imu_accel.y = r.u.imu_sample.y;
-        f.u.imu_accel.z = r.u.imu_sample.z;
-        f.u.imu_accel.status = r.u.imu_sample.status;
-        f.u.imu_accel.time_us = r.u.imu_sample.time_us;
-        rc = send_msg(c, &f);
+        if (accel_first) {
+            return sent;
+        }
+        rc = send_msg(c, &a);
         return (rc < 0) ? rc : sent + rc;
     }
 }
@@ -709,7 +721,7 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
 static CAPSHEET_WARN_UNUSED int32_t send_reading(capsheet_chip_t *c, const capsheet_msg_t *s, uint64_t now_us)
 {
 #if CAPSHEET_IMU
-    if (c->imu_format != CAPSHEET_IMU_FORMAT_ACCEL) {
+    if (c->imu_format != CAPSHEET_IMU_FORMAT_ACCEL && !CAPSHEET_MUTANT(c, CAPSHEET_MUT_IMU_ANSWERS_SAMPLE)) {
         return send_record(c, s, now_us);
     }
 #endif
@@ -920,6 +932,11 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         c->flags = (uint8_t)(c->flags | CAPSHEET_FLAG_CONFIGURED);
         break;
     case CAPSHEET_CONFIG_IMU:  /* §16.2: at once; CONFIG's fields, CONFIGURED and the heartbeat untouched */
+        if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_IMU_ACCEPTS_BAD_CONFIG)
+            && (m->u.config_imu.format > CAPSHEET_IMU_FORMAT_9AXIS || m->u.config_imu.gyro_range > 4u
+                || m->u.config_imu.mag_range > 3u)) {
+            break;  /* the mutant ACKs it and changes nothing */
+        }
         c->imu_format = m->u.config_imu.format;
         c->gyro_range = m->u.config_imu.gyro_range;
         c->mag_range = m->u.config_imu.mag_range;

@@ -598,6 +598,8 @@ C_MUTANTS = {
     "reserved_capability_bit": "reserved_capability_bit", "refuses_repeated_config": "refuses_repeated_config",
     "answers_broadcast": "answers_broadcast", "ignores_broadcast_start": "ignores_broadcast_start",
     "wrong_priority": "wrong_priority", "cal_imu_read_nominal": "cal_imu_read_nominal",
+    "imu_answers_sample": "imu_answers_sample", "imu_accel_first": "imu_accel_first",
+    "imu_accepts_bad_config": "imu_accepts_bad_config",
 }
 #: ignores_capability ACKs a range the chip lacks: it must lack MULTI_RANGE, as its twin does
 #: checks a C mutant's run adds to its twin's so that the broken frame is sent at all (a SAMPLE needs a SYNC)
