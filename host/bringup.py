@@ -101,11 +101,14 @@ class BringUp:
         if host.imu_config is not None:
             self.configure_imu()
         n_cal = self.read_calibration()
-        n_imu_cal = self.read_imu_calibration() if host.imu_config is not None else 0
+        n_imu_cal = self.read_imu_calibration() if host.imu_config is not None else None
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = host.start()
-        return {"discovered": len(found), "assigned": len(host.registry.assigned()), "configured": n_cfg,
-                "calibrated": n_cal, "imu_calibrated": n_imu_cal, "started": n_start, "gateways": len(host.gateway_nodes.by_uid)}
+        out = {"discovered": len(found), "assigned": len(host.registry.assigned()), "configured": n_cfg,
+               "calibrated": n_cal, "started": n_start, "gateways": len(host.gateway_nodes.by_uid)}
+        if n_imu_cal is not None:  # a 6/9-axis bring-up: chips whose §17 calibration was read
+            out["imu_calibrated"] = n_imu_cal
+        return out
 
     # -- quiesce ---------------------------------------------------------------------------
     def count_stale(self, events: list) -> None:
