@@ -484,6 +484,12 @@ typedef struct {
      * INVALID in `out->status`, is a sensor fault (an INVALID record, FAULT). */
     CAPSHEET_WARN_UNUSED int32_t (*read_imu)(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
                                              bool want_mag, capsheet_imu_reading_t *out);
+    /* optional (NULL: none; a GYRO chip with CAL_STORAGE needs both): load / store one element (0..32,
+     * §17.1's order: block 0's nine, block 1's three, ...) of the gyro/mag calibration in non-volatile
+     * memory, as its float32 bits. cal_imu_load returns 0 if the element was stored, negative if not;
+     * cal_imu_store negative if storing failed (the chip NACKs STORAGE_FAILED). */
+    CAPSHEET_WARN_UNUSED int32_t (*cal_imu_load)(void *user, uint8_t element, uint32_t *bits);
+    CAPSHEET_WARN_UNUSED int32_t (*cal_imu_store)(void *user, uint8_t element, uint32_t bits);
 } capsheet_hal_t;
 
 typedef struct {
@@ -527,10 +533,9 @@ typedef struct {
     uint8_t imu_flags;       /* CAPSHEET_IMU_FLAG_FD */
     capsheet_cal_t cal[3];
 #if CAPSHEET_IMU
-    float imu_cal[CAPSHEET_IMU_CAL_COUNT];      /* v1.3 (§17): in use */
-    float imu_cal_nvm[CAPSHEET_IMU_CAL_COUNT];  /* what survives RESET (RAM in this reference) */
-    uint8_t imu_cal_flags[CAPSHEET_IMU_CAL_COUNT]; /* bit 0: in use = stored; bit 1: imu_cal_nvm holds one */
-    uint8_t imu_cal_on;      /* bit 0: gyroscope calibration not nominal, bit 1: magnetometer's */
+    uint32_t imu_cal[CAPSHEET_IMU_CAL_COUNT];   /* v1.3 (§17): the elements in use, float32 bits (the
+                                                 * stored copy is the HAL's: cal_imu_load/cal_imu_store) */
+    uint8_t imu_cal_stored[(CAPSHEET_IMU_CAL_COUNT + 7u) / 8u]; /* bit k: element k in use is the stored one */
 #endif
     capsheet_stream_t rx;    /* serial only */
     uint8_t tx[CAPSHEET_CHIP_TX_WIRE_SIZE];

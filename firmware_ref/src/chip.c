@@ -253,6 +253,13 @@ static void load_calibration(capsheet_chip_t *c)
 /* ---- v1.3 (§17): the gyroscope's and magnetometer's calibration (an accelerometer-only build,
  * CAPSHEET_IMU 0, has neither sensor: it answers every CAL_IMU_* with NACK 5 and keeps nothing) ---- */
 #if CAPSHEET_IMU
+/* out of line: send_record's two messages and the reading stay off the stack of a chip in format 0,
+ * §17.3's int64 frame off the stack under send_msg */
+#if defined(__GNUC__) || defined(__clang__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
 
 static const uint8_t k_cal_imu_first[5] = {0u, 9u, 12u, 21u, 30u};
 
@@ -261,131 +268,119 @@ static uint8_t cal_imu_slot(uint8_t block, uint8_t index)
     return (uint8_t)(k_cal_imu_first[block] + index);
 }
 
-/* the nominal value's bits (§17.1): 1.0f on the two matrices' diagonals, +0 elsewhere */
+/* the nominal value's bits (§17.1): 1.0f on the two matrices' diagonals (elements 0, 4, 8 and
+ * 21, 25, 29), +0 elsewhere */
 static uint32_t cal_imu_nominal_bits(uint8_t k)
 {
-    return (k == 0u || k == 4u || k == 8u || k == 21u || k == 25u || k == 29u) ? 0x3F800000u : 0u;
-}
-
-static uint32_t f32_bits(float f)
-{
-    uint32_t u;
-    memcpy(&u, &f, sizeof u);
-    return u;
-}
-
-/* (compared bit for bit: no soft-float compare; a −0 counts as written, which changes no count) */
-static void imu_cal_changed(capsheet_chip_t *c)
-{
-    uint8_t k, on = 0;
-    for (k = 0; k < CAPSHEET_IMU_CAL_COUNT; k++) {
-        if (f32_bits(c->imu_cal[k]) != cal_imu_nominal_bits(k)) {
-            on = (uint8_t)(on | ((k < 21u) ? 1u : 2u));
-        }
+    if (k >= 21u) {
+        k = (uint8_t)(k - 21u);
     }
-    c->imu_cal_on = on;
+    return (k < 9u && (k & 3u) == 0u) ? 0x3F800000u : 0u;
 }
 
-/* At boot (power-on, RESET): the stored elements, nominal values for the others. */
+/* the stored flags, one bit per element (RAM: 5 bytes, not 33) */
+static void set_imu_stored(capsheet_chip_t *c, uint8_t k, bool stored)
+{
+    const uint8_t bit = (uint8_t)(1u << (k & 7u));
+    c->imu_cal_stored[k >> 3] = (uint8_t)(stored ? (c->imu_cal_stored[k >> 3] | bit) : (c->imu_cal_stored[k >> 3] & ~bit));
+}
+
+/* At boot (power-on, RESET): the stored elements (the HAL's non-volatile memory), nominal values
+ * for the others. */
 static void load_imu_calibration(capsheet_chip_t *c)
 {
     uint8_t k;
     for (k = 0; k < CAPSHEET_IMU_CAL_COUNT; k++) {
-        if (c->imu_cal_flags[k] & 2u) {
-            c->imu_cal[k] = c->imu_cal_nvm[k];
-            c->imu_cal_flags[k] = 3u;
-        } else {
-            const uint32_t bits = cal_imu_nominal_bits(k);
-            memcpy(&c->imu_cal[k], &bits, sizeof bits);
-            c->imu_cal_flags[k] = 0u;
-        }
+        uint32_t bits = 0;
+        const bool stored = c->hal->cal_imu_load != NULL && c->hal->cal_imu_load(c->hal->user, k, &bits) == 0;
+        c->imu_cal[k] = stored ? bits : cal_imu_nominal_bits(k);
+        set_imu_stored(c, k, stored);
     }
-    imu_cal_changed(c);
 }
 
-/* §17.3 in integers (a Cortex-M0+ has no FPU; soft float cost ~4 KB of flash): every float32
- * element is turned into a fixed-point integer as it is used (`f32_scaled`), the correction is
- * computed in int64 and rounded once. Counts per rad/s at gyro range r, x 2^16:
- * round(32768 / (125 · 2^r) · 180/π · 65536); counts per tesla at mag range r:
- * round(32768 / (4 (r + 1)) · 10^4). */
-static const int64_t k_gyro_cps_q16[5] = {984333997, 492166998, 246083499, 123041750, 61520875};
-static const int64_t k_mag_cpt[4] = {81920000, 40960000, 27306667, 20480000};
+/* §17.3 in 32-bit integers (a Cortex-M0+ has no FPU; soft float cost ~4 KB of flash, int64 all
+ * through ~1 KB): every float32 element is turned into a fixed-point int32 as it is used (`f32_q`;
+ * the elements in RAM stay the float32 bits CAL_IMU_READ answers), the one product that needs 64
+ * bits is `mulq`. Every intermediate is rounded to nearest (halves away from zero) at 2^-8 count
+ * or finer and saturated at ±2^28 of its unit: the result is within a few hundredths of a count of
+ * the exact one for elements within the ranges below, and bit-exact with the counts read when
+ * every element is nominal (A = I is 2^24 in Q24 times u = c · 2^8: c · 2^8 exactly).
+ * The gyroscope's counts per rad/s at range r, x 2^16, are K_GYRO / 2^r: K_GYRO = round(32768 /
+ * 125 · 180/π · 65536); the magnetometer's counts per tesla at range r: round(32768 / (4 (r + 1)) · 10^4).
+ * Units: A, S Q24 (|element| < 16), b Q22 rad/s (< 64), Γ Q30 rad/s per g (< 0.25), h Q36 T (< 39 gauss). */
+#define K_GYRO 984333997
+static const int32_t k_mag_cpt[4] = {81920000, 40960000, 27306667, 20480000};
+#define Q_LIM (((int32_t)1) << 28)
 
-#define Q_LIM (((int64_t)1) << 62)
+/* round(|x| / 2^n) with the sign of x, halves away from zero, saturated at ±Q_LIM; n >= 1 */
+static NOINLINE int32_t round_sat(bool neg, uint64_t x, uint8_t n)
+{
+    uint64_t r = ((x >> (n - 1u)) + 1u) >> 1;
+    r = (r > (uint64_t)Q_LIM) ? (uint64_t)Q_LIM : r;
+    return neg ? -(int32_t)r : (int32_t)r;
+}
 
-/* round(v · k · 2^-sh) for the float32 v with these bits, |k| < 2^39; saturated at ±2^62 */
-static int64_t f32_scaled(uint32_t bits, int64_t k, int32_t sh)
+/* round(v · 2^q) of the float32 v with these bits, saturated at ±Q_LIM */
+static int32_t f32_q(uint32_t bits, int32_t q)
 {
     const int32_t e = (int32_t)((bits >> 23) & 0xFFu);
-    const int64_t m = (int64_t)((bits & 0x7FFFFFu) | (e ? 0x800000u : 0u));
-    const int32_t t = (e ? e : 1) - 150 - sh;  /* v = m · 2^(e − 150) (subnormal: e − 149) */
-    int64_t p = m * k, r;
-    const bool neg = (p < 0) != ((bits >> 31) != 0u);
-    if (p < 0) {
-        p = -p;
+    const int32_t t = (e ? e : 1) - 150 + q + 1;  /* v · 2^(q+1) = m · 2^t (subnormal: e = 1) */
+    const uint32_t m = (bits & 0x7FFFFFu) | (e ? 0x800000u : 0u);
+    /* a normal m >= 2^23: from t = 7 on, m · 2^t > 2 Q_LIM (saturated); below, it fits 32 bits */
+    return round_sat((bits >> 31) != 0u, (t > 6) ? (uint32_t)Q_LIM << 1 : ((t > 0) ? m << t : ((t < -30) ? 0u : m >> (-t))), 1u);
+}
+
+/* round(a · b / 2^n), saturated at ±Q_LIM; |a| <= 2^28, |b| < 2^30, n >= 1 */
+static NOINLINE int32_t mulq(int32_t a, int32_t b, uint8_t n)
+{
+    const bool neg = (a < 0) != (b < 0);
+    return round_sat(neg, (uint64_t)(uint32_t)(a < 0 ? -a : a) * (uint32_t)(b < 0 ? -b : b), n);
+}
+
+/* Σ_j round(round(M_j · 2^q) · v_j / 2^n): one row of a matrix times v */
+static int32_t row3(const uint32_t *M, int32_t q, const int32_t v[3], uint8_t n)
+{
+    uint8_t j;
+    int32_t acc = 0;
+    for (j = 0; j < 3u; j++) {
+        acc += mulq(f32_q(M[j], q), v[j], n);
     }
-    if (t >= 0) {
-        r = (t >= 62 || p > (Q_LIM >> t)) ? Q_LIM : (p << t);
-    } else {
-        r = (t <= -63) ? 0 : ((p + (((int64_t)1) << (-t - 1))) >> (-t));
-    }
-    return neg ? -r : r;
+    return acc;
 }
 
-static int64_t clamp64(int64_t v, int64_t lim)
+/* x' = M (x − o), the gyroscope's (M = A, o = s (b + Γ f)) and the magnetometer's (S, s_m h) alike:
+ * o = (round(o_i · 2^q) + t_i) · k / 2^sh in Q8 counts, u in Q8 counts, M in Q24; clamped to 16 bits */
+static void correct(const uint32_t *M, const uint32_t *o, int32_t q, const int32_t t[3], int32_t k, uint8_t sh,
+                    int16_t x[3])
 {
-    return (v > lim) ? lim : ((v < -lim) ? -lim : v);
-}
-
-/* round(v / 2^n), halves away from zero (no shift of a negative value: C99 leaves it to the compiler) */
-static int64_t shr_round(int64_t v, uint8_t n)
-{
-    const int64_t r = ((v < 0 ? -v : v) + (((int64_t)1) << (n - 1u))) >> n;
-    return (v < 0) ? -r : r;
-}
-
-/* out = round(M u / 2^32), M's elements at `M` as Q24 (|M| < 64), u Q8 counts; halves away from
- * zero; clamped to a 16-bit count */
-static void apply_matrix(const float *M, const int64_t u[3], int16_t out[3])
-{
-    uint8_t i, j;
+    uint8_t i;
+    int32_t u[3];
     for (i = 0; i < 3u; i++) {
-        int64_t acc = 0, r;
-        for (j = 0; j < 3u; j++) {
-            acc += clamp64(f32_scaled(f32_bits(M[3u * i + j]), ((int64_t)1) << 24, 0), ((int64_t)1) << 30)
-                   * clamp64(u[j], ((int64_t)1) << 30);
-        }
-        r = shr_round(acc, 32u);
-        out[i] = (int16_t)((r > 32767) ? 32767 : ((r < -32768) ? -32768 : r));
+        u[i] = (int32_t)x[i] * 256 - mulq(f32_q(o[i], q) + t[i], k, sh);
+    }
+    for (i = 0; i < 3u; i++) {
+        const int32_t acc = row3(&M[3u * i], 24, u, 24u);  /* Q8, |acc| < 3 · 2^28 */
+        const int32_t r = round_sat(acc < 0, (uint32_t)(acc < 0 ? -acc : acc), 8u);
+        x[i] = (int16_t)((r > 32767) ? 32767 : ((r < -32768) ? -32768 : r));
     }
 }
 
-/* §17.3, in counts: g' = A (g − s (b + Γ f)), f = a · 2^r_a / 1024; m' = S (m − s_m h). `a` the
- * accelerometer counts sent at CONFIG's range. In place. u in Q8 counts. */
-static void apply_imu_calibration(const capsheet_chip_t *c, const int16_t a[3], int16_t g[3], int16_t m[3],
-                                  bool nine)
+/* §17.3, in counts: g' = A (g − s (b + Γ f)), f = a · 2^r_a / 1024; m' = S (m − s_m h). `s` the
+ * SAMPLE: its accelerometer counts a as sent, at CONFIG's range. In place. b + Γ f in Q22 rad/s:
+ * Γ (Q30) a over 2^(18 − r_a); h in Q36 T. */
+static NOINLINE void apply_imu_calibration(const capsheet_chip_t *c, const capsheet_msg_t *s, int16_t g[3],
+                                           int16_t m[3], bool nine)
 {
-    uint8_t i, j;
-    int64_t u[3];
-    if (c->imu_cal_on & 1u) {
-        const int64_t s = k_gyro_cps_q16[c->gyro_range];
-        for (i = 0; i < 3u; i++) {
-            int64_t gs = 0;  /* s Γ f, Q32 counts */
-            for (j = 0; j < 3u; j++) {
-                gs += clamp64(f32_scaled(f32_bits(c->imu_cal[12u + 3u * i + j]), s, -(6 + (int32_t)c->range_code)),
-                              ((int64_t)1) << 48) * (int64_t)a[j];
-            }
-            u[i] = (int64_t)g[i] * 256 - clamp64(f32_scaled(f32_bits(c->imu_cal[9u + i]), s, 8), ((int64_t)1) << 40)
-                   - shr_round(gs, 24u);
-        }
-        apply_matrix(&c->imu_cal[0], u, g);
+    uint8_t i;
+    int32_t t[3];
+    const int32_t v[3] = {s->u.sample.x, s->u.sample.y, s->u.sample.z};
+    for (i = 0; i < 3u; i++) {
+        t[i] = row3(&c->imu_cal[12u + 3u * i], 30, v, (uint8_t)(18u - c->range_code));
     }
-    if (nine && (c->imu_cal_on & 2u)) {
-        const int64_t s = k_mag_cpt[c->mag_range];
-        for (i = 0; i < 3u; i++) {
-            u[i] = (int64_t)m[i] * 256 - clamp64(f32_scaled(f32_bits(c->imu_cal[30u + i]), s, -8), ((int64_t)1) << 40);
-        }
-        apply_matrix(&c->imu_cal[21u], u, m);
+    correct(&c->imu_cal[0], &c->imu_cal[9], 22, t, K_GYRO, (uint8_t)(30u + c->gyro_range), g);
+    if (nine) {
+        t[0] = t[1] = t[2] = 0;
+        correct(&c->imu_cal[21], &c->imu_cal[30], 36, t, k_mag_cpt[c->mag_range], 28u, m);
     }
 }
 #endif
@@ -452,8 +447,9 @@ int32_t capsheet_chip_init(capsheet_chip_t *chip, const capsheet_chip_config_t *
     if ((config->capabilities & CAPSHEET_CAP_CAL_STORAGE) && (hal->cal_load == NULL || hal->cal_store == NULL)) {
         return CAPSHEET_ERR_ARGUMENT;
     }
-    if ((config->capabilities & CAPSHEET_CAP_GYRO) && (!CAPSHEET_IMU || hal->read_imu == NULL)) {
-        return CAPSHEET_ERR_ARGUMENT;  /* a gyroscope the HAL cannot read, or a build without IMU records */
+    if ((config->capabilities & CAPSHEET_CAP_GYRO) && (!CAPSHEET_IMU || hal->read_imu == NULL
+        || ((config->capabilities & CAPSHEET_CAP_CAL_STORAGE) && (hal->cal_imu_load == NULL || hal->cal_imu_store == NULL)))) {
+        return CAPSHEET_ERR_ARGUMENT;  /* a gyroscope the HAL cannot read (or store the calibration of), or a build without IMU records */
     }
     if (config->transport == CAPSHEET_TRANSPORT_SERIAL) {
         if (hal->send_bytes == NULL || rx_cap < CAPSHEET_MIN_RX_BUFFER_SIZE) {
@@ -557,7 +553,7 @@ static uint8_t check_fields(const capsheet_chip_t *c, const capsheet_msg_t *m)
             return CAPSHEET_NACK_UNSUPPORTED;
         }
     } else if (m->type == CAPSHEET_CAL_IMU_WRITE || m->type == CAPSHEET_CAL_IMU_READ) {  /* §17.2, in this order */
-        const uint8_t block = (m->type == CAPSHEET_CAL_IMU_WRITE) ? m->u.cal_imu.block : m->u.cal_imu_read.block;
+        const uint8_t block = m->u.cal_imu_read.block;  /* CAL_IMU_WRITE's too: the structs' common initial sequence */
         if (!CAPSHEET_IMU || !(caps & ((block <= 2u) ? CAPSHEET_CAP_GYRO : CAPSHEET_CAP_MAG))) {
             return CAPSHEET_NACK_UNSUPPORTED;
         }
@@ -588,12 +584,6 @@ static int16_t asr(int16_t v, uint8_t r)
 }
 
 #if CAPSHEET_IMU
-/* send_record out of line: its two messages and the reading stay off the stack of a chip in format 0 */
-#if defined(__GNUC__) || defined(__clang__)
-#define NOINLINE __attribute__((noinline))
-#else
-#define NOINLINE
-#endif
 
 static bool i16_rail(const int16_t *v, unsigned n)
 {
@@ -621,20 +611,18 @@ static int16_t sample_time_us(const capsheet_chip_t *c, uint64_t latch_us, uint6
     return (int16_t)-(int32_t)(d > 32767u ? 32767u : d);
 }
 
-/* Format 1 or 2 (§16): the SAMPLE `s` the chip would send (its accelerometer word, range, SATURATED
- * and FAULT rules applied) becomes one IMU record with the HAL's gyroscope (and magnetometer) and
- * time_us, sent as IMU_SAMPLE (serial; CAN with flag FD) or IMU_GYRO (+ IMU_MAG) + IMU_ACCEL. */
-static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, const capsheet_msg_t *s,
-                                                         uint64_t now_us)
+/* Format 1 or 2 (§16): the IMU record `r` around the SAMPLE `s` the chip would send (its
+ * accelerometer word, range, SATURATED and FAULT rules applied), with the HAL's gyroscope (and
+ * magnetometer), §17.3's correction and time_us. Out of line: the reading is not on the stack
+ * under send_msg. */
+static NOINLINE void read_record(capsheet_chip_t *c, const capsheet_msg_t *s, capsheet_msg_t *r, uint64_t now_us)
 {
-    capsheet_msg_t r;
     const bool nine = c->imu_format == CAPSHEET_IMU_FORMAT_9AXIS;
     uint8_t status = s->u.sample.status;
-    int32_t rc, sent;
-    msg_init(&r, CAPSHEET_IMU_SAMPLE, c->node);
-    r.u.imu_sample.format = c->imu_format;
-    r.u.imu_sample.counter = s->u.sample.counter;
-    r.u.imu_sample.time_us = (int16_t)CAPSHEET_TIME_UNKNOWN;
+    msg_init(r, CAPSHEET_IMU_SAMPLE, c->node);
+    r->u.imu_sample.format = c->imu_format;
+    r->u.imu_sample.counter = s->u.sample.counter;
+    r->u.imu_sample.time_us = (int16_t)CAPSHEET_TIME_UNKNOWN;
     if (!(status & CAPSHEET_SAMPLE_INVALID)) {
         capsheet_imu_reading_t rd;
         memset(&rd, 0, sizeof rd);
@@ -643,42 +631,44 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
             c->state = CAPSHEET_FAULT;  /* the gyroscope failed: an INVALID record, FAULT (§16.1, §8.6) */
             status = CAPSHEET_SAMPLE_INVALID;
         } else {
-            const int16_t a[3] = {s->u.sample.x, s->u.sample.y, s->u.sample.z};
-            if (c->imu_cal_on) {
-                apply_imu_calibration(c, a, rd.gyro, rd.mag, nine);  /* §17.3 */
-            }
-            r.u.imu_sample.x = s->u.sample.x;
-            r.u.imu_sample.y = s->u.sample.y;
-            r.u.imu_sample.z = s->u.sample.z;
-            r.u.imu_sample.gx = rd.gyro[0];
-            r.u.imu_sample.gy = rd.gyro[1];
-            r.u.imu_sample.gz = rd.gyro[2];
+            apply_imu_calibration(c, s, rd.gyro, rd.mag, nine);  /* §17.3 (nominal: unchanged) */
+            r->u.imu_sample.x = s->u.sample.x;
+            r->u.imu_sample.y = s->u.sample.y;
+            r->u.imu_sample.z = s->u.sample.z;
+            r->u.imu_sample.gx = rd.gyro[0];
+            r->u.imu_sample.gy = rd.gyro[1];
+            r->u.imu_sample.gz = rd.gyro[2];
             if (nine) {
-                r.u.imu_sample.mx = rd.mag[0];
-                r.u.imu_sample.my = rd.mag[1];
-                r.u.imu_sample.mz = rd.mag[2];
+                r->u.imu_sample.mx = rd.mag[0];
+                r->u.imu_sample.my = rd.mag[1];
+                r->u.imu_sample.mz = rd.mag[2];
             }
             status = (uint8_t)(status | (rd.status & (CAPSHEET_SAMPLE_STALE | CAPSHEET_SAMPLE_SELF_TEST)));
             if (i16_rail(rd.gyro, 3u) || (nine && i16_rail(rd.mag, 3u))) {
                 status = (uint8_t)(status | CAPSHEET_SAMPLE_SATURATED);  /* a count sent at its rail (§16.1) */
             }
-            r.u.imu_sample.time_us = sample_time_us(c, rd.latch_us, now_us);
+            r->u.imu_sample.time_us = sample_time_us(c, rd.latch_us, now_us);
         }
     }
-    r.u.imu_sample.status = status;
-    if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL || (c->imu_flags & CAPSHEET_IMU_FLAG_FD)) {
-        return send_msg(c, &r);
-    }
+    r->u.imu_sample.status = status;
+}
+
+/* classic CAN (§16.4): the record `r` as IMU_GYRO, IMU_MAG (format 2), IMU_ACCEL, back to back.
+ * Out of line: its two messages are not on a serial chip's stack. */
+static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record_classic(capsheet_chip_t *c, const capsheet_msg_t *rp)
+{
+    const bool nine = rp->u.imu_sample.format == CAPSHEET_IMU_FORMAT_9AXIS;
+    int32_t rc, sent;
     {   /* classic CAN (§16.4): IMU_GYRO, IMU_MAG (format 2), IMU_ACCEL, back to back */
         capsheet_msg_t f, a;
         const bool accel_first = CAPSHEET_MUTANT(c, CAPSHEET_MUT_IMU_ACCEL_FIRST);
         msg_init(&a, CAPSHEET_IMU_ACCEL, c->node);
-        a.u.imu_accel.counter_lo = (uint8_t)(r.u.imu_sample.counter & 0xFFu);
-        a.u.imu_accel.x = r.u.imu_sample.x;
-        a.u.imu_accel.y = r.u.imu_sample.y;
-        a.u.imu_accel.z = r.u.imu_sample.z;
-        a.u.imu_accel.status = r.u.imu_sample.status;
-        a.u.imu_accel.time_us = r.u.imu_sample.time_us;
+        a.u.imu_accel.counter_lo = (uint8_t)(rp->u.imu_sample.counter & 0xFFu);
+        a.u.imu_accel.x = rp->u.imu_sample.x;
+        a.u.imu_accel.y = rp->u.imu_sample.y;
+        a.u.imu_accel.z = rp->u.imu_sample.z;
+        a.u.imu_accel.status = rp->u.imu_sample.status;
+        a.u.imu_accel.time_us = rp->u.imu_sample.time_us;
         sent = 0;
         if (accel_first) {
             sent = send_msg(c, &a);
@@ -687,10 +677,10 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
             }
         }
         msg_init(&f, CAPSHEET_IMU_GYRO, c->node);
-        f.u.imu_gyro.counter = r.u.imu_sample.counter;
-        f.u.imu_gyro.gx = r.u.imu_sample.gx;
-        f.u.imu_gyro.gy = r.u.imu_sample.gy;
-        f.u.imu_gyro.gz = r.u.imu_sample.gz;
+        f.u.imu_gyro.counter = rp->u.imu_sample.counter;
+        f.u.imu_gyro.gx = rp->u.imu_sample.gx;
+        f.u.imu_gyro.gy = rp->u.imu_sample.gy;
+        f.u.imu_gyro.gz = rp->u.imu_sample.gz;
         rc = send_msg(c, &f);
         if (rc < 0) {
             return rc;
@@ -698,10 +688,10 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
         sent += rc;
         if (nine) {
             msg_init(&f, CAPSHEET_IMU_MAG, c->node);
-            f.u.imu_mag.counter = r.u.imu_sample.counter;
-            f.u.imu_mag.mx = r.u.imu_sample.mx;
-            f.u.imu_mag.my = r.u.imu_sample.my;
-            f.u.imu_mag.mz = r.u.imu_sample.mz;
+            f.u.imu_mag.counter = rp->u.imu_sample.counter;
+            f.u.imu_mag.mx = rp->u.imu_sample.mx;
+            f.u.imu_mag.my = rp->u.imu_sample.my;
+            f.u.imu_mag.mz = rp->u.imu_sample.mz;
             rc = send_msg(c, &f);
             if (rc < 0) {
                 return rc;
@@ -714,6 +704,17 @@ static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, con
         rc = send_msg(c, &a);
         return (rc < 0) ? rc : sent + rc;
     }
+}
+
+static NOINLINE CAPSHEET_WARN_UNUSED int32_t send_record(capsheet_chip_t *c, const capsheet_msg_t *s,
+                                                         uint64_t now_us)
+{
+    capsheet_msg_t r;
+    read_record(c, s, &r, now_us);
+    if (c->config.transport == CAPSHEET_TRANSPORT_SERIAL || (c->imu_flags & CAPSHEET_IMU_FLAG_FD)) {
+        return send_msg(c, &r);
+    }
+    return send_record_classic(c, &r);
 }
 #endif
 
@@ -961,13 +962,14 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
 #if CAPSHEET_IMU
     case CAPSHEET_CAL_IMU_WRITE: {  /* §17.3: per element; the stored copy survives RESET */
         const uint8_t k = cal_imu_slot(m->u.cal_imu.block, m->u.cal_imu.index);
-        c->imu_cal[k] = m->u.cal_imu.value;
-        c->imu_cal_flags[k] = (uint8_t)((c->imu_cal_flags[k] & 2u) | (m->u.cal_imu.flags & 1u));
-        if (m->u.cal_imu.flags & 1u) {
-            c->imu_cal_nvm[k] = m->u.cal_imu.value;
-            c->imu_cal_flags[k] = 3u;
+        const bool store = (m->u.cal_imu.flags & 1u) != 0u;
+        uint32_t bits;
+        memcpy(&bits, &m->u.cal_imu.value, sizeof bits);
+        if (store && c->hal->cal_imu_store(c->hal->user, k, bits) < 0) {
+            return send_nack(c, m->type, CAPSHEET_NACK_STORAGE_FAILED);
         }
-        imu_cal_changed(c);
+        c->imu_cal[k] = bits;
+        set_imu_stored(c, k, store);
         break;
     }
 #endif
@@ -1000,14 +1002,14 @@ static CAPSHEET_WARN_UNUSED int32_t on_frame(capsheet_chip_t *c, int32_t rc, con
         msg_init(&d, CAPSHEET_CAL_IMU_DATA, c->node);
         d.u.cal_imu.block = m->u.cal_imu_read.block;
         d.u.cal_imu.index = m->u.cal_imu_read.index;
-        d.u.cal_imu.flags = (uint8_t)(c->imu_cal_flags[k] & 1u);
+        uint32_t bits = c->imu_cal[k];
+        d.u.cal_imu.flags = (uint8_t)(((unsigned)c->imu_cal_stored[k >> 3] >> (k & 7u)) & 1u);
         d.u.cal_imu.reserved = 0;
-        d.u.cal_imu.value = c->imu_cal[k];
         if (CAPSHEET_MUTANT(c, CAPSHEET_MUT_CAL_IMU_READ_NOMINAL)) {
-            const uint32_t bits = cal_imu_nominal_bits(k);
+            bits = cal_imu_nominal_bits(k);
             d.u.cal_imu.flags = 0;
-            memcpy(&d.u.cal_imu.value, &bits, sizeof bits);
         }
+        memcpy(&d.u.cal_imu.value, &bits, sizeof bits);
         return send_msg(c, &d);
     }
 #endif
