@@ -7,6 +7,15 @@ snapshot).
     .venv/bin/python benchmarks/bench_live.py            # full sweep, JSON on stdout (many minutes)
     .venv/bin/python benchmarks/bench_live.py --quick    # a short sweep (a few minutes)
     .venv/bin/python benchmarks/bench_live.py --only 14x14-packed --rates 145,300
+    .venv/bin/python benchmarks/bench_live.py --only 64x64-packed-5gw-record   # issue 31.4 (~2 min)
+
+``64x64-packed-5gw-record`` (issue 31.4) runs ``capsheet virtual --lattice 64x64 --packed --gateways 5``
+and ``capsheet host`` on its five ports as a user does, at 145 Hz with ``--record --live-rate 145``
+(every snapshot recorded and due an estimate), once as the host was and once with
+``--reader-processes --estimate-process``; per design the share of snapshots complete, estimated
+and recorded, the SYNCs sent, and the CPU of every process (% of one core: the virtual sheet, which a
+real sheet does not put on this machine, the host's main process, its readers, its estimator) with
+the cost per link sample.
 
 Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed over two serial gateways of
 12 Mbaud merged into one lattice (1,984 links exceed one 12 Mbaud UART at 145 Hz by the capacity
@@ -35,7 +44,8 @@ import subprocess
 import sys
 import time
 
-sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
+REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
+sys.path.insert(0, REPO)
 
 from host.aggregator import window_completeness  # noqa: E402
 from host.cli import one_blas_thread  # noqa: E402
@@ -58,6 +68,15 @@ CONFIGS = {
 }
 #: CONFIG_IMU fields per --sensors (format, gyro range code 3 = ±1000 °/s, mag range code 0, flags)
 IMU_CONFIG = {"accel+gyro": (1, 3, 0, 0), "accel+gyro+mag": (2, 3, 0, 0)}
+#: issue 31.4: a 64x64 sheet (8,064 links) on five packed 12 Mbaud gateways at 145 Hz, every snapshot
+#: recorded and due an estimate (--record --live-rate 145), run through the CLI as a user runs it
+#: (`run_cli_config`): the host as it was ("in-process") and with a reader process per port and the
+#: estimates in a process of their own ("processes", docs/host.md)
+CLI_CONFIGS = {
+    "64x64-packed-5gw-record": dict(lattice="64x64", gateways=5, rate=145.0, duration=16.0, designs={
+        "in-process": [],
+        "processes": ["--reader-processes", "--estimate-process"]}),
+}
 RATES = [10, 20, 30, 60, 100, 145, 200, 300, 450, 640]
 QUICK_RATES = [10, 30, 60, 145, 300, 640]
 
@@ -281,10 +300,133 @@ def run_config(name: str, cfg: dict, rates: list[float], duration_s: float, tmp:
     return out
 
 
+def _proc_tree(root: int) -> list[int]:
+    kids: dict[int, list[int]] = {}
+    for p in os.listdir("/proc"):
+        if p.isdigit():
+            try:
+                stat = open(f"/proc/{p}/stat").read()
+            except OSError:
+                continue
+            kids.setdefault(int(stat.rsplit(")", 1)[1].split()[1]), []).append(int(p))
+    out, todo = [], [root]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        todo += kids.get(p, [])
+    return out
+
+
+def _cpu_ticks(root: int) -> dict[int, tuple[str, int]]:
+    """pid -> (what it is, utime + stime ticks) for ``root`` and its descendants."""
+    out = {}
+    for p in _proc_tree(root):
+        try:
+            stat = open(f"/proc/{p}/stat").read()
+            cmd = open(f"/proc/{p}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        f = stat.rsplit(")", 1)[1].split()
+        what = ("reader" if " -S -c " in cmd else "estimator" if "spawn_main" in cmd
+                else "mp-resource-tracker" if "resource_tracker" in cmd else "main")
+        out[p] = (what, int(f[11]) + int(f[12]))
+    return out
+
+
+def _cpu_pct(a: dict, b: dict, dt: float) -> dict[str, float]:
+    """% of one core per kind of process between two `_cpu_ticks`."""
+    hz = os.sysconf("SC_CLK_TCK")
+    out: dict[str, float] = {}
+    for p, (what, t) in b.items():
+        if p in a:
+            out[what] = out.get(what, 0.0) + 100.0 * (t - a[p][1]) / hz / dt
+    return {k: round(v, 1) for k, v in sorted(out.items())}
+
+
+def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = None) -> dict:
+    """``capsheet virtual`` and ``capsheet host`` as a user runs them (subprocesses, the host's
+    ``--json`` summary), per design: completeness, the share of snapshots estimated and recorded,
+    the SYNCs sent, and the CPU of every process (% of one core, sampled over the streaming
+    window from /proc: the virtual sheet apart, the host's main process, its readers and its
+    estimator), with the load average beside."""
+    cli = [sys.executable, "-m", "host.cli"]
+    lat, gw, rate = cfg["lattice"], cfg["gateways"], cfg["rate"]
+    n_links = Lattice.parse(lat).n_links
+    out: dict = {"config": name, "lattice": lat, "gateways": gw, "rate_hz": rate, "duration_s": cfg["duration"],
+                 "rows": []}
+    for design, extra in cfg["designs"].items():
+        if designs and design not in designs:
+            continue
+        base = os.path.join(tmp, f"{name}-{design}")
+        lay, rec = base + ".json", base + ".mcap"
+        vlog = open(base + "-virtual.log", "w+")
+        virt = subprocess.Popen(cli + ["virtual", "--lattice", lat, "--packed", "--gateways", str(gw), "--symlink",
+                                       base + "-gw", "--layout-out", lay, "--overwrite", "--duration", "600"],
+                                stdout=vlog, stderr=subprocess.STDOUT, start_new_session=True, cwd=REPO)
+        row: dict = {"design": design, "host_args": extra}
+        try:
+            t_end = time.monotonic() + 180
+            while time.monotonic() < t_end:
+                vlog.seek(0)
+                if "layout written" in vlog.read():
+                    break
+                time.sleep(0.3)
+            ports = sum((["--port", f"{base}-gw{i}"] for i in range(gw)), [])
+            cmd = cli + ["host", *ports, "--baud", "12000000", "--layout", lay, "--rate", f"{rate:g}",
+                         "--duration", f"{cfg['duration']:g}", "--record", rec, "--overwrite", "--live-rate",
+                         f"{rate:g}", "--allow-missing", "--json", "-q", *extra]
+            row["command"] = " ".join(["capsheet", *cmd[len(cli):]])
+            herr = open(base + "-host.err", "w+")
+            hp = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=herr, text=True, cwd=REPO)
+            while hp.poll() is None:
+                herr.seek(0)
+                if "started on" in herr.read():
+                    break
+                time.sleep(0.2)
+            time.sleep(SETTLE_S + 1.5)
+            a_v, a_h, t0 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
+            time.sleep(6.0)
+            b_v, b_h, t1 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
+            row["loadavg"] = [round(x, 2) for x in os.getloadavg()]
+            stdout, _ = hp.communicate(timeout=300)
+            doc = json.loads(stdout)
+            s = doc["summary"]
+            snaps = max(1, s["snapshots"])
+            est = s.get("estimates", {})
+            host_cpu = _cpu_pct(a_h, b_h, t1 - t0)
+            total = sum(v for k, v in host_cpu.items() if k != "mp-resource-tracker")
+            row.update(
+                exit=doc["exit"], snapshots=s["snapshots"], syncs_sent=doc["syncs_sent"],
+                sync_rate_hz=round(doc["syncs_sent"] / cfg["duration"], 1),
+                syncs_missed=doc["live"]["syncs_missed"],
+                complete_pct=s["complete_snapshots_pct"], valid_links_pct=s["valid_links_pct"],
+                estimated_pct=round(100.0 * est.get("made", 0) / snaps, 2), estimates=est,
+                recorded_snapshots_pct=round(100.0 * s.get("recorded", {}).get("snapshots", 0) / snaps, 2),
+                recorded_estimates=s.get("recorded", {}).get("estimates", 0),
+                dropped_from_queue=doc["aggregator"]["dropped"],
+                cpu_pct={"virtual_sheet": _cpu_pct(a_v, b_v, t1 - t0).get("main", 0.0), **host_cpu},
+                host_cpu_pct_total=round(total, 1),
+                host_cpu_us_per_link_sample=round(1e6 * total / 100.0 / (n_links * rate), 3))
+        except Exception as exc:  # noqa: BLE001 - one design failing is a row, not the end of the run
+            row["error"] = f"{type(exc).__name__}: {exc}"
+        finally:
+            if virt.poll() is None:
+                os.killpg(virt.pid, 2)
+                try:
+                    virt.wait(30)
+                except subprocess.TimeoutExpired:
+                    os.killpg(virt.pid, 9)
+        print(json.dumps({"config": name, **row}), file=sys.stderr, flush=True)
+        out["rows"].append(row)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help=f"rate grid {QUICK_RATES}, 2 s each (a few minutes)")
-    ap.add_argument("--only", action="append", choices=sorted(CONFIGS), help="run only this configuration (repeatable)")
+    ap.add_argument("--only", action="append", choices=sorted(CONFIGS) + sorted(CLI_CONFIGS),
+                    help="run only this configuration (repeatable); the CLI ones (64x64-packed-5gw-record) run only so")
+    ap.add_argument("--design", action="append", help="CLI configurations: only this design (in-process, processes)")
     ap.add_argument("--rates", help="comma-separated SYNC rates, Hz, each run in order (default: the adaptive sweep)")
     ap.add_argument("--duration", type=float, help="seconds streamed per rate (default 5, --quick 2)")
     args = ap.parse_args(argv)
@@ -299,7 +441,9 @@ def main(argv=None) -> int:
     import tempfile
     tmp = tempfile.mkdtemp(prefix="capsheet-bench-live-")
     load0 = os.getloadavg()
-    results = [run_config(n, CONFIGS[n], rates, duration, tmp, fixed=bool(args.rates)) for n in (args.only or CONFIGS)]
+    results = [run_config(n, CONFIGS[n], rates, duration, tmp, fixed=bool(args.rates))
+               for n in (args.only or CONFIGS) if n in CONFIGS]
+    results += [run_cli_config(n, CLI_CONFIGS[n], tmp, args.design) for n in (args.only or []) if n in CLI_CONFIGS]
     print(json.dumps({"benchmark": "bench_live", "quick": args.quick, "duration_s": duration, "rates": rates,
                       "loadavg_start": [round(x, 2) for x in load0],
                       "loadavg_end": [round(x, 2) for x in os.getloadavg()], "cpus": os.cpu_count(),

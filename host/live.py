@@ -31,7 +31,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["SceneChannels", "LiveServer", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
+__all__ = ["SceneChannels", "LiveServer", "log_frame_transform", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
            "SUBPROTOCOLS", "rewrite_request", "rewrite_response"]
 
 log = logging.getLogger(__name__)
@@ -72,25 +72,31 @@ class SceneChannels:
     colour_by : {"error", "displacement", "links"}
     metadata : dict, optional
         Channel metadata (`host.record.Recorder` marks which sink a set of channels is for).
+    prefix, frame_id : str
+        The topics are ``<prefix>/scene`` and ``<prefix>/joints``, drawn in frame ``frame_id``
+        (one sheet: ``/sheet`` and ``sheet``; ``capsheet view``: each sheet's name).
+    tf : foxglove.channels.FrameTransformChannel, optional
+        The ``/tf`` channel, shared by the sheets of one scene (default: a channel of its own).
     """
 
-    def __init__(self, context, lattice, colour_by: str = "links", metadata: dict | None = None) -> None:
+    def __init__(self, context, lattice, colour_by: str = "links", metadata: dict | None = None, *,
+                 prefix: str = "/sheet", frame_id: str = "sheet", tf=None) -> None:
         from foxglove.channels import FrameTransformChannel, PointCloudChannel, SceneUpdateChannel
 
         if colour_by not in COLOUR_MODES:
             raise ValueError(f"Invalid colour_by: {colour_by!r} (need one of {COLOUR_MODES})")
         self.lattice = lattice
         self.colour_by = colour_by
-        self.scene = SceneUpdateChannel("/sheet/scene", context=context, metadata=metadata)
-        self.cloud = PointCloudChannel("/sheet/joints", context=context, metadata=metadata)
-        self.tf = FrameTransformChannel("/tf", context=context, metadata=metadata)
+        self.frame_id = frame_id
+        self.scene = SceneUpdateChannel(f"{prefix}/scene", context=context, metadata=metadata)
+        self.cloud = PointCloudChannel(f"{prefix}/joints", context=context, metadata=metadata)
+        self.tf = tf if tf is not None else FrameTransformChannel("/tf", context=context, metadata=metadata)
         self._ends = np.asarray(lattice.endpoints)
 
-    def log_transform(self, t_ns: int) -> None:
-        from foxglove.messages import FrameTransform, Quaternion, Timestamp, Vector3
-        self.tf.log(FrameTransform(timestamp=_ts(t_ns, Timestamp), parent_frame_id="world", child_frame_id="sheet",
-                                   translation=Vector3(x=0, y=0, z=0), rotation=Quaternion(x=0, y=0, z=0, w=1)),
-                    log_time=t_ns)
+    def log_transform(self, t_ns: int, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0),
+                      parent: str = "world") -> None:
+        """``parent`` -> this sheet's frame: ``translation`` metres, ``rotation`` a unit quaternion (x, y, z, w)."""
+        log_frame_transform(self.tf, t_ns, parent, self.frame_id, translation, rotation)
 
     def link_colours(self, valid: np.ndarray, error: np.ndarray | None = None,
                      displacement: np.ndarray | None = None) -> np.ndarray:
@@ -126,10 +132,10 @@ class SceneChannels:
         line = LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True,
                              points=[Point3(x=x, y=y, z=z) for x, y, z in pts.tolist()],
                              colors=[Color(r=r, g=g, b=b_, a=al) for r, g, b_, al in cols.tolist()])
-        self.scene.log(SceneUpdate(entities=[SceneEntity(timestamp=ts, frame_id="sheet", id="lattice", lines=[line])]),
+        self.scene.log(SceneUpdate(entities=[SceneEntity(timestamp=ts, frame_id=self.frame_id, id="lattice", lines=[line])]),
                        log_time=t_ns)
         f32 = PackedElementFieldNumericType.Float32
-        self.cloud.log(PointCloud(timestamp=ts, frame_id="sheet", point_stride=12,
+        self.cloud.log(PointCloud(timestamp=ts, frame_id=self.frame_id, point_stride=12,
                                   fields=[PackedElementField(name=n, offset=4 * k, type=f32)
                                           for k, n in enumerate("xyz")],
                                   data=P.astype("<f4").tobytes()), log_time=t_ns)
@@ -154,9 +160,20 @@ class SceneChannels:
             texts.append(TextPrimitive(pose=tpose, billboard=True, font_size=14, scale_invariant=True,
                                        color=Color(r=1, g=1, b=1, a=1),
                                        text=f"#{c.get('id', '?')} {float(c['force_n']):.2f} N"))
-        self.scene.log(SceneUpdate(entities=[SceneEntity(timestamp=_ts(t_ns, Timestamp), frame_id="sheet",
+        self.scene.log(SceneUpdate(entities=[SceneEntity(timestamp=_ts(t_ns, Timestamp), frame_id=self.frame_id,
                                                          id="contacts", spheres=spheres, texts=texts)]),
                        log_time=t_ns)
+
+
+def log_frame_transform(tf, t_ns: int, parent: str, child: str, translation=(0.0, 0.0, 0.0),
+                        rotation=(0.0, 0.0, 0.0, 1.0)) -> None:
+    """One `foxglove.FrameTransform` ``parent`` -> ``child`` on the channel ``tf``: ``translation``
+    metres, ``rotation`` a unit quaternion (x, y, z, w)."""
+    from foxglove.messages import FrameTransform, Quaternion, Timestamp, Vector3
+    (tx, ty, tz), (qx, qy, qz, qw) = (float(v) for v in translation), (float(v) for v in rotation)
+    tf.log(FrameTransform(timestamp=_ts(t_ns, Timestamp), parent_frame_id=parent, child_frame_id=child,
+                          translation=Vector3(x=tx, y=ty, z=tz), rotation=Quaternion(x=qx, y=qy, z=qz, w=qw)),
+           log_time=t_ns)
 
 
 def _ts(t_ns: int, Timestamp):

@@ -27,7 +27,8 @@ import time
 import numpy as np
 
 __all__ = ["ZenohPublisher", "parse_publish", "PUBLISH_KINDS", "LOCATOR", "encode_snapshot", "encode_estimate", "decode_snapshot",
-           "decode_estimate", "KINDS", "HEADER", "PAYLOAD_VERSION"]
+           "decode_estimate", "encode_no_estimate", "FLAG_UNCERTAINTY", "FLAG_NOT_ESTIMATED", "SNAP_GYRO", "SNAP_MAG",
+           "SNAP_SAMPLE_TIME", "KINDS", "HEADER", "PAYLOAD_VERSION"]
 
 #: ``(kind, version, rows, cols, n, flags, counter, timestamp, wall_time)``: see docs/distribution.md
 HEADER = struct.Struct("<4sBBHHIHQdd")
@@ -36,6 +37,9 @@ PAYLOAD_VERSION = 1
 KINDS = {"snapshot": b"CSNP", "estimate": b"CEST"}
 #: estimate flag: a float32 joint_std (metres) per joint follows the joints
 FLAG_UNCERTAINTY = 1
+#: estimate flag: the snapshot could not be estimated (no valid link, every reading refused): joints NaN.
+#: An estimate worker (`host.distribute`) publishes one for every snapshot it takes, this one included.
+FLAG_NOT_ESTIMATED = 2
 #: the sheet name: one Zenoh key chunk (no ``/``, no wildcard or reserved characters)
 SHEET_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,64}$")
 HEALTH_PERIOD_S = 1.0
@@ -66,13 +70,26 @@ def _header(kind: str, rows: int, cols: int, n: int, flags: int, counter: int, t
                        float(timestamp), wall)
 
 
+#: snapshot flags: what follows ``status`` (6/9-axis chips, docs/protocol.md §16), each float32
+SNAP_GYRO, SNAP_MAG, SNAP_SAMPLE_TIME = 1, 2, 4
+
+
 def encode_snapshot(snap, rows: int, cols: int) -> bytes:
-    """Header (n = links), then readings float32 (n, 3) in m/s² (specific force, sensor frame), then valid uint8 (n,), status uint8 (n,)."""
+    """Header (n = links), then readings float32 (n, 3) in m/s² (specific force, sensor frame), then
+    valid uint8 (n,), status uint8 (n,); then, for 6/9-axis chips, by the flags: gyro float32 (n, 3)
+    rad/s (`SNAP_GYRO`), mag float32 (n, 3) tesla (`SNAP_MAG`), sample_time_s float32 (n,) seconds
+    after the SYNC (`SNAP_SAMPLE_TIME`), NaN where a link sent no IMU record."""
     n = int(snap.readings.shape[0])
-    return b"".join((_header("snapshot", rows, cols, n, 0, snap.counter, snap.timestamp, snap.wall_time),
+    flags, extra = 0, []
+    for bit, name in ((SNAP_GYRO, "gyro"), (SNAP_MAG, "mag"), (SNAP_SAMPLE_TIME, "sample_time_s")):
+        v = getattr(snap, name, None)
+        if v is not None:
+            flags |= bit
+            extra.append(np.ascontiguousarray(v, dtype="<f4").tobytes())
+    return b"".join((_header("snapshot", rows, cols, n, flags, snap.counter, snap.timestamp, snap.wall_time),
                      np.ascontiguousarray(snap.readings, dtype="<f4").tobytes(),
                      np.ascontiguousarray(snap.valid, dtype=np.uint8).tobytes(),
-                     np.ascontiguousarray(snap.status, dtype=np.uint8).tobytes()))
+                     np.ascontiguousarray(snap.status, dtype=np.uint8).tobytes(), *extra))
 
 
 def encode_estimate(est, counter: int, timestamp: float, wall_time: float, *, uncertainty: bool) -> bytes:
@@ -87,6 +104,14 @@ def encode_estimate(est, counter: int, timestamp: float, wall_time: float, *, un
     return b"".join(parts)
 
 
+def encode_no_estimate(rows: int, cols: int, counter: int, timestamp: float, wall_time: float) -> bytes:
+    """An estimate payload saying the snapshot ``counter`` could not be estimated: flag
+    `FLAG_NOT_ESTIMATED`, joints NaN."""
+    n = rows * cols
+    return _header("estimate", rows, cols, n, FLAG_NOT_ESTIMATED, counter, timestamp, wall_time) + \
+        np.full(3 * n, np.nan, dtype="<f4").tobytes()
+
+
 def _decode_header(payload: bytes, kind: str) -> dict:
     if len(payload) < HEADER.size:
         raise ValueError(f"payload of {len(payload)} bytes: shorter than the {HEADER.size}-byte header")
@@ -98,15 +123,25 @@ def _decode_header(payload: bytes, kind: str) -> dict:
 
 
 def decode_snapshot(payload: bytes) -> dict:
-    """`encode_snapshot` read back: header fields and ``readings`` (n, 3), ``valid``, ``status``."""
+    """`encode_snapshot` read back: header fields and ``readings`` (n, 3), ``valid``, ``status``, and
+    ``gyro`` (n, 3), ``mag`` (n, 3), ``sample_time_s`` (n,) (each None when the flags say it is absent)."""
     h = _decode_header(payload, "snapshot")
-    n = h["n"]
-    if len(payload) != HEADER.size + 14 * n:
-        raise ValueError(f"snapshot of {n} links is {HEADER.size + 14 * n} bytes, got {len(payload)}")
+    n, flags = h["n"], h["flags"]
+    size = HEADER.size + 14 * n + sum(w * n for bit, w in ((SNAP_GYRO, 12), (SNAP_MAG, 12), (SNAP_SAMPLE_TIME, 4))
+                                      if flags & bit)
+    if len(payload) != size:
+        raise ValueError(f"snapshot of {n} links (flags {flags}) is {size} bytes, got {len(payload)}")
     o = HEADER.size
     h["readings"] = np.frombuffer(payload, "<f4", 3 * n, o).reshape(n, 3)
     h["valid"] = np.frombuffer(payload, np.uint8, n, o + 12 * n).astype(bool)
     h["status"] = np.frombuffer(payload, np.uint8, n, o + 13 * n)
+    o += 14 * n
+    for bit, name, width in ((SNAP_GYRO, "gyro", 3), (SNAP_MAG, "mag", 3), (SNAP_SAMPLE_TIME, "sample_time_s", 1)):
+        h[name] = None
+        if flags & bit:
+            v = np.frombuffer(payload, "<f4", width * n, o)
+            h[name] = v.reshape(n, 3) if width == 3 else v
+            o += 4 * width * n
     return h
 
 
@@ -121,6 +156,7 @@ def decode_estimate(payload: bytes) -> dict:
     h["joints"] = np.frombuffer(payload, "<f4", 3 * n, o).reshape(h["rows"], h["cols"], 3)
     h["joint_std"] = (np.frombuffer(payload, "<f4", n, o + 12 * n).reshape(h["rows"], h["cols"])
                       if unc else None)
+    h["estimated"] = not h["flags"] & FLAG_NOT_ESTIMATED
     return h
 
 

@@ -590,14 +590,13 @@ class Recorder:
             valid=np.packbits(valid, bitorder="little").tobytes(),
             status=np.ascontiguousarray(snap.status, dtype=np.uint8).tobytes())
         counts = getattr(snap, "counts", None)
-        if counts is not None:
-            msg.counts.extend(np.asarray(counts, dtype=np.int16).ravel().tolist())
-        else:
-            msg.readings.extend(np.asarray(snap.readings, dtype=np.float32).ravel().tolist())
-        for name in ("gyro", "mag", "sample_time_s"):  # 6/9-axis chips (docs/protocol.md §16)
+        parts = [packed_sint32(7, np.asarray(counts, dtype=np.int16)) if counts is not None
+                 else packed_float(8, snap.readings)]
+        for name, number in (("gyro", 11), ("mag", 12), ("sample_time_s", 13)):  # 6/9-axis chips (§16)
             v = getattr(snap, name, None)
             if v is not None:
-                getattr(msg, name).extend(np.asarray(v, dtype=np.float32).ravel().tolist())
+                parts.append(packed_float(number, v))
+        msg.MergeFromString(b"".join(parts))
         self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg, _wall_ns(snap.wall_time))
 
     def estimate(self, est, counter: int, timestamp: float, wall_time: float | None = None, *,
@@ -614,7 +613,7 @@ class Recorder:
         msg = self._pb.message_class("Estimate")(
             counter=int(counter), timestamp=float(timestamp), method=str(getattr(est, "method", "")),
             residual=float(getattr(est, "residual", np.nan)), iterations=int(getattr(est, "iterations", 0)))
-        msg.joints.extend(np.asarray(est.joints, dtype=np.float32).ravel().tolist())
+        msg.MergeFromString(packed_float(6, est.joints))
         for name in ("yaw_std", "joint_std"):
             if not (uncertainty or name in getattr(est, "__dict__", {})):
                 continue  # a lazy property not yet computed: not computed here unasked
@@ -764,6 +763,64 @@ class Recorder:
                    "transports": [{"name": t.name, "kind": t.capabilities.kind, "fd": t.capabilities.fd,
                                    "bitrate": t.capabilities.bitrate} for t in host.transports]}
         return session, layout, calibration
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        b, n = n & 0x7F, n >> 7
+        out.append(b | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+def packed_sint32(number: int, values) -> bytes:
+    """Field ``number`` of packed repeated ``sint32`` ``values`` (integers within int32), wire-encoded
+    (zigzag varints) with numpy: what ``msg.<field>.extend(values.tolist())`` makes, for
+    ``msg.MergeFromString`` (a 64x64 snapshot's 24,192 counts: ~0.1 ms instead of ~0.7 ms, in the
+    receive path under the feed's lock).
+
+    >>> from host.record_schema import message_class
+    >>> m = message_class("Snapshot")(); m.MergeFromString(packed_sint32(7, [0, -1, 1, -64, 64, -32768, 32767]))
+    14
+    >>> list(m.counts)
+    [0, -1, 1, -64, 64, -32768, 32767]
+    """
+    v = np.asarray(values).ravel()
+    if v.size == 0:
+        return b""
+    v = v.astype(np.int32, copy=False)
+    z = ((v << 1) ^ (v >> 31)).view(np.uint32)  # zigzag
+    cols = max(1, (int(z.max()).bit_length() + 6) // 7)
+    grid = np.empty((v.size, cols), dtype=np.uint8)
+    more = np.empty(v.size, dtype=bool)
+    for k in range(cols):
+        grid[:, k] = (z >> (7 * k)) & 0x7F
+        if k + 1 < cols:
+            np.greater_equal(z, 1 << (7 * (k + 1)), out=more)
+            grid[:, k] |= more.view(np.uint8) << 7
+    if cols == 1:
+        payload = grid.tobytes()
+    else:
+        n_bytes = 1 + sum((z >= (1 << (7 * k))).view(np.uint8).astype(np.intp) for k in range(1, cols))
+        payload = grid[np.arange(cols) < n_bytes[:, None]].tobytes()
+    return _varint((number << 3) | 2) + _varint(len(payload)) + payload
+
+
+def packed_float(number: int, values) -> bytes:
+    """Field ``number`` of packed repeated ``float`` ``values``, wire-encoded (little-endian
+    float32), for ``msg.MergeFromString``: what ``extend(values.tolist())`` makes, without the list.
+
+    >>> from host.record_schema import message_class
+    >>> m = message_class("Estimate")(); m.MergeFromString(packed_float(6, [0.5, -2.0]))
+    10
+    >>> list(m.joints)
+    [0.5, -2.0]
+    """
+    payload = np.ascontiguousarray(np.asarray(values, dtype="<f4").ravel()).tobytes()
+    if not payload:
+        return b""
+    return _varint((number << 3) | 2) + _varint(len(payload)) + payload
 
 
 def _raw_payload(cap):

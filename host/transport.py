@@ -494,6 +494,9 @@ class SerialTransport(Transport):
         Returns a fresh port object; used instead of reopening by name.
     read_size : int
         Largest read per call; large reads keep the batch decoder on its fast path.
+    reader_process : bool
+        Read the port (given by name) through a process of its own (`host.portreader.ReaderPort`:
+        a tty gives 4 KB a read; the reader drains it into a 1 MB pipe the host reads in 64 KB).
 
     Reads wait on pyserial's ``timeout``, and setting it costs pyserial a termios reconfiguration
     (``tcsetattr``) every time, whatever the value. So a read's timeout is taken from a few fixed
@@ -505,8 +508,9 @@ class SerialTransport(Transport):
 
     def __init__(self, port: Any, baudrate: int = 3_000_000, *, reconnect: bool = True,
                  reconnect_interval_s: float = 0.2, reopen: Callable[[], Any] | None = None,
-                 read_size: int = 1 << 16, kind: str = "serial") -> None:
+                 read_size: int = 1 << 16, kind: str = "serial", reader_process: bool = False) -> None:
         self._url = port if isinstance(port, str) else None
+        self.reader_process = bool(reader_process) and self._url is not None
         name = self._url if self._url is not None else str(getattr(port, "name", None) or getattr(port, "port", None) or port)
         super().__init__(name, reconnect=reconnect, reconnect_interval_s=reconnect_interval_s)
         self.baudrate = baudrate
@@ -529,10 +533,18 @@ class SerialTransport(Transport):
     def _open(self):
         serial = self._serial_mod
         try:
-            return serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=0.05,
+            port = serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=0.05,
                                          write_timeout=1.0, exclusive=None)
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportInitError(f"Cannot open serial port {self._url!r}: {exc}", self._url) from exc
+        if not self.reader_process:
+            return port
+        from .portreader import ReaderPort
+        try:
+            return ReaderPort(port)
+        except (AttributeError, OSError, ValueError) as exc:  # e.g. loop:// has no file descriptor
+            port.close()
+            raise TransportInitError(f"Cannot read {self._url!r} through a reader process: {exc}", self._url) from exc
 
     # reconnect (the logic is `Transport._lost` / `_try_reopen`) ------------------------------
     label = "serial port"

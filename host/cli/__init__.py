@@ -20,7 +20,8 @@ SUBCOMMAND_MODULES = [
     "host.cli.conformance",  # capsheet conformance
     "host.cli.protocol",     # capsheet protocol (spec helpers: vectors, dbc, capacity)
     "host.cli.replay",       # capsheet replay (a recording through decoder, aggregator, estimator)
-    "host.cli.estimate",     # capsheet estimate (a recording offline, batched)
+    "host.cli.estimate",     # capsheet estimate (a recording offline, batched; --subscribe: a Zenoh worker)
+    "host.cli.view",         # capsheet view (several sheets from Zenoh in one live scene)
 ]
 
 

@@ -3,6 +3,14 @@
     capsheet estimate run.mcap --out joints.npz            # numpy arrays
     capsheet estimate run.mcap --out shapes.mcap --png     # MCAP (Foxglove 3D) and a figure
     capsheet estimate run.log --lattice 14x14 --out joints.npz   # a CAN log: replayed first
+    capsheet estimate --subscribe --worker 0/2              # a worker: sheets published on Zenoh, live
+
+With ``--subscribe`` it is an estimate worker instead (docs/distribution.md "Estimate workers"): it
+takes the snapshots hosts publish with ``capsheet host --publish zenoh`` (``capsheet/<sheet>/snapshot``),
+asks each sheet's ``capsheet/<sheet>/info`` for its lattice and link length, estimates every snapshot
+in order and publishes one estimate for each under ``capsheet/<sheet>/estimate``. ``--sheets`` names
+the sheets it takes, ``--worker I/N`` shares them among N workers without coordination; lost
+snapshots are counted from the SYNC counters, and a summary per sheet is printed at the end.
 
 The recorded snapshots are estimated (a CAN log, or ``--from-raw``, is first replayed through the
 decoder and aggregator, `host.replay`). Snapshots are read in batches of ``--batch`` (each warm-
@@ -41,10 +49,10 @@ def register(subparsers) -> None:
     from host.cli.replay import RECORDING_SUFFIXES
     p = subparsers.add_parser("estimate", help="estimate a recording offline (batched, all cores) to .npz or .mcap",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("recording", type=T.recording_file(*RECORDING_SUFFIXES, what="a recording"), nargs="+",
-                   help="capsheet .mcap, or a CAN log (.log, .asc, .blf)")
-    p.add_argument("--out", required=True, type=T.output_file(".npz", ".mcap", what="an output file"),
-                   help="joints.npz or shapes.mcap (an existing file needs --overwrite)")
+    p.add_argument("recording", type=T.recording_file(*RECORDING_SUFFIXES, what="a recording"), nargs="*",
+                   help="capsheet .mcap, or a CAN log (.log, .asc, .blf); none with --subscribe")
+    p.add_argument("--out", type=T.output_file(".npz", ".mcap", what="an output file"),
+                   help="joints.npz or shapes.mcap (an existing file needs --overwrite); required with a recording")
     T.add_overwrite_arg(p, "output files (--out)")
     p.add_argument("--png", nargs="?", const="", default=None, metavar="FILE", type=T.figure_file,
                    help="also draw the run (default: --out with .png)")
@@ -65,9 +73,13 @@ def register(subparsers) -> None:
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
     p.add_argument("--uncertainty", action="store_true",
-                   help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower)")
+                   help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower); "
+                        "with --subscribe, joint_std about once a second per sheet")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    from host.cli.subscribe import add_subscribe_args, check_subscribe
+    add_subscribe_args(p)
+    p.add_check(check_subscribe)
     p.set_defaults(func=run)
 
 
@@ -291,6 +303,9 @@ def _chain(first, rest):
 
 
 def run(args) -> int:
+    if args.subscribe is not None:
+        from host.cli.subscribe import run_worker
+        return run_worker(args)
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 
     from host.cli.progress import Progress

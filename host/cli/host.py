@@ -56,6 +56,10 @@ def register(subparsers) -> None:
                               epilog=__doc__.split("\n\n", 2)[2].split("\n\nThe Python API")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one or more --port, or one or more --can)")
+    p.add_argument("--reader-processes", action="store_true",
+                   help="read every --port through a small process of its own that drains the port into a "
+                        "1 MB pipe (host.portreader): a tty gives 4 KB a read, and five gateways read by "
+                        "threads of one interpreter fall behind at 145 Hz (a big sheet; docs/host.md)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
     p.add_argument("--lattice", type=T.lattice, default=None,
                    help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
@@ -92,7 +96,8 @@ def register(subparsers) -> None:
                         "health on still stretches (docs/calibration.md)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
     add_sensor_args(p)
-    add_record_args(p, can_log=True, link_length=True)  # --record --live --live-rate --can-log --link-length
+    add_record_args(p, can_log=True, link_length=True, estimate_process=True)  # --record --live --live-rate --can-log
+    # --link-length --estimate-process
     p.set_defaults(func=run)
 
 
@@ -235,6 +240,8 @@ def run(args) -> int:
 
     # -- everything checkable before a port is opened: one line, exit 2 --------------------------
     check_ports(args, prog="capsheet host")  # neither or both of --port/--can, a port given twice
+    if args.reader_processes and not getattr(args, "port", None):
+        return _fail("--reader-processes reads serial ports (--port); python-can reads --can buses itself", EXIT_USAGE)
     layout = None
     if args.layout:
         try:
@@ -327,6 +334,8 @@ def run(args) -> int:
                     snap = newer
                 if snap is not None and writer is not None:
                     writer.snapshot(snap)
+                if writer is not None:
+                    writer.poll()  # --estimate-process: its estimates to the outputs
                 if host.sync_conflict:
                     code = EXIT_FAIL
                     break
@@ -357,6 +366,8 @@ def run(args) -> int:
     finally:
         if writer is not None:
             writer.close(stats=stats)
+            if summary is not None:
+                summary.update(out.output_counts())
     if summary is not None:
         for line in _summary_lines(summary, args.min_complete):
             print(line, file=sys.stderr)

@@ -23,7 +23,7 @@ CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
 
 
 def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
-                    link_length: bool = False) -> argparse._ArgumentGroup:
+                    link_length: bool = False, estimate_process: bool = False) -> argparse._ArgumentGroup:
     """Add ``--record``, ``--live``, ``--live-rate``, ``--overwrite`` (and ``--can-log``,
     ``--link-length``). Every value is checked by `host.cli.argtypes`: an existing recording is
     replaced only with ``--overwrite``."""
@@ -55,6 +55,10 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics; ROS_DOMAIN_ID), "
                         "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
                         "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
+    g.add_argument("--no-publish-estimates", action="store_true",
+                   help="--publish zenoh: publish snapshots, health and info but no estimates, and make none for "
+                        "it: capsheet/<sheet>/estimate is left to estimate workers (capsheet estimate --subscribe), "
+                        "this host's CPU to its sheet")
     g.add_argument("--sheet-name", metavar="NAME", type=_sheet_name, default="sheet",
                    help="the sheet's name in the published key expressions and ROS 2 topics (default 'sheet'; "
                         "for ros2 a ROS name: letters, digits, _)")
@@ -63,10 +67,17 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "(ros2 bag, rosbags and Foxglove read it); an existing file needs --overwrite")
     if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
         parser.add_check(_check_ros2)
+        parser.add_check(_check_no_estimates)
     if can_log:
         g.add_argument("--can-log", metavar="FILE", type=T.output_file(*CAN_LOG_SUFFIXES, what="a CAN log"),
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
                             "logger (.log candump, .asc, .blf; cantools and capsheet replay read it)")
+    if estimate_process:
+        g.add_argument("--estimate-process", action="store_true",
+                       help="make the estimates of --record/--live/--publish in a process of their own "
+                            "(host.estimate_worker): the receive threads keep the interpreter to themselves "
+                            "and every snapshot up to --live-rate is estimated, in order (a big sheet at a "
+                            "high rate; docs/host.md); accelerometer sheets only")
     if link_length:
         g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
@@ -79,6 +90,13 @@ def _publish_arg(value: str):
         return parse_publish(value)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _check_no_estimates(ns) -> str | None:
+    publish = getattr(ns, "publish", None)
+    if getattr(ns, "no_publish_estimates", False) and (publish is None or publish[0] != "zenoh"):
+        return "--no-publish-estimates is for --publish zenoh (estimate workers make the estimates)"
+    return None
 
 
 def _check_ros2(ns) -> str | None:
@@ -118,6 +136,8 @@ DEFAULT_MIN_FREE_MB = 500.0
 #: a live session records an estimate's sampled uncertainty (yaw_std, joint_std: ~100 ms of CPU at
 #: 14x14) at most this often; the other estimates carry joints only
 UNCERTAINTY_PERIOD_S = 1.0
+#: --estimate-process: --live-rate holds on average over this long (or one period), not snapshot by snapshot
+ESTIMATE_CREDIT_S = 0.1
 
 
 class SessionOutputs:
@@ -148,6 +168,8 @@ class SessionOutputs:
         self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
         self.session_facts = {"mode": mode, **(session or {})}  #: what the session says of itself
         self.ros2 = None  #: `host.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
+        #: ``--publish zenoh`` publishes this session's estimates (not with ``--no-publish-estimates``)
+        self.publishes_estimates = not getattr(args, "no_publish_estimates", False)
         self._host = None
         self.can_log = None
         self._can_lock = threading.Lock()
@@ -158,6 +180,13 @@ class SessionOutputs:
         self._previous = None
         self._fused = None  # 6/9-axis chips: the fused estimator, fed every snapshot in order
         self.estimates_skipped, self._skip_reason = 0, ""
+        self.worker = None  #: `host.estimate_worker.EstimatorProcess` (``--estimate-process``)
+        self._worker_wanted = bool(getattr(args, "estimate_process", False))
+        self._sent: dict[int, object] = {}  # counter -> snapshot, in the estimator process
+        self._waiting = None  # the newest snapshot due an estimate while the estimator process is full
+        self._next_est = -np.inf
+        self.estimates_made = 0  #: estimates made (either path) and handed to the outputs
+        self.estimates_not_made = 0  #: snapshots due an estimate that found the estimator process full
         self.records_at_emission = False  #: `attach` records every emitted snapshot itself
         record, live = getattr(args, "record", None), getattr(args, "live", None)
         if record or live is not None:
@@ -202,6 +231,9 @@ class SessionOutputs:
                 raise SystemExit(f"{prog}: {exc}") from None
             print(f"{prog}: publishing to Zenoh under {self.publisher.prefix}/ "
                   f"({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+        if self._worker_wanted and (self.recorder is not None or self.publisher is not None or self.ros2 is not None):
+            from host.estimate_worker import EstimatorProcess
+            self.worker = EstimatorProcess(lattice.rows, lattice.cols, self.link_length)
         path = getattr(args, "can_log", None)
         if path:
             import can
@@ -325,8 +357,8 @@ class SessionOutputs:
         None."""
         rec = self.recorder
         self._health()
-        if rec is None and self.publisher is None and self.ros2 is None:
-            return None
+        if rec is None and self.ros2 is None and (self.publisher is None or not self.publishes_estimates):
+            return None  # nothing takes this session's estimates (workers make them: --no-publish-estimates)
         if rec is not None and rec.path is not None and not self.records_at_emission:
             rec.snapshot(snap)
         fused = None
@@ -339,6 +371,9 @@ class SessionOutputs:
             fused = fused_update(self._fused, snap)
             if fused is None:
                 return None
+        if self.worker is not None and fused is None:
+            self._to_worker(snap, force)
+            return None
         if not estimate:
             return None
         now = time.monotonic()
@@ -358,11 +393,84 @@ class SessionOutputs:
             self._skip_reason = str(exc)
             return None
         self._previous = est
+        self.estimates_made += 1
         unc = now - self._last_unc >= UNCERTAINTY_PERIOD_S
         if unc:
             self._last_unc = now
         self.publish(est, snap, truth=truth, displacement=displacement, uncertainty=unc)
         return est
+
+    # -- the estimator process (--estimate-process) ---------------------------------------------
+    def _to_worker(self, snap, force: bool = False) -> None:
+        """Every snapshot is a candidate (the estimator process keeps up, in order): sent when its
+        turn under --live-rate comes and the process has room, else kept as the newest waiting.
+        The turn is on the snapshots' own times (their SYNC), not on when this thread gets to them:
+        the main thread takes queued snapshots in bursts, and a burst must not read as a rate over
+        --live-rate (a credit of `ESTIMATE_CREDIT_S` absorbs the SYNCs' jitter: a SYNC sent late
+        and the next on time are closer than a period)."""
+        self.poll()
+        if not snap.valid.any():
+            return
+        t = float(snap.timestamp)
+        if not force and t < self._next_est:
+            return
+        self._next_est = max(self._next_est, t - max(self._period, ESTIMATE_CREDIT_S)) + self._period
+        if not self.worker.free:
+            if self._waiting is not None:
+                self.estimates_not_made += 1  # replaced by a newer one
+            self._waiting = snap
+            return
+        self._send(snap, time.monotonic())
+
+    def _send(self, snap, now: float) -> None:
+        unc = self.worker.uncertainty_due(now, UNCERTAINTY_PERIOD_S)
+        self._sent[int(snap.counter)] = snap
+        self.worker.submit(snap, uncertainty=unc)
+
+    def poll(self, timeout_s: float = 0.0) -> int:
+        """Hand the estimator process's finished estimates to the outputs (in order), send the
+        snapshot waiting if there is room. Returns how many were handed on (0 without the process)."""
+        if self.worker is None:
+            return 0
+        done = self.worker.results(timeout_s)
+        self._publish_remote(done)
+        if self._waiting is not None and self.worker.free:
+            snap, self._waiting = self._waiting, None
+            self._send(snap, time.monotonic())
+        return len(done)
+
+    def _publish_remote(self, done) -> None:
+        for est in done:
+            snap = self._sent.pop(est.counter, None)
+            if snap is None:
+                continue
+            if est.error:
+                self.estimates_skipped += 1
+                self._skip_reason = est.error
+                continue
+            self.estimates_made += 1
+            self.publish(est, snap, uncertainty="joint_std" in est.__dict__)
+
+    def estimate_counts(self) -> dict:
+        """How the session's estimates went: made, not made (the estimator process full or a bad
+        snapshot), and where they were made."""
+        out = {"made": self.estimates_made, "skipped_bad": self.estimates_skipped,
+               "where": "process" if self.worker is not None else "in process"}
+        if self.worker is not None:
+            out.update(not_made_busy=self.estimates_not_made, estimator_busy_s=round(self.worker.busy_s, 3),
+                       uncertainties=self.worker.uncertainties, estimator_pid=self.worker.pid)
+        return out
+
+    def output_counts(self) -> dict:
+        """For the summary (``--json``): ``estimates`` (`estimate_counts`) when anything takes them,
+        ``recorded`` (messages in the file per topic) with ``--record``."""
+        out = {}
+        if self.wants_estimates:
+            out["estimates"] = self.estimate_counts()
+        if self.recorder is not None and self.recorder.path is not None:
+            c = self.recorder.counts
+            out["recorded"] = {"snapshots": c.get("/capsheet/snapshot", 0), "estimates": c.get("/capsheet/estimate", 0)}
+        return out
 
     def emit(self, snap) -> None:
         """A snapshot no host feed carries (``capsheet replay``): to ``--publish`` and ``--record-ros2``
@@ -375,12 +483,13 @@ class SessionOutputs:
     @property
     def wants_estimates(self) -> bool:
         """Something takes estimates: the recording, the live view or a publisher."""
-        return self.recorder is not None or self.publisher is not None or self.ros2 is not None
+        return (self.recorder is not None or self.ros2 is not None
+                or (self.publisher is not None and self.publishes_estimates))
 
     def publish(self, est, snap, *, truth: np.ndarray | None = None, displacement=None,
                 uncertainty: bool = False) -> None:
         """Record, show and publish an estimate made elsewhere (the demo's own)."""
-        if self.publisher is not None:
+        if self.publisher is not None and self.publishes_estimates:
             self.publisher.estimate(est, snap, uncertainty=uncertainty)
         if self.ros2 is not None:
             self.ros2.estimate(est, snap, uncertainty=uncertainty)
@@ -430,6 +539,13 @@ class SessionOutputs:
             self.recorder.flush()
 
     def close(self, stats: dict | None = None) -> None:
+        if self.worker is not None:  # the estimates in flight first: they go to the outputs below
+            if self._waiting is not None:
+                self.estimates_not_made += 1
+                self._waiting = None
+            self._publish_remote(self.worker.close())
+            self.estimates_not_made += len(self._sent)
+            self._sent.clear()
         if self.publisher is not None:
             try:
                 self._health(force=True)  # the final summary

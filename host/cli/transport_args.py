@@ -109,7 +109,8 @@ def open_transports(args: argparse.Namespace, *, prog: str = "capsheet") -> list
     if ports:
         try:
             for port in ports:
-                out.append(SerialTransport(port, baudrate=args.baud))
+                out.append(SerialTransport(port, baudrate=args.baud,
+                                           reader_process=bool(getattr(args, "reader_processes", False))))
         except TransportError:
             for t in out:
                 t.close()

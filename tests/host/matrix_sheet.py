@@ -32,6 +32,13 @@ def port_args(transport: str, dev) -> list[str]:
     return ["--can", f"{dev.interface}:{dev.channels[0]}"]
 
 
+def udp_group(pid: int) -> str:
+    """A multicast group of this sheet's own, from its process id (unique among the processes
+    alive, below 239.74.163.2 and the other fixed groups the tests use): sheets isolated to
+    their groups (host/udp_multicast.py) run side by side, in one test session or several."""
+    return f"239.{75 + (pid >> 16) % 100}.{(pid >> 8) & 255}.{pid & 255}"
+
+
 def build(args):
     from virtual_sheet.board import DEFAULT_DIRECTIONS, BoardPoseScene
     from virtual_sheet.sensor import chip_error_model
@@ -64,7 +71,7 @@ def build(args):
         dev = SlcanDevice(sheet, **kw)
     else:
         from virtual_sheet.devices import CanDevice
-        channel = "239.74.163.2" if args.transport == "udp_multicast" else f"matrix{os.getpid()}"
+        channel = udp_group(os.getpid()) if args.transport == "udp_multicast" else f"matrix{os.getpid()}"
         dev = CanDevice(sheet, interface=args.transport, channels=[channel], **kw)
     return sheet, dev
 

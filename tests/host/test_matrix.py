@@ -21,8 +21,9 @@ by the cantools command line; ``conformance`` PASS on a healthy chip and FAIL on
 Assertions are on what is delivered and reported, never a rate or a latency. To stay fast the runs
 of one transport are made once per test session (`Batch`: whichever worker needs them first makes
 them, under a file lock in the session's temporary directory, and the other finds them there) and
-start together (one sheet each), except ``udp_multicast``, whose sheets would hear each other (one
-UDP port per machine): its runs go one after the other, under the machine-wide lock.
+start together (one sheet each; a ``udp_multicast`` sheet on a group of its own,
+tests/host/matrix_sheet.py's ``udp_group``: sheets isolated to their groups do not hear each other,
+issue 31 point 5).
 """
 
 from __future__ import annotations
@@ -42,7 +43,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.host.udp_lock import udp_multicast_lock
 
 ROOT = Path(__file__).resolve().parents[2]
 PY = sys.executable
@@ -303,11 +303,7 @@ class Batch:
             done = tmp / "runs.json"
             if not done.exists():
                 tmp.mkdir(parents=True, exist_ok=True)
-                if transport == "udp_multicast":
-                    with udp_multicast_lock():  # one udp_multicast sheet per machine
-                        b = cls(transport, tmp)
-                else:
-                    b = cls(transport, tmp)
+                b = cls(transport, tmp)
                 done.write_text(json.dumps({"jobs": {k: [j.rc, j.stdout, j.stderr] for k, j in b.jobs.items()},
                                             "live": b.live if isinstance(b.live, dict) else repr(b.live)}))
         doc = json.loads(done.read_text())
@@ -348,14 +344,11 @@ class Batch:
         self.jobs: dict[str, Job] = {}
         self.live: dict | BaseException | None = None
         self._live_thread = None
-        concurrent = transport != "udp_multicast"  # one udp_multicast sheet at a time per machine
         for name, args, sheet_args in specs:
             job = Job(transport, tmp, name, args, sheet_args)
             self.jobs[name] = job
             if name == "stream":
                 self._watch_live(job)
-            if not concurrent:
-                self._finish(name)
         for name in self.jobs:
             self._finish(name)
 

@@ -28,14 +28,18 @@ const ws = new WebSocketImpl(url, [FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
 const client = new FoxgloveClient({ ws });
 const subscribed = new Map(); // subscription id -> topic
 
+let finished = false;
 function finish(code) {
-  process.stdout.write(JSON.stringify(out) + "\n");
+  if (finished) return; // messages that come while the document is being written
+  finished = true;
   try {
     client.close();
   } catch (e) {
     // already closed
   }
-  process.exit(code);
+  // exit once the document is written: a pipe takes it asynchronously, and exiting at once cut it
+  // at 64 KiB
+  process.stdout.write(JSON.stringify(out) + "\n", () => process.exit(code));
 }
 
 const timer = setTimeout(() => {

@@ -1,0 +1,231 @@
+"""Shape estimation in a process of its own (``capsheet host --estimate-process``, docs/host.md).
+
+In one process the estimator shares the interpreter lock with the receive threads: at 64x64 a
+warm estimate is ~3.5 ms of mostly Python-driven numpy, its sampled uncertainty (yaw_std,
+joint_std) 1-2 s, and while the main thread holds the lock the receive threads fall behind and
+frames arrive after their counter's deadline (issue 31: 13.9 % complete, 20 of 914 snapshots
+estimated at 145 Hz). `EstimatorProcess` runs `host.analysis.estimator.estimate` in a child
+process (``spawn``) and hands back `RemoteEstimate` s, in order:
+
+* `submit` sends one snapshot's readings and mask (raw float64 bytes over a 1 MB pipe, no pickling
+  of arrays); at most `max_in_flight` are outstanding, so a slow estimator costs queued snapshots
+  (counted by the caller), never memory, and a send never blocks on a full pipe;
+* `results` returns the estimates made since the last call, each with the counter it belongs to;
+* the uncertainty is asked for with a snapshot (``uncertainty=True``) and made only when its last
+  cost is under `UNCERTAINTY_SHARE` of the time since: at 14x14 (~0.1 s) once a second as in
+  process, at 64x64 (~1.6 s) about once a minute, so it never starves the estimates.
+
+The child warm-starts each estimate from the previous one (``previous=``), as the in-process
+path does.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import struct
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE"]
+
+#: the uncertainty may take at most this share of the estimator's time (its cost / time since the last)
+UNCERTAINTY_SHARE = 0.03
+#: each pipe's buffer, bytes (Linux's default pipe-max-size): 4 requests of a 64x64 sheet
+PIPE_SIZE = 1 << 20
+#: request header: counter, n_links, flags (1 = uncertainty asked)
+_REQ = struct.Struct("<qII")
+#: answer header: counter, ok, iterations, residual, has_std, seconds spent
+_ANS = struct.Struct("<qIIdId")
+
+
+@dataclass(eq=False)
+class RemoteEstimate:
+    """An estimate made in the estimator process: what the recording, the live view and the
+    publishers read of a `host.analysis.estimator.ShapeEstimate` (``joints``, ``valid``, ``method``,
+    ``residual``, ``iterations``; ``yaw_std``/``joint_std`` only when the uncertainty was made,
+    else absent from ``__dict__`` as a not-yet-computed cached property is)."""
+
+    counter: int
+    joints: np.ndarray
+    valid: np.ndarray
+    residual: float
+    iterations: int
+    method: str = "global"
+    link_length: float = 0.01
+    seconds: float = 0.0  #: the estimate's time in the child
+    error: str = ""  #: why it could not be made (``joints`` is then empty)
+    extra: dict = field(default_factory=dict, repr=False)
+
+    def __getattr__(self, name):  # yaw_std / joint_std when not computed: None, as asked
+        if name in ("yaw_std", "joint_std"):
+            return None
+        raise AttributeError(name)
+
+
+def _widen(conn) -> None:
+    """Make a one-way pipe's buffer `PIPE_SIZE` (Linux; elsewhere it stays as it is)."""
+    try:
+        import fcntl
+        fcntl.fcntl(conn.fileno(), 1031, PIPE_SIZE)  # F_SETPIPE_SZ
+    except (ImportError, OSError):
+        pass
+
+
+def _child(pipes, rows: int, cols: int, link_length: float) -> None:
+    """The estimator process: estimate every request in order until the pipe closes."""
+    req, ans = pipes
+    from host.cli import one_blas_thread
+    one_blas_thread()
+    from host.analysis.estimator import estimate
+
+    n = rows * (cols - 1) + cols * (rows - 1)
+    previous = None
+    while True:
+        try:
+            buf = req.recv_bytes()
+        except (EOFError, OSError):
+            return
+        counter, n_links, flags = _REQ.unpack_from(buf, 0)
+        off = _REQ.size
+        readings = np.frombuffer(buf, dtype="<f8", count=3 * n, offset=off).reshape(n, 3)
+        valid = np.frombuffer(buf, dtype=np.bool_, count=n, offset=off + 24 * n)
+        t0 = time.perf_counter()
+        try:
+            est = estimate(readings, rows, cols, link_length, valid=valid, previous=previous, bad_readings="mask")
+        except ValueError as exc:  # every valid link's reading bad: said, not fatal
+            err = str(exc).encode()[:2000]
+            ans.send_bytes(_ANS.pack(counter, 0, 0, float("nan"), 0, time.perf_counter() - t0) + err)
+            continue
+        previous = est
+        parts = [np.ascontiguousarray(est.joints, dtype="<f8").tobytes(),
+                 np.ascontiguousarray(est.valid, dtype=np.bool_).tobytes()]
+        has_std = 0
+        if flags & 1:
+            parts += [np.ascontiguousarray(est.yaw_std, dtype="<f8").tobytes(),
+                      np.ascontiguousarray(est.joint_std, dtype="<f8").tobytes()]
+            has_std = 1
+        head = _ANS.pack(counter, 1, int(est.iterations), float(est.residual), has_std, time.perf_counter() - t0)
+        ans.send_bytes(head + est.method.encode().ljust(16, b"\0") + b"".join(parts))
+
+
+class EstimatorProcess:
+    """Shape estimates of one lattice made in a child process (module docstring).
+
+    Parameters
+    ----------
+    rows, cols : int
+        Joints.
+    link_length : float
+        Metres.
+    max_in_flight : int, optional
+        Snapshots sent and not yet answered, at most (default: what the request pipe holds, 2..16).
+    """
+
+    def __init__(self, rows: int, cols: int, link_length: float, *, max_in_flight: int | None = None) -> None:
+        self.rows, self.cols, self.link_length = int(rows), int(cols), float(link_length)
+        self.n_links = self.rows * (self.cols - 1) + self.cols * (self.rows - 1)
+        request = _REQ.size + 25 * self.n_links
+        #: default: as many as the request pipe holds (a send never blocks), 2..16 (64x64: 5)
+        self.max_in_flight = int(max_in_flight) if max_in_flight else max(2, min(16, PIPE_SIZE // request))
+        ctx = mp.get_context("spawn")
+        # two one-way pipes, each widened to `PIPE_SIZE`: a request is 32 bytes a link (a 64x64
+        # snapshot 200 KB), and on a duplex pipe (a socket pair, ~200 KB buffered) the second one in
+        # flight blocked the main thread until the child had finished the first
+        req_r, self._req = ctx.Pipe(duplex=False)
+        self._ans, ans_w = ctx.Pipe(duplex=False)
+        for c in (req_r, ans_w):
+            _widen(c)
+        self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length),
+                                 name="capsheet-estimator", daemon=True)
+        self._proc.start()
+        req_r.close()
+        ans_w.close()
+        self._in_flight: deque[float] = deque()  # send times
+        self.submitted = 0
+        self.made = 0  #: estimates returned
+        self.failed = 0  #: snapshots the estimator could not estimate (`RemoteEstimate.error`)
+        self.busy_s = 0.0  #: seconds the child spent estimating
+        self.uncertainties = 0
+        self._unc_cost = 0.0
+        self._last_unc = -np.inf
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid
+
+    @property
+    def free(self) -> bool:
+        """Another snapshot may be sent now."""
+        return len(self._in_flight) < self.max_in_flight
+
+    def uncertainty_due(self, now: float, period_s: float) -> bool:
+        """The uncertainty may be asked for at ``now``: ``period_s`` passed since the last and its
+        last cost is under `UNCERTAINTY_SHARE` of the time since."""
+        since = now - self._last_unc
+        return since >= period_s and self._unc_cost <= UNCERTAINTY_SHARE * since
+
+    def submit(self, snap, *, uncertainty: bool = False) -> None:
+        """Send ``snap`` (readings, valid, counter) for estimation; needs `free`."""
+        readings = np.ascontiguousarray(snap.readings, dtype="<f8")
+        valid = np.ascontiguousarray(snap.valid, dtype=np.bool_)
+        if readings.shape != (self.n_links, 3) or valid.shape != (self.n_links,):
+            raise ValueError(f"snapshot of {readings.shape} readings for a lattice of {self.n_links} links")
+        if uncertainty:
+            self._last_unc = time.monotonic()
+        self._req.send_bytes(b"".join((_REQ.pack(int(snap.counter), self.n_links, 1 if uncertainty else 0),
+                                        readings.tobytes(), valid.tobytes())))
+        self._in_flight.append(time.monotonic())
+        self.submitted += 1
+
+    def results(self, timeout_s: float = 0.0) -> list[RemoteEstimate]:
+        """Estimates made since the last call (waiting up to ``timeout_s`` for the first)."""
+        out: list[RemoteEstimate] = []
+        n, rc = self.n_links, (self.rows, self.cols, 3)
+        while self._in_flight and self._ans.poll(timeout_s if not out else 0.0):
+            try:
+                buf = self._ans.recv_bytes()
+            except (EOFError, OSError):
+                self._in_flight.clear()
+                break
+            self._in_flight.popleft()
+            counter, ok, iterations, residual, has_std, secs = _ANS.unpack_from(buf, 0)
+            self.busy_s += secs
+            if not ok:
+                self.failed += 1
+                out.append(RemoteEstimate(counter, np.empty((0,)), np.zeros(n, bool), residual, 0, seconds=secs,
+                                          error=buf[_ANS.size:].decode(errors="replace")))
+                continue
+            off = _ANS.size
+            method = buf[off:off + 16].rstrip(b"\0").decode()
+            off += 16
+            joints = np.frombuffer(buf, "<f8", count=3 * self.rows * self.cols, offset=off).reshape(rc)
+            off += 24 * self.rows * self.cols
+            valid = np.frombuffer(buf, np.bool_, count=n, offset=off)
+            off += n
+            est = RemoteEstimate(counter, joints, valid, residual, iterations, method, self.link_length, secs)
+            if has_std:
+                est.yaw_std = np.frombuffer(buf, "<f8", count=n, offset=off)
+                est.joint_std = np.frombuffer(buf, "<f8", count=self.rows * self.cols,
+                                              offset=off + 8 * n).reshape(self.rows, self.cols)
+                self.uncertainties += 1
+                self._unc_cost = secs
+            self.made += 1
+            out.append(est)
+        return out
+
+    def close(self, timeout_s: float = 5.0) -> list[RemoteEstimate]:
+        """Collect what is in flight (up to ``timeout_s``), then end the child. Returns those estimates."""
+        out: list[RemoteEstimate] = []
+        t_end = time.monotonic() + timeout_s
+        while self._in_flight and time.monotonic() < t_end:
+            out += self.results(min(0.1, max(0.0, t_end - time.monotonic())))
+        self._req.close()
+        self._ans.close()
+        self._proc.join(2.0)
+        if self._proc.is_alive():
+            self._proc.terminate()
+            self._proc.join(2.0)
+        return out

@@ -1,0 +1,213 @@
+"""``capsheet estimate --subscribe`` (issue 31, point 3): two sheets (``capsheet virtual`` on ptys, each
+with ``capsheet host --publish zenoh --no-publish-estimates``), two workers sharing them by
+``--worker 0/2`` and ``1/2``, and a subscriber in another process (tests/host/cli/estimate_checker.py:
+zenoh and docs/distribution.md only) that checks every snapshot of each sheet gets exactly one
+estimate, in order, decoded. All on loopback in Zenoh peer mode, no router. Asserts what is
+delivered, never a rate. Also the worker's errors: an unknown sheet, no router, usage."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import pytest
+
+from tests.host.cli.test_host import CLI, ENV, popen_host, virtuals, wait_line  # noqa: F401 -- the fixture
+
+pytest.importorskip("zenoh")
+CHECKER = Path(__file__).with_name("estimate_checker.py")
+
+
+def _two_names(tmp_path) -> list[str]:
+    """Two sheet names of this test's own (a shared machine), ``<base>_<k>``, one per worker of two:
+    CRC-32 of the name modulo 2 is 0 for the first, 1 for the second (the rule docs/distribution.md
+    states). The workers take ``<base>_*`` only: other tests' sheets on this loopback are not theirs."""
+    base = f"t{abs(hash(str(tmp_path))) % 10**6}"
+    names = {}
+    k = 0
+    while len(names) < 2:
+        name = f"{base}_{k}"
+        names.setdefault(zlib.crc32(name.encode()) % 2, name)
+        k += 1
+    return [names[0], names[1]]
+
+
+def _worker(*args: str) -> subprocess.Popen:
+    return subprocess.Popen(CLI + ["estimate", "--subscribe", *args, "--json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=ENV)
+
+
+def test_two_workers_estimate_every_snapshot_of_two_sheets_once_in_order(virtuals, tmp_path):  # noqa: F811
+    names = _two_names(tmp_path)
+    vs = [virtuals("--lattice", "3x3", "--symlink", str(tmp_path / f"sheet{k}"), "--layout-out",
+                   str(tmp_path / f"s{k}.csv")) for k in range(2)]
+    pattern = names[0].rsplit("_", 1)[0] + "_*"
+    workers = [_worker("--sheets", pattern, "--worker", f"{k}/2", "--idle", "6", "--duration", "150") for k in range(2)]
+    procs = list(workers)
+    try:
+        for w in workers:
+            wait_line(w, "worker ready", 60, [])
+        checker = subprocess.Popen([sys.executable, str(CHECKER), ",".join(names), "150", "8"],
+                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+        procs.append(checker)
+        assert checker.stdout.readline().strip() == "ready"
+        hosts = [popen_host(*v.host_cmd, "--duration", "4", "--publish", "zenoh", "--no-publish-estimates",
+                            "--sheet-name", name, "-q") for v, name in zip(vs, names)]
+        procs += hosts
+        host_err = [h.communicate(timeout=120)[1] for h in hosts]
+        done = [w.communicate(timeout=120) for w in workers]
+        got, cerr = checker.communicate(timeout=120)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    for h, err in zip(hosts, host_err):
+        assert h.returncode == 0 and "Traceback" not in err, err
+    published = [int(err.split("published ")[1].split(" snapshots")[0]) for err in host_err]
+    assert all(", 0 estimates" in err for err in host_err)  # the hosts left the estimates to the workers
+    docs = []
+    for w, (out, err) in zip(workers, done):
+        assert "Traceback" not in err, err
+        assert w.returncode == 0, err
+        docs.append(json.loads(out))
+    # each worker took exactly its sheet, by the CRC-32 rule, and left the other one
+    for k, doc in enumerate(docs):
+        assert [s["sheet"] for s in doc["sheets"]] == [names[k]], doc
+        assert names[1 - k] in doc["ignored"]
+    checked = json.loads(got.strip().splitlines()[-1])
+    assert checked["bad"] == []
+    for k, name in enumerate(names):
+        w = docs[k]["sheets"][0]
+        # the worker was there before the host streamed: every published snapshot, none lost
+        assert (w["lost"], w["gaps"], w["duplicates"], w["old"], w["bad_payloads"]) == (0, 0, 0, 0, 0)
+        assert w["received"] == published[k] >= 20
+        assert w["received"] == w["last_counter"] - w["first_counter"] + 1
+        assert w["estimated"] + w["not_estimated"] == w["received"]
+        snaps = [s["counter"] for s in checked["sheets"][name]["snapshot"]]
+        ests = checked["sheets"][name]["estimate"]
+        counters = [e["counter"] for e in ests]
+        # exactly one estimate per snapshot, in the snapshots' order, each decoded
+        assert counters == list(range(w["first_counter"], w["last_counter"] + 1))
+        assert set(snaps) <= set(counters) and len(snaps) >= 20
+        assert sum(e["estimated"] for e in ests) == w["estimated"] >= len(ests) - 3  # the first may be empty
+        for e in ests:
+            assert (e["rows"], e["cols"]) == (3, 3)
+            if e["estimated"]:
+                assert e["finite"] and abs(e["link_m"] - 0.01) < 0.001  # metres, L = 1 cm (the info's)
+        assert f"sheet {name}: received {published[k]}" in done[k][1]  # the summary says it
+
+
+def test_an_unknown_sheet_is_one_line_and_exit_1():
+    out = subprocess.run(CLI + ["estimate", "--subscribe", "--sheets", "no_such_sheet_here", "--wait", "1.5"],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "unknown sheet no_such_sheet_here" in out.stderr and "capsheet/no_such_sheet_here/info" in out.stderr
+
+
+def test_no_reachable_router_is_one_line_and_exit_1():
+    out = subprocess.run(CLI + ["estimate", "--subscribe", "zenoh:tcp/127.0.0.1:1", "--duration", "1"],
+                         capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "cannot reach the Zenoh router at tcp/127.0.0.1:1" in out.stderr
+
+
+def test_nothing_received_is_said_and_exit_1():
+    # a pattern no sheet matches: a worker that took every sheet would estimate other tests' sheets
+    # beside their own workers (their checkers would see two estimates per snapshot)
+    out = subprocess.run(CLI + ["estimate", "--subscribe", "--sheets", "nobody_publishes_this_*", "--worker", "0/1",
+                                "--duration", "1.5"], capture_output=True, text=True, timeout=60, env=ENV)
+    assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+    assert "received no snapshot from nobody_publishes_this_*" in out.stderr
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--subscribe", "ros2"], "--subscribe"),
+    (["--subscribe", "zenoh:localhost"], "bad Zenoh endpoint"),
+    (["--subscribe", "--worker", "2/2"], "--worker"),
+    (["--subscribe", "--sheets", "a/b"], "bad sheet name"),
+    (["--subscribe", "--sheets", "a", "--worker", "0/2"], "not in --worker 0/2's share"),  # crc32(b"a") % 2 == 1
+    (["--subscribe", "--method", "paper"], "auto, global or fused"),
+    (["--subscribe", "--out", "x.npz"], "--out is for a recording"),
+    (["--worker", "0/2"], "--worker is for an estimate worker"),
+    ([], "give a recording"),
+])
+def test_usage_errors_are_one_line_and_exit_2(args, needle, tmp_path):
+    out = subprocess.run(CLI + ["estimate", *args], capture_output=True, text=True, timeout=60, env=ENV,
+                         cwd=tmp_path)
+    assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+
+
+def test_a_host_refuses_no_publish_estimates_without_zenoh():
+    out = subprocess.run(CLI + ["host", "--port", "/nonexistent", "--no-publish-estimates"], capture_output=True,
+                         text=True, timeout=60, env=ENV)
+    assert out.returncode == 2 and "--no-publish-estimates is for --publish zenoh" in out.stderr, out.stderr
+
+
+def test_a_6_axis_sheet_is_estimated_by_the_fused_estimator_in_a_worker(virtuals, tmp_path):  # noqa: F811
+    """A carried-and-turned sheet of 6-axis chips: its snapshots carry the gyroscopes (flag bit 0) and
+    the worker shapes every one with the fused estimator, in order."""
+    name = f"imu{abs(hash(str(tmp_path))) % 10**6}"
+    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"),
+                 "--sensors", "accel+gyro", "--shape", "carry", "--noise", "1")
+    worker = _worker("--sheets", name, "--wait", "60", "--idle", "6", "--duration", "150")
+    procs = [worker]
+    try:
+        checker = subprocess.Popen([sys.executable, str(CHECKER), name, "150", "8"], stdout=subprocess.PIPE,
+                                   stderr=subprocess.PIPE, text=True, env=ENV)
+        procs.append(checker)
+        assert checker.stdout.readline().strip() == "ready"
+        host = popen_host(*v.host_cmd, "--sensors", "accel+gyro", "--duration", "4", "--publish", "zenoh",
+                          "--no-publish-estimates", "--sheet-name", name, "-q")
+        procs.append(host)
+        _, host_err = host.communicate(timeout=120)
+        out, err = worker.communicate(timeout=120)
+        got, _ = checker.communicate(timeout=120)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+    assert host.returncode == 0, host_err
+    assert worker.returncode == 0 and "Traceback" not in err, err
+    w = json.loads(out)["sheets"][0]
+    checked = json.loads(got.strip().splitlines()[-1])
+    assert checked["bad"] == []
+    snaps = checked["sheets"][name]["snapshot"]
+    assert snaps and all(s["flags"] & 1 and s["flags"] & 4 for s in snaps)  # gyroscopes and sample times
+    assert max(s["gyro_max"] for s in snaps) > 0.01  # rad/s: the sheet turns
+    assert (w["lost"], w["gaps"]) == (0, 0) and w["received"] >= 20
+    assert w["methods"] == {"fused": w["estimated"]} and w["estimated"] >= w["received"] - 3
+    ests = checked["sheets"][name]["estimate"]
+    assert [e["counter"] for e in ests] == list(range(w["first_counter"], w["last_counter"] + 1))
+    for e in ests:
+        if e["estimated"]:
+            assert e["finite"] and abs(e["link_m"] - 0.01) < 0.001
+    assert f"{w['estimated']} fused" in err
+
+
+def test_a_host_started_again_is_a_restart_for_the_worker_not_lost_snapshots(virtuals, tmp_path):  # noqa: F811
+    """The sheet's host runs, ends, and runs again: its SYNC counter starts again from 0. The worker
+    takes the second run as a new sequence (one restart), loses nothing and estimates every snapshot."""
+    name = f"rs{abs(hash(str(tmp_path))) % 10**6}"
+    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"))
+    worker = _worker("--sheets", name, "--wait", "60", "--idle", "30", "--duration", "200")
+    try:
+        published = []
+        for _ in range(2):
+            h = popen_host(*v.host_cmd, "--duration", "3", "--publish", "zenoh", "--no-publish-estimates",
+                           "--sheet-name", name, "-q")
+            _, err = h.communicate(timeout=120)
+            assert h.returncode == 0, err
+            published.append(int(err.split("published ")[1].split(" snapshots")[0]))
+        out, err = worker.communicate(timeout=120)
+    finally:
+        if worker.poll() is None:
+            worker.kill()
+    assert worker.returncode == 0 and "Traceback" not in err, err
+    w = json.loads(out)["sheets"][0]
+    assert w["restarts"] == 1 and (w["lost"], w["gaps"], w["old"], w["duplicates"]) == (0, 0, 0, 0), w
+    assert w["received"] == sum(published) and w["estimated"] + w["not_estimated"] == w["received"]
+    assert "counting restarted 1 time(s)" in err

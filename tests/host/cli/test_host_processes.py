@@ -1,0 +1,115 @@
+"""``capsheet host --reader-processes --estimate-process`` (issue 31.4) through the real CLI on
+ptys: what is delivered, counted and recorded, never a rate (benchmarks/bench_live.py measures
+the 64x64 sheet at 145 Hz)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import time
+
+import numpy as np
+
+from tests.host.cli.test_host import drain, finish, host, host_json, popen_host, virtuals, wait_line  # noqa: F401
+
+
+def _children(pid: int) -> list[tuple[int, str]]:
+    """(pid, command line) of ``pid``'s child processes, from /proc."""
+    out = []
+    for p in os.listdir("/proc"):
+        if not p.isdigit():
+            continue
+        try:
+            stat = open(f"/proc/{p}/stat").read()
+            cmd = open(f"/proc/{p}/cmdline", "rb").read().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append((int(p), cmd))
+    return out
+
+
+def test_reader_and_estimator_processes_deliver_and_estimate_every_snapshot(virtuals, tmp_path):
+    """Two packed gateways read by a reader process each, estimates made in an estimator process:
+    every chip found on its own port, one reader per port beside the host while it streams and
+    none after it, every snapshot recorded, every snapshot that reached the estimates either
+    estimated or counted as not made, and the recorded estimates the ones the estimator makes of
+    the recorded snapshots in this process."""
+    from host.analysis.estimator import estimate
+    from host.record import read
+
+    lay, rec, link = tmp_path / "sheet.json", tmp_path / "run.mcap", tmp_path / "gw"
+    v = virtuals("--lattice", "6x6", "--gateways", "2", "--packed", "--symlink", str(link), "--layout-out", str(lay))
+    p = popen_host(*v.host_cmd, "--reader-processes", "--estimate-process", "--record", str(rec),
+                   "--live-rate", "1000", "--duration", "4", "--json", "-q")
+    err: list = []
+    wait_line(p, "started on", 120, err)
+    kids = _children(p.pid)
+    readers = [pid for pid, cmd in kids if " -S -c " in cmd]
+    estimators = [pid for pid, cmd in kids if "spawn_main" in cmd]
+    out = finish(p, drain(p, err), timeout_s=120)
+    assert p.returncode == 0, "".join(err)
+    assert len(readers) == 2, kids  # one per --port
+    assert len(estimators) == 1, kids
+    for pid in readers + estimators:  # ended with the host
+        assert not os.path.exists(f"/proc/{pid}") or "Z" in open(f"/proc/{pid}/stat").read().split()[2], pid
+    doc = json.loads(out)
+    s = doc["summary"]
+    assert "60 chips found, 60 assigned, 60 configured" in "".join(err), "".join(err)
+    assert sorted(c["bus"] for c in doc["chips"].values()) == [0] * 30 + [1] * 30
+    assert not s["errors"] and s["stray_frames"] == 0, s
+    e = s["estimates"]
+    assert e["where"] == "process" and e["made"] >= 10, e
+    # each snapshot the main thread took was estimated, found the estimator full, or was bad
+    taken = s["snapshots"] - doc["aggregator"]["dropped"]
+    assert e["made"] + e["not_made_busy"] + e["skipped_bad"] <= taken, (e, taken)
+    assert s["recorded"]["snapshots"] == s["snapshots"]  # every snapshot in the file
+    r = read(rec)
+    assert len(r.counter) == s["snapshots"]
+    est_counters = np.asarray(r.estimates["counter"])
+    assert 1 <= len(est_counters) == s["recorded"]["estimates"] <= e["made"]
+    by_counter = {int(c): i for i, c in enumerate(r.counter)}
+    for j, c in enumerate(est_counters[:5]):
+        i = by_counter[int(c)]
+        valid = np.asarray(r.valid[i], dtype=bool)
+        mine = estimate(np.asarray(r.readings[i], dtype=float), 6, 6, 0.01, valid=valid, bad_readings="mask")
+        # float32 in the file; a warm start converges to the same shape within the solver's tolerance
+        np.testing.assert_allclose(np.asarray(r.estimates["joints"][j]).reshape(6, 6, 3), mine.joints, atol=2e-4)
+
+
+def test_a_sheet_restarted_under_reader_processes_is_recovered(virtuals, tmp_path):
+    """The sheet goes away under a reader process (its pty closes: the reader ends, the host reads
+    end of file) and comes back on the same path: the host reconnects through a new reader and
+    restarts every chip, as it does reading the port itself."""
+    lay, port = tmp_path / "sheet.csv", tmp_path / "sheet"
+    a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay))
+    p = popen_host(*a.host_cmd, "--reader-processes", "--duration", "300", "--json", "-q")
+    err: list = []
+    wait_line(p, "started on", 60, err)
+    time.sleep(1.0)
+    assert a.stop(signal.SIGTERM) == 0
+    time.sleep(0.5)
+    b = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay))
+    wait_line(p, "streaming again", 120, err)
+    time.sleep(1.5)
+    readers = [pid for pid, cmd in _children(p.pid) if " -S -c " in cmd]
+    p.send_signal(signal.SIGTERM)
+    doc = json.loads(finish(p, drain(p, err)))
+    s = doc["summary"]
+    assert s["reconnects"] >= 1 and s["recovered_chips"] == 24, (s, "".join(err))
+    assert len(readers) == 1, readers  # the old reader ended, one new one reads the port
+    assert b.p.poll() is None
+
+
+def test_reader_processes_need_a_port_with_a_file_descriptor():
+    """``loop://`` (pyserial's loopback) has no file descriptor to hand a reader: exit 1, one line."""
+    out = host("--port", "loop://", "--reader-processes", "--lattice", "3x3", "--auto-assign", "--duration", "1")
+    assert out.returncode == 1 and "through a reader process" in out.stderr, out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_reader_processes_on_a_can_bus_is_a_usage_error():
+    out = host("--can", "virtual:rp", "--reader-processes", "--lattice", "3x3", "--auto-assign", "--duration", "1")
+    assert out.returncode == 2 and "--reader-processes reads serial ports" in out.stderr, out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
