@@ -26,6 +26,13 @@ the 12-bit ADC (±2 g), a 14x14-joint sheet, L = 1 cm, one sheet of chips per ``
    every chip removed in the board's frame (as for the accelerometers): the largest error over
    every chip and axis, and the heading error of each chip in each held pose (its level frame
    from the calibrated accelerometer and magnetometer against the true one).
+5. **Onto the chips and back** (protocol v1.3, docs/protocol.md §17): the fit as each chip must hold
+   it (`imu_calibration.chip_imu_blocks`) written to a 9-axis `virtual_sheet.chip.ChipModel` per chip
+   as CAL_IMU_WRITE frames and read back with CAL_IMU_READ (``imu.round_trip``: elements not equal
+   bit for bit to the float32 written; the parameters recovered from what the chips hold, in the fit's
+   terms, minus the truth as in 4); and what the chips then *send* — §17.3 applied to the capture's
+   raw counts at ±1000 °/s and ±4 gauss — against the scene's true rate and field: RMS while the
+   board holds, while it turns, and of the field, uncorrected and corrected.
 
     .venv/bin/python benchmarks/bench_calibration.py [--quick] [--sheets 3] [--snapshots 20] [--no-imu]
 """
@@ -49,7 +56,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
-from host.analysis.imu_calibration import fit_capture  # noqa: E402
+from host.analysis.imu_calibration import chip_imu_blocks, fit_capture  # noqa: E402
+from protocol.framing import StreamDecoder, encode  # noqa: E402
+from protocol.imu_units import accel_g_of_counts, corrected_gyro_counts, corrected_mag_counts  # noqa: E402
+from protocol.messages import Assign, CalImuRead, CalImuWrite, provisional_node  # noqa: E402
+from virtual_sheet.chip import ChipModel  # noqa: E402
+from virtual_sheet.magfield import field_in_sensor_frames  # noqa: E402
 from host.calibration import fit_board_poses, link_frames_on_board  # noqa: E402
 from host.estimator import error_percent_of_side, estimate  # noqa: E402
 from protocol.constants import G0, counts_to_si  # noqa: E402
@@ -193,7 +205,8 @@ def run_imu(seed: int) -> dict:
     heading = np.degrees(np.arctan2(Rerr[..., 1, 0] - Rerr[..., 0, 1], Rerr[..., 0, 0] + Rerr[..., 1, 1]))
     failed = ~np.isfinite(cal.mag.residual_t)
     Em, sv, heading = Em[~failed], sv[~failed], heading[:, ~failed]
-    return {"samples": int(cat["t_s"].size), "held_poses": len(segs), "mag_failed_chips": int(failed.sum()),
+    trip = round_trip(cal, cat, board, env, imu, ge, M, failed)
+    return {"round_trip": trip, "samples": int(cat["t_s"].size), "held_poses": len(segs), "mag_failed_chips": int(failed.sum()),
             "gyro_bias_dps": round(float(np.degrees(np.abs(cal.gyro.bias_rps - ge.bias_rps).max())), 5),
             "gyro_g_sensitivity_dps_per_g": round(float(np.degrees(np.abs(cal.gyro.g_sensitivity - ge.g_sensitivity).max())), 5),
             "gyro_scale_pct": round(float(100 * np.abs(diag - 1).max()), 4),
@@ -205,6 +218,76 @@ def run_imu(seed: int) -> dict:
             "mag_residual_ut_max": round(float(1e6 * cal.mag.residual_t[~failed].max()), 4),
             "common_rotation_deg": round(common, 4),
             "simulate_s": round(t1 - t0, 2), "fit_s": round(t2 - t1, 2), "fit_cpu_s": round(c2 - c1, 2)}
+
+
+def _chips_hold(blocks: list[dict]) -> tuple[list[dict], int]:
+    """Every link's blocks through a 9-axis `ChipModel`: CAL_IMU_WRITE frames in, CAL_IMU_READ out.
+    Returns what the chips answered (``{block: [values]}`` per link) and how many elements differ
+    bit for bit from the float32 written."""
+    held, differ = [], 0
+    for k, b in enumerate(blocks):
+        uid = 0x1000 + k
+        chip = ChipModel(uid, lambda t: ((0, 0, 1024), 0), sensors="accel+gyro+mag",
+                         imu=lambda t, g, m: ((0, 0, 0), (0, 0, 0), 0))
+        chip.power_on(0.0)
+        chip.handle(encode(Assign(provisional_node(uid, 0), 1, k, uid & 0xFFFFFFFF)), 0.0)
+        out = {}
+        for blk, vals in b.items():
+            got = []
+            for i, v in enumerate(vals):
+                chip.handle(encode(CalImuWrite(1, blk, i, 1, 0, v)), 0.0)
+                (ans,) = StreamDecoder().feed(b"".join(chip.handle(encode(CalImuRead(1, blk, i)), 0.0)))
+                differ += np.float32(ans.value).tobytes() != np.float32(v).tobytes()
+                got.append(ans.value)
+            out[blk] = got
+        held.append(out)
+    return held, differ
+
+
+def round_trip(cal, cat, board, env, imu, ge, M, failed) -> dict:
+    """Module docstring, 5."""
+    n = cat["accel_mps2"].shape[1]
+    blocks = chip_imu_blocks(cal.gyro, cal.mag, cal.accel, np.zeros((n, 3)), np.full((n, 3), 1024.0))
+    held, differ = _chips_hold(blocks)
+    A = np.array([np.reshape(h[0], (3, 3)) for h in held])
+    b = np.array([h[1] for h in held])
+    G = np.array([np.reshape(h[2], (3, 3)) for h in held])
+    S = np.array([np.reshape(h[3], (3, 3)) if 3 in h else np.full((3, 3), np.nan) for h in held])
+    hi = np.array([h[4] if 4 in h else [np.nan] * 3 for h in held])
+    # the chips' parameters in the fit's terms (chip_imu_blocks inverted: Γ₁ = Γ D⁻¹, b₁ = b − Γ₁ e)
+    D_inv = cal.accel.scale  # D = diag(1024 / (1024 · scale))
+    e = -(cal.accel.bias / G0) / cal.accel.scale
+    G1 = G * D_inv[:, None, :]
+    b1 = b - np.einsum("kij,kj->ki", G1, e)
+    E, _c = _board_frame_less_common(A @ ge.scale @ np.transpose(M, (0, 2, 1)))
+    diag = np.diagonal(E, axis1=1, axis2=2)
+    # what the chips send: §17.3 on the capture's raw counts, against the truth
+    s_g = 32768 / 1000.0 * 180 / np.pi  # counts per rad/s at ±1000 °/s
+    s_m = 8192 / 1e-4  # counts per tesla at ±4 gauss
+    step = 7  # every 7th sample of the capture (a quarter of a million links per chip set is plenty)
+    sel = slice(None, None, step)
+    g_raw = np.clip(np.rint(cat["gyro_rps"][sel] * s_g), -32768, 32767)
+    m_raw = np.clip(np.rint(cat["mag_t"][sel] * s_m), -32768, 32767)
+    a_counts = np.clip(np.rint(cat["accel_mps2"][sel] / G0 * 1024), -2048, 2047)  # nominal CAL_DATA
+    T = g_raw.shape[0]
+    g_out = np.stack([corrected_gyro_counts(g_raw[t], 3, A, b, G, accel_g_of_counts(a_counts[t], 0)) for t in range(T)])
+    ok = ~failed
+    m_out = np.stack([corrected_mag_counts(m_raw[t][ok], 0, S[ok], hi[ok]) for t in range(T)])
+    truth = board.sample(cat["t_s"][sel])
+    w = np.asarray(truth.angular_velocity)
+    B = field_in_sensor_frames(env, truth.position, truth.frames)[:, ok]
+    turning = np.degrees(np.linalg.norm(w, axis=-1)) >= 1.0
+    rms = lambda x: round(float(np.sqrt(np.mean(x ** 2))), 4)  # noqa: E731
+    eg0, eg1 = np.degrees(g_raw / s_g - w), np.degrees(g_out / s_g - w)
+    return {"elements_not_bit_exact": int(differ), "elements": int(sum(len(v) for h in held for v in h.values())),
+            "gyro_bias_dps": round(float(np.degrees(np.abs(b1 - ge.bias_rps).max())), 5),
+            "gyro_g_sensitivity_dps_per_g": round(float(np.degrees(np.abs(G1 - ge.g_sensitivity).max())), 5),
+            "gyro_scale_pct": round(float(100 * np.abs(diag - 1).max()), 4),
+            "gyro_cross_axis_deg": round(float(np.degrees(np.abs(E - diag[..., None] * np.eye(3)).max())), 4),
+            "mag_hard_iron_ut": round(float(1e6 * np.abs(hi - imu.mag_errors.hard_iron_t)[ok].max()), 4),
+            "sent_gyro_rest_dps": {"raw": rms(eg0[~turning]), "corrected": rms(eg1[~turning])},
+            "sent_gyro_turn_dps": {"raw": rms(eg0[turning]), "corrected": rms(eg1[turning])},
+            "sent_mag_ut": {"raw": rms(1e6 * (m_raw[:, ok] / s_m - B)), "corrected": rms(1e6 * (m_out / s_m - B))}}
 
 
 def main(argv=None) -> int:

@@ -59,6 +59,8 @@ typedef struct {
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
         struct { uint8_t axis; } cal_read;
+        struct { uint8_t block, index, flags, reserved; float value; } cal_imu;
+        struct { uint8_t block, index; } cal_imu_read;
         struct { uint16_t counter; int16_t x, y, z; uint8_t status; uint8_t format; int16_t time_us;
                  int16_t gx, gy, gz, mx, my, mz; } imu_sample;
         struct { uint16_t counter; int16_t gx, gy, gz; } imu_gyro;
@@ -96,6 +98,8 @@ typedef struct {
     int32_t (*cal_store)(void *user, uint8_t axis, const capsheet_cal_t *cal);
     int32_t (*read_imu)(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
                         bool want_mag, capsheet_imu_reading_t *out);
+    int32_t (*cal_imu_load)(void *user, uint8_t element, uint32_t *bits);
+    int32_t (*cal_imu_store)(void *user, uint8_t element, uint32_t bits);
 } capsheet_hal_t;
 
 typedef struct { capsheet_transport_t transport; bool can_fd; uint16_t capabilities; } capsheet_chip_config_t;
@@ -184,6 +188,8 @@ extern "Python" int32_t capsheet_py_send_can(void *, uint32_t, const uint8_t *, 
 extern "Python" uint64_t capsheet_py_read_uid(void *);
 extern "Python" int32_t capsheet_py_cal_load(void *, uint8_t, capsheet_cal_t *);
 extern "Python" int32_t capsheet_py_cal_store(void *, uint8_t, const capsheet_cal_t *);
+extern "Python" int32_t capsheet_py_cal_imu_load(void *, uint8_t, uint32_t *);
+extern "Python" int32_t capsheet_py_cal_imu_store(void *, uint8_t, uint32_t);
 extern "Python" int32_t capsheet_py_read_imu(void *, uint64_t, uint8_t, uint8_t, bool, capsheet_imu_reading_t *);
 """
 

@@ -92,6 +92,8 @@ class CFirmwareChip:
         stored = 1 if self.capabilities & Capability.CAL_STORAGE else 0
         #: the chip's non-volatile calibration: (offset_q4, sensitivity, stored flag) per axis
         self.cal_store = [(int(o), float(s), stored) for o, s in calibration]
+        #: the gyro/mag calibration elements stored (§17): element -> float32 bits
+        self.cal_imu_store: dict[int, int] = {}
         self._out: list[Out] = []
         self._exc: BaseException | None = None
         self._handle = self._ffi.new_handle(self)
@@ -103,6 +105,8 @@ class CFirmwareChip:
         self._hal.read_uid = self._lib.capsheet_py_read_uid
         self._hal.cal_load = self._lib.capsheet_py_cal_load
         self._hal.cal_store = self._lib.capsheet_py_cal_store
+        self._hal.cal_imu_load = self._lib.capsheet_py_cal_imu_load
+        self._hal.cal_imu_store = self._lib.capsheet_py_cal_imu_store
         self._hal.read_imu = self._lib.capsheet_py_read_imu if imu is not None else self._ffi.NULL
         cfg = self._ffi.new("capsheet_chip_config_t *")
         cfg.transport = self._lib.CAPSHEET_TRANSPORT_CAN if transport == "can" else self._lib.CAPSHEET_TRANSPORT_SERIAL
@@ -273,6 +277,19 @@ def _register(ffi_) -> None:
     @ffi_.def_extern()
     def capsheet_py_cal_store(user, axis, cal):
         chip(user).cal_store[axis] = (int(cal.offset_q4), float(cal.sensitivity), 1)
+        return 0
+
+    @ffi_.def_extern()
+    def capsheet_py_cal_imu_load(user, element, bits):
+        stored = chip(user).cal_imu_store.get(int(element))
+        if stored is None:
+            return -1
+        bits[0] = stored
+        return 0
+
+    @ffi_.def_extern()
+    def capsheet_py_cal_imu_store(user, element, bits):
+        chip(user).cal_imu_store[int(element)] = int(bits)
         return 0
 
 

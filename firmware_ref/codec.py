@@ -47,6 +47,7 @@ _MEMBER = {
     MsgType.CAL_READ: "cal_read",
     MsgType.IMU_GYRO: "imu_gyro", MsgType.IMU_MAG: "imu_mag", MsgType.IMU_ACCEL: "imu_accel",
     MsgType.CONFIG_IMU: "config_imu",
+    MsgType.CAL_IMU_DATA: "cal_imu", MsgType.CAL_IMU_WRITE: "cal_imu", MsgType.CAL_IMU_READ: "cal_imu_read",
 }
 _IMU_FIELDS = ("counter", "x", "y", "z", "status", "time_us", "gx", "gy", "gz")
 

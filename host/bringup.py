@@ -16,7 +16,8 @@ import numpy as np
 from protocol.capacity import bus_load
 from protocol.constants import nominal_sensitivity
 from protocol.framing import DecodeError
-from protocol.messages import (Ack, Assign, CalData, CalRead, Config, ConfigImu, GetInfo, ImuBatch,
+from protocol.messages import (CAL_BLOCK_SIZE, CalBlock, CalImuData, CalImuRead, Capability,
+                               Ack, Assign, CalData, CalRead, Config, ConfigImu, GetInfo, ImuBatch,
                                MsgType, Nack, Reset, SampleBatch, Start, Stop, Sync)
 
 from .errors import CapacityError, MismatchError
@@ -38,26 +39,28 @@ _FRAMING = {(False, False): "SAMPLE", (True, False): "SNAPSHOT", (False, True): 
 
 def capacity_remedy(kind: str, load: float, rate_hz: float, *, packed: bool, fd: bool = False,
                     bitrate: int | None = None, split: str | None = None, pack: str | None = None,
-                    faster: bool = True) -> str:
+                    faster: bool = True, imu: bool = False) -> str:
     """What takes a bus at ``load`` (1.0 = full) back under its capacity, for what is already set:
     packing where it is not on (``pack``: how the command says so, e.g. with the gateways packing
-    needs), more gateways or buses (``split``), a faster link (``faster``), or the highest rate
-    that fits.
+    needs; ``imu``: the chips send IMU records, which a gateway packs into SNAPSHOT_IMU, §16.5),
+    more gateways or buses (``split``), a faster link (``faster``), or the highest rate that fits.
 
     >>> capacity_remedy("serial", 2.5, 145.0, packed=True, bitrate=12_000_000)
     'use more gateways (a --port each; at least 3), a link faster than 12 Mbaud (--baud), or --rate 58 or lower'
+    >>> capacity_remedy("serial", 1.5, 145.0, packed=False, imu=True).split(", ")[0]
+    'use --packed (SNAPSHOT_IMU frames from the gateway)'
     """
     ways = []
     k = int(np.ceil(load - 1e-9))
     if kind == "serial":
         if not packed:
-            ways.append(pack or "--packed (SNAPSHOT frames from the gateway)")
+            ways.append(pack or f"--packed ({'SNAPSHOT_IMU' if imu else 'SNAPSHOT'} frames from the gateway)")
         ways.append(split or f"more gateways (a --port each; at least {k})")
         if faster:
             ways.append("a link faster than " + (f"{bitrate / 1e6:g} Mbaud" if bitrate else "this one") + " (--baud)")
     else:
         if not (fd and packed):
-            ways.append(pack or "CAN FD with packed frames (--fd --packed)")
+            ways.append(pack or f"CAN FD with packed {'SNAPSHOT_IMU ' if imu else ''}frames (--fd --packed)")
         ways.append(split or f"more buses (a --can each; at least {k})")
     ways.append(f"--rate {int(rate_hz / load):d} or lower")
     return "use " + ", ".join(ways[:-1]) + ", or " + ways[-1]
@@ -103,10 +106,14 @@ class BringUp:
         if host.imu_config is not None:
             self.configure_imu()
         n_cal = self.read_calibration()
+        n_imu_cal = self.read_imu_calibration() if host.imu_config is not None else None
         self.capacity_report = self.check_capacity(capacity, packed=packed)
         n_start = host.start()
-        return {"discovered": len(found), "assigned": len(host.registry.assigned()), "configured": n_cfg,
-                "calibrated": n_cal, "started": n_start, "gateways": len(host.gateway_nodes.by_uid)}
+        out = {"discovered": len(found), "assigned": len(host.registry.assigned()), "configured": n_cfg,
+               "calibrated": n_cal, "started": n_start, "gateways": len(host.gateway_nodes.by_uid)}
+        if n_imu_cal is not None:  # a 6/9-axis bring-up: chips whose §17 calibration was read
+            out["imu_calibrated"] = n_imu_cal
+        return out
 
     # -- quiesce ---------------------------------------------------------------------------
     def count_stale(self, events: list) -> None:
@@ -339,6 +346,38 @@ class BringUp:
             self.calibration_reads += 1
         return n_ok
 
+    def read_imu_calibration(self, uids=None) -> int:
+        """`Host.read_imu_calibration`."""
+        host, reg = self.host, self.host.registry
+        chips = reg.by_node(uids)
+
+        def elements(rec) -> list[tuple[int, int]]:
+            caps = rec.info.capabilities if rec.info is not None else 0
+            return [(b, i) for b in CalBlock if caps & (Capability.GYRO if b <= CalBlock.GYRO_G_SENS else Capability.MAG)
+                    for i in range(CAL_BLOCK_SIZE[b])]
+
+        want = {k: elements(rec) for k, rec in chips.items()}
+        got: dict[tuple[int, int], dict] = {k: {} for k in chips}
+        for step in range(max((len(e) for e in want.values()), default=0)):
+            todo = {k: rec for k, rec in chips.items() if step < len(want[k])}
+
+            def build(key, _a, step=step):
+                b, i = want[key][step]
+                return [(key[0], CalImuRead(key[1], b, i))]
+
+            def match(bus, msg, step=step):
+                if isinstance(msg, CalImuData) or (isinstance(msg, Nack) and msg.command == MsgType.CAL_IMU_READ):
+                    return (bus, msg.node)
+                return None
+            answers, _ = host.commands.round(todo, build, match, f"CAL_IMU_READ element {step}")
+            for key, msg in answers.items():
+                if isinstance(msg, CalImuData) and (msg.block, msg.index) == want[key][step]:
+                    got[key][msg.block, msg.index] = (msg.value, msg.flags & 1)
+        with reg.lock:
+            for key, rec in chips.items():
+                rec.imu_cal = got[key]
+        return sum(1 for k in chips if want[k] and len(got[k]) == len(want[k]))
+
     def calibration_summary(self) -> dict:
         """`Host.calibration_summary`."""
         nominal = nominal_sensitivity(self.host.range_code)
@@ -395,7 +434,7 @@ class BringUp:
                     f"({'packed ' if packed else 'per-chip '}{_FRAMING[packed, bool(fmt)]} frames)")
             if load > 1.0:
                 remedy = capacity_remedy(cap.kind, load, host.rate_hz, packed=packed, fd=bool(cap.fd),
-                                         bitrate=cap.bitrate)
+                                         bitrate=cap.bitrate, imu=bool(fmt))
                 if action == "refuse":
                     raise CapacityError(f"over capacity: {what}; {remedy}")
                 log.warning("over capacity: %s; %s", what, remedy)

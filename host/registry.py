@@ -121,6 +121,8 @@ class ChipRecord:
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  #: counts (at the configured range)
     sensitivity: np.ndarray = field(default_factory=lambda: np.full(3, nominal_sensitivity()))  #: counts/g
     calibrated: bool = False  #: CAL_DATA read for all three axes
+    #: v1.3 (§17): (block, index) -> (value, stored flag) the chip answered CAL_IMU_READ with
+    imu_cal: dict = field(default_factory=dict)
     last_status: Status | None = None
     nacks: list = field(default_factory=list)  #: (command name, reason name), the last `MAX_NACKS` kept
     started_at: float = float("-inf")  #: host time of its START ACK

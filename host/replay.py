@@ -153,6 +153,23 @@ def load_can_log(path) -> dict[str, list]:
     return buses
 
 
+def _config_imu_in_log(buses: dict) -> tuple[int, int] | None:
+    """The (gyro_range, mag_range) of the first CONFIG_IMU (§16.2) with format 1 or 2 in a CAN log's
+    frames, or None."""
+    from protocol.can import decode_can
+    from protocol.messages import ConfigImu, MsgType
+
+    for chunks in buses.values():
+        for _t, _kind, frames in chunks:
+            for f in frames:
+                if not getattr(f, "is_extended_id", True) or ((f.arbitration_id >> 20) & 0x3F) != MsgType.CONFIG_IMU:
+                    continue
+                m = decode_can(f.arbitration_id, bytes(f.data), is_fd=bool(getattr(f, "is_fd", False)))
+                if isinstance(m, ConfigImu) and m.format in (1, 2) and m.gyro_range <= 4 and m.mag_range <= 3:
+                    return int(m.gyro_range), int(m.mag_range)
+    return None
+
+
 class Replay:
     """A recording (capsheet MCAP or CAN log) replayed into snapshots.
 
@@ -170,6 +187,11 @@ class Replay:
         A completion deadline of your own: counters are then emitted where it falls. Default: an
         MCAP recording's counters are emitted where the host emitted them (its deadline adapted
         as it ran; the recording holds each emission), a CAN log's after `CAN_LOG_DEADLINE_S`.
+    imu_ranges : (gyro_range, mag_range), optional
+        A CAN log's gyroscope and magnetometer range codes (docs/protocol.md §16.2). Default: those of
+        the first CONFIG_IMU with format 1 or 2 the log holds (a bus log sees the host's commands),
+        else CONFIG_IMU's power-on values (±1000 °/s, ±4 gauss); `imu_ranges_from` says which.
+        An MCAP recording's are its session's.
 
     Attributes
     ----------
@@ -179,13 +201,15 @@ class Replay:
     """
 
     def __init__(self, path, *, speed: float | None = None, lattice: str | Lattice | None = None,
-                 link_length: float | None = None, deadline_s: float | None = None) -> None:
+                 link_length: float | None = None, deadline_s: float | None = None,
+                 imu_ranges: tuple[int, int] | None = None) -> None:
         from . import record
 
         source = [str(p) for p in path] if isinstance(path, (list, tuple)) else path
         self.path = Path(source[0] if isinstance(source, list) else source)
         self.speed = speed
         self.recording = None
+        self.imu_ranges_from = "session"  # an MCAP recording: its session's CONFIG_IMU
         self._syncs = np.zeros((0, 2))
         self._host_calibration = None
         calibration = None
@@ -217,6 +241,11 @@ class Replay:
             buses = load_can_log(self.path)
             if not buses:
                 raise ValueError(f"{str(self.path)!r} holds no received CAN frame")
+            if imu_ranges is None:
+                imu_ranges = _config_imu_in_log(buses)
+                self.imu_ranges_from = "default" if imu_ranges is None else "CONFIG_IMU in the log"
+            else:
+                self.imu_ranges_from = "given"
         self.link_length = float(link_length if link_length is not None else session.get("link_length_m", 0.01))
         rate = float(session.get("rate_hz", 100.0))
         self._own_deadline = deadline_s is not None
@@ -238,6 +267,8 @@ class Replay:
         imu = session.get("imu_config") if self.recording is not None else None
         if imu:  # 6/9-axis chips: their records converted at the ranges the host gave them (§16.2)
             self.aggregator.gyro_range, self.aggregator.mag_range = int(imu[1]), int(imu[2])
+        elif self.recording is None and imu_ranges is not None:  # a CAN log
+            self.aggregator.gyro_range, self.aggregator.mag_range = int(imu_ranges[0]), int(imu_ranges[1])
         # the host's feed on the recorded clock: the same correction (the recorded host calibration),
         # applied where the host applied it
         self.feed = SnapshotFeed(self.aggregator, clock=lambda: self._now, queue_size=1 << 30,

@@ -45,7 +45,7 @@ from protocol.constants import Range
 from protocol.framing import DecodeError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
-from protocol.messages import (Ack, Announce, CalData, ChipState, ImuBatch, ImuSample, Info, Message, Nack, Sample,
+from protocol.messages import (Ack, Announce, CalData, CalImuData, ChipState, ImuBatch, ImuSample, Info, Message, Nack, Sample,
                                SampleBatch, Snapshot, SnapshotImu, Status, Stop, Sync)
 
 from .aggregator import Aggregator, LatticeSnapshot
@@ -443,7 +443,7 @@ class Host:
                     self.recovery.queue(uid, "not streaming")
         elif isinstance(msg, Sync):
             self.sync_driver.heard(bus, msg)
-        elif isinstance(msg, (Ack, Nack, CalData)):
+        elif isinstance(msg, (Ack, Nack, CalData, CalImuData)):
             self.commands.answer(bus, msg)
 
     def _check_health(self, snap: LatticeSnapshot) -> None:
@@ -518,6 +518,13 @@ class Host:
         values (reported). CAL_DATA refers to ±2 g counts; they are scaled to the configured range.
         Returns the number of chips fully calibrated (of ``uids``, if given)."""
         return self.bringup.read_calibration(uids)
+
+    def read_imu_calibration(self, uids=None) -> int:
+        """CAL_IMU_READ every element of the gyroscope's (and magnetometer's) calibration of every
+        assigned chip whose INFO has GYRO (MAG) (docs/protocol.md §17) into its record's
+        ``imu_cal``; the chip applies it itself, so nothing is converted with it. Returns the number
+        of chips whose every element answered."""
+        return self.bringup.read_imu_calibration(uids)
 
     def calibration_summary(self) -> dict:
         """Of the assigned chips whose calibration was read, ``{"own": n, "nominal": m}``: those whose

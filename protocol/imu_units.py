@@ -28,7 +28,8 @@ from enum import IntEnum
 
 __all__ = ["GYRO_BITS", "MAG_BITS", "GyroRange", "MagRange", "RAD_PER_DEG", "TESLA_PER_GAUSS",
            "count_limits", "gyro_nominal_sensitivity", "mag_nominal_sensitivity", "gyro_counts_to_si",
-           "si_to_gyro_counts", "mag_counts_to_si", "si_to_mag_counts"]
+           "si_to_gyro_counts", "mag_counts_to_si", "si_to_mag_counts", "nominal_imu_cal",
+           "corrected_gyro_counts", "corrected_mag_counts", "accel_g_of_counts"]
 
 GYRO_BITS = 16  #: width of one gyroscope axis sample (the parts' native output: ICM-42688-P, BMI270)
 MAG_BITS = 16  #: width of one magnetometer axis sample (LIS3MDL; 18-bit parts are rounded to 16)
@@ -113,3 +114,70 @@ def si_to_mag_counts(field_t, range_code: int = MagRange.GAUSS4, offset=0.0, sen
     """Tesla -> ideal (unrounded, unclipped) counts; inverse of `mag_counts_to_si`."""
     s = mag_nominal_sensitivity(range_code, bits) if sensitivity is None else sensitivity
     return field_t / TESLA_PER_GAUSS * s + offset
+
+
+# ---------------------------------------------------------------------------------------------
+# v1.3 (docs/protocol.md §17): the gyroscope's and magnetometer's calibration, applied on the chip
+# ---------------------------------------------------------------------------------------------
+
+_NOMINAL = {0: (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 1: (0.0,) * 3, 2: (0.0,) * 9,
+            3: (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 4: (0.0,) * 3}
+
+
+def nominal_imu_cal() -> dict:
+    """The §17.1 nominal calibration, block -> list of values (GYRO_MATRIX 9, GYRO_BIAS 3, GYRO_G_SENS
+    9, MAG_MATRIX 9, MAG_HARD_IRON 3; matrices row-major): identity matrices, zero vectors."""
+    return {b: list(v) for b, v in _NOMINAL.items()}
+
+
+def _clamp_round(x):
+    """Round to nearest, halves away from zero (as C's ``(int)(v + 0.5)`` on |v|), then clamp."""
+    import numpy as np
+    return np.clip(np.sign(x) * np.floor(np.abs(x) + 0.5), -32768, 32767).astype(np.int64)
+
+
+def corrected_gyro_counts(counts, range_code, matrix, bias_rps, g_sens, accel_g):
+    """§17.3: the gyroscope counts a calibrated chip sends, ``(m, 3)`` int64:
+    ``round(A (c − s (b + Γ f)))`` with ``s`` the counts per rad/s at the range.
+
+    ``counts (m, 3)`` as read at ``range_code (m,)`` (or a scalar), ``matrix (m, 3, 3)``, ``bias_rps
+    (m, 3)``, ``g_sens (m, 3, 3)`` (rad/s per g), ``accel_g (m, 3)``: the same record's accelerometer
+    counts sent, scaled to ±2 g counts, over the nominal 1024 counts per g (`accel_g_of_counts`).
+
+    >>> import numpy as np
+    >>> I = np.eye(3)[None]; z = np.zeros((1, 3))
+    >>> corrected_gyro_counts([[100, -200, 3000]], 3, I, z, 0 * I, z).tolist()
+    [[100, -200, 3000]]
+    >>> corrected_gyro_counts([[100, -200, 3000]], 3, 2 * I, z, 0 * I, z).tolist()
+    [[200, -400, 6000]]
+    """
+    import numpy as np
+    c = np.asarray(counts, dtype=float)
+    r = np.broadcast_to(np.asarray(range_code, dtype=np.int64), c.shape[:1])
+    s = (float(1 << (GYRO_BITS - 1)) / (125.0 * np.exp2(r)))[:, None] / RAD_PER_DEG  # counts per rad/s
+    off = np.asarray(bias_rps, dtype=float) + np.einsum("kij,kj->ki", np.asarray(g_sens, dtype=float),
+                                                        np.asarray(accel_g, dtype=float))
+    return _clamp_round(np.einsum("kij,kj->ki", np.asarray(matrix, dtype=float), c - s * off))
+
+
+def accel_g_of_counts(counts, range_code):
+    """§17.3's ``f``: accelerometer counts sent at CONFIG range code ``range_code``, in g at the
+    nominal ±2 g sensitivity (1024 counts per g; the chip's CAL_DATA is not applied)."""
+    import numpy as np
+    return np.asarray(counts, dtype=float) * np.exp2(np.asarray(range_code, dtype=float))[..., None] / 1024.0
+
+
+def corrected_mag_counts(counts, range_code, matrix, hard_iron_t):
+    """§17.3: the magnetometer counts a calibrated chip sends, ``(m, 3)`` int64:
+    ``round(S (c − s h))`` with ``s`` the counts per tesla at the range.
+
+    >>> import numpy as np
+    >>> corrected_mag_counts([[8192, 0, -8192]], 0, np.eye(3)[None], [[1e-4, 0.0, 0.0]]).tolist()
+    [[0, 0, -8192]]
+    """
+    import numpy as np
+    c = np.asarray(counts, dtype=float)
+    r = np.broadcast_to(np.asarray(range_code, dtype=np.int64), c.shape[:1])
+    s = (float(1 << (MAG_BITS - 1)) / (4.0 * (r + 1)))[:, None] / TESLA_PER_GAUSS  # counts per tesla
+    return _clamp_round(np.einsum("kij,kj->ki", np.asarray(matrix, dtype=float),
+                                  c - s * np.asarray(hard_iron_t, dtype=float)))

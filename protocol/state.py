@@ -52,6 +52,7 @@ class Reply(Enum):
     SAMPLE = "sample"  #: SAMPLE(counter of the SYNC)
     ANNOUNCE_INFO = "announce_info"  #: ANNOUNCE then INFO (a gateway: then GATEWAY_INFO)
     CAL_DATA = "cal_data"  #: CAL_DATA of the asked axis
+    CAL_IMU_DATA = "cal_imu_data"  #: CAL_IMU_DATA of the asked element (v1.3, §17)
     ACK_THEN_BOOT = "ack_then_boot"  #: ACK from the current node, then boot: ANNOUNCE + INFO
     UNSUPPORTED = "unsupported"  #: NACK UNSUPPORTED when addressed (a gateway's answer to chip commands)
 
@@ -90,6 +91,10 @@ RULES[_I, MsgType.SYNC] = Rule(Reply.NONE)
 RULES[_I, MsgType.CAL_WRITE] = Rule(Reply.ACK, validate=True)
 for _st in _ASSIGNED:
     RULES[_st, MsgType.CAL_READ] = Rule(Reply.CAL_DATA)
+# v1.3, §17.2: as CAL_WRITE / CAL_READ; both check the block's sensor (UNSUPPORTED without it)
+RULES[_I, MsgType.CAL_IMU_WRITE] = Rule(Reply.ACK, validate=True)
+for _st in _ASSIGNED:
+    RULES[_st, MsgType.CAL_IMU_READ] = Rule(Reply.CAL_IMU_DATA, validate=True)
 
 
 def rule_for(state: ChipState, msg_type: MsgType) -> Rule | None:
@@ -103,7 +108,8 @@ for _st in (_B, _I):
     GATEWAY_RULES[_st, MsgType.GET_INFO] = Rule(Reply.ANNOUNCE_INFO)
     GATEWAY_RULES[_st, MsgType.RESET] = Rule(Reply.ACK_THEN_BOOT, _B)
     GATEWAY_RULES[_st, MsgType.ASSIGN] = Rule(Reply.ACK, _I)
-    for _t in (MsgType.CONFIG, MsgType.START, MsgType.STOP, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU):
+    for _t in (MsgType.CONFIG, MsgType.START, MsgType.STOP, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU,
+               MsgType.CAL_IMU_WRITE, MsgType.CAL_IMU_READ):
         GATEWAY_RULES[_st, _t] = Rule(Reply.UNSUPPORTED)
 
 
@@ -115,7 +121,7 @@ def gateway_rule_for(state: ChipState, msg_type: MsgType) -> Rule | None:
 # ---- the tables as docs/protocol.md prints them ----------------------------------------------------
 
 _CELL = {Reply.NONE: "—", Reply.ACK: "ACK", Reply.SAMPLE: "SAMPLE", Reply.ANNOUNCE_INFO: "ANNOUNCE, INFO",
-         Reply.CAL_DATA: "CAL_DATA", Reply.ACK_THEN_BOOT: "ACK, ANNOUNCE, INFO", Reply.UNSUPPORTED: "NACK 5"}
+         Reply.CAL_DATA: "CAL_DATA", Reply.CAL_IMU_DATA: "CAL_IMU_DATA", Reply.ACK_THEN_BOOT: "ACK, ANNOUNCE, INFO", Reply.UNSUPPORTED: "NACK 5"}
 
 
 def _cell(rule: Rule | None, state: ChipState, t: MsgType) -> str:
@@ -141,13 +147,14 @@ def chip_table() -> str:
         rows.append(f"| {name} | " + " | ".join(cells) + " |")
 
     for t in (MsgType.SYNC, MsgType.ASSIGN, MsgType.CONFIG, MsgType.START, MsgType.STOP, MsgType.GET_INFO,
-              MsgType.RESET, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU):
+              MsgType.RESET, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU, MsgType.CAL_IMU_WRITE,
+              MsgType.CAL_IMU_READ):
         name = t.name + (" (broadcast only)" if t == MsgType.SYNC else
                          " (uid_low matches)" if t == MsgType.ASSIGN else "")
         row(name, [_cell(rule_for(s, t), s, t) for s in states])
     row("ASSIGN, uid_low differs", ["—"] * len(states))
     row("a node → host type 0x01..0x0F, defined or not", ["—"] * len(states))
-    row("an undefined type 0x00, 0x1A..0x3F", ["NACK 1"] * len(states))
+    row("an undefined type 0x00, 0x1C..0x3F", ["NACK 1"] * len(states))
     row("another protocol version", ["NACK 6"] * len(states))
     row("a defined host → node type of the wrong length", ["NACK 2"] * len(states))
     row("a field out of range (decoder: BAD_FIELD)", ["NACK 3"] * len(states))
@@ -159,7 +166,7 @@ def gateway_table() -> str:
     """The gateway's table (docs §13.4) as markdown: frames addressed to the gateway's node id."""
     rows = ["| input (addressed to the gateway) | BOOT | IDLE |", "|---|---|---|"]
     for t in (MsgType.ASSIGN, MsgType.GET_INFO, MsgType.RESET, MsgType.CONFIG, MsgType.START, MsgType.STOP,
-              MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU):
+              MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CONFIG_IMU, MsgType.CAL_IMU_WRITE, MsgType.CAL_IMU_READ):
         name = t.name + (" (uid_low matches)" if t == MsgType.ASSIGN else "")
         cells = []
         for s in (_B, _I):

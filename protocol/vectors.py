@@ -29,7 +29,8 @@ from .messages import (LINK_NONE, PROTOCOL_VERSION, Ack, Announce, Assign, CalDa
                        CalWrite, Capability, ChipState, Config, GatewayFlag, GatewayInfo, GetInfo, Info, Message,
                        MsgType, Nack, NackReason, Reset, Sample, SampleFormat, Snapshot, Start, Status,
                        StatusFlag, Stop, Sync, message_from_fields, message_to_fields,
-                       TIME_UNKNOWN, ConfigImu, ImuAccel, ImuGyro, ImuMag, ImuSample, SnapshotImu)
+                       TIME_UNKNOWN, ConfigImu, ImuAccel, ImuGyro, ImuMag, ImuSample, SnapshotImu,
+                       CalBlock, CalImuData, CalImuRead, CalImuWrite)
 
 __all__ = ["canonical_messages", "message_to_fields", "message_from_fields", "build_vectors",
            "error_vectors", "verdict_vectors", "chip_scenarios", "VECTOR_DIR", "write_vectors"]
@@ -84,6 +85,12 @@ def canonical_messages() -> list[tuple[str, Message]]:
                                                         [[8192, -4096, 1], [0, 0, -8192], [0, 0, 0]])),
         ("config_imu", ConfigImu(1, format=SampleFormat.IMU9, gyro_range=3, mag_range=1, flags=0)),
         ("config_imu_fd_broadcast", ConfigImu(0, format=SampleFormat.IMU6, gyro_range=4, mag_range=0, flags=1)),
+        # v1.3 (docs §17): the worked examples of §17.1 and edges
+        ("cal_imu_write_gyro_matrix", CalImuWrite(1, CalBlock.GYRO_MATRIX, 1, 1, 0, -0.00390625)),
+        ("cal_imu_write_mag_hard_iron", CalImuWrite(1, CalBlock.MAG_HARD_IRON, 2, 0, 0, 2.5e-05)),
+        ("cal_imu_read", CalImuRead(1, CalBlock.GYRO_G_SENS, 8)),
+        ("cal_imu_data_gyro_bias", CalImuData(42, CalBlock.GYRO_BIAS, 0, 1, 0, 0.0125)),
+        ("cal_imu_data_nominal_identity", CalImuData(42, CalBlock.MAG_MATRIX, 4, 0, 0, 1.0)),
     ]
 
 
@@ -111,7 +118,7 @@ def build_vectors() -> dict[str, dict]:
         "can.json": {"protocol_version": PROTOCOL_VERSION, "identifier": "29-bit: priority[28:26] type[25:20] version[19:16] node[15:0]",
                      "vectors": can},
         "serial_errors.json": {"protocol_version": PROTOCOL_VERSION, "vectors": error_vectors()},
-        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.2",
+        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.3",
                           "about": "edge frames and the verdict of docs/protocol.md §8.1 for each: 'decoded' "
                                    "(type, node, fields) or the reason a receiver reports",
                           "vectors": verdict_vectors()},
@@ -200,9 +207,9 @@ def verdict_vectors() -> list[dict]:
         # --- the order of the checks (§8.1)
         _ser("version_2_and_a_wrong_length", "bad_version", "8.1, 12", MsgType.START, 5, b"\x01", version=2),
         _ser("version_0", "bad_version", "8.1, 12", MsgType.START, 5, b"", version=0),
-        _ser("undefined_type_0x0f_node_to_host_range", "unknown_type", "4, 8.1", 0x0F, 5, b""),
+        _ser("undefined_type_0x2f_host_to_node_range", "unknown_type", "4, 8.1", 0x2F, 5, b""),
         _ser("undefined_type_0x00", "unknown_type", "4, 8.1", 0x00, 5, b""),
-        _ser("undefined_type_0x1a", "unknown_type", "4, 8.1", 0x1A, 5, b"\x01\x02"),
+        _ser("undefined_type_0x1c", "unknown_type", "4, 8.1", 0x1C, 5, b"\x01\x02"),
         _ser("undefined_type_and_node_ffff", "unknown_type", "8.1", 0x3F, 0xFFFF, b""),
         _ser("node_ffff_and_a_wrong_length", "bad_field", "3.1, 8.1", MsgType.START, 0xFFFF, b"\x01"),
         _ser("node_ffff_valid_payload", "bad_field", "3.1, 8.1", MsgType.SAMPLE, 0xFFFF, bytes(7)),
@@ -226,6 +233,25 @@ def verdict_vectors() -> list[dict]:
              bytes([0, 0, 0, 0]) + bytes.fromhex("0000c07f")),
         _ser("cal_data_negative_zero_sensitivity", "bad_field", "4.7", MsgType.CAL_DATA, 5,
              bytes([0, 0, 0, 0]) + bytes.fromhex("00000080")),
+        # v1.3 (§17): CAL_IMU's addressing and value
+        _ser("cal_imu_read_broadcast", "bad_field", "17.2", MsgType.CAL_IMU_READ, 0, b"\x00\x00"),
+        _ser("cal_imu_read_block_5", "bad_field", "17.1, 17.2", MsgType.CAL_IMU_READ, 5, b"\x05\x00"),
+        _ser("cal_imu_read_bias_index_3", "bad_field", "17.1, 17.2", MsgType.CAL_IMU_READ, 5, b"\x01\x03"),
+        _ser("cal_imu_read_matrix_index_8", "decoded", "17.1, 17.2", MsgType.CAL_IMU_READ, 5, b"\x03\x08",
+             msg=CalImuRead(5, 3, 8)),
+        _ser("cal_imu_write_broadcast", "bad_field", "17.2", MsgType.CAL_IMU_WRITE, 0,
+             struct.pack("<BBBBf", 0, 0, 0, 0, 1.0)),
+        _ser("cal_imu_write_matrix_index_9", "bad_field", "17.1", MsgType.CAL_IMU_WRITE, 5,
+             struct.pack("<BBBBf", 0, 9, 0, 0, 1.0)),
+        _ser("cal_imu_write_reserved_1", "bad_field", "17.1", MsgType.CAL_IMU_WRITE, 5,
+             struct.pack("<BBBBf", 0, 0, 0, 1, 1.0)),
+        _ser("cal_imu_write_value_nan", "bad_field", "17.1", MsgType.CAL_IMU_WRITE, 5,
+             bytes([0, 0, 0, 0]) + bytes.fromhex("0000c07f")),
+        _ser("cal_imu_write_value_infinite", "bad_field", "17.1", MsgType.CAL_IMU_WRITE, 5,
+             struct.pack("<BBBBf", 4, 0, 0, 0, float("inf"))),
+        _ser("cal_imu_write_negative_and_zero_decode", "decoded", "17.1", MsgType.CAL_IMU_WRITE, 5,
+             bytes([2, 0, 0, 0]) + bytes.fromhex("00000080"), msg=CalImuWrite(5, 2, 0, 0, 0, -0.0)),
+        _ser("cal_imu_write_short", "bad_length", "17.2", MsgType.CAL_IMU_WRITE, 5, bytes(7)),
         _ser("config_values_out_of_range_decode", "decoded", "4.11, 8.3", MsgType.CONFIG, 5,
              struct.pack("<HBBH", 5000, 7, 9, 100), msg=Config(5, rate_hz=5000, range=7, filter=9, heartbeat_ms=100)),
         _ser("snapshot_count_0", "bad_length", "4.8", MsgType.SNAPSHOT, 0x7FFF, struct.pack("<HHB", 1, 0, 0)),
@@ -264,7 +290,7 @@ def verdict_vectors() -> list[dict]:
         _can("any_priority_is_accepted", "decoded", "7.1", make_id(MsgType.SAMPLE, 1, priority=7),
              bytes(2) + flat, msg=Sample(1, 0, 0, 0, 1024, 0)),
         _can("sync_addressed_to_a_node", "bad_field", "4.9", make_id(MsgType.SYNC, 5), b"\x01\x00"),
-        _can("undefined_type_0x0f", "unknown_type", "4, 8.1", make_id(0x0F, 5, priority=4), b""),
+        _can("undefined_type_0x1c", "unknown_type", "4, 8.1", make_id(0x1C, 5, priority=4), b""),
         _can("classic_nine_bytes", "bad_length", "7.2", make_id(MsgType.CONFIG, 5), bytes(9)),
         _can("fd_length_nine_is_not_an_fd_length", "bad_length", "7.2", make_id(MsgType.CONFIG, 5), bytes(9),
              fd=True),

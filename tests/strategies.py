@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import strategies as st
 
 from protocol.constants import ADC_MAX, ADC_MIN
-from protocol.messages import (Ack, Announce, Assign, CalData, CalRead, CalWrite, ChipState, Config, GetInfo,
+from protocol.messages import (Ack, Announce, Assign, CalData, CalImuData, CalImuRead, CalImuWrite, CalRead, CalWrite, ChipState, Config, GetInfo,
                                Info, MAX_SNAPSHOT_SAMPLES, Nack, NackReason, Reset, Sample, Snapshot, Start,
                                Status, Stop, Sync, MsgType)
 
@@ -47,7 +47,19 @@ def messages(max_snapshot: int = 202):
         st.builds(Start, node), st.builds(Stop, node), st.builds(GetInfo, node), st.builds(Reset, node),
         st.builds(CalWrite, unicast, st.integers(0, 2), u8, st.integers(-32768, 32767), sens),
         st.builds(CalRead, unicast, st.integers(0, 2)),
+        # v1.3 (§17)
+        st.builds(CalImuData, node, *_cal_imu_element(), u8, st.just(0), _f32),
+        st.builds(CalImuWrite, unicast, *_cal_imu_element(), u8, st.just(0), _f32),
+        st.builds(CalImuRead, unicast, *_cal_imu_element()),
     )
+
+
+_f32 = st.floats(width=32, allow_nan=False, allow_infinity=False)
+
+
+def _cal_imu_element():
+    """(block, index) strategies over the 3 x 3 blocks (GYRO_MATRIX, GYRO_G_SENS, MAG_MATRIX), every index."""
+    return st.sampled_from([0, 2, 3]), st.integers(0, 8)
 
 
 ALL_TYPES = list(MsgType)

@@ -51,13 +51,16 @@ from __future__ import annotations
 import binascii
 import struct
 
+import numpy as np
 from cobs import cobs
 
 from protocol.can import CanFrame, decode_can, imu_can_frames, make_id, split_id, to_can
 from protocol.chip_interface import DEFAULT_CAPABILITIES, ChipFactory, Out, SensorSource, check_chip_args
 from protocol.constants import SampleStatus
+from protocol.imu_units import accel_g_of_counts, corrected_gyro_counts, corrected_mag_counts, nominal_imu_cal
 from protocol.framing import HEADER, DecodeError, ErrorReason, decode_frame, encode
 from protocol.messages import (NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, CalData,
+                               CalImuData, CalImuRead, CalImuWrite, CalBlock,
                                CalRead, CalWrite, Capability, ChipState, Config, Direction, Info,
                                Message, MsgType, Nack, NackReason, Status, StatusFlag, Sync,
                                is_node_to_host_type, provisional_node, ConfigImu, ConfigImuFlag, ImuSample,
@@ -149,6 +152,8 @@ class ChipModel:
         self._factory_cal = [(int(o), float(s), 1 if self.capabilities & Capability.CAL_STORAGE else 0)
                              for o, s in calibration]
         self._stored_cal = list(self._factory_cal)
+        # v1.3 (§17): block -> [(value, stored)] per element; none stored at the factory
+        self._stored_imu_cal = {b: [(v, 0) for v in vals] for b, vals in nominal_imu_cal().items()}
         self.powered = False
         self.boot_s = 0.0
         self._boot_vars(0.0)
@@ -172,9 +177,25 @@ class ChipModel:
         self.missed_syncs = 0
         self.last_counter: int | None = None
         self.cal = list(self._stored_cal)
+        self.imu_cal = {b: list(v) for b, v in self._stored_imu_cal.items()}
+        self._imu_cal_changed()
         self.next_announce_s = now_s + ANNOUNCE_PERIOD_S
         self.next_heartbeat_s: float | None = None
         self._set_node(self.node)
+
+    def _imu_cal_changed(self) -> None:
+        """Derive what §17.3 applies from ``imu_cal``: ``gyro_cal`` ``(A, b, Γ)`` and ``mag_cal``
+        ``(S, h)`` as arrays, or None where every element of the sensor's blocks is nominal."""
+        nominal = nominal_imu_cal()
+        vals = {b: [v for v, _ in e] for b, e in self.imu_cal.items()}
+
+        def blocks(*bs):
+            if all(vals[b] == nominal[b] for b in bs):
+                return None
+            return tuple(np.array(vals[b]).reshape(3, 3) if len(vals[b]) == 9 else np.array(vals[b]) for b in bs)
+
+        self.gyro_cal = blocks(CalBlock.GYRO_MATRIX, CalBlock.GYRO_BIAS, CalBlock.GYRO_G_SENS)
+        self.mag_cal = blocks(CalBlock.MAG_MATRIX, CalBlock.MAG_HARD_IRON)
 
     def _set_node(self, node: int) -> None:
         self.node = node
@@ -258,12 +279,27 @@ class ChipModel:
         else:
             g, m, t_us = self.imu(now_s, self.gyro_range, self.mag_range)
             m = tuple(m) if nine else None
+            if self.gyro_cal is not None or (nine and self.mag_cal is not None):
+                g, m = self.corrected(g, m, (x, y, z))
             if any(v in _I16_RAILS for v in (*g, *(m or ()))):
                 st |= _SAT_BIT
         msg = ImuSample(self.node, counter, x, y, z, st, int(t_us), *g, *(m if m is not None else (None,) * 3))
         if self._can:
             return imu_can_frames(msg, fd=bool(self.imu_flags & ConfigImuFlag.FD))
         return [encode(msg)]
+
+    def corrected(self, gyro, mag, accel_sent):
+        """§17.3: the gyroscope (and magnetometer, if not None) counts this chip sends for a reading
+        ``gyro``, ``mag`` whose accelerometer counts sent are ``accel_sent``; unchanged for a sensor
+        with the nominal calibration."""
+        if self.gyro_cal is not None:
+            A, b, G = self.gyro_cal
+            f = accel_g_of_counts([accel_sent], self.range)
+            gyro = tuple(corrected_gyro_counts([gyro], self.gyro_range, A[None], b[None], G[None], f)[0].tolist())
+        if mag is not None and self.mag_cal is not None:
+            S, h = self.mag_cal
+            mag = tuple(corrected_mag_counts([mag], self.mag_range, S[None], h[None])[0].tolist())
+        return tuple(int(v) for v in gyro), (None if mag is None else tuple(int(v) for v in mag))
 
     # ------------------------------------------------------------------ public API
     def power_on(self, now_s: float) -> list[Out]:
@@ -376,6 +412,12 @@ class ChipModel:
         elif isinstance(msg, CalWrite):
             if msg.flags & 1 and not self.capabilities & Capability.CAL_STORAGE:
                 return NackReason.UNSUPPORTED
+        elif isinstance(msg, (CalImuWrite, CalImuRead)):  # §17.2, in this order
+            need = Capability.GYRO if msg.block <= CalBlock.GYRO_G_SENS else Capability.MAG
+            if not self.capabilities & need:
+                return NackReason.UNSUPPORTED
+            if isinstance(msg, CalImuWrite) and msg.flags & 1 and not self.capabilities & Capability.CAL_STORAGE:
+                return NackReason.UNSUPPORTED
         elif isinstance(msg, ConfigImu):  # §16.2, in this order
             if msg.format > 2 or msg.gyro_range > 4 or msg.mag_range > 3:
                 return NackReason.BAD_VALUE
@@ -421,6 +463,13 @@ class ChipModel:
             self.cal[msg.axis] = entry
             if msg.flags & 1:
                 self._stored_cal[msg.axis] = entry
+        elif t == MsgType.CAL_IMU_WRITE:
+            assert isinstance(msg, CalImuWrite)
+            entry = (msg.value, msg.flags & 1)
+            self.imu_cal[msg.block][msg.index] = entry
+            if msg.flags & 1:
+                self._stored_imu_cal[msg.block][msg.index] = entry
+            self._imu_cal_changed()
         if rule.next_state is not None:
             self.state = rule.next_state
         if reply is Reply.ACK:
@@ -431,6 +480,10 @@ class ChipModel:
             assert isinstance(msg, CalRead)
             o, s, stored = self.cal[msg.axis]
             out.append(self._out(CalData(self.node, msg.axis, stored, o, s)))
+        elif reply is Reply.CAL_IMU_DATA:
+            assert isinstance(msg, CalImuRead)
+            v, stored = self.imu_cal[msg.block][msg.index]
+            out.append(self._out(CalImuData(self.node, msg.block, msg.index, stored, 0, v)))
         elif reply is Reply.SAMPLE:  # pragma: no cover - SYNC takes the fast path
             pass
         return out

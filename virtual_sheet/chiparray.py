@@ -392,6 +392,11 @@ class ArrayChip(ChipModel):
         super().__init__(uid, sensor, transport=transport, fd=fd, capabilities=capabilities,
                          calibration=calibration, sensors=sensors, imu=imu)
 
+    def _imu_cal_changed(self) -> None:
+        super()._imu_cal_changed()
+        if hasattr(self, "_arr"):  # the model's __init__ boots before the view is bound
+            self._arr.imu_cal_on[self._k] = self.gyro_cal is not None or self.mag_cal is not None
+
     def __repr__(self) -> str:
         return "Array" + super().__repr__()
 
@@ -460,6 +465,7 @@ class ChipArray:
         self.mag_range = np.zeros(n, dtype=np.int64)
         self.imu_flags = np.zeros(n, dtype=np.int64)
         self._imu_any: bool | None = None  # some chip is in format 1 or 2
+        self.imu_cal_on = np.zeros(n, dtype=bool)  # a chip whose §17 calibration is not nominal
         # derived values, None until needed (and again after a view writes what they come from)
         self._encoder: _SampleEncoder | None = None  # serial: the SAMPLE encoder of `node`
         self._can_ids: tuple[np.ndarray, list[int]] | None = None  # CAN: each chip's SAMPLE identifier
@@ -558,6 +564,11 @@ class ChipArray:
         m = None if f_code == SampleFormat.IMU6 else np.asarray(m, dtype=np.int64).copy()
         t = np.asarray(t, dtype=np.int64).copy()
         bad = (s_ & _INVALID) != 0
+        for j in np.flatnonzero(self.imu_cal_on[idx] & ~bad).tolist():  # §17.3, on the calibrated chips
+            gj, mj = self.views[int(idx[j])].corrected(g[j], None if m is None else m[j], c[j])
+            g[j] = gj
+            if m is not None:
+                m[j] = mj
         g[bad] = 0
         t[bad] = TIME_UNKNOWN
         rails = ((g == 32767) | (g == -32768)).any(axis=1)

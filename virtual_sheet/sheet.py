@@ -147,7 +147,7 @@ class VirtualSheet:
         self.sensor_model = sensor if sensor is not None else SensorModel(noise_pct_g=noise, chip_seed=seed)
         self.imu_source: ImuSource | None = None
         if scene is None and (shape in MOTION_SHAPES or sensors != "accel"):
-            if shape in MOTION_SHAPES or shape == "grow":  # grow: `shapes.GrowScene`, exact kinematics
+            if shape in MOTION_SHAPES or shape in ("grow", "board"):  # grow, board: exact kinematics too
                 motion = make_motion_scene(shape, rows, cols, link_length, **(shape_params or {}))
             elif shape in SHAPES:
                 motion = make_motion_scene("rest", rows, cols, link_length, shape=shape, **(shape_params or {}))

@@ -151,14 +151,16 @@ typedef enum {
     /* chip -> host, v1.2 (§16): classic CAN record frames, the record on serial / CAN FD, a gateway's packed records */
     CAPSHEET_IMU_GYRO = 0x0A, CAPSHEET_IMU_MAG = 0x0B, CAPSHEET_IMU_ACCEL = 0x0C, CAPSHEET_IMU_SAMPLE = 0x0D,
     CAPSHEET_SNAPSHOT_IMU = 0x0E,
+    CAPSHEET_CAL_IMU_DATA = 0x0F,  /* v1.3 (§17) */
     /* host -> chip */
     CAPSHEET_SYNC = 0x10, CAPSHEET_ASSIGN = 0x11, CAPSHEET_CONFIG = 0x12, CAPSHEET_START = 0x13,
     CAPSHEET_STOP = 0x14, CAPSHEET_GET_INFO = 0x15, CAPSHEET_RESET = 0x16, CAPSHEET_CAL_WRITE = 0x17,
-    CAPSHEET_CAL_READ = 0x18, CAPSHEET_CONFIG_IMU = 0x19
+    CAPSHEET_CAL_READ = 0x18, CAPSHEET_CONFIG_IMU = 0x19,
+    CAPSHEET_CAL_IMU_WRITE = 0x1A, CAPSHEET_CAL_IMU_READ = 0x1B  /* v1.3 (§17) */
 } capsheet_msg_type_t;
 
 #define CAPSHEET_HOST_TYPE_FIRST 0x10u
-#define CAPSHEET_HOST_TYPE_LAST 0x19u
+#define CAPSHEET_HOST_TYPE_LAST 0x1Bu
 /* Every type in 0x01..0x0F, defined or not, goes node -> host: a chip ignores such frames (§4, §8.1). */
 #define CAPSHEET_NODE_TO_HOST_FIRST 0x01u
 #define CAPSHEET_NODE_TO_HOST_LAST 0x0Fu
@@ -247,6 +249,9 @@ typedef struct {
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
         struct { uint8_t axis; } cal_read;
+        /* v1.3 (§17): CAL_IMU_DATA and CAL_IMU_WRITE; CAL_IMU_READ */
+        struct { uint8_t block, index, flags, reserved; float value; } cal_imu;
+        struct { uint8_t block, index; } cal_imu_read;
         /* v1.2 (§16). IMU_SAMPLE: `format` 1 (6-axis, 15-byte payload) or 2 (9-axis, 21 bytes;
          * mx..mz only then); the status bits cover the whole record (§16.1). */
         struct {
@@ -403,8 +408,13 @@ CAPSHEET_WARN_UNUSED int32_t capsheet_can_decode(uint32_t id, bool is_extended, 
 
 typedef enum {
     CAPSHEET_REPLY_NONE = 0, CAPSHEET_REPLY_ACK = 1, CAPSHEET_REPLY_SAMPLE = 2,
-    CAPSHEET_REPLY_ANNOUNCE_INFO = 3, CAPSHEET_REPLY_CAL_DATA = 4, CAPSHEET_REPLY_ACK_THEN_BOOT = 5
+    CAPSHEET_REPLY_ANNOUNCE_INFO = 3, CAPSHEET_REPLY_CAL_DATA = 4, CAPSHEET_REPLY_ACK_THEN_BOOT = 5,
+    CAPSHEET_REPLY_CAL_IMU_DATA = 6
 } capsheet_reply_t;
+
+/* v1.3 (§17.1): the gyroscope's and magnetometer's calibration, 33 float32 elements: GYRO_MATRIX
+ * 0..8, GYRO_BIAS 9..11, GYRO_G_SENS 12..20, MAG_MATRIX 21..29, MAG_HARD_IRON 30..32. */
+#define CAPSHEET_IMU_CAL_COUNT 33u
 
 #define CAPSHEET_STAY 0xFFu  /* next_state: no change */
 
@@ -474,6 +484,12 @@ typedef struct {
      * INVALID in `out->status`, is a sensor fault (an INVALID record, FAULT). */
     CAPSHEET_WARN_UNUSED int32_t (*read_imu)(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
                                              bool want_mag, capsheet_imu_reading_t *out);
+    /* optional (NULL: none; a GYRO chip with CAL_STORAGE needs both): load / store one element (0..32,
+     * §17.1's order: block 0's nine, block 1's three, ...) of the gyro/mag calibration in non-volatile
+     * memory, as its float32 bits. cal_imu_load returns 0 if the element was stored, negative if not;
+     * cal_imu_store negative if storing failed (the chip NACKs STORAGE_FAILED). */
+    CAPSHEET_WARN_UNUSED int32_t (*cal_imu_load)(void *user, uint8_t element, uint32_t *bits);
+    CAPSHEET_WARN_UNUSED int32_t (*cal_imu_store)(void *user, uint8_t element, uint32_t bits);
 } capsheet_hal_t;
 
 typedef struct {
@@ -516,6 +532,11 @@ typedef struct {
     uint8_t mag_range;       /* 0..3: ±4 .. ±16 gauss */
     uint8_t imu_flags;       /* CAPSHEET_IMU_FLAG_FD */
     capsheet_cal_t cal[3];
+#if CAPSHEET_IMU
+    uint32_t imu_cal[CAPSHEET_IMU_CAL_COUNT];   /* v1.3 (§17): the elements in use, float32 bits (the
+                                                 * stored copy is the HAL's: cal_imu_load/cal_imu_store) */
+    uint8_t imu_cal_stored[(CAPSHEET_IMU_CAL_COUNT + 7u) / 8u]; /* bit k: element k in use is the stored one */
+#endif
     capsheet_stream_t rx;    /* serial only */
     uint8_t tx[CAPSHEET_CHIP_TX_WIRE_SIZE];
 #ifdef CAPSHEET_MUTANTS
@@ -598,6 +619,10 @@ typedef enum {
     CAPSHEET_MUT_ANSWERS_BROADCAST,   /* §8.2  NACKs BAD_STATE a broadcast START the state table refuses */
     CAPSHEET_MUT_IGNORES_BROADCAST_START, /* §4.12 acts on START/STOP only when addressed */
     CAPSHEET_MUT_WRONG_PRIORITY,      /* §7.1  CAN: SAMPLE sent with priority 4 (the table: 2) */
+    CAPSHEET_MUT_CAL_IMU_READ_NOMINAL, /* §17.2 CAL_IMU_READ answers the nominal value */
+    CAPSHEET_MUT_IMU_ANSWERS_SAMPLE,  /* §16.3 takes CONFIG_IMU but answers SYNC with the SAMPLE alone */
+    CAPSHEET_MUT_IMU_ACCEL_FIRST,     /* §16.4 classic CAN: IMU_ACCEL before IMU_GYRO (and IMU_MAG) */
+    CAPSHEET_MUT_IMU_ACCEPTS_BAD_CONFIG, /* §16.2 ACKs a CONFIG_IMU with values out of range (changes nothing) */
     CAPSHEET_MUT_COUNT
 } capsheet_mutant_t;
 

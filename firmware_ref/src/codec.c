@@ -193,17 +193,17 @@ int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t
  * IMU_SAMPLE: 15 or 21, SNAPSHOT_IMU). */
 #define VAR 0xFEu
 #define UND 0xFFu
-#define N_TYPES 0x1Au
+#define N_TYPES 0x1Cu
 static const uint8_t k_size[N_TYPES] = {
     UND, 8, 8, 7, 8, 2, 2, 8, VAR,        /* 0x00..0x08 */
-    8, 8, 8, 8, VAR, VAR, UND,             /* 0x09 GATEWAY_INFO, 0x0A..0x0E IMU (v1.2), 0x0F */
-    2, 8, 6, 0, 0, 0, 0, 8, 1, 4          /* 0x10..0x19 (0x19 CONFIG_IMU, v1.2) */
+    8, 8, 8, 8, VAR, VAR, 8,               /* 0x09 GATEWAY_INFO, 0x0A..0x0E IMU (v1.2), 0x0F CAL_IMU_DATA (v1.3) */
+    2, 8, 6, 0, 0, 0, 0, 8, 1, 4, 8, 2    /* 0x10..0x1B (0x19 CONFIG_IMU, v1.2; 0x1A, 0x1B CAL_IMU, v1.3) */
 };
 /* priority per type (docs §7.1, §4) */
 static const uint8_t k_priority[N_TYPES] = {
     7, 5, 5, 2, 6, 3, 3, 5, 2,
-    5, 2, 2, 2, 2, 2, 7,
-    0, 4, 4, 4, 1, 4, 1, 4, 4, 4
+    5, 2, 2, 2, 2, 2, 5,
+    0, 4, 4, 4, 1, 4, 1, 4, 4, 4, 4, 4
 };
 
 bool capsheet_type_known(uint8_t type) { return type < N_TYPES && k_size[type] != UND; }
@@ -281,6 +281,16 @@ static void put_cal(uint8_t *p, const capsheet_cal_t *c)
     put_u32(p + 4, float_bits(c->sensitivity));
 }
 
+/* v1.3 (§17.1): CAL_IMU_DATA / CAL_IMU_WRITE */
+static void put_cal_imu(uint8_t *p, const capsheet_msg_t *m)
+{
+    p[0] = m->u.cal_imu.block;
+    p[1] = m->u.cal_imu.index;
+    p[2] = m->u.cal_imu.flags;
+    p[3] = m->u.cal_imu.reserved;
+    put_u32(p + 4, float_bits(m->u.cal_imu.value));
+}
+
 /* The fixed part of a payload: everything but SNAPSHOT's words and SNAPSHOT_IMU's records; at most
  * a 9-axis IMU_SAMPLE's 21 bytes. */
 #define FIXED_MAX 21u
@@ -300,6 +310,13 @@ static CAPSHEET_WARN_UNUSED int32_t encode_other(const capsheet_msg_t *m, uint8_
     case CAPSHEET_CAL_WRITE:
         put_cal(p, &m->u.cal);
         return 8;
+    case CAPSHEET_CAL_IMU_WRITE:
+        put_cal_imu(p, m);
+        return 8;
+    case CAPSHEET_CAL_IMU_READ:
+        p[0] = m->u.cal_imu_read.block;
+        p[1] = m->u.cal_imu_read.index;
+        return 2;
     case CAPSHEET_SNAPSHOT:
         if (m->u.snapshot.count == 0u || m->u.snapshot.words == NULL) {
             return CAPSHEET_ERR_ARGUMENT;
@@ -399,6 +416,9 @@ static CAPSHEET_WARN_UNUSED int32_t encode_fixed(const capsheet_msg_t *m, uint8_
     case CAPSHEET_CAL_DATA:
         put_cal(p, &m->u.cal);
         return 8;
+    case CAPSHEET_CAL_IMU_DATA:
+        put_cal_imu(p, m);
+        return 8;
     case CAPSHEET_IMU_GYRO:
     case CAPSHEET_IMU_MAG:  /* the same layout: imu_gyro and imu_mag share their members' types (C99 6.5.2.3) */
         put_u16(p, m->u.imu_gyro.counter);
@@ -476,6 +496,25 @@ int32_t capsheet_payload_encode(const capsheet_msg_t *msg, uint8_t *buf, size_t 
         memcpy(buf + sp[0].n, sp[1].p, sp[1].n);
     }
     return n;
+}
+
+/* §17.1: block 0..4, index within the block */
+static bool cal_imu_element_ok(uint8_t block, uint8_t index)
+{
+    return block <= 4u && index < ((block == 1u || block == 4u) ? 3u : 9u);
+}
+
+/* §17.1: CAL_IMU_DATA / CAL_IMU_WRITE fields; the value finite (exponent not all ones) */
+static int32_t get_cal_imu(const uint8_t *p, capsheet_msg_t *out)
+{
+    const uint32_t bits = get_u32(p + 4);
+    out->u.cal_imu.block = p[0];
+    out->u.cal_imu.index = p[1];
+    out->u.cal_imu.flags = p[2];
+    out->u.cal_imu.reserved = p[3];
+    out->u.cal_imu.value = bits_float(bits);
+    return (cal_imu_element_ok(p[0], p[1]) && p[3] == 0u && (bits & 0x7F800000u) != 0x7F800000u)
+               ? 0 : CAPSHEET_ERR_BAD_FIELD;
 }
 
 static bool sensitivity_ok(uint32_t bits)
@@ -600,6 +639,8 @@ static CAPSHEET_WARN_UNUSED int32_t decode_node_payload(uint8_t type, const uint
     case CAPSHEET_CAL_DATA:
         get_cal(p, &out->u.cal);
         return (p[0] <= 2u && sensitivity_ok(get_u32(p + 4))) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_CAL_IMU_DATA:
+        return get_cal_imu(p, out);
     case CAPSHEET_GATEWAY_INFO:
         out->u.gateway_info.flags = p[0];
         out->u.gateway_info.sample_format = p[1];
@@ -666,6 +707,14 @@ int32_t capsheet_payload_decode(uint8_t type, uint16_t node, const uint8_t *p, s
     case CAPSHEET_CAL_READ:
         out->u.cal_read.axis = p[0];
         return (node != CAPSHEET_NODE_BROADCAST && p[0] <= 2u) ? 0 : CAPSHEET_ERR_BAD_FIELD;
+    case CAPSHEET_CAL_IMU_WRITE: {
+        const int32_t rc = get_cal_imu(p, out);
+        return (node == CAPSHEET_NODE_BROADCAST) ? CAPSHEET_ERR_BAD_FIELD : rc;
+    }
+    case CAPSHEET_CAL_IMU_READ:
+        out->u.cal_imu_read.block = p[0];
+        out->u.cal_imu_read.index = p[1];
+        return (node != CAPSHEET_NODE_BROADCAST && cal_imu_element_ok(p[0], p[1])) ? 0 : CAPSHEET_ERR_BAD_FIELD;
     default:  /* START, STOP, GET_INFO, RESET: empty */
         return 0;
     }

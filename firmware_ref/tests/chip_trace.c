@@ -131,7 +131,7 @@ static void deliver(capsheet_chip_t *chip, uint8_t version, uint8_t type, uint16
 
 static void run(capsheet_transport_t transport, uint16_t caps, bool can_fd, unsigned steps)
 {
-    static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0, read_imu};
+    static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0, read_imu, 0, 0};
     capsheet_chip_config_t cfg;
     capsheet_chip_t chip;
     uint8_t rx[CAPSHEET_RX_BUFFER_SIZE];

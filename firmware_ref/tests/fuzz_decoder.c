@@ -67,6 +67,8 @@ typedef struct {
     capsheet_cal_t stored[3];
     uint8_t have[3];
     uint8_t store_fails;
+    uint32_t imu_stored[CAPSHEET_IMU_CAL_COUNT];
+    uint8_t imu_have[CAPSHEET_IMU_CAL_COUNT];
     uint32_t imu_reads;
     uint32_t imu_frames;   /* IMU_GYRO / IMU_MAG / IMU_ACCEL / IMU_SAMPLE frames sent */
 } fake_t;
@@ -165,6 +167,29 @@ static int32_t fake_cal_store(void *user, uint8_t axis, const capsheet_cal_t *ca
     return 0;
 }
 
+static int32_t fake_cal_imu_load(void *user, uint8_t element, uint32_t *bits)
+{
+    fake_t *f = (fake_t *)user;
+    CHECK(element < CAPSHEET_IMU_CAL_COUNT);
+    if (!f->imu_have[element]) {
+        return -1;
+    }
+    *bits = f->imu_stored[element];
+    return 0;
+}
+
+static int32_t fake_cal_imu_store(void *user, uint8_t element, uint32_t bits)
+{
+    fake_t *f = (fake_t *)user;
+    CHECK(element < CAPSHEET_IMU_CAL_COUNT);
+    if (f->store_fails) {
+        return -1;
+    }
+    f->imu_stored[element] = bits;
+    f->imu_have[element] = 1;
+    return 0;
+}
+
 static void make_hal(capsheet_hal_t *hal, fake_t *f)
 {
     memset(hal, 0, sizeof *hal);
@@ -177,6 +202,8 @@ static void make_hal(capsheet_hal_t *hal, fake_t *f)
     hal->cal_load = fake_cal_load;
     hal->cal_store = fake_cal_store;
     hal->read_imu = fake_read_imu;
+    hal->cal_imu_load = fake_cal_imu_load;
+    hal->cal_imu_store = fake_cal_imu_store;
 }
 
 /* ---------------------------------------------------------------------------------------- */
@@ -352,6 +379,8 @@ static void check_chip_script(const uint8_t *data, size_t len, capsheet_transpor
     if (!(cfg.capabilities & CAPSHEET_CAP_CAL_STORAGE)) {
         hal.cal_load = NULL;
         hal.cal_store = NULL;
+        hal.cal_imu_load = NULL;
+        hal.cal_imu_store = NULL;
     }
     CHECK(capsheet_chip_init(&chip, &cfg, &hal, rx, CAPSHEET_RX_BUFFER_SIZE) == 0);
     CHECK(capsheet_chip_power_on(&chip, 0) == 2);

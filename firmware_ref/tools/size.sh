@@ -47,6 +47,8 @@ for only in 0 1; do
     img "9-axis serial chip (GYRO, MAG, SAMPLE_TIME)$tag" chip_serial_9axis$only "-DSIZE_IMU=2 -DCAPSHEET_CHIP_ONLY=$only"
     img "6-axis CAN chip (no RX buffer)$tag" chip_can_6axis$only "-DSIZE_IMU=1 -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 -DCAPSHEET_CHIP_ONLY=$only"
 done
+#    the 6-axis chip image again with link-time optimisation (the same sources; a vendor's build may use it)
+img "**6-axis serial chip** (GYRO, SAMPLE_TIME), \`-DCAPSHEET_CHIP_ONLY=1 -flto\`" chip_serial_6axis_lto "-DSIZE_IMU=1 -DCAPSHEET_CHIP_ONLY=1 -flto"
 echo "(RX buffer 64 B unless said)"
 echo
 echo "== 3. stack: static worst case per entry point (-fcallgraph-info=su; HAL callbacks: the size app's stubs),"

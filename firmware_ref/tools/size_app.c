@@ -65,7 +65,7 @@ static uint64_t read_uid(void *user)
     return 0x0123456789ABCDEFull;
 }
 
-static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0, READ_IMU};
+static const capsheet_hal_t hal = {0, read_axes, send_bytes, send_can, read_uid, 0, 0, READ_IMU, 0, 0};
 /* every call's result is kept (CAPSHEET_WARN_UNUSED: a result may not be dropped; a real chip
  * would act on a negative one) */
 static volatile int32_t last_rc;

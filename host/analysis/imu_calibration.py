@@ -58,7 +58,8 @@ import numpy as np
 from .calibration import G0, Calibration, StaticDetector, _project_so3, _rotvec_to_matrix, fit_board_poses
 
 __all__ = ["still_segments", "segment_means", "GyroCalibration", "fit_gyro_rest", "fit_gyro_turns",
-           "MagCalibration", "fit_mag_ellipsoid", "fit_mag_alignment", "CaptureCalibration", "fit_capture"]
+           "MagCalibration", "fit_mag_ellipsoid", "fit_mag_alignment", "CaptureCalibration", "fit_capture",
+           "chip_imu_blocks"]
 
 
 def _batch(name: str, a, ndim: int = 3) -> np.ndarray:
@@ -527,3 +528,50 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
         m = _batch("mag_t", mag_t)
         mcal = fit_mag_alignment(fit_mag_ellipsoid(m, field_t), segment_means(m, segs), u)
     return CaptureCalibration(acal, gcal, mcal, tuple(segs))
+
+
+# ---------------------------------------------------------------------------------------------
+# Onto the chips (docs/protocol.md §17)
+# ---------------------------------------------------------------------------------------------
+
+def chip_imu_blocks(gyro: GyroCalibration | None, mag: MagCalibration | None, accel: Calibration,
+                    ref_offset_counts, ref_sensitivity, current: dict | None = None) -> list[dict]:
+    """What to write to each chip (CAL_IMU_WRITE, §17.1) so that it sends what ``gyro`` and ``mag``
+    correct to: ``[{block: [values]}]`` per chip (blocks 0..2 with ``gyro``, 3..4 with ``mag``).
+
+    The fit was made on what the chips sent, converted at the nominal sensitivities, while each
+    chip applied its ``current`` calibration (``{block: [values]}`` per chip; None: nominal), with
+    the specific force ``f`` of the bias- and scale-corrected accelerometer (``accel`` relative to
+    the chips' CAL_DATA ``ref_offset_counts``, ``ref_sensitivity``, ±2 g counts). The chip computes
+    ``A (g − s (b + Γ f₀))`` with ``f₀ = counts / 1024`` g (§17.3), so the two compose: with the
+    chip's ``(A₀, b₀, Γ₀)`` and the fit's ``(A₁, b₁, Γ₁)``, and ``f = D f₀ + e`` (``D``, ``e`` from
+    CAL_DATA and the accelerometer fit)::
+
+        A = A₁ A₀,   b = b₀ + A₀⁻¹ (b₁ + Γ₁ e),   Γ = Γ₀ + A₀⁻¹ Γ₁ D
+
+    and for the magnetometer ``S = M₁ S₀``, ``h = h₀ + S₀⁻¹ h₁`` (``M₁ = R C`` of the fit).
+    A chip whose magnetometer fit failed (NaN) keeps its current magnetometer blocks.
+    """
+    off = np.asarray(ref_offset_counts, dtype=float)
+    sens = np.asarray(ref_sensitivity, dtype=float)
+    n = off.shape[0]
+    nominal = {0: np.eye(3), 1: np.zeros(3), 2: np.zeros((3, 3)), 3: np.eye(3), 4: np.zeros(3)}
+    out = []
+    for k in range(n):
+        cur = {b: np.asarray(v, dtype=float).reshape(nominal[b].shape)
+               for b, v in ((current[k] if current is not None else {}) or {}).items()}
+        c = {b: cur.get(b, nominal[b]) for b in nominal}
+        blocks: dict[int, list[float]] = {}
+        if gyro is not None:
+            D = np.diag(1024.0 / (sens[k] * accel.scale[k]))
+            e = -(off[k] / sens[k] + accel.bias[k] / G0) / accel.scale[k]
+            A0inv = np.linalg.inv(c[0])
+            A = gyro.matrix[k] @ c[0]
+            b = c[1] + A0inv @ (gyro.bias_rps[k] + gyro.g_sensitivity[k] @ e)
+            G = c[2] + A0inv @ gyro.g_sensitivity[k] @ D
+            blocks.update({0: A.ravel().tolist(), 1: b.tolist(), 2: G.ravel().tolist()})
+        if mag is not None and np.all(np.isfinite(mag.correction[k])) and np.all(np.isfinite(mag.hard_iron_t[k])):
+            M1 = mag.alignment[k] @ mag.correction[k]
+            blocks.update({3: (M1 @ c[3]).ravel().tolist(), 4: (c[4] + np.linalg.inv(c[3]) @ mag.hard_iron_t[k]).tolist()})
+        out.append(blocks)
+    return out

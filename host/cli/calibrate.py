@@ -21,6 +21,14 @@ Without hardware:
         --symlink /tmp/sheet &
     capsheet calibrate --port /tmp/sheet --baud 12000000 --layout sheet.csv --out cal.json --write-chips
 
+A 6/9-axis sheet (--sensors accel+gyro[+mag]) is calibrated from the same capture: every snapshot
+is kept, the gyroscopes' bias, g-sensitivity, scale and cross-axis are fitted from the held poses and
+the turns between them, the magnetometers' hard and soft iron from the rotations
+(`host.analysis.imu_calibration`, docs/calibration.md); with --write-chips they are written to every
+chip with CAL_IMU_WRITE (docs/protocol.md §17: the chip then sends corrected gyroscope and
+magnetometer counts), read back with CAL_IMU_READ and checked bit for bit. --field-ut gives the local
+field magnitude (without it the magnetometers keep the fitted ellipsoid's mean radius).
+
 The bus must carry the sheet at --rate (checked at bring-up, as capsheet host does): 364 chips at
 100 Hz need a 12 Mbaud UART (or --packed, or a lower --rate: poses then take longer to average);
 --ignore-capacity streams anyway.
@@ -46,7 +54,8 @@ from host.transport import TransportError
 from protocol.constants import G0
 from protocol.lattice import Lattice
 
-__all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "PoseCapture"]
+__all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "write_chip_imu_calibration",
+           "PoseCapture", "ImuLog"]
 
 #: a new pose must differ from every captured one by at least this angle, degrees
 MIN_POSE_SEPARATION_DEG = 20.0
@@ -90,6 +99,11 @@ def register(subparsers) -> None:
                    help="discovery window per round (s)")
     p.add_argument("--json", action="store_true", help="print the result as JSON on stdout (messages on stderr)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live indicator")
+    p.add_argument("--field-ut", type=T.bounded_float(1.0, 1000.0, unit="µT"), default=None, metavar="UT",
+                   help="local magnetic field magnitude, µT (a geomagnetic model gives it; default: the fitted "
+                        "ellipsoids' mean radius)")
+    from host.cli.sensor_args import add_sensor_args
+    add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
     p.set_defaults(func=run)
 
 
@@ -163,6 +177,101 @@ def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndar
             verified.append(k)
     return {"written": sorted(rec.link for rec in chips.values() if rec.link not in refused),
             "verified": sorted(verified), "refused": sorted(refused), "mismatch": mismatch}
+
+
+def write_chip_imu_calibration(host, blocks: list[dict]) -> dict:
+    """CAL_IMU_WRITE every element of ``blocks`` (per link ``{block: [values]}``, `chip_imu_blocks`)
+    to every assigned chip (IDLE), stored where the chip has CAL_STORAGE, then CAL_IMU_READ them back
+    (`Host.read_imu_calibration`) and compare bit for bit. Returns ``{"written", "verified",
+    "refused", "mismatch"}`` (link lists; mismatch entries name link, block, index, written, read)."""
+    from protocol.messages import Ack, CalImuWrite, Capability, MsgType, Nack
+
+    chips = host.chips_by_node()
+    want = {key: [(b, i, float(np.float32(v))) for b, vals in sorted(blocks[rec.link].items())
+                  for i, v in enumerate(vals)] for key, rec in chips.items()}
+    refused: set[int] = set()
+    for step in range(max((len(w) for w in want.values()), default=0)):
+        todo = {k: rec for k, rec in chips.items() if step < len(want[k])}
+
+        def build(key, _attempt, step=step):
+            rec = chips[key]
+            store = 1 if rec.info is not None and rec.info.capabilities & Capability.CAL_STORAGE else 0
+            b, i, v = want[key][step]
+            return [(key[0], CalImuWrite(key[1], b, i, store, 0, v))]
+
+        def match(bus, msg):
+            if isinstance(msg, (Ack, Nack)) and msg.command == MsgType.CAL_IMU_WRITE:
+                return (bus, msg.node)
+            return None
+        answers, missing = host.command_round(todo, build, match, f"CAL_IMU_WRITE element {step}")
+        refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
+        refused |= {chips[k].link for k in missing}
+    host.read_imu_calibration()
+    verified, mismatch = [], []
+    for key, rec in chips.items():
+        bad = False
+        for b, i, v in want[key]:
+            got = rec.imu_cal.get((b, i))
+            if got is None or np.float32(got[0]).tobytes() != np.float32(v).tobytes():
+                bad = True
+                mismatch.append({"link": rec.link, "block": b, "index": i, "written": v,
+                                 "read": None if got is None else got[0]})
+        if not bad and want[key]:
+            verified.append(rec.link)
+    return {"written": sorted(rec.link for k, rec in chips.items() if want[k] and rec.link not in refused),
+            "verified": sorted(verified), "refused": sorted(refused), "mismatch": mismatch}
+
+
+def _current_imu_blocks(host, n_links: int) -> list[dict]:
+    """What every link's chip applies now (read at bring-up), ``{block: [values]}``; nominal where
+    a chip did not answer an element."""
+    from protocol.imu_units import nominal_imu_cal
+
+    out = [nominal_imu_cal() for _ in range(n_links)]
+    for rec in host.chips_by_node().values():
+        for (b, i), (v, _stored) in rec.imu_cal.items():
+            out[rec.link][b][i] = v
+    return out
+
+
+class ImuLog:
+    """Every snapshot of a 6/9-axis capture, for `host.analysis.imu_calibration.fit_capture`: time,
+    specific force, rates, field; a link missing from a snapshot repeats its previous reading (the
+    fit takes no NaN); snapshots before every link was heard once are left out."""
+
+    def __init__(self, mag: bool) -> None:
+        self.mag = mag
+        self.t: list[float] = []
+        self.a: list[np.ndarray] = []
+        self.g: list[np.ndarray] = []
+        self.m: list[np.ndarray] = []
+        self._last: list[np.ndarray] | None = None
+        self.filled = 0  #: link readings repeated for a missing record
+
+    def add(self, snap) -> None:
+        if snap.gyro is None or (self.mag and snap.mag is None):
+            return
+        cur = [np.asarray(snap.readings, dtype=float), np.asarray(snap.gyro, dtype=float)]
+        if self.mag:
+            cur.append(np.asarray(snap.mag, dtype=float))
+        ok = np.ones(cur[0].shape[0], dtype=bool)
+        for x in cur:
+            ok &= np.isfinite(x).all(axis=1)
+        if self._last is None:
+            if not ok.all():
+                return
+        else:
+            self.filled += int((~ok).sum())
+            cur = [np.where(ok[:, None], x, last) for x, last in zip(cur, self._last)]
+        self._last = cur
+        self.t.append(float(snap.timestamp))
+        self.a.append(cur[0])
+        self.g.append(cur[1])
+        if self.mag:
+            self.m.append(cur[2])
+
+    def arrays(self):
+        return (np.array(self.t), np.array(self.a), np.array(self.g), np.array(self.m) if self.mag else None)
 
 
 # --------------------------------------------------------------------------------------------
@@ -257,7 +366,7 @@ def _bar(frac: float, width: int = 20) -> str:
     return "#" * k + "." * (width - k)
 
 
-def _capture(host, args, cap: PoseCapture) -> bool:
+def _capture(host, args, cap: PoseCapture, log: ImuLog | None = None) -> bool:
     from host.cli.progress import LiveLine
 
     # a terminal: one line redrawn; a pipe or log: a line per new state, else every 5 s
@@ -271,6 +380,8 @@ def _capture(host, args, cap: PoseCapture) -> bool:
         snap = host.get(0.5)
         if snap is None:
             continue
+        if log is not None:
+            log.add(snap)
         what = cap.update(snap.readings, snap.valid)
         if what == "captured":
             u = cap.directions[-1]
@@ -298,6 +409,18 @@ def _chip_table(cal: Calibration) -> list[dict]:
              "outlier": k in cal.outliers} for k in range(cal.n_links)]
 
 
+def _imu_summary(imu_cal, log: ImuLog) -> dict:
+    out = {"snapshots": len(log.t), "held_poses": len(imu_cal.segments), "readings_repeated": log.filled}
+    if imu_cal.gyro is not None:
+        out["gyro_bias_dps_max"] = round(float(np.degrees(np.abs(imu_cal.gyro.bias_rps).max())), 4)
+        out["gyro_turn_residual_max"] = round(float(imu_cal.gyro.turn_residual.max()), 5)
+    if imu_cal.mag is not None:
+        ok = np.isfinite(imu_cal.mag.residual_t)
+        out["mag_failed_chips"] = int((~ok).sum())
+        out["mag_residual_ut_max"] = round(float(1e6 * imu_cal.mag.residual_t[ok].max()), 3) if ok.any() else None
+    return out
+
+
 def run(args) -> int:
     from host.session import Host, Layout
 
@@ -318,6 +441,8 @@ def run(args) -> int:
         return 1
     try:
         host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+        from host.cli.sensor_args import imu_config
+        host.imu_config = imu_config(args)
     except (MismatchError, ValueError) as exc:
         for t in transports:
             t.close()
@@ -343,8 +468,10 @@ def run(args) -> int:
                        "every link is needed")
             return 1
         ref_off, ref_sens = host.chip_calibration()
+        log = ImuLog(mag=args.sensors.endswith("mag")) if host.imu_config is not None else None
+        current_imu = _current_imu_blocks(host, host.lattice.n_links) if log is not None else None
         try:
-            done = _capture(host, args, cap)
+            done = _capture(host, args, cap, log)
         except KeyboardInterrupt:
             print(file=sys.stderr)
             _say(args, "interrupted")
@@ -359,6 +486,17 @@ def run(args) -> int:
         except ValueError as exc:
             _say(args, f"fit refused: {exc}")
             return 1
+        imu_cal = None
+        if log is not None:
+            from host.analysis.imu_calibration import fit_capture
+            t_s, a, g, m = log.arrays()
+            try:
+                imu_cal = fit_capture(t_s, a, rows, cols, g, m, window=args.window, threshold_mps2=args.still_threshold,
+                                      field_t=None if args.field_ut is None else args.field_ut * 1e-6,
+                                      min_hold_samples=max(4, args.samples // 2))
+            except ValueError as exc:
+                _say(args, f"gyroscope/magnetometer fit refused: {exc}")
+                return 1
         table = _chip_table(cal)
         result = {"poses": len(cap.poses), "samples_per_pose": args.samples,
                   "residual_rms_mg": round(cal.residual_rms / G0 * 1e3, 4),
@@ -375,7 +513,20 @@ def run(args) -> int:
         _say(args, f"fit of {cal.n_links} chips over {len(cap.poses)} poses: residual RMS "
                    f"{result['residual_rms_mg']:.3f} mg; outliers: "
                    f"{', '.join(map(str, cal.outliers)) if cal.outliers else 'none'}")
+        if imu_cal is not None:
+            result["imu"] = _imu_summary(imu_cal, log)
+            _say(args, f"gyroscope{'/magnetometer' if imu_cal.mag is not None else ''} fit over {len(log.t)} "
+                       f"snapshots, {len(imu_cal.segments)} held poses: {json.dumps(result['imu'])}")
         status = 0
+        if args.write_chips and imu_cal is not None:
+            from host.analysis.imu_calibration import chip_imu_blocks
+            blocks = chip_imu_blocks(imu_cal.gyro, imu_cal.mag, imu_cal.accel, ref_off, ref_sens, current_imu)
+            w = write_chip_imu_calibration(host, blocks)
+            result["write_chips_imu"] = w
+            _say(args, f"CAL_IMU_WRITE: {len(w['written'])} chips written, {len(w['verified'])} read back "
+                       f"and verified, {len(w['refused'])} refused, {len(w['mismatch'])} element mismatches")
+            if w["refused"] or w["mismatch"] or len(w["verified"]) < cal.n_links:
+                status = 1
         if args.write_chips:
             off, sens = cal.chip_calibration()
             w = write_chip_calibration(host, off, sens)

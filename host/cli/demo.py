@@ -63,7 +63,7 @@ def register(sub) -> None:
                    help="apply this calibration (capsheet calibrate) to every snapshot")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout; messages on stderr)")
     p.add_argument("--seed", type=T.seed, default=1, help="seed of the sheet's uids and noise (default 1)")
-    from host.cli.host import add_sensor_args
+    from host.cli.sensor_args import add_sensor_args
     add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
     from host.cli.record_args import add_record_args
     add_record_args(p)  # --record FILE.mcap, --live [PORT]
@@ -241,7 +241,7 @@ def run(args) -> int:
                     window[0].add(snap.counter, snap.complete)
 
         host = Host(transports, lat, layout=Layout.load(layout_path), rate_hz=args.rate, on_snapshot=on_snapshot)
-        from host.cli.host import imu_config
+        from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
         fused = None
         if host.imu_config is not None:  # issue 30 point 4: the gyroscopes drive the shape

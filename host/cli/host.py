@@ -40,6 +40,7 @@ from host.cli import argtypes as T
 from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
 from host.cli.record_args import SessionOutputs, add_record_args
 from host.cli.transport_args import add_transport_args, check_ports, open_transports
+from host.cli.sensor_args import add_sensor_args, imu_config
 from host.transport import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
@@ -199,25 +200,6 @@ def _summary_lines(s: dict, min_pct: float) -> list[str]:
     if s["sync_conflict"]:
         out.append(f"  {s['sync_conflict']}")
     return out
-
-
-def add_sensor_args(p) -> None:
-    """``--sensors`` and the IMU ranges (docs/protocol.md §16.2): what the host asks 6/9-axis chips for."""
-    p.add_argument("--sensors", choices=("accel", "accel+gyro", "accel+gyro+mag"), default="accel",
-                   help="what every chip sends per SYNC: accel (v1.1 SAMPLE, default), accel+gyro or "
-                        "accel+gyro+mag (IMU records, CONFIG_IMU; the chips must have the sensors)")
-    p.add_argument("--gyro-range", type=int, choices=(125, 250, 500, 1000, 2000), default=1000, metavar="DPS",
-                   help="gyroscope full scale, °/s (125, 250, 500, 1000, 2000; default 1000)")
-    p.add_argument("--mag-range", type=int, choices=(4, 8, 12, 16), default=4, metavar="GAUSS",
-                   help="magnetometer full scale, gauss (4, 8, 12, 16; default 4)")
-
-
-def imu_config(args) -> tuple[int, int, int, int] | None:
-    """The CONFIG_IMU fields ``--sensors`` and the ranges ask for, or None for accel-only chips."""
-    fmt = {"accel": 0, "accel+gyro": 1, "accel+gyro+mag": 2}[getattr(args, "sensors", "accel")]
-    if fmt == 0:
-        return None
-    return fmt, {125: 0, 250: 1, 500: 2, 1000: 3, 2000: 4}[args.gyro_range], args.mag_range // 4 - 1, 0
 
 
 def imu_summary(host: Host, summary: dict, args) -> None:

@@ -77,6 +77,10 @@ def register(subparsers) -> None:
     p.add_argument("--lattice", type=T.lattice, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
     p.add_argument("--link-length", type=T.link_length, default=None,
                    help="L, metres (default: the recording's, or 0.01)")
+    p.add_argument("--gyro-range", type=int, choices=(125, 250, 500, 1000, 2000), default=None, metavar="DPS",
+                   help="a CAN log's gyroscope full scale, °/s (default: its CONFIG_IMU's, else 1000)")
+    p.add_argument("--mag-range", type=int, choices=(4, 8, 12, 16), default=None, metavar="GAUSS",
+                   help="a CAN log's magnetometer full scale, gauss (default: its CONFIG_IMU's, else 4)")
     p.add_argument("--no-estimate", action="store_true", help="only decode and aggregate")
     p.add_argument("--allow-truncated", action="store_true",
                    help="replay a recording that was cut short (default: say so and exit 1)")
@@ -107,7 +111,11 @@ def run(args) -> int:
     src = args.recording[0] if len(args.recording) == 1 else [str(p) for p in args.recording]
     args.recording = args.recording[0] if len(args.recording) == 1 else " + ".join(map(str, args.recording))
     try:
-        rp = Replay(src, speed=args.speed, lattice=args.lattice, link_length=args.link_length)
+        imu_ranges = None  # a CAN log's ranges, when given (one given: the other's default)
+        if args.gyro_range is not None or args.mag_range is not None:
+            imu_ranges = ({125: 0, 250: 1, 500: 2, 1000: 3, 2000: 4}[args.gyro_range or 1000],
+                          (args.mag_range or 4) // 4 - 1)
+        rp = Replay(src, speed=args.speed, lattice=args.lattice, link_length=args.link_length, imu_ranges=imu_ranges)
     except (ValueError, OSError) as exc:
         cut = ""
         if str(args.recording).lower().endswith(".mcap") and _no_summary(src):

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 import statistics
+import struct
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -31,7 +32,8 @@ from protocol.messages import (NODE_PROVISIONAL_MAX, NODE_PROVISIONAL_MIN, PROTO
                                Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability, ChipState, Config,
                                GatewayFlag, GatewayInfo, GetInfo, Info, Message, MsgType, Nack, NackReason, Reset,
                                Sample, Snapshot, Start, Status, StatusFlag, Stop, Sync, provisional_node,
-                               TIME_UNKNOWN, ConfigImu, ConfigImuFlag, ImuSample, SampleFormat)
+                               TIME_UNKNOWN, ConfigImu, ConfigImuFlag, ImuSample, SampleFormat,
+                               CAL_BLOCK_SIZE, CalBlock, CalImuData, CalImuRead, CalImuWrite, cal_block_nominal)
 from protocol.constants import SampleStatus
 from protocol.state import ANNOUNCE_PERIOD_S, GATEWAY_HEARTBEAT_MS, SYNC_REPLY_DEADLINE_S, TIMER_TOLERANCE
 
@@ -118,6 +120,9 @@ INFORMATIVE: dict[str, str] = {
             "its chips' own IMU_SAMPLEs, byte for byte",
     "16.6": "where the new clauses are checked and counted: this suite and `capsheet protocol capacity`",
     "16.7": "the list of changes from 1.1",
+    "17": "overview of the chip's gyroscope and magnetometer calibration; its clauses are held by check 45",
+    "17.4": "where §17 is checked: this suite (check 45)",
+    "17.5": "the list of changes from 1.2",
 }
 
 
@@ -1191,6 +1196,80 @@ def c_imu_can_frames(s: Session):
         require(all((d[0] | d[1] << 8) == ctr for _, _, d in grp[1:-1]) and grp[-1][2][0] == ctr & 0xFF,
                 f"a record's frames carry different counters: {[d.hex() for _, _, d in grp]}")
     return f"{len(seq) // len(want)} records, {len(want)} frames each, in order"
+
+
+def _cal_imu_nack(ans, s: Session, t: MsgType) -> bool:
+    return ans == [Nack(s.node, t, NackReason.UNSUPPORTED)]
+
+
+def _cal_imu_value(block: int, index: int) -> float:
+    """A distinct float32 per element for check 45: a −0, a subnormal, large and small magnitudes."""
+    if (block, index) == (CalBlock.GYRO_G_SENS, 4):
+        return -0.0
+    if (block, index) == (CalBlock.MAG_HARD_IRON, 2):
+        return 1e-40  # subnormal in binary32
+    return float(struct.unpack("<f", struct.pack("<f", (-1) ** index * (block + 1) * (index + 3) * 1.25e-3))[0])
+
+
+@check("17.2, 17.1, 17.3", "CAL_IMU_WRITE then CAL_IMU_READ gives every gyroscope (and magnetometer) calibration "
+       "element back bit for bit with its stored flag, and the chip applies it (a zero matrix sends zero counts); "
+       "a chip without the sensor answers both with NACK 5 UNSUPPORTED",
+       "a host cannot store the gyroscope's or magnetometer's calibration on the chip, or gets another back",
+       "keep the CAL_IMU_WRITE value per element as given (binary32, −0 and subnormals included), answer "
+       "CAL_IMU_READ with CAL_IMU_DATA carrying it; apply §17.3 to the counts sent; NACK 5 for a block whose "
+       "sensor the chip lacks")
+def c_cal_imu(s: Session):
+    s.need_chip()
+    caps = Capability(s.info.capabilities) if s.info is not None else Capability.NONE
+    s.ensure_idle()
+    have = [b for b in CalBlock if caps & (Capability.GYRO if b <= CalBlock.GYRO_G_SENS else Capability.MAG)]
+    lacks = [b for b in (CalBlock.GYRO_BIAS, CalBlock.MAG_MATRIX) if b not in have]
+    for b in lacks:
+        ans = s.request(CalImuRead(s.node, b, 0))
+        require(_cal_imu_nack(ans, s, MsgType.CAL_IMU_READ), f"CAL_IMU_READ block {int(b)} without its sensor "
+                                                               f"answered {ans} (§17.2: NACK 5)")
+        ans = s.request(CalImuWrite(s.node, b, 0, 0, 0, 0.5))
+        require(_cal_imu_nack(ans, s, MsgType.CAL_IMU_WRITE), f"CAL_IMU_WRITE block {int(b)} without its sensor "
+                                                                f"answered {ans} (§17.2: NACK 5)")
+    if not have:
+        return "no gyroscope, no magnetometer: CAL_IMU_READ and CAL_IMU_WRITE answered NACK 5"
+    elements = [(b, i) for b in have for i in range(CAL_BLOCK_SIZE[b])]
+    try:
+        for b, i in elements:
+            ans = s.request(CalImuWrite(s.node, b, i, 0, 0, _cal_imu_value(b, i)))
+            require(acked(ans, s.node, MsgType.CAL_IMU_WRITE), f"CAL_IMU_WRITE block {int(b)} index {i} answered {ans}")
+        for b, i in elements:
+            ans = s.request(CalImuRead(s.node, b, i))
+            want = struct.pack("<f", _cal_imu_value(b, i))
+            require(len(ans) == 1 and isinstance(ans[0], CalImuData) and (ans[0].block, ans[0].index) == (b, i)
+                    and ans[0].flags & 1 == 0 and struct.pack("<f", ans[0].value) == want,
+                    f"CAL_IMU_READ block {int(b)} index {i} answered {ans} (written: {want.hex()}, not stored)")
+        applied = "not checked behind a gateway that drives SYNC or packs"
+        if s.sync_gateway is None and not s.packing_gateway:
+            for b in have:  # zero matrices: every gyroscope (and magnetometer) count sent is 0 (§17.3)
+                if b in (CalBlock.GYRO_MATRIX, CalBlock.MAG_MATRIX):
+                    for i in range(9):
+                        require(acked(s.request(CalImuWrite(s.node, b, i, 0, 0, 0.0)), s.node, MsgType.CAL_IMU_WRITE),
+                                "CAL_IMU_WRITE refused")
+            fmt = 2 if caps & Capability.MAG else 1
+            require(acked(_config_imu(s, fmt), s.node, MsgType.CONFIG_IMU), f"CONFIG_IMU format {fmt} refused")
+            s.to_streaming()
+            recs = []
+            for c in range(500, 504):
+                recs += [m for _, m in _imu_round(s, c) if isinstance(m, ImuSample) and m.counter == c]
+            require(acked(s.request(Stop(s.node)), s.node, MsgType.STOP), "STOP refused")
+            require(acked(_config_imu(s, 0), s.node, MsgType.CONFIG_IMU), "CONFIG_IMU format 0 refused")
+            require(len(recs) == 4, f"{len(recs)} IMU records for 4 SYNCs")
+            bad = [m for m in recs if m.gyro != (0, 0, 0) or (fmt == 2 and m.mag != (0, 0, 0))]
+            require(not bad, f"with zero matrices the chip sent gyro {bad[0].gyro if bad else ''}"
+                             f"{', mag ' + str(bad[0].mag) if bad and fmt == 2 else ''} (§17.3: 0)")
+            applied = "zero matrices applied (4 records of zeros)"
+    finally:  # leave the chip as it was: every element nominal, not stored
+        s.ensure_idle()
+        for b, i in elements:
+            s.request(CalImuWrite(s.node, b, i, 0, 0, cal_block_nominal(b, i)))
+    return (f"{len(elements)} elements read back bit for bit; {applied}"
+            + (f"; blocks {[int(b) for b in lacks]} without their sensor: NACK 5" if lacks else ""))
 
 
 def table() -> str:

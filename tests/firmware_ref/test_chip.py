@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from protocol.can import CanFrame, decode_can, make_id, to_can
 from protocol.framing import DecodeError, decode_frame, encode, encode_frame
-from protocol.messages import (Assign, CalRead, CalWrite, ChipState, Config, ConfigImu, GetInfo, Info, MsgType,
+from protocol.messages import (Assign, CalImuRead, CalImuWrite, CalRead, CalWrite, ChipState, Config, ConfigImu, GetInfo, Info, MsgType,
                                Reset, Start, Stop, Sync)
 
 pytest.importorskip("firmware_ref._capsheet_fw", reason="C firmware extension not built")
@@ -72,7 +72,8 @@ def _command(draw, transport):
     chip's current node (so "addressed to the chip" follows its node through ASSIGN and RESET)."""
     target = draw(st.sampled_from(["chip", "chip", "chip", "broadcast", "other"]))
     kind = draw(st.sampled_from(["assign", "assign", "config", "start", "stop", "sync", "sync", "sync", "get_info",
-                                 "reset", "cal_write", "cal_read", "raw", "damaged", "config_imu", "config_imu"]))
+                                 "reset", "cal_write", "cal_read", "raw", "damaged", "config_imu", "config_imu",
+                                 "cal_imu_write", "cal_imu_write", "cal_imu_read"]))
     uid_low = draw(st.sampled_from([UID & 0xFFFFFFFF, UID & 0xFFFFFFFF, 0xDEADBEEF]))
     new_node = draw(st.sampled_from([1, 42, 0x7FFF]))
     link = draw(st.integers(0, 300))
@@ -83,8 +84,16 @@ def _command(draw, transport):
            draw(st.sampled_from([1000.0, 1024.5])))
     imu = (draw(st.sampled_from([0, 1, 2, 2, 3])), draw(st.sampled_from([0, 3, 4, 5])), draw(st.sampled_from([0, 1, 3, 4])),
            draw(st.sampled_from([0, 0, 1, 2])))
-    # 0x0D: a node -> host type (IMU_SAMPLE); 0x19 CONFIG_IMU of any length; 0x1A: undefined in v1.2
-    raw_type = draw(st.sampled_from([0x03, 0x0D, 0x10, 0x11, 0x12, 0x13, 0x17, 0x18, 0x19, 0x1A, 0x3F]))
+    # v1.3 (§17): elements whose corrected counts land near integers (never near a half), so binary32
+    # on the C chip and binary64 in Python round alike: matrices of small integers, a bias of 100
+    # counts at ±1000 °/s (an even count at every range), a hard iron of 1 gauss
+    block = draw(st.integers(0, 4))
+    index = draw(st.integers(0, 2 if block in (1, 4) else 8))
+    value = {0: draw(st.sampled_from([1.0, 2.0, -1.0, 0.0])), 1: draw(st.sampled_from([0.0, 100 / 1877.4681031])),
+             2: 0.0, 3: draw(st.sampled_from([1.0, -1.0, 2.0, 0.0])), 4: draw(st.sampled_from([0.0, 1e-4]))}[block]
+    cal_imu = (block, index, draw(st.integers(0, 1)), 0, value)
+    # 0x0D: a node -> host type (IMU_SAMPLE); 0x19 CONFIG_IMU, 0x1A CAL_IMU_WRITE of any length; 0x1C: undefined in v1.3
+    raw_type = draw(st.sampled_from([0x03, 0x0D, 0x10, 0x11, 0x12, 0x13, 0x17, 0x18, 0x19, 0x1A, 0x1B, 0x1C, 0x3F]))
     payload = draw(st.binary(max_size=9))
     version = draw(st.sampled_from([1, 1, 2]))
     is_fd = draw(st.booleans())
@@ -112,6 +121,10 @@ def _command(draw, transport):
             msg = CalRead(n or 1, axis=cal[0])
         elif kind == "config_imu":
             msg = ConfigImu(n, *imu)
+        elif kind == "cal_imu_write":
+            msg = CalImuWrite(n or 1, *cal_imu)
+        elif kind == "cal_imu_read":
+            msg = CalImuRead(n or 1, *cal_imu[:2])
         elif transport == "can":
             return CanFrame(make_id(raw_type, n, priority=4, version=version), payload, is_fd)
         else:
@@ -213,3 +226,45 @@ def test_walk_through_the_lifecycle_on_both_chips_identically():
         steps += [(1 / 64, w(Sync(counter=c))) for c in range(1, 120)]
         steps += [(0.5, w(GetInfo(0))), (0.0, w(Stop(NODE))), (0.0, w(Reset(NODE))), (2.0, w(GetInfo(0)))]
         assert _run_both(steps, transport, False, 0x3C) == set(ChipState)
+
+
+def test_the_c_chip_applies_any_gyro_and_mag_calibration_within_one_count_of_the_python_chip():
+    """§17.3: the C chip computes in fixed point, the Python model in binary64; a chip may be off by
+    one count from the exact result. Random (seeded) calibrations of realistic size and readings over
+    the whole range, at every gyro and mag range and two accelerometer ranges."""
+    import numpy as np
+
+    from protocol.messages import ImuSample, provisional_node
+
+    rng = np.random.Generator(np.random.MT19937(29))
+    worst = changed = 0
+    for trial in range(40):
+        readings = rng.integers(-32768, 32768, size=(2, 3))
+        accel = rng.integers(-2048, 2048, size=3)
+        chips = [cls(UID, lambda t, a=tuple(int(v) for v in accel): (a, 0), transport="serial",
+                     capabilities=0x3C, sensors="accel+gyro+mag",
+                     imu=lambda t, g, m, r=readings: (tuple(int(v) for v in r[0]), tuple(int(v) for v in r[1]), 0))
+                 for cls in (ChipModel, CFirmwareChip)]
+        cal = {0: np.eye(3) + rng.normal(0, 0.02, (3, 3)), 1: rng.normal(0, 0.02, 3),
+               2: rng.normal(0, 3e-4, (3, 3)), 3: np.eye(3) + rng.normal(0, 0.1, (3, 3)), 4: rng.normal(0, 2e-5, 3)}
+        gr, mr, ar = int(rng.integers(0, 5)), int(rng.integers(0, 4)), int(rng.integers(0, 2))
+        recs = []
+        for c in chips:
+            c.power_on(0.0)
+            c.handle(encode(Assign(provisional_node(UID, 0), new_node=NODE, link=0, uid_low=UID & 0xFFFFFFFF)), 0.0)
+            for b, v in cal.items():
+                for i, x in enumerate(np.ravel(v).tolist()):
+                    c.handle(encode(CalImuWrite(NODE, b, i, 0, 0, x)), 0.0)
+            c.handle(encode(Config(NODE, range=ar)), 0.0)
+            c.handle(encode(ConfigImu(NODE, 2, gr, mr, 0)), 0.0)
+            c.handle(encode(Start(NODE)), 0.0)
+            (rec,) = [m for m in _normalise(c.handle(encode(Sync(counter=trial)), 0.01), "serial")
+                      if isinstance(m, ImuSample)]
+            recs.append(rec)
+        a, b = recs
+        assert (a.x, a.y, a.z, a.time_us) == (b.x, b.y, b.z, b.time_us)
+        d = np.abs(np.subtract(a.gyro + a.mag, b.gyro + b.mag))
+        worst = max(worst, int(d.max()))
+        changed += a.gyro != tuple(readings[0]) and a.mag != tuple(readings[1])
+        assert d.max() <= 1, (trial, a, b)
+    assert worst <= 1 and changed >= 35  # (the calibrations did change what was sent)

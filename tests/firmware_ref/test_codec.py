@@ -137,10 +137,10 @@ def test_provisional_node_doc_example():
 def test_c_state_table_is_protocol_state_rules():
     """Every (state, host -> chip type) pair: same presence, reply, next state and validate flag."""
     replies = {0: Reply.NONE, 1: Reply.ACK, 2: Reply.SAMPLE, 3: Reply.ANNOUNCE_INFO, 4: Reply.CAL_DATA,
-               5: Reply.ACK_THEN_BOOT}
+               5: Reply.ACK_THEN_BOOT, 6: Reply.CAL_IMU_DATA}
     from protocol.messages import ChipState
     host_types = [t for t in MsgType if t >= 0x10]
-    assert len(host_types) == 10 and MsgType.CONFIG_IMU in host_types
+    assert len(host_types) == 12 and MsgType.CONFIG_IMU in host_types and MsgType.CAL_IMU_READ in host_types
     for state in ChipState:
         for t in host_types:
             rule = RULES.get((state, t))

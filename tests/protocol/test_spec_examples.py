@@ -60,12 +60,14 @@ def c_codec():
 
 def test_the_examples_are_all_found():
     # §4.1 ANNOUNCE, §4.3 SAMPLE, §4.6 NACK, §4.8 SNAPSHOT, §4.9 SYNC, §4.10 ASSIGN; v1.2: §16.2
-    # CONFIG_IMU, §16.3 IMU_SAMPLE (6- and 9-axis), §16.5 SNAPSHOT_IMU
-    assert len(serial_examples()) == 10
-    assert sum(w is not None for _, w in serial_examples()) == 5
+    # CONFIG_IMU, §16.3 IMU_SAMPLE (6- and 9-axis), §16.5 SNAPSHOT_IMU; v1.3: §17.1 CAL_IMU_WRITE (with
+    # its wire bytes) and CAL_IMU_DATA, §17.2 CAL_IMU_READ
+    assert len(serial_examples()) == 13
+    assert sum(w is not None for _, w in serial_examples()) == 6
     # §4.3, §4.9, §4.10 (id only), §7.2 SNAPSHOT (id, FD), §7.2 SAMPLE and ASSIGN (id#data); v1.2:
     # §16.2 CONFIG_IMU (id, data), §16.3 IMU_SAMPLE (id, FD), §16.4 IMU_GYRO, IMU_MAG, IMU_ACCEL (id#data)
-    assert len(can_examples()) == 11
+    # v1.3: §17.1 CAL_IMU_WRITE (id, data), CAL_IMU_DATA (id), §17.2 CAL_IMU_READ (id, data)
+    assert len(can_examples()) == 14
     assert len(word_examples()) == 2
 
 

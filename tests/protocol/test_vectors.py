@@ -129,7 +129,7 @@ def spec_layouts() -> dict[str, list[tuple[str, str]]]:
     out: dict[str, list] = {}
     for sec in re.split(r"^### ", SPEC, flags=re.M)[1:]:
         head, _, body = sec.partition("\n")
-        if not head.startswith("4."):
+        if not head.startswith(("4.", "17.")):  # v1.3's calibration messages are laid out in §17
             continue
         names = re.findall(r"([A-Z][A-Z_]+) \(0x", head)
         rows = re.findall(r"^\| \d+ \| ([a-z0-9·+ ]+?) \| ([a-z_0-9]+)", body, re.M)
@@ -204,6 +204,8 @@ def test_the_spec_tables_cover_every_message_type():
     for name in V12:
         assert re.search(rf"\b{name} \(0x", SPEC.partition("\n## 16. ")[2]), name
     assert spec_layouts()["CAL_WRITE"] == spec_layouts()["CAL_DATA"]
+    assert spec_layouts()["CAL_IMU_WRITE"] == spec_layouts()["CAL_IMU_DATA"]
+    assert [f for _, f in spec_layouts()["CAL_IMU_DATA"]] == ["block", "index", "flags", "reserved", "value"]
     assert spec_layouts()["START"] == []
 
 

@@ -13,7 +13,7 @@ import pytest
 from protocol.can import CanFrame, decode_can, make_id, to_can
 from protocol.constants import SampleStatus
 from protocol.framing import decode_frame, encode, encode_frame
-from protocol.messages import (MESSAGE_TYPES, ConfigImu, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability,
+from protocol.messages import (MESSAGE_TYPES, ConfigImu, CalImuRead, CalImuWrite, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability,
                                ChipState, Config, Direction, GetInfo, Info, MsgType, Nack, NackReason, Reset,
                                Sample, Start, Status, Stop, Sync, provisional_node)
 from protocol.vectors import canonical_messages
@@ -87,6 +87,8 @@ def valid_message(t, node):
         MsgType.CAL_WRITE: lambda: CalWrite(node, axis=1, flags=1, offset_q4=-8, sensitivity=1000.0),
         MsgType.CAL_READ: lambda: CalRead(node, axis=2),
         MsgType.CONFIG_IMU: lambda: ConfigImu(node, 0, 4, 1, 0),  # format 0: valid for an accel-only chip
+        MsgType.CAL_IMU_WRITE: lambda: CalImuWrite(node, 1, 2, 0, 0, 0.01),  # v1.3: NACK 5 without a gyro
+        MsgType.CAL_IMU_READ: lambda: CalImuRead(node, 3, 4),
     }[t]()
 
 
@@ -94,7 +96,8 @@ def valid_message(t, node):
 # CAL_READ are always addressed (node 0 does not decode for them).
 _ADDRESSINGS = [(t, b) for t in HOST_TYPES for b in (False, True)
                 if not (t == MsgType.SYNC and not b)
-                and not (b and t in (MsgType.ASSIGN, MsgType.CAL_WRITE, MsgType.CAL_READ))]
+                and not (b and t in (MsgType.ASSIGN, MsgType.CAL_WRITE, MsgType.CAL_READ, MsgType.CAL_IMU_WRITE,
+                                     MsgType.CAL_IMU_READ))]
 
 
 @pytest.mark.parametrize("transport", ["serial", "can"])
@@ -113,7 +116,9 @@ def test_every_state_and_type_follows_the_rules(chip_class, transport, state, ms
         return
     expect_state = rule.next_state if rule.next_state is not None else state
     assert d.chip.state == expect_state
-    if rule.reply is Reply.NONE:
+    if msg_type in (MsgType.CAL_IMU_WRITE, MsgType.CAL_IMU_READ):  # §17.2: this chip has no gyro, no mag
+        assert replies == [Nack(node, msg_type, NackReason.UNSUPPORTED)]
+    elif rule.reply is Reply.NONE:
         assert replies == []
     elif rule.reply is Reply.ACK:
         new_node = msg.new_node if msg_type == MsgType.ASSIGN else node

@@ -122,7 +122,33 @@ static int32_t cal_store(void *user, uint8_t axis, const capsheet_cal_t *cal)
     return 0;
 }
 
-static const capsheet_hal_t hal = {0, read_axes, send_bytes, 0, read_uid, cal_load, cal_store, READ_IMU};
+/* The gyro/mag calibration elements (§17), the same way (a chip would keep them in flash). */
+static uint32_t nv_imu[CAPSHEET_IMU_CAL_COUNT];
+static uint8_t nv_imu_valid[CAPSHEET_IMU_CAL_COUNT];
+
+static int32_t cal_imu_load(void *user, uint8_t element, uint32_t *bits)
+{
+    (void)user;
+    if (element >= CAPSHEET_IMU_CAL_COUNT || !nv_imu_valid[element]) {
+        return -1;
+    }
+    *bits = nv_imu[element];
+    return 0;
+}
+
+static int32_t cal_imu_store(void *user, uint8_t element, uint32_t bits)
+{
+    (void)user;
+    if (element >= CAPSHEET_IMU_CAL_COUNT) {
+        return -1;
+    }
+    nv_imu[element] = bits;
+    nv_imu_valid[element] = 1u;
+    return 0;
+}
+
+static const capsheet_hal_t hal = {0, read_axes, send_bytes, 0, read_uid, cal_load, cal_store, READ_IMU,
+                                   cal_imu_load, cal_imu_store};
 static const capsheet_chip_config_t config = {CAPSHEET_TRANSPORT_SERIAL, false,
                                               CAPSHEET_CAP_CAL_STORAGE | CAPSHEET_CAP_MULTI_RANGE | SENSOR_CAPS};
 static capsheet_chip_t chip;

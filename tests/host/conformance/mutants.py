@@ -564,12 +564,23 @@ class ImuAccelFirst(ChipModel):
         return out
 
 
-#: name -> (class, transport, sensors): the §16 mutants (checks 42-44), each a 6/9-axis chip
+class CalImuReadNominal(_Rewriting):
+    """v1.3: answers CAL_IMU_READ with the nominal value, whatever was written (§17.2)."""
+
+    def rewrite(self, msg):
+        from protocol.messages import CalImuData, cal_block_nominal
+        if isinstance(msg, CalImuData):
+            return CalImuData(msg.node, msg.block, msg.index, 0, 0, cal_block_nominal(msg.block, msg.index))
+        return msg
+
+
+#: name -> (class, transport, sensors): the §16 mutants (checks 42-44), each a 6/9-axis chip, and §17's (45)
 IMU_MUTANTS = {
     "imu_answers_sample": (ImuAnswersSample, "serial", "accel+gyro"),
     "imu_time_without_capability": (ImuTimeWithoutCapability, "serial", "accel+gyro+mag"),
     "imu_accepts_bad_config": (ImuAcceptsBadConfig, "serial", "accel+gyro"),
     "imu_accel_first": (ImuAccelFirst, "can", "accel+gyro"),
+    "cal_imu_read_nominal": (CalImuReadNominal, "serial", "accel+gyro+mag"),
 }
 
 
@@ -586,7 +597,9 @@ C_MUTANTS = {
     "missed_syncs_wrap": "missed_syncs_counts_wrap", "config_while_streaming": "config_while_streaming",
     "reserved_capability_bit": "reserved_capability_bit", "refuses_repeated_config": "refuses_repeated_config",
     "answers_broadcast": "answers_broadcast", "ignores_broadcast_start": "ignores_broadcast_start",
-    "wrong_priority": "wrong_priority",
+    "wrong_priority": "wrong_priority", "cal_imu_read_nominal": "cal_imu_read_nominal",
+    "imu_answers_sample": "imu_answers_sample", "imu_accel_first": "imu_accel_first",
+    "imu_accepts_bad_config": "imu_accepts_bad_config",
 }
 #: ignores_capability ACKs a range the chip lacks: it must lack MULTI_RANGE, as its twin does
 #: checks a C mutant's run adds to its twin's so that the broken frame is sent at all (a SAMPLE needs a SYNC)

@@ -33,7 +33,7 @@ EXPECTED = {
     "slow_heartbeat": {11},
     "no_reannounce": {8, 9},  # no round: no previous id either
     "no_previous_id": {9},
-    "wrong_nack_reason": {5, 12, 14, 16, 17, 18, 28},  # every check expecting a NACK
+    "wrong_nack_reason": {5, 12, 14, 16, 17, 18, 28, 45},  # every check expecting a NACK (45: §17's NACK 5)
     "ignored_reset": {3, 4, 5, 6, 7, 8, 9, 30},  # every check that needs a fresh BOOT
     "answers_broadcast": {31},
     "nacks_broadcast": {19},
@@ -67,16 +67,19 @@ GATEWAY_EXPECTED = {
     "gateway_nacks_broadcast": {19},
 }
 
-#: §16 mutant (6/9-axis chips) -> the checks it must fail (an IMU_ACCEL first leaves every record incomplete
-#: for the host's decoder, so check 43 sees no record either)
+#: §16/§17 mutant (6/9-axis chips) -> the checks it must fail (an IMU_ACCEL first leaves every record incomplete
+#: for the host's decoder, so checks 43 and 45 see no record either)
 IMU_EXPECTED = {
-    "imu_answers_sample": {43},
+    "imu_answers_sample": {43, 45},  # 45 sees no record to check the correction in
     "imu_time_without_capability": {43},
     "imu_accepts_bad_config": {42},
-    "imu_accel_first": {43, 44},
+    "imu_accel_first": {43, 44, 45},
+    "cal_imu_read_nominal": {45},
 }
-#: the §16 checks: the C firmware speaks §16 (issue 29 point 3) but has no mutant that breaks a §16 rule, so no C mutant fails them
-IMU_CHECKS = {42, 43, 44}
+#: the §16 and §17 checks, which only a 6/9-axis mutant fails
+IMU_CHECKS = {42, 43, 44, 45}
+#: the chip checks no C mutant fails (every §16 and §17 check has one since v1.3's C mutants)
+NO_C_MUTANT: set[int] = set()
 
 #: checks no mutant here can fail, and why (the virtual CAN device drops standard frames before any chip)
 NOT_SHOWN = {22: "the virtual CanDevice filters standard-identifier frames before the chips see them"}
@@ -151,14 +154,14 @@ def test_every_c_mutant_has_a_python_twin():
     pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
     from firmware_ref.chip import C_MUTANTS as BUILT
     assert set(C_MUTANTS) == set(BUILT)
-    assert set(C_MUTANTS.values()) <= set(MUTANTS)
+    assert set(C_MUTANTS.values()) <= set(MUTANTS) | set(IMU_MUTANTS)
 
 
 def test_every_chip_check_is_failed_by_some_c_mutant():
     """The C firmware, too, has a broken build for every check of the chip profile (issue 27, point 4)."""
     chip = {c.number for c in CHECKS if "chip" in c.profiles}
-    covered = set().union(*(EXPECTED[twin] for twin in C_MUTANTS.values()))
-    assert chip - covered == set(NOT_SHOWN) | IMU_CHECKS
+    covered = set().union(*({**EXPECTED, **IMU_EXPECTED}[twin] for twin in C_MUTANTS.values()))
+    assert chip - covered == set(NOT_SHOWN) | NO_C_MUTANT
 
 
 @pytest.mark.parametrize("name", sorted(C_MUTANTS))
@@ -166,12 +169,16 @@ def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name):
     pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
     from firmware_ref.chip import CFirmwareChip
     twin = C_MUTANTS[name]
-    expected = EXPECTED[twin]
+    expected = {**EXPECTED, **IMU_EXPECTED}[twin]
 
     def factory(uid, sensor, **kw):
         return CFirmwareChip(uid, sensor, mutant=name, **{**kw, **C_MUTANT_OPTIONS.get(name, {})})
-    _cls, transport, allow_broadcast = MUTANTS[twin]
-    sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=factory)
+    if twin in IMU_MUTANTS:  # a 6/9-axis chip (§16, §17)
+        _cls, transport, sensors = IMU_MUTANTS[twin]
+        allow_broadcast = False
+    else:
+        (_cls, transport, allow_broadcast), sensors = MUTANTS[twin], "accel"
+    sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=factory, sensors=sensors)
     # its twin's checks, and check 7 (an ASSIGN: an ACK for the reserved-bits check to look at), and
     # what makes the chip send the frame it breaks (C_MUTANT_EVIDENCE: SYNC for a SAMPLE)
     run = expected | {7} | C_MUTANT_EVIDENCE.get(name, set())

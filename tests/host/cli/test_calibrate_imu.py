@@ -1,0 +1,111 @@
+"""`capsheet calibrate --sensors accel+gyro+mag --write-chips` end to end (issue 29 point 4, protocol
+v1.3 §17): a 3x3 sheet of realistic 9-axis chips (gyroscope bias, scale, cross-axis, g-sensitivity;
+magnetometer hard and soft iron; all hidden in the simulator) on the calibration board, behind a real
+pty and behind python-can's virtual bus. The command fits the gyroscopes and magnetometers, writes
+every chip with CAL_IMU_WRITE and reads them back. The test then streams the sheet with the host
+library before and after, and compares what the chips send with the simulator's truth — the
+board's exact angular velocity and the field in each link's frame at each sample's instant: the
+error must drop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from host.session import Host, Layout
+from host.transport import SerialTransport
+from virtual_sheet.devices import CanDevice, PtyDevice
+from virtual_sheet.magfield import field_in_sensor_frames
+from virtual_sheet.sensor import chip_error_model
+from virtual_sheet.sheet import VirtualSheet
+
+
+def _sheet(transport: str = "serial") -> VirtualSheet:
+    return VirtualSheet("board", "3x3", seed=7, transport=transport, sensors="accel+gyro+mag",
+                        shape_params=dict(hold_s=2.5, move_s=0.8, seed=2),
+                        sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+
+
+def _errors(sheet, transports, seconds: float = 6.0) -> dict:
+    """Stream ``seconds`` of 9-axis snapshots: RMS of (gyro − true ω) in °/s where the board holds
+    (|ω| < 1 °/s) and where it turns, of (mag − true B) in µT, over every link and snapshot; and how
+    many snapshots."""
+    host = Host(transports, "3x3", layout=Layout(dict(sheet.layout)), rate_hz=100, timeout_s=0.2, retries=5)
+    host.imu_config = (2, 3, 0, 0)  # 9-axis, ±1000 °/s, ±4 gauss
+    eg, em, wt = [], [], []
+    with host:
+        host.bring_up(0.3)
+        snaps = [s for s in host.snapshots(count=int(100 * seconds)) if s.gyro is not None and s.mag is not None]
+        host.stop()
+    field = sheet.imu_source.imu.field
+    for s in snaps:
+        tr = sheet.imu_source.scene.sample(np.array([sheet.truth_time(s.counter)]))
+        w = np.asarray(tr.angular_velocity)[0]
+        B = field_in_sensor_frames(field, tr.position, tr.frames)[0]
+        ok = np.isfinite(s.gyro).all(axis=1) & np.isfinite(s.mag).all(axis=1)
+        eg.append(np.degrees(s.gyro[ok] - w[ok]))
+        wt.append(np.degrees(np.linalg.norm(w[ok], axis=1)))
+        em.append(1e6 * (s.mag[ok] - B[ok]))
+    eg, em, wt = np.concatenate(eg), np.concatenate(em), np.concatenate(wt)
+    rms = lambda e: float(np.sqrt(np.mean(e ** 2))) if e.size else float("nan")  # noqa: E731
+    return {"gyro_rest_dps": rms(eg[wt < 1.0]), "gyro_turn_dps": rms(eg[wt >= 1.0]), "mag_ut": rms(em),
+            "snapshots": len(snaps), "turning": int((wt >= 1.0).sum())}
+
+
+def _calibrate_argv(out, layout):
+    return ["calibrate", "--lattice", "3x3", "--layout", str(layout), "--out", str(out), "--write-chips",
+            "--sensors", "accel+gyro+mag", "--poses", "12", "--samples", "40", "--rate", "100", "--timeout", "200",
+            "-q"]
+
+
+def _stored_imu(sheet) -> list[dict]:
+    return [{b: [v for v, _st in e] for b, e in chip.imu_cal.items()} for chip in sheet.chips]
+
+
+def _check(sheet, before, after, res_stderr):
+    if res_stderr is not None:
+        assert "CAL_IMU_WRITE: 12 chips written, 12 read back and verified, 0 refused, 0 element mismatches" in res_stderr
+    # every chip holds a calibration that is not the nominal one, stored in non-volatile memory
+    for chip in sheet.chips:
+        assert chip.gyro_cal is not None and chip.mag_cal is not None
+        assert all(st == 1 for e in chip.imu_cal.values() for _v, st in e)
+    assert before["snapshots"] > 300 and after["snapshots"] > 300 and after["turning"] > 100
+    # against the simulator's truth (measured once: held 0.42 -> 0.027 °/s, turning 6.4 -> 2.8 °/s, field
+    # 31.5 -> 0.63 µT): at rest the bias and g-sensitivity are gone; in the turns scale and cross-axis
+    # (what is left is mostly the link frame the board fit cannot tell from the truth's by a common
+    # rotation, ~1 % of the rate); the magnetometer's hard and soft iron
+    assert after["gyro_rest_dps"] < before["gyro_rest_dps"] / 5, (before, after)
+    assert after["gyro_turn_dps"] < before["gyro_turn_dps"] / 1.5, (before, after)
+    assert after["mag_ut"] < before["mag_ut"] / 10, (before, after)
+
+
+def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(tmp_path):
+    import subprocess
+    import sys
+
+    sheet = _sheet()
+    layout = sheet.write_layout(tmp_path / "layout.csv")
+    with PtyDevice(sheet) as dev:
+        before = _errors(sheet, [SerialTransport(dev.path)])
+        res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(tmp_path / "cal.json", layout),
+                              "--port", str(dev.path)], capture_output=True, text=True, timeout=400)
+        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+        after = _errors(sheet, [SerialTransport(dev.path)])
+    _check(sheet, before, after, res.stderr)
+
+
+def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_path):
+    """The same over CAN: python-can's own virtual interface (in-process: the command runs through its
+    entry point here), classic frames — CAL_IMU_WRITE, CAL_IMU_READ and CAL_IMU_DATA are 8 bytes."""
+    from host.cli import main
+    from host.transport import CanTransport
+
+    sheet = _sheet("can")
+    layout = sheet.write_layout(tmp_path / "layout.csv")
+    with CanDevice(sheet) as dev:
+        chan = f"virtual:{dev.channels[0]}"
+        before = _errors(sheet, [CanTransport(chan, reconnect=False)])
+        code = main([*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan])
+        assert code == 0
+        after = _errors(sheet, [CanTransport(chan, reconnect=False)])
+    _check(sheet, before, after, None)
