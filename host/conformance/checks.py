@@ -1219,7 +1219,8 @@ def _cal_imu_value(block: int, index: int) -> float:
 
 @check("17.2, 17.1, 17.3", "CAL_IMU_WRITE then CAL_IMU_READ gives every gyroscope (and magnetometer) calibration "
        "element back bit for bit with its stored flag, and the chip applies it (a zero matrix sends zero counts); "
-       "a chip without the sensor answers both with NACK 5 UNSUPPORTED",
+       "a chip without the sensor answers both with NACK 5 UNSUPPORTED (a chip answering both NACK 1, one of 1.2 or "
+       "earlier, is skipped)",
        "a host cannot store the gyroscope's or magnetometer's calibration on the chip, or gets another back",
        "keep the CAL_IMU_WRITE value per element as given (binary32, −0 and subnormals included), answer "
        "CAL_IMU_READ with CAL_IMU_DATA carrying it; apply §17.3 to the counts sent; NACK 5 for a block whose "
@@ -1230,6 +1231,17 @@ def c_cal_imu(s: Session):
     s.ensure_idle()
     have = [b for b in CalBlock if caps & (Capability.GYRO if b <= CalBlock.GYRO_G_SENS else Capability.MAG)]
     lacks = [b for b in (CalBlock.GYRO_BIAS, CalBlock.MAG_MATRIX) if b not in have]
+    # §17.2, §12: a chip of 1.2 or earlier does not know the types (NACK 1, §8.1), and the wire carries no
+    # minor version to tell it from a 1.3 chip: both types NACK 1 is such a chip, to which §17 does not apply
+    probe = (have or lacks)[0]
+    ans = s.request(CalImuRead(s.node, probe, 0))
+    if ans == [Nack(s.node, MsgType.CAL_IMU_READ, NackReason.UNKNOWN_COMMAND)]:
+        ans = s.request(CalImuWrite(s.node, probe, 0, 0, 0, cal_block_nominal(probe, 0)))  # nominal: changes nothing
+        require(ans == [Nack(s.node, MsgType.CAL_IMU_WRITE, NackReason.UNKNOWN_COMMAND)],
+                f"CAL_IMU_READ answered NACK 1 UNKNOWN_COMMAND (a chip of 1.2 or earlier) but CAL_IMU_WRITE {ans} "
+                f"(§17.2, §8.1: a chip knows both types or neither)")
+        raise Skip("CAL_IMU_READ and CAL_IMU_WRITE answered NACK 1 UNKNOWN_COMMAND: a chip of protocol 1.2 or "
+                   "earlier, which does not know them (§17.2, §12); §17 does not apply")
     for b in lacks:
         ans = s.request(CalImuRead(s.node, b, 0))
         require(_cal_imu_nack(ans, s, MsgType.CAL_IMU_READ), f"CAL_IMU_READ block {int(b)} without its sensor "
