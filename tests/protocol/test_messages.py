@@ -110,3 +110,25 @@ def test_unpack_snapshots_imu_refuses_a_mix_of_formats_and_unpacks_nothing_to_em
         unpack_snapshots_imu([six, nine])
     out = unpack_snapshots_imu([])
     assert [a.shape for a in out[:6]] == [(0,), (0,), (0, 3), (0,), (0,), (0, 3)] and out[6] is None
+
+
+def test_unpack_snapshots_imu_gives_the_golden_vectors_fields():
+    """The SNAPSHOT_IMU golden vectors (tests/vectors/serial.json: wire bytes beside their fields, written
+    from docs/protocol.md §16.5's examples) through the stream decoder and the batch unpacker."""
+    import json
+    from pathlib import Path
+
+    from protocol.framing import StreamDecoder
+    from protocol.messages import unpack_snapshots_imu
+    doc = json.loads((Path(__file__).resolve().parents[1] / "vectors" / "serial.json").read_text())
+    vecs = [v for v in doc["vectors"] if v["type"] == "SNAPSHOT_IMU" and "fields" in v]
+    assert {v["name"] for v in vecs} >= {"snapshot_imu_6_axis", "snapshot_imu_9_axis"}
+    for v in vecs:
+        [msg] = StreamDecoder().feed(bytes.fromhex(v["hex"]))
+        counter, link, counts, status, t_us, gyro, mag = unpack_snapshots_imu([msg])
+        f = v["fields"]
+        n = len(f["counts"])
+        assert counter.tolist() == [f["counter"]] * n and link.tolist() == [f["first_link"] + k for k in range(n)]
+        assert counts.tolist() == f["counts"] and status.tolist() == f["status"]
+        assert t_us.tolist() == f["time_us"] and gyro.tolist() == f["gyro"]
+        assert (mag is None and "mag" not in f) or mag.tolist() == f["mag"]
