@@ -58,7 +58,8 @@ from protocol.messages import (LINK_NONE, NODE_BROADCAST, PROTOCOL_VERSION, Ack,
                                ChipState, Direction, GatewayFlag, GatewayInfo, Info, Message, MsgType, Nack,
                                NackReason, SampleFormat, Snapshot, Status, Sync, is_node_to_host_type,
                                pack_sample_words, provisional_node, IMU_RECORD_SIZE, MAX_SERIAL_IMU_RECORDS,
-                               TIME_UNKNOWN, ConfigImu, ImuSample, SnapshotImu, Start, pack_imu_records,
+                               TIME_UNKNOWN, ConfigImu, ImuAccel, ImuGyro, ImuMag, ImuSample, Sample, SnapshotImu, Start,
+                               pack_imu_records,
                                unpack_imu_records)
 from protocol.state import (ANNOUNCE_PERIOD_S, GATEWAY_HEARTBEAT_MS, SNAPSHOT_DEADLINE_S, Reply, gateway_rule_for,
                             next_deadline)
@@ -595,15 +596,18 @@ class Gateway:
             if not r:
                 continue
             link = c.link
-            if self._is_sample(r) and link is not None and 0 <= link < cov.size and cov[link]:
-                if d > SNAPSHOT_DEADLINE_S:
-                    self.stats.late_dropped += 1
-                    continue
-                samples.append(r[0])
-                links.append(link)
-                latest = max(latest, d)
-            else:
-                other += r
+            if link is not None and 0 <= link < cov.size and cov[link]:
+                # its SAMPLE of this counter is packed; anything else it sent (a babbler's junk) passes on
+                i = 0 if self._is_sample(r) else self._own_sample(r, c.node, sync.counter)
+                if i is not None:
+                    smp, r = r[i], r[:i] + r[i + 1:]
+                    if d > SNAPSHOT_DEADLINE_S:
+                        self.stats.late_dropped += 1
+                    else:
+                        samples.append(smp)
+                        links.append(link)
+                        latest = max(latest, d)
+            other += r
         if samples:
             n_links = self.sheet.n_links
             counts = np.zeros((n_links, 3), dtype=np.int64)
@@ -671,13 +675,22 @@ class Gateway:
             if not r:
                 continue
             lk = eng.views[k].link
-            if self._is_sample(r) and lk is not None and 0 <= lk < n_links and self._cov_mask[lk]:
-                got_c, got_s, got_l = self._decode_samples(r, [lk], sync.counter)
-                if got_l.size:
-                    words[got_l] = ((got_c.astype(np.int64) & 0xFFF) @ _FIELD_SHIFT) | ((got_s & 0xF) << 36)
-                    have = True
-                continue
-            other.append((k, r))
+            if lk is not None and 0 <= lk < n_links and self._cov_mask[lk]:
+                # §13.1, §13.2: its SAMPLE is packed, whatever else it sent (a babbler's junk) passes on
+                i = 0 if self._is_sample(r) else self._own_sample(r, int(eng.node[k]), sync.counter)
+                if i is not None:
+                    smp, r = r[i:i + 1], r[:i] + r[i + 1:]
+                    d = float(self._delay_of[k])
+                    if d > SNAPSHOT_DEADLINE_S:
+                        self.stats.late_dropped += 1
+                    else:
+                        got_c, got_s, got_l = self._decode_samples(smp, [lk], sync.counter)
+                        if got_l.size:
+                            words[got_l] = ((got_c.astype(np.int64) & 0xFFF) @ _FIELD_SHIFT) | ((got_s & 0xF) << 36)
+                            have = True
+                            latest = max(latest, d)
+            if r:
+                other.append((k, r))
         if other:
             other.sort(key=lambda t: t[0])
             other = [f for _, r in other for f in r]
@@ -719,8 +732,9 @@ class Gateway:
         """Packed mode of a 6/9-axis sheet (docs §16.5): the covered links' IMU records into
         SNAPSHOT_IMU frames, as `_sync_packed_array` packs sample words into SNAPSHOT — the same
         deadline (a later chip's link is an INVALID record), the records straight from the arrays. A
-        chip in another format, a wrapped (faulty) chip, a chip without a covered link: its frames
-        pass on as it sends them."""
+        wrapped (faulty) chip of a covered link has its record packed too and only its other frames
+        passed on (§13.2); a chip in another format or without a covered link: its frames pass on as
+        it sends them."""
         eng = self.chip_array
         n_links = self.sheet.n_links
         fmt = self.imu_format
@@ -733,7 +747,23 @@ class Gateway:
         ok[ok] = self._cov_mask[link[ok]]
         table[link[ok]] = recs[ok]
         have = bool(ok.any())
-        other = [(k, r) for k, r in extra if r]
+        other = []
+        for k, r in extra:  # wrapped (faulty) chips: a covered link's record is packed too (§13.1, §13.2)
+            if not r:
+                continue
+            lk = eng.views[k].link
+            if lk is not None and 0 <= lk < n_links and self._cov_mask[lk]:
+                rec, r = self._take_imu_record(r, int(eng.node[k]), sync.counter, fmt)
+                if rec is not None:
+                    d = float(self._delay_of[k])
+                    if d > SNAPSHOT_DEADLINE_S:
+                        self.stats.late_dropped += 1
+                    else:
+                        table[lk] = np.frombuffer(rec, dtype=np.uint8)
+                        have = True
+                        latest = max(latest, d)
+            if r:
+                other.append((k, r))
         if not ok.all():  # records of chips without a covered link: as IMU_SAMPLEs of their own
             c_, s_, t_, g_, m_ = unpack_imu_records(recs[~ok].tobytes(), fmt)
             for j, k in enumerate(idx[~ok].tolist()):
@@ -755,6 +785,44 @@ class Gateway:
                                        + rows[pos:pos + m].tobytes()) for first, pos, m in self._imu_chunks]
             self.stats.snapshots += len(frames)
         self._emit_packed(frames, other, latest, now_s)
+
+    def _decode_one(self, f):
+        if self.can:
+            return decode_can(f.arbitration_id, f.data, is_fd=f.is_fd) if isinstance(f, CanFrame) else None
+        return decode_frame(f[:-1]) if isinstance(f, (bytes, bytearray)) and f[-1:] == b"\0" else None
+
+    def _own_sample(self, frames: list, node: int, counter: int) -> int | None:
+        """Where among what one chip sent after a SYNC is its SAMPLE of ``counter`` (None: not there)."""
+        for i, f in enumerate(frames):
+            m = self._decode_one(f)
+            if isinstance(m, Sample) and m.node == node and m.counter == counter:
+                return i
+        return None
+
+    def _take_imu_record(self, frames: list, node: int, counter: int, fmt: int) -> tuple[bytes | None, list]:
+        """§13.1 forwarding, §16.5 packing, for what one wrapped (faulty) chip sent after a SYNC: its record
+        of ``counter`` in format ``fmt`` — an IMU_SAMPLE (serial, CAN FD), or on classic CAN its IMU_GYRO
+        (+ IMU_MAG) + IMU_ACCEL frames — is taken for the SNAPSHOT_IMU; every other frame (a babbler's
+        junk, a STATUS, a record of another format or counter) is passed on unchanged, in order.
+        Returns ``(record bytes or None, the frames to pass on)``."""
+        msgs = [self._decode_one(f) for f in frames]
+        mine = [isinstance(m, Message) and m.node == node for m in msgs]
+        for i, m in enumerate(msgs):
+            if not mine[i]:
+                continue
+            if isinstance(m, ImuSample) and m.counter == counter and m.format == fmt:
+                return m.record(), frames[:i] + frames[i + 1:]
+            if isinstance(m, ImuGyro) and m.counter == counter:  # classic CAN: the frames of §16.4, in order
+                want = [ImuMag, ImuAccel] if fmt == SampleFormat.IMU9 else [ImuAccel]
+                rest = [j for j in range(i + 1, len(msgs)) if mine[j]][:len(want)]
+                parts = [msgs[j] for j in rest]
+                if (len(parts) == len(want) and all(type(p) is w for p, w in zip(parts, want))
+                        and all(p.counter == counter for p in parts[:-1]) and parts[-1].counter_lo == counter & 0xFF):
+                    a, mag = parts[-1], (parts[0].mx, parts[0].my, parts[0].mz) if len(parts) == 2 else (None,) * 3
+                    rec = ImuSample(node, counter, a.x, a.y, a.z, a.status, a.time_us, m.gx, m.gy, m.gz, *mag).record()
+                    taken = {i, *rest}
+                    return rec, [f for j, f in enumerate(frames) if j not in taken]
+        return None, frames
 
     def _decode_samples(self, samples: list, links: list[int], counter: int):
         links_a = np.asarray(links, dtype=np.int64)

@@ -210,6 +210,9 @@ def estimate_fused_batch(b, fused, units: np.ndarray) -> tuple[np.ndarray, np.nd
     joints = np.full((n, rows, cols, 3), np.nan)
     residual = np.full(n, np.nan)
     skipped: dict[str, int] = {}
+    # what the figure shows of the estimator itself, per snapshot (NaN where it did not run)
+    info = {"gyro_bias_rms_dps": np.full(n, np.nan), "common_accel_mps2": np.full(n, np.nan),
+            "mag_weight_mean": np.full(n, np.nan), "heading_absolute": np.zeros(n, dtype=bool)}
     for k in range(n):
         valid = np.asarray(b.valid[k], dtype=bool)
         if not valid.any():
@@ -232,7 +235,13 @@ def estimate_fused_batch(b, fused, units: np.ndarray) -> tuple[np.ndarray, np.nd
         whole = units[out.valid[units].all(axis=1)]
         frames = out.motion.frames
         residual[k] = eq8_residual(whole, frames[:, :, 0], frames[:, :, 2]) if whole.size else 0.0
-    return joints, residual, {"cpu_s": time.process_time() - cpu0, "skipped": skipped}
+        m, v = out.motion, out.valid
+        info["gyro_bias_rms_dps"][k] = np.degrees(np.sqrt(np.mean(np.sum(m.gyro_bias_rps[v] ** 2, axis=1))))
+        info["common_accel_mps2"][k] = np.linalg.norm(m.common_accel_mps2)
+        if m.mag_weight is not None:
+            info["mag_weight_mean"][k] = float(np.mean(m.mag_weight[v]))
+        info["heading_absolute"][k] = bool(m.heading_absolute)
+    return joints, residual, {"cpu_s": time.process_time() - cpu0, "skipped": skipped, "fused_info": info}
 
 
 def _import_estimator() -> None:
@@ -352,6 +361,7 @@ def run(args) -> int:
         parts: list = []  # [SnapshotBatch, joints, residual, extra] in file order
         cpu_s = 0.0
         skipped: dict[str, int] = {}
+        fused_info: dict[int, dict] = {}  # batch index -> the fused estimator's own figures (for the PNG)
         bar = Progress(total, "estimate", "snapshot", quiet=args.quiet)
 
         def done(k, result):
@@ -360,6 +370,8 @@ def run(args) -> int:
             cpu_s += ex.pop("cpu_s")
             for why, count in ex.pop("skipped").items():
                 skipped[why] = skipped.get(why, 0) + count
+            if "fused_info" in ex:
+                fused_info[k] = ex.pop("fused_info")
             parts[k][1:] = [j, r, ex]
             bar.update(j.shape[0])
 
@@ -439,9 +451,14 @@ def run(args) -> int:
     if args.png is not None:
         from host.cli.figures import estimate_run_figure
         png = Path(args.png) if args.png else out.with_suffix(".png")
-        estimate_run_figure(png, ts - ts[0], residual, valid, joints, lat, L,
+        gyro = (np.concatenate([p[0].gyro for p in parts]) if all(p[0].gyro is not None for p in parts)
+                else None)
+        info = ({name: np.concatenate([fused_info[k][name] for k in range(len(parts))]) for name in fused_info[0]}
+                if fused is not None and len(fused_info) == len(parts) else None)
+        estimate_run_figure(png, ts - ts[0], residual, valid, joints, lat, L, gyro=gyro, fused=info,
                             title=f"capsheet estimate: {Path(args.recording).name}, {rows}x{cols}, "
-                                  f"L = {100 * L:g} cm, {n} snapshots, method {method}")
+                                  f"L = {100 * L:g} cm, {n} snapshots, method {method}"
+                                  + (f" ({result['sensors']})" if gyro is not None else ""))
         result["png"] = str(png)
         print(f"capsheet estimate: wrote {png}", file=sys.stderr)
     for why, count in sorted(skipped.items()):

@@ -306,14 +306,23 @@ def _readable_y(ax, y: np.ndarray) -> None:
 
 
 def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.ndarray, joints: np.ndarray,
-                        lattice, link_length: float, *, title: str):
+                        lattice, link_length: float, *, title: str, gyro: np.ndarray | None = None,
+                        fused: dict | None = None):
     """An offline run: eq. (8)'s misfit per unit (`misfit_pct_of_link`, %) and the valid links (%)
-    over time, and the last estimated shape (cm)."""
+    over time, and the last estimated shape (cm).
+
+    A recording of 6/9-axis chips adds a row: ``gyro`` (n, n_links, 3) rad/s — the three axes of the
+    link that turned most (largest RMS rate) and, per snapshot, the fastest link's rate, °/s — and
+    ``fused`` (the fused estimator's own figures per snapshot, `host.cli.estimate.estimate_fused_batch`):
+    the RMS of its gyroscope-bias estimate over the links (°/s), the acceleration common to all links
+    (m/s², the sheet's translation), and with magnetometers their mean weight and whether the heading
+    is absolute."""
     from matplotlib.ticker import MaxNLocator
 
     plt = _plt()
-    fig = plt.figure(figsize=(13, 4.6), layout="constrained")
-    ax = fig.add_subplot(1, 2, 1)
+    imu = gyro is not None
+    fig = plt.figure(figsize=(13, 8.6 if imu else 4.6), layout="constrained")
+    ax = fig.add_subplot(2 if imu else 1, 2, 1)
     misfit = misfit_pct_of_link(residual, valid, lattice)
     ok = np.isfinite(misfit)
     ax.plot(t_s[ok], misfit[ok], ".", ms=2, color="C0", label="eq. (8) misfit per unit, RMS")
@@ -328,7 +337,9 @@ def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.n
     h2, l2 = ax2.get_legend_handles_labels()
     ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="lower left")
     ax.set_title("per snapshot: loop closure and normal assumption (eq. 8), links valid")
-    ax = fig.add_subplot(1, 2, 2, projection="3d")
+    if imu:
+        _gyro_panels(fig, t_s, np.asarray(gyro, dtype=float), np.asarray(valid, dtype=bool), fused)
+    ax = fig.add_subplot(2 if imu else 1, 2, 2, projection="3d")
     last = np.flatnonzero(np.isfinite(residual))
     if last.size:
         P = joints[last[-1]] * CM
@@ -343,6 +354,55 @@ def estimate_run_figure(path, t_s: np.ndarray, residual: np.ndarray, valid: np.n
     fig.suptitle(title)
     _save(fig, path)
     return fig
+
+
+def _gyro_panels(fig, t_s: np.ndarray, gyro: np.ndarray, valid: np.ndarray, fused: dict | None) -> None:
+    """`estimate_run_figure`'s second row: the gyroscopes, and the fused estimator's own figures."""
+    g = np.where(valid[:, :, None], np.degrees(gyro), np.nan)  # °/s, links not in the snapshot NaN
+    rate = np.linalg.norm(g, axis=2)  # (n, n_links)
+    with np.errstate(all="ignore"):
+        rms = np.sqrt(np.nanmean(rate ** 2, axis=0))
+    ax = fig.add_subplot(2, 2, 3)
+    if np.isfinite(rms).any():
+        k = int(np.nanargmax(rms))
+        for a, name in enumerate("xyz"):
+            ax.plot(t_s, g[:, k, a], "-", lw=0.8, color=f"C{a}", label=f"link {k}, {name}")
+        fastest = np.where(np.isfinite(rate).any(axis=1), np.nanmax(np.where(np.isfinite(rate), rate, -np.inf),
+                                                                      axis=1), np.nan)
+        ax.plot(t_s, fastest, "-", lw=0.6, color="0.5", label="fastest link's |ω|, per snapshot")
+        lo, hi = ax.get_ylim()
+        ax.set_ylim(lo - 0.3 * (hi - lo), hi)  # a free band below the curves for the legend
+        ax.legend(fontsize=8, loc="lower left", ncol=4)
+    ax.axhline(0.0, color="0.8", lw=0.5)
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("angular rate [°/s]")
+    ax.set_title("gyroscopes: the link that turned most (largest RMS rate), axes; the fastest link", fontsize=10)
+    ax = fig.add_subplot(2, 2, 4)
+    if fused is None:
+        ax.text(0.5, 0.5, "no fused estimate (method global or paper)", ha="center", va="center",
+                transform=ax.transAxes)
+        ax.set_axis_off()
+        return
+    ax.plot(t_s, fused["gyro_bias_rms_dps"], "-", lw=0.9, color="C0", label="gyroscope bias estimate, RMS over links")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("bias estimate, RMS [°/s]", color="C0")
+    ax2 = ax.twinx()
+    ax2.plot(t_s, fused["common_accel_mps2"], "-", lw=0.8, color="C3", label="|common acceleration| (translation)")
+    ax2.set_ylabel("common acceleration [m/s²]", color="C3")
+    for a, y in ((ax, fused["gyro_bias_rms_dps"]), (ax2, fused["common_accel_mps2"])):
+        top = float(np.nanmax(y)) if np.isfinite(y).any() else 0.0
+        a.set_ylim(0.0, 1.4 * top if top > 0 else 1.0)  # a free band above the curves for the legend
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left", ncol=2)
+    w = fused.get("mag_weight_mean")
+    if w is not None and np.isfinite(w).any():
+        absolute = np.asarray(fused.get("heading_absolute", []), dtype=bool)
+        note = (f"magnetometers: mean weight {np.nanmean(w):.2f} (min {np.nanmin(w):.2f}); heading "
+                f"{'absolute' if absolute.size and absolute[-1] else 'a gauge'} at the end")
+    else:
+        note = "no magnetometers: heading is a gauge"
+    ax.set_title(f"fused estimator: its bias estimate and the sheet's common acceleration\n{note}", fontsize=10)
 
 
 def motion_scenes_figure(path, scenes: list[dict], *, lattice: str, link_length: float, rate_hz: float):

@@ -115,9 +115,6 @@ INFORMATIVE: dict[str, str] = {
     "15": "the list of changes from 1.0",
     "16": "overview of the IMU chips; its clauses are held by checks 42-44 on a chip whose INFO has GYRO "
           "(skipped on an accelerometer-only chip, to which §16 does not apply)",
-    "16.5": "packing IMU records (SNAPSHOT_IMU) is a gateway's; no check yet: the golden vectors and the codec "
-            "tests hold the layout, tests/virtual_sheet/test_gateway_imu.py the virtual gateway's records to "
-            "its chips' own IMU_SAMPLEs, byte for byte",
     "16.6": "where the new clauses are checked and counted: this suite and `capsheet protocol capacity`",
     "16.7": "the list of changes from 1.1",
     "17": "overview of the chip's gyroscope and magnetometer calibration; its clauses are held by check 45",
@@ -802,7 +799,8 @@ def c_gateway_info(s: Session):
     runs = sorted(g.runs.values(), key=lambda r: r.first_link)
     for r in runs:
         require(int(r.flags) & ~0x03 == 0, f"reserved GATEWAY_INFO flag bits: {r}")
-        require(r.sample_format == 0, f"sample_format {r.sample_format} (1.1 defines 0)")
+        require(r.sample_format in SampleFormat._value2member_map_,
+                f"sample_format {r.sample_format} (0 SAMPLE words; since 1.2 also 1 and 2, IMU records, §16.5)")
         require(not r.flags & GatewayFlag.PACKING or caps & Capability.SNAPSHOT,
                 f"flag PACKING without capability SNAPSHOT: {r}")
         require(not r.flags & GatewayFlag.SYNC_SOURCE or caps & Capability.SYNC_SOURCE,
@@ -902,6 +900,9 @@ def c_gateway_packing(s: Session):
     g = s.gateways[s.uid]
     if not g.flags & GatewayFlag.PACKING:
         raise Skip("the gateway does not pack (GATEWAY_INFO flag PACKING clear)")
+    fmts = _packed_formats(g)
+    if fmts - {SampleFormat.ACCEL_12}:
+        raise Skip(f"the gateway packs IMU records (GATEWAY_INFO sample_format {sorted(fmts)}): check of §16.5")
     uid, chip_node, link = _a_chip_behind(s)
     runs = sorted((r.first_link, r.link_count) for r in g.runs.values() if r.link_count)
     cap = 202 if s.port.kind == "serial" else 11
@@ -946,6 +947,11 @@ def c_gateway_packing(s: Session):
         s.port.send(Reset(chip_node))
         s.collect(s.timeout_s)
     return f"runs {runs}: every link once per counter; the chip on link {link} valid, the rest INVALID"
+
+
+def _packed_formats(g) -> set:
+    """The sample formats a gateway's runs pack (GATEWAY_INFO ``sample_format``, §4.16, §16.5)."""
+    return {int(r.sample_format) for r in g.runs.values() if r.link_count}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1213,7 +1219,8 @@ def _cal_imu_value(block: int, index: int) -> float:
 
 @check("17.2, 17.1, 17.3", "CAL_IMU_WRITE then CAL_IMU_READ gives every gyroscope (and magnetometer) calibration "
        "element back bit for bit with its stored flag, and the chip applies it (a zero matrix sends zero counts); "
-       "a chip without the sensor answers both with NACK 5 UNSUPPORTED",
+       "a chip without the sensor answers both with NACK 5 UNSUPPORTED (a chip answering both NACK 1, one of 1.2 or "
+       "earlier, is skipped)",
        "a host cannot store the gyroscope's or magnetometer's calibration on the chip, or gets another back",
        "keep the CAL_IMU_WRITE value per element as given (binary32, −0 and subnormals included), answer "
        "CAL_IMU_READ with CAL_IMU_DATA carrying it; apply §17.3 to the counts sent; NACK 5 for a block whose "
@@ -1224,6 +1231,17 @@ def c_cal_imu(s: Session):
     s.ensure_idle()
     have = [b for b in CalBlock if caps & (Capability.GYRO if b <= CalBlock.GYRO_G_SENS else Capability.MAG)]
     lacks = [b for b in (CalBlock.GYRO_BIAS, CalBlock.MAG_MATRIX) if b not in have]
+    # §17.2, §12: a chip of 1.2 or earlier does not know the types (NACK 1, §8.1), and the wire carries no
+    # minor version to tell it from a 1.3 chip: both types NACK 1 is such a chip, to which §17 does not apply
+    probe = (have or lacks)[0]
+    ans = s.request(CalImuRead(s.node, probe, 0))
+    if ans == [Nack(s.node, MsgType.CAL_IMU_READ, NackReason.UNKNOWN_COMMAND)]:
+        ans = s.request(CalImuWrite(s.node, probe, 0, 0, 0, cal_block_nominal(probe, 0)))  # nominal: changes nothing
+        require(ans == [Nack(s.node, MsgType.CAL_IMU_WRITE, NackReason.UNKNOWN_COMMAND)],
+                f"CAL_IMU_READ answered NACK 1 UNKNOWN_COMMAND (a chip of 1.2 or earlier) but CAL_IMU_WRITE {ans} "
+                f"(§17.2, §8.1: a chip knows both types or neither)")
+        raise Skip("CAL_IMU_READ and CAL_IMU_WRITE answered NACK 1 UNKNOWN_COMMAND: a chip of protocol 1.2 or "
+                   "earlier, which does not know them (§17.2, §12); §17 does not apply")
     for b in lacks:
         ans = s.request(CalImuRead(s.node, b, 0))
         require(_cal_imu_nack(ans, s, MsgType.CAL_IMU_READ), f"CAL_IMU_READ block {int(b)} without its sensor "
@@ -1289,3 +1307,86 @@ def discovery_check(profile: str) -> Check:
     """The check that finds the node under test: always run first in its profile."""
     fn = c_gateway_discover if profile == "gateway" else c_discover
     return next(c for c in CHECKS if c.fn is fn)
+
+
+@check("16.5, 13.2, 13.1, 16.1", "packing IMU records (sample_format 1 or 2): every SYNC a chip answered -> "
+       "SNAPSHOT_IMU frames of that format with every link of the runs once, in order, from the gateway; links "
+       "not heard INVALID records; the chip's own records not passed on",
+       "the host loses a 6/9-axis sheet's links or reads them in the wrong format: the gateway did not configure "
+       "its chips, packed the wrong record size, or passed records on beside its SNAPSHOT_IMU",
+       "configure your chips to the GATEWAY_INFO sample_format (CONFIG_IMU) before passing START on; answer SYNC "
+       "with SNAPSHOT_IMU frames of that format covering each run once, ascending, at most 77/53 (serial) or 4/3 "
+       "(CAN FD) records each; a link not heard by 10 ms: INVALID, counts 0, time_us -32768; pass no record "
+       "of a covered link on", profiles=("gateway",))
+def c_gateway_packing_imu(s: Session):
+    from protocol.can import MAX_FD_IMU_RECORDS
+    from protocol.messages import MAX_SERIAL_IMU_RECORDS, ImuAccel, ImuGyro, ImuMag, SnapshotImu
+    s.assign_gateway()
+    g = s.gateways[s.uid]
+    if not g.flags & GatewayFlag.PACKING:
+        raise Skip("the gateway does not pack (GATEWAY_INFO flag PACKING clear)")
+    fmts = _packed_formats(g)
+    if fmts <= {SampleFormat.ACCEL_12}:
+        raise Skip("the gateway packs SAMPLEs (GATEWAY_INFO sample_format 0): check 38's")
+    require(len(fmts) == 1 and fmts <= {1, 2}, f"GATEWAY_INFO sample_format {sorted(fmts)}: one of 1, 2 (§16.5)")
+    fmt = SampleFormat(fmts.pop())
+    uid, chip_node, link = _a_chip_behind(s)
+    runs = sorted((r.first_link, r.link_count) for r in g.runs.values() if r.link_count)
+    cap = (MAX_SERIAL_IMU_RECORDS if s.port.kind == "serial" else MAX_FD_IMU_RECORDS)[fmt]
+    want_links = [a + k for a, n in runs for k in range(n)]
+    unpacked = (Sample, ImuSample, ImuGyro, ImuMag, ImuAccel)
+    try:
+        for c in range(40, 43):
+            s.drain()
+            if not g.flags & GatewayFlag.SYNC_SOURCE:
+                s.port.send(Sync(counter=c))
+            got, passed = [], []
+            deadline = time.monotonic() + s.answer_s
+            while time.monotonic() < deadline:
+                item = s.port.next(deadline)
+                if item is None:
+                    break
+                s.note(*item)
+                m = item[1]
+                if isinstance(m, SnapshotImu) and m.node == s.node:
+                    got.append(m)
+                    if sum(x.count for x in got if x.counter == got[0].counter) >= len(want_links):
+                        break
+                elif isinstance(m, unpacked) and m.node == chip_node:
+                    passed.append(m)
+            require(bool(got), f"§16.5: SYNC 0x{c:04X} (the chip on link {link} streams) answered with no "
+                               f"SNAPSHOT_IMU from the gateway's node 0x{s.node:04X}"
+                               + (f"; the chip's {type(passed[0]).__name__} was passed on" if passed else ""))
+            c0 = got[0].counter
+            frames = [x for x in got if x.counter == c0]
+            require(all(x.format == fmt for x in frames),
+                    f"§16.5: SNAPSHOT_IMU of format {sorted({int(x.format) for x in frames})}, GATEWAY_INFO says {int(fmt)}")
+            covered = [(x.first_link, x.count) for x in frames]
+            require(all(n <= cap for _, n in covered), f"§16.5: a SNAPSHOT_IMU over {cap} records: {covered}")
+            links = [x.first_link + k for x in frames for k in range(x.count)]
+            require(links == want_links, f"§13.2: SNAPSHOT_IMU frames of counter 0x{c0:04X} cover links "
+                                         f"{covered}, the runs are {runs} (each link once, ascending)")
+            require(not passed, f"§13.1: the chip's own {type(passed[0]).__name__ if passed else ''} (link {link}) "
+                                f"was passed on beside the SNAPSHOT_IMU that packs its link")
+            for x in frames:
+                counts, status, t_us, gyro, mag = x.arrays()
+                for k in range(x.count):
+                    ln = x.first_link + k
+                    st = int(status[k])
+                    if ln == link:
+                        require(not st & SampleStatus.INVALID,
+                                f"§16.5: the streaming chip's link {ln} is INVALID (the gateway did not get its "
+                                f"record: did it configure the chip to format {int(fmt)}?)")
+                    else:
+                        zero = (counts[k].tolist() == [0, 0, 0] and gyro[k].tolist() == [0, 0, 0]
+                                and (mag is None or mag[k].tolist() == [0, 0, 0]))
+                        require(st & SampleStatus.INVALID and zero and int(t_us[k]) == TIME_UNKNOWN,
+                                f"§16.1: link {ln} (no chip streams there) is status 0x{st:X}, counts "
+                                f"{counts[k].tolist()}, gyro {gyro[k].tolist()}, time_us {int(t_us[k])}: not an "
+                                f"INVALID record (zeros, time_us -32768)")
+    finally:
+        s.port.send(Stop(chip_node))
+        s.port.send(Reset(chip_node))
+        s.collect(s.timeout_s)
+    return (f"format {int(fmt)}, runs {runs}: every link once per counter; the chip on link {link} valid, the rest "
+            f"INVALID records; no record passed on")

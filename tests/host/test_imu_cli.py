@@ -140,8 +140,9 @@ def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(tmp_path):
     assert errors["auto"].mean() < 0.6 * errors["global"].mean(), {m: e.mean() for m, e in errors.items()}
     assert errors["auto"].mean() < 1.5
     # an MCAP out keeps the axes and names the method
-    p = _estimate(mcap, tmp_path / "shapes.mcap")
+    p = _estimate(mcap, tmp_path / "shapes.mcap", "--png")
     assert p.returncode == 0, p.stderr
+    assert json.loads(p.stdout)["png"] == str(tmp_path / "shapes.png") and (tmp_path / "shapes.png").stat().st_size
     rec = read(tmp_path / "shapes.mcap")
     assert rec.gyro is not None and np.isfinite(rec.gyro).any() and rec.mag is None
     assert len(rec.estimates["joints"]) > 0

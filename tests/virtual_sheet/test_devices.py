@@ -15,11 +15,12 @@ import pytest
 import serial
 
 from protocol.can import decode_can, to_can
+from protocol.constants import SampleStatus
 from protocol.dbc import DBC_PATH, dbc_frame_id
 from protocol.framing import StreamDecoder, encode
 from protocol.layout import load_layout
-from protocol.messages import (Ack, Announce, Assign, Capability, GetInfo, Info, MsgType, Sample, Snapshot, Start,
-                               Sync)
+from protocol.messages import (Ack, Announce, Assign, Capability, GetInfo, ImuSample, Info, MsgType, Sample, Snapshot,
+                               SnapshotImu, Start, Status, Sync)
 from virtual_sheet.chip import ChipModel
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
@@ -96,6 +97,36 @@ def test_pty_serial_port_by_path(pty_device):
     assert {(s.node, s.counter) for s in samples} == {(k + 1, c) for k in range(sheet.n_links) for c in range(20)}
     for c in (0, 19):
         assert sheet.truth(c).shape == (3, 4, 3)
+
+
+def test_a_packing_6_axis_gateway_on_a_pty_packs_its_faulty_chips_records_too():
+    """docs §13.1, §13.2, §16.5 over a real pty: a packing gateway of 6-axis chips, one chip flooding
+    STATUS frames beside its records and one wrapped for a death that never comes (both faulty chips,
+    both packed like the rest). 30 SYNCs give exactly 30 SNAPSHOT_IMU frames, one per counter, each with
+    every link valid; not one IMU_SAMPLE reaches the host; the rest is STATUS."""
+    sheet = VirtualSheet("wave", "2x3", seed=11, noise=0.1, sensors="accel+gyro",
+                         faults="babble_chip=2,babble_mode=flood,babble_rate=1,dead_chip=4,dead_after_s=1000,seed=3")
+    n_sync = 30
+    with PtyDevice(sheet, packed=True) as dev, serial.Serial(dev.path, baudrate=3_000_000, timeout=0.05) as port:
+        dec = StreamDecoder()
+        serial_session(port, sheet, dec)
+        for c in range(n_sync):
+            port.write(encode(Sync(counter=c)))
+        ev = read_until(lambda: dec.feed(port.read(65536)),
+                        lambda e: sum(isinstance(m, SnapshotImu) for m in e) >= n_sync)
+        end = time.monotonic() + 0.3  # anything the SYNCs still draw arrives in this time
+        while time.monotonic() < end:
+            ev += dec.feed(port.read(65536))
+    snaps = [m for m in ev if isinstance(m, SnapshotImu)]
+    assert sorted(m.counter for m in snaps) == list(range(n_sync))  # exactly one frame per SYNC
+    assert all(m.count == sheet.n_links and m.first_link == 0 and m.format == 1 for m in snaps)
+    st = np.concatenate([m.arrays()[1] for m in snaps]).reshape(n_sync, sheet.n_links)
+    assert not (st & SampleStatus.INVALID).any()  # no INVALID record: the faulty chips' links are there too
+    assert not [m for m in ev if isinstance(m, (ImuSample, Sample))]
+    assert {type(m) for m in ev} == {SnapshotImu, Status}
+    flood = [m for m in ev if isinstance(m, Status) and m.node == 3 and m.uptime_s == 0]
+    assert 0 < len(flood) <= sheet.fault_stats.babble_frames
+    assert dec.stats.error_count == 0
 
 
 def test_pty_outage_relinks_the_same_path():

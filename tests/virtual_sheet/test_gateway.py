@@ -191,6 +191,38 @@ def test_packing_passes_on_a_sample_of_a_link_it_does_not_cover():
     assert len(snaps) == 1 and snaps[0].status[2] == SampleStatus.INVALID
 
 
+@pytest.mark.parametrize("engine", ["array", "chips"])
+@pytest.mark.parametrize("transport", ["serial", "can"])
+def test_packing_packs_a_babbling_chips_sample_and_passes_on_only_its_junk(transport, engine):
+    """§13.1: a packing gateway passes its chips' frames unchanged *except the SAMPLEs it packs*; §13.2:
+    every link exactly once. A chip that floods STATUS frames beside its SAMPLE (a wrapped, faulty
+    chip) has its SAMPLE in the SNAPSHOT like any other (a flat sheet without noise: 0, 0, 1024 g-counts
+    on every link), and its STATUS frames, exactly as many as it sent, pass on — no SAMPLE does."""
+    can = transport == "can"
+    sheet = VirtualSheet("flat", "2x2", noise=0.0, seed=3, transport=transport, fd=can, engine=engine,
+                         faults="babble_chip=1,babble_mode=flood,babble_rate=3,seed=4")
+    gw = Gateway(sheet, packed=True)
+    gw.power_on(0.0)
+    gw.commission(0.0)
+    gw.pop_output(1.0)
+    babble = 0
+    for counter in range(5):
+        before = sheet.fault_stats.babble_frames
+        sync = Sync(counter=counter)
+        (gw.receive if can else gw.feed)(to_can(sync) if can else encode(sync), 0.1 * (counter + 1))
+        frames = gw.pop_output(0.1 * (counter + 1) + 0.05)
+        ev = [decode_can(f.arbitration_id, f.data, is_fd=f.is_fd) for f in frames] if can else \
+            StreamDecoder().feed(b"".join(frames))
+        snaps = [m for m in ev if isinstance(m, Snapshot)]
+        assert len(snaps) == 1 and snaps[0].counter == counter
+        assert snaps[0].counts.tolist() == [[0, 0, 1024]] * 4 and snaps[0].status.tolist() == [0] * 4
+        rest = [m for m in ev if not isinstance(m, Snapshot)]
+        assert len(rest) == sheet.fault_stats.babble_frames - before
+        assert all(isinstance(m, Status) and m.node == 2 for m in rest)  # link 1 is node 2 (commission)
+        babble += len(rest)
+    assert babble > 0
+
+
 def test_a_gateway_serves_the_chip_array_only_over_its_own_sorted_links():
     # Gateway.chip_array: the sheet's ChipArray when the sheet keeps one and the gateway's links are
     # sorted and distinct (its batch paths), else None (the chips one by one)

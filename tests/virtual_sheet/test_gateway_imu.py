@@ -108,3 +108,40 @@ def test_packing_imu_records_on_classic_can_is_refused():
     sheet = VirtualSheet("wave", "2x2", transport="can", fd=False, sensors="accel+gyro")
     with pytest.raises(ValueError, match="CAN FD"):
         Gateway(sheet, packed=True)
+
+
+@pytest.mark.parametrize("transport, sensors", [("serial", "accel+gyro"), ("serial", "accel+gyro+mag"),
+                                                ("can", "accel+gyro"), ("can", "accel+gyro+mag")])
+def test_a_babbling_chips_record_is_packed_and_only_its_junk_passes_on(transport, sensors):
+    """docs §13.1 (a gateway passes its chips' frames unchanged except the samples it packs), §13.2
+    (every link exactly once), §16.5: a faulty chip — here one that floods STATUS frames beside its
+    answer — still has its record packed, byte for byte what it sends one by one (on classic CAN its
+    IMU_GYRO (+ IMU_MAG) + IMU_ACCEL, assembled); its junk, and nothing else, passes on."""
+    can = transport == "can"
+    faults = "babble_chip=2,babble_mode=flood,babble_rate=3,seed=5"
+    (s1, plain), (sheet, packed) = _pair(transport, sensors, "2x3", faults=faults)
+    junk = 0
+    for counter, t in ((7, 0.25), (8, 0.5), (9, 0.75)):
+        sync = Sync(counter=counter)
+        before = sheet.fault_stats.babble_frames
+        for gw in (plain, packed):
+            (gw.receive if can else gw.feed)(to_can(sync) if can else encode(sync), t)
+        one, _ = _decode(plain, can, t + 0.1)
+        got, _ = _decode(packed, can, t + 0.1)
+        records = {m.node - 1: m for m in one if isinstance(m, ImuSample)}
+        assert len(records) == sheet.n_links  # the babbler answers, one by one, as the others do
+        snaps = [m for m in got if isinstance(m, SnapshotImu)]
+        cap = {(False, 1): 77, (False, 2): 53, (True, 1): 4, (True, 2): 3}[can, FORMAT[sensors]]
+        assert [(m.first_link, m.counter) for m in snaps] == [(a, counter) for a in range(0, sheet.n_links, cap)]
+        c, st, t_us, g, mag = (None if a[0] is None else np.concatenate(a) for a in zip(*(m.arrays() for m in snaps)))
+        assert c.shape == (sheet.n_links, 3)
+        for k, r in records.items():
+            assert ((r.x, r.y, r.z), r.status, r.time_us, r.gyro) == (tuple(c[k]), st[k], t_us[k], tuple(g[k]))
+            assert r.mag == (None if mag is None else tuple(mag[k]))
+        assert not st[2] & SampleStatus.INVALID
+        rest = [m for m in got if not isinstance(m, SnapshotImu)]
+        n_junk = sheet.fault_stats.babble_frames - before
+        assert len(rest) == n_junk  # nothing but the babble passes on: no IMU_SAMPLE, no IMU_GYRO/ACCEL
+        assert all(type(m).__name__ == "Status" and m.node == 3 for m in rest)
+        junk += n_junk
+    assert junk > 0  # the chip did babble

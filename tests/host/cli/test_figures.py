@@ -196,6 +196,37 @@ def test_estimate_run_figure_labels_misfit_completeness_and_shape(gaussian, tmp_
         plt.close(fig)
 
 
+def test_estimate_run_figure_of_a_6_axis_run_draws_the_gyroscopes_and_the_fused_estimator(gaussian, tmp_path):
+    """A 6/9-axis recording's figure adds the gyroscope axes of the link that turned most (°/s) with the
+    fastest link's rate, and the fused estimator's own figures: its bias estimate, the common
+    acceleration, the magnetometers' weight in the title."""
+    lat = Lattice(14, 14)
+    n = 30
+    t = np.arange(n) / 145
+    valid = np.ones((n, lat.n_links), bool)
+    joints = np.repeat(gaussian[None], n, axis=0)
+    gyro = np.zeros((n, lat.n_links, 3))
+    gyro[:, 7] = np.radians([10.0, -20.0, 30.0])  # link 7 turns most: |ω| = sqrt(1400) °/s
+    gyro[:, 3, 0] = np.radians(5.0)
+    fused = {"gyro_bias_rms_dps": np.linspace(0, 0.1, n), "common_accel_mps2": np.full(n, 2.0),
+             "mag_weight_mean": np.full(n, 0.75), "heading_absolute": np.ones(n, bool)}
+    fig = figures.estimate_run_figure(tmp_path / "g.png", t, np.full(n, 1e-3), valid, joints, lat, L, title="run g",
+                                      gyro=gyro, fused=fused)
+    try:
+        fig.canvas.draw()
+        g_ax = next(a for a in fig.axes if a.get_title().startswith("gyroscopes"))
+        assert _legend(g_ax) == ["link 7, x", "link 7, y", "link 7, z", "fastest link's |ω|, per snapshot"]
+        np.testing.assert_allclose([ln.get_ydata()[0] for ln in g_ax.lines[:4]], [10, -20, 30, np.sqrt(1400)])
+        assert g_ax.get_ylabel() == "angular rate [°/s]"
+        f_ax = next(a for a in fig.axes if a.get_title().startswith("fused estimator"))
+        assert "mean weight 0.75" in f_ax.get_title() and "heading absolute" in f_ax.get_title()
+        assert _legend(f_ax) == ["gyroscope bias estimate, RMS over links", "|common acceleration| (translation)"]
+        np.testing.assert_allclose(f_ax.lines[0].get_ydata()[-1], 0.1)
+    finally:
+        plt.close(fig)
+    assert (tmp_path / "g.png").stat().st_size > 30_000
+
+
 def test_motion_scenes_figure_draws_each_scene_in_one_cube_with_its_peaks(tmp_path):
     from virtual_sheet.motion import make_motion_scene
 

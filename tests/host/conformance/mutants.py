@@ -487,6 +487,14 @@ class GatewayNacksBroadcast(Gateway):
     node_class = _NacksBroadcastNode
 
 
+class ImuGatewayLeavesChipsInFormat0(Gateway):
+    """Says it packs 6-axis records (GATEWAY_INFO sample_format 1) but passes START on without configuring
+    its chips (§16.5: it configures them itself): they answer SYNC with SAMPLEs it cannot pack."""
+
+    def _configure_imu(self, start, now_s):
+        return None
+
+
 #: name -> (chip class, transport, allow_broadcast)
 MUTANTS = {
     "dead_sensor": (DeadSensor, "serial", False),
@@ -615,6 +623,8 @@ GATEWAY_MUTANTS = {
     "gateway_without_status": (GatewayWithoutStatus, dict(packed=True)),
     "packing_without_capability": (PackingWithoutCapability, dict(packed=True)),
     "gateway_nacks_broadcast": (GatewayNacksBroadcast, dict(packed=True)),
+    # a 6-axis sheet (the sheet's ``sensors``, taken out of the device options by the test)
+    "imu_gateway_leaves_chips_in_format_0": (ImuGatewayLeavesChipsInFormat0, dict(packed=True, sensors="accel+gyro")),
 }
 
 #: healthy variants: name -> (sheet options, device options); the suite must pass every one

@@ -45,8 +45,8 @@ def _run_can(sheet, **kw):
             t.close()
 
 
-#: the checks of §16 (6/9-axis chips): skipped on an accelerometer chip
-IMU_CHECKS = {c.number for c in CHECKS if c.clauses[0].startswith("16")}
+#: the chip checks of §16 (6/9-axis chips): skipped on an accelerometer chip (46, §16.5, is a gateway's)
+IMU_CHECKS = {c.number for c in CHECKS if c.clauses[0].startswith("16") and "chip" in c.profiles}
 assert len(IMU_CHECKS) == 3
 
 
@@ -305,3 +305,45 @@ def test_the_announce_and_heartbeat_periods_ignore_one_event_read_late():
     assert abs(theil_sen_period(slow_and_late) - 1.1) < 0.02
     with pytest.raises(ValueError, match="at least 2"):
         theil_sen_period([1.0])
+
+
+class _ChipV12:
+    """A chip of protocol 1.2 (docs/protocol.md §17.2, §8.1): CAL_IMU_WRITE (0x1A) and CAL_IMU_READ (0x1B)
+    are undefined types to it, answered NACK 1 UNKNOWN_COMMAND when addressed to it. ``write_known``: a
+    broken one that knows CAL_IMU_WRITE but not CAL_IMU_READ."""
+
+    write_known = False
+
+    @classmethod
+    def factory(cls, base):
+        from protocol.messages import MsgType, Nack, NackReason
+
+        class Chip(base):
+            def handle(self, frame, now_s, decoded=None):
+                msg = self.decode(frame) if decoded is None else decoded
+                t = getattr(msg, "TYPE", None)
+                if t == MsgType.CAL_IMU_READ or (t == MsgType.CAL_IMU_WRITE and not cls.write_known):
+                    return [self._out(Nack(self.node, t, NackReason.UNKNOWN_COMMAND))] if msg.node == self.node else []
+                return super().handle(frame, now_s, decoded)
+        return Chip
+
+
+class _HalfV12(_ChipV12):
+    write_known = True
+
+
+@pytest.mark.parametrize("sensors", ["accel", "accel+gyro"])
+def test_check_45_skips_a_chip_of_1_2_that_answers_nack_1_and_fails_one_that_knows_half(sensors):
+    """§17.2: a 1.2 chip (accelerometer-only or 6-axis) answers the 1.3 types NACK 1 UNKNOWN_COMMAND; the wire
+    has no minor version, so that is conforming and check 45 is skipped, saying why — not failed. A chip that
+    knows CAL_IMU_WRITE but answers CAL_IMU_READ NACK 1 is neither: it fails."""
+    from virtual_sheet.chip import ChipModel
+    for kind, outcome in ((_ChipV12, "SKIP"), (_HalfV12, "FAIL")):
+        sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors=sensors, chip_factory=kind.factory(ChipModel))
+        results = _run_serial(sheet, only=["45"])
+        r = next(x for x in results if x.number == 45)
+        assert r.outcome == outcome, "\n".join(x.line() for x in results)
+        if outcome == "SKIP":
+            assert "NACK 1 UNKNOWN_COMMAND: a chip of protocol 1.2 or earlier" in r.detail
+        else:
+            assert "knows both types or neither" in r.detail

@@ -65,6 +65,7 @@ GATEWAY_EXPECTED = {
     "gateway_without_status": {36},
     "packing_without_capability": {34},
     "gateway_nacks_broadcast": {19},
+    "imu_gateway_leaves_chips_in_format_0": {46},  # §16.5: its chip's link INVALID, the chip's SAMPLE passed on
 }
 
 #: §16/§17 mutant (6/9-axis chips) -> the checks it must fail (an IMU_ACCEL first leaves every record incomplete
@@ -191,7 +192,10 @@ def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name):
 @pytest.mark.parametrize("name", sorted(GATEWAY_MUTANTS))
 def test_a_gateway_mutant_fails_its_check(name):
     cls, opts = GATEWAY_MUTANTS[name]
-    results = _run(VirtualSheet("flat", "2x2", noise=0.5), profile="gateway", gateway_class=cls, **opts)
+    opts = dict(opts)
+    sensors = opts.pop("sensors", "accel")
+    results = _run(VirtualSheet("flat", "2x2", noise=0.5, sensors=sensors), profile="gateway", gateway_class=cls,
+                   **opts)
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == GATEWAY_EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report
@@ -213,7 +217,19 @@ def test_a_healthy_variant_passes_every_check(name):
         results = _run(VirtualSheet("flat", lattice, **sheet_kw), profile="gateway", **dev_kw)
         report = "\n".join(r.line() for r in results)
         assert [r for r in results if r.outcome not in ("PASS", "SKIP")] == [], report
-        assert {r.number for r in results if r.outcome == "SKIP"} <= ({37} if not dev_kw.get("sync_rate_hz") else set())
+        # 46 is the packing of IMU records (§16.5): these gateways pack SAMPLEs (their chips are accelerometers)
+        assert {r.number for r in results if r.outcome == "SKIP"} <= ({37} if not dev_kw.get("sync_rate_hz") else set()) | {46}
+
+
+@pytest.mark.parametrize("sensors", ["accel+gyro", "accel+gyro+mag"])
+def test_a_gateway_packing_imu_records_passes_the_gateway_profile(sensors):
+    """The virtual gateway of a 6/9-axis sheet (SNAPSHOT_IMU, §16.5) passes every gateway check: check 46
+    (its packing) passes, 38 (SAMPLE packing) and 37 (not a SYNC source) are skipped."""
+    results = _run(VirtualSheet("flat", "2x2", noise=0.5, sensors=sensors), profile="gateway", packed=True)
+    report = "\n".join(r.line() for r in results)
+    assert [r for r in results if r.outcome not in ("PASS", "SKIP")] == [], report
+    assert {r.number for r in results if r.outcome == "SKIP"} == {37, 38}, report
+    assert next(r for r in results if r.number == 46).outcome == "PASS", report
 
 
 def test_check_22_fails_a_chip_that_answers_foreign_frames():
