@@ -166,7 +166,9 @@ class BringUp:
             start = host.now()
             with reg.lock:
                 last = sum(1 for r in reg.chips.values() if r.info is not None)
-            deadline = start + timeout_s
+            # before any chip was heard, the question is the last thing heard: like an answer it is
+            # given DISCOVER_QUIET_S at least (a loaded machine's sheet may not answer a 50 ms window)
+            deadline = start + (timeout_s if last else max(timeout_s, DISCOVER_QUIET_S))
             while host.now() < deadline:
                 host.idle(0.01)
                 with reg.lock:

@@ -86,7 +86,7 @@ def register(subparsers) -> None:
                         "yet (a host that was not scheduled for a while; the behaviour before issue 34: "
                         "host.aggregator, 'Input watermark')")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
-    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s); it lasts while new chips are still answering (until 0.25 s pass without one, at most 20 windows)")
+    p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s; 0.25 at least until a first chip answered); it lasts while new chips are still answering (until 0.25 s pass without one, at most 20 windows)")
     p.add_argument("--no-reset", action="store_true",
                    help="bring-up without RESET (STOP and drain only): chips keep their state")
     p.add_argument("--min-complete", type=T.percent, default=90.0, metavar="PCT",
