@@ -17,7 +17,18 @@ from tests.host.cli.test_host import CLI, ENV, Virtual
                                            ("pty", signal.SIGINT), ("slcan", signal.SIGTERM)])
 def test_the_symlink_goes_with_the_sheet(tmp_path, transport, sig):
     link = tmp_path / "port"
-    v = Virtual("--lattice", "3x3", "--transport", transport, "--symlink", str(link))
+    # Ctrl-C as in a terminal: a suite started in the background (`make test &`, a CI script) runs
+    # with SIGINT ignored, which its children inherit across exec — then the sheet rightly ignores
+    # SIGINT (POSIX's convention for background jobs) and this test waited 30 s for nothing. A
+    # handler installed here is reset to the default in the child at exec, as a terminal's would be.
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        v = Virtual("--lattice", "3x3", "--transport", transport, "--symlink", str(link))
+    finally:
+        signal.signal(signal.SIGINT, old)
+    with open(f"/proc/{v.p.pid}/status") as f:
+        ignored = int(next(ln for ln in f if ln.startswith("SigIgn:")).split()[1], 16)
+    assert not ignored & (1 << (signal.SIGINT - 1)), "the sheet was started with SIGINT ignored"
     try:
         assert link.is_symlink()
         assert v.stop(sig) == 0
