@@ -335,7 +335,7 @@ class Host:
         self.sync_driver.end_schedule()
         self.streaming.set()
         if self.sync_driver.sync_mode == "follow":
-            self.feed.restart()
+            self.feed.restart(keep_order=True)  # the gateway's sequence goes on (Aggregator.restart)
         if self._sync_thread is None and self._driver is None:
             self._sync_thread = threading.Thread(target=self.sync_driver.loop, args=(self._stop,),
                                                  name="capsheet-sync", daemon=True)
