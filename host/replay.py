@@ -156,13 +156,13 @@ def load_can_log(path) -> dict[str, list]:
 def _config_imu_in_log(buses: dict) -> tuple[int, int] | None:
     """The (gyro_range, mag_range) of the first CONFIG_IMU (§16.2) with format 1 or 2 in a CAN log's
     frames, or None."""
-    from protocol.can import decode_can
+    from protocol.can import decode_can, split_id
     from protocol.messages import ConfigImu, MsgType
 
     for chunks in buses.values():
         for _t, _kind, frames in chunks:
             for f in frames:
-                if not getattr(f, "is_extended_id", True) or ((f.arbitration_id >> 20) & 0x3F) != MsgType.CONFIG_IMU:
+                if not getattr(f, "is_extended_id", True) or split_id(f.arbitration_id)[1] != MsgType.CONFIG_IMU:
                     continue
                 m = decode_can(f.arbitration_id, bytes(f.data), is_fd=bool(getattr(f, "is_fd", False)))
                 if isinstance(m, ConfigImu) and m.format in (1, 2) and m.gyro_range <= 4 and m.mag_range <= 3:

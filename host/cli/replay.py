@@ -21,6 +21,8 @@ import time
 
 import numpy as np
 
+from host.cli.sensor_args import GYRO_DPS, MAG_GAUSS, gyro_range_code, mag_range_code
+
 
 #: what ``capsheet replay`` and ``estimate`` read
 RECORDING_SUFFIXES = (".mcap", ".log", ".asc", ".blf")
@@ -77,9 +79,9 @@ def register(subparsers) -> None:
     p.add_argument("--lattice", type=T.lattice, default=None, help="joints ROWSxCOLS (needed for a CAN log)")
     p.add_argument("--link-length", type=T.link_length, default=None,
                    help="L, metres (default: the recording's, or 0.01)")
-    p.add_argument("--gyro-range", type=int, choices=(125, 250, 500, 1000, 2000), default=None, metavar="DPS",
+    p.add_argument("--gyro-range", type=int, choices=GYRO_DPS, default=None, metavar="DPS",
                    help="a CAN log's gyroscope full scale, °/s (default: its CONFIG_IMU's, else 1000)")
-    p.add_argument("--mag-range", type=int, choices=(4, 8, 12, 16), default=None, metavar="GAUSS",
+    p.add_argument("--mag-range", type=int, choices=MAG_GAUSS, default=None, metavar="GAUSS",
                    help="a CAN log's magnetometer full scale, gauss (default: its CONFIG_IMU's, else 4)")
     p.add_argument("--no-estimate", action="store_true", help="only decode and aggregate")
     p.add_argument("--allow-truncated", action="store_true",
@@ -113,8 +115,7 @@ def run(args) -> int:
     try:
         imu_ranges = None  # a CAN log's ranges, when given (one given: the other's default)
         if args.gyro_range is not None or args.mag_range is not None:
-            imu_ranges = ({125: 0, 250: 1, 500: 2, 1000: 3, 2000: 4}[args.gyro_range or 1000],
-                          (args.mag_range or 4) // 4 - 1)
+            imu_ranges = (gyro_range_code(args.gyro_range or 1000), mag_range_code(args.mag_range or 4))
         rp = Replay(src, speed=args.speed, lattice=args.lattice, link_length=args.link_length, imu_ranges=imu_ranges)
     except (ValueError, OSError) as exc:
         cut = ""
