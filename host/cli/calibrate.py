@@ -133,6 +133,32 @@ def load_calibration_arg(path: str | None, lattice, prog: str) -> Calibration | 
     return cal
 
 
+def _store_flag(rec) -> int:
+    """CAL_WRITE's and CAL_IMU_WRITE's store flag for a chip: 1 where its INFO announces CAL_STORAGE."""
+    from protocol.messages import Capability
+    return 1 if rec.info is not None and rec.info.capabilities & Capability.CAL_STORAGE else 0
+
+
+def _write_rounds(host, chips: dict, command: int, steps) -> set[int]:
+    """Per step ``(what, {key: message})`` one command round (`Host.command_round`, with its
+    retries): every chip of the step is sent its message, its ACK or NACK of ``command`` collected.
+    Returns the links of the chips that NACKed or never answered, in any step."""
+    from protocol.messages import Ack, Nack
+
+    def match(bus, msg):
+        if isinstance(msg, (Ack, Nack)) and msg.command == command:
+            return (bus, msg.node)
+        return None
+
+    refused: set[int] = set()
+    for what, msgs in steps:
+        answers, missing = host.command_round(msgs, lambda key, _attempt, msgs=msgs: [(key[0], msgs[key])],
+                                              match, what)
+        refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
+        refused |= {chips[k].link for k in missing}
+    return refused
+
+
 def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndarray) -> dict:
     """CAL_WRITE every assigned chip's three axes (chips must be IDLE), then CAL_READ them back.
 
@@ -140,26 +166,16 @@ def write_chip_calibration(host, offset_counts: np.ndarray, sensitivity: np.ndar
     chips whose INFO announces CAL_STORAGE. Returns ``{"written", "verified", "refused", "mismatch"}``
     (link lists; mismatch entries name link, axis, written and read values).
     """
-    from protocol.messages import Ack, CalWrite, Capability, MsgType, Nack
+    from protocol.messages import CalWrite, MsgType
 
     q4 = np.clip(np.rint(np.asarray(offset_counts) * 16.0), -32768, 32767).astype(int)
     sens = np.asarray(sensitivity, dtype=np.float32)
     chips = host.chips_by_node()
-    refused: set[int] = set()
-    for axis in range(3):
-        def build(key, _attempt, axis=axis):
-            rec = chips[key]
-            store = 1 if rec.info is not None and rec.info.capabilities & Capability.CAL_STORAGE else 0
-            return [(key[0], CalWrite(key[1], axis=axis, flags=store, offset_q4=int(q4[rec.link, axis]),
-                                      sensitivity=float(sens[rec.link, axis])))]
-
-        def match(bus, msg):
-            if isinstance(msg, (Ack, Nack)) and msg.command == MsgType.CAL_WRITE:
-                return (bus, msg.node)
-            return None
-        answers, missing = host.command_round(chips, build, match, f"CAL_WRITE axis {axis}")
-        refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
-        refused |= {chips[k].link for k in missing}
+    refused = _write_rounds(host, chips, MsgType.CAL_WRITE, (
+        (f"CAL_WRITE axis {axis}",
+         {key: CalWrite(key[1], axis=axis, flags=_store_flag(rec), offset_q4=int(q4[rec.link, axis]),
+                        sensitivity=float(sens[rec.link, axis])) for key, rec in chips.items()})
+        for axis in range(3)))
     host.read_calibration()
     scale = float(1 << int(host.range_code))
     verified, mismatch = [], []
@@ -184,28 +200,16 @@ def write_chip_imu_calibration(host, blocks: list[dict]) -> dict:
     to every assigned chip (IDLE), stored where the chip has CAL_STORAGE, then CAL_IMU_READ them back
     (`Host.read_imu_calibration`) and compare bit for bit. Returns ``{"written", "verified",
     "refused", "mismatch"}`` (link lists; mismatch entries name link, block, index, written, read)."""
-    from protocol.messages import Ack, CalImuWrite, Capability, MsgType, Nack
+    from protocol.messages import CalImuWrite, MsgType
 
     chips = host.chips_by_node()
     want = {key: [(b, i, float(np.float32(v))) for b, vals in sorted(blocks[rec.link].items())
                   for i, v in enumerate(vals)] for key, rec in chips.items()}
-    refused: set[int] = set()
-    for step in range(max((len(w) for w in want.values()), default=0)):
-        todo = {k: rec for k, rec in chips.items() if step < len(want[k])}
-
-        def build(key, _attempt, step=step):
-            rec = chips[key]
-            store = 1 if rec.info is not None and rec.info.capabilities & Capability.CAL_STORAGE else 0
-            b, i, v = want[key][step]
-            return [(key[0], CalImuWrite(key[1], b, i, store, 0, v))]
-
-        def match(bus, msg):
-            if isinstance(msg, (Ack, Nack)) and msg.command == MsgType.CAL_IMU_WRITE:
-                return (bus, msg.node)
-            return None
-        answers, missing = host.command_round(todo, build, match, f"CAL_IMU_WRITE element {step}")
-        refused |= {chips[k].link for k, m in answers.items() if not isinstance(m, Ack)}
-        refused |= {chips[k].link for k in missing}
+    refused = _write_rounds(host, chips, MsgType.CAL_IMU_WRITE, (
+        (f"CAL_IMU_WRITE element {step}",
+         {key: CalImuWrite(key[1], *want[key][step][:2], _store_flag(rec), 0, want[key][step][2])
+          for key, rec in chips.items() if step < len(want[key])})
+        for step in range(max((len(w) for w in want.values()), default=0))))
     host.read_imu_calibration()
     verified, mismatch = [], []
     for key, rec in chips.items():
