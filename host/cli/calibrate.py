@@ -465,6 +465,23 @@ def run(args) -> int:
             _say(args, f"no chip answered on {', '.join(t.name for t in transports)} (is the sheet powered and "
                        f"the port right?)")
             return 1
+        if host.imu_config is not None:  # the gyroscopes (and magnetometers) asked for must be there
+            from protocol.messages import Capability
+            need = Capability.GYRO | (Capability.MAG if args.sensors.endswith("mag") else 0)
+            missing, lacking = 0, []
+            for rec in host.chips_by_node().values():
+                gap = need & ~(rec.info.capabilities if rec.info is not None else 0)
+                if gap:
+                    missing |= gap
+                    lacking.append(rec.link)
+            lacking.sort()
+            if lacking:
+                what = " and ".join(n for bit, n in ((Capability.GYRO, "gyroscope"), (Capability.MAG, "magnetometer"))
+                                    if missing & bit)
+                _say(args, f"--sensors {args.sensors}: {len(lacking)} of {summary['assigned']} chips announce no "
+                           f"{what} (INFO capabilities; links {', '.join(map(str, lacking[:8]))}"
+                           f"{' ...' if len(lacking) > 8 else ''}): calibrate them with --sensors accel")
+                return 1
         _say(args, f"{summary['discovered']} chips found, {summary['assigned']} assigned, "
                    f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses")
         if summary["assigned"] < host.lattice.n_links:

@@ -109,3 +109,26 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
         assert code == 0
         after = _errors(sheet, [CanTransport(chan, reconnect=False)])
     _check(sheet, before, after, None)
+
+
+@pytest.mark.parametrize("chips, asked, lacking", [("accel", "accel+gyro", "gyroscope"),
+                                                   ("accel+gyro", "accel+gyro+mag", "magnetometer")])
+def test_asking_for_sensors_the_chips_lack_is_refused_before_the_capture(tmp_path, chips, asked, lacking):
+    """A sheet whose chips announce no gyroscope (or magnetometer) in INFO: refused at once in one line
+    naming what is missing and the way out, exit 1 — not a capture of every pose ending in a fit
+    error about array shapes — and the chips' calibration untouched."""
+    import subprocess
+    import sys
+
+    sheet = VirtualSheet("board", "3x3", seed=7, sensors=chips)
+    layout = sheet.write_layout(tmp_path / "layout.csv")
+    argv = [a if a != "accel+gyro+mag" else asked for a in _calibrate_argv(tmp_path / "cal.json", layout)]
+    stored = [list(c.cal) for c in sheet.chips]
+    with PtyDevice(sheet) as dev:
+        res = subprocess.run([sys.executable, "-m", "host.cli", *argv, "--port", str(dev.path)],
+                             capture_output=True, text=True, timeout=120)
+    assert res.returncode == 1, res.stderr
+    last = res.stderr.strip().splitlines()[-1]
+    assert f"--sensors {asked}: 12 of 12 chips announce no {lacking} " in last and "--sensors accel" in last, res.stderr
+    assert "captured pose" not in res.stderr and "Traceback" not in res.stderr
+    assert [list(c.cal) for c in sheet.chips] == stored and not (tmp_path / "cal.json").exists()
