@@ -380,19 +380,11 @@ class Aggregator:
         self._pump(now)
         return slot >= 0
 
-    def restart(self, now: float, *, keep_order: bool = False) -> None:
+    def restart(self, now: float) -> None:
         """A new counter sequence begins (the host (re)starts streaming): emit what is open and
-        forget the ordering history, so the new counters are not taken for late ones.
-
-        ``keep_order``: emit what is open but remember the ordering — a host that follows a
-        gateway's SYNC starts streaming inside that gateway's sequence, which goes on. Forgetting
-        it there let another port's copy of a counter just emitted (two gateways on one SYNC
-        line), or a frame for it, open that counter a second time; a real restart of the
-        gateway is still followed (counter trust's RESYNC)."""
+        forget the ordering history, so the new counters are not taken for late ones."""
         while self._open:
             self._emit(self._open[0], now)
-        if keep_order:
-            return
         self._last_emitted = None
         self._newest = None
 

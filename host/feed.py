@@ -219,10 +219,10 @@ class SnapshotFeed:
             self.aggregator.emit_through(counter, self._now(now))
             self._deliver()
 
-    def restart(self, now: float | None = None, *, keep_order: bool = False) -> None:
-        """`Aggregator.restart`: a new counter sequence (``keep_order``: a followed one going on)."""
+    def restart(self, now: float | None = None) -> None:
+        """`Aggregator.restart`: a new counter sequence."""
         with self._lock:
-            self.aggregator.restart(self._now(now), keep_order=keep_order)
+            self.aggregator.restart(self._now(now))
             self._deliver()
 
     def mark_silent(self, link: int, silent: bool = True, now: float | None = None) -> None:

@@ -334,8 +334,10 @@ class Host:
         self.watchdog.restart(now, self.sync_driver.service_s)
         self.sync_driver.end_schedule()
         self.streaming.set()
-        if self.sync_driver.sync_mode == "follow":
-            self.feed.restart(keep_order=True)  # the gateway's sequence goes on (Aggregator.restart)
+        # following a gateway's SYNC, no new counter sequence begins here: the gateway's goes on,
+        # and what is open completes as usual. (A restart here — emit what is open, forget the
+        # order — let another port's copy of a SYNC just emitted, or a frame for it, open that
+        # counter a second time: counters [69, 69, 70, ...] behind two gateways under load.)
         if self._sync_thread is None and self._driver is None:
             self._sync_thread = threading.Thread(target=self.sync_driver.loop, args=(self._stop,),
                                                  name="capsheet-sync", daemon=True)
