@@ -24,6 +24,7 @@ the moment they are applied, under the lock, so a recording of them replays alik
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import threading
 import time
@@ -183,6 +184,17 @@ class SnapshotFeed:
             self.aggregator.ingest(events, bus, now=now)
             self._deliver()
             return now
+
+    @contextlib.contextmanager
+    def one_read(self):
+        """Hold the feed across everything one read of a bus brings (its data ingested in parts
+        around the control frames between them): no other thread emits in between. A recording
+        writes the read once, at its first `ingest` (`add_ingest_listener`), and a replay ingests
+        it whole at that time; a counter emitted by the SYNC thread between two parts would take
+        the first part live and both in the replay (stop 39: 2 of 198 snapshots of a loaded 6-axis
+        run replayed different)."""
+        with self._lock:
+            yield
 
     def open_counter(self, counter: int, now: float | None = None, *, restart: bool = False) -> bool:
         """`Aggregator.open_counter` at ``now`` (default: the clock)."""

@@ -400,18 +400,20 @@ class Host:
         if not control:
             feed.ingest(events, bus)
             return True
-        # in wire order: a SYNC opens its counter before the samples that answer it are ingested
+        # in wire order: a SYNC opens its counter before the samples that answer it are ingested;
+        # the whole read at once (`SnapshotFeed.one_read`: recorded as one chunk, replayed whole)
         data: list = []
-        for ev in events:
-            if isinstance(ev, _DATA):
-                data.append(ev)
-                continue
+        with feed.one_read():
+            for ev in events:
+                if isinstance(ev, _DATA):
+                    data.append(ev)
+                    continue
+                if data:
+                    feed.ingest(data, bus)
+                    data = []
+                self._on_control(bus, ev)
             if data:
                 feed.ingest(data, bus)
-                data = []
-            self._on_control(bus, ev)
-        if data:
-            feed.ingest(data, bus)
         return True
 
     def _on_control(self, bus: int, msg: Message) -> None:

@@ -203,3 +203,33 @@ def test_a_sync_is_stamped_when_the_host_has_the_feeds_lock_not_when_its_thread_
         host.close()
         dev.stop()
     assert len(opened) == 1 and opened[0][1] == t_step + 0.05
+
+
+def test_one_read_keeps_other_threads_from_emitting_between_its_parts():
+    """A read of a bus whose data comes in two parts around a control frame (the receive thread
+    ingests the first part, handles the STATUS, ingests the rest) is one read: the recorder writes
+    it once, at the first ingest, and a replay ingests it whole. The SYNC thread's poll, past the
+    counter's deadline, waits until `one_read` ends, so the snapshot holds both parts live as in
+    the replay (without it: link 3 missing live, present in the replay)."""
+    import threading
+
+    clock = Clock()
+    feed = SnapshotFeed(Aggregator(3, deadline_s=0.05), clock=clock)
+    feed.open_counter(4)
+    polled = threading.Event()
+
+    def sync_thread():
+        feed.poll(clock.t + 1.0)  # far past the deadline
+        polled.set()
+
+    with feed.one_read():
+        feed.ingest([batch(4, nodes=(1, 2))])
+        t = threading.Thread(target=sync_thread)
+        t.start()
+        polled.wait(0.3)  # the poll cannot get in: nothing is emitted yet
+        assert not polled.is_set() and feed.pending == 0
+        clock.t += 0.001
+        feed.ingest([batch(4, nodes=(3,))])
+    t.join(5.0)
+    [snap] = feed.drain()
+    assert snap.counter == 4 and snap.complete and snap.valid.all()
