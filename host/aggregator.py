@@ -249,6 +249,11 @@ class Aggregator:
         A counter past its deadline is emitted only once the input is known to have been read past
         it (`input_idle`, module docstring "Input watermark"); at most `INPUT_HOLD_S` longer. Off:
         the deadline alone decides (a replay, which re-decides at recorded times, leaves it off).
+    emit_at_deadline : bool
+        False: a counter is emitted only when it completes, by `emit_through` or `flush` — never by
+        its deadline (a replay that follows the host's recorded emissions: the host's deadline
+        adapted and held for input as it ran; this one would emit a counter in the middle of a
+        read the host had taken in whole).
 
     Attributes
     ----------
@@ -262,7 +267,7 @@ class Aggregator:
                  n_buses: int = 1, on_snapshot: Callable[[LatticeSnapshot], None] | None = None,
                  min_deadline_s: float | None = None,
                  max_deadline_s: float | None = None, trust: str = "frames", max_jump: int = 64,
-                 resync_after: int = 3, hold_for_input: bool = False) -> None:
+                 resync_after: int = 3, hold_for_input: bool = False, emit_at_deadline: bool = True) -> None:
         if not isinstance(n_links, (int, np.integer)) or n_links < 1:
             raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 1)")
         if max_open < 1:
@@ -271,6 +276,7 @@ class Aggregator:
         #: how long an open counter waits for its missing links (`host.deadline.DeadlinePolicy`)
         self.deadline = DeadlinePolicy(deadline_s, min_deadline_s, max_deadline_s)
         self.max_open = int(max_open)
+        self.emit_at_deadline = bool(emit_at_deadline)
         self.max_age = int(max_age)
         self.on_snapshot = on_snapshot
         self.wall_offset = 0.0
@@ -617,7 +623,7 @@ class Aggregator:
         if self._slot_of[int(fcounter[i])] < 0 or not self._open:
             return i + 1  # opens a counter, or late / stray: alone
         head = self._open[0]
-        if now - self._slot_t0[head] >= self.deadline_s:
+        if self.emit_at_deadline and now - self._slot_t0[head] >= self.deadline_s:
             return i + 1  # the pump after this frame emits the head
         # frames of open counters, up to the first frame of a counter not open
         is_open = self._slot_of[fcounter[i:]] >= 0
@@ -792,7 +798,7 @@ class Aggregator:
         """Whether open slot ``s`` is past its deadline and, holding for input, the input was read
         past that deadline (or `INPUT_HOLD_S` more passed)."""
         waited = now - self._slot_t0[s]
-        if waited < self.deadline_s:
+        if waited < self.deadline_s or not self.emit_at_deadline:
             return False
         if not self.hold_for_input or waited >= self.deadline_s + INPUT_HOLD_S:
             return True

@@ -169,3 +169,50 @@ def test_a_host_calibration_is_recorded_and_replay_applies_it(tmp_path):
     assert np.abs(raw.readings.astype(np.float32) - rec.readings[k])[raw.valid].max() > 0.05
 
 
+
+
+def test_a_counter_the_host_held_for_its_input_replays_complete(tmp_path):
+    """The host's input watermark held counter 5 past its 50 ms deadline until its bus was read: the
+    read that came 80 ms after the SYNC held all four links' 6-axis records (classic CAN: two frames
+    a record, taken one record at a time), taken in whole, and the snapshot was complete. The replay
+    follows the recorded emission: it must not emit the counter at a deadline of its own in the
+    middle of that read (it did: link 0 in, links 1–3 late — stop 40's 6-axis recordings under load)."""
+    import can
+
+    from host.aggregator import Aggregator
+    from host.feed import SnapshotFeed
+    from host.record import Recorder
+    from host.transport import TransportStats, feed_can
+    from protocol.can import CanDecoder, imu_can_frames
+    from protocol.lattice import Lattice
+    from protocol.messages import ImuSample
+
+    lattice = Lattice(2, 2)  # 4 links: nodes 1..4
+    clock = {"t": 10.0}
+    live = SnapshotFeed(Aggregator(lattice.n_links, deadline_s=0.05, hold_for_input=True, trust="sent"),
+                        clock=lambda: clock["t"])
+    live.aggregator.gyro_range = 3
+    path = tmp_path / "held.mcap"
+    session = {"rate_hz": 100.0, "deadline_s": 0.05, "imu_config": [1, 3, 0, 0],
+               "transports": [{"name": "virtual:held", "kind": "can", "fd": False}]}
+    with Recorder(path, lattice, 0.01, session=session, layout={"chips": []}, calibration={"links": []}) as rec:
+        live.add_open_listener(rec.sync)
+        live.add_listener(rec.snapshot)
+        live.open_counter(5)
+        clock["t"] = 10.060
+        live.poll()  # past the deadline, the bus not read past it: held
+        assert live.pending == 0
+        frames = [can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True)
+                  for node in (1, 2, 3, 4)
+                  for f in imu_can_frames(ImuSample(node, 5, 10 * node, 0, 1000, 0, 100, gz=50))]
+        clock["t"] = 10.080
+        rec.raw(0, "can", frames, "virtual:held", t=clock["t"])  # as `Recorder.tap` writes it, at its ingest
+        events = feed_can(CanDecoder(), frames, TransportStats())
+        assert len(events) == 4  # a record at a time
+        live.ingest(events, 0)
+        [snap] = live.drain()
+    assert snap.complete and snap.latency_s == pytest.approx(0.080)
+    rp = Replay(path)
+    [again] = list(rp.snapshots())
+    assert again.counter == 5 and again.complete and again.valid.all(), again.status
+    assert rp.stats["aggregator"]["late"] == 0
