@@ -114,6 +114,9 @@ class GyroCalibration:
         RMS of the rest fit's residual per chip, rad/s.
     turn_residual : ndarray, shape (n,)
         RMS of the turn fit's residual per chip (unit vectors: ≈ radians; 0 when not fitted).
+    turns_used, turns_dropped : int
+        Turns the scale fit integrated, and those it left out for a gap in their samples
+        (`fit_gyro_turns`'s ``max_gap_s``); 0 when not fitted.
     """
 
     bias_rps: np.ndarray
@@ -121,6 +124,8 @@ class GyroCalibration:
     matrix: np.ndarray
     rest_residual_rps: np.ndarray
     turn_residual: np.ndarray
+    turns_used: int = 0
+    turns_dropped: int = 0
 
     @property
     def n_links(self) -> int:
@@ -201,7 +206,7 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
 
 
 def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link, cal: GyroCalibration,
-                   accel_mps2=None, *, iterations: int = 6) -> GyroCalibration:
+                   accel_mps2=None, *, iterations: int = 6, max_gap_s: float | None = None) -> GyroCalibration:
     """Scale, cross-axis and mounting of every gyroscope from the turns between held poses
     (module docstring, step 2).
 
@@ -221,11 +226,16 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         Bias and g-sensitivity (`fit_gyro_rest`), removed before integrating.
     accel_mps2 : ndarray, shape (N, n, 3), optional
         The capture's specific force, for the g-sensitivity term.
+    max_gap_s : float, optional
+        A turn with two consecutive samples further apart than this is left out: its rotation
+        cannot be integrated from what came (a host that stopped sending SYNC for 100 ms in the
+        middle of a turn of 100 °/s loses 10° of it). Default: 2.5 × the median sample step. At
+        least 3 turns must remain.
 
     Returns
     -------
     GyroCalibration
-        ``cal`` with ``matrix`` and ``turn_residual`` fitted.
+        ``cal`` with ``matrix``, ``turn_residual``, ``turns_used`` and ``turns_dropped`` fitted.
     """
     g = _batch("gyro_rps", gyro_rps)
     N, n = g.shape[:2]
@@ -242,6 +252,13 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     w = cal.apply(g, accel_mps2) if accel_mps2 is not None else g - cal.bias_rps
     w = np.einsum("kij,tkj->tki", np.linalg.inv(cal.matrix), w)  # rates before any matrix
     turns = [(segments[k][1] - 1, segments[k + 1][0] + 1) for k in range(K - 1)]
+    gap = float(max_gap_s) if max_gap_s is not None else 2.5 * float(np.median(np.diff(t)))
+    keep = [k for k, (a, b) in enumerate(turns) if b - a < 2 or float(np.max(np.diff(t[a:b]))) <= gap]
+    if len(keep) < 3:
+        raise ValueError(f"fit_gyro_turns: {len(turns) - len(keep)} of {len(turns)} turns have a gap of more than "
+                         f"{1e3 * gap:.0f} ms in their samples (SYNCs not sent or snapshots lost while the board "
+                         f"turned), fewer than 3 left to fit")
+    turns = [turns[k] for k in keep]
     Lmax = max(b - a for a, b in turns)
     J = len(turns)
     W = np.zeros((J, Lmax, n, 3))
@@ -249,7 +266,7 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     for j, (a, b) in enumerate(turns):
         W[j, : b - a] = w[a:b]
         DT[j, : b - a - 1] = np.diff(t[a:b])
-    u0, u1 = u[:-1], u[1:]  # (J, n, 3)
+    u0, u1 = u[:-1][keep], u[1:][keep]  # (J, n, 3)
     A = np.tile(np.eye(3), (n, 1, 1))
     for _ in range(iterations):
         pred, jac = _carry(A, W, DT, u0)
@@ -262,7 +279,8 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
             break
     pred, _jac = _carry(A, W, DT, u0)
     res = np.sqrt(np.mean(np.sum((pred - u1) ** 2, axis=-1), axis=0))
-    return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res)
+    return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
+                           turns_used=J, turns_dropped=K - 1 - J)
 
 
 # ---------------------------------------------------------------------------------------------

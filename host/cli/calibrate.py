@@ -418,6 +418,8 @@ def _imu_summary(imu_cal, log: ImuLog) -> dict:
     if imu_cal.gyro is not None:
         out["gyro_bias_dps_max"] = round(float(np.degrees(np.abs(imu_cal.gyro.bias_rps).max())), 4)
         out["gyro_turn_residual_max"] = round(float(imu_cal.gyro.turn_residual.max()), 5)
+        out["gyro_turns_used"] = imu_cal.gyro.turns_used
+        out["gyro_turns_dropped"] = imu_cal.gyro.turns_dropped  # a gap in their samples (a stalled host)
     if imu_cal.mag is not None:
         ok = np.isfinite(imu_cal.mag.residual_t)
         out["mag_failed_chips"] = int((~ok).sum())

@@ -114,3 +114,37 @@ def test_segments_and_their_means():
     assert still_segments([1, 1, 0, 1, 1, 1], min_samples=3) == [(3, 6)]
     v = np.arange(12.0).reshape(4, 1, 3)
     np.testing.assert_array_equal(segment_means(v, [(0, 2), (3, 4)]), [[[1.5, 2.5, 3.5]], [[9, 10, 11]]])
+
+
+def test_turns_with_a_gap_in_their_samples_are_left_out_of_the_scale_fit(captured):
+    """A host that stopped sending SYNC for 150 ms in the middle of two of the eleven turns (a loaded
+    machine): those turns cannot be integrated from what came, and are left out — the scale is
+    recovered from the nine others as well as from all eleven. Integrated across the gaps, the
+    fit would carry their lost rotation into the scale: the gyroscopes then read worse than raw
+    (capsheet calibrate under load, stop 40)."""
+    imu, c, cal = captured
+    segs = cal.segments
+    cut = np.zeros(len(c["t_s"]), dtype=bool)
+    for k in (3, 7):  # the middle of turns 3 and 7: 150 ms at 145 Hz
+        mid = (segs[k][1] + segs[k + 1][0]) // 2
+        cut[mid - 11: mid + 11] = True
+    keep = ~cut
+    gapped = fit_capture(c["t_s"][keep], c["accel_mps2"][keep], ROWS, COLS, c["gyro_rps"][keep], c["mag_t"][keep],
+                         field_t=FIELD.magnitude_t)
+    assert len(gapped.segments) == 12
+    assert (gapped.gyro.turns_used, gapped.gyro.turns_dropped) == (9, 2) and (cal.gyro.turns_used, cal.gyro.turns_dropped) == (11, 0)
+    truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+    E = _without_common_rotation(gapped.gyro.matrix @ truth)
+    assert np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max() < 2e-4
+    # integrated across the gaps (a gap bound longer than they are), the same capture's scale is off
+    from host.analysis.imu_calibration import fit_gyro_turns
+    segs = list(gapped.segments)
+    a, g = c["accel_mps2"][keep], c["gyro_rps"][keep]
+    u = gapped.accel.apply(segment_means(a, segs))
+    f_chip = (a - gapped.accel.bias) / gapped.accel.scale
+    rest = fit_gyro_rest(segment_means(g, segs), segment_means(f_chip, segs))
+    spanned = fit_gyro_turns(g, c["t_s"][keep], segs, u / np.linalg.norm(u, axis=-1, keepdims=True), rest, f_chip,
+                             max_gap_s=1.0)
+    assert spanned.turns_dropped == 0
+    E2 = _without_common_rotation(spanned.matrix @ truth)
+    assert np.abs(np.diagonal(E2, axis1=1, axis2=2) - 1).max() > 10 * np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max()
