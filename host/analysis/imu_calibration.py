@@ -205,6 +205,13 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
     return u, jac
 
 
+#: `fit_gyro_turns`: a gap up to this long inside a turn is integrated across (150 ms in two of
+#: eleven 1 s turns: 0.1 % of scale), a longer one leaves its turn out
+TURN_MAX_GAP_S = 0.1
+#: `fit_gyro_turns`: turns needed (two equations each, nine unknowns per chip)
+MIN_TURNS = 5
+
+
 def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link, cal: GyroCalibration,
                    accel_mps2=None, *, iterations: int = 6, max_gap_s: float | None = None) -> GyroCalibration:
     """Scale, cross-axis and mounting of every gyroscope from the turns between held poses
@@ -228,9 +235,9 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         The capture's specific force, for the g-sensitivity term.
     max_gap_s : float, optional
         A turn with two consecutive samples further apart than this is left out: its rotation
-        cannot be integrated from what came (a host that stopped sending SYNC for 100 ms in the
-        middle of a turn of 100 °/s loses 10° of it). Default: 2.5 × the median sample step. At
-        least 3 turns must remain.
+        cannot be integrated from what came (a host that stopped sending SYNC for half a second in
+        the middle of a turn). Default: `TURN_MAX_GAP_S`, or 2.5 × the median sample step if that is
+        longer. Two equations a turn, 9 unknowns a chip: at least `MIN_TURNS` must remain.
 
     Returns
     -------
@@ -246,18 +253,18 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     K = len(segments)
     if u.shape != (K, n, 3):
         raise ValueError(f"Expected gravity_link of shape ({K}, {n}, 3), got {u.shape}.")
-    if K < 4:
-        raise ValueError(f"fit_gyro_turns needs at least 4 held poses (3 turns), got {K}")
     u = u / np.linalg.norm(u, axis=-1, keepdims=True)
     w = cal.apply(g, accel_mps2) if accel_mps2 is not None else g - cal.bias_rps
     w = np.einsum("kij,tkj->tki", np.linalg.inv(cal.matrix), w)  # rates before any matrix
     turns = [(segments[k][1] - 1, segments[k + 1][0] + 1) for k in range(K - 1)]
-    gap = float(max_gap_s) if max_gap_s is not None else 2.5 * float(np.median(np.diff(t)))
+    gap = float(max_gap_s) if max_gap_s is not None else max(TURN_MAX_GAP_S, 2.5 * float(np.median(np.diff(t))))
     keep = [k for k, (a, b) in enumerate(turns) if b - a < 2 or float(np.max(np.diff(t[a:b]))) <= gap]
-    if len(keep) < 3:
-        raise ValueError(f"fit_gyro_turns: {len(turns) - len(keep)} of {len(turns)} turns have a gap of more than "
-                         f"{1e3 * gap:.0f} ms in their samples (SYNCs not sent or snapshots lost while the board "
-                         f"turned), fewer than 3 left to fit")
+    if len(keep) < MIN_TURNS:
+        raise ValueError(f"fit_gyro_turns: {len(keep)} of {len(turns)} turns to fit, need {MIN_TURNS} "
+                         f"(2 equations a turn, 9 unknowns a chip)"
+                         + (f"; {len(turns) - len(keep)} have a gap of more than {1e3 * gap:.0f} ms in their samples "
+                            f"(SYNCs not sent or snapshots lost while the board turned: a loaded host)"
+                            if len(keep) < len(turns) else ""))
     turns = [turns[k] for k in keep]
     Lmax = max(b - a for a, b in turns)
     J = len(turns)

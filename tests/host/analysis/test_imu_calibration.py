@@ -117,7 +117,7 @@ def test_segments_and_their_means():
 
 
 def test_turns_with_a_gap_in_their_samples_are_left_out_of_the_scale_fit(captured):
-    """A host that stopped sending SYNC for 150 ms in the middle of two of the eleven turns (a loaded
+    """A host that stopped sending SYNC for 300 ms in the middle of two of the eleven turns (a loaded
     machine): those turns cannot be integrated from what came, and are left out — the scale is
     recovered from the nine others as well as from all eleven. Integrated across the gaps, the
     fit would carry their lost rotation into the scale: the gyroscopes then read worse than raw
@@ -125,9 +125,9 @@ def test_turns_with_a_gap_in_their_samples_are_left_out_of_the_scale_fit(capture
     imu, c, cal = captured
     segs = cal.segments
     cut = np.zeros(len(c["t_s"]), dtype=bool)
-    for k in (3, 7):  # the middle of turns 3 and 7: 150 ms at 145 Hz
+    for k in (3, 7):  # the middle of turns 3 and 7: 300 ms at 145 Hz
         mid = (segs[k][1] + segs[k + 1][0]) // 2
-        cut[mid - 11: mid + 11] = True
+        cut[mid - 22: mid + 22] = True
     keep = ~cut
     gapped = fit_capture(c["t_s"][keep], c["accel_mps2"][keep], ROWS, COLS, c["gyro_rps"][keep], c["mag_t"][keep],
                          field_t=FIELD.magnitude_t)
