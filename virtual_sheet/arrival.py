@@ -12,9 +12,13 @@ times alone (it cannot see the host's clock): the host sends SYNC on a fixed gri
 so a SYNC read more than one period (plus ``slack_s``) after the previous one's arrival is taken to
 have arrived one period (plus ``slack_s``) after it — the rest of the wait was the reader's:
 
-    arrival(c) = min(read(c), arrival(c − 1) + period + slack)       (c − 1 the SYNC just before)
+    arrival(c) = min(read(c), arrival(a) + (c − a) · period + slack)
 
-and never before ``arrival(c − 1)``. ``period`` is measured, not told, from the reads of the
+with ``a`` the newest SYNC of this run taken as read (its read was on time), and never before
+``arrival(c − 1)``. The slack is allowed once, not once a SYNC: chained from the SYNC just before,
+a reader that stays behind for a second let the arrivals creep later by the slack every period —
+at 100 Hz, 5 % of the time the chips saw, which a gyroscope scale fit took for the gyroscopes'
+(`capsheet calibrate` on a loaded machine, stop 40). ``period`` is measured, not told, from the reads of the
 last ``window`` consecutive SYNCs before it (`period_s`: the median spacing, which late reads,
 backlogs and skipped slots leave alone while most spacings are one period). A SYNC after a gap
 in the counters, and the first ones (8 spacings), arrive when read. The same counter read
@@ -65,6 +69,7 @@ class SyncArrival:
         self.max_gap_s = float(max_gap_s)
         self._spacings: deque[float] = deque(maxlen=self.window)  # between reads of consecutive counters
         self._last: tuple[int, float, float] | None = None  # (counter, arrival, read) of the newest SYNC
+        self._anchor: tuple[int, float] | None = None  # (counter, arrival) of the newest SYNC taken as read
         self.pulled = 0  #: SYNCs whose arrival was put before their read (a late read)
         self.pulled_s = 0.0  #: the total of those corrections, s
         self.steady = int(steady)
@@ -93,7 +98,9 @@ class SyncArrival:
         if last is not None and (c - last[0]) & 0xFFFF == 1 and 0 <= read_s - last[2] <= self.max_gap_s:
             p = self.period_s  # of the reads before this one
             if p is not None:
-                a = min(read_s, last[1] + p + self.slack_s)  # >= the previous: read_s >= its read
+                ac, aa = self._anchor if self._anchor is not None else (last[0], last[1])
+                a = min(read_s, aa + ((c - ac) & 0xFFFF) * p + self.slack_s)
+                a = max(a, last[1])  # never before the previous one
                 # still behind its read while the reads come one period apart: not a stalled reader
                 # (it reads a backlog at once, then on time) but a host that sent late or skipped
                 # a slot and keeps its new phase; after `steady` such SYNCs, take the reads again
@@ -110,5 +117,7 @@ class SyncArrival:
         if a < read_s:
             self.pulled += 1
             self.pulled_s += read_s - a
+        else:
+            self._anchor = (c, a)
         self._last = (c, a, read_s)
         return a

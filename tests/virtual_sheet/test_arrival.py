@@ -91,3 +91,19 @@ def test_a_stalled_reader_reading_its_backlog_at_once_is_not_taken_for_a_host_th
     got = _stream(arr, reads)
     assert got == [k * P for k in range(12)]
     assert arr.rephased == 0 and arr.pulled == 3
+
+
+def test_a_reader_that_stays_behind_does_not_let_the_arrivals_creep_by_the_slack():
+    """40 SYNCs read 18–22 ms late (a loaded machine's reader, behind for 0.3 s): each arrives on
+    the host's grid plus the slack once — not the slack once a SYNC after the previous arrival, which
+    put the last of them 18.5 ms late (time stretched by 6 %, which a gyroscope scale fit takes for
+    the gyroscopes'); then on time again."""
+    slack = 0.0005
+    arr = SyncArrival(slack_s=slack, window=64)
+    lag = [0.020 + (0.002 if k % 2 else -0.002) for k in range(40)]
+    reads = [k * P for k in range(10)] + [(10 + k) * P + lag[k] for k in range(40)] + [k * P for k in range(50, 53)]
+    got = _stream(arr, reads)
+    assert got[:10] == reads[:10] and got[50:] == reads[50:]
+    off = [got[k] - k * P for k in range(10, 50)]
+    assert max(off) == pytest.approx(slack, abs=1e-12) and min(off) == pytest.approx(slack, abs=1e-12)
+    assert arr.pulled == 40 and arr.rephased == 0
