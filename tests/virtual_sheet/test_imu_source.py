@@ -38,8 +38,8 @@ def test_counts_at_each_chips_own_range_are_the_models_counts_rescaled_by_the_da
 
 def test_syncs_read_late_together_are_sampled_a_period_apart_at_their_arrival_not_at_the_read():
     """A gateway reads SYNCs on time (128 Hz) for a while, then three at once, two and one periods
-    late (the sheet's process was busy): the chips sample each at its arrival (one period and the
-    slack after the previous one's), say ``time_us`` against it, and the truth of each counter is
+    late (the sheet's process was busy): the chips sample each at its arrival (on the period grid
+    from the last SYNC read on time, plus the slack once), say ``time_us`` against it, and the truth of each counter is
     that instant — as real chips on a wire would. Without arrival estimates all three sample the
     read instant."""
     import math
@@ -73,9 +73,9 @@ def test_syncs_read_late_together_are_sampled_a_period_apart_at_their_arrival_no
     sheet, recs, t0, n, late, grid = run(True)
     assert len(recs) == 3 * 12  # every chip answered each SYNC
     slack = sheet.sync_arrival.slack_s  # a host may send that much late: the arrival keeps it
-    arrival = t0 + (n - 1) * P
+    on_time = t0 + (n - 1) * P  # the last SYNC read on time: the grid goes on from it
     for j in range(3):
-        arrival = min(late, arrival + P + slack)  # never after the read
+        arrival = min(late, on_time + (j + 1) * P + slack)  # never after the read
         k = math.floor(arrival * grid + 1e-9)
         want_us = round((k / grid - arrival) * 1e6)
         mine = [r for r in recs if r.counter == n + j]
