@@ -148,3 +148,16 @@ def test_turns_with_a_gap_in_their_samples_are_left_out_of_the_scale_fit(capture
     assert spanned.turns_dropped == 0
     E2 = _without_common_rotation(spanned.matrix @ truth)
     assert np.abs(np.diagonal(E2, axis1=1, axis2=2) - 1).max() > 10 * np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max()
+
+
+def test_too_few_turns_without_a_gap_is_a_clear_error(captured):
+    """Every turn with a gap (a bound shorter than one sample step): nothing to fit the scale
+    from — an error naming the gaps, not a matrix fitted from fewer equations than unknowns."""
+    from host.analysis.imu_calibration import fit_gyro_turns
+    _imu, c, cal = captured
+    segs = list(cal.segments)
+    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
+    with pytest.raises(ValueError, match=r"0 of 11 turns to fit, need 5 .*11 have a gap of more than 1 ms"):
+        fit_gyro_turns(c["gyro_rps"], c["t_s"], segs, u, cal.gyro, max_gap_s=0.001)
+    with pytest.raises(ValueError, match=r"4 of 4 turns to fit, need 5 \(2 equations a turn, 9 unknowns a chip\)$"):
+        fit_gyro_turns(c["gyro_rps"], c["t_s"], segs[:5], u[:5], cal.gyro)
