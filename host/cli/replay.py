@@ -205,6 +205,9 @@ def run(args) -> int:
               "estimate_change_pct_side_mean": round(float(np.mean(changes)), 5) if changes else None,
               "estimate_change_pct_side_max": round(float(np.max(changes)), 5) if changes else None,
               "recorded_duration_s": round(rp.duration_s, 3), "elapsed_s": round(elapsed, 3),
+              # the IMU ranges the records were converted at: the recording's session, or a CAN
+              # log's "CONFIG_IMU in the log", "given" (--gyro-range/--mag-range) or "default"
+              "imu_ranges_from": rp.imu_ranges_from,
               "aggregator": rp.aggregator.stats.summary(),
               "decode_errors": {t.name: dict(t.stats.errors) for t in rp.transports}}
     if rec is None:  # a CAN log holds frames only

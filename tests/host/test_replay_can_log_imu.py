@@ -72,4 +72,5 @@ def test_capsheet_replay_takes_the_range_of_a_can_log(tmp_path):
     out = subprocess.run([sys.executable, "-m", "host.cli", "replay", str(path), "--lattice", "2x2", "--no-estimate",
                           "--gyro-range", "125", "--json", "-q"], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-3000:]
-    assert json.loads(out.stdout)["snapshots"] >= 3
+    r = json.loads(out.stdout)
+    assert r["snapshots"] >= 3 and r["imu_ranges_from"] == "given"  # the JSON says which ranges converted it
