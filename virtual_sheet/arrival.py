@@ -9,8 +9,8 @@ the gyroscopes over a time it never had.
 
 `SyncArrival` gives each SYNC the instant the chips take as its arrival, from the device's read
 times alone (it cannot see the host's clock): the host sends SYNC on a fixed grid, one per slot,
-so a SYNC read more than one period (plus ``slack_s``) after the previous one's arrival is taken to
-have arrived one period (plus ``slack_s``) after it — the rest of the wait was the reader's:
+so a SYNC read later than its slot on that grid (plus ``slack_s``) is taken to have arrived there —
+the rest of the wait was the reader's:
 
     arrival(c) = min(read(c), arrival(a) + (c − a) · period + slack)
 
@@ -18,8 +18,8 @@ with ``a`` the newest SYNC of this run taken as read (its read was on time), and
 ``arrival(c − 1)``. The slack is allowed once, not once a SYNC: chained from the SYNC just before,
 a reader that stays behind for a second let the arrivals creep later by the slack every period —
 at 100 Hz, 5 % of the time the chips saw, which a gyroscope scale fit took for the gyroscopes'
-(`capsheet calibrate` on a loaded machine, stop 40). ``period`` is measured, not told, from the reads of the
-last ``window`` consecutive SYNCs before it (`period_s`: the median spacing, which late reads,
+(`capsheet calibrate` on a loaded machine, stop 40). ``period`` is measured, not told, from the
+reads of the last ``window`` consecutive SYNCs before it (`period_s`: the median spacing, which late reads,
 backlogs and skipped slots leave alone while most spacings are one period). A SYNC after a gap
 in the counters, and the first ones (8 spacings), arrive when read. The same counter read
 again (another gateway of the sheet: the host writes every port at once) arrives when it did the
