@@ -182,6 +182,7 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
 #: why `estimate_fused_batch` left a snapshot with valid links unestimated
 NO_GYRO = "no gyroscope record in the snapshot (the fused method needs one per link it shapes)"
 RESTARTED = "its sample time went back (a SYNC counter restarted): the fused estimator started again"
+STALE = "no link's record newer than the snapshot before's (a conversion repeated for two SYNCs close together)"
 
 
 def estimate_fused_batch(b, fused, units: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -229,7 +230,8 @@ def estimate_fused_batch(b, fused, units: np.ndarray) -> tuple[np.ndarray, np.nd
                            else np.asarray(b.sample_time_s[k], dtype=float)))
         out = fused_update(fused, snap)
         if out is None:
-            skipped[RESTARTED] = skipped.get(RESTARTED, 0) + 1
+            why = RESTARTED if fused.sample_times_s is None else STALE
+            skipped[why] = skipped.get(why, 0) + 1
             continue
         joints[k] = out.joints
         whole = units[out.valid[units].all(axis=1)]

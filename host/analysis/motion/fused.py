@@ -496,6 +496,11 @@ class MotionEstimator:
         self._dist = None
         self.snapshots = 0
 
+    @property
+    def sample_times_s(self) -> np.ndarray | None:
+        """Each link's sample time as of the last `update` (a copy; None before the first)."""
+        return None if self._t is None else np.array(self._t, dtype=float)
+
     # ------------------------------------------------------------------------------- input
     def _check(self, t_s, accel, gyro, mag, valid):
         n = self.n_links
