@@ -757,22 +757,6 @@ class MultiPtyDevice(PtyGroupDevice):
 # python-can
 # ---------------------------------------------------------------------------------------------
 
-#: a bus timestamp older than this is from another clock (an adapter's own): the read time is taken
-_MAX_FRAME_AGE_S = 1.0
-
-
-def _frame_age(msg) -> float:
-    """How long ago python-can says frame ``msg`` was on the bus (its ``timestamp``, ``time.time()``
-    seconds: the sender's clock on ``virtual``, the kernel's receive time on ``udp_multicast``), 0
-    when it says nothing usable. The chips answer — and sample a SYNC — when a frame was on the
-    wire, not when this process got round to reading it (a loaded machine: tens of ms later)."""
-    ts = msg.timestamp
-    if not ts:
-        return 0.0
-    age = time.time() - float(ts)
-    return age if 0.0 < age < _MAX_FRAME_AGE_S else 0.0
-
-
 class CanDevice(Device):
     """The sheet's chips on one or several python-can buses.
 
@@ -811,7 +795,6 @@ class CanDevice(Device):
                                  as_node=self.gateway_node)
                          for b, blk in enumerate(self.blocks)]
         self.bus_kwargs = dict(bus_kwargs or {})
-        self._rx_t = float("-inf")
         self.buses: list = []
         self.foreign_frames = 0
         # udp_multicast hands a sender its own frames back: recognise and drop them (issue 12)
@@ -821,7 +804,6 @@ class CanDevice(Device):
     def _open(self) -> None:
         import can
         self._can = can
-        self._rx_t = float("-inf")  # `start` begins the chips' clock again
         try:
             for ch in self.channels:
                 self.buses.append(can.Bus(interface=self.bus_interface, channel=ch, fd=self.sheet.fd,
@@ -860,10 +842,7 @@ class CanDevice(Device):
         frame = CanFrame(msg.arbitration_id, bytes(msg.data), msg.is_fd)
         if self.verbose is not None:
             self.verbose("rx", frame)
-        t = self.now()
-        if self.clock is None:  # at its time on the bus, never before a frame taken already
-            t = self._rx_t = max(self._rx_t, t - _frame_age(msg))
-        self.gateways[i].receive(frame, t)
+        self.gateways[i].receive(frame, self.now())
 
     def _send(self, bus: int, frames: list) -> None:
         can = self._can
