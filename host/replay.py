@@ -265,9 +265,9 @@ class Replay:
             self._wall_offset = float(self.recording.wall_time[0] - self.recording.timestamp[0])
         # an MCAP recording's counters are emitted where the host emitted them (`snapshots`), never
         # at a deadline of this aggregator's own, which would cut a read the host took in whole
-        follows = self.recording is not None and len(self.recording) > 0 and not self._own_deadline
+        self._follows = self.recording is not None and len(self.recording) > 0 and not self._own_deadline
         self.aggregator = Aggregator(n, n_buses=len(self.transports), deadline_s=float(dl), queue_size=1 << 30,
-                                     emit_at_deadline=not follows)
+                                     emit_at_deadline=not self._follows)
         imu = session.get("imu_config") if self.recording is not None else None
         if imu:  # 6/9-axis chips: their records converted at the ranges the host gave them (§16.2)
             self.aggregator.gyro_range, self.aggregator.mag_range = int(imu[1]), int(imu[2])
@@ -336,7 +336,7 @@ class Replay:
         si = 0
         ei = 0
         emits = None
-        if self.recording is not None and len(self.recording) and not self._own_deadline:
+        if self._follows:
             e = self.recording.timestamp + self.recording.latency_s
             order = np.argsort(e, kind="stable")
             emits = list(zip(e[order].tolist(), self.recording.counter[order].tolist()))
