@@ -144,23 +144,29 @@ def container_lengths(min_len: int = 16) -> dict[int, tuple[int, str]]:
     """Every dict, list, set, deque and bytearray with at least ``min_len`` items that the
     collector tracks *or* that a tracked object refers to (a dict of only ints and floats is not
     tracked itself), by ``id``: (length, "owner type.container type"). Two calls a few minutes
-    apart name the structures that grow. Walks the heap: a probe's job, not a live path's."""
+    apart name the structures that grow. Walks the heap: a probe's job, not a live path's.
+    Types are taken with ``type()``, never ``isinstance``: a dead ``weakref.proxy`` raises
+    ReferenceError on any attribute access, ``__class__`` included."""
     import gc
     from collections import deque
     sized = _SIZED + (deque,)
+
+    def length(x) -> int:
+        return len(x) if issubclass(type(x), sized) else -1
+
     out: dict[int, tuple[int, str]] = {}
     for o in gc.get_objects():
         owner = type(o).__qualname__
-        if isinstance(o, sized) and len(o) >= min_len:
+        if length(o) >= min_len:
             out[id(o)] = (len(o), f"-.{owner}")
-        if isinstance(o, (list, tuple, set, frozenset)):
+        if issubclass(type(o), (list, tuple, set, frozenset)):
             continue  # their items are tracked themselves, or atoms
         for r in gc.get_referents(o):
-            if isinstance(r, sized) and not gc.is_tracked(r) and len(r) >= min_len:
+            if not gc.is_tracked(r) and length(r) >= min_len:
                 out[id(r)] = (len(r), f"{owner}.{_field_name(o, r)}{type(r).__qualname__}"[:120])
-            elif isinstance(r, dict) and gc.is_tracked(r):  # an instance's __dict__: name its fields
+            elif issubclass(type(r), dict) and gc.is_tracked(r):  # an instance's __dict__: its fields
                 for k, v in r.items():
-                    if isinstance(v, sized) and len(v) >= min_len:
+                    if length(v) >= min_len:
                         out[id(v)] = (len(v), f"{owner}.{k}:{type(v).__qualname__}"[:120])
     return out
 
@@ -172,7 +178,7 @@ def _field_name(owner, value) -> str:
         for k, v in vars(owner).items():
             if v is value:
                 return f"{k}:"
-    except TypeError:  # no __dict__
+    except (TypeError, ReferenceError):  # no __dict__, or a dead weakref.proxy
         pass
     return ""
 

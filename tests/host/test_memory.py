@@ -103,3 +103,27 @@ def test_container_lengths_names_a_growing_field_even_when_the_collector_does_no
     after = container_lengths()
     assert before[id(h.table)][0] == 40 and before[id(h.table)][1].endswith("Holder.table:dict")
     assert after[id(h.table)][0] == 100
+
+
+def test_container_lengths_walks_past_a_dead_weak_proxy():
+    """A weakref.proxy whose object is gone raises ReferenceError on any attribute access,
+    ``isinstance`` included (CI met one a test had left in the heap); the walk goes past it."""
+    import weakref
+
+    from host.memory import container_lengths
+
+    class Target:
+        pass
+
+    class Holder:
+        def __init__(self):
+            self.table = {}
+
+    t = Target()
+    h = Holder()
+    h.table = {i: weakref.proxy(t) for i in range(20)}
+    h.other = list(range(30))
+    del t  # every proxy in the table is dead now
+    found = container_lengths()
+    assert found[id(h.table)][0] == 20
+    assert found[id(h.other)][0] == 30
