@@ -93,6 +93,9 @@ class Device:
         self.error: BaseException | None = None
         self.down = False
         self._calls: list = []  # (fn, done Event, result box) run in the device thread
+        #: the latest time the device thread gave its chips (a poll, a call, a frame): a frame
+        #: taken at its time on the bus is never taken before it (the chips' clock never goes back)
+        self._given = float("-inf")
         self._calls_lock = threading.Lock()
         self._outages = sheet.faults.outage_windows()
         self._next_outage = next(self._outages, None)
@@ -112,6 +115,7 @@ class Device:
         self._stop.clear()
         self._open()
         self._t0 = time.monotonic()
+        self._given = float("-inf")  # the chips' clock begins again
         if power_on:
             for gw in self.gateways:
                 gw.power_on(self.now() if self.clock is not None else 0.0)
@@ -208,7 +212,8 @@ class Device:
             calls, self._calls = self._calls, []
         for fn, done, box in calls:
             try:
-                box.append(fn(self.now()))
+                self._given = now = self.now()
+                box.append(fn(now))
             except BaseException as exc:  # handed to the caller
                 box.append(exc)
             done.set()
@@ -242,6 +247,7 @@ class Device:
             deadline = min(gw.next_deadline() for gw in self.gateways)
             self._serve(min(max(0.0, deadline - now), 0.02))
             now = self.now()
+            self._given = now  # the chips' clock is here now: no later input is taken before it
             for gw in self.gateways:
                 gw.poll(now)
             self._flush(now)
@@ -757,6 +763,21 @@ class MultiPtyDevice(PtyGroupDevice):
 # python-can
 # ---------------------------------------------------------------------------------------------
 
+#: a bus timestamp older than this is from another clock (an adapter's own): the read time is taken
+_MAX_FRAME_AGE_S = 1.0
+
+
+def _frame_age(msg) -> float:
+    """How long ago python-can says frame ``msg`` was on the bus (its ``timestamp``, ``time.time()``
+    seconds: the sender's clock on ``virtual``, the kernel's receive time on ``udp_multicast``), 0
+    when it says nothing usable. The chips answer — and sample a SYNC — when a frame was on the
+    wire, not when this process got round to reading it (a loaded machine: tens of ms later)."""
+    ts = msg.timestamp
+    if not ts:
+        return 0.0
+    age = time.time() - float(ts)
+    return age if 0.0 < age < _MAX_FRAME_AGE_S else 0.0
+
 class CanDevice(Device):
     """The sheet's chips on one or several python-can buses.
 
@@ -842,7 +863,10 @@ class CanDevice(Device):
         frame = CanFrame(msg.arbitration_id, bytes(msg.data), msg.is_fd)
         if self.verbose is not None:
             self.verbose("rx", frame)
-        self.gateways[i].receive(frame, self.now())
+        t = self.now()
+        if self.clock is None:  # at its time on the bus, never before what the chips were given already
+            t = self._given = max(self._given, t - _frame_age(msg))
+        self.gateways[i].receive(frame, t)
 
     def _send(self, bus: int, frames: list) -> None:
         can = self._can

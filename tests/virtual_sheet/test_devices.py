@@ -252,6 +252,61 @@ def test_python_can_virtual_two_buses_decode_with_cantools(fd, db):
             assert sig["uid"] == ours.uid
 
 
+def test_a_can_device_takes_a_sync_at_its_time_on_the_bus_not_when_its_thread_read_it():
+    """python-can stamps every frame with its time on the bus (``virtual``: when it was sent;
+    ``udp_multicast``: the kernel's receive time). A device thread that reads late — held here by a
+    call until after the SYNC was sent, as a loaded machine holds it — takes the SYNC's time on the
+    bus as its arrival: the instant its chips sample and `VirtualSheet.truth_time` says."""
+    import threading
+
+    sheet = VirtualSheet("tilted", "2x2", seed=5, transport="can")
+    with CanDevice(sheet, channels=["t-bus-time"]) as dev:
+        bus = can.Bus(interface="virtual", channel="t-bus-time")
+        try:
+            held, sent, released = threading.Event(), threading.Event(), []
+
+            def hold(now_s):
+                held.set()
+                sent.wait(5.0)
+                time.sleep(0.05)
+                released.append(dev.now())
+
+            th = threading.Thread(target=dev.call, args=(hold,))
+            th.start()
+            assert held.wait(5.0)
+            f = to_can(Sync(counter=7))
+            bus.send(can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True))
+            after_send = dev.now()
+            sent.set()
+            th.join()
+            deadline = time.monotonic() + 5.0
+            while 7 not in sheet.sync_times and time.monotonic() < deadline:
+                time.sleep(0.01)
+        finally:
+            bus.shutdown()
+    # the device read the SYNC only after the call released it; its chips sampled when it was sent
+    assert 7 in sheet.sync_times and released
+    assert sheet.sync_times[7] <= after_send < released[0], (sheet.sync_times[7], after_send, released[0])
+
+
+def test_a_frame_stamped_before_what_the_chips_were_given_is_taken_at_that_time():
+    """A frame's time on the bus can be older than the last time the device thread gave its chips
+    (it polled them, or ran a call, after the frame was sent and before reading it): the frame is
+    taken then, never before — the chips' clock never goes back (a SYNC taken 0.5 s in the past
+    here would make the chips sample before the instant they were already at)."""
+    sheet = VirtualSheet("tilted", "2x2", seed=5, transport="can")
+    f = to_can(Sync(counter=9))
+    with CanDevice(sheet, channels=["t-bus-floor"]) as dev:
+        def take_old_frame(now_s):
+            msg = can.Message(arbitration_id=f.arbitration_id, data=f.data, is_extended_id=True,
+                              timestamp=time.time() - 0.5)
+            dev._on_msg(0, msg)
+            return now_s
+        given = dev.call(take_old_frame)
+    assert 9 in sheet.sync_times
+    assert sheet.sync_times[9] >= given, (sheet.sync_times[9], given)
+
+
 # ------------------------------------------------------------------ SLCAN on a pty
 
 def test_slcan_adapter_with_python_can_slcan_interface():
