@@ -371,20 +371,27 @@ def _np_apply(R, bias, P, x) -> None:
 _NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
 
 
-def _kernel_step(name: str, *args) -> None:
-    ptr = []
+def _kernel_args(name: str, args) -> list:
+    """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
+    buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
+    freed before the call, and numpy handed its memory to another thread's array while cffi had
+    the interpreter lock released — a link's valid flag read as whatever was written there)."""
+    out = []
     for a in args:
         if isinstance(a, np.ndarray):
             if a.dtype == bool:
-                a = a.astype(np.uint8)
-            elif not a.flags.c_contiguous or a.dtype != np.float64:
+                out.append(_kffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
+                continue
+            if not a.flags.c_contiguous or a.dtype != np.float64:
                 raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
-            ptr.append(_kffi.cast("uint8_t *" if a.dtype == np.uint8 else "double *",
-                                  _kffi.from_buffer(a)))
+            out.append(_kffi.from_buffer("double[]", a))
         else:
-            ptr.append(float(a))
-    n = args[0].shape[0]
-    getattr(_klib, "capsheet_mf_" + name)(n, *ptr)
+            out.append(float(a))
+    return out
+
+
+def _kernel_step(name: str, *args) -> None:
+    getattr(_klib, "capsheet_mf_" + name)(args[0].shape[0], *_kernel_args(name, args))
 
 
 def _step(name: str, *args) -> None:

@@ -58,3 +58,16 @@ def test_each_per_link_step_is_the_same_in_c_and_numpy(name):
         args[3][0, 0] += 1e-6
         fused._kernel_step(name, *args)
         assert np.abs(args[0] - p[0]).max() > 1e-12
+
+
+def test_a_mask_handed_to_the_kernel_stays_alive_until_the_call():
+    """A boolean mask goes to the kernel as a uint8 copy; the arguments must keep that copy alive.
+    A cast pointer to it did not: the copy was freed before the call, numpy's allocator gave its
+    bytes to the next array of that size (here 64 arrays of zeros; live, another thread's while
+    cffi had released the interpreter lock) and the kernel read the links' valid flags as 0 — a
+    6-axis recording replayed 0.004 % of side apart from its live estimates."""
+    valid = np.ones(12, dtype=bool)
+    args = fused._kernel_args("accel", (np.zeros((12, 3, 3)), valid))
+    junk = [np.zeros(12, dtype=np.uint8) for _ in range(64)]
+    assert [args[1][k] for k in range(12)] == [1] * 12
+    assert len(junk) == 64
