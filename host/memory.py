@@ -30,34 +30,34 @@ MMAP_THRESHOLD = 128 * 1024
 ENV_VAR = "MALLOC_MMAP_THRESHOLD_"
 
 
+def _glibc(name: str, restype, argtypes=None):
+    """glibc's function ``name`` with its types set, or None off Linux or off glibc (musl has no
+    libc.so.6) or when this glibc lacks it (mallinfo2 before 2.33)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        fn = getattr(ctypes.CDLL("libc.so.6"), name)
+    except (OSError, AttributeError):
+        return None
+    fn.restype = restype
+    if argtypes is not None:
+        fn.argtypes = argtypes
+    return fn
+
+
 def fix_mmap_threshold(threshold: int = MMAP_THRESHOLD) -> bool:
     """Fix glibc's mmap threshold at ``threshold`` bytes (module docstring). Returns whether it was
     set: False off glibc, or when the user set ``MALLOC_MMAP_THRESHOLD_`` (theirs stands)."""
-    if not sys.platform.startswith("linux") or ENV_VAR in os.environ:
-        return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # not glibc (musl has no libc.so.6)
-        return False
-    mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    mallopt.restype = ctypes.c_int
-    return bool(mallopt(M_MMAP_THRESHOLD, int(threshold)))
+    mallopt = None if ENV_VAR in os.environ else _glibc("mallopt", ctypes.c_int, [ctypes.c_int, ctypes.c_int])
+    return mallopt is not None and bool(mallopt(M_MMAP_THRESHOLD, int(threshold)))
 
 
 def trim() -> bool:
     """glibc's ``malloc_trim(0)``: give the system back the free pages of every arena, from
     anywhere in the heap, not only its top. Returns whether any memory was released (False off
     glibc). A few ms on a host's heap, without the interpreter lock (ctypes releases it)."""
-    if not sys.platform.startswith("linux"):
-        return False
-    try:
-        fn = ctypes.CDLL("libc.so.6").malloc_trim
-    except (OSError, AttributeError):
-        return False
-    fn.argtypes = [ctypes.c_size_t]
-    fn.restype = ctypes.c_int
-    return bool(fn(0))
+    fn = _glibc("malloc_trim", ctypes.c_int, [ctypes.c_size_t])
+    return fn is not None and bool(fn(0))
 
 
 #: how often a long-running command gives freed memory back (`PeriodicTrim`), seconds
@@ -109,13 +109,9 @@ def mallinfo2() -> dict | None:
     """glibc's heap statistics in bytes (mallinfo2(3)): ``arena`` (main heap from sbrk),
     ``hblkhd`` (in mmapped blocks), ``uordblks`` (in use), ``fordblks`` (free in the heap, kept),
     ``keepcost`` (releasable from the top). None off glibc or before 2.33."""
-    if not sys.platform.startswith("linux"):
+    fn = _glibc("mallinfo2", _MallInfo2)  # one class: a new ctypes class per call is a cycle only gen 2 frees
+    if fn is None:
         return None
-    try:
-        fn = ctypes.CDLL("libc.so.6").mallinfo2
-    except (OSError, AttributeError):
-        return None
-    fn.restype = _MallInfo2  # one class: a new ctypes class per call is a cycle only gen 2 frees
     mi = fn()
     return {n: int(getattr(mi, n)) for n in ("arena", "hblkhd", "uordblks", "fordblks", "keepcost")}
 
