@@ -778,6 +778,7 @@ def _frame_age(msg) -> float:
     age = time.time() - float(ts)
     return age if 0.0 < age < _MAX_FRAME_AGE_S else 0.0
 
+
 class CanDevice(Device):
     """The sheet's chips on one or several python-can buses.
 
