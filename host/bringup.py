@@ -295,7 +295,9 @@ class BringUp:
             for uid, msg in answers.items():
                 if isinstance(msg, Ack):
                     reg.assigned_to(reg.chips[uid], msg.node)
-            self.apply_map()
+        # outside the registry's lock: a receive thread holds the feed's and then takes the
+        # registry's (tests/host/test_lock_order.py)
+        self.apply_map()
         return dict(reg.chips)
 
     def configure(self, uids=None) -> int:
@@ -344,8 +346,8 @@ class BringUp:
                     rec.sensitivity[axis] = cal.sensitivity / scale
                 rec.calibrated = len(axes) == 3
                 n_ok += rec.calibrated
-            self.apply_calibration()
-            self.calibration_reads += 1
+        self.apply_calibration()  # outside the registry's lock, as in `assign`
+        self.calibration_reads += 1
         return n_ok
 
     def read_imu_calibration(self, uids=None) -> int:
@@ -458,12 +460,14 @@ class BringUp:
         n = host.lattice.n_links
         off = np.zeros((n, 3))
         sens = np.full((n, 3), nominal_sensitivity(host.range_code))
-        for rec in host.registry.assigned():
-            off[rec.link] = rec.offset
-            sens[rec.link] = rec.sensitivity
-        host.feed.set_calibration(off, sens)
         cal = self._host_calibration
-        live = None if cal is None else cal.rebased(*host.registry.chip_calibration(host.range_code))
+        with host.registry.lock:  # the records read at one time; the feed's lock taken after this one
+            for rec in host.registry.assigned():
+                off[rec.link] = rec.offset
+                sens[rec.link] = rec.sensitivity
+            chips = None if cal is None else host.registry.chip_calibration(host.range_code)
+        host.feed.set_calibration(off, sens)
+        live = None if cal is None else cal.rebased(*chips)
         self._live_calibration = live
         host.feed.set_correction(None if live is None else live.apply)
 

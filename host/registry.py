@@ -238,8 +238,9 @@ class ChipRegistry:
             return used
 
     def assigned(self) -> list[ChipRecord]:
-        """The chips assigned to a link."""
-        return [r for r in self.chips.values() if r.assigned and r.link is not None]
+        """The chips assigned to a link (a list taken under the lock: a receive thread adds records)."""
+        with self.lock:
+            return [r for r in self.chips.values() if r.assigned and r.link is not None]
 
     def by_node(self, uids=None) -> dict[tuple[int, int], ChipRecord]:
         """``(bus, node) -> ChipRecord`` of the assigned chips (of ``uids``, if given)."""
@@ -260,9 +261,10 @@ class ChipRegistry:
         aggregator's map of the assigned chips."""
         lut = np.full(1 << 16, -1, dtype=np.int64)
         unassigned = np.ones(self.lattice.n_links, dtype=bool)
-        for rec in self.assigned():
-            lut[rec.node] = rec.link
-            unassigned[rec.link] = False
+        with self.lock:  # one consistent map (the caller hands it to the feed after releasing it)
+            for rec in self.assigned():
+                lut[rec.node] = rec.link
+                unassigned[rec.link] = False
         return lut, unassigned
 
     def chip_calibration(self, range_code: int) -> tuple[np.ndarray, np.ndarray]:
