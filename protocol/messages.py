@@ -26,7 +26,7 @@ __all__ = [
     "LINK_NONE", "is_node_to_host_type",
     "NODE_BROADCAST", "NODE_MAX_ASSIGNED", "NODE_PROVISIONAL_MIN", "NODE_PROVISIONAL_MAX",
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
-    "Message", "Announce", "Info", "Sample", "SampleBatch", "ImuBatch", "Status", "Ack", "Nack", "CalData", "Snapshot",
+    "Message", "Announce", "Info", "Sample", "SampleBatch", "ImuBatch", "Status", "StatusBatch", "STATUS_STATES", "Ack", "Nack", "CalData", "Snapshot",
     "GatewayInfo", "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
     "MESSAGE_TYPES", "message_to_fields", "message_from_fields", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
@@ -516,6 +516,38 @@ class Status(Message):
 
 
 assert Status._FMT.size == 8
+
+#: the STATUS states a chip may report (§4.4), for the decoders' vectorised checks
+STATUS_STATES = np.array(sorted(int(v) for v in ChipState._value2member_map_), dtype=np.int64)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class StatusBatch:
+    """Consecutive STATUS heartbeats decoded at once: the event of `framing.StreamDecoder` with
+    ``batch_status`` (a host's serial transports: 8,064 chips beat 8,064 times a second).
+
+    Arrays of equal length n: ``node`` uint16, ``state``, ``flags``, ``rx_errors``,
+    ``missed_syncs`` uint8, ``uptime_s`` uint32; every row is a STATUS `Status` would accept.
+    """
+
+    node: np.ndarray
+    state: np.ndarray
+    flags: np.ndarray
+    rx_errors: np.ndarray
+    missed_syncs: np.ndarray
+    uptime_s: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.node.shape[0])
+
+    def message(self, i: int) -> Status:
+        """Row ``i`` as a `Status`."""
+        return Status(int(self.node[i]), int(self.state[i]), int(self.flags[i]), int(self.rx_errors[i]),
+                      int(self.missed_syncs[i]), int(self.uptime_s[i]))
+
+    def messages(self) -> list[Status]:
+        """The batch as `Status` messages (slow; for tests and the rare heartbeat that matters)."""
+        return [self.message(i) for i in range(len(self))]
 
 
 def _check_command(value: int) -> None:

@@ -7,7 +7,7 @@ from cobs import cobs
 
 from protocol import DecodeError, ErrorReason, Sample, SampleBatch, StreamDecoder, decode_frame, encode
 from protocol.framing import MAX_ENCODED_SIZE, encode_frame
-from protocol.messages import MsgType, PROTOCOL_VERSION
+from protocol.messages import ChipState, MsgType, PROTOCOL_VERSION, Status, StatusBatch
 from tests.strategies import messages
 
 lists_of_messages = st.lists(messages(), min_size=1, max_size=12)
@@ -156,3 +156,34 @@ def test_batch_mode_gives_the_same_samples_as_the_exact_path(msgs, seed):
     assert all(isinstance(e, SampleBatch) or not isinstance(e, Sample) for e in events)
 
 
+
+
+@given(lists_of_messages, st.integers(0, 2**32 - 1), st.lists(st.integers(1, 60), max_size=40))
+def test_status_batches_give_the_same_heartbeats_as_the_exact_path_in_any_chunking(msgs, seed, chunks):
+    """``batch_status``: runs of STATUS come out as `StatusBatch`es whose rows are exactly the `Status`
+    messages the exact path decodes; a STATUS the exact path refuses (a state no chip has, a bad
+    CRC) is refused alike, with the same reason, and nothing around it is lost."""
+    rng = np.random.Generator(np.random.MT19937(seed))
+    states = [int(s) for s in ChipState]
+    beats = [Status(int(rng.integers(1, 0xFFFE)), states[int(rng.integers(len(states)))], int(rng.integers(0, 16)),
+                    int(rng.integers(0, 256)), int(rng.integers(0, 256)), int(rng.integers(0, 2**32)))
+             for _ in range(24)]
+    bad_state = encode_frame(MsgType.STATUS, 7, bytes([9, 0, 0, 0, 1, 0, 0, 0]))  # state 9: no such state
+    raw = bytearray(cobs.decode(encode(beats[0])[:-1]))
+    raw[-1] ^= 0x01  # one bit of the CRC: refused
+    bad_crc = cobs.encode(bytes(raw)) + b"\x00"
+    wire = (b"".join(encode(m) for m in beats[:8]) + bad_state + b"".join(encode(m) for m in msgs)
+            + bytes(bad_crc) + b"".join(encode(m) for m in beats[8:]))
+    exact, _ = feed_all(wire, chunks or None, batch_samples=True)
+    batched, dec = feed_all(wire, chunks or None, batch_samples=True, batch_status=True)
+    flat = []
+    for e in batched:
+        flat += e.messages() if isinstance(e, (StatusBatch, SampleBatch)) else [e]
+    want = []
+    for e in exact:
+        want += e.messages() if isinstance(e, SampleBatch) else [e]
+    assert [(type(e), getattr(e, "reason", None)) for e in flat] == [(type(e), getattr(e, "reason", None)) for e in want]
+    assert [e for e in flat if not isinstance(e, DecodeError)] == [e for e in want if not isinstance(e, DecodeError)]
+    assert sum(len(e) for e in batched if isinstance(e, StatusBatch)) >= 16  # the runs did take the fast path
+    assert not any(isinstance(e, Status) and e in beats for e in batched)  # none of the good ones went slow
+    assert sum(isinstance(e, DecodeError) for e in flat) == 2 and dec.stats.errors[ErrorReason.BAD_CRC] == 1
