@@ -132,6 +132,10 @@ class GatewayNodes:
             return True
         return False  # ACK / NACK: the command round's
 
+    def is_node(self, bus: int, node: int) -> bool:
+        """Whether ``node`` on transport ``bus`` is a gateway's (its frames are `observe`'s)."""
+        return (bus, node) in self._node
+
     def drop_unreadable(self, bus: int, events: list) -> list:
         """``events`` without the SNAPSHOTs of gateways whose sample format is unknown (§4.16: a host
         MUST NOT interpret those words); they are counted in `unreadable_frames`."""

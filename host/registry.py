@@ -123,11 +123,25 @@ class ChipRecord:
     calibrated: bool = False  #: CAL_DATA read for all three axes
     #: v1.3 (§17): (block, index) -> (value, stored flag) the chip answered CAL_IMU_READ with
     imu_cal: dict = field(default_factory=dict)
-    last_status: Status | None = None
+    #: the last STATUS heard: a `Status`, or ``(StatusBatch, row)`` as the serial decoder gave it
+    #: (made a `Status` when read, `last_status`: a 64x64 sheet beats 8,064 times a second)
+    heartbeat: object = None
     nacks: list = field(default_factory=list)  #: (command name, reason name), the last `MAX_NACKS` kept
     started_at: float = float("-inf")  #: host time of its START ACK
 
     MAX_NACKS = 16
+
+    @property
+    def last_status(self) -> Status | None:
+        """The last STATUS heard from this chip (None: none yet)."""
+        hb = self.heartbeat
+        if isinstance(hb, tuple):
+            hb = self.heartbeat = hb[0].message(hb[1])
+        return hb
+
+    @last_status.setter
+    def last_status(self, msg: Status | None) -> None:
+        self.heartbeat = msg
 
 
 class ChipRegistry:
@@ -210,6 +224,15 @@ class ChipRegistry:
             uid = self._node_uid.get((bus, msg.node))
             if uid is not None:
                 self.chips[uid].info = msg
+
+    def heartbeats(self, bus: int, batch) -> None:
+        """A `StatusBatch` from transport ``bus``: each row kept as its chip's last STATUS."""
+        with self.lock:
+            get, chips = self._node_uid.get, self.chips
+            for i, node in enumerate(batch.node.tolist()):
+                uid = get((bus, node))
+                if uid is not None:
+                    chips[uid].heartbeat = (batch, i)
 
     def uid_at(self, bus: int, node: int) -> int | None:
         """The uid whose ANNOUNCE last came from ``node`` on transport ``bus`` (None: none heard)."""

@@ -12,7 +12,7 @@ import pytest
 
 from host.session import CapacityError, Host, Layout, MismatchError, SyncConflictError, link_ranges
 from host.transport import SerialTransport
-from protocol.messages import Announce, Nack, NackReason, MsgType, Reset, Sample, Stop, Sync
+from protocol.messages import Announce, ChipState, Nack, NackReason, MsgType, Reset, Sample, Stop, Sync
 from tests.host.test_back2back import Rig
 from virtual_sheet.chip import ChipModel
 
@@ -294,3 +294,24 @@ def test_the_bring_up_tells_calibrated_chips_from_nominal_ones(rigs):
     odd = sum(c.uid % 2 for c in rig.sheet.chips)
     assert 0 < odd < n and up["calibrated"] == n  # every chip answered CAL_READ
     assert rig.host.calibration_summary() == {"own": odd, "nominal": n - odd}
+
+
+def test_heartbeats_in_runs_reach_every_chip_record_and_the_watchdog(rigs):
+    """A serial host takes STATUS runs at once (`StatusBatch`): each chip's last STATUS is its own
+    (node, state STREAMING, its uptime), and the watchdog saw every link's heartbeat."""
+    rig = rigs("memory")
+    rig.host.heartbeat_ms = 100
+    rig.host.bring_up(0.2)
+    seen_batches = []
+    rig.host.transports[0].begin_capture(
+        lambda cap: seen_batches.extend(e for e in cap.events if type(e).__name__ == "StatusBatch"))
+    t0 = rig.host.now()
+    list(rig.host.snapshots(duration_s=0.5))
+    assert seen_batches and sum(len(b) for b in seen_batches) >= rig.host.lattice.n_links
+    chips = rig.host.registry.assigned()
+    assert len(chips) == rig.host.lattice.n_links
+    for rec in chips:
+        st = rec.last_status
+        assert st is not None and st.node == rec.node and st.state == ChipState.STREAMING
+    seen = rig.host.watchdog._status_seen
+    assert np.all(seen[[r.link for r in chips]] >= t0)
