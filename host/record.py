@@ -201,6 +201,10 @@ ESTIMATE_FILE_PERIOD_S = 0.2
 #: zstd level of the chunks: 9 makes a 14x14 145 Hz recording ~10 % smaller than the default (3)
 #: for ~2 % of a core (docs/recording.md, "Size")
 COMPRESSION_LEVEL = 9
+#: zstd's own worker thread compresses the chunks (outside the interpreter's threads): a 64x64
+#: sheet at 145 Hz writes ~14 MB/s, whose compression in the writing thread took ~20 % of a core
+#: from the receive threads that log the raw input and the snapshots (docs/host.md, issue 31)
+COMPRESSION_THREADS = 1
 
 
 def _not_for(sink: str):
@@ -343,8 +347,8 @@ class Recorder:
         self._last_flush = time.monotonic()
         self._closed = False
         self._writer = None
-        self._opts = MCAPWriteOptions(chunk_size=int(chunk_size), compression_threads=0, profile="",
-                                      compression_level=COMPRESSION_LEVEL)
+        self._opts = MCAPWriteOptions(chunk_size=int(chunk_size), compression_threads=COMPRESSION_THREADS,
+                                      profile="", compression_level=COMPRESSION_LEVEL)
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             free = self._free_bytes(self.path.parent)
