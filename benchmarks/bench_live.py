@@ -161,6 +161,7 @@ def _serve(cfg: dict, conn) -> None:
 
 #: streaming before the window opens: the host's deadline adapts from its first 32 latencies and
 #: the estimator's first (cold) solves are slow; `capsheet demo` shows ~1 s of that transient
+BRING_UP_LIMIT_S = 180.0  #: a CLI row's host must be streaming by then (a 64x64 bring-up: ~10-20 s)
 SETTLE_S = 1.5
 
 
@@ -387,10 +388,16 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
             row["command"] = " ".join(["capsheet", *cmd[len(cli):]])
             herr = open(base + "-host.err", "w+")
             hp = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=herr, text=True, cwd=REPO)
+            started_by = time.monotonic() + BRING_UP_LIMIT_S
             while hp.poll() is None:
                 herr.seek(0)
                 if "started on" in herr.read():
                     break
+                if time.monotonic() > started_by:  # a hung bring-up is a row, not a hung benchmark
+                    hp.kill()
+                    hp.wait()
+                    raise TimeoutError(f"the host did not start streaming within {BRING_UP_LIMIT_S:g} s "
+                                       f"(its stderr: {base}-host.err)")
                 time.sleep(0.2)
             time.sleep(SETTLE_S + 1.5)
             a_v, a_h, t0 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
