@@ -386,6 +386,11 @@ class Aggregator:
         self._pump(now)
         return slot >= 0
 
+    @property
+    def newest(self) -> int | None:
+        """The newest counter opened (None: none since the sequence began)."""
+        return self._newest
+
     def restart(self, now: float) -> None:
         """A new counter sequence begins (the host (re)starts streaming): emit what is open and
         forget the ordering history, so the new counters are not taken for late ones."""

@@ -185,6 +185,6 @@ def run_stats(host) -> dict:
             "deadline_s": round(host.aggregator.deadline_s, 6), **host.aggregator.completeness()}
     return {"aggregator": agg.summary(), "live": live, "buses": buses, "chips": chips,
             "syncs_sent": sync.syncs_sent,
-            "syncs_seen": sync.syncs_seen, "silent_links": host.watchdog.silent_links,
+            "syncs_seen": sync.syncs_seen, "sync_copies": sync.copies.copies, "silent_links": host.watchdog.silent_links,
             "unknown_nodes": dict(agg.unknown_nodes),
             "unknown_chips": [f"0x{u:016X}" for u in host.registry.unknown_chips]}

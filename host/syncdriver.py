@@ -11,6 +11,7 @@ import numpy as np
 
 from protocol.messages import Sync
 
+from .counter_trust import CounterTrust, SyncCopies
 from .errors import SyncConflictError
 
 __all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S"]
@@ -107,6 +108,8 @@ class SyncDriver:
         self.sync_conflict: str | None = None  #: set when a foreign SYNC source stopped a driving host
         self.sync_schedule: SyncSchedule | None = None  #: the schedule of this stream (drive)
         self.step_lock = threading.Lock()
+        #: follow: each port's SYNCs, and the copies of SYNCs already heard on another port
+        self.copies = SyncCopies(max_jump=CounterTrust().max_jump)
         self.service_s = 0.0
         self.loop_lag_s = 0.0
         self.max_loop_lag_s = 0.0
@@ -188,7 +191,9 @@ class SyncDriver:
         if self.sync_mode == "drive":
             self._foreign_sync(bus, msg)
         elif self.sync_mode == "follow" and self.host.streaming.is_set():
-            self.host.feed.open_counter(msg.counter)
+            # (under the feed's lock: a SYNC is a control frame, handled inside `one_read`)
+            if self.copies.fresh(bus, msg.counter, self.host.aggregator.newest):
+                self.host.feed.open_counter(msg.counter)
 
     def check_source(self) -> None:
         """Before START: in drive mode, another SYNC source already on the bus is a conflict —

@@ -93,3 +93,41 @@ def test_follow_rule_a_sync_copy_from_a_lagging_port_is_late_and_never_a_new_seq
     assert t2.verdict(newest - 2, newest, newest - 1, from_frame=False) == LATE
     assert t2.verdict(1, newest, newest - 1, from_frame=False) == STRAY
     assert t2.verdict(2, newest, newest - 1, from_frame=False) == RESYNC
+
+
+def test_a_ports_own_sync_run_far_behind_the_newest_is_a_copy_and_a_restart_is_not():
+    """Five ports on one SYNC line, one read 75 SYNCs behind the others (more than max_jump): its
+    SYNCs continue its own sequence, so they are copies (not handed on); before, a run of them was
+    taken for a restarted source and the host resynced back and forth (93 resyncs in 16 s). A
+    source that restarts breaks every port's own sequence: its SYNCs go on, and the counter trust
+    follows them after resync_after."""
+    from host.counter_trust import SyncCopies
+    s = SyncCopies(max_jump=64)
+    t = CounterTrust("follow", max_jump=64, resync_after=3)
+    newest = None
+    handed = []
+
+    def hear(port, c):
+        nonlocal newest
+        if s.fresh(port, c, newest):
+            handed.append((port, c))
+            v = t.verdict(c, newest, None, from_frame=False)
+            if v == RESYNC or (v == OPEN and (newest is None or serial_diff(c, newest) > 0)):
+                newest = c
+            return v
+
+    for c in range(1000, 1200):  # ports 0-3 on time, port 4 75 behind, interleaved as read
+        for port in range(4):
+            hear(port, c)
+        if c - 75 >= 1000:
+            hear(4, c - 75)
+    assert handed == [(0, c) for c in range(1000, 1200)]  # ports 1-3 and the lagging 4: copies
+    assert s.copies == 3 * 200 + (1124 - 1000 + 1)
+    assert list(t.resync_events) == [] and newest == 1199
+    # without SyncCopies the same lagging run resyncs the sheet back (what the host did)
+    t_old = CounterTrust("follow", max_jump=64, resync_after=3)
+    assert [t_old.verdict(c, 1199, 1198, from_frame=False) for c in (1125, 1126, 1127)] == [STRAY, STRAY, RESYNC]
+    # the source restarts at 0: port 0's run goes back, is handed on and followed after 3 SYNCs
+    assert [hear(0, c) for c in (0, 1, 2)] == [STRAY, STRAY, RESYNC] and newest == 2
+    # the other ports' copies of the new run: each port's own sequence broke, so handed on (late)
+    assert [hear(p, 0) for p in (1, 2, 3, 4)] == [LATE] * 4
