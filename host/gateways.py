@@ -15,6 +15,8 @@ import logging
 import threading
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, GatewayFlag,
                                GatewayInfo, Info, Message, MsgType, SampleFormat, Snapshot, SnapshotImu, Status)
 
@@ -132,9 +134,9 @@ class GatewayNodes:
             return True
         return False  # ACK / NACK: the command round's
 
-    def is_node(self, bus: int, node: int) -> bool:
-        """Whether ``node`` on transport ``bus`` is a gateway's (its frames are `observe`'s)."""
-        return (bus, node) in self._node
+    def nodes_on(self, bus: int) -> np.ndarray:
+        """The node ids of the gateways heard on transport ``bus`` (their frames are `observe`'s)."""
+        return np.fromiter((n for b, n in list(self._node) if b == bus), dtype=np.int64)
 
     def drop_unreadable(self, bus: int, events: list) -> list:
         """``events`` without the SNAPSHOTs of gateways whose sample format is unknown (§4.16: a host

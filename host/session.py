@@ -408,8 +408,8 @@ class Host:
         if not control:
             # samples and STATUS only: STATUS (every chip's heartbeat, 8,064 a second from a 64x64
             # sheet: in nearly every read) changes nothing the feed holds, so the read is ingested in
-            # one call, as a replay does, without holding the feed across it (one_read would make
-            # the SYNC thread wait behind the whole read: 30 % of a 64x64 sheet's slots missed)
+            # one call, as a replay does, without holding the feed across it (under `one_read` the
+            # SYNC thread would wait behind the whole read)
             feed.ingest(events, bus)
             if statuses:
                 for ev in statuses:
@@ -445,7 +445,7 @@ class Host:
         one_by_one = batch.state == ChipState.IDLE
         gw = self.gateway_nodes
         if gw.by_uid:
-            one_by_one |= np.array([gw.is_node(bus, n) for n in nodes.tolist()], dtype=bool)
+            one_by_one |= np.isin(nodes, gw.nodes_on(bus))
         if one_by_one.any():
             for i in np.flatnonzero(one_by_one).tolist():
                 self._on_control(bus, batch.message(i))

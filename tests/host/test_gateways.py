@@ -27,6 +27,11 @@ def test_a_packing_gateway_is_a_gateway_not_a_chip_and_is_assigned(rigs):
     assert rig.device.gateway.node.node == 0x7FFF  # the device's gateway took the id
     rig.stream(1.2)
     assert isinstance(rec.last_status, Status) and rec.last_status.node == 0x7FFF  # its heartbeat, not a chip's
+    # its heartbeats while streaming come in runs with the chips' (StatusBatch): still its own
+    before = rec.last_status.uptime_s
+    rig.stream(1.2)
+    assert rec.last_status.node == 0x7FFF and rec.last_status.uptime_s > before
+    assert all(c.last_status is None or c.last_status.node != 0x7FFF for c in rig.host.chips.values())
     assert rig.host.summary()["gateways"][0]["packing"] is True
 
 
@@ -80,3 +85,21 @@ def test_snapshots_in_an_unknown_sample_format_are_not_read(rigs):
     assert rig.host.gateway_nodes.unreadable_frames > 0
     assert not any(s.valid.any() for s in snaps)
     assert rig.host.event_counts["not_a_sheet"] == 1
+
+
+def test_a_gateways_streaming_heartbeat_in_a_run_of_chips_heartbeats_is_the_gateways(rigs):
+    """STATUS runs are taken at once (`StatusBatch`); a gateway node's STATUS among them (a real
+    gateway may say STREAMING while it forwards, §13) goes to its gateway record, not to a chip's,
+    and the chip's beside it to that chip."""
+    from protocol.framing import encode
+    from protocol.messages import ChipState
+    rig = rigs("memory", packed=True)
+    rig.host.bring_up(0.2)
+    list(rig.host.snapshots(duration_s=0.2))
+    gw = rig.host.gateway_nodes.by_uid[gateway_uid(rig.sheet.seed, 0)]
+    chip = rig.host.registry.assigned()[3]
+    rig.device._end.write(encode(Status(gw.node, ChipState.STREAMING, 0, 0, 0, 123456))
+                          + encode(Status(chip.node, ChipState.STREAMING, 0, 0, 0, 654321)))
+    rig.host.idle(0.002)
+    assert gw.last_status.node == gw.node and gw.last_status.uptime_s == 123456
+    assert chip.last_status.node == chip.node and chip.last_status.uptime_s == 654321
