@@ -145,7 +145,7 @@ for _f, _size in IMU_RECORD_SIZE.items():
     _FAST_KINDS[HEADER_SIZE + 2 + _size + CRC_SIZE + 1] = (1 + int(_f), MsgType.IMU_SAMPLE)
 _STATUS_KIND = 4
 #: STATUS (15 encoded bytes), on the fast path only with ``batch_status`` (`StatusBatch` events)
-_STATUS_ENC = HEADER_SIZE + Status._FMT.size + CRC_SIZE + 1
+_STATUS_ENC = HEADER_SIZE + Status.SIZE + CRC_SIZE + 1
 assert _STATUS_ENC not in _FAST_KINDS
 _FAST_KINDS_STATUS = {**_FAST_KINDS, _STATUS_ENC: (_STATUS_KIND, MsgType.STATUS)}
 

@@ -499,6 +499,7 @@ class Status(Message):
     DIRECTION = Direction.CHIP_TO_HOST
     PRIORITY = 6
     _FMT = struct.Struct("<BBBBI")
+    SIZE: ClassVar[int] = 8  #: payload bytes
     state: int = ChipState.BOOT
     flags: int = 0
     rx_errors: int = 0
@@ -515,7 +516,7 @@ class Status(Message):
         object.__setattr__(self, "flags", StatusFlag(self.flags))
 
 
-assert Status._FMT.size == 8
+assert Status._FMT.size == Status.SIZE == 8
 
 #: the STATUS states a chip may report (§4.4), for the decoders' vectorised checks
 STATUS_STATES = np.array(sorted(int(v) for v in ChipState._value2member_map_), dtype=np.int64)
