@@ -425,6 +425,10 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                 recorded_snapshots_pct=round(100.0 * s.get("recorded", {}).get("snapshots", 0) / snaps, 2),
                 recorded_estimates=s.get("recorded", {}).get("estimates", 0),
                 dropped_from_queue=doc["aggregator"]["dropped"],
+                # why a following host's snapshots are incomplete: input after its deadline, a
+                # resynced sequence, the SYNC copies of ports read later (`SyncCopies`)
+                late_samples=doc["aggregator"]["late"], resyncs=doc["aggregator"]["resyncs"],
+                sync_copies=doc.get("sync_copies"),
                 cpu_pct={"virtual_sheet": _cpu_pct(a_v, b_v, t1 - t0).get("main", 0.0), **host_cpu},
                 host_cpu_pct_total=round(total, 1),
                 host_cpu_us_per_link_sample=round(1e6 * total / 100.0 / (n_links * rate), 3))
