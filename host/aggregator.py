@@ -65,7 +65,7 @@ from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
 from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotImu,
                                unpack_sample_words, unpack_snapshots)
 
-from .counter_trust import OPEN, RESYNC, CounterTrust, serial_diff
+from .counter_trust import MAX_AGE, MAX_JUMP, OPEN, RESYNC, CounterTrust, serial_diff
 from .deadline import DeadlinePolicy
 
 __all__ = ["LinkFlag", "LatticeSnapshot", "AggregatorStats", "Aggregator", "serial_diff"]
@@ -263,10 +263,10 @@ class Aggregator:
     """
 
     def __init__(self, n_links: int, node_to_link=None, *, offset=None, sensitivity=None,
-                 deadline_s: float = 0.05, max_open: int = 32, max_age: int = 256, queue_size: int = 64,
+                 deadline_s: float = 0.05, max_open: int = 32, max_age: int = MAX_AGE, queue_size: int = 64,
                  n_buses: int = 1, on_snapshot: Callable[[LatticeSnapshot], None] | None = None,
                  min_deadline_s: float | None = None,
-                 max_deadline_s: float | None = None, trust: str = "frames", max_jump: int = 64,
+                 max_deadline_s: float | None = None, trust: str = "frames", max_jump: int = MAX_JUMP,
                  resync_after: int = 3, hold_for_input: bool = False, emit_at_deadline: bool = True) -> None:
         if not isinstance(n_links, (int, np.integer)) or n_links < 1:
             raise ValueError(f"Invalid n_links: {n_links!r} (need an integer >= 1)")

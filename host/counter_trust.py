@@ -25,7 +25,7 @@ from collections import deque
 
 import numpy as np
 
-__all__ = ["CounterTrust", "SyncCopies", "serial_diff", "OPEN", "LATE", "STRAY", "RESYNC", "TRUST_RULES"]
+__all__ = ["CounterTrust", "SyncCopies", "serial_diff", "OPEN", "LATE", "STRAY", "RESYNC", "TRUST_RULES", "MAX_JUMP", "MAX_AGE"]
 
 _MOD = 1 << 16
 _HALF = 1 << 15
@@ -36,6 +36,8 @@ STRAY = -2  #: a counter nobody sent (drive) or out of the sequence (follow): dr
 RESYNC = 1  #: follow: the sequence restarted or jumped; emit what is open, forget, then open it
 
 TRUST_RULES = ("frames", "sent", "follow")
+MAX_JUMP = 64  #: follow: how far ahead of the newest a counter may open (default)
+MAX_AGE = 256  #: counters further behind the newest are late (default; the aggregator's too)
 
 
 def serial_diff(a, b):
@@ -68,8 +70,8 @@ class CounterTrust:
         ``(previous newest, counter followed)`` of the newest 64 resyncs.
     """
 
-    def __init__(self, trust: str = "frames", max_jump: int = 64, resync_after: int = 3,
-                 max_age: int = 256) -> None:
+    def __init__(self, trust: str = "frames", max_jump: int = MAX_JUMP, resync_after: int = 3,
+                 max_age: int = MAX_AGE) -> None:
         if trust not in TRUST_RULES:
             raise ValueError(f"Invalid trust: {trust!r} (need 'frames', 'sent' or 'follow')")
         if not (isinstance(max_jump, int) and 1 <= max_jump < _HALF):
@@ -152,7 +154,7 @@ class SyncCopies:
 
     __slots__ = ("max_jump", "max_age", "copies", "_last", "_new_run")
 
-    def __init__(self, max_jump: int = 64, max_age: int = 256) -> None:
+    def __init__(self, max_jump: int = MAX_JUMP, max_age: int = MAX_AGE) -> None:
         self.max_jump = int(max_jump)
         self.max_age = int(max_age)
         self.copies = 0  #: SYNCs taken for another port's copy (not handed on)

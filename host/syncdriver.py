@@ -11,7 +11,7 @@ import numpy as np
 
 from protocol.messages import Sync
 
-from .counter_trust import CounterTrust, SyncCopies
+from .counter_trust import SyncCopies
 from .errors import SyncConflictError
 
 __all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S"]
@@ -109,7 +109,7 @@ class SyncDriver:
         self.sync_schedule: SyncSchedule | None = None  #: the schedule of this stream (drive)
         self.step_lock = threading.Lock()
         #: follow: each port's SYNCs, and the copies of SYNCs already heard on another port
-        self.copies = SyncCopies(max_jump=CounterTrust().max_jump)
+        self.copies = SyncCopies()
         self.service_s = 0.0
         self.loop_lag_s = 0.0
         self.max_loop_lag_s = 0.0
