@@ -66,7 +66,7 @@ import numpy as np
 log = logging.getLogger("capsheet.host.record")
 
 __all__ = ["Recorder", "Recording", "read", "read_recording", "iter_snapshots", "SnapshotBatch", "snapshot_count",
-           "tap_transport", "versions",
+           "tap_transport", "versions", "compression_level_for",
            "TOPIC_RAW", "TOPIC_SYNC", "TOPIC_SNAPSHOT", "TOPIC_ESTIMATE", "TOPIC_CONTACTS", "TOPIC_IMU",
            "FORMAT"]
 
@@ -201,10 +201,21 @@ ESTIMATE_FILE_PERIOD_S = 0.2
 #: zstd level of the chunks: 9 makes a 14x14 145 Hz recording ~10 % smaller than the default (3)
 #: for ~2 % of a core (docs/recording.md, "Size")
 COMPRESSION_LEVEL = 9
-#: zstd's own worker thread compresses the chunks (outside the interpreter's threads): a 64x64
-#: sheet at 145 Hz writes ~14 MB/s, whose compression in the writing thread took ~20 % of a core
-#: from the receive threads that log the raw input and the snapshots (docs/host.md, issue 31)
-COMPRESSION_THREADS = 1
+#: ... and of a sheet of more than `LARGE_SHEET_LINKS` links. Every call into the SDK's writer holds
+#: the interpreter lock the receive threads and the SYNC thread need; on a 64x64 sheet's raw input
+#: at 145 Hz (6 MB/s) level 9 spends ~110 ms a second in those calls, level 3 ~42 ms, for files
+#: ~4 % larger (benchmarks/bench_record_compression.py; whole 64x64 recordings ~7 %)
+COMPRESSION_LEVEL_LARGE = 3
+LARGE_SHEET_LINKS = 2048
+#: zstd worker threads (0: the logging call compresses as it goes). With a worker, a chunk's last
+#: call waits for the whole chunk to be compressed, holding the interpreter lock (25 ms against
+#: 3 ms at level 9, 64x64 raw input, 1 MB chunks), and the total is no smaller (bench as above)
+COMPRESSION_THREADS = 0
+
+
+def compression_level_for(n_links: int) -> int:
+    """The zstd level a recording of a sheet of ``n_links`` links is written with."""
+    return COMPRESSION_LEVEL_LARGE if int(n_links) > LARGE_SHEET_LINKS else COMPRESSION_LEVEL
 
 
 def _not_for(sink: str):
@@ -295,6 +306,10 @@ class Recorder:
         The same for the 3D scene (derived from the estimates); a live session: `SCENE_FILE_PERIOD_S`.
     on_stop : callable, optional
         ``(reason)``, called once when the recording stops before `close` (the disk filled).
+    compression_level : int, optional
+        zstd level of the chunks (default `compression_level_for` the lattice's links).
+    compression_threads : int
+        zstd worker threads (`COMPRESSION_THREADS`).
 
     Attributes
     ----------
@@ -312,7 +327,8 @@ class Recorder:
                  chunk_size: int = 1 << 20, split_size: int | None = None, split_duration: float | None = None,
                  min_free: int = 0, free_bytes: Callable[[Path], int] | None = None,
                  on_stop: Callable[[str], None] | None = None,
-                 estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0) -> None:
+                 estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0,
+                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -347,8 +363,10 @@ class Recorder:
         self._last_flush = time.monotonic()
         self._closed = False
         self._writer = None
-        self._opts = MCAPWriteOptions(chunk_size=int(chunk_size), compression_threads=COMPRESSION_THREADS,
-                                      profile="", compression_level=COMPRESSION_LEVEL)
+        self.compression_level = (compression_level_for(lattice.n_links) if compression_level is None
+                                  else int(compression_level))
+        self._opts = MCAPWriteOptions(chunk_size=int(chunk_size), compression_threads=int(compression_threads),
+                                      profile="", compression_level=self.compression_level)
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             free = self._free_bytes(self.path.parent)

@@ -467,3 +467,30 @@ def test_iter_snapshots_reads_a_cut_file_as_far_as_read_does(tmp_path):
         list(iter_snapshots(cut))
     with pytest.raises(ValueError, match="batch must be >= 1"):
         list(iter_snapshots(path, 0))
+
+
+def test_a_large_sheet_is_compressed_at_the_cheaper_level_and_a_small_one_at_the_tighter(tmp_path):
+    """`host.record.compression_level_for`: every writer call holds the interpreter lock, so a
+    sheet of more than LARGE_SHEET_LINKS links (64x64: ~14 MB/s) is written at zstd level 3, a
+    smaller one at 9 (benchmarks/bench_record_compression.py). The same raw input recorded for a
+    64x64 and a 14x14 sheet: the first file is larger (the level reached the writer); each one
+    reads back whole with the mcap library."""
+    from mcap.reader import make_reader
+
+    from host.record import COMPRESSION_LEVEL, COMPRESSION_LEVEL_LARGE
+
+    rng = np.random.default_rng(3)
+    reads = [np.cumsum(rng.integers(-3, 4, 6000)).astype("<i2").tobytes() for _ in range(24)]
+    sizes = {}
+    for name in ("64x64", "14x14"):
+        path = tmp_path / f"{name}.mcap"
+        rec = Recorder(path, Lattice.parse(name), 0.01)
+        assert rec.compression_level == (COMPRESSION_LEVEL_LARGE if name == "64x64" else COMPRESSION_LEVEL)
+        for i, data in enumerate(reads * 4):
+            rec.raw(i % 5, "serial", data)
+        rec.close()
+        sizes[name] = path.stat().st_size
+        with open(path, "rb") as f:
+            got = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic.startswith("/capsheet/raw/")]
+        assert len(got) == 96
+    assert sizes["64x64"] > 1.01 * sizes["14x14"]
