@@ -18,6 +18,9 @@ __all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S"]
 
 #: how long (s) a driving host listens for another SYNC source before START (`SyncDriver.check_source`)
 SYNC_LISTEN_S = 0.25
+#: the SYNC thread emits what passed its deadline when the feed is free; after this long (s)
+#: without, it waits for the feed (a receive thread holds it across a read)
+POLL_WAIT_S = 0.02
 
 
 class SyncSchedule:
@@ -116,6 +119,7 @@ class SyncDriver:
         self._listen_since: float | None = None
         self._missed_before = 0  # SYNC slots missed by earlier schedules (earlier starts)
         self._last_step: float | None = None
+        self._last_poll = float("-inf")  # when the SYNC step last emitted what was due
 
     @property
     def syncs_missed(self) -> int:
@@ -151,14 +155,18 @@ class SyncDriver:
                 sched = self.sync_schedule = SyncSchedule(host.rate_hz, now)
             if sched.due(now):
                 c = self.counter
-                # the counter's time is read under the feed's lock, right before the SYNC is written:
-                # the chips sample when it arrives, and a receive thread holding the lock (ingesting
-                # a read) would otherwise put that wait between the snapshot's time and the SYNC
-                host.feed.open_counter(c, restart=first)
+                # the counter's time is read right before the SYNC is written (the chips sample
+                # when it arrives), and the SYNC thread does not wait for the feed's lock, which a
+                # receive thread holds across a read: the open is posted, applied before any frame
+                # answering it is ingested (`SnapshotFeed.post_open`)
+                host.feed.post_open(c, host.now(), restart=first)
                 host.commands.broadcast(Sync(counter=c))
                 self.syncs_sent += 1
                 self.counter = (c + 1) & 0xFFFF
-        host.feed.poll(now)
+        # what passed its deadline: emitted now if the feed is free, else by the next step; never
+        # later than `POLL_WAIT_S` after the last poll (the SYNC thread then waits for the feed)
+        if host.feed.poll(now, wait=now - self._last_poll >= POLL_WAIT_S):
+            self._last_poll = now
         host.watchdog.tick(now, self.service_s)
 
     def loop(self, stop: threading.Event) -> None:
