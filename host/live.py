@@ -81,17 +81,24 @@ class SceneChannels:
 
     def __init__(self, context, lattice, colour_by: str = "links", metadata: dict | None = None, *,
                  prefix: str = "/sheet", frame_id: str = "sheet", tf=None) -> None:
-        from foxglove.channels import FrameTransformChannel, PointCloudChannel, SceneUpdateChannel
+        import foxglove
+        from foxglove.channels import FrameTransformChannel, PointCloudChannel
+        from foxglove.messages import SceneUpdate
 
         if colour_by not in COLOUR_MODES:
             raise ValueError(f"Invalid colour_by: {colour_by!r} (need one of {COLOUR_MODES})")
         self.lattice = lattice
         self.colour_by = colour_by
         self.frame_id = frame_id
-        self.scene = SceneUpdateChannel(f"{prefix}/scene", context=context, metadata=metadata)
+        # a plain channel with the SDK's own SceneUpdate schema (what its SceneUpdateChannel
+        # advertises: same name, encoding and descriptor set), so that it takes bytes: the lattice is
+        # encoded with numpy (`_LineListScene`), the contacts with the SDK's `encode()`
+        self.scene = foxglove.Channel(f"{prefix}/scene", message_encoding="protobuf",
+                                      schema=SceneUpdate.get_schema(), context=context, metadata=metadata)
         self.cloud = PointCloudChannel(f"{prefix}/joints", context=context, metadata=metadata)
         self.tf = tf if tf is not None else FrameTransformChannel("/tf", context=context, metadata=metadata)
         self._ends = np.asarray(lattice.endpoints)
+        self._lines = _LineListScene(2 * self._ends.shape[0])
 
     def log_transform(self, t_ns: int, translation=(0.0, 0.0, 0.0), rotation=(0.0, 0.0, 0.0, 1.0),
                       parent: str = "world") -> None:
@@ -118,22 +125,22 @@ class SceneChannels:
         return out
 
     def log_lattice(self, joints: np.ndarray, valid: np.ndarray, t_ns: int, *, error=None, displacement=None) -> None:
-        """The lattice (line list) and the joints (point cloud) of one estimate; joints (rows, cols, 3) m."""
-        from foxglove.messages import (Color, LinePrimitive, LinePrimitiveLineType, PackedElementField,
-                                       PackedElementFieldNumericType, Point3, PointCloud, SceneEntity,
-                                       SceneUpdate, Timestamp)
+        """The lattice (line list) and the joints (point cloud) of one estimate; joints (rows, cols, 3) m.
+
+        The line list's 2 points and 2 colours per link go out as protobuf bytes made with numpy
+        (`_LineListScene`): on a 64x64 sheet (16,128 of each) one SDK object per point held the
+        interpreter lock ~15 ms a call, the bytes take ~0.15 ms (docs/recording.md)."""
+        from foxglove.messages import (PackedElementField, PackedElementFieldNumericType, PointCloud,
+                                       Timestamp)
 
         if not (self.scene.has_sinks() or self.cloud.has_sinks()):
             return
         P = np.asarray(joints, dtype=float).reshape(-1, 3)
-        ts = _ts(t_ns, Timestamp)
-        cols = self.link_colours(np.asarray(valid, dtype=bool), error, displacement)
-        pts = P[self._ends.ravel()]
-        line = LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True,
-                             points=[Point3(x=x, y=y, z=z) for x, y, z in pts.tolist()],
-                             colors=[Color(r=r, g=g, b=b_, a=al) for r, g, b_, al in cols.tolist()])
-        self.scene.log(SceneUpdate(entities=[SceneEntity(timestamp=ts, frame_id=self.frame_id, id="lattice", lines=[line])]),
-                       log_time=t_ns)
+        ts = _ts(t_ns, Timestamp)  # first: a time the SDK's Timestamp refuses logs nothing
+        if self.scene.has_sinks():
+            cols = self.link_colours(np.asarray(valid, dtype=bool), error, displacement)
+            self.scene.log(self._lines.encode(P[self._ends.ravel()], cols, t_ns, self.frame_id),
+                           log_time=t_ns)
         f32 = PackedElementFieldNumericType.Float32
         self.cloud.log(PointCloud(timestamp=ts, frame_id=self.frame_id, point_stride=12,
                                   fields=[PackedElementField(name=n, offset=4 * k, type=f32)
@@ -160,9 +167,9 @@ class SceneChannels:
             texts.append(TextPrimitive(pose=tpose, billboard=True, font_size=14, scale_invariant=True,
                                        color=Color(r=1, g=1, b=1, a=1),
                                        text=f"#{c.get('id', '?')} {float(c['force_n']):.2f} N"))
-        self.scene.log(SceneUpdate(entities=[SceneEntity(timestamp=_ts(t_ns, Timestamp), frame_id=self.frame_id,
-                                                         id="contacts", spheres=spheres, texts=texts)]),
-                       log_time=t_ns)
+        msg = SceneUpdate(entities=[SceneEntity(timestamp=_ts(t_ns, Timestamp), frame_id=self.frame_id,
+                                                id="contacts", spheres=spheres, texts=texts)])
+        self.scene.log(msg.encode(), log_time=t_ns)  # a plain channel: bytes
 
 
 def log_frame_transform(tf, t_ns: int, parent: str, child: str, translation=(0.0, 0.0, 0.0),
@@ -178,6 +185,105 @@ def log_frame_transform(tf, t_ns: int, parent: str, child: str, translation=(0.0
 
 def _ts(t_ns: int, Timestamp):
     return Timestamp(int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000))
+
+
+# -- foxglove.SceneUpdate with one line list, encoded with numpy ------------------------------------
+#: The field numbers of the lattice's SceneUpdate, from the schema foxglove-sdk ships
+#: (`foxglove.messages.SceneUpdate.get_schema()`, a FileDescriptorSet; tests/host/
+#: test_scene_encoding.py checks each against it). Timestamp is google.protobuf.Timestamp.
+_FIELDS = {
+    "SceneUpdate.entities": 2,
+    "SceneEntity.timestamp": 1, "SceneEntity.frame_id": 2, "SceneEntity.id": 3, "SceneEntity.lines": 11,
+    "Timestamp.seconds": 1, "Timestamp.nanos": 2,
+    "LinePrimitive.type": 1, "LinePrimitive.thickness": 3, "LinePrimitive.scale_invariant": 4,
+    "LinePrimitive.points": 5, "LinePrimitive.colors": 7,
+    "Point3.x": 1, "Point3.y": 2, "Point3.z": 3,
+    "Color.r": 1, "Color.g": 2, "Color.b": 3, "Color.a": 4,
+}
+#: `foxglove.LinePrimitive.Type` LINE_LIST
+_LINE_LIST = 2
+_VARINT, _I64, _LEN = 0, 1, 2  # wire types: int64, int32, enum, bool; double; message, string
+
+
+def _tag(field: str, wire: int) -> int:
+    return (_FIELDS[field] << 3) | wire  # every field number here < 16: a one-byte tag
+
+
+def _varint(n: int) -> bytes:
+    n &= (1 << 64) - 1  # a negative int64 as its two's complement, 10 bytes
+    out = bytearray()
+    while n >= 0x80:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
+
+
+def _len_field(field: str, payload: bytes) -> bytes:
+    return bytes([_tag(field, _LEN)]) + _varint(len(payload)) + payload
+
+
+def _doubles(*names: str) -> np.dtype:
+    """One element of a repeated message field, the message's fields ``names`` all double: the
+    field's tag, the length (one byte) and each field's tag and little-endian value; packed, no
+    padding. ``names`` are the dtype's names 3, 5, 7, ..."""
+    return np.dtype([("tag", "u1"), ("len", "u1")]
+                    + [f for name in names for f in ((f"tag_{name}", "u1"), (name, "<f8"))])
+
+
+_POINT3, _COLOR = _doubles("x", "y", "z"), _doubles("r", "g", "b", "a")
+_LINE_HEAD = (bytes([_tag("LinePrimitive.type", _VARINT), _LINE_LIST])
+              + bytes([_tag("LinePrimitive.thickness", _I64)]) + np.float64(2.0).astype("<f8").tobytes()
+              + bytes([_tag("LinePrimitive.scale_invariant", _VARINT), 1]))
+
+
+class _LineListScene:
+    """`foxglove.SceneUpdate` bytes of one entity holding one line list (thickness 2, scale
+    invariant) of ``n`` points with per-vertex colours: the message the SDK's objects encode to
+    (``LinePrimitive(points=[Point3(...)], colors=[Color(...)])``), made with numpy.
+
+    Every field of every point and colour is written (8 bytes each: the sub-messages all have the
+    length of `_POINT3` / `_COLOR`, their tags written once), -0.0 as +0.0 (the SDK omits it: it
+    decodes as +0.0). The line list's bytes live in a buffer kept between calls (a fresh 1 MB
+    buffer a call costs as much again in page faults as the encoding); a lock keeps two threads
+    from filling it at once."""
+
+    def __init__(self, n: int) -> None:
+        self.n = int(n)
+        h, p = len(_LINE_HEAD), self.n * _POINT3.itemsize
+        self._line = np.empty(h + p + self.n * _COLOR.itemsize, np.uint8)
+        self._line[:h] = np.frombuffer(_LINE_HEAD, np.uint8)
+        self._points = self._line[h:h + p].view(_POINT3)
+        self._colors = self._line[h + p:].view(_COLOR)
+        for rec, field, message in ((self._points, "LinePrimitive.points", "Point3"),
+                                    (self._colors, "LinePrimitive.colors", "Color")):
+            names = rec.dtype.names[3::2]
+            rec["tag"], rec["len"] = _tag(field, _LEN), 9 * len(names)  # < 128: a one-byte length
+            for name in names:
+                rec[f"tag_{name}"] = _tag(f"{message}.{name}", _I64)
+        self._lock = threading.Lock()
+
+    def encode(self, points: np.ndarray, colors: np.ndarray, t_ns: int, frame_id: str,
+               entity_id: str = "lattice") -> bytes:
+        """``points`` (n, 3) m, ``colors`` (n, 4) RGBA; the entity stamped ``t_ns``."""
+        points, colors = np.asarray(points, dtype=float), np.asarray(colors, dtype=float)
+        if points.shape != (self.n, 3) or colors.shape != (self.n, 4):
+            raise ValueError(f"need points ({self.n}, 3) and colors ({self.n}, 4), "
+                             f"got {points.shape} and {colors.shape}")
+        s, ns = int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000)
+        ts = ((bytes([_tag("Timestamp.seconds", _VARINT)]) + _varint(s) if s else b"")
+              + (bytes([_tag("Timestamp.nanos", _VARINT)]) + _varint(ns) if ns else b""))
+        n_line = len(self._line)
+        entity = (_len_field("SceneEntity.timestamp", ts)  # present, even if zero (as the SDK)
+                  + (_len_field("SceneEntity.frame_id", frame_id.encode()) if frame_id else b"")
+                  + (_len_field("SceneEntity.id", entity_id.encode()) if entity_id else b"")
+                  + bytes([_tag("SceneEntity.lines", _LEN)]) + _varint(n_line))
+        head = bytes([_tag("SceneUpdate.entities", _LEN)]) + _varint(len(entity) + n_line) + entity
+        with self._lock:
+            for rec, values in ((self._points, points), (self._colors, colors)):
+                for k, name in enumerate(rec.dtype.names[3::2]):
+                    np.add(values[:, k], 0.0, out=rec[name])  # + 0.0: -0.0 -> +0.0
+            return b"".join([head, self._line.data])
 
 
 # -- the handshake, sans I/O: bytes in, bytes out ---------------------------------------------------
