@@ -16,7 +16,12 @@ process (``spawn``) and hands back `RemoteEstimate` s, in order:
   process, at 64x64 (~1.6 s) about once a minute, so it never starves the estimates.
 
 The child warm-starts each estimate from the previous one (``previous=``), as the in-process
-path does.
+path does. Before the first request it warms up (`WARMUP_COUNTER`): one estimate of a flat sheet
+(the lattice's structure, ordering and factorisation built) and its uncertainty, whose cost starts
+the rule above. A host makes the process before bring-up, so this happens while the chips are
+brought up: the first snapshots' estimates no longer wait 1-2 s behind a 64x64 uncertainty, and
+that CPU is not taken from the receive threads in the first seconds of streaming (the first
+uncertainty of a 64x64 session then comes about a minute in; issue 31).
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE"]
+__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE", "WARMUP_COUNTER"]
 
 #: the uncertainty may take at most this share of the estimator's time (its cost / time since the last)
 UNCERTAINTY_SHARE = 0.03
@@ -39,6 +44,9 @@ PIPE_SIZE = 1 << 20
 _REQ = struct.Struct("<qII")
 #: answer header: counter, ok, iterations, residual, has_std, seconds spent
 _ANS = struct.Struct("<qIIdId")
+#: the counter of the child's warm-up answer (no snapshot has it: counters are 0..65535); its
+#: seconds are the warm-up uncertainty's
+WARMUP_COUNTER = -1
 
 
 @dataclass(eq=False)
@@ -82,6 +90,7 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
     from host.analysis.estimator import estimate
 
     n = rows * (cols - 1) + cols * (rows - 1)
+    _warm_up(ans, estimate, rows, cols, link_length, n)
     previous = None
     while True:
         try:
@@ -109,6 +118,22 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
             has_std = 1
         head = _ANS.pack(counter, 1, int(est.iterations), float(est.residual), has_std, time.perf_counter() - t0)
         ans.send_bytes(head + est.method.encode().ljust(16, b"\0") + b"".join(parts))
+
+
+def _warm_up(ans, estimate, rows: int, cols: int, link_length: float, n: int) -> None:
+    """Estimate a flat sheet and its uncertainty once; answer `WARMUP_COUNTER` with the
+    uncertainty's seconds (ok 0 and the reason if it failed: the requests are served anyway)."""
+    from protocol.constants import G0
+
+    flat = np.zeros((n, 3))
+    flat[:, 2] = G0
+    try:
+        est = estimate(flat, rows, cols, link_length, valid=np.ones(n, dtype=bool), bad_readings="mask")
+        t0 = time.perf_counter()
+        _ = (est.yaw_std, est.joint_std)  # cached properties: made now
+        ans.send_bytes(_ANS.pack(WARMUP_COUNTER, 1, 0, 0.0, 1, time.perf_counter() - t0))
+    except Exception as exc:  # noqa: BLE001 (a warm-up that fails costs nothing but itself)
+        ans.send_bytes(_ANS.pack(WARMUP_COUNTER, 0, 0, 0.0, 0, 0.0) + repr(exc).encode()[:2000])
 
 
 class EstimatorProcess:
@@ -143,7 +168,9 @@ class EstimatorProcess:
         self._proc.start()
         req_r.close()
         ans_w.close()
-        self._in_flight: deque[float] = deque()  # send times
+        self._in_flight: deque[float] = deque([time.monotonic()])  # send times; the warm-up's first
+        self.warm = False  #: the child's warm-up answered (`WARMUP_COUNTER`)
+        self.warmup_error = ""  #: why the warm-up failed, if it did
         self.submitted = 0
         self.made = 0  #: estimates returned
         self.failed = 0  #: snapshots the estimator could not estimate (`RemoteEstimate.error`)
@@ -157,13 +184,25 @@ class EstimatorProcess:
         return self._proc.pid
 
     @property
+    def uncertainty_cost_s(self) -> float:
+        """The last uncertainty's seconds in the child (the warm-up's until one is made)."""
+        return self._unc_cost
+
+    @property
+    def last_uncertainty_t(self) -> float:
+        """When the last uncertainty was asked for (the warm-up: when it was answered), monotonic s."""
+        return self._last_unc
+
+    @property
     def free(self) -> bool:
         """Another snapshot may be sent now."""
         return len(self._in_flight) < self.max_in_flight
 
     def uncertainty_due(self, now: float, period_s: float) -> bool:
-        """The uncertainty may be asked for at ``now``: ``period_s`` passed since the last and its
-        last cost is under `UNCERTAINTY_SHARE` of the time since."""
+        """The uncertainty may be asked for at ``now``: the child warmed up, ``period_s`` passed since
+        the last and its last cost is under `UNCERTAINTY_SHARE` of the time since."""
+        if not self.warm:  # the warm-up's own uncertainty first: its cost starts the rule
+            return False
         since = now - self._last_unc
         return since >= period_s and self._unc_cost <= UNCERTAINTY_SHARE * since
 
@@ -192,6 +231,13 @@ class EstimatorProcess:
                 break
             self._in_flight.popleft()
             counter, ok, iterations, residual, has_std, secs = _ANS.unpack_from(buf, 0)
+            if counter == WARMUP_COUNTER:  # its uncertainty's cost starts the rule
+                self.warm = True
+                if ok:
+                    self._unc_cost, self._last_unc = secs, time.monotonic()
+                else:
+                    self.warmup_error = buf[_ANS.size:].decode(errors="replace")
+                continue
             self.busy_s += secs
             if not ok:
                 self.failed += 1

@@ -75,3 +75,34 @@ def test_a_snapshot_that_cannot_be_estimated_is_said_and_the_next_is_made(worker
 def test_a_snapshot_of_another_lattice_is_refused(worker):
     with pytest.raises(ValueError, match="lattice of 49 links"):
         worker.submit(_snap(1, np.zeros((10, 3)), np.ones(10, bool)))
+
+
+def test_the_child_warms_up_first_and_its_uncertainty_cost_starts_the_rule():
+    """Before its first request the child estimates a flat sheet and its uncertainty (a host makes
+    the process before bring-up: the structure and the first uncertainty, 1-2 s at 64x64, are not
+    made in the first seconds of streaming). The warm-up is not an estimate (not returned, not
+    counted); its uncertainty's cost starts the rule, so the next uncertainty is due only once
+    that cost is under `UNCERTAINTY_SHARE` of the time since."""
+    import time
+
+    from host.estimate_worker import UNCERTAINTY_SHARE
+
+    w = EstimatorProcess(5, 6, 0.01, max_in_flight=3)
+    try:
+        assert not w.uncertainty_due(time.monotonic() + 1e6, 0.0)  # not before the warm-up's
+        got = []
+        t_end = time.monotonic() + 60.0
+        while not w.warm and time.monotonic() < t_end:
+            got += w.results(1.0)
+        assert w.warm and w.warmup_error == "" and got == []
+        assert w.made == 0 and w.busy_s == 0.0 and w.uncertainties == 0 and w.free
+        cost, t = w.uncertainty_cost_s, w.last_uncertainty_t
+        assert 0.0 < cost < 60.0 and t > 0.0
+        assert not w.uncertainty_due(t + 0.99 * cost / UNCERTAINTY_SHARE, 0.0)
+        assert w.uncertainty_due(t + 1.01 * cost / UNCERTAINTY_SHARE, 0.0)
+        n = 5 * 5 + 6 * 4
+        w.submit(_snap(7, np.tile([0.0, 0.0, 9.80665], (n, 1)), np.ones(n, bool)))
+        [e] = w.close()
+        assert e.counter == 7 and not e.error and w.made == 1
+    finally:
+        w.close()
