@@ -31,7 +31,7 @@ import threading
 
 import numpy as np
 
-__all__ = ["SceneChannels", "LiveServer", "log_frame_transform", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
+__all__ = ["SceneChannels", "LiveServer", "log_frame_transform", "varint", "length_delimited", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
            "SUBPROTOCOLS", "rewrite_request", "rewrite_response"]
 
 log = logging.getLogger(__name__)
@@ -209,8 +209,9 @@ def _tag(field: str, wire: int) -> int:
     return (_FIELDS[field] << 3) | wire  # every field number here < 16: a one-byte tag
 
 
-def _varint(n: int) -> bytes:
-    n &= (1 << 64) - 1  # a negative int64 as its two's complement, 10 bytes
+def varint(n: int) -> bytes:
+    """A protobuf varint (a negative int64 as its two's complement, 10 bytes)."""
+    n &= (1 << 64) - 1
     out = bytearray()
     while n >= 0x80:
         out.append((n & 0x7F) | 0x80)
@@ -219,8 +220,13 @@ def _varint(n: int) -> bytes:
     return bytes(out)
 
 
+def length_delimited(number: int, payload: bytes) -> bytes:
+    """Field ``number`` (wire type 2: bytes, string, message, packed) holding ``payload``."""
+    return varint((number << 3) | 2) + varint(len(payload)) + payload
+
+
 def _len_field(field: str, payload: bytes) -> bytes:
-    return bytes([_tag(field, _LEN)]) + _varint(len(payload)) + payload
+    return length_delimited(_FIELDS[field], payload)
 
 
 def _doubles(*names: str) -> np.dtype:
@@ -271,14 +277,14 @@ class _LineListScene:
             raise ValueError(f"need points ({self.n}, 3) and colors ({self.n}, 4), "
                              f"got {points.shape} and {colors.shape}")
         s, ns = int(t_ns // 1_000_000_000), int(t_ns % 1_000_000_000)
-        ts = ((bytes([_tag("Timestamp.seconds", _VARINT)]) + _varint(s) if s else b"")
-              + (bytes([_tag("Timestamp.nanos", _VARINT)]) + _varint(ns) if ns else b""))
+        ts = ((bytes([_tag("Timestamp.seconds", _VARINT)]) + varint(s) if s else b"")
+              + (bytes([_tag("Timestamp.nanos", _VARINT)]) + varint(ns) if ns else b""))
         n_line = len(self._line)
         entity = (_len_field("SceneEntity.timestamp", ts)  # present, even if zero (as the SDK)
                   + (_len_field("SceneEntity.frame_id", frame_id.encode()) if frame_id else b"")
                   + (_len_field("SceneEntity.id", entity_id.encode()) if entity_id else b"")
-                  + bytes([_tag("SceneEntity.lines", _LEN)]) + _varint(n_line))
-        head = bytes([_tag("SceneUpdate.entities", _LEN)]) + _varint(len(entity) + n_line) + entity
+                  + bytes([_tag("SceneEntity.lines", _LEN)]) + varint(n_line))
+        head = bytes([_tag("SceneUpdate.entities", _LEN)]) + varint(len(entity) + n_line) + entity
         with self._lock:
             for rec, values in ((self._points, points), (self._colors, colors)):
                 for k, name in enumerate(rec.dtype.names[3::2]):

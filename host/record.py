@@ -63,6 +63,8 @@ import logging
 
 import numpy as np
 
+from host.live import length_delimited
+
 log = logging.getLogger("capsheet.host.record")
 
 __all__ = ["Recorder", "Recording", "read", "read_recording", "iter_snapshots", "SnapshotBatch", "snapshot_count",
@@ -791,15 +793,6 @@ class Recorder:
         return session, layout, calibration
 
 
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while True:
-        b, n = n & 0x7F, n >> 7
-        out.append(b | (0x80 if n else 0))
-        if not n:
-            return bytes(out)
-
-
 def packed_sint32(number: int, values) -> bytes:
     """Field ``number`` of packed repeated ``sint32`` ``values`` (integers within int32), wire-encoded
     (zigzag varints) with numpy: what ``msg.<field>.extend(values.tolist())`` makes, for
@@ -830,7 +823,7 @@ def packed_sint32(number: int, values) -> bytes:
     else:
         n_bytes = 1 + sum((z >= (1 << (7 * k))).view(np.uint8).astype(np.intp) for k in range(1, cols))
         payload = grid[np.arange(cols) < n_bytes[:, None]].tobytes()
-    return _varint((number << 3) | 2) + _varint(len(payload)) + payload
+    return length_delimited(number, payload)
 
 
 def packed_float(number: int, values) -> bytes:
@@ -846,7 +839,7 @@ def packed_float(number: int, values) -> bytes:
     payload = np.ascontiguousarray(np.asarray(values, dtype="<f4").ravel()).tobytes()
     if not payload:
         return b""
-    return _varint((number << 3) | 2) + _varint(len(payload)) + payload
+    return length_delimited(number, payload)
 
 
 def _raw_payload(cap):
