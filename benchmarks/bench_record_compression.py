@@ -33,10 +33,8 @@ from host.record import Recorder, compression_level_for  # noqa: E402
 from protocol.framing import encode  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 from protocol.messages import Sync  # noqa: E402
-from virtual_sheet.gateway import Gateway  # noqa: E402
-from virtual_sheet.sheet import VirtualSheet  # noqa: E402
+from bench_virtual import RATE_HZ, Rig  # noqa: E402  (benchmarks/, this script's folder)
 
-RATE_HZ = 145.0
 PORTS = 5
 #: (zstd level, worker threads): the settings compared; the first is capsheet's default before
 #: issue 31's stop 43, the last its default for a sheet this size
@@ -44,17 +42,13 @@ SETTINGS = [(9, 1), (9, 0), (3, 1), (3, 0)]
 
 
 def wire_reads(lattice: str, n_syncs: int) -> list[bytes]:
-    """The gateway's output for ``n_syncs`` SYNCs at `RATE_HZ`, each cut in `PORTS` reads."""
-    sheet = VirtualSheet("grow", lattice, seed=1, noise=1.0, scene_rate_hz=10.0)
-    sheet.precompute()
-    gw = Gateway(sheet, packed=True)
-    gw.power_on(0.0)
-    gw.commission(0.0)
-    gw.pop_output(1.0)
-    t, reads = 0.01, []
+    """The gateway's output for ``n_syncs`` SYNCs at `RATE_HZ`, each cut in `PORTS` reads (a
+    commissioned, streaming sheet: `bench_virtual.Rig`)."""
+    rig = Rig(lattice, True, "array")
+    gw, t, reads = rig.gw, rig.t, []
     for k in range(n_syncs):
         t += 1 / RATE_HZ
-        gw.feed(encode(Sync(counter=k & 0xFFFF)), t)
+        gw.feed(encode(Sync(counter=(rig.counter + k) & 0xFFFF)), t)
         gw.poll(t)
         data, _ = gw.pop_wire(t)
         cut = np.linspace(0, len(data), PORTS + 1).astype(int)

@@ -14,7 +14,7 @@ from protocol.messages import Sync
 from .counter_trust import SyncCopies
 from .errors import SyncConflictError
 
-__all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S"]
+__all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S", "POLL_WAIT_S"]
 
 #: how long (s) a driving host listens for another SYNC source before START (`SyncDriver.check_source`)
 SYNC_LISTEN_S = 0.25
