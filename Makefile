@@ -6,7 +6,7 @@ STAMP  := $(VENV)/.installed-stamp
 
 .PHONY: demo test bench clean
 
-$(STAMP): pyproject.toml $(wildcard setup.py) $(wildcard firmware_ref/*.c firmware_ref/*.h firmware_ref/*/*.c firmware_ref/*/*.h) $(wildcard host/analysis/_kernel/*) $(wildcard host/analysis/tactile/_kernel/*) $(wildcard host/analysis/motion/_kernel/*)
+$(STAMP): pyproject.toml $(wildcard setup.py) $(wildcard firmware_ref/*.c firmware_ref/*.h firmware_ref/*/*.c firmware_ref/*/*.h) $(wildcard host/analysis/_kernel/*) $(wildcard host/analysis/tactile/_kernel/*) $(wildcard host/analysis/motion/_kernel/*) $(wildcard protocol/_kernel/*)
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[test,bench]'

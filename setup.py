@@ -2,7 +2,8 @@
 reference chip firmware), host.analysis._yaw_kernel (the estimator's compiled kernel; the
 estimator falls back to numpy without it) and host.analysis.tactile._response_kernel (the
 tactile contact model's response; numpy without it), host.analysis.motion._link_kernel
-(the fused estimator's per-link filter steps; numpy without it). Everything else is in
+(the fused estimator's per-link filter steps; numpy without it), protocol._stream_kernel (the
+serial stream decoder's scan; numpy and Python without it). Everything else is in
 pyproject.toml."""
 
 from setuptools import setup
@@ -11,4 +12,5 @@ setup(cffi_modules=["firmware_ref/build_ffi.py:ffibuilder",
                     "firmware_ref/build_ffi.py:ffibuilder_mutants",
                     "host/analysis/_kernel/build.py:ffibuilder",
                     "host/analysis/tactile/_kernel/build_response.py:ffibuilder",
-                    "host/analysis/motion/_kernel/build_link_kernel.py:ffibuilder"])
+                    "host/analysis/motion/_kernel/build_link_kernel.py:ffibuilder",
+                    "protocol/_kernel/build.py:ffibuilder"])

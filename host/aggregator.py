@@ -62,7 +62,7 @@ import numpy as np
 from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
 from protocol.messages import ImuBatch, SampleBatch
 from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
-from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotImu,
+from protocol.messages import (SAMPLE_WORD_SIZE, TIME_UNKNOWN, ImuSample, Sample, Snapshot, SnapshotFrames, SnapshotImu,
                                unpack_sample_words, unpack_snapshots)
 
 from .counter_trust import MAX_AGE, MAX_JUMP, OPEN, RESYNC, CounterTrust, serial_diff
@@ -498,12 +498,19 @@ class Aggregator:
 
     # -- ingest ----------------------------------------------------------------------------
     def ingest(self, events: Iterable, bus: int = 0, *, now: float) -> None:
-        """Feed decoder/transport events that arrived at ``now``; anything but
-        SAMPLE/SampleBatch/SNAPSHOT is ignored (a replay at a recorded ``now`` decides alike)."""
+        """Feed decoder/transport events that arrived at ``now``; anything but samples (SAMPLE,
+        SampleBatch, SNAPSHOT, SnapshotFrames, IMU records) is ignored (a replay at a recorded
+        ``now`` decides alike)."""
         snaps: list[Snapshot] = []  # a run of SNAPSHOT frames: ingested together, in one pass
         for ev in events:
             if isinstance(ev, Snapshot):
                 snaps.append(ev)
+                continue
+            if type(ev) is SnapshotFrames:  # a run the decoder unpacked already
+                if snaps:
+                    self.ingest_snapshots(snaps, bus, now=now)
+                    snaps = []
+                self.ingest_snapshot_frames(ev, bus, now=now)
                 continue
             if isinstance(ev, (ImuSample, SnapshotImu, ImuBatch)):
                 if snaps:
@@ -611,12 +618,25 @@ class Aggregator:
                 self.ingest_snapshot(f, bus, now=now)
             return
         counter, links, counts, status = unpack_snapshots(frames)
-        links = links.astype(np.int64)
         sizes = np.fromiter((len(f.words) for f in frames), dtype=np.int64, count=len(frames)) // SAMPLE_WORD_SIZE
+        self._ingest_runs(counter, links.astype(np.int64), counts, status, sizes, bus, now)
+
+    def ingest_snapshot_frames(self, batch: SnapshotFrames, bus: int = 0, *, now: float) -> None:
+        """`ingest_snapshots` of a `protocol.messages.SnapshotFrames` (the frames of one read that
+        the stream decoder unpacked already): the same snapshots and counts."""
+        if len(batch) == 1:
+            self._scatter_inside(batch.link, batch.counter, batch.counts, batch.status, bus, now)
+            return
+        self._ingest_runs(batch.counter, batch.link, batch.counts, batch.status, batch.sizes, bus, now)
+
+    def _ingest_runs(self, counter, links, counts, status, sizes, bus: int, now: float) -> None:
+        """`ingest_snapshots` on unpacked frames: per sample ``counter``, ``links`` (int64),
+        ``counts``, ``status``; per frame its sample count ``sizes``."""
+        nf = sizes.shape[0]
         ends = np.cumsum(sizes)  # frame k: samples ends[k] - sizes[k] .. ends[k] - 1
         starts = ends - sizes
         fcounter = counter[starts]
-        i, nf = 0, len(frames)
+        i = 0
         while i < nf:
             j = self._run_end(i, nf, fcounter, links, counter, starts, ends, now)
             a, b = int(starts[i]), int(ends[j - 1])

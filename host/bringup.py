@@ -18,7 +18,7 @@ from protocol.constants import nominal_sensitivity
 from protocol.framing import DecodeError
 from protocol.messages import (CAL_BLOCK_SIZE, CalBlock, CalImuData, CalImuRead, Capability,
                                Ack, Assign, CalData, CalRead, Config, ConfigImu, GetInfo, ImuBatch,
-                               MsgType, Nack, Reset, SampleBatch, Start, StatusBatch, Stop, Sync)
+                               MsgType, Nack, Reset, SampleBatch, SnapshotFrames, Start, StatusBatch, Stop, Sync)
 
 from .errors import CapacityError, MismatchError
 from .registry import ChipRecord, Layout, node_for_link
@@ -119,7 +119,7 @@ class BringUp:
     def count_stale(self, events: list) -> None:
         """What arrived while `discarding`: counted, dropped."""
         for ev in events:
-            k = len(ev) if isinstance(ev, (SampleBatch, ImuBatch, StatusBatch)) else 1
+            k = len(ev) if isinstance(ev, (SampleBatch, ImuBatch, StatusBatch, SnapshotFrames)) else 1
             self.stale_frames += k
             if not isinstance(ev, (Sync, DecodeError)):
                 self._stale_chip_frames += k

@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, GatewayFlag,
-                               GatewayInfo, Info, Message, MsgType, SampleFormat, Snapshot, SnapshotImu, Status)
+                               GatewayInfo, Info, Message, MsgType, SampleFormat, Snapshot, SnapshotFrames, SnapshotImu,
+                               Status)
 
 #: GATEWAY_INFO ``sample_format`` values this host reads: §5.2's words in SNAPSHOT, and the 6/9-axis
 #: IMU records in SNAPSHOT_IMU (§16.5, protocol 1.2)
@@ -141,9 +142,20 @@ class GatewayNodes:
     def drop_unreadable(self, bus: int, events: list) -> list:
         """``events`` without the SNAPSHOTs of gateways whose sample format is unknown (§4.16: a host
         MUST NOT interpret those words); they are counted in `unreadable_frames`."""
-        out = [ev for ev in events
-               if not (isinstance(ev, (Snapshot, SnapshotImu)) and self._node.get((bus, ev.node)) in self.unreadable)]
-        self.unreadable_frames += len(events) - len(out)
+        out = []
+        for ev in events:
+            if type(ev) is SnapshotFrames:
+                keep = np.fromiter((self._node.get((bus, int(n))) not in self.unreadable for n in ev.node),
+                                   dtype=bool, count=len(ev))
+                if not keep.all():
+                    self.unreadable_frames += len(ev) - int(keep.sum())
+                    if keep.any():
+                        out.append(ev.select(keep))
+                    continue
+            elif isinstance(ev, (Snapshot, SnapshotImu)) and self._node.get((bus, ev.node)) in self.unreadable:
+                self.unreadable_frames += 1
+                continue
+            out.append(ev)
         return out
 
     def forget(self) -> None:

@@ -79,7 +79,8 @@ class ReplayTransport(Transport):
         self._wall0: float | None = None
         # the live transports' decoders: a serial stream, or CAN frames (a recording holds only
         # frames the host received, so the CAN decoder's echo filter sees none of ours)
-        self.decoder = StreamDecoder(batch_samples=True) if self.kind == "serial" else CanDecoder(fd=fd)
+        self.decoder = (StreamDecoder(batch_samples=True, batch_snapshots=True) if self.kind == "serial"
+                        else CanDecoder(fd=fd))
         self.sent: list = []
         self.capabilities = TransportCapabilities(kind=self.kind, mtu=1018 if self.kind == "serial" else 64,
                                                   fd=self.kind == "can" and fd, name=name)

@@ -46,7 +46,7 @@ from protocol.framing import DecodeError, StreamDecoder
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
 from protocol.messages import (Ack, Announce, CalData, CalImuData, ChipState, ImuBatch, ImuSample, Info, Message, Nack, Sample,
-                               SampleBatch, Snapshot, SnapshotImu, Status, StatusBatch, Stop, Sync)
+                               SampleBatch, Snapshot, SnapshotFrames, SnapshotImu, Status, StatusBatch, Stop, Sync)
 
 from .aggregator import Aggregator, LatticeSnapshot
 from .bringup import BringUp, capacity_remedy
@@ -68,7 +68,7 @@ __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSche
 log = logging.getLogger("capsheet.host")
 
 #: what the receive path hands the feed (IMU records of 6/9-axis chips too, docs/protocol.md §16)
-_DATA = (SampleBatch, Snapshot, Sample, DecodeError, ImuSample, SnapshotImu, ImuBatch)
+_DATA = (SampleBatch, Snapshot, SnapshotFrames, Sample, DecodeError, ImuSample, SnapshotImu, ImuBatch)
 
 
 class _InPart:
@@ -181,9 +181,10 @@ class Host:
             raise ValueError(f"Invalid tick_s: {tick_s!r} (need a finite value > 0 s)")
         self.tick_s = float(tick_s)
         self.transports: list[Transport] = [transports] if isinstance(transports, Transport) else list(transports)
-        for t in self.transports:  # serial heartbeats in runs, taken at once (`_on_heartbeats`)
-            if isinstance(getattr(t, "decoder", None), StreamDecoder):
+        for t in self.transports:  # serial heartbeats and SNAPSHOTs in runs, taken at once
+            if isinstance(getattr(t, "decoder", None), StreamDecoder):  # (`_on_heartbeats`, the aggregator)
                 t.decoder.batch_status = True
+                t.decoder.batch_snapshots = True
         if not self.transports:
             raise ValueError("Host needs at least one transport")
         self.lattice = Lattice.parse(lattice) if isinstance(lattice, str) else lattice

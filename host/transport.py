@@ -44,7 +44,7 @@ from typing import Any, Callable, NamedTuple
 
 from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, StreamDecoder, encode
-from protocol.messages import ImuBatch, Message, SampleBatch, StatusBatch
+from protocol.messages import ImuBatch, Message, SampleBatch, SnapshotFrames, StatusBatch
 
 __all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Capture", "RawFrame", "Transport", "SerialTransport", "MemoryTransport",
@@ -376,7 +376,7 @@ class Transport(ABC):
                 for ev in events:
                     if isinstance(ev, DecodeError):
                         self.stats.errors[ev.reason.name] += 1
-                    elif isinstance(ev, (SampleBatch, ImuBatch, StatusBatch)):
+                    elif isinstance(ev, (SampleBatch, ImuBatch, StatusBatch, SnapshotFrames)):
                         self.stats.frames_in += len(ev)
                     else:
                         self.stats.frames_in += 1

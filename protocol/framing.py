@@ -27,10 +27,11 @@ from cobs import cobs
 from .crc import crc16_ccitt_false, crc16_rows
 from .messages import (IMU_RECORD_SIZE, TIME_UNKNOWN, ImuBatch, ImuSample, SampleFormat, unpack_imu_records)
 from .messages import (PROTOCOL_VERSION, MsgType, Message, PayloadError, Sample, SampleBatch, SAMPLE_WORD_SIZE,
-                       STATUS_STATES, Status, StatusBatch, decode_payload)
+                       STATUS_STATES, Snapshot, SnapshotFrames, Status, StatusBatch, decode_payload)
 
 __all__ = ["HEADER", "HEADER_SIZE", "CRC_SIZE", "MAX_FRAME_SIZE", "MAX_PAYLOAD_SIZE", "MAX_ENCODED_SIZE",
-           "SAMPLE_WIRE_SIZE", "ErrorReason", "DecodeError", "SampleBatch", "ImuBatch", "StatusBatch", "DecoderStats",
+           "SAMPLE_WIRE_SIZE", "ErrorReason", "DecodeError", "SampleBatch", "ImuBatch", "StatusBatch", "SnapshotFrames",
+           "DecoderStats", "NATIVE_SCAN",
            "encode", "encode_frame", "decode_frame", "StreamDecoder", "cobs_encoded_size"]
 
 HEADER = struct.Struct("<BBH")
@@ -148,6 +149,67 @@ _STATUS_KIND = 4
 _STATUS_ENC = HEADER_SIZE + Status.SIZE + CRC_SIZE + 1
 assert _STATUS_ENC not in _FAST_KINDS
 _FAST_KINDS_STATUS = {**_FAST_KINDS, _STATUS_ENC: (_STATUS_KIND, MsgType.STATUS)}
+assert sorted(k for k, _ in _FAST_KINDS_STATUS.values()) == [1, 2, 3, _STATUS_KIND]
+#: a fast kind's decoded frame length (its encoded length less COBS's one overhead byte)
+_FAST_DEC_LEN = {k: enc - 1 for enc, (k, _) in _FAST_KINDS_STATUS.items()}
+
+
+_SNAPSHOT_KIND = 5  #: SNAPSHOT frames, on the fast path only with ``batch_snapshots`` (`SnapshotFrames`)
+
+
+def _load_scan():
+    """The compiled scan (protocol/_kernel/stream.c), or None: not built, or ``CAPSHEET_NO_KERNEL``
+    set (then the numpy and per-frame Python code below decode alike)."""
+    import os
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        return None
+    try:
+        from ._stream_kernel import ffi, lib
+    except ImportError:
+        return None
+    return ffi, lib
+
+
+_SCAN = _load_scan()
+#: True when `StreamDecoder` scans with the compiled kernel (protocol/_kernel/stream.c)
+NATIVE_SCAN = _SCAN is not None
+#: the scan's row of a fast kind: every decoded SAMPLE, STATUS and IMU_SAMPLE fits
+_ROW_STRIDE = 32
+
+
+class _Scratch:
+    """The compiled scan's output arrays, grown to the largest chunk seen (one set per decoder)."""
+
+    def __init__(self) -> None:
+        self.cap = 0
+
+    def ensure(self, n: int) -> None:
+        if n <= self.cap:
+            return
+        cap = max(n, 2 * self.cap, 1 << 12)
+        nf, nsnap, nsamp = cap // 2 + 1, cap // 16 + 1, cap // SAMPLE_WORD_SIZE + 1
+        self.start = np.empty(nf, np.int64)
+        self.length = np.empty(nf, np.int64)
+        self.kind = np.empty(nf, np.int8)
+        self.rows = np.empty((nf, _ROW_STRIDE), np.uint8)
+        self.snap_node = np.empty(nsnap, np.uint16)
+        self.snap_counter = np.empty(nsnap, np.uint16)
+        self.snap_first = np.empty(nsnap, np.uint16)
+        self.snap_count = np.empty(nsnap, np.int64)
+        self.s_counter = np.empty(nsamp, np.uint16)
+        self.s_link = np.empty(nsamp, np.int64)
+        self.s_counts = np.empty((nsamp, 3), np.int16)
+        self.s_status = np.empty(nsamp, np.uint8)
+        ffi = _SCAN[0]
+        o = self.out = ffi.new("capsheet_scan_t *")
+        p = lambda a, t: ffi.cast(t, a.ctypes.data)  # noqa: E731 - the arrays are kept on self
+        o.start, o.length, o.kind = p(self.start, "int64_t *"), p(self.length, "int64_t *"), p(self.kind, "int8_t *")
+        o.rows, o.row_stride = p(self.rows, "uint8_t *"), _ROW_STRIDE
+        o.snap_node, o.snap_counter = p(self.snap_node, "uint16_t *"), p(self.snap_counter, "uint16_t *")
+        o.snap_first, o.snap_count = p(self.snap_first, "uint16_t *"), p(self.snap_count, "int64_t *")
+        o.s_counter, o.s_link = p(self.s_counter, "uint16_t *"), p(self.s_link, "int64_t *")
+        o.s_counts, o.s_status = p(self.s_counts, "int16_t *"), p(self.s_status, "uint8_t *")
+        self.cap = cap
 
 
 def _fast_samples(rows: np.ndarray, msg_type: int = MsgType.SAMPLE) -> tuple[np.ndarray, np.ndarray]:
@@ -185,15 +247,36 @@ class StreamDecoder:
         If true, runs of STATUS frames come out as one `StatusBatch` each instead of `Status`
         messages (a host's heartbeats: one per chip per second, 8,064 a second from a 64x64 sheet,
         more frames than its packed samples). The same frames are accepted either way.
+    batch_snapshots : bool
+        If true, runs of SNAPSHOT frames come out as one `SnapshotFrames` each instead of
+        `Snapshot` messages (a host's packing gateways). The same frames are accepted either way.
+    native : bool or None
+        Scan with the compiled kernel (protocol/_kernel/stream.c): one pass over a read in C
+        instead of numpy per frame kind and Python per SNAPSHOT. None (default): when it is built
+        (`NATIVE_SCAN`). The events are the same either way (tests/protocol/test_stream_kernel.py).
 
     The decoder holds at most ``MAX_ENCODED_SIZE`` bytes of an incomplete frame: a longer run
     without a delimiter is reported once as OVERSIZE and skipped up to the next 0x00.
     Whole input, byte by byte, or any chunking give the same events.
     """
 
-    def __init__(self, *, batch_samples: bool = False, batch_status: bool = False) -> None:
+    def __init__(self, *, batch_samples: bool = False, batch_status: bool = False, batch_snapshots: bool = False,
+                 native: bool | None = None) -> None:
         self.batch_samples = batch_samples
         self.batch_status = batch_status
+        self.batch_snapshots = batch_snapshots
+        if native and not NATIVE_SCAN:
+            raise ValueError("The compiled stream scan is not available (protocol/_kernel/stream.c not built, "
+                             "or CAPSHEET_NO_KERNEL set)")
+        self.native = NATIVE_SCAN if native is None else bool(native)
+        self._scratch = _Scratch() if self.native else None
+        self._fast_dec_len = _FAST_DEC_LEN
+        self._fast_types: dict = {}
+        if self.native:
+            lens = [0] * 4
+            for k, m in _FAST_DEC_LEN.items():
+                lens[k - 1] = m
+            self._fast_len_c = _SCAN[0].new("int32_t[4]", lens)
         self.stats = DecoderStats()
         self._partial = bytearray()
         self._discarding = False
@@ -221,13 +304,9 @@ class StreamDecoder:
             self._discarding = False
             self._partial.clear()
             chunk = bytes(data[first + 1:last + 1])
-        elif self._partial:
-            first = data.find(b"\x00")
-            self._partial += data[:first]
-            head = bytes(self._partial)
+        elif self._partial:  # the held frame's end and the frames after it: one chunk, one pass
+            chunk = bytes(self._partial) + bytes(data[:last + 1])
             self._partial.clear()
-            self._decode_chunk(head + b"\x00", events)
-            chunk = bytes(data[first + 1:last + 1])
         else:
             chunk = bytes(data[:last + 1])
         self._decode_chunk(chunk, events)
@@ -261,6 +340,89 @@ class StreamDecoder:
         """Decode ``chunk``, which ends with 0x00, frame by frame in order."""
         if not chunk:
             return
+        if self.native:
+            self._scan_chunk(chunk, events)
+            return
+        if not self.batch_snapshots:
+            self._numpy_chunk(chunk, events)
+            return
+        mine: list = []
+        self._numpy_chunk(chunk, mine)
+        run: list = []  # runs of SNAPSHOT frames, one SnapshotFrames each (as the compiled scan gives them)
+        for ev in mine:
+            if type(ev) is Snapshot:
+                run.append(ev)
+                continue
+            if run:
+                events.append(SnapshotFrames.from_frames(run))
+                run = []
+            events.append(ev)
+        if run:
+            events.append(SnapshotFrames.from_frames(run))
+
+    def _scan_chunk(self, chunk: bytes, events: list) -> None:
+        """`_decode_chunk` with the compiled scan: kinds, decoded rows and SNAPSHOT samples in one C
+        pass; the frames it does not take go to `decode_frame`, as in `_numpy_chunk`."""
+        ffi, lib = _SCAN
+        sc = self._scratch
+        sc.ensure(len(chunk))
+        nf = lib.capsheet_scan_chunk(ffi.from_buffer(chunk), len(chunk), PROTOCOL_VERSION, MAX_FRAME_SIZE, 4,
+                                     self._fast_type_c, self._fast_len_c,
+                                     MsgType.SNAPSHOT if self.batch_snapshots else -1, sc.out)
+        if nf == 0:
+            return
+        kind = sc.kind[:nf]
+        if self.batch_status:  # what Status._validate refuses goes the exact slow way
+            st = np.flatnonzero(kind == _STATUS_KIND)
+            if st.size:
+                bad = ~np.isin(sc.rows[st, HEADER_SIZE], STATUS_STATES)
+                kind[st[bad]] = 0
+        if not kind.any():
+            for s, n in zip(sc.start[:nf].tolist(), sc.length[:nf].tolist()):
+                self._slow(chunk[s:s + n], events)
+            return
+        edges = np.flatnonzero(kind[1:] != kind[:-1]) + 1
+        bounds = [0, *edges.tolist(), nf]
+        kinds = kind[bounds[:-1]].tolist()
+        snap_i = 0
+        samp_i = 0
+        for a, b, k in zip(bounds[:-1], bounds[1:], kinds):
+            if k == _SNAPSHOT_KIND:
+                j = snap_i + (b - a)
+                sizes = sc.snap_count[snap_i:j].copy()
+                m = samp_i + int(sizes.sum())
+                self.stats.frames += b - a
+                events.append(SnapshotFrames(sc.snap_node[snap_i:j].copy(), sc.snap_counter[snap_i:j].copy(),
+                                             sc.snap_first[snap_i:j].copy(), sizes, sc.s_counter[samp_i:m].copy(),
+                                             sc.s_link[samp_i:m].copy(), sc.s_counts[samp_i:m].copy(),
+                                             sc.s_status[samp_i:m].copy()))
+                snap_i, samp_i = j, m
+            elif k == 0:
+                for s, n in zip(sc.start[a:b].tolist(), sc.length[a:b].tolist()):
+                    self._slow(chunk[s:s + n], events)
+            else:
+                d = sc.rows[a:b, :self._fast_dec_len[k]].astype(np.int64)
+                if k == 1:
+                    self._emit_samples(d, events)
+                elif k == _STATUS_KIND:
+                    self._emit_status(d, events)
+                else:
+                    self._emit_imu(d, SampleFormat(k - 1), events)
+
+    @property
+    def _fast_type_c(self):
+        """The fast kinds' types for the scan (STATUS only with ``batch_status``, which a host sets)."""
+        t = self._fast_types.get(self.batch_status)
+        if t is None:
+            types = [0] * 4
+            for k, ty in _FAST_KINDS_STATUS.values():
+                types[k - 1] = int(ty) if (k != _STATUS_KIND or self.batch_status) else -1
+            t = self._fast_types[self.batch_status] = _SCAN[0].new("int32_t[4]", types)
+        return t
+
+    def _numpy_chunk(self, chunk: bytes, events: list) -> None:
+        """`_decode_chunk` without the compiled scan: numpy per fast frame kind, `decode_frame` per
+        other frame."""
         buf = np.frombuffer(chunk, dtype=np.uint8)
         ends = np.flatnonzero(buf == 0)
         starts = np.empty_like(ends)

@@ -26,7 +26,7 @@ __all__ = [
     "LINK_NONE", "is_node_to_host_type",
     "NODE_BROADCAST", "NODE_MAX_ASSIGNED", "NODE_PROVISIONAL_MIN", "NODE_PROVISIONAL_MAX",
     "SAMPLE_WORD_SIZE", "MAX_SNAPSHOT_SAMPLES",
-    "Message", "Announce", "Info", "Sample", "SampleBatch", "ImuBatch", "Status", "StatusBatch", "STATUS_STATES", "Ack", "Nack", "CalData", "Snapshot",
+    "Message", "Announce", "Info", "Sample", "SampleBatch", "ImuBatch", "Status", "StatusBatch", "STATUS_STATES", "Ack", "Nack", "CalData", "Snapshot", "SnapshotFrames",
     "GatewayInfo", "Sync", "Assign", "Config", "Start", "Stop", "GetInfo", "Reset", "CalWrite", "CalRead",
     "MESSAGE_TYPES", "message_to_fields", "message_from_fields", "pack_sample_words", "unpack_sample_words", "unpack_snapshots", "PayloadError", "decode_payload",
     "provisional_node",
@@ -700,6 +700,59 @@ class Snapshot(Message):
             return cls(node, counter, first, bytes(payload[5:]))
         except ValueError as exc:
             raise PayloadError("BAD_FIELD", str(exc)) from exc
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SnapshotFrames:
+    """Consecutive SNAPSHOT frames of one read, decoded at once: the event of
+    `framing.StreamDecoder` with ``batch_snapshots`` (a host's serial transports; the packed
+    64x64 sheet sends ~35 of them per SYNC), taken by `host.aggregator.Aggregator` without a
+    `Snapshot` object per frame.
+
+    Per frame (length f): ``node``, ``frame_counter``, ``first_link`` uint16, ``sizes`` int64
+    (its sample count). Per sample, over all frames in order (length n = ``sizes.sum()``):
+    ``counter`` uint16, ``link`` int64 (``first_link`` + position), ``counts`` int16 (n, 3),
+    ``status`` uint8 — what `unpack_snapshots` returns for the same frames.
+    """
+
+    node: np.ndarray
+    frame_counter: np.ndarray
+    first_link: np.ndarray
+    sizes: np.ndarray
+    counter: np.ndarray
+    link: np.ndarray
+    counts: np.ndarray
+    status: np.ndarray
+
+    def __len__(self) -> int:
+        """The number of frames (what a transport counts as frames in)."""
+        return int(self.node.shape[0])
+
+    @classmethod
+    def from_frames(cls, frames) -> "SnapshotFrames":
+        """The batch of `Snapshot` messages ``frames`` (at least one)."""
+        frames = list(frames)
+        counter, link, counts, status = unpack_snapshots(frames)
+        f = len(frames)
+        return cls(np.fromiter((s.node for s in frames), dtype=np.uint16, count=f),
+                   np.fromiter((s.counter for s in frames), dtype=np.uint16, count=f),
+                   np.fromiter((s.first_link for s in frames), dtype=np.uint16, count=f),
+                   np.fromiter((s.count for s in frames), dtype=np.int64, count=f),
+                   counter, link.astype(np.int64), counts, status)
+
+    def select(self, keep: np.ndarray) -> "SnapshotFrames":
+        """The frames where ``keep`` (bool, per frame) is true, in order."""
+        per_sample = np.repeat(keep, self.sizes)
+        return SnapshotFrames(self.node[keep], self.frame_counter[keep], self.first_link[keep], self.sizes[keep],
+                              self.counter[per_sample], self.link[per_sample], self.counts[per_sample],
+                              self.status[per_sample])
+
+    def messages(self) -> list[Snapshot]:
+        """The batch as `Snapshot` messages (slow; for tests and display)."""
+        ends = np.cumsum(self.sizes)
+        return [Snapshot.from_arrays(int(self.node[k]), int(self.frame_counter[k]), int(self.first_link[k]),
+                                     self.counts[e - n:e], self.status[e - n:e])
+                for k, (n, e) in enumerate(zip(self.sizes.tolist(), ends.tolist()))]
 
 
 @dataclass(frozen=True, slots=True)

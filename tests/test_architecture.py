@@ -253,8 +253,9 @@ def test_compiled_extensions_are_known_to_the_import_graph():
     # each cffi module of setup.py; the estimator and the tactile response import theirs relatively
     assert compiled_modules() == {"firmware_ref._capsheet_fw", "firmware_ref._capsheet_fw_mutants",
                                   "host.analysis._yaw_kernel", "host.analysis.tactile._response_kernel",
-                                  "host.analysis.motion._link_kernel"}
+                                  "host.analysis.motion._link_kernel", "protocol._stream_kernel"}
     graph = import_graph()
+    assert "protocol._stream_kernel" in graph["protocol.framing"]
     assert "host.analysis.tactile" not in graph["host.analysis.tactile.response"]
     assert "host.analysis.tactile.response" in graph["host.analysis.tactile.fit"]
 
@@ -262,7 +263,8 @@ def test_compiled_extensions_are_known_to_the_import_graph():
 def test_the_graph_knows_the_compiled_modules_built_or_not():
     # cffi's API-mode extensions are not .py files; read from their build scripts they are leaves
     graph = import_graph()
-    for name in ("host.analysis._yaw_kernel", "host.analysis.motion._link_kernel", "firmware_ref._capsheet_fw"):
+    for name in ("host.analysis._yaw_kernel", "host.analysis.motion._link_kernel", "firmware_ref._capsheet_fw",
+                 "protocol._stream_kernel"):
         assert graph[name] == set()
     assert "host.analysis.motion._link_kernel" in graph["host.analysis.motion.fused"]
     assert "host.analysis.motion" not in graph["host.analysis.motion.fused"]

@@ -10,7 +10,7 @@ import pytest
 from host.aggregator import Aggregator, LinkFlag, serial_diff
 from protocol import SampleStatus, Snapshot, StreamDecoder, decode_can, encode, to_can
 from protocol.constants import G0
-from protocol.messages import SampleBatch
+from protocol.messages import SampleBatch, SnapshotFrames
 from protocol.messages import Sample
 
 
@@ -529,7 +529,22 @@ def _snapshot_world(seed: int, batched: bool):
             k = int(r.integers(1, 7))
             events.append(Snapshot.from_arrays(0, c, first, r.integers(-2048, 2048, size=(k, 3)),
                                                r.integers(0, 16, size=k)))
-        if batched:
+        if batched == "decoded":  # as a host's serial transport delivers them: runs as SnapshotFrames
+            dec = StreamDecoder(batch_samples=True, batch_snapshots=True)
+            decoded, run = [], []
+            for e in events + [None]:
+                if isinstance(e, Snapshot):
+                    run.append(e)
+                    continue
+                if run:
+                    (frames,) = dec.feed(b"".join(encode(f) for f in run))
+                    assert type(frames) is SnapshotFrames and len(frames) == len(run)
+                    decoded.append(frames)
+                    run = []
+                if e is not None:
+                    decoded.append(e)
+            agg.ingest(decoded, now=clock.t)
+        elif batched:
             agg.ingest(events, now=clock.t)
         else:
             for ev in events:
@@ -543,8 +558,10 @@ def _snapshot_world(seed: int, batched: bool):
 
 
 @pytest.mark.parametrize("seed", range(60))
-def test_snapshot_frames_of_one_read_in_one_pass_equal_one_at_a_time(seed):
-    a, snaps_a = _snapshot_world(seed, batched=True)
+@pytest.mark.parametrize("way", [True, "decoded"])
+def test_snapshot_frames_of_one_read_in_one_pass_equal_one_at_a_time(seed, way):
+    """Runs of `Snapshot` s, and the `SnapshotFrames` a decoder with ``batch_snapshots`` gives."""
+    a, snaps_a = _snapshot_world(seed, batched=way)
     b, snaps_b = _snapshot_world(seed, batched=False)
     assert a.stats.summary() == b.stats.summary()
     assert a.stats.unknown_nodes == b.stats.unknown_nodes
