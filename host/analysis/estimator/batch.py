@@ -125,7 +125,8 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
             rr, alpha, beta, _ = link_angles(r[idx], mask0, mask)
             _, prior_w, bend_w, tol = noise_and_priors("adaptive", st, rr, norm[idx], mask0, False)
             target = st.rest_yaw
-            warm = WarmStart.of(prev)
+            chain = WarmStart.of(prev)
+            warm = chain.covering(mask0)
             start, lu = warm.start(st, target)
             gamma, iters, failed, n_fact, lu, prob_of = solve_global_batch(
                 st, alpha, beta, start, target, prior_w, bend_w, lu, tol)
@@ -137,7 +138,15 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
                     st, L, alpha[ok], beta[ok], gamma[ok], target, warm.joint_prior(st, L))
                 solv = link_solvability(a_out, b_out, None, rows, cols)
             dt = (time.perf_counter() - t0) / max(idx.size, 1)
+            fb_first = None  # the chain's fallback (`WarmStart.next_fallback`), as one at a time
             for j, kk in enumerate(idx[ok]):
+                sol_j = Solution(st, lu, prob_of(int(rows_ok[j])), g_out[j])
+                own = WarmStart(g_out[j], P[j].reshape(rows, cols, 3), sol_j, mask0)
+                if fb_first is None:
+                    fb_first = chain.next_fallback(mask0, own)
+                    fallback = fb_first
+                else:  # the same links as the one before: its fallback, or this one if that was its own
+                    fallback = own if fb_first.valid is mask0 else fb_first
                 out[s0 + kk] = ShapeEstimate(
                     joints=P[j].reshape(rows, cols, 3), directions=d[j], residual=float(residual[j]),
                     solvability=solv[j], normals=nrm[j], yaws=g_out[j], alpha=a_out[j],
@@ -146,7 +155,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
                     timings={"angles": 0.0, "yaw": (t1 - t0) / max(idx.size, 1),
                              "joints": 0.0, "total": dt, "batched": 1.0},
                     noise_pct_g=float(noise_pct_g),
-                    solution=Solution(st, lu, prob_of(int(rows_ok[j])), g_out[j]))
+                    solution=sol_j, warm_fallback=fallback)
             fast[idx[failed]] = False
         # the rest, one at a time and in order (what `estimate` says about them is the answer)
         for kk in range(m):

@@ -120,11 +120,15 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
 class WarmStart(NamedTuple):
     """Where a global solve starts: the yaws (None: the prior's target), the joints the joint
     problem's weak prior holds isolated parts at (None: the rest layout or ``rest``'s joints),
-    and the solution whose factorisation it may reuse (when its structure is this one)."""
+    the solution whose factorisation it may reuse (when its structure is this one), and the
+    links the estimate it came from had (None: all)."""
 
     yaws: np.ndarray | None = None
     joints: np.ndarray | None = None
     solution: Solution | None = None
+    valid: np.ndarray | None = None
+    #: the chain's fallback (`ShapeEstimate.warm_fallback`), used when this one does not cover
+    fallback: "WarmStart | None" = None
 
     @classmethod
     def of(cls, previous: ShapeEstimate | None) -> "WarmStart":
@@ -132,7 +136,38 @@ class WarmStart(NamedTuple):
         if previous is None:
             return cls()
         return cls(np.asarray(previous.yaws, dtype=float), np.asarray(previous.joints, float),
-                   previous.solution)
+                   previous.solution, np.asarray(previous.valid, dtype=bool),
+                   getattr(previous, "warm_fallback", None))
+
+    def covers(self, valid: np.ndarray) -> bool:
+        """Whether the estimate this came from had every link ``valid`` has."""
+        return self.yaws is not None and (self.valid is None or bool(np.all(self.valid[valid])))
+
+    def covering(self, valid: np.ndarray) -> "WarmStart":
+        """Where a snapshot of links ``valid`` starts: this warm start if the estimate it came
+        from had every one of them, else the chain's fallback if that had, else a cold start.
+
+        A link the estimate lacked holds no yaw of this sheet, and parts it had apart (islands
+        between missing links) hold yaws that agree only up to a rotation each. Starting a solve
+        where they join ended in a wrong minimum that the warm chain then kept: a 64x64 sheet whose
+        chips started over ~0.5 s had residual 2,410 instead of 0.03 on every later snapshot, and
+        estimates of up to 3 s (tests/host/analysis/test_estimator_warm.py). The fallback keeps
+        a snapshot after a short gap (a gateway late once) warm: it starts where the last
+        snapshot before the gap ended."""
+        if self.yaws is None or self.covers(valid):
+            return self
+        fb = self.fallback
+        return fb if fb is not None and fb.covers(valid) else WarmStart()
+
+    def next_fallback(self, valid: np.ndarray, own: "WarmStart") -> "WarmStart":
+        """The fallback of the estimate of links ``valid`` made from this (chain's) warm start,
+        whose own warm start is ``own``: ``own`` when it has every link the chain's fallback
+        had (or there was none), else that fallback, kept."""
+        fb = self.fallback if self.fallback is not None else (self if self.yaws is not None else None)
+        if fb is None or fb.valid is None and bool(np.all(valid)) or (
+                fb.valid is not None and bool(np.all(valid[fb.valid]))):
+            return own
+        return fb
 
     def start(self, st, target: np.ndarray):
         """(start yaws, the factorisation to reuse or None) on structure ``st``."""
@@ -188,6 +223,7 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     rr, alpha, beta, trig = link_angles(snap.readings, snap.valid, snap.mask)
     t1 = time.perf_counter()
     target = st.rest_yaw if rest_yaw is None else rest_yaw
+    chain, warm = warm, warm.covering(snap.valid)
     start, lu = warm.start(st, target)
     _, prior_w, bend_w, tol = noise_and_priors(opts.prior, st, rr, snap.norm_g, snap.valid,
                                                rest_yaw is not None)
@@ -200,13 +236,15 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     t3 = time.perf_counter()
     solv = link_solvability(alpha, beta, trig, rows, cols)
     t4 = time.perf_counter()
-    return ShapeEstimate(joints=P.reshape(rows, cols, 3), directions=d, residual=residual,
+    joints = P.reshape(rows, cols, 3)
+    fallback = chain.next_fallback(snap.valid, WarmStart(gamma, joints, solution, snap.valid))
+    return ShapeEstimate(joints=joints, directions=d, residual=residual,
                          solvability=solv, normals=nrm, yaws=gamma, alpha=alpha, beta=beta,
                          valid=snap.valid, link_length=L, method="global",
                          iterations=int(iters), factorisations=int(n_fact),
                          timings={"angles": t1 - t0, "yaw": t2 - t1, "joints": t3 - t2,
                                   "total": t4 - t0}, noise_pct_g=opts.noise_pct_g,
-                         solution=solution)
+                         solution=solution, warm_fallback=fallback)
 
 
 def link_solvability(alpha, beta, trig, rows: int, cols: int) -> np.ndarray:

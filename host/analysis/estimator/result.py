@@ -89,6 +89,10 @@ class ShapeEstimate:
     #: yaws): what `yaw_std` and ``joint_std`` are computed from and what ``previous=`` warm-starts
     #: from; None for ``method="paper"``
     solution: Solution | None = field(default=None, repr=False)
+    #: where an estimate ``previous=`` this one falls back to starting from when this one lacks a
+    #: link the next snapshot has (`pipeline.WarmStart.covering`): the warm start of the latest
+    #: estimate of the chain that had at least the links of the one before it; None: a cold start
+    warm_fallback: object = field(default=None, repr=False)
 
     @cached_property
     def yaw_std(self) -> np.ndarray:

@@ -111,7 +111,7 @@ class ShapeEstimator:
             st = self._held_structure(snap.mask)
             est = solve_snapshot(snap, st, self.link_length, opts, self._warm, self._rest,
                                  self._rest_yaw, t0)
-            self._warm = WarmStart(est.yaws, est.joints, est.solution)
+            self._warm = WarmStart.of(est)
         self.last = est
         self.updates += 1
         self.last_update = now
