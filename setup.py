@@ -13,4 +13,4 @@ setup(cffi_modules=["firmware_ref/build_ffi.py:ffibuilder",
                     "host/analysis/_kernel/build.py:ffibuilder",
                     "host/analysis/tactile/_kernel/build_response.py:ffibuilder",
                     "host/analysis/motion/_kernel/build_link_kernel.py:ffibuilder",
-                    "protocol/_kernel/build.py:ffibuilder"])
+                    "protocol/_kernel/build_stream.py:ffibuilder"])

@@ -5,8 +5,10 @@ The input is the wire output of a virtual sheet whose gateway sends packed SNAPS
 chips' STATUS heartbeats on (`bench_virtual.Rig`; `Gateway.pop_wire` per SYNC, each SYNC's bytes cut
 in five reads, as five gateways' ports deliver them). Three ways are timed on the same reads:
 
-* ``before``: what the host ran until this change: numpy per fast frame kind, one `Snapshot`
-  object per SNAPSHOT frame (`decode_frame`), `unpack_snapshots` in the aggregator;
+* ``before``: the Python decoder the host ran until the scan was compiled (issue 31, stop 44):
+  numpy per fast frame kind, one `Snapshot` object per SNAPSHOT frame (`decode_frame`),
+  `unpack_snapshots` in the aggregator (with today's `StreamDecoder.feed`, which decodes a held
+  partial frame and the read after it in one pass: the old feed took 1.65 ms per SYNC here);
 * ``python``: the same code with ``batch_snapshots`` (runs of SNAPSHOT as one `SnapshotFrames`):
   what a host without a C compiler runs now;
 * ``compiled``: the compiled scan, what a host runs now.

@@ -2,7 +2,7 @@
 
 Built at install time through ``setup.py``'s ``cffi_modules`` (``pip install -e .``), or by hand::
 
-    .venv/bin/python protocol/_kernel/build.py     # writes protocol/_stream_kernel*.so
+    .venv/bin/python protocol/_kernel/build_stream.py     # writes protocol/_stream_kernel*.so
 
 Optional at run time: without it (no compiler, not built, or ``CAPSHEET_NO_KERNEL=1``)
 `protocol.framing.StreamDecoder` runs its numpy and per-frame Python code, which gives the same
