@@ -439,19 +439,24 @@ class Recorder:
 
     def _document(self, kind: str, name: str, doc) -> None:
         """A metadata record or JSON attachment every file of a split set holds (replacing an
-        earlier one of the same name)."""
+        earlier one of the same name). An attachment is encoded before the writer's lock is taken:
+        a 64x64 layout is ~0.1 s of JSON, and the receive threads record snapshots under that lock
+        while they hold the feed's (issue 31, stop 44: a following host's first second stalled on it)."""
+        if kind != "metadata":
+            doc = _json_attachment(doc)
         with self._io:
             self._file_docs = [d for d in self._file_docs if d[:2] != (kind, name)] + [(kind, name, doc)]
             if self._writer is not None:
                 self._write_doc(kind, name, doc)
 
     def _write_doc(self, kind: str, name: str, doc) -> None:
+        """Write a document: metadata (str -> str), or an attachment (its JSON bytes, or a dict)."""
         if kind == "metadata":
             self._writer.write_metadata(name, doc)
         else:
             now = time.time_ns()
             self._writer.attach(log_time=now, create_time=now, name=name, media_type="application/json",
-                                data=json.dumps(doc, indent=1, default=_jsonable).encode())
+                                data=doc if isinstance(doc, bytes) else _json_attachment(doc))
 
     @property
     def current_path(self) -> Path | None:
@@ -850,6 +855,11 @@ def _raw_payload(cap):
 
 def _wall_ns(wall_time: float | None) -> int:
     return time.time_ns() if wall_time is None or not np.isfinite(wall_time) else int(round(wall_time * 1e9))
+
+
+def _json_attachment(doc) -> bytes:
+    """A JSON attachment's bytes (indented: people open these files)."""
+    return json.dumps(doc, indent=1, default=_jsonable).encode()
 
 
 def _jsonable(o):

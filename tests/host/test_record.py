@@ -494,3 +494,30 @@ def test_a_large_sheet_is_compressed_at_the_cheaper_level_and_a_small_one_at_the
             got = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic.startswith("/capsheet/raw/")]
         assert len(got) == 96
     assert sizes["64x64"] > 1.01 * sizes["14x14"]
+
+
+def test_documents_are_encoded_before_the_writers_lock_is_taken(tmp_path, monkeypatch):
+    """The receive threads record snapshots under the writer's lock while they hold the feed's; a
+    64x64 layout's JSON (~0.1 s) encoded under it stalled a following host's first second (issue
+    31, stop 44). Every attachment is encoded with the lock free (a split set's next file writes
+    the bytes kept), and the file still holds it."""
+    import host.record as record
+    from mcap.reader import make_reader
+
+    seen = []
+    real = record._json_attachment
+
+    def encode(doc):
+        owner = sys._getframe(1).f_locals["self"]  # the Recorder encoding it (also during __init__)
+        seen.append(owner._io._is_owned())  # the writer's lock held by this thread?
+        return real(doc)
+
+    monkeypatch.setattr(record, "_json_attachment", encode)
+    path = tmp_path / "r.mcap"
+    rec = Recorder(path, Lattice(3, 3), 0.01, session={"rate_hz": 10.0}, layout={"chips": [1, 2, 3]})
+    rec._document("attachment", "extra.json", {"a": [1, 2]})
+    rec.close()
+    assert seen and not any(seen), seen
+    with open(path, "rb") as f:
+        names = {a.name for a in make_reader(f).iter_attachments()}
+    assert {"layout.json", "extra.json"} <= names
