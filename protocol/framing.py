@@ -177,6 +177,24 @@ NATIVE_SCAN = _SCAN is not None
 _ROW_STRIDE = 32
 
 
+def _scan_tables():
+    """The scan's fast-kind tables (kind k at index k - 1): decoded lengths, and the types by
+    ``batch_status`` (STATUS only with it, which a host sets; -1 matches no frame)."""
+    if _SCAN is None:
+        return None, {}
+    lens, types = [0] * 4, {False: [0] * 4, True: [0] * 4}
+    for k, m in _FAST_DEC_LEN.items():
+        lens[k - 1] = m
+    for k, ty in _FAST_KINDS_STATUS.values():
+        types[True][k - 1] = int(ty)
+        types[False][k - 1] = int(ty) if k != _STATUS_KIND else -1
+    new = _SCAN[0].new
+    return new("int32_t[4]", lens), {b: new("int32_t[4]", t) for b, t in types.items()}
+
+
+_SCAN_LENS, _SCAN_TYPES = _scan_tables()
+
+
 class _Scratch:
     """The compiled scan's output arrays, grown to the largest chunk seen (one set per decoder)."""
 
@@ -270,13 +288,6 @@ class StreamDecoder:
                              "or CAPSHEET_NO_KERNEL set)")
         self.native = NATIVE_SCAN if native is None else bool(native)
         self._scratch = _Scratch() if self.native else None
-        self._fast_dec_len = _FAST_DEC_LEN
-        self._fast_types: dict = {}
-        if self.native:
-            lens = [0] * 4
-            for k, m in _FAST_DEC_LEN.items():
-                lens[k - 1] = m
-            self._fast_len_c = _SCAN[0].new("int32_t[4]", lens)
         self.stats = DecoderStats()
         self._partial = bytearray()
         self._discarding = False
@@ -367,7 +378,7 @@ class StreamDecoder:
         sc = self._scratch
         sc.ensure(len(chunk))
         nf = lib.capsheet_scan_chunk(ffi.from_buffer(chunk), len(chunk), PROTOCOL_VERSION, MAX_FRAME_SIZE, 4,
-                                     self._fast_type_c, self._fast_len_c,
+                                     _SCAN_TYPES[bool(self.batch_status)], _SCAN_LENS,
                                      MsgType.SNAPSHOT if self.batch_snapshots else -1, sc.out)
         if nf == 0:
             return
@@ -401,24 +412,13 @@ class StreamDecoder:
                 for s, n in zip(sc.start[a:b].tolist(), sc.length[a:b].tolist()):
                     self._slow(chunk[s:s + n], events)
             else:
-                d = sc.rows[a:b, :self._fast_dec_len[k]].astype(np.int64)
+                d = sc.rows[a:b, :_FAST_DEC_LEN[k]].astype(np.int64)
                 if k == 1:
                     self._emit_samples(d, events)
                 elif k == _STATUS_KIND:
                     self._emit_status(d, events)
                 else:
                     self._emit_imu(d, SampleFormat(k - 1), events)
-
-    @property
-    def _fast_type_c(self):
-        """The fast kinds' types for the scan (STATUS only with ``batch_status``, which a host sets)."""
-        t = self._fast_types.get(self.batch_status)
-        if t is None:
-            types = [0] * 4
-            for k, ty in _FAST_KINDS_STATUS.values():
-                types[k - 1] = int(ty) if (k != _STATUS_KIND or self.batch_status) else -1
-            t = self._fast_types[self.batch_status] = _SCAN[0].new("int32_t[4]", types)
-        return t
 
     def _numpy_chunk(self, chunk: bytes, events: list) -> None:
         """`_decode_chunk` without the compiled scan: numpy per fast frame kind, `decode_frame` per

@@ -138,15 +138,14 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
                     st, L, alpha[ok], beta[ok], gamma[ok], target, warm.joint_prior(st, L))
                 solv = link_solvability(a_out, b_out, None, rows, cols)
             dt = (time.perf_counter() - t0) / max(idx.size, 1)
-            fb_first = None  # the chain's fallback (`WarmStart.next_fallback`), as one at a time
+            kept = None  # the chain's fallback (`WarmStart.next_fallback`) when not each one's own
             for j, kk in enumerate(idx[ok]):
                 sol_j = Solution(st, lu, prob_of(int(rows_ok[j])), g_out[j])
                 own = WarmStart(g_out[j], P[j].reshape(rows, cols, 3), sol_j, mask0)
-                if fb_first is None:
-                    fb_first = chain.next_fallback(mask0, own)
-                    fallback = fb_first
-                else:  # the same links as the one before: its fallback, or this one if that was its own
-                    fallback = own if fb_first.valid is mask0 else fb_first
+                if j == 0:  # the rest have the first one's links: each its own, or the same kept one
+                    first = chain.next_fallback(mask0, own)
+                    kept = None if first is own else first
+                fallback = own if kept is None else kept
                 out[s0 + kk] = ShapeEstimate(
                     joints=P[j].reshape(rows, cols, 3), directions=d[j], residual=float(residual[j]),
                     solvability=solv[j], normals=nrm[j], yaws=g_out[j], alpha=a_out[j],

@@ -164,8 +164,7 @@ class WarmStart(NamedTuple):
         whose own warm start is ``own``: ``own`` when it has every link the chain's fallback
         had (or there was none), else that fallback, kept."""
         fb = self.fallback if self.fallback is not None else (self if self.yaws is not None else None)
-        if fb is None or fb.valid is None and bool(np.all(valid)) or (
-                fb.valid is not None and bool(np.all(valid[fb.valid]))):
+        if fb is None or own.covers(np.ones_like(valid) if fb.valid is None else fb.valid):
             return own
         return fb
 
