@@ -31,7 +31,10 @@ CDEF = cdef_from_header(HERE / "yaw_eval.h")
 
 
 def rel_source(path: Path) -> str:
-    # setuptools wants sources relative to the project root (the cwd of a build).
+    # setuptools wants sources relative to the project root (the cwd of a build); by hand
+    # (``__main__``) they are absolute, as cffi compiles in a directory of its own
+    if __name__ == "__main__":
+        return str(path)
     try:
         return os.path.relpath(path, os.getcwd())
     except ValueError:  # another drive (Windows)
@@ -50,5 +53,19 @@ ffibuilder.set_source(
 )
 
 if __name__ == "__main__":
-    os.chdir(ROOT)
-    ffibuilder.compile(tmpdir=str(ROOT), verbose=False)
+    import shutil
+    import tempfile
+
+    # built in a scratch directory, not the project root: there cffi's distutils step would read
+    # pyproject.toml with the venv's own setuptools (Python 3.11's 65.x rejects its SPDX licence)
+    with tempfile.TemporaryDirectory() as tmp:
+        built = Path(ffibuilder.compile(tmpdir=tmp, verbose=False))
+        where = ROOT / "host" / "analysis"
+        # over every build of it already there (pip's is .abi3.so): one left older would shadow
+        # or be shadowed by this one
+        stem = built.name.split(".")[0]
+        dests = sorted(where.glob(stem + ".*so")) or [where / built.name]
+        for dest in dests:  # a new file renamed over it: a process running the old one keeps it
+            shutil.copy(built, dest.with_name(dest.name + ".new"))
+            os.replace(dest.with_name(dest.name + ".new"), dest)
+    print(*dests)
