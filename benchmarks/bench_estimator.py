@@ -9,7 +9,8 @@ snapshot at 14x14 already). The machine may be shared: each rate is the best of 
 timed passes (and the median is reported too). Targets (issue 13), global: 14x14 >= 2000/s,
 32x32 >= 500/s, 64x64 >= 145/s, 128x128 >= 30/s.
 
-Also reported: how the time per snapshot scales with the number of links (least-squares exponent
+Also reported, per size ("quiet"): the warm chain on a quiet sheet (0.03 % g) with the chain's
+one-step stop and without it, in the same run (docs/estimator.md §6); how the time per snapshot scales with the number of links (least-squares exponent
 over the sizes), the time per stage, and the sparse linear algebra of the yaw problem measured
 side by side on the same Gauss-Newton matrix — scipy's SuperLU (``splu``: the estimator
 factorises with it, on the ordering computed once per lattice), the kernel's supernodal float32
@@ -45,6 +46,9 @@ from virtual_sheet.shapes import make_sheet  # noqa: E402
 TARGETS = {14: 2000.0, 32: 500.0, 64: 145.0, 128: 30.0}
 L = 0.01
 NOISE_PCT_G = 1.0
+#: the "quiet" rows: about the quantisation of a 12-bit ±2 g reading (`capsheet virtual`'s default
+#: noise, 0.02 % g, under it)
+QUIET_PCT_G = 0.03
 
 
 def _pass(snaps, n, method, warm):
@@ -62,7 +66,7 @@ def linear_algebra(n: int, snap, repeats: int) -> dict:
     from scipy.sparse.linalg import splu
 
     est = estimate(snap, n, n, L)
-    st, _, prob, gamma = est.solution
+    st, prob, gamma = est.solution.structure, est.solution.problem, est.solution.yaws
     _, grad, blocks = prob.evaluate(gamma)
     b = grad[st.perm_inv]
 
@@ -176,7 +180,45 @@ def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int) -> dict:
             out[key]["target_per_s"] = TARGETS.get(n)
             out[key]["meets_target"] = out[key]["snapshots_per_s_best"] >= TARGETS.get(n, 0)
     out["global"]["linear_solver"] = "splu"
+    out["quiet"] = quiet(n, max(n_global, 40), repeats, seed)
     out["linear_algebra"] = linear_algebra(n, snaps[0], 2 if n >= 128 else 3)
+    return out
+
+
+def quiet(n: int, count: int, repeats: int, seed: int) -> dict:
+    """The warm chain on a quiet sheet (`QUIET_PCT_G`, the default virtual sheet's readings a
+    count of the ADC apart), with the chain's one-step stop (`solver.Contraction`) and without it
+    (every solve measures, `CHAIN_REMEASURE` = 0), in the same run on the same snapshots."""
+    from host.analysis.estimator import solver
+    P = make_sheet("gaussian", n, n, L)
+    r0 = ideal_readings(P)
+    rng = np.random.Generator(np.random.MT19937(seed + 7))
+    snaps = [noisy_readings(r0, QUIET_PCT_G, rng) for _ in range(count)]
+    keep = solver.CHAIN_REMEASURE
+    out, joints = {"noise_pct_g": QUIET_PCT_G, "snapshots": count}, {}
+    try:
+        for name, k in (("chain", keep), ("no_chain", 0)):
+            solver.CHAIN_REMEASURE = k
+            times, its = [], []
+            for _ in range(repeats):
+                prev = estimate(snaps[-1], n, n, L)
+                t0 = time.perf_counter()
+                run_j = []
+                for r in snaps:
+                    prev = estimate(r, n, n, L, previous=prev)
+                    its.append(prev.iterations)
+                    run_j.append(prev.joints)
+                times.append((time.perf_counter() - t0) / count)
+            joints[name] = run_j
+            out[name] = {"ms_per_snapshot_best": round(1e3 * min(times), 3),
+                         "mean_iterations": round(float(np.mean(its)), 3),
+                         "last_error_pct_side": round(float(error_percent_of_side(prev.joints, P, L).mean()), 4)}
+    finally:
+        solver.CHAIN_REMEASURE = keep
+    side = L * (n - 1)
+    out["speedup"] = round(out["no_chain"]["ms_per_snapshot_best"] / out["chain"]["ms_per_snapshot_best"], 3)
+    out["max_joint_difference_pct_side"] = float("%.3g" % (100.0 / side * max(
+        float(np.max(np.linalg.norm(a - b, axis=-1))) for a, b in zip(joints["chain"], joints["no_chain"]))))
     return out
 
 

@@ -497,7 +497,7 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * accelerated move raised it), acceptance, the refactorisation test. */
 int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
                        const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
-                       double *work)
+                       double *steps, double *work)
 {
     const int64_t nv = p->n_var, n_links = c->n_links;
     double *step = work, *move = step + nv, *s_prev = move + nv, *dx = s_prev + nv;
@@ -505,7 +505,9 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     double *ldl_work = grad_new + nv + 1, *eval_work = ldl_work + c->ldl_work_size;
     int32_t has_hist = 0, accelerated = 0;
     int64_t it = *iterations, k;
+    const int64_t it0 = it;
     double ps = *prev_smax, cst = *cost;
+    steps[0] = steps[1] = 0.0;
     while (it < c->max_iter) {
         double smax = 0.0, cost_new;
         int32_t acc = 0;
@@ -551,7 +553,11 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             g_new[k] = gamma[k];
         for (k = 0; k < nv; ++k)
             g_new[p->var_links[k]] += move[k];
-        if (smax < c->tol || (smax < ps && isfinite(ps) && !accelerated && smax * smax < c->tol * ps)) {
+        if (it - it0 <= 2)
+            steps[it - it0 - 1] = smax;
+        if (smax < c->tol || (smax < ps && isfinite(ps) && !accelerated && smax * smax < c->tol * ps)
+            || (it == it0 + 1 && c->chain_safety > 0.0
+                && c->chain_safety * fmax(c->chain_rho * smax, c->chain_kappa * smax * smax) < c->tol)) {
             for (k = 0; k < n_links; ++k)
                 gamma[k] = g_new[k];
             *iterations = it;

@@ -174,6 +174,13 @@ class WarmStart(NamedTuple):
         sol = self.solution
         return start, (sol.factorisation if sol is not None and sol.structure is st else None)
 
+    def chain(self, lu):
+        """The `solver.Contraction` a solve reusing factorisation ``lu`` may stop by: the one
+        measured on it, for `solver.CHAIN_REMEASURE` snapshots (None: measure again)."""
+        sol = self.solution
+        c = None if sol is None or lu is None or sol.factorisation is not lu else sol.contraction
+        return c if c is not None and c.age < solver.CHAIN_REMEASURE else None
+
     def joint_prior(self, st, L: float, rest=None) -> np.ndarray:
         """(n_joints, 3): the joints the joint problem's weak prior holds."""
         if self.joints is not None:
@@ -226,9 +233,10 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     start, lu = warm.start(st, target)
     _, prior_w, bend_w, tol = noise_and_priors(opts.prior, st, rr, snap.norm_g, snap.valid,
                                                rest_yaw is not None)
-    gamma, iters, n_fact, lu, prob = solve_global(st, alpha, beta, start.copy(), target,
-                                                  prior_w, bend_w, lu, tol, trig)
-    solution = Solution(st, lu, prob, gamma)
+    gamma, iters, n_fact, lu, prob, contraction = solve_global(
+        st, alpha, beta, start.copy(), target, prior_w, bend_w, lu, tol, trig,
+        warm.chain(lu))
+    solution = Solution(st, lu, prob, gamma, contraction)
     t2 = time.perf_counter()
     P, d, nrm, gamma, alpha, beta, residual = joints_and_mask(
         st, L, alpha, beta, gamma, target, warm.joint_prior(st, L, rest), trig)

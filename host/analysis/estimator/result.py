@@ -28,6 +28,9 @@ class Solution(NamedTuple):
     problem: YawProblem
     #: the yaws it converged to, (n_links,), radians
     yaws: np.ndarray
+    #: how ``factorisation``'s chord steps contracted (`solver.Contraction`), or None: what lets
+    #: the next snapshot's solve stop after one step
+    contraction: object | None = None
 
 
 @dataclass(frozen=True, eq=False)

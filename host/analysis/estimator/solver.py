@@ -3,13 +3,16 @@ Levenberg-Marquardt damping; one snapshot, or a batch of one structure sharing a
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .structure import Structure
 from .yawproblem import YawProblem
 
-__all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "solve_global",
+__all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "CHAIN_SAFETY",
+           "CHAIN_REMEASURE", "Contraction", "solve_global",
            "chord_in_kernel", "ANDERSON_COS", "anderson", "BATCH_MAX_ITER", "BATCH_REFACTOR",
            "solve_global_batch"]
 
@@ -25,13 +28,50 @@ MAX_ITER = 50
 #: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
 #: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
 REFACTOR_RATIO = 0.7
+#: A warm solve also stops after its first chord step when the contraction its chain measured on
+#: the same factorisation (`Contraction`) predicts the next step below the tolerance by this
+#: factor. On a 64x64 sheet streaming at 145 Hz the first step is ~3e-3 rad and the second
+#: ~7e-6, 15x below the 1e-4 tolerance: a solve and an evaluation (a quarter of an estimate)
+#: spent to learn that the first step had converged (docs/estimator.md §6).
+CHAIN_SAFETY = 4.0
+#: ... and the chain measures the contraction afresh (two steps) after this many snapshots on it
+CHAIN_REMEASURE = 4
+
+
+class Contraction(NamedTuple):
+    """How a kept factorisation's chord steps contracted, measured on a solve's first two steps
+    ``s1``, ``s2`` (their largest entries): linearly ``rho = s2 / s1``, or quadratically (the
+    curvature Gauss-Newton neglects, which dominates a warm start's small first step)
+    ``kappa = s2 / s1²``; ``age``: the snapshots since, on the same factorisation."""
+
+    rho: float
+    kappa: float
+    age: int = 0
+
+    @classmethod
+    def measured(cls, s1: float, s2: float) -> "Contraction | None":
+        if not (s1 > 0.0 and np.isfinite(s1) and np.isfinite(s2)):
+            return None
+        return cls(s2 / s1, s2 / (s1 * s1), 0)
+
+    def predicts_converged(self, smax: float, tol: float) -> bool:
+        """Whether a first step of largest entry ``smax`` is predicted to leave a next step below
+        ``tol`` (by `CHAIN_SAFETY`). The larger of the linear and the quadratic prediction: each
+        is the cautious one on its side of the measured step."""
+        return CHAIN_SAFETY * max(self.rho * smax, self.kappa * smax * smax) < tol
 
 
 def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
-                 tol=YAW_TOL_RAD, trig=None):
+                 tol=YAW_TOL_RAD, trig=None, chain: Contraction | None = None):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
     Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
-    lu, problem).
+    lu, problem, contraction): the `Contraction` of the returned ``lu`` measured by this solve's
+    first two steps on it, or ``chain`` one snapshot older when the solve stopped after one step
+    by it (None otherwise).
+
+    ``chain``: the contraction the previous snapshot's solve measured on ``lu``. With it the
+    first chord step also ends the solve when `Contraction.predicts_converged`; the caller
+    passes it for `CHAIN_REMEASURE` snapshots at most, then lets a solve measure again.
 
     ``lu`` may be the factorisation left by the previous snapshot (same structure): the normal
     matrix changes little between snapshots, so its chord iterations usually converge without a
@@ -47,7 +87,8 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
     gamma = gamma0.copy()
     prob = YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
     if st.n_var == 0:
-        return gamma, 0, 0, None, prob
+        return gamma, 0, 0, None, prob, None
+    lu_in = lu
     vl = st.var_links
     cost, grad, blocks = prob.evaluate(gamma, jac=lu is None)
     mu = 0.0
@@ -57,13 +98,14 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
     hist = None  # (last raw step, last move) of the current chord map, for the acceleration
     accelerated = False  # the last move accepted was an extrapolated one
     it = 0
+    seen: list[float] = []  # the largest entries of the first undamped steps on the current lu
     if lu is not None and chord_in_kernel(st, lu, gamma):
         # the warm start's chord steps in the kernel: this loop's iterations, one C call
-        status, it, cost, grad, prev_smax = prob.chord_kernel(
-            gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS)
+        status, it, cost, grad, prev_smax, seen = prob.chord_kernel(
+            gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS, chain)
         if status in (0, 3):  # converged, or out of iterations
-            return gamma, it, 0, lu, prob
-        lu, blocks = None, None  # 1: the cost rose; 2: a step contracted too little
+            return gamma, it, 0, lu, prob, _contraction(seen, chain, lu is lu_in and it == 1)
+        lu, blocks, seen = None, None, []  # 1: the cost rose; 2: a step contracted too little
     while it < MAX_ITER:
         it += 1
         if lu is None:
@@ -73,13 +115,18 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
             fresh = True
             hist, accelerated = None, False
             n_fact += 1
+            seen = []
         step = prob.step(lu, grad)
         move = anderson(step, hist) if mu == 0.0 else step
         g_new = gamma.copy()
         g_new[vl] += move
         smax = float(np.max(np.abs(step)))
+        if mu == 0.0 and len(seen) < 2:
+            seen.append(smax)
         if mu == 0.0 and (smax < tol or smax < prev_smax < np.inf and not accelerated
-                          and smax * smax < tol * prev_smax):
+                          and smax * smax < tol * prev_smax
+                          or it == 1 and chain is not None and not fresh
+                          and chain.predicts_converged(smax, tol)):
             # converged: the step (or the next one, predicted from the contraction so far) is
             # below the tolerance. A Gauss-Newton/chord step on an SPD matrix is a descent
             # direction and this one is tiny, so it is taken without evaluating the cost again
@@ -114,7 +161,17 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
             lu = None
         prev_smax = smax
         fresh = False
-    return gamma, it, n_fact, lu, prob
+    return gamma, it, n_fact, lu, prob, _contraction(seen, chain, lu is lu_in and it == 1)
+
+
+def _contraction(seen, chain, one_step_on_chain: bool) -> Contraction | None:
+    """A solve's `Contraction`: measured when it took two undamped steps on its last
+    factorisation, else ``chain`` a snapshot older when it took one on the chain's."""
+    if len(seen) >= 2:
+        return Contraction.measured(seen[0], seen[1])
+    if chain is not None and one_step_on_chain:
+        return chain._replace(age=chain.age + 1)
+    return None
 
 
 def chord_in_kernel(st, lu, gamma) -> bool:

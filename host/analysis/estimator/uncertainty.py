@@ -34,7 +34,7 @@ def yaw_joint_std(est) -> tuple[np.ndarray, np.ndarray]:
     state = est.solution
     if state is None:
         return np.full(n, np.nan), nanj
-    st, _, prob, gamma = state
+    st, prob, gamma = state.structure, state.problem, state.yaws
     nv = st.n_var
     if nv == 0 or est.noise_pct_g == 0.0:
         return np.where(est.valid, 0.0, np.nan), np.zeros(est.joints.shape[:2])

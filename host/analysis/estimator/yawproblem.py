@@ -212,13 +212,15 @@ class YawProblem:
                                        _kffi.from_buffer("double[]", grad), kp[1])
         return cost, grad[:st.n_var], None
 
-    def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos):
+    def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
+                     chain=None):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
-        `REFACTOR_RATIO`, `ANDERSON_COS`). ``gamma`` is updated in place. Returns (status, iterations, cost, grad,
-        prev_smax); status 0 converged, 1 the cost rose, 2 a poor contraction (refactorise
-        for both), 3 out of iterations."""
+        `REFACTOR_RATIO`, `ANDERSON_COS`; ``chain``: its `solver.Contraction` or None). ``gamma``
+        is updated in place. Returns (status, iterations, cost, grad, prev_smax, steps); status 0
+        converged, 1 the cost rose, 2 a poor contraction (refactorise for both), 3 out of
+        iterations; steps: the first two steps' largest entries, as taken."""
         kp = self.__dict__.get("_kp")
         if kp is None:
             kp = self._kp = self._kernel_problem()
@@ -229,6 +231,9 @@ class YawProblem:
         c = _kffi.new("capsheet_chord_t *")
         c.n_links, c.max_iter, c.tol = gamma.size, max_iter, float(tol)
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
+        if chain is not None:
+            from .solver import CHAIN_SAFETY
+            c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, CHAIN_SAFETY
         pi = np.ascontiguousarray(st.perm_inv, np.int64)
         pv = np.ascontiguousarray(st.perm_of_var, np.int64)
         c.perm_inv, c.perm_of_var = fb("int64_t[]", pi), fb("int64_t[]", pv)
@@ -244,9 +249,12 @@ class YawProblem:
         work = np.empty(6 * nv + gamma.size + 1 + sym["work_size"] + 19 * max(st.n_units, 1)
                         + 2 * st.n_links)
         assert gamma.dtype == np.float64 and gamma.flags.c_contiguous
+        steps = _kffi.new("double[2]")
         status = _klib.capsheet_chord(kp[0], fb("double[]", gamma), out_cost, fb("double[]", g), c,
-                                      its, ps, fb("double[]", work))
-        return int(status), int(its[0]), float(out_cost[0]), g[:nv], float(ps[0])
+                                      its, ps, steps, fb("double[]", work))
+        n = min(int(its[0]), 2)
+        return (int(status), int(its[0]), float(out_cost[0]), g[:nv], float(ps[0]),
+                [float(steps[k]) for k in range(n)])
 
     def _kernel_problem(self):
         """The kernel's ``capsheet_yaw_t`` for this snapshot, its work buffer, and the arrays
