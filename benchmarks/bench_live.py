@@ -352,6 +352,19 @@ def _cpu_pct(a: dict, b: dict, dt: float) -> dict[str, float]:
     return {k: round(v, 1) for k, v in sorted(out.items())}
 
 
+def _recorded_rate(path: str) -> float:
+    """Snapshots per second of a recording, over its snapshots' span (their host times)."""
+    from host.record import iter_snapshots
+    first = last = None
+    n = 0
+    for b in iter_snapshots(path, batch=1024):
+        if first is None:
+            first = float(b.timestamp[0])
+        last = float(b.timestamp[-1])
+        n += len(b)
+    return round((n - 1) / (last - first), 1) if n > 1 and last > first else 0.0
+
+
 def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = None) -> dict:
     """``capsheet virtual`` and ``capsheet host`` as a user runs them (subprocesses, the host's
     ``--json`` summary), per design: completeness, the share of snapshots estimated and recorded,
@@ -415,10 +428,12 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                 exit=doc["exit"], snapshots=s["snapshots"], syncs_sent=doc["syncs_sent"],
                 syncs_seen=doc.get("syncs_seen"), sync_mode=s.get("sync_mode"),
                 # SYNCs per second while streaming: sent by the host, or (following) the gateway's
-                # SYNCs that opened a snapshot (syncs_seen counts each once per port, and the
-                # SYNCs heard during the bring-up too)
-                sync_rate_hz=round((doc["syncs_sent"] if s.get("sync_mode") != "follow"
-                                    else s["snapshots"]) / cfg["duration"], 1),
+                # SYNCs that opened a snapshot, over the recorded snapshots' own span (a following
+                # host takes snapshots from its bring-up's end, ~1 s before its --duration starts:
+                # snapshots / --duration read 153-155 Hz for a gateway at 145; syncs_seen counts
+                # each SYNC once per port, and those heard during the bring-up too)
+                sync_rate_hz=round(doc["syncs_sent"] / cfg["duration"], 1) if s.get("sync_mode") != "follow"
+                else _recorded_rate(rec),
                 syncs_missed=doc["live"]["syncs_missed"],
                 complete_pct=s["complete_snapshots_pct"], valid_links_pct=s["valid_links_pct"],
                 estimated_pct=round(100.0 * est.get("made", 0) / snaps, 2), estimates=est,

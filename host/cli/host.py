@@ -229,6 +229,19 @@ def _fail(msg: str, code: int) -> int:
     return code
 
 
+
+#: the snapshots waiting for this command's loop: at least this many seconds of them at --rate
+QUEUE_S = 2.0
+
+
+def queue_size_for(rate_hz: float | None) -> int:
+    """The host's snapshot queue (`Host` ``queue_size``): `QUEUE_S` at the SYNC rate, at least the
+    library's 64. A following host's chips stream from its bring-up's end, ~1 s before this
+    command's loop takes snapshots (the session's documents are written meanwhile): a 64x64 sheet
+    at 145 Hz lost 91-112 of ~2,480 snapshots' estimates off a 64-deep queue (recorded at
+    emission, never estimated)."""
+    return max(64, int(QUEUE_S * float(rate_hz or 0.0)) + 1)
+
 def run(args) -> int:
     from host.cli import short_gil_switch
     short_gil_switch()  # the SYNC thread gets the interpreter lock within 0.5 ms, not 5 ms
@@ -282,7 +295,8 @@ def run(args) -> int:
         return _fail(str(exc), EXIT_FAIL)
     try:
         host = Host(transports, lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
-                    deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000)
+                    deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000,
+                    queue_size=queue_size_for(args.rate))
     except (MismatchError, ValueError) as exc:
         for t in transports:
             t.close()

@@ -12,6 +12,7 @@ import argparse
 import sys
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -140,6 +141,16 @@ DEFAULT_MIN_FREE_MB = 500.0
 UNCERTAINTY_PERIOD_S = 1.0
 #: --estimate-process: --live-rate holds on average over this long (or one period), not snapshot by snapshot
 ESTIMATE_CREDIT_S = 0.1
+#: --estimate-process: snapshots due an estimate wait in order while the estimator process is full,
+#: this many seconds of them at most, by their own times (their SYNC); the oldest is given up past
+#: it. A 64x64 session's first real snapshots take the estimator 0.1-0.3 s each (factorisations of
+#: a shape the warm-up did not have), and a following host's loop starts ~1 s of snapshots late:
+#: with one waiting place, 113 of the 133 snapshots a following host did not estimate were in its
+#: first second. The estimator has the capacity to catch up after (~200 a second against 145), so
+#: the live view and the publishers lag by at most this long while it does. Never more than
+#: `ESTIMATE_BACKLOG_MAX` snapshots.
+ESTIMATE_BACKLOG_S = 1.0
+ESTIMATE_BACKLOG_MAX = 1024
 
 
 class SessionOutputs:
@@ -185,7 +196,8 @@ class SessionOutputs:
         self.worker = None  #: `host.estimate_worker.EstimatorProcess` (``--estimate-process``)
         self._worker_wanted = bool(getattr(args, "estimate_process", False))
         self._sent: dict[int, object] = {}  # counter -> snapshot, in the estimator process
-        self._waiting = None  # the newest snapshot due an estimate while the estimator process is full
+        # snapshots due an estimate while the estimator process is full, oldest first (`ESTIMATE_BACKLOG_S`)
+        self._waiting: deque = deque()
         self._next_est = -np.inf
         self.estimates_made = 0  #: estimates made (either path) and handed to the outputs
         self.estimates_not_made = 0  #: snapshots due an estimate that found the estimator process full
@@ -418,7 +430,8 @@ class SessionOutputs:
     # -- the estimator process (--estimate-process) ---------------------------------------------
     def _to_worker(self, snap, force: bool = False) -> None:
         """Every snapshot is a candidate (the estimator process keeps up, in order): sent when its
-        turn under --live-rate comes and the process has room, else kept as the newest waiting.
+        turn under --live-rate comes and the process has room, else it waits behind the others
+        waiting (`ESTIMATE_BACKLOG_S` of them at most: past it the oldest is given up, counted).
         The turn is on the snapshots' own times (their SYNC), not on when this thread gets to them:
         the main thread takes queued snapshots in bursts, and a burst must not read as a rate over
         --live-rate (a credit of `ESTIMATE_CREDIT_S` absorbs the SYNCs' jitter: a SYNC sent late
@@ -430,10 +443,12 @@ class SessionOutputs:
         if not force and t < self._next_est:
             return
         self._next_est = max(self._next_est, t - max(self._period, ESTIMATE_CREDIT_S)) + self._period
-        if not self.worker.free:
-            if self._waiting is not None:
-                self.estimates_not_made += 1  # replaced by a newer one
-            self._waiting = snap
+        if self._waiting or not self.worker.free:
+            w = self._waiting
+            while w and (len(w) >= ESTIMATE_BACKLOG_MAX or float(w[0].timestamp) < t - ESTIMATE_BACKLOG_S):
+                w.popleft()
+                self.estimates_not_made += 1  # waited longer than the backlog holds
+            w.append(snap)
             return
         self._send(snap, time.monotonic())
 
@@ -449,9 +464,8 @@ class SessionOutputs:
             return 0
         done = self.worker.results(timeout_s)
         self._publish_remote(done)
-        if self._waiting is not None and self.worker.free:
-            snap, self._waiting = self._waiting, None
-            self._send(snap, time.monotonic())
+        while self._waiting and self.worker.free:
+            self._send(self._waiting.popleft(), time.monotonic())
         return len(done)
 
     def _publish_remote(self, done) -> None:
@@ -563,9 +577,8 @@ class SessionOutputs:
 
     def close(self, stats: dict | None = None) -> None:
         if self.worker is not None:  # the estimates in flight first: they go to the outputs below
-            if self._waiting is not None:
-                self.estimates_not_made += 1
-                self._waiting = None
+            self.estimates_not_made += len(self._waiting)
+            self._waiting.clear()
             self._publish_remote(self.worker.close())
             self.estimates_not_made += len(self._sent)
             self._sent.clear()

@@ -734,3 +734,11 @@ def test_discovery_window_lasts_while_chips_are_still_answering(virtuals, tmp_pa
     assert "1984 chips found, 1984 assigned, 1984 configured" in out.stderr, out.stderr
     assert "1984 started" in out.stderr, out.stderr
     assert doc["summary"]["missing_links"] == [], doc["summary"]["missing_links"]
+
+
+def test_the_hosts_snapshot_queue_holds_two_seconds_at_the_sync_rate():
+    """A following host's chips stream ~1 s before `capsheet host`'s loop takes snapshots: a
+    64-deep queue lost 91-112 snapshots of a 64x64 sheet at 145 Hz (recorded, never estimated)."""
+    from host.cli.host import queue_size_for
+    assert queue_size_for(145) == 291 and queue_size_for(145.0) >= 2 * 145
+    assert queue_size_for(10) == 64 and queue_size_for(None) == 64  # the library's default at least
