@@ -103,3 +103,39 @@ def test_a_gateways_streaming_heartbeat_in_a_run_of_chips_heartbeats_is_the_gate
     rig.host.idle(0.002)
     assert gw.last_status.node == gw.node and gw.last_status.uptime_s == 123456
     assert chip.last_status.node == chip.node and chip.last_status.uptime_s == 654321
+
+
+
+@pytest.mark.parametrize("gate", [True, False])
+def test_a_following_host_takes_no_snapshot_before_it_streams(rigs, monkeypatch, gate):
+    """The gateway's SYNC runs through the bring-up, so the chips started first answer it while the
+    others are still being started. Those samples open no snapshot (counted as
+    ``frames_before_start``): a following host's snapshots begin, as a driving host's do, when it
+    streams, every one of them complete. (``gate=False``: the host without the rule, which took
+    the partial snapshots.)"""
+    from host.session import Host
+    if not gate:
+        monkeypatch.setattr(Host, "_before_start", lambda self, events: events)
+    rig = rigs("memory", gateway_sync_hz=200.0)
+    rig.host.sync_policy, rig.host.sync_mode = "follow", "follow"
+    rig.host.feed.set_trust("follow")
+    real = rig.host.bringup.start_chips
+
+    def staggered(uids=None):  # half the chips, ten SYNC periods, the other half (a big sheet's START)
+        if uids is not None:
+            return real(uids)
+        every = [r.uid for r in rig.host.registry.assigned()]
+        n = real(every[:len(every) // 2])
+        rig.host.idle(0.05)
+        return n + real(every[len(every) // 2:])
+    monkeypatch.setattr(rig.host.bringup, "start_chips", staggered)
+    rig.host.bring_up(0.2)
+    snaps = list(rig.host.drain()) + rig.stream(0.5)
+    n_links = rig.sheet.n_links
+    if gate:
+        assert rig.host.frames_before_start >= 8 * (n_links // 2)  # ~10 SYNCs of the first half
+        assert rig.host.summary()["frames_before_start"] == rig.host.frames_before_start
+        assert len(snaps) >= 90 and all(s.complete for s in snaps)
+    else:
+        assert rig.host.frames_before_start == 0
+        assert sum(not s.complete for s in snaps) >= 8  # the partial snapshots of the start
