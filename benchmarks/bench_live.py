@@ -427,13 +427,12 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
             row.update(
                 exit=doc["exit"], snapshots=s["snapshots"], syncs_sent=doc["syncs_sent"],
                 syncs_seen=doc.get("syncs_seen"), sync_mode=s.get("sync_mode"),
-                # SYNCs per second while streaming: sent by the host, or (following) the gateway's
-                # SYNCs that opened a snapshot, over the recorded snapshots' own span (a following
-                # host takes snapshots from its bring-up's end, ~1 s before its --duration starts:
-                # snapshots / --duration read 153-155 Hz for a gateway at 145; syncs_seen counts
-                # each SYNC once per port, and those heard during the bring-up too)
-                sync_rate_hz=round(doc["syncs_sent"] / cfg["duration"], 1) if s.get("sync_mode") != "follow"
-                else _recorded_rate(rec),
+                # SYNCs per second while streaming (sent by the host, or the gateway's when it
+                # follows) over the recorded snapshots' own span: a host streams from its
+                # bring-up's end, ~0.5-1 s before its --duration starts, so SYNCs or snapshots /
+                # --duration read 147-155 Hz for 145 (syncs_seen counts each SYNC once per port,
+                # and those heard during the bring-up too)
+                sync_rate_hz=_recorded_rate(rec),
                 syncs_missed=doc["live"]["syncs_missed"],
                 complete_pct=s["complete_snapshots_pct"], valid_links_pct=s["valid_links_pct"],
                 estimated_pct=round(100.0 * est.get("made", 0) / snaps, 2), estimates=est,
