@@ -129,6 +129,7 @@ class BringUp:
         host = self.host
         host.open()
         host.streaming.clear()
+        host.awaiting_stream = True  # a following host takes no samples until it streams again
         before = self.stale_frames
         self.discarding = True
         try:

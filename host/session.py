@@ -248,6 +248,9 @@ class Host:
         self.streaming = threading.Event()
         #: a following host's sample frames before it streamed, dropped (`_before_start`)
         self.frames_before_start = 0
+        #: from the bring-up (`quiesce`) until `start` has set `streaming`; not while `stop` lets
+        #: the counters in flight complete
+        self.awaiting_stream = True
         self._stop = threading.Event()
         self._rx_threads: list[threading.Thread] = []
         self._sync_thread: threading.Thread | None = None
@@ -340,6 +343,7 @@ class Host:
         self.watchdog.restart(now, self.sync_driver.service_s)
         self.sync_driver.end_schedule()
         self.streaming.set()
+        self.awaiting_stream = False
         # following a gateway's SYNC, no new counter sequence begins here: the gateway's goes on,
         # and what is open completes as usual. (A restart here — emit what is open, forget the
         # order — let another port's copy of a SYNC just emitted, or a frame for it, open that
@@ -396,7 +400,7 @@ class Host:
         if not events:
             feed.input_idle(bus)  # read up to now: its counters may be given up at their deadline
             return False
-        if not self.streaming.is_set() and self.sync_driver.sync_mode == "follow":
+        if self.awaiting_stream and self.sync_driver.sync_mode == "follow":
             events = self._before_start(events)
         if self.gateway_nodes.unreadable:  # a gateway packs words this host cannot read (§4.16)
             events = self.gateway_nodes.drop_unreadable(bus, events)

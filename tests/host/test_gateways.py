@@ -130,7 +130,15 @@ def test_a_following_host_takes_no_snapshot_before_it_streams(rigs, monkeypatch,
         return n + real(every[len(every) // 2:])
     monkeypatch.setattr(rig.host.bringup, "start_chips", staggered)
     rig.host.bring_up(0.2)
-    snaps = list(rig.host.drain()) + rig.stream(0.5)
+    at_start = rig.host.frames_before_start
+    snaps = list(rig.host.drain()) + list(rig.host.snapshots(duration_s=0.2))
+    # `stop` clears `streaming` while the counters in flight complete: samples read then are
+    # taken as before, not counted as before the start
+    rig.host.streaming.clear()
+    rig.host.idle(0.05)
+    assert rig.host.frames_before_start == at_start
+    rig.host.streaming.set()
+    snaps += rig.stream(0.3)
     n_links = rig.sheet.n_links
     if gate:
         assert rig.host.frames_before_start >= 8 * (n_links // 2)  # ~10 SYNCs of the first half
