@@ -102,7 +102,7 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
     if lu is not None and chord_in_kernel(st, lu, gamma):
         # the warm start's chord steps in the kernel: this loop's iterations, one C call
         status, it, cost, grad, prev_smax, seen = prob.chord_kernel(
-            gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS, chain)
+            gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS, chain, CHAIN_SAFETY)
         if status in (0, 3):  # converged, or out of iterations
             return gamma, it, 0, lu, prob, _contraction(seen, chain, lu is lu_in and it == 1)
         lu, blocks, seen = None, None, []  # 1: the cost rose; 2: a step contracted too little

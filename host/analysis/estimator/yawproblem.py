@@ -213,11 +213,12 @@ class YawProblem:
         return cost, grad[:st.n_var], None
 
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
-                     chain=None):
+                     chain=None, chain_safety=0.0):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
-        `REFACTOR_RATIO`, `ANDERSON_COS`; ``chain``: its `solver.Contraction` or None). ``gamma``
+        `REFACTOR_RATIO`, `ANDERSON_COS`; ``chain``, ``chain_safety``: its `solver.Contraction`
+        or None, and `solver.CHAIN_SAFETY`). ``gamma``
         is updated in place. Returns (status, iterations, cost, grad, prev_smax, steps); status 0
         converged, 1 the cost rose, 2 a poor contraction (refactorise for both), 3 out of
         iterations; steps: the first two steps' largest entries, as taken."""
@@ -232,8 +233,7 @@ class YawProblem:
         c.n_links, c.max_iter, c.tol = gamma.size, max_iter, float(tol)
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
         if chain is not None:
-            from .solver import CHAIN_SAFETY
-            c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, CHAIN_SAFETY
+            c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, float(chain_safety)
         pi = np.ascontiguousarray(st.perm_inv, np.int64)
         pv = np.ascontiguousarray(st.perm_of_var, np.int64)
         c.perm_inv, c.perm_of_var = fb("int64_t[]", pi), fb("int64_t[]", pv)
