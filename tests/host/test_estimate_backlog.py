@@ -45,7 +45,7 @@ def test_snapshots_wait_in_order_while_the_estimator_is_busy_and_the_oldest_are_
     assert w is not None
     r = ideal_readings(make_sheet("cylinder", 5, 6, 0.01))
     ok = np.ones(r.shape[0], bool)
-    n = 100
+    n = 200
     try:
         _wait(lambda: (w.results(0.05) or True) and w.warm, "the estimator's warm-up")
         os.kill(w.pid, signal.SIGSTOP)
@@ -54,10 +54,10 @@ def test_snapshots_wait_in_order_while_the_estimator_is_busy_and_the_oldest_are_
                                          True, 0.0))
         in_flight = w.max_in_flight
         assert len(out._sent) == in_flight  # the pipe took these; the others wait
-        # the newest snapshot's time is 99/64 s; those within 1 s of it wait (k >= 35), the ones
+        # the newest snapshot's time is 199/64 s; those within 2 s of it wait (k >= 71), the ones
         # before them were given up
-        held = 65
-        assert RA.ESTIMATE_BACKLOG_S == 1.0
+        held = 129
+        assert RA.ESTIMATE_BACKLOG_S == 2.0
         assert list(s.counter for s in out._waiting) == list(range(n - held, n))
         assert out.estimates_not_made == n - in_flight - held
     finally:
@@ -81,7 +81,7 @@ def test_a_backlog_is_bounded_by_count_too(tmp_path, monkeypatch):
         _wait(lambda: (w.results(0.05) or True) and w.warm, "the estimator's warm-up")
         os.kill(w.pid, signal.SIGSTOP)
         for k in range(40):
-            out.snapshot(LatticeSnapshot(k, k / RATE / 100, float(k), r, ok,  # all within 1 s
+            out.snapshot(LatticeSnapshot(k, k / RATE / 100, float(k), r, ok,  # all within 2 s
                                          np.zeros(r.shape[0], np.uint8), True, 0.0))
         assert [s.counter for s in out._waiting] == list(range(35, 40))
         assert out.estimates_not_made == 40 - w.max_in_flight - 5
