@@ -229,7 +229,6 @@ def _fail(msg: str, code: int) -> int:
     return code
 
 
-
 #: the snapshots waiting for this command's loop: at least this many seconds of them at --rate
 QUEUE_S = 2.0
 
@@ -241,6 +240,7 @@ def queue_size_for(rate_hz: float | None) -> int:
     at 145 Hz lost 91-112 of ~2,480 snapshots' estimates off a 64-deep queue (recorded at
     emission, never estimated)."""
     return max(64, int(QUEUE_S * float(rate_hz or 0.0)) + 1)
+
 
 def run(args) -> int:
     from host.cli import short_gil_switch
