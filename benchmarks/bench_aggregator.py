@@ -27,7 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from host.aggregator import Aggregator  # noqa: E402
+from host.snapshots.aggregator import Aggregator  # noqa: E402
 from protocol.framing import MAX_PAYLOAD_SIZE, StreamDecoder, encode_frame  # noqa: E402
 from protocol.messages import SampleBatch  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402

@@ -33,7 +33,7 @@ sys.path.insert(0, str(ROOT))
 
 def _virtual(factory, variant: str, runs: int, profile: str = "chip", first_seed: int = 0) -> list[dict]:
     from host.conformance import Port, run_checks
-    from host.transport import SerialTransport
+    from host.transport.ports import SerialTransport
     from tests.host.conformance.mutants import HEALTHY
     from virtual_sheet.devices import PtyDevice
     from virtual_sheet.sheet import VirtualSheet

@@ -66,7 +66,7 @@ def recorder_lock(seconds: float) -> dict:
     import foxglove
     from foxglove.mcap import MCAPWriteOptions
 
-    from host.record import COMPRESSION_LEVEL
+    from host.record.recording import COMPRESSION_LEVEL
     out = {}
     for writer in (False, True):
         ctx = foxglove.Context()

@@ -55,8 +55,8 @@ def run_case(shape: str, sensors: str, seconds: float, lattice: str = "14x14", s
 
     from host.cli.demo import fused_update
     from host.estimator import estimate
-    from host.session import Host, Layout
-    from host.transport import MemoryTransport
+    from host.session.core import Host, Layout
+    from host.transport.ports import MemoryTransport
     from virtual_sheet.devices import MemoryDevice
     from virtual_sheet.sheet import VirtualSheet
 

@@ -30,7 +30,7 @@ import time
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
-from host.aggregator import Aggregator  # noqa: E402
+from host.snapshots.aggregator import Aggregator  # noqa: E402
 from protocol.framing import NATIVE_SCAN, StreamDecoder  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 from bench_record_compression import PORTS, wire_reads  # noqa: E402  (benchmarks/, this script's folder)

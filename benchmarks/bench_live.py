@@ -49,7 +49,7 @@ import time
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, REPO)
 
-from host.aggregator import window_completeness  # noqa: E402
+from host.snapshots.aggregator import window_completeness  # noqa: E402
 from host.cli import one_blas_thread  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 
@@ -167,8 +167,8 @@ SETTLE_S = 1.5
 
 def _run_rate(cfg: dict, paths: list[str], rate: float, duration_s: float, estimate_latency: bool) -> dict:
     from host.estimator import estimate
-    from host.session import Host, Layout
-    from host.transport import CanTransport, open_transport
+    from host.session.core import Host, Layout
+    from host.transport.ports import CanTransport, open_transport
 
     lat = cfg["lattice"]
     lattice = Lattice.parse(lat)
@@ -354,7 +354,7 @@ def _cpu_pct(a: dict, b: dict, dt: float) -> dict[str, float]:
 
 def _recorded_rate(path: str) -> float:
     """Snapshots per second of a recording, over its snapshots' span (their host times)."""
-    from host.record import iter_snapshots
+    from host.record.recording import iter_snapshots
     first = last = None
     n = 0
     for b in iter_snapshots(path, batch=1024):

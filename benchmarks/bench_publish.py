@@ -1,5 +1,5 @@
 """The cost of ``--publish zenoh`` and ``--publish ros2`` on the host's receive thread: encoding a
-snapshot (`host.publish.encode_snapshot`; ros2: a CDR ``capsheet_msgs/LatticeSnapshot``) and one
+snapshot (`host.publish.zenoh_pub.encode_snapshot`; ros2: a CDR ``capsheet_msgs/LatticeSnapshot``) and one
 ``Publisher.put`` (ros2: with rmw_zenoh's attachment) in peer mode on loopback, with one subscriber
 process-local peer listening (so the put goes to a transport, not to nothing), per lattice size; for
 ros2 also an estimate (``sensor_msgs/PointCloud2`` of the joints + ``visualization_msgs/Marker``
@@ -19,8 +19,8 @@ import time
 
 import numpy as np
 
-from host.aggregator import LatticeSnapshot  # noqa: F401 -- the type the encoder reads
-from host.publish import ZenohPublisher, encode_snapshot, zenoh_config
+from host.snapshots.aggregator import LatticeSnapshot  # noqa: F401 -- the type the encoder reads
+from host.publish.zenoh_pub import ZenohPublisher, encode_snapshot, zenoh_config
 from protocol.lattice import Lattice
 
 
@@ -38,7 +38,7 @@ class Est:  # the field Ros2Outputs.estimate reads, as a ShapeEstimate has it
 
 
 def bench_ros2(sub_session, lat, size, rng, n) -> dict:
-    from host.ros2 import Ros2Outputs
+    from host.publish.ros2 import Ros2Outputs
     name = f"bench{size}"
     got = [0, 0]
     subs = [sub_session.declare_subscriber(f"0/capsheet/{name}/snapshot/**", lambda s: got.__setitem__(0, got[0] + 1)),
@@ -83,7 +83,7 @@ def bench_imu(sub_session, lat, size, rng, n) -> dict:
     at once, one put per message."""
     from types import SimpleNamespace
 
-    from host.ros2 import Ros2Outputs
+    from host.publish.ros2 import Ros2Outputs
     name = f"benchimu{size}"
     got = [0]
     sub = sub_session.declare_subscriber(f"0/capsheet/{name}/**", lambda s: got.__setitem__(0, got[0] + 1))

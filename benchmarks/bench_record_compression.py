@@ -29,7 +29,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
 import numpy as np  # noqa: E402
 
-from host.record import Recorder, compression_level_for  # noqa: E402
+from host.record.recording import Recorder, compression_level_for  # noqa: E402
 from protocol.framing import encode  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 from protocol.messages import Sync  # noqa: E402

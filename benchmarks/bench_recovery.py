@@ -52,7 +52,7 @@ def _host_cmd(v: subprocess.Popen) -> list[str]:
 
 
 def one_run(transport: str, lattice: str, sync: str, rate: float) -> dict:
-    from host.record import read_recording
+    from host.record.recording import read_recording
     import numpy as np
     tmp = Path(tempfile.mkdtemp(prefix="bench-recovery-"))
     port, lay, rec = tmp / "port", tmp / "sheet.csv", tmp / "run.mcap"

@@ -1,6 +1,6 @@
-"""The 3D scene's lattice at 64x64: `host.live.SceneChannels.log_lattice` as it is (the line list's
-SceneUpdate bytes made with numpy, `host.live._LineListScene`) against the SDK's objects it replaced
-(one `Point3` and one `Color` per line end, `tests.host.test_scene_encoding.object_log_lattice`),
+"""The 3D scene's lattice at 64x64: `host.publish.live.SceneChannels.log_lattice` as it is (the line list's
+SceneUpdate bytes made with numpy, `host.publish.live._LineListScene`) against the SDK's objects it replaced
+(one `Point3` and one `Color` per line end, `tests.host.publish.test_scene_encoding.object_log_lattice`),
 each into an MCAP sink, in the same run. Every call holds the interpreter lock the host's receive
 and SYNC threads need (issue 31). Prints JSON: the median of ``--calls`` calls per colouring.
 
@@ -22,9 +22,9 @@ import foxglove  # noqa: E402
 import numpy as np  # noqa: E402
 from foxglove.channels import SceneUpdateChannel  # noqa: E402
 
-from host.live import SceneChannels  # noqa: E402
+from host.publish.live import SceneChannels  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
-from tests.host.test_scene_encoding import T_NS, object_log_lattice, sample  # noqa: E402
+from tests.host.publish.test_scene_encoding import T_NS, object_log_lattice, sample  # noqa: E402
 
 
 def median_ms(lat: Lattice, colour_by: str, objects: bool, n_calls: int) -> float:

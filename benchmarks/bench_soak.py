@@ -113,7 +113,7 @@ class _Stalls:
     def __init__(self) -> None:
         import numpy as np
 
-        from host.record_schema import message_class
+        from host.record.schema import message_class
         from protocol.framing import StreamDecoder
         self.np, self.Raw = np, message_class("RawSerial")
         self.dec = StreamDecoder(batch_samples=True)
@@ -159,7 +159,7 @@ def _analyse(files: list[Path], duration_s: float, window: tuple[float, float], 
     from mcap.records import Channel, Message
     from mcap.stream_reader import StreamReader
 
-    from host.record_schema import message_class
+    from host.record.schema import message_class
 
     Snapshot, Sync = message_class("Snapshot"), message_class("Sync")
     sizes: dict[str, int] = {}

@@ -62,8 +62,8 @@ class CanFrame(NamedTuple):
 @dataclass(frozen=True, slots=True, eq=False)
 class FrameBlock:
     """Consecutive classic extended data frames of 7 bytes, as arrays: what
-    `host.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and
-    `host.transport.CanTransport` decodes without a python-can message per frame.
+    `host.transport.slcan.BufferedSlcanBus.drain_blocks` hands over for a run of them, and
+    `host.transport.ports.CanTransport` decodes without a python-can message per frame.
 
     Attributes
     ----------

@@ -1,5 +1,5 @@
 """The layout file: which chip (64-bit uid) sits on which link. One format, read and written by the
-host (`host.session.Host`) and the virtual sheet (`virtual_sheet.sheet.VirtualSheet.write_layout`).
+host (`host.session.core.Host`) and the virtual sheet (`virtual_sheet.sheet.VirtualSheet.write_layout`).
 
 Sans-I/O: `parse_layout` / `format_layout` work on text; `load_layout` / `save_layout` are the thin
 file wrappers. The format is chosen by the file's extension: ``.json`` is JSON, anything else CSV.

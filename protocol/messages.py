@@ -706,7 +706,7 @@ class Snapshot(Message):
 class SnapshotFrames:
     """Consecutive SNAPSHOT frames of one read, decoded at once: the event of
     `framing.StreamDecoder` with ``batch_snapshots`` (a host's serial transports; the packed
-    64x64 sheet sends ~35 of them per SYNC), taken by `host.aggregator.Aggregator` without a
+    64x64 sheet sends ~35 of them per SYNC), taken by `host.snapshots.aggregator.Aggregator` without a
     `Snapshot` object per frame.
 
     Per frame (length f): ``node``, ``frame_counter``, ``first_link`` uint16, ``sizes`` int64

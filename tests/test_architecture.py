@@ -62,7 +62,8 @@ def offenders(package: str, forbidden, *, allow_under: str | None = None) -> lis
 def test_imports_are_resolved_from_the_source():
     # the checker itself: a file that imports the simulator is seen doing so
     assert "virtual_sheet.sheet" in imports_of(ROOT / "host/cli/demo.py")
-    assert "host.transport" in imports_of(ROOT / "host/session.py")  # `from .transport import ...`
+    assert "host.transport.ports" in imports_of(ROOT / "host/session/core.py")
+    assert "host.analysis.estimator.angles" in imports_of(ROOT / "host/analysis/estimator/pipeline.py")  # `from .angles import ...`
 
 
 def test_only_the_command_line_imports_the_virtual_sheet():
@@ -271,7 +272,7 @@ def test_the_graph_knows_the_compiled_modules_built_or_not():
 
 
 def test_no_import_cycles_among_our_modules():
-    # host/slcan.py <-> host/transport.py (FrameBlock lived in the transport module) and
+    # host/transport/slcan.py <-> host/transport/ports.py (FrameBlock lived in the transport module) and
     # virtual_sheet/board.py <-> virtual_sheet/shapes.py (flat_net lived in shapes) were the two
     assert cycles(import_graph()) == []
 
@@ -406,9 +407,9 @@ def test_no_module_reassigns_another_objects_methods():
     assert method_patch_offenders() == []
 
 
-@pytest.mark.parametrize("part", ["host/aggregator.py", "host/counter_trust.py", "host/deadline.py"])
+@pytest.mark.parametrize("part", ["host/snapshots/aggregator.py", "host/snapshots/counter_trust.py", "host/snapshots/deadline.py"])
 def test_the_aggregator_reads_no_clock_and_starts_no_thread(part):
-    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/feed.py's;
+    # sans-I/O (docs/design.md §8): now is passed in; the lock, clock and queue are host/snapshots/feed.py's;
     # its counter trust and deadline policy are told counters and latencies, and read no clock either
     assert not imports_of(ROOT / part) & {"time", "threading", "queue", "asyncio"}
 
@@ -416,5 +417,5 @@ def test_the_aggregator_reads_no_clock_and_starts_no_thread(part):
 def test_python_can_finds_capsheets_buses_by_name():
     import tomllib
     eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["can.interface"]
-    assert eps == {"capsheet_slcan": "host.slcan:SlcanBus",
-                   "capsheet_udp_multicast": "host.udp_multicast:IsolatedUdpMulticastBus"}
+    assert eps == {"capsheet_slcan": "host.transport.slcan:SlcanBus",
+                   "capsheet_udp_multicast": "host.transport.udp_multicast:IsolatedUdpMulticastBus"}

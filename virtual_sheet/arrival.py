@@ -1,7 +1,7 @@
 """When a SYNC reached the chips, from when the virtual sheet read it (issue 30 point 4).
 
 A real chip samples when its SYNC arrives on the wire, about when the host sent it; the host's
-timing model (`host.syncdriver`: the counter's time is when it was written, plus each record's
+timing model (`host.session.syncdriver`: the counter's time is when it was written, plus each record's
 ``time_us``) rests on that. A virtual sheet behind a pty learns of a SYNC only when its process
 reads the pty — on a loaded machine some reads come milliseconds late, a delay no wire adds. Its
 chips would sample (and say ``time_us`` against) that late instant, and the host would integrate

@@ -806,7 +806,7 @@ class CanDevice(Device):
         super().__init__(sheet, **kw)
         self.interface = interface
         #: the python-can interface opened: ``udp_multicast`` is python-can's bus isolated to its
-        #: group (``capsheet_udp_multicast``, host/udp_multicast.py, found by name): two sheets on
+        #: group (``capsheet_udp_multicast``, host/transport/udp_multicast.py, found by name): two sheets on
         #: distinct groups on one machine do not hear each other
         self.bus_interface = "capsheet_udp_multicast" if interface == "udp_multicast" else interface
         self.channels = channels or [f"capsheet{b}" for b in range(n_buses)]

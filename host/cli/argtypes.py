@@ -242,11 +242,11 @@ def existing_file(*suffixes: str, what: str = "a file"):
 
 def recording_file(*suffixes: str, what: str = "a recording"):
     """`existing_file`, or the name a split recording was made under (``run.mcap`` when
-    ``run_0000.mcap`` exists: `host.record.recording_set`)."""
+    ``run_0000.mcap`` exists: `host.record.recording.recording_set`)."""
     plain = existing_file(*suffixes, what=what)
 
     def parse(text: str) -> InputPath:
-        from host.record import split_path
+        from host.record.recording import split_path
         if not Path(text).exists() and _suffix_ok(text, suffixes) and split_path(text, 0).is_file():
             return InputPath(text)
         return plain(text)

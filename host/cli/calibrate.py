@@ -50,7 +50,7 @@ import numpy as np
 from host.analysis.calibration import (BOARD_POSES, MIN_POSES, Calibration,
                                        StaticDetector, board_frame_readings, fit_board_poses)
 from host.cli.transport_args import add_transport_args, open_transports
-from host.transport import TransportError
+from host.transport.ports import TransportError
 from protocol.constants import G0
 from protocol.lattice import Lattice
 
@@ -428,9 +428,9 @@ def _imu_summary(imu_cal, log: ImuLog) -> dict:
 
 
 def run(args) -> int:
-    from host.session import Host, Layout
+    from host.session.core import Host, Layout
 
-    from host.session import MismatchError
+    from host.session.core import MismatchError
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     rows, cols = args.lattice.rows, args.lattice.cols  # every value was checked by its type (argtypes)

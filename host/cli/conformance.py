@@ -14,7 +14,7 @@ import host.conformance as _conf
 from host.cli.transport_args import add_transport_args
 from host.conformance import CHECKS, AuditedCanTransport, Port, exit_code, run_checks, select, summary, table
 from host.conformance.session import RunAborted
-from host.transport import SerialTransport, TransportError
+from host.transport.ports import SerialTransport, TransportError
 
 __all__ = ["register", "run"]
 

@@ -83,7 +83,7 @@ def check_capacity(args) -> None:
     `GATEWAY_BAUD` UART), else a usage error whose remedy fits what is set (`capacity_remedy`)."""
     from host.cli.argtypes import usage_error
     from host.cli.transport_args import split_needed
-    from host.session import capacity_remedy
+    from host.session.core import capacity_remedy
     from protocol.capacity import bus_load
 
     fmt = {"accel": 0, "accel+gyro": 1, "accel+gyro+mag": 2}[getattr(args, "sensors", "accel")]
@@ -157,8 +157,8 @@ def run(args) -> int:
     from host.estimator import error_percent_of_side, estimate
     from host.cli.progress import LiveLine
     from host.cli.runstats import CompletenessWindow, Samples
-    from host.session import Host, Layout
-    from host.transport import open_transport
+    from host.session.core import Host, Layout
+    from host.transport.ports import open_transport
     from virtual_sheet.sheet import VirtualSheet
 
     check_capacity(args)  # every other value was checked by its type (host.cli.argtypes)

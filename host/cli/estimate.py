@@ -13,7 +13,7 @@ the sheets it takes, ``--worker I/N`` shares them among N workers without coordi
 snapshots are counted from the SYNC counters, and a summary per sheet is printed at the end.
 
 The recorded snapshots are estimated (a CAN log, or ``--from-raw``, is first replayed through the
-decoder and aggregator, `host.replay`). Snapshots are read in batches of ``--batch`` (each warm-
+decoder and aggregator, `host.record.replay`). Snapshots are read in batches of ``--batch`` (each warm-
 starts from its own first snapshot, as a live run does from its previous one) and each batch goes
 to one of ``--jobs`` processes as soon as it is read. ``joints.npz`` holds ``counter`` (n,), ``timestamp`` (n,) s, ``joints``
 (n, rows, cols, 3) m, ``residual`` (n,), ``valid`` (n, n_links), ``link_length_m``, ``lattice``,
@@ -252,11 +252,11 @@ def _import_estimator() -> None:
 
 def _source(args):
     """``(lattice, L, session, batches, total, truncated)``: the recording's snapshots as an iterator
-    of `host.record.SnapshotBatch` of ``--batch`` each, read as they are consumed (``total``: the
+    of `host.record.recording.SnapshotBatch` of ``--batch`` each, read as they are consumed (``total``: the
     snapshot count if known beforehand, else None; ``truncated``: the MCAP was cut short, its
     summary missing)."""
-    from host.record import SnapshotBatch, iter_snapshots, snapshot_count
-    from host.replay import Replay
+    from host.record.recording import SnapshotBatch, iter_snapshots, snapshot_count
+    from host.record.replay import Replay
     from protocol.lattice import Lattice
 
     src, path = args.source, Path(args.recording)
@@ -291,7 +291,7 @@ def _source(args):
     return rp.lattice, rp.link_length, session, parts, len(whole), bool(rp.recording and rp.recording.truncated)
 
 
-#: `host.record.SnapshotBatch`'s array fields, in order
+#: `host.record.recording.SnapshotBatch`'s array fields, in order
 _FIELDS = ("counter", "timestamp", "wall_time", "readings", "valid", "status")
 
 
@@ -477,9 +477,9 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
                 quiet: bool, method: str = "global", imu: dict | None = None) -> None:
     from types import SimpleNamespace
 
-    from host.aggregator import LatticeSnapshot
+    from host.snapshots.aggregator import LatticeSnapshot
     from host.cli.progress import Progress
-    from host.record import Recorder
+    from host.record.recording import Recorder
 
     rec = Recorder(out, lat, L, session={"mode": "estimate", "estimated_from": session.get("format", "?"),
                                          **{k: v for k, v in session.items() if k in ("rate_hz", "sync", "mode")}})

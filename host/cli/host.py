@@ -23,7 +23,7 @@ or a mismatch found before streaming (bad value, malformed layout, layout vs lat
 on a classic bus, layout chips that never answer, over capacity, a port given twice, the same chips
 on two ports, a port of another sheet).
 
-The Python API is `host.session.Host` (re-exported here).
+The Python API is `host.session.core.Host` (re-exported here).
 """
 
 from __future__ import annotations
@@ -37,11 +37,11 @@ import threading
 import time
 
 from host.cli import argtypes as T
-from host.session import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
+from host.session.core import CapacityError, Host, Layout, MismatchError, SessionError, SyncConflictError, link_ranges
 from host.cli.record_args import SessionOutputs, add_record_args
 from host.cli.transport_args import add_transport_args, check_ports, open_transports
 from host.cli.sensor_args import add_sensor_args, imu_config
-from host.transport import TransportError
+from host.transport.ports import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
 
@@ -84,7 +84,7 @@ def register(subparsers) -> None:
     p.add_argument("--no-input-hold", action="store_true",
                    help="give an incomplete counter up at its deadline even when its bus was not read past it "
                         "yet (a host that was not scheduled for a while; the behaviour before issue 34: "
-                        "host.aggregator, 'Input watermark')")
+                        "host.snapshots.aggregator, 'Input watermark')")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s; 0.25 at least until a first chip answered); it lasts while new chips are still answering (until 0.25 s pass without one, at most 20 windows)")
     p.add_argument("--no-reset", action="store_true",
@@ -336,7 +336,7 @@ def run(args) -> int:
             if up["started"] == 0:
                 return _fail("no chip started streaming", EXIT_FAIL)
             if cal is not None:
-                from host.health import HealthChecker
+                from host.snapshots.health import HealthChecker
                 host.health = HealthChecker(host.lattice.rows, host.lattice.cols)
             out.describe(host)
             from host.memory import probe_from_env

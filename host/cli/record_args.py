@@ -88,7 +88,7 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
 
 
 def _publish_arg(value: str):
-    from host.publish import parse_publish
+    from host.publish.zenoh_pub import parse_publish
     try:
         return parse_publish(value)
     except ValueError as exc:
@@ -107,7 +107,7 @@ def _check_ros2(ns) -> str | None:
     publish = getattr(ns, "publish", None)
     if not ((publish is not None and publish[0] == "ros2") or getattr(ns, "record_ros2", None)):
         return None
-    from host.ros2 import ROS_NAME, domain_id
+    from host.publish.ros2 import ROS_NAME, domain_id
     sheet = getattr(ns, "sheet_name", "sheet")
     if not ROS_NAME.match(sheet):
         return (f"--sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
@@ -120,7 +120,7 @@ def _check_ros2(ns) -> str | None:
 
 
 def _sheet_name(value: str) -> str:
-    from host.publish import SHEET_NAME
+    from host.publish.zenoh_pub import SHEET_NAME
     if not SHEET_NAME.match(value):
         raise argparse.ArgumentTypeError(f"bad sheet name {value!r}: 1-64 of A-Z a-z 0-9 _ . - (one key chunk)")
     return value
@@ -167,7 +167,7 @@ class SessionOutputs:
     mode : str
         ``"host"``, ``"demo"`` or ``"tactile"`` (stored in the session metadata).
     colour_by : str
-        `host.live.COLOUR_MODES`.
+        `host.publish.live.COLOUR_MODES`.
     prog : str
         For messages.
     """
@@ -179,9 +179,9 @@ class SessionOutputs:
         self.lattice = lattice
         self.link_length = float(link_length)
         self.recorder = None
-        self.publisher = None  #: `host.publish.ZenohPublisher` (``--publish zenoh``)
+        self.publisher = None  #: `host.publish.zenoh_pub.ZenohPublisher` (``--publish zenoh``)
         self.session_facts = {"mode": mode, **(session or {})}  #: what the session says of itself
-        self.ros2 = None  #: `host.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
+        self.ros2 = None  #: `host.publish.ros2.Ros2Outputs` (``--publish ros2``, ``--record-ros2``)
         #: ``--publish zenoh`` publishes this session's estimates (not with ``--no-publish-estimates``)
         self.publishes_estimates = not getattr(args, "no_publish_estimates", False)
         self._host = None
@@ -194,7 +194,7 @@ class SessionOutputs:
         self._previous = None
         self._fused = None  # 6/9-axis chips: the fused estimator, fed every snapshot in order
         self.estimates_skipped, self._skip_reason = 0, ""
-        self.worker = None  #: `host.estimate_worker.EstimatorProcess` (``--estimate-process``)
+        self.worker = None  #: `host.workers.estimate_worker.EstimatorProcess` (``--estimate-process``)
         self._worker_wanted = bool(getattr(args, "estimate_process", False))
         self._sent: dict[int, object] = {}  # counter -> snapshot, in the estimator process
         # snapshots due an estimate while the estimator process is full, oldest first (`ESTIMATE_BACKLOG_S`)
@@ -207,7 +207,7 @@ class SessionOutputs:
         if record or live is not None:
             import host.analysis.estimator  # noqa: F401 -- now, not at the first estimate: importing scipy
             # mid-session (~0.8 s holding the GIL) stalls the live path it runs in
-            from host import record as R
+            from host.record import recording as R
             split_mb, split_s = getattr(args, "split_size", None), getattr(args, "split_duration", None)
             if record and (split_mb or split_s) and R.split_path(record, 0).exists() \
                     and not getattr(args, "overwrite", False):
@@ -237,7 +237,7 @@ class SessionOutputs:
             self._open_ros2(args, lattice, publish, record_ros2, prog)
         if publish is not None and publish[0] == "zenoh":
             import host.analysis.estimator  # noqa: F401,F811 -- now, not mid-session (above)
-            from host.publish import ZenohPublisher
+            from host.publish.zenoh_pub import ZenohPublisher
             sheet = getattr(args, "sheet_name", "sheet")
             try:
                 self.publisher = ZenohPublisher(sheet, publish[1], lattice, link_length,
@@ -247,7 +247,7 @@ class SessionOutputs:
             print(f"{prog}: publishing to Zenoh under {self.publisher.prefix}/ "
                   f"({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
         if self._worker_wanted and (self.recorder is not None or self.publisher is not None or self.ros2 is not None):
-            from host.estimate_worker import EstimatorProcess
+            from host.workers.estimate_worker import EstimatorProcess
             self.worker = EstimatorProcess(lattice.rows, lattice.cols, self.link_length)
         path = getattr(args, "can_log", None)
         if path:
@@ -261,7 +261,7 @@ class SessionOutputs:
 
     def _open_ros2(self, args, lattice, publish, record_ros2, prog: str) -> None:
         import host.analysis.estimator  # noqa: F401 -- now, not mid-session (above)
-        from host.ros2 import ROS_NAME, TOPICS, Ros2Outputs, domain_id
+        from host.publish.ros2 import ROS_NAME, TOPICS, Ros2Outputs, domain_id
         sheet = getattr(args, "sheet_name", "sheet")
         if not ROS_NAME.match(sheet):
             print(f"{prog}: --sheet-name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): 1-64 of "
@@ -302,7 +302,7 @@ class SessionOutputs:
     # -- wiring --------------------------------------------------------------------------------
     def attach(self, host) -> None:
         """Before bring-up: record the raw input of every transport and every SYNC the host opens."""
-        from host.transport import CanTransport
+        from host.transport.ports import CanTransport
 
         self._host = host
         if self.publisher is not None:  # every snapshot as emitted, corrected, as the recording
@@ -326,7 +326,7 @@ class SessionOutputs:
                 print(f"{self.prog}: CAN log channel {bus} ({'can%d' % bus} in .log) is {t.name}", file=sys.stderr)
 
     def _log_can(self, bus: int, cap) -> None:
-        """A capture (`host.transport.Capture`) of bus index ``bus`` into the log: one python-can
+        """A capture (`host.transport.ports.Capture`) of bus index ``bus`` into the log: one python-can
         message per frame, copied (the bus's own messages are not touched), the channel the bus
         index (ASC and BLF number channels; candump's .log shows it as ``can<index>``). What the
         host sent is logged as Tx (``is_rx`` False: candump's ``T``, ASC's ``Tx``), received frames
@@ -352,7 +352,7 @@ class SessionOutputs:
         if self.recorder is not None:
             self.recorder.add_host_facts(host)
         if self.publisher is not None or self.ros2 is not None:
-            from host.record import Recorder
+            from host.record.recording import Recorder
             session, layout, calibration = Recorder.session_facts(host)
             live_cal = host.calibration
             if live_cal is not None:  # `--calibration`: what the snapshots were corrected with

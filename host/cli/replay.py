@@ -43,7 +43,7 @@ def truncated_note(prog: str, path, allow: bool, what: str) -> bool:
 
 def _no_summary(path) -> bool:
     """An MCAP file (by its magic bytes) without its summary: a killed writer, a partial copy."""
-    from host.record import recording_set, snapshot_count
+    from host.record.recording import recording_set, snapshot_count
     try:
         for p in (path if isinstance(path, list) else recording_set(path)):
             with open(p, "rb") as f:
@@ -107,7 +107,7 @@ def run(args) -> int:
     from host.analysis.estimator import estimate, overlay_error
     from host.cli.progress import Progress
     from host.cli.record_args import SessionOutputs
-    from host.replay import Replay
+    from host.record.replay import Replay
 
     # one file, a split set by its name, or its files in order (host.record.read)
     src = args.recording[0] if len(args.recording) == 1 else [str(p) for p in args.recording]

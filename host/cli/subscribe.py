@@ -4,7 +4,7 @@ The worker subscribes to the snapshots hosts publish (``capsheet host --publish 
 sheet's ``capsheet/<sheet>/info`` queryable for its lattice and link length (a late joiner gets them
 too), estimates every snapshot of its sheets in the order they came with the estimator the host
 uses (`host.analysis.estimator.estimate`, warm-started from the sheet's previous estimate) and
-publishes one estimate per snapshot under ``capsheet/<sheet>/estimate``. `host.distribute` does the
+publishes one estimate per snapshot under ``capsheet/<sheet>/estimate``. `host.workers.distribute` does the
 per-sheet work without I/O; this module is the Zenoh session, the queue and the summary.
 
 Zenoh's callbacks only queue the payloads (one FIFO for all sheets, unbounded, its peak reported):
@@ -37,7 +37,7 @@ MAX_PENDING = 100_000
 
 
 def subscribe_arg(value: str):
-    from host.publish import parse_publish
+    from host.publish.zenoh_pub import parse_publish
     try:
         kind, endpoint = parse_publish(value)
     except ValueError as exc:
@@ -49,7 +49,7 @@ def subscribe_arg(value: str):
 
 
 def _worker_arg(value: str):
-    from host.distribute import parse_worker
+    from host.workers.distribute import parse_worker
     try:
         return parse_worker(value)
     except ValueError as exc:
@@ -57,7 +57,7 @@ def _worker_arg(value: str):
 
 
 def _sheets_arg(value: str):
-    from host.distribute import parse_sheets
+    from host.workers.distribute import parse_sheets
     try:
         return parse_sheets(value)
     except ValueError as exc:
@@ -111,7 +111,7 @@ def check_subscribe(ns) -> str | None:
     if ns.method == "paper":
         return "--method paper with --subscribe: a worker estimates with auto, global or fused"
     if ns.sheets is not None and ns.worker is not None:
-        from host.distribute import Selection
+        from host.workers.distribute import Selection
         sel = Selection.of(ns.sheets, ns.worker)
         for s in sel.names:
             if not sel.in_share(s):
@@ -123,7 +123,7 @@ def check_subscribe(ns) -> str | None:
 def open_session(endpoint):
     import zenoh
 
-    from host.publish import zenoh_config
+    from host.publish.zenoh_pub import zenoh_config
     try:
         return zenoh.open(zenoh_config(endpoint))
     except zenoh.ZError as exc:
@@ -147,8 +147,8 @@ def _ask_info(session, sheet: str, timeout_s: float) -> dict | None:
 def run_worker(args) -> int:
     import zenoh
 
-    from host.distribute import Selection, SheetWork, latency_ms
-    from host.publish import HEADER
+    from host.workers.distribute import Selection, SheetWork, latency_ms
+    from host.publish.zenoh_pub import HEADER
 
     import host.analysis.estimator  # noqa: F401 -- before the first snapshot, not during it
 

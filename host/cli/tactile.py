@@ -9,7 +9,7 @@ positions in lattice indices, forces with their standard deviations, footprints,
 onsets and releases) and writes a PNG heat map of the normal displacement with the contacts
 outlined (the snapshot with the largest total force).
 
-With ``--port`` or ``--can`` it runs on a real sheet through `host.session.Host` (the same
+With ``--port`` or ``--can`` it runs on a real sheet through `host.session.core.Host` (the same
 transports as ``capsheet host``): the first ``--learn-s`` seconds must be untouched (rest shape),
 then contacts are shown live for ``--duration`` seconds (one line every 0.5 s).
 """
@@ -116,9 +116,9 @@ def _presses(which: str, T: float):
 
 
 def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
-    from host.aggregator import LatticeSnapshot
+    from host.snapshots.aggregator import LatticeSnapshot
     from host.analysis.tactile import TactileSensor
-    from host.feed import corrected
+    from host.snapshots.feed import corrected
     from virtual_sheet.foam import FoamBlock, FoamCylinder, FoamLayer, FoamScene, FoamSphere
     from virtual_sheet.geometry import ideal_readings
     from virtual_sheet.sensor import noisy_readings
@@ -187,8 +187,8 @@ def _true_marks(scene, t: float, L: float) -> list[TrueMark]:
 def _real(args, rows: int, cols: int):
     """Open the sheet's ports and make the host now (a port that cannot be opened: one line, exit
     1, before anything is written); `_real_frames` then streams from it."""
-    from host.session import Host, Layout, MismatchError
-    from host.transport import TransportError
+    from host.session.core import Host, Layout, MismatchError
+    from host.transport.ports import TransportError
 
     try:
         layout = Layout.load(args.layout) if args.layout else None
@@ -211,7 +211,7 @@ def _real(args, rows: int, cols: int):
 
 def _real_frames(args, host, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
     from host.analysis.tactile import TactileSensor
-    from host.session import MismatchError
+    from host.session.core import MismatchError
 
     outputs.attach(host)  # --record: the raw input, the SYNCs and every snapshot, as emitted
     with host:

@@ -2,7 +2,7 @@
 serial port, ``--can`` (repeatable, or once), ``--fd``, ``--bitrate`` for python-can buses.
 
 One definition, so ``capsheet host``, ``tactile`` and ``conformance`` spell, default and explain
-them alike, and open them through the same `host.transport` classes.
+them alike, and open them through the same `host.transport.ports` classes.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import os
 import sys
 
 from host.cli.argtypes import positive_int
-from host.transport import CanTransport, SerialTransport, Transport, TransportError
+from host.transport.ports import CanTransport, SerialTransport, Transport, TransportError
 
 __all__ = ["add_transport_args", "open_transports", "DEFAULT_BAUD"]
 

@@ -2,12 +2,12 @@
 
     capsheet view --config robot.toml                # ws://localhost:8765 in Foxglove or Lichtblick
 
-Every sheet the config names (docs/distribution.md "Several sheets in one view"; `host.robot`) is
+Every sheet the config names (docs/distribution.md "Several sheets in one view"; `host.publish.robot`) is
 subscribed at ``capsheet/<sheet>/estimate`` (what its host, or an estimate worker, publishes) and drawn
 in its own frame, named as the sheet, placed in the config's fixed frame (``world`` by default) by
 its pose: ``/tf`` carries one `foxglove.FrameTransform` per sheet (about once a second), and each
 sheet has ``/<sheet>/scene`` (the lattice, `foxglove.SceneUpdate`) and ``/<sheet>/joints``
-(`foxglove.PointCloud`), as the one-sheet live view has ``/sheet/...`` (host/live.py). In Foxglove:
+(`foxglove.PointCloud`), as the one-sheet live view has ``/sheet/...`` (host/publish/live.py). In Foxglove:
 a 3D panel, display frame the fixed frame. The newest estimate of each sheet is drawn up to
 ``--rate`` times per second; every one received is counted.
 
@@ -51,7 +51,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from host.robot import load_robot
+    from host.publish.robot import load_robot
     try:
         robot = load_robot(args.config)
     except ValueError as exc:
@@ -62,8 +62,8 @@ def run(args) -> int:
     from foxglove.channels import FrameTransformChannel
 
     from host.cli.subscribe import open_session
-    from host.live import LiveServer, SceneChannels, log_frame_transform
-    from host.publish import decode_estimate
+    from host.publish.live import LiveServer, SceneChannels, log_frame_transform
+    from host.publish.zenoh_pub import decode_estimate
     from protocol.lattice import Lattice
 
     endpoint = args.subscribe[1] if args.subscribe is not None else robot.endpoint

@@ -162,7 +162,7 @@ def _capacity(args, sheet, dev) -> tuple[list[str], list[str], float | None]:
                 f"{bitrate / 1e6:g} Mbit/s {'UART' if kind == 'serial' else 'CAN FD' if args.fd else 'CAN'} bus")
         if load > 1.0:
             from host.cli.transport_args import split_needed
-            from host.session import capacity_remedy
+            from host.session.core import capacity_remedy
             now = len(per_bus)
             opt = "--gateways" if kind == "serial" else "--bus-count"
             can_split = kind == "can" or args.transport == "pty"

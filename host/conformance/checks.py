@@ -24,7 +24,7 @@ from typing import Callable
 
 from cobs import cobs
 
-from host.transport import CanTransport
+from host.transport.ports import CanTransport
 from protocol.can import decode_can
 from protocol.crc import crc16_ccitt_false
 from protocol.framing import HEADER, DecodeError, decode_frame, encode, encode_frame

@@ -6,7 +6,7 @@ frames during the check on every attempt: inconclusive, *not* a chip violation).
 
 A check that fails while the port damaged frames (`Port.lossy`) is run again, up to ``attempts``
 times; it is reported PASS if a later attempt passes (the detail says so), LOST if none does.
-Transport errors (`host.transport.TransportError`: the port went away) end the run: they propagate,
+Transport errors (`host.transport.ports.TransportError`: the port went away) end the run: they propagate,
 as does `RunAborted` (``node`` is another chip's).
 """
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from host.transport import TransportError
+from host.transport.ports import TransportError
 
 from .checks import CHECKS, PROFILES, SHOULD_NOT_MET, Check, discovery_check
 from .session import CheckFailed, Port, PortLost, RunAborted, Session, Skip

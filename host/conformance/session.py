@@ -1,6 +1,6 @@
 """The conformance session: one chip under test, reached through a host transport.
 
-`Port` runs one reader thread over a `host.transport.Transport` (`SerialTransport` or
+`Port` runs one reader thread over a `host.transport.ports.Transport` (`SerialTransport` or
 `CanTransport`) and timestamps what arrives; every wait is event-driven (a condition variable,
 woken by each arrival) with an explicit timeout. `Session` tracks the chip under test (its uid,
 its current node id, its state as last seen) and gives the checks their few verbs:
@@ -26,7 +26,7 @@ delivers (a damaged frame) and every CAN error frame counts in `Port.damaged`. A
 the port lost frames and that failed is retried (`runner`); see `Port.lossy`.
 
 Transport errors (the port went away, a send failed) are raised as the transport raises them
-(`host.transport.TransportError`): they end the run.
+(`host.transport.ports.TransportError`): they end the run.
 """
 
 from __future__ import annotations
@@ -37,8 +37,8 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Callable
 
-from host.gateways import GatewayRecord
-from host.transport import CanTransport, Transport, TransportError, TransportOperationError
+from host.session.gateways import GatewayRecord
+from host.transport.ports import CanTransport, Transport, TransportError, TransportOperationError
 from protocol.can import decode_can, split_id
 from protocol.can import INCOMPLETE_IMU
 from protocol.framing import DecodeError
@@ -86,7 +86,7 @@ def require(cond: bool, what: str) -> None:
 # ---------------------------------------------------------------------------------------------
 
 class FrameAudit:
-    """A capture handler (`host.transport.Transport.begin_capture`) that keeps every frame the port
+    """A capture handler (`host.transport.ports.Transport.begin_capture`) that keeps every frame the port
     received, raw, and audits CAN identifiers (§7.1: the priority the table gives the type, no CAN
     FD for a payload that fits classic CAN).
 

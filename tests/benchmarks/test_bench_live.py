@@ -1,5 +1,5 @@
 """benchmarks/bench_live.py: the order of its rate sweep and its rule for a rate held (the
-completeness over a window of SYNCs it uses is tested in tests/host/test_window_completeness.py)."""
+completeness over a window of SYNCs it uses is tested in tests/host/snapshots/test_window_completeness.py)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Fixtures of the tests of host/: real recorded sessions, made once per module that uses them
-(tests/host/test_replay.py, tests/host/cli/test_replay.py, tests/host/cli/test_estimate.py)."""
+(tests/host/record/test_replay.py, tests/host/cli/test_replay.py, tests/host/cli/test_estimate.py)."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ def port_args(transport: str, dev) -> list[str]:
 def udp_group(pid: int) -> str:
     """A multicast group of this sheet's own, from its process id (unique among the processes
     alive, below 239.74.163.2 and the other fixed groups the tests use): sheets isolated to
-    their groups (host/udp_multicast.py) run side by side, in one test session or several."""
+    their groups (host/transport/udp_multicast.py) run side by side, in one test session or several."""
     return f"239.{75 + (pid >> 16) % 100}.{(pid >> 8) & 255}.{pid & 255}"
 
 

@@ -1,6 +1,6 @@
 """Back-to-back: the host against the virtual sheet over every transport, the same assertions for each
 (in-memory link, pty serial, python-can virtual with two buses, SLCAN adapters on ptys through
-capsheet's own SLCAN bus, host/slcan.py's ``capsheet_slcan`` python-can interface), then under
+capsheet's own SLCAN bus, host/transport/slcan.py's ``capsheet_slcan`` python-can interface), then under
 every injected fault.
 
 The in-process rigs (memory link, python-can ``virtual``) run on a **simulated clock**: host and
@@ -21,9 +21,9 @@ import time
 import numpy as np
 import pytest
 
-from host.aggregator import LinkFlag
-from host.session import Host, Layout
-from host.transport import CanTransport, MemoryTransport, SerialTransport
+from host.snapshots.aggregator import LinkFlag
+from host.session.core import Host, Layout
+from host.transport.ports import CanTransport, MemoryTransport, SerialTransport
 from protocol.constants import G0
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
 from virtual_sheet.geometry import ideal_readings

@@ -13,11 +13,11 @@ import time
 
 import pytest
 
-from host.transport import CanTransport, Capture, MemoryTransport, RawFrame, SerialTransport
+from host.transport.ports import CanTransport, Capture, MemoryTransport, RawFrame, SerialTransport
 from protocol import DecodeError, SampleBatch, encode, to_can
 from protocol.can import FrameBlock, make_id
 from protocol.messages import Ack, MsgType, Sample, Status, Sync
-from tests.host.test_slcan import pty_pair  # noqa: F401 - a fixture: a raw pty, its master fd and slave path
+from tests.host.transport.test_slcan import pty_pair  # noqa: F401 - a fixture: a raw pty, its master fd and slave path
 from virtual_sheet.memport import memory_link
 
 can = pytest.importorskip("can")

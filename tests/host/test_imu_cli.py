@@ -58,7 +58,7 @@ def test_a_recording_of_a_6_axis_sheet_carries_its_axes_and_replays_identical(tr
 
     import numpy as np
 
-    from host.record import read
+    from host.record.recording import read
     from tests.host.test_matrix import PY, ROOT
     mcap = tmp_path / "imu.mcap"
     args = ["host", "{port}", "--lattice", "3x3", "--layout", "{layout}", "--sensors", "accel+gyro", "--rate", "100",
@@ -120,7 +120,7 @@ def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(tmp_path):
     own acceleration for gravity: measured 0.6 against 1.9 % of side)."""
     import numpy as np
 
-    from host.record import read
+    from host.record.recording import read
     mcap, truth_file = _record(tmp_path, "carry6", "carry", "accel+gyro")
     truth = np.load(truth_file)
     true_joints = dict(zip(truth["counter"].tolist(), truth["joints"]))
@@ -181,7 +181,7 @@ def test_a_packing_gateway_carries_imu_records_in_snapshot_imu_on_every_transpor
     SNAPSHOT_IMU frames, and the recording of the pty run holds SNAPSHOT_IMU and no per-chip record."""
     import numpy as np
 
-    from host.record import read
+    from host.record.recording import read
     from protocol.framing import StreamDecoder
     from protocol.messages import ImuSample, SnapshotImu
     sensors, ask = PACKED[transport]

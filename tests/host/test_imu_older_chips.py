@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from host.session import Host, Layout
-from host.transport import SerialTransport
+from host.session.core import Host, Layout
+from host.transport.ports import SerialTransport
 from protocol.messages import MsgType, Nack, NackReason
 from virtual_sheet.chip import ChipModel
 from virtual_sheet.devices import PtyDevice

@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.aggregator import Aggregator
-from host.feed import SnapshotFeed
-from host.record import Recorder, read
-from host.session import EVENTS_KEPT, Host, Layout
+from host.snapshots.aggregator import Aggregator
+from host.snapshots.feed import SnapshotFeed
+from host.record.recording import Recorder, read
+from host.session.core import EVENTS_KEPT, Host, Layout
 from protocol.lattice import Lattice
 from protocol.messages import Sample
 from tests.host.test_back2back import Rig
@@ -70,7 +70,7 @@ def test_a_host_crosses_the_counter_wrap_on_a_simulated_clock_and_its_recording_
     """A real Host (virtual chips in memory) starting 40 SYNCs before the wrap: every snapshot on
     both sides complete, consecutive mod 65536, timestamps rising; recorded and replayed identical
     (the replay matches by (counter, timestamp), as a counter repeats after a wrap)."""
-    from host.replay import Replay
+    from host.record.replay import Replay
 
     rig = Rig("memory", chip_class=ChipModel, lattice="3x3", rate_hz=RATE_HZ)
     try:
@@ -134,7 +134,7 @@ def test_host_events_and_receive_errors_stay_bounded_and_counted():
 def test_a_recorder_over_a_long_split_run_keeps_only_counts_and_file_names(tmp_path):
     """Hours of snapshots and raw chunks (simulated, few links): the recorder's own state is its
     per-topic counts and the list of its files; each file readable."""
-    from host.aggregator import LatticeSnapshot
+    from host.snapshots.aggregator import LatticeSnapshot
     lat = Lattice(2, 2)
     n = lat.n_links
     with Recorder(tmp_path / "long.mcap", lat, 0.01, split_size=20_000) as rec:
@@ -194,7 +194,7 @@ def test_holding_for_input_gives_a_counter_up_once_the_bus_is_idle_or_after_the_
     """A chip that never answers: its counter is emitted incomplete at the deadline once the bus
     was found idle, or once later counters' frames were read; a bus that says nothing at all (its
     reader stopped) holds a counter at most INPUT_HOLD_S past the deadline."""
-    from host.aggregator import INPUT_HOLD_S
+    from host.snapshots.aggregator import INPUT_HOLD_S
     dl = 0.02
     # one bus: link 3 silent; the frames of later counters move the watermark
     agg = Aggregator(4, {k + 1: k for k in range(4)}, deadline_s=dl, trust="sent", hold_for_input=True)

@@ -491,7 +491,7 @@ def test_host_calibration_changes_the_estimate_by_what_the_chip_errors_predict(b
     errors): the calibrated snapshots are the uncalibrated ones corrected exactly once, and the
     estimate moves by what estimating the sheet's own readings with and without the errors gives."""
     from host.analysis.calibration import Calibration
-    from host.record import read
+    from host.record.recording import read
     for name in ("stream", "calibration"):
         _ok(batch.jobs[name])
     raw, fixed = read(batch.tmp / "stream.mcap"), read(batch.tmp / "calibrated.mcap")
@@ -537,7 +537,7 @@ def test_demo_calibration_changes_the_estimate_by_what_it_predicts(transport, tm
 
 @pytest.mark.parametrize("batch", cells("tactile"), indirect=True)
 def test_tactile_on_a_port(batch):
-    from host.record import read
+    from host.record.recording import read
     job = batch.jobs["tactile"]
     _ok(job)
     rec = read(batch.tmp / "tactile.mcap")

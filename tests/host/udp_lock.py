@@ -1,6 +1,6 @@
 """The machine-wide lock of the udp_multicast tests: python-can's udp_multicast buses share one UDP
 port, and on Linux a plain python-can bus on it hears every group (capsheet's own buses are isolated
-to their group, host/udp_multicast.py; the tests' injector buses and an older checkout's suite on
+to their group, host/transport/udp_multicast.py; the tests' injector buses and an older checkout's suite on
 this machine are not), and most tests use the default group: two at once could hear each other's
 RESET and SYNC. One at a time (a file lock)."""
 

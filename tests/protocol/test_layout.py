@@ -31,7 +31,7 @@ def test_bad_uids_are_refused(text):
 
 
 def test_the_virtual_sheet_and_the_host_read_the_same_file(tmp_path):
-    from host.session import Layout
+    from host.session.core import Layout
     from protocol.layout import load_layout
     from virtual_sheet.sheet import VirtualSheet
     sheet = VirtualSheet("flat", "3x3", seed=4)

@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.session import Host, Layout
-from host.transport import SerialTransport
+from host.session.core import Host, Layout
+from host.transport.ports import SerialTransport
 from virtual_sheet.devices import CanDevice, PtyDevice
 from virtual_sheet.magfield import field_in_sensor_frames
 from virtual_sheet.sensor import chip_error_model
@@ -98,7 +98,7 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
     """The same over CAN: python-can's own virtual interface (in-process: the command runs through its
     entry point here), classic frames — CAL_IMU_WRITE, CAL_IMU_READ and CAL_IMU_DATA are 8 bytes."""
     from host.cli import main
-    from host.transport import CanTransport
+    from host.transport.ports import CanTransport
 
     sheet = _sheet("can")
     layout = sheet.write_layout(tmp_path / "layout.csv")

@@ -98,7 +98,7 @@ def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
         assert set(lag) == {"median", "max"} and lag["median"] <= lag["max"]
     assert result["pass"] == (result["error_ok"] and result["complete_ok"])
     assert out.returncode == (0 if result["pass"] else 1)
-    from host.record import read  # the recording holds the axes and the fused estimates
+    from host.record.recording import read  # the recording holds the axes and the fused estimates
     rec = read(mcap)
     assert rec.gyro is not None and rec.mag is not None and len(rec.estimates["joints"]) >= 1
 

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from host.record import read
-from host.replay import Replay
+from host.record.recording import read
+from host.record.replay import Replay
 
 
 def test_capsheet_estimate_writes_npz_and_mcap_with_the_estimators_joints(pty_recording, tmp_path, capsys):

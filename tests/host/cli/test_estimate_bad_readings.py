@@ -12,8 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from host.aggregator import LatticeSnapshot
-from host.record import Recorder
+from host.snapshots.aggregator import LatticeSnapshot
+from host.record.recording import Recorder
 from protocol.lattice import Lattice
 
 G = 9.80665

@@ -263,7 +263,7 @@ def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync)
     if sync == "follow":
         assert s["resyncs"] >= 1, s
     [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery" and "24 of 24" in i["detail"]][-1:]
-    from host.record import read_recording
+    from host.record.recording import read_recording
     r = read_recording(rec)
     assert len(r) == s["snapshots"]  # every snapshot made is recorded, also those queued at SIGTERM
     after = np.asarray(r.timestamp) > t_rec
@@ -379,7 +379,7 @@ def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
 # -- cross-process CAN without hardware -------------------------------------------------------------
 
 # python-can's udp_multicast buses share one UDP port, and on Linux a plain one hears every group
-# joined on the machine (capsheet's own are isolated, host/udp_multicast.py, but these tests inject
+# joined on the machine (capsheet's own are isolated, host/transport/udp_multicast.py, but these tests inject
 # with plain buses, and another checkout's suite may run an older capsheet on the default group): two
 # of these tests at once could hear each other. One xdist worker runs them all (`--dist loadgroup`).
 ONE_MULTICAST_BUS = pytest.mark.xdist_group("udp_multicast")
@@ -406,7 +406,7 @@ def test_udp_multicast_between_two_processes(udp_bus_lock, virtuals, tmp_path):
 def test_two_udp_multicast_sheets_on_one_machine_do_not_hear_each_other(udp_bus_lock, virtuals, tmp_path):
     """Issue 31: two sheets side by side on distinct groups, a host on each, at once: each host finds
     exactly its own chips (3x3: 12, 4x4: 24), no unknown node or chip, no stray frame, no foreign
-    SYNC (the other host's), and streams complete (host/udp_multicast.py)."""
+    SYNC (the other host's), and streams complete (host/transport/udp_multicast.py)."""
     _udp_or_skip()
     sheets = {}
     for name, lattice, group in (("a", "3x3", "239.74.163.40"), ("b", "4x4", "239.74.163.41")):
@@ -508,7 +508,7 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
     import can
     from protocol.can import to_can
     from protocol.messages import Reset, Sample
-    from host.record import read_recording
+    from host.record.recording import read_recording
     rec = tmp_path / "run.mcap"
     v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
                  "--layout-out", str(tmp_path / "sheet.csv"))
@@ -548,7 +548,7 @@ def test_status_line_and_json_show_completeness_by_snapshot_and_by_valid_link(vi
     snapshot the host emitted, recomputed here from its valid flags), in the JSON and on the last
     plain status line."""
     import re
-    from host.record import read
+    from host.record.recording import read
     lay, rec_path = tmp_path / "sheet.csv", tmp_path / "run.mcap"
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay),
                  "--faults", "dead_chip=4,drop_frame=0.03,seed=5")
@@ -599,7 +599,7 @@ def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
     ``capsheet host --port A --port B`` (the command it prints) merges them: every chip found, each
     link's chip known on the port of its half, the snapshots complete. Driving: the host sends SYNC
     on both ports. Following: gateway 0 leads SYNC and passes it to gateway 1 (packed frames)."""
-    from host.record import read
+    from host.record.recording import read
     lay, rec_path, link = tmp_path / "sheet.json", tmp_path / "run.mcap", tmp_path / "gw"
     extra = ["--rate", "30", "--packed"] if mode == "follow-packed" else []
     v = virtuals("--lattice", "6x6", "--gateways", "2", "--symlink", str(link), "--layout-out", str(lay), *extra)

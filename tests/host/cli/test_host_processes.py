@@ -37,7 +37,7 @@ def test_reader_and_estimator_processes_deliver_and_estimate_every_snapshot(virt
     estimated or counted as not made, and the recorded estimates the ones the estimator makes of
     the recorded snapshots in this process."""
     from host.analysis.estimator import estimate
-    from host.record import read
+    from host.record.recording import read
 
     lay, rec, link = tmp_path / "sheet.json", tmp_path / "run.mcap", tmp_path / "gw"
     v = virtuals("--lattice", "6x6", "--gateways", "2", "--packed", "--symlink", str(link), "--layout-out", str(lay))

@@ -103,8 +103,8 @@ def recording(tmp_path_factory):
     """A small recording written by capsheet's own recorder (real MCAP), 40 snapshots."""
     import numpy as np
 
-    from host.aggregator import LatticeSnapshot
-    from host.record import Recorder
+    from host.snapshots.aggregator import LatticeSnapshot
+    from host.record.recording import Recorder
     from protocol.lattice import Lattice
     from virtual_sheet.geometry import ideal_readings
     from virtual_sheet.shapes import make_sheet

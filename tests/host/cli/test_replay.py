@@ -1,7 +1,7 @@
 """``capsheet replay`` (host/cli/replay.py): the summary as JSON, a replay recorded again, a recording
 cut short, a CAN log with nothing to compare with; and the bad arguments of ``replay`` and
 ``estimate`` together (they share the recording argument). The replay transport itself:
-tests/host/test_replay.py."""
+tests/host/record/test_replay.py."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import json
 
 import pytest
 
-from host.record import read
+from host.record.recording import read
 
 
 def test_capsheet_replay_command_json_is_pure_and_compares(pty_recording, capsys):

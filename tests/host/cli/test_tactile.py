@@ -9,7 +9,7 @@ import sys
 import numpy as np
 
 from host.analysis.calibration import Calibration
-from host.record import read
+from host.record.recording import read
 
 
 def capsheet(*argv, timeout=120):

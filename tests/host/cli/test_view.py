@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from host.robot import load_robot, parse_robot
+from host.publish.robot import load_robot, parse_robot
 from tests.host.cli.test_host import CLI, ENV
-from tests.host.test_live_node import CLIENT_JS, NODE_MODULES, _node
+from tests.host.publish.test_live_node import CLIENT_JS, NODE_MODULES, _node
 
 GOOD = """
 [view]
@@ -98,7 +98,7 @@ def test_parse_robot_defaults():
 PRODUCER = textwrap.dedent("""
     import sys, time, numpy as np, zenoh
     from types import SimpleNamespace
-    from host.publish import encode_estimate, zenoh_config
+    from host.publish.zenoh_pub import encode_estimate, zenoh_config
     names = sys.argv[1].split(",")
     s = zenoh.open(zenoh_config(None))
     pubs = {n: s.declare_publisher(f"capsheet/{n}/estimate") for n in names}

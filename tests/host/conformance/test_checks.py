@@ -15,7 +15,7 @@ import pytest
 from host.cli import main
 from host.conformance import CHECKS, INFORMATIVE, AuditedCanTransport, Port, run_checks, select, summary, table
 from host.conformance.checks import clauses_covered
-from host.transport import MemoryTransport, SerialTransport, TransportError
+from host.transport.ports import MemoryTransport, SerialTransport, TransportError
 from protocol.messages import Assign, ChipState, Config, Start
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet

@@ -15,7 +15,7 @@ from __future__ import annotations
 import pytest
 
 from host.conformance import CHECKS, AuditedCanTransport, Port, run_checks
-from host.transport import MemoryTransport
+from host.transport.ports import MemoryTransport
 from tests.host.conformance.mutants import (C_MUTANT_EVIDENCE, C_MUTANT_OPTIONS, C_MUTANTS, GATEWAY_MUTANTS, HEALTHY,
                                             IMU_MUTANTS, MUTANTS)
 from virtual_sheet.devices import CanDevice, MemoryDevice
