@@ -1,4 +1,4 @@
-"""glibc's allocator in processes that run for days (issue 34).
+"""glibc's allocator in processes that run for days.
 
 glibc serves a large allocation (128 KiB and up, at first) with its own ``mmap`` and gives the pages
 back at ``free``. But it *raises* that threshold to the size of every mmapped block freed (up to 32
@@ -13,7 +13,8 @@ alone did not help (+8.2 MB).
 
 `fix_mmap_threshold` sets the threshold explicitly (``mallopt(M_MMAP_THRESHOLD, …)``), which also
 turns the dynamic adjustment off (mallopt(3)). `host.cli.main` calls it for every command, unless
-the user chose a threshold in the environment. Elsewhere than glibc it does nothing.
+the user chose a threshold in the environment, and starts one `TrimThread` that gives freed pages
+back once a minute. Elsewhere than glibc both do nothing.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from __future__ import annotations
 import ctypes
 import os
 import sys
+import threading
+import time
 
 #: <malloc.h>
 M_MMAP_THRESHOLD = -3
@@ -68,8 +71,8 @@ class PeriodicTrim:
     """`trim` at most every ``every_s`` (sans-I/O: `poll` takes ``now``). A host's threads free
     what they allocated in their own arenas, and glibc keeps the free pages between the blocks in
     use: the soak benchmark's host rose 2.2 MB over its minutes 2–7 and held, while the heap in
-    use did not grow (issue 34, README "Long runs"). ``trims`` counts the calls, ``released`` those
-    that gave memory back."""
+    use did not grow (docs/benchmarks.md, "Long runs"). ``trims`` counts the calls, ``released``
+    those that gave memory back."""
 
     def __init__(self, every_s: float = TRIM_EVERY_S, trim_fn=trim) -> None:
         if not every_s > 0:
@@ -93,6 +96,40 @@ class PeriodicTrim:
         self.released += bool(self._trim())
         return True
 
+
+
+class TrimThread:
+    """A `PeriodicTrim` polled by a daemon thread of its own: the one periodic trim of every
+    command, started where the command line starts (`host.cli.main`) rather than polled from each
+    command's loop. It wakes once per ``trimmer.every_s``; ``malloc_trim`` runs without the
+    interpreter lock (ctypes releases it), so a streaming thread is not held up by it.
+
+    ``clock`` and ``wait`` are arguments so that a test can drive it without sleeping."""
+
+    def __init__(self, trimmer: PeriodicTrim | None = None, *, clock=time.monotonic) -> None:
+        self.trimmer = trimmer if trimmer is not None else PeriodicTrim()
+        self._clock = clock
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def run(self, wait=None) -> None:
+        """The thread's loop: poll, then wait ``every_s`` (``wait(seconds) -> stop?``), until stopped."""
+        wait = self._stop.wait if wait is None else wait
+        self.trimmer.poll(self._clock())  # starts its clock
+        while not wait(self.trimmer.every_s):
+            self.trimmer.poll(self._clock())
+
+    def start(self) -> "TrimThread":
+        if self._thread is None:
+            self._thread = threading.Thread(target=self.run, name="capsheet-trim", daemon=True)
+            self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
 
 # -- what grows, and what the cyclic collector costs: a probe cheap enough for a live host ---------
 

@@ -273,10 +273,7 @@ def run(args) -> int:
                 before_window.clear()
             last_eval = 0.0
             agg = host.aggregator
-            from host.memory import PeriodicTrim
-            trimmer = PeriodicTrim()  # freed memory back to the system once a minute (issue 34)
             while time.monotonic() - t0 < args.duration:
-                trimmer.poll(time.monotonic())
                 wait = min(0.5, max(0.0, args.duration - (time.monotonic() - t0)))
                 # the fused estimator integrates the gyroscopes: every snapshot, in order
                 snap = host.latest(wait) if fused is None else host.get(wait)

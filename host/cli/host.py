@@ -345,8 +345,6 @@ def run(args) -> int:
                                    | {"deadline_ms": round(1e3 * host.aggregator.deadline_s, 2)})  # CAPSHEET_MEMORY_PROBE: what grows, the collector's pauses
             t0, n0, last = time.monotonic(), host.aggregator.stats.emitted, time.monotonic()
             end = None if args.duration is None else t0 + args.duration
-            from host.memory import PeriodicTrim
-            trimmer = PeriodicTrim()  # freed memory back to the system once a minute (issue 34)
             while end is None or time.monotonic() < end:
                 snap = host.get(0.1)
                 for _ in range(256):  # bounded: the duration and the status are checked meanwhile
@@ -368,7 +366,6 @@ def run(args) -> int:
                     code = EXIT_USAGE
                     break
                 now = time.monotonic()
-                trimmer.poll(now)
                 if not args.quiet and now - last >= args.status_every:
                     status.show(_status_text(host, t0, n0))
                     last = now

@@ -256,10 +256,7 @@ def run(args) -> int:
     source = (_real_frames(args, host, foam, settings, rows, cols, outputs) if real
               else _virtual(args, foam, settings, rows, cols, outputs))
     best, best_truth, last_print = None, None, -1e9
-    from host.memory import PeriodicTrim
-    trimmer = PeriodicTrim()  # freed memory back to the system once a minute (issue 34)
     for k, (fr, truth) in enumerate(source):
-        trimmer.poll(time.monotonic())
         outputs.tactile(k, fr, truth)
         if best is None or fr.total_force_n > best.total_force_n:
             best, best_truth = fr, truth

@@ -373,11 +373,8 @@ def run(args) -> int:
         out.flush()
         t_end = None if args.duration is None else time.monotonic() + args.duration
         last = {}
-        from host.memory import PeriodicTrim
-        trimmer = PeriodicTrim()  # freed memory back to the system once a minute (issue 34)
         while t_end is None or time.monotonic() < t_end:
             time.sleep(1.0 if t_end is None else max(0.0, min(1.0, t_end - time.monotonic())))
-            trimmer.poll(time.monotonic())
             if dev.error is not None:
                 print(f"capsheet virtual: device thread failed: {dev.error!r}", file=sys.stderr)
                 return 1

@@ -173,3 +173,32 @@ def test_periodic_trim_on_a_simulated_clock_trims_once_per_period():
     assert pt.trims == len(calls) == 10 and pt.released == 5
     with pytest.raises(ValueError, match="every_s"):
         PeriodicTrim(every_s=0)
+
+
+def test_the_trim_thread_trims_once_per_period_on_a_simulated_clock_until_stopped():
+    # the loop of the one trim every command starts (host.cli.main), driven by a fake wait: each
+    # wait advances the clock by what it was asked and says "stop" after 10 minutes
+    from host.memory import PeriodicTrim, TrimThread
+    now, calls, waits = [0.0], [], []
+
+    def wait(seconds):
+        waits.append(seconds)
+        now[0] += seconds
+        return now[0] > 600.0
+
+    TrimThread(PeriodicTrim(every_s=60.0, trim_fn=lambda: calls.append(now[0]) or True),
+               clock=lambda: now[0]).run(wait)
+    assert calls == [60.0 * k for k in range(1, 11)]
+    assert waits == [60.0] * 11
+
+
+def test_every_command_starts_one_trim_thread_and_no_loop_polls_its_own():
+    import ast
+    from pathlib import Path
+    cli = Path(__file__).resolve().parents[2] / "host" / "cli"
+    started = [p.name for p in cli.glob("*.py") if "TrimThread" in p.read_text()]
+    assert started == ["__init__.py"]
+    assert not [p.name for p in cli.glob("*.py") if "PeriodicTrim" in p.read_text()]
+    tree = ast.parse((cli / "__init__.py").read_text())
+    main = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "main")
+    assert "TrimThread().start()" in ast.unparse(main)
