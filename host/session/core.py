@@ -25,7 +25,8 @@ work to its parts, each in its own module with its own state:
 * ``host.session.recovery`` (`host.session.recovery.Recovery`): rebooted chips, ports that come back, incidents;
 * ``host.event_log`` (`host.session.report.EventLog`): events, counts, receive errors (and `summary`,
   `stats`: `host.session.report`);
-* ``host.snapshots.feed`` (`host.snapshots.feed.SnapshotFeed`): the aggregator for threads, what consumers read.
+* ``host.snapshots.feed`` (`host.snapshots.feed.SnapshotFeed`): the aggregator for threads, what consumers read;
+* ``host.receiver`` (`host.session.receive.Receiver`): the receive path, each event to the part that owns it.
 
 What they share they reach through each other's public names. The attributes a `Host` has always
 had (``host.chips``, ``host.syncs_sent``, ``host.events``, ...) read and write the part's.
@@ -42,11 +43,10 @@ from typing import Callable, Iterator, Sequence
 import numpy as np
 
 from protocol.constants import Range
-from protocol.framing import DecodeError, StreamDecoder
+from protocol.framing import StreamDecoder
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
-from protocol.messages import (Ack, Announce, CalData, CalImuData, ChipState, ImuBatch, ImuSample, Info, Message, Nack, Sample,
-                               SampleBatch, Snapshot, SnapshotFrames, SnapshotImu, Status, StatusBatch, Stop, Sync)
+from protocol.messages import Stop
 
 from host.snapshots.aggregator import Aggregator, LatticeSnapshot
 from host.session.bringup import BringUp, capacity_remedy
@@ -59,6 +59,7 @@ from host.session.registry import ChipRecord, ChipRegistry, Layout, node_for_lin
 from host.session.report import EVENTS_KEPT, RX_ERRORS_KEPT, EventLog, HostEvent, link_ranges, run_stats, run_summary
 from host.session.syncdriver import SYNC_LISTEN_S, SyncDriver, SyncSchedule
 from host.transport.ports import Transport, TransportError
+from host.session.receive import Receiver
 from host.session.watchdog import Watchdog
 
 __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSchedule", "node_for_link",
@@ -66,9 +67,6 @@ __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSche
            "EVENTS_KEPT", "RX_ERRORS_KEPT", "RECOVERIES_KEPT", "SYNC_LISTEN_S"]
 
 log = logging.getLogger("capsheet.host")
-
-#: what the receive path hands the feed (IMU records of 6/9-axis chips too, docs/protocol.md §16)
-_DATA = (SampleBatch, Snapshot, SnapshotFrames, Sample, DecodeError, ImuSample, SnapshotImu, ImuBatch)
 
 
 class _InPart:
@@ -167,6 +165,7 @@ class Host:
     events_cut = _InPart("event_log")
     event_counts = _InPart("event_log")
     rx_errors_total = _InPart("event_log")
+    frames_before_start = _InPart("receiver")  #: a following host's sample frames before it streamed
 
     def __init__(self, transports: Transport | Sequence[Transport], lattice: Lattice | str, *,
                  layout: Layout | str | Path | None = None, rate_hz: float = 100.0, sync: str = "drive",
@@ -182,7 +181,7 @@ class Host:
         self.tick_s = float(tick_s)
         self.transports: list[Transport] = [transports] if isinstance(transports, Transport) else list(transports)
         for t in self.transports:  # serial heartbeats and SNAPSHOTs in runs, taken at once
-            if isinstance(getattr(t, "decoder", None), StreamDecoder):  # (`_on_heartbeats`, the aggregator)
+            if isinstance(getattr(t, "decoder", None), StreamDecoder):  # (`Receiver.on_heartbeats`, the aggregator)
                 t.decoder.batch_status = True
                 t.decoder.batch_snapshots = True
         if not self.transports:
@@ -242,12 +241,12 @@ class Host:
         self.recovery = Recovery(self)
         #: the gateway nodes heard (host/session/gateways.py): they say whether a port packs, who drives SYNC
         self.gateway_nodes = GatewayNodes(self, lock=self._lock)
+        #: the receive path: every event from a transport to the part that owns it (`host.session.receive`)
+        self.receiver = Receiver(self)
         #: a `host.snapshots.health.HealthChecker` fed every emitted snapshot (corrected); its findings are host events
         self.health = None
         #: set while the host streams (between `start` and `stop`)
         self.streaming = threading.Event()
-        #: a following host's sample frames before it streamed, dropped (`_before_start`)
-        self.frames_before_start = 0
         #: from the bring-up (`quiesce`) until `start` has set `streaming`; not while `stop` lets
         #: the counters in flight complete
         self.awaiting_stream = True
@@ -288,7 +287,7 @@ class Host:
             if t.closed:
                 continue
             for _ in range(1000):  # everything that is there, bounded
-                if not self._rx_once(bus, t, 0.0):
+                if not self.receiver.receive(bus, t, 0.0):
                     break
         with self.sync_driver.step_lock:
             self.sync_driver.step(self.now() if now is None else now)
@@ -373,147 +372,13 @@ class Host:
     # -- receive path ------------------------------------------------------------------------
     def _rx_loop(self, bus: int, t: Transport) -> None:
         while not self._stop.is_set():
-            if self._rx_once(bus, t, 0.05) is None:
+            if self.receiver.receive(bus, t, 0.05) is None:
                 return
 
-    def _rx_once(self, bus: int, t: Transport, timeout_s: float) -> bool | None:
-        """One receive from transport ``bus``: ingest samples, handle control frames. Returns
-        whether anything arrived, None when the transport is closed for good."""
-        feed = self.feed
-        try:
-            events = t.recv(timeout_s)
-        except TransportError as exc:
-            if self._stop.is_set() or t.closed:
-                return None
-            self.event_log.rx_error(str(exc))
-            self.idle(0.05)
-            return False
-        except Exception as exc:  # noqa: BLE001 - never let the receive thread die silently
-            log.exception("receive thread %d", bus)
-            self.event_log.rx_error(repr(exc))
-            self.idle(0.05)
-            return False
-        self.recovery.check_reconnect(bus, t)
-        if events and self.bringup.discarding:
-            self.bringup.count_stale(events)
-            return True
-        if not events:
-            feed.input_idle(bus)  # read up to now: its counters may be given up at their deadline
-            return False
-        if self.awaiting_stream and self.sync_driver.sync_mode == "follow":
-            events = self._before_start(events)
-        if self.gateway_nodes.unreadable:  # a gateway packs words this host cannot read (§4.16)
-            events = self.gateway_nodes.drop_unreadable(bus, events)
-        control = False
-        statuses = None
-        for ev in events:
-            if not isinstance(ev, _DATA):
-                if type(ev) is not Status and type(ev) is not StatusBatch:
-                    control = True
-                    break
-                if statuses is None:
-                    statuses = []
-                statuses.append(ev)
-        if not control:
-            # samples and STATUS only: STATUS (every chip's heartbeat, 8,064 a second from a 64x64
-            # sheet: in nearly every read) changes nothing the feed holds, so the read is ingested in
-            # one call, as a replay does, without holding the feed across it (under `one_read` the
-            # SYNC thread would wait behind the whole read)
-            feed.ingest(events, bus)
-            if statuses:
-                for ev in statuses:
-                    if type(ev) is StatusBatch:
-                        self._on_heartbeats(bus, ev)
-                    else:
-                        self._on_control(bus, ev)
-            return True
-        # in wire order: a SYNC opens its counter before the samples that answer it are ingested;
-        # the whole read at once (`SnapshotFeed.one_read`: recorded as one chunk, replayed whole)
-        data: list = []
-        with feed.one_read():
-            for ev in events:
-                if isinstance(ev, _DATA):
-                    data.append(ev)
-                    continue
-                if data:
-                    feed.ingest(data, bus)
-                    data = []
-                if type(ev) is StatusBatch:
-                    self._on_heartbeats(bus, ev)
-                else:
-                    self._on_control(bus, ev)
-            if data:
-                feed.ingest(data, bus)
-        return True
-
-    def _before_start(self, events: list) -> list:
-        """A following host's sample frames before it streams: counted (`frames_before_start`) and
-        dropped. The gateway's SYNC runs through the bring-up, so the chips started first answer it
-        while the others are still being started: a 64x64 sheet's ~100 snapshots of 48-4,838 of
-        its 8,064 links before its bring-up ended. A driving host's first SYNC comes after it; a
-        following host's snapshots now begin at the same point, with the first SYNC it hears
-        streaming (`SyncDriver.heard`)."""
-        keep = []
-        for ev in events:
-            if isinstance(ev, _DATA) and type(ev) is not DecodeError:
-                self.frames_before_start += len(ev) if isinstance(ev, (SampleBatch, ImuBatch, SnapshotFrames)) else 1
-            else:
-                keep.append(ev)
-        return keep
-
-    def _on_heartbeats(self, bus: int, batch: StatusBatch) -> None:
-        """A run of STATUS heartbeats (`StatusBatch`): what `_on_control` does with each `Status`,
-        at once for the chips that stream, one at a time for the few that need more (a gateway
-        node's, a chip that says it is IDLE)."""
-        nodes = batch.node
-        one_by_one = batch.state == ChipState.IDLE
-        gw = self.gateway_nodes
-        if gw.by_uid:
-            one_by_one |= np.isin(nodes, gw.nodes_on(bus))
-        if one_by_one.any():
-            for i in np.flatnonzero(one_by_one).tolist():
-                self._on_control(bus, batch.message(i))
-            keep = ~one_by_one
-            batch = StatusBatch(*(getattr(batch, f)[keep] for f in
-                                  ("node", "state", "flags", "rx_errors", "missed_syncs", "uptime_s")))
-            nodes = batch.node
-        links = self.aggregator.link_of(nodes)
-        self.watchdog.status_seen(links[links >= 0], self.now())
-        self.registry.heartbeats(bus, batch)
-
-    def _on_control(self, bus: int, msg: Message) -> None:
-        """A control frame from transport ``bus``, to the part it concerns."""
-        if self.gateway_nodes.observe(bus, msg):  # a gateway node's frame (docs/protocol.md §13)
-            return
-        if isinstance(msg, Announce):
-            if not self.recovery.prove(bus, msg.uid):
-                return  # a chip that was never on this port: not ours to drive (reported)
-            rec, rebooted, was_started = self.registry.announced(bus, msg.uid, msg.node)
-            if rebooted:  # the chip rebooted (RESET, power loss): it must be assigned again
-                self.report("announce", f"chip 0x{msg.uid:016X} rebooted (link {rec.link})",
-                            quiet=True, link=rec.link, node=msg.node, uid=msg.uid)
-                if was_started and self.streaming.is_set():
-                    self.recovery.queue(msg.uid, "rebooted")
-        elif isinstance(msg, Info):
-            self.registry.info(bus, msg)
-        elif isinstance(msg, Status):
-            link = self.aggregator.link_of(msg.node)
-            if link >= 0:
-                self.watchdog.status_seen(link, self.now())
-            uid = self.registry.uid_at(bus, msg.node)
-            if uid is not None:
-                rec = self.registry.chips[uid]
-                rec.last_status = msg
-                # a started chip that says it is not streaming (it lost its START: a brown-out
-                # into IDLE, a STOP from elsewhere): bring it back
-                if (rec.started and rec.assigned and self.streaming.is_set() and msg.state == ChipState.IDLE
-                        and self.now() - rec.started_at > max(2 * self.timeout_s, 0.2)):
-                    rec.started = False
-                    self.recovery.queue(uid, "not streaming")
-        elif isinstance(msg, Sync):
-            self.sync_driver.heard(bus, msg)
-        elif isinstance(msg, (Ack, Nack, CalData, CalImuData)):
-            self.commands.answer(bus, msg)
+    @property
+    def stopping(self) -> bool:
+        """`close` was called: the receive threads end."""
+        return self._stop.is_set()
 
     def _check_health(self, snap: LatticeSnapshot) -> None:
         """Feed listener: every emitted snapshot, corrected, to `health` (if set)."""

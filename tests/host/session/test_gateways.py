@@ -113,9 +113,9 @@ def test_a_following_host_takes_no_snapshot_before_it_streams(rigs, monkeypatch,
     ``frames_before_start``): a following host's snapshots begin, as a driving host's do, when it
     streams, every one of them complete. (``gate=False``: the host without the rule, which took
     the partial snapshots.)"""
-    from host.session.core import Host
+    from host.session.receive import Receiver
     if not gate:
-        monkeypatch.setattr(Host, "_before_start", lambda self, events: events)
+        monkeypatch.setattr(Receiver, "before_start", lambda self, events: events)
     rig = rigs("memory", gateway_sync_hz=200.0)
     rig.host.sync_policy, rig.host.sync_mode = "follow", "follow"
     rig.host.feed.set_trust("follow")

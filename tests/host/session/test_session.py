@@ -152,7 +152,7 @@ def test_foreign_sync_stops_a_driving_host(rigs):
     rig = rigs("memory")
     rig.host.bring_up(0.2)
     list(rig.host.snapshots(duration_s=0.2))
-    rig.host._on_control(0, Sync(counter=7))  # a SYNC this host did not send
+    rig.host.receiver.on_event(0, Sync(counter=7))  # a SYNC this host did not send
     assert rig.host.sync_conflict and "another device drives SYNC" in rig.host.sync_conflict
     sent = rig.host.syncs_sent
     list(rig.host.snapshots(duration_s=0.2))
@@ -238,7 +238,7 @@ def test_an_announce_flood_is_bounded_and_counted(rigs, caplog):
     host = rig.host
     with caplog.at_level(logging.WARNING, logger="capsheet.host"):
         for uid in range(1, 200_001):
-            host._on_control(0, Announce(0x8000 | (uid % 0x7FFF), uid=uid))
+            host.receiver.on_event(0, Announce(0x8000 | (uid % 0x7FFF), uid=uid))
     assert len(host.chips) == host.max_chips and host.chips_dropped == 200_000 - host.max_chips
     assert len([r for r in caplog.records if "announce" in r.getMessage()]) == 1
 
@@ -251,7 +251,7 @@ def test_a_nack_storm_keeps_one_log_line_and_bounded_histories(rigs, caplog):
     node = host.chips[uid].node
     with caplog.at_level(logging.WARNING, logger="capsheet.host"):
         for _ in range(5000):
-            host._on_control(0, Nack(node, command=MsgType.ASSIGN, reason=NackReason.BAD_STATE))
+            host.receiver.on_event(0, Nack(node, command=MsgType.ASSIGN, reason=NackReason.BAD_STATE))
     assert host.nack_counts[("ASSIGN", "BAD_STATE")] == 5000
     assert len(host.chips[uid].nacks) == 16
     assert len([r for r in caplog.records if "refused" in r.getMessage()]) == 1
@@ -315,3 +315,23 @@ def test_heartbeats_in_runs_reach_every_chip_record_and_the_watchdog(rigs):
         assert st is not None and st.node == rec.node and st.state == ChipState.STREAMING
     seen = rig.host.watchdog._status_seen
     assert np.all(seen[[r.link for r in chips]] >= t0)
+
+
+def test_every_control_event_goes_to_the_part_that_owns_it_and_the_rest_are_counted(rigs):
+    """The receive path's one table (`Receiver.routes`): each control type reaches its part
+    through `Receiver.on_event`; a frame no part owns (CONFIG from another host) is counted by
+    type, not dropped silently."""
+    from protocol.messages import Config
+    rig = rigs("memory")
+    host = rig.host
+    rx = host.receiver
+    seen = []
+    for name in ("on_announce", "on_info", "on_status", "on_sync", "on_answer"):
+        setattr(rx, name, lambda bus, msg, name=name: seen.append((name, type(msg).__name__)))
+    rx.routes = {t: getattr(rx, fn.__name__) for t, fn in rx.routes.items()}  # rebuilt on the recorders
+    for msg in (Announce(0x8001, uid=0x1234), Sync(counter=3),
+                Nack(5, command=MsgType.ASSIGN, reason=NackReason.BAD_STATE),
+                Config(0, 100, 1, 0, 1000), Config(0, 100, 1, 0, 1000)):
+        rx.on_event(0, msg)
+    assert seen == [("on_announce", "Announce"), ("on_sync", "Sync"), ("on_answer", "Nack")]
+    assert rx.unrouted == {"Config": 2}
