@@ -154,6 +154,8 @@ def run_summary(host) -> dict:
             "chips_dropped": reg.chips_dropped, "stale_frames_drained": host.bringup.stale_frames,
             # a following host: sample frames that answered the gateway's SYNC before it streamed
             "frames_before_start": getattr(host, "frames_before_start", 0),
+            # control frames no part of this host owns (CONFIG from another host on the bus), by type
+            "unrouted": dict(host.receiver.unrouted) if hasattr(host, "receiver") else {},
             "events_cut": host.event_log.events_cut, "rx_errors": host.event_log.rx_errors_total,
             "incidents": [{"t": e.t, "kind": e.kind, "detail": e.detail} for e in list(host.event_log.events)
                           if e.kind in ("recovery", "reconnect", "resync", "not_a_sheet", "sync")][-100:]}

@@ -335,3 +335,4 @@ def test_every_control_event_goes_to_the_part_that_owns_it_and_the_rest_are_coun
         rx.on_event(0, msg)
     assert seen == [("on_announce", "Announce"), ("on_sync", "Sync"), ("on_answer", "Nack")]
     assert rx.unrouted == {"Config": 2}
+    assert host.summary()["unrouted"] == {"Config": 2}
