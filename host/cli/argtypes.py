@@ -38,8 +38,9 @@ import math
 import os
 import sys
 from pathlib import Path
+from typing import Protocol
 
-__all__ = ["CliParser", "lattice", "link_length", "duration", "rate", "noise", "percent", "positive_float",
+__all__ = ["CliParser", "OptionGroup", "lattice", "link_length", "duration", "rate", "noise", "percent", "positive_float",
            "bounded_float", "positive_int", "int_range", "seed", "tcp_port", "existing_file", "output_file",
            "figure_file", "symlink_path", "InputPath", "OutputPath", "add_overwrite_arg", "usage_error",
            "MAX_LINKS", "MAX_RATE_HZ", "MAX_DURATION_S", "MIN_LINK_M", "MAX_LINK_M"]
@@ -52,6 +53,13 @@ MAX_RATE_HZ = 4000.0
 #: a week: longer runs are not a typo we should wait for
 MAX_DURATION_S = 7 * 24 * 3600.0
 MIN_LINK_M, MAX_LINK_M = 1e-4, 10.0
+
+
+class OptionGroup(Protocol):
+    """What ``parser.add_argument_group(...)`` returns, by what it does (argparse documents the
+    method, not the class, which is private): options are added to it."""
+
+    def add_argument(self, *args, **kwargs) -> argparse.Action: ...
 
 
 class CliParser(argparse.ArgumentParser):

@@ -18,6 +18,8 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from host.cli.argtypes import OptionGroup
+
 __all__ = ["add_record_args", "SessionOutputs", "CAN_LOG_SUFFIXES"]
 
 #: the python-can log formats ``--can-log`` writes (and ``capsheet replay`` reads)
@@ -25,7 +27,7 @@ CAN_LOG_SUFFIXES = (".log", ".asc", ".blf")
 
 
 def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
-                    link_length: bool = False, estimate_process: bool = False) -> argparse._ArgumentGroup:
+                    link_length: bool = False, estimate_process: bool = False) -> OptionGroup:
     """Add ``--record``, ``--live``, ``--live-rate``, ``--overwrite`` (and ``--can-log``,
     ``--link-length``). Every value is checked by `host.cli.argtypes`: an existing recording is
     replaced only with ``--overwrite``."""
@@ -206,6 +208,7 @@ class SessionOutputs:
         record, live = getattr(args, "record", None), getattr(args, "live", None)
         if record or live is not None:
             import host.analysis.estimator  # noqa: F401 -- now, not at the first estimate: importing scipy
+
             # mid-session (~0.8 s holding the GIL) stalls the live path it runs in
             from host.record import recording as R
             split_mb, split_s = getattr(args, "split_size", None), getattr(args, "split_duration", None)

@@ -11,7 +11,7 @@ import argparse
 import os
 import sys
 
-from host.cli.argtypes import positive_int
+from host.cli.argtypes import OptionGroup, positive_int
 from host.transport.ports import CanTransport, SerialTransport, Transport, TransportError
 
 __all__ = ["add_transport_args", "open_transports", "DEFAULT_BAUD"]
@@ -21,7 +21,7 @@ DEFAULT_BAUD = 3_000_000
 
 
 def add_transport_args(parser: argparse.ArgumentParser, *, title: str, several_buses: bool = True,
-                       ) -> argparse._ArgumentGroup:
+                       ) -> OptionGroup:
     """Add ``--port --baud --can --fd --bitrate`` to ``parser`` in a group called ``title``.
 
     With ``several_buses`` ``--can`` may be repeated (buses merged into one lattice) and collects a

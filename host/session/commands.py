@@ -76,7 +76,10 @@ class CommandRounds:
         if isinstance(msg, Nack):
             host = self.host
             uid = host.registry.uid_at(bus, msg.node)
-            name = MsgType(msg.command).name if msg.command in MsgType._value2member_map_ else str(msg.command)
+            try:
+                name = MsgType(msg.command).name
+            except ValueError:  # a command this host does not know (a newer peer's): its number
+                name = str(msg.command)
             if uid is not None:
                 nacks = host.registry.chips[uid].nacks
                 nacks.append((name, msg.reason.name))
