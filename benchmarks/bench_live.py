@@ -49,7 +49,7 @@ import time
 REPO = os.path.abspath(os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, REPO)
 
-from host.snapshots.aggregator import window_completeness  # noqa: E402
+from host.snapshots.snapshot import window_completeness  # noqa: E402
 from host.cli import one_blas_thread  # noqa: E402
 from protocol.lattice import Lattice  # noqa: E402
 

@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-from host.snapshots.aggregator import LatticeSnapshot  # noqa: F401 -- the type the encoder reads
+from host.snapshots.snapshot import LatticeSnapshot  # noqa: F401 -- the type the encoder reads
 from host.publish.zenoh_pub import ZenohPublisher, encode_snapshot, zenoh_config
 from protocol.lattice import Lattice
 

@@ -38,7 +38,7 @@ TARGET_X = 10.0
 def synthetic_recording(path: Path, n: int = 14, seconds: float = 10.0, rate_hz: float = RATE_HZ,
                         noise_pct_g: float = 1.0, seed: int = 16) -> int:
     """Write a capsheet MCAP of ``seconds`` at ``rate_hz``; returns the number of snapshots."""
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.record.recording import Recorder
     from protocol.constants import ADC_MAX, ADC_MIN, counts_to_si, nominal_sensitivity, si_to_counts
     from protocol.framing import encode

@@ -477,7 +477,7 @@ def _write_mcap(out, lat, L, session, counter, ts, wall, readings, valid, status
                 quiet: bool, method: str = "global", imu: dict | None = None) -> None:
     from types import SimpleNamespace
 
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.cli.progress import Progress
     from host.record.recording import Recorder
 

@@ -81,7 +81,7 @@ class Samples:
 
 
 class CompletenessWindow:
-    """`host.snapshots.aggregator.window_completeness` computed as snapshots are emitted, in bounded memory.
+    """`host.snapshots.snapshot.window_completeness` computed as snapshots are emitted, in bounded memory.
 
     ``add(counter, complete)`` for every snapshot emitted, in emission order; ``result(end_counter,
     syncs_sent)`` as ``window_completeness(all of them, first_counter, end_counter, syncs_sent)``.

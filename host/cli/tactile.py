@@ -116,7 +116,7 @@ def _presses(which: str, T: float):
 
 
 def _virtual(args, foam: Foam, settings: DetectorSettings, rows: int, cols: int, outputs):
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.analysis.tactile import TactileSensor
     from host.snapshots.feed import corrected
     from virtual_sheet.foam import FoamBlock, FoamCylinder, FoamLayer, FoamScene, FoamSphere

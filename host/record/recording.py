@@ -36,7 +36,7 @@ Recordings of format ``capsheet-mcap-1`` (JSON channels) are read too. A recordi
 set (``run_0000.mcap``, ``run_0001.mcap``, ...: `split_path`, `recording_set`).
 
 Every message's log time is the host's wall clock (ns since the Unix epoch); ``t`` fields inside
-are the host's monotonic clock (s), the clock `host.snapshots.aggregator.LatticeSnapshot.timestamp` uses.
+are the host's monotonic clock (s), the clock `host.snapshots.snapshot.LatticeSnapshot.timestamp` uses.
 Metadata record ``capsheet.session``: lattice, link length, rate, sync mode, transports, versions.
 Attachments: ``layout.json`` (uid -> link), ``calibration.json`` (per link offset/sensitivity, the
 node map), ``host_calibration.json`` (with ``capsheet host --calibration``: the calibration every recorded
@@ -608,7 +608,7 @@ class Recorder:
         feed.add_open_listener(self.sync)
 
     def snapshot(self, snap) -> None:
-        """One `host.snapshots.aggregator.LatticeSnapshot`: its chips' counts when it has them (the readings
+        """One `host.snapshots.snapshot.LatticeSnapshot`: its chips' counts when it has them (the readings
         are then the counts converted with the recorded calibration, `read`), else its readings
         as float32."""
         if self._closed:
@@ -676,7 +676,7 @@ class Recorder:
 
     def imu(self, snap, est=None) -> None:
         """The live view's IMU channel (`TOPIC_IMU`) for a snapshot of 6/9-axis chips (a
-        `host.snapshots.aggregator.LatticeSnapshot` with ``gyro``; nothing without): every link's gyroscope
+        `host.snapshots.snapshot.LatticeSnapshot` with ``gyro``; nothing without): every link's gyroscope
         and magnetometer, their magnitudes, and with ``est`` (the shape shown with it) its method and,
         for the fused estimator, the magnetometers' weights. Only the live view gets it (the file's
         snapshots carry the axes); called per estimate, so at the live view's rate."""
@@ -901,7 +901,7 @@ class Recording:
         m/s², sensor frame; NaN where not valid.
     valid : ndarray, shape (n, n_links), bool
     status : ndarray, shape (n, n_links), uint8
-        `host.snapshots.aggregator.LinkFlag` bits.
+        `host.snapshots.snapshot.LinkFlag` bits.
     estimates : dict
         ``counter`` (m,), ``timestamp`` (m,), ``joints`` (m, rows, cols, 3) float32 m, and
         ``yaw_std`` / ``joint_std`` (NaN rows for estimates recorded without them) /

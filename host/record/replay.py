@@ -36,7 +36,8 @@ from protocol.can import CanDecoder
 from protocol.framing import StreamDecoder
 from protocol.lattice import Lattice
 
-from host.snapshots.aggregator import Aggregator, LatticeSnapshot
+from host.snapshots.aggregator import Aggregator
+from host.snapshots.snapshot import LatticeSnapshot
 from host.snapshots.feed import SnapshotFeed
 from host.transport.ports import Transport, TransportCapabilities, feed_can
 

@@ -48,7 +48,8 @@ from protocol.lattice import Lattice
 from protocol.layout import LayoutError
 from protocol.messages import Stop
 
-from host.snapshots.aggregator import Aggregator, LatticeSnapshot
+from host.snapshots.aggregator import Aggregator
+from host.snapshots.snapshot import LatticeSnapshot
 from host.session.bringup import BringUp, capacity_remedy
 from host.session.commands import CommandRounds
 from host.session.errors import CapacityError, MismatchError, SessionError, SyncConflictError

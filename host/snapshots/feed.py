@@ -33,7 +33,8 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from host.snapshots.aggregator import Aggregator, LatticeSnapshot
+from host.snapshots.aggregator import Aggregator
+from host.snapshots.snapshot import LatticeSnapshot
 
 __all__ = ["SnapshotFeed", "corrected"]
 

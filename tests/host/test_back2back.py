@@ -21,7 +21,7 @@ import time
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import LinkFlag
+from host.snapshots.snapshot import LinkFlag
 from host.session.core import Host, Layout
 from host.transport.ports import CanTransport, MemoryTransport, SerialTransport
 from protocol.constants import G0

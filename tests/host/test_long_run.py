@@ -134,7 +134,7 @@ def test_host_events_and_receive_errors_stay_bounded_and_counted():
 def test_a_recorder_over_a_long_split_run_keeps_only_counts_and_file_names(tmp_path):
     """Hours of snapshots and raw chunks (simulated, few links): the recorder's own state is its
     per-topic counts and the list of its files; each file readable."""
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     lat = Lattice(2, 2)
     n = lat.n_links
     with Recorder(tmp_path / "long.mcap", lat, 0.01, split_size=20_000) as rec:

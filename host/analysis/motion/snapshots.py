@@ -1,7 +1,7 @@
 """A recorded or live snapshot into the fused estimator (issue 30): what ``capsheet demo``, ``capsheet
 host --live`` and ``capsheet estimate`` feed `MotionEstimator` alike, one snapshot at a time, in order.
 
-A snapshot is anything with the attributes of `host.snapshots.aggregator.LatticeSnapshot`: ``timestamp`` (s),
+A snapshot is anything with the attributes of `host.snapshots.snapshot.LatticeSnapshot`: ``timestamp`` (s),
 ``valid`` (n_links,), ``readings`` (n_links, 3) m/s², ``gyro`` (n_links, 3) rad/s or None, ``mag``
 (n_links, 3) T or None, ``sample_time_s`` (n_links,) s after the SYNC (NaN: unknown).
 """

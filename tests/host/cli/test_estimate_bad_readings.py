@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import LatticeSnapshot
+from host.snapshots.snapshot import LatticeSnapshot
 from host.record.recording import Recorder
 from protocol.lattice import Lattice
 

@@ -103,7 +103,7 @@ def recording(tmp_path_factory):
     """A small recording written by capsheet's own recorder (real MCAP), 40 snapshots."""
     import numpy as np
 
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.record.recording import Recorder
     from protocol.lattice import Lattice
     from virtual_sheet.geometry import ideal_readings

@@ -1,5 +1,5 @@
 """`host.cli.runstats`: run statistics in bounded memory (issue 34). `Samples` against the standard
-library's statistics; `CompletenessWindow` against `host.snapshots.aggregator.window_completeness` over the
+library's statistics; `CompletenessWindow` against `host.snapshots.snapshot.window_completeness` over the
 whole list, on seeded emission sequences with wraps, repeats, late and pre-window counters."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import statistics
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import window_completeness
+from host.snapshots.snapshot import window_completeness
 from host.cli.runstats import CompletenessWindow, Samples
 
 

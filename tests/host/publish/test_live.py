@@ -196,7 +196,7 @@ def test_a_port_in_use_is_one_clear_error():
 def test_a_session_estimates_past_a_dead_chip_and_counts_what_it_cannot(tmp_path, capsys):
     """A chip reading (0, 0, 0) with status OK must not end a recording session: it is masked out of
     the estimate; a snapshot with nothing estimable is counted and reported, not raised."""
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.cli.record_args import SessionOutputs
     from host.record.recording import read_recording
     from virtual_sheet.geometry import ideal_readings
@@ -226,7 +226,7 @@ def test_a_session_estimates_past_a_dead_chip_and_counts_what_it_cannot(tmp_path
 def test_a_live_session_records_the_sampled_uncertainty_at_most_once_a_second(tmp_path):
     """yaw_std costs tens of estimates: recorded for the first estimate, not for one 1 ms later;
     the second estimate's lazy property is never computed for the recording."""
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.analysis.estimator import estimate
     from host.cli.record_args import SessionOutputs
     from host.record.recording import read_recording

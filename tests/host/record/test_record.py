@@ -16,7 +16,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import LatticeSnapshot
+from host.snapshots.snapshot import LatticeSnapshot
 from host.record.recording import Recorder, read, tap_transport
 from host.session.core import Layout
 from protocol.lattice import Lattice
@@ -215,7 +215,7 @@ def test_a_second_reader_written_from_the_mcap_spec_agrees(tmp_path):
 KILLED_WRITER = textwrap.dedent("""
     import sys, time
     import numpy as np
-    from host.snapshots.aggregator import LatticeSnapshot
+    from host.snapshots.snapshot import LatticeSnapshot
     from host.record.recording import Recorder
     from protocol.lattice import Lattice
     lat = Lattice(3, 4)

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import Aggregator, LatticeSnapshot
+from host.snapshots.aggregator import Aggregator
+from host.snapshots.snapshot import LatticeSnapshot
 from host.record.recording import Recorder, iter_snapshots, read, recording_set, snapshot_count, split_path
 from protocol.constants import counts_to_si
 from protocol.lattice import Lattice

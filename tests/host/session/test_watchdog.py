@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from types import SimpleNamespace
 
-from host.snapshots.aggregator import Aggregator, LinkFlag
+from host.snapshots.aggregator import Aggregator
+from host.snapshots.snapshot import LinkFlag
 from host.snapshots.feed import SnapshotFeed
 from host.session.report import EventLog
 from host.session.watchdog import Watchdog

@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import Aggregator, LinkFlag, serial_diff
+from host.snapshots.aggregator import Aggregator, serial_diff
+from host.snapshots.snapshot import LinkFlag
 from protocol import SampleStatus, Snapshot, StreamDecoder, decode_can, encode, to_can
 from protocol.constants import G0
 from protocol.messages import SampleBatch, SnapshotFrames

@@ -1,11 +1,11 @@
-"""`host.snapshots.aggregator.window_completeness`: numerator and denominator over the same SYNCs (bench_live
+"""`host.snapshots.snapshot.window_completeness`: numerator and denominator over the same SYNCs (bench_live
 once reported 100.83 % complete, `capsheet demo` 100.1 %)."""
 
 from __future__ import annotations
 
 import pytest
 
-from host.snapshots.aggregator import window_completeness
+from host.snapshots.snapshot import window_completeness
 
 
 def test_snapshots_of_syncs_sent_before_the_window_are_not_counted():

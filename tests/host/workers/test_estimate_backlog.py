@@ -13,7 +13,7 @@ import time
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import LatticeSnapshot
+from host.snapshots.snapshot import LatticeSnapshot
 from host.cli import record_args as RA
 from host.record.recording import read_recording
 from protocol.lattice import Lattice

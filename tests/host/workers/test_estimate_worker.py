@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from host.snapshots.aggregator import LatticeSnapshot
+from host.snapshots.snapshot import LatticeSnapshot
 from host.analysis.estimator import estimate
 from host.workers.estimate_worker import EstimatorProcess
 from virtual_sheet.sheet import VirtualSheet
