@@ -1,5 +1,5 @@
 """Estimator accuracy on exact sheared nets: every built-in shape x shear x noise, and the priors
-side by side. Prints JSON (and with ``--markdown`` the README table on stderr).
+side by side. Prints JSON (and with ``--markdown`` the table of docs/benchmarks.md on stderr).
 
 Truth: `virtual_sheet.shapes.make_sheet` (exact Chebyshev nets, 14x14 joints, L = 1 cm) with
 ``shear`` in {0, 0.1, 0.2, 0.3} rad; noise-free readings from `virtual_sheet.geometry.ideal_readings`,
@@ -109,7 +109,7 @@ def long_run(n: int, seed: int) -> dict:
 
 
 def markdown(rows: list[dict]) -> str:
-    """The README table: one row per shape x shear; mean error at each noise, the bias at 5 % g,
+    """The table of docs/benchmarks.md: one row per shape x shear; mean error at each noise, the bias at 5 % g,
     and what the prior contributes (the error with the prior off) and the eq. (6) model's."""
     by = {}
     for r in rows:

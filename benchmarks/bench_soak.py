@@ -16,7 +16,7 @@ Measured:
   Goal: <= 2 MB.
 * ``host_probe`` (``--probe EVERY_S``): the host's `host.memory.MemoryProbe` lines (tracked objects
   by type, containers that grew, glibc heap, the cyclic collector's pauses, the aggregator's late
-  frames). The probe walks the heap (~0.1 s, a few MB for a moment): not in the README's runs.
+  frames). The probe walks the heap (~0.1 s, a few MB for a moment): not in the runs of docs/benchmarks.md.
 * ``completeness_per_minute``: per minute of the host's clock, complete snapshots of the SYNCs
   the host opened (from the recording's ``/capsheet/sync`` and ``/capsheet/snapshot``). Goal:
   >= 99.9 % every minute. Beside it the SYNC thread's largest gap and its gaps over 30 ms (at 145 Hz

@@ -1,5 +1,5 @@
 """Per-snapshot accuracy and false contacts on every body (issue 17), on smaller sweeps than
-benchmarks/bench_tactile.py (which measures the full ones: the README table).
+benchmarks/bench_tactile.py (which measures the full ones: the table of docs/benchmarks.md).
 
 Targets asserted here: |mean force bias| <= 5 % and the 95th percentile of the single-snapshot
 force error <= 15 % for the sphere and the punch on the block, the cylinder and the sphere at 1 % g
