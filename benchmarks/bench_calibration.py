@@ -1,5 +1,5 @@
 """Calibration of realistic chips: parameters recovered, and shape error uncalibrated / calibrated /
-with perfect chips (issue 14). Prints JSON.
+with perfect chips. Prints JSON.
 
 Chips: `virtual_sheet.sensor.chip_error_model("realistic")` — bias 30 mg, scale 1.5 %,
 misalignment 1.5° per axis (standard deviations), uncalibrated — at 0.3 % g white noise, through
@@ -17,7 +17,7 @@ the 12-bit ADC (±2 g), a 14x14-joint sheet, L = 1 cm, one sheet of chips per ``
    readings, the calibrated ones (``cal.apply``), and perfect chips' (no chip errors, the same
    noise and ADC); mean joint error in % of the side after the rigid overlay. Target: calibrated
    within 1.2x of perfect chips.
-4. **Gyroscopes and magnetometers** (issue 29; ``--no-imu`` leaves it out): 9-axis chips of the
+4. **Gyroscopes and magnetometers** (``--no-imu`` leaves it out): 9-axis chips of the
    simulator's parts (`virtual_sheet.imu`: ICM-42688-P gyroscope and accelerometer, LIS3MDL
    magnetometer, their spreads; the same chip seeds) sampled at 145 Hz through one pass of the
    board scene *with its turns* (`virtual_sheet.motion.board_scene`: 12 poses held 6 s, 1 s

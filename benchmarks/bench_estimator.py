@@ -6,7 +6,7 @@ from the previous estimate. The paper's method (no warm start in the paper; read
 `host.analysis.paper_method`'s defaults, docs/estimator.md section 7) runs on the same snapshots,
 fewer of them, and only up to 32x32 (its per-unit steepest descent takes tenths of a second per
 snapshot at 14x14 already). The machine may be shared: each rate is the best of ``--repeats``
-timed passes (and the median is reported too). Targets (issue 13), global: 14x14 >= 2000/s,
+timed passes (and the median is reported too). Targets, global: 14x14 >= 2000/s,
 32x32 >= 500/s, 64x64 >= 145/s, 128x128 >= 30/s.
 
 Also reported, per size ("quiet"): the warm chain on a quiet sheet (0.03 % g) with the chain's

@@ -1,4 +1,4 @@
-"""What parts of a live host cost in memory and in stalls over a long run (issue 34). Prints JSON.
+"""What parts of a live host cost in memory and in stalls over a long run. Prints JSON.
 
 * ``masked_structures``: a live host estimates the newest snapshot; on a loaded machine some are
   incomplete, each missing another link. ``--masks`` estimates of a 14x14 sheet, each with one

@@ -1,11 +1,11 @@
-"""The host's ingest at 64x64 (issue 31): a packed sheet's wire bytes through the stream decoder
+"""The host's ingest at 64x64: a packed sheet's wire bytes through the stream decoder
 and the aggregator, with the compiled scan (protocol/_kernel/stream.c) and without, in one run.
 
 The input is the wire output of a virtual sheet whose gateway sends packed SNAPSHOTs and passes its
 chips' STATUS heartbeats on (`bench_virtual.Rig`; `Gateway.pop_wire` per SYNC, each SYNC's bytes cut
 in five reads, as five gateways' ports deliver them). Three ways are timed on the same reads:
 
-* ``before``: the Python decoder the host ran until the scan was compiled (issue 31, stop 44):
+* ``before``: the Python decoder the host ran until the scan was compiled:
   numpy per fast frame kind, one `Snapshot` object per SNAPSHOT frame (`decode_frame`),
   `unpack_snapshots` in the aggregator (with today's `StreamDecoder.feed`, which decodes a held
   partial frame and the read after it in one pass: the old feed took 1.65 ms per SYNC here);

@@ -7,9 +7,9 @@ snapshot).
     .venv/bin/python benchmarks/bench_live.py            # full sweep, JSON on stdout (many minutes)
     .venv/bin/python benchmarks/bench_live.py --quick    # a short sweep (a few minutes)
     .venv/bin/python benchmarks/bench_live.py --only 14x14-packed --rates 145,300
-    .venv/bin/python benchmarks/bench_live.py --only 64x64-packed-5gw-record   # issue 31.4 (~2 min)
+    .venv/bin/python benchmarks/bench_live.py --only 64x64-packed-5gw-record   # ~2 min
 
-``64x64-packed-5gw-record`` (issue 31.4) runs ``capsheet virtual --lattice 64x64 --packed --gateways 5``
+``64x64-packed-5gw-record`` runs ``capsheet virtual --lattice 64x64 --packed --gateways 5``
 and ``capsheet host`` on its five ports as a user does, at 145 Hz with ``--record --live-rate 145``
 (every snapshot recorded and due an estimate), once as the host was and once with
 ``--reader-processes --estimate-process``; per design the share of snapshots complete, estimated
@@ -19,12 +19,12 @@ the cost per link sample. ``64x64-packed-5gw-record-gwsync`` is the same with ga
 the SYNC (``capsheet virtual --rate 145``) and the host following it (``--sync follow``): its SYNC
 rate is the gateway's SYNCs that opened a snapshot, per second of streaming.
 
-Configurations (issue 11): 14x14 per-chip, 14x14 packed, 32x32 packed over two serial gateways of
+Configurations: 14x14 per-chip, 14x14 packed, 32x32 packed over two serial gateways of
 12 Mbaud merged into one lattice (1,984 links exceed one 12 Mbaud UART at 145 Hz by the capacity
 table) and, for comparison, over one gateway declared as a 24 Mbaud link; 14x14 over as many
 classic CAN buses as the capacity table says for 145 Hz (9, SLCAN on ptys); 14x14 with the C
 firmware (one cffi chip per link); 14x14 per-chip again with one core kept busy (a
-``python3 -c 'while True: pass'`` beside it); 6-axis chips (issue 29) on a carried-and-turned sheet,
+``python3 -c 'while True: pass'`` beside it); 6-axis chips on a carried-and-turned sheet,
 per chip over the two 12 Mbaud gateways their IMU_SAMPLEs need at 145 Hz and packed in SNAPSHOT_IMU
 over one, each row with that capacity (``capacity_at_145``, `imu_capacity`) and its latency taken
 with the fused estimator on every snapshot in order (as ``capsheet demo --sensors`` runs it). A pty has no baud rate: the gateway declares the link
@@ -61,7 +61,7 @@ CONFIGS = {
     "14x14-can": dict(lattice="14x14", packed=False, transport="slcan", bitrate=1_000_000),
     "14x14-firmware-c": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, firmware="c"),
     "14x14-per-chip-busy-core": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000, busy=1),
-    # 6-axis chips (issue 29) on a carried-and-turned sheet, shaped by the fused estimator: per chip
+    # 6-axis chips on a carried-and-turned sheet, shaped by the fused estimator: per chip
     # their IMU_SAMPLEs need two 12 Mbaud gateways at 145 Hz (101 % of one), packed one (58 %)
     "14x14-6axis-per-chip-2gw": dict(lattice="14x14", packed=False, transport="serial", baud=12_000_000,
                                      gateways=2, sensors="accel+gyro"),
@@ -70,7 +70,7 @@ CONFIGS = {
 }
 #: CONFIG_IMU fields per --sensors (format, gyro range code 3 = ±1000 °/s, mag range code 0, flags)
 IMU_CONFIG = {"accel+gyro": (1, 3, 0, 0), "accel+gyro+mag": (2, 3, 0, 0)}
-#: issue 31.4: a 64x64 sheet (8,064 links) on five packed 12 Mbaud gateways at 145 Hz, every snapshot
+#: a 64x64 sheet (8,064 links) on five packed 12 Mbaud gateways at 145 Hz, every snapshot
 #: recorded and due an estimate (--record --live-rate 145), run through the CLI as a user runs it
 #: (`run_cli_config`): the host as it was ("in-process") and with a reader process per port and the
 #: estimates in a process of their own ("processes", docs/host.md)

@@ -1,10 +1,10 @@
 """Serial decode throughput, one core: capsheet per-chip SAMPLE frames and packed SNAPSHOT frames
 against pymavlink parsing RAW_IMU messages that carry the same samples, measured in the same run.
 
-Prints JSON. Targets (issue 2): per-chip frames >= 10x pymavlink's samples/s; SNAPSHOT >= 100x.
+Prints JSON. Targets: per-chip frames >= 10x pymavlink's samples/s; SNAPSHOT >= 100x.
 Usage: python benchmarks/bench_protocol.py [--samples N] [--repeat R]
 
-6-axis chips (issue 29, docs/protocol.md §16): the same for IMU records (accelerometer, gyroscope,
+6-axis chips (docs/protocol.md §16): the same for IMU records (accelerometer, gyroscope,
 sample time; RAW_IMU carries as much), per chip (IMU_SAMPLE) and packed (SNAPSHOT_IMU, 77 records a
 frame); each row with what a 14x14 sheet (364 chips) at 145 Hz needs — the records per second, how
 many times over the decoder keeps up, and the buses `capsheet protocol capacity` says it takes
@@ -30,7 +30,7 @@ from protocol.messages import (MAX_SERIAL_IMU_RECORDS, ImuBatch, ImuSample, Samp
                                unpack_snapshots, unpack_snapshots_imu)
 from protocol.capacity import MAX_SERIAL_SNAPSHOT_SAMPLES, bus_load, buses_needed  # noqa: E402
 
-#: the sheet and rate the IMU rows are sized for (issue 29: 14x14 at the paper's 145 Hz)
+#: the sheet and rate the IMU rows are sized for (14x14 at the paper's 145 Hz)
 IMU_LINKS, IMU_RATE_HZ = 364, 145.0
 
 

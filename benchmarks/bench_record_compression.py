@@ -1,5 +1,5 @@
 """The recorder's compression at 64x64: what each zstd level and worker-thread setting costs the
-threads that log, and how long one logging call holds the interpreter lock (issue 31).
+threads that log, and how long one logging call holds the interpreter lock.
 
 The input is the wire output of a 64x64 virtual sheet sending packed SNAPSHOTs (`Gateway.pop_wire`
 per SYNC, as five gateways' reads: each SYNC's bytes cut in five), logged with `Recorder.raw` into a
@@ -36,8 +36,8 @@ from protocol.messages import Sync  # noqa: E402
 from bench_virtual import RATE_HZ, Rig  # noqa: E402  (benchmarks/, this script's folder)
 
 PORTS = 5
-#: (zstd level, worker threads): the settings compared; the first is capsheet's default before
-#: issue 31's stop 43, the last its default for a sheet this size
+#: (zstd level, worker threads): the settings compared; the first was capsheet's default before
+#: the 64x64 sheet's work, the last is its default for a sheet this size
 SETTINGS = [(9, 1), (9, 0), (3, 1), (3, 0)]
 
 

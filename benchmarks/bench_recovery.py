@@ -1,4 +1,4 @@
-"""How long a host takes to recover a sheet that was power-cycled under the same port (issue 12).
+"""How long a host takes to recover a sheet that was power-cycled under the same port.
 
 Each run: ``capsheet virtual`` (a subprocess) streams to ``capsheet host`` (another subprocess); the
 sheet is stopped (SIGTERM: its port goes away), restarted on the same symlink, and the host has to

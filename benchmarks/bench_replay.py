@@ -1,5 +1,5 @@
 """Offline speed: ``capsheet estimate`` and ``capsheet replay --speed max`` on a 14x14 recording at
-145 Hz, against real time. Target (issue 16): estimate >= 10x faster than real time.
+145 Hz, against real time. Target: estimate >= 10x faster than real time.
 
 The recording is made here, as the host would have written it: the virtual sheet's Gaussian
 (14x14 joints, L = 1 cm) with fresh 1 % g noise per snapshot (seeded MT19937), quantised to ADC

@@ -1,4 +1,4 @@
-"""A robot of several sheets through Zenoh (issue 31, point 4, second half): N virtual sheets, each with
+"""A robot of several sheets through Zenoh: N virtual sheets, each with
 its ``capsheet host --publish zenoh --no-publish-estimates`` (snapshots only), W estimate workers
 (``capsheet estimate --subscribe --worker k/W``) and a recorder subscribing to every sheet's snapshots
 and estimates (appending the estimates to a file), all processes on this machine, Zenoh in peer mode

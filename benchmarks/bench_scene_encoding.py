@@ -2,7 +2,7 @@
 SceneUpdate bytes made with numpy, `host.publish.live._LineListScene`) against the SDK's objects it replaced
 (one `Point3` and one `Color` per line end, `tests.host.publish.test_scene_encoding.object_log_lattice`),
 each into an MCAP sink, in the same run. Every call holds the interpreter lock the host's receive
-and SYNC threads need (issue 31). Prints JSON: the median of ``--calls`` calls per colouring.
+and SYNC threads need. Prints JSON: the median of ``--calls`` calls per colouring.
 
     .venv/bin/python benchmarks/bench_scene_encoding.py [--lattice 64x64] [--calls 20]
 """

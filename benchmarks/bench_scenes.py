@@ -1,15 +1,15 @@
-"""The moving scenes and the 6/9-axis chips (issue 29): what each scene asks of the sensors, and how
+"""The moving scenes and the 6/9-axis chips: what each scene asks of the sensors, and how
 fast the simulator makes ground truth and readings. Prints JSON.
 
 For every scene of `virtual_sheet.motion.MOTION_SCENES` (defaults) on 14x14 and 32x32 joints,
 L = 1 cm, 145 Hz:
 
 * ``peak_accel_mps2``, ``peak_rate_dps``: the largest link acceleration and angular rate over
-  ``--seconds`` (issue 30 needs at least 2 m/s² in every moving scene);
+  ``--seconds`` (the fused estimator needs at least 2 m/s² in every moving scene);
 * ``truth_s_per_s``: seconds of one core to make one simulated second of truth
   (`MotionScene.sample`, 1 s chunks), and ``read9_s_per_s`` the same with the 9-axis chips'
   readings (`virtual_sheet.imu.simulate`, ICM-42688-P + LIS3MDL); ``minutes_for_10_min``: the
-  latter times 600 s, in minutes (issue 29: ten minutes at 145 Hz in reasonable time).
+  latter times 600 s, in minutes (ten minutes at 145 Hz in reasonable time).
 
 ``--png DIR`` also draws ``DIR/motion_scenes.png`` (each moving scene at three instants, and its
 peaks over time) and ``DIR/imu_stream.png`` (one elbow link's gyroscope, accelerometer and

@@ -1,4 +1,4 @@
-"""Soak: ``capsheet virtual`` + ``capsheet host --record`` for a long run (issue 34). Prints JSON.
+"""Soak: ``capsheet virtual`` + ``capsheet host --record`` for a long run. Prints JSON.
 
 What a five-minute run does not show: memory that grows by tens of MB an hour, a recording's size
 per hour, what happens when the 16-bit SYNC counter wraps (every 65536 SYNCs: 452 s at 145 Hz).

@@ -7,7 +7,7 @@ device does with each SYNC: the due frames as one write), time simulated.
     .venv/bin/python benchmarks/bench_virtual.py            # JSON on stdout
     .venv/bin/python benchmarks/bench_virtual.py --quick    # fewer SYNCs and rounds
 
-Targets (issue 11): array >= 10x the per-chip models in every configuration; 32x32 packed
+Targets: array >= 10x the per-chip models in every configuration; 32x32 packed
 <= 1 ms per SYNC.
 
 Figures are CPU time of this process per SYNC (``time.process_time``), the best of several

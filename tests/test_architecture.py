@@ -7,7 +7,7 @@
   each other), numpy/scipy/matplotlib (and the optional sksparse, and the per-link peer's vqf) and itself;
 * firmware_ref and virtual_sheet do not import each other's chip modules in a cycle;
 * no import cycle among capsheet's own modules (function-level imports included);
-* seams, not patches (issue 25): no module of protocol/, host/, virtual_sheet/ reads or writes
+* seams, not patches: no module of protocol/, host/, virtual_sheet/ reads or writes
   another module's private attribute (``obj._name``), and none reassigns a method of another object;
 * the aggregator (and its counter trust and deadline policy) is sans-I/O: it imports no clock and
   no thread; python-can finds the SLCAN bus by name (the ``can.interface`` entry point).
@@ -131,7 +131,7 @@ def test_conventions_are_cited_from_the_repo_not_from_outside_it():
     assert bad == []
 
 
-# ------------------------------------------------------------------- import cycles (issue 25)
+# ------------------------------------------------------------------- import cycles
 
 PACKAGES = ("protocol", "host", "virtual_sheet", "firmware_ref")
 
@@ -277,7 +277,7 @@ def test_no_import_cycles_among_our_modules():
     assert cycles(import_graph()) == []
 
 
-# ------------------------------------------------------------ seams, not patches (issue 25)
+# ------------------------------------------------------------ seams, not patches
 
 SEAM_PACKAGES = ("protocol", "host", "virtual_sheet")
 #: namedtuple's documented methods (underscored so as not to clash with field names)
@@ -396,14 +396,14 @@ def test_the_seam_checks_see_what_they_look_for(tmp_path):
 
 
 def test_no_module_reads_another_modules_private_attributes():
-    # on the code before issue 25: CanTransport._decode reused by replay and patched by the
+    # on the code before these seams: CanTransport._decode reused by replay and patched by the
     # recorder, AuditedCanTransport's _bus/_can/_send_lock, aggregator._lut, host._round,
     # dec._partial, slcanBus's _queue/_filters/_buffer, devices' _pty_* ... (34 offenders)
     assert private_access_offenders() == []
 
 
 def test_no_module_reassigns_another_objects_methods():
-    # before issue 25: aggregator.ingest, aggregator.open_counter and transport._decode were patched
+    # before these seams: aggregator.ingest, aggregator.open_counter and transport._decode were patched
     assert method_patch_offenders() == []
 
 

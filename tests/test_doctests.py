@@ -43,7 +43,7 @@ def test_docstring_examples(name):
 
 
 def test_pytest_doctest_modules_collects_every_package_cleanly():
-    """``pytest --doctest-modules protocol host virtual_sheet`` (issue 25): no module under two names
+    """``pytest --doctest-modules protocol host virtual_sheet``: no module under two names
     (host/estimator.py and host/calibration.py once replaced themselves in sys.modules: two
     collection errors, "import file mismatch")."""
     import subprocess

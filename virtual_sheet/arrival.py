@@ -1,4 +1,4 @@
-"""When a SYNC reached the chips, from when the virtual sheet read it (issue 30 point 4).
+"""When a SYNC reached the chips, from when the virtual sheet read it.
 
 A real chip samples when its SYNC arrives on the wire, about when the host sent it; the host's
 timing model (`host.session.syncdriver`: the counter's time is when it was written, plus each record's
@@ -18,7 +18,7 @@ with ``a`` the newest SYNC of this run taken as read (its read was on time), and
 ``arrival(c − 1)``. The slack is allowed once, not once a SYNC: chained from the SYNC just before,
 a reader that stays behind for a second let the arrivals creep later by the slack every period —
 at 100 Hz, 5 % of the time the chips saw, which a gyroscope scale fit took for the gyroscopes'
-(`capsheet calibrate` on a loaded machine, stop 40). ``period`` is measured, not told, from the
+(`capsheet calibrate` on a loaded machine). ``period`` is measured, not told, from the
 reads of the last ``window`` consecutive SYNCs before it (`period_s`: the median spacing, which late reads,
 backlogs and skipped slots leave alone while most spacings are one period). A SYNC after a gap
 in the counters, and the first ones (8 spacings), arrive when read. The same counter read

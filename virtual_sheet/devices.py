@@ -819,7 +819,7 @@ class CanDevice(Device):
         self.bus_kwargs = dict(bus_kwargs or {})
         self.buses: list = []
         self.foreign_frames = 0
-        # udp_multicast hands a sender its own frames back: recognise and drop them (issue 12)
+        # udp_multicast hands a sender its own frames back: recognise and drop them
         from protocol.can import EchoFilter
         self._echo = [EchoFilter(4096) for _ in self.channels] if interface == "udp_multicast" else None
 

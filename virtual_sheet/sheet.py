@@ -117,7 +117,7 @@ class VirtualSheet:
         Chips as one vectorised `ChipArray` or one object each; default "array" for the Python
         model, "chips" when ``chip_factory`` is given.
     sensors : {"accel", "accel+gyro", "accel+gyro+mag"}
-        The chips' sensors (issue 29, docs/protocol.md §16). A moving scene of `imu_source.MOTION_SHAPES`
+        The chips' sensors (docs/protocol.md §16). A moving scene of `imu_source.MOTION_SHAPES`
         (carry, wave, elbow, tap, flat_turn, tumble) or a static shape can carry any; the chips then read
         the phase-1 models (`imu.ImuArray`: ICM-42688-P gyroscope, LIS3MDL magnetometer in Earth's
         field, the accelerometer of ``sensor``/``noise``) through an `imu_source.ImuSource`.

@@ -1,4 +1,4 @@
-"""Counter trust: which SYNC counters may open a snapshot in the aggregator (issue 12).
+"""Counter trust: which SYNC counters may open a snapshot in the aggregator.
 
 Sans-I/O and clock-free: `CounterTrust.verdict` is told a counter not open yet, the newest counter
 opened and the last one emitted, and answers OPEN, LATE, STRAY or RESYNC;

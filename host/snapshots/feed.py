@@ -223,7 +223,7 @@ class SnapshotFeed:
         around the control frames between them): no other thread emits in between. A recording
         writes the read once, at its first `ingest` (`add_ingest_listener`), and a replay ingests
         it whole at that time; a counter emitted by the SYNC thread between two parts would take
-        the first part live and both in the replay (stop 39: 2 of 198 snapshots of a loaded 6-axis
+        the first part live and both in the replay (2 of 198 snapshots of a loaded 6-axis
         run replayed different)."""
         with self._locked():
             yield
@@ -251,7 +251,7 @@ class SnapshotFeed:
 
         A receive thread holds the lock across a whole read's ingest; waiting for it put the SYNC
         out 1.4 ms late at the median and 17 ms at p99 on a 64x64 sheet on five gateways, and the
-        slots it overran were missed (issue 31)."""
+        slots it overran were missed."""
         self._posted.append((int(counter), float(now), bool(restart)))
         with self._locked_if_free(False) as held:  # inside a read (`one_read`): applied when it ends
             return held and self._depth == 1

@@ -3,7 +3,7 @@
 In one process the estimator shares the interpreter lock with the receive threads: at 64x64 a
 warm estimate is ~3.5 ms of mostly Python-driven numpy, its sampled uncertainty (yaw_std,
 joint_std) 1-2 s, and while the main thread holds the lock the receive threads fall behind and
-frames arrive after their counter's deadline (issue 31: 13.9 % complete, 20 of 914 snapshots
+frames arrive after their counter's deadline (13.9 % complete, 20 of 914 snapshots
 estimated at 145 Hz). `EstimatorProcess` runs `host.analysis.estimator.estimate` in a child
 process (``spawn``) and hands back `RemoteEstimate` s, in order:
 
@@ -21,7 +21,7 @@ path does. Before the first request it warms up (`WARMUP_COUNTER`): one estimate
 the rule above. A host makes the process before bring-up, so this happens while the chips are
 brought up: the first snapshots' estimates no longer wait 1-2 s behind a 64x64 uncertainty, and
 that CPU is not taken from the receive threads in the first seconds of streaming (the first
-uncertainty of a 64x64 session then comes about a minute in; issue 31).
+uncertainty of a 64x64 session then comes about a minute in).
 """
 
 from __future__ import annotations
