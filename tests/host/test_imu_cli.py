@@ -1,4 +1,4 @@
-"""6/9-axis chips through the real command line on every transport (issue 29 point 1, 5, 6): a moving
+"""6/9-axis chips through the real command line on every transport: a moving
 virtual sheet (`--shape wave`/`carry`, `--sensors ...`) behind memory, pty, SLCAN, python-can virtual
 and udp_multicast; ``capsheet host --sensors ...`` sends CONFIG_IMU, receives IMU records (serial:
 IMU_SAMPLE; classic CAN: IMU_GYRO [+ IMU_MAG] + IMU_ACCEL assembled by the host) and reports them.

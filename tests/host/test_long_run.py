@@ -1,4 +1,4 @@
-"""Runs of days on a simulated clock (issue 34): the 16-bit SYNC counter wraps every 65536 SYNCs
+"""Runs of days on a simulated clock: the 16-bit SYNC counter wraps every 65536 SYNCs
 (452 s at 145 Hz) and every history, queue and log a host, a recorder or the virtual sheet keeps
 stays at its bound, what is cut counted. Exact counts, no wall-clock rates."""
 

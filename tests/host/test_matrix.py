@@ -1,4 +1,4 @@
-"""The feature x transport matrix (issue 25), in the spirit of python-can's ``back2back_test.py``:
+"""The feature x transport matrix, in the spirit of python-can's ``back2back_test.py``:
 every feature of the command line over every transport it applies to, through the real CLI in
 subprocesses, against a virtual sheet (tests/host/matrix_sheet.py) behind
 
@@ -22,8 +22,7 @@ Assertions are on what is delivered and reported, never a rate or a latency. To 
 of one transport are made once per test session (`Batch`: whichever worker needs them first makes
 them, under a file lock in the session's temporary directory, and the other finds them there) and
 start together (one sheet each; a ``udp_multicast`` sheet on a group of its own,
-tests/host/matrix_sheet.py's ``udp_group``: sheets isolated to their groups do not hear each other,
-issue 31 point 5).
+tests/host/matrix_sheet.py's ``udp_group``: sheets isolated to their groups do not hear each other).
 """
 
 from __future__ import annotations
@@ -422,7 +421,7 @@ def test_stream(batch):
     _ok(job)
     doc = job.json()
     s = doc["summary"]
-    # every chip's calibration read: its own or the nominal values it reports (issue 28's wording)
+    # every chip's calibration read: its own or the nominal values it reports
     m = re.search(r"12 chips found, 12 assigned, 12 configured, (\d+) calibrated"
                   r"(?: \((\d+) nominal: no calibration of their own\))?, 12 started", job.stderr)
     assert m and int(m[1]) + int(m[2] or 0) == 12, job.stderr[-3000:]

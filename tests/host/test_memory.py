@@ -1,4 +1,4 @@
-"""`host.memory.fix_mmap_threshold` (issue 34): after it, a large block freed and allocated again is
+"""`host.memory.fix_mmap_threshold`: after it, a large block freed and allocated again is
 still served by its own mmap (glibc's ``mallinfo2().hblkhd`` counts it) instead of from the heap,
 where its pages would stay resident after the next free. Each case in a fresh process: glibc's
 threshold is process-wide and only moves up."""

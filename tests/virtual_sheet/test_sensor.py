@@ -145,7 +145,7 @@ def test_noise_needs_a_seed_and_readings_need_the_right_shape():
         SensorModel().sample(np.zeros((2, 2)))
 
 
-# ------------------------------------------------------------------ chip-error presets (issue 14)
+# ------------------------------------------------------------------ chip-error presets
 
 def test_realistic_chip_errors_have_the_documented_spreads_and_no_factory_calibration():
     from protocol.constants import G0 as _G0

@@ -67,7 +67,7 @@ def test_batch_stops_as_near_the_minimiser_as_one_at_a_time(n, batch):
     err = np.array([error_percent_of_side(e.joints, P, L).mean() for e in out])
     err_ref = np.array([error_percent_of_side(e.joints, P, L).mean() for e in ref])
     assert np.abs(err - err_ref).max() <= 0.01
-    assert err.mean() <= 1.0  # issue 13's bound at 5 % g; this is 1 % g
+    assert err.mean() <= 1.0  # the bound at 5 % g; this is 1 % g
 
 
 def test_batch_on_a_stale_factorisation_does_not_stop_early():

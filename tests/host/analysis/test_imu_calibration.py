@@ -1,4 +1,4 @@
-"""Gyroscope and magnetometer calibration (issue 29, point 4) recovers the simulator's hidden
+"""Gyroscope and magnetometer calibration recovers the simulator's hidden
 truth from one board capture: bias and g-sensitivity from the rests, scale / cross-axis / mounting
 from the turns, hard and soft iron from the rotations, the magnetometer's turn from the dip.
 
@@ -121,7 +121,7 @@ def test_turns_with_a_gap_in_their_samples_are_left_out_of_the_scale_fit(capture
     machine): those turns cannot be integrated from what came, and are left out — the scale is
     recovered from the nine others as well as from all eleven. Integrated across the gaps, the
     fit would carry their lost rotation into the scale: the gyroscopes then read worse than raw
-    (capsheet calibrate under load, stop 40)."""
+    (capsheet calibrate under load)."""
     imu, c, cal = captured
     segs = cal.segments
     cut = np.zeros(len(c["t_s"]), dtype=bool)

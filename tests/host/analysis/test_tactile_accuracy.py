@@ -1,4 +1,4 @@
-"""Per-snapshot accuracy and false contacts on every body (issue 17), on smaller sweeps than
+"""Per-snapshot accuracy and false contacts on every body, on smaller sweeps than
 benchmarks/bench_tactile.py (which measures the full ones: the table of docs/benchmarks.md).
 
 Targets asserted here: |mean force bias| <= 5 % and the 95th percentile of the single-snapshot
@@ -85,7 +85,7 @@ def test_force_bias_within_5_percent(body, kind):
 @pytest.mark.parametrize("body", list(BODIES))
 @pytest.mark.parametrize("kind", ["sphere", "punch"])
 def test_single_snapshot_force_p95_within_15_percent(body, kind):
-    """Issue 17 point 2: every snapshot on its own (not the held force), 32 per body and
+    """The accuracy target: every snapshot on its own (not the held force), 32 per body and
     indenter. (The sampled Winkler sum, force_model "sum", misses it on the block and the
     cylinder: 17-19 %.)"""
     err, _ = force_errors(body, kind)

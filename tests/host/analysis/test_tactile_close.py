@@ -1,4 +1,4 @@
-"""Close contacts (issues 17, 32): two contacts 2 L apart — two balls, two punches, two fingers
+"""Close contacts: two contacts 2 L apart — two balls, two punches, two fingers
 side by side — are resolved as two with their forces; where the noise hides the pair, the one
 contact reported says its count is uncertain (``ambiguous``), and a single finger does not."""
 
@@ -50,7 +50,7 @@ def pair(body, kind, angle, mid, sep_l=2.0):
 
 @pytest.mark.parametrize("body", list(BODIES))
 def test_two_contacts_two_links_apart_are_resolved_with_their_forces(body):
-    """Issue 32's target: at 2 L at least 80 % of snapshots report two contacts, each force
+    """The target: at 2 L at least 80 % of snapshots report two contacts, each force
     within 20 %; no wrong count unflagged (measured 100 % resolved on every body,
     benchmarks/bench_tactile.py)."""
     rest = learned_rest(body, 1.0)

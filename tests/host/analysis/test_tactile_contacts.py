@@ -1,7 +1,7 @@
 """Host tactile analysis on the virtual foam block (14x14, L = 1 cm, 1 % g noise): known
 indentations in, the stated bounds out; no contacts on an untouched sheet; stable track ids.
 
-Bounds (issue 7): count exact; position error <= 0.5 L; force error <= 15 % of the true force
+Bounds: count exact; position error <= 0.5 L; force error <= 15 % of the true force
 (mean over snapshots; every single snapshot within 35 %)."""
 
 import numpy as np
@@ -205,7 +205,7 @@ def test_tracker_holds_the_mean_force_and_restarts_it_on_a_jump():
 
 
 def test_a_finger_is_one_contact_whose_force_is_fitted_not_summed():
-    """Issue 32: a finger is one contact (the old watershed cut it in two 5-15 % of the time,
+    """A finger is one contact (the old watershed cut it in two 5-15 % of the time,
     and its force fell back to the sampled sum); its force is the fitted model's."""
     from host.analysis.tactile import DetectorSettings
     sc = FoamScene(FoamBlock(FoamLayer()), [Press(CapsuleIndenter(0.01, 0.02, angle_rad=0.6),

@@ -1,4 +1,4 @@
-"""Tactile analysis on curved bodies (issue 17): the overlay reads normal distances, so the sheet
+"""Tactile analysis on curved bodies: the overlay reads normal distances, so the sheet
 sliding over the foam does not read as a shallower dent; forces on the cylinder and the sphere are
 right from exact shapes and through the estimator."""
 

@@ -1,4 +1,4 @@
-"""Drift (issue 17): the rest shape follows slow change while nothing touches (`TactileSensor`'s
+"""Drift: the rest shape follows slow change while nothing touches (`TactileSensor`'s
 baseline, time constant ``baseline_tau_s``), frozen while a contact is present. A virtual scene
 whose foam sags by 1 mm over minutes shows no false contact and no force bias; without the
 baseline the same run reports the sag as a contact."""

@@ -1,4 +1,4 @@
-"""Fingers (issue 32, point 1): a capsule finger (R 10 mm, 4 cm, 3 N, any angle) on every body at
+"""Fingers: a capsule finger (R 10 mm, 4 cm, 3 N, any angle) on every body at
 1 % g is one contact, no false one, with its force and its footprint — centre, length, width,
 orientation — and their standard deviations. Smaller samples than benchmarks/bench_tactile.py
 (which measures the full ones: docs/tactile.md)."""

@@ -1,4 +1,4 @@
-"""The tactile figures are looked at, not only written (issues 16, 17, 28, 32): a legend entry for
+"""The tactile figures are looked at, not only written: a legend entry for
 every mark, the true contacts overlaid, a round punch drawn round, a fixed colour scale (an
 untouched sheet's noise is not stretched into contacts), the run's parameters in the title on
 lines of their own, the numbers in a table beside the map (no label on the map but the ids);
@@ -77,7 +77,7 @@ def test_every_mark_has_a_legend_entry_and_the_truth_is_drawn(setup):
 
 def test_the_figure_fits_its_canvas(setup, tmp_path):
     """Every text inside the figure with a margin of 2 % of its width (the old title ran to 5 px
-    from the left edge and looked clipped, issue 28)."""
+    from the left edge and looked clipped)."""
     fr, marks, _ = setup
     fig = frame_figure(fr, title="virtual foam block, 14x14, L = 1 cm, noise 1 % g; foam h 20 "
                                  "mm, E 20 kPa, nu 0.25; t = 1.12 s", truth=marks)

@@ -1,4 +1,4 @@
-"""Presses in time (issue 32, point 3): the tracker on a simulated clock (sans-I/O: ``now`` is
+"""Presses in time: the tracker on a simulated clock (sans-I/O: ``now`` is
 passed in), and a finger that arrives, slides, holds and leaves within a second tracked as one
 contact from onset to release."""
 

@@ -1,4 +1,4 @@
-"""`capsheet calibrate --sensors accel+gyro+mag --write-chips` end to end (issue 29 point 4, protocol
+"""`capsheet calibrate --sensors accel+gyro+mag --write-chips` end to end (protocol
 v1.3 §17): a 3x3 sheet of realistic 9-axis chips (gyroscope bias, scale, cross-axis, g-sensitivity;
 magnetometer hard and soft iron; all hidden in the simulator) on the calibration board, behind a real
 pty and behind python-can's virtual bus. The command fits the gyroscopes and magnetometers, writes

@@ -1,4 +1,4 @@
-"""``--publish zenoh`` (issue 31): ``capsheet host`` against ``capsheet virtual`` on a pty, a Zenoh
+"""``--publish zenoh``: ``capsheet host`` against ``capsheet virtual`` on a pty, a Zenoh
 subscriber in another process (peer mode on loopback, no router) that decodes every message kind
 from docs/distribution.md alone. Asserts what is delivered and decoded, never a rate."""
 

@@ -1,4 +1,4 @@
-"""``--publish ros2`` and ``--record-ros2`` (issue 31 point 2): ``capsheet host`` against ``capsheet
+"""``--publish ros2`` and ``--record-ros2``: ``capsheet host`` against ``capsheet
 virtual`` on a pty, a ROS 2 subscriber without ROS in another process (Zenoh peers on loopback, no
 router; tests/host/cli/ros2_subscriber.py) that checks the key expressions, attachments and liveliness
 tokens against rmw_zenoh's documented layout and decodes every message with rosbags; the MCAP read

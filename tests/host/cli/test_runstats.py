@@ -1,4 +1,4 @@
-"""`host.cli.runstats`: run statistics in bounded memory (issue 34). `Samples` against the standard
+"""`host.cli.runstats`: run statistics in bounded memory. `Samples` against the standard
 library's statistics; `CompletenessWindow` against `host.snapshots.snapshot.window_completeness` over the
 whole list, on seeded emission sequences with wraps, repeats, late and pre-window counters."""
 

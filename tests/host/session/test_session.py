@@ -1,4 +1,4 @@
-"""host/session/core.py: sessions that survive real life (issue 12), in process on a simulated clock with
+"""host/session/core.py: sessions that survive real life, in process on a simulated clock with
 exact counts — bring-up from any state, recovery of rebooted chips, counter trust, one SYNC source,
 capacity, mismatches before streaming, bounded state under floods. The same behaviours through the
 real CLI over ptys, SLCAN and udp_multicast are in tests/host/cli/test_host.py."""

@@ -319,7 +319,7 @@ def test_any_counter_sequence_never_raises_and_accounts_for_every_frame():
         assert agg.n_open <= 4 and agg.pending <= 8
 
 
-# --------------------------------------------------------------------------- live path (issue 11)
+# --------------------------------------------------------------------------- live path
 
 def _ingest_at(agg, clock, counter, nodes, t):
     clock.t = t

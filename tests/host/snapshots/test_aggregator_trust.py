@@ -1,4 +1,4 @@
-"""Counter trust in the aggregator (issue 12): a stray or foreign frame costs at most its own sample;
+"""Counter trust in the aggregator: a stray or foreign frame costs at most its own sample;
 a driving host accepts only counters it sent; a follower resynchronises after a counter reset or jump.
 Simulated clock, exact counts."""
 

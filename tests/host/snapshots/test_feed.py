@@ -155,7 +155,7 @@ def test_a_sync_goes_out_while_a_receive_thread_holds_the_feed_stamped_when_it_i
     """A driving host's SYNC thread does not wait for the feed's lock, which a receive thread holds
     across a read: the SYNC is written at once, its counter stamped with the clock read right
     before it (the chips sample when it arrives), and the open is applied when the lock is free,
-    at that time (simulated clock; the other thread really holds the lock). Before issue 31's
+    at that time (simulated clock; the other thread really holds the lock). Before
     `SnapshotFeed.post_open` the SYNC waited for the lock: a 64x64 sheet's SYNC went out 17 ms
     late at p99 and missed its slots."""
     import threading

@@ -1,6 +1,6 @@
 """`host.workers.distribute` without I/O: the counter sequence of one sheet (exact counts, wrap included),
 the sharding of sheets among workers, and `SheetWork` turning snapshot payloads into one estimate
-payload each (issue 31, point 3)."""
+payload each."""
 
 from __future__ import annotations
 
