@@ -85,7 +85,7 @@ def _widen(conn) -> None:
 def _child(pipes, rows: int, cols: int, link_length: float) -> None:
     """The estimator process: estimate every request in order until the pipe closes."""
     req, ans = pipes
-    from host.cli import one_blas_thread
+    from host.runtime import one_blas_thread
     one_blas_thread()
     from host.analysis.estimator import estimate
 

@@ -1,4 +1,4 @@
-"""capsheet runs BLAS on one thread unless the user chose otherwise (host.cli.one_blas_thread)."""
+"""capsheet runs BLAS on one thread unless the user chose otherwise (host.runtime.one_blas_thread, which every command calls)."""
 
 from __future__ import annotations
 
