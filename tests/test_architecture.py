@@ -419,3 +419,54 @@ def test_python_can_finds_capsheets_buses_by_name():
     eps = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["entry-points"]["can.interface"]
     assert eps == {"capsheet_slcan": "host.transport.slcan:SlcanBus",
                    "capsheet_udp_multicast": "host.transport.udp_multicast:IsolatedUdpMulticastBus"}
+
+
+# ---------------------------------------------------- no reach into another's or a library's names
+
+#: Enum's documented sunder names (the enum module's docs, "Supported _sunder_ names"); the rest
+#: (``_value2member_map_``, ``_member_map_``, ...) are its internals
+ENUM_API = {"_name_", "_value_", "_missing_", "_ignore_", "_order_", "_generate_next_value_", "_add_alias_",
+            "_add_value_alias_"}
+
+
+def foreign_reach_offenders(root: Path = ROOT) -> list[str]:
+    """What `private_access_offenders` lets pass and is a reach all the same:
+
+    * an enum's undocumented internals (``MsgType._value2member_map_``);
+    * a library's private name through its module, even in an annotation (``argparse._ArgumentGroup``);
+    * a private attribute set on another object (``other._state = ...``, anything but ``self`` or
+      ``cls``), even another instance of the module's own class: it changes state its owner keeps
+      through its own methods."""
+    bad = []
+    for pkg in SEAM_PACKAGES + ("firmware_ref",):
+        for path in sorted((root / pkg).rglob("*.py")):
+            tree = ast.parse(path.read_text(), str(path))
+            rel = path.relative_to(root).as_posix()
+            modules = {al.asname or al.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
+                       for al in n.names}
+            for node in ast.walk(tree):
+                if not isinstance(node, ast.Attribute) or not node.attr.startswith("_") or node.attr.startswith("__"):
+                    continue
+                where = f"{rel}:{node.lineno}: {ast.unparse(node)}"
+                if node.attr.endswith("_") and node.attr not in ENUM_API:
+                    bad.append(where)
+                elif isinstance(node.value, ast.Name) and node.value.id in modules and not node.attr.endswith("_"):
+                    bad.append(where)
+                elif isinstance(node.ctx, ast.Store) and not node.attr.endswith("_") and not (
+                        isinstance(node.value, ast.Name) and node.value.id in ("self", "cls")):
+                    bad.append(where)
+    return sorted(bad, key=lambda w: (w.split(":")[0], int(w.split(":")[1])))
+
+
+def test_the_reach_check_sees_what_it_looks_for(tmp_path):
+    for pkg in ("protocol", "virtual_sheet", "firmware_ref"):
+        (tmp_path / pkg).mkdir()
+    (tmp_path / "host").mkdir()
+    (tmp_path / "host" / "a.py").write_text(
+        "import argparse\nimport enum\n"
+        "class A:\n    def __init__(self):\n        self._x = 1\n    def copy(self, other):\n        other._x = 2\n"
+        "def f(g: argparse._ArgumentGroup, m: enum.Enum, b):\n    b._state = 1\n    return 1 in m._value2member_map_\n"
+        "class E(enum.IntEnum):\n    A = 1\n    @classmethod\n    def _missing_(cls, v):\n        return cls.A\n")
+    assert foreign_reach_offenders(tmp_path) == [
+        "host/a.py:7: other._x", "host/a.py:8: argparse._ArgumentGroup", "host/a.py:9: b._state",
+        "host/a.py:10: m._value2member_map_"]
