@@ -273,10 +273,17 @@ class Gateway:
 
     #: the class of its node on the wire (a subclass: the conformance suite's broken gateways)
     node_class: type = GatewayNode
+    #: how long after a SYNC it sends that SYNC's packed frames, at the earliest: 0 sends them as soon as
+    #: every chip answered; a gateway that flushes on a timer sends them later — docs §13.2 allows anywhere
+    #: up to `SNAPSHOT_DEADLINE_S` (10 ms) after the SYNC (a subclass sets it: the conformance suite's
+    #: healthy gateways flush at 5 and 10 ms)
+    flush_s: float = 0.0
 
     def __init__(self, sheet, links: Sequence[int] | None = None, *, packed: bool = False,
                  sync_rate_hz: float | None = None, faults: FaultSpec | None = None,
                  fault_stats: FaultStats | None = None, stream: int = 0, as_node: bool | None = None) -> None:
+        if not 0.0 <= self.flush_s <= SNAPSHOT_DEADLINE_S:
+            raise ValueError(f"Invalid flush_s: {self.flush_s} (0..{SNAPSHOT_DEADLINE_S} s, docs §13.2)")
         self.sheet = sheet
         self.can = sheet.transport == "can"
         self.fd = sheet.fd
@@ -621,7 +628,7 @@ class Gateway:
                 snap = Snapshot(self.node_id, sync.counter, first, pack_sample_words(counts[part], status[part]))
                 frames.append(to_can(snap, fd=True) if self.can else encode(snap))
             self.stats.snapshots += len(frames)
-            self._emit(frames, now_s + latest)
+            self._emit(frames, now_s + max(latest, self.flush_s))
         if other:
             self._emit(other, now_s)
 
@@ -639,7 +646,9 @@ class Gateway:
 
     def _emit_packed(self, frames: list, other: list, latest: float, now_s: float) -> None:
         """The packed frames when the latest chip in them answered (``latest`` after the SYNC), the
-        other frames now; with no delay the packed frames go first, in one output."""
+        other frames now; with no delay the packed frames go first, in one output. A gateway that flushes
+        on a timer (`flush_s`) sends them no earlier than that after the SYNC."""
+        latest = max(latest, self.flush_s)
         if frames and latest:
             self._emit(frames, now_s + latest)
         elif frames:
@@ -858,7 +867,7 @@ class Gateway:
             self._queue.extend(self.faults.process(frames, due_s))
         else:
             self._queue.extend((due_s, f) for f in frames)
-        if self._late or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
+        if self._late or self.flush_s or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
             self._queue.sort(key=lambda p: p[0])  # stable: FIFO among equal times
 
     def _emit_run(self, data: bytes, n: int, size: int, due_s: float) -> None:

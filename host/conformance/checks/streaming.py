@@ -8,11 +8,11 @@ import statistics
 import time
 
 from protocol.constants import SampleStatus
-from protocol.messages import (Assign, Capability, ChipState, Config, Info, MsgType, Nack, NackReason, Sample,
-                               Start, Stop, Sync)
-from protocol.state import SYNC_REPLY_DEADLINE_S
+from protocol.messages import (Assign, Capability, ChipState, Config, ImuSample, Info, MsgType, Nack, NackReason,
+                               Sample, Start, Stop, Sync)
+from protocol.state import SNAPSHOT_DEADLINE_S, SYNC_REPLY_DEADLINE_S
 
-from ..session import acked, HEARTBEAT_MS, require, Session, Skip
+from ..session import acked, HEARTBEAT_MS, require, SAMPLES, Session, Skip
 
 from .registry import _should, check, SHOULD_NOT_MET
 
@@ -44,10 +44,13 @@ def c_sync(s: Session):
     counters = list(range(100, 130)) + [129]  # the last counter twice: every SYNC frame is answered (§5.1)
     for c in counters:
         c, t0, smp = s.sync_round(c)
+        # behind a SYNC-source gateway an answer to the SYNC before may arrive after this one: a packing
+        # gateway has until 10 ms after a SYNC (§13.2, §14), longer than a fast source's period
+        smp = [(t, m) for t, m in smp if not _answers_earlier_sync(s, t, m, c)]
         require(len(smp) == 1, f"SYNC 0x{c:04X}: {len(smp)} SAMPLE {[m for _, m in smp][:3]}")
         require(smp[0][1].counter == c, f"SYNC 0x{c:04X} answered with counter 0x{smp[0][1].counter:04X}")
         lat.append(smp[0][0] - t0)
-    extra = [m for _, m in s.collect(s.timeout_s) if isinstance(m, Sample)]
+    extra = [m for _, m in s.collect(s.timeout_s) if isinstance(m, SAMPLES)]
     if s.sync_gateway is None:
         require(not extra, f"SYNCs answered twice: {len(extra)} extra SAMPLE (counters {[m.counter for m in extra][:5]})")
     med = statistics.median(lat) * 1000
@@ -57,8 +60,23 @@ def c_sync(s: Session):
     return _should(s, med <= limit, f"the median SYNC->SAMPLE is over 2 ms + {s.slack_ms:g} ms slack", timing)
 
 
-def _samples(s: Session, counters) -> list[Sample]:
-    """One SYNC per counter (a SYNC-source gateway's own otherwise); the chip's SAMPLE answering each."""
+def _window_s(s: Session) -> float:
+    """How long after its SYNC an answer may reach the host: a packing gateway sends it up to
+    `SNAPSHOT_DEADLINE_S` (10 ms) after the SYNC (§13.2, §14); plus the run's slack."""
+    return (SNAPSHOT_DEADLINE_S if s.packing_gateway else SYNC_REPLY_DEADLINE_S) + s.slack_ms / 1000
+
+
+def _answers_earlier_sync(s: Session, t: float, m, c: int) -> bool:
+    """``m`` (arrived at ``t``, while the suite waited for the answer to SYNC ``c``) answers a SYNC heard
+    before ``c``, in the time §13-§14 allow a gateway: not an answer to ``c`` at all."""
+    t_sync = s.syncs_heard.get(m.counter)
+    return m.counter != c and t_sync is not None and t_sync < s.syncs_heard.get(c, t) and t - t_sync <= _window_s(s)
+
+
+def _samples(s: Session, counters) -> list[Sample | ImuSample]:
+    """One SYNC per counter (a SYNC-source gateway's own otherwise); the chip's answer to each: its SAMPLE,
+    or the accelerometer part of its IMU record (IMU_SAMPLE, or its link of a SNAPSHOT or SNAPSHOT_IMU:
+    a chip is judged by the record format it reaches the host in, whatever its gateway packs)."""
     out = []
     for c in counters:
         c, _t0, smp = s.sync_round(c)
@@ -80,8 +98,12 @@ def c_sample_word(s: Session):
     mean = statistics.fmean(mags)
     for m in seen:
         rails = any(v in (-2048, 2047) for v in (m.x, m.y, m.z))
+        imu = isinstance(m, ImuSample)  # SATURATED covers the whole record: every count sent (§16.1)
+        if imu:
+            rails = rails or any(v in (-32768, 32767) for v in m.gyro + (m.mag or ()))
         require(rails == bool(m.status & SampleStatus.SATURATED),
-                f"SATURATED {'clear' if rails else 'set'} for counts {(m.x, m.y, m.z)}")
+                f"SATURATED {'clear' if rails else 'set'} for counts {(m.x, m.y, m.z)}"
+                + (f", gyro {m.gyro}, mag {m.mag}" if imu else ""))
         require(not m.status & SampleStatus.INVALID, f"INVALID sample {(m.x, m.y, m.z)} while STREAMING")
     require(0.5 <= mean <= 1.5, f"|a| = {mean:.3f} g at rest (counts {(seen[-1].x, seen[-1].y, seen[-1].z)}, "
                                 f"status 0x{seen[-1].status:X}): a chip at rest measures gravity")
@@ -178,10 +200,22 @@ def c_stop(s: Session):
         ans = s.request(Stop(s.node))
         require(acked(ans, s.node, MsgType.STOP), f"answered {ans}")
     if s.sync_gateway is None:
-        ans = s.silent(Sync(counter=7))
+        s.drain()
+        t0 = s.port.send(Sync(counter=7))
+        got = [(t0, Sync(counter=7))] + s.collect(s.timeout_s)
     else:  # the gateway's next SYNC: nothing for it from the chip
         got = s.collect(s.gateway_sync_wait_s, lambda ms: sum(isinstance(m, Sync) for m in ms) >= 2, syncs=True)
-        ans = [m for _, m in got if isinstance(m, Sample)]
+    # an answer after STOP is one to a SYNC heard after STOP's ACK; a packing gateway's SNAPSHOT for a SYNC
+    # before it may still arrive (up to 10 ms after that SYNC, §13.2, §14), and so may a link of its INVALID
+    # because the stopped chip did not answer (§13.2: a link not heard)
+    after = set()
+    ans = []
+    for _t, m in got:
+        if isinstance(m, Sync):
+            after.add(m.counter)
+        elif isinstance(m, SAMPLES) and m.counter in after \
+                and not (s.packing_gateway and m.status == SampleStatus.INVALID and (m.x, m.y, m.z) == (0, 0, 0)):
+            ans.append(m)
     require(ans == [], f"SYNC after STOP answered {ans}")
 
 
