@@ -1,5 +1,5 @@
 """Chip scenarios (tests/vectors/chip.json): what a chip answers, frame by frame and on a simulated
-clock, in every case docs/protocol.md v1.1 decided (§15 lists them). Written out by hand from the
+clock, in every case docs/protocol.md decided (§15, §18 list them). Written out by hand from the
 spec — every expected frame below is a literal, not something a chip implementation computed — and
 held against every chip implementation (the Python model, the chip array, the C firmware) by
 tests/virtual_sheet/test_chip_scenarios.py. A third-party chip runs the JSON the same way.
@@ -385,6 +385,8 @@ def _answers_of_1_4(add) -> None:
             _send(0.1, Start(N), Ack(N, MsgType.START, 0)),
             {"at": 0.1, "do": "sensor", "xyz": [10, -20, 1024], "status": 4, "expect": []},
             _send(0.1, Sync(counter=1), Sample(N, 1, 5, -10, 512, 4)),
+            # G12: the calibration is in ±2 g counts whatever the range: the nominal 1024, not rescaled
+            _send(0.1, CalRead(N, axis=2), CalData(N, 2, 0, 0, 1024.0)),
         ])
     # G17: every run of up to 15 bytes between delimiters is decoded, so a wrong length there is NACK 2
     add("a_config_of_8_bytes_in_15_bytes_on_the_wire_is_nacked_bad_length", "8.7, 8.1, 18 G17",

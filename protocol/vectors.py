@@ -25,7 +25,7 @@ import numpy as np
 from .can import to_can
 from .constants import SampleStatus
 from .framing import encode, encode_frame
-from .messages import (LINK_NONE, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead,
+from .messages import (LINK_NONE, PROTOCOL_VERSION, SPEC_VERSION, Ack, Announce, Assign, CalData, CalRead,
                        CalWrite, Capability, ChipState, Config, GatewayFlag, GatewayInfo, GetInfo, Info, Message,
                        MsgType, Nack, NackReason, Reset, Sample, SampleFormat, Snapshot, Start, Status,
                        StatusFlag, Stop, Sync, message_from_fields, message_to_fields,
@@ -105,6 +105,10 @@ def chip_scenarios() -> list[dict]:
     return scenarios()
 
 
+#: the revision of docs/protocol.md the vectors hold an implementation to
+_SPEC = f"{SPEC_VERSION[0]}.{SPEC_VERSION[1]}"
+
+
 def build_vectors() -> dict[str, dict]:
     serial, can = [], []
     for name, msg in canonical_messages():
@@ -118,11 +122,11 @@ def build_vectors() -> dict[str, dict]:
         "can.json": {"protocol_version": PROTOCOL_VERSION, "identifier": "29-bit: priority[28:26] type[25:20] version[19:16] node[15:0]",
                      "vectors": can},
         "serial_errors.json": {"protocol_version": PROTOCOL_VERSION, "vectors": error_vectors()},
-        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.3",
+        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": _SPEC,
                           "about": "edge frames and the verdict of docs/protocol.md §8.1 for each: 'decoded' "
                                    "(type, node, fields) or the reason a receiver reports",
                           "vectors": verdict_vectors()},
-        "chip.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.1",
+        "chip.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": _SPEC,
                       "about": _scenario_format().splitlines(), "scenarios": chip_scenarios()},
     }
 
@@ -142,6 +146,12 @@ def error_vectors() -> list[dict]:
         {"name": "short", "hex": "03010200", "reason": "short"},
         {"name": "bad_cobs", "hex": "05010203" + "00", "reason": "bad_cobs"},
         {"name": "oversize", "hex": "01" * 1100 + "00", "reason": "oversize"},
+        # 1029 bytes (not over the run limit) whose last code byte promises 4 bytes that never come: not
+        # COBS, although its first 1028 codes alone would decode to more than 1024 bytes — BAD_COBS, not
+        # OVERSIZE: the decoded size is only known of valid COBS (§6.3, §8.1 rows 1-2; 1.4's G01)
+        {"name": "bad_cobs_of_1029_bytes", "hex": "01" * 1028 + "05" + "00", "reason": "bad_cobs"},
+        # a valid run of 1029 bytes that decodes to 1028: OVERSIZE after COBS
+        {"name": "oversize_after_cobs", "hex": "01" * 1028 + "01" + "00", "reason": "oversize"},
     ]
     return out
 

@@ -1,5 +1,5 @@
 /*
- * capsheet_fw.h — reference chip firmware for the capsheet wire protocol v1.2 (docs/protocol.md).
+ * capsheet_fw.h — reference chip firmware for the capsheet wire protocol (docs/protocol.md, revision below).
  *
  * Portable C99, no dynamic memory: every buffer is the caller's, with its capacity; time is passed
  * in (microseconds, `now_us`), never read; the hardware sits behind `capsheet_hal_t`.
@@ -58,11 +58,11 @@ extern "C" {
 #define CAPSHEET_FW_VERSION_PATCH 0
 
 /* ------------------------------------------------------------------------------------------ */
-/* Protocol constants (protocol/messages.py, framing.py, can.py)                               */
+/* Protocol constants (protocol/messages/, framing.py, can.py)                                */
 /* ------------------------------------------------------------------------------------------ */
 
 #define CAPSHEET_PROTOCOL_VERSION 1u           /* on the wire: the major version (§12) */
-#define CAPSHEET_SPEC_VERSION_MINOR 2u         /* the revision of docs/protocol.md implemented: 1.2 */
+#define CAPSHEET_SPEC_VERSION_MINOR 4u         /* the revision of docs/protocol.md implemented: 1.4 */
 #define CAPSHEET_NODE_BROADCAST 0x0000u
 #define CAPSHEET_NODE_MAX_ASSIGNED 0x7FFFu
 #define CAPSHEET_NODE_PROVISIONAL_MIN 0x8000u

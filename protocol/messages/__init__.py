@@ -1,4 +1,4 @@
-"""Message set of the capsheet wire protocol v1.2 (docs/protocol.md §4, §16).
+"""Message set of the capsheet wire protocol (docs/protocol.md §4, §16, §17; the revision is `SPEC_VERSION`).
 
 Every message is a frozen, slotted dataclass that validates itself when built. The *payload* layout
 of a message is the same on every transport; serial wraps it in a header + CRC + COBS

@@ -17,7 +17,7 @@ from ..constants import ADC_MAX, ADC_MIN
 
 PROTOCOL_VERSION = 1
 #: The revision of docs/protocol.md this code implements (major, minor).
-SPEC_VERSION = (1, 3)
+SPEC_VERSION = (1, 4)
 
 #: Type codes a node sends to the host (docs §4): 0x01..0x0F, defined or not. A chip ignores every
 #: frame with such a type, whatever its node (another node's frame, perhaps of a later revision).

@@ -116,10 +116,14 @@ def c_unsupported(s: Session):
     return f"capabilities {Capability(caps)!r}"
 
 
+#: the first host -> node type code the spec leaves undefined (the table of §4, from the code)
+_FIRST_UNDEFINED = max(int(t) for t in MsgType if t >= 0x10) + 1
+
+
 @check("8.1, 4", "an undefined type outside 0x01..0x0F addressed to the node: NACK UNKNOWN_COMMAND",
        "a host cannot tell a node that lacks a command from a lost frame",
-       "NACK reason 1 UNKNOWN_COMMAND, command = the type code, for an undefined type 0x00 or 0x19..0x3F "
-       "addressed to the node", profiles=PROFILES)
+       f"NACK reason 1 UNKNOWN_COMMAND, command = the type code, for an undefined type 0x00 or "
+       f"0x{_FIRST_UNDEFINED:02X}..0x3F addressed to the node", profiles=PROFILES)
 def c_unknown(s: Session):
     s.ensure_node()
     ans = s.raw(0x3F, s.node, b"")

@@ -90,6 +90,8 @@ INFORMATIVE: dict[str, str] = {
     "17": "overview of the chip's gyroscope and magnetometer calibration; its clauses are held by check 45",
     "17.4": "where §17 is checked: this suite (check 45)",
     "17.5": "the list of changes from 1.2",
+    "18": "the questions 1.4 answers: each amends the clause it names and is held by the check of that clause, "
+          "a golden vector, a chip scenario of tests/vectors/chip.json or a gateway scenario, as it says",
 }
 
 
