@@ -156,3 +156,20 @@ def test_an_imu_gateway_configures_its_chips_before_start_and_keeps_their_acks(s
     assert snaps and all(int(s.format) == fmt for s in snaps)
     assert _snapshot_links(got, 9, GW) == [(k, 0) for k in range(N_LINKS)]
     assert not [m for m in got if isinstance(m, (Sample, ImuSample))]
+
+
+def test_a_record_of_another_format_is_passed_on_and_its_link_invalid():
+    """G09: behind a format-2 gateway, a chip the host set to format 1 is not packed (a gateway never
+    converts a record): its 6-axis IMU_SAMPLE is passed on unchanged and its link is an INVALID record."""
+    from protocol.messages import ConfigImu
+    g = _gateway("accel+gyro+mag")
+    for k, c in enumerate(g.chips):
+        _send(g, Assign(c.node, new_node=k + 1, link=k, uid_low=c.uid & 0xFFFFFFFF), 0.1)
+    _assign_gateway(g, 0.1)
+    assert _send(g, ConfigImu(1, 1, 3, 0, 0), 0.15) == [Ack(1, MsgType.CONFIG_IMU, 0)]  # the host's: passed on
+    _send(g, Start(0), 0.2)
+    got = _send(g, Sync(counter=4), 0.3)
+    invalid = 8
+    assert _snapshot_links(got, 4, GW) == [(0, invalid)] + [(k, 0) for k in range(1, N_LINKS)]
+    passed = [m for m in got if isinstance(m, ImuSample)]
+    assert [(m.node, m.counter, int(m.format)) for m in passed] == [(1, 4, 1)]
