@@ -53,13 +53,13 @@ class MsgType(IntEnum):
     NACK = 0x06  #: §4.6 a command was refused, with a reason
     CAL_DATA = 0x07  #: §4.7 one axis of stored calibration
     SNAPSHOT = 0x08  #: §4.8 a gateway's packed samples of many links for one counter
-    GATEWAY_INFO = 0x09  #: §4.16 a gateway's packing, SYNC source and links (v1.1)
-    IMU_GYRO = 0x0A  #: §16.4 classic CAN, first frame of an IMU record: counter + gyroscope (v1.2)
-    IMU_MAG = 0x0B  #: §16.4 classic CAN, format 2's middle frame: counter + magnetometer (v1.2)
-    IMU_ACCEL = 0x0C  #: §16.4 classic CAN, last frame: counter low byte + accel word + time_us (v1.2)
-    IMU_SAMPLE = 0x0D  #: §16.3 one IMU record for one SYNC counter, serial and CAN FD (v1.2)
-    SNAPSHOT_IMU = 0x0E  #: §16.5 a gateway's packed IMU records of many links for one counter (v1.2)
-    CAL_IMU_DATA = 0x0F  #: §17.1 one element of a gyroscope or magnetometer calibration (v1.3)
+    GATEWAY_INFO = 0x09  #: §4.16 a gateway's packing, SYNC source and links (new in 1.1)
+    IMU_GYRO = 0x0A  #: §16.4 classic CAN, first frame of an IMU record: counter + gyroscope (new in 1.2)
+    IMU_MAG = 0x0B  #: §16.4 classic CAN, format 2's middle frame: counter + magnetometer (new in 1.2)
+    IMU_ACCEL = 0x0C  #: §16.4 classic CAN, last frame: counter low byte + accel word + time_us (new in 1.2)
+    IMU_SAMPLE = 0x0D  #: §16.3 one IMU record for one SYNC counter, serial and CAN FD (new in 1.2)
+    SNAPSHOT_IMU = 0x0E  #: §16.5 a gateway's packed IMU records of many links for one counter (new in 1.2)
+    CAL_IMU_DATA = 0x0F  #: §17.1 one element of a gyroscope or magnetometer calibration (new in 1.3)
     # host -> chip
     SYNC = 0x10  #: §4.9 sample now; broadcast, carries the counter
     ASSIGN = 0x11  #: §4.10 give a chip its node id and lattice address
@@ -70,9 +70,9 @@ class MsgType(IntEnum):
     RESET = 0x16  #: §4.14 forget the assignment, reboot, announce again
     CAL_WRITE = 0x17  #: §4.15 write one axis of calibration
     CAL_READ = 0x18  #: §4.15 read one axis of calibration (answered by CAL_DATA)
-    CONFIG_IMU = 0x19  #: §16.2 sample format, gyroscope and magnetometer ranges (v1.2)
-    CAL_IMU_WRITE = 0x1A  #: §17.2 write one element of a gyroscope or magnetometer calibration (v1.3)
-    CAL_IMU_READ = 0x1B  #: §17.2 read one element (answered by CAL_IMU_DATA) (v1.3)
+    CONFIG_IMU = 0x19  #: §16.2 sample format, gyroscope and magnetometer ranges (new in 1.2)
+    CAL_IMU_WRITE = 0x1A  #: §17.2 write one element of a gyroscope or magnetometer calibration (new in 1.3)
+    CAL_IMU_READ = 0x1B  #: §17.2 read one element (answered by CAL_IMU_DATA) (new in 1.3)
 
 
 class Direction(IntEnum):
@@ -95,18 +95,18 @@ class Capability(IntFlag):
     NONE = 0
     CAN_FD = 0x0001  #: can send and receive CAN FD frames
     SNAPSHOT = 0x0002  #: a gateway that can pack samples into SNAPSHOT frames (§13.2)
-    SELF_TEST = 0x0004  #: has a self-test started by means outside the protocol (no v1.1 command)
+    SELF_TEST = 0x0004  #: has a self-test started by means outside the protocol (there is no command for it)
     CAL_STORAGE = 0x0008  #: keeps calibration in non-volatile memory
     MULTI_RANGE = 0x0010  #: supports range codes other than ±2 g
     FILTER = 0x0020  #: supports CONFIG filter codes other than 0
-    GATEWAY = 0x0040  #: the node is a gateway, not a chip: it sits on no link (v1.1, §13)
-    SYNC_SOURCE = 0x0080  #: a gateway that can generate its segment's SYNC (v1.1, §13.3)
-    GYRO = 0x0100  #: a triaxial gyroscope: CONFIG_IMU formats 1 and 2 (v1.2, §16)
-    MAG = 0x0200  #: a triaxial magnetometer: CONFIG_IMU format 2 (v1.2, §16)
-    SAMPLE_TIME = 0x0400  #: IMU records carry a true time_us (without it: TIME_UNKNOWN) (v1.2, §16.1)
+    GATEWAY = 0x0040  #: the node is a gateway, not a chip: it sits on no link (new in 1.1, §13)
+    SYNC_SOURCE = 0x0080  #: a gateway that can generate its segment's SYNC (new in 1.1, §13.3)
+    GYRO = 0x0100  #: a triaxial gyroscope: CONFIG_IMU formats 1 and 2 (new in 1.2, §16)
+    MAG = 0x0200  #: a triaxial magnetometer: CONFIG_IMU format 2 (new in 1.2, §16)
+    SAMPLE_TIME = 0x0400  #: IMU records carry a true time_us (without it: TIME_UNKNOWN) (new in 1.2, §16.1)
 
 
-#: INFO capability bits reserved in v1.2 (bits 11..15): sent as 0, ignored on receipt.
+#: INFO capability bits reserved (bits 11..15): sent as 0, ignored on receipt.
 RESERVED_CAPABILITIES = 0xF800
 
 

@@ -13,7 +13,7 @@ from .base import Direction, Message, MsgType, NODE_BROADCAST, _check_uint
 
 
 # --------------------------------------------------------------------------------------------
-# v1.3: the gyroscope's and magnetometer's calibration on the chip (docs §17)
+# new in 1.3: the gyroscope's and magnetometer's calibration on the chip (docs §17)
 # --------------------------------------------------------------------------------------------
 
 class CalBlock(IntEnum):

@@ -427,7 +427,7 @@ class SnapshotFrames:
 
 @dataclass(frozen=True, slots=True)
 class GatewayInfo(Message):
-    """§4.16 GATEWAY_INFO (v1.1), sent by a gateway after its INFO: ``flags`` u8 (GatewayFlag: what it
+    """§4.16 GATEWAY_INFO (new in 1.1), sent by a gateway after its INFO: ``flags`` u8 (GatewayFlag: what it
     does now), ``sample_format`` u8 (SampleFormat of its SNAPSHOT words), ``first_link`` u16 and
     ``link_count`` u16 (one contiguous run of the links behind it; a gateway with several runs sends
     one GATEWAY_INFO per run), ``sync_rate_hz`` u16 (the rate of the SYNC it generates; 0 when it

@@ -16,7 +16,7 @@ from .base import (Direction, IMU_RECORD_SIZE, MAX_SNAPSHOT_SAMPLES, Message, Ms
 
 
 # --------------------------------------------------------------------------------------------
-# IMU records (docs §16, v1.2): 6-axis and 9-axis chips
+# IMU records (docs §16, new in 1.2): 6-axis and 9-axis chips
 # --------------------------------------------------------------------------------------------
 
 _I16_MIN, _I16_MAX = -32768, 32767

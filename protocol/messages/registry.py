@@ -21,7 +21,7 @@ MESSAGE_TYPES: dict[int, type[Message]] = {
                               CalImuData, CalImuWrite, CalImuRead)
 }
 assert set(MESSAGE_TYPES) == set(MsgType)
-#: the types v1.2 added (docs §16): 6/9-axis chips
+#: the types 1.2 added (docs §16): 6/9-axis chips
 IMU_TYPES = frozenset({MsgType.IMU_GYRO, MsgType.IMU_MAG, MsgType.IMU_ACCEL, MsgType.IMU_SAMPLE,
                        MsgType.SNAPSHOT_IMU, MsgType.CONFIG_IMU})
 

@@ -19,7 +19,7 @@ from .registry import check
 
 
 # ---------------------------------------------------------------------------------------------
-# 6/9-axis chips (v1.2, §16): only on a chip whose INFO has GYRO
+# 6/9-axis chips (new in 1.2, §16): only on a chip whose INFO has GYRO
 # ---------------------------------------------------------------------------------------------
 
 def _imu_caps(s: Session) -> Capability:
