@@ -1,7 +1,8 @@
 """Stability of `capsheet conformance`: N consecutive full runs against every healthy variant the suite
 must pass (tests/host/conformance/mutants.py ``HEALTHY``: a noise-free chip, a quiet 12-bit chip, a
-chip behind a packing gateway, several chips on one port, a chip behind a SYNC-source gateway — and
-the gateways themselves in the gateway profile), on the Python chip model and on the C firmware
+chip behind a packing gateway, several chips on one port, a chip behind a SYNC-source gateway, gateways
+that flush 5 or 10 ms after the SYNC (SYNC source or not), 6- and 9-axis chips behind gateways packing
+SNAPSHOT_IMU — and the gateways themselves in the gateway profile), on the Python chip model and on the C firmware
 through cffi (each behind a virtual sheet on a real pty), and the firmware booted in QEMU (a fresh
 QEMU per run, UART on a TCP chardev). Optionally with one core kept busy by a spinning process.
 Prints one JSON object: per target the runs, how many passed, the failed checks, and run times
@@ -83,7 +84,10 @@ def _targets(spec: str) -> list[tuple[str, str, str]]:
             out += [("python", v, "gateway") for v, (_, d) in HEALTHY.items() if d.get("packed")
                     and (not variant or v == variant)]
         elif fw in ("python", "c"):
-            out += [(fw, v, "chip") for v in HEALTHY if not variant or v == variant]
+            # the virtual gateway packs IMU records from the chip array only, which the C firmware is not:
+            # the C firmware behind a SNAPSHOT_IMU gateway is not measured here
+            out += [(fw, v, "chip") for v, (s, d) in HEALTHY.items() if (not variant or v == variant)
+                    and not (fw == "c" and d.get("packed") and s.get("sensors", "accel") != "accel")]
         else:
             raise SystemExit(f"unknown target {item!r} (python[:variant], c[:variant], gateway[:variant], qemu)")
     return out

@@ -118,7 +118,7 @@ def capacity_table(rate_hz: float = 145.0) -> list[Capacity]:
 
 
 def imu_capacity_rows(rate_hz: float = 145.0) -> list[Capacity]:
-    """The v1.2 IMU formats (docs §16): per chip on classic CAN (2 or 3 frames of 8 bytes), CAN FD
+    """The IMU formats (docs §16, new in 1.2): per chip on classic CAN (2 or 3 frames of 8 bytes), CAN FD
     (one IMU_SAMPLE of 16 or 24 bytes), UART (IMU_SAMPLE); packed in SNAPSHOT_IMU on CAN FD and UART."""
     rows = []
     for fmt, name, n_frames in ((SampleFormat.IMU6, "6-axis", 2), (SampleFormat.IMU9, "9-axis", 3)):

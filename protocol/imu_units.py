@@ -8,7 +8,7 @@ a per-chip calibration refining it (``offset`` in counts, ``sensitivity`` in cou
     value [unit] = (counts − offset) / sensitivity
 
 Units on the wire follow the datasheets (°/s, gauss); the SI functions return rad/s and tesla.
-They are the one place the simulator and the protocol (v1.2, docs/protocol.md §16.1: the IMU
+They are the one place the simulator and the protocol (docs/protocol.md §16.1: the IMU
 record's 16-bit gyroscope and magnetometer counts at CONFIG_IMU's range codes) take the conversion from.
 
 >>> gyro_nominal_sensitivity(GyroRange.DPS2000)   # 16-bit counts per °/s
@@ -117,7 +117,7 @@ def si_to_mag_counts(field_t, range_code: int = MagRange.GAUSS4, offset=0.0, sen
 
 
 # ---------------------------------------------------------------------------------------------
-# v1.3 (docs/protocol.md §17): the gyroscope's and magnetometer's calibration, applied on the chip
+# new in 1.3 (docs/protocol.md §17): the gyroscope's and magnetometer's calibration, applied on the chip
 # ---------------------------------------------------------------------------------------------
 
 _NOMINAL = {0: (1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0), 1: (0.0,) * 3, 2: (0.0,) * 9,

@@ -1,5 +1,5 @@
 """Chip scenarios (tests/vectors/chip.json): what a chip answers, frame by frame and on a simulated
-clock, in every case docs/protocol.md v1.1 decided (§15 lists them). Written out by hand from the
+clock, in every case docs/protocol.md decided (§15, §18 list them). Written out by hand from the
 spec — every expected frame below is a literal, not something a chip implementation computed — and
 held against every chip implementation (the Python model, the chip array, the C firmware) by
 tests/virtual_sheet/test_chip_scenarios.py. A third-party chip runs the JSON the same way.
@@ -10,8 +10,8 @@ The format is `FORMAT` (also the ``about`` of chip.json, so the file explains it
 from __future__ import annotations
 
 from .messages import (message_to_fields, LINK_NONE, Ack, Announce, Assign, CalData, CalRead, CalWrite, Capability, ChipState, Config,
-                       GetInfo, Info, Message, MsgType, Nack, NackReason, Reset, Sample, Start, Status, StatusFlag,
-                       Stop, Sync)
+                       ConfigImu, GetInfo, Info, Message, MsgType, Nack, NackReason, Reset, Sample, Start, Status,
+                       StatusFlag, Stop, Sync)
 
 __all__ = ["UID", "scenarios", "PROVISIONAL", "FORMAT"]
 
@@ -323,4 +323,81 @@ def scenarios() -> list[dict]:
         {"at": 0.0, "do": "power_on", "expect": _boot(P0)},
         _send(0.1, Assign(P0, new_node=N, link=LINK_NONE, uid_low=UID_LOW), Ack(N, MsgType.ASSIGN, 0)),
     ])
+    _answers_of_1_4(add)
     return sc
+
+
+def _answers_of_1_4(add) -> None:
+    """What 1.4 decided about a chip (docs §18 lists the questions; each scenario names its answer)."""
+    I = ChipState.IDLE
+    stored = _CAPS | int(Capability.CAL_STORAGE)
+    # G03: only an ASSIGN that decodes is taken at the previous id; an undecodable one may be another node's
+    add("an_undecodable_assign_to_the_previous_id_is_ignored_and_not_counted", "3.3, 8.1, 18 G03", [
+        {"at": 0.0, "do": "power_on", "expect": _boot(P0)},
+        _poll(1.0, _boot(P1)),
+        _raw(1.001, MsgType.ASSIGN, P0, bytes([N, 0, 7, 0]) + UID_LOW.to_bytes(4, "little")[:3]),  # 7 bytes
+        _send(1.002, Assign(P1, new_node=N, link=7, uid_low=UID_LOW), Ack(N, MsgType.ASSIGN, 0)),
+        _poll(2.002, _status(I, rx=0, up=2)),
+    ])
+    # G04: power-on and RESET start a round with no round before it
+    add("after_reset_the_id_before_it_is_no_previous_id", "3.3, 4.14, 18 G04", [
+        {"at": 0.0, "do": "power_on", "expect": _boot(P0)},
+        _poll(1.0, _boot(P1)),
+        _send(1.001, Reset(P1), Ack(P1, MsgType.RESET, 0), _boot(P0)),
+        _send(1.002, Assign(P1, new_node=N, link=7, uid_low=UID_LOW)),  # the round before RESET: ignored
+        _send(1.003, Assign(P0, new_node=N, link=7, uid_low=UID_LOW), Ack(N, MsgType.ASSIGN, 0)),
+    ])
+    # G11: CONFIGURED is part of the configuration RESET forgets
+    add("reset_clears_configured", "4.4, 4.14, 18 G11", _assigned() + [
+        _send(0.1, Config(N, rate_hz=145, range=0, filter=0, heartbeat_ms=1000), Ack(N, MsgType.CONFIG, 0)),
+        _poll(1.1, _status(I, up=1, flags=int(StatusFlag.CONFIGURED))),
+        _send(1.2, Reset(N), Ack(N, MsgType.RESET, 0), _boot(P0)),
+        _send(1.2, Assign(P0, new_node=N, link=7, uid_low=UID_LOW), Ack(N, MsgType.ASSIGN, 0)),
+        _poll(2.2, _status(I, up=2)),
+    ])
+    # G13: the stored flag says where the value in use came from, not whether it equals the stored one
+    add("a_write_without_store_clears_the_stored_flag_even_for_the_same_value", "4.7, 8.3, 18 G13",
+        _assigned(caps=stored) + [
+            _send(0.1, CalWrite(N, axis=0, flags=1, offset_q4=-8, sensitivity=1000.0), Ack(N, MsgType.CAL_WRITE, 0)),
+            _send(0.1, CalRead(N, axis=0), CalData(N, 0, 1, -8, 1000.0)),
+            _send(0.1, CalWrite(N, axis=0, flags=0, offset_q4=-8, sensitivity=1000.0), Ack(N, MsgType.CAL_WRITE, 0)),
+            _send(0.1, CalRead(N, axis=0), CalData(N, 0, 0, -8, 1000.0)),
+            _send(0.2, Reset(N), Ack(N, MsgType.RESET, 0), _boot(P0, stored)),
+            _send(0.2, Assign(P0, new_node=N, link=7, uid_low=UID_LOW), Ack(N, MsgType.ASSIGN, 0)),
+            _send(0.2, CalRead(N, axis=0), CalData(N, 0, 1, -8, 1000.0)),  # the stored value is back, flagged
+        ], caps=stored)
+    # G14: a failure found in BOOT is not kept; the chip finds it (or not) again when it converts
+    add("a_sensor_fault_in_boot_is_forgotten_and_found_at_the_next_conversion", "8.6, 18 G14", [
+        {"at": 0.0, "do": "power_on", "expect": _boot(P0)},
+        {"at": 0.1, "do": "sensor_fault", "expect": []},
+        _send(0.1, Assign(P0, new_node=N, link=7, uid_low=UID_LOW), Ack(N, MsgType.ASSIGN, 0)),
+        _send(0.1, GetInfo(N), _info(N, I)),
+        _send(0.1, Start(N), Ack(N, MsgType.START, 0)),
+        _send(0.1, Sync(counter=1), Sample(N, 1, *XYZ, 0)),  # the sensor answers: no FAULT
+        {"at": 0.1, "do": "sensor", "xyz": [10, -20, 1024], "status": 8, "expect": []},
+        _send(0.1, Sync(counter=2), Sample(N, 2, 0, 0, 0, 8)),  # it does not: INVALID, FAULT from here
+        _send(0.1, GetInfo(N), _info(N, ChipState.FAULT)),
+    ])
+    # G16: a STALE sample repeats the last conversion as the chip sends it at the range in force
+    add("a_stale_sample_after_a_range_change_is_the_last_conversion_at_the_new_range", "5.3, 18 G16",
+        _assigned() + [
+            _send(0.1, Config(N, rate_hz=145, range=1, filter=0, heartbeat_ms=1000), Ack(N, MsgType.CONFIG, 0)),
+            _send(0.1, Start(N), Ack(N, MsgType.START, 0)),
+            {"at": 0.1, "do": "sensor", "xyz": [10, -20, 1024], "status": 4, "expect": []},
+            _send(0.1, Sync(counter=1), Sample(N, 1, 5, -10, 512, 4)),
+            # G12: the calibration is in ±2 g counts whatever the range: the nominal 1024, not rescaled
+            _send(0.1, CalRead(N, axis=2), CalData(N, 2, 0, 0, 1024.0)),
+        ])
+    # G17: every run of up to 15 bytes between delimiters is decoded, so a wrong length there is NACK 2
+    add("a_config_of_8_bytes_in_15_bytes_on_the_wire_is_nacked_bad_length", "8.7, 8.1, 18 G17",
+        _assigned() + [
+            _raw(0.1, MsgType.CONFIG, N, bytes([145, 0, 0, 0, 0xE8, 0x03, 0, 0]), Nack(N, MsgType.CONFIG, NackReason.BAD_LENGTH)),
+            _poll(1.0, _status(I, rx=1, up=1)),
+        ])
+    # G22: a broadcast CONFIG_IMU acts on every chip as CONFIG does; refused, it is answered by nothing
+    add("a_broadcast_config_imu_is_acted_on_and_acked", "16.2, 8.2, 18 G22", _assigned() + [
+        _send(0.1, ConfigImu(0, 0, 2, 1, 0), Ack(N, MsgType.CONFIG_IMU, 0)),
+        _send(0.1, ConfigImu(0, 1, 3, 0, 0)),  # format 1 without GYRO: UNSUPPORTED, silent when broadcast
+        _send(0.1, ConfigImu(N, 1, 3, 0, 0), Nack(N, MsgType.CONFIG_IMU, NackReason.UNSUPPORTED)),
+        _send(0.1, ConfigImu(0, 0, 5, 0, 0)),  # gyro_range 5: BAD_VALUE, silent when broadcast
+    ])

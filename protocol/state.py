@@ -52,7 +52,7 @@ class Reply(Enum):
     SAMPLE = "sample"  #: SAMPLE(counter of the SYNC)
     ANNOUNCE_INFO = "announce_info"  #: ANNOUNCE then INFO (a gateway: then GATEWAY_INFO)
     CAL_DATA = "cal_data"  #: CAL_DATA of the asked axis
-    CAL_IMU_DATA = "cal_imu_data"  #: CAL_IMU_DATA of the asked element (v1.3, §17)
+    CAL_IMU_DATA = "cal_imu_data"  #: CAL_IMU_DATA of the asked element (new in 1.3, §17)
     ACK_THEN_BOOT = "ack_then_boot"  #: ACK from the current node, then boot: ANNOUNCE + INFO
     UNSUPPORTED = "unsupported"  #: NACK UNSUPPORTED when addressed (a gateway's answer to chip commands)
 
@@ -76,7 +76,7 @@ RULES[_I, MsgType.ASSIGN] = Rule(Reply.ACK, _I)
 RULES[_F, MsgType.ASSIGN] = Rule(Reply.ACK, _F)
 RULES[_I, MsgType.CONFIG] = Rule(Reply.ACK, validate=True)
 RULES[_F, MsgType.CONFIG] = Rule(Reply.ACK, validate=True)
-RULES[_I, MsgType.CONFIG_IMU] = Rule(Reply.ACK, validate=True)  # v1.2, §16.2: as CONFIG
+RULES[_I, MsgType.CONFIG_IMU] = Rule(Reply.ACK, validate=True)  # new in 1.2, §16.2: as CONFIG
 RULES[_F, MsgType.CONFIG_IMU] = Rule(Reply.ACK, validate=True)
 RULES[_I, MsgType.START] = Rule(Reply.ACK, _S)
 RULES[_S, MsgType.START] = Rule(Reply.ACK)
@@ -91,7 +91,7 @@ RULES[_I, MsgType.SYNC] = Rule(Reply.NONE)
 RULES[_I, MsgType.CAL_WRITE] = Rule(Reply.ACK, validate=True)
 for _st in _ASSIGNED:
     RULES[_st, MsgType.CAL_READ] = Rule(Reply.CAL_DATA)
-# v1.3, §17.2: as CAL_WRITE / CAL_READ; both check the block's sensor (UNSUPPORTED without it)
+# new in 1.3, §17.2: as CAL_WRITE / CAL_READ; both check the block's sensor (UNSUPPORTED without it)
 RULES[_I, MsgType.CAL_IMU_WRITE] = Rule(Reply.ACK, validate=True)
 for _st in _ASSIGNED:
     RULES[_st, MsgType.CAL_IMU_READ] = Rule(Reply.CAL_IMU_DATA, validate=True)

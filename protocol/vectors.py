@@ -25,7 +25,7 @@ import numpy as np
 from .can import to_can
 from .constants import SampleStatus
 from .framing import encode, encode_frame
-from .messages import (LINK_NONE, PROTOCOL_VERSION, Ack, Announce, Assign, CalData, CalRead,
+from .messages import (LINK_NONE, PROTOCOL_VERSION, SPEC_VERSION, Ack, Announce, Assign, CalData, CalRead,
                        CalWrite, Capability, ChipState, Config, GatewayFlag, GatewayInfo, GetInfo, Info, Message,
                        MsgType, Nack, NackReason, Reset, Sample, SampleFormat, Snapshot, Start, Status,
                        StatusFlag, Stop, Sync, message_from_fields, message_to_fields,
@@ -67,7 +67,7 @@ def canonical_messages() -> list[tuple[str, Message]]:
         ("reset", Reset(7)),
         ("cal_write", CalWrite(7, axis=0, flags=1, offset_q4=16, sensitivity=1024.0)),
         ("cal_read", CalRead(7, axis=1)),
-        # v1.2 (docs §16): the worked example of §16.1 (node 1, counter 0x0102) and edges
+        # new in 1.2 (docs §16): the worked example of §16.1 (node 1, counter 0x0102) and edges
         ("imu_sample_6_axis", ImuSample(1, 0x0102, 0, 0, 1024, 0, -1500, 100, -200, 3000)),
         ("imu_sample_9_axis", ImuSample(1, 0x0102, 0, 0, 1024, 0, -1500, 100, -200, 3000, 8192, -4096, 1)),
         ("imu_sample_extremes", ImuSample(0x7FFF, 0xFFFF, -2048, 2047, -1, SampleStatus.SATURATED, 32767,
@@ -85,7 +85,7 @@ def canonical_messages() -> list[tuple[str, Message]]:
                                                         [[8192, -4096, 1], [0, 0, -8192], [0, 0, 0]])),
         ("config_imu", ConfigImu(1, format=SampleFormat.IMU9, gyro_range=3, mag_range=1, flags=0)),
         ("config_imu_fd_broadcast", ConfigImu(0, format=SampleFormat.IMU6, gyro_range=4, mag_range=0, flags=1)),
-        # v1.3 (docs §17): the worked examples of §17.1 and edges
+        # new in 1.3 (docs §17): the worked examples of §17.1 and edges
         ("cal_imu_write_gyro_matrix", CalImuWrite(1, CalBlock.GYRO_MATRIX, 1, 1, 0, -0.00390625)),
         ("cal_imu_write_mag_hard_iron", CalImuWrite(1, CalBlock.MAG_HARD_IRON, 2, 0, 0, 2.5e-05)),
         ("cal_imu_read", CalImuRead(1, CalBlock.GYRO_G_SENS, 8)),
@@ -105,6 +105,10 @@ def chip_scenarios() -> list[dict]:
     return scenarios()
 
 
+#: the revision of docs/protocol.md the vectors hold an implementation to
+_SPEC = f"{SPEC_VERSION[0]}.{SPEC_VERSION[1]}"
+
+
 def build_vectors() -> dict[str, dict]:
     serial, can = [], []
     for name, msg in canonical_messages():
@@ -118,11 +122,11 @@ def build_vectors() -> dict[str, dict]:
         "can.json": {"protocol_version": PROTOCOL_VERSION, "identifier": "29-bit: priority[28:26] type[25:20] version[19:16] node[15:0]",
                      "vectors": can},
         "serial_errors.json": {"protocol_version": PROTOCOL_VERSION, "vectors": error_vectors()},
-        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.3",
+        "verdicts.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": _SPEC,
                           "about": "edge frames and the verdict of docs/protocol.md §8.1 for each: 'decoded' "
                                    "(type, node, fields) or the reason a receiver reports",
                           "vectors": verdict_vectors()},
-        "chip.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": "1.1",
+        "chip.json": {"protocol_version": PROTOCOL_VERSION, "spec_version": _SPEC,
                       "about": _scenario_format().splitlines(), "scenarios": chip_scenarios()},
     }
 
@@ -142,6 +146,12 @@ def error_vectors() -> list[dict]:
         {"name": "short", "hex": "03010200", "reason": "short"},
         {"name": "bad_cobs", "hex": "05010203" + "00", "reason": "bad_cobs"},
         {"name": "oversize", "hex": "01" * 1100 + "00", "reason": "oversize"},
+        # 1029 bytes (not over the run limit) whose last code byte promises 4 bytes that never come: not
+        # COBS, although its first 1028 codes alone would decode to more than 1024 bytes — BAD_COBS, not
+        # OVERSIZE: the decoded size is only known of valid COBS (§6.3, §8.1 rows 1-2; 1.4's G01)
+        {"name": "bad_cobs_of_1029_bytes", "hex": "01" * 1028 + "05" + "00", "reason": "bad_cobs"},
+        # a valid run of 1029 bytes that decodes to 1028: OVERSIZE after COBS
+        {"name": "oversize_after_cobs", "hex": "01" * 1028 + "01" + "00", "reason": "oversize"},
     ]
     return out
 
@@ -233,7 +243,7 @@ def verdict_vectors() -> list[dict]:
              bytes([0, 0, 0, 0]) + bytes.fromhex("0000c07f")),
         _ser("cal_data_negative_zero_sensitivity", "bad_field", "4.7", MsgType.CAL_DATA, 5,
              bytes([0, 0, 0, 0]) + bytes.fromhex("00000080")),
-        # v1.3 (§17): CAL_IMU's addressing and value
+        # new in 1.3 (§17): CAL_IMU's addressing and value
         _ser("cal_imu_read_broadcast", "bad_field", "17.2", MsgType.CAL_IMU_READ, 0, b"\x00\x00"),
         _ser("cal_imu_read_block_5", "bad_field", "17.1, 17.2", MsgType.CAL_IMU_READ, 5, b"\x05\x00"),
         _ser("cal_imu_read_bias_index_3", "bad_field", "17.1, 17.2", MsgType.CAL_IMU_READ, 5, b"\x01\x03"),
@@ -312,7 +322,7 @@ def verdict_vectors() -> list[dict]:
 
 
 def _imu_verdict_vectors(flat: bytes) -> list[dict]:
-    """v1.2 (docs §16): the IMU frames' edges, bytes built here with struct from §16's tables."""
+    """The IMU frames' edges (docs §16, new in 1.2), bytes built here with struct from §16's tables."""
     import struct
     from .can import make_id
     unknown = struct.pack("<h", TIME_UNKNOWN)

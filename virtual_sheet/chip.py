@@ -36,7 +36,7 @@ file only adds what the table leaves to the implementation:
   status INVALID alone. SATURATED is set exactly when a count sent is -2048 or 2047 (§5.2): the chip
   computes it from what it sends; the sensor's other bits (STALE, SELF_TEST) pass through.
 
-* v1.2 (docs §16): built with ``sensors="accel+gyro"`` or ``"accel+gyro+mag"`` and an ``imu``
+* new in 1.2 (docs §16): built with ``sensors="accel+gyro"`` or ``"accel+gyro+mag"`` and an ``imu``
   source, the chip reports GYRO (and MAG) and SAMPLE_TIME, takes CONFIG_IMU (checked as §16.2
   says) and, in format 1 or 2, answers SYNC with one IMU record: an IMU_SAMPLE on serial and with
   CONFIG_IMU flag FD on CAN, else IMU_GYRO (+ IMU_MAG) + IMU_ACCEL on classic CAN. SATURATED covers
@@ -82,7 +82,7 @@ _SAT_BIT = int(SampleStatus.SATURATED)
 _RAILS = (-2048, 2047)
 _FAULT = ChipState.FAULT
 _I16_RAILS = (-32768, 32767)
-#: INFO capability bits by ``sensors`` (v1.2, docs §16)
+#: INFO capability bits by ``sensors`` (new in 1.2, docs §16)
 _SENSOR_CAPS = {"accel": 0, "accel+gyro": int(Capability.GYRO | Capability.SAMPLE_TIME),
                 "accel+gyro+mag": int(Capability.GYRO | Capability.MAG | Capability.SAMPLE_TIME)}
 
@@ -152,7 +152,7 @@ class ChipModel:
         self._factory_cal = [(int(o), float(s), 1 if self.capabilities & Capability.CAL_STORAGE else 0)
                              for o, s in calibration]
         self._stored_cal = list(self._factory_cal)
-        # v1.3 (§17): block -> [(value, stored)] per element; none stored at the factory
+        # new in 1.3 (§17): block -> [(value, stored)] per element; none stored at the factory
         self._stored_imu_cal = {b: [(v, 0) for v in vals] for b, vals in nominal_imu_cal().items()}
         self.powered = False
         self.boot_s = 0.0

@@ -53,151 +53,20 @@ from protocol.capacity import MAX_SERIAL_SNAPSHOT_SAMPLES
 from protocol.constants import SampleStatus
 from protocol.framing import (MAX_ENCODED_SIZE, SAMPLE_WIRE_SIZE, DecodeError, StreamDecoder, decode_frame, encode,
                               encode_frame)
-from protocol.framing import ErrorReason
-from protocol.messages import (LINK_NONE, NODE_BROADCAST, PROTOCOL_VERSION, Ack, Announce, Assign, Capability,
-                               ChipState, Direction, GatewayFlag, GatewayInfo, Info, Message, MsgType, Nack,
-                               NackReason, SampleFormat, Snapshot, Status, Sync, is_node_to_host_type,
-                               pack_sample_words, provisional_node, IMU_RECORD_SIZE, MAX_SERIAL_IMU_RECORDS,
-                               TIME_UNKNOWN, ConfigImu, ImuAccel, ImuGyro, ImuMag, ImuSample, Sample, SnapshotImu, Start,
-                               pack_imu_records,
-                               unpack_imu_records)
-from protocol.state import (ANNOUNCE_PERIOD_S, GATEWAY_HEARTBEAT_MS, SNAPSHOT_DEADLINE_S, Reply, gateway_rule_for,
-                            next_deadline)
+from protocol.messages import (LINK_NONE, NODE_BROADCAST, Assign, Capability, ChipState, GatewayFlag, Message,
+                               MsgType, SampleFormat, Snapshot, Sync, pack_sample_words, IMU_RECORD_SIZE,
+                               MAX_SERIAL_IMU_RECORDS, TIME_UNKNOWN, ConfigImu, ImuAccel, ImuGyro, ImuMag, ImuSample,
+                               Sample, SnapshotImu, Start, pack_imu_records, unpack_imu_records)
+from protocol.state import SNAPSHOT_DEADLINE_S
 
 from .faults import ERROR_FRAME, FaultSpec, FaultStats, FrameFaults
+from .gateway_node import FIRMWARE_VERSION, GatewayNode, gateway_uid
 
 __all__ = ["Gateway", "GatewayStats", "GatewayNode", "CHIP_POLL_PERIOD_S", "gateway_uid", "FIRMWARE_VERSION"]
 
 CHIP_POLL_PERIOD_S = 0.01  #: how often the chips' timers (heartbeat, re-announce) are served
-FIRMWARE_VERSION = (0, 1, 0)  #: the virtual gateway's INFO fw_major, fw_minor, fw_patch
-_INTEGRITY = (ErrorReason.BAD_COBS, ErrorReason.SHORT, ErrorReason.BAD_CRC, ErrorReason.OVERSIZE)
-_NACK_FOR = {ErrorReason.BAD_VERSION: NackReason.BAD_VERSION, ErrorReason.UNKNOWN_TYPE: NackReason.UNKNOWN_COMMAND,
-             ErrorReason.BAD_LENGTH: NackReason.BAD_LENGTH, ErrorReason.BAD_FIELD: NackReason.BAD_VALUE}
 
 
-def gateway_uid(sheet_seed: int, stream: int) -> int:
-    """The uid of a virtual sheet's gateway ``stream``: fixed by the sheet's seed, in a range of its
-    own (prefix 0x6A7E) so it never meets a chip's."""
-    return (0x6A7E << 48) | ((int(sheet_seed) & 0xFFFFFFFF) << 16) | (int(stream) & 0xFFFF)
-
-
-class GatewayNode:
-    """A gateway as a node on the wire (docs/protocol.md §13), sans-I/O: the frames it sends, and
-    what it does with the host frames addressed to it. The `Gateway` consults it for every host
-    frame and forwards the frame to its chips as well (§13.1: a chip in BOOT may share its id).
-
-    ``flags`` and ``runs`` are read when GATEWAY_INFO is sent: the `Gateway` keeps them current.
-    """
-
-    def __init__(self, uid: int, *, can: bool, fd: bool, capabilities: int) -> None:
-        self.uid = uid
-        self.can = can
-        self.capabilities = Capability(int(capabilities) | Capability.GATEWAY | (Capability.CAN_FD if fd else 0))
-        self.flags = GatewayFlag.NONE
-        self.sample_format = int(SampleFormat.ACCEL_12)  #: what GATEWAY_INFO says its SNAPSHOT words are
-        self.runs: list[tuple[int, int]] = []
-        self.sync_rate_hz = 0
-        self.refused_syncs = 0  #: host SYNCs not passed on (saturating at 255 in STATUS)
-        self.rx_errors = 0
-        self.boot_s = 0.0
-        self.powered = False
-        self._boot_vars(0.0)
-
-    def _boot_vars(self, now_s: float) -> None:
-        self.state = ChipState.BOOT
-        self.salt = 0
-        self.node = provisional_node(self.uid, 0)
-        self.prev_node: int | None = None
-        self.next_announce_s = now_s + ANNOUNCE_PERIOD_S
-        self.next_heartbeat_s: float | None = None
-        self.rx_errors = 0
-        self.refused_syncs = 0
-
-    def _out(self, msg: Message):
-        return to_can(msg) if self.can else encode(msg)
-
-    def announce(self) -> list:
-        """ANNOUNCE, INFO, one GATEWAY_INFO per run (§13.1)."""
-        out = [self._out(Announce(self.node, self.uid)),
-               self._out(Info(self.node, *FIRMWARE_VERSION, PROTOCOL_VERSION, int(self.capabilities), 0, self.state))]
-        for first, count in (self.runs or [(0, 0)]):
-            out.append(self._out(GatewayInfo(self.node, int(self.flags), self.sample_format, first, count,
-                                             min(0xFFFF, int(round(self.sync_rate_hz))))))
-        return out
-
-    def power_on(self, now_s: float) -> list:
-        self.powered = True
-        self.boot_s = now_s
-        self._boot_vars(now_s)
-        return self.announce()
-
-    def poll(self, now_s: float) -> list:
-        if not self.powered:
-            return []
-        if self.state == ChipState.BOOT:
-            if now_s < self.next_announce_s:
-                return []
-            self.salt += 1
-            self.prev_node = self.node
-            self.node = provisional_node(self.uid, self.salt)
-            self.next_announce_s = next_deadline(self.next_announce_s, ANNOUNCE_PERIOD_S, now_s)
-            return self.announce()
-        if self.next_heartbeat_s is not None and now_s >= self.next_heartbeat_s:
-            self.next_heartbeat_s = next_deadline(self.next_heartbeat_s, GATEWAY_HEARTBEAT_MS / 1000, now_s)
-            return [self._out(Status(self.node, self.state, 0, min(255, self.rx_errors), min(255, self.refused_syncs),
-                                     int(max(0.0, now_s - self.boot_s)) & 0xFFFFFFFF))]
-        return []
-
-    def refuse_sync(self) -> None:
-        self.refused_syncs += 1
-
-    def handle(self, frame, decoded, now_s: float) -> list:
-        """A host frame (already decoded by the `Gateway`): the gateway's own answer (§13.4)."""
-        if not self.powered:
-            return []
-        if isinstance(decoded, DecodeError):
-            if decoded.reason in _INTEGRITY:
-                self.rx_errors += 1
-                return []
-            hdr = _header(frame)
-            if hdr is None:
-                return []
-            _v, t, node = hdr
-            if node != self.node or is_node_to_host_type(t):
-                return []  # broadcast or another node's: never a NACK (§8.1)
-            return [self._out(Nack(self.node, t & 0xFF, _NACK_FOR[decoded.reason]))]
-        node = decoded.node
-        t = decoded.TYPE
-        if decoded.DIRECTION != Direction.HOST_TO_CHIP or t == MsgType.SYNC:
-            return []
-        addressed = node == self.node or (t == MsgType.ASSIGN and self.state == ChipState.BOOT
-                                          and node == self.prev_node and node is not None)
-        if not addressed and not (node == NODE_BROADCAST and t in (MsgType.GET_INFO, MsgType.RESET)):
-            return []
-        if t == MsgType.ASSIGN and decoded.uid_low != (self.uid & 0xFFFFFFFF):
-            return []
-        rule = gateway_rule_for(self.state, t)
-        if rule is None or rule.reply is Reply.UNSUPPORTED:
-            return [self._out(Nack(self.node, t, NackReason.UNSUPPORTED))] if addressed else []
-        if rule.reply is Reply.ANNOUNCE_INFO:
-            return self.announce()
-        if rule.reply is Reply.ACK_THEN_BOOT:
-            ack = self._out(Ack(self.node, t, 0))
-            self._boot_vars(now_s)
-            return [ack] + self.announce()
-        assert isinstance(decoded, Assign)
-        if self.state == ChipState.BOOT:
-            self.next_heartbeat_s = now_s + GATEWAY_HEARTBEAT_MS / 1000
-        self.node = decoded.new_node
-        self.prev_node = None
-        self.state = ChipState.IDLE
-        return [self._out(Ack(self.node, t, 0))]
-
-
-def _header(frame):
-    """``(version, type, node)`` of an intact frame (the chip model's `frame_header`)."""
-    from .chip import frame_header
-    return frame_header(frame)
 _INVALID_WORD = int(SampleStatus.INVALID) << 36  #: the sample word of a link nobody answered for
 _FIELD_SHIFT = np.array([1, 1 << 12, 1 << 24], dtype=np.int64)  # x, y, z into a sample word
 _SNAP_HDR = struct.Struct("<HHB")  # SNAPSHOT payload header: counter, first_link, count
@@ -273,10 +142,17 @@ class Gateway:
 
     #: the class of its node on the wire (a subclass: the conformance suite's broken gateways)
     node_class: type = GatewayNode
+    #: how long after a SYNC it sends that SYNC's packed frames, at the earliest: 0 sends them as soon as
+    #: every chip answered; a gateway that flushes on a timer sends them later — docs §13.2 allows anywhere
+    #: up to `SNAPSHOT_DEADLINE_S` (10 ms) after the SYNC (a subclass sets it: the conformance suite's
+    #: healthy gateways flush at 5 and 10 ms)
+    flush_s: float = 0.0
 
     def __init__(self, sheet, links: Sequence[int] | None = None, *, packed: bool = False,
                  sync_rate_hz: float | None = None, faults: FaultSpec | None = None,
                  fault_stats: FaultStats | None = None, stream: int = 0, as_node: bool | None = None) -> None:
+        if not 0.0 <= self.flush_s <= SNAPSHOT_DEADLINE_S:
+            raise ValueError(f"Invalid flush_s: {self.flush_s} (0..{SNAPSHOT_DEADLINE_S} s, docs §13.2)")
         self.sheet = sheet
         self.can = sheet.transport == "can"
         self.fd = sheet.fd
@@ -621,7 +497,7 @@ class Gateway:
                 snap = Snapshot(self.node_id, sync.counter, first, pack_sample_words(counts[part], status[part]))
                 frames.append(to_can(snap, fd=True) if self.can else encode(snap))
             self.stats.snapshots += len(frames)
-            self._emit(frames, now_s + latest)
+            self._emit(frames, now_s + max(latest, self.flush_s))
         if other:
             self._emit(other, now_s)
 
@@ -639,7 +515,9 @@ class Gateway:
 
     def _emit_packed(self, frames: list, other: list, latest: float, now_s: float) -> None:
         """The packed frames when the latest chip in them answered (``latest`` after the SYNC), the
-        other frames now; with no delay the packed frames go first, in one output."""
+        other frames now; with no delay the packed frames go first, in one output. A gateway that flushes
+        on a timer (`flush_s`) sends them no earlier than that after the SYNC."""
+        latest = max(latest, self.flush_s)
         if frames and latest:
             self._emit(frames, now_s + latest)
         elif frames:
@@ -858,7 +736,7 @@ class Gateway:
             self._queue.extend(self.faults.process(frames, due_s))
         else:
             self._queue.extend((due_s, f) for f in frames)
-        if self._late or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
+        if self._late or self.flush_s or (self.faults is not None and (self.spec.delay_ms or self.spec.jitter_ms)):
             self._queue.sort(key=lambda p: p[0])  # stable: FIFO among equal times
 
     def _emit_run(self, data: bytes, n: int, size: int, due_s: float) -> None:

@@ -1,5 +1,5 @@
 /*
- * capsheet_fw.h — reference chip firmware for the capsheet wire protocol v1.2 (docs/protocol.md).
+ * capsheet_fw.h — reference chip firmware for the capsheet wire protocol (docs/protocol.md, revision below).
  *
  * Portable C99, no dynamic memory: every buffer is the caller's, with its capacity; time is passed
  * in (microseconds, `now_us`), never read; the hardware sits behind `capsheet_hal_t`.
@@ -8,7 +8,7 @@
  *   1. the codec — pure functions, no state: CRC-16/CCITT-FALSE, COBS, message struct <-> payload
  *      bytes, serial frame, CAN identifier + data, and a byte-at-a-time serial stream decoder;
  *   2. the chip  — `capsheet_chip_t`: the chip side of the protocol (ANNOUNCE, ASSIGN, CONFIG,
- *      SYNC -> SAMPLE, STATUS heartbeat, NACKs, calibration; v1.2: CONFIG_IMU and the 6/9-axis
+ *      SYNC -> SAMPLE, STATUS heartbeat, NACKs, calibration; new in 1.2: CONFIG_IMU and the 6/9-axis
  *      IMU records of §16) driven by the state table of docs/protocol.md §8 (protocol/state.py),
  *      over serial or CAN.
  *
@@ -58,11 +58,11 @@ extern "C" {
 #define CAPSHEET_FW_VERSION_PATCH 0
 
 /* ------------------------------------------------------------------------------------------ */
-/* Protocol constants (protocol/messages.py, framing.py, can.py)                               */
+/* Protocol constants (protocol/messages/, framing.py, can.py)                                */
 /* ------------------------------------------------------------------------------------------ */
 
 #define CAPSHEET_PROTOCOL_VERSION 1u           /* on the wire: the major version (§12) */
-#define CAPSHEET_SPEC_VERSION_MINOR 2u         /* the revision of docs/protocol.md implemented: 1.2 */
+#define CAPSHEET_SPEC_VERSION_MINOR 4u         /* the revision of docs/protocol.md implemented: 1.4 */
 #define CAPSHEET_NODE_BROADCAST 0x0000u
 #define CAPSHEET_NODE_MAX_ASSIGNED 0x7FFFu
 #define CAPSHEET_NODE_PROVISIONAL_MIN 0x8000u
@@ -148,15 +148,15 @@ typedef enum {
     CAPSHEET_ANNOUNCE = 0x01, CAPSHEET_INFO = 0x02, CAPSHEET_SAMPLE = 0x03, CAPSHEET_STATUS = 0x04,
     CAPSHEET_ACK = 0x05, CAPSHEET_NACK = 0x06, CAPSHEET_CAL_DATA = 0x07, CAPSHEET_SNAPSHOT = 0x08,
     CAPSHEET_GATEWAY_INFO = 0x09,
-    /* chip -> host, v1.2 (§16): classic CAN record frames, the record on serial / CAN FD, a gateway's packed records */
+    /* chip -> host, new in 1.2 (§16): classic CAN record frames, the record on serial / CAN FD, a gateway's packed records */
     CAPSHEET_IMU_GYRO = 0x0A, CAPSHEET_IMU_MAG = 0x0B, CAPSHEET_IMU_ACCEL = 0x0C, CAPSHEET_IMU_SAMPLE = 0x0D,
     CAPSHEET_SNAPSHOT_IMU = 0x0E,
-    CAPSHEET_CAL_IMU_DATA = 0x0F,  /* v1.3 (§17) */
+    CAPSHEET_CAL_IMU_DATA = 0x0F,  /* new in 1.3 (§17) */
     /* host -> chip */
     CAPSHEET_SYNC = 0x10, CAPSHEET_ASSIGN = 0x11, CAPSHEET_CONFIG = 0x12, CAPSHEET_START = 0x13,
     CAPSHEET_STOP = 0x14, CAPSHEET_GET_INFO = 0x15, CAPSHEET_RESET = 0x16, CAPSHEET_CAL_WRITE = 0x17,
     CAPSHEET_CAL_READ = 0x18, CAPSHEET_CONFIG_IMU = 0x19,
-    CAPSHEET_CAL_IMU_WRITE = 0x1A, CAPSHEET_CAL_IMU_READ = 0x1B  /* v1.3 (§17) */
+    CAPSHEET_CAL_IMU_WRITE = 0x1A, CAPSHEET_CAL_IMU_READ = 0x1B  /* new in 1.3 (§17) */
 } capsheet_msg_type_t;
 
 #define CAPSHEET_HOST_TYPE_FIRST 0x10u
@@ -176,11 +176,11 @@ typedef enum { CAPSHEET_BOOT = 0, CAPSHEET_IDLE = 1, CAPSHEET_STREAMING = 2, CAP
 #define CAPSHEET_CAP_CAL_STORAGE 0x0008u
 #define CAPSHEET_CAP_MULTI_RANGE 0x0010u
 #define CAPSHEET_CAP_FILTER 0x0020u
-#define CAPSHEET_CAP_GATEWAY 0x0040u            /* v1.1: the node is a gateway (never set by a chip) */
-#define CAPSHEET_CAP_SYNC_SOURCE 0x0080u        /* v1.1: a gateway that can generate SYNC */
-#define CAPSHEET_CAP_GYRO 0x0100u               /* v1.2: a triaxial gyroscope (CONFIG_IMU formats 1, 2) */
-#define CAPSHEET_CAP_MAG 0x0200u                /* v1.2: a triaxial magnetometer (CONFIG_IMU format 2) */
-#define CAPSHEET_CAP_SAMPLE_TIME 0x0400u        /* v1.2: IMU records carry a true time_us */
+#define CAPSHEET_CAP_GATEWAY 0x0040u            /* new in 1.1: the node is a gateway (never set by a chip) */
+#define CAPSHEET_CAP_SYNC_SOURCE 0x0080u        /* new in 1.1: a gateway that can generate SYNC */
+#define CAPSHEET_CAP_GYRO 0x0100u               /* new in 1.2: a triaxial gyroscope (CONFIG_IMU formats 1, 2) */
+#define CAPSHEET_CAP_MAG 0x0200u                /* new in 1.2: a triaxial magnetometer (CONFIG_IMU format 2) */
+#define CAPSHEET_CAP_SAMPLE_TIME 0x0400u        /* new in 1.2: IMU records carry a true time_us */
 
 /* CONFIG_IMU (§16.2) */
 #define CAPSHEET_IMU_FORMAT_ACCEL 0u            /* SAMPLE, as in 1.1 */
@@ -249,10 +249,10 @@ typedef struct {
         struct { uint16_t new_node, link; uint32_t uid_low; } assign;
         struct { uint16_t rate_hz; uint8_t range, filter; uint16_t heartbeat_ms; } config;
         struct { uint8_t axis; } cal_read;
-        /* v1.3 (§17): CAL_IMU_DATA and CAL_IMU_WRITE; CAL_IMU_READ */
+        /* new in 1.3 (§17): CAL_IMU_DATA and CAL_IMU_WRITE; CAL_IMU_READ */
         struct { uint8_t block, index, flags, reserved; float value; } cal_imu;
         struct { uint8_t block, index; } cal_imu_read;
-        /* v1.2 (§16). IMU_SAMPLE: `format` 1 (6-axis, 15-byte payload) or 2 (9-axis, 21 bytes;
+        /* new in 1.2 (§16). IMU_SAMPLE: `format` 1 (6-axis, 15-byte payload) or 2 (9-axis, 21 bytes;
          * mx..mz only then); the status bits cover the whole record (§16.1). */
         struct {
             uint16_t counter;
@@ -412,7 +412,7 @@ typedef enum {
     CAPSHEET_REPLY_CAL_IMU_DATA = 6
 } capsheet_reply_t;
 
-/* v1.3 (§17.1): the gyroscope's and magnetometer's calibration, 33 float32 elements: GYRO_MATRIX
+/* new in 1.3 (§17.1): the gyroscope's and magnetometer's calibration, 33 float32 elements: GYRO_MATRIX
  * 0..8, GYRO_BIAS 9..11, GYRO_G_SENS 12..20, MAG_MATRIX 21..29, MAG_HARD_IRON 30..32. */
 #define CAPSHEET_IMU_CAL_COUNT 33u
 
@@ -533,7 +533,7 @@ typedef struct {
     uint8_t imu_flags;       /* CAPSHEET_IMU_FLAG_FD */
     capsheet_cal_t cal[3];
 #if CAPSHEET_IMU
-    uint32_t imu_cal[CAPSHEET_IMU_CAL_COUNT];   /* v1.3 (§17): the elements in use, float32 bits (the
+    uint32_t imu_cal[CAPSHEET_IMU_CAL_COUNT];   /* new in 1.3 (§17): the elements in use, float32 bits (the
                                                  * stored copy is the HAL's: cal_imu_load/cal_imu_store) */
     uint8_t imu_cal_stored[(CAPSHEET_IMU_CAL_COUNT + 7u) / 8u]; /* bit k: element k in use is the stored one */
 #endif

@@ -3,7 +3,7 @@
  *
  * Everything that decides what the chip does with a command is the table `k_rules` below, a
  * transcription of protocol/state.py RULES (the tests compare the two pair by pair). The rest follows
- * docs/protocol.md v1.2 §8.1 exactly as the Python chip model (virtual_sheet/chip.py) does, so the
+ * docs/protocol.md §8.1 exactly as the Python chip model (virtual_sheet/chip.py) does, so the
  * two are interchangeable (the tests drive both with the same frames, and with tests/vectors/chip.json):
  *   1. a frame whose integrity failed (COBS, short, CRC, oversize) is counted in rx_errors
  *      (saturating at 255) and dropped;
@@ -19,7 +19,7 @@
  *   8. the rule's reply and transition.
  * A broadcast is never answered with a NACK.
  *
- * v1.2 (§16): a chip built with capability GYRO (and MAG) takes CONFIG_IMU and, in format 1 or 2,
+ * new in 1.2 (§16): a chip built with capability GYRO (and MAG) takes CONFIG_IMU and, in format 1 or 2,
  * answers each SYNC with one IMU record — the accelerometer word exactly as a SAMPLE's (range,
  * SATURATED, STALE, FAULT rules), the HAL's gyroscope (and magnetometer) counts, time_us — as an
  * IMU_SAMPLE on serial and, with CONFIG_IMU flag FD, in a CAN FD frame; else as IMU_GYRO (+ IMU_MAG)
@@ -250,7 +250,7 @@ static void load_calibration(capsheet_chip_t *c)
     }
 }
 
-/* ---- v1.3 (§17): the gyroscope's and magnetometer's calibration (an accelerometer-only build,
+/* ---- new in 1.3 (§17): the gyroscope's and magnetometer's calibration (an accelerometer-only build,
  * CAPSHEET_IMU 0, has neither sensor: it answers every CAL_IMU_* with NACK 5 and keeps nothing) ---- */
 #if CAPSHEET_IMU
 /* out of line: send_record's two messages and the reading stay off the stack of a chip in format 0,

@@ -196,8 +196,8 @@ int32_t capsheet_cobs_decode(const uint8_t *in, size_t len, uint8_t *out, size_t
 #define N_TYPES 0x1Cu
 static const uint8_t k_size[N_TYPES] = {
     UND, 8, 8, 7, 8, 2, 2, 8, VAR,        /* 0x00..0x08 */
-    8, 8, 8, 8, VAR, VAR, 8,               /* 0x09 GATEWAY_INFO, 0x0A..0x0E IMU (v1.2), 0x0F CAL_IMU_DATA (v1.3) */
-    2, 8, 6, 0, 0, 0, 0, 8, 1, 4, 8, 2    /* 0x10..0x1B (0x19 CONFIG_IMU, v1.2; 0x1A, 0x1B CAL_IMU, v1.3) */
+    8, 8, 8, 8, VAR, VAR, 8,               /* 0x09 GATEWAY_INFO; 0x0A..0x0E IMU, 1.2; 0x0F CAL_IMU_DATA, 1.3 */
+    2, 8, 6, 0, 0, 0, 0, 8, 1, 4, 8, 2    /* 0x10..0x1B (0x19 CONFIG_IMU since 1.2; 0x1A, 0x1B CAL_IMU since 1.3) */
 };
 /* priority per type (docs §7.1, §4) */
 static const uint8_t k_priority[N_TYPES] = {
@@ -281,7 +281,7 @@ static void put_cal(uint8_t *p, const capsheet_cal_t *c)
     put_u32(p + 4, float_bits(c->sensitivity));
 }
 
-/* v1.3 (§17.1): CAL_IMU_DATA / CAL_IMU_WRITE */
+/* new in 1.3 (§17.1): CAL_IMU_DATA / CAL_IMU_WRITE */
 static void put_cal_imu(uint8_t *p, const capsheet_msg_t *m)
 {
     p[0] = m->u.cal_imu.block;

@@ -44,15 +44,19 @@ from protocol.can import INCOMPLETE_IMU
 from protocol.framing import DecodeError
 from protocol.messages import ImuBatch, SampleBatch
 from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, ChipState, Config,
-                               Direction, GatewayFlag, GatewayInfo, GetInfo, Info, Message, MsgType, Reset, Sample,
-                               Snapshot, Start, Status, Stop, Sync, is_node_to_host_type)
+                               Direction, GatewayFlag, GatewayInfo, GetInfo, ImuSample, Info, Message, MsgType, Reset,
+                               Sample, Snapshot, SnapshotImu, Start, Status, Stop, Sync, is_node_to_host_type)
 
 
 __all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
-           "FrameAudit", "HEARTBEAT_MS"]
+           "FrameAudit", "HEARTBEAT_MS", "SAMPLES"]
 
 #: STATUS period the run configures (CONFIG heartbeat_ms), ms
 HEARTBEAT_MS = 100
+#: what answers a SYNC for the chip under test, whatever record format reaches the host: its SAMPLE or
+#: IMU_SAMPLE (classic CAN's IMU frames assembled), or its link in a gateway's SNAPSHOT or SNAPSHOT_IMU
+#: (`Session.collect` turns those into the SAMPLE or IMU_SAMPLE they stand for)
+SAMPLES = (Sample, ImuSample)
 
 
 class CheckFailed(AssertionError):
@@ -305,9 +309,9 @@ class Port(_AuditView):
 # The session: one chip, tracked through its node id
 # ---------------------------------------------------------------------------------------------
 
-#: never taken as the answer to a command: heartbeats, (re-)announces, and samples — a streaming chip
+#: never taken as the answer to a command: heartbeats, (re-)announces, and samples or IMU records — a streaming chip
 #: behind a gateway that drives SYNC answers that SYNC all the time (a SYNC check collects them itself)
-_TOLERATED = (Status, Announce, Info, GatewayInfo, Sample)
+_TOLERATED = (Status, Announce, Info, GatewayInfo, Sample, ImuSample)
 
 
 def _cobs_head(encoded: bytes, n: int = 4) -> bytes | None:
@@ -351,6 +355,9 @@ class Session:
     by_type: Counter = field(default_factory=Counter)
     _last_announce: dict = field(default_factory=dict)  #: node -> the uid of its last ANNOUNCE
     node_of_uid: dict = field(default_factory=dict)  #: uid -> the node id of its last ANNOUNCE
+    #: SYNC counter -> when the suite sent it or last heard it (a SYNC-source gateway's, forwarded): an answer
+    #: with that counter arriving later answers that SYNC (a packing gateway's up to 10 ms later, §13.2)
+    syncs_heard: dict = field(default_factory=dict)
 
     @property
     def answer_s(self) -> float:
@@ -395,17 +402,27 @@ class Session:
                 return g
         return None
 
-    def _from_snapshot(self, m: Snapshot) -> Sample | None:
-        """The chip under test's sample in a SNAPSHOT (a packing gateway's), as the SAMPLE it stands for."""
+    def _from_snapshot(self, m: Snapshot | SnapshotImu) -> Sample | ImuSample | None:
+        """The chip under test's sample in a SNAPSHOT or SNAPSHOT_IMU (a packing gateway's), as the SAMPLE
+        or IMU_SAMPLE it stands for: a chip is reached by whichever record format its gateway packs
+        (§13.2, §16.5), and every check of its samples reads them from any of them."""
         if self.profile != "chip" or self.node is None or self.cur != self.node \
                 or not (m.first_link <= self.link < m.first_link + m.count):
             return None
         k = self.link - m.first_link
+        if isinstance(m, SnapshotImu):
+            counts, status, t_us, gyro, mag = m.arrays()
+            mg = (None, None, None) if mag is None else tuple(mag[k].tolist())
+            return ImuSample(self.node, m.counter, *counts[k].tolist(), int(status[k]), int(t_us[k]),
+                             *gyro[k].tolist(), *mg)
         (x, y, z), st = m.counts[k].tolist(), int(m.status[k])
         return Sample(self.node, m.counter, x, y, z, st)
 
     def note(self, t: float, m) -> None:
         """Bookkeeping of every frame heard: node ids in use, uids, gateways, the node's frames by type."""
+        if isinstance(m, Sync):
+            self.syncs_heard[m.counter] = t
+            return
         if isinstance(m, DecodeError):
             hdr = _cobs_head(m.excerpt) if m.reason.name == "BAD_CRC" else None
             if hdr is not None and hdr[0] == 1 and is_node_to_host_type(hdr[1]) and \
@@ -464,7 +481,7 @@ class Session:
             self.note(t, m)
             if syncs and isinstance(m, Sync):
                 pass
-            elif isinstance(m, Snapshot):
+            elif isinstance(m, (Snapshot, SnapshotImu)):
                 m = self._from_snapshot(m)
             elif not self.mine(m):
                 m = None
@@ -616,7 +633,7 @@ class Session:
         return max(self.answer_s, 3.0 / rate) if rate else self.answer_s
 
     def sync_round(self, counter: int) -> tuple[int, float, list]:
-        """One SYNC and the chip's answers to it: ``(counter, time of the SYNC, [(time, Sample)])``.
+        """One SYNC and the chip's answers to it: ``(counter, time of the SYNC, [(time, Sample or ImuSample)])``.
 
         The suite sends SYNC ``counter`` — or, behind a gateway that is its segment's SYNC source
         (§13.3, which passes no SYNC from this suite), takes that gateway's next SYNC and its counter.
@@ -627,6 +644,7 @@ class Session:
         if g is None:
             t0 = self.port.send(Sync(counter=counter))
             c = counter
+            self.syncs_heard[c] = t0
         else:
             got = self.collect(self.gateway_sync_wait_s, lambda ms: any(isinstance(m, Sync) for m in ms), syncs=True)
             syn = [(t, m) for t, m in got if isinstance(m, Sync)]
@@ -634,8 +652,8 @@ class Session:
                 raise Skip(f"{g.label()} is the segment's SYNC source and sent no SYNC within "
                            f"{self.gateway_sync_wait_s:.1f} s")
             t0, c = syn[-1][0], syn[-1][1].counter
-        got = self.collect(self.answer_s, lambda ms: any(isinstance(m, Sample) and m.counter == c for m in ms))
-        return c, t0, [(t, m) for t, m in got if isinstance(m, Sample)]
+        got = self.collect(self.answer_s, lambda ms: any(isinstance(m, SAMPLES) and m.counter == c for m in ms))
+        return c, t0, [(t, m) for t, m in got if isinstance(m, SAMPLES)]
 
     def assign_gateway(self) -> None:
         """The gateway under test: ASSIGN where it is (link 0xFFFF): IDLE at ``self.node``."""

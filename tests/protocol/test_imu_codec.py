@@ -107,3 +107,15 @@ def test_a_snapshot_imu_holds_its_records():
         ImuSample(1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, None, 2)  # a magnetometer is all three axes or none
     assert ImuGyro(1, 0, 1, 2, 3).payload() == bytes([0, 0, 1, 0, 2, 0, 3, 0])
     assert ImuMag(1, 0x0201, -1, 0, 0).payload() == bytes([1, 2, 0xFF, 0xFF, 0, 0, 0, 0])
+
+
+def test_a_second_imu_mag_is_reported_and_the_first_kept():
+    """§16.4 as 1.4 answers it (G02): a second IMU_MAG of the same node and counter while the record is open
+    is one incomplete-record event and is dropped; the record keeps the first and the IMU_ACCEL closes it."""
+    good = ImuSample(1, 0x0102, 0, 0, 1024, 0, -1500, 100, -200, 3000, 8192, -4096, 1)
+    g, m, a = imu_can_frames(good)
+    again = to_can(ImuMag(1, 0x0102, 1, 2, 3))
+    ev = CanDecoder().feed(frames([g, m, again, a]))
+    bad = _incomplete(ev)
+    assert len(bad) == 1 and "IMU_MAG" in bad[0].detail and "incomplete IMU record" in bad[0].detail
+    assert [e for e in ev if isinstance(e, ImuSample)] == [good]  # mx, my, mz = 8192, -4096, 1: the first

@@ -1,5 +1,5 @@
 """Every chip implementation against tests/vectors/chip.json (protocol/scenarios.py: hand-written
-expectations of docs/protocol.md v1.1): the Python model and the C firmware (the ``chip_class``
+expectations of docs/protocol.md): the Python model and the C firmware (the ``chip_class``
 fixture), and a chip of the vectorised `ChipArray` driven as a gateway drives it (its SYNC path is
 its own code, everything else the model's)."""
 
@@ -159,3 +159,37 @@ def test_a_wrong_expectation_is_caught():
     sc["steps"][-1]["expect"][0]["fields"]["rx_errors"] = 7
     with pytest.raises(AssertionError, match="step"):
         run_scenario(ChipModel, sc, "serial")
+
+
+@pytest.mark.parametrize("transport", ["serial", "can"])
+def test_the_g_sensitivity_uses_the_nominal_2g_sensitivity(chip_class, transport):
+    """§17.3 as 1.4 answers it (G05), on the wire of both reference chips: at ±4 g the accelerometer sends
+    512 for 1 g (sensor: 1024 at ±2 g), so f_z = 512 · 2 / 1024 = 1 g; with Γ_zz = 0.01 rad/s per g and a
+    still gyroscope the chip sends gz = round(−0.01 · 32.768 · 180/π) = round(−18.77) = −19 at ±1000 °/s.
+    Read at the range's own nominal 2048/4 = 512 counts per g, f would be 2 g and gz −38."""
+    from protocol.messages import (Ack, Assign, CalImuWrite, Capability, Config, ConfigImu, ImuSample, Start,
+                                   ConfigImuFlag)
+    uid = UID
+    caps = int(Capability.MULTI_RANGE | Capability.CAN_FD) if transport == "can" else int(Capability.MULTI_RANGE)
+    chip = chip_class(uid, lambda now_s: ((0, 0, 1024), 0), transport=transport, capabilities=caps,
+                      sensors="accel+gyro", imu=lambda now_s, gr, mr: ((0, 0, 0), None, 0),
+                      **({"fd": True} if transport == "can" else {}))
+    p0 = provisional_node(uid, 0)
+
+    def send(msg):
+        f = to_can(msg) if transport == "can" else encode(msg)
+        out = chip.handle(f, 0.1)
+        if transport == "can":
+            return [decode_can(o.arbitration_id, o.data, is_fd=o.is_fd) for o in out]
+        return [decode_frame(bytes(o).rstrip(b"\x00")) for o in out]
+
+    chip.power_on(0.0)
+    assert send(Assign(p0, new_node=42, link=7, uid_low=uid & 0xFFFFFFFF)) == [Ack(42, MsgType.ASSIGN, 0)]
+    assert send(CalImuWrite(42, 2, 8, 0, 0, 0.01)) == [Ack(42, MsgType.CAL_IMU_WRITE, 0)]  # Γ_zz
+    assert send(Config(42, rate_hz=145, range=1, filter=0, heartbeat_ms=1000)) == [Ack(42, MsgType.CONFIG, 0)]
+    fd = int(ConfigImuFlag.FD) if transport == "can" else 0
+    assert send(ConfigImu(42, 1, 3, 0, fd)) == [Ack(42, MsgType.CONFIG_IMU, 0)]
+    assert send(Start(42)) == [Ack(42, MsgType.START, 0)]
+    (rec,) = send(Sync(counter=5))
+    assert isinstance(rec, ImuSample) and (rec.x, rec.y, rec.z) == (0, 0, 512)
+    assert rec.gyro == (0, 0, -19)

@@ -10,7 +10,8 @@ suite must fail it — and only in the checks that hold a node to that rule
   builds three of them (``make -C firmware_ref qemu MUTANT=``).
 * Gateways: subclasses of the virtual `Gateway` (`GATEWAY_MUTANTS`), for the gateway profile.
 * Healthy variants (`HEALTHY`): nodes the suite must pass — noise-free, a quiet 12-bit sensor, a
-  packing gateway in front, several chips on one port, a SYNC-source gateway.
+  packing gateway in front, several chips on one port, a SYNC-source gateway, gateways that flush
+  anywhere in the 10 ms §13.2 allows, and 6/9-axis chips behind gateways packing SNAPSHOT_IMU.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from protocol.messages import (Ack, Assign, Capability, ChipState, Config, Direc
 from virtual_sheet.chip import ChipModel, frame_header
 from virtual_sheet.gateway import Gateway, GatewayNode
 
-__all__ = ["MUTANTS"]
+__all__ = ["MUTANTS", "HEALTHY", "FlushesAt5ms", "FlushesAt10ms"]
 
 
 class _Rewriting(ChipModel):
@@ -627,11 +628,60 @@ GATEWAY_MUTANTS = {
     "imu_gateway_leaves_chips_in_format_0": (ImuGatewayLeavesChipsInFormat0, dict(packed=True, sensors="accel+gyro")),
 }
 
-#: healthy variants: name -> (sheet options, device options); the suite must pass every one
+class _SlottedSyncSource(Gateway):
+    """A packing gateway that, as a SYNC source, passes the host's frames to its chips right after each
+    SYNC it generates (a segment served in slots; §13.1 forwards every host frame and sets no latency)."""
+
+    def __init__(self, *args, **kw) -> None:
+        super().__init__(*args, **kw)
+        self._held: list = []
+
+    def _from_host(self, frame, decoded, now_s: float) -> None:
+        if self.sync_rate_hz and type(decoded) is not Sync:
+            self._held.append((frame, decoded))
+        else:
+            super()._from_host(frame, decoded, now_s)
+
+    def poll(self, now_s: float) -> None:
+        before = self.stats.syncs_generated
+        super().poll(now_s)
+        if self.stats.syncs_generated != before:
+            held, self._held = self._held, []
+            for frame, decoded in held:
+                super()._from_host(frame, decoded, now_s)
+
+
+class FlushesAt5ms(_SlottedSyncSource):
+    """Healthy: a packing gateway that sends each SYNC's frames 5 ms after the SYNC, on a timer, even when
+    every chip answered at once — §13.2 allows anywhere up to 10 ms (a chip behind it answered in time).
+    As a SYNC source its STOP reaches the chip just after a SYNC the chip answers: that SYNC's SNAPSHOT
+    follows the STOP's ACK."""
+
+    flush_s = 0.005
+
+
+class FlushesAt10ms(_SlottedSyncSource):
+    """Healthy: the same at the last instant §13.2 allows, 10 ms after the SYNC (`SNAPSHOT_DEADLINE`). As a
+    SYNC source at 145 Hz (6.9 ms) a SYNC's SNAPSHOT arrives after the next SYNC, and after the ACK of a
+    second STOP sent at once: every time, not by chance."""
+
+    flush_s = 0.010
+
+
+#: healthy variants: name -> (sheet options, device options); the suite must pass every one. The gateways
+#: cover what §13-§16 allow a gateway: each record format a chip may be reached by (SAMPLE, SNAPSHOT,
+#: SNAPSHOT_IMU of format 1 and 2), SYNC source or not, packed frames anywhere in 0-10 ms after the SYNC
+#: (at 145 Hz a 10 ms flush arrives after the next SYNC)
 HEALTHY = {
     "noise_free": (dict(noise=0.0), dict()),
     "quiet_12_bit": (dict(noise=0.02), dict()),
     "packing_gateway": (dict(noise=0.02), dict(packed=True)),
     "several_chips_one_port": (dict(noise=0.5, lattice="3x3"), dict()),
     "sync_source_gateway": (dict(noise=0.02), dict(packed=True, sync_rate_hz=50.0)),
+    "sync_source_gateway_flushing_at_5ms": (dict(noise=0.02), dict(packed=True, sync_rate_hz=50.0,
+                                                                   gateway_class=FlushesAt5ms)),
+    "packing_gateway_flushing_at_10ms": (dict(noise=0.02), dict(packed=True, gateway_class=FlushesAt10ms)),
+    "imu6_chips_behind_a_format_1_packing_gateway": (dict(noise=0.02, sensors="accel+gyro"), dict(packed=True)),
+    "imu9_chips_behind_a_sync_source_flushing_at_10ms": (
+        dict(noise=0.02, sensors="accel+gyro+mag"), dict(packed=True, sync_rate_hz=145.0, gateway_class=FlushesAt10ms)),
 }
