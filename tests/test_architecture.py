@@ -436,7 +436,9 @@ def foreign_reach_offenders(root: Path = ROOT) -> list[str]:
     * a library's private name through its module, even in an annotation (``argparse._ArgumentGroup``);
     * a private attribute set on another object (``other._state = ...``, anything but ``self`` or
       ``cls``), even another instance of the module's own class: it changes state its owner keeps
-      through its own methods."""
+      through its own methods;
+    * a private name imported from another module (``from .base import _check``): a helper two
+      modules share is public to its package."""
     bad = []
     for pkg in SEAM_PACKAGES + ("firmware_ref",):
         for path in sorted((root / pkg).rglob("*.py")):
@@ -445,6 +447,10 @@ def foreign_reach_offenders(root: Path = ROOT) -> list[str]:
             modules = {al.asname or al.name.split(".")[0] for n in ast.walk(tree) if isinstance(n, ast.Import)
                        for al in n.names}
             for node in ast.walk(tree):
+                if isinstance(node, ast.ImportFrom):
+                    bad += [f"{rel}:{node.lineno}: from {'.' * node.level}{node.module or ''} import {al.name}"
+                            for al in node.names if al.name.startswith("_") and not al.name.startswith("__")]
+                    continue
                 if not isinstance(node, ast.Attribute) or not node.attr.startswith("_") or node.attr.startswith("__"):
                     continue
                 where = f"{rel}:{node.lineno}: {ast.unparse(node)}"
@@ -466,7 +472,8 @@ def test_the_reach_check_sees_what_it_looks_for(tmp_path):
         "import argparse\nimport enum\n"
         "class A:\n    def __init__(self):\n        self._x = 1\n    def copy(self, other):\n        other._x = 2\n"
         "def f(g: argparse._ArgumentGroup, m: enum.Enum, b):\n    b._state = 1\n    return 1 in m._value2member_map_\n"
-        "class E(enum.IntEnum):\n    A = 1\n    @classmethod\n    def _missing_(cls, v):\n        return cls.A\n")
+        "class E(enum.IntEnum):\n    A = 1\n    @classmethod\n    def _missing_(cls, v):\n        return cls.A\n"
+        "from .b import _helper, __version__\n")
     assert foreign_reach_offenders(tmp_path) == [
         "host/a.py:7: other._x", "host/a.py:8: argparse._ArgumentGroup", "host/a.py:9: b._state",
-        "host/a.py:10: m._value2member_map_"]
+        "host/a.py:10: m._value2member_map_", "host/a.py:16: from .b import _helper"]

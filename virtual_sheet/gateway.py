@@ -227,7 +227,11 @@ class Gateway:
     def followers(self, gws) -> None:
         self._followers = list(gws)
         for g in self._followers:
-            g._leader = self
+            g.follow(self)
+
+    def follow(self, leader: "Gateway | None") -> None:
+        """Take ``leader``'s SYNC line (None: none); `followers` calls it for each gateway it lists."""
+        self._leader = leader
 
     @property
     def sync_source(self) -> bool:

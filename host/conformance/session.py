@@ -43,7 +43,7 @@ from protocol.can import decode_can, split_id
 from protocol.can import INCOMPLETE_IMU
 from protocol.framing import DecodeError
 from protocol.messages import ImuBatch, SampleBatch
-from protocol.messages import (LINK_NONE, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, ChipState, Config,
+from protocol.messages import (LINK_NONE, MSG_TYPE_CODES, NODE_MAX_ASSIGNED, Ack, Announce, Assign, Capability, ChipState, Config,
                                Direction, GatewayFlag, GatewayInfo, GetInfo, ImuSample, Info, Message, MsgType, Reset,
                                Sample, Snapshot, SnapshotImu, Start, Status, Stop, Sync, is_node_to_host_type)
 
@@ -459,7 +459,7 @@ class Session:
         for (t, ok), bad in self.by_type.items():
             if ok or bad < 3 or self.by_type.get((t, True), 0) or not intact_any:
                 continue
-            name = MsgType(t).name if t in MsgType._value2member_map_ else f"type 0x{t:02X}"
+            name = MsgType(t).name if t in MSG_TYPE_CODES else f"type 0x{t:02X}"
             return (f"§6.2: every {name} frame from the node ({bad} of {bad}) fails its CRC while its other "
                     f"frames ({intact_any}) arrive intact: the node's CRC, not the port")
         return None

@@ -16,7 +16,8 @@ from .base import (PROTOCOL_VERSION, SPEC_VERSION, MsgType, Direction, ChipState
     LINK_NONE, is_node_to_host_type, NODE_BROADCAST, NODE_MAX_ASSIGNED, NODE_PROVISIONAL_MIN,
     NODE_PROVISIONAL_MAX, SAMPLE_WORD_SIZE, MAX_SNAPSHOT_SAMPLES, Message, pack_sample_words,
     unpack_sample_words, unpack_snapshots, PayloadError, provisional_node, TIME_UNKNOWN, IMU_RECORD_SIZE,
-    MAX_SERIAL_IMU_RECORDS, ConfigImuFlag)
+    MAX_SERIAL_IMU_RECORDS, ConfigImuFlag, codes_of, MSG_TYPE_CODES, CHIP_STATE_CODES, SAMPLE_FORMAT_CODES,
+    NACK_REASON_CODES)
 from .chip_to_host import (Announce, Info, Sample, SampleBatch, ImuBatch, Status, StatusBatch, STATUS_STATES,
     Ack, Nack, CalData, Snapshot, SnapshotFrames, GatewayInfo)
 from .imu import (ImuGyro, ImuMag, ImuAccel, ImuSample, SnapshotImu, imu_sample_to_can_parts,
@@ -38,4 +39,5 @@ __all__ = [
     "ImuGyro", "ImuMag", "ImuAccel", "ImuSample", "SnapshotImu", "ConfigImu", "TIME_UNKNOWN", "IMU_RECORD_SIZE",
     "MAX_SERIAL_IMU_RECORDS", "ConfigImuFlag", "IMU_TYPES", "imu_sample_to_can_parts", "pack_imu_records", "unpack_imu_records", "unpack_snapshots_imu", "imu_saturated",
     "CalBlock", "CAL_BLOCK_SIZE", "CalImuData", "CalImuWrite", "CalImuRead", "cal_block_nominal",
+    "codes_of", "MSG_TYPE_CODES", "CHIP_STATE_CODES", "SAMPLE_FORMAT_CODES", "NACK_REASON_CODES",
 ]

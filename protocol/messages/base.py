@@ -165,6 +165,23 @@ class NackReason(IntEnum):
     STORAGE_FAILED = 7  #: calibration could not be written
 
 
+def codes_of(enum: type[IntEnum]) -> frozenset[int]:
+    """The values an enumeration defines, as plain ints: what a decoder checks a wire field
+    against before it builds the member (``ChipState(v)`` raises on anything else).
+
+    >>> sorted(codes_of(ChipState))
+    [0, 1, 2, 3]
+    """
+    return frozenset(int(m) for m in enum)
+
+
+#: the codes of `MsgType`, `ChipState`, `SampleFormat`, `NackReason` (`codes_of`)
+MSG_TYPE_CODES = codes_of(MsgType)
+CHIP_STATE_CODES = codes_of(ChipState)
+SAMPLE_FORMAT_CODES = codes_of(SampleFormat)
+NACK_REASON_CODES = codes_of(NackReason)
+
+
 class PayloadError(ValueError):
     """A payload that does not decode: ``reason`` is an ErrorReason name (see protocol.framing)."""
 
@@ -174,12 +191,12 @@ class PayloadError(ValueError):
         self.detail = detail
 
 
-def _check_uint(name: str, value: int, bits: int) -> None:
+def check_uint(name: str, value: int, bits: int) -> None:
     if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not 0 <= value < (1 << bits):
         raise ValueError(f"Invalid {name}: {value!r} (need an integer in 0..{(1 << bits) - 1})")
 
 
-def _check_int(name: str, value: int, lo: int, hi: int) -> None:
+def check_int(name: str, value: int, lo: int, hi: int) -> None:
     if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or not lo <= value <= hi:
         raise ValueError(f"Invalid {name}: {value!r} (need an integer in {lo}..{hi})")
 
@@ -198,7 +215,7 @@ def provisional_node(uid: int, salt: int = 0) -> int:
     >>> hex(provisional_node(0x0123456789ABCDEF))
     '0x9112'
     """
-    _check_uint("uid", uid, 64)
+    check_uint("uid", uid, 64)
     h = ((uid ^ (uid >> 32)) & 0xFFFFFFFF) ^ ((salt * 0x9E3779B9) & 0xFFFFFFFF)
     h ^= h >> 16
     return NODE_PROVISIONAL_MIN | (h % 0x7FFF)
@@ -220,7 +237,7 @@ class Message:
     node: int
 
     def __post_init__(self) -> None:
-        _check_uint("node", self.node, 16)
+        check_uint("node", self.node, 16)
         if self.node == 0xFFFF:
             raise ValueError("Invalid node: 65535 (0xFFFF is reserved)")
         self._validate()

@@ -9,7 +9,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from .base import Direction, Message, MsgType, NODE_BROADCAST, _check_uint
+from .base import Direction, Message, MsgType, NODE_BROADCAST, check_uint
 
 
 # --------------------------------------------------------------------------------------------
@@ -41,10 +41,10 @@ def cal_block_nominal(block: int, index: int) -> float:
 def _check_cal_element(msg) -> None:
     if msg.node == NODE_BROADCAST and msg.TYPE != MsgType.CAL_IMU_DATA:
         raise ValueError(f"Invalid node: 0 ({msg.TYPE.name} is addressed to one chip)")
-    _check_uint("block", msg.block, 8)
+    check_uint("block", msg.block, 8)
     if msg.block not in CAL_BLOCK_SIZE:
         raise ValueError(f"Invalid block: {msg.block!r} (0..4)")
-    _check_uint("index", msg.index, 8)
+    check_uint("index", msg.index, 8)
     size = CAL_BLOCK_SIZE[CalBlock(msg.block)]
     if msg.index >= size:
         raise ValueError(f"Invalid index: {msg.index!r} (block {msg.block} has {size} elements)")
@@ -55,7 +55,7 @@ _CAL_IMU_FMT = struct.Struct("<BBBBf")
 
 def _validate_cal_imu(msg) -> None:
     _check_cal_element(msg)
-    _check_uint("flags", msg.flags, 8)
+    check_uint("flags", msg.flags, 8)
     if msg.reserved != 0:
         raise ValueError(f"Invalid reserved: {msg.reserved!r} (must be 0)")
     v = float(msg.value)

@@ -10,9 +10,9 @@ from typing import ClassVar
 import numpy as np
 
 from ..constants import ADC_MAX, ADC_MIN
-from .base import (Capability, ChipState, Direction, GatewayFlag, MAX_SNAPSHOT_SAMPLES, Message, MsgType,
-    NackReason, PROTOCOL_VERSION, PayloadError, SAMPLE_WORD_SIZE, SampleFormat, StatusFlag, _check_int,
-    _check_uint, pack_sample_words, unpack_sample_words, unpack_snapshots)
+from .base import (CHIP_STATE_CODES, NACK_REASON_CODES, Capability, ChipState, Direction, GatewayFlag, MAX_SNAPSHOT_SAMPLES, Message, MsgType,
+    NackReason, PROTOCOL_VERSION, PayloadError, SAMPLE_WORD_SIZE, SampleFormat, StatusFlag, check_int,
+    check_uint, pack_sample_words, unpack_sample_words, unpack_snapshots)
 from .imu import ImuSample
 
 
@@ -32,7 +32,7 @@ class Announce(Message):
     uid: int = 0
 
     def _validate(self) -> None:
-        _check_uint("uid", self.uid, 64)
+        check_uint("uid", self.uid, 64)
 
 
 assert Announce._FMT.size == 8
@@ -57,9 +57,9 @@ class Info(Message):
 
     def _validate(self) -> None:
         for name in ("fw_major", "fw_minor", "fw_patch", "protocol_version", "adc_bits"):
-            _check_uint(name, getattr(self, name), 8)
-        _check_uint("capabilities", self.capabilities, 16)
-        if self.state not in ChipState._value2member_map_:
+            check_uint(name, getattr(self, name), 8)
+        check_uint("capabilities", self.capabilities, 16)
+        if self.state not in CHIP_STATE_CODES:
             raise ValueError(f"Invalid state: {self.state!r}")
         object.__setattr__(self, "state", ChipState(self.state))
         object.__setattr__(self, "capabilities", Capability(self.capabilities))
@@ -85,10 +85,10 @@ class Sample(Message):
     SIZE: ClassVar[int] = 2 + SAMPLE_WORD_SIZE
 
     def _validate(self) -> None:
-        _check_uint("counter", self.counter, 16)
+        check_uint("counter", self.counter, 16)
         for name in ("x", "y", "z"):
-            _check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
-        _check_uint("status", self.status, 4)
+            check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
+        check_uint("status", self.status, 4)
 
     def payload(self) -> bytes:
         word = ((self.x & 0xFFF) | ((self.y & 0xFFF) << 12) | ((self.z & 0xFFF) << 24)
@@ -177,19 +177,19 @@ class Status(Message):
     uptime_s: int = 0
 
     def _validate(self) -> None:
-        if self.state not in ChipState._value2member_map_:
+        if self.state not in CHIP_STATE_CODES:
             raise ValueError(f"Invalid state: {self.state!r}")
         object.__setattr__(self, "state", ChipState(self.state))
         for name in ("flags", "rx_errors", "missed_syncs"):
-            _check_uint(name, getattr(self, name), 8)
-        _check_uint("uptime_s", self.uptime_s, 32)
+            check_uint(name, getattr(self, name), 8)
+        check_uint("uptime_s", self.uptime_s, 32)
         object.__setattr__(self, "flags", StatusFlag(self.flags))
 
 
 assert Status._FMT.size == Status.SIZE == 8
 
 #: the STATUS states a chip may report (§4.4), for the decoders' vectorised checks
-STATUS_STATES = np.array(sorted(int(v) for v in ChipState._value2member_map_), dtype=np.int64)
+STATUS_STATES = np.array(sorted(CHIP_STATE_CODES), dtype=np.int64)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -222,7 +222,7 @@ class StatusBatch:
 
 
 def _check_command(value: int) -> None:
-    _check_uint("command", value, 8)
+    check_uint("command", value, 8)
 
 
 @dataclass(frozen=True, slots=True)
@@ -238,7 +238,7 @@ class Ack(Message):
 
     def _validate(self) -> None:
         _check_command(self.command)
-        _check_uint("detail", self.detail, 8)
+        check_uint("detail", self.detail, 8)
 
 
 @dataclass(frozen=True, slots=True)
@@ -254,21 +254,21 @@ class Nack(Message):
 
     def _validate(self) -> None:
         _check_command(self.command)
-        if self.reason not in NackReason._value2member_map_:
+        if self.reason not in NACK_REASON_CODES:
             raise ValueError(f"Invalid reason: {self.reason!r}")
         object.__setattr__(self, "reason", NackReason(self.reason))
 
 
-_CAL_FMT = struct.Struct("<BBhf")
-assert _CAL_FMT.size == 8
+CAL_FMT = struct.Struct("<BBhf")
+assert CAL_FMT.size == 8
 
 
-def _validate_cal(msg) -> None:
-    _check_uint("axis", msg.axis, 8)
+def validate_cal(msg) -> None:
+    check_uint("axis", msg.axis, 8)
     if msg.axis > 2:
         raise ValueError(f"Invalid axis: {msg.axis!r} (0 = x, 1 = y, 2 = z)")
-    _check_uint("flags", msg.flags, 8)
-    _check_int("offset_q4", msg.offset_q4, -32768, 32767)
+    check_uint("flags", msg.flags, 8)
+    check_int("offset_q4", msg.offset_q4, -32768, 32767)
     s = float(msg.sensitivity)
     if not (np.isfinite(s) and s > 0):
         raise ValueError(f"Invalid sensitivity: {msg.sensitivity!r} (need a finite value > 0)")
@@ -284,14 +284,14 @@ class CalData(Message):
     TYPE = MsgType.CAL_DATA
     DIRECTION = Direction.CHIP_TO_HOST
     PRIORITY = 5
-    _FMT = _CAL_FMT
+    _FMT = CAL_FMT
     axis: int = 0
     flags: int = 0
     offset_q4: int = 0
     sensitivity: float = 1024.0
 
     def _validate(self) -> None:
-        _validate_cal(self)
+        validate_cal(self)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -315,8 +315,8 @@ class Snapshot(Message):
     HEADER_SIZE: ClassVar[int] = 5
 
     def _validate(self) -> None:
-        _check_uint("counter", self.counter, 16)
-        _check_uint("first_link", self.first_link, 16)
+        check_uint("counter", self.counter, 16)
+        check_uint("first_link", self.first_link, 16)
         if not isinstance(self.words, (bytes, bytearray, memoryview)):
             raise ValueError(f"Invalid words: {type(self.words).__name__} (need bytes)")
         object.__setattr__(self, "words", bytes(self.words))
@@ -444,11 +444,11 @@ class GatewayInfo(Message):
     sync_rate_hz: int = 0
 
     def _validate(self) -> None:
-        _check_uint("flags", self.flags, 8)
-        _check_uint("sample_format", self.sample_format, 8)
-        _check_uint("first_link", self.first_link, 16)
-        _check_uint("link_count", self.link_count, 16)
-        _check_uint("sync_rate_hz", self.sync_rate_hz, 16)
+        check_uint("flags", self.flags, 8)
+        check_uint("sample_format", self.sample_format, 8)
+        check_uint("first_link", self.first_link, 16)
+        check_uint("link_count", self.link_count, 16)
+        check_uint("sync_rate_hz", self.sync_rate_hz, 16)
         if self.first_link + self.link_count > 0x10000:
             raise ValueError(f"Invalid link_count: first_link {self.first_link} + {self.link_count} exceeds 65536")
         object.__setattr__(self, "flags", GatewayFlag(self.flags))

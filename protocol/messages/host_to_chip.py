@@ -6,9 +6,9 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from .base import (Direction, Message, MsgType, NODE_BROADCAST, NODE_MAX_ASSIGNED, SampleFormat, _check_int,
-    _check_uint)
-from .chip_to_host import _CAL_FMT, _validate_cal
+from .base import (Direction, Message, MsgType, NODE_BROADCAST, NODE_MAX_ASSIGNED, SampleFormat, check_int,
+    check_uint)
+from .chip_to_host import CAL_FMT, validate_cal
 
 
 # --------------------------------------------------------------------------------------------
@@ -30,7 +30,7 @@ class Sync(Message):
     def _validate(self) -> None:
         if self.node != NODE_BROADCAST:
             raise ValueError(f"Invalid node: {self.node} (SYNC is always broadcast, node 0)")
-        _check_uint("counter", self.counter, 16)
+        check_uint("counter", self.counter, 16)
 
 
 @dataclass(frozen=True, slots=True)
@@ -50,9 +50,9 @@ class Assign(Message):
     def _validate(self) -> None:
         if self.node == NODE_BROADCAST:
             raise ValueError("Invalid node: 0 (ASSIGN is addressed to one chip)")
-        _check_int("new_node", self.new_node, 1, NODE_MAX_ASSIGNED)
-        _check_uint("link", self.link, 16)
-        _check_uint("uid_low", self.uid_low, 32)
+        check_int("new_node", self.new_node, 1, NODE_MAX_ASSIGNED)
+        check_uint("link", self.link, 16)
+        check_uint("uid_low", self.uid_low, 32)
 
 
 @dataclass(frozen=True, slots=True)
@@ -71,10 +71,10 @@ class Config(Message):
     heartbeat_ms: int = 1000
 
     def _validate(self) -> None:
-        _check_uint("rate_hz", self.rate_hz, 16)
-        _check_uint("range", self.range, 8)
-        _check_uint("filter", self.filter, 8)
-        _check_uint("heartbeat_ms", self.heartbeat_ms, 16)
+        check_uint("rate_hz", self.rate_hz, 16)
+        check_uint("range", self.range, 8)
+        check_uint("filter", self.filter, 8)
+        check_uint("heartbeat_ms", self.heartbeat_ms, 16)
 
 
 assert Config._FMT.size == 6
@@ -132,7 +132,7 @@ class CalWrite(Message):
     TYPE = MsgType.CAL_WRITE
     DIRECTION = Direction.HOST_TO_CHIP
     PRIORITY = 4
-    _FMT = _CAL_FMT
+    _FMT = CAL_FMT
     axis: int = 0
     flags: int = 0
     offset_q4: int = 0
@@ -141,7 +141,7 @@ class CalWrite(Message):
     def _validate(self) -> None:
         if self.node == NODE_BROADCAST:
             raise ValueError("Invalid node: 0 (CAL_WRITE is addressed to one chip)")
-        _validate_cal(self)
+        validate_cal(self)
 
 
 @dataclass(frozen=True, slots=True)
@@ -157,7 +157,7 @@ class CalRead(Message):
     def _validate(self) -> None:
         if self.node == NODE_BROADCAST:
             raise ValueError("Invalid node: 0 (CAL_READ is addressed to one chip)")
-        _check_uint("axis", self.axis, 8)
+        check_uint("axis", self.axis, 8)
         if self.axis > 2:
             raise ValueError(f"Invalid axis: {self.axis!r} (0 = x, 1 = y, 2 = z)")
 
@@ -179,6 +179,6 @@ class ConfigImu(Message):
 
     def _validate(self) -> None:
         for name in ("format", "gyro_range", "mag_range", "flags"):
-            _check_uint(name, getattr(self, name), 8)
+            check_uint(name, getattr(self, name), 8)
 
 

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..constants import ADC_MAX, ADC_MIN
 from .base import (Direction, IMU_RECORD_SIZE, MAX_SNAPSHOT_SAMPLES, Message, MsgType, PayloadError,
-    SAMPLE_WORD_SIZE, SampleFormat, TIME_UNKNOWN, _check_int, _check_uint, pack_sample_words,
+    SAMPLE_WORD_SIZE, SampleFormat, TIME_UNKNOWN, check_int, check_uint, pack_sample_words,
     unpack_sample_words)
 
 
@@ -112,7 +112,7 @@ def unpack_snapshots_imu(snapshots):
 
 
 def _check_i16(name: str, value) -> None:
-    _check_int(name, value, _I16_MIN, _I16_MAX)
+    check_int(name, value, _I16_MIN, _I16_MAX)
 
 
 @dataclass(frozen=True, slots=True)
@@ -141,10 +141,10 @@ class ImuSample(Message):
     SIZES: ClassVar[dict] = {2 + 13: SampleFormat.IMU6, 2 + 19: SampleFormat.IMU9}
 
     def _validate(self) -> None:
-        _check_uint("counter", self.counter, 16)
+        check_uint("counter", self.counter, 16)
         for name in ("x", "y", "z"):
-            _check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
-        _check_uint("status", self.status, 4)
+            check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
+        check_uint("status", self.status, 4)
         for name in ("time_us", "gx", "gy", "gz"):
             _check_i16(name, getattr(self, name))
         mags = (self.mx, self.my, self.mz)
@@ -199,7 +199,7 @@ class ImuGyro(Message):
     gz: int = 0
 
     def _validate(self) -> None:
-        _check_uint("counter", self.counter, 16)
+        check_uint("counter", self.counter, 16)
         for name in ("gx", "gy", "gz"):
             _check_i16(name, getattr(self, name))
 
@@ -218,7 +218,7 @@ class ImuMag(Message):
     mz: int = 0
 
     def _validate(self) -> None:
-        _check_uint("counter", self.counter, 16)
+        check_uint("counter", self.counter, 16)
         for name in ("mx", "my", "mz"):
             _check_i16(name, getattr(self, name))
 
@@ -241,10 +241,10 @@ class ImuAccel(Message):
     SIZE: ClassVar[int] = 8
 
     def _validate(self) -> None:
-        _check_uint("counter_lo", self.counter_lo, 8)
+        check_uint("counter_lo", self.counter_lo, 8)
         for name in ("x", "y", "z"):
-            _check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
-        _check_uint("status", self.status, 4)
+            check_int(name, getattr(self, name), ADC_MIN, ADC_MAX)
+        check_uint("status", self.status, 4)
         _check_i16("time_us", self.time_us)
 
     def payload(self) -> bytes:
@@ -286,8 +286,8 @@ class SnapshotImu(Message):
     HEADER_SIZE: ClassVar[int] = 6
 
     def _validate(self) -> None:
-        _check_uint("counter", self.counter, 16)
-        _check_uint("first_link", self.first_link, 16)
+        check_uint("counter", self.counter, 16)
+        check_uint("first_link", self.first_link, 16)
         if self.format not in IMU_RECORD_SIZE:
             raise ValueError(f"Invalid format: {self.format!r} (1 = 6-axis, 2 = 9-axis records)")
         object.__setattr__(self, "format", SampleFormat(self.format))

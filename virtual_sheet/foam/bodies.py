@@ -9,7 +9,7 @@ import numpy as np
 from ..drape import drape
 from ..geometry import chebyshev_net
 from ..geometry import flat_net
-from .material import FoamLayer, _positive
+from .material import FoamLayer, require_positive
 from .solver import Deflection
 
 __all__ = ["FoamBody", "FoamBlock", "FoamCylinder", "FoamSphere"]
@@ -100,7 +100,7 @@ class FoamCylinder(FoamBody):
     layer: FoamLayer = FoamLayer()
 
     def __post_init__(self) -> None:
-        _positive(self.radius_m, "cylinder radius_m", "m")
+        require_positive(self.radius_m, "cylinder radius_m", "m")
         if not self.layer.thickness_m < self.radius_m:
             raise ValueError(f"Invalid cylinder radius_m: {self.radius_m!r} m (need more than the "
                              f"foam's thickness {self.layer.thickness_m!r} m)")
@@ -167,7 +167,7 @@ class FoamSphere(FoamBody):
     layer: FoamLayer = FoamLayer()
 
     def __post_init__(self) -> None:
-        _positive(self.radius_m, "sphere radius_m", "m")
+        require_positive(self.radius_m, "sphere radius_m", "m")
         if not self.layer.thickness_m < self.radius_m:
             raise ValueError(f"Invalid sphere radius_m: {self.radius_m!r} m (need more than the "
                              f"foam's thickness {self.layer.thickness_m!r} m)")

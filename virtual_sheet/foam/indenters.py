@@ -7,7 +7,7 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
-from .material import _positive
+from .material import require_positive
 
 __all__ = ["Indenter", "SphereIndenter", "FlatPunch", "CapsuleIndenter", "RectPunch", "Press",
            "TrueContact"]
@@ -47,7 +47,7 @@ class SphereIndenter:
     kind: str = field(default="sphere", init=False)
 
     def __post_init__(self) -> None:
-        _positive(self.radius_m, "sphere radius_m", "m")
+        require_positive(self.radius_m, "sphere radius_m", "m")
 
     def profile(self, du, dv):
         return (du * du + dv * dv) / (2.0 * self.radius_m)
@@ -72,7 +72,7 @@ class FlatPunch:
     kind: str = field(default="punch", init=False)
 
     def __post_init__(self) -> None:
-        _positive(self.radius_m, "punch radius_m", "m")
+        require_positive(self.radius_m, "punch radius_m", "m")
 
     def profile(self, du, dv):
         return np.where(du * du + dv * dv <= self.radius_m ** 2, 0.0, np.inf)
@@ -99,7 +99,7 @@ class CapsuleIndenter:
     kind: str = field(default="capsule", init=False)
 
     def __post_init__(self) -> None:
-        _positive(self.radius_m, "capsule radius_m", "m")
+        require_positive(self.radius_m, "capsule radius_m", "m")
         if not (np.isfinite(self.half_length_m) and self.half_length_m >= 0):
             raise ValueError(f"Invalid capsule half_length_m: {self.half_length_m!r} m (need >= 0)")
 
@@ -137,8 +137,8 @@ class RectPunch:
     kind: str = field(default="rect", init=False)
 
     def __post_init__(self) -> None:
-        _positive(self.half_length_m, "rect half_length_m", "m")
-        _positive(self.half_width_m, "rect half_width_m", "m")
+        require_positive(self.half_length_m, "rect half_length_m", "m")
+        require_positive(self.half_width_m, "rect half_width_m", "m")
 
     def profile(self, du, dv):
         a, b = _rotate(du, dv, self.angle_rad)

@@ -9,7 +9,7 @@ import numpy as np
 __all__ = ["FoamLayer", "oedometric_modulus", "column_compliance"]
 
 
-def _positive(value: float, name: str, unit: str) -> float:
+def require_positive(value: float, name: str, unit: str) -> float:
     v = float(value)
     if not (np.isfinite(v) and v > 0):
         raise ValueError(f"Invalid {name}: {value!r} {unit} (need a finite value > 0)")
@@ -69,8 +69,8 @@ class FoamLayer:
     curvature_m_inv: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        _positive(self.thickness_m, "thickness_m", "m")
-        _positive(self.youngs_modulus_pa, "youngs_modulus_pa", "Pa")
+        require_positive(self.thickness_m, "thickness_m", "m")
+        require_positive(self.youngs_modulus_pa, "youngs_modulus_pa", "Pa")
         if not (0.0 <= float(self.poisson) <= 0.45):
             raise ValueError(f"Invalid poisson: {self.poisson!r} (need 0 <= nu <= 0.45)")
         if len(self.curvature_m_inv) != 2:

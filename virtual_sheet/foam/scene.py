@@ -12,7 +12,7 @@ from protocol.lattice import Lattice
 
 from .bodies import FoamBody
 from .indenters import Press, TrueContact
-from .material import FoamLayer, _positive
+from .material import FoamLayer, require_positive
 from .solver import Deflection, solve_contact
 
 __all__ = ["FoamScene", "Creep", "TrueFootprint"]
@@ -89,8 +89,8 @@ class Creep:
     centre_m: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self) -> None:
-        _positive(self.width_m, "creep width_m", "m")
-        _positive(self.tau_s, "creep tau_s", "s")
+        require_positive(self.width_m, "creep width_m", "m")
+        require_positive(self.tau_s, "creep tau_s", "s")
         if not (np.isfinite(self.depth_m) and np.isfinite(self.uniform_m)):
             raise ValueError(f"Invalid creep depth_m/uniform_m: {self.depth_m!r}, "
                              f"{self.uniform_m!r} (need finite metres)")
@@ -141,7 +141,7 @@ class FoamScene:
 
     def __post_init__(self) -> None:
         Lattice(self.rows, self.cols)
-        _positive(self.link_length, "link_length", "m")
+        require_positive(self.link_length, "link_length", "m")
         object.__setattr__(self, "presses", tuple(self.presses))
         object.__setattr__(self, "_cache", {})
 
@@ -153,7 +153,7 @@ class FoamScene:
     @cached_property
     def _grid(self) -> tuple[np.ndarray, float]:
         L = self.link_length
-        step = L / 6 if self.grid_step_m is None else _positive(self.grid_step_m, "grid_step_m", "m")
+        step = L / 6 if self.grid_step_m is None else require_positive(self.grid_step_m, "grid_step_m", "m")
         margin = (6 * self.layer.shear_length_m + 3 * L if self.margin_m is None
                   else float(self.margin_m))
         half = 0.5 * max(self.rows, self.cols) * L + margin
@@ -232,9 +232,9 @@ class FoamScene:
         xy = np.stack([U.ravel(), V.ravel()], axis=1)
         from scipy.fft import irfft2, rfft2
 
-        from .solver import _compliance
+        from .solver import compliance
         n_grid = U.shape[0]
-        comp = _compliance(self.layer, n_grid, defl.step_m)
+        comp = compliance(self.layer, n_grid, defl.step_m)
         out = []
         for n, i in enumerate(active):
             mine = own == n

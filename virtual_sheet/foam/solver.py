@@ -8,7 +8,7 @@ from typing import Sequence
 
 import numpy as np
 
-from .material import FoamLayer, _positive
+from .material import FoamLayer, require_positive
 
 __all__ = ["Deflection", "solve_contact"]
 
@@ -52,7 +52,7 @@ class Deflection:
         return self.spline(u.ravel(), v.ravel(), grid=False).reshape(u.shape)
 
 
-def _compliance(layer: FoamLayer, n: int, step: float) -> np.ndarray:
+def compliance(layer: FoamLayer, n: int, step: float) -> np.ndarray:
     """``1 / (k (1 + λ² q²))`` on the ``rfft2`` grid of an ``n × n`` grid of spacing ``step``."""
     q = 2 * np.pi * np.fft.fftfreq(n, d=step)
     qr = 2 * np.pi * np.fft.rfftfreq(n, d=step)
@@ -132,7 +132,7 @@ def solve_contact(layer: FoamLayer, profiles: Sequence[np.ndarray], forces: Sequ
     if any(np.shape(g) != (n, n) for g in profiles) or len(profiles) != len(forces):
         raise ValueError(f"Expected {len(forces)} profiles of shape ({n}, {n}); got "
                          f"{[np.shape(g) for g in profiles]}.")
-    comp = _compliance(layer, n, step_m)
+    comp = compliance(layer, n, step_m)
     k = layer.k_pa_per_m
     dA = step_m * step_m
 
@@ -141,7 +141,7 @@ def solve_contact(layer: FoamLayer, profiles: Sequence[np.ndarray], forces: Sequ
 
     ps = []
     for g, F in zip(profiles, forces):  # Winkler's contact as the first guess
-        F = _positive(F, "force", "N")
+        F = require_positive(F, "force", "N")
         fin = np.isfinite(g)
         d0 = np.sqrt(F / (np.pi * k * max(np.min(g[fin]) + step_m, step_m)))  # any positive
         p0 = np.where(fin, np.maximum(d0 - np.where(fin, g, 0.0), 0.0), 0.0)

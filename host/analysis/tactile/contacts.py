@@ -212,7 +212,7 @@ class Contact:
 _NB8 = [(-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)]
 
 
-def _dilate(mask: np.ndarray) -> np.ndarray:
+def dilate(mask: np.ndarray) -> np.ndarray:
     """8-neighbour dilation by one joint."""
     out = mask.copy()
     out[1:] |= mask[:-1]
@@ -511,7 +511,7 @@ def _part(ctx: _Context, cm: np.ndarray, regions: list, warm: list) -> _Part:
     d = ctx.d
     support = cm.copy()
     for _ in range(ctx.settings.skirt):
-        support = _dilate(support)
+        support = dilate(support)
     w = np.where(cm, d, 0.0)
     w = np.where(w >= 0.5 * w.max(), w, 0.0)
     ii, jj = np.nonzero(w)
@@ -640,7 +640,7 @@ def find_contacts(displacement: np.ndarray, rest: RestShape, foam: Foam,
     for ci in range(1, nc + 1):
         cm = comp == ci
         regions = [labels == r for r in ids if np.any((labels == r) & cm)]
-        near = _dilate(cm)
+        near = dilate(cm)
         inside = [near[min(max(int(round(idx[0])), 0), d.shape[0] - 1),
                        min(max(int(round(idx[1])), 0), d.shape[1] - 1)] for _, idx, _ in prev]
         warm = [m for (m, _, _), y in zip(prev, inside) if y]
@@ -674,7 +674,7 @@ def _cluster(ctx: _Context, members: list) -> list[Contact]:
     for c, g in enumerate(grow):
         own[g] = c
     for _ in range(ctx.settings.skirt):
-        grow = [_dilate(g) for g in grow]
+        grow = [dilate(g) for g in grow]
         for c, g in enumerate(grow):
             own[g & (own < 0)] = c
     owner = own[union]

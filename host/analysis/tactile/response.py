@@ -179,7 +179,7 @@ _FP_RAYS = 16
 _fp_table: np.ndarray | None = None
 
 
-def _footprint_table() -> np.ndarray:
+def footprint_table() -> np.ndarray:
     """Half-depth footprint of a line of discs in units of ``λ`` (the response scales with
     ``λ``: ``w(x; a, ℓ, λ) = f(x / λ; a / λ, ℓ / λ) / (k λ²)``), shape (alpha, beta, 3): major and
     minor half-axes ``2 sqrt(moment)`` of the region deeper than half the centre's depth (uniform
@@ -217,7 +217,7 @@ def _footprint_table() -> np.ndarray:
 
 def half_depth_footprint(a, half_length, lam: float):
     """The half-depth footprint of a line of discs' dent (what the sheet sees of a contact:
-    the region deeper than half the deepest point, uniform weights; `_footprint_table`,
+    the region deeper than half the deepest point, uniform weights; `footprint_table`,
     interpolated bilinearly in ``log a`` and ``ℓ``).
 
     Parameters
@@ -239,7 +239,7 @@ def half_depth_footprint(a, half_length, lam: float):
     >>> bool(abs(ax[0] - ax[1]) < 1e-9 and abs(area - np.pi * ax[0] ** 2) < 1e-2 * area)
     True
     """
-    tab = _footprint_table()
+    tab = footprint_table()
     a, b = np.broadcast_arrays(np.asarray(a, float), np.asarray(half_length, float))
     la = np.log(np.clip(a / lam, _FP_ALPHA[0], _FP_ALPHA[-1]))
     be = np.clip(b / lam, _FP_BETA[0], _FP_BETA[-1])

@@ -8,9 +8,9 @@ from typing import Sequence
 import numpy as np
 
 from ..estimator import ShapeEstimate, estimate
-from .contacts import Contact, DetectorSettings, _dilate, find_contacts
+from .contacts import Contact, DetectorSettings, dilate, find_contacts
 from .foam import Foam
-from .response import _footprint_table
+from .response import footprint_table
 from .rest import RestShape, deformation
 from .tracking import ContactTracker
 
@@ -98,7 +98,7 @@ class TactileSensor:
         self._estimate: ShapeEstimate | None = None   # the estimator's warm start
         self._contacts: list[Contact] = []            # the contact fit's warm start
         self._moved: np.ndarray | None = None         # the joints the last overlay left out
-        _footprint_table()   # built once here, not in the first touched snapshot
+        footprint_table()   # built once here, not in the first touched snapshot
         #: The last `ONSET_LOOKBACK` snapshots' times and displacements (the onset's look-back).
         self._history: list[tuple[float, np.ndarray]] = []
 
@@ -166,7 +166,7 @@ class TactileSensor:
             core = np.zeros(d.shape, bool)
             for c in found:
                 core |= c.region
-            moved = _dilate(core)
+            moved = dilate(core)
             if self._moved is None or np.any(core & ~self._moved):
                 # a dent the overlay did not leave out: fit it again without the dents' tails
                 d, aligned = deformation(est.joints, self.rest, exclude=moved, baseline_m=base)
@@ -210,7 +210,7 @@ class TactileSensor:
             m = c.model
             sup = c.region.copy()
             for _ in range(self.settings.skirt):
-                sup = _dilate(sup)
+                sup = dilate(sup)
             X = rest.joints[sup] - m.centre
             t1 = m.direction
             t2 = np.cross(c.normal, t1)

@@ -11,14 +11,14 @@ from protocol.state import ANNOUNCE_PERIOD_S, TIMER_TOLERANCE
 
 from ..session import acked, CheckFailed, require, RunAborted, Session
 
-from .registry import _should, check, PROFILES
+from .registry import should, check, PROFILES
 
 
 # ---------------------------------------------------------------------------------------------
 # Discovery, identity, BOOT
 # ---------------------------------------------------------------------------------------------
 
-def _discover(s: Session, kind: str) -> str:
+def discover(s: Session, kind: str) -> str:
     """Broadcast GET_INFO; the node under test is the first ``kind`` ("chip" or "gateway") to answer
     (or ``--uid``). Counts what answered, by uid: a provisional id changes every second, a uid never."""
     s.drain()
@@ -60,7 +60,7 @@ def _discover(s: Session, kind: str) -> str:
        "answer GET_INFO addressed to node 0 or to the chip, in every state, with ANNOUNCE then INFO "
        "(two frames, in that order, from the current node id)")
 def c_discover(s: Session):
-    detail = _discover(s, "chip")
+    detail = discover(s, "chip")
     g = s.packing_gateway_for_any()
     if g is not None:
         s.link = g.first_link()
@@ -116,7 +116,7 @@ def c_provisional(s: Session):
     s.fresh_boot()
     require(NODE_PROVISIONAL_MIN <= s.cur <= NODE_PROVISIONAL_MAX, f"node 0x{s.cur:04X}")
     rec = provisional_node(s.uid, 0)
-    return _should(s, s.cur == rec, f"0x{s.cur:04X} is not provisional_node(uid, 0) = 0x{rec:04X} after RESET",
+    return should(s, s.cur == rec, f"0x{s.cur:04X} is not provisional_node(uid, 0) = 0x{rec:04X} after RESET",
                    f"node 0x{s.cur:04X}")
 
 

@@ -7,12 +7,12 @@ import time
 from protocol.constants import SampleStatus
 from protocol.messages import (Announce, Assign, CalRead, Capability, ChipState, Config, GatewayFlag,
                                GatewayInfo, GetInfo, Info, Nack, NackReason, PROTOCOL_VERSION,
-                               RESERVED_CAPABILITIES, Reset, SampleFormat, Snapshot, Start, Stop, Sync)
+                               RESERVED_CAPABILITIES, Reset, SAMPLE_FORMAT_CODES, SampleFormat, Snapshot, Start, Stop, Sync)
 from protocol.state import GATEWAY_HEARTBEAT_MS, TIMER_TOLERANCE
 
 from ..session import require, Session, Skip
 
-from .discovery import _discover, theil_sen_period
+from .discovery import discover, theil_sen_period
 from .registry import check
 
 
@@ -25,7 +25,7 @@ from .registry import check
        "be a node: answer GET_INFO with ANNOUNCE, INFO with capability bit 6 GATEWAY, then one GATEWAY_INFO "
        "per run of links", profiles=("gateway",))
 def c_gateway_discover(s: Session):
-    detail = _discover(s, "gateway")
+    detail = discover(s, "gateway")
     got = s.request(GetInfo(s.cur), 3, keep=(Announce, Info, GatewayInfo))
     require(len(got) >= 3 and isinstance(got[2], GatewayInfo) and got[2].node == s.cur,
             f"GET_INFO to the gateway answered {got}: INFO is followed by GATEWAY_INFO (§13.1)")
@@ -49,7 +49,7 @@ def c_gateway_info(s: Session):
     runs = sorted(g.runs.values(), key=lambda r: r.first_link)
     for r in runs:
         require(int(r.flags) & ~0x03 == 0, f"reserved GATEWAY_INFO flag bits: {r}")
-        require(r.sample_format in SampleFormat._value2member_map_,
+        require(r.sample_format in SAMPLE_FORMAT_CODES,
                 f"sample_format {r.sample_format} (0 SAMPLE words; since 1.2 also 1 and 2, IMU records, §16.5)")
         require(not r.flags & GatewayFlag.PACKING or caps & Capability.SNAPSHOT,
                 f"flag PACKING without capability SNAPSHOT: {r}")
@@ -120,7 +120,7 @@ def c_gateway_sync_source(s: Session):
     return f"{len(syn)} SYNC, period {per * 1000:.2f} ms; {len(host)} host SYNC refused and counted"
 
 
-def _a_chip_behind(s: Session):
+def a_chip_behind(s: Session):
     """Assign and start the first chip heard behind the gateway (for a packing check): its uid, node, link."""
     chips = [u for u, k in s.uids_heard.items() if k == "chip"]
     if not chips:
@@ -150,10 +150,10 @@ def c_gateway_packing(s: Session):
     g = s.gateways[s.uid]
     if not g.flags & GatewayFlag.PACKING:
         raise Skip("the gateway does not pack (GATEWAY_INFO flag PACKING clear)")
-    fmts = _packed_formats(g)
+    fmts = packed_formats(g)
     if fmts - {SampleFormat.ACCEL_12}:
         raise Skip(f"the gateway packs IMU records (GATEWAY_INFO sample_format {sorted(fmts)}): check of §16.5")
-    uid, chip_node, link = _a_chip_behind(s)
+    uid, chip_node, link = a_chip_behind(s)
     runs = sorted((r.first_link, r.link_count) for r in g.runs.values() if r.link_count)
     cap = 202 if s.port.kind == "serial" else 11
     try:
@@ -199,6 +199,6 @@ def c_gateway_packing(s: Session):
     return f"runs {runs}: every link once per counter; the chip on link {link} valid, the rest INVALID"
 
 
-def _packed_formats(g) -> set:
+def packed_formats(g) -> set:
     """The sample formats a gateway's runs pack (GATEWAY_INFO ``sample_format``, §4.16, §16.5)."""
     return {int(r.sample_format) for r in g.runs.values() if r.link_count}

@@ -14,7 +14,7 @@ from protocol.messages import (cal_block_nominal, CAL_BLOCK_SIZE, CalBlock, CalI
 
 from ..session import acked, require, Session, Skip
 
-from .gateway import _a_chip_behind, _packed_formats
+from .gateway import a_chip_behind, packed_formats
 from .registry import check
 
 
@@ -255,12 +255,12 @@ def c_gateway_packing_imu(s: Session):
     g = s.gateways[s.uid]
     if not g.flags & GatewayFlag.PACKING:
         raise Skip("the gateway does not pack (GATEWAY_INFO flag PACKING clear)")
-    fmts = _packed_formats(g)
+    fmts = packed_formats(g)
     if fmts <= {SampleFormat.ACCEL_12}:
         raise Skip("the gateway packs SAMPLEs (GATEWAY_INFO sample_format 0): check 38's")
     require(len(fmts) == 1 and fmts <= {1, 2}, f"GATEWAY_INFO sample_format {sorted(fmts)}: one of 1, 2 (§16.5)")
     fmt = SampleFormat(fmts.pop())
-    uid, chip_node, link = _a_chip_behind(s)
+    uid, chip_node, link = a_chip_behind(s)
     runs = sorted((r.first_link, r.link_count) for r in g.runs.values() if r.link_count)
     cap = (MAX_SERIAL_IMU_RECORDS if s.port.kind == "serial" else MAX_FD_IMU_RECORDS)[fmt]
     want_links = [a + k for a, n in runs for k in range(n)]

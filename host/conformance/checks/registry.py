@@ -109,7 +109,7 @@ def clauses_covered(transport: str | None = None) -> set[str]:
     return {c for k in CHECKS if transport in (None, k.transport) or k.transport is None for c in k.clauses}
 
 
-def _should(s: Session, ok: bool, what: str, detail: str) -> str:
+def should(s: Session, ok: bool, what: str, detail: str) -> str:
     """The detail of a check whose MUST passed, with its SHOULD reported."""
     return detail if ok else f"{SHOULD_NOT_MET} {what}; {detail}"
 

@@ -14,7 +14,7 @@ from protocol.state import SYNC_REPLY_DEADLINE_S
 
 from ..session import acked, HEARTBEAT_MS, require, SAMPLES, Session, Skip
 
-from .registry import _should, check, SHOULD_NOT_MET
+from .registry import should, check, SHOULD_NOT_MET
 
 
 # ---------------------------------------------------------------------------------------------
@@ -57,7 +57,7 @@ def c_sync(s: Session):
     limit = SYNC_REPLY_DEADLINE_S * 1000 + s.slack_ms
     timing = (f"{len(lat)} SYNC, median {med:.2f} ms, max {max(lat) * 1000:.2f} ms (host-measured, includes the port"
               + (", and the packing gateway's collection)" if s.packing_gateway else ")"))
-    return _should(s, med <= limit, f"the median SYNC->SAMPLE is over 2 ms + {s.slack_ms:g} ms slack", timing)
+    return should(s, med <= limit, f"the median SYNC->SAMPLE is over 2 ms + {s.slack_ms:g} ms slack", timing)
 
 
 def _answers_earlier_sync(s: Session, t: float, m, c: int) -> bool:
