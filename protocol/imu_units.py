@@ -1,4 +1,4 @@
-"""Gyroscope and magnetometer ranges, and their counts <-> SI conversions (6/9-axis chips, issue 29).
+"""Gyroscope and magnetometer ranges, and their counts <-> SI conversions (6/9-axis chips).
 
 The accelerometer's are in `protocol.constants` (12-bit counts, ``Range``, `counts_to_si`); these
 follow the same rule for the two new sensors: a ``bits``-bit two's-complement count at a

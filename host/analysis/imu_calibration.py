@@ -1,4 +1,4 @@
-"""Calibration of the gyroscopes and magnetometers of a 6/9-axis sheet (issue 29), beside the
+"""Calibration of the gyroscopes and magnetometers of a 6/9-axis sheet, beside the
 accelerometer's (`host.analysis.calibration`, whose capture — the sheet flat on a board turned
 through held poses — this reuses). docs/calibration.md gives the procedure and the accuracy.
 

@@ -2,7 +2,7 @@
 line rewritten in place), a pipe or a log file gets plain lines now and then, ``-q`` gets nothing.
 
 tqdm writes a carriage-return update many times a second; into a file that is hundreds of glued
-updates (issue 33). Here the decision is made once per stream, from ``stream.isatty()``:
+updates. Here the decision is made once per stream, from ``stream.isatty()``:
 
 * `Progress` — counted work (``n`` of ``total`` trials, snapshots, chunks): on a terminal a tqdm
   bar; otherwise a line ``desc: n/total unit (p %), elapsed, ~left`` at most every ``every_s``

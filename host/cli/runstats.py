@@ -1,6 +1,6 @@
 """Bounded run statistics for commands that run as long as the user asks (``capsheet demo
 --duration``): a run of a day must not keep a float per estimate (145 a second, three series: about
-50 MB an hour of Python floats) to print a median at the end (issue 34: every history has a bound,
+50 MB an hour of Python floats) to print a median at the end (every history has a bound,
 what is cut is counted).
 
 `Samples` keeps count, mean, minimum and maximum exactly and a uniform sample of at most `capacity`

@@ -219,7 +219,7 @@ class Host:
         #: driven only through `feed`)
         # hold_for_input: a counter past its deadline waits until its bus was read past it, so a
         # host that was not scheduled for a while reads the frames waiting for it before it gives
-        # their counters up (host.aggregator, "Input watermark"; issue 34)
+        # their counters up (host.snapshots.aggregator, "Input watermark")
         self.aggregator = Aggregator(n, node_to_link=None, n_buses=len(self.transports),
                                      trust="sent" if self.sync_driver.sync_mode == "drive" else "follow",
                                      hold_for_input=True, **dl)

@@ -18,7 +18,7 @@ __all__ = ["HostEvent", "link_ranges", "EventLog", "run_summary", "run_stats", "
 
 log = logging.getLogger("capsheet.host")
 
-#: bounds of what a host keeps for a run of days (issue 34); what goes is counted
+#: bounds of what a host keeps for a run of days; what goes is counted
 EVENTS_KEPT = 10_000
 RX_ERRORS_KEPT = 64
 #: kinds logged as warnings (the others at info)

@@ -6,7 +6,7 @@ A tty hands a reader at most 4,095 bytes per read and holds ~14 KB between write
 after ~11 ms without a read. With five gateways read by five threads of one interpreter, a
 thread that waits for the interpreter lock (or for a core, on a loaded machine) falls behind;
 every frame then reaches the aggregator after its counter's deadline, and a reader at 4 KB a
-read has little headroom to catch up (issue 31: a 64x64 sheet on five ptys).
+read has little headroom to catch up (a 64x64 sheet on five ptys).
 
 `ReaderPort` puts a small process between the port and the host: it sleeps in ``select`` on
 the port and copies what arrives (a burst gathered for `GATHER_S`) into a pipe of 1 MB

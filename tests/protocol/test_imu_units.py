@@ -1,5 +1,5 @@
 """Gyroscope and magnetometer ranges and counts <-> SI (protocol/imu_units.py): the range table as
-issue 29 states it (gyro ±125 … ±2000 °/s, magnetometer ±4 … ±16 gauss) and exact round trips."""
+the protocol states it (gyro ±125 … ±2000 °/s, magnetometer ±4 … ±16 gauss) and exact round trips."""
 
 import math
 

@@ -1,4 +1,4 @@
-"""``capsheet view --config robot.toml`` (issue 31, point 3): the robot file's checks (host.robot), and
+"""``capsheet view --config robot.toml``: the robot file's checks (host.robot), and
 two sheets' estimates published on Zenoh (peer mode on loopback) merged into one live scene, read
 by the npm ``@foxglove/ws-protocol`` client (tests/host/node/ws_protocol_client.js, under node):
 each sheet's transform from the file's pose on ``/tf``, each sheet's joints in its own frame."""

@@ -159,7 +159,7 @@ def test_every_c_mutant_has_a_python_twin():
 
 
 def test_every_chip_check_is_failed_by_some_c_mutant():
-    """The C firmware, too, has a broken build for every check of the chip profile (issue 27, point 4)."""
+    """The C firmware, too, has a broken build for every check of the chip profile."""
     chip = {c.number for c in CHECKS if "chip" in c.profiles}
     covered = set().union(*({**EXPECTED, **IMU_EXPECTED}[twin] for twin in C_MUTANTS.values()))
     assert chip - covered == set(NOT_SHOWN) | NO_C_MUTANT

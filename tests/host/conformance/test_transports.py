@@ -4,7 +4,7 @@ python-can's udp_multicast bus — the transports a vendor's bench uses. Every c
 must reach the same outcome on each, but for the transport's own checks (serial: 21; CAN: 22, 41).
 
 SLCAN hands frames over in blocks and udp_multicast echoes a sender's own frames: the port's audit
-reads both through the transport's capture (issue 25). Over SLCAN the suite is given a plain
+reads both through the transport's capture. Over SLCAN the suite is given a plain
 `CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """`host.transport.udp_multicast.IsolatedUdpMulticastBus`: python-can's udp_multicast bus that hears only its
-own group (issue 31, point 5). Real sockets on loopback; the two-sheets-side-by-side CLI test is in
+own group. Real sockets on loopback; the two-sheets-side-by-side CLI test is in
 tests/host/cli/test_host.py."""
 
 from __future__ import annotations
