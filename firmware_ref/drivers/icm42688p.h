@@ -73,6 +73,7 @@ typedef struct {
     icm42688p_config_t cfg;  /* written to the part */
     uint64_t wait_until_us;  /* the phase's wait ends */
     uint64_t fresh_after_us; /* conversions before this instant belong to an older configuration */
+    uint64_t last_fresh_us;  /* the last fresh read (or the configuration's start-up end) */
     int32_t error;           /* sticky: the first failure (0: none) */
     bool drdy_known;         /* a data-ready edge was reported since the last read */
     uint64_t drdy_us;
@@ -108,6 +109,9 @@ void icm42688p_data_ready(icm42688p_t *d, uint64_t edge_us);
 /* Read INT_STATUS and the data registers. NOT_READY before the bring-up finished; BUS / GONE (sticky:
  * the part is failed from then on, never a frozen value). */
 CAPSHEET_WARN_UNUSED int32_t icm42688p_read(icm42688p_t *d, uint64_t now_us, icm42688p_sample_t *out);
+
+/* The self-test is running (its phases of the bring-up). */
+bool icm42688p_in_self_test(const icm42688p_t *d);
 
 /* Register access (bank 0 unless REG_BANK_SEL was changed; the driver restores bank 0). */
 CAPSHEET_WARN_UNUSED int32_t icm42688p_read_regs(icm42688p_t *d, uint8_t reg, uint8_t *buf, size_t len);
