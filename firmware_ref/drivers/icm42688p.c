@@ -6,7 +6,7 @@
  * told to wait:
  *
  *   PROBE        REG_BANK_SEL <- 0 (a part left in another bank by an MCU reset), WHO_AM_I == 0x47,
- *                DEVICE_CONFIG <- SOFT_RESET_CONFIG; wait 1 ms (§14.1)
+ *                DEVICE_CONFIG <- SOFT_RESET_CONFIG; wait 1 ms (§14)
  *   RESET_DONE   INT_STATUS has RESET_DONE_INT (cleared by this read), WHO_AM_I again
  *   ST_*         optional self-test, gyroscope then accelerometer (icm42688p_reg.h: TDK's procedure)
  *   CONFIG       full scales, ODRs, UI filter bandwidth, DATA_RDY to INT1, then PWR_MGMT0 (low noise);
@@ -138,7 +138,7 @@ void icm42688p_data_ready(icm42688p_t *d, uint64_t edge_us)
     }
 }
 
-/* The ODR period in µs for an ODR code (§14.37). */
+/* The ODR period in µs for an ODR code (§14). */
 static uint32_t odr_period_us(uint8_t odr)
 {
     static const uint32_t period[16] = {1000u, 31u, 63u, 125u, 250u, 500u, 1000u, 5000u, 10000u, 20000u,

@@ -3,8 +3,8 @@
  * magnetometer driver): link_sensors.h.
  *
  * From the protocol to the part:
- *   CONFIG range r (±2 g · 2^r)       -> ACCEL_FS_SEL 3 - r (±2 g is FS_SEL 3, ±16 g FS_SEL 0: §14.38)
- *   CONFIG_IMU gyro_range r (±125·2^r) -> GYRO_FS_SEL 4 - r (±125 °/s is FS_SEL 4, ±2000 FS_SEL 0: §14.37);
+ *   CONFIG range r (±2 g · 2^r)       -> ACCEL_FS_SEL 3 - r (±2 g is FS_SEL 3, ±16 g FS_SEL 0: §14)
+ *   CONFIG_IMU gyro_range r (±125·2^r) -> GYRO_FS_SEL 4 - r (±125 °/s is FS_SEL 4, ±2000 FS_SEL 0: §14);
  *                                         the part's counts are then the protocol's (32768 / full scale)
  *   CONFIG rate_hz                     -> the lowest ODR of at least twice the SYNC rate (a conversion
  *                                         within every SYNC period despite the two clocks' drift)
