@@ -5,6 +5,7 @@
  * port without delay_us (a main loop, the SIL build) drives it with icm42688p_step and the time it is
  * told to wait:
  *
+ *   POWER_UP     wait 1 ms (the part may have powered up with the MCU; its registers answer after it)
  *   PROBE        REG_BANK_SEL <- 0 (a part left in another bank by an MCU reset), WHO_AM_I == 0x47,
  *                DEVICE_CONFIG <- SOFT_RESET_CONFIG; wait 1 ms (§14)
  *   RESET_DONE   INT_STATUS has RESET_DONE_INT (cleared by this read), WHO_AM_I again
@@ -20,7 +21,8 @@
 #include "icm42688p_reg.h"
 
 enum {
-    PHASE_PROBE = 0,
+    PHASE_POWER_UP = 0,
+    PHASE_PROBE,
     PHASE_RESET_DONE,
     PHASE_ST_START,
     PHASE_ST_OFF,
@@ -113,7 +115,7 @@ int32_t icm42688p_init(icm42688p_t *d, const capsheet_bus_t *bus, uint8_t cs, bo
     d->cs = cs;
     d->want_self_test = self_test;
     icm42688p_default_config(&d->want);
-    d->phase = PHASE_PROBE;
+    d->phase = PHASE_POWER_UP;
     return 0;
 }
 
@@ -342,6 +344,11 @@ int32_t icm42688p_step(icm42688p_t *d, uint64_t now_us)
         return (int32_t)(left > 0x7FFFFFFFu ? 0x7FFFFFFFu : left);
     }
     switch (d->phase) {
+    case PHASE_POWER_UP:
+        /* the part may have powered up with the MCU: its registers answer 1 ms later */
+        d->phase = PHASE_PROBE;
+        d->wait_until_us = now_us + ICM42688P_SOFT_RESET_WAIT_US;
+        return (int32_t)ICM42688P_SOFT_RESET_WAIT_US;
     case PHASE_PROBE:
         if (icm42688p_write_reg(d, ICM42688P_REG_BANK_SEL, 0u) < 0
             || icm42688p_read_regs(d, ICM42688P_WHO_AM_I, &v, 1u) < 0) {
