@@ -3,20 +3,19 @@
 
 #include "calstore.h"
 
-static uint8_t crc8(const uint8_t rec[8])
+/* CRC-8 (poly 0x07, init 0) of bytes 0..6, never 0xFF: a record whose second word never made it
+ * reads 0xFF there, so it can never pass */
+static uint8_t check_of(const uint8_t rec[8])
 {
     uint8_t crc = 0u;
     unsigned i, b;
-    for (i = 0; i < 8u; i++) {
-        if (i == 1u) {
-            continue;
-        }
+    for (i = 0; i < 7u; i++) {
         crc ^= rec[i];
         for (b = 0; b < 8u; b++) {
             crc = (uint8_t)((crc & 0x80u) != 0u ? (uint8_t)(crc << 1) ^ 0x07u : (uint8_t)(crc << 1));
         }
     }
-    return crc;
+    return crc == 0xFFu ? 0x00u : crc;
 }
 
 static bool erased(const uint8_t *rec)
@@ -32,7 +31,7 @@ static bool erased(const uint8_t *rec)
 
 static bool valid(const uint8_t *rec)
 {
-    return rec[0] != CALSTORE_KEY_ERASED && crc8(rec) == rec[1];
+    return rec[0] != CALSTORE_KEY_ERASED && check_of(rec) == rec[7];
 }
 
 static uint32_t get32(const uint8_t *p)
@@ -43,13 +42,13 @@ static uint32_t get32(const uint8_t *p)
 static void make(uint8_t rec[8], uint8_t key, uint16_t aux, uint32_t value)
 {
     rec[0] = key;
-    rec[2] = (uint8_t)(aux & 0xFFu);
-    rec[3] = (uint8_t)(aux >> 8);
-    rec[4] = (uint8_t)(value & 0xFFu);
-    rec[5] = (uint8_t)((value >> 8) & 0xFFu);
-    rec[6] = (uint8_t)((value >> 16) & 0xFFu);
-    rec[7] = (uint8_t)(value >> 24);
-    rec[1] = crc8(rec);
+    rec[1] = (uint8_t)(aux & 0xFFu);
+    rec[2] = (uint8_t)(aux >> 8);
+    rec[3] = (uint8_t)(value & 0xFFu);
+    rec[4] = (uint8_t)((value >> 8) & 0xFFu);
+    rec[5] = (uint8_t)((value >> 16) & 0xFFu);
+    rec[6] = (uint8_t)(value >> 24);
+    rec[7] = check_of(rec);
 }
 
 void calstore_init(calstore_t *cs, const calstore_flash_t *flash)
@@ -61,9 +60,9 @@ void calstore_init(calstore_t *cs, const calstore_flash_t *flash)
     cs->next = 0u;
     for (p = 0; p < 2u; p++) {
         const uint8_t *h = flash->page[p];
-        if (valid(h) && h[0] == CALSTORE_KEY_HEADER && (cs->live < 0 || get32(h + 4) > cs->generation)) {
+        if (valid(h) && h[0] == CALSTORE_KEY_HEADER && (cs->live < 0 || get32(h + 3) > cs->generation)) {
             cs->live = (int8_t)p;
-            cs->generation = get32(h + 4);
+            cs->generation = get32(h + 3);
         }
     }
     if (cs->live >= 0) {
@@ -159,10 +158,10 @@ int32_t calstore_cal_load(void *user, uint8_t axis, capsheet_cal_t *cal)
     if (rec == NULL) {
         return CALSTORE_ERR_MISSING;
     }
-    bits = get32(rec + 4);
+    bits = get32(rec + 3);
     cal->axis = axis;
     cal->flags = 1u;
-    cal->offset_q4 = (int16_t)(uint16_t)((uint16_t)rec[2] | (uint16_t)((uint16_t)rec[3] << 8));
+    cal->offset_q4 = (int16_t)(uint16_t)((uint16_t)rec[1] | (uint16_t)((uint16_t)rec[2] << 8));
     memcpy(&cal->sensitivity, &bits, sizeof bits);
     return 0;
 }
@@ -187,7 +186,7 @@ int32_t calstore_imu_load(void *user, uint8_t element, uint32_t *bits)
     if (rec == NULL) {
         return CALSTORE_ERR_MISSING;
     }
-    *bits = get32(rec + 4);
+    *bits = get32(rec + 3);
     return 0;
 }
 

@@ -6,9 +6,10 @@
  * Layout: every record is one double word (the unit a STM32G0 programs, with its ECC):
  *   byte 0      key: 0x00..0x02 accelerometer axis x/y/z (capsheet_cal_t), 0x10 + k the gyro/mag
  *               element k (0..32, docs/protocol.md §17.1), 0xA5 the page header; 0xFF: erased
- *   byte 1      check: CRC-8 (poly 0x07, init 0) of bytes 0 and 2..7
- *   bytes 2..3  accelerometer offset_q4 (little-endian; 0 for the others)
- *   bytes 4..7  value: sensitivity or element as float32 bits; the header's generation
+ *   bytes 1..2  accelerometer offset_q4 (little-endian; 0 for the others)
+ *   bytes 3..6  value: sensitivity or element as float32 bits; the header's generation (little-endian)
+ *   byte 7      check: CRC-8 (poly 0x07, init 0) of bytes 0..6, 0x00 in place of 0xFF; it is in the
+ *               word programmed second, so a record cut off after its first word (0xFF there) fails
  * A page is valid when its first double word is a header; the valid page with the highest generation
  * is the live one. A store appends one record; a key's last record with a good check is its value
  * (a record whose programming was cut off fails its check and is skipped). When the live page is
