@@ -168,6 +168,7 @@ static int32_t write_config(icm42688p_t *d, uint64_t now_us)
     }
     d->cfg = *c;
     d->config_dirty = false;
+    d->settled = false;
     d->drdy_known = false;
     if (accel_starts) {
         wait = ICM42688P_ACCEL_STARTUP_US;
@@ -464,7 +465,13 @@ int32_t icm42688p_read(icm42688p_t *d, uint64_t now_us, icm42688p_sample_t *out)
         out->accel[i] = be16(&raw[2u + 2u * i]);
         out->gyro[i] = d->cfg.gyro_on ? be16(&raw[8u + 2u * i]) : 0;
     }
-    out->fresh = (status & ICM42688P_DATA_RDY_INT) && now_us >= d->fresh_after_us;
+    /* fresh: a DATA_RDY of a conversion made after the configuration's start-up. Without the edge's
+     * time, the first read past the start-up only clears DATA_RDY (its conversion may be older). */
+    out->fresh = (status & ICM42688P_DATA_RDY_INT) && now_us >= d->fresh_after_us
+                 && (d->settled || (d->drdy_known && d->drdy_us >= d->fresh_after_us));
+    if (now_us >= d->fresh_after_us) {
+        d->settled = true;
+    }
     if (out->fresh) {
         const bool accel_off = out->accel[0] == -32768 && out->accel[1] == -32768 && out->accel[2] == -32768;
         const bool gyro_off = d->cfg.gyro_on && out->gyro[0] == -32768 && out->gyro[1] == -32768

@@ -74,6 +74,7 @@ typedef struct {
     uint64_t wait_until_us;  /* the phase's wait ends */
     uint64_t fresh_after_us; /* conversions before this instant belong to an older configuration */
     uint64_t last_fresh_us;  /* the last fresh read (or the configuration's start-up end) */
+    bool settled;            /* a read after fresh_after_us cleared DATA_RDY: the next one is new */
     int32_t error;           /* sticky: the first failure (0: none) */
     bool drdy_known;         /* a data-ready edge was reported since the last read */
     uint64_t drdy_us;
