@@ -27,6 +27,7 @@ ROOT = HERE.parent
 DRIVER_SOURCES = [
     "drivers/icm42688p.c",
     "drivers/link_sensors.c",
+    "drivers/mmc5983ma.c",
 ]
 SOURCES = ["src/codec.c", "src/chip.c"] + DRIVER_SOURCES
 
@@ -200,7 +201,7 @@ extern "Python" int32_t capsheet_py_read_imu(void *, uint64_t, uint8_t, uint8_t,
 """
 
 
-#: the declarations of firmware_ref/drivers/ (capsheet_bus.h, icm42688p.h, link_sensors.h): kept apart
+#: the declarations of firmware_ref/drivers/ (capsheet_bus.h, icm42688p.h, link_sensors.h, mmc5983ma.h): kept apart
 #: from CDEF, which copies capsheet_fw.h alone (tests/firmware_ref/test_cdef.py). A new driver adds its
 #: declarations at the end. The bus callbacks are Python (firmware_ref/sil_bus.py routes them).
 DRIVERS_CDEF = r"""
@@ -265,6 +266,30 @@ int32_t capsheet_link_read_axes(void *user, uint64_t now_us, int16_t xyz[3], uin
 int32_t capsheet_link_read_imu(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
                                bool want_mag, capsheet_imu_reading_t *out);
 
+typedef struct {
+    uint8_t cs; uint8_t bw; int8_t axes[3]; uint8_t phase; bool pending; int32_t error;
+    int32_t offset2[3]; uint8_t tout; uint32_t measurements;
+    ...;
+} mmc5983ma_t;
+#define MMC5983MA_ERR_BUS ...
+#define MMC5983MA_ERR_PRODUCT_ID ...
+#define MMC5983MA_ERR_OTP ...
+#define MMC5983MA_ERR_SELF_TEST ...
+#define MMC5983MA_ERR_TIMEOUT ...
+#define MMC5983MA_ERR_GONE ...
+#define MMC5983MA_ERR_NOT_READY ...
+#define MMC5983MA_ERR_ARGUMENT ...
+int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, uint8_t bw);
+int32_t mmc5983ma_set_axes(mmc5983ma_t *d, const int8_t axes[3]);
+int32_t mmc5983ma_step(mmc5983ma_t *d, uint64_t now_us);
+int32_t mmc5983ma_run(mmc5983ma_t *d, uint64_t *now_us);
+int32_t mmc5983ma_read(mmc5983ma_t *d, uint64_t now_us, uint8_t mag_range, int16_t mag[3], uint8_t *status,
+                       uint64_t *latch_us);
+int32_t mmc5983ma_temperature_dc(const mmc5983ma_t *d);
+void mmc5983ma_mag_driver(mmc5983ma_t *d, capsheet_mag_driver_t *out);
+int32_t mmc5983ma_read_regs(mmc5983ma_t *d, uint8_t reg, uint8_t *buf, size_t len);
+int32_t mmc5983ma_write_reg(mmc5983ma_t *d, uint8_t reg, uint8_t value);
+
 extern "Python" int32_t capsheet_py_spi_transfer(void *, uint8_t, const uint8_t *, uint8_t *, size_t);
 extern "Python" int32_t capsheet_py_i2c_write_read(void *, uint8_t, const uint8_t *, size_t, uint8_t *, size_t);
 extern "Python" void capsheet_py_delay_us(void *, uint32_t);
@@ -294,7 +319,7 @@ def _builder(module: str, mutants: bool) -> FFI:
     ffi.cdef(_mutant_enum() + CDEF.replace("MUTANT_FIELDS", "int32_t mutant;" if mutants else "") + DRIVERS_CDEF)
     ffi.set_source(
         module,
-        '#include "capsheet_fw.h"\n#include "link_sensors.h"\n',
+        '#include "capsheet_fw.h"\n#include "link_sensors.h"\n#include "mmc5983ma.h"\n',
         sources=[_rel(HERE / s) for s in SOURCES],
         include_dirs=[_rel(HERE / "include"), _rel(HERE / "drivers")],
         define_macros=[("CAPSHEET_MUTANTS", "1")] if mutants else [],

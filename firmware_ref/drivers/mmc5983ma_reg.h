@@ -63,15 +63,18 @@
 #define MMC5983MA_CTRL0_OTP_READ 0x40u           /* read the OTP again */
 
 /* Internal control 1, 0AH (DS Rev A p.15 "Internal Control 1"): write only, reset value 0 */
-#define MMC5983MA_CTRL1_BW_MASK 0x03u            /* BW1 BW0: 00 8 ms/100 Hz, 01 4 ms/200 Hz, 10 2 ms/400 Hz, 11 0.5 ms/800 Hz */
+/* BW1 BW0: 00 8 ms/100 Hz, 01 4 ms/200 Hz, 10 2 ms/400 Hz, 11 0.5 ms/800 Hz */
+#define MMC5983MA_CTRL1_BW_MASK 0x03u
 #define MMC5983MA_CTRL1_X_INHIBIT 0x04u
 #define MMC5983MA_CTRL1_YZ_INHIBIT 0x18u         /* both bits: Y and Z off */
 #define MMC5983MA_CTRL1_SW_RST 0x80u             /* reset like power-up, re-read the OTP; power-on time 10 ms */
 
 /* Internal control 2, 0BH (DS Rev A p.15-16 "Internal Control 2"): write only, reset value 0 */
-#define MMC5983MA_CTRL2_CM_FREQ_MASK 0x07u       /* 000 off, 001 1 Hz, 010 10, 011 20, 100 50, 101 100, 110 200 (BW=01), 111 1000 Hz (BW=11) */
+/* CM_Freq[2:0]: 000 off, 001 1 Hz, 010 10, 011 20, 100 50, 101 100, 110 200 (BW=01), 111 1000 Hz (BW=11) */
+#define MMC5983MA_CTRL2_CM_FREQ_MASK 0x07u
 #define MMC5983MA_CTRL2_CMM_EN 0x08u             /* continuous measurement mode (CM_Freq not 000) */
-#define MMC5983MA_CTRL2_PRD_SET_SHIFT 4u         /* Prd_set[2:0]: a SET every 1, 25, 75, 100, 250, 500, 1000, 2000 measurements */
+/* Prd_set[2:0]: a SET every 1, 25, 75, 100, 250, 500, 1000, 2000 measurements */
+#define MMC5983MA_CTRL2_PRD_SET_SHIFT 4u
 #define MMC5983MA_CTRL2_PRD_SET_MASK 0x70u
 #define MMC5983MA_CTRL2_EN_PRD_SET 0x80u         /* periodic SET (needs Auto_SR_en and Cmm_en) */
 

@@ -22,7 +22,9 @@ cffi = pytest.importorskip("cffi")
 ROOT = Path(__file__).resolve().parents[2]
 FW = ROOT / "firmware_ref"
 
-ERR_BUS, ERR_PRODUCT_ID, ERR_OTP, ERR_SELF_TEST, ERR_TIMEOUT, ERR_GONE, ERR_NOT_READY, ERR_ARGUMENT = range(-40, -48, -1)
+# mmc5983ma.h's error codes
+ERR_BUS, ERR_PRODUCT_ID, ERR_OTP, ERR_SELF_TEST = -40, -41, -42, -43
+ERR_TIMEOUT, ERR_GONE, ERR_NOT_READY, ERR_ARGUMENT = -44, -45, -46, -47
 SATURATED, STALE, INVALID = 0x1, 0x4, 0x8
 
 CDEF = r"""
@@ -243,7 +245,8 @@ def test_the_bring_up_waits_the_datasheet_times_and_misuses_nothing(sil):
     assert (ev.ignored_while_booting, ev.command_during_set_reset, ev.read_of_write_only, ev.write_to_read_only,
             ev.write_to_reserved, ev.command_while_busy, ev.tm_m_with_tm_t) == (0, 0, 0, 0, 0, 0, 0)
     assert rig.cs_seen == {1}
-    assert sil.lib.mmc5983ma_temperature_dc(rig.dev) == 250  # 25 °C -> Tout (25 + 75) / 0.8 = 125 -> -75 + 0.8 · 125 = 25.0 °C
+    # 25 °C -> Tout (25 + 75) / 0.8 = 125 (DS p.14) -> -75 + 0.8 · 125 = 25.0 °C
+    assert sil.lib.mmc5983ma_temperature_dc(rig.dev) == 250
 
 
 def test_run_blocks_with_the_bus_delay(sil):
@@ -384,3 +387,44 @@ def test_a_field_over_10_gauss_is_undone_by_the_set_before_each_measurement(sil)
     rig.read(80_000)
     rc, mag, _, _ = settle(rig, EARTH_T, 90_000)
     assert rc == 0 and abs(mag[0] - 1638) <= 1 and abs(mag[2] - 3686) <= 1
+
+
+# ---------------------------------------------------------------------------------- the 9-axis link glue
+def test_the_link_glue_reads_the_magnetometer_beside_the_imu_on_one_spi_bus():
+    """The firmware's own SIL build: ICM-42688-P on chip select 0, MMC5983MA on 1, one bus; read_imu's
+    magnetometer is this driver's, through link_sensors.h's capsheet_mag_driver_t."""
+    from firmware_ref._ffi import ffi, lib
+    from firmware_ref.sil_bus import SilBus
+    from virtual_sheet.parts.icm42688p import ICM42688P
+
+    imu, mag = ICM42688P(seed=5), ideal()
+    imu.set_motion([0, 0, 9.80665], [0, 0, 0])
+    mag.set_field(EARTH_T)
+    bus = SilBus(spi={0: imu, 1: mag})
+    dev = ffi.new("mmc5983ma_t *")
+    assert lib.mmc5983ma_init(dev, bus.c_bus, 1, 1) == 0
+    drv = ffi.new("capsheet_mag_driver_t *")
+    lib.mmc5983ma_mag_driver(dev, drv)
+    ls = ffi.new("capsheet_link_sensors_t *")
+    assert lib.capsheet_link_sensors_init(ls, bus.c_bus, 0, drv, ffi.NULL, False) == 0
+    us = lambda: int(round(bus.now_s * 1e6))  # noqa: E731
+    xyz, st = ffi.new("int16_t[3]"), ffi.new("uint8_t *")
+    for _ in range(200):                                # the main loop: the glue's poll, the IMU's reads
+        bus.advance(bus.now_s + 0.001)
+        assert lib.capsheet_link_sensors_poll(ls, us()) >= 0
+        assert lib.capsheet_link_read_axes(ls, us(), xyz, st) == 0
+    assert dev.phase == 9 and dev.error == 0          # the magnetometer's bring-up ran through the glue
+    out = ffi.new("capsheet_imu_reading_t *")
+    for _ in range(3):                                  # a SYNC every 10 ms
+        bus.advance(bus.now_s + 0.010)
+        assert lib.capsheet_link_read_axes(ls, us(), xyz, st) == 0
+        assert lib.capsheet_link_read_imu(ls, us(), 3, 1, True, out) == 0
+    # 0.2, -0.05, 0.45 G at ±8 G (4096 counts per gauss, §16.1)
+    assert [abs(m - w) <= 1 for m, w in zip(out.mag, (819, -205, 1843))] == [True] * 3
+    assert not out.status & SATURATED
+    mag.inject("no_answer")                             # the magnetometer falls off the bus
+    bus.advance(bus.now_s + 0.010)
+    # the glue polls the magnetometer at read_axes: the link's sensors fail there, and read_imu says so
+    assert lib.capsheet_link_read_axes(ls, us(), xyz, st) == ERR_GONE
+    assert lib.capsheet_link_read_imu(ls, us(), 3, 1, True, out) == ERR_GONE   # a sensor fault, not old counts
+    assert ls.fault == ERR_GONE

@@ -121,6 +121,12 @@ CLOCK_TOLERANCE = 0.03  # not in the datasheet (its rates and times are typical)
 GAUSS_PER_TESLA = 1e4
 
 FAULTS = ("no_answer", "stuck_bus", "wrong_id", "otp_fail", "dead_axis", "frozen")
+
+
+class BusNak(RuntimeError):
+    """No acknowledge on I2C (the part is gone or booting): a bus error, as a port's I2C driver reports it."""
+
+
 _WRITE_ONLY = frozenset((INTERNAL_CONTROL_0, INTERNAL_CONTROL_1, INTERNAL_CONTROL_2, INTERNAL_CONTROL_3))
 _READ_ONLY = frozenset(range(8)) | {PRODUCT_ID_1}
 
@@ -170,7 +176,8 @@ class MMC5983MA:
                  temperature_c: float = 25.0) -> None:
         self._rng = np.random.Generator(np.random.MT19937(seed))
         r = self._rng
-        self.clock_error = float(r.uniform(-CLOCK_TOLERANCE, CLOCK_TOLERANCE)) if clock_error is None else float(clock_error)
+        self.clock_error = (float(r.uniform(-CLOCK_TOLERANCE, CLOCK_TOLERANCE)) if clock_error is None
+                            else float(clock_error))
         self.offset_g = (r.uniform(-0.25, 0.25, 3) if offset_g is None else np.asarray(offset_g, float).reshape(3))
         g = r.uniform(-SENSITIVITY_ACCURACY, SENSITIVITY_ACCURACY, 3) + 1.0 if gain is None else np.asarray(gain, float)
         x = (r.uniform(-TRANSVERSE_SENSITIVITY, TRANSVERSE_SENSITIVITY, (3, 3)) if cross is None
@@ -243,12 +250,14 @@ class MMC5983MA:
         return bytes(out)
 
     def i2c_write_read(self, tx: bytes, n: int) -> bytes:
-        """I2C at 0x30 (DS p.17): `tx` = register address then bytes to write; then `n` bytes read."""
+        """I2C at 0x30 (DS p.17): `tx` = register address then bytes to write; then `n` bytes read.
+
+        A part that does not acknowledge (gone, stuck bus, booting) raises `BusNak`."""
         tx = bytes(tx)
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         if "no_answer" in self.faults or "stuck_bus" in self.faults or self._booting():
-            raise OSError("MMC5983MA: no acknowledge at I2C address 0x30")
+            raise BusNak("MMC5983MA: no acknowledge at I2C address 0x30")
         if tx:
             self._pointer = tx[0] & ADDR_MASK
             for b in tx[1:]:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from virtual_sheet.parts.mmc5983ma import FAULTS, MMC5983MA
+from virtual_sheet.parts.mmc5983ma import FAULTS, MMC5983MA, BusNak
 
 R = 0x80  # DS p.6: the read bit
 
@@ -323,7 +323,7 @@ def test_i2c_write_read_at_the_same_registers():
     p.advance(0.019)
     assert p.i2c_write_read(b"\x07", 2) == b"\x00\x11"
     p.inject("no_answer")
-    with pytest.raises(OSError):
+    with pytest.raises(BusNak):
         p.i2c_write_read(b"\x2f", 1)
 
 
