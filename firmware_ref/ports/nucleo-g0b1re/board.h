@@ -42,13 +42,23 @@
 #ifndef BOARD_CAN_FD
 #define BOARD_CAN_FD 0
 #endif
+#ifndef BOARD_CAN_FD_DATA_BPS
+#define BOARD_CAN_FD_DATA_BPS 8000000u /* 2, 4 or 8 Mbit/s (docs/protocol.md's capacity table: 8) */
+#endif
+#ifndef BOARD_HSE_HZ
+#define BOARD_HSE_HZ 0u       /* 0: HSI16; else an external clock, a multiple of 8 MHz up to 48 MHz */
+#endif
+#ifndef BOARD_HSE_BYPASS
+#define BOARD_HSE_BYPASS 1    /* 1: a clock signal on OSC_IN (the ST-LINK's MCO); 0: a crystal */
+#endif
 
 #define REG32(addr) (*(volatile uint32_t *)(uintptr_t)(addr))
 #define REG8(addr) (*(volatile uint8_t *)(uintptr_t)(addr))
 
 /* ---- clocks (RM0444 "Reset and clock control (RCC)", "Clocks") -------------------------------- */
 /* HSI16 -> PLL: M = 1, N = 8 (VCO 128 MHz), R = 2 -> SYSCLK 64 MHz; AHB and APB undivided.
- * DS13560 "General operating conditions": fHCLK and fPCLK up to 64 MHz. */
+ * With BOARD_HSE_HZ: HSE -> PLL: M = HSE / 8 MHz, N = 16, R = 2 -> the same 64 MHz, at the external
+ * clock's accuracy. DS13560 "General operating conditions": fHCLK and fPCLK up to 64 MHz. */
 #define HSI_HZ 16000000u
 #define SYSCLK_HZ 64000000u
 #define PCLK_HZ 64000000u
@@ -76,6 +86,9 @@
 #define RCC_CR_HSION (1u << 8)
 #define RCC_CR_HSIRDY (1u << 10)
 #define RCC_CR_HSIDIV_MASK (7u << 11)       /* 000: HSI16 / 1 */
+#define RCC_CR_HSEON (1u << 16)
+#define RCC_CR_HSERDY (1u << 17)
+#define RCC_CR_HSEBYP (1u << 18)
 #define RCC_CR_PLLON (1u << 24)
 #define RCC_CR_PLLRDY (1u << 25)
 #define RCC_CFGR REG32(RCC_BASE + 0x08u)
@@ -87,6 +100,7 @@
 #define RCC_CFGR_PPRE_MASK (7u << 12)       /* 0xx: APB = HCLK */
 #define RCC_PLLCFGR REG32(RCC_BASE + 0x0Cu)
 #define RCC_PLLCFGR_PLLSRC_HSI16 (2u << 0)
+#define RCC_PLLCFGR_PLLSRC_HSE (3u << 0)
 #define RCC_PLLCFGR_PLLM_SHIFT 4u           /* M = PLLM + 1 */
 #define RCC_PLLCFGR_PLLN_SHIFT 8u           /* N = PLLN, 8..86 */
 #define RCC_PLLCFGR_PLLQEN (1u << 24)
@@ -302,8 +316,10 @@ void gpio_af(uint32_t port, unsigned pin, unsigned af);
 void gpio_out(uint32_t port, unsigned pin, bool high);
 void gpio_write(uint32_t port, unsigned pin, bool high);
 
-/* clock.c: HSI16 -> PLL -> 64 MHz, TIM2 at 1 MHz as the time base, SysTick 1 kHz to wake from WFI. */
-void clock_init(void);
+/* clock.c: HSI16 (or HSE) -> PLL -> 64 MHz, TIM2 at 1 MHz as the time base, SysTick 1 kHz to wake
+ * from WFI. With BOARD_HSE_HZ, false when the external clock never became ready (the port then runs
+ * on HSI16, out of CAN's clock tolerance: see can.c). */
+bool clock_init(void);
 /* Microseconds since clock_init, TIM2's 32-bit count extended to 64 bits. Main loop only (at least
  * once every 71 minutes, which the loop does). */
 uint64_t clock_us(void);
@@ -338,7 +354,7 @@ int32_t flash_erase_page(uint32_t pnb);
 int32_t flash_program_dword(uint32_t addr, uint32_t lo, uint32_t hi);
 
 /* can.c: FDCAN1, classic CAN at 1 Mbit/s, 29-bit identifiers; with BOARD_CAN_FD, FD frames with bit-
- * rate switching at 4 Mbit/s in the data phase. Received host -> chip frames go to a ring (ISR). */
+ * rate switching at BOARD_CAN_FD_DATA_BPS in the data phase. Received host -> chip frames go to a ring (ISR). */
 typedef struct {
     uint32_t id;
     bool is_extended;

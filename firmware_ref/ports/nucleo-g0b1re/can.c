@@ -4,8 +4,13 @@
  * Bit timing from the 64 MHz kernel clock (PCLK, RCC_CCIPR2 FDCANSEL = 00; FDCAN_CKDIV = /1):
  *   nominal 1 Mbit/s: prescaler 1, 64 time quanta = 1 sync + 55 (NTSEG1) + 8 (NTSEG2), sample point
  *   87.5 % (CiA 601-3's recommendation), SJW 8;
- *   data phase (BOARD_CAN_FD=1) 4 Mbit/s: prescaler 1, 16 tq = 1 + 11 + 4, sample point 75 %, with
- *   transmitter delay compensation (offset 11 tq), needed above 1 Mbit/s.
+ *   data phase (BOARD_CAN_FD=1) at BOARD_CAN_FD_DATA_BPS: 8 Mbit/s 8 tq = 1 + 5 + 2, 4 Mbit/s 16 tq =
+ *   1 + 11 + 4, 2 Mbit/s 32 tq = 1 + 23 + 8 (sample point 75 %), with transmitter delay compensation
+ *   (offset = the sample point, in tq), needed above 1 Mbit/s.
+ * Clock tolerance: the nominal timing allows an oscillator error of min(SJW / (20 NBT), min(PS1, PS2) /
+ * (2 (13 NBT - PS2))) = min(8 / 1280, 8 / 1648) = 0.49 % (ISO 11898-1's resynchronisation limits, as
+ * in Bosch's "The Configuration of the CAN Bit Timing"); HSI16's ±1 % is outside it, so a CAN chip
+ * runs from an external clock (BOARD_HSE_HZ: a crystal, or the ST-LINK's 8 MHz MCO on a Nucleo).
  * RM0444 "FD controller area network (FDCAN)": "FDCAN nominal bit timing and prescaler register
  * (FDCAN_NBTP)", "FDCAN data bit timing and prescaler register (FDCAN_DBTP)", "Transmitter delay
  * compensation", "Message RAM" (the fixed layout in board.h; Rx and Tx element formats: word 0 the
@@ -47,8 +52,19 @@ void can_init(void)
     }
     FDCAN_NBTP = (7u << 25) | (0u << 16) | (54u << 8) | 7u; /* NSJW 8, NBRP 1, NTSEG1 55, NTSEG2 8 */
 #if BOARD_CAN_FD
-    FDCAN_DBTP = FDCAN_DBTP_TDC | (0u << 16) | (10u << 8) | (3u << 4) | 3u; /* DBRP 1, DTSEG1 11, DTSEG2 4, DSJW 4 */
-    FDCAN_TDCR = (11u << 8) | 0u;                                        /* TDCO 11 tq, no filter window */
+    /* DBTP: DBRP 1; DTSEG1, DTSEG2 and DSJW as the field values (the segment in tq, minus 1) */
+#if BOARD_CAN_FD_DATA_BPS == 8000000u
+    FDCAN_DBTP = FDCAN_DBTP_TDC | (0u << 16) | (4u << 8) | (1u << 4) | 1u;  /* 1 + 5 + 2 tq, SJW 2 */
+    FDCAN_TDCR = 5u << 8;                                                /* TDCO 5 tq */
+#elif BOARD_CAN_FD_DATA_BPS == 4000000u
+    FDCAN_DBTP = FDCAN_DBTP_TDC | (0u << 16) | (10u << 8) | (3u << 4) | 3u; /* 1 + 11 + 4 tq, SJW 4 */
+    FDCAN_TDCR = 11u << 8;
+#elif BOARD_CAN_FD_DATA_BPS == 2000000u
+    FDCAN_DBTP = FDCAN_DBTP_TDC | (0u << 16) | (22u << 8) | (7u << 4) | 7u; /* 1 + 23 + 8 tq, SJW 8 */
+    FDCAN_TDCR = 23u << 8;
+#else
+#error "BOARD_CAN_FD_DATA_BPS: 2000000, 4000000 or 8000000"
+#endif
     FDCAN_CCCR = FDCAN_CCCR_INIT | FDCAN_CCCR_CCE | FDCAN_CCCR_FDOE | FDCAN_CCCR_BRSE;
 #endif
     FDCAN_RXGFC = FDCAN_RXGFC_RRFE | FDCAN_RXGFC_RRFS; /* no filter list; accept the rest into FIFO 0 */

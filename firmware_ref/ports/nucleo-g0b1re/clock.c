@@ -1,16 +1,18 @@
 /*
  * clock.c — the clock tree and the chip's time base. See board.h.
  *
- * SYSCLK: HSI16 -> PLL (M = 1, N = 8: VCO 128 MHz, inside 64..344 MHz; R = 2) -> 64 MHz, with two
+ * SYSCLK: HSI16 -> PLL (M = 1, N = 8: VCO 128 MHz, inside 64..344 MHz; R = 2) -> 64 MHz, or with
+ * BOARD_HSE_HZ the external clock (M = HSE / 8 MHz, N = 16: the same VCO), with two
  * flash wait states set first (RM0444 "RCC registers": RCC_PLLCFGR, RCC_CR, RCC_CFGR; "FLASH access
  * control register (FLASH_ACR)"; DS13560 "PLL characteristics": fVCO 64..344 MHz, fPLLIN 2.66..16 MHz).
  *
  * Time: TIM2 is a 32-bit counter; prescaled to 1 MHz it wraps every 71.6 minutes, and clock_us
  * extends it to 64 bits (the main loop calls it every few ms). SysTick at 1 kHz only wakes the core
  * from WFI; it counts nothing (a tick lost while interrupts are masked would lose time). The accuracy
- * is HSI16's: ±1 % over temperature (DS13560 "High-speed internal (HSI16) RC oscillator"), which is
- * why a chip's time_us is a delay since the SYNC (microseconds, not minutes) and the host's SYNC,
- * not this clock, paces the sheet.
+ * is HSI16's: ±1 % (DS13560 "Features": internal 16 MHz RC with PLL option, ±1 %), which is why a
+ * chip's time_us is a delay since the SYNC (microseconds, not minutes) and the host's SYNC, not this
+ * clock, paces the sheet. A UART tolerates it; CAN does not (can.c): build a CAN chip with
+ * BOARD_HSE_HZ.
  *
  * TIM2 channel 1 captures the ICM-42688-P's INT1 (data ready) on PA0: the timer latches the count at
  * the edge, so the conversion's instant is exact to the microsecond whatever the main loop is doing.
@@ -25,16 +27,45 @@ static uint32_t last;
 static uint64_t high;
 static uint64_t start;
 
-static void pll_64mhz(void)
+#if BOARD_HSE_HZ != 0 && (BOARD_HSE_HZ % 8000000u != 0 || BOARD_HSE_HZ > 48000000u)
+#error "BOARD_HSE_HZ: a multiple of 8 MHz, 8..48 MHz (the PLL's input is then 8 MHz)"
+#endif
+
+#define HSE_SPIN_LIMIT 2000000u /* polls of HSERDY, some 100 ms: a crystal starts in a few ms */
+
+/* The external clock, if any: true when it is ready. */
+static bool hse_on(void)
 {
+#if BOARD_HSE_HZ != 0
+    uint32_t n;
+    RCC_CR |= (BOARD_HSE_BYPASS ? RCC_CR_HSEBYP : 0u);
+    RCC_CR |= RCC_CR_HSEON;
+    for (n = 0; n < HSE_SPIN_LIMIT; n++) {
+        if ((RCC_CR & RCC_CR_HSERDY) != 0u) {
+            return true;
+        }
+    }
+    RCC_CR &= ~RCC_CR_HSEON;
+#endif
+    return false;
+}
+
+static bool pll_64mhz(void)
+{
+    const bool hse = hse_on();
     RCC_CR = (RCC_CR & ~RCC_CR_HSIDIV_MASK) | RCC_CR_HSION;
     while ((RCC_CR & RCC_CR_HSIRDY) == 0u) {
     }
     RCC_CR &= ~RCC_CR_PLLON;
     while ((RCC_CR & RCC_CR_PLLRDY) != 0u) {
     }
-    RCC_PLLCFGR = RCC_PLLCFGR_PLLSRC_HSI16 | (0u << RCC_PLLCFGR_PLLM_SHIFT) | (8u << RCC_PLLCFGR_PLLN_SHIFT) |
-                  (1u << RCC_PLLCFGR_PLLR_SHIFT) | RCC_PLLCFGR_PLLREN;
+    if (hse) {
+        RCC_PLLCFGR = RCC_PLLCFGR_PLLSRC_HSE | ((BOARD_HSE_HZ / 8000000u - 1u) << RCC_PLLCFGR_PLLM_SHIFT) |
+                      (16u << RCC_PLLCFGR_PLLN_SHIFT) | (1u << RCC_PLLCFGR_PLLR_SHIFT) | RCC_PLLCFGR_PLLREN;
+    } else {
+        RCC_PLLCFGR = RCC_PLLCFGR_PLLSRC_HSI16 | (0u << RCC_PLLCFGR_PLLM_SHIFT) | (8u << RCC_PLLCFGR_PLLN_SHIFT) |
+                      (1u << RCC_PLLCFGR_PLLR_SHIFT) | RCC_PLLCFGR_PLLREN;
+    }
     RCC_CR |= RCC_CR_PLLON;
     while ((RCC_CR & RCC_CR_PLLRDY) == 0u) {
     }
@@ -45,6 +76,7 @@ static void pll_64mhz(void)
     RCC_CFGR = (RCC_CFGR & ~(RCC_CFGR_SW_MASK | RCC_CFGR_HPRE_MASK | RCC_CFGR_PPRE_MASK)) | RCC_CFGR_SW_PLLRCLK;
     while ((RCC_CFGR & RCC_CFGR_SWS_MASK) != RCC_CFGR_SWS_PLLRCLK) {
     }
+    return hse || BOARD_HSE_HZ == 0;
 }
 
 static uint64_t raw64(void)
@@ -57,9 +89,9 @@ static uint64_t raw64(void)
     return high | now;
 }
 
-void clock_init(void)
+bool clock_init(void)
 {
-    pll_64mhz();
+    const bool ok = pll_64mhz();
     RCC_IOPENR |= RCC_IOPENR_GPIOAEN | RCC_IOPENR_GPIOBEN | RCC_IOPENR_GPIOCEN;
     RCC_APBENR1 |= RCC_APBENR1_TIM2EN;
     TIM2_CR1 = 0u;
@@ -79,6 +111,7 @@ void clock_init(void)
     SYST_RVR = SYSCLK_HZ / 1000u - 1u;
     SYST_CVR = 0u;
     SYST_CSR = 0x7u; /* enable, interrupt, processor clock */
+    return ok;
 }
 
 uint64_t clock_us(void)

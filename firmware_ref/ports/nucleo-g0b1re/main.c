@@ -7,7 +7,10 @@
  *   BOARD_TRANSPORT_CAN 0 serial (default), 1 CAN
  *   BOARD_UART          2 the ST-LINK virtual COM port (default), 1 USART1 on the RS-485 bus
  *   BOARD_BAUD          serial baud rate, default 3000000 (capsheet host's default; up to 8000000)
- *   BOARD_CAN_FD        0 classic CAN at 1 Mbit/s (default), 1 also FD frames at 4 Mbit/s data phase
+ *   BOARD_CAN_FD        0 classic CAN at 1 Mbit/s (default), 1 also FD frames, data phase at
+ *                       BOARD_CAN_FD_DATA_BPS (default 8000000; 4000000, 2000000)
+ *   BOARD_HSE_HZ        0 HSI16 (default; fine for a UART), or the external clock (a CAN chip needs
+ *                       one: 8000000 with BOARD_HSE_BYPASS=1 is the ST-LINK's MCO on OSC_IN)
  *   BOARD_SENSORS       0 accelerometer chip, 1 6-axis (default: the ICM-42688-P's gyroscope too),
  *                       2 9-axis (and the MMC5983MA magnetometer on chip select 1)
  *
@@ -193,6 +196,7 @@ static uint8_t rx_buf[CAPSHEET_RX_BUFFER_SIZE];
  * (CAN: no acknowledgement within 1 ms) is a frame the host misses and counts as such. */
 static volatile uint32_t hal_errors;
 static volatile int32_t sensor_error;
+static volatile bool clock_external_failed; /* BOARD_HSE_HZ set, yet no external clock: running on HSI16 */
 
 static void check(int32_t rc)
 {
@@ -210,7 +214,7 @@ static void halt(void)
 int main(void)
 {
     uint64_t sensors_at = 0u;
-    clock_init();
+    clock_external_failed = !clock_init();
     spi_init();
     calstore_init(&cal, &cal_flash);
 #if BOARD_TRANSPORT_CAN
