@@ -22,6 +22,18 @@
  * set, XYZout2's two low bits 0): a part gone from the bus (SDO floating high or stuck low), reset
  * behind the driver's back, or one whose measurement never finishes is a sticky error — the chip
  * reports a sensor fault, never a frozen value.
+ *
+ * What each outcome becomes on the wire (docs/protocol.md §16.1, §8.6), through link_sensors.c:
+ *   a reading, in range                  counts, no status bit
+ *   the part's output at its 18-bit rail SATURATED, the count at -32768 / +32767 (its sign)
+ *   a field beyond the mag_range code    SATURATED, the count at its rail
+ *   no new measurement since the last    the last output again, no STALE (the part's rate is its own)
+ *   any negative return (BUS, PRODUCT_ID, OTP, SELF_TEST, TIMEOUT, GONE, NOT_READY)
+ *                                        a sensor fault: INVALID record, the chip in FAULT
+ * Not used: the INT pin (Meas_M_Done is polled in the same burst as the data), Auto_SR_en and
+ * continuous mode (one SET + TM_M per measurement keeps the offset's polarity known), 16-bit
+ * operation, the St_enp / St_enm coil (the datasheet gives no size for its field, so no limit to
+ * test it against).
  */
 #ifndef MMC5983MA_H
 #define MMC5983MA_H
