@@ -12,8 +12,7 @@ What it models (section numbers of DS-000347; the register map in `icm42688p_reg
 
 * **SPI** (§9): the first byte is the address, bit 7 set for a read; the address auto-increments for
   every further byte of the transaction, reads and writes alike; MISO is 0x00 during the address byte.
-  Register reads of a transaction see one snapshot (the part's data registers do not change under a
-  burst read).
+  A burst read sees one consistent state (conversions happen in `advance`, between transactions).
 * **Banks** (§13): REG_BANK_SEL (0x76 in every bank) selects bank 0..4; reset values, read-only,
   clear-on-read (INT_STATUS) and reserved registers (read 0x00, writes ignored) per `Reg.access`.
 * **Reset** (§14 DEVICE_CONFIG): SOFT_RESET_CONFIG puts every register back to its reset value and
@@ -219,11 +218,10 @@ class ICM42688P:
         addr = tx[0] & 0x7F
         rx = bytearray(len(tx))
         busy = self.now_s < self._busy_until
-        if read:
-            snapshot = dict(self._regs)   # one transaction reads one consistent state
-            bank = self._bank
-            for i in range(1, len(tx)):
-                rx[i] = 0 if busy else self._read(snapshot, bank, (addr + i - 1) & 0x7F)
+        if read:   # conversions happen in advance(), never within a transaction: one consistent state
+            if not busy:
+                for i in range(1, len(tx)):
+                    rx[i] = self._read(self._bank, (addr + i - 1) & 0x7F)
         elif not busy:
             for i in range(1, len(tx)):
                 self._write((addr + i - 1) & 0x7F, tx[i])
@@ -232,11 +230,11 @@ class ICM42688P:
 
     # ---- register access -----------------------------------------------------------------------
 
-    def _read(self, snapshot: dict, bank: int, addr: int) -> int:
+    def _read(self, bank: int, addr: int) -> int:
         reg = R.REGISTERS.get((bank, addr))
         if reg is None or reg.access == "w":
             return 0
-        value = snapshot[(bank, addr)]
+        value = self._regs[(bank, addr)]
         if reg.name == "WHO_AM_I" and self._fault == "wrong_id":
             value = 0x42
         if reg.access == "rc":
