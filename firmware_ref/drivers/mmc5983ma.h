@@ -8,7 +8,7 @@
  *
  * Life of a part:
  *   mmc5983ma_init  -> the state, nothing on the bus
- *   mmc5983ma_step  -> power-on time (10 ms), probe (Product ID1 0x30), SW_RST and its 10 ms, the
+ *   mmc5983ma_step  -> power-on time (10 ms + 20 %), probe (Product ID1 0x30), SW_RST and its wait, the
  *                      OTP check, bandwidth, self-test (SET, measure, RESET, measure: the bridge
  *                      offset, which must be within the datasheet's 0.5 G null-field output and off
  *                      the rails), a temperature measurement, SET and the first measurement; 0 once

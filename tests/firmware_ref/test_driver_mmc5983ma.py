@@ -238,8 +238,9 @@ def test_the_bring_up_waits_the_datasheet_times_and_misuses_nothing(sil):
     rc, t_end = rig.bring_up()
     assert rc == 0
     ev = rig.part.events
-    # 10 ms power-on, 10 ms after SW_RST, SET measurement, RESET measurement, TM_T (4 ms each)
-    assert 10_000 + 10_000 + 3 * 4_000 <= t_end <= 10_000 + 10_000 + 3 * 4_000 + 100
+    # 10 ms power-on, 10 ms after SW_RST (DS p.15; each waited 20 % longer: the datasheet's times are
+    # typical), SET measurement, RESET measurement, TM_T (4 ms each at BW 01, p.15)
+    assert 12_000 + 12_000 + 3 * 4_000 <= t_end <= 12_000 + 12_000 + 3 * 4_000 + 100
     for _ in range(50):
         assert rig.read(rig.now_us + 7_000)[0] == 0
     assert (ev.ignored_while_booting, ev.command_during_set_reset, ev.read_of_write_only, ev.write_to_read_only,
@@ -253,7 +254,7 @@ def test_run_blocks_with_the_bus_delay(sil):
     rig = Rig(sil, ideal(), delay=True)
     now = sil.ffi.new("uint64_t *", 0)
     assert sil.lib.mmc5983ma_run(rig.dev, now) == 0
-    assert now[0] >= 32_000
+    assert now[0] >= 36_000
     rig2 = Rig(sil, ideal(), delay=False)
     assert sil.lib.mmc5983ma_run(rig2.dev, now) == ERR_ARGUMENT
 
@@ -428,3 +429,15 @@ def test_the_link_glue_reads_the_magnetometer_beside_the_imu_on_one_spi_bus():
     assert lib.capsheet_link_read_axes(ls, us(), xyz, st) == ERR_GONE
     assert lib.capsheet_link_read_imu(ls, us(), 3, 1, True, out) == ERR_GONE   # a sensor fault, not old counts
     assert ls.fault == ERR_GONE
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_parts_drawn_at_the_datasheets_tolerances_come_up_and_read_within_them(sil, seed):
+    # offset within 0.5 G (removed), gain within 5 %, cross-axis 0.8 %, noise 0.6 mG RMS at BW 01,
+    # clock within 3 %: the field at ±4 G (8192 counts per gauss) within 5 % + 2 · 0.8 % of the
+    # largest component (0.45 G: 3686 counts -> 243) and 6 counts of noise and quantisation
+    rig = running(sil, MMC5983MA(seed=seed))
+    rc, mag, st, _ = settle(rig, EARTH_T, 60_000)
+    assert rc == 0 and st == 0
+    for m, w in zip(mag, (1638, -410, 3686)):
+        assert abs(m - w) <= 0.05 * abs(w) + 0.016 * 3686 + 6, (seed, mag)
