@@ -8,19 +8,26 @@ so beside the choice it made (``# not in the datasheet``).
 
 Why this part (for docs/hardware.md)
 ------------------------------------
-The 9-axis link uses the **MEMSIC MMC5983MA** beside the TDK ICM-42688-P. It is the only one of the
-three candidates (MMC5983MA, ST LIS2MDL, Bosch BMM350) with a true **4-wire SPI** port (SDI and SDO
-apart, up to 10 MHz, DS p.4-7), so it shares the ICM-42688-P's SPI bus on a second chip select:
-one SPI peripheral and four shared lines per link, and the same read bit (bit 7 of the first byte,
-DS p.6) as the ICM-42688-P. The LIS2MDL's SPI is 3-wire only (one bidirectional data line), which
-a full-duplex bus shared with the ICM cannot carry without a second SPI or an I2C port; the BMM350
-is I2C/I3C only. The MMC5983MA's 18-bit output (16384 counts/G, ±8 G, DS p.2) covers the protocol's
-±4 and ±8 gauss range codes with bits to spare; its 0.4-1.2 mG RMS noise (DS p.2) is far below the
-Earth field's 250-650 mG; its **SET/RESET** strap (DS p.18) removes the bridge offset and its drift
-with temperature (3 mG over -40..105 °C) without a calibration rotation, and restores the sensor after
-a field above 10 G (a magnet near the sheet); it is AEC-Q100 qualified, in production, and sold on
-cheap breakout boards (SparkFun, others). Its datasheet is public, and every register fact the
+The 9-axis link uses the **MEMSIC MMC5983MA** beside the TDK ICM-42688-P. Of the three candidates
+(MMC5983MA, ST LIS2MDL, Bosch BMM350) it is the one whose SPI port is **4-wire from power-up**
+(SDI and SDO apart, up to 10 MHz, DS p.4-7), so it shares the ICM-42688-P's full-duplex SPI bus on a
+second chip select: one SPI peripheral and four shared lines per link, the same read bit (bit 7 of
+the first byte, DS p.6) and the same burst reads. The LIS2MDL starts in 3-wire SPI: a separate SDO
+needs a half-duplex write of its CFG_REG_C 4WSPI bit first (ST's platform-independent lis2mdl
+driver), at every power-up and reset, on a bus wired for full duplex; its output is 16 bits at
+1.5 mG/LSB. The BMM350 speaks I2C and I3C only (Bosch's SensorAPI, Zephyr's bindings): a second bus
+per link. The MMC5983MA's 18-bit output (16384 counts/G, ±8 G, DS p.2) covers the protocol's ±4 and
+±8 gauss range codes with bits to spare; its 0.4-1.2 mG RMS noise (DS p.2) is far below the Earth
+field's 250-650 mG; its **SET/RESET** strap (DS p.18) measures and removes the bridge offset (its
+drift over -40..105 °C is then 3 mG) without a calibration rotation, and restores the sensor after
+a field over 10 G (a magnet near the sheet). It is AEC-Q100 qualified (DS p.1), sold on cheap
+breakout boards (SparkFun's among them), and its datasheet is public: every register fact the
 driver and this emulator use is in it.
+
+Wiring: VDD and VDDIO 2.8-3.6 V (DS p.2: a 3.0-3.3 V link rail serves both parts); a 10 µF low-ESR
+capacitor at CAP for the SET/RESET current (DS p.11); SPI_CS on its own MCU pin, SCK/SDI/SDO shared
+with the ICM-42688-P. SCK idles high while CS is high (DS p.5): SPI mode 3, which the ICM-42688-P also
+takes. INT is optional (the driver polls Meas_M_Done in the same burst as the data).
 
 The seam (pinned: other tools use it this way)
 ----------------------------------------------
