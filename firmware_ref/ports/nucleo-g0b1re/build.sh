@@ -31,8 +31,8 @@ image() {  # $1 name, $2 description, $3 flags
     echo "| \`capsheet_g0b1_$1\` | $2 | $(( $3 + $4 )) | $(( $4 + $5 )) | $6 |" >> "$ROWS"
 }
 echo "== $($ARM_CC --version | head -1)"
-image vcp_6axis "serial on USART2 (the ST-LINK virtual COM port), 6-axis" "-DBOARD_UART=2 -DBOARD_SENSORS=1"
-image rs485_9axis "serial on USART1 (RS-485 bus, DE on PA8), 9-axis" "-DBOARD_UART=1 -DBOARD_SENSORS=2"
+image vcp_6axis "serial on USART2 (the ST-LINK virtual COM port) at 115200 baud, 6-axis" "-DBOARD_UART=2 -DBOARD_SENSORS=1 -DBOARD_BAUD=115200u"
+image rs485_9axis "serial on USART1 (RS-485, DE on PA8) at 3 Mbaud, 9-axis" "-DBOARD_UART=1 -DBOARD_SENSORS=2"
 image can_6axis "classic CAN 1 Mbit/s on FDCAN1, 6-axis, 8 MHz external clock" "-DBOARD_TRANSPORT_CAN=1 -DBOARD_SENSORS=1 -DBOARD_HSE_HZ=8000000"
 image canfd_9axis "CAN FD 1/8 Mbit/s on FDCAN1, 9-axis, 8 MHz external clock" "-DBOARD_TRANSPORT_CAN=1 -DBOARD_CAN_FD=1 -DBOARD_SENSORS=2 -DBOARD_HSE_HZ=8000000"
 {
