@@ -1,0 +1,109 @@
+"""C chips reading the ICM-42688-P through its driver, in the loop (firmware_ref/part_chip.py): the
+sheet's truth -> the part's registers -> the C driver and glue -> the C chip -> the protocol.
+
+In process (a gateway, simulated clock, exact counts) and end to end over a real pty through the
+command line (``capsheet virtual --firmware c --part icm42688p`` and ``capsheet host``). Expected
+values: 1024 counts per g (docs/protocol.md §5.2) within the part's datasheet errors (zero-g offset
+±20 mg, sensitivity ±0.5 %: DS-000347 §3.2 Table 2), the gyroscope at rest within its zero-rate
+offset (±0.5 °/s, §3.1 Table 1) at 32.8 counts per °/s (±1000 °/s, §16.1)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol.framing import StreamDecoder, encode
+from protocol.messages import ConfigImu, ImuSample, Start, Sync
+from virtual_sheet.gateway import Gateway
+from virtual_sheet.sheet import VirtualSheet
+
+part_chip = pytest.importorskip("firmware_ref.part_chip")
+
+G0 = 9.80665
+INVALID, STALE = 0x8, 0x4   # docs/protocol.md §5.2
+
+
+def stream(n_syncs: int = 60, *, fault_link: int | None = None, fault_at: int | None = None, fault="no_answer"):
+    fac = part_chip.PartChipFactory("icm42688p")
+    sheet = VirtualSheet("gaussian", "3x3", seed=6, chip_factory=fac, sensors="accel+gyro")
+    fac.bind(sheet)
+    gw = Gateway(sheet, packed=False)
+    gw.power_on(0.0)
+    gw.pop_output(0.0)
+    gw.commission(0.1, start=False)
+    gw.feed(encode(ConfigImu(0, format=1, gyro_range=3)), 0.2)
+    gw.feed(encode(Start(0)), 0.3)
+    for t in np.arange(0.3, 2.0, 0.01):        # the link MCUs' main loops: bring-up and self-test
+        gw.poll(float(t))
+    gw.pop_output(2.0)
+    for i in range(n_syncs):
+        now = 2.0 + 0.01 * i
+        if fault_link is not None and i == fault_at:
+            fac.links[fault_link].part.fault(fault)   # the factory's links are in link order
+        gw.feed(encode(Sync(counter=i)), now)
+        gw.poll(now)
+    msgs = StreamDecoder().feed(gw.pop_bytes(10.0))
+    recs = [m for m in msgs if isinstance(m, ImuSample)]
+    return sheet, fac, recs
+
+
+def test_records_come_from_the_part_through_the_driver():
+    sheet, fac, recs = stream()
+    n = sheet.n_links
+    assert len(recs) == 60 * n
+    assert [ls.link for ls in fac.links] == list(range(n))
+    assert all(ls.ls.imu.self_test == 0x7 for ls in fac.links)          # ran, gyroscope and accelerometer passed
+    assert all(ls.part.transactions > 60 * 2 for ls in fac.links)       # every read went over the SPI bus
+    ideal = sheet._geometry(2.0)[2] / G0 * 1024.0                        # counts per g at ±2 g (§5.2)
+    by_node = {}
+    for r in recs:
+        by_node.setdefault(r.node, []).append(r)
+    for node, rs in by_node.items():
+        k = node - 1                                                     # commission: node = 1 + link
+        a = np.array([(r.x, r.y, r.z) for r in rs], dtype=float).mean(axis=0)
+        # zero-g offset ±20 mg (4 σ: 82 counts) and sensitivity ±0.5 % (4 σ: 21 counts at 1 g)
+        assert np.all(np.abs(a - ideal[k]) < 82 + 21), (node, a, ideal[k])
+        g = np.array([(r.gx, r.gy, r.gz) for r in rs], dtype=float).mean(axis=0)
+        assert np.all(np.abs(g) < 4 * 0.5 * 32.8)                      # at rest: the zero-rate offset only
+        assert all(r.status & ~STALE == 0 for r in rs)
+        # the data-ready edge is the latch: within one ODR period (500 Hz at CONFIG's 145 Hz) before the SYNC
+        assert all(-2100 <= r.time_us <= 0 for r in rs)
+
+
+@pytest.mark.parametrize("fault", ["no_answer", "reset", "stuck_bus"])
+def test_a_part_lost_mid_stream_is_invalid_never_frozen(fault):
+    sheet, fac, recs = stream(40, fault_link=4, fault_at=20, fault=fault)
+    bad = [r for r in recs if r.node == 5]
+    assert len(bad) == 40
+    assert all(r.status & INVALID == 0 for r in bad[:20])
+    assert all(r.status == INVALID and (r.x, r.y, r.z, r.gx, r.gy, r.gz) == (0,) * 6 for r in bad[21:])
+    assert all(r.status & INVALID == 0 for r in recs if r.node != 5)    # nothing else lost
+
+
+def test_a_part_failing_its_self_test_is_a_sensor_fault():
+    fac = part_chip.PartChipFactory("icm42688p")
+    sheet = VirtualSheet("gaussian", "2x2", seed=6, chip_factory=fac, sensors="accel+gyro")
+    fac.bind(sheet)
+    fac.links[1].part.fault("self_test_fail")
+    gw = Gateway(sheet, packed=False)
+    gw.power_on(0.0)
+    gw.pop_output(0.0)
+    gw.commission(0.1)
+    for t in np.arange(0.1, 2.0, 0.01):
+        gw.poll(float(t))
+    gw.pop_output(2.0)
+    gw.feed(encode(Sync(counter=1)), 2.0)
+    msgs = StreamDecoder().feed(gw.pop_bytes(3.0))
+    s = {m.node: m for m in msgs if type(m).__name__ == "Sample"}
+    assert len(s) == sheet.n_links
+    assert [n for n, m in sorted(s.items()) if m.status == INVALID] == [2]   # link 1: node 2 (commission)
+    assert s[2].x == s[2].y == s[2].z == 0
+    assert fac.links[1].ls.imu.error == -23                               # ICM42688P_ERR_SELF_TEST
+
+
+def test_part_needs_the_c_firmware_and_a_6_axis_set():
+    with pytest.raises(ValueError, match="Unknown part"):
+        part_chip.PartChipFactory("bmi270")
+    fac = part_chip.PartChipFactory("icm42688p")
+    with pytest.raises(ValueError, match="6-axis part"):
+        VirtualSheet("gaussian", "2x2", chip_factory=fac, sensors="accel+gyro+mag")
