@@ -107,3 +107,22 @@ def test_part_needs_the_c_firmware_and_a_6_axis_set():
     fac = part_chip.PartChipFactory("icm42688p")
     with pytest.raises(ValueError, match="6-axis part"):
         VirtualSheet("gaussian", "2x2", chip_factory=fac, sensors="accel+gyro+mag")
+
+
+def test_end_to_end_over_a_pty_through_the_command_line(tmp_path):
+    """``capsheet virtual --firmware c --part icm42688p`` (a 4x4 6-axis sheet) streams to ``capsheet host``
+    over a real pty: >= 99 % of the snapshots complete, every link sample with its gyroscope."""
+    from tests.host.cli.test_host import Virtual, host_json
+    lay = tmp_path / "sheet.csv"
+    v = Virtual("--lattice", "4x4", "--sensors", "accel+gyro", "--firmware", "c", "--part", "icm42688p",
+                "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
+    try:
+        out, doc = host_json(*v.host_cmd, "--duration", "4")
+    finally:
+        assert v.stop() == 0
+    assert out.returncode == 0, out.stderr
+    s = doc["summary"]
+    assert s["sensors"] == "accel+gyro" and s["links"] == 24
+    assert s["snapshots"] > 0 and s["complete_snapshots_pct"] >= 99.0, s
+    assert s["imu_links_pct"] == pytest.approx(s["valid_links_pct"], abs=1e-6)
+    assert s["errors"] == {}, s["errors"]
