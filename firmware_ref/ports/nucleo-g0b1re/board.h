@@ -336,8 +336,9 @@ size_t uart_read(uint8_t *out, size_t cap);
 /* Blocking write: returns once the last byte's stop bit is on the wire (the RS-485 driver is then
  * released), so `data` may be reused at once. */
 void uart_write(const uint8_t *data, size_t len);
-/* Bytes lost since boot: the ring was full, or the UART overran / saw a framing or noise error. The
- * chip's stream decoder also counts the frames they broke (rx_errors in STATUS). */
+/* Reception losses since boot: a byte dropped because the ring was full, or a UART overrun, framing,
+ * noise or parity error (one count each). The chip's stream decoder also counts the frames they
+ * broke (rx_errors in STATUS). */
 uint32_t uart_lost(void);
 void usart_irq(void);
 

@@ -16,6 +16,16 @@
 
 static const unsigned cs_pin[2] = {0u, 1u}; /* PB0, PB1 */
 
+/* Configure with SPE = 0, then enable (RM0444 "Configuration of SPI"); also the recovery after a mode
+ * fault, which clears SPE and MSTR. */
+static void configure(void)
+{
+    SPI1_CR1 = 0u;
+    SPI1_CR2 = SPI_CR2_DS_8BIT | SPI_CR2_FRXTH;
+    SPI1_CR1 = SPI_CR1_CPOL | SPI_CR1_CPHA | SPI_CR1_MSTR | (2u << SPI_CR1_BR_SHIFT) | SPI_CR1_SSM | SPI_CR1_SSI;
+    SPI1_CR1 |= SPI_CR1_SPE;
+}
+
 void spi_init(void)
 {
     RCC_APBENR2 |= RCC_APBENR2_SPI1EN;
@@ -24,10 +34,7 @@ void spi_init(void)
     gpio_af(GPIOA_BASE, 5u, 0u); /* SPI1_SCK */
     gpio_af(GPIOA_BASE, 6u, 0u); /* SPI1_MISO */
     gpio_af(GPIOA_BASE, 7u, 0u); /* SPI1_MOSI */
-    SPI1_CR1 = 0u;
-    SPI1_CR2 = SPI_CR2_DS_8BIT | SPI_CR2_FRXTH;
-    SPI1_CR1 = SPI_CR1_CPOL | SPI_CR1_CPHA | SPI_CR1_MSTR | (2u << SPI_CR1_BR_SHIFT) | SPI_CR1_SSM | SPI_CR1_SSI |
-               SPI_CR1_SPE;
+    configure();
 }
 
 static bool wait_sr(uint32_t mask)
@@ -82,8 +89,7 @@ int32_t spi_transfer(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len)
     gpio_write(GPIOB_BASE, cs_pin[cs], true);
     if (rc != 0) {
         drain();
-        SPI1_CR1 = SPI1_CR1; /* a write to CR1 clears MODF after the SR read above */
-        SPI1_CR1 |= SPI_CR1_SPE;
+        configure(); /* the SR read above and this CR1 write clear MODF */
     }
     return rc;
 }

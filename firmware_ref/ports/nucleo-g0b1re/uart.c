@@ -46,8 +46,9 @@ void uart_init(uint32_t baud)
     USART_CR1(UART_BASE) = 0u;
     USART_BRR(UART_BASE) = (div & 0xFFF0u) | ((div & 0xFu) >> 1); /* OVER8: BRR[3] stays 0 */
     USART_CR3(UART_BASE) = USART_CR3_EIE;
-    USART_CR1(UART_BASE) = USART_CR1_FIFOEN | USART_CR1_OVER8 | USART_CR1_RXFNEIE | USART_CR1_TE | USART_CR1_RE |
-                           USART_CR1_UE;
+    /* FIFOEN and OVER8 are written while UE = 0 (RM0444 USART_CR1), then the USART is enabled */
+    USART_CR1(UART_BASE) = USART_CR1_FIFOEN | USART_CR1_OVER8 | USART_CR1_RXFNEIE | USART_CR1_TE | USART_CR1_RE;
+    USART_CR1(UART_BASE) |= USART_CR1_UE;
     NVIC_ISER = 1u << UART_IRQ;
 }
 
