@@ -20,7 +20,8 @@
 #include "board.h"
 
 #ifndef BOARD_INT1_RISING
-#define BOARD_INT1_RISING 0 /* the part's reset state: INT1 active low, open drain (pull-up on PA0) */
+#define BOARD_INT1_RISING 0 /* the part's reset state, which the driver keeps: INT_CONFIG 0x00, INT1 active
+                             * low, open drain, pulsed (DS-000347 §14 INT_CONFIG): pull-up on PA0 */
 #endif
 
 static uint32_t last;

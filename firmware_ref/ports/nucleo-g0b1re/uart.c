@@ -5,7 +5,7 @@
  *
  * Baud: oversampling by 8, baud = 2 fck / USARTDIV with fck = PCLK = 64 MHz, so up to 8 Mbaud and
  * exact at 8, 4, 2 and 1 Mbaud; 3 Mbaud is 2.977 Mbaud (USARTDIV 43, -0.78 %) (RM0444 "USART baud
- * rate generation"; DS13560 "USART characteristics"). The FIFO mode's 8-byte RX FIFO gives the ISR
+ * rate generation"). The FIFO mode's 8-byte RX FIFO gives the ISR
  * eight byte times (10 µs at 8 Mbaud) of slack.
  *
  * Unlike QEMU's UART, this one cannot hold input back: when the ring is full a byte is dropped and
