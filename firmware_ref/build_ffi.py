@@ -267,7 +267,7 @@ int32_t capsheet_link_read_imu(void *user, uint64_t now_us, uint8_t gyro_range, 
                                bool want_mag, capsheet_imu_reading_t *out);
 
 typedef struct {
-    uint8_t cs; uint8_t bw; int8_t axes[3]; uint8_t phase; bool pending; int32_t error;
+    uint8_t cs; uint8_t i2c_addr; bool on_i2c; uint8_t bw; int8_t axes[3]; uint8_t phase; bool pending; int32_t error;
     int32_t offset2[3]; uint8_t tout; uint32_t measurements;
     ...;
 } mmc5983ma_t;
@@ -280,6 +280,7 @@ typedef struct {
 #define MMC5983MA_ERR_NOT_READY ...
 #define MMC5983MA_ERR_ARGUMENT ...
 int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, uint8_t bw);
+int32_t mmc5983ma_init_i2c(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t addr7, uint8_t bw);
 int32_t mmc5983ma_set_axes(mmc5983ma_t *d, const int8_t axes[3]);
 int32_t mmc5983ma_step(mmc5983ma_t *d, uint64_t now_us);
 int32_t mmc5983ma_run(mmc5983ma_t *d, uint64_t *now_us);

@@ -51,6 +51,10 @@ int32_t mmc5983ma_read_regs(mmc5983ma_t *d, uint8_t reg, uint8_t *buf, size_t le
     if (d == NULL || buf == NULL || len == 0u || len > sizeof tx - 1u) {
         return MMC5983MA_ERR_ARGUMENT;
     }
+    if (d->on_i2c) {  /* the register address, a repeated start, the bytes (DS Rev A p.17) */
+        tx[0] = (uint8_t)(reg & MMC5983MA_SPI_ADDR_MASK);
+        return d->bus->i2c_write_read(d->bus->user, d->i2c_addr, tx, 1u, buf, len) < 0 ? MMC5983MA_ERR_BUS : 0;
+    }
     memset(tx, 0, sizeof tx);
     tx[0] = (uint8_t)(MMC5983MA_SPI_READ | (reg & MMC5983MA_SPI_ADDR_MASK));
     if (d->bus->spi_transfer(d->bus->user, d->cs, tx, rx, len + 1u) < 0) {
@@ -66,12 +70,26 @@ int32_t mmc5983ma_write_reg(mmc5983ma_t *d, uint8_t reg, uint8_t value)
     if (d == NULL) {
         return MMC5983MA_ERR_ARGUMENT;
     }
-    tx[0] = (uint8_t)(reg & MMC5983MA_SPI_ADDR_MASK);  /* RW bit 0: write (DS Rev A p.7) */
+    tx[0] = (uint8_t)(reg & MMC5983MA_SPI_ADDR_MASK);  /* SPI: RW bit 0, a write (DS Rev A p.7) */
     tx[1] = value;
+    if (d->on_i2c) {
+        return d->bus->i2c_write_read(d->bus->user, d->i2c_addr, tx, 2u, NULL, 0u) < 0 ? MMC5983MA_ERR_BUS : 0;
+    }
     if (d->bus->spi_transfer(d->bus->user, d->cs, tx, rx, 2u) < 0) {
         return MMC5983MA_ERR_BUS;
     }
     return 0;
+}
+
+static void setup(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t bw)
+{
+    memset(d, 0, sizeof *d);
+    d->bus = bus;
+    d->bw = bw;
+    d->axes[0] = 1;
+    d->axes[1] = 2;
+    d->axes[2] = 3;
+    d->phase = PH_START;
 }
 
 int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, uint8_t bw)
@@ -79,14 +97,19 @@ int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, ui
     if (d == NULL || bus == NULL || bus->spi_transfer == NULL || bw > 3u) {
         return MMC5983MA_ERR_ARGUMENT;
     }
-    memset(d, 0, sizeof *d);
-    d->bus = bus;
+    setup(d, bus, bw);
     d->cs = cs;
-    d->bw = bw;
-    d->axes[0] = 1;
-    d->axes[1] = 2;
-    d->axes[2] = 3;
-    d->phase = PH_START;
+    return 0;
+}
+
+int32_t mmc5983ma_init_i2c(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t addr7, uint8_t bw)
+{
+    if (d == NULL || bus == NULL || bus->i2c_write_read == NULL || bw > 3u || addr7 > 0x7Fu) {
+        return MMC5983MA_ERR_ARGUMENT;
+    }
+    setup(d, bus, bw);
+    d->i2c_addr = addr7;
+    d->on_i2c = true;
     return 0;
 }
 

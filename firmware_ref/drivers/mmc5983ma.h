@@ -61,7 +61,9 @@ extern "C" {
 
 typedef struct {
     const capsheet_bus_t *bus;
-    uint8_t cs;
+    uint8_t cs;               /* SPI chip select (on SPI) */
+    uint8_t i2c_addr;         /* 7-bit I2C address, 0x30 (on I2C: mmc5983ma_init_i2c) */
+    bool on_i2c;
     uint8_t bw;               /* Internal control 1 BW code: 0 8 ms, 1 4 ms, 2 2 ms, 3 0.5 ms */
     int8_t axes[3];           /* sensor-frame axis i = sign * part axis |axes[i]| - 1 (1, 2, 3 = x, y, z) */
     uint8_t phase;            /* bring-up phase (mmc5983ma.c) */
@@ -83,6 +85,11 @@ typedef struct {
 /* Initialise `d` for the part on chip select `cs` with bandwidth code `bw` (0..3); nothing goes on
  * the bus. MMC5983MA_ERR_ARGUMENT for a NULL pointer, a bus without spi_transfer or bw > 3. */
 CAPSHEET_WARN_UNUSED int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, uint8_t bw);
+
+/* The same on I2C at 7-bit address `addr7` (the part's is 0x30, DS Rev A p.9); ARGUMENT for a bus
+ * without i2c_write_read. SPI_CS must be tied to VDDIO (p.11). Over I2C a part that is gone does not
+ * acknowledge: the bus callback fails (BUS). */
+CAPSHEET_WARN_UNUSED int32_t mmc5983ma_init_i2c(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t addr7, uint8_t bw);
 
 /* The part's mounting: sensor-frame axis i is part axis |axes[i]| (1..3), negated when axes[i] < 0.
  * The default is {1, 2, 3}. ARGUMENT unless the three name each part axis once. */
@@ -111,7 +118,8 @@ int32_t mmc5983ma_temperature_dc(const mmc5983ma_t *d);
  * read = mmc5983ma_read. */
 void mmc5983ma_mag_driver(mmc5983ma_t *d, capsheet_mag_driver_t *out);
 
-/* Register access over SPI (the read bit and address as the datasheet's command byte). */
+/* Register access: over SPI the read bit and address as the datasheet's command byte (p.5-7); over
+ * I2C the register address written, then the bytes read or written (p.17). */
 CAPSHEET_WARN_UNUSED int32_t mmc5983ma_read_regs(mmc5983ma_t *d, uint8_t reg, uint8_t *buf, size_t len);
 CAPSHEET_WARN_UNUSED int32_t mmc5983ma_write_reg(mmc5983ma_t *d, uint8_t reg, uint8_t value);
 

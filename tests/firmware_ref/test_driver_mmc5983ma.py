@@ -48,6 +48,7 @@ typedef struct {
     ...;
 } mmc5983ma_t;
 int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, uint8_t bw);
+int32_t mmc5983ma_init_i2c(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t addr7, uint8_t bw);
 int32_t mmc5983ma_set_axes(mmc5983ma_t *d, const int8_t axes[3]);
 int32_t mmc5983ma_step(mmc5983ma_t *d, uint64_t now_us);
 int32_t mmc5983ma_run(mmc5983ma_t *d, uint64_t *now_us);
@@ -57,6 +58,7 @@ int32_t mmc5983ma_temperature_dc(const mmc5983ma_t *d);
 void mmc5983ma_mag_driver(mmc5983ma_t *d, capsheet_mag_driver_t *out);
 extern "Python" int32_t sil_spi(void *, uint8_t, const uint8_t *, uint8_t *, size_t);
 extern "Python" void sil_delay(void *, uint32_t);
+extern "Python" int32_t sil_i2c(void *, uint8_t, const uint8_t *, size_t, uint8_t *, size_t);
 """
 
 
@@ -81,6 +83,10 @@ def sil(tmp_path_factory):
         return mod.ffi.from_handle(user).spi(cs, bytes(mod.ffi.buffer(tx, n)), rx, n)
 
     @mod.ffi.def_extern()
+    def sil_i2c(user, addr, tx, tx_len, rx, rx_len):
+        return mod.ffi.from_handle(user).i2c(addr, bytes(mod.ffi.buffer(tx, tx_len)) if tx_len else b"", rx, rx_len)
+
+    @mod.ffi.def_extern()
     def sil_delay(user, us):
         mod.ffi.from_handle(user).now_us += us
 
@@ -92,7 +98,8 @@ class Rig:
 
     SCK_HZ = 10e6
 
-    def __init__(self, sil, part: MMC5983MA, *, bw: int = 1, delay: bool = False, cs: int = 1):
+    def __init__(self, sil, part: MMC5983MA, *, bw: int = 1, delay: bool = False, cs: int = 1,
+                 i2c_addr: int | None = None):
         self.sil, self.ffi, self.lib = sil, sil.ffi, sil.lib
         self.part = part
         self.now_us = 0.0
@@ -103,9 +110,14 @@ class Rig:
         self.bus = self.ffi.new("capsheet_bus_t *")
         self.bus.user = self._h
         self.bus.spi_transfer = self.lib.sil_spi
+        self.bus.i2c_write_read = self.lib.sil_i2c
         self.bus.delay_us = self.lib.sil_delay if delay else self.ffi.NULL
         self.dev = self.ffi.new("mmc5983ma_t *")
-        assert self.lib.mmc5983ma_init(self.dev, self.bus, cs, bw) == 0
+        if i2c_addr is None:
+            assert self.lib.mmc5983ma_init(self.dev, self.bus, cs, bw) == 0
+        else:
+            assert self.lib.mmc5983ma_init_i2c(self.dev, self.bus, i2c_addr, bw) == 0
+        self.i2c_seen: set[int] = set()
 
     def spi(self, cs, tx, rx, n):
         self.cs_seen.add(cs)
@@ -116,6 +128,21 @@ class Rig:
         ans = self.part.spi_transfer(tx)
         self.ffi.memmove(rx, ans, n)
         self.now_us += n * 8 / self.SCK_HZ * 1e6 + 0.1  # the clocks, and CS high between transactions
+        return 0
+
+    def i2c(self, addr, tx, rx, n):
+        """I2C at 400 kHz (DS p.3): 9 clocks a byte, the address byte twice (a repeated start)."""
+        self.i2c_seen.add(addr)
+        if self.fail_bus or addr != 0x30:
+            return -1                                     # no acknowledge
+        self.part.advance(self.now_us / 1e6)
+        try:
+            ans = self.part.i2c_write_read(tx, n)
+        except RuntimeError:
+            return -1
+        if n:
+            self.ffi.memmove(rx, ans, n)
+        self.now_us += (len(tx) + n + 2) * 9 / 400e3 * 1e6
         return 0
 
     def at(self, t_us: float) -> int:
@@ -441,3 +468,30 @@ def test_parts_drawn_at_the_datasheets_tolerances_come_up_and_read_within_them(s
     assert rc == 0 and st == 0
     for m, w in zip(mag, (1638, -410, 3686)):
         assert abs(m - w) <= 0.05 * abs(w) + 0.016 * 3686 + 6, (seed, mag)
+
+
+# ---------------------------------------------------------------------------------- on I2C
+def test_on_i2c_the_same_bring_up_and_counts(sil):
+    rig = Rig(sil, ideal(), i2c_addr=0x30)
+    rc, _ = rig.bring_up()
+    assert rc == 0 and rig.i2c_seen == {0x30}
+    rc, mag, st, _ = settle(rig, EARTH_T, 60_000, r=1)
+    assert rc == 0 and st == 0
+    assert [abs(m - w) <= 1 for m, w in zip(mag, (819, -205, 1843))] == [True] * 3
+
+
+def test_on_i2c_a_part_that_stops_acknowledging_is_a_bus_fault(sil):
+    rig = Rig(sil, ideal(), i2c_addr=0x30)
+    assert rig.bring_up()[0] == 0
+    assert rig.read(60_000)[0] == 0
+    rig.part.inject("no_answer")
+    assert rig.read(70_000)[0] == ERR_BUS
+    rig.part.clear_faults()
+    assert rig.read(80_000)[0] == ERR_BUS        # sticky
+
+
+def test_on_i2c_the_wrong_address_never_comes_up(sil):
+    rig = Rig(sil, ideal(), i2c_addr=0x31)
+    assert rig.bring_up()[0] == ERR_BUS
+    rig = Rig(sil, ideal())
+    assert rig.lib.mmc5983ma_init_i2c(rig.dev, rig.bus, 0x80, 1) == ERR_ARGUMENT
