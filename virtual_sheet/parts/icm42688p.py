@@ -80,6 +80,12 @@ class BusError(RuntimeError):
     """The SPI transfer did not complete (a stuck line): the bus driver reports a bus error."""
 
 
+def _clip16(v: float) -> int:
+    """Round half to even (as np.rint) and clip to the 16-bit two's complement range."""
+    r = round(v)
+    return -32768 if r < -32768 else (32767 if r > 32767 else r)
+
+
 def st_otp(code: int) -> float:
     """Factory self-test response in LSB at ±250 °/s / ±2 g for a factory code (0: no code)."""
     return ST_OTP_BASE * 1.01 ** (code - 1) if code else 0.0
@@ -315,8 +321,8 @@ class ICM42688P:
                     if st & bit:
                         counts[i] += (st_otp(self.accel_st_codes[i]) * self.st_factor[3 + i] * st_fail
                                       * sens / 16384.0)
-            for axis, c in zip("XYZ", counts):
-                self._set16(f"ACCEL_DATA_{axis}1", int(np.clip(np.rint(c), -32768, 32767)))
+            for axis, c in zip("XYZ", counts.tolist()):
+                self._set16(f"ACCEL_DATA_{axis}1", _clip16(c))
             converted = True
         if self._gyro_on_at is not None and t >= self._gyro_on_at:
             cfg = self._reg0("GYRO_CONFIG0")
@@ -327,8 +333,8 @@ class ICM42688P:
             for i, bit in enumerate((R.EN_GX_ST, R.EN_GY_ST, R.EN_GZ_ST)):
                 if st & bit:
                     counts[i] += st_otp(self.gyro_st_codes[i]) * self.st_factor[i] * st_fail * sens / 131.072
-            for axis, c in zip("XYZ", counts):
-                self._set16(f"GYRO_DATA_{axis}1", int(np.clip(np.rint(c), -32768, 32767)))
+            for axis, c in zip("XYZ", counts.tolist()):
+                self._set16(f"GYRO_DATA_{axis}1", _clip16(c))
             converted = True
         if converted:
             pwr = self._reg0("PWR_MGMT0")
