@@ -74,8 +74,8 @@
 #define SRAM_SIZE (144u * 1024u)           /* DS13560: 144 KiB SRAM (128 KiB of it with parity check) */
 
 /* Calibration storage: the last two pages of bank 2 (linker script: the image ends below them).
- * In bank 2, while the code runs from bank 1: a page erase (22 ms typical, DS13560 "Flash memory
- * characteristics" tERASE) does not stall the core or the UART interrupt (read-while-write). */
+ * In bank 2, while the code runs from bank 1: a page erase (22 ms typical, flash.c) does not stall
+ * the core or the UART interrupt (read-while-write, DS13560 "Features"). */
 #define CAL_PAGE0_ADDR (FLASH_MEM_BASE + FLASH_MEM_SIZE - 2u * FLASH_PAGE_SIZE) /* 0x0807F000 */
 #define CAL_PAGE0_PNB (FLASH_BANK2_FIRST_PNB + 126u)
 #define CAL_PAGE1_PNB (FLASH_BANK2_FIRST_PNB + 127u)

@@ -6,8 +6,9 @@
  * "Flash main memory programming sequences" / "Standard programming" (PG; two 32-bit writes, low word
  * first, at a double-word aligned address of an erased double word; wait BSY; check the error flags),
  * "FLASH status register (FLASH_SR)": error flags are cleared by writing 1; EOP is set only with EOPIE,
- * so success is "not busy and no error flag". DS13560 "Flash memory characteristics": tPROG 85 µs
- * typical per double word, tERASE 22 ms typical (40 ms max) per page, 10 kcycles endurance.
+ * so success is "not busy and no error flag". A page erase takes 22 ms typical, 40 ms max (the STM32G0
+ * datasheets' "Flash memory characteristics", tERASE; the figure was checked against STM32G030's, the
+ * same flash, not against DS13560 itself).
  *
  * The code runs from bank 1, so programming bank 2 does not stall instruction fetches (read while
  * write). The flash is locked again after every operation.

@@ -19,8 +19,8 @@
  * flash record log (calstore.h) on bank 2's last two pages; read_uid folds the part's 96-bit unique
  * id into 64 bits; send_bytes / send_can are the port's UART / FDCAN.
  *
- * A calibration store is quick (one double word, ~85 µs) except when the log's page is full: the
- * copy to the other page erases it first (22 ms typical, 40 ms max), and the main loop waits. The
+ * A calibration store is quick (one double word) except when the log's page is full: the copy to
+ * the other page erases it first (22 ms typical, 40 ms max: flash.c), and the main loop waits. The
  * receive rings keep filling meanwhile (1 KiB of UART, 16 CAN frames); the host writes calibration
  * while the sheet is idle (capsheet calibrate --write-chips), when little else is on the bus.
  */
