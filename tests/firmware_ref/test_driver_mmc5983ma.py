@@ -13,6 +13,7 @@ import importlib.util
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from virtual_sheet.parts.mmc5983ma import MMC5983MA
@@ -495,3 +496,33 @@ def test_on_i2c_the_wrong_address_never_comes_up(sil):
     assert rig.bring_up()[0] == ERR_BUS
     rig = Rig(sil, ideal())
     assert rig.lib.mmc5983ma_init_i2c(rig.dev, rig.bus, 0x80, 1) == ERR_ARGUMENT
+
+
+class Garbage:
+    """A "part" that answers every byte at random (seeded): noise on SDO, a wrong part, a bad wire."""
+
+    def __init__(self, seed):
+        self.rng = np.random.Generator(np.random.MT19937(seed))
+
+    def advance(self, now_s):
+        pass
+
+    def spi_transfer(self, tx):
+        return bytes(self.rng.integers(0, 256, len(tx), dtype=np.uint8)) if len(tx) else b""
+
+
+def test_a_bus_answering_garbage_never_comes_up_and_never_crashes(sil):
+    codes = set()
+    for seed in range(100):
+        rc, _ = Rig(sil, Garbage(seed)).bring_up()
+        codes.add(rc)
+    assert codes <= {ERR_PRODUCT_ID, ERR_OTP, ERR_GONE, ERR_SELF_TEST, ERR_TIMEOUT} and ERR_PRODUCT_ID in codes
+
+
+def test_garbage_mid_stream_is_a_fault(sil):
+    for seed in range(20):
+        rig = running(sil)
+        g = Garbage(seed)
+        rig.part.spi_transfer = g.spi_transfer          # the wire goes bad under a running driver
+        codes = [rig.read(60_000 + 7_000 * k)[0] for k in range(6)]
+        assert codes[-1] < 0, (seed, codes)
