@@ -172,7 +172,7 @@ static int32_t take_measurement(mmc5983ma_t *d, uint64_t now_us, uint32_t raw[3]
         return rc;
     }
     if (!(regs[MMC5983MA_STATUS] & MMC5983MA_STATUS_MEAS_M_DONE)) {
-        if (now_us - d->start_us > timeout_us(d)) {
+        if (now_us > d->start_us && now_us - d->start_us > timeout_us(d)) {  /* an older now: not late */
             return fail(d, MMC5983MA_ERR_TIMEOUT);
         }
         return 0;
@@ -351,7 +351,7 @@ static int32_t bring_up(mmc5983ma_t *d, uint64_t now_us)
             return rc;
         }
         if (!(regs[MMC5983MA_STATUS] & MMC5983MA_STATUS_MEAS_T_DONE)) {
-            if (now_us - d->start_us > timeout_us(d)) {
+            if (now_us > d->start_us && now_us - d->start_us > timeout_us(d)) {
                 return fail(d, MMC5983MA_ERR_TIMEOUT);
             }
             return wait(d, now_us, poll_us(d));

@@ -526,3 +526,12 @@ def test_garbage_mid_stream_is_a_fault(sil):
         rig.part.spi_transfer = g.spi_transfer          # the wire goes bad under a running driver
         codes = [rig.read(60_000 + 7_000 * k)[0] for k in range(6)]
         assert codes[-1] < 0, (seed, codes)
+
+
+def test_a_read_with_an_older_now_is_not_a_timeout(sil):
+    # a caller whose clock read is older than the measurement's start (an interrupt's timestamp)
+    rig = running(sil)
+    assert rig.read(60_000)[0] == 0
+    mag = sil.ffi.new("int16_t[3]")
+    st = sil.ffi.new("uint8_t *")
+    assert sil.lib.mmc5983ma_read(rig.dev, 59_000, 0, mag, st, sil.ffi.NULL) == 0
