@@ -13,9 +13,15 @@ The HAL's read_axes / read_imu hand the chip exactly what the C glue answers (a 
 sensor fault, becomes an INVALID reading: the chip enters FAULT). The part's INT1 data-ready edge is
 timestamped (as a port's timer capture would) and is the record's latch instant.
 
-The link MCU's main loop runs between the chip's calls: at every call (SYNC, poll) the glue's
-bring-up runs up to ``now``, each step at the instant it asked for, the emulator's clock with it.
-The motion is the truth at the call's instant, held until the next call.
+The link MCU's main loop runs between the chip's calls: at every call (SYNC, poll) the glue runs up
+to ``now``, each step at the instant it asked for, the emulator's clock with it. The motion is the
+truth at the call's instant, held until the next call.
+
+Boot: the link MCU brings its sensors up (probe, reset, self-test, configuration: about 1.2 s of the
+part's time) before its protocol stack starts, as a port's main() would: the MCU's clock (the
+drivers', the part's) is the chip's plus ``boot_s``, and `PartChipFactory.bind` runs every link's
+bring-up over those first ``boot_s`` at once. The chip's ``time_us`` is a difference of instants on
+one clock and does not see the offset.
 """
 
 from __future__ import annotations
@@ -34,6 +40,8 @@ __all__ = ["PARTS", "PartChipFactory", "SheetTruth"]
 
 #: the parts a chip can read through its driver (``--part``)
 PARTS = ("icm42688p",)
+#: how long a link MCU runs before its protocol stack starts: the part's bring-up with its self-test
+BOOT_S = 1.5
 _INVALID = int(SampleStatus.INVALID)
 
 
@@ -69,8 +77,10 @@ class SheetTruth:
 class LinkSensors:
     """One link MCU's sensor stack: the part, its bus and the C glue (module docstring)."""
 
-    def __init__(self, part, truth: SheetTruth | None, link: int, *, self_test: bool = True) -> None:
+    def __init__(self, part, truth: SheetTruth | None, link: int, *, self_test: bool = True,
+                 boot_s: float = BOOT_S) -> None:
         self.part = part
+        self.boot_us = _us(boot_s)
         self.truth = truth
         self.link = link
         self.self_test = bool(self_test)
@@ -95,11 +105,15 @@ class LinkSensors:
         if self.part.drdy_s is not None:
             lib.capsheet_link_data_ready(self.ls, int(round(self.part.drdy_s * 1e6)))
 
+    def boot(self) -> int:
+        """The MCU's first ``boot_s``: the sensors' bring-up before the chip's clock starts."""
+        return self.run_to(0.0)
+
     def run_to(self, now_s: float) -> int:
-        """The link MCU's main loop up to ``now_s``; returns the instant reached, µs."""
-        now_us = max(self.t_us, _us(now_s))
+        """The link MCU's main loop up to the chip's ``now_s``; returns the MCU's instant reached, µs."""
+        now_us = max(self.t_us, int(round(now_s * 1e6)) + self.boot_us)
         if self.truth is not None:
-            f, w = self.truth.at(now_s)
+            f, w = self.truth.at(max(0.0, now_s))
             self.part.set_motion(f[self.link], w[self.link])
         t = self.t_us
         while True:
@@ -120,7 +134,7 @@ class LinkSensors:
         return (self._xyz[0], self._xyz[1], self._xyz[2]), self._st[0]
 
     def read_imu(self, now_s: float, gyro_range: int, mag_range: int):
-        now_us = max(self.t_us, _us(now_s))
+        now_us = max(self.t_us, _us(now_s) + self.boot_us)
         if lib.capsheet_link_read_imu(self.ls, now_us, gyro_range, mag_range, False, self._rd) < 0:
             raise RuntimeError("read_imu after a valid read_axes failed")  # the glue cannot: same reading
         g = self._rd.gyro
@@ -152,6 +166,7 @@ class PartChipFactory:
         for uid, ls in self._pending:
             ls.truth = self.truth
             ls.link = sheet.link_of_uid[uid]
+            ls.boot()
         self._pending.clear()
 
     def __call__(self, uid: int, sensor, *, seed: int = 0, sensors: str = "accel", imu=None, **kw):

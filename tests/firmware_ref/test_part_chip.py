@@ -33,7 +33,7 @@ def stream(n_syncs: int = 60, *, fault_link: int | None = None, fault_at: int | 
     gw.commission(0.1, start=False)
     gw.feed(encode(ConfigImu(0, format=1, gyro_range=3)), 0.2)
     gw.feed(encode(Start(0)), 0.3)
-    for t in np.arange(0.3, 2.0, 0.01):        # the link MCUs' main loops: bring-up and self-test
+    for t in np.arange(0.3, 2.0, 0.01):        # the chips' timers (the sensors came up at bind)
         gw.poll(float(t))
     gw.pop_output(2.0)
     for i in range(n_syncs):
@@ -83,8 +83,8 @@ def test_a_part_lost_mid_stream_is_invalid_never_frozen(fault):
 def test_a_part_failing_its_self_test_is_a_sensor_fault():
     fac = part_chip.PartChipFactory("icm42688p")
     sheet = VirtualSheet("gaussian", "2x2", seed=6, chip_factory=fac, sensors="accel+gyro")
+    fac.links[1].part.fault("self_test_fail")   # before the link MCUs boot (bind)
     fac.bind(sheet)
-    fac.links[1].part.fault("self_test_fail")
     gw = Gateway(sheet, packed=False)
     gw.power_on(0.0)
     gw.pop_output(0.0)
