@@ -1,0 +1,289 @@
+"""The NUCLEO-G0B1RE image itself (the Arm binary `make -C firmware_ref board` writes), run in the
+Unicorn CPU emulator on a model of the STM32G0B1's peripherals, with the ICM-42688-P register
+emulator (virtual_sheet.parts.icm42688p) on its SPI bus: it boots, announces with the uid folded
+from the part's unique-id words, takes ASSIGN, CONFIG, CONFIG_IMU and START from the host's
+encoder, brings the part up through the C driver, and answers every SYNC with an IMU record whose
+counts are the physics the emulator was given; a CAL_WRITE lands in the flash pages and is there
+after a reset. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
+
+The peripheral model is this file's, written from the same reference manual as the port (RM0444):
+it answers ready bits, runs TIM2 on a simulated clock (a few µs per counter read), captures the
+part's INT1 edges on TIM2 channel 1, moves USART2 and SPI1 bytes, erases the flash page FLASH_CR
+names. An interrupt is its handler called between runs of the main loop (Unicorn has no NVIC).
+What this proves is the image — startup, linker script, clock and peripheral sequences that finish,
+the drivers and the chip library compiled for the Cortex-M0+, the bytes on the wire — not the
+silicon: the register facts themselves are board.h's, cited there."""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+
+import pytest
+
+from protocol.framing import StreamDecoder, encode
+from protocol.messages import (Ack, Announce, Assign, CalData, CalRead, CalWrite, Config, ConfigImu, ImuSample, Info,
+                               Start, Sync, provisional_node)
+
+unicorn = pytest.importorskip("unicorn", reason="board emulation: the `unicorn` package is not installed "
+                                                "(pip install 'unicorn>=2.1')")
+from unicorn import arm_const as A  # noqa: E402
+
+from tests.firmware_ref.test_board_port import FW, NO_ARM  # noqa: E402
+from virtual_sheet.parts.icm42688p import ICM42688P  # noqa: E402
+
+pytestmark = pytest.mark.skipif(NO_ARM, reason="board emulation: arm-none-eabi-gcc not installed")
+
+G = 9.80665
+# three 32-bit unique-id words (RM0444 "Unique device ID register (96 bits)")
+UID_WORDS = (0x0034_0021, 0x3156_5002, 0x2037_3638)
+EXPECTED_UID = ((UID_WORDS[1] ^ UID_WORDS[2]) << 32) | UID_WORDS[0]  # the folding main.c documents
+RETURN_TRAP = 0x0807_E000  # unused flash: a called handler returns here
+US_PER_COUNTER_READ = 3
+
+# registers the model answers (board.h's addresses, RM0444's bits)
+RCC_CR, RCC_CFGR = 0x4002_1000, 0x4002_1008
+FLASH_SR, FLASH_CR = 0x4002_2010, 0x4002_2014
+TIM2_SR, TIM2_CNT, TIM2_CCR1 = 0x4000_0010, 0x4000_0024, 0x4000_0034
+USART2_ISR, USART2_RDR, USART2_TDR, USART2_CR1 = 0x4000_441C, 0x4000_4424, 0x4000_4428, 0x4000_4400
+SPI1_SR, SPI1_DR = 0x4001_3008, 0x4001_300C
+GPIOB_BSRR = 0x5000_0418
+
+
+class Board:
+    """An STM32G0B1RE running `image`, with `part` on SPI1 chip select 0 (PB0)."""
+
+    def __init__(self, image: bytes, part: ICM42688P, flash: bytearray | None = None):
+        self.uc = uc = unicorn.Uc(unicorn.UC_ARCH_ARM, unicorn.UC_MODE_THUMB | unicorn.UC_MODE_MCLASS)
+        uc.ctl_set_cpu_model(A.UC_CPU_ARM_CORTEX_M0)
+        uc.mem_map(0x0800_0000, 512 * 1024)
+        if flash is not None:            # a power cycle keeps the flash
+            uc.mem_write(0x0800_0000, bytes(flash))
+        else:
+            uc.mem_write(0x0800_0000, b"\xff" * (512 * 1024))
+        uc.mem_write(0x0800_0000, image)
+        uc.mem_write(RETURN_TRAP, b"\xfe\xe7")  # b .
+        uc.mem_map(0x2000_0000, 144 * 1024)
+        uc.mem_map(0x1FFF_7000, 0x1000)
+        uc.mem_write(0x1FFF_7590, struct.pack("<3I", *UID_WORDS))
+        uc.mem_map(0xE000_E000, 0x1000)
+        self.reg: dict[int, int] = {RCC_CR: 0x500}
+        uc.mmio_map(0x4000_0000, 0x3_0000, lambda u, o, s, d: self._read(0x4000_0000 + o, s), None,
+                    lambda u, o, s, v, d: self._write(0x4000_0000 + o, s, v), None)
+        uc.mmio_map(0x5000_0000, 0x2000, lambda u, o, s, d: self._read(0x5000_0000 + o, s), None,
+                    lambda u, o, s, v, d: self._write(0x5000_0000 + o, s, v), None)
+        self.part = part
+        self.t_us = 0
+        self.last_edge = None
+        self.rx = bytearray()   # host -> chip, waiting in the UART
+        self.tx = bytearray()   # chip -> host
+        self.spi: bytearray | None = None
+        self.spi_rx: list[int] = []
+        self.flash_errors = 0
+        vectors = struct.unpack("<48I", image[:192])
+        uc.reg_write(A.UC_ARM_REG_SP, vectors[0])
+        self.pc = vectors[1]
+        self.usart2_irq = vectors[16 + 28]
+
+    def now_s(self) -> float:
+        return self.t_us * 1e-6
+
+    # -- the peripheral model ------------------------------------------------------------------------
+    def _read(self, a: int, size: int) -> int:
+        r = self.reg
+        if a == RCC_CR:  # HSIRDY follows HSION, HSERDY HSEON, PLLRDY PLLON
+            v = r.get(a, 0)
+            return v | ((v >> 8 & 1) << 10) | ((v >> 16 & 1) << 17) | ((v >> 24 & 1) << 25)
+        if a == RCC_CFGR:  # SWS follows SW
+            v = r.get(a, 0)
+            return (v & ~0x38) | ((v & 7) << 3)
+        if a == FLASH_SR:
+            return 0
+        if a == TIM2_CNT:
+            self.t_us += US_PER_COUNTER_READ
+            return self.t_us & 0xFFFF_FFFF
+        if a == TIM2_SR:  # CC1IF when the part raised INT1 since the last capture read
+            self.part.advance(self.now_s())
+            edge = self.part.drdy_s
+            if edge is not None and edge != self.last_edge:
+                r[TIM2_CCR1] = int(edge * 1e6) & 0xFFFF_FFFF
+                r[TIM2_SR] = r.get(TIM2_SR, 0) | 0x2
+                self.last_edge = edge
+            return r.get(TIM2_SR, 0)
+        if a == TIM2_CCR1:
+            r[TIM2_SR] = r.get(TIM2_SR, 0) & ~0x2
+            return r.get(a, 0)
+        if a == USART2_ISR:  # TXFNF and TC always; RXFNE while bytes wait
+            return 0xC0 | (0x20 if self.rx else 0)
+        if a == USART2_RDR:
+            return self.rx.pop(0) if self.rx else 0
+        if a == SPI1_SR:  # TXE always; RXNE and FRLVL while a byte waits
+            return 0x2 | ((0x1 | 0x200) if self.spi_rx else 0)
+        if a == SPI1_DR:
+            return self.spi_rx.pop(0) if self.spi_rx else 0
+        return r.get(a, 0)
+
+    def _write(self, a: int, size: int, v: int) -> None:
+        if a == USART2_TDR:
+            self.tx.append(v & 0xFF)
+            return
+        if a == TIM2_SR:  # rc_w0
+            self.reg[a] = self.reg.get(a, 0) & v
+            return
+        if a == GPIOB_BSRR:
+            if v & 1 and self.spi is not None:          # PB0 high: the transaction ends
+                if not self.spi[0] & 0x80:              # a write goes to the part once, whole
+                    self.part.spi_transfer(bytes(self.spi))
+                self.spi = None
+            if v & (1 << 16):                            # PB0 low: a transaction starts
+                self.part.advance(self.now_s())
+                self.spi = bytearray()
+            return
+        if a == SPI1_DR:
+            byte = v & 0xFF
+            if self.spi is None:
+                self.spi_rx.append(0xFF)                 # nobody selected: the line floats high
+                return
+            self.spi.append(byte)
+            # a read answers byte by byte: the part sees the transaction so far (reads are idempotent but
+            # for INT_STATUS, which the driver reads alone)
+            self.spi_rx.append(self.part.spi_transfer(bytes(self.spi))[-1] if self.spi[0] & 0x80 else 0)
+            return
+        if a == FLASH_CR and v & (1 << 16) and v & (1 << 1):  # STRT with PER: erase the page PNB (BKER: bank 2)
+            pnb = (v >> 3) & 0x3FF
+            if not v & (1 << 13) or not 256 <= pnb < 384:
+                self.flash_errors += 1
+            else:
+                self.uc.mem_write(0x0804_0000 + (pnb - 256) * 2048, b"\xff" * 2048)
+        self.reg[a] = v
+
+    # -- running ----------------------------------------------------------------------------------
+    def run(self, us: float) -> None:
+        """Run the main loop for `us` of simulated time, taking host bytes through the RX interrupt."""
+        end = self.t_us + us
+        while self.t_us < end:
+            if self.rx and self.reg.get(USART2_CR1, 0) & 0x20:
+                self._call(self.usart2_irq)
+            self.uc.emu_start(self.pc | 1, 0xFFFF_FFFF, count=4000)
+            self.pc = self.uc.reg_read(A.UC_ARM_REG_PC)
+            if self.uc.mem_read(self.pc, 2) == b"\x30\xbf":   # WFI: the SysTick wakes it within 1 ms
+                self.pc += 2
+                self.t_us += 50
+
+    def _call(self, handler: int) -> None:
+        regs = [A.UC_ARM_REG_R0 + i for i in range(13)] + [A.UC_ARM_REG_SP, A.UC_ARM_REG_LR]
+        saved = [self.uc.reg_read(x) for x in regs]
+        self.uc.reg_write(A.UC_ARM_REG_SP, (saved[13] - 64) & ~7)  # below the interrupted frame
+        self.uc.reg_write(A.UC_ARM_REG_LR, RETURN_TRAP | 1)
+        self.uc.emu_start(handler, RETURN_TRAP, count=200_000)
+        for x, val in zip(regs, saved):
+            self.uc.reg_write(x, val)
+
+    def send(self, *msgs) -> None:
+        for m in msgs:
+            self.rx += encode(m)
+
+    def flash(self) -> bytearray:
+        return bytearray(self.uc.mem_read(0x0800_0000, 512 * 1024))
+
+
+@pytest.fixture(scope="module")
+def image(tmp_path_factory) -> bytes:
+    out = tmp_path_factory.mktemp("board_emu")
+    r = subprocess.run(["make", "-C", str(FW), "board", f"OUT={out}"], capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    return (out / "board" / "capsheet_g0b1_vcp_6axis.bin").read_bytes()
+
+
+def _frames(board: Board, dec: StreamDecoder) -> list:
+    data = bytes(board.tx)
+    board.tx.clear()
+    return dec.feed(data)
+
+
+def _flat_part(seed: int) -> ICM42688P:
+    part = ICM42688P(seed=seed)
+    part.set_motion((0.0, 0.0, G), (0.0, 0.0, 0.0))  # lying flat, top face up, still
+    return part
+
+
+def test_the_image_boots_and_announces_its_folded_unique_id(image):
+    board = Board(image, _flat_part(1))
+    board.run(20_000)
+    frames = _frames(board, StreamDecoder())
+    node = provisional_node(EXPECTED_UID, 0)
+    assert frames[:1] == [Announce(node, EXPECTED_UID)]
+    info = frames[1]
+    assert isinstance(info, Info) and info.state == 0 and info.protocol_version == 1
+    caps = 0x0008 | 0x0010 | 0x0100 | 0x0400  # CAL_STORAGE, MULTI_RANGE, GYRO, SAMPLE_TIME (docs §4.2, §16)
+    assert info.capabilities == caps
+    assert board.flash_errors == 0
+
+
+def _bring_up(board: Board, dec: StreamDecoder) -> int:
+    board.run(20_000)
+    _frames(board, dec)
+    prov = provisional_node(EXPECTED_UID, 0)
+    board.send(Assign(prov, new_node=7, link=3, uid_low=EXPECTED_UID & 0xFFFF_FFFF))
+    board.run(5_000)
+    board.send(Config(7, rate_hz=100, range=0, filter=0, heartbeat_ms=0),
+               ConfigImu(7, format=1, gyro_range=3, mag_range=0, flags=0), Start(7))
+    board.run(5_000)
+    acks = [f for f in _frames(board, dec) if isinstance(f, Ack)]
+    assert len(acks) == 4, acks
+    return 7
+
+
+def test_it_streams_the_parts_physics_through_the_driver(image):
+    board = Board(image, _flat_part(2))
+    dec = StreamDecoder()
+    node = _bring_up(board, dec)
+    board.run(1_300_000)  # the part's soft reset, self-test and start-up: ~1.1 s of simulated time
+    _frames(board, dec)
+    records = []
+    for counter in range(20, 40):
+        board.send(Sync(counter=counter))
+        board.run(10_000)  # 100 Hz
+        records += [f for f in _frames(board, dec) if isinstance(f, ImuSample)]
+    assert [r.counter for r in records] == list(range(20, 40))
+    assert {r.node for r in records} == {node}
+    fresh = [r for r in records if r.status == 0]
+    assert len(fresh) >= 18, [r.status for r in records]  # STALE only if no conversion since the SYNC before
+    for r in fresh:
+        # flat and still: (0, 0, +1 g) at 1024 counts per g (CONFIG range 0), rest within the part's
+        # zero-g offset and noise (tens of mg); the gyroscope near 0 at ±1000 °/s (32.8 counts per °/s)
+        assert abs(r.x) < 100 and abs(r.y) < 100 and abs(r.z - 1024) < 100, r
+        assert max(abs(r.gx), abs(r.gy), abs(r.gz)) < 33 * 3, r  # the part's zero-rate offset, ±0.5 °/s 1σ
+        assert -32767 <= r.time_us <= 32767  # SAMPLE_TIME: a measured delay since the SYNC
+
+
+def test_calibration_written_over_the_wire_survives_a_power_cycle(image):
+    board = Board(image, _flat_part(3))
+    dec = StreamDecoder()
+    board.run(20_000)
+    _frames(board, dec)
+    uid_low = EXPECTED_UID & 0xFFFF_FFFF
+    board.send(Assign(provisional_node(EXPECTED_UID, 0), new_node=7, link=3, uid_low=uid_low))  # BOOT -> IDLE
+    board.run(5_000)
+    board.send(CalWrite(7, axis=2, flags=1, offset_q4=-37, sensitivity=1000.5))  # flags bit 0: store it
+    board.run(20_000)  # the first store erases a page (instant here; ~22 ms on the part)
+    acks = [f for f in _frames(board, dec) if isinstance(f, Ack)]
+    assert len(acks) == 2, acks
+    # a power cycle: a new board with this one's flash
+    again = Board(image, _flat_part(3), flash=board.flash())
+    dec2 = StreamDecoder()
+    again.run(20_000)
+    _frames(again, dec2)
+    again.send(Assign(provisional_node(EXPECTED_UID, 0), new_node=7, link=3, uid_low=uid_low), CalRead(7, axis=2))
+    again.run(10_000)
+    cal = [f for f in _frames(again, dec2) if isinstance(f, CalData)]
+    assert cal == [CalData(7, axis=2, flags=1, offset_q4=-37, sensitivity=1000.5)]
+    # and a board that never stored anything answers the nominal calibration, not stored
+    fresh = Board(image, _flat_part(3))
+    dec3 = StreamDecoder()
+    fresh.run(20_000)
+    _frames(fresh, dec3)
+    fresh.send(Assign(provisional_node(EXPECTED_UID, 0), new_node=7, link=3, uid_low=uid_low), CalRead(7, axis=2))
+    fresh.run(10_000)
+    (nominal,) = [f for f in _frames(fresh, dec3) if isinstance(f, CalData)]
+    assert nominal.flags == 0 and nominal.offset_q4 == 0
