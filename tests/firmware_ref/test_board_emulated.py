@@ -84,6 +84,7 @@ class Board:
         uc.reg_write(A.UC_ARM_REG_SP, vectors[0])
         self.pc = vectors[1]
         self.usart2_irq = vectors[16 + 28]
+        self.stack_top = vectors[0]
 
     def now_s(self) -> float:
         return self.t_us * 1e-6
@@ -183,6 +184,12 @@ class Board:
         for m in msgs:
             self.rx += encode(m)
 
+    def stack_high_water(self, size: int = 4096) -> int:
+        """Bytes of the stack ever used: the startup code paints it with 0xDEADBEEF (STACK_PAINT)."""
+        words = struct.unpack(f"<{size // 4}I", bytes(self.uc.mem_read(self.stack_top - size, size)))
+        untouched = next((i for i, w in enumerate(words) if w != 0xDEADBEEF), len(words))
+        return size - 4 * untouched
+
     def flash(self) -> bytearray:
         return bytearray(self.uc.mem_read(0x0800_0000, 512 * 1024))
 
@@ -255,6 +262,9 @@ def test_it_streams_the_parts_physics_through_the_driver(image):
         assert abs(r.x) < 100 and abs(r.y) < 100 and abs(r.z - 1024) < 100, r
         assert max(abs(r.gx), abs(r.gy), abs(r.gz)) < 33 * 3, r  # the part's zero-rate offset, ±0.5 °/s 1σ
         assert -32767 <= r.time_us <= 32767  # SAMPLE_TIME: a measured delay since the SYNC
+    used = board.stack_high_water()
+    print(f"stack high-water: {used} B of 4096")
+    assert 0 < used < 4096 - 256  # painted, used, and a margin left (the linker script's STACK_SIZE)
 
 
 def test_calibration_written_over_the_wire_survives_a_power_cycle(image):
