@@ -4,12 +4,13 @@ emulator (virtual_sheet.parts.icm42688p) on its SPI bus: it boots, announces wit
 from the part's unique-id words, takes ASSIGN, CONFIG, CONFIG_IMU and START from the host's
 encoder, brings the part up through the C driver, and answers every SYNC with an IMU record whose
 counts are the physics the emulator was given; a CAL_WRITE lands in the flash pages and is there
-after a reset. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
+after a power cycle; the CAN image does the same over FDCAN1 in 29-bit frames, a record as IMU_GYRO
+then IMU_ACCEL. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
 
 The peripheral model is this file's, written from the same reference manual as the port (RM0444):
 it answers ready bits, runs TIM2 on a simulated clock (a few µs per counter read), captures the
-part's INT1 edges on TIM2 channel 1, moves USART2 and SPI1 bytes, erases the flash page FLASH_CR
-names. An interrupt is its handler called between runs of the main loop (Unicorn has no NVIC).
+part's INT1 edges on TIM2 channel 1, moves USART2 and SPI1 bytes and FDCAN1 frames (through the
+message RAM's Rx FIFO 0 and Tx buffer elements), erases the flash page FLASH_CR names. An interrupt is its handler called between runs of the main loop (Unicorn has no NVIC).
 What this proves is the image — startup, linker script, clock and peripheral sequences that finish,
 the drivers and the chip library compiled for the Cortex-M0+, the bytes on the wire — not the
 silicon: the register facts themselves are board.h's, cited there."""
@@ -21,9 +22,10 @@ import subprocess
 
 import pytest
 
+from protocol.can import CanFrame, from_can, to_can
 from protocol.framing import StreamDecoder, encode
-from protocol.messages import (Ack, Announce, Assign, CalData, CalRead, CalWrite, Config, ConfigImu, ImuSample, Info,
-                               Start, Sync, provisional_node)
+from protocol.messages import (Ack, Announce, Assign, CalData, CalRead, CalWrite, Config, ConfigImu, ImuAccel,
+                               ImuGyro, ImuSample, Info, Start, Sync, provisional_node)
 
 unicorn = pytest.importorskip("unicorn", reason="board emulation: the `unicorn` package is not installed "
                                                 "(pip install 'unicorn>=2.1')")
@@ -48,6 +50,10 @@ TIM2_SR, TIM2_CNT, TIM2_CCR1 = 0x4000_0010, 0x4000_0024, 0x4000_0034
 USART2_ISR, USART2_RDR, USART2_TDR, USART2_CR1 = 0x4000_441C, 0x4000_4424, 0x4000_4428, 0x4000_4400
 SPI1_SR, SPI1_DR = 0x4001_3008, 0x4001_300C
 GPIOB_BSRR = 0x5000_0418
+FDCAN_IR, FDCAN_IE, FDCAN_RXF0S, FDCAN_RXF0A = 0x4000_6450, 0x4000_6454, 0x4000_6490, 0x4000_6494
+FDCAN_TXFQS, FDCAN_TXBAR = 0x4000_64C4, 0x4000_64CC
+SRAMCAN_RF0, SRAMCAN_TFQ = 0x4000_B400 + 0x0B0, 0x4000_B400 + 0x278  # Rx FIFO 0 / Tx buffer element 0
+DLC_LEN = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
 
 class Board:
@@ -77,6 +83,9 @@ class Board:
         self.last_edge = None
         self.rx = bytearray()   # host -> chip, waiting in the UART
         self.tx = bytearray()   # chip -> host
+        self.can_rx: list[CanFrame] = []   # host -> chip, waiting for the Rx FIFO
+        self.can_tx: list[CanFrame] = []   # chip -> host
+        self.rx_fill = 0
         self.spi: bytearray | None = None
         self.spi_rx: list[int] = []
         self.flash_errors = 0
@@ -84,6 +93,7 @@ class Board:
         uc.reg_write(A.UC_ARM_REG_SP, vectors[0])
         self.pc = vectors[1]
         self.usart2_irq = vectors[16 + 28]
+        self.fdcan1_irq = vectors[16 + 21]
         self.stack_top = vectors[0]
 
     def now_s(self) -> float:
@@ -122,11 +132,28 @@ class Board:
             return 0x2 | ((0x1 | 0x200) if self.spi_rx else 0)
         if a == SPI1_DR:
             return self.spi_rx.pop(0) if self.spi_rx else 0
+        if a == FDCAN_RXF0S:  # fill level; the get index is always element 0
+            return self.rx_fill
+        if a == FDCAN_TXFQS:  # put index 0, never full
+            return 0
         return r.get(a, 0)
 
     def _write(self, a: int, size: int, v: int) -> None:
         if a == USART2_TDR:
             self.tx.append(v & 0xFF)
+            return
+        if a == FDCAN_TXBAR and v & 1:  # Tx buffer element 0 goes on the bus
+            t0, t1 = self.reg.get(SRAMCAN_TFQ, 0), self.reg.get(SRAMCAN_TFQ + 4, 0)
+            n = DLC_LEN[(t1 >> 16) & 0xF]
+            data = b"".join(struct.pack("<I", self.reg.get(SRAMCAN_TFQ + 8 + i, 0)) for i in range(0, n, 4))[:n]
+            assert t0 & (1 << 30), "the protocol sends 29-bit identifiers only"
+            self.can_tx.append(CanFrame(t0 & 0x1FFF_FFFF, data, bool(t1 & (1 << 21))))
+            return
+        if a == FDCAN_RXF0A:
+            self.rx_fill = 0
+            return
+        if a == FDCAN_IR:  # write 1 to clear
+            self.reg[a] = self.reg.get(a, 0) & ~v
             return
         if a == TIM2_SR:  # rc_w0
             self.reg[a] = self.reg.get(a, 0) & v
@@ -165,11 +192,25 @@ class Board:
         while self.t_us < end:
             if self.rx and self.reg.get(USART2_CR1, 0) & 0x20:
                 self._call(self.usart2_irq)
+            if self.can_rx and not self.rx_fill and self.reg.get(FDCAN_IE, 0) & 1:
+                self._deliver(self.can_rx.pop(0))
             self.uc.emu_start(self.pc | 1, 0xFFFF_FFFF, count=4000)
             self.pc = self.uc.reg_read(A.UC_ARM_REG_PC)
             if self.uc.mem_read(self.pc, 2) == b"\x30\xbf":   # WFI: the SysTick wakes it within 1 ms
                 self.pc += 2
                 self.t_us += 50
+
+    def _deliver(self, f: CanFrame) -> None:
+        """One frame into Rx FIFO 0 element 0, then the FDCAN interrupt."""
+        dlc = DLC_LEN.index(len(f.data))
+        self.reg[SRAMCAN_RF0] = (1 << 30) | f.arbitration_id
+        self.reg[SRAMCAN_RF0 + 4] = (dlc << 16) | ((1 << 21) if f.is_fd else 0)
+        padded = f.data + bytes(-len(f.data) % 4)
+        for i in range(0, len(padded), 4):
+            self.reg[SRAMCAN_RF0 + 8 + i] = struct.unpack_from("<I", padded, i)[0]
+        self.rx_fill = 1
+        self.reg[FDCAN_IR] = self.reg.get(FDCAN_IR, 0) | 1  # RF0N
+        self._call(self.fdcan1_irq)
 
     def _call(self, handler: int) -> None:
         regs = [A.UC_ARM_REG_R0 + i for i in range(13)] + [A.UC_ARM_REG_SP, A.UC_ARM_REG_LR]
@@ -184,6 +225,9 @@ class Board:
         for m in msgs:
             self.rx += encode(m)
 
+    def send_can(self, *msgs) -> None:
+        self.can_rx += [to_can(m) for m in msgs]
+
     def stack_high_water(self, size: int = 4096) -> int:
         """Bytes of the stack ever used: the startup code paints it with 0xDEADBEEF (STACK_PAINT)."""
         words = struct.unpack(f"<{size // 4}I", bytes(self.uc.mem_read(self.stack_top - size, size)))
@@ -195,11 +239,16 @@ class Board:
 
 
 @pytest.fixture(scope="module")
-def image(tmp_path_factory) -> bytes:
+def images(tmp_path_factory):
     out = tmp_path_factory.mktemp("board_emu")
     r = subprocess.run(["make", "-C", str(FW), "board", f"OUT={out}"], capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
-    return (out / "board" / "capsheet_g0b1_vcp_6axis.bin").read_bytes()
+    return out / "board"
+
+
+@pytest.fixture(scope="module")
+def image(images) -> bytes:
+    return (images / "capsheet_g0b1_vcp_6axis.bin").read_bytes()
 
 
 def _frames(board: Board, dec: StreamDecoder) -> list:
@@ -297,3 +346,31 @@ def test_calibration_written_over_the_wire_survives_a_power_cycle(image):
     fresh.run(10_000)
     (nominal,) = [f for f in _frames(fresh, dec3) if isinstance(f, CalData)]
     assert nominal.flags == 0 and nominal.offset_q4 == 0
+
+
+def test_the_can_image_speaks_29_bit_frames_and_sends_a_record_as_gyro_then_accel(images):
+    board = Board((images / "capsheet_g0b1_can_6axis.bin").read_bytes(), _flat_part(4))
+    board.run(20_000)
+    boot = [from_can(f.arbitration_id, f.data, is_fd=f.is_fd) for f in board.can_tx]
+    node = provisional_node(EXPECTED_UID, 0)
+    assert boot[0] == Announce(node, EXPECTED_UID) and isinstance(boot[1], Info)
+    assert boot[1].capabilities == 0x0008 | 0x0010 | 0x0100 | 0x0400
+    assert [f.arbitration_id for f in board.can_tx[:2]] == [to_can(m).arbitration_id for m in boot[:2]]
+    board.can_tx.clear()
+    board.send_can(Assign(node, new_node=9, link=4, uid_low=EXPECTED_UID & 0xFFFF_FFFF),
+                   Config(9, rate_hz=100, range=0, filter=0, heartbeat_ms=0),
+                   ConfigImu(9, format=1, gyro_range=3, mag_range=0, flags=0), Start(9))
+    board.run(1_300_000)  # the part's bring-up
+    acks = [m for m in (from_can(f.arbitration_id, f.data, is_fd=f.is_fd) for f in board.can_tx) if isinstance(m, Ack)]
+    assert len(acks) == 4
+    board.can_tx.clear()
+    for counter in range(100, 110):
+        board.send_can(Sync(counter=counter))
+        board.run(10_000)
+    msgs = [from_can(f.arbitration_id, f.data, is_fd=f.is_fd) for f in board.can_tx]
+    assert not any(f.is_fd for f in board.can_tx)
+    assert [type(m) for m in msgs] == [ImuGyro, ImuAccel] * 10  # docs §16.4: the gyroscope's frame first
+    for gyro, accel in zip(msgs[::2], msgs[1::2]):
+        assert accel.counter_lo == gyro.counter & 0xFF and gyro.node == accel.node == 9
+        assert abs(accel.x) < 100 and abs(accel.y) < 100 and abs(accel.z - 1024) < 100 and accel.status == 0
+    assert [g.counter for g in msgs[::2]] == list(range(100, 110))
