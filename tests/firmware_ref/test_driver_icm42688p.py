@@ -248,3 +248,27 @@ def test_glue_without_a_magnetometer_refuses_a_mag_read():
     r = Rig(glue=True, self_test=False)
     out = ffi.new("capsheet_imu_reading_t *")
     assert lib.capsheet_link_read_imu(r.ls, 0, 3, 0, True, out) < 0
+
+
+# ---- the build: firmware_ref/Makefile's strict flags, 64-bit (cc) and 32-bit (arm-none-eabi-gcc) ----
+
+def _strict_flags() -> list[str]:
+    from pathlib import Path
+    mk = Path(__file__).resolve().parents[2] / "firmware_ref" / "Makefile"
+    line = next(ln for ln in mk.read_text().splitlines() if ln.startswith("STRICT"))
+    return line.split(":=", 1)[1].split()
+
+
+@pytest.mark.parametrize("cc,arch", [("cc", []), ("arm-none-eabi-gcc", ["-mcpu=cortex-m0plus", "-mthumb"])])
+def test_drivers_build_warning_free_under_the_strict_flags(cc, arch, tmp_path):
+    import shutil
+    import subprocess
+    from pathlib import Path
+    if shutil.which(cc) is None:
+        pytest.skip(f"{cc} not installed")
+    fw = Path(__file__).resolve().parents[2] / "firmware_ref"
+    for src in ("icm42688p.c", "link_sensors.c"):
+        p = subprocess.run([cc, *arch, *_strict_flags(), "-O2", f"-I{fw / 'include'}", f"-I{fw / 'drivers'}", "-c",
+                            str(fw / "drivers" / src), "-o", str(tmp_path / (src + ".o"))],
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 0 and p.stderr == "", p.stderr
