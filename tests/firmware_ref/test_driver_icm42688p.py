@@ -272,3 +272,15 @@ def test_drivers_build_warning_free_under_the_strict_flags(cc, arch, tmp_path):
                             str(fw / "drivers" / src), "-o", str(tmp_path / (src + ".o"))],
                            capture_output=True, text=True, timeout=120)
         assert p.returncode == 0 and p.stderr == "", p.stderr
+
+
+def test_glue_flags_self_test_while_it_runs_then_reads():
+    r = Rig(glue=True, delay=False, self_test=True)
+    seen = set()
+    for _ in range(1500):                              # 1 ms main-loop steps through the bring-up
+        r.tick(0.001)
+        rc, xyz, st = read_axes(r)
+        assert rc == 0
+        seen.add(st)
+    assert 0x2 | STALE in seen                         # SELF_TEST (§5.2 bit 1) while the self-test runs
+    assert st == 0 and r.dev.self_test == 0x7         # then fresh readings, self-test passed

@@ -148,3 +148,12 @@ def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_
         assert {42, 43} <= {r.number for r in results}, report
     else:
         assert 25 in failed and "INVALID" in failed[25].detail, report
+
+
+def test_an_accelerometer_only_chip_keeps_the_gyroscope_off():
+    fac = part_chip.PartChipFactory("icm42688p")
+    sheet = VirtualSheet("gaussian", "2x2", seed=6, chip_factory=fac)   # sensors "accel"
+    fac.bind(sheet)
+    for ls in fac.links:
+        assert ls.part.register(0, 0x4E) == 0x03    # PWR_MGMT0 (§14): accelerometer low noise, gyroscope off
+        assert ls.ls.imu.self_test == 0x5           # ran; accelerometer passed; no gyroscope test
