@@ -19,7 +19,8 @@ What it models (section numbers of DS-000347; the register map in `icm42688p_reg
   the part answers nothing for 1 ms (reads 0x00, writes ignored); then INT_STATUS has RESET_DONE_INT.
   Power-on is the same, at t = 0.
 * **Power modes** (§14 PWR_MGMT0; §3.1 Table 1, §3.2 Table 2): both sensors off after reset; a
-  sensor turned on (low noise, or low power for the accelerometer) converts after its start-up time —
+  sensor turned on (low noise, or low power for the accelerometer, modelled with the low-noise figures;
+  the gyroscope's standby gives no output) converts after its start-up time —
   30 ms gyroscope, 10 ms accelerometer; an off or starting sensor's data registers read −32768
   (§4.11), the temperature too while both are off.
 * **Conversions** on the part's own ODR clock (GYRO_CONFIG0 / ACCEL_CONFIG0 ODR), which runs fast or
