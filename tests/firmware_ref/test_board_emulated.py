@@ -5,7 +5,8 @@ from the part's unique-id words, takes ASSIGN, CONFIG, CONFIG_IMU and START from
 encoder, brings the part up through the C driver, and answers every SYNC with an IMU record whose
 counts are the physics the emulator was given; a CAL_WRITE lands in the flash pages and is there
 after a power cycle; the CAN image does the same over FDCAN1 in 29-bit frames, a record as IMU_GYRO
-then IMU_ACCEL; the 9-axis image on USART1 reads the MMC5983MA emulator on the second chip select. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
+then IMU_ACCEL (the FD image: one FD frame a record); the 9-axis image on USART1 reads the MMC5983MA
+emulator on the second chip select. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
 
 The peripheral model is this file's, written from the same reference manual as the port (RM0444):
 it answers ready bits, runs TIM2 on a simulated clock (a few µs per counter read), captures the
