@@ -52,7 +52,7 @@ TIM2_SR, TIM2_CNT, TIM2_CCR1 = 0x4000_0010, 0x4000_0024, 0x4000_0034
 USART_BASE = {1: 0x4001_3800, 2: 0x4000_4400}  # CR1 +0x00, ISR +0x1C, RDR +0x24, TDR +0x28
 USART_VECTOR = {1: 16 + 27, 2: 16 + 28}
 SPI1_SR, SPI1_DR = 0x4001_3008, 0x4001_300C
-GPIOB_BSRR = 0x5000_0418
+GPIOA_BSRR, GPIOB_BSRR = 0x5000_0018, 0x5000_0418
 FDCAN_IR, FDCAN_IE, FDCAN_RXF0S, FDCAN_RXF0A = 0x4000_6450, 0x4000_6454, 0x4000_6490, 0x4000_6494
 FDCAN_TXFQS, FDCAN_TXBAR = 0x4000_64C4, 0x4000_64CC
 SRAMCAN_RF0, SRAMCAN_TFQ = 0x4000_B400 + 0x0B0, 0x4000_B400 + 0x278  # Rx FIFO 0 / Tx buffer element 0
@@ -89,6 +89,8 @@ class Board:
         self.last_edge = None
         self.rx = bytearray()   # host -> chip, waiting in the UART
         self.tx = bytearray()   # chip -> host
+        self.de = False         # PA8, the RS-485 driver enable
+        self.de_at_tx: list[bool] = []  # its level as each byte went out
         self.can_rx: list[CanFrame] = []   # host -> chip, waiting for the Rx FIFO
         self.can_tx: list[CanFrame] = []   # chip -> host
         self.rx_fill = 0
@@ -148,6 +150,13 @@ class Board:
     def _write(self, a: int, size: int, v: int) -> None:
         if a == self.usart + 0x28:  # TDR
             self.tx.append(v & 0xFF)
+            self.de_at_tx.append(self.de)
+            return
+        if a == GPIOA_BSRR:
+            if v & (1 << 8):
+                self.de = True
+            if v & (1 << 24):
+                self.de = False
             return
         if a == FDCAN_TXBAR and v & 1:  # Tx buffer element 0 goes on the bus
             t0, t1 = self.reg.get(SRAMCAN_TFQ, 0), self.reg.get(SRAMCAN_TFQ + 4, 0)
@@ -400,6 +409,8 @@ def test_the_9_axis_image_reads_the_magnetometer_through_its_driver(images):
         records += [f for f in _frames(board, dec) if isinstance(f, ImuSample)]
     assert [r.counter for r in records] == list(range(5, 15))
     assert all(r.format == 2 and r.status == 0 for r in records), [(r.format, r.status) for r in records]
+    # RS-485: the chip drives the pair while each of its bytes goes out, and releases it after the last
+    assert board.de_at_tx and all(board.de_at_tx) and not board.de
     # mag_range 0: ±4 G, 32768 / 4 = 8192 counts per gauss (docs/protocol.md §16.1); the part's gain is
     # within ±5 % and its cross-axis within ±0.8 % (the datasheet's tolerances the emulator draws from)
     want = [8192 * 0.2, 0.0, 8192 * -0.4]
