@@ -1,7 +1,7 @@
 /*
  * main.c — the reference firmware (firmware_ref/src, unmodified) on a NUCLEO-G0B1RE: one link's chip,
- * reading its ICM-42688-P (and MMC5983MA) through the drivers (firmware_ref/drivers/) over SPI1, speaking the serial
- * transport (USART2 or USART1) or CAN (FDCAN1), keeping its calibration in flash.
+ * reading its ICM-42688-P (and MMC5983MA) through the drivers (firmware_ref/drivers/) over SPI1,
+ * speaking the serial transport (USART2 or USART1) or CAN (FDCAN1), keeping its calibration in flash.
  *
  * Build options (firmware_ref/Makefile `board`):
  *   BOARD_TRANSPORT_CAN 0 serial (default), 1 CAN
@@ -9,8 +9,9 @@
  *   BOARD_BAUD          serial baud rate, default 3000000 (capsheet host's default; up to 8000000)
  *   BOARD_CAN_FD        0 classic CAN at 1 Mbit/s (default), 1 also FD frames, data phase at
  *                       BOARD_CAN_FD_DATA_BPS (default 8000000; 4000000, 2000000)
- *   BOARD_HSE_HZ        0 HSI16 (default; fine for a UART), or the external clock (a CAN chip needs
- *                       one: 8000000 with BOARD_HSE_BYPASS=1 is the ST-LINK's MCO on OSC_IN)
+ *   BOARD_HSE_HZ        0 HSI16 (default; fine for a UART), or the external clock a CAN chip needs:
+ *                       a crystal (BOARD_HSE_BYPASS=0) or a clock signal on OSC_IN (BOARD_HSE_BYPASS=1,
+ *                       such as the ST-LINK's 8 MHz MCO where the board routes it)
  *   BOARD_SENSORS       0 accelerometer chip, 1 6-axis (default: the ICM-42688-P's gyroscope too),
  *                       2 9-axis (and the MMC5983MA magnetometer on chip select 1)
  *
@@ -24,8 +25,6 @@
  * receive rings keep filling meanwhile (1 KiB of UART, 16 CAN frames); the host writes calibration
  * while the sheet is idle (capsheet calibrate --write-chips), when little else is on the bus.
  */
-#include <string.h>
-
 #include "board.h"
 #include "calstore.h"
 #include "capsheet_bus.h"
