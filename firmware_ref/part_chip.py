@@ -90,6 +90,8 @@ class LinkSensors:
         self._st = ffi.new("uint8_t *")
         self._rd = ffi.new("capsheet_imu_reading_t *")
         self.t_us = 0
+        self._settled = False    # the bring-up is over (running or failed)
+        self._drdy_told: float | None = None
         self.faults = 0          # reads the glue answered with a sensor fault
         self.chip = None
 
@@ -101,9 +103,11 @@ class LinkSensors:
             raise RuntimeError(f"capsheet_link_sensors_init failed: {rc}")
 
     def _feed(self, t_us: int) -> None:
-        self.bus.advance(t_us * 1e-6)
-        if self.part.drdy_s is not None:
-            lib.capsheet_link_data_ready(self.ls, int(round(self.part.drdy_s * 1e6)))
+        self.part.advance(t_us * 1e-6)
+        d = self.part.drdy_s
+        if d is not None and d != self._drdy_told:  # the INT1 edge, timestamped once
+            self._drdy_told = d
+            lib.capsheet_link_data_ready(self.ls, int(round(d * 1e6)))
 
     def boot(self) -> int:
         """The MCU's first ``boot_s``: the sensors' bring-up before the chip's clock starts."""
@@ -115,13 +119,17 @@ class LinkSensors:
         if self.truth is not None:
             f, w = self.truth.at(max(0.0, now_s))
             self.part.set_motion(f[self.link], w[self.link])
-        t = self.t_us
-        while True:
-            self._feed(t)
-            rc = lib.capsheet_link_sensors_poll(self.ls, t)
-            if rc <= 0 or t + rc > now_us:
-                break
-            t += rc
+        if not self._settled:
+            t = self.t_us
+            while True:
+                self._feed(t)
+                rc = lib.capsheet_link_sensors_poll(self.ls, t)
+                if rc <= 0 or t + rc > now_us:
+                    break
+                t += rc
+            # running (0) or failed (< 0): the main loop has nothing to wait for; the reads poll the
+            # glue themselves (a CONFIG is applied there)
+            self._settled = rc <= 0
         self._feed(now_us)
         self.t_us = now_us
         return now_us
@@ -184,7 +192,10 @@ class PartChipFactory:
         inner_poll = chip.poll
 
         def poll(now_s: float):
-            ls.run_to(now_s)     # the link MCU's main loop: the sensors' bring-up runs between SYNCs
+            if not ls._settled:  # the link MCU's main loop: a bring-up still running goes on between SYNCs
+                ls.run_to(now_s)
+            elif lib.capsheet_link_sensors_poll(ls.ls, ls.t_us) > 0:
+                ls._settled = False  # a new CONFIG / CONFIG_IMU started a wait (a sensor turned on)
             return inner_poll(now_s)
         chip.poll = poll
         self.links.append(ls)

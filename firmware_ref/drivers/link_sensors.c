@@ -74,7 +74,13 @@ static uint8_t bw_for(uint8_t filter, uint8_t odr_code)
 static void wanted(const capsheet_link_sensors_t *ls, uint8_t gyro_range, icm42688p_config_t *cfg)
 {
     icm42688p_default_config(cfg);
-    if (ls->chip != NULL) {
+    cfg->odr = odr_for(145u);   /* CONFIG's power-on rate_hz (docs/protocol.md §4.11) */
+    if (ls->chip != NULL && !ls->chip->powered) {
+        /* the sensors come up before the chip's protocol starts: CONFIG's and CONFIG_IMU's power-on
+         * values (§4.11, §16.2), the gyroscope as the chip's capabilities say */
+        cfg->gyro_on = (ls->chip->config.capabilities & CAPSHEET_CAP_GYRO) != 0u;
+        gyro_range = CAPSHEET_IMU_DEFAULT_GYRO_RANGE;
+    } else if (ls->chip != NULL) {
         const uint8_t range = ls->chip->range_code > 3u ? 3u : ls->chip->range_code;
         cfg->accel_fs_sel = (uint8_t)(3u - range);
         cfg->odr = odr_for(ls->chip->rate_hz);
