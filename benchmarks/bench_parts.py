@@ -106,11 +106,12 @@ def main() -> int:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--seconds", type=float, default=None, help="live run length (default 10, --quick 4)")
     ap.add_argument("--no-live", action="store_true", help="CPU figures only")
+    ap.add_argument("--lattices", default="6x6,14x14", help="comma-separated lattices (default 6x6,14x14)")
     a = ap.parse_args()
     n = 30 if a.quick else 100
     seconds = a.seconds or (4.0 if a.quick else 10.0)
     results = []
-    for lattice in ("6x6", "14x14"):
+    for lattice in a.lattices.split(","):
         row: dict = {"lattice": lattice, "rate_hz": RATE_HZ}
         for engine in ("counts", "part"):
             t_build = time.perf_counter()
