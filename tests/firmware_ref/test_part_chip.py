@@ -157,3 +157,18 @@ def test_an_accelerometer_only_chip_keeps_the_gyroscope_off():
     for ls in fac.links:
         assert ls.part.register(0, 0x4E) == 0x03    # PWR_MGMT0 (§14): accelerometer low noise, gyroscope off
         assert ls.ls.imu.self_test == 0x5           # ran; accelerometer passed; no gyroscope test
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--part", "icm42688p"], "--part icm42688p needs --firmware c"),
+    (["--firmware", "c", "--part", "icm42688p", "--sensors", "accel+gyro+mag"], "a 6-axis part"),
+    (["--firmware", "c", "--part", "bmi270"], "invalid choice: 'bmi270'"),
+])
+def test_bad_part_options_are_one_line_errors(args, needle):
+    import subprocess
+    import sys
+    p = subprocess.run([sys.executable, "-m", "host.cli", "virtual", "--lattice", "2x2", "--duration", "0.1", *args],
+                       capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2
+    assert needle in p.stderr and "Traceback" not in p.stderr
+    assert len([ln for ln in p.stderr.splitlines() if ln.startswith("capsheet virtual:")]) == 1
