@@ -294,6 +294,8 @@ int32_t mmc5983ma_write_reg(mmc5983ma_t *d, uint8_t reg, uint8_t value);
 extern "Python" int32_t capsheet_py_spi_transfer(void *, uint8_t, const uint8_t *, uint8_t *, size_t);
 extern "Python" int32_t capsheet_py_i2c_write_read(void *, uint8_t, const uint8_t *, size_t, uint8_t *, size_t);
 extern "Python" void capsheet_py_delay_us(void *, uint32_t);
+extern "Python" int32_t capsheet_py_part_read_axes(void *, uint64_t, int16_t *, uint8_t *);
+extern "Python" int32_t capsheet_py_part_read_imu(void *, uint64_t, uint8_t, uint8_t, bool, capsheet_imu_reading_t *);
 """
 
 

@@ -9,9 +9,13 @@ virtual sheet computes for that link (specific force and rate, sensor frame)::
 
     physics (sheet) -> ICM42688P registers -> C driver -> C glue -> C chip -> protocol -> host
 
-The HAL's read_axes / read_imu hand the chip exactly what the C glue answers (a negative answer, a
-sensor fault, becomes an INVALID reading: the chip enters FAULT). The part's INT1 data-ready edge is
-timestamped (as a port's timer capture would) and is the record's latch instant.
+The HAL's read_axes / read_imu are the C glue's own functions, called with the chip's arguments
+(through a thin ``extern "Python"`` that first runs the emulated link to the call's instant): the C
+chip gets exactly what the glue answers, and a negative answer is its sensor fault (INVALID, FAULT).
+The part's INT1 data-ready edge is timestamped (as a port's timer capture would) and is the record's
+latch instant. ``icm42688p+mmc5983ma``: the MEMSIC MMC5983MA magnetometer on chip select 1 of the same
+bus (its driver, firmware_ref/drivers/mmc5983ma.c, through the glue's capsheet_mag_driver_t), fed with
+the sheet's field in the link's frame.
 
 The link MCU's main loop runs between the chip's calls: at every call (SYNC, poll) the glue runs up
 to ``now``, each step at the instant it asked for, the emulator's clock with it. The motion is the
@@ -30,8 +34,6 @@ import math
 
 import numpy as np
 
-from protocol.constants import SampleStatus
-
 from ._ffi import ffi, lib
 from .chip import CFirmwareChip
 from .sil_bus import SilBus
@@ -39,10 +41,11 @@ from .sil_bus import SilBus
 __all__ = ["PARTS", "PartChipFactory", "SheetTruth"]
 
 #: the parts a chip can read through its driver (``--part``)
-PARTS = ("icm42688p",)
+PARTS = ("icm42688p", "icm42688p+mmc5983ma")
+#: the magnetometer's measurement bandwidth code (Internal control 1 BW: 1 = 4 ms, within a 100 Hz SYNC)
+MAG_BW = 1
 #: how long a link MCU runs before its protocol stack starts: the part's bring-up with its self-test
 BOOT_S = 1.5
-_INVALID = int(SampleStatus.INVALID)
 
 
 def _us(now_s: float) -> int:
@@ -50,45 +53,55 @@ def _us(now_s: float) -> int:
 
 
 class SheetTruth:
-    """Every link's specific force (m/s²) and rate (rad/s), sensor frame, at ``now_s``: the moving
-    scene's exact truth (`imu_source.ImuSource`, at its grid instant), or a static shape's gravity."""
+    """Every link's specific force (m/s²), rate (rad/s) and magnetic field (T), sensor frame, at
+    ``now_s``: the moving scene's exact truth (`imu_source.ImuSource`, at its grid instant), or a
+    static shape's gravity (no field: zeros)."""
 
     def __init__(self, sheet) -> None:
         self.sheet = sheet
         self._at: float | None = None
-        self._value: tuple[np.ndarray, np.ndarray] | None = None
+        self._value: tuple | None = None
 
-    def at(self, now_s: float) -> tuple[np.ndarray, np.ndarray]:
+    def at(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self._at == now_s and self._value is not None:
             return self._value
         src = self.sheet.imu_source
         if src is not None:
+            from virtual_sheet.magfield import field_in_sensor_frames
             k = max(0, int(math.floor(now_s * src.grid_hz + 1e-9)))
             with src._lock:  # the source's own cache of solved instants
                 e = src._truth(k)
             f, w = np.asarray(e.specific_force, dtype=float), np.asarray(e.angular_velocity, dtype=float)
+            b = np.asarray(field_in_sensor_frames(src.imu.field, np.asarray(e.position)[None],
+                                                  np.asarray(e.frames)[None])[0], dtype=float)
         else:
             f = np.asarray(self.sheet._geometry(now_s)[2], dtype=float)
             w = np.zeros_like(f)
-        self._at, self._value = now_s, (f, w)
+            b = np.zeros_like(f)
+        self._at, self._value = now_s, (f, w, b)
         return self._value
 
 
 class LinkSensors:
-    """One link MCU's sensor stack: the part, its bus and the C glue (module docstring)."""
+    """One link MCU's sensor stack: the parts, their bus and the C glue (module docstring)."""
 
-    def __init__(self, part, truth: SheetTruth | None, link: int, *, self_test: bool = True,
+    def __init__(self, part, truth: SheetTruth | None, link: int, *, mag=None, self_test: bool = True,
                  boot_s: float = BOOT_S) -> None:
         self.part = part
+        self.mag = mag
         self.boot_us = _us(boot_s)
         self.truth = truth
         self.link = link
         self.self_test = bool(self_test)
-        self.bus = SilBus(spi={0: part})
+        self.bus = SilBus(spi={0: part, **({1: mag} if mag is not None else {})})
         self.ls = ffi.new("capsheet_link_sensors_t *")
-        self._xyz = ffi.new("int16_t[3]")
-        self._st = ffi.new("uint8_t *")
-        self._rd = ffi.new("capsheet_imu_reading_t *")
+        self.mag_dev = self.mag_drv = None
+        if mag is not None:
+            self.mag_dev = ffi.new("mmc5983ma_t *")
+            if lib.mmc5983ma_init(self.mag_dev, self.bus.c_bus, 1, MAG_BW) < 0:
+                raise RuntimeError("mmc5983ma_init failed")
+            self.mag_drv = ffi.new("capsheet_mag_driver_t *")
+            lib.mmc5983ma_mag_driver(self.mag_dev, self.mag_drv)
         self.t_us = 0
         self._settled = False    # the bring-up is over (running or failed)
         self._drdy_told: float | None = None
@@ -96,14 +109,22 @@ class LinkSensors:
         self.chip = None
 
     def attach(self, chip: CFirmwareChip) -> None:
-        """Wire the glue to the chip's state (its CONFIG / CONFIG_IMU)."""
+        """Wire the glue to the chip's state (its CONFIG / CONFIG_IMU) and its HAL to the glue."""
         self.chip = chip
-        rc = lib.capsheet_link_sensors_init(self.ls, self.bus.c_bus, 0, ffi.NULL, chip._chip, self.self_test)
+        rc = lib.capsheet_link_sensors_init(self.ls, self.bus.c_bus, 0,
+                                            self.mag_drv if self.mag_drv is not None else ffi.NULL,
+                                            chip._chip, self.self_test)
         if rc < 0:
             raise RuntimeError(f"capsheet_link_sensors_init failed: {rc}")
+        chip._hal.read_axes = lib.capsheet_py_part_read_axes
+        if chip._hal.read_imu != ffi.NULL:
+            chip._hal.read_imu = lib.capsheet_py_part_read_imu
 
     def _feed(self, t_us: int) -> None:
-        self.part.advance(t_us * 1e-6)
+        t = t_us * 1e-6
+        self.part.advance(t)
+        if self.mag is not None:
+            self.mag.advance(t)
         d = self.part.drdy_s
         if d is not None and d != self._drdy_told:  # the INT1 edge, timestamped once
             self._drdy_told = d
@@ -111,14 +132,19 @@ class LinkSensors:
 
     def boot(self) -> int:
         """The MCU's first ``boot_s``: the sensors' bring-up before the chip's clock starts."""
-        return self.run_to(0.0)
+        return self.run_to_us(0)
 
     def run_to(self, now_s: float) -> int:
-        """The link MCU's main loop up to the chip's ``now_s``; returns the MCU's instant reached, µs."""
-        now_us = max(self.t_us, int(round(now_s * 1e6)) + self.boot_us)
+        return self.run_to_us(int(round(now_s * 1e6)))
+
+    def run_to_us(self, chip_us: int) -> int:
+        """The link MCU's main loop up to the chip's instant ``chip_us``; returns the MCU's, µs."""
+        now_us = max(self.t_us, max(0, chip_us) + self.boot_us)
         if self.truth is not None:
-            f, w = self.truth.at(max(0.0, now_s))
+            f, w, b = self.truth.at(max(0, chip_us) * 1e-6)
             self.part.set_motion(f[self.link], w[self.link])
+            if self.mag is not None:
+                self.mag.set_field(b[self.link])
         if not self._settled:
             t = self.t_us
             while True:
@@ -134,19 +160,44 @@ class LinkSensors:
         self.t_us = now_us
         return now_us
 
-    def read_axes(self, now_s: float):
-        now_us = self.run_to(now_s)
-        if lib.capsheet_link_read_axes(self.ls, now_us, self._xyz, self._st) < 0:
-            self.faults += 1
-            return (0, 0, 0), _INVALID   # the chip sends INVALID and enters FAULT (§8.6)
-        return (self._xyz[0], self._xyz[1], self._xyz[2]), self._st[0]
 
-    def read_imu(self, now_s: float, gyro_range: int, mag_range: int):
-        now_us = max(self.t_us, _us(now_s) + self.boot_us)
-        if lib.capsheet_link_read_imu(self.ls, now_us, gyro_range, mag_range, False, self._rd) < 0:
-            raise RuntimeError("read_imu after a valid read_axes failed")  # the glue cannot: same reading
-        g = self._rd.gyro
-        return (g[0], g[1], g[2]), None, int(self._rd.latch_us) - now_us
+def _link(user) -> LinkSensors:
+    return ffi.from_handle(user).link_sensors
+
+
+@ffi.def_extern()
+def capsheet_py_part_read_axes(user, now_us, xyz, status):
+    """HAL read_axes: the link runs to the SYNC's instant, then the C glue answers the chip."""
+    chip = ffi.from_handle(user)
+    try:
+        ls = chip.link_sensors
+        rc = lib.capsheet_link_read_axes(ls.ls, ls.run_to_us(int(now_us)), xyz, status)
+    except BaseException as exc:  # noqa: BLE001 - re-raised after the C call (chip.py's rule)
+        chip._exc = exc
+        return -1
+    if rc < 0:
+        ls.faults += 1
+    return rc
+
+
+@ffi.def_extern()
+def capsheet_py_part_read_imu(user, now_us, gyro_range, mag_range, want_mag, out):
+    """HAL read_imu: the C glue's, its latch brought back to the chip's clock."""
+    chip = ffi.from_handle(user)
+    try:
+        ls = chip.link_sensors
+        mcu_us = max(ls.t_us, int(now_us) + ls.boot_us)
+        rc = lib.capsheet_link_read_imu(ls.ls, mcu_us, gyro_range, mag_range, want_mag, out)
+        if rc >= 0:
+            out.latch_us = max(0, int(out.latch_us) - ls.boot_us)
+    except BaseException as exc:  # noqa: BLE001
+        chip._exc = exc
+        return -1
+    return rc
+
+
+def _unused_source(*_args):
+    raise RuntimeError("a part chip's HAL reads the C glue, not a counts source")
 
 
 class PartChipFactory:
@@ -179,16 +230,20 @@ class PartChipFactory:
 
     def __call__(self, uid: int, sensor, *, seed: int = 0, sensors: str = "accel", imu=None, **kw):
         from virtual_sheet.parts.icm42688p import ICM42688P
-        if "mag" in sensors:
-            raise ValueError(f"Invalid sensors {sensors!r} for part {self.part}: a 6-axis part "
-                             "(accel or accel+gyro; no magnetometer part is wired yet)")
-        ls = LinkSensors(ICM42688P(seed=seed), self.truth, 0, self_test=self.self_test)
+        has_mag = self.part.endswith("+mmc5983ma")
+        if ("mag" in sensors) != has_mag:
+            raise ValueError(f"Invalid sensors {sensors!r} for part {self.part}: "
+                             + ("accel+gyro+mag" if has_mag else "accel or accel+gyro (a 6-axis part)"))
+        mag = None
+        if has_mag:
+            from virtual_sheet.parts.mmc5983ma import MMC5983MA
+            mag = MMC5983MA(seed=seed + 0x5983)
+        ls = LinkSensors(ICM42688P(seed=seed), self.truth, 0, mag=mag, self_test=self.self_test)
         self._pending.append((uid, ls))
-        chip = CFirmwareChip(uid, lambda now_s: ls.read_axes(now_s), seed=seed, sensors=sensors,
-                             imu=(lambda now_s, gr, mr: ls.read_imu(now_s, gr, mr)) if sensors != "accel" else None,
-                             **kw)
-        ls.attach(chip)
+        chip = CFirmwareChip(uid, _unused_source, seed=seed, sensors=sensors,
+                             imu=_unused_source if sensors != "accel" else None, **kw)
         chip.link_sensors = ls
+        ls.attach(chip)
         inner_poll = chip.poll
 
         def poll(now_s: float):

@@ -126,10 +126,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     T.add_overwrite_arg(p, "files at --layout-out and --symlink")
     p.add_argument("--firmware", choices=("python", "c"), default="python",
                    help="chip implementation: the Python model or the C reference firmware (SIL)")
-    p.add_argument("--part", choices=("icm42688p",), default=None,
-                   help="with --firmware c: every chip reads this real part through its C driver over an "
-                        "emulated SPI bus (firmware_ref/part_chip.py), the part's register emulator fed by "
-                        "the sheet's truth; icm42688p: TDK ICM-42688-P (accel, or accel+gyro)")
+    p.add_argument("--part", choices=("icm42688p", "icm42688p+mmc5983ma"), default=None,
+                   help="with --firmware c: every chip reads these real parts through their C drivers over an "
+                        "emulated SPI bus (firmware_ref/part_chip.py), the parts' register emulators fed by "
+                        "the sheet's truth; icm42688p: TDK ICM-42688-P (--sensors accel or accel+gyro); "
+                        "icm42688p+mmc5983ma: and a MEMSIC MMC5983MA magnetometer (--sensors accel+gyro+mag)")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("-v", "--verbose", action="store_true", help="print every frame sent and received")
     p.set_defaults(func=run)
