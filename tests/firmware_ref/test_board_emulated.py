@@ -207,9 +207,16 @@ class Board:
         """Run the main loop for `us` of simulated time, taking host bytes through the RX interrupt."""
         end = self.t_us + us
         while self.t_us < end:
-            if self.rx and self.reg.get(self.usart, 0) & 0x20:  # CR1 RXFNEIE
+            uart_irq = self.rx and self.reg.get(self.usart, 0) & 0x20  # CR1 RXFNEIE
+            can_irq = self.can_rx and not self.rx_fill and self.reg.get(FDCAN_IE, 0) & 1
+            masked = self.uc.reg_read(A.UC_ARM_REG_PRIMASK) & 1  # cpsid i: an interrupt waits for cpsie
+            if masked and (uart_irq or can_irq):
+                self.uc.emu_start(self.pc | 1, 0xFFFF_FFFF, count=4)  # on to the cpsie, then take it
+                self.pc = self.uc.reg_read(A.UC_ARM_REG_PC)
+                continue
+            if uart_irq:
                 self._call(self.usart_irq)
-            if self.can_rx and not self.rx_fill and self.reg.get(FDCAN_IE, 0) & 1:
+            if can_irq:
                 self._deliver(self.can_rx.pop(0))
             self.uc.emu_start(self.pc | 1, 0xFFFF_FFFF, count=4000)
             self.pc = self.uc.reg_read(A.UC_ARM_REG_PC)
@@ -230,7 +237,9 @@ class Board:
         self._call(self.fdcan1_irq)
 
     def _call(self, handler: int) -> None:
-        regs = [A.UC_ARM_REG_R0 + i for i in range(13)] + [A.UC_ARM_REG_SP, A.UC_ARM_REG_LR]
+        # what an exception entry saves (r0-r3, r12, lr, xPSR; the rest the handler's own code preserves):
+        # all of it, so a handler called between a compare and its branch leaves the flags as they were
+        regs = [A.UC_ARM_REG_R0 + i for i in range(13)] + [A.UC_ARM_REG_SP, A.UC_ARM_REG_LR, A.UC_ARM_REG_XPSR]
         saved = [self.uc.reg_read(x) for x in regs]
         self.uc.reg_write(A.UC_ARM_REG_SP, (saved[13] - 64) & ~7)  # below the interrupted frame
         self.uc.reg_write(A.UC_ARM_REG_LR, RETURN_TRAP | 1)

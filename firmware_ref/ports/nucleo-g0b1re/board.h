@@ -333,6 +333,8 @@ void systick_irq(void);
 void uart_init(uint32_t baud);
 /* Copy up to `cap` received bytes out of the RX ring; returns how many (0 if none). */
 size_t uart_read(uint8_t *out, size_t cap);
+/* Bytes wait in the RX ring (main loop, with interrupts masked before a WFI). */
+bool uart_pending(void);
 /* Blocking write: returns once the last byte's stop bit is on the wire (the RS-485 driver is then
  * released), so `data` may be reused at once. */
 void uart_write(const uint8_t *data, size_t len);
@@ -365,6 +367,7 @@ typedef struct {
 } can_frame_t;
 void can_init(void);
 bool can_read(can_frame_t *out);
+bool can_pending(void);
 /* Queue one frame: 0, or -1 when the three Tx buffers stay full for 1 ms (a bus with no other node to
  * acknowledge, or bus-off), -2 for a length over 8 (64 with FD). */
 int32_t can_write(uint32_t id, const uint8_t *data, uint8_t len, bool is_fd);

@@ -125,6 +125,11 @@ bool can_read(can_frame_t *out)
     return true;
 }
 
+bool can_pending(void)
+{
+    return head != tail;
+}
+
 static uint32_t len_dlc(uint8_t len)
 {
     uint32_t dlc = 0;

@@ -173,6 +173,7 @@ static int32_t send_can(void *user, uint32_t id, const uint8_t *data, uint8_t le
 #define SEND_BYTES 0
 #define SEND_CAN send_can
 #define TRANSPORT CAPSHEET_TRANSPORT_CAN
+#define RX_PENDING can_pending
 #else
 /* `data` is the chip's TX buffer, reused by the next send: uart_write returns once every byte is on
  * the wire, so nothing needs copying (a DMA HAL would copy, see firmware_ref/README.md). */
@@ -185,6 +186,7 @@ static int32_t send_bytes(void *user, const uint8_t *data, size_t len)
 #define SEND_BYTES send_bytes
 #define SEND_CAN 0
 #define TRANSPORT CAPSHEET_TRANSPORT_SERIAL
+#define RX_PENDING uart_pending
 #endif
 
 static const capsheet_hal_t hal = {NULL,     read_axes,     SEND_BYTES, SEND_CAN,    read_uid,
@@ -276,7 +278,15 @@ int main(void)
         now = clock_us();
         check(capsheet_chip_poll(&chip, now));
         if (!busy && now + 1000u < sensors_at) {
-            __asm volatile("wfi"); /* woken by the UART / FDCAN interrupt or the 1 kHz SysTick */
+            /* Sleep until an interrupt: the UART / FDCAN reception or the 1 kHz SysTick. Interrupts are
+             * masked around the check, so a frame that arrived after the ring was read is not left
+             * waiting for the next tick: WFI wakes on a pending interrupt even while masked, and it
+             * runs at cpsie (Armv6-M ARM, "Wait For Interrupt"). */
+            __asm volatile("cpsid i" ::: "memory");
+            if (!RX_PENDING()) {
+                __asm volatile("wfi");
+            }
+            __asm volatile("cpsie i" ::: "memory");
         }
     }
 }

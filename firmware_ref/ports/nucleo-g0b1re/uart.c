@@ -103,6 +103,11 @@ void uart_write(const uint8_t *data, size_t len)
 #endif
 }
 
+bool uart_pending(void)
+{
+    return rx_head != rx_tail;
+}
+
 uint32_t uart_lost(void)
 {
     return rx_lost;
