@@ -2,7 +2,8 @@
 every C chip's accelerometer and gyroscope read by the C ICM-42688-P driver over an emulated SPI bus
 (firmware_ref/part_chip.py), against the same C chips fed finished counts (``--firmware c``).
 
-Two figures per lattice (6x6, 14x14; 6-axis chips, CONFIG_IMU format 1):
+Two figures per lattice (6x6, 14x14; 9-axis chips, ``icm42688p+mmc5983ma``, CONFIG_IMU format 2, by
+default; ``--sensors accel+gyro`` for 6-axis ``icm42688p``):
 
 * ``cpu_ms_per_sync``: CPU time of this process per SYNC (gateway + every chip + frames), simulated
   time, the best of ``--rounds`` rounds (``time.process_time``), for both engines, and their ratio;
@@ -38,17 +39,21 @@ from virtual_sheet.sheet import VirtualSheet  # noqa: E402
 RATE_HZ = 100.0
 
 
-def rig(lattice: str, engine: str):
+def part_for(sensors: str) -> str:
+    return "icm42688p+mmc5983ma" if sensors.endswith("mag") else "icm42688p"
+
+
+def rig(lattice: str, engine: str, sensors: str):
     from firmware_ref.chip import CFirmwareChip
     from firmware_ref.part_chip import PartChipFactory
-    factory = PartChipFactory("icm42688p") if engine == "part" else CFirmwareChip
-    sheet = VirtualSheet("gaussian", lattice, seed=1, chip_factory=factory, sensors="accel+gyro")
+    factory = PartChipFactory(part_for(sensors)) if engine == "part" else CFirmwareChip
+    sheet = VirtualSheet("gaussian", lattice, seed=1, chip_factory=factory, sensors=sensors)
     if engine == "part":
         factory.bind(sheet)
     gw = Gateway(sheet, packed=False)
     gw.power_on(0.0)
     gw.commission(0.1, start=False)
-    gw.feed(encode(ConfigImu(0, format=1, gyro_range=3)), 0.2)
+    gw.feed(encode(ConfigImu(0, format=2 if sensors.endswith("mag") else 1, gyro_range=3)), 0.2)
     gw.feed(encode(Start(0)), 0.3)
     t = 0.3
     while t < 2.0:  # bring-up and self-test on the link MCUs' main loops
@@ -70,13 +75,13 @@ def cpu_per_sync(gw, t0: float, counter: int, n: int) -> float:
     return (time.process_time() - c0) / n
 
 
-def live(lattice: str, seconds: float, engine: str) -> dict:
+def live(lattice: str, seconds: float, engine: str, sensors: str) -> dict:
     py = sys.executable
-    part = ["--part", "icm42688p"] if engine == "part" else []
+    part = ["--part", part_for(sensors)] if engine == "part" else []
     with tempfile.TemporaryDirectory() as tmp:
         link, lay = os.path.join(tmp, "sheet"), os.path.join(tmp, "sheet.csv")
         v = subprocess.Popen([py, "-m", "host.cli", "virtual", "--transport", "pty", "--lattice", lattice,
-                              "--sensors", "accel+gyro", "--firmware", "c", *part,
+                              "--sensors", sensors, "--firmware", "c", *part,
                               "--symlink", link, "--layout-out", lay], cwd=ROOT, stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True)
         try:
@@ -84,7 +89,7 @@ def live(lattice: str, seconds: float, engine: str) -> dict:
             while not (os.path.islink(link) and os.path.exists(lay)) and time.monotonic() < end:
                 time.sleep(0.1)
             h = subprocess.run([py, "-m", "host.cli", "host", "--port", link, "--baud", "12000000", "--lattice",
-                                lattice, "--layout", lay, "--sensors", "accel+gyro", "--rate", str(int(RATE_HZ)),
+                                lattice, "--layout", lay, "--sensors", sensors, "--rate", str(int(RATE_HZ)),
                                 "--duration", str(seconds), "--min-complete", "0", "--json", "-q"], cwd=ROOT, capture_output=True,
                                text=True, timeout=seconds + 240)
         finally:
@@ -107,6 +112,8 @@ def main() -> int:
     ap.add_argument("--seconds", type=float, default=None, help="live run length (default 10, --quick 4)")
     ap.add_argument("--no-live", action="store_true", help="CPU figures only")
     ap.add_argument("--lattices", default="6x6,14x14", help="comma-separated lattices (default 6x6,14x14)")
+    ap.add_argument("--sensors", default="accel+gyro+mag", choices=("accel+gyro", "accel+gyro+mag"),
+                    help="6-axis (icm42688p) or 9-axis (icm42688p+mmc5983ma) chips (default 9-axis)")
     a = ap.parse_args()
     n = 30 if a.quick else 100
     seconds = a.seconds or (4.0 if a.quick else 10.0)
@@ -115,7 +122,7 @@ def main() -> int:
         row: dict = {"lattice": lattice, "rate_hz": RATE_HZ}
         for engine in ("counts", "part"):
             t_build = time.perf_counter()
-            gw = rig(lattice, engine)
+            gw = rig(lattice, engine, a.sensors)
             row[f"bring_up_wall_s_{engine}"] = round(time.perf_counter() - t_build, 2)
             best, t, counter = float("inf"), 2.0, 0
             for _ in range(a.rounds):
@@ -127,9 +134,9 @@ def main() -> int:
         row["cpu_share_at_rate"] = round(row["cpu_ms_per_sync_part"] * RATE_HZ / 1e3, 3)
         if not a.no_live:
             for engine in ("counts", "part"):
-                row[f"live_{engine}"] = live(lattice, seconds, engine)
+                row[f"live_{engine}"] = live(lattice, seconds, engine, a.sensors)
         results.append(row)
-    print(json.dumps({"bench": "parts", "part": "icm42688p", "sensors": "accel+gyro", "syncs": n,
+    print(json.dumps({"bench": "parts", "part": part_for(a.sensors), "sensors": a.sensors, "syncs": n,
                       "loadavg": os.getloadavg(), "results": results}, indent=2))
     return 0
 
