@@ -352,12 +352,14 @@ void usart_irq(void);
 void spi_init(void);
 int32_t spi_transfer(uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len);
 
-/* flash.c: the two calibration pages in bank 2. 0, or negative: the FLASH_SR error bits, negated. */
+/* flash.c: the two calibration pages in bank 2. 0, or negative: the FLASH_SR error bits, negated;
+ * -1 for an address or page outside the calibration pages (the image is never touched). */
 int32_t flash_erase_page(uint32_t pnb);
 int32_t flash_program_dword(uint32_t addr, uint32_t lo, uint32_t hi);
 
 /* can.c: FDCAN1, classic CAN at 1 Mbit/s, 29-bit identifiers; with BOARD_CAN_FD, FD frames with bit-
- * rate switching at BOARD_CAN_FD_DATA_BPS in the data phase. Received host -> chip frames go to a ring (ISR). */
+ * rate switching at BOARD_CAN_FD_DATA_BPS in the data phase. Every received data frame goes to a ring
+ * (ISR); the chip library decides which are its own. */
 typedef struct {
     uint32_t id;
     bool is_extended;
