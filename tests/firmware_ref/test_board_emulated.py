@@ -6,7 +6,8 @@ encoder, brings the part up through the C driver, and answers every SYNC with an
 counts are the physics the emulator was given; a CAL_WRITE lands in the flash pages and is there
 after a power cycle; the CAN image does the same over FDCAN1 in 29-bit frames, a record as IMU_GYRO
 then IMU_ACCEL (the FD image: one FD frame a record); the 9-axis image on USART1 reads the MMC5983MA
-emulator on the second chip select. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
+emulator on the second chip select; and on the host's clock behind a pty the image passes the whole
+`capsheet conformance` suite. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
 
 The peripheral model is this file's, written from the same reference manual as the port (RM0444):
 it answers ready bits, runs TIM2 on a simulated clock (a few µs per counter read), captures the
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import struct
 import subprocess
+import time
 
 import pytest
 
@@ -454,3 +456,64 @@ def test_the_can_fd_image_sends_a_9_axis_record_in_one_fd_frame(images):
         # other axes' small readings are the emulated part's own business (its tests hold them)
         assert abs(rec.my - 8192 * 0.3) <= 0.05 * 8192 * 0.3 + 40, rec
         assert abs(rec.mx) < 0.1 * 8192 * 0.3 and abs(rec.mz) < 0.1 * 8192 * 0.3, rec
+
+
+class WallClockBoard(Board):
+    """The board on the host's clock, its UART paced at `baud`: for a host program on a pty (it
+    measures periods on its own clock). Bytes arrive one byte time apart, as on the wire."""
+
+    def __init__(self, *args, baud: int = 115_200, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.t0 = time.monotonic()
+        self.byte_s = 10 / baud
+        self.next_byte = 0.0
+
+    def _read(self, a: int, size: int) -> int:
+        now = time.monotonic()
+        if a == TIM2_CNT:
+            self.t_us = int((now - self.t0) * 1e6)
+            return self.t_us & 0xFFFF_FFFF
+        if a == self.usart + 0x1C:  # ISR: RXFNE only one byte time after the previous byte was read
+            return 0xC0 | (0x20 if self.rx and now >= self.next_byte else 0)
+        if a == self.usart + 0x24:  # RDR
+            self.next_byte = max(now, self.next_byte) + self.byte_s
+        return super()._read(a, size)
+
+
+def test_the_image_passes_the_conformance_suite_over_a_pty(image):
+    import os
+    import pty
+    import sys
+    import threading
+    import tty
+
+    board = WallClockBoard(image, _flat_part(11))
+    master, slave = pty.openpty()
+    tty.setraw(slave)
+    os.set_blocking(master, False)
+    stop = threading.Event()
+
+    def serve():
+        while not stop.is_set():
+            try:
+                board.rx += os.read(master, 4096)
+            except BlockingIOError:
+                pass
+            board.run(200)
+            if board.tx:
+                os.write(master, bytes(board.tx))
+                board.tx.clear()
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+    try:
+        time.sleep(2.0)  # the part's bring-up and self-test, on the host's clock
+        r = subprocess.run([sys.executable, "-m", "host.cli", "conformance", "--port", os.ttyname(slave),
+                            "--baud", "115200", "--allow-broadcast"], capture_output=True, text=True, timeout=600)
+    finally:
+        stop.set()
+        thread.join(timeout=5)
+        os.close(master)
+        os.close(slave)
+    assert r.returncode == 0, r.stdout[-4000:] + r.stderr[-2000:]
+    assert " 0 failed, 0 skipped" in r.stdout, r.stdout[-2000:]
