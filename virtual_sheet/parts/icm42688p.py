@@ -74,6 +74,8 @@ ST_OTP_BASE = 2620.0                # LSB at FS_SEL 3 (±250 °/s, ±2 g) for co
 FAULTS = ("no_answer", "stuck_bus", "wrong_id", "self_test_fail", "reset")
 MISWIRES = ("bit_order", "read_bit")
 
+_ACCESS = {key: reg.access for key, reg in R.REGISTERS.items()}   # a plain dict: read per byte
+_WHO_AM_I = (0, R.ADDR["WHO_AM_I"])
 _REV8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 
@@ -124,9 +126,16 @@ class ICM42688P:
         self.gyro_st_codes = tuple(int(c) for c in g.integers(20, 90, 3))
         self.accel_st_codes = tuple(int(c) for c in g.integers(20, 90, 3))
         self.st_factor = g.uniform(0.9, 1.1, 6)
+        # the same, as plain floats for the per-conversion arithmetic
+        self._a_scale, self._a_off = self.accel_scale.tolist(), self.accel_offset_g.tolist()
+        self._g_scale, self._g_off = self.gyro_scale.tolist(), self.gyro_offset_dps.tolist()
+        self._a_st = [st_otp(c) * float(f) for c, f in zip(self.accel_st_codes, self.st_factor[3:])]
+        self._g_st = [st_otp(c) * float(f) for c, f in zip(self.gyro_st_codes, self.st_factor[:3])]
         self._fault: str | None = None
         self._force = np.array([0.0, 0.0, G0])
         self._rate = np.zeros(3)
+        self._f_g = [0.0, 0.0, 1.0]   # specific force in g, rate in °/s: the held motion as floats
+        self._w_dps = [0.0, 0.0, 0.0]
         self.now_s = 0.0
         self.transactions = 0
         self.conversions = 0
@@ -180,6 +189,8 @@ class ICM42688P:
             raise ValueError(f"Expected specific force and rate of shape (3,), got {f.shape} and {w.shape}.")
         self._force = f
         self._rate = w
+        self._f_g = (f / G0).tolist()
+        self._w_dps = np.degrees(w).tolist()
 
     def advance(self, now_s: float) -> None:
         """Run the part's clock to `now_s` (s; never backwards): reset completion, start-ups, conversions."""
@@ -238,14 +249,15 @@ class ICM42688P:
     # ---- register access -----------------------------------------------------------------------
 
     def _read(self, bank: int, addr: int) -> int:
-        reg = R.REGISTERS.get((bank, addr))
-        if reg is None or reg.access == "w":
+        key = (bank, addr)
+        access = _ACCESS.get(key)
+        if access is None or access == "w":
             return 0
-        value = self._regs[(bank, addr)]
-        if reg.name == "WHO_AM_I" and self._fault == "wrong_id":
+        value = self._regs[key]
+        if key == _WHO_AM_I and self._fault == "wrong_id":
             value = 0x42
-        if reg.access == "rc":
-            self._regs[(bank, addr)] = 0
+        if access == "rc":
+            self._regs[key] = 0
         return value
 
     def _write(self, addr: int, value: int) -> None:
@@ -301,47 +313,47 @@ class ICM42688P:
 
     # ---- conversions ---------------------------------------------------------------------------
 
-    def _bandwidth_hz(self, sensor_odr_code: int, shift: int) -> float:
-        div = R.UI_FILT_DIV[(self._reg0("GYRO_ACCEL_CONFIG0") >> shift) & 0x07]
-        return R.ODR_HZ.get(sensor_odr_code, 1000.0) / div
+    def _put16(self, addr: int, value: int) -> None:
+        regs = self._regs
+        regs[(0, addr)] = (value >> 8) & 0xFF
+        regs[(0, addr + 1)] = value & 0xFF
 
     def _convert(self, t: float) -> None:
-        g = self._rng
-        st = self._reg0("SELF_TEST_CONFIG")
+        """One conversion of every sensor that is on and started (scalar arithmetic: per-call numpy
+        costs more than the three axes' math)."""
+        regs = self._regs
+        st = regs[(0, 0x70)]                       # SELF_TEST_CONFIG
+        bw_sel = regs[(0, 0x52)]                   # GYRO_ACCEL_CONFIG0
         st_fail = 0.2 if self._fault == "self_test_fail" else 1.0
         converted = False
         if self._accel_on_at is not None and t >= self._accel_on_at:
-            cfg = self._reg0("ACCEL_CONFIG0")
-            fs_sel = cfg >> 5
-            sens = 32768.0 / R.ACCEL_FS_G[fs_sel]
-            bw = self._bandwidth_hz(cfg & 0x0F, 4)
-            f_g = self._force / G0 * self.accel_scale + self.accel_offset_g
-            counts = f_g * sens + g.normal(0.0, ACCEL_NOISE_G_RTHZ * math.sqrt(bw) * sens, 3)
-            if st & R.ACCEL_ST_POWER:
-                for i, bit in enumerate((R.EN_AX_ST, R.EN_AY_ST, R.EN_AZ_ST)):
-                    if st & bit:
-                        counts[i] += (st_otp(self.accel_st_codes[i]) * self.st_factor[3 + i] * st_fail
-                                      * sens / 16384.0)
-            for axis, c in zip("XYZ", counts.tolist()):
-                self._set16(f"ACCEL_DATA_{axis}1", _clip16(c))
+            cfg = regs[(0, 0x50)]                  # ACCEL_CONFIG0
+            sens = 32768.0 / R.ACCEL_FS_G[cfg >> 5]
+            bw = R.ODR_HZ.get(cfg & 0x0F, 1000.0) / R.UI_FILT_DIV[(bw_sel >> 4) & 0x07]
+            sd = ACCEL_NOISE_G_RTHZ * math.sqrt(bw) * sens
+            z = self._rng.standard_normal(3).tolist()
+            for i in range(3):
+                c = (self._f_g[i] * self._a_scale[i] + self._a_off[i]) * sens + sd * z[i]
+                if st & R.ACCEL_ST_POWER and st & (R.EN_AX_ST << i):
+                    c += self._a_st[i] * st_fail * sens / 16384.0
+                self._put16(0x1F + 2 * i, _clip16(c))
             converted = True
         if self._gyro_on_at is not None and t >= self._gyro_on_at:
-            cfg = self._reg0("GYRO_CONFIG0")
+            cfg = regs[(0, 0x4F)]                  # GYRO_CONFIG0
             sens = 32768.0 / R.GYRO_FS_DPS[cfg >> 5]
-            bw = self._bandwidth_hz(cfg & 0x0F, 0)
-            w_dps = np.degrees(self._rate) * self.gyro_scale + self.gyro_offset_dps
-            counts = w_dps * sens + g.normal(0.0, GYRO_NOISE_DPS_RTHZ * math.sqrt(bw) * sens, 3)
-            for i, bit in enumerate((R.EN_GX_ST, R.EN_GY_ST, R.EN_GZ_ST)):
-                if st & bit:
-                    counts[i] += st_otp(self.gyro_st_codes[i]) * self.st_factor[i] * st_fail * sens / 131.072
-            for axis, c in zip("XYZ", counts.tolist()):
-                self._set16(f"GYRO_DATA_{axis}1", _clip16(c))
+            bw = R.ODR_HZ.get(cfg & 0x0F, 1000.0) / R.UI_FILT_DIV[bw_sel & 0x07]
+            sd = GYRO_NOISE_DPS_RTHZ * math.sqrt(bw) * sens
+            z = self._rng.standard_normal(3).tolist()
+            for i in range(3):
+                c = (self._w_dps[i] * self._g_scale[i] + self._g_off[i]) * sens + sd * z[i]
+                if st & (R.EN_GX_ST << i):
+                    c += self._g_st[i] * st_fail * sens / 131.072
+                self._put16(0x25 + 2 * i, _clip16(c))
             converted = True
         if converted:
-            pwr = self._reg0("PWR_MGMT0")
-            if not pwr & 0x20:   # TEMP_DIS clear
-                self._set16("TEMP_DATA1", int(round((self.temperature_c - TEMP_ROOM_C) * TEMP_LSB_PER_C)))
-            self._regs[(0, R.ADDR["INT_STATUS"])] |= R.DATA_RDY_INT
+            if not regs[(0, 0x4E)] & 0x20:         # PWR_MGMT0 TEMP_DIS clear
+                self._put16(0x1D, _clip16((self.temperature_c - TEMP_ROOM_C) * TEMP_LSB_PER_C))
+            regs[(0, 0x2D)] |= R.DATA_RDY_INT      # INT_STATUS
             self.drdy_s = t
             self.conversions += 1
 
