@@ -7,12 +7,15 @@ counts are the physics the emulator was given; a CAL_WRITE lands in the flash pa
 after a power cycle; the CAN image does the same over FDCAN1 in 29-bit frames, a record as IMU_GYRO
 then IMU_ACCEL (the FD image: one FD frame a record); the 9-axis image on USART1 reads the MMC5983MA
 emulator on the second chip select; and on the host's clock behind a pty the image passes the whole
-`capsheet conformance` suite. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn` package.
+`capsheet conformance` suite. SKIPPED, with the reason, without arm-none-eabi-gcc or the `unicorn`
+package.
 
 The peripheral model is this file's, written from the same reference manual as the port (RM0444):
 it answers ready bits, runs TIM2 on a simulated clock (a few µs per counter read), captures the
 part's INT1 edges on TIM2 channel 1, moves USART and SPI1 bytes and FDCAN1 frames (through the
-message RAM's Rx FIFO 0 and Tx buffer elements), erases the flash page FLASH_CR names. An interrupt is its handler called between runs of the main loop (Unicorn has no NVIC).
+message RAM's Rx FIFO 0 and Tx buffer elements), erases the flash page FLASH_CR names. An interrupt
+is its handler called between runs of the main loop, held while PRIMASK is set (Unicorn has no
+NVIC).
 What this proves is the image — startup, linker script, clock and peripheral sequences that finish,
 the drivers and the chip library compiled for the Cortex-M0+, the bytes on the wire — not the
 silicon: the register facts themselves are board.h's, cited there."""
