@@ -131,24 +131,25 @@ def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors)
     assert s["errors"] == {}, s["errors"]
 
 
-@pytest.mark.parametrize("fault", [None, "no_answer", "self_test_fail"])
-def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault(fault):
-    """`capsheet conformance`'s chip profile over a serial link: a chip reading a healthy part passes
-    every check (the §16 ones among them); a part that stops answering, or fails its self-test, is the
-    spec's sensor fault: the sample check sees INVALID while streaming (§8.6)."""
-    from tests.host.conformance.test_checks import _run_serial
+@pytest.mark.parametrize("transport,fault", [("serial", None), ("can", None), ("serial", "no_answer"),
+                                             ("serial", "self_test_fail")])
+def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault(transport, fault):
+    """`capsheet conformance`'s chip profile over serial and classic CAN: a chip reading a healthy part
+    passes every check (the §16 ones among them); a part that stops answering, or fails its self-test,
+    is the spec's sensor fault: the sample check sees INVALID while streaming (§8.6)."""
+    from tests.host.conformance.test_checks import _run_can, _run_serial
     fac = part_chip.PartChipFactory("icm42688p")
-    sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac)
+    sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac, transport=transport)
     if fault is not None:
         for ls in fac.links:
             ls.part.fault(fault)
     fac.bind(sheet)
-    results = _run_serial(sheet, allow_broadcast=True)
+    results = (_run_serial if transport == "serial" else _run_can)(sheet, allow_broadcast=True)
     report = "\n".join(r.line() for r in results)
     failed = {r.number: r for r in results if r.outcome != "PASS"}
     if fault is None:
         assert failed == {}, report
-        assert {42, 43} <= {r.number for r in results}, report
+        assert ({42, 43, 44} if transport == "can" else {42, 43}) <= {r.number for r in results}, report
     else:
         assert 25 in failed and "INVALID" in failed[25].detail, report
 
