@@ -440,7 +440,7 @@ static bool at_rail(int16_t v)
 
 int32_t icm42688p_read(icm42688p_t *d, uint64_t now_us, icm42688p_sample_t *out)
 {
-    uint8_t status;
+    uint8_t status, who;
     uint8_t raw[14];
     unsigned i;
     if (d == NULL || out == NULL) {
@@ -459,6 +459,14 @@ int32_t icm42688p_read(icm42688p_t *d, uint64_t now_us, icm42688p_sample_t *out)
     }
     if (status & ICM42688P_RESET_DONE_INT) {
         return fail(d, ICM42688P_ERR_GONE);  /* the part reset itself: its configuration is gone */
+    }
+    /* still this part? INT_STATUS bit 7 is reserved (0), WHO_AM_I reads 0x47: a part that answers
+     * garbage (a broken line, another device answering) is a fault, never a reading */
+    if ((status & 0x80u) || icm42688p_read_regs(d, ICM42688P_WHO_AM_I, &who, 1u) < 0) {
+        return fail(d, (status & 0x80u) ? ICM42688P_ERR_GONE : ICM42688P_ERR_BUS);
+    }
+    if (who != ICM42688P_WHO_AM_I_VALUE) {
+        return fail(d, ICM42688P_ERR_GONE);
     }
     out->temp = be16(&raw[0]);
     for (i = 0; i < 3u; i++) {

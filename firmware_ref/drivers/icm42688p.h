@@ -13,7 +13,8 @@
  *                         0 once running. icm42688p_run does the same, blocking, with delay_us.
  *   icm42688p_configure-> a new full scale / ODR / filter / gyroscope on-off: applied by the next step
  *                         (until the new configuration's first conversion, reads are not fresh)
- *   icm42688p_read     -> INT_STATUS (DATA_RDY) and one burst of TEMP + ACCEL + GYRO data registers
+ *   icm42688p_read     -> INT_STATUS (DATA_RDY), one burst of TEMP + ACCEL + GYRO data registers, and
+ *                         WHO_AM_I (a part that answers garbage is a fault, never a reading)
  */
 #ifndef ICM42688P_H
 #define ICM42688P_H

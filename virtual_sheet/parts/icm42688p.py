@@ -41,7 +41,8 @@ What it models (section numbers of DS-000347; the register map in `icm42688p_reg
 * **Faults on demand** (`fault`): ``"no_answer"`` (MISO pulled up: every byte 0xFF), ``"stuck_bus"``
   (the transfer fails: `BusError`), ``"wrong_id"`` (WHO_AM_I reads 0x42, another part of the family),
   ``"self_test_fail"`` (the self-test response at a fifth of its code), ``"reset"`` (a brown-out: the
-  part is back at its power-on state); ``None`` clears the lasting ones.
+  part is back at its power-on state), ``"garbage"`` (every byte read is random: a broken line or a
+  part answering out of turn); ``None`` clears the lasting ones.
 
 Deliberately wrong variants for testing a driver (``miswire``): ``"bit_order"`` (every byte travels
 LSB first, both ways), ``"read_bit"`` (the read bit's polarity inverted: bit 7 clear reads).
@@ -71,7 +72,7 @@ RESET_S = 0.001                     # §14 DEVICE_CONFIG: 1 ms after a soft rese
 #: datasheet's figure for the internal clock in low-noise mode; a per-part value is drawn within it.
 ODR_TOLERANCE = 0.01
 ST_OTP_BASE = 2620.0                # LSB at FS_SEL 3 (±250 °/s, ±2 g) for code 1
-FAULTS = ("no_answer", "stuck_bus", "wrong_id", "self_test_fail", "reset")
+FAULTS = ("no_answer", "stuck_bus", "wrong_id", "self_test_fail", "reset", "garbage")
 MISWIRES = ("bit_order", "read_bit")
 
 _ACCESS = {key: reg.access for key, reg in R.REGISTERS.items()}   # a plain dict: read per byte
@@ -228,6 +229,8 @@ class ICM42688P:
             return b""
         if self._fault == "no_answer":
             return b"\xff" * len(tx)
+        if self._fault == "garbage":   # MISO noise: random bytes, whatever was asked
+            return bytes([0]) + self._rng.integers(0, 256, len(tx) - 1, dtype=np.uint8).tobytes()
         if self.miswire == "bit_order":
             tx = tx.translate(_REV8)
         read = bool(tx[0] & R.SPI_READ)

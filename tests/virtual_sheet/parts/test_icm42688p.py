@@ -280,6 +280,9 @@ def test_faults_on_demand():
     p.fault("stuck_bus")
     with pytest.raises(BusError):
         p.spi_transfer(bytes([0xF5, 0]))
+    p.fault("garbage")
+    reads = {rd(p, 0x75, 4) for _ in range(8)}
+    assert len(reads) > 1                       # random, not a stuck value
     p.fault(None)
     assert rd(p, 0x75) == b"\x47"
 
