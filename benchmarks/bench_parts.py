@@ -9,7 +9,7 @@ default; ``--sensors accel+gyro`` for 6-axis ``icm42688p``):
   time, the best of ``--rounds`` rounds (``time.process_time``), for both engines, and their ratio;
 * ``live_part`` / ``live_counts``: ``capsheet virtual --transport pty ... --firmware c [--part icm42688p]``
   and ``capsheet host --rate 100`` in two processes for ``--seconds`` s: the host's complete-snapshot
-  percentage (the issue's target: >= 99 % at 6x6 and 100 Hz), with and without the part, side by side
+  percentage (the target: >= 99 % at 6x6 and 100 Hz), with and without the part, side by side
   (what the machine's load takes is in both). A rate the machine cannot hold shows as a lower percentage.
 
     .venv/bin/python benchmarks/bench_parts.py            # JSON on stdout
