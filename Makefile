@@ -32,7 +32,7 @@ clean:
 	rm -rf $(VENV) build *.egg-info out firmware_ref/build firmware_ref/_capsheet_fw*
 
 # --- firmware_ref (see firmware_ref/Makefile) -------------------------------------------------
-.PHONY: firmware-check firmware-asan firmware-fuzz firmware-size firmware-qemu firmware-qemu-conformance
+.PHONY: firmware-check firmware-asan firmware-fuzz firmware-size firmware-qemu firmware-qemu-conformance firmware-board
 firmware-check:   ## strict C99 builds, 64- and 32-bit, and the unit driver
 	$(MAKE) -C firmware_ref check
 firmware-asan:    ## decoder fuzz/replay driver under ASan+UBSan
@@ -43,5 +43,7 @@ firmware-size:    ## Cortex-M0+ flash/RAM (needs gcc-arm-none-eabi; installs not
 	$(MAKE) -C firmware_ref size
 firmware-qemu:    ## the firmware for QEMU mps2-an385 (needs gcc-arm-none-eabi, libnewlib-arm-none-eabi)
 	$(MAKE) -C firmware_ref qemu
+firmware-board:   ## the firmware for a NUCLEO-G0B1RE board (needs gcc-arm-none-eabi); flash/RAM in firmware_ref/build/board-size.md
+	$(MAKE) -C firmware_ref board
 firmware-qemu-conformance: $(STAMP) firmware-qemu  ## boot it in QEMU, run the whole conformance suite, non-zero on failure (SENSORS=accel+gyro[+mag]: a 6/9-axis chip)
 	$(PY) -m firmware_ref.qemu conformance --runs $(or $(RUNS),1) --sensors $(or $(SENSORS),accel)

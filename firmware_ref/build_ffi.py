@@ -22,7 +22,14 @@ from cffi import FFI
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
-SOURCES = ["src/codec.c", "src/chip.c"]
+#: the sensor drivers (firmware_ref/drivers/) built into both modules: one entry per .c file (a new
+#: part's driver adds its file here and its declarations to DRIVERS_CDEF below)
+DRIVER_SOURCES = [
+    "drivers/icm42688p.c",
+    "drivers/link_sensors.c",
+    "drivers/mmc5983ma.c",
+]
+SOURCES = ["src/codec.c", "src/chip.c"] + DRIVER_SOURCES
 
 
 def _check_compiler() -> None:
@@ -194,6 +201,104 @@ extern "Python" int32_t capsheet_py_read_imu(void *, uint64_t, uint8_t, uint8_t,
 """
 
 
+#: the declarations of firmware_ref/drivers/ (capsheet_bus.h, icm42688p.h, link_sensors.h, mmc5983ma.h): kept apart
+#: from CDEF, which copies capsheet_fw.h alone (tests/firmware_ref/test_cdef.py). A new driver adds its
+#: declarations at the end. The bus callbacks are Python (firmware_ref/sil_bus.py routes them).
+DRIVERS_CDEF = r"""
+typedef struct {
+    void *user;
+    int32_t (*spi_transfer)(void *user, uint8_t cs, const uint8_t *tx, uint8_t *rx, size_t len);
+    int32_t (*i2c_write_read)(void *user, uint8_t addr7, const uint8_t *tx, size_t tx_len, uint8_t *rx, size_t rx_len);
+    void (*delay_us)(void *user, uint32_t us);
+} capsheet_bus_t;
+
+typedef struct {
+    uint8_t accel_fs_sel; uint8_t gyro_fs_sel; uint8_t odr; uint8_t ui_filt_bw; bool gyro_on;
+} icm42688p_config_t;
+typedef struct {
+    int16_t temp; int16_t accel[3]; int16_t gyro[3]; bool fresh; bool saturated; bool latch_known;
+    uint64_t latch_us;
+} icm42688p_sample_t;
+typedef struct {
+    uint8_t cs; uint8_t phase; uint8_t self_test; bool config_dirty;
+    icm42688p_config_t want; icm42688p_config_t cfg; int32_t error;
+    int32_t st_off[3];
+    ...;
+} icm42688p_t;
+#define ICM42688P_ERR_BUS ...
+#define ICM42688P_ERR_WHO_AM_I ...
+#define ICM42688P_ERR_RESET ...
+#define ICM42688P_ERR_SELF_TEST ...
+#define ICM42688P_ERR_GONE ...
+#define ICM42688P_ERR_NOT_READY ...
+#define ICM42688P_ERR_ARGUMENT ...
+#define ICM42688P_ST_RAN ...
+#define ICM42688P_ST_GYRO_PASS ...
+#define ICM42688P_ST_ACCEL_PASS ...
+void icm42688p_default_config(icm42688p_config_t *cfg);
+int32_t icm42688p_init(icm42688p_t *d, const capsheet_bus_t *bus, uint8_t cs, bool self_test);
+int32_t icm42688p_configure(icm42688p_t *d, const icm42688p_config_t *cfg);
+int32_t icm42688p_step(icm42688p_t *d, uint64_t now_us);
+int32_t icm42688p_run(icm42688p_t *d, uint64_t *now_us);
+void icm42688p_data_ready(icm42688p_t *d, uint64_t edge_us);
+int32_t icm42688p_read(icm42688p_t *d, uint64_t now_us, icm42688p_sample_t *out);
+bool icm42688p_in_self_test(const icm42688p_t *d);
+int32_t icm42688p_read_regs(icm42688p_t *d, uint8_t reg, uint8_t *buf, size_t len);
+int32_t icm42688p_write_reg(icm42688p_t *d, uint8_t reg, uint8_t value);
+
+typedef struct {
+    void *ctx;
+    int32_t (*poll)(void *ctx, uint64_t now_us);
+    int32_t (*read)(void *ctx, uint64_t now_us, uint8_t mag_range, int16_t mag[3], uint8_t *status);
+} capsheet_mag_driver_t;
+typedef struct {
+    icm42688p_t imu;
+    const capsheet_mag_driver_t *mag;
+    const capsheet_chip_t *chip;
+    int16_t accel[3]; int16_t gyro[3]; uint64_t latch_us; uint8_t status; int32_t fault;
+    ...;
+} capsheet_link_sensors_t;
+int32_t capsheet_link_sensors_init(capsheet_link_sensors_t *ls, const capsheet_bus_t *bus, uint8_t imu_cs,
+                                   const capsheet_mag_driver_t *mag, const capsheet_chip_t *chip, bool self_test);
+int32_t capsheet_link_sensors_poll(capsheet_link_sensors_t *ls, uint64_t now_us);
+void capsheet_link_data_ready(capsheet_link_sensors_t *ls, uint64_t edge_us);
+int32_t capsheet_link_read_axes(void *user, uint64_t now_us, int16_t xyz[3], uint8_t *status);
+int32_t capsheet_link_read_imu(void *user, uint64_t now_us, uint8_t gyro_range, uint8_t mag_range,
+                               bool want_mag, capsheet_imu_reading_t *out);
+
+typedef struct {
+    uint8_t cs; uint8_t i2c_addr; bool on_i2c; uint8_t bw; int8_t axes[3]; uint8_t phase; bool pending; int32_t error;
+    int32_t offset2[3]; uint8_t tout; uint32_t measurements;
+    ...;
+} mmc5983ma_t;
+#define MMC5983MA_ERR_BUS ...
+#define MMC5983MA_ERR_PRODUCT_ID ...
+#define MMC5983MA_ERR_OTP ...
+#define MMC5983MA_ERR_SELF_TEST ...
+#define MMC5983MA_ERR_TIMEOUT ...
+#define MMC5983MA_ERR_GONE ...
+#define MMC5983MA_ERR_NOT_READY ...
+#define MMC5983MA_ERR_ARGUMENT ...
+int32_t mmc5983ma_init(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t cs, uint8_t bw);
+int32_t mmc5983ma_init_i2c(mmc5983ma_t *d, const capsheet_bus_t *bus, uint8_t addr7, uint8_t bw);
+int32_t mmc5983ma_set_axes(mmc5983ma_t *d, const int8_t axes[3]);
+int32_t mmc5983ma_step(mmc5983ma_t *d, uint64_t now_us);
+int32_t mmc5983ma_run(mmc5983ma_t *d, uint64_t *now_us);
+int32_t mmc5983ma_read(mmc5983ma_t *d, uint64_t now_us, uint8_t mag_range, int16_t mag[3], uint8_t *status,
+                       uint64_t *latch_us);
+int32_t mmc5983ma_temperature_dc(const mmc5983ma_t *d);
+void mmc5983ma_mag_driver(mmc5983ma_t *d, capsheet_mag_driver_t *out);
+int32_t mmc5983ma_read_regs(mmc5983ma_t *d, uint8_t reg, uint8_t *buf, size_t len);
+int32_t mmc5983ma_write_reg(mmc5983ma_t *d, uint8_t reg, uint8_t value);
+
+extern "Python" int32_t capsheet_py_spi_transfer(void *, uint8_t, const uint8_t *, uint8_t *, size_t);
+extern "Python" int32_t capsheet_py_i2c_write_read(void *, uint8_t, const uint8_t *, size_t, uint8_t *, size_t);
+extern "Python" void capsheet_py_delay_us(void *, uint32_t);
+extern "Python" int32_t capsheet_py_part_read_axes(void *, uint64_t, int16_t *, uint8_t *);
+extern "Python" int32_t capsheet_py_part_read_imu(void *, uint64_t, uint8_t, uint8_t, bool, capsheet_imu_reading_t *);
+"""
+
+
 def _rel(path: Path) -> str:
     # setuptools wants sources relative to the project root (the cwd of a build).
     try:
@@ -214,12 +319,12 @@ def _mutant_enum() -> str:
 
 def _builder(module: str, mutants: bool) -> FFI:
     ffi = FFI()
-    ffi.cdef(_mutant_enum() + CDEF.replace("MUTANT_FIELDS", "int32_t mutant;" if mutants else ""))
+    ffi.cdef(_mutant_enum() + CDEF.replace("MUTANT_FIELDS", "int32_t mutant;" if mutants else "") + DRIVERS_CDEF)
     ffi.set_source(
         module,
-        '#include "capsheet_fw.h"\n',
+        '#include "capsheet_fw.h"\n#include "link_sensors.h"\n#include "mmc5983ma.h"\n',
         sources=[_rel(HERE / s) for s in SOURCES],
-        include_dirs=[_rel(HERE / "include")],
+        include_dirs=[_rel(HERE / "include"), _rel(HERE / "drivers")],
         define_macros=[("CAPSHEET_MUTANTS", "1")] if mutants else [],
         extra_compile_args=["-O2"] if os.name != "nt" else [],
     )

@@ -126,6 +126,11 @@ def register(subparsers) -> argparse.ArgumentParser:
     T.add_overwrite_arg(p, "files at --layout-out and --symlink")
     p.add_argument("--firmware", choices=("python", "c"), default="python",
                    help="chip implementation: the Python model or the C reference firmware (SIL)")
+    p.add_argument("--part", choices=("icm42688p", "icm42688p+mmc5983ma"), default=None,
+                   help="with --firmware c: every chip reads these real parts through their C drivers over an "
+                        "emulated SPI bus (firmware_ref/part_chip.py), the parts' register emulators fed by "
+                        "the sheet's truth; icm42688p: TDK ICM-42688-P (--sensors accel or accel+gyro); "
+                        "icm42688p+mmc5983ma: and a MEMSIC MMC5983MA magnetometer (--sensors accel+gyro+mag)")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("-v", "--verbose", action="store_true", help="print every frame sent and received")
     p.set_defaults(func=run)
@@ -272,9 +277,18 @@ def make_device(args, verbose=None):
     if sensors != "accel" and args.packed and args.transport in ("can", "slcan") and not args.fd:
         raise ValueError(f"--sensors {sensors} with --packed on classic CAN: SNAPSHOT_IMU needs CAN FD "
                          "(docs/protocol.md §16.5: classic CAN cannot carry it); add --fd, or drop --packed")
+    factory = load_chip_factory(args.firmware)
+    part = getattr(args, "part", None)
+    if part is not None:
+        if args.firmware != "c":
+            raise ValueError(f"--part {part} needs --firmware c (the C driver reads the part)")
+        from firmware_ref.part_chip import PartChipFactory
+        factory = PartChipFactory(part)
     sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
-                         chip_factory=load_chip_factory(args.firmware), faults=spec, sensors=sensors)
+                         chip_factory=factory, faults=spec, sensors=sensors)
+    if part is not None:
+        factory.bind(sheet)  # the parts read the sheet's truth
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
     if args.symlink and args.transport in ("pty", "slcan"):
         from virtual_sheet.devices import claim_symlink

@@ -1,0 +1,145 @@
+"""The cost of reading a real part through its driver in the loop (``--firmware c --part icm42688p``):
+every C chip's accelerometer and gyroscope read by the C ICM-42688-P driver over an emulated SPI bus
+(firmware_ref/part_chip.py), against the same C chips fed finished counts (``--firmware c``).
+
+Two figures per lattice (6x6, 14x14; 9-axis chips, ``icm42688p+mmc5983ma``, CONFIG_IMU format 2, by
+default; ``--sensors accel+gyro`` for 6-axis ``icm42688p``):
+
+* ``cpu_ms_per_sync``: CPU time of this process per SYNC (gateway + every chip + frames), simulated
+  time, the best of ``--rounds`` rounds (``time.process_time``), for both engines, and their ratio;
+* ``live_part`` / ``live_counts``: ``capsheet virtual --transport pty ... --firmware c [--part icm42688p]``
+  and ``capsheet host --rate 100`` in two processes for ``--seconds`` s: the host's complete-snapshot
+  percentage (the target: >= 99 % at 6x6 and 100 Hz), with and without the part, side by side
+  (what the machine's load takes is in both). A rate the machine cannot hold shows as a lower percentage.
+
+    .venv/bin/python benchmarks/bench_parts.py            # JSON on stdout
+    .venv/bin/python benchmarks/bench_parts.py --quick    # fewer SYNCs, shorter live runs
+
+The load average is printed beside the figures (a 2-core machine shared with other work).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
+sys.path.insert(0, ROOT)
+
+from protocol.framing import encode  # noqa: E402
+from protocol.messages import ConfigImu, Start, Sync  # noqa: E402
+from virtual_sheet.gateway import Gateway  # noqa: E402
+from virtual_sheet.sheet import VirtualSheet  # noqa: E402
+
+RATE_HZ = 100.0
+
+
+def part_for(sensors: str) -> str:
+    return "icm42688p+mmc5983ma" if sensors.endswith("mag") else "icm42688p"
+
+
+def rig(lattice: str, engine: str, sensors: str):
+    from firmware_ref.chip import CFirmwareChip
+    from firmware_ref.part_chip import PartChipFactory
+    factory = PartChipFactory(part_for(sensors)) if engine == "part" else CFirmwareChip
+    sheet = VirtualSheet("gaussian", lattice, seed=1, chip_factory=factory, sensors=sensors)
+    if engine == "part":
+        factory.bind(sheet)
+    gw = Gateway(sheet, packed=False)
+    gw.power_on(0.0)
+    gw.commission(0.1, start=False)
+    gw.feed(encode(ConfigImu(0, format=2 if sensors.endswith("mag") else 1, gyro_range=3)), 0.2)
+    gw.feed(encode(Start(0)), 0.3)
+    t = 0.3
+    while t < 2.0:  # bring-up and self-test on the link MCUs' main loops
+        gw.poll(t)
+        t += 0.01
+    gw.pop_output(2.0)
+    return gw
+
+
+def cpu_per_sync(gw, t0: float, counter: int, n: int) -> float:
+    frames = [encode(Sync(counter=(counter + i) & 0xFFFF)) for i in range(n)]
+    t = t0
+    c0 = time.process_time()
+    for f in frames:
+        t += 1 / RATE_HZ
+        gw.feed(f, t)
+        gw.poll(t)
+        gw.pop_wire(t)
+    return (time.process_time() - c0) / n
+
+
+def live(lattice: str, seconds: float, engine: str, sensors: str) -> dict:
+    py = sys.executable
+    part = ["--part", part_for(sensors)] if engine == "part" else []
+    with tempfile.TemporaryDirectory() as tmp:
+        link, lay = os.path.join(tmp, "sheet"), os.path.join(tmp, "sheet.csv")
+        v = subprocess.Popen([py, "-m", "host.cli", "virtual", "--transport", "pty", "--lattice", lattice,
+                              "--sensors", sensors, "--firmware", "c", *part,
+                              "--symlink", link, "--layout-out", lay], cwd=ROOT, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True)
+        try:
+            end = time.monotonic() + 120
+            while not (os.path.islink(link) and os.path.exists(lay)) and time.monotonic() < end:
+                time.sleep(0.1)
+            h = subprocess.run([py, "-m", "host.cli", "host", "--port", link, "--baud", "12000000", "--lattice",
+                                lattice, "--layout", lay, "--sensors", sensors, "--rate", str(int(RATE_HZ)),
+                                "--duration", str(seconds), "--min-complete", "0", "--json", "-q"], cwd=ROOT, capture_output=True,
+                               text=True, timeout=seconds + 240)
+        finally:
+            v.terminate()
+            try:
+                v.wait(30)
+            except subprocess.TimeoutExpired:
+                v.kill()
+                v.wait(10)
+    if h.returncode != 0 or "{" not in h.stdout:
+        return {"error": (h.stderr.strip().splitlines() or ["no output"])[-1], "rc": h.returncode}
+    s = json.loads(h.stdout[h.stdout.index("{"):])["summary"]
+    return {k: s[k] for k in ("snapshots", "complete_snapshots_pct", "valid_links_pct", "imu_links_pct")}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer SYNCs, shorter live runs")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--seconds", type=float, default=None, help="live run length (default 10, --quick 4)")
+    ap.add_argument("--no-live", action="store_true", help="CPU figures only")
+    ap.add_argument("--lattices", default="6x6,14x14", help="comma-separated lattices (default 6x6,14x14)")
+    ap.add_argument("--sensors", default="accel+gyro+mag", choices=("accel+gyro", "accel+gyro+mag"),
+                    help="6-axis (icm42688p) or 9-axis (icm42688p+mmc5983ma) chips (default 9-axis)")
+    a = ap.parse_args()
+    n = 30 if a.quick else 100
+    seconds = a.seconds or (4.0 if a.quick else 10.0)
+    results = []
+    for lattice in a.lattices.split(","):
+        row: dict = {"lattice": lattice, "rate_hz": RATE_HZ}
+        for engine in ("counts", "part"):
+            t_build = time.perf_counter()
+            gw = rig(lattice, engine, a.sensors)
+            row[f"bring_up_wall_s_{engine}"] = round(time.perf_counter() - t_build, 2)
+            best, t, counter = float("inf"), 2.0, 0
+            for _ in range(a.rounds):
+                best = min(best, cpu_per_sync(gw, t, counter, n))
+                t += n / RATE_HZ
+                counter += n
+            row[f"cpu_ms_per_sync_{engine}"] = round(best * 1e3, 3)
+        row["part_over_counts"] = round(row["cpu_ms_per_sync_part"] / row["cpu_ms_per_sync_counts"], 2)
+        row["cpu_share_at_rate"] = round(row["cpu_ms_per_sync_part"] * RATE_HZ / 1e3, 3)
+        if not a.no_live:
+            for engine in ("counts", "part"):
+                row[f"live_{engine}"] = live(lattice, seconds, engine, a.sensors)
+        results.append(row)
+    print(json.dumps({"bench": "parts", "part": part_for(a.sensors), "sensors": a.sensors, "syncs": n,
+                      "loadavg": os.getloadavg(), "results": results}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,257 @@
+"""C chips that read a real part through its driver, in the loop: ``capsheet virtual --firmware c
+--part icm42688p``.
+
+Every chip is a `firmware_ref.chip.CFirmwareChip` (the C reference firmware) whose sensor is not a
+source of finished counts but one link MCU's sensor stack: the C glue (firmware_ref/drivers/
+link_sensors.c) over the C ICM-42688-P driver (icm42688p.c), over an SPI bus (`sil_bus.SilBus`)
+served by the register emulator (`virtual_sheet.parts.icm42688p.ICM42688P`), fed with the truth the
+virtual sheet computes for that link (specific force and rate, sensor frame)::
+
+    physics (sheet) -> ICM42688P registers -> C driver -> C glue -> C chip -> protocol -> host
+
+The HAL's read_axes / read_imu are the C glue's own functions, called with the chip's arguments
+(through a thin ``extern "Python"`` that first runs the emulated link to the call's instant): the C
+chip gets exactly what the glue answers, and a negative answer is its sensor fault (INVALID, FAULT).
+The part's INT1 data-ready edge is timestamped (as a port's timer capture would) and is the record's
+latch instant. ``icm42688p+mmc5983ma``: the MEMSIC MMC5983MA magnetometer on chip select 1 of the same
+bus (its driver, firmware_ref/drivers/mmc5983ma.c, through the glue's capsheet_mag_driver_t), fed with
+the sheet's field in the link's frame.
+
+The link MCU's main loop runs between the chip's calls: at every call (SYNC, poll) the glue runs up
+to ``now``, each step at the instant it asked for, the emulator's clock with it. The motion is the
+truth at the call's instant, held until the next call.
+
+Boot: the link MCU brings its sensors up (probe, reset, self-test, configuration: about 1.2 s of the
+part's time) before its protocol stack starts, as a port's main() would: the MCU's clock (the
+drivers', the part's) is the chip's plus ``boot_s``, and `PartChipFactory.bind` runs every link's
+bring-up over those first ``boot_s`` at once. The chip's ``time_us`` is a difference of instants on
+one clock and does not see the offset.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ._ffi import ffi, lib
+from .chip import CFirmwareChip
+from .sil_bus import SilBus
+
+__all__ = ["PARTS", "PartChipFactory", "SheetTruth"]
+
+#: the parts a chip can read through its driver (``--part``)
+PARTS = ("icm42688p", "icm42688p+mmc5983ma")
+#: the magnetometer's measurement bandwidth code (Internal control 1 BW: 1 = 4 ms, within a 100 Hz SYNC)
+MAG_BW = 1
+#: how long a link MCU runs before its protocol stack starts: the part's bring-up with its self-test
+BOOT_S = 1.5
+
+
+def _us(now_s: float) -> int:
+    return max(0, int(round(now_s * 1e6)))
+
+
+class SheetTruth:
+    """Every link's specific force (m/s²), rate (rad/s) and magnetic field (T), sensor frame, at
+    ``now_s``: the moving scene's exact truth (`imu_source.ImuSource`, at its grid instant), or a
+    static shape's gravity (no field: zeros)."""
+
+    def __init__(self, sheet) -> None:
+        self.sheet = sheet
+        self._at: float | None = None
+        self._value: tuple | None = None
+
+    def at(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._at == now_s and self._value is not None:
+            return self._value
+        src = self.sheet.imu_source
+        if src is not None:
+            from virtual_sheet.magfield import field_in_sensor_frames
+            k = max(0, int(math.floor(now_s * src.grid_hz + 1e-9)))
+            with src._lock:  # the source's own cache of solved instants
+                e = src._truth(k)
+            f, w = np.asarray(e.specific_force, dtype=float), np.asarray(e.angular_velocity, dtype=float)
+            b = np.asarray(field_in_sensor_frames(src.imu.field, np.asarray(e.position)[None],
+                                                  np.asarray(e.frames)[None])[0], dtype=float)
+        else:
+            f = np.asarray(self.sheet._geometry(now_s)[2], dtype=float)
+            w = np.zeros_like(f)
+            b = np.zeros_like(f)
+        self._at, self._value = now_s, (f, w, b)
+        return self._value
+
+
+class LinkSensors:
+    """One link MCU's sensor stack: the parts, their bus and the C glue (module docstring)."""
+
+    def __init__(self, part, truth: SheetTruth | None, link: int, *, mag=None, self_test: bool = True,
+                 boot_s: float = BOOT_S) -> None:
+        self.part = part
+        self.mag = mag
+        self.boot_us = _us(boot_s)
+        self.truth = truth
+        self.link = link
+        self.self_test = bool(self_test)
+        self.bus = SilBus(spi={0: part, **({1: mag} if mag is not None else {})})
+        self.ls = ffi.new("capsheet_link_sensors_t *")
+        self.mag_dev = self.mag_drv = None
+        if mag is not None:
+            self.mag_dev = ffi.new("mmc5983ma_t *")
+            if lib.mmc5983ma_init(self.mag_dev, self.bus.c_bus, 1, MAG_BW) < 0:
+                raise RuntimeError("mmc5983ma_init failed")
+            self.mag_drv = ffi.new("capsheet_mag_driver_t *")
+            lib.mmc5983ma_mag_driver(self.mag_dev, self.mag_drv)
+        self.t_us = 0
+        self._settled = False    # the bring-up is over (running or failed)
+        self._drdy_told: float | None = None
+        self.faults = 0          # reads the glue answered with a sensor fault
+        self.chip = None
+
+    def attach(self, chip: CFirmwareChip) -> None:
+        """Wire the glue to the chip's state (its CONFIG / CONFIG_IMU) and its HAL to the glue."""
+        self.chip = chip
+        rc = lib.capsheet_link_sensors_init(self.ls, self.bus.c_bus, 0,
+                                            self.mag_drv if self.mag_drv is not None else ffi.NULL,
+                                            chip._chip, self.self_test)
+        if rc < 0:
+            raise RuntimeError(f"capsheet_link_sensors_init failed: {rc}")
+        chip._hal.read_axes = lib.capsheet_py_part_read_axes
+        if chip._hal.read_imu != ffi.NULL:
+            chip._hal.read_imu = lib.capsheet_py_part_read_imu
+
+    def _feed(self, t_us: int) -> None:
+        t = t_us * 1e-6
+        self.part.advance(t)
+        if self.mag is not None:
+            self.mag.advance(t)
+        d = self.part.drdy_s
+        if d is not None and d != self._drdy_told:  # the INT1 edge, timestamped once
+            self._drdy_told = d
+            lib.capsheet_link_data_ready(self.ls, int(round(d * 1e6)))
+
+    def boot(self) -> int:
+        """The MCU's first ``boot_s``: the sensors' bring-up before the chip's clock starts."""
+        return self.run_to_us(0)
+
+    def run_to(self, now_s: float) -> int:
+        return self.run_to_us(int(round(now_s * 1e6)))
+
+    def run_to_us(self, chip_us: int) -> int:
+        """The link MCU's main loop up to the chip's instant ``chip_us``; returns the MCU's, µs."""
+        now_us = max(self.t_us, max(0, chip_us) + self.boot_us)
+        if self.truth is not None:
+            f, w, b = self.truth.at(max(0, chip_us) * 1e-6)
+            self.part.set_motion(f[self.link], w[self.link])
+            if self.mag is not None:
+                self.mag.set_field(b[self.link])
+        if not self._settled:
+            t = self.t_us
+            while True:
+                self._feed(t)
+                rc = lib.capsheet_link_sensors_poll(self.ls, t)
+                if rc <= 0 or t + rc > now_us:
+                    break
+                t += rc
+            # running (0) or failed (< 0): the main loop has nothing to wait for; the reads poll the
+            # glue themselves (a CONFIG is applied there)
+            self._settled = rc <= 0
+        self._feed(now_us)
+        self.t_us = now_us
+        return now_us
+
+
+def _link(user) -> LinkSensors:
+    return ffi.from_handle(user).link_sensors
+
+
+@ffi.def_extern()
+def capsheet_py_part_read_axes(user, now_us, xyz, status):
+    """HAL read_axes: the link runs to the SYNC's instant, then the C glue answers the chip."""
+    chip = ffi.from_handle(user)
+    try:
+        ls = chip.link_sensors
+        rc = lib.capsheet_link_read_axes(ls.ls, ls.run_to_us(int(now_us)), xyz, status)
+    except BaseException as exc:  # noqa: BLE001 - re-raised after the C call (chip.py's rule)
+        chip._exc = exc
+        return -1
+    if rc < 0:
+        ls.faults += 1
+    return rc
+
+
+@ffi.def_extern()
+def capsheet_py_part_read_imu(user, now_us, gyro_range, mag_range, want_mag, out):
+    """HAL read_imu: the C glue's, its latch brought back to the chip's clock."""
+    chip = ffi.from_handle(user)
+    try:
+        ls = chip.link_sensors
+        mcu_us = max(ls.t_us, int(now_us) + ls.boot_us)
+        rc = lib.capsheet_link_read_imu(ls.ls, mcu_us, gyro_range, mag_range, want_mag, out)
+        if rc >= 0:
+            out.latch_us = max(0, int(out.latch_us) - ls.boot_us)
+    except BaseException as exc:  # noqa: BLE001
+        chip._exc = exc
+        return -1
+    return rc
+
+
+def _unused_source(*_args):
+    raise RuntimeError("a part chip's HAL reads the C glue, not a counts source")
+
+
+class PartChipFactory:
+    """A `VirtualSheet` ``chip_factory``: C chips reading ``part`` through its driver.
+
+    Build the sheet with it, then `bind` the sheet (its truth feeds the parts)::
+
+        factory = PartChipFactory("icm42688p")
+        sheet = VirtualSheet(..., chip_factory=factory, sensors="accel+gyro")
+        factory.bind(sheet)
+    """
+
+    def __init__(self, part: str = "icm42688p", *, self_test: bool = True) -> None:
+        if part not in PARTS:
+            raise ValueError(f"Unknown part {part!r} (expected one of {', '.join(PARTS)})")
+        self.part = part
+        self.self_test = bool(self_test)
+        self.truth: SheetTruth | None = None
+        self.links: list[LinkSensors] = []
+        self._pending: list[tuple[int, LinkSensors]] = []
+
+    def bind(self, sheet) -> None:
+        """The sheet whose truth feeds every part (after the sheet built its chips)."""
+        self.truth = SheetTruth(sheet)
+        for uid, ls in self._pending:
+            ls.truth = self.truth
+            ls.link = sheet.link_of_uid[uid]
+            ls.boot()
+        self._pending.clear()
+
+    def __call__(self, uid: int, sensor, *, seed: int = 0, sensors: str = "accel", imu=None, **kw):
+        from virtual_sheet.parts.icm42688p import ICM42688P
+        has_mag = self.part.endswith("+mmc5983ma")
+        if ("mag" in sensors) != has_mag:
+            raise ValueError(f"Invalid sensors {sensors!r} for part {self.part}: "
+                             + ("accel+gyro+mag" if has_mag else "accel or accel+gyro (a 6-axis part)"))
+        mag = None
+        if has_mag:
+            from virtual_sheet.parts.mmc5983ma import MMC5983MA
+            mag = MMC5983MA(seed=seed + 0x5983)
+        ls = LinkSensors(ICM42688P(seed=seed), self.truth, 0, mag=mag, self_test=self.self_test)
+        self._pending.append((uid, ls))
+        chip = CFirmwareChip(uid, _unused_source, seed=seed, sensors=sensors,
+                             imu=_unused_source if sensors != "accel" else None, **kw)
+        chip.link_sensors = ls
+        ls.attach(chip)
+        inner_poll = chip.poll
+
+        def poll(now_s: float):
+            if not ls._settled:  # the link MCU's main loop: a bring-up still running goes on between SYNCs
+                ls.run_to(now_s)
+            elif lib.capsheet_link_sensors_poll(ls.ls, ls.t_us) > 0:
+                ls._settled = False  # a new CONFIG / CONFIG_IMU started a wait (a sensor turned on)
+            return inner_poll(now_s)
+        chip.poll = poll
+        self.links.append(ls)
+        return chip
