@@ -45,8 +45,8 @@ def part_for(sensors: str) -> str:
 
 def rig(lattice: str, engine: str, sensors: str):
     from firmware_ref.chip import CFirmwareChip
-    from firmware_ref.part_chip import PartChipFactory
-    factory = PartChipFactory(part_for(sensors)) if engine == "part" else CFirmwareChip
+    from host.cli.virtual import part_chip_factory
+    factory = part_chip_factory(part_for(sensors)) if engine == "part" else CFirmwareChip
     sheet = VirtualSheet("gaussian", lattice, seed=1, chip_factory=factory, sensors=sensors)
     if engine == "part":
         factory.bind(sheet)

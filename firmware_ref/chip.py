@@ -66,7 +66,7 @@ class CFirmwareChip:
                  capabilities: int = DEFAULT_CAPABILITIES,
                  calibration: tuple[tuple[int, float], ...] = ((0, 1024.0),) * 3, seed: int = 0,
                  rx_buffer: int | None = None, mutant: str | None = None, sensors: str = "accel",
-                 imu=None) -> None:
+                 imu=None, sensor_stack=None) -> None:
         check_chip_args(uid, transport, calibration)
         if sensors not in SENSOR_CAPABILITIES:
             raise ValueError(f"Invalid sensors: {sensors!r} (expected one of {', '.join(SENSOR_CAPABILITIES)})")
@@ -120,6 +120,14 @@ class CFirmwareChip:
                                     self._rx_cap if transport == "serial" else 0)
         if rc < 0:
             raise FirmwareError(f"capsheet_chip_init failed: {rc}")
+        #: a link MCU's sensor stack (`firmware_ref.part_chip.LinkSensors`), or None: the HAL's
+        #: read_axes / read_imu are then its C glue's, and its main loop runs before every poll
+        self.sensor_stack = sensor_stack
+        if sensor_stack is not None:
+            sensor_stack.attach(self, self._chip)
+            self._hal.read_axes = self._lib.capsheet_py_part_read_axes
+            if self._hal.read_imu != self._ffi.NULL:
+                self._hal.read_imu = self._lib.capsheet_py_part_read_imu
         if mutant is not None:
             self._chip.mutant = getattr(lib_, f"CAPSHEET_MUT_{mutant.upper()}")
 
@@ -202,8 +210,15 @@ class CFirmwareChip:
         return self._run(self._lib.capsheet_chip_rx_bytes(self._chip, bytes(data), len(data), _us(now_s)))
 
     def poll(self, now_s: float) -> list[Out]:
-        """Time-driven output: re-ANNOUNCE (BOOT), STATUS heartbeat (assigned)."""
+        """Time-driven output: re-ANNOUNCE (BOOT), STATUS heartbeat (assigned). With a sensor stack,
+        the link MCU's main loop runs up to ``now_s`` first."""
+        if self.sensor_stack is not None:
+            self.sensor_stack.main_loop(now_s)
         return self._run(self._lib.capsheet_chip_poll(self._chip, _us(now_s)))
+
+    def fail(self, exc: BaseException) -> None:
+        """An exception raised inside a HAL callback: kept, and raised when the C call returns."""
+        self._exc = exc
 
     def fault(self) -> None:
         """The sensor stopped answering: an assigned chip enters FAULT now (as ChipModel.fault)."""
@@ -233,7 +248,7 @@ def _register(ffi_) -> None:
             status[0] = int(st) & 0xF
             return 0
         except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
-            c._exc = exc
+            c.fail(exc)
             return -1
 
     @ffi_.def_extern()
@@ -248,7 +263,7 @@ def _register(ffi_) -> None:
             out.status = 0
             return 0
         except BaseException as exc:  # noqa: BLE001 - re-raised after the C call
-            c._exc = exc
+            c.fail(exc)
             return -1
 
     @ffi_.def_extern()

@@ -30,15 +30,13 @@ one clock and does not see the offset.
 
 from __future__ import annotations
 
-import math
 
-import numpy as np
 
 from ._ffi import ffi, lib
 from .chip import CFirmwareChip
 from .sil_bus import SilBus
 
-__all__ = ["PARTS", "PartChipFactory", "SheetTruth"]
+__all__ = ["PARTS", "PartChipFactory", "LinkSensors"]
 
 #: the parts a chip can read through its driver (``--part``)
 PARTS = ("icm42688p", "icm42688p+mmc5983ma")
@@ -52,40 +50,10 @@ def _us(now_s: float) -> int:
     return max(0, int(round(now_s * 1e6)))
 
 
-class SheetTruth:
-    """Every link's specific force (m/s²), rate (rad/s) and magnetic field (T), sensor frame, at
-    ``now_s``: the moving scene's exact truth (`imu_source.ImuSource`, at its grid instant), or a
-    static shape's gravity (no field: zeros)."""
-
-    def __init__(self, sheet) -> None:
-        self.sheet = sheet
-        self._at: float | None = None
-        self._value: tuple | None = None
-
-    def at(self, now_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self._at == now_s and self._value is not None:
-            return self._value
-        src = self.sheet.imu_source
-        if src is not None:
-            from virtual_sheet.magfield import field_in_sensor_frames
-            k = max(0, int(math.floor(now_s * src.grid_hz + 1e-9)))
-            with src._lock:  # the source's own cache of solved instants
-                e = src._truth(k)
-            f, w = np.asarray(e.specific_force, dtype=float), np.asarray(e.angular_velocity, dtype=float)
-            b = np.asarray(field_in_sensor_frames(src.imu.field, np.asarray(e.position)[None],
-                                                  np.asarray(e.frames)[None])[0], dtype=float)
-        else:
-            f = np.asarray(self.sheet._geometry(now_s)[2], dtype=float)
-            w = np.zeros_like(f)
-            b = np.zeros_like(f)
-        self._at, self._value = now_s, (f, w, b)
-        return self._value
-
-
 class LinkSensors:
     """One link MCU's sensor stack: the parts, their bus and the C glue (module docstring)."""
 
-    def __init__(self, part, truth: SheetTruth | None, link: int, *, mag=None, self_test: bool = True,
+    def __init__(self, part, truth, link: int, *, mag=None, self_test: bool = True,
                  boot_s: float = BOOT_S) -> None:
         self.part = part
         self.mag = mag
@@ -108,17 +76,23 @@ class LinkSensors:
         self.faults = 0          # reads the glue answered with a sensor fault
         self.chip = None
 
-    def attach(self, chip: CFirmwareChip) -> None:
-        """Wire the glue to the chip's state (its CONFIG / CONFIG_IMU) and its HAL to the glue."""
+    def attach(self, chip: CFirmwareChip, c_chip) -> None:
+        """Wire the glue to the chip's state (its CONFIG / CONFIG_IMU): `CFirmwareChip` calls it
+        with its ``capsheet_chip_t *`` when built with this stack, and points its HAL at the glue."""
         self.chip = chip
         rc = lib.capsheet_link_sensors_init(self.ls, self.bus.c_bus, 0,
                                             self.mag_drv if self.mag_drv is not None else ffi.NULL,
-                                            chip._chip, self.self_test)
+                                            c_chip, self.self_test)
         if rc < 0:
             raise RuntimeError(f"capsheet_link_sensors_init failed: {rc}")
-        chip._hal.read_axes = lib.capsheet_py_part_read_axes
-        if chip._hal.read_imu != ffi.NULL:
-            chip._hal.read_imu = lib.capsheet_py_part_read_imu
+
+    def main_loop(self, now_s: float) -> None:
+        """The link MCU's main loop between the chip's calls: a bring-up still running goes on; a
+        new CONFIG / CONFIG_IMU that started a wait (a sensor turned on) is run again."""
+        if not self._settled:
+            self.run_to(now_s)
+        elif lib.capsheet_link_sensors_poll(self.ls, self.t_us) > 0:
+            self._settled = False
 
     def _feed(self, t_us: int) -> None:
         t = t_us * 1e-6
@@ -161,19 +135,15 @@ class LinkSensors:
         return now_us
 
 
-def _link(user) -> LinkSensors:
-    return ffi.from_handle(user).link_sensors
-
-
 @ffi.def_extern()
 def capsheet_py_part_read_axes(user, now_us, xyz, status):
     """HAL read_axes: the link runs to the SYNC's instant, then the C glue answers the chip."""
     chip = ffi.from_handle(user)
     try:
-        ls = chip.link_sensors
+        ls = chip.sensor_stack
         rc = lib.capsheet_link_read_axes(ls.ls, ls.run_to_us(int(now_us)), xyz, status)
     except BaseException as exc:  # noqa: BLE001 - re-raised after the C call (chip.py's rule)
-        chip._exc = exc
+        chip.fail(exc)
         return -1
     if rc < 0:
         ls.faults += 1
@@ -185,13 +155,13 @@ def capsheet_py_part_read_imu(user, now_us, gyro_range, mag_range, want_mag, out
     """HAL read_imu: the C glue's, its latch brought back to the chip's clock."""
     chip = ffi.from_handle(user)
     try:
-        ls = chip.link_sensors
+        ls = chip.sensor_stack
         mcu_us = max(ls.t_us, int(now_us) + ls.boot_us)
         rc = lib.capsheet_link_read_imu(ls.ls, mcu_us, gyro_range, mag_range, want_mag, out)
         if rc >= 0:
             out.latch_us = max(0, int(out.latch_us) - ls.boot_us)
     except BaseException as exc:  # noqa: BLE001
-        chip._exc = exc
+        chip.fail(exc)
         return -1
     return rc
 
@@ -203,55 +173,48 @@ def _unused_source(*_args):
 class PartChipFactory:
     """A `VirtualSheet` ``chip_factory``: C chips reading ``part`` through its driver.
 
+    The parts' register emulators and the sheet's truth come from the caller (firmware_ref imports
+    nothing of the simulator; ``host.cli.virtual.part_chip_factory`` wires the simulator's):
+    ``imu_part(seed=...)`` and ``mag_part(seed=...)`` make one emulator, ``truth(sheet)`` an object
+    whose ``at(now_s)`` gives every link's specific force (m/s²), rate (rad/s) and field (T).
     Build the sheet with it, then `bind` the sheet (its truth feeds the parts)::
 
-        factory = PartChipFactory("icm42688p")
+        factory = PartChipFactory("icm42688p", imu_part=ICM42688P, mag_part=MMC5983MA, truth=SheetTruth)
         sheet = VirtualSheet(..., chip_factory=factory, sensors="accel+gyro")
         factory.bind(sheet)
     """
 
-    def __init__(self, part: str = "icm42688p", *, self_test: bool = True) -> None:
+    def __init__(self, part: str = "icm42688p", *, imu_part, mag_part=None, truth,
+                 self_test: bool = True) -> None:
         if part not in PARTS:
             raise ValueError(f"Unknown part {part!r} (expected one of {', '.join(PARTS)})")
+        if part.endswith("+mmc5983ma") and mag_part is None:
+            raise ValueError(f"Invalid mag_part: None (part {part} has a magnetometer)")
         self.part = part
         self.self_test = bool(self_test)
-        self.truth: SheetTruth | None = None
+        self.imu_part, self.mag_part, self.make_truth = imu_part, mag_part, truth
+        self.truth = None
         self.links: list[LinkSensors] = []
-        self._pending: list[tuple[int, LinkSensors]] = []
+        self.pending: list[tuple[int, LinkSensors]] = []  # links built before `bind` told their places
 
     def bind(self, sheet) -> None:
         """The sheet whose truth feeds every part (after the sheet built its chips)."""
-        self.truth = SheetTruth(sheet)
-        for uid, ls in self._pending:
+        self.truth = self.make_truth(sheet)
+        for uid, ls in self.pending:
             ls.truth = self.truth
             ls.link = sheet.link_of_uid[uid]
             ls.boot()
-        self._pending.clear()
+        self.pending.clear()
 
     def __call__(self, uid: int, sensor, *, seed: int = 0, sensors: str = "accel", imu=None, **kw):
-        from virtual_sheet.parts.icm42688p import ICM42688P
         has_mag = self.part.endswith("+mmc5983ma")
         if ("mag" in sensors) != has_mag:
             raise ValueError(f"Invalid sensors {sensors!r} for part {self.part}: "
                              + ("accel+gyro+mag" if has_mag else "accel or accel+gyro (a 6-axis part)"))
-        mag = None
-        if has_mag:
-            from virtual_sheet.parts.mmc5983ma import MMC5983MA
-            mag = MMC5983MA(seed=seed + 0x5983)
-        ls = LinkSensors(ICM42688P(seed=seed), self.truth, 0, mag=mag, self_test=self.self_test)
-        self._pending.append((uid, ls))
+        mag = self.mag_part(seed=seed + 0x5983) if has_mag else None
+        ls = LinkSensors(self.imu_part(seed=seed), self.truth, 0, mag=mag, self_test=self.self_test)
+        self.pending.append((uid, ls))
         chip = CFirmwareChip(uid, _unused_source, seed=seed, sensors=sensors,
-                             imu=_unused_source if sensors != "accel" else None, **kw)
-        chip.link_sensors = ls
-        ls.attach(chip)
-        inner_poll = chip.poll
-
-        def poll(now_s: float):
-            if not ls._settled:  # the link MCU's main loop: a bring-up still running goes on between SYNCs
-                ls.run_to(now_s)
-            elif lib.capsheet_link_sensors_poll(ls.ls, ls.t_us) > 0:
-                ls._settled = False  # a new CONFIG / CONFIG_IMU started a wait (a sensor turned on)
-            return inner_poll(now_s)
-        chip.poll = poll
+                             imu=_unused_source if sensors != "accel" else None, sensor_stack=ls, **kw)
         self.links.append(ls)
         return chip

@@ -95,6 +95,13 @@ class ImuSource:
                 self._ramp[kk] = SimpleNamespace(**{f: sol[f][j] for f in _FIELDS})
         return self._steps + self._k0
 
+    def truth_at(self, k: int) -> SimpleNamespace:
+        """The exact truth at grid instant ``k`` (``k / grid_hz`` s): positions, frames, specific
+        force, rates, from the source's own cache under its lock — what a part's register emulator
+        is fed (`virtual_sheet.parts.truth.SheetTruth`)."""
+        with self._lock:
+            return self._truth(k)
+
     def _truth(self, k: int) -> SimpleNamespace:
         if self.periodic and k >= self._k0:
             key = (k - self._k0) % self._steps

@@ -323,6 +323,11 @@ class VirtualSheet:
             self._scenes[key] = e
         return e
 
+    def specific_force(self, t_s: float) -> np.ndarray:
+        """Every link's specific force at ``t_s`` (m/s², sensor frame, shape (n_links, 3)): what a
+        perfect accelerometer on it reads, before the sensor model."""
+        return np.asarray(self._geometry(t_s)[2], dtype=float)
+
     def _geometry(self, t_s: float) -> tuple[float, np.ndarray, np.ndarray]:
         tq = self._scene_time(t_s)
         jc = self._joint_cache

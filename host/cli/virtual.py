@@ -44,6 +44,17 @@ examples:
 """
 
 
+def part_chip_factory(part: str, **kw):
+    """C chips reading ``part`` through its driver (`firmware_ref.part_chip.PartChipFactory`), the
+    parts' register emulators and the sheet's truth from the simulator: the command line is where
+    the firmware and the simulator meet (docs/design.md §2)."""
+    from firmware_ref.part_chip import PartChipFactory
+    from virtual_sheet.parts.icm42688p import ICM42688P
+    from virtual_sheet.parts.mmc5983ma import MMC5983MA
+    from virtual_sheet.parts.truth import SheetTruth
+    return PartChipFactory(part, imu_part=ICM42688P, mag_part=MMC5983MA, truth=SheetTruth, **kw)
+
+
 def load_chip_factory(firmware: str):
     """``python`` -> ChipModel; ``c`` -> firmware_ref.chip.CFirmwareChip (imported lazily)."""
     if firmware == "python":
@@ -282,8 +293,7 @@ def make_device(args, verbose=None):
     if part is not None:
         if args.firmware != "c":
             raise ValueError(f"--part {part} needs --firmware c (the C driver reads the part)")
-        from firmware_ref.part_chip import PartChipFactory
-        factory = PartChipFactory(part)
+        factory = part_chip_factory(part)
     sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
                          chip_factory=factory, faults=spec, sensors=sensors)
@@ -333,8 +343,8 @@ def run(args) -> int:
             pass
 
     if getattr(args, "gateways", 1) > 1 and args.transport != "pty":
-        print(f"capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
-              f"--bus-count", file=sys.stderr)
+        print("capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
+              "--bus-count", file=sys.stderr)
         return 2
     try:
         sheet, dev = make_device(args, verbose if args.verbose else None)

@@ -18,13 +18,14 @@ from virtual_sheet.gateway import Gateway
 from virtual_sheet.sheet import VirtualSheet
 
 part_chip = pytest.importorskip("firmware_ref.part_chip")
+from host.cli.virtual import part_chip_factory  # noqa: E402 -- the firmware and the simulator meet in the CLI
 
 G0 = 9.80665
 INVALID, STALE = 0x8, 0x4   # docs/protocol.md §5.2
 
 
 def stream(n_syncs: int = 60, *, fault_link: int | None = None, fault_at: int | None = None, fault="no_answer"):
-    fac = part_chip.PartChipFactory("icm42688p")
+    fac = part_chip_factory("icm42688p")
     sheet = VirtualSheet("gaussian", "3x3", seed=6, chip_factory=fac, sensors="accel+gyro")
     fac.bind(sheet)
     gw = Gateway(sheet, packed=False)
@@ -54,7 +55,7 @@ def test_records_come_from_the_part_through_the_driver():
     assert [ls.link for ls in fac.links] == list(range(n))
     assert all(ls.ls.imu.self_test == 0x7 for ls in fac.links)          # ran, gyroscope and accelerometer passed
     assert all(ls.part.transactions > 60 * 2 for ls in fac.links)       # every read went over the SPI bus
-    ideal = sheet._geometry(2.0)[2] / G0 * 1024.0                        # counts per g at ±2 g (§5.2)
+    ideal = sheet.specific_force(2.0) / G0 * 1024.0                        # counts per g at ±2 g (§5.2)
     by_node = {}
     for r in recs:
         by_node.setdefault(r.node, []).append(r)
@@ -81,7 +82,7 @@ def test_a_part_lost_mid_stream_is_invalid_never_frozen(fault):
 
 
 def test_a_part_failing_its_self_test_is_a_sensor_fault():
-    fac = part_chip.PartChipFactory("icm42688p")
+    fac = part_chip_factory("icm42688p")
     sheet = VirtualSheet("gaussian", "2x2", seed=6, chip_factory=fac, sensors="accel+gyro")
     fac.links[1].part.fault("self_test_fail")   # before the link MCUs boot (bind)
     fac.bind(sheet)
@@ -103,8 +104,8 @@ def test_a_part_failing_its_self_test_is_a_sensor_fault():
 
 def test_part_needs_the_c_firmware_and_a_6_axis_set():
     with pytest.raises(ValueError, match="Unknown part"):
-        part_chip.PartChipFactory("bmi270")
-    fac = part_chip.PartChipFactory("icm42688p")
+        part_chip_factory("bmi270")
+    fac = part_chip_factory("icm42688p")
     with pytest.raises(ValueError, match="a 6-axis part"):
         VirtualSheet("gaussian", "2x2", chip_factory=fac, sensors="accel+gyro+mag")
 
@@ -138,7 +139,7 @@ def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_
     passes every check (the §16 ones among them); a part that stops answering, or fails its self-test,
     is the spec's sensor fault: the sample check sees INVALID while streaming (§8.6)."""
     from tests.host.conformance.test_checks import _run_can, _run_serial
-    fac = part_chip.PartChipFactory("icm42688p")
+    fac = part_chip_factory("icm42688p")
     sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac, transport=transport)
     if fault is not None:
         for ls in fac.links:
@@ -155,7 +156,7 @@ def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_
 
 
 def test_an_accelerometer_only_chip_keeps_the_gyroscope_off():
-    fac = part_chip.PartChipFactory("icm42688p")
+    fac = part_chip_factory("icm42688p")
     sheet = VirtualSheet("gaussian", "2x2", seed=6, chip_factory=fac)   # sensors "accel"
     fac.bind(sheet)
     for ls in fac.links:
@@ -183,7 +184,7 @@ def test_nine_axis_records_carry_the_magnetometer_read_through_its_driver():
     """``icm42688p+mmc5983ma``: format-2 records whose magnetometer counts are the sheet's field in the
     link's frame (docs/protocol.md §16.1: 8192 counts per gauss at mag_range 0), read by the MMC5983MA
     driver on the same SPI bus: within 10° of the truth (the part's own offset and gain errors)."""
-    fac = part_chip.PartChipFactory("icm42688p+mmc5983ma")
+    fac = part_chip_factory("icm42688p+mmc5983ma")
     sheet = VirtualSheet("gaussian", "3x3", seed=4, chip_factory=fac, sensors="accel+gyro+mag")
     fac.bind(sheet)
     gw = Gateway(sheet, packed=False)
