@@ -7,9 +7,9 @@ given: `poses.PoseDetector` tells each held pose from the readings (changed, the
 lattice's loop closure (`learn.unit_residuals`, the estimator's residual per unit).
 """
 
-from .learn import (PROCEDURE, CheckResult, LayoutLearnError, LearnResult, check_layout, judge_pose,
+from .learn import (LOOP_RESIDUAL_LIMIT, PROCEDURE, CheckResult, LayoutLearnError, LearnResult, check_layout, judge_pose,
                     learn_layout, unit_residuals)
 from .poses import Pose, PoseDetector
 
-__all__ = ["PROCEDURE", "Pose", "PoseDetector", "LearnResult", "CheckResult", "LayoutLearnError",
+__all__ = ["LOOP_RESIDUAL_LIMIT", "PROCEDURE", "Pose", "PoseDetector", "LearnResult", "CheckResult", "LayoutLearnError",
            "learn_layout", "check_layout", "judge_pose", "unit_residuals"]
