@@ -5,7 +5,9 @@ chosen by name (`open_transport`) and imported lazily, so a host without python-
 serial:
 
 * ``serial`` — `SerialTransport`: pyserial, any URL or device path (a pty, ``loop://``,
-  ``/dev/ttyUSB0``, ``socket://host:port``); reconnects when the port goes away and comes back.
+  ``/dev/ttyUSB0``, ``socket://host:port``); taken exclusively, one session per port, and
+  reconnects when the port goes away and comes back, only to the same device
+  (`host.transport.portlock`).
 * ``can`` — `CanTransport`: python-can, any interface it knows, given as ``interface:channel``
   (``virtual:bus0``, ``slcan:/dev/pts/5``, ``socketcan:can0``); classic CAN or CAN FD.
 * ``memory`` — `MemoryTransport`: one end of ``virtual_sheet.memport.memory_link()`` (no OS).
@@ -32,6 +34,7 @@ known to the echo filter like any other.
 
 from __future__ import annotations
 
+import errno
 import importlib
 import sys
 import logging
@@ -46,7 +49,10 @@ from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, Fr
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, StreamDecoder, encode
 from protocol.messages import ImuBatch, Message, SampleBatch, SnapshotFrames, StatusBatch
 
-__all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
+from host.transport.portlock import different, identify, in_use_message, is_device_path
+from host.transport.portlock import holders as lock_holders
+
+__all__ = ["TransportError", "TransportInitError", "PortInUseError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Capture", "RawFrame", "Transport", "SerialTransport", "MemoryTransport",
            "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec", "feed_can"]
 
@@ -77,6 +83,11 @@ class TransportInitError(TransportError):
 
 class TransportOperationError(TransportError):
     """A send or receive failed on an open port (and reconnecting, if enabled, has not helped)."""
+
+
+class PortInUseError(TransportInitError):
+    """The port is held by another session (`host.transport.portlock`: one session per port); the
+    message names the holding process where the system says."""
 
 
 class TransportTimeoutError(TransportError, TimeoutError):
@@ -141,6 +152,7 @@ class TransportStats:
     reconnects: int = 0  #: times it came back and was reopened
     send_failures: int = 0
     capture_errors: int = 0  #: exceptions a capture handler raised (the first of each handler is logged)
+    refused_reopens: int = 0  #: reopens refused: another device at the port's path (`SerialTransport.refused`)
 
     @property
     def error_count(self) -> int:
@@ -150,7 +162,7 @@ class TransportStats:
         return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "frames_in": self.frames_in,
                 "frames_out": self.frames_out, "errors": dict(self.errors), "disconnects": self.disconnects,
                 "reconnects": self.reconnects, "send_failures": self.send_failures,
-                "capture_errors": self.capture_errors}
+                "capture_errors": self.capture_errors, "refused_reopens": self.refused_reopens}
 
 
 # --------------------------------------------------------------------------------------------
@@ -520,9 +532,16 @@ class SerialTransport(Transport):
         self._read_timeout: float | None = None  # the port's timeout as last set; None: unknown
         self.read_timeouts: Counter = Counter()  #: read timeout (s) -> reads made with it
         self.read_timeout_sets = 0  #: times the port's timeout was set (a termios call each)
+        #: what the port was when first opened (`host.transport.portlock.DeviceIdentity`; None for
+        #: a URL or an object): a reopen goes only to the same device
+        self.identity = None
+        #: the last reopen refused (another device at the path), one line; None once reopened
+        self.refused: str | None = None
+        self._opened = None
         if self._url is not None:
             self._serial_mod = _import("serial", "serial port", self._url)
             self._port = self._open()
+            self.identity = self._opened
         else:
             self._serial_mod = None
             self._port = port
@@ -531,12 +550,28 @@ class SerialTransport(Transport):
             bitrate=baudrate if (self._url is not None and kind == "serial") else None, name=name)
 
     def _open(self):
+        """Open the port exclusively (`host.transport.portlock`): a port another session holds is
+        refused before it is opened (`PortInUseError`, naming the holder). Records what was opened
+        in ``_opened`` (its `DeviceIdentity`)."""
         serial = self._serial_mod
+        device = is_device_path(self._url)
+        if device:
+            found = lock_holders(self._url)
+            if found:
+                raise PortInUseError(in_use_message(self._url, found), self._url)
         try:
             port = serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=0.05,
-                                         write_timeout=1.0, exclusive=None)
+                                         write_timeout=1.0, exclusive=True if device else None)
         except (serial.SerialException, OSError, ValueError) as exc:
+            if device and getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise PortInUseError(in_use_message(self._url), self._url) from exc
             raise TransportInitError(f"Cannot open serial port {self._url!r}: {exc}", self._url) from exc
+        self._opened = None
+        if device:
+            try:
+                self._opened = identify(self._url, port.fileno())
+            except (AttributeError, OSError, ValueError):
+                self._opened = None
         if not self.reader_process:
             return port
         from host.transport.portreader import ReaderPort
@@ -565,8 +600,36 @@ class SerialTransport(Transport):
         self.decoder.reset()
 
     def _reopen_internal(self) -> None:
-        self._port = self._reopen() if self._reopen is not None else self._open()
+        if self._reopen is not None:
+            self._port = self._reopen()
+        elif self.identity is None:
+            self._port = self._open()
+        else:
+            # the same device only (`host.transport.portlock`): what the path leads to now is
+            # compared before it is opened, and what was opened once more (the path may have
+            # changed in between)
+            self._refuse_if_other(identify(self._url))
+            port = self._open()
+            try:
+                self._refuse_if_other(self._opened)
+            except TransportInitError:
+                port.close()
+                raise
+            self._port = port
+        self.refused = None
         self._read_timeout = None
+
+    def _refuse_if_other(self, now) -> None:
+        why = different(self.identity, now) if now is not None else "no device"
+        if why is None:
+            return
+        msg = (f"{self.name} came back as another device ({why}): refused, never opened; "
+               f"reconnecting only to the device it was")
+        self.stats.refused_reopens += 1
+        if msg != self.refused:  # the session reports it (a `not_a_sheet` event): logged here at info
+            log.info("%s", msg)
+        self.refused = msg
+        raise TransportInitError(msg, self.name)
 
     # hooks -------------------------------------------------------------------------------
     def _recv_internal(self, timeout_s: float | None) -> list:
@@ -746,6 +809,11 @@ class CanTransport(Transport):
         # udp_multicast: python-can's, isolated to its group (host/transport/udp_multicast.py)
         interface = {"slcan": SLCAN_INTERFACE, "udp_multicast": UDP_MULTICAST_INTERFACE}.get(
             self.interface, self.interface)
+        if interface == SLCAN_INTERFACE:  # an adapter on a tty: one session per port (portlock)
+            tty = self.channel.rpartition("@")[0] if "@" in self.channel else self.channel
+            found = lock_holders(tty) if is_device_path(tty) else []
+            if found:
+                raise PortInUseError(in_use_message(tty, found), self.name)
         try:
             return can.Bus(interface=interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError

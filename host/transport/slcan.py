@@ -46,6 +46,7 @@ the damaged lines as ``SLCAN_BAD_LINE`` in its ``stats.errors`` (`SlcanBus.take_
 
 from __future__ import annotations
 
+import errno
 import select
 import time
 from collections import deque
@@ -58,6 +59,9 @@ from can.exceptions import CanInitializationError, CanOperationError, error_chec
 from can.util import CAN_FD_DLC, len2dlc
 
 from protocol.can import FrameBlock
+
+from host.transport.portlock import holders as lock_holders
+from host.transport.portlock import in_use_message, is_device_path
 
 __all__ = ["SlcanBus", "BufferedSlcanBus", "INTERFACE", "MAX_LINE", "parse_line"]
 
@@ -222,8 +226,18 @@ class SlcanBus(BusABC):
         self._lines: deque[bytes] = deque()  # complete lines, terminator included
         self._partial = bytearray()  # the start of a line not yet terminated
         self._skipping = False  # inside an over-long line: discard up to its terminator
-        with error_check(exception_type=CanInitializationError):
-            self._port = serial.serial_for_url(channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0)
+        # one session per adapter: the tty is taken exclusively, as a serial gateway's port is
+        # (host/transport/portlock.py); a held one is refused before it is opened, naming the holder
+        device = is_device_path(channel)
+        if device and lock_holders(channel):
+            raise CanInitializationError(in_use_message(channel))
+        try:
+            self._port = serial.serial_for_url(channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0,
+                                               exclusive=True if device else None)
+        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, ValueError
+            if device and getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
+                raise CanInitializationError(in_use_message(channel)) from exc
+            raise CanInitializationError(f"Cannot open {channel!r}: {exc}") from exc
         try:
             time.sleep(sleep_after_open)
             with error_check(exception_type=CanInitializationError):
