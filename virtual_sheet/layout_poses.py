@@ -161,3 +161,49 @@ class LayoutPoseScene:
             P[:, :, 2] = z[None, :]
         R = _rotvec(jit) @ _rot_y(tilt)
         return P @ R.T
+
+
+class PosesThenScene:
+    """The layout poses until a switch, then another scene: what ``capsheet demo --learn-layout``
+    runs (the poses while the host learns the layout, then the demo's own shape, whose estimate is
+    scored). ``joints(t)`` is ``poses.joints(t)`` before `switch_at_s` and ``then.joints(t)`` from it;
+    the switch is set once, in the sheet's process and in the demo's copy alike, at a time still to
+    come, so every instant keeps one answer. No ``period_s``: the sheet solves each step once, in
+    time order."""
+
+    def __init__(self, poses: LayoutPoseScene, then) -> None:
+        self.poses, self.then = poses, then
+        self.rows, self.cols, self.link_length = poses.rows, poses.cols, poses.link_length
+        self.switch_at_s = float("inf")
+        self._memo: list[dict] = [{}, {}]  # per scene: step -> joints, one period of a periodic scene
+        self._rate: float | None = None
+
+    def precompute(self, rate_hz: float) -> int:
+        """Solve one period of each periodic scene at ``rate_hz`` steps now (a scene such as a growing
+        bump costs milliseconds a step, which a sheet answering SYNC at 145 Hz should not spend
+        live); returns how many steps."""
+        self._rate = float(rate_hz)
+        n_all = 0
+        for scene, memo in zip((self.poses, self.then), self._memo):
+            period = getattr(scene, "period_s", None)
+            if period is None or abs(period * rate_hz - round(period * rate_hz)) > 1e-9:
+                continue
+            for k in range(int(round(period * rate_hz))):
+                memo[k] = scene.joints(k / rate_hz)
+            n_all += len(memo)
+        return n_all
+
+    def switch(self, at_s: float) -> None:
+        """From ``at_s`` on (the sheet's clock, seconds), the other scene."""
+        if self.switch_at_s != float("inf"):
+            raise ValueError(f"already switched at {self.switch_at_s:g} s")
+        self.switch_at_s = float(at_s)
+
+    def joints(self, t_s: float) -> np.ndarray:
+        k = 0 if t_s < self.switch_at_s else 1
+        memo = self._memo[k]
+        if memo and self._rate is not None:
+            x = t_s * self._rate
+            if abs(x - round(x)) < 1e-6:
+                return memo[int(round(x)) % len(memo)].copy()
+        return (self.poses, self.then)[k].joints(t_s)
