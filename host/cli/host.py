@@ -62,7 +62,9 @@ def register(subparsers) -> None:
                         "threads of one interpreter fall behind at 145 Hz (a big sheet; docs/host.md)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
     p.add_argument("--lattice", type=T.lattice, default=None,
-                   help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
+                   help="joints ROWSxCOLS (default: a JSON layout's; else a CSV layout's links, or the "
+                        "sheet's own gateways' tables, when exactly one lattice has that many links; "
+                        "else the host says which lattices fit what answered and stops, exit 2)")
     p.add_argument("--layout", type=T.existing_file(".csv", ".json", what="a layout file"),
                    help="uid -> link file (CSV 'uid,link' or JSON; uids in hex; docs/host.md)")
     p.add_argument("--auto-assign", action="store_true",
@@ -242,6 +244,35 @@ def queue_size_for(rate_hz: float | None) -> int:
     return max(64, int(QUEUE_S * float(rate_hz or 0.0)) + 1)
 
 
+def _lattice_from_the_sheet(transports, args) -> tuple[Lattice | None, int]:
+    """Without ``--lattice`` (and a layout that names one): ask every port who is there (a broadcast
+    GET_INFO, read-only: `host.transport.discover.ask`), say what answered, and take the lattice only
+    when the gateways' tables decide it (`host.cli.lattice_choice.choose`); else one line, exit 2
+    (exit 1 when nothing answered)."""
+    from host.cli.lattice_choice import choose
+    from host.transport.discover import ask
+    chips: set[int] = set()
+    runs: list[tuple[int, int]] = []
+    budget = max(2.0, 4 * args.discover_s)
+    for t in transports:
+        try:
+            c = ask(t, budget)
+        except TransportError as exc:
+            return None, _fail(str(exc), EXIT_FAIL)
+        r = c.result()
+        chips.update(int(u, 16) for u in r.chip_uids)
+        runs += [(g.first_link, g.link_count) for gw in c.gw_runs.values() for g in gw.values()]
+    names = ", ".join(t.name for t in transports)
+    if not chips and not runs:
+        return None, _fail(f"no --lattice, and no chip answered on {names} (is the sheet powered and the "
+                           f"port right?)", EXIT_FAIL)
+    picked, why = choose(len(chips), runs)
+    if picked is None:
+        return None, _fail(f"no --lattice: {why}", EXIT_USAGE)
+    print(f"capsheet host: no --lattice: {why}", file=sys.stderr)
+    return Lattice(*picked), EXIT_OK
+
+
 def run(args) -> int:
     from host.cli import short_gil_switch
     short_gil_switch()  # the SYNC thread gets the interpreter lock within 0.5 ms, not 5 ms
@@ -273,8 +304,13 @@ def run(args) -> int:
         elif (lattice.rows, lattice.cols) != (from_layout.rows, from_layout.cols):
             return _fail(f"--lattice {lattice.rows}x{lattice.cols} but the layout {args.layout} is for "
                          f"{layout.lattice}: give the matching lattice (or leave --lattice out)", EXIT_USAGE)
-    if lattice is None:
-        lattice = Lattice.parse("14x14")
+    if lattice is None and layout is not None:  # a layout without a lattice: its links are the sheet's table
+        from host.cli.lattice_choice import choose
+        picked, why = choose(None, layout_links=max(layout.links.values(), default=-1) + 1)
+        if picked is None:
+            return _fail(why, EXIT_USAGE)
+        print(f"capsheet host: no --lattice: {why}", file=sys.stderr)
+        lattice = Lattice(*picked)
     if layout is not None:
         far = sorted((k, u) for u, k in layout.links.items() if k >= lattice.n_links)
         if far:
@@ -284,8 +320,10 @@ def run(args) -> int:
         if len(layout.links) < lattice.n_links:
             print(f"capsheet host: the layout names {len(layout.links)} chips for {lattice.n_links} links; "
                   f"{lattice.n_links - len(layout.links)} links have no chip (counted as missing)", file=sys.stderr)
-    from host.cli.calibrate import load_calibration_arg
-    cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
+    cal = None
+    if lattice is not None:
+        from host.cli.calibrate import load_calibration_arg
+        cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
               "Pass --auto-assign to silence this.", file=sys.stderr)
@@ -293,6 +331,19 @@ def run(args) -> int:
         transports = open_transports(args, prog="capsheet host")
     except TransportError as exc:
         return _fail(str(exc), EXIT_FAIL)
+    if lattice is None:  # nobody named it: ask the sheet (lattice_choice says when its answers decide)
+        lattice, code = _lattice_from_the_sheet(transports, args)
+        if lattice is None:
+            for t in transports:
+                t.close()
+            return code
+        from host.cli.calibrate import load_calibration_arg
+        try:
+            cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
+        except SystemExit:
+            for t in transports:
+                t.close()
+            raise
     try:
         host = Host(transports, lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
                     deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000,

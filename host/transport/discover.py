@@ -35,7 +35,7 @@ from protocol.framing import DecodeError
 from protocol.messages import (Announce, Capability, GatewayFlag, GatewayInfo, GetInfo, ImuBatch, Info,
                                SampleBatch, SampleFormat, SnapshotFrames, Sync)
 
-__all__ = ["PortEntry", "ProbeResult", "ProbeCollector", "list_serial", "list_can", "probe_port",
+__all__ = ["PortEntry", "ProbeResult", "ProbeCollector", "list_serial", "list_can", "probe_port", "ask",
            "SERIAL_BAUDS", "SLCAN_BITRATE", "CAN_SKIPPED_INTERFACES"]
 
 #: serial baud rates a probe tries, in order (a pty answers at the first)
@@ -325,7 +325,7 @@ def argument_entry(path: str) -> PortEntry:
 # probing (I/O)
 # ------------------------------------------------------------------------------------------------
 
-def _listen(transport, budget_s: float, clock=time.monotonic) -> ProbeCollector:
+def ask(transport, budget_s: float, clock=time.monotonic) -> ProbeCollector:
     """Ask GET_INFO (again every `ASK_EVERY_S` while nothing answered) and collect until the answers
     stop (`QUIET_S`) or ``budget_s`` is spent."""
     c = ProbeCollector()
@@ -367,7 +367,7 @@ def probe_port(entry: PortEntry, budget_s: float = 2.0, clock=time.monotonic) ->
             except TransportError as exc:
                 return ProbeResult("error", str(exc))
             try:
-                c = _listen(t, min(per_try, left), clock)
+                c = ask(t, min(per_try, left), clock)
                 bytes_in += t.stats.bytes_in
             except TransportError as exc:
                 return ProbeResult("error", str(exc))
@@ -410,7 +410,7 @@ def _probe_can(spec: str, budget_s: float, clock, t0: float, slcan: bool = False
     except TransportError as exc:
         return ProbeResult("error", str(exc))
     try:
-        c = _listen(t, budget_s - (clock() - start), clock)
+        c = ask(t, budget_s - (clock() - start), clock)
         r = c.result(clock() - t0, t.stats.bytes_in)
         fd_frames = t.stats.errors.get("FD_ON_CLASSIC", 0)
     except TransportError as exc:

@@ -154,7 +154,9 @@ def _bad_layouts(tmp: Path) -> dict:
         ("--layout", str(tmp / "types.json")): "uid must be a hex string",
         ("--layout", str(tmp / "binary.csv")): "binary data",
         ("--layout", str(tmp / "missing.csv")): "--layout: invalid value",
-        ("--layout", str(tmp / "beyond.csv")): "beyond lattice 14x14 (364 links), e.g. uid 0x0000000000000002 on link 400",
+        ("--layout", str(tmp / "beyond.csv"), "--lattice", "14x14"): "beyond lattice 14x14 (364 links), e.g. uid 0x0000000000000002 on link 400",
+        # without --lattice a CSV layout's links are the sheet's table: 401 links fit 6x37 and 37x6 alone
+        ("--layout", str(tmp / "beyond.csv")): "the layout names links 0-400 (401 links), which fits the lattices 6x37, 37x6; give --lattice",
         ("--layout", str(tmp / "small.json"), "--lattice", "14x14"): "the layout",
     }
 
@@ -322,6 +324,45 @@ def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp
     assert s["not_a_sheet"] and "came back as another device" in s["not_a_sheet"][0], s
     assert bytes(written) == b"" and settings == attrs
     assert s["reconnects"] == 0
+
+
+# -- without --lattice: what answered decides, or is said ---------------------------------------------
+
+def test_without_lattice_the_host_says_what_answered_and_which_lattices_fit(virtuals, tmp_path):
+    """A 6x6 sheet and no --lattice: 60 chips answer, no gateway says how many links there are; the
+    count alone never decides (one silent chip would make it 59, which fits 4x9), so the host says
+    what it heard and what fits, exit 2, one line (was: 14x14 assumed, "complete 100 %" with 16.5 %
+    of the link samples valid, 6x6 never named)."""
+    v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"))
+    cmd = [a for a in v.host_cmd]
+    i = cmd.index("--lattice")
+    del cmd[i:i + 2]
+    out = host(*cmd, "--duration", "1")
+    assert out.returncode == 2, out.stderr
+    [line] = out.stderr.splitlines()
+    assert "60 chips answered" in line and "lattices with 60 links: 6x6" in line and "give --lattice" in line, line
+    assert v.p.poll() is None
+
+
+def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_path):
+    """Two gateway nodes serving links 0-11 and 12-23: 24 links, 4x4 the one lattice with that many:
+    used, and said. A CSV layout's links decide in the same way."""
+    g = virtuals("--lattice", "4x4", "--packed", "--gateways", "2", "--rate", "50", "--symlink", str(tmp_path / "g"))
+    cmd = list(g.host_cmd)
+    i = cmd.index("--lattice")
+    del cmd[i:i + 2]
+    out, doc = host_json(*cmd, "--duration", "1.5")
+    assert out.returncode == 0, out.stderr
+    assert "no --lattice: the gateways serve links 0-23 (24 links): 4x4 is the one lattice with that many" in out.stderr
+    assert doc["summary"]["links"] == 24 and doc["summary"]["valid_links_pct"] >= 90.0, doc["summary"]
+    lay = tmp_path / "a.csv"
+    a = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "a"), "--layout-out", str(lay))
+    cmd = list(a.host_cmd)
+    i = cmd.index("--lattice")
+    del cmd[i:i + 2]
+    out, doc = host_json(*cmd, "--duration", "1")
+    assert out.returncode == 0 and "the layout names links 0-11 (12 links): 3x3" in out.stderr, out.stderr
+    assert doc["summary"]["links"] == 12
 
 
 # -- one session per port -------------------------------------------------------------------------
