@@ -386,7 +386,7 @@ def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path):
     assert s["complete_snapshots_pct"] >= 99.0 and not s["errors"], s
 
 
-@pytest.mark.parametrize("command", ["calibrate", "tactile", "conformance", "host-slcan"])
+@pytest.mark.parametrize("command", ["calibrate", "tactile", "conformance", "layout", "ports", "host-slcan"])
 def test_every_command_that_opens_a_port_is_refused_on_a_busy_one(virtuals, tmp_path, command):
     """What ``capsheet host`` holds, no other command opens: exit 1, one line naming the holder."""
     lay = tmp_path / "sheet.csv"
@@ -401,10 +401,12 @@ def test_every_command_that_opens_a_port_is_refused_on_a_busy_one(virtuals, tmp_
         args = {"calibrate": ["calibrate", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "c.json")],
                 "tactile": ["tactile", "--port", port, "--lattice", "3x3", "--duration", "1"],
                 "conformance": ["conformance", "--port", port],
+                "layout": ["layout", "learn", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "l.csv")],
+                "ports": ["ports", "--probe", port],
                 "host-slcan": ["host", *v.host_cmd, "--duration", "1"]}[command]
         out = subprocess.run(CLI + args, capture_output=True, text=True, timeout=60, env=ENV)
         assert out.returncode == 1, (out.returncode, out.stderr)
-        [line] = out.stderr.splitlines()
+        [line] = (out.stdout if command == "ports" else out.stderr).splitlines()  # ports: its report
         assert f"is in use by process {p.pid} (" in line, line
     finally:
         p.send_signal(signal.SIGTERM)
