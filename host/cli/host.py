@@ -56,10 +56,12 @@ def register(subparsers) -> None:
                               epilog=__doc__.split("\n\n", 2)[2].split("\n\nThe Python API")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one or more --port, or one or more --can)")
-    p.add_argument("--reader-processes", action="store_true",
+    p.add_argument("--reader-processes", action=argparse.BooleanOptionalAction, default=None,
                    help="read every --port through a small process of its own that drains the port into a "
-                        "1 MB pipe (host.portreader): a tty gives 4 KB a read, and five gateways read by "
-                        "threads of one interpreter fall behind at 145 Hz (a big sheet; docs/host.md)")
+                        "1 MB pipe (host/transport/portreader.py): a tty gives 4 KB a read, and five gateways "
+                        "read by threads of one interpreter fall behind at 145 Hz. Default: chosen for the "
+                        "sheet, on when its links x --rate reach 500,000 link samples a second (64x64 at "
+                        "145 Hz: 1.17 M; 32x32: 0.29 M) and the ports are device paths (docs/host.md)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
     p.add_argument("--lattice", type=T.lattice, default=None,
                    help="joints ROWSxCOLS (default: a JSON layout's; else a CSV layout's links, or the "
@@ -244,6 +246,41 @@ def queue_size_for(rate_hz: float | None) -> int:
     return max(64, int(QUEUE_S * float(rate_hz or 0.0)) + 1)
 
 
+#: link samples a second (links x SYNC rate) from which a sheet is big for one interpreter: its
+#: serial ports are read by reader processes and its estimates made in a process of their own.
+#: 64x64 on five gateways at 145 Hz (1.17 M) held 0.6-0.9 % complete snapshots in one process and
+#: 100 % with both (docs/host.md, "A big sheet at a high rate"); 32x32 on two (0.29 M) holds 145 Hz
+#: in one (benchmarks/bench_live.py, 32x32-packed-2gw)
+BIG_SHEET_SAMPLES_PER_S = 500_000
+
+
+def choose_design(args, lattice: Lattice) -> str | None:
+    """``--reader-processes`` and ``--estimate-process`` where the command line left them (None):
+    on for a big sheet at a high rate (`BIG_SHEET_SAMPLES_PER_S`) — readers when the ports are
+    serial device paths (a reader needs a file descriptor), the estimator when estimates are made
+    (``--record``, ``--live``, ``--publish``) of accelerometer readings (6/9-axis chips keep their
+    fused estimator in this process); off otherwise. Sets both on ``args``; returns the line that
+    says what was chosen for the sheet, or None when nothing was left to choose or nothing is on."""
+    samples = lattice.n_links * float(args.rate)
+    big = samples >= BIG_SHEET_SAMPLES_PER_S
+    chosen = []
+    if args.reader_processes is None:
+        ports = list(getattr(args, "port", None) or [])
+        args.reader_processes = bool(big and ports and all("://" not in p for p in ports))
+        if args.reader_processes:
+            chosen.append("each port read by a process of its own")
+    if getattr(args, "estimate_process", False) is None:
+        estimates = bool(args.record or args.live is not None or args.publish is not None)
+        args.estimate_process = bool(big and estimates and getattr(args, "sensors", "accel") == "accel")
+        if args.estimate_process:
+            chosen.append("the estimates made in a process of their own")
+    if not chosen:
+        return None
+    return (f"a big sheet at a high rate ({lattice.n_links} links x {float(args.rate):g} Hz = {samples / 1e6:.2f} M "
+            f"link samples a second): {' and '.join(chosen)} (--no-reader-processes / --no-estimate-process "
+            f"keep them in this process)")
+
+
 def _lattice_from_the_sheet(transports, args) -> tuple[Lattice | None, int]:
     """Without ``--lattice`` (and a layout that names one): ask every port who is there (a broadcast
     GET_INFO, read-only: `host.transport.discover.ask`), say what answered, and take the lattice only
@@ -327,6 +364,12 @@ def run(args) -> int:
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
               "Pass --auto-assign to silence this.", file=sys.stderr)
+    design = None
+    readers_given = args.reader_processes
+    if lattice is not None:
+        design = choose_design(args, lattice)
+    else:
+        args.reader_processes = bool(args.reader_processes)  # the probe reads in this process
     try:
         transports = open_transports(args, prog="capsheet host")
     except TransportError as exc:
@@ -337,6 +380,17 @@ def run(args) -> int:
             for t in transports:
                 t.close()
             return code
+        args.reader_processes = readers_given
+        design = choose_design(args, lattice)
+        if args.reader_processes and not readers_given:  # chosen now: the ports again, through readers
+            for t in transports:
+                t.close()
+            try:
+                transports = open_transports(args, prog="capsheet host")
+            except TransportError as exc:
+                return _fail(str(exc), EXIT_FAIL)
+    if design is not None:
+        print(f"capsheet host: {design}", file=sys.stderr)
         from host.cli.calibrate import load_calibration_arg
         try:
             cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
@@ -464,7 +518,10 @@ def run(args) -> int:
             code = EXIT_USAGE
     if args.json:
         try:
-            print(json.dumps({**(stats or {}), "summary": summary, "exit": code}, default=str, indent=1))
+            print(json.dumps({**(stats or {}), "summary": summary, "exit": code,
+                              "design": {"reader_processes": bool(args.reader_processes),
+                                         "estimate_process": bool(args.estimate_process)}},
+                             default=str, indent=1))
             sys.stdout.flush()
         except BrokenPipeError:
             pass

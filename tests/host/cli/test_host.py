@@ -832,3 +832,43 @@ def test_the_hosts_snapshot_queue_holds_two_seconds_at_the_sync_rate():
     from host.cli.host import queue_size_for
     assert queue_size_for(145) == 291 and queue_size_for(145.0) >= 2 * 145
     assert queue_size_for(10) == 64 and queue_size_for(None) == 64  # the library's default at least
+
+
+# -- the host's own design for the sheet it has -----------------------------------------------------
+
+@pytest.mark.parametrize("argv, lattice, readers, estimator", [
+    # 64x64 on five gateways at 145 Hz, recorded, every snapshot due an estimate: both, unasked
+    (["--port", "/tmp/g0", "--port", "/tmp/g1", "--rate", "145", "--record", "x.mcap", "--live-rate", "145"],
+     "64x64", True, True),
+    # the same sheet at 60 Hz: 0.48 M link samples a second, under the bound: in this process
+    (["--port", "/tmp/g0", "--rate", "60", "--record", "x.mcap"], "64x64", False, False),
+    # 32x32 at 145 Hz (0.29 M): in this process
+    (["--port", "/tmp/g0", "--rate", "145", "--record", "x.mcap"], "32x32", False, False),
+    # big, but no estimates wanted: readers only
+    (["--port", "/tmp/g0", "--rate", "145"], "64x64", True, False),
+    # big, on CAN: no reader (python-can reads its buses); estimates in their process
+    (["--can", "socketcan:can0", "--rate", "145", "--record", "x.mcap"], "64x64", False, True),
+    # a URL has no file descriptor to hand a reader
+    (["--port", "loop://", "--rate", "145", "--record", "x.mcap"], "64x64", False, True),
+    # 6/9-axis chips keep their fused estimator in this process
+    (["--port", "/tmp/g0", "--rate", "145", "--record", "x.mcap", "--sensors", "accel+gyro"], "64x64", True, False),
+    # what the command line says stands
+    (["--port", "/tmp/g0", "--rate", "145", "--record", "x.mcap", "--no-reader-processes", "--no-estimate-process"],
+     "64x64", False, False),
+    (["--port", "/tmp/g0", "--rate", "10", "--record", "x.mcap", "--reader-processes", "--estimate-process"],
+     "3x3", True, True),
+])
+def test_the_host_chooses_its_design_for_the_sheet(tmp_path, argv, lattice, readers, estimator):
+    from host.cli import build_parser
+    from host.cli.host import choose_design
+    from protocol.lattice import Lattice
+    argv = [a.replace("x.mcap", str(tmp_path / "x.mcap")) for a in argv]
+    args = build_parser().parse_args(["host", *argv])
+    line = choose_design(args, Lattice.parse(lattice))
+    assert (bool(args.reader_processes), bool(args.estimate_process)) == (readers, estimator)
+    given = "--reader-processes" in argv or "--no-reader-processes" in argv
+    if (readers or estimator) and not given:
+        n = Lattice.parse(lattice).n_links
+        assert line is not None and f"{n} links x 145 Hz" in line and "\n" not in line, line
+    else:
+        assert line is None
