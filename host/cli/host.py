@@ -380,6 +380,13 @@ def run(args) -> int:
             for t in transports:
                 t.close()
             return code
+        from host.cli.calibrate import load_calibration_arg
+        try:
+            cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
+        except SystemExit:
+            for t in transports:
+                t.close()
+            raise
         args.reader_processes = readers_given
         design = choose_design(args, lattice)
         if args.reader_processes and not readers_given:  # chosen now: the ports again, through readers
@@ -391,13 +398,6 @@ def run(args) -> int:
                 return _fail(str(exc), EXIT_FAIL)
     if design is not None:
         print(f"capsheet host: {design}", file=sys.stderr)
-        from host.cli.calibrate import load_calibration_arg
-        try:
-            cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
-        except SystemExit:
-            for t in transports:
-                t.close()
-            raise
     try:
         host = Host(transports, lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
                     deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000,
