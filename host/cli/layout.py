@@ -215,10 +215,10 @@ def _print_result(args, result: dict, lines: list[str]) -> None:
 
 def learn_from_poses(lattice, poses: dict) -> tuple[dict, list[str], bool]:
     """(result dict, lines to print, loops close) of learning from ``poses``."""
-    from host.analysis.layout import LOOP_RESIDUAL_LIMIT, learn_layout
+    from host.analysis.layout import learn_layout
     res = learn_layout(lattice, poses)
     lines = [f"placed {len(res.layout)} chips on {lattice.n_links} links; loop closure: largest unit residual "
-             f"{res.max_residual:.3g} (limit {LOOP_RESIDUAL_LIMIT:g})" if res.max_residual is not None else
+             f"{res.max_residual:.3g} (limit {res.limit:.3g})" if res.max_residual is not None else
              f"placed {len(res.layout)} chips on {lattice.n_links} links"]
     for k in res.missing_links:
         lines.append(f"link {k}: no chip placed (a dead chip there, or one chip short)")
@@ -234,7 +234,7 @@ def learn_from_poses(lattice, poses: dict) -> tuple[dict, list[str], bool]:
     ok = res.loop_closure_ok and not res.reversed_links
     result = {"lattice": f"{lattice.rows}x{lattice.cols}", "links": lattice.n_links, "placed": len(res.layout),
               "missing_links": res.missing_links, "unplaced": {f"0x{u:016X}": w for u, w in res.unplaced.items()},
-              "reversed_links": res.reversed_links, "max_unit_residual": res.max_residual,
+              "reversed_links": res.reversed_links, "max_unit_residual": res.max_residual, "residual_limit": res.limit,
               "bad_units": [list(u) for u in bad], "loop_closure_ok": res.loop_closure_ok, "notes": res.notes,
               "layout": {f"0x{u:016X}": k for u, k in sorted(res.layout.items(), key=lambda kv: kv[1])}}
     return result, lines, ok
@@ -251,7 +251,9 @@ def cmd_learn(args) -> int:
     links = {int(u, 16): k for u, k in result["layout"].items()}
     write_layout_atomic(args.out, links, lat.rows, lat.cols)
     result["out"] = str(args.out)
-    lines.append(f"wrote {args.out}" + ("" if ok else " (check it: the loops above do not close)"))
+    lines.append(f"wrote {args.out}" + ("" if ok else " (check it: the loops above do not close; chips with errors "
+                                                      "of their own leave a few such units: calibrate them first, "
+                                                      "capsheet calibrate --write-chips)"))
     _print_result(args, result, lines)
     return 0 if ok else 1
 

@@ -64,6 +64,23 @@ PROCEDURE: tuple[tuple[str, str], ...] = (
 #: neighbouring chips swapped leave 0.03 and more in their units
 LOOP_RESIDUAL_LIMIT = 0.002
 
+#: the limit rises with the units' median residual, up to `LOOP_RESIDUAL_CAP`: chips of their own
+#: errors (an uncalibrated part's misalignment, which the flat pose takes out only where the sheet
+#: lies flat) leave every unit a floor (median 7e-4, largest 0.004-0.009 on 8x8-32x32 sheets of
+#: `capsheet virtual --chip-errors realistic` chips), that a layout with chips far out of place
+#: does not hide (its median is itself over the cap)
+LIMIT_OVER_MEDIAN = 10.0
+LOOP_RESIDUAL_CAP = 0.01
+
+
+def residual_limit(res: np.ndarray) -> float:
+    """The unit residual above which a unit does not close, for a layout whose units' residuals are
+    ``res``: `LOOP_RESIDUAL_LIMIT`, raised to `LIMIT_OVER_MEDIAN` times their median, at most
+    `LOOP_RESIDUAL_CAP`."""
+    med = float(np.nanmedian(res)) if np.isfinite(res).any() else 0.0
+    return float(np.clip(LIMIT_OVER_MEDIAN * med, LOOP_RESIDUAL_LIMIT, LOOP_RESIDUAL_CAP))
+
+
 #: a move the poses propose is confirmed when it lowers the largest residual of the units around it
 #: this many times, to under `LOOP_RESIDUAL_LIMIT`, counting anything under `RESIDUAL_FLOOR` as that
 #: floor (noise and jitter leave up to 1e-4 on lattices up to 32x32 at 1 % g)
@@ -166,9 +183,14 @@ class LearnResult:
     notes: list = field(default_factory=list)
 
     @property
+    def limit(self) -> float:
+        """The residual over which a unit does not close (`residual_limit`)."""
+        return residual_limit(self.unit_residual)
+
+    @property
     def bad_units(self) -> list[tuple[int, int]]:
-        """Units ``(i, j)`` whose residual is over `LOOP_RESIDUAL_LIMIT`."""
-        return [tuple(int(x) for x in ij) for ij in np.argwhere(self.unit_residual > LOOP_RESIDUAL_LIMIT)]
+        """Units ``(i, j)`` whose residual is over `limit`."""
+        return [tuple(int(x) for x in ij) for ij in np.argwhere(self.unit_residual > self.limit)]
 
     @property
     def loop_closure_ok(self) -> bool:
@@ -234,6 +256,28 @@ def layout_residuals(lat: Lattice, poses: dict, layout: dict) -> np.ndarray:
         res = unit_residuals(readings, valid, lat.rows, lat.cols)
         out = np.fmax(out, res)
     return out
+
+
+def flat_corrected(poses: dict) -> dict:
+    """The poses with each chip's own error at rest taken out, when a flat pose is given: a chip
+    whose flat reading is ``f`` (the sheet's level direction being the chips' median there,
+    ``ẑ g``) has ``f − ẑ g`` subtracted from its reading in every pose. That removes a chip's bias
+    exactly and its axes' misalignment where the sheet lies flat (an uncalibrated part: 30 mg and
+    1.5°, each as large as the difference between neighbouring rows of a big sheet's hump); the
+    misalignment left grows with how far a pose turns the chip from flat. Chips not heard flat are
+    left as they are."""
+    flat = poses.get("flat")
+    if not flat:
+        return poses
+    uids = list(flat)
+    f = np.array([np.asarray(flat[u], dtype=float) for u in uids]).reshape(len(uids), 3)
+    if not np.all(np.isfinite(f)):
+        return poses
+    z = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
+    ref = z / np.linalg.norm(z) * np.median(np.linalg.norm(f, axis=1))
+    off = {u: f[k] - ref for k, u in enumerate(uids)}
+    return {name: ({u: np.asarray(r, dtype=float) - off[u] if u in off else r for u, r in p.items()}
+                   if name != "flat" else p) for name, p in poses.items()}
 
 
 def _ranks(v: np.ndarray) -> np.ndarray:
@@ -304,6 +348,7 @@ def learn_layout(lattice, poses: dict) -> LearnResult:
     for name in ("tilt", "hump_i", "hump_j"):
         if name not in poses or not poses[name]:
             raise LayoutLearnError(f"the {name} pose is missing")
+    poses = flat_corrected(poses)
     sets = [set(int(u) for u in poses[n]) for n in ("tilt", "hump_i", "hump_j")]
     uids = sorted(set.intersection(*sets))
     unplaced = {u: "not heard in every pose" for u in sorted(set.union(*sets) - set(uids))}
@@ -451,8 +496,11 @@ def check_layout(lattice, poses: dict, layout: dict) -> CheckResult:
     sloping = all(n in poses and poses[n] for n in ("tilt", "hump_i", "hump_j"))
     if not sloping:
         return CheckResult(not findings, findings, fixed, not unresolved, None)
+    raw, poses = poses, flat_corrected(poses)
     res = layout_residuals(lat, poses, fixed)
-    learned = learn_layout(lat, poses)
+    limit = residual_limit(res)
+    floor = max(RESIDUAL_FLOOR, float(np.nanmedian(res)) if np.isfinite(res).any() else 0.0)
+    learned = learn_layout(lat, raw)
     at_fixed = {k: u for u, k in fixed.items()}
     # cycles of links: the chip the layout has on link a, the learner puts on link b (a -> b)
     moves = {}
@@ -481,7 +529,7 @@ def check_layout(lattice, poses: dict, layout: dict) -> CheckResult:
         what = (f"links {cyc[0]} and {cyc[1]} look swapped" if len(cyc) == 2 and closed else
                 f"links {', '.join(map(str, cyc))} look {'rotated' if closed else 'moved'} "
                 f"(each chip belongs on the next{'' if closed else '; the last onto a link no known chip answered for'})")
-        if after <= LOOP_RESIDUAL_LIMIT and before >= CONFIRM_RATIO * max(after, RESIDUAL_FLOOR):
+        if after <= limit and before >= CONFIRM_RATIO * max(after, floor):
             findings.append(f"{what}: loop closure in their units {before:.3g} as laid out, {after:.3g} "
                             f"moved")
             fixed = trial
@@ -495,10 +543,10 @@ def check_layout(lattice, poses: dict, layout: dict) -> CheckResult:
             findings.append(f"  the poses put unknown chip 0x{u:016X} on link {learned.layout[u]}"
                             + (f" (the layout has 0x{at_fixed[learned.layout[u]]:016X} there)"
                                if learned.layout[u] in at_fixed else ""))
-    still = np.argwhere(res > LOOP_RESIDUAL_LIMIT)
+    still = np.argwhere(res > limit)
     if len(still):
         cells = ", ".join(f"({i},{j})" for i, j in still[:6].tolist())
-        findings.append(f"{len(still)} units do not close (residual over {LOOP_RESIDUAL_LIMIT:g}): {cells}"
+        findings.append(f"{len(still)} units do not close (residual over {limit:.3g}): {cells}"
                         + (" ..." if len(still) > 6 else ""))
         unresolved = True
     for k in learned.reversed_links:
