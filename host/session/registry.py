@@ -242,8 +242,12 @@ class ChipRegistry:
     def drop(self, bus: int, node: int, uid: int) -> None:
         """Forget the chip record an ANNOUNCE made of ``uid`` at ``node`` (a gateway node)."""
         with self.lock:
-            self.chips.pop(uid, None)
+            rec = self.chips.pop(uid, None)
             self._node_uid.pop((bus, node), None)
+            if rec is not None and self._node_uid.get((rec.bus, rec.node)) == uid:
+                # the record spoke from another node than the INFO that dropped it: no mapping may
+                # lead to a record that is gone (a receive thread's KeyError, seen at 64x64 under load)
+                del self._node_uid[(rec.bus, rec.node)]
 
     def forget(self) -> None:
         """Forget every chip (the chips were RESET: they announce again)."""
