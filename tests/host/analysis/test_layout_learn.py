@@ -193,3 +193,19 @@ def test_poses_that_do_not_decide_are_one_line_errors():
     bad[next(iter(bad))] = np.array([np.nan, 0, 9.8])
     with pytest.raises(LayoutLearnError, match="not finite"):
         learn_layout("4x4", dict(poses, tilt=bad))
+
+
+def test_a_layout_far_out_of_place_does_not_raise_its_own_limit():
+    """The limit follows the units' median residual only up to its cap: with every chip on a random
+    link the median is far over it, and most units are named."""
+    from host.analysis.layout.learn import LOOP_RESIDUAL_CAP, flat_corrected, layout_residuals, residual_limit
+    from protocol.lattice import Lattice
+    poses, truth = sheet_poses("8x8", seed=18)
+    g = np.random.Generator(np.random.MT19937(18))
+    uids = list(truth)
+    shuffled = {u: truth[uids[k]] for u, k in zip(uids, g.permutation(len(uids)).tolist())}
+    res = layout_residuals(Lattice(8, 8), flat_corrected(poses), shuffled)
+    assert residual_limit(res) == LOOP_RESIDUAL_CAP
+    assert (res > residual_limit(res)).mean() > 0.5
+    right = layout_residuals(Lattice(8, 8), flat_corrected(poses), truth)
+    assert not (right > residual_limit(right)).any()
