@@ -337,6 +337,10 @@ def run(args) -> int:
         except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
             pass
 
+    if getattr(args, "poses", None) and getattr(args, "sensors", "accel") != "accel":
+        print("capsheet virtual: --poses learn runs the layout poses on accelerometer chips: drop --sensors",
+              file=sys.stderr)
+        return 2
     if getattr(args, "gateways", 1) > 1 and args.transport != "pty":
         print(f"capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
               f"--bus-count", file=sys.stderr)

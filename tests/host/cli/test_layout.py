@@ -148,6 +148,7 @@ BAD = [
     (["virtual", "--poses", "shuffle"], "--poses"),
     (["virtual", "--poses", "learn", "--pose-hold-s", "0"], "--pose-hold-s"),
     (["virtual", "--poses", "learn", "--pose-move-s", "inf"], "--pose-move-s"),
+    (["virtual", "--poses", "learn", "--sensors", "accel+gyro"], "--poses"),
     (["demo", "--learn-layout", "--sensors", "accel+gyro"], "--learn-layout"),
 ]
 
