@@ -34,12 +34,18 @@ device number is part of the identity. Give that path again to a new session.
 
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from dataclasses import dataclass
+from typing import Any, Callable
 
 __all__ = ["DeviceIdentity", "identify", "different", "parse_proc_locks", "holders", "in_use_message",
-           "is_device_path", "usb_info"]
+           "is_device_path", "usb_info", "PortBusy", "open_exclusive", "refusal"]
+
+
+class PortBusy(Exception):
+    """The port is held by another session; the message (`in_use_message`) names the holder."""
 
 
 def is_device_path(port: str) -> bool:
@@ -193,3 +199,45 @@ def different(before: DeviceIdentity, now: DeviceIdentity) -> str | None:
             return f"USB {now.usb[0]:04x}:{now.usb[1]:04x}, not {before.usb[0]:04x}:{before.usb[1]:04x}"
         return f"USB serial number {now.usb[2]}, not {before.usb[2]}"
     return None
+
+
+def open_exclusive(opener: Callable[[bool | None], Any], path: str) -> tuple[Any, DeviceIdentity | None]:
+    """Open the port at ``path`` for one session: ``opener(exclusive)`` opens it (pyserial's
+    ``serial_for_url(..., exclusive=exclusive)``). For a device path, a port another process holds
+    is refused before it is opened, and one taken meanwhile by pyserial's lock (EAGAIN), both as
+    `PortBusy`; a URL is opened as it is (``exclusive=None``). Returns the port and the
+    `DeviceIdentity` of what was opened (None for a URL). Other errors of ``opener`` propagate."""
+    device = is_device_path(path)
+    if device:
+        found = holders(path)
+        if found:
+            raise PortBusy(in_use_message(path, found))
+    try:
+        port = opener(True if device else None)
+    except Exception as exc:
+        if device and getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
+            raise PortBusy(in_use_message(path)) from exc
+        raise
+    ident = None
+    if device:
+        try:
+            ident = identify(path, port.fileno())
+        except (AttributeError, OSError, ValueError):
+            ident = None
+    return port, ident
+
+
+def refusal(name: str, before: DeviceIdentity, now: DeviceIdentity | None) -> str | None:
+    """The one line refusing a reopen of ``name`` when what its path leads to ``now`` is not the
+    device it was ``before``; None when it is.
+
+    >>> refusal("/tmp/sheet", DeviceIdentity(os.makedev(136, 3)), DeviceIdentity(os.makedev(136, 3))) is None
+    True
+    >>> refusal("/tmp/sheet", DeviceIdentity(os.makedev(136, 3)), DeviceIdentity(os.makedev(136, 7)))
+    '/tmp/sheet came back as another device (device 136:7, not 136:3): refused, never opened; reconnecting only to the device it was'
+    """
+    why = different(before, now) if now is not None else "no device"
+    if why is None:
+        return None
+    return (f"{name} came back as another device ({why}): refused, never opened; reconnecting only to "
+            f"the device it was")

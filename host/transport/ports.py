@@ -34,7 +34,6 @@ known to the echo filter like any other.
 
 from __future__ import annotations
 
-import errno
 import importlib
 import sys
 import logging
@@ -43,13 +42,13 @@ import time
 from abc import ABC, abstractmethod
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, StreamDecoder, encode
 from protocol.messages import ImuBatch, Message, SampleBatch, SnapshotFrames, StatusBatch
 
-from host.transport.portlock import different, identify, in_use_message, is_device_path
+from host.transport.portlock import PortBusy, identify, in_use_message, is_device_path, open_exclusive, refusal
 from host.transport.portlock import holders as lock_holders
 
 __all__ = ["TransportError", "TransportInitError", "PortInUseError", "TransportOperationError", "TransportTimeoutError",
@@ -165,89 +164,8 @@ class TransportStats:
                 "capture_errors": self.capture_errors, "refused_reopens": self.refused_reopens}
 
 
-# --------------------------------------------------------------------------------------------
-# Capture: what a transport received and sent, for whoever subscribes
-# --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Capture:
-    """One unit of traffic of a transport, as `Transport.begin_capture` hands it over.
-
-    Attributes
-    ----------
-    transport : Transport
-        Who moved it (``transport.name`` names the port or bus).
-    direction : str
-        ``"rx"`` (read from the wire) or ``"tx"`` (written to it).
-    timestamp : float
-        Host ``time.monotonic()`` seconds when it was read (after the read returned) or written.
-    wall_time : float
-        ``time.time()`` at the same instant (what log files stamp).
-    kind : str
-        ``"serial"`` or ``"can"``: what ``raw`` holds.
-    raw : bytes or tuple
-        Serial: the bytes as read or written (rx: one read, cut anywhere; tx: whole frames).
-        CAN rx: the frames one receive drained, in wire order, as the bus delivered them
-        (python-can ``Message`` s, and `protocol.can.FrameBlock` s from the SLCAN bus's fast
-        path), the echoes of this host's own frames included. CAN tx: ``(message,)``, the
-        python-can ``Message`` written.
-    events : tuple
-        Rx: what the decoder made of this input, exactly the events `Transport.recv` returns for
-        it (a serial frame cut across reads comes with the read that completes it). Tx: the
-        `protocol.Message` sent, or ``()`` for a raw send (`SerialTransport.send_bytes`,
-        `CanTransport.send_frame`).
-    echoes : tuple of (int, bytes)
-        CAN rx: ``(arbitration_id, data)`` of the frames of ``raw`` recognised as this host's own
-        handed back (python-can's ``udp_multicast`` does): dropped from ``events``. Else ``()``.
-    """
-
-    transport: Any
-    direction: str
-    timestamp: float
-    wall_time: float
-    kind: str
-    raw: Any
-    events: tuple = ()
-    echoes: tuple = ()
-
-    def frames(self, *, echoes: bool = False) -> list:
-        """CAN: the frames of ``raw`` one by one, in wire order: python-can messages as they are,
-        each row of a `protocol.can.FrameBlock` as a `RawFrame` (stamped ``wall_time``); the
-        echoes of this host's own frames left out unless ``echoes``. Serial: ``[]``."""
-        if self.kind != "can":
-            return []
-        out: list = []
-        for f in self.raw:
-            if type(f) is FrameBlock:
-                out += [RawFrame(aid, row, timestamp=self.wall_time)
-                        for aid, row in zip(f.arbitration_id.tolist(), map(bytes, f.data))]
-            else:
-                out.append(f)
-        if echoes or not self.echoes:
-            return out
-        left = Counter(self.echoes)
-        kept = []
-        for f in out:
-            key = (f.arbitration_id, bytes(f.data))
-            if left.get(key) and not (f.is_error_frame or f.is_remote_frame):
-                left[key] -= 1
-                continue
-            kept.append(f)
-        return kept
-
-
-class RawFrame(NamedTuple):
-    """One received CAN frame with python-can ``Message``'s attributes (what `Capture.frames`
-    makes of a `protocol.can.FrameBlock` row)."""
-
-    arbitration_id: int
-    data: bytes
-    is_extended_id: bool = True
-    is_fd: bool = False
-    is_error_frame: bool = False
-    is_remote_frame: bool = False
-    bitrate_switch: bool = False
-    timestamp: float = 0.0
+# Capture (host/transport/capture.py): what a transport received and sent, for whoever subscribes
+from host.transport.capture import Capture, RawFrame  # noqa: E402  (re-exported: their names here stay)
 
 
 # --------------------------------------------------------------------------------------------
@@ -550,28 +468,17 @@ class SerialTransport(Transport):
             bitrate=baudrate if (self._url is not None and kind == "serial") else None, name=name)
 
     def _open(self):
-        """Open the port exclusively (`host.transport.portlock`): a port another session holds is
-        refused before it is opened (`PortInUseError`, naming the holder). Records what was opened
-        in ``_opened`` (its `DeviceIdentity`)."""
+        """Open the port for this session alone (`host.transport.portlock.open_exclusive`: a port
+        another session holds is `PortInUseError`, naming the holder); what was opened is kept in
+        ``_opened`` (its `DeviceIdentity`)."""
         serial = self._serial_mod
-        device = is_device_path(self._url)
-        if device:
-            found = lock_holders(self._url)
-            if found:
-                raise PortInUseError(in_use_message(self._url, found), self._url)
         try:
-            port = serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=0.05,
-                                         write_timeout=1.0, exclusive=True if device else None)
+            port, self._opened = open_exclusive(lambda excl: serial.serial_for_url(
+                self._url, baudrate=self.baudrate, timeout=0.05, write_timeout=1.0, exclusive=excl), self._url)
+        except PortBusy as exc:
+            raise PortInUseError(str(exc), self._url) from exc
         except (serial.SerialException, OSError, ValueError) as exc:
-            if device and getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise PortInUseError(in_use_message(self._url), self._url) from exc
             raise TransportInitError(f"Cannot open serial port {self._url!r}: {exc}", self._url) from exc
-        self._opened = None
-        if device:
-            try:
-                self._opened = identify(self._url, port.fileno())
-            except (AttributeError, OSError, ValueError):
-                self._opened = None
         if not self.reader_process:
             return port
         from host.transport.portreader import ReaderPort
@@ -602,29 +509,25 @@ class SerialTransport(Transport):
     def _reopen_internal(self) -> None:
         if self._reopen is not None:
             self._port = self._reopen()
-        elif self.identity is None:
-            self._port = self._open()
         else:
             # the same device only (`host.transport.portlock`): what the path leads to now is
-            # compared before it is opened, and what was opened once more (the path may have
-            # changed in between)
-            self._refuse_if_other(identify(self._url))
+            # compared before it is opened, and what was opened once more (the path may change between)
+            if self.identity is not None:
+                self._refuse(refusal(self.name, self.identity, identify(self._url)))
             port = self._open()
-            try:
-                self._refuse_if_other(self._opened)
-            except TransportInitError:
-                port.close()
-                raise
+            if self.identity is not None:
+                try:
+                    self._refuse(refusal(self.name, self.identity, self._opened))
+                except TransportInitError:
+                    port.close()
+                    raise
             self._port = port
         self.refused = None
         self._read_timeout = None
 
-    def _refuse_if_other(self, now) -> None:
-        why = different(self.identity, now) if now is not None else "no device"
-        if why is None:
+    def _refuse(self, msg: str | None) -> None:
+        if msg is None:
             return
-        msg = (f"{self.name} came back as another device ({why}): refused, never opened; "
-               f"reconnecting only to the device it was")
         self.stats.refused_reopens += 1
         if msg != self.refused:  # the session reports it (a `not_a_sheet` event): logged here at info
             log.info("%s", msg)

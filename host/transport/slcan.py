@@ -46,7 +46,6 @@ the damaged lines as ``SLCAN_BAD_LINE`` in its ``stats.errors`` (`SlcanBus.take_
 
 from __future__ import annotations
 
-import errno
 import select
 import time
 from collections import deque
@@ -60,8 +59,7 @@ from can.util import CAN_FD_DLC, len2dlc
 
 from protocol.can import FrameBlock
 
-from host.transport.portlock import holders as lock_holders
-from host.transport.portlock import in_use_message, is_device_path
+from host.transport.portlock import PortBusy, open_exclusive
 
 __all__ = ["SlcanBus", "BufferedSlcanBus", "INTERFACE", "MAX_LINE", "parse_line"]
 
@@ -228,15 +226,12 @@ class SlcanBus(BusABC):
         self._skipping = False  # inside an over-long line: discard up to its terminator
         # one session per adapter: the tty is taken exclusively, as a serial gateway's port is
         # (host/transport/portlock.py); a held one is refused before it is opened, naming the holder
-        device = is_device_path(channel)
-        if device and lock_holders(channel):
-            raise CanInitializationError(in_use_message(channel))
         try:
-            self._port = serial.serial_for_url(channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0,
-                                               exclusive=True if device else None)
+            self._port, _ = open_exclusive(lambda excl: serial.serial_for_url(
+                channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0, exclusive=excl), channel)
+        except PortBusy as exc:
+            raise CanInitializationError(str(exc)) from exc
         except Exception as exc:  # noqa: BLE001 - SerialException, OSError, ValueError
-            if device and getattr(exc, "errno", None) in (errno.EAGAIN, errno.EWOULDBLOCK):
-                raise CanInitializationError(in_use_message(channel)) from exc
             raise CanInitializationError(f"Cannot open {channel!r}: {exc}") from exc
         try:
             time.sleep(sleep_after_open)
