@@ -175,3 +175,23 @@ def test_a_missing_port_is_one_line_exit_1(tmp_path):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "/dev/ttyNOPE" in lines[0], r.stderr
     assert os.listdir(tmp_path) == []
+
+
+def test_learn_over_a_pty_with_a_dead_chip_leaves_its_link_empty(tmp_path):
+    truth_path = tmp_path / "truth.csv"
+    v = Virtual("--lattice", "4x5", "--poses", "learn", "--pose-hold-s", HOLD_S, "--pose-move-s", MOVE_S,
+                "--shuffle-ids", "--noise", "1", "--seed", "8", "--faults", "dead_chip=9",
+                "--layout-out", str(truth_path))
+    try:
+        port = v.host_cmd[v.host_cmd.index("--port") + 1]
+        out = tmp_path / "learned.csv"
+        r = layout_cmd("learn", port, "--lattice", "4x5", "--out", str(out), "--json")
+    finally:
+        v.stop()
+    assert r.returncode == 0, r.stderr
+    truth = load_layout(truth_path).links
+    learned = load_layout(out).links
+    res = json.loads(r.stdout)
+    assert res["missing_links"] == [9] and res["placed"] == 30
+    assert learned == {u: k for u, k in truth.items() if k != 9}
+    assert "link 9: no chip placed" in r.stderr
