@@ -297,9 +297,10 @@ def cmd_check(args) -> int:
         write_layout_atomic(args.out, res.fixed, lat.rows, lat.cols)
         wrote = str(args.out)
         lines.append(f"wrote {args.out} with {'every finding' if res.fixed_all else 'what could be'} fixed")
+    import numpy as np
     result = {"lattice": f"{lat.rows}x{lat.cols}", "ok": res.ok, "findings": res.findings,
               "fixed_all": res.fixed_all, "out": wrote,
-              "max_unit_residual": (None if res.unit_residual is None else
-                                    float(__import__("numpy").nanmax(res.unit_residual)))}
+              "max_unit_residual": (None if res.unit_residual is None or not np.isfinite(res.unit_residual).any()
+                                    else float(np.nanmax(res.unit_residual)))}
     _print_result(args, result, lines)
     return 0 if res.ok or (wrote and res.fixed_all) else 1
