@@ -124,7 +124,7 @@ def collect_poses(host, steps, *, settle_s: float = 1.0, settle_deg: float = 2.0
             if snap is None:
                 continue
             sel = snap.valid & known
-            det.add_many(link_uid[sel].tolist(), snap.readings[sel], snap.timestamp)
+            det.add_many(link_uid[sel], snap.readings[sel], snap.timestamp)
             pose = det.poll(snap.timestamp)
             if pose is None:
                 continue
