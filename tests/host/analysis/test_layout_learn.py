@@ -209,3 +209,44 @@ def test_a_layout_far_out_of_place_does_not_raise_its_own_limit():
     assert (res > residual_limit(res)).mean() > 0.5
     right = layout_residuals(Lattice(8, 8), flat_corrected(poses), truth)
     assert not (right > residual_limit(right)).any()
+
+
+def _cylinder(rows: int, cols: int, slope_i=None, slope_j=None) -> np.ndarray:
+    """Joints of a sheet bent into a cylinder (exact links of length 1): along i with the slope
+    angles ``slope_i`` (rows-1,) of its links, or along j with ``slope_j`` (cols-1,)."""
+    P = np.zeros((rows, cols, 3))
+    P[:, :, 0] = np.arange(rows)[:, None]
+    P[:, :, 1] = np.arange(cols)[None, :]
+    if slope_i is not None:
+        P[:, :, 0] = np.concatenate([[0], np.cumsum(np.cos(slope_i))])[:, None]
+        P[:, :, 2] = np.concatenate([[0], np.cumsum(np.sin(slope_i))])[:, None]
+    if slope_j is not None:
+        P[:, :, 1] = np.concatenate([[0], np.cumsum(np.cos(slope_j))])[None, :]
+        P[:, :, 2] = np.concatenate([[0], np.cumsum(np.sin(slope_j))])[None, :]
+    return P
+
+
+@pytest.mark.parametrize("shape", ["ridge near row 0", "steep then flat", "shallow"])
+def test_any_single_hump_orders_the_rows_whatever_its_profile(shape):
+    """The learner does not know the humps' shape: any slope falling strictly across the sheet
+    (ridge off-centre, steep on one side, or shallow) orders the rows and columns."""
+    from virtual_sheet.geometry import ideal_readings
+    rows, cols = 9, 7
+    s_i = (np.arange(rows - 1) + 0.5) / (rows - 1)
+    s_j = (np.arange(cols - 1) + 0.5) / (cols - 1)
+    prof = {"ridge near row 0": lambda s: 0.3 - 1.3 * s,
+            "steep then flat": lambda s: 1.2 * (1 - s) ** 3 - 0.2,
+            "shallow": lambda s: 0.25 - 0.5 * s}[shape]
+    g = np.random.Generator(np.random.MT19937(21))
+    n = (rows - 1) * cols + rows * (cols - 1)
+    perm = g.permutation(n)
+    uids = [0x1000 + int(k) for k in perm]  # link k carries uid uids[k]
+    flat = ideal_readings(_cylinder(rows, cols))
+    tilt_net = _cylinder(rows, cols) @ np.array([[np.cos(0.4), 0, -np.sin(0.4)], [0, 1, 0],
+                                                 [np.sin(0.4), 0, np.cos(0.4)]]).T
+    nets = {"flat": flat, "tilt": ideal_readings(tilt_net),
+            "hump_i": ideal_readings(_cylinder(rows, cols, slope_i=prof(s_i))),
+            "hump_j": ideal_readings(_cylinder(rows, cols, slope_j=prof(s_j)))}
+    poses = {name: {u: r[k] + g.normal(0, 0.002 * G0, 3) for k, u in enumerate(uids)} for name, r in nets.items()}
+    res = learn_layout(f"{rows}x{cols}", poses)
+    assert res.layout == {u: k for k, u in enumerate(uids)}
