@@ -26,9 +26,11 @@ along its link towards the higher joint, z the sheet's normal, y = z × x):
   its readings and each link's expected readings (one problem per kind); repeated until the
   assignment stays. A dead chip leaves its link to no one; a chip heard in only some poses is
   left out and named.
+* Each chip's own error at rest (bias, misalignment) is taken out with its flat reading first
+  (`flat_corrected`).
 * The check: the poses' readings placed by the result go through the shape estimator, and every
-  unit's loop closure (eq. 8, docs/estimator.md §2) must stay under `LOOP_RESIDUAL_LIMIT`; a chip on
-  the wrong link breaks the loops around it.
+  unit's loop closure and cells-model residual (`unit_residuals`, docs/estimator.md §2) must stay
+  under the limit (`residual_limit`); a chip on the wrong link breaks the units around it.
 
 Limits: the humps must be single humps with their ridges along the lattice (a hump's slope must
 fall monotonically across the sheet, every row apart from its neighbours by more than the
@@ -460,7 +462,7 @@ def check_layout(lattice, poses: dict, layout: dict) -> CheckResult:
 
     * One chip of the layout silent and one unknown chip answering: the new chip takes the silent
       one's link (a replaced chip), said as such.
-    * Units over `LOOP_RESIDUAL_LIMIT`: the learned layout (`learn_layout`) proposes where their
+    * Units over the limit (`residual_limit`): the learned layout (`learn_layout`) proposes where their
       chips belong; each cycle of links whose chips it moves (two: "look swapped") is reported
       when moving them brings every unit around them under the limit.
 
