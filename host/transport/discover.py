@@ -345,7 +345,7 @@ def ask(transport, budget_s: float, clock=time.monotonic) -> ProbeCollector:
 def probe_port(entry: PortEntry, budget_s: float = 2.0, clock=time.monotonic) -> ProbeResult:
     """Probe one port or channel (module docstring), within ``budget_s`` seconds of listening."""
     from host.transport.portlock import holders, in_use_message, is_device_path
-    from host.transport.ports import CanTransport, PortInUseError, SerialTransport, TransportError
+    from host.transport.ports import PortInUseError, SerialTransport, TransportError
 
     t0 = clock()
     if entry.kind == "serial":
