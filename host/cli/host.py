@@ -13,15 +13,23 @@ mode the host sends every SYNC on every port; with a gateway driving SYNC (--syn
 carries it. Gateway nodes (docs/protocol.md §13) are discovered with the chips and assigned node ids
 from 0x7FFF down: the host learns from them which ports pack SNAPSHOTs and which gateway drives SYNC.
 
+Each port is this session's alone: a port another session holds is refused at once (exit 1, one
+line naming the holder), and a port that goes away is reopened only when the same device is back
+at its path. Without --lattice (and a JSON layout) the sheet is asked first: its gateways' tables
+or a CSV layout's links name the lattice when one fits, else the host says what answered and which
+lattices fit (exit 2). A big sheet at a high rate gets reader processes and an estimator process
+unasked (--no-reader-processes, --no-estimate-process keep them in this process).
+
 The status line (and the summary, and --json) gives completeness twice, over the same snapshots:
 by snapshot (every expected link arrived) and by valid link sample over the lattice's links (what
 --min-complete judges: a dead or absent chip lowers it while the snapshots stay complete).
 
 Exit status: 0 the run met ``--min-complete``; 1 no chip found, none streamed, completeness below
-``--min-complete``, the port failed, or another SYNC source stopped a driving host; 2 a usage error
+``--min-complete``, the port failed or is in use by another session, a port came back as another
+device, or another SYNC source stopped a driving host; 2 a usage error
 or a mismatch found before streaming (bad value, malformed layout, layout vs lattice, CAN FD frames
 on a classic bus, layout chips that never answer, over capacity, a port given twice, the same chips
-on two ports, a port of another sheet).
+on two ports, a port of another sheet, no --lattice and the answers do not name one).
 
 The Python API is `host.session.core.Host` (re-exported here).
 """
