@@ -8,6 +8,8 @@ or bit rate (host/transport/discover.py). Nothing but GET_INFO is sent: no chip 
 configured, started, stopped or reset. A port another capsheet session holds is reported as in use
 (and by which process) and not probed. One line per port; ``--json`` for programs.
 
+A CAN bus is named as ``--can`` takes it (``socketcan:can0``, ``slcan:/dev/ttyACM0``).
+
 Exit status: 0 a port was listed (with ``--probe``: at least one answered as a sheet); 1 none was
 (none answered); 2 a bad value (a PATH that does not exist).
 """
@@ -25,13 +27,18 @@ __all__ = ["register", "run"]
 def run(args: argparse.Namespace) -> int:
     from host.transport import discover
 
+    entries = []
     for path in args.paths:
+        if _can_spec(path):
+            entries.append(discover.PortEntry("can", path, source="argument"))
+            continue
         if "://" not in path and not os.path.exists(path):
-            print(f"capsheet ports: {path}: no such file or device", file=sys.stderr)
+            print(f"capsheet ports: {path}: no such file or device (a CAN bus is given as IFACE:CHANNEL, "
+                  f"e.g. socketcan:can0)", file=sys.stderr)
             return 2
-    entries = [discover.argument_entry(p) for p in args.paths]
+        entries.append(discover.argument_entry(path))
     if not args.paths or args.all:
-        given = {os.path.realpath(p) for p in args.paths}
+        given = {os.path.realpath(p) for p in args.paths if not _can_spec(p)}
         entries += [e for e in discover.list_serial() if os.path.realpath(e.name) not in given]
         if not args.no_can:
             entries += discover.list_can()
@@ -61,6 +68,16 @@ def run(args: argparse.Namespace) -> int:
     return 0 if entries else 1
 
 
+def _can_spec(arg: str) -> bool:
+    """``IFACE:CHANNEL`` as ``--can`` takes it (``socketcan:can0``, ``slcan:/dev/ttyACM0``), not a path.
+
+    >>> _can_spec("socketcan:can0"), _can_spec("slcan:/dev/ttyACM0"), _can_spec("/dev/pts/3"), _can_spec("loop://")
+    (True, True, False, False)
+    """
+    iface, sep, channel = arg.partition(":")
+    return bool(sep and iface and channel and "/" not in iface and not channel.startswith("//"))
+
+
 def register(subparsers) -> argparse.ArgumentParser:
     from host.cli import argtypes as T
     doc = __doc__.split("\n\n", 1)[1]
@@ -70,8 +87,8 @@ def register(subparsers) -> argparse.ArgumentParser:
                           "    capsheet ports --probe /tmp/sheet /dev/pts/7 --json\n",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("paths", nargs="*", metavar="PATH",
-                   help="ports to look at (a device, a pty, a symlink to one); without any, every port the "
-                        "system lists")
+                   help="ports to look at: a device, a pty, a symlink to one, or a CAN bus as IFACE:CHANNEL "
+                        "(socketcan:can0, slcan:/dev/ttyACM0); without any, every port the system lists")
     p.add_argument("--all", action="store_true", help="with PATHs: list the system's ports as well")
     p.add_argument("--probe", action="store_true",
                    help="ask each port, read-only (a broadcast GET_INFO, then listen), what answers: chips, "

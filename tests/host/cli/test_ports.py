@@ -46,12 +46,13 @@ def test_probe_names_what_answers_on_each_path(virtuals, tmp_path):
              "--layout-out", str(tmp_path / "c.csv"))
     m, s = os.openpty()  # nothing answers here
     try:
-        paths = [str(tmp_path / n) for n in ("a", "g0", "g1", "c")] + [os.ttyname(s)]
+        paths = [str(tmp_path / n) for n in ("a", "g0", "g1", "c")] + [os.ttyname(s), f"slcan:{tmp_path / 'c'}"]
         out = ports("--probe", "--json", *paths)
         assert out.returncode == 0, out.stderr
         doc = json.loads(out.stdout)
         by = {p["name"]: p for p in doc["ports"]}
-        assert [p["name"] for p in doc["ports"]] == paths and doc["answered"] == 4
+        assert [p["name"] for p in doc["ports"]] == paths and doc["answered"] == 5
+        assert by[paths[5]]["kind"] == "can" and by[paths[5]]["probe"]["chip_uids"] == _uids(tmp_path / "c.csv")
         pa = by[paths[0]]["probe"]
         assert pa["status"] == "answered" and pa["chip_uids"] == _uids(tmp_path / "a.csv") and not pa["gateways"]
         assert by[paths[0]]["target"] == os.readlink(tmp_path / "a")
