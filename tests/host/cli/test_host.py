@@ -872,3 +872,23 @@ def test_the_host_chooses_its_design_for_the_sheet(tmp_path, argv, lattice, read
         assert line is not None and f"{n} links x 145 Hz" in line and "\n" not in line, line
     else:
         assert line is None
+
+
+def test_the_natural_command_says_the_design_it_chose(tmp_path):
+    """Through the real command line (a port where nothing answers: the choice is made and said
+    before bring-up): a 64x64 sheet at 145 Hz, recorded, gets both processes and one line saying
+    so; with the flags turned off, nothing is chosen and nothing said."""
+    master, slave = os.openpty()
+    try:
+        base = ["--port", os.ttyname(slave), "--lattice", "64x64", "--auto-assign", "--rate", "145",
+                "--live-rate", "145", "--discover-s", "0.2", "--record", str(tmp_path / "run.mcap")]
+        out = host(*base, "--overwrite")
+        assert out.returncode == 1 and "no chip answered" in out.stderr, out.stderr
+        [line] = [ln for ln in out.stderr.splitlines() if "big sheet" in ln]
+        assert ("8064 links x 145 Hz" in line and "each port read by a process of its own" in line
+                and "estimates made in a process of their own" in line), line
+        out = host(*base, "--overwrite", "--no-reader-processes", "--no-estimate-process")
+        assert out.returncode == 1 and "big sheet" not in out.stderr, out.stderr
+    finally:
+        os.close(master)
+        os.close(slave)
