@@ -27,8 +27,10 @@ host and sheet in one thread, deterministically, whatever the machine's load).
 path cannot be reused once its master is closed, so the pty devices publish a stable symlink
 (``device.path``, in a private temporary directory unless ``symlink_path`` is given). At an
 outage the device closes the pty (the host's reads fail as on an unplugged USB adapter) and
-removes the symlink; when the bus comes back it opens a new pty and re-points the symlink
-atomically, so a host that reopens the same path reconnects. On CAN the device stops answering
+removes the symlink; when the bus comes back it opens a pty with the same number if that comes
+free within a second (as an adapter plugged back in keeps its number: a host reconnects only to
+the same device, host/transport/portlock.py) and re-points the symlink atomically, so a host that
+reopens the same path reconnects. On CAN the device stops answering
 for the outage (frames sent to it are lost), after signalling an error frame.
 
 **Whose path it is** (`claim_symlink`): a symlink path given by the caller may already hold
@@ -431,12 +433,43 @@ def claim_symlink(path: str | os.PathLike, *, replace: bool = False) -> None:
     os.unlink(path)
 
 
-def open_pty() -> tuple[int, int, str]:
-    """A raw pseudo-terminal: ``(master_fd, slave_fd, slave_path)``, master non-blocking."""
-    master, slave = os.openpty()
+def _pty_index(path: str) -> int:
+    try:
+        return int(os.path.basename(path))
+    except ValueError:
+        return -1
+
+
+def open_pty(want: str | None = None, wait_s: float = 1.0) -> tuple[int, int, str]:
+    """A raw pseudo-terminal: ``(master_fd, slave_fd, slave_path)``, master non-blocking.
+
+    ``want``: the slave path a pty of this device had before (a bus back from an outage): the same
+    one if it comes free within ``wait_s``, as a USB adapter plugged back in keeps its number (a
+    host reconnects only to the same device, host/transport/portlock.py). The kernel hands out the
+    lowest free number: lower ones are held while asking, a higher one means ``want`` is still
+    held (by a host that has not closed it yet) and is asked again; after ``wait_s`` whatever came.
+    """
+    held: list[tuple[int, int]] = []
+    end = time.monotonic() + wait_s
+    try:
+        while True:
+            master, slave = os.openpty()
+            name = os.ttyname(slave)
+            if want is None or name == want or time.monotonic() >= end or len(held) >= 256:
+                break
+            if 0 <= _pty_index(name) < _pty_index(want):
+                held.append((master, slave))  # a lower number is free: keep it while asking again
+            else:
+                os.close(slave)
+                os.close(master)
+                time.sleep(0.01)
+    finally:
+        for fds in held:
+            for fd in fds:
+                os.close(fd)
     tty.setraw(slave)
     os.set_blocking(master, False)
-    return master, slave, os.ttyname(slave)
+    return master, slave, name
 
 
 class _PtyMixin:
@@ -460,7 +493,8 @@ class _PtyMixin:
         self.max_pending = 256 << 10
 
     def _pty_open(self) -> None:
-        self._master, self._slave, self.tty = open_pty()
+        # back from an outage: the same pty number if it comes free (open_pty)
+        self._master, self._slave, self.tty = open_pty(self.tty)
         claim_symlink(self.path)  # still nothing but (at most) a stale symlink of ours there
         # a name of our own beside it, then one atomic rename: a host reopening the path never
         # finds it missing, and nothing else's file is touched

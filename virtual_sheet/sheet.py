@@ -121,6 +121,9 @@ class VirtualSheet:
         (carry, wave, elbow, tap, flat_turn, tumble) or a static shape can carry any; the chips then read
         the phase-1 models (`imu.ImuArray`: ICM-42688-P gyroscope, LIS3MDL magnetometer in Earth's
         field, the accelerometer of ``sensor``/``noise``) through an `imu_source.ImuSource`.
+    shuffle_ids : bool
+        Put the seed's uids on links in a seeded random order (`make_uids`' order otherwise): a
+        sheet whose layout a host must learn (``capsheet layout learn``); only `layout` tells it.
     sync_arrival : bool
         The chips sample a SYNC at its estimated arrival (`arrival.SyncArrival`: a read that came
         late is put one SYNC period after the previous SYNC's arrival) instead of when the gateway
@@ -132,7 +135,8 @@ class VirtualSheet:
                  sensor: SensorModel | None = None, seed: int = 0, transport: str = "serial",
                  fd: bool = False, chip_factory: Callable[..., Any] | None = None,
                  faults: FaultSpec | str | None = None, scene_rate_hz: float = 50.0,
-                 engine: str | None = None, sensors: str = "accel", sync_arrival: bool = True) -> None:
+                 engine: str | None = None, sensors: str = "accel", sync_arrival: bool = True,
+                 shuffle_ids: bool = False) -> None:
         if isinstance(lattice, Lattice):
             self.lattice = lattice
         elif isinstance(lattice, str):
@@ -174,6 +178,9 @@ class VirtualSheet:
         self.fault_stats = FaultStats()
         n = self.n_links = self.lattice.n_links
         self.uids = make_uids(n, seed)
+        if shuffle_ids:  # the same uids on other links: a host that knew this seed's layout knows nothing
+            order = np.random.Generator(np.random.MT19937([seed, 0x5AF1E])).permutation(n)
+            self.uids = [self.uids[k] for k in order.tolist()]
         self.link_of_uid = {u: k for k, u in enumerate(self.uids)}
         self._noise_rng = np.random.Generator(np.random.MT19937([seed, 0x401CE]))
         self._lock = threading.Lock()

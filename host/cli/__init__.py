@@ -24,6 +24,8 @@ SUBCOMMAND_MODULES = [
     "host.cli.replay",       # capsheet replay (a recording through decoder, aggregator, estimator)
     "host.cli.estimate",     # capsheet estimate (a recording offline, batched; --subscribe: a Zenoh worker)
     "host.cli.view",         # capsheet view (several sheets from Zenoh in one live scene)
+    "host.cli.ports",        # capsheet ports (which port is my sheet: list, --probe)
+    "host.cli.layout",       # capsheet layout {learn,check} (which chip is on which link, from the sheet)
 ]
 
 

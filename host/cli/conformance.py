@@ -14,7 +14,7 @@ import host.conformance as _conf
 from host.cli.transport_args import add_transport_args
 from host.conformance import CHECKS, AuditedCanTransport, Port, exit_code, run_checks, select, summary, table
 from host.conformance.session import RunAborted
-from host.transport.ports import SerialTransport, TransportError
+from host.transport.ports import PortInUseError, SerialTransport, TransportError
 
 __all__ = ["register", "run"]
 
@@ -37,9 +37,9 @@ def run(args: argparse.Namespace) -> int:
             transport = SerialTransport(args.port, baudrate=args.baud, reconnect=False)
         else:
             transport = AuditedCanTransport(args.can, fd=args.fd, bitrate=args.bitrate, reconnect=False)
-    except TransportError as exc:
+    except TransportError as exc:  # a port in use by another session: 1, as every command says it
         print(f"capsheet conformance: {exc}", file=sys.stderr)
-        return 2
+        return 1 if isinstance(exc, PortInUseError) else 2
     port = Port(transport)
     try:
         print(f"capsheet conformance: {args.port or args.can} ({port.kind}), {args.profile} profile", flush=True)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import tempfile
 import threading
@@ -63,6 +64,11 @@ def register(sub) -> None:
                    help="apply this calibration (capsheet calibrate) to every snapshot")
     p.add_argument("--json", action="store_true", help="print the summary as JSON (alone on stdout; messages on stderr)")
     p.add_argument("--seed", type=T.seed, default=1, help="seed of the sheet's uids and noise (default 1)")
+    p.add_argument("--learn-layout", action="store_true",
+                   help="the sheet's chips carry their uids on links in a random order and go through the poses of "
+                        "`capsheet layout learn` on a timer; the host learns the layout from them first (the truth "
+                        "only scores it: layout_links_correct of layout_links), then streams with it. Passing needs "
+                        "every link right too (replaces --shape; accelerometer chips)")
     from host.cli.sensor_args import add_sensor_args
     add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
     from host.cli.record_args import add_record_args
@@ -70,12 +76,34 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+#: --learn-layout: seconds each pose is held and spent moving (the learner takes a pose after 1 s still)
+LEARN_HOLD_S, LEARN_MOVE_S = 2.0, 1.0
+
+
+def make_sheet(kwargs: dict):
+    """The virtual sheet of `_sheet_kwargs` (``learn_layout``: the layout poses on a timer, the uids
+    shuffled over the links), in the sheet's process and, for the truth, in the demo's."""
+    from virtual_sheet.sheet import VirtualSheet
+    kwargs = dict(kwargs)
+    shape, lattice = kwargs.pop("shape"), kwargs.pop("lattice")
+    if kwargs.pop("learn_layout", False):  # the poses, then (`switch_scene`) the demo's shape
+        from virtual_sheet.layout_poses import LayoutPoseScene, PosesThenScene
+        from virtual_sheet.shapes import make_scene
+        poses = LayoutPoseScene(lattice.rows, lattice.cols, kwargs["link_length"], hold_s=LEARN_HOLD_S,
+                                move_s=LEARN_MOVE_S, seed=kwargs["seed"])
+        kwargs["scene"] = PosesThenScene(poses, make_scene(shape, lattice.rows, lattice.cols, kwargs["link_length"]))
+        kwargs["shuffle_ids"] = True
+        kwargs["scene"].precompute(kwargs["scene_rate_hz"])
+    return VirtualSheet(shape, lattice, **kwargs)
+
+
 def _sheet_kwargs(args) -> dict:
     # a moving scene is solved (exact Chebyshev net, ~25 ms) in 10 steps a second, each step once
     # (VirtualSheet.precompute before streaming); the truth of a counter is the very step its
     # readings came from, so error against truth is exact
     return dict(shape=args.shape, lattice=args.lattice, link_length=args.link_length, noise=args.noise,
-                seed=args.seed, scene_rate_hz=10.0, sensors=getattr(args, "sensors", "accel"))
+                seed=args.seed, scene_rate_hz=10.0, sensors=getattr(args, "sensors", "accel"),
+                learn_layout=bool(getattr(args, "learn_layout", False)))
 
 
 def check_capacity(args) -> None:
@@ -112,10 +140,9 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     """Child process: the virtual sheet on a pty, like a real sheet on its own hardware. Answers
     "truth" requests with the scene time of each SYNC counter it has seen since the last request."""
     from virtual_sheet.devices import PtyDevice
-    from virtual_sheet.sheet import VirtualSheet
 
     try:
-        sheet = VirtualSheet(kwargs.pop("shape"), kwargs.pop("lattice"), **kwargs)
+        sheet = make_sheet(kwargs)
         sheet.precompute()
         sheet.write_layout(layout_path)
         if gateways > 1:
@@ -135,6 +162,12 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
             req = conn.recv()
             if req == "stop":
                 break
+            if req == "switch":  # --learn-layout: the layout is learned, the demo's shape from the next steps
+                rate = sheet.scene_rate_hz
+                at = math.ceil((dev.now() + 0.5) * rate) / rate
+                sheet.scene.switch(at)
+                conn.send(("switched", at))
+                continue
             # what is new since the last request: a counter not sent, or sent before its wrap; with
             # when its chips took the SYNC to arrive (monotonic: the host compares it with when it sent it)
             now_kept = dict(sheet.sync_times)
@@ -142,6 +175,29 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
             sent = now_kept  # bounded as the sheet's own (SYNC_TIMES_KEPT)
             conn.send(new)
     conn.send(("stopped",))
+
+
+def usage_error_demo(msg: str) -> SystemExit:
+    from host.cli.argtypes import usage_error
+    return usage_error("capsheet demo", msg)
+
+
+def learn_layout_over(paths, lat) -> tuple[dict, float]:
+    """``capsheet layout learn``'s session over the sheet's ptys: bring it up without a layout, take
+    the poses as they come, place the chips. Returns ({uid: link}, seconds taken)."""
+    from host.analysis.layout import PROCEDURE, learn_layout
+    from host.cli.layout import DEFAULT_RATE_HZ, collect_poses, open_host
+    from host.transport.ports import open_transport
+
+    t0 = time.monotonic()
+    host = open_host([open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths], lat, DEFAULT_RATE_HZ)
+    with host:
+        host.bring_up()
+        poses = collect_poses(host, PROCEDURE, timeout_s=20 * (LEARN_HOLD_S + LEARN_MOVE_S),
+                              say=lambda s: print(f"capsheet demo: {s}", file=sys.stderr))
+        host.stop()
+    res = learn_layout(lat, poses)
+    return res.layout, time.monotonic() - t0
 
 
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
@@ -159,16 +215,15 @@ def run(args) -> int:
     from host.cli.runstats import CompletenessWindow, Samples
     from host.session.core import Host, Layout
     from host.transport.ports import open_transport
-    from virtual_sheet.sheet import VirtualSheet
-
+    if args.learn_layout and getattr(args, "sensors", "accel") != "accel":
+        raise usage_error_demo("--learn-layout runs the layout poses on accelerometer chips: drop --sensors")
     check_capacity(args)  # every other value was checked by its type (host.cli.argtypes)
     live = LiveLine(every_s=2.0)  # the status: a terminal one line redrawn; a log a line every 2 s
     from host.cli.calibrate import load_calibration_arg
     cal = load_calibration_arg(args.calibration, args.lattice, "capsheet demo")
     # The parent's own copy of the scene gives the truth for a scene time (deterministic).
-    kw = _sheet_kwargs(args)
     try:
-        truth_sheet = VirtualSheet(kw.pop("shape"), kw.pop("lattice"), **kw)
+        truth_sheet = make_sheet(_sheet_kwargs(args))
     except ValueError as exc:  # a shape that needs options the demo has not, a bad lattice: one line
         print(f"capsheet demo: {exc}", file=sys.stderr)
         return 2
@@ -194,6 +249,7 @@ def run(args) -> int:
     n_est = 0
     fused = None
     elapsed = 0.0
+    layout_score: dict = {}
     stats: dict = {}
     try:
         t_wait = time.monotonic()
@@ -225,6 +281,21 @@ def run(args) -> int:
             sample_lags.add(t_arrived - snap.timestamp)
             return truth_sheet.joints_at_scene_time(t_scene)
 
+        layout = Layout.load(layout_path)
+        if args.learn_layout:  # the truth scores the learned layout, and the host streams with what it learned
+            learned, learn_s = learn_layout_over(paths, lat)
+            truth_links = {k: u for u, k in layout.links.items()}
+            layout_score = {"layout_links": lat.n_links,
+                            "layout_links_correct": sum(1 for u, k in learned.items() if truth_links.get(k) == u),
+                            "layout_learn_s": round(learn_s, 1)}
+            print(f"capsheet demo: layout learned in {learn_s:.1f} s: {layout_score['layout_links_correct']} of "
+                  f"{lat.n_links} links right (the sheet's truth)", file=sys.stderr)
+            layout = Layout(learned, f"{rows}x{cols}")
+            parent.send("switch")  # the sheet leaves the poses for the demo's shape, which is scored
+            _, at = parent.recv()
+            truth_sheet.scene.switch(at)
+            parent.send("truth")  # the learning session's SYNC counters: taken and dropped, the demo's start again at 0
+            parent.recv()
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
         transports = [open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths]
         # (counter, complete) of every snapshot emitted, counted into the window of SYNCs the
@@ -240,7 +311,7 @@ def run(args) -> int:
                 else:
                     window[0].add(snap.counter, snap.complete)
 
-        host = Host(transports, lat, layout=Layout.load(layout_path), rate_hz=args.rate, on_snapshot=on_snapshot)
+        host = Host(transports, lat, layout=layout, rate_hz=args.rate, on_snapshot=on_snapshot)
         from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
         fused = None
@@ -336,8 +407,9 @@ def run(args) -> int:
     mean_err = errors.mean
     err_ok = mean_err is not None and mean_err <= args.target
     complete_ok = sent > 0 and complete_pct >= args.min_complete
-    ok = err_ok and complete_ok
-    result = {
+    layout_ok = not args.learn_layout or (layout_score.get("layout_links_correct") == layout_score.get("layout_links"))
+    ok = err_ok and complete_ok and layout_ok
+    result = {**layout_score,
         "rate_hz": args.rate, "duration_s": args.duration, "packed": args.packed, **stats,
         "complete_pct_of_syncs": round(complete_pct, 2),
         "syncs_per_s": round(sent / max(elapsed, 1e-9), 1), "gateways": args.gateways,
@@ -355,7 +427,8 @@ def run(args) -> int:
         "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,
         "sensors": getattr(args, "sensors", "accel"), "estimator": "fused" if fused is not None else "accel_only",
-        "error_ok": err_ok, "complete_ok": complete_ok, "pass": ok,
+        "error_ok": err_ok, "complete_ok": complete_ok, **({"layout_ok": layout_ok} if args.learn_layout else {}),
+        "pass": ok,
     }
     if last is not None:
         truth, est_joints, err, counter = last
@@ -371,7 +444,9 @@ def run(args) -> int:
     line = (f"capsheet demo: {verdict}: mean joint error {_fmt(mean_err, '.3f')} % of side "
             f"(target <= {args.target:g} %{'' if err_ok else ': MISSED'}), {complete_pct:.1f} % of {sent} SYNCs "
             f"complete (need >= {args.min_complete:g} %{'' if complete_ok else ': MISSED'}); "
-            f"SYNC at {args.rate:g} Hz ({result['syncs_per_s']}/s sent), shape estimated "
+            + (f"layout learned: {layout_score.get('layout_links_correct')} of {layout_score.get('layout_links')} links "
+               f"right{'' if layout_ok else ': MISSED'}; " if args.learn_layout else "")
+            + f"SYNC at {args.rate:g} Hz ({result['syncs_per_s']}/s sent), shape estimated "
             f"{result['estimates_per_s']}/s ({n_est} estimates, "
             f"{'every snapshot in order, fused' if result['estimator'] == 'fused' else 'newest snapshot first'}), median latency "
             f"{_fmt(result['median_latency_ms'], '.1f', ' ms')}, estimate {_fmt(result['median_estimate_ms'], '.2f', ' ms')}")

@@ -13,15 +13,23 @@ mode the host sends every SYNC on every port; with a gateway driving SYNC (--syn
 carries it. Gateway nodes (docs/protocol.md §13) are discovered with the chips and assigned node ids
 from 0x7FFF down: the host learns from them which ports pack SNAPSHOTs and which gateway drives SYNC.
 
+Each port is this session's alone: a port another session holds is refused at once (exit 1, one
+line naming the holder), and a port that goes away is reopened only when the same device is back
+at its path. Without --lattice (and a JSON layout) the sheet is asked first: its gateways' tables
+or a CSV layout's links name the lattice when one fits, else the host says what answered and which
+lattices fit (exit 2). A big sheet at a high rate gets reader processes and an estimator process
+unasked (--no-reader-processes, --no-estimate-process keep them in this process).
+
 The status line (and the summary, and --json) gives completeness twice, over the same snapshots:
 by snapshot (every expected link arrived) and by valid link sample over the lattice's links (what
 --min-complete judges: a dead or absent chip lowers it while the snapshots stay complete).
 
 Exit status: 0 the run met ``--min-complete``; 1 no chip found, none streamed, completeness below
-``--min-complete``, the port failed, or another SYNC source stopped a driving host; 2 a usage error
+``--min-complete``, the port failed or is in use by another session, a port came back as another
+device, or another SYNC source stopped a driving host; 2 a usage error
 or a mismatch found before streaming (bad value, malformed layout, layout vs lattice, CAN FD frames
 on a classic bus, layout chips that never answer, over capacity, a port given twice, the same chips
-on two ports, a port of another sheet).
+on two ports, a port of another sheet, no --lattice and the answers do not name one).
 
 The Python API is `host.session.core.Host` (re-exported here).
 """
@@ -56,13 +64,17 @@ def register(subparsers) -> None:
                               epilog=__doc__.split("\n\n", 2)[2].split("\n\nThe Python API")[0],
                               formatter_class=argparse.RawDescriptionHelpFormatter)
     add_transport_args(p, title="transports (one or more --port, or one or more --can)")
-    p.add_argument("--reader-processes", action="store_true",
+    p.add_argument("--reader-processes", action=argparse.BooleanOptionalAction, default=None,
                    help="read every --port through a small process of its own that drains the port into a "
-                        "1 MB pipe (host.portreader): a tty gives 4 KB a read, and five gateways read by "
-                        "threads of one interpreter fall behind at 145 Hz (a big sheet; docs/host.md)")
+                        "1 MB pipe (host/transport/portreader.py): a tty gives 4 KB a read, and five gateways "
+                        "read by threads of one interpreter fall behind at 145 Hz. Default: chosen for the "
+                        "sheet, on when its links x --rate reach 500,000 link samples a second (64x64 at "
+                        "145 Hz: 1.17 M; 32x32: 0.29 M) and the ports are device paths (docs/host.md)")
     # -- the session's arguments (issue 12): one block ------------------------------------------
     p.add_argument("--lattice", type=T.lattice, default=None,
-                   help="joints ROWSxCOLS (default: the JSON layout's, else 14x14)")
+                   help="joints ROWSxCOLS (default: a JSON layout's; else a CSV layout's links, or the "
+                        "sheet's own gateways' tables, when exactly one lattice has that many links; "
+                        "else the host says which lattices fit what answered and stops, exit 2)")
     p.add_argument("--layout", type=T.existing_file(".csv", ".json", what="a layout file"),
                    help="uid -> link file (CSV 'uid,link' or JSON; uids in hex; docs/host.md)")
     p.add_argument("--auto-assign", action="store_true",
@@ -242,6 +254,70 @@ def queue_size_for(rate_hz: float | None) -> int:
     return max(64, int(QUEUE_S * float(rate_hz or 0.0)) + 1)
 
 
+#: link samples a second (links x SYNC rate) from which a sheet is big for one interpreter: its
+#: serial ports are read by reader processes and its estimates made in a process of their own.
+#: 64x64 on five gateways at 145 Hz (1.17 M) held 0.6-0.9 % complete snapshots in one process and
+#: 100 % with both (docs/host.md, "A big sheet at a high rate"); 32x32 on two (0.29 M) holds 145 Hz
+#: in one (benchmarks/bench_live.py, 32x32-packed-2gw)
+BIG_SHEET_SAMPLES_PER_S = 500_000
+
+
+def choose_design(args, lattice: Lattice) -> str | None:
+    """``--reader-processes`` and ``--estimate-process`` where the command line left them (None):
+    on for a big sheet at a high rate (`BIG_SHEET_SAMPLES_PER_S`) — readers when the ports are
+    serial device paths (a reader needs a file descriptor), the estimator when estimates are made
+    (``--record``, ``--live``, ``--publish``) of accelerometer readings (6/9-axis chips keep their
+    fused estimator in this process); off otherwise. Sets both on ``args``; returns the line that
+    says what was chosen for the sheet, or None when nothing was left to choose or nothing is on."""
+    samples = lattice.n_links * float(args.rate)
+    big = samples >= BIG_SHEET_SAMPLES_PER_S
+    chosen = []
+    if args.reader_processes is None:
+        ports = list(getattr(args, "port", None) or [])
+        args.reader_processes = bool(big and ports and all("://" not in p for p in ports))
+        if args.reader_processes:
+            chosen.append("each port read by a process of its own")
+    if getattr(args, "estimate_process", False) is None:
+        estimates = bool(args.record or args.live is not None or args.publish is not None)
+        args.estimate_process = bool(big and estimates and getattr(args, "sensors", "accel") == "accel")
+        if args.estimate_process:
+            chosen.append("the estimates made in a process of their own")
+    if not chosen:
+        return None
+    return (f"a big sheet at a high rate ({lattice.n_links} links x {float(args.rate):g} Hz = {samples / 1e6:.2f} M "
+            f"link samples a second): {' and '.join(chosen)} (--no-reader-processes / --no-estimate-process "
+            f"keep them in this process)")
+
+
+def _lattice_from_the_sheet(transports, args) -> tuple[Lattice | None, int]:
+    """Without ``--lattice`` (and a layout that names one): ask every port who is there (a broadcast
+    GET_INFO, read-only: `host.transport.discover.ask`), say what answered, and take the lattice only
+    when the gateways' tables decide it (`host.cli.lattice_choice.choose`); else one line, exit 2
+    (exit 1 when nothing answered)."""
+    from host.cli.lattice_choice import choose
+    from host.transport.discover import ask
+    chips: set[int] = set()
+    runs: list[tuple[int, int]] = []
+    budget = max(2.0, 4 * args.discover_s)
+    for t in transports:
+        try:
+            c = ask(t, budget)
+        except TransportError as exc:
+            return None, _fail(str(exc), EXIT_FAIL)
+        r = c.result()
+        chips.update(int(u, 16) for u in r.chip_uids)
+        runs += [(g.first_link, g.link_count) for gw in c.gw_runs.values() for g in gw.values()]
+    names = ", ".join(t.name for t in transports)
+    if not chips and not runs:
+        return None, _fail(f"no --lattice, and no chip answered on {names} (is the sheet powered and the "
+                           f"port right?)", EXIT_FAIL)
+    picked, why = choose(len(chips), runs)
+    if picked is None:
+        return None, _fail(f"no --lattice: {why}", EXIT_USAGE)
+    print(f"capsheet host: no --lattice: {why}", file=sys.stderr)
+    return Lattice(*picked), EXIT_OK
+
+
 def run(args) -> int:
     from host.cli import short_gil_switch
     short_gil_switch()  # the SYNC thread gets the interpreter lock within 0.5 ms, not 5 ms
@@ -273,8 +349,13 @@ def run(args) -> int:
         elif (lattice.rows, lattice.cols) != (from_layout.rows, from_layout.cols):
             return _fail(f"--lattice {lattice.rows}x{lattice.cols} but the layout {args.layout} is for "
                          f"{layout.lattice}: give the matching lattice (or leave --lattice out)", EXIT_USAGE)
-    if lattice is None:
-        lattice = Lattice.parse("14x14")
+    if lattice is None and layout is not None:  # a layout without a lattice: its links are the sheet's table
+        from host.cli.lattice_choice import choose
+        picked, why = choose(None, layout_links=max(layout.links.values(), default=-1) + 1)
+        if picked is None:
+            return _fail(why, EXIT_USAGE)
+        print(f"capsheet host: no --lattice: {why}", file=sys.stderr)
+        lattice = Lattice(*picked)
     if layout is not None:
         far = sorted((k, u) for u, k in layout.links.items() if k >= lattice.n_links)
         if far:
@@ -284,15 +365,47 @@ def run(args) -> int:
         if len(layout.links) < lattice.n_links:
             print(f"capsheet host: the layout names {len(layout.links)} chips for {lattice.n_links} links; "
                   f"{lattice.n_links - len(layout.links)} links have no chip (counted as missing)", file=sys.stderr)
-    from host.cli.calibrate import load_calibration_arg
-    cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
+    cal = None
+    if lattice is not None:
+        from host.cli.calibrate import load_calibration_arg
+        cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
     if layout is None and not args.auto_assign:
         print("capsheet host: no --layout given; auto-assigning chips in uid order (positions arbitrary). "
               "Pass --auto-assign to silence this.", file=sys.stderr)
+    design = None
+    readers_given = args.reader_processes
+    if lattice is not None:
+        design = choose_design(args, lattice)
+    else:
+        args.reader_processes = bool(args.reader_processes)  # the probe reads in this process
     try:
         transports = open_transports(args, prog="capsheet host")
     except TransportError as exc:
         return _fail(str(exc), EXIT_FAIL)
+    if lattice is None:  # nobody named it: ask the sheet (lattice_choice says when its answers decide)
+        lattice, code = _lattice_from_the_sheet(transports, args)
+        if lattice is None:
+            for t in transports:
+                t.close()
+            return code
+        from host.cli.calibrate import load_calibration_arg
+        try:
+            cal = load_calibration_arg(args.calibration, lattice, "capsheet host")
+        except SystemExit:
+            for t in transports:
+                t.close()
+            raise
+        args.reader_processes = readers_given
+        design = choose_design(args, lattice)
+        if args.reader_processes and not readers_given:  # chosen now: the ports again, through readers
+            for t in transports:
+                t.close()
+            try:
+                transports = open_transports(args, prog="capsheet host")
+            except TransportError as exc:
+                return _fail(str(exc), EXIT_FAIL)
+    if design is not None:
+        print(f"capsheet host: {design}", file=sys.stderr)
     try:
         host = Host(transports, lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
                     deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000,
@@ -410,7 +523,10 @@ def run(args) -> int:
             code = EXIT_USAGE
     if args.json:
         try:
-            print(json.dumps({**(stats or {}), "summary": summary, "exit": code}, default=str, indent=1))
+            print(json.dumps({**(stats or {}), "summary": summary, "exit": code,
+                              "design": {"reader_processes": bool(args.reader_processes),
+                                         "estimate_process": bool(args.estimate_process)}},
+                             default=str, indent=1))
             sys.stdout.flush()
         except BrokenPipeError:
             pass

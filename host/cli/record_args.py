@@ -78,11 +78,12 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                        help="also log every CAN frame, received (Rx) and sent by this host (Tx), with python-can's "
                             "logger (.log candump, .asc, .blf; cantools and capsheet replay read it)")
     if estimate_process:
-        g.add_argument("--estimate-process", action="store_true",
+        g.add_argument("--estimate-process", action=argparse.BooleanOptionalAction, default=None,
                        help="make the estimates of --record/--live/--publish in a process of their own "
-                            "(host.estimate_worker): the receive threads keep the interpreter to themselves "
-                            "and every snapshot up to --live-rate is estimated, in order (a big sheet at a "
-                            "high rate; docs/host.md); accelerometer sheets only")
+                            "(host/workers/estimate_worker.py): the receive threads keep the interpreter to "
+                            "themselves and every snapshot up to --live-rate is estimated, in order; "
+                            "accelerometer sheets only. Default: chosen for the sheet, on for a big sheet at "
+                            "a high rate (as --reader-processes; docs/host.md)")
     if link_length:
         g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")

@@ -135,6 +135,17 @@ def register(subparsers) -> argparse.ArgumentParser:
                         "--gateways N, PATH0..PATHN-1). Only a capsheet sheet's own stale symlink is replaced; "
                         "anything else there needs --overwrite")
     T.add_overwrite_arg(p, "files at --layout-out and --symlink")
+    g = p.add_argument_group("layout learning (capsheet layout learn)")
+    g.add_argument("--poses", choices=("learn",), default=None,
+                   help="take the sheet through the poses of `capsheet layout learn` on a timer, over and over "
+                        "(flat, ramp, hump across the rows, hump across the columns; replaces --shape)")
+    g.add_argument("--pose-hold-s", type=T.bounded_float(0.5, 600.0), default=3.0, metavar="S",
+                   help="--poses: seconds each pose is held (default 3)")
+    g.add_argument("--pose-move-s", type=T.bounded_float(0.1, 60.0), default=1.0, metavar="S",
+                   help="--poses: seconds spent moving between poses (default 1)")
+    g.add_argument("--shuffle-ids", action="store_true",
+                   help="put the chips' uids on the links in a seeded random order: a layout a host must learn "
+                        "(only --layout-out tells it)")
     p.add_argument("--firmware", choices=("python", "c"), default="python",
                    help="chip implementation: the Python model or the C reference firmware (SIL)")
     p.add_argument("--part", choices=("icm42688p", "icm42688p+mmc5983ma"), default=None,
@@ -294,9 +305,17 @@ def make_device(args, verbose=None):
         if args.firmware != "c":
             raise ValueError(f"--part {part} needs --firmware c (the C driver reads the part)")
         factory = part_chip_factory(part)
-    sheet = VirtualSheet(args.shape, args.lattice, link_length=args.link_length, noise=args.noise,
+    scene = None
+    if getattr(args, "poses", None) == "learn":
+        from virtual_sheet.layout_poses import LayoutPoseScene
+        lat = args.lattice
+        scene = LayoutPoseScene(lat.rows, lat.cols, args.link_length, hold_s=args.pose_hold_s,
+                                move_s=args.pose_move_s, seed=args.seed)
+    sheet = VirtualSheet("layout poses" if scene is not None else args.shape, args.lattice,
+                         link_length=args.link_length, noise=args.noise, scene=scene,
                          sensor=sensor, seed=args.seed, transport=transport, fd=args.fd,
-                         chip_factory=factory, faults=spec, sensors=sensors)
+                         chip_factory=factory, faults=spec, sensors=sensors,
+                         shuffle_ids=bool(getattr(args, "shuffle_ids", False)))
     if part is not None:
         factory.bind(sheet)  # the parts read the sheet's truth
     kw = dict(packed=args.packed, sync_rate_hz=args.rate, verbose=verbose)
@@ -342,6 +361,10 @@ def run(args) -> int:
         except (OSError, ValueError):  # stdout closed (e.g. piped into head): keep the sheet running
             pass
 
+    if getattr(args, "poses", None) and getattr(args, "sensors", "accel") != "accel":
+        print("capsheet virtual: --poses learn runs the layout poses on accelerometer chips: drop --sensors",
+              file=sys.stderr)
+        return 2
     if getattr(args, "gateways", 1) > 1 and args.transport != "pty":
         print("capsheet virtual: --gateways is for --transport pty (serial gateways); for CAN use "
               "--bus-count", file=sys.stderr)

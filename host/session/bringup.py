@@ -275,7 +275,9 @@ class BringUp:
                 todo[uid] = link
 
         def build(uid, attempt):
-            rec = reg.chips[uid]
+            rec = reg.chips.get(uid)
+            if rec is None:  # its record was dropped during the round (a gateway node's INFO came late)
+                return []
             new = node_for_link(rec.link)
             msgs = [(rec.bus, Assign(rec.node, new_node=new, link=rec.link, uid_low=uid & 0xFFFFFFFF))]
             if attempt and rec.node != new:  # the ACK may have been lost: ask the new node too
@@ -294,7 +296,7 @@ class BringUp:
         answers, _ = host.commands.round(todo, build, match, "ASSIGN")
         with reg.lock:
             for uid, msg in answers.items():
-                if isinstance(msg, Ack):
+                if isinstance(msg, Ack) and uid in reg.chips:
                     reg.assigned_to(reg.chips[uid], msg.node)
         # outside the registry's lock: a receive thread holds the feed's and then takes the
         # registry's (tests/host/session/test_lock_order.py)

@@ -4,7 +4,9 @@
   streaming (STATUS IDLE while started) is queued; a wave of them (gathered for 50 ms) is brought
   back with ASSIGN, CONFIG, CAL_READ and START of those chips only, while the others keep
   streaming. One report per incident.
-* **Ports**: a port that went away must prove, once back, that it leads to this sheet again —
+* **Ports**: a port that went away is reopened only when the same device is back at its path
+  (`host.transport.portlock`; another device there is reported and never opened); once back it
+  must prove that it leads to this sheet again —
   one of the chips known on it ANNOUNCEs — before anything but GET_INFO is sent there (a stale
   symlink may lead to another device now); a port where nothing sheet-like answers is reported.
 * **Stream incidents**: CAN FD on a bus opened for classic CAN, a SYNC counter that restarted
@@ -131,9 +133,16 @@ class Recovery:
             self.unproven[bus] = {u for u, r in reg.chips.items() if r.bus == bus}
 
     def check_reconnect(self, bus: int, t: Transport) -> None:
-        """After a receive from ``t``: a loss (`port_lost`) or a reconnect (`reconnected`) since."""
+        """After a receive from ``t``: a loss (`port_lost`), a reopen refused because another device
+        sits at the port's path now (`host.transport.portlock`: reported once, as ``not_a_sheet``),
+        or a reconnect (`reconnected`) since."""
         if t.stats.disconnects != self._disconnects[bus]:
             self.port_lost(bus)
+        if t.stats.refused_reopens and bus not in self.not_a_sheet:
+            why = getattr(t, "refused", None)
+            if why:
+                self.not_a_sheet[bus] = why
+                self.host.report("not_a_sheet", why)
         if t.stats.reconnects != self._reconnects[bus]:
             self._reconnects[bus] = t.stats.reconnects
             self.host.report("reconnect", f"{t.name} is back (reconnect #{t.stats.reconnects})")

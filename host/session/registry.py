@@ -221,9 +221,9 @@ class ChipRegistry:
     def info(self, bus: int, msg: Info) -> None:
         """An INFO: kept in the record of the chip that speaks from its node."""
         with self.lock:
-            uid = self._node_uid.get((bus, msg.node))
-            if uid is not None:
-                self.chips[uid].info = msg
+            rec = self.chips.get(self._node_uid.get((bus, msg.node)))
+            if rec is not None:
+                rec.info = msg
 
     def heartbeats(self, bus: int, batch) -> None:
         """A `StatusBatch` from transport ``bus``: each row kept as its chip's last STATUS."""
@@ -244,6 +244,11 @@ class ChipRegistry:
         with self.lock:
             self.chips.pop(uid, None)
             self._node_uid.pop((bus, node), None)
+            # every node the record spoke from (a chip that announced again from another node keeps
+            # its old one mapped too): none may lead to a record that is gone (a receive thread's
+            # KeyError, seen at 64x64 under load). Rare (gateway nodes only): a scan is fine
+            for key in [k for k, u in self._node_uid.items() if u == uid]:
+                del self._node_uid[key]
 
     def forget(self) -> None:
         """Forget every chip (the chips were RESET: they announce again)."""

@@ -5,7 +5,9 @@ chosen by name (`open_transport`) and imported lazily, so a host without python-
 serial:
 
 * ``serial`` — `SerialTransport`: pyserial, any URL or device path (a pty, ``loop://``,
-  ``/dev/ttyUSB0``, ``socket://host:port``); reconnects when the port goes away and comes back.
+  ``/dev/ttyUSB0``, ``socket://host:port``); taken exclusively, one session per port, and
+  reconnects when the port goes away and comes back, only to the same device
+  (`host.transport.portlock`).
 * ``can`` — `CanTransport`: python-can, any interface it knows, given as ``interface:channel``
   (``virtual:bus0``, ``slcan:/dev/pts/5``, ``socketcan:can0``); classic CAN or CAN FD.
 * ``memory`` — `MemoryTransport`: one end of ``virtual_sheet.memport.memory_link()`` (no OS).
@@ -40,13 +42,16 @@ import time
 from abc import ABC, abstractmethod
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import Any, Callable, NamedTuple
+from typing import Any, Callable
 
 from protocol.can import CAN_CLASSIC_MTU, CAN_FD_MTU, CanDecoder, EchoFilter, FrameBlock, to_can
 from protocol.framing import MAX_PAYLOAD_SIZE, DecodeError, StreamDecoder, encode
 from protocol.messages import ImuBatch, Message, SampleBatch, SnapshotFrames, StatusBatch
 
-__all__ = ["TransportError", "TransportInitError", "TransportOperationError", "TransportTimeoutError",
+from host.transport.portlock import PortBusy, identify, in_use_message, is_device_path, open_exclusive, refusal
+from host.transport.portlock import holders as lock_holders
+
+__all__ = ["TransportError", "TransportInitError", "PortInUseError", "TransportOperationError", "TransportTimeoutError",
            "TransportCapabilities", "TransportStats", "Capture", "RawFrame", "Transport", "SerialTransport", "MemoryTransport",
            "CanTransport", "FrameBlock", "BACKENDS", "open_transport", "parse_can_spec", "feed_can"]
 
@@ -77,6 +82,11 @@ class TransportInitError(TransportError):
 
 class TransportOperationError(TransportError):
     """A send or receive failed on an open port (and reconnecting, if enabled, has not helped)."""
+
+
+class PortInUseError(TransportInitError):
+    """The port is held by another session (`host.transport.portlock`: one session per port); the
+    message names the holding process where the system says."""
 
 
 class TransportTimeoutError(TransportError, TimeoutError):
@@ -141,6 +151,7 @@ class TransportStats:
     reconnects: int = 0  #: times it came back and was reopened
     send_failures: int = 0
     capture_errors: int = 0  #: exceptions a capture handler raised (the first of each handler is logged)
+    refused_reopens: int = 0  #: reopens refused: another device at the port's path (`SerialTransport.refused`)
 
     @property
     def error_count(self) -> int:
@@ -150,92 +161,11 @@ class TransportStats:
         return {"bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "frames_in": self.frames_in,
                 "frames_out": self.frames_out, "errors": dict(self.errors), "disconnects": self.disconnects,
                 "reconnects": self.reconnects, "send_failures": self.send_failures,
-                "capture_errors": self.capture_errors}
+                "capture_errors": self.capture_errors, "refused_reopens": self.refused_reopens}
 
 
-# --------------------------------------------------------------------------------------------
-# Capture: what a transport received and sent, for whoever subscribes
-# --------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True, slots=True, eq=False)
-class Capture:
-    """One unit of traffic of a transport, as `Transport.begin_capture` hands it over.
-
-    Attributes
-    ----------
-    transport : Transport
-        Who moved it (``transport.name`` names the port or bus).
-    direction : str
-        ``"rx"`` (read from the wire) or ``"tx"`` (written to it).
-    timestamp : float
-        Host ``time.monotonic()`` seconds when it was read (after the read returned) or written.
-    wall_time : float
-        ``time.time()`` at the same instant (what log files stamp).
-    kind : str
-        ``"serial"`` or ``"can"``: what ``raw`` holds.
-    raw : bytes or tuple
-        Serial: the bytes as read or written (rx: one read, cut anywhere; tx: whole frames).
-        CAN rx: the frames one receive drained, in wire order, as the bus delivered them
-        (python-can ``Message`` s, and `protocol.can.FrameBlock` s from the SLCAN bus's fast
-        path), the echoes of this host's own frames included. CAN tx: ``(message,)``, the
-        python-can ``Message`` written.
-    events : tuple
-        Rx: what the decoder made of this input, exactly the events `Transport.recv` returns for
-        it (a serial frame cut across reads comes with the read that completes it). Tx: the
-        `protocol.Message` sent, or ``()`` for a raw send (`SerialTransport.send_bytes`,
-        `CanTransport.send_frame`).
-    echoes : tuple of (int, bytes)
-        CAN rx: ``(arbitration_id, data)`` of the frames of ``raw`` recognised as this host's own
-        handed back (python-can's ``udp_multicast`` does): dropped from ``events``. Else ``()``.
-    """
-
-    transport: Any
-    direction: str
-    timestamp: float
-    wall_time: float
-    kind: str
-    raw: Any
-    events: tuple = ()
-    echoes: tuple = ()
-
-    def frames(self, *, echoes: bool = False) -> list:
-        """CAN: the frames of ``raw`` one by one, in wire order: python-can messages as they are,
-        each row of a `protocol.can.FrameBlock` as a `RawFrame` (stamped ``wall_time``); the
-        echoes of this host's own frames left out unless ``echoes``. Serial: ``[]``."""
-        if self.kind != "can":
-            return []
-        out: list = []
-        for f in self.raw:
-            if type(f) is FrameBlock:
-                out += [RawFrame(aid, row, timestamp=self.wall_time)
-                        for aid, row in zip(f.arbitration_id.tolist(), map(bytes, f.data))]
-            else:
-                out.append(f)
-        if echoes or not self.echoes:
-            return out
-        left = Counter(self.echoes)
-        kept = []
-        for f in out:
-            key = (f.arbitration_id, bytes(f.data))
-            if left.get(key) and not (f.is_error_frame or f.is_remote_frame):
-                left[key] -= 1
-                continue
-            kept.append(f)
-        return kept
-
-
-class RawFrame(NamedTuple):
-    """One received CAN frame with python-can ``Message``'s attributes (what `Capture.frames`
-    makes of a `protocol.can.FrameBlock` row)."""
-
-    arbitration_id: int
-    data: bytes
-    is_extended_id: bool = True
-    is_fd: bool = False
-    is_error_frame: bool = False
-    is_remote_frame: bool = False
-    bitrate_switch: bool = False
-    timestamp: float = 0.0
+# Capture (host/transport/capture.py): what a transport received and sent, for whoever subscribes
+from host.transport.capture import Capture, RawFrame  # noqa: E402  (re-exported: their names here stay)
 
 
 # --------------------------------------------------------------------------------------------
@@ -520,9 +450,16 @@ class SerialTransport(Transport):
         self._read_timeout: float | None = None  # the port's timeout as last set; None: unknown
         self.read_timeouts: Counter = Counter()  #: read timeout (s) -> reads made with it
         self.read_timeout_sets = 0  #: times the port's timeout was set (a termios call each)
+        #: what the port was when first opened (`host.transport.portlock.DeviceIdentity`; None for
+        #: a URL or an object): a reopen goes only to the same device
+        self.identity = None
+        #: the last reopen refused (another device at the path), one line; None once reopened
+        self.refused: str | None = None
+        self._opened = None
         if self._url is not None:
             self._serial_mod = _import("serial", "serial port", self._url)
             self._port = self._open()
+            self.identity = self._opened
         else:
             self._serial_mod = None
             self._port = port
@@ -531,10 +468,15 @@ class SerialTransport(Transport):
             bitrate=baudrate if (self._url is not None and kind == "serial") else None, name=name)
 
     def _open(self):
+        """Open the port for this session alone (`host.transport.portlock.open_exclusive`: a port
+        another session holds is `PortInUseError`, naming the holder); what was opened is kept in
+        ``_opened`` (its `DeviceIdentity`)."""
         serial = self._serial_mod
         try:
-            port = serial.serial_for_url(self._url, baudrate=self.baudrate, timeout=0.05,
-                                         write_timeout=1.0, exclusive=None)
+            port, self._opened = open_exclusive(lambda excl: serial.serial_for_url(
+                self._url, baudrate=self.baudrate, timeout=0.05, write_timeout=1.0, exclusive=excl), self._url)
+        except PortBusy as exc:
+            raise PortInUseError(str(exc), self._url) from exc
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportInitError(f"Cannot open serial port {self._url!r}: {exc}", self._url) from exc
         if not self.reader_process:
@@ -565,8 +507,32 @@ class SerialTransport(Transport):
         self.decoder.reset()
 
     def _reopen_internal(self) -> None:
-        self._port = self._reopen() if self._reopen is not None else self._open()
+        if self._reopen is not None:
+            self._port = self._reopen()
+        else:
+            # the same device only (`host.transport.portlock`): what the path leads to now is
+            # compared before it is opened, and what was opened once more (the path may change between)
+            if self.identity is not None:
+                self._refuse(refusal(self.name, self.identity, identify(self._url)))
+            port = self._open()
+            if self.identity is not None:
+                try:
+                    self._refuse(refusal(self.name, self.identity, self._opened))
+                except TransportInitError:
+                    port.close()
+                    raise
+            self._port = port
+        self.refused = None
         self._read_timeout = None
+
+    def _refuse(self, msg: str | None) -> None:
+        if msg is None:
+            return
+        self.stats.refused_reopens += 1
+        if msg != self.refused:  # the session reports it (a `not_a_sheet` event): logged here at info
+            log.info("%s", msg)
+        self.refused = msg
+        raise TransportInitError(msg, self.name)
 
     # hooks -------------------------------------------------------------------------------
     def _recv_internal(self, timeout_s: float | None) -> list:
@@ -746,6 +712,11 @@ class CanTransport(Transport):
         # udp_multicast: python-can's, isolated to its group (host/transport/udp_multicast.py)
         interface = {"slcan": SLCAN_INTERFACE, "udp_multicast": UDP_MULTICAST_INTERFACE}.get(
             self.interface, self.interface)
+        if interface == SLCAN_INTERFACE:  # an adapter on a tty: one session per port (portlock)
+            tty = self.channel.rpartition("@")[0] if "@" in self.channel else self.channel
+            found = lock_holders(tty) if is_device_path(tty) else []
+            if found:
+                raise PortInUseError(in_use_message(tty, found), self.name)
         try:
             return can.Bus(interface=interface, channel=self.channel, fd=self.fd, **self._bus_kwargs)
         except Exception as exc:  # noqa: BLE001 - CanInitializationError, ImportError, OSError, ValueError

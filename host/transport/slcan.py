@@ -59,6 +59,8 @@ from can.util import CAN_FD_DLC, len2dlc
 
 from protocol.can import FrameBlock
 
+from host.transport.portlock import PortBusy, open_exclusive
+
 __all__ = ["SlcanBus", "BufferedSlcanBus", "INTERFACE", "MAX_LINE", "parse_line"]
 
 #: the name python-can knows this bus by (the ``can.interface`` entry point in pyproject.toml)
@@ -222,8 +224,15 @@ class SlcanBus(BusABC):
         self._lines: deque[bytes] = deque()  # complete lines, terminator included
         self._partial = bytearray()  # the start of a line not yet terminated
         self._skipping = False  # inside an over-long line: discard up to its terminator
-        with error_check(exception_type=CanInitializationError):
-            self._port = serial.serial_for_url(channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0)
+        # one session per adapter: the tty is taken exclusively, as a serial gateway's port is
+        # (host/transport/portlock.py); a held one is refused before it is opened, naming the holder
+        try:
+            self._port, _ = open_exclusive(lambda excl: serial.serial_for_url(
+                channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0, exclusive=excl), channel)
+        except PortBusy as exc:
+            raise CanInitializationError(str(exc)) from exc
+        except Exception as exc:  # noqa: BLE001 - SerialException, OSError, ValueError
+            raise CanInitializationError(f"Cannot open {channel!r}: {exc}") from exc
         try:
             time.sleep(sleep_after_open)
             with error_check(exception_type=CanInitializationError):

@@ -125,3 +125,19 @@ def test_demo_with_imu_chips_picks_the_gateways_the_records_need():
     with pytest.raises(SystemExit) as exc:  # over capacity on the gateways asked for: a usage error
         main(["demo", "--sensors", "accel+gyro", "--packed", "--gateways", "1", "--rate", "1000"])
     assert exc.value.code == 2
+
+
+def test_demo_learns_the_layout_of_a_shuffled_sheet_before_it_streams(tmp_path):
+    """--learn-layout: the sheet's uids on its links in a random order, its poses on a timer; the host
+    learns the layout over the pty (the truth scores it), then streams with it: the estimates of the
+    demo's shape are compared with the truth through the learned layout."""
+    out = _demo("--lattice", "6x6", "--learn-layout", "--duration", "2", "--rate", "50",
+                "--out", str(tmp_path / "demo.png"), "--json")
+    assert out.returncode in (0, 1), out.stderr
+    result = json.loads(out.stdout)
+    assert result["layout_links"] == 60 and result["layout_links_correct"] == 60
+    assert result["layout_ok"] is True
+    assert "4/4 (hump_j)" in out.stderr and "60 chips discovered, 60 assigned" in out.stderr
+    if result["compared_with_truth"]:  # a wrong layout would put readings on the wrong links: far off
+        assert result["error_ok"] is True
+    assert result["pass"] == (result["error_ok"] and result["complete_ok"] and result["layout_ok"])

@@ -154,7 +154,9 @@ def _bad_layouts(tmp: Path) -> dict:
         ("--layout", str(tmp / "types.json")): "uid must be a hex string",
         ("--layout", str(tmp / "binary.csv")): "binary data",
         ("--layout", str(tmp / "missing.csv")): "--layout: invalid value",
-        ("--layout", str(tmp / "beyond.csv")): "beyond lattice 14x14 (364 links), e.g. uid 0x0000000000000002 on link 400",
+        ("--layout", str(tmp / "beyond.csv"), "--lattice", "14x14"): "beyond lattice 14x14 (364 links), e.g. uid 0x0000000000000002 on link 400",
+        # without --lattice a CSV layout's links are the sheet's table: 401 links fit 6x37 and 37x6 alone
+        ("--layout", str(tmp / "beyond.csv")): "the layout names links 0-400 (401 links), which fits the lattices 6x37, 37x6; give --lattice",
         ("--layout", str(tmp / "small.json"), "--lattice", "14x14"): "the layout",
     }
 
@@ -236,61 +238,62 @@ def test_three_sessions_in_a_row(virtuals, tmp_path, transport):
 
 # -- recovery without a person --------------------------------------------------------------------
 
-@pytest.mark.parametrize("sync", ["drive", "follow"])
-def test_sheet_restarted_on_the_same_path_is_recovered(virtuals, tmp_path, sync):
-    """The sheet power-cycled under the same port: the host reconnects, re-assigns, re-configures,
-    re-reads calibration and restarts every chip; after it reports the recovery >= 99 % of the
-    snapshots are complete. In follow mode the gateway's counter restarts from 0: resynchronised."""
-    lay, port, rec = tmp_path / "sheet.csv", tmp_path / "sheet", tmp_path / "run.mcap"
-    extra = ["--rate", "50"] if sync == "follow" else []
-    a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay), *extra)
-    cmd = list(a.host_cmd)
-    p = popen_host(*cmd, "--duration", "300", "--json", "-q", "--record", str(rec))
+def test_a_sheet_restarted_on_another_pty_at_the_same_path_is_refused(virtuals, tmp_path):
+    """The sheet's process restarted under the same symlink, but on another pty (another device
+    number): the host does not reconnect to it (one session, one device: a reopen goes only to the
+    device the port was), says so in one line and exits 1; the restarted sheet was never opened."""
+    from host.transport.portlock import holders
+    from virtual_sheet.devices import open_pty
+
+    lay, port = tmp_path / "sheet.csv", tmp_path / "sheet"
+    a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay))
+    first = os.readlink(port)
+    p = popen_host(*a.host_cmd, "--duration", "300", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
-    time.sleep(1.5)
+    time.sleep(1.0)
     assert a.stop(signal.SIGTERM) == 0
-    assert not port.exists()  # the symlink went with the sheet
-    time.sleep(0.5)
-    b = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay), *extra)
-    wait_line(p, "streaming again", 120, err)  # the host reports the recovery (a WARNING line)
-    time.sleep(3.0)
-    p.send_signal(signal.SIGTERM)  # ends as on Ctrl-C: summary and JSON still printed
-    out = finish(p, drain(p, err))
-    doc = json.loads(out)
-    s = doc["summary"]
-    assert s["reconnects"] >= 1 and s["recoveries"] >= 1 and s["recovered_chips"] == 24, (s, "".join(err))
-    if sync == "follow":
-        assert s["resyncs"] >= 1, s
-    [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery" and "24 of 24" in i["detail"]][-1:]
-    from host.record.recording import read_recording
-    r = read_recording(rec)
-    assert len(r) == s["snapshots"]  # every snapshot made is recorded, also those queued at SIGTERM
-    after = np.asarray(r.timestamp) > t_rec
-    complete = np.asarray(r.complete)[after]
-    assert complete.size >= 10 and complete.mean() >= 0.99, (complete.size, complete.mean())
+    wait_line(p, "went away", 60, err)  # the host closed the old pty: its number is free
+    m, s, name = open_pty(first, wait_s=10.0)  # held here, so the restarted sheet gets another
+    try:
+        assert name == first, "another process took the pty number"
+        b = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay))
+        second = os.readlink(port)
+        assert second != first
+        wait_line(p, "came back as another device", 60, err)
+        time.sleep(1.0)
+        assert holders(second) == []  # the host never opened it (a session's port is locked)
+        p.send_signal(signal.SIGTERM)
+        out = finish(p, drain(p, err))
+    finally:
+        os.close(m)
+        os.close(s)
+    s_ = json.loads(out)["summary"]
+    assert p.returncode == 1
+    assert s_["reconnects"] == 0 and any("came back as another device" in w for w in s_["not_a_sheet"]), s_
+    assert len([ln for ln in err if "WARNING" in ln and "came back as another device" in ln]) == 1, err  # once
     assert b.p.poll() is None
 
 
-def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_path):
-    """The sheet dies without cleaning up (SIGKILL) and its path now leads to another device that
-    answers nothing like a sheet: reported as such, exit 1 (was: 'reconnect' and SYNC written into it),
-    and nothing but the question "who are you" (GET_INFO) is written into that device."""
+def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp_path):
+    """The sheet dies without cleaning up (SIGKILL) and its path now leads to another device (a pty
+    that babbles text): refused, exit 1, and nothing at all written into that device, nor its
+    terminal settings changed (was: GET_INFO written into it and the port switched to raw mode)."""
     import select
-
-    from protocol.framing import StreamDecoder
-    from protocol.messages import GetInfo
+    import termios
 
     lay, port = tmp_path / "sheet.csv", tmp_path / "sheet"
+    master, slave = os.openpty()  # made while the sheet lives: another device number than its pty
+    attrs = termios.tcgetattr(slave)
+    attrs[3] &= ~(termios.ECHO | termios.ECHONL)  # no echo of its own babble; still cooked, not raw
+    termios.tcsetattr(slave, termios.TCSANOW, attrs)
+    attrs = termios.tcgetattr(slave)
     a = virtuals("--lattice", "3x3", "--symlink", str(port), "--layout-out", str(lay))
     p = popen_host(*a.host_cmd, "--duration", "8", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
     a.stop(signal.SIGKILL)
     assert port.is_symlink()  # SIGKILL cannot be caught: the stale symlink stays
-    master, slave = os.openpty()  # "whatever process next owns" the path: it babbles text
-    import tty
-    tty.setraw(slave)
     stop = threading.Event()
     written = bytearray()  # what the host wrote into that other device
 
@@ -310,6 +313,7 @@ def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_
     os.replace(tmp, port)
     try:
         out = finish(p, drain(p, err))
+        settings = termios.tcgetattr(slave)
     finally:
         stop.set()
         th.join(2)
@@ -317,10 +321,96 @@ def test_a_reconnect_to_something_that_is_not_a_sheet_is_reported(virtuals, tmp_
         os.close(slave)
     s = json.loads(out)["summary"]
     assert p.returncode == 1
-    assert s["not_a_sheet"] and "answers nothing like a sheet" in s["not_a_sheet"][0], s
-    sent = StreamDecoder().feed(bytes(written))
-    assert sent and all(isinstance(m, GetInfo) for m in sent), [type(m).__name__ for m in sent][:20]
-    assert len(sent) <= 6 and s["muted_sends"] > 0, (len(sent), s["muted_sends"])  # SYNC held back, counted
+    assert s["not_a_sheet"] and "came back as another device" in s["not_a_sheet"][0], s
+    assert bytes(written) == b"" and settings == attrs
+    assert s["reconnects"] == 0
+
+
+# -- without --lattice: what answered decides, or is said ---------------------------------------------
+
+def test_without_lattice_the_host_says_what_answered_and_which_lattices_fit(virtuals, tmp_path):
+    """A 6x6 sheet and no --lattice: 60 chips answer, no gateway says how many links there are; the
+    count alone never decides (one silent chip would make it 59, which fits 4x9), so the host says
+    what it heard and what fits, exit 2, one line (was: 14x14 assumed, "complete 100 %" with 16.5 %
+    of the link samples valid, 6x6 never named)."""
+    v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"))
+    cmd = [a for a in v.host_cmd]
+    i = cmd.index("--lattice")
+    del cmd[i:i + 2]
+    out = host(*cmd, "--duration", "1")
+    assert out.returncode == 2, out.stderr
+    [line] = out.stderr.splitlines()
+    assert "60 chips answered" in line and "lattices with 60 links: 6x6" in line and "give --lattice" in line, line
+    assert v.p.poll() is None
+
+
+def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_path):
+    """Two gateway nodes serving links 0-11 and 12-23: 24 links, 4x4 the one lattice with that many:
+    used, and said. A CSV layout's links decide in the same way."""
+    g = virtuals("--lattice", "4x4", "--packed", "--gateways", "2", "--rate", "50", "--symlink", str(tmp_path / "g"))
+    cmd = list(g.host_cmd)
+    i = cmd.index("--lattice")
+    del cmd[i:i + 2]
+    out, doc = host_json(*cmd, "--duration", "1.5")
+    assert out.returncode == 0, out.stderr
+    assert "no --lattice: the gateways serve links 0-23 (24 links): 4x4 is the one lattice with that many" in out.stderr
+    assert doc["summary"]["links"] == 24 and doc["summary"]["valid_links_pct"] >= 90.0, doc["summary"]
+    lay = tmp_path / "a.csv"
+    a = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "a"), "--layout-out", str(lay))
+    cmd = list(a.host_cmd)
+    i = cmd.index("--lattice")
+    del cmd[i:i + 2]
+    out, doc = host_json(*cmd, "--duration", "1")
+    assert out.returncode == 0 and "the layout names links 0-11 (12 links): 3x3" in out.stderr, out.stderr
+    assert doc["summary"]["links"] == 12
+
+
+# -- one session per port -------------------------------------------------------------------------
+
+def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path):
+    """A second ``capsheet host`` on the port a first one streams from: refused before it opens the
+    port, exit 1, one line naming the first host's process; the first ends exit 0, >= 99 % complete
+    (was: the second took over and the first fell to 37 % with framing errors)."""
+    lay = tmp_path / "sheet.csv"
+    v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
+    p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q")
+    err: list = []
+    wait_line(p, "started on", 60, err)
+    second = host(*v.host_cmd, "--duration", "3", timeout_s=60)
+    out = finish(p, drain(p, err))
+    assert second.returncode == 1, second.stderr
+    [line] = second.stderr.splitlines()
+    assert "is in use by process" in line and f"process {p.pid} (" in line and "one session per port" in line, line
+    assert p.returncode == 0, "".join(err)
+    s = json.loads(out)["summary"]
+    assert s["complete_snapshots_pct"] >= 99.0 and not s["errors"], s
+
+
+@pytest.mark.parametrize("command", ["calibrate", "tactile", "conformance", "layout", "ports", "host-slcan"])
+def test_every_command_that_opens_a_port_is_refused_on_a_busy_one(virtuals, tmp_path, command):
+    """What ``capsheet host`` holds, no other command opens: exit 1, one line naming the holder."""
+    lay = tmp_path / "sheet.csv"
+    transport = "slcan" if command == "host-slcan" else "pty"
+    v = virtuals("--lattice", "3x3", "--transport", transport, "--symlink", str(tmp_path / "sheet"),
+                 "--layout-out", str(lay))
+    p = popen_host(*v.host_cmd, "--duration", "60", "--json", "-q")
+    err: list = []
+    try:
+        wait_line(p, "started on", 60, err)
+        port = str(tmp_path / "sheet")
+        args = {"calibrate": ["calibrate", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "c.json")],
+                "tactile": ["tactile", "--port", port, "--lattice", "3x3", "--duration", "1"],
+                "conformance": ["conformance", "--port", port],
+                "layout": ["layout", "learn", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "l.csv")],
+                "ports": ["ports", "--probe", port],
+                "host-slcan": ["host", *v.host_cmd, "--duration", "1"]}[command]
+        out = subprocess.run(CLI + args, capture_output=True, text=True, timeout=60, env=ENV)
+        assert out.returncode == 1, (out.returncode, out.stderr)
+        [line] = (out.stdout if command == "ports" else out.stderr).splitlines()  # ports: its report
+        assert f"is in use by process {p.pid} (" in line, line
+    finally:
+        p.send_signal(signal.SIGTERM)
+        finish(p, drain(p, err))
 
 
 # -- one SYNC source ------------------------------------------------------------------------------
@@ -742,3 +832,63 @@ def test_the_hosts_snapshot_queue_holds_two_seconds_at_the_sync_rate():
     from host.cli.host import queue_size_for
     assert queue_size_for(145) == 291 and queue_size_for(145.0) >= 2 * 145
     assert queue_size_for(10) == 64 and queue_size_for(None) == 64  # the library's default at least
+
+
+# -- the host's own design for the sheet it has -----------------------------------------------------
+
+@pytest.mark.parametrize("argv, lattice, readers, estimator", [
+    # 64x64 on five gateways at 145 Hz, recorded, every snapshot due an estimate: both, unasked
+    (["--port", "/tmp/g0", "--port", "/tmp/g1", "--rate", "145", "--record", "x.mcap", "--live-rate", "145"],
+     "64x64", True, True),
+    # the same sheet at 60 Hz: 0.48 M link samples a second, under the bound: in this process
+    (["--port", "/tmp/g0", "--rate", "60", "--record", "x.mcap"], "64x64", False, False),
+    # 32x32 at 145 Hz (0.29 M): in this process
+    (["--port", "/tmp/g0", "--rate", "145", "--record", "x.mcap"], "32x32", False, False),
+    # big, but no estimates wanted: readers only
+    (["--port", "/tmp/g0", "--rate", "145"], "64x64", True, False),
+    # big, on CAN: no reader (python-can reads its buses); estimates in their process
+    (["--can", "socketcan:can0", "--rate", "145", "--record", "x.mcap"], "64x64", False, True),
+    # a URL has no file descriptor to hand a reader
+    (["--port", "loop://", "--rate", "145", "--record", "x.mcap"], "64x64", False, True),
+    # 6/9-axis chips keep their fused estimator in this process
+    (["--port", "/tmp/g0", "--rate", "145", "--record", "x.mcap", "--sensors", "accel+gyro"], "64x64", True, False),
+    # what the command line says stands
+    (["--port", "/tmp/g0", "--rate", "145", "--record", "x.mcap", "--no-reader-processes", "--no-estimate-process"],
+     "64x64", False, False),
+    (["--port", "/tmp/g0", "--rate", "10", "--record", "x.mcap", "--reader-processes", "--estimate-process"],
+     "3x3", True, True),
+])
+def test_the_host_chooses_its_design_for_the_sheet(tmp_path, argv, lattice, readers, estimator):
+    from host.cli import build_parser
+    from host.cli.host import choose_design
+    from protocol.lattice import Lattice
+    argv = [a.replace("x.mcap", str(tmp_path / "x.mcap")) for a in argv]
+    args = build_parser().parse_args(["host", *argv])
+    line = choose_design(args, Lattice.parse(lattice))
+    assert (bool(args.reader_processes), bool(args.estimate_process)) == (readers, estimator)
+    given = "--reader-processes" in argv or "--no-reader-processes" in argv
+    if (readers or estimator) and not given:
+        n = Lattice.parse(lattice).n_links
+        assert line is not None and f"{n} links x 145 Hz" in line and "\n" not in line, line
+    else:
+        assert line is None
+
+
+def test_the_natural_command_says_the_design_it_chose(tmp_path):
+    """Through the real command line (a port where nothing answers: the choice is made and said
+    before bring-up): a 64x64 sheet at 145 Hz, recorded, gets both processes and one line saying
+    so; with the flags turned off, nothing is chosen and nothing said."""
+    master, slave = os.openpty()
+    try:
+        base = ["--port", os.ttyname(slave), "--lattice", "64x64", "--auto-assign", "--rate", "145",
+                "--live-rate", "145", "--discover-s", "0.2", "--record", str(tmp_path / "run.mcap")]
+        out = host(*base, "--overwrite")
+        assert out.returncode == 1 and "no chip answered" in out.stderr, out.stderr
+        [line] = [ln for ln in out.stderr.splitlines() if "big sheet" in ln]
+        assert ("8064 links x 145 Hz" in line and "each port read by a process of its own" in line
+                and "estimates made in a process of their own" in line), line
+        out = host(*base, "--overwrite", "--no-reader-processes", "--no-estimate-process")
+        assert out.returncode == 1 and "big sheet" not in out.stderr, out.stderr
+    finally:
+        os.close(master)
+        os.close(slave)

@@ -78,28 +78,28 @@ def test_reader_and_estimator_processes_deliver_and_estimate_every_snapshot(virt
         np.testing.assert_allclose(np.asarray(r.estimates["joints"][j]).reshape(6, 6, 3), mine.joints, atol=2e-4)
 
 
-def test_a_sheet_restarted_under_reader_processes_is_recovered(virtuals, tmp_path):
-    """The sheet goes away under a reader process (its pty closes: the reader ends, the host reads
-    end of file) and comes back on the same path: the host reconnects through a new reader and
-    restarts every chip, as it does reading the port itself."""
+def test_a_port_back_under_reader_processes_is_reconnected(virtuals, tmp_path):
+    """The sheet's port goes away under a reader process (its pty closes: the reader ends, the host
+    reads end of file) and the same device comes back on the same path (the virtual sheet's outage
+    takes the pty number back, as a USB adapter plugged in again keeps its number): the host
+    reconnects through a new reader and every link streams again, as it does reading the port itself."""
     lay, port = tmp_path / "sheet.csv", tmp_path / "sheet"
-    a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay))
+    a = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay),
+                 "--faults", "outage_at_s=8,outage_s=0.5")
     p = popen_host(*a.host_cmd, "--reader-processes", "--duration", "300", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
-    time.sleep(1.0)
-    assert a.stop(signal.SIGTERM) == 0
-    time.sleep(0.5)
-    b = virtuals("--lattice", "4x4", "--symlink", str(port), "--layout-out", str(lay))
-    wait_line(p, "streaming again", 120, err)
-    time.sleep(1.5)
+    assert not any("went away" in ln for ln in err), "the host started after the outage: the machine is too slow"
+    wait_line(p, "went away", 60, err)
+    wait_line(p, "is back", 60, err)
+    time.sleep(2.0)
     readers = [pid for pid, cmd in _children(p.pid) if " -S -c " in cmd]
     p.send_signal(signal.SIGTERM)
     doc = json.loads(finish(p, drain(p, err)))
     s = doc["summary"]
-    assert s["reconnects"] >= 1 and s["recovered_chips"] == 24, (s, "".join(err))
+    assert s["reconnects"] >= 1 and not s["not_a_sheet"] and not s["missing_links"], (s, "".join(err))
     assert len(readers) == 1, readers  # the old reader ended, one new one reads the port
-    assert b.p.poll() is None
+    assert a.p.poll() is None
 
 
 def test_reader_processes_need_a_port_with_a_file_descriptor():

@@ -116,3 +116,18 @@ def test_auto_layout_places_chips_behind_a_gateway_on_its_runs_and_the_rest_in_u
     lay = Layout.auto([9, 5, 4, 3, 2, 1, 7], lat, runs=runs)
     assert lay.links == {1: 4, 2: 5, 3: 8, 4: 9, 5: 0, 7: 1, 9: 2}
     assert Layout.auto([9, 5, 1], lat).links == {1: 0, 5: 1, 9: 2}
+
+
+def test_a_dropped_record_leaves_no_node_leading_to_it():
+    """A uid heard from two nodes (it announced again from another one) and then dropped as a
+    gateway's: an INFO or a heartbeat from either node finds nothing (was: a KeyError that ended a
+    receive thread, seen at 64x64 under load)."""
+    from protocol.messages import StatusBatch
+    reg = registry()
+    reg.announced(0, 0xABC, 0x8001)
+    reg.announced(0, 0xABC, 0x8002)
+    reg.drop(0, 0x8002, 0xABC)
+    assert 0xABC not in reg.chips and reg.uid_at(0, 0x8001) is None and reg.uid_at(0, 0x8002) is None
+    reg.info(0, Info(0x8001, fw_major=2))  # no KeyError
+    reg.heartbeats(0, StatusBatch(np.array([0x8001, 0x8002], dtype=np.uint16), *([np.zeros(2, np.uint8)] * 4),
+                                  np.zeros(2, np.uint32)))  # no KeyError

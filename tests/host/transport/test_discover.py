@@ -1,0 +1,110 @@
+"""What a probe makes of what it hears (host/transport/discover.py's `ProbeCollector`, sans-I/O,
+simulated time), and `probe_port` on real ptys: a virtual sheet's chips and gateway nodes, a port
+where nothing answers, a port another session holds."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from host.transport.discover import PortEntry, ProbeCollector, QUIET_S, probe_port
+from protocol import encode
+from protocol.framing import DecodeError, ErrorReason
+from protocol.messages import (Announce, Capability, GatewayFlag, GatewayInfo, GetInfo, Info, SampleFormat, Sync)
+
+
+def test_chips_and_a_gateway_from_their_answers():
+    c = ProbeCollector()
+    gw = 0x6A7E000000000001
+    c.feed([Announce(0x8001, uid=0x10), Info(0x8001, fw_major=1, fw_minor=2, fw_patch=3),
+            Announce(0x8002, uid=gw), Info(0x8002, capabilities=Capability.GATEWAY | Capability.SNAPSHOT),
+            GatewayInfo(0x8002, flags=GatewayFlag.PACKING | GatewayFlag.SYNC_SOURCE,
+                        sample_format=SampleFormat.IMU6, first_link=56, link_count=56, sync_rate_hz=145),
+            GatewayInfo(0x8002, flags=GatewayFlag.PACKING, first_link=56, link_count=56)], now=1.0)  # a repeat
+    # a second chip answering from the node id the first one used: its own uid, its own INFO
+    c.feed([Announce(0x8001, uid=0x20), Info(0x8001, fw_major=1, fw_minor=2, fw_patch=4),
+            Sync(counter=7), Sync(counter=8), DecodeError(ErrorReason.BAD_CRC, "bad CRC")], now=1.1)
+    r = c.result(elapsed_s=1.5, bytes_in=999)
+    assert r.status == "answered" and r.chips == 2
+    assert r.chip_uids == ["0x0000000000000010", "0x0000000000000020"]
+    assert r.firmware == ["1.2.3", "1.2.4"] and r.syncs == 2 and r.undecodable == 1 and r.bytes_in == 999
+    assert r.gateways == [{"uid": "0x6A7E000000000001", "flags": ["PACKING", "SYNC_SOURCE"], "sample_format": "IMU6",
+                           "links": "56-111", "sync_rate_hz": 145}]
+    assert r.formats == ["IMU6"]
+    line = r.line()
+    assert "2 chips (ids 0x0000000000000010 .. 0x0000000000000020)" in line and "links 56-111" in line
+    assert "SYNC source at 145 Hz" in line and "\n" not in line
+
+
+def test_quiet_only_after_something_answered_and_then_nothing_new():
+    c = ProbeCollector()
+    assert not c.quiet(100.0)  # nothing answered: never quiet (the probe waits its budget)
+    c.feed([Announce(0x8001, uid=1)], now=0.0)
+    c.feed([Announce(0x8001, uid=1), Sync(counter=1)], now=QUIET_S * 0.9)  # nothing new
+    assert not c.quiet(QUIET_S * 0.99) and c.quiet(QUIET_S)
+    c.feed([Announce(0x8003, uid=2)], now=QUIET_S)  # something new: the window starts again
+    assert not c.quiet(QUIET_S * 1.5)
+
+
+def test_frames_without_an_answer_and_nothing_at_all():
+    c = ProbeCollector()
+    c.feed([Sync(counter=1)], now=0.1)
+    r = c.result(elapsed_s=2.0, bytes_in=40)
+    assert r.status == "traffic" and "no node answered" in r.detail and r.chips == 0
+    r = ProbeCollector().result(elapsed_s=2.0, bytes_in=0)
+    assert r.status == "silent" and r.detail == "nothing answered in 2.0 s (0 bytes)"
+
+
+def test_the_probe_of_a_silent_port_writes_get_info_and_nothing_else():
+    """A pty where nothing answers: the probe writes GET_INFO and nothing else (no ASSIGN, CONFIG,
+    START, STOP, RESET); its result says nothing answered."""
+    m, s = os.openpty()
+    try:
+        r = probe_port(PortEntry("serial", os.ttyname(s)), budget_s=0.6)
+        os.set_blocking(m, False)
+        written = b""
+        try:
+            while True:
+                written += os.read(m, 65536)
+        except BlockingIOError:
+            pass
+        assert r.status == "silent" and r.chips == 0, r
+        from protocol.framing import StreamDecoder
+        sent = StreamDecoder().feed(written)
+        assert sent and all(isinstance(x, GetInfo) for x in sent), sent
+    finally:
+        os.close(m)
+        os.close(s)
+
+
+def test_a_port_another_session_holds_is_not_probed():
+    m, s = os.openpty()
+    holder = subprocess.Popen([sys.executable, "-c", "import serial, sys, time; p = serial.serial_for_url(sys.argv[1], "
+                               "exclusive=True); print('held', flush=True); time.sleep(60)", os.ttyname(s)],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        r = probe_port(PortEntry("serial", os.ttyname(s)), budget_s=0.5)
+        assert r.status == "in_use" and f"process {holder.pid}" in r.detail and "not probed" in r.detail
+        os.set_blocking(m, False)
+        with pytest.raises(BlockingIOError):
+            os.read(m, 100)  # not a byte written
+    finally:
+        holder.kill()
+        holder.wait()
+        os.close(m)
+        os.close(s)
+
+
+def test_probe_of_a_virtual_sheet_finds_its_chips():
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+    sheet = VirtualSheet("flat", "3x3", seed=3)
+    with PtyDevice(sheet) as dev:
+        r = probe_port(PortEntry("serial", dev.path), budget_s=3.0)
+    uids = sorted(f"0x{c.uid:016X}" for c in sheet.chips)
+    assert r.status == "answered" and r.chips == 12 and r.chip_uids == uids, r
+    assert r.baud == 3_000_000 and r.protocol == ["1"] and not r.gateways
