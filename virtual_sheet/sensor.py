@@ -57,7 +57,7 @@ def make_rng(rng: np.random.Generator | int) -> np.random.Generator:
     raise ValueError(f"Invalid rng: {rng!r} (expected a numpy Generator or a seed >= 0)")
 
 
-def _check_readings(readings: np.ndarray, batched: bool = False) -> np.ndarray:
+def check_readings(readings: np.ndarray, batched: bool = False) -> np.ndarray:
     r = np.asarray(readings, dtype=float)
     if (r.ndim < 2 if batched else r.ndim != 2) or r.shape[-1] != 3:
         shape = "(..., n_links, 3)" if batched else "(n_links, 3)"
@@ -86,7 +86,7 @@ def noisy_readings(readings: np.ndarray, noise_pct_g: float,
     ndarray, shape (n_links, 3)
         m/s², sensor frame.
     """
-    r = _check_readings(readings)
+    r = check_readings(readings)
     if not (np.isfinite(noise_pct_g) and noise_pct_g >= 0):
         raise ValueError(f"Invalid noise_pct_g: {noise_pct_g!r} (need a finite value >= 0)")
     return r + make_rng(rng).normal(0.0, noise_pct_g / 100.0 * G0, r.shape)
@@ -248,7 +248,7 @@ class SensorModel:
 
         Parameters and the order of random draws are those of `sample`; m/s², shape of ``readings``.
         """
-        f = _check_readings(readings, batched=True)
+        f = check_readings(readings, batched=True)
         n = f.shape[-2]
         if self.motion_accel_mps2 is not None:
             if frames is None:

@@ -56,7 +56,7 @@ from .chiparray import ChipArray
 from .faults import DriftingSensor, FaultSpec, FaultStats, wrap_chip
 from .geometry import ideal_readings
 from .sensor import SensorModel
-from .sensor import _check_readings as check_readings
+from .sensor import check_readings
 from .imu import SENSOR_SETS, GyroModel, ImuArray, MagModel
 from .imu_source import MOTION_SHAPES, ImuSource
 from .motion import make_motion_scene

@@ -32,7 +32,7 @@ import time
 from dataclasses import asdict, dataclass, field
 
 from protocol.framing import DecodeError
-from protocol.messages import (Announce, Capability, GatewayFlag, GatewayInfo, GetInfo, ImuBatch, Info,
+from protocol.messages import (SAMPLE_FORMAT_CODES, Announce, Capability, GatewayFlag, GatewayInfo, GetInfo, ImuBatch, Info,
                                SampleBatch, SampleFormat, SnapshotFrames, Sync)
 
 __all__ = ["PortEntry", "ProbeResult", "ProbeCollector", "list_serial", "list_can", "probe_port", "ask",
@@ -236,7 +236,7 @@ class ProbeCollector:
         for uid in sorted(gateways):
             for g in sorted(self.gw_runs.get(uid, {}).values(), key=lambda g: g.first_link) or [None]:
                 fmt = "?" if g is None else (SampleFormat(g.sample_format).name
-                                             if g.sample_format in SampleFormat._value2member_map_
+                                             if g.sample_format in SAMPLE_FORMAT_CODES
                                              else str(g.sample_format))
                 gws.append({"uid": f"0x{uid:016X}" if uid >= 0 else f"node 0x{-uid:04X}",
                             "flags": [] if g is None else [f.name for f in GatewayFlag if f and f in g.flags],
