@@ -456,7 +456,7 @@ def test_a_symlink_path_is_taken_only_when_it_is_free_or_a_stale_one_of_ours(tmp
     import subprocess
     import sys
 
-    from virtual_sheet import devices
+    from virtual_sheet import pty as devices  # the symlink records live with the ptys
     from virtual_sheet.devices import claim_symlink
 
     monkeypatch.setattr(devices, "SYMLINK_RECORDS", str(tmp_path / "records"))
@@ -495,7 +495,7 @@ def test_a_symlink_path_is_taken_only_when_it_is_free_or_a_stale_one_of_ours(tmp
 
 
 def test_a_device_publishes_replaces_its_stale_symlink_and_removes_only_its_own(tmp_path, monkeypatch):
-    from virtual_sheet import devices
+    from virtual_sheet import pty as devices  # the symlink records live with the ptys
 
     monkeypatch.setattr(devices, "SYMLINK_RECORDS", str(tmp_path / "records"))
     link = tmp_path / "port"
