@@ -56,8 +56,11 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "Zenoh under capsheet/<sheet>/...; ros2: the same as ROS 2 messages laid out as rmw_zenoh "
                         "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics, and with gyroscopes "
                         "link_<k>/imu/data and imu/mag per link; ROS_DOMAIN_ID), "
-                        "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
-                        "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
+                        "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback "
+                        "only (127.0.0.1, no multicast scouting; the machine's sessions meet at tcp/127.0.0.1:7447), "
+                        "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/10.0.0.2:7447), or --zenoh-config")
+    from host.cli.subscribe import add_zenoh_config_arg
+    add_zenoh_config_arg(g)
     g.add_argument("--no-publish-estimates", action="store_true",
                    help="--publish zenoh: publish snapshots, health and info but no estimates, and make none for "
                         "it: capsheet/<sheet>/estimate is left to estimate workers (capsheet estimate --subscribe), "
@@ -85,6 +88,12 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
         g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
     return g
+
+
+def where_zenoh(endpoint, args) -> str:
+    """Where ``--publish`` talks, for messages (`host.publish.zenoh_session.describe`)."""
+    from host.publish.zenoh_session import describe
+    return describe(endpoint, getattr(args, "zenoh_config", None))
 
 
 def _publish_arg(value: str):
@@ -241,11 +250,15 @@ class SessionOutputs:
             sheet = getattr(args, "sheet_name", "sheet")
             try:
                 self.publisher = ZenohPublisher(sheet, publish[1], lattice, link_length,
-                                                info={"mode": mode, **(session or {})})
+                                                info={"mode": mode, **(session or {})},
+                                                config_file=getattr(args, "zenoh_config", None))
+            except ValueError as exc:  # a Zenoh config that cannot be used
+                print(f"{prog}: {exc}", file=sys.stderr)
+                raise SystemExit(2) from None
             except OSError as exc:
                 raise SystemExit(f"{prog}: {exc}") from None
             print(f"{prog}: publishing to Zenoh under {self.publisher.prefix}/ "
-                  f"({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+                  f"({where_zenoh(publish[1], args)})", file=sys.stderr)
         if self._worker_wanted and (self.recorder is not None or self.publisher is not None or self.ros2 is not None):
             from host.workers.estimate_worker import EstimatorProcess
             self.worker = EstimatorProcess(lattice.rows, lattice.cols, self.link_length)
@@ -275,7 +288,10 @@ class SessionOutputs:
         ros2_pub = publish is not None and publish[0] == "ros2"
         try:
             self.ros2 = Ros2Outputs(sheet, lattice, publish=ros2_pub, endpoint=publish[1] if ros2_pub else None,
-                                    record=record_ros2, domain=domain)
+                                    record=record_ros2, domain=domain, config_file=getattr(args, "zenoh_config", None))
+        except ValueError as exc:  # a Zenoh config that cannot be used
+            print(f"{prog}: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
         except OSError as exc:
             # a file's own error (PermissionError ...) is the recording's; a plain OSError says what failed
             what = f"cannot write {record_ros2}: " if record_ros2 and type(exc) is not OSError else ""
@@ -287,7 +303,7 @@ class SessionOutputs:
         self.ros2.info(self._ros2_info)  # before bring-up: no layout, no calibration yet
         if ros2_pub:
             print(f"{prog}: publishing ROS 2 messages (rmw_zenoh layout, domain {domain}) under "
-                  f"{self.ros2.namespace}/ and /diagnostics ({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+                  f"{self.ros2.namespace}/ and /diagnostics ({where_zenoh(publish[1], args)})", file=sys.stderr)
 
     def _recording_stopped(self, reason: str) -> None:
         print(f"{self.prog}: recording stopped: {reason}; {self.recorder.paths[-1]} is complete and readable "

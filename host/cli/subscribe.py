@@ -26,7 +26,8 @@ import signal
 import sys
 import time
 
-__all__ = ["add_subscribe_args", "check_subscribe", "run_worker", "subscribe_arg", "open_session"]
+__all__ = ["add_subscribe_args", "check_subscribe", "run_worker", "subscribe_arg", "open_session",
+           "add_zenoh_config_arg", "zenoh_config_arg"]
 
 PROG = "capsheet estimate"
 EXIT_OK, EXIT_FAIL, EXIT_USAGE = 0, 1, 2
@@ -46,6 +47,27 @@ def subscribe_arg(value: str):
         raise argparse.ArgumentTypeError(f"--subscribe {value!r}: workers read capsheet's own keys, give zenoh "
                                          f"or zenoh:ENDPOINT (ros2 is not read)")
     return kind, endpoint
+
+
+def zenoh_config_arg(value: str) -> str:
+    """``--zenoh-config FILE``: a readable regular file of a config's size (read by Zenoh when the
+    session opens)."""
+    from host.publish.zenoh_session import check_config_file
+    try:
+        return check_config_file(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_zenoh_config_arg(group) -> None:
+    """``--zenoh-config FILE`` (one help text for every command that opens a Zenoh session)."""
+    group.add_argument("--zenoh-config", metavar="FILE.json5", type=zenoh_config_arg, default=None,
+                       help="a Zenoh config file (JSON5, as zenohd and every Zenoh tool read it) for the session: "
+                            "TLS and its CA, user and password, access control, other endpoints "
+                            "(docs/distribution.md). Default: the file ZENOH_SESSION_CONFIG_URI names (as "
+                            "rmw_zenoh reads it), else ZENOH_CONFIG, else loopback only: 127.0.0.1, no multicast "
+                            "scouting, the machine's sessions meeting at tcp/127.0.0.1:7447. "
+                            "ZENOH_CONFIG_OVERRIDE='key=value;...' is applied over it")
 
 
 def _worker_arg(value: str):
@@ -71,8 +93,9 @@ def add_subscribe_args(p) -> None:
                    type=subscribe_arg,
                    help="be a worker: estimate the snapshots hosts publish (capsheet host --publish zenoh) and "
                         "publish one estimate per snapshot under capsheet/<sheet>/estimate. zenoh: peer mode on "
-                        "loopback (multicast scouting on lo); zenoh:ENDPOINT: client of the router at that "
-                        "locator, e.g. zenoh:tcp/192.168.1.10:7447")
+                        "loopback only (127.0.0.1, no multicast; the machine's sessions meet at "
+                        "tcp/127.0.0.1:7447); zenoh:ENDPOINT: client of the router at that locator, e.g. "
+                        "zenoh:tcp/192.168.1.10:7447")
     g.add_argument("--sheets", metavar="NAME,...", type=_sheets_arg, default=None,
                    help="take these sheets only: names, each of which must answer capsheet/<sheet>/info within "
                         "--wait (else: unknown sheet, exit 1), or patterns with * and ? (e.g. 'left_*'), taken "
@@ -88,6 +111,7 @@ def add_subscribe_args(p) -> None:
     g.add_argument("--wait", type=T.duration, default=10.0, metavar="S",
                    help="how long the sheets named by --sheets have to answer their info query at start, "
                         "seconds (default 10)")
+    add_zenoh_config_arg(g)
 
 
 def check_subscribe(ns) -> str | None:
@@ -120,15 +144,14 @@ def check_subscribe(ns) -> str | None:
     return None
 
 
-def open_session(endpoint):
-    import zenoh
-
-    from host.publish.zenoh_pub import zenoh_config
+def open_session(endpoint, config_file: str | None = None):
+    """The worker's or the view's Zenoh session (`host.publish.zenoh_session.open_session`): ValueError
+    for a config that cannot be used, OSError (one line) when it cannot be opened."""
+    from host.publish.zenoh_session import open_session as open_
     try:
-        return zenoh.open(zenoh_config(endpoint))
-    except zenoh.ZError as exc:
-        where = f"the Zenoh router at {endpoint}" if endpoint else "a Zenoh session in peer mode on loopback"
-        raise OSError(f"cannot reach {where}: {str(exc).split(' at /')[0]} (is zenohd running there?)") from None
+        return open_(endpoint, config_file)
+    except OSError as exc:
+        raise OSError(f"{exc} (is the router running there?)" if endpoint else str(exc)) from None
 
 
 def _ask_info(session, sheet: str, timeout_s: float) -> dict | None:
@@ -147,13 +170,17 @@ def _ask_info(session, sheet: str, timeout_s: float) -> dict | None:
 def run_worker(args) -> int:
     import zenoh
 
+    from host.publish.zenoh_session import describe
     from host.workers.distribute import Selection, SheetWork, latency_ms
     from host.publish.zenoh_pub import HEADER
 
     import host.analysis.estimator  # noqa: F401 -- before the first snapshot, not during it
 
     try:
-        session = open_session(args.subscribe[1])
+        session = open_session(args.subscribe[1], getattr(args, "zenoh_config", None))
+    except ValueError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return EXIT_USAGE
     except OSError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return EXIT_FAIL
@@ -228,7 +255,7 @@ def run_worker(args) -> int:
                       file=sys.stderr)
                 return EXIT_FAIL
         share = "" if args.worker is None else f", worker {args.worker[0]}/{args.worker[1]}"
-        print(f"{PROG}: worker ready ({args.subscribe[1] or 'peer mode on loopback'}; "
+        print(f"{PROG}: worker ready ({describe(args.subscribe[1], getattr(args, 'zenoh_config', None))}; "
               f"{'sheets ' + ', '.join(args.sheets) if args.sheets else 'every sheet'}{share})", file=sys.stderr,
               flush=True)
         end = None if args.duration is None else t0 + args.duration

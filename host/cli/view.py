@@ -32,21 +32,22 @@ TF_PERIOD_S = 1.0
 
 def register(subparsers) -> None:
     from host.cli import argtypes as T
-    from host.cli.subscribe import subscribe_arg
+    from host.cli.subscribe import add_zenoh_config_arg, subscribe_arg
     p = subparsers.add_parser("view", help="several sheets' estimates from Zenoh in one live 3D scene (robot.toml)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", required=True, metavar="ROBOT.toml",
                    help="the robot: [[sheet]] tables with name, translation (m) and rotation (quaternion x, y, z, w) "
                         "or rpy_deg; optional [view] frame, port, rate, endpoint (docs/distribution.md)")
     p.add_argument("--subscribe", metavar="zenoh[:ENDPOINT]", type=subscribe_arg, default=None,
-                   help="where the estimates are: zenoh (peer mode on loopback) or zenoh:ENDPOINT (a router); "
-                        "default the config's [view] endpoint, else peer mode on loopback")
+                   help="where the estimates are: zenoh (peer mode on loopback only: 127.0.0.1, no multicast) or "
+                        "zenoh:ENDPOINT (a router); default the config's [view] endpoint, else loopback only")
     p.add_argument("--port", type=T.tcp_port, default=None,
                    help="the live view's TCP port on localhost (default the config's, else 8765; 0: a free one)")
     p.add_argument("--rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=None,
                    help="scene updates per sheet per second (default the config's, else 20)")
     p.add_argument("--duration", type=T.duration, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("-q", "--quiet", action="store_true", help="only the summary at the end")
+    add_zenoh_config_arg(p)
     p.set_defaults(func=run)
 
 
@@ -64,13 +65,17 @@ def run(args) -> int:
     from host.cli.subscribe import open_session
     from host.publish.live import LiveServer, SceneChannels, log_frame_transform
     from host.publish.zenoh_pub import decode_estimate
+    from host.publish.zenoh_session import describe
     from protocol.lattice import Lattice
 
     endpoint = args.subscribe[1] if args.subscribe is not None else robot.endpoint
     port = args.port if args.port is not None else (robot.port if robot.port is not None else 8765)
     rate = args.rate or robot.rate or 20.0
     try:
-        session = open_session(endpoint)
+        session = open_session(endpoint, getattr(args, "zenoh_config", None))
+    except ValueError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 1
@@ -107,7 +112,7 @@ def run(args) -> int:
     scenes: dict[str, SceneChannels] = {}
     subs = [session.declare_subscriber(f"capsheet/{p.name}/estimate", on_sample) for p in robot.sheets]
     print(f"{PROG}: {len(robot.sheets)} sheets ({', '.join(poses)}) in frame {robot.frame}, from Zenoh "
-          f"({endpoint or 'peer mode on loopback'}); live 3D view on {server.url} (Foxglove: Open connection -> "
+          f"({describe(endpoint, getattr(args, 'zenoh_config', None))}); live 3D view on {server.url} (Foxglove: Open connection -> "
           f"Foxglove WebSocket -> {server.url}; a 3D panel, display frame {robot.frame})", file=sys.stderr, flush=True)
     t0 = time.monotonic()
     end = None if args.duration is None else t0 + args.duration

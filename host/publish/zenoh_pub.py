@@ -12,9 +12,11 @@ Per sheet, under ``capsheet/<sheet>/``:
   for it (``session.get("capsheet/<sheet>/info")``).
 
 The binary payloads are little-endian, a 40-byte header then arrays (docs/distribution.md has the
-layout; `decode_snapshot` / `decode_estimate` read them back). Peer mode on loopback by default
-(listens on ``tcp/127.0.0.1``, a random port, scouting by multicast on ``lo``); with an ENDPOINT (a
-Zenoh locator such as ``tcp/127.0.0.1:7447``) client mode, connected to that router.
+layout; `decode_snapshot` / `decode_estimate` read them back, checking every size first). Without an
+ENDPOINT the session stays on loopback (127.0.0.1 only, no multicast scouting; the processes of one
+machine meet at ``tcp/127.0.0.1:7447``); with an ENDPOINT (a Zenoh locator such as
+``tcp/10.0.0.2:7447``) client mode, connected to that router; a Zenoh config file for anything else
+(TLS, user and password, access control): `host.publish.zenoh_session`.
 """
 
 from __future__ import annotations
@@ -161,18 +163,11 @@ def decode_estimate(payload: bytes) -> dict:
     return h
 
 
-def zenoh_config(endpoint: str | None):
-    """Peer mode on loopback (no ENDPOINT) or client mode connected to ``endpoint``."""
-    import zenoh
-    conf = zenoh.Config()
-    if endpoint is None:
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-        conf.insert_json5("scouting/multicast/interface", '"lo"')
-    else:
-        conf.insert_json5("mode", '"client"')
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return conf
+def zenoh_config(endpoint: str | None, config_file: str | None = None):
+    """The session's `zenoh.Config`: loopback only without ``endpoint``, a client of ``endpoint``
+    otherwise, or a Zenoh config file (`host.publish.zenoh_session`)."""
+    from host.publish.zenoh_session import session_config
+    return session_config(endpoint, config_file)
 
 
 class ZenohPublisher:
@@ -188,10 +183,14 @@ class ZenohPublisher:
     link_length : float
     info : dict, optional
         Extra facts for the ``info`` queryable (the session's mode ...).
+    config_file : str, optional
+        A Zenoh config file (``--zenoh-config``; `host.publish.zenoh_session`).
+
+    Raises ValueError for a config that cannot be used, OSError when the session cannot be opened.
     """
 
     def __init__(self, sheet: str, endpoint: str | None, lattice, link_length: float, *,
-                 info: dict | None = None) -> None:
+                 info: dict | None = None, config_file: str | None = None) -> None:
         if not SHEET_NAME.match(sheet):
             raise ValueError(f"bad sheet name {sheet!r}: 1-64 of A-Z a-z 0-9 _ . - (one Zenoh key chunk)")
         import zenoh
@@ -206,10 +205,8 @@ class ZenohPublisher:
                       "keys": {k: f"{self.prefix}/{k}" for k in ("snapshot", "estimate", "contacts", "health", "info")}}
         self.counts = {"snapshot": 0, "estimate": 0, "contacts": 0, "health": 0, "info": 0}
         self._last_health = -np.inf
-        try:
-            self.session = zenoh.open(zenoh_config(endpoint))
-        except zenoh.ZError as exc:
-            raise OSError(f"cannot open a Zenoh session ({endpoint or 'peer mode on loopback'}): {exc}") from None
+        from host.publish.zenoh_session import open_session
+        self.session = open_session(endpoint, config_file)
         self._pub = {k: self.session.declare_publisher(f"{self.prefix}/{k}")
                      for k in ("snapshot", "estimate", "contacts", "health")}
         self._queryable = self.session.declare_queryable(f"{self.prefix}/info", self._reply_info)
