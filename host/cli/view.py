@@ -11,8 +11,12 @@ sheet has ``/<sheet>/scene`` (the lattice, `foxglove.SceneUpdate`) and ``/<sheet
 a 3D panel, display frame the fixed frame. The newest estimate of each sheet is drawn up to
 ``--rate`` times per second; every one received is counted.
 
-Exit status: 0 when every sheet of the config sent estimates, 1 when one never did (named), or when
-no Zenoh endpoint is reachable; 2 for a usage error or a bad config (one line naming the key).
+Every payload is checked before use (sizes, lattice, counts: `host.publish.zenoh_pub.decode_estimate`);
+one that is not a sheet's estimate is counted and named in the summary, never drawn.
+
+Exit status: 0 when every sheet of the config sent estimates, 1 when one never did (named), sent
+only payloads that were refused, or when no Zenoh endpoint is reachable; 2 for a usage error or a
+bad config (one line naming the key).
 """
 
 from __future__ import annotations
@@ -64,7 +68,7 @@ def run(args) -> int:
 
     from host.cli.subscribe import open_session
     from host.publish.live import LiveServer, SceneChannels, log_frame_transform
-    from host.publish.zenoh_pub import decode_estimate
+    from host.publish.zenoh_pub import MAX_PAYLOAD_BYTES, decode_estimate
     from host.publish.zenoh_session import describe
     from protocol.lattice import Lattice
 
@@ -99,13 +103,21 @@ def run(args) -> int:
     received = {p.name: 0 for p in robot.sheets}
     drawn = {p.name: 0 for p in robot.sheets}
     not_estimated = {p.name: 0 for p in robot.sheets}
-    bad: dict[str, str] = {}
+    bad = {p.name: 0 for p in robot.sheets}  # payloads refused: counted, the last reason kept
+    last_bad: dict[str, str] = {}
 
     def on_sample(sample) -> None:  # Zenoh's thread: keep the newest only
         sheet = str(sample.key_expr).split("/")[1]
+        size = len(sample.payload)
         with lock:
-            newest[sheet] = bytes(sample.payload.to_bytes())
             received[sheet] += 1
+            if size > MAX_PAYLOAD_BYTES:  # refused before it is copied
+                bad[sheet] += 1
+                last_bad[sheet] = f"a payload of {size} bytes, more than the largest sheet's {MAX_PAYLOAD_BYTES}"
+                return
+        data = bytes(sample.payload.to_bytes())
+        with lock:
+            newest[sheet] = data
 
     tf = FrameTransformChannel("/tf", context=context)
     poses = {p.name: p for p in robot.sheets}
@@ -130,10 +142,11 @@ def run(args) -> int:
                 batch = list(newest.items())
                 newest.clear()
             for sheet, payload in batch:
-                try:
+                try:  # sizes, lattice and counts checked before anything is allocated or drawn
                     e = decode_estimate(payload)
                 except ValueError as exc:
-                    bad[sheet] = str(exc)
+                    bad[sheet] += 1
+                    last_bad[sheet] = str(exc)
                     continue
                 if not e["estimated"]:
                     not_estimated[sheet] += 1
@@ -159,9 +172,12 @@ def run(args) -> int:
         n = received[p.name]
         line = (f"{PROG}: sheet {p.name}: {n} estimates received, {drawn[p.name]} drawn"
                 + (f", {not_estimated[p.name]} not estimated by their worker" if not_estimated[p.name] else "")
-                + (f", bad payload: {bad[p.name]}" if p.name in bad else ""))
+                + (f", {bad[p.name]} bad payload(s) refused (the last: {last_bad[p.name]})" if bad[p.name] else ""))
         if n == 0:
             line += f" -- nothing from capsheet/{p.name}/estimate (its host or worker not running?)"
+            code = 1
+        elif bad[p.name] and not drawn[p.name]:
+            line += " -- none could be drawn"
             code = 1
         print(line, file=sys.stderr)
     print(f"{PROG}: {time.monotonic() - t0:.1f} s{' (interrupted)' if interrupted else ''}, "
