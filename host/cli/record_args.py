@@ -39,6 +39,7 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                    help="serve the live 3D view over the Foxglove WebSocket protocol (subprotocols "
                         "foxglove.sdk.v1 and foxglove.websocket.v1) on localhost (default port 8765; "
                         "open ws://localhost:8765 in Foxglove or Lichtblick)")
+    add_live_server_args(g, parser)
     g.add_argument("--live-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=20.0,
                    help="estimates per second for the live view and the recording (default 20)")
     g.add_argument("--split-size", metavar="MB", type=T.bounded_float(0.0, 1e7, lo_open=True, unit="MB"),
@@ -88,6 +89,47 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
         g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
     return g
+
+
+def add_live_server_args(g, parser) -> None:
+    """The live view server's limits and TLS (``--live``, ``capsheet view``) in group ``g`` of
+    ``parser``: `live_options` reads them."""
+    from host.cli import argtypes as T
+    from host.publish.live import MAX_CLIENTS
+    g.add_argument("--live-max-clients", metavar="N", type=T.int_range(1, 1024), default=MAX_CLIENTS,
+                   help=f"live view: clients served at once; more are answered HTTP 503 (default {MAX_CLIENTS})")
+    g.add_argument("--live-origin", metavar="ORIGIN", action="append", default=None,
+                   help="live view: serve browsers from this origin only (e.g. https://app.foxglove.dev; repeat "
+                        "for several); a page from any other origin is answered HTTP 403, so it cannot read the "
+                        "sheet through your browser. Clients that send no Origin (not browsers) are served. "
+                        "Default: any origin")
+    g.add_argument("--live-tls-cert", metavar="CERT.pem", type=T.existing_file(what="a PEM certificate"),
+                   default=None, help="live view: serve wss:// with this certificate (chain), with --live-tls-key")
+    g.add_argument("--live-tls-key", metavar="KEY.pem", type=T.existing_file(what="a PEM private key"),
+                   default=None, help="live view: the certificate's private key (with --live-tls-cert)")
+    if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
+        parser.add_check(check_live_server_args)
+
+
+def check_live_server_args(ns) -> str | None:
+    """Usage errors of the live view's TLS: both files or neither, and they must load."""
+    cert, key = getattr(ns, "live_tls_cert", None), getattr(ns, "live_tls_key", None)
+    if cert is None and key is None:
+        return None
+    from host.publish.live import tls_context
+    try:
+        tls_context(cert, key)
+    except ValueError as exc:
+        return f"--live-tls-cert/--live-tls-key: {exc}"
+    return None
+
+
+def live_options(args) -> dict:
+    """`host.publish.live.LiveServer`'s keyword arguments from `add_live_server_args`' options."""
+    from host.publish.live import MAX_CLIENTS
+    return {"max_clients": getattr(args, "live_max_clients", MAX_CLIENTS),
+            "allowed_origins": getattr(args, "live_origin", None),
+            "tls_cert": getattr(args, "live_tls_cert", None), "tls_key": getattr(args, "live_tls_key", None)}
 
 
 def where_zenoh(endpoint, args) -> str:
@@ -231,7 +273,8 @@ class SessionOutputs:
                     min_free=int(float(getattr(args, "min_free", 0.0) or 0.0) * 1e6) if record else 0,
                     on_stop=self._recording_stopped,
                     estimate_file_period_s=R.ESTIMATE_FILE_PERIOD_S if live_session else 0.0,
-                    scene_file_period_s=R.SCENE_FILE_PERIOD_S if live_session else 0.0)
+                    scene_file_period_s=R.SCENE_FILE_PERIOD_S if live_session else 0.0,
+                    live_options=live_options(args) if live is not None else None)
             except OSError as exc:  # an unwritable --record path, a --live port in use
                 what = "" if "live view" in str(exc) else f"cannot write {record}: "
                 raise SystemExit(f"{prog}: {what}{exc}") from None

@@ -52,6 +52,8 @@ def register(subparsers) -> None:
     p.add_argument("--duration", type=T.duration, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("-q", "--quiet", action="store_true", help="only the summary at the end")
     add_zenoh_config_arg(p)
+    from host.cli.record_args import add_live_server_args
+    add_live_server_args(p, p)
     p.set_defaults(func=run)
 
 
@@ -66,6 +68,7 @@ def run(args) -> int:
     import numpy as np
     from foxglove.channels import FrameTransformChannel
 
+    from host.cli.record_args import live_options
     from host.cli.subscribe import open_session
     from host.publish.live import LiveServer, SceneChannels, log_frame_transform
     from host.publish.zenoh_pub import MAX_PAYLOAD_BYTES, decode_estimate
@@ -85,7 +88,7 @@ def run(args) -> int:
         return 1
     context = foxglove.Context()
     try:
-        server = LiveServer(context, port=port, name="capsheet view")
+        server = LiveServer(context, port=port, name="capsheet view", **live_options(args))
     except OSError as exc:
         session.close()
         print(f"{PROG}: {exc}", file=sys.stderr)

@@ -283,6 +283,9 @@ class Recorder:
         Attached as ``layout.json`` / ``calibration.json`` (see `Recorder.session_facts`).
     live : host.live.LiveServer, optional
         A live server on this recorder's context (`host.publish.live.start`); stopped by `close`.
+    live_options : dict, optional
+        Keyword arguments of `host.publish.live.LiveServer` for the ``live_port`` server
+        (``max_clients``, ``allowed_origins``, ``tls_cert``, ``tls_key``).
     colour_by : {"error", "displacement", "links"}
         What colours the lattice in ``/sheet/scene`` (docs/recording.md).
     flush_interval_s : float
@@ -330,7 +333,8 @@ class Recorder:
                  min_free: int = 0, free_bytes: Callable[[Path], int] | None = None,
                  on_stop: Callable[[str], None] | None = None,
                  estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0,
-                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS) -> None:
+                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS,
+                 live_options: dict | None = None) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -416,7 +420,8 @@ class Recorder:
         if live_port is not None:
             from host.publish.live import LiveServer
             self.live = LiveServer(self.context, port=live_port, host=live_host,
-                                   name=f"capsheet {lattice.rows}x{lattice.cols}", channel_filter=_not_for("file"))
+                                   name=f"capsheet {lattice.rows}x{lattice.cols}", channel_filter=_not_for("file"),
+                                   **(live_options or {}))
         for sc in self._scenes():
             sc.log_transform(time.time_ns())
 
