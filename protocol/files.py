@@ -42,7 +42,9 @@ def open_regular(path, what: str = "a file"):
             raise ValueError(f"{path}: {kind}, not a regular file: need {what}")
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
-        return os.fdopen(fd, "rb")
+        f = os.fdopen(fd, "rb")
+        f.raw.name = os.fspath(path)  # as open() names it (messages say which file)
+        return f
     except BaseException:
         os.close(fd)
         raise

@@ -44,13 +44,14 @@ def truncated_note(prog: str, path, allow: bool, what: str) -> bool:
 def _no_summary(path) -> bool:
     """An MCAP file (by its magic bytes) without its summary: a killed writer, a partial copy."""
     from host.record.recording import recording_set, snapshot_count
+    from protocol.files import open_regular
     try:
         for p in (path if isinstance(path, list) else recording_set(path)):
-            with open(p, "rb") as f:
+            with open_regular(p, "a recording") as f:  # a FIFO is not waited on
                 if f.read(8) != b"\x89MCAP0\r\n":
                     return False
         return snapshot_count(path) is None
-    except OSError:
+    except (OSError, ValueError):
         return False
 
 
