@@ -52,12 +52,15 @@ def open_regular(path, what: str = "a file"):
 
 def read_file(path, max_bytes: int, what: str = "a file") -> bytes:
     """The bytes of a regular file of at most ``max_bytes`` (`open_regular`); ValueError naming the
-    size otherwise (OSError when it cannot be opened). Never reads more than ``max_bytes + 1`` bytes."""
+    size otherwise (OSError when it cannot be opened). Never reads (nor allocates for) more than
+    ``max_bytes + 1`` bytes."""
     with open_regular(path, what) as f:
         size = os.fstat(f.fileno()).st_size
         if size > max_bytes:
             raise ValueError(f"{path}: {size:,} bytes, more than {what} can need ({max_bytes:,})")
-        data = f.read(max_bytes + 1)
+        data = f.read(size + 1)  # what it holds (a read of n bytes allocates n at once), and whether it grew
+        if len(data) > size:
+            data += f.read(max_bytes + 1 - len(data))
     if len(data) > max_bytes:  # it grew while being read
         raise ValueError(f"{path}: more than {max_bytes:,} bytes, more than {what} can need")
     return data
