@@ -145,8 +145,13 @@ def load_can_log(path) -> dict[str, list]:
     path = Path(path)
     if path.suffix.lower() not in CAN_LOG_SUFFIXES:
         raise ValueError(f"{str(path)!r}: not a CAN log python-can reads here (need {', '.join(CAN_LOG_SUFFIXES)})")
+    from can.io.blf import BLFParseError
+
     from protocol.files import open_regular
-    open_regular(path, "a CAN log").close()  # a regular file: not a FIFO, not /dev/zero (ValueError)
+    with open_regular(path, "a CAN log") as f:  # a regular file: not a FIFO, not /dev/zero (ValueError)
+        if path.suffix.lower() == ".blf":  # its sizes and containers bounded before python-can trusts them
+            from host.record.blf_check import check_blf
+            check_blf(f, str(path))
     buses: dict[str, list] = {}
     try:
         for m in can.LogReader(str(path)):
@@ -154,7 +159,7 @@ def load_can_log(path) -> dict[str, list]:
                 continue
             buses.setdefault(str(m.channel), []).append((float(m.timestamp), "can", [m]))
     except (ValueError, OSError, EOFError, struct.error, IndexError, KeyError, TypeError, UnicodeDecodeError,
-            zlib.error, MemoryError) as exc:  # python-can's readers, on a file that is not what it says
+            zlib.error, MemoryError, BLFParseError) as exc:  # python-can's readers, on a file not what it says
         raise ValueError(f"{str(path)!r}: cannot read as a CAN log: {type(exc).__name__}: "
                          f"{str(exc).splitlines()[0][:120] if str(exc) else ''}") from None
     return buses

@@ -216,6 +216,18 @@ def corpus(folder: Path) -> dict[str, tuple[Path, str]]:
     # CAN logs (``capsheet replay FILE --lattice``)
     put("canlog_junk_blf", "canlog", b"LOGG" + bytes(range(256)) * 8, ".blf")
     put("canlog_junk_asc", "canlog", "date Mon Jan 1\nbase hex\n" + "1.0 1 7FF Rx d 9 " + "ff " * 9 + "\n", ".asc")
+    # a BLF log (python-can's writer) with a zlib container of 40 MiB of zeros (~40 KB in the file)
+    import can
+    import zlib
+    from can.io.blf import BLFWriter
+    w = BLFWriter(str(folder / "tmp.blf"))
+    w.on_message_received(can.Message(arbitration_id=0x1001, data=b"\x01\x02", is_extended_id=True, channel=0))
+    w.stop()
+    blf = (folder / "tmp.blf").read_bytes()
+    body = struct.pack("<H6xL4x", 2, 128 << 10) + zlib.compress(bytes(40 << 20), 9)
+    obj = struct.pack("<4sHHLL", b"LOBJ", 16, 1, 16 + len(body), 10) + body + bytes((16 + len(body)) % 4)
+    hs = struct.unpack_from("<4sL", blf)[1]
+    put("canlog_blf_zlib_bomb", "canlog", blf[:hs] + obj + blf[hs:], ".blf")
     (folder / "can_zero.log").symlink_to("/dev/zero")
     out["canlog_dev_zero"] = (folder / "can_zero.log", "canlog")
     return out

@@ -92,6 +92,7 @@ def test_every_crafted_file_is_refused_in_one_line_within_60_s_and_600_mb(result
     ("robot_nested", "nested too deep"),
     ("robot_translation_1e300", "more than 1000 m"),
     ("canlog_dev_zero", "a device, not a regular file"),
+    ("canlog_blf_zlib_bomb", "a log container inflating to more than 16,777,216 bytes"),
 ])
 def test_the_line_names_what_is_wrong(results, name, says):
     _, got = results
