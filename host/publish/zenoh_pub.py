@@ -259,6 +259,8 @@ class ZenohPublisher:
         self._queryable = self.session.declare_queryable(f"{self.prefix}/info", self._reply_info)
 
     def _reply_info(self, query) -> None:
+        # nothing of the query is read (payload, parameters, attachment): whoever asks, however,
+        # gets the same bounded document
         with self._lock:
             doc = json.dumps(self._info)
             self.counts["info"] += 1

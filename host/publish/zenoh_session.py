@@ -10,6 +10,8 @@
   random loopback port, which the one on the fixed port passes on (Zenoh's gossip, over the
   sessions already open): the peers then connect to each other directly. A zenohd or rmw_zenohd
   running on this machine's port 7447 is the one they all connect to.
+* Every default session (with or without an ENDPOINT) takes messages of at most `MAX_MESSAGE_BYTES`
+  (Zenoh's own default: 1 GiB, held in memory before capsheet sees it).
 * **An ENDPOINT** (``--publish zenoh:ENDPOINT``, ``--subscribe zenoh:ENDPOINT``, ``[view]
   endpoint``): client mode, connected to that router only, multicast scouting off (``ros2``: peer
   mode connected to it, listening on a random loopback port, as rmw_zenoh's default session is).
@@ -27,7 +29,8 @@ import json
 import os
 import stat
 
-__all__ = ["LOCAL_ENDPOINT", "ENV_URI", "ENV_ZENOH", "ENV_OVERRIDE", "MAX_CONFIG_BYTES", "session_config",
+__all__ = ["LOCAL_ENDPOINT", "ENV_URI", "ENV_ZENOH", "ENV_OVERRIDE", "MAX_CONFIG_BYTES", "MAX_MESSAGE_BYTES",
+           "session_config",
            "open_session", "config_source", "check_config_file"]
 
 #: the loopback endpoint the sessions of one machine meet at when no endpoint is given
@@ -38,6 +41,10 @@ ENV_URI = "ZENOH_SESSION_CONFIG_URI"
 ENV_ZENOH = "ZENOH_CONFIG"
 #: rmw_zenoh's variable: ``key=value;key=value`` applied over whatever config
 ENV_OVERRIDE = "ZENOH_CONFIG_OVERRIDE"
+#: the largest message a default session takes from the network: Zenoh's default is 1 GiB, which it
+#: assembles in memory before any check of ours runs; capsheet's largest payload (a 32,767-link
+#: snapshot with every IMU field) is 1.4 MB
+MAX_MESSAGE_BYTES = 16 << 20
 #: a Zenoh config file larger than this is refused unread (Zenoh's own DEFAULT_CONFIG.json5, every
 #: option commented, is about 40 KB)
 MAX_CONFIG_BYTES = 1 << 20
@@ -101,6 +108,7 @@ def session_config(endpoint: str | None = None, config_file: str | None = None, 
     else:
         conf = zenoh.Config()
         conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("transport/link/rx/max_message_size", str(MAX_MESSAGE_BYTES))
         if endpoint is None:
             conf.insert_json5("mode", '"peer"')
             # the fixed endpoint: whoever gets it serves the others; the rest retry in the background

@@ -142,3 +142,28 @@ def test_well_formed_snapshots_for_a_sheet_without_info_are_held_up_to_the_byte_
     held = d["received"] - d["dropped_waiting"]
     assert held * len(one) <= 64 << 20 < (held + 1) * len(one), d
     assert rss_mb < 300, f"worker peak RSS {rss_mb:.0f} MB"
+
+
+def test_the_info_queryable_answers_the_same_whatever_the_query_carries():
+    """The publisher's ``info`` queryable reads nothing of a query (no payload, no parameters, no
+    attachment): a 1 MiB payload and odd parameters get the sheet's info, as a plain query does."""
+    from host.publish.zenoh_pub import ZenohPublisher, decode_info
+    from protocol.lattice import Lattice
+
+    sheet = _tag()
+    pub = ZenohPublisher(sheet, None, Lattice(3, 4), 0.01)
+    s = open_session(None)
+    try:
+        answers = []
+        for kwargs in ({}, {"payload": b"\xff" * (1 << 20), "attachment": b"x" * 100}):
+            for _ in range(20):  # the queryable's declaration reaches this session
+                got = [r.ok for r in s.get(f"capsheet/{sheet}/info?rows=1;x=" + "y" * 1000, timeout=1.0, **kwargs)
+                       if r.ok is not None]
+                if got:
+                    break
+            answers.append(decode_info(bytes(got[0].payload.to_bytes())))
+        assert answers[0] == answers[1] and (answers[0]["rows"], answers[0]["cols"]) == (3, 4)
+        assert pub.counts["info"] >= 2
+    finally:
+        s.close()
+        pub.close()

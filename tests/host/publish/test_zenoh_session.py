@@ -134,6 +134,9 @@ def test_the_default_config_says_loopback_and_no_multicast():
     conf = session_config("tcp/10.1.2.3:7447", None, environ={})
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     assert json.loads(conf.get_json("mode")) == "client"
+    for endpoint in (None, "tcp/10.1.2.3:7447"):  # Zenoh's own default takes 1 GiB messages
+        conf = session_config(endpoint, None, environ={})
+        assert json.loads(conf.get_json("transport/link/rx/max_message_size")) == 16 << 20
 
 
 @pytest.mark.parametrize("make, says", [
