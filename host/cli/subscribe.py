@@ -49,7 +49,7 @@ MAX_PENDING_TOTAL_BYTES = 256 << 20
 MAX_PENDING_SHEETS = 64
 #: bytes received and not yet taken from the worker's queue; beyond, new payloads are dropped
 #: (counted: the worker cannot keep up, or is flooded)
-MAX_QUEUED_BYTES = 256 << 20
+MAX_QUEUED_BYTES = 128 << 20
 
 
 def subscribe_arg(value: str):
@@ -185,6 +185,19 @@ def _ask_info(session, sheet: str, timeout_s: float) -> dict | None:
     return None
 
 
+def limit_malloc_arenas(n: int = 2) -> bool:
+    """On glibc, at most ``n`` malloc arenas for the process (``mallopt(M_ARENA_MAX)``). Zenoh's receive
+    threads each got an arena of their own, and each kept the megabytes of the payloads it had freed:
+    a worker flooded with 800 payloads of 1 MiB peaked at 382 MB with its queue never above 12 MB,
+    137 MB with two arenas. True when set (False elsewhere: other C libraries, or no ctypes)."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None)
+        return bool(libc.mallopt(-8, int(n)))  # M_ARENA_MAX (malloc.h)
+    except (OSError, AttributeError, ImportError):
+        return False
+
+
 def run_worker(args) -> int:
     import zenoh
 
@@ -194,6 +207,7 @@ def run_worker(args) -> int:
 
     import host.analysis.estimator  # noqa: F401 -- before the first snapshot, not during it
 
+    limit_malloc_arenas()  # before Zenoh's threads start: freed payloads are reused, not kept per thread
     try:
         session = open_session(args.subscribe[1], getattr(args, "zenoh_config", None))
     except ValueError as exc:
