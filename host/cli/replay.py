@@ -10,6 +10,10 @@ replayed snapshots are compared with the recorded ones (``snapshots_identical``)
 estimates with the recorded ones (``estimate_change_pct_side``: mean joint distance after the rigid
 overlay, % of side), so a newer estimator can be judged on old data. A recording of 6/9-axis chips
 is shaped as it was live: by the fused estimator, every snapshot in order.
+
+Exit status: 0 when the recording's input made snapshots; 1 when it could not be read (one line:
+`host.record.mcap_read`, `host.record.blf_check`), was cut short (without ``--allow-truncated``) or
+made no snapshot; 2 for a usage error.
 """
 
 from __future__ import annotations
@@ -220,7 +224,8 @@ def run(args) -> int:
     else:
         same = f"{identical} of {compared} identical to the recorded ones"
     print(f"capsheet replay: {n} snapshots from {rp.n_chunks} raw chunks ({rp.duration_s:.2f} s recorded) in "
-          f"{elapsed:.2f} s; {same}; {est_n} estimated", file=sys.stderr)
+          f"{elapsed:.2f} s; {same}; {est_n} estimated"
+          + ("; its raw input made no snapshot: nothing of it could be used" if n == 0 else ""), file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=1))
-    return 0
+    return 0 if n else 1  # a file whose input makes no snapshot is not a replay that worked

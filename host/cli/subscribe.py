@@ -166,7 +166,7 @@ def open_session(endpoint, config_file: str | None = None):
     try:
         return open_(endpoint, config_file)
     except OSError as exc:
-        raise OSError(f"{exc} (is the router running there?)" if endpoint else str(exc)) from None
+        raise OSError(f"{exc} (is zenohd running there?)" if endpoint else str(exc)) from None
 
 
 def _ask_info(session, sheet: str, timeout_s: float) -> dict | None:

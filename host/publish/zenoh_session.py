@@ -149,5 +149,7 @@ def open_session(endpoint: str | None = None, config_file: str | None = None, *,
     try:
         return zenoh.open(conf)
     except zenoh.ZError as exc:
-        where = describe(endpoint, config_file)
-        raise OSError(f"cannot open a Zenoh session ({where}): {str(exc).split(' at /')[0]}") from None
+        detail = str(exc).split(" at /")[0].strip()
+        if endpoint is not None and config_source(config_file)[0] is None:
+            raise OSError(f"cannot reach the Zenoh router at {endpoint}: {detail}") from None
+        raise OSError(f"cannot open a Zenoh session ({describe(endpoint, config_file)}): {detail}") from None
