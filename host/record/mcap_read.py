@@ -78,7 +78,10 @@ def _decompress(chunk, where: str) -> bytes:
     if chunk.compression == "":
         data = bytes(chunk.data)
     elif chunk.compression == "zstd":
-        import zstandard
+        try:
+            import zstandard
+        except ImportError:
+            raise ValueError(f"{where}: a zstd chunk, and the zstandard package is not installed") from None
         try:
             reader = zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data))
             out = bytearray()
@@ -91,7 +94,10 @@ def _decompress(chunk, where: str) -> bytes:
         except zstandard.ZstdError as exc:
             raise ValueError(f"{where}: a chunk that does not decompress (zstd: {exc})") from None
     elif chunk.compression == "lz4":
-        import lz4.frame
+        try:
+            import lz4.frame
+        except ImportError:
+            raise ValueError(f"{where}: an lz4 chunk, and the lz4 package is not installed") from None
         try:
             data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=size + 1)
         except RuntimeError as exc:
