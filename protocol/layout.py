@@ -39,11 +39,15 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from protocol.files import MAX_LINKS, loads_json, read_file
+
 __all__ = ["LayoutError", "LayoutDoc", "parse_uid", "parse_layout", "format_layout", "load_layout",
-           "save_layout", "FORMAT_NAME", "FORMAT_VERSION"]
+           "save_layout", "FORMAT_NAME", "FORMAT_VERSION", "MAX_LAYOUT_BYTES"]
 
 FORMAT_NAME = "capsheet-layout"
 FORMAT_VERSION = 1
+#: a layout file larger than this is refused unread: `MAX_LINKS` chips of ~60 bytes each, with room
+MAX_LAYOUT_BYTES = 8 << 20
 _HEX_UID = re.compile(r"^(0[xX])?([0-9a-fA-F]{1,16})$")
 
 
@@ -76,6 +80,8 @@ def _parse_link(value, where: str) -> int:
         raise LayoutError(f"{where}: invalid link {value!r} (need a decimal integer >= 0)")
     if link < 0:
         raise LayoutError(f"{where}: invalid link {value!r} (need >= 0)")
+    if link >= MAX_LINKS:
+        raise LayoutError(f"{where}: invalid link {value!r} (a sheet has at most {MAX_LINKS:,} links: 0..{MAX_LINKS - 1})")
     return link
 
 
@@ -90,6 +96,16 @@ class LayoutDoc:
     def __post_init__(self) -> None:
         if (self.rows is None) != (self.cols is None):
             raise LayoutError(f"Invalid lattice: rows={self.rows!r}, cols={self.cols!r} (give both or neither)")
+        if self.rows is not None:
+            n = self.rows * (self.cols - 1) + self.cols * (self.rows - 1)
+            if n > MAX_LINKS:
+                raise LayoutError(f"Invalid lattice: {self.rows}x{self.cols} has {n:,} links, more than a sheet's "
+                                  f"{MAX_LINKS:,} (node ids 1..0x7FFF)")
+            big = [link for link in self.links.values() if isinstance(link, int) and link >= n]
+            if big:
+                raise LayoutError(f"Invalid link {max(big)}: the {self.rows}x{self.cols} lattice has links 0..{n - 1}")
+        if len(self.links) > MAX_LINKS:
+            raise LayoutError(f"Invalid layout: {len(self.links):,} chips, more than a sheet's {MAX_LINKS:,}")
         seen: dict[int, int] = {}
         for uid, link in self.links.items():
             if not (isinstance(uid, int) and 0 <= uid < (1 << 64)):
@@ -121,9 +137,9 @@ def parse_layout(text: str, name: str = "layout.csv") -> LayoutDoc:
 
 def _parse_json(text: str, name: str) -> LayoutDoc:
     try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise LayoutError(f"{name}: not valid JSON ({exc.msg} at line {exc.lineno} column {exc.colno})") from None
+        doc = loads_json(text, name)  # nesting bounded
+    except ValueError as exc:
+        raise LayoutError(str(exc)) from None
     if not isinstance(doc, dict):
         raise LayoutError(f"{name}: expected a JSON object with 'chips', got {type(doc).__name__}")
     if "format" in doc and doc["format"] != FORMAT_NAME:
@@ -192,10 +208,13 @@ def format_layout(links: dict, name: str = "layout.csv", rows: int | None = None
 
 
 def load_layout(path) -> LayoutDoc:
-    """Read a layout file. Raises `LayoutError` (missing, unreadable, binary, malformed)."""
+    """Read a layout file. Raises `LayoutError` (missing, unreadable, not a regular file, larger than
+    `MAX_LAYOUT_BYTES`, binary, malformed, a lattice or a link beyond a sheet's `MAX_LINKS`)."""
     path = Path(path)
-    try:
-        data = path.read_bytes()
+    try:  # a regular file of a layout's size: not a FIFO, not /dev/zero
+        data = read_file(path, MAX_LAYOUT_BYTES, "a layout file")
+    except ValueError as exc:
+        raise LayoutError(str(exc)) from None
     except OSError as exc:
         raise LayoutError(f"{path}: cannot read layout file ({exc.strerror or exc})") from None
     try:

@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from protocol.constants import G0
+from protocol.files import MAX_LINKS, loads_json, read_file
 from protocol.frames import BOARD_POSES
 from protocol.lattice import Lattice
 
@@ -62,6 +63,18 @@ MIN_POSES = 6
 #: cal.json format name and version
 FORMAT = "capsheet-calibration"
 VERSION = 1
+#: a calibration file larger than this is refused unread (`MAX_LINKS` chips of ~700 bytes, with room)
+MAX_FILE_BYTES = 64 << 20
+#: what a file may say of a chip, each field's plausible range (the fit's own limits where it has
+#: them: scale 0.5 .. 2, `fit_board_poses`); beyond is a broken or hostile file, refused naming the
+#: field. bias: m/s², at most a ±16 g part's range; misalignment: a rotation vector of at most π rad
+#: (any rotation has one); non_orthogonality: rad; reference offset: ±2 g counts of a 16-bit word;
+#: reference sensitivity: counts per g; rms: m/s².
+FILE_LIMITS = {"bias": (-16 * G0, 16 * G0), "scale": (0.5, 2.0), "misalignment": (-np.pi, np.pi),
+               "non_orthogonality": (-0.5, 0.5), "reference_offset_counts": (-32768.0, 32767.0),
+               "reference_sensitivity": (1.0, 1e6), "rms_mps2": (0.0, 1e3)}
+#: held poses a file may list (`pose_directions`)
+MAX_FILE_POSES = 10_000
 # G0 (`protocol.constants`) and the suggested poses BOARD_POSES (`protocol.frames`) are re-exported.
 
 
@@ -319,37 +332,62 @@ class Calibration:
         if doc.get("version") != VERSION:
             raise ValueError(f"{source}: unsupported version {doc.get('version')!r} (this reader knows {VERSION})")
         try:
-            rows, cols = int(doc["rows"]), int(doc["cols"])
+            rows, cols = doc["rows"], doc["cols"]
+            if any(isinstance(v, bool) or not isinstance(v, int) for v in (rows, cols)):
+                raise ValueError(f"rows {rows!r}, cols {cols!r}: need integers")
             n = Lattice(rows, cols).n_links
+            if n > MAX_LINKS:  # before anything is sized by it
+                raise ValueError(f"a {rows}x{cols} lattice has {n:,} links, more than a sheet's {MAX_LINKS:,}")
+            if not isinstance(doc["chips"], list) or len(doc["chips"]) != n:
+                raise ValueError(f"chips must list links 0..{n - 1} once each")
             chips = sorted(doc["chips"], key=lambda c: int(c["link"]))
             if [int(c["link"]) for c in chips] != list(range(n)):
                 raise ValueError(f"chips must list links 0..{n - 1} once each")
+            poses = doc.get("pose_directions", [])
+            if not isinstance(poses, list) or len(poses) > MAX_FILE_POSES:
+                raise ValueError(f"pose_directions: a list of at most {MAX_FILE_POSES} directions")
+            pose_dirs = np.array(poses, dtype=float).reshape(-1, 3)
+            if not np.all(np.abs(pose_dirs) <= 1.0 + 1e-6):  # unit vectors; NaN fails too
+                raise ValueError("pose_directions: need unit vectors (each value in [-1, 1])")
 
             def col(key, default=None):
                 if default is not None and not all(key in c for c in chips):
                     return default
-                return np.array([c[key] for c in chips], dtype=float)
+                a = np.array([c[key] for c in chips], dtype=float)
+                lo, hi = FILE_LIMITS[key]
+                bad = np.argwhere(~((a >= lo) & (a <= hi)))  # NaN and inf fail too
+                if bad.size:
+                    k = int(chips[int(bad[0][0])]["link"])
+                    v = float(a[tuple(bad[0])])
+                    raise ValueError(f"chip {k}: {key} {v!r} is outside [{lo:g}, {hi:g}]")
+                if key == "misalignment" and np.any(np.linalg.norm(a, axis=-1) > np.pi):
+                    k = int(np.argmax(np.linalg.norm(a, axis=-1)))
+                    raise ValueError(f"chip {k}: misalignment of {np.linalg.norm(a[k]):.4g} rad, more than π")
+                return a
 
+            rms = float(doc.get("residual_rms_mps2", 0.0))
+            if not 0.0 <= rms <= FILE_LIMITS["rms_mps2"][1]:
+                raise ValueError(f"residual_rms_mps2 {rms!r} is outside [0, {FILE_LIMITS['rms_mps2'][1]:g}]")
             return cls(rows, cols, bias=col("bias"), scale=col("scale"), misalignment=col("misalignment"),
-                       residual_rms=float(doc.get("residual_rms_mps2", 0.0)), chip_rms=col("rms_mps2"),
+                       residual_rms=rms, chip_rms=col("rms_mps2"),
                        outliers=tuple(doc.get("outliers", ())),
                        reference_offset_counts=col("reference_offset_counts"),
                        reference_sensitivity=col("reference_sensitivity"),
-                       pose_directions=np.array(doc.get("pose_directions", []), dtype=float).reshape(-1, 3),
+                       pose_directions=pose_dirs,
                        non_orthogonality=col("non_orthogonality", np.zeros((n, 3))))
-        except (KeyError, TypeError) as exc:
-            raise ValueError(f"{source}: missing or malformed field: {exc}") from exc
+        except (KeyError, TypeError, IndexError, AttributeError, OverflowError) as exc:
+            raise ValueError(f"{source}: missing or malformed field: {exc}") from None
         except ValueError as exc:
-            raise ValueError(f"{source}: {exc}") from exc
+            raise ValueError(f"{source}: {exc}") from None
 
     @classmethod
     def load(cls, path) -> "Calibration":
-        """Read a file written by `save`; a ValueError names what is wrong with it."""
+        """Read a file written by `save`; a ValueError names what is wrong with it (one line: the
+        file, the field and the value): not a regular file, larger than `MAX_FILE_BYTES`, not JSON or
+        nested too deep, a lattice beyond a sheet's `MAX_LINKS`, a value outside `FILE_LIMITS`."""
         path = Path(path)
-        try:
-            doc = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"{path}: not JSON: {exc}") from exc
+        # a regular file of a calibration's size (not a FIFO, not /dev/zero), nesting bounded
+        doc = loads_json(read_file(path, MAX_FILE_BYTES, "a calibration file"), str(path))
         return cls.from_dict(doc, str(path))
 
 

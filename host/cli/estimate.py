@@ -30,6 +30,10 @@ link at its own sample time, the gyroscopes the process model (the magnetometers
 the heading). It carries its state from snapshot to snapshot, so it runs in one process whatever
 ``--jobs`` says; ``residual`` is then eq. (8) of its directions and normals. An accelerometer
 recording is estimated as before (``auto`` is ``global`` there).
+
+A recording is read within bounds (`host.record.mcap_read`: decompressed sizes, the declared lattice,
+every record's lengths): one that cannot be read, or of which no snapshot can be estimated, is one
+line on stderr and exit 1, nothing written; exit 2 for a usage error; 0 when estimates were written.
 """
 
 from __future__ import annotations
@@ -404,6 +408,10 @@ def run(args) -> int:
             bar.close()
             print("capsheet estimate: interrupted; nothing written", file=sys.stderr)
             return 130
+        except (ValueError, OSError) as exc:  # a record further in the file that cannot be used
+            bar.close()
+            print(f"capsheet estimate: {exc}; nothing written", file=sys.stderr)
+            return 1
         bar.close()
     finally:
         if pool is not None:
@@ -414,6 +422,13 @@ def run(args) -> int:
     joints = np.concatenate([p[1] for p in parts])
     residual = np.concatenate([p[2] for p in parts])
     n = counter.shape[0]
+    if n and not np.isfinite(residual).any():  # a recording that could not be used: no output, exit 1
+        no_link = int(n - np.count_nonzero(valid.any(axis=1)))
+        why = ", ".join([f"{no_link} with no valid link"] * bool(no_link)
+                        + [f"{c}: {w}" for w, c in sorted(skipped.items())])
+        print(f"capsheet estimate: none of the {n} snapshots of {args.recording} could be estimated ({why}); "
+              f"nothing written", file=sys.stderr)
+        return 1
     extra_arrays = {}
     for name in set().union(*(p[3] for p in parts)):
         if all(name in p[3] for p in parts):

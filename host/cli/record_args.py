@@ -41,6 +41,7 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                    help="serve the live 3D view over the Foxglove WebSocket protocol (subprotocols "
                         "foxglove.sdk.v1 and foxglove.websocket.v1) on localhost (default port 8765; "
                         "open ws://localhost:8765 in Foxglove or Lichtblick)")
+    add_live_server_args(g, parser)
     g.add_argument("--live-rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=20.0,
                    help="estimates per second for the live view and the recording (default 20)")
     g.add_argument("--split-size", metavar="MB", type=T.bounded_float(0.0, 1e7, lo_open=True, unit="MB"),
@@ -58,8 +59,11 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "Zenoh under capsheet/<sheet>/...; ros2: the same as ROS 2 messages laid out as rmw_zenoh "
                         "does (/capsheet/<sheet>/snapshot, joints, surface, contacts, /diagnostics, and with gyroscopes "
                         "link_<k>/imu/data and imu/mag per link; ROS_DOMAIN_ID), "
-                        "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback, "
-                        "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/127.0.0.1:7447)")
+                        "readable by a ROS 2 install with rmw_zenoh (docs/distribution.md). Peer mode on loopback "
+                        "only (127.0.0.1, no multicast scouting; the machine's sessions meet at tcp/127.0.0.1:7447), "
+                        "or connected to ENDPOINT (a Zenoh locator, e.g. tcp/10.0.0.2:7447), or --zenoh-config")
+    from host.cli.subscribe import add_zenoh_config_arg
+    add_zenoh_config_arg(g)
     g.add_argument("--no-publish-estimates", action="store_true",
                    help="--publish zenoh: publish snapshots, health and info but no estimates, and make none for "
                         "it: capsheet/<sheet>/estimate is left to estimate workers (capsheet estimate --subscribe), "
@@ -88,6 +92,53 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
         g.add_argument("--link-length", type=T.link_length, default=0.01,
                        help="L, metres, for estimates and the 3D view (default 0.01)")
     return g
+
+
+def add_live_server_args(g, parser) -> None:
+    """The live view server's limits and TLS (``--live``, ``capsheet view``) in group ``g`` of
+    ``parser``: `live_options` reads them."""
+    from host.cli import argtypes as T
+    from host.publish.live import MAX_CLIENTS
+    g.add_argument("--live-max-clients", metavar="N", type=T.int_range(1, 1024), default=MAX_CLIENTS,
+                   help=f"live view: clients served at once; more are answered HTTP 503 (default {MAX_CLIENTS})")
+    g.add_argument("--live-origin", metavar="ORIGIN", action="append", default=None,
+                   help="live view: serve browsers from this origin only (e.g. https://app.foxglove.dev; repeat "
+                        "for several); a page from any other origin is answered HTTP 403, so it cannot read the "
+                        "sheet through your browser. Clients that send no Origin (not browsers) are served. "
+                        "Default: any origin")
+    g.add_argument("--live-tls-cert", metavar="CERT.pem", type=T.existing_file(what="a PEM certificate"),
+                   default=None, help="live view: serve wss:// with this certificate (chain), with --live-tls-key")
+    g.add_argument("--live-tls-key", metavar="KEY.pem", type=T.existing_file(what="a PEM private key"),
+                   default=None, help="live view: the certificate's private key (with --live-tls-cert)")
+    if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
+        parser.add_check(check_live_server_args)
+
+
+def check_live_server_args(ns) -> str | None:
+    """Usage errors of the live view's TLS: both files or neither, and they must load."""
+    cert, key = getattr(ns, "live_tls_cert", None), getattr(ns, "live_tls_key", None)
+    if cert is None and key is None:
+        return None
+    from host.publish.live import tls_context
+    try:
+        tls_context(cert, key)
+    except ValueError as exc:
+        return f"--live-tls-cert/--live-tls-key: {exc}"
+    return None
+
+
+def live_options(args) -> dict:
+    """`host.publish.live.LiveServer`'s keyword arguments from `add_live_server_args`' options."""
+    from host.publish.live import MAX_CLIENTS
+    return {"max_clients": getattr(args, "live_max_clients", MAX_CLIENTS),
+            "allowed_origins": getattr(args, "live_origin", None),
+            "tls_cert": getattr(args, "live_tls_cert", None), "tls_key": getattr(args, "live_tls_key", None)}
+
+
+def where_zenoh(endpoint, args) -> str:
+    """Where ``--publish`` talks, for messages (`host.publish.zenoh_session.describe`)."""
+    from host.publish.zenoh_session import describe
+    return describe(endpoint, getattr(args, "zenoh_config", None))
 
 
 def _publish_arg(value: str):
@@ -226,7 +277,8 @@ class SessionOutputs:
                     min_free=int(float(getattr(args, "min_free", 0.0) or 0.0) * 1e6) if record else 0,
                     on_stop=self._recording_stopped,
                     estimate_file_period_s=R.ESTIMATE_FILE_PERIOD_S if live_session else 0.0,
-                    scene_file_period_s=R.SCENE_FILE_PERIOD_S if live_session else 0.0)
+                    scene_file_period_s=R.SCENE_FILE_PERIOD_S if live_session else 0.0,
+                    live_options=live_options(args) if live is not None else None)
             except OSError as exc:  # an unwritable --record path, a --live port in use
                 what = "" if "live view" in str(exc) else f"cannot write {record}: "
                 raise SystemExit(f"{prog}: {what}{exc}") from None
@@ -245,11 +297,15 @@ class SessionOutputs:
             sheet = getattr(args, "sheet_name", "sheet")
             try:
                 self.publisher = ZenohPublisher(sheet, publish[1], lattice, link_length,
-                                                info={"mode": mode, **(session or {})})
+                                                info={"mode": mode, **(session or {})},
+                                                config_file=getattr(args, "zenoh_config", None))
+            except ValueError as exc:  # a Zenoh config that cannot be used
+                print(f"{prog}: {exc}", file=sys.stderr)
+                raise SystemExit(2) from None
             except OSError as exc:
                 raise SystemExit(f"{prog}: {exc}") from None
             print(f"{prog}: publishing to Zenoh under {self.publisher.prefix}/ "
-                  f"({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+                  f"({where_zenoh(publish[1], args)})", file=sys.stderr)
         if self._worker_wanted and (self.recorder is not None or self.publisher is not None or self.ros2 is not None):
             from host.workers.estimate_worker import EstimatorProcess
             self.worker = EstimatorProcess(lattice.rows, lattice.cols, self.link_length)
@@ -279,7 +335,10 @@ class SessionOutputs:
         ros2_pub = publish is not None and publish[0] == "ros2"
         try:
             self.ros2 = Ros2Outputs(sheet, lattice, publish=ros2_pub, endpoint=publish[1] if ros2_pub else None,
-                                    record=record_ros2, domain=domain)
+                                    record=record_ros2, domain=domain, config_file=getattr(args, "zenoh_config", None))
+        except ValueError as exc:  # a Zenoh config that cannot be used
+            print(f"{prog}: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
         except OSError as exc:
             # a file's own error (PermissionError ...) is the recording's; a plain OSError says what failed
             what = f"cannot write {record_ros2}: " if record_ros2 and type(exc) is not OSError else ""
@@ -291,7 +350,7 @@ class SessionOutputs:
         self.ros2.info(self._ros2_info)  # before bring-up: no layout, no calibration yet
         if ros2_pub:
             print(f"{prog}: publishing ROS 2 messages (rmw_zenoh layout, domain {domain}) under "
-                  f"{self.ros2.namespace}/ and /diagnostics ({publish[1] or 'peer mode on loopback'})", file=sys.stderr)
+                  f"{self.ros2.namespace}/ and /diagnostics ({where_zenoh(publish[1], args)})", file=sys.stderr)
 
     def _recording_stopped(self, reason: str) -> None:
         print(f"{self.prog}: recording stopped: {reason}; {self.recorder.paths[-1]} is complete and readable "

@@ -10,6 +10,10 @@ replayed snapshots are compared with the recorded ones (``snapshots_identical``)
 estimates with the recorded ones (``estimate_change_pct_side``: mean joint distance after the rigid
 overlay, % of side), so a newer estimator can be judged on old data. A recording of 6/9-axis chips
 is shaped as it was live: by the fused estimator, every snapshot in order.
+
+Exit status: 0 when the recording's input made snapshots; 1 when it could not be read (one line:
+`host.record.mcap_read`, `host.record.blf_check`), was cut short (without ``--allow-truncated``) or
+made no snapshot; 2 for a usage error.
 """
 
 from __future__ import annotations
@@ -44,13 +48,14 @@ def truncated_note(prog: str, path, allow: bool, what: str) -> bool:
 def _no_summary(path) -> bool:
     """An MCAP file (by its magic bytes) without its summary: a killed writer, a partial copy."""
     from host.record.recording import recording_set, snapshot_count
+    from protocol.files import open_regular
     try:
         for p in (path if isinstance(path, list) else recording_set(path)):
-            with open(p, "rb") as f:
+            with open_regular(p, "a recording") as f:  # a FIFO is not waited on
                 if f.read(8) != b"\x89MCAP0\r\n":
                     return False
         return snapshot_count(path) is None
-    except OSError:
+    except (OSError, ValueError):
         return False
 
 
@@ -219,7 +224,8 @@ def run(args) -> int:
     else:
         same = f"{identical} of {compared} identical to the recorded ones"
     print(f"capsheet replay: {n} snapshots from {rp.n_chunks} raw chunks ({rp.duration_s:.2f} s recorded) in "
-          f"{elapsed:.2f} s; {same}; {est_n} estimated", file=sys.stderr)
+          f"{elapsed:.2f} s; {same}; {est_n} estimated"
+          + ("; its raw input made no snapshot: nothing of it could be used" if n == 0 else ""), file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=1))
-    return 0
+    return 0 if n else 1  # a file whose input makes no snapshot is not a replay that worked

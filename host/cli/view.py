@@ -11,8 +11,12 @@ sheet has ``/<sheet>/scene`` (the lattice, `foxglove.SceneUpdate`) and ``/<sheet
 a 3D panel, display frame the fixed frame. The newest estimate of each sheet is drawn up to
 ``--rate`` times per second; every one received is counted.
 
-Exit status: 0 when every sheet of the config sent estimates, 1 when one never did (named), or when
-no Zenoh endpoint is reachable; 2 for a usage error or a bad config (one line naming the key).
+Every payload is checked before use (sizes, lattice, counts: `host.publish.zenoh_pub.decode_estimate`);
+one that is not a sheet's estimate is counted and named in the summary, never drawn.
+
+Exit status: 0 when every sheet of the config sent estimates, 1 when one never did (named), sent
+only payloads that were refused, or when no Zenoh endpoint is reachable; 2 for a usage error or a
+bad config (one line naming the key).
 """
 
 from __future__ import annotations
@@ -32,21 +36,24 @@ TF_PERIOD_S = 1.0
 
 def register(subparsers) -> None:
     from host.cli import argtypes as T
-    from host.cli.subscribe import subscribe_arg
+    from host.cli.subscribe import add_zenoh_config_arg, subscribe_arg
     p = subparsers.add_parser("view", help="several sheets' estimates from Zenoh in one live 3D scene (robot.toml)",
                               description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", required=True, metavar="ROBOT.toml",
                    help="the robot: [[sheet]] tables with name, translation (m) and rotation (quaternion x, y, z, w) "
                         "or rpy_deg; optional [view] frame, port, rate, endpoint (docs/distribution.md)")
     p.add_argument("--subscribe", metavar="zenoh[:ENDPOINT]", type=subscribe_arg, default=None,
-                   help="where the estimates are: zenoh (peer mode on loopback) or zenoh:ENDPOINT (a router); "
-                        "default the config's [view] endpoint, else peer mode on loopback")
+                   help="where the estimates are: zenoh (peer mode on loopback only: 127.0.0.1, no multicast) or "
+                        "zenoh:ENDPOINT (a router); default the config's [view] endpoint, else loopback only")
     p.add_argument("--port", type=T.tcp_port, default=None,
                    help="the live view's TCP port on localhost (default the config's, else 8765; 0: a free one)")
     p.add_argument("--rate", type=T.bounded_float(0.0, 1000.0, lo_open=True, unit="per s"), default=None,
                    help="scene updates per sheet per second (default the config's, else 20)")
     p.add_argument("--duration", type=T.duration, default=None, metavar="S", help="stop after S seconds")
     p.add_argument("-q", "--quiet", action="store_true", help="only the summary at the end")
+    add_zenoh_config_arg(p)
+    from host.cli.record_args import add_live_server_args
+    add_live_server_args(p, p)
     p.set_defaults(func=run)
 
 
@@ -61,22 +68,27 @@ def run(args) -> int:
     import numpy as np
     from foxglove.channels import FrameTransformChannel
 
+    from host.cli.record_args import live_options
     from host.cli.subscribe import open_session
     from host.publish.live import LiveServer, SceneChannels, log_frame_transform
-    from host.publish.zenoh_pub import decode_estimate
+    from host.publish.zenoh_pub import MAX_PAYLOAD_BYTES, decode_estimate
+    from host.publish.zenoh_session import describe
     from protocol.lattice import Lattice
 
     endpoint = args.subscribe[1] if args.subscribe is not None else robot.endpoint
     port = args.port if args.port is not None else (robot.port if robot.port is not None else 8765)
     rate = args.rate or robot.rate or 20.0
     try:
-        session = open_session(endpoint)
+        session = open_session(endpoint, getattr(args, "zenoh_config", None))
+    except ValueError as exc:
+        print(f"{PROG}: {exc}", file=sys.stderr)
+        return 2
     except OSError as exc:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 1
     context = foxglove.Context()
     try:
-        server = LiveServer(context, port=port, name="capsheet view")
+        server = LiveServer(context, port=port, name="capsheet view", **live_options(args))
     except OSError as exc:
         session.close()
         print(f"{PROG}: {exc}", file=sys.stderr)
@@ -94,20 +106,28 @@ def run(args) -> int:
     received = {p.name: 0 for p in robot.sheets}
     drawn = {p.name: 0 for p in robot.sheets}
     not_estimated = {p.name: 0 for p in robot.sheets}
-    bad: dict[str, str] = {}
+    bad = {p.name: 0 for p in robot.sheets}  # payloads refused: counted, the last reason kept
+    last_bad: dict[str, str] = {}
 
     def on_sample(sample) -> None:  # Zenoh's thread: keep the newest only
         sheet = str(sample.key_expr).split("/")[1]
+        size = len(sample.payload)
         with lock:
-            newest[sheet] = bytes(sample.payload.to_bytes())
             received[sheet] += 1
+            if size > MAX_PAYLOAD_BYTES:  # refused before it is copied
+                bad[sheet] += 1
+                last_bad[sheet] = f"a payload of {size} bytes, more than the largest sheet's {MAX_PAYLOAD_BYTES}"
+                return
+        data = bytes(sample.payload.to_bytes())
+        with lock:
+            newest[sheet] = data
 
     tf = FrameTransformChannel("/tf", context=context)
     poses = {p.name: p for p in robot.sheets}
     scenes: dict[str, SceneChannels] = {}
     subs = [session.declare_subscriber(f"capsheet/{p.name}/estimate", on_sample) for p in robot.sheets]
     print(f"{PROG}: {len(robot.sheets)} sheets ({', '.join(poses)}) in frame {robot.frame}, from Zenoh "
-          f"({endpoint or 'peer mode on loopback'}); live 3D view on {server.url} (Foxglove: Open connection -> "
+          f"({describe(endpoint, getattr(args, 'zenoh_config', None))}); live 3D view on {server.url} (Foxglove: Open connection -> "
           f"Foxglove WebSocket -> {server.url}; a 3D panel, display frame {robot.frame})", file=sys.stderr, flush=True)
     t0 = time.monotonic()
     end = None if args.duration is None else t0 + args.duration
@@ -125,10 +145,11 @@ def run(args) -> int:
                 batch = list(newest.items())
                 newest.clear()
             for sheet, payload in batch:
-                try:
+                try:  # sizes, lattice and counts checked before anything is allocated or drawn
                     e = decode_estimate(payload)
                 except ValueError as exc:
-                    bad[sheet] = str(exc)
+                    bad[sheet] += 1
+                    last_bad[sheet] = str(exc)
                     continue
                 if not e["estimated"]:
                     not_estimated[sheet] += 1
@@ -154,9 +175,12 @@ def run(args) -> int:
         n = received[p.name]
         line = (f"{PROG}: sheet {p.name}: {n} estimates received, {drawn[p.name]} drawn"
                 + (f", {not_estimated[p.name]} not estimated by their worker" if not_estimated[p.name] else "")
-                + (f", bad payload: {bad[p.name]}" if p.name in bad else ""))
+                + (f", {bad[p.name]} bad payload(s) refused (the last: {last_bad[p.name]})" if bad[p.name] else ""))
         if n == 0:
             line += f" -- nothing from capsheet/{p.name}/estimate (its host or worker not running?)"
+            code = 1
+        elif bad[p.name] and not drawn[p.name]:
+            line += " -- none could be drawn"
             code = 1
         print(line, file=sys.stderr)
     print(f"{PROG}: {time.monotonic() - t0:.1f} s{' (interrupted)' if interrupted else ''}, "

@@ -24,14 +24,17 @@ the frames after the handshake pass unchanged. Open it in Foxglove: *Open connec
 
 from __future__ import annotations
 
+import errno
 import logging
 import selectors
 import socket
+import ssl
 import threading
+import time
 
 import numpy as np
 
-__all__ = ["SceneChannels", "LiveServer", "log_frame_transform", "varint", "length_delimited", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
+__all__ = ["SceneChannels", "LiveServer", "tls_context", "MAX_CLIENTS", "log_frame_transform", "varint", "length_delimited", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
            "SUBPROTOCOLS", "rewrite_request", "rewrite_response"]
 
 log = logging.getLogger(__name__)
@@ -353,24 +356,67 @@ def _read_head(sock: socket.socket) -> tuple[bytes, bytes]:
     return buf[:k], buf[k:]
 
 
+#: clients served at once by default (``--live-max-clients``): a live view has a few viewers
+MAX_CLIENTS = 16
+#: accept() errors that mean "out of descriptors or memory for now", not "the socket is gone":
+#: the relay waits `ACCEPT_BACKOFF_S` and accepts again (the pending client is answered once a
+#: descriptor is free)
+_TRANSIENT_ACCEPT = {errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM, errno.ECONNABORTED, errno.EPROTO,
+                     errno.EPERM, errno.EAGAIN}
+ACCEPT_BACKOFF_S = 0.1
+
+
+def _http_error(status: str, why: str) -> bytes:
+    body = (why + "\n").encode()
+    return (f"HTTP/1.1 {status}\r\nContent-Type: text/plain\r\nContent-Length: {len(body)}\r\n"
+            f"Connection: close\r\n\r\n").encode() + body
+
+
+def _origin(head: bytes) -> str | None:
+    """The request's Origin header (None when it has none: not a browser)."""
+    for line in head.split(b"\r\n")[1:]:
+        name, _, value = line.partition(b":")
+        if name.strip().lower() == b"origin":
+            return value.strip().decode("latin-1")
+    return None
+
+
 class SubprotocolRelay:
     """Accept WebSocket clients on ``(host, port)`` and relay each to ``upstream`` (foxglove-sdk's
     server), translating the subprotocol name in the handshake (`rewrite_request`,
     `rewrite_response`); afterwards bytes pass both ways unchanged. One thread accepts, one thread
-    per connection relays (a live view has a few viewers).
+    per connection relays, at most ``max_clients`` at once (a further client is answered HTTP 503).
+
+    Out of file descriptors (EMFILE) or memory, the accept loop waits `ACCEPT_BACKOFF_S` and tries
+    again (counted in ``accept_errors``): the port never stays open unanswered.
+
+    ``allowed_origins``: when given, a browser's handshake whose ``Origin`` is not one of them is
+    answered HTTP 403 (a web page the viewer opens elsewhere cannot read the sheet through the
+    viewer's browser); a client that sends no Origin (not a browser) is served. ``tls``: an
+    `ssl.SSLContext` (server side): clients connect with ``wss://``.
 
     Raises OSError when ``(host, port)`` cannot be bound (in use)."""
 
-    def __init__(self, host: str, port: int, upstream: tuple[str, int]) -> None:
+    def __init__(self, host: str, port: int, upstream: tuple[str, int], *, max_clients: int = MAX_CLIENTS,
+                 allowed_origins=None, tls: ssl.SSLContext | None = None) -> None:
+        if int(max_clients) < 1:
+            raise ValueError(f"Invalid max_clients: {max_clients!r} (need >= 1)")
         self.upstream = upstream
+        self.max_clients = int(max_clients)
+        self.allowed_origins = None if allowed_origins is None else frozenset(allowed_origins)
+        self.tls = tls
         self._sock = socket.create_server((host, int(port)))
         self._sock.settimeout(0.2)
         self.port = int(self._sock.getsockname()[1])
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._open: set[socket.socket] = set()
+        self._active = 0
         self.connections = 0  #: clients accepted
         self.translated = 0  #: of those, answered as ``foxglove.websocket.v1``
+        self.refused = {"busy": 0, "origin": 0, "tls": 0}  #: clients turned away, by reason
+        self.accept_errors = 0  #: accept() calls that failed for want of descriptors or memory
+        self.last_accept_error = ""
         self._threads: list[threading.Thread] = []
         self._accept = threading.Thread(target=self._accept_loop, name="capsheet-live-relay", daemon=True)
         self._accept.start()
@@ -381,20 +427,76 @@ class SubprotocolRelay:
                 client, _ = self._sock.accept()
             except TimeoutError:
                 continue
-            except OSError:
-                return  # closed by `stop`
+            except OSError as exc:
+                if self._stop.is_set() or exc.errno not in _TRANSIENT_ACCEPT:
+                    return  # closed by `stop`
+                self.accept_errors += 1
+                self.last_accept_error = str(exc)
+                time.sleep(ACCEPT_BACKOFF_S)  # the client waits in the backlog; a descriptor may free up
+                continue
             self.connections += 1
-            th = threading.Thread(target=self._relay, args=(client,), name="capsheet-live-conn", daemon=True)
+            with self._lock:
+                busy = self._active >= self.max_clients
+                if not busy:
+                    self._active += 1
+            if busy:
+                self.refused["busy"] += 1
+                self._turn_away(client, _http_error("503 Service Unavailable",
+                                                    f"capsheet live view: {self.max_clients} clients already"))
+                continue
+            th = threading.Thread(target=self._serve, args=(client,), name="capsheet-live-conn", daemon=True)
             with self._lock:
                 self._open.add(client)
                 self._threads = [t for t in self._threads if t.is_alive()] + [th]
-            th.start()
+            try:
+                th.start()
+            except RuntimeError as exc:  # no thread to be had: this client only
+                self.last_accept_error = str(exc)
+                with self._lock:
+                    self._open.discard(client)
+                    self._active -= 1
+                client.close()
+
+    @staticmethod
+    def _turn_away(client: socket.socket, answer: bytes) -> None:
+        try:
+            client.settimeout(1.0)
+            client.sendall(answer)
+        except OSError:
+            pass
+        finally:
+            client.close()
+
+    def _serve(self, client: socket.socket) -> None:
+        try:
+            self._relay(client)
+        finally:
+            with self._lock:
+                self._active -= 1
 
     def _relay(self, client: socket.socket) -> None:
         up = None
         try:
             client.settimeout(10.0)
+            if self.tls is not None:
+                raw = client
+                try:
+                    client = self.tls.wrap_socket(raw, server_side=True)
+                except (OSError, ValueError):
+                    self.refused["tls"] += 1
+                    with self._lock:
+                        self._open.discard(raw)
+                    raw.close()
+                    return
+                with self._lock:
+                    self._open.discard(raw)
+                    self._open.add(client)
             head, rest = _read_head(client)
+            origin = _origin(head)
+            if self.allowed_origins is not None and origin is not None and origin not in self.allowed_origins:
+                self.refused["origin"] += 1
+                client.sendall(_http_error("403 Forbidden", f"capsheet live view: origin {origin} not allowed"))
+                return
             head, answer = rewrite_request(head)
             up = socket.create_connection(self.upstream, timeout=10.0)
             with self._lock:
@@ -427,11 +529,17 @@ class SubprotocolRelay:
             sel.register(a, selectors.EVENT_READ)
             sel.register(b, selectors.EVENT_READ)
             while not self._stop.is_set():
-                for key, _ in sel.select(0.2):
-                    data = key.fileobj.recv(1 << 16)
+                # a TLS socket may hold decrypted bytes the selector cannot see
+                buffered = [s for s in (a, b) if isinstance(s, ssl.SSLSocket) and s.pending()]
+                ready = buffered or [key.fileobj for key, _ in sel.select(0.2)]
+                for s in ready:
+                    try:
+                        data = s.recv(1 << 16)
+                    except ssl.SSLWantReadError:
+                        continue
                     if not data:
                         return
-                    other[key.fileobj].sendall(data)
+                    other[s].sendall(data)
 
     def stop(self) -> None:
         self._stop.set()
@@ -448,6 +556,23 @@ class SubprotocolRelay:
             th.join(2.0)
 
 
+def tls_context(cert: str | None, key: str | None) -> ssl.SSLContext | None:
+    """A server-side `ssl.SSLContext` from a PEM certificate and key (None when neither is given);
+    ValueError (one line, naming the file) when only one is given or they do not load."""
+    if cert is None and key is None:
+        return None
+    if cert is None or key is None:
+        raise ValueError("the live view's TLS needs both a certificate and its key")
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(cert, key)
+    except (OSError, ssl.SSLError) as exc:
+        raise ValueError(f"the live view's TLS certificate {cert} / key {key}: "
+                         f"{getattr(exc, 'strerror', None) or exc.args[-1] if exc.args else exc}") from None
+    return ctx
+
+
 class LiveServer:
     """A Foxglove WebSocket server for one context, on localhost by default: foxglove-sdk's server
     on a free loopback port, behind a `SubprotocolRelay` on ``port`` that serves both subprotocol
@@ -462,21 +587,34 @@ class LiveServer:
         Interface to listen on; the default serves this machine only.
     channel_filter : callable, optional
         ``(foxglove.ChannelDescriptor) -> bool``: the channels the view gets (default all).
+    max_clients : int
+        Clients served at once (`SubprotocolRelay`); more are answered HTTP 503.
+    allowed_origins : iterable of str, optional
+        Browser origins served (e.g. ``https://app.foxglove.dev``); default any.
+    tls_cert, tls_key : str, optional
+        PEM certificate (chain) and private key: serve ``wss://`` (both or neither). The TLS is the
+        relay's (Python's ssl); foxglove-sdk's own server stays on loopback behind it.
+
+    Raises OSError when the port is in use or the server cannot start, ValueError for a bad value
+    (a certificate that does not load is named).
     """
 
     def __init__(self, context, port: int = 8765, host: str = "127.0.0.1", name: str = "capsheet",
-                 channel_filter=None) -> None:
+                 channel_filter=None, *, max_clients: int = MAX_CLIENTS, allowed_origins=None,
+                 tls_cert: str | None = None, tls_key: str | None = None) -> None:
         import foxglove
 
         if not 0 <= int(port) <= 65535:
             raise ValueError(f"Invalid port: {port!r} (need 0..65535)")
+        tls = tls_context(tls_cert, tls_key)
         try:
             self._server = foxglove.start_server(name=name, host="127.0.0.1", port=0, context=context,
                                                  channel_filter=channel_filter)
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types
             raise OSError(f"Cannot start the live view: {exc}") from exc
         try:
-            self._relay = SubprotocolRelay(host, int(port), ("127.0.0.1", int(self._server.port)))
+            self._relay = SubprotocolRelay(host, int(port), ("127.0.0.1", int(self._server.port)),
+                                           max_clients=max_clients, allowed_origins=allowed_origins, tls=tls)
         except OSError as exc:  # the port is in use
             self._server.stop()
             raise OSError(f"Cannot start the live view on {host}:{port}: {exc}") from exc
@@ -485,12 +623,18 @@ class LiveServer:
 
     @property
     def url(self) -> str:
-        return f"ws://{'localhost' if self.host in ('127.0.0.1', '::1') else self.host}:{self.port}"
+        scheme = "wss" if self._relay.tls is not None else "ws"
+        return f"{scheme}://{'localhost' if self.host in ('127.0.0.1', '::1') else self.host}:{self.port}"
 
     @property
     def connections(self) -> int:
         """Clients that connected (through the relay)."""
         return self._relay.connections
+
+    @property
+    def relay(self) -> SubprotocolRelay:
+        """The relay clients connect to: its counts (``refused``, ``accept_errors``)."""
+        return self._relay
 
     def stop(self) -> None:
         self._relay.stop()

@@ -20,9 +20,10 @@ its estimate's joints are drawn (the estimator's frame, docs/estimator.md).
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+from protocol.files import loads_toml, read_file
 
 __all__ = ["SheetPose", "Robot", "load_robot", "parse_robot", "quaternion_from_rpy"]
 
@@ -30,6 +31,12 @@ VIEW_KEYS = {"frame", "port", "rate", "endpoint"}
 SHEET_KEYS = {"name", "translation", "rotation", "rpy_deg"}
 #: a quaternion's norm may be off by this much (rounded decimals) and is then normalised
 QUATERNION_TOLERANCE = 1e-3
+#: sheets one view draws at most (each is a Zenoh subscription and two channels)
+MAX_SHEETS = 256
+#: a sheet placed further than this from the fixed frame, in metres, is a typo or a hostile file
+MAX_TRANSLATION_M = 1000.0
+#: a robot config larger than this is refused unread
+MAX_CONFIG_BYTES = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -98,6 +105,8 @@ def parse_robot(doc: dict, where: str = "robot config") -> Robot:
     sheets = doc.get("sheet")
     if not isinstance(sheets, list) or not sheets or not all(isinstance(s, dict) for s in sheets):
         raise ValueError(f"{where}: no sheet: give one [[sheet]] table per sheet (name, translation, rotation)")
+    if len(sheets) > MAX_SHEETS:
+        raise ValueError(f"{where}: {len(sheets)} sheets, more than one view draws ({MAX_SHEETS})")
     out: list[SheetPose] = []
     for k, s in enumerate(sheets, 1):
         here = f"{where}: sheet {k}" + (f" ({s['name']!r})" if isinstance(s.get("name"), str) else "")
@@ -116,6 +125,8 @@ def parse_robot(doc: dict, where: str = "robot config") -> Robot:
         if "translation" not in s:
             raise ValueError(f"{here}: no translation (metres, [x, y, z])")
         t = _numbers(s["translation"], 3, f"{here}: translation (metres)")
+        if max(abs(v) for v in t) > MAX_TRANSLATION_M:
+            raise ValueError(f"{here}: translation {list(t)} is more than {MAX_TRANSLATION_M:g} m from the fixed frame")
         if ("rotation" in s) == ("rpy_deg" in s):
             raise ValueError(f"{here}: give one of rotation (quaternion [x, y, z, w]) or rpy_deg ([roll, pitch, "
                              f"yaw] degrees)")
@@ -134,16 +145,13 @@ def parse_robot(doc: dict, where: str = "robot config") -> Robot:
 
 
 def load_robot(path) -> Robot:
-    """Read and check a robot TOML file; ValueError (one line) for a missing file, bad TOML or bad values."""
+    """Read and check a robot TOML file; ValueError (one line) for a missing file, one that is not a
+    regular file or larger than `MAX_CONFIG_BYTES`, bad or too deeply nested TOML, or bad values."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
+    try:  # a regular file of a config's size: not a FIFO, not /dev/zero
+        text = read_file(p, MAX_CONFIG_BYTES, "a robot config").decode("utf-8")
     except FileNotFoundError:
         raise ValueError(f"{p}: no such file (a robot config: docs/distribution.md has an example)") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"{p}: cannot read it: {exc}") from None
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ValueError(f"{p}: not TOML: {exc}") from None
-    return parse_robot(doc, str(p))
+    return parse_robot(loads_toml(text, str(p)), str(p))  # nesting bounded

@@ -609,34 +609,25 @@ class Ros2Publisher:
     sheet : str
         `ROS_NAME`: the node is ``/capsheet/<sheet>``.
     endpoint : str or None
-        None: peer mode on loopback (multicast scouting on ``lo``, no router). A locator (e.g.
-        ``tcp/127.0.0.1:7447``, rmw_zenohd's default): peer mode connected to that router, as an
-        rmw_zenoh session is.
+        None: peer mode on loopback only (`host.publish.zenoh_session`: 127.0.0.1, no multicast
+        scouting, the machine's sessions meeting at ``tcp/127.0.0.1:7447``, rmw_zenohd's port). A
+        locator: peer mode connected to that router, as an rmw_zenoh session is.
     domain : int
         ``ROS_DOMAIN_ID``.
+    config_file : str, optional
+        A Zenoh config file (``--zenoh-config``) instead.
     """
 
-    def __init__(self, sheet: str, endpoint: str | None, *, domain: int = 0) -> None:
+    def __init__(self, sheet: str, endpoint: str | None, *, domain: int = 0, config_file: str | None = None) -> None:
         if not ROS_NAME.match(sheet):
             raise ValueError(f"sheet name {sheet!r} is not a ROS 2 name (--publish ros2): 1-64 of "
                              f"A-Z a-z 0-9 _, starting with a letter")
-        import zenoh
-
-        from host.publish.zenoh_pub import zenoh_config
+        from host.publish.zenoh_session import open_session
         self.sheet, self.endpoint, self.domain = sheet, endpoint, domain
         self.namespace, self.node = "/capsheet", sheet
-        if endpoint is None:
-            conf = zenoh_config(None)  # peer mode on loopback, multicast scouting on lo
-        else:  # rmw_zenoh's default session config: a peer that connects to the router (ENDPOINT), listens
-            conf = zenoh.Config()  # on localhost for peer-to-peer links, no multicast scouting
-            conf.insert_json5("mode", '"peer"')
-            conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-            conf.insert_json5("listen/endpoints", '["tcp/localhost:0"]')
-            conf.insert_json5("scouting/multicast/enabled", "false")
-        try:
-            self.session = zenoh.open(conf)
-        except zenoh.ZError as exc:
-            raise OSError(f"cannot open a Zenoh session ({endpoint or 'peer mode on loopback'}): {exc}") from None
+        # without ENDPOINT loopback only; with it rmw_zenoh's default session: a peer connected to the
+        # router, listening on loopback, no multicast scouting (host.publish.zenoh_session)
+        self.session = open_session(endpoint, config_file, ros2=True)
         self.zid = str(self.session.info.zid())
         node_key = liveliness_keyexpr(domain, self.zid, 0, 0, "NN", self.namespace, self.node)
         self.tokens = [self.session.liveliness().declare_token(node_key)]
@@ -764,7 +755,7 @@ class Ros2Outputs:
     (`Ros2Publisher`, ``--publish ros2``) and/or recorded (`Ros2Recorder`, ``--record-ros2``)."""
 
     def __init__(self, sheet: str, lattice, *, publish: bool = False, endpoint: str | None = None,
-                 record=None, domain: int = 0) -> None:
+                 record=None, domain: int = 0, config_file: str | None = None) -> None:
         if not ROS_NAME.match(sheet):
             raise ValueError(f"sheet name {sheet!r} is not a ROS 2 name (--publish ros2, --record-ros2): "
                              f"1-64 of A-Z a-z 0-9 _, starting with a letter")
@@ -774,7 +765,7 @@ class Ros2Outputs:
                           f"{MSGS_DIR}: install capsheet from its repository with `make`)")
         self.encoder = Ros2Encoder(sheet, lattice.rows, lattice.cols)
         self.namespace = f"/capsheet/{sheet}"
-        self.publisher = Ros2Publisher(sheet, endpoint, domain=domain) if publish else None
+        self.publisher = Ros2Publisher(sheet, endpoint, domain=domain, config_file=config_file) if publish else None
         try:
             self.recorder = Ros2Recorder(record, sheet) if record else None
         except BaseException:

@@ -12,9 +12,11 @@ Per sheet, under ``capsheet/<sheet>/``:
   for it (``session.get("capsheet/<sheet>/info")``).
 
 The binary payloads are little-endian, a 40-byte header then arrays (docs/distribution.md has the
-layout; `decode_snapshot` / `decode_estimate` read them back). Peer mode on loopback by default
-(listens on ``tcp/127.0.0.1``, a random port, scouting by multicast on ``lo``); with an ENDPOINT (a
-Zenoh locator such as ``tcp/127.0.0.1:7447``) client mode, connected to that router.
+layout; `decode_snapshot` / `decode_estimate` read them back, checking every size first). Without an
+ENDPOINT the session stays on loopback (127.0.0.1 only, no multicast scouting; the processes of one
+machine meet at ``tcp/127.0.0.1:7447``); with an ENDPOINT (a Zenoh locator such as
+``tcp/10.0.0.2:7447``) client mode, connected to that router; a Zenoh config file for anything else
+(TLS, user and password, access control): `host.publish.zenoh_session`.
 """
 
 from __future__ import annotations
@@ -29,7 +31,8 @@ import numpy as np
 
 __all__ = ["ZenohPublisher", "parse_publish", "PUBLISH_KINDS", "LOCATOR", "encode_snapshot", "encode_estimate", "decode_snapshot",
            "decode_estimate", "encode_no_estimate", "FLAG_UNCERTAINTY", "FLAG_NOT_ESTIMATED", "SNAP_GYRO", "SNAP_MAG",
-           "SNAP_SAMPLE_TIME", "KINDS", "HEADER", "PAYLOAD_VERSION"]
+           "SNAP_SAMPLE_TIME", "KINDS", "HEADER", "PAYLOAD_VERSION", "MAX_PAYLOAD_BYTES", "check_lattice",
+           "MAX_INFO_BYTES", "decode_info"]
 
 #: ``(kind, version, rows, cols, n, flags, counter, timestamp, wall_time)``: see docs/distribution.md
 HEADER = struct.Struct("<4sBBHHIHQdd")
@@ -113,21 +116,66 @@ def encode_no_estimate(rows: int, cols: int, counter: int, timestamp: float, wal
         np.full(3 * n, np.nan, dtype="<f4").tobytes()
 
 
+def _max_links() -> int:
+    from host.cli.argtypes import MAX_LINKS  # --lattice's limit: node ids 1..0x7FFF
+    return MAX_LINKS
+
+
+#: the largest payload a receiver takes: a snapshot of `--lattice`'s largest sheet (32,767 links)
+#: with gyroscopes, magnetometers and sample times, 42 bytes a link (an estimate is smaller: at most
+#: 21,846 joints, 16 bytes each). Larger ones are refused before they are copied.
+MAX_PAYLOAD_BYTES = HEADER.size + 42 * 0x7FFF
+#: an ``info`` answer (JSON) is read only up to this size
+MAX_INFO_BYTES = 1 << 20
+
+
+def check_lattice(rows: int, cols: int) -> None:
+    """ValueError unless ``rows`` x ``cols`` joints is a lattice ``--lattice`` takes: each side at
+    least 2, at most 32,767 links (`host.cli.argtypes.MAX_LINKS`)."""
+    if rows < 2 or cols < 2:
+        raise ValueError(f"a {rows}x{cols} lattice: a sheet has at least 2x2 joints")
+    links = rows * (cols - 1) + cols * (rows - 1)
+    if links > _max_links():
+        raise ValueError(f"a {rows}x{cols} lattice has {links:,} links, more than a sheet's {_max_links():,}")
+
+
+def decode_info(payload: bytes) -> dict:
+    """An ``info`` answer: a JSON object of at most `MAX_INFO_BYTES`; ValueError otherwise (nesting
+    too deep for the JSON reader included)."""
+    if len(payload) > MAX_INFO_BYTES:
+        raise ValueError(f"an info answer of {len(payload)} bytes, more than {MAX_INFO_BYTES}")
+    try:
+        doc = json.loads(payload)
+    except (ValueError, RecursionError) as exc:
+        raise ValueError(f"an info answer that is not JSON: {str(exc)[:80] or 'nested too deep'}") from None
+    if not isinstance(doc, dict):
+        raise ValueError(f"an info answer that is a JSON {type(doc).__name__}, not an object")
+    return doc
+
+
 def _decode_header(payload: bytes, kind: str) -> dict:
     if len(payload) < HEADER.size:
         raise ValueError(f"payload of {len(payload)} bytes: shorter than the {HEADER.size}-byte header")
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise ValueError(f"payload of {len(payload)} bytes: more than the largest sheet's {MAX_PAYLOAD_BYTES}")
     magic, version, flags, rows, cols, n, _, counter, ts, wall = HEADER.unpack_from(payload)
     if magic != KINDS[kind] or version != PAYLOAD_VERSION:
         raise ValueError(f"not a capsheet {kind} v{PAYLOAD_VERSION} payload (magic {magic!r}, version {version})")
+    check_lattice(rows, cols)
     return {"flags": flags, "rows": rows, "cols": cols, "n": n, "counter": counter, "timestamp": ts,
             "wall_time": wall}
 
 
 def decode_snapshot(payload: bytes) -> dict:
     """`encode_snapshot` read back: header fields and ``readings`` (n, 3), ``valid``, ``status``, and
-    ``gyro`` (n, 3), ``mag`` (n, 3), ``sample_time_s`` (n,) (each None when the flags say it is absent)."""
+    ``gyro`` (n, 3), ``mag`` (n, 3), ``sample_time_s`` (n,) (each None when the flags say it is absent).
+    ValueError (nothing allocated) for a payload whose size, lattice (`check_lattice`) or link count
+    is not what its header says."""
     h = _decode_header(payload, "snapshot")
     n, flags = h["n"], h["flags"]
+    links = h["rows"] * (h["cols"] - 1) + h["cols"] * (h["rows"] - 1)
+    if n != links:
+        raise ValueError(f"snapshot of {n} links for a {h['rows']}x{h['cols']} lattice of {links}")
     size = HEADER.size + 14 * n + sum(w * n for bit, w in ((SNAP_GYRO, 12), (SNAP_MAG, 12), (SNAP_SAMPLE_TIME, 4))
                                       if flags & bit)
     if len(payload) != size:
@@ -147,7 +195,8 @@ def decode_snapshot(payload: bytes) -> dict:
 
 
 def decode_estimate(payload: bytes) -> dict:
-    """`encode_estimate` read back: header fields, ``joints`` (rows, cols, 3), ``joint_std`` or None."""
+    """`encode_estimate` read back: header fields, ``joints`` (rows, cols, 3), ``joint_std`` or None.
+    ValueError (nothing allocated) as `decode_snapshot`."""
     h = _decode_header(payload, "estimate")
     n, unc = h["n"], bool(h["flags"] & FLAG_UNCERTAINTY)
     size = HEADER.size + 12 * n + (4 * n if unc else 0)
@@ -161,18 +210,11 @@ def decode_estimate(payload: bytes) -> dict:
     return h
 
 
-def zenoh_config(endpoint: str | None):
-    """Peer mode on loopback (no ENDPOINT) or client mode connected to ``endpoint``."""
-    import zenoh
-    conf = zenoh.Config()
-    if endpoint is None:
-        conf.insert_json5("mode", '"peer"')
-        conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-        conf.insert_json5("scouting/multicast/interface", '"lo"')
-    else:
-        conf.insert_json5("mode", '"client"')
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    return conf
+def zenoh_config(endpoint: str | None, config_file: str | None = None):
+    """The session's `zenoh.Config`: loopback only without ``endpoint``, a client of ``endpoint``
+    otherwise, or a Zenoh config file (`host.publish.zenoh_session`)."""
+    from host.publish.zenoh_session import session_config
+    return session_config(endpoint, config_file)
 
 
 class ZenohPublisher:
@@ -188,10 +230,14 @@ class ZenohPublisher:
     link_length : float
     info : dict, optional
         Extra facts for the ``info`` queryable (the session's mode ...).
+    config_file : str, optional
+        A Zenoh config file (``--zenoh-config``; `host.publish.zenoh_session`).
+
+    Raises ValueError for a config that cannot be used, OSError when the session cannot be opened.
     """
 
     def __init__(self, sheet: str, endpoint: str | None, lattice, link_length: float, *,
-                 info: dict | None = None) -> None:
+                 info: dict | None = None, config_file: str | None = None) -> None:
         if not SHEET_NAME.match(sheet):
             raise ValueError(f"bad sheet name {sheet!r}: 1-64 of A-Z a-z 0-9 _ . - (one Zenoh key chunk)")
         import zenoh
@@ -206,15 +252,15 @@ class ZenohPublisher:
                       "keys": {k: f"{self.prefix}/{k}" for k in ("snapshot", "estimate", "contacts", "health", "info")}}
         self.counts = {"snapshot": 0, "estimate": 0, "contacts": 0, "health": 0, "info": 0}
         self._last_health = -np.inf
-        try:
-            self.session = zenoh.open(zenoh_config(endpoint))
-        except zenoh.ZError as exc:
-            raise OSError(f"cannot open a Zenoh session ({endpoint or 'peer mode on loopback'}): {exc}") from None
+        from host.publish.zenoh_session import open_session
+        self.session = open_session(endpoint, config_file)
         self._pub = {k: self.session.declare_publisher(f"{self.prefix}/{k}")
                      for k in ("snapshot", "estimate", "contacts", "health")}
         self._queryable = self.session.declare_queryable(f"{self.prefix}/info", self._reply_info)
 
     def _reply_info(self, query) -> None:
+        # nothing of the query is read (payload, parameters, attachment): whoever asks, however,
+        # gets the same bounded document
         with self._lock:
             doc = json.dumps(self._info)
             self.counts["info"] += 1

@@ -52,6 +52,7 @@ import base64
 import json
 import platform
 import shutil
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -64,6 +65,7 @@ import logging
 import numpy as np
 
 from host.publish.live import length_delimited
+from protocol.files import loads_json, open_regular
 
 log = logging.getLogger("capsheet.host.record")
 
@@ -109,7 +111,10 @@ def _arr(a, dtype: str) -> dict:
 
 
 def _unarr(d: dict) -> np.ndarray:
-    return np.frombuffer(base64.b64decode(d["data"]), dtype=np.dtype(d["dtype"])).reshape(d["shape"])
+    dtype = np.dtype(d["dtype"])
+    if dtype.kind not in "biuf":  # numbers only: never objects, never a dtype sized by the file
+        raise ValueError(f"an array of dtype {d['dtype']!r} (need numbers)")
+    return np.frombuffer(base64.b64decode(d["data"]), dtype=dtype).reshape(d["shape"])
 
 
 _ARRAY_SCHEMA = {"type": "object", "properties": {
@@ -283,6 +288,9 @@ class Recorder:
         Attached as ``layout.json`` / ``calibration.json`` (see `Recorder.session_facts`).
     live : host.live.LiveServer, optional
         A live server on this recorder's context (`host.publish.live.start`); stopped by `close`.
+    live_options : dict, optional
+        Keyword arguments of `host.publish.live.LiveServer` for the ``live_port`` server
+        (``max_clients``, ``allowed_origins``, ``tls_cert``, ``tls_key``).
     colour_by : {"error", "displacement", "links"}
         What colours the lattice in ``/sheet/scene`` (docs/recording.md).
     flush_interval_s : float
@@ -330,7 +338,8 @@ class Recorder:
                  min_free: int = 0, free_bytes: Callable[[Path], int] | None = None,
                  on_stop: Callable[[str], None] | None = None,
                  estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0,
-                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS) -> None:
+                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS,
+                 live_options: dict | None = None) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -416,7 +425,8 @@ class Recorder:
         if live_port is not None:
             from host.publish.live import LiveServer
             self.live = LiveServer(self.context, port=live_port, host=live_host,
-                                   name=f"capsheet {lattice.rows}x{lattice.cols}", channel_filter=_not_for("file"))
+                                   name=f"capsheet {lattice.rows}x{lattice.cols}", channel_filter=_not_for("file"),
+                                   **(live_options or {}))
         for sc in self._scenes():
             sc.log_transform(time.time_ns())
 
@@ -951,28 +961,24 @@ class Recording:
 
 
 def _iter_records(f):
-    """MCAP records of a file in order, stopping cleanly where a killed writer left off.
+    """MCAP records of a file in order, stopping cleanly where a killed writer left off, within
+    the bounds `host.record.mcap_read` sets (ValueError beyond them, or for a corrupt record).
     Yields records; returns True (as ``StopIteration.value``) if the file was cut short."""
-    import struct
+    from host.record.mcap_read import iter_records
 
-    from mcap.exceptions import McapError
-    from mcap.stream_reader import StreamReader
-
-    reader = StreamReader(f, skip_magic=False, emit_chunks=False)
-    try:
-        for rec in reader.records:
-            yield rec
-    except (McapError, EOFError, struct.error) as exc:  # a record or chunk cut in the middle
-        log.info("%s: cut short (%s); read up to the last whole chunk", getattr(f, "name", "?"), exc)
-        return True
-    return False
+    name = getattr(f, "name", "?")
+    truncated = yield from iter_records(f, str(name))
+    if truncated:
+        log.info("%s: cut short; read up to the last whole record", name)
+    return truncated
 
 
 class _Decoder:
     """Decodes the messages of one capsheet recording's channels, whichever format wrote them:
     ``capsheet-mcap-1`` (JSON) or ``capsheet-mcap-2`` (protobuf, `host.record.schema`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, name: str = "recording") -> None:
+        self.name = name  #: the file, for messages
         self.topic: dict[int, str] = {}
         self.proto: dict[int, Any] = {}  # channel id -> protobuf message class (v2)
         self._schemas: dict[int, tuple[str, str]] = {}
@@ -995,7 +1001,8 @@ class _Decoder:
                     "latency_s": d["latency_s"], "complete": d["complete"], "readings": _unarr(d["readings"]),
                     "counts": None, "valid": _unarr(d["valid"]).astype(bool), "status": _unarr(d["status"])}
         m = cls.FromString(rec.data)
-        n = int(m.n_links)
+        from host.record.mcap_read import check_snapshot
+        n = check_snapshot(m, self.name)  # its arrays' lengths, before any is unpacked by n
         return {"counter": m.counter, "timestamp": m.timestamp, "wall_time": m.wall_time, "latency_s": m.latency_s,
                 "complete": m.complete,
                 "counts": np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None,
@@ -1061,8 +1068,10 @@ class _Counts:
     (`host.snapshots.feed.corrected`), one snapshot at a time."""
 
     def __init__(self, n_links: int, attachments: dict) -> None:
+        from host.record.mcap_read import check_chip_calibration
         from protocol.constants import nominal_sensitivity
         cal = attachments.get("calibration.json") or {}
+        check_chip_calibration(cal, n_links, "recording")
         self.off = np.zeros((n_links, 3))
         self.sens = np.full((n_links, 3), nominal_sensitivity(int(cal.get("range_code", 0))))
         for c in cal.get("links", []):
@@ -1085,7 +1094,7 @@ class _Counts:
 
 def _attachment(rec):
     try:
-        return json.loads(rec.data)
+        return loads_json(rec.data, rec.name)  # nesting bounded
     except ValueError:
         return bytes(rec.data)
 
@@ -1153,14 +1162,23 @@ def _concat(parts: list[Recording]) -> Recording:
 
 
 def _read_one(path, *, raw: bool = True) -> Recording:
+    """`_read_unchecked`, every malformed record one ValueError (`host.record.mcap_read.malformed`)."""
+    from host.record.mcap_read import malformed, malformed_errors
+    try:
+        return _read_unchecked(path, raw=raw)
+    except malformed_errors() as exc:
+        raise malformed(path, exc) from None
+
+
+def _read_unchecked(path, *, raw: bool = True) -> Recording:
     from mcap.records import Attachment, Channel, DataEnd, Footer, Message, Metadata, Schema
 
     path = Path(path)
-    with open(path, "rb") as f:
+    with open_regular(path, "a recording (.mcap)") as f:
         if f.read(8) != b"\x89MCAP0\r\n":
             raise ValueError(f"{str(path)!r} is not an MCAP file (magic bytes missing)")
         f.seek(0)
-        dec = _Decoder()
+        dec = _Decoder(str(path))
         meta: dict[str, dict] = {}
         attachments: dict = {}
         counts: dict[str, int] = {}
@@ -1187,7 +1205,7 @@ def _read_one(path, *, raw: bool = True) -> Recording:
                 elif topic == TOPIC_SYNC:
                     syncs.append(dec.sync(rec))
                 elif topic == TOPIC_CONTACTS:
-                    d = json.loads(rec.data)
+                    d = loads_json(rec.data, f"{path}: {TOPIC_CONTACTS}")
                     contacts.append((d["counter"], d["timestamp"], d["contacts"]))
                 elif raw and topic.startswith("/capsheet/raw/bus"):
                     bus, t, kind, payload = dec.raw(rec)
@@ -1197,7 +1215,7 @@ def _read_one(path, *, raw: bool = True) -> Recording:
             elif isinstance(rec, Schema):
                 dec.schema(rec)
             elif isinstance(rec, Metadata):
-                meta[rec.name] = {k: json.loads(v) for k, v in rec.metadata.items()}
+                meta[rec.name] = {k: loads_json(v, f"{path}: metadata {rec.name}") for k, v in rec.metadata.items()}
             elif isinstance(rec, Attachment):
                 attachments[rec.name] = _attachment(rec)
             elif isinstance(rec, (DataEnd, Footer)):
@@ -1207,7 +1225,8 @@ def _read_one(path, *, raw: bool = True) -> Recording:
             raise ValueError(f"{str(path)!r} was cut short before its 'capsheet.session' metadata: nothing to read")
         raise ValueError(f"{str(path)!r} is not a capsheet recording (no 'capsheet.session' metadata)")
     session = {**meta["capsheet.session"], **meta.get("capsheet.host", {})}
-    rows, cols = int(session["rows"]), int(session["cols"])
+    from host.record.mcap_read import check_session
+    rows, cols, _ = check_session(session, path)  # before anything is sized by the lattice
     ests = [dec.estimate(e, rows, cols) for e in ests]
     b = _snapshot_batch(session, snaps, _Counts(int(session["n_links"]), attachments))
     est: dict[str, np.ndarray] = {
@@ -1276,9 +1295,9 @@ def _snapshot_count_one(path) -> int | None:
     from mcap.reader import make_reader
 
     try:
-        with open(path, "rb") as f:
+        with open_regular(path, "a recording (.mcap)") as f:
             summary = make_reader(f).get_summary()
-    except (McapError, OSError, EOFError, ValueError):
+    except (McapError, OSError, EOFError, ValueError, struct.error, KeyError, UnicodeDecodeError, MemoryError):
         return None
     if summary is None or summary.statistics is None:
         return None
@@ -1306,14 +1325,23 @@ def iter_snapshots(path, batch: int = 256) -> Iterator[SnapshotBatch]:
 
 
 def _iter_snapshots_one(path, batch: int) -> Iterator[SnapshotBatch]:
+    """`_iter_snapshots_unchecked`, every malformed record one ValueError."""
+    from host.record.mcap_read import malformed, malformed_errors
+    try:
+        yield from _iter_snapshots_unchecked(path, batch)
+    except malformed_errors() as exc:
+        raise malformed(path, exc) from None
+
+
+def _iter_snapshots_unchecked(path, batch: int) -> Iterator[SnapshotBatch]:
     from mcap.records import Attachment, Channel, Message, Metadata, Schema
 
     path = Path(path)
-    with open(path, "rb") as f:
+    with open_regular(path, "a recording (.mcap)") as f:
         if f.read(8) != b"\x89MCAP0\r\n":
             raise ValueError(f"{str(path)!r} is not an MCAP file (magic bytes missing)")
         f.seek(0)
-        dec = _Decoder()
+        dec = _Decoder(str(path))
         snap_channels: set[int] = set()
         session: dict | None = None
         attachments: dict = {}
@@ -1339,7 +1367,9 @@ def _iter_snapshots_one(path, batch: int) -> Iterator[SnapshotBatch]:
                 attachments[rec.name] = _attachment(rec)
                 conv = None
             elif isinstance(rec, Metadata) and rec.name == "capsheet.session":
-                session = {k: json.loads(v) for k, v in rec.metadata.items()}
+                session = {k: loads_json(v, f"{path}: metadata capsheet.session") for k, v in rec.metadata.items()}
+                from host.record.mcap_read import check_session
+                check_session(session, path)  # before anything is sized by the lattice
     if session is None:
         raise ValueError(f"{str(path)!r} is not a capsheet recording, or was cut short before its "
                          f"'capsheet.session' metadata (nothing to read)")
@@ -1354,6 +1384,9 @@ def _snapshot_batch(session: dict, snaps: list[dict], conv: "_Counts") -> Snapsh
     valid = np.empty((n, n_links), dtype=bool)
     status = np.empty((n, n_links), dtype=np.uint8)
     for k, s in enumerate(snaps):
+        if np.shape(s["valid"]) != (n_links,) or np.shape(s["status"]) != (n_links,):
+            raise ValueError(f"a snapshot of {np.shape(s['valid'])[0] if np.ndim(s['valid']) else '?'} links in a "
+                             f"recording of {n_links}")
         valid[k] = s["valid"]
         status[k] = s["status"]
         readings[k] = s["readings"] if s["counts"] is None else conv(s["counts"], s["valid"])

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import base64
 import heapq
+import struct
 import time
+import zlib
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Iterator
@@ -144,14 +146,23 @@ def load_can_log(path) -> dict[str, list]:
     path = Path(path)
     if path.suffix.lower() not in CAN_LOG_SUFFIXES:
         raise ValueError(f"{str(path)!r}: not a CAN log python-can reads here (need {', '.join(CAN_LOG_SUFFIXES)})")
+    from can.io.blf import BLFParseError
+
+    from protocol.files import open_regular
+    with open_regular(path, "a CAN log") as f:  # a regular file: not a FIFO, not /dev/zero (ValueError)
+        if path.suffix.lower() == ".blf":  # its sizes and containers bounded before python-can trusts them
+            from host.record.blf_check import check_blf
+            check_blf(f, str(path))
     buses: dict[str, list] = {}
     try:
         for m in can.LogReader(str(path)):
             if not getattr(m, "is_rx", True):
                 continue
             buses.setdefault(str(m.channel), []).append((float(m.timestamp), "can", [m]))
-    except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{str(path)!r}: cannot read as a CAN log: {exc}") from exc
+    except (ValueError, OSError, EOFError, struct.error, IndexError, KeyError, TypeError, UnicodeDecodeError,
+            zlib.error, MemoryError, BLFParseError) as exc:  # python-can's readers, on a file not what it says
+        raise ValueError(f"{str(path)!r}: cannot read as a CAN log: {type(exc).__name__}: "
+                         f"{str(exc).splitlines()[0][:120] if str(exc) else ''}") from None
     return buses
 
 
@@ -205,6 +216,13 @@ class Replay:
     def __init__(self, path, *, speed: float | None = None, lattice: str | Lattice | None = None,
                  link_length: float | None = None, deadline_s: float | None = None,
                  imu_ranges: tuple[int, int] | None = None) -> None:
+        from host.record.mcap_read import malformed, malformed_errors
+        try:  # a recording whose session, calibration or transports are not what capsheet writes: one line
+            self._open(path, speed, lattice, link_length, deadline_s, imu_ranges)
+        except malformed_errors() as exc:
+            raise malformed(path, exc) from None
+
+    def _open(self, path, speed, lattice, link_length, deadline_s, imu_ranges) -> None:
         from host.record import recording as record
 
         source = [str(p) for p in path] if isinstance(path, (list, tuple)) else path
@@ -285,7 +303,9 @@ class Replay:
 
     def _apply_calibration(self, cal: dict) -> None:
         """The node map, offsets and sensitivities exactly as `host.session.core.Host` set them."""
+        from host.record.mcap_read import check_chip_calibration
         n = self.lattice.n_links
+        check_chip_calibration(cal, n, self.path, need_node=True)  # links in the lattice, 16-bit nodes, finite
         lut = np.full(1 << 16, -1, dtype=np.int64)
         unassigned = np.ones(n, dtype=bool)
         scale_nominal = nominal_sensitivity(int(cal.get("range_code", 0)))

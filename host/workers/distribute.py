@@ -213,12 +213,18 @@ class SheetWork:
 
     def set_info(self, doc: dict) -> None:
         """The sheet's ``info`` answer (JSON decoded); ValueError when it lacks the lattice or link length."""
+        from host.cli.argtypes import MAX_LINK_M, MIN_LINK_M
+        from host.publish.zenoh_pub import check_lattice
         try:
             rows, cols, L = int(doc["rows"]), int(doc["cols"]), float(doc["link_length_m"])
-        except (KeyError, TypeError, ValueError):
+        except (KeyError, TypeError, ValueError, OverflowError):
             raise ValueError(f"capsheet/{self.name}/info lacks rows, cols or link_length_m") from None
-        if not (rows >= 2 and cols >= 2 and 0 < L < 10):
-            raise ValueError(f"capsheet/{self.name}/info: {rows}x{cols}, link length {L} m is not a sheet")
+        try:
+            check_lattice(rows, cols)
+        except ValueError as exc:
+            raise ValueError(f"capsheet/{self.name}/info: {exc}") from None
+        if not MIN_LINK_M <= L <= MAX_LINK_M:  # NaN fails too
+            raise ValueError(f"capsheet/{self.name}/info: link_length_m {L} is not in [{MIN_LINK_M}, {MAX_LINK_M}] m")
         self.info = doc
 
     @property
@@ -227,7 +233,9 @@ class SheetWork:
 
     def work(self, payload: bytes, now: float) -> bytes | None:
         """One snapshot payload -> the estimate payload to publish, or None (a bad payload, a
-        duplicate or an old snapshot: counted). Needs `set_info` first. ``now``: monotonic seconds."""
+        duplicate or an old snapshot: counted). Needs `set_info` first. ``now``: monotonic seconds.
+        Any bytes are taken: sizes, lattice and counts are checked before anything is allocated
+        (`host.publish.zenoh_pub.decode_snapshot`), and a payload that fails is counted, never raised."""
         from host.publish.zenoh_pub import decode_snapshot, encode_estimate, encode_no_estimate
         try:
             s = decode_snapshot(payload)
@@ -249,14 +257,17 @@ class SheetWork:
         if not s["valid"].any():
             why = "no valid link"
         elif fused:
-            est, why = self._fused_estimate(s)
+            try:
+                est, why = self._fused_estimate(s)
+            except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+                why = str(exc)
         else:
             from host.analysis.estimator import estimate
             try:
                 est = estimate(s["readings"].astype(float), rows, cols, self.link_length, valid=s["valid"],
                                previous=self._previous, bad_readings="mask")
-            except ValueError as exc:  # e.g. every valid link's reading implausible
-                why = str(exc)
+            except (ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:  # e.g. every valid link's
+                why = str(exc)  # reading implausible: this snapshot only
         if why is not None:
             self.not_estimated[why] = self.not_estimated.get(why, 0) + 1
             return encode_no_estimate(rows, cols, s["counter"], s["timestamp"], s["wall_time"])

@@ -217,7 +217,7 @@ def test_save_and_load_round_trip(tmp_path, realistic):
     assert doc["format"] == "capsheet-calibration" and len(doc["chips"]) == cal.n_links
     doc["chips"][5]["scale"] = [1.0, -0.2, 1.0]
     (tmp_path / "bad.json").write_text(json.dumps(doc))
-    with pytest.raises(ValueError, match="bad.json: Invalid scale"):
+    with pytest.raises(ValueError, match=r"bad.json: chip 5: scale -0.2 is outside \[0.5, 2\]"):
         Calibration.load(tmp_path / "bad.json")
     del doc["chips"][5]
     (tmp_path / "short.json").write_text(json.dumps(doc))

@@ -18,8 +18,10 @@ import zenoh
 sheets, seconds, idle = sys.argv[1].split(","), float(sys.argv[2]), float(sys.argv[3])
 conf = zenoh.Config()
 conf.insert_json5("mode", '"peer"')
-conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-conf.insert_json5("scouting/multicast/interface", '"lo"')
+# docs/distribution.md: without multicast, the machine's sessions meet at tcp/127.0.0.1:7447
+conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0", "tcp/127.0.0.1:7447#exit_on_failure=false"]')
+conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
+conf.insert_json5("scouting/multicast/enabled", "false")
 session = zenoh.open(conf)
 HDR = "<4sBBHHIHQdd"
 O = struct.calcsize(HDR)

@@ -6,7 +6,8 @@ the repository's .msg files) — not host.ros2. Prints one JSON line: what it re
     python ros2_subscriber.py DOMAIN SHEET SECONDS MIN_JOINTS [LISTEN]
 
 LISTEN (a locator, e.g. tcp/127.0.0.1:7450): listen there with multicast scouting off (the host
-connects to it: ``--publish ros2:LISTEN``); without it, a peer on loopback found by scouting.
+connects to it: ``--publish ros2:LISTEN``); without it, a peer on loopback meeting the others at
+tcp/127.0.0.1:7447 as capsheet's default sessions do.
 """
 
 import json
@@ -34,9 +35,10 @@ conf.insert_json5("mode", '"peer"')
 if listen:
     conf.insert_json5("listen/endpoints", json.dumps([listen]))
     conf.insert_json5("scouting/multicast/enabled", "false")
-else:
-    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-    conf.insert_json5("scouting/multicast/interface", '"lo"')
+else:  # docs/distribution.md: without multicast, the machine's sessions meet at tcp/127.0.0.1:7447
+    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0", "tcp/127.0.0.1:7447#exit_on_failure=false"]')
+    conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
+    conf.insert_json5("scouting/multicast/enabled", "false")
 session = zenoh.open(conf)
 out = {"samples": {}, "keys": {}, "bad": [], "tokens": [], "tokens_gone": [], "attachments": {},
        "diagnostics": []}

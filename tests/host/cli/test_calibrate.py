@@ -166,7 +166,7 @@ def test_calibration_flag_of_host_demo_tactile_refuses_bad_files(tmp_path):
         assert res.returncode == 2, (cmd, res.stderr)
         assert "is for a 3x3 lattice, not 4x4" in res.stderr and "Traceback" not in res.stderr
     res = capsheet("host", "--port", "/dev/null", "--lattice", "4x4", "--calibration", str(tmp_path / "junk.json"))
-    assert res.returncode == 2 and "not JSON" in res.stderr and "Traceback" not in res.stderr
+    assert res.returncode == 2 and "not valid JSON" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_capsheet_virtual_chip_errors_and_board_scene():
