@@ -15,6 +15,8 @@ topic                       schema                   content
 ==========================  =======================  =============================================
 ``/capsheet/raw/bus{N}``    capsheet.v2.RawSerial    wire bytes of bus N as read (serial, pty, memory);
                                                      ``t`` when ingested, ``t_rx`` when read
+                            capsheet.v2.RawSerialFrames  the same bytes, valid SAMPLE frames as columns
+                                                     (`host.record.compact`; what `Recorder` writes)
                             capsheet.v2.RawCan       CAN frames of bus N as received (one batch)
 ``/capsheet/sync``          capsheet.v2.Sync         the host opened SYNC ``counter`` at ``t``
 ``/capsheet/snapshot``      capsheet.v2.Snapshot     counter, the chips' counts (int16; `read`
@@ -312,6 +314,9 @@ class Recorder:
         zstd level of the chunks (default `compression_level_for` the lattice's links).
     compression_threads : int
         zstd worker threads (`COMPRESSION_THREADS`).
+    compact_raw : bool
+        Serial input as ``capsheet.v2.RawSerialFrames`` (`host.record.compact`: valid SAMPLE frames
+        as columns, every other byte as it came; the same bytes on reading), else as ``RawSerial``.
 
     Attributes
     ----------
@@ -330,7 +335,8 @@ class Recorder:
                  min_free: int = 0, free_bytes: Callable[[Path], int] | None = None,
                  on_stop: Callable[[str], None] | None = None,
                  estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0,
-                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS) -> None:
+                 compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS,
+                 compact_raw: bool = True) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -362,6 +368,8 @@ class Recorder:
         self.context = foxglove.Context()
         self._lock = threading.Lock()
         self._io = threading.RLock()  # one message at a time into the writer; a file switch between two
+        self.compact_raw = bool(compact_raw)
+        self._compactors: dict[int, tuple[int, Any]] = {}  # bus -> (file index, its SerialCompactor)
         self._last_flush = time.monotonic()
         self._closed = False
         self._writer = None
@@ -593,6 +601,13 @@ class Recorder:
                 msg.frames.add(id=int(m.arbitration_id), flags=_can_flags(m), ts=float(m.timestamp or 0.0),
                                data=bytes(m.data))
             self._log(topic, "capsheet.v2.RawCan", msg, log_time_ns)
+        elif kind == "serial" and self.compact_raw:
+            from host.record.compact import SCHEMA, SerialCompactor
+            with self._io:  # a compactor per bus and file: each file of a split set expands alone
+                index, comp = self._compactors.get(bus, (None, None))
+                if index != len(self.paths):
+                    index, comp = self._compactors[bus] = (len(self.paths), SerialCompactor())
+                self._log(topic, SCHEMA, comp.encode(payload, bus=int(bus), t=float(t), t_rx=float(t_rx)), log_time_ns)
         elif kind == "serial":
             self._log(topic, "capsheet.v2.RawSerial", P.message_class("RawSerial")(
                 bus=int(bus), t=float(t), t_rx=float(t_rx), data=bytes(payload)), log_time_ns)
@@ -975,6 +990,7 @@ class _Decoder:
     def __init__(self) -> None:
         self.topic: dict[int, str] = {}
         self.proto: dict[int, Any] = {}  # channel id -> protobuf message class (v2)
+        self._expanders: dict[int, Any] = {}  # channel id -> SerialExpander (RawSerialFrames)
         self._schemas: dict[int, tuple[str, str]] = {}
 
     def schema(self, rec) -> None:
@@ -1047,6 +1063,9 @@ class _Decoder:
         m = cls.FromString(rec.data)
         if cls.DESCRIPTOR.name == "RawSerial":
             return m.bus, m.t, "serial", bytes(m.data)
+        if cls.DESCRIPTOR.name == "RawSerialFrames":
+            from host.record.compact import SerialExpander
+            return m.bus, m.t, "serial", self._expanders.setdefault(rec.channel_id, SerialExpander()).expand(m)
         from host.record import schema as P
         return m.bus, m.t, "can", [{"id": f.id, "ext": bool(f.flags & P.CAN_EXT), "fd": bool(f.flags & P.CAN_FD),
                                     "err": bool(f.flags & P.CAN_ERR), "rtr": bool(f.flags & P.CAN_RTR),

@@ -29,6 +29,10 @@ _OPT, _REP = "optional", "repeated"
 
 _MESSAGES = [
     ("RawSerial", [("bus", 1, _U32, _OPT), ("t", 2, _D, _OPT), ("t_rx", 3, _D, _OPT), ("data", 4, _B, _OPT)]),
+    # the same chunks with their valid SAMPLE frames as columns (`host.record.compact`)
+    ("RawSerialFrames", [("bus", 1, _U32, _OPT), ("t", 2, _D, _OPT), ("t_rx", 3, _D, _OPT), ("raw", 4, _B, _OPT),
+                         ("gap", 5, _B, _OPT), ("node", 6, _B, _OPT), ("counter", 7, _B, _OPT),
+                         ("counts", 8, _B, _OPT), ("status", 9, _B, _OPT)]),
     ("CanFrame", [("id", 1, _U32, _OPT), ("flags", 2, _U32, _OPT), ("ts", 3, _D, _OPT), ("data", 4, _B, _OPT)]),
     ("RawCan", [("bus", 1, _U32, _OPT), ("t", 2, _D, _OPT), ("t_rx", 3, _D, _OPT),
                 ("frames", 4, _MSG, _REP, "CanFrame")]),
