@@ -41,7 +41,7 @@ import numpy as np
 from protocol.crc import crc16_rows
 from protocol.messages import PROTOCOL_VERSION, MsgType
 
-__all__ = ["SCHEMA", "FRAME_SPAN", "SerialCompactor", "SerialExpander", "CompactError"]
+__all__ = ["SCHEMA", "FRAME_SPAN", "SerialCompactor", "SerialExpander", "CountsCoder", "CompactError"]
 
 #: the channel's schema (`host.record.schema`)
 SCHEMA = "capsheet.v2.RawSerialFrames"
@@ -169,6 +169,11 @@ class _NodeState:
             self.prev_node = int(node[-1])
 
 
+def _signed16(v: np.ndarray) -> np.ndarray:
+    """``v`` modulo 2**16 as int16 values in [-32768, 32767]."""
+    return ((v + 0x8000) & 0xFFFF) - 0x8000
+
+
 def _zigzag(v: np.ndarray) -> np.ndarray:
     return np.where(v >= 0, v << 1, ((-v) << 1) - 1)
 
@@ -291,3 +296,49 @@ class SerialExpander:
         out[idx] = frames
         out[~is_frame] = raw
         return out.tobytes()
+
+
+class CountsCoder:
+    """A snapshot's counts ((n_links, 3) int16) against the same running average per link, in the
+    order the snapshots are written (one file): ``counts_planes`` of ``capsheet.v2.Snapshot``.
+
+    A link not valid in a snapshot is predicted 0 and leaves its average as it was (the aggregator
+    records 0 there: the residual is then 0 too; any other value is still kept exactly). The same
+    object encodes (`encode`) or decodes (`decode`); one per file, as `SerialCompactor`."""
+
+    def __init__(self) -> None:
+        self._ref16: np.ndarray | None = None
+        self._seen: np.ndarray | None = None
+
+    def _prediction(self, n: int, valid: np.ndarray) -> np.ndarray:
+        if self._ref16 is None or self._ref16.shape[0] != n:  # the first snapshot (or another sheet)
+            self._ref16 = np.zeros((n, 3), dtype=np.int64)
+            self._seen = np.zeros(n, dtype=bool)
+        use = (self._seen & valid)[:, None]
+        return np.where(use, (self._ref16 + 8) >> 4, 0)
+
+    def _update(self, counts: np.ndarray, valid: np.ndarray) -> None:
+        c16 = counts << 4
+        v = valid[:, None]
+        step = np.where(self._seen[:, None], self._ref16 + ((c16 - self._ref16) >> _SHIFT), c16)
+        self._ref16 = np.where(v, step, self._ref16)
+        self._seen |= valid
+
+    def encode(self, counts, valid) -> bytes:
+        """``counts`` (n_links, 3) int, ``valid`` (n_links,) bool -> the residuals' byte planes."""
+        counts = np.asarray(counts, dtype=np.int64)
+        valid = np.asarray(valid, dtype=bool)
+        resid = _signed16(counts - self._prediction(counts.shape[0], valid))  # int16 counts: modulo 2**16
+        self._update(counts, valid)
+        return _planes(_zigzag(resid))
+
+    def decode(self, data: bytes, valid) -> np.ndarray:
+        """The counts ((n_links, 3) int16) of `encode`'s bytes; `CompactError` when they do not fit."""
+        valid = np.asarray(valid, dtype=bool)
+        n = valid.shape[0]
+        u = _unplanes(data, 3 * n)
+        if u is None:
+            raise CompactError(f"Snapshot counts_planes holds {len(data)} bytes, {n} links need {6 * n}")
+        counts = _signed16(self._prediction(n, valid) + _unzigzag(u).reshape(n, 3))
+        self._update(counts, valid)
+        return counts.astype(np.int16)

@@ -314,9 +314,10 @@ class Recorder:
         zstd level of the chunks (default `compression_level_for` the lattice's links).
     compression_threads : int
         zstd worker threads (`COMPRESSION_THREADS`).
-    compact_raw : bool
+    compact : bool
         Serial input as ``capsheet.v2.RawSerialFrames`` (`host.record.compact`: valid SAMPLE frames
-        as columns, every other byte as it came; the same bytes on reading), else as ``RawSerial``.
+        as columns, every other byte as it came; the same bytes on reading), else as ``RawSerial``;
+        a snapshot's counts as ``counts_planes`` (against each link's running average), else ``counts``.
 
     Attributes
     ----------
@@ -336,7 +337,7 @@ class Recorder:
                  on_stop: Callable[[str], None] | None = None,
                  estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0,
                  compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS,
-                 compact_raw: bool = True) -> None:
+                 compact: bool = True) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -368,8 +369,8 @@ class Recorder:
         self.context = foxglove.Context()
         self._lock = threading.Lock()
         self._io = threading.RLock()  # one message at a time into the writer; a file switch between two
-        self.compact_raw = bool(compact_raw)
-        self._compactors: dict[int, tuple[int, Any]] = {}  # bus -> (file index, its SerialCompactor)
+        self.compact = bool(compact)
+        self._compactors: dict[Any, tuple[int, Any]] = {}  # bus (or "snapshot") -> (file index, its coder)
         self._last_flush = time.monotonic()
         self._closed = False
         self._writer = None
@@ -601,18 +602,23 @@ class Recorder:
                 msg.frames.add(id=int(m.arbitration_id), flags=_can_flags(m), ts=float(m.timestamp or 0.0),
                                data=bytes(m.data))
             self._log(topic, "capsheet.v2.RawCan", msg, log_time_ns)
-        elif kind == "serial" and self.compact_raw:
+        elif kind == "serial" and self.compact:
             from host.record.compact import SCHEMA, SerialCompactor
             with self._io:  # a compactor per bus and file: each file of a split set expands alone
-                index, comp = self._compactors.get(bus, (None, None))
-                if index != len(self.paths):
-                    index, comp = self._compactors[bus] = (len(self.paths), SerialCompactor())
+                comp = self._coder(bus, SerialCompactor)
                 self._log(topic, SCHEMA, comp.encode(payload, bus=int(bus), t=float(t), t_rx=float(t_rx)), log_time_ns)
         elif kind == "serial":
             self._log(topic, "capsheet.v2.RawSerial", P.message_class("RawSerial")(
                 bus=int(bus), t=float(t), t_rx=float(t_rx), data=bytes(payload)), log_time_ns)
         else:
             raise ValueError(f"Invalid raw kind: {kind!r} (need 'serial' or 'can')")
+
+    def _coder(self, key, make):
+        """The coder of ``key`` for the file being written (a new file starts a new one); under `_io`."""
+        index, coder = self._compactors.get(key, (None, None))
+        if index != len(self.paths):
+            index, coder = self._compactors[key] = (len(self.paths), make())
+        return coder
 
     def sync(self, counter: int, t: float) -> None:
         """The host opened SYNC ``counter`` at host monotonic ``t`` (replay re-opens it there)."""
@@ -635,8 +641,8 @@ class Recorder:
             valid=np.packbits(valid, bitorder="little").tobytes(),
             status=np.ascontiguousarray(snap.status, dtype=np.uint8).tobytes())
         counts = getattr(snap, "counts", None)
-        parts = [packed_sint32(7, np.asarray(counts, dtype=np.int16)) if counts is not None
-                 else packed_float(8, snap.readings)]
+        parts = [packed_sint32(7, np.asarray(counts, dtype=np.int16)) if counts is not None and not self.compact
+                 else b"" if counts is not None else packed_float(8, snap.readings)]
         for name, number in (("gyro", 11), ("mag", 12), ("sample_time_s", 13)):  # 6/9-axis chips (§16)
             v = getattr(snap, name, None)
             if v is not None:
@@ -644,8 +650,12 @@ class Recorder:
         # the packed fields appended to the rest, wire-encoded: protobuf merges concatenated
         # messages, so this is the same message without parsing 24,192 counts back in and out
         # (a 64x64 snapshot: 0.39 instead of 0.67 ms, in the receive path)
-        self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg.SerializeToString() + b"".join(parts),
-                  _wall_ns(snap.wall_time))
+        with self._io:  # the counts' coder per file, as the raw input's
+            if counts is not None and self.compact:
+                from host.record.compact import CountsCoder
+                msg.counts_planes = self._coder("snapshot", CountsCoder).encode(counts, valid)
+            self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg.SerializeToString() + b"".join(parts),
+                      _wall_ns(snap.wall_time))
 
     def estimate(self, est, counter: int, timestamp: float, wall_time: float | None = None, *,
                  error_joint: np.ndarray | None = None, error_pct_side: float | None = None,
@@ -991,6 +1001,7 @@ class _Decoder:
         self.topic: dict[int, str] = {}
         self.proto: dict[int, Any] = {}  # channel id -> protobuf message class (v2)
         self._expanders: dict[int, Any] = {}  # channel id -> SerialExpander (RawSerialFrames)
+        self._counts = None  # the snapshots' CountsCoder (counts_planes)
         self._schemas: dict[int, tuple[str, str]] = {}
 
     def schema(self, rec) -> None:
@@ -1012,12 +1023,19 @@ class _Decoder:
                     "counts": None, "valid": _unarr(d["valid"]).astype(bool), "status": _unarr(d["status"])}
         m = cls.FromString(rec.data)
         n = int(m.n_links)
+        valid = np.unpackbits(np.frombuffer(m.valid, np.uint8), count=n, bitorder="little").astype(bool)
+        if m.HasField("counts_planes"):
+            from host.record.compact import CountsCoder
+            if self._counts is None:
+                self._counts = CountsCoder()
+            counts = self._counts.decode(m.counts_planes, valid)
+        else:
+            counts = np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None
         return {"counter": m.counter, "timestamp": m.timestamp, "wall_time": m.wall_time, "latency_s": m.latency_s,
                 "complete": m.complete,
-                "counts": np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None,
+                "counts": counts,
                 "readings": np.array(m.readings, dtype=np.float32).reshape(n, 3) if len(m.readings) else None,
-                "valid": np.unpackbits(np.frombuffer(m.valid, np.uint8), count=n, bitorder="little").astype(bool),
-                "status": np.frombuffer(m.status, np.uint8),
+                "valid": valid, "status": np.frombuffer(m.status, np.uint8),
                 "gyro": np.array(m.gyro, dtype=np.float32).reshape(n, 3) if len(m.gyro) else None,
                 "mag": np.array(m.mag, dtype=np.float32).reshape(n, 3) if len(m.mag) else None,
                 "sample_time_s": np.array(m.sample_time_s, dtype=np.float32) if len(m.sample_time_s) else None}

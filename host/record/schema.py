@@ -42,7 +42,9 @@ _MESSAGES = [
                   ("counts", 7, _S32, _REP), ("readings", 8, _F, _REP), ("valid", 9, _B, _OPT),
                   ("status", 10, _B, _OPT),
                   # 6/9-axis chips (docs/protocol.md §16): rad/s, T, s after the SYNC (NaN unknown)
-                  ("gyro", 11, _F, _REP), ("mag", 12, _F, _REP), ("sample_time_s", 13, _F, _REP)]),
+                  ("gyro", 11, _F, _REP), ("mag", 12, _F, _REP), ("sample_time_s", 13, _F, _REP),
+                  # counts against each link's running average (`host.record.compact.CountsCoder`)
+                  ("counts_planes", 14, _B, _OPT)]),
     ("Estimate", [("counter", 1, _U32, _OPT), ("timestamp", 2, _D, _OPT), ("method", 3, _STR, _OPT),
                   ("residual", 4, _D, _OPT), ("iterations", 5, _U32, _OPT), ("joints", 6, _F, _REP),
                   ("yaw_std", 7, _F, _REP), ("joint_std", 8, _F, _REP), ("joint_std_shape", 9, _U32, _REP),
