@@ -87,12 +87,12 @@ def test_damaged_bytes_other_types_and_cut_frames_are_kept_as_they_came():
     status_frame = encode_frame(MsgType.STATUS, 5, bytes(7))  # 7-byte payload: a SAMPLE's length, not its type
     noise_bytes = bytes(rng.integers(0, 256, 40, dtype=np.uint8))
     stream = b"".join([good[0], bad_crc, good[1], version2, good[2], status_frame, noise_bytes, good[3],
-                       b"\x00\x00", good[4] + good[5], good[6][:7]]) + good[6][7:] + good[7]
+                       b"\x00\x00", good[4] + good[5], good[0][:-1], b"\x07\x00", good[6][:7]]) + good[6][7:] + good[7]
     chunks = [stream[:len(stream) // 2], stream[len(stream) // 2:]]
     back, msgs = _round_trip(chunks)
     assert back == chunks
     raw = b"".join(m.raw for m in msgs)
-    for kept in (bad_crc, version2, status_frame, noise_bytes):
+    for kept in (bad_crc, version2, status_frame, noise_bytes, good[0][:-1] + b"\x07\x00"):
         assert kept in raw  # not a valid SAMPLE: as it came
     assert sum(len(m.status) for m in msgs) == sum(_whole_samples(c) for c in chunks)
 
@@ -148,7 +148,8 @@ _samples = st.builds(lambda n, c, x, y, z, s: encode(Sample(node=n, counter=c, x
 
 
 @settings(max_examples=300, deadline=None)
-@given(parts=st.lists(st.one_of(st.binary(max_size=40), _samples, st.just(b"\x00")), max_size=30),
+@given(parts=st.lists(st.one_of(st.binary(max_size=40), _samples, _samples.map(lambda f: f[:-1]),  # its delimiter lost
+                                st.just(b"\x00")), max_size=30),
        cuts=st.lists(st.integers(0, 2000), max_size=12))
 def test_any_bytes_cut_anyhow_come_back_exactly(parts, cuts):
     data = b"".join(parts)
