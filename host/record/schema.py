@@ -8,8 +8,10 @@ decode without capsheet. proto2 syntax, for field presence (``error_pct_side`` m
 
 Why protobuf (and not JSON, as ``capsheet-mcap-1`` was): a 14x14 snapshot was ~7 KB of JSON with
 base64 arrays of float32; here it is its chips' ADC counts (sint32 zigzag varints, 2 bytes each at
-a few g), a bitmap of valid links and the status bytes: ~1.5 KB. Foxglove still plots every field
-(``/capsheet/snapshot.counts[5]``), which a raw byte blob would not allow.
+a few g), a bitmap of valid links and the status bytes: ~1.5 KB. Foxglove plots every number field
+(``/capsheet/estimate.residual``, ``/capsheet/snapshot.latency_s``); the counts of a recording made
+with ``Recorder(compact=True)`` (the default) are byte planes of residuals (``counts_planes``,
+`host.record.compact`), which only capsheet's reader turns back into counts.
 """
 
 from __future__ import annotations
