@@ -99,18 +99,18 @@ def _cobs_encode_rows(body: np.ndarray) -> np.ndarray:
     return np.where(is_code, (nxt - _OUT_POS).astype(np.uint8), out)
 
 
+_SHIFTS = np.array([0, 12, 24], dtype=np.int64)
+
+
 def _bodies(node, counter, xyz, status) -> np.ndarray:
     """The ``(n, 13)`` SAMPLE frame bodies of these fields, CRC included (docs/protocol.md §4.3, §6)."""
     n = node.shape[0]
     b = np.empty((n, _BODY), dtype=np.uint8)
     b[:, 0] = PROTOCOL_VERSION
     b[:, 1] = int(MsgType.SAMPLE)
-    b[:, 2], b[:, 3] = node & 0xFF, node >> 8
-    b[:, 4], b[:, 5] = counter & 0xFF, counter >> 8
-    u = (xyz.astype(np.int64) & 0xFFF)
-    word = u[:, 0] | (u[:, 1] << 12) | (u[:, 2] << 24) | (status.astype(np.int64) << 36)
-    for k in range(5):
-        b[:, 6 + k] = (word >> (8 * k)) & 0xFF
+    b[:, 2:6] = np.stack([node, counter], axis=1).astype("<u2").view(np.uint8)
+    word = ((xyz & 0xFFF) << _SHIFTS).sum(axis=1) | (status.astype(np.int64) << 36)  # x, y, z, status: 40 bits
+    b[:, 6:11] = word.astype("<u8").view(np.uint8).reshape(n, 8)[:, :5]
     crc = crc16_rows(b[:, :11])
     b[:, 11], b[:, 12] = crc >> 8, crc & 0xFF
     return b
@@ -118,13 +118,14 @@ def _bodies(node, counter, xyz, status) -> np.ndarray:
 
 def _fields(body: np.ndarray):
     """node, counter (int64 (n,)), counts (int64 (n, 3), 12-bit signed), status (n,) of bodies."""
-    b = body.astype(np.int64)
-    node = b[:, 2] | (b[:, 3] << 8)
-    counter = b[:, 4] | (b[:, 5] << 8)
-    word = b[:, 6] | (b[:, 7] << 8) | (b[:, 8] << 16) | (b[:, 9] << 24) | (b[:, 10] << 32)
-    xyz = np.stack([(word >> s) & 0xFFF for s in (0, 12, 24)], axis=1)
+    n = body.shape[0]
+    nc = np.ascontiguousarray(body[:, 2:6]).view("<u2").astype(np.int64)
+    w = np.zeros((n, 8), dtype=np.uint8)
+    w[:, :5] = body[:, 6:11]
+    word = w.view("<u8").astype(np.int64)  # (n, 1)
+    xyz = (word >> _SHIFTS) & 0xFFF
     xyz -= (xyz & 0x800) << 1
-    return node, counter, xyz, (word >> 36) & 0xF
+    return nc[:, 0], nc[:, 1], xyz, (word[:, 0] >> 36) & 0xF
 
 
 def _ranks(node: np.ndarray) -> np.ndarray:
@@ -175,11 +176,12 @@ def _signed16(v: np.ndarray) -> np.ndarray:
 
 
 def _zigzag(v: np.ndarray) -> np.ndarray:
-    return np.where(v >= 0, v << 1, ((-v) << 1) - 1)
+    """Signed int64 to unsigned, small magnitudes small: 0, -1, 1, -2 -> 0, 1, 2, 3."""
+    return (v << 1) ^ (v >> 63)
 
 
 def _unzigzag(u: np.ndarray) -> np.ndarray:
-    return np.where(u & 1, -((u + 1) >> 1), u >> 1)
+    return (u >> 1) ^ -(u & 1)
 
 
 def _planes(u: np.ndarray, width: int = 2) -> bytes:
@@ -244,8 +246,8 @@ class SerialCompactor:
         msg = self._cls(bus=int(bus), t=float(t), t_rx=float(t_rx),
                         raw=np.frombuffer(data, np.uint8)[keep].tobytes())
         if n:
-            msg.gap = _planes(np.diff(at, prepend=0), 4)
-            msg.node = _planes(np.diff(node, prepend=prev_node) & 0xFFFF)
+            msg.gap = _planes(at - np.concatenate(([0], at[:-1])), 4)
+            msg.node = _planes((node - np.concatenate(([prev_node], node[:-1]))) & 0xFFFF)
             msg.counter = _planes(dcounter & 0xFFFF)
             msg.counts = _planes(_zigzag(resid))
             msg.status = status.astype(np.uint8).tobytes()
