@@ -7,19 +7,22 @@ bits: the version, type, CRC and COBS bytes follow from them. So a chunk of seri
 stored as a ``capsheet.v2.RawSerialFrames`` message:
 
 * every 15-byte span ``<14 COBS bytes> 0x00`` of the chunk that is a SAMPLE frame whose re-encoding
-  from its fields (`SerialCompactor`) gives the very same 15 bytes becomes one row of columns:
-  ``gap`` (the raw bytes of the chunk before it since the previous row's frame), ``node`` (minus the
-  previous row's node), ``counter`` (minus the same node's previous counter + 1, modulo 2**16, as a
-  signed number), ``counts`` (each count minus a prediction from the same node's earlier counts, see
-  below, zigzag-coded as uint16, all low bytes then all high bytes: zstd codes the two planes apart)
-  and ``status`` (one byte per row);
+  from its fields (`SerialCompactor`) gives the very same 15 bytes becomes one row of columns, each
+  a ``bytes`` field of little-endian numbers stored plane by plane (all the rows' lowest bytes, then
+  the next: zstd codes each plane apart, and the high bytes of small numbers are all alike):
+  ``gap`` (uint32: the chunk's raw bytes before this frame since the previous row's), ``node``
+  (uint16: minus the previous row's node, modulo 2**16), ``counter`` (uint16: minus the same node's
+  previous counter + 1, modulo 2**16: 0 for a node answering every SYNC), ``counts`` (uint16 × 3:
+  each count minus a prediction from the same node's earlier counts, see below, zigzag-coded) and
+  ``status`` (one byte per row);
 * every other byte — damaged frames, other message types, a frame cut by the chunk's edge, a frame
   a chip encoded differently (any frame whose re-encoding differs) — is kept as it came, in ``raw``,
   in order.
 
 `SerialExpander` rebuilds the chunk byte for byte. Exactness never depends on the chip encoding as
-this module does: a frame is stored as columns only when the encoder has expanded it back and
-compared.
+this module does: a frame is stored as columns only when the compactor has rebuilt its 14 bytes
+from the fields it stores (CRC and COBS computed afresh) and found them equal to the original.
+Snapshots' counts are stored against the same kind of running average (`CountsCoder`).
 
 The prediction of a node's count is an integer exponential average of its earlier counts in this
 file, ``ref16`` (16 × counts): prediction ``(ref16 + 8) >> 4``, then ``ref16 += (16 c - ref16) >> 3``;
