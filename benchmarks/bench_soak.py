@@ -115,7 +115,8 @@ class _Stalls:
 
         from host.record.schema import message_class
         from protocol.framing import StreamDecoder
-        self.np, self.Raw = np, message_class("RawSerial")
+        self.np, self.Raw, self.Frames = np, message_class("RawSerial"), message_class("RawSerialFrames")
+        self.expanders: dict = {}  # (file, channel) -> SerialExpander: the compact channel, file by file
         self.dec = StreamDecoder(batch_samples=True)
         self.sync_t = np.full(65536, np.nan)
         self.last_rx = None
@@ -125,9 +126,16 @@ class _Stalls:
     def sync(self, counter: int, t: float) -> None:
         self.sync_t[counter] = t
 
-    def raw(self, data: bytes, t0: float) -> None:
+    def raw(self, data: bytes, t0: float, compact_key=None) -> None:
+        """One raw message; ``compact_key`` (file, channel) for a ``RawSerialFrames`` channel."""
         np = self.np
-        r = self.Raw.FromString(data)
+        if compact_key is None:
+            r = self.Raw.FromString(data)
+            payload = r.data
+        else:
+            from host.record.compact import SerialExpander
+            r = self.Frames.FromString(data)
+            payload = self.expanders.setdefault(compact_key, SerialExpander()).expand(r)
         gap = 0.0 if self.last_rx is None else r.t_rx - self.last_rx
         self.last_rx = r.t_rx
         m = self.minutes.setdefault(int((r.t_rx - t0) // 60), [0.0, 0, 0, 0, 0])
@@ -135,7 +143,7 @@ class _Stalls:
         m[1] += gap > self.LATE_S
         if gap > self.LATE_S:
             self.gap_end = r.t_rx
-        for ev in self.dec.feed(r.data):
+        for ev in self.dec.feed(payload):
             c = getattr(ev, "counter", None)
             if c is None or np.isscalar(c):
                 continue
@@ -156,7 +164,7 @@ class _Stalls:
 def _analyse(files: list[Path], duration_s: float, window: tuple[float, float], stalls: bool = False) -> dict:
     """Completeness per minute, counter wraps and channel sizes, streaming through the files."""
     import zstandard
-    from mcap.records import Channel, Message
+    from mcap.records import Channel, Message, Schema
     from mcap.stream_reader import StreamReader
 
     from host.record.schema import message_class
@@ -170,10 +178,16 @@ def _analyse(files: list[Path], duration_s: float, window: tuple[float, float], 
     st = _Stalls() if stalls else None
     for path in files:
         topic: dict[int, str] = {}
+        schema: dict[int, str] = {}
+        compact: set[int] = set()  # channels of RawSerialFrames
         with open(path, "rb") as f:
             for rec in StreamReader(f).records:
-                if isinstance(rec, Channel):
+                if isinstance(rec, Schema):
+                    schema[rec.id] = rec.name
+                elif isinstance(rec, Channel):
                     topic[rec.id] = rec.topic
+                    if schema.get(rec.schema_id) == "capsheet.v2.RawSerialFrames":
+                        compact.add(rec.id)
                 elif isinstance(rec, Message):
                     t = topic[rec.channel_id]
                     data = bytes(rec.data)
@@ -190,7 +204,7 @@ def _analyse(files: list[Path], duration_s: float, window: tuple[float, float], 
                         if st is not None:
                             st.sync(m.counter, m.t)
                     elif st is not None and t.startswith("/capsheet/raw/") and syncs:
-                        st.raw(data, syncs[0][1])
+                        st.raw(data, syncs[0][1], (str(path), rec.channel_id) if rec.channel_id in compact else None)
                     elif t == "/capsheet/snapshot":
                         m = Snapshot.FromString(data)
                         snaps.append((m.counter, m.timestamp, m.complete))
@@ -258,6 +272,8 @@ def run(args) -> dict:
     vargs = ["--lattice", args.lattice, "--symlink", str(port), "--layout-out", str(lay)]
     if args.packed:
         vargs += ["--packed"]
+    if args.noise is not None:
+        vargs += ["--noise", f"{args.noise:g}"]
     load0 = _loadavg()
     burners = [subprocess.Popen(["nice", "-n", str(args.load_nice), sys.executable, "-c", "while True: pass"])
                for _ in range(args.load)]
@@ -353,7 +369,7 @@ def run(args) -> dict:
     doc = {
         "config": {"host_args": args.host_arg, "load_processes": args.load, "load_nice": args.load_nice, "lattice": args.lattice, "mode": "packed" if args.packed else "per-chip", "rate_hz": args.rate,
                    "duration_s": args.duration, "warmup_s": args.warmup, "sample_s": args.sample_s,
-                   "split_duration_s": args.split_duration},
+                   "split_duration_s": args.split_duration, "noise_pct_g": args.noise},
         "machine": {"cpus": os.cpu_count(), "load_average_start": load0, "load_average_end": load1},
         "host_exit": host.returncode,
         "processes": procs,
@@ -392,6 +408,8 @@ def main() -> None:
     ap.add_argument("--lattice", default="14x14")
     ap.add_argument("--rate", type=float, default=145.0)
     ap.add_argument("--packed", action="store_true", help="the gateway answers SYNC with SNAPSHOT frames")
+    ap.add_argument("--noise", type=float, default=None,
+                    help="capsheet virtual --noise: sensor noise, %% of g per axis (default: virtual's 0.02)")
     ap.add_argument("--warmup", type=float, default=120.0, help="s before memory growth is counted (default 120)")
     ap.add_argument("--sample-s", type=float, default=5.0)
     ap.add_argument("--split-duration", type=float, default=300.0,

@@ -15,6 +15,8 @@ topic                       schema                   content
 ==========================  =======================  =============================================
 ``/capsheet/raw/bus{N}``    capsheet.v2.RawSerial    wire bytes of bus N as read (serial, pty, memory);
                                                      ``t`` when ingested, ``t_rx`` when read
+                            capsheet.v2.RawSerialFrames  the same bytes, valid SAMPLE frames as columns
+                                                     (`host.record.compact`; what `Recorder` writes)
                             capsheet.v2.RawCan       CAN frames of bus N as received (one batch)
 ``/capsheet/sync``          capsheet.v2.Sync         the host opened SYNC ``counter`` at ``t``
 ``/capsheet/snapshot``      capsheet.v2.Snapshot     counter, the chips' counts (int16; `read`
@@ -320,6 +322,10 @@ class Recorder:
         zstd level of the chunks (default `compression_level_for` the lattice's links).
     compression_threads : int
         zstd worker threads (`COMPRESSION_THREADS`).
+    compact : bool
+        Serial input as ``capsheet.v2.RawSerialFrames`` (`host.record.compact`: valid SAMPLE frames
+        as columns, every other byte as it came; the same bytes on reading), else as ``RawSerial``;
+        a snapshot's counts as ``counts_planes`` (against each link's running average), else ``counts``.
 
     Attributes
     ----------
@@ -339,7 +345,7 @@ class Recorder:
                  on_stop: Callable[[str], None] | None = None,
                  estimate_file_period_s: float = 0.0, scene_file_period_s: float = 0.0,
                  compression_level: int | None = None, compression_threads: int = COMPRESSION_THREADS,
-                 live_options: dict | None = None) -> None:
+                 live_options: dict | None = None, compact: bool = True) -> None:
         import foxglove
         from foxglove.mcap import MCAPWriteOptions
 
@@ -371,6 +377,8 @@ class Recorder:
         self.context = foxglove.Context()
         self._lock = threading.Lock()
         self._io = threading.RLock()  # one message at a time into the writer; a file switch between two
+        self.compact = bool(compact)
+        self._compactors: dict[Any, tuple[int, Any]] = {}  # bus (or "snapshot") -> (file index, its coder)
         self._last_flush = time.monotonic()
         self._closed = False
         self._writer = None
@@ -603,11 +611,23 @@ class Recorder:
                 msg.frames.add(id=int(m.arbitration_id), flags=_can_flags(m), ts=float(m.timestamp or 0.0),
                                data=bytes(m.data))
             self._log(topic, "capsheet.v2.RawCan", msg, log_time_ns)
+        elif kind == "serial" and self.compact:
+            from host.record.compact import SCHEMA, SerialCompactor
+            with self._io:  # a compactor per bus and file: each file of a split set expands alone
+                comp = self._coder(bus, SerialCompactor)
+                self._log(topic, SCHEMA, comp.encode(payload, bus=int(bus), t=float(t), t_rx=float(t_rx)), log_time_ns)
         elif kind == "serial":
             self._log(topic, "capsheet.v2.RawSerial", P.message_class("RawSerial")(
                 bus=int(bus), t=float(t), t_rx=float(t_rx), data=bytes(payload)), log_time_ns)
         else:
             raise ValueError(f"Invalid raw kind: {kind!r} (need 'serial' or 'can')")
+
+    def _coder(self, key, make):
+        """The coder of ``key`` for the file being written (a new file starts a new one); under `_io`."""
+        index, coder = self._compactors.get(key, (None, None))
+        if index != len(self.paths):
+            index, coder = self._compactors[key] = (len(self.paths), make())
+        return coder
 
     def sync(self, counter: int, t: float) -> None:
         """The host opened SYNC ``counter`` at host monotonic ``t`` (replay re-opens it there)."""
@@ -630,8 +650,8 @@ class Recorder:
             valid=np.packbits(valid, bitorder="little").tobytes(),
             status=np.ascontiguousarray(snap.status, dtype=np.uint8).tobytes())
         counts = getattr(snap, "counts", None)
-        parts = [packed_sint32(7, np.asarray(counts, dtype=np.int16)) if counts is not None
-                 else packed_float(8, snap.readings)]
+        parts = [packed_sint32(7, np.asarray(counts, dtype=np.int16)) if counts is not None and not self.compact
+                 else b"" if counts is not None else packed_float(8, snap.readings)]
         for name, number in (("gyro", 11), ("mag", 12), ("sample_time_s", 13)):  # 6/9-axis chips (§16)
             v = getattr(snap, name, None)
             if v is not None:
@@ -639,8 +659,12 @@ class Recorder:
         # the packed fields appended to the rest, wire-encoded: protobuf merges concatenated
         # messages, so this is the same message without parsing 24,192 counts back in and out
         # (a 64x64 snapshot: 0.39 instead of 0.67 ms, in the receive path)
-        self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg.SerializeToString() + b"".join(parts),
-                  _wall_ns(snap.wall_time))
+        with self._io:  # the counts' coder per file, as the raw input's
+            if counts is not None and self.compact:
+                from host.record.compact import CountsCoder
+                msg.counts_planes = self._coder("snapshot", CountsCoder).encode(counts, valid)
+            self._log(TOPIC_SNAPSHOT, "capsheet.v2.Snapshot", msg.SerializeToString() + b"".join(parts),
+                      _wall_ns(snap.wall_time))
 
     def estimate(self, est, counter: int, timestamp: float, wall_time: float | None = None, *,
                  error_joint: np.ndarray | None = None, error_pct_side: float | None = None,
@@ -981,6 +1005,8 @@ class _Decoder:
         self.name = name  #: the file, for messages
         self.topic: dict[int, str] = {}
         self.proto: dict[int, Any] = {}  # channel id -> protobuf message class (v2)
+        self._expanders: dict[int, Any] = {}  # channel id -> SerialExpander (RawSerialFrames)
+        self._counts = None  # the snapshots' CountsCoder (counts_planes)
         self._schemas: dict[int, tuple[str, str]] = {}
 
     def schema(self, rec) -> None:
@@ -1003,12 +1029,19 @@ class _Decoder:
         m = cls.FromString(rec.data)
         from host.record.mcap_read import check_snapshot
         n = check_snapshot(m, self.name)  # its arrays' lengths, before any is unpacked by n
+        valid = np.unpackbits(np.frombuffer(m.valid, np.uint8), count=n, bitorder="little").astype(bool)
+        if m.HasField("counts_planes"):
+            from host.record.compact import CountsCoder
+            if self._counts is None:
+                self._counts = CountsCoder()
+            counts = self._counts.decode(m.counts_planes, valid)
+        else:
+            counts = np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None
         return {"counter": m.counter, "timestamp": m.timestamp, "wall_time": m.wall_time, "latency_s": m.latency_s,
                 "complete": m.complete,
-                "counts": np.array(m.counts, dtype=np.int16).reshape(n, 3) if len(m.counts) else None,
+                "counts": counts,
                 "readings": np.array(m.readings, dtype=np.float32).reshape(n, 3) if len(m.readings) else None,
-                "valid": np.unpackbits(np.frombuffer(m.valid, np.uint8), count=n, bitorder="little").astype(bool),
-                "status": np.frombuffer(m.status, np.uint8),
+                "valid": valid, "status": np.frombuffer(m.status, np.uint8),
                 "gyro": np.array(m.gyro, dtype=np.float32).reshape(n, 3) if len(m.gyro) else None,
                 "mag": np.array(m.mag, dtype=np.float32).reshape(n, 3) if len(m.mag) else None,
                 "sample_time_s": np.array(m.sample_time_s, dtype=np.float32) if len(m.sample_time_s) else None}
@@ -1054,6 +1087,9 @@ class _Decoder:
         m = cls.FromString(rec.data)
         if cls.DESCRIPTOR.name == "RawSerial":
             return m.bus, m.t, "serial", bytes(m.data)
+        if cls.DESCRIPTOR.name == "RawSerialFrames":
+            from host.record.compact import SerialExpander
+            return m.bus, m.t, "serial", self._expanders.setdefault(rec.channel_id, SerialExpander()).expand(m)
         from host.record import schema as P
         return m.bus, m.t, "can", [{"id": f.id, "ext": bool(f.flags & P.CAN_EXT), "fd": bool(f.flags & P.CAN_FD),
                                     "err": bool(f.flags & P.CAN_ERR), "rtr": bool(f.flags & P.CAN_RTR),

@@ -8,8 +8,10 @@ decode without capsheet. proto2 syntax, for field presence (``error_pct_side`` m
 
 Why protobuf (and not JSON, as ``capsheet-mcap-1`` was): a 14x14 snapshot was ~7 KB of JSON with
 base64 arrays of float32; here it is its chips' ADC counts (sint32 zigzag varints, 2 bytes each at
-a few g), a bitmap of valid links and the status bytes: ~1.5 KB. Foxglove still plots every field
-(``/capsheet/snapshot.counts[5]``), which a raw byte blob would not allow.
+a few g), a bitmap of valid links and the status bytes: ~1.5 KB. Foxglove plots every number field
+(``/capsheet/estimate.residual``, ``/capsheet/snapshot.latency_s``); the counts of a recording made
+with ``Recorder(compact=True)`` (the default) are byte planes of residuals (``counts_planes``,
+`host.record.compact`), which only capsheet's reader turns back into counts.
 """
 
 from __future__ import annotations
@@ -29,6 +31,10 @@ _OPT, _REP = "optional", "repeated"
 
 _MESSAGES = [
     ("RawSerial", [("bus", 1, _U32, _OPT), ("t", 2, _D, _OPT), ("t_rx", 3, _D, _OPT), ("data", 4, _B, _OPT)]),
+    # the same chunks with their valid SAMPLE frames as columns (`host.record.compact`)
+    ("RawSerialFrames", [("bus", 1, _U32, _OPT), ("t", 2, _D, _OPT), ("t_rx", 3, _D, _OPT), ("raw", 4, _B, _OPT),
+                         ("gap", 5, _B, _OPT), ("node", 6, _B, _OPT), ("counter", 7, _B, _OPT),
+                         ("counts", 8, _B, _OPT), ("status", 9, _B, _OPT)]),
     ("CanFrame", [("id", 1, _U32, _OPT), ("flags", 2, _U32, _OPT), ("ts", 3, _D, _OPT), ("data", 4, _B, _OPT)]),
     ("RawCan", [("bus", 1, _U32, _OPT), ("t", 2, _D, _OPT), ("t_rx", 3, _D, _OPT),
                 ("frames", 4, _MSG, _REP, "CanFrame")]),
@@ -38,7 +44,9 @@ _MESSAGES = [
                   ("counts", 7, _S32, _REP), ("readings", 8, _F, _REP), ("valid", 9, _B, _OPT),
                   ("status", 10, _B, _OPT),
                   # 6/9-axis chips (docs/protocol.md §16): rad/s, T, s after the SYNC (NaN unknown)
-                  ("gyro", 11, _F, _REP), ("mag", 12, _F, _REP), ("sample_time_s", 13, _F, _REP)]),
+                  ("gyro", 11, _F, _REP), ("mag", 12, _F, _REP), ("sample_time_s", 13, _F, _REP),
+                  # counts against each link's running average (`host.record.compact.CountsCoder`)
+                  ("counts_planes", 14, _B, _OPT)]),
     ("Estimate", [("counter", 1, _U32, _OPT), ("timestamp", 2, _D, _OPT), ("method", 3, _STR, _OPT),
                   ("residual", 4, _D, _OPT), ("iterations", 5, _U32, _OPT), ("joints", 6, _F, _REP),
                   ("yaw_std", 7, _F, _REP), ("joint_std", 8, _F, _REP), ("joint_std_shape", 9, _U32, _REP),

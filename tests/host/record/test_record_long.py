@@ -56,10 +56,12 @@ def test_snapshots_are_recorded_as_counts_and_read_back_as_the_aggregators_readi
     cal = _calibration(lat, rng)
     snaps, counts = _aggregated(lat, cal, rng, 20)
     assert len(snaps) == 20 and not all(s.valid.all() for s in snaps)
-    path = tmp_path / "run.mcap"
-    with Recorder(path, lat, 0.01, calibration=cal) as rec:
-        for s in snaps:
-            rec.snapshot(s)
+    path, plain = tmp_path / "run.mcap", tmp_path / "plain.mcap"
+    for p, compact in ((path, True), (plain, False)):  # counts against each link's average, or as they are
+        with Recorder(p, lat, 0.01, calibration=cal, compact=compact) as rec:
+            for s in snaps:
+                rec.snapshot(s)
+    np.testing.assert_array_equal(read(plain).readings, read(path).readings)
     back = read(path)
     for k, s in enumerate(snaps):  # exactly what the live consumers saw, as float32
         np.testing.assert_array_equal(back.readings[k], s.readings.astype(np.float32))
@@ -71,7 +73,8 @@ def test_snapshots_are_recorded_as_counts_and_read_back_as_the_aggregators_readi
     expect[~snaps[7].valid] = np.nan
     np.testing.assert_array_equal(back.readings[7], expect.astype(np.float32))
     # an independent reader (mcap-protobuf-support, from the schema in the file) sees the counts
-    with open(path, "rb") as f:
+    # recorded as they are
+    with open(plain, "rb") as f:
         msgs = [d for _, c, _, d in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
                 if c.topic == "/capsheet/snapshot"]
     got = np.array(msgs[7].counts).reshape(-1, 3)
