@@ -74,6 +74,7 @@ __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrice
            "calibrated", "relative_accelerations"]
 
 _EX = np.array([1.0, 0.0, 0.0])
+_COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
 
 
@@ -125,8 +126,19 @@ class FusedConfig:
         One standard unit of each test: heading off the lattice's consensus, field magnitude off
         Earth's (fraction), dip off Earth's.
     disturbance_scale : float
-        A link's magnetometer weight is ``1 / (1 + (s / scale)²)``, ``s`` its combined test
-        in standard units.
+        A link's magnetometer weight is scaled by ``1 / (1 + (s / scale)²)``, ``s`` its heading
+        test in standard units.
+    disturbance_persist_s : float
+        How long a local disturbance is taken to last, s: what it adds to the field is a bias
+        over that time, not noise that averages out, so the heading variance it implies enters
+        every sample multiplied by ``persist / Δt``.
+    mag_hold_weight : float
+        A group of links (or the whole sheet) whose magnetometers' mean weight falls below this
+        fraction of an undisturbed one's is held by the links' own yaw variances, as without
+        magnetometers, fully at weight 0 (docs/estimator.md §8).
+    mag_warmup_s : float
+        A link's magnetometer is used once its tests have averaged this long, s (a magnet there
+        from the start would otherwise be believed before it is seen).
     initial_yaw_std_rad : float
         Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
     """
@@ -153,6 +165,9 @@ class FusedConfig:
     disturbance_field_frac: float = 0.01
     disturbance_dip_rad: float = float(np.radians(0.5))
     disturbance_scale: float = 2.0
+    disturbance_persist_s: float = 5.0
+    mag_hold_weight: float = 0.5
+    mag_warmup_s: float = 0.1
     initial_yaw_std_rad: float = 0.05
 
     def __post_init__(self) -> None:
@@ -471,7 +486,8 @@ class MotionEstimator:
     """
 
     def __init__(self, rows: int, cols: int, link_length: float, *,
-                 config: FusedConfig | None = None, declination_rad: float = 0.0) -> None:
+                 config: FusedConfig | None = None, declination_rad: float = 0.0,
+                 earth_field_t: float | None = None, dip_rad: float | None = None) -> None:
         for name, v in (("rows", rows), ("cols", cols)):
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 2:
                 raise ValueError(f"Invalid {name}: {v!r} (need an integer >= 2)")
@@ -487,6 +503,13 @@ class MotionEstimator:
         if not isinstance(self.config, FusedConfig):
             raise ValueError(f"Invalid config: {config!r} (expected a FusedConfig)")
         self.declination_rad = float(declination_rad)
+        if (earth_field_t is None) != (dip_rad is None):
+            raise ValueError("Give Earth's field as both earth_field_t and dip_rad, or neither.")
+        if earth_field_t is not None and not (np.isfinite(earth_field_t) and 0 < earth_field_t < 1e-3
+                                              and np.isfinite(dip_rad) and abs(dip_rad) < np.pi / 2):
+            raise ValueError(f"Invalid Earth's field: earth_field_t={earth_field_t!r} T (Earth: 25e-6 .. "
+                             f"65e-6), dip_rad={dip_rad!r} (need |dip| < pi/2)")
+        self.earth_field = None if earth_field_t is None else (float(earth_field_t), float(dip_rad))
         self.topo = topology(self.rows, self.cols)
         self.n_links = self.topo.n_links
         self.reset()
@@ -593,7 +616,6 @@ class MotionEstimator:
         """
         t0 = time.perf_counter()
         t, f, w, m, v = self._check(t_s, accel, gyro, mag, valid)
-        cfg = self.config
         if self.R is None:
             self._initialise(t, f, w, m, v)
             t1 = t2 = t3 = time.perf_counter()
@@ -641,10 +663,11 @@ class MotionEstimator:
             W = np.einsum("kij,kj->ki", R, m)[v]
             F = float(np.median(np.linalg.norm(W, axis=1)))
             dip = float(np.median(np.arcsin(np.clip(-W[:, 2] / np.linalg.norm(W, axis=1), -1, 1))))
-            self._b_ref = (F, dip)
+            self._b_ref = (F, dip) if self.earth_field is None else self.earth_field
+            F, dip = self._b_ref
             self._dist = np.zeros((n, 3))
-            self._weights = np.ones(n)
-            self._hvar = cfg.initial_heading_std_rad ** 2
+            self._dist_count = np.zeros(n)
+            self._weights = np.zeros(n)  # none is used before its tests have run
         self.R = R
         tilt = (cfg.accel_noise_mps2 / G0) ** 2 + cfg.lattice_floor_rad ** 2
         self.P[:] = 0.0
@@ -653,6 +676,10 @@ class MotionEstimator:
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
+        self._s_group = np.full(self.topo.n_groups, cfg.initial_yaw_std_rad ** 2)
+        # without magnetometers the heading is a gauge the first snapshot sets: known exactly
+        # then, it drifts only as the gyroscopes let it
+        self._s0 = cfg.initial_heading_std_rad ** 2 if m is not None else cfg.lattice_floor_rad ** 2
         self._a_bar = np.zeros(3)
 
     # ------------------------------------------------------------------------------- 1. gyro
@@ -662,6 +689,7 @@ class MotionEstimator:
             + (cfg.gyro_scale_error * np.linalg.norm(w_c, axis=1) * dt) ** 2
         qb = cfg.gyro_bias_walk_rps ** 2 * dt
         _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
+        self._q_last = q
 
     # ------------------------------------------------------------------------------- 2, 3. accel
     def _relative_accel(self, w_c, dt) -> np.ndarray:
@@ -749,40 +777,105 @@ class MotionEstimator:
         w_cl = 1.0 / (tilt[units].sum(axis=1) + fl)
         wts = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + fl)])
         res = np.concatenate([r_cl.ravel(), r_n])
-        p = P[:, 2, 2].copy()
-        diag = 1.0 / p
+        # the prior: each link's own yaw variance for what is local to it, and the groups' and
+        # the sheet's common yaw variances for what the links share (`_yaw_prior`)
+        if m is not None:
+            self._grow_collective(dt)
+            prior, prior_diag = self._yaw_prior(P[:, 2, 2])
+        else:  # nothing measures what the links share: each link's own variance holds it
+            prior_diag = 1.0 / P[:, 2, 2]
+
+            def prior(x):
+                return prior_diag * x
         rhs = -(JT @ (wts * res))
-        a_diag = diag + np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd,
-                                    minlength=n)
-        mu = _pcg(lambda x: JT @ (wts * (J @ x)) + diag * x, rhs, 1.0 / a_diag)
+        lat_diag = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
+        mw = np.zeros(n)
+        if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
+            self._dt_last = dt
+            mw, me = self._magnetometer(m, v)
+            rhs -= mw * me
+        a_diag = prior_diag + lat_diag + mw
+        mu = _pcg(lambda x: JT @ (wts * (J @ x)) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+        if m is not None:  # the disturbance tests: each heading against the loops' solution
+            self._disturbance_tests(me + mu, v, dt)
+        if m is not None:
+            self._shrink_collective(mw)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
         _step("yaw", P, mu, a_diag, x)
         self._apply(x)
-        if m is not None:
-            self._heading_update(m, v, dt)
 
-    def _heading_update(self, m, v, dt) -> None:
-        """The magnetometers turn the whole sheet about world z (a rigid rotation: they never
-        bend it), by a scalar Kalman filter on the common heading: the measurement is the
-        weighted mean of the links' heading errors, each link weighted by its disturbance tests
-        and its noise (module docstring, step 4)."""
+    # the collective yaw modes: docs/estimator.md §8 "what the links share"
+    def _yaw_prior(self, p):
+        """The yaw problem's prior information as a matrix-vector product and its diagonal.
+
+        A link's yaw variance ``p`` (its conditional one after the last solve) says how well it
+        is known *relative to its neighbours*; as a diagonal prior it would also claim ``Σ 1/p``
+        for a mode all links share, which nothing measured. So the prior is built in three
+        nested levels: each link's own ``1/p`` for what is not a group's common offset; each
+        group's common offset (a row of i-links, a column of j-links: what the loops cannot see
+        on a flat sheet) with variance ``s_g`` for what is not the sheet's common offset; and
+        the sheet's common yaw (its heading) with variance ``s_0``."""
+        topo = self.topo
+        g, r, size = topo.group, topo.n_groups, topo.group_size
+        D = 1.0 / p
+        dg = np.bincount(g, weights=D, minlength=r)
+        # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
+        # link's own variance holds it, as if the magnetometers were not there
+        hw = self.config.mag_hold_weight
+        held = np.clip(1.0 - np.bincount(g, weights=self._weights, minlength=r) / size / hw, 0.0, 1.0)
+        Eg = (1.0 - held) / self._s_group + held * dg
+        sE = float(Eg.sum())
+        held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
+        I0 = (1.0 - held0) / self._s0 + held0 * sE
+
+        # coordinates: a group's offset is its links' mean weighted by D, the sheet's the groups'
+        # weighted by E (so that a fully held mode gets exactly the links' own prior back)
+        def sigma_a(y):  # the group offsets' prior information (r x r) times y
+            ey = float(Eg @ y)
+            return Eg * y - Eg * (ey / sE) + Eg * (ey * I0 / (sE * sE))
+
+        def prior(x):
+            abar = np.bincount(g, weights=D * x, minlength=r) / dg
+            return D * x - D * abar[g] + D * (sigma_a(abar) / dg)[g]
+
+        sig_diag = Eg - Eg * Eg / sE + Eg * Eg * I0 / (sE * sE)
+        diag = D - D * D / dg[g] + D * D * (sig_diag / (dg * dg))[g]
+        return prior, diag
+
+    def _grow_collective(self, dt) -> None:
+        """The groups' and the sheet's common yaw variances grow by the links' process noise
+        (averaged over the links that share the offset) and the heading walk."""
         cfg = self.config
-        mw, me = self._magnetometer(m, v, dt)
-        total = float(mw.sum())
-        self._hvar += cfg.heading_walk_rad ** 2 * float(np.mean(dt))
-        if total <= 0:
-            return
-        err = float(mw @ me) / total
-        r = 1.0 / total + cfg.mag_common_floor_rad ** 2
-        gain = self._hvar / (self._hvar + r)
-        self._hvar *= 1.0 - gain
-        self.R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, -gain * err])), self.R)
+        q = self._q_last
+        h = float(np.mean(dt))
+        walk = cfg.heading_walk_rad ** 2 * h
+        topo = self.topo
+        self._s_group = np.minimum(self._s_group + np.bincount(topo.group, weights=q, minlength=topo.n_groups)
+                                   / topo.group_size ** 2 + walk, _COLLECTIVE_MAX)
+        self._s0 = min(self._s0 + float(q.mean()) / q.size + walk, _COLLECTIVE_MAX)
 
-    def _magnetometer(self, m, v, dt):
-        """Per link: the weight (information, 1/rad²) of its heading and its heading's offset
-        from Earth's field (rad), after the disturbance tests (module docstring, step 4)."""
+    def _shrink_collective(self, mw) -> None:
+        """The groups' and the sheet's common yaw variances after the solve: each gains what the
+        magnetometers say of its offset (the loops' say is not kept: they hold the shape at
+        every snapshot anew, and on a flat sheet they say nothing of these offsets)."""
+        topo = self.topo
+        self._s_group = 1.0 / (1.0 / self._s_group + np.bincount(topo.group, weights=mw,
+                                                                 minlength=topo.n_groups))
+        self._s0 = 1.0 / (1.0 / self._s0 + float(mw.sum()))
+
+    def _magnetometer(self, m, v):
+        """Per link: the weight (information, 1/rad²) of its magnetometer's heading and its
+        heading's offset from Earth's field (rad) (module docstring, step 4).
+
+        The weight is the magnetometer's noise and floor, with two tests of a local disturbance
+        averaged over `FusedConfig.disturbance_tau_s` (`_disturbance_tests`): the field's
+        magnitude and dip against Earth's measure two of the three components of what a
+        disturbance adds to the field, and the third, the one that turns the heading, is taken
+        to be as large (its variance added to the heading's); the heading against the loops'
+        solution scales the weight by ``1 / (1 + (s / scale)²)``. ``self._weights`` keeps each
+        link's weight as a fraction of an undisturbed one's, in [0, 1]."""
         cfg = self.config
         W = np.einsum("kij,kj->ki", self.R, m)
         hz = np.hypot(W[:, 0], W[:, 1])
@@ -790,15 +883,48 @@ class MotionEstimator:
         e = _wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
         F, dip = self._b_ref
         ok = v & (hz > 0.1 * F)
-        cons = float(np.median(e[ok])) if ok.any() else 0.0
-        tests = np.stack([_wrap(e - cons) / cfg.disturbance_heading_rad,
-                          (norm / F - 1.0) / cfg.disturbance_field_frac,
-                          (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
-                          / cfg.disturbance_dip_rad], axis=1)
-        alpha = np.clip(dt / cfg.disturbance_tau_s, 0.0, 1.0)[:, None]
+        self._field_tests = (ok, (norm / F - 1.0) / cfg.disturbance_field_frac,
+                             (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
+                             / cfg.disturbance_dip_rad)
+        hz2 = np.maximum(hz, 1e-30) ** 2
+        var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
+        # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
+        # the 2-degree-of-freedom chi-square), tesla², a bias over `disturbance_persist_s`
+        a = self._dist_alpha(self._dt_last)
+        noise2 = 2.0 * cfg.mag_noise_t ** 2 * a / (2.0 - a)
+        dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
+                 + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
+        dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * (cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6))
+        s2 = self._dist[:, 0] ** 2
+        wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
+        # until the tests have averaged over their time constant a link's magnetometer is not
+        # used: a magnet there from the start would otherwise be believed first
+        warm = self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s
+        self._weights = np.where(ok & warm, wgt, 0.0)
+        return self._weights / var0, np.where(ok, e, 0.0)
+
+    def _disturbance_tests(self, resid, v, dt) -> None:
+        """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the
+        lattice's solution (``resid``, rad: what is left of its magnetometer's heading once the
+        loops and every other link have had their say), its field's magnitude and dip against
+        Earth's (`_magnetometer` weighs them)."""
+        cfg = self.config
+        ok, t_mag, t_dip = self._field_tests
+        # the heading against its group's (links the loops turn alike on a flat sheet): what a
+        # group shares is the shape's to explain, what one link alone shows is its own
+        topo = self.topo
+        g, r = topo.group, topo.n_groups
+        resid = _wrap(resid)
+        wk = np.where(ok, 1.0 / (1.0 + self._dist[:, 1] ** 2 + self._dist[:, 2] ** 2), 0.0)
+        mean = np.bincount(g, weights=wk * resid, minlength=r) / np.maximum(
+            np.bincount(g, weights=wk, minlength=r), 1e-30)
+        tests = np.stack([(resid - mean[g]) / cfg.disturbance_heading_rad, t_mag, t_dip], axis=1)
+        self._dist_count += ok
+        alpha = self._dist_alpha(dt)[:, None]
         self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
-        s2 = np.einsum("ki,ki->k", self._dist, self._dist)
-        wgt = 1.0 / (1.0 + s2 / cfg.disturbance_scale ** 2)
-        self._weights = np.where(ok, wgt, 0.0)
-        var = (cfg.mag_noise_t / np.maximum(hz, 1e-30)) ** 2 + cfg.mag_floor_rad ** 2
-        return self._weights / var, np.where(ok, e, 0.0)
+
+    def _dist_alpha(self, dt):
+        """The tests' averaging weight per link: a running mean over the first samples, then an
+        exponential one over `FusedConfig.disturbance_tau_s`."""
+        return np.clip(np.maximum(dt / self.config.disturbance_tau_s,
+                                  1.0 / np.maximum(self._dist_count, 1.0)), 1e-6, 1.0)
