@@ -254,3 +254,21 @@ def test_the_wave_runs_for_ten_minutes_and_repeats_its_first_period_exactly():
         j = s.sample(np.array([t])).joints[0]
         assert np.abs(np.linalg.norm(np.diff(j, axis=0), axis=-1) - 0.01).max() < 1e-12
         assert np.abs(np.linalg.norm(np.diff(j, axis=1), axis=-1) - 0.01).max() < 1e-12
+
+
+def test_the_level_scenes_lie_level_with_sheared_cells_and_turn_about_the_vertical():
+    from virtual_sheet.motion import level_scene
+    still = make_motion_scene("level", 5, 5, L).sample([0.0, 2.0])
+    turn = make_motion_scene("level_turn", 5, 5, L).sample(np.linspace(0.0, 4.0, 9))
+    for tr in (still, turn):
+        assert np.abs(tr.joints[..., 2]).max() == 0.0  # level
+        P = tr.joints[-1]
+        u, v = P[1, 0] - P[0, 0], P[0, 1] - P[0, 0]
+        cell = np.arccos(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)))
+        assert abs(cell - (np.pi / 2 + 0.2)) < 1e-12  # the cells sheared by 0.2 rad
+    assert np.array_equal(still.joints[0], still.joints[1])  # still
+    heading = np.degrees(np.arctan2(turn.frames[:, 0, 1, 0], turn.frames[:, 0, 0, 0]))
+    assert np.ptp(heading) > 60  # turning about the vertical
+    assert np.abs(turn.angular_velocity[..., :2]).max() < 1e-12  # about z alone (level links)
+    with pytest.raises(ValueError, match="shear"):
+        level_scene(5, 5, L, shear=2.0)

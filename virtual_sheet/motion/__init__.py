@@ -42,6 +42,9 @@ tap        a press on the foam that arrives and leaves fast: a Gaussian dent S/8
            wide, reached in 0.15 s, held 0.3 s, released in 0.15 s, every 1.2 s
 flat_turn  a flat horizontal sheet turning in heading (±69° at 0.2 Hz) and sliding (6 / 4 cm at
            1.0 / 0.8 Hz): the paper's Case 1 in motion
+level      a level sheet whose cells are sheared by 0.2 rad, lying still (``heading_rad`` 0);
+level_turn the same turning about the vertical (±69° at 0.2 Hz): the paper's Case 1 as a sheet
+           laid on a table is — its shear seen by magnetometers only
 rest       any static shape (``shape=``, default gaussian): a sheet at rest
 tumble     a flat sheet turned every way over ~20 s (magnetometer calibration)
 board      the calibration board (`board.BoardPoseScene`) with its turns
@@ -66,15 +69,15 @@ from ._jets import Constant, Profile, Pulse, RigidJet, Sine
 from .fields import (Bend, Dent, FieldScene, HeightJet, TravellingWave, chebyshev_net_jet,
                      elbow_scene, grow_scene, tap_scene, wave_scene)
 from .fields import MovingField  # noqa: F401 (the base of the height fields, importable as before)
-from .rigid import (RigidScene, board_scene, carry_scene, flat_turn_scene, rest_scene,
-                    tumble_scene)
+from .rigid import (RigidScene, board_scene, carry_scene, flat_turn_scene, level_scene, level_turn_scene,
+                    rest_scene, tumble_scene)
 from .truth import MotionScene, Truth, truth_from_joints
 
 __all__ = ["Profile", "Constant", "Sine", "Pulse", "RigidJet", "HeightJet", "TravellingWave",
            "Bend", "Dent", "chebyshev_net_jet", "Truth", "truth_from_joints", "MotionScene",
            "RigidScene", "FieldScene", "carry_scene", "wave_scene", "elbow_scene", "tap_scene",
-           "flat_turn_scene", "rest_scene", "tumble_scene", "board_scene", "MOTION_SCENES",
-           "make_motion_scene", "sample_times"]
+           "flat_turn_scene", "level_scene", "level_turn_scene", "rest_scene", "tumble_scene",
+           "board_scene", "MOTION_SCENES", "make_motion_scene", "sample_times"]
 
 
 def _tap_period(params: dict) -> float:
@@ -90,7 +93,9 @@ class MotionSceneSpec:
     name: str
     description: str
     factory: Callable[..., MotionScene]
-    moving: bool = True  #: True for the scenes of issue 30's targets (every moving scene)
+    #: True for the scenes of the accelerometer-and-gyroscope targets (every moving scene; the
+    #: level sheets are magnetometers' scenes: their shear is unobservable without them)
+    moving: bool = True
 
 
 MOTION_SCENES: dict[str, MotionSceneSpec] = {s.name: s for s in [
@@ -101,6 +106,10 @@ MOTION_SCENES: dict[str, MotionSceneSpec] = {s.name: s for s in [
     MotionSceneSpec("tap", "a press on the foam arriving and leaving in 0.15 s", tap_scene),
     MotionSceneSpec("flat_turn", "a flat horizontal sheet turning in heading and sliding",
                     flat_turn_scene),
+    MotionSceneSpec("level_turn", "a level sheet with sheared cells (0.2 rad) turning about the vertical",
+                    level_turn_scene, moving=False),
+    MotionSceneSpec("level", "a level sheet with sheared cells (0.2 rad) lying still", level_scene,
+                    moving=False),
     MotionSceneSpec("rest", "a static shape (shape=...) at rest", rest_scene, moving=False),
     MotionSceneSpec("grow", "a Gaussian bump rising and falling (shapes.GrowScene, exact kinematics)", grow_scene,
                     moving=False),

@@ -109,6 +109,27 @@ def flat_turn_scene(rows: int, cols: int, link_length: float = 0.01, *, heading_
     return RigidScene(base, motion, link_length, name="flat_turn")
 
 
+def level_scene(rows: int, cols: int, link_length: float = 0.01, *, shear: float = 0.2,
+                heading_rad: float = 0.0, heading_hz: float = 0.2, ramp_s: float = 1.0,
+                **net: Any) -> RigidScene:
+    """A level sheet whose cells are sheared by ``shear`` rad (0.2: the paper's Case 1 as a sheet
+    laid on a table is), still (``heading_rad`` 0) or turning about the vertical through its
+    centre by ``heading_rad`` at ``heading_hz``, faded in over ``ramp_s``. Accelerometers alone
+    see a level sheet's tilt only, not its shear; magnetometers see each link's heading."""
+    if not abs(shear) < np.pi / 2:
+        raise ValueError(f"Invalid shear: {shear!r} rad (need |shear| < pi/2)")
+    scene = flat_turn_scene(rows, cols, link_length, heading_rad=heading_rad, heading_hz=heading_hz,
+                            slide_m=(0.0, 0.0), ramp_s=ramp_s, shear=shear, **net)
+    scene.name = "level" if heading_rad == 0 else "level_turn"
+    return scene
+
+
+def level_turn_scene(rows: int, cols: int, link_length: float = 0.01, *, heading_rad: float = 1.2,
+                     **params: Any) -> RigidScene:
+    """`level_scene` turning: ±69° about the vertical at 0.2 Hz."""
+    return level_scene(rows, cols, link_length, heading_rad=heading_rad, **params)
+
+
 def rest_scene(rows: int, cols: int, link_length: float = 0.01, *, shape: str = "gaussian",
                **shape_params: Any) -> RigidScene:
     """A static `shapes.make_sheet` shape that never moves (gravity only on every chip)."""

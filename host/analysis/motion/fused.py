@@ -825,6 +825,7 @@ class MotionEstimator:
         # link's own variance holds it, as if the magnetometers were not there
         hw = self.config.mag_hold_weight
         held = np.clip(1.0 - np.bincount(g, weights=self._weights, minlength=r) / size / hw, 0.0, 1.0)
+        self._held = held
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
         held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
@@ -861,8 +862,9 @@ class MotionEstimator:
         magnetometers say of its offset (the loops' say is not kept: they hold the shape at
         every snapshot anew, and on a flat sheet they say nothing of these offsets)."""
         topo = self.topo
-        self._s_group = 1.0 / (1.0 / self._s_group + np.bincount(topo.group, weights=mw,
-                                                                 minlength=topo.n_groups))
+        free = 1.0 - self._held  # a held group's offset is the links' own prior's: mw went there
+        self._s_group = 1.0 / (1.0 / self._s_group + free * np.bincount(topo.group, weights=mw,
+                                                                        minlength=topo.n_groups))
         self._s0 = 1.0 / (1.0 / self._s0 + float(mw.sum()))
 
     def _magnetometer(self, m, v):
@@ -890,8 +892,11 @@ class MotionEstimator:
         var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
         # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
         # the 2-degree-of-freedom chi-square), tesla², a bias over `disturbance_persist_s`
+        # their noise: the magnetometer's, averaged, and the link's tilt (the dip is measured in
+        # the world frame the link's estimated orientation gives)
         a = self._dist_alpha(self._dt_last)
-        noise2 = 2.0 * cfg.mag_noise_t ** 2 * a / (2.0 - a)
+        noise2 = 2.0 * cfg.mag_noise_t ** 2 * a / (2.0 - a) \
+            + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
         dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
                  + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
         dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * (cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6))
