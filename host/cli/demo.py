@@ -245,8 +245,11 @@ def run(args) -> int:
         host.imu_config = imu_config(args)
         fused = None
         if host.imu_config is not None:  # issue 30 point 4: the gyroscopes drive the shape
-            from host.analysis.motion import MotionEstimator
-            fused = MotionEstimator(rows, cols, L)
+            from host.analysis.motion import FusedConfig, MotionEstimator
+            from protocol.constants import G0
+            # the virtual chips' accelerometer noise is --noise (1 % g by default), not the
+            # datasheet's the estimator assumes: it is told
+            fused = MotionEstimator(rows, cols, L, config=FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0))
         from host.cli.record_args import SessionOutputs
         outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})

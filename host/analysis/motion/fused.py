@@ -85,9 +85,13 @@ class FusedConfig:
     Parameters
     ----------
     accel_noise_mps2 : float
-        Accelerometer white noise per axis per sample, m/s² (1 % g: issue 30's targets).
+        Accelerometer white noise per axis per sample, m/s²: the ICM-42688-P's 70 µg/√Hz
+        (TDK InvenSense DS-000347, Table 2, "Noise spectral density") over the Nyquist band of
+        145 Hz samples, 0.060 % g (`datasheet_noise`). Chips noisier than their datasheet (the
+        benchmarks' 1 % g) need it told.
     gyro_noise_rps : float
-        Gyroscope white noise per axis per sample, rad/s (ICM-42688-P at 145 Hz: 0.024 °/s).
+        Gyroscope white noise per axis per sample, rad/s: the ICM-42688-P's 2.8 mdps/√Hz
+        (DS-000347, Table 1, "Rate noise spectral density") at 145 Hz, 0.024 °/s.
     gyro_bias_std_rps : float
         The bias's uncertainty at the start, rad/s (after calibration: 0.01 °/s).
     gyro_bias_walk_rps : float
@@ -111,7 +115,9 @@ class FusedConfig:
     lattice_floor_rad : float
         Model floor of the closure and normal residuals (unit vectors ≈ radians).
     mag_noise_t : float
-        Magnetometer white noise per axis per sample, tesla (LIS3MDL: 0.32–0.41 µT).
+        Magnetometer white noise per axis per sample, tesla: the LIS3MDL's 3.2 / 4.1 mG RMS
+        (x, y / z, ultra-high-performance mode; ST DocID024204, Table 3), 0.32–0.41 µT, taken
+        as 0.4 µT (an MMC5983MA's 0.04–0.12 µT would be told).
     mag_floor_rad : float
         A floor on a link's heading error from its calibrated magnetometer, rad.
     mag_common_floor_rad : float
@@ -143,8 +149,8 @@ class FusedConfig:
         Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
     """
 
-    accel_noise_mps2: float = 0.01 * G0
-    gyro_noise_rps: float = float(np.radians(0.024))
+    accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
+    gyro_noise_rps: float = float(np.radians(2.8e-3 * np.sqrt(145.0 / 2.0)))
     gyro_bias_std_rps: float = float(np.radians(0.01))
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
