@@ -489,11 +489,28 @@ class MotionEstimator:
     config : FusedConfig, optional
     declination_rad : float
         The yaw of magnetic north from world x (with magnetometers), radians.
+    earth_field_t, dip_rad : float, optional
+        Earth's field where the sheet is (a geomagnetic model's magnitude, tesla, and
+        inclination, radians): the disturbance tests' reference. Default: the magnetometers'
+        median at the first snapshot (a magnet under most of the sheet then biases it).
+    initial_frames : ndarray, shape (n_links, 3, 3), optional
+        A starting shape, every link's sensor -> world rotation: a known sheet, the last
+        session's `MotionEstimate.frames`, or the static estimator's (`frames_from_angles` of
+        its ``alpha, beta, yaws``). Default: the accelerometer-only estimate of the first
+        snapshot (a level sheet's shear unknown to it).
+    initial_std_rad : float or ndarray, shape (n_links,), optional
+        The starting shape's uncertainty per link and axis, radians (default: the
+        accelerometers' for tilt, `FusedConfig.initial_yaw_std_rad` for yaw).
+    initial_bias_rps : ndarray, shape (n_links, 3), optional
+        Starting gyroscope biases, rad/s, link frames (the last session's
+        `MotionEstimate.gyro_bias_rps`); default 0.
     """
 
     def __init__(self, rows: int, cols: int, link_length: float, *,
                  config: FusedConfig | None = None, declination_rad: float = 0.0,
-                 earth_field_t: float | None = None, dip_rad: float | None = None) -> None:
+                 earth_field_t: float | None = None, dip_rad: float | None = None,
+                 initial_frames: np.ndarray | None = None, initial_std_rad=None,
+                 initial_bias_rps: np.ndarray | None = None) -> None:
         for name, v in (("rows", rows), ("cols", cols)):
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 2:
                 raise ValueError(f"Invalid {name}: {v!r} (need an integer >= 2)")
@@ -518,7 +535,30 @@ class MotionEstimator:
         self.earth_field = None if earth_field_t is None else (float(earth_field_t), float(dip_rad))
         self.topo = topology(self.rows, self.cols)
         self.n_links = self.topo.n_links
+        self._initial = self._check_initial(initial_frames, initial_std_rad, initial_bias_rps)
         self.reset()
+
+    def _check_initial(self, frames, std, bias):
+        n = self.n_links
+        if frames is not None:
+            R = np.array(frames, dtype=float)
+            if R.shape != (n, 3, 3):
+                raise ValueError(f"Expected `initial_frames` to have shape ({n}, 3, 3), got {R.shape}.")
+            if not np.all(np.isfinite(R)) or np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-6 \
+                    or np.any(np.linalg.det(R) < 0):
+                raise ValueError("Invalid initial_frames: need finite rotation matrices (sensor -> world).")
+            frames = R
+        if std is not None:
+            sd = np.broadcast_to(np.asarray(std, dtype=float), (n,)) if np.ndim(std) <= 1 else None
+            if sd is None or sd.shape != (n,) or not np.all(np.isfinite(sd)) or np.any(sd <= 0):
+                raise ValueError(f"Invalid initial_std_rad: need radians > 0, a scalar or shape ({n},).")
+            std = np.array(sd)
+        if bias is not None:
+            b = np.array(bias, dtype=float)
+            if b.shape != (n, 3) or not np.all(np.isfinite(b)):
+                raise ValueError(f"Expected `initial_bias_rps` to have shape ({n}, 3), finite, got {b.shape}.")
+            bias = b
+        return frames, std, bias
 
     def reset(self) -> None:
         """Forget everything: the next snapshot initialises again."""
@@ -651,12 +691,16 @@ class MotionEstimator:
         cfg = self.config
         if not v.any():
             raise ValueError("No valid link in the first snapshot: cannot initialise.")
-        e = estimate(np.where(v[:, None], f, (0.0, 0.0, G0)), self.rows, self.cols,
-                     self.link_length, valid=v if not v.all() else None, bad_readings="mask")
-        gamma = np.where(np.isfinite(e.yaws), e.yaws, 0.0)
-        alpha = np.where(np.isfinite(e.alpha), e.alpha, 0.0)
-        beta = np.where(np.isfinite(e.beta), e.beta, 0.0)
-        R = frames_from_angles(alpha, beta, gamma)
+        R0, std0, bias0 = self._initial
+        if R0 is None:
+            e = estimate(np.where(v[:, None], f, (0.0, 0.0, G0)), self.rows, self.cols,
+                         self.link_length, valid=v if not v.all() else None, bad_readings="mask")
+            gamma = np.where(np.isfinite(e.yaws), e.yaws, 0.0)
+            alpha = np.where(np.isfinite(e.alpha), e.alpha, 0.0)
+            beta = np.where(np.isfinite(e.beta), e.beta, 0.0)
+            R = frames_from_angles(alpha, beta, gamma)
+        else:
+            R = R0.copy()
         n = self.n_links
         self._with_mag = m is not None
         if m is not None:
@@ -676,13 +720,19 @@ class MotionEstimator:
             self._weights = np.zeros(n)  # none is used before its tests have run
         self.R = R
         tilt = (cfg.accel_noise_mps2 / G0) ** 2 + cfg.lattice_floor_rad ** 2
+        yaw = np.full(n, cfg.initial_yaw_std_rad ** 2)
+        if std0 is not None:
+            tilt = yaw = std0 ** 2
         self.P[:] = 0.0
         self.P[:, 0, 0] = self.P[:, 1, 1] = tilt
-        self.P[:, 2, 2] = cfg.initial_yaw_std_rad ** 2
+        self.P[:, 2, 2] = yaw
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
+        if bias0 is not None:
+            self.bias[:] = bias0
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
-        self._s_group = np.full(self.topo.n_groups, cfg.initial_yaw_std_rad ** 2)
+        g = self.topo.group
+        self._s_group = np.bincount(g, weights=yaw, minlength=self.topo.n_groups) / self.topo.group_size
         # without magnetometers the heading is a gauge the first snapshot sets: known exactly
         # then, it drifts only as the gyroscopes let it
         self._s0 = cfg.initial_heading_std_rad ** 2 if m is not None else cfg.lattice_floor_rad ** 2
