@@ -365,9 +365,13 @@ def run(args) -> int:
         out = Path(args.out)
         from host.cli.figures import demo_figure
         import matplotlib.pyplot as plt
+        why = [] if err_ok else [f"mean error {_fmt(mean_err, '.2f')} % > target {args.target:g} %"]
+        if not complete_ok:
+            why.append(f"{complete_pct:.1f} % of SYNCs complete < {args.min_complete:g} %")
         plt.close(demo_figure(out, truth, est_joints, err, shape=args.shape, noise_pct_g=args.noise,
                               rate_hz=args.rate, run_mean_error_pct=errors.mean, counter=counter,
-                              link_length=L, sensors=getattr(args, "sensors", "accel")))
+                              link_length=L, sensors=getattr(args, "sensors", "accel"),
+                              failed="; ".join(why) or None, compared=errors.count))
         result["png"] = str(out)
         print(f"capsheet demo: wrote {out}", file=sys.stderr)
     verdict = "PASS" if ok else "FAIL"
