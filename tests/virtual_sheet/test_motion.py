@@ -1,4 +1,4 @@
-"""Moving scenes with exact kinematics (issue 29): the truth `sample` gives agrees with finite
+"""Moving scenes with exact kinematics: the truth `sample` gives agrees with finite
 differences of the independent construction (`joints`: `geometry.chebyshev_net` at one instant),
 every link stays exactly L, and the built-in scenes do what their names promise.
 
@@ -152,7 +152,7 @@ def test_every_link_stays_exactly_L_at_every_instant(name):
 
 @pytest.mark.parametrize("name", MOVING)
 def test_every_moving_scene_starts_at_rest_and_reaches_2_mps2(name):
-    # issue 30's targets need peak link accelerations of at least 2 m/s² in every moving scene
+    # the fused estimator's targets need peak link accelerations of at least 2 m/s² in every moving scene
     scene = make_motion_scene(name, 14, 14, L)
     tr = scene.sample(np.arange(0.0, 6.0, 1 / 60))
     peak = np.linalg.norm(tr.acceleration, axis=-1).max()

@@ -1,5 +1,5 @@
 """Sheets that move, with exact kinematics: every link's true orientation, angular velocity and
-specific force at any instant (issue 29, the simulator that moves).
+specific force at any instant (the simulator that moves).
 
 Every scene is an exact net at every instant (all links ``L``: a Chebyshev net, docs/design.md
 "Exact ground truth") carried by a rigid motion::

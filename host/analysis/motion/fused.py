@@ -1,5 +1,5 @@
-"""The fused estimator: the lattice's loops with gyroscopes, accelerometers and magnetometers
-(issue 30). docs/estimator.md §8 gives the model, why it is built this way, and where it fails.
+"""The fused estimator: the lattice's loops with gyroscopes, accelerometers and magnetometers.
+docs/estimator.md §8 gives the model, why it is built this way, and where it fails.
 
 One `MotionEstimator` per sheet, fed one snapshot at a time (sans-I/O: the snapshot's time is an
 argument, nothing reads a clock)::

@@ -1,8 +1,8 @@
-"""The fused estimator (host.analysis.motion, issue 30) in the ahrs style: simulate from known
+"""The fused estimator (host.analysis.motion) in the ahrs style: simulate from known
 truth (virtual_sheet.motion's exact kinematics, virtual_sheet.imu's chips), state the metric and
 the tolerance. Short seeded runs on small sheets; bench_motion.py has the 14x14 figures.
 
-The chips here have real parts' noise (1 % g accelerometers as issue 30's targets, the
+The chips here have real parts' noise (1 % g accelerometers as the benchmarks', the
 ICM-42688-P's gyroscope noise, the LIS3MDL's magnetometer noise) and no fixed errors: those are
 calibrated away (docs/calibration.md) and bench_motion.py runs the whole path with them."""
 
@@ -75,8 +75,8 @@ def test_the_links_accelerations_follow_from_their_frames_and_rates():
 
 @pytest.mark.parametrize("name", MOVING)
 def test_the_fused_estimator_follows_every_moving_scene(name):
-    # metric: mean joint error over all snapshots of 2.5 s, % of side; tolerance: issue 30's
-    # 0.5 %, and at least 5x below the accelerometer-only estimator where that is above 1 %
+    # metric: mean joint error over all snapshots of 2.5 s, % of side; tolerance: 0.5 %,
+    # and at least 5x below the accelerometer-only estimator where that is above 1 %
     n = 6
     truth, rd = record(make_motion_scene(name, n, n, L), chips(n), 2.5)
     fused = mean_error([e.joints for e in run_fused(n, rd)], truth)
@@ -211,7 +211,7 @@ def test_the_sheets_absolute_tilt_does_not_drift_on_calibrated_chips():
 
 def test_missing_samples_and_per_link_times_are_carried_through():
     # links that miss snapshots (10 %, valid=False, their readings and times NaN) are carried by
-    # their last rate; metric: mean joint error, % of side; tolerance: issue 30's 0.5 %
+    # their last rate; metric: mean joint error, % of side; tolerance: 0.5 %
     n = 6
     truth, rd = record(make_motion_scene("wave", n, n, L), chips(n), 2.0)
     rng = np.random.Generator(np.random.MT19937(5))
