@@ -962,7 +962,7 @@ class MotionEstimator:
         # used: a magnet there from the start would otherwise be believed first
         warm = self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s
         self._weights = np.where(ok & warm, wgt, 0.0)
-        return self._weights / var0, np.where(ok, e, 0.0)
+        return np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0), np.where(ok, e, 0.0)
 
     def _disturbance_tests(self, resid, v, dt) -> None:
         """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the
