@@ -375,9 +375,11 @@ class MotionEstimator:
         self.declination_rad = float(declination_rad)
         if (earth_field_t is None) != (dip_rad is None):
             raise ValueError("Give Earth's field as both earth_field_t and dip_rad, or neither.")
-        if earth_field_t is not None and not (np.isfinite(earth_field_t) and 0 < earth_field_t < 1e-3
-                                              and np.isfinite(dip_rad) and abs(dip_rad) < np.pi / 2):
-            raise ValueError(f"Invalid Earth's field: earth_field_t={earth_field_t!r} T (Earth: 25e-6 .. "
+        if earth_field_t is not None and not (
+                np.isfinite(earth_field_t) and 0 < earth_field_t < 1e-3
+                and np.isfinite(dip_rad) and abs(dip_rad) < np.pi / 2):
+            raise ValueError(f"Invalid Earth's field: earth_field_t={earth_field_t!r} T (Earth: "
+                             f"25e-6 .. "
                              f"65e-6), dip_rad={dip_rad!r} (need |dip| < pi/2)")
         self.earth_field = None if earth_field_t is None else (float(earth_field_t), float(dip_rad))
         self.topo = topology(self.rows, self.cols)
@@ -390,20 +392,25 @@ class MotionEstimator:
         if frames is not None:
             R = np.array(frames, dtype=float)
             if R.shape != (n, 3, 3):
-                raise ValueError(f"Expected `initial_frames` to have shape ({n}, 3, 3), got {R.shape}.")
-            if not np.all(np.isfinite(R)) or np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-6 \
+                raise ValueError(f"Expected `initial_frames` to have shape ({n}, 3, 3), got "
+                                 f"{R.shape}.")
+            if not np.all(np.isfinite(R)) \
+                    or np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-6 \
                     or np.any(np.linalg.det(R) < 0):
-                raise ValueError("Invalid initial_frames: need finite rotation matrices (sensor -> world).")
+                raise ValueError("Invalid initial_frames: need finite rotation matrices "
+                                 "(sensor -> world).")
             frames = R
         if std is not None:
             sd = np.broadcast_to(np.asarray(std, dtype=float), (n,)) if np.ndim(std) <= 1 else None
             if sd is None or sd.shape != (n,) or not np.all(np.isfinite(sd)) or np.any(sd <= 0):
-                raise ValueError(f"Invalid initial_std_rad: need radians > 0, a scalar or shape ({n},).")
+                raise ValueError(f"Invalid initial_std_rad: need radians > 0, a scalar or shape "
+                                 f"({n},).")
             std = np.array(sd)
         if bias is not None:
             b = np.array(bias, dtype=float)
             if b.shape != (n, 3) or not np.all(np.isfinite(b)):
-                raise ValueError(f"Expected `initial_bias_rps` to have shape ({n}, 3), finite, got {b.shape}.")
+                raise ValueError(f"Expected `initial_bias_rps` to have shape ({n}, 3), finite, "
+                                 f"got {b.shape}.")
             bias = b
         return frames, std, bias
 
@@ -579,7 +586,8 @@ class MotionEstimator:
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
         g = self.topo.group
-        self._s_group = np.bincount(g, weights=yaw, minlength=self.topo.n_groups) / self.topo.group_size
+        self._s_group = (np.bincount(g, weights=yaw, minlength=self.topo.n_groups)
+                         / self.topo.group_size)
         # without magnetometers the heading is a gauge the first snapshot sets: known exactly
         # then, it drifts only as the gyroscopes let it
         self._s0 = cfg.initial_heading_std_rad ** 2 if m is not None else cfg.lattice_floor_rad ** 2
@@ -727,7 +735,8 @@ class MotionEstimator:
         # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
         # link's own variance holds it, as if the magnetometers were not there
         hw = self.config.mag_hold_weight
-        held = np.clip(1.0 - np.bincount(g, weights=self._weights, minlength=r) / size / hw, 0.0, 1.0)
+        w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
+        held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
         self._held = held
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
@@ -756,8 +765,8 @@ class MotionEstimator:
         h = float(np.mean(dt))
         walk = cfg.heading_walk_rad ** 2 * h
         topo = self.topo
-        self._s_group = np.minimum(self._s_group + np.bincount(topo.group, weights=q, minlength=topo.n_groups)
-                                   / topo.group_size ** 2 + walk, _COLLECTIVE_MAX)
+        q_g = np.bincount(topo.group, weights=q, minlength=topo.n_groups) / topo.group_size ** 2
+        self._s_group = np.minimum(self._s_group + q_g + walk, _COLLECTIVE_MAX)
         self._s0 = min(self._s0 + float(q.mean()) / q.size + walk, _COLLECTIVE_MAX)
 
     def _shrink_collective(self, mw) -> None:
@@ -802,7 +811,8 @@ class MotionEstimator:
             + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
         dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
                  + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
-        dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * (cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6))
+        lasts = cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6)
+        dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * lasts
         s2 = self._dist[:, 0] ** 2
         wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
         # until the tests have averaged over their time constant a link's magnetometer is not
