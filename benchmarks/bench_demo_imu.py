@@ -1,11 +1,11 @@
 """`capsheet demo` with 9-axis chips on moving scenes, run as a user runs it, quiet and beside busy
-cores (issue 30 point 4): does the live path pass on a loaded 2-core machine as the accelerometer
+cores: does the live path pass on a loaded 2-core machine as the accelerometer
 demo does?
 
     .venv/bin/python benchmarks/bench_demo_imu.py                     # grow, carry, wave; quiet and 2 busy; 3 runs
     .venv/bin/python benchmarks/bench_demo_imu.py --busy 2 --runs 1 --scenes wave
     .venv/bin/python benchmarks/bench_demo_imu.py --sensors accel --scenes grow   # the accelerometer demo
-    .venv/bin/python benchmarks/bench_demo_imu.py --baseline 49754a2 --busy 2     # the code before issue 30.4
+    .venv/bin/python benchmarks/bench_demo_imu.py --baseline 49754a2 --busy 2     # the code before the live fused path
 
 Each run is ``python -m host.cli demo --sensors S --shape SCENE --json`` (6 s of streaming, the demo's pass
 rule: mean joint error <= 1 % of side and >= 99 % of the SYNCs sent complete) in a subprocess. With

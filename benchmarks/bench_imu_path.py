@@ -1,4 +1,4 @@
-"""CPU per SYNC of the live path by sensor set (issue 30 point 4): the virtual sheet, the host and
+"""CPU per SYNC of the live path by sensor set: the virtual sheet, the host and
 the shape estimate apart, for accelerometer, 6-axis and 9-axis chips.
 
     .venv/bin/python benchmarks/bench_imu_path.py                     # JSON on stdout
@@ -7,7 +7,7 @@ the shape estimate apart, for accelerometer, 6-axis and 9-axis chips.
 What `capsheet demo` runs, in one thread on a simulated clock (`Host(driver=...)`,
 `MemoryDevice(clock=...)`, the back-to-back rig of tests/host/test_back2back.py): a 14x14 sheet
 (1 % g noise, seed 1) brought up by the host (CONFIG_IMU for 6/9-axis chips), SYNC at 145 Hz for
-``--seconds`` simulated seconds, every snapshot shaped — the fused estimator of issue 30 in order
+``--seconds`` simulated seconds, every snapshot shaped — the fused estimator in order
 for 6/9-axis chips, `host.estimator.estimate` on every snapshot for accelerometer chips (the demo
 takes the newest one: at most every one). CPU seconds (``time.process_time``) split into
 

@@ -1,4 +1,4 @@
-"""The fused estimator's absolute attitude over a minute (issue 30): what the shape error hides.
+"""The fused estimator's absolute attitude over a minute: what the shape error hides.
 Prints JSON.
 
 `bench_motion.py` scores shapes after the rigid overlay, which removes a tilt of the whole sheet.

@@ -1,4 +1,4 @@
-"""6- and 9-axis chips: gyroscope and magnetometer models beside the accelerometer's (issue 29).
+"""6- and 9-axis chips: gyroscope and magnetometer models beside the accelerometer's.
 
 `ImuArray` turns the truth of every link (`motion.Truth`: specific force, angular velocity,
 position and frame) into what its chip reports — counts at the configured ranges and the same in SI
@@ -47,7 +47,7 @@ ideal      no errors
 ========== ===========================================================================================
 
 The accelerometer of an ICM-42688-P (70 µg/√Hz: 0.06 % g over 72.5 Hz; zero-g offset ±20 mg;
-scale ±0.5 %) is `accel_model("icm42688p")`; issue 30's targets use 1 % g noise instead.
+scale ±0.5 %) is `accel_model("icm42688p")`; the fused estimator's benchmarks use 1 % g noise instead.
 
 Why `read` takes no generator: each sensor draws from its own stream (``seed`` and the sensor),
 kept between calls, so the same scene read with and without a magnetometer gives the same
@@ -299,7 +299,7 @@ def accel_model(part: str = "icm42688p", *, noise_pct_g: float | None = None, ch
 
     ``icm42688p``: 70 µg/√Hz over 72.5 Hz (0.06 % g per sample), zero-g offset 20 mg (σ), scale
     0.5 %, mounting 1.5° per axis, uncalibrated (the chips report the nominal calibration);
-    ``ideal``: none of it. ``noise_pct_g`` overrides the noise (issue 30: 1 % g)."""
+    ``ideal``: none of it. ``noise_pct_g`` overrides the noise (the benchmarks': 1 % g)."""
     if part == "icm42688p":
         fields = {"noise_pct_g": 70e-6 * np.sqrt(72.5) * 100, "bias_mps2": 0.020 * G0, "scale_error": 0.005,
                   "misalignment_rad": float(np.radians(1.5)), "factory_calibrated": False}
@@ -518,7 +518,7 @@ class ImuArray:
         return ImuReading(**out)
 
 
-#: the three sensor sets of issue 29 (`capsheet ... --sensors`)
+#: the three sensor sets (`capsheet ... --sensors`)
 SENSOR_SETS = ("accel", "accel+gyro", "accel+gyro+mag")
 
 

@@ -1,4 +1,4 @@
-"""What 6/9-axis chips read at a SYNC on a moving sheet (issue 29): the phase-1 models fed by a scene.
+"""What 6/9-axis chips read at a SYNC on a moving sheet: the phase-1 models fed by a scene.
 
 `ImuSource` answers a chip's read at ``now_s`` with the instant of a fixed time grid (``grid_hz``,
 about 2 × the paper's 145 Hz) at or before it: it takes a `motion.MotionScene`'s exact truth there
@@ -30,7 +30,7 @@ from protocol.imu_units import GyroRange, MagRange, gyro_nominal_sensitivity, ma
 
 __all__ = ["ImuSource", "MOTION_SHAPES"]
 
-#: the moving scenes of `motion.MOTION_SCENES` a virtual sheet takes as ``--shape`` (issue 29)
+#: the moving scenes of `motion.MOTION_SCENES` a virtual sheet takes as ``--shape``
 MOTION_SHAPES = ("carry", "wave", "elbow", "tap", "flat_turn", "tumble")
 _FIELDS = ("specific_force", "angular_velocity", "position", "frames", "joints")
 _STALE = int(SampleStatus.STALE)

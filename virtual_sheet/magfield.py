@@ -1,4 +1,4 @@
-"""The magnetic field the chips sit in: Earth's, plus local disturbances (issue 29).
+"""The magnetic field the chips sit in: Earth's, plus local disturbances.
 
 World frame as docs/design.md (z up). Earth's field is uniform: magnitude ``F`` (25–65 µT on
 Earth), inclination (dip) ``I`` (positive downwards, 0° at the magnetic equator, 90° at the
@@ -15,7 +15,7 @@ Disturbances add to it:
   ambient field, ``m = k · B_earth / μ0`` (``k``: the part's effective volume susceptibility times
   its volume, m³; a 1 cm steel bolt is of the order of 1e-6 m³ · a few tens).
 
-`quarter_disturbance` places a magnet under one quarter of a sheet (issue 30's "local
+`quarter_disturbance` places a magnet under one quarter of a sheet (the fused estimator's "local
 disturbance over a quarter of the sheet") and `disturbance_angle` says how far it turns the field
 at each chip.
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["rigid_fit", "overlay", "overlay_error", "error_percent_of_side"]
+__all__ = ["rigid_fit", "overlay", "overlay_error", "side_length", "error_percent_of_side"]
 
 
 def rigid_fit(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
@@ -88,11 +88,23 @@ def overlay_error(estimate_joints: np.ndarray, true_joints: np.ndarray) -> np.nd
     return np.linalg.norm(overlay(a, b) - b, axis=-1)
 
 
+def side_length(rows: int, cols: int, link_length: float) -> float:
+    """A sheet's side, the length every "% of side" in capsheet is of: its longer side as laid
+    out flat, ``(max(rows, cols) − 1) · L`` metres (the paper's sheets are square: 13 L).
+
+    >>> side_length(14, 14, 0.01), side_length(6, 11, 0.01)
+    (0.13, 0.1)
+    """
+    if min(int(rows), int(cols)) < 2 or not (np.isfinite(link_length) and link_length > 0):
+        raise ValueError(f"Invalid sheet: {rows}x{cols} joints, L = {link_length!r} (need >= 2x2, L > 0)")
+    return round((max(int(rows), int(cols)) - 1) * float(link_length), 12)
+
+
 def error_percent_of_side(estimate_joints: np.ndarray, true_joints: np.ndarray,
                           link_length: float) -> np.ndarray:
     """Per-joint error as the paper reports it: `overlay_error` in % of the sheet's side length.
 
-    The side length is ``(cols − 1) · L`` (the j side; the paper's sheets are square, 13 units of
+    The side is `side_length` (the longer side; the paper's sheets are square, 13 units of
     ``L``). The paper's Fig. 10 plots the mean and standard deviation of this over all joints and
     trials.
 
@@ -104,5 +116,4 @@ def error_percent_of_side(estimate_joints: np.ndarray, true_joints: np.ndarray,
     a, b = _check_pair(estimate_joints, true_joints)
     if a.ndim != 3:
         raise ValueError(f"Expected joints of shape (rows, cols, 3), got {a.shape}.")
-    side = (a.shape[1] - 1) * float(link_length)
-    return 100.0 * overlay_error(a, b) / side
+    return 100.0 * overlay_error(a, b) / side_length(a.shape[0], a.shape[1], link_length)

@@ -316,8 +316,11 @@ def run(args) -> int:
         host.imu_config = imu_config(args)
         fused = None
         if host.imu_config is not None:  # issue 30 point 4: the gyroscopes drive the shape
-            from host.analysis.motion import MotionEstimator
-            fused = MotionEstimator(rows, cols, L)
+            from host.analysis.motion import FusedConfig, MotionEstimator
+            from protocol.constants import G0
+            # the virtual chips' accelerometer noise is --noise (1 % g by default), not the
+            # datasheet's the estimator assumes: it is told
+            fused = MotionEstimator(rows, cols, L, config=FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0))
         from host.cli.record_args import SessionOutputs
         outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
                                  session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
@@ -435,9 +438,13 @@ def run(args) -> int:
         out = Path(args.out)
         from host.cli.figures import demo_figure
         import matplotlib.pyplot as plt
+        why = [] if err_ok else [f"mean error {_fmt(mean_err, '.2f')} % > target {args.target:g} %"]
+        if not complete_ok:
+            why.append(f"{complete_pct:.1f} % of SYNCs complete < {args.min_complete:g} %")
         plt.close(demo_figure(out, truth, est_joints, err, shape=args.shape, noise_pct_g=args.noise,
                               rate_hz=args.rate, run_mean_error_pct=errors.mean, counter=counter,
-                              link_length=L, sensors=getattr(args, "sensors", "accel")))
+                              link_length=L, sensors=getattr(args, "sensors", "accel"),
+                              failed="; ".join(why) or None, compared=errors.count))
         result["png"] = str(out)
         print(f"capsheet demo: wrote {out}", file=sys.stderr)
     verdict = "PASS" if ok else "FAIL"

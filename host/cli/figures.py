@@ -68,7 +68,7 @@ def _labels_cm(ax) -> None:
 
 def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *, shape: str, noise_pct_g: float,
                 rate_hz: float, run_mean_error_pct: float, counter: int, link_length: float,
-                sensors: str = "accel"):
+                sensors: str = "accel", failed: str | None = None, compared: int | None = None):
     """The demo's figure: truth; estimate (overlaid) drawn over the truth; per-joint error map.
 
     Parameters
@@ -82,6 +82,10 @@ def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *
     sensors : str
         The chips' sensors (``--sensors``): 6/9-axis chips are named in the title with the fused
         estimator that used them.
+    failed : str, optional
+        Why the run failed (the demo's verdict): the figure is marked FAIL with it, in red.
+    compared : int, optional
+        How many snapshots the run's mean is over (named in the title).
     """
     plt = _plt()
     from host.analysis.metrics import overlay
@@ -89,7 +93,8 @@ def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *
     rows, cols = truth.shape[:2]
     T, A = truth * CM, overlay(est, truth) * CM
     fig = plt.figure(figsize=(16, 5.4))
-    gs = fig.add_gridspec(1, 3, width_ratios=(1.0, 1.0, 0.85), left=0.01, right=0.96, bottom=0.1, top=0.86,
+    gs = fig.add_gridspec(1, 3, width_ratios=(1.0, 1.0, 0.85), left=0.01, right=0.96, bottom=0.1,
+                          top=0.76 if failed else 0.8,
                           wspace=0.28)
     ax = fig.add_subplot(gs[0], projection="3d")
     _wire(ax, T, color="C0", lw=0.8, label="virtual truth")
@@ -111,11 +116,18 @@ def demo_figure(path, truth: np.ndarray, est: np.ndarray, err_pct: np.ndarray, *
     ax.set_yticks(np.arange(0, rows, step))
     ax.set_xlabel("joint j")
     ax.set_ylabel("joint i")
-    ax.set_title(f"joint error, counter {counter} (mean {float(np.mean(err_pct)):.2f} %)")
+    ax.set_title(f"joint error, this snapshot only\n(counter {counter}): mean {float(np.mean(err_pct)):.2f} %",
+                 fontsize=10)
     fig.colorbar(im, ax=ax, shrink=0.85, label="error [% of side]")
     chips = "" if sensors == "accel" else f"{sensors} chips (fused estimator), "
-    fig.suptitle(f"capsheet demo: {rows}x{cols} joints, L = {link_length * CM:g} cm, '{shape}', {chips}"
-                 f"{noise_pct_g:g} % g noise, {rate_hz:g} Hz: run mean error {run_mean_error_pct:.2f} % of side")
+    over = "" if compared is None else f" over {compared} snapshots"
+    title = (f"capsheet demo: {rows}x{cols} joints, L = {link_length * CM:g} cm, '{shape}', {chips}"
+             f"{noise_pct_g:g} % g noise, {rate_hz:g} Hz\nrun mean error {run_mean_error_pct:.2f} % of side{over}; "
+             f"the panels show the last snapshot compared (counter {counter})")
+    if failed:
+        fig.suptitle(f"FAIL: {failed}\n{title}", color="red", fontsize=11)
+    else:
+        fig.suptitle(title, fontsize=11)
     _save(fig, path)
     return fig
 

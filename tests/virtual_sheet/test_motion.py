@@ -1,4 +1,4 @@
-"""Moving scenes with exact kinematics (issue 29): the truth `sample` gives agrees with finite
+"""Moving scenes with exact kinematics: the truth `sample` gives agrees with finite
 differences of the independent construction (`joints`: `geometry.chebyshev_net` at one instant),
 every link stays exactly L, and the built-in scenes do what their names promise.
 
@@ -152,7 +152,7 @@ def test_every_link_stays_exactly_L_at_every_instant(name):
 
 @pytest.mark.parametrize("name", MOVING)
 def test_every_moving_scene_starts_at_rest_and_reaches_2_mps2(name):
-    # issue 30's targets need peak link accelerations of at least 2 m/s² in every moving scene
+    # the fused estimator's targets need peak link accelerations of at least 2 m/s² in every moving scene
     scene = make_motion_scene(name, 14, 14, L)
     tr = scene.sample(np.arange(0.0, 6.0, 1 / 60))
     peak = np.linalg.norm(tr.acceleration, axis=-1).max()
@@ -254,3 +254,21 @@ def test_the_wave_runs_for_ten_minutes_and_repeats_its_first_period_exactly():
         j = s.sample(np.array([t])).joints[0]
         assert np.abs(np.linalg.norm(np.diff(j, axis=0), axis=-1) - 0.01).max() < 1e-12
         assert np.abs(np.linalg.norm(np.diff(j, axis=1), axis=-1) - 0.01).max() < 1e-12
+
+
+def test_the_level_scenes_lie_level_with_sheared_cells_and_turn_about_the_vertical():
+    from virtual_sheet.motion import level_scene
+    still = make_motion_scene("level", 5, 5, L).sample([0.0, 2.0])
+    turn = make_motion_scene("level_turn", 5, 5, L).sample(np.linspace(0.0, 4.0, 9))
+    for tr in (still, turn):
+        assert np.abs(tr.joints[..., 2]).max() == 0.0  # level
+        P = tr.joints[-1]
+        u, v = P[1, 0] - P[0, 0], P[0, 1] - P[0, 0]
+        cell = np.arccos(u @ v / (np.linalg.norm(u) * np.linalg.norm(v)))
+        assert abs(cell - (np.pi / 2 + 0.2)) < 1e-12  # the cells sheared by 0.2 rad
+    assert np.array_equal(still.joints[0], still.joints[1])  # still
+    heading = np.degrees(np.arctan2(turn.frames[:, 0, 1, 0], turn.frames[:, 0, 0, 0]))
+    assert np.ptp(heading) > 60  # turning about the vertical
+    assert np.abs(turn.angular_velocity[..., :2]).max() < 1e-12  # about z alone (level links)
+    with pytest.raises(ValueError, match="shear"):
+        level_scene(5, 5, L, shear=2.0)

@@ -1,4 +1,4 @@
-"""Shape while the sheet moves (issue 30): the fused estimator (`MotionEstimator`: the lattice's
+"""Shape while the sheet moves: the fused estimator (`MotionEstimator`: the lattice's
 loops with gyroscopes, accelerometers and magnetometers) and the peers it is measured against.
 docs/estimator.md §8."""
 

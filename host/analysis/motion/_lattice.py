@@ -31,6 +31,9 @@ class LatticeTopology:
         Every (link, cell it belongs to) pair: the normal rows' terms.
     inv_ncell : ndarray, shape (n_links,)
         1 / number of cells of a link (0 for a link in no cell).
+    group : ndarray of int, shape (n_links,)
+        Every link's group: ``i`` for the i-links at ``i``, ``rows − 1 + j`` for the j-links at
+        ``j`` (`n_groups` of them, `group_size` links each, `group_matrix` the indicator).
     jac : scipy.sparse.csr_matrix
         The yaw Jacobian's pattern, rows: 2 per unit (closure x, y), then one per link (normal);
         ``jac_slot_*`` map the computed entries onto its ``data``.
@@ -61,7 +64,6 @@ class LatticeTopology:
 
         # Jacobian entries in a fixed order: closure (2U rows x 4), diagonal of the normal rows
         # (n), then every pair's 4 cell links (K2 x 4); summed into CSR slots.
-        K2 = self.pair_link.size
         rows_c = np.repeat(np.arange(2 * U), 4)
         cols_c = np.repeat(self.units, 2, axis=0).ravel()
         rows_d = 2 * U + np.arange(n)
@@ -83,6 +85,15 @@ class LatticeTopology:
         self.jac_T = self.jac.T.tocsr()  # the pattern of Jᵀ and where J's entries go in it
         order = np.argsort(self.jac_cols * self.n_rows + self.jac_rows, kind="stable")
         self.jac_T_from = order
+        # the links' groups: the i-links of one i (a row of links), the j-links of one j; on a
+        # flat net every group's links are parallel, so turning a group about the normal keeps
+        # every cell closed — the yaw modes the loops cannot see (docs/estimator.md §8)
+        k = np.arange(n)
+        n_i = lat.n_i_links
+        self.group = np.where(k < n_i, k // cols, (rows - 1) + (k - n_i) % (cols - 1)).astype(np.int64)
+        self.n_groups = (rows - 1) + (cols - 1)
+        self.group_size = np.bincount(self.group, minlength=self.n_groups).astype(float)
+        self.group_matrix = sp.csr_matrix((np.ones(n), (k, self.group)), shape=(n, self.n_groups))
         # the cells' normals averaged onto their links: (n_links x U), weights 1 / ncell
         self.cell_to_link = sp.csr_matrix((self.inv_ncell[self.pair_link],
                                            (self.pair_link, self.pair_cell)), shape=(n, U))

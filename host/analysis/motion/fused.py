@@ -1,5 +1,5 @@
-"""The fused estimator: the lattice's loops with gyroscopes, accelerometers and magnetometers
-(issue 30). docs/estimator.md §8 gives the model, why it is built this way, and where it fails.
+"""The fused estimator: the lattice's loops with gyroscopes, accelerometers and magnetometers.
+docs/estimator.md §8 gives the model, why it is built this way, and where it fails.
 
 One `MotionEstimator` per sheet, fed one snapshot at a time (sans-I/O: the snapshot's time is an
 argument, nothing reads a clock)::
@@ -59,6 +59,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._lattice import CLOSURE_SIGNS, topology
+from ._linalg import (_NUMPY_STEPS, _cross, _inv_sym3, _pcg, _rotate_all, _skew,  # noqa: F401
+                      _wrap, frames_from_angles, rotation_matrices)
 
 try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
     if os.environ.get("CAPSHEET_NO_KERNEL"):
@@ -74,6 +76,7 @@ __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrice
            "calibrated", "relative_accelerations"]
 
 _EX = np.array([1.0, 0.0, 0.0])
+_COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
 
 
@@ -84,9 +87,13 @@ class FusedConfig:
     Parameters
     ----------
     accel_noise_mps2 : float
-        Accelerometer white noise per axis per sample, m/s² (1 % g: issue 30's targets).
+        Accelerometer white noise per axis per sample, m/s²: the ICM-42688-P's 70 µg/√Hz
+        (TDK InvenSense DS-000347, Table 2, "Noise spectral density") over the Nyquist band of
+        145 Hz samples, 0.060 % g (`datasheet_noise`). Chips noisier than their datasheet (the
+        benchmarks' 1 % g) need it told.
     gyro_noise_rps : float
-        Gyroscope white noise per axis per sample, rad/s (ICM-42688-P at 145 Hz: 0.024 °/s).
+        Gyroscope white noise per axis per sample, rad/s: the ICM-42688-P's 2.8 mdps/√Hz
+        (DS-000347, Table 1, "Rate noise spectral density") at 145 Hz, 0.024 °/s.
     gyro_bias_std_rps : float
         The bias's uncertainty at the start, rad/s (after calibration: 0.01 °/s).
     gyro_bias_walk_rps : float
@@ -110,7 +117,9 @@ class FusedConfig:
     lattice_floor_rad : float
         Model floor of the closure and normal residuals (unit vectors ≈ radians).
     mag_noise_t : float
-        Magnetometer white noise per axis per sample, tesla (LIS3MDL: 0.32–0.41 µT).
+        Magnetometer white noise per axis per sample, tesla: the LIS3MDL's 3.2 / 4.1 mG RMS
+        (x, y / z, ultra-high-performance mode; ST DocID024204, Table 3), 0.32–0.41 µT, taken
+        as 0.4 µT (an MMC5983MA's 0.04–0.12 µT would be told).
     mag_floor_rad : float
         A floor on a link's heading error from its calibrated magnetometer, rad.
     mag_common_floor_rad : float
@@ -125,14 +134,25 @@ class FusedConfig:
         One standard unit of each test: heading off the lattice's consensus, field magnitude off
         Earth's (fraction), dip off Earth's.
     disturbance_scale : float
-        A link's magnetometer weight is ``1 / (1 + (s / scale)²)``, ``s`` its combined test
-        in standard units.
+        A link's magnetometer weight is scaled by ``1 / (1 + (s / scale)²)``, ``s`` its heading
+        test in standard units.
+    disturbance_persist_s : float
+        How long a local disturbance is taken to last, s: what it adds to the field is a bias
+        over that time, not noise that averages out, so the heading variance it implies enters
+        every sample multiplied by ``persist / Δt``.
+    mag_hold_weight : float
+        A group of links (or the whole sheet) whose magnetometers' mean weight falls below this
+        fraction of an undisturbed one's is held by the links' own yaw variances, as without
+        magnetometers, fully at weight 0 (docs/estimator.md §8).
+    mag_warmup_s : float
+        A link's magnetometer is used once its tests have averaged this long, s (a magnet there
+        from the start would otherwise be believed before it is seen).
     initial_yaw_std_rad : float
         Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
     """
 
-    accel_noise_mps2: float = 0.01 * G0
-    gyro_noise_rps: float = float(np.radians(0.024))
+    accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
+    gyro_noise_rps: float = float(np.radians(2.8e-3 * np.sqrt(145.0 / 2.0)))
     gyro_bias_std_rps: float = float(np.radians(0.01))
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
@@ -153,6 +173,9 @@ class FusedConfig:
     disturbance_field_frac: float = 0.01
     disturbance_dip_rad: float = float(np.radians(0.5))
     disturbance_scale: float = 2.0
+    disturbance_persist_s: float = 5.0
+    mag_hold_weight: float = 0.5
+    mag_warmup_s: float = 0.1
     initial_yaw_std_rad: float = 0.05
 
     def __post_init__(self) -> None:
@@ -214,161 +237,6 @@ class MotionEstimate:
         return self.frames[:, :, 0]
 
 
-def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
-    """``exp([v]×)`` for rotation vectors ``(..., 3)`` (Rodrigues), shape ``(..., 3, 3)``."""
-    v = np.asarray(rotvec, dtype=float)
-    th2 = np.einsum("...i,...i->...", v, v)
-    th = np.sqrt(th2)
-    small = th2 < 1e-12
-    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
-    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    x, y, z = v[..., 0], v[..., 1], v[..., 2]
-    out = np.empty(v.shape[:-1] + (3, 3))
-    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
-    out[..., 0, 0] = 1.0 - b * (yy + zz)
-    out[..., 1, 1] = 1.0 - b * (xx + zz)
-    out[..., 2, 2] = 1.0 - b * (xx + yy)
-    out[..., 0, 1] = b * xy - a * z
-    out[..., 1, 0] = b * xy + a * z
-    out[..., 0, 2] = b * xz + a * y
-    out[..., 2, 0] = b * xz - a * y
-    out[..., 1, 2] = b * yz - a * x
-    out[..., 2, 1] = b * yz + a * x
-    return out
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _inv_sym3(S: np.ndarray) -> np.ndarray:
-    """Inverses of symmetric 3 x 3 matrices ``(n, 3, 3)`` by cofactors (no LAPACK call per
-    matrix: the stack is small and many)."""
-    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
-    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    inv_det = 1.0 / (a * A + b * B + c * C)
-    out = np.empty_like(S)
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = A, B, C
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = B, D, E
-    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = C, E, F
-    out *= inv_det[:, None, None]
-    return out
-
-
-def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
-         maxiter: int = 200) -> np.ndarray:
-    """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
-    its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
-    the filter has settled, so a few iterations suffice (docs/estimator.md §8)."""
-    x = np.zeros_like(b)
-    r = b.copy()
-    z = inv_diag * r
-    pdir = z.copy()
-    rz = float(r @ z)
-    stop = rtol * rtol * float(b @ b)
-    for _ in range(maxiter):
-        if float(r @ r) <= stop:
-            break
-        q = matvec(pdir)
-        alpha = rz / float(pdir @ q)
-        x += alpha * pdir
-        r -= alpha * q
-        z = inv_diag * r
-        rz_new = float(r @ z)
-        pdir = z + (rz_new / rz) * pdir
-        rz = rz_new
-    return x
-
-
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise cross products of ``(n, 3)`` arrays (np.cross's axis handling costs more than
-    the products at these sizes)."""
-    out = np.empty_like(a)
-    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-    return out
-
-
-def _rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """``Q R_k`` for every frame ``R (n, 3, 3)``, as one 3 x 3n product."""
-    n = R.shape[0]
-    return np.ascontiguousarray((Q @ R.transpose(1, 0, 2).reshape(3, 3 * n))
-                                .reshape(3, n, 3).transpose(1, 0, 2))
-
-
-def _wrap(x):
-    return (x + np.pi) % (2 * np.pi) - np.pi
-
-
-def frames_from_angles(alpha, beta, gamma) -> np.ndarray:
-    """``Rz(γ) Ry(β) Rx(α)`` (docs/design.md), shape (n, 3, 3)."""
-    ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
-                              np.cos(gamma), np.sin(gamma))
-    R = np.empty(alpha.shape + (3, 3))
-    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cg * cb, cg * sb * sa - sg * ca, cg * sb * ca + sg * sa
-    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa
-    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sb, cb * sa, cb * ca
-    return R
-
-
-# ---------------------------------------------------------------------------------------------
-# The per-link steps: numpy, and the same in C (host/analysis/motion/_kernel/link_filter.c) when
-# built. Each updates its arrays in place; link_filter.h documents them.
-# ---------------------------------------------------------------------------------------------
-
-def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
-    dth = 0.5 * (w0 + w1) * dt[:, None] + _cross(w0, w1) * (dt * dt / 12.0)[:, None]
-    R[:] = R @ rotation_matrices(dth)
-    G = R * dt[:, None, None]  # δθ' = δθ − R δb dt
-    Ptt, Ptb, Pbb = P[:, :3, :3], P[:, :3, 3:], P[:, 3:, 3:]
-    GPbb = G @ Pbb
-    GPbt = G @ P[:, 3:, :3]
-    Ptt_new = Ptt - GPbt - GPbt.transpose(0, 2, 1) + GPbb @ G.transpose(0, 2, 1)
-    Ptt_new += q[:, None, None] * np.eye(3)
-    P[:, :3, 3:] = Ptb - GPbb
-    P[:, 3:, :3] = P[:, :3, 3:].transpose(0, 2, 1)
-    P[:, :3, :3] = Ptt_new
-    P[:, 3:, 3:] += qb[:, None, None] * np.eye(3)
-
-
-def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
-    Rt = R.transpose(0, 2, 1)
-    y = f - np.einsum("kij,kj->ki", Rt, vec)
-    H = Rt @ _skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
-    HP = H @ P[:, :3, :]  # (n, 3, 6)
-    S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
-    Si = _inv_sym3(S)
-    m2 = np.einsum("ki,kij,kj->k", y, Si, y)
-    Si /= np.maximum(1.0, m2 / gate)[:, None, None]
-    K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
-    K[~valid] = 0.0
-    x[:] = np.einsum("kij,kj->ki", K, y)
-    P -= K @ HP
-
-
-def _np_yaw(P, mu, a_diag, x) -> None:
-    c = P[:, :, 2].copy()  # (n, 6): covariance with the yaw error
-    p = c[:, 2].copy()
-    g = c / p[:, None]
-    P -= np.einsum("ki,kj->kij", g, c * (1.0 - 1.0 / (a_diag * p))[:, None])
-    x[:] = g * mu[:, None]
-
-
-def _np_apply(R, bias, P, x) -> None:
-    R[:] = rotation_matrices(x[:, :3]) @ R
-    bias += x[:, 3:]
-    P += P.transpose(0, 2, 1)
-    P *= 0.5
-
-
-_NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
 
 
 def _kernel_args(name: str, args) -> list:
@@ -468,10 +336,28 @@ class MotionEstimator:
     config : FusedConfig, optional
     declination_rad : float
         The yaw of magnetic north from world x (with magnetometers), radians.
+    earth_field_t, dip_rad : float, optional
+        Earth's field where the sheet is (a geomagnetic model's magnitude, tesla, and
+        inclination, radians): the disturbance tests' reference. Default: the magnetometers'
+        median at the first snapshot (a magnet under most of the sheet then biases it).
+    initial_frames : ndarray, shape (n_links, 3, 3), optional
+        A starting shape, every link's sensor -> world rotation: a known sheet, the last
+        session's `MotionEstimate.frames`, or the static estimator's (`frames_from_angles` of
+        its ``alpha, beta, yaws``). Default: the accelerometer-only estimate of the first
+        snapshot (a level sheet's shear unknown to it).
+    initial_std_rad : float or ndarray, shape (n_links,), optional
+        The starting shape's uncertainty per link and axis, radians (default: the
+        accelerometers' for tilt, `FusedConfig.initial_yaw_std_rad` for yaw).
+    initial_bias_rps : ndarray, shape (n_links, 3), optional
+        Starting gyroscope biases, rad/s, link frames (the last session's
+        `MotionEstimate.gyro_bias_rps`); default 0.
     """
 
     def __init__(self, rows: int, cols: int, link_length: float, *,
-                 config: FusedConfig | None = None, declination_rad: float = 0.0) -> None:
+                 config: FusedConfig | None = None, declination_rad: float = 0.0,
+                 earth_field_t: float | None = None, dip_rad: float | None = None,
+                 initial_frames: np.ndarray | None = None, initial_std_rad=None,
+                 initial_bias_rps: np.ndarray | None = None) -> None:
         for name, v in (("rows", rows), ("cols", cols)):
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < 2:
                 raise ValueError(f"Invalid {name}: {v!r} (need an integer >= 2)")
@@ -487,9 +373,46 @@ class MotionEstimator:
         if not isinstance(self.config, FusedConfig):
             raise ValueError(f"Invalid config: {config!r} (expected a FusedConfig)")
         self.declination_rad = float(declination_rad)
+        if (earth_field_t is None) != (dip_rad is None):
+            raise ValueError("Give Earth's field as both earth_field_t and dip_rad, or neither.")
+        if earth_field_t is not None and not (
+                np.isfinite(earth_field_t) and 0 < earth_field_t < 1e-3
+                and np.isfinite(dip_rad) and abs(dip_rad) < np.pi / 2):
+            raise ValueError(f"Invalid Earth's field: earth_field_t={earth_field_t!r} T (Earth: "
+                             f"25e-6 .. "
+                             f"65e-6), dip_rad={dip_rad!r} (need |dip| < pi/2)")
+        self.earth_field = None if earth_field_t is None else (float(earth_field_t), float(dip_rad))
         self.topo = topology(self.rows, self.cols)
         self.n_links = self.topo.n_links
+        self._initial = self._check_initial(initial_frames, initial_std_rad, initial_bias_rps)
         self.reset()
+
+    def _check_initial(self, frames, std, bias):
+        n = self.n_links
+        if frames is not None:
+            R = np.array(frames, dtype=float)
+            if R.shape != (n, 3, 3):
+                raise ValueError(f"Expected `initial_frames` to have shape ({n}, 3, 3), got "
+                                 f"{R.shape}.")
+            if not np.all(np.isfinite(R)) \
+                    or np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-6 \
+                    or np.any(np.linalg.det(R) < 0):
+                raise ValueError("Invalid initial_frames: need finite rotation matrices "
+                                 "(sensor -> world).")
+            frames = R
+        if std is not None:
+            sd = np.broadcast_to(np.asarray(std, dtype=float), (n,)) if np.ndim(std) <= 1 else None
+            if sd is None or sd.shape != (n,) or not np.all(np.isfinite(sd)) or np.any(sd <= 0):
+                raise ValueError(f"Invalid initial_std_rad: need radians > 0, a scalar or shape "
+                                 f"({n},).")
+            std = np.array(sd)
+        if bias is not None:
+            b = np.array(bias, dtype=float)
+            if b.shape != (n, 3) or not np.all(np.isfinite(b)):
+                raise ValueError(f"Expected `initial_bias_rps` to have shape ({n}, 3), finite, "
+                                 f"got {b.shape}.")
+            bias = b
+        return frames, std, bias
 
     def reset(self) -> None:
         """Forget everything: the next snapshot initialises again."""
@@ -593,7 +516,6 @@ class MotionEstimator:
         """
         t0 = time.perf_counter()
         t, f, w, m, v = self._check(t_s, accel, gyro, mag, valid)
-        cfg = self.config
         if self.R is None:
             self._initialise(t, f, w, m, v)
             t1 = t2 = t3 = time.perf_counter()
@@ -623,12 +545,16 @@ class MotionEstimator:
         cfg = self.config
         if not v.any():
             raise ValueError("No valid link in the first snapshot: cannot initialise.")
-        e = estimate(np.where(v[:, None], f, (0.0, 0.0, G0)), self.rows, self.cols,
-                     self.link_length, valid=v if not v.all() else None, bad_readings="mask")
-        gamma = np.where(np.isfinite(e.yaws), e.yaws, 0.0)
-        alpha = np.where(np.isfinite(e.alpha), e.alpha, 0.0)
-        beta = np.where(np.isfinite(e.beta), e.beta, 0.0)
-        R = frames_from_angles(alpha, beta, gamma)
+        R0, std0, bias0 = self._initial
+        if R0 is None:
+            e = estimate(np.where(v[:, None], f, (0.0, 0.0, G0)), self.rows, self.cols,
+                         self.link_length, valid=v if not v.all() else None, bad_readings="mask")
+            gamma = np.where(np.isfinite(e.yaws), e.yaws, 0.0)
+            alpha = np.where(np.isfinite(e.alpha), e.alpha, 0.0)
+            beta = np.where(np.isfinite(e.beta), e.beta, 0.0)
+            R = frames_from_angles(alpha, beta, gamma)
+        else:
+            R = R0.copy()
         n = self.n_links
         self._with_mag = m is not None
         if m is not None:
@@ -641,18 +567,30 @@ class MotionEstimator:
             W = np.einsum("kij,kj->ki", R, m)[v]
             F = float(np.median(np.linalg.norm(W, axis=1)))
             dip = float(np.median(np.arcsin(np.clip(-W[:, 2] / np.linalg.norm(W, axis=1), -1, 1))))
-            self._b_ref = (F, dip)
+            self._b_ref = (F, dip) if self.earth_field is None else self.earth_field
+            F, dip = self._b_ref
             self._dist = np.zeros((n, 3))
-            self._weights = np.ones(n)
-            self._hvar = cfg.initial_heading_std_rad ** 2
+            self._dist_count = np.zeros(n)
+            self._weights = np.zeros(n)  # none is used before its tests have run
         self.R = R
         tilt = (cfg.accel_noise_mps2 / G0) ** 2 + cfg.lattice_floor_rad ** 2
+        yaw = np.full(n, cfg.initial_yaw_std_rad ** 2)
+        if std0 is not None:
+            tilt = yaw = std0 ** 2
         self.P[:] = 0.0
         self.P[:, 0, 0] = self.P[:, 1, 1] = tilt
-        self.P[:, 2, 2] = cfg.initial_yaw_std_rad ** 2
+        self.P[:, 2, 2] = yaw
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
+        if bias0 is not None:
+            self.bias[:] = bias0
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
+        g = self.topo.group
+        self._s_group = (np.bincount(g, weights=yaw, minlength=self.topo.n_groups)
+                         / self.topo.group_size)
+        # without magnetometers the heading is a gauge the first snapshot sets: known exactly
+        # then, it drifts only as the gyroscopes let it
+        self._s0 = cfg.initial_heading_std_rad ** 2 if m is not None else cfg.lattice_floor_rad ** 2
         self._a_bar = np.zeros(3)
 
     # ------------------------------------------------------------------------------- 1. gyro
@@ -662,6 +600,7 @@ class MotionEstimator:
             + (cfg.gyro_scale_error * np.linalg.norm(w_c, axis=1) * dt) ** 2
         qb = cfg.gyro_bias_walk_rps ** 2 * dt
         _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
+        self._q_last = q
 
     # ------------------------------------------------------------------------------- 2, 3. accel
     def _relative_accel(self, w_c, dt) -> np.ndarray:
@@ -749,40 +688,108 @@ class MotionEstimator:
         w_cl = 1.0 / (tilt[units].sum(axis=1) + fl)
         wts = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + fl)])
         res = np.concatenate([r_cl.ravel(), r_n])
-        p = P[:, 2, 2].copy()
-        diag = 1.0 / p
+        # the prior: each link's own yaw variance for what is local to it, and the groups' and
+        # the sheet's common yaw variances for what the links share (`_yaw_prior`)
+        if m is not None:
+            self._grow_collective(dt)
+            prior, prior_diag = self._yaw_prior(P[:, 2, 2])
+        else:  # nothing measures what the links share: each link's own variance holds it
+            prior_diag = 1.0 / P[:, 2, 2]
+
+            def prior(x):
+                return prior_diag * x
         rhs = -(JT @ (wts * res))
-        a_diag = diag + np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd,
-                                    minlength=n)
-        mu = _pcg(lambda x: JT @ (wts * (J @ x)) + diag * x, rhs, 1.0 / a_diag)
+        lat_diag = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
+        mw = np.zeros(n)
+        if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
+            self._dt_last = dt
+            mw, me = self._magnetometer(m, v)
+            rhs -= mw * me
+        a_diag = prior_diag + lat_diag + mw
+        mu = _pcg(lambda x: JT @ (wts * (J @ x)) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+        if m is not None:  # the disturbance tests: each heading against the loops' solution
+            self._disturbance_tests(me + mu, v, dt)
+        if m is not None:
+            self._shrink_collective(mw)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
         _step("yaw", P, mu, a_diag, x)
         self._apply(x)
-        if m is not None:
-            self._heading_update(m, v, dt)
 
-    def _heading_update(self, m, v, dt) -> None:
-        """The magnetometers turn the whole sheet about world z (a rigid rotation: they never
-        bend it), by a scalar Kalman filter on the common heading: the measurement is the
-        weighted mean of the links' heading errors, each link weighted by its disturbance tests
-        and its noise (module docstring, step 4)."""
+    # the collective yaw modes: docs/estimator.md §8 "what the links share"
+    def _yaw_prior(self, p):
+        """The yaw problem's prior information as a matrix-vector product and its diagonal.
+
+        A link's yaw variance ``p`` (its conditional one after the last solve) says how well it
+        is known *relative to its neighbours*; as a diagonal prior it would also claim ``Σ 1/p``
+        for a mode all links share, which nothing measured. So the prior is built in three
+        nested levels: each link's own ``1/p`` for what is not a group's common offset; each
+        group's common offset (a row of i-links, a column of j-links: what the loops cannot see
+        on a flat sheet) with variance ``s_g`` for what is not the sheet's common offset; and
+        the sheet's common yaw (its heading) with variance ``s_0``."""
+        topo = self.topo
+        g, r, size = topo.group, topo.n_groups, topo.group_size
+        D = 1.0 / p
+        dg = np.bincount(g, weights=D, minlength=r)
+        # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
+        # link's own variance holds it, as if the magnetometers were not there
+        hw = self.config.mag_hold_weight
+        w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
+        held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+        self._held = held
+        Eg = (1.0 - held) / self._s_group + held * dg
+        sE = float(Eg.sum())
+        held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
+        I0 = (1.0 - held0) / self._s0 + held0 * sE
+
+        # coordinates: a group's offset is its links' mean weighted by D, the sheet's the groups'
+        # weighted by E (so that a fully held mode gets exactly the links' own prior back)
+        def sigma_a(y):  # the group offsets' prior information (r x r) times y
+            ey = float(Eg @ y)
+            return Eg * y - Eg * (ey / sE) + Eg * (ey * I0 / (sE * sE))
+
+        def prior(x):
+            abar = np.bincount(g, weights=D * x, minlength=r) / dg
+            return D * x - D * abar[g] + D * (sigma_a(abar) / dg)[g]
+
+        sig_diag = Eg - Eg * Eg / sE + Eg * Eg * I0 / (sE * sE)
+        diag = D - D * D / dg[g] + D * D * (sig_diag / (dg * dg))[g]
+        return prior, diag
+
+    def _grow_collective(self, dt) -> None:
+        """The groups' and the sheet's common yaw variances grow by the links' process noise
+        (averaged over the links that share the offset) and the heading walk."""
         cfg = self.config
-        mw, me = self._magnetometer(m, v, dt)
-        total = float(mw.sum())
-        self._hvar += cfg.heading_walk_rad ** 2 * float(np.mean(dt))
-        if total <= 0:
-            return
-        err = float(mw @ me) / total
-        r = 1.0 / total + cfg.mag_common_floor_rad ** 2
-        gain = self._hvar / (self._hvar + r)
-        self._hvar *= 1.0 - gain
-        self.R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, -gain * err])), self.R)
+        q = self._q_last
+        h = float(np.mean(dt))
+        walk = cfg.heading_walk_rad ** 2 * h
+        topo = self.topo
+        q_g = np.bincount(topo.group, weights=q, minlength=topo.n_groups) / topo.group_size ** 2
+        self._s_group = np.minimum(self._s_group + q_g + walk, _COLLECTIVE_MAX)
+        self._s0 = min(self._s0 + float(q.mean()) / q.size + walk, _COLLECTIVE_MAX)
 
-    def _magnetometer(self, m, v, dt):
-        """Per link: the weight (information, 1/rad²) of its heading and its heading's offset
-        from Earth's field (rad), after the disturbance tests (module docstring, step 4)."""
+    def _shrink_collective(self, mw) -> None:
+        """The groups' and the sheet's common yaw variances after the solve: each gains what the
+        magnetometers say of its offset (the loops' say is not kept: they hold the shape at
+        every snapshot anew, and on a flat sheet they say nothing of these offsets)."""
+        topo = self.topo
+        free = 1.0 - self._held  # a held group's offset is the links' own prior's: mw went there
+        self._s_group = 1.0 / (1.0 / self._s_group + free * np.bincount(topo.group, weights=mw,
+                                                                        minlength=topo.n_groups))
+        self._s0 = 1.0 / (1.0 / self._s0 + float(mw.sum()))
+
+    def _magnetometer(self, m, v):
+        """Per link: the weight (information, 1/rad²) of its magnetometer's heading and its
+        heading's offset from Earth's field (rad) (module docstring, step 4).
+
+        The weight is the magnetometer's noise and floor, with two tests of a local disturbance
+        averaged over `FusedConfig.disturbance_tau_s` (`_disturbance_tests`): the field's
+        magnitude and dip against Earth's measure two of the three components of what a
+        disturbance adds to the field, and the third, the one that turns the heading, is taken
+        to be as large (its variance added to the heading's); the heading against the loops'
+        solution scales the weight by ``1 / (1 + (s / scale)²)``. ``self._weights`` keeps each
+        link's weight as a fraction of an undisturbed one's, in [0, 1]."""
         cfg = self.config
         W = np.einsum("kij,kj->ki", self.R, m)
         hz = np.hypot(W[:, 0], W[:, 1])
@@ -790,15 +797,52 @@ class MotionEstimator:
         e = _wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
         F, dip = self._b_ref
         ok = v & (hz > 0.1 * F)
-        cons = float(np.median(e[ok])) if ok.any() else 0.0
-        tests = np.stack([_wrap(e - cons) / cfg.disturbance_heading_rad,
-                          (norm / F - 1.0) / cfg.disturbance_field_frac,
-                          (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
-                          / cfg.disturbance_dip_rad], axis=1)
-        alpha = np.clip(dt / cfg.disturbance_tau_s, 0.0, 1.0)[:, None]
+        self._field_tests = (ok, (norm / F - 1.0) / cfg.disturbance_field_frac,
+                             (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
+                             / cfg.disturbance_dip_rad)
+        hz2 = np.maximum(hz, 1e-30) ** 2
+        var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
+        # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
+        # the 2-degree-of-freedom chi-square), tesla², a bias over `disturbance_persist_s`
+        # their noise: the magnetometer's, averaged, and the link's tilt (the dip is measured in
+        # the world frame the link's estimated orientation gives)
+        a = self._dist_alpha(self._dt_last)
+        noise2 = 2.0 * cfg.mag_noise_t ** 2 * a / (2.0 - a) \
+            + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
+        dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
+                 + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
+        lasts = cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6)
+        dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * lasts
+        s2 = self._dist[:, 0] ** 2
+        wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
+        # until the tests have averaged over their time constant a link's magnetometer is not
+        # used: a magnet there from the start would otherwise be believed first
+        warm = self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s
+        self._weights = np.where(ok & warm, wgt, 0.0)
+        return np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0), np.where(ok, e, 0.0)
+
+    def _disturbance_tests(self, resid, v, dt) -> None:
+        """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the
+        lattice's solution (``resid``, rad: what is left of its magnetometer's heading once the
+        loops and every other link have had their say), its field's magnitude and dip against
+        Earth's (`_magnetometer` weighs them)."""
+        cfg = self.config
+        ok, t_mag, t_dip = self._field_tests
+        # the heading against its group's (links the loops turn alike on a flat sheet): what a
+        # group shares is the shape's to explain, what one link alone shows is its own
+        topo = self.topo
+        g, r = topo.group, topo.n_groups
+        resid = _wrap(resid)
+        wk = np.where(ok, 1.0 / (1.0 + self._dist[:, 1] ** 2 + self._dist[:, 2] ** 2), 0.0)
+        mean = np.bincount(g, weights=wk * resid, minlength=r) / np.maximum(
+            np.bincount(g, weights=wk, minlength=r), 1e-30)
+        tests = np.stack([(resid - mean[g]) / cfg.disturbance_heading_rad, t_mag, t_dip], axis=1)
+        self._dist_count += ok
+        alpha = self._dist_alpha(dt)[:, None]
         self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
-        s2 = np.einsum("ki,ki->k", self._dist, self._dist)
-        wgt = 1.0 / (1.0 + s2 / cfg.disturbance_scale ** 2)
-        self._weights = np.where(ok, wgt, 0.0)
-        var = (cfg.mag_noise_t / np.maximum(hz, 1e-30)) ** 2 + cfg.mag_floor_rad ** 2
-        return self._weights / var, np.where(ok, e, 0.0)
+
+    def _dist_alpha(self, dt):
+        """The tests' averaging weight per link: a running mean over the first samples, then an
+        exponential one over `FusedConfig.disturbance_tau_s`."""
+        return np.clip(np.maximum(dt / self.config.disturbance_tau_s,
+                                  1.0 / np.maximum(self._dist_count, 1.0)), 1e-6, 1.0)

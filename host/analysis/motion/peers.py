@@ -1,4 +1,4 @@
-"""The peers the fused estimator is measured against (issue 30), run on the same data.
+"""The peers the fused estimator is measured against, run on the same data.
 
 * `accel_only`: today's estimator (`host.analysis.estimator.estimate`, ``method="global"``, warm
   started snapshot to snapshot) on the accelerometers alone: the paper's Assumption 1 (no motion

@@ -1,4 +1,4 @@
-"""A recorded or live snapshot into the fused estimator (issue 30): what ``capsheet demo``, ``capsheet
+"""A recorded or live snapshot into the fused estimator: what ``capsheet demo``, ``capsheet
 host --live`` and ``capsheet estimate`` feed `MotionEstimator` alike, one snapshot at a time, in order.
 
 A snapshot is anything with the attributes of `host.snapshots.snapshot.LatticeSnapshot`: ``timestamp`` (s),
@@ -31,7 +31,7 @@ class FusedShape:
 
 
 def fused_update(fused, snap):
-    """One snapshot into the fused estimator (issue 30): each link at its own sample time (the SYNC's
+    """One snapshot into the fused estimator: each link at its own sample time (the SYNC's
     host time plus the chip's ``time_us``), links without an IMU record masked, and links whose
     record is not newer than the one the estimator has (a conversion repeated for two SYNCs close
     together) left out of this snapshot. None for a snapshot without IMU records (the chips did not

@@ -1,8 +1,8 @@
-"""The fused estimator (host.analysis.motion, issue 30) in the ahrs style: simulate from known
+"""The fused estimator (host.analysis.motion) in the ahrs style: simulate from known
 truth (virtual_sheet.motion's exact kinematics, virtual_sheet.imu's chips), state the metric and
 the tolerance. Short seeded runs on small sheets; bench_motion.py has the 14x14 figures.
 
-The chips here have real parts' noise (1 % g accelerometers as issue 30's targets, the
+The chips here have real parts' noise (1 % g accelerometers as the benchmarks', the
 ICM-42688-P's gyroscope noise, the LIS3MDL's magnetometer noise) and no fixed errors: those are
 calibrated away (docs/calibration.md) and bench_motion.py runs the whole path with them."""
 
@@ -22,6 +22,8 @@ from virtual_sheet.motion import MOTION_SCENES, make_motion_scene
 L = 0.01
 MOVING = [s for s, spec in MOTION_SCENES.items() if spec.moving]
 EARTH = EarthField(50e-6, np.radians(60.0))
+#: the chips here are noisier than the datasheet (1 % g accelerometers): the estimator is told so
+TOLD = FusedConfig(accel_noise_mps2=0.01 * 9.80665)
 
 
 def chips(n, *, mag=False, field=None, seed=3, rate_hz=145.0, gyro=None):
@@ -36,7 +38,7 @@ def record(scene, imu, seconds):
     return truth, rd
 
 
-def run_fused(n, rd, *, mag=True, config=None):
+def run_fused(n, rd, *, mag=True, config=TOLD):
     est = MotionEstimator(n, n, L, config=config)
     out = []
     for k in range(rd.t_s.size):
@@ -73,8 +75,8 @@ def test_the_links_accelerations_follow_from_their_frames_and_rates():
 
 @pytest.mark.parametrize("name", MOVING)
 def test_the_fused_estimator_follows_every_moving_scene(name):
-    # metric: mean joint error over all snapshots of 2.5 s, % of side; tolerance: issue 30's
-    # 0.5 %, and at least 5x below the accelerometer-only estimator where that is above 1 %
+    # metric: mean joint error over all snapshots of 2.5 s, % of side; tolerance: 0.5 %,
+    # and at least 5x below the accelerometer-only estimator where that is above 1 %
     n = 6
     truth, rd = record(make_motion_scene(name, n, n, L), chips(n), 2.5)
     fused = mean_error([e.joints for e in run_fused(n, rd)], truth)
@@ -106,17 +108,18 @@ def test_a_flat_horizontal_sheet_is_solved_with_magnetometers():
     assert err.mean() <= 0.3
     head = [heading_error_deg(est[k].frames, truth.frames[k]) for k in range(0, len(est), 29)]
     assert max(abs(h) for h in head) <= 2.0, head
-    off = MotionEstimator(n, n, L, declination_rad=np.radians(10.0))
+    off = MotionEstimator(n, n, L, config=TOLD, declination_rad=np.radians(10.0))
     for k in range(rd.t_s.size):
         e = off.update(rd.t_s[k], rd.accel_mps2[k], rd.gyro_rps[k], rd.mag_t[k])
     assert abs(heading_error_deg(e.frames, truth.frames[-1]) - 10.0) < 2.0
 
 
 def test_a_local_magnetic_disturbance_is_found_per_link_and_does_not_bend_the_sheet():
-    # a magnet under a quarter of a 10x10 sheet: the links it turns by 10 deg or more lose
-    # their magnetometer weight (mean < 0.1; the sheet slides, the weights lag by their 0.3 s
-    # average), links it barely touches keep it (> 0.3), and the shape
-    # is no worse than without magnetometers (the same accelerometer and gyroscope samples)
+    # a magnet under a quarter of a 10x10 sheet turns the field by 0.6° or more at every link
+    # (by 10° or more over its quarter): the links it turns by 10° or more lose their
+    # magnetometer weight (< 0.01 each), the same links in Earth's field alone keep it (> 0.5 on
+    # average), and the shape is no worse than without magnetometers (the same accelerometer
+    # and gyroscope samples): the sheet is not sheared to fit the magnet
     n = 10
     field = MagneticField(EARTH, (quarter_disturbance(n, n, L),))
     scene = make_motion_scene("flat_turn", n, n, L)
@@ -128,8 +131,10 @@ def test_a_local_magnetic_disturbance_is_found_per_link_and_does_not_bend_the_sh
     assert e_mag <= 1.02 * e_none + 1e-3, (e_mag, e_none)
     ang = np.degrees(disturbance_angle(field, truth.position[-1]))
     w = with_mag[-1].mag_weight
-    assert w[ang >= 10].mean() < 0.1 and w[ang >= 20].max() < 0.1
-    assert w[ang < 1].mean() > 0.3
+    assert w[ang >= 10].max() < 0.01, w[ang >= 10].max()
+    _t, rd_earth = record(scene, chips(n, mag=True), 3.0)
+    w_earth = run_fused(n, rd_earth)[-1].mag_weight
+    assert w_earth[ang >= 10].mean() > 0.5 and w_earth.mean() > 0.5, (w_earth[ang >= 10].mean(), w_earth.mean())
     # the per-link filters, on the same data, are bent by it
     pytest.importorskip("vqf", reason="the per-link peer needs vqf (pip install 'capture-sheet[motion]')")
     Jp, _F = per_link_filter(rd.t_s, rd.accel_mps2, rd.gyro_rps, n, n, L, rd.mag_t)
@@ -145,7 +150,8 @@ def test_no_drift_at_rest_under_gyroscope_bias_instability():
                           bias_time_constant_s=20.0)
     imu = chips(n, gyro=gyro, rate_hz=rate)
     truth, rd = record(make_motion_scene("rest", n, n, L), imu, 60.0)
-    cfg = FusedConfig(gyro_noise_rps=float(np.radians(0.0028 * np.sqrt(rate / 2))),
+    cfg = FusedConfig(accel_noise_mps2=TOLD.accel_noise_mps2,
+                      gyro_noise_rps=float(np.radians(0.0028 * np.sqrt(rate / 2))),
                       gyro_bias_walk_rps=float(np.radians(300 / 3600) * np.sqrt(2 / 20.0)))
     err = mean_error([e.joints for e in run_fused(n, rd, config=cfg)], truth)
     t = rd.t_s
@@ -194,22 +200,22 @@ def test_the_sheets_absolute_tilt_does_not_drift_on_calibrated_chips():
             out[k] = np.degrees(np.arccos(np.clip(c, -1.0, 1.0))).mean()
         return out[start].mean(), out[end].mean()
 
-    a, b = tilt(None)
+    a, b = tilt(TOLD)
     print(f"tilt {a:.3f} -> {b:.3f} deg")
     assert b <= 1.2 * a and b < 1.0, (a, b)
     # the leak alone (no running mean of the common acceleration) drifts: the check can fail
-    a0, b0 = tilt(FusedConfig(common_accel_tau_s=None))
+    a0, b0 = tilt(FusedConfig(accel_noise_mps2=TOLD.accel_noise_mps2, common_accel_tau_s=None))
     print(f"leak alone {a0:.3f} -> {b0:.3f} deg")
     assert b0 > 1.5 * a0
 
 
 def test_missing_samples_and_per_link_times_are_carried_through():
     # links that miss snapshots (10 %, valid=False, their readings and times NaN) are carried by
-    # their last rate; metric: mean joint error, % of side; tolerance: issue 30's 0.5 %
+    # their last rate; metric: mean joint error, % of side; tolerance: 0.5 %
     n = 6
     truth, rd = record(make_motion_scene("wave", n, n, L), chips(n), 2.0)
     rng = np.random.Generator(np.random.MT19937(5))
-    est = MotionEstimator(n, n, L)
+    est = MotionEstimator(n, n, L, config=TOLD)
     nl = 2 * n * (n - 1)
     errs = []
     for k in range(rd.t_s.size):
@@ -252,3 +258,60 @@ def test_bad_input_gets_a_clear_error():
         FusedConfig(gate=0.0)
     with pytest.raises(ValueError, match="common_tilt_leak"):
         FusedConfig(common_tilt_leak=2.0)
+
+
+@pytest.mark.parametrize("name", ["level", "level_turn"])
+def test_a_level_sheets_shear_is_recovered_with_magnetometers(name):
+    # a level sheet whose cells are sheared by 0.2 rad, still and turning: accelerometers and
+    # gyroscopes alone keep the accelerometer-only start (square cells, > 4 % of side: the shear
+    # is invisible to them); with magnetometers the shape comes within 0.3 % of side over the
+    # run's 3 s (its first snapshots included), 0.05 % over its last second, heading within 0.5°
+    n = 6
+    truth, rd = record(make_motion_scene(name, n, n, L), chips(n, mag=True), 3.0)
+    with_mag = run_fused(n, rd)
+    err = mean_error([e.joints for e in with_mag], truth)
+    err_none = mean_error([e.joints for e in run_fused(n, rd, mag=False)], truth)
+    assert err_none.mean() > 4.0
+    assert err.mean() <= 0.3 and err[-145:].mean() <= 0.05, (err.mean(), err[-145:].mean())
+    head = [heading_error_deg(with_mag[k].frames, truth.frames[k]) for k in range(145, len(with_mag), 29)]
+    assert max(abs(h) for h in head) <= 0.5, head
+
+
+def test_a_known_starting_shape_with_its_uncertainty_is_kept_from_the_first_snapshot():
+    # a level sheet with sheared cells, accelerometers and gyroscopes only: started from the
+    # accelerometer-only estimate the shear is never found (> 4 % of side); started from the
+    # true frames told to 0.1° the run stays within 0.02 % of side; a starting shape of the wrong
+    # shape or with a bad uncertainty gets a clear error
+    n = 6
+    truth, rd = record(make_motion_scene("level", n, n, L), chips(n), 1.0)
+    guessed = mean_error([e.joints for e in run_fused(n, rd, mag=False)], truth)
+    est = MotionEstimator(n, n, L, config=TOLD, initial_frames=truth.frames[0],
+                          initial_std_rad=np.radians(0.1), initial_bias_rps=np.zeros((60, 3)))
+    known = mean_error([est.update(rd.t_s[k], rd.accel_mps2[k], rd.gyro_rps[k]).joints
+                        for k in range(rd.t_s.size)], truth)
+    assert guessed.mean() > 4.0 and known.max() <= 0.02, (guessed.mean(), known.max())
+    for kw, match in ((dict(initial_frames=np.zeros((60, 3, 3))), "rotation"),
+                      (dict(initial_frames=truth.frames[0][:5]), "shape"),
+                      (dict(initial_std_rad=-1.0), "initial_std_rad"),
+                      (dict(initial_bias_rps=np.zeros(3)), "initial_bias_rps"),
+                      (dict(earth_field_t=50e-6), "both")):
+        with pytest.raises(ValueError, match=match):
+            MotionEstimator(n, n, L, **kw)
+
+
+def test_a_missing_links_magnetometer_nan_does_not_reach_the_shape():
+    # 9-axis chips, a fifth of the links missing on every other snapshot with all their readings
+    # NaN (as the docstring allows): every estimate stays finite and the shape within 0.5 % of side
+    n = 5
+    truth, rd = record(make_motion_scene("wave", n, n, L), chips(n, mag=True), 1.0)
+    est = MotionEstimator(n, n, L, config=TOLD)
+    errs = []
+    for k in range(rd.t_s.size):
+        v = np.ones(40, bool)
+        if k % 2:
+            v[::5] = False
+        nan = np.where(v[:, None], 0.0, np.nan)
+        e = est.update(rd.t_s[k], rd.accel_mps2[k] + nan, rd.gyro_rps[k] + nan, rd.mag_t[k] + nan, valid=v)
+        assert np.all(np.isfinite(e.joints)) and np.all(np.isfinite(e.mag_weight))
+        errs.append(error_percent_of_side(e.joints, truth.joints[k], L).mean())
+    assert np.mean(errs) <= 0.5, np.mean(errs)

@@ -78,6 +78,26 @@ def test_demo_figure_names_6_and_9_axis_chips_and_the_fused_estimator(gaussian, 
         plt.close(fig)
 
 
+def test_a_failed_demo_run_is_marked_and_the_heat_map_says_it_is_one_snapshot(gaussian, tmp_path):
+    # the run's mean (4.06 %) and the drawn snapshot's (12.86 %) differ: each title names its own
+    err = np.full((14, 14), 12.86)
+    fig = figures.demo_figure(tmp_path / "demo.png", gaussian, gaussian, err, shape="carry", noise_pct_g=1.0,
+                              rate_hz=145.0, run_mean_error_pct=4.06, counter=77, link_length=L,
+                              sensors="accel+gyro+mag", failed="80.0 % of SYNCs complete < 99 %", compared=500)
+    ok = figures.demo_figure(tmp_path / "ok.png", gaussian, gaussian, err, shape="carry", noise_pct_g=1.0,
+                             rate_hz=145.0, run_mean_error_pct=4.06, counter=77, link_length=L)
+    try:
+        title = fig._suptitle.get_text()
+        assert title.startswith("FAIL: 80.0 % of SYNCs complete < 99 %") and fig._suptitle.get_color() == "red"
+        assert "run mean error 4.06 % of side over 500 snapshots" in title and "counter 77" in title
+        heat = fig.axes[2].get_title()
+        assert "this snapshot only" in heat and "12.86 %" in heat and "4.06" not in heat
+        assert "FAIL" not in ok._suptitle.get_text()
+    finally:
+        plt.close(fig)
+        plt.close(ok)
+
+
 def test_gaussian_figure_is_in_cm_with_a_legend_per_panel(gaussian, tmp_path):
     ests = {"global": gaussian + 1e-5, "paper": gaussian - 1e-5}
     fig = figures.gaussian_figure(tmp_path / "g.png", gaussian, ests, {"global": 0.1, "paper": 3.8},

@@ -1,0 +1,164 @@
+"""The fused estimator's numerical pieces (`host.analysis.motion.fused`): rotations, small
+matrix helpers, conjugate gradients, and the per-link steps in numpy (the C kernel,
+host/analysis/motion/_kernel/, does the same steps when built)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
+    """``exp([v]×)`` for rotation vectors ``(..., 3)`` (Rodrigues), shape ``(..., 3, 3)``."""
+    v = np.asarray(rotvec, dtype=float)
+    th2 = np.einsum("...i,...i->...", v, v)
+    th = np.sqrt(th2)
+    small = th2 < 1e-12
+    a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
+    b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    out = np.empty(v.shape[:-1] + (3, 3))
+    xx, yy, zz, xy, xz, yz = x * x, y * y, z * z, x * y, x * z, y * z
+    out[..., 0, 0] = 1.0 - b * (yy + zz)
+    out[..., 1, 1] = 1.0 - b * (xx + zz)
+    out[..., 2, 2] = 1.0 - b * (xx + yy)
+    out[..., 0, 1] = b * xy - a * z
+    out[..., 1, 0] = b * xy + a * z
+    out[..., 0, 2] = b * xz + a * y
+    out[..., 2, 0] = b * xz - a * y
+    out[..., 1, 2] = b * yz - a * x
+    out[..., 2, 1] = b * yz + a * x
+    return out
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _inv_sym3(S: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric 3 x 3 matrices ``(n, 3, 3)`` by cofactors (no LAPACK call per
+    matrix: the stack is small and many)."""
+    a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
+    d, e, f = S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]
+    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
+    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
+    inv_det = 1.0 / (a * A + b * B + c * C)
+    out = np.empty_like(S)
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = A, B, C
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = B, D, E
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = C, E, F
+    out *= inv_det[:, None, None]
+    return out
+
+
+def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
+         maxiter: int = 200) -> np.ndarray:
+    """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
+    its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
+    the filter has settled, so a few iterations suffice (docs/estimator.md §8)."""
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = inv_diag * r
+    pdir = z.copy()
+    rz = float(r @ z)
+    stop = rtol * rtol * float(b @ b)
+    for _ in range(maxiter):
+        if float(r @ r) <= stop:
+            break
+        q = matvec(pdir)
+        alpha = rz / float(pdir @ q)
+        x += alpha * pdir
+        r -= alpha * q
+        z = inv_diag * r
+        rz_new = float(r @ z)
+        pdir = z + (rz_new / rz) * pdir
+        rz = rz_new
+    return x
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise cross products of ``(n, 3)`` arrays (np.cross's axis handling costs more than
+    the products at these sizes)."""
+    out = np.empty_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
+def _rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """``Q R_k`` for every frame ``R (n, 3, 3)``, as one 3 x 3n product."""
+    n = R.shape[0]
+    return np.ascontiguousarray((Q @ R.transpose(1, 0, 2).reshape(3, 3 * n))
+                                .reshape(3, n, 3).transpose(1, 0, 2))
+
+
+def _wrap(x):
+    return (x + np.pi) % (2 * np.pi) - np.pi
+
+
+def frames_from_angles(alpha, beta, gamma) -> np.ndarray:
+    """``Rz(γ) Ry(β) Rx(α)`` (docs/design.md), shape (n, 3, 3)."""
+    ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
+                              np.cos(gamma), np.sin(gamma))
+    R = np.empty(alpha.shape + (3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = cg * cb, cg * sb * sa - sg * ca, cg * sb * ca + sg * sa
+    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = sg * cb, sg * sb * sa + cg * ca, sg * sb * ca - cg * sa
+    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = -sb, cb * sa, cb * ca
+    return R
+
+
+# ---------------------------------------------------------------------------------------------
+# The per-link steps: numpy, and the same in C (host/analysis/motion/_kernel/link_filter.c) when
+# built. Each updates its arrays in place; link_filter.h documents them.
+# ---------------------------------------------------------------------------------------------
+
+def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
+    dth = 0.5 * (w0 + w1) * dt[:, None] + _cross(w0, w1) * (dt * dt / 12.0)[:, None]
+    R[:] = R @ rotation_matrices(dth)
+    G = R * dt[:, None, None]  # δθ' = δθ − R δb dt
+    Ptt, Ptb, Pbb = P[:, :3, :3], P[:, :3, 3:], P[:, 3:, 3:]
+    GPbb = G @ Pbb
+    GPbt = G @ P[:, 3:, :3]
+    Ptt_new = Ptt - GPbt - GPbt.transpose(0, 2, 1) + GPbb @ G.transpose(0, 2, 1)
+    Ptt_new += q[:, None, None] * np.eye(3)
+    P[:, :3, 3:] = Ptb - GPbb
+    P[:, 3:, :3] = P[:, :3, 3:].transpose(0, 2, 1)
+    P[:, :3, :3] = Ptt_new
+    P[:, 3:, 3:] += qb[:, None, None] * np.eye(3)
+
+
+def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
+    Rt = R.transpose(0, 2, 1)
+    y = f - np.einsum("kij,kj->ki", Rt, vec)
+    H = Rt @ _skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
+    HP = H @ P[:, :3, :]  # (n, 3, 6)
+    S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
+    Si = _inv_sym3(S)
+    m2 = np.einsum("ki,kij,kj->k", y, Si, y)
+    Si /= np.maximum(1.0, m2 / gate)[:, None, None]
+    K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
+    K[~valid] = 0.0
+    x[:] = np.einsum("kij,kj->ki", K, y)
+    P -= K @ HP
+
+
+def _np_yaw(P, mu, a_diag, x) -> None:
+    c = P[:, :, 2].copy()  # (n, 6): covariance with the yaw error
+    p = c[:, 2].copy()
+    g = c / p[:, None]
+    P -= np.einsum("ki,kj->kij", g, c * (1.0 - 1.0 / (a_diag * p))[:, None])
+    x[:] = g * mu[:, None]
+
+
+def _np_apply(R, bias, P, x) -> None:
+    R[:] = rotation_matrices(x[:, :3]) @ R
+    bias += x[:, 3:]
+    P += P.transpose(0, 2, 1)
+    P *= 0.5
+
+
+_NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
