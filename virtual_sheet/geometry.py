@@ -82,7 +82,7 @@ def link_lengths(joints: np.ndarray) -> np.ndarray:
     return np.linalg.norm(lat.link_vectors(joints), axis=1)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``np.cross`` over the last axis, by components (the same products, without its overhead)."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
@@ -129,12 +129,12 @@ def _frames(joints: np.ndarray, velocities: np.ndarray | None = None):
     # cell (i, j): normal of the cross product of its diagonals, top face side
     d1 = joints[..., 1:, 1:, :] - joints[..., :-1, :-1, :]
     d2 = joints[..., :-1, 1:, :] - joints[..., 1:, :-1, :]
-    c = _cross(d1, d2)
+    c = cross3(d1, d2)
     cd = None
     if V is not None:
         d1d = V[..., 1:, 1:, :] - V[..., :-1, :-1, :]
         d2d = V[..., :-1, 1:, :] - V[..., 1:, :-1, :]
-        cd = _cross(d1d, d2) + _cross(d1, d2d)
+        cd = cross3(d1d, d2) + cross3(d1, d2d)
     cn, cnd, cnorm = _unit(c, cd)
     if np.any(cnorm <= 0.0):
         raise ValueError("Degenerate lattice cell (zero area): cannot define the sheet normal.")
@@ -161,11 +161,11 @@ def _frames(joints: np.ndarray, velocities: np.ndarray | None = None):
     z, zd, zn = _unit(w, wd)
     if np.any(zn <= 1e-12):
         raise ValueError("Sheet normal parallel to a link (folded sheet): cannot define sensor z.")
-    y = _cross(z, x)
+    y = cross3(z, x)
     R = np.stack([x, y, z], axis=-1)
     if V is None:
         return R, None
-    yd = _cross(zd, x) + _cross(z, xd)
+    yd = cross3(zd, x) + cross3(z, xd)
     # Rᵀ Ṙ = [ω]×: ω_x = z·ẏ, ω_y = x·ż, ω_z = y·ẋ (columns of R are x, y, z)
     omega = np.stack([np.sum(z * yd, axis=-1), np.sum(x * zd, axis=-1), np.sum(y * xd, axis=-1)],
                      axis=-1)

@@ -106,7 +106,7 @@ def pose_directions(pose_readings: np.ndarray, rows: int, cols: int) -> np.ndarr
     return m / np.where(n > 0, n, 1.0)
 
 
-def _rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
+def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
     """Rodrigues, vectorised: ``(..., 3)`` rotation vectors -> ``(..., 3, 3)`` matrices."""
     v = np.asarray(v, dtype=float)
     th = np.linalg.norm(v, axis=-1)[..., None, None]
@@ -135,7 +135,7 @@ def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
 
 
-def _project_so3(A: np.ndarray) -> np.ndarray:
+def project_so3(A: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(A)
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
     return U @ D @ Vt
@@ -235,8 +235,8 @@ class Calibration:
         no = np.zeros((n, 3)) if self.non_orthogonality is None else self.non_orthogonality
         object.__setattr__(self, "non_orthogonality", _check_array("non_orthogonality", no, (n, 3)))
         # the correction R(m) T⁻¹, one matrix per chip
-        A = _rotvec_to_matrix(self.misalignment) @ np.linalg.inv(_lower(self.non_orthogonality))
-        object.__setattr__(self, "_M", _rotvec_to_matrix(self.misalignment))
+        A = rotvec_to_matrix(self.misalignment) @ np.linalg.inv(_lower(self.non_orthogonality))
+        object.__setattr__(self, "_M", rotvec_to_matrix(self.misalignment))
         object.__setattr__(self, "_A", A)
 
     @property
@@ -522,12 +522,12 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
         for i, (p, ci) in enumerate(free):
             a[p, ci] = x[n_chip + i]
         w = np.einsum("pc,pci->pi", a, bases)
-        u = np.einsum("pij,pj->pi", _rotvec_to_matrix(w), u0)
+        u = np.einsum("pij,pj->pi", rotvec_to_matrix(w), u0)
         t = c[:, 9:12] if non_orthogonality else np.zeros((n, 3))
         return c[:, 0:3], c[:, 3:6], c[:, 6:9], t, u
 
     def model(b, s, m, t, u):
-        M = _rotvec_to_matrix(m)
+        M = rotvec_to_matrix(m)
         v = np.einsum("kji,pj->pki", R0, u * gravity_mps2)  # R0ᵀ g
         w = np.einsum("kji,pkj->pki", M, v)  # Mᵀ v
         if non_orthogonality:
@@ -553,8 +553,8 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
                          "in m/s² and the sheet flat on the board in every pose?")
     res = (model(b, s, m, t, u) - r)
     # fix the common rotation: the chips' mean board-frame misalignment becomes the identity
-    B = np.einsum("kij,kjl,kml->kim", R0, _rotvec_to_matrix(m), R0)  # R0 M R0ᵀ
-    Q = _project_so3(B.mean(axis=0))
+    B = np.einsum("kij,kjl,kml->kim", R0, rotvec_to_matrix(m), R0)  # R0 M R0ᵀ
+    Q = project_so3(B.mean(axis=0))
     m = _matrix_to_rotvec(np.einsum("kji,jl,klm,kmn->kin", R0, Q.T, B, R0))  # R0ᵀ Qᵀ B R0
     u = u @ Q  # Qᵀ u for each row
     chip_rms = np.sqrt(np.mean(res ** 2, axis=(0, 2)))

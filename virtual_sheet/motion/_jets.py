@@ -8,9 +8,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.lattice import Lattice
-from ..geometry import _cross
+from ..geometry import cross3
 
-def _times(t) -> np.ndarray:
+def times(t) -> np.ndarray:
     t = np.atleast_1d(np.asarray(t, dtype=float))
     if t.ndim != 1 or not np.all(np.isfinite(t)):
         raise ValueError(f"Expected `t` to be finite seconds, a scalar or shape (T,), got shape {t.shape}.")
@@ -20,7 +20,7 @@ def _times(t) -> np.ndarray:
 def _side(rows: int, cols: int, link_length: float) -> float:
     return max(max(rows, cols) - 1, 2) * float(link_length)
 
-def _check_size(rows: int, cols: int, link_length: float) -> float:
+def check_size(rows: int, cols: int, link_length: float) -> float:
     Lattice(rows, cols)
     L = float(link_length)
     if not (np.isfinite(L) and L > 0):
@@ -189,8 +189,8 @@ class RigidJet:
         wd = phidd[:, None] * u
         Qp = Q @ p
         c = p - Qp
-        cd = -_cross(w, Qp)
-        cdd = -(_cross(wd, Qp) + _cross(w, _cross(w, Qp)))
+        cd = -cross3(w, Qp)
+        cdd = -(cross3(wd, Qp) + cross3(w, cross3(w, Qp)))
         return cls(Q, w, wd, c, cd, cdd)
 
     @classmethod
@@ -210,11 +210,11 @@ class RigidJet:
         return RigidJet(
             rotation=Qo @ self.rotation,
             omega=wo + Qw,
-            omega_dot=wdo + np.einsum("tij,tj->ti", Qo, self.omega_dot) + _cross(wo, Qw),
+            omega_dot=wdo + np.einsum("tij,tj->ti", Qo, self.omega_dot) + cross3(wo, Qw),
             offset=outer.offset + Qc,
-            velocity=outer.velocity + _cross(wo, Qc) + Qcd,
-            acceleration=(outer.acceleration + _cross(wdo, Qc) + _cross(wo, _cross(wo, Qc))
-                          + 2 * _cross(wo, Qcd) + np.einsum("tij,tj->ti", Qo, self.acceleration)))
+            velocity=outer.velocity + cross3(wo, Qc) + Qcd,
+            acceleration=(outer.acceleration + cross3(wdo, Qc) + cross3(wo, cross3(wo, Qc))
+                          + 2 * cross3(wo, Qcd) + np.einsum("tij,tj->ti", Qo, self.acceleration)))
 
     def apply(self, n: np.ndarray, nd: np.ndarray | None = None,
               ndd: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -230,12 +230,12 @@ class RigidJet:
         w = self.omega[:, None, :]
         wd = self.omega_dot[:, None, :]
         p = self.offset[:, None, :] + Qn
-        v = self.velocity[:, None, :] + _cross(w, Qn)
-        a = self.acceleration[:, None, :] + _cross(wd, Qn) + _cross(w, _cross(w, Qn))
+        v = self.velocity[:, None, :] + cross3(w, Qn)
+        a = self.acceleration[:, None, :] + cross3(wd, Qn) + cross3(w, cross3(w, Qn))
         if nd is not None:
             Qnd = np.einsum("tij,tkj->tki", self.rotation, np.asarray(nd, dtype=float).reshape(T, -1, 3))
             v = v + Qnd
-            a = a + 2 * _cross(w, Qnd)
+            a = a + 2 * cross3(w, Qnd)
         if ndd is not None:
             a = a + np.einsum("tij,tkj->tki", self.rotation, np.asarray(ndd, dtype=float).reshape(T, -1, 3))
         return p.reshape(shape), v.reshape(shape), a.reshape(shape)

@@ -10,8 +10,8 @@ from typing import Any, Callable, NamedTuple
 import numpy as np
 
 from protocol.lattice import Lattice
-from ..geometry import _cross, chebyshev_net, compass_diagonals
-from ._jets import Profile, Pulse, RigidJet, Sine, _check_size, _times
+from ..geometry import cross3, chebyshev_net, compass_diagonals
+from ._jets import Profile, Pulse, RigidJet, Sine, check_size, times
 from .truth import MotionScene
 
 _NEWTON_MAX_ITER = 60
@@ -263,7 +263,7 @@ def chebyshev_net_jet(field: MovingField, rows: int, cols: int, link_length: flo
         raise ValueError(f"Invalid link_length: {link_length!r} (need a finite value > 0 m)")
     if not abs(shear) < np.pi / 2:
         raise ValueError(f"Invalid shear: {shear!r} rad (need |shear| < pi/2)")
-    t = _times(t)
+    t = times(t)
     T = t.size
     u = np.array([np.cos(angle), np.sin(angle)])
     v = np.array([np.cos(angle + np.pi / 2 + shear), np.sin(angle + np.pi / 2 + shear)])
@@ -321,8 +321,8 @@ def chebyshev_net_jet(field: MovingField, rows: int, cols: int, link_length: flo
             q[..., 1] -= scale * dy
         else:
             raise ValueError("Moving Chebyshev net: Newton did not converge (shape too steep?).")
-        n_old = _cross(Pa - Pc, Pb - Pc)
-        n_new = _cross(Pn - Pb, Pn - Pa)
+        n_old = cross3(Pa - Pc, Pb - Pc)
+        n_new = cross3(Pn - Pb, Pn - Pa)
         bad = (np.sum(n_old * n_new, axis=-1) <= 0.0) | (np.linalg.norm(Pn - Pc, axis=-1) < 0.2 * L)
         if np.any(bad):
             at = float(t[np.nonzero(bad)[0][0]])
@@ -387,7 +387,7 @@ def wave_scene(rows: int, cols: int, link_length: float = 0.01, *, amplitude_m: 
     """A travelling bend (`TravellingWave`): amplitude S/5, wavelength 2S, and the frequency at
     which the surface's vertical acceleration peaks at ``peak_accel_mps2`` (``A (2πf)²``), unless
     ``frequency_hz`` is given. Faded in over ``ramp_s``."""
-    S = _check_size(rows, cols, link_length)
+    S = check_size(rows, cols, link_length)
     A = S / 5 if amplitude_m is None else float(amplitude_m)
     lam = 2 * S if wavelength_m is None else float(wavelength_m)
     if not (np.isfinite(A) and A > 0 and np.isfinite(peak_accel_mps2) and peak_accel_mps2 > 0):
@@ -412,7 +412,7 @@ def elbow_scene(rows: int, cols: int, link_length: float = 0.01, *, bend_rad: fl
     turns by θ. Meanwhile the whole arm sweeps by ``swing_rad`` at ``swing_hz`` about a vertical
     axis through the shoulder, ``shoulder_m`` behind the elbow. Defaults: knee (apex) scale
     ``knee_m`` S/4, limb radius 0.6 S."""
-    S = _check_size(rows, cols, link_length)
+    S = check_size(rows, cols, link_length)
     ell = S / 4 if knee_m is None else float(knee_m)
     r = 0.6 * S if limb_radius_m is None else float(limb_radius_m)
     if not abs(bend_rad) < np.pi:
@@ -442,7 +442,7 @@ def tap_scene(rows: int, cols: int, link_length: float = 0.01, *, depth_m: float
     """A press on the foam that arrives and leaves fast (`Dent` on a level sheet): depth S/8 and
     width S/8 by default, centred at (0.15 S, −0.1 S), reached in ``rise_s``, held, released in
     ``fall_s``, then ``rest_s`` at rest; first after ``delay_s``."""
-    S = _check_size(rows, cols, link_length)
+    S = check_size(rows, cols, link_length)
     d = S / 8 if depth_m is None else float(depth_m)
     sig = S / 8 if sigma_m is None else float(sigma_m)
     c = (0.15 * S, -0.1 * S) if centre is None else (float(centre[0]), float(centre[1]))
@@ -454,7 +454,7 @@ def grow_scene(rows: int, cols: int, link_length: float = 0.01, *, amplitude: fl
                sigma: float | None = None, period_s: float = 4.0, **net: Any) -> FieldScene:
     """`shapes.GrowScene` with exact kinematics (for 6/9-axis chips): a Gaussian bump of height
     ``amplitude · (1 − cos 2πt/T)/2`` (default S/4, width S/4, T = 4 s) — a `Dent` of negative depth."""
-    S = _check_size(rows, cols, link_length)
+    S = check_size(rows, cols, link_length)
     a = S / 4 if amplitude is None else float(amplitude)
     sig = S / 4 if sigma is None else float(sigma)
     if not (np.isfinite(period_s) and period_s > 0):

@@ -9,7 +9,7 @@ import numpy as np
 
 from protocol.constants import G0
 from ..shapes import flat_net, make_sheet
-from ._jets import RigidJet, Sine, _check_size, _times
+from ._jets import RigidJet, Sine, check_size, times
 from .truth import MotionScene, Truth, truth_from_joints
 
 class RigidScene(MotionScene):
@@ -44,7 +44,7 @@ class RigidScene(MotionScene):
         """As `MotionScene.sample`, from the fixed net's frames: a rigid motion ``(Q, c)`` turns
         every link's frame to ``Q R₀``, its body rate is ``R₀ᵀ Qᵀ ω``, and the chips move as the
         motion's points (the same truth as differentiating the joints, a test checks, ~10x faster)."""
-        t = _times(t)
+        t = times(t)
         if self._base_truth is None:
             z = np.zeros((1,) + self.base.shape)
             self._base_truth = truth_from_joints([0.0], self.base[None], z, z)
@@ -73,7 +73,7 @@ def carry_scene(rows: int, cols: int, link_length: float = 0.01, *, shape: str =
     turned: its centre moves on a 3-D Lissajous curve, and it turns about its centre by
     ``Rz(heading) Ry(pitch) Rx(roll)``, each a sine (amplitudes in m and rad, frequencies in Hz),
     all faded in over ``ramp_s``."""
-    _check_size(rows, cols, link_length)
+    check_size(rows, cols, link_length)
     base = make_sheet(shape, rows, cols, link_length, **shape_params)
     tr = [Sine(a, f, ramp_s=ramp_s) for a, f in zip(translation_m, translation_hz)]
     ang = [(np.array([1.0, 0, 0]), Sine(roll_rad, roll_hz, ramp_s=ramp_s)),
@@ -94,7 +94,7 @@ def flat_turn_scene(rows: int, cols: int, link_length: float = 0.01, *, heading_
                     ramp_s: float = 1.0, **net: Any) -> RigidScene:
     """A flat horizontal sheet (the paper's Case 1) turning in heading about its centre and sliding
     horizontally on a Lissajous curve; faded in over ``ramp_s``."""
-    _check_size(rows, cols, link_length)
+    check_size(rows, cols, link_length)
     base = flat_net(rows, cols, link_length, **net)
     head = Sine(heading_rad, heading_hz, ramp_s=ramp_s)
     sx = Sine(slide_m[0], slide_hz[0], ramp_s=ramp_s)
@@ -133,7 +133,7 @@ def level_turn_scene(rows: int, cols: int, link_length: float = 0.01, *, heading
 def rest_scene(rows: int, cols: int, link_length: float = 0.01, *, shape: str = "gaussian",
                **shape_params: Any) -> RigidScene:
     """A static `shapes.make_sheet` shape that never moves (gravity only on every chip)."""
-    _check_size(rows, cols, link_length)
+    check_size(rows, cols, link_length)
     return RigidScene(make_sheet(shape, rows, cols, link_length, **shape_params), None, link_length,
                       name="rest")
 
@@ -143,7 +143,7 @@ def tumble_scene(rows: int, cols: int, link_length: float = 0.01, *, rates_hz=(0
     """A flat sheet (on a board) turned every way: ``Rz(π sin) Ry(0.45π sin) Rx(π sin)`` at the
     slow ``rates_hz``, about its centre — every direction of a fixed field is seen in a few tens of
     seconds (magnetometer calibration)."""
-    _check_size(rows, cols, link_length)
+    check_size(rows, cols, link_length)
     base = flat_net(rows, cols, link_length)
     profs = [((1.0, 0, 0), Sine(np.pi, rates_hz[0], ramp_s=ramp_s)),
              ((0, 1.0, 0), Sine(0.45 * np.pi, rates_hz[2], ramp_s=ramp_s)),

@@ -10,7 +10,7 @@ import numpy as np
 from protocol.constants import G0
 from protocol.lattice import Lattice
 from ..geometry import link_frames_jet, link_midpoints
-from ._jets import RigidJet, _times
+from ._jets import RigidJet, times
 
 # ---------------------------------------------------------------------------------------------
 # Ground truth
@@ -79,7 +79,7 @@ def truth_from_joints(t, joints: np.ndarray, velocities: np.ndarray, acceleratio
     t : ndarray, shape (T,)
     joints, velocities, accelerations : ndarray, shape (T, rows, cols, 3)
     """
-    t = _times(t)
+    t = times(t)
     P, V, A = (np.asarray(a, dtype=float) for a in (joints, velocities, accelerations))
     if P.ndim != 4 or P.shape[0] != t.size or P.shape[-1] != 3 or V.shape != P.shape or A.shape != P.shape:
         raise ValueError(f"Expected joints, velocities, accelerations of shape ({t.size}, rows, cols, 3), "
@@ -125,7 +125,7 @@ class MotionScene:
 
     def sample(self, t) -> Truth:
         """The truth at every instant of ``t`` (seconds, scalar or (T,))."""
-        t = _times(t)
+        t = times(t)
         n, nd, ndd = self._body(t)
         P, V, A = self.motion(t).apply(n, nd, ndd)
         return truth_from_joints(t, P, V, A)

@@ -30,7 +30,7 @@ def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     return out
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
     out = np.zeros(v.shape[:-1] + (3, 3))
     out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
@@ -38,7 +38,7 @@ def _skew(v: np.ndarray) -> np.ndarray:
     return out
 
 
-def _inv_sym3(S: np.ndarray) -> np.ndarray:
+def inv_sym3(S: np.ndarray) -> np.ndarray:
     """Inverses of symmetric 3 x 3 matrices ``(n, 3, 3)`` by cofactors (no LAPACK call per
     matrix: the stack is small and many)."""
     a, b, c = S[:, 0, 0], S[:, 0, 1], S[:, 0, 2]
@@ -54,7 +54,7 @@ def _inv_sym3(S: np.ndarray) -> np.ndarray:
     return out
 
 
-def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
+def pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
          maxiter: int = 200) -> np.ndarray:
     """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
     its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
@@ -79,7 +79,7 @@ def _pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
     return x
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise cross products of ``(n, 3)`` arrays (np.cross's axis handling costs more than
     the products at these sizes)."""
     out = np.empty_like(a)
@@ -89,14 +89,14 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
+def rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``Q R_k`` for every frame ``R (n, 3, 3)``, as one 3 x 3n product."""
     n = R.shape[0]
     return np.ascontiguousarray((Q @ R.transpose(1, 0, 2).reshape(3, 3 * n))
                                 .reshape(3, n, 3).transpose(1, 0, 2))
 
 
-def _wrap(x):
+def wrap(x):
     return (x + np.pi) % (2 * np.pi) - np.pi
 
 
@@ -117,7 +117,7 @@ def frames_from_angles(alpha, beta, gamma) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
-    dth = 0.5 * (w0 + w1) * dt[:, None] + _cross(w0, w1) * (dt * dt / 12.0)[:, None]
+    dth = 0.5 * (w0 + w1) * dt[:, None] + cross3(w0, w1) * (dt * dt / 12.0)[:, None]
     R[:] = R @ rotation_matrices(dth)
     G = R * dt[:, None, None]  # δθ' = δθ − R δb dt
     Ptt, Ptb, Pbb = P[:, :3, :3], P[:, :3, 3:], P[:, 3:, 3:]
@@ -134,10 +134,10 @@ def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
 def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
     Rt = R.transpose(0, 2, 1)
     y = f - np.einsum("kij,kj->ki", Rt, vec)
-    H = Rt @ _skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
+    H = Rt @ skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
     HP = H @ P[:, :3, :]  # (n, 3, 6)
     S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
-    Si = _inv_sym3(S)
+    Si = inv_sym3(S)
     m2 = np.einsum("ki,kij,kj->k", y, Si, y)
     Si /= np.maximum(1.0, m2 / gate)[:, None, None]
     K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
@@ -161,4 +161,4 @@ def _np_apply(R, bias, P, x) -> None:
     P *= 0.5
 
 
-_NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
+NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}

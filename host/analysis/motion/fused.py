@@ -59,8 +59,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (_NUMPY_STEPS, _cross, _inv_sym3, _pcg, _rotate_all, _skew,  # noqa: F401
-                      _wrap, frames_from_angles, rotation_matrices)
+from ._linalg import (NUMPY_STEPS, cross3, inv_sym3, pcg, rotate_all, skew,  # noqa: F401
+                      wrap, frames_from_angles, rotation_matrices)
 
 try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
     if os.environ.get("CAPSHEET_NO_KERNEL"):
@@ -268,7 +268,7 @@ def _step(name: str, *args) -> None:
     if USE_KERNEL:
         _kernel_step(name, *args)
     else:
-        _NUMPY_STEPS[name](*args)
+        NUMPY_STEPS[name](*args)
 
 
 def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray,
@@ -560,10 +560,10 @@ class MotionEstimator:
         if m is not None:
             W = np.einsum("kij,kj->ki", R, m)
             head = np.arctan2(W[:, 1], W[:, 0])
-            off = _wrap(self.declination_rad - head[v])
+            off = wrap(self.declination_rad - head[v])
             phi = float(np.arctan2(np.median(np.sin(off)), np.median(np.cos(off))))
-            phi += float(np.median(_wrap(off - phi)))
-            R = _rotate_all(rotation_matrices(np.array([0.0, 0.0, phi])), R)
+            phi += float(np.median(wrap(off - phi)))
+            R = rotate_all(rotation_matrices(np.array([0.0, 0.0, phi])), R)
             W = np.einsum("kij,kj->ki", R, m)[v]
             F = float(np.median(np.linalg.norm(W, axis=1)))
             dip = float(np.median(np.arcsin(np.clip(-W[:, 2] / np.linalg.norm(W, axis=1), -1, 1))))
@@ -654,7 +654,7 @@ class MotionEstimator:
         # the cells' normals A × C and each link's sensor y against their mean
         A = du[:, 1] + du[:, 3]
         C = du[:, 0] + du[:, 2]
-        N = _cross(A, C)
+        N = cross3(A, C)
         nN = np.sqrt(np.einsum("ui,ui->u", N, N))
         ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
         inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
@@ -667,8 +667,8 @@ class MotionEstimator:
         ncp = nc[pc]
         wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
             * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
-        CxW = _cross(C[pc], wkc)
-        WxA = _cross(wkc, A[pc])
+        CxW = cross3(C[pc], wkc)
+        WxA = cross3(wkc, A[pc])
         ez_c = ezd_u[pc]  # (K2, 4, 3)
         j_pair = np.empty((pl.size, 4))
         j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
@@ -706,7 +706,7 @@ class MotionEstimator:
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
-        mu = _pcg(lambda x: JT @ (wts * (J @ x)) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+        mu = pcg(lambda x: JT @ (wts * (J @ x)) + prior(x) + mw * x, rhs, 1.0 / a_diag)
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:
@@ -794,7 +794,7 @@ class MotionEstimator:
         W = np.einsum("kij,kj->ki", self.R, m)
         hz = np.hypot(W[:, 0], W[:, 1])
         norm = np.linalg.norm(W, axis=1)
-        e = _wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
+        e = wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
         F, dip = self._b_ref
         ok = v & (hz > 0.1 * F)
         self._field_tests = (ok, (norm / F - 1.0) / cfg.disturbance_field_frac,
@@ -832,7 +832,7 @@ class MotionEstimator:
         # group shares is the shape's to explain, what one link alone shows is its own
         topo = self.topo
         g, r = topo.group, topo.n_groups
-        resid = _wrap(resid)
+        resid = wrap(resid)
         wk = np.where(ok, 1.0 / (1.0 + self._dist[:, 1] ** 2 + self._dist[:, 2] ** 2), 0.0)
         mean = np.bincount(g, weights=wk * resid, minlength=r) / np.maximum(
             np.bincount(g, weights=wk, minlength=r), 1e-30)
