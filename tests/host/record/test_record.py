@@ -503,7 +503,7 @@ def test_documents_are_encoded_before_the_writers_lock_is_taken(tmp_path, monkey
     64x64 layout's JSON (~0.1 s) encoded under it stalled a following host's first second (issue
     31, stop 44). Every attachment is encoded with the lock free (a split set's next file writes
     the bytes kept), and the file still holds it."""
-    import host.record.recording as record
+    import host.record.writer as record  # the writer encodes its JSON attachments
     from mcap.reader import make_reader
 
     seen = []
@@ -531,7 +531,7 @@ def test_a_json_attachment_keeps_its_document_and_a_key_a_line():
     a line for whoever opens the file; read back by json itself, the same document."""
     import json
 
-    import host.record.recording as record
+    import host.record.writer as record  # the writer encodes its JSON attachments
     doc = {"rows": 64, "links": [{"link": k, "uid": f"0x{k:016X}", "xyz": [0.5 * k, -1e-3, 2.0]}
                                  for k in range(50)], "calibration": None, 7: "seven",
            "np": np.arange(3, dtype=np.int16), "f": np.float32(0.25)}
