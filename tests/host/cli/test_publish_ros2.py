@@ -355,8 +355,10 @@ def test_a_9_axis_demo_publishes_and_records_an_imu_per_link(tmp_path):
             assert s["frame_id"] == f"capsheet_{sheet}_{ln}"
             assert abs(np.linalg.norm(s["f"]) - 9.81) < 2.0 and _tilt_deg(s["q"], s["f"]) < 20.0
             assert abs(np.linalg.norm(s["q"]) - 1) < 1e-9 and s["ocov"][0] > 0
-            # docs/distribution.md: ICM-42688-P 0.024 °/s and 1 % g per axis, LIS3MDL 0.4 µT
-            np.testing.assert_allclose(s["wcov"], np.diag([np.radians(0.024) ** 2] * 3).ravel(), rtol=1e-9)
+            # docs/distribution.md: ICM-42688-P 2.8 mdps/√Hz over 145/2 Hz (DS-000347, Table 1) and 1 % g
+            # per axis, LIS3MDL 0.4 µT
+            gyro_rps = np.radians(2.8e-3 * np.sqrt(145.0 / 2.0))
+            np.testing.assert_allclose(s["wcov"], np.diag([gyro_rps ** 2] * 3).ravel(), rtol=1e-9)
             np.testing.assert_allclose(s["fcov"], np.diag([0.0981 ** 2] * 3).ravel(), rtol=2e-3)
             mg = mag[s["stamp"]]  # the same sample: the same stamp
             assert mg["frame_id"] == s["frame_id"] and 5e-6 < np.linalg.norm(mg["m"]) < 2e-4  # tesla
