@@ -13,7 +13,7 @@ The virtual gateway stands for a 12 Mbaud UART (what 364 chips at 145 Hz need, p
 
 6/9-axis chips (``--sensors accel+gyro`` or ``accel+gyro+mag``, docs/protocol.md §16) on a moving
 sheet (``--shape carry|wave|elbow|tap|flat_turn``, docs/motion.md): the host asks for IMU records
-(CONFIG_IMU) and shapes every snapshot, in order, with the fused estimator of issue 30
+(CONFIG_IMU) and shapes every snapshot, in order, with the fused estimator (docs/estimator.md §8)
 (`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times);
 the same pass rule.
 """
@@ -236,7 +236,7 @@ def run(args) -> int:
     print(f"capsheet demo: virtual {rows}x{cols} sheet ({lat.n_links} chips), scene {args.shape!r}, "
           f"noise {args.noise:g} % g, SYNC at {args.rate:g} Hz{', packed' if args.packed else ''}"
           f"{f', {args.gateways} gateways' if args.gateways > 1 else ''}", file=sys.stderr)
-    # bounded however long --duration is (issue 34): exact count, mean, max; medians from a
+    # bounded however long --duration is: exact count, mean, max; medians from a
     # uniform sample of at most 65,536 (host.cli.runstats)
     errors, times, latencies, sample_lags = Samples(), Samples(), Samples(), Samples()
     last = None
@@ -315,7 +315,7 @@ def run(args) -> int:
         from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
         fused = None
-        if host.imu_config is not None:  # issue 30 point 4: the gyroscopes drive the shape
+        if host.imu_config is not None:  # the gyroscopes drive the shape
             from host.analysis.motion import FusedConfig, MotionEstimator
             from protocol.constants import G0
             # the virtual chips' accelerometer noise is --noise (1 % g by default), not the

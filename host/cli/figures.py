@@ -418,7 +418,7 @@ def _gyro_panels(fig, t_s: np.ndarray, gyro: np.ndarray, valid: np.ndarray, fuse
 
 
 def motion_scenes_figure(path, scenes: list[dict], *, lattice: str, link_length: float, rate_hz: float):
-    """The moving scenes (issue 29): per scene (a row) the sheet at a few instants, drawn in one
+    """The moving scenes: per scene (a row) the sheet at a few instants, drawn in one
     box at the same scale, and its links' largest own acceleration and angular rate over time.
 
     ``scenes``: dicts with ``name``; ``t_s`` (T,); ``snapshots``, a list of ``(t, joints (rows, cols,
@@ -455,7 +455,7 @@ def motion_scenes_figure(path, scenes: list[dict], *, lattice: str, link_length:
             ax.axvline(t, color="0.8", lw=0.8)
         ax.set_xlabel("t [s]")
         ax.set_ylabel("acceleration [m/s²]", color="C3")
-        ax.axhline(2.0, color="C3", ls=":", lw=0.8, label="2 m/s² (issue 30's floor)")
+        ax.axhline(2.0, color="C3", ls=":", lw=0.8, label="2 m/s² (the fused estimator's floor)")
         ax2 = ax.twinx()
         ax2.plot(sc["t_s"], sc["peak_rate_dps"], color="C0", lw=1.0, label="largest link rate")
         ax2.set_ylabel("angular rate [°/s]", color="C0")
@@ -472,7 +472,7 @@ def motion_scenes_figure(path, scenes: list[dict], *, lattice: str, link_length:
 
 def imu_stream_figure(path, t_s: np.ndarray, series: list[tuple[str, str, np.ndarray, np.ndarray]], *,
                       title: str):
-    """One chip's readings against the truth, one panel per sensor (issue 29).
+    """One chip's readings against the truth, one panel per sensor.
 
     ``series``: ``(name, unit, truth (T, 3), reading (T, 3))``, already in ``unit``.
     """

@@ -70,7 +70,7 @@ def register(subparsers) -> None:
                         "read by threads of one interpreter fall behind at 145 Hz. Default: chosen for the "
                         "sheet, on when its links x --rate reach 500,000 link samples a second (64x64 at "
                         "145 Hz: 1.17 M; 32x32: 0.29 M) and the ports are device paths (docs/host.md)")
-    # -- the session's arguments (issue 12): one block ------------------------------------------
+    # -- the session's arguments: one block ------------------------------------------
     p.add_argument("--lattice", type=T.lattice, default=None,
                    help="joints ROWSxCOLS (default: a JSON layout's; else a CSV layout's links, or the "
                         "sheet's own gateways' tables, when exactly one lattice has that many links; "
@@ -95,7 +95,7 @@ def register(subparsers) -> None:
     p.add_argument("--deadline-ms", type=T.bounded_float(0.0, 60_000.0, lo_open=True, unit="ms"), default=None, help="wait this long for missing links")
     p.add_argument("--no-input-hold", action="store_true",
                    help="give an incomplete counter up at its deadline even when its bus was not read past it "
-                        "yet (a host that was not scheduled for a while; the behaviour before issue 34: "
+                        "yet (a host that was not scheduled for a while; the behaviour before the input watermark: "
                         "host.snapshots.aggregator, 'Input watermark')")
     p.add_argument("--duration", type=T.duration, default=None, help="stop after this many seconds")
     p.add_argument("--discover-s", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=0.5, help="discovery window per round (s; 0.25 at least until a first chip answered); it lasts while new chips are still answering (until 0.25 s pass without one, at most 20 windows)")

@@ -441,7 +441,7 @@ class SessionOutputs:
             rec.snapshot(snap)
         fused = None
         if getattr(snap, "gyro", None) is not None:  # 6/9-axis chips: the gyroscopes drive the shape
-            # (issue 30), so the fused estimator takes every snapshot in order, shown at the live rate
+            #, so the fused estimator takes every snapshot in order, shown at the live rate
             from host.analysis.motion.snapshots import fused_update
             if self._fused is None:
                 from host.analysis.motion import MotionEstimator

@@ -1,4 +1,4 @@
-"""``capsheet estimate --subscribe [zenoh[:ENDPOINT]]``: an estimate worker on Zenoh (issue 31, point 3).
+"""``capsheet estimate --subscribe [zenoh[:ENDPOINT]]``: an estimate worker on Zenoh.
 
 The worker subscribes to the snapshots hosts publish (``capsheet host --publish zenoh``), asks each
 sheet's ``capsheet/<sheet>/info`` queryable for its lattice and link length (a late joiner gets them

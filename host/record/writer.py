@@ -282,7 +282,7 @@ class Recorder:
         """A metadata record or JSON attachment every file of a split set holds (replacing an
         earlier one of the same name). An attachment is encoded before the writer's lock is taken:
         a 64x64 layout is ~0.1 s of JSON, and the receive threads record snapshots under that lock
-        while they hold the feed's (issue 31, stop 44: a following host's first second stalled on it)."""
+        while they hold the feed's (a following host's first second stalled on it)."""
         if kind != "metadata":
             doc = _json_attachment(doc)
         with self._io:

@@ -1,4 +1,4 @@
-"""Recovery: sessions that survive real life (issue 12).
+"""Recovery: sessions that survive real life.
 
 * **Chips**: a chip that rebooted (it ANNOUNCEs from a provisional node id) or says it is not
   streaming (STATUS IDLE while started) is queued; a wave of them (gathered for 50 ms) is brought

@@ -1,4 +1,4 @@
-"""Estimation spread over processes (issue 31, point 3; docs/distribution.md "Estimate workers").
+"""Estimation spread over processes (docs/distribution.md "Estimate workers").
 
 `capsheet estimate --subscribe` runs `SheetWork` per sheet: it takes the sheet's snapshots as a host
 published them (``capsheet/<sheet>/snapshot``, `host.publish.zenoh_pub.decode_snapshot`), in the order they

@@ -80,7 +80,7 @@ def test_demo_runs_a_sheet_behind_two_gateways(tmp_path):
 
 
 def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
-    """`--sensors accel+gyro+mag` (issue 29 point 6, issue 30 point 4): the host asks the chips for
+    """`--sensors accel+gyro+mag`: the host asks the chips for
     IMU records, the fused estimator shapes every snapshot in order, the same rule and honesty as
     above; the IMU records need two 12 Mbaud gateways for 364 chips at 145 Hz (capacity), 1 at 30 Hz."""
     png, mcap = tmp_path / "demo9.png", tmp_path / "demo9.mcap"

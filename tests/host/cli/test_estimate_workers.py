@@ -1,4 +1,4 @@
-"""``capsheet estimate --subscribe`` (issue 31, point 3): two sheets (``capsheet virtual`` on ptys, each
+"""``capsheet estimate --subscribe``: two sheets (``capsheet virtual`` on ptys, each
 with ``capsheet host --publish zenoh --no-publish-estimates``), two workers sharing them by
 ``--worker 0/2`` and ``1/2``, and a subscriber in another process (tests/host/cli/estimate_checker.py:
 zenoh and docs/distribution.md only) that checks every snapshot of each sheet gets exactly one

@@ -269,7 +269,7 @@ def test_motion_scenes_figure_draws_each_scene_in_one_cube_with_its_peaks(tmp_pa
         assert [ax.get_title() for ax in views[:3]] == ["wave, t = 0.00 s", "wave, t = 0.40 s", "wave, t = 1.20 s"]
         series = [ax for ax in fig.axes if ax.name != "3d" and ax.get_xlabel() == "t [s]"]
         assert len(series) == 2 and series[0].get_ylabel() == "acceleration [m/s²]"
-        assert "2 m/s² (issue 30's floor)" in _legend(series[0])
+        assert "2 m/s² (the fused estimator's floor)" in _legend(series[0])
         assert f"peaks {panels[1]['peak_accel_mps2'].max():.1f} m/s²" in series[1].get_title()
     finally:
         plt.close(fig)

@@ -1,5 +1,5 @@
 """``capsheet host`` through the real CLI, in subprocesses, against ``capsheet virtual`` over real ptys,
-SLCAN-on-pty and udp_multicast on loopback (issue 12): hosts killed and restarted, sheets restarted on
+SLCAN-on-pty and udp_multicast on loopback: hosts killed and restarted, sheets restarted on
 the same path, second sessions, two SYNC sources, over-capacity buses, mismatches, malformed input.
 
 Assertions are on what is delivered and reported (exit status, the summary, the recording), never on
@@ -494,7 +494,7 @@ def test_udp_multicast_between_two_processes(udp_bus_lock, virtuals, tmp_path):
 
 @ONE_MULTICAST_BUS
 def test_two_udp_multicast_sheets_on_one_machine_do_not_hear_each_other(udp_bus_lock, virtuals, tmp_path):
-    """Issue 31: two sheets side by side on distinct groups, a host on each, at once: each host finds
+    """Two sheets side by side on distinct groups, a host on each, at once: each host finds
     exactly its own chips (3x3: 12, 4x4: 24), no unknown node or chip, no stray frame, no foreign
     SYNC (the other host's), and streams complete (host/transport/udp_multicast.py)."""
     _udp_or_skip()
@@ -520,7 +520,7 @@ def test_two_udp_multicast_sheets_on_one_machine_do_not_hear_each_other(udp_bus_
 
 @ONE_MULTICAST_BUS
 def test_a_sheet_on_two_udp_multicast_buses(udp_bus_lock, virtuals, tmp_path):
-    """Two buses of one sheet on two groups (refused before issue 31: their traffic crossed): the
+    """Two buses of one sheet on two groups (refused once: their traffic crossed): the
     host finds each block of chips on its own bus and streams them all."""
     _udp_or_skip()
     v = virtuals("--lattice", "4x4", "--transport", "can", "--can-interface", "udp_multicast",
@@ -629,7 +629,7 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
         assert complete.size >= 100 and int((~complete).sum()) <= 1 + 2  # its own, and at most the two cut by STOP
 
 
-# -- completeness by snapshot and by valid link (issue 11, point 3) --------------------------------
+# -- completeness by snapshot and by valid link --------------------------------
 
 def test_status_line_and_json_show_completeness_by_snapshot_and_by_valid_link(virtuals, tmp_path):
     """A 3x3 sheet (12 links) with link 4's chip dead from the start and 3 % of the gateway's frames
@@ -681,7 +681,7 @@ def test_status_line_and_json_show_completeness_by_snapshot_and_by_valid_link(vi
     assert f"{s['complete_snapshots']} complete ({want_snap:.1f} %)" in out.stderr
 
 
-# -- a sheet behind two serial gateways, merged into one lattice (issue 11, point 5) ---------------
+# -- a sheet behind two serial gateways, merged into one lattice ---------------
 
 @pytest.mark.parametrize("mode", ["drive", "follow-packed"])
 def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):

@@ -1,4 +1,4 @@
-"""``capsheet host --reader-processes --estimate-process`` (issue 31.4) through the real CLI on
+"""``capsheet host --reader-processes --estimate-process`` through the real CLI on
 ptys: what is delivered, counted and recorded, never a rate (benchmarks/bench_live.py measures
 the 64x64 sheet at 145 Hz)."""
 

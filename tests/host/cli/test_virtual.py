@@ -1,5 +1,5 @@
-"""``capsheet virtual`` through the real CLI (issue 12): it removes its symlinks on every exit it can
-catch, replaces only a stale symlink of its own (issue 28), prints the exact host command that works,
+"""``capsheet virtual`` through the real CLI: it removes its symlinks on every exit it can
+catch, replaces only a stale symlink of its own, prints the exact host command that works,
 and checks its own traffic against the link's capacity."""
 
 from __future__ import annotations

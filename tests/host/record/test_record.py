@@ -500,8 +500,7 @@ def test_a_large_sheet_is_compressed_at_the_cheaper_level_and_a_small_one_at_the
 
 def test_documents_are_encoded_before_the_writers_lock_is_taken(tmp_path, monkeypatch):
     """The receive threads record snapshots under the writer's lock while they hold the feed's; a
-    64x64 layout's JSON (~0.1 s) encoded under it stalled a following host's first second (issue
-    31, stop 44). Every attachment is encoded with the lock free (a split set's next file writes
+    64x64 layout's JSON (~0.1 s) encoded under it stalled a following host's first second. Every attachment is encoded with the lock free (a split set's next file writes
     the bytes kept), and the file still holds it."""
     import host.record.writer as record  # the writer encodes its JSON attachments
     from mcap.reader import make_reader

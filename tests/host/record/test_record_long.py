@@ -1,4 +1,4 @@
-"""Recordings for long runs (issue 34): the compact format (chips' counts, protobuf) read back exactly
+"""Recordings for long runs: the compact format (chips' counts, protobuf) read back exactly
 and by an independent reader, an old-format (capsheet-mcap-1) recording still read and replayed,
 split sets (--split-size / --split-duration) read alone and as a whole, and the free-space check."""
 

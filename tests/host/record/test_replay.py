@@ -176,7 +176,7 @@ def test_a_counter_the_host_held_for_its_input_replays_complete(tmp_path):
     read that came 80 ms after the SYNC held all four links' 6-axis records (classic CAN: two frames
     a record, taken one record at a time), taken in whole, and the snapshot was complete. The replay
     follows the recorded emission: it must not emit the counter at a deadline of its own in the
-    middle of that read (it did: link 0 in, links 1–3 late — stop 40's 6-axis recordings under load)."""
+    middle of that read (it did: link 0 in, links 1–3 late — 6-axis recordings under load)."""
     import can
 
     from host.snapshots.aggregator import Aggregator

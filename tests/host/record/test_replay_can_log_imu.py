@@ -1,4 +1,4 @@
-"""A CAN log of 6-axis chips replays at the gyroscope range the host configured (issue 29 leftover):
+"""A CAN log of 6-axis chips replays at the gyroscope range the host configured:
 the log holds the host's CONFIG_IMU, and the replay converts the records with its range, not
 CONFIG_IMU's power-on default. The log is written with python-can's own Logger; expected rates
 worked out by hand from §16.1's sensitivities."""
