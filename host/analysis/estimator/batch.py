@@ -10,7 +10,10 @@ from .angles import G0
 from .checks import (READING_NORM_RANGE, check_int, check_noise_pct_g, check_options,
                      check_previous)
 from .joints import joints_and_mask
-from .pipeline import WarmStart, estimate, link_angles, link_solvability, noise_and_priors
+import host.analysis.estimator.pipeline as pipeline  # CLOSE_PITCHES, read at call time
+from .pipeline import (WarmStart, closed_pitches, estimate, link_angles, link_solvability,
+                       noise_and_priors)
+from .priors import DEFAULT_PRIOR
 from .result import ShapeEstimate, Solution
 from .solver import solve_global_batch
 from .structure import lattice_of, structure_of
@@ -24,7 +27,8 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     """Estimate a sequence of snapshots, many at a time: what an offline run wants.
 
     The result is what ``estimate(readings[k], ..., previous=result[k - 1])`` in a loop gives
-    (``method="global"``, ``model="cells"``, ``prior="adaptive"``), to the solver's tolerance:
+    (``method="global"``, ``model="cells"``, the default prior `DEFAULT_PRIOR`), to the solver's
+    tolerance:
     the same cost is minimised with the same stopping rule, but ``batch`` consecutive snapshots
     are solved together — every snapshot of a group starts from the estimate before the group
     (without ``previous``, the first snapshot is estimated alone and the rest start there),
@@ -123,7 +127,9 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
             st = structure_of(rows, cols, mask, "cells")
             # the stages `estimate` runs (host.analysis.estimator.pipeline), on the group at once
             rr, alpha, beta, _ = link_angles(r[idx], mask0, mask)
-            _, prior_w, bend_w, tol = noise_and_priors("adaptive", st, rr, norm[idx], mask0, False)
+            if pipeline.CLOSE_PITCHES:
+                beta, _ = closed_pitches(st, alpha, beta)
+            _, prior_w, bend_w, tol = noise_and_priors(DEFAULT_PRIOR, st, rr, norm[idx], mask0, False)
             target = st.rest_yaw
             chain = WarmStart.of(prev)
             warm = chain.covering(mask0)

@@ -10,18 +10,21 @@ from .kernel import ffi as _kffi, lib as _klib
 from .angles import G0
 from .structure import units_int64
 
-__all__ = ["PRIORS", "FIXED_PRIOR_WEIGHT", "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT",
+__all__ = ["PRIORS", "DEFAULT_PRIOR", "FIXED_PRIOR_WEIGHT", "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT",
            "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness",
            "link_flatness", "prior_weights"]
 
-#: The priors `estimate` offers (docs/estimator.md compares them): "adaptive" (default) —
-#: bending + flat-cell shear, both scaled by the readings' noise; "level" — the same with the
-#: bending held only where the region is level: unbiased on a sheet
-#: whose lattice lines turn in plan (a drape), noisier on nets whose lines run straight; "off" —
+#: The priors `estimate` offers (docs/estimator.md §3 compares them): "level" (default) —
+#: bending held only where the region is level, plus flat-cell shear, both scaled by the
+#: readings' noise: unbiased on a sheet whose lattice lines turn in plan (a drape, the paper's
+#: own experiment); "adaptive" (the default before) — the bending held everywhere, biased
+#: where lattice lines turn in plan; "off" —
 #: only the floors that keep the problem regular (the data alone); "fixed" — the former prior,
 #: ``FIXED_PRIOR_WEIGHT`` on every yaw towards the rest; "local" — that yaw prior weighted by
 #: the cell's flatness.
-PRIORS = ("adaptive", "level", "off", "fixed", "local")
+PRIORS = ("level", "adaptive", "off", "fixed", "local")
+#: The prior `estimate`, `estimate_batch` and `ShapeEstimator` use unless told (``prior=``).
+DEFAULT_PRIOR = "level"
 #: Weight of the "fixed"/"local" priors on ``wrap(γ − γ_rest)²`` (the estimator's former prior).
 FIXED_PRIOR_WEIGHT = 1e-2
 #: Least weight of the yaw prior towards the rest yaws (keeps a link without constraints defined).
@@ -103,7 +106,7 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
-    lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("adaptive" only)
+    lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("level", "adaptive" only)
     w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
     if prior in ("adaptive", "level"):
