@@ -97,6 +97,30 @@ def link_flatness(st, h):
     return acc / np.maximum(cnt, 1.0)
 
 
+def bridging_pairs(st) -> np.ndarray:
+    """Per bending pair (n_bend,), 1.0 where its two links are in different islands of the yaw
+    problem's data terms, else 0.0 (cached on the structure).
+
+    An island: links joined through active units (those with no missing link); a link in no
+    active unit is an island of its own. Loop closure and the cells' normals relate the yaws of
+    one island only, so each further island's rotation is free in the data: the "level" prior
+    holds the pairs that join islands as "adaptive" does, whatever their tilt. Without missing
+    links there is one island and no such pair."""
+    got = st.__dict__.get("_bridging_pairs")
+    if got is None:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        u = st.units
+        a = np.repeat(u[:, :1], 3, axis=1).ravel()
+        b = u[:, 1:].ravel()
+        g = coo_matrix((np.ones(a.size), (a, b)), shape=(st.n_links, st.n_links))
+        comp = connected_components(g, directed=False)[1]
+        pb = st.pairs[:st.n_bend]
+        got = st._bridging_pairs = (comp[pb[:, 0]] != comp[pb[:, 1]]).astype(float)
+    return got
+
+
 def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
 
@@ -112,8 +136,10 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     if prior in ("adaptive", "level"):
         hu = flatness(st, r, norm_g, noise)
         bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
-        if prior == "level":  # a pair is held as much as its flatter link's units are level
-            bend = bend * link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+        if prior == "level":  # a pair is held as much as its flatter link's units are level,
+            # and wholly where it joins what no unit relates (`bridging_pairs`)
+            h = link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+            bend = bend * np.maximum(h, bridging_pairs(st))
         w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
         w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)

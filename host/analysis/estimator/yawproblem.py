@@ -213,7 +213,7 @@ class YawProblem:
         return cost, grad[:st.n_var], None
 
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
-                     chain=None, chain_safety=0.0):
+                     chain=None, chain_safety=0.0, predict_within=3.0):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
@@ -232,6 +232,7 @@ class YawProblem:
         c = _kffi.new("capsheet_chord_t *")
         c.n_links, c.max_iter, c.tol = gamma.size, max_iter, float(tol)
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
+        c.predict_within = predict_within
         if chain is not None:
             c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, float(chain_safety)
         pi = np.ascontiguousarray(st.perm_inv, np.int64)
