@@ -66,14 +66,15 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         The normal model (global method): ``"cells"`` (default) — every link's sensor z is the
         mean normal of its cells, each ``A × C`` of the cell's mean i- and j-link (exact on a
         Chebyshev net, docs/estimator.md); ``"eq6"`` — the paper's normal assumption (eq. 6).
-    prior : {"adaptive", "level", "off", "fixed", "local"}
-        What fills in what the data cannot determine (`PRIORS`; docs/estimator.md measures
-        them): "adaptive" (default) holds the bending of the lattice and the shear of level
-        cells, with weights that scale with the readings' noise (noise-free readings: only a
-        floor), so that it does not pull where the data decide; "level" holds the bending
-        only where the region is level (unbiased on a drape, whose lattice lines turn in
-        plan; noisier on nets whose lines run straight); "off" keeps only the floors (the data
-        alone); "fixed" and "local" are the alternatives it was measured against.
+    prior : {"level", "adaptive", "off", "fixed", "local"}
+        What fills in what the data cannot determine (`PRIORS`; docs/estimator.md §3 measures
+        them): "level" (default) holds the bending of the lattice only where the region is
+        level, and the shear of level cells, with weights that scale with the readings' noise
+        (noise-free readings: only a floor), so that it does not pull where the data decide
+        (unbiased on a drape, whose lattice lines zigzag in plan); "adaptive" (the default
+        before) holds the bending everywhere (less noisy on nets whose lines run straight,
+        biased on a drape); "off" keeps only the floors (the data alone); "fixed" and "local"
+        are older alternatives.
     noise_pct_g : float
         The reading noise (per axis, % of g) that `ShapeEstimate.yaw_std` and ``joint_std`` are
         stated for. Does not change the estimate.
