@@ -190,3 +190,39 @@ def test_the_batch_and_one_at_a_time_agree_under_the_default_on_the_drape():
         one.append(prev)
     gap = max(np.abs(a.joints - b.joints).max() for a, b in zip(out, one)) / (13 * L) * 100
     assert gap <= 0.03  # % of side: the bound test_estimate_batch.py holds both paths to
+
+
+def test_capsheet_estimate_prior_selects_an_older_prior_by_name(tmp_path, capsys):
+    from host.cli import main
+    from host.record.recording import Recorder
+    from host.snapshots.aggregator import LatticeSnapshot
+
+    n = 6
+    lat = Lattice(n, n)
+    P = make_sheet("cylinder", n, n, L, shear=0.2)
+    g = np.random.Generator(np.random.MT19937(8))
+    R = [noisy_readings(ideal_readings(P), 3.0, g) for _ in range(4)]
+    src = tmp_path / "run.mcap"
+    rec = Recorder(src, lat, L, session={"mode": "test"})
+    try:
+        for k, r in enumerate(R):
+            rec.snapshot(LatticeSnapshot(k, 0.01 * k, 1e9 + 0.01 * k, r, np.ones(lat.n_links, bool),
+                                         np.zeros(lat.n_links, np.uint8), True, 0.0))
+    finally:
+        rec.close()
+    got = {}
+    for prior in ("adaptive", None):
+        out = tmp_path / f"{prior}.npz"
+        argv = ["estimate", str(src), "--out", str(out), "--jobs", "1", "-q", "--method", "global"]
+        assert main(argv + (["--prior", prior] if prior else [])) == 0
+        got[prior] = np.load(out)["joints"]
+    for prior, kw in (("adaptive", {"prior": "adaptive"}), (None, {})):
+        prev, want = None, []
+        for r in R:  # what the library gives, each snapshot warm-started from the one before
+            prev = estimate(r, n, n, L, previous=prev, **kw)
+            want.append(prev.joints)
+        np.testing.assert_allclose(got[prior], np.stack(want), atol=1e-6 * L)
+    assert np.abs(got["adaptive"] - got[None]).max() > 1e-3 * L  # the option does change them
+    with pytest.raises(SystemExit) as bad:  # argparse: a one-line error, exit status 2
+        main(["estimate", str(src), "--prior", "bogus"])
+    assert bad.value.code == 2
