@@ -10,9 +10,10 @@ from .kernel import ffi as _kffi, lib as _klib
 from .angles import G0
 from .structure import units_int64
 
-__all__ = ["PRIORS", "DEFAULT_PRIOR", "FIXED_PRIOR_WEIGHT", "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT",
-           "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness",
-           "link_flatness", "prior_weights"]
+__all__ = ["PRIORS", "DEFAULT_PRIOR", "LEVEL_TILTED_SHARE", "FIXED_PRIOR_WEIGHT",
+           "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST",
+           "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness", "link_flatness",
+           "prior_weights", "bridging_pairs"]
 
 #: The priors `estimate` offers (docs/estimator.md §3 compares them): "level" (default) —
 #: bending held only where the region is level, plus flat-cell shear, both scaled by the
@@ -42,6 +43,12 @@ SHEAR_WEIGHT_REST = 1e-2
 FLAT_TILT_NOISE = 3.0
 #: ... averaged over (2 FLAT_RADIUS + 1)² cells around it.
 FLAT_RADIUS = 3
+#: "level": the share of the bending weight a pair keeps however tilted its region. Small enough
+#: not to pull a drape's zigzag (0.01 did: the drape 0.64 -> 1.02 % of side at 5 % g), large
+#: enough to hold the smooth modes the data hold weakly on a compass net, which otherwise made
+#: the chord steps contract so slowly that a 64x64 stream refactorised every 4-5 snapshots
+#: (26 -> 9 ms per snapshot; docs/estimator.md §3 has the sweep).
+LEVEL_TILTED_SHARE = 0.003
 #: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
 PRIOR_WEIGHT_MIN = 1e-8
 
@@ -126,7 +133,9 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
 
     "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
     unit's `flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
-    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `link_flatness`; "off": floors only; "fixed":
+    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `link_flatness` (1 for a
+    pair that joins islands of the data, `bridging_pairs`; at least `LEVEL_TILTED_SHARE`);
+    "off": floors only; "fixed":
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
@@ -139,7 +148,7 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
         if prior == "level":  # a pair is held as much as its flatter link's units are level,
             # and wholly where it joins what no unit relates (`bridging_pairs`)
             h = link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
-            bend = bend * np.maximum(h, bridging_pairs(st))
+            bend = bend * np.maximum(np.maximum(h, bridging_pairs(st)), LEVEL_TILTED_SHARE)
         w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
         w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)
