@@ -72,11 +72,11 @@ def register(subparsers) -> None:
     from host.analysis.estimator.priors import DEFAULT_PRIOR, PRIORS
     p.add_argument("--prior", choices=PRIORS, default=DEFAULT_PRIOR,
                    help=f"global method: what fills in what the readings cannot determine "
-                        f"(default {DEFAULT_PRIOR}: the lattice's bending held only where the sheet is "
-                        "level; adaptive: held everywhere, the default before, biased where lattice "
-                        "lines turn in plan, as on a draped sheet; off: the readings alone, a level "
-                        "sheet undefined; fixed, local: older priors towards square cells). "
-                        "docs/estimator.md section 3 compares them")
+                        f"(default {DEFAULT_PRIOR}: the lattice's bending held only where the "
+                        "sheet is level; adaptive: held everywhere, the default before, biased "
+                        "where lattice lines turn in plan, as on a draped sheet; off: the "
+                        "readings alone, a level sheet undefined; fixed, local: older priors "
+                        "towards square cells). docs/estimator.md section 3 compares them")
     p.add_argument("--jobs", type=T.int_range(1, 256), default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
@@ -403,8 +403,8 @@ def run(args) -> int:
                     done(k, estimate_fused_batch(b, fused, units))
                     continue
                 if pool is None:
-                    done(k, estimate_batch(b.readings, b.valid, rows, cols, L, method, args.uncertainty,
-                                           args.prior))
+                    done(k, estimate_batch(b.readings, b.valid, rows, cols, L, method,
+                                           args.uncertainty, args.prior))
                     continue
                 pending[pool.submit(estimate_batch, b.readings, b.valid, rows, cols, L, method,
                                     args.uncertainty, args.prior)] = k

@@ -580,7 +580,8 @@ def cmd_noise(args) -> int:
             def on_level(row, name=target.name):
                 bar.write(f"{name:12s} noise {row['noise_pct_g']:4.1f} % g: " + "  ".join(
                     f"{LABELS.get(m, m)} {row[m]['mean_pct']:6.3f} ± {row[m]['std_pct']:6.3f} % "
-                    f"({row[m]['time_ms']:.1f} ms)" for m in methods) + f"  default / paper {_ratio(row)}")
+                    f"({row[m]['time_ms']:.1f} ms)" for m in methods)
+                    + f"  default / paper {_ratio(row)}")
             rows = noise_study(target, levels, trials, args.seed, methods=methods,
                                noise_dist=args.noise_dist, progress=bar, on_level=on_level)
             for r in rows:
@@ -603,7 +604,8 @@ def cmd_noise(args) -> int:
             md += [f"| {r['noise_pct_g']:.1f} | " + " | ".join(
                 f"{r[m]['mean_pct']:.2f} ± {r[m]['std_pct']:.2f}"
                 + (" ✗" if r[m]["over_failure_line"] else "") for m in methods)
-                + f" | {_ratio(r)} | " + " | ".join(f"{r[m]['time_ms']:.1f}" for m in methods) + " |"
+                + f" | {_ratio(r)} | "
+                + " | ".join(f"{r[m]['time_ms']:.1f}" for m in methods) + " |"
                 for r in rows]
             md += ["", "Under the 5 % failure line at every level up to: " + "; ".join(
                 f"{LABELS.get(m, m)} {_upto(results[target.name]['works_up_to_pct_g'][m])}"
@@ -736,7 +738,8 @@ def register(subparsers) -> None:
     nz.add_argument("--trials", type=_int_at_least(1), default=None,
                     help="trials per noise level (default 10; 2 with --quick)")
     nz.add_argument("--target", type=_target_arg, action="append", default=None,
-                    help="model sheet, repeat for several (default: " + ", ".join(NOISE_TARGETS) + ")")
+                    help="model sheet, repeat for several (default: "
+                         + ", ".join(NOISE_TARGETS) + ")")
     nz.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     nz.set_defaults(func=cmd_noise)
 

@@ -117,7 +117,8 @@ __all__ = [
     # comparing shapes (host.analysis.metrics)
     "overlay", "overlay_error", "error_percent_of_side",
     # choices and constants (values at import; set a tunable on its module)
-    "METHODS", "MODELS", "PRIORS", "DEFAULT_PRIOR", "G0", "READING_NORM_RANGE", "USE_KERNEL", "LINEAR_SOLVER",
+    "METHODS", "MODELS", "PRIORS", "DEFAULT_PRIOR", "G0", "READING_NORM_RANGE", "USE_KERNEL",
+    "LINEAR_SOLVER",
     "YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "BATCH_MAX_ITER", "BATCH_REFACTOR",
     "NORMAL_WEIGHT", "ROLL_WEIGHT", "ABS_PRIOR_FLOOR", "FIXED_PRIOR_WEIGHT", "BEND_STD_RAD",
     "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN",
