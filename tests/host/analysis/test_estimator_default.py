@@ -5,7 +5,7 @@ flat over a Gaussian, its lattice lines turning in plan) and the same sheet tilt
 level unit), with the noise draws `capsheet paper noise` makes (MT19937 seeded by seed and level),
 and exact Chebyshev nets (`virtual_sheet.shapes.make_sheet`). Metric: the paper's, mean joint
 distance after a least-squares rigid overlay, % of the side. The paper's method runs on the same
-draws; the bound is the issue's (the default at most 0.8 times the paper's method), not a
+draws; the bound is the one set for the default (at most 0.8 times the paper's method), not a
 measured value. Three trials per level keep the suite short: `capsheet paper noise` runs ten at
 every level from 0 to 10 % g (docs/estimator.md section 7).
 """
