@@ -252,3 +252,10 @@ def test_a_compass_stream_stays_on_its_factorisation_under_the_default(monkeypat
     assert refactorisations() == 0
     monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.0)
     assert refactorisations() >= 1  # the check can fail: without the share it refactorises
+
+
+def test_the_command_lines_prior_choices_are_the_estimators():
+    # written out in host.cli.estimate so that building the parser imports no estimator
+    from host.cli import estimate as cli
+
+    assert cli.PRIOR_CHOICES == E.PRIORS and cli.DEFAULT_PRIOR == E.DEFAULT_PRIOR
