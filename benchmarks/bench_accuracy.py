@@ -12,11 +12,12 @@ A level sheet ("flat") determines no yaw (the paper's Case 1): its shear is unob
 sheared rows give the estimator the sheet's rest shape (``rest=`` its true yaws, as a tactile
 sensor that learned its rest shape has) and say so; the row without ``rest`` is listed too.
 
-Columns: ``adaptive`` (the default prior), ``off`` (floors only: the data alone), ``fixed`` (the
-former prior: 1e-2 on every yaw towards square cells), ``local`` (that prior weighted by each
-cell's flatness), ``eq6`` (the default prior with the paper's normal assumption instead of the
-cell-normal model). The long-run section warm-starts ``--run`` snapshots of a level sheet at 1 % g
-and compares the first and last 50: the default against a prior whose target follows the
+Columns: ``default`` (`estimate` with its defaults: prior "level", pitches closed), ``adaptive``
+(the former default prior: the bending held everywhere), ``off`` (floors only: the data alone),
+``fixed`` (an older prior: 1e-2 on every yaw towards square cells), ``local`` (that prior weighted
+by each cell's flatness), ``eq6`` (the default prior with the paper's normal assumption instead of
+the cell-normal model). The long-run section warm-starts ``--run`` snapshots of a level sheet at
+1 % g and compares the first and last 50: the default against a prior whose target follows the
 estimate (``fixed`` with ``rest=previous``).
 
     .venv/bin/python benchmarks/bench_accuracy.py [--trials 10] [--quick] [--markdown]
@@ -45,8 +46,8 @@ SHEARS = (0.0, 0.1, 0.2, 0.3)
 NOISES = (0.0, 0.3, 5.0)
 TARGETS = {0.0: 0.1, 0.3: 0.2, 5.0: 1.0}  #: issue 13: mean error bound, % of side, per noise % g
 GOAL_NOISE_FREE = 0.02  #: issue 13's goal for the noise-free floor, % of side
-COLUMNS = {"adaptive": {}, "level": {"prior": "level"}, "off": {"prior": "off"}, "fixed": {"prior": "fixed"},
-           "local": {"prior": "local"}, "eq6": {"model": "eq6"}}
+COLUMNS = {"default": {}, "adaptive": {"prior": "adaptive"}, "off": {"prior": "off"},
+           "fixed": {"prior": "fixed"}, "local": {"prior": "local"}, "eq6": {"model": "eq6"}}
 
 
 def heightmap_array() -> np.ndarray:
@@ -84,7 +85,7 @@ def row(shape: str, shear: float, noise: float, trials: int, seed: int, columns:
         out[name] = {"mean_pct": round(float(np.mean(errs)), 4),
                      "bias_pct": round(float(error_percent_of_side(mean_shape, P, L).mean()), 4)}
     out["target_pct"] = TARGETS[noise]
-    out["meets_target"] = out["adaptive"]["mean_pct"] <= TARGETS[noise]
+    out["meets_target"] = out["default"]["mean_pct"] <= TARGETS[noise]
     return out
 
 
@@ -93,12 +94,12 @@ def long_run(n: int, seed: int) -> dict:
     P = make_sheet("flat", N, N, L)
     r0 = ideal_readings(P)
     res = {}
-    for name in ("adaptive", "follow"):
+    for name in ("default", "follow"):
         g = np.random.Generator(np.random.MT19937(seed))
         est, errs = None, []
         for _ in range(n):
             r = noisy_readings(r0, 1.0, g)
-            if name == "adaptive":
+            if name == "default":
                 est = estimate(r, N, N, L, previous=est)
             else:
                 est = estimate(r, N, N, L, previous=est, prior="fixed", rest=est)
@@ -125,9 +126,9 @@ def markdown(rows: list[dict]) -> str:
         c0, c1, c5 = (cell.get(k) for k in (0.0, 0.3, 5.0))
         off = "unsolvable: " if shape == "flat" else ""
         lines.append(
-            f"| {name} | {shear:.1f} | {c0['adaptive']['mean_pct']:.4f} | "
-            f"{c1['adaptive']['mean_pct']:.3f} | {c5['adaptive']['mean_pct']:.3f} | "
-            f"{c5['adaptive']['bias_pct']:.3f} | {off}{c1['off']['mean_pct']:.3f} | "
+            f"| {name} | {shear:.1f} | {c0['default']['mean_pct']:.4f} | "
+            f"{c1['default']['mean_pct']:.3f} | {c5['default']['mean_pct']:.3f} | "
+            f"{c5['default']['bias_pct']:.3f} | {off}{c1['off']['mean_pct']:.3f} | "
             f"{off}{c5['off']['mean_pct']:.3f} | {c0['eq6']['mean_pct']:.3f} |")
     return "\n".join(lines)
 
@@ -153,7 +154,7 @@ def main(argv=None) -> int:
                 for noise in NOISES:
                     k += 1
                     cols = COLUMNS if not (shape == "flat" and not use_rest and shear) else \
-                        {"adaptive": {}, "off": {"prior": "off"}, "eq6": {"model": "eq6"}}
+                        {"default": {}, "off": {"prior": "off"}, "eq6": {"model": "eq6"}}
                     r = row(shape, shear, noise, trials, args.seed + k, cols, use_rest)
                     if shape == "flat" and shear and not use_rest:
                         r["meets_target"] = None  # unobservable: no target applies

@@ -73,6 +73,13 @@ def register(subparsers) -> None:
                         "global / paper: the accelerometers alone, each snapshot on its own, batched over --jobs: "
                         "they take the readings as gravity (the paper's Assumption 1, a sheet held still), so a "
                         "moving sheet's own acceleration becomes shape error")
+    p.add_argument("--prior", choices=PRIOR_CHOICES, default=DEFAULT_PRIOR,
+                   help=f"global method: what fills in what the readings cannot determine "
+                        f"(default {DEFAULT_PRIOR}: the lattice's bending held only where the "
+                        "sheet is level; adaptive: held everywhere, the default before, biased "
+                        "where lattice lines turn in plan, as on a draped sheet; off: the "
+                        "readings alone, a level sheet undefined; fixed, local: older priors "
+                        "towards square cells). docs/estimator.md section 3 compares them")
     p.add_argument("--jobs", type=T.int_range(1, 256), default=min(2, os.cpu_count() or 1),
                    help="worker processes (default: min(2, cores))")
     p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
@@ -86,6 +93,11 @@ def register(subparsers) -> None:
     p.add_check(check_subscribe)
     p.set_defaults(func=run)
 
+
+#: ``--prior`` choices and default: `host.analysis.estimator.PRIORS` and ``DEFAULT_PRIOR``, written
+#: out here so that building the parser imports no estimator (a test holds them equal)
+PRIOR_CHOICES = ("level", "adaptive", "off", "fixed", "local")
+DEFAULT_PRIOR = "level"
 
 #: ``--method`` choices; ``auto`` resolves to `FUSED` or ``global`` by what the recording carries
 METHODS = ("auto", "global", "paper", "fused")
@@ -109,7 +121,8 @@ GROUP = 16
 
 
 def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int, L: float,
-                   method: str = "global", uncertainty: bool = False) -> tuple[np.ndarray, np.ndarray, dict]:
+                   method: str = "global", uncertainty: bool = False,
+                   prior: str | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Estimate a batch, warm-starting each snapshot from the previous one (``method="global"``: one
     at a time, or `GROUP` at a time by `host.analysis.estimator.estimate_batch`: `batched`). A dead
     or stuck chip's link is masked out of its snapshot, as the live host does.
@@ -118,6 +131,8 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
     ----------
     readings : ndarray, shape (n, n_links, 3), m/s²
     valid : ndarray of bool, shape (n, n_links)
+    prior : str, optional
+        The global method's prior (`host.analysis.estimator.PRIORS`; None: its default).
     uncertainty : bool
         Also evaluate every estimate's ``yaw_std`` / ``joint_std`` (computed on first access, and
         the dominant cost when asked for).
@@ -133,7 +148,10 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
         joints NaN, as a snapshot with no valid link), e.g. every valid link's reading implausible.
     """
     from host.analysis.estimator import estimate, estimate_batch as solve_batch
+    from host.analysis.estimator.priors import DEFAULT_PRIOR
 
+    prior = DEFAULT_PRIOR if prior is None else prior
+    pkw = {"prior": prior} if method == "global" else {}
     cpu0 = time.process_time()
     n = readings.shape[0]
     joints = np.full((n, rows, cols, 3), np.nan)
@@ -148,7 +166,8 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
             try:
                 est = estimate(np.asarray(readings[k], dtype=float), rows, cols, L,
                                valid=np.asarray(valid[k], dtype=bool), method=method,
-                               previous=prev if method == "global" else None, bad_readings="mask")
+                               previous=prev if method == "global" else None, bad_readings="mask",
+                               **pkw)
             except ValueError as exc:  # e.g. every valid link implausible: this snapshot only
                 skipped[str(exc)] = skipped.get(str(exc), 0) + 1
                 continue
@@ -161,7 +180,7 @@ def estimate_batch(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
         try:
             ests = solve_batch(np.asarray(readings[idx], dtype=float), rows, cols, L,
                                valid=np.asarray(valid[idx], dtype=bool), batch=GROUP,
-                               bad_readings="mask")
+                               bad_readings="mask", prior=prior)
             pairs = zip(idx, ests)
         except ValueError:  # a snapshot the estimator refuses: this batch one at a time, to name it
             pairs = None
@@ -392,10 +411,11 @@ def run(args) -> int:
                     done(k, estimate_fused_batch(b, fused, units))
                     continue
                 if pool is None:
-                    done(k, estimate_batch(b.readings, b.valid, rows, cols, L, method, args.uncertainty))
+                    done(k, estimate_batch(b.readings, b.valid, rows, cols, L, method,
+                                           args.uncertainty, args.prior))
                     continue
                 pending[pool.submit(estimate_batch, b.readings, b.valid, rows, cols, L, method,
-                                    args.uncertainty)] = k
+                                    args.uncertainty, args.prior)] = k
                 while len(pending) > 2 * args.jobs:
                     finished, _ = wait(pending, return_when=FIRST_COMPLETED)
                     for f in finished:

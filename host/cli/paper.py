@@ -72,6 +72,11 @@ FAILURE_LINE_PCT = 5.0
 NOISE_DISTS = ("normal", "uniform")
 #: the methods compared, as `host.analysis.estimator.estimate` keyword arguments
 METHODS = {"global": {}, "paper": {"method": "paper"}}
+#: How the tables name the methods: "global" is capsheet's estimator with its defaults
+LABELS = {"global": "capsheet default", "paper": "paper's method"}
+#: `capsheet paper noise`'s targets unless ``--target`` is given: the paper's Fig. 9 drape, the
+#: same sheet tilted (no level unit) and the compass-built net of the same Gaussian
+NOISE_TARGETS = ("fig9", "fig9-tilted", "fig9-compass")
 #: Fig. 9's Gaussian, ``A exp(−r²/2σ²)``: A = σ = S/4 (docs/estimator.md section 7 says why)
 FIG9_AMPLITUDE_M = FIG9_SIGMA_M = SIDE_M / 4
 #: the second target: Fig. 9's model on a plane tilted by this much, more than the bump's steepest
@@ -555,7 +560,7 @@ def cmd_noise(args) -> int:
     out = _outdir(args)
     levels = QUICK_NOISE_LEVELS if args.quick else NOISE_LEVELS
     trials = args.trials if args.trials is not None else (2 if args.quick else 10)
-    names = args.target or ["fig9", "fig9-tilted"]
+    names = args.target or list(NOISE_TARGETS)
     methods = _methods(args)
     targets = [build_target(t) for t in names]
     results = {}
@@ -565,16 +570,23 @@ def cmd_noise(args) -> int:
           f"deviation over {SIDE_JOINTS ** 2} joints x {trials} trials (the paper's statistic); "
           "median time per snapshot. The paper: the estimate \"fails discernibly\" beyond 5 % of "
           "the side and the sheet \"decently works with the noise level up to 5 %\" [g]. Both "
-          "methods on the same draws.", "", f"Paper's method: {_options_text(methods)}."]
+          "methods on the same draws. capsheet default: `estimate` with its defaults (global "
+          "method, cells model, pitches closed, prior " + _default_prior() + "); "
+          "default / paper: the ratio of their means.", "",
+          f"Paper's method: {_options_text(methods)}."]
     with Progress(len(targets) * len(levels) * trials, "noise study", "trial",
                   quiet=args.quiet) as bar:
         for target in targets:
             def on_level(row, name=target.name):
                 bar.write(f"{name:12s} noise {row['noise_pct_g']:4.1f} % g: " + "  ".join(
-                    f"{m} {row[m]['mean_pct']:6.3f} ± {row[m]['std_pct']:6.3f} % "
-                    f"({row[m]['time_ms']:.1f} ms)" for m in methods))
+                    f"{LABELS.get(m, m)} {row[m]['mean_pct']:6.3f} ± {row[m]['std_pct']:6.3f} % "
+                    f"({row[m]['time_ms']:.1f} ms)" for m in methods)
+                    + f"  default / paper {_ratio(row)}")
             rows = noise_study(target, levels, trials, args.seed, methods=methods,
                                noise_dist=args.noise_dist, progress=bar, on_level=on_level)
+            for r in rows:
+                p = r["paper"]["mean_pct"]
+                r["default_over_paper"] = r["global"]["mean_pct"] / p if p > 0 else None
             sv = unit_solvability(target)
             solv = {"units": int(sv.size), "below_0_1": int((sv < 0.1).sum()),
                     "below_0_2": int((sv < 0.2).sum()), "median": float(np.median(sv)),
@@ -585,16 +597,19 @@ def cmd_noise(args) -> int:
             md += ["", f"## {target.name}", "", f"{target.description}. Units with λ3/λ1 < 0.1 "
                    f"(noise-free): {solv['below_0_1']} of {solv['units']} (< 0.2: "
                    f"{solv['below_0_2']}; median {solv['median']:.2f}).", "",
-                   "| noise % g | " + " | ".join(f"{m} mean ± std" for m in methods)
-                   + " | " + " | ".join(f"{m} ms" for m in methods) + " |",
-                   "|---:|" + "---:|" * (2 * len(methods))]
+                   "| noise % g | " + " | ".join(f"{LABELS.get(m, m)} mean ± std" for m in methods)
+                   + " | default / paper | " + " | ".join(f"{LABELS.get(m, m)} ms" for m in methods)
+                   + " |",
+                   "|---:|" + "---:|" * (2 * len(methods) + 1)]
             md += [f"| {r['noise_pct_g']:.1f} | " + " | ".join(
                 f"{r[m]['mean_pct']:.2f} ± {r[m]['std_pct']:.2f}"
                 + (" ✗" if r[m]["over_failure_line"] else "") for m in methods)
-                + " | " + " | ".join(f"{r[m]['time_ms']:.1f}" for m in methods) + " |"
+                + f" | {_ratio(r)} | "
+                + " | ".join(f"{r[m]['time_ms']:.1f}" for m in methods) + " |"
                 for r in rows]
             md += ["", "Under the 5 % failure line at every level up to: " + "; ".join(
-                f"{m} {_upto(results[target.name]['works_up_to_pct_g'][m])}" for m in methods)
+                f"{LABELS.get(m, m)} {_upto(results[target.name]['works_up_to_pct_g'][m])}"
+                for m in methods)
                 + " (✗: mean over the line)."]
     _emit(out / "noise", "\n".join(md),
           {"trials": trials, "seed": args.seed, "noise_dist": args.noise_dist,
@@ -609,6 +624,17 @@ def cmd_noise(args) -> int:
     plt.close(fig)
     print(f"wrote {out / 'noise.png'}")
     return 0
+
+
+def _ratio(row: dict) -> str:
+    """The default's mean error over the paper's method's, as the table prints it."""
+    g, p = row["global"]["mean_pct"], row["paper"]["mean_pct"]
+    return f"{g / p:.2f}" if p > 0 else "–"
+
+
+def _default_prior() -> str:
+    from host.analysis.estimator.priors import DEFAULT_PRIOR
+    return repr(DEFAULT_PRIOR)
 
 
 def _upto(level) -> str:
@@ -712,7 +738,8 @@ def register(subparsers) -> None:
     nz.add_argument("--trials", type=_int_at_least(1), default=None,
                     help="trials per noise level (default 10; 2 with --quick)")
     nz.add_argument("--target", type=_target_arg, action="append", default=None,
-                    help="model sheet, repeat for several (default: fig9 and fig9-tilted)")
+                    help="model sheet, repeat for several (default: "
+                         + ", ".join(NOISE_TARGETS) + ")")
     nz.add_argument("-q", "--quiet", action="store_true", help="no progress output")
     nz.set_defaults(func=cmd_noise)
 

@@ -490,6 +490,18 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
     }
 }
 
+/* estimator/solver.py's step_converged: whether a step of largest entry smax (the last one's
+ * prev, INFINITY when none; accelerated: the last move was an Anderson one) ends the iteration. */
+static int capsheet_step_converged(double smax, double prev, int32_t accelerated, double tol,
+                                   double predict_within)
+{
+    if (isfinite(prev) && !accelerated && smax < prev && smax < predict_within * tol) {
+        const double rho = smax / prev;
+        return smax * rho < tol * (rho > 0.5 ? 1.0 - rho : 1.0);
+    }
+    return smax < tol;
+}
+
 /* The chord iterations of estimator/solver.py's solve_global for one snapshot on a factorisation
  * kept from before (no damping): see yaw_eval.h. Each iteration: the step −A⁻¹ grad (the
  * supernodal solve on the structure's ordering), the Anderson move when the step reverses the
@@ -555,7 +567,7 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             g_new[p->var_links[k]] += move[k];
         if (it - it0 <= 2)
             steps[it - it0 - 1] = smax;
-        if (smax < c->tol || (smax < ps && isfinite(ps) && !accelerated && smax * smax < c->tol * ps)
+        if (capsheet_step_converged(smax, ps, accelerated, c->tol, c->predict_within)
             || (it == it0 + 1 && c->chain_safety > 0.0
                 && c->chain_safety * fmax(c->chain_rho * smax, c->chain_kappa * smax * smax) < c->tol)) {
             for (k = 0; k < n_links; ++k)
@@ -592,11 +604,6 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
         }
         has_hist = 1;
         accelerated = acc;
-        if (smax < c->tol) {
-            *iterations = it;
-            *cost = cst;
-            return 0;
-        }
         if (smax > c->refactor_ratio * ps) {
             *iterations = it;
             *cost = cst;

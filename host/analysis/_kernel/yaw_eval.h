@@ -110,11 +110,12 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units + 2 n_links
  * doubles. chain_rho, chain_kappa, chain_safety: the contraction the previous snapshot measured on
  * this factorisation (estimator.solver.Contraction); when chain_safety > 0 the first step also
- * converges when chain_safety * max(rho s, kappa s^2) < tol (s its largest entry). steps[0],
+ * converges when chain_safety * max(rho s, kappa s^2) < tol (s its largest entry).
+ * predict_within: estimator.solver.PREDICT_WITHIN (the stopping rule, step_converged). steps[0],
  * steps[1]: the first two steps' largest entries (0 where not taken). */
 typedef struct {
     int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
-    double chain_rho, chain_kappa, chain_safety;
+    double chain_rho, chain_kappa, chain_safety, predict_within;
     const int64_t *perm_inv, *perm_of_var;
     int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
     const int64_t *sn_diag, *sn_below; const float *val; const double *diag;

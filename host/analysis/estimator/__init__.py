@@ -28,13 +28,19 @@ Two methods, same input, same output (`ShapeEstimate`):
       ``A × C`` with ``A``, ``C`` the sums of its two i- and two j-link directions. This is the
       sheet normal a chip on the cloth sees, and it is exact on a Chebyshev net, where eq. (6)
       is not (``model="eq6"`` keeps the paper's assumption, weighted `NORMAL_WEIGHT`);
-    * the prior (``prior="adaptive"``, default): what the data cannot determine is held by
+    * the prior (``prior="level"``, default): what the data cannot determine is held by
       pairs of yaw differences, never by absolute yaws — the bending of the lattice (parallel
-      neighbours) and the corner angle of cells that are level within the noise (the paper's
-      Case 1) — towards the rest shape's (``rest=``; default square cells). Their weights scale
-      with the readings' noise, estimated per snapshot from the spread of ``|s|`` about g, so
-      that noise-free readings meet only a floor and the prior never pulls where the data
-      decide; the target is never the previous estimate, so long runs do not drift.
+      neighbours) where the region is level within the noise, and the corner angle of level
+      cells (the paper's Case 1) — towards the rest shape's (``rest=``; default square cells).
+      Their weights scale with the readings' noise, estimated per snapshot from the spread of
+      ``|s|`` about g, so that noise-free readings meet only a floor and the prior never pulls
+      where the data decide (a draped sheet's lattice lines zigzag in plan: "adaptive", the
+      former default, held the bending everywhere); the target is never the previous
+      estimate, so long runs do not drift.
+
+    Before the yaws, the pitches are made consistent with one height per joint (the z part of
+    eq. 4, one sparse solve: ``pipeline.closed_pitches``), and every roll residual is weighted
+    by ``|cos β|`` of its link (the inverse of its roll's noise).
 
     The normal matrix has a fixed sparsity pattern per lattice, mask and model; pattern,
     fill-reducing ordering and index maps are computed once and cached. Then joints by least
@@ -58,8 +64,9 @@ beside it, which gives the same numbers to rounding; `estimate_batch` always run
 The package, by concern (docs/design.md's layout table lists them too):
 
 ========================  ======================================================================
-`.pipeline`               `estimate`: `.checks`, then angles -> structure -> prior weights ->
-                          solve -> joints and mask, stages `.batch` and `.stateful` share
+`.pipeline`               `estimate`: `.checks`, then angles -> closed pitches -> structure ->
+                          prior weights -> solve -> joints and mask, stages `.batch` and
+                          `.stateful` share
 `.batch`                  `estimate_batch`: many snapshots of one structure solved together
 `.stateful`               `ShapeEstimator`: a stream of snapshots, holding its warm start
 `.checks`                 the checks every entry point makes (options, readings, mask, ...)
@@ -93,8 +100,9 @@ from .linalg import LINEAR_SOLVER
 from .checks import METHODS, MODELS, READING_NORM_RANGE
 from .joints import joints_from_directions
 from .pipeline import estimate
-from .priors import (ABS_PRIOR_FLOOR, BEND_STD_RAD, FIXED_PRIOR_WEIGHT, FLAT_RADIUS,
-                     FLAT_TILT_NOISE, PRIOR_WEIGHT_MIN, PRIORS, SHEAR_WEIGHT, SHEAR_WEIGHT_REST)
+from .priors import (ABS_PRIOR_FLOOR, BEND_STD_RAD, DEFAULT_PRIOR, FIXED_PRIOR_WEIGHT,
+                     FLAT_RADIUS, FLAT_TILT_NOISE, PRIOR_WEIGHT_MIN, PRIORS, SHEAR_WEIGHT,
+                     SHEAR_WEIGHT_REST)
 from .result import ShapeEstimate, Solution
 from .solver import BATCH_MAX_ITER, BATCH_REFACTOR, MAX_ITER, YAW_TOL_NOISE, YAW_TOL_RAD
 from .stateful import ShapeEstimator
@@ -109,7 +117,8 @@ __all__ = [
     # comparing shapes (host.analysis.metrics)
     "overlay", "overlay_error", "error_percent_of_side",
     # choices and constants (values at import; set a tunable on its module)
-    "METHODS", "MODELS", "PRIORS", "G0", "READING_NORM_RANGE", "USE_KERNEL", "LINEAR_SOLVER",
+    "METHODS", "MODELS", "PRIORS", "DEFAULT_PRIOR", "G0", "READING_NORM_RANGE", "USE_KERNEL",
+    "LINEAR_SOLVER",
     "YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "BATCH_MAX_ITER", "BATCH_REFACTOR",
     "NORMAL_WEIGHT", "ROLL_WEIGHT", "ABS_PRIOR_FLOOR", "FIXED_PRIOR_WEIGHT", "BEND_STD_RAD",
     "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN",

@@ -10,21 +10,28 @@ from .angles import G0
 from .checks import (READING_NORM_RANGE, check_int, check_noise_pct_g, check_options,
                      check_previous)
 from .joints import joints_and_mask
-from .pipeline import WarmStart, estimate, link_angles, link_solvability, noise_and_priors
+import host.analysis.estimator.pipeline as pipeline  # CLOSE_PITCHES, read at call time
+from .pipeline import (WarmStart, closed_pitches, estimate, link_angles, link_solvability,
+                       noise_and_priors)
+from .priors import DEFAULT_PRIOR
 from .result import ShapeEstimate, Solution
 from .solver import solve_global_batch
 from .structure import lattice_of, structure_of
 
-__all__ = ["estimate_batch"]
+__all__ = ["estimate_batch", "GROUPED"]
+
+#: The priors whose weights `estimate_batch` computes for a whole group at once (the others'
+#: snapshots go to `estimate` one at a time).
+GROUPED = ("level", "adaptive", "off")
 
 def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: float,
                    valid: np.ndarray | None = None, previous: ShapeEstimate | None = None, *,
                    noise_pct_g: float = 1.0, bad_readings: str = "raise",
-                   batch: int = 32) -> list[ShapeEstimate]:
+                   batch: int = 32, prior: str = DEFAULT_PRIOR) -> list[ShapeEstimate]:
     """Estimate a sequence of snapshots, many at a time: what an offline run wants.
 
     The result is what ``estimate(readings[k], ..., previous=result[k - 1])`` in a loop gives
-    (``method="global"``, ``model="cells"``, ``prior="adaptive"``), to the solver's tolerance:
+    (``method="global"``, ``model="cells"``, the same ``prior``), to the solver's tolerance:
     the same cost is minimised with the same stopping rule, but ``batch`` consecutive snapshots
     are solved together — every snapshot of a group starts from the estimate before the group
     (without ``previous``, the first snapshot is estimated alone and the rest start there),
@@ -42,8 +49,9 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
         Per snapshot (or for all) the links present. Default: all.
     previous : ShapeEstimate, optional
         The estimate before the first snapshot (warm start), as in `estimate`.
-    noise_pct_g, bad_readings
-        As in `estimate`.
+    noise_pct_g, bad_readings, prior
+        As in `estimate` (default prior `DEFAULT_PRIOR`). The priors "fixed" and "local" are
+        estimated one snapshot at a time (by `estimate`), the others in groups.
     batch : int
         Snapshots solved together (>= 1).
 
@@ -61,7 +69,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
     rows = check_int("rows", rows, 2)
     cols = check_int("cols", cols, 2)
     batch = check_int("batch", batch, 1)
-    check_options(bad_readings=bad_readings)
+    check_options(prior=prior, bad_readings=bad_readings)
     # the group's estimates carry it without `estimate` seeing it: checked here, once
     noise_pct_g = check_noise_pct_g(noise_pct_g)
     lat = lattice_of(rows, cols)
@@ -85,7 +93,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
         if V.shape != (S, n):
             raise ValueError(f"Expected `valid` to have shape ({S}, {n}) or ({n},), got "
                              f"{V.shape}.")
-    kw = dict(noise_pct_g=noise_pct_g, bad_readings=bad_readings)
+    kw = dict(noise_pct_g=noise_pct_g, bad_readings=bad_readings, prior=prior)
     # the checks `estimate` makes (it raises what is wrong; its messages name the links)
     if previous is not None:
         check_previous(previous, n, rows, cols)
@@ -112,7 +120,7 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
         clean = np.all(np.isfinite(r), axis=2) & (norm >= lo) & (norm <= hi)
         mask0 = v[0]
         fast = np.all(v == mask0, axis=1) & np.all(clean | ~mask0, axis=1) & mask0.any()
-        if not (isinstance(L, float) and np.isfinite(L) and L > 0):
+        if not (isinstance(L, float) and np.isfinite(L) and L > 0) or prior not in GROUPED:
             fast[:] = False  # `estimate` says what is wrong with it
         if prev is None and fast[0]:  # a cold start is one snapshot's job; the rest start there
             out[s0] = prev = _one(s0, r[0], v[0], None)
@@ -123,7 +131,9 @@ def estimate_batch(readings: np.ndarray, rows: int, cols: int, link_length: floa
             st = structure_of(rows, cols, mask, "cells")
             # the stages `estimate` runs (host.analysis.estimator.pipeline), on the group at once
             rr, alpha, beta, _ = link_angles(r[idx], mask0, mask)
-            _, prior_w, bend_w, tol = noise_and_priors("adaptive", st, rr, norm[idx], mask0, False)
+            if pipeline.CLOSE_PITCHES:
+                beta, _ = closed_pitches(st, alpha, beta)
+            _, prior_w, bend_w, tol = noise_and_priors(prior, st, rr, norm[idx], mask0, False)
             target = st.rest_yaw
             chain = WarmStart.of(prev)
             warm = chain.covering(mask0)

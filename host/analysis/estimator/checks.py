@@ -9,7 +9,7 @@ from typing import NamedTuple
 import numpy as np
 
 from .angles import G0
-from .priors import PRIORS
+from .priors import DEFAULT_PRIOR, PRIORS
 from .result import ShapeEstimate
 from .structure import lattice_of
 
@@ -81,7 +81,7 @@ class Options(NamedTuple):
     paper_options: object
 
 
-def check_options(method="global", model="cells", prior="adaptive", noise_pct_g=1.0,
+def check_options(method="global", model="cells", prior=DEFAULT_PRIOR, noise_pct_g=1.0,
                   bad_readings="raise", paper_options=None) -> Options:
     """`estimate`'s options checked (ValueError naming what is wrong), as an `Options`
     (``noise_pct_g`` is checked by `check_noise_pct_g`)."""

@@ -11,23 +11,29 @@ import numpy as np
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 import host.analysis.estimator.solver as solver  # YAW_TOL_*, read at call time
-from .angles import angles_of, roll_pitch_trig, solvability, solvability_from_trig
+from .angles import (angle_trig, angles_of, roll_pitch_trig, solvability,
+                     solvability_from_trig)
 from .checks import (Options, Snapshot, check_int, check_link_length, check_noise_pct_g,
                      check_options, check_previous, check_readings, rest_yaws)
 from .joints import joints_and_mask
-from .priors import prior_weights
+from .priors import DEFAULT_PRIOR, prior_weights
 from .result import ShapeEstimate, Solution
 from .solver import solve_global
 from .structure import structure_of
 
-__all__ = ["estimate", "WarmStart", "link_angles", "noise_and_priors", "solve_snapshot",
-           "link_solvability", "paper_snapshot"]
+__all__ = ["estimate", "WarmStart", "link_angles", "closed_pitches", "CLOSE_PITCHES",
+           "noise_and_priors", "solve_snapshot", "link_solvability", "paper_snapshot"]
+
+#: Whether the global method first makes the links' pitches consistent with one height per joint
+#: (`closed_pitches`: the z part of loop closure, eq. 4), before the yaws are solved with them.
+#: False gives the estimator as it was before (docs/estimator.md §3 measures both).
+CLOSE_PITCHES = True
 
 
 def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
              valid: np.ndarray | None = None, previous: ShapeEstimate | None = None,
              method: str = "global", *, rest=None, model: str = "cells",
-             prior: str = "adaptive", noise_pct_g: float = 1.0,
+             prior: str = DEFAULT_PRIOR, noise_pct_g: float = 1.0,
              bad_readings: str = "raise", paper_options=None) -> ShapeEstimate:
     """Estimate the sheet's shape from one snapshot of readings.
 
@@ -60,14 +66,15 @@ def estimate(readings: np.ndarray, rows: int, cols: int, link_length: float,
         The normal model (global method): ``"cells"`` (default) — every link's sensor z is the
         mean normal of its cells, each ``A × C`` of the cell's mean i- and j-link (exact on a
         Chebyshev net, docs/estimator.md); ``"eq6"`` — the paper's normal assumption (eq. 6).
-    prior : {"adaptive", "level", "off", "fixed", "local"}
-        What fills in what the data cannot determine (`PRIORS`; docs/estimator.md measures
-        them): "adaptive" (default) holds the bending of the lattice and the shear of level
-        cells, with weights that scale with the readings' noise (noise-free readings: only a
-        floor), so that it does not pull where the data decide; "level" holds the bending
-        only where the region is level (unbiased on a drape, whose lattice lines turn in
-        plan; noisier on nets whose lines run straight); "off" keeps only the floors (the data
-        alone); "fixed" and "local" are the alternatives it was measured against.
+    prior : {"level", "adaptive", "off", "fixed", "local"}
+        What fills in what the data cannot determine (`PRIORS`; docs/estimator.md §3 measures
+        them): "level" (default) holds the bending of the lattice only where the region is
+        level, and the shear of level cells, with weights that scale with the readings' noise
+        (noise-free readings: only a floor), so that it does not pull where the data decide
+        (unbiased on a drape, whose lattice lines zigzag in plan); "adaptive" (the default
+        before) holds the bending everywhere (less noisy on nets whose lines run straight,
+        biased on a drape); "off" keeps only the floors (the data alone); "fixed" and "local"
+        are older alternatives.
     noise_pct_g : float
         The reading noise (per axis, % of g) that `ShapeEstimate.yaw_std` and ``joint_std`` are
         stated for. Does not change the estimate.
@@ -201,6 +208,29 @@ def link_angles(r: np.ndarray, valid: np.ndarray, mask):
     return rr, alpha, beta, None
 
 
+def closed_pitches(st, alpha, beta, trig=None):
+    """The pitches made consistent with one height per joint: (beta, trig).
+
+    A link's height step is ``−L sin β`` whatever its yaw, and around every cell the steps sum
+    to zero (the z part of eq. 4). Noisy pitches break that; the heights that fit them best by
+    least squares (``min Σ (z_b − z_a + L sin β)²``, the joints' Laplacian, factorised once per
+    structure) satisfy it, and each valid link's pitch becomes ``asin`` of its fitted step. This
+    removes the part of the pitch noise that no sheet can have (about half of it) before the
+    yaws are solved with those pitches: the yaw problem's coefficients (``cos β``, the cells'
+    normals) are then less noisy. A link in no closed loop keeps its pitch. One snapshot
+    (``beta`` (n_links,)) or a batch of one structure (B, n_links); ``trig`` (one snapshot, the
+    kernel's table) is rebuilt from the new pitches."""
+    vl = st.valid_links
+    dz = -np.sin(beta[..., vl])
+    z = st.lap_lu.solve(np.ascontiguousarray((st.incidence_T @ dz.T)))
+    step = (st.incidence @ z).T  # (..., n_valid): z_b - z_a of every valid link
+    out = beta.copy()
+    out[..., vl] = np.arcsin(np.clip(-step, -1.0, 1.0))
+    if trig is not None:
+        trig = angle_trig(alpha, out)
+    return out, trig
+
+
 def noise_and_priors(prior: str, st, rr, norm_g, valid, rest_given: bool):
     """The readings' noise σ (per axis, fraction of g: the RMS of ``|s|/g − 1`` over the valid
     links — white noise of σ per axis moves ``|s|`` by σ; a static sheet reads exactly g), the
@@ -227,6 +257,8 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     t0 = time.perf_counter() if t0 is None else t0
     rows, cols = st.rows, st.cols
     rr, alpha, beta, trig = link_angles(snap.readings, snap.valid, snap.mask)
+    if CLOSE_PITCHES:
+        beta, trig = closed_pitches(st, alpha, beta, trig)
     t1 = time.perf_counter()
     target = st.rest_yaw if rest_yaw is None else rest_yaw
     chain, warm = warm, warm.covering(snap.valid)

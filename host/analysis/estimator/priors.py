@@ -10,18 +10,22 @@ from .kernel import ffi as _kffi, lib as _klib
 from .angles import G0
 from .structure import units_int64
 
-__all__ = ["PRIORS", "FIXED_PRIOR_WEIGHT", "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT",
-           "SHEAR_WEIGHT_REST", "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness",
-           "link_flatness", "prior_weights"]
+__all__ = ["PRIORS", "DEFAULT_PRIOR", "LEVEL_TILTED_SHARE", "FIXED_PRIOR_WEIGHT",
+           "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST",
+           "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness", "link_flatness",
+           "prior_weights", "bridging_pairs"]
 
-#: The priors `estimate` offers (docs/estimator.md compares them): "adaptive" (default) —
-#: bending + flat-cell shear, both scaled by the readings' noise; "level" — the same with the
-#: bending held only where the region is level: unbiased on a sheet
-#: whose lattice lines turn in plan (a drape), noisier on nets whose lines run straight; "off" —
+#: The priors `estimate` offers (docs/estimator.md §3 compares them): "level" (default) —
+#: bending held only where the region is level, plus flat-cell shear, both scaled by the
+#: readings' noise: unbiased on a sheet whose lattice lines turn in plan (a drape, the paper's
+#: own experiment); "adaptive" (the default before) — the bending held everywhere, biased
+#: where lattice lines turn in plan; "off" —
 #: only the floors that keep the problem regular (the data alone); "fixed" — the former prior,
 #: ``FIXED_PRIOR_WEIGHT`` on every yaw towards the rest; "local" — that yaw prior weighted by
 #: the cell's flatness.
-PRIORS = ("adaptive", "level", "off", "fixed", "local")
+PRIORS = ("level", "adaptive", "off", "fixed", "local")
+#: The prior `estimate`, `estimate_batch` and `ShapeEstimator` use unless told (``prior=``).
+DEFAULT_PRIOR = "level"
 #: Weight of the "fixed"/"local" priors on ``wrap(γ − γ_rest)²`` (the estimator's former prior).
 FIXED_PRIOR_WEIGHT = 1e-2
 #: Least weight of the yaw prior towards the rest yaws (keeps a link without constraints defined).
@@ -39,6 +43,12 @@ SHEAR_WEIGHT_REST = 1e-2
 FLAT_TILT_NOISE = 3.0
 #: ... averaged over (2 FLAT_RADIUS + 1)² cells around it.
 FLAT_RADIUS = 3
+#: "level": the share of the bending weight a pair keeps however tilted its region. Small enough
+#: not to pull a drape's zigzag (0.01 did: the drape 0.64 -> 1.02 % of side at 5 % g), large
+#: enough to hold the smooth modes the data hold weakly on a compass net, which otherwise made
+#: the chord steps contract so slowly that a 64x64 stream refactorised every 4-5 snapshots
+#: (26 -> 9 ms per snapshot; docs/estimator.md §3 has the sweep).
+LEVEL_TILTED_SHARE = 0.003
 #: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
 PRIOR_WEIGHT_MIN = 1e-8
 
@@ -94,23 +104,51 @@ def link_flatness(st, h):
     return acc / np.maximum(cnt, 1.0)
 
 
+def bridging_pairs(st) -> np.ndarray:
+    """Per bending pair (n_bend,), 1.0 where its two links are in different islands of the yaw
+    problem's data terms, else 0.0 (cached on the structure).
+
+    An island: links joined through active units (those with no missing link); a link in no
+    active unit is an island of its own. Loop closure and the cells' normals relate the yaws of
+    one island only, so each further island's rotation is free in the data: the "level" prior
+    holds the pairs that join islands as "adaptive" does, whatever their tilt. Without missing
+    links there is one island and no such pair."""
+    got = st.__dict__.get("_bridging_pairs")
+    if got is None:
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        u = st.units
+        a = np.repeat(u[:, :1], 3, axis=1).ravel()
+        b = u[:, 1:].ravel()
+        g = coo_matrix((np.ones(a.size), (a, b)), shape=(st.n_links, st.n_links))
+        comp = connected_components(g, directed=False)[1]
+        pb = st.pairs[:st.n_bend]
+        got = st._bridging_pairs = (comp[pb[:, 0]] != comp[pb[:, 1]]).astype(float)
+    return got
+
+
 def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     """(per-variable yaw-prior weights (nv,), per-pair weights (n_pairs,)) for ``prior``.
 
     "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
     unit's `flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
-    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `link_flatness`; "off": floors only; "fixed":
+    pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `link_flatness` (1 for a
+    pair that joins islands of the data, `bridging_pairs`; at least `LEVEL_TILTED_SHARE`);
+    "off": floors only; "fixed":
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
-    lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("adaptive" only)
+    lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("level", "adaptive" only)
     w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
     if prior in ("adaptive", "level"):
         hu = flatness(st, r, norm_g, noise)
         bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
-        if prior == "level":  # a pair is held as much as its flatter link's units are level
-            bend = bend * link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+        if prior == "level":  # a pair is held as much as its flatter link's units are level,
+            # and wholly where it joins what no unit relates (`bridging_pairs`)
+            h = link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+            bend = bend * np.maximum(np.maximum(h, bridging_pairs(st)), LEVEL_TILTED_SHARE)
         w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
         w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)

@@ -9,6 +9,7 @@ import numpy as np
 from .checks import (Options, check_int, check_link_length, check_noise_pct_g, check_options,
                      check_readings, rest_yaws)
 from .pipeline import WarmStart, paper_snapshot, solve_snapshot
+from .priors import DEFAULT_PRIOR
 from .result import ShapeEstimate
 from .structure import lattice_of, structure_of
 
@@ -44,7 +45,7 @@ class ShapeEstimator:
     """
 
     def __init__(self, rows: int, cols: int, link_length: float, *, method: str = "global",
-                 rest=None, model: str = "cells", prior: str = "adaptive",
+                 rest=None, model: str = "cells", prior: str = DEFAULT_PRIOR,
                  noise_pct_g: float = 1.0, bad_readings: str = "raise", paper_options=None):
         opts = check_options(method, model, prior, noise_pct_g, bad_readings, paper_options)
         self.rows = check_int("rows", rows, 2)

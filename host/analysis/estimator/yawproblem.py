@@ -16,13 +16,21 @@ from .linalg import factorise, solve
 from .priors import ABS_PRIOR_FLOOR
 from .structure import KERNEL_INDEX_FIELDS, Structure
 
-__all__ = ["NORMAL_WEIGHT", "ROLL_WEIGHT", "YawProblem"]
+__all__ = ["NORMAL_WEIGHT", "ROLL_WEIGHT", "YawProblem", "roll_weights"]
 
 #: Weight of the normal-assumption residuals (eq. 6) relative to the loop closure (eq. 4).
 NORMAL_WEIGHT = 0.2
 #: Weight of the roll residuals (model "cells") relative to the loop closure (eq. 4); measured
 #: best at 5 % g among 0.03-3 (docs/estimator.md).
 ROLL_WEIGHT = 0.3
+
+
+def roll_weights(st, beta) -> np.ndarray:
+    """The roll residuals' weights (..., K): `ROLL_WEIGHT` over the link's number of cells, times
+    ``|cos β|`` of the link. A roll residual's noise is its roll's, and a reading's roll
+    ``atan2(s_y, s_z)`` has the standard deviation σ / cos β (σ per axis, in g): each residual
+    weighted by the inverse of its noise (docs/estimator.md §2 has the sweep)."""
+    return ROLL_WEIGHT * st.roll_inv_ncell * np.abs(np.cos(beta[..., st.roll_links]))
 
 
 # eq. (4): d0 + d1 - d2 - d3 = 0;  eq. (6): n0 - n1 + n2 - n3 = 0  (Lattice.units numbering)
@@ -89,7 +97,7 @@ class YawProblem:
 
     #: per-snapshot attributes and their number of axes without the batch axis (`take`)
     _PER_SNAPSHOT = {"c_loop": 2, "c_n": 2, "Az": 1, "Cz": 1, "y_c": 1, "y_z": 1, "lam": 1,
-                     "lam_b": 1}
+                     "lam_b": 1, "w": 1}
 
     def __init__(self, st: Structure, alpha, beta, target, prior_w, bend_w, trig=None):
         self.st = st
@@ -120,7 +128,7 @@ class YawProblem:
             self.Cz = -(sbu[..., 0] + sbu[..., 2])  # z of its j-link sum C
             self.y_c = (sb[..., k] * sa[..., k] + 1j * ca[..., k])  # sensor y, xy before the yaw
             self.y_z = cb[..., k] * sa[..., k]
-            self.w = ROLL_WEIGHT * st.roll_inv_ncell
+            self.w = roll_weights(st, beta)
 
     def _coeffs_kernel(self, alpha, beta, trig=None):
         """`__init__`'s yaw-free coefficients (model "cells", one snapshot) in the kernel;
@@ -138,7 +146,7 @@ class YawProblem:
                                   fb("double[]", self.Az), fb("double[]", self.Cz),
                                   fb("double[]", self.y_c.view(np.float64)),
                                   fb("double[]", self.y_z))
-        self.w = ROLL_WEIGHT * st.roll_inv_ncell
+        self.w = roll_weights(st, beta)
 
     def take(self, idx):
         """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
@@ -213,7 +221,7 @@ class YawProblem:
         return cost, grad[:st.n_var], None
 
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
-                     chain=None, chain_safety=0.0):
+                     chain=None, chain_safety=0.0, predict_within=3.0):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
@@ -232,6 +240,7 @@ class YawProblem:
         c = _kffi.new("capsheet_chord_t *")
         c.n_links, c.max_iter, c.tol = gamma.size, max_iter, float(tol)
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
+        c.predict_within = predict_within
         if chain is not None:
             c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, float(chain_safety)
         pi = np.ascontiguousarray(st.perm_inv, np.int64)
@@ -349,7 +358,7 @@ class YawProblem:
         J = np.empty(lead + (K, 7))
         sidx = st.roll_idx_self
         J[..., 0] = w * ((yc * Nxy).imag + flat[..., sidx[:, 0]] + flat[..., sidx[:, 1]])
-        J[..., 1:] = w[:, None] * flat[..., st.roll_idx_oth]
+        J[..., 1:] = w[..., None] * flat[..., st.roll_idx_oth]
         return J, res
 
     def _roll_grad(self, z, t):

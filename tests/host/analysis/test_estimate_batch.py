@@ -74,12 +74,14 @@ def test_batch_on_a_stale_factorisation_does_not_stop_early():
     """A `previous` whose factorisation was made at the rest layout (its cold start converged on
     that one factorisation): the shared chord steps then contract some snapshots slowly and
     unevenly (0.074, 0.78, 0.096 for one of them), and a stopping rule that trusted the last
-    contraction stopped 1.3e-3 rad short (0.12 % of side)."""
+    contraction stopped 1.3e-3 rad short (0.12 % of side). The factorisation is the former
+    default prior's ("adaptive"): its cold start converges on the one made at the rest layout,
+    where the default's takes a second one nearer the shape."""
     n = 32
     r0 = ideal_readings(make_sheet("gaussian", n, n, L))
     g = rng(1)
     R = np.stack([noisy_readings(r0, 1.0, g) for _ in range(128)])
-    first = estimate(R[-1], n, n, L)
+    first = estimate(R[-1], n, n, L, prior="adaptive")
     assert first.factorisations == 1  # the case: its factorisation is the cold start's
     out = estimate_batch(R[:16], n, n, L, previous=first, batch=16)
     ref = exact(R[:16], n, previous=first)

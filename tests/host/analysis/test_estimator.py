@@ -505,10 +505,11 @@ def test_splu_fallback_and_cholmod_give_the_same_estimate(monkeypatch):
     E.structure.cached_structure.cache_clear()
 
 
-def test_the_level_prior_is_unbiased_on_a_drape_where_the_default_is_not():
-    """A sheet laid over a bump (the paper's Fig. 9 drape: its lattice lines turn in plan): the
-    default prior's bending term pulls the tilted region's yaws (docs/estimator.md section 3);
-    "level" holds the bending only where the region is level. Truth: the spring-mass drape."""
+def test_the_level_prior_is_unbiased_on_a_drape_where_the_adaptive_one_is_not():
+    """A sheet laid over a bump (the paper's Fig. 9 drape: its lattice lines zigzag in plan): the
+    "adaptive" prior's bending term (the former default) pulls the tilted region's yaws
+    (docs/estimator.md section 3); "level", the default, holds the bending only where the region
+    is level. Truth: the spring-mass drape."""
     from host.cli.paper import build_target
 
     t = build_target("fig9")
@@ -520,9 +521,9 @@ def test_the_level_prior_is_unbiased_on_a_drape_where_the_default_is_not():
         for p in err:
             est = estimate(r, n, n, 0.01, prior=p)
             err[p].append(error_percent_of_side(est.joints, t.joints, 0.01).mean())
-    level, default = np.mean(err["level"]), np.mean(err["adaptive"])
+    level, adaptive = np.mean(err["level"]), np.mean(err["adaptive"])
     assert level <= 0.3, err  # the paper's method reaches 0.27 % of side here (section 7.4)
-    assert level <= 0.5 * default, err
+    assert level <= 0.5 * adaptive, err
 
 
 def test_joints_from_directions_rebuilds_a_sheet_from_its_exact_link_directions():

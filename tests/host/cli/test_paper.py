@@ -22,7 +22,8 @@ def test_paper_subcommand_writes_png_and_tables(figure, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "|" in out  # the table is printed
     if figure == "noise":
-        assert set(data["targets"]) == {"fig9", "fig9-tilted"}  # Fig. 9's target and the second
+        # Fig. 9's target, the tilted one and the compass-built net
+        assert set(data["targets"]) == {"fig9", "fig9-tilted", "fig9-compass"}
         assert data["trials"] == 2 and data["paper_options"]["select"] == "first"
         for t in data["targets"].values():
             rows = t["rows"]
