@@ -477,3 +477,7 @@ def test_the_reach_check_sees_what_it_looks_for(tmp_path):
     assert foreign_reach_offenders(tmp_path) == [
         "host/a.py:7: other._x", "host/a.py:8: argparse._ArgumentGroup", "host/a.py:9: b._state",
         "host/a.py:10: m._value2member_map_", "host/a.py:16: from .b import _helper"]
+
+
+def test_no_module_reaches_into_another_objects_or_a_librarys_private_names():
+    assert foreign_reach_offenders() == []

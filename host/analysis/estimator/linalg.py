@@ -40,10 +40,9 @@ def factorise(st: "Structure", A, sweeps: bool = True):
     the fixed ordering, or CHOLMOD with its symbolic analysis (METIS) cached per structure."""
     if backend() == "cholmod":
         cm = cholmod_module()
-        sym = getattr(st, "_cholmod_sym", None)
+        sym = st.derived.get("cholmod_sym")
         if sym is None:
-            sym = cm.analyze(A, mode="supernodal", ordering_method="metis")
-            st._cholmod_sym = sym
+            sym = st.derived["cholmod_sym"] = cm.analyze(A, mode="supernodal", ordering_method="metis")
         return ("cholmod", sym.cholesky(A))
     lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
@@ -67,11 +66,11 @@ def _triangular(lu, st=None):
     L = lu.L
     ptr = np.ascontiguousarray(L.indptr, np.int32)
     idx = np.ascontiguousarray(L.indices, np.int32)
-    sym = getattr(st, "_ldl_symbolic", None)
+    sym = st.derived.get("ldl_symbolic") if st is not None else None
     if sym is None or not (np.array_equal(sym["l_ptr"], ptr) and np.array_equal(sym["l_idx"], idx)):
         sym = _ldl_symbolic(n, ptr, idx)
         if st is not None:
-            st._ldl_symbolic = sym
+            st.derived["ldl_symbolic"] = sym
     fb = _kffi.from_buffer
     val = np.zeros(sym["n_val"], np.float32)
     diag = np.ascontiguousarray(lu.U.diagonal(), np.float64)

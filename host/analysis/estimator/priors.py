@@ -113,7 +113,7 @@ def bridging_pairs(st) -> np.ndarray:
     one island only, so each further island's rotation is free in the data: the "level" prior
     holds the pairs that join islands as "adaptive" does, whatever their tilt. Without missing
     links there is one island and no such pair."""
-    got = st.__dict__.get("_bridging_pairs")
+    got = st.derived.get("bridging_pairs")
     if got is None:
         from scipy.sparse import coo_matrix
         from scipy.sparse.csgraph import connected_components
@@ -124,7 +124,7 @@ def bridging_pairs(st) -> np.ndarray:
         g = coo_matrix((np.ones(a.size), (a, b)), shape=(st.n_links, st.n_links))
         comp = connected_components(g, directed=False)[1]
         pb = st.pairs[:st.n_bend]
-        got = st._bridging_pairs = (comp[pb[:, 0]] != comp[pb[:, 1]]).astype(float)
+        got = st.derived["bridging_pairs"] = (comp[pb[:, 0]] != comp[pb[:, 1]]).astype(float)
     return got
 
 

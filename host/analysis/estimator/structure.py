@@ -35,6 +35,10 @@ class Structure:
     def __init__(self, rows: int, cols: int, valid: np.ndarray, model: str):
         lat = Lattice(rows, cols)
         self.lattice = lat
+        #: what later stages derive from the structure and keep with it, by name (the symbolic
+        #: analysis of its factorisation, the kernel's arrays, the prior's bridging pairs, ...):
+        #: made once per structure, read by the stage that made it
+        self.derived: dict = {}
         self.rows, self.cols = rows, cols
         self.model = model
         n = lat.n_links
@@ -245,7 +249,7 @@ KERNEL_INDEX_FIELDS = ("units", "unit_var", "roll_links", "roll_c0", "roll_c1", 
 def kernel_arrays(st: "Structure") -> dict:
     """The structure's arrays as the kernel reads them (int64/float64, contiguous) with their
     cffi pointers, and a work buffer (one snapshot at a time uses it): made once, kept on ``st``."""
-    ka = st.__dict__.get("_kernel")
+    ka = st.derived.get("kernel")
     if ka is not None:
         return ka
     src = {"units": st.units, "unit_var": st.unit_var, "roll_links": st.roll_links,
@@ -259,7 +263,7 @@ def kernel_arrays(st: "Structure") -> dict:
     ka["roll_ws1"] = (a, _kffi.from_buffer("double[]", a))
     ka["sizes"] = (st.n_units, st.roll_links.size, st.pairs.shape[0], st.n_var)
     ka["work"] = np.empty(19 * max(st.n_units, 1) + 2 * st.n_links)
-    st._kernel = ka
+    st.derived["kernel"] = ka
     return ka
 
 

@@ -105,9 +105,9 @@ class YawProblem:
         self.lam = prior_w  # (nv,) prior weight per variable
         self.abs_prior = bool(np.any(prior_w > ABS_PRIOR_FLOOR))
         if target is st.rest_yaw:  # the default target: its pair differences once per structure
-            pt = st.__dict__.get("_rest_pair_t")
+            pt = st.derived.get("rest_pair_t")
             if pt is None:
-                pt = st._rest_pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
+                pt = st.derived["rest_pair_t"] = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
             self.pair_t = pt
         else:
             self.pair_t = _wrap(target[st.pairs[:, 0]] - target[st.pairs[:, 1]])
