@@ -44,8 +44,8 @@ N = 14
 L = 0.01
 SHEARS = (0.0, 0.1, 0.2, 0.3)
 NOISES = (0.0, 0.3, 5.0)
-TARGETS = {0.0: 0.1, 0.3: 0.2, 5.0: 1.0}  #: issue 13: mean error bound, % of side, per noise % g
-GOAL_NOISE_FREE = 0.02  #: issue 13's goal for the noise-free floor, % of side
+TARGETS = {0.0: 0.1, 0.3: 0.2, 5.0: 1.0}  #: mean error bound, % of side, per noise % g
+GOAL_NOISE_FREE = 0.02  #: the goal for the noise-free floor, % of side
 COLUMNS = {"default": {}, "adaptive": {"prior": "adaptive"}, "off": {"prior": "off"},
            "fixed": {"prior": "fixed"}, "local": {"prior": "local"}, "eq6": {"model": "eq6"}}
 

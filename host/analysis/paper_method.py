@@ -25,7 +25,7 @@ start, and the comparisons quote them beside the defaults.
   tree (row 0, then down every column), link yaws averaged as in ``"sync"``. ``"chain"``: units
   solved one after another from unit ``(0, 0)`` (anti-diagonal by anti-diagonal), each taking
   the yaws of the links it shares with units already solved as fixed (so an inner unit solves two
-  yaws, not three) — capsheet's implementation before issue 33.
+  yaws, not three) — capsheet's first implementation.
 * ``starts`` — the initial values: ``"parallelogram"`` (default): parallelogram unit shapes
   with the corner angle between links 3 and 0 at ``n_starts`` values evenly spread over the
   circle (6: 60° apart), the square cell first; ``"random"``: ``n_starts`` uniformly random yaw

@@ -90,7 +90,7 @@ def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=
 
 
 # ---------------------------------------------------------------------------------------------
-# The joints-from-directions step alone (issue 30: the per-link filters and the fused estimator of
+# The joints-from-directions step alone (the per-link filters and the fused estimator of
 # host/analysis/motion/ place their joints with it, as `estimate` does)
 # ---------------------------------------------------------------------------------------------
 

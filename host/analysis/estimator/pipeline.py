@@ -295,7 +295,7 @@ def link_solvability(alpha, beta, trig, rows: int, cols: int) -> np.ndarray:
 
 def paper_snapshot(snap: Snapshot, rows: int, cols: int, L: float, opts: Options, t0: float
            ) -> ShapeEstimate:
-    """``method="paper"``: host.analysis.paper_method (issue 33) on the checked snapshot."""
+    """``method="paper"``: host.analysis.paper_method on the checked snapshot."""
     from .. import paper_method
 
     _, alpha, beta, trig = link_angles(snap.readings, snap.valid, snap.mask)

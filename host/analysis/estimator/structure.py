@@ -313,7 +313,7 @@ def structure_of(rows: int, cols: int, valid: np.ndarray | None, model: str = "c
     A structure with its factorisation is ~1.1 MB at 14x14. A live host estimates the newest
     snapshot, and on a loaded machine an incomplete one now and then, each missing another link:
     one cache of 16 for every mask kept 16 such one-off structures (~18 MB) and, replacing them,
-    fragmented the heap — the host's resident size crept up by megabytes in a soak run (issue 34).
+    fragmented the heap — the host's resident size crept up by megabytes in a soak run.
     So masks have a cache of their own, of the `MASKED_KEPT` newest: a chip that stays missing
     repeats its mask (the warm start reuses the structure's factorisation), one-offs go soon.
     """

@@ -7,7 +7,7 @@ white noise from `virtual_sheet.sensor.noisy_readings` (seeded MT19937). Metric:
 (section 3.3) — mean per-joint distance after a least-squares rigid overlay, in % of the side
 length (cols-1)*L (`host.estimator.error_percent_of_side`), averaged over a few trials.
 
-Bounds are issue 13's targets (not measured values): <= 0.1 % noise-free (goal 0.02 %, asserted on
+Bounds are the targets (not measured values): <= 0.1 % noise-free (goal 0.02 %, asserted on
 the Gaussian, sphere cap and saddle), <= 0.2 % at 0.3 % g, <= 1.0 % at 5 % g, for every built-in
 shape x shear {0, 0.1, 0.2, 0.3}. The tests use 2 noisy trials per case to keep the suite short;
 benchmarks/bench_accuracy.py runs the full 10-trial table (JSON).
@@ -30,7 +30,7 @@ ROWS = COLS = 14
 L = 0.01
 TRIALS = 2
 SHEARS = (0.0, 0.1, 0.2, 0.3)
-BOUND = {0.0: 0.1, 0.3: 0.2, 5.0: 1.0}  # issue 13, % of side per noise level (% g)
+BOUND = {0.0: 0.1, 0.3: 0.2, 5.0: 1.0}  # the targets, % of side per noise level (% g)
 
 
 def rng(seed: int = 42) -> np.random.Generator:
@@ -62,7 +62,7 @@ def mean_error(P: np.ndarray, noise_pct_g: float, trials: int = TRIALS, seed: in
     return float(np.mean(errs))
 
 
-# --- accuracy: every built-in shape x shear x noise (issue 13's targets) ------------------------
+# --- accuracy: every built-in shape x shear x noise (the targets) ------------------------
 
 CURVED = ("tilted", "gaussian", "sphere", "cylinder", "saddle", "heightmap")
 
@@ -245,7 +245,7 @@ def test_solvability_equals_svd_of_the_eq7_matrix():
 # --- angles, overlay ------------------------------------------------------------------------------
 
 def test_roll_pitch_is_the_one_of_the_protocol():
-    # one definition (issue 26): the estimator and the simulator use protocol.frames's
+    # one definition: the estimator and the simulator use protocol.frames's
     from protocol.frames import roll_pitch as defined
     assert E.roll_pitch is defined and roll_pitch is defined
 
