@@ -1,4 +1,5 @@
-"""Shared pytest configuration. Hypothesis: a CI profile that is deterministic and bounded."""
+"""Shared pytest configuration. Hypothesis: a CI profile that is deterministic and bounded. The
+order of the session: the long tests first (see `pytest_collection_modifyitems`)."""
 
 import os
 
@@ -29,3 +30,36 @@ def _chip_class_params():
 def chip_class(request):
     """The chip implementation under test: the Python model, then the C firmware (cffi)."""
     return request.param
+
+
+#: Test files whose tests take seconds to a minute each (real processes, ptys and buses, runs of a
+#: fixed duration), in the order they start. ``make test`` spreads the session over two workers
+#: (pytest-xdist, ``--dist loadgroup``), which hand out the tests in collection order: started
+#: last, a minute-long test keeps one worker busy while the other has nothing left to do. Started
+#: first, the short tests fill in around them at the end. The order decides nothing a test checks.
+LONG_FIRST = (
+    "tests/host/test_matrix.py",
+    "tests/host/test_long_run.py",
+    "tests/host/cli/test_calibrate_imu.py",
+    "tests/host/cli/test_estimate_workers.py",
+    "tests/host/test_imu_cli.py",
+    "tests/host/cli/test_virtual.py",
+    "tests/host/cli/test_tactile.py",
+    "tests/host/cli/test_calibrate.py",
+    "tests/host/cli/test_publish_ros2.py",
+    "tests/host/cli/test_publish.py",
+    "tests/host/cli/test_host.py",
+    "tests/host/cli/test_demo.py",
+    "tests/host/cli/test_host_processes.py",
+    "tests/host/test_capture.py",
+    "tests/host/cli/",
+)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """The tests of `LONG_FIRST` first (in its order), then the rest in collection order: a stable
+    sort, the same on every worker (xdist checks that the workers' collections are identical)."""
+    def rank(item) -> int:
+        path = item.nodeid.split("::", 1)[0]
+        return next((k for k, prefix in enumerate(LONG_FIRST) if path.startswith(prefix)), len(LONG_FIRST))
+    items[:] = sorted(items, key=rank)

@@ -105,6 +105,26 @@ def _record(tmp_path, name: str, shape: str, sensors: str, duration: str = "3"):
     return mcap, truth
 
 
+@pytest.fixture(scope="module")
+def carry6(tmp_path_factory):
+    """One recording of a carried-and-turned 6-axis sheet and its truth, made once for the module's
+    estimate tests (the shapes and the refusals look at the same kind of recording)."""
+    return _record(tmp_path_factory.mktemp("carry6"), "carry6", "carry", "accel+gyro")
+
+
+def _estimate_here(capsys, mcap, out, *extra) -> tuple[int, str, str]:
+    """``capsheet estimate`` through its entry point in this process (its run through a real process
+    is `test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes`): (exit status, stdout, stderr)."""
+    from host.cli import main
+    capsys.readouterr()
+    try:
+        code = main(["estimate", str(mcap), "--out", str(out), "--json", "-q", *extra])
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    got = capsys.readouterr()
+    return code, got.out, got.err
+
+
 def _estimate(mcap, out, *extra):
     import subprocess
 
@@ -113,7 +133,7 @@ def _estimate(mcap, out, *extra):
                           cwd=ROOT, capture_output=True, text=True, timeout=240)
 
 
-def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(tmp_path):
+def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(carry6, tmp_path):
     """``capsheet estimate`` of a carried-and-turned 6-axis sheet's recording runs the fused estimator
     (by default: the recording carries gyroscopes), and its shapes are closer to the virtual sheet's
     own truth than the accelerometer-only estimate of the same recording (which takes the sheet's
@@ -121,7 +141,7 @@ def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(tmp_path):
     import numpy as np
 
     from host.record.recording import read
-    mcap, truth_file = _record(tmp_path, "carry6", "carry", "accel+gyro")
+    mcap, truth_file = carry6
     truth = np.load(truth_file)
     true_joints = dict(zip(truth["counter"].tolist(), truth["joints"]))
     errors = {}
@@ -148,24 +168,25 @@ def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(tmp_path):
     assert len(rec.estimates["joints"]) > 0
 
 
-def test_estimate_refuses_a_method_the_recording_cannot_take(tmp_path):
-    """``--method fused`` on an accelerometer recording, ``--uncertainty`` with the fused method, an
-    unknown method: one line each, exit 2, nothing written; ``auto`` on it is the global method."""
-    mcap, _ = _record(tmp_path, "accel", "gaussian", "accel", duration="1")
+def test_estimate_refuses_a_method_the_recording_cannot_take(pty_recording, carry6, tmp_path, capsys):
+    """``--method fused`` on an accelerometer recording (tests/host/conftest.py's real pty session),
+    ``--uncertainty`` with the fused method, an unknown method: one line each, exit 2, nothing
+    written; ``auto`` on it is the global method."""
+    mcap = pty_recording
     cases = {("--method", "fused"): "--method fused needs gyroscopes",
              ("--method", "kalman"): "invalid choice: 'kalman'"}
     for extra, needle in cases.items():
         out = tmp_path / "x.npz"
-        p = _estimate(mcap, out, *extra)
-        assert p.returncode == 2 and needle in p.stderr, (extra, p.stderr)
-        assert "Traceback" not in p.stderr and not out.exists()
-    p = _estimate(mcap, tmp_path / "auto.npz")
-    assert p.returncode == 0, p.stderr
-    assert json.loads(p.stdout)["method"] == "global"
-    six, _ = _record(tmp_path, "wave6", "wave", "accel+gyro", duration="1")
-    p = _estimate(six, tmp_path / "u.npz", "--uncertainty")
-    assert p.returncode == 2 and "--uncertainty is for the accelerometer-only methods" in p.stderr, p.stderr
-    assert len(p.stderr.strip().splitlines()) == 1
+        code, _out, err = _estimate_here(capsys, mcap, out, *extra)
+        assert code == 2 and needle in err, (extra, err)
+        assert "Traceback" not in err and not out.exists()
+    code, out, err = _estimate_here(capsys, mcap, tmp_path / "auto.npz")
+    assert code == 0, err
+    assert json.loads(out)["method"] == "global"
+    six, _ = carry6
+    code, _out, err = _estimate_here(capsys, six, tmp_path / "u.npz", "--uncertainty")
+    assert code == 2 and "--uncertainty is for the accelerometer-only methods" in err, err
+    assert len(err.strip().splitlines()) == 1 and not (tmp_path / "u.npz").exists()
 
 
 #: transport -> (sensors, host asks with --sensors): packed IMU records on every transport that packs

@@ -23,6 +23,9 @@ of one transport are made once per test session (`Batch`: whichever worker needs
 them, under a file lock in the session's temporary directory, and the other finds them there) and
 start together (one sheet each; a ``udp_multicast`` sheet on a group of its own,
 tests/host/matrix_sheet.py's ``udp_group``: sheets isolated to their groups do not hear each other).
+Under ``make test`` (pytest-xdist, ``--dist loadgroup``) the matrix is one group, run by one worker in
+order: each transport's runs are made once, by that worker, while the other worker runs the rest of
+the suite, and no worker waits on the lock for runs the other is making.
 """
 
 from __future__ import annotations
@@ -42,6 +45,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+
+pytestmark = pytest.mark.xdist_group("matrix")
 
 ROOT = Path(__file__).resolve().parents[2]
 PY = sys.executable

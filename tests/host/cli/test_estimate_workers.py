@@ -191,9 +191,29 @@ def test_a_6_axis_sheet_is_estimated_by_the_fused_estimator_in_a_worker(virtuals
 def test_a_host_started_again_is_a_restart_for_the_worker_not_lost_snapshots(virtuals, tmp_path):  # noqa: F811
     """The sheet's host runs, ends, and runs again: its SYNC counter starts again from 0. The worker
     takes the second run as a new sequence (one restart), loses nothing and estimates every snapshot."""
+    import signal
+    import threading
+    import time
+
+    import zenoh
     name = f"rs{abs(hash(str(tmp_path))) % 10**6}"
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"))
+    # the worker ends by itself 30 s after the last snapshot (a gap between the runs shorter than that
+    # on a loaded machine); once it has published an estimate of every snapshot the hosts published,
+    # SIGTERM ends it sooner, as an operator would (what it received is estimated before it leaves)
     worker = _worker("--sheets", name, "--wait", "60", "--idle", "30", "--duration", "200")
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+    conf.insert_json5("scouting/multicast/interface", '"lo"')
+    session = zenoh.open(conf)
+    estimates = [0]
+    lock = threading.Lock()
+
+    def on_estimate(_sample) -> None:
+        with lock:
+            estimates[0] += 1
+    sub = session.declare_subscriber(f"capsheet/{name}/estimate", on_estimate)
     try:
         published = []
         for _ in range(2):
@@ -202,10 +222,20 @@ def test_a_host_started_again_is_a_restart_for_the_worker_not_lost_snapshots(vir
             _, err = h.communicate(timeout=120)
             assert h.returncode == 0, err
             published.append(int(err.split("published ")[1].split(" snapshots")[0]))
+        end = time.monotonic() + 60
+        while worker.poll() is None and time.monotonic() < end:
+            with lock:
+                if estimates[0] >= sum(published):
+                    break
+            time.sleep(0.1)
+        if worker.poll() is None:
+            worker.send_signal(signal.SIGTERM)
         out, err = worker.communicate(timeout=120)
     finally:
         if worker.poll() is None:
             worker.kill()
+        sub.undeclare()
+        session.close()
     assert worker.returncode == 0 and "Traceback" not in err, err
     w = json.loads(out)["sheets"][0]
     assert w["restarts"] == 1 and (w["lost"], w["gaps"], w["old"], w["duplicates"]) == (0, 0, 0, 0), w

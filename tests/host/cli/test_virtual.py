@@ -13,6 +13,20 @@ import pytest
 from tests.host.cli.test_host import CLI, ENV, Virtual
 
 
+def _virtual_here(capsys, *args: str) -> tuple[int, str, str]:
+    """``capsheet virtual ARGS`` through its entry point in this process, for the runs it refuses
+    before it starts a sheet (the runs through a real process: `Virtual`, and the refusal of a
+    running sheet's path below): (exit status, stdout, stderr)."""
+    from host.cli import main
+    capsys.readouterr()
+    try:
+        code = main(["virtual", *args])
+    except SystemExit as exc:  # argparse's own refusals
+        code = exc.code
+    got = capsys.readouterr()
+    return code, got.out, got.err
+
+
 @pytest.mark.parametrize("transport,sig", [("pty", signal.SIGTERM), ("pty", signal.SIGHUP),
                                            ("pty", signal.SIGINT), ("slcan", signal.SIGTERM)])
 def test_the_symlink_goes_with_the_sheet(tmp_path, transport, sig):
@@ -37,7 +51,7 @@ def test_the_symlink_goes_with_the_sheet(tmp_path, transport, sig):
         v.stop(signal.SIGKILL)
 
 
-def test_only_a_stale_symlink_of_its_own_is_replaced(tmp_path):
+def test_only_a_stale_symlink_of_its_own_is_replaced(tmp_path, capsys):
     """A sheet killed with SIGKILL leaves its symlink: the next sheet on that path takes it over. A
     running sheet's symlink, someone's file, or a symlink no sheet made are not touched (exit 2, one
     line), unless --overwrite says so (never a folder)."""
@@ -60,9 +74,8 @@ def test_only_a_stale_symlink_of_its_own_is_replaced(tmp_path):
     mine = tmp_path / "notes.txt"
     mine.write_text("mine")
     for path, what in ((link, "a symlink to /dev/null that no capsheet sheet published"), (mine, "a file")):
-        out = subprocess.run(CLI + ["virtual", "--lattice", "3x3", "--symlink", str(path), "--duration", "1"],
-                             capture_output=True, text=True, timeout=60, env=ENV)
-        assert out.returncode == 2 and what in out.stderr and len(out.stderr.strip().splitlines()) == 1, out.stderr
+        code, _out, err = _virtual_here(capsys, "--lattice", "3x3", "--symlink", str(path), "--duration", "1")
+        assert code == 2 and what in err and len(err.strip().splitlines()) == 1, err
     assert os.readlink(link) == "/dev/null" and mine.read_text() == "mine"
     c = Virtual("--lattice", "3x3", "--symlink", str(mine), "--overwrite")  # said so: replaced
     try:
@@ -94,13 +107,12 @@ def test_the_printed_host_command_carries_what_the_sheet_needs(tmp_path):
         v.stop()
 
 
-def test_its_own_traffic_over_capacity_is_refused(tmp_path):
+def test_its_own_traffic_over_capacity_is_refused(tmp_path, capsys):
     # 364 chips on one classic 1 Mbit/s bus at 100 Hz: 547 % (364 x 150 bits + SYNC, x 100 / 1e6)
-    out = subprocess.run(CLI + ["virtual", "--transport", "slcan", "--lattice", "14x14", "--rate", "100",
-                                "--symlink", str(tmp_path / "can"), "--duration", "1"],
-                         capture_output=True, text=True, timeout=120, env=ENV)
-    assert out.returncode == 2, out.stderr
-    assert "over capacity" in out.stderr and "547 %" in out.stderr and "--bus-count" in out.stderr
+    code, _out, err = _virtual_here(capsys, "--transport", "slcan", "--lattice", "14x14", "--rate", "100",
+                                    "--symlink", str(tmp_path / "can"), "--duration", "1")
+    assert code == 2, err
+    assert "over capacity" in err and "547 %" in err and "--bus-count" in err
     assert not (tmp_path / "can").exists()
     # split over 8 buses: at most 46 chips per bus, 46 x 150 + 100 bits per SYNC: 70 % at 100 Hz, full at 143 Hz
     out = subprocess.run(CLI + ["virtual", "--transport", "slcan", "--lattice", "14x14", "--rate", "100",
@@ -114,7 +126,6 @@ def test_its_own_traffic_over_capacity_is_refused(tmp_path):
                                          (("--rate", "nan"), "--rate: invalid value 'nan'"),
                                          (("--lattice", "14by14"), "--lattice: invalid value '14by14'"),
                                          (("--baud", "0"), "need an integer >= 1")])
-def test_bad_values_are_one_line_errors(args, needle):
-    out = subprocess.run(CLI + ["virtual", "--transport", "memory", "--duration", "0.1", *args],
-                         capture_output=True, text=True, timeout=60, env=ENV)
-    assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
+def test_bad_values_are_one_line_errors(args, needle, capsys):
+    code, _out, err = _virtual_here(capsys, "--transport", "memory", "--duration", "0.1", *args)
+    assert code == 2 and needle in err and "Traceback" not in err, err
