@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import fcntl
 import json
 import re
@@ -307,7 +308,12 @@ class Batch:
             done = tmp / "runs.json"
             if not done.exists():
                 tmp.mkdir(parents=True, exist_ok=True)
-                b = cls(transport, tmp)
+                # udp_multicast: the machine-wide lock of its tests (tests/host/udp_lock.py): a plain
+                # python-can bus in tests/host/transport/test_udp_multicast.py hears every group, this
+                # batch's too (the matrix and that file's group start together under ``make test``)
+                from tests.host.udp_lock import udp_multicast_lock
+                with udp_multicast_lock() if transport == "udp_multicast" else contextlib.nullcontext():
+                    b = cls(transport, tmp)
                 done.write_text(json.dumps({"jobs": {k: [j.rc, j.stdout, j.stderr] for k, j in b.jobs.items()},
                                             "live": b.live if isinstance(b.live, dict) else repr(b.live)}))
         doc = json.loads(done.read_text())
