@@ -66,8 +66,10 @@ def test_uncalibrated_chips_with_their_own_bias_and_misalignment(lattice):
     poses, truth = sheet_poses(lattice, seed=4, chip_errors="realistic")
     res = learn_layout(lattice, poses)
     assert correct(res.layout, truth) == len(truth)
-    # the chips' own errors leave a few units over the limit still (learn then says so, exit 1)
-    assert res.limit > LOOP_RESIDUAL_LIMIT and len(res.bad_units) <= 0.02 * res.unit_residual.size
+    # the chips' own errors leave at most a few units over the limit (learn then says so, exit 1); the
+    # limit rises above its floor only where the units' median residual calls for it: the default
+    # estimator (closed pitches, roll weights) keeps these chips' residuals under it on 8x8 and 14x14
+    assert res.limit >= LOOP_RESIDUAL_LIMIT and len(res.bad_units) <= 0.02 * res.unit_residual.size
     at = {k: u for u, k in truth.items()}
     wrong = dict(truth)
     for a in range(0, 20, 2):  # ten pairs of chips out of place

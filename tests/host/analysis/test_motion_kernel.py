@@ -23,7 +23,7 @@ def _state(n, seed):
 def _both(name, n, args_of):
     """Run step ``name`` through the kernel and through numpy on copies of the same arrays."""
     out = []
-    for use in (fused._kernel_step, lambda nm, *a: fused._NUMPY_STEPS[nm](*a)):
+    for use in (fused._kernel_step, lambda nm, *a: fused.NUMPY_STEPS[nm](*a)):
         args = args_of()
         use(name, *args)
         out.append(args)
