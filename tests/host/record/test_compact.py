@@ -244,3 +244,30 @@ def test_a_session_rerecorded_either_way_replays_to_the_hosts_snapshots(pty_reco
         np.testing.assert_array_equal(s.valid, rec.valid[k])
         np.testing.assert_array_equal(s.status, rec.status[k])
     np.testing.assert_array_equal(back.readings, rec.readings)  # the snapshots it recorded, read back
+
+
+def test_snapshot_counts_planes_follow_the_documented_rule_byte_for_byte():
+    """docs/recording.md's rule, worked by hand for two links over three snapshots, so that a reader
+    written from the page reads what the recorder writes (the round trip above holds for any rule
+    shared by both directions; this pins the one the page states): per link and axis a state r in
+    sixteenths, prediction (r + 8) >> 4 once seen (0 before, and 0 where the link is not valid),
+    residual modulo 2**16 as int16, zigzag, little-endian u16 as all low bytes then all high bytes;
+    a valid count c sets r = 16 c the first time, else r += (16 c - r) >> 3."""
+    coder = C.CountsCoder()
+    a_valid, b_out = np.array([True, True]), np.array([True, False])
+    s1 = np.array([[100, 0, -1], [2000, -2048, 7]], dtype=np.int16)
+    s2 = np.array([[108, 0, -1], [0, 0, 0]], dtype=np.int16)  # link 1 not valid: 0 recorded, predicted 0
+    s3 = np.array([[-5, 0, -1], [2010, 32767, 7]], dtype=np.int16)
+    # s1: nothing seen: residual = count -> zigzag 200, 0, 1, 4000 (0x0FA0), 4095 (0x0FFF), 14
+    assert coder.encode(s1, a_valid) == bytes([200, 0, 1, 0xA0, 0xFF, 14, 0, 0, 0, 0x0F, 0x0F, 0])
+    # s2: link 0 x: r 1600 -> prediction 1608 >> 4 = 100, residual 8 -> 16; z: r -16 -> -8 >> 4 = -1,
+    # residual 0; link 1 invalid: 0 - 0
+    assert coder.encode(s2, b_out) == bytes([16, 0, 0, 0, 0, 0] + [0] * 6)
+    # s3: link 0 x: r 1600 + (1728 - 1600) >> 3 = 1616 -> 1624 >> 4 = 101, residual -106 -> 211;
+    # link 1 (its state untouched by s2): x r 32000 -> 2000, residual 10 -> 20; y r -32768 -> -2048,
+    # residual 32767 + 2048 = 34815 = -30721 modulo 2**16 -> 61441 (0xF001); z r 112 -> 7, residual 0
+    assert coder.encode(s3, a_valid) == bytes([211, 0, 0, 20, 0x01, 0] + [0, 0, 0, 0, 0xF0, 0])
+    # s4 = s3 again, every link seen and valid: link 0 x: r 1616 + (-80 - 1616) >> 3 = 1404 -> 1412 >> 4
+    # = 88, residual -93 -> 185; link 1 x: r 32000 + (32160 - 32000) >> 3 = 32020 -> 2001, residual 9
+    # -> 18; y: r -32768 + (524272 + 32768) >> 3 = 36862 -> 2304, residual 30463 -> 60926 (0xEDFE)
+    assert coder.encode(s3, a_valid) == bytes([185, 0, 0, 18, 0xFE, 0] + [0, 0, 0, 0, 0xED, 0])
