@@ -255,6 +255,7 @@ class Host:
         self._rx_threads: list[threading.Thread] = []
         self._sync_thread: threading.Thread | None = None
         self._recover_thread: threading.Thread | None = None
+        self._emit_thread: threading.Thread | None = None
 
     # -- time ------------------------------------------------------------------------------
     @property
@@ -315,10 +316,11 @@ class Host:
                 log.warning("stop on close: %s", exc)
         self._stop.set()
         self.recovery.wake.set()
-        for th in self._rx_threads + [t for t in (self._sync_thread, self._recover_thread) if t]:
+        for th in self._rx_threads + [t for t in (self._sync_thread, self._emit_thread, self._recover_thread) if t]:
             th.join(timeout=2.0)
         self._rx_threads = []
         self._sync_thread = None
+        self._emit_thread = None
         self._recover_thread = None
         for t in self.transports:
             t.close()
@@ -349,6 +351,13 @@ class Host:
         # order — let another port's copy of a SYNC just emitted, or a frame for it, open that
         # counter a second time: counters [69, 69, 70, ...] behind two gateways under load.)
         if self._sync_thread is None and self._driver is None:
+            # what passed its deadline is emitted by a thread of its own: emitting waits for the
+            # feed, which a receive thread holds across a whole read, and the SYNC thread waiting
+            # there missed SYNC slots (a 64x64 sheet on five ports: ~10 % of them)
+            self.sync_driver.emits = False
+            self._emit_thread = threading.Thread(target=self.sync_driver.emit_loop, args=(self._stop,),
+                                                 name="capsheet-emit", daemon=True)
+            self._emit_thread.start()
             self._sync_thread = threading.Thread(target=self.sync_driver.loop, args=(self._stop,),
                                                  name="capsheet-sync", daemon=True)
             self._sync_thread.start()

@@ -14,13 +14,16 @@ from protocol.messages import Sync
 from host.snapshots.counter_trust import SyncCopies
 from host.session.errors import SyncConflictError
 
-__all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S", "POLL_WAIT_S"]
+__all__ = ["SyncSchedule", "SyncDriver", "SYNC_LISTEN_S", "POLL_WAIT_S", "EMIT_EVERY_S"]
 
 #: how long (s) a driving host listens for another SYNC source before START (`SyncDriver.check_source`)
 SYNC_LISTEN_S = 0.25
-#: the SYNC thread emits what passed its deadline when the feed is free; after this long (s)
-#: without, it waits for the feed (a receive thread holds it across a read)
+#: the SYNC step emits what passed its deadline when the feed is free; after this long (s)
+#: without, it waits for the feed (a receive thread holds it across a read). With threads, the
+#: emitting thread waits for the feed this often instead, and the SYNC thread never waits for it
 POLL_WAIT_S = 0.02
+#: how often (s) the emitting thread emits what passed its deadline
+EMIT_EVERY_S = 0.005
 
 
 class SyncSchedule:
@@ -120,6 +123,9 @@ class SyncDriver:
         self._missed_before = 0  # SYNC slots missed by earlier schedules (earlier starts)
         self._last_step: float | None = None
         self._last_poll = float("-inf")  # when the SYNC step last emitted what was due
+        #: the SYNC step also emits what passed its deadline (manual mode: `Host.service`); False
+        #: when `emit_loop` runs in a thread of its own
+        self.emits = True
 
     @property
     def syncs_missed(self) -> int:
@@ -164,10 +170,18 @@ class SyncDriver:
                 self.syncs_sent += 1
                 self.counter = (c + 1) & 0xFFFF
         # what passed its deadline: emitted now if the feed is free, else by the next step; never
-        # later than `POLL_WAIT_S` after the last poll (the SYNC thread then waits for the feed)
-        if host.feed.poll(now, wait=now - self._last_poll >= POLL_WAIT_S):
+        # later than `POLL_WAIT_S` after the last poll (the step then waits for the feed)
+        if self.emits and host.feed.poll(now, wait=now - self._last_poll >= POLL_WAIT_S):
             self._last_poll = now
         host.watchdog.tick(now, self.service_s)
+
+    def emit_loop(self, stop: threading.Event) -> None:
+        """The emitting thread: every `EMIT_EVERY_S`, emit what passed its deadline, waiting for the
+        feed as long as a receive thread holds it — so the SYNC thread never waits for it."""
+        host = self.host
+        while not stop.wait(EMIT_EVERY_S):
+            if host.streaming.is_set():
+                host.feed.poll(host.now(), wait=True)
 
     def loop(self, stop: threading.Event) -> None:
         """The SYNC thread: `step` on the fixed schedule, measuring how late it wakes, until ``stop``."""

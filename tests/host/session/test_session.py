@@ -336,3 +336,30 @@ def test_every_control_event_goes_to_the_part_that_owns_it_and_the_rest_are_coun
     assert seen == [("on_announce", "Announce"), ("on_sync", "Sync"), ("on_answer", "Nack")]
     assert rx.unrouted == {"Config": 2}
     assert host.summary()["unrouted"] == {"Config": 2}
+
+
+def test_the_sync_thread_keeps_sending_while_a_receive_thread_holds_the_feed(rigs):
+    """A receive thread holds the feed across a whole read (and the recorder's work on what the read
+    completes); emitting what passed its deadline waits for it. That wait is the emitting thread's,
+    never the SYNC thread's: with the feed held here as a read holds it, SYNCs keep going out (a
+    SYNC thread that waited stopped within `POLL_WAIT_S`, two or three SYNCs in). Real clock, over
+    a pty; what is checked is SYNCs sent, not when."""
+    import time
+
+    rig = rigs("pty", rate_hz=100.0)
+    host = rig.host
+    host.bring_up(0.3)
+    host.start()
+    end = time.monotonic() + 30
+    while host.sync_driver.syncs_sent < 3 and time.monotonic() < end:
+        time.sleep(0.01)
+    with host.feed.one_read():
+        before = host.sync_driver.syncs_sent
+        end = time.monotonic() + 30
+        while host.sync_driver.syncs_sent < before + 20 and time.monotonic() < end:
+            time.sleep(0.01)
+        sent = host.sync_driver.syncs_sent - before
+    assert sent >= 20
+    snaps = list(host.snapshots(duration_s=0.3))
+    host.stop()
+    assert snaps + host.drain()  # and the stream goes on once the feed is free
