@@ -142,7 +142,8 @@ def run_fused(n, t, acc, gyr, mag, config=TRUE_NOISE, truth_frames=None):
         if truth_frames is not None:
             d = orientation_error(e.frames, truth_frames[k], heading=mag is not None)
             nees[k, :2] = tilt_nees(d[:, :2], e.orientation_cov_rad2[:, :2, :2], e.common_tilt_cov_rad2)
-            nees[k, 2] = np.nanmean(e.accel_nis) / 3.0
+            if k:  # the first snapshot initialises: no innovation
+                nees[k, 2] = np.nanmean(e.accel_nis) / 3.0
     return J, F, nees
 
 
