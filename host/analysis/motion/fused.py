@@ -565,6 +565,8 @@ class MotionEstimator:
     def orientation_cov(self) -> np.ndarray:
         """Every link's orientation error covariance, rad², world frame, shape (n_links, 3, 3)
         (`MotionEstimate.orientation_cov_rad2`)."""
+        if self.R is None:
+            raise ValueError("No orientation yet: feed a snapshot to `update` first.")
         C = self.P[:, :3, :3].copy()
         C[:, :2, :2] += self._common.tilt_cov
         if self._with_mag:
@@ -621,9 +623,12 @@ class MotionEstimator:
         # without magnetometers the heading is a gauge the first snapshot sets: known exactly
         # then, it drifts only as the gyroscopes let it
         self._s0 = cfg.initial_heading_std_rad ** 2 if m is not None else cfg.lattice_floor_rad ** 2
+        # the common tilt starts as the links' mean start (independent errors); its rate is the
+        # biases' calibration residual, which the chips share
         self._common = CommonMotion(float(np.mean(tilt)) / max(int(v.sum()), 1),
-                                    cfg.gyro_bias_std_rps ** 2, cfg.sheet_velocity_std_mps, cfg.sheet_velocity_time_s,
-                                    cfg.sheet_position_std_m, cfg.sheet_position_time_s)
+                                    cfg.gyro_bias_std_rps ** 2, cfg.sheet_velocity_std_mps,
+                                    cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
+                                    cfg.sheet_position_time_s)
         self._nis = np.full(n, np.nan)
 
     # ------------------------------------------------------------------------------- 1. gyro

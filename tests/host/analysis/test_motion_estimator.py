@@ -235,6 +235,8 @@ def test_bad_input_gets_a_clear_error():
     nl = 12
     good = np.tile([0.0, 0.0, 9.81], (nl, 1))
     w = np.zeros((nl, 3))
+    with pytest.raises(ValueError, match="feed a snapshot"):
+        est.orientation_cov()
     with pytest.raises(ValueError, match=r"shape \(12, 3\)"):
         est.update(0.0, good[:5], w)
     with pytest.raises(ValueError, match="needs gyroscopes"):
