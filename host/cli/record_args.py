@@ -489,7 +489,7 @@ class SessionOutputs:
         if fused is None or estimator is None:
             self.ros2.imu(snap, noise=None if estimator is None else estimator.config)
         else:
-            self.ros2.imu(snap, fused.motion, estimator.P[:, :3, :3], estimator.config)
+            self.ros2.imu(snap, fused.motion, estimator.orientation_cov(), estimator.config)
 
     # -- the estimator process (--estimate-process) ---------------------------------------------
     def _to_worker(self, snap, force: bool = False) -> None:

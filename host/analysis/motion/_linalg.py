@@ -131,7 +131,7 @@ def _np_propagate(R, P, w0, w1, dt, q, qb) -> None:
     P[:, 3:, 3:] += qb[:, None, None] * np.eye(3)
 
 
-def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
+def _np_accel(R, P, f, vec, r2, gate, valid, x, nis) -> None:
     Rt = R.transpose(0, 2, 1)
     y = f - np.einsum("kij,kj->ki", Rt, vec)
     H = Rt @ skew(vec)  # ∂(Rᵀ v)/∂δθ for R = exp([δθ]×) R̂
@@ -139,6 +139,7 @@ def _np_accel(R, P, f, vec, r2, gate, valid, x) -> None:
     S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
     Si = inv_sym3(S)
     m2 = np.einsum("ki,kij,kj->k", y, Si, y)
+    nis[:] = np.where(valid, m2, np.nan)
     Si /= np.maximum(1.0, m2 / gate)[:, None, None]
     K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
     K[~valid] = 0.0

@@ -22,10 +22,13 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
    ``d`` (`joints_from_directions`: ``p_b − p_a = L d`` holds at every instant, so it holds for
    the derivatives), and a chip's is the mean of its link's ends'. That fixes every link's
    acceleration relative to the others; what is common to all links (the sheet's translation,
-   3 numbers) is taken from the accelerometers themselves, less its running mean over
-   `FusedConfig.common_accel_tau_s` (5 s: a sheet whose velocity stays bounded has a common
-   acceleration that averages out, so what persists is a tilt of the whole sheet, and the
-   accelerometers correct it) and a small leak (`FusedConfig.common_tilt_leak`).
+   3 numbers) is taken from the accelerometers themselves, so each link's update (step 3)
+   measures its tilt *relative to the sheet's*. The sheet's own tilt — a tilt of every link by
+   ``c`` reads as a translation ``g × c`` at any one instant — is its own small filter
+   (`_common.CommonMotion`): a sheet's velocity and position stay bounded
+   (`FusedConfig.sheet_velocity_std_mps`, `FusedConfig.sheet_position_std_m`), so its
+   translation averages out while a tilt persists; that filter's covariance is the part every
+   link's tilt covariance shares (`MotionEstimate.common_tilt_cov_rad2`).
 3. **Accelerometers: gravity plus that acceleration**, per link, an extended Kalman update of
    ``(δθ, δb)`` (the reading predicts ``Rᵀ (g + a)``); its noise grows with the link's relative
    acceleration (the model's own error) and a gate inflates it for a reading far off.
@@ -58,6 +61,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
+from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
 from ._linalg import (NUMPY_STEPS, cross3, inv_sym3, pcg, rotate_all, skew,  # noqa: F401
                       wrap, frames_from_angles, rotation_matrices)
@@ -106,12 +110,12 @@ class FusedConfig:
         Fraction of a link's relative acceleration taken as the model's error (step 2).
     accel_floor_mps2 : float
         A floor on the accelerometer update's noise, m/s².
-    common_tilt_leak : float
-        Fraction of the common acceleration left to correct the sheet's mean tilt (step 2).
-    common_accel_tau_s : float or None
-        Time constant of the common acceleration's running mean, s, which is left to correct the
-        sheet's mean tilt (step 2); None: the leak alone (the sheet's absolute tilt then drifts by
-        1–2° a minute on calibrated chips, docs/estimator.md §8).
+    sheet_velocity_std_mps, sheet_velocity_time_s : float
+        The sheet's horizontal velocity: its spread about zero, m/s, and its correlation time,
+        s (a sheet held in the hands, worn or waved: 0.5 m/s over 0.5 s). With
+        `sheet_position_std_m` and `sheet_position_time_s` (its position about its mean: 0.1 m
+        over 1 s) this is what tells the sheet's common tilt from its translation (step 2): a
+        sheet under a steady acceleration of its own for longer (a car's, a lift's) breaks it.
     gate : float
         Mahalanobis distance² (3 axes) beyond which an accelerometer update is inflated.
     lattice_floor_rad : float
@@ -157,10 +161,12 @@ class FusedConfig:
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
     orientation_walk_rad: float = float(np.radians(0.05))
-    rel_accel_error: float = 0.05
+    rel_accel_error: float = 0.01
     accel_floor_mps2: float = 0.02
-    common_tilt_leak: float = 0.02
-    common_accel_tau_s: float | None = 5.0
+    sheet_velocity_std_mps: float = 0.5
+    sheet_velocity_time_s: float = 0.5
+    sheet_position_std_m: float = 0.1
+    sheet_position_time_s: float = 1.0
     gate: float = 25.0
     lattice_floor_rad: float = 1e-3
     mag_noise_t: float = 0.4e-6
@@ -181,18 +187,14 @@ class FusedConfig:
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
             v = getattr(self, name)
-            if name == "common_accel_tau_s" and v is None:
-                continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
                     or not np.isfinite(v) or v < 0:
                 raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
-        if not self.common_tilt_leak <= 1:
-            raise ValueError(f"Invalid common_tilt_leak: {self.common_tilt_leak!r} (need 0..1)")
-        if self.common_accel_tau_s is not None and self.common_accel_tau_s <= 0:
-            raise ValueError(f"Invalid common_accel_tau_s: {self.common_accel_tau_s!r} (need > 0 or None)")
         for name in ("accel_noise_mps2", "gyro_bias_std_rps", "disturbance_tau_s",
                      "disturbance_heading_rad", "disturbance_field_frac", "disturbance_dip_rad",
-                     "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate"):
+                     "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate",
+                     "sheet_velocity_std_mps", "sheet_velocity_time_s", "sheet_position_std_m",
+                     "sheet_position_time_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
 
@@ -220,6 +222,19 @@ class MotionEstimate:
         declination); False: heading is a gauge.
     timings : dict
         Wall time of the stages, s: ``propagate``, ``accel``, ``lattice``, ``joints``, ``total``.
+    orientation_cov_rad2 : ndarray, shape (n_links, 3, 3)
+        Each link's orientation error covariance, rad², a small rotation in the world frame
+        (``R_true = exp([δθ]×) R``): its own part plus what it shares with the sheet (the common
+        tilt; with magnetometers its group's and the sheet's heading). Without magnetometers the
+        yaw's is relative to the first snapshot's heading (a gauge).
+    accel_nis : ndarray, shape (n_links,)
+        Each link's accelerometer innovation ``y`` against its predicted covariance ``S``:
+        ``yᵀ S⁻¹ y`` (χ² with 3 degrees of freedom for a consistent filter), NaN where the link
+        had no sample (and at the first snapshot).
+    common_tilt_cov_rad2 : ndarray, shape (2, 2)
+        The part of every link's tilt covariance (the x, y block of ``orientation_cov_rad2``)
+        that all links share: the sheet's common tilt, rad², world x and y. The links' tilt
+        errors are correlated by it and independent otherwise.
     """
 
     t_s: float
@@ -230,6 +245,9 @@ class MotionEstimate:
     common_accel_mps2: np.ndarray
     heading_absolute: bool
     timings: dict = field(default_factory=dict)
+    orientation_cov_rad2: np.ndarray | None = None
+    common_tilt_cov_rad2: np.ndarray | None = None
+    accel_nis: np.ndarray | None = None
 
     @property
     def directions(self) -> np.ndarray:
@@ -539,7 +557,21 @@ class MotionEstimator:
                               mag_weight=None if self._dist is None else self._weights.copy(),
                               common_accel_mps2=a_c, heading_absolute=bool(self._with_mag),
                               timings={"propagate": t1 - t0, "accel": t2 - t1,
-                                       "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0})
+                                       "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0},
+                              orientation_cov_rad2=self.orientation_cov(),
+                              common_tilt_cov_rad2=self._common.tilt_cov,
+                              accel_nis=self._nis.copy())
+
+    def orientation_cov(self) -> np.ndarray:
+        """Every link's orientation error covariance, rad², world frame, shape (n_links, 3, 3)
+        (`MotionEstimate.orientation_cov_rad2`)."""
+        if self.R is None:
+            raise ValueError("No orientation yet: feed a snapshot to `update` first.")
+        C = self.P[:, :3, :3].copy()
+        C[:, :2, :2] += self._common.tilt_cov
+        if self._with_mag:
+            C[:, 2, 2] += self._s_group[self.topo.group] + self._s0
+        return C
 
     def _initialise(self, t, f, w, m, v) -> None:
         cfg = self.config
@@ -591,7 +623,13 @@ class MotionEstimator:
         # without magnetometers the heading is a gauge the first snapshot sets: known exactly
         # then, it drifts only as the gyroscopes let it
         self._s0 = cfg.initial_heading_std_rad ** 2 if m is not None else cfg.lattice_floor_rad ** 2
-        self._a_bar = np.zeros(3)
+        # the common tilt starts as the links' mean start (independent errors); its rate is the
+        # biases' calibration residual, which the chips share
+        self._common = CommonMotion(float(np.mean(tilt)) / max(int(v.sum()), 1),
+                                    cfg.gyro_bias_std_rps ** 2, cfg.sheet_velocity_std_mps,
+                                    cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
+                                    cfg.sheet_position_time_s)
+        self._nis = np.full(n, np.nan)
 
     # ------------------------------------------------------------------------------- 1. gyro
     def _propagate(self, w_c, dt) -> None:
@@ -618,18 +656,24 @@ class MotionEstimator:
         cfg = self.config
         da = self._relative_accel(w_c, dt)
         Rf = np.einsum("kij,kj->ki", self.R, f)
-        a_c = (Rf[v] - _GRAVITY_SF - da[v]).mean(axis=0) if v.any() else np.zeros(3)
-        tau = cfg.common_accel_tau_s
-        if tau is not None:
-            self._a_bar += min(float(np.mean(dt)) / tau, 1.0) * (a_c - self._a_bar)
-            vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * (a_c - self._a_bar)
-        else:
-            vec = _GRAVITY_SF + da + (1.0 - cfg.common_tilt_leak) * a_c
+        nv = int(v.sum())
+        a_c = (Rf[v] - _GRAVITY_SF - da[v]).mean(axis=0) if nv else np.zeros(3)
+        # every link's reading less the lattice's relative acceleration and the links' common one:
+        # what is left measures the link's tilt relative to the sheet's (`_common`)
+        vec = _GRAVITY_SF + da + a_c
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + (cfg.rel_accel_error * np.linalg.norm(da, axis=1)) ** 2
         x = np.empty((self.n_links, 6))
-        _step("accel", self.R, self.P, f, vec, r2, cfg.gate, v, x)
+        _step("accel", self.R, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
         self._apply(x)
+        # the sheet's own tilt: what the links share, from its bounded translation
+        if nv:
+            h = float(np.mean(dt[v]))
+            self._common.step(a_c[:2], h, float(np.mean(self._q_last)) / nv,
+                              cfg.gyro_bias_walk_rps ** 2 * h / nv, cfg.accel_noise_mps2 ** 2 / nv)
+            c, b = self._common.take()
+            self.R = rotate_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
+            self.bias += np.einsum("kji,j->ki", self.R[:, :2, :], b)  # Rᵀ (b_x, b_y, 0)
         return a_c
 
     def _apply(self, x) -> None:

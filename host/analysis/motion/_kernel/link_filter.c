@@ -96,7 +96,8 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
 }
 
 void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, const double *vec,
-                       const double *r2, double gate, const uint8_t *valid, double *x)
+                       const double *r2, double gate, const uint8_t *valid, double *x,
+                       double *nis)
 {
     for (size_t k = 0; k < n; k++) {
         double *xk = x + 6 * k;
@@ -104,6 +105,7 @@ void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, co
             for (int i = 0; i < 6; i++) {
                 xk[i] = 0.0;
             }
+            nis[k] = NAN;
             continue;
         }
         const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k;
@@ -140,6 +142,7 @@ void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, co
         for (int i = 0; i < 3; i++) {
             m2 += y[i] * (Si[3 * i] * y[0] + Si[3 * i + 1] * y[1] + Si[3 * i + 2] * y[2]);
         }
+        nis[k] = m2;
         double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
         for (int i = 0; i < 9; i++) {
             Si[i] /= infl;

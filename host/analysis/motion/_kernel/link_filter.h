@@ -14,9 +14,11 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
 
 /* Accelerometer update: residual y = f - R^T vec, H = R^T [vec]x (3 x 6 with zero bias part),
  * S = H P H^T + r2 I, inflated by max(1, y^T S^-1 y / gate); K = P H^T S^-1; x = K y (n x 6,
- * zero where valid[k] == 0); P <- P - K H P. */
+ * zero where valid[k] == 0); P <- P - K H P; nis[k] = y^T S^-1 y before the inflation (the
+ * normalised innovation squared, 3 degrees of freedom; NaN where valid[k] == 0). */
 void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, const double *vec,
-                       const double *r2, double gate, const uint8_t *valid, double *x);
+                       const double *r2, double gate, const uint8_t *valid, double *x,
+                       double *nis);
 
 /* The yaw step's update: with c = P[:, 2] (the covariance with the world-z rotation) and
  * p = c[2], x = c mu / p and P <- P - c c^T (1 - 1/(a p)) / p. */
