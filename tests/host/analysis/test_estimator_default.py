@@ -41,6 +41,16 @@ def test_the_default_is_a_fifth_better_than_the_papers_method_on_its_own_experim
     assert default <= 0.8 * paper, (default, paper)
 
 
+def test_the_tilted_drape_at_4_pct_g_is_a_fifth_better_over_the_commands_ten_trials():
+    """The level where the default came closest to the bound (0.78 of the paper's method; the
+    default before the weighted height fit and the smaller tilted share: 0.85), on the draws
+    `capsheet paper noise` makes: its ten trials, as the bound is stated over them (three
+    trials of it say 0.81)."""
+    default = _errors("fig9-tilted", 4.0, trials=10).mean()
+    paper = _errors("fig9-tilted", 4.0, trials=10, method="paper").mean()
+    assert default <= 0.8 * paper, (default, paper)
+
+
 def test_the_former_adaptive_prior_is_biased_on_a_drape_and_the_default_is_not():
     """The drape's lattice lines zigzag in plan (parallel neighbours along a line differ by up to
     0.6 rad): a prior that holds every bending pulls where the data decide; the default holds it
