@@ -241,12 +241,11 @@ def test_capsheet_estimate_prior_selects_an_older_prior_by_name(tmp_path, capsys
     assert bad.value.code == 2
 
 
-def test_the_tilted_share_trades_a_compass_streams_factorisations_for_a_drapes_accuracy(monkeypatch):
-    """The "level" prior keeps a share `LEVEL_TILTED_SHARE` of the bending on tilted regions.
-    0.003 (the share before) held a compass net's weakly held smooth modes well enough that a
-    64x64 stream at 1 % g stayed on its factorisation; it also pulled the tilted drape's zigzag
-    (7-9 % of its error at 3-5 % g). The default (0.001) lets the drape go and pays in
-    refactorisations on the compass stream (counts, not rates: the time is bench_estimator's)."""
+def test_a_compass_stream_stays_on_its_factorisation_under_the_default(monkeypatch):
+    """A 64x64 compass Gaussian streamed at 1 % g: the "level" prior keeps a small share of the
+    bending on tilted regions (`tilted_share`) so that the smooth modes the data hold weakly do
+    not stall the chord steps; without it the stream refactorised every 4-5 snapshots (a count,
+    not a rate: the time is bench_estimator's)."""
     n = 64
     P = make_sheet("gaussian", n, n, L)
     g = np.random.Generator(np.random.MT19937(1))
@@ -260,12 +259,26 @@ def test_the_tilted_share_trades_a_compass_streams_factorisations_for_a_drapes_a
             count += prev.factorisations
         return count
 
-    default = refactorisations()
-    drape = _errors("fig9-tilted", 4.0).mean()
-    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.003)
-    assert refactorisations() == 0  # the former share: the stream keeps its factorisation
-    assert 1 <= default <= 3, default  # the default's cost, 12 snapshots
-    assert drape <= 0.95 * _errors("fig9-tilted", 4.0).mean()  # ... and what it buys
+    assert refactorisations() == 0
+    # the share the drape's accuracy alone would choose at every noise (the sweep's 0.001) costs
+    # this stream its factorisation: the check can fail
+    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.001)
+    assert refactorisations() >= 1
+
+
+def test_the_tilted_share_falls_with_the_noise_above_one_pct_g_and_the_tilted_drape_gains(
+        monkeypatch):
+    """Up to 1 % g a tilted pair keeps the share 0.003 of the bending weight, above it the share
+    falls as 1/σ (the pair's weight grows as σ, not σ²): at 3-5 % g the constant share cost the
+    tilted drape 7-9 % of its error (docs/estimator.md §3)."""
+    share = E.priors.tilted_share
+    k = E.priors.LEVEL_TILTED_SHARE
+    assert share(0.0) == share(0.005) == share(0.01) == k
+    assert share(0.04) == pytest.approx(k / 4, rel=1e-12)
+    np.testing.assert_allclose(share(np.array([0.002, 0.02])), [[k], [k / 2]], rtol=1e-12)
+    falling = _errors("fig9-tilted", 4.0).mean()
+    monkeypatch.setattr(E.priors, "LEVEL_SHARE_NOISE", 1.0)  # the share constant at every noise
+    assert falling <= 0.95 * _errors("fig9-tilted", 4.0).mean()
 
 
 def test_a_links_height_step_is_as_noisy_as_the_cosine_of_its_pitch():
