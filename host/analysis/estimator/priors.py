@@ -117,11 +117,13 @@ def link_flatness(st, h):
     """Per link, the mean flatness `h` (..., n_units) of the units it belongs to (one or two)."""
     units = st.lattice.units.reshape(-1, 4)
     acc = np.zeros(np.shape(h)[:-1] + (st.n_links,))
-    cnt = np.zeros(st.n_links)
     for k in range(4):  # a link holds one position k in at most one unit: no repeated index
         acc[..., units[:, k]] += h
-        cnt[units[:, k]] += 1.0
-    return acc / np.maximum(cnt, 1.0)
+    cnt = st.derived.get("link_unit_count")
+    if cnt is None:  # per link, the units it belongs to (at least 1): fixed per structure
+        cnt = st.derived["link_unit_count"] = np.maximum(
+            np.bincount(units.ravel(), minlength=st.n_links).astype(float), 1.0)
+    return acc / cnt
 
 
 def bridging_pairs(st) -> np.ndarray:
@@ -167,7 +169,8 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
         bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
         if prior == "level":  # a pair is held as much as its flatter link's units are level,
             # and wholly where it joins what no unit relates (`bridging_pairs`)
-            h = link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
+            lf, pb = link_flatness(st, hu), st.pairs[:st.n_bend]
+            h = np.maximum(lf[..., pb[:, 0]], lf[..., pb[:, 1]])  # (a fancy max over 2: 20x slower)
             bend = bend * np.maximum(np.maximum(h, bridging_pairs(st)), tilted_share(noise))
         w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
