@@ -7,7 +7,9 @@ from the previous estimate. The paper's method (no warm start in the paper; read
 fewer of them, and only up to 32x32 (its per-unit steepest descent takes tenths of a second per
 snapshot at 14x14 already). The machine may be shared: each rate is the best of ``--repeats``
 timed passes (and the median is reported too). Targets, global: 14x14 >= 2000/s,
-32x32 >= 500/s, 64x64 >= 145/s, 128x128 >= 30/s.
+32x32 >= 500/s, 64x64 >= 145/s, 128x128 >= 30/s. The global method also runs with another
+prior by name (``--compare-prior``, default "adaptive", the default before "level"; row
+``global_prior_NAME``), its timed passes interleaved with the default's on the same snapshots.
 
 Also reported, per size ("quiet"): the warm chain on a quiet sheet (0.03 % g) with the chain's
 one-step stop and without it, in the same run (docs/estimator.md §6); how the time per snapshot scales with the number of links (least-squares exponent
@@ -17,7 +19,7 @@ factorises with it, on the ordering computed once per lattice), the kernel's sup
 solve of that factorisation (what the chord steps use), and CHOLMOD (scikit-sparse, when
 installed: supernodal Cholesky, METIS/AMD orderings). Prints JSON.
 
-    .venv/bin/python benchmarks/bench_estimator.py [--quick]
+    .venv/bin/python benchmarks/bench_estimator.py [--quick] [--sizes 14,32] [--no-extras]
 """
 
 from __future__ import annotations
@@ -49,15 +51,17 @@ NOISE_PCT_G = 1.0
 #: the "quiet" rows: about the quantisation of a 12-bit ±2 g reading (`capsheet virtual`'s default
 #: noise, 0.02 % g, under it)
 QUIET_PCT_G = 0.03
+#: whether `run` adds the "quiet" and "linear_algebra" rows (``--no-extras``: not)
+EXTRAS = True
 
 
-def _pass(snaps, n, method, warm):
+def _pass(snaps, n, method, warm, **kw):
     prev = None
     if warm:  # the snapshot before the first: not timed
-        prev = estimate(snaps[-1], n, n, L, method=method)
+        prev = estimate(snaps[-1], n, n, L, method=method, **kw)
     t0 = time.perf_counter()
     for r in snaps:
-        prev = estimate(r, n, n, L, previous=prev if warm else None, method=method)
+        prev = estimate(r, n, n, L, previous=prev if warm else None, method=method, **kw)
     return (time.perf_counter() - t0) / len(snaps), prev
 
 
@@ -137,7 +141,8 @@ def _assembled(prob, blocks):
     return sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
 
 
-def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int) -> dict:
+def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int,
+        compare_prior: str | None = None) -> dict:
     P = make_sheet("gaussian", n, n, L)
     r0 = ideal_readings(P)
     rng = np.random.Generator(np.random.MT19937(seed))
@@ -146,42 +151,55 @@ def run(n: int, n_global: int, n_paper: int, repeats: int, seed: int) -> dict:
     out = {"lattice": f"{n}x{n}", "links": 2 * n * (n - 1)}
     from host.analysis import estimator as E
     backends = ["splu"] + (["cholmod"] if E.linalg.cholmod_module() is not None else [])
-    plan = [("global", n_global, True, bk) for bk in backends]
-    plan += [("paper", n_paper, False, "splu")] if n_paper else []
+    # (row, method, snapshots, warm, backend, estimate's keywords); the default and the compared
+    # prior run their timed passes interleaved (default, other, default, ...): a shared machine's
+    # speed swings between minutes, and both then see the same swings
+    plan = [[("global", "global", n_global, True, "splu", {})]]
+    if compare_prior:
+        plan[0].append((f"global_prior_{compare_prior}", "global", n_global, True, "splu",
+                        {"prior": compare_prior}))
+    plan += [[("global_cholmod", "global", n_global, True, bk, {})] for bk in backends[1:]]
+    plan += [[("paper", "paper", n_paper, False, "splu", {})]] if n_paper else []
     default = E.linalg.LINEAR_SOLVER
-    for method, count, warm, backend in plan:
-        times = []
-        stages = {}
-        E.linalg.LINEAR_SOLVER = backend
+    for group in plan:
+        times: dict = {row: [] for row, *_ in group}
+        last = {}
+        E.linalg.LINEAR_SOLVER = group[0][4]
         E.structure.cached_structure.cache_clear()  # a fresh structure: no factorisation of the other
         estimate(snaps[0], n, n, L)
-        for _ in range(repeats if method == "global" else 1):
-            dt, last = _pass(snaps[:count], n, method, warm)
-            times.append(dt)
+        for _ in range(repeats if group[0][1] == "global" else 1):
+            for row, method, count, warm, backend, kw in group:
+                dt, last[row] = _pass(snaps[:count], n, method, warm, **kw)
+                times[row].append(dt)
         E.linalg.LINEAR_SOLVER = default
-        if method == "global" and backend == "cholmod":
-            method = "global_cholmod"
-        for k_, v in last.timings.items():
-            stages[k_] = round(1e3 * v, 3)
-        out[method] = {
-            "snapshots_per_s_best": round(1.0 / min(times), 1),
-            "snapshots_per_s_median": round(1.0 / float(np.median(times)), 1),
-            "ms_per_snapshot_best": round(1e3 * min(times), 3),
-            "snapshots_timed": count * len(times),
-            "last_error_pct_side": round(float(error_percent_of_side(last.joints, P, L).mean()), 4),
-            "iterations_last": last.iterations,
-            "factorisations_last": last.factorisations,
-            "stage_ms_last": stages,
-        }
+        for row, method, count, warm, backend, kw in group:
+            ts, est = times[row], last[row]
+            out[row] = {
+                "snapshots_per_s_best": round(1.0 / min(ts), 1),
+                "snapshots_per_s_median": round(1.0 / float(np.median(ts)), 1),
+                "ms_per_snapshot_best": round(1e3 * min(ts), 3),
+                "snapshots_timed": count * len(ts),
+                "last_error_pct_side": round(float(error_percent_of_side(est.joints, P, L).mean()), 4),
+                "iterations_last": est.iterations,
+                "factorisations_last": est.factorisations,
+                "stage_ms_last": {k_: round(1e3 * v, 3) for k_, v in est.timings.items()},
+            }
+            if kw:
+                out[row]["estimate_kwargs"] = kw
     if not n_paper:
         out["paper"] = "not run at this size (seconds to minutes per snapshot)"
-    for key in ("global", "global_cholmod"):
+    for key in ("global", "global_cholmod", f"global_prior_{compare_prior}"):
         if key in out:
             out[key]["target_per_s"] = TARGETS.get(n)
             out[key]["meets_target"] = out[key]["snapshots_per_s_best"] >= TARGETS.get(n, 0)
     out["global"]["linear_solver"] = "splu"
-    out["quiet"] = quiet(n, max(n_global, 40), repeats, seed)
-    out["linear_algebra"] = linear_algebra(n, snaps[0], 2 if n >= 128 else 3)
+    if compare_prior:  # > 1: the default takes longer per snapshot than the compared prior
+        out["global"]["time_over_prior_" + compare_prior] = round(
+            out["global"]["ms_per_snapshot_best"]
+            / out[f"global_prior_{compare_prior}"]["ms_per_snapshot_best"], 3)
+    if EXTRAS:
+        out["quiet"] = quiet(n, max(n_global, 40), repeats, seed)
+        out["linear_algebra"] = linear_algebra(n, snaps[0], 2 if n >= 128 else 3)
     return out
 
 
@@ -227,6 +245,12 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="fewer snapshots, no 128x128")
     ap.add_argument("--repeats", type=int, default=5, help="timed passes of global per size")
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--compare-prior", default="adaptive", metavar="NAME",
+                    help="also time the global method with this prior (estimate's prior=NAME), "
+                         "interleaved with the default in the same run (default 'adaptive', the "
+                         "default before 'level'; 'none' to skip)")
+    ap.add_argument("--no-extras", action="store_true",
+                    help="only the timed passes: no quiet rows, no linear-algebra rows")
     ap.add_argument("--sizes", default=None,
                     help="comma-separated lattice sizes to run (default 14,32,64,128)")
     args = ap.parse_args(argv)
@@ -245,8 +269,15 @@ def main(argv=None) -> int:
         plan = {v: plan.get(v, full[v]) for v in sizes}
     if args.repeats < 1:
         ap.error("--repeats must be >= 1")
-    results = [run(n, g, p, min(2, args.repeats) if args.quick else args.repeats, args.seed)
-               for n, (g, p) in plan.items()]
+    from host.analysis.estimator.priors import PRIORS
+    compare = None if args.compare_prior == "none" else args.compare_prior
+    if compare is not None and compare not in PRIORS:
+        ap.error(f"--compare-prior: choose among {', '.join(PRIORS)} or none "
+                 f"(got {args.compare_prior!r})")
+    global EXTRAS
+    EXTRAS = not args.no_extras
+    results = [run(n, g, p, min(2, args.repeats) if args.quick else args.repeats, args.seed,
+                   compare) for n, (g, p) in plan.items()]
     links = np.array([r["links"] for r in results], float)
     ms = np.array([min(r[k]["ms_per_snapshot_best"] for k in ("global", "global_cholmod")
                        if k in r) for r in results])

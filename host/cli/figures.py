@@ -172,6 +172,17 @@ def gaussian_figure(path, truth: np.ndarray, estimates: dict, errors_pct: dict, 
     return fig
 
 
+def _noise_label(method: str) -> str:
+    """How Fig. 10's legend names a method of `host.cli.paper.METHODS`: "global" is `estimate`
+    with its defaults, so its legend says so and names the default prior."""
+    if method == "paper":
+        return "paper's method"
+    if method == "global":
+        from host.analysis.estimator.priors import DEFAULT_PRIOR
+        return f"capsheet default (global, prior {DEFAULT_PRIOR!r})"
+    return method
+
+
 def noise_figure(path, results: dict, methods, *, trials: int, seed: int, side_joints: int,
                  noise_dist: str = "normal", failure_line_pct: float = 5.0):
     """Fig. 10, as the paper draws it: per target, the mean joint error (dots) and its standard
@@ -197,7 +208,7 @@ def noise_figure(path, results: dict, methods, *, trials: int, seed: int, side_j
             mean = np.array([r[m]["mean_pct"] for r in rows])
             std = np.array([r[m]["std_pct"] for r in rows])
             xs = x + (k - (len(methods) - 1) / 2) * dx
-            label = "paper's method" if m == "paper" else f"{m} (capsheet)" if m == "global" else m
+            label = _noise_label(m)
             ax.errorbar(xs, mean, yerr=std, fmt="o", ms=4, capsize=3, color=f"C{k}",
                         label=f"{label}: mean ± std")
         ax.axhline(failure_line_pct, color="C3", linestyle="--", linewidth=1.0,

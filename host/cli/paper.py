@@ -571,7 +571,8 @@ def cmd_noise(args) -> int:
           "median time per snapshot. The paper: the estimate \"fails discernibly\" beyond 5 % of "
           "the side and the sheet \"decently works with the noise level up to 5 %\" [g]. Both "
           "methods on the same draws. capsheet default: `estimate` with its defaults (global "
-          "method, cells model, pitches closed, prior " + _default_prior() + "); "
+          "method, cells model, pitches closed by the noise-weighted height fit, prior "
+          + _default_prior() + "); "
           "default / paper: the ratio of their means.", "",
           f"Paper's method: {_options_text(methods)}."]
     with Progress(len(targets) * len(levels) * trials, "noise study", "trial",

@@ -39,8 +39,9 @@ Two methods, same input, same output (`ShapeEstimate`):
       estimate, so long runs do not drift.
 
     Before the yaws, the pitches are made consistent with one height per joint (the z part of
-    eq. 4, one sparse solve: ``pipeline.closed_pitches``), and every roll residual is weighted
-    by ``|cos β|`` of its link (the inverse of its roll's noise).
+    eq. 4: ``pipeline.closed_pitches``, every link's height step weighted by the inverse of its
+    noise, ``1/(cos² β + 0.05)``), and every roll residual is weighted by ``|cos β|`` of its
+    link (the inverse of its roll's noise).
 
     The normal matrix has a fixed sparsity pattern per lattice, mask and model; pattern,
     fill-reducing ordering and index maps are computed once and cached. Then joints by least

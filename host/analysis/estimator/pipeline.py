@@ -19,9 +19,11 @@ from .joints import joints_and_mask
 from .priors import DEFAULT_PRIOR, prior_weights
 from .result import ShapeEstimate, Solution
 from .solver import solve_global
-from .structure import structure_of
+from .structure import JOINT_PRIOR_WEIGHT, structure_of
 
 __all__ = ["estimate", "WarmStart", "link_angles", "closed_pitches", "CLOSE_PITCHES",
+           "WEIGHTED_HEIGHTS", "HEIGHT_VAR_FLOOR", "HEIGHT_CG_STEPS",
+           "height_weights", "weighted_heights",
            "noise_and_priors", "solve_snapshot", "link_solvability", "paper_snapshot"]
 
 #: Whether the global method first makes the links' pitches consistent with one height per joint
@@ -213,22 +215,80 @@ def closed_pitches(st, alpha, beta, trig=None):
 
     A link's height step is ``−L sin β`` whatever its yaw, and around every cell the steps sum
     to zero (the z part of eq. 4). Noisy pitches break that; the heights that fit them best by
-    least squares (``min Σ (z_b − z_a + L sin β)²``, the joints' Laplacian, factorised once per
-    structure) satisfy it, and each valid link's pitch becomes ``asin`` of its fitted step. This
-    removes the part of the pitch noise that no sheet can have (about half of it) before the
-    yaws are solved with those pitches: the yaw problem's coefficients (``cos β``, the cells'
-    normals) are then less noisy. A link in no closed loop keeps its pitch. One snapshot
-    (``beta`` (n_links,)) or a batch of one structure (B, n_links); ``trig`` (one snapshot, the
-    kernel's table) is rebuilt from the new pitches."""
+    least squares (``min Σ w (z_b − z_a + L sin β)²``, the joints' Laplacian weighted by
+    `height_weights`, `weighted_heights`) satisfy it, and each valid link's pitch becomes
+    ``asin`` of its fitted step. This removes the part of the pitch noise that no sheet can have
+    (about half of it) before the yaws are solved with those pitches: the yaw problem's
+    coefficients (``cos β``, the cells' normals) are then less noisy. A link in no closed loop
+    keeps its pitch. One snapshot (``beta`` (n_links,)) or a batch of one structure
+    (B, n_links); ``trig`` (one snapshot, the kernel's table) is rebuilt from the new pitches."""
     vl = st.valid_links
-    dz = -np.sin(beta[..., vl])
-    z = st.lap_lu.solve(np.ascontiguousarray((st.incidence_T @ dz.T)))
+    sb = np.sin(beta[..., vl])
+    w = height_weights(sb) if WEIGHTED_HEIGHTS else None
+    z = weighted_heights(st, -sb, w)
     step = (st.incidence @ z).T  # (..., n_valid): z_b - z_a of every valid link
     out = beta.copy()
     out[..., vl] = np.arcsin(np.clip(-step, -1.0, 1.0))
     if trig is not None:
         trig = angle_trig(alpha, out)
     return out, trig
+
+
+#: Whether `closed_pitches` weights every link's height step by the inverse of its noise's
+#: variance (`height_weights`); False: all alike (the estimator before; docs/estimator.md §2
+#: measures both).
+WEIGHTED_HEIGHTS = True
+#: `height_weights`: the variance of a step's noise is taken as ``cos² β + HEIGHT_VAR_FLOOR``
+#: (per σ², in L²), so that a link near the vertical, whose step the first-order noise leaves
+#: alone, does not outweigh every other (its step still errs by the chip's misalignment, and
+#: by σ² to second order)
+HEIGHT_VAR_FLOOR = 0.05
+#: `weighted_heights` takes this many conjugate-gradient steps from the unweighted fit towards
+#: the weighted one (each costs one solve with the joints' Laplacian). On `capsheet paper
+#: noise`'s tilted drape (seeds 1 and 2, 10 trials, 1-10 % g) 1 step gave 85 % of the exact fit's
+#: gain, 2 steps 95 % (docs/estimator.md §2).
+HEIGHT_CG_STEPS = 2
+
+
+def height_weights(sin_beta):
+    """Per link (..., n), the weight of its height step ``−L sin β`` in the height fit: the
+    inverse of the step's noise variance. A reading's pitch has noise σ (per axis, in g) in
+    every direction, and ``sin β = −s_x/|s|`` moves by ``cos β`` times it: a steep link's step is
+    better known than a level one's (``1 / (cos² β + HEIGHT_VAR_FLOOR)``)."""
+    return 1.0 / (1.0 - sin_beta * sin_beta + HEIGHT_VAR_FLOOR)
+
+
+def weighted_heights(st, dz, w=None, steps=None):
+    """The heights (n_joints,) or (n_joints, B) (in the unit of ``dz``) that fit every valid
+    link's height step ``dz`` (..., n_valid) best, ``min Σ w (z_b − z_a − dz)²`` (plus the
+    joints' weak prior), ``w`` (..., n_valid) the steps' weights (None: all 1).
+
+    Unweighted it is one solve with the joints' Laplacian, factorised once per structure.
+    Weighted, ``steps`` (default `HEIGHT_CG_STEPS`) conjugate-gradient steps on the weighted
+    Laplacian, preconditioned by the unweighted one, start from the unweighted fit: the
+    condition number is at most the weights' spread, so a few steps come close to the exact
+    weighted fit without a factorisation per snapshot. A fixed number of steps, each snapshot's
+    column on its own: a snapshot gets the same heights alone or in a batch."""
+    B, BT = st.incidence, st.incidence_T
+    solve = st.lap_lu.solve
+    x = solve(np.ascontiguousarray(BT @ dz.T))
+    if w is None:
+        return x
+    wt, dzt = w.T, dz.T  # (n_valid,) or (n_valid, B)
+    eps = JOINT_PRIOR_WEIGHT
+    r = BT @ (wt * (dzt - B @ x)) - eps * x  # the weighted normal equations' residual
+    p = rz = None
+    for _ in range(HEIGHT_CG_STEPS if steps is None else steps):
+        zr = solve(np.ascontiguousarray(r))
+        rz_new = np.add.reduce(r * zr, axis=0)
+        p = zr if p is None else zr + (rz_new / np.where(rz > 0.0, rz, 1.0)) * p
+        rz = rz_new
+        ap = BT @ (wt * (B @ p)) + eps * p
+        pap = np.add.reduce(p * ap, axis=0)
+        a = rz / np.where(pap > 0.0, pap, 1.0)
+        x = x + a * p
+        r = r - a * ap
+    return x
 
 
 def noise_and_priors(prior: str, st, rr, norm_g, valid, rest_given: bool):

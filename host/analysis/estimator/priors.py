@@ -10,7 +10,8 @@ from .kernel import ffi as _kffi, lib as _klib
 from .angles import G0
 from .structure import units_int64
 
-__all__ = ["PRIORS", "DEFAULT_PRIOR", "LEVEL_TILTED_SHARE", "FIXED_PRIOR_WEIGHT",
+__all__ = ["PRIORS", "DEFAULT_PRIOR", "LEVEL_TILTED_SHARE", "LEVEL_SHARE_NOISE", "tilted_share",
+           "FIXED_PRIOR_WEIGHT",
            "ABS_PRIOR_FLOOR", "BEND_STD_RAD", "SHEAR_WEIGHT", "SHEAR_WEIGHT_REST",
            "FLAT_TILT_NOISE", "FLAT_RADIUS", "PRIOR_WEIGHT_MIN", "flatness", "link_flatness",
            "prior_weights", "bridging_pairs"]
@@ -43,12 +44,31 @@ SHEAR_WEIGHT_REST = 1e-2
 FLAT_TILT_NOISE = 3.0
 #: ... averaged over (2 FLAT_RADIUS + 1)² cells around it.
 FLAT_RADIUS = 3
-#: "level": the share of the bending weight a pair keeps however tilted its region. Small enough
-#: not to pull a drape's zigzag (0.01 did: the drape 0.64 -> 1.02 % of side at 5 % g), large
-#: enough to hold the smooth modes the data hold weakly on a compass net, which otherwise made
-#: the chord steps contract so slowly that a 64x64 stream refactorised every 4-5 snapshots
-#: (26 -> 9 ms per snapshot; docs/estimator.md §3 has the sweep).
+#: "level": the share of the bending weight a pair keeps however tilted its region, for readings
+#: of up to `LEVEL_SHARE_NOISE` (`tilted_share`). Small enough not to pull a drape's zigzag
+#: (0.01 did: the drape 0.64 -> 1.02 % of side at 5 % g), large enough to hold the smooth modes
+#: the data hold weakly on a compass net, which otherwise made the chord steps contract so
+#: slowly that a 64x64 stream at 1 % g refactorised every 4-5 snapshots (26 -> 9 ms per
+#: snapshot; 0.002 and 0.001 still refactorised; docs/estimator.md §3 has the sweep).
 LEVEL_TILTED_SHARE = 0.003
+#: ... up to this noise σ (fraction of g); above it the share falls as 1/σ, so that the tilted
+#: pairs' weight grows as σ, not σ² (`tilted_share`): the constant share cost the tilted drape
+#: 7-9 % of its error at 3-5 % g, on draws of other seeds than `capsheet paper noise`'s too
+LEVEL_SHARE_NOISE = 0.01
+
+
+def tilted_share(noise):
+    """The share of the bending weight a tilted pair keeps under "level", for readings of noise
+    σ (a float, or per snapshot (B,)): `LEVEL_TILTED_SHARE` up to `LEVEL_SHARE_NOISE`, then
+    ``LEVEL_TILTED_SHARE · LEVEL_SHARE_NOISE / σ``. The share is there for the solver: it holds
+    the smooth modes that a compass net's data hold weakly, whose curvature is the data's and
+    does not grow with the noise, while the pull it exerts on a drape's zigzag does (docs/
+    estimator.md §3 measures both)."""
+    noise = np.asarray(noise, float)
+    share = LEVEL_TILTED_SHARE * np.minimum(1.0, LEVEL_SHARE_NOISE / np.maximum(noise, 1e-300))
+    return share[..., None] if share.ndim else float(share)
+
+
 #: Every prior pair's least weight (noise-free readings): keeps Case 1 regions defined.
 PRIOR_WEIGHT_MIN = 1e-8
 
@@ -97,11 +117,13 @@ def link_flatness(st, h):
     """Per link, the mean flatness `h` (..., n_units) of the units it belongs to (one or two)."""
     units = st.lattice.units.reshape(-1, 4)
     acc = np.zeros(np.shape(h)[:-1] + (st.n_links,))
-    cnt = np.zeros(st.n_links)
     for k in range(4):  # a link holds one position k in at most one unit: no repeated index
         acc[..., units[:, k]] += h
-        cnt[units[:, k]] += 1.0
-    return acc / np.maximum(cnt, 1.0)
+    cnt = st.derived.get("link_unit_count")
+    if cnt is None:  # per link, the units it belongs to (at least 1): fixed per structure
+        cnt = st.derived["link_unit_count"] = np.maximum(
+            np.bincount(units.ravel(), minlength=st.n_links).astype(float), 1.0)
+    return acc / cnt
 
 
 def bridging_pairs(st) -> np.ndarray:
@@ -134,7 +156,7 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     "adaptive": bending pairs ``(σ/BEND_STD_RAD)²``, shear pairs ``SHEAR_WEIGHT · h`` (h the
     unit's `flatness`), no yaw prior beyond `ABS_PRIOR_FLOOR`; "level": the same with bending
     pairs at ``(σ/BEND_STD_RAD)² · h``, h the larger of its two links' `link_flatness` (1 for a
-    pair that joins islands of the data, `bridging_pairs`; at least `LEVEL_TILTED_SHARE`);
+    pair that joins islands of the data, `bridging_pairs`; at least `tilted_share`);
     "off": floors only; "fixed":
     `FIXED_PRIOR_WEIGHT` on every yaw; "local": that times the mean flatness of the link's
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
@@ -147,8 +169,9 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
         bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
         if prior == "level":  # a pair is held as much as its flatter link's units are level,
             # and wholly where it joins what no unit relates (`bridging_pairs`)
-            h = link_flatness(st, hu)[..., st.pairs[:st.n_bend]].max(axis=-1)
-            bend = bend * np.maximum(np.maximum(h, bridging_pairs(st)), LEVEL_TILTED_SHARE)
+            lf, pb = link_flatness(st, hu), st.pairs[:st.n_bend]
+            h = np.maximum(lf[..., pb[:, 0]], lf[..., pb[:, 1]])  # (a fancy max over 2: 20x slower)
+            bend = bend * np.maximum(np.maximum(h, bridging_pairs(st)), tilted_share(noise))
         w[..., :st.n_bend] = np.maximum(bend, PRIOR_WEIGHT_MIN)
         sw = SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT
         w[..., st.n_bend:] = np.maximum(sw * hu[..., st.shear_unit], PRIOR_WEIGHT_MIN)

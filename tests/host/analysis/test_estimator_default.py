@@ -41,6 +41,16 @@ def test_the_default_is_a_fifth_better_than_the_papers_method_on_its_own_experim
     assert default <= 0.8 * paper, (default, paper)
 
 
+def test_the_tilted_drape_at_4_pct_g_is_a_fifth_better_over_the_commands_ten_trials():
+    """The level where the default came closest to the bound (0.78 of the paper's method; the
+    default before the weighted height fit and the smaller tilted share: 0.85), on the draws
+    `capsheet paper noise` makes: its ten trials, as the bound is stated over them (three
+    trials of it say 0.81)."""
+    default = _errors("fig9-tilted", 4.0, trials=10).mean()
+    paper = _errors("fig9-tilted", 4.0, trials=10, method="paper").mean()
+    assert default <= 0.8 * paper, (default, paper)
+
+
 def test_the_former_adaptive_prior_is_biased_on_a_drape_and_the_default_is_not():
     """The drape's lattice lines zigzag in plan (parallel neighbours along a line differ by up to
     0.6 rad): a prior that holds every bending pulls where the data decide; the default holds it
@@ -233,9 +243,9 @@ def test_capsheet_estimate_prior_selects_an_older_prior_by_name(tmp_path, capsys
 
 def test_a_compass_stream_stays_on_its_factorisation_under_the_default(monkeypatch):
     """A 64x64 compass Gaussian streamed at 1 % g: the "level" prior keeps a small share of the
-    bending on tilted regions (`LEVEL_TILTED_SHARE`) so that the smooth modes the data hold
-    weakly do not stall the chord steps; without it the stream refactorised every 4-5 snapshots
-    (a count, not a rate: the time is bench_estimator's)."""
+    bending on tilted regions (`tilted_share`) so that the smooth modes the data hold weakly do
+    not stall the chord steps; without it the stream refactorised every 4-5 snapshots (a count,
+    not a rate: the time is bench_estimator's)."""
     n = 64
     P = make_sheet("gaussian", n, n, L)
     g = np.random.Generator(np.random.MT19937(1))
@@ -250,8 +260,83 @@ def test_a_compass_stream_stays_on_its_factorisation_under_the_default(monkeypat
         return count
 
     assert refactorisations() == 0
-    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.0)
-    assert refactorisations() >= 1  # the check can fail: without the share it refactorises
+    # the share the drape's accuracy alone would choose at every noise (the sweep's 0.001) costs
+    # this stream its factorisation: the check can fail
+    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.001)
+    assert refactorisations() >= 1
+
+
+def test_the_tilted_share_falls_with_the_noise_above_one_pct_g_and_the_tilted_drape_gains(
+        monkeypatch):
+    """Up to 1 % g a tilted pair keeps the share 0.003 of the bending weight, above it the share
+    falls as 1/σ (the pair's weight grows as σ, not σ²): at 3-5 % g the constant share cost the
+    tilted drape 7-9 % of its error (docs/estimator.md §3)."""
+    share = E.priors.tilted_share
+    k = E.priors.LEVEL_TILTED_SHARE
+    assert share(0.0) == share(0.005) == share(0.01) == k
+    assert share(0.04) == pytest.approx(k / 4, rel=1e-12)
+    np.testing.assert_allclose(share(np.array([0.002, 0.02])), [[k], [k / 2]], rtol=1e-12)
+    falling = _errors("fig9-tilted", 4.0).mean()
+    monkeypatch.setattr(E.priors, "LEVEL_SHARE_NOISE", 1.0)  # the share constant at every noise
+    assert falling <= 0.95 * _errors("fig9-tilted", 4.0).mean()
+
+
+def test_a_links_height_step_is_as_noisy_as_the_cosine_of_its_pitch():
+    """`height_weights`' noise model: white noise of σ per axis moves ``sin β`` of a reading by
+    σ cos β (a steep link's height step is better known), here by drawing readings of links at
+    two pitches, not from the estimator's formula."""
+    g = np.random.Generator(np.random.MT19937(21))
+    sigma, k = 0.02, 20000
+    var = {}
+    for beta in (0.0, 1.1):
+        s = np.array([-np.sin(beta), np.cos(beta) * np.sin(0.3), np.cos(beta) * np.cos(0.3)])
+        r = E.G0 * (s + sigma * g.standard_normal((k, 3)))
+        var[beta] = np.var(-r[:, 0] / np.linalg.norm(r, axis=1))
+    w0, w1 = E.pipeline.height_weights(np.sin(np.array([0.0, 1.1])))
+    floor = E.pipeline.HEIGHT_VAR_FLOOR
+    model = (1.0 / w1 - floor) / (1.0 / w0 - floor)  # the weights' variance ratio, floor removed
+    assert abs(var[1.1] / var[0.0] / model - 1.0) < 0.05, (var, model)
+    assert w1 > 2.5 * w0  # the steep link counts more
+
+
+def test_the_weighted_height_fit_comes_close_to_the_weighted_least_squares():
+    """`weighted_heights` against the weighted normal equations written here from the lattice's
+    endpoints and solved directly: a few conjugate-gradient steps from the unweighted fit."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import spsolve
+
+    n = 14
+    P = make_sheet("sphere", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 3.0, np.random.Generator(np.random.MT19937(11)))
+    _, beta = E.roll_pitch(r)
+    st = E.structure.structure_of(n, n, None, "cells")
+    ep = Lattice(n, n).endpoints
+    m = ep.shape[0]
+    D = sp.csr_matrix((np.r_[-np.ones(m), np.ones(m)], (np.r_[np.arange(m), np.arange(m)],
+                                                       np.r_[ep[:, 0], ep[:, 1]])), (m, n * n))
+    dz = -np.sin(beta)
+    w = 1.0 / (np.cos(beta) ** 2 + E.pipeline.HEIGHT_VAR_FLOOR)
+    A = (D.T @ sp.diags(w) @ D + E.structure.JOINT_PRIOR_WEIGHT * sp.identity(n * n)).tocsc()
+    exact = D @ spsolve(A, D.T @ (w * dz))  # the steps of the exact weighted fit
+
+    def off(z):
+        return np.abs(D @ z - exact).max()
+
+    plain = off(E.pipeline.weighted_heights(st, dz))
+    assert plain > 1e-3  # the unweighted fit's steps differ: the check below can fail
+    assert off(E.pipeline.weighted_heights(st, dz, w, steps=12)) < 1e-9
+    assert off(E.pipeline.weighted_heights(st, dz, w)) < 0.05 * plain  # the default two steps
+    # a batch of two snapshots gives each the steps it gets alone (the heights' common offset,
+    # which the joints' weak prior alone fixes, is left to rounding)
+    both = E.pipeline.weighted_heights(st, np.stack([dz, dz[::-1]]), np.stack([w, w[::-1]]))
+    np.testing.assert_allclose(D @ both[:, 1], D @ E.pipeline.weighted_heights(st, dz[::-1], w[::-1]),
+                               rtol=0, atol=1e-12)
+
+
+def test_weighting_the_heights_lowers_the_error_on_the_tilted_drape(monkeypatch):
+    weighted = _errors("fig9-tilted", 4.0).mean()
+    monkeypatch.setattr(E.pipeline, "WEIGHTED_HEIGHTS", False)
+    assert weighted <= 0.97 * _errors("fig9-tilted", 4.0).mean()
 
 
 def test_the_command_lines_prior_choices_are_the_estimators():

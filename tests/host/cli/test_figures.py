@@ -151,7 +151,9 @@ def test_noise_figure_draws_mean_and_std_as_the_paper_with_its_failure_line_and_
         assert len(err_axes) == 2 and len(map_axes) == 2
         ax = err_axes[0]
         assert ax.get_yscale() == "linear" and ax.get_ylim()[0] == 0  # as Fig. 10
-        assert sorted(_legend(ax)) == sorted(["global (capsheet): mean ± std", "paper's method: mean ± std",
+        from host.analysis.estimator.priors import DEFAULT_PRIOR
+        default = f"capsheet default (global, prior {DEFAULT_PRIOR!r}): mean ± std"
+        assert sorted(_legend(ax)) == sorted([default, "paper's method: mean ± std",
                                               "paper's failure line (5 % of side)"])
         line = [ln for ln in ax.lines if ln.get_label().startswith("paper's failure")][0]
         assert line.get_ydata()[0] == 5.0
