@@ -14,7 +14,9 @@ The virtual gateway stands for a 12 Mbaud UART (what 364 chips at 145 Hz need, p
 6/9-axis chips (``--sensors accel+gyro`` or ``accel+gyro+mag``, docs/protocol.md §16) on a moving
 sheet (``--shape carry|wave|elbow|tap|flat_turn``, docs/motion.md): the host asks for IMU records
 (CONFIG_IMU) and shapes every snapshot, in order, with the fused estimator (docs/estimator.md §8)
-(`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times);
+(`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times)
+in a process of its own (`host.workers.fused_worker.FusedProcess`: in the host's, it took the
+interpreter lock from the receive threads, and on a busy machine one gateway's frames came too late);
 the same pass rule.
 """
 
@@ -75,6 +77,10 @@ def register(sub) -> None:
     add_record_args(p)  # --record FILE.mcap, --live [PORT]
     p.set_defaults(func=run)
 
+
+#: snapshots waiting for room in the fused estimator's process, at most (2 s at 145 Hz): past it the
+#: oldest is given up (counted in the summary's ``fused.not_sent``)
+FUSED_WAITING_MAX = 290
 
 #: --learn-layout: seconds each pose is held and spent moving (the learner takes a pose after 1 s still)
 LEARN_HOLD_S, LEARN_MOVE_S = 2.0, 1.0
@@ -200,6 +206,11 @@ def learn_layout_over(paths, lat) -> tuple[dict, float]:
     return res.layout, time.monotonic() - t0
 
 
+def host_imu(args) -> bool:
+    """The chips send IMU records (``--sensors`` with a gyroscope): the fused estimator shapes."""
+    return getattr(args, "sensors", "accel") != "accel"
+
+
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
     return "n/a" if v is None else f"{v:{spec}}{unit}"
 
@@ -247,7 +258,8 @@ def run(args) -> int:
                        args=(_sheet_kwargs(args), args.packed, args.gateways, str(layout_path), child), daemon=True)
     proc.start()
     n_est = 0
-    fused = None
+    fused = worker = None
+    fused_stats: dict = {}
     elapsed = 0.0
     layout_score: dict = {}
     stats: dict = {}
@@ -314,19 +326,25 @@ def run(args) -> int:
         host = Host(transports, lat, layout=layout, rate_hz=args.rate, on_snapshot=on_snapshot)
         from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
-        fused = None
+        from host.cli.record_args import SessionOutputs
+        outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
+                                 session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
+        outputs.attach(host)
         if host.imu_config is not None:  # the gyroscopes drive the shape
             from host.analysis.motion import FusedConfig, MotionEstimator
             from protocol.constants import G0
             # the virtual chips' accelerometer noise is --noise (1 % g by default), not the
             # datasheet's the estimator assumes: it is told
-            fused = MotionEstimator(rows, cols, L, config=FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0))
-        from host.cli.record_args import SessionOutputs
-        outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
-                                 session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
-        outputs.attach(host)
+            config = FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0)
+            if outputs.ros2 is None:  # in its own process, started while the chips are brought up
+                from host.workers.fused_worker import FusedProcess
+                worker = FusedProcess(rows, cols, L, config=config)
+            else:  # --publish ros2 / --record-ros2 publish every link's orientation from its state
+                fused = MotionEstimator(rows, cols, L, config=config)
         if cal is not None:  # before bring-up: it follows the chip calibration the host reads
             host.set_calibration(cal)
+        if worker is not None and not worker.wait_ready(120.0):
+            raise SystemExit("capsheet demo: the fused estimator's process did not start within 120 s")
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
@@ -345,35 +363,61 @@ def run(args) -> int:
                 for c, ok in before_window:
                     window[0].add(c, ok)
                 before_window.clear()
-            last_eval = 0.0
+            last_eval = [0.0]
             agg = host.aggregator
-            while time.monotonic() - t0 < args.duration:
-                wait = min(0.5, max(0.0, args.duration - (time.monotonic() - t0)))
-                # the fused estimator integrates the gyroscopes: every snapshot, in order
-                snap = host.latest(wait) if fused is None else host.get(wait)
-                if snap is None or not snap.valid.any():
-                    continue
-                t_e = time.perf_counter()
-                if fused is not None:
-                    est = fused_update(fused, snap)
-                    outputs.imu(snap, est, fused)  # --publish ros2, --record-ros2: every link's IMU
-                    if est is None:
-                        continue
-                else:
-                    est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
-                times.add(time.perf_counter() - t_e)
-                previous = est
+
+            def took(snap, est, seconds: float) -> None:
+                """An estimate of ``snap`` made in ``seconds``: counted, and scored against the truth."""
+                nonlocal n_est, last
+                times.add(seconds)
                 n_est += 1
                 latencies.add(time.monotonic() - snap.timestamp)
                 # the truth: compare at most 10 complete snapshots/s (the error target is for a
                 # complete sheet; an incomplete one is estimated and shown, not scored)
-                if snap.complete and time.monotonic() - last_eval >= 0.1:
-                    last_eval = time.monotonic()
+                if snap.complete and time.monotonic() - last_eval[0] >= 0.1:
+                    last_eval[0] = time.monotonic()
                     truth = truth_of(snap)
                     err = error_percent_of_side(est.joints, truth, L)
                     errors.add(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
                     outputs.publish(est, snap, truth=truth)
+
+            # the fused estimator's process: every snapshot, in order; those it has no room for
+            # yet wait here (`FUSED_WAITING_MAX` at most: past it the oldest is given up, counted)
+            waiting: deque = deque()
+            sent_snaps: dict = {}
+            while time.monotonic() - t0 < args.duration:
+                wait = min(0.5, max(0.0, args.duration - (time.monotonic() - t0)))
+                if worker is not None:
+                    snap = host.get(0.005 if waiting or sent_snaps else wait)
+                    if snap is not None and snap.valid.any():
+                        waiting.append(snap)
+                        if len(waiting) > FUSED_WAITING_MAX:
+                            waiting.popleft()
+                            fused_stats["given_up"] = fused_stats.get("given_up", 0) + 1
+                    while waiting and worker.free:
+                        s = waiting.popleft()
+                        worker.submit(s)
+                        sent_snaps[s.counter] = s
+                    for r in worker.results():
+                        s = sent_snaps.pop(r.counter, None)
+                        if r.ok and s is not None:
+                            took(s, r, r.seconds)
+                else:
+                    # the fused estimator integrates the gyroscopes: every snapshot, in order
+                    snap = host.latest(wait) if fused is None else host.get(wait)
+                    if snap is None or not snap.valid.any():
+                        continue
+                    t_e = time.perf_counter()
+                    if fused is not None:
+                        est = fused_update(fused, snap)
+                        outputs.imu(snap, est, fused)  # --publish ros2, --record-ros2: every link's IMU
+                        if est is None:
+                            continue
+                    else:
+                        est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
+                    previous = est
+                    took(snap, est, time.perf_counter() - t_e)
                 if live.due():
                     el = time.monotonic() - t0
                     # up to the newest SYNC emitted: those after it are in flight, not yet missed
@@ -388,6 +432,15 @@ def run(args) -> int:
                               f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0
             end, sent_n = host.counter, host.syncs_sent - sent0
+            if worker is not None:  # the shapes in flight are made (their snapshots came in time)
+                for r in worker.close():
+                    s = sent_snaps.pop(r.counter, None)
+                    if r.ok and s is not None:
+                        took(s, r, r.seconds)
+                fused_stats.update(process=True, submitted=worker.submitted, made=worker.made,
+                                   left_out=worker.left_out, refused=worker.failed,
+                                   not_sent=len(waiting) + fused_stats.get("given_up", 0))
+                worker = None
             host.stop()  # the SYNCs in flight get their chance to complete
             with window_lock:
                 win = window[0].result(end, sent_n)
@@ -399,6 +452,8 @@ def run(args) -> int:
                      "syncs_missed": host.stats["live"]["syncs_missed"], "deadline_ms": round(1e3 * agg.deadline_s, 2)}
             outputs.close(host.stats)
     finally:
+        if worker is not None:
+            worker.close(0.0)
         if proc.is_alive():
             parent.send("stop")
             proc.join(10)
@@ -429,7 +484,8 @@ def run(args) -> int:
         # medians beyond 65,536 values are of a uniform sample of them: how many were left out
         "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,
-        "sensors": getattr(args, "sensors", "accel"), "estimator": "fused" if fused is not None else "accel_only",
+        "sensors": getattr(args, "sensors", "accel"),
+        "estimator": "fused" if host_imu(args) else "accel_only", **({"fused": fused_stats} if fused_stats else {}),
         "error_ok": err_ok, "complete_ok": complete_ok, **({"layout_ok": layout_ok} if args.learn_layout else {}),
         "pass": ok,
     }
