@@ -17,7 +17,9 @@ sheet (``--shape carry|wave|elbow|tap|flat_turn``, docs/motion.md): the host ask
 (`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times)
 in a process of its own (`host.workers.fused_worker.FusedProcess`: in the host's, it took the
 interpreter lock from the receive threads, and on a busy machine one gateway's frames came too late);
-the same pass rule.
+the same pass rule. The moving sheet lies at its scene's start through the bring-up and moves from
+the first SYNCs on (`virtual_sheet.imu_source.ImuSource.hold`): the estimator's first snapshot takes
+the sheet as still, and the error no longer depends on how long the bring-up took.
 """
 
 from __future__ import annotations
@@ -150,6 +152,8 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     try:
         sheet = make_sheet(kwargs)
         sheet.precompute()
+        if sheet.imu_source is not None:  # a moving sheet lies at its start until the demo streams ("start")
+            sheet.imu_source.hold()
         sheet.write_layout(layout_path)
         if gateways > 1:
             from virtual_sheet.devices import MultiPtyDevice
@@ -168,6 +172,9 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
             req = conn.recv()
             if req == "stop":
                 break
+            if req == "start":  # the host streams: the scene's motion begins now
+                conn.send(("started", dev.call(lambda now_s: (sheet.imu_source.start_at(now_s), now_s)[1])))
+                continue
             if req == "switch":  # --learn-layout: the layout is learned, the demo's shape from the next steps
                 rate = sheet.scene_rate_hz
                 at = math.ceil((dev.now() + 0.5) * rate) / rate
@@ -348,6 +355,11 @@ def run(args) -> int:
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
+            if truth_sheet.imu_source is not None:
+                # a moving sheet lay at its start through the bring-up, however long it took (the
+                # fused estimator's first snapshot takes the sheet as still): it moves from now on
+                parent.send("start")
+                parent.recv()
             from host.cli.host import calibration_words
             print(f"capsheet demo: {summary['discovered']} chips discovered, {summary['assigned']} assigned, "
                   f"{calibration_words(host, summary)}, {summary['started']} streaming "
