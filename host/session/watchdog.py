@@ -9,8 +9,8 @@ A link is marked silent (SILENT in every snapshot, not waited for) when
   (`host.session.syncdriver.SyncDriver.service_s`): the whole sheet or bus fell silent while the host
   kept running;
 
-and, either way, its own port was read for ``watchdog_s`` past its last frame (the aggregator's
-``input_mark``: how far each bus's input was read). The host's SYNC thread may run on while one
+and, either way, its own port was read within the last ``watchdog_s`` (the aggregator's
+``input_mark``: how far each bus's input was read, up to the present when its reader found it empty). The host's SYNC thread may run on while one
 receive thread does not (a busy machine gives the interpreter to the others): then the frames of
 that port's links wait unread, and a whole gateway's links were marked missing for the host's own
 lag. Such a port is reported instead (``behind``, and ``caught_up`` once it is read again), an
@@ -110,7 +110,7 @@ class Watchdog:
             bus_of = self._bus_of
             known = bus_of >= 0
             mark = np.where(known, agg.input_mark[np.clip(bus_of, 0, agg.input_mark.shape[0] - 1)], np.inf)
-            unread = known & (mark - self._seen_real <= self.watchdog_s)
+            unread = known & (now - mark > self.watchdog_s)
             self._ports_behind(now, silent & unread & ~self.silent & known, bus_of)
             silent &= ~unread | self.silent  # a link already marked stays so until it speaks
         newly = silent & ~self.silent
