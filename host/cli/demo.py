@@ -80,9 +80,15 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-#: snapshots waiting for room in the fused estimator's process, at most (2 s at 145 Hz): past it the
-#: oldest is given up (counted in the summary's ``fused.not_sent``)
-FUSED_WAITING_MAX = 290
+#: snapshots waiting for room in the fused estimator's process, at most (6 s at 145 Hz, ~30 MB of a
+#: 14x14 sheet's): past it the oldest is given up (counted in the summary's ``fused.not_sent``)
+FUSED_WAITING_MAX = 870
+#: the fused estimator's process runs this much nicer than the demo: on a busy machine it falls
+#: behind and catches up (its shapes come late, none is lost) while the receive threads keep the
+#: processor (a frame read late is lost to its snapshot)
+FUSED_NICE = 5
+#: after streaming, how long the fused estimator's process is given for what still waits (s)
+FUSED_DRAIN_S = 30.0
 
 #: --learn-layout: seconds each pose is held and spent moving (the learner takes a pose after 1 s still)
 LEARN_HOLD_S, LEARN_MOVE_S = 2.0, 1.0
@@ -349,7 +355,7 @@ def run(args) -> int:
             config = FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0)
             if outputs.ros2 is None:  # in its own process, started while the chips are brought up
                 from host.workers.fused_worker import FusedProcess
-                worker = FusedProcess(rows, cols, L, config=config)
+                worker = FusedProcess(rows, cols, L, config=config, nice=FUSED_NICE)
             else:  # --publish ros2 / --record-ros2 publish every link's orientation from its state
                 fused = MotionEstimator(rows, cols, L, config=config)
         if cal is not None:  # before bring-up: it follows the chip calibration the host reads
@@ -448,16 +454,24 @@ def run(args) -> int:
                               f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0
             end, sent_n = host.counter, host.syncs_sent - sent0
-            if worker is not None:  # the shapes in flight are made (their snapshots came in time)
-                for r in worker.close():
-                    s = sent_snaps.pop(r.counter, None)
-                    if r.ok and s is not None:
-                        took(s, r, r.seconds)
+            host.stop()  # the SYNCs in flight get their chance to complete
+            if worker is not None:  # the snapshots of the window still waiting or in flight are shaped
+                t_end = time.monotonic() + FUSED_DRAIN_S
+                while (waiting or sent_snaps) and time.monotonic() < t_end:
+                    while waiting and worker.free:
+                        s = waiting.popleft()
+                        worker.submit(s)
+                        sent_snaps[s.counter] = s
+                    for r in worker.results(0.05):
+                        s = sent_snaps.pop(r.counter, None)
+                        if r.ok and s is not None:
+                            took(s, r, r.seconds)
+                worker.close(0.0)
                 fused_stats.update(process=True, submitted=worker.submitted, made=worker.made,
                                    left_out=worker.left_out, refused=worker.failed,
-                                   not_sent=len(waiting) + fused_stats.get("given_up", 0))
+                                   not_sent=len(waiting) + fused_stats.get("given_up", 0),
+                                   unanswered=len(sent_snaps))
                 worker = None
-            host.stop()  # the SYNCs in flight get their chance to complete
             with window_lock:
                 win = window[0].result(end, sent_n)
             st = agg.stats

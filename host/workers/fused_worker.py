@@ -67,9 +67,15 @@ class FusedResult:
     motion: None = None
 
 
-def _child(pipes, rows: int, cols: int, link_length: float, config) -> None:
+def _child(pipes, rows: int, cols: int, link_length: float, config, nice: int) -> None:
     """The fused estimator's process: every request, in order, until the pipe closes."""
     req, ans = pipes
+    if nice:
+        try:  # it yields to the receive path: a snapshot waits, a frame read late is lost
+            import os
+            os.nice(nice)
+        except (AttributeError, OSError):
+            pass
     from host.runtime import one_blas_thread
     one_blas_thread()
     from host.analysis.motion import MotionEstimator
@@ -140,10 +146,13 @@ class FusedProcess:
     config : host.analysis.motion.FusedConfig, optional
     max_in_flight : int, optional
         Snapshots sent and not yet answered, at most (default: what the request pipe holds, 2..64).
+    nice : int
+        The child's niceness added (Unix; default 0): on a busy machine an estimator that
+        can catch up yields the processor to the receive threads, which cannot.
     """
 
     def __init__(self, rows: int, cols: int, link_length: float, *, config=None,
-                 max_in_flight: int | None = None) -> None:
+                 max_in_flight: int | None = None, nice: int = 0) -> None:
         self.rows, self.cols, self.link_length = int(rows), int(cols), float(link_length)
         self.n_links = self.rows * (self.cols - 1) + self.cols * (self.rows - 1)
         request = _REQ.size + 81 * self.n_links
@@ -154,7 +163,8 @@ class FusedProcess:
         self._ans, ans_w = ctx.Pipe(duplex=False)
         for c in (req_r, ans_w):
             widen_pipe(c)
-        self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length, config),
+        self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length, config,
+                                                      int(nice)),
                                  name="capsheet-fused", daemon=True)
         self._proc.start()
         req_r.close()
