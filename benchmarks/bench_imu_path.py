@@ -53,7 +53,7 @@ def run_case(shape: str, sensors: str, seconds: float, lattice: str = "14x14", s
     (``profiler``: a `cProfile.Profile` enabled over the streaming alone)."""
     import numpy as np
 
-    from host.cli.demo import fused_update
+    from host.analysis.motion.snapshots import fused_update
     from host.estimator import estimate
     from host.session.core import Host, Layout
     from host.transport.ports import MemoryTransport

@@ -23,7 +23,12 @@ reads of the last ``window`` consecutive SYNCs before it (`period_s`: the median
 backlogs and skipped slots leave alone while most spacings are one period). A SYNC after a gap
 in the counters, and the first ones (8 spacings), arrive when read. The same counter read
 again (another gateway of the sheet: the host writes every port at once) arrives when it did the
-first time.
+first time, whatever was read in between, and leaves the model as it was: a device serves each
+port's read whole, so after a stall the second gateway reads SYNCs c, c+1, c+2 only once the
+first has read them all (the newest `KEPT` counters' arrivals are kept for it). Taken as a new
+SYNC, the second gateway's copy of c came two counters back — a gap: its chips sampled at the
+late read, the truth of c moved there too, and the measured period was thrown away, so every
+SYNC until 8 more spacings were read arrived when read.
 
 What it cannot know: a host that really sent a SYNC late (its thread woke late, or it skipped a
 slot) looks the same as a late read; the arrival is then early by the host's delay less ``slack_s``
@@ -37,10 +42,14 @@ Sans-I/O: read times are arguments; exact on a simulated clock.
 
 from __future__ import annotations
 
-from collections import deque
+from collections import OrderedDict, deque
 from statistics import median
 
-__all__ = ["SyncArrival"]
+__all__ = ["SyncArrival", "KEPT"]
+
+#: the newest counters whose arrivals are kept for another gateway's copy of the same SYNC
+#: (1.8 s at 145 Hz: far longer than one port is read behind another)
+KEPT = 256
 
 
 class SyncArrival:
@@ -75,6 +84,8 @@ class SyncArrival:
         self.steady = int(steady)
         self._steady = 0  # SYNCs in a row read one period apart yet put before their reads
         self.rephased = 0  #: times the reads were taken again after a host's late SYNC or skipped slot
+        self._kept: OrderedDict[int, float] = OrderedDict()  # counter -> arrival, the newest `KEPT`
+        self.copies = 0  #: SYNCs read again on another port, given the arrival of their first read
 
     @property
     def period_s(self) -> float | None:
@@ -91,9 +102,11 @@ class SyncArrival:
     def arrival(self, counter: int, read_s: float) -> float:
         """The instant the chips take SYNC ``counter`` (16 bits), read at ``read_s``, to have arrived."""
         c = int(counter) & 0xFFFF
+        kept = self._kept.get(c)
+        if kept is not None and read_s - kept <= self.max_gap_s:  # the same SYNC on another port
+            self.copies += 1
+            return kept if read_s >= kept else read_s
         last = self._last
-        if last is not None and c == last[0]:
-            return last[1] if read_s >= last[1] else read_s  # the same SYNC on another port
         a = read_s
         if last is not None and (c - last[0]) & 0xFFFF == 1 and 0 <= read_s - last[2] <= self.max_gap_s:
             p = self.period_s  # of the reads before this one
@@ -120,4 +133,8 @@ class SyncArrival:
         else:
             self._anchor = (c, a)
         self._last = (c, a, read_s)
+        self._kept[c] = a
+        self._kept.move_to_end(c)
+        if len(self._kept) > KEPT:
+            self._kept.popitem(last=False)
         return a

@@ -10,6 +10,8 @@
                     ``can.Bus(interface="slcan", channel=device.path)``
 `MultiPtyDevice`    several serial gateways of one sheet, each on its own pty with a contiguous
                     block of the links (``device.paths``); gateway 0 leads the SYNC line
+`MultiMemoryDevice` the same on in-memory links (``device.ports``): a multi-gateway sheet on a
+                    simulated clock
 =================== ========================================================================
 
 The two devices with a pty per gateway or bus (`MultiPtyDevice`, `SlcanDevice`) are
@@ -54,7 +56,7 @@ from .gateway import Gateway
 from .memport import memory_link
 from .pty import SYMLINK_RECORDS, PtyEndpoint, PtyGroup, PtyPort, claim_symlink, open_pty
 
-__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "CanDevice", "PtyPort", "PtyGroup", "PtyGroupDevice", "open_pty", "claim_symlink",
+__all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "MultiMemoryDevice", "CanDevice", "PtyPort", "PtyGroup", "PtyGroupDevice", "open_pty", "claim_symlink",
            "SYMLINK_RECORDS"]
 
 _IDLE_WAIT_S = 0.005
@@ -469,6 +471,93 @@ class MultiPtyDevice(PtyGroupDevice):
         return (f"{len(self.ports)} serial gateways: "
                 + ", ".join(f"{p.path} (-> {p.tty}, links {blk.start}..{blk.stop - 1})"
                             for p, blk in zip(self.ports, self.blocks)))
+
+
+class MultiMemoryDevice(Device):
+    """`MultiPtyDevice` over in-memory links: one sheet behind ``n_gateways`` serial gateways, each
+    with a contiguous block of the links (`VirtualSheet.split`) on its own `memory_link`
+    (``device.ports[b]`` is the host's end of gateway ``b``). With ``clock=`` it runs in manual
+    mode, so a host on the same simulated clock (`host.session.core.Host` with ``driver=``) meets
+    a multi-gateway sheet with exact counts, whatever the machine's load.
+
+    Every port's input is read before any gateway is fed, as `PtyGroup.serve` does, and each
+    port's read is handed to its gateway whole: after a stall the first gateway takes every SYNC
+    of its read before the second takes its copies (`arrival.SyncArrival` keeps them together).
+
+    ``device.stalled``: the gateways not served now (a set of indices; a test's seam for a
+    gateway whose process is starved): what the host sends them waits in their link, and what
+    their chips made waits in their queue, until they are served again.
+    """
+
+    name = "memory-gateways"
+
+    def __init__(self, sheet, *, n_gateways: int = 2, **kw) -> None:
+        if sheet.transport != "serial":
+            raise ValueError(f"MultiMemoryDevice needs a sheet with transport='serial', got {sheet.transport!r}")
+        super().__init__(sheet, **kw)
+        self.blocks = sheet.split(n_gateways)
+        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed,
+                                            sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b,
+                                            as_node=self.gateway_node)
+                         for b, blk in enumerate(self.blocks)]
+        self.gateways[0].followers = self.gateways[1:]
+        links = [memory_link(f"capsheet-gw{b}", timeout=0.1) for b in range(n_gateways)]
+        self.ports = [host_end for host_end, _dev in links]
+        self._ends = [dev for _host, dev in links]
+        self.stalled: set[int] = set()
+
+    def _serve(self, timeout_s: float) -> None:
+        got = []
+        for b, end in enumerate(self._ends):
+            if b in self.stalled:
+                continue
+            end.timeout = 0.0
+            try:
+                data = end.read(1 << 20)
+            except OSError:  # the host closed its end
+                continue
+            if data:
+                got.append((b, data, self.now()))
+        if not got:
+            if timeout_s > 0:
+                self._stop.wait(timeout_s)
+            return
+        for b, data, t in got:
+            if self.verbose is not None:
+                self.verbose("rx", data)
+            self.gateways[b].feed(data, t)
+
+    def _flush(self, now: float) -> None:
+        for b, gw in enumerate(self.gateways):
+            if b in self.stalled:  # its output stays queued
+                continue
+            if self.verbose is None:  # the due frames as one write
+                data, n = gw.pop_wire(now)
+                if n:
+                    self._send_wire(b, data, n)
+                continue
+            out = gw.pop_output(now)
+            if out:
+                for f in out:
+                    self.verbose("tx", f)
+                self._send(b, out)
+
+    def _send_wire(self, bus: int, data: bytes, n_frames: int) -> None:
+        self._send(bus, [data])
+
+    def _send(self, bus: int, frames: list) -> None:
+        try:
+            self._ends[bus].write(b"".join(frames))
+        except OSError:
+            pass
+
+    def _close(self) -> None:
+        for end in self._ends:
+            end.close()
+
+    def describe(self) -> str:
+        return (f"{len(self._ends)} serial gateways on in-memory links: "
+                + ", ".join(f"links {blk.start}..{blk.stop - 1}" for blk in self.blocks))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -14,8 +14,12 @@ The virtual gateway stands for a 12 Mbaud UART (what 364 chips at 145 Hz need, p
 6/9-axis chips (``--sensors accel+gyro`` or ``accel+gyro+mag``, docs/protocol.md §16) on a moving
 sheet (``--shape carry|wave|elbow|tap|flat_turn``, docs/motion.md): the host asks for IMU records
 (CONFIG_IMU) and shapes every snapshot, in order, with the fused estimator (docs/estimator.md §8)
-(`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times);
-the same pass rule.
+(`host.analysis.motion.MotionEstimator`: gyroscopes as the process model, the chips' sample times)
+in a process of its own (`host.workers.fused_worker.FusedProcess`: in the host's, it took the
+interpreter lock from the receive threads, and on a busy machine one gateway's frames came too late);
+the same pass rule. The moving sheet lies at its scene's start through the bring-up and moves from
+the first SYNCs on (`virtual_sheet.imu_source.ImuSource.hold`): the estimator's first snapshot takes
+the sheet as still, and the error no longer depends on how long the bring-up took.
 """
 
 from __future__ import annotations
@@ -75,6 +79,16 @@ def register(sub) -> None:
     add_record_args(p)  # --record FILE.mcap, --live [PORT]
     p.set_defaults(func=run)
 
+
+#: snapshots waiting for room in the fused estimator's process, at most (6 s at 145 Hz, ~30 MB of a
+#: 14x14 sheet's): past it the oldest is given up (counted in the summary's ``fused.not_sent``)
+FUSED_WAITING_MAX = 870
+#: the fused estimator's process runs this much nicer than the demo: on a busy machine it falls
+#: behind and catches up (its shapes come late, none is lost) while the receive threads keep the
+#: processor (a frame read late is lost to its snapshot)
+FUSED_NICE = 5
+#: after streaming, how long the fused estimator's process is given for what still waits (s)
+FUSED_DRAIN_S = 30.0
 
 #: --learn-layout: seconds each pose is held and spent moving (the learner takes a pose after 1 s still)
 LEARN_HOLD_S, LEARN_MOVE_S = 2.0, 1.0
@@ -144,6 +158,8 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
     try:
         sheet = make_sheet(kwargs)
         sheet.precompute()
+        if sheet.imu_source is not None:  # a moving sheet lies at its start until the demo streams ("start")
+            sheet.imu_source.hold()
         sheet.write_layout(layout_path)
         if gateways > 1:
             from virtual_sheet.devices import MultiPtyDevice
@@ -162,6 +178,9 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
             req = conn.recv()
             if req == "stop":
                 break
+            if req == "start":  # the host streams: the scene's motion begins now
+                conn.send(("started", dev.call(lambda now_s: (sheet.imu_source.start_at(now_s), now_s)[1])))
+                continue
             if req == "switch":  # --learn-layout: the layout is learned, the demo's shape from the next steps
                 rate = sheet.scene_rate_hz
                 at = math.ceil((dev.now() + 0.5) * rate) / rate
@@ -200,6 +219,11 @@ def learn_layout_over(paths, lat) -> tuple[dict, float]:
     return res.layout, time.monotonic() - t0
 
 
+def host_imu(args) -> bool:
+    """The chips send IMU records (``--sensors`` with a gyroscope): the fused estimator shapes."""
+    return getattr(args, "sensors", "accel") != "accel"
+
+
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
     return "n/a" if v is None else f"{v:{spec}}{unit}"
 
@@ -231,6 +255,10 @@ def run(args) -> int:
     rows, cols, L = lat.rows, lat.cols, args.link_length
     if truth_sheet.imu_source is not None:  # a periodic moving scene: its truth solved once, looked up live
         truth_sheet.precompute()
+        # else each instant is solved when asked: one every 0.1 s, so one at a time (0.9 ms for a
+        # 14x14 carried sheet), not the 0.1 s ahead a live sheet solves (29 instants, 4.6 ms, in
+        # the thread that hands the fused estimator its snapshots)
+        truth_sheet.imu_source.chunk = 1
     tmp = Path(tempfile.mkdtemp(prefix="capsheet-demo-"))
     layout_path = tmp / "layout.json"
     print(f"capsheet demo: virtual {rows}x{cols} sheet ({lat.n_links} chips), scene {args.shape!r}, "
@@ -247,7 +275,8 @@ def run(args) -> int:
                        args=(_sheet_kwargs(args), args.packed, args.gateways, str(layout_path), child), daemon=True)
     proc.start()
     n_est = 0
-    fused = None
+    fused = worker = None
+    fused_stats: dict = {}
     elapsed = 0.0
     layout_score: dict = {}
     stats: dict = {}
@@ -314,22 +343,33 @@ def run(args) -> int:
         host = Host(transports, lat, layout=layout, rate_hz=args.rate, on_snapshot=on_snapshot)
         from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
-        fused = None
+        from host.cli.record_args import SessionOutputs
+        outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
+                                 session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
+        outputs.attach(host)
         if host.imu_config is not None:  # the gyroscopes drive the shape
             from host.analysis.motion import FusedConfig, MotionEstimator
             from protocol.constants import G0
             # the virtual chips' accelerometer noise is --noise (1 % g by default), not the
             # datasheet's the estimator assumes: it is told
-            fused = MotionEstimator(rows, cols, L, config=FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0))
-        from host.cli.record_args import SessionOutputs
-        outputs = SessionOutputs(args, lat, L, mode="demo", colour_by="error", prog="capsheet demo",
-                                 session={"shape": args.shape, "noise_pct_g": args.noise, "seed": args.seed})
-        outputs.attach(host)
+            config = FusedConfig(accel_noise_mps2=args.noise / 100.0 * G0)
+            if outputs.ros2 is None:  # in its own process, started while the chips are brought up
+                from host.workers.fused_worker import FusedProcess
+                worker = FusedProcess(rows, cols, L, config=config, nice=FUSED_NICE)
+            else:  # --publish ros2 / --record-ros2 publish every link's orientation from its state
+                fused = MotionEstimator(rows, cols, L, config=config)
         if cal is not None:  # before bring-up: it follows the chip calibration the host reads
             host.set_calibration(cal)
+        if worker is not None and not worker.wait_ready(120.0):
+            raise SystemExit("capsheet demo: the fused estimator's process did not start within 120 s")
         with host:
             t_up = time.monotonic()
             summary = host.bring_up(packed=args.packed)
+            if truth_sheet.imu_source is not None:
+                # a moving sheet lay at its start through the bring-up, however long it took (the
+                # fused estimator's first snapshot takes the sheet as still): it moves from now on
+                parent.send("start")
+                parent.recv()
             from host.cli.host import calibration_words
             print(f"capsheet demo: {summary['discovered']} chips discovered, {summary['assigned']} assigned, "
                   f"{calibration_words(host, summary)}, {summary['started']} streaming "
@@ -345,35 +385,61 @@ def run(args) -> int:
                 for c, ok in before_window:
                     window[0].add(c, ok)
                 before_window.clear()
-            last_eval = 0.0
+            last_eval = [0.0]
             agg = host.aggregator
-            while time.monotonic() - t0 < args.duration:
-                wait = min(0.5, max(0.0, args.duration - (time.monotonic() - t0)))
-                # the fused estimator integrates the gyroscopes: every snapshot, in order
-                snap = host.latest(wait) if fused is None else host.get(wait)
-                if snap is None or not snap.valid.any():
-                    continue
-                t_e = time.perf_counter()
-                if fused is not None:
-                    est = fused_update(fused, snap)
-                    outputs.imu(snap, est, fused)  # --publish ros2, --record-ros2: every link's IMU
-                    if est is None:
-                        continue
-                else:
-                    est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
-                times.add(time.perf_counter() - t_e)
-                previous = est
+
+            def took(snap, est, seconds: float) -> None:
+                """An estimate of ``snap`` made in ``seconds``: counted, and scored against the truth."""
+                nonlocal n_est, last
+                times.add(seconds)
                 n_est += 1
                 latencies.add(time.monotonic() - snap.timestamp)
                 # the truth: compare at most 10 complete snapshots/s (the error target is for a
                 # complete sheet; an incomplete one is estimated and shown, not scored)
-                if snap.complete and time.monotonic() - last_eval >= 0.1:
-                    last_eval = time.monotonic()
+                if snap.complete and time.monotonic() - last_eval[0] >= 0.1:
+                    last_eval[0] = time.monotonic()
                     truth = truth_of(snap)
                     err = error_percent_of_side(est.joints, truth, L)
                     errors.add(float(err.mean()))
                     last = (truth, est.joints, err, snap.counter)
                     outputs.publish(est, snap, truth=truth)
+
+            # the fused estimator's process: every snapshot, in order; those it has no room for
+            # yet wait here (`FUSED_WAITING_MAX` at most: past it the oldest is given up, counted)
+            waiting: deque = deque()
+            sent_snaps: dict = {}
+            while time.monotonic() - t0 < args.duration:
+                wait = min(0.5, max(0.0, args.duration - (time.monotonic() - t0)))
+                if worker is not None:
+                    snap = host.get(0.005 if waiting or sent_snaps else wait)
+                    if snap is not None and snap.valid.any():
+                        waiting.append(snap)
+                        if len(waiting) > FUSED_WAITING_MAX:
+                            waiting.popleft()
+                            fused_stats["given_up"] = fused_stats.get("given_up", 0) + 1
+                    while waiting and worker.free:
+                        s = waiting.popleft()
+                        worker.submit(s)
+                        sent_snaps[s.counter] = s
+                    for r in worker.results():
+                        s = sent_snaps.pop(r.counter, None)
+                        if r.ok and s is not None:
+                            took(s, r, r.seconds)
+                else:
+                    # the fused estimator integrates the gyroscopes: every snapshot, in order
+                    snap = host.latest(wait) if fused is None else host.get(wait)
+                    if snap is None or not snap.valid.any():
+                        continue
+                    t_e = time.perf_counter()
+                    if fused is not None:
+                        est = fused_update(fused, snap)
+                        outputs.imu(snap, est, fused)  # --publish ros2, --record-ros2: every link's IMU
+                        if est is None:
+                            continue
+                    else:
+                        est = estimate(snap.readings, rows, cols, L, valid=snap.valid, previous=previous)
+                    previous = est
+                    took(snap, est, time.perf_counter() - t_e)
                 if live.due():
                     el = time.monotonic() - t0
                     # up to the newest SYNC emitted: those after it are in flight, not yet missed
@@ -389,6 +455,23 @@ def run(args) -> int:
             elapsed = time.monotonic() - t0
             end, sent_n = host.counter, host.syncs_sent - sent0
             host.stop()  # the SYNCs in flight get their chance to complete
+            if worker is not None:  # the snapshots of the window still waiting or in flight are shaped
+                t_end = time.monotonic() + FUSED_DRAIN_S
+                while (waiting or sent_snaps) and time.monotonic() < t_end:
+                    while waiting and worker.free:
+                        s = waiting.popleft()
+                        worker.submit(s)
+                        sent_snaps[s.counter] = s
+                    for r in worker.results(0.05):
+                        s = sent_snaps.pop(r.counter, None)
+                        if r.ok and s is not None:
+                            took(s, r, r.seconds)
+                worker.close(0.0)
+                fused_stats.update(process=True, submitted=worker.submitted, made=worker.made,
+                                   left_out=worker.left_out, refused=worker.failed,
+                                   not_sent=len(waiting) + fused_stats.get("given_up", 0),
+                                   unanswered=len(sent_snaps))
+                worker = None
             with window_lock:
                 win = window[0].result(end, sent_n)
             st = agg.stats
@@ -399,6 +482,8 @@ def run(args) -> int:
                      "syncs_missed": host.stats["live"]["syncs_missed"], "deadline_ms": round(1e3 * agg.deadline_s, 2)}
             outputs.close(host.stats)
     finally:
+        if worker is not None:
+            worker.close(0.0)
         if proc.is_alive():
             parent.send("stop")
             proc.join(10)
@@ -429,7 +514,8 @@ def run(args) -> int:
         # medians beyond 65,536 values are of a uniform sample of them: how many were left out
         "median_sample_cut": {"latency": latencies.cut, "estimate": times.cut},
         "target_pct_side": args.target, "min_complete_pct": args.min_complete,
-        "sensors": getattr(args, "sensors", "accel"), "estimator": "fused" if fused is not None else "accel_only",
+        "sensors": getattr(args, "sensors", "accel"),
+        "estimator": "fused" if host_imu(args) else "accel_only", **({"fused": fused_stats} if fused_stats else {}),
         "error_ok": err_ok, "complete_ok": complete_ok, **({"layout_ok": layout_ok} if args.learn_layout else {}),
         "pass": ok,
     }

@@ -48,7 +48,7 @@ from protocol.lattice import Lattice
 from protocol.layout import LayoutError
 from protocol.messages import Stop
 
-from host.snapshots.aggregator import Aggregator
+from host.snapshots.aggregator import INPUT_HOLD_S, Aggregator
 from host.snapshots.snapshot import LatticeSnapshot
 from host.session.bringup import BringUp, capacity_remedy
 from host.session.commands import CommandRounds
@@ -68,6 +68,10 @@ __all__ = ["Layout", "LayoutError", "ChipRecord", "HostEvent", "Host", "SyncSche
            "EVENTS_KEPT", "RX_ERRORS_KEPT", "RECOVERIES_KEPT", "SYNC_LISTEN_S"]
 
 log = logging.getLogger("capsheet.host")
+
+#: the most counters a host keeps open at once (`Host`: as many as its deadline and input hold may
+#: wait for, up to this: 16 MB of buffers for a 64x64 sheet)
+MAX_OPEN_CAP = 128
 
 
 class _InPart:
@@ -220,9 +224,14 @@ class Host:
         # hold_for_input: a counter past its deadline waits until its bus was read past it, so a
         # host that was not scheduled for a while reads the frames waiting for it before it gives
         # their counters up (host.snapshots.aggregator, "Input watermark")
+        # room for every counter that may still be waited for: its deadline and the input hold after
+        # it (the default 32 was 0.22 s at 145 Hz, under the 0.5 s a counter may wait: on a busy
+        # machine the counters whose frames were still unread were emitted incomplete to make room)
+        longest = dl.get("max_deadline_s", dl["deadline_s"]) + INPUT_HOLD_S
+        max_open = max(32, min(MAX_OPEN_CAP, int(np.ceil(longest * self.rate_hz)) + 2))
         self.aggregator = Aggregator(n, node_to_link=None, n_buses=len(self.transports),
                                      trust="sent" if self.sync_driver.sync_mode == "drive" else "follow",
-                                     hold_for_input=True, **dl)
+                                     hold_for_input=True, max_open=max_open, **dl)
         #: the one place snapshots come from (`host.snapshots.feed.SnapshotFeed`): what `get`, `latest`,
         #: `snapshots`, `drain` and every listener (``on_snapshot``, a recorder, `health`) see,
         #: corrected by `set_calibration` once

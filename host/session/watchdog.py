@@ -7,7 +7,14 @@ A link is marked silent (SILENT in every snapshot, not waited for) when
   ``n`` = ``watchdog_s`` worth of SYNCs (at least 3); or
 * no frame (SAMPLE or STATUS) came from it for ``watchdog_s`` of the host's *stall-free* time
   (`host.session.syncdriver.SyncDriver.service_s`): the whole sheet or bus fell silent while the host
-  kept running.
+  kept running;
+
+and, either way, its own port was read within the last ``watchdog_s`` (the aggregator's
+``input_mark``: how far each bus's input was read, up to the present when its reader found it empty). The host's SYNC thread may run on while one
+receive thread does not (a busy machine gives the interpreter to the others): then the frames of
+that port's links wait unread, and a whole gateway's links were marked missing for the host's own
+lag. Such a port is reported instead (``behind``, and ``caught_up`` once it is read again), an
+event per incident.
 
 It speaks again as soon as a frame of it comes. One log line per incident, an event per link.
 """
@@ -48,6 +55,9 @@ class Watchdog:
         self._status_seen = np.full(n, -np.inf)  # per link, host time of its last STATUS
         self._seen_real = np.full(n, -np.inf)  # per link, host time of its last frame, as last checked
         self._seen_service = np.zeros(n)  # per link, service time when a frame was last seen
+        self._bus_of: np.ndarray | None = None  # per link, the bus its chip speaks on (-1: none known)
+        #: the buses reported ``behind`` now (their input not read for ``watchdog_s``)
+        self.behind: set[int] = set()
 
     @property
     def silent_links(self) -> list[int]:
@@ -62,6 +72,20 @@ class Watchdog:
         self._seen_real[:] = now
         self._seen_service[:] = service_s
         self.silent[:] = False
+        self._bus_of = self._buses()
+
+    def _buses(self) -> np.ndarray | None:
+        """Per link, the bus its assigned chip speaks on (-1 where none); None when the host has no
+        chip registry or its aggregator does not follow each bus's input (``hold_for_input``)."""
+        host = self.host
+        registry = getattr(host, "registry", None)
+        if registry is None or not getattr(host.aggregator, "hold_for_input", False):
+            return None
+        bus_of = np.full(self.silent.shape[0], -1, dtype=np.int64)
+        for rec in registry.assigned():
+            if rec.link is not None and 0 <= rec.link < bus_of.shape[0]:
+                bus_of[rec.link] = rec.bus
+        return bus_of
 
     def tick(self, now: float, service_s: float) -> None:
         """`check` if it is due (every ``min(50 ms, watchdog_s / 4)``)."""
@@ -82,6 +106,13 @@ class Watchdog:
         quiet = service_s - self._seen_service
         n_runs = max(3, int(np.ceil(self.watchdog_s * host.rate_hz)))
         silent = assigned & ((agg.miss_run >= n_runs) | (quiet > self.watchdog_s))
+        if self._bus_of is not None:  # only where its own port was read past its silence
+            bus_of = self._bus_of
+            known = bus_of >= 0
+            mark = np.where(known, agg.input_mark[np.clip(bus_of, 0, agg.input_mark.shape[0] - 1)], np.inf)
+            unread = known & (now - mark > self.watchdog_s)
+            self._ports_behind(now, silent & unread & ~self.silent & known, bus_of)
+            silent &= ~unread | self.silent  # a link already marked stays so until it speaks
         newly = silent & ~self.silent
         back = self.silent & ~silent
         for link in np.flatnonzero(newly).tolist():
@@ -100,3 +131,16 @@ class Watchdog:
         if back.any():
             log.info("links %s speak again", link_ranges(np.flatnonzero(back)))
         self.silent = silent
+
+    def _ports_behind(self, now: float, waiting: np.ndarray, bus_of: np.ndarray) -> None:
+        """Report each bus whose input was not read for ``watchdog_s`` while its links would have
+        been marked silent (``waiting``), once, and once more when it is read again."""
+        host, mark = self.host, self.host.aggregator.input_mark
+        lagging = {int(x) for x in bus_of[waiting]}
+        for b in sorted(lagging - self.behind):
+            links = np.flatnonzero(bus_of == b)
+            host.report("behind", f"{host.transports[b].name}: not read for {now - float(mark[b]):.2f} s (the "
+                                  f"host's own lag): links {link_ranges(links)} waited for, not marked silent")
+        for b in sorted(self.behind - lagging):
+            host.report("caught_up", f"{host.transports[b].name}: read again", quiet=True)
+        self.behind = lagging

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE", "WARMUP_COUNTER"]
+__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE", "WARMUP_COUNTER", "PIPE_SIZE", "widen_pipe"]
 
 #: the uncertainty may take at most this share of the estimator's time (its cost / time since the last)
 UNCERTAINTY_SHARE = 0.03
@@ -73,7 +73,7 @@ class RemoteEstimate:
         raise AttributeError(name)
 
 
-def _widen(conn) -> None:
+def widen_pipe(conn) -> None:
     """Make a one-way pipe's buffer `PIPE_SIZE` (Linux; elsewhere it stays as it is)."""
     try:
         import fcntl
@@ -162,7 +162,7 @@ class EstimatorProcess:
         req_r, self._req = ctx.Pipe(duplex=False)
         self._ans, ans_w = ctx.Pipe(duplex=False)
         for c in (req_r, ans_w):
-            _widen(c)
+            widen_pipe(c)
         self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length),
                                  name="capsheet-estimator", daemon=True)
         self._proc.start()

@@ -107,3 +107,22 @@ def test_a_reader_that_stays_behind_does_not_let_the_arrivals_creep_by_the_slack
     off = [got[k] - k * P for k in range(10, 50)]
     assert max(off) == pytest.approx(slack, abs=1e-12) and min(off) == pytest.approx(slack, abs=1e-12)
     assert arr.pulled == 40 and arr.rephased == 0
+
+
+def test_two_gateways_reading_a_backlog_each_whole_give_every_copy_its_first_arrival():
+    """A device serves each port's read whole: after a 3-period stall the first gateway reads SYNCs
+    6, 7, 8 together, then the second gateway reads its copies of 6, 7, 8. Every copy arrives when
+    its first read did (on the host's grid), and the model goes on as if the copies were not there:
+    SYNC 9, read 1 ms late, is still put on the grid (the period was kept). Taken as new SYNCs, the
+    copies came two counters back: they arrived at the late read (3 periods late) and the period
+    was thrown away, so SYNC 9 arrived at its late read too."""
+    arr = SyncArrival(slack_s=0.0, window=8)
+    on_time = [(arr.arrival(k, k * P), arr.arrival(k, k * P + 0.0002)) for k in range(6)]  # port 0, port 1
+    assert on_time == [(k * P, k * P) for k in range(6)]
+    backlog = 8 * P + 0.001  # the stall ends a millisecond after slot 8: each port's read whole
+    gw0 = [arr.arrival(c, backlog) for c in (6, 7, 8)]
+    gw1 = [arr.arrival(c, backlog + 0.0002) for c in (6, 7, 8)]
+    assert gw0 == gw1 == [6 * P, 7 * P, 8 * P]
+    assert arr.copies == 6 + 3
+    assert arr.arrival(9, 9 * P + 0.001) == 9 * P
+    assert arr.period_s == P

@@ -81,6 +81,8 @@ __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrice
 
 _EX = np.array([1.0, 0.0, 0.0])
 _COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
+#: a link without a sample turns at its last rate this long (s), then at the sheet's (`_missing_rates`)
+MISSING_HOLD_S = 0.03
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
 
 
@@ -519,7 +521,8 @@ class MotionEstimator:
             Magnetic field, tesla, link frames, calibrated (every snapshot or none).
         valid : ndarray of bool, shape (n_links,), optional
             False: that link's sample did not arrive (its orientation is carried by its last
-            rate; its accelerometer and magnetometer are not used). Default: all valid.
+            rate for `MISSING_HOLD_S`, then by the sheet's, the valid links' mean in the world
+            frame; its accelerometer and magnetometer are not used). Default: all valid.
 
         Returns
         -------
@@ -540,7 +543,10 @@ class MotionEstimator:
             a_c = np.zeros(3)
         else:
             dt = t - self._t
-            w_c = np.where(v[:, None], w - self.bias, self._w_hist[-1])
+            w_c = w - self.bias
+            self._missing_s = np.where(v, 0.0, self._missing_s + dt)
+            if not v.all():
+                w_c = np.where(v[:, None], w_c, self._missing_rates(w_c, v))
             self._propagate(w_c, dt)
             t1 = time.perf_counter()
             a_c = self._accel_update(f, w_c, dt, v)
@@ -617,6 +623,7 @@ class MotionEstimator:
             self.bias[:] = bias0
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
+        self._missing_s = np.where(v, 0.0, np.inf)  # how long each link has had no sample (s)
         g = self.topo.group
         self._s_group = (np.bincount(g, weights=yaw, minlength=self.topo.n_groups)
                          / self.topo.group_size)
@@ -632,6 +639,21 @@ class MotionEstimator:
         self._nis = np.full(n, np.nan)
 
     # ------------------------------------------------------------------------------- 1. gyro
+    def _missing_rates(self, w_c, v) -> np.ndarray:
+        """The rates links without a sample turn at: for `MISSING_HOLD_S` each its last rate (a
+        sample or two lost: nothing knows the link's own motion better), then the sheet's — the
+        valid links' mean rate in the world frame, in the link's own frame (with no valid link,
+        each its last). Held for the whole gap, the last rate turned a carried sheet's links by the
+        carry's change of rate since: a gateway's links missing for 0.6 s (half of a 14x14
+        sheet) left the estimate 2.8 % of side off for seconds after they came back, against
+        0.40 % with the sheet's rate (and 0.40 % without the gap)."""
+        last = self._w_hist[-1]
+        if not v.any():
+            return last
+        w_world = np.einsum("kij,kj->i", self.R[v], w_c[v]) / np.count_nonzero(v)
+        sheet = np.einsum("kji,j->ki", self.R, w_world)
+        return np.where((self._missing_s <= MISSING_HOLD_S)[:, None], last, sheet)
+
     def _propagate(self, w_c, dt) -> None:
         cfg = self.config
         q = cfg.orientation_walk_rad ** 2 * dt + (cfg.gyro_noise_rps * dt) ** 2 \

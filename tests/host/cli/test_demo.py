@@ -91,6 +91,11 @@ def test_demo_with_9_axis_chips_runs_the_fused_estimator(tmp_path):
     assert result["sensors"] == "accel+gyro+mag" and result["estimator"] == "fused" and result["gateways"] == 1
     assert "364 chips discovered, 364 assigned" in out.stderr
     assert result["estimates"] >= 1
+    # in its own process: every snapshot sent was answered, a shape or left out, and each shape counted
+    f = result["fused"]
+    assert f["process"] is True and f["refused"] == 0
+    assert f["made"] + f["left_out"] == f["submitted"] and result["estimates"] == f["made"]
+    assert f["not_sent"] == f["unanswered"] == 0
     if result["compared_with_truth"]:
         assert result["error_ok"] is True and result["mean_error_pct_side"] <= result["target_pct_side"]
         # when the chips took each compared SYNC to arrive, after the host sent it (a figure, not a rate)
