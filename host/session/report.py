@@ -23,7 +23,7 @@ EVENTS_KEPT = 10_000
 RX_ERRORS_KEPT = 64
 #: kinds logged as warnings (the others at info)
 WARNING_KINDS = frozenset(("silent", "nack", "no_ack", "recovery", "reconnect", "not_a_sheet", "sync", "resync",
-                           "mismatch", "stray", "health_magnitude", "health_bias_shift"))
+                           "mismatch", "stray", "behind", "health_magnitude", "health_bias_shift"))
 
 
 def link_ranges(links, limit: int = 12) -> str:
@@ -55,7 +55,9 @@ def link_ranges(links, limit: int = 12) -> str:
 class HostEvent:
     """Something the host reports: ``kind`` in {"silent", "recovered" (a silent link speaks again),
     "nack", "no_ack", "unknown_chip", "missing_chip", "announce" (a chip rebooted), "recovery" (rebooted
-    chips streaming again), "reconnect", "not_a_sheet", "sync", "resync", "stray", and `host.snapshots.health`'s
+    chips streaming again), "reconnect", "not_a_sheet", "sync", "resync", "stray", "behind" (a port the host
+    itself has not read for the watchdog's time: its lag, not its chips'), "caught_up" (that port read
+    again), and `host.snapshots.health`'s
     "health_magnitude", "health_magnitude_ok", "health_bias_shift"}; ``link``/``node``/``uid`` where known;
     ``detail`` text."""
 
