@@ -97,6 +97,11 @@ class LatticeTopology:
         # the cells' normals averaged onto their links: (n_links x U), weights 1 / ncell
         self.cell_to_link = sp.csr_matrix((self.inv_ncell[self.pair_link],
                                            (self.pair_link, self.pair_cell)), shape=(n, U))
+        # the same pattern as the C kernel takes it (fixed integer widths, contiguous)
+        self.jac_indptr32 = np.ascontiguousarray(self.jac.indptr, dtype=np.int32)
+        self.jac_indices32 = np.ascontiguousarray(self.jac.indices, dtype=np.int32)
+        self.jac_slots = np.ascontiguousarray(self.jac_slots, dtype=np.int64)
+        self.jac_rows = np.ascontiguousarray(self.jac_rows, dtype=np.int64)
 
 
 @lru_cache(maxsize=16)

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._lattice import CLOSURE_SIGNS
+
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
     """``exp([v]×)`` for rotation vectors ``(..., 3)`` (Rodrigues), shape ``(..., 3, 3)``."""
@@ -163,3 +165,53 @@ def _np_apply(R, bias, P, x) -> None:
 
 
 NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
+
+
+def _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
+    """The lattice step's residuals ``res``, weights ``wts``, Jacobian entries ``jd`` (in the
+    pattern ``topo.jac``'s data order) and the diagonal of ``Jᵀ W J`` (`MotionEstimator`'s
+    step 4; the C kernel's ``capsheet_mf_lattice`` computes the same)."""
+    d = R[:, :, 0]
+    Y = R[:, :, 1]
+    units = topo.units
+    n = R.shape[0]
+    du = d[units]  # (U, 4, 3)
+    # loop closure, xy part: residual and its derivative in each link's yaw
+    r_cl = du[:, 0, :2] + du[:, 1, :2] - du[:, 2, :2] - du[:, 3, :2]  # (U, 2)
+    ezd = np.empty((n, 3))  # e_z × d
+    ezd[:, 0], ezd[:, 1], ezd[:, 2] = -d[:, 1], d[:, 0], 0.0
+    ezd_u = ezd[units]  # (U, 4, 3)
+    j_cl = (CLOSURE_SIGNS[None, :, None] * ezd_u[:, :, :2]).transpose(0, 2, 1)  # (U, 2, 4)
+    # the cells' normals A × C and each link's sensor y against their mean
+    A = du[:, 1] + du[:, 3]
+    C = du[:, 0] + du[:, 2]
+    N = cross3(A, C)
+    nN = np.sqrt(np.einsum("ui,ui->u", N, N))
+    ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
+    inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
+    nc = N * inv_nN[:, None]
+    nbar = topo.cell_to_link @ nc
+    r_n = np.einsum("ki,ki->k", Y, nbar)
+    j_diag = Y[:, 0] * nbar[:, 1] - Y[:, 1] * nbar[:, 0]  # (e_z × Y) · n̄
+    pl, pc = topo.pair_link, topo.pair_cell
+    Yp = Y[pl]
+    ncp = nc[pc]
+    wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
+        * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
+    CxW = cross3(C[pc], wkc)
+    WxA = cross3(wkc, A[pc])
+    ez_c = ezd_u[pc]  # (K2, 4, 3)
+    j_pair = np.empty((pl.size, 4))
+    j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
+    j_pair[:, 2] = np.einsum("ki,ki->k", ez_c[:, 2], WxA)
+    j_pair[:, 1] = np.einsum("ki,ki->k", ez_c[:, 1], CxW)
+    j_pair[:, 3] = np.einsum("ki,ki->k", ez_c[:, 3], CxW)
+    jd[:] = np.bincount(topo.jac_slots, weights=np.concatenate([j_cl.ravel(), j_diag,
+                                                                 j_pair.ravel()]),
+                        minlength=topo.jac_nnz)
+    # weights: the tilt variance of the links involved plus the model's floor
+    tilt = P[:, 0, 0] + P[:, 1, 1]
+    w_cl = 1.0 / (tilt[units].sum(axis=1) + floor2)
+    wts[:] = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + floor2)])
+    res[:] = np.concatenate([r_cl.ravel(), r_n])
+    lat_diag[:] = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)

@@ -63,7 +63,7 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (NUMPY_STEPS, cross3, inv_sym3, pcg, rotate_all, skew,  # noqa: F401
+from ._linalg import (NUMPY_STEPS, _np_lattice, cross3, inv_sym3, pcg, rotate_all, skew,  # noqa: F401
                       wrap, frames_from_angles, rotation_matrices)
 
 try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
@@ -268,6 +268,9 @@ def _kernel_args(name: str, args) -> list:
             if a.dtype == bool:
                 out.append(_kffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
                 continue
+            if a.dtype in (np.int64, np.int32) and a.flags.c_contiguous:
+                out.append(_kffi.from_buffer(f"int{a.dtype.itemsize * 8}_t[]", a))
+                continue
             if not a.flags.c_contiguous or a.dtype != np.float64:
                 raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
             out.append(_kffi.from_buffer("double[]", a))
@@ -287,6 +290,44 @@ def _step(name: str, *args) -> None:
         _kernel_step(name, *args)
     else:
         NUMPY_STEPS[name](*args)
+
+
+def _lattice_terms(R, P, topo, floor2):
+    """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
+    the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`_np_lattice`)."""
+    n, U = topo.n_links, topo.n_units
+    res, wts = np.empty(topo.n_rows), np.empty(topo.n_rows)
+    jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
+    if USE_KERNEL:
+        work = np.empty(10 * U + 3 * n)
+        _klib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *_kernel_args(
+            "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
+                        topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
+                        lat_diag, work)))
+    else:
+        _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
+    return res, wts, jd, lat_diag
+
+
+def _normal_matvec(topo, jd, wts):
+    """``x -> Jᵀ (wts ⊙ (J x))`` for the lattice step's conjugate gradients, ``J`` the pattern
+    ``topo.jac`` with the entries ``jd`` (in C when `USE_KERNEL`: the same sums in the same
+    order as scipy's two products)."""
+    if not USE_KERNEL:
+        J, JT = topo.jac, topo.jac_T
+        return lambda x: JT @ (wts * (J @ x))
+    n, nr = topo.n_links, topo.n_rows
+    tmp = np.empty(nr)
+    fixed = _kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
+    tmp_c = _kffi.from_buffer("double[]", tmp)
+
+    def matvec(x):
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.empty(n)
+        _klib.capsheet_mf_normal_matvec(nr, n, *fixed, _kffi.from_buffer("double[]", x), tmp_c,
+                                        _kffi.from_buffer("double[]", out))
+        return out
+    return matvec
 
 
 def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray,
@@ -683,55 +724,13 @@ class MotionEstimator:
     def _lattice_update(self, m, v, dt) -> None:
         cfg = self.config
         topo = self.topo
-        R = self.R
-        d = R[:, :, 0]
-        Y = R[:, :, 1]
-        units = topo.units
         n = self.n_links
-        du = d[units]  # (U, 4, 3)
-        # loop closure, xy part: residual and its derivative in each link's yaw
-        r_cl = du[:, 0, :2] + du[:, 1, :2] - du[:, 2, :2] - du[:, 3, :2]  # (U, 2)
-        ezd = np.empty((n, 3))  # e_z × d
-        ezd[:, 0], ezd[:, 1], ezd[:, 2] = -d[:, 1], d[:, 0], 0.0
-        ezd_u = ezd[units]  # (U, 4, 3)
-        j_cl = (CLOSURE_SIGNS[None, :, None] * ezd_u[:, :, :2]).transpose(0, 2, 1)  # (U, 2, 4)
-        # the cells' normals A × C and each link's sensor y against their mean
-        A = du[:, 1] + du[:, 3]
-        C = du[:, 0] + du[:, 2]
-        N = cross3(A, C)
-        nN = np.sqrt(np.einsum("ui,ui->u", N, N))
-        ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
-        inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
-        nc = N * inv_nN[:, None]
-        nbar = topo.cell_to_link @ nc
-        r_n = np.einsum("ki,ki->k", Y, nbar)
-        j_diag = Y[:, 0] * nbar[:, 1] - Y[:, 1] * nbar[:, 0]  # (e_z × Y) · n̄
-        pl, pc = topo.pair_link, topo.pair_cell
-        Yp = Y[pl]
-        ncp = nc[pc]
-        wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
-            * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
-        CxW = cross3(C[pc], wkc)
-        WxA = cross3(wkc, A[pc])
-        ez_c = ezd_u[pc]  # (K2, 4, 3)
-        j_pair = np.empty((pl.size, 4))
-        j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
-        j_pair[:, 2] = np.einsum("ki,ki->k", ez_c[:, 2], WxA)
-        j_pair[:, 1] = np.einsum("ki,ki->k", ez_c[:, 1], CxW)
-        j_pair[:, 3] = np.einsum("ki,ki->k", ez_c[:, 3], CxW)
-        jd = np.bincount(topo.jac_slots, weights=np.concatenate([j_cl.ravel(), j_diag,
-                                                                  j_pair.ravel()]),
-                         minlength=topo.jac_nnz)
+        P = self.P
+        res, wts, jd, lat_diag = _lattice_terms(self.R, P, topo, cfg.lattice_floor_rad ** 2)
         J, JT = topo.jac, topo.jac_T
         J.data = jd
         JT.data = jd[topo.jac_T_from]
-        # weights: the tilt variance of the links involved plus the model's floor
-        P = self.P
-        tilt = P[:, 0, 0] + P[:, 1, 1]
-        fl = cfg.lattice_floor_rad ** 2
-        w_cl = 1.0 / (tilt[units].sum(axis=1) + fl)
-        wts = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + fl)])
-        res = np.concatenate([r_cl.ravel(), r_n])
+        normal = _normal_matvec(topo, jd, wts)
         # the prior: each link's own yaw variance for what is local to it, and the groups' and
         # the sheet's common yaw variances for what the links share (`_yaw_prior`)
         if m is not None:
@@ -743,14 +742,13 @@ class MotionEstimator:
             def prior(x):
                 return prior_diag * x
         rhs = -(JT @ (wts * res))
-        lat_diag = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
             self._dt_last = dt
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
-        mu = pcg(lambda x: JT @ (wts * (J @ x)) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+        mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag)
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:

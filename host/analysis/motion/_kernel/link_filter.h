@@ -26,3 +26,24 @@ void capsheet_mf_yaw(size_t n, double *P, const double *mu, const double *a_diag
 
 /* R <- exp([x[0:3]]x) R, bias <- bias + x[3:6], P <- (P + P^T) / 2. */
 void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const double *x);
+
+/* The lattice step's residuals, weights and Jacobian (fused.py `_np_lattice`, the same numbers in
+ * the same order): n links, n_units cells, n_pairs (link, cell) pairs, nnz Jacobian entries.
+ * units n_units x 4, pair_link / pair_cell n_pairs, inv_ncell n, jac_slots (8 n_units + n +
+ * 4 n_pairs: each computed entry's place in the CSR data, summed there in that order),
+ * jac_rows / jac_cols nnz (the CSR pattern's row and column of each entry). Out: res and wts
+ * (2 n_units + n rows: closure x, y per cell, then one normal row per link), jd (nnz), lat_diag
+ * (n: the diagonal of J^T W J). work: 10 n_units + 3 n doubles of scratch. */
+void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
+                         const double *P, const int64_t *units, const int64_t *pair_link,
+                         const int64_t *pair_cell, const double *inv_ncell,
+                         const int64_t *jac_slots, const int64_t *jac_rows,
+                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         double *jd, double *lat_diag, double *work);
+
+/* out = J^T (w .* (J x)) for the CSR matrix J (n_rows x n: indptr, indices, data); tmp holds
+ * n_rows doubles. Each out entry sums its terms in increasing row order (as a CSR product
+ * by J^T's rows would). */
+void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
+                               const int32_t *indices, const double *data, const double *w,
+                               const double *x, double *tmp, double *out);
