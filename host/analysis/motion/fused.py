@@ -80,6 +80,12 @@ __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrice
            "calibrated", "relative_accelerations"]
 
 _EX = np.array([1.0, 0.0, 0.0])
+#: Without magnetometers a group's common yaw offset (`_lattice.LatticeTopology.group`) is kept
+#: apart from its links' own yaws where the loops see it: where turning the group's links
+#: together keeps more than about this fraction of the lattice's information about them (a
+#: curved sheet). On a flat sheet, which keeps nearly none, it is held by the links' own
+#: variances (docs/estimator.md §8).
+_GROUP_SEEN = 3e-3
 _COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
 
@@ -736,11 +742,15 @@ class MotionEstimator:
         if m is not None:
             self._grow_collective(dt)
             prior, prior_diag = self._yaw_prior(P[:, 2, 2])
-        else:  # nothing measures what the links share: each link's own variance holds it
-            prior_diag = 1.0 / P[:, 2, 2]
-
-            def prior(x):
-                return prior_diag * x
+        else:  # without magnetometers: the groups' offsets apart where the loops see them
+            self._grow_collective(dt)
+            # what the loops say of each group's common offset (its information, 1/rad²)
+            jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
+            info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg,
+                               minlength=topo.n_groups)
+            seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag,
+                                                 minlength=topo.n_groups), 1e-300)
+            prior, prior_diag = self._yaw_prior(P[:, 2, 2], six_axis=seen / _GROUP_SEEN)
         rhs = -(JT @ (wts * res))
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
@@ -753,6 +763,8 @@ class MotionEstimator:
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:
             self._shrink_collective(mw)
+        else:  # without magnetometers the loops alone say what a group's offset is
+            self._s_group = 1.0 / (1.0 / self._s_group + (1.0 - self._held) * info)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
@@ -760,7 +772,7 @@ class MotionEstimator:
         self._apply(x)
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
-    def _yaw_prior(self, p):
+    def _yaw_prior(self, p, six_axis=None):
         """The yaw problem's prior information as a matrix-vector product and its diagonal.
 
         A link's yaw variance ``p`` (its conditional one after the last solve) says how well it
@@ -769,7 +781,15 @@ class MotionEstimator:
         nested levels: each link's own ``1/p`` for what is not a group's common offset; each
         group's common offset (a row of i-links, a column of j-links: what the loops cannot see
         on a flat sheet) with variance ``s_g`` for what is not the sheet's common offset; and
-        the sheet's common yaw (its heading) with variance ``s_0``."""
+        the sheet's common yaw (its heading) with variance ``s_0``.
+
+        Without magnetometers (``six_axis``: each group's information from the loops about its
+        offset, as a multiple of what `_GROUP_SEEN` calls seen) the heading is a gauge held by
+        the links' own variances, and a group is held by them in proportion
+        ``1 / (1 + six_axis)``: on a flat sheet as before, on a curved one by ``s_g``, which
+        the loops' information shrinks (the accelerometer-only start's group offsets, a few
+        hundredths of a radian, are then corrected as soon as the sheet bends, not held by
+        the links' variances, which say how well each is known against its neighbours)."""
         topo = self.topo
         g, r, size = topo.group, topo.n_groups, topo.group_size
         D = 1.0 / p
@@ -777,12 +797,15 @@ class MotionEstimator:
         # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
         # link's own variance holds it, as if the magnetometers were not there
         hw = self.config.mag_hold_weight
-        w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
-        held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+        if six_axis is not None:  # the sheet's heading is a gauge, held by the links' own variances
+            held, held0 = 1.0 / (1.0 + six_axis), 1.0
+        else:
+            w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
+            held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+            held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
         self._held = held
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
-        held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
         I0 = (1.0 - held0) / self._s0 + held0 * sE
 
         # coordinates: a group's offset is its links' mean weighted by D, the sheet's the groups'
