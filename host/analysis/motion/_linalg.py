@@ -1,12 +1,25 @@
 """The fused estimator's numerical pieces (`host.analysis.motion.fused`): rotations, small
-matrix helpers, conjugate gradients, and the per-link steps in numpy (the C kernel,
-host/analysis/motion/_kernel/, does the same steps when built)."""
+matrix helpers, conjugate gradients, the per-link steps and the lattice step's terms in numpy,
+and the dispatch to the C kernel (host/analysis/motion/_kernel/), which does the same steps
+when built."""
 
 from __future__ import annotations
+
+import os
 
 import numpy as np
 
 from ._lattice import CLOSURE_SIGNS
+
+try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._link_kernel import ffi as _kffi, lib as _klib
+except ImportError:  # not built: the numpy code, the same numbers to rounding
+    _kffi = _klib = None
+
+#: Run the per-link steps in the compiled kernel when it is built (False: numpy).
+USE_KERNEL = _klib is not None
 
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
@@ -145,7 +158,7 @@ def _np_accel(R, P, f, vec, r2, gate, valid, x, nis) -> None:
     Si /= np.maximum(1.0, m2 / gate)[:, None, None]
     K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
     K[~valid] = 0.0
-    x[:] = np.einsum("kij,kj->ki", K, y)
+    x[:] = np.einsum("kij,kj->ki", K, np.where(valid[:, None], y, 0.0))  # a NaN reading: no step
     P -= K @ HP
 
 
@@ -215,3 +228,76 @@ def _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
     wts[:] = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + floor2)])
     res[:] = np.concatenate([r_cl.ravel(), r_n])
     lat_diag[:] = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
+
+
+def _kernel_args(name: str, args) -> list:
+    """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
+    buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
+    freed before the call, and numpy handed its memory to another thread's array while cffi had
+    the interpreter lock released — a link's valid flag read as whatever was written there)."""
+    out = []
+    for a in args:
+        if isinstance(a, np.ndarray):
+            if a.dtype == bool:
+                out.append(_kffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
+                continue
+            if a.dtype in (np.int64, np.int32) and a.flags.c_contiguous:
+                out.append(_kffi.from_buffer(f"int{a.dtype.itemsize * 8}_t[]", a))
+                continue
+            if not a.flags.c_contiguous or a.dtype != np.float64:
+                raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
+            out.append(_kffi.from_buffer("double[]", a))
+        else:
+            out.append(float(a))
+    return out
+
+
+def _kernel_step(name: str, *args) -> None:
+    getattr(_klib, "capsheet_mf_" + name)(args[0].shape[0], *_kernel_args(name, args))
+
+
+def _step(name: str, *args) -> None:
+    """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
+    `USE_KERNEL`, else numpy's."""
+    if USE_KERNEL:
+        _kernel_step(name, *args)
+    else:
+        NUMPY_STEPS[name](*args)
+
+
+def _lattice_terms(R, P, topo, floor2):
+    """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
+    the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`_np_lattice`)."""
+    n, U = topo.n_links, topo.n_units
+    res, wts = np.empty(topo.n_rows), np.empty(topo.n_rows)
+    jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
+    if USE_KERNEL:
+        work = np.empty(10 * U + 3 * n)
+        _klib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *_kernel_args(
+            "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
+                        topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
+                        lat_diag, work)))
+    else:
+        _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
+    return res, wts, jd, lat_diag
+
+
+def _normal_matvec(topo, jd, wts):
+    """``x -> Jᵀ (wts ⊙ (J x))`` for the lattice step's conjugate gradients, ``J`` the pattern
+    ``topo.jac`` with the entries ``jd`` (in C when `USE_KERNEL`: the same sums in the same
+    order as scipy's two products)."""
+    if not USE_KERNEL:
+        J, JT = topo.jac, topo.jac_T
+        return lambda x: JT @ (wts * (J @ x))
+    n, nr = topo.n_links, topo.n_rows
+    tmp = np.empty(nr)
+    fixed = _kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
+    tmp_c = _kffi.from_buffer("double[]", tmp)
+
+    def matvec(x):
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.empty(n)
+        _klib.capsheet_mf_normal_matvec(nr, n, *fixed, _kffi.from_buffer("double[]", x), tmp_c,
+                                        _kffi.from_buffer("double[]", out))
+        return out
+    return matvec

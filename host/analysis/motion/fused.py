@@ -55,7 +55,6 @@ the magnetometers' median.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -63,18 +62,10 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (NUMPY_STEPS, _np_lattice, cross3, inv_sym3, pcg, rotate_all, skew,  # noqa: F401
-                      wrap, frames_from_angles, rotation_matrices)
+from ._linalg import (NUMPY_STEPS, USE_KERNEL, _kernel_args, _kernel_step, _kffi,  # noqa: F401
+                      _klib, _lattice_terms, _normal_matvec, _np_lattice, _step, cross3,
+                      frames_from_angles, inv_sym3, pcg, rotate_all, rotation_matrices, skew, wrap)
 
-try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
-    if os.environ.get("CAPSHEET_NO_KERNEL"):
-        raise ImportError("CAPSHEET_NO_KERNEL is set")
-    from ._link_kernel import ffi as _kffi, lib as _klib
-except ImportError:  # not built: the numpy code, the same numbers to rounding
-    _kffi = _klib = None
-
-#: Run the per-link steps in the compiled kernel when it is built (False: numpy).
-USE_KERNEL = _klib is not None
 
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
            "calibrated", "relative_accelerations"]
@@ -261,79 +252,6 @@ class MotionEstimate:
         return self.frames[:, :, 0]
 
 
-
-
-def _kernel_args(name: str, args) -> list:
-    """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
-    buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
-    freed before the call, and numpy handed its memory to another thread's array while cffi had
-    the interpreter lock released — a link's valid flag read as whatever was written there)."""
-    out = []
-    for a in args:
-        if isinstance(a, np.ndarray):
-            if a.dtype == bool:
-                out.append(_kffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
-                continue
-            if a.dtype in (np.int64, np.int32) and a.flags.c_contiguous:
-                out.append(_kffi.from_buffer(f"int{a.dtype.itemsize * 8}_t[]", a))
-                continue
-            if not a.flags.c_contiguous or a.dtype != np.float64:
-                raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
-            out.append(_kffi.from_buffer("double[]", a))
-        else:
-            out.append(float(a))
-    return out
-
-
-def _kernel_step(name: str, *args) -> None:
-    getattr(_klib, "capsheet_mf_" + name)(args[0].shape[0], *_kernel_args(name, args))
-
-
-def _step(name: str, *args) -> None:
-    """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
-    `USE_KERNEL`, else numpy's."""
-    if USE_KERNEL:
-        _kernel_step(name, *args)
-    else:
-        NUMPY_STEPS[name](*args)
-
-
-def _lattice_terms(R, P, topo, floor2):
-    """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
-    the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`_np_lattice`)."""
-    n, U = topo.n_links, topo.n_units
-    res, wts = np.empty(topo.n_rows), np.empty(topo.n_rows)
-    jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
-    if USE_KERNEL:
-        work = np.empty(10 * U + 3 * n)
-        _klib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *_kernel_args(
-            "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
-                        topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
-                        lat_diag, work)))
-    else:
-        _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
-    return res, wts, jd, lat_diag
-
-
-def _normal_matvec(topo, jd, wts):
-    """``x -> Jᵀ (wts ⊙ (J x))`` for the lattice step's conjugate gradients, ``J`` the pattern
-    ``topo.jac`` with the entries ``jd`` (in C when `USE_KERNEL`: the same sums in the same
-    order as scipy's two products)."""
-    if not USE_KERNEL:
-        J, JT = topo.jac, topo.jac_T
-        return lambda x: JT @ (wts * (J @ x))
-    n, nr = topo.n_links, topo.n_rows
-    tmp = np.empty(nr)
-    fixed = _kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
-    tmp_c = _kffi.from_buffer("double[]", tmp)
-
-    def matvec(x):
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        out = np.empty(n)
-        _klib.capsheet_mf_normal_matvec(nr, n, *fixed, _kffi.from_buffer("double[]", x), tmp_c,
-                                        _kffi.from_buffer("double[]", out))
-        return out
-    return matvec
 
 
 def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray,
