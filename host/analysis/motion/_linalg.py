@@ -301,3 +301,20 @@ def _normal_matvec(topo, jd, wts):
                                         _kffi.from_buffer("double[]", out))
         return out
     return matvec
+
+
+def _yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
+               maxiter: int = 200) -> np.ndarray:
+    """`pcg` on the lattice step's yaw problem, all in the C kernel (``capsheet_mf_yaw_pcg``):
+    ``Jᵀ W J`` from ``jd`` and ``wts``, the nested prior from ``terms`` (``D, dg, Eg, sE, I0``
+    of `MotionEstimator._yaw_prior`) and the magnetometers' weights ``mw``."""
+    D, dg, Eg, sE, I0 = terms
+    n, nr, ng = topo.n_links, topo.n_rows, topo.n_groups
+    x = np.empty(n)
+    work = np.empty(nr + 4 * n + 2 * ng)
+    a = _kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
+                             Eg))
+    c = _kernel_args("pcg", (mw, b, inv_diag))
+    _klib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol), int(maxiter),
+                              *_kernel_args("pcg", (x, work)))
+    return x

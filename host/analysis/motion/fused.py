@@ -63,8 +63,9 @@ from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, _kernel_args, _kernel_step, _kffi,  # noqa: F401
-                      _klib, _lattice_terms, _normal_matvec, _np_lattice, _step, cross3,
-                      frames_from_angles, inv_sym3, pcg, rotate_all, rotation_matrices, skew, wrap)
+                      _klib, _lattice_terms, _normal_matvec, _np_lattice, _step, _yaw_solve,
+                      cross3, frames_from_angles, inv_sym3, pcg, rotate_all, rotation_matrices,
+                      skew, wrap)
 
 
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
@@ -676,7 +677,10 @@ class MotionEstimator:
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
-        mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+        if USE_KERNEL:
+            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag)
+        else:
+            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag)
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:
@@ -736,6 +740,7 @@ class MotionEstimator:
             abar = np.bincount(g, weights=D * x, minlength=r) / dg
             return D * x - D * abar[g] + D * (sigma_a(abar) / dg)[g]
 
+        self._prior_terms = (D, dg, Eg, sE, I0)  # the same prior for the C kernel's solve
         sig_diag = Eg - Eg * Eg / sE + Eg * Eg * I0 / (sE * sE)
         diag = D - D * D / dg[g] + D * D * (sig_diag / (dg * dg))[g]
         return prior, diag

@@ -330,3 +330,80 @@ void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
         }
     }
 }
+
+static double dot(size_t n, const double *a, const double *b)
+{
+    double s = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        s += a[i] * b[i];
+    }
+    return s;
+}
+
+static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+                       const int32_t *indices, const double *data, const double *w,
+                       const double *D, const int64_t *group, const double *dg, const double *Eg,
+                       double sE, double I0, const double *mw, const double *x, double *out,
+                       double *tmp, double *abar, double *sig)
+{
+    capsheet_mf_normal_matvec(n_rows, n, indptr, indices, data, w, x, tmp, out);
+    for (size_t g = 0; g < n_groups; g++) {
+        abar[g] = 0.0;
+    }
+    for (size_t k = 0; k < n; k++) {
+        abar[group[k]] += D[k] * x[k];
+    }
+    double ey = 0.0;
+    for (size_t g = 0; g < n_groups; g++) {
+        abar[g] /= dg[g];
+        ey += Eg[g] * abar[g];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        sig[g] = (Eg[g] * abar[g] - Eg[g] * (ey / sE) + Eg[g] * (ey * I0 / (sE * sE))) / dg[g];
+    }
+    for (size_t k = 0; k < n; k++) {
+        int64_t g = group[k];
+        double prior = D[k] * x[k] - D[k] * abar[g] + D[k] * sig[g];
+        out[k] = out[k] + prior + mw[k] * x[k];
+    }
+}
+
+int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+                        const int32_t *indices, const double *data, const double *w,
+                        const double *D, const int64_t *group, const double *dg,
+                        const double *Eg, double sE, double I0, const double *mw,
+                        const double *b, const double *inv_diag, double rtol, int maxiter,
+                        double *x, double *work)
+{
+    double *tmp = work, *r = work + n_rows, *z = r + n, *p = z + n, *q = p + n;
+    double *abar = q + n, *sig = abar + n_groups;
+    for (size_t k = 0; k < n; k++) {
+        x[k] = 0.0;
+        r[k] = b[k];
+        z[k] = inv_diag[k] * r[k];
+        p[k] = z[k];
+    }
+    double rz = dot(n, r, z);
+    double stop = rtol * rtol * dot(n, b, b);
+    int it;
+    for (it = 0; it < maxiter; it++) {
+        if (dot(n, r, r) <= stop) {
+            break;
+        }
+        yaw_matvec(n, n_rows, n_groups, indptr, indices, data, w, D, group, dg, Eg, sE, I0, mw,
+                   p, q, tmp, abar, sig);
+        double alpha = rz / dot(n, p, q);
+        for (size_t k = 0; k < n; k++) {
+            x[k] += alpha * p[k];
+            r[k] -= alpha * q[k];
+            z[k] = inv_diag[k] * r[k];
+        }
+        double rz_new = dot(n, r, z);
+        double beta = rz_new / rz;
+        for (size_t k = 0; k < n; k++) {
+            p[k] = z[k] + beta * p[k];
+        }
+        rz = rz_new;
+    }
+    return it;
+}

@@ -47,3 +47,18 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
 void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
                                const int32_t *indices, const double *data, const double *w,
                                const double *x, double *tmp, double *out);
+
+/* The lattice step's yaw solve (fused.py `_linalg.pcg` on `MotionEstimator._yaw_prior`'s
+ * matrix): conjugate gradients with the preconditioner inv_diag, from zero, on
+ * A = J^T W J + prior + diag(mw), where J is the CSR matrix (n_rows x n: indptr, indices,
+ * data), W = diag(w), and the prior is the nested one: with abar_g = sum_{k in g} D_k x_k / dg_g,
+ * ey = sum_g Eg_g abar_g and s_g = Eg_g abar_g - Eg_g ey / sE + Eg_g ey I0 / sE^2,
+ * (prior x)_k = D_k x_k - D_k abar_{g(k)} + D_k s_{g(k)} / dg_{g(k)}. Stops when
+ * |r|^2 <= rtol^2 |b|^2 or after maxiter iterations. work: n_rows + 4 n + 2 n_groups doubles.
+ * Returns the iterations taken. */
+int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+                        const int32_t *indices, const double *data, const double *w,
+                        const double *D, const int64_t *group, const double *dg,
+                        const double *Eg, double sE, double I0, const double *mw,
+                        const double *b, const double *inv_diag, double rtol, int maxiter,
+                        double *x, double *work);
