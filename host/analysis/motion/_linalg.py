@@ -14,12 +14,12 @@ from ._lattice import CLOSURE_SIGNS
 try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
     if os.environ.get("CAPSHEET_NO_KERNEL"):
         raise ImportError("CAPSHEET_NO_KERNEL is set")
-    from ._link_kernel import ffi as _kffi, lib as _klib
+    from ._link_kernel import ffi as kernel_ffi, lib as kernel_lib
 except ImportError:  # not built: the numpy code, the same numbers to rounding
-    _kffi = _klib = None
+    kernel_ffi = kernel_lib = None
 
 #: Run the per-link steps in the compiled kernel when it is built (False: numpy).
-USE_KERNEL = _klib is not None
+USE_KERNEL = kernel_lib is not None
 
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
@@ -180,7 +180,7 @@ def _np_apply(R, bias, P, x) -> None:
 NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
 
 
-def _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
+def np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
     """The lattice step's residuals ``res``, weights ``wts``, Jacobian entries ``jd`` (in the
     pattern ``topo.jac``'s data order) and the diagonal of ``Jᵀ W J`` (`MotionEstimator`'s
     step 4; the C kernel's ``capsheet_mf_lattice`` computes the same)."""
@@ -230,7 +230,7 @@ def _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
     lat_diag[:] = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
 
 
-def _kernel_args(name: str, args) -> list:
+def kernel_args(name: str, args) -> list:
     """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
     buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
     freed before the call, and numpy handed its memory to another thread's array while cffi had
@@ -239,50 +239,50 @@ def _kernel_args(name: str, args) -> list:
     for a in args:
         if isinstance(a, np.ndarray):
             if a.dtype == bool:
-                out.append(_kffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
+                out.append(kernel_ffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
                 continue
             if a.dtype in (np.int64, np.int32) and a.flags.c_contiguous:
-                out.append(_kffi.from_buffer(f"int{a.dtype.itemsize * 8}_t[]", a))
+                out.append(kernel_ffi.from_buffer(f"int{a.dtype.itemsize * 8}_t[]", a))
                 continue
             if not a.flags.c_contiguous or a.dtype != np.float64:
                 raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
-            out.append(_kffi.from_buffer("double[]", a))
+            out.append(kernel_ffi.from_buffer("double[]", a))
         else:
             out.append(float(a))
     return out
 
 
-def _kernel_step(name: str, *args) -> None:
-    getattr(_klib, "capsheet_mf_" + name)(args[0].shape[0], *_kernel_args(name, args))
+def kernel_step(name: str, *args) -> None:
+    getattr(kernel_lib, "capsheet_mf_" + name)(args[0].shape[0], *kernel_args(name, args))
 
 
-def _step(name: str, *args) -> None:
+def step(name: str, *args) -> None:
     """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
     `USE_KERNEL`, else numpy's."""
     if USE_KERNEL:
-        _kernel_step(name, *args)
+        kernel_step(name, *args)
     else:
         NUMPY_STEPS[name](*args)
 
 
-def _lattice_terms(R, P, topo, floor2):
+def lattice_terms(R, P, topo, floor2):
     """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
-    the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`_np_lattice`)."""
+    the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`np_lattice`)."""
     n, U = topo.n_links, topo.n_units
     res, wts = np.empty(topo.n_rows), np.empty(topo.n_rows)
     jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
     if USE_KERNEL:
         work = np.empty(10 * U + 3 * n)
-        _klib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *_kernel_args(
+        kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *kernel_args(
             "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
                         topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
                         lat_diag, work)))
     else:
-        _np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
+        np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
     return res, wts, jd, lat_diag
 
 
-def _normal_matvec(topo, jd, wts):
+def normal_matvec(topo, jd, wts):
     """``x -> Jᵀ (wts ⊙ (J x))`` for the lattice step's conjugate gradients, ``J`` the pattern
     ``topo.jac`` with the entries ``jd`` (in C when `USE_KERNEL`: the same sums in the same
     order as scipy's two products)."""
@@ -291,19 +291,19 @@ def _normal_matvec(topo, jd, wts):
         return lambda x: JT @ (wts * (J @ x))
     n, nr = topo.n_links, topo.n_rows
     tmp = np.empty(nr)
-    fixed = _kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
-    tmp_c = _kffi.from_buffer("double[]", tmp)
+    fixed = kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
+    tmp_c = kernel_ffi.from_buffer("double[]", tmp)
 
     def matvec(x):
         x = np.ascontiguousarray(x, dtype=np.float64)
         out = np.empty(n)
-        _klib.capsheet_mf_normal_matvec(nr, n, *fixed, _kffi.from_buffer("double[]", x), tmp_c,
-                                        _kffi.from_buffer("double[]", out))
+        kernel_lib.capsheet_mf_normal_matvec(nr, n, *fixed, kernel_ffi.from_buffer("double[]", x),
+                                             tmp_c, kernel_ffi.from_buffer("double[]", out))
         return out
     return matvec
 
 
-def _yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
+def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
                maxiter: int = 200) -> np.ndarray:
     """`pcg` on the lattice step's yaw problem, all in the C kernel (``capsheet_mf_yaw_pcg``):
     ``Jᵀ W J`` from ``jd`` and ``wts``, the nested prior from ``terms`` (``D, dg, Eg, sE, I0``
@@ -312,9 +312,9 @@ def _yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
     n, nr, ng = topo.n_links, topo.n_rows, topo.n_groups
     x = np.empty(n)
     work = np.empty(nr + 4 * n + 2 * ng)
-    a = _kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
+    a = kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
                              Eg))
-    c = _kernel_args("pcg", (mw, b, inv_diag))
-    _klib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol), int(maxiter),
-                              *_kernel_args("pcg", (x, work)))
+    c = kernel_args("pcg", (mw, b, inv_diag))
+    kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
+                                   int(maxiter), *kernel_args("pcg", (x, work)))
     return x

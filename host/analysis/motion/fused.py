@@ -62,10 +62,12 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (NUMPY_STEPS, USE_KERNEL, _kernel_args, _kernel_step, _kffi,  # noqa: F401
-                      _klib, _lattice_terms, _normal_matvec, _np_lattice, _step, _yaw_solve,
-                      cross3, frames_from_angles, inv_sym3, pcg, rotate_all, rotation_matrices,
-                      skew, wrap)
+from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, frames_from_angles,  # noqa: F401
+                      inv_sym3, pcg, rotate_all, rotation_matrices, skew, wrap)
+from ._linalg import (kernel_args as _kernel_args, kernel_ffi as _kffi,  # noqa: F401
+                      kernel_lib as _klib, kernel_step as _kernel_step,
+                      lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
+                      np_lattice as _np_lattice, step as _step, yaw_solve as _yaw_solve)
 
 
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
