@@ -43,7 +43,10 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
 5. **Joints** from the directions by least squares (`host.analysis.estimator.joints_from_directions`).
 
 Without magnetometers the loops fix every relative yaw and the common heading is the only free
-gauge (held by the gyroscopes: it wanders slowly, and `overlay` removes it). With them heading is
+gauge (held by the gyroscopes: it wanders slowly, and `overlay` removes it); a group's common
+offset (step 4) has a variance of its own where the loops see it (a curved sheet: the start's
+offsets are corrected as it bends) and is held by its links' own variances where they do not (a
+flat sheet, `_GROUP_SEEN`). With them heading is
 absolute (world x is magnetic north turned by ``declination_rad``) and a flat horizontal sheet (the
 paper's Case 1) is solvable.
 
