@@ -267,8 +267,8 @@ def test_the_graph_knows_the_compiled_modules_built_or_not():
     for name in ("host.analysis._yaw_kernel", "host.analysis.motion._link_kernel", "firmware_ref._capsheet_fw",
                  "protocol._stream_kernel"):
         assert graph[name] == set()
-    assert "host.analysis.motion._link_kernel" in graph["host.analysis.motion.fused"]
-    assert "host.analysis.motion" not in graph["host.analysis.motion.fused"]
+    assert "host.analysis.motion._link_kernel" in graph["host.analysis.motion._linalg"]
+    assert "host.analysis.motion" not in graph["host.analysis.motion._linalg"]
 
 
 def test_no_import_cycles_among_our_modules():

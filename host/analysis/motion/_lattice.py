@@ -97,6 +97,16 @@ class LatticeTopology:
         # the cells' normals averaged onto their links: (n_links x U), weights 1 / ncell
         self.cell_to_link = sp.csr_matrix((self.inv_ncell[self.pair_link],
                                            (self.pair_link, self.pair_cell)), shape=(n, U))
+        # J's columns summed over each group: the rows' derivatives in a group's common yaw
+        # offset, as (row, group) entries ``jg_rows, jg_group`` and where each entry of J goes
+        gkey = self.jac_rows * self.n_groups + self.group[self.jac_cols]
+        ug, self.jg_index = np.unique(gkey, return_inverse=True)
+        self.jg_rows, self.jg_group = ug // self.n_groups, ug % self.n_groups
+        # the same pattern as the C kernel takes it (fixed integer widths, contiguous)
+        self.jac_indptr32 = np.ascontiguousarray(self.jac.indptr, dtype=np.int32)
+        self.jac_indices32 = np.ascontiguousarray(self.jac.indices, dtype=np.int32)
+        self.jac_slots = np.ascontiguousarray(self.jac_slots, dtype=np.int64)
+        self.jac_rows = np.ascontiguousarray(self.jac_rows, dtype=np.int64)
 
 
 @lru_cache(maxsize=16)

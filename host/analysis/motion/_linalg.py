@@ -1,10 +1,25 @@
 """The fused estimator's numerical pieces (`host.analysis.motion.fused`): rotations, small
-matrix helpers, conjugate gradients, and the per-link steps in numpy (the C kernel,
-host/analysis/motion/_kernel/, does the same steps when built)."""
+matrix helpers, conjugate gradients, the per-link steps and the lattice step's terms in numpy,
+and the dispatch to the C kernel (host/analysis/motion/_kernel/), which does the same steps
+when built."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+
+from ._lattice import CLOSURE_SIGNS
+
+try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
+    if os.environ.get("CAPSHEET_NO_KERNEL"):
+        raise ImportError("CAPSHEET_NO_KERNEL is set")
+    from ._link_kernel import ffi as kernel_ffi, lib as kernel_lib
+except ImportError:  # not built: the numpy code, the same numbers to rounding
+    kernel_ffi = kernel_lib = None
+
+#: Run the per-link steps in the compiled kernel when it is built (False: numpy).
+USE_KERNEL = kernel_lib is not None
 
 
 def rotation_matrices(rotvec: np.ndarray) -> np.ndarray:
@@ -143,7 +158,7 @@ def _np_accel(R, P, f, vec, r2, gate, valid, x, nis) -> None:
     Si /= np.maximum(1.0, m2 / gate)[:, None, None]
     K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
     K[~valid] = 0.0
-    x[:] = np.einsum("kij,kj->ki", K, y)
+    x[:] = np.einsum("kij,kj->ki", K, np.where(valid[:, None], y, 0.0))  # a NaN reading: no step
     P -= K @ HP
 
 
@@ -163,3 +178,143 @@ def _np_apply(R, bias, P, x) -> None:
 
 
 NUMPY_STEPS = {"propagate": _np_propagate, "accel": _np_accel, "yaw": _np_yaw, "apply": _np_apply}
+
+
+def np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
+    """The lattice step's residuals ``res``, weights ``wts``, Jacobian entries ``jd`` (in the
+    pattern ``topo.jac``'s data order) and the diagonal of ``Jᵀ W J`` (`MotionEstimator`'s
+    step 4; the C kernel's ``capsheet_mf_lattice`` computes the same)."""
+    d = R[:, :, 0]
+    Y = R[:, :, 1]
+    units = topo.units
+    n = R.shape[0]
+    du = d[units]  # (U, 4, 3)
+    # loop closure, xy part: residual and its derivative in each link's yaw
+    r_cl = du[:, 0, :2] + du[:, 1, :2] - du[:, 2, :2] - du[:, 3, :2]  # (U, 2)
+    ezd = np.empty((n, 3))  # e_z × d
+    ezd[:, 0], ezd[:, 1], ezd[:, 2] = -d[:, 1], d[:, 0], 0.0
+    ezd_u = ezd[units]  # (U, 4, 3)
+    j_cl = (CLOSURE_SIGNS[None, :, None] * ezd_u[:, :, :2]).transpose(0, 2, 1)  # (U, 2, 4)
+    # the cells' normals A × C and each link's sensor y against their mean
+    A = du[:, 1] + du[:, 3]
+    C = du[:, 0] + du[:, 2]
+    N = cross3(A, C)
+    nN = np.sqrt(np.einsum("ui,ui->u", N, N))
+    ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
+    inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
+    nc = N * inv_nN[:, None]
+    nbar = topo.cell_to_link @ nc
+    r_n = np.einsum("ki,ki->k", Y, nbar)
+    j_diag = Y[:, 0] * nbar[:, 1] - Y[:, 1] * nbar[:, 0]  # (e_z × Y) · n̄
+    pl, pc = topo.pair_link, topo.pair_cell
+    Yp = Y[pl]
+    ncp = nc[pc]
+    wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
+        * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
+    CxW = cross3(C[pc], wkc)
+    WxA = cross3(wkc, A[pc])
+    ez_c = ezd_u[pc]  # (K2, 4, 3)
+    j_pair = np.empty((pl.size, 4))
+    j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
+    j_pair[:, 2] = np.einsum("ki,ki->k", ez_c[:, 2], WxA)
+    j_pair[:, 1] = np.einsum("ki,ki->k", ez_c[:, 1], CxW)
+    j_pair[:, 3] = np.einsum("ki,ki->k", ez_c[:, 3], CxW)
+    jd[:] = np.bincount(topo.jac_slots, weights=np.concatenate([j_cl.ravel(), j_diag,
+                                                                 j_pair.ravel()]),
+                        minlength=topo.jac_nnz)
+    # weights: the tilt variance of the links involved plus the model's floor
+    tilt = P[:, 0, 0] + P[:, 1, 1]
+    w_cl = 1.0 / (tilt[units].sum(axis=1) + floor2)
+    wts[:] = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + floor2)])
+    res[:] = np.concatenate([r_cl.ravel(), r_n])
+    lat_diag[:] = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
+
+
+def kernel_args(name: str, args) -> list:
+    """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
+    buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
+    freed before the call, and numpy handed its memory to another thread's array while cffi had
+    the interpreter lock released — a link's valid flag read as whatever was written there)."""
+    out = []
+    for a in args:
+        if isinstance(a, np.ndarray):
+            if a.dtype == bool:
+                out.append(kernel_ffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
+                continue
+            if a.dtype in (np.int64, np.int32) and a.flags.c_contiguous:
+                out.append(kernel_ffi.from_buffer(f"int{a.dtype.itemsize * 8}_t[]", a))
+                continue
+            if not a.flags.c_contiguous or a.dtype != np.float64:
+                raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
+            out.append(kernel_ffi.from_buffer("double[]", a))
+        else:
+            out.append(float(a))
+    return out
+
+
+def kernel_step(name: str, *args) -> None:
+    getattr(kernel_lib, "capsheet_mf_" + name)(args[0].shape[0], *kernel_args(name, args))
+
+
+def step(name: str, *args) -> None:
+    """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
+    `USE_KERNEL`, else numpy's."""
+    if USE_KERNEL:
+        kernel_step(name, *args)
+    else:
+        NUMPY_STEPS[name](*args)
+
+
+def lattice_terms(R, P, topo, floor2):
+    """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
+    the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`np_lattice`)."""
+    n, U = topo.n_links, topo.n_units
+    res, wts = np.empty(topo.n_rows), np.empty(topo.n_rows)
+    jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
+    if USE_KERNEL:
+        work = np.empty(10 * U + 3 * n)
+        kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *kernel_args(
+            "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
+                        topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
+                        lat_diag, work)))
+    else:
+        np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
+    return res, wts, jd, lat_diag
+
+
+def normal_matvec(topo, jd, wts):
+    """``x -> Jᵀ (wts ⊙ (J x))`` for the lattice step's conjugate gradients, ``J`` the pattern
+    ``topo.jac`` with the entries ``jd`` (in C when `USE_KERNEL`: the same sums in the same
+    order as scipy's two products)."""
+    if not USE_KERNEL:
+        J, JT = topo.jac, topo.jac_T
+        return lambda x: JT @ (wts * (J @ x))
+    n, nr = topo.n_links, topo.n_rows
+    tmp = np.empty(nr)
+    fixed = kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
+    tmp_c = kernel_ffi.from_buffer("double[]", tmp)
+
+    def matvec(x):
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.empty(n)
+        kernel_lib.capsheet_mf_normal_matvec(nr, n, *fixed, kernel_ffi.from_buffer("double[]", x),
+                                             tmp_c, kernel_ffi.from_buffer("double[]", out))
+        return out
+    return matvec
+
+
+def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
+               maxiter: int = 200) -> np.ndarray:
+    """`pcg` on the lattice step's yaw problem, all in the C kernel (``capsheet_mf_yaw_pcg``):
+    ``Jᵀ W J`` from ``jd`` and ``wts``, the nested prior from ``terms`` (``D, dg, Eg, sE, I0``
+    of `MotionEstimator._yaw_prior`) and the magnetometers' weights ``mw``."""
+    D, dg, Eg, sE, I0 = terms
+    n, nr, ng = topo.n_links, topo.n_rows, topo.n_groups
+    x = np.empty(n)
+    work = np.empty(nr + 4 * n + 2 * ng)
+    a = kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
+                             Eg))
+    c = kernel_args("pcg", (mw, b, inv_diag))
+    kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
+                                   int(maxiter), *kernel_args("pcg", (x, work)))
+    return x

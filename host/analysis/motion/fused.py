@@ -43,7 +43,10 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
 5. **Joints** from the directions by least squares (`host.analysis.estimator.joints_from_directions`).
 
 Without magnetometers the loops fix every relative yaw and the common heading is the only free
-gauge (held by the gyroscopes: it wanders slowly, and `overlay` removes it). With them heading is
+gauge (held by the gyroscopes: it wanders slowly, and `overlay` removes it); a group's common
+offset (step 4) has a variance of its own where the loops see it (a curved sheet: the start's
+offsets are corrected as it bends) and is held by its links' own variances where they do not (a
+flat sheet, `_GROUP_SEEN`). With them heading is
 absolute (world x is magnetic north turned by ``declination_rad``) and a flat horizontal sheet (the
 paper's Case 1) is solvable.
 
@@ -55,7 +58,6 @@ the magnetometers' median.
 
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass, field
 
@@ -63,23 +65,24 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (NUMPY_STEPS, cross3, inv_sym3, pcg, rotate_all, skew,  # noqa: F401
-                      wrap, frames_from_angles, rotation_matrices)
+from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, frames_from_angles,  # noqa: F401
+                      inv_sym3, pcg, rotate_all, rotation_matrices, skew, wrap)
+from ._linalg import (kernel_args as _kernel_args, kernel_ffi as _kffi,  # noqa: F401
+                      kernel_lib as _klib, kernel_step as _kernel_step,
+                      lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
+                      np_lattice as _np_lattice, step as _step, yaw_solve as _yaw_solve)
 
-try:  # the per-link steps in C (host/analysis/motion/_kernel/); optional
-    if os.environ.get("CAPSHEET_NO_KERNEL"):
-        raise ImportError("CAPSHEET_NO_KERNEL is set")
-    from ._link_kernel import ffi as _kffi, lib as _klib
-except ImportError:  # not built: the numpy code, the same numbers to rounding
-    _kffi = _klib = None
-
-#: Run the per-link steps in the compiled kernel when it is built (False: numpy).
-USE_KERNEL = _klib is not None
 
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
            "calibrated", "relative_accelerations"]
 
 _EX = np.array([1.0, 0.0, 0.0])
+#: Without magnetometers a group's common yaw offset (`_lattice.LatticeTopology.group`) is kept
+#: apart from its links' own yaws where the loops see it: where turning the group's links
+#: together keeps more than about this fraction of the lattice's information about them (a
+#: curved sheet). On a flat sheet, which keeps nearly none, it is held by the links' own
+#: variances (docs/estimator.md §8).
+_GROUP_SEEN = 3e-3
 _COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 #: a link without a sample turns at its last rate this long (s), then at the sheet's (`_missing_rates`)
 MISSING_HOLD_S = 0.03
@@ -257,38 +260,6 @@ class MotionEstimate:
         return self.frames[:, :, 0]
 
 
-
-
-def _kernel_args(name: str, args) -> list:
-    """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
-    buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
-    freed before the call, and numpy handed its memory to another thread's array while cffi had
-    the interpreter lock released — a link's valid flag read as whatever was written there)."""
-    out = []
-    for a in args:
-        if isinstance(a, np.ndarray):
-            if a.dtype == bool:
-                out.append(_kffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
-                continue
-            if not a.flags.c_contiguous or a.dtype != np.float64:
-                raise ValueError(f"kernel {name}: arrays must be C-contiguous float64")
-            out.append(_kffi.from_buffer("double[]", a))
-        else:
-            out.append(float(a))
-    return out
-
-
-def _kernel_step(name: str, *args) -> None:
-    getattr(_klib, "capsheet_mf_" + name)(args[0].shape[0], *_kernel_args(name, args))
-
-
-def _step(name: str, *args) -> None:
-    """One per-link step (``propagate``, ``accel``, ``yaw``, ``apply``): the C kernel's when
-    `USE_KERNEL`, else numpy's."""
-    if USE_KERNEL:
-        _kernel_step(name, *args)
-    else:
-        NUMPY_STEPS[name](*args)
 
 
 def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.ndarray,
@@ -705,78 +676,44 @@ class MotionEstimator:
     def _lattice_update(self, m, v, dt) -> None:
         cfg = self.config
         topo = self.topo
-        R = self.R
-        d = R[:, :, 0]
-        Y = R[:, :, 1]
-        units = topo.units
         n = self.n_links
-        du = d[units]  # (U, 4, 3)
-        # loop closure, xy part: residual and its derivative in each link's yaw
-        r_cl = du[:, 0, :2] + du[:, 1, :2] - du[:, 2, :2] - du[:, 3, :2]  # (U, 2)
-        ezd = np.empty((n, 3))  # e_z × d
-        ezd[:, 0], ezd[:, 1], ezd[:, 2] = -d[:, 1], d[:, 0], 0.0
-        ezd_u = ezd[units]  # (U, 4, 3)
-        j_cl = (CLOSURE_SIGNS[None, :, None] * ezd_u[:, :, :2]).transpose(0, 2, 1)  # (U, 2, 4)
-        # the cells' normals A × C and each link's sensor y against their mean
-        A = du[:, 1] + du[:, 3]
-        C = du[:, 0] + du[:, 2]
-        N = cross3(A, C)
-        nN = np.sqrt(np.einsum("ui,ui->u", N, N))
-        ok = nN > 0.1  # a squashed cell has no normal: its terms drop out
-        inv_nN = np.where(ok, 1.0 / np.where(ok, nN, 1.0), 0.0)
-        nc = N * inv_nN[:, None]
-        nbar = topo.cell_to_link @ nc
-        r_n = np.einsum("ki,ki->k", Y, nbar)
-        j_diag = Y[:, 0] * nbar[:, 1] - Y[:, 1] * nbar[:, 0]  # (e_z × Y) · n̄
-        pl, pc = topo.pair_link, topo.pair_cell
-        Yp = Y[pl]
-        ncp = nc[pc]
-        wkc = (Yp - ncp * np.einsum("ki,ki->k", ncp, Yp)[:, None]) \
-            * (inv_nN[pc] * topo.inv_ncell[pl])[:, None]
-        CxW = cross3(C[pc], wkc)
-        WxA = cross3(wkc, A[pc])
-        ez_c = ezd_u[pc]  # (K2, 4, 3)
-        j_pair = np.empty((pl.size, 4))
-        j_pair[:, 0] = np.einsum("ki,ki->k", ez_c[:, 0], WxA)
-        j_pair[:, 2] = np.einsum("ki,ki->k", ez_c[:, 2], WxA)
-        j_pair[:, 1] = np.einsum("ki,ki->k", ez_c[:, 1], CxW)
-        j_pair[:, 3] = np.einsum("ki,ki->k", ez_c[:, 3], CxW)
-        jd = np.bincount(topo.jac_slots, weights=np.concatenate([j_cl.ravel(), j_diag,
-                                                                  j_pair.ravel()]),
-                         minlength=topo.jac_nnz)
+        P = self.P
+        res, wts, jd, lat_diag = _lattice_terms(self.R, P, topo, cfg.lattice_floor_rad ** 2)
         J, JT = topo.jac, topo.jac_T
         J.data = jd
         JT.data = jd[topo.jac_T_from]
-        # weights: the tilt variance of the links involved plus the model's floor
-        P = self.P
-        tilt = P[:, 0, 0] + P[:, 1, 1]
-        fl = cfg.lattice_floor_rad ** 2
-        w_cl = 1.0 / (tilt[units].sum(axis=1) + fl)
-        wts = np.concatenate([np.repeat(w_cl, 2), 1.0 / (2.0 * tilt + fl)])
-        res = np.concatenate([r_cl.ravel(), r_n])
+        normal = _normal_matvec(topo, jd, wts)
         # the prior: each link's own yaw variance for what is local to it, and the groups' and
         # the sheet's common yaw variances for what the links share (`_yaw_prior`)
         if m is not None:
             self._grow_collective(dt)
             prior, prior_diag = self._yaw_prior(P[:, 2, 2])
-        else:  # nothing measures what the links share: each link's own variance holds it
-            prior_diag = 1.0 / P[:, 2, 2]
-
-            def prior(x):
-                return prior_diag * x
+        else:  # without magnetometers: the groups' offsets apart where the loops see them
+            self._grow_collective(dt)
+            # what the loops say of each group's common offset (its information, 1/rad²)
+            jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
+            info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg,
+                               minlength=topo.n_groups)
+            seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag,
+                                                 minlength=topo.n_groups), 1e-300)
+            prior, prior_diag = self._yaw_prior(P[:, 2, 2], six_axis=seen / _GROUP_SEEN)
         rhs = -(JT @ (wts * res))
-        lat_diag = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
             self._dt_last = dt
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
-        mu = pcg(lambda x: JT @ (wts * (J @ x)) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+        if USE_KERNEL:
+            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag)
+        else:
+            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag)
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:
             self._shrink_collective(mw)
+        else:  # without magnetometers the loops alone say what a group's offset is
+            self._s_group = 1.0 / (1.0 / self._s_group + (1.0 - self._held) * info)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
@@ -784,7 +721,7 @@ class MotionEstimator:
         self._apply(x)
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
-    def _yaw_prior(self, p):
+    def _yaw_prior(self, p, six_axis=None):
         """The yaw problem's prior information as a matrix-vector product and its diagonal.
 
         A link's yaw variance ``p`` (its conditional one after the last solve) says how well it
@@ -793,7 +730,15 @@ class MotionEstimator:
         nested levels: each link's own ``1/p`` for what is not a group's common offset; each
         group's common offset (a row of i-links, a column of j-links: what the loops cannot see
         on a flat sheet) with variance ``s_g`` for what is not the sheet's common offset; and
-        the sheet's common yaw (its heading) with variance ``s_0``."""
+        the sheet's common yaw (its heading) with variance ``s_0``.
+
+        Without magnetometers (``six_axis``: each group's information from the loops about its
+        offset, as a multiple of what `_GROUP_SEEN` calls seen) the heading is a gauge held by
+        the links' own variances, and a group is held by them in proportion
+        ``1 / (1 + six_axis)``: on a flat sheet as before, on a curved one by ``s_g``, which
+        the loops' information shrinks (the accelerometer-only start's group offsets, a few
+        hundredths of a radian, are then corrected as soon as the sheet bends, not held by
+        the links' variances, which say how well each is known against its neighbours)."""
         topo = self.topo
         g, r, size = topo.group, topo.n_groups, topo.group_size
         D = 1.0 / p
@@ -801,12 +746,15 @@ class MotionEstimator:
         # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
         # link's own variance holds it, as if the magnetometers were not there
         hw = self.config.mag_hold_weight
-        w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
-        held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+        if six_axis is not None:  # the sheet's heading is a gauge, held by the links' own variances
+            held, held0 = 1.0 / (1.0 + six_axis), 1.0
+        else:
+            w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
+            held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+            held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
         self._held = held
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
-        held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
         I0 = (1.0 - held0) / self._s0 + held0 * sE
 
         # coordinates: a group's offset is its links' mean weighted by D, the sheet's the groups'
@@ -819,6 +767,7 @@ class MotionEstimator:
             abar = np.bincount(g, weights=D * x, minlength=r) / dg
             return D * x - D * abar[g] + D * (sigma_a(abar) / dg)[g]
 
+        self._prior_terms = (D, dg, Eg, sE, I0)  # the same prior for the C kernel's solve
         sig_diag = Eg - Eg * Eg / sE + Eg * Eg * I0 / (sE * sE)
         diag = D - D * D / dg[g] + D * D * (sig_diag / (dg * dg))[g]
         return prior, diag

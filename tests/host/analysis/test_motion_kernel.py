@@ -73,3 +73,74 @@ def test_a_mask_handed_to_the_kernel_stays_alive_until_the_call():
     junk = [np.zeros(12, dtype=np.uint8) for _ in range(64)]
     assert [args[1][k] for k in range(12)] == [1] * 12
     assert len(junk) == 64
+
+
+def _bent_frames(rows, cols, seed):
+    """Frames of a smoothly bent, twisted sheet with noise: every cell a real cell (its normal
+    defined), plus one squashed cell whose terms must drop out."""
+    g = np.random.Generator(np.random.MT19937(seed))
+    n = 2 * rows * cols - rows - cols
+    alpha = 0.3 * np.sin(np.linspace(0, 3, n)) + g.normal(0, 0.02, n)
+    beta = 0.2 * np.cos(np.linspace(0, 2, n)) + g.normal(0, 0.02, n)
+    n_i = (rows - 1) * cols
+    gamma = np.where(np.arange(n) < n_i, 0.0, np.pi / 2) + g.normal(0, 0.05, n)
+    R = fused.frames_from_angles(alpha, beta, gamma)
+    units = fused.topology(rows, cols).units
+    R[units[0, 1]] = R[units[0, 0]]  # the first cell's i-link along its j-link: no normal
+    A = g.normal(0, 1e-3, (n, 6, 6))
+    P = A @ A.transpose(0, 2, 1) + 1e-6 * np.eye(6)
+    return R, P
+
+
+def test_the_lattice_step_is_the_same_in_c_and_numpy():
+    """The lattice step's residuals, weights, Jacobian and normal-matrix products (the bulk of a
+    64x64 snapshot's time) from the kernel are numpy's to rounding, on a lattice with more rows
+    than columns (a transposed index would show)."""
+    rows, cols = 7, 5
+    topo = fused.topology(rows, cols)
+    R, P = _bent_frames(rows, cols, 3)
+    out_c = fused._lattice_terms(R, P, topo, 1e-6)
+    out_n = [np.empty_like(a) for a in out_c]
+    fused._np_lattice(R, P, topo, 1e-6, *out_n)
+    for name, a, b in zip(("res", "wts", "jd", "lat_diag"), out_c, out_n):
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max(), name
+    x = np.random.Generator(np.random.MT19937(4)).normal(size=topo.n_links)
+    J = topo.jac.copy()
+    J.data = out_n[2]
+    want = J.T @ (out_n[1] * (J @ x))
+    got = fused._normal_matvec(topo, out_c[2], out_c[1])(x)
+    assert np.abs(got - want).max() <= 1e-12 * np.abs(want).max()
+    # the check can fail: one link turned by 1e-6 rad about z moves the kernel's residuals
+    R2 = fused.rotate_all(np.eye(3), R)
+    R2[10] = fused.rotation_matrices(np.array([0.0, 0.0, 1e-6])) @ R2[10]
+    res2 = fused._lattice_terms(R2, P, topo, 1e-6)[0]
+    assert np.abs(res2 - out_n[0]).max() > 1e-8
+
+
+def test_the_yaw_solve_is_the_same_in_c_and_numpy():
+    """The lattice step's conjugate gradients with the nested yaw prior (a real estimator's, 9-axis,
+    after a few snapshots of a bent sheet) give numpy's solution to the solver's tolerance."""
+    rows, cols = 6, 5
+    R, _P = _bent_frames(rows, cols, 5)
+    n = R.shape[0]
+    g = np.random.Generator(np.random.MT19937(6))
+    est = fused.MotionEstimator(rows, cols, 0.01)
+    f = np.einsum("kji,j->ki", R, [0.0, 0.0, 9.80665])
+    m = np.einsum("kji,j->ki", R, [25e-6, 0.0, -43e-6])
+    for k in range(20):
+        est.update(k / 145.0, f + g.normal(0, 0.01, (n, 3)), g.normal(0, 0.01, (n, 3)),
+                   m + g.normal(0, 0.3e-6, (n, 3)))
+    topo = est.topo
+    res, wts, jd, lat_diag = fused._lattice_terms(est.R, est.P, topo, 1e-6)
+    prior, prior_diag = est._yaw_prior(est.P[:, 2, 2])
+    mw = g.uniform(0, 1e4, n)
+    b = g.normal(0, 1.0, n)
+    inv = 1.0 / (prior_diag + lat_diag + mw)
+    normal = fused._normal_matvec(topo, jd, wts)
+    want = fused.pcg(lambda x: normal(x) + prior(x) + mw * x, b, inv)
+    got = fused._yaw_solve(topo, jd, wts, est._prior_terms, mw, b, inv)
+    assert np.abs(got - want).max() <= 1e-7 * np.abs(want).max(), np.abs(got - want).max()
+    # the check can fail: a prior with another group weight gives another solution
+    D, dg, Eg, sE, I0 = est._prior_terms
+    off = fused._yaw_solve(topo, jd, wts, (D, dg, 2.0 * Eg, sE, I0), mw, b, inv)
+    assert np.abs(off - want).max() > 1e-6 * np.abs(want).max()

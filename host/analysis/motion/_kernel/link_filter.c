@@ -206,3 +206,204 @@ void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const doubl
         }
     }
 }
+
+void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
+                         const double *P, const int64_t *units, const int64_t *pair_link,
+                         const int64_t *pair_cell, const double *inv_ncell,
+                         const int64_t *jac_slots, const int64_t *jac_rows,
+                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         double *jd, double *lat_diag, double *work)
+{
+    size_t U = n_units;
+    double *A = work, *C = work + 3 * U, *nc = work + 6 * U, *inv_nN = work + 9 * U;
+    double *nbar = work + 10 * U;
+    const double sign[4] = {1.0, 1.0, -1.0, -1.0};
+    size_t e = 0; /* the running index into jac_slots */
+    for (size_t i = 0; i < nnz; i++) {
+        jd[i] = 0.0;
+    }
+    for (size_t u = 0; u < U; u++) {
+        const int64_t *un = units + 4 * u;
+        const double *d0 = R + 9 * un[0], *d1 = R + 9 * un[1], *d2 = R + 9 * un[2],
+                     *d3 = R + 9 * un[3]; /* d = R[:, :, 0]: elements 0, 3, 6 */
+        res[2 * u] = d0[0] + d1[0] - d2[0] - d3[0];
+        res[2 * u + 1] = d0[3] + d1[3] - d2[3] - d3[3];
+        for (int c = 0; c < 2; c++) {
+            for (int s = 0; s < 4; s++) {
+                const double *dk = R + 9 * un[s];
+                double ez = c == 0 ? -dk[3] : dk[0]; /* e_z x d, x then y */
+                jd[jac_slots[e++]] += sign[s] * ez;
+            }
+        }
+        double *a = A + 3 * u, *cc = C + 3 * u;
+        for (int i = 0; i < 3; i++) {
+            a[i] = d1[3 * i] + d3[3 * i];
+            cc[i] = d0[3 * i] + d2[3 * i];
+        }
+        double N0 = a[1] * cc[2] - a[2] * cc[1];
+        double N1 = a[2] * cc[0] - a[0] * cc[2];
+        double N2 = a[0] * cc[1] - a[1] * cc[0];
+        double nN = sqrt(N0 * N0 + N1 * N1 + N2 * N2);
+        double inv = nN > 0.1 ? 1.0 / nN : 0.0; /* a squashed cell has no normal */
+        inv_nN[u] = inv;
+        nc[3 * u] = N0 * inv;
+        nc[3 * u + 1] = N1 * inv;
+        nc[3 * u + 2] = N2 * inv;
+    }
+    /* each link's mean normal over its cells (pairs are ordered by link, then cell) */
+    for (size_t k = 0; k < 3 * n; k++) {
+        nbar[k] = 0.0;
+    }
+    for (size_t p = 0; p < n_pairs; p++) {
+        int64_t k = pair_link[p], u = pair_cell[p];
+        for (int i = 0; i < 3; i++) {
+            nbar[3 * k + i] += inv_ncell[k] * nc[3 * u + i];
+        }
+    }
+    for (size_t k = 0; k < n; k++) {
+        const double *Rk = R + 9 * k, *nb = nbar + 3 * k;
+        double Y0 = Rk[1], Y1 = Rk[4], Y2 = Rk[7];
+        res[2 * U + k] = Y0 * nb[0] + Y1 * nb[1] + Y2 * nb[2];
+        jd[jac_slots[e++]] += Y0 * nb[1] - Y1 * nb[0];
+    }
+    for (size_t p = 0; p < n_pairs; p++) {
+        int64_t k = pair_link[p], u = pair_cell[p];
+        const double *Rk = R + 9 * k, *n3 = nc + 3 * u, *a = A + 3 * u, *cc = C + 3 * u;
+        double Y[3] = {Rk[1], Rk[4], Rk[7]};
+        double t = n3[0] * Y[0] + n3[1] * Y[1] + n3[2] * Y[2];
+        double sc = inv_nN[u] * inv_ncell[k];
+        double W[3];
+        for (int i = 0; i < 3; i++) {
+            W[i] = (Y[i] - n3[i] * t) * sc;
+        }
+        double CxW[3] = {cc[1] * W[2] - cc[2] * W[1], cc[2] * W[0] - cc[0] * W[2],
+                         cc[0] * W[1] - cc[1] * W[0]};
+        double WxA[3] = {W[1] * a[2] - W[2] * a[1], W[2] * a[0] - W[0] * a[2],
+                         W[0] * a[1] - W[1] * a[0]};
+        const int64_t *un = units + 4 * u;
+        for (int s = 0; s < 4; s++) {
+            const double *dk = R + 9 * un[s];
+            const double *v = (s == 0 || s == 2) ? WxA : CxW;
+            double ez0 = -dk[3], ez1 = dk[0];
+            jd[jac_slots[e++]] += ez0 * v[0] + ez1 * v[1] + 0.0 * v[2];
+        }
+    }
+    /* weights: the tilt variance of the links involved plus the model's floor */
+    for (size_t u = 0; u < U; u++) {
+        const int64_t *un = units + 4 * u;
+        double s = 0.0;
+        for (int i = 0; i < 4; i++) {
+            const double *Pk = P + 36 * un[i];
+            s += Pk[0] + Pk[7];
+        }
+        double w = 1.0 / (s + floor2);
+        wts[2 * u] = w;
+        wts[2 * u + 1] = w;
+    }
+    for (size_t k = 0; k < n; k++) {
+        const double *Pk = P + 36 * k;
+        wts[2 * U + k] = 1.0 / (2.0 * (Pk[0] + Pk[7]) + floor2);
+        lat_diag[k] = 0.0;
+    }
+    for (size_t i = 0; i < nnz; i++) {
+        lat_diag[jac_cols[i]] += wts[jac_rows[i]] * jd[i] * jd[i];
+    }
+}
+
+void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
+                               const int32_t *indices, const double *data, const double *w,
+                               const double *x, double *tmp, double *out)
+{
+    for (size_t r = 0; r < n_rows; r++) {
+        double s = 0.0;
+        for (int32_t i = indptr[r]; i < indptr[r + 1]; i++) {
+            s += data[i] * x[indices[i]];
+        }
+        tmp[r] = w[r] * s;
+    }
+    for (size_t k = 0; k < n; k++) {
+        out[k] = 0.0;
+    }
+    for (size_t r = 0; r < n_rows; r++) {
+        for (int32_t i = indptr[r]; i < indptr[r + 1]; i++) {
+            out[indices[i]] += data[i] * tmp[r];
+        }
+    }
+}
+
+static double dot(size_t n, const double *a, const double *b)
+{
+    double s = 0.0;
+    for (size_t i = 0; i < n; i++) {
+        s += a[i] * b[i];
+    }
+    return s;
+}
+
+static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+                       const int32_t *indices, const double *data, const double *w,
+                       const double *D, const int64_t *group, const double *dg, const double *Eg,
+                       double sE, double I0, const double *mw, const double *x, double *out,
+                       double *tmp, double *abar, double *sig)
+{
+    capsheet_mf_normal_matvec(n_rows, n, indptr, indices, data, w, x, tmp, out);
+    for (size_t g = 0; g < n_groups; g++) {
+        abar[g] = 0.0;
+    }
+    for (size_t k = 0; k < n; k++) {
+        abar[group[k]] += D[k] * x[k];
+    }
+    double ey = 0.0;
+    for (size_t g = 0; g < n_groups; g++) {
+        abar[g] /= dg[g];
+        ey += Eg[g] * abar[g];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        sig[g] = (Eg[g] * abar[g] - Eg[g] * (ey / sE) + Eg[g] * (ey * I0 / (sE * sE))) / dg[g];
+    }
+    for (size_t k = 0; k < n; k++) {
+        int64_t g = group[k];
+        double prior = D[k] * x[k] - D[k] * abar[g] + D[k] * sig[g];
+        out[k] = out[k] + prior + mw[k] * x[k];
+    }
+}
+
+int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+                        const int32_t *indices, const double *data, const double *w,
+                        const double *D, const int64_t *group, const double *dg,
+                        const double *Eg, double sE, double I0, const double *mw,
+                        const double *b, const double *inv_diag, double rtol, int maxiter,
+                        double *x, double *work)
+{
+    double *tmp = work, *r = work + n_rows, *z = r + n, *p = z + n, *q = p + n;
+    double *abar = q + n, *sig = abar + n_groups;
+    for (size_t k = 0; k < n; k++) {
+        x[k] = 0.0;
+        r[k] = b[k];
+        z[k] = inv_diag[k] * r[k];
+        p[k] = z[k];
+    }
+    double rz = dot(n, r, z);
+    double stop = rtol * rtol * dot(n, b, b);
+    int it;
+    for (it = 0; it < maxiter; it++) {
+        if (dot(n, r, r) <= stop) {
+            break;
+        }
+        yaw_matvec(n, n_rows, n_groups, indptr, indices, data, w, D, group, dg, Eg, sE, I0, mw,
+                   p, q, tmp, abar, sig);
+        double alpha = rz / dot(n, p, q);
+        for (size_t k = 0; k < n; k++) {
+            x[k] += alpha * p[k];
+            r[k] -= alpha * q[k];
+            z[k] = inv_diag[k] * r[k];
+        }
+        double rz_new = dot(n, r, z);
+        double beta = rz_new / rz;
+        for (size_t k = 0; k < n; k++) {
+            p[k] = z[k] + beta * p[k];
+        }
+        rz = rz_new;
+    }
+    return it;
+}

@@ -26,3 +26,39 @@ void capsheet_mf_yaw(size_t n, double *P, const double *mu, const double *a_diag
 
 /* R <- exp([x[0:3]]x) R, bias <- bias + x[3:6], P <- (P + P^T) / 2. */
 void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const double *x);
+
+/* The lattice step's residuals, weights and Jacobian (fused.py `_np_lattice`, the same numbers in
+ * the same order): n links, n_units cells, n_pairs (link, cell) pairs, nnz Jacobian entries.
+ * units n_units x 4, pair_link / pair_cell n_pairs, inv_ncell n, jac_slots (8 n_units + n +
+ * 4 n_pairs: each computed entry's place in the CSR data, summed there in that order),
+ * jac_rows / jac_cols nnz (the CSR pattern's row and column of each entry). Out: res and wts
+ * (2 n_units + n rows: closure x, y per cell, then one normal row per link), jd (nnz), lat_diag
+ * (n: the diagonal of J^T W J). work: 10 n_units + 3 n doubles of scratch. */
+void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
+                         const double *P, const int64_t *units, const int64_t *pair_link,
+                         const int64_t *pair_cell, const double *inv_ncell,
+                         const int64_t *jac_slots, const int64_t *jac_rows,
+                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         double *jd, double *lat_diag, double *work);
+
+/* out = J^T (w .* (J x)) for the CSR matrix J (n_rows x n: indptr, indices, data); tmp holds
+ * n_rows doubles. Each out entry sums its terms in increasing row order (as a CSR product
+ * by J^T's rows would). */
+void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
+                               const int32_t *indices, const double *data, const double *w,
+                               const double *x, double *tmp, double *out);
+
+/* The lattice step's yaw solve (fused.py `_linalg.pcg` on `MotionEstimator._yaw_prior`'s
+ * matrix): conjugate gradients with the preconditioner inv_diag, from zero, on
+ * A = J^T W J + prior + diag(mw), where J is the CSR matrix (n_rows x n: indptr, indices,
+ * data), W = diag(w), and the prior is the nested one: with abar_g = sum_{k in g} D_k x_k / dg_g,
+ * ey = sum_g Eg_g abar_g and s_g = Eg_g abar_g - Eg_g ey / sE + Eg_g ey I0 / sE^2,
+ * (prior x)_k = D_k x_k - D_k abar_{g(k)} + D_k s_{g(k)} / dg_{g(k)}. Stops when
+ * |r|^2 <= rtol^2 |b|^2 or after maxiter iterations. work: n_rows + 4 n + 2 n_groups doubles.
+ * Returns the iterations taken. */
+int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+                        const int32_t *indices, const double *data, const double *w,
+                        const double *D, const int64_t *group, const double *dg,
+                        const double *Eg, double sE, double I0, const double *mw,
+                        const double *b, const double *inv_diag, double rtol, int maxiter,
+                        double *x, double *work);
