@@ -119,10 +119,11 @@ def _run(sheet, *, allow_broadcast=False, profile="chip", only=None, **dev):
             t.close()
 
 
-#: conformance runs of the Python mutants made at once (`python_mutant_runs`). A run mostly waits —
-#: for silences, heartbeats, re-announces: ~7 s of wall for ~0.15 s of CPU, measured per test — so
-#: the 44 runs one after another took ~455 s; in threads, their waits overlap. Each run has its sheet,
-#: its link and (CAN) its own virtual channel; the verdicts are checked one test per mutant, as before.
+#: conformance runs of the mutants made at once (`_shared_runs`). A run mostly waits — for silences,
+#: heartbeats, re-announces: ~7 s of wall for ~0.15 s of CPU, measured per test — so the 44 Python
+#: mutants' runs one after another took ~455 s, the 33 C mutants' ~69 s; in threads, their waits
+#: overlap (64 s and 21 s). Each run has its sheet, its link and (CAN) its own virtual channel, each C
+#: chip its own struct; the verdicts are checked one test per mutant, as before.
 AT_ONCE = 8
 
 
@@ -155,22 +156,57 @@ def _attempt(job, k):
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
-@pytest.fixture(scope="session")
-def python_mutant_runs(tmp_path_factory) -> dict:
-    """Every Python mutant's run, made once per test session `AT_ONCE` at a time; under pytest-xdist
-    by whichever worker needs them first, under a file lock in the session's shared temporary
+def _c_mutant_jobs() -> dict:
+    """``{name: run(k)}``: every C firmware mutant on its twin's checks (each chip a C struct of its own)."""
+    from firmware_ref.chip import CFirmwareChip
+
+    def job(name, k):
+        twin = C_MUTANTS[name]
+
+        def factory(uid, sensor, **kw):
+            return CFirmwareChip(uid, sensor, mutant=name, **{**kw, **C_MUTANT_OPTIONS.get(name, {})})
+        if twin in IMU_MUTANTS:  # a 6/9-axis chip (§16, §17)
+            _cls, transport, sensors = IMU_MUTANTS[twin]
+            allow_broadcast = False
+        else:
+            (_cls, transport, allow_broadcast), sensors = MUTANTS[twin], "accel"
+        sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=factory, sensors=sensors)
+        # its twin's checks, and check 7 (an ASSIGN: an ACK for the reserved-bits check to look at), and
+        # what makes the chip send the frame it breaks (C_MUTANT_EVIDENCE: SYNC for a SAMPLE)
+        run = {**EXPECTED, **IMU_EXPECTED}[twin] | {7} | C_MUTANT_EVIDENCE.get(name, set())
+        return _run(sheet, allow_broadcast=allow_broadcast, only=[str(n) for n in sorted(run)],
+                    **({"channels": [f"cmutant{k}"]} if transport == "can" else {}))
+    return {name: (lambda k, name=name: job(name, k)) for name in C_MUTANTS}
+
+
+def _shared_runs(tmp_path_factory, tag: str, jobs) -> dict:
+    """``jobs()``' runs, made once per test session `AT_ONCE` at a time; under pytest-xdist by
+    whichever worker needs them first, under a file lock in the session's shared temporary
     directory (the others read them there)."""
     base = tmp_path_factory.getbasetemp()
     root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-    done = root / "python-mutant-runs.json"
-    with open(root / "python-mutant-runs.lock", "w") as lock:
+    done = root / f"{tag}-runs.json"
+    with open(root / f"{tag}-runs.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         if not done.exists():
-            jobs = _python_mutant_jobs()
+            todo = jobs()
             with ThreadPoolExecutor(AT_ONCE) as pool:
-                got = dict(zip(jobs, pool.map(_attempt, jobs.values(), range(len(jobs)))))
+                got = dict(zip(todo, pool.map(_attempt, todo.values(), range(len(todo)))))
             done.write_text(json.dumps(got))
     return json.loads(done.read_text())
+
+
+@pytest.fixture(scope="session")
+def python_mutant_runs(tmp_path_factory) -> dict:
+    """Every Python chip, IMU and gateway mutant's run (`_shared_runs`)."""
+    return _shared_runs(tmp_path_factory, "python-mutant", _python_mutant_jobs)
+
+
+@pytest.fixture(scope="session")
+def c_mutant_runs(tmp_path_factory) -> dict:
+    """Every C firmware mutant's run on its twin's checks (`_shared_runs`)."""
+    pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
+    return _shared_runs(tmp_path_factory, "c-mutant", _c_mutant_jobs)
 
 
 def _results_of(runs: dict, key: str) -> list[CheckResult]:
@@ -231,24 +267,9 @@ def test_every_chip_check_is_failed_by_some_c_mutant():
 
 
 @pytest.mark.parametrize("name", sorted(C_MUTANTS))
-def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name):
-    pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
-    from firmware_ref.chip import CFirmwareChip
-    twin = C_MUTANTS[name]
-    expected = {**EXPECTED, **IMU_EXPECTED}[twin]
-
-    def factory(uid, sensor, **kw):
-        return CFirmwareChip(uid, sensor, mutant=name, **{**kw, **C_MUTANT_OPTIONS.get(name, {})})
-    if twin in IMU_MUTANTS:  # a 6/9-axis chip (§16, §17)
-        _cls, transport, sensors = IMU_MUTANTS[twin]
-        allow_broadcast = False
-    else:
-        (_cls, transport, allow_broadcast), sensors = MUTANTS[twin], "accel"
-    sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=factory, sensors=sensors)
-    # its twin's checks, and check 7 (an ASSIGN: an ACK for the reserved-bits check to look at), and
-    # what makes the chip send the frame it breaks (C_MUTANT_EVIDENCE: SYNC for a SAMPLE)
-    run = expected | {7} | C_MUTANT_EVIDENCE.get(name, set())
-    results = _run(sheet, allow_broadcast=allow_broadcast, only=[str(n) for n in sorted(run)])
+def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name, c_mutant_runs):
+    expected = {**EXPECTED, **IMU_EXPECTED}[C_MUTANTS[name]]
+    results = _results_of(c_mutant_runs, name)
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == expected, report
     assert all(_clause_named(results, n) for n in expected), report
