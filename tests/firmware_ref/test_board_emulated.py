@@ -270,10 +270,10 @@ class Board:
 
 
 @pytest.fixture(scope="module")
-def images(tmp_path_factory):
-    out = tmp_path_factory.mktemp("board_emu")
-    r = subprocess.run(["make", "-C", str(FW), "board", f"OUT={out}"], capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+def images(board_images):
+    """The images of the session's one ``make board`` (tests/firmware_ref/conftest.py)."""
+    out, rc, log = board_images
+    assert rc == 0, log[-4000:]
     return out / "board"
 
 

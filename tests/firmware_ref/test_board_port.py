@@ -36,11 +36,11 @@ needs_arm = pytest.mark.skipif(NO_ARM, reason="board port: arm-none-eabi-gcc not
 
 
 @pytest.fixture(scope="module")
-def board_build(tmp_path_factory):
-    out = tmp_path_factory.mktemp("board")
-    r = subprocess.run(["make", "-C", str(FW), "board", f"OUT={out}"], capture_output=True, text=True, timeout=600)
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    return out, r.stdout + r.stderr
+def board_build(board_images):
+    """The session's one ``make board`` (tests/firmware_ref/conftest.py): its OUT and its output."""
+    out, rc, log = board_images
+    assert rc == 0, log[-6000:]
+    return out, log
 
 
 @needs_arm

@@ -132,20 +132,46 @@ def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors)
     assert s["errors"] == {}, s["errors"]
 
 
-@pytest.mark.parametrize("transport,fault", [("serial", None), ("can", None), ("serial", "no_answer"),
-                                             ("serial", "self_test_fail")])
-def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault(transport, fault):
+#: the conformance runs of `test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault`
+PART_RUNS = [("serial", None), ("can", None), ("serial", "no_answer"), ("serial", "self_test_fail")]
+
+
+@pytest.fixture(scope="module")
+def part_runs():
+    """``{(transport, fault): results or the exception raised}``: the runs made at once in threads (each
+    mostly waits: ~11 s of wall for ~0.5 s of CPU; one after another ~45 s), each chip and part its own,
+    each CAN run on a virtual channel of its own."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tests.host.conformance.test_checks import _run_can, _run_serial
+
+    def one(k):
+        transport, fault = PART_RUNS[k]
+        try:
+            fac = part_chip_factory("icm42688p")
+            sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac,
+                                 transport=transport)
+            if fault is not None:
+                for ls in fac.links:
+                    ls.part.fault(fault)
+            fac.bind(sheet)
+            if transport == "serial":
+                return _run_serial(sheet, allow_broadcast=True)
+            return _run_can(sheet, channel=f"part{k}", allow_broadcast=True)
+        except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
+            return exc
+    with ThreadPoolExecutor(len(PART_RUNS)) as pool:
+        return dict(zip(PART_RUNS, pool.map(one, range(len(PART_RUNS)))))
+
+
+@pytest.mark.parametrize("transport,fault", PART_RUNS)
+def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault(transport, fault, part_runs):
     """`capsheet conformance`'s chip profile over serial and classic CAN: a chip reading a healthy part
     passes every check (the §16 ones among them); a part that stops answering, or fails its self-test,
     is the spec's sensor fault: the sample check sees INVALID while streaming (§8.6)."""
-    from tests.host.conformance.test_checks import _run_can, _run_serial
-    fac = part_chip_factory("icm42688p")
-    sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac, transport=transport)
-    if fault is not None:
-        for ls in fac.links:
-            ls.part.fault(fault)
-    fac.bind(sheet)
-    results = (_run_serial if transport == "serial" else _run_can)(sheet, allow_broadcast=True)
+    results = part_runs[(transport, fault)]
+    if isinstance(results, Exception):
+        raise results
     report = "\n".join(r.line() for r in results)
     failed = {r.number: r for r in results if r.outcome != "PASS"}
     if fault is None:

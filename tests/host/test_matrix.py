@@ -23,9 +23,10 @@ of one transport are made once per test session (`Batch`: whichever worker needs
 them, under a file lock in the session's temporary directory, and the other finds them there) and
 start together (one sheet each; a ``udp_multicast`` sheet on a group of its own,
 tests/host/matrix_sheet.py's ``udp_group``: sheets isolated to their groups do not hear each other).
-Under ``make test`` (pytest-xdist, ``--dist loadgroup``) the matrix is one group, run by one worker in
-order: each transport's runs are made once, by that worker, while the other worker runs the rest of
-the suite, and no worker waits on the lock for runs the other is making.
+Under ``make test`` (pytest-xdist, ``--dist loadgroup``) the matrix is meant to be one group, run by one
+worker in order; with pytest 9.2 and pytest-xdist 3.8 the group is not honoured (docs/testing.md), the
+cells are spread over the workers, and a cell whose transport's runs another worker is making waits
+on the lock: each transport's runs are still made once.
 """
 
 from __future__ import annotations

@@ -134,11 +134,17 @@ def test_nothing_received_is_said_and_exit_1():
     (["--worker", "0/2"], "--worker is for an estimate worker"),
     ([], "give a recording"),
 ])
-def test_usage_errors_are_one_line_and_exit_2(args, needle, tmp_path):
-    out = subprocess.run(CLI + ["estimate", *args], capture_output=True, text=True, timeout=60, env=ENV,
-                         cwd=tmp_path)
-    assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
-    assert len(out.stderr.strip().splitlines()) == 1, out.stderr
+def test_usage_errors_are_one_line_and_exit_2(args, needle, tmp_path, cli_here):
+    """Through the entry point in this process (tests/host/cli/conftest.py); the first case through a
+    real process as well."""
+    runs = [cli_here(["estimate", *args], cwd=tmp_path)]
+    if args == ["--subscribe", "ros2"]:
+        out = subprocess.run(CLI + ["estimate", *args], capture_output=True, text=True, timeout=60, env=ENV,
+                             cwd=tmp_path)
+        runs.append((out.returncode, out.stdout, out.stderr))
+    for code, _out, err in runs:
+        assert code == 2 and needle in err and "Traceback" not in err, err
+        assert len(err.strip().splitlines()) == 1, err
 
 
 def test_a_host_refuses_no_publish_estimates_without_zenoh():

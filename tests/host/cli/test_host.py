@@ -161,7 +161,9 @@ def _bad_layouts(tmp: Path) -> dict:
     }
 
 
-def test_every_bad_value_is_one_line_and_exit_2(tmp_path):
+def test_every_bad_value_is_one_line_and_exit_2(tmp_path, cli_here):
+    """Through the entry point in this process (tests/host/cli/conftest.py), the first case through a
+    real process as well: each refused before any port opens."""
     cases = {("--lattice", "14by14"): "--lattice: invalid value '14by14'",
              ("--rate", "0"): "--rate: invalid value '0'", ("--rate", "nan"): "--rate: invalid value 'nan'",
              ("--rate", "-3"): "--rate: invalid value '-3'", ("--rate", "inf"): "--rate: invalid value 'inf'",
@@ -170,14 +172,20 @@ def test_every_bad_value_is_one_line_and_exit_2(tmp_path):
              ("--baud", "-1"): "invalid value '-1': need an integer >= 1", ("--bitrate", "abc"): "need an integer",
              ("--lattice", "300x300"): "a sheet has at most 32,767"}
     cases.update(_bad_layouts(tmp_path))
-    for args, needle in cases.items():
-        out = host("--port", str(tmp_path / "no-such-port"), *args)
-        assert out.returncode == 2, (args, out.returncode, out.stderr)
-        assert needle in out.stderr, (args, out.stderr)
-        assert "Traceback" not in out.stderr, (args, out.stderr)
+    for k, (args, needle) in enumerate(cases.items()):
+        argv = ["host", "--port", str(tmp_path / "no-such-port"), *args]
+        runs = [cli_here(_rate(argv))]
+        if k == 0:
+            out = host(*argv[1:])
+            runs.append((out.returncode, out.stdout, out.stderr))
+        for code, _out, err in runs:
+            assert code == 2, (args, code, err)
+            assert needle in err, (args, err)
+            assert "Traceback" not in err, (args, err)
     # a JSON layout's lattice is taken when --lattice is not given; given and different: an error
-    out = host("--port", str(tmp_path / "no-such-port"), "--layout", str(tmp_path / "small.json"), "--lattice", "14x14")
-    assert "--lattice 14x14 but the layout" in out.stderr and "is for 2x2" in out.stderr
+    _code, _out, err = cli_here(_rate(["host", "--port", str(tmp_path / "no-such-port"), "--layout",
+                                       str(tmp_path / "small.json"), "--lattice", "14x14"]))
+    assert "--lattice 14x14 but the layout" in err and "is for 2x2" in err
 
 
 @pytest.mark.parametrize("layout", [False, True])

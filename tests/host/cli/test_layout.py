@@ -153,19 +153,26 @@ BAD = [
 ]
 
 
-@pytest.mark.parametrize("argv, needle", BAD, ids=[" ".join(a) for a, _ in BAD])
-def test_a_bad_value_is_one_line_and_exit_2(argv, needle, files, tmp_path):
+@pytest.mark.parametrize("argv, needle", [pytest.param(a, n, id=" ".join(a)) for a, n in BAD])
+def test_a_bad_value_is_one_line_and_exit_2(argv, needle, files, tmp_path, cli_here):
+    """Through the entry point in this process (tests/host/cli/conftest.py); the first case of each
+    subcommand through a real process as well."""
+    real = argv == next(a for a, _ in BAD if a[:2] == argv[:2])
     argv = [a.format(**files) for a in argv]
     before = open(files["mine"], "rb").read()
-    r = subprocess.run(CLI + argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path,
-                       stdin=subprocess.DEVNULL)
-    assert "Traceback" not in r.stderr, r.stderr
-    assert r.returncode == 2, f"exit {r.returncode}: {r.stderr}"
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and len(lines[0]) <= MAX_LINE, r.stderr
-    assert needle in lines[0] and lines[0].startswith("capsheet"), lines[0]
-    assert open(files["mine"], "rb").read() == before
-    assert os.listdir(tmp_path) == []
+    runs = [cli_here(argv, cwd=tmp_path, timeout_s=TIMEOUT_S)]
+    if real:
+        r = subprocess.run(CLI + argv, capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path,
+                           stdin=subprocess.DEVNULL)
+        runs.append((r.returncode, r.stdout, r.stderr))
+    for code, _out, err in runs:
+        assert "Traceback" not in err, err
+        assert code == 2, f"exit {code}: {err}"
+        lines = err.strip().splitlines()
+        assert len(lines) == 1 and len(lines[0]) <= MAX_LINE, err
+        assert needle in lines[0] and lines[0].startswith("capsheet"), lines[0]
+        assert open(files["mine"], "rb").read() == before
+        assert os.listdir(tmp_path) == []
 
 
 def test_a_missing_port_is_one_line_exit_1(tmp_path):

@@ -233,14 +233,23 @@ def test_tactile_records_contacts_and_estimates_to_a_ros2_mcap(tmp_path):
     (["--publish", "ros2"], {"ROS_DOMAIN_ID": "abc"}, "ROS_DOMAIN_ID"),
 ])
 @pytest.mark.parametrize("command", ["host", "demo", "tactile"])
-def test_a_bad_ros2_value_is_one_line_and_exit_2(tmp_path, command, args, env, needle):
+def test_a_bad_ros2_value_is_one_line_and_exit_2(tmp_path, command, args, env, needle, cli_here, monkeypatch):
+    """Through the entry point in this process (tests/host/cli/conftest.py); each command's first case
+    through a real process as well."""
     # before anything starts: no port opened (host's is absent), no virtual sheet started (demo)
     port = ["--port", "/nonexistent"] if command == "host" else []
-    out = subprocess.run(CLI + [command, *port, "--duration", "1", *args], capture_output=True, text=True,
-                         timeout=120, env=dict(ENV, **env), cwd=tmp_path)
-    assert out.returncode == 2 and needle in out.stderr and "Traceback" not in out.stderr, out.stderr
-    assert out.stderr.count("\n") == 1 and out.stderr.startswith(f"capsheet {command}: "), out.stderr
-    assert not list(tmp_path.iterdir())  # nothing written
+    argv = [command, *port, "--duration", "1", *args]
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    runs = [cli_here(argv, cwd=tmp_path, timeout_s=120)]
+    if args == ["--publish", "ros2:garbage"]:
+        out = subprocess.run(CLI + argv, capture_output=True, text=True, timeout=120, env=dict(ENV, **env),
+                             cwd=tmp_path)
+        runs.append((out.returncode, out.stdout, out.stderr))
+    for code, _out, err in runs:
+        assert code == 2 and needle in err and "Traceback" not in err, err
+        assert err.count("\n") == 1 and err.startswith(f"capsheet {command}: "), err
+        assert not list(tmp_path.iterdir())  # nothing written
 
 
 def test_an_existing_ros2_recording_needs_overwrite(tmp_path):
