@@ -119,11 +119,28 @@ def test_pty_serial_sets_the_read_timeout_only_when_it_changes(pty_pair):
         t.close()
 
 
+def _the_same_pty_again(name: str) -> tuple[int, int]:
+    """A new pty pair whose slave is ``name`` again: the same device (number) coming back, the only
+    one a reconnect takes. The kernel gives a new pty the lowest free number, so the one just freed,
+    unless another process (a test running beside this one) took it meanwhile: then it is tried
+    again until that process lets it go."""
+    end = time.monotonic() + 20
+    while time.monotonic() < end:
+        m, s = os.openpty()
+        if os.ttyname(s) == name:
+            return m, s
+        os.close(s)
+        os.close(m)
+        time.sleep(0.02)
+    pytest.skip(f"{name} stayed held by another process for 20 s: the same device could not come back")
+
+
 def test_pty_serial_reconnects_when_the_port_goes_away_and_comes_back(tmp_path):
     link = tmp_path / "sheet-port"
     m1, s1 = os.openpty()
     tty.setraw(m1)
-    os.symlink(os.ttyname(s1), link)
+    first = os.ttyname(s1)
+    os.symlink(first, link)
     t = SerialTransport(str(link), reconnect_interval_s=0.05)
     m2 = s2 = None
     try:
@@ -135,7 +152,7 @@ def test_pty_serial_reconnects_when_the_port_goes_away_and_comes_back(tmp_path):
         while t.stats.disconnects == 0 and time.monotonic() < end:
             t.recv(0.05)
         assert t.stats.disconnects == 1 and not t.connected
-        m2, s2 = os.openpty()  # ... and comes back under the same name
+        m2, s2 = _the_same_pty_again(first)  # ... and comes back under the same name
         tty.setraw(m2)
         os.unlink(link)
         os.symlink(os.ttyname(s2), link)
