@@ -88,9 +88,16 @@ def test_ctrl_c_leaves_nothing_half_written(sheet, tmp_path):
     out = tmp_path / "sheet.csv"
     out.write_text("uid,link\n0x1,0\n")  # someone's file, replaced only when a whole layout is learned
     before = out.read_bytes()
-    p = subprocess.Popen(CLI + ["layout", "learn", "--port", port, "--baud", "12000000", "--lattice", LATTICE,
-                                "--out", str(out), "--overwrite"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                         text=True, env=ENV)
+    # Ctrl-C as in a terminal: a suite started in the background (`make test &`, a CI script) runs
+    # with SIGINT ignored, and its children inherit that across exec (the learner then rightly ran
+    # to its end); a handler installed here is reset to the default in the child at exec
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        p = subprocess.Popen(CLI + ["layout", "learn", "--port", port, "--baud", "12000000", "--lattice", LATTICE,
+                                    "--out", str(out), "--overwrite"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, env=ENV)
+    finally:
+        signal.signal(signal.SIGINT, old)
     try:
         end = time.monotonic() + 60
         err = ""
