@@ -34,7 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE", "WARMUP_COUNTER", "PIPE_SIZE", "widen_pipe"]
+__all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE", "WARMUP_COUNTER", "PIPE_SIZE", "widen_pipe",
+           "start_child", "end_child"]
 
 #: the uncertainty may take at most this share of the estimator's time (its cost / time since the last)
 UNCERTAINTY_SHARE = 0.03
@@ -80,6 +81,34 @@ def widen_pipe(conn) -> None:
         fcntl.fcntl(conn.fileno(), 1031, PIPE_SIZE)  # F_SETPIPE_SZ
     except (ImportError, OSError):
         pass
+
+
+def start_child(target, args: tuple, name: str):
+    """A spawned daemon child ``target((requests, answers), *args)`` and the parent's ends of its two
+    one-way pipes, each widened to `PIPE_SIZE`: a request is 32 bytes a link (a 64x64 snapshot
+    200 KB), and on a duplex pipe (a socket pair, ~200 KB buffered) the second one in flight blocked
+    the main thread until the child had finished the first. Returns ``(requests, answers, process)``."""
+    ctx = mp.get_context("spawn")
+    req_r, req_w = ctx.Pipe(duplex=False)
+    ans_r, ans_w = ctx.Pipe(duplex=False)
+    for c in (req_r, ans_w):
+        widen_pipe(c)
+    proc = ctx.Process(target=target, args=((req_r, ans_w), *args), name=name, daemon=True)
+    proc.start()
+    req_r.close()
+    ans_w.close()
+    return req_w, ans_r, proc
+
+
+def end_child(req, ans, proc) -> None:
+    """Close a `start_child` child's pipes (it ends at end of file) and wait for it; terminated if
+    it has not ended within 2 s."""
+    req.close()
+    ans.close()
+    proc.join(2.0)
+    if proc.is_alive():
+        proc.terminate()
+        proc.join(2.0)
 
 
 def _child(pipes, rows: int, cols: int, link_length: float) -> None:
@@ -155,19 +184,8 @@ class EstimatorProcess:
         request = _REQ.size + 25 * self.n_links
         #: default: as many as the request pipe holds (a send never blocks), 2..16 (64x64: 5)
         self.max_in_flight = int(max_in_flight) if max_in_flight else max(2, min(16, PIPE_SIZE // request))
-        ctx = mp.get_context("spawn")
-        # two one-way pipes, each widened to `PIPE_SIZE`: a request is 32 bytes a link (a 64x64
-        # snapshot 200 KB), and on a duplex pipe (a socket pair, ~200 KB buffered) the second one in
-        # flight blocked the main thread until the child had finished the first
-        req_r, self._req = ctx.Pipe(duplex=False)
-        self._ans, ans_w = ctx.Pipe(duplex=False)
-        for c in (req_r, ans_w):
-            widen_pipe(c)
-        self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length),
-                                 name="capsheet-estimator", daemon=True)
-        self._proc.start()
-        req_r.close()
-        ans_w.close()
+        self._req, self._ans, self._proc = start_child(_child, (self.rows, self.cols, self.link_length),
+                                                       "capsheet-estimator")
         self._in_flight: deque[float] = deque([time.monotonic()])  # send times; the warm-up's first
         self.warm = False  #: the child's warm-up answered (`WARMUP_COUNTER`)
         self.warmup_error = ""  #: why the warm-up failed, if it did
@@ -268,10 +286,5 @@ class EstimatorProcess:
         t_end = time.monotonic() + timeout_s
         while self._in_flight and time.monotonic() < t_end:
             out += self.results(min(0.1, max(0.0, t_end - time.monotonic())))
-        self._req.close()
-        self._ans.close()
-        self._proc.join(2.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(2.0)
+        end_child(self._req, self._ans, self._proc)
         return out

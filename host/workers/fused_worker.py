@@ -25,7 +25,6 @@ The child is the same code a caller runs in its own process (`fused_update` on a
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import struct
 import time
 from collections import deque
@@ -34,7 +33,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from host.workers.estimate_worker import PIPE_SIZE, widen_pipe
+from host.workers.estimate_worker import PIPE_SIZE, end_child, start_child
 
 __all__ = ["FusedProcess", "FusedResult", "READY_COUNTER"]
 
@@ -158,17 +157,8 @@ class FusedProcess:
         request = _REQ.size + 81 * self.n_links
         #: default: as many as the request pipe holds (a send never blocks), 2..64 (14x14: 35)
         self.max_in_flight = int(max_in_flight) if max_in_flight else max(2, min(64, PIPE_SIZE // request))
-        ctx = mp.get_context("spawn")
-        req_r, self._req = ctx.Pipe(duplex=False)
-        self._ans, ans_w = ctx.Pipe(duplex=False)
-        for c in (req_r, ans_w):
-            widen_pipe(c)
-        self._proc = ctx.Process(target=_child, args=((req_r, ans_w), self.rows, self.cols, self.link_length, config,
-                                                      int(nice)),
-                                 name="capsheet-fused", daemon=True)
-        self._proc.start()
-        req_r.close()
-        ans_w.close()
+        self._req, self._ans, self._proc = start_child(
+            _child, (self.rows, self.cols, self.link_length, config, int(nice)), "capsheet-fused")
         self._in_flight = 0
         self.ready = False  #: the child answered `READY_COUNTER` (`wait_ready`)
         self.submitted = 0
@@ -258,10 +248,5 @@ class FusedProcess:
         t_end = time.monotonic() + timeout_s
         while self._in_flight and time.monotonic() < t_end:
             out += self.results(min(0.1, max(0.0, t_end - time.monotonic())))
-        self._req.close()
-        self._ans.close()
-        self._proc.join(2.0)
-        if self._proc.is_alive():
-            self._proc.terminate()
-            self._proc.join(2.0)
+        end_child(self._req, self._ans, self._proc)
         return out
