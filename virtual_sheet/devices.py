@@ -425,6 +425,18 @@ class PtyGroupDevice(Device):
         self.ports.open()
 
 
+def split_into_gateways(device, sheet, n_gateways: int) -> None:
+    """``device.blocks`` and ``device.gateways``: the sheet's links in ``n_gateways`` contiguous
+    blocks (`VirtualSheet.split`), one serial gateway each; gateway 0 drives SYNC (at
+    ``sync_rate_hz`` when set) and passes it to the others, its followers."""
+    device.blocks = sheet.split(n_gateways)
+    device.gateways = [device.gateway_class(sheet, blk, packed=device.packed,
+                                            sync_rate_hz=device.sync_rate_hz if b == 0 else None, stream=b,
+                                            as_node=device.gateway_node)
+                       for b, blk in enumerate(device.blocks)]
+    device.gateways[0].followers = device.gateways[1:]
+
+
 class MultiPtyDevice(PtyGroupDevice):
     """One sheet behind ``n_gateways`` serial gateways, each on its own pty: a sheet too big for one
     UART (1,984 links at 145 Hz exceed a 12 Mbaud link even packed, docs/protocol.md §10) split in
@@ -449,12 +461,7 @@ class MultiPtyDevice(PtyGroupDevice):
         if symlink_paths is not None and len({os.path.abspath(p) for p in symlink_paths}) != n_gateways:
             raise ValueError(f"the gateways' symlink paths must differ: {symlink_paths}")
         super().__init__(sheet, **kw)
-        self.blocks = sheet.split(n_gateways)
-        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed,
-                                 sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b,
-                                 as_node=self.gateway_node)
-                         for b, blk in enumerate(self.blocks)]
-        self.gateways[0].followers = self.gateways[1:]
+        split_into_gateways(self, sheet, n_gateways)
         self.ports = PtyGroup("pty", n_gateways, symlink_paths)
         self.paths = self.ports.paths
         self.path = self.paths[0]
@@ -495,12 +502,7 @@ class MultiMemoryDevice(Device):
         if sheet.transport != "serial":
             raise ValueError(f"MultiMemoryDevice needs a sheet with transport='serial', got {sheet.transport!r}")
         super().__init__(sheet, **kw)
-        self.blocks = sheet.split(n_gateways)
-        self.gateways = [self.gateway_class(sheet, blk, packed=self.packed,
-                                            sync_rate_hz=self.sync_rate_hz if b == 0 else None, stream=b,
-                                            as_node=self.gateway_node)
-                         for b, blk in enumerate(self.blocks)]
-        self.gateways[0].followers = self.gateways[1:]
+        split_into_gateways(self, sheet, n_gateways)
         links = [memory_link(f"capsheet-gw{b}", timeout=0.1) for b in range(n_gateways)]
         self.ports = [host_end for host_end, _dev in links]
         self._ends = [dev for _host, dev in links]
