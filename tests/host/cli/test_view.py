@@ -148,9 +148,10 @@ def test_two_sheets_in_one_scene_each_at_its_pose_for_the_npm_client(tmp_path):
         _, err = view.communicate(timeout=60)
         producer.wait(30)
     doc = json.loads(client.stdout.strip().splitlines()[-1])
-    assert client.returncode == 0, (doc["errors"], client.stderr)
-    assert view.returncode == 0 and "Traceback" not in err, err
     channels = {c["topic"]: c for c in doc["channels"]}
+    assert client.returncode == 0, (doc["errors"], client.stderr, {t: len(m) for t, m in doc["messages"].items()},
+                                    sorted(channels), err)
+    assert view.returncode == 0 and "Traceback" not in err, err
     assert channels["/tf"]["schemaName"] == "foxglove.FrameTransform"
     Tf = _decoder(channels["/tf"])
     tfs = {}
