@@ -87,6 +87,12 @@ def run(args) -> int:
         print(f"{PROG}: {exc}", file=sys.stderr)
         return 1
     context = foxglove.Context()
+    # every channel before the server starts (`SceneChannels.use_lattice` says why): the lattice of
+    # each sheet comes with its first estimate
+    tf = FrameTransformChannel("/tf", context=context)
+    poses = {p.name: p for p in robot.sheets}
+    scenes = {p.name: SceneChannels(context, None, prefix=f"/{p.name}", frame_id=p.name, tf=tf)
+              for p in robot.sheets}
     try:
         server = LiveServer(context, port=port, name="capsheet view", **live_options(args))
     except OSError as exc:
@@ -122,9 +128,6 @@ def run(args) -> int:
         with lock:
             newest[sheet] = data
 
-    tf = FrameTransformChannel("/tf", context=context)
-    poses = {p.name: p for p in robot.sheets}
-    scenes: dict[str, SceneChannels] = {}
     subs = [session.declare_subscriber(f"capsheet/{p.name}/estimate", on_sample) for p in robot.sheets]
     print(f"{PROG}: {len(robot.sheets)} sheets ({', '.join(poses)}) in frame {robot.frame}, from Zenoh "
           f"({describe(endpoint, getattr(args, 'zenoh_config', None))}); live 3D view on {server.url} (Foxglove: Open connection -> "
@@ -154,10 +157,9 @@ def run(args) -> int:
                 if not e["estimated"]:
                     not_estimated[sheet] += 1
                     continue
-                sc = scenes.get(sheet)
-                if sc is None or (sc.lattice.rows, sc.lattice.cols) != (e["rows"], e["cols"]):
-                    sc = scenes[sheet] = SceneChannels(context, Lattice(e["rows"], e["cols"]), prefix=f"/{sheet}",
-                                                       frame_id=sheet, tf=tf)
+                sc = scenes[sheet]
+                if sc.lattice is None or (sc.lattice.rows, sc.lattice.cols) != (e["rows"], e["cols"]):
+                    sc.use_lattice(Lattice(e["rows"], e["cols"]))
                 J = np.asarray(e["joints"], dtype=float)
                 ends = np.asarray(sc.lattice.endpoints)
                 ok = np.isfinite(J.reshape(-1, 3)).all(axis=1)

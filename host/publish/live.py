@@ -71,7 +71,9 @@ class SceneChannels:
     Parameters
     ----------
     context : foxglove.Context
-    lattice : protocol.lattice.Lattice
+    lattice : protocol.lattice.Lattice or None
+        None: the channels are made now, the lattice given later (`use_lattice`); nothing is drawn
+        before it.
     colour_by : {"error", "displacement", "links"}
     metadata : dict, optional
         Channel metadata (`host.record.recording.Recorder` marks which sink a set of channels is for).
@@ -100,6 +102,18 @@ class SceneChannels:
                                       schema=SceneUpdate.get_schema(), context=context, metadata=metadata)
         self.cloud = PointCloudChannel(f"{prefix}/joints", context=context, metadata=metadata)
         self.tf = tf if tf is not None else FrameTransformChannel("/tf", context=context, metadata=metadata)
+        self.lattice = None
+        if lattice is not None:
+            self.use_lattice(lattice)
+
+    def use_lattice(self, lattice) -> None:
+        """Draw ``lattice`` from now on (the channels stay: a client subscribed to them keeps them).
+
+        `capsheet view` makes its channels before its server starts and learns each sheet's lattice
+        from its first estimate: foxglove-sdk advertises a channel made while a client is connected
+        before it records it as advertised to that client, so a client that subscribes at once may be
+        told "Unknown channel ID" and get nothing on it (docs/recording.md, "The live 3D view")."""
+        self.lattice = lattice
         self._ends = np.asarray(lattice.endpoints)
         self._lines = _LineListScene(2 * self._ends.shape[0])
 
@@ -136,7 +150,7 @@ class SceneChannels:
         from foxglove.messages import (PackedElementField, PackedElementFieldNumericType, PointCloud,
                                        Timestamp)
 
-        if not (self.scene.has_sinks() or self.cloud.has_sinks()):
+        if self.lattice is None or not (self.scene.has_sinks() or self.cloud.has_sinks()):
             return
         P = np.asarray(joints, dtype=float).reshape(-1, 3)
         ts = _ts(t_ns, Timestamp)  # first: a time the SDK's Timestamp refuses logs nothing

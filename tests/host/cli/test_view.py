@@ -188,3 +188,31 @@ def test_the_documented_example_is_a_valid_robot():
     assert [p.name for p in r.sheets] == ["left_forearm", "right_forearm", "chest"] and r.frame == "base_link"
     want = Rotation.from_euler("xyz", [0.0, -90.0, 0.0], degrees=True).as_quat()
     np.testing.assert_allclose(np.abs(r.sheets[2].rotation), np.abs(want), atol=1e-12)
+
+
+def test_each_sheets_channels_are_advertised_before_any_estimate(tmp_path):
+    """The view makes its channels before its server starts (a channel made while a client is
+    connected can stay silent for it: docs/recording.md), so a client that connects before any
+    estimate sees every sheet's /scene and /joints at once."""
+    node = _node()
+    tag = abs(hash(str(tmp_path))) % 10**6
+    names = [f"w{tag}_left", f"w{tag}_right"]
+    f = tmp_path / "robot.toml"
+    f.write_text(GOOD.replace('"left"', f'"{names[0]}"').replace('"right"', f'"{names[1]}"'))
+    view = subprocess.Popen(CLI + ["view", "--config", str(f), "--port", "0", "--duration", "60"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+    try:
+        line = view.stderr.readline()
+        assert "live 3D view on ws://" in line, line + view.stderr.read()
+        url = line.split("live 3D view on ")[1].split()[0]
+        # no producer: no estimate comes; the client ends at its first /tf (or times out), and what
+        # counts is what was advertised by then
+        client = subprocess.run([node, str(CLIENT_JS), url, json.dumps(["/tf"]), "1", "4"], capture_output=True,
+                                text=True, timeout=60, env=dict(os.environ, NODE_PATH=str(NODE_MODULES)))
+    finally:
+        view.terminate()
+        view.communicate(timeout=60)
+    doc = json.loads(client.stdout.strip().splitlines()[-1])
+    advertised = {c["topic"] for c in doc["channels"]}
+    want = {"/tf"} | {f"/{n}/{t}" for n in names for t in ("scene", "joints")}
+    assert want <= advertised, (sorted(want - advertised), client.stderr)

@@ -21,7 +21,7 @@ try {
 const [url, topicsJson, wantText, timeoutText] = process.argv.slice(2);
 const topics = JSON.parse(topicsJson);
 const want = Number(wantText);
-const out = { subprotocol: null, serverName: null, channels: [], messages: {}, errors: [] };
+const out = { subprotocol: null, serverName: null, channels: [], messages: {}, errors: [], resubscribed: [] };
 for (const t of topics) out.messages[t] = [];
 
 const ws = new WebSocketImpl(url, [FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
@@ -63,9 +63,30 @@ client.on("close", () => {
 client.on("serverInfo", (info) => {
   out.serverName = info.name;
 });
+// foxglove-sdk (0.30) sends a channel's advertise before it records the channel as advertised to
+// that client (ConnectedClient::advertise_channels: send_control_msg, then channels.insert): a
+// client that answers fast enough, or a server thread preempted between the two, gets the status
+// error "Unknown channel ID: N" for its subscribe, and that channel stays silent for the session.
+// A client that wants the data subscribes again; each time is listed in `resubscribed`.
+const RESUBSCRIBE_LIMIT = 5;
+const topicOfChannel = new Map(); // advertised channel id -> topic
+client.on("status", (status) => {
+  const m = /Unknown channel ID: (\d+)/.exec(String(status && status.message));
+  if (!m) return;
+  const channelId = Number(m[1]);
+  const topic = topicOfChannel.get(channelId);
+  if (topic === undefined || !topics.includes(topic)) return;
+  if (out.resubscribed.filter((t) => t === topic).length >= RESUBSCRIBE_LIMIT) {
+    out.errors.push(`channel ${channelId} (${topic}) still unknown after ${RESUBSCRIBE_LIMIT} subscribes`);
+    return;
+  }
+  out.resubscribed.push(topic);
+  setTimeout(() => subscribed.set(client.subscribe(channelId), topic), 50);
+});
 client.on("advertise", (channels) => {
   for (const ch of channels) {
     out.channels.push({ id: ch.id, topic: ch.topic, encoding: ch.encoding, schemaName: ch.schemaName, schema: ch.schema });
+    topicOfChannel.set(ch.id, ch.topic);
     if (topics.includes(ch.topic)) subscribed.set(client.subscribe(ch.id), ch.topic);
   }
 });
