@@ -34,6 +34,8 @@ import time
 
 import numpy as np
 
+from host.publish.ws_frames import FrameStream, SubscribeRepair
+
 __all__ = ["SceneChannels", "LiveServer", "tls_context", "MAX_CLIENTS", "log_frame_transform", "varint", "length_delimited", "SubprotocolRelay", "colours", "COLOUR_MODES", "ERROR_FULL_SCALE_PCT",
            "SUBPROTOCOLS", "rewrite_request", "rewrite_response"]
 
@@ -398,7 +400,9 @@ def _origin(head: bytes) -> str | None:
 class SubprotocolRelay:
     """Accept WebSocket clients on ``(host, port)`` and relay each to ``upstream`` (foxglove-sdk's
     server), translating the subprotocol name in the handshake (`rewrite_request`,
-    `rewrite_response`); afterwards bytes pass both ways unchanged. One thread accepts, one thread
+    `rewrite_response`); afterwards bytes pass both ways unchanged, but for one repair: a subscribe
+    that foxglove-sdk answered "Unknown channel ID" for a channel it had just advertised is sent again
+    (`host.publish.ws_frames`, counted in ``resubscribed``). One thread accepts, one thread
     per connection relays, at most ``max_clients`` at once (a further client is answered HTTP 503).
 
     Out of file descriptors (EMFILE) or memory, the accept loop waits `ACCEPT_BACKOFF_S` and tries
@@ -430,6 +434,10 @@ class SubprotocolRelay:
         self.translated = 0  #: of those, answered as ``foxglove.websocket.v1``
         self.refused = {"busy": 0, "origin": 0, "tls": 0}  #: clients turned away, by reason
         self.accept_errors = 0  #: accept() calls that failed for want of descriptors or memory
+        #: subscribes sent again after the server answered "Unknown channel ID" (`host.publish.ws_frames`)
+        self.resubscribed = 0
+        #: of those errors, passed on to the client after `ws_frames.RETRIES` tries
+        self.unknown_channels_passed = 0
         self.last_accept_error = ""
         self._threads: list[threading.Thread] = []
         self._accept = threading.Thread(target=self._accept_loop, name="capsheet-live-relay", daemon=True)
@@ -537,23 +545,47 @@ class SubprotocolRelay:
                         pass
 
     def _pump(self, a: socket.socket, b: socket.socket) -> None:
-        """Bytes both ways until either side closes (or `stop`)."""
+        """Bytes both ways (``a`` the client, ``b`` the server) until either side closes (or `stop`);
+        a subscribe the server could not place is sent again (`host.publish.ws_frames`)."""
         other = {a: b, b: a}
-        with selectors.DefaultSelector() as sel:
-            sel.register(a, selectors.EVENT_READ)
-            sel.register(b, selectors.EVENT_READ)
-            while not self._stop.is_set():
-                # a TLS socket may hold decrypted bytes the selector cannot see
-                buffered = [s for s in (a, b) if isinstance(s, ssl.SSLSocket) and s.pending()]
-                ready = buffered or [key.fileobj for key, _ in sel.select(0.2)]
-                for s in ready:
-                    try:
-                        data = s.recv(1 << 16)
-                    except ssl.SSLWantReadError:
-                        continue
-                    if not data:
-                        return
-                    other[s].sendall(data)
+        streams = {a: FrameStream(), b: FrameStream()}
+        repair = SubscribeRepair()
+        try:
+            with selectors.DefaultSelector() as sel:
+                sel.register(a, selectors.EVENT_READ)
+                sel.register(b, selectors.EVENT_READ)
+                while not self._stop.is_set():
+                    due = repair.next_due()
+                    wait = 0.2 if due is None else min(0.2, max(0.0, due - time.monotonic()))
+                    # a TLS socket may hold decrypted bytes the selector cannot see
+                    buffered = [s for s in (a, b) if isinstance(s, ssl.SSLSocket) and s.pending()]
+                    ready = buffered or [key.fileobj for key, _ in sel.select(wait)]
+                    for s in ready:
+                        try:
+                            data = s.recv(1 << 16)
+                        except ssl.SSLWantReadError:
+                            continue
+                        if not data:
+                            return
+                        now = time.monotonic()
+                        out = []
+                        for text, raw in streams[s].feed(data):
+                            if text is not None:
+                                if s is a:
+                                    repair.from_client(text)
+                                elif not repair.from_server(text, now):
+                                    continue
+                            out.append(raw)
+                        if out:
+                            other[s].sendall(out[0] if len(out) == 1 else b"".join(out))
+                    if repair.due and streams[a].at_boundary:  # never inside a frame of the client's
+                        again = repair.take_due(time.monotonic())
+                        if again:
+                            b.sendall(b"".join(again))
+        finally:
+            with self._lock:
+                self.resubscribed += repair.resubscribed
+                self.unknown_channels_passed += repair.given_up
 
     def stop(self) -> None:
         self._stop.set()
