@@ -196,6 +196,11 @@ class Transport(ABC):
         self._last_attempt = float("-inf")
         self._captures: tuple = ()  # capture handlers (a tuple: iterated without a lock)
         self._capture_failed: set = set()  # handlers whose failure was logged once
+        #: what the device was when first opened (`host.transport.portlock.DeviceIdentity`; None for
+        #: a URL, an object or a bus with no device file): a reopen goes only to the same device
+        self.identity = None
+        #: the last reopen refused (another device at the path), one line; None once reopened
+        self.refused: str | None = None
 
     # -- capture (pycyphal: Transport.begin_capture) -------------------------------------------
     def begin_capture(self, handler: Callable[[Capture], None]) -> None:
@@ -288,6 +293,17 @@ class Transport(ABC):
     def _reopen_internal(self) -> None:
         """Open the port again; raise if it is still away."""
         raise TransportInitError(f"{self.name!r} cannot be reopened", self.name)
+
+    def _refuse(self, msg: str | None) -> None:
+        """Refuse this reopen (another device at the path, ``msg`` from `portlock.refusal`): counted,
+        kept in `refused` for the session to report once; nothing when ``msg`` is None."""
+        if msg is None:
+            return
+        self.stats.refused_reopens += 1
+        if msg != self.refused:  # the session reports it (a `not_a_sheet` event): logged here at info
+            log.info("%s", msg)
+        self.refused = msg
+        raise TransportInitError(msg, self.name)
 
     # -- public API ------------------------------------------------------------------------
     def recv(self, timeout_s: float | None = 0.1) -> list:
@@ -450,11 +466,6 @@ class SerialTransport(Transport):
         self._read_timeout: float | None = None  # the port's timeout as last set; None: unknown
         self.read_timeouts: Counter = Counter()  #: read timeout (s) -> reads made with it
         self.read_timeout_sets = 0  #: times the port's timeout was set (a termios call each)
-        #: what the port was when first opened (`host.transport.portlock.DeviceIdentity`; None for
-        #: a URL or an object): a reopen goes only to the same device
-        self.identity = None
-        #: the last reopen refused (another device at the path), one line; None once reopened
-        self.refused: str | None = None
         self._opened = None
         if self._url is not None:
             self._serial_mod = _import("serial", "serial port", self._url)
@@ -524,15 +535,6 @@ class SerialTransport(Transport):
             self._port = port
         self.refused = None
         self._read_timeout = None
-
-    def _refuse(self, msg: str | None) -> None:
-        if msg is None:
-            return
-        self.stats.refused_reopens += 1
-        if msg != self.refused:  # the session reports it (a `not_a_sheet` event): logged here at info
-            log.info("%s", msg)
-        self.refused = msg
-        raise TransportInitError(msg, self.name)
 
     # hooks -------------------------------------------------------------------------------
     def _recv_internal(self, timeout_s: float | None) -> list:
@@ -702,6 +704,9 @@ class CanTransport(Transport):
         #: the sans-I/O receiver (`protocol.can.CanDecoder`): frames in, events out
         self.decoder = CanDecoder(fd=fd, echo=self.echo)
         self._bus = self._open()
+        # an SLCAN adapter is a device file (`host.transport.slcan.SlcanBus.identity`): a reopen goes
+        # only to the same adapter, as a serial gateway's port does
+        self.identity = getattr(self._bus, "identity", None)
         self.capabilities = TransportCapabilities(
             kind="can", mtu=CAN_FD_MTU if fd else CAN_CLASSIC_MTU, fd=fd, bitrate=bitrate,
             data_bitrate=data_bitrate if fd else None, name=spec)
@@ -735,7 +740,22 @@ class CanTransport(Transport):
         self._bus = None
 
     def _reopen_internal(self) -> None:
-        self._bus = self._open()
+        if self.identity is None:
+            self._bus = self._open()
+            self.refused = None
+            return
+        # the same adapter only: what the tty's path leads to now is compared before it is opened
+        # (never written to, never switched to raw mode), and what was opened once more
+        tty = self.channel.rpartition("@")[0] if "@" in self.channel else self.channel
+        self._refuse(refusal(self.name, self.identity, identify(tty)))
+        bus = self._open()
+        try:
+            self._refuse(refusal(self.name, self.identity, getattr(bus, "identity", None)))
+        except TransportInitError:
+            bus.shutdown()
+            raise
+        self._bus = bus
+        self.refused = None
 
     def _recv_internal(self, timeout_s: float | None) -> list:
         bus = self._bus

@@ -217,6 +217,9 @@ class SlcanBus(BusABC):
                              f"{', '.join(map(str, DATA_BITRATES))}")
         if bitrate is not None and btr is not None:
             raise ValueError("bitrate and btr are mutually exclusive")
+        #: the adapter's tty as opened (`host.transport.portlock.DeviceIdentity`; None for a URL):
+        #: `host.transport.ports.CanTransport` reconnects only to the same one
+        self.identity = None
         self.bad_lines = 0  #: damaged lines skipped (module docstring)
         self.nacks = 0  #: BEL replies (the adapter refused a command)
         self.stale_bytes = 0  #: bytes drained at open
@@ -227,7 +230,7 @@ class SlcanBus(BusABC):
         # one session per adapter: the tty is taken exclusively, as a serial gateway's port is
         # (host/transport/portlock.py); a held one is refused before it is opened, naming the holder
         try:
-            self._port, _ = open_exclusive(lambda excl: serial.serial_for_url(
+            self._port, self.identity = open_exclusive(lambda excl: serial.serial_for_url(
                 channel, baudrate=tty_baudrate, rtscts=rtscts, timeout=0, exclusive=excl), channel)
         except PortBusy as exc:
             raise CanInitializationError(str(exc)) from exc
