@@ -7,7 +7,8 @@ It writes a PNG of estimated vs true shape.
 
 Pass rule (exit 0): the mean joint error of the complete snapshots compared with the truth is within
 ``--target`` (default 1 % of the side length) AND at least ``--min-complete`` (default 99 %) of
-the SYNCs sent gave a complete snapshot. Otherwise exit 1 (2 for bad options). The host takes the
+the SYNCs sent gave a complete snapshot of the whole sheet (`whole_sheet`: a chip marked silent is a
+link missing). Otherwise exit 1 (2 for bad options). The host takes the
 newest snapshot when estimation falls behind (newest wins; the skipped ones are counted).
 The virtual gateway stands for a 12 Mbaud UART (what 364 chips at 145 Hz need, per-chip).
 
@@ -219,6 +220,25 @@ def learn_layout_over(paths, lat) -> tuple[dict, float]:
     return res.layout, time.monotonic() - t0
 
 
+def whole_sheet(snap) -> bool:
+    """A snapshot the demo counts as complete: every expected link came (`LatticeSnapshot.complete`)
+    and none of the sheet's chips is marked silent. The aggregator stops expecting a chip the watchdog
+    marked silent, so that one dead chip does not hold every snapshot to its deadline; the demo's
+    sheet has no dead chip, and a link missing that way is a link missing (half a sheet marked silent
+    read "100 % complete" before).
+
+    >>> from types import SimpleNamespace
+    >>> whole_sheet(SimpleNamespace(complete=True, status=np.zeros(4, np.uint8)))
+    True
+    >>> whole_sheet(SimpleNamespace(complete=True, status=np.array([0, 0x20, 0, 0], np.uint8)))
+    False
+    >>> whole_sheet(SimpleNamespace(complete=False, status=np.zeros(4, np.uint8)))
+    False
+    """
+    from host.snapshots.snapshot import LinkFlag
+    return bool(snap.complete) and not (np.asarray(snap.status) & LinkFlag.SILENT).any()
+
+
 def host_imu(args) -> bool:
     """The chips send IMU records (``--sensors`` with a gyroscope): the fused estimator shapes."""
     return getattr(args, "sensors", "accel") != "accel"
@@ -327,18 +347,19 @@ def run(args) -> int:
             parent.recv()
         # a pty has no baud rate: the virtual gateway stands for a 12 Mbaud UART (capacity check)
         transports = [open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths]
-        # (counter, complete) of every snapshot emitted, counted into the window of SYNCs the
+        # (counter, whole sheet) of every snapshot emitted, counted into the window of SYNCs the
         # demo measures once bring-up has set its first counter (those before it, held until then)
         window_lock = threading.Lock()
         window: list = [None]
         before_window: deque = deque(maxlen=4096)
 
         def on_snapshot(snap) -> None:
+            whole = whole_sheet(snap)
             with window_lock:
                 if window[0] is None:
-                    before_window.append((snap.counter, snap.complete))
+                    before_window.append((snap.counter, whole))
                 else:
-                    window[0].add(snap.counter, snap.complete)
+                    window[0].add(snap.counter, whole)
 
         host = Host(transports, lat, layout=layout, rate_hz=args.rate, on_snapshot=on_snapshot)
         from host.cli.sensor_args import imu_config
