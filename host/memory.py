@@ -131,6 +131,28 @@ class TrimThread:
             self._thread.join()
             self._thread = None
 
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+
+_process_trim: tuple[int, TrimThread] | None = None  # (the pid that started it, the thread)
+_process_trim_lock = threading.Lock()
+
+
+def process_trim() -> TrimThread:
+    """The process's one `TrimThread`, started at the first call and returned again after.
+
+    `host.cli.main` calls it as each command starts: a program (or a test) that runs many commands
+    in one interpreter gets one trim thread, not one per command (66 had piled up in one test
+    worker). A forked child, which has no copy of the thread, starts its own."""
+    global _process_trim
+    with _process_trim_lock:
+        pid = os.getpid()
+        if _process_trim is None or _process_trim[0] != pid or not _process_trim[1].alive:
+            _process_trim = (pid, TrimThread().start())
+        return _process_trim[1]
+
 # -- what grows, and what the cyclic collector costs: a probe cheap enough for a live host ---------
 
 #: the environment variable that starts `MemoryProbe` in ``capsheet host``: ``PATH[,EVERY_S]``

@@ -81,9 +81,9 @@ def short_gil_switch() -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from host.memory import TrimThread, fix_mmap_threshold
+    from host.memory import fix_mmap_threshold, process_trim
     fix_mmap_threshold()  # a host that runs for days: large buffers go back to the system at free
-    TrimThread().start()  # and freed pages between the blocks in use, once a minute
+    process_trim()  # and freed pages between the blocks in use, once a minute (one thread a process)
     one_blas_thread()
     parser = build_parser()
     args = parser.parse_args(argv)

@@ -196,9 +196,24 @@ def test_every_command_starts_one_trim_thread_and_no_loop_polls_its_own():
     import ast
     from pathlib import Path
     cli = Path(__file__).resolve().parents[2] / "host" / "cli"
-    started = [p.name for p in cli.glob("*.py") if "TrimThread" in p.read_text()]
+    started = [p.name for p in cli.glob("*.py") if "process_trim" in p.read_text() or "TrimThread" in p.read_text()]
     assert started == ["__init__.py"]
     assert not [p.name for p in cli.glob("*.py") if "PeriodicTrim" in p.read_text()]
     tree = ast.parse((cli / "__init__.py").read_text())
     main = next(n for n in tree.body if isinstance(n, ast.FunctionDef) and n.name == "main")
-    assert "TrimThread().start()" in ast.unparse(main)
+    assert "process_trim()" in ast.unparse(main)
+
+
+def test_commands_run_in_one_interpreter_share_one_trim_thread():
+    import threading
+
+    from host.cli import main
+    from host.memory import process_trim
+    for _ in range(5):  # each starts where a command starts, before its arguments are read
+        try:
+            main(["protocol", "--help"])
+        except SystemExit as done:  # argparse's --help
+            assert done.code == 0
+    trims = [t for t in threading.enumerate() if t.name == "capsheet-trim"]
+    assert len(trims) == 1 and process_trim().alive
+    assert process_trim() is process_trim()
