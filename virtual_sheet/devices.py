@@ -28,11 +28,12 @@ host and sheet in one thread, deterministically, whatever the machine's load).
 **A bus that goes away** (faults ``outage_at_s``/``outage_s``/``outage_every_s``): a pty slave
 path cannot be reused once its master is closed, so the pty devices publish a stable symlink
 (``device.path``, in a private temporary directory unless ``symlink_path`` is given). At an
-outage the device closes the pty (the host's reads fail as on an unplugged USB adapter) and
-removes the symlink; when the bus comes back it opens a pty with the same number if that comes
-free within a second (as an adapter plugged back in keeps its number: a host reconnects only to
-the same device, host/transport/portlock.py) and re-points the symlink atomically, so a host that
-reopens the same path reconnects. On CAN the device stops answering
+outage the device closes the pty's master (the host's reads fail as on an unplugged USB adapter),
+keeps its slave side open so that no other process takes the pty's number meanwhile, and removes
+the symlink; when the bus comes back it lets the number go and asks for it at once, waiting up to a
+second for a host that still holds it (as an adapter plugged back in keeps its number: a host
+reconnects only to the same device, host/transport/portlock.py), then re-points the symlink
+atomically, so a host that reopens the same path reconnects. On CAN the device stops answering
 for the outage (frames sent to it are lost), after signalling an error frame.
 
 **Whose path it is** (`claim_symlink`): a symlink path given by the caller may already hold

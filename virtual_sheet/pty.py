@@ -145,6 +145,11 @@ class PtyEndpoint:
         self.path = str(symlink_path)
         self.tty: str | None = None
         self._master = self._slave = -1
+        # through an outage the slave side stays open here: the pty's number stays taken while the
+        # master is closed (the host's reads fail all the same), so that no other process on the
+        # machine takes it meanwhile and the bus comes back under its number, as a USB adapter
+        # plugged in again does (a host reconnects only to the same device)
+        self._reserved = -1
         self._pending = bytearray()
         self.tx_overflow_bytes = 0
         self.tx_overflow_frames = 0  #: frames dropped whole because the host did not read (counted)
@@ -152,8 +157,17 @@ class PtyEndpoint:
         # a bounded one lets a host that fell behind see fresh frames again (newest wins)
         self.max_pending = 256 << 10
 
+    def _release_number(self) -> None:
+        if self._reserved >= 0:
+            try:
+                os.close(self._reserved)
+            except OSError:
+                pass
+            self._reserved = -1
+
     def pty_open(self) -> None:
-        # back from an outage: the same pty number if it comes free (open_pty)
+        # back from an outage: the same pty number, held until now, asked for at once (open_pty)
+        self._release_number()
         self._master, self._slave, self.tty = open_pty(self.tty)
         claim_symlink(self.path)  # still nothing but (at most) a stale symlink of ours there
         # a name of our own beside it, then one atomic rename: a host reopening the path never
@@ -168,12 +182,15 @@ class PtyEndpoint:
             _write_record(self.path, self.tty)
 
     def pty_close(self, remove_link: bool = True) -> None:
-        for fd in (self._master, self._slave):
-            if fd >= 0:
-                try:
-                    os.close(fd)
-                except OSError:
-                    pass
+        """Close the pty (an outage): the master goes, so the host's reads fail; the slave side is
+        kept open until `pty_open` or `pty_cleanup`, holding the pty's number."""
+        self._release_number()
+        if self._master >= 0:
+            try:
+                os.close(self._master)
+            except OSError:
+                pass
+        self._reserved = self._slave
         self._master = self._slave = -1
         self._pending.clear()
         if remove_link:
@@ -225,6 +242,7 @@ class PtyEndpoint:
 
     def pty_cleanup(self) -> None:
         self.pty_close()
+        self._release_number()
         if self._tmpdir is not None:
             try:
                 os.rmdir(self._tmpdir)
