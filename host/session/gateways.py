@@ -86,6 +86,9 @@ class GatewayNodes:
         self.lock = lock if lock is not None else threading.RLock()
         self.by_uid: dict[int, GatewayRecord] = {}
         self._node: dict[tuple[int, int], int] = {}  # (bus, node) -> uid, for every id a gateway used
+        # (bus, node) -> the uid of the last ANNOUNCE from there, a chip's or a gateway's: the INFO
+        # that follows an ANNOUNCE (§4.2) is that uid's, whoever spoke from the node before
+        self._announced: dict[tuple[int, int], int] = {}
         #: uids of gateways whose SNAPSHOT words are in a format this host does not know (§4.16)
         self.unreadable: set[int] = set()
         self.unreadable_frames = 0  #: their SNAPSHOT frames dropped, not read
@@ -95,7 +98,7 @@ class GatewayNodes:
         """Take a control frame if it is a gateway's; True when it was (the host then ignores it)."""
         key = (bus, msg.node)
         if isinstance(msg, Info) and msg.capabilities & Capability.GATEWAY:
-            uid = self.host.uid_at(bus, msg.node) or self._node.get(key)
+            uid = self._announced.get(key) or self.host.uid_at(bus, msg.node) or self._node.get(key)
             if uid is None:
                 return True  # an INFO whose ANNOUNCE was lost: the next round tells
             with self.lock:
@@ -109,6 +112,7 @@ class GatewayNodes:
             return True
         uid = self._node.get(key)
         if isinstance(msg, Announce):
+            self._announced[key] = msg.uid  # at most one per node id (u16) and bus: bounded
             if msg.uid not in self.by_uid:
                 return False
             rec = self.by_uid[msg.uid]

@@ -147,3 +147,21 @@ def test_a_following_host_takes_no_snapshot_before_it_streams(rigs, monkeypatch,
     else:
         assert rig.host.frames_before_start == 0
         assert sum(not s.complete for s in snaps) >= 8  # the partial snapshots of the start
+
+
+def test_a_gateways_info_from_a_node_a_chip_once_spoke_from_is_the_gateways(rigs):
+    """A chip announced from a node id (the registry still maps that id to it) and a known gateway
+    then announces from the same id: the INFO that follows is the gateway's (§4.2: INFO follows
+    every ANNOUNCE). Taking the registry's uid for it dropped the chip and made a gateway of it."""
+    from protocol.messages import Announce, Info
+    rig = rigs("memory", packed=True)
+    rig.host.bring_up(0.2)
+    gw_uid = gateway_uid(rig.sheet.seed, 0)
+    chip_uid = next(iter(rig.host.chips))
+    node = 0x8123  # a provisional id the chip spoke from before its assignment
+    rig.host.registry.announced(0, chip_uid, node)
+    gws = rig.host.gateway_nodes
+    assert gws.observe(0, Announce(node, gw_uid))  # the gateway (it rebooted) announces from that id
+    assert gws.observe(0, Info(node, capabilities=int(Capability.GATEWAY)))
+    assert chip_uid in rig.host.chips and chip_uid not in gws.by_uid
+    assert gws.by_uid[gw_uid].node == node and set(gws.by_uid) == {gw_uid}
