@@ -14,6 +14,8 @@
 #endif
 
 #define TWO_PI 6.283185307179586
+/* estimator/solver.py's SLOW_CAP */
+#define SLOW_CAP 0.9
 
 static double wrap_fast(double x)
 {
@@ -493,8 +495,14 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
 /* estimator/solver.py's step_converged: whether a step of largest entry smax (the last one's
  * prev, INFINITY when none; accelerated: the last move was an Anderson one) ends the iteration. */
 static int capsheet_step_converged(double smax, double prev, int32_t accelerated, double tol,
-                                   double predict_within)
+                                   double predict_within, double slow)
 {
+    if (slow > 0.0) {  /* a slow step passed on this factorisation: its mode may be left */
+        double rho = isfinite(prev) && prev > 0.0 ? smax / prev : 0.0;
+        rho = rho > slow ? rho : slow;
+        rho = rho < SLOW_CAP ? rho : SLOW_CAP;
+        return smax * rho < tol * (1.0 - rho);
+    }
     if (isfinite(prev) && !accelerated && smax < prev && smax < predict_within * tol) {
         const double rho = smax / prev;
         return smax * rho < tol * (rho > 0.5 ? 1.0 - rho : 1.0);
@@ -516,7 +524,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     double *x = dx + nv, *g_new = x + nv, *grad_new = g_new + n_links;
     double *ldl_work = grad_new + nv + 1, *eval_work = ldl_work + c->ldl_work_size;
     int32_t has_hist = 0, accelerated = 0;
-    int64_t it = *iterations, k;
+    int64_t it = *iterations, k, poor = 0;
+    double slow = 0.0;  /* the slowest contraction of a slow step passed (not refactorised) */
     const int64_t it0 = it;
     double ps = *prev_smax, cst = *cost;
     steps[0] = steps[1] = 0.0;
@@ -567,7 +576,7 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             g_new[p->var_links[k]] += move[k];
         if (it - it0 <= 2)
             steps[it - it0 - 1] = smax;
-        if (capsheet_step_converged(smax, ps, accelerated, c->tol, c->predict_within)
+        if (capsheet_step_converged(smax, ps, accelerated, c->tol, c->predict_within, slow)
             || (it == it0 + 1 && c->chain_safety > 0.0
                 && c->chain_safety * fmax(c->chain_rho * smax, c->chain_kappa * smax * smax) < c->tol)) {
             for (k = 0; k < n_links; ++k)
@@ -604,11 +613,16 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
         }
         has_hist = 1;
         accelerated = acc;
-        if (smax > c->refactor_ratio * ps) {
+        if (!(smax > c->refactor_ratio * ps))
+            poor = 0;
+        else if (smax < c->refactor_far * c->tol || ++poor >= c->refactor_patience) {
             *iterations = it;
             *cost = cst;
             *prev_smax = smax;
             return 2;  /* accepted; refactorise at the new gamma */
+        } else {
+            const double r = smax / ps;
+            slow = r > slow ? r : slow;
         }
         ps = smax;
     }
@@ -616,4 +630,200 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     *cost = cst;
     *prev_smax = ps;
     return 3;
+}
+
+/* capsheet_ldl_solve's sweeps with double values (see yaw_eval.h): plain loops, the same order
+ * of operations per supernode (column axpys forward, dot products backward). */
+void capsheet_ldl_solve_d(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                          const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                          const double *val, const double *diag, double *x, double *work)
+{
+    int64_t s, j;
+    for (s = 0; s < n_super; ++s) {
+        const int64_t c0 = sn_col[s], w = sn_col[s + 1] - c0;
+        const int64_t nb = sn_row[s + 1] - sn_row[s];
+        const int32_t *restrict r = rows + sn_row[s];
+        const double *restrict dg = val + sn_diag[s];
+        const double *restrict bl = val + sn_below[s];
+        double *restrict xs = x + c0;
+        double *restrict t = work;
+        int64_t k, i;
+        for (k = 0; k + 1 < w; ++k) {
+            const double xk = xs[k];
+            for (i = k + 1; i < w; ++i)
+                xs[i] -= dg[k * w + i] * xk;
+        }
+        if (nb == 0)
+            continue;
+        for (i = 0; i < nb; ++i)
+            t[i] = 0.0;
+        for (k = 0; k < w; ++k) {
+            const double xk = xs[k];
+            const double *restrict b = bl + k * nb;
+            for (i = 0; i < nb; ++i)
+                t[i] += b[i] * xk;
+        }
+        for (i = 0; i < nb; ++i)
+            x[r[i]] -= t[i];
+    }
+    for (j = 0; j < n; ++j)
+        x[j] /= diag[j];
+    for (s = n_super - 1; s >= 0; --s) {
+        const int64_t c0 = sn_col[s], w = sn_col[s + 1] - c0;
+        const int64_t nb = sn_row[s + 1] - sn_row[s];
+        const int32_t *restrict r = rows + sn_row[s];
+        const double *restrict dg = val + sn_diag[s];
+        const double *restrict bl = val + sn_below[s];
+        double *restrict xs = x + c0;
+        double *restrict g = work;
+        int64_t k, i;
+        if (nb > 0) {
+            for (i = 0; i < nb; ++i)
+                g[i] = x[r[i]];
+            for (k = 0; k < w; ++k) {
+                const double *restrict b = bl + k * nb;
+                double a = 0.0;
+                for (i = 0; i < nb; ++i)
+                    a += b[i] * g[i];
+                xs[k] -= a;
+            }
+        }
+        for (k = w - 2; k >= 0; --k) {
+            double a = 0.0;
+            for (i = k + 1; i < w; ++i)
+                a += dg[k * w + i] * xs[i];
+            xs[k] -= a;
+        }
+    }
+}
+
+void capsheet_ldl_fill_d(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
+                         const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
+                         const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                         int32_t *map, double *val)
+{
+    int64_t s, q, j;
+    int32_t p;
+    for (s = 0; s < n_super; ++s) {
+        const int64_t c0 = sn_col[s], c1 = sn_col[s + 1], w = c1 - c0;
+        const int64_t nb = sn_row[s + 1] - sn_row[s];
+        const int32_t *r = rows + sn_row[s];
+        for (q = 0; q < nb; ++q)
+            map[r[q]] = (int32_t)q;
+        for (j = c0; j < c1; ++j) {
+            const int64_t k = j - c0;
+            for (p = l_ptr[j]; p < l_ptr[j + 1]; ++p) {
+                const int64_t i = l_idx[p];
+                if (i <= j)
+                    continue;
+                if (i < c1)
+                    val[sn_diag[s] + k * w + (i - c0)] = l_val[p];
+                else if (map[i] >= 0)
+                    val[sn_below[s] + k * nb + map[i]] = l_val[p];
+            }
+        }
+        for (q = 0; q < nb; ++q)
+            map[r[q]] = -1;
+    }
+}
+
+void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, double *work)
+{
+    const int64_t n = lap->n;
+    double *t = work, *ldl_work = work + n;
+    int64_t c, j;
+    for (c = 0; c < ncols; ++c) {
+        for (j = 0; j < n; ++j)
+            t[lap->pos[j]] = b[j * ncols + c];
+        capsheet_ldl_solve_d(n, lap->n_super, lap->sn_col, lap->sn_row, lap->rows, lap->sn_diag,
+                             lap->sn_below, lap->val, lap->diag, t, ldl_work);
+        for (j = 0; j < n; ++j)
+            b[j * ncols + c] = t[lap->pos[j]];
+    }
+}
+
+/* Bᵀ (w · (dz − B x)) − eps x into out (B the valid links' incidence: row k is −1 at ep_a[k],
+ * +1 at ep_b[k]); dz NULL: 0; w NULL: 1. */
+static void lap_weighted_residual(int64_t nj, int64_t nl, const int64_t *ep_a, const int64_t *ep_b,
+                                  const double *w, const double *dz, const double *x, double eps,
+                                  double sign_dz, double *out)
+{
+    int64_t j, k;
+    for (j = 0; j < nj; ++j)
+        out[j] = 0.0;
+    for (k = 0; k < nl; ++k) {
+        const int64_t a = ep_a[k], b = ep_b[k];
+        double v = (dz ? sign_dz * dz[k] : 0.0) - (x[b] - x[a]);
+        if (w)
+            v *= w[k];
+        out[a] -= v;
+        out[b] += v;
+    }
+    for (j = 0; j < nj; ++j)
+        out[j] -= eps * x[j];
+}
+
+void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t n_valid,
+                             const int64_t *valid_links, const int64_t *ep_a, const int64_t *ep_b,
+                             const double *alpha, const double *beta, int32_t weighted,
+                             double var_floor, double eps, int64_t steps, double *beta_out,
+                             double *trig, double *work)
+{
+    const int64_t nj = lap->n;
+    double *x = work, *r = x + nj, *p = r + nj, *zr = p + nj, *ap = zr + nj;
+    double *dz = ap + nj, *w = dz + n_valid, *lap_work = w + n_valid;
+    double rz = 0.0;
+    int64_t j, k, it;
+    for (k = 0; k < n_valid; ++k) {
+        const double sb = sin(beta[valid_links[k]]);
+        dz[k] = -sb;
+        w[k] = 1.0 / (1.0 - sb * sb + var_floor);
+    }
+    /* the unweighted fit: x = L⁻¹ Bᵀ dz */
+    for (j = 0; j < nj; ++j)
+        x[j] = 0.0;
+    for (k = 0; k < n_valid; ++k) {
+        x[ep_a[k]] -= dz[k];
+        x[ep_b[k]] += dz[k];
+    }
+    capsheet_lap_solve(lap, 1, x, lap_work);
+    if (weighted) {
+        lap_weighted_residual(nj, n_valid, ep_a, ep_b, w, dz, x, eps, 1.0, r);
+        for (it = 0; it < steps; ++it) {
+            double rz_new = 0.0, pap = 0.0, a;
+            for (j = 0; j < nj; ++j)
+                zr[j] = r[j];
+            capsheet_lap_solve(lap, 1, zr, lap_work);
+            for (j = 0; j < nj; ++j)
+                rz_new += r[j] * zr[j];
+            if (it == 0) {
+                for (j = 0; j < nj; ++j)
+                    p[j] = zr[j];
+            } else {
+                const double bq = rz_new / (rz > 0.0 ? rz : 1.0);
+                for (j = 0; j < nj; ++j)
+                    p[j] = zr[j] + bq * p[j];
+            }
+            rz = rz_new;
+            /* ap = Bᵀ (w B p) + eps p = −(the residual of dz = 0 at x = p) */
+            lap_weighted_residual(nj, n_valid, ep_a, ep_b, w, NULL, p, eps, 0.0, ap);
+            for (j = 0; j < nj; ++j) {
+                ap[j] = -ap[j];
+                pap += p[j] * ap[j];
+            }
+            a = rz / (pap > 0.0 ? pap : 1.0);
+            for (j = 0; j < nj; ++j) {
+                x[j] += a * p[j];
+                r[j] -= a * ap[j];
+            }
+        }
+    }
+    for (k = 0; k < n_links; ++k)
+        beta_out[k] = beta[k];
+    for (k = 0; k < n_valid; ++k) {
+        double s = -(x[ep_b[k]] - x[ep_a[k]]);
+        s = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
+        beta_out[valid_links[k]] = asin(s);
+    }
+    capsheet_angle_trig(n_links, alpha, beta_out, trig);
 }

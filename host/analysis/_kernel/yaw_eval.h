@@ -106,7 +106,8 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * cost / grad (nv + 1) hold the current point on entry and on return; iterations and prev_smax
  * (the last step's largest entry, inf at first) are carried in and out. Returns 0 converged
  * (gamma is the last step's point, unevaluated), 1 the cost rose (gamma unchanged: refactorise
- * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma),
+ * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma) while
+ * below refactor_far * tol, or refactor_patience such steps in a row above it,
  * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units + 2 n_links
  * doubles. chain_rho, chain_kappa, chain_safety: the contraction the previous snapshot measured on
  * this factorisation (estimator.solver.Contraction); when chain_safety > 0 the first step also
@@ -116,6 +117,7 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
 typedef struct {
     int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
     double chain_rho, chain_kappa, chain_safety, predict_within;
+    int64_t refactor_patience; double refactor_far;
     const int64_t *perm_inv, *perm_of_var;
     int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
     const int64_t *sn_diag, *sn_below; const float *val; const double *diag;
@@ -124,5 +126,46 @@ typedef struct {
 int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
                        const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
                        double *steps, double *work);
+
+
+/* capsheet_ldl_solve with the factor's values in double (the joints' Laplacian: its solves are
+ * the heights and the joints themselves, not a chord step's approximation, and they must be
+ * SuperLU's to rounding). Same layout; val double. No failure cases: a zero in D gives inf/NaN. */
+void capsheet_ldl_solve_d(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                          const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                          const double *val, const double *diag, double *x, double *work);
+
+/* capsheet_ldl_fill into double values (capsheet_ldl_solve_d's). */
+void capsheet_ldl_fill_d(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
+                         const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
+                         const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                         int32_t *map, double *val);
+
+/* The joints' Laplacian factorised (estimator.structure.Structure.lap_kernel): n joints, the
+ * symmetric ordering pos[joint] (position of a joint in the factor), and its supernodal L D Lᵀ
+ * in double (capsheet_ldl_solve_d's layout). */
+typedef struct {
+    int64_t n; const int64_t *pos;
+    int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
+    const int64_t *sn_diag, *sn_below; const double *val; const double *diag;
+    int64_t ldl_work_size;
+} capsheet_lap_t;
+
+/* Solve the Laplacian system for ncols right-hand sides b (n, ncols) row-major (a joint's
+ * columns together, numpy's (n, 3)), in place. work: n + ldl_work_size doubles. No failure cases. */
+void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, double *work);
+
+/* estimator.pipeline.closed_pitches for one snapshot: the heights that fit every valid link's
+ * step dz = -sin beta best, min sum w (z_b - z_a - dz)^2 + eps |z|^2 (w = 1 / (1 - sin^2 beta +
+ * floor) when weighted, else 1): the unweighted fit, then `steps` conjugate-gradient steps
+ * preconditioned by the unweighted Laplacian (pipeline.weighted_heights); then each valid link's
+ * pitch asin(clip(-(z_b - z_a))) into beta_out (the others keep beta's) and trig (n_links, 4) of
+ * (alpha, beta_out) (capsheet_angle_trig's). Links: n_valid of them, valid_links, endpoints
+ * ep_a, ep_b (joints). work: 7 n_joints + 2 n_valid + ldl_work_size doubles. No failure cases. */
+void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t n_valid,
+                             const int64_t *valid_links, const int64_t *ep_a, const int64_t *ep_b,
+                             const double *alpha, const double *beta, int32_t weighted,
+                             double var_floor, double eps, int64_t steps, double *beta_out,
+                             double *trig, double *work);
 
 #endif

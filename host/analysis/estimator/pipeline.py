@@ -16,6 +16,8 @@ from .angles import (angle_trig, angles_of, roll_pitch_trig, solvability,
 from .checks import (Options, Snapshot, check_int, check_link_length, check_noise_pct_g,
                      check_options, check_previous, check_readings, rest_yaws)
 from .joints import joints_and_mask
+from .kernel import ffi as _kffi, lib as _klib
+from .linalg import lap_solve, laplacian_kernel
 from .priors import DEFAULT_PRIOR, prior_weights
 from .result import ShapeEstimate, Solution
 from .solver import solve_global
@@ -222,6 +224,10 @@ def closed_pitches(st, alpha, beta, trig=None):
     coefficients (``cos β``, the cells' normals) are then less noisy. A link in no closed loop
     keeps its pitch. One snapshot (``beta`` (n_links,)) or a batch of one structure
     (B, n_links); ``trig`` (one snapshot, the kernel's table) is rebuilt from the new pitches."""
+    if trig is not None and kernel.USE_KERNEL:  # one snapshot: the kernel, the same arithmetic
+        lk = laplacian_kernel(st)
+        if lk is not None:
+            return _closed_pitches_kernel(st, lk, alpha, beta)
     vl = st.valid_links
     sb = np.sin(beta[..., vl])
     w = height_weights(sb) if WEIGHTED_HEIGHTS else None
@@ -231,6 +237,29 @@ def closed_pitches(st, alpha, beta, trig=None):
     out[..., vl] = np.arcsin(np.clip(-step, -1.0, 1.0))
     if trig is not None:
         trig = angle_trig(alpha, out)
+    return out, trig
+
+
+def _closed_pitches_kernel(st, lk, alpha, beta):
+    """`closed_pitches` of one snapshot in the kernel (``capsheet_closed_pitches``: the same
+    fit, `weighted_heights`' steps, with the Laplacian's solves in C): (beta, trig)."""
+    ep = st.derived.get("valid_endpoints")
+    if ep is None:
+        e = st.lattice.endpoints[st.valid_links]
+        ep = st.derived["valid_endpoints"] = (
+            np.ascontiguousarray(st.valid_links, np.int64), np.ascontiguousarray(e[:, 0], np.int64),
+            np.ascontiguousarray(e[:, 1], np.int64))
+    n, nv, nj = beta.size, ep[0].size, st.rows * st.cols
+    a = np.ascontiguousarray(alpha, np.float64)
+    b = np.ascontiguousarray(beta, np.float64)
+    out, trig = np.empty(n), np.empty((n, 4))
+    work = np.empty(7 * nj + 2 * nv + lk[1][3]["work_size"])
+    fb = _kffi.from_buffer
+    _klib.capsheet_closed_pitches(lk[0], n, nv, fb("int64_t[]", ep[0]), fb("int64_t[]", ep[1]),
+                                  fb("int64_t[]", ep[2]), fb("double[]", a), fb("double[]", b),
+                                  1 if WEIGHTED_HEIGHTS else 0, HEIGHT_VAR_FLOOR,
+                                  JOINT_PRIOR_WEIGHT, HEIGHT_CG_STEPS, fb("double[]", out),
+                                  fb("double[]", trig), fb("double[]", work))
     return out, trig
 
 

@@ -221,7 +221,8 @@ class YawProblem:
         return cost, grad[:st.n_var], None
 
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
-                     chain=None, chain_safety=0.0, predict_within=3.0):
+                     chain=None, chain_safety=0.0, predict_within=3.0, refactor_patience=1,
+                     refactor_far=0.0):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
@@ -241,6 +242,7 @@ class YawProblem:
         c.n_links, c.max_iter, c.tol = gamma.size, max_iter, float(tol)
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
         c.predict_within = predict_within
+        c.refactor_patience, c.refactor_far = int(refactor_patience), float(refactor_far)
         if chain is not None:
             c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, float(chain_safety)
         pi = np.ascontiguousarray(st.perm_inv, np.int64)

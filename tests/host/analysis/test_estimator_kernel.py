@@ -229,8 +229,10 @@ def test_an_estimate_is_the_same_with_the_kernel_and_without(masked, monkeypatch
     assert np.isnan(e0.solvability).any() == masked
     assert np.nanmax(np.abs(e1.solvability - e0.solvability)) <= TOL
     assert e1.iterations == e0.iterations
-    for name in ("alpha", "beta"):
-        assert np.array_equal(getattr(e1, name), getattr(e0, name), equal_nan=True), name
+    assert np.array_equal(e1.alpha, e0.alpha, equal_nan=True)
+    # the closed pitches' height fit runs in the kernel too (its sums in another order)
+    assert np.array_equal(np.isnan(e1.beta), np.isnan(e0.beta))
+    assert np.nanmax(np.abs(e1.beta - e0.beta)) <= TOL
     assert np.nanmax(np.abs(e1.normals - e0.normals)) <= 1e-8
     assert np.max(np.abs(e1.joints - e0.joints)) <= 1e-8 * L * (n - 1)
 
