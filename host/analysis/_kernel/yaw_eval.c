@@ -22,8 +22,19 @@ static double wrap_fast(double x)
     return x - TWO_PI * rint(x * (1.0 / TWO_PI));
 }
 
+/* capsheet_yaw_eval with the links' (cos γ, sin γ) given (cs, 2 n_links), or computed into work
+ * when cs is NULL. */
+static double yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs,
+                          double *grad, double *work);
+
 double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
                          double *work)
+{
+    return yaw_eval_cs(p, gamma, NULL, grad, work);
+}
+
+static double yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs_in,
+                          double *grad, double *work)
 {
     const int64_t U = p->n_units, K = p->n_roll, NP = p->n_pairs, nv = p->n_var;
     /* work: per unit t (8), A (2), C (2), n (3), inv (1), Y (3) = 19 doubles; per link
@@ -31,16 +42,18 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
      * cosine are computed once here instead of up to three times below */
     double *wt = work;
     double *wA = wt + 8 * U, *wC = wA + 2 * U, *wn = wC + 2 * U, *winv = wn + 3 * U;
-    double *wY = winv + U, *wcs = wY + 3 * U;
+    double *wY = winv + U, *wcs_own = wY + 3 * U;
+    const double *wcs = cs_in ? cs_in : wcs_own;
     double cost_loop = 0.0, cost_roll = 0.0, cost_pair = 0.0, cost_abs = 0.0;
     int64_t u, m, k;
 
     for (k = 0; k <= nv; ++k)
         grad[k] = 0.0;
-    for (k = 0; k < p->n_links; ++k) {
-        wcs[2 * k] = cos(gamma[k]);
-        wcs[2 * k + 1] = sin(gamma[k]);
-    }
+    if (!cs_in)
+        for (k = 0; k < p->n_links; ++k) {
+            wcs_own[2 * k] = cos(gamma[k]);
+            wcs_own[2 * k + 1] = sin(gamma[k]);
+        }
 
     /* loop closure (eq. 4, xy) and the cells' normals */
     for (u = 0; u < U; ++u) {
@@ -510,6 +523,35 @@ static int capsheet_step_converged(double smax, double prev, int32_t accelerated
     return smax < tol;
 }
 
+/* cs_out = (cos, sin) of gamma + move per link (cs_in: gamma's; move on the variables' links):
+ * each variable's pair turned by its move, e^{iδ} by its Taylor series where |δ| <= 1/8 (twelve
+ * terms: the rest is below 1e-19, under the rounding of cos and sin themselves), else by cos and
+ * sin. A chord step's moves are small: a cos and a sin per link were half an evaluation. */
+static void turn_cs(int64_t n_links, int64_t nv, const int64_t *var_links, const double *move,
+                    const double *cs_in, double *cs_out)
+{
+    int64_t k;
+    for (k = 0; k < 2 * n_links; ++k)
+        cs_out[k] = cs_in[k];
+    for (k = 0; k < nv; ++k) {
+        const double d = move[k], d2 = d * d;
+        const int64_t l = var_links[k];
+        const double c0 = cs_in[2 * l], s0 = cs_in[2 * l + 1];
+        double cd, sd;
+        if (fabs(d) <= 0.125) {
+            cd = 1.0 - d2 * (1.0 / 2.0 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0 - d2 * (1.0 / 40320.0
+                 - d2 * (1.0 / 3628800.0)))));
+            sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 * (1.0 / 5040.0 - d2 * (1.0 / 362880.0
+                 - d2 * (1.0 / 39916800.0))))));
+        } else {
+            cd = cos(d);
+            sd = sin(d);
+        }
+        cs_out[2 * l] = c0 * cd - s0 * sd;
+        cs_out[2 * l + 1] = s0 * cd + c0 * sd;
+    }
+}
+
 /* The chord iterations of estimator/solver.py's solve_global for one snapshot on a factorisation
  * kept from before (no damping): see yaw_eval.h. Each iteration: the step −A⁻¹ grad (the
  * supernodal solve on the structure's ordering), the Anderson move when the step reverses the
@@ -523,12 +565,18 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     double *step = work, *move = step + nv, *s_prev = move + nv, *dx = s_prev + nv;
     double *x = dx + nv, *g_new = x + nv, *grad_new = g_new + n_links;
     double *ldl_work = grad_new + nv + 1, *eval_work = ldl_work + c->ldl_work_size;
+    double *cs = eval_work + 19 * (p->n_units > 0 ? p->n_units : 1) + 2 * n_links;
+    double *cs_new = cs + 2 * n_links;
     int32_t has_hist = 0, accelerated = 0;
     int64_t it = *iterations, k, poor = 0;
     double slow = 0.0;  /* the slowest contraction of a slow step passed (not refactorised) */
     const int64_t it0 = it;
     double ps = *prev_smax, cst = *cost;
     steps[0] = steps[1] = 0.0;
+    for (k = 0; k < n_links; ++k) {
+        cs[2 * k] = cos(gamma[k]);
+        cs[2 * k + 1] = sin(gamma[k]);
+    }
     while (it < c->max_iter) {
         double smax = 0.0, cost_new;
         int32_t acc = 0;
@@ -585,7 +633,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             *cost = cst;
             return 0;
         }
-        cost_new = capsheet_yaw_eval(p, g_new, grad_new, eval_work);
+        turn_cs(n_links, nv, p->var_links, move, cs, cs_new);
+        cost_new = yaw_eval_cs(p, g_new, cs_new, grad_new, eval_work);
         if (acc && !(cost_new <= cst * (1.0 + 1e-12) + 1e-300)) {
             acc = 0;
             for (k = 0; k < nv; ++k)
@@ -594,7 +643,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
                 g_new[k] = gamma[k];
             for (k = 0; k < nv; ++k)
                 g_new[p->var_links[k]] += move[k];
-            cost_new = capsheet_yaw_eval(p, g_new, grad_new, eval_work);
+            turn_cs(n_links, nv, p->var_links, move, cs, cs_new);
+            cost_new = yaw_eval_cs(p, g_new, cs_new, grad_new, eval_work);
         }
         if (!(cost_new <= cst * (1.0 + 1e-12) + 1e-300)) {
             *iterations = it;
@@ -606,6 +656,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             gamma[k] = g_new[k];
         for (k = 0; k <= nv; ++k)
             grad[k] = grad_new[k];
+        for (k = 0; k < 2 * n_links; ++k)
+            cs[k] = cs_new[k];
         cst = cost_new;
         for (k = 0; k < nv; ++k) {
             s_prev[k] = step[k];
@@ -765,7 +817,7 @@ static void lap_weighted_residual(int64_t nj, int64_t nl, const int64_t *ep_a, c
 
 void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t n_valid,
                              const int64_t *valid_links, const int64_t *ep_a, const int64_t *ep_b,
-                             const double *alpha, const double *beta, int32_t weighted,
+                             const double *trig_in, const double *beta, int32_t weighted,
                              double var_floor, double eps, int64_t steps, double *beta_out,
                              double *trig, double *work)
 {
@@ -775,7 +827,7 @@ void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t
     double rz = 0.0;
     int64_t j, k, it;
     for (k = 0; k < n_valid; ++k) {
-        const double sb = sin(beta[valid_links[k]]);
+        const double sb = trig_in[4 * valid_links[k] + 3];
         dz[k] = -sb;
         w[k] = 1.0 / (1.0 - sb * sb + var_floor);
     }
@@ -820,10 +872,14 @@ void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t
     }
     for (k = 0; k < n_links; ++k)
         beta_out[k] = beta[k];
+    for (k = 0; k < 4 * n_links; ++k)
+        trig[k] = trig_in[k];
     for (k = 0; k < n_valid; ++k) {
+        const int64_t l = valid_links[k];
         double s = -(x[ep_b[k]] - x[ep_a[k]]);
         s = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
-        beta_out[valid_links[k]] = asin(s);
+        beta_out[l] = asin(s);
+        trig[4 * l + 2] = sqrt((1.0 - s) * (1.0 + s));  /* cos of a pitch in [-pi/2, pi/2] */
+        trig[4 * l + 3] = s;
     }
-    capsheet_angle_trig(n_links, alpha, beta_out, trig);
 }

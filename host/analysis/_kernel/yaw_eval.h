@@ -108,7 +108,7 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * (gamma is the last step's point, unevaluated), 1 the cost rose (gamma unchanged: refactorise
  * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma) while
  * below refactor_far * tol, or refactor_patience such steps in a row above it,
- * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units + 2 n_links
+ * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 max(n_units, 1) + 6 n_links
  * doubles. chain_rho, chain_kappa, chain_safety: the contraction the previous snapshot measured on
  * this factorisation (estimator.solver.Contraction); when chain_safety > 0 the first step also
  * converges when chain_safety * max(rho s, kappa s^2) < tol (s its largest entry).
@@ -156,15 +156,15 @@ typedef struct {
 void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, double *work);
 
 /* estimator.pipeline.closed_pitches for one snapshot: the heights that fit every valid link's
- * step dz = -sin beta best, min sum w (z_b - z_a - dz)^2 + eps |z|^2 (w = 1 / (1 - sin^2 beta +
+ * step dz = -sin beta (trig_in's, the readings' capsheet_reading_trig) best, min sum w (z_b - z_a - dz)^2 + eps |z|^2 (w = 1 / (1 - sin^2 beta +
  * floor) when weighted, else 1): the unweighted fit, then `steps` conjugate-gradient steps
  * preconditioned by the unweighted Laplacian (pipeline.weighted_heights); then each valid link's
- * pitch asin(clip(-(z_b - z_a))) into beta_out (the others keep beta's) and trig (n_links, 4) of
- * (alpha, beta_out) (capsheet_angle_trig's). Links: n_valid of them, valid_links, endpoints
+ * pitch asin(s), s = clip(-(z_b - z_a)), into beta_out (the others keep beta's) and trig
+ * (n_links, 4): trig_in's with each valid link's pitch columns (sqrt(1 - s^2), s). Links: n_valid of them, valid_links, endpoints
  * ep_a, ep_b (joints). work: 7 n_joints + 2 n_valid + ldl_work_size doubles. No failure cases. */
 void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t n_valid,
                              const int64_t *valid_links, const int64_t *ep_a, const int64_t *ep_b,
-                             const double *alpha, const double *beta, int32_t weighted,
+                             const double *trig_in, const double *beta, int32_t weighted,
                              double var_floor, double eps, int64_t steps, double *beta_out,
                              double *trig, double *work);
 

@@ -189,10 +189,10 @@ def laplacian_kernel(st):
 
 
 def lap_solve(st, b):
-    """``st``'s Laplacian solved for ``b`` (n_joints,) or (n_joints, k): the kernel's
+    """``st``'s Laplacian solved for ``b`` (n_joints,) or (n_joints, k): one column in the kernel
     (`laplacian_kernel`) when it is built and switched on, else SuperLU's (``st.lap_lu``)."""
     lk = laplacian_kernel(st) if kernel.USE_KERNEL else None
-    if lk is None or b.ndim > 2:
+    if lk is None or b.ndim != 1:  # several columns: SuperLU's own multi-column sweeps are faster
         return st.lap_lu.solve(b)
     x = np.array(b, dtype=np.float64, order="C")  # a copy: solved in place
     k = 1 if x.ndim == 1 else x.shape[1]

@@ -227,7 +227,7 @@ def closed_pitches(st, alpha, beta, trig=None):
     if trig is not None and kernel.USE_KERNEL:  # one snapshot: the kernel, the same arithmetic
         lk = laplacian_kernel(st)
         if lk is not None:
-            return _closed_pitches_kernel(st, lk, alpha, beta)
+            return _closed_pitches_kernel(st, lk, trig, beta)
     vl = st.valid_links
     sb = np.sin(beta[..., vl])
     w = height_weights(sb) if WEIGHTED_HEIGHTS else None
@@ -240,9 +240,11 @@ def closed_pitches(st, alpha, beta, trig=None):
     return out, trig
 
 
-def _closed_pitches_kernel(st, lk, alpha, beta):
+def _closed_pitches_kernel(st, lk, trig_in, beta):
     """`closed_pitches` of one snapshot in the kernel (``capsheet_closed_pitches``: the same
-    fit, `weighted_heights`' steps, with the Laplacian's solves in C): (beta, trig)."""
+    fit, `weighted_heights`' steps, with the Laplacian's solves in C), from the readings' trig
+    (``trig_in``: the pitches' sines; the new pitches' cosines and sines are ``sqrt(1 − s²)``
+    and ``s`` of the fitted step, no trigonometric call): (beta, trig)."""
     ep = st.derived.get("valid_endpoints")
     if ep is None:
         e = st.lattice.endpoints[st.valid_links]
@@ -250,7 +252,7 @@ def _closed_pitches_kernel(st, lk, alpha, beta):
             np.ascontiguousarray(st.valid_links, np.int64), np.ascontiguousarray(e[:, 0], np.int64),
             np.ascontiguousarray(e[:, 1], np.int64))
     n, nv, nj = beta.size, ep[0].size, st.rows * st.cols
-    a = np.ascontiguousarray(alpha, np.float64)
+    a = np.ascontiguousarray(trig_in, np.float64)
     b = np.ascontiguousarray(beta, np.float64)
     out, trig = np.empty(n), np.empty((n, 4))
     work = np.empty(7 * nj + 2 * nv + lk[1][3]["work_size"])

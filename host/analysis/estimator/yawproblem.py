@@ -258,7 +258,7 @@ class YawProblem:
         its = _kffi.new("int64_t *", 0)
         ps = _kffi.new("double *", np.inf)
         work = np.empty(6 * nv + gamma.size + 1 + sym["work_size"] + 19 * max(st.n_units, 1)
-                        + 2 * st.n_links)
+                        + 6 * st.n_links)
         assert gamma.dtype == np.float64 and gamma.flags.c_contiguous
         steps = _kffi.new("double[2]")
         status = _klib.capsheet_chord(kp[0], fb("double[]", gamma), out_cost, fb("double[]", g), c,
