@@ -33,6 +33,21 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
     return yaw_eval_cs(p, gamma, NULL, grad, work);
 }
 
+double capsheet_yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs,
+                            double *grad, double *work)
+{
+    return yaw_eval_cs(p, gamma, cs, grad, work);
+}
+
+void capsheet_link_cs(int64_t n, const double *gamma, double *cs)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        cs[2 * k] = cos(gamma[k]);
+        cs[2 * k + 1] = sin(gamma[k]);
+    }
+}
+
 static double yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs_in,
                           double *grad, double *work)
 {
@@ -168,6 +183,23 @@ void capsheet_directions(int64_t n, const double *trig, const double *gamma, dou
         const double ca = trig[4 * k], sa = trig[4 * k + 1], cb = trig[4 * k + 2];
         const double sb = trig[4 * k + 3];
         const double cg = cos(gamma[k]), sg = sin(gamma[k]);
+        d[3 * k] = cg * cb;
+        d[3 * k + 1] = sg * cb;
+        d[3 * k + 2] = -sb;
+        nrm[3 * k] = cg * sb * ca + sg * sa;
+        nrm[3 * k + 1] = sg * sb * ca - cg * sa;
+        nrm[3 * k + 2] = cb * ca;
+    }
+}
+
+void capsheet_directions_cs(int64_t n, const double *trig, const double *cs, double *d,
+                            double *nrm)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        const double ca = trig[4 * k], sa = trig[4 * k + 1], cb = trig[4 * k + 2];
+        const double sb = trig[4 * k + 3];
+        const double cg = cs[2 * k], sg = cs[2 * k + 1];
         d[3 * k] = cg * cb;
         d[3 * k + 1] = sg * cb;
         d[3 * k + 2] = -sb;
@@ -565,18 +597,16 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     double *step = work, *move = step + nv, *s_prev = move + nv, *dx = s_prev + nv;
     double *x = dx + nv, *g_new = x + nv, *grad_new = g_new + n_links;
     double *ldl_work = grad_new + nv + 1, *eval_work = ldl_work + c->ldl_work_size;
-    double *cs = eval_work + 19 * (p->n_units > 0 ? p->n_units : 1) + 2 * n_links;
-    double *cs_new = cs + 2 * n_links;
+    double *cs = c->cs_out;  /* the current point's (cos γ, sin γ), handed back with it */
+    double *cs_new = eval_work + 19 * (p->n_units > 0 ? p->n_units : 1) + 2 * n_links;
     int32_t has_hist = 0, accelerated = 0;
     int64_t it = *iterations, k, poor = 0;
     double slow = 0.0;  /* the slowest contraction of a slow step passed (not refactorised) */
     const int64_t it0 = it;
     double ps = *prev_smax, cst = *cost;
     steps[0] = steps[1] = 0.0;
-    for (k = 0; k < n_links; ++k) {
-        cs[2 * k] = cos(gamma[k]);
-        cs[2 * k + 1] = sin(gamma[k]);
-    }
+    for (k = 0; k < 2 * n_links; ++k)
+        cs[k] = c->cs_in[k];
     while (it < c->max_iter) {
         double smax = 0.0, cost_new;
         int32_t acc = 0;
@@ -629,6 +659,9 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
                 && c->chain_safety * fmax(c->chain_rho * smax, c->chain_kappa * smax * smax) < c->tol)) {
             for (k = 0; k < n_links; ++k)
                 gamma[k] = g_new[k];
+            turn_cs(n_links, nv, p->var_links, move, cs, cs_new);
+            for (k = 0; k < 2 * n_links; ++k)
+                cs[k] = cs_new[k];
             *iterations = it;
             *cost = cst;
             return 0;

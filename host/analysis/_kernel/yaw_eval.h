@@ -33,6 +33,14 @@ typedef struct {
 double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
                          double *work);
 
+/* capsheet_yaw_eval with the links' (cos γ, sin γ) given: cs (2 n_links), capsheet_link_cs's of
+ * gamma (or a chord step's turning of them). No failure cases. */
+double capsheet_yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs,
+                            double *grad, double *work);
+
+/* cs (2 n) = (cos γ, sin γ) per link. No failure cases. */
+void capsheet_link_cs(int64_t n, const double *gamma, double *cs);
+
 
 /* Per link (n links) of readings r (n, 3) and their roll alpha = atan2(r_y, r_z) and pitch
  * beta = atan2(−r_x, hypot(r_y, r_z)) (estimator.roll_pitch): trig (n, 4) = (cos α, sin α,
@@ -49,6 +57,10 @@ void capsheet_angle_trig(int64_t n, const double *alpha, const double *beta, dou
  * No failure cases. */
 void capsheet_directions(int64_t n, const double *trig, const double *gamma, double *d,
                          double *nrm);
+
+/* capsheet_directions with the yaws' (cos γ, sin γ) given (cs, 2 n: capsheet_link_cs's). */
+void capsheet_directions_cs(int64_t n, const double *trig, const double *cs, double *d,
+                            double *nrm);
 
 /* Σ over the units (n_units, 4 links) of eq. (8): |d0 + d1 − d2 − d3|² + |n0 − n1 + n2 − n3|². */
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
@@ -118,6 +130,8 @@ typedef struct {
     int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
     double chain_rho, chain_kappa, chain_safety, predict_within;
     int64_t refactor_patience; double refactor_far;
+    const double *cs_in;  /* (cos γ, sin γ) of gamma on entry (2 n_links) */
+    double *cs_out;       /* ... of gamma on return (2 n_links; may not alias cs_in) */
     const int64_t *perm_inv, *perm_of_var;
     int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
     const int64_t *sn_diag, *sn_below; const float *val; const double *diag;

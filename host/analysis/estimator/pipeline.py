@@ -185,6 +185,13 @@ class WarmStart(NamedTuple):
         sol = self.solution
         return start, (sol.factorisation if sol is not None and sol.structure is st else None)
 
+    def link_cs(self, start):
+        """The cosines and sines of the yaws ``start`` as the last solve kept them (the kernel's
+        `YawProblem.link_cs` of its end point), or None when it kept none for these yaws."""
+        sol = self.solution
+        kept = None if sol is None else sol.problem.__dict__.get("_cs")
+        return kept if kept is not None and np.array_equal(kept[0], start) else None
+
     def chain(self, lu):
         """The `solver.Contraction` a solve reusing factorisation ``lu`` may stop by: the one
         measured on it, for `solver.CHAIN_REMEASURE` snapshots (None: measure again)."""
@@ -358,11 +365,13 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
                                                rest_yaw is not None)
     gamma, iters, n_fact, lu, prob, contraction = solve_global(
         st, alpha, beta, start.copy(), target, prior_w, bend_w, lu, tol, trig,
-        warm.chain(lu))
+        warm.chain(lu), warm.link_cs(start))
     solution = Solution(st, lu, prob, gamma, contraction)
     t2 = time.perf_counter()
+    kept = prob.__dict__.get("_cs") if trig is not None else None  # the end point's cos, sin
+    cs = kept[1] if kept is not None and np.array_equal(kept[0], gamma) else None
     P, d, nrm, gamma, alpha, beta, residual = joints_and_mask(
-        st, L, alpha, beta, gamma, target, warm.joint_prior(st, L, rest), trig)
+        st, L, alpha, beta, gamma, target, warm.joint_prior(st, L, rest), trig, cs)
     t3 = time.perf_counter()
     solv = link_solvability(alpha, beta, trig, rows, cols)
     t4 = time.perf_counter()

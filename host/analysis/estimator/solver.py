@@ -76,12 +76,15 @@ class Contraction(NamedTuple):
 
 
 def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
-                 tol=YAW_TOL_RAD, trig=None, chain: Contraction | None = None):
+                 tol=YAW_TOL_RAD, trig=None, chain: Contraction | None = None, cs=None):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
     Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
     lu, problem, contraction): the `Contraction` of the returned ``lu`` measured by this solve's
     first two steps on it, or ``chain`` one snapshot older when the solve stopped after one step
     by it (None otherwise).
+
+    ``cs``: (yaws, their cosines and sines) the previous solve kept (`YawProblem.link_cs`), for
+    the kernel's evaluations at ``gamma0`` when they are its yaws.
 
     ``chain``: the contraction the previous snapshot's solve measured on ``lu``. With it the
     first chord step also ends the solve when `Contraction.predicts_converged`; the caller
@@ -100,6 +103,8 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
     """
     gamma = gamma0.copy()
     prob = YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
+    if cs is not None:  # (γ, its cosines and sines) kept by the solve before: not made again
+        prob.keep_cs(*cs)
     if st.n_var == 0:
         return gamma, 0, 0, None, prob, None
     lu_in = lu

@@ -305,3 +305,70 @@ def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
         for (j0, i0, f0), (j1, i1, f1) in zip(r0, r1):
             assert (i1, f1) == (i0, f0)
             assert np.max(np.abs(j1 - j0)) <= 1e-12
+
+
+def _angles_of(n, masked, seed=4):
+    P = make_sheet("sphere", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 2.0, rng(seed))
+    valid = _mask(n) if masked else np.ones(r.shape[0], bool)
+    st = E.structure.structure_of(n, n, None if valid.all() else valid)
+    rr, alpha, beta, trig = E.pipeline.link_angles(r, valid, None if valid.all() else valid)
+    return st, alpha, beta, trig
+
+
+@pytest.mark.parametrize("n, masked", [(14, False), (14, True), (33, False), (6, True)])
+def test_the_kernels_closed_pitches_are_the_numpy_codes(n, masked, monkeypatch):
+    """`closed_pitches` in the kernel (``capsheet_closed_pitches``: the height fit with the
+    Laplacian's solves in C, the new pitches' cosines and sines from the fitted steps) against the
+    numpy code (SuperLU's solves, then `angle_trig`)."""
+    st, alpha, beta, trig = _angles_of(n, masked)
+    assert trig is not None
+    b1, t1 = E.pipeline.closed_pitches(st, alpha, beta, trig)
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
+    b0, none = E.pipeline.closed_pitches(st, alpha, beta)
+    assert none is None
+    assert np.max(np.abs(b0 - beta)) > 1e-3  # the fit moves the pitches (by about the noise)
+    assert np.max(np.abs(b1 - b0)) <= TOL
+    assert np.max(np.abs(t1 - E.angles.angle_trig(alpha, b0))) <= TOL
+
+
+def test_the_closed_pitches_comparison_sees_a_wrong_input():
+    st, alpha, beta, trig = _angles_of(14, False)
+    b0, _ = E.pipeline.closed_pitches(st, alpha, beta, trig)
+    bad = trig.copy()
+    bad[40, 3] += 1e-9  # one link's sine off by a billionth: the fit uses the readings' sines
+    b1, _ = E.pipeline.closed_pitches(st, alpha, beta, bad)
+    assert np.max(np.abs(b1 - b0)) > TOL
+
+
+@pytest.mark.parametrize("n, masked", [(5, False), (14, True), (40, False)])
+def test_the_kernels_laplacian_solve_is_superlus(n, masked):
+    """One column of the joints' Laplacian (`linalg.lap_solve`: the kernel's double supernodal
+    L D Lᵀ on SuperLU's ordering) against SuperLU's own solve, on right-hand sides as the heights
+    and the joints have them (``Bᵀ v``: they sum to zero)."""
+    valid = _mask(n) if masked else None
+    st = E.structure.structure_of(n, n, valid)
+    assert E.linalg.laplacian_kernel(st) is not None
+    v = rng(n).normal(size=st.valid_links.size)
+    b = st.incidence_T @ v
+    x0, x1 = st.lap_lu.solve(b), E.linalg.lap_solve(st, b)
+    d0, d1 = x0 - x0[0], x1 - x1[0]  # the heights' differences (the constant is the prior's)
+    assert np.max(np.abs(d1 - d0)) <= TOL * np.max(np.abs(d0))
+    B = np.stack([b, 2 * b], axis=1)  # several columns stay with SuperLU
+    assert np.array_equal(E.linalg.lap_solve(st, B), st.lap_lu.solve(B))
+
+
+def test_the_laplacian_comparison_sees_a_wrong_factor():
+    st = E.structure.structure_of(14, 14, None)
+    b = st.incidence_T @ rng(2).normal(size=st.valid_links.size)
+    x0 = st.lap_lu.solve(b)
+    val = E.linalg.laplacian_kernel(st)[1][1]
+    k = int(np.argmax(np.abs(val)))
+    kept = val[k]
+    val[k] *= 1.000001  # one entry of L off by a millionth
+    try:
+        x1 = E.linalg.lap_solve(st, b)
+    finally:
+        val[k] = kept
+    d0, d1 = x0 - x0[0], x1 - x1[0]
+    assert np.max(np.abs(d1 - d0)) > TOL * np.max(np.abs(d0))
