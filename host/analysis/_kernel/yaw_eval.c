@@ -717,69 +717,99 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     return 3;
 }
 
-/* capsheet_ldl_solve's sweeps with double values (see yaw_eval.h): plain loops, the same order
- * of operations per supernode (column axpys forward, dot products backward). */
-void capsheet_ldl_solve_d(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
-                          const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
-                          const double *val, const double *diag, double *x, double *work)
+/* capsheet_ldl_solve's sweeps with double values (see yaw_eval.h) on nc columns at once, stored
+ * interleaved (x[j * nc + c]): the factor is read once for all of them. Per supernode: forward,
+ * the unit lower diagonal block (column axpys), then the rows below; backward, the rows below
+ * (dot products), then the diagonal block. A one-column supernode (most of a grid Laplacian's)
+ * updates x in place, without the gather. */
+static void ldl_solve_d_nc(int64_t n, int64_t nc, int64_t n_super, const int32_t *sn_col,
+                           const int64_t *sn_row, const int32_t *rows, const int64_t *sn_diag,
+                           const int64_t *sn_below, const double *val, const double *diag,
+                           double *x, double *work)
 {
-    int64_t s, j;
+    int64_t s, j, c;
     for (s = 0; s < n_super; ++s) {
         const int64_t c0 = sn_col[s], w = sn_col[s + 1] - c0;
         const int64_t nb = sn_row[s + 1] - sn_row[s];
         const int32_t *restrict r = rows + sn_row[s];
         const double *restrict dg = val + sn_diag[s];
         const double *restrict bl = val + sn_below[s];
-        double *restrict xs = x + c0;
+        double *restrict xs = x + c0 * nc;
         double *restrict t = work;
         int64_t k, i;
-        for (k = 0; k + 1 < w; ++k) {
-            const double xk = xs[k];
+        for (k = 0; k + 1 < w; ++k)
             for (i = k + 1; i < w; ++i)
-                xs[i] -= dg[k * w + i] * xk;
-        }
+                for (c = 0; c < nc; ++c)
+                    xs[i * nc + c] -= dg[k * w + i] * xs[k * nc + c];
         if (nb == 0)
             continue;
-        for (i = 0; i < nb; ++i)
+        if (w == 1) {
+            for (i = 0; i < nb; ++i)
+                for (c = 0; c < nc; ++c)
+                    x[r[i] * nc + c] -= bl[i] * xs[c];
+            continue;
+        }
+        for (i = 0; i < nb * nc; ++i)
             t[i] = 0.0;
         for (k = 0; k < w; ++k) {
-            const double xk = xs[k];
             const double *restrict b = bl + k * nb;
             for (i = 0; i < nb; ++i)
-                t[i] += b[i] * xk;
+                for (c = 0; c < nc; ++c)
+                    t[i * nc + c] += b[i] * xs[k * nc + c];
         }
         for (i = 0; i < nb; ++i)
-            x[r[i]] -= t[i];
+            for (c = 0; c < nc; ++c)
+                x[r[i] * nc + c] -= t[i * nc + c];
     }
     for (j = 0; j < n; ++j)
-        x[j] /= diag[j];
+        for (c = 0; c < nc; ++c)
+            x[j * nc + c] /= diag[j];
     for (s = n_super - 1; s >= 0; --s) {
         const int64_t c0 = sn_col[s], w = sn_col[s + 1] - c0;
         const int64_t nb = sn_row[s + 1] - sn_row[s];
         const int32_t *restrict r = rows + sn_row[s];
         const double *restrict dg = val + sn_diag[s];
         const double *restrict bl = val + sn_below[s];
-        double *restrict xs = x + c0;
+        double *restrict xs = x + c0 * nc;
         double *restrict g = work;
         int64_t k, i;
-        if (nb > 0) {
-            for (i = 0; i < nb; ++i)
-                g[i] = x[r[i]];
-            for (k = 0; k < w; ++k) {
-                const double *restrict b = bl + k * nb;
+        if (nb > 0 && w == 1) {
+            for (c = 0; c < nc; ++c) {
                 double a = 0.0;
                 for (i = 0; i < nb; ++i)
-                    a += b[i] * g[i];
-                xs[k] -= a;
+                    a += bl[i] * x[r[i] * nc + c];
+                xs[c] -= a;
+            }
+        } else if (nb > 0) {
+            for (i = 0; i < nb; ++i)
+                for (c = 0; c < nc; ++c)
+                    g[c * nb + i] = x[r[i] * nc + c];
+            for (k = 0; k < w; ++k) {
+                const double *restrict b = bl + k * nb;
+                for (c = 0; c < nc; ++c) {
+                    const double *restrict gc = g + c * nb;
+                    double a = 0.0;
+                    for (i = 0; i < nb; ++i)
+                        a += b[i] * gc[i];
+                    xs[k * nc + c] -= a;
+                }
             }
         }
-        for (k = w - 2; k >= 0; --k) {
-            double a = 0.0;
-            for (i = k + 1; i < w; ++i)
-                a += dg[k * w + i] * xs[i];
-            xs[k] -= a;
-        }
+        for (k = w - 2; k >= 0; --k)
+            for (c = 0; c < nc; ++c) {
+                double a = 0.0;
+                for (i = k + 1; i < w; ++i)
+                    a += dg[k * w + i] * xs[i * nc + c];
+                xs[k * nc + c] -= a;
+            }
     }
+}
+
+void capsheet_ldl_solve_d(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                          const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                          const double *val, const double *diag, double *x, double *work)
+{
+    ldl_solve_d_nc(n, 1, n_super, sn_col, sn_row, rows, sn_diag, sn_below, val, diag, x, work);
 }
 
 void capsheet_ldl_fill_d(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
@@ -815,16 +845,16 @@ void capsheet_ldl_fill_d(int64_t n_super, const int32_t *l_ptr, const int32_t *l
 void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, double *work)
 {
     const int64_t n = lap->n;
-    double *t = work, *ldl_work = work + n;
+    double *t = work, *ldl_work = work + n * ncols;
     int64_t c, j;
-    for (c = 0; c < ncols; ++c) {
-        for (j = 0; j < n; ++j)
-            t[lap->pos[j]] = b[j * ncols + c];
-        capsheet_ldl_solve_d(n, lap->n_super, lap->sn_col, lap->sn_row, lap->rows, lap->sn_diag,
-                             lap->sn_below, lap->val, lap->diag, t, ldl_work);
-        for (j = 0; j < n; ++j)
-            b[j * ncols + c] = t[lap->pos[j]];
-    }
+    for (j = 0; j < n; ++j)
+        for (c = 0; c < ncols; ++c)
+            t[lap->pos[j] * ncols + c] = b[j * ncols + c];
+    ldl_solve_d_nc(n, ncols, lap->n_super, lap->sn_col, lap->sn_row, lap->rows, lap->sn_diag,
+                   lap->sn_below, lap->val, lap->diag, t, ldl_work);
+    for (j = 0; j < n; ++j)
+        for (c = 0; c < ncols; ++c)
+            b[j * ncols + c] = t[lap->pos[j] * ncols + c];
 }
 
 /* Bᵀ (w · (dz − B x)) − eps x into out (B the valid links' incidence: row k is −1 at ep_a[k],
@@ -914,5 +944,38 @@ void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t
         beta_out[l] = asin(s);
         trig[4 * l + 2] = sqrt((1.0 - s) * (1.0 + s));  /* cos of a pitch in [-pi/2, pi/2] */
         trig[4 * l + 3] = s;
+    }
+}
+
+void capsheet_pair_weights(int64_t n_units, const int64_t *units, const double *hu, int64_t n_links,
+                           const double *link_units, int32_t level, int64_t n_bend,
+                           const int64_t *pairs, const double *bridging, double bend, double share,
+                           int64_t n_shear, const int64_t *shear_unit, double shear_weight,
+                           double floor_w, double *w, double *lf)
+{
+    int64_t k, u;
+    if (level) {
+        for (k = 0; k < n_links; ++k)
+            lf[k] = 0.0;
+        for (k = 0; k < 4; ++k)  /* numpy's order: position by position */
+            for (u = 0; u < n_units; ++u)
+                lf[units[4 * u + k]] += hu[u];
+        for (k = 0; k < n_links; ++k)
+            lf[k] /= link_units[k];
+    }
+    for (k = 0; k < n_bend; ++k) {
+        double b = bend;
+        if (level) {
+            const double la = lf[pairs[2 * k]], lb = lf[pairs[2 * k + 1]];
+            double h = la > lb || la != la ? la : lb;  /* np.maximum (NaN propagates) */
+            h = h > bridging[k] || h != h ? h : bridging[k];
+            h = h > share || h != h ? h : share;
+            b = bend * h;
+        }
+        w[k] = b > floor_w || b != b ? b : floor_w;
+    }
+    for (k = 0; k < n_shear; ++k) {
+        const double v = shear_weight * hu[shear_unit[k]];
+        w[n_bend + k] = v > floor_w || v != v ? v : floor_w;
     }
 }

@@ -166,7 +166,8 @@ typedef struct {
 } capsheet_lap_t;
 
 /* Solve the Laplacian system for ncols right-hand sides b (n, ncols) row-major (a joint's
- * columns together, numpy's (n, 3)), in place. work: n + ldl_work_size doubles. No failure cases. */
+ * columns together, numpy's (n, 3)), in place, the factor read once for all of them. work:
+ * ncols (n + ldl_work_size) doubles. No failure cases. */
 void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, double *work);
 
 /* estimator.pipeline.closed_pitches for one snapshot: the heights that fit every valid link's
@@ -181,5 +182,18 @@ void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t
                              const double *trig_in, const double *beta, int32_t weighted,
                              double var_floor, double eps, int64_t steps, double *beta_out,
                              double *trig, double *work);
+
+/* The pair weights of the "level" (level nonzero) or "adaptive" prior for one snapshot
+ * (estimator.priors.prior_weights): per bending pair (pairs (n_bend, 2) links) bend times, for
+ * "level", the largest of its two links' mean unit flatness (lf: per link, the mean of hu over
+ * its units; link_units their counts), bridging[k] and share; per shear pair shear_weight times
+ * its unit's flatness (shear_unit); each at least floor_w, into w (n_bend + n_shear). hu: every
+ * unit's flatness (n_units, all units; units (n_units, 4) their links). lf: n_links doubles of
+ * work. The same arithmetic as numpy's, NaN propagated as np.maximum does. No failure cases. */
+void capsheet_pair_weights(int64_t n_units, const int64_t *units, const double *hu, int64_t n_links,
+                           const double *link_units, int32_t level, int64_t n_bend,
+                           const int64_t *pairs, const double *bridging, double bend, double share,
+                           int64_t n_shear, const int64_t *shear_unit, double shear_weight,
+                           double floor_w, double *w, double *lf);
 
 #endif

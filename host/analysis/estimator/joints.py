@@ -8,6 +8,7 @@ import numpy as np
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 from .angles import angle_trig
+from .linalg import lap_solve
 from .checks import check_int
 from .structure import JOINT_PRIOR_WEIGHT, lattice_of, structure_of
 
@@ -71,7 +72,7 @@ def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=
     dl = L * (d if st.all_valid else d[..., vl, :])  # (..., n_valid, 3)
     if single:
         rhs = st.incidence_T @ dl + JOINT_PRIOR_WEIGHT * joint_prior
-        P = st.lap_lu.solve(rhs)
+        P = lap_solve(st, rhs)
         P -= P[0]
     else:  # the snapshots side by side: (n_valid, 3 B), one solve
         B = gamma.shape[0]

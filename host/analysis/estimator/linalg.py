@@ -189,14 +189,15 @@ def laplacian_kernel(st):
 
 
 def lap_solve(st, b):
-    """``st``'s Laplacian solved for ``b`` (n_joints,) or (n_joints, k): one column in the kernel
-    (`laplacian_kernel`) when it is built and switched on, else SuperLU's (``st.lap_lu``)."""
+    """``st``'s Laplacian solved for ``b`` (n_joints,) or (n_joints, k): up to 4 columns in the
+    kernel (`laplacian_kernel`, the factor read once for all) when it is built and switched on,
+    else SuperLU's (``st.lap_lu``)."""
     lk = laplacian_kernel(st) if kernel.USE_KERNEL else None
-    if lk is None or b.ndim != 1:  # several columns: SuperLU's own multi-column sweeps are faster
+    if lk is None or b.ndim > 2 or b.ndim == 2 and b.shape[1] > 4:  # many columns: SuperLU's
         return st.lap_lu.solve(b)
     x = np.array(b, dtype=np.float64, order="C")  # a copy: solved in place
     k = 1 if x.ndim == 1 else x.shape[1]
-    work = np.empty(x.shape[0] + lk[1][3]["work_size"])
+    work = np.empty(k * (x.shape[0] + lk[1][3]["work_size"]))
     _klib.capsheet_lap_solve(lk[0], k, _kffi.from_buffer("double[]", x),
                              _kffi.from_buffer("double[]", work))
     return x

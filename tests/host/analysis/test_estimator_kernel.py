@@ -354,8 +354,12 @@ def test_the_kernels_laplacian_solve_is_superlus(n, masked):
     x0, x1 = st.lap_lu.solve(b), E.linalg.lap_solve(st, b)
     d0, d1 = x0 - x0[0], x1 - x1[0]  # the heights' differences (the constant is the prior's)
     assert np.max(np.abs(d1 - d0)) <= TOL * np.max(np.abs(d0))
-    B = np.stack([b, 2 * b], axis=1)  # several columns stay with SuperLU
-    assert np.array_equal(E.linalg.lap_solve(st, B), st.lap_lu.solve(B))
+    B = np.stack([b, -2 * b, st.incidence_T @ np.cos(v)], axis=1)  # the joints' three columns at once
+    X0, X1 = st.lap_lu.solve(B), E.linalg.lap_solve(st, B)
+    D0, D1 = X0 - X0[0], X1 - X1[0]
+    assert np.max(np.abs(D1 - D0)) <= TOL * np.max(np.abs(D0))
+    many = np.repeat(b[:, None], 6, axis=1)  # more than four stay with SuperLU
+    assert np.array_equal(E.linalg.lap_solve(st, many), st.lap_lu.solve(many))
 
 
 def test_the_laplacian_comparison_sees_a_wrong_factor():
@@ -372,3 +376,32 @@ def test_the_laplacian_comparison_sees_a_wrong_factor():
         val[k] = kept
     d0, d1 = x0 - x0[0], x1 - x1[0]
     assert np.max(np.abs(d1 - d0)) > TOL * np.max(np.abs(d0))
+
+
+@pytest.mark.parametrize("prior", ["level", "adaptive"])
+@pytest.mark.parametrize("n, shape, noise, masked", [(14, "cylinder", 1.0, False),
+                                                     (20, "flat", 0.02, True),
+                                                     (33, "gaussian", 3.0, False)])
+def test_the_kernels_pair_weights_are_the_numpy_codes(prior, n, shape, noise, masked, monkeypatch):
+    """The prior's pair weights in the kernel (``capsheet_pair_weights``) against `prior_weights`'
+    numpy code on the same flatness: the same numbers to the bit (the same operations in the
+    same order), with and without a rest shape."""
+    r = noisy_readings(ideal_readings(make_sheet(shape, n, n, L, shear=0.1)), noise, rng(n))
+    valid = _mask(n) if masked else np.ones(r.shape[0], bool)
+    st = E.structure.structure_of(n, n, None if valid.all() else valid)
+    norm = np.where(valid, np.linalg.norm(r, axis=1) / E.G0, 1.0)
+    sigma = noise / 100
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
+    hu = E.priors.flatness(st, r, norm, sigma)
+    assert 0.0 < hu.max() and (hu.min() < 0.5 or shape == "flat")
+    for rest_given in (False, True):
+        lam, w0 = E.priors.prior_weights(prior, st, r, norm, sigma, rest_given)
+        w1 = E.priors._pair_weights_kernel(prior, st, hu, sigma, rest_given)
+        assert np.array_equal(w1, w0)
+    # the comparison sees a wrong weight: another share of the bending on tilted pairs
+    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.004)
+    w2 = E.priors._pair_weights_kernel(prior, st, hu, sigma, False)
+    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.003)
+    # ("adaptive" holds every bending pair alike: no share, the same weights)
+    assert np.array_equal(w2, E.priors.prior_weights(prior, st, r, norm, sigma, False)[1]) == (
+        prior == "adaptive")
