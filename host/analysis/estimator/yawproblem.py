@@ -146,7 +146,8 @@ class YawProblem:
                                   fb("double[]", self.Az), fb("double[]", self.Cz),
                                   fb("double[]", self.y_c.view(np.float64)),
                                   fb("double[]", self.y_z))
-        self.w = roll_weights(st, beta)
+        # `roll_weights` with the table's cos β (the same to rounding; a cosine per link saved)
+        self.w = ROLL_WEIGHT * st.roll_inv_ncell * np.abs(trig[st.roll_links, 2])
 
     def take(self, idx):
         """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
