@@ -144,24 +144,16 @@ def solve(fac, b):
     return x
 
 
-def laplacian_kernel(st, build: bool = True):
+def laplacian_kernel(st):
     """The joints' Laplacian of structure ``st`` (``B^T B + JOINT_PRIOR_WEIGHT I``) as the kernel's
     ``capsheet_lap_t``: ordered by SuperLU's minimum degree (the ordering ``st.lap_lu`` uses),
     factorised once without pivoting (SPD) and kept in supernodes with double values, so that a
     solve (`lap_solve`, the heights of `pipeline.closed_pitches`, the joints) runs in C without
     SuperLU's per-call overhead; the numbers are SuperLU's to rounding. Made once per structure
-    (``st.derived``), for a structure with missing links on its second use (a call with
-    ``build``; without it, only what is made already); None when the kernel is not built, on that
-    first use, or when SuperLU pivoted anyway."""
+    (``st.derived``); None when the kernel is not built or SuperLU pivoted anyway."""
     got = st.derived.get("lap_kernel", False)
-    if got is not False or not build:
-        return got or None
-    if not st.all_valid and not st.derived.get("lap_kernel_asked"):
-        # a mask's structure is often a one-off (a snapshot with a late chip): its first
-        # snapshot uses SuperLU, as building this (a factorisation, the supernodes) costs tens
-        # of milliseconds at 64x64; a mask that comes back (a dead chip) gets it
-        st.derived["lap_kernel_asked"] = True
-        return None
+    if got is not False:
+        return got
     got = None
     if _klib is not None:
         from scipy.sparse.linalg import splu as _splu
@@ -198,10 +190,9 @@ def laplacian_kernel(st, build: bool = True):
 
 def lap_solve(st, b):
     """``st``'s Laplacian solved for ``b`` (n_joints,) or (n_joints, k): up to 4 columns in the
-    kernel (`laplacian_kernel`, the factor read once for all) when it is built and switched on and
-    the structure has its factor already (`pipeline.closed_pitches` makes it), else SuperLU's
-    (``st.lap_lu``)."""
-    lk = laplacian_kernel(st, build=False) if kernel.USE_KERNEL else None
+    kernel (`laplacian_kernel`, the factor read once for all) when it is built and switched on,
+    else SuperLU's (``st.lap_lu``)."""
+    lk = laplacian_kernel(st) if kernel.USE_KERNEL else None
     if lk is None or b.ndim > 2 or b.ndim == 2 and b.shape[1] > 4:  # many columns: SuperLU's
         return st.lap_lu.solve(b)
     x = np.array(b, dtype=np.float64, order="C")  # a copy: solved in place
