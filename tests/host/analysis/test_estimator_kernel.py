@@ -1,4 +1,4 @@
-"""The estimator's compiled kernel (host/analysis/_kernel/yaw_eval.c, heights.c) against its numpy code.
+"""The estimator's compiled kernel (host/analysis/_kernel/*.c) against its numpy code.
 
 Two independent implementations of the same terms: the kernel's single-pass loops and
 `YawProblem.evaluate`'s numpy (`_roll_grad`, reverse mode), and the kernel's triangular sweeps
