@@ -700,7 +700,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
         accelerated = acc;
         if (!(smax > c->refactor_ratio * ps))
             poor = 0;
-        else if (smax < c->refactor_far * c->tol || ++poor >= c->refactor_patience) {
+        else if (smax < c->refactor_far * c->tol || smax > c->refactor_growth * ps
+                 || ++poor >= c->refactor_patience) {
             *iterations = it;
             *cost = cst;
             *prev_smax = smax;

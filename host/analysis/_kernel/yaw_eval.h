@@ -119,7 +119,8 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * (the last step's largest entry, inf at first) are carried in and out. Returns 0 converged
  * (gamma is the last step's point, unevaluated), 1 the cost rose (gamma unchanged: refactorise
  * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma) while
- * below refactor_far * tol, or refactor_patience such steps in a row above it,
+ * below refactor_far * tol or more than refactor_growth times the last, or refactor_patience
+ * such steps in a row,
  * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 max(n_units, 1) + 6 n_links
  * doubles. chain_rho, chain_kappa, chain_safety: the contraction the previous snapshot measured on
  * this factorisation (estimator.solver.Contraction); when chain_safety > 0 the first step also
@@ -129,7 +130,7 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
 typedef struct {
     int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
     double chain_rho, chain_kappa, chain_safety, predict_within;
-    int64_t refactor_patience; double refactor_far;
+    int64_t refactor_patience; double refactor_far, refactor_growth;
     const double *cs_in;  /* (cos γ, sin γ) of gamma on entry (2 n_links) */
     double *cs_out;       /* ... of gamma on return (2 n_links; may not alias cs_in) */
     const int64_t *perm_inv, *perm_of_var;

@@ -12,7 +12,7 @@ from .structure import Structure
 from .yawproblem import YawProblem
 
 __all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "REFACTOR_PATIENCE",
-           "REFACTOR_FAR", "CHAIN_SAFETY",
+           "REFACTOR_FAR", "REFACTOR_GROWTH", "CHAIN_SAFETY",
            "CHAIN_REMEASURE", "Contraction", "solve_global", "step_converged", "SLOW_CAP",
            "chord_in_kernel", "ANDERSON_COS", "anderson", "BATCH_MAX_ITER", "BATCH_REFACTOR",
            "solve_global_batch"]
@@ -42,6 +42,10 @@ REFACTOR_PATIENCE = 2
 #: largest entry then hides (with this at 0 the drape at 3 % g stopped 0.093 % of the side from
 #: the minimiser, where every path is held to 0.03 %).
 REFACTOR_FAR = 10.0
+#: ... and so does a step this much larger than the last, wherever it is: the iteration is
+#: moving away, not contracting slowly (the drape at 5 % g passed a step 1.6 times its
+#: predecessor and stopped 0.048 % of the side from the minimiser, against 0.018 % refactorising)
+REFACTOR_GROWTH = 1.25
 #: A warm solve also stops after its first chord step when the contraction its chain measured on
 #: the same factorisation (`Contraction`) predicts the next step below the tolerance by this
 #: factor. On a 64x64 sheet streaming at 145 Hz the first step is ~3e-3 rad and the second
@@ -124,7 +128,7 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
         # the warm start's chord steps in the kernel: this loop's iterations, one C call
         status, it, cost, grad, prev_smax, seen = prob.chord_kernel(
             gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS, chain, CHAIN_SAFETY,
-            PREDICT_WITHIN, REFACTOR_PATIENCE, REFACTOR_FAR)
+            PREDICT_WITHIN, REFACTOR_PATIENCE, REFACTOR_FAR, REFACTOR_GROWTH)
         if status in (0, 3):  # converged, or out of iterations
             return gamma, it, 0, lu, prob, _contraction(seen, chain, lu is lu_in and it == 1)
         lu, blocks, seen = None, None, []  # 1: the cost rose; 2: a step contracted too little
@@ -180,7 +184,8 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
             lu = None
         elif smax > REFACTOR_RATIO * prev_smax:
             poor += 1
-            if smax < REFACTOR_FAR * tol or poor >= REFACTOR_PATIENCE:
+            if (smax < REFACTOR_FAR * tol or poor >= REFACTOR_PATIENCE
+                    or smax > REFACTOR_GROWTH * prev_smax):
                 lu, poor = None, 0
             else:
                 slow = max(slow, smax / prev_smax)

@@ -243,7 +243,7 @@ class YawProblem:
 
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
                      chain=None, chain_safety=0.0, predict_within=3.0, refactor_patience=1,
-                     refactor_far=0.0):
+                     refactor_far=0.0, refactor_growth=np.inf):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
@@ -264,6 +264,7 @@ class YawProblem:
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
         c.predict_within = predict_within
         c.refactor_patience, c.refactor_far = int(refactor_patience), float(refactor_far)
+        c.refactor_growth = float(refactor_growth)
         if chain is not None:
             c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, float(chain_safety)
         pi = np.ascontiguousarray(st.perm_inv, np.int64)
