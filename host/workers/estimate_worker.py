@@ -15,8 +15,9 @@ process (``spawn``) and hands back `RemoteEstimate` s, in order:
   cost is under `UNCERTAINTY_SHARE` of the time since: at 14x14 (~0.1 s) once a second as in
   process, at 64x64 (~1.6 s) about once a minute, so it never starves the estimates.
 
-The child warm-starts each estimate from the previous one (``previous=``), as the in-process
-path does. Before the first request it warms up (`WARMUP_COUNTER`): one estimate of a flat sheet
+The child holds a `host.analysis.estimator.ShapeEstimator`: each estimate warm-starts from the
+previous one (its yaws, its factorisation and the contraction measured on it), as the in-process
+path's ``previous=`` chain does, with the same numbers. Before the first request it warms up (`WARMUP_COUNTER`): one estimate of a flat sheet
 (the lattice's structure, ordering and factorisation built) and its uncertainty, whose cost starts
 the rule above. A host makes the process before bring-up, so this happens while the chips are
 brought up: the first snapshots' estimates no longer wait 1-2 s behind a 64x64 uncertainty, and
@@ -116,11 +117,11 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
     req, ans = pipes
     from host.runtime import one_blas_thread
     one_blas_thread()
-    from host.analysis.estimator import estimate
+    from host.analysis.estimator import ShapeEstimator, estimate
 
     n = rows * (cols - 1) + cols * (rows - 1)
     _warm_up(ans, estimate, rows, cols, link_length, n)
-    previous = None
+    chain = ShapeEstimator(rows, cols, link_length, bad_readings="mask")
     while True:
         try:
             buf = req.recv_bytes()
@@ -132,12 +133,11 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
         valid = np.frombuffer(buf, dtype=np.bool_, count=n, offset=off + 24 * n)
         t0 = time.perf_counter()
         try:
-            est = estimate(readings, rows, cols, link_length, valid=valid, previous=previous, bad_readings="mask")
-        except ValueError as exc:  # every valid link's reading bad: said, not fatal
+            est = chain.update(readings, valid=valid)
+        except ValueError as exc:  # every valid link's reading bad: said, not fatal (the warm start is kept)
             err = str(exc).encode()[:2000]
             ans.send_bytes(_ANS.pack(counter, 0, 0, float("nan"), 0, time.perf_counter() - t0) + err)
             continue
-        previous = est
         parts = [np.ascontiguousarray(est.joints, dtype="<f8").tobytes(),
                  np.ascontiguousarray(est.valid, dtype=np.bool_).tobytes()]
         has_std = 0

@@ -14,14 +14,42 @@
 #endif
 
 #define TWO_PI 6.283185307179586
+/* estimator/solver.py's SLOW_CAP */
+#define SLOW_CAP 0.9
 
 static double wrap_fast(double x)
 {
     return x - TWO_PI * rint(x * (1.0 / TWO_PI));
 }
 
+/* capsheet_yaw_eval with the links' (cos γ, sin γ) given (cs, 2 n_links), or computed into work
+ * when cs is NULL. */
+static double yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs,
+                          double *grad, double *work);
+
 double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
                          double *work)
+{
+    return yaw_eval_cs(p, gamma, NULL, grad, work);
+}
+
+double capsheet_yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs,
+                            double *grad, double *work)
+{
+    return yaw_eval_cs(p, gamma, cs, grad, work);
+}
+
+void capsheet_link_cs(int64_t n, const double *gamma, double *cs)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        cs[2 * k] = cos(gamma[k]);
+        cs[2 * k + 1] = sin(gamma[k]);
+    }
+}
+
+static double yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs_in,
+                          double *grad, double *work)
 {
     const int64_t U = p->n_units, K = p->n_roll, NP = p->n_pairs, nv = p->n_var;
     /* work: per unit t (8), A (2), C (2), n (3), inv (1), Y (3) = 19 doubles; per link
@@ -29,16 +57,18 @@ double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *g
      * cosine are computed once here instead of up to three times below */
     double *wt = work;
     double *wA = wt + 8 * U, *wC = wA + 2 * U, *wn = wC + 2 * U, *winv = wn + 3 * U;
-    double *wY = winv + U, *wcs = wY + 3 * U;
+    double *wY = winv + U, *wcs_own = wY + 3 * U;
+    const double *wcs = cs_in ? cs_in : wcs_own;
     double cost_loop = 0.0, cost_roll = 0.0, cost_pair = 0.0, cost_abs = 0.0;
     int64_t u, m, k;
 
     for (k = 0; k <= nv; ++k)
         grad[k] = 0.0;
-    for (k = 0; k < p->n_links; ++k) {
-        wcs[2 * k] = cos(gamma[k]);
-        wcs[2 * k + 1] = sin(gamma[k]);
-    }
+    if (!cs_in)
+        for (k = 0; k < p->n_links; ++k) {
+            wcs_own[2 * k] = cos(gamma[k]);
+            wcs_own[2 * k + 1] = sin(gamma[k]);
+        }
 
     /* loop closure (eq. 4, xy) and the cells' normals */
     for (u = 0; u < U; ++u) {
@@ -153,6 +183,23 @@ void capsheet_directions(int64_t n, const double *trig, const double *gamma, dou
         const double ca = trig[4 * k], sa = trig[4 * k + 1], cb = trig[4 * k + 2];
         const double sb = trig[4 * k + 3];
         const double cg = cos(gamma[k]), sg = sin(gamma[k]);
+        d[3 * k] = cg * cb;
+        d[3 * k + 1] = sg * cb;
+        d[3 * k + 2] = -sb;
+        nrm[3 * k] = cg * sb * ca + sg * sa;
+        nrm[3 * k + 1] = sg * sb * ca - cg * sa;
+        nrm[3 * k + 2] = cb * ca;
+    }
+}
+
+void capsheet_directions_cs(int64_t n, const double *trig, const double *cs, double *d,
+                            double *nrm)
+{
+    int64_t k;
+    for (k = 0; k < n; ++k) {
+        const double ca = trig[4 * k], sa = trig[4 * k + 1], cb = trig[4 * k + 2];
+        const double sb = trig[4 * k + 3];
+        const double cg = cs[2 * k], sg = cs[2 * k + 1];
         d[3 * k] = cg * cb;
         d[3 * k + 1] = sg * cb;
         d[3 * k + 2] = -sb;
@@ -493,13 +540,48 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
 /* estimator/solver.py's step_converged: whether a step of largest entry smax (the last one's
  * prev, INFINITY when none; accelerated: the last move was an Anderson one) ends the iteration. */
 static int capsheet_step_converged(double smax, double prev, int32_t accelerated, double tol,
-                                   double predict_within)
+                                   double predict_within, double slow)
 {
+    if (slow > 0.0) {  /* a slow step passed on this factorisation: its mode may be left */
+        double rho = isfinite(prev) && prev > 0.0 ? smax / prev : 0.0;
+        rho = rho > slow ? rho : slow;
+        rho = rho < SLOW_CAP ? rho : SLOW_CAP;
+        return smax * rho < tol * (1.0 - rho);
+    }
     if (isfinite(prev) && !accelerated && smax < prev && smax < predict_within * tol) {
         const double rho = smax / prev;
         return smax * rho < tol * (rho > 0.5 ? 1.0 - rho : 1.0);
     }
     return smax < tol;
+}
+
+/* cs_out = (cos, sin) of gamma + move per link (cs_in: gamma's; move on the variables' links):
+ * each variable's pair turned by its move, e^{iδ} by its Taylor series where |δ| <= 1/8 (twelve
+ * terms: the rest is below 1e-19, under the rounding of cos and sin themselves), else by cos and
+ * sin. A chord step's moves are small: a cos and a sin per link were half an evaluation. */
+static void turn_cs(int64_t n_links, int64_t nv, const int64_t *var_links, const double *move,
+                    const double *cs_in, double *cs_out)
+{
+    int64_t k;
+    for (k = 0; k < 2 * n_links; ++k)
+        cs_out[k] = cs_in[k];
+    for (k = 0; k < nv; ++k) {
+        const double d = move[k], d2 = d * d;
+        const int64_t l = var_links[k];
+        const double c0 = cs_in[2 * l], s0 = cs_in[2 * l + 1];
+        double cd, sd;
+        if (fabs(d) <= 0.125) {
+            cd = 1.0 - d2 * (1.0 / 2.0 - d2 * (1.0 / 24.0 - d2 * (1.0 / 720.0 - d2 * (1.0 / 40320.0
+                 - d2 * (1.0 / 3628800.0)))));
+            sd = d * (1.0 - d2 * (1.0 / 6.0 - d2 * (1.0 / 120.0 - d2 * (1.0 / 5040.0 - d2 * (1.0 / 362880.0
+                 - d2 * (1.0 / 39916800.0))))));
+        } else {
+            cd = cos(d);
+            sd = sin(d);
+        }
+        cs_out[2 * l] = c0 * cd - s0 * sd;
+        cs_out[2 * l + 1] = s0 * cd + c0 * sd;
+    }
 }
 
 /* The chord iterations of estimator/solver.py's solve_global for one snapshot on a factorisation
@@ -515,11 +597,16 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
     double *step = work, *move = step + nv, *s_prev = move + nv, *dx = s_prev + nv;
     double *x = dx + nv, *g_new = x + nv, *grad_new = g_new + n_links;
     double *ldl_work = grad_new + nv + 1, *eval_work = ldl_work + c->ldl_work_size;
+    double *cs = c->cs_out;  /* the current point's (cos γ, sin γ), handed back with it */
+    double *cs_new = eval_work + 19 * (p->n_units > 0 ? p->n_units : 1) + 2 * n_links;
     int32_t has_hist = 0, accelerated = 0;
-    int64_t it = *iterations, k;
+    int64_t it = *iterations, k, poor = 0;
+    double slow = 0.0;  /* the slowest contraction of a slow step passed (not refactorised) */
     const int64_t it0 = it;
     double ps = *prev_smax, cst = *cost;
     steps[0] = steps[1] = 0.0;
+    for (k = 0; k < 2 * n_links; ++k)
+        cs[k] = c->cs_in[k];
     while (it < c->max_iter) {
         double smax = 0.0, cost_new;
         int32_t acc = 0;
@@ -567,16 +654,20 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             g_new[p->var_links[k]] += move[k];
         if (it - it0 <= 2)
             steps[it - it0 - 1] = smax;
-        if (capsheet_step_converged(smax, ps, accelerated, c->tol, c->predict_within)
+        if (capsheet_step_converged(smax, ps, accelerated, c->tol, c->predict_within, slow)
             || (it == it0 + 1 && c->chain_safety > 0.0
                 && c->chain_safety * fmax(c->chain_rho * smax, c->chain_kappa * smax * smax) < c->tol)) {
             for (k = 0; k < n_links; ++k)
                 gamma[k] = g_new[k];
+            turn_cs(n_links, nv, p->var_links, move, cs, cs_new);
+            for (k = 0; k < 2 * n_links; ++k)
+                cs[k] = cs_new[k];
             *iterations = it;
             *cost = cst;
             return 0;
         }
-        cost_new = capsheet_yaw_eval(p, g_new, grad_new, eval_work);
+        turn_cs(n_links, nv, p->var_links, move, cs, cs_new);
+        cost_new = yaw_eval_cs(p, g_new, cs_new, grad_new, eval_work);
         if (acc && !(cost_new <= cst * (1.0 + 1e-12) + 1e-300)) {
             acc = 0;
             for (k = 0; k < nv; ++k)
@@ -585,7 +676,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
                 g_new[k] = gamma[k];
             for (k = 0; k < nv; ++k)
                 g_new[p->var_links[k]] += move[k];
-            cost_new = capsheet_yaw_eval(p, g_new, grad_new, eval_work);
+            turn_cs(n_links, nv, p->var_links, move, cs, cs_new);
+            cost_new = yaw_eval_cs(p, g_new, cs_new, grad_new, eval_work);
         }
         if (!(cost_new <= cst * (1.0 + 1e-12) + 1e-300)) {
             *iterations = it;
@@ -597,6 +689,8 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
             gamma[k] = g_new[k];
         for (k = 0; k <= nv; ++k)
             grad[k] = grad_new[k];
+        for (k = 0; k < 2 * n_links; ++k)
+            cs[k] = cs_new[k];
         cst = cost_new;
         for (k = 0; k < nv; ++k) {
             s_prev[k] = step[k];
@@ -604,11 +698,17 @@ int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, dou
         }
         has_hist = 1;
         accelerated = acc;
-        if (smax > c->refactor_ratio * ps) {
+        if (!(smax > c->refactor_ratio * ps))
+            poor = 0;
+        else if (smax < c->refactor_far * c->tol || smax > c->refactor_growth * ps
+                 || ++poor >= c->refactor_patience) {
             *iterations = it;
             *cost = cst;
             *prev_smax = smax;
             return 2;  /* accepted; refactorise at the new gamma */
+        } else {
+            const double r = smax / ps;
+            slow = r > slow ? r : slow;
         }
         ps = smax;
     }

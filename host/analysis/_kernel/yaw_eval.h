@@ -33,6 +33,14 @@ typedef struct {
 double capsheet_yaw_eval(const capsheet_yaw_t *p, const double *gamma, double *grad,
                          double *work);
 
+/* capsheet_yaw_eval with the links' (cos γ, sin γ) given: cs (2 n_links), capsheet_link_cs's of
+ * gamma (or a chord step's turning of them). No failure cases. */
+double capsheet_yaw_eval_cs(const capsheet_yaw_t *p, const double *gamma, const double *cs,
+                            double *grad, double *work);
+
+/* cs (2 n) = (cos γ, sin γ) per link. No failure cases. */
+void capsheet_link_cs(int64_t n, const double *gamma, double *cs);
+
 
 /* Per link (n links) of readings r (n, 3) and their roll alpha = atan2(r_y, r_z) and pitch
  * beta = atan2(−r_x, hypot(r_y, r_z)) (estimator.roll_pitch): trig (n, 4) = (cos α, sin α,
@@ -49,6 +57,10 @@ void capsheet_angle_trig(int64_t n, const double *alpha, const double *beta, dou
  * No failure cases. */
 void capsheet_directions(int64_t n, const double *trig, const double *gamma, double *d,
                          double *nrm);
+
+/* capsheet_directions with the yaws' (cos γ, sin γ) given (cs, 2 n: capsheet_link_cs's). */
+void capsheet_directions_cs(int64_t n, const double *trig, const double *cs, double *d,
+                            double *nrm);
 
 /* Σ over the units (n_units, 4 links) of eq. (8): |d0 + d1 − d2 − d3|² + |n0 − n1 + n2 − n3|². */
 double capsheet_eq8(int64_t n_units, const int64_t *units, const double *d, const double *nrm);
@@ -106,8 +118,10 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
  * cost / grad (nv + 1) hold the current point on entry and on return; iterations and prev_smax
  * (the last step's largest entry, inf at first) are carried in and out. Returns 0 converged
  * (gamma is the last step's point, unevaluated), 1 the cost rose (gamma unchanged: refactorise
- * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma),
- * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 n_units + 2 n_links
+ * there), 2 a step contracted by less than refactor_ratio (accepted: refactorise at gamma) while
+ * below refactor_far * tol or more than refactor_growth times the last, or refactor_patience
+ * such steps in a row,
+ * 3 max_iter reached. work: 6 nv + n_links + 1 + ldl_work_size + 19 max(n_units, 1) + 6 n_links
  * doubles. chain_rho, chain_kappa, chain_safety: the contraction the previous snapshot measured on
  * this factorisation (estimator.solver.Contraction); when chain_safety > 0 the first step also
  * converges when chain_safety * max(rho s, kappa s^2) < tol (s its largest entry).
@@ -116,6 +130,9 @@ void capsheet_ldl_fill(int64_t n_super, const int32_t *l_ptr, const int32_t *l_i
 typedef struct {
     int64_t n_links; int64_t max_iter; double tol, refactor_ratio, anderson_cos;
     double chain_rho, chain_kappa, chain_safety, predict_within;
+    int64_t refactor_patience; double refactor_far, refactor_growth;
+    const double *cs_in;  /* (cos γ, sin γ) of gamma on entry (2 n_links) */
+    double *cs_out;       /* ... of gamma on return (2 n_links; may not alias cs_in) */
     const int64_t *perm_inv, *perm_of_var;
     int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
     const int64_t *sn_diag, *sn_below; const float *val; const double *diag;
@@ -124,5 +141,60 @@ typedef struct {
 int32_t capsheet_chord(const capsheet_yaw_t *p, double *gamma, double *cost, double *grad,
                        const capsheet_chord_t *c, int64_t *iterations, double *prev_smax,
                        double *steps, double *work);
+
+
+/* capsheet_ldl_solve with the factor's values in double (the joints' Laplacian: its solves are
+ * the heights and the joints themselves, not a chord step's approximation, and they must be
+ * SuperLU's to rounding). Same layout; val double. No failure cases: a zero in D gives inf/NaN. */
+void capsheet_ldl_solve_d(int64_t n, int64_t n_super, const int32_t *sn_col, const int64_t *sn_row,
+                          const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                          const double *val, const double *diag, double *x, double *work);
+
+/* capsheet_ldl_fill into double values (capsheet_ldl_solve_d's). */
+void capsheet_ldl_fill_d(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
+                         const double *l_val, const int32_t *sn_col, const int64_t *sn_row,
+                         const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
+                         int32_t *map, double *val);
+
+/* The joints' Laplacian factorised (estimator.structure.Structure.lap_kernel): n joints, the
+ * symmetric ordering pos[joint] (position of a joint in the factor), and its supernodal L D Lᵀ
+ * in double (capsheet_ldl_solve_d's layout). */
+typedef struct {
+    int64_t n; const int64_t *pos;
+    int64_t n_super; const int32_t *sn_col; const int64_t *sn_row; const int32_t *rows;
+    const int64_t *sn_diag, *sn_below; const double *val; const double *diag;
+    int64_t ldl_work_size;
+} capsheet_lap_t;
+
+/* Solve the Laplacian system for ncols right-hand sides b (n, ncols) row-major (a joint's
+ * columns together, numpy's (n, 3)), in place, the factor read once for all of them. work:
+ * ncols (n + ldl_work_size) doubles. No failure cases. */
+void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, double *work);
+
+/* estimator.pipeline.closed_pitches for one snapshot: the heights that fit every valid link's
+ * step dz = -sin beta (trig_in's, the readings' capsheet_reading_trig) best, min sum w (z_b - z_a - dz)^2 + eps |z|^2 (w = 1 / (1 - sin^2 beta +
+ * floor) when weighted, else 1): the unweighted fit, then `steps` conjugate-gradient steps
+ * preconditioned by the unweighted Laplacian (pipeline.weighted_heights); then each valid link's
+ * pitch asin(s), s = clip(-(z_b - z_a)), into beta_out (the others keep beta's) and trig
+ * (n_links, 4): trig_in's with each valid link's pitch columns (sqrt(1 - s^2), s). Links: n_valid of them, valid_links, endpoints
+ * ep_a, ep_b (joints). work: 7 n_joints + 2 n_valid + ldl_work_size doubles. No failure cases. */
+void capsheet_closed_pitches(const capsheet_lap_t *lap, int64_t n_links, int64_t n_valid,
+                             const int64_t *valid_links, const int64_t *ep_a, const int64_t *ep_b,
+                             const double *trig_in, const double *beta, int32_t weighted,
+                             double var_floor, double eps, int64_t steps, double *beta_out,
+                             double *trig, double *work);
+
+/* The pair weights of the "level" (level nonzero) or "adaptive" prior for one snapshot
+ * (estimator.priors.prior_weights): per bending pair (pairs (n_bend, 2) links) bend times, for
+ * "level", the largest of its two links' mean unit flatness (lf: per link, the mean of hu over
+ * its units; link_units their counts), bridging[k] and share; per shear pair shear_weight times
+ * its unit's flatness (shear_unit); each at least floor_w, into w (n_bend + n_shear). hu: every
+ * unit's flatness (n_units, all units; units (n_units, 4) their links). lf: n_links doubles of
+ * work. The same arithmetic as numpy's, NaN propagated as np.maximum does. No failure cases. */
+void capsheet_pair_weights(int64_t n_units, const int64_t *units, const double *hu, int64_t n_links,
+                           const double *link_units, int32_t level, int64_t n_bend,
+                           const int64_t *pairs, const double *bridging, double bend, double share,
+                           int64_t n_shear, const int64_t *shear_unit, double shear_weight,
+                           double floor_w, double *w, double *lf);
 
 #endif

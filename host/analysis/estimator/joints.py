@@ -8,24 +8,30 @@ import numpy as np
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 from .angles import angle_trig
+from .linalg import lap_solve
 from .checks import check_int
 from .structure import JOINT_PRIOR_WEIGHT, lattice_of, structure_of
 
 __all__ = ["directions_normals", "eq8_residual", "joints_and_mask", "joints_from_directions"]
 
 
-def directions_normals(alpha, beta, gamma, trig=None):
+def directions_normals(alpha, beta, gamma, trig=None, cs=None):
     """Per link its direction (sensor x) and normal (sensor z) in the world, (..., n_links, 3)
     each (docs/design.md's ``R = Rz(γ) Ry(β) Rx(α)``); ``trig``: the links' `angle_trig`, if
-    already made (one snapshot)."""
+    already made (one snapshot); ``cs``: the yaws' cosines and sines, interleaved, if already made
+    (`YawProblem.link_cs`)."""
     if kernel.USE_KERNEL and np.ndim(alpha) == 1:  # one snapshot: the kernel
         if trig is None:
             trig = angle_trig(alpha, beta)
         g = np.ascontiguousarray(gamma, dtype=np.float64)
         d, n = np.empty((g.size, 3)), np.empty((g.size, 3))
         fb = _kffi.from_buffer
-        _klib.capsheet_directions(g.size, fb("double[]", trig), fb("double[]", g),
-                                  fb("double[]", d), fb("double[]", n))
+        if cs is not None:
+            _klib.capsheet_directions_cs(g.size, fb("double[]", trig), fb("double[]", cs),
+                                         fb("double[]", d), fb("double[]", n))
+        else:
+            _klib.capsheet_directions(g.size, fb("double[]", trig), fb("double[]", g),
+                                      fb("double[]", d), fb("double[]", n))
         return d, n
     ca, sa, cb, sb, cg, sg = (np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta),
                               np.cos(gamma), np.sin(gamma))
@@ -50,7 +56,7 @@ def eq8_residual(units: np.ndarray, d: np.ndarray, n: np.ndarray):
     return float(tot) if d.ndim == 2 else tot
 
 
-def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=None):
+def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=None, cs=None):
     """The shape from the yaws, for one snapshot (``gamma`` (n_links,)) or a batch of one
     structure (B, n_links): every link's direction and normal, the joints by least squares over
     the valid links, ``min Σ ‖p_b − p_a − L d‖²`` plus ``JOINT_PRIOR_WEIGHT`` towards
@@ -58,14 +64,15 @@ def joints_and_mask(st, L: float, alpha, beta, gamma, target, joint_prior, trig=
     solve for a batch), eq. (8)'s residual over the active units, and for a missing link: the
     chord between its estimated joints as its direction, NaN normal, roll and pitch, its yaw the
     ``target``'s. Returns (joints (..., n_joints, 3), directions, normals, yaws, alpha, beta,
-    residual); ``trig`` (one snapshot) is updated in place (NaN for missing links)."""
-    d, nrm = directions_normals(alpha, beta, gamma, trig)
+    residual); ``trig`` (one snapshot) is updated in place (NaN for missing links); ``cs``: the
+    yaws' cosines and sines, if made (`directions_normals`)."""
+    d, nrm = directions_normals(alpha, beta, gamma, trig, cs)
     single = gamma.ndim == 1
     vl = st.valid_links
     dl = L * (d if st.all_valid else d[..., vl, :])  # (..., n_valid, 3)
     if single:
         rhs = st.incidence_T @ dl + JOINT_PRIOR_WEIGHT * joint_prior
-        P = st.lap_lu.solve(rhs)
+        P = lap_solve(st, rhs)
         P -= P[0]
     else:  # the snapshots side by side: (n_valid, 3 B), one solve
         B = gamma.shape[0]

@@ -9,7 +9,8 @@ from scipy.sparse.linalg import splu
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 
-__all__ = ["LINEAR_SOLVER", "cholmod_module", "backend", "factorise", "solve"]
+__all__ = ["LINEAR_SOLVER", "cholmod_module", "backend", "factorise", "solve", "laplacian_kernel",
+           "lap_solve"]
 
 #: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there; the default:
 #: benchmarks/bench_estimator.py found no consistent gain from CHOLMOD on warm runs, -17 % to
@@ -139,5 +140,64 @@ def solve(fac, b):
     x = np.array(b, dtype=np.float64)  # a copy: solved in place
     work = np.empty(tri[0][2]["work_size"])  # per call: solves may run in several threads
     _klib.capsheet_ldl_solve(x.size, *tri[1], _kffi.from_buffer("double[]", x),
+                             _kffi.from_buffer("double[]", work))
+    return x
+
+
+def laplacian_kernel(st):
+    """The joints' Laplacian of structure ``st`` (``B^T B + JOINT_PRIOR_WEIGHT I``) as the kernel's
+    ``capsheet_lap_t``: ordered by SuperLU's minimum degree (the ordering ``st.lap_lu`` uses),
+    factorised once without pivoting (SPD) and kept in supernodes with double values, so that a
+    solve (`lap_solve`, the heights of `pipeline.closed_pitches`, the joints) runs in C without
+    SuperLU's per-call overhead; the numbers are SuperLU's to rounding. Made once per structure
+    (``st.derived``); None when the kernel is not built or SuperLU pivoted anyway."""
+    got = st.derived.get("lap_kernel", False)
+    if got is not False:
+        return got
+    got = None
+    if _klib is not None:
+        from scipy.sparse.linalg import splu as _splu
+        lap = st.lap_matrix
+        n = lap.shape[0]
+        pos = np.asarray(st.lap_lu.perm_c, dtype=np.int64)  # joint -> position
+        inv = np.argsort(pos)
+        Ap = lap[inv][:, inv].tocsc()
+        lu = _splu(Ap, permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                   options=dict(SymmetricMode=True))
+        if np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n)):
+            L = lu.L
+            ptr = np.ascontiguousarray(L.indptr, np.int32)
+            idx = np.ascontiguousarray(L.indices, np.int32)
+            sym = _ldl_symbolic(n, ptr, idx)
+            fb = _kffi.from_buffer
+            val = np.zeros(max(sym["n_val"], 1))
+            diag = np.ascontiguousarray(lu.U.diagonal(), np.float64)
+            _klib.capsheet_ldl_fill_d(sym["n_super"], fb("int32_t[]", ptr), fb("int32_t[]", idx),
+                                      fb("double[]", np.ascontiguousarray(L.data, np.float64)),
+                                      *sym["c_args"][:5],
+                                      fb("int32_t[]", np.full(max(n, 1), -1, np.int32)),
+                                      fb("double[]", val))
+            c = _kffi.new("capsheet_lap_t *")
+            c.n, c.pos = n, fb("int64_t[]", pos)
+            c.n_super = sym["n_super"]
+            c.sn_col, c.sn_row, c.rows, c.sn_diag, c.sn_below = sym["c_args"][:5]
+            c.val, c.diag = fb("double[]", val), fb("double[]", diag)
+            c.ldl_work_size = sym["work_size"]
+            got = (c, (pos, val, diag, sym))  # the arrays the pointers point into, kept alive
+    st.derived["lap_kernel"] = got
+    return got
+
+
+def lap_solve(st, b):
+    """``st``'s Laplacian solved for ``b`` (n_joints,) or (n_joints, k): up to 4 columns in the
+    kernel (`laplacian_kernel`, the factor read once for all) when it is built and switched on,
+    else SuperLU's (``st.lap_lu``)."""
+    lk = laplacian_kernel(st) if kernel.USE_KERNEL else None
+    if lk is None or b.ndim > 2 or b.ndim == 2 and b.shape[1] > 4:  # many columns: SuperLU's
+        return st.lap_lu.solve(b)
+    x = np.array(b, dtype=np.float64, order="C")  # a copy: solved in place
+    k = 1 if x.ndim == 1 else x.shape[1]
+    work = np.empty(k * (x.shape[0] + lk[1][3]["work_size"]))
+    _klib.capsheet_lap_solve(lk[0], k, _kffi.from_buffer("double[]", x),
                              _kffi.from_buffer("double[]", work))
     return x

@@ -16,6 +16,8 @@ from .angles import (angle_trig, angles_of, roll_pitch_trig, solvability,
 from .checks import (Options, Snapshot, check_int, check_link_length, check_noise_pct_g,
                      check_options, check_previous, check_readings, rest_yaws)
 from .joints import joints_and_mask
+from .kernel import ffi as _kffi, lib as _klib
+from .linalg import lap_solve, laplacian_kernel
 from .priors import DEFAULT_PRIOR, prior_weights
 from .result import ShapeEstimate, Solution
 from .solver import solve_global
@@ -183,6 +185,13 @@ class WarmStart(NamedTuple):
         sol = self.solution
         return start, (sol.factorisation if sol is not None and sol.structure is st else None)
 
+    def link_cs(self, start):
+        """The cosines and sines of the yaws ``start`` as the last solve kept them (the kernel's
+        `YawProblem.link_cs` of its end point), or None when it kept none for these yaws."""
+        sol = self.solution
+        kept = None if sol is None else sol.problem.__dict__.get("_cs")
+        return kept if kept is not None and np.array_equal(kept[0], start) else None
+
     def chain(self, lu):
         """The `solver.Contraction` a solve reusing factorisation ``lu`` may stop by: the one
         measured on it, for `solver.CHAIN_REMEASURE` snapshots (None: measure again)."""
@@ -222,6 +231,10 @@ def closed_pitches(st, alpha, beta, trig=None):
     coefficients (``cos β``, the cells' normals) are then less noisy. A link in no closed loop
     keeps its pitch. One snapshot (``beta`` (n_links,)) or a batch of one structure
     (B, n_links); ``trig`` (one snapshot, the kernel's table) is rebuilt from the new pitches."""
+    if trig is not None and kernel.USE_KERNEL:  # one snapshot: the kernel, the same arithmetic
+        lk = laplacian_kernel(st)
+        if lk is not None:
+            return _closed_pitches_kernel(st, lk, trig, beta)
     vl = st.valid_links
     sb = np.sin(beta[..., vl])
     w = height_weights(sb) if WEIGHTED_HEIGHTS else None
@@ -231,6 +244,31 @@ def closed_pitches(st, alpha, beta, trig=None):
     out[..., vl] = np.arcsin(np.clip(-step, -1.0, 1.0))
     if trig is not None:
         trig = angle_trig(alpha, out)
+    return out, trig
+
+
+def _closed_pitches_kernel(st, lk, trig_in, beta):
+    """`closed_pitches` of one snapshot in the kernel (``capsheet_closed_pitches``: the same
+    fit, `weighted_heights`' steps, with the Laplacian's solves in C), from the readings' trig
+    (``trig_in``: the pitches' sines; the new pitches' cosines and sines are ``sqrt(1 − s²)``
+    and ``s`` of the fitted step, no trigonometric call): (beta, trig)."""
+    ep = st.derived.get("valid_endpoints")
+    if ep is None:
+        e = st.lattice.endpoints[st.valid_links]
+        ep = st.derived["valid_endpoints"] = (
+            np.ascontiguousarray(st.valid_links, np.int64), np.ascontiguousarray(e[:, 0], np.int64),
+            np.ascontiguousarray(e[:, 1], np.int64))
+    n, nv, nj = beta.size, ep[0].size, st.rows * st.cols
+    a = np.ascontiguousarray(trig_in, np.float64)
+    b = np.ascontiguousarray(beta, np.float64)
+    out, trig = np.empty(n), np.empty((n, 4))
+    work = np.empty(7 * nj + 2 * nv + lk[1][3]["work_size"])
+    fb = _kffi.from_buffer
+    _klib.capsheet_closed_pitches(lk[0], n, nv, fb("int64_t[]", ep[0]), fb("int64_t[]", ep[1]),
+                                  fb("int64_t[]", ep[2]), fb("double[]", a), fb("double[]", b),
+                                  1 if WEIGHTED_HEIGHTS else 0, HEIGHT_VAR_FLOOR,
+                                  JOINT_PRIOR_WEIGHT, HEIGHT_CG_STEPS, fb("double[]", out),
+                                  fb("double[]", trig), fb("double[]", work))
     return out, trig
 
 
@@ -327,11 +365,13 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
                                                rest_yaw is not None)
     gamma, iters, n_fact, lu, prob, contraction = solve_global(
         st, alpha, beta, start.copy(), target, prior_w, bend_w, lu, tol, trig,
-        warm.chain(lu))
+        warm.chain(lu), warm.link_cs(start))
     solution = Solution(st, lu, prob, gamma, contraction)
     t2 = time.perf_counter()
+    kept = prob.__dict__.get("_cs") if trig is not None else None  # the end point's cos, sin
+    cs = kept[1] if kept is not None and np.array_equal(kept[0], gamma) else None
     P, d, nrm, gamma, alpha, beta, residual = joints_and_mask(
-        st, L, alpha, beta, gamma, target, warm.joint_prior(st, L, rest), trig)
+        st, L, alpha, beta, gamma, target, warm.joint_prior(st, L, rest), trig, cs)
     t3 = time.perf_counter()
     solv = link_solvability(alpha, beta, trig, rows, cols)
     t4 = time.perf_counter()

@@ -162,8 +162,11 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
     units. Pairs never go below `PRIOR_WEIGHT_MIN`.
     """
     lead = np.shape(noise)  # () or (B,): one snapshot, or a batch ("level", "adaptive" only)
-    w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     lam = np.full(st.n_var, ABS_PRIOR_FLOOR)
+    if prior in ("adaptive", "level") and not lead and kernel.USE_KERNEL and r.ndim == 2:
+        return lam, _pair_weights_kernel(prior, st, flatness(st, r, norm_g, noise), float(noise),
+                                         rest_given)
+    w = np.full(lead + (st.pairs.shape[0],), PRIOR_WEIGHT_MIN)
     if prior in ("adaptive", "level"):
         hu = flatness(st, r, norm_g, noise)
         bend = (np.asarray(noise)[..., None] / BEND_STD_RAD) ** 2
@@ -185,3 +188,29 @@ def prior_weights(prior, st, r, norm_g, noise, rest_given=False):
         hl = acc / np.maximum(cnt, 1)
         lam = np.maximum(FIXED_PRIOR_WEIGHT * hl[st.var_links], ABS_PRIOR_FLOOR)
     return lam, w
+
+
+def _pair_weights_kernel(prior, st, hu, noise: float, rest_given: bool) -> np.ndarray:
+    """`prior_weights`' pair weights for "level" or "adaptive", one snapshot, in the kernel
+    (``capsheet_pair_weights``: the same arithmetic as the numpy code, in one pass)."""
+    ka = st.derived.get("pair_weight_arrays")
+    if ka is None:
+        units = units_int64(st.rows, st.cols)
+        cnt = np.maximum(np.bincount(units.ravel(), minlength=st.n_links).astype(float), 1.0)
+        ka = st.derived["pair_weight_arrays"] = (
+            units, cnt, np.ascontiguousarray(st.pairs[:st.n_bend], np.int64),
+            np.ascontiguousarray(bridging_pairs(st), np.float64),
+            np.ascontiguousarray(st.shear_unit, np.int64))
+    units, cnt, pb, bridging, shear_unit = ka
+    h = np.ascontiguousarray(hu, np.float64)
+    w = np.empty(st.pairs.shape[0])
+    lf = np.empty(st.n_links)
+    fb = _kffi.from_buffer
+    _klib.capsheet_pair_weights(units.shape[0], fb("int64_t[]", units), fb("double[]", h), st.n_links,
+                                fb("double[]", cnt), 1 if prior == "level" else 0, st.n_bend,
+                                fb("int64_t[]", pb), fb("double[]", bridging),
+                                (noise / BEND_STD_RAD) ** 2, tilted_share(noise), shear_unit.size,
+                                fb("int64_t[]", shear_unit),
+                                SHEAR_WEIGHT_REST if rest_given else SHEAR_WEIGHT,
+                                PRIOR_WEIGHT_MIN, fb("double[]", w), fb("double[]", lf))
+    return w

@@ -11,8 +11,9 @@ import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .structure import Structure
 from .yawproblem import YawProblem
 
-__all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "CHAIN_SAFETY",
-           "CHAIN_REMEASURE", "Contraction", "solve_global", "step_converged",
+__all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "REFACTOR_PATIENCE",
+           "REFACTOR_FAR", "REFACTOR_GROWTH", "CHAIN_SAFETY",
+           "CHAIN_REMEASURE", "Contraction", "solve_global", "step_converged", "SLOW_CAP",
            "chord_in_kernel", "ANDERSON_COS", "anderson", "BATCH_MAX_ITER", "BATCH_REFACTOR",
            "solve_global_batch"]
 
@@ -28,6 +29,23 @@ MAX_ITER = 50
 #: still reaches the tolerance in a few chord steps, far cheaper than refactorising (0.3 made
 #: 128x128 refactorise every snapshot, 2.4 s of its 2.5 s).
 REFACTOR_RATIO = 0.7
+#: ... in this many steps in a row (each accepted). One slow step on a kept factorisation is
+#: common and passes: on a static 64x64 sheet at 1 % g (bench_estimator's stream) the third step
+#: is often 0.3-1.0 of the second and the fourth converges, and a factorisation (~60 chord steps'
+#: time) made on one such step was a third of the stream's time; a sheet whose shape has moved
+#: away from the factorisation contracts slowly step after step (docs/estimator.md §6).
+REFACTOR_PATIENCE = 2
+#: ... but a slow step below this many tolerances triggers one at once: far above the tolerance a
+#: slow step is the curvature's (a first step of ~0.05 rad, the next ones its second-order
+#: remainder), which a new factorisation does not remove; near it, the steps are linear and a
+#: slow one says the factorisation is stale (a moving sheet's), whose slowest modes the step's
+#: largest entry then hides (with this at 0 the drape at 3 % g stopped 0.093 % of the side from
+#: the minimiser, where every path is held to 0.03 %).
+REFACTOR_FAR = 10.0
+#: ... and so does a step this much larger than the last, wherever it is: the iteration is
+#: moving away, not contracting slowly (the drape at 5 % g passed a step 1.6 times its
+#: predecessor and stopped 0.048 % of the side from the minimiser, against 0.018 % refactorising)
+REFACTOR_GROWTH = 1.25
 #: A warm solve also stops after its first chord step when the contraction its chain measured on
 #: the same factorisation (`Contraction`) predicts the next step below the tolerance by this
 #: factor. On a 64x64 sheet streaming at 145 Hz the first step is ~3e-3 rad and the second
@@ -62,12 +80,15 @@ class Contraction(NamedTuple):
 
 
 def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu=None,
-                 tol=YAW_TOL_RAD, trig=None, chain: Contraction | None = None):
+                 tol=YAW_TOL_RAD, trig=None, chain: Contraction | None = None, cs=None):
     """Gauss-Newton on all yaws, reusing a factorisation while it contracts well (chord steps),
     Levenberg-Marquardt damping when a step fails. Returns (gamma, iterations, factorisations,
     lu, problem, contraction): the `Contraction` of the returned ``lu`` measured by this solve's
     first two steps on it, or ``chain`` one snapshot older when the solve stopped after one step
     by it (None otherwise).
+
+    ``cs``: (yaws, their cosines and sines) the previous solve kept (`YawProblem.link_cs`), for
+    the kernel's evaluations at ``gamma0`` when they are its yaws.
 
     ``chain``: the contraction the previous snapshot's solve measured on ``lu``. With it the
     first chord step also ends the solve when `Contraction.predicts_converged`; the caller
@@ -86,6 +107,8 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
     """
     gamma = gamma0.copy()
     prob = YawProblem(st, alpha, beta, target, prior_w, bend_w, trig)
+    if cs is not None:  # (γ, its cosines and sines) kept by the solve before: not made again
+        prob.keep_cs(*cs)
     if st.n_var == 0:
         return gamma, 0, 0, None, prob, None
     lu_in = lu
@@ -98,12 +121,14 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
     hist = None  # (last raw step, last move) of the current chord map, for the acceleration
     accelerated = False  # the last move accepted was an extrapolated one
     it = 0
+    poor = 0  # steps in a row on the current factorisation that contracted by less than REFACTOR_RATIO
+    slow = 0.0  # the slowest contraction of such a step passed without a new factorisation
     seen: list[float] = []  # the largest entries of the first undamped steps on the current lu
     if lu is not None and chord_in_kernel(st, lu, gamma):
         # the warm start's chord steps in the kernel: this loop's iterations, one C call
         status, it, cost, grad, prev_smax, seen = prob.chord_kernel(
             gamma, cost, grad, lu, tol, MAX_ITER, REFACTOR_RATIO, ANDERSON_COS, chain, CHAIN_SAFETY,
-            PREDICT_WITHIN)
+            PREDICT_WITHIN, REFACTOR_PATIENCE, REFACTOR_FAR, REFACTOR_GROWTH)
         if status in (0, 3):  # converged, or out of iterations
             return gamma, it, 0, lu, prob, _contraction(seen, chain, lu is lu_in and it == 1)
         lu, blocks, seen = None, None, []  # 1: the cost rose; 2: a step contracted too little
@@ -114,7 +139,7 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
                 blocks = prob.evaluate(gamma)[2]
             lu = prob.factor(blocks, mu)
             fresh = True
-            hist, accelerated = None, False
+            hist, accelerated, poor, slow = None, False, 0, 0.0
             n_fact += 1
             seen = []
         step = prob.step(lu, grad)
@@ -124,7 +149,7 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
         smax = float(np.max(np.abs(step)))
         if mu == 0.0 and len(seen) < 2:
             seen.append(smax)
-        if mu == 0.0 and (step_converged(smax, prev_smax, accelerated, tol)
+        if mu == 0.0 and (step_converged(smax, prev_smax, accelerated, tol, slow)
                           or it == 1 and chain is not None and not fresh
                           and chain.predicts_converged(smax, tol)):
             # converged: the step (or the next one, predicted from the contraction so far) is
@@ -158,7 +183,14 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
             mu = mu / 10.0 if mu > 1e-6 else 0.0
             lu = None
         elif smax > REFACTOR_RATIO * prev_smax:
-            lu = None
+            poor += 1
+            if (smax < REFACTOR_FAR * tol or poor >= REFACTOR_PATIENCE
+                    or smax > REFACTOR_GROWTH * prev_smax):
+                lu, poor = None, 0
+            else:
+                slow = max(slow, smax / prev_smax)
+        else:
+            poor = 0
         prev_smax = smax
         fresh = False
     return gamma, it, n_fact, lu, prob, _contraction(seen, chain, lu is lu_in and it == 1)
@@ -171,7 +203,12 @@ def solve_global(st: Structure, alpha, beta, gamma0, target, prior_w, bend_w, lu
 PREDICT_WITHIN = 3.0
 
 
-def step_converged(smax: float, prev: float, accelerated: bool, tol: float) -> bool:
+#: `step_converged` after a slow step was passed: the contraction it assumes, at most this
+SLOW_CAP = 0.9
+
+
+def step_converged(smax: float, prev: float, accelerated: bool, tol: float,
+                   slow: float = 0.0) -> bool:
     """Whether a chord step of largest entry ``smax`` ends the iteration (``prev``: the last
     step's, inf when none; ``accelerated``: the last move was an Anderson one).
 
@@ -182,7 +219,16 @@ def step_converged(smax: float, prev: float, accelerated: bool, tol: float) -> b
     0.5-0.9, a mode the data hold weakly, as where the "level" prior holds nothing) thus
     iterates on although each step is below ``tol``: stopping at ``smax < tol`` there left the
     estimate up to 0.13 % of the side from the minimiser (docs/estimator.md §6). Without a
-    known ratio (the first step, after an accelerated move, a growing step), ``smax < tol``."""
+    known ratio (the first step, after an accelerated move, a growing step), ``smax < tol``.
+
+    ``slow``: the slowest contraction of a slow step that this factorisation's iteration passed
+    without refactorising (`REFACTOR_PATIENCE`; 0: none). Its mode may be left under faster
+    ones, so the series is then summed at the larger of it and this step's ratio, at most
+    `SLOW_CAP`: on the drape at 3 % g a solve that passed a step of ratio 0.97 and stopped on the
+    next one's 0.08 stopped 0.057 % of the side from the minimiser."""
+    if slow > 0.0:
+        rho = min(max(slow, smax / prev if 0.0 < prev < np.inf else 0.0), SLOW_CAP)
+        return smax * rho < tol * (1.0 - rho)
     if prev < np.inf and not accelerated and smax < prev and smax < PREDICT_WITHIN * tol:
         rho = smax / prev
         return smax * rho < tol * (1.0 - rho if rho > 0.5 else 1.0)

@@ -186,6 +186,7 @@ class Structure:
         self.incidence = B.tocsr()
         self.incidence_T = B.T.tocsr()
         lap = (B.T @ B + JOINT_PRIOR_WEIGHT * sp.identity(nj)).tocsc()
+        self.lap_matrix = lap  # the kernel's own factorisation is made from it (`linalg.laplacian_kernel`)
         self.lap_lu = splu(lap, permc_spec="MMD_AT_PLUS_A")
 
         # rest layout of the joints (prior for isolated parts), L = 1

@@ -146,12 +146,14 @@ class YawProblem:
                                   fb("double[]", self.Az), fb("double[]", self.Cz),
                                   fb("double[]", self.y_c.view(np.float64)),
                                   fb("double[]", self.y_z))
-        self.w = roll_weights(st, beta)
+        # `roll_weights` with the table's cos β (the same to rounding; a cosine per link saved)
+        self.w = ROLL_WEIGHT * st.roll_inv_ncell * np.abs(trig[st.roll_links, 2])
 
     def take(self, idx):
         """The problem of the snapshots ``idx`` of a batch (an int: one snapshot, no batch axis)."""
         sub = copy.copy(self)
         sub.__dict__.pop("_kp", None)  # the kernel's view of one snapshot's arrays
+        sub.__dict__.pop("_cs", None)
         for name, nd in self._PER_SNAPSHOT.items():
             v = getattr(self, name, None)
             if v is not None and np.ndim(v) == nd + 1:
@@ -216,12 +218,32 @@ class YawProblem:
         st = self.st
         g = np.ascontiguousarray(gamma, dtype=float)
         grad = np.empty(st.n_var + 1)
-        cost = _klib.capsheet_yaw_eval(kp[0], _kffi.from_buffer("double[]", g),
-                                       _kffi.from_buffer("double[]", grad), kp[1])
+        fb = _kffi.from_buffer
+        cost = _klib.capsheet_yaw_eval_cs(kp[0], fb("double[]", g), fb("double[]", self.link_cs(g)),
+                                          fb("double[]", grad), kp[1])
         return cost, grad[:st.n_var], None
 
+    def link_cs(self, gamma) -> np.ndarray:
+        """(cos γ, sin γ) of every link, interleaved (2 n_links,), as the kernel reads them: the
+        ones kept for these very yaws (`keep_cs`: a chord step's, or the previous snapshot's end
+        point when it is this one's start), else computed and kept."""
+        kept = self.__dict__.get("_cs")
+        if kept is not None and np.array_equal(kept[0], gamma):
+            return kept[1]
+        cs = np.empty(2 * gamma.size)
+        g = np.ascontiguousarray(gamma, dtype=float)
+        _klib.capsheet_link_cs(g.size, _kffi.from_buffer("double[]", g),
+                               _kffi.from_buffer("double[]", cs))
+        self._cs = (g.copy(), cs)
+        return cs
+
+    def keep_cs(self, gamma, cs) -> None:
+        """Keep ``cs`` as `link_cs` of ``gamma`` (copied: the caller may change either)."""
+        self._cs = (np.array(gamma, dtype=float), np.array(cs, dtype=float))
+
     def chord_kernel(self, gamma, cost, grad, lu, tol, max_iter, refactor_ratio, anderson_cos,
-                     chain=None, chain_safety=0.0, predict_within=3.0):
+                     chain=None, chain_safety=0.0, predict_within=3.0, refactor_patience=1,
+                     refactor_far=0.0, refactor_growth=np.inf):
         """`solve_global`'s chord iterations on the kept factorisation ``lu`` in the kernel
         (``capsheet_chord``: the same steps, acceleration, tests and counts as the Python
         loop; ``max_iter``, ``refactor_ratio``, ``anderson_cos``: the solver's `MAX_ITER`,
@@ -241,6 +263,8 @@ class YawProblem:
         c.n_links, c.max_iter, c.tol = gamma.size, max_iter, float(tol)
         c.refactor_ratio, c.anderson_cos = refactor_ratio, anderson_cos
         c.predict_within = predict_within
+        c.refactor_patience, c.refactor_far = int(refactor_patience), float(refactor_far)
+        c.refactor_growth = float(refactor_growth)
         if chain is not None:
             c.chain_rho, c.chain_kappa, c.chain_safety = chain.rho, chain.kappa, float(chain_safety)
         pi = np.ascontiguousarray(st.perm_inv, np.int64)
@@ -256,11 +280,15 @@ class YawProblem:
         its = _kffi.new("int64_t *", 0)
         ps = _kffi.new("double *", np.inf)
         work = np.empty(6 * nv + gamma.size + 1 + sym["work_size"] + 19 * max(st.n_units, 1)
-                        + 2 * st.n_links)
+                        + 6 * st.n_links)
         assert gamma.dtype == np.float64 and gamma.flags.c_contiguous
         steps = _kffi.new("double[2]")
+        cs_in = self.link_cs(gamma)
+        cs_out = np.empty(2 * gamma.size)
+        c.cs_in, c.cs_out = fb("double[]", cs_in), fb("double[]", cs_out)
         status = _klib.capsheet_chord(kp[0], fb("double[]", gamma), out_cost, fb("double[]", g), c,
                                       its, ps, steps, fb("double[]", work))
+        self._cs = (gamma.copy(), cs_out)
         n = min(int(its[0]), 2)
         return (int(status), int(its[0]), float(out_cost[0]), g[:nv], float(ps[0]),
                 [float(steps[k]) for k in range(n)])

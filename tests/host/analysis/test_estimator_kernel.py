@@ -1,4 +1,4 @@
-"""The estimator's compiled kernel (host/analysis/_kernel/yaw_eval.c) against its numpy code.
+"""The estimator's compiled kernel (host/analysis/_kernel/*.c) against its numpy code.
 
 Two independent implementations of the same terms: the kernel's single-pass loops and
 `YawProblem.evaluate`'s numpy (`_roll_grad`, reverse mode), and the kernel's triangular sweeps
@@ -229,8 +229,10 @@ def test_an_estimate_is_the_same_with_the_kernel_and_without(masked, monkeypatch
     assert np.isnan(e0.solvability).any() == masked
     assert np.nanmax(np.abs(e1.solvability - e0.solvability)) <= TOL
     assert e1.iterations == e0.iterations
-    for name in ("alpha", "beta"):
-        assert np.array_equal(getattr(e1, name), getattr(e0, name), equal_nan=True), name
+    assert np.array_equal(e1.alpha, e0.alpha, equal_nan=True)
+    # the closed pitches' height fit runs in the kernel too (its sums in another order)
+    assert np.array_equal(np.isnan(e1.beta), np.isnan(e0.beta))
+    assert np.nanmax(np.abs(e1.beta - e0.beta)) <= TOL
     assert np.nanmax(np.abs(e1.normals - e0.normals)) <= 1e-8
     assert np.max(np.abs(e1.joints - e0.joints)) <= 1e-8 * L * (n - 1)
 
@@ -303,3 +305,103 @@ def test_the_kernels_chord_loop_takes_the_python_loops_steps(monkeypatch):
         for (j0, i0, f0), (j1, i1, f1) in zip(r0, r1):
             assert (i1, f1) == (i0, f0)
             assert np.max(np.abs(j1 - j0)) <= 1e-12
+
+
+def _angles_of(n, masked, seed=4):
+    P = make_sheet("sphere", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 2.0, rng(seed))
+    valid = _mask(n) if masked else np.ones(r.shape[0], bool)
+    st = E.structure.structure_of(n, n, None if valid.all() else valid)
+    rr, alpha, beta, trig = E.pipeline.link_angles(r, valid, None if valid.all() else valid)
+    return st, alpha, beta, trig
+
+
+@pytest.mark.parametrize("n, masked", [(14, False), (14, True), (33, False), (6, True)])
+def test_the_kernels_closed_pitches_are_the_numpy_codes(n, masked, monkeypatch):
+    """`closed_pitches` in the kernel (``capsheet_closed_pitches``: the height fit with the
+    Laplacian's solves in C, the new pitches' cosines and sines from the fitted steps) against the
+    numpy code (SuperLU's solves, then `angle_trig`)."""
+    st, alpha, beta, trig = _angles_of(n, masked)
+    assert trig is not None
+    b1, t1 = E.pipeline.closed_pitches(st, alpha, beta, trig)
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
+    b0, none = E.pipeline.closed_pitches(st, alpha, beta)
+    assert none is None
+    assert np.max(np.abs(b0 - beta)) > 1e-3  # the fit moves the pitches (by about the noise)
+    assert np.max(np.abs(b1 - b0)) <= TOL
+    assert np.max(np.abs(t1 - E.angles.angle_trig(alpha, b0))) <= TOL
+
+
+def test_the_closed_pitches_comparison_sees_a_wrong_input():
+    st, alpha, beta, trig = _angles_of(14, False)
+    b0, _ = E.pipeline.closed_pitches(st, alpha, beta, trig)
+    bad = trig.copy()
+    bad[40, 3] += 1e-9  # one link's sine off by a billionth: the fit uses the readings' sines
+    b1, _ = E.pipeline.closed_pitches(st, alpha, beta, bad)
+    assert np.max(np.abs(b1 - b0)) > TOL
+
+
+@pytest.mark.parametrize("n, masked", [(5, False), (14, True), (40, False)])
+def test_the_kernels_laplacian_solve_is_superlus(n, masked):
+    """One column of the joints' Laplacian (`linalg.lap_solve`: the kernel's double supernodal
+    L D Lᵀ on SuperLU's ordering) against SuperLU's own solve, on right-hand sides as the heights
+    and the joints have them (``Bᵀ v``: they sum to zero)."""
+    valid = _mask(n) if masked else None
+    st = E.structure.structure_of(n, n, valid)
+    assert E.linalg.laplacian_kernel(st) is not None
+    v = rng(n).normal(size=st.valid_links.size)
+    b = st.incidence_T @ v
+    x0, x1 = st.lap_lu.solve(b), E.linalg.lap_solve(st, b)
+    d0, d1 = x0 - x0[0], x1 - x1[0]  # the heights' differences (the constant is the prior's)
+    assert np.max(np.abs(d1 - d0)) <= TOL * np.max(np.abs(d0))
+    B = np.stack([b, -2 * b, st.incidence_T @ np.cos(v)], axis=1)  # the joints' three columns at once
+    X0, X1 = st.lap_lu.solve(B), E.linalg.lap_solve(st, B)
+    D0, D1 = X0 - X0[0], X1 - X1[0]
+    assert np.max(np.abs(D1 - D0)) <= TOL * np.max(np.abs(D0))
+    many = np.repeat(b[:, None], 6, axis=1)  # more than four stay with SuperLU
+    assert np.array_equal(E.linalg.lap_solve(st, many), st.lap_lu.solve(many))
+
+
+def test_the_laplacian_comparison_sees_a_wrong_factor():
+    st = E.structure.structure_of(14, 14, None)
+    b = st.incidence_T @ rng(2).normal(size=st.valid_links.size)
+    x0 = st.lap_lu.solve(b)
+    val = E.linalg.laplacian_kernel(st)[1][1]
+    k = int(np.argmax(np.abs(val)))
+    kept = val[k]
+    val[k] *= 1.000001  # one entry of L off by a millionth
+    try:
+        x1 = E.linalg.lap_solve(st, b)
+    finally:
+        val[k] = kept
+    d0, d1 = x0 - x0[0], x1 - x1[0]
+    assert np.max(np.abs(d1 - d0)) > TOL * np.max(np.abs(d0))
+
+
+@pytest.mark.parametrize("prior", ["level", "adaptive"])
+@pytest.mark.parametrize("n, shape, noise, masked", [(14, "cylinder", 1.0, False),
+                                                     (20, "flat", 0.02, True),
+                                                     (33, "gaussian", 3.0, False)])
+def test_the_kernels_pair_weights_are_the_numpy_codes(prior, n, shape, noise, masked, monkeypatch):
+    """The prior's pair weights in the kernel (``capsheet_pair_weights``) against `prior_weights`'
+    numpy code on the same flatness: the same numbers to the bit (the same operations in the
+    same order), with and without a rest shape."""
+    r = noisy_readings(ideal_readings(make_sheet(shape, n, n, L, shear=0.1)), noise, rng(n))
+    valid = _mask(n) if masked else np.ones(r.shape[0], bool)
+    st = E.structure.structure_of(n, n, None if valid.all() else valid)
+    norm = np.where(valid, np.linalg.norm(r, axis=1) / E.G0, 1.0)
+    sigma = noise / 100
+    monkeypatch.setattr(E.kernel, "USE_KERNEL", False)
+    hu = E.priors.flatness(st, r, norm, sigma)
+    assert 0.0 < hu.max() and (hu.min() < 0.5 or shape == "flat")
+    for rest_given in (False, True):
+        lam, w0 = E.priors.prior_weights(prior, st, r, norm, sigma, rest_given)
+        w1 = E.priors._pair_weights_kernel(prior, st, hu, sigma, rest_given)
+        assert np.array_equal(w1, w0)
+    # the comparison sees a wrong weight: another share of the bending on tilted pairs
+    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.004)
+    w2 = E.priors._pair_weights_kernel(prior, st, hu, sigma, False)
+    monkeypatch.setattr(E.priors, "LEVEL_TILTED_SHARE", 0.003)
+    # ("adaptive" holds every bending pair alike: no share, the same weights)
+    assert np.array_equal(w2, E.priors.prior_weights(prior, st, r, norm, sigma, False)[1]) == (
+        prior == "adaptive")
