@@ -551,7 +551,8 @@ class SessionOutputs:
                "where": "process" if self.worker is not None else "in process"}
         if self.worker is not None:
             out.update(not_made_busy=self.estimates_not_made, estimator_busy_s=round(self.worker.busy_s, 3),
-                       uncertainties=self.worker.uncertainties, estimator_pid=self.worker.pid)
+                       uncertainties=self.worker.uncertainties, estimator_pid=self.worker.pid,
+                       held_links=self.worker.held_links, held_estimates=self.worker.held_estimates)
         return out
 
     def output_counts(self) -> dict:

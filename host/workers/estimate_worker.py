@@ -15,6 +15,15 @@ process (``spawn``) and hands back `RemoteEstimate` s, in order:
   cost is under `UNCERTAINTY_SHARE` of the time since: at 14x14 (~0.1 s) once a second as in
   process, at 64x64 (~1.6 s) about once a minute, so it never starves the estimates.
 
+**Links held.** A snapshot with a link missing has another mask of links, and a mask of its own
+costs a structure and a factorisation: ~300 ms at 64x64 against ~4-6 ms warm, so one incomplete
+snapshot at 145 Hz left the next ~45 unestimated (the requests in flight fill). The child keeps each
+link's last valid reading: a link missing now but valid within the last `HOLD_SNAPSHOTS` snapshots
+is estimated from that reading (the sheet moves little in 0.1 s) and the mask stays the held one.
+The estimate's ``valid`` says which links it was made from, its ``held`` how many of those were
+held readings (counted in `EstimatorProcess.held_links`); a link missing longer leaves the mask,
+and that mask's structure is made once and kept while it lasts (a dead chip).
+
 The child holds a `host.analysis.estimator.ShapeEstimator`: each estimate warm-starts from the
 previous one (its yaws, its factorisation and the contraction measured on it), as the in-process
 path's ``previous=`` chain does, with the same numbers. Before the first request it warms up (`WARMUP_COUNTER`): one estimate of a flat sheet
@@ -36,7 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["EstimatorProcess", "RemoteEstimate", "UNCERTAINTY_SHARE", "WARMUP_COUNTER", "PIPE_SIZE", "widen_pipe",
-           "start_child", "end_child"]
+           "start_child", "end_child", "LinkHold", "HOLD_SNAPSHOTS"]
 
 #: the uncertainty may take at most this share of the estimator's time (its cost / time since the last)
 UNCERTAINTY_SHARE = 0.03
@@ -44,8 +53,11 @@ UNCERTAINTY_SHARE = 0.03
 PIPE_SIZE = 1 << 20
 #: request header: counter, n_links, flags (1 = uncertainty asked)
 _REQ = struct.Struct("<qII")
-#: answer header: counter, ok, iterations, residual, has_std, seconds spent
-_ANS = struct.Struct("<qIIdId")
+#: answer header: counter, ok, iterations, residual, has_std, seconds spent, links held
+_ANS = struct.Struct("<qIIdIdI")
+#: a link missing from a snapshot but valid in one of the last this many is estimated from its
+#: last reading (about 0.1 s at 145 Hz; module docstring, "Links held")
+HOLD_SNAPSHOTS = 15
 #: the counter of the child's warm-up answer (no snapshot has it: counters are 0..65535); its
 #: seconds are the warm-up uncertainty's
 WARMUP_COUNTER = -1
@@ -60,13 +72,14 @@ class RemoteEstimate:
 
     counter: int
     joints: np.ndarray
-    valid: np.ndarray
+    valid: np.ndarray  #: the links the estimate was made from (held ones included)
     residual: float
     iterations: int
     method: str = "global"
     link_length: float = 0.01
     seconds: float = 0.0  #: the estimate's time in the child
     error: str = ""  #: why it could not be made (``joints`` is then empty)
+    held: int = 0  #: links missing from the snapshot, estimated from their last reading
     extra: dict = field(default_factory=dict, repr=False)
 
     def __getattr__(self, name):  # yaw_std / joint_std when not computed: None, as asked
@@ -112,7 +125,44 @@ def end_child(req, ans, proc) -> None:
         proc.join(2.0)
 
 
-def _child(pipes, rows: int, cols: int, link_length: float) -> None:
+class LinkHold:
+    """Each link's last valid reading and its age in snapshots (module docstring, "Links held").
+
+    >>> h = LinkHold(3, hold=2)
+    >>> r = np.array([[0.0, 0.0, 9.8], [0.1, 0.0, 9.8], [0.2, 0.0, 9.8]])
+    >>> _ = h.fill(r, np.ones(3, bool))
+    >>> gone = r.copy(); gone[1] = np.nan
+    >>> out, used, held = h.fill(gone, np.array([True, False, True]))
+    >>> used.tolist(), held, out[1].tolist()    # link 1 from its last reading
+    ([True, True, True], 1, [0.1, 0.0, 9.8])
+    >>> _ = h.fill(gone, np.array([True, False, True]))
+    >>> h.fill(gone, np.array([True, False, True]))[1].tolist()   # missing 3 snapshots: out
+    [True, False, True]
+    """
+
+    def __init__(self, n_links: int, hold: int = HOLD_SNAPSHOTS) -> None:
+        self.hold = int(hold)
+        self.last = np.full((int(n_links), 3), np.nan)
+        self.age = np.full(int(n_links), np.iinfo(np.int64).max // 2, dtype=np.int64)
+
+    def fill(self, readings: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """``(readings, used, held)``: the snapshot's readings with the held links' last ones put
+        in, the links to estimate from, and how many of them were held."""
+        ok = np.asarray(valid, dtype=bool) & np.isfinite(readings).all(axis=1)
+        self.age += 1
+        self.age[ok] = 0
+        self.last[ok] = readings[ok]
+        used = ok | (self.age <= self.hold)
+        held = int(np.count_nonzero(used & ~ok))
+        if not held:
+            return readings, ok, 0
+        out = np.array(readings, dtype=float)
+        fill = used & ~ok
+        out[fill] = self.last[fill]
+        return out, used, held
+
+
+def _child(pipes, rows: int, cols: int, link_length: float, hold_snapshots: int = HOLD_SNAPSHOTS) -> None:
     """The estimator process: estimate every request in order until the pipe closes."""
     req, ans = pipes
     from host.runtime import one_blas_thread
@@ -122,6 +172,7 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
     n = rows * (cols - 1) + cols * (rows - 1)
     _warm_up(ans, estimate, rows, cols, link_length, n)
     chain = ShapeEstimator(rows, cols, link_length, bad_readings="mask")
+    hold = LinkHold(n, hold_snapshots)
     while True:
         try:
             buf = req.recv_bytes()
@@ -132,11 +183,12 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
         readings = np.frombuffer(buf, dtype="<f8", count=3 * n, offset=off).reshape(n, 3)
         valid = np.frombuffer(buf, dtype=np.bool_, count=n, offset=off + 24 * n)
         t0 = time.perf_counter()
+        readings, used, held = hold.fill(readings, valid)
         try:
-            est = chain.update(readings, valid=valid)
+            est = chain.update(readings, valid=used)
         except ValueError as exc:  # every valid link's reading bad: said, not fatal (the warm start is kept)
             err = str(exc).encode()[:2000]
-            ans.send_bytes(_ANS.pack(counter, 0, 0, float("nan"), 0, time.perf_counter() - t0) + err)
+            ans.send_bytes(_ANS.pack(counter, 0, 0, float("nan"), 0, time.perf_counter() - t0, 0) + err)
             continue
         parts = [np.ascontiguousarray(est.joints, dtype="<f8").tobytes(),
                  np.ascontiguousarray(est.valid, dtype=np.bool_).tobytes()]
@@ -145,7 +197,8 @@ def _child(pipes, rows: int, cols: int, link_length: float) -> None:
             parts += [np.ascontiguousarray(est.yaw_std, dtype="<f8").tobytes(),
                       np.ascontiguousarray(est.joint_std, dtype="<f8").tobytes()]
             has_std = 1
-        head = _ANS.pack(counter, 1, int(est.iterations), float(est.residual), has_std, time.perf_counter() - t0)
+        head = _ANS.pack(counter, 1, int(est.iterations), float(est.residual), has_std, time.perf_counter() - t0,
+                         held)
         ans.send_bytes(head + est.method.encode().ljust(16, b"\0") + b"".join(parts))
 
 
@@ -160,9 +213,9 @@ def _warm_up(ans, estimate, rows: int, cols: int, link_length: float, n: int) ->
         est = estimate(flat, rows, cols, link_length, valid=np.ones(n, dtype=bool), bad_readings="mask")
         t0 = time.perf_counter()
         _ = (est.yaw_std, est.joint_std)  # cached properties: made now
-        ans.send_bytes(_ANS.pack(WARMUP_COUNTER, 1, 0, 0.0, 1, time.perf_counter() - t0))
+        ans.send_bytes(_ANS.pack(WARMUP_COUNTER, 1, 0, 0.0, 1, time.perf_counter() - t0, 0))
     except Exception as exc:  # noqa: BLE001 (a warm-up that fails costs nothing but itself)
-        ans.send_bytes(_ANS.pack(WARMUP_COUNTER, 0, 0, 0.0, 0, 0.0) + repr(exc).encode()[:2000])
+        ans.send_bytes(_ANS.pack(WARMUP_COUNTER, 0, 0, 0.0, 0, 0.0, 0) + repr(exc).encode()[:2000])
 
 
 class EstimatorProcess:
@@ -176,16 +229,22 @@ class EstimatorProcess:
         Metres.
     max_in_flight : int, optional
         Snapshots sent and not yet answered, at most (default: what the request pipe holds, 2..16).
+    hold_snapshots : int, optional
+        A missing link valid within this many snapshots is estimated from its last reading
+        (default `HOLD_SNAPSHOTS`; 0: never, every new mask gets its own structure).
     """
 
-    def __init__(self, rows: int, cols: int, link_length: float, *, max_in_flight: int | None = None) -> None:
+    def __init__(self, rows: int, cols: int, link_length: float, *, max_in_flight: int | None = None,
+                 hold_snapshots: int = HOLD_SNAPSHOTS) -> None:
+        if int(hold_snapshots) < 0:
+            raise ValueError(f"Invalid hold_snapshots: {hold_snapshots!r} (need >= 0)")
         self.rows, self.cols, self.link_length = int(rows), int(cols), float(link_length)
         self.n_links = self.rows * (self.cols - 1) + self.cols * (self.rows - 1)
         request = _REQ.size + 25 * self.n_links
         #: default: as many as the request pipe holds (a send never blocks), 2..16 (64x64: 5)
         self.max_in_flight = int(max_in_flight) if max_in_flight else max(2, min(16, PIPE_SIZE // request))
-        self._req, self._ans, self._proc = start_child(_child, (self.rows, self.cols, self.link_length),
-                                                       "capsheet-estimator")
+        self._req, self._ans, self._proc = start_child(_child, (self.rows, self.cols, self.link_length,
+                                                                int(hold_snapshots)), "capsheet-estimator")
         self._in_flight: deque[float] = deque([time.monotonic()])  # send times; the warm-up's first
         self.warm = False  #: the child's warm-up answered (`WARMUP_COUNTER`)
         self.warmup_error = ""  #: why the warm-up failed, if it did
@@ -193,6 +252,8 @@ class EstimatorProcess:
         self.made = 0  #: estimates returned
         self.failed = 0  #: snapshots the estimator could not estimate (`RemoteEstimate.error`)
         self.busy_s = 0.0  #: seconds the child spent estimating
+        self.held_links = 0  #: links estimated from their last reading, over every estimate ("Links held")
+        self.held_estimates = 0  #: estimates with at least one such link
         self.uncertainties = 0
         self._unc_cost = 0.0
         self._last_unc = -np.inf
@@ -248,7 +309,7 @@ class EstimatorProcess:
                 self._in_flight.clear()
                 break
             self._in_flight.popleft()
-            counter, ok, iterations, residual, has_std, secs = _ANS.unpack_from(buf, 0)
+            counter, ok, iterations, residual, has_std, secs, held = _ANS.unpack_from(buf, 0)
             if counter == WARMUP_COUNTER:  # its uncertainty's cost starts the rule
                 self.warm = True
                 if ok:
@@ -269,7 +330,10 @@ class EstimatorProcess:
             off += 24 * self.rows * self.cols
             valid = np.frombuffer(buf, np.bool_, count=n, offset=off)
             off += n
-            est = RemoteEstimate(counter, joints, valid, residual, iterations, method, self.link_length, secs)
+            est = RemoteEstimate(counter, joints, valid, residual, iterations, method, self.link_length, secs,
+                                 held=held)
+            self.held_links += held
+            self.held_estimates += bool(held)
             if has_std:
                 est.yaw_std = np.frombuffer(buf, "<f8", count=n, offset=off)
                 est.joint_std = np.frombuffer(buf, "<f8", count=self.rows * self.cols,

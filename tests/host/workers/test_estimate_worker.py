@@ -45,12 +45,19 @@ def test_estimates_match_this_process_in_order(worker):
     got += worker.close()
     assert [e.counter for e in got] == [s.counter for s in snaps]
     previous = None
-    for s, e in zip(snaps, got):
-        mine = estimate(s.readings, 5, 6, 0.01, valid=s.valid, previous=previous, bad_readings="mask")
+    for k, (s, e) in enumerate(zip(snaps, got)):
+        r, v = s.readings, s.valid
+        if k == 3:  # links 2 and 11 missing for one snapshot: estimated from their last readings (held)
+            r = r.copy()
+            r[[2, 11]] = snaps[2].readings[[2, 11]]
+            v = np.ones(n, bool)
+        mine = estimate(r, 5, 6, 0.01, valid=v, previous=previous, bad_readings="mask")
         previous = mine
         np.testing.assert_array_equal(e.joints, mine.joints)  # the same arithmetic, raw float64 over the pipe
         np.testing.assert_array_equal(e.valid, mine.valid)
         assert e.iterations == mine.iterations and e.method == mine.method
+        assert e.held == (2 if k == 3 else 0)
+    assert worker.held_links == 2 and worker.held_estimates == 1
     with_std = [e for e in got if "joint_std" in e.__dict__]
     assert [e.counter for e in with_std] == [101]
     np.testing.assert_allclose(with_std[0].joint_std, estimate(snaps[1].readings, 5, 6, 0.01, valid=snaps[1].valid,
@@ -106,3 +113,31 @@ def test_the_child_warms_up_first_and_its_uncertainty_cost_starts_the_rule():
         assert e.counter == 7 and not e.error and w.made == 1
     finally:
         w.close()
+
+
+def test_a_link_missing_longer_than_the_hold_leaves_the_mask():
+    """Link 4 missing from snapshot 1 on: held (estimated from its last reading) for HOLD_SNAPSHOTS
+    snapshots, then estimated without (its own mask); the other links always present."""
+    from host.workers.estimate_worker import HOLD_SNAPSHOTS
+    sheet = VirtualSheet("gaussian", "5x6", seed=4, noise=1.0)
+    n = sheet.lattice.n_links
+    base, _ = sheet.counts_at(0.0)
+    readings = 9.80665 * base / np.linalg.norm(base.astype(float), axis=1, keepdims=True)
+    w = EstimatorProcess(5, 6, 0.01, max_in_flight=4)
+    got = []
+    try:
+        for k in range(HOLD_SNAPSHOTS + 3):
+            valid = np.ones(n, bool)
+            r = readings.copy()
+            if k >= 1:
+                valid[4] = False
+                r[4] = np.nan  # as the aggregator sends a missing link
+            while not w.free:
+                got += w.results(5.0)
+            w.submit(_snap(k, r, valid))
+    finally:
+        got += w.close(30.0)
+    assert [e.counter for e in got] == list(range(HOLD_SNAPSHOTS + 3)) and not any(e.error for e in got)
+    assert [e.held for e in got] == [0] + [1] * HOLD_SNAPSHOTS + [0, 0]
+    assert [bool(e.valid[4]) for e in got] == [True] * (HOLD_SNAPSHOTS + 1) + [False, False]
+    assert all(e.valid[np.arange(n) != 4].all() for e in got)
