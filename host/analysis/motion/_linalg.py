@@ -315,6 +315,119 @@ def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
     a = kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
                              Eg))
     c = kernel_args("pcg", (mw, b, inv_diag))
-    kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
-                                   int(maxiter), *kernel_args("pcg", (x, work)))
+    it = kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
+                                        int(maxiter), *kernel_args("pcg", (x, work)))
+    ITERS.append(it)
     return x
+
+
+ITERS = []
+
+
+# ---------------------------------------------------------------------------------------------
+# Whole-sheet pieces of a snapshot: the same in numpy and C (link_filter.h documents each)
+# ---------------------------------------------------------------------------------------------
+
+def np_mag_terms(R, m, declination, field, dip, field_unit, dip_unit):
+    """Each link's field turned into the world: its heading less the declination (rad,
+    wrapped), its horizontal magnitude (T), and its magnitude and dip tests in their units
+    (`MotionEstimator._magnetometer`)."""
+    W = np.einsum("kij,kj->ki", R, m)
+    hz = np.hypot(W[:, 0], W[:, 1])
+    norm = np.linalg.norm(W, axis=1)
+    e = wrap(np.arctan2(W[:, 1], W[:, 0]) - declination)
+    t_field = (norm / field - 1.0) / field_unit
+    t_dip = (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip) / dip_unit
+    return e, hz, t_field, t_dip
+
+
+def mag_terms(R, m, declination, field, dip, field_unit, dip_unit):
+    """`np_mag_terms`, in C when `USE_KERNEL`."""
+    if not USE_KERNEL:
+        return np_mag_terms(R, m, declination, field, dip, field_unit, dip_unit)
+    n = R.shape[0]
+    out = [np.empty(n) for _ in range(4)]
+    kernel_lib.capsheet_mf_mag_terms(n, *kernel_args("mag", (R, np.ascontiguousarray(m))),
+                                     float(declination), float(field), float(dip),
+                                     float(field_unit), float(dip_unit),
+                                     *kernel_args("mag", out))
+    return tuple(out)
+
+
+def turn_all(Q, R) -> None:
+    """``R_k <- Q R_k`` for every frame, in place (`rotate_all`; in C when `USE_KERNEL`)."""
+    if USE_KERNEL:
+        kernel_lib.capsheet_mf_rotate(R.shape[0], *kernel_args("rotate", (R, np.ascontiguousarray(Q))))
+    else:
+        R[:] = rotate_all(Q, R)
+
+
+def np_orientation_cov(P, tilt_cov, yaw_add):
+    C = P[:, :3, :3].copy()
+    C[:, :2, :2] += tilt_cov
+    if yaw_add is not None:
+        C[:, 2, 2] += yaw_add
+    return C
+
+
+def orientation_cov(P, tilt_cov, yaw_add=None):
+    """Every link's orientation covariance: ``P``'s rotation block, the common tilt's
+    ``tilt_cov`` (2 x 2) added to its tilt and ``yaw_add`` (n,) to its yaw (in C when
+    `USE_KERNEL`)."""
+    if not USE_KERNEL:
+        return np_orientation_cov(P, tilt_cov, yaw_add)
+    n = P.shape[0]
+    out = np.empty((n, 3, 3))
+    tc = np.ascontiguousarray(tilt_cov, dtype=float)
+    ya = kernel_ffi.NULL if yaw_add is None else kernel_ffi.from_buffer(
+        "double[]", np.ascontiguousarray(yaw_add, dtype=float))
+    P_c, tc_c, out_c = kernel_args("cov", (P, tc, out))
+    kernel_lib.capsheet_mf_orientation_cov(n, P_c, tc_c, ya, out_c)
+    return out
+
+
+def np_ddot(R, w, wdot):
+    body = w[:, 0:1] * w - np.einsum("ki,ki->k", w, w)[:, None] * np.array([1.0, 0.0, 0.0])
+    body[:, 1] += wdot[:, 2]  # + ω̇ × e_x
+    body[:, 2] -= wdot[:, 1]
+    return np.einsum("kij,kj->ki", R, body)
+
+
+def ddot(R, w, wdot):
+    """Each link direction's second derivative, world: ``R (ω × (ω × e_x) + ω̇ × e_x)`` (in C
+    when `USE_KERNEL`)."""
+    if not USE_KERNEL:
+        return np_ddot(R, w, wdot)
+    out = np.empty((R.shape[0], 3))
+    kernel_lib.capsheet_mf_ddot(R.shape[0], *kernel_args("ddot", (
+        np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(w, dtype=float),
+        np.ascontiguousarray(wdot, dtype=float), out)))
+    return out
+
+
+def robust_mode(r: np.ndarray, w: np.ndarray, width: float, start: float | None = None,
+                iterations: int = 8) -> float | None:
+    """The mode of the values ``r`` (weights ``w`` >= 0) by Tukey's biweight: iteratively
+    reweighted means, each value weighted ``w (1 − ((r − ψ)/width)²)²`` within ``width`` of the
+    current ``ψ`` and 0 beyond, from ``start`` (default: the weighted median). The values a
+    disturbance turns a little, which pull a mean and a median their way, do not pull it once
+    they are ``width`` off the values that agree. None when nothing has weight."""
+    keep = w > 0
+    if not keep.any():
+        return None
+    r, w = r[keep], w[keep]
+    if start is None:
+        order = np.argsort(r)
+        cw = np.cumsum(w[order])
+        psi = float(r[order][np.searchsorted(cw, 0.5 * cw[-1])])
+    else:
+        psi = float(start)
+    for _ in range(iterations):
+        u = (r - psi) / width
+        t = 1.0 - u * u
+        wt = np.where(t > 0.0, w * t * t, 0.0)
+        s = float(wt.sum())
+        if s <= 0.0:
+            return None
+        psi = float(wt @ r) / s
+    return psi

@@ -65,8 +65,9 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, frames_from_angles,  # noqa: F401
-                      inv_sym3, pcg, rotate_all, rotation_matrices, skew, wrap)
+from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
+                      inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
+                      rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (kernel_args as _kernel_args, kernel_ffi as _kffi,  # noqa: F401
                       kernel_lib as _klib, kernel_step as _kernel_step,
                       lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
@@ -158,6 +159,10 @@ class FusedConfig:
         from the start would otherwise be believed before it is seen).
     initial_yaw_std_rad : float
         Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
+    heading_mode_rad, heading_mode_time_s : float
+        While the magnetometers' weights do not hold the sheet's heading (a disturbance under
+        much of the sheet), it follows the mode of the links' averaged heading residuals
+        (Tukey's biweight of this width, rad; 0: not at all) with this time constant, s.
     """
 
     accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
@@ -188,6 +193,8 @@ class FusedConfig:
     mag_hold_weight: float = 0.5
     mag_warmup_s: float = 0.1
     initial_yaw_std_rad: float = 0.05
+    heading_mode_rad: float = float(np.radians(0.75))
+    heading_mode_time_s: float = 1.0
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
@@ -199,7 +206,7 @@ class FusedConfig:
                      "disturbance_heading_rad", "disturbance_field_frac", "disturbance_dip_rad",
                      "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate",
                      "sheet_velocity_std_mps", "sheet_velocity_time_s", "sheet_position_std_m",
-                     "sheet_position_time_s"):
+                     "sheet_position_time_s", "heading_mode_time_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
 
@@ -283,13 +290,9 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     ndarray, shape (n_links, 3)
         m/s², world frame, summing to zero over the links.
     """
-    w = np.asarray(omega, dtype=float)
-    wdot = np.asarray(omega_dot, dtype=float)
-    body = w[:, 0:1] * w - np.einsum("ki,ki->k", w, w)[:, None] * _EX  # ω × (ω × e_x)
-    body[:, 1] += wdot[:, 2]  # + ω̇ × e_x
-    body[:, 2] -= wdot[:, 1]
-    ddot = np.einsum("kij,kj->ki", frames, body)
-    A = joints_from_directions(ddot, rows, cols, link_length).reshape(-1, 3)
+    dd = ddot(np.asarray(frames, dtype=float), np.asarray(omega, dtype=float),
+              np.asarray(omega_dot, dtype=float))
+    A = joints_from_directions(dd, rows, cols, link_length).reshape(-1, 3)
     ep = topology(rows, cols).lattice.endpoints if endpoints is None else endpoints
     a = 0.5 * (A[ep[:, 0]] + A[ep[:, 1]])
     return a - a.mean(axis=0)
@@ -448,7 +451,8 @@ class MotionEstimator:
                 raise ValueError(f"Invalid valid: need a boolean mask of shape ({n},), got "
                                  f"{v.dtype} {v.shape}.")
         for name, x in arrays.items():
-            if x is not None:
+            if x is not None and not np.isfinite(np.add.reduce(x, axis=None)):
+                # the sum is finite when every value is (the common case: one reduction)
                 bad = v & ~np.all(np.isfinite(x), axis=1)
                 if bad.any():
                     k = np.flatnonzero(bad)
@@ -544,11 +548,9 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        C = self.P[:, :3, :3].copy()
-        C[:, :2, :2] += self._common.tilt_cov
-        if self._with_mag:
-            C[:, 2, 2] += self._s_group[self.topo.group] + self._s0
-        return C
+        return _orientation_cov(self.P, self._common.tilt_cov,
+                                (self._s_group[self.topo.group] + self._s0) if self._with_mag
+                                else None)
 
     def _initialise(self, t, f, w, m, v) -> None:
         cfg = self.config
@@ -580,6 +582,8 @@ class MotionEstimator:
             F, dip = self._b_ref
             self._dist = np.zeros((n, 3))
             self._dist_count = np.zeros(n)
+            self._mode_psi = None  # the last robust mode of the heading residuals
+            self._resid_avg = np.zeros(n)
             self._weights = np.zeros(n)  # none is used before its tests have run
         self.R = R
         tilt = (cfg.accel_noise_mps2 / G0) ** 2 + cfg.lattice_floor_rad ** 2
@@ -665,7 +669,7 @@ class MotionEstimator:
             self._common.step(a_c[:2], h, float(np.mean(self._q_last)) / nv,
                               cfg.gyro_bias_walk_rps ** 2 * h / nv, cfg.accel_noise_mps2 ** 2 / nv)
             c, b = self._common.take()
-            self.R = rotate_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
+            turn_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
             self.bias += np.einsum("kji,j->ki", self.R[:, :2, :], b)  # Rᵀ (b_x, b_y, 0)
         return a_c
 
@@ -719,6 +723,8 @@ class MotionEstimator:
         x = np.empty((n, 6))
         _step("yaw", P, mu, a_diag, x)
         self._apply(x)
+        if m is not None:
+            self._heading_mode(dt)
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
     def _yaw_prior(self, p, six_axis=None):
@@ -752,7 +758,7 @@ class MotionEstimator:
             w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
             held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
             held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
-        self._held = held
+        self._held, self._held0 = held, held0
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
         I0 = (1.0 - held0) / self._s0 + held0 * sE
@@ -806,15 +812,11 @@ class MotionEstimator:
         solution scales the weight by ``1 / (1 + (s / scale)²)``. ``self._weights`` keeps each
         link's weight as a fraction of an undisturbed one's, in [0, 1]."""
         cfg = self.config
-        W = np.einsum("kij,kj->ki", self.R, m)
-        hz = np.hypot(W[:, 0], W[:, 1])
-        norm = np.linalg.norm(W, axis=1)
-        e = wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
         F, dip = self._b_ref
+        e, hz, t_field, t_dip = mag_terms(self.R, m, self.declination_rad, F, dip,
+                                          cfg.disturbance_field_frac, cfg.disturbance_dip_rad)
         ok = v & (hz > 0.1 * F)
-        self._field_tests = (ok, (norm / F - 1.0) / cfg.disturbance_field_frac,
-                             (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
-                             / cfg.disturbance_dip_rad)
+        self._field_tests = (ok, t_field, t_dip)
         hz2 = np.maximum(hz, 1e-30) ** 2
         var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
         # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
@@ -834,7 +836,31 @@ class MotionEstimator:
         # used: a magnet there from the start would otherwise be believed first
         warm = self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s
         self._weights = np.where(ok & warm, wgt, 0.0)
-        return np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0), np.where(ok, e, 0.0)
+        mw = np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0)
+        e = np.where(ok, e, 0.0)
+        return mw, e
+
+    def _heading_mode(self, dt) -> None:
+        """Turn the sheet's heading towards the robust mode of its links' averaged heading
+        residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
+        hold (``held0``, `_yaw_prior`) over `FusedConfig.heading_mode_time_s`: the gyroscopes
+        carry the heading while a disturbance is detected, and the links that agree with each
+        other — not the mean of every link the disturbance turns a little — correct it slowly.
+        The links vote in proportion to how much their groups are held: a group whose
+        magnetometers are trusted has taken their heading in the solve, its residuals are zero
+        by construction (docs/estimator.md §8)."""
+        cfg = self.config
+        if cfg.heading_mode_rad <= 0 or self._held0 <= 0:
+            return
+        use = self._field_tests[0] & (self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s)
+        w = np.where(use, self._held[self.topo.group], 0.0)
+        psi = robust_mode(self._resid_avg, w, cfg.heading_mode_rad, self._mode_psi)
+        if psi is None:
+            return
+        g = self._held0 * min(1.0, float(np.mean(dt)) / cfg.heading_mode_time_s)
+        turn_all(rotation_matrices(np.array([0.0, 0.0, -g * psi])), self.R)
+        self._resid_avg -= g * psi
+        self._mode_psi = (1.0 - g) * psi  # where the mode is after the turn: the next start
 
     def _disturbance_tests(self, resid, v, dt) -> None:
         """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the
@@ -855,6 +881,8 @@ class MotionEstimator:
         self._dist_count += ok
         alpha = self._dist_alpha(dt)[:, None]
         self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
+        self._resid_avg = np.where(ok, self._resid_avg + alpha[:, 0] * (resid - self._resid_avg),
+                                   self._resid_avg)
 
     def _dist_alpha(self, dt):
         """The tests' averaging weight per link: a running mean over the first samples, then an

@@ -407,3 +407,88 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
     }
     return it;
 }
+
+void capsheet_mf_rotate(size_t n, double *R, const double *Q)
+{
+    for (size_t k = 0; k < n; k++) {
+        double Rn[9];
+        double *Rk = R + 9 * k;
+        mat3_mul(Q, Rk, Rn);
+        for (int i = 0; i < 9; i++) {
+            Rk[i] = Rn[i];
+        }
+    }
+}
+
+/* (x + pi) mod 2 pi - pi with the remainder's sign that of 2 pi, as numpy's `%` (fused.py
+ * `wrap`) */
+static double wrap_pi(double x)
+{
+    const double pi = 3.14159265358979323846;
+    double r = fmod(x + pi, 2.0 * pi);
+    if (r < 0.0) {
+        r += 2.0 * pi;
+    }
+    return r - pi;
+}
+
+void capsheet_mf_mag_terms(size_t n, const double *R, const double *m, double declination,
+                           double field, double dip, double field_unit, double dip_unit,
+                           double *heading, double *hz, double *t_field, double *t_dip)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *Rk = R + 9 * k;
+        const double *mk = m + 3 * k;
+        double W[3];
+        for (int i = 0; i < 3; i++) {
+            W[i] = Rk[3 * i] * mk[0] + Rk[3 * i + 1] * mk[1] + Rk[3 * i + 2] * mk[2];
+        }
+        double h = hypot(W[0], W[1]);
+        double norm = sqrt(W[0] * W[0] + W[1] * W[1] + W[2] * W[2]);
+        hz[k] = h;
+        heading[k] = wrap_pi(atan2(W[1], W[0]) - declination);
+        t_field[k] = (norm / field - 1.0) / field_unit;
+        double s = -W[2] / (norm > 1e-30 ? norm : 1e-30);
+        s = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
+        t_dip[k] = (asin(s) - dip) / dip_unit;
+    }
+}
+
+void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_cov,
+                                 const double *yaw_add, double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *Pk = P + 36 * k;
+        double *Ck = out + 9 * k;
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                Ck[3 * i + j] = Pk[6 * i + j];
+            }
+        }
+        Ck[0] += tilt_cov[0];
+        Ck[1] += tilt_cov[1];
+        Ck[3] += tilt_cov[2];
+        Ck[4] += tilt_cov[3];
+        if (yaw_add != NULL) {
+            Ck[8] += yaw_add[k];
+        }
+    }
+}
+
+void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
+                      double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *wk = w + 3 * k;
+        const double *ak = wdot + 3 * k;
+        const double *Rk = R + 9 * k;
+        double ww = wk[0] * wk[0] + wk[1] * wk[1] + wk[2] * wk[2];
+        double b[3];
+        b[0] = wk[0] * wk[0] - ww;
+        b[1] = wk[0] * wk[1] + ak[2];
+        b[2] = wk[0] * wk[2] - ak[1];
+        for (int i = 0; i < 3; i++) {
+            out[3 * k + i] = Rk[3 * i] * b[0] + Rk[3 * i + 1] * b[1] + Rk[3 * i + 2] * b[2];
+        }
+    }
+}

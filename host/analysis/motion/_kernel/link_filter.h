@@ -62,3 +62,24 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
                         const double *Eg, double sE, double I0, const double *mw,
                         const double *b, const double *inv_diag, double rtol, int maxiter,
                         double *x, double *work);
+
+/* R[k] <- Q R[k] for every link (Q 3 x 3, row-major): a turn of the whole sheet. */
+void capsheet_mf_rotate(size_t n, double *R, const double *Q);
+
+/* The magnetometers' terms (fused.py `_np_mag_terms`): W = R m (the field in the world), its
+ * heading less the declination wrapped to [-pi, pi), its horizontal magnitude hz, and the two
+ * field tests in their units: t_field = (|W| / field - 1) / field_unit and
+ * t_dip = (asin(clip(-W_z / max(|W|, 1e-30), -1, 1)) - dip) / dip_unit. */
+void capsheet_mf_mag_terms(size_t n, const double *R, const double *m, double declination,
+                           double field, double dip, double field_unit, double dip_unit,
+                           double *heading, double *hz, double *t_field, double *t_dip);
+
+/* Every link's orientation covariance for the output: out[k] = P[k][0:3, 0:3] plus tilt_cov
+ * (2 x 2, row-major) on its tilt block and yaw_add[k] on its yaw (none when yaw_add is NULL). */
+void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_cov,
+                                 const double *yaw_add, double *out);
+
+/* A link direction's second derivative, world (fused.py `relative_accelerations`):
+ * out[k] = R[k] (w x (w x e_x) + wdot x e_x), w and wdot in the link's frame. */
+void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
+                      double *out);
