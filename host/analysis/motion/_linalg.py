@@ -252,6 +252,15 @@ def kernel_args(name: str, args) -> list:
     return out
 
 
+def fixed_args(topo, name: str, arrays) -> list:
+    """`kernel_args` of a lattice's fixed index arrays, made once per lattice and kept on its
+    topology (the arrays live as long as it does)."""
+    cache = topo.__dict__.setdefault("_kernel_args", {})
+    if name not in cache:
+        cache[name] = kernel_args(name, arrays)
+    return cache[name]
+
+
 def kernel_step(name: str, *args) -> None:
     getattr(kernel_lib, "capsheet_mf_" + name)(args[0].shape[0], *kernel_args(name, args))
 
@@ -265,6 +274,18 @@ def step(name: str, *args) -> None:
         NUMPY_STEPS[name](*args)
 
 
+def step_apply(name: str, R, bias, P, *args) -> None:
+    """Step ``accel`` or ``yaw`` (their arguments after ``R``/``P``, as `step` takes them), then
+    its correction applied (`apply`): in C one pass a block of links at a time."""
+    x = args[-2] if name == "accel" else args[-1]
+    if USE_KERNEL:
+        getattr(kernel_lib, f"capsheet_mf_{name}_apply")(R.shape[0], *kernel_args(name, (R, bias, P)),
+                                                          *kernel_args(name, args))
+        return
+    NUMPY_STEPS[name](*((R, P) + args if name == "accel" else (P,) + args))
+    NUMPY_STEPS["apply"](R, bias, P, x)
+
+
 def lattice_terms(R, P, topo, floor2):
     """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
     the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`np_lattice`)."""
@@ -273,10 +294,14 @@ def lattice_terms(R, P, topo, floor2):
     jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
     if USE_KERNEL:
         work = np.empty(10 * U + 3 * n)
-        kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *kernel_args(
-            "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
-                        topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
-                        lat_diag, work)))
+        kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz,
+                                       *kernel_args("lattice", (R, P)),
+                                       *fixed_args(topo, "lattice", (
+                                           topo.units, topo.pair_link, topo.pair_cell,
+                                           topo.inv_ncell, topo.jac_slots, topo.jac_rows,
+                                           topo.jac_cols)),
+                                       *kernel_args("lattice", (floor2, res, wts, jd, lat_diag,
+                                                                work)))
     else:
         np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
     return res, wts, jd, lat_diag
@@ -291,7 +316,8 @@ def normal_matvec(topo, jd, wts):
         return lambda x: JT @ (wts * (J @ x))
     n, nr = topo.n_links, topo.n_rows
     tmp = np.empty(nr)
-    fixed = kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
+    fixed = fixed_args(topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)) \
+        + kernel_args("normal", (jd, wts))
     tmp_c = kernel_ffi.from_buffer("double[]", tmp)
 
     def matvec(x):
@@ -312,16 +338,13 @@ def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
     n, nr, ng = topo.n_links, topo.n_rows, topo.n_groups
     x = np.empty(n)
     work = np.empty(nr + 4 * n + 2 * ng)
-    a = kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
-                             Eg))
+    a = fixed_args(topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)) \
+        + kernel_args("pcg", (jd, wts, D)) + fixed_args(topo, "group", (topo.group,)) \
+        + kernel_args("pcg", (dg, Eg))
     c = kernel_args("pcg", (mw, b, inv_diag))
-    it = kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
-                                        int(maxiter), *kernel_args("pcg", (x, work)))
-    ITERS.append(it)
+    kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
+                                   int(maxiter), *kernel_args("pcg", (x, work)))
     return x
-
-
-ITERS = []
 
 
 # ---------------------------------------------------------------------------------------------
@@ -422,7 +445,7 @@ def robust_mode(r: np.ndarray, w: np.ndarray, width: float, start: float | None 
         psi = float(r[order][np.searchsorted(cw, 0.5 * cw[-1])])
     else:
         psi = float(start)
-    for _ in range(iterations):
+    for _ in range(iterations if start is None else max(1, iterations // 2)):
         u = (r - psi) / width
         t = 1.0 - u * u
         wt = np.where(t > 0.0, w * t * t, 0.0)

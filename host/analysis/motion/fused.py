@@ -71,7 +71,8 @@ from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,
 from ._linalg import (kernel_args as _kernel_args, kernel_ffi as _kffi,  # noqa: F401
                       kernel_lib as _klib, kernel_step as _kernel_step,
                       lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
-                      np_lattice as _np_lattice, step as _step, yaw_solve as _yaw_solve)
+                      np_lattice as _np_lattice, step as _step, step_apply as _step_apply,
+                      yaw_solve as _yaw_solve)
 
 
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
@@ -84,6 +85,9 @@ _EX = np.array([1.0, 0.0, 0.0])
 #: curved sheet). On a flat sheet, which keeps nearly none, it is held by the links' own
 #: variances (docs/estimator.md §8).
 _GROUP_SEEN = 3e-3
+#: the yaw solve's relative residual: its corrections are ~1e-4 rad a snapshot, so 1e-6 of them
+#: is far below every noise, and each snapshot solves anew (nothing accumulates)
+_YAW_RTOL = 1e-6
 _COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 #: a link without a sample turns at its last rate this long (s), then at the sheet's (`_missing_rates`)
 MISSING_HOLD_S = 0.03
@@ -105,7 +109,14 @@ class FusedConfig:
         Gyroscope white noise per axis per sample, rad/s: the ICM-42688-P's 2.8 mdps/√Hz
         (DS-000347, Table 1, "Rate noise spectral density") at 145 Hz, 0.024 °/s.
     gyro_bias_std_rps : float
-        The bias's uncertainty at the start, rad/s (after calibration: 0.01 °/s).
+        Each chip's own bias uncertainty at the start, rad/s (after calibration: 0.01 °/s),
+        independent from chip to chip.
+    gyro_common_bias_std_rps : float or None
+        The uncertainty of the bias all chips share, rad/s (the sheet's common tilt rate, step
+        2): a calibration's residual is mostly this — the board's chips, calibrated together,
+        keep 0.05–0.07 °/s in common and 0.002–0.007 °/s each of their own
+        (benchmarks/bench_motion.py). None: `gyro_bias_std_rps` (chips whose biases are
+        independent, uncalibrated parts).
     gyro_bias_walk_rps : float
         The bias's random walk, rad/s/√s (3 °/h of bias instability over 100 s ≈ 2e-6).
     gyro_scale_error : float
@@ -168,6 +179,7 @@ class FusedConfig:
     accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
     gyro_noise_rps: float = float(np.radians(2.8e-3 * np.sqrt(145.0 / 2.0)))
     gyro_bias_std_rps: float = float(np.radians(0.01))
+    gyro_common_bias_std_rps: float | None = None
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
     orientation_walk_rad: float = float(np.radians(0.05))
@@ -199,6 +211,8 @@ class FusedConfig:
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
             v = getattr(self, name)
+            if v is None and name == "gyro_common_bias_std_rps":
+                continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
                     or not np.isfinite(v) or v < 0:
                 raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
@@ -518,6 +532,7 @@ class MotionEstimator:
             a_c = np.zeros(3)
         else:
             dt = t - self._t
+            self._h = float(dt.mean())
             w_c = w - self.bias
             self._missing_s = np.where(v, 0.0, self._missing_s + dt)
             if not v.all():
@@ -608,7 +623,9 @@ class MotionEstimator:
         # the common tilt starts as the links' mean start (independent errors); its rate is the
         # biases' calibration residual, which the chips share
         self._common = CommonMotion(float(np.mean(tilt)) / max(int(v.sum()), 1),
-                                    cfg.gyro_bias_std_rps ** 2, cfg.sheet_velocity_std_mps,
+                                    (cfg.gyro_bias_std_rps if cfg.gyro_common_bias_std_rps is None
+                                     else cfg.gyro_common_bias_std_rps) ** 2,
+                                    cfg.sheet_velocity_std_mps,
                                     cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
                                     cfg.sheet_position_time_s)
         self._nis = np.full(n, np.nan)
@@ -661,8 +678,7 @@ class MotionEstimator:
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + (cfg.rel_accel_error * np.linalg.norm(da, axis=1)) ** 2
         x = np.empty((self.n_links, 6))
-        _step("accel", self.R, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
-        self._apply(x)
+        _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
         # the sheet's own tilt: what the links share, from its bounded translation
         if nv:
             h = float(np.mean(dt[v]))
@@ -689,18 +705,16 @@ class MotionEstimator:
         normal = _normal_matvec(topo, jd, wts)
         # the prior: each link's own yaw variance for what is local to it, and the groups' and
         # the sheet's common yaw variances for what the links share (`_yaw_prior`)
-        if m is not None:
-            self._grow_collective(dt)
-            prior, prior_diag = self._yaw_prior(P[:, 2, 2])
-        else:  # without magnetometers: the groups' offsets apart where the loops see them
-            self._grow_collective(dt)
-            # what the loops say of each group's common offset (its information, 1/rad²)
-            jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
-            info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg,
-                               minlength=topo.n_groups)
-            seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag,
-                                                 minlength=topo.n_groups), 1e-300)
-            prior, prior_diag = self._yaw_prior(P[:, 2, 2], six_axis=seen / _GROUP_SEEN)
+        self._grow_collective(dt)
+        # what the loops say of each group's common offset (its information, 1/rad²): a group
+        # the magnetometers do not hold (none, or disturbed) is kept apart from its links' own
+        # yaws where the loops see it
+        jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
+        info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg,
+                           minlength=topo.n_groups)
+        seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag,
+                                             minlength=topo.n_groups), 1e-300)
+        prior, prior_diag = self._yaw_prior(P[:, 2, 2], seen / _GROUP_SEEN, m is None)
         rhs = -(JT @ (wts * res))
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
@@ -709,25 +723,24 @@ class MotionEstimator:
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
         if USE_KERNEL:
-            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag)
+            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag, _YAW_RTOL)
         else:
-            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag, _YAW_RTOL)
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:
-            self._shrink_collective(mw)
+            self._shrink_collective(mw, info)
         else:  # without magnetometers the loops alone say what a group's offset is
             self._s_group = 1.0 / (1.0 / self._s_group + (1.0 - self._held) * info)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
-        _step("yaw", P, mu, a_diag, x)
-        self._apply(x)
+        _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
         if m is not None:
             self._heading_mode(dt)
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
-    def _yaw_prior(self, p, six_axis=None):
+    def _yaw_prior(self, p, seen=None, six_axis=False):
         """The yaw problem's prior information as a matrix-vector product and its diagonal.
 
         A link's yaw variance ``p`` (its conditional one after the last solve) says how well it
@@ -738,10 +751,11 @@ class MotionEstimator:
         on a flat sheet) with variance ``s_g`` for what is not the sheet's common offset; and
         the sheet's common yaw (its heading) with variance ``s_0``.
 
-        Without magnetometers (``six_axis``: each group's information from the loops about its
-        offset, as a multiple of what `_GROUP_SEEN` calls seen) the heading is a gauge held by
-        the links' own variances, and a group is held by them in proportion
-        ``1 / (1 + six_axis)``: on a flat sheet as before, on a curved one by ``s_g``, which
+        Without magnetometers (``six_axis``) the heading is a gauge held by the links' own
+        variances. A group the magnetometers do not hold (none, or too disturbed:
+        `FusedConfig.mag_hold_weight`) is held by the links' own variances in proportion
+        ``1 / (1 + seen)`` (``seen``: the loops' information about its offset, as a multiple of
+        what `_GROUP_SEEN` calls seen): on a flat sheet fully, on a curved one by ``s_g``, which
         the loops' information shrinks (the accelerometer-only start's group offsets, a few
         hundredths of a radian, are then corrected as soon as the sheet bends, not held by
         the links' variances, which say how well each is known against its neighbours)."""
@@ -752,13 +766,14 @@ class MotionEstimator:
         # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
         # link's own variance holds it, as if the magnetometers were not there
         hw = self.config.mag_hold_weight
-        if six_axis is not None:  # the sheet's heading is a gauge, held by the links' own variances
-            held, held0 = 1.0 / (1.0 + six_axis), 1.0
+        if six_axis:  # the sheet's heading is a gauge, held by the links' own variances
+            held_mag, held0 = np.ones(r), 1.0
         else:
             w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
-            held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+            held_mag = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
             held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
-        self._held, self._held0 = held, held0
+        held = held_mag if seen is None else held_mag / (1.0 + seen)
+        self._held, self._held0, self._held_mag = held, held0, held_mag
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
         I0 = (1.0 - held0) / self._s0 + held0 * sE
@@ -783,21 +798,24 @@ class MotionEstimator:
         (averaged over the links that share the offset) and the heading walk."""
         cfg = self.config
         q = self._q_last
-        h = float(np.mean(dt))
+        h = self._h
         walk = cfg.heading_walk_rad ** 2 * h
         topo = self.topo
         q_g = np.bincount(topo.group, weights=q, minlength=topo.n_groups) / topo.group_size ** 2
         self._s_group = np.minimum(self._s_group + q_g + walk, _COLLECTIVE_MAX)
         self._s0 = min(self._s0 + float(q.mean()) / q.size + walk, _COLLECTIVE_MAX)
 
-    def _shrink_collective(self, mw) -> None:
+    def _shrink_collective(self, mw, info) -> None:
         """The groups' and the sheet's common yaw variances after the solve: each gains what the
-        magnetometers say of its offset (the loops' say is not kept: they hold the shape at
-        every snapshot anew, and on a flat sheet they say nothing of these offsets)."""
+        magnetometers say of its offset where they hold it (the loops' say is not kept there:
+        they hold the shape at every snapshot anew, and on a flat sheet they say nothing of
+        these offsets), and what the loops say (``info``) where the magnetometers do not hold
+        it and the loops do, as without magnetometers."""
         topo = self.topo
-        free = 1.0 - self._held  # a held group's offset is the links' own prior's: mw went there
-        self._s_group = 1.0 / (1.0 / self._s_group + free * np.bincount(topo.group, weights=mw,
-                                                                        minlength=topo.n_groups))
+        trusted = 1.0 - self._held_mag  # a held group's offset is the links' own prior's
+        by_loops = self._held_mag - self._held
+        self._s_group = 1.0 / (1.0 / self._s_group + trusted * np.bincount(
+            topo.group, weights=mw, minlength=topo.n_groups) + by_loops * info)
         self._s0 = 1.0 / (1.0 / self._s0 + float(mw.sum()))
 
     def _magnetometer(self, m, v):
@@ -828,13 +846,13 @@ class MotionEstimator:
             + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
         dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
                  + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
-        lasts = cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6)
+        lasts = cfg.disturbance_persist_s / max(self._h, 1e-6)
         dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * lasts
         s2 = self._dist[:, 0] ** 2
         wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
         # until the tests have averaged over their time constant a link's magnetometer is not
         # used: a magnet there from the start would otherwise be believed first
-        warm = self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s
+        warm = self._dist_count * self._h >= cfg.mag_warmup_s
         self._weights = np.where(ok & warm, wgt, 0.0)
         mw = np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0)
         e = np.where(ok, e, 0.0)
@@ -852,12 +870,12 @@ class MotionEstimator:
         cfg = self.config
         if cfg.heading_mode_rad <= 0 or self._held0 <= 0:
             return
-        use = self._field_tests[0] & (self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s)
+        use = self._field_tests[0] & (self._dist_count * self._h >= cfg.mag_warmup_s)
         w = np.where(use, self._held[self.topo.group], 0.0)
         psi = robust_mode(self._resid_avg, w, cfg.heading_mode_rad, self._mode_psi)
         if psi is None:
             return
-        g = self._held0 * min(1.0, float(np.mean(dt)) / cfg.heading_mode_time_s)
+        g = self._held0 * min(1.0, self._h / cfg.heading_mode_time_s)
         turn_all(rotation_matrices(np.array([0.0, 0.0, -g * psi])), self.R)
         self._resid_avg -= g * psi
         self._mode_psi = (1.0 - g) * psi  # where the mode is after the turn: the next start

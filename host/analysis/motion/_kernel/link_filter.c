@@ -492,3 +492,28 @@ void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *
         }
     }
 }
+
+/* blocks of links small enough that a block's state is still in cache when it is applied */
+#define APPLY_BLOCK 64
+
+void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
+                             const double *vec, const double *r2, double gate,
+                             const uint8_t *valid, double *x, double *nis)
+{
+    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
+        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
+        capsheet_mf_accel(m, R + 9 * k0, P + 36 * k0, f + 3 * k0, vec + 3 * k0, r2 + k0, gate,
+                          valid + k0, x + 6 * k0, nis + k0);
+        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    }
+}
+
+void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
+                           const double *a_diag, double *x)
+{
+    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
+        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
+        capsheet_mf_yaw(m, P + 36 * k0, mu + k0, a_diag + k0, x + 6 * k0);
+        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    }
+}

@@ -83,3 +83,13 @@ void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_c
  * out[k] = R[k] (w x (w x e_x) + wdot x e_x), w and wdot in the link's frame. */
 void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
                       double *out);
+
+/* capsheet_mf_accel, then capsheet_mf_apply of its x, a block of links at a time (the same
+ * numbers as the two calls; one pass over the state). */
+void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
+                             const double *vec, const double *r2, double gate,
+                             const uint8_t *valid, double *x, double *nis);
+
+/* capsheet_mf_yaw, then capsheet_mf_apply of its x, a block of links at a time. */
+void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
+                           const double *a_diag, double *x);
