@@ -70,13 +70,23 @@ def inv_sym3(S: np.ndarray) -> np.ndarray:
 
 
 def pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
-         maxiter: int = 200) -> np.ndarray:
+         maxiter: int = 200, coarse=None) -> np.ndarray:
     """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
     its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
-    the filter has settled, so a few iterations suffice (docs/estimator.md §8)."""
+    the filter has settled, so a few iterations suffice (docs/estimator.md §8). ``coarse``
+    (``group``, ``C⁻¹``) adds the groups' coarse correction ``Z C⁻¹ Zᵀ r`` to the
+    preconditioner (``Z`` the groups' indicator, ``C = Zᵀ A Z``, `coarse_inverse`): the modes
+    a group's links share, which the diagonal does not see and the loops may hold weakly."""
+    def precondition(r):
+        z = inv_diag * r
+        if coarse is not None:
+            group, cinv = coarse
+            z = z + (cinv @ np.bincount(group, weights=r, minlength=cinv.shape[0]))[group]
+        return z
+
     x = np.zeros_like(b)
     r = b.copy()
-    z = inv_diag * r
+    z = precondition(r)
     pdir = z.copy()
     rz = float(r @ z)
     stop = rtol * rtol * float(b @ b)
@@ -87,7 +97,7 @@ def pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
         alpha = rz / float(pdir @ q)
         x += alpha * pdir
         r -= alpha * q
-        z = inv_diag * r
+        z = precondition(r)
         rz_new = float(r @ z)
         pdir = z + (rz_new / rz) * pdir
         rz = rz_new
@@ -329,19 +339,42 @@ def normal_matvec(topo, jd, wts):
     return matvec
 
 
+def coarse_inverse(topo, jg, wts, terms, mw) -> np.ndarray:
+    """``C⁻¹`` with ``C = Zᵀ A Z`` the yaw problem's matrix on the groups' common offsets (``Z``
+    the groups' indicator, n_groups x n_groups): the lattice's ``(J Z)ᵀ W (J Z)`` (``jg``: ``J``'s
+    columns summed over each group, ``topo.jg_*``'s pattern), the nested prior's group level
+    (``σ_a`` of `MotionEstimator._yaw_prior`; ``terms`` its ``D, dg, Eg, sE, I0``) and the
+    magnetometers' weights summed per group."""
+    _D, _dg, Eg, sE, I0 = terms
+    ng = topo.n_groups
+    if USE_KERNEL:
+        C = np.empty((ng, ng))
+        kernel_lib.capsheet_mf_coarse(topo.n_rows, ng, *fixed_args(topo, "coarse", (
+            topo.jg_indptr, topo.jg_group)), *kernel_args("coarse", (jg, wts, C)))
+    else:
+        import scipy.sparse as sp
+        JG = sp.csr_matrix((jg, (topo.jg_rows, topo.jg_group)), shape=(topo.n_rows, ng))
+        C = (JG.T @ JG.multiply(wts[:, None]).tocsr()).toarray()
+    C += np.diag(Eg + np.bincount(topo.group, weights=mw, minlength=ng))
+    C += np.outer(Eg, Eg) * (I0 / (sE * sE) - 1.0 / sE)
+    return np.linalg.inv(C)
+
+
 def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
-               maxiter: int = 200) -> np.ndarray:
+               maxiter: int = 200, coarse_inv=None) -> np.ndarray:
     """`pcg` on the lattice step's yaw problem, all in the C kernel (``capsheet_mf_yaw_pcg``):
     ``Jᵀ W J`` from ``jd`` and ``wts``, the nested prior from ``terms`` (``D, dg, Eg, sE, I0``
     of `MotionEstimator._yaw_prior`) and the magnetometers' weights ``mw``."""
     D, dg, Eg, sE, I0 = terms
     n, nr, ng = topo.n_links, topo.n_rows, topo.n_groups
     x = np.empty(n)
-    work = np.empty(nr + 4 * n + 2 * ng)
+    work = np.empty(nr + 4 * n + 4 * ng)
     a = fixed_args(topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)) \
         + kernel_args("pcg", (jd, wts, D)) + fixed_args(topo, "group", (topo.group,)) \
         + kernel_args("pcg", (dg, Eg))
-    c = kernel_args("pcg", (mw, b, inv_diag))
+    c = kernel_args("pcg", (mw, b, inv_diag)) + [
+        kernel_ffi.NULL if coarse_inv is None
+        else kernel_ffi.from_buffer("double[]", np.ascontiguousarray(coarse_inv))]
     kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
                                    int(maxiter), *kernel_args("pcg", (x, work)))
     return x

@@ -69,7 +69,8 @@ from ._lattice import CLOSURE_SIGNS, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
                       inv_sym3, orientation_cov as _orientation_cov, pcg, rotate_all,
                       rotation_matrices, skew, turn_all, wrap)
-from ._linalg import (kernel_args as _kernel_args, kernel_ffi as _kffi,  # noqa: F401
+from ._linalg import (coarse_inverse as _coarse_inverse, kernel_args as _kernel_args,  # noqa: F401
+                      kernel_ffi as _kffi,
                       kernel_lib as _klib, kernel_step as _kernel_step,
                       lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
                       np_lattice as _np_lattice, step as _step, step_apply as _step_apply,
@@ -89,6 +90,7 @@ _GROUP_SEEN = 3e-3
 #: the yaw solve's relative residual: its corrections are ~1e-4 rad a snapshot, so 1e-6 of them
 #: is far below every noise, and each snapshot solves anew (nothing accumulates)
 _YAW_RTOL = 1e-6
+_COARSE_EVERY = 8
 _COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 #: a link without a sample turns at its last rate this long (s), then at the sheet's (`_missing_rates`)
 MISSING_HOLD_S = 0.03
@@ -639,6 +641,7 @@ class MotionEstimator(MagnetometerSteps):
                                     cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
                                     cfg.sheet_position_time_s)
         self._nis = np.full(n, np.nan)
+        self._cinv = None  # the yaw solve's coarse preconditioner (`_linalg.coarse_inverse`)
 
     # ------------------------------------------------------------------------------- 1. gyro
     def _missing_rates(self, w_c, v) -> np.ndarray:
@@ -749,10 +752,17 @@ class MotionEstimator(MagnetometerSteps):
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
+        # the coarse preconditioner changes slowly: made anew every `_COARSE_EVERY` snapshots
+        # (any symmetric positive definite one leaves the solution as it is)
+        if self._cinv is None or self.snapshots % _COARSE_EVERY == 0:
+            self._cinv = _coarse_inverse(topo, jg, wts, self._prior_terms, mw)
+        cinv = self._cinv
         if USE_KERNEL:
-            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag, _YAW_RTOL)
+            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag, _YAW_RTOL,
+                            coarse_inv=cinv)
         else:
-            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag, _YAW_RTOL)
+            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag, _YAW_RTOL,
+                     coarse=(topo.group, cinv))
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:

@@ -368,19 +368,50 @@ static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *
     }
 }
 
+/* z = inv_diag r, plus the groups' coarse correction Z (C^-1 (Z^T r)) when coarse_inv is given */
+static void precondition(size_t n, size_t n_groups, const int64_t *group, const double *inv_diag,
+                         const double *coarse_inv, const double *r, double *z, double *t,
+                         double *c)
+{
+    for (size_t k = 0; k < n; k++) {
+        z[k] = inv_diag[k] * r[k];
+    }
+    if (coarse_inv == NULL) {
+        return;
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        t[g] = 0.0;
+    }
+    for (size_t k = 0; k < n; k++) {
+        t[group[k]] += r[k];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        double s = 0.0;
+        for (size_t h = 0; h < n_groups; h++) {
+            s += coarse_inv[n_groups * g + h] * t[h];
+        }
+        c[g] = s;
+    }
+    for (size_t k = 0; k < n; k++) {
+        z[k] += c[group[k]];
+    }
+}
+
 int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
                         const int32_t *indices, const double *data, const double *w,
                         const double *D, const int64_t *group, const double *dg,
                         const double *Eg, double sE, double I0, const double *mw,
-                        const double *b, const double *inv_diag, double rtol, int maxiter,
-                        double *x, double *work)
+                        const double *b, const double *inv_diag, const double *coarse_inv,
+                        double rtol, int maxiter, double *x, double *work)
 {
     double *tmp = work, *r = work + n_rows, *z = r + n, *p = z + n, *q = p + n;
-    double *abar = q + n, *sig = abar + n_groups;
+    double *abar = q + n, *sig = abar + n_groups, *t = sig + n_groups, *c = t + n_groups;
     for (size_t k = 0; k < n; k++) {
         x[k] = 0.0;
         r[k] = b[k];
-        z[k] = inv_diag[k] * r[k];
+    }
+    precondition(n, n_groups, group, inv_diag, coarse_inv, r, z, t, c);
+    for (size_t k = 0; k < n; k++) {
         p[k] = z[k];
     }
     double rz = dot(n, r, z);
@@ -396,8 +427,8 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
         for (size_t k = 0; k < n; k++) {
             x[k] += alpha * p[k];
             r[k] -= alpha * q[k];
-            z[k] = inv_diag[k] * r[k];
         }
+        precondition(n, n_groups, group, inv_diag, coarse_inv, r, z, t, c);
         double rz_new = dot(n, r, z);
         double beta = rz_new / rz;
         for (size_t k = 0; k < n; k++) {
@@ -515,5 +546,21 @@ void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const d
         size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
         capsheet_mf_yaw(m, P + 36 * k0, mu + k0, a_diag + k0, x + 6 * k0);
         capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    }
+}
+
+void capsheet_mf_coarse(size_t n_rows, size_t n_groups, const int64_t *indptr,
+                        const int64_t *grp, const double *val, const double *w, double *C)
+{
+    for (size_t i = 0; i < n_groups * n_groups; i++) {
+        C[i] = 0.0;
+    }
+    for (size_t r = 0; r < n_rows; r++) {
+        for (int64_t a = indptr[r]; a < indptr[r + 1]; a++) {
+            double wa = w[r] * val[a];
+            for (int64_t b = indptr[r]; b < indptr[r + 1]; b++) {
+                C[(size_t)grp[a] * n_groups + (size_t)grp[b]] += wa * val[b];
+            }
+        }
     }
 }

@@ -54,14 +54,23 @@ void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
  * data), W = diag(w), and the prior is the nested one: with abar_g = sum_{k in g} D_k x_k / dg_g,
  * ey = sum_g Eg_g abar_g and s_g = Eg_g abar_g - Eg_g ey / sE + Eg_g ey I0 / sE^2,
  * (prior x)_k = D_k x_k - D_k abar_{g(k)} + D_k s_{g(k)} / dg_{g(k)}. Stops when
- * |r|^2 <= rtol^2 |b|^2 or after maxiter iterations. work: n_rows + 4 n + 2 n_groups doubles.
- * Returns the iterations taken. */
+ * |r|^2 <= rtol^2 |b|^2 or after maxiter iterations. The preconditioner is inv_diag, plus,
+ * when coarse_inv (n_groups x n_groups) is not NULL, the groups' coarse correction
+ * Z coarse_inv Z^T (Z the groups' indicator; coarse_inv the inverse of Z^T A Z): the modes a
+ * group's links share, which the diagonal does not see. work: n_rows + 4 n + 4 n_groups
+ * doubles. Returns the iterations taken. */
 int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
                         const int32_t *indices, const double *data, const double *w,
                         const double *D, const int64_t *group, const double *dg,
                         const double *Eg, double sE, double I0, const double *mw,
-                        const double *b, const double *inv_diag, double rtol, int maxiter,
-                        double *x, double *work);
+                        const double *b, const double *inv_diag, const double *coarse_inv,
+                        double rtol, int maxiter, double *x, double *work);
+
+/* C = (J Z)^T W (J Z), n_groups x n_groups, row-major: J Z's entries by row (indptr n_rows + 1,
+ * each entry's group grp and value val), W = diag(w). The lattice's part of the yaw problem's
+ * coarse matrix (fused.py `_linalg.coarse_matrix`). */
+void capsheet_mf_coarse(size_t n_rows, size_t n_groups, const int64_t *indptr,
+                        const int64_t *grp, const double *val, const double *w, double *C);
 
 /* R[k] <- Q R[k] for every link (Q 3 x 3, row-major): a turn of the whole sheet. */
 void capsheet_mf_rotate(size_t n, double *R, const double *Q);
