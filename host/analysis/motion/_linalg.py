@@ -240,6 +240,9 @@ def np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
     lat_diag[:] = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
 
 
+_F64 = np.dtype(np.float64)
+
+
 def kernel_args(name: str, args) -> list:
     """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
     buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
@@ -247,7 +250,9 @@ def kernel_args(name: str, args) -> list:
     the interpreter lock released — a link's valid flag read as whatever was written there)."""
     out = []
     for a in args:
-        if isinstance(a, np.ndarray):
+        if type(a) is np.ndarray and a.dtype is _F64 and a.flags.c_contiguous:  # the usual case
+            out.append(kernel_ffi.from_buffer("double[]", a))
+        elif isinstance(a, np.ndarray):
             if a.dtype == bool:
                 out.append(kernel_ffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
                 continue
