@@ -518,7 +518,7 @@ void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *
         b[0] = wk[0] * wk[0] - ww;
         b[1] = wk[0] * wk[1] + ak[2];
         b[2] = wk[0] * wk[2] - ak[1];
-        for (int i = 0; i < 3; i++) {
+        for (size_t i = 0; i < 3; i++) {
             out[3 * k + i] = Rk[3 * i] * b[0] + Rk[3 * i + 1] * b[1] + Rk[3 * i + 2] * b[2];
         }
     }
