@@ -13,8 +13,8 @@ the board scene's capture, 84 s), and every estimator takes the same calibrated 
 * ``per_link_filter`` — VQF on every link, then the joints from the directions
   (`host.analysis.motion.per_link_filter`);
 * ``fused`` — `host.analysis.motion.MotionEstimator` told the chips' truth (`TRUE_NOISE`:
-  1 % g, 0.35 µT, and the 0.06 °/s of gyroscope bias the calibration leaves, shared by the
-  chips), as a user of such chips would;
+  1 % g, 0.35 µT, and the gyroscope bias the calibration leaves: 0.06 °/s shared by the chips,
+  0.007 °/s each chip's own), as a user of such chips would;
 * ``fused_defaults`` — the same with `FusedConfig()`, whose noise is the datasheets'.
 
 Rows (``rows``): every moving scene of `virtual_sheet.motion.MOTION_SCENES` (``flat_turn`` is
