@@ -64,11 +64,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
-from ._magnetic import MagnetometerSteps
+from ._config import FusedConfig
 from ._lattice import CLOSURE_SIGNS, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
-                      inv_sym3, orientation_cov as _orientation_cov, pcg, rotate_all,
-                      rotation_matrices, skew, turn_all, wrap)
+                      inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
+                      rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (coarse_inverse as _coarse_inverse, kernel_args as _kernel_args,  # noqa: F401
                       kernel_ffi as _kffi,
                       kernel_lib as _klib, kernel_step as _kernel_step,
@@ -103,137 +103,6 @@ MISSING_HOLD_S = 0.03
 #: itself 4-7 %; 1-1.5 % for seconds after it before, 0.1 % after), tap 0.83 → 0.59.
 _MISSING_MAX_RAD = 0.1
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
-
-
-@dataclass(frozen=True)
-class FusedConfig:
-    """The fused estimator's noise model and tuning (standard deviations).
-
-    Parameters
-    ----------
-    accel_noise_mps2 : float
-        Accelerometer white noise per axis per sample, m/s²: the ICM-42688-P's 70 µg/√Hz
-        (TDK InvenSense DS-000347, Table 2, "Noise spectral density") over the Nyquist band of
-        145 Hz samples, 0.060 % g (`datasheet_noise`). Chips noisier than their datasheet (the
-        benchmarks' 1 % g) need it told.
-    gyro_noise_rps : float
-        Gyroscope white noise per axis per sample, rad/s: the ICM-42688-P's 2.8 mdps/√Hz
-        (DS-000347, Table 1, "Rate noise spectral density") at 145 Hz, 0.024 °/s.
-    gyro_bias_std_rps : float
-        Each chip's own bias uncertainty at the start, rad/s (after calibration: 0.01 °/s),
-        independent from chip to chip.
-    gyro_common_bias_std_rps : float or None
-        The uncertainty of the bias all chips share, rad/s (the sheet's common tilt rate, step
-        2): a calibration's residual is mostly this — the board's chips, calibrated together,
-        keep 0.05–0.07 °/s in common and 0.002–0.007 °/s each of their own
-        (benchmarks/bench_motion.py). None: `gyro_bias_std_rps` (chips whose biases are
-        independent, uncalibrated parts).
-    gyro_bias_walk_rps : float
-        The bias's random walk, rad/s/√s (3 °/h of bias instability over 100 s ≈ 2e-6).
-    gyro_scale_error : float
-        Residual scale and cross-axis error after calibration: process noise ``∝ |ω| Δt``.
-    orientation_walk_rad : float
-        A floor of process noise on every orientation, rad/√s (what the model leaves out).
-    rel_accel_error : float
-        Fraction of a link's relative acceleration taken as the model's error (step 2).
-    accel_floor_mps2 : float
-        A floor on the accelerometer update's noise, m/s².
-    sheet_velocity_std_mps, sheet_velocity_time_s : float
-        The sheet's horizontal velocity: its spread about zero, m/s, and its correlation time,
-        s (a sheet held in the hands, worn or waved: 0.5 m/s over 0.5 s). With
-        `sheet_position_std_m` and `sheet_position_time_s` (its position about its mean: 0.1 m
-        over 1 s) this is what tells the sheet's common tilt from its translation (step 2): a
-        sheet under a steady acceleration of its own for longer (a car's, a lift's) breaks it.
-    gate : float
-        Mahalanobis distance² (3 axes) beyond which an accelerometer update is inflated.
-    lattice_floor_rad : float
-        Model floor of the closure and normal residuals (unit vectors ≈ radians).
-    mag_noise_t : float
-        Magnetometer white noise per axis per sample, tesla: the LIS3MDL's 3.2 / 4.1 mG RMS
-        (x, y / z, ultra-high-performance mode; ST DocID024204, Table 3), 0.32–0.41 µT, taken
-        as 0.4 µT (an MMC5983MA's 0.04–0.12 µT would be told).
-    mag_floor_rad : float
-        A floor on a link's heading error from its calibrated magnetometer, rad.
-    mag_common_floor_rad : float
-        A floor on the error of the links' mean magnetic heading, rad.
-    heading_walk_rad : float
-        Random walk of the sheet's common heading between magnetometer updates, rad/√s.
-    initial_heading_std_rad : float
-        Uncertainty of the first snapshot's heading (the magnetometers' median), rad.
-    disturbance_tau_s : float
-        Time constant of the per-link disturbance tests' averages, s.
-    disturbance_heading_rad, disturbance_field_frac, disturbance_dip_rad : float
-        One standard unit of each test: heading off the lattice's consensus, field magnitude off
-        Earth's (fraction), dip off Earth's.
-    disturbance_scale : float
-        A link's magnetometer weight is scaled by ``1 / (1 + (s / scale)²)``, ``s`` its heading
-        test in standard units.
-    disturbance_persist_s : float
-        How long a local disturbance is taken to last, s: what it adds to the field is a bias
-        over that time, not noise that averages out, so the heading variance it implies enters
-        every sample multiplied by ``persist / Δt``.
-    mag_hold_weight : float
-        A group of links (or the whole sheet) whose magnetometers' mean weight falls below this
-        fraction of an undisturbed one's is held by the links' own yaw variances, as without
-        magnetometers, fully at weight 0 (docs/estimator.md §8).
-    mag_warmup_s : float
-        A link's magnetometer is used once its tests have averaged this long, s (a magnet there
-        from the start would otherwise be believed before it is seen).
-    initial_yaw_std_rad : float
-        Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
-    heading_mode_rad, heading_mode_time_s : float
-        While the magnetometers' weights do not hold the sheet's heading (a disturbance under
-        much of the sheet), it follows the mode of the links' averaged heading residuals
-        (Tukey's biweight of this width, rad; 0: not at all) with this time constant, s.
-    """
-
-    accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
-    gyro_noise_rps: float = float(np.radians(2.8e-3 * np.sqrt(145.0 / 2.0)))
-    gyro_bias_std_rps: float = float(np.radians(0.01))
-    gyro_common_bias_std_rps: float | None = None
-    gyro_bias_walk_rps: float = 2e-6
-    gyro_scale_error: float = 2e-3
-    orientation_walk_rad: float = float(np.radians(0.05))
-    rel_accel_error: float = 0.01
-    accel_floor_mps2: float = 0.02
-    sheet_velocity_std_mps: float = 0.5
-    sheet_velocity_time_s: float = 0.5
-    sheet_position_std_m: float = 0.1
-    sheet_position_time_s: float = 1.0
-    gate: float = 25.0
-    lattice_floor_rad: float = 1e-3
-    mag_noise_t: float = 0.4e-6
-    mag_floor_rad: float = float(np.radians(0.5))
-    mag_common_floor_rad: float = float(np.radians(0.1))
-    heading_walk_rad: float = float(np.radians(0.05))
-    initial_heading_std_rad: float = float(np.radians(2.0))
-    disturbance_tau_s: float = 0.3
-    disturbance_heading_rad: float = float(np.radians(0.5))
-    disturbance_field_frac: float = 0.01
-    disturbance_dip_rad: float = float(np.radians(0.5))
-    disturbance_scale: float = 2.0
-    disturbance_persist_s: float = 5.0
-    mag_hold_weight: float = 0.5
-    mag_warmup_s: float = 0.1
-    initial_yaw_std_rad: float = 0.05
-    heading_mode_rad: float = float(np.radians(0.75))
-    heading_mode_time_s: float = 1.0
-
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            v = getattr(self, name)
-            if v is None and name == "gyro_common_bias_std_rps":
-                continue
-            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
-                    or not np.isfinite(v) or v < 0:
-                raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
-        for name in ("accel_noise_mps2", "gyro_bias_std_rps", "disturbance_tau_s",
-                     "disturbance_heading_rad", "disturbance_field_frac", "disturbance_dip_rad",
-                     "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate",
-                     "sheet_velocity_std_mps", "sheet_velocity_time_s", "sheet_position_std_m",
-                     "sheet_position_time_s", "heading_mode_time_s"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,7 +212,7 @@ def calibrated(cal, accel_mps2, gyro_rps=None, mag_t=None):
     return acc, gyr, mag
 
 
-class MotionEstimator(MagnetometerSteps):
+class MotionEstimator:
     """The fused estimator of one sheet (module docstring). Stateful, sans-I/O.
 
     Parameters
@@ -854,3 +723,93 @@ class MotionEstimator(MagnetometerSteps):
         self._s_group = 1.0 / (1.0 / self._s_group + trusted * np.bincount(
             topo.group, weights=mw, minlength=topo.n_groups) + by_loops * info)
         self._s0 = 1.0 / (1.0 / self._s0 + float(mw.sum()))
+
+    def _magnetometer(self, m, v):
+        """Per link: the weight (information, 1/rad²) of its magnetometer's heading and its
+        heading's offset from Earth's field (rad) (module docstring, step 4).
+
+        The weight is the magnetometer's noise and floor, with two tests of a local disturbance
+        averaged over `FusedConfig.disturbance_tau_s` (`_disturbance_tests`): the field's
+        magnitude and dip against Earth's measure two of the three components of what a
+        disturbance adds to the field, and the third, the one that turns the heading, is taken
+        to be as large (its variance added to the heading's); the heading against the loops'
+        solution scales the weight by ``1 / (1 + (s / scale)²)``. ``self._weights`` keeps each
+        link's weight as a fraction of an undisturbed one's, in [0, 1]."""
+        cfg = self.config
+        F, dip = self._b_ref
+        e, hz, t_field, t_dip = mag_terms(self.R, m, self.declination_rad, F, dip,
+                                          cfg.disturbance_field_frac, cfg.disturbance_dip_rad)
+        ok = v & (hz > 0.1 * F)
+        self._field_tests = (ok, t_field, t_dip)
+        hz2 = np.maximum(hz, 1e-30) ** 2
+        var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
+        # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
+        # the 2-degree-of-freedom chi-square), tesla², a bias over `disturbance_persist_s`
+        # their noise: the magnetometer's, averaged, and the link's tilt (the dip is measured in
+        # the world frame the link's estimated orientation gives)
+        a = self._dist_alpha(self._dt_last)
+        noise2 = 2.0 * cfg.mag_noise_t ** 2 * a / (2.0 - a) \
+            + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
+        dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
+                 + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
+        lasts = cfg.disturbance_persist_s / max(self._h, 1e-6)
+        dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * lasts
+        s2 = self._dist[:, 0] ** 2
+        wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
+        # until the tests have averaged over their time constant a link's magnetometer is not
+        # used: a magnet there from the start would otherwise be believed first
+        warm = self._dist_count * self._h >= cfg.mag_warmup_s
+        self._weights = np.where(ok & warm, wgt, 0.0)
+        mw = np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0)
+        e = np.where(ok, e, 0.0)
+        return mw, e
+
+    def _heading_mode(self, dt) -> None:
+        """Turn the sheet's heading towards the robust mode of its links' averaged heading
+        residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
+        hold (``held0``, `_yaw_prior`) over `FusedConfig.heading_mode_time_s`: the gyroscopes
+        carry the heading while a disturbance is detected, and the links that agree with each
+        other — not the mean of every link the disturbance turns a little — correct it slowly.
+        The links vote in proportion to how much their groups are held: a group whose
+        magnetometers are trusted has taken their heading in the solve, its residuals are zero
+        by construction (docs/estimator.md §8)."""
+        cfg = self.config
+        if cfg.heading_mode_rad <= 0 or self._held0 <= 0:
+            return
+        use = self._field_tests[0] & (self._dist_count * self._h >= cfg.mag_warmup_s)
+        w = np.where(use, self._held[self.topo.group], 0.0)
+        psi = robust_mode(self._resid_avg, w, cfg.heading_mode_rad, self._mode_psi)
+        if psi is None:
+            return
+        g = self._held0 * min(1.0, self._h / cfg.heading_mode_time_s)
+        turn_all(rotation_matrices(np.array([0.0, 0.0, -g * psi])), self.R)
+        self._resid_avg -= g * psi
+        self._mode_psi = (1.0 - g) * psi  # where the mode is after the turn: the next start
+
+    def _disturbance_tests(self, resid, v, dt) -> None:
+        """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the
+        lattice's solution (``resid``, rad: what is left of its magnetometer's heading once the
+        loops and every other link have had their say), its field's magnitude and dip against
+        Earth's (`_magnetometer` weighs them)."""
+        cfg = self.config
+        ok, t_mag, t_dip = self._field_tests
+        # the heading against its group's (links the loops turn alike on a flat sheet): what a
+        # group shares is the shape's to explain, what one link alone shows is its own
+        topo = self.topo
+        g, r = topo.group, topo.n_groups
+        resid = wrap(resid)
+        wk = np.where(ok, 1.0 / (1.0 + self._dist[:, 1] ** 2 + self._dist[:, 2] ** 2), 0.0)
+        mean = np.bincount(g, weights=wk * resid, minlength=r) / np.maximum(
+            np.bincount(g, weights=wk, minlength=r), 1e-30)
+        tests = np.stack([(resid - mean[g]) / cfg.disturbance_heading_rad, t_mag, t_dip], axis=1)
+        self._dist_count += ok
+        alpha = self._dist_alpha(dt)[:, None]
+        self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
+        self._resid_avg = np.where(ok, self._resid_avg + alpha[:, 0] * (resid - self._resid_avg),
+                                   self._resid_avg)
+
+    def _dist_alpha(self, dt):
+        """The tests' averaging weight per link: a running mean over the first samples, then an
+        exponential one over `FusedConfig.disturbance_tau_s`."""
+        return np.clip(np.maximum(dt / self.config.disturbance_tau_s,
+                                  1.0 / np.maximum(self._dist_count, 1.0)), 1e-6, 1.0)
