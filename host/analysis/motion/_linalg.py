@@ -492,3 +492,36 @@ def robust_mode(r: np.ndarray, w: np.ndarray, width: float, start: float | None 
             return None
         psi = float(wt @ r) / s
     return psi
+
+
+def group_info(topo, jd, wts, lat_diag):
+    """What the loops say of each group's common yaw offset (`MotionEstimator._lattice_update`):
+    ``jg`` (J's columns summed per group, ``topo.jg_*``'s pattern), each group's information
+    ``info`` (1/rad²) and ``seen``, that information against its links' own from the lattice
+    (in C when `USE_KERNEL`)."""
+    ng = topo.n_groups
+    if not USE_KERNEL:
+        jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
+        info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg, minlength=ng)
+        seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag, minlength=ng), 1e-300)
+        return jg, info, seen
+    jg, info, seen = np.empty(topo.jg_rows.size), np.empty(ng), np.empty(ng)
+    kernel_lib.capsheet_mf_group_info(jd.size, jg.size, ng, topo.n_links, *fixed_args(
+        topo, "info", (topo.jg_index, )), *kernel_args("info", (jd,)), *fixed_args(
+        topo, "info_pattern", (topo.jg_rows, topo.jg_group)), *kernel_args("info", (wts,)),
+        *fixed_args(topo, "group", (topo.group,)), *kernel_args("info", (lat_diag, jg, info, seen)))
+    return jg, info, seen
+
+
+def jt_times(topo, jd, v):
+    """``Jᵀ v`` for the lattice step's Jacobian (the pattern ``topo.jac`` with the entries
+    ``jd``; in C when `USE_KERNEL`, the same sums in the same order as scipy's product)."""
+    if not USE_KERNEL:
+        JT = topo.jac_T
+        JT.data = jd[topo.jac_T_from]
+        return JT @ v
+    out = np.empty(topo.n_links)
+    kernel_lib.capsheet_mf_jt_times(topo.n_rows, topo.n_links, *fixed_args(
+        topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)),
+        *kernel_args("jt", (jd, np.ascontiguousarray(v, dtype=np.float64), out)))
+    return out

@@ -69,7 +69,8 @@ from ._lattice import CLOSURE_SIGNS, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
                       inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
-from ._linalg import (coarse_inverse as _coarse_inverse, kernel_args as _kernel_args,  # noqa: F401
+from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
+                      jt_times as _jt_times, kernel_args as _kernel_args,
                       kernel_ffi as _kffi,
                       kernel_lib as _klib, kernel_step as _kernel_step,
                       lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
@@ -598,9 +599,9 @@ class MotionEstimator:
         n = self.n_links
         P = self.P
         res, wts, jd, lat_diag = _lattice_terms(self.R, P, topo, cfg.lattice_floor_rad ** 2)
-        J, JT = topo.jac, topo.jac_T
-        J.data = jd
-        JT.data = jd[topo.jac_T_from]
+        if not USE_KERNEL:  # the numpy path's products (`_linalg.normal_matvec`)
+            topo.jac.data = jd
+            topo.jac_T.data = jd[topo.jac_T_from]
         normal = _normal_matvec(topo, jd, wts)
         # the prior: each link's own yaw variance for what is local to it, and the groups' and
         # the sheet's common yaw variances for what the links share (`_yaw_prior`)
@@ -608,13 +609,9 @@ class MotionEstimator:
         # what the loops say of each group's common offset (its information, 1/rad²): a group
         # the magnetometers do not hold (none, or disturbed) is kept apart from its links' own
         # yaws where the loops see it
-        jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
-        info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg,
-                           minlength=topo.n_groups)
-        seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag,
-                                             minlength=topo.n_groups), 1e-300)
+        jg, info, seen = _group_info(topo, jd, wts, lat_diag)
         prior, prior_diag = self._yaw_prior(P[:, 2, 2], seen / _GROUP_SEEN, m is None)
-        rhs = -(JT @ (wts * res))
+        rhs = -_jt_times(topo, jd, wts * res)
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
             self._dt_last = dt

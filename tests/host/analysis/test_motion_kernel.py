@@ -104,6 +104,22 @@ def test_the_lattice_step_is_the_same_in_c_and_numpy():
     fused._np_lattice(R, P, topo, 1e-6, *out_n)
     for name, a, b in zip(("res", "wts", "jd", "lat_diag"), out_c, out_n):
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max(), name
+    # Jᵀ v (the solve's right-hand side) and what the loops say of each group's offset
+    from host.analysis.motion import _linalg as la
+    v = np.random.Generator(np.random.MT19937(7)).normal(size=topo.n_rows)
+    saved = la.USE_KERNEL
+    try:
+        la.USE_KERNEL = False
+        want_jt = la.jt_times(topo, out_n[2], v)
+        want_info = la.group_info(topo, out_n[2], out_n[1], out_n[3])
+    finally:
+        la.USE_KERNEL = saved
+    got_jt = la.jt_times(topo, out_c[2], v)
+    assert np.abs(got_jt - want_jt).max() <= 1e-12 * np.abs(want_jt).max()
+    for got_i, want_i in zip(la.group_info(topo, out_c[2], out_c[1], out_c[3]), want_info):
+        assert np.abs(got_i - want_i).max() <= 1e-12 * np.abs(want_i).max()
+    # the check can fail: another right-hand side gives another product
+    assert np.abs(la.jt_times(topo, out_c[2], v + 1e-6) - want_jt).max() > 1e-9
     x = np.random.Generator(np.random.MT19937(4)).normal(size=topo.n_links)
     J = topo.jac.copy()
     J.data = out_n[2]

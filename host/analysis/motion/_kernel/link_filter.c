@@ -564,3 +564,42 @@ void capsheet_mf_coarse(size_t n_rows, size_t n_groups, const int64_t *indptr,
         }
     }
 }
+
+void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const int32_t *indices,
+                          const double *data, const double *v, double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        out[k] = 0.0;
+    }
+    for (size_t r = 0; r < n_rows; r++) {
+        for (int32_t p = indptr[r]; p < indptr[r + 1]; p++) {
+            out[indices[p]] += data[p] * v[r];
+        }
+    }
+}
+
+void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
+                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
+                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const double *lat_diag, double *jg, double *info, double *seen)
+{
+    for (size_t i = 0; i < n_jg; i++) {
+        jg[i] = 0.0;
+    }
+    for (size_t p = 0; p < nnz; p++) {
+        jg[jg_index[p]] += jd[p];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        info[g] = 0.0;
+        seen[g] = 0.0;
+    }
+    for (size_t i = 0; i < n_jg; i++) {
+        info[jg_group[i]] += w[jg_rows[i]] * jg[i] * jg[i];
+    }
+    for (size_t k = 0; k < n; k++) {
+        seen[group[k]] += lat_diag[k];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        seen[g] = info[g] / (seen[g] > 1e-300 ? seen[g] : 1e-300);
+    }
+}

@@ -102,3 +102,16 @@ void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const
 /* capsheet_mf_yaw, then capsheet_mf_apply of its x, a block of links at a time. */
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
                            const double *a_diag, double *x);
+
+/* out = J^T v for the CSR matrix J (n_rows x n): each out entry sums its terms in increasing row
+ * order (as scipy's product by J^T's CSR does). */
+void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const int32_t *indices,
+                          const double *data, const double *v, double *out);
+
+/* What the loops say of each group's common yaw offset (fused.py `_lattice_update`): jg, J's
+ * entries jd summed per (row, group) slot jg_index; info[g] = sum over the slots of group g of
+ * w[row] jg^2; seen[g] = info[g] / max(sum of lat_diag over the group's links, 1e-300). */
+void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
+                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
+                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const double *lat_diag, double *jg, double *info, double *seen);
