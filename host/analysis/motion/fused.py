@@ -675,6 +675,9 @@ class MotionEstimator:
             w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
             held_mag = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
             held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
+            # magnetometers not trusted for the sheet's heading do not shear it either: a group
+            # whose few clean links would free it is held as much as the heading is
+            held_mag = np.maximum(held_mag, held0)
         held = held_mag if seen is None else held_mag / (1.0 + seen)
         self._held, self._held0, self._held_mag = held, held0, held_mag
         Eg = (1.0 - held) / self._s_group + held * dg
