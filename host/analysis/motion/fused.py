@@ -100,8 +100,8 @@ MISSING_HOLD_S = 0.03
 #: up to this (rad; beyond it the linearised updates would not hold), so that its accelerometer
 #: sets its tilt again when it returns. Only the tilt: a yaw so uncertain is not fixed by the loops
 #: on a flat sheet. Half of a 14x14 sheet missing for 0.8 s (`MotionEstimator.update`'s `valid`),
-#: mean error over 4 s, % of side, before → after: elbow 0.57 → 0.11, wave 2.0 → 1.2 (the gap
-#: itself 4-7 %; 1-1.5 % for seconds after it before, 0.1 % after), tap 0.83 → 0.59.
+#: mean error over 4 s, % of side, before → after: elbow 0.57 → 0.10, wave 2.0 → 1.2 (the gap
+#: itself 4-7 %; 1-1.5 % for seconds after it before, 0.1 % after), tap 0.83 → 0.58.
 _MISSING_MAX_RAD = 0.1
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
 
