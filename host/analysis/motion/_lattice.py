@@ -100,8 +100,13 @@ class LatticeTopology:
         # J's columns summed over each group: the rows' derivatives in a group's common yaw
         # offset, as (row, group) entries ``jg_rows, jg_group`` and where each entry of J goes
         gkey = self.jac_rows * self.n_groups + self.group[self.jac_cols]
-        ug, self.jg_index = np.unique(gkey, return_inverse=True)
-        self.jg_rows, self.jg_group = ug // self.n_groups, ug % self.n_groups
+        ug, jg_index = np.unique(gkey, return_inverse=True)
+        self.jg_index = np.ascontiguousarray(jg_index.ravel(), dtype=np.int64)
+        self.jg_rows = np.ascontiguousarray(ug // self.n_groups, dtype=np.int64)
+        self.jg_group = ug % self.n_groups
+        # those entries by row (sorted by row already): the yaw solve's coarse matrix
+        self.jg_indptr = np.searchsorted(self.jg_rows, np.arange(self.n_rows + 1)).astype(np.int64)
+        self.jg_group = np.ascontiguousarray(self.jg_group, dtype=np.int64)
         # the same pattern as the C kernel takes it (fixed integer widths, contiguous)
         self.jac_indptr32 = np.ascontiguousarray(self.jac.indptr, dtype=np.int32)
         self.jac_indices32 = np.ascontiguousarray(self.jac.indices, dtype=np.int32)

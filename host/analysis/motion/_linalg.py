@@ -70,13 +70,23 @@ def inv_sym3(S: np.ndarray) -> np.ndarray:
 
 
 def pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
-         maxiter: int = 200) -> np.ndarray:
+         maxiter: int = 200, coarse=None) -> np.ndarray:
     """Conjugate gradients with a Jacobi preconditioner, from zero. The yaw problem's matrix is
     its links' own predictions (diagonal) plus the lattice's coupling: diagonally dominant once
-    the filter has settled, so a few iterations suffice (docs/estimator.md §8)."""
+    the filter has settled, so a few iterations suffice (docs/estimator.md §8). ``coarse``
+    (``group``, ``C⁻¹``) adds the groups' coarse correction ``Z C⁻¹ Zᵀ r`` to the
+    preconditioner (``Z`` the groups' indicator, ``C = Zᵀ A Z``, `coarse_inverse`): the modes
+    a group's links share, which the diagonal does not see and the loops may hold weakly."""
+    def precondition(r):
+        z = inv_diag * r
+        if coarse is not None:
+            group, cinv = coarse
+            z = z + (cinv @ np.bincount(group, weights=r, minlength=cinv.shape[0]))[group]
+        return z
+
     x = np.zeros_like(b)
     r = b.copy()
-    z = inv_diag * r
+    z = precondition(r)
     pdir = z.copy()
     rz = float(r @ z)
     stop = rtol * rtol * float(b @ b)
@@ -87,7 +97,7 @@ def pcg(matvec, b: np.ndarray, inv_diag: np.ndarray, rtol: float = 1e-9,
         alpha = rz / float(pdir @ q)
         x += alpha * pdir
         r -= alpha * q
-        z = inv_diag * r
+        z = precondition(r)
         rz_new = float(r @ z)
         pdir = z + (rz_new / rz) * pdir
         rz = rz_new
@@ -230,6 +240,9 @@ def np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag) -> None:
     lat_diag[:] = np.bincount(topo.jac_cols, weights=wts[topo.jac_rows] * jd * jd, minlength=n)
 
 
+_F64 = np.dtype(np.float64)
+
+
 def kernel_args(name: str, args) -> list:
     """The C kernel's arguments: each array as a typed ``from_buffer`` cdata, which keeps its
     buffer alive while the list is (a ``cast`` of one does not: a boolean mask's uint8 copy was
@@ -237,7 +250,9 @@ def kernel_args(name: str, args) -> list:
     the interpreter lock released — a link's valid flag read as whatever was written there)."""
     out = []
     for a in args:
-        if isinstance(a, np.ndarray):
+        if type(a) is np.ndarray and a.dtype is _F64 and a.flags.c_contiguous:  # the usual case
+            out.append(kernel_ffi.from_buffer("double[]", a))
+        elif isinstance(a, np.ndarray):
             if a.dtype == bool:
                 out.append(kernel_ffi.from_buffer("uint8_t[]", a.astype(np.uint8)))
                 continue
@@ -250,6 +265,15 @@ def kernel_args(name: str, args) -> list:
         else:
             out.append(float(a))
     return out
+
+
+def fixed_args(topo, name: str, arrays) -> list:
+    """`kernel_args` of a lattice's fixed index arrays, made once per lattice and kept on its
+    topology (the arrays live as long as it does)."""
+    cache = topo.__dict__.setdefault("_kernel_args", {})
+    if name not in cache:
+        cache[name] = kernel_args(name, arrays)
+    return cache[name]
 
 
 def kernel_step(name: str, *args) -> None:
@@ -265,6 +289,18 @@ def step(name: str, *args) -> None:
         NUMPY_STEPS[name](*args)
 
 
+def step_apply(name: str, R, bias, P, *args) -> None:
+    """Step ``accel`` or ``yaw`` (their arguments after ``R``/``P``, as `step` takes them), then
+    its correction applied (`apply`): in C one pass a block of links at a time."""
+    x = args[-2] if name == "accel" else args[-1]
+    if USE_KERNEL:
+        getattr(kernel_lib, f"capsheet_mf_{name}_apply")(R.shape[0], *kernel_args(name, (R, bias, P)),
+                                                          *kernel_args(name, args))
+        return
+    NUMPY_STEPS[name](*((R, P) + args if name == "accel" else (P,) + args))
+    NUMPY_STEPS["apply"](R, bias, P, x)
+
+
 def lattice_terms(R, P, topo, floor2):
     """The lattice step's residuals, weights, Jacobian entries (``topo.jac``'s data order) and
     the diagonal of ``Jᵀ W J``: the C kernel's when `USE_KERNEL`, else numpy's (`np_lattice`)."""
@@ -273,10 +309,14 @@ def lattice_terms(R, P, topo, floor2):
     jd, lat_diag = np.empty(topo.jac_nnz), np.empty(n)
     if USE_KERNEL:
         work = np.empty(10 * U + 3 * n)
-        kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz, *kernel_args(
-            "lattice", (R, P, topo.units, topo.pair_link, topo.pair_cell, topo.inv_ncell,
-                        topo.jac_slots, topo.jac_rows, topo.jac_cols, floor2, res, wts, jd,
-                        lat_diag, work)))
+        kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz,
+                                       *kernel_args("lattice", (R, P)),
+                                       *fixed_args(topo, "lattice", (
+                                           topo.units, topo.pair_link, topo.pair_cell,
+                                           topo.inv_ncell, topo.jac_slots, topo.jac_rows,
+                                           topo.jac_cols)),
+                                       *kernel_args("lattice", (floor2, res, wts, jd, lat_diag,
+                                                                work)))
     else:
         np_lattice(R, P, topo, floor2, res, wts, jd, lat_diag)
     return res, wts, jd, lat_diag
@@ -291,7 +331,8 @@ def normal_matvec(topo, jd, wts):
         return lambda x: JT @ (wts * (J @ x))
     n, nr = topo.n_links, topo.n_rows
     tmp = np.empty(nr)
-    fixed = kernel_args("normal", (topo.jac_indptr32, topo.jac_indices32, jd, wts))
+    fixed = fixed_args(topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)) \
+        + kernel_args("normal", (jd, wts))
     tmp_c = kernel_ffi.from_buffer("double[]", tmp)
 
     def matvec(x):
@@ -303,18 +344,184 @@ def normal_matvec(topo, jd, wts):
     return matvec
 
 
+def coarse_inverse(topo, jg, wts, terms, mw) -> np.ndarray:
+    """``C⁻¹`` with ``C = Zᵀ A Z`` the yaw problem's matrix on the groups' common offsets (``Z``
+    the groups' indicator, n_groups x n_groups): the lattice's ``(J Z)ᵀ W (J Z)`` (``jg``: ``J``'s
+    columns summed over each group, ``topo.jg_*``'s pattern), the nested prior's group level
+    (``σ_a`` of `MotionEstimator._yaw_prior`; ``terms`` its ``D, dg, Eg, sE, I0``) and the
+    magnetometers' weights summed per group."""
+    _D, _dg, Eg, sE, I0 = terms
+    ng = topo.n_groups
+    if USE_KERNEL:
+        C = np.empty((ng, ng))
+        kernel_lib.capsheet_mf_coarse(topo.n_rows, ng, *fixed_args(topo, "coarse", (
+            topo.jg_indptr, topo.jg_group)), *kernel_args("coarse", (jg, wts, C)))
+    else:
+        import scipy.sparse as sp
+        JG = sp.csr_matrix((jg, (topo.jg_rows, topo.jg_group)), shape=(topo.n_rows, ng))
+        C = (JG.T @ JG.multiply(wts[:, None]).tocsr()).toarray()
+    C += np.diag(Eg + np.bincount(topo.group, weights=mw, minlength=ng))
+    C += np.outer(Eg, Eg) * (I0 / (sE * sE) - 1.0 / sE)
+    return np.linalg.inv(C)
+
+
 def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
-               maxiter: int = 200) -> np.ndarray:
+               maxiter: int = 200, coarse_inv=None) -> np.ndarray:
     """`pcg` on the lattice step's yaw problem, all in the C kernel (``capsheet_mf_yaw_pcg``):
     ``Jᵀ W J`` from ``jd`` and ``wts``, the nested prior from ``terms`` (``D, dg, Eg, sE, I0``
     of `MotionEstimator._yaw_prior`) and the magnetometers' weights ``mw``."""
     D, dg, Eg, sE, I0 = terms
     n, nr, ng = topo.n_links, topo.n_rows, topo.n_groups
     x = np.empty(n)
-    work = np.empty(nr + 4 * n + 2 * ng)
-    a = kernel_args("pcg", (topo.jac_indptr32, topo.jac_indices32, jd, wts, D, topo.group, dg,
-                             Eg))
-    c = kernel_args("pcg", (mw, b, inv_diag))
+    work = np.empty(nr + 4 * n + 4 * ng)
+    a = fixed_args(topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)) \
+        + kernel_args("pcg", (jd, wts, D)) + fixed_args(topo, "group", (topo.group,)) \
+        + kernel_args("pcg", (dg, Eg))
+    c = kernel_args("pcg", (mw, b, inv_diag)) + [
+        kernel_ffi.NULL if coarse_inv is None
+        else kernel_ffi.from_buffer("double[]", np.ascontiguousarray(coarse_inv))]
     kernel_lib.capsheet_mf_yaw_pcg(n, nr, ng, *a, float(sE), float(I0), *c, float(rtol),
                                    int(maxiter), *kernel_args("pcg", (x, work)))
     return x
+
+
+# ---------------------------------------------------------------------------------------------
+# Whole-sheet pieces of a snapshot: the same in numpy and C (link_filter.h documents each)
+# ---------------------------------------------------------------------------------------------
+
+def np_mag_terms(R, m, declination, field, dip, field_unit, dip_unit):
+    """Each link's field turned into the world: its heading less the declination (rad,
+    wrapped), its horizontal magnitude (T), and its magnitude and dip tests in their units
+    (`MotionEstimator._magnetometer`)."""
+    W = np.einsum("kij,kj->ki", R, m)
+    hz = np.hypot(W[:, 0], W[:, 1])
+    norm = np.linalg.norm(W, axis=1)
+    e = wrap(np.arctan2(W[:, 1], W[:, 0]) - declination)
+    t_field = (norm / field - 1.0) / field_unit
+    t_dip = (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip) / dip_unit
+    return e, hz, t_field, t_dip
+
+
+def mag_terms(R, m, declination, field, dip, field_unit, dip_unit):
+    """`np_mag_terms`, in C when `USE_KERNEL`."""
+    if not USE_KERNEL:
+        return np_mag_terms(R, m, declination, field, dip, field_unit, dip_unit)
+    n = R.shape[0]
+    out = [np.empty(n) for _ in range(4)]
+    kernel_lib.capsheet_mf_mag_terms(n, *kernel_args("mag", (R, np.ascontiguousarray(m))),
+                                     float(declination), float(field), float(dip),
+                                     float(field_unit), float(dip_unit),
+                                     *kernel_args("mag", out))
+    return tuple(out)
+
+
+def turn_all(Q, R) -> None:
+    """``R_k <- Q R_k`` for every frame, in place (`rotate_all`; in C when `USE_KERNEL`)."""
+    if USE_KERNEL:
+        kernel_lib.capsheet_mf_rotate(R.shape[0], *kernel_args("rotate", (R, np.ascontiguousarray(Q))))
+    else:
+        R[:] = rotate_all(Q, R)
+
+
+def np_orientation_cov(P, tilt_cov, yaw_add):
+    C = P[:, :3, :3].copy()
+    C[:, :2, :2] += tilt_cov
+    if yaw_add is not None:
+        C[:, 2, 2] += yaw_add
+    return C
+
+
+def orientation_cov(P, tilt_cov, yaw_add=None):
+    """Every link's orientation covariance: ``P``'s rotation block, the common tilt's
+    ``tilt_cov`` (2 x 2) added to its tilt and ``yaw_add`` (n,) to its yaw (in C when
+    `USE_KERNEL`)."""
+    if not USE_KERNEL:
+        return np_orientation_cov(P, tilt_cov, yaw_add)
+    n = P.shape[0]
+    out = np.empty((n, 3, 3))
+    tc = np.ascontiguousarray(tilt_cov, dtype=float)
+    ya = kernel_ffi.NULL if yaw_add is None else kernel_ffi.from_buffer(
+        "double[]", np.ascontiguousarray(yaw_add, dtype=float))
+    P_c, tc_c, out_c = kernel_args("cov", (P, tc, out))
+    kernel_lib.capsheet_mf_orientation_cov(n, P_c, tc_c, ya, out_c)
+    return out
+
+
+def np_ddot(R, w, wdot):
+    body = w[:, 0:1] * w - np.einsum("ki,ki->k", w, w)[:, None] * np.array([1.0, 0.0, 0.0])
+    body[:, 1] += wdot[:, 2]  # + ω̇ × e_x
+    body[:, 2] -= wdot[:, 1]
+    return np.einsum("kij,kj->ki", R, body)
+
+
+def ddot(R, w, wdot):
+    """Each link direction's second derivative, world: ``R (ω × (ω × e_x) + ω̇ × e_x)`` (in C
+    when `USE_KERNEL`)."""
+    if not USE_KERNEL:
+        return np_ddot(R, w, wdot)
+    out = np.empty((R.shape[0], 3))
+    kernel_lib.capsheet_mf_ddot(R.shape[0], *kernel_args("ddot", (
+        np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(w, dtype=float),
+        np.ascontiguousarray(wdot, dtype=float), out)))
+    return out
+
+
+def robust_mode(r: np.ndarray, w: np.ndarray, width: float, start: float | None = None,
+                iterations: int = 8) -> float | None:
+    """The mode of the values ``r`` (weights ``w`` >= 0) by Tukey's biweight: iteratively
+    reweighted means, each value weighted ``w (1 − ((r − ψ)/width)²)²`` within ``width`` of the
+    current ``ψ`` and 0 beyond, from ``start`` (default: the weighted median). The values a
+    disturbance turns a little, which pull a mean and a median their way, do not pull it once
+    they are ``width`` off the values that agree. None when nothing has weight."""
+    keep = w > 0
+    if not keep.any():
+        return None
+    r, w = r[keep], w[keep]
+    if start is None:
+        order = np.argsort(r)
+        cw = np.cumsum(w[order])
+        psi = float(r[order][np.searchsorted(cw, 0.5 * cw[-1])])
+    else:
+        psi = float(start)
+    for _ in range(iterations if start is None else max(1, iterations // 2)):
+        u = (r - psi) / width
+        t = 1.0 - u * u
+        wt = np.where(t > 0.0, w * t * t, 0.0)
+        s = float(wt.sum())
+        if s <= 0.0:
+            return None
+        psi = float(wt @ r) / s
+    return psi
+
+
+def group_info(topo, jd, wts, lat_diag):
+    """What the loops say of each group's common yaw offset (`MotionEstimator._lattice_update`):
+    ``jg`` (J's columns summed per group, ``topo.jg_*``'s pattern), each group's information
+    ``info`` (1/rad²) and ``seen``, that information against its links' own from the lattice
+    (in C when `USE_KERNEL`)."""
+    ng = topo.n_groups
+    if not USE_KERNEL:
+        jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
+        info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg, minlength=ng)
+        seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag, minlength=ng), 1e-300)
+        return jg, info, seen
+    jg, info, seen = np.empty(topo.jg_rows.size), np.empty(ng), np.empty(ng)
+    kernel_lib.capsheet_mf_group_info(jd.size, jg.size, ng, topo.n_links, *fixed_args(
+        topo, "info", (topo.jg_index, )), *kernel_args("info", (jd,)), *fixed_args(
+        topo, "info_pattern", (topo.jg_rows, topo.jg_group)), *kernel_args("info", (wts,)),
+        *fixed_args(topo, "group", (topo.group,)), *kernel_args("info", (lat_diag, jg, info, seen)))
+    return jg, info, seen
+
+
+def jt_times(topo, jd, v):
+    """``Jᵀ v`` for the lattice step's Jacobian (the pattern ``topo.jac`` with the entries
+    ``jd``; in C when `USE_KERNEL`, the same sums in the same order as scipy's product)."""
+    if not USE_KERNEL:
+        JT = topo.jac_T
+        JT.data = jd[topo.jac_T_from]
+        return JT @ v
+    out = np.empty(topo.n_links)
+    kernel_lib.capsheet_mf_jt_times(topo.n_rows, topo.n_links, *fixed_args(
+        topo, "pattern", (topo.jac_indptr32, topo.jac_indices32)),
+        *kernel_args("jt", (jd, np.ascontiguousarray(v, dtype=np.float64), out)))
+    return out

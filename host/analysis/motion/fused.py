@@ -64,13 +64,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
+from ._config import FusedConfig
 from ._lattice import CLOSURE_SIGNS, topology
-from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, frames_from_angles,  # noqa: F401
-                      inv_sym3, pcg, rotate_all, rotation_matrices, skew, wrap)
-from ._linalg import (kernel_args as _kernel_args, kernel_ffi as _kffi,  # noqa: F401
+from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
+                      inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
+                      rotate_all, rotation_matrices, skew, turn_all, wrap)
+from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
+                      jt_times as _jt_times, kernel_args as _kernel_args,
+                      kernel_ffi as _kffi,
                       kernel_lib as _klib, kernel_step as _kernel_step,
                       lattice_terms as _lattice_terms, normal_matvec as _normal_matvec,
-                      np_lattice as _np_lattice, step as _step, yaw_solve as _yaw_solve)
+                      np_lattice as _np_lattice, step as _step, step_apply as _step_apply,
+                      yaw_solve as _yaw_solve)
 
 
 __all__ = ["FusedConfig", "MotionEstimate", "MotionEstimator", "rotation_matrices", "frames_from_angles",
@@ -83,125 +88,22 @@ _EX = np.array([1.0, 0.0, 0.0])
 #: curved sheet). On a flat sheet, which keeps nearly none, it is held by the links' own
 #: variances (docs/estimator.md §8).
 _GROUP_SEEN = 3e-3
+#: the yaw solve's relative residual: its corrections are ~1e-4 rad a snapshot, so 1e-6 of them
+#: is far below every noise, and each snapshot solves anew (nothing accumulates)
+_YAW_RTOL = 1e-6
+_COARSE_EVERY = 8
 _COLLECTIVE_MAX = 1.0  # rad²: a cap on the collective yaw variances (a mode nothing measures)
 #: a link without a sample turns at its last rate this long (s), then at the sheet's (`_missing_rates`)
 MISSING_HOLD_S = 0.03
+#: A link carried without samples (`_missing_rates`) turns away from the truth by its rate's error
+#: times the gap: its tilt variance grows by the valid links' rate spread times the gap squared,
+#: up to this (rad; beyond it the linearised updates would not hold), so that its accelerometer
+#: sets its tilt again when it returns. Only the tilt: a yaw so uncertain is not fixed by the loops
+#: on a flat sheet. Half of a 14x14 sheet missing for 0.8 s (`MotionEstimator.update`'s `valid`),
+#: mean error over 4 s, % of side, before → after: elbow 0.57 → 0.10, wave 2.0 → 1.2 (the gap
+#: itself 4-7 %; 1-1.5 % for seconds after it before, 0.1 % after), tap 0.83 → 0.58.
+_MISSING_MAX_RAD = 0.1
 _GRAVITY_SF = np.array([0.0, 0.0, G0])  # the specific force of gravity alone, world (docs/design.md)
-
-
-@dataclass(frozen=True)
-class FusedConfig:
-    """The fused estimator's noise model and tuning (standard deviations).
-
-    Parameters
-    ----------
-    accel_noise_mps2 : float
-        Accelerometer white noise per axis per sample, m/s²: the ICM-42688-P's 70 µg/√Hz
-        (TDK InvenSense DS-000347, Table 2, "Noise spectral density") over the Nyquist band of
-        145 Hz samples, 0.060 % g (`datasheet_noise`). Chips noisier than their datasheet (the
-        benchmarks' 1 % g) need it told.
-    gyro_noise_rps : float
-        Gyroscope white noise per axis per sample, rad/s: the ICM-42688-P's 2.8 mdps/√Hz
-        (DS-000347, Table 1, "Rate noise spectral density") at 145 Hz, 0.024 °/s.
-    gyro_bias_std_rps : float
-        The bias's uncertainty at the start, rad/s (after calibration: 0.01 °/s).
-    gyro_bias_walk_rps : float
-        The bias's random walk, rad/s/√s (3 °/h of bias instability over 100 s ≈ 2e-6).
-    gyro_scale_error : float
-        Residual scale and cross-axis error after calibration: process noise ``∝ |ω| Δt``.
-    orientation_walk_rad : float
-        A floor of process noise on every orientation, rad/√s (what the model leaves out).
-    rel_accel_error : float
-        Fraction of a link's relative acceleration taken as the model's error (step 2).
-    accel_floor_mps2 : float
-        A floor on the accelerometer update's noise, m/s².
-    sheet_velocity_std_mps, sheet_velocity_time_s : float
-        The sheet's horizontal velocity: its spread about zero, m/s, and its correlation time,
-        s (a sheet held in the hands, worn or waved: 0.5 m/s over 0.5 s). With
-        `sheet_position_std_m` and `sheet_position_time_s` (its position about its mean: 0.1 m
-        over 1 s) this is what tells the sheet's common tilt from its translation (step 2): a
-        sheet under a steady acceleration of its own for longer (a car's, a lift's) breaks it.
-    gate : float
-        Mahalanobis distance² (3 axes) beyond which an accelerometer update is inflated.
-    lattice_floor_rad : float
-        Model floor of the closure and normal residuals (unit vectors ≈ radians).
-    mag_noise_t : float
-        Magnetometer white noise per axis per sample, tesla: the LIS3MDL's 3.2 / 4.1 mG RMS
-        (x, y / z, ultra-high-performance mode; ST DocID024204, Table 3), 0.32–0.41 µT, taken
-        as 0.4 µT (an MMC5983MA's 0.04–0.12 µT would be told).
-    mag_floor_rad : float
-        A floor on a link's heading error from its calibrated magnetometer, rad.
-    mag_common_floor_rad : float
-        A floor on the error of the links' mean magnetic heading, rad.
-    heading_walk_rad : float
-        Random walk of the sheet's common heading between magnetometer updates, rad/√s.
-    initial_heading_std_rad : float
-        Uncertainty of the first snapshot's heading (the magnetometers' median), rad.
-    disturbance_tau_s : float
-        Time constant of the per-link disturbance tests' averages, s.
-    disturbance_heading_rad, disturbance_field_frac, disturbance_dip_rad : float
-        One standard unit of each test: heading off the lattice's consensus, field magnitude off
-        Earth's (fraction), dip off Earth's.
-    disturbance_scale : float
-        A link's magnetometer weight is scaled by ``1 / (1 + (s / scale)²)``, ``s`` its heading
-        test in standard units.
-    disturbance_persist_s : float
-        How long a local disturbance is taken to last, s: what it adds to the field is a bias
-        over that time, not noise that averages out, so the heading variance it implies enters
-        every sample multiplied by ``persist / Δt``.
-    mag_hold_weight : float
-        A group of links (or the whole sheet) whose magnetometers' mean weight falls below this
-        fraction of an undisturbed one's is held by the links' own yaw variances, as without
-        magnetometers, fully at weight 0 (docs/estimator.md §8).
-    mag_warmup_s : float
-        A link's magnetometer is used once its tests have averaged this long, s (a magnet there
-        from the start would otherwise be believed before it is seen).
-    initial_yaw_std_rad : float
-        Uncertainty of the first snapshot's yaws (the accelerometer-only estimate).
-    """
-
-    accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
-    gyro_noise_rps: float = float(np.radians(2.8e-3 * np.sqrt(145.0 / 2.0)))
-    gyro_bias_std_rps: float = float(np.radians(0.01))
-    gyro_bias_walk_rps: float = 2e-6
-    gyro_scale_error: float = 2e-3
-    orientation_walk_rad: float = float(np.radians(0.05))
-    rel_accel_error: float = 0.01
-    accel_floor_mps2: float = 0.02
-    sheet_velocity_std_mps: float = 0.5
-    sheet_velocity_time_s: float = 0.5
-    sheet_position_std_m: float = 0.1
-    sheet_position_time_s: float = 1.0
-    gate: float = 25.0
-    lattice_floor_rad: float = 1e-3
-    mag_noise_t: float = 0.4e-6
-    mag_floor_rad: float = float(np.radians(0.5))
-    mag_common_floor_rad: float = float(np.radians(0.1))
-    heading_walk_rad: float = float(np.radians(0.05))
-    initial_heading_std_rad: float = float(np.radians(2.0))
-    disturbance_tau_s: float = 0.3
-    disturbance_heading_rad: float = float(np.radians(0.5))
-    disturbance_field_frac: float = 0.01
-    disturbance_dip_rad: float = float(np.radians(0.5))
-    disturbance_scale: float = 2.0
-    disturbance_persist_s: float = 5.0
-    mag_hold_weight: float = 0.5
-    mag_warmup_s: float = 0.1
-    initial_yaw_std_rad: float = 0.05
-
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            v = getattr(self, name)
-            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
-                    or not np.isfinite(v) or v < 0:
-                raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
-        for name in ("accel_noise_mps2", "gyro_bias_std_rps", "disturbance_tau_s",
-                     "disturbance_heading_rad", "disturbance_field_frac", "disturbance_dip_rad",
-                     "disturbance_scale", "initial_yaw_std_rad", "lattice_floor_rad", "gate",
-                     "sheet_velocity_std_mps", "sheet_velocity_time_s", "sheet_position_std_m",
-                     "sheet_position_time_s"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
 
 
 @dataclass(frozen=True, eq=False)
@@ -283,13 +185,9 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     ndarray, shape (n_links, 3)
         m/s², world frame, summing to zero over the links.
     """
-    w = np.asarray(omega, dtype=float)
-    wdot = np.asarray(omega_dot, dtype=float)
-    body = w[:, 0:1] * w - np.einsum("ki,ki->k", w, w)[:, None] * _EX  # ω × (ω × e_x)
-    body[:, 1] += wdot[:, 2]  # + ω̇ × e_x
-    body[:, 2] -= wdot[:, 1]
-    ddot = np.einsum("kij,kj->ki", frames, body)
-    A = joints_from_directions(ddot, rows, cols, link_length).reshape(-1, 3)
+    dd = ddot(np.asarray(frames, dtype=float), np.asarray(omega, dtype=float),
+              np.asarray(omega_dot, dtype=float))
+    A = joints_from_directions(dd, rows, cols, link_length).reshape(-1, 3)
     ep = topology(rows, cols).lattice.endpoints if endpoints is None else endpoints
     a = 0.5 * (A[ep[:, 0]] + A[ep[:, 1]])
     return a - a.mean(axis=0)
@@ -448,7 +346,8 @@ class MotionEstimator:
                 raise ValueError(f"Invalid valid: need a boolean mask of shape ({n},), got "
                                  f"{v.dtype} {v.shape}.")
         for name, x in arrays.items():
-            if x is not None:
+            if x is not None and not np.isfinite(np.add.reduce(x, axis=None)):
+                # the sum is finite when every value is (the common case: one reduction)
                 bad = v & ~np.all(np.isfinite(x), axis=1)
                 if bad.any():
                     k = np.flatnonzero(bad)
@@ -514,6 +413,7 @@ class MotionEstimator:
             a_c = np.zeros(3)
         else:
             dt = t - self._t
+            self._h = float(dt.mean())
             w_c = w - self.bias
             self._missing_s = np.where(v, 0.0, self._missing_s + dt)
             if not v.all():
@@ -544,11 +444,9 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        C = self.P[:, :3, :3].copy()
-        C[:, :2, :2] += self._common.tilt_cov
-        if self._with_mag:
-            C[:, 2, 2] += self._s_group[self.topo.group] + self._s0
-        return C
+        return _orientation_cov(self.P, self._common.tilt_cov,
+                                (self._s_group[self.topo.group] + self._s0) if self._with_mag
+                                else None)
 
     def _initialise(self, t, f, w, m, v) -> None:
         cfg = self.config
@@ -580,6 +478,8 @@ class MotionEstimator:
             F, dip = self._b_ref
             self._dist = np.zeros((n, 3))
             self._dist_count = np.zeros(n)
+            self._mode_psi = None  # the last robust mode of the heading residuals
+            self._resid_avg = np.zeros(n)
             self._weights = np.zeros(n)  # none is used before its tests have run
         self.R = R
         tilt = (cfg.accel_noise_mps2 / G0) ** 2 + cfg.lattice_floor_rad ** 2
@@ -595,6 +495,7 @@ class MotionEstimator:
         self._t = t.copy()
         self._w_hist = [w.copy(), w.copy()]
         self._missing_s = np.where(v, 0.0, np.inf)  # how long each link has had no sample (s)
+        self._missing_rate_var = 0.0
         g = self.topo.group
         self._s_group = (np.bincount(g, weights=yaw, minlength=self.topo.n_groups)
                          / self.topo.group_size)
@@ -604,10 +505,13 @@ class MotionEstimator:
         # the common tilt starts as the links' mean start (independent errors); its rate is the
         # biases' calibration residual, which the chips share
         self._common = CommonMotion(float(np.mean(tilt)) / max(int(v.sum()), 1),
-                                    cfg.gyro_bias_std_rps ** 2, cfg.sheet_velocity_std_mps,
+                                    (cfg.gyro_bias_std_rps if cfg.gyro_common_bias_std_rps is None
+                                     else cfg.gyro_common_bias_std_rps) ** 2,
+                                    cfg.sheet_velocity_std_mps,
                                     cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
                                     cfg.sheet_position_time_s)
         self._nis = np.full(n, np.nan)
+        self._cinv = None  # the yaw solve's coarse preconditioner (`_linalg.coarse_inverse`)
 
     # ------------------------------------------------------------------------------- 1. gyro
     def _missing_rates(self, w_c, v) -> np.ndarray:
@@ -621,7 +525,11 @@ class MotionEstimator:
         last = self._w_hist[-1]
         if not v.any():
             return last
-        w_world = np.einsum("kij,kj->i", self.R[v], w_c[v]) / np.count_nonzero(v)
+        w_all = np.einsum("kij,kj->ki", self.R[v], w_c[v])
+        w_world = w_all.mean(axis=0)
+        # how far a link's own rate may be from the sheet's: the valid links' spread about it
+        # (rad²/s² per axis), the rate error of a link carried without its gyroscope
+        self._missing_rate_var = float(np.mean((w_all - w_world) ** 2))
         sheet = np.einsum("kji,j->ki", self.R, w_world)
         return np.where((self._missing_s <= MISSING_HOLD_S)[:, None], last, sheet)
 
@@ -629,8 +537,21 @@ class MotionEstimator:
         cfg = self.config
         q = cfg.orientation_walk_rad ** 2 * dt + (cfg.gyro_noise_rps * dt) ** 2 \
             + (cfg.gyro_scale_error * np.linalg.norm(w_c, axis=1) * dt) ** 2
+        if self._missing_s.any():
+            # a link carried by a rate not its own (`_MISSING_MAX_RAD`): an error that lasts the
+            # whole gap, its variance grows as t², not t
+            ms = np.where(np.isfinite(self._missing_s), self._missing_s, 0.0)
+            grown = np.minimum(self._missing_rate_var * ms * ms, _MISSING_MAX_RAD ** 2)
+            before = np.minimum(self._missing_rate_var * np.maximum(ms - dt, 0.0) ** 2,
+                                _MISSING_MAX_RAD ** 2)
+            extra = grown - before
+        else:
+            extra = None
         qb = cfg.gyro_bias_walk_rps ** 2 * dt
         _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
+        if extra is not None:
+            self.P[:, 0, 0] += extra
+            self.P[:, 1, 1] += extra
         self._q_last = q
 
     # ------------------------------------------------------------------------------- 2, 3. accel
@@ -657,15 +578,14 @@ class MotionEstimator:
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + (cfg.rel_accel_error * np.linalg.norm(da, axis=1)) ** 2
         x = np.empty((self.n_links, 6))
-        _step("accel", self.R, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
-        self._apply(x)
+        _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
         # the sheet's own tilt: what the links share, from its bounded translation
         if nv:
             h = float(np.mean(dt[v]))
             self._common.step(a_c[:2], h, float(np.mean(self._q_last)) / nv,
                               cfg.gyro_bias_walk_rps ** 2 * h / nv, cfg.accel_noise_mps2 ** 2 / nv)
             c, b = self._common.take()
-            self.R = rotate_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
+            turn_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
             self.bias += np.einsum("kji,j->ki", self.R[:, :2, :], b)  # Rᵀ (b_x, b_y, 0)
         return a_c
 
@@ -679,49 +599,51 @@ class MotionEstimator:
         n = self.n_links
         P = self.P
         res, wts, jd, lat_diag = _lattice_terms(self.R, P, topo, cfg.lattice_floor_rad ** 2)
-        J, JT = topo.jac, topo.jac_T
-        J.data = jd
-        JT.data = jd[topo.jac_T_from]
+        if not USE_KERNEL:  # the numpy path's products (`_linalg.normal_matvec`)
+            topo.jac.data = jd
+            topo.jac_T.data = jd[topo.jac_T_from]
         normal = _normal_matvec(topo, jd, wts)
         # the prior: each link's own yaw variance for what is local to it, and the groups' and
         # the sheet's common yaw variances for what the links share (`_yaw_prior`)
-        if m is not None:
-            self._grow_collective(dt)
-            prior, prior_diag = self._yaw_prior(P[:, 2, 2])
-        else:  # without magnetometers: the groups' offsets apart where the loops see them
-            self._grow_collective(dt)
-            # what the loops say of each group's common offset (its information, 1/rad²)
-            jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
-            info = np.bincount(topo.jg_group, weights=wts[topo.jg_rows] * jg * jg,
-                               minlength=topo.n_groups)
-            seen = info / np.maximum(np.bincount(topo.group, weights=lat_diag,
-                                                 minlength=topo.n_groups), 1e-300)
-            prior, prior_diag = self._yaw_prior(P[:, 2, 2], six_axis=seen / _GROUP_SEEN)
-        rhs = -(JT @ (wts * res))
+        self._grow_collective(dt)
+        # what the loops say of each group's common offset (its information, 1/rad²): a group
+        # the magnetometers do not hold (none, or disturbed) is kept apart from its links' own
+        # yaws where the loops see it
+        jg, info, seen = _group_info(topo, jd, wts, lat_diag)
+        prior, prior_diag = self._yaw_prior(P[:, 2, 2], seen / _GROUP_SEEN, m is None)
+        rhs = -_jt_times(topo, jd, wts * res)
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
             self._dt_last = dt
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
+        # the coarse preconditioner changes slowly: made anew every `_COARSE_EVERY` snapshots
+        # (any symmetric positive definite one leaves the solution as it is)
+        if self._cinv is None or self.snapshots % _COARSE_EVERY == 0:
+            self._cinv = _coarse_inverse(topo, jg, wts, self._prior_terms, mw)
+        cinv = self._cinv
         if USE_KERNEL:
-            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag)
+            mu = _yaw_solve(topo, jd, wts, self._prior_terms, mw, rhs, 1.0 / a_diag, _YAW_RTOL,
+                            coarse_inv=cinv)
         else:
-            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag)
+            mu = pcg(lambda x: normal(x) + prior(x) + mw * x, rhs, 1.0 / a_diag, _YAW_RTOL,
+                     coarse=(topo.group, cinv))
         if m is not None:  # the disturbance tests: each heading against the loops' solution
             self._disturbance_tests(me + mu, v, dt)
         if m is not None:
-            self._shrink_collective(mw)
+            self._shrink_collective(mw, info)
         else:  # without magnetometers the loops alone say what a group's offset is
             self._s_group = 1.0 / (1.0 / self._s_group + (1.0 - self._held) * info)
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
-        _step("yaw", P, mu, a_diag, x)
-        self._apply(x)
+        _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
+        if m is not None:
+            self._heading_mode(dt)
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
-    def _yaw_prior(self, p, six_axis=None):
+    def _yaw_prior(self, p, seen=None, six_axis=False):
         """The yaw problem's prior information as a matrix-vector product and its diagonal.
 
         A link's yaw variance ``p`` (its conditional one after the last solve) says how well it
@@ -732,10 +654,11 @@ class MotionEstimator:
         on a flat sheet) with variance ``s_g`` for what is not the sheet's common offset; and
         the sheet's common yaw (its heading) with variance ``s_0``.
 
-        Without magnetometers (``six_axis``: each group's information from the loops about its
-        offset, as a multiple of what `_GROUP_SEEN` calls seen) the heading is a gauge held by
-        the links' own variances, and a group is held by them in proportion
-        ``1 / (1 + six_axis)``: on a flat sheet as before, on a curved one by ``s_g``, which
+        Without magnetometers (``six_axis``) the heading is a gauge held by the links' own
+        variances. A group the magnetometers do not hold (none, or too disturbed:
+        `FusedConfig.mag_hold_weight`) is held by the links' own variances in proportion
+        ``1 / (1 + seen)`` (``seen``: the loops' information about its offset, as a multiple of
+        what `_GROUP_SEEN` calls seen): on a flat sheet fully, on a curved one by ``s_g``, which
         the loops' information shrinks (the accelerometer-only start's group offsets, a few
         hundredths of a radian, are then corrected as soon as the sheet bends, not held by
         the links' variances, which say how well each is known against its neighbours)."""
@@ -746,13 +669,17 @@ class MotionEstimator:
         # a mode whose magnetometers are not trusted (weights near 0: disturbed) is held as each
         # link's own variance holds it, as if the magnetometers were not there
         hw = self.config.mag_hold_weight
-        if six_axis is not None:  # the sheet's heading is a gauge, held by the links' own variances
-            held, held0 = 1.0 / (1.0 + six_axis), 1.0
+        if six_axis:  # the sheet's heading is a gauge, held by the links' own variances
+            held_mag, held0 = np.ones(r), 1.0
         else:
             w_mean = np.bincount(g, weights=self._weights, minlength=r) / size
-            held = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
+            held_mag = np.clip(1.0 - w_mean / hw, 0.0, 1.0)
             held0 = float(np.clip(1.0 - float(self._weights.mean()) / hw, 0.0, 1.0))
-        self._held = held
+            # magnetometers not trusted for the sheet's heading do not shear it either: a group
+            # whose few clean links would free it is held as much as the heading is
+            held_mag = np.maximum(held_mag, held0)
+        held = held_mag if seen is None else held_mag / (1.0 + seen)
+        self._held, self._held0, self._held_mag = held, held0, held_mag
         Eg = (1.0 - held) / self._s_group + held * dg
         sE = float(Eg.sum())
         I0 = (1.0 - held0) / self._s0 + held0 * sE
@@ -777,21 +704,24 @@ class MotionEstimator:
         (averaged over the links that share the offset) and the heading walk."""
         cfg = self.config
         q = self._q_last
-        h = float(np.mean(dt))
+        h = self._h
         walk = cfg.heading_walk_rad ** 2 * h
         topo = self.topo
         q_g = np.bincount(topo.group, weights=q, minlength=topo.n_groups) / topo.group_size ** 2
         self._s_group = np.minimum(self._s_group + q_g + walk, _COLLECTIVE_MAX)
         self._s0 = min(self._s0 + float(q.mean()) / q.size + walk, _COLLECTIVE_MAX)
 
-    def _shrink_collective(self, mw) -> None:
+    def _shrink_collective(self, mw, info) -> None:
         """The groups' and the sheet's common yaw variances after the solve: each gains what the
-        magnetometers say of its offset (the loops' say is not kept: they hold the shape at
-        every snapshot anew, and on a flat sheet they say nothing of these offsets)."""
+        magnetometers say of its offset where they hold it (the loops' say is not kept there:
+        they hold the shape at every snapshot anew, and on a flat sheet they say nothing of
+        these offsets), and what the loops say (``info``) where the magnetometers do not hold
+        it and the loops do, as without magnetometers."""
         topo = self.topo
-        free = 1.0 - self._held  # a held group's offset is the links' own prior's: mw went there
-        self._s_group = 1.0 / (1.0 / self._s_group + free * np.bincount(topo.group, weights=mw,
-                                                                        minlength=topo.n_groups))
+        trusted = 1.0 - self._held_mag  # a held group's offset is the links' own prior's
+        by_loops = self._held_mag - self._held
+        self._s_group = 1.0 / (1.0 / self._s_group + trusted * np.bincount(
+            topo.group, weights=mw, minlength=topo.n_groups) + by_loops * info)
         self._s0 = 1.0 / (1.0 / self._s0 + float(mw.sum()))
 
     def _magnetometer(self, m, v):
@@ -806,15 +736,11 @@ class MotionEstimator:
         solution scales the weight by ``1 / (1 + (s / scale)²)``. ``self._weights`` keeps each
         link's weight as a fraction of an undisturbed one's, in [0, 1]."""
         cfg = self.config
-        W = np.einsum("kij,kj->ki", self.R, m)
-        hz = np.hypot(W[:, 0], W[:, 1])
-        norm = np.linalg.norm(W, axis=1)
-        e = wrap(np.arctan2(W[:, 1], W[:, 0]) - self.declination_rad)
         F, dip = self._b_ref
+        e, hz, t_field, t_dip = mag_terms(self.R, m, self.declination_rad, F, dip,
+                                          cfg.disturbance_field_frac, cfg.disturbance_dip_rad)
         ok = v & (hz > 0.1 * F)
-        self._field_tests = (ok, (norm / F - 1.0) / cfg.disturbance_field_frac,
-                             (np.arcsin(np.clip(-W[:, 2] / np.maximum(norm, 1e-30), -1, 1)) - dip)
-                             / cfg.disturbance_dip_rad)
+        self._field_tests = (ok, t_field, t_dip)
         hz2 = np.maximum(hz, 1e-30) ** 2
         var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
         # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
@@ -826,15 +752,39 @@ class MotionEstimator:
             + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
         dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
                  + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
-        lasts = cfg.disturbance_persist_s / max(float(np.mean(self._dt_last)), 1e-6)
+        lasts = cfg.disturbance_persist_s / max(self._h, 1e-6)
         dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * lasts
         s2 = self._dist[:, 0] ** 2
         wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
         # until the tests have averaged over their time constant a link's magnetometer is not
         # used: a magnet there from the start would otherwise be believed first
-        warm = self._dist_count * np.mean(self._dt_last) >= cfg.mag_warmup_s
+        warm = self._dist_count * self._h >= cfg.mag_warmup_s
         self._weights = np.where(ok & warm, wgt, 0.0)
-        return np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0), np.where(ok, e, 0.0)
+        mw = np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0)
+        e = np.where(ok, e, 0.0)
+        return mw, e
+
+    def _heading_mode(self, dt) -> None:
+        """Turn the sheet's heading towards the robust mode of its links' averaged heading
+        residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
+        hold (``held0``, `_yaw_prior`) over `FusedConfig.heading_mode_time_s`: the gyroscopes
+        carry the heading while a disturbance is detected, and the links that agree with each
+        other — not the mean of every link the disturbance turns a little — correct it slowly.
+        The links vote in proportion to how much their groups are held: a group whose
+        magnetometers are trusted has taken their heading in the solve, its residuals are zero
+        by construction (docs/estimator.md §8)."""
+        cfg = self.config
+        if cfg.heading_mode_rad <= 0 or self._held0 <= 0:
+            return
+        use = self._field_tests[0] & (self._dist_count * self._h >= cfg.mag_warmup_s)
+        w = np.where(use, self._held[self.topo.group], 0.0)
+        psi = robust_mode(self._resid_avg, w, cfg.heading_mode_rad, self._mode_psi)
+        if psi is None:
+            return
+        g = self._held0 * min(1.0, self._h / cfg.heading_mode_time_s)
+        turn_all(rotation_matrices(np.array([0.0, 0.0, -g * psi])), self.R)
+        self._resid_avg -= g * psi
+        self._mode_psi = (1.0 - g) * psi  # where the mode is after the turn: the next start
 
     def _disturbance_tests(self, resid, v, dt) -> None:
         """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the
@@ -855,6 +805,8 @@ class MotionEstimator:
         self._dist_count += ok
         alpha = self._dist_alpha(dt)[:, None]
         self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
+        self._resid_avg = np.where(ok, self._resid_avg + alpha[:, 0] * (resid - self._resid_avg),
+                                   self._resid_avg)
 
     def _dist_alpha(self, dt):
         """The tests' averaging weight per link: a running mean over the first samples, then an

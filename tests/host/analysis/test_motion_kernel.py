@@ -104,6 +104,22 @@ def test_the_lattice_step_is_the_same_in_c_and_numpy():
     fused._np_lattice(R, P, topo, 1e-6, *out_n)
     for name, a, b in zip(("res", "wts", "jd", "lat_diag"), out_c, out_n):
         assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max(), name
+    # Jᵀ v (the solve's right-hand side) and what the loops say of each group's offset
+    from host.analysis.motion import _linalg as la
+    v = np.random.Generator(np.random.MT19937(7)).normal(size=topo.n_rows)
+    saved = la.USE_KERNEL
+    try:
+        la.USE_KERNEL = False
+        want_jt = la.jt_times(topo, out_n[2], v)
+        want_info = la.group_info(topo, out_n[2], out_n[1], out_n[3])
+    finally:
+        la.USE_KERNEL = saved
+    got_jt = la.jt_times(topo, out_c[2], v)
+    assert np.abs(got_jt - want_jt).max() <= 1e-12 * np.abs(want_jt).max()
+    for got_i, want_i in zip(la.group_info(topo, out_c[2], out_c[1], out_c[3]), want_info):
+        assert np.abs(got_i - want_i).max() <= 1e-12 * np.abs(want_i).max()
+    # the check can fail: another right-hand side gives another product
+    assert np.abs(la.jt_times(topo, out_c[2], v + 1e-6) - want_jt).max() > 1e-9
     x = np.random.Generator(np.random.MT19937(4)).normal(size=topo.n_links)
     J = topo.jac.copy()
     J.data = out_n[2]
@@ -144,3 +160,98 @@ def test_the_yaw_solve_is_the_same_in_c_and_numpy():
     D, dg, Eg, sE, I0 = est._prior_terms
     off = fused._yaw_solve(topo, jd, wts, (D, dg, 2.0 * Eg, sE, I0), mw, b, inv)
     assert np.abs(off - want).max() > 1e-6 * np.abs(want).max()
+
+
+def test_the_whole_sheet_steps_are_the_same_in_c_and_numpy():
+    """The magnetometers' terms, the sheet's turn, the output covariance and the links' direction
+    accelerations from the kernel are numpy's to rounding (wrapped headings included: fields
+    pointing near ±180° from north)."""
+    from host.analysis.motion import _linalg as la
+    n = 57
+    g, R, P = _state(n, 21)
+    m = g.normal(0, 30e-6, (n, 3))
+    m[:5, 1] = 1e-12  # headings at the wrap: field along -x in some frames
+    args = (R, m, 0.3, 50e-6, 1.0, 0.01, 0.0087)
+    for a, b in zip(la.mag_terms(*args), la.np_mag_terms(*args)):
+        assert np.abs(a - b).max() <= 1e-12 * max(np.abs(b).max(), 1.0)
+    Q = fused.rotation_matrices(np.array([0.01, -0.02, 0.3]))
+    Rc = R.copy()
+    la.turn_all(Q, Rc)
+    assert np.abs(Rc - fused.rotate_all(Q, R)).max() <= 1e-14
+    tc = np.array([[2e-6, 1e-7], [1e-7, 3e-6]])
+    add = g.uniform(0, 1e-4, n)
+    for ya in (add, None):
+        assert np.abs(la.orientation_cov(P, tc, ya) - la.np_orientation_cov(P, tc, ya)).max() <= 1e-18
+    w, wd = g.normal(0, 3, (n, 3)), g.normal(0, 30, (n, 3))
+    assert np.abs(la.ddot(R, w, wd) - la.np_ddot(R, w, wd)).max() <= 1e-12 * np.abs(la.np_ddot(R, w, wd)).max()
+    # the check can fail: a declination off by 1e-9 rad moves every heading
+    assert np.abs(la.mag_terms(R, m, 0.3 + 1e-9, *args[3:])[0] - la.np_mag_terms(*args)[0]).max() > 5e-10
+
+
+@pytest.mark.parametrize("name", ["accel", "yaw"])
+def test_a_step_and_its_correction_in_one_pass_are_the_two_calls(name):
+    """``step_apply`` in C (a block of links at a time) gives the numpy step followed by numpy's
+    apply, on more links than one block (64) holds."""
+    from host.analysis.motion import _linalg as la
+    n = 150
+    out = []
+    for use_kernel in (True, False):
+        g, R, P = _state(n, 31)
+        bias = g.normal(0, 1e-3, (n, 3))
+        if name == "accel":
+            args = (g.normal(0, 10, (n, 3)), g.normal(0, 10, (n, 3)), g.uniform(1e-3, 1e-2, n),
+                    25.0, g.random(n) > 0.2, np.zeros((n, 6)), np.zeros(n))
+        else:
+            args = (g.normal(0, 1e-3, n), g.uniform(1e6, 1e7, n), np.zeros((n, 6)))
+        saved = la.USE_KERNEL
+        la.USE_KERNEL = use_kernel
+        try:
+            la.step_apply(name, R, bias, P, *args)
+        finally:
+            la.USE_KERNEL = saved
+        out.append((R, bias, P))
+    for a, b in zip(*out):
+        assert np.abs(a - b).max() <= 1e-12 * np.abs(b).max(), name
+    # the check can fail: the numpy step alone (no correction applied) leaves R where it was
+    assert np.abs(out[0][0] - _state(n, 31)[1]).max() > 1e-6
+
+
+def test_the_coarse_preconditioner_is_the_same_in_c_and_numpy():
+    """The yaw solve's coarse matrix from the kernel is numpy's (scipy's sparse products) to
+    rounding, and the conjugate gradients with it (C and numpy) reach the solution without it:
+    a preconditioner changes the path, not the answer (its iterations are bench_motion's)."""
+    from host.analysis.motion import _linalg as la
+    rows, cols = 6, 5
+    R, _P = _bent_frames(rows, cols, 5)
+    n = R.shape[0]
+    g = np.random.Generator(np.random.MT19937(6))
+    est = fused.MotionEstimator(rows, cols, 0.01)
+    f = np.einsum("kji,j->ki", R, [0.0, 0.0, 9.80665])
+    for k in range(20):
+        est.update(k / 145.0, f + g.normal(0, 0.01, (n, 3)), g.normal(0, 0.01, (n, 3)))
+    topo = est.topo
+    res, wts, jd, lat_diag = fused._lattice_terms(est.R, est.P, topo, 1e-6)
+    jg = np.bincount(topo.jg_index, weights=jd, minlength=topo.jg_rows.size)
+    est._s_group = np.full(topo.n_groups, 1.0)  # the groups free: the slow modes
+    prior, prior_diag = est._yaw_prior(est.P[:, 2, 2], np.zeros(topo.n_groups), six_axis=True)
+    mw = g.uniform(0, 1e2, n)
+    c_kernel = la.coarse_inverse(topo, jg, wts, est._prior_terms, mw)
+    saved = la.USE_KERNEL
+    la.USE_KERNEL = False
+    try:
+        c_numpy = la.coarse_inverse(topo, jg, wts, est._prior_terms, mw)
+    finally:
+        la.USE_KERNEL = saved
+    assert np.abs(c_kernel - c_numpy).max() <= 1e-9 * np.abs(c_numpy).max()
+    b = g.normal(0, 1.0, n)
+    inv = 1.0 / (prior_diag + lat_diag + mw)
+    normal = fused._normal_matvec(topo, jd, wts)
+    want = fused.pcg(lambda x: normal(x) + prior(x) + mw * x, b, inv, 1e-10, 500,
+                     coarse=(topo.group, c_numpy))
+    plain = fused.pcg(lambda x: normal(x) + prior(x) + mw * x, b, inv, 1e-10, 500)
+    got = fused._yaw_solve(topo, jd, wts, est._prior_terms, mw, b, inv, 1e-10, 500, c_kernel)
+    assert np.abs(got - want).max() <= 1e-6 * np.abs(want).max()
+    assert np.abs(plain - want).max() <= 1e-6 * np.abs(want).max()
+    # the check can fail: the magnetometers' weights doubled give another coarse matrix
+    other = la.coarse_inverse(topo, jg, wts, est._prior_terms, 2.0 * mw)
+    assert np.abs(other - c_kernel).max() > 1e-6 * np.abs(c_kernel).max()

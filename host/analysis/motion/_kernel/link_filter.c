@@ -368,19 +368,50 @@ static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *
     }
 }
 
+/* z = inv_diag r, plus the groups' coarse correction Z (C^-1 (Z^T r)) when coarse_inv is given */
+static void precondition(size_t n, size_t n_groups, const int64_t *group, const double *inv_diag,
+                         const double *coarse_inv, const double *r, double *z, double *t,
+                         double *c)
+{
+    for (size_t k = 0; k < n; k++) {
+        z[k] = inv_diag[k] * r[k];
+    }
+    if (coarse_inv == NULL) {
+        return;
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        t[g] = 0.0;
+    }
+    for (size_t k = 0; k < n; k++) {
+        t[group[k]] += r[k];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        double s = 0.0;
+        for (size_t h = 0; h < n_groups; h++) {
+            s += coarse_inv[n_groups * g + h] * t[h];
+        }
+        c[g] = s;
+    }
+    for (size_t k = 0; k < n; k++) {
+        z[k] += c[group[k]];
+    }
+}
+
 int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
                         const int32_t *indices, const double *data, const double *w,
                         const double *D, const int64_t *group, const double *dg,
                         const double *Eg, double sE, double I0, const double *mw,
-                        const double *b, const double *inv_diag, double rtol, int maxiter,
-                        double *x, double *work)
+                        const double *b, const double *inv_diag, const double *coarse_inv,
+                        double rtol, int maxiter, double *x, double *work)
 {
     double *tmp = work, *r = work + n_rows, *z = r + n, *p = z + n, *q = p + n;
-    double *abar = q + n, *sig = abar + n_groups;
+    double *abar = q + n, *sig = abar + n_groups, *t = sig + n_groups, *c = t + n_groups;
     for (size_t k = 0; k < n; k++) {
         x[k] = 0.0;
         r[k] = b[k];
-        z[k] = inv_diag[k] * r[k];
+    }
+    precondition(n, n_groups, group, inv_diag, coarse_inv, r, z, t, c);
+    for (size_t k = 0; k < n; k++) {
         p[k] = z[k];
     }
     double rz = dot(n, r, z);
@@ -396,8 +427,8 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
         for (size_t k = 0; k < n; k++) {
             x[k] += alpha * p[k];
             r[k] -= alpha * q[k];
-            z[k] = inv_diag[k] * r[k];
         }
+        precondition(n, n_groups, group, inv_diag, coarse_inv, r, z, t, c);
         double rz_new = dot(n, r, z);
         double beta = rz_new / rz;
         for (size_t k = 0; k < n; k++) {
@@ -406,4 +437,169 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
         rz = rz_new;
     }
     return it;
+}
+
+void capsheet_mf_rotate(size_t n, double *R, const double *Q)
+{
+    for (size_t k = 0; k < n; k++) {
+        double Rn[9];
+        double *Rk = R + 9 * k;
+        mat3_mul(Q, Rk, Rn);
+        for (int i = 0; i < 9; i++) {
+            Rk[i] = Rn[i];
+        }
+    }
+}
+
+/* (x + pi) mod 2 pi - pi with the remainder's sign that of 2 pi, as numpy's `%` (fused.py
+ * `wrap`) */
+static double wrap_pi(double x)
+{
+    const double pi = 3.14159265358979323846;
+    double r = fmod(x + pi, 2.0 * pi);
+    if (r < 0.0) {
+        r += 2.0 * pi;
+    }
+    return r - pi;
+}
+
+void capsheet_mf_mag_terms(size_t n, const double *R, const double *m, double declination,
+                           double field, double dip, double field_unit, double dip_unit,
+                           double *heading, double *hz, double *t_field, double *t_dip)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *Rk = R + 9 * k;
+        const double *mk = m + 3 * k;
+        double W[3];
+        for (int i = 0; i < 3; i++) {
+            W[i] = Rk[3 * i] * mk[0] + Rk[3 * i + 1] * mk[1] + Rk[3 * i + 2] * mk[2];
+        }
+        double h = hypot(W[0], W[1]);
+        double norm = sqrt(W[0] * W[0] + W[1] * W[1] + W[2] * W[2]);
+        hz[k] = h;
+        heading[k] = wrap_pi(atan2(W[1], W[0]) - declination);
+        t_field[k] = (norm / field - 1.0) / field_unit;
+        double s = -W[2] / (norm > 1e-30 ? norm : 1e-30);
+        s = s < -1.0 ? -1.0 : (s > 1.0 ? 1.0 : s);
+        t_dip[k] = (asin(s) - dip) / dip_unit;
+    }
+}
+
+void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_cov,
+                                 const double *yaw_add, double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *Pk = P + 36 * k;
+        double *Ck = out + 9 * k;
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                Ck[3 * i + j] = Pk[6 * i + j];
+            }
+        }
+        Ck[0] += tilt_cov[0];
+        Ck[1] += tilt_cov[1];
+        Ck[3] += tilt_cov[2];
+        Ck[4] += tilt_cov[3];
+        if (yaw_add != NULL) {
+            Ck[8] += yaw_add[k];
+        }
+    }
+}
+
+void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
+                      double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *wk = w + 3 * k;
+        const double *ak = wdot + 3 * k;
+        const double *Rk = R + 9 * k;
+        double ww = wk[0] * wk[0] + wk[1] * wk[1] + wk[2] * wk[2];
+        double b[3];
+        b[0] = wk[0] * wk[0] - ww;
+        b[1] = wk[0] * wk[1] + ak[2];
+        b[2] = wk[0] * wk[2] - ak[1];
+        for (size_t i = 0; i < 3; i++) {
+            out[3 * k + i] = Rk[3 * i] * b[0] + Rk[3 * i + 1] * b[1] + Rk[3 * i + 2] * b[2];
+        }
+    }
+}
+
+/* blocks of links small enough that a block's state is still in cache when it is applied */
+#define APPLY_BLOCK 64
+
+void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
+                             const double *vec, const double *r2, double gate,
+                             const uint8_t *valid, double *x, double *nis)
+{
+    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
+        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
+        capsheet_mf_accel(m, R + 9 * k0, P + 36 * k0, f + 3 * k0, vec + 3 * k0, r2 + k0, gate,
+                          valid + k0, x + 6 * k0, nis + k0);
+        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    }
+}
+
+void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
+                           const double *a_diag, double *x)
+{
+    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
+        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
+        capsheet_mf_yaw(m, P + 36 * k0, mu + k0, a_diag + k0, x + 6 * k0);
+        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    }
+}
+
+void capsheet_mf_coarse(size_t n_rows, size_t n_groups, const int64_t *indptr,
+                        const int64_t *grp, const double *val, const double *w, double *C)
+{
+    for (size_t i = 0; i < n_groups * n_groups; i++) {
+        C[i] = 0.0;
+    }
+    for (size_t r = 0; r < n_rows; r++) {
+        for (int64_t a = indptr[r]; a < indptr[r + 1]; a++) {
+            double wa = w[r] * val[a];
+            for (int64_t b = indptr[r]; b < indptr[r + 1]; b++) {
+                C[(size_t)grp[a] * n_groups + (size_t)grp[b]] += wa * val[b];
+            }
+        }
+    }
+}
+
+void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const int32_t *indices,
+                          const double *data, const double *v, double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        out[k] = 0.0;
+    }
+    for (size_t r = 0; r < n_rows; r++) {
+        for (int32_t p = indptr[r]; p < indptr[r + 1]; p++) {
+            out[indices[p]] += data[p] * v[r];
+        }
+    }
+}
+
+void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
+                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
+                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const double *lat_diag, double *jg, double *info, double *seen)
+{
+    for (size_t i = 0; i < n_jg; i++) {
+        jg[i] = 0.0;
+    }
+    for (size_t p = 0; p < nnz; p++) {
+        jg[jg_index[p]] += jd[p];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        info[g] = 0.0;
+        seen[g] = 0.0;
+    }
+    for (size_t i = 0; i < n_jg; i++) {
+        info[jg_group[i]] += w[jg_rows[i]] * jg[i] * jg[i];
+    }
+    for (size_t k = 0; k < n; k++) {
+        seen[group[k]] += lat_diag[k];
+    }
+    for (size_t g = 0; g < n_groups; g++) {
+        seen[g] = info[g] / (seen[g] > 1e-300 ? seen[g] : 1e-300);
+    }
 }

@@ -54,11 +54,64 @@ void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
  * data), W = diag(w), and the prior is the nested one: with abar_g = sum_{k in g} D_k x_k / dg_g,
  * ey = sum_g Eg_g abar_g and s_g = Eg_g abar_g - Eg_g ey / sE + Eg_g ey I0 / sE^2,
  * (prior x)_k = D_k x_k - D_k abar_{g(k)} + D_k s_{g(k)} / dg_{g(k)}. Stops when
- * |r|^2 <= rtol^2 |b|^2 or after maxiter iterations. work: n_rows + 4 n + 2 n_groups doubles.
- * Returns the iterations taken. */
+ * |r|^2 <= rtol^2 |b|^2 or after maxiter iterations. The preconditioner is inv_diag, plus,
+ * when coarse_inv (n_groups x n_groups) is not NULL, the groups' coarse correction
+ * Z coarse_inv Z^T (Z the groups' indicator; coarse_inv the inverse of Z^T A Z): the modes a
+ * group's links share, which the diagonal does not see. work: n_rows + 4 n + 4 n_groups
+ * doubles. Returns the iterations taken. */
 int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
                         const int32_t *indices, const double *data, const double *w,
                         const double *D, const int64_t *group, const double *dg,
                         const double *Eg, double sE, double I0, const double *mw,
-                        const double *b, const double *inv_diag, double rtol, int maxiter,
-                        double *x, double *work);
+                        const double *b, const double *inv_diag, const double *coarse_inv,
+                        double rtol, int maxiter, double *x, double *work);
+
+/* C = (J Z)^T W (J Z), n_groups x n_groups, row-major: J Z's entries by row (indptr n_rows + 1,
+ * each entry's group grp and value val), W = diag(w). The lattice's part of the yaw problem's
+ * coarse matrix (fused.py `_linalg.coarse_matrix`). */
+void capsheet_mf_coarse(size_t n_rows, size_t n_groups, const int64_t *indptr,
+                        const int64_t *grp, const double *val, const double *w, double *C);
+
+/* R[k] <- Q R[k] for every link (Q 3 x 3, row-major): a turn of the whole sheet. */
+void capsheet_mf_rotate(size_t n, double *R, const double *Q);
+
+/* The magnetometers' terms (fused.py `_np_mag_terms`): W = R m (the field in the world), its
+ * heading less the declination wrapped to [-pi, pi), its horizontal magnitude hz, and the two
+ * field tests in their units: t_field = (|W| / field - 1) / field_unit and
+ * t_dip = (asin(clip(-W_z / max(|W|, 1e-30), -1, 1)) - dip) / dip_unit. */
+void capsheet_mf_mag_terms(size_t n, const double *R, const double *m, double declination,
+                           double field, double dip, double field_unit, double dip_unit,
+                           double *heading, double *hz, double *t_field, double *t_dip);
+
+/* Every link's orientation covariance for the output: out[k] = P[k][0:3, 0:3] plus tilt_cov
+ * (2 x 2, row-major) on its tilt block and yaw_add[k] on its yaw (none when yaw_add is NULL). */
+void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_cov,
+                                 const double *yaw_add, double *out);
+
+/* A link direction's second derivative, world (fused.py `relative_accelerations`):
+ * out[k] = R[k] (w x (w x e_x) + wdot x e_x), w and wdot in the link's frame. */
+void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
+                      double *out);
+
+/* capsheet_mf_accel, then capsheet_mf_apply of its x, a block of links at a time (the same
+ * numbers as the two calls; one pass over the state). */
+void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
+                             const double *vec, const double *r2, double gate,
+                             const uint8_t *valid, double *x, double *nis);
+
+/* capsheet_mf_yaw, then capsheet_mf_apply of its x, a block of links at a time. */
+void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
+                           const double *a_diag, double *x);
+
+/* out = J^T v for the CSR matrix J (n_rows x n): each out entry sums its terms in increasing row
+ * order (as scipy's product by J^T's CSR does). */
+void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const int32_t *indices,
+                          const double *data, const double *v, double *out);
+
+/* What the loops say of each group's common yaw offset (fused.py `_lattice_update`): jg, J's
+ * entries jd summed per (row, group) slot jg_index; info[g] = sum over the slots of group g of
+ * w[row] jg^2; seen[g] = info[g] / max(sum of lat_diag over the group's links, 1e-300). */
+void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
+                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
+                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const double *lat_diag, double *jg, double *info, double *seen);
