@@ -33,8 +33,11 @@ def run(hold: int, n_snap: int, every: int, missing: int, seed: int = 1) -> dict
     n = ideal.shape[0]
     rng = np.random.Generator(np.random.MT19937(seed))
     w = EstimatorProcess(rows, cols, L, hold_snapshots=hold)
-    while not w.warm:
+    end = time.monotonic() + 120.0
+    while not w.warm:  # the child's warm-up answer (a child that died never sends it)
         w.results(1.0)
+        if time.monotonic() > end or not w.alive:
+            raise SystemExit("the estimator process did not warm up")
     got = []
     t0 = time.perf_counter()
     for k in range(n_snap):

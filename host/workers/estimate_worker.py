@@ -263,6 +263,11 @@ class EstimatorProcess:
         return self._proc.pid
 
     @property
+    def alive(self) -> bool:
+        """The child is running (one that died, e.g. killed, never answers again)."""
+        return self._proc.is_alive()
+
+    @property
     def uncertainty_cost_s(self) -> float:
         """The last uncertainty's seconds in the child (the warm-up's until one is made)."""
         return self._unc_cost
