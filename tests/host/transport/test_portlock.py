@@ -103,19 +103,43 @@ def _received(t, n: int, timeout_s: float = 3.0) -> int:
     return got
 
 
-def test_another_pty_under_the_same_path_is_refused_never_opened(tmp_path):
-    """The port goes away; the path now leads to another pty: the transport does not open it (no
-    byte written, its terminal settings untouched: not switched to raw mode), counts and says why;
-    when the first device's number is back at the path it reconnects."""
+def _slcan_samples(n: int, counter: int) -> bytes:
+    """The same SAMPLE frames as `_samples`, as an SLCAN adapter passes them on (one ``T`` line each)."""
+    from protocol import to_can
+    out = []
+    for k in range(n):
+        f = to_can(Sample(k + 1, counter, k, -k, 1024, 0))
+        out.append(f"T{f.arbitration_id:08X}{len(f.data)}{f.data.hex().upper()}\r".encode())
+    return b"".join(out)
+
+
+#: a serial gateway's port, and an SLCAN adapter's tty: the same rule for both
+PORT_KINDS = {
+    "serial": (lambda link: SerialTransport(str(link), reconnect_interval_s=0.05), _samples),
+    "slcan": (lambda link: CanTransport(f"slcan:{link}", bitrate=1_000_000, sleep_after_open=0, drain_quiet_s=0.02,
+                                        reconnect_interval_s=0.05), _slcan_samples),
+}
+
+
+@pytest.mark.parametrize("kind", list(PORT_KINDS))
+def test_another_pty_under_the_same_path_is_refused_never_opened(tmp_path, kind):
+    """The port (a serial gateway's, or an SLCAN adapter's tty) goes away; the path now leads to
+    another pty: the transport does not open it (no byte written — no SLCAN command either —, its
+    terminal settings untouched: not switched to raw mode), counts and says why; when the first
+    device's number is back at the path it reconnects."""
+    import tty as tty_mod
+    make, frames = PORT_KINDS[kind]
     link = tmp_path / "sheet"
     m1, s1 = os.openpty()
+    tty_mod.setraw(m1)
     name1 = os.ttyname(s1)
     m2, s2 = os.openpty()  # the other device, made while the first is alive: another number
     os.symlink(name1, link)
-    t = SerialTransport(str(link), reconnect_interval_s=0.05)
+    t = make(link)
     m3 = s3 = None
     try:
-        os.write(m1, _samples(3, 1))
+        assert t.identity is not None and t.identity.rdev == os.stat(name1).st_rdev
+        os.write(m1, frames(3, 1))
         assert _received(t, 3) == 3
         os.close(s1)
         os.close(m1)  # the port goes away
@@ -140,74 +164,6 @@ def test_another_pty_under_the_same_path_is_refused_never_opened(tmp_path):
         # the first device's number back at the path (a USB adapter plugged in again): reconnected
         m3, s3, name3 = open_pty(name1, wait_s=5.0)
         assert name3 == name1, "the test could not get the pty number back (another process took it)"
-        os.replace(link, tmp)
-        os.unlink(tmp)
-        os.symlink(name3, link)
-        end = time.monotonic() + 3
-        while t.stats.reconnects == 0 and time.monotonic() < end:
-            t.recv(0.05)
-        assert t.stats.reconnects == 1 and t.connected and t.refused is None
-        os.write(m3, _samples(4, 9))
-        assert _received(t, 4) == 4
-    finally:
-        t.close()
-        for fd in (m2, s2, m3, s3):
-            if fd is not None:
-                os.close(fd)
-
-
-def _t_line(msg) -> bytes:
-    from protocol import to_can
-    f = to_can(msg)
-    return f"T{f.arbitration_id:08X}{len(f.data)}{f.data.hex().upper()}\r".encode()
-
-
-def _can_received(t, n: int, timeout_s: float = 3.0) -> int:
-    got, end = 0, time.monotonic() + timeout_s
-    while got < n and time.monotonic() < end:
-        got += sum(len(ev) for ev in t.recv(0.05) if isinstance(ev, SampleBatch))
-    return got
-
-
-def test_an_slcan_adapter_replaced_by_another_device_is_refused_never_opened(tmp_path):
-    """The SLCAN adapter's tty goes away and the path now leads to another pty: the CAN transport
-    neither opens nor writes to it (no SLCAN command, terminal settings untouched), counts and says
-    why; the adapter's own device number back at the path, it reconnects — as a serial port does."""
-    import tty as tty_mod
-    link = tmp_path / "adapter"
-    m1, s1 = os.openpty()
-    tty_mod.setraw(m1)
-    name1 = os.ttyname(s1)
-    m2, s2 = os.openpty()  # the other device, made while the adapter is there: another number
-    os.symlink(name1, link)
-    t = CanTransport(f"slcan:{link}", bitrate=1_000_000, sleep_after_open=0, drain_quiet_s=0.02,
-                     reconnect_interval_s=0.05)
-    m3 = s3 = None
-    try:
-        assert t.identity is not None and t.identity.rdev == os.stat(name1).st_rdev
-        os.write(m1, b"".join(_t_line(Sample(k + 1, 3, k, 0, 1024, 0)) for k in range(3)))
-        assert _can_received(t, 3) == 3
-        os.close(s1)
-        os.close(m1)  # the adapter goes away
-        end = time.monotonic() + 3
-        while t.stats.disconnects == 0 and time.monotonic() < end:
-            t.recv(0.05)
-        assert t.stats.disconnects == 1
-        attrs = termios.tcgetattr(s2)
-        tmp = str(link) + ".new"
-        os.symlink(os.ttyname(s2), tmp)
-        os.replace(tmp, link)
-        end = time.monotonic() + 1.0
-        while time.monotonic() < end:
-            t.recv(0.05)
-        assert t.stats.reconnects == 0 and not t.connected and t.stats.refused_reopens >= 2
-        assert t.refused is not None and "came back as another device" in t.refused and "\n" not in t.refused
-        os.set_blocking(m2, False)
-        with pytest.raises(BlockingIOError):
-            os.read(m2, 4096)  # no SLCAN command was written into it
-        assert termios.tcgetattr(s2) == attrs and holders(os.ttyname(s2)) == []
-        m3, s3, name3 = open_pty(name1, wait_s=5.0)
-        assert name3 == name1, "the test could not get the pty number back (another process took it)"
         tty_mod.setraw(m3)
         os.replace(link, tmp)
         os.unlink(tmp)
@@ -216,8 +172,8 @@ def test_an_slcan_adapter_replaced_by_another_device_is_refused_never_opened(tmp
         while t.stats.reconnects == 0 and time.monotonic() < end:
             t.recv(0.05)
         assert t.stats.reconnects == 1 and t.connected and t.refused is None
-        os.write(m3, b"".join(_t_line(Sample(k + 1, 9, k, 0, 1024, 0)) for k in range(4)))
-        assert _can_received(t, 4) == 4
+        os.write(m3, frames(4, 9))
+        assert _received(t, 4) == 4
     finally:
         t.close()
         for fd in (m2, s2, m3, s3):
