@@ -7,10 +7,16 @@ import pytest
 
 from hypothesis import HealthCheck, settings
 
+from tests import zenoh_meeting
+
 settings.register_profile("ci", max_examples=150, deadline=None, derandomize=True,
                           suppress_health_check=[HealthCheck.too_slow])
 settings.register_profile("dev", max_examples=300, deadline=None)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+# every default Zenoh session of this worker (in its process and in every process it starts) meets at
+# a loopback port of the worker's own, not at 7447 with the other workers' (tests/zenoh_meeting.py)
+zenoh_meeting.install()
 
 
 def _chip_class_params():

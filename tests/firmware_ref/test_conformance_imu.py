@@ -5,14 +5,16 @@ says so. The sheet's IMU models feed the firmware's read_imu as they feed the Py
 
 from __future__ import annotations
 
+import dataclasses
 import re
-from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
 from host.cli import main
 from host.conformance import CHECKS
+from host.conformance.runner import CheckResult
 from tests.host.conformance.test_checks import _run_can, _run_serial
+from tests.shared_runs import session_root, shared_runs
 from virtual_sheet.devices import PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 
@@ -28,30 +30,37 @@ RUNS = [("serial", "accel+gyro"), ("serial", "accel+gyro+mag"), ("can", "accel+g
 
 
 @pytest.fixture(scope="module")
-def runs():
-    """``{(transport, sensors): (sheet, results or the exception raised)}``: the four runs made at once
-    in threads (each mostly waits: ~11.5 s of wall for ~0.3 s of CPU; one after another ~47 s), each
-    C chip a struct of its own, each CAN run on a virtual channel of its own."""
+def runs(tmp_path_factory):
+    """``{(transport, sensors): {"engine", "c_chip", "results"} or {"error"}}``: the four runs made at
+    once in threads (each mostly waits: ~11.5 s of wall for ~0.3 s of CPU; one after another ~47 s),
+    each C chip a struct of its own, each CAN run on a virtual channel of its own. Made once per test
+    session, whichever workers need them splitting the runs (tests/shared_runs.py): each worker that
+    reached this module made all four before."""
     def one(k):
         transport, sensors = RUNS[k]
         sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, sensors=sensors,
                              chip_factory=CFirmwareChip)
         try:
             if transport == "serial":
-                return sheet, _run_serial(sheet, allow_broadcast=True)
-            return sheet, _run_can(sheet, channel=f"cimu{k}", allow_broadcast=True)
+                results = _run_serial(sheet, allow_broadcast=True)
+            else:
+                results = _run_can(sheet, channel=f"cimu{k}", allow_broadcast=True)
         except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return sheet, exc
-    with ThreadPoolExecutor(len(RUNS)) as pool:
-        return dict(zip(RUNS, pool.map(one, range(len(RUNS)))))
+            return {"error": f"{type(exc).__name__}: {exc}"}
+        return {"engine": sheet.engine_name, "c_chip": sheet.chip_factory is CFirmwareChip,
+                "results": [dataclasses.asdict(r) for r in results]}
+    got = shared_runs(session_root(tmp_path_factory), "c-imu", {"/".join(run): one for run in RUNS},
+                      at_once=len(RUNS))
+    return {run: got["/".join(run)] for run in RUNS}
 
 
 @pytest.mark.parametrize("transport, sensors", RUNS)
 def test_the_c_firmware_as_a_6_or_9_axis_chip_passes_every_check(transport, sensors, runs):
-    sheet, results = runs[(transport, sensors)]
-    if isinstance(results, Exception):
-        raise results
-    assert sheet.engine_name == "chips" and sheet.chip_factory is CFirmwareChip
+    run = runs[(transport, sensors)]
+    if "error" in run:
+        raise AssertionError(f"{transport}/{sensors}: the conformance run raised {run['error']}")
+    assert run["engine"] == "chips" and run["c_chip"]
+    results = [CheckResult(**r) for r in run["results"]]
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome != "PASS"] == [], report
     ran = {r.number for r in results}

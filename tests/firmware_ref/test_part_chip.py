@@ -137,13 +137,15 @@ PART_RUNS = [("serial", None), ("can", None), ("serial", "no_answer"), ("serial"
 
 
 @pytest.fixture(scope="module")
-def part_runs():
-    """``{(transport, fault): results or the exception raised}``: the runs made at once in threads (each
-    mostly waits: ~11 s of wall for ~0.5 s of CPU; one after another ~45 s), each chip and part its own,
-    each CAN run on a virtual channel of its own."""
-    from concurrent.futures import ThreadPoolExecutor
+def part_runs(tmp_path_factory):
+    """``{(transport, fault): results, or {"error"}}``: the runs made at once in threads (each mostly
+    waits: ~11 s of wall for ~0.5 s of CPU; one after another ~45 s), each chip and part its own, each
+    CAN run on a virtual channel of its own. Made once per test session, whichever workers need them
+    splitting the runs (tests/shared_runs.py): each worker that reached this module made all four before."""
+    import dataclasses
 
     from tests.host.conformance.test_checks import _run_can, _run_serial
+    from tests.shared_runs import session_root, shared_runs
 
     def one(k):
         transport, fault = PART_RUNS[k]
@@ -156,12 +158,15 @@ def part_runs():
                     ls.part.fault(fault)
             fac.bind(sheet)
             if transport == "serial":
-                return _run_serial(sheet, allow_broadcast=True)
-            return _run_can(sheet, channel=f"part{k}", allow_broadcast=True)
+                results = _run_serial(sheet, allow_broadcast=True)
+            else:
+                results = _run_can(sheet, channel=f"part{k}", allow_broadcast=True)
         except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return exc
-    with ThreadPoolExecutor(len(PART_RUNS)) as pool:
-        return dict(zip(PART_RUNS, pool.map(one, range(len(PART_RUNS)))))
+            return {"error": f"{type(exc).__name__}: {exc}"}
+        return [dataclasses.asdict(r) for r in results]
+    got = shared_runs(session_root(tmp_path_factory), "part-chip", {f"{t}/{f}": one for t, f in PART_RUNS},
+                      at_once=len(PART_RUNS))
+    return {(t, f): got[f"{t}/{f}"] for t, f in PART_RUNS}
 
 
 @pytest.mark.parametrize("transport,fault", PART_RUNS)
@@ -169,9 +174,12 @@ def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_
     """`capsheet conformance`'s chip profile over serial and classic CAN: a chip reading a healthy part
     passes every check (the §16 ones among them); a part that stops answering, or fails its self-test,
     is the spec's sensor fault: the sample check sees INVALID while streaming (§8.6)."""
-    results = part_runs[(transport, fault)]
-    if isinstance(results, Exception):
-        raise results
+    from host.conformance.runner import CheckResult
+
+    run = part_runs[(transport, fault)]
+    if isinstance(run, dict):
+        raise AssertionError(f"{transport}/{fault}: the conformance run raised {run['error']}")
+    results = [CheckResult(**r) for r in run]
     report = "\n".join(r.line() for r in results)
     failed = {r.number: r for r in results if r.outcome != "PASS"}
     if fault is None:

@@ -17,6 +17,7 @@ import pytest
 from firmware_ref.qemu import QemuChip, build, missing_tools
 from protocol.framing import StreamDecoder, encode
 from protocol.messages import Announce, Info, provisional_node
+from tests.shared_runs import session_root, shared_runs
 
 WHY = missing_tools()
 pytestmark = pytest.mark.skipif(WHY is not None, reason=f"QEMU conformance: {WHY}")
@@ -50,23 +51,27 @@ SUITES = [(None, None), (None, "accel+gyro"), (None, "accel+gyro+mag"), ("dead_s
 def suites(tmp_path_factory):
     """``{(mutant, sensors): (exit status, stdout, stderr)}``: every run started at once, each its own
     process, build directory and QEMU. A run mostly waits for the emulated chip's heartbeats and
-    silences (~14 s of wall for ~2 s of CPU): one after another they took ~90 s."""
-    procs = {}
-    for mutant, sensors in SUITES:
-        out = tmp_path_factory.mktemp(f"qemu-{mutant or 'healthy'}-{sensors or 'accel'}")
+    silences (~14 s of wall for ~2 s of CPU): one after another they took ~90 s. Made once per test
+    session, whichever workers need them splitting the runs (tests/shared_runs.py): each worker that
+    reached this module made all seven before."""
+    root = session_root(tmp_path_factory)
+
+    def job(mutant, sensors, _k):
+        out = root / f"qemu-{mutant or 'healthy'}-{sensors or 'accel'}"
+        out.mkdir(exist_ok=True)
         cmd = [sys.executable, "-m", "firmware_ref.qemu", "conformance", "--json", "--out", str(out)]
         cmd += (["--mutant", mutant] if mutant else []) + (["--sensors", sensors] if sensors else [])
-        procs[(mutant, sensors)] = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    got = {}
-    for key, p in procs.items():
+        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
-            out, err = p.communicate(timeout=300)
+            stdout, stderr = p.communicate(timeout=300)
         finally:
             if p.poll() is None:
                 p.kill()
                 p.wait(10)
-        got[key] = (p.returncode, out, err)
-    return got
+        return [p.returncode, stdout, stderr]
+    runs = shared_runs(root, "qemu", {f"{m}/{s}": (lambda k, m=m, s=s: job(m, s, k)) for m, s in SUITES},
+                       at_once=len(SUITES))
+    return {(m, s): tuple(runs[f"{m}/{s}"]) for m, s in SUITES}
 
 
 def _suite(suites, mutant=None, sensors=None):

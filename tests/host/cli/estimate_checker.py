@@ -7,6 +7,7 @@ SECONDS passed) prints one JSON line: per sheet, the snapshot counters and the e
 """
 
 import json
+import os
 import struct
 import sys
 import threading
@@ -22,6 +23,10 @@ conf.insert_json5("mode", '"peer"')
 conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0", "tcp/127.0.0.1:7447#exit_on_failure=false"]')
 conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
 conf.insert_json5("scouting/multicast/enabled", "false")
+# ZENOH_CONFIG_OVERRIDE (rmw_zenoh's key=value;... pairs, docs/distribution.md), applied last as capsheet
+# applies it: where the test run's sessions meet (tests/zenoh_meeting.py)
+for item in filter(None, os.environ.get("ZENOH_CONFIG_OVERRIDE", "").split(";")):
+    conf.insert_json5(*(s.strip() for s in item.split("=", 1)))
 session = zenoh.open(conf)
 HDR = "<4sBBHHIHQdd"
 O = struct.calcsize(HDR)

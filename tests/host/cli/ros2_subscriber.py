@@ -11,6 +11,7 @@ tcp/127.0.0.1:7447 as capsheet's default sessions do.
 """
 
 import json
+import os
 import re
 import struct
 import sys
@@ -39,6 +40,10 @@ else:  # docs/distribution.md: without multicast, the machine's sessions meet at
     conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0", "tcp/127.0.0.1:7447#exit_on_failure=false"]')
     conf.insert_json5("connect/endpoints", '["tcp/127.0.0.1:7447"]')
     conf.insert_json5("scouting/multicast/enabled", "false")
+    # ZENOH_CONFIG_OVERRIDE (rmw_zenoh's key=value;... pairs, docs/distribution.md), applied last as capsheet
+    # applies it: where the test run's sessions meet (tests/zenoh_meeting.py)
+    for item in filter(None, os.environ.get("ZENOH_CONFIG_OVERRIDE", "").split(";")):
+        conf.insert_json5(*(s.strip() for s in item.split("=", 1)))
 session = zenoh.open(conf)
 out = {"samples": {}, "keys": {}, "bad": [], "tokens": [], "tokens_gone": [], "attachments": {},
        "diagnostics": []}

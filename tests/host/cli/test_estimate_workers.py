@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+from tests import zenoh_meeting
 from tests.host.cli.test_host import CLI, ENV, popen_host, virtuals, wait_line  # noqa: F401 -- the fixture
 
 pytest.importorskip("zenoh")
@@ -108,8 +109,9 @@ def test_an_unknown_sheet_is_one_line_and_exit_1():
 
 
 def test_no_reachable_router_is_one_line_and_exit_1():
+    # its endpoint alone: the worker's meeting point (applied last) would replace it
     out = subprocess.run(CLI + ["estimate", "--subscribe", "zenoh:tcp/127.0.0.1:1", "--duration", "1"],
-                         capture_output=True, text=True, timeout=60, env=ENV)
+                         capture_output=True, text=True, timeout=60, env=zenoh_meeting.without_meeting(ENV))
     assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
     assert "cannot reach the Zenoh router at tcp/127.0.0.1:1" in out.stderr
 
@@ -201,18 +203,16 @@ def test_a_host_started_again_is_a_restart_for_the_worker_not_lost_snapshots(vir
     import threading
     import time
 
-    import zenoh
+    from host.publish.zenoh_session import open_session
     name = f"rs{abs(hash(str(tmp_path))) % 10**6}"
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"))
     # the worker ends by itself 30 s after the last snapshot (a gap between the runs shorter than that
     # on a loaded machine); once it has published an estimate of every snapshot the hosts published,
     # SIGTERM ends it sooner, as an operator would (what it received is estimated before it leaves)
     worker = _worker("--sheets", name, "--wait", "60", "--idle", "30", "--duration", "200")
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"peer"')
-    conf.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
-    conf.insert_json5("scouting/multicast/interface", '"lo"')
-    session = zenoh.open(conf)
+    # a default session: it meets the worker's where the hosts' and the worker's meet (a session of its
+    # own scouting by multicast met none of them, and the test waited for the worker's idle end)
+    session = open_session(None)
     estimates = [0]
     lock = threading.Lock()
 

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests import zenoh_meeting
 from tests.host.cli.test_host import CLI, ENV, virtuals  # noqa: F401 -- the fixture
 
 pytest.importorskip("zenoh")
@@ -188,7 +189,8 @@ def test_an_endpoint_is_connected_to_without_scouting(virtuals, tmp_path):  # no
         assert sub.stdout.readline().strip() == "ready"
         out = subprocess.run(CLI + ["host", *v.host_cmd, "--rate", "30", "--deadline-ms", "500", "--duration", "3",
                                     "--publish", f"ros2:{locator}", "--sheet-name", sheet, "--live-rate", "5", "-q"],
-                             capture_output=True, text=True, timeout=120, env=dict(ENV, ROS_DOMAIN_ID=str(domain)))
+                             capture_output=True, text=True, timeout=120,  # its endpoint alone (tests/zenoh_meeting.py)
+                             env=dict(zenoh_meeting.without_meeting(ENV), ROS_DOMAIN_ID=str(domain)))
         got, err = sub.communicate(timeout=60)
     finally:
         if sub.poll() is None:

@@ -20,9 +20,12 @@ zenoh = pytest.importorskip("zenoh")
 from host.publish.zenoh_pub import (HEADER, MAX_PAYLOAD_BYTES, decode_estimate, decode_snapshot,  # noqa: E402
                                     encode_estimate, encode_snapshot)
 from host.publish.zenoh_session import open_session  # noqa: E402
+from tests import zenoh_meeting  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[3]
-ENV = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH")}
+#: no Zenoh config of the user's; the worker's meeting point kept (tests/zenoh_meeting.py): the
+#: processes meet this test's own sessions there
+ENV = {k: v for k, v in os.environ.items() if not k.startswith("ZENOH") or k == zenoh_meeting.VAR}
 #: runs a command and prints its peak RSS (kB, Linux) once it has ended: what it allocated, measured
 #: by the kernel, not by the code under test
 MAXRSS = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[1:]); "

@@ -5,10 +5,10 @@ reported as the port's, not as chip violations); and the command line."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -16,8 +16,10 @@ import pytest
 from host.cli import main
 from host.conformance import CHECKS, INFORMATIVE, AuditedCanTransport, Port, run_checks, select, summary, table
 from host.conformance.checks import clauses_covered
+from host.conformance.runner import CheckResult
 from host.transport.ports import MemoryTransport, SerialTransport, TransportError
 from protocol.messages import Assign, ChipState, Config, Start
+from tests.shared_runs import session_root, shared_runs
 from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 
@@ -60,10 +62,12 @@ def _healthy_run(transport: str, k: int, **sheet_kw):
 
 
 @pytest.fixture(scope="module")
-def healthy_runs():
+def healthy_runs(tmp_path_factory):
     """The runs of the healthy chips below, made at once in threads: each mostly waits (silences,
     heartbeats, re-announces: ~10 s of wall for ~0.3 s of CPU), one after another they took ~60 s.
-    ``{(chip, transport, sensors): results or the exception it raised}``."""
+    Made once per test session, whichever workers need them splitting the runs (tests/shared_runs.py):
+    each worker that reached this module made all six before.
+    ``{(chip, transport, sensors): results, or the error the run raised}``."""
     from virtual_sheet.chip import ChipModel
     chips = {"python": ChipModel}
     try:
@@ -76,21 +80,22 @@ def healthy_runs():
             for t in ("serial", "can")}
     jobs.update({("python", t, sensors): dict(transport=t, sensors=sensors) for t, sensors in IMU_RUNS})
 
-    def attempt(item):
-        k, kw = item
+    def attempt(kw, k):
+        kw = dict(kw)
         try:
-            return _healthy_run(kw.pop("transport"), k, **kw)
+            return [dataclasses.asdict(r) for r in _healthy_run(kw.pop("transport"), k, **kw)]
         except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return exc
-    with ThreadPoolExecutor(len(jobs)) as pool:
-        return dict(zip(jobs, pool.map(attempt, enumerate(dict(kw) for kw in jobs.values()))))
+            return {"error": f"{type(exc).__name__}: {exc}"}
+    runs = shared_runs(session_root(tmp_path_factory), "checks-healthy",
+                       {"/".join(key): (lambda k, kw=kw: attempt(kw, k)) for key, kw in jobs.items()}, at_once=len(jobs))
+    return {key: runs["/".join(key)] for key in jobs}
 
 
 def _healthy(runs, key):
     got = runs[key]
-    if isinstance(got, Exception):
-        raise got
-    return got
+    if isinstance(got, dict):
+        raise AssertionError(f"{key}: the conformance run raised {got['error']}")
+    return [CheckResult(**r) for r in got]
 
 
 #: the 6/9-axis runs: (transport, sensors)

@@ -13,10 +13,6 @@
 from __future__ import annotations
 
 import dataclasses
-import fcntl
-import json
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -25,6 +21,7 @@ from host.conformance.runner import CheckResult
 from host.transport.ports import MemoryTransport
 from tests.host.conformance.mutants import (C_MUTANT_EVIDENCE, C_MUTANT_OPTIONS, C_MUTANTS, GATEWAY_MUTANTS, HEALTHY,
                                             IMU_MUTANTS, MUTANTS)
+from tests.shared_runs import session_root, shared_runs
 from virtual_sheet.devices import CanDevice, MemoryDevice
 from virtual_sheet.sheet import VirtualSheet
 
@@ -119,11 +116,12 @@ def _run(sheet, *, allow_broadcast=False, profile="chip", only=None, **dev):
             t.close()
 
 
-#: conformance runs of the mutants made at once (`_shared_runs`). A run mostly waits — for silences,
-#: heartbeats, re-announces: ~7 s of wall for ~0.15 s of CPU, measured per test — so the 44 Python
-#: mutants' runs one after another took ~455 s, the 33 C mutants' ~69 s; in threads, their waits
-#: overlap (64 s and 21 s). Each run has its sheet, its link and (CAN) its own virtual channel, each C
-#: chip its own struct; the verdicts are checked one test per mutant, as before.
+#: conformance runs of the mutants (and of the healthy variants) made at once in each worker that
+#: needs them (`_shared`). A run mostly waits — for silences, heartbeats, re-announces: ~7 s of wall
+#: for ~0.15 s of CPU, measured per test — so the 44 Python mutants' runs one after another took
+#: ~455 s, the 33 C mutants' ~69 s; in threads, their waits overlap (64 s and 21 s in one worker).
+#: Each run has its sheet, its link and (CAN) its own virtual channel, each C chip its own struct;
+#: the verdicts are checked one test per mutant, as before.
 AT_ONCE = 8
 
 
@@ -179,34 +177,25 @@ def _c_mutant_jobs() -> dict:
     return {name: (lambda k, name=name: job(name, k)) for name in C_MUTANTS}
 
 
-def _shared_runs(tmp_path_factory, tag: str, jobs) -> dict:
-    """``jobs()``' runs, made once per test session `AT_ONCE` at a time; under pytest-xdist by
-    whichever worker needs them first, under a file lock in the session's shared temporary
-    directory (the others read them there)."""
-    base = tmp_path_factory.getbasetemp()
-    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
-    done = root / f"{tag}-runs.json"
-    with open(root / f"{tag}-runs.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if not done.exists():
-            todo = jobs()
-            with ThreadPoolExecutor(AT_ONCE) as pool:
-                got = dict(zip(todo, pool.map(_attempt, todo.values(), range(len(todo)))))
-            done.write_text(json.dumps(got))
-    return json.loads(done.read_text())
+def _shared(tmp_path_factory, tag: str, jobs) -> dict:
+    """``jobs()``' runs, made once per test session, `AT_ONCE` at a time in each worker that needs them
+    (tests/shared_runs.py: the workers split the runs; none waits idle for another's)."""
+    todo = jobs()
+    return shared_runs(session_root(tmp_path_factory), tag,
+                       {key: (lambda k, job=job: _attempt(job, k)) for key, job in todo.items()}, at_once=AT_ONCE)
 
 
 @pytest.fixture(scope="session")
 def python_mutant_runs(tmp_path_factory) -> dict:
-    """Every Python chip, IMU and gateway mutant's run (`_shared_runs`)."""
-    return _shared_runs(tmp_path_factory, "python-mutant", _python_mutant_jobs)
+    """Every Python chip, IMU and gateway mutant's run (`_shared`)."""
+    return _shared(tmp_path_factory, "python-mutant", _python_mutant_jobs)
 
 
 @pytest.fixture(scope="session")
 def c_mutant_runs(tmp_path_factory) -> dict:
-    """Every C firmware mutant's run on its twin's checks (`_shared_runs`)."""
+    """Every C firmware mutant's run on its twin's checks (`_shared`)."""
     pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
-    return _shared_runs(tmp_path_factory, "c-mutant", _c_mutant_jobs)
+    return _shared(tmp_path_factory, "c-mutant", _c_mutant_jobs)
 
 
 def _results_of(runs: dict, key: str) -> list[CheckResult]:
@@ -283,12 +272,40 @@ def test_a_gateway_mutant_fails_its_check(name, python_mutant_runs):
     assert not [r for r in results if r.outcome == "LOST"], report
 
 
+def _healthy_jobs() -> dict:
+    """``{name: run(k)}``: every healthy variant's run (all on serial: a memory link of its own), and a
+    packing gateway's run of the gateway profile as well (``{"chip": results, "gateway": results}``)."""
+    def job(name, k):
+        sheet_kw, dev_kw = HEALTHY[name]
+        sheet_kw = dict(sheet_kw)
+        lattice = sheet_kw.pop("lattice", "2x2")
+        out = {"chip": _run(VirtualSheet("flat", lattice, **sheet_kw), allow_broadcast=True, **dev_kw)}
+        if dev_kw.get("packed"):
+            out["gateway"] = _run(VirtualSheet("flat", lattice, **sheet_kw), profile="gateway", **dev_kw)
+        return out
+
+    def attempt(name, k):
+        try:
+            return {part: [dataclasses.asdict(r) for r in rs] for part, rs in job(name, k).items()}
+        except Exception as exc:  # noqa: BLE001 - reported by the variant's own test
+            return {"error": f"{type(exc).__name__}: {exc}"}
+    return {name: (lambda k, name=name: attempt(name, k)) for name in HEALTHY}
+
+
+@pytest.fixture(scope="session")
+def healthy_runs(tmp_path_factory) -> dict:
+    """Every healthy variant's runs (`_shared`): each ~10-25 s of waits, one after another ~150 s."""
+    return shared_runs(session_root(tmp_path_factory), "healthy", _healthy_jobs(), at_once=AT_ONCE)
+
+
 @pytest.mark.parametrize("name", sorted(HEALTHY))
-def test_a_healthy_variant_passes_every_check(name):
+def test_a_healthy_variant_passes_every_check(name, healthy_runs):
     sheet_kw, dev_kw = HEALTHY[name]
     sheet_kw = dict(sheet_kw)
-    lattice = sheet_kw.pop("lattice", "2x2")
-    results = _run(VirtualSheet("flat", lattice, **sheet_kw), allow_broadcast=True, **dev_kw)
+    run = healthy_runs[name]
+    if "error" in run:
+        raise AssertionError(f"{name}: the conformance run raised {run['error']}")
+    results = [CheckResult(**r) for r in run["chip"]]
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome not in ("PASS", "SKIP")] == [], report
     skipped = {r.number for r in results if r.outcome == "SKIP"}
@@ -300,7 +317,7 @@ def test_a_healthy_variant_passes_every_check(name):
     # the checks of the samples (24-27) read them from whatever the gateway packs: SNAPSHOT or SNAPSHOT_IMU
     assert {24, 25, 26} <= {r.number for r in results if r.outcome == "PASS"}, report
     if dev_kw.get("packed"):  # and the gateway itself passes its profile
-        results = _run(VirtualSheet("flat", lattice, **sheet_kw), profile="gateway", **dev_kw)
+        results = [CheckResult(**r) for r in run["gateway"]]
         report = "\n".join(r.line() for r in results)
         assert [r for r in results if r.outcome not in ("PASS", "SKIP")] == [], report
         # 38 packs SAMPLEs, 46 IMU records (§16.5): a gateway does one of them

@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 
 from tests.host.record.crafted import argv, corpus
+from tests.shared_runs import session_root, shared_once
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[2]
@@ -35,17 +36,26 @@ def _drive(commands: list, folder: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def results(tmp_path_factory, pty_recording):
-    folder = tmp_path_factory.mktemp("crafted")
-    files = corpus(folder / "in")
-    (folder / "out").mkdir()
-    commands = []
-    for name, (path, kind) in files.items():
-        for a in argv(path, kind, folder / "out"):
-            commands.append([name, a])
-    # the control: a real session's recording (tests/host/conftest.py), raw input and all
-    commands += [["good_control", a] for a in argv(pty_recording, "recording", folder / "out")]
-    return files, _drive(commands, folder)
+def results(tmp_path_factory, request):
+    """``({file: kind}, {(file, command): row})``: every command on every crafted file, made once per
+    test session (tests/shared_runs.py): each worker that reached this module ran all of them before
+    (~20 s of CPU, 80 s on a busy machine), and made its own real recording for the control."""
+    def make():
+        folder = tmp_path_factory.mktemp("crafted")
+        files = corpus(folder / "in")
+        (folder / "out").mkdir()
+        commands = []
+        for name, (path, kind) in files.items():
+            for a in argv(path, kind, folder / "out"):
+                commands.append([name, a])
+        # the control: a real session's recording (tests/host/conftest.py), raw input and all
+        recording = request.getfixturevalue("pty_recording")
+        commands += [["good_control", a] for a in argv(recording, "recording", folder / "out")]
+        return {"files": {name: kind for name, (_path, kind) in files.items()},
+                "rows": list(_drive(commands, folder).values())}
+    doc = shared_once(session_root(tmp_path_factory), "untrusted-files", make)
+    files = {name: (None, kind) for name, kind in doc["files"].items()}
+    return files, {(r["name"], r["argv"][0]): r for r in doc["rows"]}
 
 
 def test_every_crafted_file_is_refused_in_one_line_within_60_s_and_600_mb(results):
