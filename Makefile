@@ -23,7 +23,7 @@ demo: $(STAMP)
 	$(VENV)/bin/capsheet demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q -n 3 --dist loadgroup --durations=25
+	$(PY) -m pytest -q -n 2 --dist loadgroup --durations=25
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
