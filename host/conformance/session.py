@@ -570,7 +570,10 @@ class Session:
         n = 4 if self.profile == "gateway" else 3
         keep = (Announce, Info, GatewayInfo)
         ans = self.request(Reset(self.cur), n, keep=keep)
-        if not ans:  # it moved (a re-announce we did not hear: lost on the port): find it, once
+        if not (ans and isinstance(ans[0], Ack)):
+            # it moved: a re-announce we did not hear (lost on the port), or a chip in BOOT took its
+            # next provisional id (every 1 s, §3.2) before the RESET reached it — then what came is
+            # that re-announce alone, and the RESET went to the old id: find it, once
             self.relocate()
             ans = self.request(Reset(self.cur), n, keep=keep)
         require(len(ans) >= 3 and isinstance(ans[0], Ack) and ans[0].command == MsgType.RESET and isinstance(ans[1], Announce)
