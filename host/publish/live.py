@@ -523,14 +523,17 @@ class SubprotocolRelay:
             up = socket.create_connection(self.upstream, timeout=10.0)
             with self._lock:
                 self._open.add(up)
-            up.sendall(head + rest)
+            up.sendall(head)
+            early = rest  # the client's first frames, if they came with its request: read by `_pump`
             resp, rest = _read_head(up)
             if answer is not None:
                 self.translated += 1
-            client.sendall(rewrite_response(resp, answer) + rest)
+            client.sendall(rewrite_response(resp, answer))
             client.settimeout(None)
             up.settimeout(None)
-            self._pump(client, up)
+            # the server's first frames (its serverInfo and advertise) often come in the same read as
+            # its HTTP answer: they go through `_pump` too, so that the advertise is seen
+            self._pump(client, up, {client: early, up: rest})
         except (OSError, ValueError) as exc:
             if not self._stop.is_set():
                 log.info("live view connection ended: %s", exc)
@@ -544,13 +547,30 @@ class SubprotocolRelay:
                     except OSError:
                         pass
 
-    def _pump(self, a: socket.socket, b: socket.socket) -> None:
+    def _pump(self, a: socket.socket, b: socket.socket, first: dict | None = None) -> None:
         """Bytes both ways (``a`` the client, ``b`` the server) until either side closes (or `stop`);
         a subscribe the server could not place is sent again (`host.publish.ws_frames`)."""
         other = {a: b, b: a}
         streams = {a: FrameStream(), b: FrameStream()}
         repair = SubscribeRepair()
+
+        def relay(s, data: bytes) -> None:
+            now = time.monotonic()
+            out = []
+            for text, raw in streams[s].feed(data):
+                if text is not None:
+                    if s is a:
+                        repair.from_client(text)
+                    elif not repair.from_server(text, now):
+                        continue
+                out.append(raw)
+            if out:
+                other[s].sendall(out[0] if len(out) == 1 else b"".join(out))
+
         try:
+            for s, data in (first or {}).items():  # bytes read with the handshake (``first[socket]``)
+                if data:
+                    relay(s, data)
             with selectors.DefaultSelector() as sel:
                 sel.register(a, selectors.EVENT_READ)
                 sel.register(b, selectors.EVENT_READ)
@@ -567,17 +587,7 @@ class SubprotocolRelay:
                             continue
                         if not data:
                             return
-                        now = time.monotonic()
-                        out = []
-                        for text, raw in streams[s].feed(data):
-                            if text is not None:
-                                if s is a:
-                                    repair.from_client(text)
-                                elif not repair.from_server(text, now):
-                                    continue
-                            out.append(raw)
-                        if out:
-                            other[s].sendall(out[0] if len(out) == 1 else b"".join(out))
+                        relay(s, data)
                     if repair.due and streams[a].at_boundary:  # never inside a frame of the client's
                         again = repair.take_due(time.monotonic())
                         if again:
