@@ -209,6 +209,26 @@ def _failed(results):
     return {r.number for r in results if r.outcome == "FAIL"}
 
 
+#: the checks that time a node's own timer against the spec's 5 % (re-announce, heartbeats, a gateway's
+#: STATUS and SYNC). Eight runs share this process's threads: beside two busy loops a device thread
+#: was once starved for seconds and a gateway mutant failed check 36 besides its own (1 STATUS in 5.5 s).
+TIMED = {8, 11, 36, 37}
+
+
+def _verdict(runs: dict, key: str, expected: set, job) -> list[CheckResult]:
+    """``key``'s results; when it failed a timed check beyond ``expected`` (and nothing else beyond),
+    its run is made once more, alone in this thread, and that run is the verdict: a starved thread
+    is the machine's load, not the mutant's fault — a mutant that breaks a timer fails it both times."""
+    results = _results_of(runs, key)
+    extra = _failed(results) - expected
+    if extra and extra <= TIMED:
+        again = _attempt(job, 9999)
+        if "error" in again:
+            raise AssertionError(f"{key}: the conformance run raised {again['error']}")
+        results = [CheckResult(**r) for r in again["results"]]
+    return results
+
+
 def _clause_named(results, number):
     """The failure of ``number`` names a clause the check cites (its own, or §6.2 for a node's CRC)."""
     r = next(x for x in results if x.number == number)
@@ -218,7 +238,7 @@ def _clause_named(results, number):
 
 @pytest.mark.parametrize("name", sorted(MUTANTS))
 def test_a_mutant_fails_exactly_its_checks(name, python_mutant_runs):
-    results = _results_of(python_mutant_runs, f"chip:{name}")
+    results = _verdict(python_mutant_runs, f"chip:{name}", EXPECTED[name], _python_mutant_jobs()[f"chip:{name}"])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report  # a chip fault is never blamed on the port
@@ -227,7 +247,7 @@ def test_a_mutant_fails_exactly_its_checks(name, python_mutant_runs):
 
 @pytest.mark.parametrize("name", sorted(IMU_MUTANTS))
 def test_an_imu_mutant_fails_exactly_its_checks(name, python_mutant_runs):
-    results = _results_of(python_mutant_runs, f"imu:{name}")
+    results = _verdict(python_mutant_runs, f"imu:{name}", IMU_EXPECTED[name], _python_mutant_jobs()[f"imu:{name}"])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == IMU_EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report
@@ -258,7 +278,7 @@ def test_every_chip_check_is_failed_by_some_c_mutant():
 @pytest.mark.parametrize("name", sorted(C_MUTANTS))
 def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name, c_mutant_runs):
     expected = {**EXPECTED, **IMU_EXPECTED}[C_MUTANTS[name]]
-    results = _results_of(c_mutant_runs, name)
+    results = _verdict(c_mutant_runs, name, expected, _c_mutant_jobs()[name])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == expected, report
     assert all(_clause_named(results, n) for n in expected), report
@@ -266,7 +286,8 @@ def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name, c_mutant_runs):
 
 @pytest.mark.parametrize("name", sorted(GATEWAY_MUTANTS))
 def test_a_gateway_mutant_fails_its_check(name, python_mutant_runs):
-    results = _results_of(python_mutant_runs, f"gateway:{name}")
+    results = _verdict(python_mutant_runs, f"gateway:{name}", GATEWAY_EXPECTED[name],
+                       _python_mutant_jobs()[f"gateway:{name}"])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == GATEWAY_EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report
