@@ -46,7 +46,8 @@ ffibuilder.cdef(CDEF)
 ffibuilder.set_source(
     "host.analysis._yaw_kernel",
     '#include "yaw_eval.h"\n',
-    sources=[rel_source(HERE / "yaw_eval.c"), rel_source(HERE / "heights.c")],
+    sources=[rel_source(HERE / "yaw_eval.c"), rel_source(HERE / "heights.c"),
+             rel_source(HERE / "ldl_factor.c")],
     include_dirs=[rel_source(HERE)],
     # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
     extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],

@@ -150,6 +150,19 @@ void capsheet_ldl_solve_d(int64_t n, int64_t n_super, const int32_t *sn_col, con
                           const int32_t *rows, const int64_t *sn_diag, const int64_t *sn_below,
                           const double *val, const double *diag, double *x, double *work);
 
+/* Factorise the SPD matrix A (n x n, CSC with both triangles or the lower one: entries above the
+ * diagonal are skipped) as L D Lᵀ on supernodes known to hold L's pattern (capsheet_ldl_solve's
+ * layout, built from an earlier factorisation of a matrix of the same pattern): lval (n_val
+ * doubles, L's values in that layout, the unit diagonal as 0), diag (n, D) and val32 (n_val, lval
+ * in float, capsheet_ldl_solve's). iwork: 2 n + 3 n_super int32; work: the largest count of rows
+ * below a supernode doubles. Returns 0, 1 when a pivot is not positive (not SPD: the caller
+ * factorises otherwise), 2 when an entry falls outside the pattern (other supernodes). */
+int32_t capsheet_ldl_factor(int64_t n, const int32_t *a_ptr, const int32_t *a_idx,
+                            const double *a_val, int64_t n_super, const int32_t *sn_col,
+                            const int64_t *sn_row, const int32_t *rows, const int64_t *sn_diag,
+                            const int64_t *sn_below, double *lval, double *diag, float *val32,
+                            int64_t n_val, int32_t *iwork, double *work);
+
 /* capsheet_ldl_fill into double values (capsheet_ldl_solve_d's). */
 void capsheet_ldl_fill_d(int64_t n_super, const int32_t *l_ptr, const int32_t *l_idx,
                          const double *l_val, const int32_t *sn_col, const int64_t *sn_row,

@@ -45,10 +45,75 @@ def factorise(st: "Structure", A, sweeps: bool = True):
         if sym is None:
             sym = st.derived["cholmod_sym"] = cm.analyze(A, mode="supernodal", ordering_method="metis")
         return ("cholmod", sym.cholesky(A))
+    kern = KERNEL_FACTOR and kernel.USE_KERNEL and sweeps and st is not None
+    sym = st.derived.get("ldl_symbolic") if kern else None  # L's supernodes, made once
+    if sym is not None:
+        got = _kernel_factor(A, sym)
+        if got is not None:
+            return got
     lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
     # for a factorisation solved only with many at once (the uncertainty's)
-    return ("splu", lu, _triangular(lu, st) if kernel.USE_KERNEL and sweeps else None)
+    tri = _triangular(lu, st) if kernel.USE_KERNEL and sweeps else None
+    if kern and sym is None and tri is not None:
+        # the structure's first factorisation: SuperLU's gave L's pattern (its supernodes, kept
+        # on ``st``); the values are the kernel's, as every later one's, so that an estimate
+        # does not depend on whether its structure was factorised before
+        got = _kernel_factor(A, tri[0][2])
+        if got is not None:
+            return got
+    return ("splu", lu, tri)
+
+
+#: Whether `factorise` makes the factorisations after a structure's first in the kernel
+#: (``capsheet_ldl_factor``: L D Lᵀ on the supernodes of SuperLU's first factor, the same
+#: numbers to rounding) instead of SuperLU's LU. At 64x64 a factorisation was ~70 ms in SuperLU,
+#: and a moving sheet needs one every ~40 snapshots (docs/estimator.md §6).
+KERNEL_FACTOR = True
+
+
+class KernelLDL:
+    """A factorisation made by the kernel (`_kernel_factor`): L D Lᵀ in double on the
+    supernodes of ``sym``. `solve` takes one right-hand side (n,) or several (n, k), as SuperLU's
+    factorisation object does (`solve`'s callers with many columns: `estimate_batch`)."""
+
+    def __init__(self, lval: np.ndarray, diag: np.ndarray, sym: dict):
+        self.lval, self.diag, self.sym = lval, diag, sym
+        self.shape = (diag.size, diag.size)
+
+    def solve(self, b: np.ndarray) -> np.ndarray:
+        b = np.asarray(b, dtype=np.float64)
+        cols = b.reshape(b.shape[0], -1).T.copy()  # (k, n), each solved in place
+        work = np.empty(self.sym["work_size"])
+        fb = _kffi.from_buffer
+        args = (self.sym["n_super"], *self.sym["c_args"][:5], fb("double[]", self.lval),
+                fb("double[]", self.diag))
+        for x in cols:
+            _klib.capsheet_ldl_solve_d(x.size, *args, fb("double[]", x), fb("double[]", work))
+        return cols.T.reshape(b.shape)
+
+
+def _kernel_factor(A, sym: dict):
+    """``("splu", KernelLDL, sweeps)`` for the SPD matrix ``A`` (CSC, the structure's pattern)
+    factorised in the kernel on the supernodes ``sym`` (`_ldl_symbolic`), or None when it is
+    not positive definite or an entry falls outside the supernodes' pattern (then SuperLU)."""
+    n = A.shape[0]
+    ns, nval = sym["n_super"], sym["n_val"]
+    lval, diag = np.empty(max(nval, 1)), np.empty(max(n, 1))
+    val = np.empty(max(nval, 1), np.float32)
+    fb = _kffi.from_buffer
+    status = _klib.capsheet_ldl_factor(
+        n, fb("int32_t[]", np.ascontiguousarray(A.indptr, np.int32)),
+        fb("int32_t[]", np.ascontiguousarray(A.indices, np.int32)),
+        fb("double[]", np.ascontiguousarray(A.data, np.float64)), ns, *sym["c_args"][:5],
+        fb("double[]", lval), fb("double[]", diag), fb("float[]", val), nval,
+        fb("int32_t[]", np.empty(2 * n + 3 * ns + 1, np.int32)),
+        fb("double[]", np.empty(sym["work_size"])))
+    if status != 0:
+        return None
+    diag = diag[:n]
+    ptrs = (ns, *sym["c_args"][:5], fb("float[]", val), fb("double[]", diag))
+    return ("splu", KernelLDL(lval, diag, sym), ((val, diag, sym), ptrs))
 
 
 def _triangular(lu, st=None):

@@ -424,6 +424,10 @@ class YawProblem:
     def factor(self, blocks, mu):
         """Factorise the Gauss-Newton matrix ``JᵀJ + diag(λ) + μ I`` (permuted, fixed pattern)
         of one snapshot (``blocks`` from `evaluate` without a batch axis)."""
+        return factorise(self.st, self.matrix(blocks, mu))
+
+    def matrix(self, blocks, mu=0.0):
+        """The Gauss-Newton matrix `factor` factorises (CSC, the structure's ordering)."""
         st = self.st
         t = blocks[0]
         if t.ndim == 3:  # eq6: (U, 2, 4)
@@ -440,8 +444,7 @@ class YawProblem:
             data += np.bincount(sl, weights=wt, minlength=st.nnz + 1)
         data = data[:st.nnz]
         data[st.diag_slot] += self.lam + mu
-        A = sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
-        return factorise(st, A)
+        return sp.csc_matrix((data, st.csc_indices, st.csc_indptr), shape=(st.n_var, st.n_var))
 
     def step(self, lu, grad):
         """The (chord) Gauss-Newton step ``−A⁻¹ grad``, row-wise for a batch (B, nv)."""
