@@ -9,12 +9,20 @@
 #include <math.h>
 #include <stddef.h>
 
+/* ldl_solve_d_nc is compiled into each caller with its count of columns known (a loop over one
+ * column at run time cost a quarter of a solve of the 64x64 sheet's Laplacian) */
+#if defined(__GNUC__)
+#define INLINE_ALWAYS inline __attribute__((always_inline))
+#else
+#define INLINE_ALWAYS inline
+#endif
+
 /* capsheet_ldl_solve's sweeps with double values (see yaw_eval.h) on nc columns at once, stored
  * interleaved (x[j * nc + c]): the factor is read once for all of them. Per supernode: forward,
  * the unit lower diagonal block (column axpys), then the rows below; backward, the rows below
  * (dot products), then the diagonal block. A one-column supernode (most of a grid Laplacian's)
  * updates x in place, without the gather. */
-static void ldl_solve_d_nc(int64_t n, int64_t nc, int64_t n_super, const int32_t *sn_col,
+static INLINE_ALWAYS void ldl_solve_d_nc(int64_t n, int64_t nc, int64_t n_super, const int32_t *sn_col,
                            const int64_t *sn_row, const int32_t *rows, const int64_t *sn_diag,
                            const int64_t *sn_below, const double *val, const double *diag,
                            double *x, double *work)
@@ -142,8 +150,15 @@ void capsheet_lap_solve(const capsheet_lap_t *lap, int64_t ncols, double *b, dou
     for (j = 0; j < n; ++j)
         for (c = 0; c < ncols; ++c)
             t[lap->pos[j] * ncols + c] = b[j * ncols + c];
-    ldl_solve_d_nc(n, ncols, lap->n_super, lap->sn_col, lap->sn_row, lap->rows, lap->sn_diag,
-                   lap->sn_below, lap->val, lap->diag, t, ldl_work);
+    if (ncols == 1)  /* one column (the heights' solves): the loops over columns compiled away */
+        ldl_solve_d_nc(n, 1, lap->n_super, lap->sn_col, lap->sn_row, lap->rows, lap->sn_diag,
+                       lap->sn_below, lap->val, lap->diag, t, ldl_work);
+    else if (ncols == 3)  /* the joints' three coordinates */
+        ldl_solve_d_nc(n, 3, lap->n_super, lap->sn_col, lap->sn_row, lap->rows, lap->sn_diag,
+                       lap->sn_below, lap->val, lap->diag, t, ldl_work);
+    else
+        ldl_solve_d_nc(n, ncols, lap->n_super, lap->sn_col, lap->sn_row, lap->rows,
+                       lap->sn_diag, lap->sn_below, lap->val, lap->diag, t, ldl_work);
     for (j = 0; j < n; ++j)
         for (c = 0; c < ncols; ++c)
             b[j * ncols + c] = t[lap->pos[j] * ncols + c];
