@@ -363,10 +363,17 @@ def solve_snapshot(snap: Snapshot, st, L: float, opts: Options, warm: WarmStart,
     start, lu = warm.start(st, target)
     _, prior_w, bend_w, tol = noise_and_priors(opts.prior, st, rr, snap.norm_g, snap.valid,
                                                rest_yaw is not None)
+    if lu is not None and warm.solution.stale_run >= solver.STALE_RUN:
+        lu = None  # a stale factorisation (a moving sheet's): a new one before the first step
     gamma, iters, n_fact, lu, prob, contraction = solve_global(
         st, alpha, beta, start.copy(), target, prior_w, bend_w, lu, tol, trig,
         warm.chain(lu), warm.link_cs(start))
-    solution = Solution(st, lu, prob, gamma, contraction)
+    base, run = None, 0
+    if n_fact == 0 and lu is not None:  # solved wholly on the warm start's factorisation
+        base = warm.solution.base_steps
+        base = int(iters) if base is None else base
+        run = warm.solution.stale_run + 1 if iters >= base + solver.STALE_STEPS else 0
+    solution = Solution(st, lu, prob, gamma, contraction, base, run)
     t2 = time.perf_counter()
     kept = prob.__dict__.get("_cs") if trig is not None else None  # the end point's cos, sin
     cs = kept[1] if kept is not None and np.array_equal(kept[0], gamma) else None

@@ -31,6 +31,11 @@ class Solution(NamedTuple):
     #: how ``factorisation``'s chord steps contracted (`solver.Contraction`), or None: what lets
     #: the next snapshot's solve stop after one step
     contraction: object | None = None
+    #: the chord steps of the first snapshot solved wholly on ``factorisation`` (None: none yet)
+    base_steps: int | None = None
+    #: the snapshots in a row on it that took `solver.STALE_STEPS` more than ``base_steps``:
+    #: at `solver.STALE_RUN` the next snapshot factorises afresh before its first step
+    stale_run: int = 0
 
 
 @dataclass(frozen=True, eq=False)

@@ -12,8 +12,8 @@ from .structure import Structure
 from .yawproblem import YawProblem
 
 __all__ = ["YAW_TOL_RAD", "YAW_TOL_NOISE", "MAX_ITER", "REFACTOR_RATIO", "REFACTOR_PATIENCE",
-           "REFACTOR_FAR", "REFACTOR_GROWTH", "CHAIN_SAFETY",
-           "CHAIN_REMEASURE", "Contraction", "solve_global", "step_converged", "SLOW_CAP",
+           "REFACTOR_FAR", "REFACTOR_GROWTH", "CHAIN_SAFETY", "CHAIN_REMEASURE", "STALE_STEPS",
+           "STALE_RUN", "Contraction", "solve_global", "step_converged", "SLOW_CAP",
            "chord_in_kernel", "ANDERSON_COS", "anderson", "BATCH_MAX_ITER", "BATCH_REFACTOR",
            "solve_global_batch"]
 
@@ -54,6 +54,19 @@ REFACTOR_GROWTH = 1.25
 CHAIN_SAFETY = 4.0
 #: ... and the chain measures the contraction afresh (two steps) after this many snapshots on it
 CHAIN_REMEASURE = 4
+#: A stream's factorisation is stale when `STALE_RUN` snapshots in a row on it each took at least
+#: this many chord steps more than the first snapshot solved wholly on it
+#: (`result.Solution.base_steps`); the next snapshot then factorises before its first step
+#: (`pipeline.solve_snapshot`). A moving sheet's Gauss-Newton matrix moves away from a kept
+#: factorisation snapshot by snapshot: on the rising bump at 145 Hz (64x64) the warm solves
+#: took 2, then 3, then 5 chord steps over ~40 snapshots until a slow step refactorised in the
+#: middle of a solve; refactorised at the start, the snapshots after it stop after one step
+#: (the chain's contraction, `CHAIN_SAFETY`). Relative to the factorisation's own first solve,
+#: not a count of steps: a noisy sheet's solves take 4-5 steps on a fresh factorisation (its
+#: curvature's, which no factorisation removes) and a fixed count refactorised every snapshot.
+STALE_STEPS = 2
+#: ... in this many snapshots in a row (one slow snapshot is a burst of noise)
+STALE_RUN = 2
 
 
 class Contraction(NamedTuple):
