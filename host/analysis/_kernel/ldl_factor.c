@@ -14,6 +14,16 @@
 #include <math.h>
 #include <stddef.h>
 
+/* The factorisation's loops are axpys over rows (no sums reordered): compiled for AVX2 as well
+ * where the compiler and the loader can pick a clone at run time (x86-64, GCC or Clang, ELF), the
+ * same arithmetic in wider lanes (no FMA: -ffp-contract=off holds for every clone). */
+#if defined(__x86_64__) && defined(__GNUC__) && defined(__ELF__) && !defined(CAPSHEET_NO_CLONES)
+#define FACTOR_CLONES __attribute__((target_clones("avx2", "default")))
+#else
+#define FACTOR_CLONES
+#endif
+
+FACTOR_CLONES
 int32_t capsheet_ldl_factor(int64_t n, const int32_t *a_ptr, const int32_t *a_idx,
                             const double *a_val, int64_t n_super, const int32_t *sn_col,
                             const int64_t *sn_row, const int32_t *rows, const int64_t *sn_diag,
