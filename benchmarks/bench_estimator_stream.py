@@ -26,12 +26,14 @@ far the cold estimates themselves stopped from that minimiser (a cold solve from
 can stop further from it than a warm one: on the ``noisy`` stream one cold estimate in twelve
 stopped 0.07 % of the side short, where the warm chain's was 0.0001 % from it).
 With ``--process`` also the estimator process (`host.workers.estimate_worker.EstimatorProcess`)
-fed the live stream as fast as it answers: its own seconds per estimate and snapshots per second.
+fed a stream (``--process-stream``, default ``live``; ``moving`` is the sheet a live host sees
+move) as fast as it answers: its own seconds per estimate and snapshots per second.
 
 Load matters on a shared machine: the JSON carries ``os.getloadavg()`` at start and end.
 
     .venv/bin/python benchmarks/bench_estimator_stream.py                   # 64x64, all streams
     .venv/bin/python benchmarks/bench_estimator_stream.py --process         # and the process
+    .venv/bin/python benchmarks/bench_estimator_stream.py --process --process-stream moving
     .venv/bin/python benchmarks/bench_estimator_stream.py --lattice 32 --snapshots 60 --streams live
 """
 
@@ -149,14 +151,14 @@ def run_stream(kind: str, n: int, count: int, repeats: int, seed: int, check_eve
     }
 
 
-def run_process(n: int, count: int, seed: int) -> dict:
-    """The estimator process fed the live stream as fast as it answers (at most its
+def run_process(n: int, count: int, seed: int, kind: str = "live") -> dict:
+    """The estimator process fed stream ``kind`` as fast as it answers (at most its
     ``max_in_flight`` outstanding)."""
     from types import SimpleNamespace
 
     from host.workers.estimate_worker import EstimatorProcess
 
-    snaps = stream("live", n, count, seed)
+    snaps = stream(kind, n, count + 5, seed)
     valid = np.ones(snaps[0].shape[0], bool)
     proc = EstimatorProcess(n, n, L)
     try:
@@ -171,16 +173,17 @@ def run_process(n: int, count: int, seed: int) -> dict:
         t0 = time.perf_counter()
         while len(got) < count and time.monotonic() < t_end:
             while proc.free and k < count:
-                proc.submit(SimpleNamespace(readings=snaps[k % len(snaps)], valid=valid, counter=k))
+                proc.submit(SimpleNamespace(readings=snaps[5 + k], valid=valid, counter=k))
                 k += 1
             got += proc.results(1.0)
         wall = time.perf_counter() - t0
     finally:
         proc.close()
     secs = np.array([e.seconds for e in got])
-    return {"lattice": f"{n}x{n}", "stream": "live", "estimates": len(got),
+    return {"lattice": f"{n}x{n}", "stream": kind, "estimates": len(got),
             "failed": sum(bool(e.error) for e in got),
             "child_ms_per_estimate_median": round(1e3 * float(np.median(secs)), 3),
+            "child_ms_per_estimate_mean": round(1e3 * float(np.mean(secs)), 3),
             "child_ms_per_estimate_p90": round(1e3 * float(np.percentile(secs, 90)), 3),
             "snapshots_per_s": round(len(got) / wall, 1),
             "mean_iterations": round(float(np.mean([e.iterations for e in got])), 3)}
@@ -195,7 +198,9 @@ def main(argv=None) -> int:
                     help=f"comma-separated, among {', '.join(STREAMS)} (default all)")
     ap.add_argument("--check-every", type=int, default=12,
                     help="compare every Nth estimate with a cold one and the minimiser (default 12)")
-    ap.add_argument("--process", action="store_true", help="also time the estimator process on the live stream")
+    ap.add_argument("--process", action="store_true", help="also time the estimator process on a stream")
+    ap.add_argument("--process-stream", default="live", choices=STREAMS,
+                    help="the stream the estimator process is fed (default live)")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
     if args.lattice < 2:
@@ -216,7 +221,8 @@ def main(argv=None) -> int:
     if args.lattice == 64:
         out["goal_ms_per_snapshot_quiet"] = GOAL_MS_64
     if args.process:
-        out["process"] = run_process(args.lattice, max(args.snapshots, 100), args.seed)
+        out["process"] = run_process(args.lattice, max(args.snapshots, 100), args.seed,
+                                     args.process_stream)
     out["loadavg_end"] = [round(v, 2) for v in os.getloadavg()]
     print(json.dumps(out, indent=2))
     return 0
