@@ -4,13 +4,14 @@ the kernel's supernodal triangular sweeps of a SuperLU factorisation."""
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 import host.analysis.estimator.kernel as kernel  # the switch, read at call time
 from .kernel import ffi as _kffi, lib as _klib
 
 __all__ = ["LINEAR_SOLVER", "cholmod_module", "backend", "factorise", "solve", "laplacian_kernel",
-           "lap_solve"]
+           "lap_solve", "KERNEL_FACTOR", "KernelLDL", "structural_symbolic"]
 
 #: Sparse factorisation of the yaw problem: "splu" (scipy's SuperLU, always there; the default:
 #: benchmarks/bench_estimator.py found no consistent gain from CHOLMOD on warm runs, -17 % to
@@ -45,24 +46,41 @@ def factorise(st: "Structure", A, sweeps: bool = True):
         if sym is None:
             sym = st.derived["cholmod_sym"] = cm.analyze(A, mode="supernodal", ordering_method="metis")
         return ("cholmod", sym.cholesky(A))
-    kern = KERNEL_FACTOR and kernel.USE_KERNEL and sweeps and st is not None
-    sym = st.derived.get("ldl_symbolic") if kern else None  # L's supernodes, made once
-    if sym is not None:
-        got = _kernel_factor(A, sym)
+    if KERNEL_FACTOR and kernel.USE_KERNEL and sweeps and st is not None:
+        sym = structural_symbolic(st)
+        got = None if sym is None else _kernel_factor(A, sym)
         if got is not None:
             return got
     lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
     # the kernel's sweeps serve one right-hand side at a time (the chord steps); ``sweeps=False``
     # for a factorisation solved only with many at once (the uncertainty's)
-    tri = _triangular(lu, st) if kernel.USE_KERNEL and sweeps else None
-    if kern and sym is None and tri is not None:
-        # the structure's first factorisation: SuperLU's gave L's pattern (its supernodes, kept
-        # on ``st``); the values are the kernel's, as every later one's, so that an estimate
-        # does not depend on whether its structure was factorised before
-        got = _kernel_factor(A, tri[0][2])
-        if got is not None:
-            return got
-    return ("splu", lu, tri)
+    return ("splu", lu, _triangular(lu, st) if kernel.USE_KERNEL and sweeps else None)
+
+
+def structural_symbolic(st):
+    """The supernodes (`_ldl_symbolic`) of L's structural pattern for ``st``'s Gauss-Newton
+    matrix, made once per structure (``st.derived``): from SuperLU's factor of a matrix of the
+    structure's pattern whose every entry is nonzero (an M-matrix: −1 off the diagonal, each
+    diagonal entry over its column's count, whose elimination fills exactly where the pattern
+    does, never cancelling to zero). Not from a numeric factor: a level sheet's matrix has zeros
+    that SuperLU's factor then lacks, and supernodes made from it made every later factorisation
+    of the structure round differently (an estimate depended on what was estimated before).
+    None when SuperLU pivoted anyway."""
+    got = st.derived.get("ldl_structural", False)
+    if got is not False:
+        return got
+    n, ptr, idx = st.n_var, st.csc_indptr, st.csc_indices
+    col = np.repeat(np.arange(n), np.diff(ptr))
+    val = np.where(idx == col, np.diff(ptr)[col] + 1.0, -1.0)
+    lu = splu(sp.csc_matrix((val, idx, ptr), shape=(n, n)), permc_spec="NATURAL",
+              diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
+    got = None
+    if np.array_equal(lu.perm_r, np.arange(n)) and np.array_equal(lu.perm_c, np.arange(n)):
+        L = lu.L
+        got = _ldl_symbolic(n, np.ascontiguousarray(L.indptr, np.int32),
+                            np.ascontiguousarray(L.indices, np.int32))
+    st.derived["ldl_structural"] = got
+    return got
 
 
 #: Whether `factorise` makes the factorisations after a structure's first in the kernel

@@ -42,7 +42,6 @@ def _matrix(n, masked=False, seed=3):
     st, _, prob, gamma = E.estimate(r, n, n, L, valid=valid).solution[:4]
     A = prob.matrix(prob.evaluate(gamma)[2])
     lu = splu(A, permc_spec="NATURAL", diag_pivot_thresh=0.0, options=dict(SymmetricMode=True))
-    E.linalg._triangular(lu, st)  # caches the supernodes on st
     return st, A, lu
 
 
@@ -74,7 +73,7 @@ def _differences(A, lu, got, seed=1):
                                       (40, True)])  # 32 and 40: nested dissection ordering
 def test_the_kernels_factorisation_is_superlus(n, masked):
     st, A, lu = _matrix(n, masked)
-    got = E.linalg._kernel_factor(A, st.derived["ldl_symbolic"])
+    got = E.linalg._kernel_factor(A, E.linalg.structural_symbolic(st))
     assert got is not None and isinstance(got[1], E.linalg.KernelLDL)
     assert max(_differences(A, lu, got)) <= TOL
     # the float32 values the chord steps' solve reads are SuperLU's rounded alike
@@ -91,13 +90,13 @@ def test_the_factorisation_comparison_sees_a_wrong_matrix():
     k = int(np.flatnonzero(B.indices[B.indptr[3]:B.indptr[4]] != 3)[0]) + B.indptr[3]
     i = B.indices[k]
     B[i, 3] = B[3, i] = 1.001 * A[i, 3]  # one off-diagonal pair off by 0.1 %
-    got = E.linalg._kernel_factor(B.tocsc(), st.derived["ldl_symbolic"])
+    got = E.linalg._kernel_factor(B.tocsc(), E.linalg.structural_symbolic(st))
     assert got is not None and max(_differences(A, lu, got)) > TOL
 
 
 def test_a_matrix_that_is_not_positive_definite_or_outside_the_pattern_goes_to_superlu():
     st, A, lu = _matrix(14)
-    sym = st.derived["ldl_symbolic"]
+    sym = E.linalg.structural_symbolic(st)
     B = A.tocsc(copy=True)
     B[5, 5] = -1.0
     assert E.linalg._kernel_factor(B.tocsc(), sym) is None
@@ -134,3 +133,19 @@ def test_a_moving_sheets_chain_is_the_same_with_the_kernels_factorisations(n, mo
     for a, b in zip(ref, new):
         assert (a.iterations, a.factorisations) == (b.iterations, b.factorisations)
         assert np.max(np.abs(a.joints - b.joints)) <= 1e-8 * side
+
+
+def test_an_estimate_does_not_depend_on_what_its_structure_factorised_before():
+    """A level sheet's matrix has zeros its factor then lacks: the supernodes are the
+    structure's (every entry nonzero), not those of whichever matrix came first."""
+    n = 6
+    P = make_sheet("saddle", n, n, L, shear=0.2)
+    r = noisy_readings(ideal_readings(P), 1.0, rng(5))
+    flat = np.tile([0.0, 0.0, 9.80665], (r.shape[0], 1))
+    E.structure.cached_structure.cache_clear()
+    first = E.estimate(r, n, n, L)
+    E.structure.cached_structure.cache_clear()
+    E.estimate(flat, n, n, L)
+    after = E.estimate(r, n, n, L)
+    assert isinstance(after.solution.factorisation[1], E.linalg.KernelLDL)
+    assert np.array_equal(first.joints, after.joints) and first.iterations == after.iterations
