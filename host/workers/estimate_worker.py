@@ -148,10 +148,17 @@ class LinkHold:
     def fill(self, readings: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """``(readings, used, held)``: the snapshot's readings with the held links' last ones put
         in, the links to estimate from, and how many of them were held."""
-        ok = np.asarray(valid, dtype=bool) & np.isfinite(readings).all(axis=1)
+        r = np.asarray(readings)
+        # all three finite, column by column (numpy's reduction over an axis of three: ~0.3 ms)
+        ok = (np.asarray(valid, dtype=bool) & np.isfinite(r[:, 0]) & np.isfinite(r[:, 1])
+              & np.isfinite(r[:, 2]))
         self.age += 1
-        self.age[ok] = 0
-        self.last[ok] = readings[ok]
+        if ok.all():  # the common case: every link (a boolean gather and scatter cost ~0.5 ms at 64x64)
+            self.age[:] = 0
+            self.last[...] = r
+        else:
+            self.age[ok] = 0
+            self.last[ok] = r[ok]
         used = ok | (self.age <= self.hold)
         held = int(np.count_nonzero(used & ~ok))
         if not held:

@@ -178,3 +178,16 @@ def test_a_live_stream_is_estimated_as_a_cold_estimate_of_each_snapshot(monkeypa
     assert np.mean([e.iterations for e in got[2:]]) < np.mean([c.iterations for c in cold])
     assert sum(e.factorisations for e in got[2:]) < sum(c.factorisations for c in cold)
     assert far(1e-2)[0] > 0.03  # the comparison sees an early stop
+
+
+@pytest.mark.parametrize("axis, bad", [(0, np.nan), (1, np.inf), (2, -np.inf)])
+def test_a_reading_with_one_axis_not_finite_is_named_unless_masked(axis, bad):
+    n = 6
+    _, R = snapshots(n, 1, seed=2)
+    r = R[0].copy()
+    r[9, axis] = bad
+    with pytest.raises(ValueError, match=r"Non-finite readings on valid links \[9\]"):
+        estimate(r, n, n, L)
+    valid = np.ones(r.shape[0], bool)
+    valid[9] = False
+    assert np.all(np.isfinite(estimate(r, n, n, L, valid=valid).joints))

@@ -141,3 +141,28 @@ def test_a_link_missing_longer_than_the_hold_leaves_the_mask():
     assert [e.held for e in got] == [0] + [1] * HOLD_SNAPSHOTS + [0, 0]
     assert [bool(e.valid[4]) for e in got] == [True] * (HOLD_SNAPSHOTS + 1) + [False, False]
     assert all(e.valid[np.arange(n) != 4].all() for e in got)
+
+
+def test_the_hold_treats_a_reading_with_any_axis_not_finite_as_missing_and_keeps_the_latest():
+    """`LinkHold.fill` alone (no process): a link whose reading has one axis NaN or inf is held
+    at its last full reading, every axis alike; with every link present the held readings are
+    the newest (the all-present path keeps them as the per-link one does)."""
+    from host.workers.estimate_worker import LinkHold
+    n = 6
+    hold = LinkHold(n, hold=3)
+    first = np.arange(3.0 * n).reshape(n, 3)
+    out, used, held = hold.fill(first, np.ones(n, bool))
+    assert out is first and used.all() and held == 0
+    second = first + 100.0  # every link present again: these are the ones to hold from now on
+    hold.fill(second, np.ones(n, bool))
+    third = first + 200.0
+    for axis, bad in ((0, np.nan), (1, np.inf), (2, -np.inf)):
+        third[axis + 1, axis] = bad  # links 1, 2, 3: one axis each
+    out, used, held = hold.fill(third, np.ones(n, bool))
+    assert held == 3 and used.all()
+    assert np.array_equal(out[1:4], second[1:4])  # the newest full readings, not the first
+    assert np.array_equal(out[[0, 4, 5]], third[[0, 4, 5]])
+    valid = np.ones(n, bool)
+    valid[5] = False  # masked: held too, whatever its reading says
+    out, used, held = hold.fill(first + 300.0, valid)
+    assert held == 1 and np.array_equal(out[5], third[5])
