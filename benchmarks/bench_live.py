@@ -367,7 +367,50 @@ def _recorded_rate(path: str) -> float:
     return round((n - 1) / (last - first), 1) if n > 1 and last > first else 0.0
 
 
-def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = None) -> dict:
+#: seconds of a CLI row's streaming over which the CPU of each process is sampled
+CPU_WINDOW_S = 6.0
+PY_SPY = os.environ.get("PY_SPY", "/work/tools/spyvenv/bin/py-spy")
+
+
+def _spy(outdir: str, base: str, pids: dict[str, int], seconds: float) -> list:
+    """``py-spy record`` of each process (raw folded stacks, samples of the thread holding the
+    interpreter lock: the Python work, and C calls that keep the lock) for ``seconds``:
+    ``<outdir>/<row>-<what>.txt``. Started beside the CPU window, so that window's figures carry
+    py-spy's own cost (a profiled run is for the profile, not for the figures)."""
+    os.makedirs(outdir, exist_ok=True)
+    return [subprocess.Popen([PY_SPY, "record", "--nonblocking", "--gil", "-r", "100", "-d", f"{seconds:g}", "-f", "raw",
+                              "-o", os.path.join(outdir, f"{os.path.basename(base)}-{what}.txt"), "-p", str(pid)],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for what, pid in pids.items()]
+
+
+def _recorded_between(path: str, t0: float, t1: float) -> int:
+    """Snapshots of a recording whose SYNC (host monotonic ``timestamp``) fell in [t0, t1)."""
+    from host.record.recording import iter_snapshots
+    n = 0
+    for b in iter_snapshots(path, batch=1024):
+        ts = b.timestamp
+        n += int(((ts >= t0) & (ts < t1)).sum())
+    return n
+
+
+def _cpu_ms_per(*spans: dict, snapshots: int) -> dict[str, float]:
+    """CPU milliseconds per snapshot, per kind of process, from pairs of `_cpu_ticks` (a prefix per
+    pair, e.g. ``{"host": (a, b)}``: ``host_main``, ``host_reader`` (all readers together), ...);
+    ``total``: all of them but the resource tracker."""
+    hz = os.sysconf("SC_CLK_TCK")
+    out: dict[str, float] = {}
+    for span in spans:
+        for prefix, (a, b) in span.items():
+            for p, (what, t) in b.items():
+                if p in a and what != "mp-resource-tracker":
+                    key = prefix if prefix == "virtual_sheet" else f"{prefix}_{what}"
+                    out[key] = out.get(key, 0.0) + 1e3 * (t - a[p][1]) / hz / max(1, snapshots)
+    out["total"] = sum(out.values())
+    return out
+
+
+def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = None,
+                   profile: str | None = None) -> dict:
     """``capsheet virtual`` and ``capsheet host`` as a user runs them (subprocesses, the host's
     ``--json`` summary), per design: completeness, the share of snapshots estimated and recorded,
     the SYNCs sent, and the CPU of every process (% of one core, sampled over the streaming
@@ -415,9 +458,12 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                                        f"(its stderr: {base}-host.err)")
                 time.sleep(0.2)
             time.sleep(SETTLE_S + 1.5)
+            spies = _spy(profile, base, {"main": hp.pid, "virtual": virt.pid}, CPU_WINDOW_S) if profile else []
             a_v, a_h, t0 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
-            time.sleep(6.0)
+            time.sleep(CPU_WINDOW_S)
             b_v, b_h, t1 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
+            for spy in spies:
+                spy.wait(30)
             row["loadavg"] = [round(x, 2) for x in os.getloadavg()]
             stdout, _ = hp.communicate(timeout=300)
             doc = json.loads(stdout)
@@ -426,6 +472,7 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
             est = s.get("estimates", {})
             host_cpu = _cpu_pct(a_h, b_h, t1 - t0)
             total = sum(v for k, v in host_cpu.items() if k != "mp-resource-tracker")
+            in_window = _recorded_between(rec, t0, t1)
             row.update(
                 exit=doc["exit"], design_used=doc.get("design"), snapshots=s["snapshots"], syncs_sent=doc["syncs_sent"],
                 syncs_seen=doc.get("syncs_seen"), sync_mode=s.get("sync_mode"),
@@ -447,6 +494,12 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                 sync_copies=doc.get("sync_copies"),
                 cpu_pct={"virtual_sheet": _cpu_pct(a_v, b_v, t1 - t0).get("main", 0.0), **host_cpu},
                 host_cpu_pct_total=round(total, 1),
+                # CPU seconds per snapshot the host emitted in the same window (the recorded
+                # snapshots whose SYNC fell in it), per kind of process: what each costs whatever
+                # else the machine runs, unlike a share of a core
+                window_snapshots=in_window,
+                cpu_ms_per_snapshot={k: round(v, 3) for k, v in _cpu_ms_per(
+                    {"virtual_sheet": (a_v, b_v)}, {"host": (a_h, b_h)}, snapshots=in_window).items()},
                 host_cpu_us_per_link_sample=round(1e6 * total / 100.0 / (n_links * rate), 3))
         except Exception as exc:  # noqa: BLE001 - one design failing is a row, not the end of the run
             row["error"] = f"{type(exc).__name__}: {exc}"
@@ -469,7 +522,11 @@ def main(argv=None) -> int:
                     help="run only this configuration (repeatable); the CLI ones (64x64-packed-5gw-record) run only so")
     ap.add_argument("--design", action="append", help="CLI configurations: only this design (in-process, processes)")
     ap.add_argument("--rates", help="comma-separated SYNC rates, Hz, each run in order (default: the adaptive sweep)")
-    ap.add_argument("--duration", type=float, help="seconds streamed per rate (default 5, --quick 2)")
+    ap.add_argument("--duration", type=float, help="seconds streamed per rate (default 5, --quick 2); the CLI "
+                    "configurations: the host's --duration (default theirs, 16 s)")
+    ap.add_argument("--profile", metavar="DIR", help="CLI configurations: py-spy (PY_SPY, default "
+                    f"{PY_SPY}) records the host's main process and the virtual sheet over the CPU window, raw "
+                    "folded stacks in DIR (the row's CPU figures then carry py-spy's own cost)")
     args = ap.parse_args(argv)
     one_blas_thread()  # what every capsheet command does: the host's estimates run as the CLI's
     try:
@@ -484,7 +541,8 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()
     results = [run_config(n, CONFIGS[n], rates, duration, tmp, fixed=bool(args.rates))
                for n in (args.only or CONFIGS) if n in CONFIGS]
-    results += [run_cli_config(n, CLI_CONFIGS[n], tmp, args.design) for n in (args.only or []) if n in CLI_CONFIGS]
+    results += [run_cli_config(n, dict(CLI_CONFIGS[n], **({"duration": args.duration} if args.duration else {})),
+                               tmp, args.design, args.profile) for n in (args.only or []) if n in CLI_CONFIGS]
     print(json.dumps({"benchmark": "bench_live", "quick": args.quick, "duration_s": duration, "rates": rates,
                       "loadavg_start": [round(x, 2) for x in load0],
                       "loadavg_end": [round(x, 2) for x in os.getloadavg()], "cpus": os.cpu_count(),
