@@ -367,7 +367,8 @@ def _recorded_rate(path: str) -> float:
     return round((n - 1) / (last - first), 1) if n > 1 and last > first else 0.0
 
 
-#: seconds of a CLI row's streaming over which the CPU of each process is sampled
+#: seconds of a CLI row's streaming over which the CPU of each process is sampled (a --duration
+#: longer than the default 16 s: all but its first 10 s, for longer profiles)
 CPU_WINDOW_S = 6.0
 PY_SPY = os.environ.get("PY_SPY", "/work/tools/spyvenv/bin/py-spy")
 
@@ -458,9 +459,10 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                                        f"(its stderr: {base}-host.err)")
                 time.sleep(0.2)
             time.sleep(SETTLE_S + 1.5)
-            spies = _spy(profile, base, {"main": hp.pid, "virtual": virt.pid}, CPU_WINDOW_S) if profile else []
+            window = max(CPU_WINDOW_S, cfg["duration"] - 10.0)
+            spies = _spy(profile, base, {"main": hp.pid, "virtual": virt.pid}, window) if profile else []
             a_v, a_h, t0 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
-            time.sleep(CPU_WINDOW_S)
+            time.sleep(window)
             b_v, b_h, t1 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
             for spy in spies:
                 spy.wait(30)
