@@ -14,8 +14,9 @@ and ``capsheet host`` on its five ports as a user does, at 145 Hz with ``--recor
 (every snapshot recorded and due an estimate), once as the host was and once with
 ``--reader-processes --estimate-process``; per design the share of snapshots complete, estimated
 and recorded, the SYNCs sent, and the CPU of every process (% of one core: the virtual sheet, which a
-real sheet does not put on this machine, the host's main process, its readers, its estimator) with
-the cost per link sample. ``64x64-packed-5gw-record-gwsync`` is the same with gateway 0 generating
+real sheet does not put on this machine, the host's main process, its readers, its estimator, its
+recording's writer) with the cost per link sample, and CPU milliseconds per snapshot per process
+(``cpu_ms_per_snapshot``: comparable on a loaded machine, where shares of a core are not). ``64x64-packed-5gw-record-gwsync`` is the same with gateway 0 generating
 the SYNC (``capsheet virtual --rate 145``) and the host following it (``--sync follow``): its SYNC
 rate is the gateway's SYNCs that opened a snapshot, per second of streaming.
 
@@ -339,6 +340,7 @@ def _cpu_ticks(root: int) -> dict[int, tuple[str, int]]:
             continue
         f = stat.rsplit(")", 1)[1].split()
         what = ("reader" if " -S -c " in cmd else "estimator" if "spawn_main" in cmd
+                else "recorder" if "host.record.writer_process" in cmd
                 else "mp-resource-tracker" if "resource_tracker" in cmd else "main")
         out[p] = (what, int(f[11]) + int(f[12]))
     return out

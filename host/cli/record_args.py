@@ -270,7 +270,7 @@ class SessionOutputs:
                                  f"to replace it, or another --record name")
             live_session = mode == "host"  # the file gets the derived estimates and scene at a lower rate
             try:
-                self.recorder = R.Recorder(
+                self.recorder = R.open_recorder(
                     record, lattice, link_length, session={"mode": mode, **(session or {})},
                     live_port=live, colour_by=colour_by, layout=layout, calibration=calibration,
                     split_size=None if not split_mb else int(split_mb * 1e6), split_duration=split_s,
