@@ -629,6 +629,19 @@ class Aggregator:
                 if n == 0:
                     return
         L = self.n_links
+        if self._FAST and slots[0] == slots[-1]:
+            s0, a, b = int(slots[0]), int(links[0]), int(links[-1]) + 1
+            if (b - a == n and (slots == s0).all() and (n == 1 or (np.diff(links) == 1).all())
+                    and not self._got[s0, a:b].any()):
+                # a packing gateway's read: one counter, a run of consecutive links none of which
+                # came before; slices instead of gathers and scatters (the general path's result)
+                block = slice(a, b)
+                self._counts[s0, block] = counts
+                self._status[s0, block] = status
+                self._got[s0, block] = True
+                st.samples += n
+                self._one_slot(s0, block, n, now)
+                return
         flat = slots * L + links
         got_flat = self._got.reshape(-1)
         fresh = ~got_flat[flat]
@@ -653,15 +666,7 @@ class Aggregator:
             # every fresh sample for one counter (a packing gateway's read): each link once, so
             # the per-link counts and latencies take the links directly, without an array per
             # link of the lattice
-            s = int(slots[0])
-            st.link_frames[links] += 1
-            self._ewma_latency(links, now - self._slot_t0[s])
-            self._n_got[s] += n_fresh
-            t_rel = now - self._slot_t0[s]
-            if np.isnan(self._slot_first[s]):
-                self._slot_first[s] = t_rel
-            self._slot_last[s] = t_rel
-            self._pump(now)
+            self._one_slot(int(slots[0]), links, n_fresh, now)
             return
         per_link = np.bincount(links, minlength=L)
         st.link_frames += per_link
@@ -687,6 +692,18 @@ class Aggregator:
             if np.isnan(self._slot_first[s]):
                 self._slot_first[s] = t_rel
             self._slot_last[s] = t_rel
+        self._pump(now)
+
+    def _one_slot(self, s: int, links, n_fresh: int, now: float) -> None:
+        """`_scatter`'s bookkeeping after ``n_fresh`` fresh samples of slot ``s`` alone, each link
+        once (``links``: an index array or a slice of the links)."""
+        self.stats.link_frames[links] += 1
+        t_rel = now - self._slot_t0[s]
+        self._ewma_latency(links, t_rel)
+        self._n_got[s] += n_fresh
+        if np.isnan(self._slot_first[s]):
+            self._slot_first[s] = t_rel
+        self._slot_last[s] = t_rel
         self._pump(now)
 
     def _ewma_latency(self, links: np.ndarray, lat: np.ndarray) -> None:
