@@ -329,8 +329,9 @@ def _proc_tree(root: int) -> list[int]:
     return out
 
 
-def _cpu_ticks(root: int) -> dict[int, tuple[str, int]]:
-    """pid -> (what it is, utime + stime ticks) for ``root`` and its descendants."""
+def _cpu_ticks(root: int, system: bool = False) -> dict[int, tuple[str, int]]:
+    """pid -> (what it is, utime + stime ticks) for ``root`` and its descendants (``system``: stime
+    alone, the kernel's work for it: pty and pipe copies, wake-ups)."""
     out = {}
     for p in _proc_tree(root):
         try:
@@ -342,7 +343,7 @@ def _cpu_ticks(root: int) -> dict[int, tuple[str, int]]:
         what = ("reader" if " -S -c " in cmd else "estimator" if "spawn_main" in cmd
                 else "recorder" if "host.record.writer_process" in cmd
                 else "mp-resource-tracker" if "resource_tracker" in cmd else "main")
-        out[p] = (what, int(f[11]) + int(f[12]))
+        out[p] = (what, int(f[12]) if system else int(f[11]) + int(f[12]))
     return out
 
 
@@ -464,8 +465,10 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
             window = max(CPU_WINDOW_S, cfg["duration"] - 10.0)
             spies = _spy(profile, base, {"main": hp.pid, "virtual": virt.pid}, window) if profile else []
             a_v, a_h, t0 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
+            sa_v, sa_h = _cpu_ticks(virt.pid, True), _cpu_ticks(hp.pid, True)
             time.sleep(window)
             b_v, b_h, t1 = _cpu_ticks(virt.pid), _cpu_ticks(hp.pid), time.monotonic()
+            sb_v, sb_h = _cpu_ticks(virt.pid, True), _cpu_ticks(hp.pid, True)
             for spy in spies:
                 spy.wait(30)
             row["loadavg"] = [round(x, 2) for x in os.getloadavg()]
@@ -504,6 +507,8 @@ def run_cli_config(name: str, cfg: dict, tmp: str, designs: list[str] | None = N
                 window_snapshots=in_window,
                 cpu_ms_per_snapshot={k: round(v, 3) for k, v in _cpu_ms_per(
                     {"virtual_sheet": (a_v, b_v)}, {"host": (a_h, b_h)}, snapshots=in_window).items()},
+                cpu_ms_per_snapshot_in_kernel={k: round(v, 3) for k, v in _cpu_ms_per(
+                    {"virtual_sheet": (sa_v, sb_v)}, {"host": (sa_h, sb_h)}, snapshots=in_window).items()},
                 host_cpu_us_per_link_sample=round(1e6 * total / 100.0 / (n_links * rate), 3))
         except Exception as exc:  # noqa: BLE001 - one design failing is a row, not the end of the run
             row["error"] = f"{type(exc).__name__}: {exc}"
