@@ -24,12 +24,14 @@ PROCESS_WRITER_LINKS = 2048
 def open_recorder(path, lattice, link_length: float, *, process: bool | None = None, **kwargs):
     """The recorder a session writes with: a `Recorder` in this process, or a
     `host.record.writer_process.RecorderProcess` (the same file, written by a process of its own,
-    docs/recording.md "A writer process"). ``process`` None: the process for a file of a sheet of
-    more than `PROCESS_WRITER_LINKS` links without a live view (a 64x64 sheet's recording spent
+    docs/recording.md "A writer process") for a file without a live view (a live view shares this
+    process's context: written here). ``process`` None: the process for a sheet of more than
+    `PROCESS_WRITER_LINKS` links (a 64x64 sheet's recording spent
     ~0.4-0.9 ms of the receive path's interpreter lock per SYNC; here ~0.15 ms of pipe writes)."""
+    alone = path is not None and kwargs.get("live_port") is None  # a live view shares this process's writer
     if process is None:
-        process = path is not None and kwargs.get("live_port") is None and lattice.n_links > PROCESS_WRITER_LINKS
-    if process:
+        process = lattice.n_links > PROCESS_WRITER_LINKS
+    if process and alone:
         from host.record.writer_process import RecorderProcess
         return RecorderProcess(path, lattice, link_length, **kwargs)
     return Recorder(path, lattice, link_length, **kwargs)

@@ -143,3 +143,23 @@ def test_a_live_session_recorded_by_the_writer_process_replays_to_its_snapshots(
         np.testing.assert_array_equal(s.valid, rec.valid[k])
         np.testing.assert_array_equal(s.status, rec.status[k])
         assert s.timestamp == rec.timestamp[k]
+
+
+@pytest.mark.parametrize("lattice,live,process,expect", [
+    ("64x64", False, None, "RecorderProcess"),  # a big sheet: its own process
+    ("32x32", False, None, "Recorder"),  # 1,984 links: here
+    ("64x64", False, False, "Recorder"),  # --no-record-process
+    ("32x32", False, True, "RecorderProcess"),  # --record-process
+    ("64x64", True, None, "Recorder"),  # a live view shares this process's writer
+    ("64x64", True, True, "Recorder")])
+def test_the_recorder_a_session_writes_with(tmp_path, lattice, live, process, expect):
+    from host.record.recording import open_recorder
+    from host.publish.live import LiveServer  # noqa: F401 - the live view's server is there
+
+    kw = {"live_port": 0} if live else {}
+    rec = open_recorder(tmp_path / "r.mcap", Lattice.parse(lattice), 0.02, process=process, **kw)
+    try:
+        assert type(rec).__name__ == expect
+    finally:
+        rec.close()
+    assert read(tmp_path / "r.mcap").attachments is not None
