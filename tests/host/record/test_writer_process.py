@@ -114,9 +114,9 @@ def test_a_writer_whose_host_went_away_closes_its_file_whole(tmp_path):
 
 
 def test_a_live_session_recorded_by_the_writer_process_replays_to_its_snapshots(tmp_path, monkeypatch):
-    """``capsheet host --record`` on a pty with the writer process chosen for every sheet (its rule
-    lowered to 0 links): the recording's snapshots are the host's, and a replay of its raw input
-    makes them again (counters, readings, validity, status and SYNC times)."""
+    """``capsheet host --record --record-process`` on a pty: the recording's snapshots are the
+    host's, a replay of its raw input makes them again (counters, readings, validity, status and
+    SYNC times), and the estimates made live are in it."""
     from host.cli import main
     from host.record import recording as R
     from host.record.replay import Replay
@@ -125,17 +125,18 @@ def test_a_live_session_recorded_by_the_writer_process_replays_to_its_snapshots(
 
     made = []
     real = R.open_recorder
-    monkeypatch.setattr(R, "PROCESS_WRITER_LINKS", 0)
     monkeypatch.setattr(R, "open_recorder", lambda *a, **k: made.append(real(*a, **k)) or made[-1])
     sheet = VirtualSheet("gaussian", "4x4", seed=5, noise=1.0)
     layout = sheet.write_layout(tmp_path / "sheet.csv")
     out = tmp_path / "run.mcap"
     with PtyDevice(sheet, packed=True) as dev:
         assert main(["host", "--port", dev.path, "--lattice", "4x4", "--layout", str(layout), "--rate", "100",
-                     "--record", str(out), "--duration", "1.0", "-q"]) == 0
+                     "--record", str(out), "--record-process", "--live-rate", "20", "--duration", "1.0", "-q"]) == 0
     assert [type(r).__name__ for r in made] == ["RecorderProcess"]
+    assert made[0]._proc.poll() == 0  # the writer ended with the session
     rec = read(out)
-    assert len(rec) >= 10 and rec.attachments["stats.json"]
+    assert len(rec) >= 10 and rec.attachments["stats.json"] and rec.attachments["layout.json"]
+    assert len(rec.estimates["counter"]) >= 1
     snaps = list(Replay(out).snapshots())
     assert [s.counter for s in snaps] == rec.counter.tolist()
     for k, s in enumerate(snaps):
