@@ -62,9 +62,11 @@ def _est_view(est, uncertainty: bool) -> SimpleNamespace:
 class RecorderProcess:
     """`host.record.writer.Recorder`'s interface for a session, with the writing in a process of its own.
 
-    Parameters are `Recorder` 's (``path`` required; no live view: a live view shares the host's
-    context, so a session with one records in its own process). Raises what `Recorder` raises
-    (ValueError: too little free space; OSError: an unwritable path), with its message.
+    Parameters are `Recorder` 's (``path`` required; no ``live_port``: a live view shares the host's
+    foxglove context, so a session with one records with a `Recorder` in the host's process,
+    `host.record.recording.open_recorder`). Raises what `Recorder` raises (ValueError: too little
+    free space; OSError: an unwritable path), with its message. The writer process inherits no file
+    of the host's (``close_fds``): never a port, so one session per port holds as before.
 
     Attributes
     ----------
