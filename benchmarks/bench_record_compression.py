@@ -38,7 +38,7 @@ from bench_virtual import RATE_HZ, Rig  # noqa: E402  (benchmarks/, this script'
 PORTS = 5
 #: (zstd level, worker threads): the settings compared; the first was capsheet's default before
 #: the 64x64 sheet's work, the last is its default for a sheet this size
-SETTINGS = [(9, 1), (9, 0), (3, 1), (3, 0)]
+SETTINGS = [(9, 1), (9, 0), (3, 1), (3, 0), (1, 0)]
 
 
 def wire_reads(lattice: str, n_syncs: int) -> list[bytes]:

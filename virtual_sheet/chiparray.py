@@ -486,13 +486,17 @@ class ChipArray:
         status)`` — the answering chips, their sample counts (m, 3) as sent (after FAULT and the
         range shift; the low 12 bits go on the wire) and SampleStatus bits (m,), or None when every
         one is 0 (`_words` makes the 40-bit sample words of them)."""
-        if sel is None and self._no_scalar:
+        if self._no_scalar:
             steady = self._steady
             if steady is None:
                 steady = self._steady = bool((self._plain & self.powered & self.streaming
                                               & (self.state == _STREAMING)).all())
-            if steady:
+            if steady and sel is None:
                 return (self._every, *self._answer_all(counter, now_s, self._every))
+            if steady:  # one gateway's chips of a streaming sheet (five gateways: each SYNC five times)
+                ans = np.flatnonzero(sel)
+                if ans.size:
+                    return (ans, *self._answer_some(counter, now_s, ans))
         st = self.state
         ans = np.flatnonzero(self._plain & self._sel(sel) & self.powered & self.streaming
                              & ((st == _STREAMING) | (st == _FAULT)))
@@ -577,6 +581,44 @@ class ChipArray:
         s = _saturated(c, s)
         if bad is not None:
             s[bad] = _INVALID  # an INVALID sample: counts 0, status INVALID alone (§8.6)
+        return c, s
+
+    def _answer_some(self, counter: int, now_s: float, ans: np.ndarray):
+        """`_answer` for the chips ``ans`` (distinct, ascending) while every chip streams with a
+        fresh sample: what its general path computes for them, without the masks over the whole
+        array and the gathers a fault or a scalar source needs. ``(counts, status)``, status None
+        when every one is 0 (the same sample words)."""
+        self._all_last = None
+        last = self.last_counter[ans]
+        gap = (counter - last - 1) & 0xFFFF
+        if gap.any():  # a SYNC missed since a chip's last answer (0 everywhere: nothing to add)
+            miss = self.missed_syncs[ans]
+            add = (last >= 0) & (gap < 0x7FFF) & (miss < _SAT)
+            if add.any():
+                self.missed_syncs[ans] = np.where(add, np.minimum(_SAT, miss + gap), miss)
+        self.last_counter[ans] = counter
+        c, s = self.sensor(now_s, ans)
+        c = np.asarray(c, dtype=np.int64)
+        s = np.asarray(s, dtype=np.int64)
+        rng = self._range_any
+        if rng is None:
+            rng = self._range_any = bool(self.range.any())
+        if not np.count_nonzero(s):
+            if rng:
+                c = c >> self.range[ans][:, None]
+            if c.max() >= 2047 or c.min() <= -2048:
+                return c, _saturated(c, s)
+            return c, None
+        bad = (s & _INVALID) != 0
+        if bad.any():
+            self.state[ans[bad]] = _FAULT
+            self._steady = None
+            c = c.copy()
+            c[bad] = 0
+        if rng:
+            c = np.where(bad[:, None], c, c >> self.range[ans][:, None])
+        s = _saturated(c, s)
+        s[bad] = _INVALID
         return c, s
 
     @staticmethod

@@ -274,6 +274,8 @@ class VirtualSheet:
             c = self._refresh(t)
         if idx.size == self.n_links:
             return c[1], c[2]
+        if idx.size and int(idx[-1]) - int(idx[0]) + 1 == idx.size:  # a gateway's block: views, no copies
+            return c[1][idx[0]:idx[-1] + 1], c[2][idx[0]:idx[-1] + 1]
         return c[1][idx], c[2][idx]
 
     def _lists(self):

@@ -53,6 +53,10 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                    help="free disk space the recording leaves: checked at the start (refused below it) and "
                         f"every second, where the recording stops cleanly, its file readable (default "
                         f"{DEFAULT_MIN_FREE_MB:g} MB; 0: until the disk is full)")
+    g.add_argument("--record-process", action=argparse.BooleanOptionalAction, default=None,
+                   help="write the recording in a process of its own (the same file; the compression then "
+                        "holds no lock this process's receive and SYNC threads need; not with --live, whose view "
+                        "shares this process's writer). Default: for a sheet of more than 2,048 links")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
     g.add_argument("--publish", metavar="zenoh|ros2[:ENDPOINT]", type=_publish_arg, default=None,
                    help="zenoh: publish snapshots, estimates, health and (queryable) layout and calibration to "
@@ -270,8 +274,8 @@ class SessionOutputs:
                                  f"to replace it, or another --record name")
             live_session = mode == "host"  # the file gets the derived estimates and scene at a lower rate
             try:
-                self.recorder = R.Recorder(
-                    record, lattice, link_length, session={"mode": mode, **(session or {})},
+                self.recorder = R.open_recorder(
+                    record, lattice, link_length, process=getattr(args, "record_process", None), session={"mode": mode, **(session or {})},
                     live_port=live, colour_by=colour_by, layout=layout, calibration=calibration,
                     split_size=None if not split_mb else int(split_mb * 1e6), split_duration=split_s,
                     min_free=int(float(getattr(args, "min_free", 0.0) or 0.0) * 1e6) if record else 0,

@@ -57,8 +57,10 @@ COMPRESSION_LEVEL = 9
 #: ... and of a sheet of more than `LARGE_SHEET_LINKS` links. Every call into the SDK's writer holds
 #: the interpreter lock the receive threads and the SYNC thread need; on a 64x64 sheet's raw input
 #: at 145 Hz (6 MB/s) level 9 spends ~110 ms a second in those calls, level 3 ~42 ms, for files
-#: ~4 % larger (benchmarks/bench_record_compression.py; whole 64x64 recordings ~7 %)
-COMPRESSION_LEVEL_LARGE = 3
+#: ~4 % larger (benchmarks/bench_record_compression.py; whole 64x64 recordings ~7 %). Level 1: the
+#: compression alone ~0.09 ms per SYNC of that input against ~0.26 at level 3 (a third), for a raw
+#: channel ~2 % larger (0.757 of the input against 0.742: the counts' noise does not compress)
+COMPRESSION_LEVEL_LARGE = 1
 LARGE_SHEET_LINKS = 2048
 #: zstd worker threads (0: the logging call compresses as it goes). With a worker, a chunk's last
 #: call waits for the whole chunk to be compressed, holding the interpreter lock (25 ms against

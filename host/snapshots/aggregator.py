@@ -60,7 +60,7 @@ import numpy as np
 from host.snapshots.counter_trust import MAX_AGE, MAX_JUMP, OPEN, RESYNC, CounterTrust, serial_diff
 from host.snapshots.deadline import DeadlinePolicy
 from host.snapshots.snapshot import AggregatorStats, LatticeSnapshot, LinkFlag
-from protocol.constants import SampleStatus, counts_to_si, nominal_sensitivity
+from protocol.constants import G0, SampleStatus, nominal_sensitivity
 from protocol.imu_units import gyro_counts_to_si, mag_counts_to_si
 from protocol.messages import (
     SAMPLE_WORD_SIZE,
@@ -134,6 +134,10 @@ class Aggregator:
         Unix seconds minus monotonic seconds: a snapshot's ``wall_time`` is its ``timestamp`` plus
         this, as set when its counter opened (the owner keeps it current; 0 by default).
     """
+
+    #: the shortcuts for the common cases (`_scatter`: one counter's fresh samples; `_emit`: every
+    #: link there); False: the general path alone, what the tests hold the shortcuts to
+    _FAST = True
 
     def __init__(self, n_links: int, node_to_link=None, *, offset=None, sensitivity=None,
                  deadline_s: float = 0.05, max_open: int = 32, max_age: int = MAX_AGE, queue_size: int = 64,
@@ -575,9 +579,12 @@ class Aggregator:
         st.link_last_seen[links] = now  # the chip is alive, even if its frame turns out late
         if self.hold_for_input and 0 <= bus < self.input_mark.shape[0]:
             # the bus was read up to frames answering this SYNC (a serial line, a CAN bus: in order)
-            t0 = self._t0_of[counter.astype(np.int64)]
-            if np.isfinite(t0).any():
-                self.input_mark[bus] = max(self.input_mark[bus], float(np.nanmax(t0)))
+            t0 = self._t0_of[counter]
+            top = t0.max()
+            if top != top:  # a counter never opened (NaN): the newest of those that were
+                top = np.nanmax(t0) if np.isfinite(t0).any() else None
+            if top is not None:
+                self.input_mark[bus] = max(self.input_mark[bus], float(top))
         if self.silent.any():  # links that were silent and speak again are waited for again
             back = self.silent[links]
             if back.any():
@@ -622,6 +629,19 @@ class Aggregator:
                 if n == 0:
                     return
         L = self.n_links
+        if self._FAST and slots[0] == slots[-1]:
+            s0, a, b = int(slots[0]), int(links[0]), int(links[-1]) + 1
+            if (b - a == n and (slots == s0).all() and (n == 1 or (np.diff(links) == 1).all())
+                    and not self._got[s0, a:b].any()):
+                # a packing gateway's read: one counter, a run of consecutive links none of which
+                # came before; slices instead of gathers and scatters (the general path's result)
+                block = slice(a, b)
+                self._counts[s0, block] = counts
+                self._status[s0, block] = status
+                self._got[s0, block] = True
+                st.samples += n
+                self._one_slot(s0, block, n, now)
+                return
         flat = slots * L + links
         got_flat = self._got.reshape(-1)
         fresh = ~got_flat[flat]
@@ -642,6 +662,12 @@ class Aggregator:
         self._status.reshape(-1)[flat] = status
         got_flat[flat] = True
         st.samples += n_fresh
+        if n_fresh and self._FAST and slots[0] == slots[-1] and (slots == slots[0]).all():
+            # every fresh sample for one counter (a packing gateway's read): each link once, so
+            # the per-link counts and latencies take the links directly, without an array per
+            # link of the lattice
+            self._one_slot(int(slots[0]), links, n_fresh, now)
+            return
         per_link = np.bincount(links, minlength=L)
         st.link_frames += per_link
         lat = now - self._slot_t0[slots]
@@ -666,6 +692,18 @@ class Aggregator:
             if np.isnan(self._slot_first[s]):
                 self._slot_first[s] = t_rel
             self._slot_last[s] = t_rel
+        self._pump(now)
+
+    def _one_slot(self, s: int, links, n_fresh: int, now: float) -> None:
+        """`_scatter`'s bookkeeping after ``n_fresh`` fresh samples of slot ``s`` alone, each link
+        once (``links``: an index array or a slice of the links)."""
+        self.stats.link_frames[links] += 1
+        t_rel = now - self._slot_t0[s]
+        self._ewma_latency(links, t_rel)
+        self._n_got[s] += n_fresh
+        if np.isnan(self._slot_first[s]):
+            self._slot_first[s] = t_rel
+        self._slot_last[s] = t_rel
         self._pump(now)
 
     def _ewma_latency(self, links: np.ndarray, lat: np.ndarray) -> None:
@@ -740,17 +778,28 @@ class Aggregator:
         self._open.remove(s)
         got = self._got[s].copy()
         status = self._status[s].copy()
-        status[~got] = 0
+        every = self._FAST and bool(got.all())  # every link there (a complete 64x64 snapshot)
+        if not every:
+            status[~got] = 0
         valid = got & ((status & SampleStatus.INVALID) == 0)
+        all_valid = every and bool(valid.all())
         complete = bool(self.expected.any() and np.all(got | ~self.expected))
-        readings = counts_to_si(self._counts[s].astype(np.float64), self._offset, self._sens)
-        readings[~valid] = np.nan
+        # counts_to_si's arithmetic, in place: (counts - offset) / sensitivity * G0
+        readings = self._counts[s].astype(np.float64)
+        readings -= self._offset
+        readings /= self._sens
+        readings *= G0
         counts = self._counts[s].copy()
-        counts[~valid] = 0
+        if not all_valid:
+            readings[~valid] = np.nan
+            counts[~valid] = 0
         counts.setflags(write=False)
-        status |= np.where(got, 0, LinkFlag.MISSING).astype(np.uint8)
-        status |= np.where(self.silent, LinkFlag.SILENT, 0).astype(np.uint8)
-        status |= np.where(self.unassigned, LinkFlag.UNASSIGNED, 0).astype(np.uint8)
+        if not every:
+            status |= np.where(got, 0, LinkFlag.MISSING).astype(np.uint8)
+        if not self._FAST or self.silent.any():
+            status |= np.where(self.silent, LinkFlag.SILENT, 0).astype(np.uint8)
+        if not self._FAST or self.unassigned.any():
+            status |= np.where(self.unassigned, LinkFlag.UNASSIGNED, 0).astype(np.uint8)
         readings.setflags(write=False)
         valid.setflags(write=False)
         status.setflags(write=False)
@@ -773,9 +822,12 @@ class Aggregator:
         st.valid_links += int(np.count_nonzero(valid & assigned))
         exp = self.expected
         n_exp = int(np.count_nonzero(exp))
-        if n_exp and 2 * int(np.count_nonzero(got & exp)) >= n_exp:
-            self.miss_run[exp & ~got] += 1  # its neighbours came for this counter, it did not
-        self.miss_run[got] = 0
+        if every:
+            self.miss_run.fill(0)
+        else:
+            if n_exp and 2 * int(np.count_nonzero(got & exp)) >= n_exp:
+                self.miss_run[exp & ~got] += 1  # its neighbours came for this counter, it did not
+            self.miss_run[got] = 0
         if self.adaptive and not np.isnan(self._slot_last[s]) and (complete or got.any()):
             self._measure(float(self._slot_last[s]))
         if complete:

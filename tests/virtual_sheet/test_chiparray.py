@@ -269,6 +269,48 @@ def test_sheet_with_the_array_engine_sends_what_the_per_chip_sheet_sends(transpo
     assert sum(len(x) for x in a[0]) > 40
 
 
+def _run_gateways(engine, n_gw, noise, counters, lattice="6x5", spy=None):
+    """A packed serial sheet over ``n_gw`` gateways (each answering for its block of chips), every
+    gateway given the SYNCs ``counters`` in turn; each gateway's output per SYNC and the chips'
+    state. ``spy``: called with each `ChipArray._answer_some` call's chips."""
+    sheet = VirtualSheet("grow", lattice, seed=6, noise=noise, engine=engine, scene_rate_hz=20.0)
+    if spy is not None:
+        arr = sheet.array
+        some = arr._answer_some
+        arr._answer_some = lambda c, t, ans: (spy(ans), some(c, t, ans))[1]
+    gws = [Gateway(sheet, blk, packed=True, stream=b) for b, blk in enumerate(sheet.split(n_gw))]
+    out = []
+    for gw in gws:
+        gw.power_on(0.0)
+        gw.commission(0.001)
+    t = 0.002
+    for c in counters:
+        t += 1 / 145
+        for gw in gws:
+            gw.feed(encode(Sync(counter=c)), t)
+            gw.poll(t)
+            out.append(gw.pop_output(t + 0.01))
+    views = sheet.array.views if engine == "array" else sheet.chips
+    state = [(c.missed_syncs, c.last_counter, int(c.state)) for c in views]
+    return out, state
+
+
+@pytest.mark.parametrize("noise", [1.0, 400.0])  # 400 % g: counts at the rails, SATURATED set
+def test_a_streaming_sheet_over_several_gateways_answers_as_its_chip_models(noise):
+    """Each gateway's chips answered from the arrays alone (`ChipArray._answer_some`, every chip
+    streaming) send the same frames, byte for byte, and keep the same missed-SYNC counts as
+    per-chip models, through counter gaps and a wrap."""
+    counters = [65530 + k & 0xFFFF for k in range(12)] + [20, 21, 25, 300, 301]
+    calls = []
+    a = _run_gateways("array", 3, noise, counters, spy=lambda ans: calls.append(ans.size))
+    b = _run_gateways("chips", 3, noise, counters)
+    assert len(calls) >= 3 * len(counters) and sum(calls) >= 49 * len(counters)  # the path was taken
+    assert a[0] == b[0]
+    assert a[1] == b[1]
+    assert sum(len(x) for x in a[0]) > len(counters)
+    assert any(m for m, _, _ in a[1])  # the gaps were counted
+
+
 # ------------------------------------------------------------------------ directed edge cases
 # The random sequences above rarely land on these edges (a float time equal to a timer's due
 # time; a counter gap just below half the counter space while missed_syncs is not yet saturated),
@@ -385,3 +427,34 @@ def test_pop_wire_is_pop_output_joined(engine, packed, faults):
         runs.append((data, frames, gw.stats.frames_to_host))
     assert runs[0] == runs[1]
     assert runs[0][1] == runs[0][2] > 30
+
+
+def _railing(now_s: float, idx: np.ndarray):
+    """Counts at the rails on every other chip with no status bit of the sensor's own."""
+    c = np.tile(np.array([[5, -7, 1000]], dtype=np.int64), (idx.size, 1))
+    c[idx % 2 == 1] = [2047, 0, -2048]
+    return c, np.zeros(idx.size, dtype=np.int64)
+
+
+@pytest.mark.parametrize("sensor", [_steady, _railing])
+def test_one_gateways_chips_answer_from_the_arrays_as_the_general_path_does(sensor):
+    """`ChipArray._answer_some` against the array's general path (taken when the array is told it
+    has scalar sources): the same chips, sample words and missed-SYNC counts for a gateway's
+    block, SATURATED set from counts at the rails that the sensor did not flag."""
+    uids = make_uids(5, 3)
+    twins = [ChipArray(uids, sensor), ChipArray(uids, sensor)]
+    sel = np.array([False, True, True, True, False])
+    for arr in twins:
+        arr.power_on(0.0)
+        for k, v in enumerate(arr.views):
+            arr.handle_node(v.node, b"", 0.01, Assign(v.node, new_node=1 + k, link=k, uid_low=v.uid & 0xFFFFFFFF))
+        arr.handle(b"", 0.02, Start(0))
+    twins[1]._no_scalar = False  # the general path
+    for c in (7, 8, 11, 12):
+        got = [arr.sync_words(b"", Sync(counter=c), 0.03 + c / 145, sel) for arr in twins]
+        assert got[0][0].tolist() == got[1][0].tolist() == [1, 2, 3]
+        assert got[0][1].tolist() == got[1][1].tolist()
+        assert twins[0].missed_syncs.tolist() == twins[1].missed_syncs.tolist()
+    assert twins[0].missed_syncs.tolist() == [0, 2, 2, 2, 0]
+    words = got[0][1]
+    assert (((words >> 36) & 1) == (np.array([1, 2, 3]) % 2 == 1) * (sensor is _railing)).all()  # odd chips rail

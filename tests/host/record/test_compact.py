@@ -160,6 +160,53 @@ def test_any_bytes_cut_anyhow_come_back_exactly(parts, cuts):
     assert sum(len(m.status) for m in msgs) == sum(_whole_samples(c) for c in chunks)
 
 
+@settings(max_examples=300, deadline=None)
+@given(data=st.lists(st.one_of(st.binary(max_size=30), _samples, st.just(b"\x00"), st.just(b"\x01" * 14)),
+                     max_size=12).map(b"".join))
+def test_a_frame_span_is_found_exactly_where_a_split_at_the_delimiters_finds_one(data):
+    """`has_frame_span` against the rule written apart: a piece between delimiters (or before the
+    first) of exactly 14 bytes, with its delimiter."""
+    assert C.has_frame_span(data) == any(len(p) == C.FRAME_SPAN - 1 for p in data.split(b"\x00")[:-1])
+
+
+def _packed_wire(n_syncs: int) -> list[bytes]:
+    """Each SYNC's bytes from a packing gateway (SNAPSHOT frames of many links, STATUS passed on)."""
+    from virtual_sheet.gateway import Gateway
+    from virtual_sheet.sheet import VirtualSheet
+
+    gw = Gateway(VirtualSheet("gaussian", "8x8", seed=5, noise=1.0), packed=True)
+    gw.power_on(0.0)
+    gw.commission(0.0)
+    gw.pop_output(1.0)
+    out, t = [], 0.01
+    for k in range(n_syncs):
+        t += 1 / 145
+        gw.feed(encode(Sync(counter=k)), t)
+        gw.poll(t)
+        out.append(gw.pop_wire(t)[0])
+    return out
+
+
+def test_chunks_without_a_frame_span_encode_as_the_general_path_does(monkeypatch):
+    """A chunk with no 15-byte span (a packing gateway's) skips the column work: the same message
+    bytes, and the same state carried to the next chunk, as the general path (forced here by a
+    `has_frame_span` that always says yes) makes, over packed chunks interleaved with per-chip ones."""
+    packed = _packed_wire(6)
+    assert packed and not any(C.has_frame_span(c) for c in packed)
+    per_chip = _sheet_wire(1.0, 6)
+    assert all(C.has_frame_span(c) for c in per_chip)
+    chunks = [c for pair in zip(packed, per_chip) for c in pair] + [b"", b"\x05\x00"]
+
+    def encoded() -> list[bytes]:
+        comp = C.SerialCompactor()
+        return [comp.encode(c, bus=2, t=3.5 + k, t_rx=3.0 + k) for k, c in enumerate(chunks)]
+    fast = encoded()
+    monkeypatch.setattr(C, "has_frame_span", lambda data: True)
+    assert fast == encoded()
+    back, _ = _round_trip(chunks)
+    assert back == chunks
+
+
 @settings(max_examples=200, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 40), rounds=st.integers(1, 12))
 def test_snapshot_counts_come_back_exactly_whatever_their_range_and_validity(seed, n, rounds):

@@ -473,7 +473,7 @@ def test_iter_snapshots_reads_a_cut_file_as_far_as_read_does(tmp_path):
 
 def test_a_large_sheet_is_compressed_at_the_cheaper_level_and_a_small_one_at_the_tighter(tmp_path):
     """`host.record.recording.compression_level_for`: every writer call holds the interpreter lock, so a
-    sheet of more than LARGE_SHEET_LINKS links (64x64: ~14 MB/s) is written at zstd level 3, a
+    sheet of more than LARGE_SHEET_LINKS links (64x64: ~14 MB/s) is written at zstd level 1, a
     smaller one at 9 (benchmarks/bench_record_compression.py). The same raw input recorded for a
     64x64 and a 14x14 sheet: the first file is larger (the level reached the writer); each one
     reads back whole with the mcap library."""

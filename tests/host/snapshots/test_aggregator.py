@@ -490,7 +490,7 @@ def test_invalid_deadline_bounds_are_refused():
 
 # ------------------------------------------------------------- SNAPSHOT frames of one read together
 
-def _snapshot_world(seed: int, batched: bool):
+def _snapshot_world(seed: int, batched: bool, hold: bool = False):
     """One seeded session of a packed gateway's reads (SNAPSHOT runs, SampleBatch among them,
     unknown nodes, frames beyond the lattice, duplicates, late and stray counters, silent links,
     SYNCs, deadlines), fed either through `ingest` (runs of SNAPSHOT in one pass) or one frame at a
@@ -501,7 +501,8 @@ def _snapshot_world(seed: int, batched: bool):
     out = []
     trust = ("frames", "sent", "follow")[seed % 3]
     agg = Aggregator(L, deadline_s=0.01, min_deadline_s=0.004, max_deadline_s=0.05,
-                     max_open=int(r.integers(2, 6)), queue_size=10_000, trust=trust, on_snapshot=out.append)
+                     max_open=int(r.integers(2, 6)), queue_size=10_000, trust=trust, on_snapshot=out.append,
+                     hold_for_input=hold)
     counter = 0
     for _ in range(80):
         clock.t += float(r.choice([0.0, 0.001, 0.004, 0.012]))
@@ -578,6 +579,84 @@ def test_snapshot_frames_of_one_read_in_one_pass_equal_one_at_a_time(seed, way):
         assert np.array_equal(x.last_frame_s, y.last_frame_s, equal_nan=True)
         assert np.array_equal(x.readings, y.readings, equal_nan=True)
         assert np.array_equal(x.valid, y.valid) and np.array_equal(x.status, y.status)
+
+
+def _same_sessions(a, snaps_a, b, snaps_b) -> None:
+    """Two aggregators' statistics, per-link state and snapshots, equal to the last bit."""
+    assert a.stats.summary() == b.stats.summary()
+    for name in ("link_frames", "link_late", "link_duplicates", "link_missing", "link_latency_s",
+                 "link_last_seen", "bus_frames", "bus_late", "bus_duplicates", "bus_unknown"):
+        assert np.array_equal(getattr(a.stats, name), getattr(b.stats, name), equal_nan=True), name
+    assert np.array_equal(a.miss_run, b.miss_run) and np.array_equal(a.input_mark, b.input_mark)
+    assert a.deadline_s == b.deadline_s and len(snaps_a) == len(snaps_b)
+    for x, y in zip(snaps_a, snaps_b):
+        assert (x.counter, x.timestamp, x.complete, x.latency_s) == (y.counter, y.timestamp, y.complete, y.latency_s)
+        assert np.array_equal(x.first_frame_s, y.first_frame_s, equal_nan=True)
+        assert np.array_equal(x.last_frame_s, y.last_frame_s, equal_nan=True)
+        assert np.array_equal(x.readings, y.readings, equal_nan=True)
+        assert np.array_equal(x.counts, y.counts) and np.array_equal(x.valid, y.valid)
+        assert np.array_equal(x.status, y.status)
+
+
+@pytest.mark.parametrize("seed", range(40))
+@pytest.mark.parametrize("hold", [False, True])
+def test_the_common_case_shortcuts_give_what_the_general_path_gives(seed, hold, monkeypatch):
+    """`Aggregator._FAST` (one counter's fresh samples scattered, a snapshot with every link
+    emitted, without the arrays over the whole lattice): the sessions above, with and without
+    holding for input, give the same statistics and snapshots as with the general path alone."""
+    fast = _snapshot_world(seed, batched="decoded", hold=hold)
+    monkeypatch.setattr(Aggregator, "_FAST", False)
+    _same_sessions(*fast, *_snapshot_world(seed, batched="decoded", hold=hold))
+
+
+def test_a_packing_gateways_stream_takes_the_shortcuts_and_gives_what_the_general_path_gives(monkeypatch):
+    """A healthy packed stream (every snapshot complete, reads of one counter each) through the
+    shortcuts and through the general path: the same snapshots, and most of them took the
+    shortcuts (a spy on the one-counter branch)."""
+    L = 40
+    r = rng(11)
+    frames = []
+    for c in range(30):
+        for first in range(0, L, 8):
+            frames.append(Snapshot.from_arrays(0, c, first, r.integers(-2048, 2048, size=(8, 3)),
+                                               (r.random(8) < 0.1) * 8))
+
+    def run():
+        out, dec = [], StreamDecoder(batch_samples=True, batch_snapshots=True)
+        agg = Aggregator(L, deadline_s=0.01, queue_size=100, on_snapshot=out.append, hold_for_input=True)
+        for c in range(30):
+            agg.open_counter(c, c / 145)
+            for k in range(5):
+                agg.ingest(dec.feed(b"".join(encode(f) for f in frames[5 * c + k:5 * c + k + 1])),
+                           now=c / 145 + 0.001 * (k + 1))
+        return agg, out
+    calls = []
+    real = Aggregator._ewma_latency
+    monkeypatch.setattr(Aggregator, "_ewma_latency", lambda self, links, lat: (calls.append(np.ndim(lat)),
+                                                                               real(self, links, lat))[1])
+    fast = run()
+    assert fast[0].stats.complete == 30 and calls.count(0) == 150  # scalar latency: the one-counter branch
+    monkeypatch.setattr(Aggregator, "_FAST", False)
+    _same_sessions(*fast, *run())
+
+
+@pytest.mark.parametrize("trust", ["frames", "sent"])
+def test_the_input_mark_is_the_newest_sync_time_of_the_opened_counters_a_read_answers(trust):
+    """Holding for input, a read's mark is the SYNC time of the newest counter it answers that was
+    open when it came; counters never opened (no SYNC time) do not move it, alone or among others."""
+    agg = Aggregator(4, deadline_s=0.05, hold_for_input=True, trust=trust)
+    agg.open_counter(1, 1.0)
+    agg.open_counter(2, 1.007)
+
+    def read(counters, now):
+        k = len(counters)
+        agg.ingest([SampleBatch(np.arange(1, k + 1, dtype=np.uint16), np.array(counters, dtype=np.uint16),
+                                np.zeros((k, 3), dtype=np.int16), np.zeros(k, dtype=np.uint8))], now=now)
+        return float(agg.input_mark[0])
+    assert read([9, 9], 1.008) == -np.inf  # never opened when read (trusting frames: opened by it)
+    assert read([1, 10, 1], 1.009) == 1.0  # an opened counter among one never opened
+    assert read([11, 2, 1], 1.010) == 1.007
+    assert read([12], 1.011) == 1.007
 
 
 def test_the_snapshot_sessions_reach_every_case():
