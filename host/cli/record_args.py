@@ -58,6 +58,8 @@ def add_record_args(parser: argparse.ArgumentParser, *, can_log: bool = False,
                         "holds no lock this process's receive and SYNC threads need; not with --live, whose view "
                         "shares this process's writer). Default: for a sheet of more than 2,048 links")
     T.add_overwrite_arg(g, "recordings (--record" + (", --can-log)" if can_log else ")"))
+    if hasattr(parser, "add_check"):
+        parser.add_check(check_record_process)
     g.add_argument("--publish", metavar="zenoh|ros2[:ENDPOINT]", type=_publish_arg, default=None,
                    help="zenoh: publish snapshots, estimates, health and (queryable) layout and calibration to "
                         "Zenoh under capsheet/<sheet>/...; ros2: the same as ROS 2 messages laid out as rmw_zenoh "
@@ -116,6 +118,18 @@ def add_live_server_args(g, parser) -> None:
                    default=None, help="live view: the certificate's private key (with --live-tls-cert)")
     if hasattr(parser, "add_check"):  # a `host.cli.argtypes.CliParser`
         parser.add_check(check_live_server_args)
+
+
+def check_record_process(ns) -> str | None:
+    """``--record-process`` asked for where it cannot write: a live view's recording (the view shares
+    this process's writer) or no recording at all — refused, never silently written the other way."""
+    if not getattr(ns, "record_process", None):
+        return None
+    if not getattr(ns, "record", None):
+        return "--record-process writes a --record file: give --record FILE"
+    if getattr(ns, "live", None) is not None:
+        return "--record-process with --live: the live view shares this process's writer (drop one of them)"
+    return None
 
 
 def check_live_server_args(ns) -> str | None:

@@ -164,3 +164,16 @@ def test_the_recorder_a_session_writes_with(tmp_path, lattice, live, process, ex
     finally:
         rec.close()
     assert read(tmp_path / "r.mcap").attachments is not None
+
+
+@pytest.mark.parametrize("extra, says", [(["--record", "x.mcap", "--live", "0"], "live view shares"),
+                                         ([], "give --record FILE")])
+def test_a_writer_process_that_cannot_be_given_is_refused_in_one_line(tmp_path, capsys, extra, says):
+    """Asked for by hand where it cannot write (a live view's recording, no recording at all): exit 2 and
+    one line, before any port is opened — never silently the other way."""
+    from host.cli import main
+    with pytest.raises(SystemExit) as exc:
+        main(["host", "--port", str(tmp_path / "no-such-port"), "--lattice", "2x2", "--record-process",
+              *[str(tmp_path / e) if e.endswith(".mcap") else e for e in extra]])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and len(err) == 1 and says in err[0], err
