@@ -1,5 +1,5 @@
 """A virtual sheet starts without scipy: the default (curved) sheet's boundary lines and the chips'
-misalignments are computed with numpy (`virtual_sheet.geometry.bracketed_root`,
+and gyroscopes' misalignments are computed with numpy (`virtual_sheet.geometry.bracketed_root`,
 `virtual_sheet.sensor.rotvec_matrices`), where importing scipy.optimize and scipy.spatial for one
 root finder and one Rodrigues formula cost ~1.5 s of CPU at the start of every ``capsheet virtual``
 (the test suite starts a few hundred). Both give what scipy's ``brentq`` and
@@ -23,11 +23,12 @@ from virtual_sheet.sheet import VirtualSheet
 from virtual_sheet.sensor import chip_error_model
 VirtualSheet("gaussian", "5x4", seed=3)
 VirtualSheet("gaussian", "3x3", seed=3, sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
+VirtualSheet("gaussian", "3x3", seed=3, sensors="accel+gyro+mag")
 print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] == "scipy")[:5]))
 """
 
 
-def test_the_default_curved_sheet_with_chip_errors_is_made_without_scipy():
+def test_the_default_curved_sheet_with_chip_errors_and_imus_is_made_without_scipy():
     out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert json.loads(out.stdout.strip().splitlines()[-1]) == []
