@@ -61,7 +61,6 @@ def asked_command(argv: list[str]) -> str | None:
     return None
 
 
-
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     """The ``capsheet`` parser with every subcommand; with ``command``, with that subcommand alone.
 
