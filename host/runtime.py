@@ -5,6 +5,7 @@ command; a process the host starts calls it again, for the libraries it loads it
 from __future__ import annotations
 
 import os
+import sys
 
 __all__ = ["BLAS_THREAD_VARS", "one_blas_thread"]
 
@@ -26,6 +27,8 @@ def one_blas_thread() -> bool:
         return False
     for v in BLAS_THREAD_VARS:
         os.environ[v] = "1"
+    if not {"numpy", "scipy"} & sys.modules.keys():
+        return True  # no BLAS loaded yet (a command's start): the variables limit it when it loads
     try:
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - a declared dependency; the variables still apply

@@ -72,7 +72,7 @@ from protocol.constants import G0, SampleStatus, counts_to_si
 from protocol.imu_units import (GyroRange, MagRange, RAD_PER_DEG, TESLA_PER_GAUSS, count_limits,
                                 gyro_nominal_sensitivity, mag_nominal_sensitivity)
 from .magfield import MagneticField, field_in_sensor_frames
-from .sensor import SensorModel
+from .sensor import SensorModel, rotvec_matrices
 
 __all__ = ["GyroModel", "MagModel", "GyroErrors", "MagErrors", "ImuArray", "ImuReading",
            "GYRO_PARTS", "MAG_PARTS", "accel_model", "SENSOR_SETS", "imu_array", "simulate"]
@@ -88,11 +88,9 @@ def _nonneg(obj, names) -> None:
 
 
 def _small_rotations(z: np.ndarray, sigma: float) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     if z.shape[0] == 0:
         return np.zeros((0, 3, 3))
-    return Rotation.from_rotvec(z * sigma).as_matrix().reshape(-1, 3, 3)
+    return rotvec_matrices(z * sigma).reshape(-1, 3, 3)
 
 
 @dataclass(frozen=True)

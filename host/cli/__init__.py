@@ -37,8 +37,38 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: the installed version, looked up only when asked (importlib.metadata and the
+    package metadata scan cost every command's start ~15 ms otherwise)."""
 
-def build_parser() -> argparse.ArgumentParser:
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show the program's version number and exit"):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"capsheet {_version()}")
+        parser.exit()
+
+
+def asked_command(argv: list[str]) -> str | None:
+    """The subcommand ``argv`` names, if it names one of `SUBCOMMAND_MODULES` first (the top-level
+    parser takes no option with a value, so the first word that is not an option is the command);
+    None otherwise (``--help``, ``--version``, nothing, a misspelt command)."""
+    for word in argv:
+        if word.startswith("-"):
+            return None  # a top-level option first: the whole parser answers it
+        return word if f"host.cli.{word}" in SUBCOMMAND_MODULES else None
+    return None
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The ``capsheet`` parser with every subcommand; with ``command``, with that subcommand alone.
+
+    A command's run builds its own subcommand only (`main`): registering a subcommand imports its
+    module and what its options need (numpy, the session, the conformance checks, the sheet's
+    shapes...), ~0.2 s of CPU for the twelve a run does not use, paid by every process started.
+    ``--help``, ``--version`` and anything that is not a command get the whole parser, so what they
+    print and refuse is the same."""
     from host.cli.argtypes import CliParser  # a bad value: one line, exit 2 (every subcommand's parser too)
 
     parser = CliParser(
@@ -46,9 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="capsheet: 3D capture sheet toolkit — talk to sensor chips over serial or CAN, "
                     "run a virtual sheet, estimate the sheet's shape and its contacts.",
     )
-    parser.add_argument("--version", action="version", version=f"capsheet {_version()}")
+    parser.add_argument("--version", action=_VersionAction)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in SUBCOMMAND_MODULES:
+    for name in SUBCOMMAND_MODULES if command is None else [f"host.cli.{command}"]:
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:
@@ -85,7 +115,7 @@ def main(argv: list[str] | None = None) -> int:
     fix_mmap_threshold()  # a host that runs for days: large buffers go back to the system at free
     process_trim()  # and freed pages between the blocks in use, once a minute (one thread a process)
     one_blas_thread()
-    parser = build_parser()
+    parser = build_parser(asked_command(sys.argv[1:] if argv is None else list(argv)))
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

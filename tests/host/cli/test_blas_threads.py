@@ -62,3 +62,27 @@ def test_streaming_commands_shorten_the_interpreters_switch_interval_never_lengt
         assert abs(sys.getswitchinterval() - 0.0001) < 2e-6  # kept (held in whole µs)
     finally:
         sys.setswitchinterval(saved)
+
+
+# a command started in a process of its own: no numpy yet when main() runs (the parser of a command
+# imports only its own subcommand); threadpoolctl is not needed then, the variables do it
+FRESH = """
+import json, sys
+from host.cli import main
+rc = main(["protocol", "capacity"])
+before = "threadpoolctl" in sys.modules
+import numpy, scipy.linalg
+from threadpoolctl import threadpool_info
+print("\\n" + json.dumps({"rc": rc, "threadpoolctl_at_start": before,
+                          "blas": [(i["prefix"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]}))
+"""
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="a one-core machine runs BLAS on one thread anyway")
+def test_a_blas_loaded_after_a_commands_start_is_limited_too():
+    env = {k: v for k, v in os.environ.items() if k not in BLAS_THREAD_VARS}
+    out = subprocess.run([sys.executable, "-c", FRESH], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["rc"] == 0 and got["threadpoolctl_at_start"] is False
+    assert got["blas"] and {n for _, n in got["blas"]} == {1}, got["blas"]

@@ -30,3 +30,37 @@ def test_every_subcommand_is_still_registered():
     from host.cli import SUBCOMMAND_MODULES, build_parser
     sub = next(a for a in build_parser()._actions if a.dest == "command")
     assert sorted(sub.choices) == sorted(m.rsplit(".", 1)[1] for m in SUBCOMMAND_MODULES)
+
+
+RUN_PROBE = """
+import contextlib, io, json, sys
+from host.cli import SUBCOMMAND_MODULES, main
+with contextlib.redirect_stdout(io.StringIO()):
+    code = main(["protocol", "capacity", "--rate", "100", "--lattice", "4x4"])
+print(json.dumps([code, sorted(m for m in SUBCOMMAND_MODULES if m in sys.modules),
+                  sorted(m for m in sys.modules if m.startswith(("host.session", "host.conformance")))[:5]]))
+"""
+
+
+def test_a_command_builds_its_own_subcommand_alone():
+    """A command's run imports its own subcommand's module, not the twelve others' (each process a
+    command starts paid ~0.2 s of CPU for them): ``capsheet protocol capacity`` needs neither the
+    session nor the conformance checks, which other commands' options import."""
+    out = subprocess.run([sys.executable, "-c", RUN_PROBE], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    code, commands, heavy = json.loads(out.stdout.strip().splitlines()[-1])
+    assert code == 0
+    assert commands == ["host.cli.protocol"]
+    assert heavy == []
+
+
+def test_help_and_a_misspelt_command_still_list_every_command(cli_here):
+    """``--help`` and a word that is no command get the whole parser: every command listed."""
+    from host.cli import SUBCOMMAND_MODULES
+    names = [m.rsplit(".", 1)[1] for m in SUBCOMMAND_MODULES]
+    code, out, _err = cli_here(["--help"])
+    assert code == 0 and all(n in out for n in names)
+    code, _out, err = cli_here(["hots", "--lattice", "3x3"])
+    assert code == 2 and all(repr(n) in err for n in names), err
+    code, out, _err = cli_here(["--version"])
+    assert code == 0 and out.startswith("capsheet ")
