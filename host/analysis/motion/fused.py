@@ -65,6 +65,7 @@ import numpy as np
 from ..estimator import G0, estimate, joints_from_directions
 from ._common import CommonMotion
 from ._config import FusedConfig
+from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
                       inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
@@ -313,6 +314,8 @@ class MotionEstimator:
         self._with_mag: bool | None = None
         self._b_ref = None
         self._dist = None
+        self._points = None  # the links' midpoints at the last snapshot (m, the joints' frame)
+        self._local = None  # the local disturbance's fit (`_dipole.LocalField`)
         self.snapshots = 0
 
     @property
@@ -427,6 +430,8 @@ class MotionEstimator:
             self._w_hist = [self._w_hist[-1], w_c]
             self._t = t
         joints = joints_from_directions(self.R[:, :, 0], self.rows, self.cols, self.link_length)
+        if self._local is not None:
+            self._points = self._midpoints(joints)
         t4 = time.perf_counter()
         self.snapshots += 1
         return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
@@ -465,12 +470,18 @@ class MotionEstimator:
         n = self.n_links
         self._with_mag = m is not None
         if m is not None:
-            W = np.einsum("kij,kj->ki", R, m)
-            head = np.arctan2(W[:, 1], W[:, 0])
-            off = wrap(self.declination_rad - head[v])
-            phi = float(np.arctan2(np.median(np.sin(off)), np.median(np.cos(off))))
-            phi += float(np.median(wrap(off - phi)))
-            R = rotate_all(rotation_matrices(np.array([0.0, 0.0, phi])), R)
+            R = self._initial_heading(R, m, v)
+            if cfg.dipole_significance > 0:
+                # a local disturbance's shape, fitted in the frame the first heading gives, is
+                # taken out, and the heading taken again from what is left (`_dipole`)
+                self._local = LocalField(self.topo.group >= self.rows - 1, cfg.dipole_significance,
+                                         0.5 * self.link_length,
+                                         (max(self.rows, self.cols) - 1) * self.link_length)
+                self._points = self._midpoints(joints_from_directions(
+                    R[:, :, 0], self.rows, self.cols, self.link_length))
+                m = self._local.remove(R, m, self._points, v)
+                if self._local.fit is not None:
+                    R = self._initial_heading(R, m, v)
             W = np.einsum("kij,kj->ki", R, m)[v]
             F = float(np.median(np.linalg.norm(W, axis=1)))
             dip = float(np.median(np.arcsin(np.clip(-W[:, 2] / np.linalg.norm(W, axis=1), -1, 1))))
@@ -512,6 +523,22 @@ class MotionEstimator:
                                     cfg.sheet_position_time_s)
         self._nis = np.full(n, np.nan)
         self._cinv = None  # the yaw solve's coarse preconditioner (`_linalg.coarse_inverse`)
+
+    def _initial_heading(self, R, m, v):
+        """``R`` turned about world z so that the magnetometers' robust mean heading is magnetic
+        north (`declination_rad`)."""
+        W = np.einsum("kij,kj->ki", R, m)
+        head = np.arctan2(W[:, 1], W[:, 0])
+        off = wrap(self.declination_rad - head[v])
+        phi = float(np.arctan2(np.median(np.sin(off)), np.median(np.cos(off))))
+        phi += float(np.median(wrap(off - phi)))
+        return rotate_all(rotation_matrices(np.array([0.0, 0.0, phi])), R)
+
+    def _midpoints(self, joints):
+        """Every link's midpoint, (n_links, 3), from the joints (rows, cols, 3)."""
+        J = joints.reshape(-1, 3)
+        ends = self.topo.lattice.endpoints
+        return 0.5 * (J[ends[:, 0]] + J[ends[:, 1]])
 
     # ------------------------------------------------------------------------------- 1. gyro
     def _missing_rates(self, w_c, v) -> np.ndarray:
@@ -615,6 +642,8 @@ class MotionEstimator:
         mw = np.zeros(n)
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
             self._dt_last = dt
+            if self._local is not None:  # a local disturbance's fitted field out (`_dipole`)
+                m = self._local.remove(self.R, m, self._points, v)
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
