@@ -200,15 +200,18 @@ class LocalField:
         self._wait = 0
         self._retry = _RETRY_MIN
 
-    def remove(self, R: np.ndarray, m: np.ndarray, points: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def remove(self, R: np.ndarray, m: np.ndarray, points, v: np.ndarray) -> np.ndarray:
         """The readings ``m`` (n, 3, link frames) less the fitted dipole's field (``Rᵀ B_d`` at
-        each link's ``points``, world), or ``m`` itself while no fit is significant."""
-        if self.significance <= 0 or points is None:
+        each link's ``points``, world: an array, or a callable that makes it when it is needed),
+        or ``m`` itself while no fit is significant."""
+        if self.significance <= 0:
             return m
         if self.fit is None:
             if self._wait > 0:
                 self._wait -= 1
                 return m
+        if callable(points):
+            points = points()
         idx = np.flatnonzero(v)
         if idx.size < 16:
             self.fit = None

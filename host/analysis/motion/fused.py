@@ -40,7 +40,8 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
    Earth's field (magnitude and dip), averaged over `FusedConfig.disturbance_tau_s`: a local
    disturbance is detected and down-weighted per link. The solution updates each link's whole
    state through its covariance (the bias about z learns from the loops).
-5. **Joints** from the directions by least squares (`host.analysis.estimator.joints_from_directions`).
+5. **Joints** from the directions by least squares (`host.analysis.estimator.joints_from_directions`;
+   all links are present, so by the cosine transform: `_lattice.joints_from_vectors`).
 
 Without magnetometers the loops fix every relative yaw and the common heading is the only free
 gauge (held by the gyroscopes: it wanders slowly, and `overlay` removes it); a group's common
@@ -62,11 +63,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from ..estimator import G0, estimate, joints_from_directions
+from ..estimator import G0, estimate
 from ._common import CommonMotion
 from ._config import FusedConfig
 from ._dipole import LocalField
-from ._lattice import CLOSURE_SIGNS, topology
+from ._lattice import CLOSURE_SIGNS, joints_from_vectors, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
                       inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
@@ -171,7 +172,7 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     """Every chip's acceleration less the mean of all chips', from the links' frames, rates and
     angular accelerations alone (module docstring, step 2): a link's direction ``d = R e_x`` has
     ``d̈ = R (ω × (ω × e_x) + ω̇ × e_x)``; the joints' accelerations follow from the ``d̈`` as the
-    joints from the ``d`` (`joints_from_directions`), and a chip (at its link's midpoint) has the
+    joints from the ``d`` (`_lattice.joints_from_vectors`), and a chip (at its link's midpoint) has the
     mean of its link's ends'.
 
     Parameters
@@ -188,7 +189,7 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     """
     dd = ddot(np.asarray(frames, dtype=float), np.asarray(omega, dtype=float),
               np.asarray(omega_dot, dtype=float))
-    A = joints_from_directions(dd, rows, cols, link_length).reshape(-1, 3)
+    A = joints_from_vectors(dd, rows, cols, link_length).reshape(-1, 3)
     ep = topology(rows, cols).lattice.endpoints if endpoints is None else endpoints
     a = 0.5 * (A[ep[:, 0]] + A[ep[:, 1]])
     return a - a.mean(axis=0)
@@ -314,7 +315,7 @@ class MotionEstimator:
         self._with_mag: bool | None = None
         self._b_ref = None
         self._dist = None
-        self._points = None  # the links' midpoints at the last snapshot (m, the joints' frame)
+        self._joints = None  # the last snapshot's joints (their midpoints: `_dipole` fits there)
         self._local = None  # the local disturbance's fit (`_dipole.LocalField`)
         self.snapshots = 0
 
@@ -429,9 +430,8 @@ class MotionEstimator:
             t3 = time.perf_counter()
             self._w_hist = [self._w_hist[-1], w_c]
             self._t = t
-        joints = joints_from_directions(self.R[:, :, 0], self.rows, self.cols, self.link_length)
-        if self._local is not None:
-            self._points = self._midpoints(joints)
+        joints = joints_from_vectors(self.R[:, :, 0], self.rows, self.cols, self.link_length)
+        self._joints = joints
         t4 = time.perf_counter()
         self.snapshots += 1
         return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
@@ -477,9 +477,8 @@ class MotionEstimator:
                 self._local = LocalField(self.topo.group >= self.rows - 1, cfg.dipole_significance,
                                          0.5 * self.link_length,
                                          (max(self.rows, self.cols) - 1) * self.link_length)
-                self._points = self._midpoints(joints_from_directions(
-                    R[:, :, 0], self.rows, self.cols, self.link_length))
-                m = self._local.remove(R, m, self._points, v)
+                m = self._local.remove(R, m, self._midpoints(joints_from_vectors(
+                    R[:, :, 0], self.rows, self.cols, self.link_length)), v)
                 if self._local.fit is not None:
                     R = self._initial_heading(R, m, v)
             W = np.einsum("kij,kj->ki", R, m)[v]
@@ -643,7 +642,7 @@ class MotionEstimator:
         if m is not None:  # every link's own heading from its magnetometer: weight mw, error me
             self._dt_last = dt
             if self._local is not None:  # a local disturbance's fitted field out (`_dipole`)
-                m = self._local.remove(self.R, m, self._points, v)
+                m = self._local.remove(self.R, m, lambda: self._midpoints(self._joints), v)
             mw, me = self._magnetometer(m, v)
             rhs -= mw * me
         a_diag = prior_diag + lat_diag + mw
