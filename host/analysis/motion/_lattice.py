@@ -158,3 +158,12 @@ def joints_from_vectors(vectors: np.ndarray, rows: int, cols: int, link_length: 
     p = idctn(h, type=2, axes=(1, 2), norm="ortho", overwrite_x=True)
     p -= p[:, :1, :1]
     return np.ascontiguousarray(np.moveaxis(p, 0, -1))
+
+
+def link_midpoints(joints: np.ndarray) -> np.ndarray:
+    """Every link's midpoint (or any per-joint quantity's mean over its link's ends), shape
+    (n_links, 3), from ``joints`` (rows, cols, 3), in link order (docs/design.md): slices of the
+    grid, not a gather by `protocol.lattice.Lattice.endpoints`."""
+    J = np.asarray(joints, dtype=float)
+    return np.concatenate([(0.5 * (J[:-1] + J[1:])).reshape(-1, 3),
+                           (0.5 * (J[:, :-1] + J[:, 1:])).reshape(-1, 3)])
