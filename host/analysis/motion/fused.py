@@ -38,7 +38,9 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
    Chebyshev net, docs/estimator.md §2), every link's own prediction (variance from ``P``), and the
    magnetometers' heading, each weighted by its agreement with the lattice's consensus and with
    Earth's field (magnitude and dip), averaged over `FusedConfig.disturbance_tau_s`: a local
-   disturbance is detected and down-weighted per link. The solution updates each link's whole
+   disturbance is detected and down-weighted per link. Before that, a disturbance that a point
+   dipole explains across the sheet is fitted and its field taken out of the readings
+   (`_dipole.LocalField`, `FusedConfig.dipole_significance`). The solution updates each link's whole
    state through its covariance (the bias about z learns from the loops).
 5. **Joints** from the directions by least squares (`host.analysis.estimator.joints_from_directions`;
    all links are present, so by the cosine transform: `_lattice.joints_from_vectors`).
