@@ -830,14 +830,26 @@ class MotionEstimator:
         topo = self.topo
         g, r = topo.group, topo.n_groups
         resid = wrap(resid)
-        wk = np.where(ok, 1.0 / (1.0 + self._dist[:, 1] ** 2 + self._dist[:, 2] ** 2), 0.0)
+        d = self._dist
+        wk = 1.0 / (1.0 + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+        every = bool(ok.all())
+        if not every:
+            wk[~ok] = 0.0
         mean = np.bincount(g, weights=wk * resid, minlength=r) / np.maximum(
             np.bincount(g, weights=wk, minlength=r), 1e-30)
-        tests = np.stack([(resid - mean[g]) / cfg.disturbance_heading_rad, t_mag, t_dip], axis=1)
         self._dist_count += ok
-        alpha = self._dist_alpha(dt)[:, None]
-        self._dist = np.where(ok[:, None], self._dist + alpha * (tests - self._dist), self._dist)
-        self._resid_avg = np.where(ok, self._resid_avg + alpha[:, 0] * (resid - self._resid_avg),
+        alpha = self._dist_alpha(dt)
+        if every:  # in place (the common case)
+            d[:, 0] += alpha * ((resid - mean[g]) / cfg.disturbance_heading_rad - d[:, 0])
+            d[:, 1] += alpha * (t_mag - d[:, 1])
+            d[:, 2] += alpha * (t_dip - d[:, 2])
+            self._resid_avg += alpha * (resid - self._resid_avg)
+            return
+        # a link without its tests (no sample, a field too vertical: its tests may be NaN) keeps
+        # its averages
+        tests = np.stack([(resid - mean[g]) / cfg.disturbance_heading_rad, t_mag, t_dip], axis=1)
+        self._dist = np.where(ok[:, None], d + alpha[:, None] * (tests - d), d)
+        self._resid_avg = np.where(ok, self._resid_avg + alpha * (resid - self._resid_avg),
                                    self._resid_avg)
 
     def _dist_alpha(self, dt):
