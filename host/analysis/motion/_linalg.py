@@ -389,6 +389,39 @@ def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
 # Whole-sheet pieces of a snapshot: the same in numpy and C (link_filter.h documents each)
 # ---------------------------------------------------------------------------------------------
 
+def np_mag_weights(hz, ok, dist, P, count, dt, noise2, floor2, F, field_unit, dip_unit, tau,
+                   lasts, scale2, h, warmup, e):
+    """The magnetometers' weights, their information and their heading errors (``e``, zeroed
+    where not ``ok``, in place) (`MotionEstimator._magnetometer`; link_filter.h says each
+    term)."""
+    hz2 = np.maximum(hz, 1e-30) ** 2
+    var0 = noise2 / hz2 + floor2
+    a = np.clip(np.maximum(dt / tau, 1.0 / np.maximum(count, 1.0)), 1e-6, 1.0)
+    n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (P[:, 0, 0] + P[:, 1, 1])
+    d2 = ((dist[:, 1] * field_unit) ** 2 + (dist[:, 2] * dip_unit) ** 2) * F * F
+    d2 = np.maximum(d2 - 3.0 * n2, 0.0) * lasts
+    wgt = var0 / (var0 + d2 / hz2) / (1.0 + dist[:, 0] ** 2 / scale2)
+    weight = np.where(ok & (count * h >= warmup), wgt, 0.0)
+    mw = np.where(ok, weight / np.where(ok, var0, 1.0), 0.0)
+    e[~ok] = 0.0
+    return weight, mw
+
+
+def mag_weights(hz, ok, dist, P, count, dt, noise2, floor2, F, field_unit, dip_unit, tau, lasts,
+                scale2, h, warmup, e):
+    """`np_mag_weights`, in C when `USE_KERNEL`."""
+    if not USE_KERNEL:
+        return np_mag_weights(hz, ok, dist, P, count, dt, noise2, floor2, F, field_unit,
+                              dip_unit, tau, lasts, scale2, h, warmup, e)
+    n = hz.shape[0]
+    weight, mw = np.empty(n), np.empty(n)
+    kernel_lib.capsheet_mf_mag_weights(
+        n, *kernel_args("mag_weights", (hz, ok, dist, P, count, dt)), float(noise2),
+        float(floor2), float(F), float(field_unit), float(dip_unit), float(tau), float(lasts),
+        float(scale2), float(h), float(warmup), *kernel_args("mag_weights", (weight, mw, e)))
+    return weight, mw
+
+
 def np_mag_terms(R, m, declination, field, dip, field_unit, dip_unit):
     """Each link's field turned into the world: its heading less the declination (rad,
     wrapped), its horizontal magnitude (T), and its magnitude and dip tests in their units

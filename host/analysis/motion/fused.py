@@ -71,7 +71,8 @@ from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
-                      inv_sym3, mag_terms, orientation_cov as _orientation_cov, pcg, robust_mode,
+                      inv_sym3, mag_terms, mag_weights, orientation_cov as _orientation_cov, pcg,
+                      robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
                       jt_times as _jt_times, kernel_args as _kernel_args,
@@ -773,27 +774,18 @@ class MotionEstimator:
                                           cfg.disturbance_field_frac, cfg.disturbance_dip_rad)
         ok = v & (hz > 0.1 * F)
         self._field_tests = (ok, t_field, t_dip)
-        hz2 = np.maximum(hz, 1e-30) ** 2
-        var0 = cfg.mag_noise_t ** 2 / hz2 + cfg.mag_floor_rad ** 2
-        # what the averaged field tests show beyond their noise (3x its mean: the 95 % point of
-        # the 2-degree-of-freedom chi-square), tesla², a bias over `disturbance_persist_s`
-        # their noise: the magnetometer's, averaged, and the link's tilt (the dip is measured in
-        # the world frame the link's estimated orientation gives)
-        a = self._dist_alpha(self._dt_last)
-        noise2 = 2.0 * cfg.mag_noise_t ** 2 * a / (2.0 - a) \
-            + F * F * (self.P[:, 0, 0] + self.P[:, 1, 1])
-        dist2 = ((self._dist[:, 1] * cfg.disturbance_field_frac) ** 2
-                 + (self._dist[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
+        # the averaged field tests beyond their noise (3x its mean: the 95 % point of the
+        # 2-degree-of-freedom chi-square) as a bias over `disturbance_persist_s`; their noise the
+        # magnetometer's, averaged, and the link's tilt (the dip is measured in the world frame
+        # the link's estimated orientation gives); until the tests have averaged over their time
+        # constant a link's magnetometer is not used (a magnet there from the start would
+        # otherwise be believed first): `_linalg.np_mag_weights` has the formulas
         lasts = cfg.disturbance_persist_s / max(self._h, 1e-6)
-        dist2 = np.maximum(dist2 - 3.0 * noise2, 0.0) * lasts
-        s2 = self._dist[:, 0] ** 2
-        wgt = var0 / (var0 + dist2 / hz2) / (1.0 + s2 / cfg.disturbance_scale ** 2)
-        # until the tests have averaged over their time constant a link's magnetometer is not
-        # used: a magnet there from the start would otherwise be believed first
-        warm = self._dist_count * self._h >= cfg.mag_warmup_s
-        self._weights = np.where(ok & warm, wgt, 0.0)
-        mw = np.where(ok, self._weights / np.where(ok, var0, 1.0), 0.0)
-        e = np.where(ok, e, 0.0)
+        self._weights, mw = mag_weights(hz, ok, self._dist, self.P, self._dist_count,
+                                        self._dt_last, cfg.mag_noise_t ** 2,
+                                        cfg.mag_floor_rad ** 2, F, cfg.disturbance_field_frac,
+                                        cfg.disturbance_dip_rad, cfg.disturbance_tau_s, lasts,
+                                        cfg.disturbance_scale ** 2, self._h, cfg.mag_warmup_s, e)
         return mw, e
 
     def _heading_mode(self, dt) -> None:

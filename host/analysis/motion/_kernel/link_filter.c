@@ -603,3 +603,35 @@ void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
         seen[g] = info[g] / (seen[g] > 1e-300 ? seen[g] : 1e-300);
     }
 }
+
+void capsheet_mf_mag_weights(size_t n, const double *hz, const uint8_t *ok, const double *dist,
+                             const double *P, const double *count, const double *dt,
+                             double noise2, double floor2, double F, double field_unit,
+                             double dip_unit, double tau, double lasts, double scale2, double h,
+                             double warmup, double *weight, double *mw, double *e)
+{
+    for (size_t k = 0; k < n; k++) {
+        double m = hz[k] > 1e-30 ? hz[k] : 1e-30;
+        double hz2 = m * m;
+        double var0 = noise2 / hz2 + floor2;
+        double c = count[k] > 1.0 ? count[k] : 1.0;
+        double a = dt[k] / tau;
+        double b = 1.0 / c;
+        a = a > b ? a : b;
+        a = a < 1e-6 ? 1e-6 : (a > 1.0 ? 1.0 : a);
+        const double *Pk = P + 36 * k;
+        double n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (Pk[0] + Pk[7]);
+        const double *d = dist + 3 * k;
+        double f1 = d[1] * field_unit, f2 = d[2] * dip_unit;
+        double d2 = (f1 * f1 + f2 * f2) * F * F;
+        d2 = d2 - 3.0 * n2;
+        d2 = (d2 > 0.0 ? d2 : 0.0) * lasts;
+        double wgt = var0 / (var0 + d2 / hz2) / (1.0 + d[0] * d[0] / scale2);
+        int use = ok[k] != 0;
+        weight[k] = (use && count[k] * h >= warmup) ? wgt : 0.0;
+        mw[k] = use ? weight[k] / var0 : 0.0;
+        if (!use) {
+            e[k] = 0.0;
+        }
+    }
+}
