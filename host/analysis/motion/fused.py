@@ -71,8 +71,8 @@ from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
-                      inv_sym3, mag_terms, mag_weights, orientation_cov as _orientation_cov, pcg,
-                      robust_mode,
+                      dist_tests, inv_sym3, mag_terms, mag_weights,
+                      orientation_cov as _orientation_cov, pcg, robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
                       jt_times as _jt_times, kernel_args as _kernel_args,
@@ -820,32 +820,6 @@ class MotionEstimator:
         # the heading against its group's (links the loops turn alike on a flat sheet): what a
         # group shares is the shape's to explain, what one link alone shows is its own
         topo = self.topo
-        g, r = topo.group, topo.n_groups
-        resid = wrap(resid)
-        d = self._dist
-        wk = 1.0 / (1.0 + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
-        every = bool(ok.all())
-        if not every:
-            wk[~ok] = 0.0
-        mean = np.bincount(g, weights=wk * resid, minlength=r) / np.maximum(
-            np.bincount(g, weights=wk, minlength=r), 1e-30)
-        self._dist_count += ok
-        alpha = self._dist_alpha(dt)
-        if every:  # in place (the common case)
-            d[:, 0] += alpha * ((resid - mean[g]) / cfg.disturbance_heading_rad - d[:, 0])
-            d[:, 1] += alpha * (t_mag - d[:, 1])
-            d[:, 2] += alpha * (t_dip - d[:, 2])
-            self._resid_avg += alpha * (resid - self._resid_avg)
-            return
-        # a link without its tests (no sample, a field too vertical: its tests may be NaN) keeps
-        # its averages
-        tests = np.stack([(resid - mean[g]) / cfg.disturbance_heading_rad, t_mag, t_dip], axis=1)
-        self._dist = np.where(ok[:, None], d + alpha[:, None] * (tests - d), d)
-        self._resid_avg = np.where(ok, self._resid_avg + alpha * (resid - self._resid_avg),
-                                   self._resid_avg)
-
-    def _dist_alpha(self, dt):
-        """The tests' averaging weight per link: a running mean over the first samples, then an
-        exponential one over `FusedConfig.disturbance_tau_s`."""
-        return np.clip(np.maximum(dt / self.config.disturbance_tau_s,
-                                  1.0 / np.maximum(self._dist_count, 1.0)), 1e-6, 1.0)
+        self._dist = dist_tests(topo.group, topo.n_groups, ok, resid, t_mag, t_dip, dt,
+                                cfg.disturbance_tau_s, cfg.disturbance_heading_rad, self._dist,
+                                self._resid_avg, self._dist_count)

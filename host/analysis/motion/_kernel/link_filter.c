@@ -635,3 +635,69 @@ void capsheet_mf_mag_weights(size_t n, const double *hz, const uint8_t *ok, cons
         }
     }
 }
+
+void capsheet_mf_dist_tests(size_t n, size_t n_groups, const int64_t *group, const uint8_t *ok,
+                            const double *resid, const double *t_mag, const double *t_dip,
+                            const double *dt, double tau, double heading_unit, double *dist,
+                            double *resid_avg, double *count, double *sums)
+{
+    double *sw = sums, *swr = sums + n_groups;
+    for (size_t g = 0; g < n_groups; g++) {
+        sw[g] = 0.0;
+        swr[g] = 0.0;
+    }
+    for (size_t k = 0; k < n; k++) {
+        if (!ok[k]) {
+            continue;
+        }
+        const double *d = dist + 3 * k;
+        double wk = 1.0 / (1.0 + d[1] * d[1] + d[2] * d[2]);
+        swr[group[k]] += wk * wrap_pi(resid[k]);
+        sw[group[k]] += wk;
+    }
+    for (size_t k = 0; k < n; k++) {
+        if (!ok[k]) {
+            continue;
+        }
+        double rk = wrap_pi(resid[k]);
+        int64_t g = group[k];
+        double mean = swr[g] / (sw[g] > 1e-30 ? sw[g] : 1e-30);
+        count[k] += 1.0;
+        double c = count[k] > 1.0 ? count[k] : 1.0;
+        double a = dt[k] / tau, b = 1.0 / c;
+        a = a > b ? a : b;
+        a = a < 1e-6 ? 1e-6 : (a > 1.0 ? 1.0 : a);
+        double *d = dist + 3 * k;
+        d[0] += a * ((rk - mean) / heading_unit - d[0]);
+        d[1] += a * (t_mag[k] - d[1]);
+        d[2] += a * (t_dip[k] - d[2]);
+        resid_avg[k] += a * (rk - resid_avg[k]);
+    }
+}
+
+double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, double width,
+                               double start, int iterations)
+{
+    double psi = start;
+    for (int it = 0; it < iterations; it++) {
+        double s = 0.0, sr = 0.0;
+        for (size_t k = 0; k < n; k++) {
+            if (!(w[k] > 0.0)) {
+                continue;
+            }
+            double u = (r[k] - psi) / width;
+            double t = 1.0 - u * u;
+            if (t > 0.0) {
+                double wt = w[k] * t * t;
+                s += wt;
+                sr += wt * r[k];
+            }
+        }
+        if (s <= 0.0) {
+            return NAN;
+        }
+        psi = sr / s;
+    }
+    return psi;
+}
+

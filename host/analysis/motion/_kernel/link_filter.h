@@ -128,3 +128,21 @@ void capsheet_mf_mag_weights(size_t n, const double *hz, const uint8_t *ok, cons
                              double noise2, double floor2, double F, double field_unit,
                              double dip_unit, double tau, double lasts, double scale2, double h,
                              double warmup, double *weight, double *mw, double *e);
+
+/* The disturbance tests' averages (fused.py `_linalg.np_dist_tests`,
+ * `MotionEstimator._disturbance_tests`), for the links where ok: resid wrapped to [-pi, pi);
+ * each group's mean of it weighted 1 / (1 + dist1^2 + dist2^2) over its ok links (sums in link
+ * order; sums: 2 n_groups of work); count += 1; a = clip(max(dt / tau, 1 / max(count, 1)),
+ * 1e-6, 1); dist += a ((resid - mean) / heading_unit, t_mag, t_dip) - a dist; resid_avg +=
+ * a (resid - resid_avg). Links not ok keep everything. */
+void capsheet_mf_dist_tests(size_t n, size_t n_groups, const int64_t *group, const uint8_t *ok,
+                            const double *resid, const double *t_mag, const double *t_dip,
+                            const double *dt, double tau, double heading_unit, double *dist,
+                            double *resid_avg, double *count, double *sums);
+
+/* Tukey's biweight mode from start (fused.py `_linalg.robust_mode` with a start): iterations
+ * reweighted means of r, each weighted w (1 - ((r - psi) / width)^2)^2 within width of psi, links
+ * with w <= 0 left out. Returns NaN when nothing has weight. */
+double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, double width,
+                               double start, int iterations);
+
