@@ -597,8 +597,10 @@ class MotionEstimator:
         cfg = self.config
         da = self._relative_accel(w_c, dt)
         nv = int(v.sum())
-        if nv == v.size:  # the links' mean reading in the world, without a masked copy
-            a_c = np.einsum("kij,kj->i", self.R, f) / nv - _GRAVITY_SF - da.mean(axis=0)
+        if nv == v.size:  # the links' mean reading in the world, one product: M[j, 3i + l] =
+            # Σ_k f[k, j] R[k, i, l], and Σ_k R_k f_k is M's entries with j = l
+            M = (f.T @ self.R.reshape(-1, 9)).reshape(3, 3, 3)
+            a_c = np.einsum("jij->i", M) / nv - _GRAVITY_SF - da.mean(axis=0)
         elif nv:
             a_c = np.einsum("kij,kj->i", self.R[v], f[v]) / nv - _GRAVITY_SF - da[v].mean(axis=0)
         else:

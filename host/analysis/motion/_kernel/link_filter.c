@@ -474,8 +474,9 @@ void capsheet_mf_mag_terms(size_t n, const double *R, const double *m, double de
         for (int i = 0; i < 3; i++) {
             W[i] = Rk[3 * i] * mk[0] + Rk[3 * i + 1] * mk[1] + Rk[3 * i + 2] * mk[2];
         }
-        double h = hypot(W[0], W[1]);
-        double norm = sqrt(W[0] * W[0] + W[1] * W[1] + W[2] * W[2]);
+        double h2 = W[0] * W[0] + W[1] * W[1];
+        double h = sqrt(h2); /* a field of tesla: no overflow for hypot to guard against */
+        double norm = sqrt(h2 + W[2] * W[2]);
         hz[k] = h;
         heading[k] = wrap_pi(atan2(W[1], W[0]) - declination);
         t_field[k] = (norm / field - 1.0) / field_unit;
