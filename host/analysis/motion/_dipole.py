@@ -224,7 +224,8 @@ class LocalField:
             starts, its = self.fit.position_m, 1
         else:
             c, s = p.mean(axis=0), self.span_m / 4.0
-            starts = c + s * np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)])
+            corners = [[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]
+            starts = c + s * np.array(corners)
             its = 8
         fit = fit_dipole(p, W, self.family[idx], starts, its, self.min_distance_m)
         self.f_stat = 0.0

@@ -135,7 +135,8 @@ def _grid_eigenvalues(rows: int, cols: int) -> np.ndarray:
     return inv
 
 
-def joints_from_vectors(vectors: np.ndarray, rows: int, cols: int, link_length: float) -> np.ndarray:
+def joints_from_vectors(vectors: np.ndarray, rows: int, cols: int,
+                        link_length: float) -> np.ndarray:
     """`host.analysis.estimator.joints_from_directions` for a lattice whose links are all valid,
     by the fast cosine transform instead of a sparse factorisation: ``min Σ ‖p_b − p_a − L d‖²``,
     joint (0, 0) at the origin. ``vectors`` (n_links, 3) in link order; returns (rows, cols, 3).

@@ -12,7 +12,8 @@ from host.analysis.motion._dipole import LocalField, fit_dipole
 from virtual_sheet.magfield import Dipole, MagneticField, quarter_disturbance
 from virtual_sheet.motion import make_motion_scene
 
-from .test_motion_estimator import EARTH, TOLD, L, chips, heading_error_deg, mean_error, record, run_fused
+from .test_motion_estimator import (EARTH, TOLD, L, chips, heading_error_deg, mean_error, record,
+                                    run_fused)
 
 N = 14
 S = (N - 1) * L
@@ -25,7 +26,8 @@ def flat_sheet():
     i, j = np.meshgrid(np.arange(N, dtype=float), np.arange(N, dtype=float), indexing="ij")
     mid_i = np.stack([(i[:-1] + 0.5) * L, j[:-1] * L, 0 * i[:-1]], axis=-1).reshape(-1, 3)
     mid_j = np.stack([i[:, :-1] * L, (j[:, :-1] + 0.5) * L, 0 * i[:, :-1]], axis=-1).reshape(-1, 3)
-    return np.concatenate([mid_i, mid_j]), np.r_[np.zeros(len(mid_i), int), np.ones(len(mid_j), int)]
+    family = np.r_[np.zeros(len(mid_i), int), np.ones(len(mid_j), int)]
+    return np.concatenate([mid_i, mid_j]), family
 
 
 def rz(a):
@@ -34,7 +36,8 @@ def rz(a):
 
 
 MAGNET = Dipole((0.75 * S, 0.75 * S, -S / 4), (0.0, 0.0, 0.005))  # the bench's, under a quarter
-GRID = np.array([[x, y, z] for x in (0.2, 0.8) for y in (0.2, 0.8) for z in (-0.4, 0.4)]) * S  # none on it
+# the fits' starting grid, none of it on the magnet
+GRID = np.array([[x, y, z] for x in (0.2, 0.8) for y in (0.2, 0.8) for z in (-0.4, 0.4)]) * S
 
 
 def fields(points, family, magnet, shear_rad, seed):
@@ -102,7 +105,8 @@ def test_beside_a_magnet_a_flat_sheets_heading_and_shear_come_from_earths_field(
         truth, rd = record(make_motion_scene(name, N, N, L), chips(N, mag=True, field=field), 3.0)
         est = run_fused(N, rd, config=config)
         last = range(len(est) - 145, len(est))
-        head = float(np.mean([abs(heading_error_deg(est[k].frames, truth.frames[k])) for k in last]))
+        head = float(np.mean([abs(heading_error_deg(est[k].frames, truth.frames[k]))
+                              for k in last]))
         return head, float(mean_error([est[k].joints for k in last], truth).mean())
 
     head, _err = last_second(TOLD, "flat_turn")
