@@ -90,6 +90,11 @@ class FusedConfig:
         While the magnetometers' weights do not hold the sheet's heading (a disturbance under
         much of the sheet), it follows the mode of the links' averaged heading residuals
         (Tukey's biweight of this width, rad; 0: not at all) with this time constant, s.
+    dipole_significance : float
+        A local disturbance is fitted as a point dipole beside uniform fields
+        (`host.analysis.motion._dipole`) and its field taken out of the magnetometers' readings
+        while the dipole explains the links' fields better than uniform fields alone by at
+        least this F statistic (its six numbers against the residual; 0: never fitted).
     """
 
     accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
@@ -123,6 +128,7 @@ class FusedConfig:
     initial_yaw_std_rad: float = 0.05
     heading_mode_rad: float = float(np.radians(0.75))
     heading_mode_time_s: float = 1.0
+    dipole_significance: float = 25.0
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:

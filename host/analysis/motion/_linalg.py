@@ -389,6 +389,74 @@ def yaw_solve(topo, jd, wts, terms, mw, b, inv_diag, rtol: float = 1e-9,
 # Whole-sheet pieces of a snapshot: the same in numpy and C (link_filter.h documents each)
 # ---------------------------------------------------------------------------------------------
 
+def np_dist_tests(group, n_groups, ok, resid, t_mag, t_dip, dt, tau, heading_unit, dist,
+                  resid_avg, count):
+    """The disturbance tests' averages, in place (`MotionEstimator._disturbance_tests`;
+    link_filter.h says each term): returns ``dist`` (a new array when some link is not ok)."""
+    resid = wrap(resid)
+    wk = 1.0 / (1.0 + dist[:, 1] * dist[:, 1] + dist[:, 2] * dist[:, 2])
+    wk[~ok] = 0.0
+    wr = wk * resid
+    wr[~ok] = 0.0  # a link not ok adds nothing (its residual may be anything)
+    mean = np.bincount(group, weights=wr, minlength=n_groups) / np.maximum(
+        np.bincount(group, weights=wk, minlength=n_groups), 1e-30)
+    count += ok
+    alpha = np.clip(np.maximum(dt / tau, 1.0 / np.maximum(count, 1.0)), 1e-6, 1.0)
+    tests = np.stack([(resid - mean[group]) / heading_unit, t_mag, t_dip], axis=1)
+    new = np.where(ok[:, None], dist + alpha[:, None] * (tests - dist), dist)
+    resid_avg[:] = np.where(ok, resid_avg + alpha * (resid - resid_avg), resid_avg)
+    dist[:] = new
+    return dist
+
+
+def dist_tests(group, n_groups, ok, resid, t_mag, t_dip, dt, tau, heading_unit, dist, resid_avg,
+               count):
+    """`np_dist_tests`, in C when `USE_KERNEL` (``dist``, ``resid_avg``, ``count`` in place)."""
+    if not USE_KERNEL:
+        return np_dist_tests(group, n_groups, ok, resid, t_mag, t_dip, dt, tau, heading_unit,
+                             dist, resid_avg, count)
+    n = resid.shape[0]
+    sums = np.empty(2 * n_groups)
+    kernel_lib.capsheet_mf_dist_tests(
+        n, n_groups, *kernel_args("dist_tests", (group, ok, resid, t_mag, t_dip, dt)),
+        float(tau), float(heading_unit), *kernel_args("dist_tests", (dist, resid_avg, count,
+                                                                     sums)))
+    return dist
+
+
+def np_mag_weights(hz, ok, dist, P, count, dt, noise2, floor2, F, field_unit, dip_unit, tau,
+                   lasts, scale2, h, warmup, e):
+    """The magnetometers' weights, their information and their heading errors (``e``, zeroed
+    where not ``ok``, in place) (`MotionEstimator._magnetometer`; link_filter.h says each
+    term)."""
+    hz2 = np.maximum(hz, 1e-30) ** 2
+    var0 = noise2 / hz2 + floor2
+    a = np.clip(np.maximum(dt / tau, 1.0 / np.maximum(count, 1.0)), 1e-6, 1.0)
+    n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (P[:, 0, 0] + P[:, 1, 1])
+    d2 = ((dist[:, 1] * field_unit) ** 2 + (dist[:, 2] * dip_unit) ** 2) * F * F
+    d2 = np.maximum(d2 - 3.0 * n2, 0.0) * lasts
+    wgt = var0 / (var0 + d2 / hz2) / (1.0 + dist[:, 0] ** 2 / scale2)
+    weight = np.where(ok & (count * h >= warmup), wgt, 0.0)
+    mw = np.where(ok, weight / np.where(ok, var0, 1.0), 0.0)
+    e[~ok] = 0.0
+    return weight, mw
+
+
+def mag_weights(hz, ok, dist, P, count, dt, noise2, floor2, F, field_unit, dip_unit, tau, lasts,
+                scale2, h, warmup, e):
+    """`np_mag_weights`, in C when `USE_KERNEL`."""
+    if not USE_KERNEL:
+        return np_mag_weights(hz, ok, dist, P, count, dt, noise2, floor2, F, field_unit,
+                              dip_unit, tau, lasts, scale2, h, warmup, e)
+    n = hz.shape[0]
+    weight, mw = np.empty(n), np.empty(n)
+    kernel_lib.capsheet_mf_mag_weights(
+        n, *kernel_args("mag_weights", (hz, ok, dist, P, count, dt)), float(noise2),
+        float(floor2), float(F), float(field_unit), float(dip_unit), float(tau), float(lasts),
+        float(scale2), float(h), float(warmup), *kernel_args("mag_weights", (weight, mw, e)))
+    return weight, mw
+
+
 def np_mag_terms(R, m, declination, field, dip, field_unit, dip_unit):
     """Each link's field turned into the world: its heading less the declination (rad,
     wrapped), its horizontal magnitude (T), and its magnitude and dip tests in their units
@@ -473,6 +541,18 @@ def robust_mode(r: np.ndarray, w: np.ndarray, width: float, start: float | None 
     current ``ψ`` and 0 beyond, from ``start`` (default: the weighted median). The values a
     disturbance turns a little, which pull a mean and a median their way, do not pull it once
     they are ``width`` off the values that agree. None when nothing has weight."""
+    if start is not None and USE_KERNEL:  # the estimator's every snapshot: in C
+        psi = kernel_lib.capsheet_mf_robust_mode(
+            r.size, *kernel_args("mode", (np.ascontiguousarray(r, dtype=float),
+                                          np.ascontiguousarray(w, dtype=float))),
+            float(width), float(start), max(1, iterations // 2))
+        return None if np.isnan(psi) else float(psi)
+    return np_robust_mode(r, w, width, start, iterations)
+
+
+def np_robust_mode(r, w, width, start=None, iterations=8):
+    """`robust_mode` in numpy (the reference of its C kernel, and its start by the weighted
+    median)."""
     keep = w > 0
     if not keep.any():
         return None

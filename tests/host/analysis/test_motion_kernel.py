@@ -188,6 +188,80 @@ def test_the_whole_sheet_steps_are_the_same_in_c_and_numpy():
     assert np.abs(la.mag_terms(R, m, 0.3 + 1e-9, *args[3:])[0] - la.np_mag_terms(*args)[0]).max() > 5e-10
 
 
+def test_the_magnetometers_weights_are_the_same_in_c_and_numpy():
+    """Every branch of the weights: links not ok (their heading error zeroed, NaN fields
+    included), not yet warm, tests under and over their noise, headings off their group."""
+    from host.analysis.motion import _linalg as la
+    n = 64
+    g, _R, P = _state(n, 22)
+    hz = g.uniform(5e-6, 30e-6, n)
+    ok = g.uniform(size=n) > 0.2
+    hz[~ok][:3] = np.nan
+    dist = g.normal(0, 3, (n, 3)) * g.uniform(0, 1, (n, 1)) ** 3  # many small, some large
+    count = g.integers(0, 40, n).astype(float)
+    dt = g.uniform(0.005, 0.008, n)
+    args = (hz, ok, dist, P, count, dt, (0.35e-6) ** 2, np.radians(0.5) ** 2, 50e-6, 0.01,
+            np.radians(0.5), 0.3, 5.0 / 0.0069, 4.0, 0.0069, 0.1)
+    e = g.normal(0, 0.1, n)
+    e_c, e_np = e.copy(), e.copy()
+    (w_c, mw_c), (w_np, mw_np) = la.mag_weights(*args, e_c), la.np_mag_weights(*args, e_np)
+    assert np.abs(w_c - w_np).max() <= 1e-15 and np.abs(mw_c - mw_np).max() <= 1e-12 * mw_np.max()
+    assert np.array_equal(e_c, e_np) and np.all(e_np[~ok] == 0) and np.all(e_np[ok] == e[ok])
+    # every branch was met: unused links, cold ones, warm ones at full and at reduced weight
+    warm = ok & (count * 0.0069 >= 0.1)
+    assert (~ok).any() and (ok & ~warm).any() and np.all(w_np[~warm] == 0)
+    assert (w_np[warm] > 0.99).any() and (w_np[warm] < 0.1).any()
+    # the check can fail: the magnetometer's noise off by 1 % changes every used link's
+    # information by up to as much
+    _w, mw_off = la.mag_weights(*args[:6], args[6] * 1.01, *args[7:], e.copy())
+    assert np.abs(mw_off - mw_np).max() > 1e-3 * mw_np.max()
+
+
+def test_the_disturbance_tests_and_the_heading_mode_are_the_same_in_c_and_numpy():
+    """The tests' averages (links not ok keep theirs, NaN tests included; residuals beyond ±π
+    wrapped; a group with no ok link) and the biweight mode from a start."""
+    from host.analysis.motion import _linalg as la
+    n, groups = 60, 7
+    g = np.random.Generator(np.random.MT19937(23))
+    group = np.arange(n, dtype=np.int64) % groups
+    ok = g.uniform(size=n) > 0.25
+    ok[group == 3] = False
+    resid = g.normal(0, 0.02, n)
+    resid[:4] += 2 * np.pi
+    t_mag, t_dip = g.normal(0, 2, n), g.normal(0, 2, n)
+    t_mag[~ok] = np.nan
+    dt = g.uniform(0.005, 0.008, n)
+    dist0, avg0, count0 = g.normal(0, 1, (n, 3)), g.normal(0, 0.01, n), g.integers(0, 9, n) * 1.0
+    out = []
+    for f in (la.dist_tests, la.np_dist_tests):
+        d, a, c = dist0.copy(), avg0.copy(), count0.copy()
+        d = f(group, groups, ok, resid, t_mag, t_dip, dt, 0.3, 0.0087, d, a, c)
+        out.append((d, a, c))
+    (dc, ac, cc), (dn, an, cn) = out
+    assert np.abs(dc - dn).max() <= 1e-12 and np.abs(ac - an).max() <= 1e-15
+    assert np.array_equal(cc, cn) and np.array_equal(cn, count0 + ok)
+    assert np.array_equal(dn[~ok], dist0[~ok]) and np.all(np.isfinite(dn))
+    # residuals a turn apart are the same residuals; the check can fail: residuals 0.01 rad
+    # off move the averages
+    d = dist0.copy()
+    la.np_dist_tests(group, groups, ok, resid - 2 * np.pi * (np.arange(n) < 4), t_mag, t_dip, dt,
+                     0.3, 0.0087, d, avg0.copy(), count0.copy())
+    assert np.abs(d - dc).max() <= 1e-12  # wrapped alike: the same
+    a2 = avg0.copy()
+    la.np_dist_tests(group, groups, ok, resid + 0.01, t_mag, t_dip, dt, 0.3, 0.0087,
+                     dist0.copy(), a2, count0.copy())
+    assert np.abs(a2 - ac).max() > 1e-3
+    # the mode from a start: C and numpy
+    r = np.concatenate([g.normal(0.0, 0.002, 200), -g.uniform(0.014, 0.05, 120)])
+    w = g.uniform(0, 1, r.size) * (g.uniform(size=r.size) > 0.1)
+    for start in (0.0, -0.004, 0.01):
+        c_psi = la.robust_mode(r, w, 0.013, start)
+        assert abs(c_psi - la.np_robust_mode(r, w, 0.013, start)) <= 1e-15
+        assert abs(c_psi) < 1e-3
+    assert la.robust_mode(r, np.zeros(r.size), 0.013, 0.0) is None
+    assert la.robust_mode(r, w, 0.013, 1.0) is None  # nothing within the width of the start
+
+
 @pytest.mark.parametrize("name", ["accel", "yaw"])
 def test_a_step_and_its_correction_in_one_pass_are_the_two_calls(name):
     """``step_apply`` in C (a block of links at a time) gives the numpy step followed by numpy's

@@ -474,8 +474,9 @@ void capsheet_mf_mag_terms(size_t n, const double *R, const double *m, double de
         for (int i = 0; i < 3; i++) {
             W[i] = Rk[3 * i] * mk[0] + Rk[3 * i + 1] * mk[1] + Rk[3 * i + 2] * mk[2];
         }
-        double h = hypot(W[0], W[1]);
-        double norm = sqrt(W[0] * W[0] + W[1] * W[1] + W[2] * W[2]);
+        double h2 = W[0] * W[0] + W[1] * W[1];
+        double h = sqrt(h2); /* a field of tesla: no overflow for hypot to guard against */
+        double norm = sqrt(h2 + W[2] * W[2]);
         hz[k] = h;
         heading[k] = wrap_pi(atan2(W[1], W[0]) - declination);
         t_field[k] = (norm / field - 1.0) / field_unit;
@@ -603,3 +604,101 @@ void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
         seen[g] = info[g] / (seen[g] > 1e-300 ? seen[g] : 1e-300);
     }
 }
+
+void capsheet_mf_mag_weights(size_t n, const double *hz, const uint8_t *ok, const double *dist,
+                             const double *P, const double *count, const double *dt,
+                             double noise2, double floor2, double F, double field_unit,
+                             double dip_unit, double tau, double lasts, double scale2, double h,
+                             double warmup, double *weight, double *mw, double *e)
+{
+    for (size_t k = 0; k < n; k++) {
+        double m = hz[k] > 1e-30 ? hz[k] : 1e-30;
+        double hz2 = m * m;
+        double var0 = noise2 / hz2 + floor2;
+        double c = count[k] > 1.0 ? count[k] : 1.0;
+        double a = dt[k] / tau;
+        double b = 1.0 / c;
+        a = a > b ? a : b;
+        a = a < 1e-6 ? 1e-6 : (a > 1.0 ? 1.0 : a);
+        const double *Pk = P + 36 * k;
+        double n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (Pk[0] + Pk[7]);
+        const double *d = dist + 3 * k;
+        double f1 = d[1] * field_unit, f2 = d[2] * dip_unit;
+        double d2 = (f1 * f1 + f2 * f2) * F * F;
+        d2 = d2 - 3.0 * n2;
+        d2 = (d2 > 0.0 ? d2 : 0.0) * lasts;
+        double wgt = var0 / (var0 + d2 / hz2) / (1.0 + d[0] * d[0] / scale2);
+        int use = ok[k] != 0;
+        weight[k] = (use && count[k] * h >= warmup) ? wgt : 0.0;
+        mw[k] = use ? weight[k] / var0 : 0.0;
+        if (!use) {
+            e[k] = 0.0;
+        }
+    }
+}
+
+void capsheet_mf_dist_tests(size_t n, size_t n_groups, const int64_t *group, const uint8_t *ok,
+                            const double *resid, const double *t_mag, const double *t_dip,
+                            const double *dt, double tau, double heading_unit, double *dist,
+                            double *resid_avg, double *count, double *sums)
+{
+    double *sw = sums, *swr = sums + n_groups;
+    for (size_t g = 0; g < n_groups; g++) {
+        sw[g] = 0.0;
+        swr[g] = 0.0;
+    }
+    for (size_t k = 0; k < n; k++) {
+        if (!ok[k]) {
+            continue;
+        }
+        const double *d = dist + 3 * k;
+        double wk = 1.0 / (1.0 + d[1] * d[1] + d[2] * d[2]);
+        swr[group[k]] += wk * wrap_pi(resid[k]);
+        sw[group[k]] += wk;
+    }
+    for (size_t k = 0; k < n; k++) {
+        if (!ok[k]) {
+            continue;
+        }
+        double rk = wrap_pi(resid[k]);
+        int64_t g = group[k];
+        double mean = swr[g] / (sw[g] > 1e-30 ? sw[g] : 1e-30);
+        count[k] += 1.0;
+        double c = count[k] > 1.0 ? count[k] : 1.0;
+        double a = dt[k] / tau, b = 1.0 / c;
+        a = a > b ? a : b;
+        a = a < 1e-6 ? 1e-6 : (a > 1.0 ? 1.0 : a);
+        double *d = dist + 3 * k;
+        d[0] += a * ((rk - mean) / heading_unit - d[0]);
+        d[1] += a * (t_mag[k] - d[1]);
+        d[2] += a * (t_dip[k] - d[2]);
+        resid_avg[k] += a * (rk - resid_avg[k]);
+    }
+}
+
+double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, double width,
+                               double start, int iterations)
+{
+    double psi = start;
+    for (int it = 0; it < iterations; it++) {
+        double s = 0.0, sr = 0.0;
+        for (size_t k = 0; k < n; k++) {
+            if (!(w[k] > 0.0)) {
+                continue;
+            }
+            double u = (r[k] - psi) / width;
+            double t = 1.0 - u * u;
+            if (t > 0.0) {
+                double wt = w[k] * t * t;
+                s += wt;
+                sr += wt * r[k];
+            }
+        }
+        if (s <= 0.0) {
+            return NAN;
+        }
+        psi = sr / s;
+    }
+    return psi;
+}
+

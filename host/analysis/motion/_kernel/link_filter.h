@@ -115,3 +115,34 @@ void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
                             const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
                             const int64_t *jg_group, const double *w, const int64_t *group,
                             const double *lat_diag, double *jg, double *info, double *seen);
+
+/* The magnetometers' weights (fused.py `_linalg.np_mag_weights`, `MotionEstimator._magnetometer`),
+ * per link: var0 = noise2 / hz2 + floor2 with hz2 = max(hz, 1e-30)^2; the tests' averaging
+ * weight a = clip(max(dt / tau, 1 / max(count, 1)), 1e-6, 1); their noise
+ * n2 = 2 noise2 a / (2 - a) + (F F) (P[0][0] + P[1][1]); what the averaged field tests show
+ * beyond it, d2 = max(((dist1 field_unit)^2 + (dist2 dip_unit)^2) F F - 3 n2, 0) lasts;
+ * wgt = var0 / (var0 + d2 / hz2) / (1 + dist0^2 / scale2); weight = wgt where ok and
+ * count h >= warmup, else 0; mw = weight / var0 where ok, else 0; e = 0 where not ok. */
+void capsheet_mf_mag_weights(size_t n, const double *hz, const uint8_t *ok, const double *dist,
+                             const double *P, const double *count, const double *dt,
+                             double noise2, double floor2, double F, double field_unit,
+                             double dip_unit, double tau, double lasts, double scale2, double h,
+                             double warmup, double *weight, double *mw, double *e);
+
+/* The disturbance tests' averages (fused.py `_linalg.np_dist_tests`,
+ * `MotionEstimator._disturbance_tests`), for the links where ok: resid wrapped to [-pi, pi);
+ * each group's mean of it weighted 1 / (1 + dist1^2 + dist2^2) over its ok links (sums in link
+ * order; sums: 2 n_groups of work); count += 1; a = clip(max(dt / tau, 1 / max(count, 1)),
+ * 1e-6, 1); dist += a ((resid - mean) / heading_unit, t_mag, t_dip) - a dist; resid_avg +=
+ * a (resid - resid_avg). Links not ok keep everything. */
+void capsheet_mf_dist_tests(size_t n, size_t n_groups, const int64_t *group, const uint8_t *ok,
+                            const double *resid, const double *t_mag, const double *t_dip,
+                            const double *dt, double tau, double heading_unit, double *dist,
+                            double *resid_avg, double *count, double *sums);
+
+/* Tukey's biweight mode from start (fused.py `_linalg.robust_mode` with a start): iterations
+ * reweighted means of r, each weighted w (1 - ((r - psi) / width)^2)^2 within width of psi, links
+ * with w <= 0 left out. Returns NaN when nothing has weight. */
+double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, double width,
+                               double start, int iterations);
+
