@@ -114,7 +114,7 @@ def test_part_needs_the_c_firmware_and_a_6_axis_set():
 def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors):
     """``capsheet virtual --firmware c --part ...`` (a 4x4 6- or 9-axis sheet) streams to ``capsheet host``
     over a real pty: >= 99 % of the snapshots complete, every link sample with its gyroscope."""
-    from tests.host.cli.test_host import Virtual, host_json
+    from tests.host.cli.cli_runs import Virtual, host_json
     lay = tmp_path / "sheet.csv"
     v = Virtual("--lattice", "4x4", "--sensors", sensors, "--firmware", "c", "--part", part,
                 "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))

@@ -16,6 +16,8 @@ import sys
 
 import pytest
 
+from tests.host.cli.cli_runs import Virtual
+
 
 class _Deadline(Exception):
     pass
@@ -67,3 +69,24 @@ def cli_here(capsys, monkeypatch):
         return code, got.out, got.err
 
     return run
+
+@pytest.fixture
+def udp_bus_lock():
+    """One udp_multicast test on this machine at a time (tests/host/udp_lock.py says why)."""
+    from tests.host.udp_lock import udp_multicast_lock
+    with udp_multicast_lock():
+        yield
+
+
+@pytest.fixture
+def virtuals():
+    """``make(*args)``: a `Virtual` sheet, killed at the test's end."""
+    made: list[Virtual] = []
+
+    def make(*args):
+        v = Virtual(*args)
+        made.append(v)
+        return v
+    yield make
+    for v in made:
+        v.stop(signal.SIGKILL)

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 
 from tests import zenoh_meeting
-from tests.host.cli.test_host import CLI, ENV, popen_host, virtuals, wait_line  # noqa: F401 -- the fixture
+from tests.host.cli.cli_runs import CLI, ENV, popen_host, wait_line
 
 pytest.importorskip("zenoh")
 CHECKER = Path(__file__).with_name("estimate_checker.py")

@@ -12,7 +12,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
@@ -20,122 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-CLI = [sys.executable, "-m", "host.cli"]
-ENV = dict(os.environ, PYTHONUNBUFFERED="1")
-
-
-class Virtual:
-    """``capsheet virtual ...`` in a subprocess; its stdout is read in a thread (never blocks)."""
-
-    def __init__(self, *args: str) -> None:
-        self.args = list(args)
-        self.lines: list[str] = []
-        self.p = subprocess.Popen(CLI + ["virtual", *self.args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                  text=True, env=ENV)
-        self._t = threading.Thread(target=self._read, daemon=True)
-        self._t.start()
-        self.host_cmd = self.wait_for("capsheet host ", 60).strip().split()[2:]
-
-    def _read(self) -> None:
-        for line in self.p.stdout:
-            self.lines.append(line)
-
-    def wait_for(self, needle: str, timeout_s: float) -> str:
-        end = time.monotonic() + timeout_s
-        while time.monotonic() < end:
-            for line in self.lines:
-                if needle in line:
-                    return line
-            if self.p.poll() is not None and not self._t.is_alive():
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"capsheet virtual did not print {needle!r}: {self.lines} {self.p.stderr.read() if self.p.poll() is not None else ''}")
-
-    def stop(self, sig=signal.SIGTERM) -> int:
-        if self.p.poll() is None:
-            self.p.send_signal(sig)
-        try:
-            return self.p.wait(30)
-        finally:
-            if self.p.poll() is None:
-                self.p.kill()
-
-
-@pytest.fixture
-def udp_bus_lock():
-    """One udp_multicast test on this machine at a time (tests/host/udp_lock.py says why)."""
-    from tests.host.udp_lock import udp_multicast_lock
-    with udp_multicast_lock():
-        yield
-
-
-@pytest.fixture
-def virtuals():
-    made: list[Virtual] = []
-
-    def make(*args):
-        v = Virtual(*args)
-        made.append(v)
-        return v
-    yield make
-    for v in made:
-        v.stop(signal.SIGKILL)
-
-
-def _rate(args) -> list:
-    """A modest SYNC rate and a generous completion deadline unless the test gives them: what is
-    delivered is under test, not speed or latency (a loaded 2-core machine)."""
-    args = list(args) if "--rate" in args else [*args, "--rate", "30"]
-    return args if "--deadline-ms" in args else [*args, "--deadline-ms", "500"]
-
-
-def host(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run(CLI + ["host", *_rate(args)], capture_output=True, text=True, timeout=timeout_s, env=ENV)
-
-
-def host_json(*args: str, timeout_s: float = 120) -> tuple[subprocess.CompletedProcess, dict]:
-    out = host(*args, "--json", "-q", timeout_s=timeout_s)
-    assert "Traceback" not in out.stderr, out.stderr
-    assert out.stdout.strip(), (out.returncode, out.stderr)  # JSON alone on stdout
-    doc = json.loads(out.stdout)
-    return out, doc
-
-
-def popen_host(*args: str) -> subprocess.Popen:
-    return subprocess.Popen(CLI + ["host", *_rate(args)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=ENV)
-
-
-def wait_line(p: subprocess.Popen, needle: str, timeout_s: float, sink: list) -> None:
-    """Read ``p``'s stderr (into ``sink``) until a line holds ``needle``."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        line = p.stderr.readline()
-        if not line:
-            break
-        sink.append(line)
-        if needle in line:
-            return
-    raise AssertionError(f"host never printed {needle!r}: {''.join(sink)}")
-
-
-def drain(p: subprocess.Popen, sink: list) -> threading.Thread:
-    t = threading.Thread(target=lambda: sink.extend(iter(p.stderr.readline, "")), daemon=True)
-    t.start()
-    return t
-
-
-def finish(p: subprocess.Popen, drainer: threading.Thread, timeout_s: float = 60) -> str:
-    """The host's stdout once it has exited, while ``drainer`` (not ``communicate``, which would
-    race it for stderr) reads stderr to its end."""
-    box: list = []
-    reader = threading.Thread(target=lambda: box.append(p.stdout.read()), daemon=True)
-    reader.start()
-    p.wait(timeout_s)
-    reader.join(timeout_s)
-    drainer.join(timeout_s)
-    return box[0]
-
+from tests.host.cli.cli_runs import CLI, ENV, modest_rate, drain, finish, host, host_json, popen_host, wait_line
 
 # -- bad values: one line, exit 2, no traceback (no sheet needed: checked before any port opens) --
 
@@ -174,7 +58,7 @@ def test_every_bad_value_is_one_line_and_exit_2(tmp_path, cli_here):
     cases.update(_bad_layouts(tmp_path))
     for k, (args, needle) in enumerate(cases.items()):
         argv = ["host", "--port", str(tmp_path / "no-such-port"), *args]
-        runs = [cli_here(_rate(argv))]
+        runs = [cli_here(modest_rate(argv))]
         if k == 0:
             out = host(*argv[1:])
             runs.append((out.returncode, out.stdout, out.stderr))
@@ -183,7 +67,7 @@ def test_every_bad_value_is_one_line_and_exit_2(tmp_path, cli_here):
             assert needle in err, (args, err)
             assert "Traceback" not in err, (args, err)
     # a JSON layout's lattice is taken when --lattice is not given; given and different: an error
-    _code, _out, err = cli_here(_rate(["host", "--port", str(tmp_path / "no-such-port"), "--layout",
+    _code, _out, err = cli_here(modest_rate(["host", "--port", str(tmp_path / "no-such-port"), "--layout",
                                        str(tmp_path / "small.json"), "--lattice", "14x14"]))
     assert "--lattice 14x14 but the layout" in err and "is for 2x2" in err
 
@@ -512,7 +396,7 @@ def test_two_udp_multicast_sheets_on_one_machine_do_not_hear_each_other(udp_bus_
                      "--channel", group, "--layout-out", str(tmp_path / f"{name}.csv"))
         assert v.host_cmd[:2] == ["--can", f"udp_multicast:{group}"]
         sheets[name] = v
-    procs = {n: subprocess.Popen(CLI + ["host", *_rate([*v.host_cmd, "--duration", "2", "--json", "-q"])],
+    procs = {n: subprocess.Popen(CLI + ["host", *modest_rate([*v.host_cmd, "--duration", "2", "--json", "-q"])],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
              for n, v in sheets.items()}
     for name, chips in (("a", 12), ("b", 24)):

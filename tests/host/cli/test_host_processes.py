@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from tests.host.cli.test_host import drain, finish, host, host_json, popen_host, virtuals, wait_line  # noqa: F401
+from tests.host.cli.cli_runs import drain, finish, host, host_json, popen_host, wait_line  # noqa: F401
 
 
 def _children(pid: int) -> list[tuple[int, str]]:

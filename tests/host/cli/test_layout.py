@@ -14,7 +14,7 @@ import pytest
 
 from protocol.layout import load_layout, save_layout
 from tests.host.cli.test_bad_values import CLI, MAX_LINE, TIMEOUT_S
-from tests.host.cli.test_host import ENV, Virtual
+from tests.host.cli.cli_runs import ENV, Virtual
 
 LATTICE = "5x5"
 #: a whole pass of the poses is 4 x (hold + move) = 10 s: the learner needs at most two

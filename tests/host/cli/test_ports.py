@@ -13,7 +13,7 @@ import subprocess
 
 import pytest
 
-from tests.host.cli.test_host import CLI, ENV, Virtual, drain, finish, popen_host, wait_line
+from tests.host.cli.cli_runs import CLI, ENV, Virtual, drain, finish, popen_host, wait_line
 
 
 def ports(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:

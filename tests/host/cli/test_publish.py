@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.host.cli.test_host import CLI, ENV, host, virtuals  # noqa: F401 -- the fixture
+from tests.host.cli.cli_runs import CLI, ENV, host
 
 pytest.importorskip("zenoh")
 SUB = Path(__file__).with_name("zenoh_subscriber.py")

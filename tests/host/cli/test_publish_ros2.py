@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from tests import zenoh_meeting
-from tests.host.cli.test_host import CLI, ENV, virtuals  # noqa: F401 -- the fixture
+from tests.host.cli.cli_runs import CLI, ENV
 
 pytest.importorskip("zenoh")
 rosbags = pytest.importorskip("rosbags")

@@ -19,7 +19,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from host.publish.robot import load_robot, parse_robot
-from tests.host.cli.test_host import CLI, ENV
+from tests.host.cli.cli_runs import CLI, ENV
 from tests.host.publish.test_live_node import CLIENT_JS, NODE_MODULES, _node
 
 GOOD = """

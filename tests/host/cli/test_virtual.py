@@ -10,7 +10,7 @@ import subprocess
 
 import pytest
 
-from tests.host.cli.test_host import CLI, ENV, Virtual
+from tests.host.cli.cli_runs import CLI, ENV, Virtual
 
 
 def _virtual_here(capsys, *args: str) -> tuple[int, str, str]:
