@@ -601,12 +601,20 @@ class Recorder:
         if self._writer is None or self._closed:
             return
         session, layout, calibration = self.session_facts(host)
+        live_cal = host.calibration  # `capsheet host --calibration`: what the snapshots were corrected with
+        self.add_facts(session, layout, calibration, None if live_cal is None else live_cal.to_dict())
+
+    def add_facts(self, session: dict, layout: dict, calibration: dict, live_cal: dict | None = None) -> None:
+        """`add_host_facts` from facts already taken (`session_facts`; a writer process gets them from
+        the host's process): the metadata, the attachments, and ``live_cal`` (the live calibration's
+        dict) if any."""
+        if self._writer is None or self._closed:
+            return
         self.session.update(session)
         self._document("metadata", "capsheet.host", {k: json.dumps(v) for k, v in session.items()})
         docs = [("layout.json", layout), ("calibration.json", calibration)]
-        live_cal = host.calibration
-        if live_cal is not None:  # `capsheet host --calibration`: what the snapshots were corrected with
-            docs.append((HOST_CALIBRATION, live_cal.to_dict()))
+        if live_cal is not None:
+            docs.append((HOST_CALIBRATION, live_cal))
         for name, doc in docs:
             self._document("attachment", name, doc)
 

@@ -344,29 +344,11 @@ def serve(inp, out) -> int:
             if name == "close":
                 stats = args[0]
                 break
-            if name == "add_facts":
-                _add_facts(rec, *args)
-            else:
-                getattr(rec, name)(*args, **kw)
+            getattr(rec, name)(*args, **kw)
     rec.close(stats)
     reply("closed", {"counts": rec.counts, "paths": [str(p) for p in rec.paths], "stopped": rec.stopped,
                      "not_recorded": rec.not_recorded, "estimates_cut": rec.estimates_cut, "scene_cut": rec.scene_cut})
     return 0
-
-
-def _add_facts(rec, session: dict, layout: dict, calibration: dict, live_cal: dict | None) -> None:
-    """`Recorder.add_host_facts` from facts taken in the host's process."""
-    from host.record.channels import HOST_CALIBRATION
-    import json
-    if rec._writer is None or rec._closed:
-        return
-    rec.session.update(session)
-    rec._document("metadata", "capsheet.host", {k: json.dumps(v) for k, v in session.items()})
-    docs = [("layout.json", layout), ("calibration.json", calibration)]
-    if live_cal is not None:
-        docs.append((HOST_CALIBRATION, live_cal))
-    for name, doc in docs:
-        rec._document("attachment", name, doc)
 
 
 if __name__ == "__main__":
