@@ -400,27 +400,9 @@ class Recorder:
         the same snapshots however late the host's threads ran. (``t_rx`` keeps the time the bytes
         were read.) A chunk without a complete frame waits for the next ingest.
         """
-        self._pending = {bus: [] for bus in range(len(transports))}
-        self._ports = {bus: t.name for bus, t in enumerate(transports)}
-        for bus, t in enumerate(transports):
-            if feed is None:
-                t.begin_capture(lambda cap, bus=bus, name=t.name: cap.direction == "rx" and self.raw(
-                    bus, cap.kind, _raw_payload(cap), name, t=cap.timestamp, log_time_ns=int(cap.wall_time * 1e9)))
-            else:
-                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self._pending[bus].append(
-                    (cap.timestamp, int(cap.wall_time * 1e9), cap.kind, _raw_payload(cap))))
-        if feed is not None:
-            feed.add_ingest_listener(lambda bus, now: self._pending.get(bus) and self._write_pending(bus, now))
-
-    def _write_pending(self, bus: int, t: float | None) -> None:
-        pending = self._pending[bus]
-        while True:
-            try:
-                t_rx, wall_ns, kind, payload = pending.pop(0)
-            except IndexError:
-                return
-            self.raw(bus, kind, payload, self._ports.get(bus, ""), t=t_rx if t is None else t,
-                     log_time_ns=wall_ns, t_rx=t_rx)
+        ports = [t.name for t in transports]
+        self._tap = InputTap(transports, feed, lambda bus, kind, payload, **kw: self.raw(
+            bus, kind, payload, ports[bus], **kw))
 
     def raw(self, bus: int, kind: str, payload, port: str = "", t: float | None = None,
             log_time_ns: int | None = None, t_rx: float | None = None) -> None:
@@ -636,8 +618,8 @@ class Recorder:
         """Attach ``stats.json`` (if given), write the summary, stop the live server. Idempotent."""
         if self._closed:
             return
-        for bus in list(getattr(self, "_pending", {})):
-            self._write_pending(bus, None)  # read but never ingested (the session ended)
+        if getattr(self, "_tap", None) is not None:
+            self._tap.flush()  # read but never ingested (the session ended)
         with self._io:
             if self._writer is not None:
                 if stats is not None:
@@ -671,6 +653,37 @@ class Recorder:
                    "transports": [{"name": t.name, "kind": t.capabilities.kind, "fd": t.capabilities.fd,
                                    "bitrate": t.capabilities.bitrate} for t in host.transports]}
         return session, layout, calibration
+
+
+class InputTap:
+    """Every transport's received input (its capture, `host.transport.ports.Transport.begin_capture`)
+    handed to ``write(bus, kind, payload, t=, log_time_ns=, t_rx=)``, bus index = position in the list:
+    as read without ``feed``; with it, each chunk when its events are ingested (`Recorder.tap` says
+    why), and `flush` hands over what was read but never ingested."""
+
+    def __init__(self, transports, feed, write) -> None:
+        self._write = write
+        self._pending: dict[int, list] = {bus: [] for bus in range(len(transports))}
+        for bus, t in enumerate(transports):
+            if feed is None:
+                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and write(
+                    bus, cap.kind, _raw_payload(cap), t=cap.timestamp, log_time_ns=int(cap.wall_time * 1e9),
+                    t_rx=None))
+            else:
+                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self._pending[bus].append(
+                    (cap.timestamp, int(cap.wall_time * 1e9), cap.kind, _raw_payload(cap))))
+        if feed is not None:
+            feed.add_ingest_listener(self._ingested)
+
+    def _ingested(self, bus: int, now: float | None) -> None:
+        pending = self._pending.get(bus)
+        while pending:
+            t_rx, wall_ns, kind, payload = pending.pop(0)
+            self._write(bus, kind, payload, t=t_rx if now is None else now, log_time_ns=wall_ns, t_rx=t_rx)
+
+    def flush(self) -> None:
+        for bus in self._pending:
+            self._ingested(bus, None)
 
 
 def _raw_payload(cap):

@@ -184,25 +184,8 @@ class RecorderProcess:
     def tap(self, transports, feed=None) -> None:
         """`Recorder.tap`: every transport's raw input, each chunk written when its events are ingested
         (stamped with the ``now`` the aggregator decides with), as `Recorder.tap` writes it."""
-        self._pending = {bus: [] for bus in range(len(transports))}
-        for bus, t in enumerate(transports):
-            if feed is None:
-                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self.raw(
-                    bus, cap.kind, _payload(cap), t=cap.timestamp, log_time_ns=int(cap.wall_time * 1e9)))
-            else:
-                t.begin_capture(lambda cap, bus=bus: cap.direction == "rx" and self._pending[bus].append(
-                    (cap.timestamp, int(cap.wall_time * 1e9), cap.kind, _payload(cap))))
-        if feed is not None:
-            feed.add_ingest_listener(lambda bus, now: self._pending.get(bus) and self._write_pending(bus, now))
-
-    def _write_pending(self, bus: int, t: float | None) -> None:
-        pending = self._pending[bus]
-        while True:
-            try:
-                t_rx, wall_ns, kind, payload = pending.pop(0)
-            except IndexError:
-                return
-            self.raw(bus, kind, payload, t=t_rx if t is None else t, log_time_ns=wall_ns, t_rx=t_rx)
+        from host.record.writer import InputTap
+        self._tap = InputTap(transports, feed, self.raw)
 
     def raw(self, bus: int, kind: str, payload, port: str = "", t: float | None = None,
             log_time_ns: int | None = None, t_rx: float | None = None) -> None:
@@ -264,8 +247,8 @@ class RecorderProcess:
         it (its final counts). Idempotent."""
         if self._closed:
             return
-        for bus in list(getattr(self, "_pending", {})):
-            self._write_pending(bus, None)
+        if getattr(self, "_tap", None) is not None:
+            self._tap.flush()
         self._call("close", stats)
         self._closed = True
         try:
@@ -290,10 +273,6 @@ class RecorderProcess:
 
     def __exit__(self, *exc) -> None:
         self.close()
-
-
-def _payload(cap):
-    return cap.frames(echoes=True) if cap.kind == "can" else cap.raw
 
 
 # ------------------------------------------------------------------------------------------------
