@@ -1,7 +1,7 @@
 """Running ``capsheet`` commands as real processes for the CLI's tests: ``capsheet virtual`` in a
 subprocess (`Virtual`), ``capsheet host`` run to its end (`host`, `host_json`) or started and read
-line by line (`popen_host`, `wait_line`, `drain`, `finish`). The fixtures that use them (``virtuals``,
-``udp_bus_lock``) are in tests/host/cli/conftest.py."""
+line by line (`popen_host`, `wait_line`, `drain`, `finish`). ``udp_bus_lock`` is the
+fixture that keeps udp_multicast tests apart; tests/host/cli/conftest.py has it and ``virtuals``."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ import subprocess
 import sys
 import threading
 import time
+
+import pytest
 
 CLI = [sys.executable, "-m", "host.cli"]
 ENV = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -109,3 +111,11 @@ def finish(p: subprocess.Popen, drainer: threading.Thread, timeout_s: float = 60
     reader.join(timeout_s)
     drainer.join(timeout_s)
     return box[0]
+
+
+@pytest.fixture
+def udp_bus_lock():
+    """One udp_multicast test on this machine at a time (tests/host/udp_lock.py says why)."""
+    from tests.host.udp_lock import udp_multicast_lock
+    with udp_multicast_lock():
+        yield

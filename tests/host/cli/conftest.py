@@ -16,7 +16,7 @@ import sys
 
 import pytest
 
-from tests.host.cli.cli_runs import Virtual
+from tests.host.cli.cli_runs import Virtual, udp_bus_lock  # noqa: F401 -- the fixture, for this folder
 
 
 class _Deadline(Exception):
@@ -69,13 +69,6 @@ def cli_here(capsys, monkeypatch):
         return code, got.out, got.err
 
     return run
-
-@pytest.fixture
-def udp_bus_lock():
-    """One udp_multicast test on this machine at a time (tests/host/udp_lock.py says why)."""
-    from tests.host.udp_lock import udp_multicast_lock
-    with udp_multicast_lock():
-        yield
 
 
 @pytest.fixture

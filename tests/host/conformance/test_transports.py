@@ -13,7 +13,8 @@ import pytest
 
 from host.conformance import AuditedCanTransport, CHECKS, Port, run_checks
 from host.transport.ports import CanTransport, SerialTransport
-from tests.host.cli.test_host import ONE_MULTICAST_BUS, _udp_or_skip, udp_bus_lock  # noqa: F401 (fixture)
+from tests.host.cli.cli_runs import udp_bus_lock  # noqa: F401 (fixture)
+from tests.host.cli.test_host import ONE_MULTICAST_BUS, _udp_or_skip
 from tests.host.conformance.mutants import CounterOffByOne
 from virtual_sheet.devices import CanDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
