@@ -400,9 +400,7 @@ class Recorder:
         the same snapshots however late the host's threads ran. (``t_rx`` keeps the time the bytes
         were read.) A chunk without a complete frame waits for the next ingest.
         """
-        ports = [t.name for t in transports]
-        self._tap = InputTap(transports, feed, lambda bus, kind, payload, **kw: self.raw(
-            bus, kind, payload, ports[bus], **kw))
+        self._tap = InputTap(transports, feed, self.raw)  # `raw` records no port name: the bus index says it
 
     def raw(self, bus: int, kind: str, payload, port: str = "", t: float | None = None,
             log_time_ns: int | None = None, t_rx: float | None = None) -> None:
