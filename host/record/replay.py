@@ -281,8 +281,16 @@ class Replay:
         # wall clock of the recording: LatticeSnapshot.wall_time = timestamp + offset (a CAN log's
         # times are Unix times already)
         self._wall_offset = 0.0
+        self._wall_at: dict = {}
         if self.recording is not None and len(self.recording):
             self._wall_offset = float(self.recording.wall_time[0] - self.recording.timestamp[0])
+            # the offset each counter had: the host measures Unix minus monotonic as it opens a
+            # counter, and on a loaded machine a thread that waits between reading the two clocks
+            # moves that measurement by milliseconds; one offset for the whole recording gave some
+            # snapshots (and every ROS 2 message stamped from them) a wall time the host never gave
+            rec = self.recording
+            self._wall_at = {(c, ts): w - ts for c, ts, w in zip(rec.counter.tolist(), rec.timestamp.tolist(),
+                                                                 rec.wall_time.tolist())}
         # an MCAP recording's counters are emitted where the host emitted them (`snapshots`), never
         # at a deadline of this aggregator's own, which would cut a read the host took in whole
         self._follows = self.recording is not None and len(self.recording) > 0 and not self._own_deadline
@@ -391,6 +399,7 @@ class Replay:
             if kind == 0:
                 if recorder is not None:
                     recorder.sync(who, t)
+                self._wall_offset = self._wall_at.get((who, t), self._wall_offset)
                 feed.open_counter(who, t, restart=first_sync)
                 first_sync = False
             else:
