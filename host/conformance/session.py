@@ -197,10 +197,33 @@ class Port(_AuditView):
         self.damage: Counter = Counter()  #: reason -> count
         self._err_base = transport.stats.errors.get("CAN_ERROR_FRAME", 0)
         self._disc_base = transport.stats.disconnects
+        self._thread: threading.Thread | None = None
+        self._start_reader()
+
+    # -- the clock: every time the session and the checks read or wait on is the port's
+    def now(self) -> float:
+        """The port's clock, seconds: `time.monotonic` here (`host.conformance.simulated.SimulatedPort`:
+        the simulated clock). Arrival and send times, deadlines and the checks' own waits all read it."""
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of the port's clock pass (what arrives meanwhile is queued for `next`)."""
+        if seconds > 0:
+            time.sleep(seconds)
+
+    # -- the reader
+    def _start_reader(self) -> None:
         self._thread = threading.Thread(target=self._reader, name="conformance-port", daemon=True)
         self._thread.start()
 
-    # -- the reader
+    def _went_away(self) -> bool:
+        """The transport lost its device (a disconnect counted): `error` says so."""
+        if self.transport.stats.disconnects > self._disc_base:
+            self.error = TransportOperationError(f"The port {self.transport.name!r} went away during the run",
+                                                 self.transport.name)
+            return True
+        return False
+
     def _reader(self) -> None:
         while not self._stop.is_set():
             try:
@@ -211,33 +234,35 @@ class Port(_AuditView):
                 with self._cond:
                     self._cond.notify_all()
                 return
-            if self.transport.stats.disconnects > self._disc_base:
-                self.error = TransportOperationError(f"The port {self.transport.name!r} went away during the run",
-                                                     self.transport.name)
+            if self._went_away():
                 with self._cond:
                     self._cond.notify_all()
                 return
             if not events:
                 continue
-            t = time.monotonic()
+            t = self.now()
             with self._cond:
-                for ev in events:
-                    if isinstance(ev, (SampleBatch, ImuBatch)):
-                        for m in ev.messages():
-                            self.frames += 1
-                            self._q.append((t, m))
-                    elif isinstance(ev, DecodeError) and ev.detail.startswith(INCOMPLETE_IMU):
-                        # classic CAN frames of an IMU record that do not make one (§16.4): every frame
-                        # arrived intact, so the node sent them so; the §16 checks see no record
-                        self.incomplete_imu += 1
-                    elif isinstance(ev, DecodeError):
-                        self.damaged += 1
-                        self.damage[ev.reason.name] += 1
-                        self._q.append((t, ev))
-                    else:
-                        self.frames += 1
-                        self._q.append((t, ev))
+                self._take(events, t)
                 self._cond.notify_all()
+
+    def _take(self, events: list, t: float) -> None:
+        """Queue what the transport delivered at ``t`` (and count it); the caller holds ``_cond``."""
+        for ev in events:
+            if isinstance(ev, (SampleBatch, ImuBatch)):
+                for m in ev.messages():
+                    self.frames += 1
+                    self._q.append((t, m))
+            elif isinstance(ev, DecodeError) and ev.detail.startswith(INCOMPLETE_IMU):
+                # classic CAN frames of an IMU record that do not make one (§16.4): every frame
+                # arrived intact, so the node sent them so; the §16 checks see no record
+                self.incomplete_imu += 1
+            elif isinstance(ev, DecodeError):
+                self.damaged += 1
+                self.damage[ev.reason.name] += 1
+                self._q.append((t, ev))
+            else:
+                self.frames += 1
+                self._q.append((t, ev))
 
     def _error_frames(self) -> int:
         return self.transport.stats.errors.get("CAN_ERROR_FRAME", 0) - self._err_base
@@ -254,14 +279,14 @@ class Port(_AuditView):
         return self.lost > 0 and self.frames >= 2 * self.lost
 
     def next(self, deadline: float):
-        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline`` (monotonic).
+        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline`` (the port's clock, `now`).
 
         Raises the transport's error if the port went away."""
         with self._cond:
             while not self._q:
                 if self.error is not None:
                     raise self.error
-                left = deadline - time.monotonic()
+                left = deadline - self.now()
                 if left <= 0:
                     return None
                 self._cond.wait(left)
@@ -276,7 +301,7 @@ class Port(_AuditView):
         if self.error is not None:
             raise self.error
         self.transport.send(msg)
-        return time.monotonic()
+        return self.now()
 
     def send_raw(self, type_code: int, node: int, payload: bytes, *, version: int | None = None) -> float:
         """A frame a conforming host never sends (undefined type, wrong length or version)."""
@@ -288,11 +313,11 @@ class Port(_AuditView):
             self.transport.send_bytes(encode_frame(type_code, node, payload, version=v))
         else:
             self._can_raw(make_id(type_code, node, priority=4, version=v), payload)
-        return time.monotonic()
+        return self.now()
 
     def send_bytes(self, data: bytes) -> float:
         self.transport.send_bytes(data)
-        return time.monotonic()
+        return self.now()
 
     def _can_raw(self, arbitration_id: int, data: bytes, extended: bool = True) -> None:
         if not isinstance(self.transport, CanTransport):
@@ -301,7 +326,8 @@ class Port(_AuditView):
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=2.0)
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
         self.transport.end_capture(self.audit)
 
 
@@ -472,7 +498,7 @@ class Session:
         the chip; with ``syncs`` the SYNC frames heard (a gateway's, forwarded) are kept too. Every
         frame heard updates the bookkeeping (`note`), and ``stop`` is asked after each."""
         out: list = []
-        deadline = time.monotonic() + duration_s
+        deadline = self.port.now() + duration_s
         while True:
             item = self.port.next(deadline)
             if item is None:
