@@ -48,7 +48,7 @@ from protocol.messages import (LINK_NONE, MSG_TYPE_CODES, NODE_MAX_ASSIGNED, Ack
                                Sample, Snapshot, SnapshotImu, Start, Status, Stop, Sync, is_node_to_host_type)
 
 
-__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
+__all__ = ["Port", "SimulatedClock", "SimulatedPort", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
            "FrameAudit", "HEARTBEAT_MS", "SAMPLES"]
 
 #: STATUS period the run configures (CONFIG heartbeat_ms), ms
@@ -328,6 +328,119 @@ class Port(_AuditView):
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+        self.transport.end_capture(self.audit)
+
+
+# ---------------------------------------------------------------------------------------------
+# The port on a simulated clock (host/conformance/simulated.py says what it is for)
+# ---------------------------------------------------------------------------------------------
+
+#: when the device names no later event (it is down in an outage), time moves on by its loop's poll period
+_IDLE_STEP_S = 0.01
+
+
+class SimulatedClock:
+    """Seconds that move only when the run moves them (`advance_to`); call it for the time.
+
+    Pass the same clock to the device (``clock=``) and to `SimulatedPort`."""
+
+    def __init__(self, start_s: float = 0.0) -> None:
+        self.t = float(start_s)
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance_to(self, t: float) -> None:
+        """Move to ``t`` (never back: an earlier ``t`` leaves the clock where it is)."""
+        if t > self.t:
+            self.t = float(t)
+
+    def __repr__(self) -> str:
+        return f"SimulatedClock({self.t:.6f})"
+
+
+class SimulatedPort(Port):
+    """A `Port` on a simulated clock, over the host's end of an in-process device in manual mode.
+
+    Parameters
+    ----------
+    transport : Transport
+        The host's end of ``device``: a `MemoryTransport` over ``device.port`` (serial), or an
+        `AuditedCanTransport` on the device's python-can ``virtual`` channel. Read without waiting.
+    device : virtual_sheet.devices.Device
+        Built with ``clock=`` ``clock`` and started (manual mode: no thread; the port runs it with
+        ``device.step()``).
+    clock : SimulatedClock, optional
+        Default: ``device.clock``, which must then be a `SimulatedClock`.
+
+    ``steps``: how many times the port stepped the device (a run's cost, the same on every run).
+    """
+
+    def __init__(self, transport: Transport, device, clock: SimulatedClock | None = None) -> None:
+        clock = device.clock if clock is None else clock
+        if not isinstance(clock, SimulatedClock):
+            raise ValueError(f"Invalid clock {clock!r}: a SimulatedPort needs a SimulatedClock (the device's, "
+                             f"given as clock= when it was built)")
+        if device.clock is not clock:
+            raise ValueError("the device runs on another clock: build it with clock= the port's SimulatedClock")
+        self.clock = clock
+        self.device = device
+        self.steps = 0
+        super().__init__(transport)
+
+    def _start_reader(self) -> None:  # the caller's thread reads, in `_pump`
+        pass
+
+    def now(self) -> float:
+        return self.clock.t
+
+    def _pump(self) -> None:
+        """Step the device at the clock's time (it reads what the host sent, serves its timers, sends
+        what is due) and queue everything the transport then holds, as arrived now."""
+        self.device.step()
+        self.steps += 1
+        while True:
+            events = self.transport.recv(0.0)  # TransportError propagates, as the reader thread's does
+            if self._went_away():
+                raise self.error
+            if not events:
+                return
+            self._take(events, self.clock.t)
+
+    def _next_event(self) -> float:
+        """When the device next has something to do (after the clock's time)."""
+        now = self.clock.t
+        t = min(gw.next_deadline() for gw in self.device.gateways)
+        return t if t > now else now + _IDLE_STEP_S
+
+    def next(self, deadline: float):
+        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline``: the device runs
+        from one event to the next until something arrives or the clock reaches ``deadline``."""
+        while True:
+            if self.error is not None:
+                raise self.error
+            self._pump()
+            if self._q:
+                return self._q.popleft()
+            if self.clock.t >= deadline:
+                return None
+            self.clock.advance_to(min(deadline, self._next_event()))
+
+    def sleep(self, seconds: float) -> None:
+        """Run the device for ``seconds`` of the clock; what arrives meanwhile is queued, at its time."""
+        end = self.clock.t + max(0.0, seconds)
+        while True:
+            self._pump()
+            if self.clock.t >= end:
+                return
+            self.clock.advance_to(min(end, self._next_event()))
+
+    def drain(self) -> None:
+        self._pump()
+        self._q.clear()
+
+    def close(self) -> None:
+        self._stop.set()
         self.transport.end_capture(self.audit)
 
 

@@ -22,7 +22,7 @@ from host.cli import main
 from host.conformance import CHECKS, INFORMATIVE, AuditedCanTransport, Port, run_checks, select, summary, table
 from host.conformance.checks import clauses_covered
 from host.conformance.runner import CheckResult
-from host.conformance.simulated import simulated_port
+from tests.host.conformance.simulated_runs import simulated_port
 from host.transport.ports import MemoryTransport, SerialTransport, TransportError
 from protocol.messages import Assign, ChipState, Config, Start
 from tests.shared_runs import session_root, shared_runs

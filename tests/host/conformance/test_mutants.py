@@ -26,7 +26,7 @@ import pytest
 
 from host.conformance import CHECKS, AuditedCanTransport, Port, run_checks
 from host.conformance.runner import CheckResult
-from host.conformance.simulated import simulated_port
+from tests.host.conformance.simulated_runs import simulated_port
 from host.transport.ports import MemoryTransport
 from tests.host.conformance.mutants import (C_MUTANT_EVIDENCE, C_MUTANT_OPTIONS, C_MUTANTS, GATEWAY_MUTANTS, HEALTHY,
                                             IMU_MUTANTS, MUTANTS)

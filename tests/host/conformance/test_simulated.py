@@ -9,7 +9,8 @@ import time
 import pytest
 
 from host.conformance import run_checks
-from host.conformance.simulated import SimulatedClock, SimulatedPort, simulated_port
+from host.conformance.simulated import SimulatedClock, SimulatedPort
+from tests.host.conformance.simulated_runs import simulated_port
 from host.transport.ports import MemoryTransport
 from protocol.messages import Announce, Info
 from protocol.state import ANNOUNCE_PERIOD_S
