@@ -436,10 +436,13 @@ class SimulatedPort(Port):
             self.clock.advance_to(min(end, self._next_event()))
 
     def drain(self) -> None:
+        """Discard what has arrived by now (the device stepped at the clock's time first, as a reader
+        thread would have read it by now)."""
         self._pump()
         self._q.clear()
 
     def close(self) -> None:
+        """End the port's capture (the device and the transport are the caller's to close)."""
         self._stop.set()
         self.transport.end_capture(self.audit)
 
