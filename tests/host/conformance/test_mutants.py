@@ -17,7 +17,7 @@ same frames at the same instants on every run: no run is starved by the machine'
 made again (`_verdict`, before, made a run that failed a timed check beyond its own once more).
 `benchmarks/bench_conformance_clock.py` compares every run's verdict on both clocks. The runs over a
 real transport, in real time, are tests/host/conformance/test_checks.py's (a pty, python-can),
-tests/firmware_ref' (the C firmware, QEMU) and tests/host/test_matrix.py's.
+tests/firmware_ref's (the C firmware over a pty, QEMU) and tests/host/test_matrix.py's.
 """
 
 from __future__ import annotations
