@@ -104,3 +104,15 @@ def test_the_clock_never_goes_back():
     assert c() == 2.0
     c.advance_to(2.5)
     assert c() == 2.5
+
+
+def test_the_checks_read_no_clock_but_the_ports():
+    """A check that read `time.monotonic` or slept with `time.sleep` would wait in real time on the
+    simulated clock (and measure the machine, not the chip): the checks import no clock at all."""
+    from pathlib import Path
+
+    from tests.test_architecture import imports_of
+    checks = Path(__file__).resolve().parents[3] / "host/conformance/checks"
+    clocks = {"time", "datetime", "threading"}
+    bad = {p.name: sorted(m for m in imports_of(p) if m.split(".")[0] in clocks) for p in sorted(checks.glob("*.py"))}
+    assert {k: v for k, v in bad.items() if v} == {}
