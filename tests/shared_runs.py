@@ -1,8 +1,11 @@
 """Runs that many tests read, made once per test session, the work split among the pytest-xdist
 workers that need them.
 
-A conformance run against a virtual chip mostly waits (silences, heartbeats, re-announces: ~7-10 s
-of wall for ~0.15-0.3 s of CPU), so a set of them is made several at once, in threads. The set used
+A conformance run in real time mostly waits (silences, heartbeats, re-announces: ~7-10 s of wall for
+~0.15-0.3 s of CPU), so a set of them is made several at once, in threads: the real-time runs that
+stay (test_checks.py's healthy chips over a pty and python-can, test_qemu.py's QEMU suites). The runs
+whose subject is the checks' verdicts (the mutants, the healthy variants) are on the simulated clock
+instead (host/conformance/simulated.py): a fraction of a second each, no set to share. The set used
 to be made under one file lock by the first worker that needed it while every other worker that
 reached one of its tests waited on the lock (with four workers, three of them idle for the whole
 set). Here every worker that needs the set takes the runs no worker has taken yet (a claim file

@@ -7,7 +7,8 @@ and reports PASS / FAIL / SKIP / LOST per check. The device under test may be an
 capsheet v1: the Python chip model, the C reference firmware (cffi or on QEMU), or hardware.
 
 Modules: `session` (the port reader, event-driven waits, the chip under test), `checks` (the checks
-and the clause table), `runner` (selection, retries, results).
+and the clause table), `runner` (selection, retries, results), `simulated` (a run on a simulated
+clock against an in-process chip model: `SimulatedPort` steps the device instead of waiting).
 
 Safe on a full sheet: the chip under test is the first to answer a broadcast GET_INFO (or
 ``--uid``); the run assigns it a node id no chip was heard from; every command is addressed to it,
@@ -22,7 +23,7 @@ The chip under test must lie still during the run (the sample check expects |a| 
 
 from .checks import CHECKS, INFORMATIVE, Check, table
 from .runner import CheckResult, exit_code, run_checks, select, summary
-from .session import AuditedCanTransport, Port, Session
+from .session import AuditedCanTransport, Port, Session, SimulatedClock, SimulatedPort
 
 __all__ = ["CHECKS", "INFORMATIVE", "Check", "table", "CheckResult", "run_checks", "select", "summary",
-           "exit_code", "Port", "Session", "AuditedCanTransport"]
+           "exit_code", "Port", "Session", "AuditedCanTransport", "SimulatedClock", "SimulatedPort"]

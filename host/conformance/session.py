@@ -48,7 +48,7 @@ from protocol.messages import (LINK_NONE, MSG_TYPE_CODES, NODE_MAX_ASSIGNED, Ack
                                Sample, Snapshot, SnapshotImu, Start, Status, Stop, Sync, is_node_to_host_type)
 
 
-__all__ = ["Port", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
+__all__ = ["Port", "SimulatedClock", "SimulatedPort", "Session", "CheckFailed", "Skip", "PortLost", "RunAborted", "require", "acked", "AuditedCanTransport",
            "FrameAudit", "HEARTBEAT_MS", "SAMPLES"]
 
 #: STATUS period the run configures (CONFIG heartbeat_ms), ms
@@ -197,10 +197,33 @@ class Port(_AuditView):
         self.damage: Counter = Counter()  #: reason -> count
         self._err_base = transport.stats.errors.get("CAN_ERROR_FRAME", 0)
         self._disc_base = transport.stats.disconnects
+        self._thread: threading.Thread | None = None
+        self._start_reader()
+
+    # -- the clock: every time the session and the checks read or wait on is the port's
+    def now(self) -> float:
+        """The port's clock, seconds: `time.monotonic` here (`host.conformance.simulated.SimulatedPort`:
+        the simulated clock). Arrival and send times, deadlines and the checks' own waits all read it."""
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        """Let ``seconds`` of the port's clock pass (what arrives meanwhile is queued for `next`)."""
+        if seconds > 0:
+            time.sleep(seconds)
+
+    # -- the reader
+    def _start_reader(self) -> None:
         self._thread = threading.Thread(target=self._reader, name="conformance-port", daemon=True)
         self._thread.start()
 
-    # -- the reader
+    def _went_away(self) -> bool:
+        """The transport lost its device (a disconnect counted): `error` says so."""
+        if self.transport.stats.disconnects > self._disc_base:
+            self.error = TransportOperationError(f"The port {self.transport.name!r} went away during the run",
+                                                 self.transport.name)
+            return True
+        return False
+
     def _reader(self) -> None:
         while not self._stop.is_set():
             try:
@@ -211,33 +234,35 @@ class Port(_AuditView):
                 with self._cond:
                     self._cond.notify_all()
                 return
-            if self.transport.stats.disconnects > self._disc_base:
-                self.error = TransportOperationError(f"The port {self.transport.name!r} went away during the run",
-                                                     self.transport.name)
+            if self._went_away():
                 with self._cond:
                     self._cond.notify_all()
                 return
             if not events:
                 continue
-            t = time.monotonic()
+            t = self.now()
             with self._cond:
-                for ev in events:
-                    if isinstance(ev, (SampleBatch, ImuBatch)):
-                        for m in ev.messages():
-                            self.frames += 1
-                            self._q.append((t, m))
-                    elif isinstance(ev, DecodeError) and ev.detail.startswith(INCOMPLETE_IMU):
-                        # classic CAN frames of an IMU record that do not make one (§16.4): every frame
-                        # arrived intact, so the node sent them so; the §16 checks see no record
-                        self.incomplete_imu += 1
-                    elif isinstance(ev, DecodeError):
-                        self.damaged += 1
-                        self.damage[ev.reason.name] += 1
-                        self._q.append((t, ev))
-                    else:
-                        self.frames += 1
-                        self._q.append((t, ev))
+                self._take(events, t)
                 self._cond.notify_all()
+
+    def _take(self, events: list, t: float) -> None:
+        """Queue what the transport delivered at ``t`` (and count it); the caller holds ``_cond``."""
+        for ev in events:
+            if isinstance(ev, (SampleBatch, ImuBatch)):
+                for m in ev.messages():
+                    self.frames += 1
+                    self._q.append((t, m))
+            elif isinstance(ev, DecodeError) and ev.detail.startswith(INCOMPLETE_IMU):
+                # classic CAN frames of an IMU record that do not make one (§16.4): every frame
+                # arrived intact, so the node sent them so; the §16 checks see no record
+                self.incomplete_imu += 1
+            elif isinstance(ev, DecodeError):
+                self.damaged += 1
+                self.damage[ev.reason.name] += 1
+                self._q.append((t, ev))
+            else:
+                self.frames += 1
+                self._q.append((t, ev))
 
     def _error_frames(self) -> int:
         return self.transport.stats.errors.get("CAN_ERROR_FRAME", 0) - self._err_base
@@ -254,14 +279,14 @@ class Port(_AuditView):
         return self.lost > 0 and self.frames >= 2 * self.lost
 
     def next(self, deadline: float):
-        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline`` (monotonic).
+        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline`` (the port's clock, `now`).
 
         Raises the transport's error if the port went away."""
         with self._cond:
             while not self._q:
                 if self.error is not None:
                     raise self.error
-                left = deadline - time.monotonic()
+                left = deadline - self.now()
                 if left <= 0:
                     return None
                 self._cond.wait(left)
@@ -276,7 +301,7 @@ class Port(_AuditView):
         if self.error is not None:
             raise self.error
         self.transport.send(msg)
-        return time.monotonic()
+        return self.now()
 
     def send_raw(self, type_code: int, node: int, payload: bytes, *, version: int | None = None) -> float:
         """A frame a conforming host never sends (undefined type, wrong length or version)."""
@@ -288,11 +313,11 @@ class Port(_AuditView):
             self.transport.send_bytes(encode_frame(type_code, node, payload, version=v))
         else:
             self._can_raw(make_id(type_code, node, priority=4, version=v), payload)
-        return time.monotonic()
+        return self.now()
 
     def send_bytes(self, data: bytes) -> float:
         self.transport.send_bytes(data)
-        return time.monotonic()
+        return self.now()
 
     def _can_raw(self, arbitration_id: int, data: bytes, extended: bool = True) -> None:
         if not isinstance(self.transport, CanTransport):
@@ -301,7 +326,124 @@ class Port(_AuditView):
 
     def close(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=2.0)
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self.transport.end_capture(self.audit)
+
+
+# ---------------------------------------------------------------------------------------------
+# The port on a simulated clock (host/conformance/simulated.py says what it is for)
+# ---------------------------------------------------------------------------------------------
+
+#: when the device names no later event (it is down in an outage), time moves on by its loop's poll period
+_IDLE_STEP_S = 0.01
+
+
+class SimulatedClock:
+    """Seconds that move only when the run moves them (`advance_to`); call it for the time.
+
+    Pass the same clock to the device (``clock=``) and to `SimulatedPort`."""
+
+    def __init__(self, start_s: float = 0.0) -> None:
+        self.t = float(start_s)
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance_to(self, t: float) -> None:
+        """Move to ``t`` (never back: an earlier ``t`` leaves the clock where it is)."""
+        if t > self.t:
+            self.t = float(t)
+
+    def __repr__(self) -> str:
+        return f"SimulatedClock({self.t:.6f})"
+
+
+class SimulatedPort(Port):
+    """A `Port` on a simulated clock, over the host's end of an in-process device in manual mode.
+
+    Parameters
+    ----------
+    transport : Transport
+        The host's end of ``device``: a `MemoryTransport` over ``device.port`` (serial), or an
+        `AuditedCanTransport` on the device's python-can ``virtual`` channel. Read without waiting.
+    device : virtual_sheet.devices.Device
+        Built with ``clock=`` ``clock`` and started (manual mode: no thread; the port runs it with
+        ``device.step()``).
+    clock : SimulatedClock, optional
+        Default: ``device.clock``, which must then be a `SimulatedClock`.
+
+    ``steps``: how many times the port stepped the device (a run's cost, the same on every run).
+    """
+
+    def __init__(self, transport: Transport, device, clock: SimulatedClock | None = None) -> None:
+        clock = device.clock if clock is None else clock
+        if not isinstance(clock, SimulatedClock):
+            raise ValueError(f"Invalid clock {clock!r}: a SimulatedPort needs a SimulatedClock (the device's, "
+                             f"given as clock= when it was built)")
+        if device.clock is not clock:
+            raise ValueError("the device runs on another clock: build it with clock= the port's SimulatedClock")
+        self.clock = clock
+        self.device = device
+        self.steps = 0
+        super().__init__(transport)
+
+    def _start_reader(self) -> None:  # the caller's thread reads, in `_pump`
+        pass
+
+    def now(self) -> float:
+        return self.clock.t
+
+    def _pump(self) -> None:
+        """Step the device at the clock's time (it reads what the host sent, serves its timers, sends
+        what is due) and queue everything the transport then holds, as arrived now."""
+        self.device.step()
+        self.steps += 1
+        while True:
+            events = self.transport.recv(0.0)  # TransportError propagates, as the reader thread's does
+            if self._went_away():
+                raise self.error
+            if not events:
+                return
+            self._take(events, self.clock.t)
+
+    def _next_event(self) -> float:
+        """When the device next has something to do (after the clock's time)."""
+        now = self.clock.t
+        t = min(gw.next_deadline() for gw in self.device.gateways)
+        return t if t > now else now + _IDLE_STEP_S
+
+    def next(self, deadline: float):
+        """The next ``(arrival_time, Message | DecodeError)``, or None at ``deadline``: the device runs
+        from one event to the next until something arrives or the clock reaches ``deadline``."""
+        while True:
+            if self.error is not None:
+                raise self.error
+            self._pump()
+            if self._q:
+                return self._q.popleft()
+            if self.clock.t >= deadline:
+                return None
+            self.clock.advance_to(min(deadline, self._next_event()))
+
+    def sleep(self, seconds: float) -> None:
+        """Run the device for ``seconds`` of the clock; what arrives meanwhile is queued, at its time."""
+        end = self.clock.t + max(0.0, seconds)
+        while True:
+            self._pump()
+            if self.clock.t >= end:
+                return
+            self.clock.advance_to(min(end, self._next_event()))
+
+    def drain(self) -> None:
+        """Discard what has arrived by now (the device stepped at the clock's time first, as a reader
+        thread would have read it by now)."""
+        self._pump()
+        self._q.clear()
+
+    def close(self) -> None:
+        """End the port's capture (the device and the transport are the caller's to close)."""
+        self._stop.set()
         self.transport.end_capture(self.audit)
 
 
@@ -472,7 +614,7 @@ class Session:
         the chip; with ``syncs`` the SYNC frames heard (a gateway's, forwarded) are kept too. Every
         frame heard updates the bookkeeping (`note`), and ``stop`` is asked after each."""
         out: list = []
-        deadline = time.monotonic() + duration_s
+        deadline = self.port.now() + duration_s
         while True:
             item = self.port.next(deadline)
             if item is None:

@@ -1,20 +1,23 @@
 """`capsheet conformance` against the C firmware (cffi) built as a 6-axis and a 9-axis chip, behind a
-virtual sheet at rest on a real pty (serial) and a python-can virtual bus (classic CAN): every check
-of the chip profile passes, the §16 checks 42-44 among them — run, not skipped — and the command line
-says so. The sheet's IMU models feed the firmware's read_imu as they feed the Python chip model."""
+virtual sheet at rest, serial and classic CAN: every check of the chip profile passes, the §16 checks
+42-44 among them — run, not skipped — and the command line says so over a real pty. The sheet's IMU
+models feed the firmware's read_imu as they feed the Python chip model.
+
+The whole-profile runs are on the simulated clock (`host.conformance.simulated`: the C chip is driven
+by the ``now`` it is given, as on a virtual sheet's thread): their subject is the firmware's §16
+behaviour, and the same firmware's real-time runs over a real pty and a python-can bus are
+tests/host/conformance/test_checks.py's (every check, accelerometer chips), this file's command line
+run (a 6-axis chip's §16 checks over a pty) and test_qemu.py's."""
 
 from __future__ import annotations
 
-import dataclasses
 import re
 
 import pytest
 
 from host.cli import main
 from host.conformance import CHECKS
-from host.conformance.runner import CheckResult
-from tests.host.conformance.test_checks import _run_can, _run_serial
-from tests.shared_runs import session_root, shared_runs
+from tests.host.conformance.test_checks import _run_simulated
 from virtual_sheet.devices import PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 
@@ -29,38 +32,11 @@ assert IMU_CHECKS == {42, 43, 44}
 RUNS = [("serial", "accel+gyro"), ("serial", "accel+gyro+mag"), ("can", "accel+gyro"), ("can", "accel+gyro+mag")]
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    """``{(transport, sensors): {"engine", "c_chip", "results"} or {"error"}}``: the four runs made at
-    once in threads (each mostly waits: ~11.5 s of wall for ~0.3 s of CPU; one after another ~47 s),
-    each C chip a struct of its own, each CAN run on a virtual channel of its own. Made once per test
-    session, whichever workers need them splitting the runs (tests/shared_runs.py): each worker that
-    reached this module made all four before."""
-    def one(k):
-        transport, sensors = RUNS[k]
-        sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, sensors=sensors,
-                             chip_factory=CFirmwareChip)
-        try:
-            if transport == "serial":
-                results = _run_serial(sheet, allow_broadcast=True)
-            else:
-                results = _run_can(sheet, channel=f"cimu{k}", allow_broadcast=True)
-        except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return {"error": f"{type(exc).__name__}: {exc}"}
-        return {"engine": sheet.engine_name, "c_chip": sheet.chip_factory is CFirmwareChip,
-                "results": [dataclasses.asdict(r) for r in results]}
-    got = shared_runs(session_root(tmp_path_factory), "c-imu", {"/".join(run): one for run in RUNS},
-                      at_once=len(RUNS))
-    return {run: got["/".join(run)] for run in RUNS}
-
-
 @pytest.mark.parametrize("transport, sensors", RUNS)
-def test_the_c_firmware_as_a_6_or_9_axis_chip_passes_every_check(transport, sensors, runs):
-    run = runs[(transport, sensors)]
-    if "error" in run:
-        raise AssertionError(f"{transport}/{sensors}: the conformance run raised {run['error']}")
-    assert run["engine"] == "chips" and run["c_chip"]
-    results = [CheckResult(**r) for r in run["results"]]
+def test_the_c_firmware_as_a_6_or_9_axis_chip_passes_every_check(transport, sensors):
+    sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, sensors=sensors, chip_factory=CFirmwareChip)
+    results = _run_simulated(sheet, allow_broadcast=True)
+    assert sheet.engine_name == "chips" and sheet.chip_factory is CFirmwareChip
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome != "PASS"] == [], report
     ran = {r.number for r in results}

@@ -1,8 +1,8 @@
 """C chips reading the ICM-42688-P through its driver, in the loop (firmware_ref/part_chip.py): the
 sheet's truth -> the part's registers -> the C driver and glue -> the C chip -> the protocol.
 
-In process (a gateway, simulated clock, exact counts) and end to end over a real pty through the
-command line (``capsheet virtual --firmware c --part icm42688p`` and ``capsheet host``). Expected
+In process (a gateway, simulated clock, exact counts; the conformance runs on the simulated clock
+too, host/conformance/simulated.py) and end to end over a real pty through the command line (``capsheet virtual --firmware c --part icm42688p`` and ``capsheet host``). Expected
 values: 1024 counts per g (docs/protocol.md §5.2) within the part's datasheet errors (zero-g offset
 ±20 mg, sensitivity ±0.5 %: DS-000347 §3.2 Table 2), the gyroscope at rest within its zero-rate
 offset (±0.5 °/s, §3.1 Table 1) at 32.8 counts per °/s (±1000 °/s, §16.1)."""
@@ -136,50 +136,22 @@ def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors)
 PART_RUNS = [("serial", None), ("can", None), ("serial", "no_answer"), ("serial", "self_test_fail")]
 
 
-@pytest.fixture(scope="module")
-def part_runs(tmp_path_factory):
-    """``{(transport, fault): results, or {"error"}}``: the runs made at once in threads (each mostly
-    waits: ~11 s of wall for ~0.5 s of CPU; one after another ~45 s), each chip and part its own, each
-    CAN run on a virtual channel of its own. Made once per test session, whichever workers need them
-    splitting the runs (tests/shared_runs.py): each worker that reached this module made all four before."""
-    import dataclasses
-
-    from tests.host.conformance.test_checks import _run_can, _run_serial
-    from tests.shared_runs import session_root, shared_runs
-
-    def one(k):
-        transport, fault = PART_RUNS[k]
-        try:
-            fac = part_chip_factory("icm42688p")
-            sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac,
-                                 transport=transport)
-            if fault is not None:
-                for ls in fac.links:
-                    ls.part.fault(fault)
-            fac.bind(sheet)
-            if transport == "serial":
-                results = _run_serial(sheet, allow_broadcast=True)
-            else:
-                results = _run_can(sheet, channel=f"part{k}", allow_broadcast=True)
-        except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return {"error": f"{type(exc).__name__}: {exc}"}
-        return [dataclasses.asdict(r) for r in results]
-    got = shared_runs(session_root(tmp_path_factory), "part-chip", {f"{t}/{f}": one for t, f in PART_RUNS},
-                      at_once=len(PART_RUNS))
-    return {(t, f): got[f"{t}/{f}"] for t, f in PART_RUNS}
-
-
 @pytest.mark.parametrize("transport,fault", PART_RUNS)
-def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault(transport, fault, part_runs):
+def test_conformance_passes_a_healthy_part_and_reports_a_failed_one_as_a_sensor_fault(transport, fault):
     """`capsheet conformance`'s chip profile over serial and classic CAN: a chip reading a healthy part
     passes every check (the §16 ones among them); a part that stops answering, or fails its self-test,
-    is the spec's sensor fault: the sample check sees INVALID while streaming (§8.6)."""
-    from host.conformance.runner import CheckResult
+    is the spec's sensor fault: the sample check sees INVALID while streaming (§8.6). On the simulated
+    clock (the part, its driver and the C chip are driven by the ``now`` they are given): the subject is
+    what the part makes of the chip's answers; the part over a real pty is the end-to-end run above."""
+    from tests.host.conformance.test_checks import _run_simulated
 
-    run = part_runs[(transport, fault)]
-    if isinstance(run, dict):
-        raise AssertionError(f"{transport}/{fault}: the conformance run raised {run['error']}")
-    results = [CheckResult(**r) for r in run]
+    fac = part_chip_factory("icm42688p")
+    sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors="accel+gyro", chip_factory=fac, transport=transport)
+    if fault is not None:
+        for ls in fac.links:
+            ls.part.fault(fault)
+    fac.bind(sheet)
+    results = _run_simulated(sheet, allow_broadcast=True)
     report = "\n".join(r.line() for r in results)
     failed = {r.number: r for r in results if r.outcome != "PASS"}
     if fault is None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 from protocol.constants import SampleStatus
 from protocol.messages import (Announce, Assign, CalRead, Capability, ChipState, Config, GatewayFlag,
@@ -162,9 +161,9 @@ def c_gateway_packing(s: Session):
             if not g.flags & GatewayFlag.SYNC_SOURCE:
                 s.port.send(Sync(counter=c))
             got = []
-            deadline = time.monotonic() + s.answer_s
+            deadline = s.port.now() + s.answer_s
             want = sum(n for _, n in runs)
-            while time.monotonic() < deadline:
+            while s.port.now() < deadline:
                 item = s.port.next(deadline)
                 if item is None:
                     break

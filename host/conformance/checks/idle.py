@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import statistics
-import time
 
 from cobs import cobs
 
@@ -49,7 +48,7 @@ def c_heartbeat(s: Session):
     for _ in range(3):
         st = s.statuses(1)
         require(bool(st), f"no STATUS within {max(1.5, 3 * s.timeout_s):.1f} s")
-        time.sleep(HEARTBEAT_MS / 2000)
+        s.port.sleep(HEARTBEAT_MS / 2000)
         s.drain()
         s.port.send(Config(s.node, rate_hz=145, range=0, filter=0, heartbeat_ms=HEARTBEAT_MS))
         def after_ack(ms):

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import struct
-import time
 
 from protocol.constants import SampleStatus
 from protocol.messages import (cal_block_nominal, CAL_BLOCK_SIZE, CalBlock, CalImuData, CalImuRead,
@@ -271,8 +270,8 @@ def c_gateway_packing_imu(s: Session):
             if not g.flags & GatewayFlag.SYNC_SOURCE:
                 s.port.send(Sync(counter=c))
             got, passed = [], []
-            deadline = time.monotonic() + s.answer_s
-            while time.monotonic() < deadline:
+            deadline = s.port.now() + s.answer_s
+            while s.port.now() < deadline:
                 item = s.port.next(deadline)
                 if item is None:
                     break

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import statistics
-import time
 
 from protocol.constants import SampleStatus
 from protocol.messages import (Assign, Capability, ChipState, Config, ImuSample, Info, MsgType, Nack, NackReason,
@@ -127,13 +126,13 @@ def c_stale(s: Session):
         require(acked(ans, s.node, MsgType.START), f"START answered {ans}")
         fresh, stale = None, 0
         for c in range(310, 330):
-            t0 = time.monotonic()
+            t0 = s.port.now()
             (m,) = _samples(s, [c])
             if not m.status & SampleStatus.STALE:
                 fresh = m
                 break
             stale += 1
-            time.sleep(max(0.0, 1 / 145 - (time.monotonic() - t0)))  # SYNC no faster than rate_hz
+            s.port.sleep(max(0.0, 1 / 145 - (s.port.now() - t0)))  # SYNC no faster than rate_hz
     finally:
         s.request(Stop(s.node))
         s.request(Config(s.node, rate_hz=145, range=0, filter=0, heartbeat_ms=HEARTBEAT_MS))
@@ -221,8 +220,8 @@ def c_stop(s: Session):
 def c_uptime(s: Session):
     s.ensure_idle()
     u1 = s.status().uptime_s
-    deadline = time.monotonic() + 3.0
-    while u1 < 2 and time.monotonic() < deadline:  # a chip (re)started under a second ago: wait for evidence
+    deadline = s.port.now() + 3.0
+    while u1 < 2 and s.port.now() < deadline:  # a chip (re)started under a second ago: wait for evidence
         u1 = s.status().uptime_s
     require(u1 >= 2, f"uptime_s {u1} after 3 s more of STATUS: it does not count seconds")
     s.to_idle()  # RESET, ASSIGN, CONFIG

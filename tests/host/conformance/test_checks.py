@@ -1,14 +1,19 @@
 """`capsheet conformance` against both virtual chips (the Python model and the C firmware through cffi),
 on a pty serial port and a python-can virtual bus, through the virtual sheet's own devices; on a
 full sheet (the chip under test alone is touched); over a port that damages frames (losses are
-reported as the port's, not as chip violations); and the command line."""
+reported as the port's, not as chip violations); and the command line.
+
+Where the subject is what the checks and the runner decide (a 6/9-axis chip's §16 checks, the
+broadcast skip, a full sheet, a lossy port, a late chip, nodes counted by uid, a 1.2 chip's check 45)
+the run is on the simulated clock (`_run_simulated`: in-process, no waiting, the same every run).
+Where it is the transport or the real process — every healthy accelerometer chip, Python and C, over
+a real pty and a python-can bus, in real time; the command line; the port going away — it is real."""
 
 from __future__ import annotations
 
 import dataclasses
 import re
 import threading
-import time
 from pathlib import Path
 
 import pytest
@@ -17,6 +22,7 @@ from host.cli import main
 from host.conformance import CHECKS, INFORMATIVE, AuditedCanTransport, Port, run_checks, select, summary, table
 from host.conformance.checks import clauses_covered
 from host.conformance.runner import CheckResult
+from tests.host.conformance.simulated_runs import simulated_port
 from host.transport.ports import MemoryTransport, SerialTransport, TransportError
 from protocol.messages import Assign, ChipState, Config, Start
 from tests.shared_runs import session_root, shared_runs
@@ -35,6 +41,12 @@ def _run_serial(sheet, **kw):
         finally:
             port.close()
             t.close()
+
+
+def _run_simulated(sheet, **kw):
+    """The checks against ``sheet``'s chips on the simulated clock (`host.conformance.simulated`)."""
+    with simulated_port(sheet) as port:
+        return run_checks(port, timeout_s=0.3, **kw)
 
 
 def _run_can(sheet, channel=None, **kw):
@@ -63,10 +75,11 @@ def _healthy_run(transport: str, k: int, **sheet_kw):
 
 @pytest.fixture(scope="module")
 def healthy_runs(tmp_path_factory):
-    """The runs of the healthy chips below, made at once in threads: each mostly waits (silences,
-    heartbeats, re-announces: ~10 s of wall for ~0.3 s of CPU), one after another they took ~60 s.
-    Made once per test session, whichever workers need them splitting the runs (tests/shared_runs.py):
-    each worker that reached this module made all six before.
+    """The real-time runs of the healthy accelerometer chips below (Python and C, a pty and python-can),
+    made at once in threads: each mostly waits (silences, heartbeats, re-announces: ~10 s of wall for
+    ~0.3 s of CPU), one after another they took ~40 s. Made once per test session, whichever workers
+    need them splitting the runs (tests/shared_runs.py): each worker that reached this module made them
+    all before. (The 6/9-axis runs are on the simulated clock: `test_every_check_passes_on_a_6_or_9_axis_chip`.)
     ``{(chip, transport, sensors): results, or the error the run raised}``."""
     from virtual_sheet.chip import ChipModel
     chips = {"python": ChipModel}
@@ -78,7 +91,6 @@ def healthy_runs(tmp_path_factory):
         chips["c"] = CFirmwareChip
     jobs = {(name, t, "accel"): dict(transport=t, chip_factory=cls) for name, cls in chips.items()
             for t in ("serial", "can")}
-    jobs.update({("python", t, sensors): dict(transport=t, sensors=sensors) for t, sensors in IMU_RUNS})
 
     def attempt(kw, k):
         kw = dict(kw)
@@ -120,9 +132,11 @@ def test_every_check_passes_on_a_virtual_chip(chip_class, transport, healthy_run
 
 
 @pytest.mark.parametrize("transport, sensors", IMU_RUNS)
-def test_every_check_passes_on_a_6_or_9_axis_chip(transport, sensors, healthy_runs):
-    """The Python chip model as a 6/9-axis chip on a sheet at rest: the §16 checks run and pass too."""
-    results = _healthy(healthy_runs, ("python", transport, sensors))
+def test_every_check_passes_on_a_6_or_9_axis_chip(transport, sensors):
+    """The Python chip model as a 6/9-axis chip on a sheet at rest: the §16 checks run and pass too
+    (on the simulated clock: the subject is the §16 checks; the transports are the accelerometer runs')."""
+    results = _run_simulated(VirtualSheet("flat", "2x2", transport=transport, noise=0.5, sensors=sensors),
+                             allow_broadcast=True)
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome != "PASS"] == [], report
     assert IMU_CHECKS & {r.number for r in results} == (IMU_CHECKS if transport == "can" else IMU_CHECKS - {44})
@@ -130,12 +144,7 @@ def test_every_check_passes_on_a_6_or_9_axis_chip(transport, sensors, healthy_ru
 
 def test_broadcast_checks_are_skipped_unless_allowed():
     sheet = VirtualSheet("flat", "2x2", noise=0.5)
-    with MemoryDevice(sheet) as dev:
-        port = Port(MemoryTransport(dev.port))
-        try:
-            results = run_checks(port, timeout_s=0.3, only=[str(c.number) for c in CHECKS if c.broadcast])
-        finally:
-            port.close()
+    results = _run_simulated(sheet, only=[str(c.number) for c in CHECKS if c.broadcast])
     broadcast = [r for r in results if r.number in {c.number for c in CHECKS if c.broadcast}]
     assert broadcast and all(r.outcome == "SKIP" and "--allow-broadcast" in r.detail for r in broadcast)
 
@@ -144,7 +153,8 @@ def test_a_full_sheet_is_left_as_found():
     """A 3x3 sheet assigned by a host session (one chip at 42, the old default, one at 0x7FFF):
     the run picks a node id nobody uses and touches only the chip under test."""
     sheet = VirtualSheet("flat", "3x3", noise=0.5)
-    with MemoryDevice(sheet) as dev:
+    with simulated_port(sheet) as port:
+        dev = port.device
         from protocol.framing import encode
         nodes = list(range(1, len(sheet.chips) + 1))
         nodes[3], nodes[5] = 42, 0x7FFF
@@ -156,11 +166,7 @@ def test_a_full_sheet_is_left_as_found():
             # chip 0 stays assigned: it is the one under test (the first to answer GET_INFO)
             return [(c.node, c.state, c.link) for c in sheet.chips]
         before = dev.call(commission)
-        port = Port(MemoryTransport(dev.port))
-        try:
-            results = run_checks(port, timeout_s=0.3)
-        finally:
-            port.close()
+        results = run_checks(port, timeout_s=0.3)
         after = dev.call(lambda now: [(c.node, c.state, c.link) for c in sheet.chips])
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome == "FAIL"] == [], report
@@ -189,12 +195,8 @@ def test_a_lossy_port_is_reported_as_lost_frames_not_as_chip_violations():
     """Bit flips on the way to the host: damaged answers make checks fail once; they are retried
     and reported PASS (after a retry) or LOST — never FAIL."""
     sheet = VirtualSheet("flat", "2x2", noise=0.5, faults="bitflip=3e-4,seed=7")
-    with MemoryDevice(sheet) as dev:
-        port = Port(MemoryTransport(dev.port))
-        try:
-            results = run_checks(port, timeout_s=0.3)
-        finally:
-            port.close()
+    with simulated_port(sheet) as port:
+        results = run_checks(port, timeout_s=0.3)
         injected = sheet.fault_stats.frames_corrupted
     report = "\n".join(r.line() for r in results)
     assert injected > 0 and port.lost > 0, report
@@ -287,12 +289,7 @@ def test_docs_conformance_md_is_the_table():
 def test_a_late_chip_is_reported_against_the_should_not_failed():
     """§5.1's 2 ms reply deadline is a SHOULD: a chip that answers 25 ms late passes, and says so."""
     sheet = VirtualSheet("flat", "2x2", noise=0.5, faults="delay_ms=25")
-    with MemoryDevice(sheet) as dev:
-        port = Port(MemoryTransport(dev.port))
-        try:
-            results = run_checks(port, timeout_s=0.3, only=["24"])
-        finally:
-            port.close()
+    results = _run_simulated(sheet, only=["24"])
     sync = results[1]
     assert (sync.number, sync.outcome) == (24, "PASS"), sync.line()
     assert sync.detail.startswith("SHOULD not met: the median SYNC->SAMPLE is over 2 ms"), sync.line()
@@ -319,13 +316,9 @@ def test_nodes_heard_are_counted_by_uid():
     """12 chips re-announcing from new provisional ids every second are 12 chips, not one per node id
     (the 1.0 suite reported 363 to 2,006 "nodes" on a 364-chip sheet)."""
     sheet = VirtualSheet("flat", "3x3", noise=0.5)
-    with MemoryDevice(sheet) as dev:
-        time.sleep(1.2)  # a re-announce round: every chip speaks from a second provisional id
-        port = Port(MemoryTransport(dev.port))
-        try:
-            results = run_checks(port, timeout_s=0.3, only=["1"])
-        finally:
-            port.close()
+    with simulated_port(sheet) as port:
+        port.sleep(1.2)  # a re-announce round: every chip speaks from a second provisional id
+        results = run_checks(port, timeout_s=0.3, only=["1"])
     assert results[0].outcome == "PASS" and "12 chip(s) and 0 gateway(s) answered (by uid)" in results[0].detail, \
         results[0].line()
 
@@ -391,7 +384,7 @@ def test_check_45_skips_a_chip_of_1_2_that_answers_nack_1_and_fails_one_that_kno
     from virtual_sheet.chip import ChipModel
     for kind, outcome in ((_ChipV12, "SKIP"), (_HalfV12, "FAIL")):
         sheet = VirtualSheet("flat", "2x2", noise=0.5, sensors=sensors, chip_factory=kind.factory(ChipModel))
-        results = _run_serial(sheet, only=["45"])
+        results = _run_simulated(sheet, only=["45"])
         r = next(x for x in results if x.number == 45)
         assert r.outcome == outcome, "\n".join(x.line() for x in results)
         if outcome == "SKIP":

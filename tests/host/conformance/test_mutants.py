@@ -8,20 +8,28 @@
 * Each gateway mutant fails the gateway profile's check of the rule it breaks.
 * The healthy variants pass every check of their profile, once each here; 20 runs in a row are
   `benchmarks/bench_conformance_stability.py`'s job, not the test suite's.
+
+Every run here is on a simulated clock (`host.conformance.simulated`): the chips are models in this
+process (Python, or the C firmware through cffi, both driven by the ``now`` they are given), and what
+is under test is the checks' verdicts, which a real-time run reaches by waiting. On the simulated
+clock a run takes ~0.1-0.4 s of CPU and no waiting where it took ~7-25 s of wall in real time, the
+same frames at the same instants on every run: no run is starved by the machine's load, so none is
+made again (`_verdict`, before, made a run that failed a timed check beyond its own once more).
+`benchmarks/bench_conformance_clock.py` compares every run's verdict on both clocks. The runs over a
+real transport, in real time, are tests/host/conformance/test_checks.py's (a pty, python-can),
+tests/firmware_ref's (the C firmware over a pty, QEMU) and tests/host/test_matrix.py's.
 """
 
 from __future__ import annotations
-
-import dataclasses
 
 import pytest
 
 from host.conformance import CHECKS, AuditedCanTransport, Port, run_checks
 from host.conformance.runner import CheckResult
+from tests.host.conformance.simulated_runs import simulated_port
 from host.transport.ports import MemoryTransport
 from tests.host.conformance.mutants import (C_MUTANT_EVIDENCE, C_MUTANT_OPTIONS, C_MUTANTS, GATEWAY_MUTANTS, HEALTHY,
                                             IMU_MUTANTS, MUTANTS)
-from tests.shared_runs import session_root, shared_runs
 from virtual_sheet.devices import CanDevice, MemoryDevice
 from virtual_sheet.sheet import VirtualSheet
 
@@ -90,13 +98,21 @@ NO_C_MUTANT: set[int] = set()
 NOT_SHOWN = {22: "the virtual CanDevice filters standard-identifier frames before the chips see them"}
 
 
-#: host-side latency allowed on top of the spec's timing tolerances (the CLI's --slack-ms): the chips
-#: here run in this process's threads, and on a loaded 2-core machine a frame is sometimes handed over
-#: 100 ms late — the mutants are about verdicts, none breaks a timing by less than 2x (as the matrix)
+#: host-side latency allowed on top of the spec's timing tolerances (the CLI's --slack-ms) in a
+#: real-time run (`simulated=False`, benchmarks/bench_conformance_clock.py): the chips run in this
+#: process's threads, and on a loaded 2-core machine a frame is sometimes handed over 100 ms late — the
+#: mutants are about verdicts, none breaks a timing by less than 2x (as the matrix). On the simulated
+#: clock there is no host latency: the runs there take the CLI's default (10 ms).
 SLACK_MS = 40.0
 
 
-def _run(sheet, *, allow_broadcast=False, profile="chip", only=None, **dev):
+def _run(sheet, *, allow_broadcast=False, profile="chip", only=None, simulated=True, **dev):
+    """The checks against ``sheet``'s device: on the simulated clock (the default), or in real time
+    through the device's thread (``simulated=False``: the comparison of the two, and the stability
+    benchmark's way)."""
+    if simulated:
+        with simulated_port(sheet, **dev) as port:
+            return run_checks(port, timeout_s=0.3, allow_broadcast=allow_broadcast, profile=profile, only=only)
     if sheet.transport == "serial":
         with MemoryDevice(sheet, **dev) as d:
             port = Port(MemoryTransport(d.port))
@@ -116,45 +132,31 @@ def _run(sheet, *, allow_broadcast=False, profile="chip", only=None, **dev):
             t.close()
 
 
-#: conformance runs of the mutants (and of the healthy variants) made at once in each worker that
-#: needs them (`_shared`). A run mostly waits — for silences, heartbeats, re-announces: ~7 s of wall
-#: for ~0.15 s of CPU, measured per test — so the 44 Python mutants' runs one after another took
-#: ~455 s, the 33 C mutants' ~69 s; in threads, their waits overlap (64 s and 21 s in one worker).
-#: Each run has its sheet, its link and (CAN) its own virtual channel, each C chip its own struct;
-#: the verdicts are checked one test per mutant, as before.
-AT_ONCE = 8
-
-
-def _python_mutant_jobs() -> dict:
-    """``{key: run(k)}``: every Python chip, IMU and gateway mutant's run (``k``: a channel number of
-    its own for a CAN run; the device's default channel is one name for every bus of this process)."""
+def _python_mutant_jobs(simulated: bool = True) -> dict:
+    """``{key: run(k)}``: every Python chip, IMU and gateway mutant's run (``k``: in real time, a channel
+    number of its own for a CAN run, the device's default channel being one name for every bus of this
+    process; `simulated_port` gives each run a channel of its own)."""
     def can(transport, k):
-        return {"channels": [f"mutant{k}"]} if transport == "can" else {}
+        return {"channels": [f"mutant{k}"]} if transport == "can" and not simulated else {}
     jobs = {}
     for name, (cls, transport, allow_broadcast) in MUTANTS.items():
         jobs[f"chip:{name}"] = lambda k, cls=cls, transport=transport, allow_broadcast=allow_broadcast: _run(
             VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=cls),
-            allow_broadcast=allow_broadcast, **can(transport, k))
+            allow_broadcast=allow_broadcast, simulated=simulated, **can(transport, k))
     for name, (cls, transport, sensors) in IMU_MUTANTS.items():
         jobs[f"imu:{name}"] = lambda k, cls=cls, transport=transport, sensors=sensors: _run(
             VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=cls, sensors=sensors),
-            **can(transport, k))
+            simulated=simulated, **can(transport, k))
     for name, (cls, opts) in GATEWAY_MUTANTS.items():
         opts = dict(opts)
         sensors = opts.pop("sensors", "accel")
         jobs[f"gateway:{name}"] = lambda k, cls=cls, opts=opts, sensors=sensors: _run(
-            VirtualSheet("flat", "2x2", noise=0.5, sensors=sensors), profile="gateway", gateway_class=cls, **opts)
+            VirtualSheet("flat", "2x2", noise=0.5, sensors=sensors), profile="gateway", gateway_class=cls,
+            simulated=simulated, **opts)
     return jobs
 
 
-def _attempt(job, k):
-    try:
-        return {"results": [dataclasses.asdict(r) for r in job(k)]}
-    except Exception as exc:  # noqa: BLE001 - reported by the mutant's own test
-        return {"error": f"{type(exc).__name__}: {exc}"}
-
-
-def _c_mutant_jobs() -> dict:
+def _c_mutant_jobs(simulated: bool = True) -> dict:
     """``{name: run(k)}``: every C firmware mutant on its twin's checks (each chip a C struct of its own)."""
     from firmware_ref.chip import CFirmwareChip
 
@@ -172,61 +174,18 @@ def _c_mutant_jobs() -> dict:
         # its twin's checks, and check 7 (an ASSIGN: an ACK for the reserved-bits check to look at), and
         # what makes the chip send the frame it breaks (C_MUTANT_EVIDENCE: SYNC for a SAMPLE)
         run = {**EXPECTED, **IMU_EXPECTED}[twin] | {7} | C_MUTANT_EVIDENCE.get(name, set())
-        return _run(sheet, allow_broadcast=allow_broadcast, only=[str(n) for n in sorted(run)],
-                    **({"channels": [f"cmutant{k}"]} if transport == "can" else {}))
+        return _run(sheet, allow_broadcast=allow_broadcast, only=[str(n) for n in sorted(run)], simulated=simulated,
+                    **({"channels": [f"cmutant{k}"]} if transport == "can" and not simulated else {}))
     return {name: (lambda k, name=name: job(name, k)) for name in C_MUTANTS}
 
 
-def _shared(tmp_path_factory, tag: str, jobs) -> dict:
-    """``jobs()``' runs, made once per test session, `AT_ONCE` at a time in each worker that needs them
-    (tests/shared_runs.py: the workers split the runs; none waits idle for another's)."""
-    todo = jobs()
-    return shared_runs(session_root(tmp_path_factory), tag,
-                       {key: (lambda k, job=job: _attempt(job, k)) for key, job in todo.items()}, at_once=AT_ONCE)
-
-
-@pytest.fixture(scope="session")
-def python_mutant_runs(tmp_path_factory) -> dict:
-    """Every Python chip, IMU and gateway mutant's run (`_shared`)."""
-    return _shared(tmp_path_factory, "python-mutant", _python_mutant_jobs)
-
-
-@pytest.fixture(scope="session")
-def c_mutant_runs(tmp_path_factory) -> dict:
-    """Every C firmware mutant's run on its twin's checks (`_shared`)."""
-    pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
-    return _shared(tmp_path_factory, "c-mutant", _c_mutant_jobs)
-
-
-def _results_of(runs: dict, key: str) -> list[CheckResult]:
-    run = runs[key]
-    if "error" in run:
-        raise AssertionError(f"{key}: the conformance run raised {run['error']}")
-    return [CheckResult(**r) for r in run["results"]]
+def _results(job) -> list[CheckResult]:
+    """The run's results (a run that raised fails the test with what it raised)."""
+    return job(0)
 
 
 def _failed(results):
     return {r.number for r in results if r.outcome == "FAIL"}
-
-
-#: the checks that time a node's own timer against the spec's 5 % (re-announce, heartbeats, a gateway's
-#: STATUS and SYNC). Eight runs share this process's threads: beside two busy loops a device thread
-#: was once starved for seconds and a gateway mutant failed check 36 besides its own (1 STATUS in 5.5 s).
-TIMED = {8, 11, 36, 37}
-
-
-def _verdict(runs: dict, key: str, expected: set, job) -> list[CheckResult]:
-    """``key``'s results; when it failed a timed check beyond ``expected`` (and nothing else beyond),
-    its run is made once more, alone in this thread, and that run is the verdict: a starved thread
-    is the machine's load, not the mutant's fault — a mutant that breaks a timer fails it both times."""
-    results = _results_of(runs, key)
-    extra = _failed(results) - expected
-    if extra and extra <= TIMED:
-        again = _attempt(job, 9999)
-        if "error" in again:
-            raise AssertionError(f"{key}: the conformance run raised {again['error']}")
-        results = [CheckResult(**r) for r in again["results"]]
-    return results
 
 
 def _clause_named(results, number):
@@ -237,8 +196,8 @@ def _clause_named(results, number):
 
 
 @pytest.mark.parametrize("name", sorted(MUTANTS))
-def test_a_mutant_fails_exactly_its_checks(name, python_mutant_runs):
-    results = _verdict(python_mutant_runs, f"chip:{name}", EXPECTED[name], _python_mutant_jobs()[f"chip:{name}"])
+def test_a_mutant_fails_exactly_its_checks(name):
+    results = _results(_python_mutant_jobs()[f"chip:{name}"])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report  # a chip fault is never blamed on the port
@@ -246,8 +205,8 @@ def test_a_mutant_fails_exactly_its_checks(name, python_mutant_runs):
 
 
 @pytest.mark.parametrize("name", sorted(IMU_MUTANTS))
-def test_an_imu_mutant_fails_exactly_its_checks(name, python_mutant_runs):
-    results = _verdict(python_mutant_runs, f"imu:{name}", IMU_EXPECTED[name], _python_mutant_jobs()[f"imu:{name}"])
+def test_an_imu_mutant_fails_exactly_its_checks(name):
+    results = _results(_python_mutant_jobs()[f"imu:{name}"])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == IMU_EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report
@@ -276,57 +235,45 @@ def test_every_chip_check_is_failed_by_some_c_mutant():
 
 
 @pytest.mark.parametrize("name", sorted(C_MUTANTS))
-def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name, c_mutant_runs):
+def test_a_c_firmware_mutant_fails_the_checks_of_its_twin(name):
+    pytest.importorskip("firmware_ref._capsheet_fw_mutants", reason="the C mutant build is not there")
     expected = {**EXPECTED, **IMU_EXPECTED}[C_MUTANTS[name]]
-    results = _verdict(c_mutant_runs, name, expected, _c_mutant_jobs()[name])
+    results = _results(_c_mutant_jobs()[name])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == expected, report
     assert all(_clause_named(results, n) for n in expected), report
 
 
 @pytest.mark.parametrize("name", sorted(GATEWAY_MUTANTS))
-def test_a_gateway_mutant_fails_its_check(name, python_mutant_runs):
-    results = _verdict(python_mutant_runs, f"gateway:{name}", GATEWAY_EXPECTED[name],
-                       _python_mutant_jobs()[f"gateway:{name}"])
+def test_a_gateway_mutant_fails_its_check(name):
+    results = _results(_python_mutant_jobs()[f"gateway:{name}"])
     report = "\n".join(r.line() for r in results)
     assert _failed(results) == GATEWAY_EXPECTED[name], report
     assert not [r for r in results if r.outcome == "LOST"], report
 
 
-def _healthy_jobs() -> dict:
+def _healthy_jobs(simulated: bool = True) -> dict:
     """``{name: run(k)}``: every healthy variant's run (all on serial: a memory link of its own), and a
     packing gateway's run of the gateway profile as well (``{"chip": results, "gateway": results}``)."""
     def job(name, k):
         sheet_kw, dev_kw = HEALTHY[name]
         sheet_kw = dict(sheet_kw)
         lattice = sheet_kw.pop("lattice", "2x2")
-        out = {"chip": _run(VirtualSheet("flat", lattice, **sheet_kw), allow_broadcast=True, **dev_kw)}
+        out = {"chip": _run(VirtualSheet("flat", lattice, **sheet_kw), allow_broadcast=True, simulated=simulated,
+                            **dev_kw)}
         if dev_kw.get("packed"):
-            out["gateway"] = _run(VirtualSheet("flat", lattice, **sheet_kw), profile="gateway", **dev_kw)
+            out["gateway"] = _run(VirtualSheet("flat", lattice, **sheet_kw), profile="gateway", simulated=simulated,
+                                  **dev_kw)
         return out
-
-    def attempt(name, k):
-        try:
-            return {part: [dataclasses.asdict(r) for r in rs] for part, rs in job(name, k).items()}
-        except Exception as exc:  # noqa: BLE001 - reported by the variant's own test
-            return {"error": f"{type(exc).__name__}: {exc}"}
-    return {name: (lambda k, name=name: attempt(name, k)) for name in HEALTHY}
-
-
-@pytest.fixture(scope="session")
-def healthy_runs(tmp_path_factory) -> dict:
-    """Every healthy variant's runs (`_shared`): each ~10-25 s of waits, one after another ~150 s."""
-    return shared_runs(session_root(tmp_path_factory), "healthy", _healthy_jobs(), at_once=AT_ONCE)
+    return {name: (lambda k, name=name: job(name, k)) for name in HEALTHY}
 
 
 @pytest.mark.parametrize("name", sorted(HEALTHY))
-def test_a_healthy_variant_passes_every_check(name, healthy_runs):
+def test_a_healthy_variant_passes_every_check(name):
     sheet_kw, dev_kw = HEALTHY[name]
     sheet_kw = dict(sheet_kw)
-    run = healthy_runs[name]
-    if "error" in run:
-        raise AssertionError(f"{name}: the conformance run raised {run['error']}")
-    results = [CheckResult(**r) for r in run["chip"]]
+    run = _healthy_jobs()[name](0)
+    results = run["chip"]
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome not in ("PASS", "SKIP")] == [], report
     skipped = {r.number for r in results if r.outcome == "SKIP"}
@@ -338,7 +285,7 @@ def test_a_healthy_variant_passes_every_check(name, healthy_runs):
     # the checks of the samples (24-27) read them from whatever the gateway packs: SNAPSHOT or SNAPSHOT_IMU
     assert {24, 25, 26} <= {r.number for r in results if r.outcome == "PASS"}, report
     if dev_kw.get("packed"):  # and the gateway itself passes its profile
-        results = [CheckResult(**r) for r in run["gateway"]]
+        results = run["gateway"]
         report = "\n".join(r.line() for r in results)
         assert [r for r in results if r.outcome not in ("PASS", "SKIP")] == [], report
         # 38 packs SAMPLEs, 46 IMU records (§16.5): a gateway does one of them

@@ -5,7 +5,12 @@ must reach the same outcome on each, but for the transport's own checks (serial:
 
 SLCAN hands frames over in blocks and udp_multicast echoes a sender's own frames: the port's audit
 reads both through the transport's capture. Over SLCAN the suite is given a plain
-`CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`."""
+`CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`.
+
+The transport is the subject here, so every run is in real time, through a real pty (and an SLCAN
+adapter on one, and the UDP bus). The four pty and SLCAN runs are made at once (`pty_and_slcan_runs`):
+each mostly waits (~11-14 s of wall for well under a second of CPU), one after another they took
+~50 s. The udp_multicast runs take the machine-wide bus lock, one at a time, in their own tests."""
 
 from __future__ import annotations
 
@@ -16,6 +21,7 @@ from host.transport.ports import CanTransport, SerialTransport
 from tests.host.cli.cli_runs import udp_bus_lock  # noqa: F401 (fixture)
 from tests.host.cli.test_host import ONE_MULTICAST_BUS, _udp_or_skip
 from tests.host.conformance.mutants import CounterOffByOne
+from tests.shared_runs import session_root, shared_runs
 from virtual_sheet.devices import CanDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 from virtual_sheet.slcan import SlcanDevice
@@ -54,12 +60,40 @@ def _expected(kind, failing=frozenset()):
     return {n: ("FAIL" if n in failing else "SKIP" if n in IMU_CHECKS else "PASS") for n in common | own}
 
 
-@pytest.mark.parametrize("chip,failing", [(None, set()), (CounterOffByOne, {24, 25, 26, 27})],
-                         ids=["healthy", "counter_off_by_one"])
+#: the chips run on every transport: a healthy one, and one that breaks the SYNC counter
+CHIPS = {"healthy": None, "counter_off_by_one": CounterOffByOne}
+#: the transports whose runs are made at once (`pty_and_slcan_runs`)
+AT_ONCE_KINDS = ("pty", "slcan")
+
+
+@pytest.fixture(scope="module")
+def pty_and_slcan_runs(tmp_path_factory) -> dict:
+    """``{"KIND/CHIP": {"outcomes": [[number, outcome], ...], "report": text} or {"error"}}``: the pty and
+    SLCAN runs made at once in threads, each with its own sheet and pty, once per test session whichever
+    workers need them (tests/shared_runs.py)."""
+    def job(kind, chip):
+        def run(_k):
+            try:
+                got, report = _outcomes(kind, CHIPS[chip])
+            except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
+                return {"error": f"{type(exc).__name__}: {exc}"}
+            return {"outcomes": sorted(got.items()), "report": report}
+        return run
+    jobs = {f"{kind}/{chip}": job(kind, chip) for kind in AT_ONCE_KINDS for chip in CHIPS}
+    return shared_runs(session_root(tmp_path_factory), "conformance-transports", jobs, at_once=len(jobs))
+
+
+@pytest.mark.parametrize("chip,failing", [("healthy", set()), ("counter_off_by_one", {24, 25, 26, 27})],
+                         ids=list(CHIPS))
 @pytest.mark.parametrize("kind", ["pty", "slcan", pytest.param("udp_multicast", marks=ONE_MULTICAST_BUS)])
 def test_the_same_verdicts_on_every_transport(request, kind, chip, failing):
     """A healthy chip passes every check, a broken one fails the same checks, on each transport."""
     if kind == "udp_multicast":
         request.getfixturevalue("udp_bus_lock")
-    got, report = _outcomes(kind, chip)
+        got, report = _outcomes(kind, CHIPS[chip])
+    else:
+        run = request.getfixturevalue("pty_and_slcan_runs")[f"{kind}/{chip}"]
+        if "error" in run:
+            raise AssertionError(f"{kind}/{chip}: the conformance run raised {run['error']}")
+        got, report = {n: outcome for n, outcome in run["outcomes"]}, run["report"]
     assert got == _expected(kind, failing=failing), report
