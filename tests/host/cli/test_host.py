@@ -197,7 +197,7 @@ def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp
     termios.tcsetattr(slave, termios.TCSANOW, attrs)
     attrs = termios.tcgetattr(slave)
     a = virtuals("--lattice", "3x3", "--symlink", str(port), "--layout-out", str(lay))
-    p = popen_host(*a.host_cmd, "--duration", "8", "--json", "-q")
+    p = popen_host(*a.host_cmd, "--duration", "300", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
     a.stop(signal.SIGKILL)
@@ -220,6 +220,11 @@ def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp
     os.symlink(os.ttyname(slave), tmp)
     os.replace(tmp, port)
     try:
+        # refused, and it keeps trying the path (only the device it was will do): a second more of
+        # that with the other device there, then stopped (it ran to a --duration of 8 s before)
+        wait_line(p, "came back as another device", 60, err)
+        time.sleep(1.0)
+        p.send_signal(signal.SIGTERM)
         out = finish(p, drain(p, err))
         settings = termios.tcgetattr(slave)
     finally:
@@ -557,7 +562,8 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
     rec = tmp_path / "run.mcap"
     v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
                  "--layout-out", str(tmp_path / "sheet.csv"))
-    p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q", "--record", str(rec))
+    # 4.5 s at the sheet's 145 Hz: hundreds of snapshots after the frame, where the checks need 50-100
+    p = popen_host(*v.host_cmd, "--duration", "4.5", "--json", "-q", "--record", str(rec))
     err: list = []
     wait_line(p, "started on", 60, err)
     drainer = drain(p, err)
