@@ -23,10 +23,10 @@ Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thre
 
 **An idle sheet sleeps**: the thread waits for host input until the next thing it has to do — a
 gateway's SYNC, a chip's heartbeat or re-announce, a frame due on the wire (`Gateway.next_deadline`),
-the next outage — and is woken at once by a `call` and by `stop` (a pipe in its ``select`` on a pty;
-the link's condition on a memory link). An idle 3x3 sheet on a pty wakes about once a second (its
-chips' heartbeats) instead of every 10 ms. The devices whose wait cannot be woken (python-can's
-``recv``, the multi-gateway memory link) still wait at most `_POLL_WAIT_S` at a time.
+the next outage — and is woken at once by a `call` and by `stop` (a pipe in its ``select``): the pty devices. An
+idle 3x3 sheet on a pty wakes about once a second (its chips' re-announces or heartbeats) instead
+of every 10 ms. The devices whose wait cannot be woken (python-can's ``recv``, the memory links'
+reads) still wait at most `_POLL_WAIT_S` at a time.
 
 **Manual mode** (``clock=`` a callable): no thread; the caller runs the device with
 ``device.step()`` at the clock's time (a simulated clock: the in-process back-to-back tests run
@@ -378,16 +378,8 @@ class MemoryDevice(_SerialDevice):
         super().__init__(sheet, **kw)
         self.port, self._end = memory_link("capsheet", timeout=0.1)
 
-    max_wait_s = _WAKEABLE_WAIT_S
-    _woken = False
-
     def _serve(self, timeout_s: float) -> None:
-        rx = self._end._rx  # the link's condition: the host's writes, `_wake` and a close notify it
-        with rx.cond:
-            if timeout_s > 0 and not rx.buf and not rx.closed and not self._woken:
-                rx.cond.wait(timeout_s)
-            self._woken = False
-        self._end.timeout = 0.0
+        self._end.timeout = timeout_s
         try:
             data = self._end.read(65536)
         except OSError:  # the host closed its end: nothing more to do but wait for stop
@@ -395,12 +387,6 @@ class MemoryDevice(_SerialDevice):
             return
         if data:
             self._handle_input(data)
-
-    def _wake(self) -> None:
-        rx = self._end._rx
-        with rx.cond:
-            self._woken = True
-            rx.cond.notify_all()
 
     def _send_wire(self, bus: int, data: bytes, n_frames: int) -> None:
         self._send(bus, [data])
@@ -452,10 +438,10 @@ class PtyDevice(PtyEndpoint, _SerialDevice):
     max_wait_s = _WAKEABLE_WAIT_S
 
     def _serve(self, timeout_s: float) -> None:
-        if self._master < 0:  # no pty right now: pty_read sleeps, and nothing would wake it
+        if self.master < 0:  # no pty right now: pty_read sleeps, and nothing would wake it
             timeout_s = min(timeout_s, _POLL_WAIT_S)
         else:
-            self._wait_on([self._master], [self._master] if self._pending else [], timeout_s)
+            self._wait_on([self.master], [self.master] if self.has_pending else [], timeout_s)
             timeout_s = 0.0
         data = self.pty_read(timeout_s)
         if data:
