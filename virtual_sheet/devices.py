@@ -21,12 +21,12 @@ Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thre
 (joined, ports closed) on exit; `start` / `stop` do the same by hand. The clock is
 ``time.monotonic()`` from `start` (``device.now()``); the chips are powered on at start.
 
-**An idle sheet sleeps**: the thread waits for host input until the next thing it has to do — a
-gateway's SYNC, a chip's heartbeat or re-announce, a frame due on the wire (`Gateway.next_deadline`),
-the next outage — and is woken at once by a `call` and by `stop` (a pipe in its ``select``): the pty devices. An
-idle 3x3 sheet on a pty wakes about once a second (its chips' re-announces or heartbeats) instead
-of every 10 ms. The devices whose wait cannot be woken (python-can's ``recv``, the memory links'
-reads) still wait at most `_POLL_WAIT_S` at a time.
+**An idle sheet sleeps** (the pty devices): the thread waits for host input until the next thing
+it has to do — a gateway's SYNC, a chip's heartbeat or re-announce, a frame due on the wire
+(`Gateway.next_deadline`), the next outage — and is woken at once by a `call` and by `stop` (a pipe
+in its ``select``). An idle 3x3 sheet on a pty wakes about once a second (its chips' re-announces
+or heartbeats) instead of every 10 ms. The devices whose wait cannot be woken (python-can's
+``recv``, the memory links' reads) still wait at most `_POLL_WAIT_S` at a time.
 
 **Manual mode** (``clock=`` a callable): no thread; the caller runs the device with
 ``device.step()`` at the clock's time (a simulated clock: the in-process back-to-back tests run
