@@ -411,6 +411,14 @@ class ChipArray:
         items.sort(key=lambda t: t[0])
         return [f for _, r in items for f in r]
 
+    def next_due(self) -> float:
+        """The earliest time a chip's timer (a re-announce, a heartbeat) is due: `poll` returns
+        nothing before it (-inf with fault wrappers: they are polled every time)."""
+        due = self._next_due
+        if due is None:
+            due = self._next_due = self._first_due()
+        return due
+
     def _first_due(self) -> float:
         """The earliest time any plain chip's timer is due (-inf with fault wrappers: they poll
         every time)."""

@@ -21,6 +21,13 @@ Each is a context manager: ``with PtyDevice(sheet) as dev: ...`` starts the thre
 (joined, ports closed) on exit; `start` / `stop` do the same by hand. The clock is
 ``time.monotonic()`` from `start` (``device.now()``); the chips are powered on at start.
 
+**An idle sheet sleeps** (the pty devices): the thread waits for host input until the next thing
+it has to do — a gateway's SYNC, a chip's heartbeat or re-announce, a frame due on the wire
+(`Gateway.next_deadline`), the next outage — and is woken at once by a `call` and by `stop` (a pipe
+in its ``select``). An idle 3x3 sheet on a pty wakes about once a second (its chips' re-announces
+or heartbeats) instead of every 10 ms. The devices whose wait cannot be woken (python-can's
+``recv``, the memory links' reads) still wait at most `_POLL_WAIT_S` at a time.
+
 **Manual mode** (``clock=`` a callable): no thread; the caller runs the device with
 ``device.step()`` at the clock's time (a simulated clock: the in-process back-to-back tests run
 host and sheet in one thread, deterministically, whatever the machine's load).
@@ -48,6 +55,7 @@ stop only while it still points to its own pty.
 from __future__ import annotations
 
 import os
+import select
 import threading
 import time
 from typing import Any
@@ -60,7 +68,10 @@ from .pty import SYMLINK_RECORDS, PtyEndpoint, PtyGroup, PtyPort, claim_symlink,
 __all__ = ["Device", "MemoryDevice", "PtyDevice", "MultiPtyDevice", "MultiMemoryDevice", "CanDevice", "PtyPort", "PtyGroup", "PtyGroupDevice", "open_pty", "claim_symlink",
            "SYMLINK_RECORDS"]
 
-_IDLE_WAIT_S = 0.005
+#: the longest wait for input of a device that cannot be woken by `Device.call` or `Device.stop`
+_POLL_WAIT_S = 0.02
+#: the longest wait of one that can (a guard: the deadlines and the wake-ups say when to wake)
+_WAKEABLE_WAIT_S = 1.0
 
 
 class Device:
@@ -71,6 +82,12 @@ class Device:
     """
 
     name = "device"
+    #: the longest single wait for input (`_POLL_WAIT_S` unless the device's wait is woken by
+    #: `_wake`: then only a guard, the deadlines decide)
+    max_wait_s = _POLL_WAIT_S
+    #: the wait is a ``select`` (`_wait_on`): a pipe among its descriptors wakes it (`_wake`)
+    wake_by_pipe = False
+    _wake_r = _wake_w = -1
 
     def __init__(self, sheet, *, packed: bool = False, sync_rate_hz: float | None = None,
                  verbose: Any = None, clock=None, gateway_node: bool | None = None,
@@ -114,6 +131,10 @@ class Device:
             raise RuntimeError(f"{self.name} already started")
         self._stop.clear()
         self._open()
+        if self.wake_by_pipe and self.clock is None and self._wake_r < 0:
+            self._wake_r, self._wake_w = os.pipe()
+            os.set_blocking(self._wake_r, False)
+            os.set_blocking(self._wake_w, False)
         self._t0 = time.monotonic()
         self._given = float("-inf")  # the chips' clock begins again
         if power_on:
@@ -130,6 +151,7 @@ class Device:
         """Stop the thread and close the ports (idempotent)."""
         self._stop.set()
         self._started = False
+        self._wake()
         t = self._thread
         if t is not None and t is not threading.current_thread():
             t.join(timeout_s)
@@ -137,6 +159,10 @@ class Device:
                 raise RuntimeError(f"{self.name}: thread did not stop within {timeout_s} s")
         self._thread = None
         self._close()
+        fds, (self._wake_r, self._wake_w) = (self._wake_r, self._wake_w), (-1, -1)
+        for fd in fds:
+            if fd >= 0:
+                os.close(fd)
 
     close = stop
 
@@ -186,6 +212,7 @@ class Device:
         done, box = threading.Event(), []
         with self._calls_lock:
             self._calls.append((fn, done, box))
+        self._wake()
         if not done.wait(timeout_s):
             raise TimeoutError(f"{self.name}: the device thread did not run the call within {timeout_s} s")
         if box and isinstance(box[0], BaseException):
@@ -244,13 +271,20 @@ class Device:
                 self._come_back()
                 self.down = False
                 continue
-            deadline = min(gw.next_deadline() for gw in self.gateways)
-            self._serve(min(max(0.0, deadline - now), 0.02))
+            self._serve(min(max(0.0, self._next_deadline() - now), self.max_wait_s))
             now = self.now()
             self._given = now  # the chips' clock is here now: no later input is taken before it
             for gw in self.gateways:
                 gw.poll(now)
             self._flush(now)
+
+    def _next_deadline(self) -> float:
+        """When the loop next has something to do without input: a gateway's timer or output
+        (`Gateway.next_deadline`), or the next outage."""
+        t = min(gw.next_deadline() for gw in self.gateways)
+        if self._next_outage is not None:
+            t = min(t, self._next_outage[0])
+        return t
 
     def _flush(self, now: float) -> None:
         wire = getattr(self, "_send_wire", None)
@@ -274,6 +308,32 @@ class Device:
     def _close(self) -> None: ...
     def _serve(self, timeout_s: float) -> None: ...
     def _send(self, bus: int, frames: list) -> None: ...
+
+    def _wake(self) -> None:
+        """Cut the thread's current wait short (a `call` or `stop` waits for it): a byte into the
+        wake pipe (``wake_by_pipe``); a device that waits otherwise says how."""
+        fd = self._wake_w
+        if fd >= 0:
+            try:
+                os.write(fd, b"w")
+            except OSError:  # full (it is awake already) or closed by `stop`
+                pass
+
+    def _wait_on(self, rfds: list, wfds: list, timeout_s: float) -> None:
+        """Wait at most ``timeout_s`` until a descriptor of ``rfds`` is readable or of ``wfds``
+        writable, or `_wake` is called; what is ready is for the caller to take (without waiting)."""
+        if timeout_s <= 0:
+            return
+        if self._wake_r < 0:  # not started as a thread
+            select.select(rfds, wfds, [], timeout_s)
+            return
+        r, _w, _x = select.select([*rfds, self._wake_r], wfds, [], timeout_s)
+        if self._wake_r in r:
+            try:
+                while os.read(self._wake_r, 4096):
+                    pass
+            except BlockingIOError:
+                pass
 
     def _go_down(self) -> None:
         pass
@@ -374,7 +434,15 @@ class PtyDevice(PtyEndpoint, _SerialDevice):
     def _close(self) -> None:
         self.pty_cleanup()
 
+    wake_by_pipe = True
+    max_wait_s = _WAKEABLE_WAIT_S
+
     def _serve(self, timeout_s: float) -> None:
+        if self.master < 0:  # no pty right now: pty_read sleeps, and nothing would wake it
+            timeout_s = min(timeout_s, _POLL_WAIT_S)
+        else:
+            self._wait_on([self.master], [self.master] if self.has_pending else [], timeout_s)
+            timeout_s = 0.0
         data = self.pty_read(timeout_s)
         if data:
             self._handle_input(data)
@@ -412,8 +480,16 @@ class PtyGroupDevice(Device):
     def _close(self) -> None:
         self.ports.cleanup()
 
+    wake_by_pipe = True
+    max_wait_s = _WAKEABLE_WAIT_S
+
     def _serve(self, timeout_s: float) -> None:
-        self.ports.serve(timeout_s, self._received, self.now)
+        ports = [p for p in self.ports if p.master >= 0]
+        if not ports:  # no pty right now: serve sleeps, and nothing would wake it
+            self.ports.serve(min(timeout_s, _POLL_WAIT_S), self._received, self.now)
+            return
+        self._wait_on([p.master for p in ports], [p.master for p in ports if p.has_pending], timeout_s)
+        self.ports.serve(0.0, self._received, self.now)
 
     def _received(self, b: int, data: bytes, t: float) -> None:
         """Port ``b`` received ``data`` at device time ``t``."""

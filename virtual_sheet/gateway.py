@@ -320,12 +320,26 @@ class Gateway:
         self._dispatch(frame, sync, now_s)
 
     def next_deadline(self) -> float:
-        """When `poll` / `pop_output` next has something to do."""
-        t = self._next_poll
+        """When `poll` / `pop_output` next has something to do: the gateway's SYNC, the first
+        frame due on the wire, the first poll tick at or after a timer of the chips or of the
+        gateway node. Where those timers are not known (chips that are not the sheet's array, or
+        fault wrappers and held frames, which act at any poll) every poll tick."""
+        t = max(self._next_poll, self._timers_due())
         if self._next_sync is not None:
             t = min(t, self._next_sync)
         if self._queue:
             t = min(t, self._queue[0][0])
+        return t
+
+    def _timers_due(self) -> float:
+        """The earliest time a timer of the chips or of the node is due (-inf: not known)."""
+        if self.chip_array is None or self.faults is not None:
+            return float("-inf")
+        t = self.chip_array.next_due()
+        node = self.node
+        if node is not None and node.powered:
+            t = min(t, node.next_announce_s if node.state == ChipState.BOOT else
+                    (node.next_heartbeat_s if node.next_heartbeat_s is not None else float("inf")))
         return t
 
     # ------------------------------------------------------------------ host -> chips

@@ -202,6 +202,16 @@ class PtyEndpoint:
             if self._tmpdir is None:
                 _drop_record(self.path)
 
+    @property
+    def master(self) -> int:
+        """The master side's file descriptor (-1 while closed)."""
+        return self._master
+
+    @property
+    def has_pending(self) -> bool:
+        """Bytes wait for the host to read them (write again when the master is writable)."""
+        return bool(self._pending)
+
     def pty_read(self, timeout_s: float) -> bytes:
         if self._master < 0:
             time.sleep(timeout_s)
@@ -257,16 +267,6 @@ class PtyPort(PtyEndpoint):
     def __init__(self, name: str, symlink_path: str | os.PathLike | None = None) -> None:
         self.name = name
         self.pty_init(symlink_path)
-
-    @property
-    def master(self) -> int:
-        """The master side's file descriptor (-1 while closed)."""
-        return self._master
-
-    @property
-    def has_pending(self) -> bool:
-        """Bytes wait for the host to read them (write again when the master is writable)."""
-        return bool(self._pending)
 
     def open(self) -> None:
         self.pty_open()

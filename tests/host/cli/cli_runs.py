@@ -119,3 +119,19 @@ def udp_bus_lock():
     from tests.host.udp_lock import udp_multicast_lock
     with udp_multicast_lock():
         yield
+
+
+def host_here(cli_here, *args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
+    """`host` through the entry point in this process (tests/host/cli/conftest.py's ``cli_here``):
+    the same command line (`modest_rate`), the same fields of the result. For a run whose process
+    proves nothing more than the command does (a refusal, a session after the first)."""
+    code, out, err = cli_here(["host", *modest_rate(args)], timeout_s=timeout_s)
+    return subprocess.CompletedProcess(["capsheet", "host", *args], code, out, err)
+
+
+def host_json_here(cli_here, *args: str, timeout_s: float = 120) -> tuple[subprocess.CompletedProcess, dict]:
+    """`host_json` through the entry point in this process (`host_here`)."""
+    out = host_here(cli_here, *args, "--json", "-q", timeout_s=timeout_s)
+    assert "Traceback" not in out.stderr, out.stderr
+    assert out.stdout.strip(), (out.returncode, out.stderr)
+    return out, json.loads(out.stdout)

@@ -43,13 +43,16 @@ def cli_here(capsys, monkeypatch):
     """``run(argv, cwd=None, timeout_s=60) -> (exit status, stdout, stderr)``: ``capsheet ARGV``
     through `host.cli.main` here. argparse's own refusals (SystemExit) give their status; the
     process-wide state a command sets (root logging handlers, the interpreter's switch interval,
-    the working directory) is put back after each call, so one case cannot leak into the next."""
+    the working directory, the SIGTERM/SIGHUP/SIGINT handlers) is put back after each call, so one
+    case cannot leak into the next."""
     from host.cli import main
 
     def run(argv: list[str], cwd=None, timeout_s: float = 60.0) -> tuple[int, str, str]:
         root = logging.getLogger()
         handlers, level = list(root.handlers), root.level
         switch = sys.getswitchinterval()
+        # a command that streams takes SIGTERM/SIGHUP for itself (host, virtual, view): put back
+        handlers_sig = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP, signal.SIGINT)}
         here = os.getcwd()
         capsys.readouterr()
         try:
@@ -60,11 +63,15 @@ def cli_here(capsys, monkeypatch):
                     code = main(list(argv))
                 except SystemExit as exc:
                     code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+                    if exc.code is not None and not isinstance(exc.code, int):
+                        print(exc.code, file=sys.stderr)  # what the interpreter prints at such an exit
         finally:
             os.chdir(here)
             root.handlers[:] = handlers
             root.setLevel(level)
             sys.setswitchinterval(switch)
+            for sig, h in handlers_sig.items():
+                signal.signal(sig, h)
         got = capsys.readouterr()
         return code, got.out, got.err
 

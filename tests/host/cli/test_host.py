@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.host.cli.cli_runs import CLI, ENV, modest_rate, drain, finish, host, host_json, popen_host, wait_line
+from tests.host.cli.cli_runs import (CLI, ENV, Virtual, drain, finish, host, host_here, host_json, host_json_here,
+                                     modest_rate, popen_host, wait_line)
 
 # -- bad values: one line, exit 2, no traceback (no sheet needed: checked before any port opens) --
 
@@ -73,38 +74,48 @@ def test_every_bad_value_is_one_line_and_exit_2(tmp_path, cli_here):
 
 
 @pytest.mark.parametrize("layout", [False, True])
-def test_no_chip_is_exit_1(tmp_path, layout):
+def test_no_chip_is_exit_1(tmp_path, layout, cli_here):
     """A port where nothing answers: 'no chip answered', exit 1 (was 0 % complete and exit 0). With a
     layout too: the port is named, not the layout (was "12 layout chip(s) never answered ... check
-    the layout file", exit 2)."""
+    the layout file", exit 2). Without a layout through a real process; with one through the entry
+    point in this process (the same bring-up, refusal, line and status)."""
     lay = tmp_path / "sheet.csv"
     lay.write_text("uid,link\n" + "".join(f"0x{0x1000 + k:X},{k}\n" for k in range(12)))
     master, slave = os.openpty()
     try:
-        out = host("--port", os.ttyname(slave), *(["--layout", str(lay)] if layout else ["--auto-assign"]),
-                   "--discover-s", "0.2", "--lattice", "3x3")
+        argv = ["--port", os.ttyname(slave), *(["--layout", str(lay)] if layout else ["--auto-assign"]),
+                "--discover-s", "0.2", "--lattice", "3x3"]
+        if layout:
+            code, _out, err = cli_here(["host", *modest_rate(argv)])
+        else:
+            out = host(*argv)
+            code, err = out.returncode, out.stderr
     finally:
         os.close(master)
         os.close(slave)
-    assert out.returncode == 1 and "no chip answered" in out.stderr, out.stderr
-    assert "never answered" not in out.stderr and "check the layout" not in out.stderr, out.stderr
+    assert code == 1 and "no chip answered" in err, err
+    assert "never answered" not in err and "check the layout" not in err, err
 
 
 # -- bring-up from any state ---------------------------------------------------------------------
 
-def test_host_killed_mid_stream_and_restarted_gets_every_chip(virtuals, tmp_path):
+def test_host_killed_mid_stream_and_restarted_gets_every_chip(virtuals, tmp_path, cli_here):
+    """A host killed (SIGKILL: the sheet left streaming) or stopped (SIGTERM) mid-stream: the next
+    host finds every chip. The host started again after SIGKILL is a real process, after SIGTERM it
+    runs through the entry point in this process (the same session and bring-up)."""
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
     err: list = []
     for sig in (signal.SIGKILL, signal.SIGTERM):
         p = popen_host(*v.host_cmd, "--duration", "60")
         wait_line(p, "started on", 60, err)
-        time.sleep(1.0)
+        time.sleep(0.5)  # streaming since "started on": mid-stream
         p.send_signal(sig)  # the sheet is left streaming (SIGKILL) or stopped (SIGTERM)
         p.wait(30)
         p.stderr.close()
         p.stdout.close()
-        out, doc = host_json(*v.host_cmd, "--duration", "1.5")
+        args = (*v.host_cmd, "--duration", "1.5")
+        out, doc = host_json(*args) if sig == signal.SIGKILL else host_json_here(cli_here, *args)
         assert out.returncode == 0, out.stderr
         assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr
         s = doc["summary"]
@@ -113,14 +124,19 @@ def test_host_killed_mid_stream_and_restarted_gets_every_chip(virtuals, tmp_path
 
 
 @pytest.mark.parametrize("transport", ["pty", "slcan"])
-def test_three_sessions_in_a_row(virtuals, tmp_path, transport):
+def test_three_sessions_in_a_row(virtuals, tmp_path, transport, cli_here):
+    """Three host sessions in a row on one sheet, each bringing it up from the state the last one
+    left: the first through a real process, the next two through the entry point in this process
+    (a session is the `Host` the command makes, whichever process it is in: the sheet sees the port
+    closed and opened again either way)."""
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "4x4", "--transport", transport, "--symlink", str(tmp_path / "port"),
                  "--layout-out", str(lay))
     for session in range(3):
         # bring-up is under test here, not how fast python-can's slcan reads on a busy machine:
-        # --min-complete 0, and the data must merely flow
-        out, doc = host_json(*v.host_cmd, "--duration", "1.5", "--min-complete", "0")
+        # --min-complete 0, and the data must merely flow (a second: tens of snapshots at 30 Hz)
+        args = (*v.host_cmd, "--duration", "1", "--min-complete", "0")
+        out, doc = host_json(*args) if session == 0 else host_json_here(cli_here, *args)
         assert out.returncode == 0, (session, out.stderr)
         assert "24 chips found, 24 assigned, 24 configured, 0 calibrated (24 nominal: no calibration of their own), 24 started" in out.stderr, (session, out.stderr)
         s = doc["summary"]
@@ -181,7 +197,7 @@ def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp
     termios.tcsetattr(slave, termios.TCSANOW, attrs)
     attrs = termios.tcgetattr(slave)
     a = virtuals("--lattice", "3x3", "--symlink", str(port), "--layout-out", str(lay))
-    p = popen_host(*a.host_cmd, "--duration", "8", "--json", "-q")
+    p = popen_host(*a.host_cmd, "--duration", "300", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
     a.stop(signal.SIGKILL)
@@ -204,6 +220,11 @@ def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp
     os.symlink(os.ttyname(slave), tmp)
     os.replace(tmp, port)
     try:
+        # refused, and it keeps trying the path (only the device it was will do): a second more of
+        # that with the other device there, then stopped (it ran to a --duration of 8 s before)
+        wait_line(p, "came back as another device", 60, err)
+        time.sleep(1.0)
+        p.send_signal(signal.SIGTERM)
         out = finish(p, drain(p, err))
         settings = termios.tcgetattr(slave)
     finally:
@@ -220,7 +241,7 @@ def test_a_reconnect_to_another_device_is_refused_never_written_to(virtuals, tmp
 
 # -- without --lattice: what answered decides, or is said ---------------------------------------------
 
-def test_without_lattice_the_host_says_what_answered_and_which_lattices_fit(virtuals, tmp_path):
+def test_without_lattice_the_host_says_what_answered_and_which_lattices_fit(virtuals, tmp_path, cli_here):
     """A 6x6 sheet and no --lattice: 60 chips answer, no gateway says how many links there are; the
     count alone never decides (one silent chip would make it 59, which fits 4x9), so the host says
     what it heard and what fits, exit 2, one line (was: 14x14 assumed, "complete 100 %" with 16.5 %
@@ -229,14 +250,14 @@ def test_without_lattice_the_host_says_what_answered_and_which_lattices_fit(virt
     cmd = [a for a in v.host_cmd]
     i = cmd.index("--lattice")
     del cmd[i:i + 2]
-    out = host(*cmd, "--duration", "1")
+    out = host_here(cli_here, *cmd, "--duration", "1")  # refused after discovery: in this process
     assert out.returncode == 2, out.stderr
     [line] = out.stderr.splitlines()
     assert "60 chips answered" in line and "lattices with 60 links: 6x6" in line and "give --lattice" in line, line
     assert v.p.poll() is None
 
 
-def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_path):
+def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_path, cli_here):
     """Two gateway nodes serving links 0-11 and 12-23: 24 links, 4x4 the one lattice with that many:
     used, and said. A CSV layout's links decide in the same way."""
     g = virtuals("--lattice", "4x4", "--packed", "--gateways", "2", "--rate", "50", "--symlink", str(tmp_path / "g"))
@@ -252,24 +273,28 @@ def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_pa
     cmd = list(a.host_cmd)
     i = cmd.index("--lattice")
     del cmd[i:i + 2]
-    out, doc = host_json(*cmd, "--duration", "1")
+    out, doc = host_json_here(cli_here, *cmd, "--duration", "0.5")  # the gateways' case ran as a process
     assert out.returncode == 0 and "the layout names links 0-11 (12 links): 3x3" in out.stderr, out.stderr
     assert doc["summary"]["links"] == 12
 
 
 # -- one session per port -------------------------------------------------------------------------
 
-def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path):
+def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path, cli_here):
     """A second ``capsheet host`` on the port a first one streams from: refused before it opens the
     port, exit 1, one line naming the first host's process; the first ends exit 0, >= 99 % complete
-    (was: the second took over and the first fell to 37 % with framing errors)."""
+    (was: the second took over and the first fell to 37 % with framing errors). The second runs
+    in this process (another process than the first's all the same: the lock is between processes),
+    so it is refused while the first streams without waiting for an interpreter to start."""
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
-    p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q")
+    p = popen_host(*v.host_cmd, "--duration", "4", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
-    second = host(*v.host_cmd, "--duration", "3", timeout_s=60)
-    out = finish(p, drain(p, err))
+    drainer = drain(p, err)
+    second = host_here(cli_here, *v.host_cmd, "--duration", "3", timeout_s=60)
+    assert p.poll() is None, "the first host ended before the second was refused: no proof"
+    out = finish(p, drainer)
     assert second.returncode == 1, second.stderr
     [line] = second.stderr.splitlines()
     assert "is in use by process" in line and f"process {p.pid} (" in line and "one session per port" in line, line
@@ -278,57 +303,99 @@ def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path):
     assert s["complete_snapshots_pct"] >= 99.0 and not s["errors"], s
 
 
-@pytest.mark.parametrize("command", ["calibrate", "tactile", "conformance", "layout", "ports", "host-slcan"])
-def test_every_command_that_opens_a_port_is_refused_on_a_busy_one(virtuals, tmp_path, command):
-    """What ``capsheet host`` holds, no other command opens: exit 1, one line naming the holder."""
-    lay = tmp_path / "sheet.csv"
-    transport = "slcan" if command == "host-slcan" else "pty"
-    v = virtuals("--lattice", "3x3", "--transport", transport, "--symlink", str(tmp_path / "sheet"),
-                 "--layout-out", str(lay))
-    p = popen_host(*v.host_cmd, "--duration", "60", "--json", "-q")
-    err: list = []
+@pytest.fixture(scope="module")
+def busy_port(tmp_path_factory):
+    """``make(transport) -> (port, host process, sheet's host command)``: a 3x3 sheet on ``pty`` or
+    ``slcan`` and a ``capsheet host`` streaming from it, made once per module and transport and
+    shared by the refusals below (a refused command never opens the port: nothing a test does
+    changes what the next one finds). The hosts are stopped at the module's end."""
+    made: dict = {}
+    stops: list = []
+
+    def make(transport: str):
+        if transport not in made:
+            tmp = tmp_path_factory.mktemp(f"busy-{transport}")
+            v = Virtual("--lattice", "3x3", "--transport", transport, "--symlink", str(tmp / "sheet"),
+                        "--layout-out", str(tmp / "sheet.csv"))
+            stops.append(lambda: v.stop(signal.SIGKILL))
+            # a SYNC a second: the port is held all the same, and the module's minutes cost little
+            p = popen_host(*v.host_cmd, "--duration", "600", "--rate", "1", "--json", "-q")
+            err: list = []
+            drainer: list = []
+
+            def stop_host():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+                try:
+                    finish(p, drainer[0] if drainer else drain(p, err))
+                finally:
+                    if p.poll() is None:
+                        p.kill()
+            stops.append(stop_host)
+            wait_line(p, "started on", 60, err)
+            drainer.append(drain(p, err))
+            made[transport] = (str(tmp / "sheet"), p, v.host_cmd)
+        return made[transport]
     try:
-        wait_line(p, "started on", 60, err)
-        port = str(tmp_path / "sheet")
-        args = {"calibrate": ["calibrate", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "c.json")],
-                "tactile": ["tactile", "--port", port, "--lattice", "3x3", "--duration", "1"],
-                "conformance": ["conformance", "--port", port],
-                "layout": ["layout", "learn", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "l.csv")],
-                "ports": ["ports", "--probe", port],
-                "host-slcan": ["host", *v.host_cmd, "--duration", "1"]}[command]
-        out = subprocess.run(CLI + args, capture_output=True, text=True, timeout=60, env=ENV)
-        assert out.returncode == 1, (out.returncode, out.stderr)
-        [line] = (out.stdout if command == "ports" else out.stderr).splitlines()  # ports: its report
-        assert f"is in use by process {p.pid} (" in line, line
+        yield make
     finally:
-        p.send_signal(signal.SIGTERM)
-        finish(p, drain(p, err))
+        for stop in reversed(stops):
+            stop()
+
+
+#: the commands refused through a real process (one of each transport's, the other commands'
+#: refusals through the entry point in this process: the same check, line and exit status; each of
+#: them runs through a real process in its own tests)
+REFUSED_IN_A_PROCESS = ("calibrate", "host-slcan")
+
+
+@pytest.mark.parametrize("command", ["calibrate", "tactile", "conformance", "layout", "ports", "host-slcan"])
+def test_every_command_that_opens_a_port_is_refused_on_a_busy_one(busy_port, tmp_path, command, cli_here):
+    """What ``capsheet host`` holds, no other command opens: exit 1, one line naming the holder,
+    and the holder streams on."""
+    port, p, host_cmd = busy_port("slcan" if command == "host-slcan" else "pty")
+    args = {"calibrate": ["calibrate", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "c.json")],
+            "tactile": ["tactile", "--port", port, "--lattice", "3x3", "--duration", "1"],
+            "conformance": ["conformance", "--port", port],
+            "layout": ["layout", "learn", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "l.csv")],
+            "ports": ["ports", "--probe", port],
+            "host-slcan": ["host", *host_cmd, "--duration", "1"]}[command]
+    if command in REFUSED_IN_A_PROCESS:
+        out = subprocess.run(CLI + args, capture_output=True, text=True, timeout=60, env=ENV)
+        code, stdout, stderr = out.returncode, out.stdout, out.stderr
+    else:
+        code, stdout, stderr = cli_here(args)
+    assert code == 1, (code, stderr)
+    [line] = (stdout if command == "ports" else stderr).splitlines()  # ports: its report
+    assert f"is in use by process {p.pid} (" in line, line
+    assert p.poll() is None  # the holder streams on
 
 
 # -- one SYNC source ------------------------------------------------------------------------------
 
-def test_two_sync_sources(virtuals, tmp_path):
+def test_two_sync_sources(virtuals, tmp_path, cli_here):
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay), "--rate", "50")
     assert "--sync" in v.host_cmd and "follow" in v.host_cmd  # the printed command follows the gateway
     base = [a for a in v.host_cmd]
     i = base.index("--sync")
     del base[i:i + 2]
-    out = host(*base, "--duration", "1")  # drive mode against a gateway that drives SYNC: it said so itself
+    # drive mode against a gateway that drives SYNC: it said so itself (refused at bring-up: here)
+    out = host_here(cli_here, *base, "--duration", "1")
     assert out.returncode == 2 and "is its segment's SYNC source" in out.stderr and "--sync follow" in out.stderr
-    out, doc = host_json(*base, "--sync", "auto", "--duration", "1.5")
+    out, doc = host_json(*base, "--sync", "auto", "--duration", "1")
     assert out.returncode == 0, out.stderr
     assert doc["summary"]["sync_mode"] == "follow" and doc["summary"]["valid_links_pct"] >= 95.0
 
 
 # -- capacity and mismatches before streaming ------------------------------------------------------
 
-def test_over_capacity_is_refused_with_the_remedy(virtuals, tmp_path):
+def test_over_capacity_is_refused_with_the_remedy(virtuals, tmp_path, cli_here):
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
     cmd = list(v.host_cmd)
     cmd[cmd.index("--baud") + 1] = "115200"
-    out = host(*cmd, "--duration", "1", "--rate", "100")
+    out = host_here(cli_here, *cmd, "--duration", "1", "--rate", "100")  # refused before streaming: here
     # 60 chips x 100 Hz x 150 bits = 900 kbit/s on a 115.2 kbaud UART: 781 %
     assert out.returncode == 2 and "over capacity" in out.stderr and "781 %" in out.stderr, out.stderr
     assert "--packed" in out.stderr and "--rate" in out.stderr
@@ -336,16 +403,17 @@ def test_over_capacity_is_refused_with_the_remedy(virtuals, tmp_path):
     assert out.returncode == 0, out.stderr
 
 
-def test_layout_chips_that_never_answer_are_named(virtuals, tmp_path):
-    other = tmp_path / "other.csv"
-    subprocess.run(CLI + ["virtual", "--lattice", "3x3", "--seed", "5", "--layout-out", str(other),
-                          "--transport", "memory", "--duration", "0.01"], capture_output=True, timeout=60, env=ENV)
+def test_layout_chips_that_never_answer_are_named(virtuals, tmp_path, cli_here):
+    other = tmp_path / "other.csv"  # another sheet's layout, written by `capsheet virtual` in this process
+    code, _out, err = cli_here(["virtual", "--lattice", "3x3", "--seed", "5", "--layout-out", str(other),
+                                "--transport", "memory", "--duration", "0.01"])
+    assert code == 0 and other.exists(), err
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--seed", "1")
     cmd = [a for a in v.host_cmd if a != "--auto-assign"]
     out = host(*cmd, "--layout", str(other), "--duration", "1")
     assert out.returncode == 2 and "12 layout chip(s) never answered: link 0 (uid 0x" in out.stderr, out.stderr
     assert "Traceback" not in out.stderr
-    out = host(*cmd, "--layout", str(other), "--duration", "0.5", "--allow-missing")
+    out = host_here(cli_here, *cmd, "--layout", str(other), "--duration", "0.5", "--allow-missing")
     assert out.returncode == 1 and "announcing chip(s) are not in the layout" in out.stderr  # and nothing streamed
 
 
@@ -429,7 +497,7 @@ def test_a_sheet_on_two_udp_multicast_buses(udp_bus_lock, virtuals, tmp_path):
 
 # -- summary and exit codes ----------------------------------------------------------------------
 
-def test_summary_names_the_missing_link_and_min_complete_decides(virtuals, tmp_path):
+def test_summary_names_the_missing_link_and_min_complete_decides(virtuals, tmp_path, cli_here):
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay),
                  "--faults", "dead_chip=4,seed=2")
@@ -440,7 +508,7 @@ def test_summary_names_the_missing_link_and_min_complete_decides(virtuals, tmp_p
     assert f"4 (uid {uid})" in out.stderr, out.stderr
     assert "\r" not in out.stderr  # not a terminal: plain periodic lines
     assert out.stderr.count("snapshots") >= 3
-    out = host(*v.host_cmd, "--duration", "1.0", "--allow-missing", "--min-complete", "99")
+    out = host_here(cli_here, *v.host_cmd, "--duration", "1.0", "--allow-missing", "--min-complete", "99")
     assert out.returncode == 1 and "below --min-complete 99 %" in out.stderr, out.stderr
 
 
@@ -494,7 +562,8 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
     rec = tmp_path / "run.mcap"
     v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
                  "--layout-out", str(tmp_path / "sheet.csv"))
-    p = popen_host(*v.host_cmd, "--duration", "6", "--json", "-q", "--record", str(rec))
+    # 4.5 s at the sheet's 145 Hz: hundreds of snapshots after the frame, where the checks need 50-100
+    p = popen_host(*v.host_cmd, "--duration", "4.5", "--json", "-q", "--record", str(rec))
     err: list = []
     wait_line(p, "started on", 60, err)
     drainer = drain(p, err)
@@ -590,7 +659,8 @@ def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
     assert os.path.realpath(paths[0]) != os.path.realpath(paths[1])  # two ptys
     if mode == "follow-packed":
         assert "--sync" in v.host_cmd and "follow" in v.host_cmd  # packing: the gateway nodes say so
-    out, doc = host_json(*v.host_cmd, "--duration", "3", "--record", str(rec_path), "--live-rate", "1")
+    # 1.5 s: ~45 snapshots at 30 Hz, where the checks below need 10
+    out, doc = host_json(*v.host_cmd, "--duration", "1.5", "--record", str(rec_path), "--live-rate", "1")
     assert out.returncode == 0, out.stderr
     assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr, out.stderr
     assert [b["name"] for b in doc["buses"]] == paths
@@ -623,25 +693,32 @@ def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
         assert doc["syncs_seen"] >= 2 * s["snapshots"] - 4, (doc["syncs_seen"], s["snapshots"])
 
 
-def test_a_port_given_twice_and_gateways_usage_are_exit_2(virtuals, tmp_path):
+def test_a_port_given_twice_and_gateways_usage_are_exit_2(virtuals, tmp_path, cli_here):
+    """The first refusal of each command through a real process, the others through the entry point
+    in this process (refused before any port opens or any sheet starts)."""
     v = virtuals("--lattice", "3x3", "--gateways", "2", "--symlink", str(tmp_path / "gw"))
     a = str(tmp_path / "gw0")
-    for ports in ([a, a], [a, os.path.realpath(a)]):
-        out = host("--port", ports[0], "--port", ports[1], "--lattice", "3x3", "--auto-assign", "--duration", "1")
+    for k, ports in enumerate(([a, a], [a, os.path.realpath(a)])):
+        argv = ("--port", ports[0], "--port", ports[1], "--lattice", "3x3", "--auto-assign", "--duration", "1")
+        out = host(*argv) if k == 0 else host_here(cli_here, *argv)
         assert out.returncode == 2 and "given twice" in out.stderr and "Traceback" not in out.stderr, out.stderr
         assert len(out.stderr.strip().splitlines()) == 1, out.stderr
-    out = host("--port", a, "--can", "virtual:x", "--lattice", "3x3", "--duration", "1")
+    out = host_here(cli_here, "--port", a, "--can", "virtual:x", "--lattice", "3x3", "--duration", "1")
     assert out.returncode == 2 and "not both" in out.stderr, out.stderr
-    for args, needle in ((["--transport", "slcan", "--gateways", "2"], "--gateways is for --transport pty"),
-                         (["--lattice", "2x2", "--gateways", "5"], "need 1..4"),
-                         (["--gateways", "0"], "--gateways: invalid value '0': need an integer >= 1")):
-        p = subprocess.run(CLI + ["virtual", *args, "--duration", "1"], capture_output=True, text=True, timeout=60,
-                           env=ENV)
-        assert p.returncode == 2 and needle in p.stderr and "Traceback" not in p.stderr, (args, p.stderr)
+    for k, (args, needle) in enumerate(((["--transport", "slcan", "--gateways", "2"], "--gateways is for --transport pty"),
+                                        (["--lattice", "2x2", "--gateways", "5"], "need 1..4"),
+                                        (["--gateways", "0"], "--gateways: invalid value '0': need an integer >= 1"))):
+        if k == 0:
+            p = subprocess.run(CLI + ["virtual", *args, "--duration", "1"], capture_output=True, text=True,
+                               timeout=60, env=ENV)
+            code, err = p.returncode, p.stderr
+        else:
+            code, _out, err = cli_here(["virtual", *args, "--duration", "1"])
+        assert code == 2 and needle in err and "Traceback" not in err, (args, err)
     assert v.p.poll() is None
 
 
-def test_a_second_port_that_is_not_this_sheet_is_a_mismatch(virtuals, tmp_path):
+def test_a_second_port_that_is_not_this_sheet_is_a_mismatch(virtuals, tmp_path, cli_here):
     """Two ports must be two halves of one sheet: a port whose chips are all foreign to the layout
     (another sheet's gateway) is named; the same chips on both ports (two sheets with colliding
     uids, as one gateway opened twice would be) are refused. Exit 2, one line, before streaming."""
@@ -652,8 +729,8 @@ def test_a_second_port_that_is_not_this_sheet_is_a_mismatch(virtuals, tmp_path):
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     assert f"none of the chips on {tmp_path / 'b'} is in the layout" in out.stderr, out.stderr
     c = virtuals("--lattice", "3x3", "--seed", "7", "--symlink", str(tmp_path / "c"))  # b's uids again
-    out = host("--port", str(tmp_path / "b"), "--port", str(tmp_path / "c"), "--lattice", "3x3", "--auto-assign",
-               "--duration", "2")
+    out = host_here(cli_here, "--port", str(tmp_path / "b"), "--port", str(tmp_path / "c"), "--lattice", "3x3",
+                    "--auto-assign", "--duration", "2")  # refused after discovery: in this process
     assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
     assert "answer on more than one port" in out.stderr and str(tmp_path / "c") in out.stderr, out.stderr
     assert a.p.poll() is None and b.p.poll() is None and c.p.poll() is None
@@ -766,7 +843,7 @@ def test_the_host_chooses_its_design_for_the_sheet(tmp_path, argv, lattice, read
         assert line is None
 
 
-def test_the_natural_command_says_the_design_it_chose(tmp_path):
+def test_the_natural_command_says_the_design_it_chose(tmp_path, cli_here):
     """Through the real command line (a port where nothing answers: the choice is made and said
     before bring-up): a 64x64 sheet at 145 Hz, recorded, gets both processes and one line saying
     so; with the flags turned off, nothing is chosen and nothing said."""
@@ -779,7 +856,7 @@ def test_the_natural_command_says_the_design_it_chose(tmp_path):
         [line] = [ln for ln in out.stderr.splitlines() if "big sheet" in ln]
         assert ("8064 links x 145 Hz" in line and "each port read by a process of its own" in line
                 and "estimates made in a process of their own" in line), line
-        out = host(*base, "--overwrite", "--no-reader-processes", "--no-estimate-process")
+        out = host_here(cli_here, *base, "--overwrite", "--no-reader-processes", "--no-estimate-process")
         assert out.returncode == 1 and "big sheet" not in out.stderr, out.stderr
     finally:
         os.close(master)

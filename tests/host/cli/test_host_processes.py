@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from tests.host.cli.cli_runs import drain, finish, host, host_json, popen_host, wait_line  # noqa: F401
+from tests.host.cli.cli_runs import drain, finish, host, host_here, host_json, popen_host, wait_line  # noqa: F401
 
 
 def _children(pid: int) -> list[tuple[int, str]]:
@@ -109,8 +109,11 @@ def test_reader_processes_need_a_port_with_a_file_descriptor():
     assert "Traceback" not in out.stderr
 
 
-def test_reader_processes_on_a_can_bus_is_a_usage_error():
-    out = host("--can", "virtual:rp", "--reader-processes", "--lattice", "3x3", "--auto-assign", "--duration", "1")
+def test_reader_processes_on_a_can_bus_is_a_usage_error(cli_here):
+    """Refused before anything opens: through the entry point in this process (the refusal above
+    runs through a real one)."""
+    out = host_here(cli_here, "--can", "virtual:rp", "--reader-processes", "--lattice", "3x3", "--auto-assign",
+                    "--duration", "1")
     assert out.returncode == 2 and "--reader-processes reads serial ports" in out.stderr, out.stderr
     assert len(out.stderr.strip().splitlines()) == 1 and "Traceback" not in out.stderr
 
