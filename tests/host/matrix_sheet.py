@@ -11,6 +11,13 @@ one line ``PORT <json list of capsheet port arguments>``. Then either
   in ARGS replaced by the port arguments, and exits with its status: the transports that reach only
   their own process (``memory``: an in-memory link opened as ``memory://NAME``; python-can
   ``virtual``) go through the real command line this way.
+
+``python -m tests.host.matrix_sheet --many SPECS.json`` serves several sheets from one process (a
+transport that reaches other processes: pty, slcan): SPECS is a list of ``{"name": NAME, "argv":
+[options as above]}``; it prints ``PORTS NAME <json list>`` for each, then serves until stdin
+closes, stopping a sheet when it reads ``stop NAME`` (its command has ended). Each sheet keeps its
+own device, port and thread: the commands see what they saw with a process per sheet, and the
+matrix starts one interpreter (and one numpy, one virtual sheet package) where it started six.
 """
 
 from __future__ import annotations
@@ -76,12 +83,7 @@ def build(args):
     return sheet, dev
 
 
-def main(argv: list[str]) -> int:
-    if "--" in argv:
-        k = argv.index("--")
-        argv, cli = argv[:k], argv[k + 1:]
-    else:
-        cli = []
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="matrix_sheet")
     ap.add_argument("--transport", required=True, choices=("memory", "pty", "slcan", "virtual", "udp_multicast"))
     ap.add_argument("--rows", type=int, default=3)
@@ -99,7 +101,44 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--truth-out", default=None,
                     help="at exit, write the truth of every SYNC counter the sheet answered (npz: counter, "
                          "scene_time_s, joints (n, rows, cols, 3) m), from the sheet's own scene")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def serve_many(specs_path: str) -> int:
+    """``--many``: every sheet of SPECS in this process (module docstring)."""
+    with open(specs_path) as f:
+        specs = json.load(f)
+    devs = {}
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    try:
+        for spec in specs:
+            args = parser().parse_args(spec["argv"])
+            if args.transport not in ("pty", "slcan") or args.truth_out:
+                raise SystemExit(f"matrix_sheet --many: {spec['name']}: pty or slcan sheets, without --truth-out")
+            sheet, dev = build(args)
+            sheet.write_layout(args.layout_out)
+            dev.start()
+            devs[spec["name"]] = dev
+            print(f"PORTS {spec['name']} " + json.dumps(port_args(args.transport, dev)), flush=True)
+        for line in sys.stdin:  # until the test closes our stdin
+            word, _, name = line.strip().partition(" ")
+            if word == "stop" and name in devs:
+                devs.pop(name).stop()
+        return 0
+    finally:
+        for dev in devs.values():
+            dev.stop()
+
+
+def main(argv: list[str]) -> int:
+    if argv[:1] == ["--many"]:
+        return serve_many(argv[1])
+    if "--" in argv:
+        k = argv.index("--")
+        argv, cli = argv[:k], argv[k + 1:]
+    else:
+        cli = []
+    args = parser().parse_args(argv)
     sheet, dev = build(args)
     sheet.write_layout(args.layout_out)
     if args.transport == "memory":
