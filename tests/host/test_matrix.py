@@ -10,10 +10,11 @@ subprocesses, against a virtual sheet (tests/host/matrix_sheet.py) behind
 
 ``memory`` and ``virtual`` reach only their own process, so their sheet runs in the command's
 process (``python -m tests.host.matrix_sheet -- capsheet ARGS``); the others run the sheet in one
-process and ``python -m host.cli`` in another, as a user does. A batch's ``pty`` and ``slcan``
-sheets are served by one process (``matrix_sheet --many``: a device, port and thread each, each
-stopped when its command ends); a ``udp_multicast`` sheet keeps a process of its own, whose id
-gives it a multicast group no other process's sheet has.
+process and ``python -m host.cli`` in another, as a user does. A batch's ``pty``, ``slcan`` and
+``udp_multicast`` sheets are served by one process (``matrix_sheet --many``: a device, port and
+thread each, each stopped when its command ends; udp_multicast's each on a multicast group of its
+own, from the process's id and the sheet's number, where the machine's pid_max leaves room for
+them: else a process each, as before).
 
 The features (rows of the table in docs/host.md, which `test_the_docs_table_is_this_matrix` holds to
 `CELLS` and `NOT_APPLICABLE`): stream; ``--record`` then ``replay`` identical; ``--can-log`` decoded
@@ -50,6 +51,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.host.matrix_sheet import fits_udp_groups
+
 
 pytestmark = pytest.mark.xdist_group("matrix")
 
@@ -59,7 +62,8 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 TRANSPORTS = ("memory", "pty", "slcan", "virtual", "udp_multicast")
 IN_PROCESS = ("memory", "virtual")  #: reach only their own process: the sheet runs in the command's
 CAN = ("slcan", "virtual", "udp_multicast")
-SHARED_SHEETS = ("pty", "slcan")  #: a batch's sheets in one process (`Sheets`)
+#: a batch's sheets in one process (`Sheets`); udp_multicast's where each gets a group of its own
+SHARED_SHEETS = ("pty", "slcan", *(("udp_multicast",) if fits_udp_groups(6) else ()))
 LATTICE = "3x3"
 L = 0.01
 SEED = 5  #: the chip errors of the streaming sheet (realistic, noise-free: every snapshot alike)
