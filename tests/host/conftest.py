@@ -24,8 +24,10 @@ def pty_recording(tmp_path_factory):
     layout = sheet.write_layout(d / "sheet.csv")
     out = d / "run.mcap"
     with PtyDevice(sheet) as dev:
+        # a long deadline, as can_recording's: at load 10 the default one left 5x5 at 100 Hz below
+        # --min-complete (exit 1), and what the tests read is the recording, not how late it came
         assert main(["host", "--port", dev.path, "--lattice", "5x5", "--layout", str(layout), "--rate", "100",
-                     "--record", str(out), "--duration", "1.5", "-q"]) == 0
+                     "--deadline-ms", "300", "--record", str(out), "--duration", "1.5", "-q"]) == 0
     return out
 
 

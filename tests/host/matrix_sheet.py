@@ -11,6 +11,14 @@ one line ``PORT <json list of capsheet port arguments>``. Then either
   in ARGS replaced by the port arguments, and exits with its status: the transports that reach only
   their own process (``memory``: an in-memory link opened as ``memory://NAME``; python-can
   ``virtual``) go through the real command line this way.
+
+``python -m tests.host.matrix_sheet --many SPECS.json`` serves several sheets from one process (a
+transport that reaches other processes: pty, slcan, udp_multicast, each sheet on a group of its
+own: `udp_group`): SPECS is a list of ``{"name": NAME, "argv":
+[options as above]}``; it prints ``PORTS NAME <json list>`` for each, then serves until stdin
+closes, stopping a sheet when it reads ``stop NAME`` (its command has ended). Each sheet keeps its
+own device, port and thread: the commands see what they saw with a process per sheet, and the
+matrix starts one interpreter (and one numpy, one virtual sheet package) where it started six.
 """
 
 from __future__ import annotations
@@ -32,14 +40,30 @@ def port_args(transport: str, dev) -> list[str]:
     return ["--can", f"{dev.interface}:{dev.channels[0]}"]
 
 
-def udp_group(pid: int) -> str:
-    """A multicast group of this sheet's own, from its process id (unique among the processes
-    alive, below 239.74.163.2 and the other fixed groups the tests use): sheets isolated to
-    their groups (host/transport/udp_multicast.py) run side by side, in one test session or several."""
-    return f"239.{75 + (pid >> 16) % 100}.{(pid >> 8) & 255}.{pid & 255}"
+def pid_max() -> int:
+    with open("/proc/sys/kernel/pid_max") as f:
+        return int(f.read())
 
 
-def build(args):
+def udp_group(pid: int, index: int = 0) -> str:
+    """A multicast group of this sheet's own, from its process id and its number ``index`` among
+    the sheets of its process (``--many``): unique among the processes alive (a process's first
+    sheet takes its id, below pid_max; its sheet ``index`` takes ``index`` x pid_max + its id),
+    above 239.74.x.x, where the fixed groups the tests use are: sheets isolated to their groups
+    (host/transport/udp_multicast.py) run side by side, in one test session or several.
+    ValueError when the number does not fit the groups above 239.74 (`fits_udp_groups`)."""
+    v = pid + (index * pid_max() if index else 0)
+    if 75 + (v >> 16) > 255:
+        raise ValueError(f"no multicast group for sheet {index} of process {pid} (pid_max {pid_max()})")
+    return f"239.{75 + (v >> 16)}.{(v >> 8) & 255}.{v & 255}"
+
+
+def fits_udp_groups(n: int) -> bool:
+    """Whether a process's ``n`` sheets each get a group of their own (`udp_group`) here."""
+    return 75 + ((n * pid_max()) >> 16) <= 255
+
+
+def build(args, index: int = 0):
     from virtual_sheet.board import DEFAULT_DIRECTIONS, BoardPoseScene
     from virtual_sheet.sensor import chip_error_model
     from virtual_sheet.sheet import VirtualSheet
@@ -71,17 +95,13 @@ def build(args):
         dev = SlcanDevice(sheet, **kw)
     else:
         from virtual_sheet.devices import CanDevice
-        channel = udp_group(os.getpid()) if args.transport == "udp_multicast" else f"matrix{os.getpid()}"
+        channel = (udp_group(os.getpid(), index) if args.transport == "udp_multicast"
+                   else f"matrix{os.getpid()}")
         dev = CanDevice(sheet, interface=args.transport, channels=[channel], **kw)
     return sheet, dev
 
 
-def main(argv: list[str]) -> int:
-    if "--" in argv:
-        k = argv.index("--")
-        argv, cli = argv[:k], argv[k + 1:]
-    else:
-        cli = []
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="matrix_sheet")
     ap.add_argument("--transport", required=True, choices=("memory", "pty", "slcan", "virtual", "udp_multicast"))
     ap.add_argument("--rows", type=int, default=3)
@@ -99,7 +119,45 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--truth-out", default=None,
                     help="at exit, write the truth of every SYNC counter the sheet answered (npz: counter, "
                          "scene_time_s, joints (n, rows, cols, 3) m), from the sheet's own scene")
-    args = ap.parse_args(argv)
+    return ap
+
+
+def serve_many(specs_path: str) -> int:
+    """``--many``: every sheet of SPECS in this process (module docstring)."""
+    with open(specs_path) as f:
+        specs = json.load(f)
+    devs = {}
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    try:
+        for index, spec in enumerate(specs):
+            args = parser().parse_args(spec["argv"])
+            if args.transport not in ("pty", "slcan", "udp_multicast") or args.truth_out:
+                raise SystemExit(f"matrix_sheet --many: {spec['name']}: pty, slcan or udp_multicast sheets, "
+                                 "without --truth-out")
+            sheet, dev = build(args, index)
+            sheet.write_layout(args.layout_out)
+            dev.start()
+            devs[spec["name"]] = dev
+            print(f"PORTS {spec['name']} " + json.dumps(port_args(args.transport, dev)), flush=True)
+        for line in sys.stdin:  # until the test closes our stdin
+            word, _, name = line.strip().partition(" ")
+            if word == "stop" and name in devs:
+                devs.pop(name).stop()
+        return 0
+    finally:
+        for dev in devs.values():
+            dev.stop()
+
+
+def main(argv: list[str]) -> int:
+    if argv[:1] == ["--many"]:
+        return serve_many(argv[1])
+    if "--" in argv:
+        k = argv.index("--")
+        argv, cli = argv[:k], argv[k + 1:]
+    else:
+        cli = []
+    args = parser().parse_args(argv)
     sheet, dev = build(args)
     sheet.write_layout(args.layout_out)
     if args.transport == "memory":

@@ -10,7 +10,11 @@ subprocesses, against a virtual sheet (tests/host/matrix_sheet.py) behind
 
 ``memory`` and ``virtual`` reach only their own process, so their sheet runs in the command's
 process (``python -m tests.host.matrix_sheet -- capsheet ARGS``); the others run the sheet in one
-process and ``python -m host.cli`` in another, as a user does.
+process and ``python -m host.cli`` in another, as a user does. A batch's ``pty``, ``slcan`` and
+``udp_multicast`` sheets are served by one process (``matrix_sheet --many``: a device, port and
+thread each, each stopped when its command ends; udp_multicast's each on a multicast group of its
+own, from the process's id and the sheet's number, where the machine's pid_max leaves room for
+them: else a process each, as before).
 
 The features (rows of the table in docs/host.md, which `test_the_docs_table_is_this_matrix` holds to
 `CELLS` and `NOT_APPLICABLE`): stream; ``--record`` then ``replay`` identical; ``--can-log`` decoded
@@ -47,6 +51,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.host.matrix_sheet import fits_udp_groups
+
 
 pytestmark = pytest.mark.xdist_group("matrix")
 
@@ -56,6 +62,8 @@ ENV = dict(os.environ, PYTHONUNBUFFERED="1")
 TRANSPORTS = ("memory", "pty", "slcan", "virtual", "udp_multicast")
 IN_PROCESS = ("memory", "virtual")  #: reach only their own process: the sheet runs in the command's
 CAN = ("slcan", "virtual", "udp_multicast")
+#: a batch's sheets in one process (`Sheets`); udp_multicast's where each gets a group of its own
+SHARED_SHEETS = ("pty", "slcan", *(("udp_multicast",) if fits_udp_groups(6) else ()))
 LATTICE = "3x3"
 L = 0.01
 SEED = 5  #: the chip errors of the streaming sheet (realistic, noise-free: every snapshot alike)
@@ -142,24 +150,62 @@ class Proc:
         return "".join(self.err)
 
 
-class Job:
-    """``capsheet ARGS`` against a sheet of its own on ``transport``. ``{port}`` in ARGS becomes the
-    port arguments, ``{layout}`` the layout the sheet wrote."""
+def sheet_options(transport: str, layout: Path, sheet: list[str]) -> list[str]:
+    """tests/host/matrix_sheet.py's options for a sheet on ``transport`` writing ``layout``."""
+    return ["--transport", transport, "--layout-out", str(layout), *sheet]
 
-    def __init__(self, transport: str, tmp: Path, name: str, args: list[str], sheet: list[str]) -> None:
+
+class Sheets:
+    """Several sheets served by one ``matrix_sheet --many`` process (pty, slcan): ``specs`` is
+    ``{name: (transport, layout, sheet options)}``."""
+
+    def __init__(self, tmp: Path, specs: dict[str, tuple[str, Path, list[str]]]) -> None:
+        path = tmp / "sheets.json"
+        path.write_text(json.dumps([{"name": name, "argv": sheet_options(*spec)} for name, spec in specs.items()]))
+        self.proc = Proc([PY, "-m", "tests.host.matrix_sheet", "--many", str(path)], stdin=True)
+
+    def ports(self, name: str) -> list[str]:
+        return json.loads(self.proc.wait_line(f"PORTS {name} ").split(" ", 2)[2])
+
+    def stop(self, name: str) -> None:
+        """Stop ``name``'s sheet (its command has ended); the others keep serving."""
+        if self.proc.p.poll() is None:
+            try:
+                self.proc.p.stdin.write(f"stop {name}\n")
+                self.proc.p.stdin.flush()
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        self.proc.stop()
+
+
+class Job:
+    """``capsheet ARGS`` against a sheet of its own on ``transport`` (in ``shared``, a `Sheets`
+    process, if given: its sheet is named ``name`` there). ``{port}`` in ARGS becomes the port
+    arguments, ``{layout}`` the layout the sheet wrote."""
+
+    def __init__(self, transport: str, tmp: Path, name: str, args: list[str], sheet: list[str],
+                 shared: "Sheets | None" = None) -> None:
         layout = tmp / f"{name}-layout.csv"
         self.name = name
+        self.shared = shared
         args = [str(layout) if a == "{layout}" else a for a in args]
-        sheet_argv = [PY, "-m", "tests.host.matrix_sheet", "--transport", transport, "--layout-out", str(layout), *sheet]
-        if transport in IN_PROCESS:
-            self.sheet = None
+        sheet_argv = [PY, "-m", "tests.host.matrix_sheet", *sheet_options(transport, layout, sheet)]
+        self.sheet = None
+        self.in_process = transport in IN_PROCESS  #: the sheet's PORT line comes first on stdout
+        if self.in_process:
             self.proc = Proc(sheet_argv + ["--", *args])
+            self.rc: int | None = None
+            return
+        if shared is not None:
+            ports = shared.ports(name)
         else:
             self.sheet = Proc(sheet_argv, stdin=True)
             ports = json.loads(self.sheet.wait_line("PORT ").split(" ", 1)[1])
-            argv = [a for arg in args for a in (ports if arg == "{port}" else [arg])]
-            self.proc = Proc([PY, "-m", "host.cli", *argv])
-        self.rc: int | None = None
+        argv = [a for arg in args for a in (ports if arg == "{port}" else [arg])]
+        self.proc = Proc([PY, "-m", "host.cli", *argv])
+        self.rc = None
 
     def finish(self, timeout_s: float = 240.0) -> "Job":
         try:
@@ -167,11 +213,13 @@ class Job:
         finally:
             if self.sheet is not None:
                 self.sheet.stop()
+            if self.shared is not None:
+                self.shared.stop(self.name)
         return self
 
     @property
     def stdout(self) -> str:
-        return self.proc.stdout.split("PORT ", 1)[-1].split("\n", 1)[-1] if self.sheet is None else self.proc.stdout
+        return self.proc.stdout.split("PORT ", 1)[-1].split("\n", 1)[-1] if self.in_process else self.proc.stdout
 
     @property
     def stderr(self) -> str:
@@ -355,13 +403,19 @@ class Batch:
         self.jobs: dict[str, Job] = {}
         self.live: dict | BaseException | None = None
         self._live_thread = None
-        for name, args, sheet_args in specs:
-            job = Job(transport, tmp, name, args, sheet_args)
-            self.jobs[name] = job
-            if name == "stream":
-                self._watch_live(job)
-        for name in self.jobs:
-            self._finish(name)
+        shared = (Sheets(tmp, {name: (transport, tmp / f"{name}-layout.csv", sheet_args)
+                               for name, _args, sheet_args in specs}) if transport in SHARED_SHEETS else None)
+        try:
+            for name, args, sheet_args in specs:
+                job = Job(transport, tmp, name, args, sheet_args, shared)
+                self.jobs[name] = job
+                if name == "stream":
+                    self._watch_live(job)
+            for name in self.jobs:
+                self._finish(name)
+        finally:
+            if shared is not None:
+                shared.close()
 
     def _finish(self, name: str) -> None:
         job = self.jobs[name]
@@ -441,30 +495,74 @@ def test_stream(batch):
     assert s["errors"] == {} and s["foreign_syncs"] == 0 and doc["buses"][0]["capture_errors"] == 0, doc
 
 
+def _here(capsys, argv: list[str]) -> tuple[int, str, str]:
+    """``capsheet ARGV`` through its entry point in this process: (exit status, stdout, stderr). The
+    root logging handlers a command sets are put back (as tests/host/cli/conftest.py's ``cli_here``)."""
+    import logging
+
+    from host.cli import main
+    root = logging.getLogger()
+    handlers, level, switch = list(root.handlers), root.level, sys.getswitchinterval()
+    capsys.readouterr()
+    try:
+        try:
+            code = main(argv)
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    finally:
+        root.handlers[:] = handlers
+        root.setLevel(level)
+        sys.setswitchinterval(switch)
+    got = capsys.readouterr()
+    return code, got.out, got.err
+
+
 @pytest.mark.parametrize("batch", cells("record-replay"), indirect=True)
-def test_record_replay(batch):
+def test_record_replay(batch, capsys):
+    """The recording made on the transport, replayed by ``capsheet replay`` through its entry point
+    in this process (what is under test per transport is the recording; replay runs through a real
+    process in tests/host/test_imu_cli.py's 6-axis recording and tests/host/record/test_untrusted_files.py)."""
     _ok(batch.jobs["stream"])
-    out = subprocess.run([PY, "-m", "host.cli", "replay", str(batch.tmp / "stream.mcap"), "--json", "-q",
-                          "--no-estimate"], cwd=ROOT, capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    r = json.loads(out.stdout)
+    code, stdout, stderr = _here(capsys, ["replay", str(batch.tmp / "stream.mcap"), "--json", "-q", "--no-estimate"])
+    assert code == 0, stderr
+    r = json.loads(stdout)
     recorded = batch.jobs["stream"].json()["aggregator"]["emitted"]
     assert r["recorded_snapshots"] == recorded >= 10
     assert r["snapshots_identical"] == r["snapshots_compared"] == recorded, r
     assert all(not e for e in r["decode_errors"].values()), r["decode_errors"]
 
 
+def _cantools(capsys, monkeypatch, argv: list[str], stdin: str) -> tuple[int, str, str]:
+    """``cantools ARGV`` (python -m cantools: its ``_main``, the whole command line) in this process,
+    reading ``stdin``: (exit status, stdout, stderr). A process of its own took ~2 s of CPU, most of
+    it importing every cantools subcommand, and proved nothing more about the log it decodes."""
+    import io
+
+    import cantools
+    monkeypatch.setattr(sys, "argv", ["cantools", *argv])
+    monkeypatch.setattr(sys, "stdin", io.StringIO(stdin))
+    capsys.readouterr()
+    try:
+        cantools._main()
+        code = 0
+    except SystemExit as exc:  # its errors: sys.exit("error: ...")
+        code = exc.code if isinstance(exc.code, int) else 1
+        print(exc.code, file=sys.stderr)
+    got = capsys.readouterr()
+    return code, got.out, got.err
+
+
 @pytest.mark.parametrize("batch", cells("can-log"), indirect=True)
-def test_can_log_decoded_by_cantools(batch):
+def test_can_log_decoded_by_cantools(batch, capsys, monkeypatch):
     from protocol.dbc import DBC_ID_MASK, DBC_PATH
     job = batch.jobs["stream"]
     _ok(job)
     log = (batch.tmp / "stream.log").read_text()
     lines = [ln for ln in log.splitlines() if ln.strip()]
-    out = subprocess.run([PY, "-m", "cantools", "decode", "--single-line", "-m", hex(DBC_ID_MASK), str(DBC_PATH)],
-                         input=log, capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr
-    decoded = [ln for ln in out.stdout.splitlines() if ln.strip()]
+    code, stdout, stderr = _cantools(capsys, monkeypatch,
+                                     ["decode", "--single-line", "-m", hex(DBC_ID_MASK), str(DBC_PATH)], log)
+    assert code == 0, stderr
+    decoded = [ln for ln in stdout.splitlines() if ln.strip()]
     assert len(decoded) == len(lines) and not [ln for ln in decoded if "Unknown frame" in ln or "::" not in ln]
     logged = int(job.stderr.split("logged ", 1)[1].split(" CAN frames", 1)[0])
     assert logged == len(lines) > 100

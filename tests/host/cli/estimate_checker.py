@@ -1,7 +1,11 @@
 """A Zenoh subscriber in its own process for tests/host/cli/test_estimate_workers.py: it knows only the
 zenoh API and docs/distribution.md (its own decoding, not host.publish's). It takes every snapshot
-and every estimate of the sheets named, and when none came for IDLE seconds after the first (or
-SECONDS passed) prints one JSON line: per sheet, the snapshot counters and the estimates decoded.
+and every estimate of the sheets named, and prints one JSON line (per sheet, the snapshot counters
+and the estimates decoded) when the test says what it waits for and it came: a line ``expect
+SHEET=N[,SHEET=N...]`` on stdin (each sheet's hosts published N snapshots, so N estimates are due)
+ends it once every sheet named has N estimates. Else, or before, it ends when none came for IDLE
+seconds after the first, or SECONDS passed (an estimate that never comes fails the test at its
+counts, as before).
 
     python estimate_checker.py SHEET[,SHEET...] SECONDS IDLE
 """
@@ -63,11 +67,26 @@ def on_sample(sample):
         bad.append(f"{key}: {exc!r}")
 
 
+expected: dict = {}
+
+
+def read_expectations() -> None:
+    """``expect SHEET=N,...`` lines on stdin, until it closes."""
+    for line in sys.stdin:
+        if line.startswith("expect "):
+            pairs = dict(item.split("=", 1) for item in line.split(None, 1)[1].strip().split(","))
+            with lock:
+                expected.update({k: int(v) for k, v in pairs.items()})
+
+
 subs = [session.declare_subscriber(f"capsheet/{s}/{k}", on_sample) for s in sheets for k in ("snapshot", "estimate")]
+threading.Thread(target=read_expectations, daemon=True).start()
 print("ready", flush=True)
 end = time.monotonic() + seconds
 while time.monotonic() < end:
     with lock:
+        if expected and all(len(out[s]["estimate"]) >= n for s, n in expected.items()):
+            break
         if last[0] is not None and time.monotonic() - last[0] >= idle:
             break
     time.sleep(0.05)

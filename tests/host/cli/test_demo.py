@@ -47,22 +47,29 @@ def test_demo_streams_estimates_and_reports_honestly(tmp_path):
     assert png.stat().st_size > 10_000
 
 
-def test_demo_refuses_bad_options_with_one_line_and_status_2():
-    for args in (["--rate", "0"], ["--rate", "nan"], ["--duration", "-1"], ["--min-complete", "120"]):
-        out = _demo(*args, timeout=60)
-        assert out.returncode == 2, (args, out.stderr)
-        assert "Traceback" not in out.stderr and out.stderr.strip().count("\n") == 0, out.stderr
+def test_demo_refuses_bad_options_with_one_line_and_status_2(cli_here):
+    """The first through a real process, the others through the entry point in this process
+    (tests/host/cli/conftest.py: the same parser, line and status, refused before anything starts)."""
+    for k, args in enumerate((["--rate", "0"], ["--rate", "nan"], ["--duration", "-1"], ["--min-complete", "120"])):
+        if k == 0:
+            out = _demo(*args, timeout=60)
+            code, err = out.returncode, out.stderr
+        else:
+            code, _out, err = cli_here(["demo", *args])
+        assert code == 2, (args, err)
+        assert "Traceback" not in err and err.strip().count("\n") == 0, err
 
 
-def test_over_capacity_the_remedy_fits_what_is_set():
+def test_over_capacity_the_remedy_fits_what_is_set(cli_here):
     """32x32 packed at 145 Hz is over one 12 Mbaud gateway: one line, exit 2, before anything starts,
-    and the remedy names what helps with --packed already given (it said "use --packed")."""
+    and the remedy names what helps with --packed already given (it said "use --packed"). The second
+    case through the entry point in this process."""
     out = _demo("--lattice", "32x32", "--packed", "--rate", "145", timeout=60)
     assert out.returncode == 2 and out.stderr.strip().count("\n") == 0, out.stderr
     line = out.stderr.strip()
     assert "--gateways 2" in line and "--packed" not in line.split(";", 1)[1], line
-    out = _demo("--lattice", "32x32", "--rate", "145", timeout=60)  # per-chip: packing needs 2 gateways too
-    assert out.returncode == 2 and "--packed --gateways 2" in out.stderr and "--gateways 4" in out.stderr, out.stderr
+    code, _out, err = cli_here(["demo", "--lattice", "32x32", "--rate", "145"])  # per-chip: packing needs 2 too
+    assert code == 2 and "--packed --gateways 2" in err and "--gateways 4" in err, err
 
 
 def test_demo_runs_a_sheet_behind_two_gateways(tmp_path):

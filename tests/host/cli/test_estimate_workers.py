@@ -3,11 +3,18 @@ with ``capsheet host --publish zenoh --no-publish-estimates``), two workers shar
 ``--worker 0/2`` and ``1/2``, and a subscriber in another process (tests/host/cli/estimate_checker.py:
 zenoh and docs/distribution.md only) that checks every snapshot of each sheet gets exactly one
 estimate, in order, decoded. All on loopback in Zenoh peer mode, no router. Asserts what is
-delivered, never a rate. Also the worker's errors: an unknown sheet, no router, usage."""
+delivered, never a rate. Also the worker's errors: an unknown sheet, no router, usage.
+
+The waits are for what is waited for: once the hosts have ended, the subscriber is told how many
+snapshots each published and ends when it has an estimate of every one (it waited 8 s without a
+message before); workers that are not the one ending by ``--idle`` are then ended as an operator
+would (SIGTERM: what they received is estimated before they leave). The hosts stream 2 s: the
+counts asserted (20 snapshots or more a sheet) come in the first second at 30 Hz."""
 
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 import zlib
@@ -20,6 +27,25 @@ from tests.host.cli.cli_runs import CLI, ENV, popen_host, wait_line
 
 pytest.importorskip("zenoh")
 CHECKER = Path(__file__).with_name("estimate_checker.py")
+HOST_S = "2"  #: each host's run: >= 20 snapshots at 30 Hz with room to spare
+
+
+def _checker(names: list[str]) -> subprocess.Popen:
+    """tests/host/cli/estimate_checker.py on ``names``; ``_expect`` then ends it."""
+    return subprocess.Popen([sys.executable, str(CHECKER), ",".join(names), "150", "8"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
+
+
+def _expect(checker: subprocess.Popen, counts: dict[str, int]) -> tuple[str, str]:
+    """Tell the checker how many estimates each sheet is due (one per published snapshot) and
+    return its output once it has them (or its idle end came first)."""
+    line = "expect " + ",".join(f"{k}={n}" for k, n in counts.items()) + "\n"
+    return checker.communicate(line, timeout=120)
+
+
+def _published(err: str) -> int:
+    """The snapshots a ``capsheet host --publish zenoh`` run says it published."""
+    return int(err.split("published ")[1].split(" snapshots")[0])
 
 
 def _two_names(tmp_path) -> list[str]:
@@ -43,31 +69,34 @@ def _worker(*args: str) -> subprocess.Popen:
 
 def test_two_workers_estimate_every_snapshot_of_two_sheets_once_in_order(virtuals, tmp_path):  # noqa: F811
     names = _two_names(tmp_path)
-    vs = [virtuals("--lattice", "3x3", "--symlink", str(tmp_path / f"sheet{k}"), "--layout-out",
-                   str(tmp_path / f"s{k}.csv")) for k in range(2)]
     pattern = names[0].rsplit("_", 1)[0] + "_*"
+    # the workers and the checker start while the sheets do (each waited for the one before)
     workers = [_worker("--sheets", pattern, "--worker", f"{k}/2", "--idle", "6", "--duration", "150") for k in range(2)]
     procs = list(workers)
     try:
+        checker = _checker(names)
+        procs.append(checker)
+        vs = [virtuals("--lattice", "3x3", "--symlink", str(tmp_path / f"sheet{k}"), "--layout-out",
+                       str(tmp_path / f"s{k}.csv")) for k in range(2)]
         for w in workers:
             wait_line(w, "worker ready", 60, [])
-        checker = subprocess.Popen([sys.executable, str(CHECKER), ",".join(names), "150", "8"],
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
-        procs.append(checker)
         assert checker.stdout.readline().strip() == "ready"
-        hosts = [popen_host(*v.host_cmd, "--duration", "4", "--publish", "zenoh", "--no-publish-estimates",
+        hosts = [popen_host(*v.host_cmd, "--duration", HOST_S, "--publish", "zenoh", "--no-publish-estimates",
                             "--sheet-name", name, "-q") for v, name in zip(vs, names)]
         procs += hosts
         host_err = [h.communicate(timeout=120)[1] for h in hosts]
+        for h, err in zip(hosts, host_err):
+            assert h.returncode == 0 and "Traceback" not in err, err
+        published = [_published(err) for err in host_err]
+        got, cerr = _expect(checker, dict(zip(names, published)))
+        for w in workers:  # each has published what the checker counted: ended as an operator would
+            if w.poll() is None:
+                w.send_signal(signal.SIGTERM)
         done = [w.communicate(timeout=120) for w in workers]
-        got, cerr = checker.communicate(timeout=120)
     finally:
         for p in procs:
             if p.poll() is None:
                 p.kill()
-    for h, err in zip(hosts, host_err):
-        assert h.returncode == 0 and "Traceback" not in err, err
-    published = [int(err.split("published ")[1].split(" snapshots")[0]) for err in host_err]
     assert all(", 0 estimates" in err for err in host_err)  # the hosts left the estimates to the workers
     docs = []
     for w, (out, err) in zip(workers, done):
@@ -149,36 +178,37 @@ def test_usage_errors_are_one_line_and_exit_2(args, needle, tmp_path, cli_here):
         assert len(err.strip().splitlines()) == 1, err
 
 
-def test_a_host_refuses_no_publish_estimates_without_zenoh():
-    out = subprocess.run(CLI + ["host", "--port", "/nonexistent", "--no-publish-estimates"], capture_output=True,
-                         text=True, timeout=60, env=ENV)
-    assert out.returncode == 2 and "--no-publish-estimates is for --publish zenoh" in out.stderr, out.stderr
+def test_a_host_refuses_no_publish_estimates_without_zenoh(cli_here):
+    """Through the entry point in this process: the host refuses before it opens the port (its
+    bad values through a real process are tests/host/cli/test_host.py's)."""
+    code, _out, err = cli_here(["host", "--port", "/nonexistent", "--no-publish-estimates"])
+    assert code == 2 and "--no-publish-estimates is for --publish zenoh" in err, err
 
 
 def test_a_6_axis_sheet_is_estimated_by_the_fused_estimator_in_a_worker(virtuals, tmp_path):  # noqa: F811
     """A carried-and-turned sheet of 6-axis chips: its snapshots carry the gyroscopes (flag bit 0) and
-    the worker shapes every one with the fused estimator, in order."""
+    the worker shapes every one with the fused estimator, in order. The worker ends by itself
+    (``--idle``: 3 s after the last snapshot)."""
     name = f"imu{abs(hash(str(tmp_path))) % 10**6}"
-    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"),
-                 "--sensors", "accel+gyro", "--shape", "carry", "--noise", "1")
-    worker = _worker("--sheets", name, "--wait", "60", "--idle", "6", "--duration", "150")
+    worker = _worker("--sheets", name, "--wait", "60", "--idle", "3", "--duration", "150")
     procs = [worker]
     try:
-        checker = subprocess.Popen([sys.executable, str(CHECKER), name, "150", "8"], stdout=subprocess.PIPE,
-                                   stderr=subprocess.PIPE, text=True, env=ENV)
+        checker = _checker([name])  # the worker and the checker start while the sheet does
         procs.append(checker)
+        v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"),
+                     "--sensors", "accel+gyro", "--shape", "carry", "--noise", "1")
         assert checker.stdout.readline().strip() == "ready"
-        host = popen_host(*v.host_cmd, "--sensors", "accel+gyro", "--duration", "4", "--publish", "zenoh",
+        host = popen_host(*v.host_cmd, "--sensors", "accel+gyro", "--duration", HOST_S, "--publish", "zenoh",
                           "--no-publish-estimates", "--sheet-name", name, "-q")
         procs.append(host)
         _, host_err = host.communicate(timeout=120)
+        assert host.returncode == 0, host_err
+        got, _ = _expect(checker, {name: _published(host_err)})
         out, err = worker.communicate(timeout=120)
-        got, _ = checker.communicate(timeout=120)
     finally:
         for p in procs:
             if p.poll() is None:
                 p.kill()
-    assert host.returncode == 0, host_err
     assert worker.returncode == 0 and "Traceback" not in err, err
     w = json.loads(out)["sheets"][0]
     checked = json.loads(got.strip().splitlines()[-1])
@@ -199,17 +229,20 @@ def test_a_6_axis_sheet_is_estimated_by_the_fused_estimator_in_a_worker(virtuals
 def test_a_host_started_again_is_a_restart_for_the_worker_not_lost_snapshots(virtuals, tmp_path):  # noqa: F811
     """The sheet's host runs, ends, and runs again: its SYNC counter starts again from 0. The worker
     takes the second run as a new sequence (one restart), loses nothing and estimates every snapshot."""
-    import signal
     import threading
     import time
 
     from host.publish.zenoh_session import open_session
     name = f"rs{abs(hash(str(tmp_path))) % 10**6}"
-    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"))
     # the worker ends by itself 30 s after the last snapshot (a gap between the runs shorter than that
     # on a loaded machine); once it has published an estimate of every snapshot the hosts published,
     # SIGTERM ends it sooner, as an operator would (what it received is estimated before it leaves)
     worker = _worker("--sheets", name, "--wait", "60", "--idle", "30", "--duration", "200")
+    try:  # it starts while the sheet does
+        v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(tmp_path / "s.csv"))
+    except BaseException:
+        worker.kill()
+        raise
     # a default session: it meets the worker's where the hosts' and the worker's meet (a session of its
     # own scouting by multicast met none of them, and the test waited for the worker's idle end)
     session = open_session(None)
@@ -223,11 +256,11 @@ def test_a_host_started_again_is_a_restart_for_the_worker_not_lost_snapshots(vir
     try:
         published = []
         for _ in range(2):
-            h = popen_host(*v.host_cmd, "--duration", "3", "--publish", "zenoh", "--no-publish-estimates",
+            h = popen_host(*v.host_cmd, "--duration", HOST_S, "--publish", "zenoh", "--no-publish-estimates",
                            "--sheet-name", name, "-q")
             _, err = h.communicate(timeout=120)
             assert h.returncode == 0, err
-            published.append(int(err.split("published ")[1].split(" snapshots")[0]))
+            published.append(_published(err))
         end = time.monotonic() + 60
         while worker.poll() is None and time.monotonic() < end:
             with lock:

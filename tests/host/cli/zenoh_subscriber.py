@@ -1,6 +1,11 @@
 """A Zenoh subscriber in its own process for tests/host/cli/test_publish.py: it knows only the
 zenoh API and docs/distribution.md (its own decoding, not host.publish's). Prints one JSON line:
-what it received and decoded, then exits.
+what it received and decoded, then exits: after SECONDS, or sooner when the test says what it waits
+for, on stdin (the publisher has ended by then: what is still to come is what it had published):
+
+* ``end``: nothing more (what the test asserts came while the publisher ran);
+* ``until KIND=N[,KIND=N...]``: once a message of every KIND named (snapshot, estimate: their
+  counter; contacts: its frame) numbered N or later has come.
 
     python zenoh_subscriber.py SHEET SECONDS MIN_ESTIMATES
 """
@@ -9,6 +14,7 @@ import json
 import os
 import struct
 import sys
+import threading
 import time
 
 import numpy as np
@@ -58,10 +64,34 @@ def on_sample(sample):
         out["bad"].append(f"{key}: {exc!r}")
 
 
+told: dict = {}  # "end": True, or "until": {kind: number}
+
+
+def read_stdin() -> None:
+    for line in sys.stdin:
+        word, _, rest = line.strip().partition(" ")
+        if word == "end":
+            told["end"] = True
+        elif word == "until":
+            told["until"] = {k: int(v) for k, v in (item.split("=", 1) for item in rest.split(","))}
+
+
+def number(kind: str, item: dict) -> int:
+    return item["frame"] if kind == "contacts" else item["counter"]
+
+
+def done() -> bool:
+    if told.get("end"):
+        return True
+    until = told.get("until")
+    return bool(until) and all(any(number(k, x) >= n for x in list(out[k])) for k, n in until.items())
+
+
 sub = session.declare_subscriber(f"capsheet/{sheet}/**", on_sample)
+threading.Thread(target=read_stdin, daemon=True).start()
 print("ready", flush=True)
 end = time.monotonic() + seconds
-while time.monotonic() < end:
+while time.monotonic() < end and not done():
     if out["info"] is None and len(out["estimate"]) >= min_est:  # a late asker: after bring-up
         for reply in session.get(f"capsheet/{sheet}/info", timeout=5.0):
             if reply.ok is not None:
