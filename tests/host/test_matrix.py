@@ -533,17 +533,17 @@ def test_record_replay(batch, capsys):
 
 
 def _cantools(capsys, monkeypatch, argv: list[str], stdin: str) -> tuple[int, str, str]:
-    """``cantools ARGV`` (python -m cantools: its ``_main``, the whole command line) in this process,
+    """``cantools ARGV`` (``python -m cantools``, run by runpy as the interpreter runs it) in this process,
     reading ``stdin``: (exit status, stdout, stderr). A process of its own took ~2 s of CPU, most of
     it importing every cantools subcommand, and proved nothing more about the log it decodes."""
     import io
+    import runpy
 
-    import cantools
     monkeypatch.setattr(sys, "argv", ["cantools", *argv])
     monkeypatch.setattr(sys, "stdin", io.StringIO(stdin))
     capsys.readouterr()
     try:
-        cantools._main()
+        runpy.run_module("cantools", run_name="__main__", alter_sys=True)
         code = 0
     except SystemExit as exc:  # its errors: sys.exit("error: ...")
         code = exc.code if isinstance(exc.code, int) else 1
