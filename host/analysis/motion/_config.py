@@ -36,7 +36,17 @@ class FusedConfig:
     gyro_bias_walk_rps : float
         The bias's random walk, rad/s/√s (3 °/h of bias instability over 100 s ≈ 2e-6).
     gyro_scale_error : float
-        Residual scale and cross-axis error after calibration: process noise ``∝ |ω| Δt``.
+        Residual scale and cross-axis error after calibration taken as white: process noise
+        ``∝ |ω| Δt``, independent from step to step.
+    gyro_scale_fixed_error : float or tuple of 3 tuples of 3 floats
+        Residual scale and cross-axis error after calibration taken as fixed per chip: the
+        standard deviation of each entry of ``E`` in ``ω_read = (I + E) ω + b`` (link frame;
+        row: the axis read, column: the axis turned about), the entries independent; one number
+        for all nine, or a 3 x 3 of them (a calibration determines some columns better than
+        others: bench_motion's board leaves 0.03-0.05 % in the column of turns about z, 0.07-0.2 %
+        in the others). Carried as a consider state (`host.analysis.motion._consider`), so its
+        tilt error grows with the angle turned and averages out over a back-and-forth turn, as a
+        fixed error's does. 0: not modelled (the white term alone).
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
     rel_accel_error : float
@@ -103,6 +113,7 @@ class FusedConfig:
     gyro_common_bias_std_rps: float | None = None
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
+    gyro_scale_fixed_error: float | tuple = 0.0
     orientation_walk_rad: float = float(np.radians(0.05))
     rel_accel_error: float = 0.01
     accel_floor_mps2: float = 0.02
@@ -135,6 +146,13 @@ class FusedConfig:
             v = getattr(self, name)
             if v is None and name == "gyro_common_bias_std_rps":
                 continue
+            if name == "gyro_scale_fixed_error" and isinstance(v, (tuple, list, np.ndarray)):
+                a = np.asarray(v, dtype=object)
+                if a.shape != (3, 3) or not all(
+                        isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
+                        and np.isfinite(x) and x >= 0 for x in a.ravel()):
+                    raise ValueError(f"Invalid {name}: {v!r} (need a number >= 0 or 3 x 3 of them)")
+                continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
                     or not np.isfinite(v) or v < 0:
                 raise ValueError(f"Invalid {name}: {v!r} (need a finite number >= 0)")
@@ -145,3 +163,10 @@ class FusedConfig:
                      "sheet_position_time_s", "heading_mode_time_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
+
+    @property
+    def scale_fixed_var(self) -> np.ndarray | None:
+        """`gyro_scale_fixed_error`'s variances, shape (9,) (``E``'s entries row by row), or None
+        when it is 0 (not modelled)."""
+        v = np.broadcast_to(np.asarray(self.gyro_scale_fixed_error, dtype=float), (3, 3))
+        return None if not v.any() else (v * v).ravel()

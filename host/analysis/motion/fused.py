@@ -66,6 +66,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from ..estimator import G0, estimate
+from . import _consider
 from ._common import CommonMotion
 from ._config import FusedConfig
 from ._dipole import LocalField
@@ -315,6 +316,7 @@ class MotionEstimator:
         self.R: np.ndarray | None = None
         self.bias = np.zeros((self.n_links, 3))
         self.P = np.zeros((self.n_links, 6, 6))
+        self._C = None  # cross-covariance with the gyroscopes' fixed errors (`_consider`)
         self._t = None
         self._w_hist: list[np.ndarray] = []  # the last two bias-corrected rates
         self._with_mag: bool | None = None
@@ -505,6 +507,10 @@ class MotionEstimator:
         self.P[:, 0, 0] = self.P[:, 1, 1] = tilt
         self.P[:, 2, 2] = yaw
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
+        # each link's error's cross-covariance with its gyroscope's fixed scale and cross-axis
+        # error (`_consider`), none at the start: the start's error does not come from it
+        self._scale_var = cfg.scale_fixed_var
+        self._C = None if self._scale_var is None else np.zeros((n, 6, 9))
         if bias0 is not None:
             self.bias[:] = bias0
         self._t = t.copy()
@@ -578,6 +584,9 @@ class MotionEstimator:
             extra = None
         qb = cfg.gyro_bias_walk_rps ** 2 * dt
         _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
+        if self._C is not None:  # the fixed scale and cross-axis error's terms (`_consider`)
+            _consider.propagate(self.R, self.P, self._C, 0.5 * (self._w_hist[-1] + w_c), dt,
+                                self._scale_var)
         if extra is not None:
             self.P[:, 0, 0] += extra
             self.P[:, 1, 1] += extra
@@ -613,6 +622,8 @@ class MotionEstimator:
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + cfg.rel_accel_error ** 2 * np.einsum("ki,ki->k", da, da)
         x = np.empty((self.n_links, 6))
+        if self._C is not None:
+            _consider.accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
         _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
         # the sheet's own tilt: what the links share, from its bounded translation
         if nv:
@@ -675,6 +686,8 @@ class MotionEstimator:
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
+        if self._C is not None:
+            _consider.yaw(P, self._C, a_diag)
         _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
         if m is not None:
             self._heading_mode(dt)

@@ -1,0 +1,80 @@
+"""The gyroscopes' residual scale and cross-axis error as a consider state (Schmidt–Kalman): the
+fused estimator's step 1 when `FusedConfig.gyro_scale_fixed_error` > 0 (docs/estimator.md §8).
+
+A calibration leaves every chip a small fixed error ``E`` (3 x 3: scale on the diagonal,
+cross-axis off it) in its gyroscope, ``ω_read = (I + E) ω + b``. Taken as white noise per step
+(`FusedConfig.gyro_scale_error`, ``∝ |ω| Δt``) its variance grows with the sum of the squared
+steps, so a sustained turn (whose error ``R E Δθ`` grows with the angle) is under-told and a
+back-and-forth one (whose error averages out) over-told. Here ``E`` is fixed per chip with
+every entry independent (`FusedConfig.gyro_scale_fixed_error`): it is not estimated (nine numbers more per link would be
+the accelerometers' to find, and they cannot during most motions), but each link's error state
+``δx = (δθ, δb)`` keeps its cross-covariance with it, ``C = cov(δx, vec E)`` (6 x 9), so the
+covariance ``P`` the updates use is the marginal one a fixed error gives:
+
+* propagation, ``δθ' = δθ − R δb Δt − R (E ω) Δt``: with ``Γ = −Δt R Ω(ω)`` (``Ω(ω) vec E =
+  E ω``, row-major), ``Σ`` the entries' variances and ``F`` the step's transition,
+  ``C' = F C + [Γ Σ; 0]`` and ``P'`` gains ``F C Γᵀ + Γ Cᵀ Fᵀ + Γ Σ Γᵀ`` (with every entry's
+  ``σ²`` alike ``Γ Σ Γᵀ = σ² |ω|² Δt² I``: the white model's per-step term) beside the
+  kernel's ``F P Fᵀ + Q``;
+* every update with gain ``K`` on a measurement of ``H δx``: ``C ← C − K H C`` (``E`` itself is
+  not updated: that is the consider filter's rule).
+
+Each function takes the covariance *before* the step it accompanies (the gains are made from
+it, as the step makes them) except `propagate`, which follows the kernel's propagation (it
+needs the new frames, and reads nothing of ``P`` that the propagation changed).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._linalg import inv_sym3, skew
+
+
+def propagate(R: np.ndarray, P: np.ndarray, C: np.ndarray, w: np.ndarray, dt: np.ndarray,
+              s2: np.ndarray) -> None:
+    """After the kernel's propagation (``R`` the new frames, ``P`` its result): ``P`` gains the
+    fixed error's correlated terms, ``C`` its step. ``w`` (n, 3) the step's rates, link frames;
+    ``s2`` (9,) the variances of ``E``'s entries, row by row (``Σ = diag(s2)``)."""
+    G = R * dt[:, None, None]  # δθ' = δθ − G δb
+    Cb = C[:, 3:, :]
+    Ct = C[:, :3, :] - G @ Cb  # F C, its θ rows (the b rows are unchanged)
+    # F C Γᵀ with Γ = −Δt R Ω(ω): (F C Ωᵀ)[:, i, j] = Σ_l (F C)[i, 3 j + l] ω_l, then times Rᵀ
+    FC = np.concatenate([Ct, Cb], axis=1)  # (n, 6, 9)
+    X = -(FC.reshape(-1, 6, 3, 3) @ w[:, None, :, None])[..., 0] @ G.transpose(0, 2, 1)
+    P[:, :, :3] += X
+    P[:, :3, :] += X.transpose(0, 2, 1)
+    # Γ Σ Γᵀ = Δt² R diag(D) Rᵀ, D_j = Σ_l s2[3 j + l] ω_l²
+    D = (w * w) @ s2.reshape(3, 3).T
+    P[:, :3, :3] += (G * D[:, None, :]) @ G.transpose(0, 2, 1)
+    # C' = F C + Γ Σ: Γ[:, i, 3 j + l] = −Δt R[i, j] ω_l
+    Ct -= (G[:, :, :, None] * w[:, None, None, :]).reshape(-1, 3, 9) * s2
+    C[:, :3, :] = Ct
+
+
+def accel(R: np.ndarray, P: np.ndarray, C: np.ndarray, f: np.ndarray, vec: np.ndarray,
+          r2: np.ndarray, gate: float, valid: np.ndarray) -> None:
+    """Before the accelerometer update (``P`` its prior): ``C ← C − K H C`` with the update's own
+    gain (its gate's inflation included), ``H = Rᵀ [vec]×`` on ``δθ``."""
+    Rt = R.transpose(0, 2, 1)
+    y = f - np.einsum("kij,kj->ki", Rt, vec)
+    H = Rt @ skew(vec)
+    HP = H @ P[:, :3, :]  # (n, 3, 6)
+    S = HP[:, :, :3] @ H.transpose(0, 2, 1) + r2[:, None, None] * np.eye(3)
+    Si = inv_sym3(S)
+    m2 = np.einsum("ki,kij,kj->k", y, Si, y)
+    Si /= np.maximum(1.0, np.where(valid, m2, 0.0) / gate)[:, None, None]
+    K = HP.transpose(0, 2, 1) @ Si  # (n, 6, 3)
+    K[~valid] = 0.0
+    C -= K @ (H @ C[:, :3, :])
+
+
+def yaw(P: np.ndarray, C: np.ndarray, a_diag: np.ndarray) -> None:
+    """Before the yaw update (``P`` its prior): the lattice's solve is, per link, a scalar
+    measurement of its yaw whose information is ``a_diag − 1/p`` (the conditional variance
+    after it, ``1 / a_diag``), so its gain is ``c / p · (1 − 1 / (a_diag p))`` (``c`` the
+    covariance's yaw column) and ``C ← C − gain ⊗ C[yaw]``."""
+    c = P[:, :, 2]
+    p = c[:, 2]
+    gain = c * ((1.0 - 1.0 / (a_diag * p)) / p)[:, None]
+    C -= gain[:, :, None] * C[:, 2, None, :]
