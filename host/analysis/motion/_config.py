@@ -105,6 +105,12 @@ class FusedConfig:
         (`host.analysis.motion._dipole`) and its field taken out of the magnetometers' readings
         while the dipole explains the links' fields better than uniform fields alone by at
         least this F statistic (its six numbers against the residual; 0: never fitted).
+    dipole_position_std : float
+        How far a link's estimated position may be off, in link lengths, where the fitted
+        dipole's field is taken out: the fit's field is then known only to its gradient times
+        that, which enters the link's disturbance tests and its heading's variance as the fit's
+        error (a link next to the magnet keeps its corrected heading at what it is worth
+        instead of being taken as disturbed). 0: the fit's field taken as exact.
     """
 
     accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
@@ -140,6 +146,7 @@ class FusedConfig:
     heading_mode_rad: float = float(np.radians(0.75))
     heading_mode_time_s: float = 1.0
     dipole_significance: float = 25.0
+    dipole_position_std: float = 0.5
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:

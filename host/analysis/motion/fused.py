@@ -483,7 +483,8 @@ class MotionEstimator:
                 # taken out, and the heading taken again from what is left (`_dipole`)
                 self._local = LocalField(self.topo.group >= self.rows - 1, cfg.dipole_significance,
                                          0.5 * self.link_length,
-                                         (max(self.rows, self.cols) - 1) * self.link_length)
+                                         (max(self.rows, self.cols) - 1) * self.link_length,
+                                         cfg.dipole_position_std * self.link_length)
                 m = self._local.remove(R, m, self._midpoints(joints_from_vectors(
                     R[:, :, 0], self.rows, self.cols, self.link_length)), v)
                 if self._local.fit is not None:
@@ -803,7 +804,42 @@ class MotionEstimator:
                                         cfg.mag_floor_rad ** 2, F, cfg.disturbance_field_frac,
                                         cfg.disturbance_dip_rad, cfg.disturbance_tau_s, lasts,
                                         cfg.disturbance_scale ** 2, self._h, cfg.mag_warmup_s, e)
+        mv = None if self._local is None else self._local.model_var_t2
+        if mv is not None:
+            self._explained(mv, hz, ok, F, lasts, self._weights, mw)
         return mw, e
+
+    def _explained(self, mv, hz, ok, F, lasts, weights, mw) -> None:
+        """The links whose field the dipole's fit explains but for its own error (``mv``, T²
+        per component: `_dipole.LocalField.model_var_t2`), weighed again in place: that error
+        enters their tests as noise that lasts (it is a bias of the fit, not averaged away) and
+        their heading's variance as the horizontal field's error, so their magnetometers keep
+        their corrected heading at the information it has instead of being taken as disturbed;
+        their ``weights`` (the groups' holds) are of that information, so a group of explained
+        links is not held (`_yaw_prior`). The formulas are `_linalg.np_mag_weights`' with the
+        fit's error added."""
+        cfg = self.config
+        k = np.flatnonzero(ok & (mv > (0.1 * cfg.mag_noise_t) ** 2))
+        if k.size == 0:
+            return
+        mvk, hz2 = mv[k], np.maximum(hz[k], 1e-30) ** 2
+        noise2 = cfg.mag_noise_t ** 2
+        var0 = (noise2 + mvk) / hz2 + cfg.mag_floor_rad ** 2
+        cnt = self._dist_count[k]
+        a = np.clip(np.maximum(self._dt_last[k] / cfg.disturbance_tau_s, 1.0 / np.maximum(cnt, 1.0)),
+                    1e-6, 1.0)
+        Pk = self.P[k]
+        n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (Pk[:, 0, 0] + Pk[:, 1, 1]) + mvk
+        dk = self._dist[k]
+        d2 = ((dk[:, 1] * cfg.disturbance_field_frac) ** 2
+              + (dk[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
+        d2 = np.maximum(d2 - 3.0 * n2, 0.0) * lasts
+        # the heading test's unit grows by the fit's error over the horizontal field
+        scale2 = cfg.disturbance_scale ** 2 * (1.0 + (mvk / hz2) / cfg.disturbance_heading_rad ** 2)
+        wgt = var0 / (var0 + d2 / hz2) / (1.0 + dk[:, 0] ** 2 / scale2)
+        wgt = np.where(cnt * self._h >= cfg.mag_warmup_s, wgt, 0.0)
+        weights[k] = wgt
+        mw[k] = wgt / var0
 
     def _heading_mode(self, dt) -> None:
         """Turn the sheet's heading towards the robust mode of its links' averaged heading
