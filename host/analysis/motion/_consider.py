@@ -28,11 +28,37 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._linalg import inv_sym3, skew
+from ._linalg import USE_KERNEL, inv_sym3, kernel_args, kernel_lib, skew
 
 
-def propagate(R: np.ndarray, P: np.ndarray, C: np.ndarray, w: np.ndarray, dt: np.ndarray,
-              s2: np.ndarray) -> None:
+def propagate(R, P, C, w, dt, s2) -> None:
+    """`np_propagate`, in C when `USE_KERNEL` (link_filter.h: ``capsheet_mf_consider_*``)."""
+    if USE_KERNEL:
+        kernel_lib.capsheet_mf_consider_propagate(R.shape[0], *kernel_args(
+            "consider_propagate", (R, P, C, w, dt, s2)))
+    else:
+        np_propagate(R, P, C, w, dt, s2)
+
+
+def accel(R, P, C, f, vec, r2, gate, valid) -> None:
+    """`np_accel`, in C when `USE_KERNEL`."""
+    if USE_KERNEL:
+        kernel_lib.capsheet_mf_consider_accel(R.shape[0], *kernel_args(
+            "consider_accel", (R, P, C, f, vec, r2, gate, valid)))
+    else:
+        np_accel(R, P, C, f, vec, r2, gate, valid)
+
+
+def yaw(P, C, a_diag) -> None:
+    """`np_yaw`, in C when `USE_KERNEL`."""
+    if USE_KERNEL:
+        kernel_lib.capsheet_mf_consider_yaw(P.shape[0], *kernel_args("consider_yaw", (P, C, a_diag)))
+    else:
+        np_yaw(P, C, a_diag)
+
+
+def np_propagate(R: np.ndarray, P: np.ndarray, C: np.ndarray, w: np.ndarray, dt: np.ndarray,
+                 s2: np.ndarray) -> None:
     """After the kernel's propagation (``R`` the new frames, ``P`` its result): ``P`` gains the
     fixed error's correlated terms, ``C`` its step. ``w`` (n, 3) the step's rates, link frames;
     ``s2`` (9,) the variances of ``E``'s entries, row by row (``Σ = diag(s2)``)."""
@@ -52,8 +78,8 @@ def propagate(R: np.ndarray, P: np.ndarray, C: np.ndarray, w: np.ndarray, dt: np
     C[:, :3, :] = Ct
 
 
-def accel(R: np.ndarray, P: np.ndarray, C: np.ndarray, f: np.ndarray, vec: np.ndarray,
-          r2: np.ndarray, gate: float, valid: np.ndarray) -> None:
+def np_accel(R: np.ndarray, P: np.ndarray, C: np.ndarray, f: np.ndarray, vec: np.ndarray,
+             r2: np.ndarray, gate: float, valid: np.ndarray) -> None:
     """Before the accelerometer update (``P`` its prior): ``C ← C − K H C`` with the update's own
     gain (its gate's inflation included), ``H = Rᵀ [vec]×`` on ``δθ``."""
     Rt = R.transpose(0, 2, 1)
@@ -69,7 +95,7 @@ def accel(R: np.ndarray, P: np.ndarray, C: np.ndarray, f: np.ndarray, vec: np.nd
     C -= K @ (H @ C[:, :3, :])
 
 
-def yaw(P: np.ndarray, C: np.ndarray, a_diag: np.ndarray) -> None:
+def np_yaw(P: np.ndarray, C: np.ndarray, a_diag: np.ndarray) -> None:
     """Before the yaw update (``P`` its prior): the lattice's solve is, per link, a scalar
     measurement of its yaw whose information is ``a_diag − 1/p`` (the conditional variance
     after it, ``1 / a_diag``), so its gain is ``c / p · (1 − 1 / (a_diag p))`` (``c`` the

@@ -702,3 +702,146 @@ double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, doubl
     return psi;
 }
 
+
+/* ---- the gyroscopes' fixed scale and cross-axis error as a consider state (_consider.py) ---- */
+
+void capsheet_mf_consider_propagate(size_t n, const double *R, double *P, double *C,
+                                    const double *w, const double *dt, const double *s2)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *Rk = R + 9 * k, *wk = w + 3 * k;
+        double *Pk = P + 36 * k, *Ck = C + 54 * k;
+        double h = dt[k], G[9], FC[54], Y[18], X[18], D[3];
+        for (int i = 0; i < 9; i++) {
+            G[i] = Rk[i] * h;
+        }
+        for (int i = 0; i < 3; i++) { /* F C: the theta rows less G times the bias rows */
+            for (int m = 0; m < 9; m++) {
+                FC[9 * i + m] = Ck[9 * i + m] - (G[3 * i] * Ck[27 + m] + G[3 * i + 1] * Ck[36 + m]
+                                                 + G[3 * i + 2] * Ck[45 + m]);
+            }
+        }
+        for (int m = 27; m < 54; m++) {
+            FC[m] = Ck[m];
+        }
+        for (int a = 0; a < 6; a++) { /* X = -(F C Omega^T) G^T */
+            for (int j = 0; j < 3; j++) {
+                Y[3 * a + j] = FC[9 * a + 3 * j] * wk[0] + FC[9 * a + 3 * j + 1] * wk[1]
+                               + FC[9 * a + 3 * j + 2] * wk[2];
+            }
+            for (int i = 0; i < 3; i++) {
+                X[3 * a + i] = -(Y[3 * a] * G[3 * i] + Y[3 * a + 1] * G[3 * i + 1]
+                                 + Y[3 * a + 2] * G[3 * i + 2]);
+            }
+        }
+        for (int a = 0; a < 6; a++) {
+            for (int i = 0; i < 3; i++) {
+                Pk[6 * a + i] += X[3 * a + i];
+            }
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int a = 0; a < 6; a++) {
+                Pk[6 * i + a] += X[3 * a + i];
+            }
+        }
+        for (int j = 0; j < 3; j++) {
+            D[j] = wk[0] * wk[0] * s2[3 * j] + wk[1] * wk[1] * s2[3 * j + 1]
+                   + wk[2] * wk[2] * s2[3 * j + 2];
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int l = 0; l < 3; l++) {
+                Pk[6 * i + l] += G[3 * i] * D[0] * G[3 * l] + G[3 * i + 1] * D[1] * G[3 * l + 1]
+                                 + G[3 * i + 2] * D[2] * G[3 * l + 2];
+            }
+        }
+        for (int i = 0; i < 3; i++) { /* C' = F C + Gamma Sigma */
+            for (int j = 0; j < 3; j++) {
+                for (int l = 0; l < 3; l++) {
+                    int m = 3 * j + l;
+                    Ck[9 * i + m] = FC[9 * i + m] - G[3 * i + j] * wk[l] * s2[m];
+                }
+            }
+        }
+    }
+}
+
+void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, double *C,
+                                const double *f, const double *vec, const double *r2,
+                                double gate, const uint8_t *valid)
+{
+    for (size_t k = 0; k < n; k++) {
+        if (!valid[k]) {
+            continue;
+        }
+        const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k, *Pk = P + 36 * k;
+        double *Ck = C + 54 * k;
+        double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
+        double H[9], y[3], HP[18], S[9], Si[9], K[18], HC[27];
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                H[3 * i + j] = Rk[i] * Vx[j] + Rk[3 + i] * Vx[3 + j] + Rk[6 + i] * Vx[6 + j];
+            }
+            y[i] = fk[i] - (Rk[i] * v[0] + Rk[3 + i] * v[1] + Rk[6 + i] * v[2]);
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 6; j++) {
+                HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
+            }
+        }
+        for (int i = 0; i < 3; i++) {
+            for (int j = 0; j < 3; j++) {
+                S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
+                               + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2[k] : 0.0);
+            }
+        }
+        double a = S[0], b = S[1], c = S[2], d = S[4], e = S[5], ff = S[8];
+        double A = d * ff - e * e, B = c * e - b * ff, Cc = b * e - c * d;
+        double Dd = a * ff - c * c, E = b * c - a * e, F = a * d - b * b;
+        double inv_det = 1.0 / (a * A + b * B + c * Cc);
+        Si[0] = A * inv_det; Si[1] = B * inv_det; Si[2] = Cc * inv_det;
+        Si[3] = B * inv_det; Si[4] = Dd * inv_det; Si[5] = E * inv_det;
+        Si[6] = Cc * inv_det; Si[7] = E * inv_det; Si[8] = F * inv_det;
+        double m2 = 0.0;
+        for (int i = 0; i < 3; i++) {
+            m2 += y[i] * (Si[3 * i] * y[0] + Si[3 * i + 1] * y[1] + Si[3 * i + 2] * y[2]);
+        }
+        double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
+        for (int i = 0; i < 9; i++) {
+            Si[i] /= infl;
+        }
+        for (int i = 0; i < 6; i++) {
+            for (int j = 0; j < 3; j++) {
+                K[3 * i + j] = HP[i] * Si[j] + HP[6 + i] * Si[3 + j] + HP[12 + i] * Si[6 + j];
+            }
+        }
+        for (int i = 0; i < 3; i++) { /* C <- C - K H C_theta */
+            for (int m = 0; m < 9; m++) {
+                HC[9 * i + m] = H[3 * i] * Ck[m] + H[3 * i + 1] * Ck[9 + m] + H[3 * i + 2] * Ck[18 + m];
+            }
+        }
+        for (int i = 0; i < 6; i++) {
+            for (int m = 0; m < 9; m++) {
+                Ck[9 * i + m] -= K[3 * i] * HC[m] + K[3 * i + 1] * HC[9 + m] + K[3 * i + 2] * HC[18 + m];
+            }
+        }
+    }
+}
+
+void capsheet_mf_consider_yaw(size_t n, const double *P, double *C, const double *a_diag)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *Pk = P + 36 * k;
+        double *Ck = C + 54 * k;
+        double p = Pk[14], row[9];
+        double s = (1.0 - 1.0 / (a_diag[k] * p)) / p;
+        for (int m = 0; m < 9; m++) {
+            row[m] = Ck[18 + m];
+        }
+        for (int i = 0; i < 6; i++) {
+            double g = Pk[6 * i + 2] * s;
+            for (int m = 0; m < 9; m++) {
+                Ck[9 * i + m] -= g * row[m];
+            }
+        }
+    }
+}

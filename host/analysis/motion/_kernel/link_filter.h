@@ -146,3 +146,18 @@ void capsheet_mf_dist_tests(size_t n, size_t n_groups, const int64_t *group, con
 double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, double width,
                                double start, int iterations);
 
+
+/* The gyroscopes' fixed scale and cross-axis error as a consider state (_consider.py, whose
+ * numpy functions give the same numbers): C (n, 6, 9) each link's error's cross-covariance with
+ * the nine entries of its chip's error E (row-major), s2 (9) their variances.
+ * _propagate follows capsheet_mf_propagate (R the new frames, w the step's rates, link frames):
+ * with G = R dt and Gamma = -G Omega(w), P += F C Gamma^T + Gamma C^T F^T + Gamma diag(s2)
+ * Gamma^T and C <- F C + Gamma diag(s2). _accel precedes capsheet_mf_accel (P its prior):
+ * C <- C - K H C_theta with that update's gain, gate included. _yaw precedes capsheet_mf_yaw:
+ * C <- C - c (1 - 1 / (a_diag p)) / p C_yaw, c the covariance's yaw column, p its yaw entry. */
+void capsheet_mf_consider_propagate(size_t n, const double *R, double *P, double *C,
+                                    const double *w, const double *dt, const double *s2);
+void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, double *C,
+                                const double *f, const double *vec, const double *r2,
+                                double gate, const uint8_t *valid);
+void capsheet_mf_consider_yaw(size_t n, const double *P, double *C, const double *a_diag);
