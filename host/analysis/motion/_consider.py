@@ -6,8 +6,9 @@ cross-axis off it) in its gyroscope, ``ω_read = (I + E) ω + b``. Taken as whit
 (`FusedConfig.gyro_scale_error`, ``∝ |ω| Δt``) its variance grows with the sum of the squared
 steps, so a sustained turn (whose error ``R E Δθ`` grows with the angle) is under-told and a
 back-and-forth one (whose error averages out) over-told. Here ``E`` is fixed per chip with
-every entry independent (`FusedConfig.gyro_scale_fixed_error`): it is not estimated (nine numbers more per link would be
-the accelerometers' to find, and they cannot during most motions), but each link's error state
+every entry independent (`FusedConfig.gyro_scale_fixed_error`): it is not estimated (nine
+numbers more per link would be the accelerometers' to find, and they cannot during most
+motions), but each link's error state
 ``δx = (δθ, δb)`` keeps its cross-covariance with it, ``C = cov(δx, vec E)`` (6 x 9), so the
 covariance ``P`` the updates use is the marginal one a fixed error gives:
 
@@ -52,7 +53,8 @@ def accel(R, P, C, f, vec, r2, gate, valid) -> None:
 def yaw(P, C, a_diag) -> None:
     """`np_yaw`, in C when `USE_KERNEL`."""
     if USE_KERNEL:
-        kernel_lib.capsheet_mf_consider_yaw(P.shape[0], *kernel_args("consider_yaw", (P, C, a_diag)))
+        kernel_lib.capsheet_mf_consider_yaw(P.shape[0],
+                                            *kernel_args("consider_yaw", (P, C, a_diag)))
     else:
         np_yaw(P, C, a_diag)
 

@@ -826,8 +826,8 @@ class MotionEstimator:
         noise2 = cfg.mag_noise_t ** 2
         var0 = (noise2 + mvk) / hz2 + cfg.mag_floor_rad ** 2
         cnt = self._dist_count[k]
-        a = np.clip(np.maximum(self._dt_last[k] / cfg.disturbance_tau_s, 1.0 / np.maximum(cnt, 1.0)),
-                    1e-6, 1.0)
+        a = np.clip(np.maximum(self._dt_last[k] / cfg.disturbance_tau_s,
+                               1.0 / np.maximum(cnt, 1.0)), 1e-6, 1.0)
         Pk = self.P[k]
         n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (Pk[:, 0, 0] + Pk[:, 1, 1]) + mvk
         dk = self._dist[k]

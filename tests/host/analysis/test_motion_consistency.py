@@ -139,7 +139,8 @@ def test_a_fixed_scale_error_told_as_white_noise_fails_the_band():
     # the same chips, the same error told as white noise per step (its variance the fixed one's
     # per step): one process cannot hold an error that grows with the angle turned on one
     # scene and averages out on another
-    white = dataclasses.replace(TOLD, gyro_scale_error=float(np.hypot(TOLD.gyro_scale_error, FIXED_E)))
+    white = dataclasses.replace(TOLD, gyro_scale_error=float(np.hypot(TOLD.gyro_scale_error,
+                                                                      FIXED_E)))
     means = {}
     for name in ("carry", "wave"):
         truth, rd = record_fixed_error(name)

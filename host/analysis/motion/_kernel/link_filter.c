@@ -785,7 +785,8 @@ void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, doub
         }
         for (int i = 0; i < 3; i++) {
             for (int j = 0; j < 6; j++) {
-                HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
+                HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j]
+                                + H[3 * i + 2] * Pk[12 + j];
             }
         }
         for (int i = 0; i < 3; i++) {
@@ -816,12 +817,14 @@ void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, doub
         }
         for (int i = 0; i < 3; i++) { /* C <- C - K H C_theta */
             for (int m = 0; m < 9; m++) {
-                HC[9 * i + m] = H[3 * i] * Ck[m] + H[3 * i + 1] * Ck[9 + m] + H[3 * i + 2] * Ck[18 + m];
+                HC[9 * i + m] = H[3 * i] * Ck[m] + H[3 * i + 1] * Ck[9 + m]
+                                + H[3 * i + 2] * Ck[18 + m];
             }
         }
         for (int i = 0; i < 6; i++) {
             for (int m = 0; m < 9; m++) {
-                Ck[9 * i + m] -= K[3 * i] * HC[m] + K[3 * i + 1] * HC[9 + m] + K[3 * i + 2] * HC[18 + m];
+                Ck[9 * i + m] -= K[3 * i] * HC[m] + K[3 * i + 1] * HC[9 + m]
+                                 + K[3 * i + 2] * HC[18 + m];
             }
         }
     }
