@@ -14,8 +14,9 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
 
 1. **Gyroscope: the process model.** ``R ← R exp([Δθ]×)`` with the rate less the bias, second
    order over the sample interval (the two samples' mean plus the coning term); ``P`` grows by
-   the gyroscope's noise, a rate-proportional term (residual scale and cross-axis errors) and a
-   small floor for what the model leaves out; the bias is a random walk.
+   the gyroscope's noise, a rate-proportional term (residual scale and cross-axis errors: white,
+   or fixed per chip as a consider state, `_consider`) and a small floor for what the model
+   leaves out; the bias is a random walk.
 2. **Linear acceleration from the lattice.** Every link's direction ``d = R e_x`` has the second
    derivative ``d̈ = R (ω × (ω × e_x) + ω̇ × e_x)`` (``ω̇`` a second-order backward difference of the
    rates); the joints' accelerations follow from the ``d̈`` exactly as the joints follow from the
