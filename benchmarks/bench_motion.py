@@ -14,8 +14,9 @@ the board scene's capture, 84 s), and every estimator takes the same calibrated 
   (`host.analysis.motion.per_link_filter`);
 * ``fused`` — `host.analysis.motion.MotionEstimator` told the chips' truth (`TRUE_NOISE`:
   1 % g, 0.35 µT, the gyroscope bias the calibration leaves: 0.06 °/s shared by the chips,
-  0.007 °/s each chip's own, and its scale and cross-axis residue, 0.03–0.19 % per entry,
-  fixed per chip: `SCALE_RESIDUE`), as a user of such chips would;
+  0.007 °/s each chip's own, and its scale and cross-axis residue, 0.03–0.19 % per entry, and
+  g-sensitivity residue, 0.03 °/s/g, fixed per chip: `SCALE_RESIDUE`, `GSENS_RESIDUE`), as a
+  user of such chips would;
 * ``fused_defaults`` — the same with `FusedConfig()`, whose noise is the datasheets'.
 
 Rows (``rows``): every moving scene of `virtual_sheet.motion.MOTION_SCENES` (``flat_turn`` is
@@ -98,10 +99,15 @@ TARGETS = {"fused_max_pct": 0.15, "vs_accel_only": 5.0, "accel_only_above_pct": 
 #: calibrated rates regressed on the simulator's true ones (4 s each): the carry's and the
 #: elbow's mean, the column of turns about z from the level sheet turning, to 0.1 per mille
 SCALE_RESIDUE = ((7e-4, 1.7e-3, 3e-4), (1.7e-3, 7e-4, 3e-4), (1.9e-3, 1.9e-3, 5e-4))
+#: the calibrated gyroscopes' fixed g-sensitivity ``Γ`` (``Γ f / g`` of the rate), rad/s per g,
+#: per entry: the same regression with the specific force beside the rate gives 0.02-0.04 °/s/g
+#: RMS in the entries the motions determine (the simulator's parts: 0.1 °/s/g before calibration)
+GSENS_RESIDUE = float(np.radians(0.03))
 TRUE_NOISE = FusedConfig(accel_noise_mps2=0.01 * G0, mag_noise_t=0.35e-6,
                          gyro_bias_std_rps=float(np.radians(0.007)),
                          gyro_common_bias_std_rps=float(np.radians(0.06)),
                          gyro_scale_error=0.0, gyro_scale_fixed_error=SCALE_RESIDUE,
+                         gyro_gsens_fixed_error=GSENS_RESIDUE,
                          orientation_walk_rad=5e-5, rel_accel_error=0.0085)
 MAGNETOMETER_SCENES = ("level", "level_turn")
 

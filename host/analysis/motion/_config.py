@@ -47,6 +47,13 @@ class FusedConfig:
         in the others). Carried as a consider state (`host.analysis.motion._consider`), so its
         tilt error grows with the angle turned and averages out over a back-and-forth turn, as a
         fixed error's does. 0: not modelled (the white term alone).
+    gyro_gsens_fixed_error : float or tuple of 3 tuples of 3 floats
+        Residual g-sensitivity after calibration, fixed per chip: the standard deviation of each
+        entry of ``Γ`` in ``ω_read = ω + Γ f / g + b``, rad/s per g (one number or a 3 x 3, as
+        `gyro_scale_fixed_error`). What it adds at the first snapshot's pose is part of the bias
+        there; as the link turns, the specific force ``f`` in its frame changes and so does the
+        rate's error, ``Γ (f − f₀) / g``: carried as a consider state beside the scale error's.
+        0: not modelled.
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
     rel_accel_error : float
@@ -120,6 +127,7 @@ class FusedConfig:
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
     gyro_scale_fixed_error: float | tuple = 0.0
+    gyro_gsens_fixed_error: float | tuple = 0.0
     orientation_walk_rad: float = float(np.radians(0.05))
     rel_accel_error: float = 0.01
     accel_floor_mps2: float = 0.02
@@ -153,7 +161,8 @@ class FusedConfig:
             v = getattr(self, name)
             if v is None and name == "gyro_common_bias_std_rps":
                 continue
-            if name == "gyro_scale_fixed_error" and isinstance(v, (tuple, list, np.ndarray)):
+            if name in ("gyro_scale_fixed_error", "gyro_gsens_fixed_error") \
+                    and isinstance(v, (tuple, list, np.ndarray)):
                 a = np.asarray(v, dtype=object)
                 if a.shape != (3, 3) or not all(
                         isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
@@ -172,8 +181,16 @@ class FusedConfig:
                 raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
 
     @property
-    def scale_fixed_var(self) -> np.ndarray | None:
-        """`gyro_scale_fixed_error`'s variances, shape (9,) (``E``'s entries row by row), or None
-        when it is 0 (not modelled)."""
-        v = np.broadcast_to(np.asarray(self.gyro_scale_fixed_error, dtype=float), (3, 3))
-        return None if not v.any() else (v * v).ravel()
+    def fixed_errors(self) -> tuple[tuple[str, ...], np.ndarray] | None:
+        """The gyroscopes' fixed errors told (`host.analysis.motion._consider`): their inputs'
+        names (``"rate"`` for `gyro_scale_fixed_error`, ``"force"`` for
+        `gyro_gsens_fixed_error`) and their entries' variances, shape (9 m,), row by row, block
+        by block; None when neither is told."""
+        names, var = [], []
+        for name, v in (("rate", self.gyro_scale_fixed_error),
+                        ("force", self.gyro_gsens_fixed_error)):
+            v = np.broadcast_to(np.asarray(v, dtype=float), (3, 3))
+            if v.any():
+                names.append(name)
+                var.append((v * v).ravel())
+        return (tuple(names), np.concatenate(var)) if names else None

@@ -32,19 +32,19 @@ import numpy as np
 from ._linalg import USE_KERNEL, inv_sym3, kernel_args, kernel_lib, skew
 
 
-def propagate(R, P, C, w, dt, s2) -> None:
+def propagate(R, P, C, U, dt, s2) -> None:
     """`np_propagate`, in C when `USE_KERNEL` (link_filter.h: ``capsheet_mf_consider_*``)."""
     if USE_KERNEL:
-        kernel_lib.capsheet_mf_consider_propagate(R.shape[0], *kernel_args(
-            "consider_propagate", (R, P, C, w, dt, s2)))
+        kernel_lib.capsheet_mf_consider_propagate(R.shape[0], U.shape[1], *kernel_args(
+            "consider_propagate", (R, P, C, U, dt, s2)))
     else:
-        np_propagate(R, P, C, w, dt, s2)
+        np_propagate(R, P, C, U, dt, s2)
 
 
 def accel(R, P, C, f, vec, r2, gate, valid) -> None:
     """`np_accel`, in C when `USE_KERNEL`."""
     if USE_KERNEL:
-        kernel_lib.capsheet_mf_consider_accel(R.shape[0], *kernel_args(
+        kernel_lib.capsheet_mf_consider_accel(R.shape[0], C.shape[2], *kernel_args(
             "consider_accel", (R, P, C, f, vec, r2, gate, valid)))
     else:
         np_accel(R, P, C, f, vec, r2, gate, valid)
@@ -53,30 +53,34 @@ def accel(R, P, C, f, vec, r2, gate, valid) -> None:
 def yaw(P, C, a_diag) -> None:
     """`np_yaw`, in C when `USE_KERNEL`."""
     if USE_KERNEL:
-        kernel_lib.capsheet_mf_consider_yaw(P.shape[0],
+        kernel_lib.capsheet_mf_consider_yaw(P.shape[0], C.shape[2],
                                             *kernel_args("consider_yaw", (P, C, a_diag)))
     else:
         np_yaw(P, C, a_diag)
 
 
-def np_propagate(R: np.ndarray, P: np.ndarray, C: np.ndarray, w: np.ndarray, dt: np.ndarray,
+def np_propagate(R: np.ndarray, P: np.ndarray, C: np.ndarray, U: np.ndarray, dt: np.ndarray,
                  s2: np.ndarray) -> None:
     """After the kernel's propagation (``R`` the new frames, ``P`` its result): ``P`` gains the
-    fixed error's correlated terms, ``C`` its step. ``w`` (n, 3) the step's rates, link frames;
-    ``s2`` (9,) the variances of ``E``'s entries, row by row (``Σ = diag(s2)``)."""
+    fixed errors' correlated terms, ``C`` its step. ``U`` (n, m, 3) the inputs each block of
+    nine multiplies (the step's rates; the specific force's change, g), link frames; ``s2``
+    (9 m,) the variances of the entries, row by row, block by block (``Σ = diag(s2)``)."""
+    n, m = U.shape[:2]
     G = R * dt[:, None, None]  # δθ' = δθ − G δb
     Cb = C[:, 3:, :]
     Ct = C[:, :3, :] - G @ Cb  # F C, its θ rows (the b rows are unchanged)
-    # F C Γᵀ with Γ = −Δt R Ω(ω): (F C Ωᵀ)[:, i, j] = Σ_l (F C)[i, 3 j + l] ω_l, then times Rᵀ
-    FC = np.concatenate([Ct, Cb], axis=1)  # (n, 6, 9)
-    X = -(FC.reshape(-1, 6, 3, 3) @ w[:, None, :, None])[..., 0] @ G.transpose(0, 2, 1)
+    # F C Γᵀ with Γ = −Δt R [Ω(u_1) … Ω(u_m)]: (F C Ωᵀ)[:, a, j] = Σ_b Σ_l (F C)[a, 9 b + 3 j + l]
+    # u_b,l, then times Rᵀ
+    FC = np.concatenate([Ct, Cb], axis=1)  # (n, 6, 9 m)
+    Y = (FC.reshape(n, 6, m, 3, 3) @ U[:, None, :, :, None])[..., 0].sum(axis=2)
+    X = -Y @ G.transpose(0, 2, 1)
     P[:, :, :3] += X
     P[:, :3, :] += X.transpose(0, 2, 1)
-    # Γ Σ Γᵀ = Δt² R diag(D) Rᵀ, D_j = Σ_l s2[3 j + l] ω_l²
-    D = (w * w) @ s2.reshape(3, 3).T
+    # Γ Σ Γᵀ = Δt² R diag(D) Rᵀ, D_j = Σ_b Σ_l s2[9 b + 3 j + l] u_b,l²
+    D = np.einsum("kbl,bjl->kj", U * U, s2.reshape(m, 3, 3))
     P[:, :3, :3] += (G * D[:, None, :]) @ G.transpose(0, 2, 1)
-    # C' = F C + Γ Σ: Γ[:, i, 3 j + l] = −Δt R[i, j] ω_l
-    Ct -= (G[:, :, :, None] * w[:, None, None, :]).reshape(-1, 3, 9) * s2
+    # C' = F C + Γ Σ: Γ[:, i, 9 b + 3 j + l] = −Δt R[i, j] u_b,l
+    Ct -= (G[:, :, None, :, None] * U[:, None, :, None, :]).reshape(n, 3, 9 * m) * s2
     C[:, :3, :] = Ct
 
 

@@ -430,7 +430,7 @@ class MotionEstimator:
             self._missing_s = np.where(v, 0.0, self._missing_s + dt)
             if not v.all():
                 w_c = np.where(v[:, None], w_c, self._missing_rates(w_c, v))
-            self._propagate(w_c, dt)
+            self._propagate(w_c, dt, f, v)
             t1 = time.perf_counter()
             a_c = self._accel_update(f, w_c, dt, v)
             t2 = time.perf_counter()
@@ -511,8 +511,11 @@ class MotionEstimator:
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
         # each link's error's cross-covariance with its gyroscope's fixed scale and cross-axis
         # error (`_consider`), none at the start: the start's error does not come from it
-        self._scale_var = cfg.scale_fixed_var
-        self._C = None if self._scale_var is None else np.zeros((n, 6, 9))
+        self._fixed = cfg.fixed_errors
+        self._C = None if self._fixed is None else np.zeros((n, 6, 9 * len(self._fixed[0])))
+        # the specific force each chip read at the start, in g (the g-sensitivity's error there
+        # is part of its bias)
+        self._f0 = np.where(v[:, None], f, _GRAVITY_SF) / G0
         if bias0 is not None:
             self.bias[:] = bias0
         self._t = t.copy()
@@ -570,7 +573,7 @@ class MotionEstimator:
         sheet = np.einsum("kji,j->ki", self.R, w_world)
         return np.where((self._missing_s <= MISSING_HOLD_S)[:, None], last, sheet)
 
-    def _propagate(self, w_c, dt) -> None:
+    def _propagate(self, w_c, dt, f, v) -> None:
         cfg = self.config
         q = cfg.orientation_walk_rad ** 2 * dt + (cfg.gyro_noise_rps * dt) ** 2 \
             + cfg.gyro_scale_error ** 2 * np.einsum("ki,ki->k", w_c, w_c) * dt * dt
@@ -586,9 +589,10 @@ class MotionEstimator:
             extra = None
         qb = cfg.gyro_bias_walk_rps ** 2 * dt
         _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
-        if self._C is not None:  # the fixed scale and cross-axis error's terms (`_consider`)
-            _consider.propagate(self.R, self.P, self._C, 0.5 * (self._w_hist[-1] + w_c), dt,
-                                self._scale_var)
+        if self._C is not None:  # the gyroscopes' fixed errors' terms (`_consider`)
+            U = [0.5 * (self._w_hist[-1] + w_c) if name == "rate" else
+                 np.where(v[:, None], f / G0 - self._f0, 0.0) for name in self._fixed[0]]
+            _consider.propagate(self.R, self.P, self._C, np.stack(U, axis=1), dt, self._fixed[1])
         if extra is not None:
             self.P[:, 0, 0] += extra
             self.P[:, 1, 1] += extra

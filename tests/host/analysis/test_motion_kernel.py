@@ -331,17 +331,18 @@ def test_the_coarse_preconditioner_is_the_same_in_c_and_numpy():
     assert np.abs(other - c_kernel).max() > 1e-6 * np.abs(c_kernel).max()
 
 
-@pytest.mark.parametrize("name", ["propagate", "accel", "yaw"])
-def test_the_fixed_scale_errors_consider_steps_are_the_same_in_c_and_numpy(name):
+@pytest.mark.parametrize("name,blocks", [("propagate", 1), ("propagate", 2), ("accel", 1),
+                                         ("accel", 2), ("yaw", 1), ("yaw", 2)])
+def test_the_fixed_errors_consider_steps_are_the_same_in_c_and_numpy(name, blocks):
     from host.analysis.motion import _consider
     n = 57
 
     def args_of():
         g, R, P = _state(n, 13)
-        C = g.normal(0, 1e-5, (n, 6, 9))
+        C = g.normal(0, 1e-5, (n, 6, 9 * blocks))
         if name == "propagate":
-            return (R, P, C, g.normal(0, 3, (n, 3)), g.uniform(0.005, 0.01, n),
-                    g.uniform(0, 4e-6, 9))
+            return (R, P, C, g.normal(0, 3, (n, blocks, 3)), g.uniform(0.005, 0.01, n),
+                    g.uniform(0, 4e-6, 9 * blocks))
         if name == "accel":
             return (R, P, C, g.normal(0, 10, (n, 3)), g.normal(0, 10, (n, 3)),
                     g.uniform(1e-3, 1e-2, n), 25.0, g.random(n) > 0.2)

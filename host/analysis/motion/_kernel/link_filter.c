@@ -703,32 +703,43 @@ double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, doubl
 }
 
 
-/* ---- the gyroscopes' fixed scale and cross-axis error as a consider state (_consider.py) ---- */
+/* ---- the gyroscopes' fixed errors as a consider state (_consider.py) ---- */
 
-void capsheet_mf_consider_propagate(size_t n, const double *R, double *P, double *C,
-                                    const double *w, const double *dt, const double *s2)
+void capsheet_mf_consider_propagate(size_t n, size_t m, const double *R, double *P, double *C,
+                                    const double *U, const double *dt, const double *s2)
 {
+    size_t nc = 9 * m; /* at most 2 blocks: 18 columns */
     for (size_t k = 0; k < n; k++) {
-        const double *Rk = R + 9 * k, *wk = w + 3 * k;
-        double *Pk = P + 36 * k, *Ck = C + 54 * k;
-        double h = dt[k], G[9], FC[54], Y[18], X[18], D[3];
+        const double *Rk = R + 9 * k, *Uk = U + 3 * m * k;
+        double *Pk = P + 36 * k, *Ck = C + 6 * nc * k;
+        double h = dt[k], G[9], FC[108], Y[18] = {0.0}, X[18], D[3] = {0.0, 0.0, 0.0};
         for (int i = 0; i < 9; i++) {
             G[i] = Rk[i] * h;
         }
         for (int i = 0; i < 3; i++) { /* F C: the theta rows less G times the bias rows */
-            for (int m = 0; m < 9; m++) {
-                FC[9 * i + m] = Ck[9 * i + m] - (G[3 * i] * Ck[27 + m] + G[3 * i + 1] * Ck[36 + m]
-                                                 + G[3 * i + 2] * Ck[45 + m]);
+            for (size_t c = 0; c < nc; c++) {
+                FC[nc * i + c] = Ck[nc * i + c] - (G[3 * i] * Ck[nc * 3 + c]
+                                                   + G[3 * i + 1] * Ck[nc * 4 + c]
+                                                   + G[3 * i + 2] * Ck[nc * 5 + c]);
             }
         }
-        for (int m = 27; m < 54; m++) {
-            FC[m] = Ck[m];
+        for (size_t c = 3 * nc; c < 6 * nc; c++) {
+            FC[c] = Ck[c];
         }
-        for (int a = 0; a < 6; a++) { /* X = -(F C Omega^T) G^T */
+        for (size_t b = 0; b < m; b++) {
+            const double *u = Uk + 3 * b;
+            for (int a = 0; a < 6; a++) { /* Y = F C Omega(u)^T, summed over the blocks */
+                for (int j = 0; j < 3; j++) {
+                    const double *row = FC + nc * a + 9 * b + 3 * j;
+                    Y[3 * a + j] += row[0] * u[0] + row[1] * u[1] + row[2] * u[2];
+                }
+            }
             for (int j = 0; j < 3; j++) {
-                Y[3 * a + j] = FC[9 * a + 3 * j] * wk[0] + FC[9 * a + 3 * j + 1] * wk[1]
-                               + FC[9 * a + 3 * j + 2] * wk[2];
+                const double *v = s2 + 9 * b + 3 * j;
+                D[j] += u[0] * u[0] * v[0] + u[1] * u[1] * v[1] + u[2] * u[2] * v[2];
             }
+        }
+        for (int a = 0; a < 6; a++) { /* X = -Y G^T */
             for (int i = 0; i < 3; i++) {
                 X[3 * a + i] = -(Y[3 * a] * G[3 * i] + Y[3 * a + 1] * G[3 * i + 1]
                                  + Y[3 * a + 2] * G[3 * i + 2]);
@@ -744,10 +755,6 @@ void capsheet_mf_consider_propagate(size_t n, const double *R, double *P, double
                 Pk[6 * i + a] += X[3 * a + i];
             }
         }
-        for (int j = 0; j < 3; j++) {
-            D[j] = wk[0] * wk[0] * s2[3 * j] + wk[1] * wk[1] * s2[3 * j + 1]
-                   + wk[2] * wk[2] * s2[3 * j + 2];
-        }
         for (int i = 0; i < 3; i++) {
             for (int l = 0; l < 3; l++) {
                 Pk[6 * i + l] += G[3 * i] * D[0] * G[3 * l] + G[3 * i + 1] * D[1] * G[3 * l + 1]
@@ -755,18 +762,23 @@ void capsheet_mf_consider_propagate(size_t n, const double *R, double *P, double
             }
         }
         for (int i = 0; i < 3; i++) { /* C' = F C + Gamma Sigma */
-            for (int j = 0; j < 3; j++) {
-                for (int l = 0; l < 3; l++) {
-                    int m = 3 * j + l;
-                    Ck[9 * i + m] = FC[9 * i + m] - G[3 * i + j] * wk[l] * s2[m];
+            for (size_t b = 0; b < m; b++) {
+                for (int j = 0; j < 3; j++) {
+                    for (int l = 0; l < 3; l++) {
+                        size_t c = 9 * b + 3 * j + l;
+                        Ck[nc * i + c] = FC[nc * i + c] - G[3 * i + j] * Uk[3 * b + l] * s2[c];
+                    }
                 }
             }
+        }
+        for (size_t c = 3 * nc; c < 6 * nc; c++) {
+            Ck[c] = FC[c];
         }
     }
 }
 
-void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, double *C,
-                                const double *f, const double *vec, const double *r2,
+void capsheet_mf_consider_accel(size_t n, size_t nc, const double *R, const double *P,
+                                double *C, const double *f, const double *vec, const double *r2,
                                 double gate, const uint8_t *valid)
 {
     for (size_t k = 0; k < n; k++) {
@@ -774,9 +786,9 @@ void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, doub
             continue;
         }
         const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k, *Pk = P + 36 * k;
-        double *Ck = C + 54 * k;
+        double *Ck = C + 6 * nc * k;
         double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
-        double H[9], y[3], HP[18], S[9], Si[9], K[18], HC[27];
+        double H[9], y[3], HP[18], S[9], Si[9], K[18], HC[54];
         for (int i = 0; i < 3; i++) {
             for (int j = 0; j < 3; j++) {
                 H[3 * i + j] = Rk[i] * Vx[j] + Rk[3 + i] * Vx[3 + j] + Rk[6 + i] * Vx[6 + j];
@@ -816,34 +828,35 @@ void capsheet_mf_consider_accel(size_t n, const double *R, const double *P, doub
             }
         }
         for (int i = 0; i < 3; i++) { /* C <- C - K H C_theta */
-            for (int m = 0; m < 9; m++) {
-                HC[9 * i + m] = H[3 * i] * Ck[m] + H[3 * i + 1] * Ck[9 + m]
-                                + H[3 * i + 2] * Ck[18 + m];
+            for (size_t c = 0; c < nc; c++) {
+                HC[nc * i + c] = H[3 * i] * Ck[c] + H[3 * i + 1] * Ck[nc + c]
+                                 + H[3 * i + 2] * Ck[2 * nc + c];
             }
         }
         for (int i = 0; i < 6; i++) {
-            for (int m = 0; m < 9; m++) {
-                Ck[9 * i + m] -= K[3 * i] * HC[m] + K[3 * i + 1] * HC[9 + m]
-                                 + K[3 * i + 2] * HC[18 + m];
+            for (size_t c = 0; c < nc; c++) {
+                Ck[nc * i + c] -= K[3 * i] * HC[c] + K[3 * i + 1] * HC[nc + c]
+                                  + K[3 * i + 2] * HC[2 * nc + c];
             }
         }
     }
 }
 
-void capsheet_mf_consider_yaw(size_t n, const double *P, double *C, const double *a_diag)
+void capsheet_mf_consider_yaw(size_t n, size_t nc, const double *P, double *C,
+                              const double *a_diag)
 {
     for (size_t k = 0; k < n; k++) {
         const double *Pk = P + 36 * k;
-        double *Ck = C + 54 * k;
-        double p = Pk[14], row[9];
+        double *Ck = C + 6 * nc * k;
+        double p = Pk[14], row[18];
         double s = (1.0 - 1.0 / (a_diag[k] * p)) / p;
-        for (int m = 0; m < 9; m++) {
-            row[m] = Ck[18 + m];
+        for (size_t c = 0; c < nc; c++) {
+            row[c] = Ck[2 * nc + c];
         }
         for (int i = 0; i < 6; i++) {
             double g = Pk[6 * i + 2] * s;
-            for (int m = 0; m < 9; m++) {
-                Ck[9 * i + m] -= g * row[m];
+            for (size_t c = 0; c < nc; c++) {
+                Ck[nc * i + c] -= g * row[c];
             }
         }
     }
