@@ -147,3 +147,26 @@ def test_a_fixed_scale_error_told_as_white_noise_fails_the_band():
         means[name] = statistics(truth, rd, white)[0].mean()
     lo, hi = band(2 * N_LINKS)
     assert any(not lo <= m <= hi for m in means.values()), (means, (lo, hi))
+
+
+#: chips whose gyroscopes keep a fixed g-sensitivity (°/s per g, each entry), else ideal
+FIXED_G_DPS = 0.3
+
+
+def test_a_fixed_g_sensitivity_told_as_fixed_keeps_the_tilt_nees_in_its_band():
+    # ``Γ f / g`` at the start pose is a bias (told: the bias's uncertainty covers it); as the
+    # elbow's links turn, f changes in their frames and so does the rate's error, which the
+    # consider state carries
+    imu = ImuArray(N_LINKS, accel=accel_model("ideal", noise_pct_g=PCT_G),
+                   gyro=GyroModel.part("ideal", noise_density_dps=0.0028,
+                                       g_sensitivity_dps=FIXED_G_DPS, chip_seed=6),
+                   field=MagneticField(EarthField(50e-6, np.radians(60.0))), seed=29)
+    truth, rd = next(simulate(make_motion_scene("elbow", N, N, L), imu, 3.0, chunk_s=3.0))
+    g = float(np.radians(FIXED_G_DPS))
+    base = dataclasses.replace(TOLD, gyro_bias_std_rps=float(np.sqrt(3.0)) * g)
+    nees = statistics(truth, rd, dataclasses.replace(base, gyro_gsens_fixed_error=g))[0].mean()
+    lo, hi = band(2 * N_LINKS)
+    assert lo <= nees <= hi, (nees, (lo, hi))
+    # the check can fail: not told, the filter is overconfident
+    untold = statistics(truth, rd, base)[0].mean()
+    assert untold > hi, (untold, (lo, hi))
