@@ -36,7 +36,24 @@ class FusedConfig:
     gyro_bias_walk_rps : float
         The bias's random walk, rad/s/√s (3 °/h of bias instability over 100 s ≈ 2e-6).
     gyro_scale_error : float
-        Residual scale and cross-axis error after calibration: process noise ``∝ |ω| Δt``.
+        Residual scale and cross-axis error after calibration taken as white: process noise
+        ``∝ |ω| Δt``, independent from step to step.
+    gyro_scale_fixed_error : float or tuple of 3 tuples of 3 floats
+        Residual scale and cross-axis error after calibration taken as fixed per chip: the
+        standard deviation of each entry of ``E`` in ``ω_read = (I + E) ω + b`` (link frame;
+        row: the axis read, column: the axis turned about), the entries independent; one number
+        for all nine, or a 3 x 3 of them (a calibration determines some columns better than
+        others: bench_motion's board leaves 0.03-0.05 % in the column of turns about z, 0.07-0.2 %
+        in the others). Carried as a consider state (`host.analysis.motion._consider`), so its
+        tilt error grows with the angle turned and averages out over a back-and-forth turn, as a
+        fixed error's does. 0: not modelled (the white term alone).
+    gyro_gsens_fixed_error : float or tuple of 3 tuples of 3 floats
+        Residual g-sensitivity after calibration, fixed per chip: the standard deviation of each
+        entry of ``Γ`` in ``ω_read = ω + Γ f / g + b``, rad/s per g (one number or a 3 x 3, as
+        `gyro_scale_fixed_error`). What it adds at the first snapshot's pose is part of the bias
+        there; as the link turns, the specific force ``f`` in its frame changes and so does the
+        rate's error, ``Γ (f − f₀) / g``: carried as a consider state beside the scale error's.
+        0: not modelled.
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
     rel_accel_error : float
@@ -95,6 +112,12 @@ class FusedConfig:
         (`host.analysis.motion._dipole`) and its field taken out of the magnetometers' readings
         while the dipole explains the links' fields better than uniform fields alone by at
         least this F statistic (its six numbers against the residual; 0: never fitted).
+    dipole_position_std : float
+        How far a link's estimated position may be off, in link lengths, where the fitted
+        dipole's field is taken out: the fit's field is then known only to its gradient times
+        that, which enters the link's disturbance tests and its heading's variance as the fit's
+        error (a link next to the magnet keeps its corrected heading at what it is worth
+        instead of being taken as disturbed). 0: the fit's field taken as exact.
     """
 
     accel_noise_mps2: float = 70e-6 * G0 * float(np.sqrt(145.0 / 2.0))
@@ -103,6 +126,8 @@ class FusedConfig:
     gyro_common_bias_std_rps: float | None = None
     gyro_bias_walk_rps: float = 2e-6
     gyro_scale_error: float = 2e-3
+    gyro_scale_fixed_error: float | tuple = 0.0
+    gyro_gsens_fixed_error: float | tuple = 0.0
     orientation_walk_rad: float = float(np.radians(0.05))
     rel_accel_error: float = 0.01
     accel_floor_mps2: float = 0.02
@@ -129,11 +154,20 @@ class FusedConfig:
     heading_mode_rad: float = float(np.radians(0.75))
     heading_mode_time_s: float = 1.0
     dipole_significance: float = 25.0
+    dipole_position_std: float = 0.5
 
     def __post_init__(self) -> None:
         for name in self.__dataclass_fields__:
             v = getattr(self, name)
             if v is None and name == "gyro_common_bias_std_rps":
+                continue
+            if name in ("gyro_scale_fixed_error", "gyro_gsens_fixed_error") \
+                    and isinstance(v, (tuple, list, np.ndarray)):
+                a = np.asarray(v, dtype=object)
+                if a.shape != (3, 3) or not all(
+                        isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
+                        and np.isfinite(x) and x >= 0 for x in a.ravel()):
+                    raise ValueError(f"Invalid {name}: {v!r} (need a number >= 0 or 3 x 3 of them)")
                 continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
                     or not np.isfinite(v) or v < 0:
@@ -145,3 +179,18 @@ class FusedConfig:
                      "sheet_position_time_s", "heading_mode_time_s"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"Invalid {name}: {getattr(self, name)!r} (need > 0)")
+
+    @property
+    def fixed_errors(self) -> tuple[tuple[str, ...], np.ndarray] | None:
+        """The gyroscopes' fixed errors told (`host.analysis.motion._consider`): their inputs'
+        names (``"rate"`` for `gyro_scale_fixed_error`, ``"force"`` for
+        `gyro_gsens_fixed_error`) and their entries' variances, shape (9 m,), row by row, block
+        by block; None when neither is told."""
+        names, var = [], []
+        for name, v in (("rate", self.gyro_scale_fixed_error),
+                        ("force", self.gyro_gsens_fixed_error)):
+            v = np.broadcast_to(np.asarray(v, dtype=float), (3, 3))
+            if v.any():
+                names.append(name)
+                var.append((v * v).ravel())
+        return (tuple(names), np.concatenate(var)) if names else None

@@ -187,14 +187,24 @@ class LocalField:
         How near a link the dipole may sit.
     span_m : float
         The sheet's side: the starting grid of a fresh fit lies ``span_m / 4`` about its centre.
+    position_std_m : float
+        How far each link's estimated position may be from its true one (0: the fit's field is
+        taken as exact): with it `model_var_t2` says how much of a link's field the fit cannot
+        know, the dipole's gradient times that distance.
     """
 
     def __init__(self, family: np.ndarray, significance: float, min_distance_m: float,
-                 span_m: float) -> None:
+                 span_m: float, position_std_m: float = 0.0) -> None:
         self.family = np.asarray(family, dtype=np.intp)
         self.significance = float(significance)
         self.min_distance_m = float(min_distance_m)
         self.span_m = float(span_m)
+        self.position_std_m = float(position_std_m)
+        #: per link, the variance of what the used fit's field leaves out (T² per component),
+        #: None while no fit is used: where the field changes by µT per millimetre (next to the
+        #: magnet) an estimated position millimetres off leaves µT in the corrected reading,
+        #: which is the fit's error, not a disturbance it has not explained
+        self.model_var_t2: np.ndarray | None = None
         self.fit: DipoleFit | None = None
         self.f_stat = 0.0
         self._wait = 0
@@ -204,6 +214,7 @@ class LocalField:
         """The readings ``m`` (n, 3, link frames) less the fitted dipole's field (``Rᵀ B_d`` at
         each link's ``points``, world: an array, or a callable that makes it when it is needed),
         or ``m`` itself while no fit is significant."""
+        self.model_var_t2 = None
         if self.significance <= 0:
             return m
         if self.fit is None:
@@ -242,4 +253,9 @@ class LocalField:
         self.fit = fit
         self._retry = _RETRY_MIN
         d = fit.field(points)
+        if self.position_std_m > 0:
+            # a dipole's field falls as 1/r³: its gradient is at most 3 |B| / r along r
+            r = np.linalg.norm(points - fit.position_m, axis=1)
+            g = 3.0 * np.linalg.norm(d, axis=1) / np.maximum(r, 1e-9)
+            self.model_var_t2 = (g * self.position_std_m) ** 2
         return np.where(v[:, None], m - np.einsum("kji,kj->ki", R, d), m)

@@ -14,8 +14,9 @@ Per link the state is its orientation ``R`` (sensor -> world) and its gyroscope'
 
 1. **Gyroscope: the process model.** ``R ← R exp([Δθ]×)`` with the rate less the bias, second
    order over the sample interval (the two samples' mean plus the coning term); ``P`` grows by
-   the gyroscope's noise, a rate-proportional term (residual scale and cross-axis errors) and a
-   small floor for what the model leaves out; the bias is a random walk.
+   the gyroscope's noise, a rate-proportional term (residual scale and cross-axis errors: white,
+   or fixed per chip as a consider state, `_consider`) and a small floor for what the model
+   leaves out; the bias is a random walk.
 2. **Linear acceleration from the lattice.** Every link's direction ``d = R e_x`` has the second
    derivative ``d̈ = R (ω × (ω × e_x) + ω̇ × e_x)`` (``ω̇`` a second-order backward difference of the
    rates); the joints' accelerations follow from the ``d̈`` exactly as the joints follow from the
@@ -66,6 +67,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from ..estimator import G0, estimate
+from . import _consider
 from ._common import CommonMotion
 from ._config import FusedConfig
 from ._dipole import LocalField
@@ -315,6 +317,7 @@ class MotionEstimator:
         self.R: np.ndarray | None = None
         self.bias = np.zeros((self.n_links, 3))
         self.P = np.zeros((self.n_links, 6, 6))
+        self._C = None  # cross-covariance with the gyroscopes' fixed errors (`_consider`)
         self._t = None
         self._w_hist: list[np.ndarray] = []  # the last two bias-corrected rates
         self._with_mag: bool | None = None
@@ -427,7 +430,7 @@ class MotionEstimator:
             self._missing_s = np.where(v, 0.0, self._missing_s + dt)
             if not v.all():
                 w_c = np.where(v[:, None], w_c, self._missing_rates(w_c, v))
-            self._propagate(w_c, dt)
+            self._propagate(w_c, dt, f, v)
             t1 = time.perf_counter()
             a_c = self._accel_update(f, w_c, dt, v)
             t2 = time.perf_counter()
@@ -481,7 +484,8 @@ class MotionEstimator:
                 # taken out, and the heading taken again from what is left (`_dipole`)
                 self._local = LocalField(self.topo.group >= self.rows - 1, cfg.dipole_significance,
                                          0.5 * self.link_length,
-                                         (max(self.rows, self.cols) - 1) * self.link_length)
+                                         (max(self.rows, self.cols) - 1) * self.link_length,
+                                         cfg.dipole_position_std * self.link_length)
                 m = self._local.remove(R, m, self._midpoints(joints_from_vectors(
                     R[:, :, 0], self.rows, self.cols, self.link_length)), v)
                 if self._local.fit is not None:
@@ -505,6 +509,13 @@ class MotionEstimator:
         self.P[:, 0, 0] = self.P[:, 1, 1] = tilt
         self.P[:, 2, 2] = yaw
         self.P[:, 3:, 3:] = np.eye(3) * cfg.gyro_bias_std_rps ** 2
+        # each link's error's cross-covariance with its gyroscope's fixed scale and cross-axis
+        # error (`_consider`), none at the start: the start's error does not come from it
+        self._fixed = cfg.fixed_errors
+        self._C = None if self._fixed is None else np.zeros((n, 6, 9 * len(self._fixed[0])))
+        # the specific force each chip read at the start, in g (the g-sensitivity's error there
+        # is part of its bias)
+        self._f0 = np.where(v[:, None], f, _GRAVITY_SF) / G0
         if bias0 is not None:
             self.bias[:] = bias0
         self._t = t.copy()
@@ -562,7 +573,7 @@ class MotionEstimator:
         sheet = np.einsum("kji,j->ki", self.R, w_world)
         return np.where((self._missing_s <= MISSING_HOLD_S)[:, None], last, sheet)
 
-    def _propagate(self, w_c, dt) -> None:
+    def _propagate(self, w_c, dt, f, v) -> None:
         cfg = self.config
         q = cfg.orientation_walk_rad ** 2 * dt + (cfg.gyro_noise_rps * dt) ** 2 \
             + cfg.gyro_scale_error ** 2 * np.einsum("ki,ki->k", w_c, w_c) * dt * dt
@@ -578,6 +589,10 @@ class MotionEstimator:
             extra = None
         qb = cfg.gyro_bias_walk_rps ** 2 * dt
         _step("propagate", self.R, self.P, self._w_hist[-1], w_c, dt, q, qb)
+        if self._C is not None:  # the gyroscopes' fixed errors' terms (`_consider`)
+            U = [0.5 * (self._w_hist[-1] + w_c) if name == "rate" else
+                 np.where(v[:, None], f / G0 - self._f0, 0.0) for name in self._fixed[0]]
+            _consider.propagate(self.R, self.P, self._C, np.stack(U, axis=1), dt, self._fixed[1])
         if extra is not None:
             self.P[:, 0, 0] += extra
             self.P[:, 1, 1] += extra
@@ -613,6 +628,8 @@ class MotionEstimator:
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + cfg.rel_accel_error ** 2 * np.einsum("ki,ki->k", da, da)
         x = np.empty((self.n_links, 6))
+        if self._C is not None:
+            _consider.accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
         _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
         # the sheet's own tilt: what the links share, from its bounded translation
         if nv:
@@ -675,6 +692,8 @@ class MotionEstimator:
         # each link's whole state follows its yaw through its covariance; the yaw's posterior
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
+        if self._C is not None:
+            _consider.yaw(P, self._C, a_diag)
         _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
         if m is not None:
             self._heading_mode(dt)
@@ -790,7 +809,42 @@ class MotionEstimator:
                                         cfg.mag_floor_rad ** 2, F, cfg.disturbance_field_frac,
                                         cfg.disturbance_dip_rad, cfg.disturbance_tau_s, lasts,
                                         cfg.disturbance_scale ** 2, self._h, cfg.mag_warmup_s, e)
+        mv = None if self._local is None else self._local.model_var_t2
+        if mv is not None:
+            self._explained(mv, hz, ok, F, lasts, self._weights, mw)
         return mw, e
+
+    def _explained(self, mv, hz, ok, F, lasts, weights, mw) -> None:
+        """The links whose field the dipole's fit explains but for its own error (``mv``, T²
+        per component: `_dipole.LocalField.model_var_t2`), weighed again in place: that error
+        enters their tests as noise that lasts (it is a bias of the fit, not averaged away) and
+        their heading's variance as the horizontal field's error, so their magnetometers keep
+        their corrected heading at the information it has instead of being taken as disturbed;
+        their ``weights`` (the groups' holds) are of that information, so a group of explained
+        links is not held (`_yaw_prior`). The formulas are `_linalg.np_mag_weights`' with the
+        fit's error added."""
+        cfg = self.config
+        k = np.flatnonzero(ok & (mv > (0.1 * cfg.mag_noise_t) ** 2))
+        if k.size == 0:
+            return
+        mvk, hz2 = mv[k], np.maximum(hz[k], 1e-30) ** 2
+        noise2 = cfg.mag_noise_t ** 2
+        var0 = (noise2 + mvk) / hz2 + cfg.mag_floor_rad ** 2
+        cnt = self._dist_count[k]
+        a = np.clip(np.maximum(self._dt_last[k] / cfg.disturbance_tau_s,
+                               1.0 / np.maximum(cnt, 1.0)), 1e-6, 1.0)
+        Pk = self.P[k]
+        n2 = 2.0 * noise2 * a / (2.0 - a) + F * F * (Pk[:, 0, 0] + Pk[:, 1, 1]) + mvk
+        dk = self._dist[k]
+        d2 = ((dk[:, 1] * cfg.disturbance_field_frac) ** 2
+              + (dk[:, 2] * cfg.disturbance_dip_rad) ** 2) * F * F
+        d2 = np.maximum(d2 - 3.0 * n2, 0.0) * lasts
+        # the heading test's unit grows by the fit's error over the horizontal field
+        scale2 = cfg.disturbance_scale ** 2 * (1.0 + (mvk / hz2) / cfg.disturbance_heading_rad ** 2)
+        wgt = var0 / (var0 + d2 / hz2) / (1.0 + dk[:, 0] ** 2 / scale2)
+        wgt = np.where(cnt * self._h >= cfg.mag_warmup_s, wgt, 0.0)
+        weights[k] = wgt
+        mw[k] = wgt / var0
 
     def _heading_mode(self, dt) -> None:
         """Turn the sheet's heading towards the robust mode of its links' averaged heading

@@ -329,3 +329,39 @@ def test_the_coarse_preconditioner_is_the_same_in_c_and_numpy():
     # the check can fail: the magnetometers' weights doubled give another coarse matrix
     other = la.coarse_inverse(topo, jg, wts, est._prior_terms, 2.0 * mw)
     assert np.abs(other - c_kernel).max() > 1e-6 * np.abs(c_kernel).max()
+
+
+@pytest.mark.parametrize("name,blocks", [("propagate", 1), ("propagate", 2), ("accel", 1),
+                                         ("accel", 2), ("yaw", 1), ("yaw", 2)])
+def test_the_fixed_errors_consider_steps_are_the_same_in_c_and_numpy(name, blocks):
+    from host.analysis.motion import _consider
+    n = 57
+
+    def args_of():
+        g, R, P = _state(n, 13)
+        C = g.normal(0, 1e-5, (n, 6, 9 * blocks))
+        if name == "propagate":
+            return (R, P, C, g.normal(0, 3, (n, blocks, 3)), g.uniform(0.005, 0.01, n),
+                    g.uniform(0, 4e-6, 9 * blocks))
+        if name == "accel":
+            return (R, P, C, g.normal(0, 10, (n, 3)), g.normal(0, 10, (n, 3)),
+                    g.uniform(1e-3, 1e-2, n), 25.0, g.random(n) > 0.2)
+        return (P, C, g.uniform(1e6, 1e7, n))
+
+    out = []
+    for fn in (getattr(_consider, name), getattr(_consider, "np_" + name)):
+        args = args_of()
+        fn(*args)
+        out.append(args)
+    if not _consider.USE_KERNEL:
+        pytest.skip("the kernel is not used")
+    for a, b in zip(*out):
+        if isinstance(a, np.ndarray) and a.dtype == np.float64:
+            scale = max(np.abs(b).max(), 1e-300)
+            assert np.abs(a - b).max() <= 1e-12 * scale, (name, np.abs(a - b).max(), scale)
+    # the steps change what they should: C in every step, P in the propagation
+    fresh = args_of()
+    ci = 1 if name == "yaw" else 2
+    assert not np.array_equal(out[0][ci], fresh[ci]), name
+    if name == "propagate":
+        assert not np.array_equal(out[0][1], fresh[1])

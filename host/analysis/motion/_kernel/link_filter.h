@@ -146,3 +146,21 @@ void capsheet_mf_dist_tests(size_t n, size_t n_groups, const int64_t *group, con
 double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, double width,
                                double start, int iterations);
 
+
+/* The gyroscopes' fixed errors as a consider state (_consider.py, whose numpy functions give
+ * the same numbers): m blocks (1 or 2) of nine entries each, a fixed 3 x 3 matrix per chip that
+ * multiplies an input u_b (the rate; the specific force's change in g), so the rate error is
+ * sum_b E_b u_b. C (n, 6, nc = 9 m) each link's error's cross-covariance with the entries
+ * (row-major, block by block), s2 (nc) their variances, U (n, m, 3) the inputs.
+ * _propagate follows capsheet_mf_propagate (R the new frames): with G = R dt and
+ * Gamma = -G [Omega(u_1) ... Omega(u_m)], P += F C Gamma^T + Gamma C^T F^T + Gamma diag(s2)
+ * Gamma^T and C <- F C + Gamma diag(s2). _accel precedes capsheet_mf_accel (P its prior):
+ * C <- C - K H C_theta with that update's gain, gate included. _yaw precedes capsheet_mf_yaw:
+ * C <- C - c (1 - 1 / (a_diag p)) / p C_yaw, c the covariance's yaw column, p its yaw entry. */
+void capsheet_mf_consider_propagate(size_t n, size_t m, const double *R, double *P, double *C,
+                                    const double *U, const double *dt, const double *s2);
+void capsheet_mf_consider_accel(size_t n, size_t nc, const double *R, const double *P,
+                                double *C, const double *f, const double *vec, const double *r2,
+                                double gate, const uint8_t *valid);
+void capsheet_mf_consider_yaw(size_t n, size_t nc, const double *P, double *C,
+                              const double *a_diag);
