@@ -67,7 +67,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from ..estimator import G0, estimate
-from . import _consider
+from ._consider import accel as consider_accel, propagate as consider_propagate, yaw as consider_yaw
 from ._common import CommonMotion
 from ._config import FusedConfig
 from ._dipole import LocalField
@@ -592,7 +592,7 @@ class MotionEstimator:
         if self._C is not None:  # the gyroscopes' fixed errors' terms (`_consider`)
             U = [0.5 * (self._w_hist[-1] + w_c) if name == "rate" else
                  np.where(v[:, None], f / G0 - self._f0, 0.0) for name in self._fixed[0]]
-            _consider.propagate(self.R, self.P, self._C, np.stack(U, axis=1), dt, self._fixed[1])
+            consider_propagate(self.R, self.P, self._C, np.stack(U, axis=1), dt, self._fixed[1])
         if extra is not None:
             self.P[:, 0, 0] += extra
             self.P[:, 1, 1] += extra
@@ -629,7 +629,7 @@ class MotionEstimator:
             + cfg.rel_accel_error ** 2 * np.einsum("ki,ki->k", da, da)
         x = np.empty((self.n_links, 6))
         if self._C is not None:
-            _consider.accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
+            consider_accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
         _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
         # the sheet's own tilt: what the links share, from its bounded translation
         if nv:
@@ -693,7 +693,7 @@ class MotionEstimator:
         # variance is taken as the conditional one, 1 / A_kk
         x = np.empty((n, 6))
         if self._C is not None:
-            _consider.yaw(P, self._C, a_diag)
+            consider_yaw(P, self._C, a_diag)
         _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
         if m is not None:
             self._heading_mode(dt)
