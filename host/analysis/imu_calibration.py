@@ -191,12 +191,12 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
 
     Perturbing increment ``i`` by ``δφ`` turns the end by ``δθ = R_endᵀ R_{0..i+1} δφ`` (first
     order), and the carried vector by ``u × δθ``; ``δφ = δA w̄_i Δt_i``. ``w (J, L, n, 3)``,
-    ``dt (J, L-1)``. Returns ``(u (J, n, 3), jac (J, n, 3, 9))``."""
+    ``dt (J, L-1, n)``: each chip's own sample steps. Returns ``(u (J, n, 3), jac (J, n, 3, 9))``."""
     J_, L, n = w.shape[:3]
     R = np.broadcast_to(np.eye(3), (J_, n, 3, 3)).copy()
     S = np.zeros((J_, n, 3, 3, 3))  # Σ R_{0..i+1}[:, p] · (w̄_i Δt_i)_q
     for i in range(L - 1):
-        mid = 0.5 * (w[:, i] + w[:, i + 1]) * dt[:, i, None, None]  # (J, n, 3)
+        mid = 0.5 * (w[:, i] + w[:, i + 1]) * dt[:, i, :, None]  # (J, n, 3)
         R = R @ rotvec_to_matrix(np.einsum("kij,tkj->tki", A, mid))
         S += R[..., :, :, None] * mid[..., None, None, :]
     u = np.einsum("tkji,tkj->tki", R, u0)
@@ -221,8 +221,11 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     ----------
     gyro_rps : ndarray, shape (N, n, 3)
         The whole capture, rad/s, chip axes.
-    t_s : ndarray, shape (N,)
-        Sample instants, s.
+    t_s : ndarray, shape (N,) or (N, n)
+        Sample instants, s: one per snapshot, or each chip's own (the SYNC's time plus the record's
+        ``time_us``, docs/protocol.md §16.1: the instant the chip latched the reading, which a
+        SYNC sent late does not move). Each chip's must not decrease; equal instants (a STALE
+        record repeating the previous reading) add nothing to the turn.
     segments : list of (start, stop)
         The held poses, in time order (`still_segments`); each turn runs from the last sample of
         one to the first of the next.
@@ -247,8 +250,13 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     g = _batch("gyro_rps", gyro_rps)
     N, n = g.shape[:2]
     t = np.asarray(t_s, dtype=float)
-    if t.shape != (N,) or np.any(np.diff(t) <= 0):
-        raise ValueError(f"Expected increasing `t_s` of shape ({N},), got {t.shape}.")
+    if t.shape == (N,):
+        if np.any(np.diff(t) <= 0):
+            raise ValueError(f"Expected increasing `t_s` of shape ({N},), got {t.shape}.")
+        t = np.repeat(t[:, None], n, axis=1)
+    elif t.shape != (N, n) or not np.all(np.isfinite(t)) or np.any(np.diff(t, axis=0) < 0):
+        raise ValueError(f"Expected `t_s` of shape ({N},) (increasing) or ({N}, {n}) (finite, not decreasing "
+                         f"per chip), got {t.shape}.")
     u = _batch("gravity_link", gravity_link)
     K = len(segments)
     if u.shape != (K, n, 3):
@@ -257,8 +265,9 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     w = cal.apply(g, accel_mps2) if accel_mps2 is not None else g - cal.bias_rps
     w = np.einsum("kij,tkj->tki", np.linalg.inv(cal.matrix), w)  # rates before any matrix
     turns = [(segments[k][1] - 1, segments[k + 1][0] + 1) for k in range(K - 1)]
-    gap = float(max_gap_s) if max_gap_s is not None else max(TURN_MAX_GAP_S, 2.5 * float(np.median(np.diff(t))))
-    keep = [k for k, (a, b) in enumerate(turns) if b - a < 2 or float(np.max(np.diff(t[a:b]))) <= gap]
+    gap = float(max_gap_s) if max_gap_s is not None else max(TURN_MAX_GAP_S,
+                                                              2.5 * float(np.median(np.diff(t, axis=0))))
+    keep = [k for k, (a, b) in enumerate(turns) if b - a < 2 or float(np.max(np.diff(t[a:b], axis=0))) <= gap]
     if len(keep) < MIN_TURNS:
         raise ValueError(f"fit_gyro_turns: {len(keep)} of {len(turns)} turns to fit, need {MIN_TURNS} "
                          f"(2 equations a turn, 9 unknowns a chip)"
@@ -269,10 +278,10 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     Lmax = max(b - a for a, b in turns)
     J = len(turns)
     W = np.zeros((J, Lmax, n, 3))
-    DT = np.zeros((J, Lmax - 1))
+    DT = np.zeros((J, Lmax - 1, n))
     for j, (a, b) in enumerate(turns):
         W[j, : b - a] = w[a:b]
-        DT[j, : b - a - 1] = np.diff(t[a:b])
+        DT[j, : b - a - 1] = np.diff(t[a:b], axis=0)
     u0, u1 = u[:-1][keep], u[1:][keep]  # (J, n, 3)
     A = np.tile(np.eye(3), (n, 1, 1))
     for _ in range(iterations):
@@ -524,7 +533,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
 
     Parameters
     ----------
-    t_s : ndarray, shape (N,)
+    t_s : ndarray, shape (N,) or (N, n)
+        Sample instants: one per snapshot, or each chip's own (`fit_gyro_turns`).
     accel_mps2 : ndarray, shape (N, n, 3)
         As converted with the chips' reported calibration (the fit's reference).
     rows, cols : int

@@ -114,6 +114,60 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
     _check(sheet, before, after, err)
 
 
+def test_the_command_integrates_the_turns_over_each_chips_sample_instants():
+    """`ImuLog`, what the command gives the fit: each link's instant is its snapshot's SYNC time plus
+    the record's ``time_us`` (``sample_time_s``, docs/protocol.md §16.1). On a simulated clock: a
+    board capture whose SYNCs left up to 4 ms after the instants the chips latched their readings
+    (a loaded host), streamed through the log as snapshots. The fit over what the log keeps is the
+    fit over the true instants; the same snapshots without ``sample_time_s`` (chips that do not
+    know it) give the SYNC times, and the gyroscope scale misses what the true instants meet.
+    A link missing from a snapshot repeats its previous reading and that reading's instant."""
+    from types import SimpleNamespace
+
+    from host.analysis.calibration import link_frames_on_board
+    from host.analysis.imu_calibration import fit_capture
+    from host.cli.calibrate import ImuLog
+    from virtual_sheet.imu import imu_array, simulate
+    from virtual_sheet.motion import make_motion_scene
+
+    board = make_motion_scene("board", 3, 3, 0.01, hold_s=4.0, move_s=1.0, seed=5)
+    imu = imu_array(12, "accel+gyro", seed=7)
+    runs = list(simulate(board, imu, board.period_s))
+    t, a, g = (np.concatenate([getattr(r, k) for _t, r in runs]) for k in ("t_s", "accel_mps2", "gyro_rps"))
+    sync = t + np.random.Generator(np.random.MT19937(11)).uniform(0.0, 4e-3, t.shape)
+
+    def logged(with_time: bool, lose=None) -> ImuLog:
+        log = ImuLog(mag=False)
+        for k in range(t.size):
+            r, w = a[k].copy(), g[k].copy()
+            if lose == k:
+                r[4] = w[4] = np.nan
+            log.add(SimpleNamespace(timestamp=sync[k], readings=r, gyro=w, mag=None,
+                                    sample_time_s=np.full(12, t[k] - sync[k]) if with_time else None))
+        return log
+
+    def scale_err(cal) -> float:
+        truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+        R0 = link_frames_on_board(3, 3)
+        Pb = R0 @ (cal.gyro.matrix @ truth) @ np.transpose(R0, (0, 2, 1))
+        U, _s, Vt = np.linalg.svd(Pb.mean(axis=0))
+        return float(np.abs(np.diagonal(np.einsum("ji,kjl->kil", U @ Vt, Pb), axis1=1, axis2=2) - 1).max())
+
+    exact = fit_capture(t, a, 3, 3, g)
+    ts, a_s, g_s, _m = logged(True).arrays()
+    assert ts.shape == (t.size, 12)
+    np.testing.assert_allclose(ts, np.repeat(t[:, None], 12, axis=1), rtol=0, atol=1e-12)
+    fitted = fit_capture(ts, a_s, 3, 3, g_s)
+    np.testing.assert_allclose(fitted.gyro.matrix, exact.gyro.matrix, rtol=0, atol=1e-9)
+    t_sync, a_y, g_y, _m = logged(False).arrays()
+    np.testing.assert_array_equal(t_sync, np.repeat(sync[:, None], 12, axis=1))
+    assert scale_err(exact) < 2e-4 < scale_err(fit_capture(t_sync, a_y, 3, 3, g_y))
+    lost = logged(True, lose=1000)
+    tl, al, gl, _m = lost.arrays()
+    assert lost.filled == 1 and lost.reordered == 0
+    assert tl[1000, 4] == tl[999, 4] and np.array_equal(gl[1000, 4], gl[999, 4]) and tl[1000, 3] == ts[1000, 3]
+
+
 @pytest.mark.parametrize("chips, asked, lacking", [("accel", "accel+gyro", "gyroscope"),
                                                    ("accel+gyro", "accel+gyro+mag", "magnetometer")])
 def test_asking_for_sensors_the_chips_lack_is_refused_before_the_capture(tmp_path, chips, asked, lacking):
