@@ -190,7 +190,9 @@ def test_the_turns_are_integrated_over_each_chips_sample_instants_not_the_sync_t
     np.testing.assert_allclose(per_chip.turn_residual, cal.gyro.turn_residual, rtol=0, atol=1e-12)
     truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
     at_sync = fit_gyro_turns(c["gyro_rps"], sync, segs, u, rest, f_chip)
-    scale_err = lambda m: np.abs(np.diagonal(_without_common_rotation(m @ truth), axis1=1, axis2=2) - 1).max()  # noqa: E731
+
+    def scale_err(m):
+        return np.abs(np.diagonal(_without_common_rotation(m @ truth), axis1=1, axis2=2) - 1).max()
     assert scale_err(cal.gyro.matrix) < 2e-4 < scale_err(at_sync.matrix)
 
 
