@@ -31,8 +31,8 @@ POSES = 12
 def _sheet(transport: str = "serial") -> VirtualSheet:
     """The chips sample when the device reads each SYNC (``sync_arrival=False``), as the host's
     SYNC time plus ``time_us`` says. `virtual_sheet.arrival.SyncArrival`'s estimate of the arrival
-    strays from the host's SYNC times on a loaded machine (measured at load ~7: 4-25 ms standard
-    deviation, up to 137 ms, where the reads are 0.2-1.6 ms from them): the command would fit the
+    strays from the host's SYNC times on a loaded machine (measured at load ~7: 4-73 ms standard
+    deviation, up to 388 ms, where the reads are 0.2-1.9 ms from them): the command would fit the
     scale of a simulator's clock error, which no real chip makes."""
     return VirtualSheet("board", "3x3", seed=7, transport=transport, sensors="accel+gyro+mag",
                         shape_params=dict(hold_s=HOLD_S, move_s=0.8, seed=2), sync_arrival=False,
