@@ -115,8 +115,9 @@ class GyroCalibration:
     turn_residual : ndarray, shape (n,)
         RMS of the turn fit's residual per chip (unit vectors: ≈ radians; 0 when not fitted).
     turns_used, turns_dropped : int
-        Turns the scale fit integrated, and those it left out for a gap in their samples
-        (`fit_gyro_turns`'s ``max_gap_s``); 0 when not fitted.
+        Turns the scale fit integrated for every chip, and those it left out for a gap in the
+        samples of at least one chip (`fit_gyro_turns`'s ``max_gap_s``; the other chips still use
+        them); 0 when not fitted.
     """
 
     bias_rps: np.ndarray
@@ -239,8 +240,10 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     max_gap_s : float, optional
         A turn with two consecutive samples further apart than this is left out: its rotation
         cannot be integrated from what came (a host that stopped sending SYNC for half a second in
-        the middle of a turn). Default: `TURN_MAX_GAP_S`, or 2.5 × the median sample step if that is
-        longer. Two equations a turn, 9 unknowns a chip: at least `MIN_TURNS` must remain.
+        the middle of a turn). With each chip's own instants, per chip: a chip whose records were
+        lost for longer leaves that turn out alone. Default: `TURN_MAX_GAP_S`, or 2.5 × the median
+        sample step if that is longer. Two equations a turn, 9 unknowns a chip: every chip must keep
+        at least `MIN_TURNS`.
 
     Returns
     -------
@@ -267,14 +270,20 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     turns = [(segments[k][1] - 1, segments[k + 1][0] + 1) for k in range(K - 1)]
     gap = float(max_gap_s) if max_gap_s is not None else max(TURN_MAX_GAP_S,
                                                               2.5 * float(np.median(np.diff(t, axis=0))))
-    keep = [k for k, (a, b) in enumerate(turns) if b - a < 2 or float(np.max(np.diff(t[a:b], axis=0))) <= gap]
-    if len(keep) < MIN_TURNS:
-        raise ValueError(f"fit_gyro_turns: {len(keep)} of {len(turns)} turns to fit, need {MIN_TURNS} "
+    # per turn and chip: no gap in that chip's samples
+    ok = np.array([np.ones(n, dtype=bool) if b - a < 2 else np.max(np.diff(t[a:b], axis=0), axis=0) <= gap
+                   for a, b in turns]).reshape(len(turns), n)
+    keep = [k for k in range(len(turns)) if ok[k].any()]
+    least = int(ok.sum(axis=0).min()) if n else 0
+    if least < MIN_TURNS:
+        gapped = int((~ok.all(axis=1)).sum())
+        raise ValueError(f"fit_gyro_turns: {least} of {len(turns)} turns to fit, need {MIN_TURNS} "
                          f"(2 equations a turn, 9 unknowns a chip)"
-                         + (f"; {len(turns) - len(keep)} have a gap of more than {1e3 * gap:.0f} ms in their samples "
+                         + (f"; {gapped} have a gap of more than {1e3 * gap:.0f} ms in their samples "
                             f"(SYNCs not sent or snapshots lost while the board turned: a loaded host)"
-                            if len(keep) < len(turns) else ""))
+                            if gapped else ""))
     turns = [turns[k] for k in keep]
+    use = ok[keep].T  # (n, J): chip k integrates turn j
     Lmax = max(b - a for a, b in turns)
     J = len(turns)
     W = np.zeros((J, Lmax, n, 3))
@@ -283,20 +292,23 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         W[j, : b - a] = w[a:b]
         DT[j, : b - a - 1] = np.diff(t[a:b], axis=0)
     u0, u1 = u[:-1][keep], u[1:][keep]  # (J, n, 3)
+    rows = np.repeat(use, 3, axis=1).astype(float)  # (n, 3J): a chip's left-out turns weigh nothing
     A = np.tile(np.eye(3), (n, 1, 1))
     for _ in range(iterations):
         pred, jac = _carry(A, W, DT, u0)
-        r = (pred - u1).transpose(1, 0, 2).reshape(n, -1)  # (n, 3J)
-        Jm = jac.transpose(1, 0, 2, 3).reshape(n, -1, 9)  # (n, 3J, 9)
+        r = (pred - u1).transpose(1, 0, 2).reshape(n, -1) * rows  # (n, 3J)
+        Jm = jac.transpose(1, 0, 2, 3).reshape(n, -1, 9) * rows[..., None]  # (n, 3J, 9)
         H = Jm.transpose(0, 2, 1) @ Jm
         step = np.linalg.solve(H + 1e-12 * np.eye(9), Jm.transpose(0, 2, 1) @ r[..., None])[..., 0]
         A = A - step.reshape(n, 3, 3)
         if np.max(np.abs(step)) < 1e-10:
             break
     pred, _jac = _carry(A, W, DT, u0)
-    res = np.sqrt(np.mean(np.sum((pred - u1) ** 2, axis=-1), axis=0))
+    sq = np.sum((pred - u1) ** 2, axis=-1).T  # (n, J)
+    res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
+    used = int(use.all(axis=0).sum())
     return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
-                           turns_used=J, turns_dropped=K - 1 - J)
+                           turns_used=used, turns_dropped=K - 1 - used)
 
 
 # ---------------------------------------------------------------------------------------------

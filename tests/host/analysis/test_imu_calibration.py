@@ -208,3 +208,31 @@ def test_each_chips_own_instants_must_not_go_back(captured):
     t = np.repeat(c["t_s"][:, None], 12, axis=1)
     t[100, 5] = t[99, 5]  # the same instant twice (a STALE record): nothing added, accepted
     fit_gyro_turns(c["gyro_rps"], t, segs, u, cal.gyro)
+
+
+def test_a_chip_whose_records_were_lost_in_a_turn_leaves_that_turn_out_alone(captured):
+    """Chip 5's records lost for 300 ms in the middle of two of the eleven turns (the command's
+    log repeats its last reading and that reading's instant): chip 5 fits its scale from the
+    nine others, within the bound, and every other chip still uses all eleven — its fit the one
+    of the whole capture, exactly — not the two turns left out for every chip."""
+    from host.analysis.imu_calibration import fit_gyro_turns
+    imu, c, cal = captured
+    segs = list(cal.segments)
+    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    f_chip = (c["accel_mps2"] - cal.accel.bias) / cal.accel.scale
+    rest = fit_gyro_rest(segment_means(c["gyro_rps"], segs), segment_means(f_chip, segs))
+    t = np.repeat(c["t_s"][:, None], 12, axis=1)
+    g = c["gyro_rps"].copy()
+    for k in (3, 7):  # 300 ms at 145 Hz in the middle of turns 3 and 7
+        mid = (segs[k][1] + segs[k + 1][0]) // 2
+        t[mid - 22: mid + 22, 5] = t[mid - 23, 5]
+        g[mid - 22: mid + 22, 5] = g[mid - 23, 5]
+    lost = fit_gyro_turns(g, t, segs, u, rest, f_chip)
+    assert (lost.turns_used, lost.turns_dropped) == (9, 2)
+    others = np.arange(12) != 5
+    np.testing.assert_allclose(lost.matrix[others], cal.gyro.matrix[others], rtol=0, atol=1e-12)
+    truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+    E = _without_common_rotation(lost.matrix @ truth)
+    assert np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max() < 2e-4
+    assert np.all(np.isfinite(lost.turn_residual)) and lost.turn_residual[5] < 10 * np.median(lost.turn_residual)
