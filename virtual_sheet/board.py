@@ -11,6 +11,10 @@ The board's frame is the flat sheet's: i-links along its x, j-links along its y,
 The default directions are the twelve poses of `protocol.frames.BOARD_POSES` (six faces, then six
 45° tilts), in its order.
 
+The rotations are numpy's (`matrix_rotvecs`, `virtual_sheet.sensor.rotvec_matrices`): scipy.spatial
+(`Slerp`, `Rotation.from_matrix`), which they replace to ~1e-15, cost ~0.7 s of CPU at the start of
+every process that makes a board sheet (`capsheet virtual --shape board`, the calibration's tests).
+
 >>> s = BoardPoseScene(3, 3, hold_s=2.0, move_s=1.0, jitter_rad=0.0)
 >>> s.pose_at(0.5), s.pose_at(2.5), s.pose_at(3.1)
 (0, None, 1)
@@ -29,18 +33,57 @@ from protocol.constants import G0
 from protocol.frames import BOARD_POSES
 from protocol.lattice import Lattice
 from .geometry import flat_net
+from .sensor import rotvec_matrices
 
-__all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation"]
+__all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation", "matrix_rotvecs"]
 
 #: gravity directions in the board's frame, in `protocol.frames.BOARD_POSES` order
 DEFAULT_DIRECTIONS: tuple[tuple[float, float, float], ...] = tuple(p[2] for p in BOARD_POSES)
 
 
+def matrix_rotvecs(R) -> np.ndarray:
+    """``(n, 3, 3)`` rotation matrices -> ``(n, 3)`` rotation vectors, angles in [0, π]: through the
+    unit quaternion (Shepperd's choice of the largest of its four squared terms, so a half turn is
+    as exact as a small one), with the series of ``θ / sin(θ/2)`` below 1e-3 rad. What scipy's
+    ``Rotation.from_matrix(R).as_rotvec()`` gives for rotation matrices (to ~1e-15).
+
+    >>> np.round(matrix_rotvecs(rotvec_matrices(np.array([[0.1, -0.2, 3.0]]))), 12).tolist()
+    [[0.1, -0.2, 3.0]]
+    """
+    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
+    n = len(R)
+    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]], axis=1)
+    choice = np.argmax(d, axis=1)
+    q = np.empty((n, 4))  # x, y, z, w
+    rows = np.arange(n)
+    on_axis = choice != 3
+    if on_axis.any():
+        r, i = rows[on_axis], choice[on_axis]
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[r, i] = 1.0 - d[r, 3] + 2.0 * R[r, i, i]
+        q[r, j] = R[r, j, i] + R[r, i, j]
+        q[r, k] = R[r, k, i] + R[r, i, k]
+        q[r, 3] = R[r, k, j] - R[r, j, k]
+    if (~on_axis).any():
+        r = rows[~on_axis]
+        q[r, 0] = R[r, 2, 1] - R[r, 1, 2]
+        q[r, 1] = R[r, 0, 2] - R[r, 2, 0]
+        q[r, 2] = R[r, 1, 0] - R[r, 0, 1]
+        q[r, 3] = 1.0 + d[r, 3]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    q[q[:, 3] < 0] *= -1.0
+    v = q[:, :3]
+    angle = 2.0 * np.arctan2(np.linalg.norm(v, axis=1), q[:, 3])
+    small = angle <= 1e-3
+    a2 = angle ** 2
+    safe = np.where(small, 1.0, angle)
+    scale = np.where(small, 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0, safe / np.sin(safe / 2.0))
+    return scale[:, None] * v
+
+
 def board_rotation(direction) -> np.ndarray:
     """The smallest rotation ``R`` (board -> world) with ``Rᵀ (0, 0, 1) = direction`` (unit-normalised);
     a half turn about x for ``direction = (0, 0, -1)``."""
-    from scipy.spatial.transform import Rotation
-
     u = np.asarray(direction, dtype=float)
     if u.shape != (3,) or not np.all(np.isfinite(u)) or np.linalg.norm(u) == 0:
         raise ValueError(f"Invalid direction: {direction!r} (need 3 finite numbers, not all 0)")
@@ -50,7 +93,7 @@ def board_rotation(direction) -> np.ndarray:
     s, c = np.linalg.norm(axis), float(u @ z)
     if s < 1e-12:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    return Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix()
+    return rotvec_matrices((axis / s * np.arctan2(s, c))[None])[0]
 
 
 @dataclass(frozen=True)
@@ -85,8 +128,6 @@ class BoardPoseScene:
     _flat: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
-        from scipy.spatial.transform import Rotation
-
         Lattice(self.rows, self.cols)
         for name in ("hold_s", "move_s"):
             v = getattr(self, name)
@@ -98,7 +139,7 @@ class BoardPoseScene:
         if d.ndim != 2 or d.shape[1] != 3 or d.shape[0] < 1:
             raise ValueError(f"Invalid directions: expected shape (n_poses, 3), got {d.shape}")
         g = np.random.Generator(np.random.MT19937(int(self.seed)))
-        jit = Rotation.from_rotvec(g.normal(0.0, self.jitter_rad, d.shape)).as_matrix()
+        jit = rotvec_matrices(g.normal(0.0, self.jitter_rad, d.shape))
         R = np.array([board_rotation(u) for u in d]) @ jit  # board -> world
         object.__setattr__(self, "directions", tuple(tuple(float(x) for x in u) for u in d))
         object.__setattr__(self, "_R", R)
@@ -119,9 +160,8 @@ class BoardPoseScene:
         return int(i) if tau < self.hold_s else None
 
     def orientation(self, t_s: float) -> np.ndarray:
-        """Board -> world rotation at ``t_s``, (3, 3)."""
-        from scipy.spatial.transform import Rotation, Slerp
-
+        """Board -> world rotation at ``t_s``, (3, 3): held, or on the way from pose ``i`` to ``j``
+        ``R_i Exp(w v)``, ``v`` the rotation vector of ``R_iᵀ R_j`` (a spherical interpolation)."""
         i, tau = divmod(float(t_s) % self.period_s, self.hold_s + self.move_s)
         i = int(i)
         if tau < self.hold_s:
@@ -129,14 +169,16 @@ class BoardPoseScene:
         w = (tau - self.hold_s) / self.move_s
         w = 0.5 - 0.5 * np.cos(np.pi * w)  # start and stop smoothly
         j = (i + 1) % self.n_poses
-        return Slerp([0.0, 1.0], Rotation.from_matrix(self._R[[i, j]]))([w]).as_matrix()[0]
+        v = matrix_rotvecs(self._R[i].T @ self._R[j])
+        return self._R[i] @ rotvec_matrices(w * v)[0]
 
     def rotation_jet(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`orientation` at every instant of ``t`` (seconds, (T,)) with its exact rates.
 
         During a turn from pose ``i`` to ``j`` the board is ``R_i Exp(w(τ) v)``, ``v`` the rotation
         vector of ``R_iᵀ R_j`` and ``w = (1 − cos πτ)/2`` (what `Slerp` computes), so its angular
-        velocity is ``ẇ v`` in the board's frame and its angular acceleration ``ẅ v``.
+        velocity is ``ẇ v`` in the board's frame and its angular acceleration ``ẅ v``. (`orientation`
+        computes the same.)
 
         Returns
         -------
@@ -145,20 +187,18 @@ class BoardPoseScene:
         omega, omega_dot : ndarray, shape (T, 3)
             rad/s and rad/s², world frame.
         """
-        from scipy.spatial.transform import Rotation
-
         t = np.atleast_1d(np.asarray(t, dtype=float))
         step = self.hold_s + self.move_s
         i, tau = np.divmod(np.mod(t, self.period_s), step)
         i = i.astype(int) % self.n_poses
         j = (i + 1) % self.n_poses
-        v = Rotation.from_matrix(np.transpose(self._R[i], (0, 2, 1)) @ self._R[j]).as_rotvec()
+        v = matrix_rotvecs(np.transpose(self._R[i], (0, 2, 1)) @ self._R[j])
         moving = tau >= self.hold_s
         x = np.where(moving, (tau - self.hold_s) / self.move_s, 0.0)
         w = np.where(moving, 0.5 - 0.5 * np.cos(np.pi * x), 0.0)
         wd = np.where(moving, 0.5 * np.pi * np.sin(np.pi * x) / self.move_s, 0.0)
         wdd = np.where(moving, 0.5 * np.pi ** 2 * np.cos(np.pi * x) / self.move_s ** 2, 0.0)
-        R = self._R[i] @ Rotation.from_rotvec(w[:, None] * v).as_matrix()
+        R = self._R[i] @ rotvec_matrices(w[:, None] * v)
         return R, np.einsum("tij,tj->ti", R, wd[:, None] * v), np.einsum("tij,tj->ti", R, wdd[:, None] * v)
 
     def gravity_in_board(self, pose: int) -> np.ndarray:

@@ -115,8 +115,9 @@ class GyroCalibration:
     turn_residual : ndarray, shape (n,)
         RMS of the turn fit's residual per chip (unit vectors: ≈ radians; 0 when not fitted).
     turns_used, turns_dropped : int
-        Turns the scale fit integrated, and those it left out for a gap in their samples
-        (`fit_gyro_turns`'s ``max_gap_s``); 0 when not fitted.
+        Turns the scale fit integrated for every chip, and those it left out for a gap in the
+        samples of at least one chip (`fit_gyro_turns`'s ``max_gap_s``; the other chips still use
+        them); 0 when not fitted.
     """
 
     bias_rps: np.ndarray
@@ -191,12 +192,12 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
 
     Perturbing increment ``i`` by ``δφ`` turns the end by ``δθ = R_endᵀ R_{0..i+1} δφ`` (first
     order), and the carried vector by ``u × δθ``; ``δφ = δA w̄_i Δt_i``. ``w (J, L, n, 3)``,
-    ``dt (J, L-1)``. Returns ``(u (J, n, 3), jac (J, n, 3, 9))``."""
+    ``dt (J, L-1, n)``: each chip's own sample steps. Returns ``(u (J, n, 3), jac (J, n, 3, 9))``."""
     J_, L, n = w.shape[:3]
     R = np.broadcast_to(np.eye(3), (J_, n, 3, 3)).copy()
     S = np.zeros((J_, n, 3, 3, 3))  # Σ R_{0..i+1}[:, p] · (w̄_i Δt_i)_q
     for i in range(L - 1):
-        mid = 0.5 * (w[:, i] + w[:, i + 1]) * dt[:, i, None, None]  # (J, n, 3)
+        mid = 0.5 * (w[:, i] + w[:, i + 1]) * dt[:, i, :, None]  # (J, n, 3)
         R = R @ rotvec_to_matrix(np.einsum("kij,tkj->tki", A, mid))
         S += R[..., :, :, None] * mid[..., None, None, :]
     u = np.einsum("tkji,tkj->tki", R, u0)
@@ -221,8 +222,11 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     ----------
     gyro_rps : ndarray, shape (N, n, 3)
         The whole capture, rad/s, chip axes.
-    t_s : ndarray, shape (N,)
-        Sample instants, s.
+    t_s : ndarray, shape (N,) or (N, n)
+        Sample instants, s: one per snapshot, or each chip's own (the SYNC's time plus the record's
+        ``time_us``, docs/protocol.md §16.1: the instant the chip latched the reading, which a
+        SYNC sent late does not move). Each chip's must not decrease; equal instants (a STALE
+        record repeating the previous reading) add nothing to the turn.
     segments : list of (start, stop)
         The held poses, in time order (`still_segments`); each turn runs from the last sample of
         one to the first of the next.
@@ -236,8 +240,10 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     max_gap_s : float, optional
         A turn with two consecutive samples further apart than this is left out: its rotation
         cannot be integrated from what came (a host that stopped sending SYNC for half a second in
-        the middle of a turn). Default: `TURN_MAX_GAP_S`, or 2.5 × the median sample step if that is
-        longer. Two equations a turn, 9 unknowns a chip: at least `MIN_TURNS` must remain.
+        the middle of a turn). With each chip's own instants, per chip: a chip whose records were
+        lost for longer leaves that turn out alone. Default: `TURN_MAX_GAP_S`, or 2.5 × the median
+        sample step if that is longer. Two equations a turn, 9 unknowns a chip: every chip must keep
+        at least `MIN_TURNS`.
 
     Returns
     -------
@@ -247,8 +253,13 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     g = _batch("gyro_rps", gyro_rps)
     N, n = g.shape[:2]
     t = np.asarray(t_s, dtype=float)
-    if t.shape != (N,) or np.any(np.diff(t) <= 0):
-        raise ValueError(f"Expected increasing `t_s` of shape ({N},), got {t.shape}.")
+    if t.shape == (N,):
+        if np.any(np.diff(t) <= 0):
+            raise ValueError(f"Expected increasing `t_s` of shape ({N},), got {t.shape}.")
+        t = np.repeat(t[:, None], n, axis=1)
+    elif t.shape != (N, n) or not np.all(np.isfinite(t)) or np.any(np.diff(t, axis=0) < 0):
+        raise ValueError(f"Expected `t_s` of shape ({N},) (increasing) or ({N}, {n}) (finite, not decreasing "
+                         f"per chip), got {t.shape}.")
     u = _batch("gravity_link", gravity_link)
     K = len(segments)
     if u.shape != (K, n, 3):
@@ -257,37 +268,47 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     w = cal.apply(g, accel_mps2) if accel_mps2 is not None else g - cal.bias_rps
     w = np.einsum("kij,tkj->tki", np.linalg.inv(cal.matrix), w)  # rates before any matrix
     turns = [(segments[k][1] - 1, segments[k + 1][0] + 1) for k in range(K - 1)]
-    gap = float(max_gap_s) if max_gap_s is not None else max(TURN_MAX_GAP_S, 2.5 * float(np.median(np.diff(t))))
-    keep = [k for k, (a, b) in enumerate(turns) if b - a < 2 or float(np.max(np.diff(t[a:b]))) <= gap]
-    if len(keep) < MIN_TURNS:
-        raise ValueError(f"fit_gyro_turns: {len(keep)} of {len(turns)} turns to fit, need {MIN_TURNS} "
+    gap = float(max_gap_s) if max_gap_s is not None else max(TURN_MAX_GAP_S,
+                                                              2.5 * float(np.median(np.diff(t, axis=0))))
+    # per turn and chip: no gap in that chip's samples
+    ok = np.array([np.ones(n, dtype=bool) if b - a < 2 else np.max(np.diff(t[a:b], axis=0), axis=0) <= gap
+                   for a, b in turns]).reshape(len(turns), n)
+    keep = [k for k in range(len(turns)) if ok[k].any()]
+    least = int(ok.sum(axis=0).min()) if n else 0
+    if least < MIN_TURNS:
+        gapped = int((~ok.all(axis=1)).sum())
+        raise ValueError(f"fit_gyro_turns: {least} of {len(turns)} turns to fit, need {MIN_TURNS} "
                          f"(2 equations a turn, 9 unknowns a chip)"
-                         + (f"; {len(turns) - len(keep)} have a gap of more than {1e3 * gap:.0f} ms in their samples "
+                         + (f"; {gapped} have a gap of more than {1e3 * gap:.0f} ms in their samples "
                             f"(SYNCs not sent or snapshots lost while the board turned: a loaded host)"
-                            if len(keep) < len(turns) else ""))
+                            if gapped else ""))
     turns = [turns[k] for k in keep]
+    use = ok[keep].T  # (n, J): chip k integrates turn j
     Lmax = max(b - a for a, b in turns)
     J = len(turns)
     W = np.zeros((J, Lmax, n, 3))
-    DT = np.zeros((J, Lmax - 1))
+    DT = np.zeros((J, Lmax - 1, n))
     for j, (a, b) in enumerate(turns):
         W[j, : b - a] = w[a:b]
-        DT[j, : b - a - 1] = np.diff(t[a:b])
+        DT[j, : b - a - 1] = np.diff(t[a:b], axis=0)
     u0, u1 = u[:-1][keep], u[1:][keep]  # (J, n, 3)
+    rows = np.repeat(use, 3, axis=1).astype(float)  # (n, 3J): a chip's left-out turns weigh nothing
     A = np.tile(np.eye(3), (n, 1, 1))
     for _ in range(iterations):
         pred, jac = _carry(A, W, DT, u0)
-        r = (pred - u1).transpose(1, 0, 2).reshape(n, -1)  # (n, 3J)
-        Jm = jac.transpose(1, 0, 2, 3).reshape(n, -1, 9)  # (n, 3J, 9)
+        r = (pred - u1).transpose(1, 0, 2).reshape(n, -1) * rows  # (n, 3J)
+        Jm = jac.transpose(1, 0, 2, 3).reshape(n, -1, 9) * rows[..., None]  # (n, 3J, 9)
         H = Jm.transpose(0, 2, 1) @ Jm
         step = np.linalg.solve(H + 1e-12 * np.eye(9), Jm.transpose(0, 2, 1) @ r[..., None])[..., 0]
         A = A - step.reshape(n, 3, 3)
         if np.max(np.abs(step)) < 1e-10:
             break
     pred, _jac = _carry(A, W, DT, u0)
-    res = np.sqrt(np.mean(np.sum((pred - u1) ** 2, axis=-1), axis=0))
+    sq = np.sum((pred - u1) ** 2, axis=-1).T  # (n, J)
+    res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
+    used = int(use.all(axis=0).sum())
     return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
-                           turns_used=J, turns_dropped=K - 1 - J)
+                           turns_used=used, turns_dropped=K - 1 - used)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -524,7 +545,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
 
     Parameters
     ----------
-    t_s : ndarray, shape (N,)
+    t_s : ndarray, shape (N,) or (N, n)
+        Sample instants: one per snapshot, or each chip's own (`fit_gyro_turns`).
     accel_mps2 : ndarray, shape (N, n, 3)
         As converted with the chips' reported calibration (the fit's reference).
     rows, cols : int

@@ -239,18 +239,27 @@ def _current_imu_blocks(host, n_links: int) -> list[dict]:
 
 
 class ImuLog:
-    """Every snapshot of a 6/9-axis capture, for `host.analysis.imu_calibration.fit_capture`: time,
-    specific force, rates, field; a link missing from a snapshot repeats its previous reading (the
-    fit takes no NaN); snapshots before every link was heard once are left out."""
+    """Every snapshot of a 6/9-axis capture, for `host.analysis.imu_calibration.fit_capture`: each
+    link's sample instant, specific force, rates, field; a link missing from a snapshot repeats its
+    previous reading and that reading's instant (the fit takes no NaN); snapshots before every link
+    was heard once are left out.
+
+    A link's instant is the one its chip latched the reading at: the snapshot's SYNC time plus the
+    record's ``time_us`` (``sample_time_s``; docs/protocol.md §16.1 — the SYNC time alone where the
+    chip does not know it). The turns are integrated over these, not over the SYNC times: a SYNC
+    the host sent late, or a chip whose gyroscope converts on its own clock, moves the SYNC time
+    but not the instant the rate was measured at. An instant before the same link's previous one
+    (a ``time_us`` that cannot be) is taken as that previous one, and counted (``reordered``)."""
 
     def __init__(self, mag: bool) -> None:
         self.mag = mag
-        self.t: list[float] = []
+        self.t: list[np.ndarray] = []  #: per snapshot, each link's sample instant (n_links,)
         self.a: list[np.ndarray] = []
         self.g: list[np.ndarray] = []
         self.m: list[np.ndarray] = []
         self._last: list[np.ndarray] | None = None
         self.filled = 0  #: link readings repeated for a missing record
+        self.reordered = 0  #: link instants before the same link's previous one, taken as that one
 
     def add(self, snap) -> None:
         if snap.gyro is None or (self.mag and snap.mag is None):
@@ -261,20 +270,29 @@ class ImuLog:
         ok = np.ones(cur[0].shape[0], dtype=bool)
         for x in cur:
             ok &= np.isfinite(x).all(axis=1)
+        st = getattr(snap, "sample_time_s", None)
+        dt = np.zeros(ok.shape) if st is None else np.asarray(st, dtype=float)
+        t = float(snap.timestamp) + np.where(np.isfinite(dt), dt, 0.0)
+        cur.append(t)
         if self._last is None:
             if not ok.all():
                 return
         else:
             self.filled += int((~ok).sum())
-            cur = [np.where(ok[:, None], x, last) for x, last in zip(cur, self._last)]
+            cur = [np.where(ok[:, None], x, last) if x.ndim == 2 else np.where(ok, x, last)
+                   for x, last in zip(cur, self._last)]
+            back = cur[-1] < self._last[-1]
+            self.reordered += int(back.sum())
+            cur[-1] = np.where(back, self._last[-1], cur[-1])
         self._last = cur
-        self.t.append(float(snap.timestamp))
+        self.t.append(cur[-1])
         self.a.append(cur[0])
         self.g.append(cur[1])
         if self.mag:
             self.m.append(cur[2])
 
     def arrays(self):
+        """``(t (N, n_links), accel (N, n_links, 3), gyro, mag or None)``."""
         return (np.array(self.t), np.array(self.a), np.array(self.g), np.array(self.m) if self.mag else None)
 
 
@@ -414,7 +432,8 @@ def _chip_table(cal: Calibration) -> list[dict]:
 
 
 def _imu_summary(imu_cal, log: ImuLog) -> dict:
-    out = {"snapshots": len(log.t), "held_poses": len(imu_cal.segments), "readings_repeated": log.filled}
+    out = {"snapshots": len(log.t), "held_poses": len(imu_cal.segments), "readings_repeated": log.filled,
+           "sample_times_reordered": log.reordered}
     if imu_cal.gyro is not None:
         out["gyro_bias_dps_max"] = round(float(np.degrees(np.abs(imu_cal.gyro.bias_rps).max())), 4)
         out["gyro_turn_residual_max"] = round(float(imu_cal.gyro.turn_residual.max()), 5)

@@ -61,3 +61,59 @@ def test_the_virtual_sheet_runs_the_board_scene_by_name():
     sheet = VirtualSheet("board", "3x3", shape_params={"hold_s": 1.0, "move_s": 0.5})
     counts, _status = sheet.counts_at(1.2)  # turning from top up to top down
     assert sheet.scene.pose_at(1.2) is None and counts.shape == (12, 3)
+
+
+def _rng(seed: int) -> np.random.Generator:
+    return np.random.Generator(np.random.MT19937(seed))
+
+
+def test_matrix_rotvecs_are_scipys_rotation_vectors():
+    """Every angle the scene meets, half turns (top up to top down) and the smallest included."""
+    from scipy.spatial.transform import Rotation
+
+    from virtual_sheet.board import matrix_rotvecs
+    from virtual_sheet.sensor import rotvec_matrices
+    g = _rng(5)
+    for angle in (0.0, 1e-12, 1e-8, 1e-4, 1e-3, 2e-3, 0.1, 1.0, 2.0, 3.0, np.pi - 1e-3, np.pi - 1e-6):
+        axes = g.standard_normal((300, 3))
+        v = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angle
+        R = rotvec_matrices(v)
+        np.testing.assert_allclose(matrix_rotvecs(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(rotvec_matrices(matrix_rotvecs(R)), R, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_scene_turns_as_scipys_slerp_did(seed):
+    """The scene without scipy: the poses, the orientation through every turn and the rotation jet
+    are what scipy's `Rotation` and `Slerp` made of the same poses, to 1e-12."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    s = BoardPoseScene(3, 3, 0.01, hold_s=1.5, move_s=0.8, seed=seed)
+    d = np.asarray(DEFAULT_DIRECTIONS)
+    jit = Rotation.from_rotvec(_rng(seed).normal(0.0, s.jitter_rad, d.shape)).as_matrix()
+
+    def scipy_board_rotation(u):
+        u = u / np.linalg.norm(u)
+        axis = np.cross(u, [0.0, 0.0, 1.0])
+        sn, c = np.linalg.norm(axis), float(u[2])
+        if sn < 1e-12:
+            return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+        return Rotation.from_rotvec(axis / sn * np.arctan2(sn, c)).as_matrix()
+
+    R = np.array([scipy_board_rotation(u) for u in d]) @ jit
+    for k, u in enumerate(d):
+        np.testing.assert_allclose(board_rotation(u), scipy_board_rotation(u), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(s.gravity_in_board(k), R[k].T @ [0.0, 0.0, G0], rtol=0, atol=1e-12)
+    t = np.linspace(0.0, s.period_s, 500, endpoint=False) + 1e-4
+    jet_R, omega, _domega = s.rotation_jet(t)
+    for k, tk in enumerate(t):
+        i, tau = divmod(tk % s.period_s, s.hold_s + s.move_s)
+        i, j = int(i), (int(i) + 1) % s.n_poses
+        if tau < s.hold_s:
+            want = R[i]
+        else:
+            w = 0.5 - 0.5 * np.cos(np.pi * (tau - s.hold_s) / s.move_s)
+            want = Slerp([0.0, 1.0], Rotation.from_matrix(R[[i, j]]))([w]).as_matrix()[0]
+        np.testing.assert_allclose(s.orientation(tk), want, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(jet_R[k], want, rtol=0, atol=1e-12)
+    assert np.abs(omega).max() > 1.0  # the turns were in it

@@ -24,6 +24,7 @@ from virtual_sheet.sensor import chip_error_model
 VirtualSheet("gaussian", "5x4", seed=3)
 VirtualSheet("gaussian", "3x3", seed=3, sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
 VirtualSheet("gaussian", "3x3", seed=3, sensors="accel+gyro+mag")
+VirtualSheet("board", "3x3", seed=7, sensors="accel+gyro+mag")
 print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] == "scipy")[:5]))
 """
 

@@ -161,3 +161,78 @@ def test_too_few_turns_without_a_gap_is_a_clear_error(captured):
         fit_gyro_turns(c["gyro_rps"], c["t_s"], segs, u, cal.gyro, max_gap_s=0.001)
     with pytest.raises(ValueError, match=r"4 of 4 turns to fit, need 5 \(2 equations a turn, 9 unknowns a chip\)$"):
         fit_gyro_turns(c["gyro_rps"], c["t_s"], segs[:5], u[:5], cal.gyro)
+
+
+def _late_syncs(t_s: np.ndarray, late_s: float, seed: int) -> np.ndarray:
+    """SYNC times of a host whose SYNCs leave up to ``late_s`` after the instants the chips latched
+    their readings at (``t_s``): seeded, uniform. The chips' ``time_us`` is then ``t_s`` minus these."""
+    g = np.random.Generator(np.random.MT19937(seed))
+    return t_s + g.uniform(0.0, late_s, t_s.shape)
+
+
+def test_the_turns_are_integrated_over_each_chips_sample_instants_not_the_sync_times(captured):
+    """SYNCs sent up to 4 ms late (a loaded host), each chip's record saying with its ``time_us``
+    when it latched the reading (docs/protocol.md §16.1): over each chip's instants (the SYNC's
+    time plus ``time_us``) the fit is the one over the true instants, exactly; over the SYNC times
+    alone the turns' integrals move and the scale misses the bound the true instants meet."""
+    from host.analysis.imu_calibration import fit_gyro_turns
+    imu, c, cal = captured
+    segs = list(cal.segments)
+    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    f_chip = (c["accel_mps2"] - cal.accel.bias) / cal.accel.scale
+    rest = fit_gyro_rest(segment_means(c["gyro_rps"], segs), segment_means(f_chip, segs))
+    t = c["t_s"]
+    sync = _late_syncs(t, 4e-3, seed=11)
+    time_us = np.repeat((t - sync)[:, None], 12, axis=1)  # every chip latched at its instant
+    per_chip = fit_gyro_turns(c["gyro_rps"], sync[:, None] + time_us, segs, u, rest, f_chip)
+    np.testing.assert_allclose(per_chip.matrix, cal.gyro.matrix, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(per_chip.turn_residual, cal.gyro.turn_residual, rtol=0, atol=1e-12)
+    truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+    at_sync = fit_gyro_turns(c["gyro_rps"], sync, segs, u, rest, f_chip)
+
+    def scale_err(m):
+        return np.abs(np.diagonal(_without_common_rotation(m @ truth), axis1=1, axis2=2) - 1).max()
+    assert scale_err(cal.gyro.matrix) < 2e-4 < scale_err(at_sync.matrix)
+
+
+def test_each_chips_own_instants_must_not_go_back(captured):
+    from host.analysis.imu_calibration import fit_gyro_turns
+    _imu, c, cal = captured
+    segs = list(cal.segments)
+    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
+    t = np.repeat(c["t_s"][:, None], 12, axis=1)
+    t[100, 5] = t[98, 5]  # chip 5's instant goes back
+    with pytest.raises(ValueError, match=r"not decreasing per chip"):
+        fit_gyro_turns(c["gyro_rps"], t, segs, u, cal.gyro)
+    t = np.repeat(c["t_s"][:, None], 12, axis=1)
+    t[100, 5] = t[99, 5]  # the same instant twice (a STALE record): nothing added, accepted
+    fit_gyro_turns(c["gyro_rps"], t, segs, u, cal.gyro)
+
+
+def test_a_chip_whose_records_were_lost_in_a_turn_leaves_that_turn_out_alone(captured):
+    """Chip 5's records lost for 300 ms in the middle of two of the eleven turns (the command's
+    log repeats its last reading and that reading's instant): chip 5 fits its scale from the
+    nine others, within the bound, and every other chip still uses all eleven — its fit the one
+    of the whole capture, exactly — not the two turns left out for every chip."""
+    from host.analysis.imu_calibration import fit_gyro_turns
+    imu, c, cal = captured
+    segs = list(cal.segments)
+    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    f_chip = (c["accel_mps2"] - cal.accel.bias) / cal.accel.scale
+    rest = fit_gyro_rest(segment_means(c["gyro_rps"], segs), segment_means(f_chip, segs))
+    t = np.repeat(c["t_s"][:, None], 12, axis=1)
+    g = c["gyro_rps"].copy()
+    for k in (3, 7):  # 300 ms at 145 Hz in the middle of turns 3 and 7
+        mid = (segs[k][1] + segs[k + 1][0]) // 2
+        t[mid - 22: mid + 22, 5] = t[mid - 23, 5]
+        g[mid - 22: mid + 22, 5] = g[mid - 23, 5]
+    lost = fit_gyro_turns(g, t, segs, u, rest, f_chip)
+    assert (lost.turns_used, lost.turns_dropped) == (9, 2)
+    others = np.arange(12) != 5
+    np.testing.assert_allclose(lost.matrix[others], cal.gyro.matrix[others], rtol=0, atol=1e-12)
+    truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+    E = _without_common_rotation(lost.matrix @ truth)
+    assert np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max() < 2e-4
+    assert np.all(np.isfinite(lost.turn_residual)) and lost.turn_residual[5] < 10 * np.median(lost.turn_residual)

@@ -1,7 +1,12 @@
 """`capsheet calibrate` end to end: a virtual sheet with realistic, uncalibrated chips on the
 board-pose scene, behind a real pty; the command (its own process, pyserial) captures the poses,
 fits, writes every chip with CAL_WRITE and verifies with CAL_READ. The test then looks inside the
-virtual chips: what they store must be each chip's true offset and sensitivity."""
+virtual chips: what they store must be each chip's true offset and sensitivity.
+
+One real process per transport (the pty, slcan); the other runs go through the entry point in the
+test's process (`cli_here`): the same parser, bring-up, capture and fit, without an interpreter's
+start. The poses are held 1.5 s at 100 Hz: the command needs 40 still snapshots (0.4 s) after its
+25-snapshot window."""
 
 from __future__ import annotations
 
@@ -21,6 +26,8 @@ from virtual_sheet.sensor import chip_error_model
 from virtual_sheet.sheet import VirtualSheet
 
 MG_COUNTS = 1024 / 1000  # 1 mg in ±2 g counts
+#: seconds each board pose is held, and the SYNC rate of the runs
+HOLD_S, RATE = 1.5, "100"
 
 
 def calibrate(*argv, timeout=240):
@@ -30,7 +37,7 @@ def calibrate(*argv, timeout=240):
 
 def _board_pose_sheet(transport: str = "serial") -> VirtualSheet:
     """3x3 realistic, uncalibrated chips turned through six board poses."""
-    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=3.0, move_s=0.6, seed=2)
+    scene = BoardPoseScene(3, 3, 0.01, directions=DEFAULT_DIRECTIONS[:6], hold_s=HOLD_S, move_s=0.6, seed=2)
     return VirtualSheet(lattice="3x3", scene=scene, seed=7, transport=transport,
                         sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
 
@@ -56,7 +63,7 @@ def test_calibrate_writes_every_chip_its_true_calibration(tmp_path, board_sheet)
     assert all(o == 0 and s == 1024.0 for cal in before for (o, s, _st) in cal)  # uncalibrated
     out = tmp_path / "cal.json"
     res = calibrate("--port", str(dev.path), "--lattice", "3x3", "--layout", str(layout), "--out", str(out),
-                    "--write-chips", "--poses", "6", "--samples", "40", "--rate", "50", "--timeout", "150")
+                    "--write-chips", "--poses", "6", "--samples", "40", "--rate", RATE, "--timeout", "150")
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
     assert "12 chips written, 12 read back and verified, 0 refused, 0 axis mismatches" in res.stderr
     assert "outliers: none" in res.stderr
@@ -93,7 +100,7 @@ def test_calibrate_writes_the_chips_over_slcan(tmp_path):
     with SlcanDevice(sheet) as dev:
         res = calibrate("--can", f"slcan:{dev.path}", "--bitrate", "1000000", "--lattice", "3x3", "--layout",
                         str(layout), "--out", str(tmp_path / "cal.json"), "--write-chips", "--poses", "6",
-                        "--samples", "40", "--rate", "50", "--timeout", "150")
+                        "--samples", "40", "--rate", RATE, "--timeout", "150")
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
     assert "12 chips written, 12 read back and verified, 0 refused, 0 axis mismatches" in res.stderr
     q4, sens, _ = _stored(sheet)
@@ -102,13 +109,14 @@ def test_calibrate_writes_the_chips_over_slcan(tmp_path):
     assert np.array_equal(Calibration.load(tmp_path / "cal.json").reference_offset_counts, q4 / 16.0)
 
 
-def test_without_write_chips_the_chips_are_untouched_and_json_is_alone(tmp_path, board_sheet):
+def test_without_write_chips_the_chips_are_untouched_and_json_is_alone(tmp_path, board_sheet, cli_here):
     sheet, dev, layout = board_sheet
     out = tmp_path / "cal.json"
-    res = calibrate("--port", str(dev.path), "--lattice", "3x3", "--layout", str(layout), "--out", str(out),
-                    "--poses", "6", "--samples", "20", "--rate", "50", "--timeout", "150", "--json", "-q")
-    assert res.returncode == 0, res.stderr[-4000:]
-    doc = json.loads(res.stdout)
+    code, stdout, stderr = cli_here(["calibrate", "--port", str(dev.path), "--lattice", "3x3", "--layout", str(layout),
+                                     "--out", str(out), "--poses", "6", "--samples", "20", "--rate", RATE,
+                                     "--timeout", "150", "--json", "-q"], timeout_s=240)
+    assert code == 0, stderr[-4000:]
+    doc = json.loads(stdout)
     assert doc["poses"] == 6 and len(doc["chips"]) == 12 and "write_chips" not in doc
     assert all(o == 0 and s == 1024.0 for chip in sheet.chips for (o, s, _st) in chip.cal)
     cal = Calibration.load(out)
@@ -116,17 +124,19 @@ def test_without_write_chips_the_chips_are_untouched_and_json_is_alone(tmp_path,
     assert np.abs(cal.bias - e.offset_counts * G0 / 1024).max() < 2e-3 * G0  # relative to nominal
 
 
-def test_bad_arguments_exit_2_with_one_line(tmp_path):
+def test_bad_arguments_exit_2_with_one_line(tmp_path, cli_here):
+    """The first through a real process, the others through the entry point here."""
     res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--poses", "3")
     assert res.returncode == 2 and "--poses: invalid value '3': need an integer >= 6" in res.stderr
     assert "Traceback" not in res.stderr
-    res = calibrate("--port", "/dev/null")
-    assert res.returncode == 2 and "--out" in res.stderr
-    res = calibrate("--port", "/dev/null", "--out", str(tmp_path / "c.json"), "--lattice", "3by3")
-    assert res.returncode == 2 and "Traceback" not in res.stderr
+    code, _out, err = cli_here(["calibrate", "--port", "/dev/null"])
+    assert code == 2 and "--out" in err
+    code, _out, err = cli_here(["calibrate", "--port", "/dev/null", "--out", str(tmp_path / "c.json"),
+                                "--lattice", "3by3"])
+    assert code == 2 and "Traceback" not in err
 
 
-def test_a_sheet_over_the_bus_capacity_is_one_line_with_a_way_past_it(tmp_path):
+def test_a_sheet_over_the_bus_capacity_is_one_line_with_a_way_past_it(tmp_path, cli_here):
     """The --help example without --baud: 364 chips at 100 Hz over a 3 Mbaud UART. One line, exit 2,
     the remedy for what is set (--packed, more gateways, --baud, a lower --rate) and --ignore-capacity
     (it was a CapacityError traceback, and calibrate had no way past it but --baud); nothing written."""
@@ -146,10 +156,12 @@ def test_a_sheet_over_the_bus_capacity_is_one_line_with_a_way_past_it(tmp_path):
         assert "--baud" in line[0] and "--packed" in line[0]
         assert "--ignore-capacity" in line[0]
         assert not (tmp_path / "cal.json").exists()
-        # past it: the poses stream at the rate asked for (here none is held still: timed out, exit 1)
-        res = calibrate("--port", dev.path, "--layout", str(layout), "--out", str(tmp_path / "cal.json"),
-                        "--timeout", "1", "--discover-s", "0.2", "--ignore-capacity", "-q")
-        assert res.returncode == 1 and "timed out" in res.stderr and "Traceback" not in res.stderr, res.stderr
+        # past it (through the entry point here): the poses stream at the rate asked for (here none is
+        # held still: timed out, exit 1)
+        code, _out, err = cli_here(["calibrate", "--port", dev.path, "--layout", str(layout), "--out",
+                                    str(tmp_path / "cal.json"), "--timeout", "1", "--discover-s", "0.2",
+                                    "--ignore-capacity", "-q"])
+        assert code == 1 and "timed out" in err and "Traceback" not in err, err
 
 
 def capsheet(*argv, timeout=120):
@@ -157,19 +169,27 @@ def capsheet(*argv, timeout=120):
                           timeout=timeout)
 
 
-def test_calibration_flag_of_host_demo_tactile_refuses_bad_files(tmp_path):
+def test_calibration_flag_of_host_demo_tactile_refuses_bad_files(tmp_path, cli_here):
+    """``host``'s refusal through a real process; ``demo``'s, ``tactile``'s and the malformed file's
+    through the entry point here (each refuses while parsing its arguments, before it starts anything)."""
     Calibration.identity(3, 3).save(tmp_path / "3x3.json")
     (tmp_path / "junk.json").write_text("{not json")
     for cmd in (["host", "--port", "/dev/null", "--lattice", "4x4"], ["demo", "--lattice", "4x4"],
                 ["tactile", "--lattice", "4x4"]):
-        res = capsheet(*cmd, "--calibration", str(tmp_path / "3x3.json"))
-        assert res.returncode == 2, (cmd, res.stderr)
-        assert "is for a 3x3 lattice, not 4x4" in res.stderr and "Traceback" not in res.stderr
-    res = capsheet("host", "--port", "/dev/null", "--lattice", "4x4", "--calibration", str(tmp_path / "junk.json"))
-    assert res.returncode == 2 and "not valid JSON" in res.stderr and "Traceback" not in res.stderr
+        argv = [*cmd, "--calibration", str(tmp_path / "3x3.json")]
+        if cmd[0] == "host":
+            res = capsheet(*argv)
+            code, err = res.returncode, res.stderr
+        else:
+            code, _out, err = cli_here(argv)
+        assert code == 2, (cmd, err)
+        assert "is for a 3x3 lattice, not 4x4" in err and "Traceback" not in err
+    code, _out, err = cli_here(["host", "--port", "/dev/null", "--lattice", "4x4", "--calibration",
+                                str(tmp_path / "junk.json")])
+    assert code == 2 and "not valid JSON" in err and "Traceback" not in err
 
 
-def test_capsheet_virtual_chip_errors_and_board_scene():
+def test_capsheet_virtual_chip_errors_and_board_scene(cli_here):
     from host.cli import build_parser
     from host.cli.virtual import make_device
 
@@ -181,8 +201,8 @@ def test_capsheet_virtual_chip_errors_and_board_scene():
     assert all(chip.cal == [(0, 1024.0, 1)] * 3 for chip in sheet.chips)  # uncalibrated chips
     default, _dev = make_device(build_parser().parse_args(["virtual", "--transport", "memory", "--lattice", "3x3"]))
     assert default.sensor_model.bias_mps2 == 0 and default.sensor_model.factory_calibrated
-    res = capsheet("virtual", "--chip-errors", "typical", "--duration", "0")
-    assert res.returncode == 2 and "invalid choice: 'typical'" in res.stderr
+    code, _out, err = cli_here(["virtual", "--chip-errors", "typical", "--duration", "0"])
+    assert code == 2 and "invalid choice: 'typical'" in err
 
 
 def test_pose_capture_counts_still_snapshots_and_rejects_repeated_poses():
