@@ -28,7 +28,7 @@ auto`` (the default) then shapes it with the fused estimator (`host.analysis.mot
 docs/estimator.md §8) as ``capsheet demo --sensors ...`` does live: every snapshot in order, each
 link at its own sample time, the gyroscopes the process model (the magnetometers, when recorded,
 the heading). It carries its state from snapshot to snapshot, so it runs in one process whatever
-``--jobs`` says; ``residual`` is then eq. (8) of its directions and normals. An accelerometer
+``--jobs`` says (no worker is started for it); ``residual`` is then eq. (8) of its directions and normals. An accelerometer
 recording is estimated as before (``auto`` is ``global`` there).
 
 A recording is read within bounds (`host.record.mcap_read`: decompressed sizes, the declared lattice,
