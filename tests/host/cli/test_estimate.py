@@ -103,18 +103,18 @@ def test_capsheet_estimate_of_a_can_log_replays_it_first(can_recording, tmp_path
 
 @pytest.fixture(scope="module")
 def imu6_recording(tmp_path_factory):
-    """A real session of a 3x3 sheet of 6-axis chips on a pty, ``capsheet host --record``."""
+    """A real session of a 2x2 sheet of 6-axis chips on a pty, ``capsheet host --record``."""
     from host.cli import main
     from virtual_sheet.devices import PtyDevice
     from virtual_sheet.sheet import VirtualSheet
 
     d = tmp_path_factory.mktemp("imu6")
-    sheet = VirtualSheet("gaussian", "3x3", seed=8, sensors="accel+gyro")
+    sheet = VirtualSheet("gaussian", "2x2", seed=8, sensors="accel+gyro")
     layout = sheet.write_layout(d / "sheet.csv")
     out = d / "run.mcap"
     with PtyDevice(sheet) as dev:
-        assert main(["host", "--port", dev.path, "--lattice", "3x3", "--layout", str(layout), "--rate", "50",
-                     "--sensors", "accel+gyro", "--deadline-ms", "300", "--record", str(out), "--duration", "1",
+        assert main(["host", "--port", dev.path, "--lattice", "2x2", "--layout", str(layout), "--rate", "50",
+                     "--sensors", "accel+gyro", "--deadline-ms", "300", "--record", str(out), "--duration", "0.5",
                      "-q"]) == 0
     return out
 
