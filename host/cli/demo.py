@@ -91,8 +91,26 @@ FUSED_NICE = 5
 #: after streaming, how long the fused estimator's process is given for what still waits (s)
 FUSED_DRAIN_S = 30.0
 
-#: --learn-layout: seconds each pose is held and spent moving (the learner takes a pose after 1 s still)
-LEARN_HOLD_S, LEARN_MOVE_S = 2.0, 1.0
+#: --learn-layout: how much longer than the learner needs each pose is held (s): snapshots that
+#: come late or are lost on a busy machine (a pose missed costs a cycle of the poses, not the layout)
+LEARN_MARGIN_S = 0.4
+#: --learn-layout: seconds the sheet spends moving from one pose to the next
+LEARN_MOVE_S = 0.5
+
+
+def learn_detector():
+    """The pose detector the demo's learner runs (`collect_poses` is given its ``settle_s``): the
+    detector's own defaults, as ``capsheet layout learn``'s."""
+    from host.analysis.layout.poses import PoseDetector
+    return PoseDetector()
+
+
+def learn_hold_s() -> float:
+    """Seconds each --learn-layout pose is held: what the learner needs to take it (its still window,
+    ``settle_s``, and one chunk more, since the window's chunks need not begin with the hold) and
+    `LEARN_MARGIN_S`."""
+    det = learn_detector()
+    return det.settle_s + det.chunk_s + LEARN_MARGIN_S
 
 
 def make_sheet(kwargs: dict):
@@ -104,7 +122,7 @@ def make_sheet(kwargs: dict):
     if kwargs.pop("learn_layout", False):  # the poses, then (`switch_scene`) the demo's shape
         from virtual_sheet.layout_poses import LayoutPoseScene, PosesThenScene
         from virtual_sheet.shapes import make_scene
-        poses = LayoutPoseScene(lattice.rows, lattice.cols, kwargs["link_length"], hold_s=LEARN_HOLD_S,
+        poses = LayoutPoseScene(lattice.rows, lattice.cols, kwargs["link_length"], hold_s=learn_hold_s(),
                                 move_s=LEARN_MOVE_S, seed=kwargs["seed"])
         kwargs["scene"] = PosesThenScene(poses, make_scene(shape, lattice.rows, lattice.cols, kwargs["link_length"]))
         kwargs["shuffle_ids"] = True
@@ -213,7 +231,8 @@ def learn_layout_over(paths, lat) -> tuple[dict, float]:
     host = open_host([open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths], lat, DEFAULT_RATE_HZ)
     with host:
         host.bring_up()
-        poses = collect_poses(host, PROCEDURE, timeout_s=20 * (LEARN_HOLD_S + LEARN_MOVE_S),
+        poses = collect_poses(host, PROCEDURE, settle_s=learn_detector().settle_s,
+                              timeout_s=20 * (learn_hold_s() + LEARN_MOVE_S),
                               say=lambda s: print(f"capsheet demo: {s}", file=sys.stderr))
         host.stop()
     res = learn_layout(lat, poses)

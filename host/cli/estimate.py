@@ -28,7 +28,7 @@ auto`` (the default) then shapes it with the fused estimator (`host.analysis.mot
 docs/estimator.md §8) as ``capsheet demo --sensors ...`` does live: every snapshot in order, each
 link at its own sample time, the gyroscopes the process model (the magnetometers, when recorded,
 the heading). It carries its state from snapshot to snapshot, so it runs in one process whatever
-``--jobs`` says; ``residual`` is then eq. (8) of its directions and normals. An accelerometer
+``--jobs`` says (no worker is started for it); ``residual`` is then eq. (8) of its directions and normals. An accelerometer
 recording is estimated as before (``auto`` is ``global`` there).
 
 A recording is read within bounds (`host.record.mcap_read`: decompressed sizes, the declared lattice,
@@ -81,7 +81,8 @@ def register(subparsers) -> None:
                         "readings alone, a level sheet undefined; fixed, local: older priors "
                         "towards square cells). docs/estimator.md section 3 compares them")
     p.add_argument("--jobs", type=T.int_range(1, 256), default=min(2, os.cpu_count() or 1),
-                   help="worker processes (default: min(2, cores))")
+                   help="worker processes of the accelerometer-only methods (default: min(2, cores)); "
+                        "the fused method runs in this process and starts none")
     p.add_argument("--batch", type=T.int_range(1, 1_000_000), default=256, help="snapshots per batch (default 256)")
     p.add_argument("--uncertainty", action="store_true",
                    help="also compute yaw_std / joint_std for every snapshot (sampled: tens of times slower); "
@@ -348,12 +349,19 @@ def run(args) -> int:
     # one file, a split set by its name, or its files in order (host.record.read)
     args.source = args.recording[0] if len(args.recording) == 1 else [str(p) for p in args.recording]
     args.recording = args.recording[0] if len(args.recording) == 1 else " + ".join(map(str, args.recording))
-    pool = None
-    if args.jobs > 1:  # workers import the estimator (scipy: ~0.5 s) while this process reads the file
+
+    def start_pool():
+        """The worker processes, each importing the estimator (scipy: ~0.5 s) at once."""
         import multiprocessing as mp
-        pool = ProcessPoolExecutor(max_workers=args.jobs, mp_context=mp.get_context("fork"))
+        started = ProcessPoolExecutor(max_workers=args.jobs, mp_context=mp.get_context("fork"))
         for _ in range(args.jobs):
-            pool.submit(_import_estimator)
+            started.submit(_import_estimator)
+        return started
+
+    # Only the accelerometer-only methods use the workers (the fused one runs in this process, in
+    # order). Named on the command line, the workers start now and import while this process reads
+    # the file; with ``auto`` once the first batch says which method it is.
+    pool = start_pool() if args.jobs > 1 and args.method not in ("auto", FUSED) else None
     try:
         try:
             lat, L, session, batches, total, truncated = _source(args)
@@ -379,9 +387,8 @@ def run(args) -> int:
             from host.analysis.motion import MotionEstimator
             fused = MotionEstimator(rows, cols, L)
             units = np.asarray(lat.units).reshape(-1, 4)
-            if pool is not None:
-                pool.shutdown(wait=False, cancel_futures=True)
-                pool = None
+        elif pool is None and args.jobs > 1:
+            pool = start_pool()
         t_est = time.monotonic()
         parts: list = []  # [SnapshotBatch, joints, residual, extra] in file order
         cpu_s = 0.0

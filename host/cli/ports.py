@@ -6,7 +6,9 @@ asks each, read-only, what answers: chips (how many, their ids), gateway nodes (
 them, packing, SYNC source), sample formats, firmware and protocol versions, at which baud rate
 or bit rate (host/transport/discover.py). Nothing but GET_INFO is sent: no chip is assigned,
 configured, started, stopped or reset. A port another capsheet session holds is reported as in use
-(and by which process) and not probed. One line per port; ``--json`` for programs.
+(and by which process) and not probed. The ports are asked at once (a silent port costs one
+``--timeout`` for the whole probe, not one each); one line per port, in the listing's order;
+``--json`` for programs.
 
 A CAN bus is named as ``--can`` takes it (``socketcan:can0``, ``slcan:/dev/ttyACM0``).
 
@@ -43,14 +45,12 @@ def run(args: argparse.Namespace) -> int:
         if not args.no_can:
             entries += discover.list_can()
     answered = 0
-    for e in entries:
+    # with --probe every port is asked at once (a silent port costs one --timeout, not one each);
+    # the lines still come in the listing's order, each as soon as the ports before it are done
+    listed = discover.probe_ports(entries, budget_s=args.timeout) if args.probe else ((e, None) for e in entries)
+    for e, probe in listed:
         if args.probe:
-            try:
-                e.probe = discover.probe_port(e, budget_s=args.timeout)
-            except KeyboardInterrupt:
-                raise
-            except Exception as exc:  # noqa: BLE001 - one port's failure is its line, not a traceback
-                e.probe = discover.ProbeResult("error", f"probe failed: {exc}")
+            e.probe = probe  # a probe that failed is its own "error" line (probe_ports)
             answered += e.probe.status == "answered"
         if not args.json:
             kind = "CAN" if e.kind == "can" else "serial"
@@ -95,7 +95,8 @@ def register(subparsers) -> argparse.ArgumentParser:
                         "gateways, formats, versions, baud rate")
     p.add_argument("--timeout", type=T.bounded_float(0.0, 60.0, lo_open=True, unit="s"), default=2.0,
                    help="at most this long per port while probing, s (default 2; a port whose answers "
-                        "stop earlier ends earlier)")
+                        "stop earlier ends earlier); the ports are probed at once, so the whole probe "
+                        "takes about one budget")
     p.add_argument("--no-can", action="store_true", help="do not ask python-can for CAN channels")
     p.add_argument("--json", action="store_true", help="print the ports (and probes) as JSON alone on stdout")
     p.set_defaults(func=run)

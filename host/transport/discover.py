@@ -21,13 +21,17 @@ at the bit rate its interface is set to (SocketCAN: the system's ``ip link`` set
 1 Mbit/s where python-can needs one.
 
 Every port's probe is bounded by its time budget (`probe_port`'s ``budget_s``), split over its
-attempts.
+attempts. `probe_ports` probes the ports at once, one thread and transport each, so a machine with
+several silent ports waits one budget, not their sum; the paths that lead to the same device (a
+symlink and its target, a pty and ``slcan:`` on it) are probed one after another in one thread,
+since a probe holds its port exclusively. The results come back in the listing's order.
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from dataclasses import asdict, dataclass, field
 
@@ -35,7 +39,7 @@ from protocol.framing import DecodeError
 from protocol.messages import (SAMPLE_FORMAT_CODES, Announce, Capability, GatewayFlag, GatewayInfo, GetInfo, ImuBatch, Info,
                                SampleBatch, SampleFormat, SnapshotFrames, Sync)
 
-__all__ = ["PortEntry", "ProbeResult", "ProbeCollector", "list_serial", "list_can", "probe_port", "ask",
+__all__ = ["PortEntry", "ProbeResult", "ProbeCollector", "list_serial", "list_can", "probe_port", "probe_ports", "ask",
            "SERIAL_BAUDS", "SLCAN_BITRATE", "CAN_SKIPPED_INTERFACES"]
 
 #: serial baud rates a probe tries, in order (a pty answers at the first)
@@ -387,6 +391,58 @@ def probe_port(entry: PortEntry, budget_s: float = 2.0, clock=time.monotonic) ->
                 return r
         return last if last is not None else ProbeResult("silent", f"nothing answered in {budget_s:.1f} s")
     return _probe_can(entry.name, budget_s, clock, t0)
+
+
+def probe_ports(entries, budget_s: float = 2.0, probe=probe_port):
+    """Probe every entry at once (module docstring) and yield ``(entry, result)`` in the entries'
+    order, each as soon as it and every entry before it are done. ``probe(entry, budget_s=...)``
+    is `probe_port` (a test's stand-in otherwise). A probe that raises is its entry's ``"error"``
+    result (``"probe failed: ..."``), not the others' end. The threads are daemons: an interrupt
+    (the caller's KeyboardInterrupt) ends the command without waiting for the ports' budgets.
+    """
+    entries = list(entries)
+    results: list = [None] * len(entries)
+    done = [threading.Event() for _ in entries]
+    groups: dict = {}  # one device -> the indices of its entries, in order
+    for i, e in enumerate(entries):
+        groups.setdefault(_device_key(e), []).append(i)
+
+    def work(indices):
+        for i in indices:
+            try:
+                results[i] = probe(entries[i], budget_s=budget_s)
+            except Exception as exc:  # noqa: BLE001 - one port's failure is its result, not the others'
+                results[i] = ProbeResult("error", f"probe failed: {exc}")
+            finally:
+                done[i].set()
+
+    for k, indices in enumerate(groups.values()):
+        threading.Thread(target=work, args=(indices,), name=f"probe-{k}", daemon=True).start()
+    for i, e in enumerate(entries):
+        while not done[i].wait(0.2):  # in slices: the main thread stays interruptible (Ctrl-C)
+            pass
+        yield e, results[i]
+
+
+def _device_key(entry: PortEntry):
+    """What a probe of ``entry`` opens exclusively: the device a path leads to (an SLCAN channel's
+    too), or the CAN channel's name.
+
+    >>> import os
+    >>> _device_key(PortEntry("can", "slcan:/dev/ttyACM0@115200")) == _device_key(PortEntry("serial", "/dev/ttyACM0"))
+    True
+    >>> _device_key(PortEntry("can", "socketcan:can0"))
+    ('channel', 'socketcan:can0')
+    """
+    name = entry.name
+    if entry.kind == "can":
+        channel = name.partition(":")[2].split("@")[0]
+        if "/" not in channel:
+            return ("channel", name)
+        name = channel
+    if "://" in name:
+        return ("url", name)
+    return ("device", os.path.realpath(name))
 
 
 def _is_pty(path: str) -> bool:

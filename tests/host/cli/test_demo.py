@@ -153,3 +153,35 @@ def test_demo_learns_the_layout_of_a_shuffled_sheet_before_it_streams(tmp_path):
     if result["compared_with_truth"]:  # a wrong layout would put readings on the wrong links: far off
         assert result["error_ok"] is True
     assert result["pass"] == (result["error_ok"] and result["complete_ok"] and result["layout_ok"])
+
+
+def test_the_learning_poses_are_held_long_enough_for_the_learner_on_a_simulated_clock():
+    """The demo's --learn-layout sheet (`make_sheet`, the poses timed by the demo) read at 50 Hz on
+    a simulated clock, each snapshot sampled up to 0.15 s after its stamp (seeded), fed to the pose detector
+    the demo's learner runs: whatever the phase of the SYNCs against the detector's chunks, the
+    first cycle of poses gives the four steps, in order, each one the learner accepts — none is
+    missed (a missed pose costs the demo a whole cycle)."""
+    import numpy as np
+
+    from host.analysis.layout import PROCEDURE, judge_pose
+    from host.cli import build_parser
+    from host.cli.demo import _sheet_kwargs, learn_detector, make_sheet
+
+    args = build_parser("demo").parse_args(["demo", "--lattice", "6x6", "--learn-layout"])
+    sheet = make_sheet(_sheet_kwargs(args))
+    poses = sheet.scene.poses
+    uids = np.array([sheet.chip_of_link(k).uid for k in range(sheet.lattice.n_links)], dtype=np.uint64)
+    rng = np.random.Generator(np.random.MT19937(11))
+    for phase in (0.0, 0.013, 0.05, 0.087):
+        det = learn_detector()
+        taken = []
+        for k in range(int(poses.period_s * 50)):
+            now = phase + k / 50  # the host's stamp (its SYNC); the chips sample when it arrives
+            counts, _status = sheet.counts_at(now + rng.uniform(0.0, 0.15))
+            det.add_many(uids, counts.astype(float), now)
+            pose = det.poll(now)
+            if pose is not None:
+                taken.append(pose.readings())
+        assert len(taken) == len(PROCEDURE), (phase, len(taken))
+        for (name, _prompt), readings in zip(PROCEDURE, taken):
+            assert judge_pose(name, readings) is None, (phase, name, judge_pose(name, readings))

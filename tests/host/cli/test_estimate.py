@@ -1,6 +1,7 @@
 """``capsheet estimate`` (host/cli/estimate.py): joints of every recorded snapshot, to .npz or MCAP,
 equal to the estimator's own; their uncertainty when asked; a CAN log replayed first. (Its bad
-arguments and a recording cut short: tests/host/cli/test_replay.py, beside replay's.)"""
+arguments and a recording cut short: tests/host/cli/test_replay.py, beside replay's.) The fused
+method, which runs in the command's own process, starts no worker pool."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from host.record.recording import read
 from host.record.replay import Replay
@@ -97,3 +99,56 @@ def test_capsheet_estimate_of_a_can_log_replays_it_first(can_recording, tmp_path
     doc = json.loads(capsys.readouterr().out)
     replayed = list(Replay(can_recording / "run.log", lattice="4x4").snapshots())
     assert doc["snapshots"] == len(replayed) >= 10 and np.load(npz)["joints"].shape[1:] == (4, 4, 3)
+
+
+@pytest.fixture(scope="module")
+def imu6_recording(tmp_path_factory):
+    """A real session of a 2x2 sheet of 6-axis chips on a pty, ``capsheet host --record``."""
+    from host.cli import main
+    from virtual_sheet.devices import PtyDevice
+    from virtual_sheet.sheet import VirtualSheet
+
+    d = tmp_path_factory.mktemp("imu6")
+    sheet = VirtualSheet("gaussian", "2x2", seed=8, sensors="accel+gyro")
+    layout = sheet.write_layout(d / "sheet.csv")
+    out = d / "run.mcap"
+    with PtyDevice(sheet) as dev:
+        assert main(["host", "--port", dev.path, "--lattice", "2x2", "--layout", str(layout), "--rate", "50",
+                     "--sensors", "accel+gyro", "--deadline-ms", "300", "--record", str(out), "--duration", "0.5",
+                     "-q"]) == 0
+    return out
+
+
+@pytest.fixture
+def pools(monkeypatch):
+    """Every worker pool `capsheet estimate` starts (the real one, counted)."""
+    import concurrent.futures
+
+    started: list = []
+
+    class Counted(concurrent.futures.ProcessPoolExecutor):
+        def __init__(self, *a, **kw):
+            started.append(kw.get("max_workers"))
+            super().__init__(*a, **kw)
+
+    monkeypatch.setattr(concurrent.futures, "ProcessPoolExecutor", Counted)
+    return started
+
+
+def test_the_fused_method_starts_no_worker_pool(imu6_recording, pty_recording, pools, tmp_path, capsys):
+    """The fused method runs in this process, in order: with ``--jobs 2`` (and ``auto`` choosing it
+    from the gyroscopes, or named) no worker process is started. The accelerometer-only methods
+    still get their two workers."""
+    from host.cli import main
+
+    for method in ("auto", "fused"):
+        assert main(["estimate", str(imu6_recording), "--out", str(tmp_path / f"{method}.npz"), "--jobs", "2",
+                     "--method", method, "--json", "-q"]) == 0
+        doc = json.loads(capsys.readouterr().out)
+        assert doc["method"] == "fused" and doc["estimated"] > 0
+    assert pools == []
+    for method in ("auto", "global"):  # the counting sees a pool where one is used
+        assert main(["estimate", str(pty_recording), "--out", str(tmp_path / f"g-{method}.npz"), "--jobs", "2",
+                     "--method", method, "--json", "-q"]) == 0
+        assert json.loads(capsys.readouterr().out)["method"] == "global"
+    assert pools == [2, 2]

@@ -1,16 +1,19 @@
 """What a probe makes of what it hears (host/transport/discover.py's `ProbeCollector`, sans-I/O,
 simulated time), and `probe_port` on real ptys: a virtual sheet's chips and gateway nodes, a port
-where nothing answers, a port another session holds."""
+where nothing answers, a port another session holds; `probe_ports` (the ports at once, in the
+listing's order) with a stand-in probe."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import threading
+import time
 
 import pytest
 
-from host.transport.discover import PortEntry, ProbeCollector, QUIET_S, probe_port
+from host.transport.discover import PortEntry, ProbeCollector, ProbeResult, QUIET_S, probe_port, probe_ports
 from protocol import encode
 from protocol.framing import DecodeError, ErrorReason
 from protocol.messages import (Announce, Capability, GatewayFlag, GatewayInfo, GetInfo, Info, SampleFormat, Sync)
@@ -108,3 +111,75 @@ def test_probe_of_a_virtual_sheet_finds_its_chips():
     uids = sorted(f"0x{c.uid:016X}" for c in sheet.chips)
     assert r.status == "answered" and r.chips == 12 and r.chip_uids == uids, r
     assert r.baud == 3_000_000 and r.protocol == ["1"] and not r.gateways
+
+
+def _answered(entry, budget_s):
+    return ProbeResult("answered", chips=1, chip_uids=[entry.name])
+
+
+def test_probe_ports_asks_the_ports_at_once():
+    """Two ports' probes meet at a barrier both must reach: probed one after another, the first
+    waits there alone until the barrier's timeout breaks it (both then "error")."""
+    barrier = threading.Barrier(2, timeout=10)
+
+    def probe(entry, budget_s):
+        barrier.wait()
+        return _answered(entry, budget_s)
+
+    got = list(probe_ports([PortEntry("serial", "/dev/one"), PortEntry("serial", "/dev/two")], 5.0, probe=probe))
+    assert [(e.name, r.status, r.chip_uids) for e, r in got] == [("/dev/one", "answered", ["/dev/one"]),
+                                                                ("/dev/two", "answered", ["/dev/two"])]
+
+
+def test_probe_ports_keeps_the_listing_order_and_a_failure_is_its_own_result():
+    """The last port finishes first and the second one's probe raises: the results come in the
+    listing's order, the failure as that port's "error", the others as their probes said."""
+    last_done = threading.Event()
+
+    def probe(entry, budget_s):
+        if entry.name == "/dev/c":
+            last_done.set()
+            return _answered(entry, budget_s)
+        assert last_done.wait(10), "the ports were not probed at once"
+        if entry.name == "/dev/b":
+            raise OSError("the adapter went away")
+        return _answered(entry, budget_s)
+
+    got = list(probe_ports([PortEntry("serial", f"/dev/{n}") for n in "abc"], 5.0, probe=probe))
+    assert [e.name for e, _ in got] == ["/dev/a", "/dev/b", "/dev/c"]
+    assert [r.status for _, r in got] == ["answered", "error", "answered"]
+    assert got[1][1].detail == "probe failed: the adapter went away"
+
+
+def test_probe_ports_probes_the_paths_of_one_device_one_after_another(tmp_path):
+    """A probe holds its port exclusively: a path, a symlink to it and ``slcan:`` on the symlink are
+    one device, probed in turn (at once, two of them would find it in use); another device beside
+    them is probed at the same time."""
+    dev, other = tmp_path / "tty0", tmp_path / "tty1"
+    dev.touch()
+    other.touch()
+    (tmp_path / "link").symlink_to(dev)
+    entries = [PortEntry("serial", str(dev)), PortEntry("serial", str(tmp_path / "link")),
+               PortEntry("can", f"slcan:{tmp_path / 'link'}"), PortEntry("serial", str(other))]
+    lock = threading.Lock()
+    busy: dict = {}
+    overlapped: list = []
+    other_started = threading.Event()
+
+    def probe(entry, budget_s):
+        key = os.path.realpath(entry.name.removeprefix("slcan:"))
+        with lock:
+            if busy.get(key):
+                overlapped.append(entry.name)
+            busy[key] = busy.get(key, 0) + 1
+        if entry.name == str(other):
+            other_started.set()
+        else:
+            assert other_started.wait(10), "the other device waited for this one"
+            time.sleep(0.05)  # long enough for a second probe of the same device to arrive if one were started
+        with lock:
+            busy[key] -= 1
+        return _answered(entry, budget_s)
+
+    got = list(probe_ports(entries, 5.0, probe=probe))
+    assert [r.status for _, r in got] == ["answered"] * 4 and overlapped == []
