@@ -165,10 +165,15 @@ def check_delivered(rig: Rig, timeout_s: float = 20.0) -> None:
     sent = lambda: (sum(gw.stats.frames_to_host for gw in rig.device.gateways)  # noqa: E731
                     - sum(p.tx_overflow_frames for p in ports))
     got = lambda: sum(t.stats.frames_in + t.stats.error_count for t in rig.host.transports)  # noqa: E731
+    # the chips keep sending (heartbeats) while this waits: the two counts are read once a pass and
+    # must meet; reading them again for the assertion raced a burst sent in between
     end = time.monotonic() + timeout_s
-    while got() != sent() and time.monotonic() < end:
+    while True:
+        pair = (got(), sent())
+        if pair[0] == pair[1] or time.monotonic() >= end:
+            break
         time.sleep(0.02)
-    assert got() == sent(), (got(), sent())
+    assert pair[0] == pair[1], pair
 
 
 # --------------------------------------------------------------------------------------------- clean
