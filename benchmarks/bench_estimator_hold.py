@@ -23,6 +23,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from host.snapshots.snapshot import LatticeSnapshot  # noqa: E402
 from host.workers.estimate_worker import HOLD_SNAPSHOTS, EstimatorProcess  # noqa: E402
 from virtual_sheet.geometry import chebyshev_net, ideal_readings  # noqa: E402
+from protocol.constants import G0  # noqa: E402
 from virtual_sheet.shapes import height_field  # noqa: E402
 
 
@@ -44,7 +45,7 @@ def run(hold: int, n_snap: int, every: int, missing: int, seed: int = 1) -> dict
         v = np.ones(n, bool)
         if k % every == every // 2:
             v[rng.choice(n, missing, replace=False)] = False
-        r = ideal + rng.normal(0, 0.01 * 9.80665, ideal.shape)
+        r = ideal + rng.normal(0, 0.01 * G0, ideal.shape)
         r[~v] = np.nan
         while not w.free:
             got += w.results(5.0)

@@ -54,9 +54,10 @@ import math
 
 import numpy as np
 
+from protocol.constants import G0
+
 from . import icm42688p_regs as R
 
-G0 = 9.80665
 #: §3.2 Table 2 / §3.1 Table 1 figures
 ACCEL_NOISE_G_RTHZ = 70e-6          # 70 µg/√Hz
 GYRO_NOISE_DPS_RTHZ = 2.8e-3        # 2.8 mdps/√Hz

@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from protocol.constants import G0
 from protocol.lattice import AXIS_I, Lattice
 
 __all__ = ["PROCEDURE", "LOOP_RESIDUAL_LIMIT", "LayoutLearnError", "LearnResult", "CheckResult",
@@ -220,7 +221,7 @@ def unit_residuals(readings: np.ndarray, valid: np.ndarray, rows: int, cols: int
 
     readings = np.asarray(readings, dtype=float)
     valid = np.asarray(valid, dtype=bool)
-    r = np.where(valid[:, None], readings, np.array([0.0, 0.0, 9.80665]))
+    r = np.where(valid[:, None], readings, np.array([0.0, 0.0, G0]))
     est = estimate(r, rows, cols, 1.0, valid=valid)
     units = units_int64(rows, cols)  # (U, 4): j-link (i,j), i-link (i,j+1), j-link (i+1,j), i-link (i,j)
     d, n = est.directions, np.nan_to_num(est.normals)
