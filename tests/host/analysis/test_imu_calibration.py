@@ -163,6 +163,17 @@ def test_too_few_turns_without_a_gap_is_a_clear_error(captured):
         fit_gyro_turns(c["gyro_rps"], c["t_s"], segs[:5], u[:5], cal.gyro)
 
 
+def _turn_inputs(c: dict, cal):
+    """What the command hands `fit_gyro_turns` for the captured board: the held poses, each
+    link's gravity direction in them (unit), the chips' specific force, the rest fit."""
+    segs = list(cal.segments)
+    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
+    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
+    f_chip = (c["accel_mps2"] - cal.accel.bias) / cal.accel.scale
+    rest = fit_gyro_rest(segment_means(c["gyro_rps"], segs), segment_means(f_chip, segs))
+    return segs, u, f_chip, rest
+
+
 def _late_syncs(t_s: np.ndarray, late_s: float, seed: int) -> np.ndarray:
     """SYNC times of a host whose SYNCs leave up to ``late_s`` after the instants the chips latched
     their readings at (``t_s``): seeded, uniform. The chips' ``time_us`` is then ``t_s`` minus these."""
@@ -177,11 +188,7 @@ def test_the_turns_are_integrated_over_each_chips_sample_instants_not_the_sync_t
     alone the turns' integrals move and the scale misses the bound the true instants meet."""
     from host.analysis.imu_calibration import fit_gyro_turns
     imu, c, cal = captured
-    segs = list(cal.segments)
-    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
-    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
-    f_chip = (c["accel_mps2"] - cal.accel.bias) / cal.accel.scale
-    rest = fit_gyro_rest(segment_means(c["gyro_rps"], segs), segment_means(f_chip, segs))
+    segs, u, f_chip, rest = _turn_inputs(c, cal)
     t = c["t_s"]
     sync = _late_syncs(t, 4e-3, seed=11)
     time_us = np.repeat((t - sync)[:, None], 12, axis=1)  # every chip latched at its instant
@@ -217,11 +224,7 @@ def test_a_chip_whose_records_were_lost_in_a_turn_leaves_that_turn_out_alone(cap
     of the whole capture, exactly — not the two turns left out for every chip."""
     from host.analysis.imu_calibration import fit_gyro_turns
     imu, c, cal = captured
-    segs = list(cal.segments)
-    u = cal.accel.apply(segment_means(c["accel_mps2"], segs))
-    u = u / np.linalg.norm(u, axis=-1, keepdims=True)
-    f_chip = (c["accel_mps2"] - cal.accel.bias) / cal.accel.scale
-    rest = fit_gyro_rest(segment_means(c["gyro_rps"], segs), segment_means(f_chip, segs))
+    segs, u, f_chip, rest = _turn_inputs(c, cal)
     t = np.repeat(c["t_s"][:, None], 12, axis=1)
     g = c["gyro_rps"].copy()
     for k in (3, 7):  # 300 ms at 145 Hz in the middle of turns 3 and 7

@@ -95,6 +95,45 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
     }
 }
 
+/* A link's accelerometer innovation: H = R^T [v]x, y = f - R^T v, HP = H P (3 x 6), the inverse
+ * Si of S = H P H^T + r2 I (symmetric, by cofactors as fused.py's `_inv_sym3`); returns y^T Si y.
+ * The update and the consider step's update share it. */
+static double accel_innovation(const double *Rk, const double *v, const double *fk, const double *Pk,
+                               double r2k, double *H, double *y, double *HP, double *Si)
+{
+    double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
+    double S[9];
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) {
+            H[3 * i + j] = Rk[i] * Vx[j] + Rk[3 + i] * Vx[3 + j] + Rk[6 + i] * Vx[6 + j];
+        }
+        y[i] = fk[i] - (Rk[i] * v[0] + Rk[3 + i] * v[1] + Rk[6 + i] * v[2]);
+    }
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 6; j++) {
+            HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
+        }
+    }
+    for (int i = 0; i < 3; i++) {
+        for (int j = 0; j < 3; j++) {
+            S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
+                           + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2k : 0.0);
+        }
+    }
+    double a = S[0], b = S[1], c = S[2], d = S[4], e = S[5], ff = S[8];
+    double A = d * ff - e * e, B = c * e - b * ff, C = b * e - c * d;
+    double D = a * ff - c * c, E = b * c - a * e, F = a * d - b * b;
+    double inv_det = 1.0 / (a * A + b * B + c * C);
+    Si[0] = A * inv_det; Si[1] = B * inv_det; Si[2] = C * inv_det;
+    Si[3] = B * inv_det; Si[4] = D * inv_det; Si[5] = E * inv_det;
+    Si[6] = C * inv_det; Si[7] = E * inv_det; Si[8] = F * inv_det;
+    double m2 = 0.0;
+    for (int i = 0; i < 3; i++) {
+        m2 += y[i] * (Si[3 * i] * y[0] + Si[3 * i + 1] * y[1] + Si[3 * i + 2] * y[2]);
+    }
+    return m2;
+}
+
 void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, const double *vec,
                        const double *r2, double gate, const uint8_t *valid, double *x,
                        double *nis)
@@ -110,38 +149,8 @@ void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, co
         }
         const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k;
         double *Pk = P + 36 * k;
-        double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
-        double H[9], y[3], HP[18], S[9], Si[9];
-        /* H = R^T [v]x ; y = f - R^T v */
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) {
-                H[3 * i + j] = Rk[i] * Vx[j] + Rk[3 + i] * Vx[3 + j] + Rk[6 + i] * Vx[6 + j];
-            }
-            y[i] = fk[i] - (Rk[i] * v[0] + Rk[3 + i] * v[1] + Rk[6 + i] * v[2]);
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 6; j++) {
-                HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
-            }
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) {
-                S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
-                               + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2[k] : 0.0);
-            }
-        }
-        /* symmetric inverse by cofactors (fused.py `_inv_sym3`) */
-        double a = S[0], b = S[1], c = S[2], d = S[4], e = S[5], ff = S[8];
-        double A = d * ff - e * e, B = c * e - b * ff, C = b * e - c * d;
-        double D = a * ff - c * c, E = b * c - a * e, F = a * d - b * b;
-        double inv_det = 1.0 / (a * A + b * B + c * C);
-        Si[0] = A * inv_det; Si[1] = B * inv_det; Si[2] = C * inv_det;
-        Si[3] = B * inv_det; Si[4] = D * inv_det; Si[5] = E * inv_det;
-        Si[6] = C * inv_det; Si[7] = E * inv_det; Si[8] = F * inv_det;
-        double m2 = 0.0;
-        for (int i = 0; i < 3; i++) {
-            m2 += y[i] * (Si[3 * i] * y[0] + Si[3 * i + 1] * y[1] + Si[3 * i + 2] * y[2]);
-        }
+        double H[9], y[3], HP[18], Si[9];
+        double m2 = accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
         nis[k] = m2;
         double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
         for (int i = 0; i < 9; i++) {
@@ -787,37 +796,8 @@ void capsheet_mf_consider_accel(size_t n, size_t nc, const double *R, const doub
         }
         const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k, *Pk = P + 36 * k;
         double *Ck = C + 6 * nc * k;
-        double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
-        double H[9], y[3], HP[18], S[9], Si[9], K[18], HC[54];
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) {
-                H[3 * i + j] = Rk[i] * Vx[j] + Rk[3 + i] * Vx[3 + j] + Rk[6 + i] * Vx[6 + j];
-            }
-            y[i] = fk[i] - (Rk[i] * v[0] + Rk[3 + i] * v[1] + Rk[6 + i] * v[2]);
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 6; j++) {
-                HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j]
-                                + H[3 * i + 2] * Pk[12 + j];
-            }
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) {
-                S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
-                               + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2[k] : 0.0);
-            }
-        }
-        double a = S[0], b = S[1], c = S[2], d = S[4], e = S[5], ff = S[8];
-        double A = d * ff - e * e, B = c * e - b * ff, Cc = b * e - c * d;
-        double Dd = a * ff - c * c, E = b * c - a * e, F = a * d - b * b;
-        double inv_det = 1.0 / (a * A + b * B + c * Cc);
-        Si[0] = A * inv_det; Si[1] = B * inv_det; Si[2] = Cc * inv_det;
-        Si[3] = B * inv_det; Si[4] = Dd * inv_det; Si[5] = E * inv_det;
-        Si[6] = Cc * inv_det; Si[7] = E * inv_det; Si[8] = F * inv_det;
-        double m2 = 0.0;
-        for (int i = 0; i < 3; i++) {
-            m2 += y[i] * (Si[3 * i] * y[0] + Si[3 * i + 1] * y[1] + Si[3 * i + 2] * y[2]);
-        }
+        double H[9], y[3], HP[18], Si[9], K[18], HC[54];
+        double m2 = accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
         double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
         for (int i = 0; i < 9; i++) {
             Si[i] /= infl;
