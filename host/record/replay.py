@@ -299,6 +299,7 @@ class Replay:
         imu = session.get("imu_config") if self.recording is not None else None
         if imu:  # 6/9-axis chips: their records converted at the ranges the host gave them (§16.2)
             self.aggregator.gyro_range, self.aggregator.mag_range = int(imu[1]), int(imu[2])
+            self.aggregator.imu_format = int(imu[0])
         elif self.recording is None and imu_ranges is not None:  # a CAN log
             self.aggregator.gyro_range, self.aggregator.mag_range = int(imu_ranges[0]), int(imu_ranges[1])
         # the host's feed on the recorded clock: the same correction (the recorded host calibration),

@@ -320,6 +320,7 @@ class BringUp:
         ok = host.commands.simple_round(lambda r: ConfigImu(r.node, fmt, gr, mr, fl), MsgType.CONFIG_IMU,
                                         "CONFIG_IMU", uids)
         host.aggregator.gyro_range, host.aggregator.mag_range = gr, mr
+        host.aggregator.imu_format = fmt
         return len(ok)
 
     def read_calibration(self, uids=None) -> int:

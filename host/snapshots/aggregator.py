@@ -191,6 +191,11 @@ class Aggregator:
         self.counter_trust = CounterTrust(trust, max_jump, resync_after, self.max_age)
         #: CONFIG_IMU ranges the chips were given (docs §16.2): how IMU counts convert (the owner sets them)
         self.gyro_range, self.mag_range = 3, 0
+        #: CONFIG_IMU format the chips were given (SampleFormat: 0 accelerometer only, 1 + gyroscope,
+        #: 2 + magnetometer; the owner sets it): with 1 or 2 every snapshot carries the IMU arrays, NaN
+        #: where no record came, so a snapshot none of whose records arrived (a SYNC the chips' frames
+        #: missed, the run's last counter) is still a 6/9-axis snapshot to its readers
+        self.imu_format = 0
         self._imu: dict[int, list] = {}  # open counter -> [gyro (L, 3), mag (L, 3) or None, time (L,)], SI
         self.hold_for_input = bool(hold_for_input)
         self._held = -1  # the slot last held for input (counted once in stats.input_holds)
@@ -804,6 +809,10 @@ class Aggregator:
         valid.setflags(write=False)
         status.setflags(write=False)
         imu = self._imu.pop(c, None)
+        if imu is None and self.imu_format:
+            L = self.n_links
+            imu = [np.full((L, 3), np.nan), np.full((L, 3), np.nan) if self.imu_format >= 2 else None,
+                   np.full(L, np.nan)]
         gyro = mag = t_s = None
         if imu is not None:
             gyro, mag, t_s = imu

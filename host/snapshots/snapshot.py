@@ -62,8 +62,9 @@ class LatticeSnapshot:
         recording stores (docs/recording.md); None for a snapshot made without an aggregator.
     gyro : ndarray, shape (n_links, 3), float64, or None
         6/9-axis chips (docs/protocol.md §16): angular rate in rad/s, sensor frame, nominal
-        sensitivity at the aggregator's ``gyro_range``; NaN where no record came. None when no link
-        sent an IMU record (accel-only chips).
+        sensitivity at the aggregator's ``gyro_range``; NaN where no record came. None for accelerometer-only
+        chips (an aggregator told the chips' IMU format gives every snapshot the array, all NaN when no
+        record of the counter came; without it, None when none came).
     mag : ndarray, shape (n_links, 3), float64, or None
         Magnetic flux density in tesla at ``mag_range`` (9-axis records); None without any.
     sample_time_s : ndarray, shape (n_links,), float64, or None

@@ -689,3 +689,33 @@ def test_a_silent_link_speaking_in_a_run_completes_a_counter_that_expected_nothi
         stats.append(agg.stats.summary())
     assert stats[0] == stats[1]
     assert stats[0]["late"] == 1 and stats[0]["complete"] == 1
+
+
+@pytest.mark.parametrize("fmt", [0, 1, 2])
+def test_a_counter_no_imu_record_reached_is_still_an_imu_snapshot_when_the_format_is_known(fmt):
+    """The chips were told CONFIG_IMU format ``fmt`` (docs §16.2): a counter whose records all missed
+    (a SYNC the frames did not follow, the run's last counter) is emitted with the IMU arrays, all
+    NaN, so a reader does not see a 6/9-axis sheet turn accelerometer-only for one snapshot.
+    Unknown format (0): no arrays where no record came."""
+    from protocol.messages import ImuSample
+    agg, clock = make(3)
+    agg.imu_format = fmt
+    mag = (5, -5, 7) if fmt == 2 else (None, None, None)
+    agg.open_counter(0, clock.t)
+    agg.ingest([ImuSample(k + 1, 0, 0, 0, 1024, 0, 100 * k, 10, 20, 30, *mag) for k in range(3)], now=clock.t)
+    agg.open_counter(1, clock.t)  # nothing of counter 1 arrives
+    clock.t += 1.0
+    agg.flush(clock.t)
+    first, empty = agg.drain()
+    assert (first.counter, empty.counter) == (0, 1) and not empty.valid.any()
+    if fmt == 0:  # the records of counter 0 still give it its arrays
+        assert empty.gyro is None and empty.sample_time_s is None and empty.mag is None
+        assert first.gyro is not None and np.isfinite(first.gyro).all()
+        return
+    assert empty.gyro.shape == (3, 3) and np.isnan(empty.gyro).all()
+    assert empty.sample_time_s.shape == (3,) and np.isnan(empty.sample_time_s).all()
+    assert np.isfinite(first.gyro).all() and first.gyro.shape == (3, 3)
+    if fmt == 2:
+        assert empty.mag.shape == (3, 3) and np.isnan(empty.mag).all() and np.isfinite(first.mag).all()
+    else:
+        assert empty.mag is None and first.mag is None
