@@ -324,13 +324,23 @@ def run(args) -> int:
     status = StatusLine(sys.stderr)
     if args.status_every is None:
         args.status_every = 0.5 if status.tty else 5.0
+    # the run's warnings go through its own status line, and only while it runs: a handler left by an
+    # earlier run in this process (a program calling the entry point twice) would write them to that
+    # run's stream, which may be gone
     root = logging.getLogger()
-    if not any(isinstance(h, _StatusAwareHandler) for h in root.handlers):
-        h = _StatusAwareHandler(status)
-        h.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
-        root.addHandler(h)
-        root.setLevel(logging.WARNING)
+    for old in [x for x in root.handlers if isinstance(x, _StatusAwareHandler)]:
+        root.removeHandler(old)
+    handler = _StatusAwareHandler(status)
+    handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+    root.addHandler(handler)
+    root.setLevel(logging.WARNING)
+    try:
+        return _run(args, status)
+    finally:
+        root.removeHandler(handler)
 
+
+def _run(args, status: StatusLine) -> int:
     # -- everything checkable before a port is opened: one line, exit 2 --------------------------
     check_ports(args, prog="capsheet host")  # neither or both of --port/--can, a port given twice
     if args.reader_processes and not getattr(args, "port", None):

@@ -417,6 +417,30 @@ def test_layout_chips_that_never_answer_are_named(virtuals, tmp_path, cli_here):
     assert out.returncode == 1 and "announcing chip(s) are not in the layout" in out.stderr  # and nothing streamed
 
 
+def test_each_run_in_one_process_warns_on_its_own_stream(virtuals, tmp_path):
+    """A program calling the entry point twice (here, straight: no fixture puts the logging back): the
+    second run's warnings reach the second run's stderr, not the first's, and no handler is left."""
+    import contextlib
+    import io
+    import logging
+
+    from host.cli import main
+    from host.cli.host import _StatusAwareHandler
+    other = tmp_path / "other.csv"
+    assert main(["virtual", "--lattice", "3x3", "--seed", "5", "--layout-out", str(other), "--transport", "memory",
+                 "--duration", "0.01"]) == 0
+    v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--seed", "1")
+    cmd = [a for a in v.host_cmd if a != "--auto-assign"]
+    streams = []
+    for _ in range(2):
+        streams.append(io.StringIO())
+        with contextlib.redirect_stderr(streams[-1]):
+            assert main(["host", *cmd, "--layout", str(other), "--duration", "0.5", "--allow-missing"]) == 1
+        assert not [h for h in logging.getLogger().handlers if isinstance(h, _StatusAwareHandler)]
+    for err in (s.getvalue() for s in streams):
+        assert err.count("announcing chip(s) are not in the layout") == 1, err
+
+
 def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
     """A packing FD gateway: its SNAPSHOT frames (FD only) reach a host that forgot --fd."""
     v = virtuals("--lattice", "3x3", "--transport", "slcan", "--fd", "--packed", "--symlink", str(tmp_path / "can"),
