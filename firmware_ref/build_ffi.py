@@ -29,7 +29,7 @@ DRIVER_SOURCES = [
     "drivers/link_sensors.c",
     "drivers/mmc5983ma.c",
 ]
-SOURCES = ["src/codec.c", "src/chip.c"] + DRIVER_SOURCES
+SOURCES = ["src/codec.c", "src/payload.c", "src/chip.c", "src/chip_imu.c"] + DRIVER_SOURCES
 
 
 def _check_compiler() -> None:

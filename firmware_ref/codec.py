@@ -1,4 +1,4 @@
-"""Python face of the C codec (firmware_ref/src/codec.c), for tests and tools: message objects of
+"""Python face of the C codec (firmware_ref/src/codec.c, payload.c), for tests and tools: message objects of
 `protocol.messages` in, wire bytes out, and back — every step done by the C code.
 
 >>> from protocol.messages import Sync

@@ -12,9 +12,9 @@ echo "== $($ARM_CC --version | head -1)"
 echo "== flags: $FLAGS"
 echo
 echo "== 1. the whole library, every function (object files: text+data = flash, data+bss = RAM)"
-for f in codec chip; do $ARM_CC $FLAGS -c src/$f.c -o "$OUT/$f.o"; done
-$ARM_SIZE -t "$OUT/codec.o" "$OUT/chip.o"
-LIB=$($ARM_SIZE -t "$OUT/codec.o" "$OUT/chip.o" | awk '/TOTALS/ {print $1 + $2, $2 + $3}')
+for f in codec payload chip chip_imu; do $ARM_CC $FLAGS -c src/$f.c -o "$OUT/$f.o"; done
+$ARM_SIZE -t "$OUT/codec.o" "$OUT/payload.o" "$OUT/chip.o" "$OUT/chip_imu.o"
+LIB=$($ARM_SIZE -t "$OUT/codec.o" "$OUT/payload.o" "$OUT/chip.o" "$OUT/chip_imu.o" | awk '/TOTALS/ {print $1 + $2, $2 + $3}')
 
 MD=${OUT%/size}/size.md   # the README table, regenerated (paste it; never type the figures)
 : > "$MD.rows"
@@ -30,13 +30,13 @@ echo "== 2. linked chip images (--gc-sections: only what a chip calls; incl. mem
 #    the default build (CAPSHEET_IMU 1) as an accelerometer, a 6-axis and a 9-axis chip; then the chip
 #    images (-DCAPSHEET_CHIP_ONLY=1: the codec without the node -> host decoders and host encoders)
 for rx in 15 64 1029; do
-    $ARM_CC $FLAGS -DCAPSHEET_IMU=0 -DCAPSHEET_RX_BUFFER_SIZE=$rx src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_serial_rx$rx.elf"
+    $ARM_CC $FLAGS -DCAPSHEET_IMU=0 -DCAPSHEET_RX_BUFFER_SIZE=$rx src/codec.c src/payload.c src/chip.c src/chip_imu.c tools/size_app.c $LINK -o "$OUT/chip_serial_rx$rx.elf"
     report "serial chip, accelerometer only (\`-DCAPSHEET_IMU=0\`), RX buffer $rx B" "$OUT/chip_serial_rx$rx.elf"
 done
-$ARM_CC $FLAGS -DCAPSHEET_IMU=0 -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/chip_can.elf"
+$ARM_CC $FLAGS -DCAPSHEET_IMU=0 -DSIZE_CAN -DCAPSHEET_RX_BUFFER_SIZE=1 src/codec.c src/payload.c src/chip.c src/chip_imu.c tools/size_app.c $LINK -o "$OUT/chip_can.elf"
 report "CAN chip, accelerometer only (\`-DCAPSHEET_IMU=0\`, no RX buffer)" "$OUT/chip_can.elf"
 img() {  # $1 label, $2 file, $3 flags
-    $ARM_CC $FLAGS $3 src/codec.c src/chip.c tools/size_app.c $LINK -o "$OUT/$2.elf"
+    $ARM_CC $FLAGS $3 src/codec.c src/payload.c src/chip.c src/chip_imu.c tools/size_app.c $LINK -o "$OUT/$2.elf"
     report "$1" "$OUT/$2.elf"
 }
 for only in 0 1; do
@@ -55,7 +55,7 @@ echo "== 3. stack: static worst case per entry point (-fcallgraph-info=su; HAL c
 echo "      the default build (6-axis size app) and the accelerometer-only one (-DCAPSHEET_IMU=0)"
 stack() {  # $1 directory, $2 extra flags
     mkdir -p "$1"
-    (cd "$1" && for f in codec chip; do $ARM_CC $FLAGS $2 -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/src/$f.c" -o $f.o; done \
+    (cd "$1" && for f in codec payload chip chip_imu; do $ARM_CC $FLAGS $2 -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/src/$f.c" -o $f.o; done \
       && $ARM_CC $FLAGS $2 -I"$OLDPWD/include" -fcallgraph-info=su -c "$OLDPWD/tools/size_app.c" -o size_app.o)
     python3 tools/stack.py "$1"/*.ci --root capsheet_chip_rx_bytes --root capsheet_chip_rx_can \
         --root capsheet_chip_poll --root capsheet_chip_power_on --indirect read_axes --indirect send_bytes \

@@ -11,7 +11,7 @@ PORT=ports/nucleo-g0b1re
 STRICT="-std=c99 -Wall -Wextra -Werror -pedantic -Wconversion -Wsign-conversion -Wshadow -Wcast-align -Wstrict-prototypes"
 FLAGS="-mcpu=cortex-m0plus -mthumb -Os -g -ffunction-sections -fdata-sections $STRICT -DNDEBUG -DCAPSHEET_CHIP_ONLY=1 -Iinclude -Idrivers -I$PORT"
 LINK="-nostartfiles --specs=nano.specs --specs=nosys.specs -Wl,--gc-sections -T $PORT/stm32g0b1re.ld"
-SRCS="src/codec.c src/chip.c drivers/icm42688p.c drivers/link_sensors.c drivers/mmc5983ma.c
+SRCS="src/codec.c src/payload.c src/chip.c src/chip_imu.c drivers/icm42688p.c drivers/link_sensors.c drivers/mmc5983ma.c
       $PORT/startup.c $PORT/gpio.c $PORT/clock.c $PORT/uart.c $PORT/spi.c $PORT/flash.c $PORT/can.c
       $PORT/calstore.c $PORT/main.c"
 # The part's memory (DS13560 "Memory mapping"): 512 KiB flash less the two calibration pages, 144 KiB SRAM.
