@@ -51,6 +51,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.host.matrix_fork import Forker
 from tests.host.matrix_sheet import fits_udp_groups
 
 
@@ -63,13 +64,25 @@ TRANSPORTS = ("memory", "pty", "slcan", "virtual", "udp_multicast")
 IN_PROCESS = ("memory", "virtual")  #: reach only their own process: the sheet runs in the command's
 CAN = ("slcan", "virtual", "udp_multicast")
 #: a batch's sheets in one process (`Sheets`); udp_multicast's where each gets a group of its own
-SHARED_SHEETS = ("pty", "slcan", *(("udp_multicast",) if fits_udp_groups(6) else ()))
+BATCH_SHEETS = 8  #: the sheets of a batch (`Batch`: one per run)
+SHARED_SHEETS = ("pty", "slcan", *(("udp_multicast",) if fits_udp_groups(BATCH_SHEETS) else ()))
+#: a batch's commands but its stream run forked from one interpreter (tests/host/matrix_fork.py)
+FORK = True
 LATTICE = "3x3"
 L = 0.01
 SEED = 5  #: the chip errors of the streaming sheet (realistic, noise-free: every snapshot alike)
 MUTANT = "counter_off_by_one"  #: breaks §5.1 on any transport (tests/host/conformance/mutants.py)
 MUTANT_FAILS = {24, 25, 26, 27}  #: tests/host/conformance/test_mutants.py's EXPECTED for it
-MUTANT_ONLY = "1,24,25,26,27,29"  #: the mutant's run: discovery, the checks it fails, one it passes
+#: The healthy chip's conformance run, in two runs at once on two sheets of the same kind: together
+#: every check of the chip profile (the cell holds them to it), each about half of the full run's
+#: waiting (the re-announce periods of check 8 with check 9's next announce, against the heartbeats
+#: of check 11 and the silences of checks 6, 15 and 19). A check runs in one of the two; 39, 40 and 41
+#: judge every frame a run received, so both runs have them and no frame goes unjudged.
+HEALTHY_ONLY = ("8,9,24,25,26,27,29,30,39,40,41",
+                "2,3,4,5,6,7,10,11,12,13,14,15,16,17,18,19,20,21,22,23,28,31,32,39,40,41,42,43,44,45")
+#: The mutant's run, in two runs at once: discovery, the checks it fails (each waits out its answer
+#: with the right counter), and one it passes; check 1 (discovery) runs in both
+MUTANT_ONLY = ("1,24,25,29", "1,26,27")
 
 #: feature -> what its cell asserts (the rows of the docs table)
 CELLS = {
@@ -186,7 +199,7 @@ class Job:
     arguments, ``{layout}`` the layout the sheet wrote."""
 
     def __init__(self, transport: str, tmp: Path, name: str, args: list[str], sheet: list[str],
-                 shared: "Sheets | None" = None) -> None:
+                 shared: "Sheets | None" = None, forker: "Forker | None" = None) -> None:
         layout = tmp / f"{name}-layout.csv"
         self.name = name
         self.shared = shared
@@ -194,9 +207,10 @@ class Job:
         sheet_argv = [PY, "-m", "tests.host.matrix_sheet", *sheet_options(transport, layout, sheet)]
         self.sheet = None
         self.in_process = transport in IN_PROCESS  #: the sheet's PORT line comes first on stdout
+        self.rc: int | None = None
         if self.in_process:
-            self.proc = Proc(sheet_argv + ["--", *args])
-            self.rc: int | None = None
+            self.proc = (forker.run(name, sheet_argv[3:] + ["--", *args], sheet=True) if forker is not None
+                         else Proc(sheet_argv + ["--", *args]))
             return
         if shared is not None:
             ports = shared.ports(name)
@@ -204,8 +218,7 @@ class Job:
             self.sheet = Proc(sheet_argv, stdin=True)
             ports = json.loads(self.sheet.wait_line("PORT ").split(" ", 1)[1])
         argv = [a for arg in args for a in (ports if arg == "{port}" else [arg])]
-        self.proc = Proc([PY, "-m", "host.cli", *argv])
-        self.rc = None
+        self.proc = forker.run(name, argv) if forker is not None else Proc([PY, "-m", "host.cli", *argv])
 
     def finish(self, timeout_s: float = 240.0) -> "Job":
         try:
@@ -389,9 +402,10 @@ class Batch:
              streaming),
             # the host-side slack of the timing checks is generous: the transport is under test here,
             # the chip's timing is tests/host/conformance's, and the machine may be loaded
-            ("conformance", ["conformance", "{port}", "--slack-ms", "40"], chip),
-            ("mutant", ["conformance", "{port}", "--slack-ms", "40", "--only", MUTANT_ONLY],
-             [*chip, "--mutant", MUTANT]),
+            *((f"conformance{k}", ["conformance", "{port}", "--slack-ms", "40", "--only", only], chip)
+              for k, only in enumerate(HEALTHY_ONLY)),
+            *((f"mutant{k}", ["conformance", "{port}", "--slack-ms", "40", "--only", only], [*chip, "--mutant", MUTANT])
+              for k, only in enumerate(MUTANT_ONLY)),
             ("calibrate", ["calibrate", "{port}", "--lattice", LATTICE, "--layout", "{layout}", "--out",
                            str(tmp / "fitted-cal.json"), "--write-chips", "--poses", "6", "--samples", "10",
                            "--window", "8", "--rate", "50", "--timeout", "150", "-q"],
@@ -400,20 +414,26 @@ class Batch:
                          "0.7", "--duration", "1.5", "--record", str(tmp / "tactile.mcap"), "--out",
                          str(tmp / "tactile.png"), "-q"], ["--shape", "flat", "--noise", "0.1"]),
         ]
+        assert len(specs) == BATCH_SHEETS, len(specs)
         self.jobs: dict[str, Job] = {}
         self.live: dict | BaseException | None = None
         self._live_thread = None
         shared = (Sheets(tmp, {name: (transport, tmp / f"{name}-layout.csv", sheet_args)
                                for name, _args, sheet_args in specs}) if transport in SHARED_SHEETS else None)
+        forker = Forker(PY, ROOT, ENV, tmp) if FORK else None  # importing while the stream run starts
         try:
             for name, args, sheet_args in specs:
-                job = Job(transport, tmp, name, args, sheet_args, shared)
+                # the stream run: this transport's command started as a user starts it; the others
+                # forked from one interpreter that has imported what they import (matrix_fork.py)
+                job = Job(transport, tmp, name, args, sheet_args, shared, None if name == "stream" else forker)
                 self.jobs[name] = job
                 if name == "stream":
                     self._watch_live(job)
             for name in self.jobs:
                 self._finish(name)
         finally:
+            if forker is not None:
+                forker.close()
             if shared is not None:
                 shared.close()
 
@@ -572,19 +592,37 @@ def test_can_log_decoded_by_cantools(batch, capsys, monkeypatch):
     assert not [ln for ln in rx if " SYNC(" in ln]  # an echo of the host's own SYNC is its Tx, not an Rx
 
 
+def _outcomes(job) -> dict[int, str]:
+    """``{check: PASS/FAIL/SKIP/LOST}`` of a conformance run's report."""
+    return {int(ln.split()[1]): ln.split()[0] for ln in job.stdout.splitlines()
+            if ln[:4] in ("PASS", "FAIL", "SKIP", "LOST")}
+
+
 @pytest.mark.parametrize("batch", cells("conformance"), indirect=True)
 def test_conformance_passes_a_healthy_chip_and_fails_a_mutant(batch):
-    healthy, mutant = batch.jobs["conformance"], batch.jobs["mutant"]
-    _ok(healthy)
-    assert " 0 failed" in healthy.stdout and "LOST" not in healthy.stdout, healthy.stdout
-    passed = {int(ln.split()[1]) for ln in healthy.stdout.splitlines() if ln.startswith("PASS")}
-    assert {1, 15, 24, 25, 26, 27, 29, 39, 40} <= passed, healthy.stdout
+    from host.conformance.runner import select
+    kind = "can" if batch.transport in CAN else "serial"
+    every = {c.number for c in select(None, "chip") if c.transport in (None, kind)}  # what a full run runs
+    healthy = [batch.jobs[f"conformance{k}"] for k in range(len(HEALTHY_ONLY))]
+    outcome: dict[int, str] = {}
+    for job in healthy:
+        _ok(job)
+        assert " 0 failed" in job.stdout and "LOST" not in job.stdout, job.stdout
+        for check, verdict in _outcomes(job).items():
+            assert outcome.setdefault(check, verdict) == verdict, (check, job.stdout)
+    assert set(outcome) == every, sorted(every ^ set(outcome))  # the two runs: the whole suite
+    passed = {k for k, v in outcome.items() if v == "PASS"}
+    assert {1, 15, 24, 25, 26, 27, 29, 39, 40} <= passed, outcome
     if batch.transport in CAN:
-        assert {22, 41} <= passed, healthy.stdout
-    assert mutant.rc == 1 and "Traceback" not in mutant.stderr, mutant.stdout + mutant.stderr
-    outcome = {int(ln.split()[1]): ln.split()[0] for ln in mutant.stdout.splitlines() if ln[:4] in ("PASS", "FAIL")}
-    assert outcome == {1: "PASS", 24: "FAIL", 25: "FAIL", 26: "FAIL", 27: "FAIL", 29: "PASS"}, mutant.stdout
-    assert {k for k, v in outcome.items() if v == "FAIL"} == MUTANT_FAILS
+        assert {22, 41} <= passed, outcome
+    mutant: dict[int, str] = {}
+    for k in range(len(MUTANT_ONLY)):
+        job = batch.jobs[f"mutant{k}"]
+        assert job.rc == 1 and "Traceback" not in job.stderr, job.stdout + job.stderr
+        for check, verdict in _outcomes(job).items():
+            assert mutant.setdefault(check, verdict) == verdict, (check, job.stdout)
+    assert mutant == {1: "PASS", 24: "FAIL", 25: "FAIL", 26: "FAIL", 27: "FAIL", 29: "PASS"}, mutant
+    assert {k for k, v in mutant.items() if v == "FAIL"} == MUTANT_FAILS
 
 
 @pytest.mark.parametrize("batch", cells("calibrate"), indirect=True)
