@@ -24,12 +24,14 @@ fork.
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import select
 import signal
 import sys
 import threading
+import time
 
 #: what the forked commands import (their start's CPU), loaded once here
 PRELOAD = (
@@ -62,7 +64,12 @@ def preload() -> list[str]:
 def child(spec: dict) -> int:
     """In the forked child: stdio to the spec's files, then the command; its exit status."""
     devnull = os.open(os.devnull, os.O_RDONLY)
-    os.dup2(devnull, 0)
+    if spec.get("in"):  # a FIFO the test writes to (a sheet process's "stop NAME" lines)
+        f = os.open(spec["in"], os.O_RDONLY)
+        os.dup2(f, 0)
+        os.close(f)
+    else:
+        os.dup2(devnull, 0)
     for fd, path in ((1, spec["out"]), (2, spec["err"])):
         f = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         os.dup2(f, fd)
@@ -155,6 +162,37 @@ class Forked:
                 raise RuntimeError(f"matrix_fork ended before {self.argv[:4]}: {s.stderr_text()}")
             return s.exits[self.ident]
 
+    def exited(self) -> bool:
+        with self.server.cond:
+            return self.ident in self.server.exits or self.server.gone
+
+    def open_stdin(self, timeout_s: float = 60.0):
+        """The write end of the child's stdin FIFO (``run(..., stdin_fifo=True)``), once it has
+        opened the read end."""
+        end = time.monotonic() + timeout_s
+        while True:
+            try:
+                fd = os.open(self._in, os.O_WRONLY | os.O_NONBLOCK)
+                break
+            except OSError as exc:  # ENXIO: no reader yet
+                if exc.errno != errno.ENXIO or self.exited() or time.monotonic() > end:
+                    raise RuntimeError(f"{self.argv[:4]} never read its stdin: {self.stderr[-2000:]}") from exc
+                time.sleep(0.01)
+        os.set_blocking(fd, True)
+        return os.fdopen(fd, "w")
+
+    def wait_line(self, needle: str, timeout_s: float = 60.0) -> str:
+        """The first line of stdout holding ``needle`` (AssertionError if none comes in time)."""
+        end = time.monotonic() + timeout_s
+        while True:
+            done = self.exited()
+            for line in self.stdout.splitlines():
+                if needle in line:
+                    return line
+            if done or time.monotonic() > end:
+                raise AssertionError(f"{self.argv[:4]} never printed {needle!r}: {self.stdout} {self.stderr}")
+            time.sleep(0.02)
+
     def _read(self, path: str) -> str:
         try:
             with open(path, encoding="utf-8", errors="replace") as f:
@@ -179,7 +217,7 @@ class Forker:
     def __init__(self, python: str, cwd, env: dict, tmp) -> None:
         import subprocess
         self.tmp = tmp
-        self._errpath = os.path.join(str(tmp), "matrix_fork.err")
+        self._errpath = os.path.join(str(tmp), f"matrix_fork-{os.getpid()}.err")  # a server per worker
         self._errf = open(self._errpath, "w")
         self.p = subprocess.Popen([python, "-m", "tests.host.matrix_fork"], cwd=cwd, env=env, text=True,
                                   stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._errf)
@@ -213,19 +251,29 @@ class Forker:
             self.gone = True
             self.cond.notify_all()
 
-    def run(self, name: str, argv: list[str], *, sheet: bool = False) -> Forked:
+    def run(self, name: str, argv: list[str], *, sheet: bool = False, tmp=None, stdin_fifo: bool = False) -> Forked:
         """Fork ``capsheet ARGV`` (with ``sheet``: tests/host/matrix_sheet.py's ``ARGV``, a sheet
         and the command after its ``--`` in one process); its stdout and stderr go to
-        ``tmp/NAME.out`` and ``tmp/NAME.err``."""
+        ``TMP/NAME.out`` and ``TMP/NAME.err`` (``tmp`` default: the server's)."""
         with self.cond:
             if not self.cond.wait_for(lambda: self.ready or self.gone, 120) or not self.ready:
                 raise RuntimeError(f"matrix_fork did not start: {self.stderr_text()}")
         self._n += 1
         ident = f"{self._n}-{name}"
-        out, err = (os.path.join(str(self.tmp), f"{name}.{x}") for x in ("out", "err"))
-        self.p.stdin.write(f"RUN {ident} " + json.dumps({"argv": argv, "out": out, "err": err, "sheet": sheet}) + "\n")
+        out, err = (os.path.join(str(tmp or self.tmp), f"{name}.{x}") for x in ("out", "err"))
+        fifo = None
+        if stdin_fifo:
+            fifo = os.path.join(str(tmp or self.tmp), f"{name}.in")
+            os.mkfifo(fifo)
+        self.p.stdin.write(f"RUN {ident} " + json.dumps({"argv": argv, "out": out, "err": err, "sheet": sheet,
+                                                          "in": fifo}) + "\n")
         self.p.stdin.flush()
-        return Forked(self, ident, argv, out, err)
+        f = Forked(self, ident, argv, out, err)
+        f._in = fifo
+        return f
+
+    def alive(self) -> bool:
+        return not self.gone and self.p.poll() is None
 
     def close(self) -> None:
         """Stop taking commands; the server ends once its children have (the test waited for them)."""
