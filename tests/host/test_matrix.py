@@ -16,6 +16,14 @@ thread each, each stopped when its command ends; udp_multicast's each on a multi
 own, from the process's id and the sheet's number, where the machine's pid_max leaves room for
 them: else a process each, as before).
 
+Each transport's stream run (``capsheet host``: the stream, record-replay, can-log and live cells)
+starts an interpreter as a user does. The batch's other commands, and its shared sheets, are forked
+from one server per worker that has imported what they import (tests/host/matrix_fork.py): each is
+a process of its own on the real transport, with its own exit status, stdout and stderr, and none
+pays an interpreter's start and its imports again. The healthy chip's conformance run and the
+mutant's are each split into runs at once that together run the same checks (`HEALTHY_ONLY`,
+`MUTANT_ONLY`): the full run was ~12 s of the chip's own periods and silences.
+
 The features (rows of the table in docs/host.md, which `test_the_docs_table_is_this_matrix` holds to
 `CELLS` and `NOT_APPLICABLE`): stream; ``--record`` then ``replay`` identical; ``--can-log`` decoded
 by the cantools command line; ``conformance`` PASS on a healthy chip and FAIL on a mutant; ``calibrate
@@ -646,7 +654,7 @@ def test_conformance_passes_a_healthy_chip_and_fails_a_mutant(batch):
         assert " 0 failed" in job.stdout and "LOST" not in job.stdout, job.stdout
         for check, verdict in _outcomes(job).items():
             assert outcome.setdefault(check, verdict) == verdict, (check, job.stdout)
-    assert set(outcome) == every, sorted(every ^ set(outcome))  # the two runs: the whole suite
+    assert set(outcome) == every, sorted(every ^ set(outcome))  # the runs together: the whole suite
     passed = {k for k, v in outcome.items() if v == "PASS"}
     assert {1, 15, 24, 25, 26, 27, 29, 39, 40} <= passed, outcome
     if batch.transport in CAN:
@@ -702,8 +710,10 @@ def test_demo_calibration_changes_the_estimate_by_what_it_predicts(transport, tm
     from virtual_sheet.geometry import ideal_readings
     from virtual_sheet.sheet import VirtualSheet
     cal_path = truth_calibration(realistic_sheet()).save(tmp_path / "cal.json")
+    # 1 s at 30 Hz: ~30 snapshots of a sheet whose every snapshot is alike (noise 0, static), for
+    # the one estimate compared with the truth the cell needs
     out = subprocess.run([PY, "-m", "host.cli", "demo", "--shape", "gaussian", "--lattice", LATTICE, "--noise", "0",
-                          "--rate", "30", "--duration", "2", "--target", "50", "--min-complete", "0", "--json",
+                          "--rate", "30", "--duration", "1", "--target", "50", "--min-complete", "0", "--json",
                           "--calibration", str(cal_path), "--out", str(tmp_path / "demo.png")],
                          cwd=ROOT, capture_output=True, text=True, timeout=240)
     assert out.returncode == 0 and "Traceback" not in out.stderr, out.stderr[-3000:]
