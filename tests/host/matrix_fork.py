@@ -103,9 +103,20 @@ def serve() -> int:
     stdin = sys.stdin.buffer.raw
     buf = b""
     open_in = True
+    # a child's end wakes the select below (no polling: the server idles between batches)
+    wake_r, wake_w = os.pipe()
+    os.set_blocking(wake_r, False)
+    os.set_blocking(wake_w, False)
+    signal.set_wakeup_fd(wake_w)
+    signal.signal(signal.SIGCHLD, lambda *_: None)
     while open_in or running:
-        ready, _, _ = select.select([stdin] if open_in else [], [], [], 0.02)
-        if ready:
+        ready, _, _ = select.select([stdin, wake_r] if open_in else [wake_r], [], [], 1.0)
+        if wake_r in ready:
+            try:
+                os.read(wake_r, 4096)
+            except BlockingIOError:
+                pass
+        if stdin in ready:
             chunk = os.read(stdin.fileno(), 65536)
             if not chunk:
                 open_in = False
@@ -121,6 +132,10 @@ def serve() -> int:
                 sys.stderr.flush()
                 pid = os.fork()
                 if pid == 0:
+                    signal.set_wakeup_fd(-1)
+                    signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+                    os.close(wake_r)
+                    os.close(wake_w)
                     return child(json.loads(rest))
                 running[pid] = ident
                 print(f"STARTED {ident} {pid}", file=out, flush=True)
