@@ -428,8 +428,11 @@ class Batch:
         chip = ["--rows", "2", "--cols", "2", "--shape", "flat", "--noise", "0.5"]
         specs = [
             ("stream", [*host, "--record", str(tmp / "stream.mcap"), "--live", "0", *can_log], streaming),
-            ("calibration", [*host, "--record", str(tmp / "calibrated.mcap"), "--calibration", str(self.cal_path)],
-             streaming),
+            # its cell compares complete snapshots and their estimates, not how many came in time (the
+            # stream run holds completeness): a run whose sheet a loaded machine held back past the
+            # deadline is no failure of --calibration
+            ("calibration", [*host, "--record", str(tmp / "calibrated.mcap"), "--calibration", str(self.cal_path),
+                             "--min-complete", "0"], streaming),
             # the host-side slack of the timing checks is generous: the transport is under test here,
             # the chip's timing is tests/host/conformance's, and the machine may be loaded
             *((f"conformance{k}", ["conformance", "{port}", "--slack-ms", "40", "--only", only], chip)
@@ -688,6 +691,9 @@ def test_host_calibration_changes_the_estimate_by_what_the_chip_errors_predict(b
     raw, fixed = read(batch.tmp / "stream.mcap"), read(batch.tmp / "calibrated.mcap")
     cal = Calibration.load(batch.cal_path)
     assert "host_calibration.json" in fixed.attachments and "host_calibration.json" not in raw.attachments
+    for rec in (raw, fixed):  # what the cell compares: a complete snapshot, and an estimate of one
+        complete = {int(c) for c, ok in zip(rec.counter, rec.complete) if ok}
+        assert complete & {int(c) for c in rec.estimates["counter"]}, (len(rec), len(complete))
     # noise-free static chips: every complete snapshot alike, an estimate of one with every link
     r_raw, r_fixed = (rec.readings[np.flatnonzero(rec.complete)[-1]].astype(float) for rec in (raw, fixed))
     np.testing.assert_allclose(r_fixed, cal.apply(r_raw), rtol=0, atol=2e-5)
