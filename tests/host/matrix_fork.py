@@ -14,9 +14,10 @@ transport started the ordinary way (``python -m host.cli``): the stream run.
 
 The protocol, one line each way:
 
-* in: ``RUN ID {"argv": [...], "out": PATH, "err": PATH, "sheet": BOOL}``; answered ``STARTED ID
+* in: ``RUN ID {"argv": [...], "out": PATH, "err": PATH, "sheet": BOOL, "in": FIFO or null}``
+  (``in``: the child's stdin, a FIFO the test writes to; else /dev/null); answered ``STARTED ID
   PID``, and ``EXIT ID STATUS`` when the child has ended (a signal's death: minus its number);
-* the server ends when its stdin closes (it waits for no child: the test does).
+* the server ends once its stdin has closed and its children have ended.
 
 The server starts no thread (a fork copies only the thread that forks), and checks so before every
 fork.
