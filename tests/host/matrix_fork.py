@@ -162,8 +162,10 @@ class Forked:
     """A command forked by a `Forker` (as `subprocess.Popen` is used by the matrix: ``wait``,
     ``stdout``, ``stderr``)."""
 
-    def __init__(self, server: "Forker", ident: str, argv: list[str], out: str, err: str) -> None:
+    def __init__(self, server: "Forker", ident: str, argv: list[str], out: str, err: str,
+                 stdin_fifo: str | None = None) -> None:
         self.server, self.ident, self.argv, self._out, self._err = server, ident, argv, out, err
+        self._in = stdin_fifo
 
     def wait(self, timeout_s: float = 240.0) -> int:
         s = self.server
@@ -284,9 +286,7 @@ class Forker:
         self.p.stdin.write(f"RUN {ident} " + json.dumps({"argv": argv, "out": out, "err": err, "sheet": sheet,
                                                           "in": fifo}) + "\n")
         self.p.stdin.flush()
-        f = Forked(self, ident, argv, out, err)
-        f._in = fifo
-        return f
+        return Forked(self, ident, argv, out, err, fifo)
 
     def alive(self) -> bool:
         return not self.gone and self.p.poll() is None
