@@ -26,6 +26,7 @@ fork.
 from __future__ import annotations
 
 import errno
+import gc
 import json
 import os
 import select
@@ -34,32 +35,40 @@ import sys
 import threading
 import time
 
-#: what the forked commands import (their start's CPU), loaded once here
+#: what the forked commands import (their start's CPU), loaded once here: first what every command
+#: and sheet needs (then the server takes RUN lines), then, while no line waits, what calibrate,
+#: tactile and the host's estimates add (a child forked before those are loaded imports them itself)
 PRELOAD = (
-    "numpy", "scipy.special", "scipy.optimize", "scipy.spatial.transform", "scipy.linalg",
-    "matplotlib", "matplotlib.figure", "matplotlib.backends.backend_agg",
-    "serial", "can", "cantools", "mcap.writer", "mcap.reader",
-    "host.cli", "host.cli.host", "host.cli.calibrate", "host.cli.conformance", "host.cli.tactile",
-    "host.session", "host.conformance.runner", "host.record.recording", "host.analysis.estimator",
-    "host.analysis.calibration", "host.analysis.tactile", "host.analysis.tactile.plot",
-    "virtual_sheet.sheet", "virtual_sheet.devices", "virtual_sheet.slcan", "virtual_sheet.board",
-    "virtual_sheet.memport", "tests.host.matrix_sheet", "tests.host.conformance.mutants",
+    "numpy", "serial", "can", "mcap.writer", "mcap.reader",
+    "host.cli", "host.cli.host", "host.cli.conformance", "host.session", "host.conformance.runner",
+    "host.record.recording", "virtual_sheet.sheet", "virtual_sheet.devices", "virtual_sheet.slcan",
+    "virtual_sheet.board", "virtual_sheet.memport", "tests.host.matrix_sheet", "tests.host.conformance.mutants",
 )
+PRELOAD_LATER = (
+    "scipy.special", "scipy.optimize", "scipy.spatial.transform", "scipy.linalg", "cantools",
+    "matplotlib", "matplotlib.figure", "matplotlib.backends.backend_agg",
+    "host.cli.calibrate", "host.cli.tactile", "host.analysis.estimator", "host.analysis.calibration",
+    "host.analysis.tactile", "host.analysis.tactile.plot",
+)
+
+
+def load(name: str) -> bool:
+    """Import ``name``; False if it does not import (a module renamed: a child imports what it
+    needs itself, as before)."""
+    import importlib
+    try:
+        importlib.import_module(name)
+    except ImportError:
+        return False
+    return True
 
 
 def preload() -> list[str]:
     """Import `PRELOAD` (BLAS single-threaded first, as every command starts); the names that did
-    not import (a module renamed: the child imports it itself, as before)."""
+    not import."""
     from host.runtime import one_blas_thread
     one_blas_thread()
-    import importlib
-    missing = []
-    for name in PRELOAD:
-        try:
-            importlib.import_module(name)
-        except ImportError:
-            missing.append(name)
-    return missing
+    return [name for name in PRELOAD if not load(name)]
 
 
 def child(spec: dict) -> int:
@@ -96,7 +105,6 @@ def serve() -> int:
     child, the command's exit status (`main` returns it to the interpreter)."""
     out = sys.stdout
     missing = preload()
-    import gc
     gc.collect()
     gc.freeze()  # the imported modules' objects: no child's collections walk them (nor copy their pages)
     print("READY " + json.dumps(missing), file=out, flush=True)
@@ -110,8 +118,15 @@ def serve() -> int:
     os.set_blocking(wake_w, False)
     signal.set_wakeup_fd(wake_w)
     signal.signal(signal.SIGCHLD, lambda *_: None)
+    later = list(PRELOAD_LATER)
     while open_in or running:
-        ready, _, _ = select.select([stdin, wake_r] if open_in else [wake_r], [], [], 1.0)
+        # a module of PRELOAD_LATER each time no line and no child's end came for 50 ms (the lines
+        # a batch sends come together: they are forked first)
+        ready, _, _ = select.select([stdin, wake_r] if open_in else [wake_r], [], [], 0.05 if later else 1.0)
+        if not ready and later:
+            load(later.pop(0))
+            gc.freeze()
+            continue
         if wake_r in ready:
             try:
                 os.read(wake_r, 4096)
