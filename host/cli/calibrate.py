@@ -54,10 +54,22 @@ from protocol.constants import G0
 from protocol.lattice import Lattice
 
 __all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "write_chip_imu_calibration",
-           "PoseCapture", "ImuLog"]
+           "PoseCapture", "ImuLog", "hold_needed_s"]
 
 #: a new pose must differ from every captured one by at least this angle, degrees
 MIN_POSE_SEPARATION_DEG = 20.0
+
+
+def hold_needed_s(samples: int, window: int, rate_hz: float) -> float:
+    """The shortest hold that captures a pose, seconds: `PoseCapture` judges the chips still once
+    its stillness window is full (``window`` snapshots, the last of them the first averaged), then
+    averages ``samples`` still snapshots; one snapshot a SYNC at ``rate_hz``. Snapshots that come
+    late or lost make it longer.
+
+    >>> round(hold_needed_s(200, 25, 100.0), 6)  # the defaults
+    2.24
+    """
+    return (int(window) - 1 + int(samples)) / float(rate_hz)
 
 
 def register(subparsers) -> None:
@@ -518,7 +530,8 @@ def run(args, *, clock=None, driver=None) -> int:
                            f"{' ...' if len(lacking) > 8 else ''}): calibrate them with --sensors accel")
                 return 1
         _say(args, f"{summary['discovered']} chips found, {summary['assigned']} assigned, "
-                   f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses")
+                   f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses, "
+                   f"holding each still for at least {hold_needed_s(args.samples, args.window, args.rate):.1f} s")
         if summary["assigned"] < host.lattice.n_links:
             _say(args, f"only {summary['assigned']} of {host.lattice.n_links} links have a chip: "
                        "every link is needed")
