@@ -16,15 +16,14 @@ sheet: the transport plays no part in what the chips send)."""
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 
 from host.cli.calibrate import hold_needed_s
 from host.session.core import Host, Layout
 from host.transport.ports import CanTransport, MemoryTransport
-from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
+from tests.host.cli.test_calibrate import SimWorld, can_world, run_simulated
+from virtual_sheet.devices import MemoryDevice, PtyDevice
 from virtual_sheet.magfield import field_in_sensor_frames
 from virtual_sheet.sensor import chip_error_model
 from virtual_sheet.sheet import VirtualSheet
@@ -41,34 +40,12 @@ HOLD_SIM_S = hold_needed_s(SAMPLES, WINDOW, RATE) + 0.25
 #: poses, 7 turns, a loaded machine's stalls — turns with a gap of more than 100 ms in their samples,
 #: left out — left fewer than the 5 the fit needs.)
 POSES = 12
-_channel = itertools.count()
 
 
-class SimClock:
-    """A clock that moves only when told: ``clock()`` -> seconds."""
-
-    def __init__(self, start_s: float = 0.0) -> None:
-        self.t = float(start_s)
-
-    def __call__(self) -> float:
-        return self.t
-
-
-class SimWorld:
-    """A device in manual mode on a simulated clock (``device`` made with ``clock=world.clock``),
-    and the driver a `Host` in manual mode runs it with."""
-
-    def __init__(self, start_s: float = 0.0) -> None:
-        self.clock = SimClock(start_s)
-        self.device = None
-
-    def driver(self, dt: float) -> None:
-        self.clock.t += dt
-        self.device.step()
-
-    def host(self, transports, sheet) -> Host:
-        return Host(transports, "3x3", layout=Layout(dict(sheet.layout)), rate_hz=RATE, timeout_s=0.2, retries=5,
-                    clock=self.clock, driver=self.driver)
+def _host(world: SimWorld, transports, sheet) -> Host:
+    """A host in manual mode on ``world``'s clock, for the streams before and after."""
+    return Host(transports, "3x3", layout=Layout(dict(sheet.layout)), rate_hz=RATE, timeout_s=0.2, retries=5,
+                clock=world.clock, driver=world.driver)
 
 
 def _sheet(transport: str = "serial", hold_s: float = HOLD_S) -> VirtualSheet:
@@ -116,7 +93,7 @@ def _memory_errors(sheet, start_s: float = 0.0) -> dict:
     world.device = MemoryDevice(sheet, clock=world.clock)
     world.device.start(power_on=True)
     try:
-        return _errors(sheet, world.host([MemoryTransport(world.device.port)], sheet))
+        return _errors(sheet, _host(world, [MemoryTransport(world.device.port)], sheet))
     finally:
         world.device.stop()
 
@@ -176,30 +153,16 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
     CAL_IMU_WRITE, CAL_IMU_READ and CAL_IMU_DATA are 8 bytes. The command (`run`, through the
     parser) and the sheet on one simulated clock: the board's poses take no real time, and no
     turn is lost to a stalled thread."""
-    import logging
-
-    from host.cli import build_parser
-    from host.cli.calibrate import run
-
     sheet = _sheet("can", hold_s=HOLD_SIM_S)
     layout = sheet.write_layout(tmp_path / "layout.csv")
-    world = SimWorld()
-    chan = f"calimu_{next(_channel)}"
-    world.device = CanDevice(sheet, channels=[chan], clock=world.clock)
-    world.device.start(power_on=True)
-    root = logging.getLogger()
-    handlers, level = list(root.handlers), root.level
+    world, chan = can_world(sheet)
     try:
-        before = _errors(sheet, world.host([CanTransport(f"virtual:{chan}", reconnect=False)], sheet))
-        args = build_parser().parse_args([*_calibrate_argv(tmp_path / "cal.json", layout), "--can", f"virtual:{chan}"])
-        capsys.readouterr()
-        code = run(args, clock=world.clock, driver=world.driver)
-        err = capsys.readouterr().err
+        before = _errors(sheet, _host(world, [CanTransport(chan, reconnect=False)], sheet))
+        code, _out, err = run_simulated(world, [*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan],
+                                        capsys)
         assert code == 0, err
-        after = _errors(sheet, world.host([CanTransport(f"virtual:{chan}", reconnect=False)], sheet))
+        after = _errors(sheet, _host(world, [CanTransport(chan, reconnect=False)], sheet))
     finally:
-        root.handlers[:] = handlers  # the command's logging.basicConfig
-        root.setLevel(level)
         world.device.stop()
     _check(sheet, before, after, err)
 
