@@ -136,23 +136,31 @@ def _real_run(kind: str, files) -> dict:
             "q4": q4.tolist(), "sens": sens.tolist(), "stored": stored.tolist(), "out": str(out)}
 
 
-@pytest.fixture(scope="module")
-def real_runs(tmp_path_factory) -> dict:
-    """``{"pty" | "slcan": `_real_run`'s result or {"error"}}``: the two real runs made at once in
-    threads, each with its own sheet, device and process, once per test session whichever workers
-    need them (tests/shared_runs.py). Each mostly waits for the board's poses."""
+def calibration_real_runs(tmp_path_factory) -> dict:
+    """``{"pty" | "slcan": `_real_run`'s result, "imu-pty": test_calibrate_imu.py's `imu_real_run`'s,
+    or {"error"}}``: the three real runs of the calibration tests, made at once in threads, each
+    with its own sheet, device and process, once per test session whichever workers and files need
+    them (tests/shared_runs.py). Each mostly waits for the board's poses."""
+    from tests.host.cli.test_calibrate_imu import imu_real_run
+
     root = session_root(tmp_path_factory)
 
-    def job(kind):
+    def job(make, *args):
         def run(_k):
             files = root / "calibrate-real-files"
             files.mkdir(exist_ok=True)
             try:
-                return _real_run(kind, files)
+                return make(*args, files)
             except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
                 return {"error": f"{type(exc).__name__}: {exc}"}
         return run
-    return shared_runs(root, "calibrate-real", {kind: job(kind) for kind in ("pty", "slcan")}, at_once=2)
+    jobs = {"imu-pty": job(imu_real_run), "pty": job(_real_run, "pty"), "slcan": job(_real_run, "slcan")}
+    return shared_runs(root, "calibrate-real", jobs, at_once=len(jobs))
+
+
+@pytest.fixture(scope="module")
+def real_runs(tmp_path_factory) -> dict:
+    return calibration_real_runs(tmp_path_factory)
 
 
 def _real(real_runs, kind: str) -> dict:

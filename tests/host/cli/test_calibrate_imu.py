@@ -22,7 +22,7 @@ import pytest
 from host.cli.calibrate import hold_needed_s
 from host.session.core import Host, Layout
 from host.transport.ports import CanTransport, MemoryTransport
-from tests.host.cli.test_calibrate import SimWorld, can_world, run_simulated
+from tests.host.cli.test_calibrate import SimWorld, calibration_real_runs, can_world, run_simulated
 from virtual_sheet.devices import MemoryDevice, PtyDevice
 from virtual_sheet.magfield import field_in_sensor_frames
 from virtual_sheet.sensor import chip_error_model
@@ -105,17 +105,18 @@ def _calibrate_argv(out, layout):
             "-q"]
 
 
-def _stored_imu(sheet) -> list[dict]:
-    return [{b: [v for v, _st in e] for b, e in chip.imu_cal.items()} for chip in sheet.chips]
+def _chip_state(sheet) -> dict:
+    """Per chip: holds a gyroscope and a magnetometer calibration; every IMU element stored in
+    non-volatile memory."""
+    return {"calibrated": [chip.gyro_cal is not None and chip.mag_cal is not None for chip in sheet.chips],
+            "stored": [all(st == 1 for e in chip.imu_cal.values() for _v, st in e) for chip in sheet.chips]}
 
 
-def _check(sheet, before, after, res_stderr):
+def _check(chips, before, after, res_stderr):
     if res_stderr is not None:
         assert "CAL_IMU_WRITE: 12 chips written, 12 read back and verified, 0 refused, 0 element mismatches" in res_stderr
     # every chip holds a calibration that is not the nominal one, stored in non-volatile memory
-    for chip in sheet.chips:
-        assert chip.gyro_cal is not None and chip.mag_cal is not None
-        assert all(st == 1 for e in chip.imu_cal.values() for _v, st in e)
+    assert len(chips["calibrated"]) == 12 and all(chips["calibrated"]) and all(chips["stored"]), chips
     assert before["snapshots"] > 300 and after["snapshots"] > 300 and after["turning"] > 100
     # against the simulator's truth. Measured with 12 poses of 2.5 s: held 0.42 -> 0.027 °/s,
     # turning 6.4 -> 2.8 °/s, field 31.5 -> 0.63 µT; with 8 poses of 1.5 s at load ~6: held
@@ -131,21 +132,41 @@ def _check(sheet, before, after, res_stderr):
     assert after["mag_ut"] < before["mag_ut"] / 10, why
 
 
-def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(tmp_path):
-    """The real run: the command in its own process over a pty, the board turned in real time."""
+def imu_real_run(files) -> dict:
+    """The real run: a 9-axis board sheet behind a pty, ``capsheet calibrate --sensors accel+gyro+mag
+    --write-chips`` in its own process, the board turned in real time; then the sheet's chips
+    streamed on a simulated clock (`_memory_errors`). JSON: the command's output, the errors after,
+    the chips' state (`_chip_state`). (test_calibrate.py's `calibration_real_runs` makes it at once
+    with the accelerometer runs.)"""
     import subprocess
     import sys
 
-    before = _memory_errors(_sheet())  # its twin: the same seeds, the same chips and errors
     sheet = _sheet()
-    layout = sheet.write_layout(tmp_path / "layout.csv")
+    layout = sheet.write_layout(files / "imu-layout.csv")
     with PtyDevice(sheet) as dev:
-        res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(tmp_path / "cal.json", layout),
+        res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(files / "imu-cal.json", layout),
                               "--port", str(dev.path)], capture_output=True, text=True, timeout=400)
         end_s = dev.now()
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
-    after = _memory_errors(sheet, start_s=end_s + 1.0)
-    _check(sheet, before, after, res.stderr)
+    out = {"returncode": res.returncode, "stdout": res.stdout, "stderr": res.stderr, **_chip_state(sheet)}
+    if res.returncode == 0:
+        out["after"] = _memory_errors(sheet, start_s=end_s + 1.0)
+    return out
+
+
+@pytest.fixture(scope="module")
+def real_runs(tmp_path_factory) -> dict:
+    return calibration_real_runs(tmp_path_factory)
+
+
+def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(real_runs):
+    """The real run: the command in its own process over a pty, the board turned in real time
+    (`imu_real_run`, made at once with test_calibrate.py's real runs)."""
+    res = real_runs["imu-pty"]
+    if "error" in res:
+        raise AssertionError(f"the pty run raised {res['error']}")
+    assert res["returncode"] == 0, res["stdout"][-2000:] + res["stderr"][-4000:]
+    before = _memory_errors(_sheet())  # the run's sheet's twin: the same seeds, the same chips and errors
+    _check(res, before, res["after"], res["stderr"])
 
 
 def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_path, capsys):
@@ -153,18 +174,18 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
     CAL_IMU_WRITE, CAL_IMU_READ and CAL_IMU_DATA are 8 bytes. The command (`run`, through the
     parser) and the sheet on one simulated clock: the board's poses take no real time, and no
     turn is lost to a stalled thread."""
+    before = _memory_errors(_sheet(hold_s=HOLD_SIM_S))  # its twin (the chips' errors, not the transport)
     sheet = _sheet("can", hold_s=HOLD_SIM_S)
     layout = sheet.write_layout(tmp_path / "layout.csv")
     world, chan = can_world(sheet)
     try:
-        before = _errors(sheet, _host(world, [CanTransport(chan, reconnect=False)], sheet))
         code, _out, err = run_simulated(world, [*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan],
                                         capsys)
         assert code == 0, err
         after = _errors(sheet, _host(world, [CanTransport(chan, reconnect=False)], sheet))
     finally:
         world.device.stop()
-    _check(sheet, before, after, err)
+    _check(_chip_state(sheet), before, after, err)
 
 
 def test_the_command_integrates_the_turns_over_each_chips_sample_instants():
