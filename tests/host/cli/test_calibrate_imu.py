@@ -22,7 +22,7 @@ import pytest
 from host.cli.calibrate import hold_needed_s
 from host.session.core import Host, Layout
 from host.transport.ports import CanTransport, MemoryTransport
-from tests.host.cli.test_calibrate import SimWorld, calibration_real_runs, can_world, run_simulated
+from tests.host.cli.test_calibrate import SimWorld, can_world, run_simulated
 from virtual_sheet.devices import MemoryDevice, PtyDevice
 from virtual_sheet.magfield import field_in_sensor_frames
 from virtual_sheet.sensor import chip_error_model
@@ -132,41 +132,23 @@ def _check(chips, before, after, res_stderr):
     assert after["mag_ut"] < before["mag_ut"] / 10, why
 
 
-def imu_real_run(files) -> dict:
-    """The real run: a 9-axis board sheet behind a pty, ``capsheet calibrate --sensors accel+gyro+mag
-    --write-chips`` in its own process, the board turned in real time; then the sheet's chips
-    streamed on a simulated clock (`_memory_errors`). JSON: the command's output, the errors after,
-    the chips' state (`_chip_state`). (test_calibrate.py's `calibration_real_runs` makes it at once
-    with the accelerometer runs.)"""
+def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(tmp_path):
+    """The real run: the command in its own process over a pty, the board turned in real time; the
+    streams before (the sheet's twin: the same seeds, the same chips and errors) and after (the
+    sheet's chips as the command left them) on a simulated clock (`_memory_errors`)."""
     import subprocess
     import sys
 
+    before = _memory_errors(_sheet())
     sheet = _sheet()
-    layout = sheet.write_layout(files / "imu-layout.csv")
+    layout = sheet.write_layout(tmp_path / "layout.csv")
     with PtyDevice(sheet) as dev:
-        res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(files / "imu-cal.json", layout),
+        res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(tmp_path / "cal.json", layout),
                               "--port", str(dev.path)], capture_output=True, text=True, timeout=400)
         end_s = dev.now()
-    out = {"returncode": res.returncode, "stdout": res.stdout, "stderr": res.stderr, **_chip_state(sheet)}
-    if res.returncode == 0:
-        out["after"] = _memory_errors(sheet, start_s=end_s + 1.0)
-    return out
-
-
-@pytest.fixture(scope="module")
-def real_runs(tmp_path_factory) -> dict:
-    return calibration_real_runs(tmp_path_factory)
-
-
-def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(real_runs):
-    """The real run: the command in its own process over a pty, the board turned in real time
-    (`imu_real_run`, made at once with test_calibrate.py's real runs)."""
-    res = real_runs["imu-pty"]
-    if "error" in res:
-        raise AssertionError(f"the pty run raised {res['error']}")
-    assert res["returncode"] == 0, res["stdout"][-2000:] + res["stderr"][-4000:]
-    before = _memory_errors(_sheet())  # the run's sheet's twin: the same seeds, the same chips and errors
-    _check(res, before, res["after"], res["stderr"])
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    after = _memory_errors(sheet, start_s=end_s + 1.0)
+    _check(_chip_state(sheet), before, after, res.stderr)
 
 
 def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_path, capsys):
