@@ -43,7 +43,6 @@ import argparse
 import json
 import logging
 import sys
-import time
 
 import numpy as np
 
@@ -55,10 +54,22 @@ from protocol.constants import G0
 from protocol.lattice import Lattice
 
 __all__ = ["register", "run", "load_calibration_arg", "write_chip_calibration", "write_chip_imu_calibration",
-           "PoseCapture", "ImuLog"]
+           "PoseCapture", "ImuLog", "hold_needed_s"]
 
 #: a new pose must differ from every captured one by at least this angle, degrees
 MIN_POSE_SEPARATION_DEG = 20.0
+
+
+def hold_needed_s(samples: int, window: int, rate_hz: float) -> float:
+    """The shortest hold that captures a pose, seconds: `PoseCapture` judges the chips still once
+    its stillness window is full (``window`` snapshots, the last of them the first averaged), then
+    averages ``samples`` still snapshots; one snapshot a SYNC at ``rate_hz``. Snapshots that come
+    late or lost make it longer.
+
+    >>> round(hold_needed_s(200, 25, 100.0), 6)  # the defaults
+    2.24
+    """
+    return (int(window) - 1 + int(samples)) / float(rate_hz)
 
 
 def register(subparsers) -> None:
@@ -388,18 +399,31 @@ def _bar(frac: float, width: int = 20) -> str:
     return "#" * k + "." * (width - k)
 
 
+def _next_snapshot(host, timeout_s: float):
+    """The next snapshot, or None after ``timeout_s`` of the host's clock: a host on a simulated
+    clock (manual mode) runs the world while it waits."""
+    if not host.manual:
+        return host.get(timeout_s)
+    end = host.now() + timeout_s
+    while True:
+        snap = host.get(0)
+        if snap is not None or host.now() >= end:
+            return snap
+        host.idle(host.tick_s)
+
+
 def _capture(host, args, cap: PoseCapture, log: ImuLog | None = None) -> bool:
     from host.cli.progress import LiveLine
 
     # a terminal: one line redrawn; a pipe or log: a line per new state, else every 5 s
     live = LiveLine(quiet=args.quiet, every_s=5.0)
-    t_end = time.monotonic() + args.timeout
+    t_end = host.now() + args.timeout
     while len(cap.poses) < args.poses:
-        if time.monotonic() > t_end:
+        if host.now() > t_end:
             live.end()
             _say(args, f"timed out after {args.timeout:g} s with {len(cap.poses)} of {args.poses} poses")
             return False
-        snap = host.get(0.5)
+        snap = _next_snapshot(host, 0.5)
         if snap is None:
             continue
         if log is not None:
@@ -446,7 +470,9 @@ def _imu_summary(imu_cal, log: ImuLog) -> dict:
     return out
 
 
-def run(args) -> int:
+def run(args, *, clock=None, driver=None) -> int:
+    """The command. ``clock`` and ``driver`` run its host on a simulated clock (`Host`'s manual
+    mode; tests): the capture's ``--timeout`` is then that clock's too."""
     from host.session.core import Host, Layout
 
     from host.session.core import MismatchError
@@ -465,7 +491,7 @@ def run(args) -> int:
         print(f"capsheet calibrate: {exc}", file=sys.stderr)
         return 1
     try:
-        host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate)
+        host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate, clock=clock, driver=driver)
         from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
     except (MismatchError, ValueError) as exc:
@@ -504,7 +530,8 @@ def run(args) -> int:
                            f"{' ...' if len(lacking) > 8 else ''}): calibrate them with --sensors accel")
                 return 1
         _say(args, f"{summary['discovered']} chips found, {summary['assigned']} assigned, "
-                   f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses")
+                   f"{summary['started']} streaming; clamp the sheet flat on the board and follow the poses, "
+                   f"holding each still for at least {hold_needed_s(args.samples, args.window, args.rate):.1f} s")
         if summary["assigned"] < host.lattice.n_links:
             _say(args, f"only {summary['assigned']} of {host.lattice.n_links} links have a chip: "
                        "every link is needed")

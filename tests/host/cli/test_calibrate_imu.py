@@ -5,50 +5,69 @@ pty and behind python-can's virtual bus. The command fits the gyroscopes and mag
 every chip with CAL_IMU_WRITE and reads them back. The test then streams the sheet with the host
 library before and after, and compares what the chips send with the simulator's truth — the
 board's exact angular velocity and the field in each link's frame at each sample's instant: the
-error must drop."""
+error must drop.
+
+The pty run is the real one: the command in its own process, the sheet turned in real time. The
+CAN run is the same command (its `run`, through the parser) with its host and the sheet on one
+simulated clock over python-can's virtual bus: the same capture, fit, CAL_IMU_WRITE and read-back
+as CAN frames, without waiting for the board. The streams before and after, which compare what
+the chips send with the truth, run on a simulated clock in both (an in-memory link for the pty
+sheet: the transport plays no part in what the chips send)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+from host.cli.calibrate import hold_needed_s
 from host.session.core import Host, Layout
-from host.transport.ports import SerialTransport
-from virtual_sheet.devices import CanDevice, PtyDevice
+from host.transport.ports import CanTransport, MemoryTransport
+from tests.host.cli.test_calibrate import SimWorld, can_world, run_simulated
+from virtual_sheet.devices import MemoryDevice, PtyDevice
 from virtual_sheet.magfield import field_in_sensor_frames
 from virtual_sheet.sensor import chip_error_model
 from virtual_sheet.sheet import VirtualSheet
 
-
-#: seconds each board pose is held (the command needs 40 still snapshots at 100 Hz, plus its window)
-HOLD_S = 1.5
+#: the command's --samples, its default --window, --rate
+SAMPLES, WINDOW, RATE = 40, 25, 100.0
+#: seconds each board pose is held in real time: what the command needs (`hold_needed_s`: the
+#: stillness window and 40 still snapshots at 100 Hz, 0.65 s) and 0.85 s for a loaded machine's stalls
+HOLD_S = hold_needed_s(SAMPLES, WINDOW, RATE) + 0.85
+#: on a simulated clock no snapshot comes late: what the command needs and 0.25 s for the end of a
+#: turn, which a stillness window that begins in it does not count as still
+HOLD_SIM_S = hold_needed_s(SAMPLES, WINDOW, RATE) + 0.25
 #: poses the command captures: every board pose, 11 turns between them for the gyroscope fit. (With 8
 #: poses, 7 turns, a loaded machine's stalls — turns with a gap of more than 100 ms in their samples,
 #: left out — left fewer than the 5 the fit needs.)
 POSES = 12
 
 
-def _sheet(transport: str = "serial") -> VirtualSheet:
+def _host(world: SimWorld, transports, sheet) -> Host:
+    """A host in manual mode on ``world``'s clock, for the streams before and after."""
+    return Host(transports, "3x3", layout=Layout(dict(sheet.layout)), rate_hz=RATE, timeout_s=0.2, retries=5,
+                clock=world.clock, driver=world.driver)
+
+
+def _sheet(transport: str = "serial", hold_s: float = HOLD_S) -> VirtualSheet:
     """The chips sample when the device reads each SYNC (``sync_arrival=False``), as the host's
     SYNC time plus ``time_us`` says. `virtual_sheet.arrival.SyncArrival`'s estimate of the arrival
     strays from the host's SYNC times on a loaded machine (measured at load ~7: 4-73 ms standard
     deviation, up to 388 ms, where the reads are 0.2-1.9 ms from them): the command would fit the
     scale of a simulator's clock error, which no real chip makes."""
     return VirtualSheet("board", "3x3", seed=7, transport=transport, sensors="accel+gyro+mag",
-                        shape_params=dict(hold_s=HOLD_S, move_s=0.8, seed=2), sync_arrival=False,
+                        shape_params=dict(hold_s=hold_s, move_s=0.8, seed=2), sync_arrival=False,
                         sensor=chip_error_model("realistic", noise_pct_g=0.1, chip_seed=7))
 
 
-def _errors(sheet, transports, seconds: float = 5.0) -> dict:
-    """Stream ``seconds`` of 9-axis snapshots: RMS of (gyro − true ω) in °/s where the board holds
-    (|ω| < 1 °/s) and where it turns, of (mag − true B) in µT, over every link and snapshot; and how
-    many snapshots."""
-    host = Host(transports, "3x3", layout=Layout(dict(sheet.layout)), rate_hz=100, timeout_s=0.2, retries=5)
+def _errors(sheet, host: Host, seconds: float = 5.0) -> dict:
+    """Stream ``seconds`` of 9-axis snapshots through ``host`` (on a simulated clock): RMS of
+    (gyro − true ω) in °/s where the board holds (|ω| < 1 °/s) and where it turns, of (mag − true B)
+    in µT, over every link and snapshot; and how many snapshots."""
     host.imu_config = (2, 3, 0, 0)  # 9-axis, ±1000 °/s, ±4 gauss
     eg, em, wt = [], [], []
     with host:
         host.bring_up(0.3)
-        snaps = [s for s in host.snapshots(count=int(100 * seconds)) if s.gyro is not None and s.mag is not None]
+        snaps = [s for s in host.snapshots(count=int(RATE * seconds)) if s.gyro is not None and s.mag is not None]
         host.stop()
     field = sheet.imu_source.imu.field
     for s in snaps:
@@ -65,23 +84,39 @@ def _errors(sheet, transports, seconds: float = 5.0) -> dict:
             "snapshots": len(snaps), "turning": int((wt >= 1.0).sum())}
 
 
+def _memory_errors(sheet, start_s: float = 0.0) -> dict:
+    """`_errors` of a serial sheet behind an in-memory link, on a simulated clock from ``start_s``
+    (the chips and their stored calibration are the sheet's: another device on it finds them as
+    they are). The sheet's IMU readings never go back in time: a sheet already streamed by another
+    device needs a ``start_s`` past that device's last read."""
+    world = SimWorld(start_s)
+    world.device = MemoryDevice(sheet, clock=world.clock)
+    world.device.start(power_on=True)
+    try:
+        return _errors(sheet, _host(world, [MemoryTransport(world.device.port)], sheet))
+    finally:
+        world.device.stop()
+
+
 def _calibrate_argv(out, layout):
     return ["calibrate", "--lattice", "3x3", "--layout", str(layout), "--out", str(out), "--write-chips",
-            "--sensors", "accel+gyro+mag", "--poses", str(POSES), "--samples", "40", "--rate", "100", "--timeout", "200",
+            "--sensors", "accel+gyro+mag", "--poses", str(POSES), "--samples", str(SAMPLES), "--rate", f"{RATE:g}",
+            "--timeout", "200",
             "-q"]
 
 
-def _stored_imu(sheet) -> list[dict]:
-    return [{b: [v for v, _st in e] for b, e in chip.imu_cal.items()} for chip in sheet.chips]
+def _chip_state(sheet) -> dict:
+    """Per chip: holds a gyroscope and a magnetometer calibration; every IMU element stored in
+    non-volatile memory."""
+    return {"calibrated": [chip.gyro_cal is not None and chip.mag_cal is not None for chip in sheet.chips],
+            "stored": [all(st == 1 for e in chip.imu_cal.values() for _v, st in e) for chip in sheet.chips]}
 
 
-def _check(sheet, before, after, res_stderr):
+def _check(chips, before, after, res_stderr):
     if res_stderr is not None:
         assert "CAL_IMU_WRITE: 12 chips written, 12 read back and verified, 0 refused, 0 element mismatches" in res_stderr
     # every chip holds a calibration that is not the nominal one, stored in non-volatile memory
-    for chip in sheet.chips:
-        assert chip.gyro_cal is not None and chip.mag_cal is not None
-        assert all(st == 1 for e in chip.imu_cal.values() for _v, st in e)
+    assert len(chips["calibrated"]) == 12 and all(chips["calibrated"]) and all(chips["stored"]), chips
     assert before["snapshots"] > 300 and after["snapshots"] > 300 and after["turning"] > 100
     # against the simulator's truth. Measured with 12 poses of 2.5 s: held 0.42 -> 0.027 °/s,
     # turning 6.4 -> 2.8 °/s, field 31.5 -> 0.63 µT; with 8 poses of 1.5 s at load ~6: held
@@ -98,36 +133,41 @@ def _check(sheet, before, after, res_stderr):
 
 
 def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(tmp_path):
+    """The real run: the command in its own process over a pty, the board turned in real time; the
+    streams before (the sheet's twin: the same seeds, the same chips and errors) and after (the
+    sheet's chips as the command left them) on a simulated clock (`_memory_errors`)."""
     import subprocess
     import sys
 
+    before = _memory_errors(_sheet())
     sheet = _sheet()
     layout = sheet.write_layout(tmp_path / "layout.csv")
     with PtyDevice(sheet) as dev:
-        before = _errors(sheet, [SerialTransport(dev.path)])
         res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(tmp_path / "cal.json", layout),
                               "--port", str(dev.path)], capture_output=True, text=True, timeout=400)
-        assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
-        after = _errors(sheet, [SerialTransport(dev.path)])
-    _check(sheet, before, after, res.stderr)
+        end_s = dev.now()
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    after = _memory_errors(sheet, start_s=end_s + 1.0)
+    _check(_chip_state(sheet), before, after, res.stderr)
 
 
 def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_path, capsys):
-    """The same over CAN: python-can's own virtual interface (in-process: the command runs through its
-    entry point here), classic frames — CAL_IMU_WRITE, CAL_IMU_READ and CAL_IMU_DATA are 8 bytes."""
-    from host.cli import main
-    from host.transport.ports import CanTransport
-
-    sheet = _sheet("can")
+    """The same over CAN: python-can's own virtual interface, classic frames — the 9-axis samples,
+    CAL_IMU_WRITE, CAL_IMU_READ and CAL_IMU_DATA are 8 bytes. The command (`run`, through the
+    parser) and the sheet on one simulated clock: the board's poses take no real time, and no
+    turn is lost to a stalled thread."""
+    before = _memory_errors(_sheet(hold_s=HOLD_SIM_S))  # its twin (the chips' errors, not the transport)
+    sheet = _sheet("can", hold_s=HOLD_SIM_S)
     layout = sheet.write_layout(tmp_path / "layout.csv")
-    with CanDevice(sheet) as dev:
-        chan = f"virtual:{dev.channels[0]}"
-        before = _errors(sheet, [CanTransport(chan, reconnect=False)])
-        code = main([*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan])
-        err = capsys.readouterr().err
+    world, chan = can_world(sheet)
+    try:
+        code, _out, err = run_simulated(world, [*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan],
+                                        capsys)
         assert code == 0, err
-        after = _errors(sheet, [CanTransport(chan, reconnect=False)])
-    _check(sheet, before, after, err)
+        after = _errors(sheet, _host(world, [CanTransport(chan, reconnect=False)], sheet))
+    finally:
+        world.device.stop()
+    _check(_chip_state(sheet), before, after, err)
 
 
 def test_the_command_integrates_the_turns_over_each_chips_sample_instants():
