@@ -3,6 +3,9 @@
 
 #include <math.h>
 
+/* th^2 below which `rodrigues` takes its series (th < 0.05 rad) */
+#define RODRIGUES_SERIES 2.5e-3
+
 static void rodrigues(const double *v, double *out)
 {
     double x = v[0], y = v[1], z = v[2];
@@ -11,6 +14,15 @@ static void rodrigues(const double *v, double *out)
     if (th2 < 1e-12) {
         a = 1.0 - th2 / 6.0;
         b = 0.5 - th2 / 24.0;
+    } else if (th2 < RODRIGUES_SERIES) {
+        /* sin(th)/th and (1 - cos th)/th^2 by their series to th^8: the first term left out is
+         * below 3e-21 (th2^5/11!, th2^5/12!), under a unit in the last place of a and b; a
+         * propagation's or a correction's angle (~1e-2 rad and less) always takes this branch,
+         * and it costs a fifth of sin and cos */
+        a = 1.0 - th2 * (1.0 / 6.0) * (1.0 - th2 * (1.0 / 20.0) * (1.0 - th2 * (1.0 / 42.0)
+                                                                     * (1.0 - th2 * (1.0 / 72.0))));
+        b = 0.5 - th2 * (1.0 / 24.0) * (1.0 - th2 * (1.0 / 30.0) * (1.0 - th2 * (1.0 / 56.0)
+                                                                      * (1.0 - th2 * (1.0 / 90.0))));
     } else {
         double th = sqrt(th2);
         a = sin(th) / th;
@@ -70,13 +82,14 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
                 GPbt[3 * i + j] = s2;
             }
         }
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) {
+        for (int i = 0; i < 3; i++) { /* symmetric: the upper triangle, mirrored */
+            for (int j = i; j < 3; j++) {
                 double s = 0.0;
                 for (int l = 0; l < 3; l++) {
                     s += GPbb[3 * i + l] * G[3 * j + l];
                 }
                 T[3 * i + j] = Pk[6 * i + j] - GPbt[3 * i + j] - GPbt[3 * j + i] + s;
+                T[3 * j + i] = T[3 * i + j];
             }
         }
         for (int i = 0; i < 3; i++) {
@@ -114,8 +127,8 @@ static double accel_innovation(const double *Rk, const double *v, const double *
             HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
         }
     }
-    for (int i = 0; i < 3; i++) {
-        for (int j = 0; j < 3; j++) {
+    for (int i = 0; i < 3; i++) { /* the upper triangle: all the cofactors read */
+        for (int j = i; j < 3; j++) {
             S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
                            + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2k : 0.0);
         }
@@ -534,28 +547,102 @@ void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *
     }
 }
 
-/* blocks of links small enough that a block's state is still in cache when it is applied */
-#define APPLY_BLOCK 64
+/* R <- exp([x]x) R for one link (capsheet_mf_apply's rotation) */
+static void turn_link(const double *xk, double *Rk)
+{
+    double E[9], Rn[9];
+    rodrigues(xk, E);
+    mat3_mul(E, Rk, Rn);
+    for (int i = 0; i < 9; i++) {
+        Rk[i] = Rn[i];
+    }
+}
+
+/* P <- (P + P^T) / 2 - M for one link, M symmetric given by its upper triangle (M[6 i + j],
+ * j >= i): the update and the symmetrisation of capsheet_mf_apply in one pass, each entry
+ * once */
+static void sym_update(double *Pk, const double *M)
+{
+    for (int i = 0; i < 6; i++) {
+        Pk[7 * i] -= M[7 * i];
+        for (int j = i + 1; j < 6; j++) {
+            double v = 0.5 * (Pk[6 * i + j] + Pk[6 * j + i]) - M[6 * i + j];
+            Pk[6 * i + j] = v;
+            Pk[6 * j + i] = v;
+        }
+    }
+}
 
 void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
                              const double *vec, const double *r2, double gate,
                              const uint8_t *valid, double *x, double *nis)
 {
-    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
-        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
-        capsheet_mf_accel(m, R + 9 * k0, P + 36 * k0, f + 3 * k0, vec + 3 * k0, r2 + k0, gate,
-                          valid + k0, x + 6 * k0, nis + k0);
-        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    for (size_t k = 0; k < n; k++) {
+        double *Rk = R + 9 * k, *Pk = P + 36 * k, *xk = x + 6 * k;
+        double M[36];
+        if (!valid[k]) {
+            for (int i = 0; i < 36; i++) {
+                M[i] = 0.0;
+            }
+            sym_update(Pk, M);
+            for (int i = 0; i < 6; i++) {
+                xk[i] = 0.0;
+            }
+            nis[k] = NAN;
+            continue;
+        }
+        double H[9], y[3], HP[18], Si[9], K[18];
+        double m2 = accel_innovation(Rk, vec + 3 * k, f + 3 * k, Pk, r2[k], H, y, HP, Si);
+        nis[k] = m2;
+        if (m2 / gate > 1.0) { /* the gate: S inflated (a division by 1 changes nothing) */
+            double infl = m2 / gate;
+            for (int i = 0; i < 9; i++) {
+                Si[i] /= infl;
+            }
+        }
+        for (int i = 0; i < 6; i++) { /* K = HP^T Si; x = K y */
+            for (int j = 0; j < 3; j++) {
+                K[3 * i + j] = HP[i] * Si[j] + HP[6 + i] * Si[3 + j] + HP[12 + i] * Si[6 + j];
+            }
+            xk[i] = K[3 * i] * y[0] + K[3 * i + 1] * y[1] + K[3 * i + 2] * y[2];
+        }
+        for (int i = 0; i < 6; i++) { /* K HP = HP^T Si HP: symmetric, its upper triangle */
+            for (int j = i; j < 6; j++) {
+                M[6 * i + j] = K[3 * i] * HP[j] + K[3 * i + 1] * HP[6 + j]
+                               + K[3 * i + 2] * HP[12 + j];
+            }
+        }
+        sym_update(Pk, M);
+        turn_link(xk, Rk);
+        for (int i = 0; i < 3; i++) {
+            bias[3 * k + i] += xk[3 + i];
+        }
     }
 }
 
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
                            const double *a_diag, double *x)
 {
-    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
-        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
-        capsheet_mf_yaw(m, P + 36 * k0, mu + k0, a_diag + k0, x + 6 * k0);
-        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    for (size_t k = 0; k < n; k++) {
+        double *Pk = P + 36 * k, *xk = x + 6 * k;
+        double c[6], M[36];
+        for (int i = 0; i < 6; i++) {
+            c[i] = Pk[6 * i + 2];
+        }
+        double p = c[2];
+        double s = (1.0 - 1.0 / (a_diag[k] * p));
+        for (int i = 0; i < 6; i++) { /* g c^T s with g = c / p: symmetric, its upper triangle */
+            double g = c[i] / p;
+            xk[i] = g * mu[k];
+            for (int j = i; j < 6; j++) {
+                M[6 * i + j] = g * (c[j] * s);
+            }
+        }
+        sym_update(Pk, M);
+        turn_link(xk, R + 9 * k);
+        for (int i = 0; i < 3; i++) {
+            bias[3 * k + i] += xk[3 + i];
+        }
     }
 }
 
