@@ -114,6 +114,13 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def mean_rows(a: np.ndarray) -> np.ndarray:
+    """The mean of an ``(n, k)`` array's rows as one matrix-vector product: numpy's reduction
+    along the first axis of a C-ordered ``(n, 3)`` array takes three numbers at a time (0.12 ms
+    at 8,064 links, against 5 µs; the same mean to rounding)."""
+    return (np.ones(a.shape[0]) @ a) / a.shape[0]
+
+
 def rotate_all(Q: np.ndarray, R: np.ndarray) -> np.ndarray:
     """``Q R_k`` for every frame ``R (n, 3, 3)``, as one 3 x 3n product."""
     n = R.shape[0]
@@ -289,16 +296,26 @@ def step(name: str, *args) -> None:
         NUMPY_STEPS[name](*args)
 
 
-def step_apply(name: str, R, bias, P, *args) -> None:
+def step_apply(name: str, R, bias, P, *args, turn=None, turn_bias=None) -> None:
     """Step ``accel`` or ``yaw`` (their arguments after ``R``/``P``, as `step` takes them), then
-    its correction applied (`apply`): in C one pass a block of links at a time."""
+    its correction applied (`apply`), then every frame turned by ``turn`` (3 x 3, ``R <- turn
+    R``) and, for ``accel``, every bias given ``Rᵀ (turn_bias[0], turn_bias[1], 0)`` with the
+    turned ``R`` (the sheet's common corrections; either None: none): in C one pass, link by
+    link."""
     x = args[-2] if name == "accel" else args[-1]
     if USE_KERNEL:
+        extra = [kernel_ffi.NULL if a is None else kernel_ffi.from_buffer(
+            "double[]", np.ascontiguousarray(a, dtype=float)) for a in (
+            (turn, turn_bias) if name == "accel" else (turn,))]
         getattr(kernel_lib, f"capsheet_mf_{name}_apply")(R.shape[0], *kernel_args(name, (R, bias, P)),
-                                                          *kernel_args(name, args))
+                                                          *kernel_args(name, args), *extra)
         return
     NUMPY_STEPS[name](*((R, P) + args if name == "accel" else (P,) + args))
     NUMPY_STEPS["apply"](R, bias, P, x)
+    if turn is not None:
+        R[:] = rotate_all(turn, R)
+    if turn_bias is not None:
+        bias += R[:, 0, :] * turn_bias[0] + R[:, 1, :] * turn_bias[1]  # Rᵀ (b_x, b_y, 0)
 
 
 def lattice_terms(R, P, topo, floor2):

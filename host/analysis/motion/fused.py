@@ -73,7 +73,7 @@ from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
-                      dist_tests, inv_sym3, mag_terms, mag_weights,
+                      dist_tests, inv_sym3, mag_terms, mag_weights, mean_rows,
                       orientation_cov as _orientation_cov, pcg, robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
@@ -199,7 +199,7 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     dd = ddot(np.asarray(frames, dtype=float), np.asarray(omega, dtype=float),
               np.asarray(omega_dot, dtype=float))
     a = link_midpoints(joints_from_vectors(dd, rows, cols, link_length))
-    return a - a.mean(axis=0)
+    return a - mean_rows(a)
 
 
 def calibrated(cal, accel_mps2, gyro_rps=None, mag_t=None):
@@ -617,7 +617,7 @@ class MotionEstimator:
         if nv == v.size:  # the links' mean reading in the world, one product: M[j, 3i + l] =
             # Σ_k f[k, j] R[k, i, l], and Σ_k R_k f_k is M's entries with j = l
             M = (f.T @ self.R.reshape(-1, 9)).reshape(3, 3, 3)
-            a_c = np.einsum("jij->i", M) / nv - _GRAVITY_SF - da.mean(axis=0)
+            a_c = np.einsum("jij->i", M) / nv - _GRAVITY_SF - mean_rows(da)
         elif nv:
             a_c = np.einsum("kij,kj->i", self.R[v], f[v]) / nv - _GRAVITY_SF - da[v].mean(axis=0)
         else:
@@ -627,18 +627,21 @@ class MotionEstimator:
         vec = _GRAVITY_SF + da + a_c
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + cfg.rel_accel_error ** 2 * np.einsum("ki,ki->k", da, da)
-        x = np.empty((self.n_links, 6))
-        if self._C is not None:
-            consider_accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
-        _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
-        # the sheet's own tilt: what the links share, from its bounded translation
+        # the sheet's own tilt: what the links share, from its bounded translation (its filter
+        # needs nothing of the links' updates: its turn and bias correction, which follow them,
+        # are applied in the same pass, `_linalg.step_apply`)
+        turn = turn_bias = None
         if nv:
             h = float(np.mean(dt[v]))
             self._common.step(a_c[:2], h, float(np.mean(self._q_last)) / nv,
                               cfg.gyro_bias_walk_rps ** 2 * h / nv, cfg.accel_noise_mps2 ** 2 / nv)
-            c, b = self._common.take()
-            turn_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
-            self.bias += self.R[:, 0, :] * b[0] + self.R[:, 1, :] * b[1]  # Rᵀ (b_x, b_y, 0)
+            c, turn_bias = self._common.take()
+            turn = rotation_matrices(np.array([c[0], c[1], 0.0]))
+        x = np.empty((self.n_links, 6))
+        if self._C is not None:
+            consider_accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
+        _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis,
+                    turn=turn, turn_bias=turn_bias)
         return a_c
 
     def _apply(self, x) -> None:
@@ -694,9 +697,9 @@ class MotionEstimator:
         x = np.empty((n, 6))
         if self._C is not None:
             consider_yaw(P, self._C, a_diag)
-        _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
-        if m is not None:
-            self._heading_mode(dt)
+        # the heading's turn (it needs nothing of the links' updates) in the same pass
+        _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x,
+                    turn=None if m is None else self._heading_mode(dt))
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
     def _yaw_prior(self, p, seen=None, six_axis=False):
@@ -846,9 +849,9 @@ class MotionEstimator:
         weights[k] = wgt
         mw[k] = wgt / var0
 
-    def _heading_mode(self, dt) -> None:
-        """Turn the sheet's heading towards the robust mode of its links' averaged heading
-        residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
+    def _heading_mode(self, dt) -> np.ndarray | None:
+        """The turn (3 x 3, world; None: none) of the sheet's heading towards the robust mode
+        of its links' averaged heading residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
         hold (``held0``, `_yaw_prior`) over `FusedConfig.heading_mode_time_s`: the gyroscopes
         carry the heading while a disturbance is detected, and the links that agree with each
         other — not the mean of every link the disturbance turns a little — correct it slowly.
@@ -857,16 +860,16 @@ class MotionEstimator:
         by construction (docs/estimator.md §8)."""
         cfg = self.config
         if cfg.heading_mode_rad <= 0 or self._held0 <= 0:
-            return
+            return None
         use = self._field_tests[0] & (self._dist_count * self._h >= cfg.mag_warmup_s)
         w = np.where(use, self._held[self.topo.group], 0.0)
         psi = robust_mode(self._resid_avg, w, cfg.heading_mode_rad, self._mode_psi)
         if psi is None:
-            return
+            return None
         g = self._held0 * min(1.0, self._h / cfg.heading_mode_time_s)
-        turn_all(rotation_matrices(np.array([0.0, 0.0, -g * psi])), self.R)
         self._resid_avg -= g * psi
         self._mode_psi = (1.0 - g) * psi  # where the mode is after the turn: the next start
+        return rotation_matrices(np.array([0.0, 0.0, -g * psi]))
 
     def _disturbance_tests(self, resid, v, dt) -> None:
         """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the

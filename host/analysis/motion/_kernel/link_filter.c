@@ -6,7 +6,7 @@
 /* th^2 below which `rodrigues` takes its series (th < 0.05 rad) */
 #define RODRIGUES_SERIES 2.5e-3
 
-static void rodrigues(const double *v, double *out)
+static inline void rodrigues(const double *v, double *out)
 {
     double x = v[0], y = v[1], z = v[2];
     double th2 = x * x + y * y + z * z;
@@ -40,7 +40,7 @@ static void rodrigues(const double *v, double *out)
     out[7] = b * yz + a * x;
 }
 
-static void mat3_mul(const double *A, const double *B, double *C)
+static inline void mat3_mul(const double *A, const double *B, double *C)
 {
     for (int i = 0; i < 3; i++) {
         for (int j = 0; j < 3; j++) {
@@ -336,19 +336,21 @@ void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
                                const int32_t *indices, const double *data, const double *w,
                                const double *x, double *tmp, double *out)
 {
-    for (size_t r = 0; r < n_rows; r++) {
-        double s = 0.0;
-        for (int32_t i = indptr[r]; i < indptr[r + 1]; i++) {
-            s += data[i] * x[indices[i]];
-        }
-        tmp[r] = w[r] * s;
-    }
     for (size_t k = 0; k < n; k++) {
         out[k] = 0.0;
     }
+    /* one pass: each row's product, then its share of J^T at once (out[k] still sums its
+     * terms in increasing row order: the same numbers as a pass for J x and one for J^T) */
     for (size_t r = 0; r < n_rows; r++) {
-        for (int32_t i = indptr[r]; i < indptr[r + 1]; i++) {
-            out[indices[i]] += data[i] * tmp[r];
+        int32_t i0 = indptr[r], i1 = indptr[r + 1];
+        double s = 0.0;
+        for (int32_t i = i0; i < i1; i++) {
+            s += data[i] * x[indices[i]];
+        }
+        double t = w[r] * s;
+        tmp[r] = t;
+        for (int32_t i = i0; i < i1; i++) {
+            out[indices[i]] += data[i] * t;
         }
     }
 }
@@ -362,7 +364,8 @@ static double dot(size_t n, const double *a, const double *b)
     return s;
 }
 
-static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+/* returns x . out, summed in increasing k (as `dot` would) */
+static double yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
                        const int32_t *indices, const double *data, const double *w,
                        const double *D, const int64_t *group, const double *dg, const double *Eg,
                        double sE, double I0, const double *mw, const double *x, double *out,
@@ -383,11 +386,14 @@ static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *
     for (size_t g = 0; g < n_groups; g++) {
         sig[g] = (Eg[g] * abar[g] - Eg[g] * (ey / sE) + Eg[g] * (ey * I0 / (sE * sE))) / dg[g];
     }
+    double xo = 0.0;
     for (size_t k = 0; k < n; k++) {
         int64_t g = group[k];
         double prior = D[k] * x[k] - D[k] * abar[g] + D[k] * sig[g];
         out[k] = out[k] + prior + mw[k] * x[k];
+        xo += x[k] * out[k];
     }
+    return xo;
 }
 
 /* z = inv_diag r, plus the groups' coarse correction Z (C^-1 (Z^T r)) when coarse_inv is given */
@@ -438,20 +444,50 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
     }
     double rz = dot(n, r, z);
     double stop = rtol * rtol * dot(n, b, b);
+    double rr = dot(n, r, r);
     int it;
+    /* `pcg`'s steps with its passes over the links merged where one's sums end before the next
+     * needs them; every sum runs in increasing k as before (the same numbers) */
     for (it = 0; it < maxiter; it++) {
-        if (dot(n, r, r) <= stop) {
+        if (rr <= stop) {
             break;
         }
-        yaw_matvec(n, n_rows, n_groups, indptr, indices, data, w, D, group, dg, Eg, sE, I0, mw,
-                   p, q, tmp, abar, sig);
-        double alpha = rz / dot(n, p, q);
-        for (size_t k = 0; k < n; k++) {
-            x[k] += alpha * p[k];
-            r[k] -= alpha * q[k];
+        double pq = yaw_matvec(n, n_rows, n_groups, indptr, indices, data, w, D, group, dg, Eg,
+                               sE, I0, mw, p, q, tmp, abar, sig);
+        double alpha = rz / pq;
+        rr = 0.0;
+        if (coarse_inv != NULL) {
+            for (size_t g = 0; g < n_groups; g++) {
+                t[g] = 0.0;
+            }
         }
-        precondition(n, n_groups, group, inv_diag, coarse_inv, r, z, t, c);
-        double rz_new = dot(n, r, z);
+        for (size_t k = 0; k < n; k++) { /* the step; |r|^2 and Z^T r of the new residual */
+            x[k] += alpha * p[k];
+            double rk = r[k] - alpha * q[k];
+            r[k] = rk;
+            rr += rk * rk;
+            if (coarse_inv != NULL) {
+                t[group[k]] += rk;
+            }
+        }
+        if (coarse_inv != NULL) {
+            for (size_t g = 0; g < n_groups; g++) {
+                double s = 0.0;
+                for (size_t h = 0; h < n_groups; h++) {
+                    s += coarse_inv[n_groups * g + h] * t[h];
+                }
+                c[g] = s;
+            }
+        }
+        double rz_new = 0.0;
+        for (size_t k = 0; k < n; k++) { /* precondition (as `precondition`) and r . z */
+            double zk = inv_diag[k] * r[k];
+            if (coarse_inv != NULL) {
+                zk += c[group[k]];
+            }
+            z[k] = zk;
+            rz_new += r[k] * zk;
+        }
         double beta = rz_new / rz;
         for (size_t k = 0; k < n; k++) {
             p[k] = z[k] + beta * p[k];
@@ -478,7 +514,11 @@ void capsheet_mf_rotate(size_t n, double *R, const double *Q)
 static double wrap_pi(double x)
 {
     const double pi = 3.14159265358979323846;
-    double r = fmod(x + pi, 2.0 * pi);
+    double y = x + pi;
+    if (y >= 0.0 && y < 2.0 * pi) { /* fmod would return y itself (it is exact) */
+        return y - pi;
+    }
+    double r = fmod(y, 2.0 * pi);
     if (r < 0.0) {
         r += 2.0 * pi;
     }
@@ -573,9 +613,28 @@ static void sym_update(double *Pk, const double *M)
     }
 }
 
+/* then R <- Q R (Q: 3 x 3, none when NULL) and bias <- bias + R^T (b[0], b[1], 0) with that R
+ * (none when b is NULL): the sheet's common turn, as capsheet_mf_rotate and fused.py do it */
+static void turn_after(double *Rk, double *bk, const double *Q, const double *b)
+{
+    if (Q != NULL) {
+        double Rn[9];
+        mat3_mul(Q, Rk, Rn);
+        for (int i = 0; i < 9; i++) {
+            Rk[i] = Rn[i];
+        }
+    }
+    if (b != NULL) {
+        for (int i = 0; i < 3; i++) {
+            bk[i] += Rk[i] * b[0] + Rk[3 + i] * b[1];
+        }
+    }
+}
+
 void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
                              const double *vec, const double *r2, double gate,
-                             const uint8_t *valid, double *x, double *nis)
+                             const uint8_t *valid, double *x, double *nis, const double *turn,
+                             const double *turn_bias)
 {
     for (size_t k = 0; k < n; k++) {
         double *Rk = R + 9 * k, *Pk = P + 36 * k, *xk = x + 6 * k;
@@ -589,6 +648,7 @@ void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const
                 xk[i] = 0.0;
             }
             nis[k] = NAN;
+            turn_after(Rk, bias + 3 * k, turn, turn_bias);
             continue;
         }
         double H[9], y[3], HP[18], Si[9], K[18];
@@ -617,11 +677,12 @@ void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const
         for (int i = 0; i < 3; i++) {
             bias[3 * k + i] += xk[3 + i];
         }
+        turn_after(Rk, bias + 3 * k, turn, turn_bias);
     }
 }
 
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
-                           const double *a_diag, double *x)
+                           const double *a_diag, double *x, const double *turn)
 {
     for (size_t k = 0; k < n; k++) {
         double *Pk = P + 36 * k, *xk = x + 6 * k;
@@ -643,6 +704,7 @@ void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const d
         for (int i = 0; i < 3; i++) {
             bias[3 * k + i] += xk[3 + i];
         }
+        turn_after(R + 9 * k, NULL, turn, NULL);
     }
 }
 

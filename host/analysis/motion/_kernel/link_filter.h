@@ -2,8 +2,9 @@
  * propagation, the accelerometer's Kalman update, and applying a correction, for n links at
  * once. Plain C99, no allocation; arrays are row-major doubles: R n x 3 x 3 (sensor -> world),
  * P n x 6 x 6 (error state: world rotation, then gyroscope bias), vectors n x 3 or n x 6.
- * The numpy code beside it (fused.py, `_np_*`) computes the same numbers in the same order of
- * operations; tests/host/analysis/test_motion_kernel.py compares them. */
+ * The numpy code beside it (fused.py, `_np_*`) computes the same numbers to rounding (the
+ * kernel takes a small rotation's series where numpy takes sin and cos, and a symmetric
+ * update's upper triangle); tests/host/analysis/test_motion_kernel.py compares them. */
 #include <stddef.h>
 #include <stdint.h>
 
@@ -93,15 +94,20 @@ void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_c
 void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
                       double *out);
 
-/* capsheet_mf_accel, then capsheet_mf_apply of its x, a block of links at a time (the same
- * numbers as the two calls; one pass over the state). */
+/* capsheet_mf_accel, then capsheet_mf_apply of its x, link by link (one pass over the state;
+ * the covariance's update, symmetric, computed once per entry: the two calls' numbers to
+ * rounding), then, when turn (3 x 3) is not NULL, R <- turn R, and when turn_bias (2) is not
+ * NULL, bias <- bias + R^T (turn_bias[0], turn_bias[1], 0) with that R: the sheet's common
+ * tilt and bias correction (fused.py `_accel_update`), in the same pass. */
 void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
                              const double *vec, const double *r2, double gate,
-                             const uint8_t *valid, double *x, double *nis);
+                             const uint8_t *valid, double *x, double *nis, const double *turn,
+                             const double *turn_bias);
 
-/* capsheet_mf_yaw, then capsheet_mf_apply of its x, a block of links at a time. */
+/* capsheet_mf_yaw, then capsheet_mf_apply of its x, link by link, then R <- turn R when turn is
+ * not NULL (the sheet's heading, fused.py `_heading_mode`). */
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
-                           const double *a_diag, double *x);
+                           const double *a_diag, double *x, const double *turn);
 
 /* out = J^T v for the CSR matrix J (n_rows x n): each out entry sums its terms in increasing row
  * order (as scipy's product by J^T's CSR does). */
