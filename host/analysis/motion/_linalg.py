@@ -274,12 +274,18 @@ def kernel_args(name: str, args) -> list:
     return out
 
 
+def _i32(a: np.ndarray) -> np.ndarray:
+    """A lattice's index array as the kernel's 32-bit one (`fixed_args` keeps it with the
+    topology; a lattice's indices are far below 2³¹)."""
+    return np.ascontiguousarray(a, dtype=np.int32)
+
+
 def fixed_args(topo, name: str, arrays) -> list:
     """`kernel_args` of a lattice's fixed index arrays, made once per lattice and kept on its
-    topology (the arrays live as long as it does)."""
+    topology (the arrays live as long as it does; a callable ``arrays`` is called only then)."""
     cache = topo.__dict__.setdefault("_kernel_args", {})
     if name not in cache:
-        cache[name] = kernel_args(name, arrays)
+        cache[name] = kernel_args(name, arrays() if callable(arrays) else arrays)
     return cache[name]
 
 
@@ -328,10 +334,11 @@ def lattice_terms(R, P, topo, floor2):
         work = np.empty(10 * U + 3 * n)
         kernel_lib.capsheet_mf_lattice(n, U, topo.pair_link.size, topo.jac_nnz,
                                        *kernel_args("lattice", (R, P)),
-                                       *fixed_args(topo, "lattice", (
-                                           topo.units, topo.pair_link, topo.pair_cell,
-                                           topo.inv_ncell, topo.jac_slots, topo.jac_rows,
-                                           topo.jac_cols)),
+                                       *fixed_args(topo, "lattice", lambda: (
+                                           _i32(topo.units), _i32(topo.pair_link),
+                                           _i32(topo.pair_cell), topo.inv_ncell,
+                                           _i32(topo.jac_slots), topo.jac_indptr32,
+                                           topo.jac_indices32)),
                                        *kernel_args("lattice", (floor2, res, wts, jd, lat_diag,
                                                                 work)))
     else:
@@ -604,8 +611,9 @@ def group_info(topo, jd, wts, lat_diag):
         return jg, info, seen
     jg, info, seen = np.empty(topo.jg_rows.size), np.empty(ng), np.empty(ng)
     kernel_lib.capsheet_mf_group_info(jd.size, jg.size, ng, topo.n_links, *fixed_args(
-        topo, "info", (topo.jg_index, )), *kernel_args("info", (jd,)), *fixed_args(
-        topo, "info_pattern", (topo.jg_rows, topo.jg_group)), *kernel_args("info", (wts,)),
+        topo, "info", lambda: (_i32(topo.jg_index), )), *kernel_args("info", (jd,)), *fixed_args(
+        topo, "info_pattern", lambda: (_i32(topo.jg_rows), _i32(topo.jg_group))),
+        *kernel_args("info", (wts,)),
         *fixed_args(topo, "group", (topo.group,)), *kernel_args("info", (lat_diag, jg, info, seen)))
     return jg, info, seen
 

@@ -198,6 +198,11 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     """
     dd = ddot(np.asarray(frames, dtype=float), np.asarray(omega, dtype=float),
               np.asarray(omega_dot, dtype=float))
+    return _chips_relative(dd, rows, cols, link_length)
+
+
+def _chips_relative(dd, rows, cols, link_length) -> np.ndarray:
+    """`relative_accelerations` from the links' ``d̈`` (n_links, 3)."""
     a = link_midpoints(joints_from_vectors(dd, rows, cols, link_length))
     return a - mean_rows(a)
 
@@ -602,6 +607,12 @@ class MotionEstimator:
     def _relative_accel(self, w_c, dt) -> np.ndarray:
         """Every chip's acceleration less the chips' mean, world (step 2 of the docstring)."""
         wm1, wm2 = self._w_hist[-1], self._w_hist[-2]
+        if USE_KERNEL:  # the rates' differences and d̈ in one pass, the same numbers
+            dd = np.empty((self.n_links, 3))
+            _klib.capsheet_mf_ddot_rates(self.n_links, *_kernel_args("ddot", (
+                self.R, w_c, wm1, wm2, dt)), int(self.snapshots >= 2),
+                _kffi.from_buffer("double[]", dd))
+            return _chips_relative(dd, self.rows, self.cols, self.link_length)
         h = dt[:, None]
         if self.snapshots >= 2:
             wdot = (3.0 * w_c - 4.0 * wm1 + wm2) / (2.0 * h)

@@ -111,7 +111,7 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
 /* A link's accelerometer innovation: H = R^T [v]x, y = f - R^T v, HP = H P (3 x 6), the inverse
  * Si of S = H P H^T + r2 I (symmetric, by cofactors as fused.py's `_inv_sym3`); returns y^T Si y.
  * The update and the consider step's update share it. */
-static double accel_innovation(const double *Rk, const double *v, const double *fk, const double *Pk,
+static inline double accel_innovation(const double *Rk, const double *v, const double *fk, const double *Pk,
                                double r2k, double *H, double *y, double *HP, double *Si)
 {
     double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
@@ -230,10 +230,10 @@ void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const doubl
 }
 
 void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
-                         const double *P, const int64_t *units, const int64_t *pair_link,
-                         const int64_t *pair_cell, const double *inv_ncell,
-                         const int64_t *jac_slots, const int64_t *jac_rows,
-                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         const double *P, const int32_t *units, const int32_t *pair_link,
+                         const int32_t *pair_cell, const double *inv_ncell,
+                         const int32_t *jac_slots, const int32_t *jac_indptr,
+                         const int32_t *jac_indices, double floor2, double *res, double *wts,
                          double *jd, double *lat_diag, double *work)
 {
     size_t U = n_units;
@@ -245,7 +245,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         jd[i] = 0.0;
     }
     for (size_t u = 0; u < U; u++) {
-        const int64_t *un = units + 4 * u;
+        const int32_t *un = units + 4 * u;
         const double *d0 = R + 9 * un[0], *d1 = R + 9 * un[1], *d2 = R + 9 * un[2],
                      *d3 = R + 9 * un[3]; /* d = R[:, :, 0]: elements 0, 3, 6 */
         res[2 * u] = d0[0] + d1[0] - d2[0] - d3[0];
@@ -277,7 +277,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         nbar[k] = 0.0;
     }
     for (size_t p = 0; p < n_pairs; p++) {
-        int64_t k = pair_link[p], u = pair_cell[p];
+        int32_t k = pair_link[p], u = pair_cell[p];
         for (int i = 0; i < 3; i++) {
             nbar[3 * k + i] += inv_ncell[k] * nc[3 * u + i];
         }
@@ -289,7 +289,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         jd[jac_slots[e++]] += Y0 * nb[1] - Y1 * nb[0];
     }
     for (size_t p = 0; p < n_pairs; p++) {
-        int64_t k = pair_link[p], u = pair_cell[p];
+        int32_t k = pair_link[p], u = pair_cell[p];
         const double *Rk = R + 9 * k, *n3 = nc + 3 * u, *a = A + 3 * u, *cc = C + 3 * u;
         double Y[3] = {Rk[1], Rk[4], Rk[7]};
         double t = n3[0] * Y[0] + n3[1] * Y[1] + n3[2] * Y[2];
@@ -302,7 +302,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
                          cc[0] * W[1] - cc[1] * W[0]};
         double WxA[3] = {W[1] * a[2] - W[2] * a[1], W[2] * a[0] - W[0] * a[2],
                          W[0] * a[1] - W[1] * a[0]};
-        const int64_t *un = units + 4 * u;
+        const int32_t *un = units + 4 * u;
         for (int s = 0; s < 4; s++) {
             const double *dk = R + 9 * un[s];
             const double *v = (s == 0 || s == 2) ? WxA : CxW;
@@ -312,7 +312,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
     }
     /* weights: the tilt variance of the links involved plus the model's floor */
     for (size_t u = 0; u < U; u++) {
-        const int64_t *un = units + 4 * u;
+        const int32_t *un = units + 4 * u;
         double s = 0.0;
         for (int i = 0; i < 4; i++) {
             const double *Pk = P + 36 * un[i];
@@ -327,8 +327,11 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         wts[2 * U + k] = 1.0 / (2.0 * (Pk[0] + Pk[7]) + floor2);
         lat_diag[k] = 0.0;
     }
-    for (size_t i = 0; i < nnz; i++) {
-        lat_diag[jac_cols[i]] += wts[jac_rows[i]] * jd[i] * jd[i];
+    (void)nnz;
+    for (size_t r = 0; r < 2 * U + n; r++) { /* the entries in CSR order, as before by entry */
+        for (int32_t i = jac_indptr[r]; i < jac_indptr[r + 1]; i++) {
+            lat_diag[jac_indices[i]] += wts[r] * jd[i] * jd[i];
+        }
     }
 }
 
@@ -569,6 +572,20 @@ void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_c
     }
 }
 
+void capsheet_mf_ddot_rates(size_t n, const double *R, const double *w, const double *wm1,
+                            const double *wm2, const double *dt, int second_order, double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *a = w + 3 * k, *b = wm1 + 3 * k, *c = wm2 + 3 * k;
+        double h = dt[k], wd[3];
+        for (int i = 0; i < 3; i++) { /* fused.py `_relative_accel`'s differences, its order */
+            wd[i] = second_order ? (3.0 * a[i] - 4.0 * b[i] + c[i]) / (2.0 * h)
+                                 : (a[i] - b[i]) / h;
+        }
+        capsheet_mf_ddot(1, R + 9 * k, a, wd, out + 3 * k);
+    }
+}
+
 void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
                       double *out)
 {
@@ -738,8 +755,8 @@ void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const 
 }
 
 void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
-                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
-                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const int32_t *jg_index, const double *jd, const int32_t *jg_rows,
+                            const int32_t *jg_group, const double *w, const int64_t *group,
                             const double *lat_diag, double *jg, double *info, double *seen)
 {
     for (size_t i = 0; i < n_jg; i++) {

@@ -32,14 +32,15 @@ void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const doubl
  * the same order): n links, n_units cells, n_pairs (link, cell) pairs, nnz Jacobian entries.
  * units n_units x 4, pair_link / pair_cell n_pairs, inv_ncell n, jac_slots (8 n_units + n +
  * 4 n_pairs: each computed entry's place in the CSR data, summed there in that order),
- * jac_rows / jac_cols nnz (the CSR pattern's row and column of each entry). Out: res and wts
+ * jac_indptr / jac_indices (the CSR pattern: 2 n_units + n + 1 row starts, nnz columns; all
+ * index arrays 32-bit, half the memory a pass reads). Out: res and wts
  * (2 n_units + n rows: closure x, y per cell, then one normal row per link), jd (nnz), lat_diag
  * (n: the diagonal of J^T W J). work: 10 n_units + 3 n doubles of scratch. */
 void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
-                         const double *P, const int64_t *units, const int64_t *pair_link,
-                         const int64_t *pair_cell, const double *inv_ncell,
-                         const int64_t *jac_slots, const int64_t *jac_rows,
-                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         const double *P, const int32_t *units, const int32_t *pair_link,
+                         const int32_t *pair_cell, const double *inv_ncell,
+                         const int32_t *jac_slots, const int32_t *jac_indptr,
+                         const int32_t *jac_indices, double floor2, double *res, double *wts,
                          double *jd, double *lat_diag, double *work);
 
 /* out = J^T (w .* (J x)) for the CSR matrix J (n_rows x n: indptr, indices, data); tmp holds
@@ -94,6 +95,12 @@ void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_c
 void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
                       double *out);
 
+/* capsheet_mf_ddot with wdot from the rates w and the last two wm1, wm2 over dt (s): the
+ * second-order backward difference (3 w - 4 wm1 + wm2) / (2 dt) when second_order, else
+ * (w - wm1) / dt (fused.py `_relative_accel`, the same numbers). */
+void capsheet_mf_ddot_rates(size_t n, const double *R, const double *w, const double *wm1,
+                            const double *wm2, const double *dt, int second_order, double *out);
+
 /* capsheet_mf_accel, then capsheet_mf_apply of its x, link by link (one pass over the state;
  * the covariance's update, symmetric, computed once per entry: the two calls' numbers to
  * rounding), then, when turn (3 x 3) is not NULL, R <- turn R, and when turn_bias (2) is not
@@ -118,8 +125,8 @@ void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const 
  * entries jd summed per (row, group) slot jg_index; info[g] = sum over the slots of group g of
  * w[row] jg^2; seen[g] = info[g] / max(sum of lat_diag over the group's links, 1e-300). */
 void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
-                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
-                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const int32_t *jg_index, const double *jd, const int32_t *jg_rows,
+                            const int32_t *jg_group, const double *w, const int64_t *group,
                             const double *lat_diag, double *jg, double *info, double *seen);
 
 /* The magnetometers' weights (fused.py `_linalg.np_mag_weights`, `MotionEstimator._magnetometer`),
