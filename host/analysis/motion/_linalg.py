@@ -302,26 +302,32 @@ def step(name: str, *args) -> None:
         NUMPY_STEPS[name](*args)
 
 
-def step_apply(name: str, R, bias, P, *args, turn=None, turn_bias=None) -> None:
+def step_apply(name: str, R, bias, P, *args, turn=None, turn_bias=None, cov=None):
     """Step ``accel`` or ``yaw`` (their arguments after ``R``/``P``, as `step` takes them), then
     its correction applied (`apply`), then every frame turned by ``turn`` (3 x 3, ``R <- turn
     R``) and, for ``accel``, every bias given ``Rᵀ (turn_bias[0], turn_bias[1], 0)`` with the
     turned ``R`` (the sheet's common corrections; either None: none): in C one pass, link by
-    link."""
+    link. For ``yaw``, ``cov`` (``tilt_cov, yaw_add`` of `orientation_cov`) returns the
+    updated state's `orientation_cov` (made in the same pass); else None."""
     x = args[-2] if name == "accel" else args[-1]
     if USE_KERNEL:
         extra = [kernel_ffi.NULL if a is None else kernel_ffi.from_buffer(
             "double[]", np.ascontiguousarray(a, dtype=float)) for a in (
-            (turn, turn_bias) if name == "accel" else (turn,))]
+            (turn, turn_bias) if name == "accel" else (turn,) + (cov or (None, None)))]
+        out = None
+        if name == "yaw":
+            out = None if cov is None else np.empty((R.shape[0], 3, 3))
+            extra.append(kernel_ffi.NULL if out is None else kernel_ffi.from_buffer("double[]", out))
         getattr(kernel_lib, f"capsheet_mf_{name}_apply")(R.shape[0], *kernel_args(name, (R, bias, P)),
                                                           *kernel_args(name, args), *extra)
-        return
+        return out
     NUMPY_STEPS[name](*((R, P) + args if name == "accel" else (P,) + args))
     NUMPY_STEPS["apply"](R, bias, P, x)
     if turn is not None:
         R[:] = rotate_all(turn, R)
     if turn_bias is not None:
         bias += R[:, 0, :] * turn_bias[0] + R[:, 1, :] * turn_bias[1]  # Rᵀ (b_x, b_y, 0)
+    return None if cov is None or name != "yaw" else np_orientation_cov(P, *cov)
 
 
 def lattice_terms(R, P, topo, floor2):

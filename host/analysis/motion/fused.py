@@ -424,6 +424,7 @@ class MotionEstimator:
         """
         t0 = time.perf_counter()
         t, f, w, m, v = self._check(t_s, accel, gyro, mag, valid)
+        self._cov_out = None
         if self.R is None:
             self._initialise(t, f, w, m, v)
             t1 = t2 = t3 = time.perf_counter()
@@ -445,6 +446,7 @@ class MotionEstimator:
             self._t = t
         joints = joints_from_vectors(self.R[:, :, 0], self.rows, self.cols, self.link_length)
         self._joints = joints
+        cov, self._cov_out = self._cov_out, None
         t4 = time.perf_counter()
         self.snapshots += 1
         return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
@@ -453,7 +455,7 @@ class MotionEstimator:
                               common_accel_mps2=a_c, heading_absolute=bool(self._with_mag),
                               timings={"propagate": t1 - t0, "accel": t2 - t1,
                                        "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0},
-                              orientation_cov_rad2=self.orientation_cov(),
+                              orientation_cov_rad2=self.orientation_cov() if cov is None else cov,
                               common_tilt_cov_rad2=self._common.tilt_cov,
                               accel_nis=self._nis.copy())
 
@@ -462,9 +464,13 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        return _orientation_cov(self.P, self._common.tilt_cov,
-                                (self._s_group[self.topo.group] + self._s0) if self._with_mag
-                                else None)
+        return _orientation_cov(self.P, *self._cov_terms())
+
+    def _cov_terms(self):
+        """`_linalg.orientation_cov`'s terms beside ``P``: the common tilt's covariance and,
+        with magnetometers, each link's share of its group's and the sheet's yaw variances."""
+        return (self._common.tilt_cov,
+                (self._s_group[self.topo.group] + self._s0) if self._with_mag else None)
 
     def _initialise(self, t, f, w, m, v) -> None:
         cfg = self.config
@@ -708,9 +714,11 @@ class MotionEstimator:
         x = np.empty((n, 6))
         if self._C is not None:
             consider_yaw(P, self._C, a_diag)
-        # the heading's turn (it needs nothing of the links' updates) in the same pass
-        _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x,
-                    turn=None if m is None else self._heading_mode(dt))
+        # the heading's turn (it needs nothing of the links' updates) and the output's
+        # covariance (`orientation_cov`: the collective variances are final now) in the same pass
+        self._cov_out = _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x,
+                                    turn=None if m is None else self._heading_mode(dt),
+                                    cov=self._cov_terms())
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
     def _yaw_prior(self, p, seen=None, six_axis=False):

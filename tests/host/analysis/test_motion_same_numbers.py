@@ -68,6 +68,8 @@ def _run(name, rd):
         e = est.update(rd.t_s[k], rd.accel_mps2[k], rd.gyro_rps[k],
                        rd.mag_t[k] if spec["mag"] else None, valid)
         if k in KEEP or k == rd.t_s.size - 1:
+            # the output's covariance, made in the yaw update's pass, is the state's
+            assert np.array_equal(e.orientation_cov_rad2, est.orientation_cov()), (name, k)
             out[f"{name}/joints/{k}"] = e.joints
             out[f"{name}/frames/{k}"] = e.frames
             out[f"{name}/bias/{k}"] = e.gyro_bias_rps

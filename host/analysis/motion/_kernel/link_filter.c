@@ -699,7 +699,8 @@ void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const
 }
 
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
-                           const double *a_diag, double *x, const double *turn)
+                           const double *a_diag, double *x, const double *turn,
+                           const double *tilt_cov, const double *yaw_add, double *cov)
 {
     for (size_t k = 0; k < n; k++) {
         double *Pk = P + 36 * k, *xk = x + 6 * k;
@@ -722,6 +723,10 @@ void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const d
             bias[3 * k + i] += xk[3 + i];
         }
         turn_after(R + 9 * k, NULL, turn, NULL);
+        if (cov != NULL) { /* the output's covariance while the link's state is in cache */
+            capsheet_mf_orientation_cov(1, Pk, tilt_cov, yaw_add == NULL ? NULL : yaw_add + k,
+                                        cov + 9 * k);
+        }
     }
 }
 

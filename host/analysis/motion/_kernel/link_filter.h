@@ -112,9 +112,11 @@ void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const
                              const double *turn_bias);
 
 /* capsheet_mf_yaw, then capsheet_mf_apply of its x, link by link, then R <- turn R when turn is
- * not NULL (the sheet's heading, fused.py `_heading_mode`). */
+ * not NULL (the sheet's heading, fused.py `_heading_mode`), and, when cov is not NULL, the
+ * link's capsheet_mf_orientation_cov of the updated P into cov (n x 3 x 3) in the same pass. */
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
-                           const double *a_diag, double *x, const double *turn);
+                           const double *a_diag, double *x, const double *turn,
+                           const double *tilt_cov, const double *yaw_add, double *cov);
 
 /* out = J^T v for the CSR matrix J (n_rows x n): each out entry sums its terms in increasing row
  * order (as scipy's product by J^T's CSR does). */
