@@ -317,7 +317,8 @@ def step_apply(name: str, R, bias, P, *args, turn=None, turn_bias=None, cov=None
         out = None
         if name == "yaw":
             out = None if cov is None else np.empty((R.shape[0], 3, 3))
-            extra.append(kernel_ffi.NULL if out is None else kernel_ffi.from_buffer("double[]", out))
+            extra.append(kernel_ffi.NULL if out is None
+                         else kernel_ffi.from_buffer("double[]", out))
         getattr(kernel_lib, f"capsheet_mf_{name}_apply")(R.shape[0], *kernel_args(name, (R, bias, P)),
                                                           *kernel_args(name, args), *extra)
         return out
@@ -561,6 +562,20 @@ def ddot(R, w, wdot):
     kernel_lib.capsheet_mf_ddot(R.shape[0], *kernel_args("ddot", (
         np.ascontiguousarray(R, dtype=float), np.ascontiguousarray(w, dtype=float),
         np.ascontiguousarray(wdot, dtype=float), out)))
+    return out
+
+
+def ddot_rates(R, w, wm1, wm2, dt, second_order: bool):
+    """`ddot` with ``ω̇`` the rates' backward difference over ``dt`` (n,) from the last two
+    ``wm1``, ``wm2``: second order ``(3 ω − 4 ω₋₁ + ω₋₂) / (2 dt)`` or first ``(ω − ω₋₁) / dt``
+    (in C when `USE_KERNEL`, one pass, the same numbers)."""
+    if not USE_KERNEL:
+        h = dt[:, None]
+        wdot = (3.0 * w - 4.0 * wm1 + wm2) / (2.0 * h) if second_order else (w - wm1) / h
+        return np_ddot(R, w, wdot)
+    out = np.empty((R.shape[0], 3))
+    kernel_lib.capsheet_mf_ddot_rates(R.shape[0], *kernel_args("ddot", (R, w, wm1, wm2, dt)),
+                                      int(second_order), kernel_ffi.from_buffer("double[]", out))
     return out
 
 

@@ -73,7 +73,7 @@ from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
-                      dist_tests, inv_sym3, mag_terms, mag_weights, mean_rows,
+                      ddot_rates, dist_tests, inv_sym3, mag_terms, mag_weights, mean_rows,
                       orientation_cov as _orientation_cov, pcg, robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
@@ -612,20 +612,8 @@ class MotionEstimator:
     # ------------------------------------------------------------------------------- 2, 3. accel
     def _relative_accel(self, w_c, dt) -> np.ndarray:
         """Every chip's acceleration less the chips' mean, world (step 2 of the docstring)."""
-        wm1, wm2 = self._w_hist[-1], self._w_hist[-2]
-        if USE_KERNEL:  # the rates' differences and d̈ in one pass, the same numbers
-            dd = np.empty((self.n_links, 3))
-            _klib.capsheet_mf_ddot_rates(self.n_links, *_kernel_args("ddot", (
-                self.R, w_c, wm1, wm2, dt)), int(self.snapshots >= 2),
-                _kffi.from_buffer("double[]", dd))
-            return _chips_relative(dd, self.rows, self.cols, self.link_length)
-        h = dt[:, None]
-        if self.snapshots >= 2:
-            wdot = (3.0 * w_c - 4.0 * wm1 + wm2) / (2.0 * h)
-        else:
-            wdot = (w_c - wm1) / h
-        return relative_accelerations(self.R, w_c, wdot, self.rows, self.cols, self.link_length,
-                                      self.topo.lattice.endpoints)
+        dd = ddot_rates(self.R, w_c, self._w_hist[-1], self._w_hist[-2], dt, self.snapshots >= 2)
+        return _chips_relative(dd, self.rows, self.cols, self.link_length)
 
     def _accel_update(self, f, w_c, dt, v) -> np.ndarray:
         cfg = self.config
@@ -870,8 +858,9 @@ class MotionEstimator:
 
     def _heading_mode(self, dt) -> np.ndarray | None:
         """The turn (3 x 3, world; None: none) of the sheet's heading towards the robust mode
-        of its links' averaged heading residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
-        hold (``held0``, `_yaw_prior`) over `FusedConfig.heading_mode_time_s`: the gyroscopes
+        of its links' averaged heading residuals (`robust_mode`), by the part of the heading the
+        magnetometers' weights do not hold (``held0``, `_yaw_prior`) over
+        `FusedConfig.heading_mode_time_s`: the gyroscopes
         carry the heading while a disturbance is detected, and the links that agree with each
         other — not the mean of every link the disturbance turns a little — correct it slowly.
         The links vote in proportion to how much their groups are held: a group whose

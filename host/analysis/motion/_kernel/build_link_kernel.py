@@ -4,7 +4,8 @@
     .venv/bin/python host/analysis/motion/_kernel/build_link_kernel.py
 
 Optional at run time: without it (no compiler, or ``CAPSHEET_NO_KERNEL=1``) the fused estimator
-runs its numpy code, which gives the same numbers to rounding (tests/host/analysis/test_motion_kernel.py).
+runs its numpy code, which gives the same numbers to rounding
+(tests/host/analysis/test_motion_kernel.py).
 """
 
 import os
@@ -34,16 +35,17 @@ CDEF = _B.cdef_from_header(HERE / "link_filter.h")
 def _builder(absolute: bool = False) -> FFI:
     """The cffi builder; ``absolute``: the sources by absolute path (a build outside the project
     root, `__main__`), else relative to it (setuptools' ``cffi_modules``)."""
-    src, inc = HERE / "link_filter.c", HERE
+    srcs, inc = [HERE / "link_filter.c", HERE / "consider_filter.c"], HERE
     ffi = FFI()
     ffi.cdef(CDEF)
     ffi.set_source(
         "host.analysis.motion._link_kernel",
         '#include "link_filter.h"\n',
-        sources=[str(src) if absolute else _B.rel_source(src)],
+        sources=[str(src) if absolute else _B.rel_source(src) for src in srcs],
         include_dirs=[str(inc) if absolute else _B.rel_source(inc)],
         # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
-        extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
+        extra_compile_args=(["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt"
+                            else []),
     )
     return ffi
 

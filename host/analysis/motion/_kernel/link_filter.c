@@ -1,5 +1,6 @@
 /* See link_filter.h. */
 #include "link_filter.h"
+#include "link_internal.h"
 
 #include <math.h>
 
@@ -19,10 +20,10 @@ static inline void rodrigues(const double *v, double *out)
          * below 3e-21 (th2^5/11!, th2^5/12!), under a unit in the last place of a and b; a
          * propagation's or a correction's angle (~1e-2 rad and less) always takes this branch,
          * and it costs a fifth of sin and cos */
-        a = 1.0 - th2 * (1.0 / 6.0) * (1.0 - th2 * (1.0 / 20.0) * (1.0 - th2 * (1.0 / 42.0)
-                                                                     * (1.0 - th2 * (1.0 / 72.0))));
-        b = 0.5 - th2 * (1.0 / 24.0) * (1.0 - th2 * (1.0 / 30.0) * (1.0 - th2 * (1.0 / 56.0)
-                                                                      * (1.0 - th2 * (1.0 / 90.0))));
+        double ta = 1.0 - th2 * (1.0 / 42.0) * (1.0 - th2 * (1.0 / 72.0));
+        double tb = 1.0 - th2 * (1.0 / 56.0) * (1.0 - th2 * (1.0 / 90.0));
+        a = 1.0 - th2 * (1.0 / 6.0) * (1.0 - th2 * (1.0 / 20.0) * ta);
+        b = 0.5 - th2 * (1.0 / 24.0) * (1.0 - th2 * (1.0 / 30.0) * tb);
     } else {
         double th = sqrt(th2);
         a = sin(th) / th;
@@ -108,11 +109,10 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
     }
 }
 
-/* A link's accelerometer innovation: H = R^T [v]x, y = f - R^T v, HP = H P (3 x 6), the inverse
- * Si of S = H P H^T + r2 I (symmetric, by cofactors as fused.py's `_inv_sym3`); returns y^T Si y.
- * The update and the consider step's update share it. */
-static inline double accel_innovation(const double *Rk, const double *v, const double *fk, const double *Pk,
-                               double r2k, double *H, double *y, double *HP, double *Si)
+/* link_internal.h (the update and the consider step's update, consider_filter.c, share it) */
+double capsheet_mf_accel_innovation(const double *Rk, const double *v, const double *fk,
+                                    const double *Pk, double r2k, double *H, double *y,
+                                    double *HP, double *Si)
 {
     double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
     double S[9];
@@ -163,7 +163,7 @@ void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, co
         const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k;
         double *Pk = P + 36 * k;
         double H[9], y[3], HP[18], Si[9];
-        double m2 = accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
+        double m2 = capsheet_mf_accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
         nis[k] = m2;
         double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
         for (int i = 0; i < 9; i++) {
@@ -669,7 +669,8 @@ void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const
             continue;
         }
         double H[9], y[3], HP[18], Si[9], K[18];
-        double m2 = accel_innovation(Rk, vec + 3 * k, f + 3 * k, Pk, r2[k], H, y, HP, Si);
+        double m2 = capsheet_mf_accel_innovation(Rk, vec + 3 * k, f + 3 * k, Pk, r2[k], H, y, HP,
+                                                 Si);
         nis[k] = m2;
         if (m2 / gate > 1.0) { /* the gate: S inflated (a division by 1 changes nothing) */
             double infl = m2 / gate;
@@ -880,135 +881,4 @@ double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, doubl
         psi = sr / s;
     }
     return psi;
-}
-
-
-/* ---- the gyroscopes' fixed errors as a consider state (_consider.py) ---- */
-
-void capsheet_mf_consider_propagate(size_t n, size_t m, const double *R, double *P, double *C,
-                                    const double *U, const double *dt, const double *s2)
-{
-    size_t nc = 9 * m; /* at most 2 blocks: 18 columns */
-    for (size_t k = 0; k < n; k++) {
-        const double *Rk = R + 9 * k, *Uk = U + 3 * m * k;
-        double *Pk = P + 36 * k, *Ck = C + 6 * nc * k;
-        double h = dt[k], G[9], FC[108], Y[18] = {0.0}, X[18], D[3] = {0.0, 0.0, 0.0};
-        for (int i = 0; i < 9; i++) {
-            G[i] = Rk[i] * h;
-        }
-        for (int i = 0; i < 3; i++) { /* F C: the theta rows less G times the bias rows */
-            for (size_t c = 0; c < nc; c++) {
-                FC[nc * i + c] = Ck[nc * i + c] - (G[3 * i] * Ck[nc * 3 + c]
-                                                   + G[3 * i + 1] * Ck[nc * 4 + c]
-                                                   + G[3 * i + 2] * Ck[nc * 5 + c]);
-            }
-        }
-        for (size_t c = 3 * nc; c < 6 * nc; c++) {
-            FC[c] = Ck[c];
-        }
-        for (size_t b = 0; b < m; b++) {
-            const double *u = Uk + 3 * b;
-            for (int a = 0; a < 6; a++) { /* Y = F C Omega(u)^T, summed over the blocks */
-                for (int j = 0; j < 3; j++) {
-                    const double *row = FC + nc * a + 9 * b + 3 * j;
-                    Y[3 * a + j] += row[0] * u[0] + row[1] * u[1] + row[2] * u[2];
-                }
-            }
-            for (int j = 0; j < 3; j++) {
-                const double *v = s2 + 9 * b + 3 * j;
-                D[j] += u[0] * u[0] * v[0] + u[1] * u[1] * v[1] + u[2] * u[2] * v[2];
-            }
-        }
-        for (int a = 0; a < 6; a++) { /* X = -Y G^T */
-            for (int i = 0; i < 3; i++) {
-                X[3 * a + i] = -(Y[3 * a] * G[3 * i] + Y[3 * a + 1] * G[3 * i + 1]
-                                 + Y[3 * a + 2] * G[3 * i + 2]);
-            }
-        }
-        for (int a = 0; a < 6; a++) {
-            for (int i = 0; i < 3; i++) {
-                Pk[6 * a + i] += X[3 * a + i];
-            }
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int a = 0; a < 6; a++) {
-                Pk[6 * i + a] += X[3 * a + i];
-            }
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int l = 0; l < 3; l++) {
-                Pk[6 * i + l] += G[3 * i] * D[0] * G[3 * l] + G[3 * i + 1] * D[1] * G[3 * l + 1]
-                                 + G[3 * i + 2] * D[2] * G[3 * l + 2];
-            }
-        }
-        for (int i = 0; i < 3; i++) { /* C' = F C + Gamma Sigma */
-            for (size_t b = 0; b < m; b++) {
-                for (int j = 0; j < 3; j++) {
-                    for (int l = 0; l < 3; l++) {
-                        size_t c = 9 * b + 3 * j + l;
-                        Ck[nc * i + c] = FC[nc * i + c] - G[3 * i + j] * Uk[3 * b + l] * s2[c];
-                    }
-                }
-            }
-        }
-        for (size_t c = 3 * nc; c < 6 * nc; c++) {
-            Ck[c] = FC[c];
-        }
-    }
-}
-
-void capsheet_mf_consider_accel(size_t n, size_t nc, const double *R, const double *P,
-                                double *C, const double *f, const double *vec, const double *r2,
-                                double gate, const uint8_t *valid)
-{
-    for (size_t k = 0; k < n; k++) {
-        if (!valid[k]) {
-            continue;
-        }
-        const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k, *Pk = P + 36 * k;
-        double *Ck = C + 6 * nc * k;
-        double H[9], y[3], HP[18], Si[9], K[18], HC[54];
-        double m2 = accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
-        double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
-        for (int i = 0; i < 9; i++) {
-            Si[i] /= infl;
-        }
-        for (int i = 0; i < 6; i++) {
-            for (int j = 0; j < 3; j++) {
-                K[3 * i + j] = HP[i] * Si[j] + HP[6 + i] * Si[3 + j] + HP[12 + i] * Si[6 + j];
-            }
-        }
-        for (int i = 0; i < 3; i++) { /* C <- C - K H C_theta */
-            for (size_t c = 0; c < nc; c++) {
-                HC[nc * i + c] = H[3 * i] * Ck[c] + H[3 * i + 1] * Ck[nc + c]
-                                 + H[3 * i + 2] * Ck[2 * nc + c];
-            }
-        }
-        for (int i = 0; i < 6; i++) {
-            for (size_t c = 0; c < nc; c++) {
-                Ck[nc * i + c] -= K[3 * i] * HC[c] + K[3 * i + 1] * HC[nc + c]
-                                  + K[3 * i + 2] * HC[2 * nc + c];
-            }
-        }
-    }
-}
-
-void capsheet_mf_consider_yaw(size_t n, size_t nc, const double *P, double *C,
-                              const double *a_diag)
-{
-    for (size_t k = 0; k < n; k++) {
-        const double *Pk = P + 36 * k;
-        double *Ck = C + 6 * nc * k;
-        double p = Pk[14], row[18];
-        double s = (1.0 - 1.0 / (a_diag[k] * p)) / p;
-        for (size_t c = 0; c < nc; c++) {
-            row[c] = Ck[2 * nc + c];
-        }
-        for (int i = 0; i < 6; i++) {
-            double g = Pk[6 * i + 2] * s;
-            for (size_t c = 0; c < nc; c++) {
-                Ck[nc * i + c] -= g * row[c];
-            }
-        }
-    }
 }
