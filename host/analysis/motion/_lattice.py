@@ -145,7 +145,8 @@ def joints_from_vectors(vectors: np.ndarray, rows: int, cols: int,
     ends, ``−L d`` where it starts); their matrix is diagonal in the 2-D DCT-II's basis
     (`_grid_eigenvalues`)."""
     from scipy.fft import dctn, idctn
-    d = np.asarray(vectors, dtype=float).T * float(link_length)  # (3, n_links)
+    # (3, n_links), C-ordered: the slices below are then views, not copies
+    d = np.ascontiguousarray(np.asarray(vectors, dtype=float).T) * float(link_length)
     n_i = (rows - 1) * cols
     di = d[:, :n_i].reshape(3, rows - 1, cols)
     dj = d[:, n_i:].reshape(3, rows, cols - 1)

@@ -73,7 +73,7 @@ from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
 from ._linalg import (NUMPY_STEPS, USE_KERNEL, cross3, ddot, frames_from_angles,  # noqa: F401
-                      dist_tests, inv_sym3, mag_terms, mag_weights,
+                      ddot_rates, dist_tests, inv_sym3, mag_terms, mag_weights, mean_rows,
                       orientation_cov as _orientation_cov, pcg, robust_mode,
                       rotate_all, rotation_matrices, skew, turn_all, wrap)
 from ._linalg import (coarse_inverse as _coarse_inverse, group_info as _group_info,  # noqa: F401
@@ -198,8 +198,13 @@ def relative_accelerations(frames: np.ndarray, omega: np.ndarray, omega_dot: np.
     """
     dd = ddot(np.asarray(frames, dtype=float), np.asarray(omega, dtype=float),
               np.asarray(omega_dot, dtype=float))
+    return _chips_relative(dd, rows, cols, link_length)
+
+
+def _chips_relative(dd, rows, cols, link_length) -> np.ndarray:
+    """`relative_accelerations` from the links' ``d̈`` (n_links, 3)."""
     a = link_midpoints(joints_from_vectors(dd, rows, cols, link_length))
-    return a - a.mean(axis=0)
+    return a - mean_rows(a)
 
 
 def calibrated(cal, accel_mps2, gyro_rps=None, mag_t=None):
@@ -419,6 +424,7 @@ class MotionEstimator:
         """
         t0 = time.perf_counter()
         t, f, w, m, v = self._check(t_s, accel, gyro, mag, valid)
+        self._cov_out = None
         if self.R is None:
             self._initialise(t, f, w, m, v)
             t1 = t2 = t3 = time.perf_counter()
@@ -440,6 +446,7 @@ class MotionEstimator:
             self._t = t
         joints = joints_from_vectors(self.R[:, :, 0], self.rows, self.cols, self.link_length)
         self._joints = joints
+        cov, self._cov_out = self._cov_out, None
         t4 = time.perf_counter()
         self.snapshots += 1
         return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
@@ -448,7 +455,7 @@ class MotionEstimator:
                               common_accel_mps2=a_c, heading_absolute=bool(self._with_mag),
                               timings={"propagate": t1 - t0, "accel": t2 - t1,
                                        "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0},
-                              orientation_cov_rad2=self.orientation_cov(),
+                              orientation_cov_rad2=self.orientation_cov() if cov is None else cov,
                               common_tilt_cov_rad2=self._common.tilt_cov,
                               accel_nis=self._nis.copy())
 
@@ -457,9 +464,13 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        return _orientation_cov(self.P, self._common.tilt_cov,
-                                (self._s_group[self.topo.group] + self._s0) if self._with_mag
-                                else None)
+        return _orientation_cov(self.P, *self._cov_terms())
+
+    def _cov_terms(self):
+        """`_linalg.orientation_cov`'s terms beside ``P``: the common tilt's covariance and,
+        with magnetometers, each link's share of its group's and the sheet's yaw variances."""
+        return (self._common.tilt_cov,
+                (self._s_group[self.topo.group] + self._s0) if self._with_mag else None)
 
     def _initialise(self, t, f, w, m, v) -> None:
         cfg = self.config
@@ -601,14 +612,8 @@ class MotionEstimator:
     # ------------------------------------------------------------------------------- 2, 3. accel
     def _relative_accel(self, w_c, dt) -> np.ndarray:
         """Every chip's acceleration less the chips' mean, world (step 2 of the docstring)."""
-        wm1, wm2 = self._w_hist[-1], self._w_hist[-2]
-        h = dt[:, None]
-        if self.snapshots >= 2:
-            wdot = (3.0 * w_c - 4.0 * wm1 + wm2) / (2.0 * h)
-        else:
-            wdot = (w_c - wm1) / h
-        return relative_accelerations(self.R, w_c, wdot, self.rows, self.cols, self.link_length,
-                                      self.topo.lattice.endpoints)
+        dd = ddot_rates(self.R, w_c, self._w_hist[-1], self._w_hist[-2], dt, self.snapshots >= 2)
+        return _chips_relative(dd, self.rows, self.cols, self.link_length)
 
     def _accel_update(self, f, w_c, dt, v) -> np.ndarray:
         cfg = self.config
@@ -617,7 +622,7 @@ class MotionEstimator:
         if nv == v.size:  # the links' mean reading in the world, one product: M[j, 3i + l] =
             # Σ_k f[k, j] R[k, i, l], and Σ_k R_k f_k is M's entries with j = l
             M = (f.T @ self.R.reshape(-1, 9)).reshape(3, 3, 3)
-            a_c = np.einsum("jij->i", M) / nv - _GRAVITY_SF - da.mean(axis=0)
+            a_c = np.einsum("jij->i", M) / nv - _GRAVITY_SF - mean_rows(da)
         elif nv:
             a_c = np.einsum("kij,kj->i", self.R[v], f[v]) / nv - _GRAVITY_SF - da[v].mean(axis=0)
         else:
@@ -627,18 +632,21 @@ class MotionEstimator:
         vec = _GRAVITY_SF + da + a_c
         r2 = cfg.accel_noise_mps2 ** 2 + cfg.accel_floor_mps2 ** 2 \
             + cfg.rel_accel_error ** 2 * np.einsum("ki,ki->k", da, da)
-        x = np.empty((self.n_links, 6))
-        if self._C is not None:
-            consider_accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
-        _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis)
-        # the sheet's own tilt: what the links share, from its bounded translation
+        # the sheet's own tilt: what the links share, from its bounded translation (its filter
+        # needs nothing of the links' updates: its turn and bias correction, which follow them,
+        # are applied in the same pass, `_linalg.step_apply`)
+        turn = turn_bias = None
         if nv:
             h = float(np.mean(dt[v]))
             self._common.step(a_c[:2], h, float(np.mean(self._q_last)) / nv,
                               cfg.gyro_bias_walk_rps ** 2 * h / nv, cfg.accel_noise_mps2 ** 2 / nv)
-            c, b = self._common.take()
-            turn_all(rotation_matrices(np.array([c[0], c[1], 0.0])), self.R)
-            self.bias += self.R[:, 0, :] * b[0] + self.R[:, 1, :] * b[1]  # Rᵀ (b_x, b_y, 0)
+            c, turn_bias = self._common.take()
+            turn = rotation_matrices(np.array([c[0], c[1], 0.0]))
+        x = np.empty((self.n_links, 6))
+        if self._C is not None:
+            consider_accel(self.R, self.P, self._C, f, vec, r2, cfg.gate, v)
+        _step_apply("accel", self.R, self.bias, self.P, f, vec, r2, cfg.gate, v, x, self._nis,
+                    turn=turn, turn_bias=turn_bias)
         return a_c
 
     def _apply(self, x) -> None:
@@ -694,9 +702,11 @@ class MotionEstimator:
         x = np.empty((n, 6))
         if self._C is not None:
             consider_yaw(P, self._C, a_diag)
-        _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x)
-        if m is not None:
-            self._heading_mode(dt)
+        # the heading's turn (it needs nothing of the links' updates) and the output's
+        # covariance (`orientation_cov`: the collective variances are final now) in the same pass
+        self._cov_out = _step_apply("yaw", self.R, self.bias, P, mu, a_diag, x,
+                                    turn=None if m is None else self._heading_mode(dt),
+                                    cov=self._cov_terms())
 
     # the collective yaw modes: docs/estimator.md §8 "what the links share"
     def _yaw_prior(self, p, seen=None, six_axis=False):
@@ -846,10 +856,11 @@ class MotionEstimator:
         weights[k] = wgt
         mw[k] = wgt / var0
 
-    def _heading_mode(self, dt) -> None:
-        """Turn the sheet's heading towards the robust mode of its links' averaged heading
-        residuals (`robust_mode`), by the part of the heading the magnetometers' weights do not
-        hold (``held0``, `_yaw_prior`) over `FusedConfig.heading_mode_time_s`: the gyroscopes
+    def _heading_mode(self, dt) -> np.ndarray | None:
+        """The turn (3 x 3, world; None: none) of the sheet's heading towards the robust mode
+        of its links' averaged heading residuals (`robust_mode`), by the part of the heading the
+        magnetometers' weights do not hold (``held0``, `_yaw_prior`) over
+        `FusedConfig.heading_mode_time_s`: the gyroscopes
         carry the heading while a disturbance is detected, and the links that agree with each
         other — not the mean of every link the disturbance turns a little — correct it slowly.
         The links vote in proportion to how much their groups are held: a group whose
@@ -857,16 +868,16 @@ class MotionEstimator:
         by construction (docs/estimator.md §8)."""
         cfg = self.config
         if cfg.heading_mode_rad <= 0 or self._held0 <= 0:
-            return
+            return None
         use = self._field_tests[0] & (self._dist_count * self._h >= cfg.mag_warmup_s)
         w = np.where(use, self._held[self.topo.group], 0.0)
         psi = robust_mode(self._resid_avg, w, cfg.heading_mode_rad, self._mode_psi)
         if psi is None:
-            return
+            return None
         g = self._held0 * min(1.0, self._h / cfg.heading_mode_time_s)
-        turn_all(rotation_matrices(np.array([0.0, 0.0, -g * psi])), self.R)
         self._resid_avg -= g * psi
         self._mode_psi = (1.0 - g) * psi  # where the mode is after the turn: the next start
+        return rotation_matrices(np.array([0.0, 0.0, -g * psi]))
 
     def _disturbance_tests(self, resid, v, dt) -> None:
         """Average each link's tests over `FusedConfig.disturbance_tau_s`: its heading against the

@@ -4,7 +4,8 @@
     .venv/bin/python host/analysis/motion/_kernel/build_link_kernel.py
 
 Optional at run time: without it (no compiler, or ``CAPSHEET_NO_KERNEL=1``) the fused estimator
-runs its numpy code, which gives the same numbers (tests/host/analysis/test_motion_kernel.py).
+runs its numpy code, which gives the same numbers to rounding
+(tests/host/analysis/test_motion_kernel.py).
 """
 
 import os
@@ -31,17 +32,40 @@ _B = _shared()
 CDEF = _B.cdef_from_header(HERE / "link_filter.h")
 
 
-ffibuilder = FFI()
-ffibuilder.cdef(CDEF)
-ffibuilder.set_source(
-    "host.analysis.motion._link_kernel",
-    '#include "link_filter.h"\n',
-    sources=[_B.rel_source(HERE / "link_filter.c")],
-    include_dirs=[_B.rel_source(HERE)],
-    # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
-    extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
-)
+def _builder(absolute: bool = False) -> FFI:
+    """The cffi builder; ``absolute``: the sources by absolute path (a build outside the project
+    root, `__main__`), else relative to it (setuptools' ``cffi_modules``)."""
+    srcs, inc = [HERE / "link_filter.c", HERE / "consider_filter.c"], HERE
+    ffi = FFI()
+    ffi.cdef(CDEF)
+    ffi.set_source(
+        "host.analysis.motion._link_kernel",
+        '#include "link_filter.h"\n',
+        sources=[str(src) if absolute else _B.rel_source(src) for src in srcs],
+        include_dirs=[str(inc) if absolute else _B.rel_source(inc)],
+        # no -ffast-math: the numbers must be the numpy fallback's (IEEE order of operations)
+        extra_compile_args=(["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt"
+                            else []),
+    )
+    return ffi
+
+
+ffibuilder = _builder()
 
 if __name__ == "__main__":
-    os.chdir(ROOT)
-    ffibuilder.compile(tmpdir=str(ROOT), verbose=False)
+    import shutil
+    import tempfile
+
+    # built in a scratch directory, not the project root: there cffi's distutils step reads
+    # pyproject.toml with the venv's own setuptools (Python 3.11's 65.x rejects its SPDX licence)
+    with tempfile.TemporaryDirectory() as tmp:
+        built = Path(_builder(absolute=True).compile(tmpdir=tmp, verbose=False))
+        where = ROOT / "host" / "analysis" / "motion"
+        # over every build of it already there (pip's is .abi3.so): one left older would shadow
+        # or be shadowed by this one
+        stem = built.name.split(".")[0]
+        dests = sorted(where.glob(stem + ".*so")) or [where / built.name]
+        for dest in dests:  # a new file renamed over it: a process running the old one keeps it
+            shutil.copy(built, dest.with_name(dest.name + ".new"))
+            os.replace(dest.with_name(dest.name + ".new"), dest)
+    print(*dests)

@@ -1,9 +1,13 @@
 /* See link_filter.h. */
 #include "link_filter.h"
+#include "link_internal.h"
 
 #include <math.h>
 
-static void rodrigues(const double *v, double *out)
+/* th^2 below which `rodrigues` takes its series (th < 0.05 rad) */
+#define RODRIGUES_SERIES 2.5e-3
+
+static inline void rodrigues(const double *v, double *out)
 {
     double x = v[0], y = v[1], z = v[2];
     double th2 = x * x + y * y + z * z;
@@ -11,6 +15,15 @@ static void rodrigues(const double *v, double *out)
     if (th2 < 1e-12) {
         a = 1.0 - th2 / 6.0;
         b = 0.5 - th2 / 24.0;
+    } else if (th2 < RODRIGUES_SERIES) {
+        /* sin(th)/th and (1 - cos th)/th^2 by their series to th^8: the first term left out is
+         * below 3e-21 (th2^5/11!, th2^5/12!), under a unit in the last place of a and b; a
+         * propagation's or a correction's angle (~1e-2 rad and less) always takes this branch,
+         * and it costs a fifth of sin and cos */
+        double ta = 1.0 - th2 * (1.0 / 42.0) * (1.0 - th2 * (1.0 / 72.0));
+        double tb = 1.0 - th2 * (1.0 / 56.0) * (1.0 - th2 * (1.0 / 90.0));
+        a = 1.0 - th2 * (1.0 / 6.0) * (1.0 - th2 * (1.0 / 20.0) * ta);
+        b = 0.5 - th2 * (1.0 / 24.0) * (1.0 - th2 * (1.0 / 30.0) * tb);
     } else {
         double th = sqrt(th2);
         a = sin(th) / th;
@@ -28,7 +41,7 @@ static void rodrigues(const double *v, double *out)
     out[7] = b * yz + a * x;
 }
 
-static void mat3_mul(const double *A, const double *B, double *C)
+static inline void mat3_mul(const double *A, const double *B, double *C)
 {
     for (int i = 0; i < 3; i++) {
         for (int j = 0; j < 3; j++) {
@@ -70,13 +83,14 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
                 GPbt[3 * i + j] = s2;
             }
         }
-        for (int i = 0; i < 3; i++) {
-            for (int j = 0; j < 3; j++) {
+        for (int i = 0; i < 3; i++) { /* symmetric: the upper triangle, mirrored */
+            for (int j = i; j < 3; j++) {
                 double s = 0.0;
                 for (int l = 0; l < 3; l++) {
                     s += GPbb[3 * i + l] * G[3 * j + l];
                 }
                 T[3 * i + j] = Pk[6 * i + j] - GPbt[3 * i + j] - GPbt[3 * j + i] + s;
+                T[3 * j + i] = T[3 * i + j];
             }
         }
         for (int i = 0; i < 3; i++) {
@@ -95,11 +109,10 @@ void capsheet_mf_propagate(size_t n, double *R, double *P, const double *w0, con
     }
 }
 
-/* A link's accelerometer innovation: H = R^T [v]x, y = f - R^T v, HP = H P (3 x 6), the inverse
- * Si of S = H P H^T + r2 I (symmetric, by cofactors as fused.py's `_inv_sym3`); returns y^T Si y.
- * The update and the consider step's update share it. */
-static double accel_innovation(const double *Rk, const double *v, const double *fk, const double *Pk,
-                               double r2k, double *H, double *y, double *HP, double *Si)
+/* link_internal.h (the update and the consider step's update, consider_filter.c, share it) */
+double capsheet_mf_accel_innovation(const double *Rk, const double *v, const double *fk,
+                                    const double *Pk, double r2k, double *H, double *y,
+                                    double *HP, double *Si)
 {
     double Vx[9] = {0.0, -v[2], v[1], v[2], 0.0, -v[0], -v[1], v[0], 0.0};
     double S[9];
@@ -114,8 +127,8 @@ static double accel_innovation(const double *Rk, const double *v, const double *
             HP[6 * i + j] = H[3 * i] * Pk[j] + H[3 * i + 1] * Pk[6 + j] + H[3 * i + 2] * Pk[12 + j];
         }
     }
-    for (int i = 0; i < 3; i++) {
-        for (int j = 0; j < 3; j++) {
+    for (int i = 0; i < 3; i++) { /* the upper triangle: all the cofactors read */
+        for (int j = i; j < 3; j++) {
             S[3 * i + j] = HP[6 * i] * H[3 * j] + HP[6 * i + 1] * H[3 * j + 1]
                            + HP[6 * i + 2] * H[3 * j + 2] + (i == j ? r2k : 0.0);
         }
@@ -150,7 +163,7 @@ void capsheet_mf_accel(size_t n, const double *R, double *P, const double *f, co
         const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k;
         double *Pk = P + 36 * k;
         double H[9], y[3], HP[18], Si[9];
-        double m2 = accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
+        double m2 = capsheet_mf_accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
         nis[k] = m2;
         double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
         for (int i = 0; i < 9; i++) {
@@ -217,10 +230,10 @@ void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const doubl
 }
 
 void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
-                         const double *P, const int64_t *units, const int64_t *pair_link,
-                         const int64_t *pair_cell, const double *inv_ncell,
-                         const int64_t *jac_slots, const int64_t *jac_rows,
-                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         const double *P, const int32_t *units, const int32_t *pair_link,
+                         const int32_t *pair_cell, const double *inv_ncell,
+                         const int32_t *jac_slots, const int32_t *jac_indptr,
+                         const int32_t *jac_indices, double floor2, double *res, double *wts,
                          double *jd, double *lat_diag, double *work)
 {
     size_t U = n_units;
@@ -232,7 +245,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         jd[i] = 0.0;
     }
     for (size_t u = 0; u < U; u++) {
-        const int64_t *un = units + 4 * u;
+        const int32_t *un = units + 4 * u;
         const double *d0 = R + 9 * un[0], *d1 = R + 9 * un[1], *d2 = R + 9 * un[2],
                      *d3 = R + 9 * un[3]; /* d = R[:, :, 0]: elements 0, 3, 6 */
         res[2 * u] = d0[0] + d1[0] - d2[0] - d3[0];
@@ -264,7 +277,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         nbar[k] = 0.0;
     }
     for (size_t p = 0; p < n_pairs; p++) {
-        int64_t k = pair_link[p], u = pair_cell[p];
+        int32_t k = pair_link[p], u = pair_cell[p];
         for (int i = 0; i < 3; i++) {
             nbar[3 * k + i] += inv_ncell[k] * nc[3 * u + i];
         }
@@ -276,7 +289,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         jd[jac_slots[e++]] += Y0 * nb[1] - Y1 * nb[0];
     }
     for (size_t p = 0; p < n_pairs; p++) {
-        int64_t k = pair_link[p], u = pair_cell[p];
+        int32_t k = pair_link[p], u = pair_cell[p];
         const double *Rk = R + 9 * k, *n3 = nc + 3 * u, *a = A + 3 * u, *cc = C + 3 * u;
         double Y[3] = {Rk[1], Rk[4], Rk[7]};
         double t = n3[0] * Y[0] + n3[1] * Y[1] + n3[2] * Y[2];
@@ -289,7 +302,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
                          cc[0] * W[1] - cc[1] * W[0]};
         double WxA[3] = {W[1] * a[2] - W[2] * a[1], W[2] * a[0] - W[0] * a[2],
                          W[0] * a[1] - W[1] * a[0]};
-        const int64_t *un = units + 4 * u;
+        const int32_t *un = units + 4 * u;
         for (int s = 0; s < 4; s++) {
             const double *dk = R + 9 * un[s];
             const double *v = (s == 0 || s == 2) ? WxA : CxW;
@@ -299,7 +312,7 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
     }
     /* weights: the tilt variance of the links involved plus the model's floor */
     for (size_t u = 0; u < U; u++) {
-        const int64_t *un = units + 4 * u;
+        const int32_t *un = units + 4 * u;
         double s = 0.0;
         for (int i = 0; i < 4; i++) {
             const double *Pk = P + 36 * un[i];
@@ -314,8 +327,11 @@ void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, c
         wts[2 * U + k] = 1.0 / (2.0 * (Pk[0] + Pk[7]) + floor2);
         lat_diag[k] = 0.0;
     }
-    for (size_t i = 0; i < nnz; i++) {
-        lat_diag[jac_cols[i]] += wts[jac_rows[i]] * jd[i] * jd[i];
+    (void)nnz;
+    for (size_t r = 0; r < 2 * U + n; r++) { /* the entries in CSR order, as before by entry */
+        for (int32_t i = jac_indptr[r]; i < jac_indptr[r + 1]; i++) {
+            lat_diag[jac_indices[i]] += wts[r] * jd[i] * jd[i];
+        }
     }
 }
 
@@ -323,19 +339,21 @@ void capsheet_mf_normal_matvec(size_t n_rows, size_t n, const int32_t *indptr,
                                const int32_t *indices, const double *data, const double *w,
                                const double *x, double *tmp, double *out)
 {
-    for (size_t r = 0; r < n_rows; r++) {
-        double s = 0.0;
-        for (int32_t i = indptr[r]; i < indptr[r + 1]; i++) {
-            s += data[i] * x[indices[i]];
-        }
-        tmp[r] = w[r] * s;
-    }
     for (size_t k = 0; k < n; k++) {
         out[k] = 0.0;
     }
+    /* one pass: each row's product, then its share of J^T at once (out[k] still sums its
+     * terms in increasing row order: the same numbers as a pass for J x and one for J^T) */
     for (size_t r = 0; r < n_rows; r++) {
-        for (int32_t i = indptr[r]; i < indptr[r + 1]; i++) {
-            out[indices[i]] += data[i] * tmp[r];
+        int32_t i0 = indptr[r], i1 = indptr[r + 1];
+        double s = 0.0;
+        for (int32_t i = i0; i < i1; i++) {
+            s += data[i] * x[indices[i]];
+        }
+        double t = w[r] * s;
+        tmp[r] = t;
+        for (int32_t i = i0; i < i1; i++) {
+            out[indices[i]] += data[i] * t;
         }
     }
 }
@@ -349,7 +367,8 @@ static double dot(size_t n, const double *a, const double *b)
     return s;
 }
 
-static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
+/* returns x . out, summed in increasing k (as `dot` would) */
+static double yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *indptr,
                        const int32_t *indices, const double *data, const double *w,
                        const double *D, const int64_t *group, const double *dg, const double *Eg,
                        double sE, double I0, const double *mw, const double *x, double *out,
@@ -370,11 +389,14 @@ static void yaw_matvec(size_t n, size_t n_rows, size_t n_groups, const int32_t *
     for (size_t g = 0; g < n_groups; g++) {
         sig[g] = (Eg[g] * abar[g] - Eg[g] * (ey / sE) + Eg[g] * (ey * I0 / (sE * sE))) / dg[g];
     }
+    double xo = 0.0;
     for (size_t k = 0; k < n; k++) {
         int64_t g = group[k];
         double prior = D[k] * x[k] - D[k] * abar[g] + D[k] * sig[g];
         out[k] = out[k] + prior + mw[k] * x[k];
+        xo += x[k] * out[k];
     }
+    return xo;
 }
 
 /* z = inv_diag r, plus the groups' coarse correction Z (C^-1 (Z^T r)) when coarse_inv is given */
@@ -425,20 +447,50 @@ int capsheet_mf_yaw_pcg(size_t n, size_t n_rows, size_t n_groups, const int32_t 
     }
     double rz = dot(n, r, z);
     double stop = rtol * rtol * dot(n, b, b);
+    double rr = dot(n, r, r);
     int it;
+    /* `pcg`'s steps with its passes over the links merged where one's sums end before the next
+     * needs them; every sum runs in increasing k as before (the same numbers) */
     for (it = 0; it < maxiter; it++) {
-        if (dot(n, r, r) <= stop) {
+        if (rr <= stop) {
             break;
         }
-        yaw_matvec(n, n_rows, n_groups, indptr, indices, data, w, D, group, dg, Eg, sE, I0, mw,
-                   p, q, tmp, abar, sig);
-        double alpha = rz / dot(n, p, q);
-        for (size_t k = 0; k < n; k++) {
-            x[k] += alpha * p[k];
-            r[k] -= alpha * q[k];
+        double pq = yaw_matvec(n, n_rows, n_groups, indptr, indices, data, w, D, group, dg, Eg,
+                               sE, I0, mw, p, q, tmp, abar, sig);
+        double alpha = rz / pq;
+        rr = 0.0;
+        if (coarse_inv != NULL) {
+            for (size_t g = 0; g < n_groups; g++) {
+                t[g] = 0.0;
+            }
         }
-        precondition(n, n_groups, group, inv_diag, coarse_inv, r, z, t, c);
-        double rz_new = dot(n, r, z);
+        for (size_t k = 0; k < n; k++) { /* the step; |r|^2 and Z^T r of the new residual */
+            x[k] += alpha * p[k];
+            double rk = r[k] - alpha * q[k];
+            r[k] = rk;
+            rr += rk * rk;
+            if (coarse_inv != NULL) {
+                t[group[k]] += rk;
+            }
+        }
+        if (coarse_inv != NULL) {
+            for (size_t g = 0; g < n_groups; g++) {
+                double s = 0.0;
+                for (size_t h = 0; h < n_groups; h++) {
+                    s += coarse_inv[n_groups * g + h] * t[h];
+                }
+                c[g] = s;
+            }
+        }
+        double rz_new = 0.0;
+        for (size_t k = 0; k < n; k++) { /* precondition (as `precondition`) and r . z */
+            double zk = inv_diag[k] * r[k];
+            if (coarse_inv != NULL) {
+                zk += c[group[k]];
+            }
+            z[k] = zk;
+            rz_new += r[k] * zk;
+        }
         double beta = rz_new / rz;
         for (size_t k = 0; k < n; k++) {
             p[k] = z[k] + beta * p[k];
@@ -465,7 +517,11 @@ void capsheet_mf_rotate(size_t n, double *R, const double *Q)
 static double wrap_pi(double x)
 {
     const double pi = 3.14159265358979323846;
-    double r = fmod(x + pi, 2.0 * pi);
+    double y = x + pi;
+    if (y >= 0.0 && y < 2.0 * pi) { /* fmod would return y itself (it is exact) */
+        return y - pi;
+    }
+    double r = fmod(y, 2.0 * pi);
     if (r < 0.0) {
         r += 2.0 * pi;
     }
@@ -516,6 +572,20 @@ void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_c
     }
 }
 
+void capsheet_mf_ddot_rates(size_t n, const double *R, const double *w, const double *wm1,
+                            const double *wm2, const double *dt, int second_order, double *out)
+{
+    for (size_t k = 0; k < n; k++) {
+        const double *a = w + 3 * k, *b = wm1 + 3 * k, *c = wm2 + 3 * k;
+        double h = dt[k], wd[3];
+        for (int i = 0; i < 3; i++) { /* fused.py `_relative_accel`'s differences, its order */
+            wd[i] = second_order ? (3.0 * a[i] - 4.0 * b[i] + c[i]) / (2.0 * h)
+                                 : (a[i] - b[i]) / h;
+        }
+        capsheet_mf_ddot(1, R + 9 * k, a, wd, out + 3 * k);
+    }
+}
+
 void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
                       double *out)
 {
@@ -534,28 +604,130 @@ void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *
     }
 }
 
-/* blocks of links small enough that a block's state is still in cache when it is applied */
-#define APPLY_BLOCK 64
+/* R <- exp([x]x) R for one link (capsheet_mf_apply's rotation) */
+static void turn_link(const double *xk, double *Rk)
+{
+    double E[9], Rn[9];
+    rodrigues(xk, E);
+    mat3_mul(E, Rk, Rn);
+    for (int i = 0; i < 9; i++) {
+        Rk[i] = Rn[i];
+    }
+}
+
+/* P <- (P + P^T) / 2 - M for one link, M symmetric given by its upper triangle (M[6 i + j],
+ * j >= i): the update and the symmetrisation of capsheet_mf_apply in one pass, each entry
+ * once */
+static void sym_update(double *Pk, const double *M)
+{
+    for (int i = 0; i < 6; i++) {
+        Pk[7 * i] -= M[7 * i];
+        for (int j = i + 1; j < 6; j++) {
+            double v = 0.5 * (Pk[6 * i + j] + Pk[6 * j + i]) - M[6 * i + j];
+            Pk[6 * i + j] = v;
+            Pk[6 * j + i] = v;
+        }
+    }
+}
+
+/* then R <- Q R (Q: 3 x 3, none when NULL) and bias <- bias + R^T (b[0], b[1], 0) with that R
+ * (none when b is NULL): the sheet's common turn, as capsheet_mf_rotate and fused.py do it */
+static void turn_after(double *Rk, double *bk, const double *Q, const double *b)
+{
+    if (Q != NULL) {
+        double Rn[9];
+        mat3_mul(Q, Rk, Rn);
+        for (int i = 0; i < 9; i++) {
+            Rk[i] = Rn[i];
+        }
+    }
+    if (b != NULL) {
+        for (int i = 0; i < 3; i++) {
+            bk[i] += Rk[i] * b[0] + Rk[3 + i] * b[1];
+        }
+    }
+}
 
 void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
                              const double *vec, const double *r2, double gate,
-                             const uint8_t *valid, double *x, double *nis)
+                             const uint8_t *valid, double *x, double *nis, const double *turn,
+                             const double *turn_bias)
 {
-    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
-        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
-        capsheet_mf_accel(m, R + 9 * k0, P + 36 * k0, f + 3 * k0, vec + 3 * k0, r2 + k0, gate,
-                          valid + k0, x + 6 * k0, nis + k0);
-        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    for (size_t k = 0; k < n; k++) {
+        double *Rk = R + 9 * k, *Pk = P + 36 * k, *xk = x + 6 * k;
+        double M[36];
+        if (!valid[k]) {
+            for (int i = 0; i < 36; i++) {
+                M[i] = 0.0;
+            }
+            sym_update(Pk, M);
+            for (int i = 0; i < 6; i++) {
+                xk[i] = 0.0;
+            }
+            nis[k] = NAN;
+            turn_after(Rk, bias + 3 * k, turn, turn_bias);
+            continue;
+        }
+        double H[9], y[3], HP[18], Si[9], K[18];
+        double m2 = capsheet_mf_accel_innovation(Rk, vec + 3 * k, f + 3 * k, Pk, r2[k], H, y, HP,
+                                                 Si);
+        nis[k] = m2;
+        if (m2 / gate > 1.0) { /* the gate: S inflated (a division by 1 changes nothing) */
+            double infl = m2 / gate;
+            for (int i = 0; i < 9; i++) {
+                Si[i] /= infl;
+            }
+        }
+        for (int i = 0; i < 6; i++) { /* K = HP^T Si; x = K y */
+            for (int j = 0; j < 3; j++) {
+                K[3 * i + j] = HP[i] * Si[j] + HP[6 + i] * Si[3 + j] + HP[12 + i] * Si[6 + j];
+            }
+            xk[i] = K[3 * i] * y[0] + K[3 * i + 1] * y[1] + K[3 * i + 2] * y[2];
+        }
+        for (int i = 0; i < 6; i++) { /* K HP = HP^T Si HP: symmetric, its upper triangle */
+            for (int j = i; j < 6; j++) {
+                M[6 * i + j] = K[3 * i] * HP[j] + K[3 * i + 1] * HP[6 + j]
+                               + K[3 * i + 2] * HP[12 + j];
+            }
+        }
+        sym_update(Pk, M);
+        turn_link(xk, Rk);
+        for (int i = 0; i < 3; i++) {
+            bias[3 * k + i] += xk[3 + i];
+        }
+        turn_after(Rk, bias + 3 * k, turn, turn_bias);
     }
 }
 
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
-                           const double *a_diag, double *x)
+                           const double *a_diag, double *x, const double *turn,
+                           const double *tilt_cov, const double *yaw_add, double *cov)
 {
-    for (size_t k0 = 0; k0 < n; k0 += APPLY_BLOCK) {
-        size_t m = n - k0 < APPLY_BLOCK ? n - k0 : APPLY_BLOCK;
-        capsheet_mf_yaw(m, P + 36 * k0, mu + k0, a_diag + k0, x + 6 * k0);
-        capsheet_mf_apply(m, R + 9 * k0, bias + 3 * k0, P + 36 * k0, x + 6 * k0);
+    for (size_t k = 0; k < n; k++) {
+        double *Pk = P + 36 * k, *xk = x + 6 * k;
+        double c[6], M[36];
+        for (int i = 0; i < 6; i++) {
+            c[i] = Pk[6 * i + 2];
+        }
+        double p = c[2];
+        double s = (1.0 - 1.0 / (a_diag[k] * p));
+        for (int i = 0; i < 6; i++) { /* g c^T s with g = c / p: symmetric, its upper triangle */
+            double g = c[i] / p;
+            xk[i] = g * mu[k];
+            for (int j = i; j < 6; j++) {
+                M[6 * i + j] = g * (c[j] * s);
+            }
+        }
+        sym_update(Pk, M);
+        turn_link(xk, R + 9 * k);
+        for (int i = 0; i < 3; i++) {
+            bias[3 * k + i] += xk[3 + i];
+        }
+        turn_after(R + 9 * k, NULL, turn, NULL);
+        if (cov != NULL) { /* the output's covariance while the link's state is in cache */
+            capsheet_mf_orientation_cov(1, Pk, tilt_cov, yaw_add == NULL ? NULL : yaw_add + k,
+                                        cov + 9 * k);
+        }
     }
 }
 
@@ -589,8 +761,8 @@ void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const 
 }
 
 void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
-                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
-                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const int32_t *jg_index, const double *jd, const int32_t *jg_rows,
+                            const int32_t *jg_group, const double *w, const int64_t *group,
                             const double *lat_diag, double *jg, double *info, double *seen)
 {
     for (size_t i = 0; i < n_jg; i++) {
@@ -709,135 +881,4 @@ double capsheet_mf_robust_mode(size_t n, const double *r, const double *w, doubl
         psi = sr / s;
     }
     return psi;
-}
-
-
-/* ---- the gyroscopes' fixed errors as a consider state (_consider.py) ---- */
-
-void capsheet_mf_consider_propagate(size_t n, size_t m, const double *R, double *P, double *C,
-                                    const double *U, const double *dt, const double *s2)
-{
-    size_t nc = 9 * m; /* at most 2 blocks: 18 columns */
-    for (size_t k = 0; k < n; k++) {
-        const double *Rk = R + 9 * k, *Uk = U + 3 * m * k;
-        double *Pk = P + 36 * k, *Ck = C + 6 * nc * k;
-        double h = dt[k], G[9], FC[108], Y[18] = {0.0}, X[18], D[3] = {0.0, 0.0, 0.0};
-        for (int i = 0; i < 9; i++) {
-            G[i] = Rk[i] * h;
-        }
-        for (int i = 0; i < 3; i++) { /* F C: the theta rows less G times the bias rows */
-            for (size_t c = 0; c < nc; c++) {
-                FC[nc * i + c] = Ck[nc * i + c] - (G[3 * i] * Ck[nc * 3 + c]
-                                                   + G[3 * i + 1] * Ck[nc * 4 + c]
-                                                   + G[3 * i + 2] * Ck[nc * 5 + c]);
-            }
-        }
-        for (size_t c = 3 * nc; c < 6 * nc; c++) {
-            FC[c] = Ck[c];
-        }
-        for (size_t b = 0; b < m; b++) {
-            const double *u = Uk + 3 * b;
-            for (int a = 0; a < 6; a++) { /* Y = F C Omega(u)^T, summed over the blocks */
-                for (int j = 0; j < 3; j++) {
-                    const double *row = FC + nc * a + 9 * b + 3 * j;
-                    Y[3 * a + j] += row[0] * u[0] + row[1] * u[1] + row[2] * u[2];
-                }
-            }
-            for (int j = 0; j < 3; j++) {
-                const double *v = s2 + 9 * b + 3 * j;
-                D[j] += u[0] * u[0] * v[0] + u[1] * u[1] * v[1] + u[2] * u[2] * v[2];
-            }
-        }
-        for (int a = 0; a < 6; a++) { /* X = -Y G^T */
-            for (int i = 0; i < 3; i++) {
-                X[3 * a + i] = -(Y[3 * a] * G[3 * i] + Y[3 * a + 1] * G[3 * i + 1]
-                                 + Y[3 * a + 2] * G[3 * i + 2]);
-            }
-        }
-        for (int a = 0; a < 6; a++) {
-            for (int i = 0; i < 3; i++) {
-                Pk[6 * a + i] += X[3 * a + i];
-            }
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int a = 0; a < 6; a++) {
-                Pk[6 * i + a] += X[3 * a + i];
-            }
-        }
-        for (int i = 0; i < 3; i++) {
-            for (int l = 0; l < 3; l++) {
-                Pk[6 * i + l] += G[3 * i] * D[0] * G[3 * l] + G[3 * i + 1] * D[1] * G[3 * l + 1]
-                                 + G[3 * i + 2] * D[2] * G[3 * l + 2];
-            }
-        }
-        for (int i = 0; i < 3; i++) { /* C' = F C + Gamma Sigma */
-            for (size_t b = 0; b < m; b++) {
-                for (int j = 0; j < 3; j++) {
-                    for (int l = 0; l < 3; l++) {
-                        size_t c = 9 * b + 3 * j + l;
-                        Ck[nc * i + c] = FC[nc * i + c] - G[3 * i + j] * Uk[3 * b + l] * s2[c];
-                    }
-                }
-            }
-        }
-        for (size_t c = 3 * nc; c < 6 * nc; c++) {
-            Ck[c] = FC[c];
-        }
-    }
-}
-
-void capsheet_mf_consider_accel(size_t n, size_t nc, const double *R, const double *P,
-                                double *C, const double *f, const double *vec, const double *r2,
-                                double gate, const uint8_t *valid)
-{
-    for (size_t k = 0; k < n; k++) {
-        if (!valid[k]) {
-            continue;
-        }
-        const double *Rk = R + 9 * k, *v = vec + 3 * k, *fk = f + 3 * k, *Pk = P + 36 * k;
-        double *Ck = C + 6 * nc * k;
-        double H[9], y[3], HP[18], Si[9], K[18], HC[54];
-        double m2 = accel_innovation(Rk, v, fk, Pk, r2[k], H, y, HP, Si);
-        double infl = m2 / gate > 1.0 ? m2 / gate : 1.0;
-        for (int i = 0; i < 9; i++) {
-            Si[i] /= infl;
-        }
-        for (int i = 0; i < 6; i++) {
-            for (int j = 0; j < 3; j++) {
-                K[3 * i + j] = HP[i] * Si[j] + HP[6 + i] * Si[3 + j] + HP[12 + i] * Si[6 + j];
-            }
-        }
-        for (int i = 0; i < 3; i++) { /* C <- C - K H C_theta */
-            for (size_t c = 0; c < nc; c++) {
-                HC[nc * i + c] = H[3 * i] * Ck[c] + H[3 * i + 1] * Ck[nc + c]
-                                 + H[3 * i + 2] * Ck[2 * nc + c];
-            }
-        }
-        for (int i = 0; i < 6; i++) {
-            for (size_t c = 0; c < nc; c++) {
-                Ck[nc * i + c] -= K[3 * i] * HC[c] + K[3 * i + 1] * HC[nc + c]
-                                  + K[3 * i + 2] * HC[2 * nc + c];
-            }
-        }
-    }
-}
-
-void capsheet_mf_consider_yaw(size_t n, size_t nc, const double *P, double *C,
-                              const double *a_diag)
-{
-    for (size_t k = 0; k < n; k++) {
-        const double *Pk = P + 36 * k;
-        double *Ck = C + 6 * nc * k;
-        double p = Pk[14], row[18];
-        double s = (1.0 - 1.0 / (a_diag[k] * p)) / p;
-        for (size_t c = 0; c < nc; c++) {
-            row[c] = Ck[2 * nc + c];
-        }
-        for (int i = 0; i < 6; i++) {
-            double g = Pk[6 * i + 2] * s;
-            for (size_t c = 0; c < nc; c++) {
-                Ck[nc * i + c] -= g * row[c];
-            }
-        }
-    }
 }

@@ -2,8 +2,9 @@
  * propagation, the accelerometer's Kalman update, and applying a correction, for n links at
  * once. Plain C99, no allocation; arrays are row-major doubles: R n x 3 x 3 (sensor -> world),
  * P n x 6 x 6 (error state: world rotation, then gyroscope bias), vectors n x 3 or n x 6.
- * The numpy code beside it (fused.py, `_np_*`) computes the same numbers in the same order of
- * operations; tests/host/analysis/test_motion_kernel.py compares them. */
+ * The numpy code beside it (fused.py, `_np_*`) computes the same numbers to rounding (the
+ * kernel takes a small rotation's series where numpy takes sin and cos, and a symmetric
+ * update's upper triangle); tests/host/analysis/test_motion_kernel.py compares them. */
 #include <stddef.h>
 #include <stdint.h>
 
@@ -31,14 +32,15 @@ void capsheet_mf_apply(size_t n, double *R, double *bias, double *P, const doubl
  * the same order): n links, n_units cells, n_pairs (link, cell) pairs, nnz Jacobian entries.
  * units n_units x 4, pair_link / pair_cell n_pairs, inv_ncell n, jac_slots (8 n_units + n +
  * 4 n_pairs: each computed entry's place in the CSR data, summed there in that order),
- * jac_rows / jac_cols nnz (the CSR pattern's row and column of each entry). Out: res and wts
+ * jac_indptr / jac_indices (the CSR pattern: 2 n_units + n + 1 row starts, nnz columns; all
+ * index arrays 32-bit, half the memory a pass reads). Out: res and wts
  * (2 n_units + n rows: closure x, y per cell, then one normal row per link), jd (nnz), lat_diag
  * (n: the diagonal of J^T W J). work: 10 n_units + 3 n doubles of scratch. */
 void capsheet_mf_lattice(size_t n, size_t n_units, size_t n_pairs, size_t nnz, const double *R,
-                         const double *P, const int64_t *units, const int64_t *pair_link,
-                         const int64_t *pair_cell, const double *inv_ncell,
-                         const int64_t *jac_slots, const int64_t *jac_rows,
-                         const int64_t *jac_cols, double floor2, double *res, double *wts,
+                         const double *P, const int32_t *units, const int32_t *pair_link,
+                         const int32_t *pair_cell, const double *inv_ncell,
+                         const int32_t *jac_slots, const int32_t *jac_indptr,
+                         const int32_t *jac_indices, double floor2, double *res, double *wts,
                          double *jd, double *lat_diag, double *work);
 
 /* out = J^T (w .* (J x)) for the CSR matrix J (n_rows x n: indptr, indices, data); tmp holds
@@ -93,15 +95,28 @@ void capsheet_mf_orientation_cov(size_t n, const double *P, const double *tilt_c
 void capsheet_mf_ddot(size_t n, const double *R, const double *w, const double *wdot,
                       double *out);
 
-/* capsheet_mf_accel, then capsheet_mf_apply of its x, a block of links at a time (the same
- * numbers as the two calls; one pass over the state). */
+/* capsheet_mf_ddot with wdot from the rates w and the last two wm1, wm2 over dt (s): the
+ * second-order backward difference (3 w - 4 wm1 + wm2) / (2 dt) when second_order, else
+ * (w - wm1) / dt (fused.py `_relative_accel`, the same numbers). */
+void capsheet_mf_ddot_rates(size_t n, const double *R, const double *w, const double *wm1,
+                            const double *wm2, const double *dt, int second_order, double *out);
+
+/* capsheet_mf_accel, then capsheet_mf_apply of its x, link by link (one pass over the state;
+ * the covariance's update, symmetric, computed once per entry: the two calls' numbers to
+ * rounding), then, when turn (3 x 3) is not NULL, R <- turn R, and when turn_bias (2) is not
+ * NULL, bias <- bias + R^T (turn_bias[0], turn_bias[1], 0) with that R: the sheet's common
+ * tilt and bias correction (fused.py `_accel_update`), in the same pass. */
 void capsheet_mf_accel_apply(size_t n, double *R, double *bias, double *P, const double *f,
                              const double *vec, const double *r2, double gate,
-                             const uint8_t *valid, double *x, double *nis);
+                             const uint8_t *valid, double *x, double *nis, const double *turn,
+                             const double *turn_bias);
 
-/* capsheet_mf_yaw, then capsheet_mf_apply of its x, a block of links at a time. */
+/* capsheet_mf_yaw, then capsheet_mf_apply of its x, link by link, then R <- turn R when turn is
+ * not NULL (the sheet's heading, fused.py `_heading_mode`), and, when cov is not NULL, the
+ * link's capsheet_mf_orientation_cov of the updated P into cov (n x 3 x 3) in the same pass. */
 void capsheet_mf_yaw_apply(size_t n, double *R, double *bias, double *P, const double *mu,
-                           const double *a_diag, double *x);
+                           const double *a_diag, double *x, const double *turn,
+                           const double *tilt_cov, const double *yaw_add, double *cov);
 
 /* out = J^T v for the CSR matrix J (n_rows x n): each out entry sums its terms in increasing row
  * order (as scipy's product by J^T's CSR does). */
@@ -112,8 +127,8 @@ void capsheet_mf_jt_times(size_t n_rows, size_t n, const int32_t *indptr, const 
  * entries jd summed per (row, group) slot jg_index; info[g] = sum over the slots of group g of
  * w[row] jg^2; seen[g] = info[g] / max(sum of lat_diag over the group's links, 1e-300). */
 void capsheet_mf_group_info(size_t nnz, size_t n_jg, size_t n_groups, size_t n,
-                            const int64_t *jg_index, const double *jd, const int64_t *jg_rows,
-                            const int64_t *jg_group, const double *w, const int64_t *group,
+                            const int32_t *jg_index, const double *jd, const int32_t *jg_rows,
+                            const int32_t *jg_group, const double *w, const int64_t *group,
                             const double *lat_diag, double *jg, double *info, double *seen);
 
 /* The magnetometers' weights (fused.py `_linalg.np_mag_weights`, `MotionEstimator._magnetometer`),
