@@ -14,7 +14,7 @@ import time
 
 import pytest
 
-from firmware_ref.qemu import QemuChip, build, missing_tools
+from firmware_ref.qemu import QemuChip, build, elf_path, missing_tools
 from protocol.framing import StreamDecoder, encode
 from protocol.messages import Announce, Info, provisional_node
 from tests.shared_runs import session_root, shared_runs
@@ -25,9 +25,97 @@ pytestmark = pytest.mark.skipif(WHY is not None, reason=f"QEMU conformance: {WHY
 UID = 0x0123456789ABCDEF  # CAPSHEET_QEMU_UID, the port's default
 
 
-def test_boot_frames_are_byte_identical_to_the_python_encoder(tmp_path):
+#: the runs the tests below look at: (mutant, sensors). The first, the healthy accelerometer chip, runs
+#: through the command line end to end (``python -m firmware_ref.qemu conformance --json``: the build,
+#: QEMU, ``capsheet conformance`` in a process of its own); the others the same way but for the suite,
+#: run in this process over the same transport to the same QEMU (`_in_process`)
+SUITES = [(None, None), (None, "accel+gyro"), (None, "accel+gyro+mag"), ("dead_sensor", None), ("wrong_crc", None),
+          ("frozen_sample", None), ("slow_clock", None)]
+
+
+def _out(root, mutant, sensors):
+    return root / f"qemu-{mutant or 'healthy'}-{sensors or 'accel'}"
+
+
+def _cli(out, mutant, sensors) -> list:
+    """``python -m firmware_ref.qemu conformance --json``: ``[exit status, stdout, stderr]``."""
+    cmd = [sys.executable, "-m", "firmware_ref.qemu", "conformance", "--json", "--out", str(out)]
+    cmd += (["--mutant", mutant] if mutant else []) + (["--sensors", sensors] if sensors else [])
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        stdout, stderr = p.communicate(timeout=300)
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait(10)
+    return [p.returncode, stdout, stderr]
+
+
+def _in_process(out, mutant, sensors) -> list:
+    """What `_cli` gives, with the suite run in this process: the image built as the command builds it
+    (`build`), booted in QEMU (`QemuChip`), the checks run with ``capsheet conformance``'s defaults
+    (its own parser's) over the same `SerialTransport` to QEMU's UART, the stack high-water read from
+    QEMU's monitor; the report is the command's --json, from the lines the command would print. A
+    QEMU per run, as the command starts one; an interpreter less per run (two: the command's and the
+    conformance command's)."""
+    from host.cli import build_parser
+    from host.conformance import Port, exit_code, run_checks, summary
+    from host.transport.ports import SerialTransport
+    try:
+        elf = build(mutant, out=out, sensors=sensors or "accel")
+    except RuntimeError as exc:
+        return [2, "", f"firmware_ref.qemu: {exc}"]
+    t0 = time.monotonic()
+    with QemuChip(elf) as q:
+        args = build_parser("conformance").parse_args(["conformance", "--port", q.url])
+        transport = SerialTransport(q.url, baudrate=args.baud, reconnect=False)
+        port = Port(transport)
+        try:
+            results = run_checks(port, timeout_s=args.timeout, node=args.node, uid=args.uid, slack_ms=args.slack_ms,
+                                 allow_broadcast=args.allow_broadcast, attempts=args.attempts, profile=args.profile)
+        finally:
+            port.close()
+            transport.close()
+        stack = q.stack_high_water()
+    lines = [r.line() for r in results] + [summary(results)]
+    code = exit_code(results)
+    run = {"exit": code, "seconds": round(time.monotonic() - t0, 2), "stack_high_water_bytes": stack,
+           "summary": lines[-1], "failed": [ln for ln in lines if ln.startswith(("FAIL", "LOST"))],
+           "passed": [int(ln.split()[1]) for ln in lines if ln.startswith("PASS")],
+           "skipped": [ln for ln in lines if ln.startswith("SKIP")]}
+    report = {"elf": str(elf), "mutant": mutant, "sensors": sensors or "accel", "runs": 1, "passed": int(code == 0),
+              "stack_high_water_bytes_max": stack, "seconds_max": run["seconds"], "per_run": [run]}
+    return [code, json.dumps(report), "\n".join(lines)]
+
+
+@pytest.fixture(scope="module")
+def suites(tmp_path_factory):
+    """``{(mutant, sensors): (exit status, stdout, stderr)}``: every run started at once, each with its
+    own build directory and QEMU. A run mostly waits for the emulated chip's heartbeats and silences
+    (~14 s of wall for ~2 s of CPU): one after another they took ~90 s. Made once per test session,
+    whichever workers need them splitting the runs (tests/shared_runs.py)."""
+    root = session_root(tmp_path_factory)
+
+    def job(mutant, sensors, _k):
+        out = _out(root, mutant, sensors)
+        out.mkdir(exist_ok=True)
+        if (mutant, sensors) == SUITES[0]:
+            return _cli(out, mutant, sensors)
+        try:
+            return _in_process(out, mutant, sensors)
+        except Exception as exc:  # noqa: BLE001 - reported by the run's own test
+            return [2, "", f"{type(exc).__name__}: {exc}"]
+    runs = shared_runs(root, "qemu", {f"{m}/{s}": (lambda k, m=m, s=s: job(m, s, k)) for m, s in SUITES},
+                       at_once=len(SUITES))
+    return {(m, s): tuple(runs[f"{m}/{s}"]) for m, s in SUITES}
+
+
+def test_boot_frames_are_byte_identical_to_the_python_encoder(suites, tmp_path_factory):
+    """The healthy image the command line built (`suites`), booted again: its first frames."""
     import serial
-    elf = build(out=tmp_path)
+    code, _out_text, err = suites[SUITES[0]]
+    elf = elf_path(None, _out(session_root(tmp_path_factory), None, None))
+    assert elf.is_file(), f"exit {code}: {err[-3000:]}"
     with QemuChip(elf) as q:
         port = serial.serial_for_url(q.url, timeout=0.1)
         data = b""
@@ -40,38 +128,6 @@ def test_boot_frames_are_byte_identical_to_the_python_encoder(tmp_path):
     assert ann == Announce(node, UID)
     assert isinstance(info, Info) and info.state == 0 and info.protocol_version == 1
     assert data.startswith(encode(ann) + encode(info))
-
-
-#: the runs of ``python -m firmware_ref.qemu conformance`` the tests below look at: (mutant, sensors)
-SUITES = [(None, None), (None, "accel+gyro"), (None, "accel+gyro+mag"), ("dead_sensor", None), ("wrong_crc", None),
-          ("frozen_sample", None), ("slow_clock", None)]
-
-
-@pytest.fixture(scope="module")
-def suites(tmp_path_factory):
-    """``{(mutant, sensors): (exit status, stdout, stderr)}``: every run started at once, each its own
-    process, build directory and QEMU. A run mostly waits for the emulated chip's heartbeats and
-    silences (~14 s of wall for ~2 s of CPU): one after another they took ~90 s. Made once per test
-    session, whichever workers need them splitting the runs (tests/shared_runs.py): each worker that
-    reached this module made all seven before."""
-    root = session_root(tmp_path_factory)
-
-    def job(mutant, sensors, _k):
-        out = root / f"qemu-{mutant or 'healthy'}-{sensors or 'accel'}"
-        out.mkdir(exist_ok=True)
-        cmd = [sys.executable, "-m", "firmware_ref.qemu", "conformance", "--json", "--out", str(out)]
-        cmd += (["--mutant", mutant] if mutant else []) + (["--sensors", sensors] if sensors else [])
-        p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        try:
-            stdout, stderr = p.communicate(timeout=300)
-        finally:
-            if p.poll() is None:
-                p.kill()
-                p.wait(10)
-        return [p.returncode, stdout, stderr]
-    runs = shared_runs(root, "qemu", {f"{m}/{s}": (lambda k, m=m, s=s: job(m, s, k)) for m, s in SUITES},
-                       at_once=len(SUITES))
-    return {(m, s): tuple(runs[f"{m}/{s}"]) for m, s in SUITES}
 
 
 def _suite(suites, mutant=None, sensors=None):
