@@ -8,7 +8,7 @@ reads both through the transport's capture. Over SLCAN the suite is given a plai
 `CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`.
 
 The transport is the subject of the real-time runs (tests/host/conformance/real_runs.py: made at once
-with test_checks.py's, ~11-14 s in all where this file's took ~50 s): the whole suite against the
+with test_checks.py's, ~22 s for both files' where this file's took ~40-50 s): the whole suite against the
 healthy chip over each transport (every check passes through it, the timing checks on the host's
 clock included), and the four checks the counter mutant fails, over each transport (a failing chip's
 answers come through it as FAIL, not LOST or SKIP). The mutant's whole suite — that every other check
