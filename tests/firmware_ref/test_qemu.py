@@ -27,8 +27,8 @@ UID = 0x0123456789ABCDEF  # CAPSHEET_QEMU_UID, the port's default
 
 #: the runs the tests below look at: (mutant, sensors). The first, the healthy accelerometer chip, runs
 #: through the command line end to end (``python -m firmware_ref.qemu conformance --json``: the build,
-#: QEMU, ``capsheet conformance`` in a process of its own); the others the same way but for the suite,
-#: run in this process over the same transport to the same QEMU (`_in_process`)
+#: QEMU, ``capsheet conformance`` in a process of its own); the others the same way but for the first
+#: interpreter: built, booted and read from the test's process (`_one_process_less`)
 SUITES = [(None, None), (None, "accel+gyro"), (None, "accel+gyro+mag"), ("dead_sensor", None), ("wrong_crc", None),
           ("frozen_sample", None), ("slow_clock", None)]
 
@@ -51,41 +51,31 @@ def _cli(out, mutant, sensors) -> list:
     return [p.returncode, stdout, stderr]
 
 
-def _in_process(out, mutant, sensors) -> list:
-    """What `_cli` gives, with the suite run in this process: the image built as the command builds it
-    (`build`), booted in QEMU (`QemuChip`), the checks run with ``capsheet conformance``'s defaults
-    (its own parser's) over the same `SerialTransport` to QEMU's UART, the stack high-water read from
-    QEMU's monitor; the report is the command's --json, from the lines the command would print. A
-    QEMU per run, as the command starts one; an interpreter less per run (two: the command's and the
-    conformance command's)."""
-    from host.cli import build_parser
-    from host.conformance import Port, exit_code, run_checks, summary
-    from host.transport.ports import SerialTransport
+def _one_process_less(out, mutant, sensors) -> list:
+    """What `_cli` gives, without its first interpreter: the image built as the command builds it
+    (`build`), booted in QEMU (`QemuChip`) from here, ``capsheet conformance`` in a process of its own
+    against QEMU's UART (as the command runs it: each suite's timing checks in a process of their own,
+    with no other suite's threads beside them), the stack high-water read from QEMU's monitor, and the
+    report the command's --json, from the same lines."""
     try:
         elf = build(mutant, out=out, sensors=sensors or "accel")
     except RuntimeError as exc:
         return [2, "", f"firmware_ref.qemu: {exc}"]
     t0 = time.monotonic()
     with QemuChip(elf) as q:
-        args = build_parser("conformance").parse_args(["conformance", "--port", q.url])
-        transport = SerialTransport(q.url, baudrate=args.baud, reconnect=False)
-        port = Port(transport)
-        try:
-            results = run_checks(port, timeout_s=args.timeout, node=args.node, uid=args.uid, slack_ms=args.slack_ms,
-                                 allow_broadcast=args.allow_broadcast, attempts=args.attempts, profile=args.profile)
-        finally:
-            port.close()
-            transport.close()
+        r = subprocess.run([sys.executable, "-m", "host.cli", "conformance", "--port", q.url],
+                           capture_output=True, text=True, timeout=300)
         stack = q.stack_high_water()
-    lines = [r.line() for r in results] + [summary(results)]
-    code = exit_code(results)
-    run = {"exit": code, "seconds": round(time.monotonic() - t0, 2), "stack_high_water_bytes": stack,
-           "summary": lines[-1], "failed": [ln for ln in lines if ln.startswith(("FAIL", "LOST"))],
+    lines = r.stdout.splitlines()
+    run = {"exit": r.returncode, "seconds": round(time.monotonic() - t0, 2), "stack_high_water_bytes": stack,
+           "summary": (r.stdout.strip().splitlines() or [""])[-1],
+           "failed": [ln for ln in lines if ln.startswith(("FAIL", "LOST"))],
            "passed": [int(ln.split()[1]) for ln in lines if ln.startswith("PASS")],
            "skipped": [ln for ln in lines if ln.startswith("SKIP")]}
-    report = {"elf": str(elf), "mutant": mutant, "sensors": sensors or "accel", "runs": 1, "passed": int(code == 0),
-              "stack_high_water_bytes_max": stack, "seconds_max": run["seconds"], "per_run": [run]}
-    return [code, json.dumps(report), "\n".join(lines)]
+    report = {"elf": str(elf), "mutant": mutant, "sensors": sensors or "accel", "runs": 1,
+              "passed": int(r.returncode == 0), "stack_high_water_bytes_max": stack, "seconds_max": run["seconds"],
+              "per_run": [run]}
+    return [r.returncode, json.dumps(report), r.stdout + r.stderr]
 
 
 @pytest.fixture(scope="module")
@@ -102,7 +92,7 @@ def suites(tmp_path_factory):
         if (mutant, sensors) == SUITES[0]:
             return _cli(out, mutant, sensors)
         try:
-            return _in_process(out, mutant, sensors)
+            return _one_process_less(out, mutant, sensors)
         except Exception as exc:  # noqa: BLE001 - reported by the run's own test
             return [2, "", f"{type(exc).__name__}: {exc}"]
     runs = shared_runs(root, "qemu", {f"{m}/{s}": (lambda k, m=m, s=s: job(m, s, k)) for m, s in SUITES},
