@@ -11,36 +11,23 @@ a real pty and a python-can bus, in real time; the command line; the port going 
 
 from __future__ import annotations
 
-import dataclasses
 import re
-import threading
 from pathlib import Path
 
 import pytest
 
 from host.cli import main
-from host.conformance import CHECKS, INFORMATIVE, AuditedCanTransport, Port, run_checks, select, summary, table
+from host.conformance import CHECKS, INFORMATIVE, Port, run_checks, select, summary, table
 from host.conformance.checks import clauses_covered
 from host.conformance.runner import CheckResult
 from tests.host.conformance.simulated_runs import simulated_port
-from host.transport.ports import MemoryTransport, SerialTransport, TransportError
-from protocol.messages import Assign, ChipState, Config, Start
-from tests.shared_runs import session_root, shared_runs
-from virtual_sheet.devices import CanDevice, MemoryDevice, PtyDevice
+from host.transport.ports import MemoryTransport, TransportError
+from protocol.messages import Assign, ChipState, Config
+from tests.host.conformance.real_runs import real_runs, result  # noqa: F401 (fixture)
+from virtual_sheet.devices import MemoryDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 
 ROOT = Path(__file__).resolve().parents[3]
-
-
-def _run_serial(sheet, **kw):
-    with PtyDevice(sheet) as dev:
-        t = SerialTransport(str(dev.path), reconnect=False)
-        port = Port(t)
-        try:
-            return run_checks(port, timeout_s=0.3, **kw)
-        finally:
-            port.close()
-            t.close()
 
 
 def _run_simulated(sheet, **kw):
@@ -49,65 +36,14 @@ def _run_simulated(sheet, **kw):
         return run_checks(port, timeout_s=0.3, **kw)
 
 
-def _run_can(sheet, channel=None, **kw):
-    with CanDevice(sheet, **({"channels": [channel]} if channel else {})) as dev:
-        t = AuditedCanTransport(f"virtual:{dev.channels[0]}", reconnect=False)
-        port = Port(t)
-        try:
-            return run_checks(port, timeout_s=0.3, **kw)
-        finally:
-            port.close()
-            t.close()
-
-
 #: the chip checks of §16 (6/9-axis chips): skipped on an accelerometer chip (46, §16.5, is a gateway's)
 IMU_CHECKS = {c.number for c in CHECKS if c.clauses[0].startswith("16") and "chip" in c.profiles}
 assert len(IMU_CHECKS) == 3
 
 
-def _healthy_run(transport: str, k: int, **sheet_kw):
-    """The whole suite on a healthy 2x2 sheet (``k``: a CAN channel of its own)."""
-    sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, **sheet_kw)
-    if transport == "serial":
-        return _run_serial(sheet, allow_broadcast=True)
-    return _run_can(sheet, channel=f"healthy{k}", allow_broadcast=True)
-
-
-@pytest.fixture(scope="module")
-def healthy_runs(tmp_path_factory):
-    """The real-time runs of the healthy accelerometer chips below (Python and C, a pty and python-can),
-    made at once in threads: each mostly waits (silences, heartbeats, re-announces: ~10 s of wall for
-    ~0.3 s of CPU), one after another they took ~40 s. Made once per test session, whichever workers
-    need them splitting the runs (tests/shared_runs.py): each worker that reached this module made them
-    all before. (The 6/9-axis runs are on the simulated clock: `test_every_check_passes_on_a_6_or_9_axis_chip`.)
-    ``{(chip, transport, sensors): results, or the error the run raised}``."""
-    from virtual_sheet.chip import ChipModel
-    chips = {"python": ChipModel}
-    try:
-        from firmware_ref.chip import CFirmwareChip
-    except ImportError:  # the C firmware was not built: its tests are skipped (tests/conftest.py)
-        pass
-    else:
-        chips["c"] = CFirmwareChip
-    jobs = {(name, t, "accel"): dict(transport=t, chip_factory=cls) for name, cls in chips.items()
-            for t in ("serial", "can")}
-
-    def attempt(kw, k):
-        kw = dict(kw)
-        try:
-            return [dataclasses.asdict(r) for r in _healthy_run(kw.pop("transport"), k, **kw)]
-        except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return {"error": f"{type(exc).__name__}: {exc}"}
-    runs = shared_runs(session_root(tmp_path_factory), "checks-healthy",
-                       {"/".join(key): (lambda k, kw=kw: attempt(kw, k)) for key, kw in jobs.items()}, at_once=len(jobs))
-    return {key: runs["/".join(key)] for key in jobs}
-
-
 def _healthy(runs, key):
-    got = runs[key]
-    if isinstance(got, dict):
-        raise AssertionError(f"{key}: the conformance run raised {got['error']}")
-    return [CheckResult(**r) for r in got]
+    """The real-time run ``key`` of tests/host/conformance/real_runs.py (made at once with the others)."""
+    return [CheckResult(**r) for r in result(runs, key)]
 
 
 #: the 6/9-axis runs: (transport, sensors)
@@ -115,9 +51,11 @@ IMU_RUNS = [("serial", "accel+gyro+mag"), ("can", "accel+gyro")]
 
 
 @pytest.mark.parametrize("transport", ["serial", "can"])
-def test_every_check_passes_on_a_virtual_chip(chip_class, transport, healthy_runs):
+def test_every_check_passes_on_a_virtual_chip(chip_class, transport, real_runs):
+    """The whole suite in real time against a healthy accelerometer chip over a real pty and a python-can
+    bus (tests/host/conformance/real_runs.py)."""
     name = "python" if chip_class.__name__ == "ChipModel" else "c"
-    results = _healthy(healthy_runs, (name, transport, "accel"))
+    results = _healthy(real_runs, f"healthy/{name}/{transport}")
     report = "\n".join(r.line() for r in results)
     assert [r for r in results if r.outcome != "PASS" and r.number not in IMU_CHECKS] == [], report
     # an accelerometer chip: §16 does not apply, said so
@@ -209,19 +147,30 @@ def test_a_lossy_port_is_reported_as_lost_frames_not_as_chip_violations():
 
 
 def test_the_port_going_away_raises_the_transport_error():
+    """The host's end of the link breaks mid-run (once the first check's result is out): the run ends
+    with the transport's error."""
     sheet = VirtualSheet("flat", "2x2", noise=0.5)
     dev = MemoryDevice(sheet).start()
     t = MemoryTransport(dev.port)
     port = Port(t)
-    timer = threading.Timer(1.5, dev.port.close)  # the host's end of the link breaks mid-run
-    timer.start()
+    lines = []
+
+    class BreakAfterTheFirstResult:
+        def write(self, text):
+            if text.strip():
+                lines.append(text)
+                dev.port.close()
+
+        def flush(self):
+            pass
     try:
         with pytest.raises(TransportError):
-            run_checks(port, timeout_s=0.3)
+            run_checks(port, timeout_s=0.3, out=BreakAfterTheFirstResult())
     finally:
-        timer.cancel()
         port.close()
         dev.stop()
+    # it broke mid-run: after discovery, before the end (a check after the break raised the error)
+    assert lines and lines[0].startswith("PASS   1") and len(lines) < len(select(None)), lines
 
 
 def test_select_rejects_unknown_items():
@@ -249,13 +198,12 @@ def test_list_and_usage_errors(capsys):
     assert "--node: invalid value '0x8000': need an assigned node id >= 1 and <= 32767" in capsys.readouterr().err
 
 
-def test_the_cli_exits_non_zero_on_a_failing_chip(capsys):
-    from tests.host.conformance.mutants import CounterOffByOne
-    sheet = VirtualSheet("flat", "2x2", noise=0.5, chip_factory=CounterOffByOne)
-    with PtyDevice(sheet) as dev:
-        code = main(["conformance", "--port", str(dev.path), "--timeout", "0.3", "--only", "5.1"])
-    out = capsys.readouterr().out
-    assert code == 1
+def test_the_cli_exits_non_zero_on_a_failing_chip(real_runs):
+    """``capsheet conformance --only 5.1`` in a process of its own against the counter mutant on a pty
+    (tests/host/conformance/real_runs.py, ``cli/failing``)."""
+    run = result(real_runs, "cli/failing")
+    out = run["stdout"]
+    assert run["code"] == 1, out + run["stderr"]
     assert re.search(r"^FAIL\s+24\s+§5\.1.*SYNC 0x0064 answered with counter 0x0065", out, re.M), out
     assert "failed" in out.splitlines()[-1]
 
@@ -323,13 +271,12 @@ def test_nodes_heard_are_counted_by_uid():
         results[0].line()
 
 
-def test_the_gateway_profile_from_the_command_line(capsys):
-    sheet = VirtualSheet("flat", "2x2", noise=0.5)
-    with PtyDevice(sheet, packed=True) as dev:
-        code = main(["conformance", "--port", str(dev.path), "--timeout", "0.3", "--profile", "gateway",
-                     "--only", "13.1"])
-    out = capsys.readouterr().out
-    assert code == 0, out
+def test_the_gateway_profile_from_the_command_line(real_runs):
+    """``capsheet conformance --profile gateway --only 13.1`` in a process of its own against a packing
+    gateway on a pty (tests/host/conformance/real_runs.py, ``cli/gateway``); a chip check refused in it."""
+    run = result(real_runs, "cli/gateway")
+    out = run["stdout"]
+    assert run["code"] == 0, out + run["stderr"]
     assert "gateway profile" in out.splitlines()[0] and re.search(r"^PASS\s+33\s+§13\.1", out, re.M), out
     assert main(["conformance", "--port", "loop://", "--profile", "gateway", "--only", "5"]) == 2
 

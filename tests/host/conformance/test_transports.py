@@ -7,93 +7,71 @@ SLCAN hands frames over in blocks and udp_multicast echoes a sender's own frames
 reads both through the transport's capture. Over SLCAN the suite is given a plain
 `CanTransport` (the `Port` subscribes its own audit), over udp_multicast an `AuditedCanTransport`.
 
-The transport is the subject here, so every run is in real time, through a real pty (and an SLCAN
-adapter on one, and the UDP bus). The four pty and SLCAN runs are made at once (`pty_and_slcan_runs`):
-each mostly waits (~11-14 s of wall for well under a second of CPU), one after another they took
-~50 s. The udp_multicast runs take the machine-wide bus lock, one at a time, in their own tests."""
+The transport is the subject of the real-time runs (tests/host/conformance/real_runs.py: made at once
+with test_checks.py's, ~22 s for both files' where this file's took ~40-50 s): the whole suite against the
+healthy chip over each transport (every check passes through it, the timing checks on the host's
+clock included), and the four checks the counter mutant fails, over each transport (a failing chip's
+answers come through it as FAIL, not LOST or SKIP). The mutant's whole suite — that every other check
+still passes and its four fail, on serial and on CAN — is decided by the frames the chip sends, which
+the healthy runs show each transport delivers: it runs on the simulated clock
+(`test_the_counter_mutant_fails_exactly_its_checks_on_the_simulated_clock`). Its verdict was the same
+over all three real transports as on the simulated clock (both kinds) when it moved."""
 
 from __future__ import annotations
 
 import pytest
 
-from host.conformance import AuditedCanTransport, CHECKS, Port, run_checks
-from host.transport.ports import CanTransport, SerialTransport
-from tests.host.cli.cli_runs import udp_bus_lock  # noqa: F401 (fixture)
-from tests.host.cli.test_host import ONE_MULTICAST_BUS, _udp_or_skip
+from host.conformance import CHECKS
+from tests.host.cli.test_host import ONE_MULTICAST_BUS
 from tests.host.conformance.mutants import CounterOffByOne
-from tests.shared_runs import session_root, shared_runs
-from virtual_sheet.devices import CanDevice, PtyDevice
+from tests.host.conformance.real_runs import COUNTER_CHECKS, real_runs, result  # noqa: F401 (fixture)
+from tests.host.conformance.simulated_runs import run_simulated
 from virtual_sheet.sheet import VirtualSheet
-from virtual_sheet.slcan import SlcanDevice
 
 OWN = {"serial": {21}, "can": {22, 41, 44}}  # a transport's own checks
 #: the §16 checks (6/9-axis chips): an accelerometer chip skips them, saying so
 IMU_CHECKS = {42, 43, 44}
+#: what the counter mutant fails
+COUNTER_FAILS = {24, 25, 26, 27}
 
 
-def _outcomes(kind, chip_class):
-    sheet = VirtualSheet("flat", "2x2", transport="serial" if kind == "pty" else "can", noise=0.5,
-                         chip_factory=chip_class)
-    if kind == "pty":
-        dev = PtyDevice(sheet).start()
-        t = SerialTransport(str(dev.path), reconnect=False)
-    elif kind == "slcan":
-        dev = SlcanDevice(sheet).start()
-        t = CanTransport(f"slcan:{dev.path}", bitrate=1_000_000, reconnect=False, sleep_after_open=0)
-    else:
-        _udp_or_skip()
-        dev = CanDevice(sheet, interface="udp_multicast", channels=["239.74.163.2"]).start()
-        t = AuditedCanTransport("udp_multicast:239.74.163.2", reconnect=False)
-    port = Port(t)
-    try:
-        results = run_checks(port, timeout_s=0.3, allow_broadcast=True, slack_ms=40.0)  # as the matrix
-    finally:
-        port.close()
-        t.close()
-        dev.stop()
-    return {r.number: r.outcome for r in results}, "\n".join(r.line() for r in results)
-
-
-def _expected(kind, failing=frozenset()):
-    own = OWN["serial" if kind == "pty" else "can"]
+def _expected(kind, failing=frozenset(), only=None):
+    own = OWN["serial" if kind in ("pty", "serial") else "can"]
     common = {c.number for c in CHECKS if "chip" in c.profiles} - OWN["serial"] - OWN["can"]
-    return {n: ("FAIL" if n in failing else "SKIP" if n in IMU_CHECKS else "PASS") for n in common | own}
+    numbers = common | own if only is None else {1} | set(only)  # check 1 (discovery) always runs
+    return {n: ("FAIL" if n in failing else "SKIP" if n in IMU_CHECKS else "PASS") for n in numbers}
 
 
-#: the chips run on every transport: a healthy one, and one that breaks the SYNC counter
-CHIPS = {"healthy": None, "counter_off_by_one": CounterOffByOne}
-#: the transports whose runs are made at once (`pty_and_slcan_runs`)
-AT_ONCE_KINDS = ("pty", "slcan")
+def _outcomes(results):
+    return {r["number"]: r["outcome"] for r in results}, "\n".join(
+        f"{r['outcome']:4}  {r['number']:2d}  {r['title']}  [{r['detail']}]" for r in results)
 
 
-@pytest.fixture(scope="module")
-def pty_and_slcan_runs(tmp_path_factory) -> dict:
-    """``{"KIND/CHIP": {"outcomes": [[number, outcome], ...], "report": text} or {"error"}}``: the pty and
-    SLCAN runs made at once in threads, each with its own sheet and pty, once per test session whichever
-    workers need them (tests/shared_runs.py)."""
-    def job(kind, chip):
-        def run(_k):
-            try:
-                got, report = _outcomes(kind, CHIPS[chip])
-            except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-                return {"error": f"{type(exc).__name__}: {exc}"}
-            return {"outcomes": sorted(got.items()), "report": report}
-        return run
-    jobs = {f"{kind}/{chip}": job(kind, chip) for kind in AT_ONCE_KINDS for chip in CHIPS}
-    return shared_runs(session_root(tmp_path_factory), "conformance-transports", jobs, at_once=len(jobs))
-
-
-@pytest.mark.parametrize("chip,failing", [("healthy", set()), ("counter_off_by_one", {24, 25, 26, 27})],
-                         ids=list(CHIPS))
-@pytest.mark.parametrize("kind", ["pty", "slcan", pytest.param("udp_multicast", marks=ONE_MULTICAST_BUS)])
-def test_the_same_verdicts_on_every_transport(request, kind, chip, failing):
-    """A healthy chip passes every check, a broken one fails the same checks, on each transport."""
+def _run(real_runs, kind, chip):
     if kind == "udp_multicast":
-        request.getfixturevalue("udp_bus_lock")
-        got, report = _outcomes(kind, CHIPS[chip])
+        return result(real_runs, "udp_multicast")[chip]
+    if (kind, chip) == ("pty", "healthy"):  # the Python chip's pty run is test_checks.py's too
+        return result(real_runs, "healthy/python/serial")
+    return result(real_runs, f"{kind}/{chip}")
+
+
+@pytest.mark.parametrize("chip", ["healthy", "counter_off_by_one"])
+@pytest.mark.parametrize("kind", ["pty", "slcan", pytest.param("udp_multicast", marks=ONE_MULTICAST_BUS)])
+def test_the_same_verdicts_on_every_transport(real_runs, kind, chip):
+    """A healthy chip passes every check, a broken one fails the same checks, on each transport."""
+    got, report = _outcomes(_run(real_runs, kind, chip))
+    if chip == "healthy":
+        assert got == _expected(kind), report
     else:
-        run = request.getfixturevalue("pty_and_slcan_runs")[f"{kind}/{chip}"]
-        if "error" in run:
-            raise AssertionError(f"{kind}/{chip}: the conformance run raised {run['error']}")
-        got, report = {n: outcome for n, outcome in run["outcomes"]}, run["report"]
-    assert got == _expected(kind, failing=failing), report
+        assert got == _expected(kind, failing=COUNTER_FAILS, only={int(n) for n in COUNTER_CHECKS}), report
+
+
+@pytest.mark.parametrize("transport", ["serial", "can"])
+def test_the_counter_mutant_fails_exactly_its_checks_on_the_simulated_clock(transport):
+    """The whole suite against the counter mutant (every check of the chip profile, broadcast ones
+    included): the four it breaks fail, every other one passes (or is skipped: §16 on an accelerometer
+    chip), as over the real transports."""
+    sheet = VirtualSheet("flat", "2x2", transport=transport, noise=0.5, chip_factory=CounterOffByOne)
+    results = run_simulated(sheet, allow_broadcast=True)
+    got = {r.number: r.outcome for r in results}
+    assert got == _expected(transport, failing=COUNTER_FAILS), "\n".join(r.line() for r in results)
