@@ -114,7 +114,9 @@ def test_host_killed_mid_stream_and_restarted_gets_every_chip(virtuals, tmp_path
         p.wait(30)
         p.stderr.close()
         p.stdout.close()
-        args = (*v.host_cmd, "--duration", "1.5")
+        # bring-up is under test: 0.5 s at the sheet's 145 Hz is ~70 snapshots, where the checks
+        # below need some (it ran 1.5 s)
+        args = (*v.host_cmd, "--duration", "0.5")
         out, doc = host_json(*args) if sig == signal.SIGKILL else host_json_here(cli_here, *args)
         assert out.returncode == 0, out.stderr
         assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr
@@ -134,8 +136,9 @@ def test_three_sessions_in_a_row(virtuals, tmp_path, transport, cli_here):
                  "--layout-out", str(lay))
     for session in range(3):
         # bring-up is under test here, not how fast python-can's slcan reads on a busy machine:
-        # --min-complete 0, and the data must merely flow (a second: tens of snapshots at 30 Hz)
-        args = (*v.host_cmd, "--duration", "1", "--min-complete", "0")
+        # --min-complete 0, and the data must merely flow (half a second: ~70 snapshots at the
+        # sheet's 145 Hz, where one complete snapshot is asked)
+        args = (*v.host_cmd, "--duration", "0.5", "--min-complete", "0")
         out, doc = host_json(*args) if session == 0 else host_json_here(cli_here, *args)
         assert out.returncode == 0, (session, out.stderr)
         assert "24 chips found, 24 assigned, 24 configured, 0 calibrated (24 nominal: no calibration of their own), 24 started" in out.stderr, (session, out.stderr)
@@ -159,7 +162,7 @@ def test_a_sheet_restarted_on_another_pty_at_the_same_path_is_refused(virtuals, 
     p = popen_host(*a.host_cmd, "--duration", "300", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
-    time.sleep(1.0)
+    time.sleep(0.5)  # streaming since "started on": mid-stream
     assert a.stop(signal.SIGTERM) == 0
     wait_line(p, "went away", 60, err)  # the host closed the old pty: its number is free
     m, s, name = open_pty(first, wait_s=10.0)  # held here, so the restarted sheet gets another
@@ -399,7 +402,7 @@ def test_over_capacity_is_refused_with_the_remedy(virtuals, tmp_path, cli_here):
     # 60 chips x 100 Hz x 150 bits = 900 kbit/s on a 115.2 kbaud UART: 781 %
     assert out.returncode == 2 and "over capacity" in out.stderr and "781 %" in out.stderr, out.stderr
     assert "--packed" in out.stderr and "--rate" in out.stderr
-    out = host(*cmd, "--duration", "0.5", "--rate", "10")  # 10 Hz: 78 % -- fits
+    out = host_here(cli_here, *cmd, "--duration", "0.5", "--rate", "10")  # 10 Hz: 78 % -- fits
     assert out.returncode == 0, out.stderr
 
 
@@ -441,12 +444,15 @@ def test_each_run_in_one_process_warns_on_its_own_stream(virtuals, tmp_path):
         assert err.count("announcing chip(s) are not in the layout") == 1, err
 
 
-def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
-    """A packing FD gateway: its SNAPSHOT frames (FD only) reach a host that forgot --fd."""
+def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path, cli_here):
+    """A packing FD gateway: its SNAPSHOT frames (FD only) reach a host that forgot --fd. Refused at
+    discovery, before streaming: through the entry point in this process (the same bring-up, line
+    and status; `capsheet host` over SLCAN runs as a real process in the busy-port refusal and the
+    first of three sessions)."""
     v = virtuals("--lattice", "3x3", "--transport", "slcan", "--fd", "--packed", "--symlink", str(tmp_path / "can"),
                  "--layout-out", str(tmp_path / "sheet.csv"))
     cmd = [a for a in v.host_cmd if a != "--fd"]
-    out = host(*cmd, "--duration", "1", "--rate", "20")
+    out = host_here(cli_here, *cmd, "--duration", "1", "--rate", "20")
     assert out.returncode == 2 and "carries CAN FD frames" in out.stderr and "add --fd" in out.stderr, out.stderr
 
 
