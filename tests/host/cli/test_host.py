@@ -621,8 +621,11 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
     r = read_recording(rec)
     ts, complete = np.asarray(r.timestamp), np.asarray(r.complete)
     if what == "reset":
-        assert s["recoveries"] == 1 and s["recovered_chips"] == 12, s
-        [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery"]
+        # every chip recovered, each wave reported (the host gathers the chips that announced into a
+        # wave: on a loaded machine their announcements came late enough to make two, 3 then 9)
+        t_recs = [i["t"] for i in s["incidents"] if i["kind"] == "recovery"]
+        assert s["recovered_chips"] == 12 and s["recoveries"] == len(t_recs) >= 1, s
+        t_rec = max(t_recs)
         after = complete[ts > t_rec]
         assert after.size >= 50 and after.mean() >= 0.99, (after.size, after.mean())
     else:
