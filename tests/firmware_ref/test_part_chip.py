@@ -113,7 +113,13 @@ def test_part_needs_the_c_firmware_and_a_6_axis_set():
 @pytest.mark.parametrize("part,sensors", [("icm42688p", "accel+gyro"), ("icm42688p+mmc5983ma", "accel+gyro+mag")])
 def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors):
     """``capsheet virtual --firmware c --part ...`` (a 4x4 6- or 9-axis sheet) streams to ``capsheet host``
-    over a real pty: >= 99 % of the snapshots complete, every link sample with its gyroscope."""
+    over a real pty: every snapshot complete, every link sample with its gyroscope.
+
+    What is delivered is under test, not how soon: the host waits up to 2 s for a snapshot's links
+    (``--deadline-ms 2000``, and the counters it keeps open are room for that at 50 Hz), so a sheet
+    process that a loaded machine leaves behind by a few hundred milliseconds cuts no snapshot (with
+    the 0.5 s the helpers give, 3 of 104 were cut under three test workers and two busy loops); a
+    snapshot that still lacks a link lost a frame, and fails."""
     from tests.host.cli.cli_runs import Virtual, host_json
     lay = tmp_path / "sheet.csv"
     v = Virtual("--lattice", "4x4", "--sensors", sensors, "--firmware", "c", "--part", part,
@@ -121,13 +127,14 @@ def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors)
     cmd = list(v.host_cmd)
     cmd[cmd.index("--rate") + 1] = "50"   # a modest SYNC rate: what is delivered is under test, not speed
     try:
-        out, doc = host_json(*cmd, "--duration", "4")
+        out, doc = host_json(*cmd, "--duration", "4", "--deadline-ms", "2000")
     finally:
         assert v.stop() == 0
     assert out.returncode == 0, out.stderr
     s = doc["summary"]
     assert s["sensors"] == sensors and s["links"] == 24
-    assert s["snapshots"] > 0 and s["complete_snapshots_pct"] >= 99.0, s
+    assert s["snapshots"] > 0 and s["complete_snapshots"] == s["snapshots"] and s["late"] == 0, s
+    assert s["missing_links"] == [] and s["valid_links_pct"] == 100.0, s
     assert s["imu_links_pct"] == pytest.approx(s["valid_links_pct"], abs=1e-6)
     assert s["errors"] == {}, s["errors"]
 

@@ -22,6 +22,14 @@ import pytest
 from tests.host.cli.cli_runs import (CLI, ENV, Virtual, drain, finish, host, host_here, host_json, host_json_here,
                                      modest_rate, popen_host, wait_line)
 
+#: what a host that is judged on what it delivered (a completeness figure, "every chip streamed")
+#: runs at: what is delivered is under test, not how soon. A deadline of 2 s (the helpers' 0.5 s was
+#: short of a sheet process a loaded machine left behind: "late" answers, and runs below their
+#: figure, with three test workers and two busy loops), at a SYNC rate whose open counters
+#: (`Host`'s ``max_open``, at most 128) hold those 2 s. A following host takes the deadline alone.
+DELIVERY = ("--rate", "50", "--deadline-ms", "2000")
+FOLLOWING = ("--deadline-ms", "2000")
+
 # -- bad values: one line, exit 2, no traceback (no sheet needed: checked before any port opens) --
 
 def _bad_layouts(tmp: Path) -> dict:
@@ -114,7 +122,9 @@ def test_host_killed_mid_stream_and_restarted_gets_every_chip(virtuals, tmp_path
         p.wait(30)
         p.stderr.close()
         p.stdout.close()
-        args = (*v.host_cmd, "--duration", "1.5")
+        # bring-up is under test: 0.5 s at 50 Hz is ~25 snapshots, where the checks below need some
+        # (it ran 1.5 s at the sheet's 145 Hz)
+        args = (*v.host_cmd, "--duration", "0.5", *DELIVERY)
         out, doc = host_json(*args) if sig == signal.SIGKILL else host_json_here(cli_here, *args)
         assert out.returncode == 0, out.stderr
         assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr
@@ -134,8 +144,9 @@ def test_three_sessions_in_a_row(virtuals, tmp_path, transport, cli_here):
                  "--layout-out", str(lay))
     for session in range(3):
         # bring-up is under test here, not how fast python-can's slcan reads on a busy machine:
-        # --min-complete 0, and the data must merely flow (a second: tens of snapshots at 30 Hz)
-        args = (*v.host_cmd, "--duration", "1", "--min-complete", "0")
+        # --min-complete 0, and the data must merely flow (half a second: ~70 snapshots at the
+        # sheet's 145 Hz, where one complete snapshot is asked)
+        args = (*v.host_cmd, "--duration", "0.5", "--min-complete", "0")
         out, doc = host_json(*args) if session == 0 else host_json_here(cli_here, *args)
         assert out.returncode == 0, (session, out.stderr)
         assert "24 chips found, 24 assigned, 24 configured, 0 calibrated (24 nominal: no calibration of their own), 24 started" in out.stderr, (session, out.stderr)
@@ -159,7 +170,7 @@ def test_a_sheet_restarted_on_another_pty_at_the_same_path_is_refused(virtuals, 
     p = popen_host(*a.host_cmd, "--duration", "300", "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
-    time.sleep(1.0)
+    time.sleep(0.5)  # streaming since "started on": mid-stream
     assert a.stop(signal.SIGTERM) == 0
     wait_line(p, "went away", 60, err)  # the host closed the old pty: its number is free
     m, s, name = open_pty(first, wait_s=10.0)  # held here, so the restarted sheet gets another
@@ -264,7 +275,7 @@ def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_pa
     cmd = list(g.host_cmd)
     i = cmd.index("--lattice")
     del cmd[i:i + 2]
-    out, doc = host_json(*cmd, "--duration", "1.5")
+    out, doc = host_json(*cmd, "--duration", "1.5", *FOLLOWING)
     assert out.returncode == 0, out.stderr
     assert "no --lattice: the gateways serve links 0-23 (24 links): 4x4 is the one lattice with that many" in out.stderr
     assert doc["summary"]["links"] == 24 and doc["summary"]["valid_links_pct"] >= 90.0, doc["summary"]
@@ -288,7 +299,7 @@ def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path, cli
     so it is refused while the first streams without waiting for an interpreter to start."""
     lay = tmp_path / "sheet.csv"
     v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
-    p = popen_host(*v.host_cmd, "--duration", "4", "--json", "-q")
+    p = popen_host(*v.host_cmd, "--duration", "4", *DELIVERY, "--json", "-q")
     err: list = []
     wait_line(p, "started on", 60, err)
     drainer = drain(p, err)
@@ -383,7 +394,7 @@ def test_two_sync_sources(virtuals, tmp_path, cli_here):
     # drive mode against a gateway that drives SYNC: it said so itself (refused at bring-up: here)
     out = host_here(cli_here, *base, "--duration", "1")
     assert out.returncode == 2 and "is its segment's SYNC source" in out.stderr and "--sync follow" in out.stderr
-    out, doc = host_json(*base, "--sync", "auto", "--duration", "1")
+    out, doc = host_json(*base, "--sync", "auto", "--duration", "1", *FOLLOWING)
     assert out.returncode == 0, out.stderr
     assert doc["summary"]["sync_mode"] == "follow" and doc["summary"]["valid_links_pct"] >= 95.0
 
@@ -399,7 +410,7 @@ def test_over_capacity_is_refused_with_the_remedy(virtuals, tmp_path, cli_here):
     # 60 chips x 100 Hz x 150 bits = 900 kbit/s on a 115.2 kbaud UART: 781 %
     assert out.returncode == 2 and "over capacity" in out.stderr and "781 %" in out.stderr, out.stderr
     assert "--packed" in out.stderr and "--rate" in out.stderr
-    out = host(*cmd, "--duration", "0.5", "--rate", "10")  # 10 Hz: 78 % -- fits
+    out = host_here(cli_here, *cmd, "--duration", "0.5", "--rate", "10")  # 10 Hz: 78 % -- fits
     assert out.returncode == 0, out.stderr
 
 
@@ -441,12 +452,15 @@ def test_each_run_in_one_process_warns_on_its_own_stream(virtuals, tmp_path):
         assert err.count("announcing chip(s) are not in the layout") == 1, err
 
 
-def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
-    """A packing FD gateway: its SNAPSHOT frames (FD only) reach a host that forgot --fd."""
+def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path, cli_here):
+    """A packing FD gateway: its SNAPSHOT frames (FD only) reach a host that forgot --fd. Refused at
+    discovery, before streaming: through the entry point in this process (the same bring-up, line
+    and status; `capsheet host` over SLCAN runs as a real process in the busy-port refusal and the
+    first of three sessions)."""
     v = virtuals("--lattice", "3x3", "--transport", "slcan", "--fd", "--packed", "--symlink", str(tmp_path / "can"),
                  "--layout-out", str(tmp_path / "sheet.csv"))
     cmd = [a for a in v.host_cmd if a != "--fd"]
-    out = host(*cmd, "--duration", "1", "--rate", "20")
+    out = host_here(cli_here, *cmd, "--duration", "1", "--rate", "20")
     assert out.returncode == 2 and "carries CAN FD frames" in out.stderr and "add --fd" in out.stderr, out.stderr
 
 
@@ -457,6 +471,8 @@ def test_fd_frames_on_a_classic_bus_say_add_fd(virtuals, tmp_path):
 # with plain buses, and another checkout's suite may run an older capsheet on the default group): two
 # of these tests at once could hear each other. One xdist worker runs them all (`--dist loadgroup`).
 ONE_MULTICAST_BUS = pytest.mark.xdist_group("udp_multicast")
+# A udp_multicast host judged on what it delivered runs at `DELIVERY` too: at 50 Hz a socket's
+# receive buffer also holds the datagrams (a sample each) of ~0.4 s of a host not scheduled.
 
 
 @ONE_MULTICAST_BUS
@@ -470,7 +486,7 @@ def test_udp_multicast_between_two_processes(udp_bus_lock, virtuals, tmp_path):
     v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
                  "--layout-out", str(tmp_path / "sheet.csv"))
     assert v.host_cmd[:2] == ["--can", "udp_multicast:239.74.163.2"]
-    out, doc = host_json(*v.host_cmd, "--duration", "1.5", "--rate", "50")
+    out, doc = host_json(*v.host_cmd, "--duration", "1.5", *DELIVERY)
     assert out.returncode == 0, out.stderr
     assert "12 chips found, 12 assigned" in out.stderr
     assert doc["summary"]["valid_links_pct"] >= 95.0 and doc["summary"]["foreign_syncs"] == 0
@@ -488,7 +504,7 @@ def test_two_udp_multicast_sheets_on_one_machine_do_not_hear_each_other(udp_bus_
                      "--channel", group, "--layout-out", str(tmp_path / f"{name}.csv"))
         assert v.host_cmd[:2] == ["--can", f"udp_multicast:{group}"]
         sheets[name] = v
-    procs = {n: subprocess.Popen(CLI + ["host", *modest_rate([*v.host_cmd, "--duration", "2", "--json", "-q"])],
+    procs = {n: subprocess.Popen(CLI + ["host", *modest_rate([*v.host_cmd, "--duration", "2", *DELIVERY, "--json", "-q"])],
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=ENV)
              for n, v in sheets.items()}
     for name, chips in (("a", 12), ("b", 24)):
@@ -511,7 +527,7 @@ def test_a_sheet_on_two_udp_multicast_buses(udp_bus_lock, virtuals, tmp_path):
                  "--bus-count", "2", "--channel", "239.74.163.42", "--channel", "239.74.163.43",
                  "--layout-out", str(tmp_path / "sheet.csv"))
     assert v.host_cmd[:4] == ["--can", "udp_multicast:239.74.163.42", "--can", "udp_multicast:239.74.163.43"]
-    out, doc = host_json(*v.host_cmd, "--duration", "2")
+    out, doc = host_json(*v.host_cmd, "--duration", "2", *DELIVERY)
     assert out.returncode == 0, out.stderr
     assert "24 chips found, 24 assigned" in out.stderr, out.stderr
     s = doc["summary"]
@@ -526,7 +542,7 @@ def test_summary_names_the_missing_link_and_min_complete_decides(virtuals, tmp_p
     v = virtuals("--lattice", "3x3", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay),
                  "--faults", "dead_chip=4,seed=2")
     uid = [ln.split(",")[0] for ln in lay.read_text().splitlines()[1:] if ln.endswith(",4")][0]
-    out = host(*v.host_cmd, "--duration", "1.5", "--allow-missing", "--status-every", "0.2")
+    out = host(*v.host_cmd, "--duration", "1.5", *DELIVERY, "--allow-missing", "--status-every", "0.2")
     # 11 of 12 links: 91.7 % >= 90 %: exit 0, link 4 named with its uid
     assert out.returncode == 0, out.stderr
     assert f"4 (uid {uid})" in out.stderr, out.stderr
@@ -586,8 +602,8 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
     rec = tmp_path / "run.mcap"
     v = virtuals("--lattice", "3x3", "--transport", "can", "--can-interface", "udp_multicast",
                  "--layout-out", str(tmp_path / "sheet.csv"))
-    # 4.5 s at the sheet's 145 Hz: hundreds of snapshots after the frame, where the checks need 50-100
-    p = popen_host(*v.host_cmd, "--duration", "4.5", "--json", "-q", "--record", str(rec))
+    # 4.5 s at 50 Hz: ~150 snapshots after the frame, where the checks need 50-100
+    p = popen_host(*v.host_cmd, "--duration", "4.5", *DELIVERY, "--json", "-q", "--record", str(rec))
     err: list = []
     wait_line(p, "started on", 60, err)
     drainer = drain(p, err)
@@ -605,8 +621,11 @@ def test_a_third_process_on_the_bus_reset_broadcast_or_stray_frame(udp_bus_lock,
     r = read_recording(rec)
     ts, complete = np.asarray(r.timestamp), np.asarray(r.complete)
     if what == "reset":
-        assert s["recoveries"] == 1 and s["recovered_chips"] == 12, s
-        [t_rec] = [i["t"] for i in s["incidents"] if i["kind"] == "recovery"]
+        # every chip recovered, each wave reported (the host gathers the chips that announced into a
+        # wave: on a loaded machine their announcements came late enough to make two, 3 then 9)
+        t_recs = [i["t"] for i in s["incidents"] if i["kind"] == "recovery"]
+        assert s["recovered_chips"] == 12 and s["recoveries"] == len(t_recs) >= 1, s
+        t_rec = max(t_recs)
         after = complete[ts > t_rec]
         assert after.size >= 50 and after.mean() >= 0.99, (after.size, after.mean())
     else:
@@ -677,14 +696,15 @@ def test_two_serial_gateways_merge_into_one_lattice(virtuals, tmp_path, mode):
     from host.record.recording import read
     lay, rec_path, link = tmp_path / "sheet.json", tmp_path / "run.mcap", tmp_path / "gw"
     extra = ["--rate", "30", "--packed"] if mode == "follow-packed" else []
+    delivery = FOLLOWING if mode == "follow-packed" else DELIVERY
     v = virtuals("--lattice", "6x6", "--gateways", "2", "--symlink", str(link), "--layout-out", str(lay), *extra)
     paths = [str(link) + "0", str(link) + "1"]
     assert [a for i, a in enumerate(v.host_cmd) if i and v.host_cmd[i - 1] == "--port"] == paths, v.host_cmd
     assert os.path.realpath(paths[0]) != os.path.realpath(paths[1])  # two ptys
     if mode == "follow-packed":
         assert "--sync" in v.host_cmd and "follow" in v.host_cmd  # packing: the gateway nodes say so
-    # 1.5 s: ~45 snapshots at 30 Hz, where the checks below need 10
-    out, doc = host_json(*v.host_cmd, "--duration", "1.5", "--record", str(rec_path), "--live-rate", "1")
+    # 1.5 s: ~45-75 snapshots at 30-50 Hz, where the checks below need 10
+    out, doc = host_json(*v.host_cmd, "--duration", "1.5", *delivery, "--record", str(rec_path), "--live-rate", "1")
     assert out.returncode == 0, out.stderr
     assert "60 chips found, 60 assigned, 60 configured, 0 calibrated (60 nominal: no calibration of their own), 60 started" in out.stderr, out.stderr
     assert [b["name"] for b in doc["buses"]] == paths
@@ -806,13 +826,26 @@ def test_a_record_logged_while_the_status_line_is_written_starts_on_its_own_line
 
 
 def test_discovery_window_lasts_while_chips_are_still_answering(virtuals, tmp_path):
-    """1,984 chips answer GET_INFO with ~4,000 frames, more than the host reads in three 50 ms
-    windows: before, 913 layout chips "never answered" (exit 2; at 64x64 under load, 1-2 of 8,064
-    with the default 0.5 s). A round's window now lasts until no new chip has been heard for
-    `DISCOVER_QUIET_S`, so every chip is found and started."""
+    """1,984 chips answer GET_INFO with ~4,000 frames over a real pty: every chip is found and
+    started (before, 913 layout chips "never answered" in three 50 ms windows; at 64x64 under load,
+    1-2 of 8,064 with the default 0.5 s). A round's window lasts until no new chip has been heard
+    for `DISCOVER_QUIET_S`. That the window outlasts the one asked for while answers still arrive
+    is held on a simulated clock (tests/host/test_back2back.py,
+    `test_discovery_lasts_while_answers_are_still_arriving`, a 50 ms window against 0.5 s of
+    answers): here, the whole path of the command, with a window of 5 s (a layout given: it ends
+    once every chip answered, so it costs nothing on a machine that keeps up). With 50 ms, and even
+    with the default 0.5 s, a loaded machine (three test workers, two busy loops, load ~15) left the
+    sheet's process unscheduled past the window's end and chips "never answered" (1,503 of 1,984)."""
     lay = tmp_path / "sheet.json"
     v = virtuals("--lattice", "32x32", "--packed", "--layout-out", str(lay))
-    out, doc = host_json(*v.host_cmd, "--discover-s", "0.05", "--duration", "0.5", "--min-complete", "0")
+    assert "--layout" in v.host_cmd  # the window ends as soon as every chip of it answered
+    cmd = list(v.host_cmd)
+    k = cmd.index("--rate") + 1
+    cmd[k] = str(min(float(cmd[k]), 50.0))  # at most 50 Hz: the open counters hold the 2 s deadline
+    # every chip streams (no link missing): at load ~15 a 0.5 s stream at the 0.5 s deadline
+    # delivered too little of 1,984 chips' frames, and every link was "missing"
+    out, doc = host_json(*cmd, "--discover-s", "5", "--duration", "1.5", "--deadline-ms", "2000",
+                         "--min-complete", "0")
     assert out.returncode == 0, out.stderr
     assert "1984 chips found, 1984 assigned, 1984 configured" in out.stderr, out.stderr
     assert "1984 started" in out.stderr, out.stderr
