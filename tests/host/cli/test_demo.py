@@ -155,33 +155,38 @@ def test_demo_learns_the_layout_of_a_shuffled_sheet_before_it_streams(tmp_path):
     assert result["pass"] == (result["error_ok"] and result["complete_ok"] and result["layout_ok"])
 
 
-def test_the_learning_poses_are_held_long_enough_for_the_learner_on_a_simulated_clock():
-    """The demo's --learn-layout sheet (`make_sheet`, the poses timed by the demo) read at 50 Hz on
-    a simulated clock, each snapshot sampled up to 0.15 s after its stamp (seeded), fed to the pose detector
-    the demo's learner runs: whatever the phase of the SYNCs against the detector's chunks, the
-    first cycle of poses gives the four steps, in order, each one the learner accepts — none is
-    missed (a missed pose costs the demo a whole cycle)."""
+def test_the_learning_poses_start_at_the_learners_cue_and_are_held_long_enough_on_a_simulated_clock():
+    """The demo's --learn-layout sheet (`make_sheet`, the poses timed by the demo) cued when its
+    learner starts listening (`CuedPoses.begin` at the sheet's next scene step, as the sheet's
+    process does when the bring-up is done, however long it took), then read at 50 Hz on a
+    simulated clock, each snapshot sampled up to 0.15 s after its stamp (seeded), fed to the pose
+    detector the demo's learner runs and judged step by step as `collect_poses` does: whatever the
+    cue's moment and the phase of the SYNCs against the detector's chunks, the learner takes the
+    four steps, in order, within one pass of the poses from the cue — none is missed (a missed pose
+    costs the demo a whole pass), and none waits for a timer to come round to flat."""
     import numpy as np
 
     from host.analysis.layout import PROCEDURE, judge_pose
     from host.cli import build_parser
-    from host.cli.demo import _sheet_kwargs, learn_detector, make_sheet
+    from host.cli.demo import _sheet_kwargs, learn_detector, make_sheet, next_scene_step
 
     args = build_parser("demo").parse_args(["demo", "--lattice", "6x6", "--learn-layout"])
-    sheet = make_sheet(_sheet_kwargs(args))
-    poses = sheet.scene.poses
-    uids = np.array([sheet.chip_of_link(k).uid for k in range(sheet.lattice.n_links)], dtype=np.uint64)
     rng = np.random.Generator(np.random.MT19937(11))
-    for phase in (0.0, 0.013, 0.05, 0.087):
+    for cue, phase in ((0.0, 0.0), (0.73, 0.013), (3.31, 0.05), (5.9, 0.087)):
+        sheet = make_sheet(_sheet_kwargs(args))
+        uids = np.array([sheet.chip_of_link(k).uid for k in range(sheet.lattice.n_links)], dtype=np.uint64)
+        at = next_scene_step(cue, sheet.scene_rate_hz)
+        sheet.scene.poses.begin(at)
+        end = at + sheet.scene.poses.poses.period_s
         det = learn_detector()
-        taken = []
-        for k in range(int(poses.period_s * 50)):
-            now = phase + k / 50  # the host's stamp (its SYNC); the chips sample when it arrives
+        step, taken = 0, []
+        for k in range(int((end - cue) * 50)):
+            now = cue + phase + k / 50  # the host's stamp (its SYNC); the chips sample when it arrives
             counts, _status = sheet.counts_at(now + rng.uniform(0.0, 0.15))
             det.add_many(uids, counts.astype(float), now)
             pose = det.poll(now)
-            if pose is not None:
-                taken.append(pose.readings())
-        assert len(taken) == len(PROCEDURE), (phase, len(taken))
-        for (name, _prompt), readings in zip(PROCEDURE, taken):
-            assert judge_pose(name, readings) is None, (phase, name, judge_pose(name, readings))
+            if pose is not None and step < len(PROCEDURE) and judge_pose(PROCEDURE[step][0], pose.readings()) is None:
+                taken.append((PROCEDURE[step][0], round(now, 2)))
+                step += 1
+        assert [name for name, _ in taken] == [name for name, _ in PROCEDURE], (cue, phase, taken)
+        assert all(cue <= t < end for _, t in taken), (cue, phase, taken, end)
