@@ -323,6 +323,22 @@ def host_imu(args) -> bool:
     return getattr(args, "sensors", "accel") != "accel"
 
 
+def _recent_ms(samples) -> float | None:
+    """The median of the newest 50 of ``samples`` (seconds) in milliseconds; None before the first
+    (the status line says n/a: a median of nothing was NaN and two numpy warnings on stderr).
+
+    >>> from host.cli.runstats import Samples
+    >>> s = Samples()
+    >>> _recent_ms(s) is None
+    True
+    >>> s.add(0.002); s.add(0.004); s.add(0.010)
+    >>> _recent_ms(s)
+    4.0
+    """
+    recent = samples.recent(50)
+    return 1e3 * float(np.median(recent)) if recent else None
+
+
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
     return "n/a" if v is None else f"{v:{spec}}{unit}"
 
@@ -554,7 +570,7 @@ def run(args) -> int:
                         end = (last_c + 1) & 0xFFFF if last_c is not None else first
                         win = window[0].result(end, n_now - ((c_now - end) & 0xFFFF))
                     live.show(f"{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
-                              f"{1e3 * np.median(latencies.recent(50)):6.1f} ms | estimate {1e3 * np.median(times.recent(50)):5.2f} ms | "
+                              f"{_fmt(_recent_ms(latencies), '6.1f', ' ms')} | estimate {_fmt(_recent_ms(times), '5.2f', ' ms')} | "
                               f"error {_fmt(errors.last)} % of side | "
                               f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0
