@@ -246,10 +246,11 @@ BAD = [
 
 @pytest.mark.parametrize("argv, needle", [pytest.param(a, n, id=" ".join(a)) for a, n in BAD])
 def test_a_bad_value_is_one_line_and_exit_2(argv, needle, files, tmp_path, cli_here):
-    """Through the entry point in this process (tests/host/cli/conftest.py); the first case of each
-    layout and virtual subcommand through a real process as well (demo's refusals have theirs in
-    test_demo.py, and this one is refused in the same `run` after its parsing)."""
-    real = argv[0] != "demo" and argv == next(a for a, _ in BAD if a[:2] == argv[:2])
+    """Through the entry point in this process (tests/host/cli/conftest.py); the first case of
+    `layout learn`, `layout check` and `virtual` through a real process as well (demo's refusals
+    have theirs in test_demo.py; `layout bogus` is the parser's own refusal)."""
+    real = argv[:2] in (["layout", "learn"], ["layout", "check"]) or argv[0] == "virtual"
+    real = real and argv == next(a for a, _ in BAD if a[:2] == argv[:2])
     argv = [a.format(**files) for a in argv]
     before = open(files["mine"], "rb").read()
     runs = [cli_here(argv, cwd=tmp_path, timeout_s=TIMEOUT_S)]
