@@ -78,8 +78,8 @@ def _chain(root, name: str, make) -> dict:
     d = root / f"layout-{name}"
     d.mkdir(exist_ok=True)
     try:
-        args = {"learn": ("--lattice", LATTICE, "--seed", "6"), "check": ("--lattice", LATTICE, "--seed", "6"),
-                "dead": ("--lattice", "4x5", "--seed", "8", "--faults", "dead_chip=9")}[name]
+        five = ("--lattice", LATTICE, "--seed", "6")  # the same seed: the same truth on every such sheet
+        args = {"dead": ("--lattice", "4x5", "--seed", "8", "--faults", "dead_chip=9")}.get(name, five)
         v, port = _sheet(*args, "--layout-out", str(d / "truth.csv"))
         try:
             runs = make(port, d)
@@ -92,17 +92,14 @@ def _chain(root, name: str, make) -> dict:
         return {"error": f"{type(exc).__name__}: {exc}"}
 
 
-def _learn_then_interrupt(port, d) -> dict:
+def _learn(port, d) -> dict:
     learned = d / "learned" / "learned.json"
     learned.parent.mkdir()
     r = layout_cmd("learn", port, "--lattice", LATTICE, "--out", str(learned), "--json")
-    ctrl_c = d / "ctrl-c"
-    ctrl_c.mkdir()
-    return {"learn": {**_done(r), "out": str(learned), "dir": str(learned.parent)},
-            "ctrl_c": _interrupted_learn(port, ctrl_c)}
+    return {"learn": {**_done(r), "out": str(learned), "dir": str(learned.parent)}}
 
 
-def _check_swapped_then_ids(port, d) -> dict:
+def _check_swapped(port, d) -> dict:
     truth = load_layout(d / "truth.csv").links
     at = {k: u for u, k in truth.items()}
     bad = dict(truth)
@@ -110,19 +107,25 @@ def _check_swapped_then_ids(port, d) -> dict:
     lay, fixed = d / "bad.csv", d / "fixed.csv"
     save_layout(lay, bad)
     swapped = layout_cmd("check", port, "--layout", str(lay), "--lattice", LATTICE, "--out", str(fixed))
+    return {"swapped": {**_done(swapped), "out": str(fixed)}}
+
+
+def _check_ids_then_interrupt(port, d) -> dict:
+    truth = load_layout(d / "truth.csv").links
     # a new chip in place of a dead one: the layout names the dead chip on link 21
     new = next(u for u, k in truth.items() if k == 21)
     old = 0x0BADC0FFEE000042
     bad = {u: k for u, k in truth.items() if u != new}
     bad[old] = 21
-    lay2, fixed2 = d / "bad-ids.csv", d / "fixed-ids.csv"
-    save_layout(lay2, bad)
-    ids = layout_cmd("check", port, "--layout", str(lay2), "--lattice", LATTICE, "--ids-only", "--out", str(fixed2),
+    lay, fixed = d / "bad-ids.csv", d / "fixed-ids.csv"
+    save_layout(lay, bad)
+    ids = layout_cmd("check", port, "--layout", str(lay), "--lattice", LATTICE, "--ids-only", "--out", str(fixed),
                      timeout=60)
-    again = layout_cmd("check", port, "--layout", str(fixed2), "--lattice", LATTICE, "--ids-only", timeout=60)
-    return {"swapped": {**_done(swapped), "out": str(fixed)},
-            "ids": {**_done(ids), "out": str(fixed2), "new": new, "old": old},
-            "ids_again": _done(again)}
+    again = layout_cmd("check", port, "--layout", str(fixed), "--lattice", LATTICE, "--ids-only", timeout=60)
+    ctrl_c = d / "ctrl-c"
+    ctrl_c.mkdir()
+    return {"ids": {**_done(ids), "out": str(fixed), "new": new, "old": old}, "ids_again": _done(again),
+            "ctrl_c": _interrupted_learn(port, ctrl_c)}
 
 
 def _learn_with_a_dead_chip(port, d) -> dict:
@@ -131,16 +134,18 @@ def _learn_with_a_dead_chip(port, d) -> dict:
                       "out": str(out)}}
 
 
-CHAINS = {"learn": _learn_then_interrupt, "check": _check_swapped_then_ids, "dead": _learn_with_a_dead_chip}
+#: the chains of runs, each on a sheet of its own (`_chain`): the three runs over the poses on
+#: their own (the longest, ~12 s), the short ones after each other on the fourth sheet
+CHAINS = {"learn": _learn, "check": _check_swapped, "ids": _check_ids_then_interrupt, "dead": _learn_with_a_dead_chip}
 
 
 @pytest.fixture(scope="module")
 def pose_runs(tmp_path_factory):
-    """``{chain: {run: result}}``: every run over the poses, the chains at once, each on a sheet
-    of its own in its own process, made once per test session whichever workers need them
-    (tests/shared_runs.py): the learn and then the interrupted learn (5x5); the check of two
-    swapped chips and then the two ids-only checks (5x5, the same seed: the same truth); the learn
-    with a dead chip (4x5). SIGINT is caught here while they start: a suite started in the
+    """``{chain: {run: result}}``: every run on a sheet, the chains at once, each on a sheet of its
+    own in its own process, made once per test session whichever workers need them
+    (tests/shared_runs.py): the learn (5x5); the check of two swapped chips (5x5, the same seed:
+    the same truth); the two ids-only checks and then the interrupted learn (5x5); the learn with a
+    dead chip (4x5). SIGINT is caught here while they start: a suite started in the
     background (`make test &`, a CI script) runs with SIGINT ignored, and its children inherit that
     across exec (the interrupted learner then rightly ran to its end); a handler installed here is
     reset to the default in the child at exec."""
@@ -183,7 +188,7 @@ def test_check_over_a_pty_finds_two_swapped_chips(pose_runs):
 
 
 def test_check_ids_only_gives_a_new_chip_the_dead_ones_link(pose_runs):
-    runs = _runs(pose_runs, "check")
+    runs = _runs(pose_runs, "ids")
     r, truth = runs["ids"], load_layout(runs["truth"]).links
     new, old = r["new"], r["old"]
     assert f"chip 0x{new:016X} replaces 0x{old:016X} on link 21" in r["stdout"], r["stdout"] + r["stderr"]
@@ -194,7 +199,7 @@ def test_check_ids_only_gives_a_new_chip_the_dead_ones_link(pose_runs):
 
 
 def test_ctrl_c_leaves_nothing_half_written(pose_runs):
-    r = _runs(pose_runs, "learn")["ctrl_c"]
+    r = _runs(pose_runs, "ids")["ctrl_c"]
     err = r["stderr"]
     assert r["returncode"] == 130, err
     assert "Traceback" not in err, err
