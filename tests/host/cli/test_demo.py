@@ -69,7 +69,7 @@ def demo_runs(request, tmp_path_factory):
         except Exception as exc:  # noqa: BLE001 - the test that reads the run says it
             return {"error": f"{type(exc).__name__}: {exc}"}
 
-    return shared_runs(root, "demo", {n: (lambda _k, n=n, a=a: job(n, a)) for n, a in wanted.items()},
+    return shared_runs(root, "demo-runs", {n: (lambda _k, n=n, a=a: job(n, a)) for n, a in wanted.items()},
                        at_once=max(1, len(wanted)))
 
 
