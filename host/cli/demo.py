@@ -71,7 +71,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=T.seed, default=1, help="seed of the sheet's uids and noise (default 1)")
     p.add_argument("--learn-layout", action="store_true",
                    help="the sheet's chips carry their uids on links in a random order and go through the poses of "
-                        "`capsheet layout learn` on a timer; the host learns the layout from them first (the truth "
+                        "`capsheet layout learn` on a timer, from when the host starts listening (the sheet lies flat "
+                        "until then); the host learns the layout from them first (the truth "
                         "only scores it: layout_links_correct of layout_links), then streams with it. Passing needs "
                         "every link right too (replaces --shape; accelerometer chips)")
     from host.cli.sensor_args import add_sensor_args
@@ -113,17 +114,69 @@ def learn_hold_s() -> float:
     return det.settle_s + det.chunk_s + LEARN_MARGIN_S
 
 
+class CuedPoses:
+    """The layout poses (`virtual_sheet.layout_poses.LayoutPoseScene`) on a timer that starts at a
+    cue: the sheet lies in the first pose (flat) until `begin`, then goes through the poses from
+    there, over and over. The demo gives the cue when its learner starts listening (after the
+    bring-up, however long that took), so the first pass of the poses is the one the learner takes
+    and nobody waits for the timer to come round to flat (up to a whole pass, 8 s, with the timer
+    started when the sheet's process did).
+
+    No ``period_s``: the sheet solves each scene step once, as it comes (a pose is a few
+    microseconds to solve), since a step before the cue and the same step of the timer differ.
+
+    >>> from virtual_sheet.layout_poses import LayoutPoseScene
+    >>> s = CuedPoses(LayoutPoseScene(3, 4, hold_s=2.0, move_s=1.0, jitter_rad=0.0))
+    >>> [s.pose_at(t) for t in (0.5, 2.5, 30.0)]
+    ['flat', 'flat', 'flat']
+    >>> s.begin(29.0)
+    >>> [s.pose_at(t) for t in (30.5, 31.5, 32.5)]
+    ['flat', None, 'tilt']
+    """
+
+    def __init__(self, poses) -> None:
+        self.poses = poses
+        self.rows, self.cols, self.link_length = poses.rows, poses.cols, poses.link_length
+        self.begin_at_s = math.inf
+
+    def begin(self, at_s: float) -> None:
+        """The poses' timer starts at ``at_s`` (the sheet's clock, seconds); once."""
+        if self.begin_at_s != math.inf:
+            raise ValueError(f"the poses began already, at {self.begin_at_s:g} s")
+        self.begin_at_s = float(at_s)
+
+    def _timer(self, t_s: float) -> float:
+        return max(0.0, float(t_s) - self.begin_at_s) if self.begin_at_s != math.inf else 0.0
+
+    def pose_at(self, t_s: float) -> str | None:
+        return self.poses.pose_at(self._timer(t_s))
+
+    def joints(self, t_s: float) -> np.ndarray:
+        return self.poses.joints(self._timer(t_s))
+
+
+def next_scene_step(now_s: float, rate_hz: float) -> float:
+    """The first scene step after ``now_s`` (the sheet solves a step when a SYNC of its time comes,
+    once): where the --learn-layout poses begin when cued at ``now_s``.
+
+    >>> next_scene_step(3.34, 10.0), next_scene_step(3.3, 10.0)
+    (3.4, 3.4)
+    """
+    return math.floor(now_s * rate_hz + 1.0) / rate_hz
+
+
 def make_sheet(kwargs: dict):
-    """The virtual sheet of `_sheet_kwargs` (``learn_layout``: the layout poses on a timer, the uids
-    shuffled over the links), in the sheet's process and, for the truth, in the demo's."""
+    """The virtual sheet of `_sheet_kwargs` (``learn_layout``: the layout poses on a timer from the
+    learner's cue, `CuedPoses`, the uids shuffled over the links), in the sheet's process and, for
+    the truth, in the demo's."""
     from virtual_sheet.sheet import VirtualSheet
     kwargs = dict(kwargs)
     shape, lattice = kwargs.pop("shape"), kwargs.pop("lattice")
     if kwargs.pop("learn_layout", False):  # the poses, then (`switch_scene`) the demo's shape
         from virtual_sheet.layout_poses import LayoutPoseScene, PosesThenScene
         from virtual_sheet.shapes import make_scene
-        poses = LayoutPoseScene(lattice.rows, lattice.cols, kwargs["link_length"], hold_s=learn_hold_s(),
-                                move_s=LEARN_MOVE_S, seed=kwargs["seed"])
+        poses = CuedPoses(LayoutPoseScene(lattice.rows, lattice.cols, kwargs["link_length"], hold_s=learn_hold_s(),
+                                          move_s=LEARN_MOVE_S, seed=kwargs["seed"]))
         kwargs["scene"] = PosesThenScene(poses, make_scene(shape, lattice.rows, lattice.cols, kwargs["link_length"]))
         kwargs["shuffle_ids"] = True
         kwargs["scene"].precompute(kwargs["scene_rate_hz"])
@@ -200,6 +253,11 @@ def _serve_virtual_sheet(kwargs: dict, packed: bool, gateways: int, layout_path:
             if req == "start":  # the host streams: the scene's motion begins now
                 conn.send(("started", dev.call(lambda now_s: (sheet.imu_source.start_at(now_s), now_s)[1])))
                 continue
+            if req == "poses":  # --learn-layout: the learner listens, the poses' timer starts at the next step
+                at = next_scene_step(dev.now(), sheet.scene_rate_hz)
+                sheet.scene.poses.begin(at)
+                conn.send(("posing", at))
+                continue
             if req == "switch":  # --learn-layout: the layout is learned, the demo's shape from the next steps
                 rate = sheet.scene_rate_hz
                 at = math.ceil((dev.now() + 0.5) * rate) / rate
@@ -220,9 +278,10 @@ def usage_error_demo(msg: str) -> SystemExit:
     return usage_error("capsheet demo", msg)
 
 
-def learn_layout_over(paths, lat) -> tuple[dict, float]:
-    """``capsheet layout learn``'s session over the sheet's ptys: bring it up without a layout, take
-    the poses as they come, place the chips. Returns ({uid: link}, seconds taken)."""
+def learn_layout_over(paths, lat, begin=lambda: None) -> tuple[dict, float]:
+    """``capsheet layout learn``'s session over the sheet's ptys: bring it up without a layout, cue
+    the poses (``begin()``: the sheet starts them, `CuedPoses`), take them as they come, place the
+    chips. Returns ({uid: link}, seconds taken)."""
     from host.analysis.layout import PROCEDURE, learn_layout
     from host.cli.layout import DEFAULT_RATE_HZ, collect_poses, open_host
     from host.transport.ports import open_transport
@@ -231,6 +290,7 @@ def learn_layout_over(paths, lat) -> tuple[dict, float]:
     host = open_host([open_transport("serial", p, baudrate=GATEWAY_BAUD) for p in paths], lat, DEFAULT_RATE_HZ)
     with host:
         host.bring_up()
+        begin()
         poses = collect_poses(host, PROCEDURE, settle_s=learn_detector().settle_s,
                               timeout_s=20 * (learn_hold_s() + LEARN_MOVE_S),
                               say=lambda s: print(f"capsheet demo: {s}", file=sys.stderr))
@@ -261,6 +321,22 @@ def whole_sheet(snap) -> bool:
 def host_imu(args) -> bool:
     """The chips send IMU records (``--sensors`` with a gyroscope): the fused estimator shapes."""
     return getattr(args, "sensors", "accel") != "accel"
+
+
+def _recent_ms(samples) -> float | None:
+    """The median of the newest 50 of ``samples`` (seconds) in milliseconds; None before the first
+    (the status line says n/a: a median of nothing was NaN and two numpy warnings on stderr).
+
+    >>> from host.cli.runstats import Samples
+    >>> s = Samples()
+    >>> _recent_ms(s) is None
+    True
+    >>> s.add(0.002); s.add(0.004); s.add(0.010)
+    >>> _recent_ms(s)
+    4.0
+    """
+    recent = samples.recent(50)
+    return 1e3 * float(np.median(recent)) if recent else None
 
 
 def _fmt(v, spec: str = ".2f", unit: str = "") -> str:
@@ -351,7 +427,12 @@ def run(args) -> int:
 
         layout = Layout.load(layout_path)
         if args.learn_layout:  # the truth scores the learned layout, and the host streams with what it learned
-            learned, learn_s = learn_layout_over(paths, lat)
+            def begin_poses() -> None:  # the learner listens: the sheet's poses start (`CuedPoses`)
+                parent.send("poses")
+                _, at = parent.recv()
+                truth_sheet.scene.poses.begin(at)  # the demo's copy keeps every instant's answer
+
+            learned, learn_s = learn_layout_over(paths, lat, begin_poses)
             truth_links = {k: u for u, k in layout.links.items()}
             layout_score = {"layout_links": lat.n_links,
                             "layout_links_correct": sum(1 for u, k in learned.items() if truth_links.get(k) == u),
@@ -489,7 +570,7 @@ def run(args) -> int:
                         end = (last_c + 1) & 0xFFFF if last_c is not None else first
                         win = window[0].result(end, n_now - ((c_now - end) & 0xFFFF))
                     live.show(f"{n_est / max(el, 1e-9):6.1f} estimates/s | latency "
-                              f"{1e3 * np.median(latencies.recent(50)):6.1f} ms | estimate {1e3 * np.median(times.recent(50)):5.2f} ms | "
+                              f"{_fmt(_recent_ms(latencies), '6.1f', ' ms')} | estimate {_fmt(_recent_ms(times), '5.2f', ' ms')} | "
                               f"error {_fmt(errors.last)} % of side | "
                               f"complete {win['complete_pct']:5.1f} % of SYNCs")
             elapsed = time.monotonic() - t0

@@ -1,6 +1,9 @@
 """``capsheet layout learn`` and ``check`` through the real command line, against ``capsheet virtual
 --poses learn --shuffle-ids`` in another process over a real pty: the sheet runs the poses on its
-timer, the command sees only uids and readings; the sheet's --layout-out (its truth) only scores."""
+timer, the command sees only uids and readings; the sheet's --layout-out (its truth) only scores.
+
+The runs over the poses (`pose_runs`) are made at once, each chain on a sheet of its own: a run
+mostly waits for the sheet's timer to come round to the poses (~12 s of wall for ~2 s of CPU)."""
 
 from __future__ import annotations
 
@@ -15,23 +18,23 @@ import pytest
 from protocol.layout import load_layout, save_layout
 from tests.host.cli.test_bad_values import CLI, MAX_LINE, TIMEOUT_S
 from tests.host.cli.cli_runs import ENV, Virtual
+from tests.shared_runs import session_root, shared_runs
 
 LATTICE = "5x5"
 #: a whole pass of the poses is 4 x (hold + move) = 6.4 s: the learner needs at most two. It takes a
 #: pose after SETTLE_S still (``--settle-s``; 1 s by default, for a person holding the sheet): the
-#: virtual sheet holds each pose 0.7 s longer than that (it held 2 s for the default 1 s before)
+#: virtual sheet holds each pose 0.7 s longer than that (it held 2 s for the default 1 s before).
+#: Not the demo's 0.5 s (`learn_hold_s`): with 1.0 s, four chains at once at load ~20 with two
+#: busy loops beside them, the swapped-chips check took poses that did not tell links 7 and 8 apart
 HOLD_S, MOVE_S, SETTLE_S = "1.2", "0.4", "0.5"
+#: someone's file that ``layout learn --overwrite`` interrupted must leave as it was
+THEIRS = "uid,link\n0x1,0\n"
 
 
-@pytest.fixture(scope="module")
-def sheet(tmp_path_factory):
-    d = tmp_path_factory.mktemp("layout-sheet")
-    truth = d / "truth.csv"
-    v = Virtual("--lattice", LATTICE, "--poses", "learn", "--pose-hold-s", HOLD_S, "--pose-move-s", MOVE_S,
-                "--shuffle-ids", "--noise", "1", "--seed", "6", "--layout-out", str(truth))
-    port = v.host_cmd[v.host_cmd.index("--port") + 1]
-    yield port, load_layout(truth).links
-    v.stop()
+def _sheet(*args: str) -> tuple[Virtual, str]:
+    v = Virtual("--poses", "learn", "--pose-hold-s", HOLD_S, "--pose-move-s", MOVE_S, "--shuffle-ids", "--noise", "1",
+                *args)
+    return v, v.host_cmd[v.host_cmd.index("--port") + 1]
 
 
 def layout_cmd(action: str, port: str, *args: str, timeout: float = 120):
@@ -39,67 +42,18 @@ def layout_cmd(action: str, port: str, *args: str, timeout: float = 120):
                           capture_output=True, text=True, timeout=timeout, env=ENV, stdin=subprocess.DEVNULL)
 
 
-def test_learn_over_a_pty_places_every_chip(sheet, tmp_path):
-    port, truth = sheet
-    out = tmp_path / "learned.json"
-    r = layout_cmd("learn", port, "--lattice", LATTICE, "--out", str(out), "--json")
-    assert r.returncode == 0, r.stderr
-    assert "Traceback" not in r.stderr
-    doc = load_layout(out)
-    assert doc.links == truth and doc.lattice == LATTICE
-    res = json.loads(r.stdout)
-    assert res["placed"] == 40 and res["loop_closure_ok"] and res["missing_links"] == []
-    # every step was prompted, in order
-    steps = [ln.split("(")[1].split(")")[0] for ln in r.stderr.splitlines() if ln.startswith("step ")]
-    assert steps == ["flat", "tilt", "hump_i", "hump_j"]
-    assert sorted(os.listdir(tmp_path)) == ["learned.json"]  # no temporary file left
+def _done(r: subprocess.CompletedProcess) -> dict:
+    return {"returncode": r.returncode, "stdout": r.stdout, "stderr": r.stderr}
 
 
-def test_check_over_a_pty_finds_two_swapped_chips(sheet, tmp_path):
-    port, truth = sheet
-    at = {k: u for u, k in truth.items()}
-    bad = dict(truth)
-    bad[at[7]], bad[at[8]] = 8, 7
-    lay, fixed = tmp_path / "bad.csv", tmp_path / "fixed.csv"
-    save_layout(lay, bad)
-    r = layout_cmd("check", port, "--layout", str(lay), "--lattice", LATTICE, "--out", str(fixed))
-    assert "links 7 and 8 look swapped" in r.stdout, r.stdout + r.stderr
-    assert r.returncode == 0, r.stderr  # every finding fixed into --out
-    assert load_layout(fixed).links == truth
-
-
-def test_check_ids_only_gives_a_new_chip_the_dead_ones_link(sheet, tmp_path):
-    port, truth = sheet
-    new = next(u for u, k in truth.items() if k == 21)
-    old = 0x0BADC0FFEE000042
-    bad = {u: k for u, k in truth.items() if u != new}
-    bad[old] = 21
-    lay, fixed = tmp_path / "bad.csv", tmp_path / "fixed.csv"
-    save_layout(lay, bad)
-    r = layout_cmd("check", port, "--layout", str(lay), "--lattice", LATTICE, "--ids-only", "--out", str(fixed),
-                   timeout=60)
-    assert f"chip 0x{new:016X} replaces 0x{old:016X} on link 21" in r.stdout, r.stdout + r.stderr
-    assert r.returncode == 0, r.stderr
-    assert load_layout(fixed).links == truth
-    r = layout_cmd("check", port, "--layout", str(fixed), "--lattice", LATTICE, "--ids-only", timeout=60)
-    assert r.returncode == 0 and "fits the sheet" in r.stdout, r.stdout + r.stderr
-
-
-def test_ctrl_c_leaves_nothing_half_written(sheet, tmp_path):
-    port, _truth = sheet
-    out = tmp_path / "sheet.csv"
-    out.write_text("uid,link\n0x1,0\n")  # someone's file, replaced only when a whole layout is learned
-    before = out.read_bytes()
-    # Ctrl-C as in a terminal: a suite started in the background (`make test &`, a CI script) runs
-    # with SIGINT ignored, and its children inherit that across exec (the learner then rightly ran
-    # to its end); a handler installed here is reset to the default in the child at exec
-    old = signal.signal(signal.SIGINT, signal.default_int_handler)
-    try:
-        p = subprocess.Popen(CLI + ["layout", "learn", "--port", port, "--baud", "12000000", "--settle-s", SETTLE_S,
-                                    "--lattice", LATTICE, "--out", str(out), "--overwrite"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                             text=True, env=ENV)
-    finally:
-        signal.signal(signal.SIGINT, old)
+def _interrupted_learn(port: str, d) -> dict:
+    """``layout learn --overwrite`` over someone's file, interrupted (SIGINT, as Ctrl-C in a
+    terminal) once it prompts the second pose."""
+    out = d / "sheet.csv"
+    out.write_text(THEIRS)
+    p = subprocess.Popen(CLI + ["layout", "learn", "--port", port, "--baud", "12000000", "--settle-s", SETTLE_S,
+                                "--lattice", LATTICE, "--out", str(out), "--overwrite"], stdout=subprocess.PIPE,
+                         stderr=subprocess.PIPE, text=True, env=ENV)
     try:
         end = time.monotonic() + 60
         err = ""
@@ -113,12 +67,144 @@ def test_ctrl_c_leaves_nothing_half_written(sheet, tmp_path):
     finally:
         if p.poll() is None:
             p.kill()
-    err += rest
-    assert p.returncode == 130, err
+            p.wait(10)
+    return {"returncode": p.returncode, "stderr": err + rest, "out": str(out), "dir": str(d)}
+
+
+def _chain(root, name: str, make) -> dict:
+    """One chain of runs on a sheet of its own (``make(port, directory) -> {run: result}``), its
+    truth (the sheet's --layout-out) beside; a failure is the result ("error"), for the test to say."""
+    d = root / f"layout-{name}"
+    d.mkdir(exist_ok=True)
+    try:
+        five = ("--lattice", LATTICE, "--seed", "6")  # the same seed: the same truth on every such sheet
+        args = {"dead": ("--lattice", "4x5", "--seed", "8", "--faults", "dead_chip=9")}.get(name, five)
+        v, port = _sheet(*args, "--layout-out", str(d / "truth.csv"))
+        try:
+            runs = make(port, d)
+            runs["sheet_alive"] = v.p.poll() is None
+        finally:
+            v.stop()
+        runs["truth"] = str(d / "truth.csv")
+        return runs
+    except Exception as exc:  # noqa: BLE001 - the test that reads the chain says it
+        return {"error": f"{type(exc).__name__}: {exc}"}
+
+
+def _learn(port, d) -> dict:
+    learned = d / "learned" / "learned.json"
+    learned.parent.mkdir()
+    r = layout_cmd("learn", port, "--lattice", LATTICE, "--out", str(learned), "--json")
+    return {"learn": {**_done(r), "out": str(learned), "dir": str(learned.parent)}}
+
+
+def _check_swapped(port, d) -> dict:
+    truth = load_layout(d / "truth.csv").links
+    at = {k: u for u, k in truth.items()}
+    bad = dict(truth)
+    bad[at[7]], bad[at[8]] = 8, 7
+    lay, fixed = d / "bad.csv", d / "fixed.csv"
+    save_layout(lay, bad)
+    swapped = layout_cmd("check", port, "--layout", str(lay), "--lattice", LATTICE, "--out", str(fixed))
+    return {"swapped": {**_done(swapped), "out": str(fixed)}}
+
+
+def _check_ids_then_interrupt(port, d) -> dict:
+    truth = load_layout(d / "truth.csv").links
+    # a new chip in place of a dead one: the layout names the dead chip on link 21
+    new = next(u for u, k in truth.items() if k == 21)
+    old = 0x0BADC0FFEE000042
+    bad = {u: k for u, k in truth.items() if u != new}
+    bad[old] = 21
+    lay, fixed = d / "bad-ids.csv", d / "fixed-ids.csv"
+    save_layout(lay, bad)
+    ids = layout_cmd("check", port, "--layout", str(lay), "--lattice", LATTICE, "--ids-only", "--out", str(fixed),
+                     timeout=60)
+    again = layout_cmd("check", port, "--layout", str(fixed), "--lattice", LATTICE, "--ids-only", timeout=60)
+    ctrl_c = d / "ctrl-c"
+    ctrl_c.mkdir()
+    return {"ids": {**_done(ids), "out": str(fixed), "new": new, "old": old}, "ids_again": _done(again),
+            "ctrl_c": _interrupted_learn(port, ctrl_c)}
+
+
+def _learn_with_a_dead_chip(port, d) -> dict:
+    out = d / "learned.csv"
+    return {"learn": {**_done(layout_cmd("learn", port, "--lattice", "4x5", "--out", str(out), "--json")),
+                      "out": str(out)}}
+
+
+#: the chains of runs, each on a sheet of its own (`_chain`): the three runs over the poses on
+#: their own (the longest, ~12 s), the short ones after each other on the fourth sheet
+CHAINS = {"learn": _learn, "check": _check_swapped, "ids": _check_ids_then_interrupt, "dead": _learn_with_a_dead_chip}
+
+
+@pytest.fixture(scope="module")
+def pose_runs(tmp_path_factory):
+    """``{chain: {run: result}}``: every run on a sheet, the chains at once, each on a sheet of its
+    own in its own process, made once per test session whichever workers need them
+    (tests/shared_runs.py): the learn (5x5); the check of two swapped chips (5x5, the same seed:
+    the same truth); the two ids-only checks and then the interrupted learn (5x5); the learn with a
+    dead chip (4x5). SIGINT is caught here while they start: a suite started in the
+    background (`make test &`, a CI script) runs with SIGINT ignored, and its children inherit that
+    across exec (the interrupted learner then rightly ran to its end); a handler installed here is
+    reset to the default in the child at exec."""
+    root = session_root(tmp_path_factory)
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return shared_runs(root, "layout-poses", {n: (lambda _k, n=n: _chain(root, n, CHAINS[n])) for n in CHAINS},
+                           at_once=len(CHAINS))
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _runs(pose_runs, chain: str) -> dict:
+    runs = pose_runs[chain]
+    assert "error" not in runs, runs["error"]
+    return runs
+
+
+def test_learn_over_a_pty_places_every_chip(pose_runs):
+    runs = _runs(pose_runs, "learn")
+    r, truth = runs["learn"], load_layout(runs["truth"]).links
+    assert r["returncode"] == 0, r["stderr"]
+    assert "Traceback" not in r["stderr"]
+    doc = load_layout(r["out"])
+    assert doc.links == truth and doc.lattice == LATTICE
+    res = json.loads(r["stdout"])
+    assert res["placed"] == 40 and res["loop_closure_ok"] and res["missing_links"] == []
+    # every step was prompted, in order
+    steps = [ln.split("(")[1].split(")")[0] for ln in r["stderr"].splitlines() if ln.startswith("step ")]
+    assert steps == ["flat", "tilt", "hump_i", "hump_j"]
+    assert sorted(os.listdir(r["dir"])) == ["learned.json"]  # no temporary file left
+
+
+def test_check_over_a_pty_finds_two_swapped_chips(pose_runs):
+    runs = _runs(pose_runs, "check")
+    r, truth = runs["swapped"], load_layout(runs["truth"]).links
+    assert "links 7 and 8 look swapped" in r["stdout"], r["stdout"] + r["stderr"]
+    assert r["returncode"] == 0, r["stderr"]  # every finding fixed into --out
+    assert load_layout(r["out"]).links == truth
+
+
+def test_check_ids_only_gives_a_new_chip_the_dead_ones_link(pose_runs):
+    runs = _runs(pose_runs, "ids")
+    r, truth = runs["ids"], load_layout(runs["truth"]).links
+    new, old = r["new"], r["old"]
+    assert f"chip 0x{new:016X} replaces 0x{old:016X} on link 21" in r["stdout"], r["stdout"] + r["stderr"]
+    assert r["returncode"] == 0, r["stderr"]
+    assert load_layout(r["out"]).links == truth
+    r = runs["ids_again"]
+    assert r["returncode"] == 0 and "fits the sheet" in r["stdout"], r["stdout"] + r["stderr"]
+
+
+def test_ctrl_c_leaves_nothing_half_written(pose_runs):
+    r = _runs(pose_runs, "ids")["ctrl_c"]
+    err = r["stderr"]
+    assert r["returncode"] == 130, err
     assert "Traceback" not in err, err
     assert err.strip().splitlines()[-1] == "interrupted"
-    assert out.read_bytes() == before
-    assert sorted(os.listdir(tmp_path)) == ["sheet.csv"]
+    assert open(r["out"]).read() == THEIRS
+    assert sorted(os.listdir(r["dir"])) == ["sheet.csv"]
 
 
 @pytest.fixture(scope="module")
@@ -164,9 +250,11 @@ BAD = [
 
 @pytest.mark.parametrize("argv, needle", [pytest.param(a, n, id=" ".join(a)) for a, n in BAD])
 def test_a_bad_value_is_one_line_and_exit_2(argv, needle, files, tmp_path, cli_here):
-    """Through the entry point in this process (tests/host/cli/conftest.py); the first case of each
-    subcommand through a real process as well."""
-    real = argv == next(a for a, _ in BAD if a[:2] == argv[:2])
+    """Through the entry point in this process (tests/host/cli/conftest.py); the first case of
+    `layout learn`, `layout check` and `virtual` through a real process as well (demo's refusals
+    have theirs in test_demo.py; `layout bogus` is the parser's own refusal)."""
+    real = argv[:2] in (["layout", "learn"], ["layout", "check"]) or argv[0] == "virtual"
+    real = real and argv == next(a for a, _ in BAD if a[:2] == argv[:2])
     argv = [a.format(**files) for a in argv]
     before = open(files["mine"], "rb").read()
     runs = [cli_here(argv, cwd=tmp_path, timeout_s=TIMEOUT_S)]
@@ -184,30 +272,25 @@ def test_a_bad_value_is_one_line_and_exit_2(argv, needle, files, tmp_path, cli_h
         assert os.listdir(tmp_path) == []
 
 
-def test_a_missing_port_is_one_line_exit_1(tmp_path):
-    r = subprocess.run(CLI + ["layout", "learn", "--port", "/dev/ttyNOPE", "--lattice", "4x4", "--out", "x.csv"],
-                       capture_output=True, text=True, timeout=TIMEOUT_S, cwd=tmp_path, stdin=subprocess.DEVNULL)
-    assert "Traceback" not in r.stderr and r.returncode == 1, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and "/dev/ttyNOPE" in lines[0], r.stderr
+def test_a_missing_port_is_one_line_exit_1(tmp_path, cli_here):
+    """Through the entry point in this process: the port is refused when it is opened, before any
+    session (the learner's runs through real processes are `pose_runs`')."""
+    code, _out, err = cli_here(["layout", "learn", "--port", "/dev/ttyNOPE", "--lattice", "4x4", "--out", "x.csv"],
+                               cwd=tmp_path, timeout_s=TIMEOUT_S)
+    assert "Traceback" not in err and code == 1, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "/dev/ttyNOPE" in lines[0], err
     assert os.listdir(tmp_path) == []
 
 
-def test_learn_over_a_pty_with_a_dead_chip_leaves_its_link_empty(tmp_path):
-    truth_path = tmp_path / "truth.csv"
-    v = Virtual("--lattice", "4x5", "--poses", "learn", "--pose-hold-s", HOLD_S, "--pose-move-s", MOVE_S,
-                "--shuffle-ids", "--noise", "1", "--seed", "8", "--faults", "dead_chip=9",
-                "--layout-out", str(truth_path))
-    try:
-        port = v.host_cmd[v.host_cmd.index("--port") + 1]
-        out = tmp_path / "learned.csv"
-        r = layout_cmd("learn", port, "--lattice", "4x5", "--out", str(out), "--json")
-    finally:
-        v.stop()
-    assert r.returncode == 0, r.stderr
-    truth = load_layout(truth_path).links
-    learned = load_layout(out).links
-    res = json.loads(r.stdout)
+def test_learn_over_a_pty_with_a_dead_chip_leaves_its_link_empty(pose_runs):
+    runs = _runs(pose_runs, "dead")
+    r = runs["learn"]
+    assert runs["sheet_alive"]
+    assert r["returncode"] == 0, r["stderr"]
+    truth = load_layout(runs["truth"]).links
+    learned = load_layout(r["out"]).links
+    res = json.loads(r["stdout"])
     assert res["missing_links"] == [9] and res["placed"] == 30
     assert learned == {u: k for u, k in truth.items() if k != 9}
-    assert "link 9: no chip placed" in r.stderr
+    assert "link 9: no chip placed" in r["stderr"]
