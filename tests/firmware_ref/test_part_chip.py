@@ -127,7 +127,11 @@ def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors)
     cmd = list(v.host_cmd)
     cmd[cmd.index("--rate") + 1] = "50"   # a modest SYNC rate: what is delivered is under test, not speed
     try:
-        out, doc = host_json(*cmd, "--duration", "4", "--deadline-ms", "2000")
+        # a sheet of 24 C chips each behind its part's emulated registers, started beside a loaded
+        # machine's other work, may answer its first GET_INFO after the default 0.5 s window (seen:
+        # "no chip answered" beside two busy loops): a 5 s window, which a layout ends as soon as every
+        # chip has answered
+        out, doc = host_json(*cmd, "--duration", "4", "--deadline-ms", "2000", "--discover-s", "5")
     finally:
         assert v.stop() == 0
     assert out.returncode == 0, out.stderr
