@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(PYCACHE) $(VENV)/bin/capsheet demo
 
 test: $(STAMP)
-	$(PYCACHE) $(PY) -m pytest -q -n 2 --dist loadgroup --durations=25
+	$(PYCACHE) $(PY) -m pytest -q -n 3 --dist loadgroup --durations=25
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(PY) $$b || exit 1; done
