@@ -53,20 +53,23 @@ ffibuilder.set_source(
     extra_compile_args=["-O3", "-fno-fast-math", "-ffp-contract=off"] if os.name != "nt" else [],
 )
 
-if __name__ == "__main__":
+def build_in_place(builder: FFI, where: Path) -> list[Path]:
+    """Compile ``builder`` by hand and put the module in ``where``, over every build of it already
+    there (pip's is .abi3.so: one left older would shadow or be shadowed by this one). Built in a
+    scratch directory, not the project root: there cffi's distutils step would read pyproject.toml
+    with the venv's own setuptools (Python 3.11's 65.x rejects its SPDX licence)."""
     import shutil
     import tempfile
 
-    # built in a scratch directory, not the project root: there cffi's distutils step would read
-    # pyproject.toml with the venv's own setuptools (Python 3.11's 65.x rejects its SPDX licence)
     with tempfile.TemporaryDirectory() as tmp:
-        built = Path(ffibuilder.compile(tmpdir=tmp, verbose=False))
-        where = ROOT / "host" / "analysis"
-        # over every build of it already there (pip's is .abi3.so): one left older would shadow
-        # or be shadowed by this one
+        built = Path(builder.compile(tmpdir=tmp, verbose=False))
         stem = built.name.split(".")[0]
         dests = sorted(where.glob(stem + ".*so")) or [where / built.name]
         for dest in dests:  # a new file renamed over it: a process running the old one keeps it
             shutil.copy(built, dest.with_name(dest.name + ".new"))
             os.replace(dest.with_name(dest.name + ".new"), dest)
-    print(*dests)
+    return dests
+
+
+if __name__ == "__main__":
+    print(*build_in_place(ffibuilder, ROOT / "host" / "analysis"))

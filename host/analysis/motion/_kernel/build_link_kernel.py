@@ -53,19 +53,4 @@ def _builder(absolute: bool = False) -> FFI:
 ffibuilder = _builder()
 
 if __name__ == "__main__":
-    import shutil
-    import tempfile
-
-    # built in a scratch directory, not the project root: there cffi's distutils step reads
-    # pyproject.toml with the venv's own setuptools (Python 3.11's 65.x rejects its SPDX licence)
-    with tempfile.TemporaryDirectory() as tmp:
-        built = Path(_builder(absolute=True).compile(tmpdir=tmp, verbose=False))
-        where = ROOT / "host" / "analysis" / "motion"
-        # over every build of it already there (pip's is .abi3.so): one left older would shadow
-        # or be shadowed by this one
-        stem = built.name.split(".")[0]
-        dests = sorted(where.glob(stem + ".*so")) or [where / built.name]
-        for dest in dests:  # a new file renamed over it: a process running the old one keeps it
-            shutil.copy(built, dest.with_name(dest.name + ".new"))
-            os.replace(dest.with_name(dest.name + ".new"), dest)
-    print(*dests)
+    print(*_shared().build_in_place(_builder(absolute=True), ROOT / "host" / "analysis" / "motion"))
