@@ -82,9 +82,9 @@ def shared_runs(root: Path, tag: str, jobs: dict[str, Callable[[int], object]], 
                 timeout_s: float = 1200.0) -> dict:
     """``{key: result}`` of every job: ``jobs[key](k)`` returns a JSON-serialisable result (``k``:
     the job's number in ``jobs``, the same in every worker, for names a run must not share, such
-    as a virtual CAN channel). A job must not raise (catch and return the error: the test that
-    reads it reports it). RuntimeError naming the missing runs if another worker's runs are not
-    there within ``timeout_s`` (that worker died)."""
+    as a virtual CAN channel). A job that raises gives ``{"error": "Type: message"}`` for its key,
+    which the test that reads it reports (`result_of`); the other jobs go on. RuntimeError naming
+    the missing runs if another worker's runs are not there within ``timeout_s`` (that worker died)."""
     d = root / f"{tag}-runs"
     d.mkdir(exist_ok=True)
     keys = list(jobs)
@@ -92,9 +92,20 @@ def shared_runs(root: Path, tag: str, jobs: dict[str, Callable[[int], object]], 
     def take(_thread: int) -> None:
         for i, key in enumerate(keys):
             if _claim(d / f"{i}.claim"):
-                _write(d / f"{i}.json", jobs[key](i))
+                try:
+                    result = jobs[key](i)
+                except Exception as exc:  # noqa: BLE001 - the test that reads it says it
+                    result = {"error": f"{type(exc).__name__}: {exc}"}
+                _write(d / f"{i}.json", result)
 
     with ThreadPoolExecutor(at_once) as pool:
         list(pool.map(take, range(at_once)))
     _wait_for({key: d / f"{i}.json" for i, key in enumerate(keys)}, tag, timeout_s)
     return {key: json.loads((d / f"{i}.json").read_text()) for i, key in enumerate(keys)}
+
+
+def result_of(results: dict, key: str):
+    """``results[key]`` of `shared_runs`; the job's error as this test's failure."""
+    got = results[key]
+    assert not (isinstance(got, dict) and "error" in got), f"{key}: {got['error']}"
+    return got

@@ -18,7 +18,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from tests.shared_runs import session_root, shared_runs
+from tests.shared_runs import result_of, session_root, shared_runs
 
 
 def _demo(*args, timeout=240):
@@ -57,30 +57,25 @@ def demo_runs(request, tmp_path_factory):
     wanted = {name: args for name, (test, args) in DEMO_RUNS.items() if test in selected}
 
     def job(name, args):
-        try:
-            d = root / f"demo-{name}"
-            d.mkdir(exist_ok=True)
-            out = _demo(*[a.format(d=d) for a in args])
-            run = {"returncode": out.returncode, "stdout": out.stdout, "stderr": out.stderr}
-            png = [a.format(d=d) for a in args][args.index("--out") + 1]
-            run["png_bytes"] = os.path.getsize(png) if os.path.exists(png) else 0
-            if "--record" in args:
-                from host.record.recording import read  # the recording holds the axes and the fused estimates
-                rec = read(d / "demo9.mcap")
-                run["recording"] = {"gyro": rec.gyro is not None, "mag": rec.mag is not None,
-                                    "estimates": len(rec.estimates["joints"])}
-            return run
-        except Exception as exc:  # noqa: BLE001 - the test that reads the run says it
-            return {"error": f"{type(exc).__name__}: {exc}"}
+        d = root / f"demo-{name}"
+        d.mkdir(exist_ok=True)
+        out = _demo(*[a.format(d=d) for a in args])
+        run = {"returncode": out.returncode, "stdout": out.stdout, "stderr": out.stderr}
+        png = [a.format(d=d) for a in args][args.index("--out") + 1]
+        run["png_bytes"] = os.path.getsize(png) if os.path.exists(png) else 0
+        if "--record" in args:
+            from host.record.recording import read  # the recording holds the axes and the fused estimates
+            rec = read(d / "demo9.mcap")
+            run["recording"] = {"gyro": rec.gyro is not None, "mag": rec.mag is not None,
+                                "estimates": len(rec.estimates["joints"])}
+        return run
 
     return shared_runs(root, "demo-runs", {n: (lambda _k, n=n, a=a: job(n, a)) for n, a in wanted.items()},
                        at_once=max(1, min(DEMO_AT_ONCE, len(wanted))))
 
 
 def _run(demo_runs, name):
-    run = demo_runs[name]
-    assert "error" not in run, run["error"]
-    return SimpleNamespace(**run)
+    return SimpleNamespace(**result_of(demo_runs, name))
 
 
 def test_demo_streams_estimates_and_reports_honestly(demo_runs):

@@ -18,7 +18,7 @@ import pytest
 from protocol.layout import load_layout, save_layout
 from tests.host.cli.test_bad_values import CLI, MAX_LINE, TIMEOUT_S
 from tests.host.cli.cli_runs import ENV, Virtual
-from tests.shared_runs import session_root, shared_runs
+from tests.shared_runs import result_of, session_root, shared_runs
 
 LATTICE = "5x5"
 #: a whole pass of the poses is 4 x (hold + move) = 6.4 s: the learner needs at most two. It takes a
@@ -73,22 +73,20 @@ def _interrupted_learn(port: str, d) -> dict:
 
 def _chain(root, name: str, make) -> dict:
     """One chain of runs on a sheet of its own (``make(port, directory) -> {run: result}``), its
-    truth (the sheet's --layout-out) beside; a failure is the result ("error"), for the test to say."""
+    truth (the sheet's --layout-out) beside; a failure is the result ("error": `shared_runs`), for the
+    test to say."""
     d = root / f"layout-{name}"
     d.mkdir(exist_ok=True)
+    five = ("--lattice", LATTICE, "--seed", "6")  # the same seed: the same truth on every such sheet
+    args = {"dead": ("--lattice", "4x5", "--seed", "8", "--faults", "dead_chip=9")}.get(name, five)
+    v, port = _sheet(*args, "--layout-out", str(d / "truth.csv"))
     try:
-        five = ("--lattice", LATTICE, "--seed", "6")  # the same seed: the same truth on every such sheet
-        args = {"dead": ("--lattice", "4x5", "--seed", "8", "--faults", "dead_chip=9")}.get(name, five)
-        v, port = _sheet(*args, "--layout-out", str(d / "truth.csv"))
-        try:
-            runs = make(port, d)
-            runs["sheet_alive"] = v.p.poll() is None
-        finally:
-            v.stop()
-        runs["truth"] = str(d / "truth.csv")
-        return runs
-    except Exception as exc:  # noqa: BLE001 - the test that reads the chain says it
-        return {"error": f"{type(exc).__name__}: {exc}"}
+        runs = make(port, d)
+        runs["sheet_alive"] = v.p.poll() is None
+    finally:
+        v.stop()
+    runs["truth"] = str(d / "truth.csv")
+    return runs
 
 
 def _learn(port, d) -> dict:
@@ -158,9 +156,7 @@ def pose_runs(tmp_path_factory):
 
 
 def _runs(pose_runs, chain: str) -> dict:
-    runs = pose_runs[chain]
-    assert "error" not in runs, runs["error"]
-    return runs
+    return result_of(pose_runs, chain)
 
 
 def test_learn_over_a_pty_places_every_chip(pose_runs):

@@ -15,7 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 import pytest
 
 from tests.host.cli.cli_runs import CLI, ENV, Virtual, drain, finish, popen_host, wait_line
-from tests.shared_runs import session_root, shared_runs
+from tests.shared_runs import result_of, session_root, shared_runs
 
 
 def ports(*args: str, timeout_s: float = 120) -> subprocess.CompletedProcess:
@@ -108,18 +108,13 @@ def probes(tmp_path_factory):
     def job(name):
         d = root / f"ports-{name}"
         d.mkdir(exist_ok=True)
-        try:
-            return {**PROBES[name](d), "dir": str(d)}
-        except Exception as exc:  # noqa: BLE001 - the test that reads it says it
-            return {"error": f"{type(exc).__name__}: {exc}"}
+        return {**PROBES[name](d), "dir": str(d)}
 
     return shared_runs(root, "ports-probes", {n: (lambda _k, n=n: job(n)) for n in PROBES}, at_once=len(PROBES))
 
 
 def _probe(probes, name: str) -> dict:
-    r = probes[name]
-    assert "error" not in r, r["error"]
-    return r
+    return result_of(probes, name)
 
 
 def test_probe_names_what_answers_on_each_path(probes):

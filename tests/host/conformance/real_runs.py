@@ -22,7 +22,7 @@ chip is tested on the simulated clock, tests/host/conformance/test_mutants.py an
   virtual sheet's pty in this one: the gateway profile, and a failing chip's exit status
   (test_checks.py).
 
-Every job returns JSON (`shared_runs`): a run's results as dicts, or ``{"error": ...}`` (raised again
+Every job returns JSON (`shared_runs`): a run's results as dicts, or ``{"error": ...}`` (`shared_runs` records a job that raised; raised again
 by the test that reads it), or ``{"skip": ...}`` (no udp_multicast on this machine)."""
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ import pytest
 
 from host.conformance import AuditedCanTransport, Port, run_checks
 from host.transport.ports import CanTransport, SerialTransport
-from tests.shared_runs import session_root, shared_runs
+from tests.shared_runs import result_of, session_root, shared_runs
 from virtual_sheet.devices import CanDevice, PtyDevice
 from virtual_sheet.sheet import VirtualSheet
 from virtual_sheet.slcan import SlcanDevice
@@ -143,14 +143,12 @@ def _jobs() -> dict:
 
 
 def _guarded(key, job):
+    """``job``, held to `IN_PROCESS_AT_ONCE` unless it is a command-line run (its own process)."""
     def run(k):
-        try:
-            if key.startswith("cli/"):
-                return job(k)
-            with _in_process:
-                return job(k)
-        except Exception as exc:  # noqa: BLE001 - raised again by the run's own test
-            return {"error": f"{type(exc).__name__}: {exc}"}
+        if key.startswith("cli/"):
+            return job(k)
+        with _in_process:
+            return job(k)
     return run
 
 
@@ -163,9 +161,7 @@ def real_runs(tmp_path_factory) -> dict:
 
 def result(runs: dict, key: str):
     """The run's result; AssertionError if it raised, pytest.skip if it could not run here."""
-    got = runs[key]
-    if isinstance(got, dict) and "error" in got:
-        raise AssertionError(f"{key}: the conformance run raised {got['error']}")
+    got = result_of(runs, key)
     if isinstance(got, dict) and "skip" in got:
         pytest.skip(got["skip"])
     return got
