@@ -115,6 +115,8 @@ def register(subparsers) -> None:
                         "ellipsoids' mean radius)")
     from host.cli.sensor_args import add_sensor_args
     add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
+    from host.cli.timing_args import add_timing_args
+    add_timing_args(p)  # --ack-timeout-ms --watchdog-ms
     p.set_defaults(func=run)
 
 
@@ -491,7 +493,9 @@ def run(args, *, clock=None, driver=None) -> int:
         print(f"capsheet calibrate: {exc}", file=sys.stderr)
         return 1
     try:
-        host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate, clock=clock, driver=driver)
+        from host.cli.timing_args import timing_kwargs
+        host = Host(transports, args.lattice, layout=layout, rate_hz=args.rate, clock=clock, driver=driver,
+                    **timing_kwargs(args))
         from host.cli.sensor_args import imu_config
         host.imu_config = imu_config(args)
     except (MismatchError, ValueError) as exc:

@@ -49,6 +49,7 @@ from host.session.core import CapacityError, Host, Layout, MismatchError, Sessio
 from host.cli.record_args import SessionOutputs, add_record_args
 from host.cli.transport_args import add_transport_args, check_ports, open_transports
 from host.cli.sensor_args import add_sensor_args, imu_config
+from host.cli.timing_args import add_timing_args, timing_kwargs
 from host.transport.ports import TransportError
 from protocol.lattice import Lattice
 from protocol.layout import LayoutError
@@ -112,6 +113,7 @@ def register(subparsers) -> None:
                         "health on still stretches (docs/calibration.md)")
     p.add_argument("-q", "--quiet", action="store_true", help="no live status line")
     add_sensor_args(p)
+    add_timing_args(p, deadline=True)  # --ack-timeout-ms --watchdog-ms
     add_record_args(p, can_log=True, link_length=True, estimate_process=True)  # --record --live --live-rate --can-log
     # --link-length --estimate-process
     p.set_defaults(func=run)
@@ -419,13 +421,15 @@ def _run(args, status: StatusLine) -> int:
     try:
         host = Host(transports, lattice, layout=layout, rate_hz=args.rate, sync=args.sync,
                     deadline_s=None if args.deadline_ms is None else args.deadline_ms / 1000,
-                    queue_size=queue_size_for(args.rate))
+                    queue_size=queue_size_for(args.rate), **timing_kwargs(args))
     except (MismatchError, ValueError) as exc:
         for t in transports:
             t.close()
         return _fail(str(exc), EXIT_USAGE)
     host.imu_config = imu_config(args)
     host.aggregator.hold_for_input = not args.no_input_hold
+    # what the host waits for, as it runs (a default follows the rate and the deadline): --json says
+    waits = {"ack_timeout_ms": round(1e3 * host.timeout_s, 3), "watchdog_ms": round(1e3 * host.watchdog_s, 3)}
 
     def on_term(signum, frame):  # SIGTERM: stop the sheet as Ctrl-C does
         raise KeyboardInterrupt
@@ -533,7 +537,7 @@ def _run(args, status: StatusLine) -> int:
             code = EXIT_USAGE
     if args.json:
         try:
-            print(json.dumps({**(stats or {}), "summary": summary, "exit": code,
+            print(json.dumps({**(stats or {}), "summary": summary, "exit": code, "waits": waits,
                               "design": {"reader_processes": bool(args.reader_processes),
                                          "estimate_process": bool(args.estimate_process)}},
                              default=str, indent=1))

@@ -36,6 +36,7 @@ DEFAULT_RATE_HZ = 50.0
 
 def register(sub) -> None:
     from host.cli import argtypes as T
+    from host.cli.timing_args import add_timing_args
     from host.cli.transport_args import add_transport_args
 
     p = sub.add_parser("layout", help="learn which chip is on which link from the sheet itself, or check a layout",
@@ -53,6 +54,7 @@ def register(sub) -> None:
         q.add_argument("--pose-timeout-s", type=T.bounded_float(1.0, 3600.0), default=300.0, metavar="S",
                        help="give up when a pose has not been taken after this long, seconds (default 300)")
         q.add_argument("--json", action="store_true", help="print the result as JSON alone on stdout")
+        add_timing_args(q)  # --ack-timeout-ms --watchdog-ms
 
     learn = lsub.add_parser("learn", help="learn the layout from four poses of the sheet",
                             description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -87,14 +89,15 @@ def _say(args, text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def open_host(transports, lattice, rate_hz: float):
+def open_host(transports, lattice, rate_hz: float, **timing):
     """A `Host` on ``transports`` that assigns every chip some link (a layout is what is being
-    learned: the positions say nothing; the learner sees uids and readings only)."""
+    learned: the positions say nothing; the learner sees uids and readings only). ``timing``: the
+    ``--ack-timeout-ms`` / ``--watchdog-ms`` keywords (`host.cli.timing_args.timing_kwargs`)."""
     import logging
     from host.session.core import Host
     # auto-assign says "positions are arbitrary": known here, the learner uses uids, not positions
     logging.getLogger("capsheet.host").addFilter(lambda rec: "auto-assign" not in rec.getMessage())
-    return Host(transports, lattice, layout=None, rate_hz=rate_hz)
+    return Host(transports, lattice, layout=None, rate_hz=rate_hz, **timing)
 
 
 def collect_poses(host, steps, *, settle_s: float = 1.0, settle_deg: float = 2.0, timeout_s: float = 300.0,
@@ -169,7 +172,8 @@ def _run_session(args, lattice, steps):
         transports = open_transports(args, prog=prog)
     except TransportError as exc:
         raise SystemExit(_fail(prog, f"cannot open the port: {exc}"))
-    host = open_host(transports, lattice, args.rate)
+    from host.cli.timing_args import timing_kwargs
+    host = open_host(transports, lattice, args.rate, **timing_kwargs(args))
     try:
         with host:
             try:

@@ -23,6 +23,7 @@ import time
 import numpy as np
 
 from host.cli.argtypes import usage_error
+from host.cli.timing_args import add_timing_args, timing_kwargs
 from host.cli.transport_args import add_transport_args, open_transports
 from typing import TYPE_CHECKING
 
@@ -47,6 +48,7 @@ def register(subparsers) -> None:
     src.add_argument("--rate", type=T.rate, default=50.0, help="real sheet: SYNC rate, Hz (default 50)")
     src.add_argument("--learn-s", type=T.duration, default=2.0,
                      help="real sheet: untouched period to learn the rest shape, s (default 2)")
+    add_timing_args(p)  # real sheet: --ack-timeout-ms --watchdog-ms
     p.add_argument("--calibration", metavar="CAL_JSON", type=T.existing_file(".json", what="a calibration file"),
                    help="apply this calibration (capsheet calibrate) to the readings")
     p.add_argument("--lattice", type=T.lattice, default="14x14", help="joints ROWSxCOLS (default 14x14)")
@@ -199,7 +201,7 @@ def _real(args, rows: int, cols: int):
     except TransportError as exc:  # a port that does not exist: one line, as capsheet host says it
         raise SystemExit(f"capsheet tactile: {exc}") from None
     try:
-        host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate, layout=layout)
+        host = Host(transports, f"{rows}x{cols}", rate_hz=args.rate, layout=layout, **timing_kwargs(args))
     except (MismatchError, ValueError) as exc:
         for t in transports:
             t.close()

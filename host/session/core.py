@@ -111,9 +111,11 @@ class Host:
         ``drive``: the host sends SYNC on every bus. ``follow``: a gateway drives SYNC; the host
         opens a counter when it sees that SYNC (or, without SYNC in the stream, on the first frame).
     deadline_s : float, optional
-        How long a counter waits for missing links; default ``max(2 / rate_hz, 0.05)``.
+        How long a counter waits for missing links; default: adapted to the measured latency, starting
+        at ``max(2 / rate_hz, 0.05)`` (`host.snapshots.deadline`).
     watchdog_s : float, optional
-        A link silent this long is reported and marked missing; default ``max(0.5, 20 / rate_hz)``.
+        A link silent this long is reported and marked missing; default ``max(0.5, 20 / rate_hz,
+        deadline_s)`` (a fixed deadline the host waits for a link is not cut short by its watchdog).
     range_code, filter_code, heartbeat_ms : int
         CONFIG fields.
     timeout_s, retries : float, int
@@ -208,7 +210,9 @@ class Host:
         self.imu_config: tuple[int, int, int, int] | None = None
         self.filter_code = filter_code
         self.heartbeat_ms = heartbeat_ms
-        self.timeout_s = timeout_s
+        if not (isinstance(timeout_s, (int, float)) and np.isfinite(timeout_s) and timeout_s > 0):
+            raise ValueError(f"Invalid timeout_s: {timeout_s!r} (need a finite value > 0 s)")
+        self.timeout_s = float(timeout_s)
         self.retries = retries
         n = self.lattice.n_links
         # completion deadline: a fixed one if given, else adapted to the measured SYNC -> sample
@@ -246,7 +250,14 @@ class Host:
         #: the steps to streaming, the calibration applied (`host.session.bringup`)
         self.bringup = BringUp(self)
         #: links fallen silent (`host.session.watchdog`)
-        self.watchdog = Watchdog(self, watchdog_s if watchdog_s is not None else max(0.5, 20.0 / self.rate_hz))
+        # a link is marked silent after watchdog_s without a frame: by default not before a fixed
+        # completion deadline has passed either (a host told to wait 2 s for a link's frame that
+        # gave the link up after 0.5 s would cut every snapshot a slow sheet sends)
+        if watchdog_s is None:
+            watchdog_s = max(0.5, 20.0 / self.rate_hz, deadline_s or 0.0)
+        elif not (isinstance(watchdog_s, (int, float)) and np.isfinite(watchdog_s) and watchdog_s > 0):
+            raise ValueError(f"Invalid watchdog_s: {watchdog_s!r} (need a finite value > 0 s)")
+        self.watchdog = Watchdog(self, float(watchdog_s))
         #: rebooted chips, ports that come back, stream incidents (`host.session.recovery`)
         self.recovery = Recovery(self)
         #: the gateway nodes heard (host/session/gateways.py): they say whether a port packs, who drives SYNC

@@ -47,11 +47,12 @@ class SimClock:
         return self.t
 
 
-def run(stall: str | None, stall_s: float = STALL_S) -> dict:
+def run(stall: str | None, stall_s: float = STALL_S, **host_kw) -> dict:
     """Stream `STREAM_S` of the carried sheet; ``stall``: None, or where gateway 1 stalls for
     `STALL_S` from `STALL_AT_S` into streaming: ``"reader"`` (the host does not read its port:
     a receive thread starved) or ``"gateway"`` (the gateway neither reads nor writes: its
-    process starved). Returns the events, the errors and the estimator's count."""
+    process starved). ``host_kw``: more of `Host`'s keywords (``deadline_s``, ``watchdog_s``).
+    Returns the events, the errors and the estimator's count."""
     clock = SimClock()
     sheet = VirtualSheet("carry", LATTICE, link_length=L, noise=1.0, seed=1, scene_rate_hz=10.0,
                          sensors="accel+gyro+mag")
@@ -85,7 +86,7 @@ def run(stall: str | None, stall_s: float = STALL_S) -> dict:
         dev.step()
 
     host = StarvedHost(transports, sheet.lattice, layout=Layout(dict(sheet.layout)), rate_hz=RATE_HZ, clock=clock,
-                driver=driver, timeout_s=0.15)
+                driver=driver, timeout_s=0.15, **host_kw)
     host.imu_config = (2, 0, 0, 0)  # 9-axis records at the default ranges
     try:
         host.open()
@@ -153,3 +154,15 @@ def test_a_reader_starved_for_less_than_a_counter_may_wait_loses_nothing():
     assert res["evicted"] == 0 and res["late"] == 0
     assert res["complete"] == res["emitted"]
     assert res["events"] == []
+
+
+def test_a_gateway_stalled_for_less_than_a_fixed_deadline_is_waited_for_not_marked_silent():
+    """A host told to wait 2 s for a link's frames (``deadline_s``: ``--deadline-ms 2000``) does not
+    give the links up after the watchdog's usual 0.5 s: the gateway starved for 0.8 s delivers every
+    snapshot complete, none late, no link blamed. Told a 0.5 s watchdog beside the same deadline
+    (``--watchdog-ms 500``), the host marks the gateway's links silent, as the user said."""
+    res = run("gateway", deadline_s=2.0)
+    assert res["events"] == [] and res["late"] == 0 and res["evicted"] == 0
+    assert res["complete"] == res["emitted"] and res["silent_at_end"] == []
+    told = run("gateway", deadline_s=2.0, watchdog_s=0.5)
+    assert sorted(k for kind, k in told["events"] if kind == "silent") == list(range(30, 60))

@@ -88,6 +88,9 @@ CASES = [
     (["host", "--can", "virtual:x", "--can-log", "{log}"], "--can-log"),
     (["host", "--port", "/dev/null", "--layout", "{nodir}.csv"], "--layout"),
     (["host", "--port", "/dev/null", "--baud", "0"], "--baud"),
+    (["host", "--port", "/dev/null", "--ack-timeout-ms", "0"], "--ack-timeout-ms"),
+    (["host", "--port", "/dev/null", "--watchdog-ms", "-5"], "--watchdog-ms"),
+    (["host", "--port", "/dev/null", "--watchdog-ms", "nan"], "--watchdog-ms"),
     # -- calibrate: the output is checked before any pose is asked for --
     (["calibrate", "--port", "/dev/null", "--out", "{nodir}.json"], "--out"),
     (["calibrate", "--port", "/dev/null", "--out", "{json}"], "--out"),
@@ -98,6 +101,10 @@ CASES = [
     (["calibrate", "--port", "/dev/null", "--out", "c.json", "--rate", "-3"], "--rate"),
     (["calibrate", "--port", "/dev/null", "--out", "c.json", "--timeout", "0"], "--timeout"),
     (["calibrate", "--port", "/dev/null", "--out", "c.json", "--gravity", "0"], "--gravity"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--ack-timeout-ms", "-1"], "--ack-timeout-ms"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--watchdog-ms", "0"], "--watchdog-ms"),
+    (["layout", "learn", "--port", "/dev/null", "--lattice", "3x3", "--ack-timeout-ms", "inf"], "--ack-timeout-ms"),
+    (["layout", "learn", "--port", "/dev/null", "--lattice", "3x3", "--watchdog-ms", "0"], "--watchdog-ms"),
     # -- tactile --
     (["tactile", "--duration", "-1"], "--duration"),
     (["tactile", "--lattice", "1000000x2"], "--lattice"),
@@ -109,6 +116,8 @@ CASES = [
     (["tactile", "--record", "{mcap}"], "--record"),
     (["tactile", "--indenter", "thumb"], "--indenter"),
     (["tactile", "--indenter", ""], "--indenter"),
+    (["tactile", "--port", "/dev/null", "--ack-timeout-ms", "0"], "--ack-timeout-ms"),
+    (["tactile", "--port", "/dev/null", "--watchdog-ms", "1e9"], "--watchdog-ms"),
     # -- replay and estimate: inputs exist, outputs are not inputs --
     (["replay", "{nodir}.mcap"], "recording"),
     (["replay", "{dir}"], "recording"),

@@ -289,6 +289,26 @@ def test_without_lattice_the_gateways_tables_or_a_layout_decide(virtuals, tmp_pa
     assert doc["summary"]["links"] == 12
 
 
+def test_the_waits_follow_the_rate_and_the_deadline_unless_the_user_gives_them(virtuals, tmp_path, cli_here):
+    """``--json``'s "waits": by default a command's ACK is waited for 250 ms, and a link is marked
+    missing after 500 ms, 20 SYNC periods or ``--deadline-ms``, whichever is longest (a host told to
+    wait 1.5 s for a link's frame does not give the link up after 0.5 s); ``--ack-timeout-ms`` and
+    ``--watchdog-ms`` are the user's word. Each run streams: the waits are the session's own."""
+    a = virtuals("--lattice", "2x2", "--symlink", str(tmp_path / "a"))
+    runs = {  # arguments -> the waits expected
+        ("--rate", "20", "--deadline-ms", "300"): {"ack_timeout_ms": 250.0, "watchdog_ms": 1000.0},
+        ("--rate", "100", "--deadline-ms", "1500"): {"ack_timeout_ms": 250.0, "watchdog_ms": 1500.0},
+        ("--rate", "100", "--deadline-ms", "100"): {"ack_timeout_ms": 250.0, "watchdog_ms": 500.0},
+        ("--rate", "100", "--deadline-ms", "1500", "--ack-timeout-ms", "400", "--watchdog-ms", "3000"):
+            {"ack_timeout_ms": 400.0, "watchdog_ms": 3000.0},
+    }
+    for extra, waits in runs.items():
+        out, doc = host_json_here(cli_here, *a.host_cmd, "--duration", "0.3", *extra)
+        assert out.returncode == 0, out.stderr
+        assert doc["waits"] == waits, (extra, doc["waits"])
+        assert doc["summary"]["snapshots"] > 0
+
+
 # -- one session per port -------------------------------------------------------------------------
 
 def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path, cli_here):
