@@ -101,9 +101,10 @@ class Layout:
                 if k is None:
                     break
                 links[u] = k
-        log.warning("auto-assign: %d chips placed on links in uid order%s; positions are arbitrary "
-                    "(give a layout file for a meaningful shape)", len(links),
-                    " within their gateways' runs" if runs else "")
+        if links:  # no chip answered: the caller says so in its own words, not "0 chips placed"
+            log.warning("auto-assign: %d %s placed on links in uid order%s; positions are arbitrary "
+                        "(give a layout file for a meaningful shape)", len(links),
+                        "chip" if len(links) == 1 else "chips", " within their gateways' runs" if runs else "")
         return cls(links, f"{lattice.rows}x{lattice.cols}", is_auto=True)
 
 @dataclass

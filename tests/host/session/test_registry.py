@@ -118,6 +118,18 @@ def test_auto_layout_places_chips_behind_a_gateway_on_its_runs_and_the_rest_in_u
     assert Layout.auto([9, 5, 1], lat).links == {1: 0, 5: 1, 9: 2}
 
 
+def test_auto_layout_warns_about_arbitrary_positions_only_when_it_placed_a_chip(caplog):
+    """No chip answered: no "0 chips placed" warning before the command's own line that says so
+    (seen in ``capsheet calibrate`` on a port with no sheet); one chip placed: the warning."""
+    lat = Lattice(2, 2)
+    with caplog.at_level("WARNING", logger="capsheet.host"):
+        assert Layout.auto([], lat).links == {}
+    assert caplog.records == []
+    with caplog.at_level("WARNING", logger="capsheet.host"):
+        Layout.auto([7], lat)
+    assert [r.getMessage().split(";")[0] for r in caplog.records] == ["auto-assign: 1 chip placed on links in uid order"]
+
+
 def test_a_dropped_record_leaves_no_node_leading_to_it():
     """A uid heard from two nodes (it announced again from another one) and then dropped as a
     gateway's: an INFO or a heartbeat from either node finds nothing (was: a KeyError that ended a
