@@ -80,7 +80,7 @@ def test_protocol_does_no_io_and_depends_on_nothing_of_ours(lib):
 
 #: protocol's modules that are pure computation (no I/O, nothing but the standard library and numpy):
 #: the conventions defined once there (docs/design.md §2) that the science may import
-PURE_PROTOCOL = ("protocol.lattice", "protocol.constants", "protocol.frames", "protocol.files")
+PURE_PROTOCOL = ("protocol.lattice", "protocol.constants", "protocol.frames", "protocol.files", "protocol.rotations")
 
 
 def test_the_pure_protocol_modules_import_only_the_standard_library_numpy_and_each_other():

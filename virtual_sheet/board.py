@@ -11,7 +11,7 @@ The board's frame is the flat sheet's: i-links along its x, j-links along its y,
 The default directions are the twelve poses of `protocol.frames.BOARD_POSES` (six faces, then six
 45° tilts), in its order.
 
-The rotations are numpy's (`matrix_rotvecs`, `virtual_sheet.sensor.rotvec_matrices`): scipy.spatial
+The rotations are numpy's (`protocol.rotations`): scipy.spatial
 (`Slerp`, `Rotation.from_matrix`), which they replace to ~1e-15, cost ~0.7 s of CPU at the start of
 every process that makes a board sheet (`capsheet virtual --shape board`, the calibration's tests).
 
@@ -33,52 +33,12 @@ from protocol.constants import G0
 from protocol.frames import BOARD_POSES
 from protocol.lattice import Lattice
 from .geometry import flat_net
-from .sensor import rotvec_matrices
+from protocol.rotations import matrix_rotvecs, rotvec_matrices
 
-__all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation", "matrix_rotvecs"]
+__all__ = ["BoardPoseScene", "DEFAULT_DIRECTIONS", "board_rotation"]
 
 #: gravity directions in the board's frame, in `protocol.frames.BOARD_POSES` order
 DEFAULT_DIRECTIONS: tuple[tuple[float, float, float], ...] = tuple(p[2] for p in BOARD_POSES)
-
-
-def matrix_rotvecs(R) -> np.ndarray:
-    """``(n, 3, 3)`` rotation matrices -> ``(n, 3)`` rotation vectors, angles in [0, π]: through the
-    unit quaternion (Shepperd's choice of the largest of its four squared terms, so a half turn is
-    as exact as a small one), with the series of ``θ / sin(θ/2)`` below 1e-3 rad. What scipy's
-    ``Rotation.from_matrix(R).as_rotvec()`` gives for rotation matrices (to ~1e-15).
-
-    >>> np.round(matrix_rotvecs(rotvec_matrices(np.array([[0.1, -0.2, 3.0]]))), 12).tolist()
-    [[0.1, -0.2, 3.0]]
-    """
-    R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
-    n = len(R)
-    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]], axis=1)
-    choice = np.argmax(d, axis=1)
-    q = np.empty((n, 4))  # x, y, z, w
-    rows = np.arange(n)
-    on_axis = choice != 3
-    if on_axis.any():
-        r, i = rows[on_axis], choice[on_axis]
-        j, k = (i + 1) % 3, (i + 2) % 3
-        q[r, i] = 1.0 - d[r, 3] + 2.0 * R[r, i, i]
-        q[r, j] = R[r, j, i] + R[r, i, j]
-        q[r, k] = R[r, k, i] + R[r, i, k]
-        q[r, 3] = R[r, k, j] - R[r, j, k]
-    if (~on_axis).any():
-        r = rows[~on_axis]
-        q[r, 0] = R[r, 2, 1] - R[r, 1, 2]
-        q[r, 1] = R[r, 0, 2] - R[r, 2, 0]
-        q[r, 2] = R[r, 1, 0] - R[r, 0, 1]
-        q[r, 3] = 1.0 + d[r, 3]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    q[q[:, 3] < 0] *= -1.0
-    v = q[:, :3]
-    angle = 2.0 * np.arctan2(np.linalg.norm(v, axis=1), q[:, 3])
-    small = angle <= 1e-3
-    a2 = angle ** 2
-    safe = np.where(small, 1.0, angle)
-    scale = np.where(small, 2.0 + a2 / 12.0 + 7.0 * a2 * a2 / 2880.0, safe / np.sin(safe / 2.0))
-    return scale[:, None] * v
 
 
 def board_rotation(direction) -> np.ndarray:
@@ -170,7 +130,7 @@ class BoardPoseScene:
         w = 0.5 - 0.5 * np.cos(np.pi * w)  # start and stop smoothly
         j = (i + 1) % self.n_poses
         v = matrix_rotvecs(self._R[i].T @ self._R[j])
-        return self._R[i] @ rotvec_matrices(w * v)[0]
+        return self._R[i] @ rotvec_matrices(w * v)
 
     def rotation_jet(self, t) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`orientation` at every instant of ``t`` (seconds, (T,)) with its exact rates.

@@ -72,7 +72,8 @@ from protocol.constants import G0, SampleStatus, counts_to_si
 from protocol.imu_units import (GyroRange, MagRange, RAD_PER_DEG, TESLA_PER_GAUSS, count_limits,
                                 gyro_nominal_sensitivity, mag_nominal_sensitivity)
 from .magfield import MagneticField, field_in_sensor_frames
-from .sensor import SensorModel, rotvec_matrices
+from protocol.rotations import rotvec_matrices
+from .sensor import SensorModel
 
 __all__ = ["GyroModel", "MagModel", "GyroErrors", "MagErrors", "ImuArray", "ImuReading",
            "GYRO_PARTS", "MAG_PARTS", "accel_model", "SENSOR_SETS", "imu_array", "simulate"]

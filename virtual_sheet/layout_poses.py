@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from protocol.lattice import Lattice
+from protocol.rotations import rotvec_matrices
 from .geometry import flat_net
 
 __all__ = ["LayoutPoseScene", "POSES"]
@@ -55,15 +56,6 @@ def _rot_y(a: float) -> np.ndarray:
     """Rotation that raises +x towards +z by ``a``."""
     c, s = np.cos(a), np.sin(a)
     return np.array([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]])
-
-
-def _rotvec(v: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(v))
-    if th < 1e-15:
-        return np.eye(3)
-    k = v / th
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
 
 
 @dataclass(frozen=True)
@@ -159,7 +151,7 @@ class LayoutPoseScene:
             y, z = _profile(self.cols, hj, L)
             P[:, :, 1] = y[None, :]
             P[:, :, 2] = z[None, :]
-        R = _rotvec(jit) @ _rot_y(tilt)
+        R = rotvec_matrices(jit) @ _rot_y(tilt)
         return P @ R.T
 
 

@@ -44,8 +44,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from protocol.constants import ADC_MAX, ADC_MIN, G0, Range, SampleStatus, nominal_sensitivity
+from protocol.rotations import rotvec_matrices
 
-__all__ = ["SensorModel", "ChipErrors", "noisy_readings", "make_rng", "CHIP_ERRORS", "chip_error_model", "rotvec_matrices"]
+__all__ = ["SensorModel", "ChipErrors", "noisy_readings", "make_rng", "CHIP_ERRORS", "chip_error_model"]
 
 
 def make_rng(rng: np.random.Generator | int) -> np.random.Generator:
@@ -112,21 +113,6 @@ class ChipErrors:
 
 
 _CHIP_ERRORS: dict = {}  # (SensorModel, n_links) -> ChipErrors, read-only arrays
-
-
-def rotvec_matrices(v: np.ndarray) -> np.ndarray:
-    """``(n, 3)`` rotation vectors -> ``(n, 3, 3)`` rotation matrices (Rodrigues' formula, with its
-    series below 1e-8 rad). What scipy's ``Rotation.from_rotvec(v).as_matrix()`` gives (to ~1e-16),
-    without importing scipy.spatial: ~0.6 s of CPU at the start of every process that makes a sheet."""
-    th = np.linalg.norm(v, axis=-1)[:, None, None]
-    K = np.zeros((len(v), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th ** 2 / 6.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,7 @@ from protocol.constants import G0
 from protocol.files import MAX_LINKS, loads_json, read_file
 from protocol.frames import BOARD_POSES
 from protocol.lattice import Lattice
+from protocol.rotations import matrix_rotvecs, rotvec_matrices
 
 __all__ = ["Calibration", "fit_board_poses", "link_frames_on_board", "board_frame_readings",
            "pose_directions", "StaticDetector", "BOARD_POSES", "MIN_POSES", "G0",
@@ -106,20 +107,6 @@ def pose_directions(pose_readings: np.ndarray, rows: int, cols: int) -> np.ndarr
     return m / np.where(n > 0, n, 1.0)
 
 
-def rotvec_to_matrix(v: np.ndarray) -> np.ndarray:
-    """Rodrigues, vectorised: ``(..., 3)`` rotation vectors -> ``(..., 3, 3)`` matrices."""
-    v = np.asarray(v, dtype=float)
-    th = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = np.zeros(v.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2], K[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    K[..., 1, 0], K[..., 2, 0], K[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    small = th < 1e-8
-    ths = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th ** 2 / 6.0, np.sin(ths) / ths)
-    b = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(ths)) / ths ** 2)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
 def _lower(t: np.ndarray) -> np.ndarray:
     """``(..., 3)`` non-orthogonality ``(yx, zx, zy)`` -> ``(..., 3, 3)`` unit lower-triangular T."""
     t = np.asarray(t, dtype=float)
@@ -127,12 +114,6 @@ def _lower(t: np.ndarray) -> np.ndarray:
     T[..., 0, 0] = T[..., 1, 1] = T[..., 2, 2] = 1.0
     T[..., 1, 0], T[..., 2, 0], T[..., 2, 1] = t[..., 0], t[..., 1], t[..., 2]
     return T
-
-
-def _matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-    R = np.asarray(R, dtype=float)
-    return Rotation.from_matrix(R.reshape(-1, 3, 3)).as_rotvec().reshape(R.shape[:-2] + (3,))
 
 
 def project_so3(A: np.ndarray) -> np.ndarray:
@@ -235,8 +216,8 @@ class Calibration:
         no = np.zeros((n, 3)) if self.non_orthogonality is None else self.non_orthogonality
         object.__setattr__(self, "non_orthogonality", _check_array("non_orthogonality", no, (n, 3)))
         # the correction R(m) T⁻¹, one matrix per chip
-        A = rotvec_to_matrix(self.misalignment) @ np.linalg.inv(_lower(self.non_orthogonality))
-        object.__setattr__(self, "_M", rotvec_to_matrix(self.misalignment))
+        A = rotvec_matrices(self.misalignment) @ np.linalg.inv(_lower(self.non_orthogonality))
+        object.__setattr__(self, "_M", rotvec_matrices(self.misalignment))
         object.__setattr__(self, "_A", A)
 
     @property
@@ -522,12 +503,12 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
         for i, (p, ci) in enumerate(free):
             a[p, ci] = x[n_chip + i]
         w = np.einsum("pc,pci->pi", a, bases)
-        u = np.einsum("pij,pj->pi", rotvec_to_matrix(w), u0)
+        u = np.einsum("pij,pj->pi", rotvec_matrices(w), u0)
         t = c[:, 9:12] if non_orthogonality else np.zeros((n, 3))
         return c[:, 0:3], c[:, 3:6], c[:, 6:9], t, u
 
     def model(b, s, m, t, u):
-        M = rotvec_to_matrix(m)
+        M = rotvec_matrices(m)
         v = np.einsum("kji,pj->pki", R0, u * gravity_mps2)  # R0ᵀ g
         w = np.einsum("kji,pkj->pki", M, v)  # Mᵀ v
         if non_orthogonality:
@@ -553,9 +534,9 @@ def fit_board_poses(pose_readings: np.ndarray, rows: int, cols: int, *,
                          "in m/s² and the sheet flat on the board in every pose?")
     res = (model(b, s, m, t, u) - r)
     # fix the common rotation: the chips' mean board-frame misalignment becomes the identity
-    B = np.einsum("kij,kjl,kml->kim", R0, rotvec_to_matrix(m), R0)  # R0 M R0ᵀ
+    B = np.einsum("kij,kjl,kml->kim", R0, rotvec_matrices(m), R0)  # R0 M R0ᵀ
     Q = project_so3(B.mean(axis=0))
-    m = _matrix_to_rotvec(np.einsum("kji,jl,klm,kmn->kin", R0, Q.T, B, R0))  # R0ᵀ Qᵀ B R0
+    m = matrix_rotvecs(np.einsum("kji,jl,klm,kmn->kin", R0, Q.T, B, R0))  # R0ᵀ Qᵀ B R0
     u = u @ Q  # Qᵀ u for each row
     chip_rms = np.sqrt(np.mean(res ** 2, axis=(0, 2)))
     limit = max(outlier_factor * float(np.median(chip_rms)), outlier_floor_mps2)

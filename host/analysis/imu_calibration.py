@@ -55,7 +55,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .calibration import G0, Calibration, StaticDetector, project_so3, rotvec_to_matrix, fit_board_poses
+from protocol.rotations import rotvec_matrices
+from .calibration import G0, Calibration, StaticDetector, project_so3, fit_board_poses
 
 __all__ = ["still_segments", "segment_means", "GyroCalibration", "fit_gyro_rest", "fit_gyro_turns",
            "MagCalibration", "fit_mag_ellipsoid", "fit_mag_alignment", "CaptureCalibration", "fit_capture",
@@ -198,7 +199,7 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
     S = np.zeros((J_, n, 3, 3, 3))  # Σ R_{0..i+1}[:, p] · (w̄_i Δt_i)_q
     for i in range(L - 1):
         mid = 0.5 * (w[:, i] + w[:, i + 1]) * dt[:, i, :, None]  # (J, n, 3)
-        R = R @ rotvec_to_matrix(np.einsum("kij,tkj->tki", A, mid))
+        R = R @ rotvec_matrices(np.einsum("kij,tkj->tki", A, mid))
         S += R[..., :, :, None] * mid[..., None, None, :]
     u = np.einsum("tkji,tkj->tki", R, u0)
     dtheta = np.einsum("tkai,tkapq->tkipq", R, S).reshape(J_, n, 3, 9)  # R_endᵀ S
@@ -503,7 +504,7 @@ def fit_mag_alignment(cal: MagCalibration, rest_mag_t, rest_gravity_link, *,
         Jm = np.concatenate([Jd, -np.ones((K, n, 1))], axis=-1).transpose(1, 0, 2)  # (n, K, 4)
         H = Jm.transpose(0, 2, 1) @ Jm
         step = np.linalg.solve(H + 1e-12 * np.eye(4), Jm.transpose(0, 2, 1) @ r.T[..., None])[..., 0]
-        R = rotvec_to_matrix(-step[:, :3]) @ R
+        R = rotvec_matrices(-step[:, :3]) @ R
         s = s - step[:, 3]
         if np.max(np.abs(step)) < 1e-12:
             break

@@ -67,21 +67,6 @@ def _rng(seed: int) -> np.random.Generator:
     return np.random.Generator(np.random.MT19937(seed))
 
 
-def test_matrix_rotvecs_are_scipys_rotation_vectors():
-    """Every angle the scene meets, half turns (top up to top down) and the smallest included."""
-    from scipy.spatial.transform import Rotation
-
-    from virtual_sheet.board import matrix_rotvecs
-    from virtual_sheet.sensor import rotvec_matrices
-    g = _rng(5)
-    for angle in (0.0, 1e-12, 1e-8, 1e-4, 1e-3, 2e-3, 0.1, 1.0, 2.0, 3.0, np.pi - 1e-3, np.pi - 1e-6):
-        axes = g.standard_normal((300, 3))
-        v = axes / np.linalg.norm(axes, axis=1, keepdims=True) * angle
-        R = rotvec_matrices(v)
-        np.testing.assert_allclose(matrix_rotvecs(R), Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-12)
-        np.testing.assert_allclose(rotvec_matrices(matrix_rotvecs(R)), R, rtol=0, atol=1e-12)
-
-
 @pytest.mark.parametrize("seed", range(3))
 def test_the_scene_turns_as_scipys_slerp_did(seed):
     """The scene without scipy: the poses, the orientation through every turn and the rotation jet

@@ -1,9 +1,9 @@
 """A virtual sheet starts without scipy: the default (curved) sheet's boundary lines and the chips'
 and gyroscopes' misalignments are computed with numpy (`virtual_sheet.geometry.bracketed_root`,
-`virtual_sheet.sensor.rotvec_matrices`), where importing scipy.optimize and scipy.spatial for one
+`protocol.rotations.rotvec_matrices`), where importing scipy.optimize and scipy.spatial for one
 root finder and one Rodrigues formula cost ~1.5 s of CPU at the start of every ``capsheet virtual``
 (the test suite starts a few hundred). Both give what scipy's ``brentq`` and
-``Rotation.from_rotvec`` gave, to the last bits."""
+``Rotation.from_rotvec`` gave, to the last bits (the rotations: tests/protocol/test_rotations.py)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ import numpy as np
 import pytest
 
 from virtual_sheet.geometry import bracketed_root
-from virtual_sheet.sensor import rotvec_matrices
 
 PROBE = """
 import json, sys
@@ -37,14 +36,6 @@ def test_the_default_curved_sheet_with_chip_errors_and_imus_is_made_without_scip
 
 def _rng(seed: int) -> np.random.Generator:
     return np.random.Generator(np.random.MT19937(seed))
-
-
-def test_rotvec_matrices_are_scipys_rotations():
-    from scipy.spatial.transform import Rotation
-    g = _rng(11)
-    for scale in (0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.1, 1.0, 3.0):
-        v = g.standard_normal((400, 3)) * scale
-        np.testing.assert_allclose(rotvec_matrices(v), Rotation.from_rotvec(v).as_matrix(), rtol=0, atol=4e-15)
 
 
 @pytest.mark.parametrize("seed", range(6))
