@@ -55,7 +55,9 @@ class SilBus:
             rx = dev.spi_transfer(tx)
         except RuntimeError:
             return None
-        return bytes(rx) if len(rx) == len(tx) else None
+        if len(rx) != len(tx):
+            return None
+        return rx if type(rx) is bytes else bytes(rx)
 
     def _i2c(self, addr: int, tx: bytes, n: int) -> bytes | None:
         self.transfers += 1
@@ -72,7 +74,7 @@ class SilBus:
 @ffi.def_extern()
 def capsheet_py_spi_transfer(user, cs, tx, rx, length):
     bus: SilBus = ffi.from_handle(user)
-    out = bus._spi(int(cs), bytes(ffi.buffer(tx, length)))
+    out = bus._spi(cs, ffi.buffer(tx, length)[:])   # cs: a Python int already; [:]: the bytes
     if out is None:
         bus.errors += 1
         return -1

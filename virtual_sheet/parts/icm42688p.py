@@ -383,11 +383,15 @@ class ICM42688P:
         st = regs[0x70]                            # SELF_TEST_CONFIG
         bw_sel = regs[0x52]                        # GYRO_ACCEL_CONFIG0
         st_fail = 0.2 if self._fault == "self_test_fail" else 1.0
-        converted = False
-        if self._accel_on_at is not None and t >= self._accel_on_at:
+        accel = self._accel_on_at is not None and t >= self._accel_on_at
+        gyro = self._gyro_on_at is not None and t >= self._gyro_on_at
+        # both sensors' noise in one draw when both convert: the generator gives the same six
+        # normals one call or two (and one call costs less)
+        z6 = self._rng.standard_normal(6).tolist() if accel and gyro else None
+        if accel:
             cfg = regs[0x50]                       # ACCEL_CONFIG0
             sens, sd = _scale(False, cfg, bw_sel >> 4)
-            z = self._rng.standard_normal(3).tolist()
+            z = z6[:3] if z6 is not None else self._rng.standard_normal(3).tolist()
             f, k, off = self._f_g, self._a_scale, self._a_off
             for i in range(3):
                 c = (f[i] * k[i] + off[i]) * sens + sd * z[i]
@@ -396,11 +400,10 @@ class ICM42688P:
                 c = _clip16(c)
                 regs[0x1F + 2 * i] = (c >> 8) & 0xFF   # ACCEL_DATA_X1 ... Z0
                 regs[0x20 + 2 * i] = c & 0xFF
-            converted = True
-        if self._gyro_on_at is not None and t >= self._gyro_on_at:
+        if gyro:
             cfg = regs[0x4F]                       # GYRO_CONFIG0
             sens, sd = _scale(True, cfg, bw_sel)
-            z = self._rng.standard_normal(3).tolist()
+            z = z6[3:] if z6 is not None else self._rng.standard_normal(3).tolist()
             w, k, off = self._w_dps, self._g_scale, self._g_off
             for i in range(3):
                 c = (w[i] * k[i] + off[i]) * sens + sd * z[i]
@@ -409,8 +412,7 @@ class ICM42688P:
                 c = _clip16(c)
                 regs[0x25 + 2 * i] = (c >> 8) & 0xFF   # GYRO_DATA_X1 ... Z0
                 regs[0x26 + 2 * i] = c & 0xFF
-            converted = True
-        if converted:
+        if accel or gyro:
             if not regs[0x4E] & 0x20:              # PWR_MGMT0 TEMP_DIS clear
                 self._put16(0x1D, _clip16((self.temperature_c - TEMP_ROOM_C) * TEMP_LSB_PER_C))
             regs[0x2D] |= R.DATA_RDY_INT           # INT_STATUS

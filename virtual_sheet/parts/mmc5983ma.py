@@ -125,6 +125,8 @@ TRANSVERSE_SENSITIVITY = 0.008  # DS p.2 Transverse sensitivity, 0.8 %
 SET_RESET_REPEATABILITY_G = 1e-3  # DS p.2 SET/RESET repeatability, 1 mG
 DISTURBING_FIELD_G = 10.0  # DS p.2 Disturbing field (note 6), p.10 Theory of operation
 TOUT_ZERO_C, TOUT_C_PER_LSB = -75.0, 0.8  # DS p.14 Tout; p.2 Temperature sensor output
+#: numpy's uniform(lo, hi) is lo + (hi - lo) * U with U = random(): the step of a SET/RESET drawn that way
+_SR_LOW, _SR_RANGE = -SET_RESET_REPEATABILITY_G, SET_RESET_REPEATABILITY_G - -SET_RESET_REPEATABILITY_G
 CLOCK_TOLERANCE = 0.03  # not in the datasheet (its rates and times are typical): the emulator's choice
 GAUSS_PER_TESLA = 1e4
 
@@ -450,8 +452,9 @@ class MMC5983MA:
         self._upset = False
         self._sr_busy_until = self._now + self._tick_s(SET_RESET_S)
         if self.noise:
-            step = self._rng.uniform(-SET_RESET_REPEATABILITY_G, SET_RESET_REPEATABILITY_G, 3).tolist()
-            self._offset = [a + b for a, b in zip(self._offset, step)]
+            # within ±SET_RESET_REPEATABILITY_G: uniform(-r, r, 3), the same doubles without its checks
+            u = self._rng.random(3).tolist()
+            self._offset = [a + (_SR_LOW + _SR_RANGE * b) for a, b in zip(self._offset, u)]
         if polarity > 0:
             self.events.sets += 1
         else:
