@@ -53,6 +53,7 @@ LSB first, both ways), ``"read_bit"`` (the read bit's polarity inverted: bit 7 c
 from __future__ import annotations
 
 import math
+import struct
 
 import numpy as np
 
@@ -89,8 +90,12 @@ assert [r.name for r in R.REGISTERS.values() if r.access == "w"] == ["SIGNAL_PAT
 #: per bank, the clear-on-read addresses (INT_STATUS, INT_STATUS2, INT_STATUS3 in bank 0)
 _CLEAR_ON_READ = tuple(tuple(a for a, r in enumerate(regs) if r is not None and r.access == "rc")
                        for regs in _BANK_REGS)
+#: per bank, the span (first, last + 1) of its clear-on-read addresses ((0, 0): none)
+_CLEAR_SPAN = tuple((c[0], c[-1] + 1) if c else (0, 0) for c in _CLEAR_ON_READ)
+_SPI_READ = R.SPI_READ
 _NAMES = tuple(tuple(r.name if r is not None and r.access not in ("r", "rc") else None for r in regs)
                for regs in _BANK_REGS)   # the writable registers' names (None: a write is ignored)
+_BE16X3 = struct.Struct(">hhh")   # three data registers' pairs, high byte first (§14 *_DATA_*1, *0)
 _REV8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 
@@ -224,7 +229,9 @@ class ICM42688P:
         f, w = specific_force_mps2, rate_rps
         if type(f) is list and type(w) is list and len(f) == 3 and len(w) == 3:
             try:
-                self._f_g, self._w_dps = [float(x) / G0 for x in f], [float(x) * _DEG_PER_RAD for x in w]
+                f_g = [float(f[0]) / G0, float(f[1]) / G0, float(f[2]) / G0]
+                w_dps = [float(w[0]) * _DEG_PER_RAD, float(w[1]) * _DEG_PER_RAD, float(w[2]) * _DEG_PER_RAD]
+                self._f_g, self._w_dps = f_g, w_dps
                 return
             except TypeError:   # not 3 numbers: numpy's reading of them below
                 pass
@@ -265,6 +272,9 @@ class ICM42688P:
         """One chip-select transaction, full duplex: len(tx) bytes in, as many out."""
         tx = bytes(tx)
         self.transactions += 1
+        if self._fault is None and self.miswire is None and tx and self.now_s >= self._busy_until:
+            if tx[0] & _SPI_READ:   # the common case first: a read of a healthy part, as below
+                return self._read_burst(tx[0] & 0x7F, len(tx) - 1)
         if self._fault == "stuck_bus":
             raise BusError("ICM-42688-P: SPI transfer did not complete (stuck bus)")
         if not tx:
@@ -283,7 +293,7 @@ class ICM42688P:
         if self.now_s < self._busy_until:   # in reset: reads 0x00, writes ignored
             out = bytes(n + 1)
         elif read:   # conversions happen in advance(), never within a transaction: one consistent state
-            out = b"\x00" + self._read_burst(addr, n)
+            out = self._read_burst(addr, n)
         else:
             for i in range(1, n + 1):
                 self._write((addr + i - 1) & 0x7F, tx[i])
@@ -293,20 +303,22 @@ class ICM42688P:
     # ---- register access -----------------------------------------------------------------------
 
     def _read_burst(self, addr: int, n: int) -> bytes:
-        """``n`` registers from ``addr`` on in the selected bank, as one burst read: each register's
-        value, then the clear-on-read ones it covered cleared (WHO_AM_I reads 0x42 under the
-        ``wrong_id`` fault)."""
+        """MISO of a burst read of ``n`` registers from ``addr`` on in the selected bank: 0x00 (the
+        address byte), then each register's value; the clear-on-read ones it covered are cleared
+        after it (WHO_AM_I reads 0x42 under the ``wrong_id`` fault)."""
         bank = self._bank
         regs = self._banks[bank]
         end = addr + n
         if end > 0x80 or not self._burst:   # wraps past 0x7F (the clear-on-read order matters), or a variant
-            return bytes(self._read(bank, (addr + i) & 0x7F) for i in range(n))
-        out = bytes(regs[addr:end])
-        for a in _CLEAR_ON_READ[bank]:
-            if addr <= a < end:
-                regs[a] = 0
+            return b"\x00" + bytes(self._read(bank, (addr + i) & 0x7F) for i in range(n))
+        out = b"\x00" + regs[addr:end]
+        lo, hi = _CLEAR_SPAN[bank]
+        if addr < hi and end > lo:
+            for a in _CLEAR_ON_READ[bank]:
+                if addr <= a < end:
+                    regs[a] = 0
         if bank == 0 and addr <= _WHO_AM_I < end and self._fault == "wrong_id":
-            k = _WHO_AM_I - addr
+            k = _WHO_AM_I - addr + 1
             out = out[:k] + b"\x42" + out[k + 1:]
         return out
 
@@ -386,32 +398,31 @@ class ICM42688P:
         accel = self._accel_on_at is not None and t >= self._accel_on_at
         gyro = self._gyro_on_at is not None and t >= self._gyro_on_at
         # both sensors' noise in one draw when both convert: the generator gives the same six
-        # normals one call or two (and one call costs less)
-        z6 = self._rng.standard_normal(6).tolist() if accel and gyro else None
+        # normals in one call as in two (accelerometer's, then gyroscope's), and one call costs less
+        z = self._rng.standard_normal(6 if accel and gyro else 3).tolist() if accel or gyro else None
         if accel:
             cfg = regs[0x50]                       # ACCEL_CONFIG0
             sens, sd = _scale(False, cfg, bw_sel >> 4)
-            z = z6[:3] if z6 is not None else self._rng.standard_normal(3).tolist()
             f, k, off = self._f_g, self._a_scale, self._a_off
-            for i in range(3):
-                c = (f[i] * k[i] + off[i]) * sens + sd * z[i]
-                if st & R.ACCEL_ST_POWER and st & (R.EN_AX_ST << i):
-                    c += self._a_st[i] * st_fail * sens / 16384.0
-                c = _clip16(c)
-                regs[0x1F + 2 * i] = (c >> 8) & 0xFF   # ACCEL_DATA_X1 ... Z0
-                regs[0x20 + 2 * i] = c & 0xFF
+            c = [(f[0] * k[0] + off[0]) * sens + sd * z[0], (f[1] * k[1] + off[1]) * sens + sd * z[1],
+                 (f[2] * k[2] + off[2]) * sens + sd * z[2]]
+            if st & R.ACCEL_ST_POWER and st & (R.EN_AX_ST | R.EN_AY_ST | R.EN_AZ_ST):
+                for i in range(3):
+                    if st & (R.EN_AX_ST << i):
+                        c[i] += self._a_st[i] * st_fail * sens / 16384.0
+            _BE16X3.pack_into(regs, 0x1F, _clip16(c[0]), _clip16(c[1]), _clip16(c[2]))   # ACCEL_DATA_X1 ... Z0
         if gyro:
             cfg = regs[0x4F]                       # GYRO_CONFIG0
             sens, sd = _scale(True, cfg, bw_sel)
-            z = z6[3:] if z6 is not None else self._rng.standard_normal(3).tolist()
+            j = 3 if accel else 0                  # the gyroscope's normals follow the accelerometer's
             w, k, off = self._w_dps, self._g_scale, self._g_off
-            for i in range(3):
-                c = (w[i] * k[i] + off[i]) * sens + sd * z[i]
-                if st & (R.EN_GX_ST << i):
-                    c += self._g_st[i] * st_fail * sens / 131.072
-                c = _clip16(c)
-                regs[0x25 + 2 * i] = (c >> 8) & 0xFF   # GYRO_DATA_X1 ... Z0
-                regs[0x26 + 2 * i] = c & 0xFF
+            c = [(w[0] * k[0] + off[0]) * sens + sd * z[j], (w[1] * k[1] + off[1]) * sens + sd * z[j + 1],
+                 (w[2] * k[2] + off[2]) * sens + sd * z[j + 2]]
+            if st & (R.EN_GX_ST | R.EN_GY_ST | R.EN_GZ_ST):
+                for i in range(3):
+                    if st & (R.EN_GX_ST << i):
+                        c[i] += self._g_st[i] * st_fail * sens / 131.072
+            _BE16X3.pack_into(regs, 0x25, _clip16(c[0]), _clip16(c[1]), _clip16(c[2]))   # GYRO_DATA_X1 ... Z0
         if accel or gyro:
             if not regs[0x4E] & 0x20:              # PWR_MGMT0 TEMP_DIS clear
                 self._put16(0x1D, _clip16((self.temperature_c - TEMP_ROOM_C) * TEMP_LSB_PER_C))
