@@ -172,6 +172,7 @@ class ICM42688P:
         self._fault: str | None = None
         # a variant that answers registers its own way (a `_read` of its own) is read register by register
         self._burst = type(self)._read is ICM42688P._read
+        self._temp_for, self._temp_data = None, 0   # the temperature TEMP_DATA was computed for
         self._f_g = [0.0, 0.0, 1.0]   # specific force in g, rate in °/s: the held motion as floats
         self._w_dps = [0.0, 0.0, 0.0]
         self.now_s = 0.0
@@ -425,7 +426,10 @@ class ICM42688P:
             _BE16X3.pack_into(regs, 0x25, _clip16(c[0]), _clip16(c[1]), _clip16(c[2]))   # GYRO_DATA_X1 ... Z0
         if accel or gyro:
             if not regs[0x4E] & 0x20:              # PWR_MGMT0 TEMP_DIS clear
-                self._put16(0x1D, _clip16((self.temperature_c - TEMP_ROOM_C) * TEMP_LSB_PER_C))
+                tc = self.temperature_c
+                if tc != self._temp_for:           # TEMP_DATA for this temperature, computed once
+                    self._temp_for, self._temp_data = tc, _clip16((tc - TEMP_ROOM_C) * TEMP_LSB_PER_C)
+                self._put16(0x1D, self._temp_data)
             regs[0x2D] |= R.DATA_RDY_INT           # INT_STATUS
             self.drdy_s = t
             self.conversions += 1
