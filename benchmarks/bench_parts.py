@@ -24,6 +24,10 @@ link's `LinkSensors.run_to_us` and the C glue's read_axes / read_imu as the chip
 over the emulated SPI bus, without the chip and the gateway). ``--root DIR`` measures the code of
 another checkout (a before figure; it uses DIR's built firmware_ref).
 
+``--process-cpu`` (4x4 9-axis by default): the share of a core the ``capsheet virtual --transport pty
+--firmware c --part ...`` process takes while ``capsheet host --rate 50`` streams from it, from its
+/proc/PID/stat utime + stime over ``--seconds`` s (5 by default) in the middle of the host's run.
+
 The load average is printed beside the figures (a 2-core machine shared with other work).
 """
 
@@ -123,6 +127,50 @@ def per_chip(lattice: str, sensors: str, n: int, rounds: int) -> dict:
             "stack_us_per_chip_sample": round(stack / chips * 1e6, 2)}
 
 
+def _cpu_ticks(pid: int) -> int:
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return int(fields[11]) + int(fields[12])   # utime, stime (fields 14 and 15 of proc(5))
+
+
+def process_cpu(lattice: str, sensors: str, rate_hz: int, seconds: float) -> dict:
+    """The virtual part sheet's % of a core while a host streams from it at ``rate_hz`` SYNC/s."""
+    py = sys.executable
+    with tempfile.TemporaryDirectory() as tmp:
+        link, lay = os.path.join(tmp, "sheet"), os.path.join(tmp, "sheet.csv")
+        v = subprocess.Popen([py, "-m", "host.cli", "virtual", "--transport", "pty", "--lattice", lattice,
+                              "--sensors", sensors, "--firmware", "c", "--part", part_for(sensors),
+                              "--symlink", link, "--layout-out", lay], cwd=ROOT, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.DEVNULL)
+        h = None
+        try:
+            end = time.monotonic() + 120
+            while not (os.path.islink(link) and os.path.exists(lay)) and time.monotonic() < end:
+                time.sleep(0.1)
+            run_s = seconds + 7.0
+            h = subprocess.Popen([py, "-m", "host.cli", "host", "--port", link, "--lattice", lattice, "--layout", lay,
+                                  "--sensors", sensors, "--rate", str(rate_hz), "--duration", str(run_s),
+                                  "--deadline-ms", "2000", "--discover-s", "5", "--min-complete", "0", "-q"],
+                                 cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            time.sleep(4.0)   # the host found the chips and streams
+            t0, c0 = time.monotonic(), _cpu_ticks(v.pid)
+            time.sleep(seconds)
+            t1, c1 = time.monotonic(), _cpu_ticks(v.pid)
+            h.wait(run_s + 60)
+        finally:
+            for proc in (h, v):
+                if proc is not None and proc.poll() is None:
+                    proc.terminate()
+                    try:
+                        proc.wait(30)
+                    except subprocess.TimeoutExpired:
+                        proc.kill()
+                        proc.wait(10)
+    share = (c1 - c0) / os.sysconf("SC_CLK_TCK") / (t1 - t0)
+    return {"lattice": lattice, "part": part_for(sensors), "rate_hz": rate_hz, "seconds": round(t1 - t0, 2),
+            "sheet_cpu_pct_of_core": round(100 * share, 1), "host_rc": h.returncode if h is not None else None}
+
+
 def live(lattice: str, seconds: float, engine: str, sensors: str) -> dict:
     py = sys.executable
     part = ["--part", part_for(sensors)] if engine == "part" else []
@@ -161,6 +209,8 @@ def main() -> int:
     ap.add_argument("--no-live", action="store_true", help="CPU figures only")
     ap.add_argument("--per-chip", action="store_true",
                     help="chip-samples per CPU second of 6- and 9-axis part chips (module docstring)")
+    ap.add_argument("--process-cpu", action="store_true",
+                    help="the virtual part sheet process's %% of a core at 50 SYNC/s (module docstring)")
     ap.add_argument("--root", metavar="DIR", help="measure the code of the checkout DIR (a before figure)")
     ap.add_argument("--lattices", default=None,
                     help="comma-separated lattices (default 6x6,14x14; --per-chip: 4x4)")
@@ -168,6 +218,11 @@ def main() -> int:
                     help="6-axis (icm42688p) or 9-axis (icm42688p+mmc5983ma) chips (default 9-axis)")
     a = ap.parse_args()
     n = 30 if a.quick else 100
+    if a.process_cpu:
+        rows = [process_cpu(lattice, a.sensors, 50, a.seconds or 5.0) for lattice in (a.lattices or "4x4").split(",")]
+        print(json.dumps({"bench": "parts_process_cpu", "root": os.path.abspath(ROOT), "loadavg": os.getloadavg(),
+                          "results": rows}, indent=2))
+        return 0
     if a.per_chip:
         rows = [per_chip(lattice, sensors, n, a.rounds) for lattice in (a.lattices or "4x4").split(",")
                 for sensors in ("accel+gyro", "accel+gyro+mag")]
