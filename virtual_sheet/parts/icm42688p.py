@@ -85,7 +85,7 @@ MISWIRES = ("bit_order", "read_bit")
 
 _WHO_AM_I = R.ADDR["WHO_AM_I"]
 _INT_STATUS = R.ADDR["INT_STATUS"]
-#: per bank, by address: the register (None: reserved or not modelled) and its reset value
+#: per bank, by address: the register (None: reserved or not modelled)
 _BANK_REGS = tuple(tuple(R.REGISTERS.get((b, a)) for a in range(0x80)) for b in range(5))
 _RESET = tuple(bytes(r.reset if r is not None and r.access != "w" else 0 for r in regs) for regs in _BANK_REGS)
 # a write-only register reads 0x00 because its byte is never stored to: SIGNAL_PATH_RESET is the one
