@@ -76,10 +76,6 @@ RESET_S = 0.001                     # §14 DEVICE_CONFIG: 1 ms after a soft rese
 #: datasheet's figure for the internal clock in low-noise mode; a per-part value is drawn within it.
 ODR_TOLERANCE = 0.01
 ST_OTP_BASE = 2620.0                # LSB at FS_SEL 3 (±250 °/s, ±2 g) for code 1
-#: normals drawn ahead at once for the conversions' noise (64 conversions of both sensors): numpy's
-#: per-call cost, paid once per block instead of once per conversion; `ICM42688P._rng` gives back
-#: the unused ones before any other draw, so the part's random stream is the same
-NORMALS_AHEAD = 384
 FAULTS = ("no_answer", "stuck_bus", "wrong_id", "self_test_fail", "reset", "garbage")
 MISWIRES = ("bit_order", "read_bit")
 
@@ -155,10 +151,7 @@ class ICM42688P:
                  odr_error: float | None = None) -> None:
         if miswire is not None and miswire not in MISWIRES:
             raise ValueError(f"Unknown miswire {miswire!r} (expected one of {', '.join(MISWIRES)})")
-        self._gen = np.random.Generator(np.random.MT19937(int(seed)))
-        self._z: list = []               # normals drawn ahead (`_normals`)
-        self._zi = 0                     # how many of them are used
-        self._z_state: dict | None = None   # the generator's state before they were drawn
+        self._rng = np.random.Generator(np.random.MT19937(int(seed)))
         g = self._rng
         self.temperature_c = float(temperature_c)
         self.miswire = miswire
@@ -188,31 +181,6 @@ class ICM42688P:
         #: time of the latest INT1 data-ready edge (None: none yet)
         self.drdy_s: float | None = None
         self._power_on(0.0)
-
-    # ---- the random stream ---------------------------------------------------------------------
-
-    @property
-    def _rng(self) -> np.random.Generator:
-        """The part's generator, just after the normals used so far: those drawn ahead and not
-        used are given back, so any other draw sees the stream of one draw per conversion."""
-        if self._z_state is not None:
-            g = self._gen
-            g.bit_generator.state = self._z_state
-            if self._zi:
-                g.standard_normal(self._zi)   # the used ones again: the same draws, the same state
-            self._z, self._zi, self._z_state = [], 0, None
-        return self._gen
-
-    def _normals(self, n: int) -> int:
-        """Take ``n`` standard normals of the stream: their index in ``self._z``."""
-        i = self._zi
-        if i + n > len(self._z):
-            g = self._rng
-            self._z_state = g.bit_generator.state
-            self._z = g.standard_normal(max(n, NORMALS_AHEAD)).tolist()
-            i = 0
-        self._zi = i + n
-        return i
 
     # ---- state ---------------------------------------------------------------------------------
 
@@ -430,14 +398,14 @@ class ICM42688P:
         st_fail = 0.2 if self._fault == "self_test_fail" else 1.0
         accel = self._accel_on_at is not None and t >= self._accel_on_at
         gyro = self._gyro_on_at is not None and t >= self._gyro_on_at
-        # the noise: the stream's next normals, the accelerometer's then the gyroscope's (drawn
-        # ahead in blocks: the generator gives the same normals in one call as in many)
-        j = self._normals(6 if accel and gyro else 3) if accel or gyro else 0
+        # the noise: the stream's next normals, the accelerometer's then the gyroscope's, in one draw
+        # (the generator gives the same normals in one call as in two, and one call costs less)
+        z = self._rng.standard_normal(6 if accel and gyro else 3).tolist() if accel or gyro else None
+        j = 0                                      # the next unused normal of z
         if accel:
             cfg = regs[0x50]                       # ACCEL_CONFIG0
             sens, sd = _scale(False, cfg, bw_sel >> 4)
             f, k, off = self._f_g, self._a_scale, self._a_off
-            z = self._z
             c = [(f[0] * k[0] + off[0]) * sens + sd * z[j], (f[1] * k[1] + off[1]) * sens + sd * z[j + 1],
                  (f[2] * k[2] + off[2]) * sens + sd * z[j + 2]]
             j += 3                                 # the gyroscope's normals follow the accelerometer's
@@ -449,7 +417,7 @@ class ICM42688P:
         if gyro:
             cfg = regs[0x4F]                       # GYRO_CONFIG0
             sens, sd = _scale(True, cfg, bw_sel)
-            w, k, off, z = self._w_dps, self._g_scale, self._g_off, self._z
+            w, k, off = self._w_dps, self._g_scale, self._g_off
             c = [(w[0] * k[0] + off[0]) * sens + sd * z[j], (w[1] * k[1] + off[1]) * sens + sd * z[j + 1],
                  (w[2] * k[2] + off[2]) * sens + sd * z[j + 2]]
             if st & (R.EN_GX_ST | R.EN_GY_ST | R.EN_GZ_ST):
