@@ -26,7 +26,8 @@ another checkout (a before figure; it uses DIR's built firmware_ref).
 
 ``--process-cpu`` (4x4 9-axis by default): the share of a core the ``capsheet virtual --transport pty
 --firmware c --part ...`` process takes while ``capsheet host --rate 50`` streams from it, from its
-/proc/PID/stat utime + stime over ``--seconds`` s (5 by default) in the middle of the host's run.
+/proc/PID/stat utime + stime over ``--seconds`` s (5 by default) in the middle of the host's run;
+``--no-part``: the same sheet's C chips fed finished counts (what the sheet costs without its parts).
 
 The load average is printed beside the figures (a 2-core machine shared with other work).
 """
@@ -133,13 +134,15 @@ def _cpu_ticks(pid: int) -> int:
     return int(fields[11]) + int(fields[12])   # utime, stime (fields 14 and 15 of proc(5))
 
 
-def process_cpu(lattice: str, sensors: str, rate_hz: int, seconds: float) -> dict:
-    """The virtual part sheet's % of a core while a host streams from it at ``rate_hz`` SYNC/s."""
+def process_cpu(lattice: str, sensors: str, rate_hz: int, seconds: float, *, part: bool = True) -> dict:
+    """The virtual part sheet's % of a core while a host streams from it at ``rate_hz`` SYNC/s
+    (``part=False``: the same C chips fed finished counts, the sheet's cost without the parts)."""
     py = sys.executable
+    part_args = ["--part", part_for(sensors)] if part else []
     with tempfile.TemporaryDirectory() as tmp:
         link, lay = os.path.join(tmp, "sheet"), os.path.join(tmp, "sheet.csv")
         v = subprocess.Popen([py, "-m", "host.cli", "virtual", "--transport", "pty", "--lattice", lattice,
-                              "--sensors", sensors, "--firmware", "c", "--part", part_for(sensors),
+                              "--sensors", sensors, "--firmware", "c", *part_args,
                               "--symlink", link, "--layout-out", lay], cwd=ROOT, stdout=subprocess.DEVNULL,
                              stderr=subprocess.DEVNULL)
         h = None
@@ -167,7 +170,7 @@ def process_cpu(lattice: str, sensors: str, rate_hz: int, seconds: float) -> dic
                         proc.kill()
                         proc.wait(10)
     share = (c1 - c0) / os.sysconf("SC_CLK_TCK") / (t1 - t0)
-    return {"lattice": lattice, "part": part_for(sensors), "rate_hz": rate_hz, "seconds": round(t1 - t0, 2),
+    return {"lattice": lattice, "part": part_for(sensors) if part else None, "rate_hz": rate_hz, "seconds": round(t1 - t0, 2),
             "sheet_cpu_pct_of_core": round(100 * share, 1), "host_rc": h.returncode if h is not None else None}
 
 
@@ -211,6 +214,8 @@ def main() -> int:
                     help="chip-samples per CPU second of 6- and 9-axis part chips (module docstring)")
     ap.add_argument("--process-cpu", action="store_true",
                     help="the virtual part sheet process's %% of a core at 50 SYNC/s (module docstring)")
+    ap.add_argument("--no-part", action="store_true",
+                    help="--process-cpu of the same sheet without the parts (C chips fed finished counts)")
     ap.add_argument("--root", metavar="DIR", help="measure the code of the checkout DIR (a before figure)")
     ap.add_argument("--lattices", default=None,
                     help="comma-separated lattices (default 6x6,14x14; --per-chip: 4x4)")
@@ -219,7 +224,7 @@ def main() -> int:
     a = ap.parse_args()
     n = 30 if a.quick else 100
     if a.process_cpu:
-        rows = [process_cpu(lattice, a.sensors, 50, a.seconds or 5.0) for lattice in (a.lattices or "4x4").split(",")]
+        rows = [process_cpu(lattice, a.sensors, 50, a.seconds or 5.0, part=not a.no_part) for lattice in (a.lattices or "4x4").split(",")]
         print(json.dumps({"bench": "parts_process_cpu", "root": os.path.abspath(ROOT), "loadavg": os.getloadavg(),
                           "results": rows}, indent=2))
         return 0
