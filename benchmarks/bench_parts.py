@@ -45,6 +45,9 @@ import time
 ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..")
 if "--root" in sys.argv[:-1]:   # before the imports: measure another checkout's code
     ROOT = os.path.abspath(sys.argv[sys.argv.index("--root") + 1])
+    if not os.path.isfile(os.path.join(ROOT, "firmware_ref", "part_chip.py")):
+        print(f"bench_parts: --root {ROOT}: not a capsheet checkout (no firmware_ref/part_chip.py)", file=sys.stderr)
+        sys.exit(2)
 sys.path.insert(0, ROOT)
 
 from protocol.framing import encode  # noqa: E402
@@ -208,7 +211,7 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer SYNCs, shorter live runs")
     ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--seconds", type=float, default=None, help="live run length (default 10, --quick 4)")
+    ap.add_argument("--seconds", type=float, default=None, help="live run length (default 10, --quick 4); --process-cpu: the window measured (default 5)")
     ap.add_argument("--no-live", action="store_true", help="CPU figures only")
     ap.add_argument("--per-chip", action="store_true",
                     help="chip-samples per CPU second of 6- and 9-axis part chips (module docstring)")
