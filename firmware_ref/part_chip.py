@@ -26,17 +26,18 @@ part's time) before its protocol stack starts, as a port's main() would: the MCU
 drivers', the part's) is the chip's plus ``boot_s``, and `PartChipFactory.bind` runs every link's
 bring-up over those first ``boot_s`` at once. The chip's ``time_us`` is a difference of instants on
 one clock and does not see the offset.
+
+The truth reaches the parts as plain lists, converted once per instant for the whole sheet
+(`TruthRows`): the emulators' arithmetic on 3 numbers is cheaper in floats than in numpy.
 """
 
 from __future__ import annotations
-
-
 
 from ._ffi import ffi, lib
 from .chip import CFirmwareChip
 from .sil_bus import SilBus
 
-__all__ = ["PARTS", "PartChipFactory", "LinkSensors"]
+__all__ = ["PARTS", "PartChipFactory", "LinkSensors", "TruthRows"]
 
 #: the parts a chip can read through its driver (``--part``)
 PARTS = ("icm42688p", "icm42688p+mmc5983ma")
@@ -50,6 +51,26 @@ def _us(now_s: float) -> int:
     return max(0, int(round(now_s * 1e6)))
 
 
+def _rows(a) -> list:
+    return a.tolist() if hasattr(a, "tolist") else [[float(x) for x in r] for r in a]
+
+
+class TruthRows:
+    """A truth's ``at(now_s)`` as lists (one ``[x, y, z]`` per link), converted once per instant and
+    shared by every link of the sheet: the chips of one SYNC all ask for the same instant."""
+
+    def __init__(self, truth) -> None:
+        self.truth = truth
+        self._t: float | None = None
+        self._rows: tuple = ()
+
+    def at(self, now_s: float) -> tuple:
+        if now_s != self._t:
+            self._rows = tuple(_rows(a) for a in self.truth.at(now_s))
+            self._t = now_s
+        return self._rows
+
+
 class LinkSensors:
     """One link MCU's sensor stack: the parts, their bus and the C glue (module docstring)."""
 
@@ -59,6 +80,7 @@ class LinkSensors:
         self.mag = mag
         self.boot_us = _us(boot_s)
         self.truth = truth
+        self.rows: TruthRows | None = None   # the truth as lists (`PartChipFactory.bind` shares one)
         self.link = link
         self.self_test = bool(self_test)
         self.bus = SilBus(spi={0: part, **({1: mag} if mag is not None else {})})
@@ -115,10 +137,14 @@ class LinkSensors:
         """The link MCU's main loop up to the chip's instant ``chip_us``; returns the MCU's, µs."""
         now_us = max(self.t_us, max(0, chip_us) + self.boot_us)
         if self.truth is not None:
-            f, w, b = self.truth.at(max(0, chip_us) * 1e-6)
-            self.part.set_motion(f[self.link], w[self.link])
+            rows = self.rows
+            if rows is None or rows.truth is not self.truth:
+                rows = self.rows = TruthRows(self.truth)
+            f, w, b = rows.at(max(0, chip_us) * 1e-6)
+            link = self.link
+            self.part.set_motion(f[link], w[link])
             if self.mag is not None:
-                self.mag.set_field(b[self.link])
+                self.mag.set_field(b[link])
         if not self._settled:
             t = self.t_us
             while True:
@@ -176,7 +202,8 @@ class PartChipFactory:
     The parts' register emulators and the sheet's truth come from the caller (firmware_ref imports
     nothing of the simulator; ``host.cli.virtual.part_chip_factory`` wires the simulator's):
     ``imu_part(seed=...)`` and ``mag_part(seed=...)`` make one emulator, ``truth(sheet)`` an object
-    whose ``at(now_s)`` gives every link's specific force (m/s²), rate (rad/s) and field (T).
+    whose ``at(now_s)`` gives every link's specific force (m/s²), rate (rad/s) and field (T), a
+    function of the instant (it is asked once per instant, `TruthRows`).
     Build the sheet with it, then `bind` the sheet (its truth feeds the parts)::
 
         factory = PartChipFactory("icm42688p", imu_part=ICM42688P, mag_part=MMC5983MA, truth=SheetTruth)
@@ -200,8 +227,9 @@ class PartChipFactory:
     def bind(self, sheet) -> None:
         """The sheet whose truth feeds every part (after the sheet built its chips)."""
         self.truth = self.make_truth(sheet)
+        rows = TruthRows(self.truth)
         for uid, ls in self.pending:
-            ls.truth = self.truth
+            ls.truth, ls.rows = self.truth, rows
             ls.link = sheet.link_of_uid[uid]
             ls.boot()
         self.pending.clear()

@@ -45,18 +45,7 @@ class SilBus:
         for d in self.devices():
             d.advance(self.now_s)
 
-    # the callbacks' Python side
-    def _spi(self, cs: int, tx: bytes) -> bytes | None:
-        self.transfers += 1
-        dev = self.spi.get(cs)
-        if dev is None:
-            return None
-        try:
-            rx = dev.spi_transfer(tx)
-        except RuntimeError:
-            return None
-        return bytes(rx) if len(rx) == len(tx) else None
-
+    # the callbacks' Python side (SPI's is in its callback, `capsheet_py_spi_transfer`)
     def _i2c(self, addr: int, tx: bytes, n: int) -> bytes | None:
         self.transfers += 1
         dev = self.i2c.get(addr)
@@ -71,13 +60,20 @@ class SilBus:
 
 @ffi.def_extern()
 def capsheet_py_spi_transfer(user, cs, tx, rx, length):
+    # every transaction of every link passes here: the device answers in place, no copy, no extra call
     bus: SilBus = ffi.from_handle(user)
-    out = bus._spi(int(cs), bytes(ffi.buffer(tx, length)))
-    if out is None:
-        bus.errors += 1
-        return -1
-    ffi.memmove(rx, out, length)
-    return 0
+    bus.transfers += 1
+    dev = bus.spi.get(cs)   # cs: a Python int already
+    if dev is not None:
+        try:
+            out = dev.spi_transfer(ffi.buffer(tx, length)[:])
+        except RuntimeError:
+            out = None
+        if out is not None and len(out) == length:
+            ffi.memmove(rx, out if type(out) is bytes else bytes(out), length)
+            return 0
+    bus.errors += 1
+    return -1
 
 
 @ffi.def_extern()

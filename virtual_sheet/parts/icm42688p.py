@@ -13,6 +13,8 @@ What it models (section numbers of DS-000347; the register map in `icm42688p_reg
 * **SPI** (§9): the first byte is the address, bit 7 set for a read; the address auto-increments for
   every further byte of the transaction, reads and writes alike; MISO is 0x00 during the address byte.
   A burst read sees one consistent state (conversions happen in `advance`, between transactions).
+  (The banks are bytearrays whose write-only and reserved bytes stay 0, so a burst read that does not
+  wrap past 0x7F is one slice; the clear-on-read registers it covers are cleared after it.)
 * **Banks** (§13): REG_BANK_SEL (0x76 in every bank) selects bank 0..4; reset values, read-only,
   clear-on-read (INT_STATUS) and reserved registers (read 0x00, writes ignored) per `Reg.access`.
 * **Reset** (§14 DEVICE_CONFIG): SOFT_RESET_CONFIG puts every register back to its reset value and
@@ -51,6 +53,7 @@ LSB first, both ways), ``"read_bit"`` (the read bit's polarity inverted: bit 7 c
 from __future__ import annotations
 
 import math
+import struct
 
 import numpy as np
 
@@ -76,8 +79,23 @@ ST_OTP_BASE = 2620.0                # LSB at FS_SEL 3 (±250 °/s, ±2 g) for co
 FAULTS = ("no_answer", "stuck_bus", "wrong_id", "self_test_fail", "reset", "garbage")
 MISWIRES = ("bit_order", "read_bit")
 
-_ACCESS = {key: reg.access for key, reg in R.REGISTERS.items()}   # a plain dict: read per byte
-_WHO_AM_I = (0, R.ADDR["WHO_AM_I"])
+_WHO_AM_I = R.ADDR["WHO_AM_I"]
+_INT_STATUS = R.ADDR["INT_STATUS"]
+#: per bank, by address: the register (None: reserved or not modelled)
+_BANK_REGS = tuple(tuple(R.REGISTERS.get((b, a)) for a in range(0x80)) for b in range(5))
+_RESET = tuple(bytes(r.reset if r is not None and r.access != "w" else 0 for r in regs) for regs in _BANK_REGS)
+# a write-only register reads 0x00 because its byte is never stored to: SIGNAL_PATH_RESET is the one
+# (`ICM42688P._write` acts on it and returns)
+assert [r.name for r in R.REGISTERS.values() if r.access == "w"] == ["SIGNAL_PATH_RESET"]
+#: per bank, the clear-on-read addresses (INT_STATUS, INT_STATUS2, INT_STATUS3 in bank 0)
+_CLEAR_ON_READ = tuple(tuple(a for a, r in enumerate(regs) if r is not None and r.access == "rc")
+                       for regs in _BANK_REGS)
+#: per bank, the span (first, last + 1) of its clear-on-read addresses ((0, 0): none)
+_CLEAR_SPAN = tuple((c[0], c[-1] + 1) if c else (0, 0) for c in _CLEAR_ON_READ)
+_SPI_READ = R.SPI_READ
+_NAMES = tuple(tuple(r.name if r is not None and r.access not in ("r", "rc") else None for r in regs)
+               for regs in _BANK_REGS)   # the writable registers' names (None: a write is ignored)
+_BE16X3 = struct.Struct(">hhh")   # three data registers' pairs, high byte first (§14 *_DATA_*1, *0)
 _REV8 = bytes(int(f"{b:08b}"[::-1], 2) for b in range(256))
 
 
@@ -89,6 +107,24 @@ def _clip16(v: float) -> int:
     """Round half to even (as np.rint) and clip to the 16-bit two's complement range."""
     r = round(v)
     return -32768 if r < -32768 else (32767 if r > 32767 else r)
+
+
+_DEG_PER_RAD = 180.0 / math.pi   # np.degrees' factor: x · (180/π), the same double for every x
+_SCALES: dict = {}
+
+
+def _scale(gyro: bool, cfg: int, filt: int) -> tuple[float, float]:
+    """(sensitivity LSB per g or °/s, noise σ in LSB) for the accelerometer's or gyroscope's CONFIG0
+    and UI filter code: 32768 / full scale (§3.1 Table 1, §3.2 Table 2) and the noise density over
+    ODR / divisor (§5.5). Computed once per setting: the same doubles as at every conversion."""
+    key = (gyro, cfg, filt & 0x07)
+    v = _SCALES.get(key)
+    if v is None:
+        full_scale, noise_rthz = (R.GYRO_FS_DPS, GYRO_NOISE_DPS_RTHZ) if gyro else (R.ACCEL_FS_G, ACCEL_NOISE_G_RTHZ)
+        sens = 32768.0 / full_scale[cfg >> 5]
+        bw = R.ODR_HZ.get(cfg & 0x0F, 1000.0) / R.UI_FILT_DIV[filt & 0x07]
+        v = _SCALES[key] = (sens, noise_rthz * math.sqrt(bw) * sens)
+    return v
 
 
 def st_otp(code: int) -> float:
@@ -134,8 +170,9 @@ class ICM42688P:
         self._a_st = [st_otp(c) * float(f) for c, f in zip(self.accel_st_codes, self.st_factor[3:])]
         self._g_st = [st_otp(c) * float(f) for c, f in zip(self.gyro_st_codes, self.st_factor[:3])]
         self._fault: str | None = None
-        self._force = np.array([0.0, 0.0, G0])
-        self._rate = np.zeros(3)
+        # a variant that answers registers its own way (a `_read` of its own) is read register by register
+        self._burst = type(self)._read is ICM42688P._read
+        self._temp_for, self._temp_data = None, 0   # the temperature TEMP_DATA was computed for
         self._f_g = [0.0, 0.0, 1.0]   # specific force in g, rate in °/s: the held motion as floats
         self._w_dps = [0.0, 0.0, 0.0]
         self.now_s = 0.0
@@ -148,10 +185,12 @@ class ICM42688P:
     # ---- state ---------------------------------------------------------------------------------
 
     def _power_on(self, t: float) -> None:
-        self._regs = {key: reg.reset for key, reg in R.REGISTERS.items()}
+        # one bytearray per bank, at the reset values; a write-only or reserved byte is never stored
+        # to (it stays 0: what it reads)
+        self._banks = [bytearray(r) for r in _RESET]
         self._bank = 0
         self._busy_until = t + RESET_S
-        self._regs[(0, R.ADDR["INT_STATUS"])] = 0   # RESET_DONE appears when the reset completes
+        self._banks[0][_INT_STATUS] = 0   # RESET_DONE appears when the reset completes
         self._reset_done_pending = True
         self._accel_on_at: float | None = None      # when the accelerometer's start-up ends
         self._gyro_on_at: float | None = None
@@ -159,18 +198,18 @@ class ICM42688P:
         self._period = 0.0
         self._set_data_off(accel=True, gyro=True)
         for i, c in enumerate(self.gyro_st_codes):
-            self._regs[(1, 0x5F + i)] = c
+            self._banks[1][0x5F + i] = c
         for i, c in enumerate(self.accel_st_codes):
-            self._regs[(2, 0x3B + i)] = c
+            self._banks[2][0x3B + i] = c
 
     def _reg0(self, name: str) -> int:
-        return self._regs[(0, R.ADDR[name])]
+        return self._banks[0][R.ADDR[name]]
 
     def _set16(self, name: str, value: int) -> None:
         a = R.ADDR[name]
         u = value & 0xFFFF
-        self._regs[(0, a)] = u >> 8
-        self._regs[(0, a + 1)] = u & 0xFF
+        self._banks[0][a] = u >> 8
+        self._banks[0][a + 1] = u & 0xFF
 
     def _set_data_off(self, *, accel: bool, gyro: bool) -> None:
         for axis in "XYZ":
@@ -184,13 +223,23 @@ class ICM42688P:
     # ---- the seam ------------------------------------------------------------------------------
 
     def set_motion(self, specific_force_mps2, rate_rps) -> None:
-        """Specific force (m/s², shape (3,)) and angular rate (rad/s, shape (3,)), sensor frame; held."""
-        f = np.asarray(specific_force_mps2, dtype=float).reshape(-1)
-        w = np.asarray(rate_rps, dtype=float).reshape(-1)
+        """Specific force (m/s², shape (3,)) and angular rate (rad/s, shape (3,)), sensor frame; held.
+
+        Lists of 3 numbers take a path without numpy (its per-call cost is most of the work at size
+        3); the arithmetic is the same, value for value (x / G0, and x · 180/π as np.degrees)."""
+        f, w = specific_force_mps2, rate_rps
+        if type(f) is list and type(w) is list and len(f) == 3 and len(w) == 3:
+            try:
+                f_g = [float(f[0]) / G0, float(f[1]) / G0, float(f[2]) / G0]
+                w_dps = [float(w[0]) * _DEG_PER_RAD, float(w[1]) * _DEG_PER_RAD, float(w[2]) * _DEG_PER_RAD]
+                self._f_g, self._w_dps = f_g, w_dps
+                return
+            except TypeError:   # not 3 numbers: numpy's reading of them below
+                pass
+        f = np.asarray(f, dtype=float).reshape(-1)
+        w = np.asarray(w, dtype=float).reshape(-1)
         if f.shape != (3,) or w.shape != (3,):
             raise ValueError(f"Expected specific force and rate of shape (3,), got {f.shape} and {w.shape}.")
-        self._force = f
-        self._rate = w
         self._f_g = (f / G0).tolist()
         self._w_dps = np.degrees(w).tolist()
 
@@ -202,7 +251,7 @@ class ICM42688P:
         self.now_s = now_s
         if self._reset_done_pending and now_s >= self._busy_until:
             self._reset_done_pending = False
-            self._regs[(0, R.ADDR["INT_STATUS"])] |= R.RESET_DONE_INT
+            self._banks[0][_INT_STATUS] |= R.RESET_DONE_INT
         if self._next_tick is None or now_s < self._next_tick:
             return
         n = math.floor((now_s - self._next_tick) / self._period) + 1
@@ -224,6 +273,9 @@ class ICM42688P:
         """One chip-select transaction, full duplex: len(tx) bytes in, as many out."""
         tx = bytes(tx)
         self.transactions += 1
+        if self._fault is None and self.miswire is None and tx and self.now_s >= self._busy_until:
+            if tx[0] & _SPI_READ:   # the common case first: a read of a healthy part, as below
+                return self._read_burst(tx[0] & 0x7F, len(tx) - 1)
         if self._fault == "stuck_bus":
             raise BusError("ICM-42688-P: SPI transfer did not complete (stuck bus)")
         if not tx:
@@ -238,41 +290,56 @@ class ICM42688P:
         if self.miswire == "read_bit":
             read = not read
         addr = tx[0] & 0x7F
-        rx = bytearray(len(tx))
-        busy = self.now_s < self._busy_until
-        if read:   # conversions happen in advance(), never within a transaction: one consistent state
-            if not busy:
-                for i in range(1, len(tx)):
-                    rx[i] = self._read(self._bank, (addr + i - 1) & 0x7F)
-        elif not busy:
-            for i in range(1, len(tx)):
+        n = len(tx) - 1
+        if self.now_s < self._busy_until:   # in reset: reads 0x00, writes ignored
+            out = bytes(n + 1)
+        elif read:   # conversions happen in advance(), never within a transaction: one consistent state
+            out = self._read_burst(addr, n)
+        else:
+            for i in range(1, n + 1):
                 self._write((addr + i - 1) & 0x7F, tx[i])
-        out = bytes(rx)
+            out = bytes(n + 1)
         return out.translate(_REV8) if self.miswire == "bit_order" else out
 
     # ---- register access -----------------------------------------------------------------------
 
+    def _read_burst(self, addr: int, n: int) -> bytes:
+        """MISO of a burst read of ``n`` registers from ``addr`` on in the selected bank: 0x00 (the
+        address byte), then each register's value; the clear-on-read ones it covered are cleared
+        after it (WHO_AM_I reads 0x42 under the ``wrong_id`` fault)."""
+        bank = self._bank
+        regs = self._banks[bank]
+        end = addr + n
+        if end > 0x80 or not self._burst:   # wraps past 0x7F (the clear-on-read order matters), or a variant
+            return b"\x00" + bytes(self._read(bank, (addr + i) & 0x7F) for i in range(n))
+        out = b"\x00" + regs[addr:end]
+        lo, hi = _CLEAR_SPAN[bank]
+        if addr < hi and end > lo:
+            for a in _CLEAR_ON_READ[bank]:
+                if addr <= a < end:
+                    regs[a] = 0
+        if bank == 0 and addr <= _WHO_AM_I < end and self._fault == "wrong_id":
+            k = _WHO_AM_I - addr + 1
+            out = out[:k] + b"\x42" + out[k + 1:]
+        return out
+
     def _read(self, bank: int, addr: int) -> int:
-        key = (bank, addr)
-        access = _ACCESS.get(key)
-        if access is None or access == "w":
-            return 0
-        value = self._regs[key]
-        if key == _WHO_AM_I and self._fault == "wrong_id":
+        regs = self._banks[bank]
+        value = regs[addr]   # 0 for a write-only or reserved register (never stored to)
+        if bank == 0 and addr == _WHO_AM_I and self._fault == "wrong_id":
             value = 0x42
-        if access == "rc":
-            self._regs[key] = 0
+        if addr in _CLEAR_ON_READ[bank]:
+            regs[addr] = 0
         return value
 
     def _write(self, addr: int, value: int) -> None:
-        reg = R.REGISTERS.get((self._bank, addr))
-        if reg is None or reg.access in ("r", "rc"):
+        name = _NAMES[self._bank][addr]
+        if name is None:   # reserved, read only or clear on read: ignored
             return
-        name = reg.name
         if name == "REG_BANK_SEL":
             self._bank = value & 0x07 if (value & 0x07) <= 4 else self._bank
             for b in range(5):
-                self._regs[(b, 0x76)] = self._bank
+                self._banks[b][0x76] = self._bank
             return
         if name == "DEVICE_CONFIG" and value & R.SOFT_RESET_CONFIG:
             self._power_on(self.now_s)
@@ -280,11 +347,11 @@ class ICM42688P:
         if name == "SIGNAL_PATH_RESET":
             if value & R.TMST_STROBE:   # latch the part's µs timestamp into bank 1 TMSTVAL0..2 (20 bits)
                 ts = int(self.now_s * 1e6 * (1.0 + self.odr_error)) & 0xFFFFF
-                self._regs[(1, 0x62)], self._regs[(1, 0x63)], self._regs[(1, 0x64)] = (
+                self._banks[1][0x62], self._banks[1][0x63], self._banks[1][0x64] = (
                     ts & 0xFF, (ts >> 8) & 0xFF, ts >> 16)
             return
-        old = self._regs[(self._bank, addr)]
-        self._regs[(self._bank, addr)] = value
+        old = self._banks[self._bank][addr]
+        self._banks[self._bank][addr] = value
         if self._bank == 0 and name in ("PWR_MGMT0", "ACCEL_CONFIG0", "GYRO_CONFIG0"):
             self._reconfigure(name, old, value)
 
@@ -318,46 +385,53 @@ class ICM42688P:
     # ---- conversions ---------------------------------------------------------------------------
 
     def _put16(self, addr: int, value: int) -> None:
-        regs = self._regs
-        regs[(0, addr)] = (value >> 8) & 0xFF
-        regs[(0, addr + 1)] = value & 0xFF
+        regs = self._banks[0]
+        regs[addr] = (value >> 8) & 0xFF
+        regs[addr + 1] = value & 0xFF
 
     def _convert(self, t: float) -> None:
         """One conversion of every sensor that is on and started (scalar arithmetic: per-call numpy
         costs more than the three axes' math)."""
-        regs = self._regs
-        st = regs[(0, 0x70)]                       # SELF_TEST_CONFIG
-        bw_sel = regs[(0, 0x52)]                   # GYRO_ACCEL_CONFIG0
+        regs = self._banks[0]
+        st = regs[0x70]                            # SELF_TEST_CONFIG
+        bw_sel = regs[0x52]                        # GYRO_ACCEL_CONFIG0
         st_fail = 0.2 if self._fault == "self_test_fail" else 1.0
-        converted = False
-        if self._accel_on_at is not None and t >= self._accel_on_at:
-            cfg = regs[(0, 0x50)]                  # ACCEL_CONFIG0
-            sens = 32768.0 / R.ACCEL_FS_G[cfg >> 5]
-            bw = R.ODR_HZ.get(cfg & 0x0F, 1000.0) / R.UI_FILT_DIV[(bw_sel >> 4) & 0x07]
-            sd = ACCEL_NOISE_G_RTHZ * math.sqrt(bw) * sens
-            z = self._rng.standard_normal(3).tolist()
-            for i in range(3):
-                c = (self._f_g[i] * self._a_scale[i] + self._a_off[i]) * sens + sd * z[i]
-                if st & R.ACCEL_ST_POWER and st & (R.EN_AX_ST << i):
-                    c += self._a_st[i] * st_fail * sens / 16384.0
-                self._put16(0x1F + 2 * i, _clip16(c))
-            converted = True
-        if self._gyro_on_at is not None and t >= self._gyro_on_at:
-            cfg = regs[(0, 0x4F)]                  # GYRO_CONFIG0
-            sens = 32768.0 / R.GYRO_FS_DPS[cfg >> 5]
-            bw = R.ODR_HZ.get(cfg & 0x0F, 1000.0) / R.UI_FILT_DIV[bw_sel & 0x07]
-            sd = GYRO_NOISE_DPS_RTHZ * math.sqrt(bw) * sens
-            z = self._rng.standard_normal(3).tolist()
-            for i in range(3):
-                c = (self._w_dps[i] * self._g_scale[i] + self._g_off[i]) * sens + sd * z[i]
-                if st & (R.EN_GX_ST << i):
-                    c += self._g_st[i] * st_fail * sens / 131.072
-                self._put16(0x25 + 2 * i, _clip16(c))
-            converted = True
-        if converted:
-            if not regs[(0, 0x4E)] & 0x20:         # PWR_MGMT0 TEMP_DIS clear
-                self._put16(0x1D, _clip16((self.temperature_c - TEMP_ROOM_C) * TEMP_LSB_PER_C))
-            regs[(0, 0x2D)] |= R.DATA_RDY_INT      # INT_STATUS
+        accel = self._accel_on_at is not None and t >= self._accel_on_at
+        gyro = self._gyro_on_at is not None and t >= self._gyro_on_at
+        # the noise: the stream's next normals, the accelerometer's then the gyroscope's, in one draw
+        # (the generator gives the same normals in one call as in two, and one call costs less)
+        z = self._rng.standard_normal(6 if accel and gyro else 3).tolist() if accel or gyro else None
+        j = 0                                      # the next unused normal of z
+        if accel:
+            cfg = regs[0x50]                       # ACCEL_CONFIG0
+            sens, sd = _scale(False, cfg, bw_sel >> 4)
+            f, k, off = self._f_g, self._a_scale, self._a_off
+            c = [(f[0] * k[0] + off[0]) * sens + sd * z[j], (f[1] * k[1] + off[1]) * sens + sd * z[j + 1],
+                 (f[2] * k[2] + off[2]) * sens + sd * z[j + 2]]
+            j += 3                                 # the gyroscope's normals follow the accelerometer's
+            if st & R.ACCEL_ST_POWER and st & (R.EN_AX_ST | R.EN_AY_ST | R.EN_AZ_ST):
+                for i in range(3):
+                    if st & (R.EN_AX_ST << i):
+                        c[i] += self._a_st[i] * st_fail * sens / 16384.0
+            _BE16X3.pack_into(regs, 0x1F, _clip16(c[0]), _clip16(c[1]), _clip16(c[2]))   # ACCEL_DATA_X1 ... Z0
+        if gyro:
+            cfg = regs[0x4F]                       # GYRO_CONFIG0
+            sens, sd = _scale(True, cfg, bw_sel)
+            w, k, off = self._w_dps, self._g_scale, self._g_off
+            c = [(w[0] * k[0] + off[0]) * sens + sd * z[j], (w[1] * k[1] + off[1]) * sens + sd * z[j + 1],
+                 (w[2] * k[2] + off[2]) * sens + sd * z[j + 2]]
+            if st & (R.EN_GX_ST | R.EN_GY_ST | R.EN_GZ_ST):
+                for i in range(3):
+                    if st & (R.EN_GX_ST << i):
+                        c[i] += self._g_st[i] * st_fail * sens / 131.072
+            _BE16X3.pack_into(regs, 0x25, _clip16(c[0]), _clip16(c[1]), _clip16(c[2]))   # GYRO_DATA_X1 ... Z0
+        if accel or gyro:
+            if not regs[0x4E] & 0x20:              # PWR_MGMT0 TEMP_DIS clear
+                tc = self.temperature_c
+                if tc != self._temp_for:           # TEMP_DATA for this temperature, computed once
+                    self._temp_for, self._temp_data = tc, _clip16((tc - TEMP_ROOM_C) * TEMP_LSB_PER_C)
+                self._put16(0x1D, self._temp_data)
+            regs[0x2D] |= R.DATA_RDY_INT           # INT_STATUS
             self.drdy_s = t
             self.conversions += 1
 
@@ -365,7 +439,7 @@ class ICM42688P:
 
     def register(self, bank: int, addr: int) -> int:
         """A register's content, without the side effects of a bus read."""
-        return self._regs.get((bank, addr), 0)
+        return self._banks[bank][addr] if 0 <= bank <= 4 and 0 <= addr <= 0x7F else 0
 
     @property
     def bank(self) -> int:

@@ -83,6 +83,7 @@ Model
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field as dc_field
 
 import numpy as np
@@ -124,6 +125,8 @@ TRANSVERSE_SENSITIVITY = 0.008  # DS p.2 Transverse sensitivity, 0.8 %
 SET_RESET_REPEATABILITY_G = 1e-3  # DS p.2 SET/RESET repeatability, 1 mG
 DISTURBING_FIELD_G = 10.0  # DS p.2 Disturbing field (note 6), p.10 Theory of operation
 TOUT_ZERO_C, TOUT_C_PER_LSB = -75.0, 0.8  # DS p.14 Tout; p.2 Temperature sensor output
+#: numpy's uniform(lo, hi) is lo + (hi - lo) * U with U = random(): the step of a SET/RESET drawn that way
+_SR_LOW, _SR_RANGE = -SET_RESET_REPEATABILITY_G, SET_RESET_REPEATABILITY_G - -SET_RESET_REPEATABILITY_G
 CLOCK_TOLERANCE = 0.03  # not in the datasheet (its rates and times are typical): the emulator's choice
 GAUSS_PER_TESLA = 1e4
 
@@ -136,6 +139,7 @@ class BusNak(RuntimeError):
 
 _WRITE_ONLY = frozenset((INTERNAL_CONTROL_0, INTERNAL_CONTROL_1, INTERNAL_CONTROL_2, INTERNAL_CONTROL_3))
 _READ_ONLY = frozenset(range(8)) | {PRODUCT_ID_1}
+_BLOCK_END = STATUS + 1   # Xout0 .. Tout and Status: registers a read leaves as they are (one burst)
 
 
 @dataclass
@@ -185,12 +189,17 @@ class MMC5983MA:
         r = self._rng
         self.clock_error = (float(r.uniform(-CLOCK_TOLERANCE, CLOCK_TOLERANCE)) if clock_error is None
                             else float(clock_error))
-        self.offset_g = (r.uniform(-0.25, 0.25, 3) if offset_g is None else np.asarray(offset_g, float).reshape(3))
+        # the null-field offset as 3 floats (`offset_g` shows it as an array): per-measurement
+        # arithmetic in plain floats, the same doubles as numpy's on 3-vectors, without its per-call cost
+        self._offset = (r.uniform(-0.25, 0.25, 3) if offset_g is None else np.asarray(offset_g, float).reshape(3)).tolist()
         g = r.uniform(-SENSITIVITY_ACCURACY, SENSITIVITY_ACCURACY, 3) + 1.0 if gain is None else np.asarray(gain, float)
         x = (r.uniform(-TRANSVERSE_SENSITIVITY, TRANSVERSE_SENSITIVITY, (3, 3)) if cross is None
              else np.asarray(cross, float).reshape(3, 3))
         self.sensitivity = np.array(x, float)
         np.fill_diagonal(self.sensitivity, np.asarray(g, float).reshape(3))
+        self.sensitivity.flags.writeable = False   # the part's for life (and ``S B`` is kept per field)
+        self._sf_key: list | None = None   # the field (gauss) whose ``sensitivity @ field`` is in _sf
+        self._sf: list = [0.0, 0.0, 0.0]
         self.noise = bool(noise)
         self.self_test_field_g = float(self_test_field_g)
         if not 0 <= idle <= 0xFF:
@@ -199,18 +208,30 @@ class MMC5983MA:
         self.temperature_c = float(temperature_c)
         self.events = Events()
         self.faults: set[str] = set()
-        self._field_g = np.zeros(3)
+        # a variant that answers registers its own way (a `_read` of its own) is read register by register
+        self._burst = type(self)._read is MMC5983MA._read
+        self._field_g = [0.0, 0.0, 0.0]   # gauss, the part's axes
         self._now = 0.0
         self._power_up(0.0)
 
     # ------------------------------------------------------------------ the seam
     def set_field(self, field_t) -> None:
-        """The field the part now feels: 3-vector, tesla, the part's axes; held until the next call."""
-        f = np.asarray(field_t, dtype=float)
-        if f.shape != (3,) or not np.all(np.isfinite(f)):
+        """The field the part now feels: 3-vector, tesla, the part's axes; held until the next call.
+
+        A list of 3 numbers takes a path without numpy (the same products, value for value)."""
+        f = None
+        if type(field_t) is list and len(field_t) == 3:
+            try:
+                f = [float(x) for x in field_t]
+            except TypeError:   # not 3 numbers: numpy's reading of them below
+                f = None
+        if f is None:
+            a = np.asarray(field_t, dtype=float)
+            f = a.tolist() if a.shape == (3,) else None
+        if f is None or not (math.isfinite(f[0]) and math.isfinite(f[1]) and math.isfinite(f[2])):
             raise ValueError(f"Expected `field_t` to be 3 finite numbers (tesla), got {field_t!r}.")
-        self._field_g = f * GAUSS_PER_TESLA
-        if float(np.max(np.abs(self._field_g))) > DISTURBING_FIELD_G and not self._upset:
+        fg = self._field_g = [f[0] * GAUSS_PER_TESLA, f[1] * GAUSS_PER_TESLA, f[2] * GAUSS_PER_TESLA]
+        if max(abs(fg[0]), abs(fg[1]), abs(fg[2])) > DISTURBING_FIELD_G and not self._upset:
             self._polarity = -self._polarity if self._polarity else -1  # the film flips (DS p.10)
             self._upset = True  # once: it stays flipped until a SET or RESET
 
@@ -227,7 +248,8 @@ class MMC5983MA:
             t = self._next_event_s()
             if t is None or t > now_s:
                 break
-            self._now = max(self._now, t)
+            if t > self._now:
+                self._now = t
             self._run_event(t)
         self._now = now_s
 
@@ -237,23 +259,30 @@ class MMC5983MA:
         if not tx:
             self._misuse("empty_transaction", "an empty chip-select transaction")
             return b""
-        if "stuck_bus" in self.faults:
+        faults = self.faults
+        if faults and "stuck_bus" in faults:
             return bytes(len(tx))
-        if "no_answer" in self.faults or self._booting():
-            if self._booting() and "no_answer" not in self.faults:
+        booting = self._now < self._boot_end
+        if booting or (faults and "no_answer" in faults):
+            if booting and "no_answer" not in faults:
                 self._misuse("ignored_while_booting", "a transaction during the power-on time")
             return bytes([self.idle]) * len(tx)
         addr = tx[0] & ADDR_MASK
-        out = bytearray([self.idle])
         if tx[0] & READ_BIT:
+            if self._ctrl[3] & SPI_3W:  # the answer went out on SDI (3-wire, DS p.8): SDO undriven
+                for i in range(1, len(tx)):   # (the reads' side effects still happen)
+                    self._read((addr + i - 1) & ADDR_MASK)
+                return bytes([self.idle]) * len(tx)
+            end = addr + len(tx) - 1
+            if end <= _BLOCK_END and self._burst:   # data and Status: one burst of registers a read does not change
+                return bytes([self.idle]) + self._block()[addr:end]
+            out = bytearray([self.idle])
             for i in range(1, len(tx)):
                 out.append(self._read((addr + i - 1) & ADDR_MASK))
-            if self._ctrl[3] & SPI_3W:  # the answer went out on SDI (3-wire, DS p.8): SDO undriven
-                out = bytearray([self.idle]) * len(tx)
         else:
             for i in range(1, len(tx)):
                 self._write((addr + i - 1) & ADDR_MASK, tx[i])
-                out.append(self.idle)
+            out = bytes([self.idle]) * len(tx)
         return bytes(out)
 
     def i2c_write_read(self, tx: bytes, n: int) -> bytes:
@@ -307,6 +336,15 @@ class MMC5983MA:
         """The 18-bit outputs as the data registers hold them."""
         return tuple(int(v) for v in self._out)
 
+    @property
+    def offset_g(self) -> np.ndarray:
+        """The null-field offset now, gauss, shape (3,) (it moves at every SET or RESET)."""
+        return np.array(self._offset)
+
+    @offset_g.setter
+    def offset_g(self, value) -> None:
+        self._offset = np.asarray(value, float).reshape(3).tolist()
+
     # ------------------------------------------------------------------ internals
     def _misuse(self, name: str, what: str) -> None:
         setattr(self.events, name, getattr(self.events, name) + 1)
@@ -322,7 +360,7 @@ class MMC5983MA:
         self._ctrl = [0, 0, 0, 0]
         self._int_en = False
         self._auto_sr = False
-        self._out = np.full(3, 0, dtype=np.int64)  # data registers' reset value: not given; 0
+        self._out = [0, 0, 0]  # data registers' reset value: not given; 0
         self._tout = 0
         self._polarity = 0  # the film's magnetisation: not known until a SET or RESET
         self._upset = False
@@ -338,10 +376,11 @@ class MMC5983MA:
         return self._now < self._boot_end
 
     def _next_event_s(self) -> float | None:
-        times = [x for x in (self._meas_end, self._temp_end, self._cm_next) if x is not None]
-        if not self._booted:
-            times.append(self._boot_end)
-        return min(times) if times else None
+        t = None if self._booted else self._boot_end
+        for x in (self._meas_end, self._temp_end, self._cm_next):
+            if x is not None and (t is None or x < t):
+                t = x
+        return t
 
     def _run_event(self, t: float) -> None:
         if not self._booted and t >= self._boot_end:
@@ -377,23 +416,34 @@ class MMC5983MA:
         self._meas_end = t + self._tick_s(MEAS_TIME_S[self._ctrl[1] & BW_MASK])
 
     def _finish_field(self) -> None:
+        """The measurement's outputs, axis by axis in plain floats: the same operations, in the same
+        order, as on numpy 3-vectors (p · (S B), + offset, + self-test field, + noise, rounded half
+        to even, clamped), so the same counts. ``S B`` stays numpy's ``@`` (its summation is BLAS's,
+        which a sum in Python does not reproduce to the last bit), computed once per field."""
         bw = self._ctrl[1] & BW_MASK
         p = self._polarity
-        h = p * (self.sensitivity @ self._field_g)
+        if self._sf_key != self._field_g:
+            self._sf = (self.sensitivity @ np.array(self._field_g)).tolist()
+            self._sf_key = self._field_g
         st = 0.0
         if self._ctrl[3] & ST_ENP:
             st += self.self_test_field_g
         if self._ctrl[3] & ST_ENM:
             st -= self.self_test_field_g
-        g = h + self.offset_g + st
+        off = self._offset
+        g = [p * s + o + st for s, o in zip(self._sf, off)]
         if self.noise:
-            g = g + self._rng.normal(0.0, NOISE_RMS_MG[bw] * 1e-3, 3)
-        raw = np.clip(np.rint(NULL_FIELD_COUNTS + COUNTS_PER_GAUSS * g), 0, RAW_MAX).astype(np.int64)
+            z = self._rng.normal(0.0, NOISE_RMS_MG[bw] * 1e-3, 3).tolist()
+            g = [a + b for a, b in zip(g, z)]
+        raw = []
+        for v in g:
+            c = round(NULL_FIELD_COUNTS + COUNTS_PER_GAUSS * v)   # round half to even, as np.rint
+            raw.append(0 if c < 0 else (RAW_MAX if c > RAW_MAX else c))
         if "dead_axis" in self.faults:
             raw[0] = RAW_MAX
-        keep = np.array([bool(self._ctrl[1] & X_INHIBIT), bool(self._ctrl[1] & YZ_INHIBIT),
-                         bool(self._ctrl[1] & YZ_INHIBIT)])
-        self._out = np.where(keep, self._out, raw)  # an inhibited channel is not measured
+        c1, out = self._ctrl[1], self._out   # an inhibited channel is not measured
+        self._out = [out[0] if c1 & X_INHIBIT else raw[0], out[1] if c1 & YZ_INHIBIT else raw[1],
+                     out[2] if c1 & YZ_INHIBIT else raw[2]]
         self._status |= MEAS_M_DONE
         self.events.measurements += 1
 
@@ -402,18 +452,28 @@ class MMC5983MA:
         self._upset = False
         self._sr_busy_until = self._now + self._tick_s(SET_RESET_S)
         if self.noise:
-            self.offset_g = self.offset_g + self._rng.uniform(-SET_RESET_REPEATABILITY_G, SET_RESET_REPEATABILITY_G, 3)
+            # within ±SET_RESET_REPEATABILITY_G: uniform(-r, r, 3), the same doubles without its checks
+            u = self._rng.random(3).tolist()
+            self._offset = [a + (_SR_LOW + _SR_RANGE * b) for a, b in zip(self._offset, u)]
         if polarity > 0:
             self.events.sets += 1
         else:
             self.events.resets += 1
 
+    def _block(self) -> bytes:
+        """Xout0 .. Tout and Status (DS p.13-14) as the part answers them: the 18-bit outputs' bits
+        17..10 and 9..2, then XYZout2 with each output's bits 1..0."""
+        x, y, z = self._out
+        return bytes(((x >> 10) & 0xFF, (x >> 2) & 0xFF, (y >> 10) & 0xFF, (y >> 2) & 0xFF,
+                      (z >> 10) & 0xFF, (z >> 2) & 0xFF, ((x & 3) << 6) | ((y & 3) << 4) | ((z & 3) << 2),
+                      self._tout, self._status))
+
     def _read(self, addr: int) -> int:
         if addr <= ZOUT1:
-            v = int(self._out[addr // 2])
+            v = self._out[addr // 2]
             return (v >> 10) & 0xFF if addr % 2 == 0 else (v >> 2) & 0xFF
         if addr == XYZOUT2:
-            x, y, z = (int(v) & 3 for v in self._out)
+            x, y, z = (v & 3 for v in self._out)
             return (x << 6) | (y << 4) | (z << 2)
         if addr == TOUT:
             return self._tout
