@@ -116,9 +116,10 @@ def test_end_to_end_over_a_pty_through_the_command_line(tmp_path, part, sensors)
     over a real pty: every snapshot complete, every link sample with its gyroscope.
 
     What is delivered is under test, not how soon. The sheet's 24 C chips each read their part's
-    register emulator in Python: the 9-axis sheet takes about a quarter of a core at 50 SYNC/s, and
-    beside the suite's peaks (load 16 on two cores: 16 of these runs at once with two busy loops) it
-    was starved of the CPU for longer than the host's default waits — links marked silent after
+    register emulator in Python: the 9-axis sheet took 17-24 % of a core at 50 SYNC/s (11-12 % since
+    the emulators were made cheaper: docs/benchmarks.md), and beside the suite's peaks (load 16 on two
+    cores: 16 of these runs at once with two busy loops) it was starved of the CPU for longer than the
+    host's default waits — links marked silent after
     0.5 s, commands given up after 2.5 s. So: a modest 25 SYNC/s; the host waits 2 s for a
     snapshot's links (``--deadline-ms 2000``, which its watchdog then waits out too) and 1 s for
     each command's ACK (``--ack-timeout-ms 1000``); it is given the layout the sheet wrote, so its
