@@ -19,16 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tests.host.cli.cli_runs import (CLI, ENV, Virtual, drain, finish, host, host_here, host_json, host_json_here,
-                                     modest_rate, popen_host, wait_line)
+from tests.host.cli.cli_runs import (CLI, DELIVERY, ENV, FOLLOWING, drain, finish, host, host_here, host_json,
+                                     host_json_here, modest_rate, popen_host, wait_line)
 
-#: what a host that is judged on what it delivered (a completeness figure, "every chip streamed")
-#: runs at: what is delivered is under test, not how soon. A deadline of 2 s (the helpers' 0.5 s was
-#: short of a sheet process a loaded machine left behind: "late" answers, and runs below their
-#: figure, with three test workers and two busy loops), at a SYNC rate whose open counters
-#: (`Host`'s ``max_open``, at most 128) hold those 2 s. A following host takes the deadline alone.
-DELIVERY = ("--rate", "50", "--deadline-ms", "2000")
-FOLLOWING = ("--deadline-ms", "2000")
 
 # -- bad values: one line, exit 2, no traceback (no sheet needed: checked before any port opens) --
 
@@ -307,99 +300,6 @@ def test_the_waits_follow_the_rate_and_the_deadline_unless_the_user_gives_them(v
         assert out.returncode == 0, out.stderr
         assert doc["waits"] == waits, (extra, doc["waits"])
         assert doc["summary"]["snapshots"] > 0
-
-
-# -- one session per port -------------------------------------------------------------------------
-
-def test_a_second_host_on_a_busy_port_is_refused_at_once(virtuals, tmp_path, cli_here):
-    """A second ``capsheet host`` on the port a first one streams from: refused before it opens the
-    port, exit 1, one line naming the first host's process; the first ends exit 0, >= 99 % complete
-    (was: the second took over and the first fell to 37 % with framing errors). The second runs
-    in this process (another process than the first's all the same: the lock is between processes),
-    so it is refused while the first streams without waiting for an interpreter to start."""
-    lay = tmp_path / "sheet.csv"
-    v = virtuals("--lattice", "6x6", "--symlink", str(tmp_path / "sheet"), "--layout-out", str(lay))
-    p = popen_host(*v.host_cmd, "--duration", "4", *DELIVERY, "--json", "-q")
-    err: list = []
-    wait_line(p, "started on", 60, err)
-    drainer = drain(p, err)
-    second = host_here(cli_here, *v.host_cmd, "--duration", "3", timeout_s=60)
-    assert p.poll() is None, "the first host ended before the second was refused: no proof"
-    out = finish(p, drainer)
-    assert second.returncode == 1, second.stderr
-    [line] = second.stderr.splitlines()
-    assert "is in use by process" in line and f"process {p.pid} (" in line and "one session per port" in line, line
-    assert p.returncode == 0, "".join(err)
-    s = json.loads(out)["summary"]
-    assert s["complete_snapshots_pct"] >= 99.0 and not s["errors"], s
-
-
-@pytest.fixture(scope="module")
-def busy_port(tmp_path_factory):
-    """``make(transport) -> (port, host process, sheet's host command)``: a 3x3 sheet on ``pty`` or
-    ``slcan`` and a ``capsheet host`` streaming from it, made once per module and transport and
-    shared by the refusals below (a refused command never opens the port: nothing a test does
-    changes what the next one finds). The hosts are stopped at the module's end."""
-    made: dict = {}
-    stops: list = []
-
-    def make(transport: str):
-        if transport not in made:
-            tmp = tmp_path_factory.mktemp(f"busy-{transport}")
-            v = Virtual("--lattice", "3x3", "--transport", transport, "--symlink", str(tmp / "sheet"),
-                        "--layout-out", str(tmp / "sheet.csv"))
-            stops.append(lambda: v.stop(signal.SIGKILL))
-            # a SYNC a second: the port is held all the same, and the module's minutes cost little
-            p = popen_host(*v.host_cmd, "--duration", "600", "--rate", "1", "--json", "-q")
-            err: list = []
-            drainer: list = []
-
-            def stop_host():
-                if p.poll() is None:
-                    p.send_signal(signal.SIGTERM)
-                try:
-                    finish(p, drainer[0] if drainer else drain(p, err))
-                finally:
-                    if p.poll() is None:
-                        p.kill()
-            stops.append(stop_host)
-            wait_line(p, "started on", 60, err)
-            drainer.append(drain(p, err))
-            made[transport] = (str(tmp / "sheet"), p, v.host_cmd)
-        return made[transport]
-    try:
-        yield make
-    finally:
-        for stop in reversed(stops):
-            stop()
-
-
-#: the commands refused through a real process (one of each transport's, the other commands'
-#: refusals through the entry point in this process: the same check, line and exit status; each of
-#: them runs through a real process in its own tests)
-REFUSED_IN_A_PROCESS = ("calibrate", "host-slcan")
-
-
-@pytest.mark.parametrize("command", ["calibrate", "tactile", "conformance", "layout", "ports", "host-slcan"])
-def test_every_command_that_opens_a_port_is_refused_on_a_busy_one(busy_port, tmp_path, command, cli_here):
-    """What ``capsheet host`` holds, no other command opens: exit 1, one line naming the holder,
-    and the holder streams on."""
-    port, p, host_cmd = busy_port("slcan" if command == "host-slcan" else "pty")
-    args = {"calibrate": ["calibrate", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "c.json")],
-            "tactile": ["tactile", "--port", port, "--lattice", "3x3", "--duration", "1"],
-            "conformance": ["conformance", "--port", port],
-            "layout": ["layout", "learn", "--port", port, "--lattice", "3x3", "--out", str(tmp_path / "l.csv")],
-            "ports": ["ports", "--probe", port],
-            "host-slcan": ["host", *host_cmd, "--duration", "1"]}[command]
-    if command in REFUSED_IN_A_PROCESS:
-        out = subprocess.run(CLI + args, capture_output=True, text=True, timeout=60, env=ENV)
-        code, stdout, stderr = out.returncode, out.stdout, out.stderr
-    else:
-        code, stdout, stderr = cli_here(args)
-    assert code == 1, (code, stderr)
-    [line] = (stdout if command == "ports" else stderr).splitlines()  # ports: its report
-    assert f"is in use by process {p.pid} (" in line, line
-    assert p.poll() is None  # the holder streams on
 
 
 # -- one SYNC source ------------------------------------------------------------------------------
