@@ -110,7 +110,11 @@ class CommonMotion:
     def tilt_cov(self) -> np.ndarray:
         """The common tilt's covariance, 2 x 2, rad², world x and y (the accelerometers'
         shared fixed error included)."""
-        return self.C[:2, :2] + self.fixed_tilt_var * np.eye(2)
+        c = self.C[:2, :2].copy()
+        if self.fixed_tilt_var:
+            c[0, 0] += self.fixed_tilt_var
+            c[1, 1] += self.fixed_tilt_var
+        return c
 
 
 def add_fixed_tilt(cov: np.ndarray, config) -> np.ndarray:
