@@ -15,8 +15,9 @@ the board scene's capture, 84 s), and every estimator takes the same calibrated 
 * ``fused`` — `host.analysis.motion.MotionEstimator` told the chips' truth (`TRUE_NOISE`:
   1 % g, 0.35 µT, the gyroscope bias the calibration leaves: 0.06 °/s shared by the chips,
   0.007 °/s each chip's own, and its scale and cross-axis residue, 0.03–0.19 % per entry, and
-  g-sensitivity residue, 0.03 °/s/g, fixed per chip: `SCALE_RESIDUE`, `GSENS_RESIDUE`), as a
-  user of such chips would;
+  g-sensitivity residue, 0.03 °/s/g, fixed per chip: `SCALE_RESIDUE`, `GSENS_RESIDUE`; the
+  accelerometers' residue, 0.012° of tilt each chip's own and 0.032° shared, fixed:
+  `ACCEL_RESIDUE_RAD`, `ACCEL_COMMON_RESIDUE_RAD`), as a user of such chips would;
 * ``fused_defaults`` — the same with `FusedConfig()`, whose noise is the datasheets'.
 
 Rows (``rows``): every moving scene of `virtual_sheet.motion.MOTION_SCENES` (``flat_turn`` is
