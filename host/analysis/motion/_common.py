@@ -45,10 +45,15 @@ class CommonMotion:
         The sheet's velocity spread about zero and its correlation time.
     position_std_m, position_time_s : float
         The sheet's position spread about its mean and its correlation time.
+    fixed_tilt_var : float
+        What the accelerometers' shared fixed error adds to the sheet's tilt, rad² per axis
+        (`FusedConfig.accel_common_fixed_error_rad`): nothing the sheet reads tells it from a
+        tilt, so it is not estimated, only reported with the tilt's covariance (`tilt_cov`).
     """
 
     def __init__(self, tilt_var0: float, rate_var0: float, velocity_std_mps: float,
-                 velocity_time_s: float, position_std_m: float, position_time_s: float) -> None:
+                 velocity_time_s: float, position_std_m: float, position_time_s: float,
+                 fixed_tilt_var: float = 0.0) -> None:
         self.x = np.zeros(8)  # c, β (both 0 after `take`), v, p
         self.C = np.zeros((8, 8))
         self.C[0, 0] = self.C[1, 1] = tilt_var0
@@ -58,6 +63,7 @@ class CommonMotion:
             self.C[i, i] = 1e-6
         self.sv, self.tv = velocity_std_mps, velocity_time_s
         self.sp, self.tp = position_std_m, position_time_s
+        self.fixed_tilt_var = fixed_tilt_var
 
     def step(self, m_xy: np.ndarray, h: float, q_tilt: float, q_rate: float,
              r_accel: float) -> None:
@@ -102,5 +108,21 @@ class CommonMotion:
 
     @property
     def tilt_cov(self) -> np.ndarray:
-        """The common tilt's covariance, 2 x 2, rad², world x and y."""
-        return self.C[:2, :2].copy()
+        """The common tilt's covariance, 2 x 2, rad², world x and y (the accelerometers'
+        shared fixed error included)."""
+        c = self.C[:2, :2].copy()
+        if self.fixed_tilt_var:
+            c[0, 0] += self.fixed_tilt_var
+            c[1, 1] += self.fixed_tilt_var
+        return c
+
+
+def add_fixed_tilt(cov: np.ndarray, config) -> np.ndarray:
+    """Every link's orientation covariance ``cov`` (n, 3, 3) with what its own accelerometer's
+    fixed error adds to its tilt (`FusedConfig.accel_fixed_error_rad`), in place: the filter
+    follows the accelerometers' frames and each link's frame lies off its chip's by that error,
+    which nothing the sheet reads tells from a tilt. Returns ``cov``."""
+    if s2 := config.accel_fixed_error_rad ** 2:
+        cov[:, 0, 0] += s2
+        cov[:, 1, 1] += s2
+    return cov

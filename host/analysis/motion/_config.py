@@ -54,6 +54,14 @@ class FusedConfig:
         there; as the link turns, the specific force ``f`` in its frame changes and so does the
         rate's error, ``Γ (f − f₀) / g``: carried as a consider state beside the scale error's.
         0: not modelled.
+    accel_fixed_error_rad, accel_common_fixed_error_rad : float
+        What a calibration leaves of the accelerometers' errors, as the tilt it gives, rad per
+        horizontal axis: each chip's own (`accel_fixed_error_rad`) and the part the chips share
+        (a board's own tilt against gravity, `accel_common_fixed_error_rad`). A fixed error does
+        not average out as the noise does, and nothing the sheet reads tells it from a tilt: the
+        filter follows the accelerometers' frames, and the links' frames lie off them by it, so
+        it is added to the covariances reported (`MotionEstimate.orientation_cov_rad2`, the
+        shared part also to `common_tilt_cov_rad2`), not estimated. 0: not told.
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
     rel_accel_error : float
@@ -128,6 +136,8 @@ class FusedConfig:
     gyro_scale_error: float = 2e-3
     gyro_scale_fixed_error: float | tuple = 0.0
     gyro_gsens_fixed_error: float | tuple = 0.0
+    accel_fixed_error_rad: float = 0.0
+    accel_common_fixed_error_rad: float = 0.0
     orientation_walk_rad: float = float(np.radians(0.05))
     rel_accel_error: float = 0.01
     accel_floor_mps2: float = 0.02

@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from ..estimator import G0, estimate
 from ._consider import accel as consider_accel, propagate as consider_propagate, yaw as consider_yaw
-from ._common import CommonMotion
+from ._common import CommonMotion, add_fixed_tilt
 from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
@@ -455,7 +455,8 @@ class MotionEstimator:
                               common_accel_mps2=a_c, heading_absolute=bool(self._with_mag),
                               timings={"propagate": t1 - t0, "accel": t2 - t1,
                                        "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0},
-                              orientation_cov_rad2=self.orientation_cov() if cov is None else cov,
+                              orientation_cov_rad2=self.orientation_cov() if cov is None
+                              else add_fixed_tilt(cov, self.config),
                               common_tilt_cov_rad2=self._common.tilt_cov,
                               accel_nis=self._nis.copy())
 
@@ -464,7 +465,7 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        return _orientation_cov(self.P, *self._cov_terms())
+        return add_fixed_tilt(_orientation_cov(self.P, *self._cov_terms()), self.config)
 
     def _cov_terms(self):
         """`_linalg.orientation_cov`'s terms beside ``P``: the common tilt's covariance and,
@@ -546,7 +547,7 @@ class MotionEstimator:
                                      else cfg.gyro_common_bias_std_rps) ** 2,
                                     cfg.sheet_velocity_std_mps,
                                     cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
-                                    cfg.sheet_position_time_s)
+                                    cfg.sheet_position_time_s, cfg.accel_common_fixed_error_rad ** 2)
         self._nis = np.full(n, np.nan)
         self._cinv = None  # the yaw solve's coarse preconditioner (`_linalg.coarse_inverse`)
 

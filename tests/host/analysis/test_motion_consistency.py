@@ -170,3 +170,60 @@ def test_a_fixed_g_sensitivity_told_as_fixed_keeps_the_tilt_nees_in_its_band():
     # the check can fail: not told, the filter is overconfident
     untold = statistics(truth, rd, base)[0].mean()
     assert untold > hi, (untold, (lo, hi))
+
+
+#: chips whose accelerometers are each turned by a fixed small rotation (what a calibration
+#: leaves: its residue, rad per axis), else ideal
+FIXED_ACCEL_RAD = float(np.radians(0.05))
+
+
+def record_fixed_accel(seconds=3.0, seed=31):
+    imu = ImuArray(N_LINKS, accel=accel_model("ideal", noise_pct_g=PCT_G, chip_seed=8,
+                                              misalignment_rad=FIXED_ACCEL_RAD),
+                   gyro=GyroModel.part("ideal", noise_density_dps=0.0028),
+                   field=MagneticField(EarthField(50e-6, np.radians(60.0))), seed=seed)
+    return next(simulate(make_motion_scene("level", N, N, L), imu, seconds, chunk_s=seconds))
+
+
+def test_a_fixed_accelerometer_error_told_keeps_the_still_sheets_tilt_nees_in_its_band():
+    # a still sheet: the accelerometers' noise averages out and their fixed error does not, so
+    # the links' tilts settle on the chips' frames, each off its link's by its own error;
+    # told, the reported covariance carries it
+    truth, rd = record_fixed_accel()
+    nees = statistics(truth, rd, dataclasses.replace(
+        TOLD, accel_fixed_error_rad=FIXED_ACCEL_RAD))[0].mean()
+    lo, hi = band(2 * N_LINKS)
+    assert lo <= nees <= hi, (nees, (lo, hi))
+    # the check can fail: not told, the filter claims the averaged noise's precision
+    untold = statistics(truth, rd, TOLD)[0].mean()
+    assert untold > hi, (untold, (lo, hi))
+
+
+def common_tilt_nees(truth, rd, config):
+    """Per snapshot after the first second: the links' mean tilt error against its covariance,
+    the shared part plus the mean of the links' own (χ² with 2 degrees of freedom)."""
+    est = MotionEstimator(N, N, L, config=config)
+    out = []
+    for k in range(rd.t_s.size):
+        e = est.update(rd.t_s[k], rd.accel_mps2[k], rd.gyro_rps[k])
+        if rd.t_s[k] - rd.t_s[0] >= 1.0:
+            eb = tilt_error(e.frames, truth.frames[k])[:, :2].mean(axis=0)
+            common = e.common_tilt_cov_rad2
+            cb = common + (e.orientation_cov_rad2[:, :2, :2] - common).mean(axis=0) / N_LINKS
+            out.append(float(eb @ np.linalg.solve(cb, eb)))
+    return np.array(out)
+
+
+def test_a_fixed_accelerometer_error_the_chips_share_told_keeps_the_common_tilt_in_its_band():
+    # every accelerometer turned alike (the board's own tilt against gravity, 0.5° about x):
+    # the sheet's tilt settles on it, and nothing the sheet reads tells it apart
+    truth, rd = record("level", seed=37)
+    q = Rotation.from_rotvec([float(np.radians(0.5)), 0.0, 0.0]).as_matrix()
+    rd = dataclasses.replace(rd, accel_mps2=np.einsum("ij,tnj->tni", q, rd.accel_mps2))
+    lo, hi = chi2.ppf(0.025, 2), chi2.ppf(0.975, 2)
+    told = common_tilt_nees(truth, rd, dataclasses.replace(
+        TOLD, accel_common_fixed_error_rad=float(np.radians(0.5))))
+    assert lo <= told.mean() <= hi, (told.mean(), (lo, hi))
+    # the check can fail: not told, the sheet's tilt claims what the translation's bounds give
+    untold = common_tilt_nees(truth, rd, TOLD)
+    assert untold.mean() > hi, (untold.mean(), (lo, hi))
