@@ -119,6 +119,9 @@ class GyroCalibration:
         Turns the scale fit integrated for every chip, and those it left out for a gap in the
         samples of at least one chip (`fit_gyro_turns`'s ``max_gap_s``; the other chips still use
         them); 0 when not fitted.
+    scale_fitted : bool
+        ``matrix`` was fitted from the turns (`fit_gyro_turns`); False: the identity, bias and
+        g-sensitivity only.
     """
 
     bias_rps: np.ndarray
@@ -128,6 +131,7 @@ class GyroCalibration:
     turn_residual: np.ndarray
     turns_used: int = 0
     turns_dropped: int = 0
+    scale_fitted: bool = False
 
     @property
     def n_links(self) -> int:
@@ -212,6 +216,23 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
 TURN_MAX_GAP_S = 0.1
 #: `fit_gyro_turns`: turns needed (two equations each, nine unknowns per chip)
 MIN_TURNS = 5
+#: `fit_capture`: the largest turn residual (`GyroCalibration.turn_residual`, radians: how far the
+#: fitted integration still carries gravity from where the next pose has it) whose scale fit is
+#: kept. Exact sample instants leave 0.0003 rad (0.017°: the 3x3 pty test on a quiet machine, 12
+#: poses of 1.5 s) and 0.00007 rad (the simulated board at 145 Hz). Readings taken up to 100 ms
+#: away from their stated instants (the same test's stalled virtual sheet at load 11-13) left
+#: 1.1-4.0° and a scale 1.7-2.7 % off (0.13-0.17 % refitted over the true instants); on the
+#: simulated board, such stalls at random in every turn left 0.3-2.9° and a scale 0.2-1.6 % off —
+#: about 1 % of scale a degree. 0.2°: at most ~0.3 %.
+TURN_MAX_RESIDUAL_RAD = float(np.radians(0.2))
+#: `fit_capture`: the largest rest residual (`GyroCalibration.rest_residual_rps`: the held poses'
+#: mean rates against the bias and g-sensitivity fitted to them) whose gyroscope fit is kept. Still
+#: poses leave 0.004-0.007 °/s (the 3x3 pty test, 20-90 still snapshots a pose at 100 Hz) and
+#: 0.0012 °/s (the simulated board, 4 s poses at 145 Hz). A board that kept turning through one
+#: pose — about gravity, which no accelerometer sees — puts its rate into the bias: on the
+#: simulated board, at 0.1-0.5 °/s, a residual of 0.013-0.066 °/s and a bias 0.011-0.060 °/s
+#: off (the target: 0.01 °/s, docs/calibration.md).
+REST_MAX_RESIDUAL_RPS = float(np.radians(0.02))
 
 
 def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link, cal: GyroCalibration,
@@ -309,7 +330,7 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
     res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
     used = int(use.all(axis=0).sum())
     return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
-                           turns_used=used, turns_dropped=K - 1 - used)
+                           turns_used=used, turns_dropped=K - 1 - used, scale_fitted=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -522,17 +543,26 @@ def fit_mag_alignment(cal: MagCalibration, rest_mag_t, rest_gravity_link, *,
 @dataclass(frozen=True)
 class CaptureCalibration:
     """Everything `fit_capture` found: the accelerometers' `Calibration`, the gyroscopes' and the
-    magnetometers' (None without those sensors), and the held poses it used (sample slices)."""
+    magnetometers' (None without those sensors), and the held poses it used (sample slices).
+    A gyroscope fit judged bad is not kept (`gyro_refused` says why): a rest residual above its
+    limit leaves ``gyro`` None, a turn residual above its limit leaves the bias and g-sensitivity
+    (``scale_fitted`` False)."""
 
     accel: Calibration
     gyro: GyroCalibration | None
     mag: MagCalibration | None
     segments: tuple[tuple[int, int], ...]
+    #: why the gyroscope fit, or its scale part, was not kept (one line naming the figure judged by
+    #: and its limit); "" when it was kept whole or there are no gyroscopes
+    gyro_refused: str = ""
+    #: the fit that was judged and not kept (its figures), None when ``gyro`` is the whole fit
+    gyro_rejected: GyroCalibration | None = None
 
 
 def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None, *, window: int = 25,
                 threshold_mps2: float = 0.098, field_t: float | None = None,
-                min_hold_samples: int | None = None) -> CaptureCalibration:
+                min_hold_samples: int | None = None, max_turn_residual_rad: float = TURN_MAX_RESIDUAL_RAD,
+                max_rest_residual_rps: float = REST_MAX_RESIDUAL_RPS) -> CaptureCalibration:
     """Calibrate every sensor of every chip from one board capture (docs/calibration.md): the
     sheet flat on the board, turned through held poses, sampled throughout.
 
@@ -541,7 +571,12 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
        start of a turn by a few samples), of at least ``min_hold_samples`` (default 4 windows).
     2. Accelerometers: `calibration.fit_board_poses` on the poses' means.
     3. Gyroscopes: `fit_gyro_rest` (bias, g-sensitivity against the bias- and scale-corrected
-       specific force), then `fit_gyro_turns` (gravity's direction per pose from step 2).
+       specific force), then `fit_gyro_turns` (gravity's direction per pose from step 2). Each is
+       judged by what it leaves: a rest residual above ``max_rest_residual_rps`` (a held pose
+       that was not still) keeps no gyroscope fit; a turn residual above ``max_turn_residual_rad``
+       (the rates do not carry gravity from pose to pose: readings whose instants are wrong, a
+       board that bent) keeps the bias and g-sensitivity only. ``gyro_refused`` says which and
+       the figure.
     4. Magnetometers: `fit_mag_ellipsoid` on every sample, then `fit_mag_alignment` on the poses.
 
     Parameters
@@ -570,12 +605,34 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
     if gyro_rps is not None:
         g = _batch("gyro_rps", gyro_rps)
         f_chip = (a - acal.bias) / acal.scale
-        gcal = fit_gyro_rest(segment_means(g, segs), segment_means(f_chip, segs))
-        gcal = fit_gyro_turns(g, t_s, segs, u, gcal, f_chip)
+        rest = fit_gyro_rest(segment_means(g, segs), segment_means(f_chip, segs))
+        gcal, refused, rejected = _judged_gyro(rest, lambda: fit_gyro_turns(g, t_s, segs, u, rest, f_chip),
+                                               max_turn_residual_rad, max_rest_residual_rps)
     if mag_t is not None:
         m = _batch("mag_t", mag_t)
         mcal = fit_mag_alignment(fit_mag_ellipsoid(m, field_t), segment_means(m, segs), u)
-    return CaptureCalibration(acal, gcal, mcal, tuple(segs))
+    return CaptureCalibration(acal, gcal, mcal, tuple(segs), refused, rejected)
+
+
+def _judged_gyro(rest: GyroCalibration, turns, max_turn_rad: float, max_rest_rps: float):
+    """The part of the gyroscope fit its own residuals vouch for (`fit_capture`, step 3):
+    ``(kept or None, why not all of it or "", the fit not kept or None)``; ``turns()`` fits the
+    scale."""
+    worst = int(np.argmax(rest.rest_residual_rps))
+    if rest.rest_residual_rps[worst] > max_rest_rps:
+        return None, (f"gyroscope not fitted: the held poses' mean rates miss the fitted bias and "
+                      f"g-sensitivity by {np.degrees(rest.rest_residual_rps[worst]):.3f} °/s RMS (link {worst}; "
+                      f"limit {np.degrees(max_rest_rps):.3f} °/s): the board was not still while held "
+                      f"(turning slowly?)"), rest
+    full = turns()
+    worst = int(np.argmax(full.turn_residual))
+    if full.turn_residual[worst] > max_turn_rad:
+        return rest, (f"gyroscope scale and cross-axis not fitted (bias and g-sensitivity kept): the "
+                      f"fitted rates still carry gravity {np.degrees(full.turn_residual[worst]):.2f}° RMS "
+                      f"from where the next pose has it (link {worst}, {full.turns_used} turns; limit "
+                      f"{np.degrees(max_turn_rad):.2f}°): readings whose instants are wrong (a stalled "
+                      f"host or sheet) or a board that bent"), full
+    return full, "", None
 
 
 # ---------------------------------------------------------------------------------------------

@@ -239,3 +239,86 @@ def test_a_chip_whose_records_were_lost_in_a_turn_leaves_that_turn_out_alone(cap
     E = _without_common_rotation(lost.matrix @ truth)
     assert np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max() < 2e-4
     assert np.all(np.isfinite(lost.turn_residual)) and lost.turn_residual[5] < 10 * np.median(lost.turn_residual)
+
+
+def _scale_err(imu, matrix) -> float:
+    """The worst scale error of ``matrix`` against the hidden truth, the common rotation removed."""
+    truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+    return float(np.abs(np.diagonal(_without_common_rotation(matrix @ truth), axis1=1, axis2=2) - 1).max())
+
+
+def _read_late_in_turns(c: dict, segs, stall: int, seed: int) -> dict:
+    """The capture as a stalled sheet delivers it (measured: the 3x3 pty test at load 11-13, its
+    virtual chips sampling when their thread read each SYNC, up to 100 ms after the host sent it):
+    somewhere in the middle half of every turn (seeded) the chips take no reading for up to ``stall`` samples, then
+    catch up at twice the rate — sample ``i`` carries the exact readings of sample ``j(i) >= i``
+    but is stated at ``t[i]`` (the host's SYNC time and a ``time_us`` against the late read). No
+    instant is missing, so no turn has a gap to leave it out for."""
+    rng = np.random.Generator(np.random.MT19937(seed))
+    j = np.arange(len(c["t_s"]))
+    for k in range(len(segs) - 1):
+        a, b = segs[k][1], segs[k + 1][0]
+        n = int(rng.integers(0, stall + 1))
+        i0 = int(rng.integers(a + (b - a) // 4, b - (b - a) // 4 - 2 * n))
+        j[i0: i0 + 2 * n] = i0 + n + np.arange(2 * n) // 2
+    return {key: (v if key == "t_s" else v[j]) for key, v in c.items()}
+
+
+def test_a_scale_fit_the_turns_do_not_vouch_for_is_not_kept(captured):
+    """Readings taken up to 100 ms after the instants they are stated at, somewhere in every turn
+    (a stalled sheet): the scale fit cannot carry gravity from pose to pose — its turn residual,
+    the figure judged by, is above `TURN_MAX_RESIDUAL_RAD` — and is not kept: the bias and
+    g-sensitivity are (the rests are whole), the matrix stays the identity, and `gyro_refused` says
+    why with the figure. Kept, that scale would miss the 0.1 % target (docs/calibration.md) several
+    times over. The exact capture's fit is kept.
+
+    (What the residual cannot see: the same delay at the same place in every turn reads as a scale,
+    and is fitted as one — docs/calibration.md.)"""
+    from host.analysis.imu_calibration import TURN_MAX_RESIDUAL_RAD
+    imu, c, cal = captured
+    assert cal.gyro_refused == "" and cal.gyro_rejected is None and cal.gyro.scale_fitted
+    assert cal.gyro.turn_residual.max() < TURN_MAX_RESIDUAL_RAD / 10
+    late = _read_late_in_turns(c, cal.segments, stall=14, seed=1)  # up to 97 ms at 145 Hz
+    judged = fit_capture(late["t_s"], late["accel_mps2"], ROWS, COLS, late["gyro_rps"], late["mag_t"],
+                         field_t=FIELD.magnitude_t)
+    assert judged.segments == cal.segments  # the rests are untouched: the same held poses
+    np.testing.assert_array_equal(judged.gyro.matrix, np.tile(np.eye(3), (12, 1, 1)))
+    assert not judged.gyro.scale_fitted and (judged.gyro.turns_used, judged.gyro.turns_dropped) == (0, 0)
+    np.testing.assert_allclose(judged.gyro.bias_rps, cal.gyro.bias_rps, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(judged.gyro.g_sensitivity, cal.gyro.g_sensitivity, rtol=0, atol=1e-15)
+    rejected = judged.gyro_rejected
+    assert rejected.turns_used == 11 and rejected.turn_residual.max() > TURN_MAX_RESIDUAL_RAD
+    worst = int(np.argmax(rejected.turn_residual))
+    assert judged.gyro_refused.startswith("gyroscope scale and cross-axis not fitted (bias and g-sensitivity kept): ")
+    assert (f"{np.degrees(rejected.turn_residual[worst]):.2f}° RMS" in judged.gyro_refused
+            and f"(link {worst}, 11 turns; limit 0.20°)" in judged.gyro_refused), judged.gyro_refused
+    assert "\n" not in judged.gyro_refused
+    # the judgement is right: the scale it did not keep misses the 0.1 % target; the exact one meets it
+    assert _scale_err(imu, cal.gyro.matrix) < 2e-4 and _scale_err(imu, rejected.matrix) > 3e-3
+
+
+def test_a_gyroscope_fit_from_a_pose_that_was_not_still_is_not_kept(captured):
+    """The board turned about the vertical at 0.3 °/s through one held pose (a hand that held it
+    drifting): no accelerometer sees a turn about gravity, so the pose is found still as before,
+    but its mean rate is not the bias. The rest residual, the figure judged by, is above
+    `REST_MAX_RESIDUAL_RPS`: no gyroscope fit is kept, and `gyro_refused` says why with the
+    figure. Kept, its bias would miss the fit's 0.01 °/s target several times over; the exact
+    capture's is kept."""
+    from host.analysis.imu_calibration import REST_MAX_RESIDUAL_RPS
+    imu, c, cal = captured
+    assert cal.gyro.rest_residual_rps.max() < REST_MAX_RESIDUAL_RPS / 10
+    a0, b0 = cal.segments[5]
+    g = c["gyro_rps"].copy()
+    f = c["accel_mps2"][a0 - 100: b0 + 100]  # the pose, while the board holds it (its turns excepted)
+    g[a0 - 100: b0 + 100] += np.radians(0.3) * f / np.linalg.norm(f, axis=-1, keepdims=True)
+    judged = fit_capture(c["t_s"], c["accel_mps2"], ROWS, COLS, g, c["mag_t"], field_t=FIELD.magnitude_t)
+    assert judged.segments == cal.segments and judged.mag is not None
+    assert judged.gyro is None
+    rejected = judged.gyro_rejected
+    worst = int(np.argmax(rejected.rest_residual_rps))
+    assert rejected.rest_residual_rps[worst] > REST_MAX_RESIDUAL_RPS
+    assert judged.gyro_refused.startswith("gyroscope not fitted: the held poses' mean rates miss the fitted bias ")
+    assert (f"by {np.degrees(rejected.rest_residual_rps[worst]):.3f} °/s RMS (link {worst}; limit 0.020 °/s)"
+            in judged.gyro_refused), judged.gyro_refused
+    # the judgement is right: that bias misses the 0.01 °/s target (the exact capture's is within 0.004)
+    assert np.degrees(np.abs(rejected.bias_rps - imu.gyro_errors.bias_rps).max()) > 0.025
