@@ -557,6 +557,9 @@ class CaptureCalibration:
     gyro_refused: str = ""
     #: the fit that was judged and not kept (its figures), None when ``gyro`` is the whole fit
     gyro_rejected: GyroCalibration | None = None
+    #: the limits the gyroscope fit was judged against (`fit_capture`)
+    max_turn_residual_rad: float = TURN_MAX_RESIDUAL_RAD
+    max_rest_residual_rps: float = REST_MAX_RESIDUAL_RPS
 
 
 def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None, *, window: int = 25,
@@ -601,7 +604,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
     acal = fit_board_poses(am, rows, cols)
     u = acal.apply(am)
     u = u / np.linalg.norm(u, axis=-1, keepdims=True)
-    gcal = mcal = None
+    gcal = mcal = rejected = None
+    refused = ""
     if gyro_rps is not None:
         g = _batch("gyro_rps", gyro_rps)
         f_chip = (a - acal.bias) / acal.scale
@@ -611,7 +615,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
     if mag_t is not None:
         m = _batch("mag_t", mag_t)
         mcal = fit_mag_alignment(fit_mag_ellipsoid(m, field_t), segment_means(m, segs), u)
-    return CaptureCalibration(acal, gcal, mcal, tuple(segs), refused, rejected)
+    return CaptureCalibration(acal, gcal, mcal, tuple(segs), refused, rejected, float(max_turn_residual_rad),
+                              float(max_rest_residual_rps))
 
 
 def _judged_gyro(rest: GyroCalibration, turns, max_turn_rad: float, max_rest_rps: float):
