@@ -20,6 +20,12 @@ Gyroscope, chip ``k``: ``ω_meas = K Mᵀ ω + b + Γ f/g + noise`` (``K`` scale
    column for every chip). This is the gyroscope half of Tedaldi, Pretto & Menegatti (ICRA 2014),
    on every chip, with the link frame set by the accelerometer calibration.
 
+Each gyroscope part is kept only when its own residual vouches for it (`fit_capture`): a rest
+residual above `REST_MAX_RESIDUAL_RPS` (a pose that was not still) keeps none, a turn residual
+above `TURN_MAX_RESIDUAL_RAD` (rates that do not carry gravity through the turns: readings whose
+stated instants are wrong) keeps the bias and g-sensitivity. A timing error the same in every turn
+in proportion to it is a scale to the fit and cannot be seen there.
+
 Magnetometer, chip ``k``: ``m = D B + h + noise`` (``D = W M_mᵀ``: soft iron and mounting, ``h``
 hard iron). In a uniform field ``|B| = F`` the readings lie on the ellipsoid
 ``|D⁻¹(m − h)| = F``:
