@@ -64,7 +64,7 @@ import numpy as np
 from protocol.rotations import rotvec_matrices
 from .calibration import G0, Calibration, StaticDetector, project_so3, fit_board_poses
 
-__all__ = ["still_segments", "segment_means", "GyroCalibration", "fit_gyro_rest", "fit_gyro_turns",
+__all__ = ["still_segments", "gyro_still_segments", "segment_means", "GyroCalibration", "fit_gyro_rest", "fit_gyro_turns",
            "MagCalibration", "fit_mag_ellipsoid", "fit_mag_alignment", "CaptureCalibration", "fit_capture",
            "chip_imu_blocks"]
 
@@ -91,6 +91,28 @@ def still_segments(still, min_samples: int = 2) -> list[tuple[int, int]]:
     edges = np.diff(np.concatenate([[0], s.astype(np.int8), [0]]))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     return [(int(a), int(b)) for a, b in zip(starts, stops) if b - a >= min_samples]
+
+
+def gyro_still_segments(gyro_rps, segments: list[tuple[int, int]], max_rate_rps: float,
+                        min_samples: int = 2) -> list[tuple[int, int]]:
+    """Each segment of ``gyro_rps (N, n, 3)`` cut to its longest run of samples where the median
+    over the chips of ``|ω − median of the segment|`` is at most ``max_rate_rps`` (a rigid board
+    turns every chip at once; the median over time takes out the bias); segments whose longest
+    run is shorter than ``min_samples`` are left out.
+
+    >>> g = np.zeros((10, 2, 3)); g[7:, :, 0] = 0.1  # the board starts to turn at sample 7
+    >>> gyro_still_segments(g, [(0, 10)], 0.01)
+    [(0, 7)]
+    """
+    g = _batch("gyro_rps", gyro_rps)
+    out = []
+    for a, b in segments:
+        d = np.linalg.norm(g[a:b] - np.median(g[a:b], axis=0), axis=-1)  # (L, n)
+        runs = still_segments(np.median(d, axis=1) <= max_rate_rps, max(2, int(min_samples)))
+        if runs:
+            s, e = max(runs, key=lambda r: r[1] - r[0])
+            out.append((a + s, a + e))
+    return out
 
 
 def segment_means(values, segments: list[tuple[int, int]]) -> np.ndarray:
@@ -231,6 +253,11 @@ MIN_TURNS = 5
 #: simulated board, such stalls at random in every turn left 0.3-2.9° and a scale 0.2-1.6 % off —
 #: about 1 % of scale a degree. 0.2°: at most ~0.3 %.
 TURN_MAX_RESIDUAL_RAD = float(np.radians(0.2))
+#: `fit_capture`: a held pose's samples whose rates stray further than this from the pose's median
+#: (the median over the chips) are not held (`gyro_still_segments`). The gyroscopes' noise is
+#: 0.025 °/s a sample on the simulated chips; a detector set for 1 %-of-g accelerometer noise
+#: (0.3 m/s²) let in turn ends at up to 35 °/s, and a bias 0.025 °/s off.
+REST_MAX_RATE_RPS = float(np.radians(0.5))
 #: `fit_capture`: the largest rest residual (`GyroCalibration.rest_residual_rps`: the held poses'
 #: mean rates against the bias and g-sensitivity fitted to them) whose gyroscope fit is kept. Still
 #: poses leave 0.004-0.007 °/s (the 3x3 pty test, 20-90 still snapshots a pose at 100 Hz) and
@@ -571,13 +598,17 @@ class CaptureCalibration:
 def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None, *, window: int = 25,
                 threshold_mps2: float = 0.098, field_t: float | None = None,
                 min_hold_samples: int | None = None, max_turn_residual_rad: float = TURN_MAX_RESIDUAL_RAD,
-                max_rest_residual_rps: float = REST_MAX_RESIDUAL_RPS) -> CaptureCalibration:
+                max_rest_residual_rps: float = REST_MAX_RESIDUAL_RPS,
+                max_rest_rate_rps: float = REST_MAX_RATE_RPS) -> CaptureCalibration:
     """Calibrate every sensor of every chip from one board capture (docs/calibration.md): the
     sheet flat on the board, turned through held poses, sampled throughout.
 
     1. Held poses: `calibration.StaticDetector` (``window``, ``threshold_mps2``) on the
        accelerometers; each still run, less ``window`` samples at both ends (the detector lags the
        start of a turn by a few samples), of at least ``min_hold_samples`` (default 4 windows).
+       With gyroscopes, each run is cut to its longest part where the chips' rates stay within
+       ``max_rest_rate_rps`` of the run's median (`gyro_still_segments`): a detector loose enough
+       for noisy accelerometers lets the ends of turns in.
     2. Accelerometers: `calibration.fit_board_poses` on the poses' means.
     3. Gyroscopes: `fit_gyro_rest` (bias, g-sensitivity against the bias- and scale-corrected
        specific force), then `fit_gyro_turns` (gravity's direction per pose from step 2). Each is
@@ -603,6 +634,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
     still = np.array([det.update(x) for x in a])
     least = 4 * window if min_hold_samples is None else int(min_hold_samples)
     segs = [(s + window, e - window) for s, e in still_segments(still, least + 2 * window)]
+    if gyro_rps is not None and segs:  # the gyroscopes see a turn's start the accelerometers do not
+        segs = gyro_still_segments(_batch("gyro_rps", gyro_rps), segs, max_rest_rate_rps, least)
     if len(segs) < 6:
         raise ValueError(f"fit_capture: found {len(segs)} held poses (need at least 6; hold each pose "
                          f"still for more than {(least + 3 * window)} samples)")

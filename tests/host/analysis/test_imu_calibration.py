@@ -322,3 +322,19 @@ def test_a_gyroscope_fit_from_a_pose_that_was_not_still_is_not_kept(captured):
             in judged.gyro_refused), judged.gyro_refused
     # the judgement is right: that bias misses the 0.01 °/s target (the exact capture's is within 0.004)
     assert np.degrees(np.abs(rejected.bias_rps - imu.gyro_errors.bias_rps).max()) > 0.025
+
+
+def test_held_poses_are_cut_to_where_the_gyroscopes_are_still(captured):
+    """A stillness detector loose enough for noisy accelerometers (0.3 m/s², 3x the usual) takes
+    the turns' slow ends into the held poses, where the board already turns: their rates went into
+    the bias. The gyroscopes see it: every pose is cut to where the chips' rates stay within
+    `REST_MAX_RATE_RPS` of its median, and the bias is the one the usual detector gives. Without
+    the cut, the rest residual shows the ends and the fit is not kept."""
+    imu, c, cal = captured
+    args = (c["t_s"], c["accel_mps2"], ROWS, COLS, c["gyro_rps"])
+    loose = fit_capture(*args, threshold_mps2=0.3)
+    assert len(loose.segments) == 12 and loose.gyro_refused == "" and loose.gyro.scale_fitted
+    assert np.degrees(np.abs(loose.gyro.bias_rps - imu.gyro_errors.bias_rps).max()) < 0.004
+    uncut = fit_capture(*args, threshold_mps2=0.3, max_rest_rate_rps=np.inf)
+    assert uncut.gyro is None and uncut.gyro_refused.startswith("gyroscope not fitted: the held poses' mean rates")
+    assert np.degrees(np.abs(uncut.gyro_rejected.bias_rps - imu.gyro_errors.bias_rps).max()) > 0.01
