@@ -150,6 +150,9 @@ class GyroCalibration:
     scale_fitted : bool
         ``matrix`` was fitted from the turns (`fit_gyro_turns`); False: the identity, bias and
         g-sensitivity only.
+    turns_rejected : int
+        Turns left out for at least one chip for their residual (`fit_gyro_turns`' ``outlier_rad``;
+        counted in ``turns_dropped`` too).
     """
 
     bias_rps: np.ndarray
@@ -160,6 +163,7 @@ class GyroCalibration:
     turns_used: int = 0
     turns_dropped: int = 0
     scale_fitted: bool = False
+    turns_rejected: int = 0
 
     @property
     def n_links(self) -> int:
@@ -253,6 +257,10 @@ MIN_TURNS = 5
 #: simulated board, such stalls at random in every turn left 0.3-2.9° and a scale 0.2-1.6 % off —
 #: about 1 % of scale a degree. 0.2°: at most ~0.3 %.
 TURN_MAX_RESIDUAL_RAD = float(np.radians(0.2))
+#: `fit_gyro_turns`: a turn whose residual is this many times the median of a chip's turns (and
+#: above ``outlier_rad``) is left out for that chip. The 3x3 pty test at load ~5 had one turn with
+#: readings 36 ms from their instants: 0.23° over the ten turns, the scale 0.08 % off
+OUTLIER_FACTOR = 3.0
 #: `fit_capture`: a held pose's samples whose rates stray further than this from the pose's median
 #: (the median over the chips) are not held (`gyro_still_segments`). The gyroscopes' noise is
 #: 0.025 °/s a sample on the simulated chips; a detector set for 1 %-of-g accelerometer noise
@@ -269,7 +277,8 @@ REST_MAX_RESIDUAL_RPS = float(np.radians(0.02))
 
 
 def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link, cal: GyroCalibration,
-                   accel_mps2=None, *, iterations: int = 6, max_gap_s: float | None = None) -> GyroCalibration:
+                   accel_mps2=None, *, iterations: int = 6, max_gap_s: float | None = None,
+                   outlier_rad: float | None = None, max_outlier_rounds: int = 3) -> GyroCalibration:
     """Scale, cross-axis and mounting of every gyroscope from the turns between held poses
     (module docstring, step 2).
 
@@ -299,6 +308,12 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         lost for longer leaves that turn out alone. Default: `TURN_MAX_GAP_S`, or 2.5 × the median
         sample step if that is longer. Two equations a turn, 9 unknowns a chip: every chip must keep
         at least `MIN_TURNS`.
+    outlier_rad : float, optional
+        Leave out, for a chip, its worst turn when that turn's residual is above this and
+        `OUTLIER_FACTOR` times the median of its turns', and fit again (at most
+        ``max_outlier_rounds`` times; never below `MIN_TURNS` turns): one turn whose readings'
+        instants were wrong (a stalled sheet) otherwise spreads its error over the scale. None: no
+        turn is left out for its residual.
 
     Returns
     -------
@@ -338,7 +353,7 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
                             f"(SYNCs not sent or snapshots lost while the board turned: a loaded host)"
                             if gapped else ""))
     turns = [turns[k] for k in keep]
-    use = ok[keep].T  # (n, J): chip k integrates turn j
+    use = ok[keep].T.copy()  # (n, J): chip k integrates turn j
     Lmax = max(b - a for a, b in turns)
     J = len(turns)
     W = np.zeros((J, Lmax, n, 3))
@@ -347,6 +362,35 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         W[j, : b - a] = w[a:b]
         DT[j, : b - a - 1] = np.diff(t[a:b], axis=0)
     u0, u1 = u[:-1][keep], u[1:][keep]  # (J, n, 3)
+    rejected = np.zeros_like(use)
+    for _round in range(1 + (max_outlier_rounds if outlier_rad is not None else 0)):
+        A = _gauss_newton_turns(W, DT, u0, u1, use, iterations)
+        pred, _jac = _carry(A, W, DT, u0)
+        sq = np.sum((pred - u1) ** 2, axis=-1).T  # (n, J)
+        if outlier_rad is None:
+            break
+        # a chip's worst turn, when far off its others' (a turn whose instants alone were wrong),
+        # is left out for it and the fit redone, while the chip keeps MIN_TURNS
+        e = np.sqrt(np.where(use, sq, np.nan))
+        worst = np.nanargmax(e, axis=1)
+        med = np.nanmedian(e, axis=1)
+        ew = e[np.arange(n), worst]
+        out = (ew > outlier_rad) & (ew > OUTLIER_FACTOR * med) & (use.sum(axis=1) > MIN_TURNS)
+        if not out.any():
+            break
+        use[out, worst[out]] = False
+        rejected[out, worst[out]] = True
+    res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
+    used = int(use.all(axis=0).sum())
+    return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
+                           turns_used=used, turns_dropped=K - 1 - used, scale_fitted=True,
+                           turns_rejected=int(rejected.any(axis=0).sum()))
+
+
+def _gauss_newton_turns(W, DT, u0, u1, use, iterations: int) -> np.ndarray:
+    """`fit_gyro_turns`' matrices ``(n, 3, 3)``: Gauss–Newton from the identity over the turns each
+    chip uses (``use (n, J)``)."""
+    n = use.shape[0]
     rows = np.repeat(use, 3, axis=1).astype(float)  # (n, 3J): a chip's left-out turns weigh nothing
     A = np.tile(np.eye(3), (n, 1, 1))
     for _ in range(iterations):
@@ -358,12 +402,7 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         A = A - step.reshape(n, 3, 3)
         if np.max(np.abs(step)) < 1e-10:
             break
-    pred, _jac = _carry(A, W, DT, u0)
-    sq = np.sum((pred - u1) ** 2, axis=-1).T  # (n, J)
-    res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
-    used = int(use.all(axis=0).sum())
-    return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
-                           turns_used=used, turns_dropped=K - 1 - used, scale_fitted=True)
+    return A
 
 
 # ---------------------------------------------------------------------------------------------
@@ -649,7 +688,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
         g = _batch("gyro_rps", gyro_rps)
         f_chip = (a - acal.bias) / acal.scale
         rest = fit_gyro_rest(segment_means(g, segs), segment_means(f_chip, segs))
-        gcal, refused, rejected = _judged_gyro(rest, lambda: fit_gyro_turns(g, t_s, segs, u, rest, f_chip),
+        gcal, refused, rejected = _judged_gyro(rest, lambda: fit_gyro_turns(g, t_s, segs, u, rest, f_chip,
+                                                                             outlier_rad=max_turn_residual_rad),
                                                max_turn_residual_rad, max_rest_residual_rps)
     if mag_t is not None:
         m = _batch("mag_t", mag_t)

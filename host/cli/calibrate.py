@@ -478,7 +478,8 @@ def _imu_summary(imu_cal, log: ImuLog) -> dict:
             out["gyro_turn_residual_deg_max"] = round(float(np.degrees(judged.turn_residual.max())), 3)
             out["gyro_turn_residual_deg_limit"] = round(float(np.degrees(imu_cal.max_turn_residual_rad)), 3)
             out["gyro_turns_used"] = judged.turns_used
-            out["gyro_turns_dropped"] = judged.turns_dropped  # a gap in their samples (a stalled host)
+            out["gyro_turns_dropped"] = judged.turns_dropped  # a gap in their samples, or rejected
+            out["gyro_turns_rejected"] = judged.turns_rejected  # far off the others: their instants were wrong
         if imu_cal.gyro_refused:
             out["gyro_refused"] = imu_cal.gyro_refused
     if imu_cal.mag is not None:
