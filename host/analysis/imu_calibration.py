@@ -20,6 +20,12 @@ Gyroscope, chip ``k``: ``ω_meas = K Mᵀ ω + b + Γ f/g + noise`` (``K`` scale
    column for every chip). This is the gyroscope half of Tedaldi, Pretto & Menegatti (ICRA 2014),
    on every chip, with the link frame set by the accelerometer calibration.
 
+Each gyroscope part is kept only when its own residual vouches for it (`fit_capture`): a rest
+residual above `REST_MAX_RESIDUAL_RPS` (a pose that was not still) keeps none, a turn residual
+above `TURN_MAX_RESIDUAL_RAD` (rates that do not carry gravity through the turns: readings whose
+stated instants are wrong) keeps the bias and g-sensitivity. A timing error the same in every turn
+in proportion to it is a scale to the fit and cannot be seen there.
+
 Magnetometer, chip ``k``: ``m = D B + h + noise`` (``D = W M_mᵀ``: soft iron and mounting, ``h``
 hard iron). In a uniform field ``|B| = F`` the readings lie on the ellipsoid
 ``|D⁻¹(m − h)| = F``:
@@ -58,7 +64,7 @@ import numpy as np
 from protocol.rotations import rotvec_matrices
 from .calibration import G0, Calibration, StaticDetector, project_so3, fit_board_poses
 
-__all__ = ["still_segments", "segment_means", "GyroCalibration", "fit_gyro_rest", "fit_gyro_turns",
+__all__ = ["still_segments", "gyro_still_segments", "segment_means", "GyroCalibration", "fit_gyro_rest", "fit_gyro_turns",
            "MagCalibration", "fit_mag_ellipsoid", "fit_mag_alignment", "CaptureCalibration", "fit_capture",
            "chip_imu_blocks"]
 
@@ -85,6 +91,28 @@ def still_segments(still, min_samples: int = 2) -> list[tuple[int, int]]:
     edges = np.diff(np.concatenate([[0], s.astype(np.int8), [0]]))
     starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
     return [(int(a), int(b)) for a, b in zip(starts, stops) if b - a >= min_samples]
+
+
+def gyro_still_segments(gyro_rps, segments: list[tuple[int, int]], max_rate_rps: float,
+                        min_samples: int = 2) -> list[tuple[int, int]]:
+    """Each segment of ``gyro_rps (N, n, 3)`` cut to its longest run of samples where the median
+    over the chips of ``|ω − median of the segment|`` is at most ``max_rate_rps`` (a rigid board
+    turns every chip at once; the median over time takes out the bias); segments whose longest
+    run is shorter than ``min_samples`` are left out.
+
+    >>> g = np.zeros((10, 2, 3)); g[7:, :, 0] = 0.1  # the board starts to turn at sample 7
+    >>> gyro_still_segments(g, [(0, 10)], 0.01)
+    [(0, 7)]
+    """
+    g = _batch("gyro_rps", gyro_rps)
+    out = []
+    for a, b in segments:
+        d = np.linalg.norm(g[a:b] - np.median(g[a:b], axis=0), axis=-1)  # (L, n)
+        runs = still_segments(np.median(d, axis=1) <= max_rate_rps, max(2, int(min_samples)))
+        if runs:
+            s, e = max(runs, key=lambda r: r[1] - r[0])
+            out.append((a + s, a + e))
+    return out
 
 
 def segment_means(values, segments: list[tuple[int, int]]) -> np.ndarray:
@@ -119,6 +147,12 @@ class GyroCalibration:
         Turns the scale fit integrated for every chip, and those it left out for a gap in the
         samples of at least one chip (`fit_gyro_turns`'s ``max_gap_s``; the other chips still use
         them); 0 when not fitted.
+    scale_fitted : bool
+        ``matrix`` was fitted from the turns (`fit_gyro_turns`); False: the identity, bias and
+        g-sensitivity only.
+    turns_rejected : int
+        Turns left out for at least one chip for their residual (`fit_gyro_turns`' ``outlier_rad``;
+        counted in ``turns_dropped`` too).
     """
 
     bias_rps: np.ndarray
@@ -128,6 +162,8 @@ class GyroCalibration:
     turn_residual: np.ndarray
     turns_used: int = 0
     turns_dropped: int = 0
+    scale_fitted: bool = False
+    turns_rejected: int = 0
 
     @property
     def n_links(self) -> int:
@@ -212,10 +248,37 @@ def _carry(A: np.ndarray, w: np.ndarray, dt: np.ndarray, u0: np.ndarray) -> tupl
 TURN_MAX_GAP_S = 0.1
 #: `fit_gyro_turns`: turns needed (two equations each, nine unknowns per chip)
 MIN_TURNS = 5
+#: `fit_capture`: the largest turn residual (`GyroCalibration.turn_residual`, radians: how far the
+#: fitted integration still carries gravity from where the next pose has it) whose scale fit is
+#: kept. Exact sample instants leave 0.0003 rad (0.017°: the 3x3 pty test on a quiet machine, 12
+#: poses of 1.5 s) and 0.00007 rad (the simulated board at 145 Hz). Readings taken up to 100 ms
+#: away from their stated instants (the same test's stalled virtual sheet at load 11-13) left
+#: 1.1-4.0° and a scale 1.7-2.7 % off (0.13-0.17 % refitted over the true instants); on the
+#: simulated board, such stalls at random in every turn left 0.3-2.9° and a scale 0.2-1.6 % off —
+#: about 1 % of scale a degree. 0.2°: at most ~0.3 %.
+TURN_MAX_RESIDUAL_RAD = float(np.radians(0.2))
+#: `fit_gyro_turns`: a turn whose residual is this many times the median of a chip's turns (and
+#: above ``outlier_rad``) is left out for that chip. The 3x3 pty test at load ~5 had one turn with
+#: readings 36 ms from their instants: 0.23° over the ten turns, the scale 0.08 % off
+OUTLIER_FACTOR = 3.0
+#: `fit_capture`: a held pose's samples whose rates stray further than this from the pose's median
+#: (the median over the chips) are not held (`gyro_still_segments`). The gyroscopes' noise is
+#: 0.025 °/s a sample on the simulated chips; a detector set for 1 %-of-g accelerometer noise
+#: (0.3 m/s²) let in turn ends at up to 35 °/s, and a bias 0.025 °/s off.
+REST_MAX_RATE_RPS = float(np.radians(0.5))
+#: `fit_capture`: the largest rest residual (`GyroCalibration.rest_residual_rps`: the held poses'
+#: mean rates against the bias and g-sensitivity fitted to them) whose gyroscope fit is kept. Still
+#: poses leave 0.004-0.007 °/s (the 3x3 pty test, 20-90 still snapshots a pose at 100 Hz) and
+#: 0.0012 °/s (the simulated board, 4 s poses at 145 Hz). A board that kept turning through one
+#: pose — about gravity, which no accelerometer sees — puts its rate into the bias: on the
+#: simulated board, at 0.1-0.5 °/s, a residual of 0.013-0.066 °/s and a bias 0.011-0.060 °/s
+#: off (the target: 0.01 °/s, docs/calibration.md).
+REST_MAX_RESIDUAL_RPS = float(np.radians(0.02))
 
 
 def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link, cal: GyroCalibration,
-                   accel_mps2=None, *, iterations: int = 6, max_gap_s: float | None = None) -> GyroCalibration:
+                   accel_mps2=None, *, iterations: int = 6, max_gap_s: float | None = None,
+                   outlier_rad: float | None = None, max_outlier_rounds: int = 3) -> GyroCalibration:
     """Scale, cross-axis and mounting of every gyroscope from the turns between held poses
     (module docstring, step 2).
 
@@ -245,6 +308,12 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         lost for longer leaves that turn out alone. Default: `TURN_MAX_GAP_S`, or 2.5 × the median
         sample step if that is longer. Two equations a turn, 9 unknowns a chip: every chip must keep
         at least `MIN_TURNS`.
+    outlier_rad : float, optional
+        Leave out, for a chip, its worst turn when that turn's residual is above this and
+        `OUTLIER_FACTOR` times the median of its turns', and fit again (at most
+        ``max_outlier_rounds`` times; never below `MIN_TURNS` turns): one turn whose readings'
+        instants were wrong (a stalled sheet) otherwise spreads its error over the scale. None: no
+        turn is left out for its residual.
 
     Returns
     -------
@@ -284,7 +353,7 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
                             f"(SYNCs not sent or snapshots lost while the board turned: a loaded host)"
                             if gapped else ""))
     turns = [turns[k] for k in keep]
-    use = ok[keep].T  # (n, J): chip k integrates turn j
+    use = ok[keep].T.copy()  # (n, J): chip k integrates turn j
     Lmax = max(b - a for a, b in turns)
     J = len(turns)
     W = np.zeros((J, Lmax, n, 3))
@@ -293,6 +362,35 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         W[j, : b - a] = w[a:b]
         DT[j, : b - a - 1] = np.diff(t[a:b], axis=0)
     u0, u1 = u[:-1][keep], u[1:][keep]  # (J, n, 3)
+    rejected = np.zeros_like(use)
+    for _round in range(1 + (max_outlier_rounds if outlier_rad is not None else 0)):
+        A = _gauss_newton_turns(W, DT, u0, u1, use, iterations)
+        pred, _jac = _carry(A, W, DT, u0)
+        sq = np.sum((pred - u1) ** 2, axis=-1).T  # (n, J)
+        if outlier_rad is None:
+            break
+        # a chip's worst turn, when far off its others' (a turn whose instants alone were wrong),
+        # is left out for it and the fit redone, while the chip keeps MIN_TURNS
+        e = np.sqrt(np.where(use, sq, np.nan))
+        worst = np.nanargmax(e, axis=1)
+        med = np.nanmedian(e, axis=1)
+        ew = e[np.arange(n), worst]
+        out = (ew > outlier_rad) & (ew > OUTLIER_FACTOR * med) & (use.sum(axis=1) > MIN_TURNS)
+        if not out.any():
+            break
+        use[out, worst[out]] = False
+        rejected[out, worst[out]] = True
+    res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
+    used = int(use.all(axis=0).sum())
+    return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
+                           turns_used=used, turns_dropped=K - 1 - used, scale_fitted=True,
+                           turns_rejected=int(rejected.any(axis=0).sum()))
+
+
+def _gauss_newton_turns(W, DT, u0, u1, use, iterations: int) -> np.ndarray:
+    """`fit_gyro_turns`' matrices ``(n, 3, 3)``: Gauss–Newton from the identity over the turns each
+    chip uses (``use (n, J)``)."""
+    n = use.shape[0]
     rows = np.repeat(use, 3, axis=1).astype(float)  # (n, 3J): a chip's left-out turns weigh nothing
     A = np.tile(np.eye(3), (n, 1, 1))
     for _ in range(iterations):
@@ -304,12 +402,7 @@ def fit_gyro_turns(gyro_rps, t_s, segments: list[tuple[int, int]], gravity_link,
         A = A - step.reshape(n, 3, 3)
         if np.max(np.abs(step)) < 1e-10:
             break
-    pred, _jac = _carry(A, W, DT, u0)
-    sq = np.sum((pred - u1) ** 2, axis=-1).T  # (n, J)
-    res = np.sqrt(np.sum(sq * use, axis=1) / use.sum(axis=1))
-    used = int(use.all(axis=0).sum())
-    return GyroCalibration(cal.bias_rps, cal.g_sensitivity, A @ cal.matrix, cal.rest_residual_rps, res,
-                           turns_used=used, turns_dropped=K - 1 - used)
+    return A
 
 
 # ---------------------------------------------------------------------------------------------
@@ -522,26 +615,47 @@ def fit_mag_alignment(cal: MagCalibration, rest_mag_t, rest_gravity_link, *,
 @dataclass(frozen=True)
 class CaptureCalibration:
     """Everything `fit_capture` found: the accelerometers' `Calibration`, the gyroscopes' and the
-    magnetometers' (None without those sensors), and the held poses it used (sample slices)."""
+    magnetometers' (None without those sensors), and the held poses it used (sample slices).
+    A gyroscope fit judged bad is not kept (`gyro_refused` says why): a rest residual above its
+    limit leaves ``gyro`` None, a turn residual above its limit leaves the bias and g-sensitivity
+    (``scale_fitted`` False)."""
 
     accel: Calibration
     gyro: GyroCalibration | None
     mag: MagCalibration | None
     segments: tuple[tuple[int, int], ...]
+    #: why the gyroscope fit, or its scale part, was not kept (one line naming the figure judged by
+    #: and its limit); "" when it was kept whole or there are no gyroscopes
+    gyro_refused: str = ""
+    #: the fit that was judged and not kept (its figures), None when ``gyro`` is the whole fit
+    gyro_rejected: GyroCalibration | None = None
+    #: the limits the gyroscope fit was judged against (`fit_capture`)
+    max_turn_residual_rad: float = TURN_MAX_RESIDUAL_RAD
+    max_rest_residual_rps: float = REST_MAX_RESIDUAL_RPS
 
 
 def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None, *, window: int = 25,
                 threshold_mps2: float = 0.098, field_t: float | None = None,
-                min_hold_samples: int | None = None) -> CaptureCalibration:
+                min_hold_samples: int | None = None, max_turn_residual_rad: float = TURN_MAX_RESIDUAL_RAD,
+                max_rest_residual_rps: float = REST_MAX_RESIDUAL_RPS,
+                max_rest_rate_rps: float = REST_MAX_RATE_RPS) -> CaptureCalibration:
     """Calibrate every sensor of every chip from one board capture (docs/calibration.md): the
     sheet flat on the board, turned through held poses, sampled throughout.
 
     1. Held poses: `calibration.StaticDetector` (``window``, ``threshold_mps2``) on the
        accelerometers; each still run, less ``window`` samples at both ends (the detector lags the
        start of a turn by a few samples), of at least ``min_hold_samples`` (default 4 windows).
+       With gyroscopes, each run is cut to its longest part where the chips' rates stay within
+       ``max_rest_rate_rps`` of the run's median (`gyro_still_segments`): a detector loose enough
+       for noisy accelerometers lets the ends of turns in.
     2. Accelerometers: `calibration.fit_board_poses` on the poses' means.
     3. Gyroscopes: `fit_gyro_rest` (bias, g-sensitivity against the bias- and scale-corrected
-       specific force), then `fit_gyro_turns` (gravity's direction per pose from step 2).
+       specific force), then `fit_gyro_turns` (gravity's direction per pose from step 2). Each is
+       judged by what it leaves: a rest residual above ``max_rest_residual_rps`` (a held pose
+       that was not still) keeps no gyroscope fit; a turn residual above ``max_turn_residual_rad``
+       (the rates do not carry gravity from pose to pose: readings whose instants are wrong, a
+       board that bent) keeps the bias and g-sensitivity only. ``gyro_refused`` says which and
+       the figure.
     4. Magnetometers: `fit_mag_ellipsoid` on every sample, then `fit_mag_alignment` on the poses.
 
     Parameters
@@ -559,6 +673,8 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
     still = np.array([det.update(x) for x in a])
     least = 4 * window if min_hold_samples is None else int(min_hold_samples)
     segs = [(s + window, e - window) for s, e in still_segments(still, least + 2 * window)]
+    if gyro_rps is not None and segs:  # the gyroscopes see a turn's start the accelerometers do not
+        segs = gyro_still_segments(_batch("gyro_rps", gyro_rps), segs, max_rest_rate_rps, least)
     if len(segs) < 6:
         raise ValueError(f"fit_capture: found {len(segs)} held poses (need at least 6; hold each pose "
                          f"still for more than {(least + 3 * window)} samples)")
@@ -566,16 +682,41 @@ def fit_capture(t_s, accel_mps2, rows: int, cols: int, gyro_rps=None, mag_t=None
     acal = fit_board_poses(am, rows, cols)
     u = acal.apply(am)
     u = u / np.linalg.norm(u, axis=-1, keepdims=True)
-    gcal = mcal = None
+    gcal = mcal = rejected = None
+    refused = ""
     if gyro_rps is not None:
         g = _batch("gyro_rps", gyro_rps)
         f_chip = (a - acal.bias) / acal.scale
-        gcal = fit_gyro_rest(segment_means(g, segs), segment_means(f_chip, segs))
-        gcal = fit_gyro_turns(g, t_s, segs, u, gcal, f_chip)
+        rest = fit_gyro_rest(segment_means(g, segs), segment_means(f_chip, segs))
+        gcal, refused, rejected = _judged_gyro(rest, lambda: fit_gyro_turns(g, t_s, segs, u, rest, f_chip,
+                                                                             outlier_rad=max_turn_residual_rad),
+                                               max_turn_residual_rad, max_rest_residual_rps)
     if mag_t is not None:
         m = _batch("mag_t", mag_t)
         mcal = fit_mag_alignment(fit_mag_ellipsoid(m, field_t), segment_means(m, segs), u)
-    return CaptureCalibration(acal, gcal, mcal, tuple(segs))
+    return CaptureCalibration(acal, gcal, mcal, tuple(segs), refused, rejected, float(max_turn_residual_rad),
+                              float(max_rest_residual_rps))
+
+
+def _judged_gyro(rest: GyroCalibration, turns, max_turn_rad: float, max_rest_rps: float):
+    """The part of the gyroscope fit its own residuals vouch for (`fit_capture`, step 3):
+    ``(kept or None, why not all of it or "", the fit not kept or None)``; ``turns()`` fits the
+    scale."""
+    worst = int(np.argmax(rest.rest_residual_rps))
+    if rest.rest_residual_rps[worst] > max_rest_rps:
+        return None, (f"gyroscope not fitted: the held poses' mean rates miss the fitted bias and "
+                      f"g-sensitivity by {np.degrees(rest.rest_residual_rps[worst]):.3f} °/s RMS (link {worst}; "
+                      f"limit {np.degrees(max_rest_rps):.3f} °/s): the board was not still while held "
+                      f"(turning slowly?)"), rest
+    full = turns()
+    worst = int(np.argmax(full.turn_residual))
+    if full.turn_residual[worst] > max_turn_rad:
+        return rest, (f"gyroscope scale and cross-axis not fitted (bias and g-sensitivity kept): the "
+                      f"fitted rates still carry gravity {np.degrees(full.turn_residual[worst]):.2f}° RMS "
+                      f"from where the next pose has it (link {worst}, {full.turns_used} turns; limit "
+                      f"{np.degrees(max_turn_rad):.2f}°): readings whose instants are wrong (a stalled "
+                      f"host or sheet) or a board that bent"), full
+    return full, "", None
 
 
 # ---------------------------------------------------------------------------------------------

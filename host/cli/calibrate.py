@@ -34,7 +34,11 @@ The bus must carry the sheet at --rate (checked at bring-up, as capsheet host do
 --ignore-capacity streams anyway.
 
 Exit status: 0 calibrated (outliers are reported, not fatal); 1 not enough poses before --timeout,
-the fit refused the poses, or a chip's read-back differs from what was written; 2 usage errors.
+the fit refused the poses, or a chip's read-back differs from what was written; 1 too when the
+gyroscope fit's own residuals say it is wrong — a held pose that was not still (no gyroscope
+calibration written) or turns the fitted rates do not carry gravity through (a stalled host or
+sheet: only the bias and g-sensitivity written): one line names the figure and its limit, and
+the rest of the calibration is still written; 2 usage errors.
 """
 
 from __future__ import annotations
@@ -460,11 +464,24 @@ def _chip_table(cal: Calibration) -> list[dict]:
 def _imu_summary(imu_cal, log: ImuLog) -> dict:
     out = {"snapshots": len(log.t), "held_poses": len(imu_cal.segments), "readings_repeated": log.filled,
            "sample_times_reordered": log.reordered}
-    if imu_cal.gyro is not None:
-        out["gyro_bias_dps_max"] = round(float(np.degrees(np.abs(imu_cal.gyro.bias_rps).max())), 4)
-        out["gyro_turn_residual_max"] = round(float(imu_cal.gyro.turn_residual.max()), 5)
-        out["gyro_turns_used"] = imu_cal.gyro.turns_used
-        out["gyro_turns_dropped"] = imu_cal.gyro.turns_dropped  # a gap in their samples (a stalled host)
+    if imu_cal.gyro is not None or imu_cal.gyro_refused:
+        # the figures judged by are those of the whole fit, kept or not
+        judged = imu_cal.gyro_rejected if imu_cal.gyro_rejected is not None else imu_cal.gyro
+        out["gyro_fitted"] = ("none" if imu_cal.gyro is None else
+                              "bias and g-sensitivity" if not imu_cal.gyro.scale_fitted else "all")
+        if imu_cal.gyro is not None:
+            out["gyro_bias_dps_max"] = round(float(np.degrees(np.abs(imu_cal.gyro.bias_rps).max())), 4)
+        out["gyro_rest_residual_dps_max"] = round(float(np.degrees(judged.rest_residual_rps.max())), 4)
+        out["gyro_rest_residual_dps_limit"] = round(float(np.degrees(imu_cal.max_rest_residual_rps)), 4)
+        if judged.scale_fitted:
+            out["gyro_turn_residual_max"] = round(float(judged.turn_residual.max()), 5)
+            out["gyro_turn_residual_deg_max"] = round(float(np.degrees(judged.turn_residual.max())), 3)
+            out["gyro_turn_residual_deg_limit"] = round(float(np.degrees(imu_cal.max_turn_residual_rad)), 3)
+            out["gyro_turns_used"] = judged.turns_used
+            out["gyro_turns_dropped"] = judged.turns_dropped  # a gap in their samples, or rejected
+            out["gyro_turns_rejected"] = judged.turns_rejected  # far off the others: their instants were wrong
+        if imu_cal.gyro_refused:
+            out["gyro_refused"] = imu_cal.gyro_refused
     if imu_cal.mag is not None:
         ok = np.isfinite(imu_cal.mag.residual_t)
         out["mag_failed_chips"] = int((~ok).sum())
@@ -591,7 +608,15 @@ def run(args, *, clock=None, driver=None) -> int:
             _say(args, f"gyroscope{'/magnetometer' if imu_cal.mag is not None else ''} fit over {len(log.t)} "
                        f"snapshots, {len(imu_cal.segments)} held poses: {json.dumps(result['imu'])}")
         status = 0
-        if args.write_chips and imu_cal is not None:
+        refused = ""
+        if imu_cal is not None and imu_cal.gyro_refused:
+            # the fit's own residuals say it is wrong: not written (the parts they vouch for are);
+            # said last, where it is seen
+            refused = imu_cal.gyro_refused + ("" if not args.write_chips else
+                                              "; the chips keep their gyroscope calibration"
+                                              if imu_cal.gyro is None else "; the chips keep their gyroscope matrix")
+            status = 1
+        if args.write_chips and imu_cal is not None and (imu_cal.gyro is not None or imu_cal.mag is not None):
             from host.analysis.imu_calibration import chip_imu_blocks
             blocks = chip_imu_blocks(imu_cal.gyro, imu_cal.mag, imu_cal.accel, ref_off, ref_sens, current_imu)
             w = write_chip_imu_calibration(host, blocks)
@@ -615,6 +640,8 @@ def run(args, *, clock=None, driver=None) -> int:
             _say(args, f"cannot write {args.out}: {exc}")
             return 1
         _say(args, f"wrote {args.out}")
+        if refused:
+            _say(args, refused)
     if args.json:
         print(json.dumps(result, indent=1))
     return status

@@ -239,3 +239,125 @@ def test_a_chip_whose_records_were_lost_in_a_turn_leaves_that_turn_out_alone(cap
     E = _without_common_rotation(lost.matrix @ truth)
     assert np.abs(np.diagonal(E, axis1=1, axis2=2) - 1).max() < 2e-4
     assert np.all(np.isfinite(lost.turn_residual)) and lost.turn_residual[5] < 10 * np.median(lost.turn_residual)
+
+
+def _scale_err(imu, matrix) -> float:
+    """The worst scale error of ``matrix`` against the hidden truth, the common rotation removed."""
+    truth = imu.gyro_errors.scale @ np.transpose(imu.accel_errors.misalignment, (0, 2, 1))
+    return float(np.abs(np.diagonal(_without_common_rotation(matrix @ truth), axis1=1, axis2=2) - 1).max())
+
+
+def _read_late_in_turns(c: dict, segs, stall: int, seed: int, turns=None) -> dict:
+    """The capture as a stalled sheet delivers it (measured: the 3x3 pty test at load 11-13, its
+    virtual chips sampling when their thread read each SYNC, up to 100 ms after the host sent it):
+    somewhere in the middle half of every turn (seeded) the chips take no reading for up to ``stall`` samples, then
+    catch up at twice the rate — sample ``i`` carries the exact readings of sample ``j(i) >= i``
+    but is stated at ``t[i]`` (the host's SYNC time and a ``time_us`` against the late read). No
+    instant is missing, so no turn has a gap to leave it out for. ``turns``: only those (default
+    every turn)."""
+    rng = np.random.Generator(np.random.MT19937(seed))
+    j = np.arange(len(c["t_s"]))
+    for k in (range(len(segs) - 1) if turns is None else turns):
+        a, b = segs[k][1], segs[k + 1][0]
+        n = int(rng.integers(0, stall + 1))
+        i0 = int(rng.integers(a + (b - a) // 4, b - (b - a) // 4 - 2 * n))
+        j[i0: i0 + 2 * n] = i0 + n + np.arange(2 * n) // 2
+    return {key: (v if key == "t_s" else v[j]) for key, v in c.items()}
+
+
+def test_a_scale_fit_the_turns_do_not_vouch_for_is_not_kept(captured):
+    """Readings taken up to 100 ms after the instants they are stated at, somewhere in every turn
+    (a stalled sheet): the scale fit cannot carry gravity from pose to pose — its turn residual,
+    the figure judged by, is above `TURN_MAX_RESIDUAL_RAD` — and is not kept: the bias and
+    g-sensitivity are (the rests are whole), the matrix stays the identity, and `gyro_refused` says
+    why with the figure. Kept, that scale would miss the 0.1 % target (docs/calibration.md) several
+    times over. The exact capture's fit is kept.
+
+    (What the residual cannot see: the same delay at the same place in every turn reads as a scale,
+    and is fitted as one — docs/calibration.md.)"""
+    from host.analysis.imu_calibration import TURN_MAX_RESIDUAL_RAD
+    imu, c, cal = captured
+    assert cal.gyro_refused == "" and cal.gyro_rejected is None and cal.gyro.scale_fitted
+    assert cal.gyro.turn_residual.max() < TURN_MAX_RESIDUAL_RAD / 10
+    late = _read_late_in_turns(c, cal.segments, stall=14, seed=1)  # up to 97 ms at 145 Hz
+    judged = fit_capture(late["t_s"], late["accel_mps2"], ROWS, COLS, late["gyro_rps"], late["mag_t"],
+                         field_t=FIELD.magnitude_t)
+    assert judged.segments == cal.segments  # the rests are untouched: the same held poses
+    np.testing.assert_array_equal(judged.gyro.matrix, np.tile(np.eye(3), (12, 1, 1)))
+    assert not judged.gyro.scale_fitted and (judged.gyro.turns_used, judged.gyro.turns_dropped) == (0, 0)
+    np.testing.assert_allclose(judged.gyro.bias_rps, cal.gyro.bias_rps, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(judged.gyro.g_sensitivity, cal.gyro.g_sensitivity, rtol=0, atol=1e-15)
+    rejected = judged.gyro_rejected
+    # a turn far off the others is left out for its residual, but the stalls are in every turn
+    assert rejected.turns_used == 11 - rejected.turns_dropped and rejected.turns_dropped == rejected.turns_rejected
+    assert rejected.turns_used >= 8 and rejected.turn_residual.max() > TURN_MAX_RESIDUAL_RAD
+    worst = int(np.argmax(rejected.turn_residual))
+    assert judged.gyro_refused.startswith("gyroscope scale and cross-axis not fitted (bias and g-sensitivity kept): ")
+    assert (f"{np.degrees(rejected.turn_residual[worst]):.2f}° RMS" in judged.gyro_refused
+            and f"(link {worst}, {rejected.turns_used} turns; limit 0.20°)" in judged.gyro_refused), judged.gyro_refused
+    assert "\n" not in judged.gyro_refused
+    # the judgement is right: the scale it did not keep misses the 0.1 % target; the exact one meets it
+    assert _scale_err(imu, cal.gyro.matrix) < 2e-4 and _scale_err(imu, rejected.matrix) > 3e-3
+
+
+def test_one_turn_read_late_is_left_out_and_the_fit_kept(captured):
+    """One turn of eleven read up to 100 ms late (the pty test at load ~5 had one such turn:
+    0.23° over its ten turns, the scale 0.08 % off): that turn's residual stands out from the
+    others', it is left out for every chip (`turns_rejected`) and the scale is fitted from the ten
+    others, within the bound of the exact capture — not refused, not spread over the scale.
+    Without leaving it out (``outlier_rad`` None) its error goes into the scale."""
+    from host.analysis.imu_calibration import TURN_MAX_RESIDUAL_RAD, fit_gyro_turns
+    imu, c, cal = captured
+    late = _read_late_in_turns(c, cal.segments, stall=14, seed=3, turns=[4])
+    judged = fit_capture(late["t_s"], late["accel_mps2"], ROWS, COLS, late["gyro_rps"], late["mag_t"],
+                         field_t=FIELD.magnitude_t)
+    assert judged.segments == cal.segments and judged.gyro_refused == "" and judged.gyro.scale_fitted
+    g = judged.gyro
+    assert (g.turns_used, g.turns_dropped, g.turns_rejected) == (10, 1, 1)
+    assert g.turn_residual.max() < TURN_MAX_RESIDUAL_RAD / 10 and _scale_err(imu, g.matrix) < 2e-4
+    segs, u, f_chip, rest = _turn_inputs(late, judged)
+    spread = fit_gyro_turns(late["gyro_rps"], late["t_s"], segs, u, rest, f_chip)
+    assert spread.turns_rejected == 0 and _scale_err(imu, spread.matrix) > 5 * _scale_err(imu, g.matrix)
+
+
+def test_a_gyroscope_fit_from_a_pose_that_was_not_still_is_not_kept(captured):
+    """The board turned about the vertical at 0.3 °/s through one held pose (a hand that held it
+    drifting): no accelerometer sees a turn about gravity, so the pose is found still as before,
+    but its mean rate is not the bias. The rest residual, the figure judged by, is above
+    `REST_MAX_RESIDUAL_RPS`: no gyroscope fit is kept, and `gyro_refused` says why with the
+    figure. Kept, its bias would miss the fit's 0.01 °/s target several times over; the exact
+    capture's is kept."""
+    from host.analysis.imu_calibration import REST_MAX_RESIDUAL_RPS
+    imu, c, cal = captured
+    assert cal.gyro.rest_residual_rps.max() < REST_MAX_RESIDUAL_RPS / 10
+    a0, b0 = cal.segments[5]
+    g = c["gyro_rps"].copy()
+    f = c["accel_mps2"][a0 - 100: b0 + 100]  # the pose, while the board holds it (its turns excepted)
+    g[a0 - 100: b0 + 100] += np.radians(0.3) * f / np.linalg.norm(f, axis=-1, keepdims=True)
+    judged = fit_capture(c["t_s"], c["accel_mps2"], ROWS, COLS, g, c["mag_t"], field_t=FIELD.magnitude_t)
+    assert judged.segments == cal.segments and judged.mag is not None
+    assert judged.gyro is None
+    rejected = judged.gyro_rejected
+    worst = int(np.argmax(rejected.rest_residual_rps))
+    assert rejected.rest_residual_rps[worst] > REST_MAX_RESIDUAL_RPS
+    assert judged.gyro_refused.startswith("gyroscope not fitted: the held poses' mean rates miss the fitted bias ")
+    assert (f"by {np.degrees(rejected.rest_residual_rps[worst]):.3f} °/s RMS (link {worst}; limit 0.020 °/s)"
+            in judged.gyro_refused), judged.gyro_refused
+    # the judgement is right: that bias misses the 0.01 °/s target (the exact capture's is within 0.004)
+    assert np.degrees(np.abs(rejected.bias_rps - imu.gyro_errors.bias_rps).max()) > 0.025
+
+
+def test_held_poses_are_cut_to_where_the_gyroscopes_are_still(captured):
+    """A stillness detector loose enough for noisy accelerometers (0.3 m/s², 3x the usual) takes
+    the turns' slow ends into the held poses, where the board already turns: their rates went into
+    the bias. The gyroscopes see it: every pose is cut to where the chips' rates stay within
+    `REST_MAX_RATE_RPS` of its median, and the bias is the one the usual detector gives. Without
+    the cut, the rest residual shows the ends and the fit is not kept."""
+    imu, c, cal = captured
+    args = (c["t_s"], c["accel_mps2"], ROWS, COLS, c["gyro_rps"])
+    loose = fit_capture(*args, threshold_mps2=0.3)
+    assert len(loose.segments) == 12 and loose.gyro_refused == "" and loose.gyro.scale_fitted
+    assert np.degrees(np.abs(loose.gyro.bias_rps - imu.gyro_errors.bias_rps).max()) < 0.004
+    uncut = fit_capture(*args, threshold_mps2=0.3, max_rest_rate_rps=np.inf)
+    assert uncut.gyro is None and uncut.gyro_refused.startswith("gyroscope not fitted: the held poses' mean rates")
+    assert np.degrees(np.abs(uncut.gyro_rejected.bias_rps - imu.gyro_errors.bias_rps).max()) > 0.01

@@ -188,7 +188,11 @@ def test_the_sheets_absolute_tilt_does_not_drift_on_calibrated_chips():
 
     board = board_scene(n, n, L, jitter_rad=0.03, seed=7)
     _t, rb = record(board, real_chips(900), board.board.period_s)
-    cal = fit_capture(rb.t_s, rb.accel_mps2, n, n, rb.gyro_rps, threshold_mps2=0.3)
+    # the rests as the accelerometers alone find them: at 0.3 m/s² they take in the turns' ends, and
+    # the gyroscope bias comes out 0.025 °/s off — the drift the unbounded sheet below shows.
+    # fit_capture's defaults cut those ends by the gyroscopes (0.0025 °/s) or refuse such a fit
+    cal = fit_capture(rb.t_s, rb.accel_mps2, n, n, rb.gyro_rps, threshold_mps2=0.3,
+                      max_rest_rate_rps=np.inf, max_rest_residual_rps=np.inf)
     truth, rd = record(make_motion_scene("tap", n, n, L), real_chips(400), 20.0)
     acc, gyr, _m = calibrated(cal, rd.accel_mps2, rd.gyro_rps)
     t = rd.t_s

@@ -112,7 +112,7 @@ def _chip_state(sheet) -> dict:
             "stored": [all(st == 1 for e in chip.imu_cal.values() for _v, st in e) for chip in sheet.chips]}
 
 
-def _check(chips, before, after, res_stderr):
+def _check(chips, before, after, res_stderr, scale_written: bool = True):
     if res_stderr is not None:
         assert "CAL_IMU_WRITE: 12 chips written, 12 read back and verified, 0 refused, 0 element mismatches" in res_stderr
     # every chip holds a calibration that is not the nominal one, stored in non-volatile memory
@@ -128,14 +128,23 @@ def _check(chips, before, after, res_stderr):
     # (a failure shows the command's own fit summary: turns used and dropped, their residuals)
     why = (before, after, (res_stderr or "")[-1500:])
     assert after["gyro_rest_dps"] < before["gyro_rest_dps"] / 5, why
-    assert after["gyro_turn_dps"] < before["gyro_turn_dps"] / 1.5, why
+    if scale_written:
+        assert after["gyro_turn_dps"] < before["gyro_turn_dps"] / 1.5, why
     assert after["mag_ut"] < before["mag_ut"] / 10, why
 
 
 def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(tmp_path):
     """The real run: the command in its own process over a pty, the board turned in real time; the
     streams before (the sheet's twin: the same seeds, the same chips and errors) and after (the
-    sheet's chips as the command left them) on a simulated clock (`_memory_errors`)."""
+    sheet's chips as the command left them) on a simulated clock (`_memory_errors`).
+
+    On a loaded machine (load 11-13 on 2 cores) the sheet's thread reads SYNCs up to 100 ms late
+    and its chips read the board then, while their records state the host's SYNC time: the
+    gyroscope scale fitted over those instants was 1.7-2.7 % off (turn residual 1.1-4.0°; on a
+    quiet machine 0.02°, 0.02 %) and, written, made the turning board's error worse than none
+    (6.2 -> 7.4 °/s). The command then refuses the scale, exit 1, in one last line naming the
+    figure, and still writes the rest: the chips' gyroscope matrix stays the identity, their bias,
+    g-sensitivity and magnetometer are calibrated."""
     import subprocess
     import sys
 
@@ -146,9 +155,17 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_a_pty(tmp_path):
         res = subprocess.run([sys.executable, "-m", "host.cli", *_calibrate_argv(tmp_path / "cal.json", layout),
                               "--port", str(dev.path)], capture_output=True, text=True, timeout=400)
         end_s = dev.now()
-    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-4000:]
+    assert res.returncode in (0, 1), res.stdout[-2000:] + res.stderr[-4000:]
+    refused = res.returncode == 1
+    if refused:  # a loaded machine: the turns did not vouch for the scale (above)
+        last = res.stderr.strip().splitlines()[-1]
+        assert last.startswith("capsheet calibrate: gyroscope scale and cross-axis not fitted (bias and "
+                               "g-sensitivity kept): ") and last.endswith("; the chips keep their gyroscope matrix"), \
+            res.stderr[-4000:]
+        assert all(v == nominal for chip in sheet.chips
+                   for v, nominal in zip((v for v, _st in chip.imu_cal[0]), np.eye(3).ravel())), res.stderr[-2000:]
     after = _memory_errors(sheet, start_s=end_s + 1.0)
-    _check(_chip_state(sheet), before, after, res.stderr)
+    _check(_chip_state(sheet), before, after, res.stderr, scale_written=not refused)
 
 
 def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_path, capsys):
@@ -168,6 +185,45 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
     finally:
         world.device.stop()
     _check(_chip_state(sheet), before, after, err)
+
+
+def test_a_gyroscope_scale_the_turns_do_not_vouch_for_is_not_written(tmp_path, capsys, monkeypatch):
+    """What the command does with a fit whose own residuals say it is wrong (`fit_capture` judges
+    it: tests/host/analysis/test_imu_calibration.py, on exact inputs with stalled turns and a
+    pose that moved). Here the simulated CAN run of the test above, its turn-residual limit set
+    below what its exact capture leaves, so that the scale is refused: exit 1, the last line names
+    the figure and its limit, the `--json` result says what was fitted and the figure; every chip
+    gets its bias, g-sensitivity and magnetometer calibration and keeps the identity matrix (a
+    written scale would be a 6 % correction), and the accelerometer file is written."""
+    import json
+
+    import host.analysis.imu_calibration as imu_calibration
+
+    fit = imu_calibration.fit_capture
+    monkeypatch.setattr(imu_calibration, "fit_capture",
+                        lambda *a, **kw: fit(*a, **kw, max_turn_residual_rad=np.radians(1e-4)))
+    sheet = _sheet("can", hold_s=HOLD_SIM_S)
+    layout = sheet.write_layout(tmp_path / "layout.csv")
+    world, chan = can_world(sheet)
+    try:
+        code, out, err = run_simulated(world, [*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan,
+                                               "--json"], capsys)
+    finally:
+        world.device.stop()
+    assert code == 1, err
+    last = err.strip().splitlines()[-1]
+    imu = json.loads(out)["imu"]
+    assert imu["gyro_fitted"] == "bias and g-sensitivity", imu
+    assert imu["gyro_turn_residual_deg_limit"] == 0.0 and imu["gyro_turn_residual_deg_max"] > 0, imu
+    assert last == "capsheet calibrate: " + imu["gyro_refused"] + "; the chips keep their gyroscope matrix", err
+    assert last.startswith("capsheet calibrate: gyroscope scale and cross-axis not fitted (bias and g-sensitivity "
+                           "kept): the fitted rates still carry gravity ") and "limit 0.00°" in last, last
+    assert "CAL_IMU_WRITE: 12 chips written, 12 read back and verified, 0 refused, 0 element mismatches" in err
+    for chip in sheet.chips:
+        A, b, _G = chip.gyro_cal
+        np.testing.assert_array_equal(A, np.eye(3))
+        assert np.abs(b).max() > 0 and chip.mag_cal is not None
+    assert (tmp_path / "cal.json").exists()
 
 
 def test_the_command_integrates_the_turns_over_each_chips_sample_instants():
