@@ -117,6 +117,13 @@ def register(subparsers) -> None:
     p.add_argument("--field-ut", type=T.bounded_float(1.0, 1000.0, unit="µT"), default=None, metavar="UT",
                    help="local magnetic field magnitude, µT (a geomagnetic model gives it; default: the fitted "
                         "ellipsoids' mean radius)")
+    from host.analysis.imu_calibration import TURN_MAX_RESIDUAL_RAD
+    p.add_argument("--max-turn-residual-deg", type=T.bounded_float(0.0, 90.0, unit="°"),
+                   default=float(np.degrees(TURN_MAX_RESIDUAL_RAD)), metavar="DEG",
+                   help="6/9-axis chips: fit the gyroscopes' scale and cross-axis only when the turns, "
+                        "integrated with them, carry gravity to where it was seen within this, degrees "
+                        f"(default {np.degrees(TURN_MAX_RESIDUAL_RAD):g}: about 0.3 %% of scale; above it the "
+                        "command keeps bias and g-sensitivity, leaves the chips' matrix and exits 1)")
     from host.cli.sensor_args import add_sensor_args
     add_sensor_args(p)  # --sensors, --gyro-range, --mag-range
     from host.cli.timing_args import add_timing_args
@@ -583,7 +590,8 @@ def run(args, *, clock=None, driver=None) -> int:
             try:
                 imu_cal = fit_capture(t_s, a, rows, cols, g, m, window=args.window, threshold_mps2=args.still_threshold,
                                       field_t=None if args.field_ut is None else args.field_ut * 1e-6,
-                                      min_hold_samples=max(4, args.samples // 2))
+                                      min_hold_samples=max(4, args.samples // 2),
+                                      max_turn_residual_rad=float(np.radians(args.max_turn_residual_deg)))
             except ValueError as exc:
                 _say(args, f"gyroscope/magnetometer fit refused: {exc}")
                 return 1

@@ -103,6 +103,7 @@ CASES = [
     (["calibrate", "--port", "/dev/null", "--out", "c.json", "--gravity", "0"], "--gravity"),
     (["calibrate", "--port", "/dev/null", "--out", "c.json", "--ack-timeout-ms", "-1"], "--ack-timeout-ms"),
     (["calibrate", "--port", "/dev/null", "--out", "c.json", "--watchdog-ms", "0"], "--watchdog-ms"),
+    (["calibrate", "--port", "/dev/null", "--out", "c.json", "--max-turn-residual-deg", "-1"], "--max-turn-residual-deg"),
     (["layout", "learn", "--port", "/dev/null", "--lattice", "3x3", "--ack-timeout-ms", "inf"], "--ack-timeout-ms"),
     (["layout", "learn", "--port", "/dev/null", "--lattice", "3x3", "--watchdog-ms", "0"], "--watchdog-ms"),
     # -- tactile --

@@ -187,27 +187,22 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
     _check(_chip_state(sheet), before, after, err)
 
 
-def test_a_gyroscope_scale_the_turns_do_not_vouch_for_is_not_written(tmp_path, capsys, monkeypatch):
+def test_a_gyroscope_scale_the_turns_do_not_vouch_for_is_not_written(tmp_path, capsys):
     """What the command does with a fit whose own residuals say it is wrong (`fit_capture` judges
     it: tests/host/analysis/test_imu_calibration.py, on exact inputs with stalled turns and a
     pose that moved). Here the simulated CAN run of the test above, its turn-residual limit set
-    below what its exact capture leaves, so that the scale is refused: exit 1, the last line names
+    below what its exact capture leaves (``--max-turn-residual-deg 0``), so that the scale is refused: exit 1, the last line names
     the figure and its limit, the `--json` result says what was fitted and the figure; every chip
     gets its bias, g-sensitivity and magnetometer calibration and keeps the identity matrix (a
     written scale would be a 6 % correction), and the accelerometer file is written."""
     import json
 
-    import host.analysis.imu_calibration as imu_calibration
-
-    fit = imu_calibration.fit_capture
-    monkeypatch.setattr(imu_calibration, "fit_capture",
-                        lambda *a, **kw: fit(*a, **kw, max_turn_residual_rad=np.radians(1e-4)))
     sheet = _sheet("can", hold_s=HOLD_SIM_S)
     layout = sheet.write_layout(tmp_path / "layout.csv")
     world, chan = can_world(sheet)
     try:
         code, out, err = run_simulated(world, [*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan,
-                                               "--json"], capsys)
+                                               "--json", "--max-turn-residual-deg", "0"], capsys)
     finally:
         world.device.stop()
     assert code == 1, err
