@@ -165,16 +165,21 @@ def process_cpu(lattice: str, sensors: str, rate_hz: int, seconds: float, *, par
             h.wait(run_s + 60)
         finally:
             for proc in (h, v):
-                if proc is not None and proc.poll() is None:
-                    proc.terminate()
-                    try:
-                        proc.wait(30)
-                    except subprocess.TimeoutExpired:
-                        proc.kill()
-                        proc.wait(10)
+                _stop(proc)
     share = (c1 - c0) / os.sysconf("SC_CLK_TCK") / (t1 - t0)
     return {"lattice": lattice, "part": part_for(sensors) if part else None, "rate_hz": rate_hz, "seconds": round(t1 - t0, 2),
             "sheet_cpu_pct_of_core": round(100 * share, 1), "host_rc": h.returncode if h is not None else None}
+
+
+def _stop(proc) -> None:
+    """End a process this benchmark started: SIGTERM, then SIGKILL after 30 s."""
+    if proc is not None and proc.poll() is None:
+        proc.terminate()
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(10)
 
 
 def live(lattice: str, seconds: float, engine: str, sensors: str) -> dict:
@@ -195,12 +200,7 @@ def live(lattice: str, seconds: float, engine: str, sensors: str) -> dict:
                                 "--duration", str(seconds), "--min-complete", "0", "--json", "-q"], cwd=ROOT, capture_output=True,
                                text=True, timeout=seconds + 240)
         finally:
-            v.terminate()
-            try:
-                v.wait(30)
-            except subprocess.TimeoutExpired:
-                v.kill()
-                v.wait(10)
+            _stop(v)
     if h.returncode != 0 or "{" not in h.stdout:
         return {"error": (h.stderr.strip().splitlines() or ["no output"])[-1], "rc": h.returncode}
     s = json.loads(h.stdout[h.stdout.index("{"):])["summary"]
