@@ -85,25 +85,26 @@ TARGETS = {"fused_max_pct": 0.15, "vs_accel_only": 5.0, "accel_only_above_pct": 
            "flat_heading_deg": 0.5, "heading_deg": 0.5, "true_noise_ratio": 1.25, "drift_ratio": 1.2,
            "rate_14": 145.0, "rate_32": 60.0, "rate_64": 145.0}
 #: the chips' true noise (1 % g accelerometers, the LIS3MDL's 0.32 / 0.41 µT, its RMS over the
-#: three axes 0.35 µT) and what the board calibration leaves of their gyroscopes' biases: the
-#: calibrated readings of the still level sheet average to 0.045 / 0.065 / 0.029 °/s (world x, y,
-#: z) shared by the chips, and each chip's own part spreads by only 0.007 / 0.005 / 0.002 °/s about
-#: it (the chips are calibrated together on one board); the fused estimator's defaults are the
-#: datasheets' (0.06 % g) and a calibration's 0.01 °/s. The gyroscopes' scale and cross-axis
-#: error the calibration leaves is each chip's own and lasts (`SCALE_RESIDUE`), so it is told as
-#: fixed (a consider state) rather than white, and the orientation walk that stood for it is
-#: reduced to a floor; the lattice's relative accelerations are off by 0.85 % per axis (measured
-#: against the exact kinematics on the wave)
+#: three axes 0.35 µT) and what the board calibration leaves of their gyroscopes (each chip's
+#: calibrated rate against the simulator's exact one, the still level sheet and each chip's exact
+#: errors; the calibration's held poses cut to where the gyroscopes are still): biases 0.0001-0.0002
+#: °/s shared by the chips and 0.0009-0.001 °/s each chip's own (before the poses were cut by the
+#: gyroscopes, the turns' ends in the rests left 0.029-0.065 °/s shared, 0.002-0.007 °/s each);
+#: the fused estimator's defaults are the datasheets' (0.06 % g) and a calibration's 0.01 °/s. The
+#: gyroscopes' scale and cross-axis error the calibration leaves lasts (`SCALE_RESIDUE`), so it is
+#: told as fixed (a consider state) rather than white, and the orientation walk that stood for it
+#: is reduced to a floor; the lattice's relative accelerations are off by 0.85 % per axis
+#: (measured against the exact kinematics on the wave)
 #:
 #: the calibrated gyroscopes' fixed error ``E`` (``ω_read = (I + E) ω``, link frame; row: the
-#: axis read, column: the axis turned about), RMS over the 14x14 sheet's chips per entry: the
-#: calibrated rates regressed on the simulator's true ones (4 s each): the carry's and the
-#: elbow's mean, the column of turns about z from the level sheet turning, to 0.1 per mille
-SCALE_RESIDUE = ((7e-4, 1.7e-3, 3e-4), (1.7e-3, 7e-4, 3e-4), (1.9e-3, 1.9e-3, 5e-4))
+#: axis read, column: the axis turned about), RMS over the 14x14 sheet's chips per entry, from the
+#: chips' exact errors and their calibration: mostly the rotation the accelerometers' frame and
+#: the gyroscopes' share (0.05-0.07 % in the cross terms; 0.17-0.19 % before the poses were cut)
+SCALE_RESIDUE = ((1.1e-4, 6.7e-4, 6e-4), (6.7e-4, 1.1e-4, 5.9e-4), (5.9e-4, 5.9e-4, 1.4e-4))
 #: the calibrated gyroscopes' fixed g-sensitivity ``Γ`` (``Γ f / g`` of the rate), rad/s per g,
-#: per entry: the same regression with the specific force beside the rate gives 0.02-0.04 °/s/g
-#: RMS in the entries the motions determine (the simulator's parts: 0.1 °/s/g before calibration)
-GSENS_RESIDUE = float(np.radians(0.03))
+#: per entry, from the chips' exact errors and their calibration: 0.0005 °/s/g RMS (0.016-0.040
+#: before the poses were cut by the gyroscopes; the simulator's parts: 0.1 °/s/g before calibration)
+GSENS_RESIDUE = float(np.radians(0.0005))
 #: what the board calibration leaves of the accelerometers' errors, as the tilt it gives (the
 #: residue ``A f + b`` of each calibrated chip against the simulator's truth, its part across
 #: the specific force turned into the world, over the seven scenes' poses): each chip's own part
@@ -113,8 +114,8 @@ GSENS_RESIDUE = float(np.radians(0.03))
 ACCEL_RESIDUE_RAD = float(np.radians(0.012))
 ACCEL_COMMON_RESIDUE_RAD = float(np.radians(0.032))
 TRUE_NOISE = FusedConfig(accel_noise_mps2=0.01 * G0, mag_noise_t=0.35e-6,
-                         gyro_bias_std_rps=float(np.radians(0.007)),
-                         gyro_common_bias_std_rps=float(np.radians(0.06)),
+                         gyro_bias_std_rps=float(np.radians(0.001)),
+                         gyro_common_bias_std_rps=float(np.radians(0.001)),
                          gyro_scale_error=0.0, gyro_scale_fixed_error=SCALE_RESIDUE,
                          gyro_gsens_fixed_error=GSENS_RESIDUE,
                          accel_fixed_error_rad=ACCEL_RESIDUE_RAD,
