@@ -12,18 +12,17 @@ were only late (``silent``). A user who knows the sheet is slow says so here (do
 from __future__ import annotations
 
 from host.cli import argtypes as T
+from host.session.commands import ACK_TIMEOUT_S, RETRIES as RESENDS, attempt_wait_s
 
-__all__ = ["add_timing_args", "timing_kwargs", "ACK_TIMEOUT_MS", "RESENDS"]
+__all__ = ["add_timing_args", "timing_kwargs", "ACK_TIMEOUT_MS"]
 
-#: the default wait for a command's ACK (`host.session.core.Host`'s ``timeout_s``), and how many
-#: times an unanswered command is sent again (each wait half as long again as the one before)
-ACK_TIMEOUT_MS = 250.0
-RESENDS = 4
+#: the default wait for a command's ACK (`host.session.core.Host`'s ``timeout_s``)
+ACK_TIMEOUT_MS = 1e3 * ACK_TIMEOUT_S
 
 
 def _total_wait_s(ack_ms: float) -> float:
     """How long a command round waits in all before it gives a chip up (every attempt's wait)."""
-    return sum(ack_ms / 1000 * (1 + 0.5 * a) for a in range(RESENDS + 1))
+    return sum(attempt_wait_s(ack_ms / 1000, a) for a in range(RESENDS + 1))
 
 
 def add_timing_args(p, *, deadline: bool = False) -> None:

@@ -19,7 +19,20 @@ from protocol.messages import Ack, GetInfo, Message, MsgType, Nack
 from host.session.registry import ChipRecord
 from host.transport.ports import TransportError
 
-__all__ = ["CommandRounds"]
+__all__ = ["CommandRounds", "ACK_TIMEOUT_S", "RETRIES", "attempt_wait_s"]
+
+#: how long a command round's first sending waits for answers (`host.session.core.Host`'s default
+#: ``timeout_s``)
+ACK_TIMEOUT_S = 0.25
+#: how many times a command round sends again what was not answered (`host.session.core.Host`'s
+#: default ``retries``)
+RETRIES = 4
+
+
+def attempt_wait_s(timeout_s: float, attempt: int) -> float:
+    """How long attempt ``attempt`` (0: the first sending) of a command round waits for answers:
+    each half as long again as ``timeout_s`` as the one before it."""
+    return timeout_s * (1 + 0.5 * attempt)
 
 log = logging.getLogger("capsheet.host")
 
@@ -150,7 +163,7 @@ class CommandRounds:
                         send_failed += 1
                         if send_failed == 1:
                             log.warning("%s: %s", what, exc)
-            deadline = host.now() + host.timeout_s * (1 + 0.5 * attempt)
+            deadline = host.now() + attempt_wait_s(host.timeout_s, attempt)
             while pending:
                 remaining = deadline - host.now()
                 if remaining <= 0:

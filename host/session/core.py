@@ -51,7 +51,7 @@ from protocol.messages import Stop
 from host.snapshots.aggregator import INPUT_HOLD_S, Aggregator
 from host.snapshots.snapshot import LatticeSnapshot
 from host.session.bringup import BringUp, capacity_remedy
-from host.session.commands import CommandRounds
+from host.session.commands import ACK_TIMEOUT_S, RETRIES, CommandRounds
 from host.session.errors import CapacityError, MismatchError, SessionError, SyncConflictError
 from host.snapshots.feed import SnapshotFeed
 from host.session.gateways import GatewayNodes
@@ -177,7 +177,7 @@ class Host:
     def __init__(self, transports: Transport | Sequence[Transport], lattice: Lattice | str, *,
                  layout: Layout | str | Path | None = None, rate_hz: float = 100.0, sync: str = "drive",
                  deadline_s: float | None = None, watchdog_s: float | None = None, range_code: int = Range.G2,
-                 filter_code: int = 0, heartbeat_ms: int = 1000, timeout_s: float = 0.25, retries: int = 4,
+                 filter_code: int = 0, heartbeat_ms: int = 1000, timeout_s: float = ACK_TIMEOUT_S, retries: int = RETRIES,
                  on_snapshot: Callable[[LatticeSnapshot], None] | None = None, queue_size: int = 64,
                  start_counter: int = 0, clock: Callable[[], float] | None = None,
                  driver: Callable[[float], None] | None = None, tick_s: float = 0.001) -> None:
