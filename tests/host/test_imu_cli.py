@@ -107,8 +107,10 @@ def _kabsch_error(est: "np.ndarray", truth: "np.ndarray") -> float:
 def _record(tmp_path, name: str, shape: str, sensors: str, duration: str = "3"):
     """``capsheet host --record`` of a 3x3 sheet on a pty, and the sheet's own truth per counter."""
     mcap, truth = tmp_path / f"{name}.mcap", tmp_path / f"{name}-truth.npz"
+    # a 1.2 s deadline (what 100 SYNC/s and the host's 128 open counters hold): a loaded machine's
+    # late frames are waited for rather than recorded as missing links
     args = ["host", "{port}", "--lattice", "3x3", "--layout", "{layout}", "--sensors", sensors, "--rate", "100",
-            "--duration", duration, "-q", "--record", str(mcap)]
+            "--deadline-ms", "1200", "--duration", duration, "-q", "--record", str(mcap)]
     job = Job("pty", tmp_path, name, args, ["--shape", shape, "--sensors", sensors, "--noise", "1",
                                              "--truth-out", str(truth)]).finish()
     assert job.rc == 0, job.stderr
@@ -156,6 +158,7 @@ def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(carry6, tmp_path
     mcap, truth_file = carry6
     truth = np.load(truth_file)
     true_joints = dict(zip(truth["counter"].tolist(), truth["joints"]))
+    rec_valid = read(mcap).valid
     errors = {}
     for method in ("auto", "global"):
         out = tmp_path / f"{method}.npz"
@@ -169,10 +172,17 @@ def test_estimate_shapes_a_6_axis_recording_with_its_gyroscopes(carry6, tmp_path
         assert summary["method"] == ("fused" if method == "auto" else "global")
         assert summary["sensors"] == "accel+gyro"
         est = np.load(out)
-        assert summary["estimated"] == summary["snapshots"] == est["joints"].shape[0] >= 200
+        # every snapshot with a valid link is estimated; one the live host delivered with none (a
+        # loaded machine's: 3 of 301 once) is counted as such, as the recording itself says
+        no_link = int((~rec_valid.any(axis=1)).sum())
+        assert summary["not_estimated"]["no_valid_link"] == no_link, summary
+        assert summary["estimated"] == summary["snapshots"] - no_link >= 200, summary
+        assert summary["snapshots"] == est["joints"].shape[0] == rec_valid.shape[0]
+        assert np.isfinite(est["residual"]).sum() == summary["estimated"]
         side = 2 * 0.01
         errors[method] = np.array([100 * _kabsch_error(j, true_joints[int(c)]) / side
-                                   for c, j in zip(est["counter"], est["joints"])])
+                                   for c, j in zip(est["counter"], est["joints"]) if np.isfinite(j).all()])
+        assert errors[method].size >= 200, errors[method].size
     assert errors["auto"].mean() < 0.6 * errors["global"].mean(), {m: e.mean() for m, e in errors.items()}
     assert errors["auto"].mean() < 1.5
     # an MCAP out keeps the axes and names the method
