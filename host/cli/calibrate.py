@@ -496,6 +496,30 @@ def _imu_summary(imu_cal, log: ImuLog) -> dict:
     return out
 
 
+def _imu_line(s: dict) -> str:
+    """`_imu_summary` as a person reads it (``--json`` carries the same figures by name)."""
+    parts = []
+    if "gyro_fitted" in s:
+        g = f"gyroscope {s['gyro_fitted']} fitted"
+        if "gyro_bias_dps_max" in s:
+            g += f", bias up to {s['gyro_bias_dps_max']:g} °/s"
+        g += (f"; rest residual up to {s['gyro_rest_residual_dps_max']:g} °/s "
+              f"(limit {s['gyro_rest_residual_dps_limit']:g})")
+        if "gyro_turn_residual_deg_max" in s:
+            g += (f"; turn residual up to {s['gyro_turn_residual_deg_max']:g}° "
+                  f"(limit {s['gyro_turn_residual_deg_limit']:g}°) over {s['gyro_turns_used']} turns, "
+                  f"{s['gyro_turns_dropped']} dropped, {s['gyro_turns_rejected']} rejected")
+        parts.append(g)
+    if "mag_failed_chips" in s:
+        m = s["mag_residual_ut_max"]
+        parts.append(f"magnetometer residual up to {'n/a' if m is None else f'{m:g}'} µT, "
+                     f"{s['mag_failed_chips']} chips failed")
+    if s["readings_repeated"] or s["sample_times_reordered"]:
+        parts.append(f"{s['readings_repeated']} readings repeated, {s['sample_times_reordered']} sample "
+                     "times reordered")
+    return "; ".join(parts) or "nothing fitted"
+
+
 def run(args, *, clock=None, driver=None) -> int:
     """The command. ``clock`` and ``driver`` run its host on a simulated clock (`Host`'s manual
     mode; tests): the capture's ``--timeout`` is then that clock's too."""
@@ -614,7 +638,7 @@ def run(args, *, clock=None, driver=None) -> int:
         if imu_cal is not None:
             result["imu"] = _imu_summary(imu_cal, log)
             _say(args, f"gyroscope{'/magnetometer' if imu_cal.mag is not None else ''} fit over {len(log.t)} "
-                       f"snapshots, {len(imu_cal.segments)} held poses: {json.dumps(result['imu'])}")
+                       f"snapshots, {len(imu_cal.segments)} held poses: {_imu_line(result['imu'])}")
         status = 0
         refused = ""
         if imu_cal is not None and imu_cal.gyro_refused:

@@ -214,6 +214,12 @@ def test_a_gyroscope_scale_the_turns_do_not_vouch_for_is_not_written(tmp_path, c
     assert last.startswith("capsheet calibrate: gyroscope scale and cross-axis not fitted (bias and g-sensitivity "
                            "kept): the fitted rates still carry gravity ") and "limit 0.00°" in last, last
     assert "CAL_IMU_WRITE: 12 chips written, 12 read back and verified, 0 refused, 0 element mismatches" in err
+    # the fit's figures as a person reads them, the same numbers `--json` names
+    said = next(line for line in err.splitlines() if " held poses: " in line).split(" held poses: ", 1)[1]
+    assert said.startswith(f"gyroscope bias and g-sensitivity fitted, bias up to {imu['gyro_bias_dps_max']:g} °/s; "), said
+    assert f"turn residual up to {imu['gyro_turn_residual_deg_max']:g}° (limit 0°)" in said, said
+    assert f"magnetometer residual up to {imu['mag_residual_ut_max']:g} µT, 0 chips failed" in said, said
+    assert "{" not in said, said
     for chip in sheet.chips:
         A, b, _G = chip.gyro_cal
         np.testing.assert_array_equal(A, np.eye(3))
