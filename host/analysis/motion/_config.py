@@ -55,13 +55,16 @@ class FusedConfig:
         rate's error, ``Γ (f − f₀) / g``: carried as a consider state beside the scale error's.
         0: not modelled.
     accel_fixed_error_rad, accel_common_fixed_error_rad : float
-        What a calibration leaves of the accelerometers' errors, as the tilt it gives, rad per
-        horizontal axis: each chip's own (`accel_fixed_error_rad`) and the part the chips share
-        (a board's own tilt against gravity, `accel_common_fixed_error_rad`). A fixed error does
-        not average out as the noise does, and nothing the sheet reads tells it from a tilt: the
-        filter follows the accelerometers' frames, and the links' frames lie off them by it, so
-        it is added to the covariances reported (`MotionEstimate.orientation_cov_rad2`, the
-        shared part also to `common_tilt_cov_rad2`), not estimated. 0: not told.
+        What a calibration leaves of the accelerometers' errors, rad: each chip's own, as the
+        tilt it gives per horizontal axis (`accel_fixed_error_rad`), and the rotation the chips'
+        frames share, per axis (`accel_common_fixed_error_rad`: the board's pose when they were
+        calibrated, alike in the world while the sheet lay flat on it and fixed in the chips'
+        frames since, so a bent sheet's links carry it each turned by its own turn since the
+        flat layout). A fixed error does not average out as the noise does, and nothing the
+        sheet reads tells it from a tilt: the filter follows the accelerometers' frames, and the
+        links' frames lie off them by it, so it is added to the covariances reported
+        (`MotionEstimate.orientation_cov_rad2`, the part every link shares also to
+        `common_tilt_cov_rad2`; `_common.add_fixed_tilt`), not estimated. 0: not told.
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
     rel_accel_error : float
