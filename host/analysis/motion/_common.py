@@ -107,27 +107,20 @@ class CommonMotion:
         return self.C[:2, :2].copy()
 
 
-def flat_frames(j_link: np.ndarray) -> np.ndarray:
-    """Every link's frame in the sheet laid flat as the lattice is drawn (an i-link along world
-    x, a j-link along y, z up: a calibration's board), shape (n, 3, 3); ``j_link`` marks the
-    j-links."""
-    F = np.broadcast_to(np.eye(3), (j_link.size, 3, 3)).copy()
-    F[j_link] = [[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
-    return F
-
-
-def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, flat: np.ndarray,
+def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, j_links: np.ndarray,
                    config) -> tuple[np.ndarray, np.ndarray]:
     """Every link's orientation covariance ``cov`` (n, 3, 3) and the part all links share,
     ``common`` (2, 2), with what the accelerometers' fixed errors add to the tilts (the filter
     follows the accelerometers' frames, and each link's frame lies off its chip's by them,
-    which nothing the sheet reads tells from a tilt); ``cov`` in place. Returns both.
+    which nothing the sheet reads tells from a tilt); ``cov`` in place; ``R`` the links' frames,
+    ``j_links`` the j-links' indices. Returns both.
 
     * each chip's own (`FusedConfig.accel_fixed_error_rad`, per horizontal axis): to its link;
     * the rotation the chips' frames share (`accel_common_fixed_error_rad`, per axis): a
-      calibration leaves it alike in the world while the sheet lay on its board (flat, as
-      `flat_frames`), fixed in the chips' frames since. A link turned by ``D = R Fᵀ`` since
-      (``F`` its frame on the board) carries it as ``D w``: alike on every link while the sheet
+      calibration leaves it alike in the world while the sheet lay on its board (flat, as the
+      lattice is drawn: an i-link along world x, a j-link along y, z up), fixed in the chips'
+      frames since. A link turned by ``D = R Fᵀ`` since (``F`` its frame on the board) carries
+      it as ``D w``: alike on every link while the sheet
       moves as one body, each its own as the sheet bends. Split as the links' mean ``D̄ w``,
       which all share (to ``common`` and every link), and each link's ``(D − D̄) w`` (to its
       own; told as independent from link to link, though neighbours' are alike: the tilt NEES's
@@ -138,10 +131,16 @@ def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, flat: np.
         cov[:, 0, 0] += s2
         cov[:, 1, 1] += s2
     if c2 := config.accel_common_fixed_error_rad ** 2:
-        D = (R @ flat.transpose(0, 2, 1))[:, :2, :]  # its rows: world x, y
+        D = R[:, :2, :].copy()  # its rows: world x, y; an i-link's F is I
+        D[j_links, :, 0] = -R[j_links, :2, 1]  # a j-link's is a quarter turn about z
+        D[j_links, :, 1] = R[j_links, :2, 0]
         Db = D.mean(axis=0)
         X = D - Db
         shared = c2 * (Db @ Db.T)
-        cov[:, :2, :2] += c2 * (X @ X.transpose(0, 2, 1)) + shared
+        xy = c2 * np.einsum("kc,kc->k", X[:, 0], X[:, 1])
+        cov[:, 0, 0] += c2 * np.einsum("kc,kc->k", X[:, 0], X[:, 0]) + shared[0, 0]
+        cov[:, 1, 1] += c2 * np.einsum("kc,kc->k", X[:, 1], X[:, 1]) + shared[1, 1]
+        cov[:, 0, 1] += xy + shared[0, 1]
+        cov[:, 1, 0] += xy + shared[1, 0]
         common = common + shared
     return cov, common

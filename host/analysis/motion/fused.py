@@ -68,7 +68,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from ..estimator import G0, estimate
 from ._consider import accel as consider_accel, propagate as consider_propagate, yaw as consider_yaw
-from ._common import CommonMotion, add_fixed_tilt, flat_frames
+from ._common import CommonMotion, add_fixed_tilt
 from ._config import FusedConfig
 from ._dipole import LocalField
 from ._lattice import CLOSURE_SIGNS, joints_from_vectors, link_midpoints, topology
@@ -287,7 +287,7 @@ class MotionEstimator:
         self.earth_field = None if earth_field_t is None else (float(earth_field_t), float(dip_rad))
         self.topo = topology(self.rows, self.cols)
         self.n_links = self.topo.n_links
-        self._flat = flat_frames(self.topo.group >= self.rows - 1)
+        self._j_links = np.flatnonzero(self.topo.group >= self.rows - 1)
         self._initial = self._check_initial(initial_frames, initial_std_rad, initial_bias_rps)
         self.reset()
 
@@ -470,7 +470,7 @@ class MotionEstimator:
         """The links' orientation covariances and the common tilt's (`_common.add_fixed_tilt`)."""
         cov, self._cov_out = self._cov_out, None
         cov = _orientation_cov(self.P, *self._cov_terms()) if cov is None else cov
-        return add_fixed_tilt(cov, self._common.tilt_cov, self.R, self._flat, self.config)
+        return add_fixed_tilt(cov, self._common.tilt_cov, self.R, self._j_links, self.config)
 
     def _cov_terms(self):
         """`_linalg.orientation_cov`'s terms beside ``P``: the common tilt's covariance and,
