@@ -116,7 +116,8 @@ def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, j_links: 
     ``j_links`` the j-links' indices. Returns both.
 
     * each chip's own (`FusedConfig.accel_fixed_error_rad`, per horizontal axis): to its link;
-    * the rotation the chips' frames share (`accel_common_fixed_error_rad`, per axis): a
+    * the rotation the chips' frames share (`accel_common_fixed_error_rad`, per axis of the
+      board, ``Σ`` diagonal): a
       calibration leaves it alike in the world while the sheet lay on its board (flat, as the
       lattice is drawn: an i-link along world x, a j-link along y, z up), fixed in the chips'
       frames since. A link turned by ``D = R Fᵀ`` since (``F`` its frame on the board) carries
@@ -130,16 +131,18 @@ def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, j_links: 
     if s2 := config.accel_fixed_error_rad ** 2:
         cov[:, 0, 0] += s2
         cov[:, 1, 1] += s2
-    if c2 := config.accel_common_fixed_error_rad ** 2:
+    c2 = np.broadcast_to(np.square(config.accel_common_fixed_error_rad, dtype=float), (3,))
+    if c2.any():  # per axis of the board (x, y, z)
         D = R[:, :2, :].copy()  # its rows: world x, y; an i-link's F is I
         D[j_links, :, 0] = -R[j_links, :2, 1]  # a j-link's is a quarter turn about z
         D[j_links, :, 1] = R[j_links, :2, 0]
         Db = D.mean(axis=0)
         X = D - Db
-        shared = c2 * (Db @ Db.T)
-        xy = c2 * np.einsum("kc,kc->k", X[:, 0], X[:, 1])
-        cov[:, 0, 0] += c2 * np.einsum("kc,kc->k", X[:, 0], X[:, 0]) + shared[0, 0]
-        cov[:, 1, 1] += c2 * np.einsum("kc,kc->k", X[:, 1], X[:, 1]) + shared[1, 1]
+        XS = X * c2
+        shared = (Db * c2) @ Db.T
+        xy = np.einsum("kc,kc->k", XS[:, 0], X[:, 1])
+        cov[:, 0, 0] += np.einsum("kc,kc->k", XS[:, 0], X[:, 0]) + shared[0, 0]
+        cov[:, 1, 1] += np.einsum("kc,kc->k", XS[:, 1], X[:, 1]) + shared[1, 1]
         cov[:, 0, 1] += xy + shared[0, 1]
         cov[:, 1, 0] += xy + shared[1, 0]
         common = common + shared
