@@ -116,13 +116,12 @@ def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, j_links: 
     ``j_links`` the j-links' indices. Returns both.
 
     * each chip's own (`FusedConfig.accel_fixed_error_rad`, per horizontal axis): to its link;
-    * the rotation the chips' frames share (`accel_common_fixed_error_rad`, per axis of the
-      board, ``Σ`` diagonal): a
-      calibration leaves it alike in the world while the sheet lay on its board (flat, as the
-      lattice is drawn: an i-link along world x, a j-link along y, z up), fixed in the chips'
-      frames since. A link turned by ``D = R Fᵀ`` since (``F`` its frame on the board) carries
-      it as ``D w``: alike on every link while the sheet
-      moves as one body, each its own as the sheet bends. Split as the links' mean ``D̄ w``,
+    * the rotation the chips' frames share, ``w`` (`accel_common_fixed_error_rad`, its
+      variance ``Σ`` diagonal in the board's axes): a calibration leaves it alike in the world
+      while the sheet lay on its board (flat, as the lattice is drawn: an i-link along world x,
+      a j-link along y, z up), fixed in the chips' frames since. A link turned by ``D = R Fᵀ``
+      since (``F`` its frame on the board) carries it as ``D w``: alike on every link while the
+      sheet moves as one body, each its own as the sheet bends. Split as the links' mean ``D̄ w``,
       which all share (to ``common`` and every link), and each link's ``(D − D̄) w`` (to its
       own; told as independent from link to link, though neighbours' are alike: the tilt NEES's
       mean needs only each link's variance). Told as a tilt common in the world, a wave's or

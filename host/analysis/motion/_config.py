@@ -54,17 +54,18 @@ class FusedConfig:
         there; as the link turns, the specific force ``f`` in its frame changes and so does the
         rate's error, ``Γ (f − f₀) / g``: carried as a consider state beside the scale error's.
         0: not modelled.
-    accel_fixed_error_rad, accel_common_fixed_error_rad : float
+    accel_fixed_error_rad : float
+    accel_common_fixed_error_rad : float or tuple of 3 floats
         What a calibration leaves of the accelerometers' errors, rad: each chip's own, as the
         tilt it gives per horizontal axis (`accel_fixed_error_rad`), and the rotation the chips'
         frames share, one figure for every axis or three (`accel_common_fixed_error_rad`: about
-        the flat board's x, y and z — along the i-links, along the j-links, up; the board's pose
-        when they were calibrated, alike in the world while the sheet lay flat on it and fixed in the chips'
-        frames since, so a bent sheet's links carry it each turned by its own turn since the
-        flat layout). A fixed error does not average out as the noise does, and nothing the
-        sheet reads tells it from a tilt: the filter follows the accelerometers' frames, and the
-        links' frames lie off them by it, so it is added to the covariances reported
-        (`MotionEstimate.orientation_cov_rad2`, the part every link shares also to
+        the flat board's x, y and z — along the i-links, along the j-links, up; the board's
+        pose when they were calibrated, alike in the world while the sheet lay flat on it and
+        fixed in the chips' frames since, so a bent sheet's links carry it each turned by its
+        own turn since the flat layout). A fixed error does not average out as the noise does,
+        and nothing the sheet reads tells it from a tilt: the filter follows the accelerometers'
+        frames, and the links' frames lie off them by it, so it is added to the covariances
+        reported (`MotionEstimate.orientation_cov_rad2`, the part every link shares also to
         `common_tilt_cov_rad2`; `_common.add_fixed_tilt`), not estimated. 0: not told.
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
