@@ -45,15 +45,10 @@ class CommonMotion:
         The sheet's velocity spread about zero and its correlation time.
     position_std_m, position_time_s : float
         The sheet's position spread about its mean and its correlation time.
-    fixed_tilt_var : float
-        What the accelerometers' shared fixed error adds to the sheet's tilt, rad² per axis
-        (`FusedConfig.accel_common_fixed_error_rad`): nothing the sheet reads tells it from a
-        tilt, so it is not estimated, only reported with the tilt's covariance (`tilt_cov`).
     """
 
     def __init__(self, tilt_var0: float, rate_var0: float, velocity_std_mps: float,
-                 velocity_time_s: float, position_std_m: float, position_time_s: float,
-                 fixed_tilt_var: float = 0.0) -> None:
+                 velocity_time_s: float, position_std_m: float, position_time_s: float) -> None:
         self.x = np.zeros(8)  # c, β (both 0 after `take`), v, p
         self.C = np.zeros((8, 8))
         self.C[0, 0] = self.C[1, 1] = tilt_var0
@@ -63,7 +58,6 @@ class CommonMotion:
             self.C[i, i] = 1e-6
         self.sv, self.tv = velocity_std_mps, velocity_time_s
         self.sp, self.tp = position_std_m, position_time_s
-        self.fixed_tilt_var = fixed_tilt_var
 
     def step(self, m_xy: np.ndarray, h: float, q_tilt: float, q_rate: float,
              r_accel: float) -> None:
@@ -108,21 +102,47 @@ class CommonMotion:
 
     @property
     def tilt_cov(self) -> np.ndarray:
-        """The common tilt's covariance, 2 x 2, rad², world x and y (the accelerometers'
-        shared fixed error included)."""
-        c = self.C[:2, :2].copy()
-        if self.fixed_tilt_var:
-            c[0, 0] += self.fixed_tilt_var
-            c[1, 1] += self.fixed_tilt_var
-        return c
+        """The common tilt's covariance, 2 x 2, rad², world x and y (the filter's; what the
+        accelerometers' fixed errors add is `add_fixed_tilt`'s)."""
+        return self.C[:2, :2].copy()
 
 
-def add_fixed_tilt(cov: np.ndarray, config) -> np.ndarray:
-    """Every link's orientation covariance ``cov`` (n, 3, 3) with what its own accelerometer's
-    fixed error adds to its tilt (`FusedConfig.accel_fixed_error_rad`), in place: the filter
-    follows the accelerometers' frames and each link's frame lies off its chip's by that error,
-    which nothing the sheet reads tells from a tilt. Returns ``cov``."""
+def add_fixed_tilt(cov: np.ndarray, common: np.ndarray, R: np.ndarray, j_links: np.ndarray,
+                   config) -> tuple[np.ndarray, np.ndarray]:
+    """Every link's orientation covariance ``cov`` (n, 3, 3) and the part all links share,
+    ``common`` (2, 2), with what the accelerometers' fixed errors add to the tilts (the filter
+    follows the accelerometers' frames, and each link's frame lies off its chip's by them,
+    which nothing the sheet reads tells from a tilt); ``cov`` in place; ``R`` the links' frames,
+    ``j_links`` the j-links' indices. Returns both.
+
+    * each chip's own (`FusedConfig.accel_fixed_error_rad`, per horizontal axis): to its link;
+    * the rotation the chips' frames share, ``w`` (`accel_common_fixed_error_rad`, its
+      variance ``Σ`` diagonal in the board's axes): a calibration leaves it alike in the world
+      while the sheet lay on its board (flat, as the lattice is drawn: an i-link along world x,
+      a j-link along y, z up), fixed in the chips' frames since. A link turned by ``D = R Fᵀ``
+      since (``F`` its frame on the board) carries it as ``D w``: alike on every link while the
+      sheet moves as one body, each its own as the sheet bends. Split as the links' mean ``D̄ w``,
+      which all share (to ``common`` and every link), and each link's ``(D − D̄) w`` (to its
+      own; told as independent from link to link, though neighbours' are alike: the tilt NEES's
+      mean needs only each link's variance). Told as a tilt common in the world, a wave's or
+      an elbow's links had claimed their shared part alike while it is turned apart with them
+      (docs/estimator.md §8)."""
     if s2 := config.accel_fixed_error_rad ** 2:
         cov[:, 0, 0] += s2
         cov[:, 1, 1] += s2
-    return cov
+    c2 = np.broadcast_to(np.square(config.accel_common_fixed_error_rad, dtype=float), (3,))
+    if c2.any():  # per axis of the board (x, y, z)
+        D = R[:, :2, :].copy()  # its rows: world x, y; an i-link's F is I
+        D[j_links, :, 0] = -R[j_links, :2, 1]  # a j-link's is a quarter turn about z
+        D[j_links, :, 1] = R[j_links, :2, 0]
+        Db = D.mean(axis=0)
+        X = D - Db
+        XS = X * c2
+        shared = (Db * c2) @ Db.T
+        xy = np.einsum("kc,kc->k", XS[:, 0], X[:, 1])
+        cov[:, 0, 0] += np.einsum("kc,kc->k", XS[:, 0], X[:, 0]) + shared[0, 0]
+        cov[:, 1, 1] += np.einsum("kc,kc->k", XS[:, 1], X[:, 1]) + shared[1, 1]
+        cov[:, 0, 1] += xy + shared[0, 1]
+        cov[:, 1, 0] += xy + shared[1, 0]
+        common = common + shared
+    return cov, common

@@ -54,14 +54,19 @@ class FusedConfig:
         there; as the link turns, the specific force ``f`` in its frame changes and so does the
         rate's error, ``Γ (f − f₀) / g``: carried as a consider state beside the scale error's.
         0: not modelled.
-    accel_fixed_error_rad, accel_common_fixed_error_rad : float
-        What a calibration leaves of the accelerometers' errors, as the tilt it gives, rad per
-        horizontal axis: each chip's own (`accel_fixed_error_rad`) and the part the chips share
-        (a board's own tilt against gravity, `accel_common_fixed_error_rad`). A fixed error does
-        not average out as the noise does, and nothing the sheet reads tells it from a tilt: the
-        filter follows the accelerometers' frames, and the links' frames lie off them by it, so
-        it is added to the covariances reported (`MotionEstimate.orientation_cov_rad2`, the
-        shared part also to `common_tilt_cov_rad2`), not estimated. 0: not told.
+    accel_fixed_error_rad : float
+    accel_common_fixed_error_rad : float or tuple of 3 floats
+        What a calibration leaves of the accelerometers' errors, rad: each chip's own, as the
+        tilt it gives per horizontal axis (`accel_fixed_error_rad`), and the rotation the chips'
+        frames share, one figure for every axis or three (`accel_common_fixed_error_rad`: about
+        the flat board's x, y and z — along the i-links, along the j-links, up; the board's
+        pose when they were calibrated, alike in the world while the sheet lay flat on it and
+        fixed in the chips' frames since, so a bent sheet's links carry it each turned by its
+        own turn since the flat layout). A fixed error does not average out as the noise does,
+        and nothing the sheet reads tells it from a tilt: the filter follows the accelerometers'
+        frames, and the links' frames lie off them by it, so it is added to the covariances
+        reported (`MotionEstimate.orientation_cov_rad2`, the part every link shares also to
+        `common_tilt_cov_rad2`; `_common.add_fixed_tilt`), not estimated. 0: not told.
     orientation_walk_rad : float
         A floor of process noise on every orientation, rad/√s (what the model leaves out).
     rel_accel_error : float
@@ -137,7 +142,7 @@ class FusedConfig:
     gyro_scale_fixed_error: float | tuple = 0.0
     gyro_gsens_fixed_error: float | tuple = 0.0
     accel_fixed_error_rad: float = 0.0
-    accel_common_fixed_error_rad: float = 0.0
+    accel_common_fixed_error_rad: float | tuple = 0.0
     orientation_walk_rad: float = float(np.radians(0.05))
     rel_accel_error: float = 0.01
     accel_floor_mps2: float = 0.02
@@ -178,6 +183,13 @@ class FusedConfig:
                         isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
                         and np.isfinite(x) and x >= 0 for x in a.ravel()):
                     raise ValueError(f"Invalid {name}: {v!r} (need a number >= 0 or 3 x 3 of them)")
+                continue
+            if name == "accel_common_fixed_error_rad" and isinstance(v, (tuple, list, np.ndarray)):
+                a = np.asarray(v, dtype=object)
+                if a.shape != (3,) or not all(
+                        isinstance(x, (int, float, np.number)) and not isinstance(x, bool)
+                        and np.isfinite(x) and x >= 0 for x in a):
+                    raise ValueError(f"Invalid {name}: {v!r} (need a number >= 0 or 3 of them)")
                 continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.number)) \
                     or not np.isfinite(v) or v < 0:

@@ -287,6 +287,7 @@ class MotionEstimator:
         self.earth_field = None if earth_field_t is None else (float(earth_field_t), float(dip_rad))
         self.topo = topology(self.rows, self.cols)
         self.n_links = self.topo.n_links
+        self._j_links = np.flatnonzero(self.topo.group >= self.rows - 1)
         self._initial = self._check_initial(initial_frames, initial_std_rad, initial_bias_rps)
         self.reset()
 
@@ -446,8 +447,8 @@ class MotionEstimator:
             self._t = t
         joints = joints_from_vectors(self.R[:, :, 0], self.rows, self.cols, self.link_length)
         self._joints = joints
-        cov, self._cov_out = self._cov_out, None
         t4 = time.perf_counter()
+        cov, common = self._with_fixed()
         self.snapshots += 1
         return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
                               gyro_bias_rps=self.bias.copy(),
@@ -455,9 +456,7 @@ class MotionEstimator:
                               common_accel_mps2=a_c, heading_absolute=bool(self._with_mag),
                               timings={"propagate": t1 - t0, "accel": t2 - t1,
                                        "lattice": t3 - t2, "joints": t4 - t3, "total": t4 - t0},
-                              orientation_cov_rad2=self.orientation_cov() if cov is None
-                              else add_fixed_tilt(cov, self.config),
-                              common_tilt_cov_rad2=self._common.tilt_cov,
+                              orientation_cov_rad2=cov, common_tilt_cov_rad2=common,
                               accel_nis=self._nis.copy())
 
     def orientation_cov(self) -> np.ndarray:
@@ -465,7 +464,13 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        return add_fixed_tilt(_orientation_cov(self.P, *self._cov_terms()), self.config)
+        return self._with_fixed()[0]
+
+    def _with_fixed(self):
+        """The links' orientation covariances and the common tilt's (`_common.add_fixed_tilt`)."""
+        cov, self._cov_out = self._cov_out, None
+        cov = _orientation_cov(self.P, *self._cov_terms()) if cov is None else cov
+        return add_fixed_tilt(cov, self._common.tilt_cov, self.R, self._j_links, self.config)
 
     def _cov_terms(self):
         """`_linalg.orientation_cov`'s terms beside ``P``: the common tilt's covariance and,
@@ -545,9 +550,8 @@ class MotionEstimator:
         self._common = CommonMotion(float(np.mean(tilt)) / max(int(v.sum()), 1),
                                     (cfg.gyro_bias_std_rps if cfg.gyro_common_bias_std_rps is None
                                      else cfg.gyro_common_bias_std_rps) ** 2,
-                                    cfg.sheet_velocity_std_mps,
-                                    cfg.sheet_velocity_time_s, cfg.sheet_position_std_m,
-                                    cfg.sheet_position_time_s, cfg.accel_common_fixed_error_rad ** 2)
+                                    cfg.sheet_velocity_std_mps, cfg.sheet_velocity_time_s,
+                                    cfg.sheet_position_std_m, cfg.sheet_position_time_s)
         self._nis = np.full(n, np.nan)
         self._cinv = None  # the yaw solve's coarse preconditioner (`_linalg.coarse_inverse`)
 
