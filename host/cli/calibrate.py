@@ -500,7 +500,8 @@ def _imu_line(s: dict) -> str:
     """`_imu_summary` as a person reads it (``--json`` carries the same figures by name)."""
     parts = []
     if "gyro_fitted" in s:
-        g = f"gyroscope {s['gyro_fitted']} fitted"
+        g = {"all": "gyroscope bias, g-sensitivity, scale and cross-axis fitted",
+             "none": "gyroscope not fitted"}.get(s["gyro_fitted"], f"gyroscope {s['gyro_fitted']} fitted")
         if "gyro_bias_dps_max" in s:
             g += f", bias up to {s['gyro_bias_dps_max']:g} °/s"
         g += (f"; rest residual up to {s['gyro_rest_residual_dps_max']:g} °/s "

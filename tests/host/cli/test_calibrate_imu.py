@@ -181,6 +181,7 @@ def test_calibrate_writes_gyro_and_mag_calibration_over_python_can_virtual(tmp_p
         code, _out, err = run_simulated(world, [*_calibrate_argv(tmp_path / "cal.json", layout), "--can", chan],
                                         capsys)
         assert code == 0, err
+        assert " held poses: gyroscope bias, g-sensitivity, scale and cross-axis fitted, bias up to " in err, err
         after = _errors(sheet, _host(world, [CanTransport(chan, reconnect=False)], sheet))
     finally:
         world.device.stop()
