@@ -448,7 +448,8 @@ class MotionEstimator:
         joints = joints_from_vectors(self.R[:, :, 0], self.rows, self.cols, self.link_length)
         self._joints = joints
         t4 = time.perf_counter()
-        cov, common = self._with_fixed()
+        cov, self._cov_out = self._cov_out, None
+        cov, common = self._with_fixed(cov)
         self.snapshots += 1
         return MotionEstimate(t_s=float(np.max(t)), joints=joints, frames=self.R.copy(),
                               gyro_bias_rps=self.bias.copy(),
@@ -464,11 +465,10 @@ class MotionEstimator:
         (`MotionEstimate.orientation_cov_rad2`)."""
         if self.R is None:
             raise ValueError("No orientation yet: feed a snapshot to `update` first.")
-        return self._with_fixed()[0]
+        return self._with_fixed(None)[0]
 
-    def _with_fixed(self):
-        """The links' orientation covariances and the common tilt's (`_common.add_fixed_tilt`)."""
-        cov, self._cov_out = self._cov_out, None
+    def _with_fixed(self, cov):
+        """The links' and the common tilt's covariances (`add_fixed_tilt`); ``cov`` None: from P."""
         cov = _orientation_cov(self.P, *self._cov_terms()) if cov is None else cov
         return add_fixed_tilt(cov, self._common.tilt_cov, self.R, self._j_links, self.config)
 
